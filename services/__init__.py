@@ -1,0 +1,1 @@
+"""diffpos services: the CLI, bus services (Zenoh), recordings (MCAP), dashboards (Rerun)."""
