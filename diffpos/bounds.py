@@ -19,10 +19,10 @@ from .geometry import los_path, window_edge_path
 __all__ = [
     "Bounds",
     "Identifiability",
+    "bounds_from_fim",
     "fisher_information",
     "identifiability",
     "position_error_bound",
-    "bounds_from_fim",
 ]
 
 FloatArray = NDArray[np.float64]

@@ -15,8 +15,14 @@ from collections.abc import Sequence
 
 #: subcommand -> (module, one-line help). The order is the order shown by ``--help``.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "emulate": ("cmd_emulate", "Run the whole system on this machine: router, anchors, fusion, recorder, dashboard"),
+    "solve": ("cmd_solve", "Position fixes from JSON Lines problems on stdin (D-NLS, LLS, IPPA)"),
+    "reproduce": ("cmd_reproduce", "Regenerate the paper's study: MPC table, first-arrival stats, error CDFs"),
     "bounds": ("cmd_bounds", "PEB and z-axis bound over a grid of indoor nodes, heat maps per floor"),
     "power-ratio": ("cmd_power_ratio", "Upper/lower edge diffraction power ratio (Theorem 3): PNG + CSV"),
+    "router": ("cmd_router", "Zenoh router in this Python process (no zenohd binary needed)"),
+    "anchor": ("cmd_anchor", "One UAV anchor: flies its trajectory, ranges to nodes, publishes over Zenoh"),
+    "fusion": ("cmd_fusion", "Fusion service: aligns ranges in time, D-NLS with outlier gating, publishes fixes"),
 }
 
 EPILOG = """\
