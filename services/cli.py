@@ -23,6 +23,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "router": ("cmd_router", "Zenoh router in this Python process (no zenohd binary needed)"),
     "anchor": ("cmd_anchor", "One UAV anchor: flies its trajectory, ranges to nodes, publishes over Zenoh"),
     "fusion": ("cmd_fusion", "Fusion service: aligns ranges in time, D-NLS with outlier gating, publishes fixes"),
+    "recorder": ("cmd_recorder", "Record every message on the bus to MCAP (with liveliness events and config)"),
+    "replay": ("cmd_replay", "Re-run fusion offline from an MCAP recording; error report, CDF plot, what-ifs"),
+    "inspect": ("cmd_inspect", "Channels, schemas, counts, time span, anchors and nodes of an MCAP recording"),
+    "recover": ("cmd_recover", "Rewrite a truncated MCAP recording (e.g. after SIGKILL) into a valid one"),
 }
 
 EPILOG = """\
