@@ -27,6 +27,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("cmd_replay", "Re-run fusion offline from an MCAP recording; error report, CDF plot, what-ifs"),
     "inspect": ("cmd_inspect", "Channels, schemas, counts, time span, anchors and nodes of an MCAP recording"),
     "recover": ("cmd_recover", "Rewrite a truncated MCAP recording (e.g. after SIGKILL) into a valid one"),
+    "dashboard": ("cmd_dashboard", "Live Rerun dashboard of a running system (viewer, web viewer or .rrd)"),
+    "to-rerun": ("cmd_to_rerun", "Convert an MCAP recording into a Rerun .rrd dashboard"),
+    "raytrace": ("cmd_raytrace", "Ray-trace the scenario with Sionna RT (optional extra) for an independent check"),
 }
 
 EPILOG = """\
