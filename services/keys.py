@@ -1,0 +1,199 @@
+"""Zenoh key expressions of the diffpos bus: the one place where they are spelled.
+
+Every key lives under ``diffpos/<site>/``; a recorder or dashboard subscribing to
+``diffpos/<site>/**`` sees every data message (liveliness tokens travel separately and are
+watched with a liveliness subscriber on :meth:`Keys.alive_all`).
+
+========================================== ===================== ===============================
+key expression                              message (schemas/)     publisher -> subscribers
+========================================== ===================== ===============================
+``diffpos/<site>/anchor/<anchor>/state``    ``anchor_state.v1``    anchor -> fusion, recorder, UI
+``diffpos/<site>/anchor/<anchor>/range/<node>`` ``range.v1``       anchor -> fusion, recorder, UI
+``diffpos/<site>/node/<node>/estimate``     ``estimate.v1``        fusion -> recorder, UI, emulate
+``diffpos/<site>/fusion/diagnostics``       ``fusion_diagnostics.v1`` fusion -> recorder, UI
+``diffpos/<site>/truth/node/<node>``        ``truth.v1``           emulate -> recorder, UI (never fusion)
+``diffpos/<site>/truth/anchor/<anchor>``    ``truth.v1``           emulate -> recorder, UI (never fusion)
+``diffpos/<site>/run/control``              ``run_control.v1``     emulate -> anchors (start gate)
+``diffpos/<site>/alive/anchor/<anchor>``    liveliness token       anchor -> fusion, emulate
+``diffpos/<site>/alive/fusion``             liveliness token       fusion -> emulate
+========================================== ===================== ===============================
+
+Identifiers (site, anchor and node ids) are single key chunks: letters, digits, ``_`` and
+``-`` only (no ``/``, no wildcards).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Literal
+
+__all__ = [
+    "PREFIX",
+    "KeyKind",
+    "Keys",
+    "ParsedKey",
+    "check_id",
+    "parse_key",
+]
+
+#: First chunk of every diffpos key.
+PREFIX = "diffpos"
+
+_ID_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]{0,63}$")
+
+KeyKind = Literal[
+    "anchor_state",
+    "range",
+    "estimate",
+    "diagnostics",
+    "truth_node",
+    "truth_anchor",
+    "run_control",
+    "alive_anchor",
+    "alive_fusion",
+]
+
+
+def check_id(value: str, *, field: str = "id") -> str:
+    """Return ``value`` if it is a valid key chunk, else raise ``ValueError`` naming ``field``.
+
+    Valid: 1-64 characters from ``[A-Za-z0-9_-]``, not starting with ``-``.
+    """
+    if not isinstance(value, str) or not _ID_RE.match(value):
+        raise ValueError(
+            f"{field}={value!r} is not a valid identifier: use 1-64 characters from "
+            "letters, digits, '_' and '-' (no '/', '*', '$', '?', '#' or spaces)"
+        )
+    return value
+
+
+@dataclass(frozen=True)
+class ParsedKey:
+    """A concrete key split into its meaning.
+
+    Attributes
+    ----------
+    kind : str
+        One of :data:`KeyKind`.
+    site : str
+    anchor_id, node_id : str or None
+        The identifiers present in the key.
+    """
+
+    kind: str
+    site: str
+    anchor_id: str | None = None
+    node_id: str | None = None
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions of one site.
+
+    Parameters
+    ----------
+    site : str
+        Site (deployment) name, a single key chunk such as ``"paper"`` or ``"demo"``.
+    """
+
+    site: str
+
+    def __post_init__(self) -> None:
+        check_id(self.site, field="site")
+
+    @property
+    def root(self) -> str:
+        """``diffpos/<site>``."""
+        return f"{PREFIX}/{self.site}"
+
+    # -- concrete keys -------------------------------------------------------------------
+    def anchor_state(self, anchor_id: str) -> str:
+        return f"{self.root}/anchor/{anchor_id}/state"
+
+    def anchor_range(self, anchor_id: str, node_id: str) -> str:
+        return f"{self.root}/anchor/{anchor_id}/range/{node_id}"
+
+    def node_estimate(self, node_id: str) -> str:
+        return f"{self.root}/node/{node_id}/estimate"
+
+    def fusion_diagnostics(self) -> str:
+        return f"{self.root}/fusion/diagnostics"
+
+    def truth_node(self, node_id: str) -> str:
+        return f"{self.root}/truth/node/{node_id}"
+
+    def truth_anchor(self, anchor_id: str) -> str:
+        return f"{self.root}/truth/anchor/{anchor_id}"
+
+    def run_control(self) -> str:
+        return f"{self.root}/run/control"
+
+    def alive_anchor(self, anchor_id: str) -> str:
+        """Liveliness token of one anchor."""
+        return f"{self.root}/alive/anchor/{anchor_id}"
+
+    def alive_fusion(self) -> str:
+        """Liveliness token of the fusion service."""
+        return f"{self.root}/alive/fusion"
+
+    # -- patterns ------------------------------------------------------------------------
+    def everything(self) -> str:
+        """All data messages of the site (what a recorder subscribes to)."""
+        return f"{self.root}/**"
+
+    def anchor_states(self) -> str:
+        return f"{self.root}/anchor/*/state"
+
+    def anchor_ranges(self) -> str:
+        return f"{self.root}/anchor/*/range/*"
+
+    def estimates(self) -> str:
+        return f"{self.root}/node/*/estimate"
+
+    def truth_all(self) -> str:
+        return f"{self.root}/truth/**"
+
+    def alive_anchors(self) -> str:
+        """Liveliness pattern matching every anchor token."""
+        return f"{self.root}/alive/anchor/*"
+
+    def alive_all(self) -> str:
+        """Liveliness pattern matching every token of the site."""
+        return f"{self.root}/alive/**"
+
+    def fusion_inputs(self) -> tuple[str, ...]:
+        """The data key expressions the fusion service subscribes to (no truth, by design)."""
+        return (self.anchor_states(), self.anchor_ranges())
+
+
+def parse_key(key: str) -> ParsedKey | None:
+    """Classify a concrete diffpos key; ``None`` if it is not one of ours.
+
+    >>> parse_key("diffpos/demo/anchor/uav1/range/n03")
+    ParsedKey(kind='range', site='demo', anchor_id='uav1', node_id='n03')
+    """
+    parts = str(key).split("/")
+    if len(parts) < 3 or parts[0] != PREFIX:
+        return None
+    site, rest = parts[1], parts[2:]
+    match rest:
+        case ["anchor", a, "state"]:
+            return ParsedKey("anchor_state", site, anchor_id=a)
+        case ["anchor", a, "range", n]:
+            return ParsedKey("range", site, anchor_id=a, node_id=n)
+        case ["node", n, "estimate"]:
+            return ParsedKey("estimate", site, node_id=n)
+        case ["fusion", "diagnostics"]:
+            return ParsedKey("diagnostics", site)
+        case ["truth", "node", n]:
+            return ParsedKey("truth_node", site, node_id=n)
+        case ["truth", "anchor", a]:
+            return ParsedKey("truth_anchor", site, anchor_id=a)
+        case ["run", "control"]:
+            return ParsedKey("run_control", site)
+        case ["alive", "anchor", a]:
+            return ParsedKey("alive_anchor", site, anchor_id=a)
+        case ["alive", "fusion"]:
+            return ParsedKey("alive_fusion", site)
+    return None

@@ -1,0 +1,201 @@
+"""What every diffpos bus service shares: typed config, structured logs, clean shutdown.
+
+- :func:`build_config` turns plain options into a typed, validated ``msgspec.Struct`` and
+  raises :class:`ConfigError` naming the bad field (the CLI prints it, no traceback).
+- :func:`setup_logging` writes one JSON object per line to stderr (``--log-format text`` for
+  humans); :func:`log_event` attaches key/value fields; :class:`LogOnce` logs a recurring
+  problem once per (key, reason).
+- :class:`Shutdown` turns SIGINT/SIGTERM into an event the main loop waits on, so sessions
+  are closed by their ``with`` blocks and buffers are flushed before exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar
+
+import msgspec
+
+__all__ = [
+    "ConfigError",
+    "LogOnce",
+    "Shutdown",
+    "add_logging_arguments",
+    "build_config",
+    "log_event",
+    "run_main",
+    "setup_logging",
+]
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """Invalid service configuration; the message names the field and what to fix."""
+
+
+def build_config(kind: type[T], values: Mapping[str, Any]) -> T:
+    """Validate ``values`` into the typed config struct ``kind``.
+
+    Raises
+    ------
+    ConfigError
+        With msgspec's path to the offending field, e.g.
+        ``invalid fusion config: Expected `float` >= 0.0 - at `$.deadline_s```.
+    """
+    try:
+        cfg = msgspec.convert(dict(values), type=kind, strict=False)
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"invalid {kind.__name__}: {exc}") from None
+    check = getattr(cfg, "check", None)
+    if check is not None:
+        try:
+            check()
+        except ValueError as exc:
+            raise ConfigError(f"invalid {kind.__name__}: {exc}") from None
+    return cfg
+
+
+# ----------------------------------------------------------------------------- logging
+class _JsonFormatter(logging.Formatter):
+    def __init__(self, service: str) -> None:
+        super().__init__()
+        self.service = service
+
+    def format(self, record: logging.LogRecord) -> str:
+        out = {
+            "ts": round(record.created, 6),
+            "level": record.levelname.lower(),
+            "service": self.service,
+            "pid": record.process,
+            "msg": record.getMessage(),
+        }
+        fields = getattr(record, "fields", None)
+        if fields:
+            out.update(fields)
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out, default=str)
+
+
+class _TextFormatter(logging.Formatter):
+    def __init__(self, service: str) -> None:
+        super().__init__()
+        self.service = service
+
+    def format(self, record: logging.LogRecord) -> str:
+        fields = getattr(record, "fields", None) or {}
+        extra = " ".join(f"{k}={v}" for k, v in fields.items())
+        stamp = time.strftime("%H:%M:%S", time.localtime(record.created))
+        line = f"{stamp} {record.levelname.lower():<7} {self.service}: {record.getMessage()}"
+        if extra:
+            line += " " + extra
+        if record.exc_info:
+            line += "\n" + self.formatException(record.exc_info)
+        return line
+
+
+def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--log-level`` and ``--log-format`` options."""
+    g = parser.add_argument_group("logging")
+    g.add_argument(
+        "--log-level",
+        default=os.environ.get("DIFFPOS_LOG_LEVEL", "info"),
+        choices=["debug", "info", "warning", "error"],
+        help="log verbosity (default info, env DIFFPOS_LOG_LEVEL)",
+    )
+    g.add_argument(
+        "--log-format",
+        default=os.environ.get("DIFFPOS_LOG_FORMAT", "json"),
+        choices=["json", "text"],
+        help="json: one object per line on stderr (default, env DIFFPOS_LOG_FORMAT); text: human",
+    )
+
+
+def setup_logging(service: str, *, level: str = "info", fmt: str = "json") -> logging.Logger:
+    """Configure the root logger for a service process; return the service's logger."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_JsonFormatter(service) if fmt == "json" else _TextFormatter(service))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+    return logging.getLogger(f"diffpos.{service}")
+
+
+def log_event(logger: logging.Logger, level: int, msg: str, **fields: Any) -> None:
+    """Log ``msg`` with structured key/value ``fields``."""
+    if logger.isEnabledFor(level):
+        logger.log(level, msg, extra={"fields": fields})
+
+
+class LogOnce:
+    """Log a recurring problem once per ``(key, reason)``; count every occurrence."""
+
+    def __init__(self, logger: logging.Logger, *, max_keys: int = 10_000) -> None:
+        self.logger = logger
+        self.max_keys = max_keys
+        self.seen: dict[tuple[str, str], int] = {}
+
+    def __call__(self, key: str, reason: str, detail: str = "", level: int = logging.WARNING) -> None:
+        k = (key, reason)
+        n = self.seen.get(k, 0)
+        if n == 0 and len(self.seen) < self.max_keys:
+            log_event(self.logger, level, f"{reason} on {key}", key=key, reason=reason, detail=detail[:300])
+        if n or len(self.seen) < self.max_keys:
+            self.seen[k] = n + 1
+
+
+# ----------------------------------------------------------------------------- shutdown
+class Shutdown:
+    """SIGINT/SIGTERM -> ``event``; the main loop waits on it and exits its ``with`` blocks.
+
+    A second signal while shutting down raises ``KeyboardInterrupt`` (escape hatch).
+    Must be created in the main thread.
+    """
+
+    def __init__(self, logger: logging.Logger | None = None) -> None:
+        self.event = threading.Event()
+        self.signal_name: str | None = None
+        self._logger = logger
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._handle)
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self.event.is_set():
+            raise KeyboardInterrupt(name)
+        self.signal_name = name
+        if self._logger is not None:
+            log_event(self._logger, logging.INFO, "shutdown requested", signal=name)
+        self.event.set()
+
+    def is_set(self) -> bool:
+        return self.event.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return self.event.wait(timeout)
+
+    def set(self) -> None:
+        self.event.set()
+
+
+def run_main(fn: Callable[[], int], logger: logging.Logger) -> int:
+    """Run a service body; map :class:`ConfigError` to exit code 2 with a one-line message."""
+    try:
+        return int(fn() or 0)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:  # pragma: no cover - last resort, logged with traceback
+        logger.exception("fatal: %s", exc)
+        return 1
