@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import msgspec
+from diffpos_services.keys import PREFIX, parse_key
 from mcap.decoder import DecoderFactory
 from mcap.records import Attachment, Metadata, Schema
 from mcap.writer import CompressionType, Writer
@@ -58,6 +59,7 @@ __all__ = [
     "liveliness_topic",
     "parse_topic",
     "recover",
+    "replay_estimate_topic",
     "summarize",
 ]
 
@@ -87,8 +89,8 @@ _U64 = struct.Struct("<Q")
 #: joining and leaving). Kept here because the recorder is the only producer.
 LIVELINESS_SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "$id": "diffpos.LivelinessEvent.v1",
-    "title": "diffpos.LivelinessEvent",
+    "$id": "https://diffpos.invalid/schemas/liveliness_event.v1.json",
+    "title": "diffpos.liveliness_event.v1",
     "description": "A liveliness token appeared (alive=true) or disappeared (alive=false), "
     "as seen by the recorder.",
     "type": "object",
@@ -113,17 +115,6 @@ class RecordingError(Exception):
 # topics
 # ----------------------------------------------------------------------------------------
 
-_TOPIC_PATTERNS: tuple[tuple[str, re.Pattern[str]], ...] = (
-    ("anchor_state", re.compile(r"^(?P<prefix>.+?)/anchor/(?P<anchor>[^/]+)/state$")),
-    ("range", re.compile(r"^(?P<prefix>.+?)/anchor/(?P<anchor>[^/]+)/range/(?P<node>[^/]+)$")),
-    ("estimate", re.compile(r"^(?P<prefix>.+?)/node/(?P<node>[^/]+)/estimate$")),
-    ("truth", re.compile(r"^(?P<prefix>.+?)/truth/node/(?P<node>[^/]+)$")),
-    ("diagnostics", re.compile(r"^(?P<prefix>.+?)/fusion/diagnostics$")),
-    ("liveliness", re.compile(r"^(?P<prefix>.+?)/recorder/liveliness$")),
-    ("replay_estimate", re.compile(r"^(?P<prefix>.+?)/replay/node/(?P<node>[^/]+)/estimate$")),
-)
-
-
 def parse_topic(topic: str) -> tuple[str, dict[str, str]]:
     """Classify a key expression / MCAP topic.
 
@@ -135,21 +126,38 @@ def parse_topic(topic: str) -> tuple[str, dict[str, str]]:
     Returns
     -------
     kind : str
-        ``anchor_state``, ``range``, ``estimate``, ``truth``, ``diagnostics``, ``liveliness``,
-        ``replay_estimate`` or ``unknown``.
+        A :func:`diffpos_services.keys.parse_key` kind (``anchor_state``, ``range``,
+        ``estimate``, ``diagnostics``, ``truth_node``, ``truth_anchor``, ``run_control``, ...),
+        or one of the recording-only kinds ``liveliness`` (the recorder's event channel) and
+        ``replay_estimate`` (estimates written by ``diffpos replay``), or ``unknown``.
     fields : dict
-        The named parts: ``prefix`` and, when present, ``anchor`` and ``node``.
+        ``site`` and, when present, ``anchor`` and ``node``.
     """
-    for kind, pattern in _TOPIC_PATTERNS:
-        m = pattern.match(topic)
-        if m:
-            return kind, m.groupdict()
-    return "unknown", {}
+    parts = topic.split("/")
+    if len(parts) >= 4 and parts[0] == PREFIX:
+        if parts[2:] == ["recorder", "liveliness"]:
+            return "liveliness", {"site": parts[1]}
+        if len(parts) == 6 and parts[2] == "replay" and parts[3] == "node" and parts[5] == "estimate":
+            return "replay_estimate", {"site": parts[1], "node": parts[4]}
+    pk = parse_key(topic)
+    if pk is None:
+        return "unknown", {}
+    fields = {"site": pk.site}
+    if pk.anchor_id is not None:
+        fields["anchor"] = pk.anchor_id
+    if pk.node_id is not None:
+        fields["node"] = pk.node_id
+    return pk.kind, fields
 
 
-def liveliness_topic(prefix: str) -> str:
-    """MCAP topic of the recorder's liveliness-event channel under ``prefix``."""
-    return f"{prefix.rstrip('/')}/recorder/liveliness"
+def replay_estimate_topic(site: str, node_id: str) -> str:
+    """MCAP topic of a replayed estimate (kept apart from the live ``node/<id>/estimate``)."""
+    return f"{PREFIX}/{site}/replay/node/{node_id}/estimate"
+
+
+def liveliness_topic(site: str) -> str:
+    """MCAP topic of the recorder's liveliness-event channel of ``site``."""
+    return f"{PREFIX}/{site}/recorder/liveliness"
 
 
 # ----------------------------------------------------------------------------------------
@@ -178,12 +186,14 @@ class SchemaEntry:
 
 #: message kind (see :func:`parse_topic`) -> candidate schema file stems (first found wins)
 DEFAULT_KIND_TO_STEMS: dict[str, tuple[str, ...]] = {
-    "anchor_state": ("anchor_state", "anchorstate", "state"),
-    "range": ("range", "range_measurement", "rangemeasurement"),
-    "estimate": ("estimate", "node_estimate", "position_estimate", "fix"),
-    "truth": ("truth", "node_truth", "ground_truth"),
-    "diagnostics": ("diagnostics", "fusion_diagnostics"),
-    "replay_estimate": ("estimate", "node_estimate", "position_estimate", "fix"),
+    "anchor_state": ("anchor_state",),
+    "range": ("range",),
+    "estimate": ("estimate",),
+    "diagnostics": ("fusion_diagnostics",),
+    "truth_node": ("truth",),
+    "truth_anchor": ("truth",),
+    "run_control": ("run_control",),
+    "replay_estimate": ("estimate",),
 }
 
 
@@ -537,14 +547,13 @@ class McapSink:
         stats.per_key[key] = stats.per_key.get(key, 0) + 1
         self._pending += 1
 
-    def write_liveliness(self, prefix: str, key: str, alive: bool, receive_ns: int) -> None:
+    def write_liveliness(self, site: str, key: str, alive: bool, receive_ns: int) -> None:
         """Record a liveliness token appearing (``alive``) or disappearing.
 
         Parameters
         ----------
-        prefix : str
-            Site prefix, e.g. ``diffpos/site1`` (the event goes to
-            :func:`liveliness_topic` of it).
+        site : str
+            Site name (the event goes to :func:`liveliness_topic` of it).
         key : str
             The token's key expression.
         alive : bool
@@ -552,17 +561,14 @@ class McapSink:
         receive_ns : int [ns]
             When the recorder saw it.
         """
-        _kind, fields = parse_topic(key)
         role, ident = "unknown", ""
-        m = re.search(r"/(anchor|node|fusion|recorder|dashboard)(?:/([^/]+))?", key)
-        if m:
-            role, ident = m.group(1), m.group(2) or ""
-        elif fields:
-            ident = fields.get("anchor") or fields.get("node") or ""
+        parts = key.split("/")
+        if len(parts) >= 4 and parts[2] == "alive":  # diffpos/<site>/alive/<role>[/<id>]
+            role, ident = parts[3], "/".join(parts[4:])
         event = {"v": 1, "key": key, "alive": bool(alive), "t_ns": int(receive_ns),
                  "role": role, "id": ident}
         payload = json.dumps(event, separators=(",", ":")).encode()
-        topic = liveliness_topic(prefix)
+        topic = liveliness_topic(site)
         with self._lock:
             self.stats.liveliness_events += 1
             cid = self._channels.get(topic)
