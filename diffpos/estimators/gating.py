@@ -1,0 +1,244 @@
+"""Outlier gating for D-NLS: physical pre-gate and RAIM-style fault detection and exclusion.
+
+Two tests run after every fit, for all fixes of a batch at once:
+
+1. **Physical pre-gate.** A diffraction path over an edge is a broken line from the anchor
+   to the node, so it can never be shorter than the straight line between them:
+   ``p_j(x) >= |a_j - x|``. A measured range with
+   ``r_j < |a_j - x_hat| - k sigma_j - margin`` (``k = GatingConfig.pregate_sigmas``) is
+   physically impossible at the fitted position and is excluded first (the worst violator,
+   in units of sigma), whatever the chi-square test says.
+2. **Chi-square residual test (RAIM fault detection).** With ``|S|`` used anchors and Gaussian
+   noise, the sum of squared normalised residuals at the least-squares solution,
+   ``T = sum_{j in S} (r_j / sigma_j)^2``, is (to first order) chi-square with ``|S| - 3``
+   degrees of freedom. The test fails when ``T`` exceeds the ``1 - P_fa`` quantile.
+   **Exclusion:** if it fails and at least ``min_anchors_after_exclusion`` anchors would
+   remain, every candidate subset ``S \\ {j}`` is refitted (warm-started at the current
+   solution, all candidates of all failing fixes in one batch) and the anchor whose exclusion
+   gives the smallest test statistic is removed. Test and exclusion repeat at most
+   ``max_exclusions`` times.
+
+Fixes with ``|S| <= 3`` (no redundancy) or without ``sigmas_m`` cannot be tested and are
+reported as ``OK_UNVERIFIED``. With ``|S| = 4`` a fault can be detected but not identified
+(every 3-anchor subset fits exactly), so with the default ``min_anchors_after_exclusion = 4``
+exclusion needs ``|S| >= 5``; otherwise a failed test gives ``GATING_FAILED``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from ..geometry import los_path
+from ._core import PathModel, cost_of, levenberg_marquardt
+from .result import ExclusionReason
+
+__all__ = ["GatingConfig", "chi2_threshold"]
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class GatingConfig:
+    """Settings of the D-NLS outlier gating (fault detection and exclusion).
+
+    Attributes
+    ----------
+    false_alarm_probability : float [-]
+        ``P_fa`` of the chi-square residual test (per test).
+    max_exclusions : int
+        Most anchors one fix may lose to the RAIM exclusion and the pre-gate together.
+    min_anchors_after_exclusion : int
+        RAIM exclusion is attempted only if at least this many anchors remain afterwards
+        (4 keeps the remaining fix testable; 3 allows an unverifiable fix).
+    pregate : bool
+        Apply the physical "shorter than the straight line" pre-gate.
+    pregate_sigmas : float [-]
+        ``k``: a range is impossible if shorter than the LoS distance by more than
+        ``k sigma_j + pregate_margin_m``.
+    pregate_margin_m : float [m]
+        Extra absolute tolerance of the pre-gate (e.g. for anchor position errors).
+    refit_max_iter : int
+        Iteration limit of each candidate refit.
+    """
+
+    false_alarm_probability: float = 1e-3
+    max_exclusions: int = 2
+    min_anchors_after_exclusion: int = 4
+    pregate: bool = True
+    pregate_sigmas: float = 4.0
+    pregate_margin_m: float = 0.0
+    refit_max_iter: int = 30
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.false_alarm_probability < 1.0:
+            raise ValueError("GatingConfig.false_alarm_probability must be in (0, 1)")
+        if self.max_exclusions < 0:
+            raise ValueError("GatingConfig.max_exclusions must be >= 0")
+        if self.min_anchors_after_exclusion < 3:
+            raise ValueError("GatingConfig.min_anchors_after_exclusion must be >= 3")
+        if self.pregate_sigmas < 0 or self.pregate_margin_m < 0:
+            raise ValueError("GatingConfig.pregate_sigmas and pregate_margin_m must be >= 0")
+
+
+def chi2_threshold(dof: NDArray[np.int_], false_alarm_probability: float) -> FloatArray:
+    """Chi-square test threshold per fix; NaN where ``dof < 1`` (no test possible)."""
+    dof = np.asarray(dof)
+    out = np.full(dof.shape, np.nan)
+    ok = dof >= 1
+    out[ok] = chi2.isf(false_alarm_probability, dof[ok])
+    return out
+
+
+@dataclass
+class GateState:
+    """Mutable per-fix state the gating loop updates (internal)."""
+
+    x_m: FloatArray  # (B, 3)
+    cost: FloatArray  # (B,)
+    iterations: NDArray[np.int_]  # (B,)
+    converged: BoolArray  # (B,)
+    used: BoolArray  # (B, M)
+    reason: NDArray[np.int_]  # (B, M)
+    gating_failed: BoolArray  # (B,)
+    tested: BoolArray  # (B,) a chi-square test was performed on the final set
+
+
+def run_gating(
+    state: GateState,
+    anchors_m: FloatArray,
+    ranges_m: FloatArray,
+    sigmas_m: FloatArray,
+    model: PathModel,
+    config: GatingConfig,
+    *,
+    active: BoolArray,
+    sigmas_given: bool,
+    loss: str,
+    loss_scale: float,
+) -> None:
+    """Pre-gate and RAIM FDE on the fixes where ``active`` is True; updates ``state``."""
+    b, m = ranges_m.shape
+    pending = active.copy()
+    n_excl = np.zeros(b, dtype=np.int_)
+    for _round in range(config.max_exclusions + 1):
+        idx = np.flatnonzero(pending)
+        if idx.size == 0:
+            break
+        x = state.x_m[idx]
+        used = state.used[idx]
+        a = anchors_m[idx]
+        r = ranges_m[idx]
+        s = sigmas_m[idx]
+        sw = used / s
+        p, _ = model.take(idx).evaluate(a, x)
+        res = r - p
+        n_used = used.sum(axis=-1)
+        can_exclude = n_excl[idx] < config.max_exclusions
+        # 1. physical pre-gate
+        pg_excl = np.zeros(idx.size, dtype=bool)
+        pg_j = np.zeros(idx.size, dtype=np.int_)
+        if config.pregate:
+            los, _ = los_path(a, x[:, None, :])
+            tol = config.pregate_sigmas * (s if sigmas_given else 0.0) + config.pregate_margin_m
+            short = np.where(used, (los - r) - tol, -np.inf)
+            worst = (los - r) / (s if sigmas_given else 1.0)
+            worst = np.where(used & (short > 0), worst, -np.inf)
+            pg_j = np.argmax(worst, axis=-1)
+            pg_excl = np.isfinite(worst.max(axis=-1)) & (n_used - 1 >= 3) & can_exclude
+        # 2. chi-square test
+        dof = n_used - 3
+        t_stat = np.einsum("nm,nm->n", res * sw, res * sw)
+        thr = chi2_threshold(dof, config.false_alarm_probability)
+        testable = (dof >= 1) & sigmas_given
+        fail = testable & (t_stat > thr)
+        state.tested[idx] = testable
+        raim = (
+            fail
+            & ~pg_excl
+            & (n_used - 1 >= config.min_anchors_after_exclusion)
+            & can_exclude
+        )
+        # fixes that pass (and have no pre-gate violation) are done
+        done = ~pg_excl & ~raim
+        state.gating_failed[idx[done]] = fail[done]
+        pending[idx[done]] = False
+        # apply pre-gate exclusions (refit below with the others)
+        new_used = used.copy()
+        rows = np.flatnonzero(pg_excl)
+        new_used[rows, pg_j[rows]] = False
+        state.reason[idx[rows], pg_j[rows]] = ExclusionReason.PREGATE_SHORTER_THAN_LOS
+        # RAIM candidates: refit every leave-one-out subset in one batch
+        rrows = np.flatnonzero(raim)
+        if rrows.size:
+            k = rrows.size
+            cand_used = np.repeat(used[rrows][:, None, :], m, axis=1)  # (k, m, m)
+            eye = np.eye(m, dtype=bool)
+            valid_cand = used[rrows]  # candidate j must currently be used
+            cand_used &= ~eye[None]
+            cu = cand_used.reshape(k * m, m)
+            rep_idx = np.repeat(idx[rrows], m)
+            fit = levenberg_marquardt(
+                anchors_m[rep_idx],
+                ranges_m[rep_idx],
+                cu / sigmas_m[rep_idx],
+                np.repeat(x[rrows], m, axis=0),
+                model.take(rep_idx),
+                loss=loss,
+                loss_scale=loss_scale,
+                max_iter=config.refit_max_iter,
+            )
+            pc, _ = model.take(rep_idx).evaluate(anchors_m[rep_idx], fit.x_m)
+            rc = (ranges_m[rep_idx] - pc) * (cu / sigmas_m[rep_idx])
+            tc = np.einsum("nm,nm->n", rc, rc).reshape(k, m)
+            tc = np.where(valid_cand, tc, np.inf)
+            best = np.argmin(tc, axis=-1)
+            sel = np.arange(k) * m + best
+            gi = idx[rrows]
+            state.x_m[gi] = fit.x_m[sel]
+            state.iterations[gi] = fit.iterations[sel]
+            state.converged[gi] = fit.converged[sel]
+            new_used[rrows, best] = False
+            state.reason[gi, best] = ExclusionReason.RAIM
+        # refit the pre-gated fixes from their current position
+        if rows.size:
+            gi = idx[rows]
+            fit = levenberg_marquardt(
+                anchors_m[gi],
+                ranges_m[gi],
+                new_used[rows] / sigmas_m[gi],
+                state.x_m[gi],
+                model.take(gi),
+                loss=loss,
+                loss_scale=loss_scale,
+                max_iter=config.refit_max_iter,
+            )
+            state.x_m[gi] = fit.x_m
+            state.iterations[gi] = fit.iterations
+            state.converged[gi] = fit.converged
+        changed = pg_excl | raim
+        state.used[idx] = new_used
+        n_excl[idx[changed]] += 1
+        gi = idx[changed]
+        if gi.size:
+            pf, _ = model.take(gi).evaluate(anchors_m[gi], state.x_m[gi])
+            state.cost[gi] = cost_of(
+                ranges_m[gi] - pf, state.used[gi] / sigmas_m[gi], loss, loss_scale
+            )
+    # fixes still pending hit the exclusion limit: their final test decides
+    idx = np.flatnonzero(pending)
+    if idx.size:
+        x = state.x_m[idx]
+        used = state.used[idx]
+        p, _ = model.take(idx).evaluate(anchors_m[idx], x)
+        res = (ranges_m[idx] - p) * used / sigmas_m[idx]
+        dof = used.sum(axis=-1) - 3
+        t_stat = np.einsum("nm,nm->n", res, res)
+        thr = chi2_threshold(dof, config.false_alarm_probability)
+        testable = (dof >= 1) & sigmas_given
+        state.tested[idx] = testable
+        state.gating_failed[idx] = testable & (t_stat > thr)

@@ -1,0 +1,374 @@
+"""Result type shared by the batched estimators, status codes and input preparation.
+
+Every estimator (:func:`~diffpos.estimators.dnls`, :func:`~diffpos.estimators.lls`,
+:func:`~diffpos.estimators.ippa`) returns one :class:`FixResult` holding batched arrays: row
+``i`` is the fix of problem ``i``. Per-fix human-readable messages are built lazily by
+:meth:`FixResult.message` so that a batch of 100,000 fixes costs no string formatting.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["ExclusionReason", "FixResult", "FixStatus", "InputError", "PreparedBatch"]
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int_]
+
+
+class FixStatus(enum.IntEnum):
+    """Outcome of one fix (stored as small integers in :attr:`FixResult.status`)."""
+
+    OK = 0
+    """Converged, identifiable, and the residual test (RAIM) passed."""
+    OK_UNVERIFIED = 1
+    """Converged and identifiable, but the residuals could not be tested: too few anchors
+    (``|S| <= 3`` leaves no redundancy), no noise model (``sigmas_m`` not given), or gating
+    disabled."""
+    NOT_CONVERGED = 2
+    """The iteration limit was reached or the step control failed before convergence."""
+    NOT_IDENTIFIABLE = 3
+    """The FIM at the solution is singular or ill-conditioned (paper Theorem 2); the
+    covariance is infinite in the weak direction."""
+    TOO_FEW_ANCHORS = 4
+    """Fewer than 3 usable measurements (paper Corollary 3: ``M >= 3`` is necessary)."""
+    GATING_FAILED = 5
+    """The residual test failed and no exclusion could make it pass (or too few anchors
+    remained to try). The position is returned but should not be trusted."""
+    INVALID_INPUT = 6
+    """A field of the problem is malformed (non-finite, negative range, bad sigma)."""
+
+
+class ExclusionReason(enum.IntEnum):
+    """Why a measurement was not used (stored in :attr:`FixResult.exclusion_reason`)."""
+
+    NONE = 0
+    """Used in the fix."""
+    MISSING = 1
+    """Not present (``mask`` False, padding of a ragged anchor set)."""
+    PREGATE_SHORTER_THAN_LOS = 2
+    """The range is shorter than the straight line anchor-node at the fitted position by more
+    than the tolerance: no diffraction path can be that short."""
+    RAIM = 3
+    """Excluded by the chi-square residual test (fault detection and exclusion)."""
+
+
+class InputError(enum.IntEnum):
+    """Which input field made a fix invalid (``0`` = none)."""
+
+    NONE = 0
+    ANCHORS = 1
+    RANGES_NONFINITE = 2
+    RANGES_NEGATIVE = 3
+    SIGMAS = 4
+
+
+_INPUT_ERROR_TEXT = {
+    InputError.ANCHORS: "anchors_m contains NaN or inf for a present measurement",
+    InputError.RANGES_NONFINITE: "ranges_m contains NaN or inf for a present measurement",
+    InputError.RANGES_NEGATIVE: "ranges_m contains a negative range",
+    InputError.SIGMAS: "sigmas_m must be finite and > 0",
+}
+
+_REASON_TEXT = {
+    ExclusionReason.MISSING: "missing",
+    ExclusionReason.PREGATE_SHORTER_THAN_LOS: "shorter than the straight line (pre-gate)",
+    ExclusionReason.RAIM: "failed the residual test (RAIM)",
+}
+
+
+@dataclass(frozen=True)
+class FixResult:
+    """Batched position fixes (one row per problem), ``scipy.optimize.OptimizeResult`` style.
+
+    Attributes
+    ----------
+    position_m : ndarray, shape (B, 3) [m]
+        Estimated node positions in building coordinates (NaN where no estimate exists).
+    covariance_m2 : ndarray, shape (B, 3, 3) [m^2]
+        Inverse FIM at the solution over the used measurements (see ``covariance_model``);
+        ``inf`` where not identifiable, NaN where the method has no noise model.
+    peb_m : ndarray, shape (B,) [m]
+        ``sqrt(trace(covariance_m2))``, the position error bound at the estimate.
+    z_bound_m : ndarray, shape (B,) [m]
+        ``sqrt(covariance_m2[2, 2])``.
+    iterations : ndarray of int, shape (B,)
+        Iterations of the final fit (the best start, after the last exclusion).
+    converged : ndarray of bool, shape (B,)
+        Convergence test passed for the final fit.
+    status : ndarray of int, shape (B,)
+        :class:`FixStatus` codes.
+    residuals_m : ndarray, shape (B, M) [m]
+        Measured minus modelled range at the solution, NaN for unused measurements.
+    used : ndarray of bool, shape (B, M)
+        Measurements used in the final fit.
+    excluded : ndarray of bool, shape (B, M)
+        Measurements present in the input but excluded by gating.
+    exclusion_reason : ndarray of int, shape (B, M)
+        :class:`ExclusionReason` codes.
+    test_statistic : ndarray, shape (B,) [-]
+        Sum of squared normalised residuals ``sum (r_j / sigma_j)^2`` over the used set (NaN
+        if not computed).
+    test_threshold : ndarray, shape (B,) [-]
+        Chi-square threshold for ``dof`` at the false-alarm probability (NaN if no test).
+    dof : ndarray of int, shape (B,)
+        Degrees of freedom ``|S| - 3`` of the final test.
+    cost : ndarray, shape (B,) [-]
+        Final value of the minimised cost ``0.5 sum rho((r_j / sigma_j)^2)``.
+    input_error : ndarray of int, shape (B,)
+        :class:`InputError` code of invalid problems.
+    method : str
+        ``"dnls"``, ``"lls"`` or ``"ippa"``.
+    covariance_model : str
+        What ``covariance_m2`` is: ``"diffraction FIM"``, ``"LoS FIM"`` or ``"none"``.
+    sigmas_given : bool
+        Whether the caller gave ``sigmas_m`` (otherwise 1 m was assumed and the covariance
+        was scaled by the a-posteriori variance factor).
+    condition : ndarray, shape (B,), optional [-]
+        Condition number of the linear system (LLS only).
+    """
+
+    position_m: FloatArray
+    covariance_m2: FloatArray
+    peb_m: FloatArray
+    z_bound_m: FloatArray
+    iterations: IntArray
+    converged: BoolArray
+    status: IntArray
+    residuals_m: FloatArray
+    used: BoolArray
+    excluded: BoolArray
+    exclusion_reason: IntArray
+    test_statistic: FloatArray
+    test_threshold: FloatArray
+    dof: IntArray
+    cost: FloatArray
+    input_error: IntArray
+    method: str
+    covariance_model: str
+    sigmas_given: bool = True
+    condition: FloatArray | None = None
+
+    def __len__(self) -> int:
+        return int(self.position_m.shape[0])
+
+    @property
+    def ok(self) -> BoolArray:
+        """True where the status is ``OK`` or ``OK_UNVERIFIED``."""
+        return (self.status == FixStatus.OK) | (self.status == FixStatus.OK_UNVERIFIED)
+
+    def excluded_list(self, i: int) -> list[dict[str, Any]]:
+        """Excluded measurements of fix ``i`` as ``[{"index": j, "reason": name}]``."""
+        out = []
+        for j in np.flatnonzero(self.excluded[i]):
+            reason = ExclusionReason(int(self.exclusion_reason[i, j]))
+            out.append({"index": int(j), "reason": reason.name.lower()})
+        return out
+
+    def message(self, i: int) -> str:
+        """Human-readable verdict of fix ``i``."""
+        st = FixStatus(int(self.status[i]))
+        n_used = int(np.sum(self.used[i]))
+        excl = ", ".join(
+            f"anchor {d['index']} ({_REASON_TEXT[ExclusionReason[d['reason'].upper()]]})"
+            for d in self.excluded_list(i)
+        )
+        excl_txt = f"; excluded {excl}" if excl else ""
+        test_txt = ""
+        if np.isfinite(self.test_threshold[i]):
+            test_txt = (
+                f"; residual test {self.test_statistic[i]:.3g} vs threshold "
+                f"{self.test_threshold[i]:.3g} (chi2, {int(self.dof[i])} dof)"
+            )
+        it = int(self.iterations[i])
+        if st == FixStatus.INVALID_INPUT:
+            return "invalid input: " + _INPUT_ERROR_TEXT.get(
+                InputError(int(self.input_error[i])), "malformed problem"
+            )
+        if st == FixStatus.TOO_FEW_ANCHORS:
+            return (
+                f"too few anchors: {n_used} usable measurement(s) after gating, at least 3 are "
+                "needed for a 3D fix" + excl_txt
+            )
+        if st == FixStatus.NOT_IDENTIFIABLE and self.method == "lls":
+            cond = float(self.condition[i]) if self.condition is not None else float("inf")
+            return (
+                f"not identifiable: the LLS system of {n_used} anchors is rank deficient or "
+                f"ill-conditioned (condition {cond:.3g}); differencing needs >= 4 anchors not "
+                "in one plane. No minimum-norm answer is returned"
+            )
+        if st == FixStatus.NOT_IDENTIFIABLE:
+            return (
+                f"not identifiable: the FIM at the solution ({n_used} anchors) is singular or "
+                "ill-conditioned; the anchors do not constrain every direction (e.g. all "
+                "anchors and the node in one vertical plane x = const)" + excl_txt
+            )
+        if st == FixStatus.NOT_CONVERGED:
+            return f"not converged after {it} iterations ({n_used} anchors)" + excl_txt + test_txt
+        if st == FixStatus.GATING_FAILED:
+            return (
+                f"residual test failed and exclusion could not fix it ({n_used} anchors left); "
+                "the position is unreliable" + excl_txt + test_txt
+            )
+        if st == FixStatus.OK_UNVERIFIED:
+            why = (
+                "gating disabled"
+                if self.method == "dnls" and not np.isfinite(self.test_threshold[i])
+                and n_used > 3 and self.sigmas_given
+                else "no sigmas_m given, residuals cannot be tested"
+                if not self.sigmas_given
+                else f"only {n_used} anchors, no redundancy to test the residuals"
+                if n_used <= 3
+                else "residuals not tested by this method"
+            )
+            return f"converged in {it} iterations, unverified ({why})" + excl_txt
+        return f"converged in {it} iterations with {n_used} anchors" + excl_txt + test_txt
+
+    def to_records(self) -> list[dict[str, Any]]:
+        """JSON-ready dicts, one per fix (the ``diffpos solve`` output fields).
+
+        Non-finite numbers become ``None`` (JSON ``null``).
+        """
+
+        def clean(a: ArrayLike) -> Any:
+            arr = np.asarray(a, dtype=np.float64)
+            lst = np.where(np.isfinite(arr), arr, np.nan).tolist()
+            return _nan_to_none(lst)
+
+        out = []
+        for i in range(len(self)):
+            st = FixStatus(int(self.status[i]))
+            out.append(
+                {
+                    "status": st.name.lower(),
+                    "message": self.message(i),
+                    "method": self.method,
+                    "position_m": clean(self.position_m[i]),
+                    "covariance_m2": clean(self.covariance_m2[i]),
+                    "covariance_model": self.covariance_model,
+                    "peb_m": clean(self.peb_m[i]),
+                    "z_bound_m": clean(self.z_bound_m[i]),
+                    "iterations": int(self.iterations[i]),
+                    "converged": bool(self.converged[i]),
+                    "used_anchors": [int(j) for j in np.flatnonzero(self.used[i])],
+                    "excluded_anchors": self.excluded_list(i),
+                    "residuals_m": clean(self.residuals_m[i]),
+                    "test_statistic": clean(self.test_statistic[i]),
+                    "test_threshold": clean(self.test_threshold[i]),
+                }
+            )
+        return out
+
+
+def _nan_to_none(x: Any) -> Any:
+    if isinstance(x, list):
+        return [_nan_to_none(v) for v in x]
+    if isinstance(x, float) and x != x:
+        return None
+    return x
+
+
+@dataclass(frozen=True)
+class PreparedBatch:
+    """Validated, broadcast inputs (internal)."""
+
+    anchors_m: FloatArray  # (B, M, 3), finite everywhere (placeholders where masked)
+    ranges_m: FloatArray  # (B, M), finite everywhere
+    sigmas_m: FloatArray  # (B, M), finite > 0 everywhere
+    mask: BoolArray  # (B, M) present and valid
+    present: BoolArray  # (B, M) as given by the caller
+    input_error: IntArray  # (B,)
+    sigmas_given: bool
+
+
+def prepare_batch(
+    anchors_m: ArrayLike,
+    ranges_m: ArrayLike,
+    sigmas_m: ArrayLike | None,
+    mask: ArrayLike | None,
+) -> PreparedBatch:
+    """Broadcast and validate estimator inputs.
+
+    Shape errors raise ``ValueError`` naming the field. Value errors (NaN/inf, negative
+    ranges, non-positive sigmas) are reported per fix through ``input_error`` so that one bad
+    problem does not abort a batch.
+    """
+    a = np.asarray(anchors_m, dtype=np.float64)
+    r = np.asarray(ranges_m, dtype=np.float64)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3 or a.shape[-1] != 3:
+        raise ValueError(f"anchors_m must have shape (B, M, 3) or (M, 3), got {a.shape}")
+    if r.ndim == 1:
+        r = r[None]
+    if r.ndim != 2:
+        raise ValueError(f"ranges_m must have shape (B, M) or (M,), got {r.shape}")
+    batch = max(a.shape[0], r.shape[0])
+    m = a.shape[1]
+    if r.shape[1] != m:
+        raise ValueError(
+            f"ranges_m has {r.shape[1]} measurements per fix but anchors_m has {m} anchors"
+        )
+    for name, arr in (("anchors_m", a), ("ranges_m", r)):
+        if arr.shape[0] not in (1, batch):
+            raise ValueError(f"{name} batch size {arr.shape[0]} does not match {batch}")
+    a = np.broadcast_to(a, (batch, m, 3))
+    r = np.broadcast_to(r, (batch, m))
+    sigmas_given = sigmas_m is not None
+    if sigmas_m is None:
+        s = np.ones((batch, m))
+    else:
+        s = np.asarray(sigmas_m, dtype=np.float64)
+        try:
+            s = np.broadcast_to(s, (batch, m))
+        except ValueError:
+            raise ValueError(
+                f"sigmas_m must be a scalar or broadcast to (B, M) = {(batch, m)}, got {s.shape}"
+            ) from None
+    if mask is None:
+        present = np.ones((batch, m), dtype=bool)
+    else:
+        pm = np.asarray(mask)
+        if pm.dtype != bool:
+            raise ValueError(f"mask must be a bool array, got dtype {pm.dtype}")
+        try:
+            present = np.broadcast_to(pm, (batch, m)).copy()
+        except ValueError:
+            raise ValueError(
+                f"mask must broadcast to (B, M) = {(batch, m)}, got {pm.shape}"
+            ) from None
+    err = np.zeros(batch, dtype=np.int_)
+    bad_r_neg = present & (r < 0)
+    bad_r_nf = present & ~np.isfinite(r)
+    bad_a = present & ~np.all(np.isfinite(a), axis=-1)
+    bad_s = present & ~(np.isfinite(s) & (s > 0))
+    # Report the first offending field in order anchors, ranges, sigmas.
+    for code, bad in (
+        (InputError.SIGMAS, bad_s),
+        (InputError.RANGES_NEGATIVE, bad_r_neg),
+        (InputError.RANGES_NONFINITE, bad_r_nf),
+        (InputError.ANCHORS, bad_a),
+    ):
+        err = np.where(np.any(bad, axis=-1), int(code), err)
+    valid_fix = err == 0
+    use = present & valid_fix[:, None]
+    a_safe = np.where(use[..., None], a, 0.0)
+    # Masked anchors get a harmless finite placeholder (never enters a sum: weight 0).
+    a_safe = np.where(use[..., None], a_safe, np.array([0.0, -1.0, 0.0]))
+    r_safe = np.where(use, r, 0.0)
+    s_safe = np.where(use, s, 1.0)
+    return PreparedBatch(
+        anchors_m=np.ascontiguousarray(a_safe),
+        ranges_m=np.ascontiguousarray(r_safe),
+        sigmas_m=np.ascontiguousarray(s_safe),
+        mask=use,
+        present=present,
+        input_error=err,
+        sigmas_given=sigmas_given,
+    )
