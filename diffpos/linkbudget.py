@@ -199,7 +199,9 @@ def snr_db(
         The SNR in dB; convert with :func:`db_to_linear` for :func:`ranging_crlb_m`.
     """
     n0 = noise_floor_dbm(bandwidth_hz, temperature_k=temperature_k, noise_figure_db=noise_figure_db)
-    return np.asarray(rx_power_dbm, dtype=np.float64) + np.asarray(processing_gain_db, np.float64) - n0
+    return (
+        np.asarray(rx_power_dbm, dtype=np.float64) + np.asarray(processing_gain_db, np.float64) - n0
+    )
 
 
 def ranging_crlb_s(snr: ArrayLike, bandwidth_hz: ArrayLike) -> FloatArray:

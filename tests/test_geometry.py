@@ -116,8 +116,9 @@ def test_diffraction_point_matches_scipy_minimize_scalar() -> None:
             q = p0[k] + t * e
             return np.linalg.norm(s[k] - q) + np.linalg.norm(o[k] - q)
 
-        opt = minimize_scalar(f, bounds=(0.0, length), method="bounded",
-                              options={"xatol": 1e-10 * length})
+        opt = minimize_scalar(
+            f, bounds=(0.0, length), method="bounded", options={"xatol": 1e-10 * length}
+        )
         best = min(opt.fun, f(0.0), f(length))  # "bounded" never evaluates the ends exactly
         assert res.length_m[k] == pytest.approx(best, rel=1e-9)
         assert res.length_m[k] <= best * (1 + 1e-12)
@@ -129,8 +130,10 @@ def _on_edge_reference(s, o, p0, p1):
 
     def slope(q):  # d/dt (|S - Q| + |O - Q|) at Q, Q moving along +e
         ds, do = s - q, o - q
-        return -(np.einsum("ij,ij->i", ds, e) / np.linalg.norm(ds, axis=1)
-                 + np.einsum("ij,ij->i", do, e) / np.linalg.norm(do, axis=1))
+        return -(
+            np.einsum("ij,ij->i", ds, e) / np.linalg.norm(ds, axis=1)
+            + np.einsum("ij,ij->i", do, e) / np.linalg.norm(do, axis=1)
+        )
 
     return (slope(p0) < 0.0) & (slope(p1) > 0.0), slope(p0), slope(p1)
 
@@ -168,8 +171,16 @@ def test_points_near_edge_ends() -> None:
     o_t = (t_star * (r_s + r_o) - s_t * r_o) / r_s
     ang = rng.uniform(0, 2 * np.pi, n)
     ang2 = ang + rng.uniform(0, 2 * np.pi, n)
-    s = p0 + s_t[:, None] * e + r_s[:, None] * (np.cos(ang)[:, None] * n1 + np.sin(ang)[:, None] * n2)
-    o = p0 + o_t[:, None] * e + r_o[:, None] * (np.cos(ang2)[:, None] * n1 + np.sin(ang2)[:, None] * n2)
+    s = (
+        p0
+        + s_t[:, None] * e
+        + r_s[:, None] * (np.cos(ang)[:, None] * n1 + np.sin(ang)[:, None] * n2)
+    )
+    o = (
+        p0
+        + o_t[:, None] * e
+        + r_o[:, None] * (np.cos(ang2)[:, None] * n1 + np.sin(ang2)[:, None] * n2)
+    )
     res = diffraction_point(s, o, p0, p1)
     _, f_ref = brute_force_min(s, o, p0, p1)
     np.testing.assert_allclose(res.length_m, f_ref, rtol=1e-9)
@@ -358,8 +369,10 @@ def test_window_edge_path_broadcasts_nodes_by_anchors() -> None:
 
 coord = st.floats(-50.0, 50.0, allow_nan=False, allow_infinity=False)
 point = st.tuples(coord, coord, coord).map(np.array)
-direction = st.tuples(coord, coord, coord).filter(lambda v: np.linalg.norm(v) > 1e-2).map(
-    lambda v: np.array(v) / np.linalg.norm(v)
+direction = (
+    st.tuples(coord, coord, coord)
+    .filter(lambda v: np.linalg.norm(v) > 1e-2)
+    .map(lambda v: np.array(v) / np.linalg.norm(v))
 )
 
 
