@@ -1,0 +1,1585 @@
+"""Rerun dashboard of a diffpos run: pure logging functions and the default blueprint.
+
+Everything here writes to an explicit :class:`rerun.RecordingStream` passed in by the caller
+(never the global one), in columns (``send_columns``), so the same code serves
+
+* the live dashboard service (``diffpos dashboard``), which feeds one small batch of bus
+  messages at a time into a :class:`Dashboard`, and
+* the offline converters (``diffpos to-rerun``, ``diffpos replay --rrd``), which feed a whole
+  recording as one batch (:func:`write_rrd`, :func:`write_rrd_from_messages`).
+
+All rows are stamped on the **measurement timeline** :data:`TIMELINE` (the ``t_ns`` of the
+messages, integer nanoseconds), never on wall-clock time, so a live recording and a replay
+of the same run line up sample for sample.
+
+Entity layout (see :func:`default_blueprint` for how it is shown)::
+
+    world                              view coordinates (right-handed, z up), building frame
+    world/building/floors              floor outlines (static wireframe)
+    world/building/windows             window band (sill and lintel) on the facade y = 0 (static)
+    world/anchors/<anchor>             anchor position (Points3D, self-reported AnchorState)
+    world/anchors/<anchor>/trail       recent track of the anchor (LineStrips3D)
+    world/nodes/<node>/truth           true node position (emulation only)
+    world/nodes/<node>/estimate        estimated position, label "<node> F<est> (true F<true>)"
+    world/nodes/<node>/uncertainty     confidence ellipsoid from the estimate covariance
+    world/nodes/<node>/paths           anchor -> window-edge point -> estimate, one strip per
+                                       anchor; used anchors in their colour, excluded in red
+    metrics/error_3d_m/<node>          |estimate - truth| [m]
+    metrics/error_z_m/<node>           estimate z - true z [m]
+    metrics/peb_m/<node>               position error bound [m]
+    metrics/residual_m/<anchor>        post-fit range residuals of every node (points) [m]
+    metrics/gating/excluded            excluded measurements per fusion time (all nodes)
+    metrics/gating/used                used measurements per fusion time (all nodes)
+    metrics/fusion/<counter>           cumulative fusion counters (FusionDiagnostics)
+    floors                             markdown table: estimated vs true floor per node
+    events                             text log: anchors joined/left, exclusions with reasons,
+                                       status changes (unidentifiable geometry, ...)
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+from numpy.typing import ArrayLike, NDArray
+
+from diffpos.geometry import diffraction_point
+
+__all__ = [
+    "APP_ID",
+    "TIMELINE",
+    "AnchorColumns",
+    "BuildingOutline",
+    "Dashboard",
+    "EstimateColumns",
+    "EventColumns",
+    "Tracks",
+    "TruthColumns",
+    "anchor_columns_from_messages",
+    "default_blueprint",
+    "ellipsoid_axes",
+    "estimate_columns_from_messages",
+    "log_anchors",
+    "log_building",
+    "log_diagnostics",
+    "log_estimates",
+    "log_events",
+    "log_truth",
+    "truth_columns_from_messages",
+    "write_rrd",
+    "write_rrd_from_messages",
+]
+
+#: Rerun application id of every diffpos recording (live and offline share it).
+APP_ID = "diffpos"
+#: Name of the measurement-time timeline (timestamps = message ``t_ns``).
+TIMELINE = "meas_time"
+
+#: chi-square 95 % quantile for 3 degrees of freedom: scale of the 95 % confidence ellipsoid.
+CHI2_3DOF_95 = 7.814727903251178
+
+FloatArray = NDArray[np.float64]
+
+_STATUS_COLORS = {
+    "OK": (40, 200, 90, 255),
+    "DEGRADED": (250, 170, 30, 255),
+    "UNIDENTIFIABLE": (230, 50, 50, 255),
+}
+_OTHER_STATUS_COLOR = (150, 150, 150, 255)
+_TRUTH_COLOR = (240, 240, 240, 255)
+_EXCLUDED_COLOR = (235, 40, 40, 220)
+_PALETTE = np.array(
+    [
+        (31, 119, 180),
+        (255, 127, 14),
+        (44, 160, 44),
+        (148, 103, 189),
+        (140, 86, 75),
+        (227, 119, 194),
+        (23, 190, 207),
+        (188, 189, 34),
+        (127, 127, 127),
+        (57, 106, 177),
+    ],
+    dtype=np.uint8,
+)
+
+
+def anchor_color(anchor_id: str) -> tuple[int, int, int, int]:
+    """Stable RGBA colour of an anchor (same in every run, live or offline)."""
+    r, g, b = _PALETTE[zlib.crc32(anchor_id.encode()) % len(_PALETTE)]
+    return int(r), int(g), int(b), 255
+
+
+def _time_column(t_ns: ArrayLike) -> rr.TimeColumn:
+    return rr.TimeColumn(
+        TIMELINE, timestamp=np.asarray(t_ns, dtype=np.int64).astype("datetime64[ns]")
+    )
+
+
+def _str_array(values: Iterable[str] | ArrayLike) -> NDArray[np.str_]:
+    arr = np.asarray(list(values) if not isinstance(values, np.ndarray) else values)
+    if arr.size == 0:
+        return np.zeros(0, dtype="<U1")
+    return arr.astype(str)
+
+
+def _check_len(name: str, arr: np.ndarray, n: int, tail: tuple[int, ...] = ()) -> None:
+    if arr.shape != (n, *tail):
+        raise ValueError(f"{name} must have shape {(n, *tail)}, got {arr.shape}")
+
+
+# ============================================================================ input columns
+@dataclass(frozen=True)
+class BuildingOutline:
+    """What the dashboard draws of the building (a box with one window band per floor).
+
+    Attributes
+    ----------
+    x_min_m, x_max_m : float [m]
+        Extent of the facade (and of the horizontal window edges) along x.
+    depth_m : float [m]
+        Depth of the building into y > 0.
+    n_floors : int
+        Number of floors (floor ``k`` spans ``z in [k h, (k + 1) h]``).
+    floor_height_m : float [m]
+        Storey height ``h``.
+    sill_height_m : float [m]
+        Height of the window sill (lower window edge) above each floor.
+    window_height_m : float [m]
+        Window height ``w``: the upper (lintel) edge is at ``sill + w`` above the floor.
+    """
+
+    x_min_m: float
+    x_max_m: float
+    depth_m: float
+    n_floors: int
+    floor_height_m: float
+    sill_height_m: float
+    window_height_m: float
+
+    def __post_init__(self) -> None:
+        if not self.x_max_m > self.x_min_m:
+            raise ValueError("BuildingOutline: x_max_m must be larger than x_min_m")
+        for name in ("depth_m", "floor_height_m", "window_height_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"BuildingOutline: {name} must be > 0")
+        if self.n_floors < 1:
+            raise ValueError("BuildingOutline: n_floors must be >= 1")
+        if (
+            self.sill_height_m < 0
+            or self.sill_height_m + self.window_height_m > self.floor_height_m
+        ):
+            raise ValueError(
+                "BuildingOutline: need 0 <= sill_height_m and sill + window height <= floor height"
+            )
+
+    @classmethod
+    def from_object(cls, obj: Any) -> BuildingOutline:
+        """Build from a scenario building (duck-typed) or a plain mapping.
+
+        Accepted spellings: ``x_min_m``/``x_max_m`` or ``x_extent_m``/``edge_x_m`` (a pair) or
+        ``width_m`` (centred on x = 0); ``depth_m``; ``n_floors``/``floors``;
+        ``floor_height_m``; ``sill_height_m``; ``window_height_m``.
+        """
+        if isinstance(obj, BuildingOutline):
+            return obj
+
+        def get(*names: str, default: Any = None) -> Any:
+            for name in names:
+                if isinstance(obj, Mapping) and name in obj:
+                    return obj[name]
+                if not isinstance(obj, Mapping) and hasattr(obj, name):
+                    return getattr(obj, name)
+            if default is not None:
+                return default
+            raise ValueError(f"building: missing field {' / '.join(names)}")
+
+        extent = get("x_extent_m", "edge_x_m", "window_x_m", default=False)
+        if extent is not False and extent is not None:
+            x0, x1 = float(min(extent)), float(max(extent))
+        elif (isinstance(obj, Mapping) and "x_min_m" in obj) or hasattr(obj, "x_min_m"):
+            x0, x1 = float(get("x_min_m")), float(get("x_max_m"))
+        else:
+            width = float(get("width_m"))
+            x0, x1 = -0.5 * width, 0.5 * width
+        floors = get("n_floors", "floors", "num_floors")
+        n_floors = len(floors) if isinstance(floors, Sequence) else int(floors)
+        return cls(
+            x_min_m=x0,
+            x_max_m=x1,
+            depth_m=float(get("depth_m")),
+            n_floors=n_floors,
+            floor_height_m=float(get("floor_height_m")),
+            sill_height_m=float(get("sill_height_m", "window_sill_m")),
+            window_height_m=float(get("window_height_m")),
+        )
+
+    def floor_of(self, z_m: ArrayLike) -> NDArray[np.int64]:
+        """Floor index of heights ``z_m`` [m] (clipped to the building; -1 where z is NaN)."""
+        z = np.asarray(z_m, dtype=np.float64)
+        k = np.floor(np.where(np.isfinite(z), z, -1.0) / self.floor_height_m)
+        k = np.clip(k, 0, self.n_floors - 1).astype(np.int64)
+        return np.where(np.isfinite(z), k, -1)
+
+    def upper_edge_z_m(self, floor_index: ArrayLike) -> FloatArray:
+        """Height of the upper (lintel) window edge of each floor [m]."""
+        k = np.asarray(floor_index, dtype=np.float64)
+        return k * self.floor_height_m + self.sill_height_m + self.window_height_m
+
+
+@dataclass(frozen=True)
+class AnchorColumns:
+    """Anchor states as columns (one row per AnchorState message).
+
+    Attributes
+    ----------
+    t_ns : ndarray of int64, shape (K,) [ns]
+    anchor_id : ndarray of str, shape (K,)
+    position_m : ndarray, shape (K, 3) [m]
+    """
+
+    t_ns: NDArray[np.int64]
+    anchor_id: NDArray[np.str_]
+    position_m: FloatArray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t_ns", np.asarray(self.t_ns, dtype=np.int64).reshape(-1))
+        object.__setattr__(self, "anchor_id", _str_array(self.anchor_id))
+        object.__setattr__(
+            self, "position_m", np.asarray(self.position_m, dtype=np.float64).reshape(-1, 3)
+        )
+        n = self.t_ns.shape[0]
+        _check_len("AnchorColumns.anchor_id", self.anchor_id, n)
+        _check_len("AnchorColumns.position_m", self.position_m, n, (3,))
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+
+@dataclass(frozen=True)
+class TruthColumns:
+    """Ground truth of nodes as columns (one row per GroundTruth message of a node).
+
+    Attributes
+    ----------
+    t_ns : ndarray of int64, shape (K,) [ns]
+    node_id : ndarray of str, shape (K,)
+    position_m : ndarray, shape (K, 3) [m]
+    floor_index : ndarray of int64, shape (K,)
+        True floor, -1 where unknown (then derived from z if a building is given).
+    """
+
+    t_ns: NDArray[np.int64]
+    node_id: NDArray[np.str_]
+    position_m: FloatArray
+    floor_index: NDArray[np.int64] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t_ns", np.asarray(self.t_ns, dtype=np.int64).reshape(-1))
+        object.__setattr__(self, "node_id", _str_array(self.node_id))
+        object.__setattr__(
+            self, "position_m", np.asarray(self.position_m, dtype=np.float64).reshape(-1, 3)
+        )
+        n = self.t_ns.shape[0]
+        fl = (
+            np.full(n, -1, np.int64)
+            if self.floor_index is None
+            else np.asarray(self.floor_index, np.int64)
+        )
+        object.__setattr__(self, "floor_index", fl.reshape(-1))
+        _check_len("TruthColumns.node_id", self.node_id, n)
+        _check_len("TruthColumns.position_m", self.position_m, n, (3,))
+        _check_len("TruthColumns.floor_index", self.floor_index, n)
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+
+@dataclass(frozen=True)
+class EstimateColumns:
+    """Position estimates as columns, with their per-anchor links flattened.
+
+    Attributes
+    ----------
+    t_ns : ndarray of int64, shape (K,) [ns]
+        Fix reference time.
+    node_id : ndarray of str, shape (K,)
+    status : ndarray of str, shape (K,)
+        Fix status name (OK, DEGRADED, UNIDENTIFIABLE, ...).
+    position_m : ndarray, shape (K, 3) [m]
+        NaN where the fix has no position.
+    covariance_m2 : ndarray, shape (K, 3, 3) [m^2]
+        NaN where unknown.
+    peb_m : ndarray, shape (K,) [m]
+        Position error bound, NaN where undefined.
+    floor_index : ndarray of int64, shape (K,)
+        Estimated floor, -1 where unknown.
+    link_fix : ndarray of int64, shape (L,)
+        Row (fix) index of each anchor link.
+    link_anchor_id : ndarray of str, shape (L,)
+    link_used : ndarray of bool, shape (L,)
+        True for anchors used in the fix, False for excluded ones.
+    link_residual_m : ndarray, shape (L,) [m]
+        Post-fit residual of used links, NaN for excluded ones.
+    link_reason : ndarray of str, shape (L,)
+        Exclusion reason, ``""`` for used links.
+    """
+
+    t_ns: NDArray[np.int64]
+    node_id: NDArray[np.str_]
+    status: NDArray[np.str_]
+    position_m: FloatArray
+    covariance_m2: FloatArray
+    peb_m: FloatArray
+    floor_index: NDArray[np.int64]
+    link_fix: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    link_anchor_id: NDArray[np.str_] = field(default_factory=lambda: np.zeros(0, "<U1"))
+    link_used: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    link_residual_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    link_reason: NDArray[np.str_] = field(default_factory=lambda: np.zeros(0, "<U1"))
+
+    def __post_init__(self) -> None:
+        s = object.__setattr__
+        s(self, "t_ns", np.asarray(self.t_ns, dtype=np.int64).reshape(-1))
+        n = self.t_ns.shape[0]
+        s(self, "node_id", _str_array(self.node_id))
+        s(self, "status", _str_array(self.status))
+        s(self, "position_m", np.asarray(self.position_m, dtype=np.float64).reshape(n, 3))
+        s(self, "covariance_m2", np.asarray(self.covariance_m2, dtype=np.float64).reshape(n, 3, 3))
+        s(self, "peb_m", np.asarray(self.peb_m, dtype=np.float64).reshape(-1))
+        s(self, "floor_index", np.asarray(self.floor_index, dtype=np.int64).reshape(-1))
+        s(self, "link_fix", np.asarray(self.link_fix, dtype=np.int64).reshape(-1))
+        s(self, "link_anchor_id", _str_array(self.link_anchor_id))
+        s(self, "link_used", np.asarray(self.link_used, dtype=bool).reshape(-1))
+        s(self, "link_residual_m", np.asarray(self.link_residual_m, dtype=np.float64).reshape(-1))
+        s(self, "link_reason", _str_array(self.link_reason))
+        for name in ("node_id", "status", "peb_m", "floor_index"):
+            _check_len(f"EstimateColumns.{name}", getattr(self, name), n)
+        n_links = self.link_fix.shape[0]
+        for name in ("link_anchor_id", "link_used", "link_residual_m", "link_reason"):
+            _check_len(f"EstimateColumns.{name}", getattr(self, name), n_links)
+        if n_links and (self.link_fix.min() < 0 or self.link_fix.max() >= n):
+            raise ValueError("EstimateColumns.link_fix must index rows 0..K-1")
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+
+@dataclass(frozen=True)
+class EventColumns:
+    """Text events (anchor joined/left, ...) as columns.
+
+    Attributes
+    ----------
+    t_ns : ndarray of int64, shape (E,) [ns]
+    text : ndarray of str, shape (E,)
+    level : ndarray of str, shape (E,)
+        Rerun text-log level: INFO, WARN, ERROR, ...
+    """
+
+    t_ns: NDArray[np.int64]
+    text: NDArray[np.str_]
+    level: NDArray[np.str_]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t_ns", np.asarray(self.t_ns, dtype=np.int64).reshape(-1))
+        object.__setattr__(self, "text", _str_array(self.text))
+        object.__setattr__(self, "level", _str_array(self.level))
+        _check_len("EventColumns.text", self.text, self.t_ns.shape[0])
+        _check_len("EventColumns.level", self.level, self.t_ns.shape[0])
+
+    @classmethod
+    def concat(cls, parts: Sequence[EventColumns]) -> EventColumns:
+        parts = [p for p in parts if p.t_ns.size]
+        if not parts:
+            return cls(np.zeros(0, np.int64), np.zeros(0, "<U1"), np.zeros(0, "<U1"))
+        return cls(
+            np.concatenate([p.t_ns for p in parts]),
+            np.concatenate([p.text for p in parts]),
+            np.concatenate([p.level for p in parts]),
+        )
+
+
+# ============================================================================ messages -> columns
+def _nan3() -> tuple[float, float, float]:
+    return (math.nan, math.nan, math.nan)
+
+
+def anchor_columns_from_messages(msgs: Sequence[Any]) -> AnchorColumns:
+    """Columns from ``AnchorState`` messages (anything with anchor_id, t_ns, position_m)."""
+    return AnchorColumns(
+        t_ns=np.fromiter((m.t_ns for m in msgs), np.int64, len(msgs)),
+        anchor_id=[m.anchor_id for m in msgs],
+        position_m=np.array([m.position_m for m in msgs], dtype=np.float64).reshape(-1, 3),
+    )
+
+
+def truth_columns_from_messages(msgs: Sequence[Any]) -> TruthColumns:
+    """Columns from node ``GroundTruth`` messages (``entity == "node"``; others skipped)."""
+    nodes = [m for m in msgs if getattr(m, "entity", "node") == "node"]
+    return TruthColumns(
+        t_ns=np.fromiter((m.t_ns for m in nodes), np.int64, len(nodes)),
+        node_id=[m.id for m in nodes],
+        position_m=np.array([m.position_m for m in nodes], dtype=np.float64).reshape(-1, 3),
+        floor_index=np.fromiter(
+            (-1 if m.floor_index is None else m.floor_index for m in nodes), np.int64, len(nodes)
+        ),
+    )
+
+
+def estimate_columns_from_messages(msgs: Sequence[Any]) -> EstimateColumns:
+    """Columns from ``PositionEstimate`` messages (diffpos.estimate.v1)."""
+    n = len(msgs)
+    nan_cov = (_nan3(), _nan3(), _nan3())
+    link_fix: list[int] = []
+    link_anchor: list[str] = []
+    link_used: list[bool] = []
+    link_res: list[float] = []
+    link_reason: list[str] = []
+    for i, m in enumerate(msgs):
+        used = m.used_anchors
+        k = len(used)
+        link_fix.extend([i] * k)
+        link_anchor.extend(used)
+        link_used.extend([True] * k)
+        res = list(m.residuals_m)
+        link_res.extend(res + [math.nan] * (k - len(res)) if len(res) < k else res[:k])
+        link_reason.extend([""] * k)
+        for ex in m.excluded:
+            link_fix.append(i)
+            link_anchor.append(ex.anchor_id)
+            link_used.append(False)
+            link_res.append(math.nan)
+            link_reason.append(ex.reason)
+    return EstimateColumns(
+        t_ns=np.fromiter((m.t_ns for m in msgs), np.int64, n),
+        node_id=[m.node_id for m in msgs],
+        status=[m.status for m in msgs],
+        position_m=np.array(
+            [m.position_m if m.position_m is not None else _nan3() for m in msgs], np.float64
+        ).reshape(n, 3),
+        covariance_m2=np.array(
+            [m.covariance_m2 if m.covariance_m2 is not None else nan_cov for m in msgs], np.float64
+        ).reshape(n, 3, 3),
+        peb_m=np.array([math.nan if m.peb_m is None else m.peb_m for m in msgs], np.float64),
+        floor_index=np.fromiter(
+            (-1 if m.floor_index is None else m.floor_index for m in msgs), np.int64, n
+        ),
+        link_fix=np.asarray(link_fix, np.int64),
+        link_anchor_id=link_anchor,
+        link_used=np.asarray(link_used, bool),
+        link_residual_m=np.asarray(link_res, np.float64),
+        link_reason=link_reason,
+    )
+
+
+# ============================================================================ track lookup
+class Tracks:
+    """Time-sorted positions per id with vectorised lookup at arbitrary times.
+
+    Parameters
+    ----------
+    t_ns : array_like of int, shape (K,) [ns]
+    ids : array_like of str, shape (K,)
+    position_m : array_like, shape (K, 3) [m]
+    extra : array_like of int, shape (K,), optional
+        An integer attribute (e.g. floor index) looked up as the latest value at or before
+        the query time.
+    """
+
+    def __init__(
+        self,
+        t_ns: ArrayLike,
+        ids: ArrayLike,
+        position_m: ArrayLike,
+        extra: ArrayLike | None = None,
+    ) -> None:
+        t = np.asarray(t_ns, np.int64).reshape(-1)
+        ids_a = _str_array(ids)
+        pos = np.asarray(position_m, np.float64).reshape(-1, 3)
+        ex = np.full(t.shape, -1, np.int64) if extra is None else np.asarray(extra, np.int64)
+        order = np.lexsort((t, ids_a)) if t.size else np.zeros(0, np.int64)
+        ids_s, t_s, pos_s, ex_s = ids_a[order], t[order], pos[order], ex[order]
+        self._data: dict[str, tuple[NDArray[np.int64], FloatArray, NDArray[np.int64]]] = {}
+        if t.size:
+            uniq, start = np.unique(ids_s, return_index=True)
+            stops = [*start[1:], len(ids_s)]
+            for name, a, b in zip(uniq, start, stops, strict=True):
+                self._data[str(name)] = (t_s[a:b], pos_s[a:b], ex_s[a:b])
+
+    @property
+    def ids(self) -> list[str]:
+        return sorted(self._data)
+
+    def sample(
+        self, ids: ArrayLike, t_ns: ArrayLike
+    ) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
+        """Positions interpolated linearly in time (held constant beyond the ends).
+
+        Returns
+        -------
+        position_m : ndarray, shape (L, 3) [m]
+            NaN where the id is unknown.
+        extra : ndarray of int64, shape (L,)
+            Latest ``extra`` value at or before each time (-1 where unknown).
+        known : ndarray of bool, shape (L,)
+        """
+        ids_q = _str_array(ids)
+        t_q = np.asarray(t_ns, np.int64).reshape(-1)
+        out = np.full((t_q.size, 3), np.nan)
+        extra = np.full(t_q.size, -1, np.int64)
+        known = np.zeros(t_q.size, bool)
+        if not t_q.size:
+            return out, extra, known
+        for name in np.unique(ids_q):
+            track = self._data.get(str(name))
+            if track is None:
+                continue
+            sel = np.flatnonzero(ids_q == name)
+            t, pos, ex = track
+            tq = t_q[sel].astype(np.float64)
+            tf = t.astype(np.float64)
+            for j in range(3):
+                out[sel, j] = np.interp(tq, tf, pos[:, j])
+            k = np.searchsorted(t, t_q[sel], side="right") - 1
+            extra[sel] = ex[np.clip(k, 0, len(t) - 1)]
+            known[sel] = True
+        return out, extra, known
+
+
+# ============================================================================ geometry helpers
+def ellipsoid_axes(
+    covariance_m2: ArrayLike, *, scale: float = math.sqrt(CHI2_3DOF_95)
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Half axes and orientation of confidence ellipsoids of 3x3 covariances.
+
+    The ellipsoid ``{x : x^T C^-1 x <= scale^2}`` has half axes ``scale * sqrt(eig(C))``
+    along the eigenvectors. The default scale makes it the 95 % region of a 3D Gaussian.
+
+    Parameters
+    ----------
+    covariance_m2 : array_like, shape (K, 3, 3) [m^2]
+    scale : float
+        Mahalanobis radius.
+
+    Returns
+    -------
+    half_sizes_m : ndarray, shape (K, 3) [m]
+    quaternion_xyzw : ndarray, shape (K, 4)
+        Rotation taking the local axes to the eigenvectors (Rerun's xyzw order).
+    valid : ndarray of bool, shape (K,)
+        False where the covariance is not finite (rows then hold zeros / identity).
+    """
+    from scipy.spatial.transform import Rotation
+
+    c = np.asarray(covariance_m2, np.float64).reshape(-1, 3, 3)
+    valid = np.all(np.isfinite(c), axis=(1, 2))
+    half = np.zeros((c.shape[0], 3))
+    quat = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (c.shape[0], 1))
+    if valid.any():
+        cs = 0.5 * (c[valid] + np.swapaxes(c[valid], 1, 2))
+        w, v = np.linalg.eigh(cs)
+        det = np.linalg.det(v)
+        v[:, :, 2] *= np.sign(det)[:, None]  # proper rotation
+        half[valid] = scale * np.sqrt(np.clip(w, 0.0, None))
+        quat[valid] = Rotation.from_matrix(v).as_quat()
+    return half, quat, valid
+
+
+def _group(ids: NDArray[np.str_]) -> list[tuple[str, NDArray[np.int64]]]:
+    """(id, row indices in original order) for each distinct id."""
+    if ids.size == 0:
+        return []
+    order = np.argsort(ids, kind="stable")
+    uniq, start = np.unique(ids[order], return_index=True)
+    stops = [*start[1:], len(order)]
+    return [(str(u), order[a:b]) for u, a, b in zip(uniq, start, stops, strict=True)]
+
+
+def _sorted_by_time(t_ns: NDArray[np.int64], rows: NDArray[np.int64]) -> NDArray[np.int64]:
+    return rows[np.argsort(t_ns[rows], kind="stable")]
+
+
+def _rgba(rows: Sequence[tuple[int, int, int, int]]) -> NDArray[np.uint8]:
+    return np.asarray(rows, dtype=np.uint8).reshape(-1, 4)
+
+
+# ============================================================================ logging functions
+def log_building(rec: rr.RecordingStream, building: BuildingOutline) -> None:
+    """Static wireframe: floor outlines and the window band of each floor on the facade.
+
+    Also sets ``world`` to a right-handed z-up frame (the building frame).
+    """
+    b = building
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    x0, x1, d = b.x_min_m, b.x_max_m, b.depth_m
+    floors = []
+    for k in range(b.n_floors + 1):
+        z = k * b.floor_height_m
+        floors.append([[x0, 0, z], [x1, 0, z], [x1, d, z], [x0, d, z], [x0, 0, z]])
+    top = b.n_floors * b.floor_height_m
+    for x, y in ((x0, 0), (x1, 0), (x1, d), (x0, d)):
+        floors.append([[x, y, 0.0], [x, y, top]])
+    rec.log(
+        "world/building/floors",
+        rr.LineStrips3D(floors, colors=[(160, 160, 170, 255)], radii=0.03),
+        static=True,
+    )
+    windows, labels = [], []
+    for k in range(b.n_floors):
+        z_lo = k * b.floor_height_m + b.sill_height_m
+        z_hi = z_lo + b.window_height_m
+        windows.append([[x0, 0, z_lo], [x1, 0, z_lo], [x1, 0, z_hi], [x0, 0, z_hi], [x0, 0, z_lo]])
+        labels.append(f"F{k} window")
+    rec.log(
+        "world/building/windows",
+        rr.LineStrips3D(windows, colors=[(90, 170, 255, 255)], radii=0.05, labels=labels),
+        static=True,
+    )
+
+
+def log_anchors(
+    rec: rr.RecordingStream,
+    anchors: AnchorColumns,
+    *,
+    history: AnchorColumns | None = None,
+    trail_s: float = 30.0,
+    trail_period_s: float = 0.5,
+    trail_max_points: int = 60,
+) -> None:
+    """Anchor positions and their trails.
+
+    Parameters
+    ----------
+    anchors : AnchorColumns
+        The new rows to log.
+    history : AnchorColumns, optional
+        Earlier rows (already logged) used only to draw the beginning of the trails.
+    trail_s : float [s]
+        Trail length in measurement time.
+    trail_period_s : float [s]
+        A trail is re-drawn at most once per this period of measurement time (per anchor).
+    trail_max_points : int
+        Trails are subsampled to at most this many points.
+    """
+    if not len(anchors):
+        return
+    period_ns = max(1, int(trail_period_s * 1e9))
+    trail_ns = int(trail_s * 1e9)
+    for aid, rows in _group(anchors.anchor_id):
+        rows = _sorted_by_time(anchors.t_ns, rows)
+        t = anchors.t_ns[rows]
+        pos = anchors.position_m[rows]
+        color = anchor_color(aid)
+        rec.send_columns(
+            f"world/anchors/{aid}",
+            indexes=[_time_column(t)],
+            columns=rr.Points3D.columns(
+                positions=pos,
+                colors=_rgba([color] * len(rows)),
+                radii=np.full(len(rows), 0.35, np.float32),
+                labels=np.full(len(rows), aid),
+            ),
+        )
+        # trails: full track = history + new rows; one strip per new trail bucket
+        if history is not None and len(history):
+            hsel = history.anchor_id == aid
+            t_all = np.concatenate([history.t_ns[hsel], t])
+            p_all = np.concatenate([history.position_m[hsel], pos])
+            order = np.argsort(t_all, kind="stable")
+            t_all, p_all = t_all[order], p_all[order]
+            prev_bucket = history.t_ns[hsel].max() // period_ns if hsel.any() else None
+        else:
+            t_all, p_all, prev_bucket = t, pos, None
+        bucket = t // period_ns
+        first = np.ones(len(t), bool)
+        first[1:] = bucket[1:] != bucket[:-1]
+        if prev_bucket is not None:
+            first &= bucket != prev_bucket
+        emit_t = t[first]
+        if not emit_t.size:
+            continue
+        lo = np.searchsorted(t_all, emit_t - trail_ns, side="left")
+        hi = np.searchsorted(t_all, emit_t, side="right")
+        strips = []
+        for a, b in zip(lo, hi, strict=True):
+            step = max(1, (b - a) // trail_max_points)
+            idx = np.arange(b - 1, a - 1, -step)[::-1]
+            strips.append(p_all[idx])
+        rec.send_columns(
+            f"world/anchors/{aid}/trail",
+            indexes=[_time_column(emit_t)],
+            columns=rr.LineStrips3D.columns(
+                strips=strips,
+                colors=_rgba([(*color[:3], 160)] * len(strips)),
+                radii=np.full(len(strips), 0.08, np.float32),
+            ),
+        )
+
+
+def log_truth(rec: rr.RecordingStream, truth: TruthColumns) -> None:
+    """True node positions (emulation) as small white points ``world/nodes/<node>/truth``."""
+    for nid, rows in _group(truth.node_id):
+        rows = _sorted_by_time(truth.t_ns, rows)
+        n = len(rows)
+        rec.send_columns(
+            f"world/nodes/{nid}/truth",
+            indexes=[_time_column(truth.t_ns[rows])],
+            columns=rr.Points3D.columns(
+                positions=truth.position_m[rows],
+                colors=_rgba([_TRUTH_COLOR] * n),
+                radii=np.full(n, 0.12, np.float32),
+            ),
+        )
+
+
+def _scalar_series(
+    rec: rr.RecordingStream, path: str, t_ns: np.ndarray, values: np.ndarray
+) -> None:
+    ok = np.isfinite(values)
+    if ok.any():
+        rec.send_columns(
+            path, indexes=[_time_column(t_ns[ok])], columns=rr.Scalars.columns(scalars=values[ok])
+        )
+
+
+@dataclass
+class _EstimateState:
+    """What log_estimates remembers between batches (live streaming)."""
+
+    last_path_bucket: dict[str, int] = field(default_factory=dict)
+    last_links: dict[str, dict[str, str]] = field(default_factory=dict)
+    last_status: dict[str, str] = field(default_factory=dict)
+    last_floor_bucket: int | None = None
+    floors: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+
+def log_estimates(
+    rec: rr.RecordingStream,
+    est: EstimateColumns,
+    *,
+    anchors: Tracks | None = None,
+    truth: Tracks | None = None,
+    building: BuildingOutline | None = None,
+    confidence_scale: float = math.sqrt(CHI2_3DOF_95),
+    path_period_s: float = 0.5,
+    floor_period_s: float = 1.0,
+    state: _EstimateState | None = None,
+) -> _EstimateState:
+    """Estimates, uncertainty, diffraction paths, metrics, floor table and events.
+
+    Parameters
+    ----------
+    est : EstimateColumns
+        The fixes to log (any mix of nodes and times).
+    anchors : Tracks, optional
+        Anchor positions over time (from AnchorState); needed for the diffraction paths.
+    truth : Tracks, optional
+        True node positions over time with the true floor as ``extra``; gives the error
+        series and the true floor.
+    building : BuildingOutline, optional
+        Gives the window edge of the estimated floor for the paths, and true floors from z.
+    confidence_scale : float
+        Mahalanobis radius of the drawn ellipsoid (default: 95 % in 3D).
+    path_period_s : float [s]
+        Diffraction paths of a node are drawn at most once per this measurement-time period.
+    floor_period_s : float [s]
+        The floor table is refreshed at most once per this period.
+    state : optional
+        Returned by the previous call (streaming); ``None`` for a single bulk call.
+
+    Returns
+    -------
+    state
+        Pass it to the next call when streaming.
+    """
+    st = state if state is not None else _EstimateState()
+    k = len(est)
+    if k == 0:
+        return st
+    t = est.t_ns
+    pos = est.position_m
+    has_pos = np.all(np.isfinite(pos), axis=1)
+
+    # ---- truth, errors, floors
+    if truth is not None:
+        true_pos, true_floor, known = truth.sample(est.node_id, t)
+    else:
+        true_pos = np.full((k, 3), np.nan)
+        true_floor = np.full(k, -1, np.int64)
+        known = np.zeros(k, bool)
+    if building is not None:
+        derived = building.floor_of(true_pos[:, 2])
+        true_floor = np.where(known & (true_floor < 0), derived, true_floor)
+    err_3d = np.linalg.norm(pos - true_pos, axis=1)
+    err_z = pos[:, 2] - true_pos[:, 2]
+    est_floor = est.floor_index
+    if building is not None:
+        est_floor = np.where((est_floor < 0) & has_pos, building.floor_of(pos[:, 2]), est_floor)
+
+    half, quat, cov_ok = ellipsoid_axes(est.covariance_m2, scale=confidence_scale)
+    cov_ok &= has_pos
+
+    # ---- links: anchor positions and window-edge points (vectorised over all links)
+    n_links = est.link_fix.size
+    lf = est.link_fix
+    link_ok = np.zeros(n_links, bool)
+    strips = np.zeros((n_links, 3, 3))
+    if n_links and anchors is not None:
+        a_pos, _, a_known = anchors.sample(est.link_anchor_id, t[lf])
+        node = pos[lf]
+        link_ok = a_known & has_pos[lf]
+        if building is not None:
+            fl = np.where(est_floor[lf] >= 0, est_floor[lf], building.floor_of(node[:, 2]))
+            ze = building.upper_edge_z_m(fl)
+            start = np.stack([np.full(n_links, building.x_min_m), np.zeros(n_links), ze], axis=1)
+            end = start.copy()
+            end[:, 0] = building.x_max_m
+            with np.errstate(invalid="ignore"):
+                q = diffraction_point(a_pos, node, start, end).point_m
+        else:
+            q = 0.5 * (a_pos + node)
+        strips = np.stack([a_pos, q, node], axis=1)
+        link_ok &= np.all(np.isfinite(strips), axis=(1, 2))
+    link_colors = np.empty((n_links, 4), np.uint8)
+    for aid in np.unique(est.link_anchor_id):
+        link_colors[est.link_anchor_id == aid] = anchor_color(str(aid))
+    link_colors[~est.link_used] = _EXCLUDED_COLOR
+    link_radii = np.where(est.link_used, 0.05, 0.03).astype(np.float32)
+
+    status_colors = np.array(
+        [_STATUS_COLORS.get(s, _OTHER_STATUS_COLOR) for s in np.unique(est.status)], np.uint8
+    )
+    status_idx = np.searchsorted(np.unique(est.status), est.status)
+    colors = status_colors[status_idx]
+
+    path_period_ns = max(1, int(path_period_s * 1e9))
+    events_t: list[np.ndarray] = []
+    events_text: list[list[str]] = []
+    events_level: list[list[str]] = []
+
+    for nid, rows in _group(est.node_id):
+        rows = _sorted_by_time(t, rows)
+        tr = t[rows]
+        hp = has_pos[rows]
+        n_pos = hp.astype(np.int64)
+        label = [
+            f"{nid} F{ef if ef >= 0 else '?'}" + (f" (true F{tf})" if tf >= 0 else "")
+            for ef, tf in zip(est_floor[rows].tolist(), true_floor[rows].tolist(), strict=True)
+        ]
+        sel = rows[hp]
+        rec.send_columns(
+            f"world/nodes/{nid}/estimate",
+            indexes=[_time_column(tr)],
+            columns=rr.Points3D.columns(
+                positions=pos[sel],
+                colors=colors[sel],
+                radii=np.full(sel.size, 0.25, np.float32),
+                labels=np.asarray(label)[hp],
+            ).partition(n_pos),
+        )
+        ok = cov_ok[rows]
+        sel = rows[ok]
+        rec.send_columns(
+            f"world/nodes/{nid}/uncertainty",
+            indexes=[_time_column(tr)],
+            columns=rr.Ellipsoids3D.columns(
+                centers=pos[sel],
+                half_sizes=half[sel],
+                quaternions=quat[sel],
+                colors=colors[sel],
+                line_radii=np.full(sel.size, 0.02, np.float32),
+            ).partition(ok.astype(np.int64)),
+        )
+        # diffraction paths, decimated in measurement time
+        if n_links and anchors is not None:
+            bucket = tr // path_period_ns
+            first = np.ones(len(rows), bool)
+            first[1:] = bucket[1:] != bucket[:-1]
+            prev = st.last_path_bucket.get(nid)
+            if prev is not None:
+                first &= bucket != prev
+            if first.any():
+                st.last_path_bucket[nid] = int(bucket[-1])
+                prow = rows[first]
+                rank = np.full(k, -1, np.int64)
+                rank[prow] = np.arange(prow.size)
+                lsel = np.flatnonzero((rank[lf] >= 0) & link_ok)
+                lsel = lsel[np.argsort(rank[lf[lsel]], kind="stable")]
+                per_row = np.bincount(rank[lf[lsel]], minlength=prow.size)
+                rec.send_columns(
+                    f"world/nodes/{nid}/paths",
+                    indexes=[_time_column(tr[first])],
+                    columns=rr.LineStrips3D.columns(
+                        strips=strips[lsel],
+                        colors=link_colors[lsel],
+                        radii=link_radii[lsel],
+                    ).partition(per_row),
+                )
+        _scalar_series(rec, f"metrics/error_3d_m/{nid}", tr, err_3d[rows])
+        _scalar_series(rec, f"metrics/error_z_m/{nid}", tr, err_z[rows])
+        _scalar_series(rec, f"metrics/peb_m/{nid}", tr, est.peb_m[rows])
+
+        # status changes -> events
+        prev_status = st.last_status.get(nid)
+        stat = est.status[rows]
+        change = np.ones(len(rows), bool)
+        change[1:] = stat[1:] != stat[:-1]
+        if prev_status is not None:
+            change[0] = stat[0] != prev_status
+        elif stat[0] == "OK":
+            change[0] = False
+        st.last_status[nid] = str(stat[-1])
+        if change.any():
+            ci = np.flatnonzero(change)
+            events_t.append(tr[ci])
+            txt, lvl = [], []
+            for i in ci:
+                s = str(stat[i])
+                txt.append(
+                    f"node {nid}: status {s}"
+                    + (" (unidentifiable geometry)" if s == "UNIDENTIFIABLE" else "")
+                )
+                lvl.append("INFO" if s == "OK" else ("ERROR" if s == "UNIDENTIFIABLE" else "WARN"))
+            events_text.append(txt)
+            events_level.append(lvl)
+
+        # latest floors for the floor table
+        last = rows[-1]
+        st.floors[nid] = (int(est_floor[last]), int(true_floor[last]))
+
+    # ---- exclusions: an event when an anchor becomes excluded (or changes reason) for a node
+    if n_links:
+        lorder = np.lexsort((t[lf], est.link_anchor_id, est.node_id[lf]))
+        ex_t, ex_txt, ex_lvl = [], [], []
+        node_l, anc_l, used_l, reason_l, t_l = (
+            est.node_id[lf][lorder],
+            est.link_anchor_id[lorder],
+            est.link_used[lorder],
+            est.link_reason[lorder],
+            t[lf][lorder],
+        )
+        # transitions detected on the sorted arrays (vectorised), then state carried over
+        same = np.zeros(n_links, bool)
+        same[1:] = (node_l[1:] == node_l[:-1]) & (anc_l[1:] == anc_l[:-1])
+        prev_reason = np.empty(n_links, dtype=object)
+        prev_reason[1:] = np.where(used_l[:-1], "", reason_l[:-1])
+        first_idx = np.flatnonzero(~same)
+        for i in first_idx:
+            prev_reason[i] = st.last_links.get(str(node_l[i]), {}).get(str(anc_l[i]), "")
+        cur_reason = np.where(used_l, "", reason_l)
+        becomes = (~used_l) & (cur_reason != prev_reason)
+        recovers = used_l & (prev_reason != "")
+        for i in np.flatnonzero(becomes | recovers):
+            ex_t.append(t_l[i])
+            if used_l[i]:
+                ex_txt.append(f"node {node_l[i]}: anchor {anc_l[i]} used again")
+                ex_lvl.append("INFO")
+            else:
+                ex_txt.append(f"node {node_l[i]}: anchor {anc_l[i]} excluded ({reason_l[i]})")
+                ex_lvl.append("WARN")
+        last_idx = np.r_[first_idx[1:] - 1, n_links - 1]
+        for i in last_idx:
+            st.last_links.setdefault(str(node_l[i]), {})[str(anc_l[i])] = str(cur_reason[i])
+        if ex_t:
+            events_t.append(np.asarray(ex_t, np.int64))
+            events_text.append(ex_txt)
+            events_level.append(ex_lvl)
+
+        # residual scatter per anchor and gating counts per fusion time
+        used = est.link_used & np.isfinite(est.link_residual_m)
+        for aid, lrows in _group(est.link_anchor_id[used]):
+            li = np.flatnonzero(used)[lrows]
+            li = li[np.argsort(t[lf[li]], kind="stable")]
+            rec.send_columns(
+                f"metrics/residual_m/{aid}",
+                indexes=[_time_column(t[lf[li]])],
+                columns=rr.Scalars.columns(scalars=est.link_residual_m[li]),
+            )
+        ut, inv = np.unique(t[lf], return_inverse=True)
+        n_ex = np.bincount(inv, weights=(~est.link_used).astype(float), minlength=ut.size)
+        n_used = np.bincount(inv, weights=est.link_used.astype(float), minlength=ut.size)
+        rec.send_columns(
+            "metrics/gating/excluded",
+            indexes=[_time_column(ut)],
+            columns=rr.Scalars.columns(scalars=n_ex),
+        )
+        rec.send_columns(
+            "metrics/gating/used",
+            indexes=[_time_column(ut)],
+            columns=rr.Scalars.columns(scalars=n_used),
+        )
+
+    # ---- floor table, refreshed at most once per floor period (latest fix per node)
+    floor_period_ns = max(1, int(floor_period_s * 1e9))
+    fb = t // floor_period_ns
+    ub = np.unique(fb)
+    if st.last_floor_bucket is not None:
+        ub = ub[ub != st.last_floor_bucket]
+    if ub.size:
+        # snapshot at the end of each bucket: latest fix per node up to that time
+        snap_t = np.array([t[fb == b].max() for b in ub], np.int64)
+        texts = _floor_tables(est, est_floor, true_floor, snap_t, st)
+        st.last_floor_bucket = int(ub[-1])
+        rec.send_columns(
+            "floors",
+            indexes=[_time_column(snap_t)],
+            columns=rr.TextDocument.columns(text=texts, media_type=["text/markdown"] * len(texts)),
+        )
+
+    if events_t:
+        log_events(
+            rec,
+            EventColumns(
+                np.concatenate(events_t),
+                [x for part in events_text for x in part],
+                [x for part in events_level for x in part],
+            ),
+        )
+    return st
+
+
+def _floor_tables(
+    est: EstimateColumns,
+    est_floor: NDArray[np.int64],
+    true_floor: NDArray[np.int64],
+    snap_t: NDArray[np.int64],
+    st: _EstimateState,
+) -> list[str]:
+    """Markdown tables (one per snapshot time) of the latest estimated/true floor per node."""
+    groups = _group(est.node_id)
+    nodes = sorted(set(st.floors) | {g for g, _ in groups})
+    # latest (est, true) per node at each snapshot: (n_nodes, n_snap)
+    est_m = np.full((len(nodes), snap_t.size), -2, np.int64)
+    tru_m = np.full((len(nodes), snap_t.size), -2, np.int64)
+    pos = {n: i for i, n in enumerate(nodes)}
+    prior = dict(st.floors)
+    for nid, i in pos.items():
+        if nid in prior:
+            est_m[i, :], tru_m[i, :] = prior[nid]
+    for nid, rows in groups:
+        rows = _sorted_by_time(est.t_ns, rows)
+        k = np.searchsorted(est.t_ns[rows], snap_t, side="right") - 1
+        have = k >= 0
+        i = pos[nid]
+        est_m[i, have] = est_floor[rows][k[have]]
+        tru_m[i, have] = true_floor[rows][k[have]]
+    fmt = lambda v: "?" if v < 0 else str(v)  # noqa: E731
+    texts = []
+    for j in range(snap_t.size):
+        hits = [
+            (e == tr) for e, tr in zip(est_m[:, j], tru_m[:, j], strict=True) if e >= 0 and tr >= 0
+        ]
+        head = (
+            f"**Floor estimate: {sum(hits)}/{len(hits)} nodes on the true floor**\n\n"
+            if hits
+            else "**Floor estimate** (no ground truth)\n\n"
+        )
+        rows = ["| node | estimated | true | |", "|---|---|---|---|"]
+        for i, nid in enumerate(nodes):
+            e, tr = est_m[i, j], tru_m[i, j]
+            if e == -2:
+                continue
+            mark = "" if e < 0 or tr < 0 else ("ok" if e == tr else "**WRONG**")
+            rows.append(f"| {nid} | {fmt(e)} | {fmt(tr)} | {mark} |")
+        texts.append(head + "\n".join(rows))
+    return texts
+
+
+def log_events(rec: rr.RecordingStream, events: EventColumns) -> None:
+    """Text events on the ``events`` entity (sorted by time)."""
+    if not events.t_ns.size:
+        return
+    order = np.argsort(events.t_ns, kind="stable")
+    rec.send_columns(
+        "events",
+        indexes=[_time_column(events.t_ns[order])],
+        columns=rr.TextLog.columns(text=events.text[order], level=events.level[order]),
+    )
+
+
+def log_diagnostics(
+    rec: rr.RecordingStream, diags: Sequence[Any], *, state: dict | None = None
+) -> dict:
+    """Fusion counters and anchor joined/left events from ``FusionDiagnostics`` messages.
+
+    Rows are placed at ``watermark_ns`` (newest measurement time seen by the fusion); messages
+    without a watermark are skipped. Returns the live-anchor set to pass back when streaming.
+    """
+    st = state if state is not None else {"live": None}
+    rows = sorted((d for d in diags if d.watermark_ns is not None), key=lambda d: d.watermark_ns)
+    if not rows:
+        return st
+    t = np.array([d.watermark_ns for d in rows], np.int64)
+    for name in ("gated", "solved", "published", "late_ranges", "pending_epochs"):
+        vals = np.array([float(getattr(d, name)) for d in rows])
+        rec.send_columns(
+            f"metrics/fusion/{name}",
+            indexes=[_time_column(t)],
+            columns=rr.Scalars.columns(scalars=vals),
+        )
+    ev_t, ev_txt, ev_lvl = [], [], []
+    live = st["live"]
+    for d, ti in zip(rows, t.tolist(), strict=True):
+        now = set(d.live_anchors)
+        if live is not None:
+            for a in sorted(now - live):
+                ev_t.append(ti)
+                ev_txt.append(f"anchor {a} joined")
+                ev_lvl.append("INFO")
+            for a in sorted(live - now):
+                ev_t.append(ti)
+                ev_txt.append(f"anchor {a} left")
+                ev_lvl.append("WARN")
+        else:
+            ev_t.append(ti)
+            ev_txt.append("fusion sees anchors: " + (", ".join(sorted(now)) or "none"))
+            ev_lvl.append("INFO")
+        live = now
+    st["live"] = live
+    log_events(rec, EventColumns(np.asarray(ev_t, np.int64), ev_txt, ev_lvl))
+    return st
+
+
+# ============================================================================ blueprint
+def default_blueprint() -> rrb.Blueprint:
+    """The diffpos dashboard layout (embedded in every .rrd and sent to live viewers).
+
+    Left: the 3D building view over the floor table and the event log. Right: time series
+    of 3D error, z error and PEB per node, and tabs with residuals per anchor, gating counts
+    and fusion counters.
+    """
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial3DView(
+                    origin="world",
+                    name="Building (3D): anchors, estimates, 95% ellipsoids, diffraction paths",
+                    line_grid=rrb.LineGrid3D(visible=True, spacing=5.0),
+                    eye_controls=rrb.EyeControls3D(
+                        position=(-40.0, -70.0, 35.0),
+                        look_target=(0.0, 10.0, 8.0),
+                        eye_up=(0, 0, 1),
+                    ),
+                ),
+                rrb.Horizontal(
+                    rrb.TextDocumentView(origin="floors", name="Floor: estimated vs true"),
+                    rrb.TextLogView(origin="events", name="Events"),
+                    column_shares=[1, 2],
+                ),
+                row_shares=[3, 1],
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="metrics/error_3d_m", name="3D error per node [m]"),
+                rrb.TimeSeriesView(origin="metrics/error_z_m", name="z error per node [m]"),
+                rrb.TimeSeriesView(origin="metrics/peb_m", name="PEB per node [m]"),
+                rrb.Tabs(
+                    rrb.TimeSeriesView(
+                        origin="metrics/residual_m",
+                        name="Range residuals per anchor [m]",
+                        overrides={"metrics/residual_m": rr.SeriesPoints(marker_sizes=[1.5])},
+                    ),
+                    rrb.TimeSeriesView(
+                        origin="metrics/gating", name="Measurements used / excluded"
+                    ),
+                    rrb.TimeSeriesView(origin="metrics/fusion", name="Fusion counters"),
+                ),
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(timeline=TIMELINE),
+        collapse_panels=True,
+    )
+
+
+# ============================================================================ streaming + bulk
+class Dashboard:
+    """Streaming front end: feed batches of decoded bus messages, log them to ``rec``.
+
+    Keeps the little state the live dashboard needs between batches (recent anchor and
+    truth history for lookups and trails, last status/exclusion per node for the events).
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream
+        Where to log (its sinks are the caller's business).
+    building : BuildingOutline, optional
+        Drawn once at construction (static).
+    history_s : float [s]
+        How much anchor/truth history is kept for lookups and trails.
+    """
+
+    def __init__(
+        self,
+        rec: rr.RecordingStream,
+        *,
+        building: BuildingOutline | None = None,
+        history_s: float = 60.0,
+        path_period_s: float = 0.5,
+        trail_s: float = 30.0,
+    ) -> None:
+        self.rec = rec
+        self.building = building
+        self.history_ns = int(history_s * 1e9)
+        self.path_period_s = path_period_s
+        self.trail_s = trail_s
+        self._anchors = AnchorColumns(np.zeros(0, np.int64), [], np.zeros((0, 3)))
+        self._truth = TruthColumns(np.zeros(0, np.int64), [], np.zeros((0, 3)))
+        self._est_state = _EstimateState()
+        self._diag_state: dict = {"live": None}
+        self.counts = {
+            "anchor_states": 0,
+            "truth": 0,
+            "estimates": 0,
+            "diagnostics": 0,
+            "events": 0,
+        }
+        if building is not None:
+            log_building(rec, building)
+
+    def _trim(self, cols, t_now: int):
+        keep = cols.t_ns >= t_now - self.history_ns
+        return type(cols)(**{f: getattr(cols, f)[keep] for f in cols.__dataclass_fields__})
+
+    def add(
+        self,
+        *,
+        anchor_states: Sequence[Any] = (),
+        truth: Sequence[Any] = (),
+        estimates: Sequence[Any] = (),
+        diagnostics: Sequence[Any] = (),
+        events: EventColumns | None = None,
+    ) -> None:
+        """Log one batch of decoded messages (any of them may be empty)."""
+        if anchor_states:
+            new = anchor_columns_from_messages(anchor_states)
+            log_anchors(self.rec, new, history=self._anchors, trail_s=self.trail_s)
+            merged = AnchorColumns(
+                np.concatenate([self._anchors.t_ns, new.t_ns]),
+                np.concatenate([self._anchors.anchor_id, new.anchor_id]),
+                np.concatenate([self._anchors.position_m, new.position_m]),
+            )
+            self._anchors = self._trim(merged, int(merged.t_ns.max()))
+            self.counts["anchor_states"] += len(new)
+        if truth:
+            new_t = truth_columns_from_messages(truth)
+            log_truth(self.rec, new_t)
+            merged_t = TruthColumns(
+                np.concatenate([self._truth.t_ns, new_t.t_ns]),
+                np.concatenate([self._truth.node_id, new_t.node_id]),
+                np.concatenate([self._truth.position_m, new_t.position_m]),
+                np.concatenate([self._truth.floor_index, new_t.floor_index]),
+            )
+            if len(merged_t):
+                self._truth = self._trim(merged_t, int(merged_t.t_ns.max()))
+            self.counts["truth"] += len(new_t)
+        if estimates:
+            est = estimate_columns_from_messages(estimates)
+            self._est_state = log_estimates(
+                self.rec,
+                est,
+                anchors=Tracks(
+                    self._anchors.t_ns, self._anchors.anchor_id, self._anchors.position_m
+                ),
+                truth=Tracks(
+                    self._truth.t_ns,
+                    self._truth.node_id,
+                    self._truth.position_m,
+                    self._truth.floor_index,
+                )
+                if len(self._truth)
+                else None,
+                building=self.building,
+                path_period_s=self.path_period_s,
+                state=self._est_state,
+            )
+            self.counts["estimates"] += len(est)
+        if diagnostics:
+            self._diag_state = log_diagnostics(self.rec, diagnostics, state=self._diag_state)
+            self.counts["diagnostics"] += len(diagnostics)
+        if events is not None and events.t_ns.size:
+            log_events(self.rec, events)
+            self.counts["events"] += int(events.t_ns.size)
+
+
+def write_rrd(
+    path: str | Path,
+    *,
+    building: BuildingOutline | None = None,
+    anchors: AnchorColumns | None = None,
+    truth: TruthColumns | None = None,
+    estimates: EstimateColumns | None = None,
+    diagnostics: Sequence[Any] = (),
+    events: EventColumns | None = None,
+    recording_id: str | None = None,
+    path_period_s: float = 0.5,
+) -> Path:
+    """Write a complete dashboard .rrd from columns, in bulk, with the blueprint embedded.
+
+    Returns the path written.
+    """
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+    rec.save(str(out), default_blueprint=default_blueprint())
+    try:
+        if building is not None:
+            log_building(rec, building)
+        if anchors is not None and len(anchors):
+            log_anchors(rec, anchors)
+        if truth is not None and len(truth):
+            log_truth(rec, truth)
+        if estimates is not None and len(estimates):
+            log_estimates(
+                rec,
+                estimates,
+                anchors=Tracks(anchors.t_ns, anchors.anchor_id, anchors.position_m)
+                if anchors is not None
+                else None,
+                truth=Tracks(truth.t_ns, truth.node_id, truth.position_m, truth.floor_index)
+                if truth is not None and len(truth)
+                else None,
+                building=building,
+                path_period_s=path_period_s,
+            )
+        if diagnostics:
+            log_diagnostics(rec, diagnostics)
+        if events is not None:
+            log_events(rec, events)
+    finally:
+        rec.flush()
+        rec.disconnect()
+    return out
+
+
+_KIND_BY_CLASS = {
+    "AnchorState": "anchor_state",
+    "GroundTruth": "truth",
+    "PositionEstimate": "estimate",
+    "FusionDiagnostics": "diagnostics",
+}
+
+
+def write_rrd_from_messages(
+    messages: Iterable[Any],
+    path: str | Path,
+    *,
+    building: Any = None,
+    recording_id: str | None = None,
+    events: EventColumns | None = None,
+    path_period_s: float = 0.5,
+) -> dict[str, int]:
+    """Write the dashboard .rrd from decoded bus messages (e.g. read from an MCAP file).
+
+    Parameters
+    ----------
+    messages : iterable
+        Decoded messages in any order: ``AnchorState``, ``GroundTruth``, ``PositionEstimate``,
+        ``FusionDiagnostics`` (others, e.g. ``RangeMeasurement``, are ignored). Items may
+        also be ``(topic, message)`` or ``(topic, log_time_ns, message)`` tuples.
+    path : str or Path
+        Output .rrd.
+    building : BuildingOutline or scenario building or mapping, optional
+        Enables the wireframe, the window-edge diffraction points and floors from z.
+    recording_id : str, optional
+        Rerun recording id (e.g. the run id), so a live recording and its replay can be
+        told apart or merged in the viewer.
+    events : EventColumns, optional
+        Extra events (e.g. liveliness changes recorded in the MCAP).
+
+    Returns
+    -------
+    dict
+        Number of messages used per kind.
+    """
+    groups: dict[str, list[Any]] = {
+        "anchor_state": [],
+        "truth": [],
+        "estimate": [],
+        "diagnostics": [],
+    }
+    for item in messages:
+        msg = item[-1] if isinstance(item, tuple) else item
+        kind = _KIND_BY_CLASS.get(type(msg).__name__)
+        if kind is not None:
+            groups[kind].append(msg)
+    outline = BuildingOutline.from_object(building) if building is not None else None
+    truth = truth_columns_from_messages(groups["truth"])
+    write_rrd(
+        path,
+        building=outline,
+        anchors=anchor_columns_from_messages(groups["anchor_state"]),
+        truth=truth,
+        estimates=estimate_columns_from_messages(groups["estimate"]),
+        diagnostics=groups["diagnostics"],
+        events=events,
+        recording_id=recording_id,
+        path_period_s=path_period_s,
+    )
+    return {k: len(v) for k, v in groups.items()} | {"truth_nodes": len(truth)}
+
+
+# ============================================================================ synthetic run
+def synthetic_run(
+    *,
+    n_anchors: int = 4,
+    n_nodes: int = 6,
+    duration_s: float = 20.0,
+    rate_hz: float = 10.0,
+    seed: int = 0,
+    t0_ns: int = 1_700_000_000_000_000_000,
+) -> tuple[BuildingOutline, list[Any]]:
+    """A plausible synthetic run as bus messages, for demos, tests and benchmarks.
+
+    Anchors circle outside the facade (y < 0), nodes walk slowly on their floor at the
+    window mid-height, estimates are truth plus Gaussian noise drawn from their own
+    covariance; every 7th fix of node 0 excludes one anchor (``RESIDUAL_OUTLIER``) and node 1
+    is ``UNIDENTIFIABLE`` (no position) for one second in the middle. The last anchor leaves
+    the fusion's live set after two thirds of the run (FusionDiagnostics every second).
+
+    Returns
+    -------
+    building : BuildingOutline
+    messages : list
+        ``AnchorState``, ``GroundTruth`` (nodes), ``PositionEstimate`` and
+        ``FusionDiagnostics`` structs of :mod:`diffpos_services.messages`, in time order.
+    """
+    from diffpos_services import messages as m
+
+    rng = np.random.default_rng(seed)
+    b = BuildingOutline(
+        x_min_m=-12.0,
+        x_max_m=12.0,
+        depth_m=14.0,
+        n_floors=4,
+        floor_height_m=3.5,
+        sill_height_m=0.9,
+        window_height_m=1.6,
+    )
+    n_t = max(1, round(duration_s * rate_hz))
+    t_ns = t0_ns + (np.arange(n_t) * (1e9 / rate_hz)).astype(np.int64)
+    ts = (t_ns - t0_ns) / 1e9
+    # anchors: ellipses outside the facade
+    phase = rng.uniform(0, 2 * np.pi, n_anchors)
+    ang = phase[None, :] + 0.05 * ts[:, None]
+    a_pos = np.stack(
+        [
+            14.0 * np.cos(ang),
+            -12.0 - 4.0 * np.sin(ang),
+            np.linspace(4.0, 14.0, n_anchors)[None, :] + 1.0 * np.sin(2 * ang),
+        ],
+        axis=-1,
+    )  # (T, A, 3)
+    a_ids = [f"uav{i + 1}" for i in range(n_anchors)]
+    # nodes: random walk on a floor at window mid-height
+    floors = rng.integers(0, b.n_floors, n_nodes)
+    z_mid = floors * b.floor_height_m + b.sill_height_m + 0.5 * b.window_height_m
+    start = np.stack([rng.uniform(-9, 9, n_nodes), rng.uniform(2, 12, n_nodes), z_mid], axis=-1)
+    steps = rng.normal(0.0, 0.03, (n_t, n_nodes, 3))
+    steps[..., 2] = 0.0
+    n_pos = start[None] + np.cumsum(steps, axis=0)
+    n_pos[..., 0] = np.clip(n_pos[..., 0], -11, 11)
+    n_pos[..., 1] = np.clip(n_pos[..., 1], 0.5, 13.5)
+    n_ids = [f"n{i:02d}" for i in range(n_nodes)]
+    # estimates: per fix a random covariance (axes 0.2..1.5 m, random rotation)
+    sig = rng.uniform(0.2, 1.5, (n_t, n_nodes, 3))
+    q, _ = np.linalg.qr(rng.normal(size=(n_t, n_nodes, 3, 3)))
+    cov = q @ (sig[..., :, None] ** 2 * np.swapaxes(q, -1, -2))
+    noise = np.einsum("...ij,...j->...i", q, sig * rng.normal(size=(n_t, n_nodes, 3)))
+    e_pos = n_pos + noise
+    peb = np.sqrt(np.einsum("...ii->...", cov))
+    e_floor = b.floor_of(e_pos[..., 2])
+    res = rng.normal(0.0, 0.3, (n_t, n_nodes, n_anchors))
+    wall = 1_800_000_000_000_000_000
+    out: list[Any] = []
+    leave_at = int(n_t * 2 / 3)
+    for i in range(n_t):
+        t = int(t_ns[i])
+        for j, aid in enumerate(a_ids):
+            if j == n_anchors - 1 and i >= leave_at:
+                continue
+            out.append(
+                m.AnchorState(
+                    anchor_id=aid,
+                    t_ns=t,
+                    seq=i,
+                    position_m=vec3(a_pos[i, j]),
+                    velocity_m_s=(0.0, 0.0, 0.0),
+                    position_sigma_m=(0.1, 0.1, 0.2),
+                    velocity_sigma_m_s=0.05,
+                    range_rate_hz=rate_hz,
+                    t_pub_wall_ns=wall + t - t0_ns,
+                )
+            )
+        live = a_ids if i < leave_at else a_ids[:-1]
+        for k, nid in enumerate(n_ids):
+            out.append(
+                m.GroundTruth(
+                    entity="node",
+                    id=nid,
+                    t_ns=t,
+                    position_m=vec3(n_pos[i, k]),
+                    velocity_m_s=(0.0, 0.0, 0.0),
+                    floor_index=int(floors[k]),
+                )
+            )
+            used = list(live)
+            excluded = []
+            if k == 0 and i % 7 == 3 and len(used) > 3:
+                excluded.append(m.Exclusion(anchor_id=used.pop(1), reason="RESIDUAL_OUTLIER"))
+            if i >= leave_at:
+                excluded.append(m.Exclusion(anchor_id=a_ids[-1], reason="ANCHOR_LOST"))
+            unident = k == 1 and n_t // 2 <= i < n_t // 2 + int(rate_hz)
+            used_idx = [a_ids.index(a) for a in used]
+            out.append(
+                m.PositionEstimate(
+                    node_id=nid,
+                    t_ns=t,
+                    epoch=i,
+                    seq=i,
+                    status="UNIDENTIFIABLE" if unident else "OK",
+                    position_m=None if unident else vec3(e_pos[i, k]),
+                    covariance_m2=None if unident else tuple(vec3(r) for r in cov[i, k]),
+                    peb_m=None if unident else float(peb[i, k]),
+                    z_bound_m=None if unident else float(np.sqrt(cov[i, k, 2, 2])),
+                    floor_index=None if unident else int(e_floor[i, k]),
+                    used_anchors=used,
+                    residuals_m=[float(res[i, k, u]) for u in used_idx],
+                    excluded=excluded,
+                    message="",
+                    t_input_wall_ns=wall + t - t0_ns,
+                    t_pub_wall_ns=wall + t - t0_ns + 1_000_000,
+                )
+            )
+        if i % max(1, round(rate_hz)) == 0:
+            out.append(
+                m.FusionDiagnostics(
+                    t_wall_ns=wall + t - t0_ns,
+                    watermark_ns=t,
+                    received={"range": i * n_nodes},
+                    rejected={},
+                    gated=i // 7,
+                    solved=i * n_nodes,
+                    published=i * n_nodes,
+                    fixes_by_status={"OK": i * n_nodes},
+                    late_ranges=0,
+                    pending_epochs=0,
+                    live_anchors=list(live),
+                    anchors=[],
+                    latency=m.LatencyStats(count=0, p50_ms=None, p99_ms=None, max_ms=None),
+                )
+            )
+    return b, out
+
+
+def vec3(v: ArrayLike) -> tuple[float, float, float]:
+    x, y, z = (float(c) for c in np.asarray(v).reshape(3))
+    return (x, y, z)
