@@ -148,13 +148,15 @@ class BuildingOutline:
     depth_m : float [m]
         Depth of the building into y > 0.
     n_floors : int
-        Number of floors (floor ``k`` spans ``z in [k h, (k + 1) h]``).
+        Number of modelled floors (floor ``k`` spans ``z in first + [k h, (k + 1) h]``).
     floor_height_m : float [m]
         Storey height ``h``.
     sill_height_m : float [m]
         Height of the window sill (lower window edge) above each floor.
     window_height_m : float [m]
         Window height ``w``: the upper (lintel) edge is at ``sill + w`` above the floor.
+    first_floor_z_m : float [m]
+        Height of the lowest modelled floor (floor ``k`` starts at ``first + k h``).
     """
 
     x_min_m: float
@@ -164,6 +166,7 @@ class BuildingOutline:
     floor_height_m: float
     sill_height_m: float
     window_height_m: float
+    first_floor_z_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.x_max_m > self.x_min_m:
@@ -220,19 +223,27 @@ class BuildingOutline:
             floor_height_m=float(get("floor_height_m")),
             sill_height_m=float(get("sill_height_m", "window_sill_m")),
             window_height_m=float(get("window_height_m")),
+            first_floor_z_m=float(get("first_floor_z_m", default=0.0)),
         )
 
     def floor_of(self, z_m: ArrayLike) -> NDArray[np.int64]:
         """Floor index of heights ``z_m`` [m] (clipped to the building; -1 where z is NaN)."""
         z = np.asarray(z_m, dtype=np.float64)
-        k = np.floor(np.where(np.isfinite(z), z, -1.0) / self.floor_height_m)
+        k = np.floor(
+            (np.where(np.isfinite(z), z, 0.0) - self.first_floor_z_m) / self.floor_height_m
+        )
         k = np.clip(k, 0, self.n_floors - 1).astype(np.int64)
         return np.where(np.isfinite(z), k, -1)
 
     def upper_edge_z_m(self, floor_index: ArrayLike) -> FloatArray:
         """Height of the upper (lintel) window edge of each floor [m]."""
         k = np.asarray(floor_index, dtype=np.float64)
-        return k * self.floor_height_m + self.sill_height_m + self.window_height_m
+        return (
+            self.first_floor_z_m
+            + k * self.floor_height_m
+            + self.sill_height_m
+            + self.window_height_m
+        )
 
 
 @dataclass(frozen=True)
@@ -622,10 +633,11 @@ def log_building(rec: rr.RecordingStream, building: BuildingOutline) -> None:
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     x0, x1, d = b.x_min_m, b.x_max_m, b.depth_m
     floors = []
+    z0 = b.first_floor_z_m
     for k in range(b.n_floors + 1):
-        z = k * b.floor_height_m
+        z = z0 + k * b.floor_height_m
         floors.append([[x0, 0, z], [x1, 0, z], [x1, d, z], [x0, d, z], [x0, 0, z]])
-    top = b.n_floors * b.floor_height_m
+    top = z0 + b.n_floors * b.floor_height_m
     for x, y in ((x0, 0), (x1, 0), (x1, d), (x0, d)):
         floors.append([[x, y, 0.0], [x, y, top]])
     rec.log(
@@ -635,7 +647,7 @@ def log_building(rec: rr.RecordingStream, building: BuildingOutline) -> None:
     )
     windows, labels = [], []
     for k in range(b.n_floors):
-        z_lo = k * b.floor_height_m + b.sill_height_m
+        z_lo = z0 + k * b.floor_height_m + b.sill_height_m
         z_hi = z_lo + b.window_height_m
         windows.append([[x0, 0, z_lo], [x1, 0, z_lo], [x1, 0, z_hi], [x0, 0, z_hi], [x0, 0, z_lo]])
         labels.append(f"F{k} window")
@@ -1583,3 +1595,228 @@ def synthetic_run(
 def vec3(v: ArrayLike) -> tuple[float, float, float]:
     x, y, z = (float(c) for c in np.asarray(v).reshape(3))
     return (x, y, z)
+
+
+# ============================================================================ MCAP -> .rrd
+class _KindFilter(set):
+    """Topic filter for :meth:`McapScanner.iter_batches` that selects topics by kind.
+
+    The scanner only asks ``topic in filter``; answering by :func:`parse_topic` kind lets the
+    converter skip the (many) range messages without knowing the topics in advance.
+    """
+
+    def __init__(self, kinds: set[str]) -> None:
+        super().__init__()
+        self.kinds = kinds
+        self._cache: dict[str, bool] = {}
+
+    def __contains__(self, topic: object) -> bool:
+        hit = self._cache.get(topic)  # type: ignore[arg-type]
+        if hit is None:
+            from diffpos_services.mcap_io import parse_topic
+
+            hit = self._cache[str(topic)] = parse_topic(str(topic))[0] in self.kinds
+        return hit
+
+
+def building_from_scenario_file(path: str | Path) -> BuildingOutline:
+    """The building of a scenario TOML file (``diffpos.scenario``)."""
+    import tomllib
+
+    from diffpos.scenario import Scenario
+
+    with open(path, "rb") as f:
+        scen = Scenario.from_dict(tomllib.load(f))
+    return BuildingOutline.from_object(scen.building)
+
+
+def _building_from_attachments(attachments: Sequence[Any]) -> BuildingOutline | None:
+    import tomllib
+
+    from diffpos.scenario import Scenario
+
+    for att in attachments:
+        if str(att.name).endswith(".toml") or "toml" in str(att.media_type):
+            try:
+                scen = Scenario.from_dict(tomllib.loads(bytes(att.data).decode()))
+            except Exception:  # not a scenario: ignore
+                continue
+            return BuildingOutline.from_object(scen.building)
+    return None
+
+
+def liveliness_events(
+    records: Sequence[Mapping[str, Any]],
+    *,
+    wall_ns: ArrayLike,
+    meas_ns: ArrayLike,
+) -> EventColumns:
+    """Anchor joined/left events from liveliness records, on the measurement timeline.
+
+    Liveliness is stamped with wall-clock receive times; they are mapped to measurement
+    time by interpolating the (``t_pub_wall_ns``, ``t_ns``) pairs of the anchor states.
+
+    Parameters
+    ----------
+    records : sequence of mapping
+        ``{"key", "alive", "t_ns" (wall) [ns], "role", "id"}`` (the recorder's events).
+    wall_ns, meas_ns : array_like of int, shape (K,) [ns]
+        Publish wall times and measurement times of messages (any publisher).
+    """
+    w = np.asarray(wall_ns, np.int64)
+    mt = np.asarray(meas_ns, np.int64)
+    recs = [r for r in records if r.get("role") in ("anchor", "fusion")]
+    if not recs or not w.size:
+        return EventColumns.concat([])
+    order = np.argsort(w, kind="stable")
+    w, mt = w[order], mt[order]
+    t_wall = np.array([int(r["t_ns"]) for r in recs], np.int64)
+    # measurement time = wall time + offset of the nearest earlier message
+    k = np.clip(np.searchsorted(w, t_wall, side="right") - 1, 0, w.size - 1)
+    t_meas = t_wall + (mt[k] - w[k])
+    text = [
+        f"{r.get('role')} {r.get('id') or ''} {'joined' if r.get('alive') else 'left'}".replace(
+            "  ", " "
+        )
+        for r in recs
+    ]
+    level = ["INFO" if r.get("alive") else "WARN" for r in recs]
+    return EventColumns(t_meas, text, level)
+
+
+_MCAP_KINDS = {
+    "anchor_state": "AnchorState",
+    "truth_node": "GroundTruth",
+    "estimate": "PositionEstimate",
+    "replay_estimate": "PositionEstimate",
+    "diagnostics": "FusionDiagnostics",
+    "liveliness": None,
+}
+
+
+def mcap_to_rrd(
+    mcap_path: str | Path,
+    rrd_path: str | Path,
+    *,
+    building: Any = None,
+    estimates: Sequence[Any] | None = None,
+    use_replayed: bool = False,
+    recording_id: str | None = None,
+    path_period_s: float = 0.5,
+) -> dict[str, Any]:
+    """Convert a diffpos MCAP recording into the dashboard .rrd (blueprint embedded).
+
+    Reads anchor states, node truth, estimates, fusion diagnostics and liveliness events
+    (range messages are skipped without decoding) and writes everything with
+    ``send_columns``. Works on truncated recordings too (what was complete is used).
+
+    Parameters
+    ----------
+    mcap_path : path
+        The recording (``diffpos recorder`` / ``diffpos emulate``).
+    rrd_path : path
+        Output .rrd.
+    building : BuildingOutline, scenario building or mapping, optional
+        Default: the scenario TOML attached to the recording, if any.
+    estimates : sequence of PositionEstimate, optional
+        Use these estimates instead of the recorded ones (``diffpos replay --rrd`` passes the
+        re-computed fixes here).
+    use_replayed : bool
+        Use the recorded ``replay/node/<id>/estimate`` channels instead of the live ones.
+    recording_id : str, optional
+        Rerun recording id; default: the MCAP file stem.
+
+    Returns
+    -------
+    dict
+        Counts per kind, ``building`` (bool) and ``damage`` notes of the MCAP scan.
+    """
+    from diffpos_services import messages as m
+    from diffpos_services.mcap_io import McapScanner, parse_topic
+
+    decoders = {
+        "AnchorState": m.decoder(m.AnchorState),
+        "GroundTruth": m.decoder(m.GroundTruth),
+        "PositionEstimate": m.decoder(m.PositionEstimate),
+        "FusionDiagnostics": m.decoder(m.FusionDiagnostics),
+    }
+    kinds = set(_MCAP_KINDS)
+    if estimates is not None:
+        kinds -= {"estimate", "replay_estimate"}
+    else:
+        kinds.discard("estimate" if use_replayed else "replay_estimate")
+    sc = McapScanner(mcap_path)
+    kind_of: dict[str, str] = {}
+    msgs: list[Any] = []
+    live: list[dict[str, Any]] = []
+    bad = 0
+    for batch in sc.iter_batches(_KindFilter(kinds)):
+        for raw in batch:
+            kind = kind_of.get(raw.topic)
+            if kind is None:
+                kind = kind_of[raw.topic] = parse_topic(raw.topic)[0]
+            struct_name = _MCAP_KINDS[kind]
+            if struct_name is None:
+                try:
+                    live.append(msgspec_json_loads(raw.data))
+                except ValueError:
+                    bad += 1
+                continue
+            try:
+                msgs.append(decoders[struct_name](raw.data))
+            except ValueError:
+                bad += 1
+    if estimates is not None:
+        msgs.extend(estimates)
+    outline = BuildingOutline.from_object(building) if building is not None else None
+    if outline is None:
+        outline = _building_from_attachments(sc.attachments)
+    wall = [
+        x.t_pub_wall_ns for x in msgs if type(x).__name__ in ("AnchorState", "PositionEstimate")
+    ]
+    meas = [x.t_ns for x in msgs if type(x).__name__ in ("AnchorState", "PositionEstimate")]
+    events = liveliness_events(live, wall_ns=wall, meas_ns=meas)
+    counts = write_rrd_from_messages(
+        msgs,
+        rrd_path,
+        building=outline,
+        recording_id=recording_id or Path(mcap_path).stem,
+        events=events,
+        path_period_s=path_period_s,
+    )
+    return counts | {
+        "liveliness": len(live),
+        "undecodable": bad,
+        "building": outline is not None,
+        "complete": sc.complete,
+        "damage": list(sc.damage.notes),
+    }
+
+
+def msgspec_json_loads(data: bytes) -> Any:
+    """``json.loads`` via msgspec (raises ``ValueError`` on bad JSON)."""
+    import msgspec
+
+    try:
+        return msgspec.json.decode(data)
+    except msgspec.DecodeError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def key_of(msg: Any, *, site: str = "demo") -> str:
+    """The bus key a message is published on (for writing synthetic runs to MCAP/Zenoh)."""
+    from diffpos_services.keys import Keys
+
+    keys = Keys(site)
+    name = type(msg).__name__
+    if name == "AnchorState":
+        return keys.anchor_state(msg.anchor_id)
+    if name == "PositionEstimate":
+        return keys.node_estimate(msg.node_id)
+    if name == "GroundTruth":
+        return keys.truth_node(msg.id) if msg.entity == "node" else keys.truth_anchor(msg.id)
+    if name == "FusionDiagnostics":
+        return keys.fusion_diagnostics()
+    if name == "RangeMeasurement":
+        return keys.anchor_range(msg.anchor_id, msg.node_id)
+    raise ValueError(f"no bus key for message type {name}")
