@@ -1,0 +1,399 @@
+"""Time alignment of asynchronous anchor measurements for the fusion (pure: numpy + stdlib).
+
+Model and assumptions
+---------------------
+* Every anchor stamps its own state reports and ranges with **its own clock** (``t_ns``).
+  The anchor position used with a range is its reported state **interpolated at the range's
+  own t_ns** (:class:`StateHistory`), so an anchor's clock offset cancels between its own
+  state and ranges.
+* Different anchors are not synchronised: the fusion assumes their clocks agree within
+  ``clock_tolerance_ns`` (a few ms: GNSS-disciplined clocks do far better; the paper assumes
+  synchronised or round-trip ranging). Ranges are grouped per node into **epochs** of
+  ``epoch_period_ns`` (epoch ``e`` holds ``e T <= t_ns < (e + 1) T``).
+* Within an epoch the ranges were taken at different times while the node may move. The
+  fix is referred to ``t_ref`` = the mean time of its ranges; each range is either
+  compensated for the node's motion with a velocity estimate (``r' = r - J v (t - t_ref)``,
+  :func:`compensate_node_motion`) or only de-weighted: its sigma is inflated by
+  ``speed_sigma |t - t_ref|`` (:func:`effective_sigma_m`), together with the anchor's
+  reported position uncertainty projected on the line of sight.
+* An epoch of a node is **ready** (:class:`EpochBook`) when every live anchor has either
+  reported for it or moved past its end (``latest t_ns >= end + clock_tolerance``), or when
+  a wall-clock deadline after its first range passed (protects against hung anchors, which
+  liveliness only detects after the lease).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "AlignmentConfig",
+    "EpochBook",
+    "PendingEpoch",
+    "RangeEntry",
+    "StateHistory",
+    "compensate_node_motion",
+    "effective_sigma_m",
+    "epoch_of",
+    "hermite_interpolate",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class AlignmentConfig:
+    """Time-alignment settings of the fusion.
+
+    Attributes
+    ----------
+    epoch_period_ns : int [ns]
+        Fusion epoch length (typically the anchors' ranging period).
+    clock_tolerance_ns : int [ns]
+        Assumed bound on the clock offset between anchors.
+    deadline_ns : int [ns]
+        Wall-clock time after the first range of an epoch at which it is solved with
+        whatever arrived.
+    max_state_extrapolation_ns : int [ns]
+        How far beyond the newest (or before the oldest) anchor state a position may be
+        extrapolated; beyond it the range is rejected as ``NO_ANCHOR_STATE``.
+    node_speed_sigma_m_s : float [m/s]
+        One-sigma node speed used to inflate sigmas when no velocity estimate is used.
+    velocity_sigma_m_s : float [m/s]
+        One-sigma error of a node velocity estimate used for motion compensation.
+    """
+
+    epoch_period_ns: int = 100_000_000
+    clock_tolerance_ns: int = 5_000_000
+    deadline_ns: int = 300_000_000
+    max_state_extrapolation_ns: int = 500_000_000
+    node_speed_sigma_m_s: float = 1.0
+    velocity_sigma_m_s: float = 0.3
+
+    def __post_init__(self) -> None:
+        for name in ("epoch_period_ns", "deadline_ns"):
+            if int(getattr(self, name)) <= 0:
+                raise ValueError(f"{name} must be > 0 [ns]")
+        for name in ("clock_tolerance_ns", "max_state_extrapolation_ns"):
+            if int(getattr(self, name)) < 0:
+                raise ValueError(f"{name} must be >= 0 [ns]")
+        for name in ("node_speed_sigma_m_s", "velocity_sigma_m_s"):
+            if not float(getattr(self, name)) >= 0:
+                raise ValueError(f"{name} must be >= 0 [m/s]")
+
+
+def epoch_of(t_ns: ArrayLike, period_ns: int) -> NDArray[np.int64]:
+    """Epoch index ``floor(t_ns / period_ns)`` (works for negative times)."""
+    return np.floor_divide(np.asarray(t_ns, dtype=np.int64), np.int64(period_ns))
+
+
+def hermite_interpolate(
+    t_s: ArrayLike,
+    t0_s: ArrayLike,
+    t1_s: ArrayLike,
+    p0_m: ArrayLike,
+    p1_m: ArrayLike,
+    v0_m_s: ArrayLike,
+    v1_m_s: ArrayLike,
+) -> FloatArray:
+    """Cubic Hermite interpolation of positions between two states with velocities.
+
+    Exact for polynomial motion up to degree 3 (constant acceleration included).
+
+    Parameters
+    ----------
+    t_s, t0_s, t1_s : array_like, shape (...) [s]
+        Query time and bracketing state times (``t0 < t1``).
+    p0_m, p1_m : array_like, shape (..., 3) [m]
+    v0_m_s, v1_m_s : array_like, shape (..., 3) [m/s]
+
+    Returns
+    -------
+    ndarray, shape (..., 3) [m]
+    """
+    t = np.asarray(t_s, float)
+    t0 = np.asarray(t0_s, float)
+    h = np.asarray(t1_s, float) - t0
+    s = ((t - t0) / h)[..., None]
+    hh = h[..., None]
+    s2, s3 = s * s, s * s * s
+    h00 = 2 * s3 - 3 * s2 + 1
+    h10 = s3 - 2 * s2 + s
+    h01 = -2 * s3 + 3 * s2
+    h11 = s3 - s2
+    return (
+        h00 * np.asarray(p0_m, float)
+        + h10 * hh * np.asarray(v0_m_s, float)
+        + h01 * np.asarray(p1_m, float)
+        + h11 * hh * np.asarray(v1_m_s, float)
+    )
+
+
+class StateHistory:
+    """Ring buffer of one anchor's reported states, interpolated at range times.
+
+    Parameters
+    ----------
+    capacity : int
+        States kept (older ones are dropped). 64 states at 10 Hz cover 6.4 s.
+    max_extrapolation_ns : int [ns]
+        See :class:`AlignmentConfig`.
+    """
+
+    def __init__(self, capacity: int = 64, *, max_extrapolation_ns: int = 500_000_000) -> None:
+        if capacity < 1:
+            raise ValueError("capacity must be >= 1")
+        self.capacity = int(capacity)
+        self.max_extrapolation_ns = int(max_extrapolation_ns)
+        self.t_ns = np.empty(0, dtype=np.int64)
+        self.pos_m = np.empty((0, 3))
+        self.vel_m_s = np.empty((0, 3))
+        self.sigma_m = np.empty((0, 3))
+        self.vel_sigma_m_s = np.empty(0)
+
+    def __len__(self) -> int:
+        return int(self.t_ns.size)
+
+    @property
+    def latest_t_ns(self) -> int | None:
+        return int(self.t_ns[-1]) if self.t_ns.size else None
+
+    def add(
+        self,
+        t_ns: int,
+        position_m: ArrayLike,
+        velocity_m_s: ArrayLike,
+        sigma_m: ArrayLike,
+        velocity_sigma_m_s: float = 0.0,
+    ) -> None:
+        """Insert a state (kept sorted by time; a duplicate time replaces the old state)."""
+        t = np.int64(t_ns)
+        i = int(np.searchsorted(self.t_ns, t))
+        p = np.asarray(position_m, float).reshape(1, 3)
+        v = np.asarray(velocity_m_s, float).reshape(1, 3)
+        sg = np.asarray(sigma_m, float).reshape(1, 3)
+        if i < self.t_ns.size and self.t_ns[i] == t:
+            self.pos_m[i], self.vel_m_s[i], self.sigma_m[i] = p[0], v[0], sg[0]
+            self.vel_sigma_m_s[i] = velocity_sigma_m_s
+            return
+        self.t_ns = np.insert(self.t_ns, i, t)
+        self.pos_m = np.insert(self.pos_m, i, p, axis=0)
+        self.vel_m_s = np.insert(self.vel_m_s, i, v, axis=0)
+        self.sigma_m = np.insert(self.sigma_m, i, sg, axis=0)
+        self.vel_sigma_m_s = np.insert(self.vel_sigma_m_s, i, velocity_sigma_m_s)
+        if self.t_ns.size > self.capacity:
+            k = self.t_ns.size - self.capacity
+            self.t_ns, self.pos_m = self.t_ns[k:], self.pos_m[k:]
+            self.vel_m_s, self.sigma_m = self.vel_m_s[k:], self.sigma_m[k:]
+            self.vel_sigma_m_s = self.vel_sigma_m_s[k:]
+
+    def at(self, t_ns: ArrayLike) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Anchor position and its one-sigma per axis at the query times.
+
+        Between two states: cubic Hermite (positions and velocities). Outside the history,
+        up to ``max_extrapolation_ns``: linear extrapolation with the nearest state's
+        velocity, the sigma growing by ``velocity_sigma * |dt|``. Further: ``ok`` False.
+
+        Returns
+        -------
+        position_m : ndarray, shape (..., 3) [m]
+        sigma_m : ndarray, shape (..., 3) [m]
+        ok : ndarray of bool, shape (...)
+        """
+        tq = np.asarray(t_ns, dtype=np.int64)
+        shape = tq.shape
+        tq = tq.reshape(-1)
+        n = self.t_ns.size
+        pos = np.full((tq.size, 3), np.nan)
+        sig = np.full((tq.size, 3), np.nan)
+        if n == 0:
+            return pos.reshape(*shape, 3), sig.reshape(*shape, 3), np.zeros(shape, bool)
+        j = np.searchsorted(self.t_ns, tq, side="right")  # t[j-1] <= tq < t[j]
+        inside = (j > 0) & (j < n)
+        exact = (j > 0) & (self.t_ns[np.clip(j - 1, 0, n - 1)] == tq)
+        if np.any(inside):
+            i1 = j[inside]
+            i0 = i1 - 1
+            ts = 1e-9
+            pos[inside] = hermite_interpolate(
+                (tq[inside] - self.t_ns[i0]) * ts,
+                np.zeros(i0.size),
+                (self.t_ns[i1] - self.t_ns[i0]) * ts,
+                self.pos_m[i0],
+                self.pos_m[i1],
+                self.vel_m_s[i0],
+                self.vel_m_s[i1],
+            )
+            sig[inside] = np.maximum(self.sigma_m[i0], self.sigma_m[i1])
+        out = ~inside
+        if np.any(out):
+            k = np.where(j[out] == 0, 0, n - 1)
+            dt_s = (tq[out] - self.t_ns[k]) * 1e-9
+            pos[out] = self.pos_m[k] + self.vel_m_s[k] * dt_s[:, None]
+            sig[out] = self.sigma_m[k] + (self.vel_sigma_m_s[k] * np.abs(dt_s))[:, None]
+        gap = np.where(
+            inside | exact,
+            0,
+            np.minimum(np.abs(tq - self.t_ns[0]), np.abs(tq - self.t_ns[-1])),
+        )
+        ok = gap <= self.max_extrapolation_ns
+        pos[~ok] = np.nan
+        return pos.reshape(*shape, 3), sig.reshape(*shape, 3), ok.reshape(shape)
+
+
+def effective_sigma_m(
+    sigma_range_m: ArrayLike,
+    anchor_sigma_m: ArrayLike,
+    line_of_sight: ArrayLike,
+    dt_s: ArrayLike,
+    speed_sigma_m_s: ArrayLike,
+) -> FloatArray:
+    """Range sigma including anchor position uncertainty and node-motion misalignment.
+
+    ``sigma_eff^2 = sigma_r^2 + sum_i (u_i sigma_a,i)^2 + (speed_sigma dt)^2`` with ``u`` the
+    unit line of sight anchor -> node (the gradient of the path length with respect to the
+    anchor position is a unit vector close to it).
+
+    Parameters
+    ----------
+    sigma_range_m : array_like, shape (...) [m]
+    anchor_sigma_m : array_like, shape (..., 3) [m]
+    line_of_sight : array_like, shape (..., 3) [-]
+        Any vector along anchor -> node (normalised here).
+    dt_s : array_like, shape (...) [s]
+        Measurement time minus fix reference time.
+    speed_sigma_m_s : array_like [m/s]
+    """
+    u = np.asarray(line_of_sight, float)
+    u = u / np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-12)
+    a = np.sum(np.square(u * np.asarray(anchor_sigma_m, float)), axis=-1)
+    motion = np.square(np.asarray(speed_sigma_m_s, float) * np.asarray(dt_s, float))
+    return np.sqrt(np.square(np.asarray(sigma_range_m, float)) + a + motion)
+
+
+def compensate_node_motion(
+    range_m: ArrayLike,
+    jacobian: ArrayLike,
+    node_velocity_m_s: ArrayLike,
+    dt_s: ArrayLike,
+) -> FloatArray:
+    """Refer ranges to the fix time: ``r' = r - (J . v) dt``.
+
+    Parameters
+    ----------
+    range_m : array_like, shape (...) [m]
+        Range measured at ``t`` (with the anchor at its position at ``t``).
+    jacobian : array_like, shape (..., 3) [m/m]
+        Gradient of the path length with respect to the node position.
+    node_velocity_m_s : array_like, shape (..., 3) [m/s]
+    dt_s : array_like, shape (...) [s]
+        ``t - t_ref``.
+    """
+    rate = np.sum(np.asarray(jacobian, float) * np.asarray(node_velocity_m_s, float), axis=-1)
+    return np.asarray(range_m, float) - rate * np.asarray(dt_s, float)
+
+
+# ----------------------------------------------------------------------------- epochs
+@dataclass(frozen=True)
+class RangeEntry:
+    """One range in an epoch (what the fusion keeps of a RangeMeasurement)."""
+
+    t_ns: int
+    range_m: float | None
+    sigma_m: float
+    snr_db: float
+    t_pub_wall_ns: int
+    rx_wall_ns: int
+
+
+@dataclass
+class PendingEpoch:
+    """Ranges of one node in one epoch, per anchor (the last one wins)."""
+
+    node_id: str
+    epoch: int
+    first_rx_wall_ns: int
+    ranges: dict[str, RangeEntry] = field(default_factory=dict)
+
+
+class EpochBook:
+    """Groups ranges per (node, epoch) and decides when an epoch is ready to solve.
+
+    Anchors are expected to publish their measurements in time order (they do); a range for
+    an epoch that was already solved is counted as *late* and dropped.
+    """
+
+    def __init__(self, config: AlignmentConfig) -> None:
+        self.config = config
+        self.pending: dict[tuple[str, int], PendingEpoch] = {}
+        self.latest_t_ns: dict[str, int] = {}
+        self.solved_upto: dict[str, int] = {}  # node -> last solved epoch
+        self.late = 0
+        self.replaced = 0
+
+    def add(self, anchor_id: str, node_id: str, entry: RangeEntry) -> bool:
+        """Add a range; False (and ``late`` += 1) if its epoch was already solved."""
+        e = int(entry.t_ns // self.config.epoch_period_ns)
+        prev = self.latest_t_ns.get(anchor_id)
+        if prev is None or entry.t_ns > prev:
+            self.latest_t_ns[anchor_id] = entry.t_ns
+        if e <= self.solved_upto.get(node_id, -(2**62)):
+            self.late += 1
+            return False
+        key = (node_id, e)
+        pe = self.pending.get(key)
+        if pe is None:
+            pe = self.pending[key] = PendingEpoch(node_id, e, entry.rx_wall_ns)
+        if anchor_id in pe.ranges:
+            self.replaced += 1
+        pe.ranges[anchor_id] = entry
+        return True
+
+    def note_anchor_time(self, anchor_id: str, t_ns: int) -> None:
+        """Advance an anchor's latest time (e.g. from its state reports)."""
+        prev = self.latest_t_ns.get(anchor_id)
+        if prev is None or t_ns > prev:
+            self.latest_t_ns[anchor_id] = int(t_ns)
+
+    def forget_anchor(self, anchor_id: str) -> None:
+        self.latest_t_ns.pop(anchor_id, None)
+
+    def ready(self, live_anchors: set[str] | frozenset[str], now_wall_ns: int) -> list[PendingEpoch]:
+        """Remove and return the epochs that are ready, oldest first.
+
+        Ready: every live anchor reported for it or its latest time passed the epoch end by
+        the clock tolerance; or the wall deadline since the first range passed. Epochs of a
+        node are released in order (a later epoch never overtakes an earlier pending one).
+        """
+        cfg = self.config
+        out: list[PendingEpoch] = []
+        blocked: set[str] = set()
+        for key in sorted(self.pending, key=lambda k: (k[1], k[0])):
+            pe = self.pending[key]
+            if pe.node_id in blocked:
+                continue
+            end_ns = (pe.epoch + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
+            done = now_wall_ns - pe.first_rx_wall_ns >= cfg.deadline_ns
+            if not done:
+                done = all(
+                    a in pe.ranges or self.latest_t_ns.get(a, -(2**62)) >= end_ns
+                    for a in live_anchors
+                )
+            if done:
+                out.append(pe)
+                del self.pending[key]
+                self.solved_upto[pe.node_id] = max(
+                    pe.epoch, self.solved_upto.get(pe.node_id, -(2**62))
+                )
+            else:
+                blocked.add(pe.node_id)
+        return out
+
+    def next_deadline_wall_ns(self) -> int | None:
+        """Earliest wall time at which a pending epoch times out (for the main loop wait)."""
+        if not self.pending:
+            return None
+        return min(pe.first_rx_wall_ns for pe in self.pending.values()) + self.config.deadline_ns

@@ -1,0 +1,541 @@
+"""Fusion service: time-aligns anchor ranges, solves batched D-NLS with gating, publishes fixes.
+
+Two layers:
+
+- :class:`FusionCore` is the whole logic without any network: feed it raw ``(key, payload)``
+  samples and liveliness events, call :meth:`FusionCore.step` and get
+  :class:`~diffpos_services.messages.PositionEstimate` messages back. The unit tests drive it
+  in memory.
+- :func:`run_fusion` wires it to Zenoh: callbacks only enqueue raw bytes; the main thread
+  drains the queue, decodes, solves and publishes (no work on Zenoh's threads).
+
+What the fusion assumes about time is documented in :mod:`diffpos.alignment`.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Annotated, Any
+
+import msgspec
+import numpy as np
+from msgspec import Meta
+
+from diffpos.alignment import (
+    AlignmentConfig,
+    EpochBook,
+    PendingEpoch,
+    RangeEntry,
+    StateHistory,
+    compensate_node_motion,
+    effective_sigma_m,
+)
+
+from . import messages as M
+from .keys import Keys, parse_key
+from .servicekit import LogOnce, log_event
+
+__all__ = ["FusionConfig", "FusionCore", "run_fusion"]
+
+_NEG = -(2**62)
+
+
+class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
+    """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
+
+    site: str = "demo"
+    window_height_m: Annotated[float, Meta(gt=0)] = 1.5
+    delta_m: float = 0.0
+    edge_x_m: tuple[float, float] | None = None
+    first_floor_z_m: float = 3.0
+    floor_height_m: Annotated[float, Meta(gt=0)] = 3.0
+    n_floors: Annotated[int, Meta(ge=1)] = 5
+    epoch_period_s: Annotated[float, Meta(gt=0, le=10)] = 0.1
+    clock_tolerance_s: Annotated[float, Meta(ge=0, le=1)] = 0.005
+    deadline_s: Annotated[float, Meta(gt=0, le=60)] = 0.3
+    max_state_extrapolation_s: Annotated[float, Meta(ge=0)] = 0.5
+    node_speed_sigma_m_s: Annotated[float, Meta(ge=0)] = 1.0
+    velocity_sigma_m_s: Annotated[float, Meta(ge=0)] = 0.3
+    motion_compensation: bool = True
+    gating: bool = True
+    false_alarm_probability: Annotated[float, Meta(gt=0, lt=1)] = 1e-3
+    min_snr_db: float | None = None
+    warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
+    diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
+    queue_size: Annotated[int, Meta(ge=16)] = 65536
+
+    def check(self) -> None:
+        from .keys import check_id
+
+        check_id(self.site, field="site")
+        if self.edge_x_m is not None and self.edge_x_m[0] == self.edge_x_m[1]:
+            raise ValueError("edge_x_m: the two x limits must differ")
+
+    def alignment(self) -> AlignmentConfig:
+        return AlignmentConfig(
+            epoch_period_ns=round(self.epoch_period_s * 1e9),
+            clock_tolerance_ns=round(self.clock_tolerance_s * 1e9),
+            deadline_ns=round(self.deadline_s * 1e9),
+            max_state_extrapolation_ns=round(self.max_state_extrapolation_s * 1e9),
+            node_speed_sigma_m_s=self.node_speed_sigma_m_s,
+            velocity_sigma_m_s=self.velocity_sigma_m_s,
+        )
+
+
+class _Anchor:
+    __slots__ = ("alive", "history", "id", "last_t_ns", "lost_wall_ns", "ranges", "states", "token")
+
+    def __init__(self, anchor_id: str, max_extrapolation_ns: int) -> None:
+        self.id = anchor_id
+        self.history = StateHistory(64, max_extrapolation_ns=max_extrapolation_ns)
+        self.alive = True
+        self.token = False
+        self.lost_wall_ns: int | None = None
+        self.states = 0
+        self.ranges = 0
+        self.last_t_ns: int | None = None
+
+
+class _Track:
+    """Last good fixes of a node (warm start and velocity for motion compensation)."""
+
+    __slots__ = ("pos", "t_ns", "vel")
+
+    def __init__(self) -> None:
+        self.t_ns: int | None = None
+        self.pos: np.ndarray | None = None
+        self.vel: np.ndarray | None = None
+
+    def update(self, t_ns: int, pos: np.ndarray) -> None:
+        if self.t_ns is not None and self.pos is not None and t_ns > self.t_ns:
+            dt = (t_ns - self.t_ns) * 1e-9
+            if dt < 1.0:
+                v = (pos - self.pos) / dt
+                self.vel = v if self.vel is None else 0.5 * self.vel + 0.5 * v
+            else:
+                self.vel = None
+        self.t_ns, self.pos = t_ns, pos.copy()
+
+
+class FusionCore:
+    """Network-free fusion logic.
+
+    Parameters
+    ----------
+    config : FusionConfig
+    logger : logging.Logger, optional
+    """
+
+    def __init__(self, config: FusionConfig, *, logger: logging.Logger | None = None) -> None:
+        from diffpos.estimators import GatingConfig
+
+        self.config = config
+        self.keys = Keys(config.site)
+        self.align = config.alignment()
+        self.book = EpochBook(self.align)
+        self.anchors: dict[str, _Anchor] = {}
+        self.tracks: dict[str, _Track] = collections.defaultdict(_Track)
+        self.log = logger or logging.getLogger("diffpos.fusion")
+        self.log_once = LogOnce(self.log)
+        self.gating = (
+            GatingConfig(false_alarm_probability=config.false_alarm_probability)
+            if config.gating
+            else None
+        )
+        self.received: collections.Counter[str] = collections.Counter()
+        self.rejected: collections.Counter[str] = collections.Counter()
+        self.by_status: collections.Counter[str] = collections.Counter()
+        self.gated = 0
+        self.solved = 0
+        self.published = 0
+        self.seq = 0
+        self.latencies_ns: collections.deque[int] = collections.deque(maxlen=4096)
+        self._dec_state = M.decoder(M.AnchorState)
+        self._dec_range = M.decoder(M.RangeMeasurement)
+        self.changed = False  # liveliness changed since the last diagnostics
+
+    # ------------------------------------------------------------------ ingestion
+    def _reject(self, key: str, reason: str, detail: str = "") -> None:
+        self.rejected[reason] += 1
+        self.log_once(key, reason, detail)
+
+    def _anchor(self, anchor_id: str) -> _Anchor:
+        a = self.anchors.get(anchor_id)
+        if a is None:
+            a = self.anchors[anchor_id] = _Anchor(anchor_id, self.align.max_state_extrapolation_ns)
+            log_event(self.log, logging.INFO, "anchor seen", anchor=anchor_id)
+        return a
+
+    def on_sample(self, key: str, payload: bytes, rx_wall_ns: int) -> None:
+        """Ingest one data sample (never raises on bad input: counts and logs once)."""
+        pk = parse_key(key)
+        if pk is None or pk.site != self.config.site or pk.kind not in ("anchor_state", "range"):
+            self.received["other"] += 1
+            self._reject(key, "unexpected_key")
+            return
+        self.received[pk.kind] += 1
+        try:
+            if pk.kind == "range":
+                msg = self._dec_range(payload)
+            else:
+                msg = self._dec_state(payload)
+        except M.DecodeError as exc:
+            self._reject(key, exc.reason, exc.detail)
+            return
+        if msg.anchor_id != pk.anchor_id or (pk.kind == "range" and msg.node_id != pk.node_id):
+            self._reject(key, "key_mismatch", "ids in the payload differ from the key")
+            return
+        anchor = self._anchor(msg.anchor_id)
+        # (a lost anchor comes back only with its liveliness token: in-flight data from a
+        # killed process must not revive it)
+        if pk.kind == "anchor_state":
+            vals = (*msg.position_m, *msg.velocity_m_s, *msg.position_sigma_m)
+            if not all(np.isfinite(vals)):
+                self._reject(key, "nonfinite")
+                return
+            anchor.history.add(
+                msg.t_ns, msg.position_m, msg.velocity_m_s, msg.position_sigma_m,
+                msg.velocity_sigma_m_s,
+            )
+            anchor.states += 1
+            self.book.note_anchor_time(anchor.id, msg.t_ns)
+        else:
+            r = msg.range_m
+            if r is not None and not np.isfinite(r):
+                self._reject(key, "nonfinite")
+                return
+            if r is not None and self.config.min_snr_db is not None and msg.snr_db < self.config.min_snr_db:
+                r = None
+            anchor.ranges += 1
+            entry = RangeEntry(msg.t_ns, r, msg.sigma_m, msg.snr_db, msg.t_pub_wall_ns, rx_wall_ns)
+            if not self.book.add(anchor.id, msg.node_id, entry):
+                self.rejected["late"] += 1
+        if anchor.last_t_ns is None or msg.t_ns > anchor.last_t_ns:
+            anchor.last_t_ns = msg.t_ns
+
+    def on_liveliness(self, anchor_id: str, alive: bool, wall_ns: int) -> None:
+        """Liveliness token of an anchor appeared (``alive``) or vanished."""
+        a = self._anchor(anchor_id)
+        a.token = alive
+        if alive:
+            if not a.alive:
+                log_event(self.log, logging.INFO, "anchor back", anchor=anchor_id)
+            a.alive, a.lost_wall_ns = True, None
+        else:
+            a.alive, a.lost_wall_ns = False, wall_ns
+            self.book.forget_anchor(anchor_id)
+            log_event(self.log, logging.WARNING, "anchor lost", anchor=anchor_id)
+        self.changed = True
+
+    @property
+    def live_anchors(self) -> frozenset[str]:
+        return frozenset(a.id for a in self.anchors.values() if a.alive)
+
+    # ------------------------------------------------------------------ solving
+    def step(self, now_wall_ns: int) -> list[M.PositionEstimate]:
+        """Solve every ready epoch (one batched D-NLS call) and return the estimates."""
+        ready = self.book.ready(self.live_anchors, now_wall_ns)
+        if not ready:
+            return []
+        return self._solve(ready)
+
+    def _solve(self, epochs: list[PendingEpoch]) -> list[M.PositionEstimate]:
+        from diffpos.estimators import ExclusionReason, FixStatus, dnls
+        from diffpos.geometry import window_edge_path
+
+        cfg = self.config
+        ids = sorted({a for pe in epochs for a in pe.ranges} | set(self.live_anchors)
+                     | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None})
+        col = {a: j for j, a in enumerate(ids)}
+        b, m = len(epochs), len(ids)
+        t = np.zeros((b, m), np.int64)
+        rng = np.full((b, m), np.nan)
+        sig = np.ones((b, m))
+        reported = np.zeros((b, m), bool)
+        detected = np.zeros((b, m), bool)
+        pub_wall = np.zeros((b, m), np.int64)
+        for i, pe in enumerate(epochs):
+            for a, e in pe.ranges.items():
+                j = col[a]
+                reported[i, j] = True
+                t[i, j] = e.t_ns
+                pub_wall[i, j] = e.t_pub_wall_ns
+                if e.range_m is not None:
+                    detected[i, j] = True
+                    rng[i, j] = e.range_m
+                    sig[i, j] = e.sigma_m
+        # anchor positions at each range's own time
+        apos = np.full((b, m, 3), np.nan)
+        asig = np.zeros((b, m, 3))
+        have_state = np.zeros((b, m), bool)
+        for a, j in col.items():
+            rows = np.flatnonzero(detected[:, j])
+            if rows.size == 0 or a not in self.anchors:
+                continue
+            p, s, ok = self.anchors[a].history.at(t[rows, j])
+            apos[rows, j], asig[rows, j], have_state[rows, j] = p, s, ok
+        use = detected & have_state
+        n_use = use.sum(axis=1)
+        t_ref = np.where(
+            n_use > 0,
+            np.round(np.sum(np.where(use, t, 0), axis=1) / np.maximum(n_use, 1)),
+            np.max(np.where(reported, t, _NEG), axis=1),
+        ).astype(np.int64)
+        dt_s = np.where(use, (t - t_ref[:, None]) * 1e-9, 0.0)
+        # warm start / motion compensation from the node's track
+        x0 = np.full((b, 3), np.nan)
+        vel = np.zeros((b, 3))
+        has_vel = np.zeros(b, bool)
+        max_age = cfg.warm_start_max_age_s * 1e9
+        for i, pe in enumerate(epochs):
+            tr = self.tracks.get(pe.node_id)
+            if tr is not None and tr.t_ns is not None and abs(t_ref[i] - tr.t_ns) <= max_age:
+                dt = (t_ref[i] - tr.t_ns) * 1e-9
+                if tr.vel is not None:
+                    vel[i], has_vel[i] = tr.vel, True
+                    x0[i] = tr.pos + tr.vel * dt
+                else:
+                    x0[i] = tr.pos
+        comp = has_vel & cfg.motion_compensation
+        safe_apos = np.where(use[..., None], apos, 0.0)
+        if np.any(comp):
+            jac = window_edge_path(
+                safe_apos, np.where(comp[:, None], x0, 0.0)[:, None, :],
+                window_height_m=cfg.window_height_m, delta_m=cfg.delta_m, edge_x_m=cfg.edge_x_m,
+            ).jacobian
+            rng = np.where(comp[:, None] & use, compensate_node_motion(rng, jac, vel[:, None, :], dt_s), rng)
+        speed_sigma = np.where(comp, cfg.velocity_sigma_m_s, cfg.node_speed_sigma_m_s)
+        los = np.where(np.isfinite(x0[:, None, :]), x0[:, None, :], np.array([0.0, 5.0, 6.0])) - safe_apos
+        sig_eff = effective_sigma_m(sig, asig, los, dt_s, speed_sigma[:, None])
+        sig_eff = np.where(use, sig_eff, 1.0)
+        rng_in = np.where(use, rng, 0.0)
+        common: dict[str, Any] = dict(
+            window_height_m=cfg.window_height_m, delta_m=cfg.delta_m, edge_x_m=cfg.edge_x_m,
+            gating=self.gating,
+        )
+        warm = np.isfinite(x0).all(axis=1)
+        res_pos = np.full((b, 3), np.nan)
+        res_cov = np.full((b, 3, 3), np.nan)
+        res_peb = np.full(b, np.nan)
+        res_zb = np.full(b, np.nan)
+        res_status = np.full(b, int(FixStatus.TOO_FEW_ANCHORS))
+        res_resid = np.full((b, m), np.nan)
+        res_used = np.zeros((b, m), bool)
+        res_reason = np.zeros((b, m), int)
+        res_msg: list[str] = [""] * b
+
+        def put(rows: np.ndarray, fix: Any) -> None:
+            res_pos[rows], res_cov[rows] = fix.position_m, fix.covariance_m2
+            res_peb[rows], res_zb[rows] = fix.peb_m, fix.z_bound_m
+            res_status[rows], res_resid[rows] = fix.status, fix.residuals_m
+            res_used[rows], res_reason[rows] = fix.used, fix.exclusion_reason
+            for k, r in enumerate(rows):
+                res_msg[r] = fix.message(k)
+
+        good = (int(FixStatus.OK), int(FixStatus.OK_UNVERIFIED))
+        rows_w = np.flatnonzero(warm)
+        if rows_w.size:
+            fix = dnls(safe_apos[rows_w], rng_in[rows_w], sig_eff[rows_w], mask=use[rows_w],
+                       x0_m=x0[rows_w], **common)
+            put(rows_w, fix)
+        retry = ~warm | ~np.isin(res_status, good)
+        rows_c = np.flatnonzero(retry)
+        if rows_c.size:
+            fix = dnls(safe_apos[rows_c], rng_in[rows_c], sig_eff[rows_c], mask=use[rows_c], **common)
+            put(rows_c, fix)
+        self.solved += b
+
+        # ---- messages
+        now = time.time_ns()
+        out = []
+        lost = {a.id for a in self.anchors.values() if not a.alive}
+        floors = np.floor((res_pos[:, 2] - cfg.first_floor_z_m) / cfg.floor_height_m)
+        for i, pe in enumerate(epochs):
+            st = FixStatus(int(res_status[i]))
+            ok = int(st) in good
+            self.by_status[st.name] += 1
+            excluded = []
+            for a, j in col.items():
+                if res_used[i, j]:
+                    continue
+                if reported[i, j]:
+                    if not detected[i, j]:
+                        reason = "NOT_DETECTED"
+                    elif not have_state[i, j]:
+                        reason = "NO_ANCHOR_STATE"
+                    else:
+                        rcode = int(res_reason[i, j])
+                        reason = ExclusionReason(rcode).name if rcode else "NOT_USED"
+                        if rcode in (int(ExclusionReason.RAIM), int(ExclusionReason.PREGATE_SHORTER_THAN_LOS)):
+                            self.gated += 1
+                elif a in lost:
+                    reason = "ANCHOR_LOST"
+                else:
+                    reason = "NOT_REPORTED"
+                excluded.append(M.Exclusion(a, reason))
+            used_ids = [a for a, j in col.items() if res_used[i, j]]
+            resid = [float(res_resid[i, col[a]]) for a in used_ids]
+            if ok and np.all(np.isfinite(res_pos[i])):
+                pos = M.vec3(res_pos[i])
+                self.tracks[pe.node_id].update(int(t_ref[i]), res_pos[i])
+                cov = res_cov[i]
+                cov_t = tuple(M.vec3(row) for row in cov) if np.all(np.isfinite(cov)) else None
+                fl = int(np.clip(floors[i], -1, cfg.n_floors))
+            else:
+                pos, cov_t, fl = None, None, None
+            in_wall = int(np.max(pub_wall[i])) if reported[i].any() else 0
+            self.seq += 1
+            est = M.PositionEstimate(
+                node_id=pe.node_id,
+                t_ns=int(t_ref[i]),
+                epoch=pe.epoch,
+                seq=self.seq,
+                status=st.name,
+                position_m=pos,
+                covariance_m2=cov_t,  # type: ignore[arg-type]
+                peb_m=M.finite_or_none(res_peb[i]) if ok else None,
+                z_bound_m=M.finite_or_none(res_zb[i]) if ok else None,
+                floor_index=fl,
+                used_anchors=used_ids,
+                residuals_m=[r if np.isfinite(r) else 0.0 for r in resid],
+                excluded=excluded,
+                message=res_msg[i],
+                t_input_wall_ns=max(in_wall, 0),
+                t_pub_wall_ns=now,
+            )
+            if in_wall > 0:
+                self.latencies_ns.append(now - in_wall)
+            out.append(est)
+        return out
+
+    # ------------------------------------------------------------------ diagnostics
+    def diagnostics(self, now_wall_ns: int) -> M.FusionDiagnostics:
+        lat = np.asarray(self.latencies_ns, dtype=np.float64) * 1e-6
+        stats = M.LatencyStats(
+            count=int(lat.size),
+            p50_ms=float(np.percentile(lat, 50)) if lat.size else None,
+            p99_ms=float(np.percentile(lat, 99)) if lat.size else None,
+            max_ms=float(lat.max()) if lat.size else None,
+        )
+        wm = [a.last_t_ns for a in self.anchors.values() if a.last_t_ns is not None]
+        self.changed = False
+        return M.FusionDiagnostics(
+            t_wall_ns=now_wall_ns,
+            watermark_ns=max(wm) if wm else None,
+            received=dict(self.received),
+            rejected=dict(self.rejected),
+            gated=self.gated,
+            solved=self.solved,
+            published=self.published,
+            fixes_by_status=dict(self.by_status),
+            late_ranges=self.book.late,
+            pending_epochs=len(self.book.pending),
+            live_anchors=sorted(self.live_anchors),
+            anchors=[
+                M.AnchorHealth(a.id, a.alive, a.states, a.ranges, a.last_t_ns, a.lost_wall_ns)
+                for a in sorted(self.anchors.values(), key=lambda x: x.id)
+            ],
+            latency=stats,
+        )
+
+
+# ---------------------------------------------------------------------- process wiring
+def run_fusion(
+    config: FusionConfig,
+    zenoh_config: Any,
+    stop: threading.Event,
+    *,
+    logger: logging.Logger | None = None,
+    on_ready: Callable[[], None] | None = None,
+) -> FusionCore:
+    """Run the fusion on a Zenoh session until ``stop`` is set.
+
+    Callbacks only put raw samples on a bounded queue (a full queue blocks Zenoh, which
+    with congestion control BLOCK pushes back on the anchors instead of dropping); this
+    thread decodes, aligns, solves and publishes.
+    """
+    import zenoh
+
+    log = logger or logging.getLogger("diffpos.fusion")
+    core = FusionCore(config, logger=log)
+    keys = core.keys
+    q: queue.Queue = queue.Queue(maxsize=config.queue_size)
+
+    def on_data(sample: zenoh.Sample) -> None:
+        q.put((0, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+
+    def on_alive(sample: zenoh.Sample) -> None:
+        q.put((1, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, time.time_ns()))
+
+    period_ns = int(config.diagnostics_period_s * 1e9)
+    with zenoh.open(zenoh_config) as session:
+        est_pubs: dict[str, zenoh.Publisher] = {}
+        diag_pub = session.declare_publisher(
+            keys.fusion_diagnostics(), encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        subs = [session.declare_subscriber(k, on_data) for k in keys.fusion_inputs()]
+        live_sub = session.liveliness().declare_subscriber(keys.alive_anchors(), on_alive, history=True)
+        token = session.liveliness().declare_token(keys.alive_fusion())
+        log_event(log, logging.INFO, "fusion ready", site=config.site,
+                  subscriptions=list(keys.fusion_inputs()))
+        if on_ready is not None:
+            on_ready()
+        next_diag = time.time_ns() + period_ns
+        try:
+            while not stop.is_set():
+                now = time.time_ns()
+                dl = core.book.next_deadline_wall_ns()
+                wake = min(next_diag, dl if dl is not None else next_diag)
+                timeout = min(max((wake - now) * 1e-9, 0.0), 0.1)
+                try:
+                    item = q.get(timeout=timeout)
+                except queue.Empty:
+                    item = None
+                while item is not None:
+                    kind, key, val, rx = item
+                    if kind == 0:
+                        core.on_sample(key, val, rx)
+                    else:
+                        pk = parse_key(key)
+                        if pk is not None and pk.anchor_id is not None:
+                            core.on_liveliness(pk.anchor_id, bool(val), rx)
+                    try:
+                        item = q.get_nowait()
+                    except queue.Empty:
+                        item = None
+                now = time.time_ns()
+                for est in core.step(now):
+                    pub = est_pubs.get(est.node_id)
+                    if pub is None:
+                        pub = est_pubs[est.node_id] = session.declare_publisher(
+                            keys.node_estimate(est.node_id),
+                            encoding=zenoh.Encoding.APPLICATION_JSON,
+                            congestion_control=zenoh.CongestionControl.BLOCK,
+                        )
+                    pub.put(M.encode(est))
+                    core.published += 1
+                if now >= next_diag or core.changed:
+                    diag_pub.put(M.encode(core.diagnostics(now)))
+                    next_diag = now + period_ns
+        finally:
+            # flush what is pending so nothing already received is lost
+            for est in core._solve(list(core.book.pending.values())) if core.book.pending else []:
+                session.put(keys.node_estimate(est.node_id), M.encode(est),
+                            encoding=zenoh.Encoding.APPLICATION_JSON,
+                            congestion_control=zenoh.CongestionControl.BLOCK)
+                core.published += 1
+            core.book.pending.clear()
+            diag_pub.put(M.encode(core.diagnostics(time.time_ns())))
+            token.undeclare()
+            live_sub.undeclare()
+            for s in subs:
+                s.undeclare()
+            log_event(log, logging.INFO, "fusion stopped", solved=core.solved,
+                      published=core.published, rejected=dict(core.rejected))
+    return core

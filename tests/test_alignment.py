@@ -1,0 +1,147 @@
+"""diffpos.alignment: interpolation, epoch grouping/readiness, sigma inflation, compensation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diffpos.alignment import (
+    AlignmentConfig,
+    EpochBook,
+    RangeEntry,
+    StateHistory,
+    compensate_node_motion,
+    effective_sigma_m,
+    epoch_of,
+    hermite_interpolate,
+)
+from diffpos.geometry import window_edge_path
+
+
+def test_epoch_of_floor_semantics():
+    assert epoch_of([0, 99, 100, -1, -100, -101], 100).tolist() == [0, 0, 1, -1, -1, -2]
+
+
+def test_hermite_exact_for_cubic_motion():
+    rng = np.random.default_rng(1)
+    c = rng.normal(size=(4, 3))  # p(t) = c0 + c1 t + c2 t^2 + c3 t^3
+
+    def p(t):
+        return c[0] + c[1] * t + c[2] * t**2 + c[3] * t**3
+
+    def v(t):
+        return c[1] + 2 * c[2] * t + 3 * c[3] * t**2
+
+    t0, t1 = 0.3, 0.7
+    tq = np.linspace(t0, t1, 9)
+    got = hermite_interpolate(tq, np.full(9, t0), np.full(9, t1), p(t0), p(t1), v(t0), v(t1))
+    want = np.stack([p(t) for t in tq])
+    np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+def _orbit(t_s):
+    w = 2 * np.pi / 20.0
+    return (
+        np.stack([10 * np.cos(w * t_s), -20 + 10 * np.sin(w * t_s), 5 + 0.1 * t_s], -1),
+        np.stack([-10 * w * np.sin(w * t_s), 10 * w * np.cos(w * t_s), 0.1 + 0 * t_s], -1),
+    )
+
+
+def test_state_history_interpolates_orbit_and_handles_extrapolation():
+    h = StateHistory(16, max_extrapolation_ns=200_000_000)
+    ts = np.arange(0, 2.0, 0.1)
+    order = np.random.default_rng(0).permutation(ts.size)  # out of order insertion
+    for k in order:
+        p, v = _orbit(ts[k])
+        h.add(round(ts[k] * 1e9), p, v, (0.02, 0.02, 0.05), 0.1)
+    assert len(h) == 16  # capacity: the oldest were dropped
+    assert h.t_ns[0] == round(ts[4] * 1e9)
+    tq = np.array([0.55, 1.234, 1.9, 1.95, 2.05, 2.5, 0.15])
+    pos, sig, ok = h.at(np.round(tq * 1e9).astype(np.int64))
+    want, _ = _orbit(tq)
+    # Hermite on a 10 m orbit sampled at 0.1 s: error << 1 mm
+    assert ok.tolist() == [True, True, True, True, True, False, False]
+    np.testing.assert_allclose(pos[:3], want[:3], atol=2e-5)
+    # 0.05 / 0.15 s past the newest state: linear, error ~ a dt^2 / 2 (a = 1 m/s^2 here)
+    np.testing.assert_allclose(pos[3], want[3], atol=0.5 * 0.99 * 0.05**2 + 1e-4)
+    np.testing.assert_allclose(pos[4], want[4], atol=0.5 * 0.99 * 0.15**2 + 1e-4)
+    np.testing.assert_allclose(sig[4], np.array([0.02, 0.02, 0.05]) + 0.015, atol=1e-9)
+    assert np.all(np.isnan(pos[5:]))
+
+
+def test_effective_sigma_closed_form():
+    s = effective_sigma_m(0.03, np.array([0.0, 0.04, 0.0]), np.array([0.0, 2.0, 0.0]), 0.05, 2.0)
+    assert s == pytest.approx(np.sqrt(0.03**2 + 0.04**2 + 0.1**2))
+    # anchor uncertainty perpendicular to the line of sight does not count
+    s2 = effective_sigma_m(0.03, np.array([5.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 0.0, 2.0)
+    assert s2 == pytest.approx(0.03)
+
+
+def test_motion_compensation_matches_true_range_at_reference_time():
+    anchors = np.array([[-15.0, -20, 1], [0, -15, 0], [0, -7, 4], [15, -20, 1]])
+    p_ref = np.array([2.0, 6.0, 10.5])
+    v = np.array([1.2, -0.4, 0.3])
+    dt = np.array([-0.04, 0.01, 0.03, 0.045])
+    measured = window_edge_path(anchors, p_ref + v * dt[:, None], window_height_m=1.5).length_m
+    jac = window_edge_path(anchors, p_ref, window_height_m=1.5).jacobian
+    comp = compensate_node_motion(measured, jac, v, dt)
+    true_ref = window_edge_path(anchors, p_ref, window_height_m=1.5).length_m
+    raw_err = np.abs(measured - true_ref).max()
+    comp_err = np.abs(comp - true_ref).max()
+    assert raw_err > 0.01
+    assert comp_err < 1e-3 * raw_err + 1e-5  # second-order residual only
+
+
+def _entry(t_ns, rx=0, r=10.0):
+    return RangeEntry(t_ns=t_ns, range_m=r, sigma_m=0.1, snr_db=20.0, t_pub_wall_ns=rx, rx_wall_ns=rx)
+
+
+def test_epoch_ready_when_all_live_anchors_reported():
+    book = EpochBook(AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=5, deadline_ns=10**9))
+    live = {"a", "b", "c"}
+    book.add("a", "n1", _entry(110))
+    book.add("b", "n1", _entry(150))
+    assert book.ready(live, 0) == []
+    book.add("c", "n1", _entry(199))
+    out = book.ready(live, 0)
+    assert [(pe.node_id, pe.epoch, sorted(pe.ranges)) for pe in out] == [("n1", 1, ["a", "b", "c"])]
+    # a range for the solved epoch is late
+    assert book.add("a", "n1", _entry(120)) is False and book.late == 1
+
+
+def test_epoch_ready_when_missing_anchor_moved_on_or_deadline():
+    cfg = AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=5, deadline_ns=1000)
+    book = EpochBook(cfg)
+    live = {"a", "b"}
+    book.add("a", "n1", _entry(110, rx=0))
+    book.add("a", "n2", _entry(110, rx=0))
+    # b reported n2 only, then moved to the next epoch but not past end + tolerance
+    book.add("b", "n2", _entry(120, rx=0))
+    book.note_anchor_time("b", 204)
+    assert [pe.node_id for pe in book.ready(live, 10)] == ["n2"]
+    book.note_anchor_time("b", 205)  # end (200) + tolerance (5): b will not report n1 any more
+    assert [pe.node_id for pe in book.ready(live, 10)] == ["n1"]
+    # deadline: anchor c hung without ever passing the epoch
+    book.add("a", "n3", _entry(310, rx=50))
+    assert book.ready(live | {"c"}, 1049) == []
+    assert book.next_deadline_wall_ns() == 1050
+    assert [pe.node_id for pe in book.ready(live | {"c"}, 1050)] == ["n3"]
+
+
+def test_epochs_of_a_node_are_released_in_order_and_late_ranges_dropped():
+    book = EpochBook(AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=10))
+    live = {"a", "b", "hung"}
+    book.add("a", "n1", _entry(110, rx=5))
+    book.add("a", "n1", _entry(10, rx=0))
+    assert book.ready(live, 9) == []
+    got = book.ready(live, 15)
+    assert [pe.epoch for pe in got] == [0, 1]
+    assert book.add("b", "n1", _entry(50)) is False
+    assert book.late == 1
+
+
+def test_config_validation_names_field():
+    with pytest.raises(ValueError, match="epoch_period_ns"):
+        AlignmentConfig(epoch_period_ns=0)
+    with pytest.raises(ValueError, match="node_speed_sigma_m_s"):
+        AlignmentConfig(node_speed_sigma_m_s=-1)

@@ -1,0 +1,204 @@
+"""FusionCore in memory: epochs, accuracy vs PEB, gating, lost anchors, bad input, degraded geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from diffpos_services import messages as M
+from diffpos_services.fusion import FusionConfig, FusionCore
+from diffpos_services.keys import Keys
+from diffpos_services.servicekit import ConfigError, build_config
+
+from diffpos.geometry import window_edge_path
+
+W = 1.5
+EDGE = (-20.0, 20.0)
+ANCHORS = {
+    "uav1": np.array([-15.0, -20.0, 1.0]),
+    "uav2": np.array([0.0, -15.0, 0.0]),
+    "uav3": np.array([0.0, -7.0, 4.0]),
+    "uav4": np.array([15.0, -20.0, 1.0]),
+    "uav5": np.array([-5.0, -12.0, 8.0]),
+}
+PERIOD_NS = 100_000_000
+KEYS = Keys("t")
+
+
+def _cfg(**kw):
+    base = dict(site="t", window_height_m=W, edge_x_m=EDGE, epoch_period_s=0.1,
+                deadline_s=0.3, first_floor_z_m=3.0, floor_height_m=3.0)
+    base.update(kw)
+    return build_config(FusionConfig, base)
+
+
+def _feed_epoch(core, e, nodes, rng, *, anchors=ANCHORS, sigma=0.05, bias=None,
+                node_vel=None, phases=None, wall=0):
+    """All anchors report state + a range to every node at their own phase in epoch e."""
+    for j, (aid, apos) in enumerate(anchors.items()):
+        ph = (phases or {}).get(aid, 0.1 + 0.15 * j)
+        t_ns = e * PERIOD_NS + int(ph * PERIOD_NS)
+        st = M.AnchorState(anchor_id=aid, t_ns=t_ns, seq=e, position_m=M.vec3(apos),
+                           velocity_m_s=(0.0, 0.0, 0.0), position_sigma_m=(0.01, 0.01, 0.01),
+                           velocity_sigma_m_s=0.0, range_rate_hz=10.0, t_pub_wall_ns=wall)
+        core.on_sample(KEYS.anchor_state(aid), M.encode(st), wall)
+        for nid, npos in nodes.items():
+            p = npos if node_vel is None else npos + node_vel[nid] * (t_ns * 1e-9)
+            r = float(window_edge_path(apos, p, window_height_m=W, edge_x_m=EDGE).length_m)
+            r += rng.normal(0, sigma) + (bias or {}).get((aid, nid), 0.0)
+            msg = M.RangeMeasurement(anchor_id=aid, node_id=nid, t_ns=t_ns, seq=e, range_m=r,
+                                     sigma_m=sigma, snr_db=20.0, t_pub_wall_ns=wall)
+            core.on_sample(KEYS.anchor_range(aid, nid), M.encode(msg), wall)
+
+
+NODES = {
+    "n01": np.array([-8.0, 4.0, 3.0 + 0.75 + 0.75]),
+    "n02": np.array([3.0, 8.0, 9.0 + 1.5]),
+    "n03": np.array([12.0, 2.5, 15.0 + 1.5]),
+}
+
+
+def test_every_node_every_epoch_and_error_within_peb():
+    core = FusionCore(_cfg())
+    rng = np.random.default_rng(7)
+    got = []
+    for e in range(20):
+        _feed_epoch(core, e, NODES, rng)
+        got += core.step(0)
+    got += core.step(10**12)  # deadline flushes the last epoch
+    by = {(g.node_id, g.epoch) for g in got}
+    assert by == {(n, e) for n in NODES for e in range(20)}
+    ok = [g for g in got if g.status in ("OK", "OK_UNVERIFIED")]
+    assert len(ok) >= 0.95 * len(got)
+    err = np.array([np.linalg.norm(np.array(g.position_m) - NODES[g.node_id]) for g in ok])
+    peb = np.array([g.peb_m for g in ok])
+    assert np.median(err) < 2 * np.median(peb), (np.median(err), np.median(peb))
+    # floor index from the fitted height (floors start at 3 m, 3 m each)
+    assert all(g.floor_index == int((NODES[g.node_id][2] - 3.0) // 3.0) for g in ok)
+    # every estimate validates against the schema and roundtrips
+    dec = M.decoder(M.PositionEstimate)
+    assert dec(M.encode(got[0])) == got[0]
+    d = core.diagnostics(1)
+    assert d.solved == len(got) and d.received["range"] == 20 * 5 * 3
+    assert d.fixes_by_status.get("OK", 0) + d.fixes_by_status.get("OK_UNVERIFIED", 0) == len(ok)
+
+
+def test_epoch_waits_for_all_live_anchors_then_solves_immediately():
+    core = FusionCore(_cfg())
+    rng = np.random.default_rng(1)
+    four = {k: v for k, v in ANCHORS.items() if k != "uav5"}
+    _feed_epoch(core, 0, NODES, rng, anchors=four)
+    # uav5 is known (state seen earlier) and alive: epoch 0 must wait for it
+    st = M.AnchorState(anchor_id="uav5", t_ns=-5, seq=0, position_m=M.vec3(ANCHORS["uav5"]),
+                       velocity_m_s=(0, 0, 0), position_sigma_m=(0, 0, 0), velocity_sigma_m_s=0,
+                       range_rate_hz=10, t_pub_wall_ns=0)
+    core.on_sample(KEYS.anchor_state("uav5"), M.encode(st), 0)
+    assert core.step(0) == []
+    # uav5 reports epoch 0: ready at once, no deadline needed
+    _feed_epoch(core, 0, NODES, rng, anchors={"uav5": ANCHORS["uav5"]}, phases={"uav5": 0.9})
+    out = core.step(0)
+    assert len(out) == 3 and all(len(g.used_anchors) == 5 for g in out if g.status == "OK")
+
+
+def test_lost_anchor_is_not_waited_for_and_is_reported():
+    core = FusionCore(_cfg())
+    rng = np.random.default_rng(2)
+    for e in range(3):
+        _feed_epoch(core, e, NODES, rng)
+        core.step(0)
+    core.on_liveliness("uav3", False, 123)
+    rest = {k: v for k, v in ANCHORS.items() if k != "uav3"}
+    _feed_epoch(core, 3, NODES, rng, anchors=rest)
+    _feed_epoch(core, 4, NODES, rng, anchors=rest)
+    out = core.step(0)  # no deadline passed: released because uav3 is not live
+    assert {g.epoch for g in out} >= {3}
+    for g in out:
+        assert M.Exclusion("uav3", "ANCHOR_LOST") in g.excluded
+        assert "uav3" not in g.used_anchors
+        assert g.status in ("OK", "OK_UNVERIFIED")
+    d = core.diagnostics(1)
+    h = {a.anchor_id: a for a in d.anchors}
+    assert h["uav3"].alive is False and h["uav3"].lost_wall_ns == 123
+    assert "uav3" not in d.live_anchors
+    # back again with its token
+    core.on_liveliness("uav3", True, 200)
+    assert "uav3" in core.live_anchors
+
+
+def test_outlier_is_gated_and_fix_stays_accurate():
+    core = FusionCore(_cfg())
+    rng = np.random.default_rng(3)
+    bias = {("uav2", "n02"): 6.0}
+    out = []
+    for e in range(5):
+        _feed_epoch(core, e, NODES, rng, bias=bias, sigma=0.03)
+        out += core.step(0)
+    out += core.step(10**12)
+    n2 = [g for g in out if g.node_id == "n02"]
+    assert len(n2) == 5
+    for g in n2:
+        assert any(x.anchor_id == "uav2" and x.reason in ("RAIM", "PREGATE_SHORTER_THAN_LOS")
+                   for x in g.excluded), g.excluded
+        assert g.status in ("OK", "OK_UNVERIFIED")
+        assert np.linalg.norm(np.array(g.position_m) - NODES["n02"]) < 0.5
+    assert core.diagnostics(0).gated >= 5
+
+
+def test_too_few_anchors_reports_status_not_a_position():
+    core = FusionCore(_cfg())
+    rng = np.random.default_rng(4)
+    two = {k: ANCHORS[k] for k in ("uav1", "uav2")}
+    _feed_epoch(core, 0, NODES, rng, anchors=two)
+    out = core.step(10**12)
+    assert len(out) == 3
+    for g in out:
+        assert g.status in ("TOO_FEW_ANCHORS", "NOT_IDENTIFIABLE")
+        assert g.position_m is None and g.peb_m is None and g.floor_index is None
+
+
+def test_malformed_messages_are_counted_never_raise():
+    core = FusionCore(_cfg())
+    good = M.RangeMeasurement(anchor_id="uav1", node_id="n01", t_ns=5, seq=0, range_m=3.0,
+                              sigma_m=0.1, snr_db=1.0, t_pub_wall_ns=0)
+    core.on_sample(KEYS.anchor_range("uav1", "n01"), b"{oops", 0)
+    core.on_sample(KEYS.anchor_range("uav1", "n01"), b'{"schema":"diffpos.range.v1"}', 0)
+    core.on_sample(KEYS.anchor_range("uav2", "n01"), M.encode(good), 0)  # id mismatch
+    core.on_sample(KEYS.anchor_state("uav1"), M.encode(good), 0)  # wrong type for the key
+    core.on_sample("diffpos/t/bogus", b"{}", 0)
+    core.on_sample("diffpos/other/anchor/uav1/state", b"{}", 0)
+    for _ in range(3):
+        core.on_sample(KEYS.anchor_range("uav1", "n01"), b"\xff\xfe", 0)
+    d = core.diagnostics(0)
+    assert d.rejected == {"json": 4, "schema": 2, "key_mismatch": 1, "unexpected_key": 2}
+    # logged once per (key, reason), counted every time
+    assert core.log_once.seen[(KEYS.anchor_range("uav1", "n01"), "json")] == 4
+    assert core.step(10**12) == []
+
+
+def test_motion_compensation_reduces_error_for_moving_nodes():
+    vel = {"n01": np.array([1.5, 0.5, 0.0]), "n02": np.array([-1.5, 0.3, 0.0])}
+    nodes = {k: NODES[k] for k in vel}
+    phases = {"uav1": 0.02, "uav2": 0.3, "uav3": 0.55, "uav4": 0.8, "uav5": 0.97}
+
+    def run(comp):
+        core = FusionCore(_cfg(motion_compensation=comp, node_speed_sigma_m_s=0.0))
+        rng = np.random.default_rng(5)
+        out = []
+        for e in range(15):
+            _feed_epoch(core, e, nodes, rng, sigma=0.005, node_vel=vel, phases=phases)
+            out += core.step(0)
+        out += core.step(10**12)
+        errs = [np.linalg.norm(np.array(g.position_m) - (nodes[g.node_id] + vel[g.node_id] * g.t_ns * 1e-9))
+                for g in out if g.epoch >= 5 and g.position_m is not None]
+        return np.median(errs)
+
+    e_on, e_off = run(True), run(False)
+    assert e_on < 0.5 * e_off, (e_on, e_off)
+
+
+def test_config_errors_name_the_field():
+    with pytest.raises(ConfigError, match="window_height_m"):
+        _cfg(window_height_m=-1)
+    with pytest.raises(ConfigError, match="site"):
+        _cfg(site="a/b")
+    with pytest.raises(ConfigError, match="epoch_period_s"):
+        _cfg(epoch_period_s="fast")
