@@ -257,3 +257,49 @@ def test_bad_inputs_name_the_argument() -> None:
         position_error_bound(ANCHORS, [0.0, 5.0, 7.5], 0.01, W, model="nlos")
     with pytest.raises(ValueError, match="jacobian"):
         fisher_information(np.zeros((4, 2)), 0.01)
+
+
+# ---------------------------------------------------------------------- `diffpos bounds`
+
+
+def test_cli_bounds_writes_csv_and_pngs(tmp_path, capsys) -> None:
+    import csv
+
+    from diffpos_services import cli
+
+    out = tmp_path / "tmp"
+    assert cli.main(["bounds", "--grid-step-m", "2", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "Position error bound per floor" in text and "z-axis bound" in text
+    for k in range(1, 6):
+        png = out / f"floor{k}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = list(csv.DictReader((out / "bounds.csv").open()))
+    assert len(rows) == 5 * 19 * 10  # x = -18..18, y = 0.5..18.5 step 2, 5 floors
+    assert {r["z_m"] for r in rows} == {"4.500", "7.500", "10.500", "13.500", "16.500"}
+    # the CSV numbers are the core's numbers for the same sigmas
+    r0 = rows[0]
+    node = [float(r0["x_m"]), float(r0["y_m"]), float(r0["z_m"])]
+    sig = [float(r0[f"sigma_m_a{j}"]) for j in range(1, 5)]
+    b = position_error_bound(ANCHORS, node, sig, W, edge_x_m=(-20.0, 20.0))
+    assert float(r0["peb_m"]) == pytest.approx(float(b.peb_m), rel=1e-5)
+    assert float(r0["z_bound_m"]) == pytest.approx(float(b.z_bound_m), rel=1e-5)
+    assert all(r["identifiable"] == "1" for r in rows)
+
+
+def test_cli_bounds_papers_counter_example_and_errors(tmp_path, capsys) -> None:
+    from diffpos_services import cli
+
+    out = tmp_path / "x0"
+    args = ["bounds", "--grid-step-m", "2", "--no-plots", "--out", str(out)]
+    assert cli.main([*args, "--anchors", "0,-20,1;0,-15,0;0,-7,4"]) == 0
+    assert "5.3 %" in capsys.readouterr().out  # the x = 0 column: 1 of 19 per floor
+    assert cli.main([*args, "--anchors", "-15,-20,1;0,15,0;0,-7,4"]) == 2
+    err = capsys.readouterr().err
+    assert "--anchors" in err and "inside the building" in err and "y < 0" in err
+    assert cli.main([*args, "--anchors", "1,2"]) == 2
+    assert "expected three numbers" in capsys.readouterr().err
+    assert cli.main([*args, "--grid-step-m", "-1"]) == 2
+    assert "--grid-step-m" in capsys.readouterr().err
+    assert cli.main([*args, "--bandwidth-hz", "0"]) == 2
+    assert "--bandwidth-hz: 0 is out of range" in capsys.readouterr().err
