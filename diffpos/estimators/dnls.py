@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..bounds import bounds_from_fim, fisher_information
 from ._core import LOSSES, PathModel, cost_of, levenberg_marquardt
-from .gating import GateState, GatingConfig, chi2_threshold, run_gating
+from .gating import GateState, GatingConfig, chi2_threshold, run_gating, wall_pregate
 from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
 
 __all__ = ["DEFAULT_Z_STARTS_M", "dnls"]
@@ -272,6 +272,14 @@ def _solve_chunk(
     sigmas_given: bool,
 ) -> None:
     m = ranges.shape[1]
+    reason0 = np.zeros((ranges.shape[0], m), dtype=np.int_)
+    if gating is not None:
+        wall = wall_pregate(anchors, ranges, sigmas, mask, gating, sigmas_given=sigmas_given)
+        if np.any(wall):
+            mask = mask & ~wall
+            reason0[wall] = ExclusionReason.PREGATE_SHORTER_THAN_LOS
+            out["exclusion_reason"][sl] = reason0
+            out["used"][sl] = mask
     solvable = mask.sum(axis=-1) >= 3
     idx = np.flatnonzero(solvable)
     if idx.size == 0:
@@ -307,7 +315,7 @@ def _solve_chunk(
         iterations=fit.iterations[sel],
         converged=fit.converged[sel],
         used=mask[idx].copy(),
-        reason=np.zeros((n, m), dtype=np.int_),
+        reason=reason0[idx].copy(),
         gating_failed=np.zeros(n, dtype=bool),
         tested=np.zeros(n, dtype=bool),
     )

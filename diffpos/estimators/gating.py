@@ -2,12 +2,21 @@
 
 Two tests run after every fit, for all fixes of a batch at once:
 
-1. **Physical pre-gate.** A diffraction path over an edge is a broken line from the anchor
-   to the node, so it can never be shorter than the straight line between them:
-   ``p_j(x) >= |a_j - x|``. A measured range with
-   ``r_j < |a_j - x_hat| - k sigma_j - margin`` (``k = GatingConfig.pregate_sigmas``) is
-   physically impossible at the fitted position and is excluded first (the worst violator,
-   in units of sigma), whatever the chi-square test says.
+1. **Physical gate ("pre-gate").** A diffraction path over an edge is a broken line from the
+   anchor to the node, so it can never be shorter than the straight line between them:
+   ``p_j(x) >= |a_j - x|``; and since the edge lies in the wall ``y = 0`` it can never be
+   shorter than the anchor's distance to the wall, ``|y_a,j|``. Tolerance:
+   ``k sigma_j + margin`` (``k = GatingConfig.pregate_sigmas``).
+
+   * *Before the fit*, a range shorter than ``|y_a,j|`` is excluded (needs no position).
+   * *After a fit that the chi-square test accepts or cannot test*, the worst range with
+     ``r_j < |a_j - x_hat| - tol`` (in units of sigma) is excluded, the fix refitted, and the
+     exclusion kept only if the range is also impossible at the new solution. It is not
+     applied to fits that fail the test: there, a positive fault on another anchor pulls the
+     solution so that honest ranges look "too short" (measured: with 4 anchors and a 1 m
+     positive fault, a post-fit gate on failing fits excluded an honest anchor in 1 of 3
+     trials), so those fixes go to the RAIM exclusion or are reported ``GATING_FAILED``.
+
 2. **Chi-square residual test (RAIM fault detection).** With ``|S|`` used anchors and Gaussian
    noise, the sum of squared normalised residuals at the least-squares solution,
    ``T = sum_{j in S} (r_j / sigma_j)^2``, is (to first order) chi-square with ``|S| - 3``
@@ -36,7 +45,7 @@ from ..geometry import los_path
 from ._core import PathModel, cost_of, levenberg_marquardt
 from .result import ExclusionReason
 
-__all__ = ["GatingConfig", "chi2_threshold"]
+__all__ = ["GatingConfig", "chi2_threshold", "wall_pregate"]
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -61,7 +70,8 @@ class GatingConfig:
         ``k``: a range is impossible if shorter than the LoS distance by more than
         ``k sigma_j + pregate_margin_m``.
     pregate_margin_m : float [m]
-        Extra absolute tolerance of the pre-gate (e.g. for anchor position errors).
+        Extra absolute tolerance of the pre-gate (e.g. for anchor position errors). Without
+        ``sigmas_m`` the pre-gate runs only if this margin is > 0 (it is the whole tolerance).
     refit_max_iter : int
         Iteration limit of each candidate refit.
     """
@@ -92,6 +102,28 @@ def chi2_threshold(dof: NDArray[np.int_], false_alarm_probability: float) -> Flo
     ok = dof >= 1
     out[ok] = chi2.isf(false_alarm_probability, dof[ok])
     return out
+
+
+def wall_pregate(
+    anchors_m: FloatArray,
+    ranges_m: FloatArray,
+    sigmas_m: FloatArray,
+    used: BoolArray,
+    config: GatingConfig,
+    *,
+    sigmas_given: bool,
+) -> BoolArray:
+    """Ranges shorter than the anchor's distance to the wall ``y = 0`` (minus tolerance).
+
+    Returns
+    -------
+    ndarray of bool, shape (B, M)
+        True for used measurements that no node inside the building can explain.
+    """
+    if not config.pregate or not (sigmas_given or config.pregate_margin_m > 0):
+        return np.zeros(ranges_m.shape, dtype=bool)
+    tol = config.pregate_sigmas * (sigmas_m if sigmas_given else 0.0) + config.pregate_margin_m
+    return used & (ranges_m < np.abs(anchors_m[..., 1]) - tol)
 
 
 @dataclass
@@ -142,7 +174,7 @@ def run_gating(
         # 1. physical pre-gate
         pg_excl = np.zeros(idx.size, dtype=bool)
         pg_j = np.zeros(idx.size, dtype=np.int_)
-        if config.pregate:
+        if config.pregate and (sigmas_given or config.pregate_margin_m > 0):
             los, _ = los_path(a, x[:, None, :])
             tol = config.pregate_sigmas * (s if sigmas_given else 0.0) + config.pregate_margin_m
             short = np.where(used, (los - r) - tol, -np.inf)
@@ -157,12 +189,10 @@ def run_gating(
         testable = (dof >= 1) & sigmas_given
         fail = testable & (t_stat > thr)
         state.tested[idx] = testable
-        raim = (
-            fail
-            & ~pg_excl
-            & (n_used - 1 >= config.min_anchors_after_exclusion)
-            & can_exclude
-        )
+        raim = fail & (n_used - 1 >= config.min_anchors_after_exclusion) & can_exclude
+        # the post-fit pre-gate acts only on fits the residual test accepts (or cannot test):
+        # in a failing fit a positive fault elsewhere makes honest ranges look "too short"
+        pg_excl &= ~fail
         # fixes that pass (and have no pre-gate violation) are done
         done = ~pg_excl & ~raim
         state.gating_failed[idx[done]] = fail[done]
@@ -204,7 +234,9 @@ def run_gating(
             state.converged[gi] = fit.converged[sel]
             new_used[rrows, best] = False
             state.reason[gi, best] = ExclusionReason.RAIM
-        # refit the pre-gated fixes from their current position
+        # refit the pre-gated fixes from their current position, then confirm: the excluded
+        # range must also be impossible at the new solution, otherwise revert (a fit pulled by
+        # a positive fault elsewhere can make an honest range look too short)
         if rows.size:
             gi = idx[rows]
             fit = levenberg_marquardt(
@@ -217,9 +249,21 @@ def run_gating(
                 loss_scale=loss_scale,
                 max_iter=config.refit_max_iter,
             )
-            state.x_m[gi] = fit.x_m
-            state.iterations[gi] = fit.iterations
-            state.converged[gi] = fit.converged
+            jj = pg_j[rows]
+            los_new, _ = los_path(anchors_m[gi, jj], fit.x_m)
+            tol_j = config.pregate_sigmas * (sigmas_m[gi, jj] if sigmas_given else 0.0)
+            confirmed = ranges_m[gi, jj] < los_new - tol_j - config.pregate_margin_m
+            keep = rows[confirmed]
+            gk = idx[keep]
+            state.x_m[gk] = fit.x_m[confirmed]
+            state.iterations[gk] = fit.iterations[confirmed]
+            state.converged[gk] = fit.converged[confirmed]
+            back = rows[~confirmed]
+            new_used[back, pg_j[back]] = True
+            state.reason[idx[back], pg_j[back]] = ExclusionReason.NONE
+            pg_excl[back] = False
+            state.gating_failed[idx[back]] = fail[back]
+            pending[idx[back]] = False
         changed = pg_excl | raim
         state.used[idx] = new_used
         n_excl[idx[changed]] += 1

@@ -1,0 +1,251 @@
+"""D-NLS: exact recovery, efficiency at the CRLB, covariance, agreement with scipy, statuses."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from diffpos.bounds import position_error_bound
+from diffpos.constants import SPEED_OF_LIGHT_M_S
+from diffpos.estimators import ExclusionReason, FixStatus, GatingConfig, dnls
+from diffpos.geometry import window_edge_path
+
+PAPER_ANCHORS_M = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
+                            [15.0, -20.0, 1.0]])
+
+
+def _ranging_sigma_m(snr_db: float, bandwidth_hz: float = 400e6) -> float:
+    """Ranging CRLB sigma = c / sqrt(8 pi^2 B^2 SNR) (paper Sec. V)."""
+    return SPEED_OF_LIGHT_M_S / np.sqrt(8 * np.pi**2 * bandwidth_hz**2 * 10 ** (snr_db / 10))
+
+
+def _random_scene(rng, n_fix, n_anchor):
+    anchors = np.stack(
+        [rng.uniform(-30, 30, (n_fix, n_anchor)), rng.uniform(-40, -5, (n_fix, n_anchor)),
+         rng.uniform(0, 40, (n_fix, n_anchor))], axis=-1)
+    floors = rng.integers(0, 9, n_fix)
+    nodes = np.stack([rng.uniform(-15, 15, n_fix), rng.uniform(1, 15, n_fix),
+                      3.0 * floors + 1.5 + rng.uniform(-0.3, 0.3, n_fix)], axis=-1)
+    return anchors, nodes
+
+
+@pytest.mark.parametrize("delta_m", [0.0, 1.5])
+@pytest.mark.parametrize("n_anchor", [4, 6, 8])
+def test_noise_free_recovery_random_geometries(delta_m, n_anchor):
+    rng = np.random.default_rng(100 + n_anchor)
+    anchors, nodes = _random_scene(rng, 400, n_anchor)
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=1.2, delta_m=delta_m).length_m
+    fix = dnls(anchors, r, 0.05, window_height_m=1.2, delta_m=delta_m)
+    err = np.linalg.norm(fix.position_m - nodes, axis=1)
+    assert np.max(err) < 1e-6, f"worst error {np.max(err):.3g} m"
+    assert np.all(fix.converged)
+    assert np.all(fix.ok)
+    assert np.all(fix.position_m[:, 1] > 0)
+
+
+def test_noise_free_recovery_bounded_edges():
+    rng = np.random.default_rng(7)
+    anchors, nodes = _random_scene(rng, 300, 5)
+    edge = (-40.0, 40.0)
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=1.0, edge_x_m=edge).length_m
+    fix = dnls(anchors, r, 0.05, window_height_m=1.0, edge_x_m=edge)
+    assert np.max(np.linalg.norm(fix.position_m - nodes, axis=1)) < 1e-6
+
+
+@pytest.mark.parametrize("delta_m", [0.0, 1.5])
+@pytest.mark.parametrize("snr_db", [30.0, 40.0])
+def test_matched_model_rmse_over_peb(delta_m, snr_db):
+    """2,000 seeded trials: 3D RMSE / PEB in [0.9, 1.2] (the PEB of diffpos.bounds)."""
+    rng = np.random.default_rng(int(snr_db) + int(10 * delta_m))
+    sig = _ranging_sigma_m(snr_db)
+    node = np.array([3.0, 6.0, 10.5])
+    n = 2000
+    p = window_edge_path(PAPER_ANCHORS_M, node, window_height_m=1.0, delta_m=delta_m).length_m
+    r = p + sig * rng.standard_normal((n, 4))
+    fix = dnls(np.broadcast_to(PAPER_ANCHORS_M, (n, 4, 3)), r, sig, window_height_m=1.0,
+               delta_m=delta_m, gating=None)
+    rmse = np.sqrt(np.mean(np.sum((fix.position_m - node) ** 2, axis=1)))
+    peb = position_error_bound(PAPER_ANCHORS_M, node, np.full(4, sig), 1.0, delta_m).peb_m
+    ratio = rmse / peb
+    assert 0.9 <= ratio <= 1.2, f"RMSE/PEB = {ratio:.3f}"
+    # the reported PEB is the same bound, evaluated at the estimate
+    assert np.allclose(np.median(fix.peb_m), peb, rtol=1e-2)
+
+
+def test_covariance_is_inverse_fim_by_finite_differences():
+    rng = np.random.default_rng(11)
+    anchors = PAPER_ANCHORS_M
+    node = np.array([-2.0, 4.0, 7.5])
+    sig = np.array([0.02, 0.05, 0.03, 0.04])
+    r = window_edge_path(anchors, node, window_height_m=1.0).length_m + sig * rng.standard_normal(4)
+    fix = dnls(anchors, r, sig, window_height_m=1.0)
+    x = fix.position_m[0]
+    jac = np.empty((4, 3))
+    h = 1e-6
+    for k in range(3):
+        dx = np.zeros(3)
+        dx[k] = h
+        jac[:, k] = (window_edge_path(anchors, x + dx, window_height_m=1.0).length_m
+                     - window_edge_path(anchors, x - dx, window_height_m=1.0).length_m) / (2 * h)
+    fim = jac.T @ np.diag(1 / sig**2) @ jac
+    cov = np.linalg.inv(fim)
+    assert np.allclose(fix.covariance_m2[0], cov, rtol=1e-5)
+    assert np.isclose(fix.peb_m[0], np.sqrt(np.trace(cov)), rtol=1e-6)
+    assert np.isclose(fix.z_bound_m[0], np.sqrt(cov[2, 2]), rtol=1e-6)
+
+
+def test_same_minimum_as_scipy_least_squares():
+    rng = np.random.default_rng(12)
+    anchors, nodes = _random_scene(rng, 30, 6)
+    sig = 0.3
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=1.2).length_m
+    r = r + sig * rng.standard_normal(r.shape)
+    x0 = nodes + rng.normal(0, 0.5, nodes.shape)
+    fix = dnls(anchors, r, sig, window_height_m=1.2, x0_m=x0, gating=None)
+    for i in range(len(nodes)):
+        def fun(x, i=i):
+            return (r[i] - window_edge_path(anchors[i], x, window_height_m=1.2).length_m) / sig
+
+        ref = least_squares(fun, x0[i], method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        ref_x = ref.x.copy()
+        ref_x[1] = abs(ref_x[1])
+        assert np.allclose(fix.position_m[i], ref_x, atol=1e-7)
+        assert np.isclose(fix.cost[i], ref.cost, rtol=1e-8, atol=1e-12)
+
+
+def test_multistart_keeps_lowest_cost():
+    rng = np.random.default_rng(13)
+    anchors, nodes = _random_scene(rng, 50, 4)
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=1.0).length_m
+    r = r + 0.2 * rng.standard_normal(r.shape)
+    zs = np.arange(0.0, 31.0, 3.0)
+    best = dnls(anchors, r, 0.2, window_height_m=1.0, gating=None, z_starts_m=zs)
+    costs = []
+    for z in zs:
+        x0 = np.stack([anchors[..., 0].mean(1), np.full(50, 3.0), np.full(50, z)], axis=1)
+        costs.append(dnls(anchors, r, 0.2, window_height_m=1.0, gating=None, x0_m=x0).cost)
+    assert np.allclose(best.cost, np.min(costs, axis=0), rtol=1e-9, atol=1e-12)
+
+
+def test_mask_padding_equals_unpadded_problem():
+    rng = np.random.default_rng(14)
+    anchors, nodes = _random_scene(rng, 20, 6)
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=1.0).length_m
+    r = r + 0.1 * rng.standard_normal(r.shape)
+    ref = dnls(anchors[:, :5], r[:, :5], 0.1, window_height_m=1.0)
+    pad_a = anchors.copy()
+    pad_r = r.copy()
+    pad_a[:, 5] = np.nan  # garbage in padded slots must not matter
+    pad_r[:, 5] = -1.0
+    mask = np.ones((20, 6), dtype=bool)
+    mask[:, 5] = False
+    fix = dnls(pad_a, pad_r, 0.1, mask=mask, window_height_m=1.0)
+    assert np.allclose(fix.position_m, ref.position_m, atol=1e-9)
+    assert np.all(fix.exclusion_reason[:, 5] == ExclusionReason.MISSING)
+    assert not np.any(fix.used[:, 5])
+    assert np.all(np.isnan(fix.residuals_m[:, 5]))
+    assert np.all(fix.status == ref.status)
+
+
+def test_statuses_and_messages():
+    node = np.array([1.0, 5.0, 4.5])
+    r = window_edge_path(PAPER_ANCHORS_M, node, window_height_m=1.0).length_m
+    a = np.broadcast_to(PAPER_ANCHORS_M, (5, 4, 3)).copy()
+    rr = np.broadcast_to(r, (5, 4)).copy()
+    mask = np.ones((5, 4), dtype=bool)
+    mask[1, 2:] = False  # 2 anchors only
+    mask[2, 3] = False  # 3 anchors: fix without redundancy
+    rr[3, 0] = np.nan  # invalid
+    rr[4, 1] = -3.0  # invalid
+    fix = dnls(a, rr, 0.01, mask=mask, window_height_m=1.0)
+    st = [FixStatus(int(s)) for s in fix.status]
+    assert st[0] == FixStatus.OK
+    assert st[1] == FixStatus.TOO_FEW_ANCHORS and np.all(np.isnan(fix.position_m[1]))
+    assert st[2] == FixStatus.OK_UNVERIFIED and "only 3 anchors" in fix.message(2)
+    assert np.allclose(fix.position_m[2], node, atol=1e-6)
+    assert st[3] == FixStatus.INVALID_INPUT and "ranges_m" in fix.message(3)
+    assert st[4] == FixStatus.INVALID_INPUT and "negative" in fix.message(4)
+    assert "too few anchors" in fix.message(1)
+    recs = fix.to_records()
+    json.dumps(recs, allow_nan=False)  # JSON-ready: no NaN/inf
+    assert recs[0]["status"] == "ok" and len(recs[0]["covariance_m2"]) == 3
+    assert recs[1]["position_m"] == [None, None, None]
+
+
+def test_not_identifiable_paper_example():
+    """All anchors and the node at x = 0: no information along x (paper, after Corollary 3)."""
+    anchors = np.array([[0.0, -10.0, 0.0], [0.0, -20.0, 5.0], [0.0, -7.0, 12.0], [0.0, -15, 20]])
+    node = np.array([0.0, 4.0, 7.5])
+    r = window_edge_path(anchors, node, window_height_m=1.0).length_m
+    fix = dnls(anchors, r, 0.01, window_height_m=1.0, x0_m=node)
+    assert fix.status[0] == FixStatus.NOT_IDENTIFIABLE
+    assert "not identifiable" in fix.message(0)
+
+
+def test_no_sigmas_scales_covariance_and_is_unverified():
+    rng = np.random.default_rng(15)
+    anchors, nodes = _random_scene(rng, 200, 6)
+    sig = 0.05
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=1.0).length_m
+    r = r + sig * rng.standard_normal(r.shape)
+    fix = dnls(anchors, r, None, window_height_m=1.0)
+    assert np.all(fix.status == FixStatus.OK_UNVERIFIED)
+    assert "no sigmas_m" in fix.message(0)
+    with_sig = dnls(anchors, r, sig, window_height_m=1.0, gating=None)
+    # a-posteriori variance factor estimates sigma^2: average ratio near 1
+    ratio = np.mean(np.trace(fix.covariance_m2, axis1=1, axis2=2)
+                    / np.trace(with_sig.covariance_m2, axis1=1, axis2=2))
+    assert 0.8 < ratio < 1.2
+
+
+def test_robust_loss_close_to_linear_on_clean_data_and_better_with_outlier():
+    rng = np.random.default_rng(16)
+    anchors, nodes = _random_scene(rng, 400, 7)
+    sig = 0.05
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=1.0).length_m
+    r = r + sig * rng.standard_normal(r.shape)
+    lin = dnls(anchors, r, sig, window_height_m=1.0, gating=None)
+    hub = dnls(anchors, r, sig, window_height_m=1.0, gating=None, loss="huber")
+    e_lin = np.linalg.norm(lin.position_m - nodes, axis=1)
+    e_hub = np.linalg.norm(hub.position_m - nodes, axis=1)
+    assert np.sqrt(np.mean(e_hub**2)) < 1.15 * np.sqrt(np.mean(e_lin**2))
+    rb = r.copy()
+    rb[:, 0] += 30 * sig
+    for loss in ("huber", "soft_l1"):
+        lin_b = dnls(anchors, rb, sig, window_height_m=1.0, gating=None)
+        rob_b = dnls(anchors, rb, sig, window_height_m=1.0, gating=None, loss=loss)
+        rmse_lin = np.sqrt(np.mean(np.sum((lin_b.position_m - nodes) ** 2, axis=1)))
+        rmse_rob = np.sqrt(np.mean(np.sum((rob_b.position_m - nodes) ** 2, axis=1)))
+        assert rmse_rob < 0.7 * rmse_lin, (loss, rmse_rob, rmse_lin)
+
+
+def test_chunking_does_not_change_results():
+    rng = np.random.default_rng(17)
+    anchors, nodes = _random_scene(rng, 50, 6)
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=1.0).length_m
+    r = r + 0.05 * rng.standard_normal(r.shape)
+    a = dnls(anchors, r, 0.05, window_height_m=1.0, chunk_size=7)
+    b = dnls(anchors, r, 0.05, window_height_m=1.0, chunk_size=1000)
+    assert np.array_equal(a.position_m, b.position_m)
+    assert np.array_equal(a.status, b.status)
+
+
+def test_bad_shapes_name_the_field():
+    a = PAPER_ANCHORS_M
+    with pytest.raises(ValueError, match="anchors_m"):
+        dnls(a[:, :2], np.ones(4), window_height_m=1.0)
+    with pytest.raises(ValueError, match="ranges_m"):
+        dnls(a, np.ones(3), window_height_m=1.0)
+    with pytest.raises(ValueError, match="sigmas_m"):
+        dnls(a, np.ones(4), np.ones(3), window_height_m=1.0)
+    with pytest.raises(ValueError, match="window_height_m"):
+        dnls(a, np.ones(4), window_height_m=-1.0)
+    with pytest.raises(ValueError, match="edge_x_m"):
+        dnls(a, np.ones(4), window_height_m=1.0, edge_x_m=(1.0, 1.0))
+    with pytest.raises(ValueError, match="loss"):
+        dnls(a, np.ones(4), window_height_m=1.0, loss="cauchy")
+    with pytest.raises(ValueError, match="false_alarm_probability"):
+        GatingConfig(false_alarm_probability=0.0)
