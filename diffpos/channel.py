@@ -70,6 +70,7 @@ __all__ = [
     "fresnel_coefficients",
     "itu_permittivity",
     "mpc_statistics",
+    "scenario_channel",
     "slab_loss_db",
 ]
 
@@ -708,7 +709,12 @@ def first_arrival(
     )
 
 
-def mpc_statistics(channel: Channel, fap: FirstArrival) -> dict[str, dict[str, float]]:
+def mpc_statistics(
+    channel: Channel,
+    fap: FirstArrival,
+    *,
+    path_class: ArrayLike | None = None,
+) -> dict[str, dict[str, float]]:
     """The paper's Table of MPC groups: ``P_e`` and ``P_fap`` per group, in percent.
 
     ``P_e`` (group g) = percentage of node x anchor pairs where at least one MPC of group g
@@ -716,17 +722,27 @@ def mpc_statistics(channel: Channel, fap: FirstArrival) -> dict[str, dict[str, f
     group g. (The paper sums per-anchor counts over anchors and divides by the number of
     receivers; dividing by the number of pairs is the same average for every anchor.)
 
+    Parameters
+    ----------
+    channel : Channel
+    fap : FirstArrival
+    path_class : array_like of int, shape (N, M, K), optional
+        Group of every path when it varies per link (ray-traced data); default the per-slot
+        ``channel.mpc_class``.
+
     Returns
     -------
     dict
         ``{"MPC-1": {"P_e": ..., "P_fap": ...}, ..., "none": {"P_fap": ...}}`` [%].
     """
-    pairs = channel.exists.shape[0] * channel.exists.shape[1]
+    exists = channel.exists
+    cls = np.broadcast_to(channel.mpc_class if path_class is None else np.asarray(path_class),
+                          exists.shape)
+    pairs = max(exists.shape[0] * exists.shape[1], 1)
     out: dict[str, dict[str, float]] = {}
     for g in (1, 2, 3, 4):
-        sel = channel.mpc_class == g
-        pe = np.any(channel.exists[..., sel], axis=-1).sum()
+        pe = np.any(exists & (cls == g), axis=-1).sum()
         pf = np.sum(fap.mpc_class == g)
-        out[f"MPC-{g}"] = {"P_e": 100.0 * pe / pairs, "P_fap": 100.0 * pf / pairs}
-    out["none"] = {"P_fap": 100.0 * np.sum(~fap.detected) / pairs}
+        out[f"MPC-{g}"] = {"P_e": 100.0 * float(pe) / pairs, "P_fap": 100.0 * float(pf) / pairs}
+    out["none"] = {"P_fap": 100.0 * float(np.sum(~fap.detected)) / pairs}
     return out

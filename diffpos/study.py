@@ -1,0 +1,415 @@
+"""The paper's positioning study as pure functions of per-link first-arrival data.
+
+Nothing here knows where the first arrivals came from: :class:`FirstArrivalData` holds, per
+node x anchor link, the measured range, its SNR and ranging sigma, the MPC group of the
+first-arriving path and its arrival angle. :meth:`FirstArrivalData.from_channel` builds it
+from the emulator (:mod:`diffpos.channel`); a ray-traced dataset (e.g. Sionna RT) only has to
+fill the same arrays to replace the emulator.
+
+:func:`positioning_study` runs the estimators of the paper's Fig. "positioning results" on
+every receiver (batched, chunked so a caller can show progress):
+
+=================  ==========================================================================
+key                method
+=================  ==========================================================================
+``lls``            linear least squares assuming LoS (baseline)
+``ippa``           iterative parallel projection, every range NLoS (the authors' driver)
+``dnls_case1``     D-NLS with the upper-edge diffraction model, ``Delta = 0`` (Assumption 1)
+``dnls_case2``     D-NLS with the model offset ``Delta`` (default 1.5 m, half a floor)
+``dnls_lower``     (extra) D-NLS modelling the *lower* window edge (``Delta = w``)
+=================  ==========================================================================
+
+All estimators are unweighted, like the paper's (their least-squares costs have no
+``1/sigma^2``); D-NLS runs without outlier gating (the paper's plain Gauss-Newton) over the
+estimator's default multi-start grid. The position error bound (PEB) and z bound use the
+diffraction-model FIM at the true node with the ranging CRLB of every detected link.
+
+A fix that fails (no estimate) counts as an infinite error: it is never "within x metres" in
+the CDFs, and percentiles above the success rate are reported as ``inf``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .bounds import position_error_bound
+from .estimators import dnls, ippa, lls
+from .linkbudget import db_to_linear, ranging_crlb_m
+
+__all__ = [
+    "DEFAULT_METHODS",
+    "METHOD_LABELS",
+    "FirstArrivalData",
+    "PositioningStudy",
+    "empirical_cdf",
+    "first_arrival_statistics",
+    "percentile_summary",
+    "positioning_study",
+]
+
+FloatArray = NDArray[np.float64]
+
+METHOD_LABELS: dict[str, str] = {
+    "lls": "LLS",
+    "ippa": "IPPA",
+    "dnls_case1": "D-NLS (Case-1)",
+    "dnls_case2": "D-NLS (Case-2)",
+    "dnls_lower": "D-NLS (lower edge)",
+    "peb": "PEB",
+}
+DEFAULT_METHODS: tuple[str, ...] = ("lls", "ippa", "dnls_case1", "dnls_case2")
+PERCENTILES: tuple[tuple[str, float], ...] = (("median", 50.0), ("p80", 80.0), ("p95", 95.0))
+
+
+@dataclass(frozen=True)
+class FirstArrivalData:
+    """First-arrival measurements of N receivers from M anchors (the study's only input).
+
+    Attributes
+    ----------
+    anchors_m : ndarray, shape (M, 3) [m]
+    nodes_m : ndarray, shape (N, 3) [m]
+        True receiver positions (ground truth).
+    range_m : ndarray, shape (N, M) [m]
+        Measured range of the first-arriving path (NaN where not detected).
+    snr_db : ndarray, shape (N, M) [dB]
+        SNR of the first-arriving path.
+    sigma_m : ndarray, shape (N, M) [m]
+        Ranging standard deviation (CRLB at ``snr_db``; ``inf`` where not detected).
+    detected : ndarray of bool, shape (N, M)
+    mpc_class : ndarray of int8, shape (N, M)
+        MPC group 1..4 of the first-arriving path (0: not detected or unknown).
+    aoa_deg : ndarray, shape (N, M) [deg]
+        Arrival zenith angle of the first-arriving path (NaN if unknown).
+    """
+
+    anchors_m: FloatArray
+    nodes_m: FloatArray
+    range_m: FloatArray
+    snr_db: FloatArray
+    sigma_m: FloatArray
+    detected: NDArray[np.bool_]
+    mpc_class: NDArray[np.int8]
+    aoa_deg: FloatArray
+
+    def __post_init__(self) -> None:
+        a = np.asarray(self.anchors_m)
+        n = np.asarray(self.nodes_m)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise ValueError(f"anchors_m: expected shape (M, 3), got {a.shape}")
+        if n.ndim != 2 or n.shape[1] != 3:
+            raise ValueError(f"nodes_m: expected shape (N, 3), got {n.shape}")
+        want = (n.shape[0], a.shape[0])
+        for name in ("range_m", "snr_db", "sigma_m", "detected", "mpc_class", "aoa_deg"):
+            shp = np.shape(getattr(self, name))
+            if shp != want:
+                raise ValueError(f"{name}: expected shape (N, M) = {want}, got {shp}")
+        det = np.asarray(self.detected, dtype=bool)
+        if np.any(det & ~np.isfinite(np.asarray(self.range_m, dtype=float))):
+            raise ValueError("range_m: must be finite wherever detected is True")
+
+    @property
+    def n_nodes(self) -> int:
+        return int(np.shape(self.nodes_m)[0])
+
+    @classmethod
+    def from_channel(cls, fap: Any, anchors_m: ArrayLike, nodes_m: ArrayLike) -> FirstArrivalData:
+        """From a :class:`diffpos.channel.FirstArrival` and the positions it was computed at."""
+        return cls(
+            anchors_m=np.asarray(anchors_m, dtype=np.float64),
+            nodes_m=np.asarray(nodes_m, dtype=np.float64),
+            range_m=np.asarray(fap.range_m, dtype=np.float64),
+            snr_db=np.asarray(fap.snr_db, dtype=np.float64),
+            sigma_m=np.asarray(fap.sigma_m, dtype=np.float64),
+            detected=np.asarray(fap.detected, dtype=bool),
+            mpc_class=np.asarray(fap.mpc_class, dtype=np.int8),
+            aoa_deg=np.asarray(fap.aoa_deg, dtype=np.float64),
+        )
+
+    def subset(self, index: ArrayLike) -> FirstArrivalData:
+        """The receivers ``index`` (integer or boolean index over N)."""
+        i = np.asarray(index)
+        return FirstArrivalData(
+            anchors_m=self.anchors_m, nodes_m=self.nodes_m[i], range_m=self.range_m[i],
+            snr_db=self.snr_db[i], sigma_m=self.sigma_m[i], detected=self.detected[i],
+            mpc_class=self.mpc_class[i], aoa_deg=self.aoa_deg[i],
+        )
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Plain arrays (e.g. for ``numpy.savez``); :meth:`from_arrays` reads them back."""
+        return {k: np.asarray(getattr(self, k)) for k in _FIELDS}
+
+    @classmethod
+    def from_arrays(
+        cls, arrays: Mapping[str, ArrayLike], *, bandwidth_hz: float | None = None
+    ) -> FirstArrivalData:
+        """From a mapping with the attribute names as keys (e.g. a loaded ``.npz``).
+
+        ``anchors_m, nodes_m, range_m, snr_db, detected`` are required. ``sigma_m`` may be
+        omitted if ``bandwidth_hz`` is given (then it is the ranging CRLB at ``snr_db``);
+        ``mpc_class`` defaults to 0 (unknown) and ``aoa_deg`` to NaN.
+        """
+        missing = [k for k in ("anchors_m", "nodes_m", "range_m", "snr_db", "detected")
+                   if k not in arrays]
+        if missing:
+            raise ValueError(f"first-arrival data lacks {missing} (fields: {list(_FIELDS)})")
+        rng = np.asarray(arrays["range_m"], dtype=np.float64)
+        det = np.asarray(arrays["detected"], dtype=bool)
+        snr = np.asarray(arrays["snr_db"], dtype=np.float64)
+        if "sigma_m" in arrays:
+            sigma = np.asarray(arrays["sigma_m"], dtype=np.float64)
+        elif bandwidth_hz is not None:
+            sigma = np.where(det, ranging_crlb_m(db_to_linear(snr), bandwidth_hz), np.inf)
+        else:
+            raise ValueError("first-arrival data lacks sigma_m: give it or bandwidth_hz")
+        return cls(
+            anchors_m=np.asarray(arrays["anchors_m"], dtype=np.float64),
+            nodes_m=np.asarray(arrays["nodes_m"], dtype=np.float64),
+            range_m=rng,
+            snr_db=snr,
+            sigma_m=sigma,
+            detected=det,
+            mpc_class=np.asarray(arrays.get("mpc_class", np.zeros(rng.shape)), dtype=np.int8),
+            aoa_deg=np.asarray(arrays.get("aoa_deg", np.full(rng.shape, np.nan)),
+                               dtype=np.float64),
+        )
+
+
+_FIELDS = ("anchors_m", "nodes_m", "range_m", "snr_db", "sigma_m", "detected", "mpc_class",
+           "aoa_deg")
+
+
+@dataclass(frozen=True)
+class PositioningStudy:
+    """Results of :func:`positioning_study`.
+
+    Attributes
+    ----------
+    positions_m : dict of str -> ndarray, shape (N, 3) [m]
+        Estimates per method (NaN where the method gave none).
+    error_3d_m, error_z_m : dict of str -> ndarray, shape (N,) [m]
+        ``|estimate - truth|`` and ``|z_est - z|`` (``inf`` where no estimate).
+    peb_m, z_bound_m : ndarray, shape (N,) [m]
+        Diffraction-model PEB and z bound at the true positions (``inf`` if not identifiable).
+    methods : tuple of str
+    delta_case2_m : float [m]
+    """
+
+    positions_m: dict[str, FloatArray]
+    error_3d_m: dict[str, FloatArray]
+    error_z_m: dict[str, FloatArray]
+    peb_m: FloatArray
+    z_bound_m: FloatArray
+    methods: tuple[str, ...]
+    delta_case2_m: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        """Percentiles (median, 80th, 95th) of the 3D and z errors per method and of the PEB.
+
+        Returns
+        -------
+        dict
+            ``{method: {"label", "3d": {...}, "z": {...}, "solved_fraction"}}`` plus
+            ``"peb": {"label", "3d": {...}, "z": {...}}`` [m].
+        """
+        out: dict[str, Any] = {}
+        for m in self.methods:
+            e3, ez = self.error_3d_m[m], self.error_z_m[m]
+            out[m] = {
+                "label": method_label(m, self.delta_case2_m),
+                "3d": percentile_summary(e3),
+                "z": percentile_summary(ez),
+                "solved_fraction": float(np.mean(np.isfinite(e3))) if e3.size else 0.0,
+            }
+        out["peb"] = {"label": "PEB", "3d": percentile_summary(self.peb_m),
+                      "z": percentile_summary(self.z_bound_m)}
+        return out
+
+
+def method_label(method: str, delta_case2_m: float = 1.5) -> str:
+    """Legend label of a method key."""
+    if method == "dnls_case2":
+        return f"D-NLS (Case-2, Δ={delta_case2_m:g} m)"
+    return METHOD_LABELS.get(method, method)
+
+
+def percentile_summary(values: ArrayLike) -> dict[str, float]:
+    """Median, 80th and 95th percentiles and the mean of finite values [same unit].
+
+    Non-finite values (failed fixes) count as ``+inf`` errors for the percentiles; the mean
+    is over finite values only. Empty input gives NaN.
+    """
+    v = np.asarray(values, dtype=np.float64).ravel()
+    if v.size == 0:
+        return {k: float("nan") for k, _ in PERCENTILES} | {"mean": float("nan"), "n": 0}
+    v = np.where(np.isfinite(v), v, np.inf)
+    s = np.sort(v)
+    out = {}
+    for k, p in PERCENTILES:
+        # 'lower' interpolation so an inf never mixes into a finite percentile
+        out[k] = float(np.percentile(s, p, method="lower"))
+    fin = s[np.isfinite(s)]
+    out["mean"] = float(fin.mean()) if fin.size else float("nan")
+    out["n"] = int(v.size)
+    return out
+
+
+def empirical_cdf(values: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Empirical CDF: sorted finite values and ``F = rank / n_total`` (failures never reach 1).
+
+    Returns
+    -------
+    x : ndarray, shape (K,) [unit of values]
+    f : ndarray, shape (K,) [-]
+    """
+    v = np.asarray(values, dtype=np.float64).ravel()
+    n = v.size
+    x = np.sort(v[np.isfinite(v)])
+    return x, np.arange(1, x.size + 1) / max(n, 1)
+
+
+def _chunks(n: int, size: int) -> list[slice]:
+    size = max(int(size), 1)
+    return [slice(i, min(i + size, n)) for i in range(0, n, size)]
+
+
+def positioning_study(
+    data: FirstArrivalData,
+    *,
+    window_height_m: float,
+    edge_x_m: tuple[float, float] | None = None,
+    delta_case2_m: float = 1.5,
+    methods: Sequence[str] = DEFAULT_METHODS,
+    chunk_size: int = 2048,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> PositioningStudy:
+    """Position every receiver with each method and compute the bounds.
+
+    Parameters
+    ----------
+    data : FirstArrivalData
+    window_height_m : float [m]
+        Window height ``w`` of the path model.
+    edge_x_m : (float, float), optional [m]
+        Extent of the window edges along x (the building width), known a priori (Cor. 3).
+    delta_case2_m : float [m]
+        Model offset of D-NLS Case-2 (paper: 1.5 m).
+    methods : sequence of str
+        Keys of :data:`METHOD_LABELS` (except ``"peb"``, always computed).
+    chunk_size : int
+        Receivers per estimator call; ``progress`` is called after each chunk.
+    progress : callable(method, done, total), optional
+
+    Returns
+    -------
+    PositioningStudy
+    """
+    unknown = [m for m in methods if m not in METHOD_LABELS or m == "peb"]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}; choose from "
+                         f"{[k for k in METHOD_LABELS if k != 'peb']}")
+    anchors = np.asarray(data.anchors_m, dtype=np.float64)
+    truth = np.asarray(data.nodes_m, dtype=np.float64)
+    n = truth.shape[0]
+    mask = np.asarray(data.detected, dtype=bool)
+    ranges = np.where(mask, data.range_m, 0.0)
+    dnls_delta = {"dnls_case1": 0.0, "dnls_case2": delta_case2_m, "dnls_lower": window_height_m}
+
+    def solve(method: str, sl: slice):
+        b = sl.stop - sl.start
+        a = np.broadcast_to(anchors, (b, *anchors.shape))
+        if method == "lls":
+            return lls(a, ranges[sl], None, mask=mask[sl])
+        if method == "ippa":
+            return ippa(a, ranges[sl], None, mask=mask[sl])
+        return dnls(a, ranges[sl], None, mask=mask[sl], window_height_m=window_height_m,
+                    delta_m=dnls_delta[method], edge_x_m=edge_x_m, gating=None)
+
+    positions: dict[str, FloatArray] = {}
+    e3: dict[str, FloatArray] = {}
+    ez: dict[str, FloatArray] = {}
+    for m in methods:
+        est = np.full((n, 3), np.nan)
+        done = 0
+        for sl in _chunks(n, chunk_size):
+            res = solve(m, sl)
+            est[sl] = np.where(res.ok[:, None], res.position_m, np.nan)
+            done = sl.stop
+            if progress is not None:
+                progress(m, done, n)
+        positions[m] = est
+        err = np.linalg.norm(est - truth, axis=1)
+        e3[m] = np.where(np.isfinite(err), err, np.inf)
+        dz = np.abs(est[:, 2] - truth[:, 2])
+        ez[m] = np.where(np.isfinite(dz), dz, np.inf)
+
+    sig = np.where(mask & np.isfinite(data.sigma_m), data.sigma_m, np.inf)
+    bnd = position_error_bound(anchors, truth, sig, window_height_m, 0.0, edge_x_m=edge_x_m)
+    if progress is not None:
+        progress("peb", n, n)
+    return PositioningStudy(
+        positions_m=positions, error_3d_m=e3, error_z_m=ez, peb_m=bnd.peb_m,
+        z_bound_m=bnd.z_bound_m, methods=tuple(methods), delta_case2_m=float(delta_case2_m),
+    )
+
+
+def first_arrival_statistics(
+    data: FirstArrivalData,
+    *,
+    aoa_tolerance_deg: float = 6.0,
+    snr_floor_db: float = 5.0,
+) -> dict[str, Any]:
+    """Distribution of the first-arriving path's AoA and SNR (the paper's box plots).
+
+    Parameters
+    ----------
+    data : FirstArrivalData
+    aoa_tolerance_deg : float [deg]
+        Reports the share of first arrivals with ``|AoA - 90| <= aoa_tolerance_deg`` (the
+        paper: "always within six degrees of 90").
+    snr_floor_db : float [dB]
+        Reports the share with ``SNR > snr_floor_db`` (the paper: "typically > 5 dB").
+
+    Returns
+    -------
+    dict
+        ``aoa_deg`` and ``snr_db`` box statistics (whiskers at the 5th/95th percentiles,
+        quartiles, median), the two shares [%], ``P_fap`` per MPC group [%] and the detected
+        share [%].
+    """
+    det = np.asarray(data.detected, dtype=bool)
+    aoa = np.asarray(data.aoa_deg)[det]
+    snr = np.asarray(data.snr_db)[det]
+
+    def box(v: FloatArray) -> dict[str, float]:
+        v = v[np.isfinite(v)]
+        if v.size == 0:
+            return {}
+        q = np.percentile(v, [5, 25, 50, 75, 95])
+        return {"p5": float(q[0]), "q1": float(q[1]), "median": float(q[2]), "q3": float(q[3]),
+                "p95": float(q[4]), "min": float(v.min()), "max": float(v.max())}
+
+    pairs = det.size
+    cls = np.asarray(data.mpc_class)
+    aoa_fin = aoa[np.isfinite(aoa)]
+    return {
+        "pairs": int(pairs),
+        "detected_pct": 100.0 * float(det.mean()) if pairs else float("nan"),
+        "aoa_deg": box(aoa),
+        "snr_db": box(snr),
+        "aoa_within_tolerance_pct": (100.0 * float(np.mean(np.abs(aoa_fin - 90.0)
+                                                           <= aoa_tolerance_deg))
+                                     if aoa_fin.size else float("nan")),
+        "aoa_tolerance_deg": aoa_tolerance_deg,
+        "snr_above_floor_pct": 100.0 * float(np.mean(snr > snr_floor_db)) if snr.size else
+        float("nan"),
+        "snr_floor_db": snr_floor_db,
+        "P_fap_pct": {f"MPC-{g}": 100.0 * float(np.sum(cls == g)) / max(pairs, 1)
+                      for g in (1, 2, 3, 4)},
+    }
