@@ -118,6 +118,7 @@ __all__ = [
     "distance_parameter_m",
     "edge_frame",
     "elevation_angle_rad",
+    "elevation_sweep_positions",
     "field_from_frame",
     "keller_coefficients",
     "lemma3_coefficients",
@@ -754,6 +755,54 @@ def elevation_angle_rad(anchor_m: ArrayLike, edge_z_m: ArrayLike) -> FloatArray:
     a = np.asarray(anchor_m, dtype=np.float64)
     dz = np.asarray(edge_z_m, dtype=np.float64) - a[..., 2]
     return np.arctan2(np.abs(a[..., 1]), dz)
+
+
+def elevation_sweep_positions(
+    theta_rad: ArrayLike,
+    depth_m: ArrayLike,
+    *,
+    anchor_distance_m: float,
+    anchor_height_m: float = 1.0,
+    delta_m: float = 0.0,
+    x_m: float = 0.0,
+) -> tuple[FloatArray, FloatArray]:
+    """Anchor and node positions that sweep the elevation angle ``theta`` (power-ratio figure).
+
+    The anchor is fixed at ``(x, -anchor_distance_m, anchor_height_m)``; the node's floor is
+    moved vertically so that the window centre is at ``z_c = z_a + d cot theta``, i.e. seen from
+    the anchor at elevation ``theta`` (:func:`elevation_angle_rad` of ``z_c``; ``theta = 90 deg``
+    puts the window centre at the anchor height, small ``theta`` is a high floor). The node is at
+    depth ``y_n = depth_m`` behind the wall, at ``z_n = z_c + delta_m`` (Case-2 offset; 0 puts
+    it at the window mid-height) and the same ``x`` as the anchor.
+
+    Parameters
+    ----------
+    theta_rad : array_like, shape (...) [rad]
+        In ``(0, pi)``.
+    depth_m : array_like, shape (...) [m]
+        Node depth ``y_n > 0``; broadcasts against ``theta_rad``.
+    anchor_distance_m : float [m]
+        ``|y_a| > 0``.
+    anchor_height_m, delta_m, x_m : float [m]
+
+    Returns
+    -------
+    anchor_m, node_m : ndarray, shape (..., 3) [m]
+    """
+    th = np.asarray(theta_rad, dtype=np.float64)
+    depth = np.asarray(depth_m, dtype=np.float64)
+    if np.any(~((th > 0.0) & (th < np.pi))):
+        raise ValueError("theta_rad must lie strictly between 0 and pi")
+    if np.any(~(depth > 0.0)):
+        raise ValueError("depth_m must be > 0 (node inside the building)")
+    if not anchor_distance_m > 0.0:
+        raise ValueError("anchor_distance_m must be > 0")
+    th, depth = np.broadcast_arrays(th, depth)
+    z_c = anchor_height_m + anchor_distance_m / np.tan(th)
+    ones = np.ones_like(th)
+    anchor = np.stack([x_m * ones, -anchor_distance_m * ones, anchor_height_m * ones], axis=-1)
+    node = np.stack([x_m * ones, depth, z_c + delta_m], axis=-1)
+    return anchor, node
 
 
 @dataclass(frozen=True)
