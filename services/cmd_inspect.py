@@ -115,16 +115,19 @@ def run(args: argparse.Namespace) -> int:
     print(f"messages:  {s.messages} on {len(s.channels)} channels")
     kinds: Counter[str] = Counter()
     kind_ch: Counter[str] = Counter()
-    gaps = 0
+    gaps = sum(s.gaps.values())
     for c in s.channels:
         kinds[c.kind] += c.count
         kind_ch[c.kind] += 1
-        gaps += c.gaps
     for kind, n in sorted(kinds.items(), key=lambda kv: -kv[1]):
         rate = f", {n / s.duration_s:.1f}/s" if s.duration_s > 0 else ""
         print(f"  {kind:<16} {n:>9} messages on {kind_ch[kind]:>4} channels{rate}")
-    print(f"gaps:      {gaps} messages missing by sequence number" + (
-        "" if not gaps else " (" + ", ".join(f"{c.topic}: {c.gaps}" for c in s.channels if c.gaps)[:300] + ")"))
+    detail = ", ".join(f"{k}: {n}" for k, n in s.gaps.items())
+    print(f"gaps:      {gaps} messages missing by sequence number"
+          + (f" ({detail[:300]})" if gaps else ""))
+    if s.out_of_order:
+        print(f"repeats:   {sum(s.out_of_order.values())} sequence numbers went backwards "
+              "(publisher restarted?)")
     print(f"schemas:   {', '.join(f'{n} ({e})' for n, e in sorted(s.schemas.items())) or '-'}")
     print(f"anchors:   {len(s.anchors)}: {' '.join(s.anchors)}")
     nodes = " ".join(s.nodes[:40]) + (" ..." if len(s.nodes) > 40 else "")
@@ -146,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     if args.channels:
         print("channels:")
         for c in s.channels:
-            print(f"  {c.topic:<48} {c.schema:<32} {c.count:>8}  gaps {c.gaps}")
+            print(f"  {c.topic:<48} {c.schema:<32} {c.count:>8}")
     if validation is not None:
         print(f"validation: {validation['checked']} checked, {validation['invalid']} invalid, "
               f"{validation['no_schema']} without schema, {validation['not_json']} not JSON")

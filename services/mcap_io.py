@@ -55,6 +55,7 @@ __all__ = [
     "RecoverReport",
     "SchemaEntry",
     "SchemaRegistry",
+    "SeqTracker",
     "SinkStats",
     "liveliness_topic",
     "parse_topic",
@@ -158,6 +159,78 @@ def replay_estimate_topic(site: str, node_id: str) -> str:
 def liveliness_topic(site: str) -> str:
     """MCAP topic of the recorder's liveliness-event channel of ``site``."""
     return f"{PREFIX}/{site}/recorder/liveliness"
+
+
+#: kinds whose publisher numbers all its keys with one counter: key pattern of the stream
+#: (the fusion's ``seq`` runs over all its estimates, not per node)
+SHARED_SEQUENCE_KINDS: dict[str, str] = {
+    "estimate": "node/*/estimate",
+    "replay_estimate": "replay/node/*/estimate",
+}
+#: kinds whose messages carry a ``seq`` field (the others - truth, diagnostics, run control,
+#: liveliness events, foreign channels - are not checked for gaps)
+SEQUENCED_KINDS = frozenset({"anchor_state", "range", "estimate", "replay_estimate"})
+
+
+class SeqTracker:
+    """Gaps and repeats in publisher sequence numbers, per sequence stream.
+
+    A stream is one key, except for :data:`SHARED_SEQUENCE_KINDS` (one stream per site).
+    Only :data:`SEQUENCED_KINDS` are tracked.
+
+    Attributes
+    ----------
+    gaps : dict[str, int]
+        Stream -> messages missing (sum of the holes).
+    out_of_order : dict[str, int]
+        Stream -> sequence numbers that went backwards or repeated.
+    gap_list : list of (stream, first_missing, last_missing)
+        The holes, first 1000.
+    """
+
+    def __init__(self) -> None:
+        self._stream: dict[str, str | None] = {}
+        self._last: dict[str, int] = {}
+        self.gaps: dict[str, int] = {}
+        self.out_of_order: dict[str, int] = {}
+        self.gap_list: list[tuple[str, int, int]] = []
+        self.total_gaps = 0
+        self.total_out_of_order = 0
+
+    def stream_of(self, topic: str) -> str | None:
+        """Sequence stream of a topic (``None``: not tracked)."""
+        st = self._stream.get(topic, "")
+        if st == "":
+            kind, fields = parse_topic(topic)
+            if kind not in SEQUENCED_KINDS:
+                st = None
+            elif kind in SHARED_SEQUENCE_KINDS:
+                st = f"{PREFIX}/{fields['site']}/{SHARED_SEQUENCE_KINDS[kind]}"
+            else:
+                st = topic
+            self._stream[topic] = st
+        return st
+
+    def add(self, topic: str, seq: int) -> int:
+        """Account one message; returns the number of messages found missing before it."""
+        st = self.stream_of(topic)
+        if st is None:
+            return 0
+        last = self._last.get(st)
+        self._last[st] = seq
+        if last is None:
+            return 0
+        if seq > last + 1:
+            n = seq - last - 1
+            self.gaps[st] = self.gaps.get(st, 0) + n
+            self.total_gaps += n
+            if len(self.gap_list) < 1000:
+                self.gap_list.append((st, last + 1, seq - 1))
+            return n
+        if seq <= last:
+            self.out_of_order[st] = self.out_of_order.get(st, 0) + 1
+            self.total_out_of_order += 1
+        return 0
 
 
 # ----------------------------------------------------------------------------------------
@@ -434,7 +507,7 @@ class McapSink:
         self._seq_field = seq_field
         self._schema_ids: dict[str, int] = {}
         self._channels: dict[str, int] = {}
-        self._last_seq: dict[str, int] = {}
+        self.seq = SeqTracker()
         self._unknown_keys: set[str] = set()
         self._pending = 0
         self._lock = threading.Lock()
@@ -527,15 +600,10 @@ class McapSink:
         if key in self._unknown_keys:
             stats.unknown_schema += 1
         if sequence is not None and sequence >= 0:
-            last = self._last_seq.get(key)
-            if last is not None:
-                if sequence > last + 1:
-                    stats.gaps += sequence - last - 1
-                    if len(stats.gap_list) < 1000:
-                        stats.gap_list.append((key, last + 1, sequence - 1))
-                elif sequence <= last:
-                    stats.out_of_order += 1
-            self._last_seq[key] = sequence
+            if self.seq.add(key, sequence):
+                stats.gaps = self.seq.total_gaps
+                stats.gap_list = self.seq.gap_list
+            stats.out_of_order = self.seq.total_out_of_order
             seq32 = sequence & 0xFFFFFFFF
         else:
             seq32 = 0
@@ -786,6 +854,8 @@ class McapScanner:
         self.complete = False
         self.header_library = ""
         self.header_profile = ""
+        self.size_bytes = self.path.stat().st_size
+        self.offset = 0  # bytes consumed so far (for progress bars)
 
     # -- record parsing -----------------------------------------------------------------
 
@@ -895,6 +965,7 @@ class McapScanner:
                     return
                 body = f.read(ln)
                 offset += 9 + ln
+                self.offset = offset
                 try:
                     if op == _OP_CHUNK:
                         try:
@@ -1147,8 +1218,6 @@ class ChannelSummary:
     count: int
     first_log_ns: int
     last_log_ns: int
-    gaps: int
-    out_of_order: int
 
 
 @dataclass(frozen=True)
@@ -1174,6 +1243,10 @@ class RecordingSummary:
     metadata : dict[str, dict[str, str]]
     attachments : list of (name, media_type, size_bytes)
     damage : Damage
+    gaps : dict[str, int]
+        Sequence stream (see :class:`SeqTracker`) -> messages missing by sequence number.
+    out_of_order : dict[str, int]
+        Sequence stream -> sequence numbers that went backwards or repeated.
     """
 
     path: str
@@ -1190,6 +1263,8 @@ class RecordingSummary:
     metadata: dict[str, dict[str, str]]
     attachments: list[tuple[str, str, int]]
     damage: Damage
+    gaps: dict[str, int] = field(default_factory=dict)
+    out_of_order: dict[str, int] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -1206,6 +1281,7 @@ class RecordingSummary:
             "metadata": self.metadata,
             "attachments": [list(a) for a in self.attachments],
             "damage": {**self.damage.__dict__, "ok": self.damage.ok},
+            "gaps": self.gaps, "out_of_order": self.out_of_order,
         }
 
 
@@ -1219,9 +1295,7 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
     counts: dict[int, int] = {}
     first: dict[int, int] = {}
     last: dict[int, int] = {}
-    gaps: dict[int, int] = {}
-    ooo: dict[int, int] = {}
-    last_seq: dict[int, int] = {}
+    seq = SeqTracker()
     live: list[dict[str, Any]] = []
     for batch in sc.iter_batches():
         for m in batch:
@@ -1234,12 +1308,7 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
             else:
                 first[cid] = min(first[cid], m.log_ns)
                 last[cid] = max(last[cid], m.log_ns)
-                prev = last_seq[cid]
-                if m.sequence > prev + 1:
-                    gaps[cid] = gaps.get(cid, 0) + m.sequence - prev - 1
-                elif m.sequence <= prev:
-                    ooo[cid] = ooo.get(cid, 0) + 1
-            last_seq[cid] = m.sequence
+            seq.add(m.topic, m.sequence)
             if m.topic.endswith("/recorder/liveliness") and len(live) < 10000:
                 try:
                     live.append(json.loads(m.data))
@@ -1259,7 +1328,6 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
             topic=ch.topic, kind=kind, schema=sch.name if sch else "",
             message_encoding=ch.message_encoding, count=counts.get(cid, 0),
             first_log_ns=first.get(cid, 0), last_log_ns=last.get(cid, 0),
-            gaps=gaps.get(cid, 0), out_of_order=ooo.get(cid, 0),
         ))
     for ev in live:
         if ev.get("role") == "anchor" and ev.get("id"):
@@ -1278,4 +1346,6 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
         metadata={m.name: dict(m.metadata) for m in sc.metadata},
         attachments=[(a.name, a.media_type, len(a.data)) for a in sc.attachments],
         damage=sc.damage,
+        gaps=dict(sorted(seq.gaps.items())),
+        out_of_order=dict(sorted(seq.out_of_order.items())),
     )

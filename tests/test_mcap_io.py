@@ -37,7 +37,8 @@ def _sample_stream(n_epochs: int = 30, *, anchors=("a1", "a2", "a3"), nodes=("n1
                    seed: int = 0) -> list[tuple[str, bytes, int]]:
     """(key, payload, receive_ns) of a small but complete run, built with the real structs.
 
-    Sequence numbers are per key (one publisher per key), starting at 0.
+    Sequence numbers are per key for anchors (one publisher per key) and one counter over
+    all estimates (the fusion's), starting at 0.
     """
     rng = np.random.default_rng(seed)
     out: list[tuple[str, bytes, int]] = []
@@ -72,7 +73,7 @@ def _sample_stream(n_epochs: int = 30, *, anchors=("a1", "a2", "a3"), nodes=("n1
                                    velocity_m_s=(0.0, 0.0, 0.0), floor_index=0), t + 5000)
             key = K.node_estimate(n)
             put(key, M.PositionEstimate(
-                node_id=n, t_ns=t + 5, epoch=e, seq=nxt(key), status="OK",
+                node_id=n, t_ns=t + 5, epoch=e, seq=nxt("estimates"), status="OK",
                 position_m=(1.1, 2.0, 3.0), covariance_m2=((1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0)),
                 peb_m=0.5, z_bound_m=0.3, floor_index=0, used_anchors=list(anchors),
                 residuals_m=[0.1] * len(anchors), excluded=[], message="",
@@ -153,22 +154,32 @@ def test_sequence_gaps_are_counted(tmp_path):
     rng = np.random.default_rng(3)
     drop = set(rng.choice(len(stream), size=25, replace=False).tolist())
     kept = [x for i, x in enumerate(stream) if i not in drop]
-    # reference: per key, the holes between consecutive kept sequence numbers
+    # reference: per publisher (anchor key / the fusion), the holes between consecutive kept
+    # sequence numbers
     last: dict[str, int] = {}
     expected = 0
     for key, payload, _ in kept:
         s = json.loads(payload).get("seq")
         if s is None:
             continue
-        if key in last:
-            expected += s - last[key] - 1
-        last[key] = s
+        stream = "estimates" if key.endswith("/estimate") else key
+        if stream in last:
+            expected += s - last[stream] - 1
+        last[stream] = s
     sink = McapSink(io.BytesIO())
     for key, payload, rx in kept:
         sink.write(key, payload, rx)
     assert expected > 0
     assert sink.stats.gaps == expected
+    assert sink.stats.out_of_order == 0
     assert sum(b - a + 1 for _, a, b in sink.stats.gap_list) == expected
+    # the file-level summary finds the same holes
+    path = tmp_path / "gaps.mcap"
+    with McapSink(path) as s2:
+        for key, payload, rx in kept:
+            s2.write(key, payload, rx)
+    summ = summarize(path)
+    assert sum(summ.gaps.values()) == expected and not summ.out_of_order
 
 
 def test_undecodable_and_unknown_keys_are_still_recorded(tmp_path):
