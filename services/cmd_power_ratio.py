@@ -19,10 +19,19 @@ mid-height (or DELTA above it, Case-2) at depth y_n behind the wall.
 
 Outputs in --out: power_ratio.csv (one row per depth and angle: depth_m, theta_deg,
 window_center_z_m, node_z_m, ratio_approx, ratio_approx_db, ratio_exact, ratio_exact_db,
-los_through_window) and
-power_ratio.png (ratio in dB vs theta). The table printed at the end gives, per depth, the
-angle below which the ratio stays above --threshold-db (the paper: 5 dB for theta < 60 deg;
-the approximation crosses 5 dB at 58.70 deg) and where the lower edge starts to dominate.
+los_through_window) and power_ratio.png (ratio in dB vs theta). The table printed at the end
+gives, per curve, the angle below which the ratio stays above --threshold-db (the paper: at
+least 5 dB for theta < 60 deg; the closed form crosses 5 dB at 58.70 deg), the angle from
+which the lower edge is the stronger one, and from which the node sees the anchor directly
+through the window.
+
+What to expect with the defaults (w = 1.5 m, |y_a| = 20 m): the exact curves lie below the
+approximation and cross 5 dB at about 26, 39, 45 and 49 deg for y_n = 2, 5, 10, 20 m. The
+approximation assumes psi = 3 pi/2 and the same theta for both edges; near theta = 90 deg the
+node is close to the incident shadow boundary of both edges, where the small angular offsets
+(about w/(2 y_n) at the node and w sin(theta)/|y_a| at the anchor) decide which edge is
+stronger. Only for w << y_n and w << |y_a| do the exact curves converge to Theorem 3 (try
+--depths-m 1000 --anchor-distance-m 1000).
 
 examples:
   diffpos power-ratio --out out/
