@@ -124,6 +124,42 @@ def test_bounds_from_fim_closed_form() -> None:
     assert not bounds_from_fim(np.zeros((3, 3))).identifiable
 
 
+def test_bounds_from_fim_fast_and_slow_paths_agree_with_lapack() -> None:
+    """Closed-form inverse (fast path) and eigvalsh fallback vs numpy.linalg on hard FIMs."""
+    rng = np.random.default_rng(26)
+    n = 3000
+    q, _ = np.linalg.qr(rng.normal(size=(n, 3, 3)))
+    scale = 10 ** rng.uniform(-6, 8, n)
+    lam = scale[:, None] * 10 ** -np.stack(
+        [np.zeros(n), rng.uniform(0, 14, n), rng.uniform(0, 14, n)], axis=1
+    )
+    fim = np.einsum("nij,nj,nkj->nik", q, lam, q)
+    fim = 0.5 * (fim + np.swapaxes(fim, 1, 2))
+    # rank-1 and rank-2 FIMs from 1 or 2 Jacobian rows: never identifiable
+    g = rng.normal(size=(400, 2, 3))
+    low = np.concatenate(
+        [
+            np.einsum("ni,nj->nij", g[:200, 0], g[:200, 0]),
+            np.einsum("nmi,nmj->nij", g[200:], g[200:]),
+        ]
+    )
+    b = bounds_from_fim(np.concatenate([fim, low]))
+    assert not b.identifiable[n:].any() and np.isinf(b.peb_m[n:]).all()
+    eig = np.linalg.eigvalsh(fim)
+    log_ratio = np.log10(eig[:, 0] / eig[:, -1])
+    clear = np.abs(log_ratio + 12.0) > 0.3  # away from the 1e12 threshold itself
+    ok_ref = log_ratio > -12.0
+    np.testing.assert_array_equal(b.identifiable[:n][clear], ok_ref[clear])
+    assert 0.2 < ok_ref.mean() < 0.9
+    ok = b.identifiable[:n]
+    inv = np.linalg.inv(fim[ok])
+    cond = 10 ** -log_ratio[ok]
+    rel = np.abs(b.peb_m[:n][ok] - np.sqrt(np.trace(inv, axis1=1, axis2=2))) / b.peb_m[:n][ok]
+    assert (rel < 1e-13 * cond + 1e-12).all()
+    rel_z = np.abs(b.z_bound_m[:n][ok] - np.sqrt(inv[:, 2, 2])) / b.z_bound_m[:n][ok]
+    assert (rel_z < 1e-13 * cond + 1e-12).all()
+
+
 # ---------------------------------------------------------------------- identifiability
 
 #: the paper's example: three anchors, all at x_a = 0
@@ -262,6 +298,7 @@ def test_bad_inputs_name_the_argument() -> None:
 # ---------------------------------------------------------------------- `diffpos bounds`
 
 
+@pytest.mark.slow  # matplotlib import + 5 PNGs: ~2 s idle, more on a loaded machine
 def test_cli_bounds_writes_csv_and_pngs(tmp_path, capsys) -> None:
     import csv
 
