@@ -7,7 +7,9 @@ under the window-edge diffraction path model (upper edge, paper eq. 6 and eq. 15
 
 How each link's ranging accuracy is obtained (a simple link budget):
   P_rx   = P_tx + Friis gain over the diffraction path length (OPL + IPL) at the carrier
-           - a fixed diffraction loss (default 20 dB)
+           - a fixed diffraction loss (default 20 dB); or, with --diffraction utd, the power
+           of the UTD-diffracted field of the upper window edge (x-polarised isotropic anchor,
+           about 30-42 dB below free space at 28 GHz in the default geometry)
   SNR    = P_rx + processing gain (20 dB) - kTB   (kTB = -87.8 dBm at 400 MHz, 300 K)
   sigma  = c / sqrt(8 pi^2 B^2 SNR)               (ranging CRLB, SNR linear)
 
@@ -30,6 +32,7 @@ examples:
   diffpos bounds                                  the paper's geometry, 0.5 m grid
   diffpos bounds --grid-step-m 2 --out /tmp/b     coarse and fast
   diffpos bounds --anchors "-10,-5,2;0,-8,1;10,-5,2" --tx-power-dbm 20
+  diffpos bounds --diffraction utd                diffracted power from UTD, not a fixed loss
   diffpos bounds --anchors "0,-20,1;0,-15,0;0,-7,4"   the paper's x_a = 0 counter-example:
                                                   nodes at x = 0 are not identifiable
 """
@@ -78,7 +81,11 @@ class BoundsConfig:
         Signal bandwidth (noise floor and ranging CRLB).
     tx_power_dbm : float [dBm]
     diffraction_loss_db : float [dB]
-        Fixed extra loss of the diffracted path relative to free space.
+        Fixed extra loss of the diffracted path relative to free space (``diffraction="fixed"``).
+    diffraction : {"fixed", "utd"}
+        How the diffracted power is obtained: Friis over the path length minus
+        ``diffraction_loss_db``, or the UTD field of the upper window edge for x-polarised
+        isotropic anchors (:func:`diffpos.gtd.window_edge_fields`).
     processing_gain_db : float [dB]
     temperature_k : float [K]
     window_height_m : float [m]
@@ -117,6 +124,7 @@ class BoundsConfig:
     grid_step_m: float = 0.5
     y_min_m: float = 0.5
     model: str = "diffraction"
+    diffraction: str = "fixed"
     max_condition: float = DEFAULT_MAX_CONDITION
 
     def node_height_m(self, floor: int) -> float:
@@ -166,6 +174,8 @@ def validate(cfg: BoundsConfig) -> BoundsConfig:
     _check_range("--tx-power-dbm", cfg.tx_power_dbm, -60.0, 80.0, lo_open=False)
     _check_range("--diffraction-loss-db", cfg.diffraction_loss_db, 0.0, 100.0, lo_open=False)
     _check_range("--floors", cfg.n_floors, 0, 200)
+    if cfg.diffraction not in ("fixed", "utd"):
+        raise ConfigError(f"--diffraction: {cfg.diffraction!r}; allowed 'fixed' or 'utd'")
     if cfg.model not in ("diffraction", "los"):
         raise ConfigError(f"--model: {cfg.model!r}; allowed 'diffraction' or 'los'")
     n_nodes = cfg.n_floors * np.prod([len(v) for v in cfg.grid_xy_m()])
@@ -208,6 +218,37 @@ class FloorResult:
     sigma_m: np.ndarray  # (ny, nx, M)
 
 
+def path_gain_db(
+    cfg: BoundsConfig, anchors: np.ndarray, nodes: np.ndarray, length_m: np.ndarray
+) -> np.ndarray:
+    """Gain of the upper-edge diffracted path [dB], shape of ``length_m`` (nodes x anchors).
+
+    ``fixed``: Friis over the unfolded length minus ``diffraction_loss_db``. ``utd``: an
+    isotropic x-polarised source with field 1 V/m at 1 m has Friis gain
+    ``(lambda / 4 pi)^2 |E|^2`` at a point where its field is ``E``; ``E`` is the UTD field of the
+    upper edge (Theorem 3: it dominates for x polarisation).
+    """
+    if cfg.diffraction == "fixed":
+        return free_space_path_gain_db(length_m, cfg.frequency_hz) - cfg.diffraction_loss_db
+    from diffpos.constants import SPEED_OF_LIGHT_M_S
+    from diffpos.gtd import window_edge_fields
+
+    half = 0.5 * cfg.width_m
+    e_up, _ = window_edge_fields(
+        anchors,
+        nodes[..., None, :],
+        window_height_m=cfg.window_height_m,
+        delta_m=cfg.delta_m,
+        e0=(1.0, 0.0, 0.0),
+        frequency_hz=cfg.frequency_hz,
+        edge_x_m=(-half, half),
+        coefficients="utd",
+    )
+    lam = SPEED_OF_LIGHT_M_S / cfg.frequency_hz
+    with np.errstate(divide="ignore"):
+        return 20.0 * np.log10(lam / (4.0 * np.pi)) + 20.0 * np.log10(np.linalg.norm(e_up, axis=-1))
+
+
 def compute(cfg: BoundsConfig) -> list[FloorResult]:
     """Bounds for every floor of the grid (vectorised over the nodes of a floor)."""
     anchors = np.asarray(cfg.anchors_m, dtype=np.float64)
@@ -225,11 +266,7 @@ def compute(cfg: BoundsConfig) -> list[FloorResult]:
             delta_m=cfg.delta_m,
             edge_x_m=(-half, half),
         )
-        p_rx = (
-            cfg.tx_power_dbm
-            + free_space_path_gain_db(path.length_m, cfg.frequency_hz)
-            - cfg.diffraction_loss_db
-        )
+        p_rx = cfg.tx_power_dbm + path_gain_db(cfg, anchors, nodes, path.length_m)
         snr = snr_db(
             p_rx,
             bandwidth_hz=cfg.bandwidth_hz,
@@ -398,6 +435,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="fixed diffraction loss on top of free space [dB] (default %(default)s)",
     )
     parser.add_argument(
+        "--diffraction",
+        choices=("fixed", "utd"),
+        default=d.diffraction,
+        help="diffracted power: free space minus --diffraction-loss-db ('fixed', default) or "
+        "the UTD field of the upper window edge for x-polarised anchors ('utd')",
+    )
+    parser.add_argument(
         "--floors", type=int, default=d.n_floors, help="number of floors (default %(default)s)"
     )
     parser.add_argument(
@@ -427,6 +471,7 @@ def config_from_args(args: argparse.Namespace) -> BoundsConfig:
         frequency_hz=args.frequency_hz,
         tx_power_dbm=args.tx_power_dbm,
         diffraction_loss_db=args.diffraction_loss_db,
+        diffraction=args.diffraction,
         n_floors=args.floors,
         model=args.model,
     )
@@ -460,7 +505,12 @@ def run(args: argparse.Namespace) -> int:
     console.print(
         f"{len(cfg.anchors_m)} anchors, {cfg.model} model, kTB = {n0:.1f} dBm, link SNR "
         f"{all_snr.min():.1f} .. {all_snr.max():.1f} dB (incl. {cfg.processing_gain_db:g} dB "
-        f"processing gain, {cfg.diffraction_loss_db:g} dB diffraction loss)",
+        "processing gain, "
+        + (
+            f"{cfg.diffraction_loss_db:g} dB diffraction loss)"
+            if cfg.diffraction == "fixed"
+            else "UTD upper-edge diffraction, x polarisation)"
+        ),
         highlight=False,
     )
     stats = [

@@ -340,3 +340,25 @@ def test_cli_bounds_papers_counter_example_and_errors(tmp_path, capsys) -> None:
     assert "--grid-step-m" in capsys.readouterr().err
     assert cli.main([*args, "--bandwidth-hz", "0"]) == 2
     assert "--bandwidth-hz: 0 is out of range" in capsys.readouterr().err
+
+
+def test_cli_link_budget_fixed_and_utd() -> None:
+    from diffpos_services.cmd_bounds import BoundsConfig, compute, path_gain_db
+
+    cfg = BoundsConfig(grid_step_m=4.0, n_floors=2)
+    res = compute(cfg)
+    r = res[1]
+    xx, yy = np.meshgrid(r.x_m, r.y_m)
+    nodes = np.stack([xx, yy, np.full_like(xx, 7.5)], axis=-1)
+    path = window_edge_path(ANCHORS, nodes[..., None, :], window_height_m=W, edge_x_m=(-20, 20))
+    lam = 299_792_458.0 / 28e9
+    fspl_gain = 20 * np.log10(lam / (4 * np.pi * path.length_m))
+    kt_b = 10 * np.log10(1.380649e-23 * 300 * 400e6 / 1e-3)
+    np.testing.assert_allclose(r.snr_db, 30.0 + fspl_gain - 20.0 + 20.0 - kt_b, atol=1e-9)
+    np.testing.assert_allclose(
+        r.sigma_m, 299_792_458.0 / np.sqrt(8 * np.pi**2 * 400e6**2 * 10 ** (r.snr_db / 10))
+    )
+    # UTD: the diffracted field is weaker than free space over the same unfolded length
+    utd = path_gain_db(BoundsConfig(diffraction="utd"), ANCHORS, nodes, path.length_m)
+    assert utd.shape == fspl_gain.shape and np.isfinite(utd).all()
+    assert (utd < fspl_gain - 10.0).all() and (utd > fspl_gain - 60.0).all()
