@@ -426,6 +426,12 @@ def replay(
     unknown_fields = sorted(set(base) - _fusion_fields())
     for f in unknown_fields:
         base.pop(f)
+    bad = sorted(set(overrides or {}) - _fusion_fields())
+    if bad:
+        raise ConfigError(
+            f"{', '.join(bad)}: not a fusion setting; known settings: "
+            f"{', '.join(sorted(_fusion_fields()))}"
+        )
     base.update(overrides or {})
     if "site" not in base:
         for ch in scanner.channels.values():
@@ -617,7 +623,11 @@ def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None
     ax.set_ylabel("CDF")
     ax.grid(True, alpha=0.3)
     ax.set_title(title or f"Positioning error CDF - {Path(result.report['file']).name}")
-    ax.legend(loc="lower right", fontsize=8)
+    if xmax > 0:
+        ax.legend(loc="lower right", fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no fixes with ground truth to evaluate", ha="center",
+                transform=ax.transAxes)
     fig.tight_layout()
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
