@@ -161,22 +161,24 @@ def liveliness_topic(site: str) -> str:
     return f"{PREFIX}/{site}/recorder/liveliness"
 
 
-#: kinds whose publisher numbers all its keys with one counter: key pattern of the stream
-#: (the fusion's ``seq`` runs over all its estimates, not per node)
-SHARED_SEQUENCE_KINDS: dict[str, str] = {
+#: message kind -> its sequence stream (the key pattern of one publisher's counter): an anchor
+#: numbers its state and all its ranges with one counter, the fusion all its estimates
+SEQUENCE_STREAMS: dict[str, str] = {
+    "anchor_state": "anchor/{anchor}/**",
+    "range": "anchor/{anchor}/**",
     "estimate": "node/*/estimate",
     "replay_estimate": "replay/node/*/estimate",
 }
 #: kinds whose messages carry a ``seq`` field (the others - truth, diagnostics, run control,
 #: liveliness events, foreign channels - are not checked for gaps)
-SEQUENCED_KINDS = frozenset({"anchor_state", "range", "estimate", "replay_estimate"})
+SEQUENCED_KINDS = frozenset(SEQUENCE_STREAMS)
 
 
 class SeqTracker:
     """Gaps and repeats in publisher sequence numbers, per sequence stream.
 
-    A stream is one key, except for :data:`SHARED_SEQUENCE_KINDS` (one stream per site).
-    Only :data:`SEQUENCED_KINDS` are tracked.
+    A stream is one publisher's counter (:data:`SEQUENCE_STREAMS`: one per anchor, one for
+    the fusion's estimates). Only :data:`SEQUENCED_KINDS` are tracked.
 
     Attributes
     ----------
@@ -204,10 +206,8 @@ class SeqTracker:
             kind, fields = parse_topic(topic)
             if kind not in SEQUENCED_KINDS:
                 st = None
-            elif kind in SHARED_SEQUENCE_KINDS:
-                st = f"{PREFIX}/{fields['site']}/{SHARED_SEQUENCE_KINDS[kind]}"
             else:
-                st = topic
+                st = f"{PREFIX}/{fields['site']}/" + SEQUENCE_STREAMS[kind].format(**fields)
             self._stream[topic] = st
         return st
 

@@ -719,7 +719,7 @@ def write_synthetic_recording(
     sink.add_metadata("fusion_config", msgspec.to_builtins(config))
     core = FusionCore(config, logger=_quiet_logger()) if live else None
     counts: Counter[str] = Counter()
-    seqs: Counter[str] = Counter()
+    seqs: Counter[str] = Counter()  # one counter per anchor, like the anchor service
     est_seq = 0
     for a in anchor_ids:
         sink.write_liveliness(site, keys.alive_anchor(a), True, t0 - 10_000_000)
@@ -747,16 +747,16 @@ def write_synthetic_recording(
             rx = t + int(rng.integers(200_000, 1_200_000))
             k = keys.anchor_state(a)
             items.append((rx, k, enc(M.AnchorState(
-                anchor_id=a, t_ns=t, seq=seqs[k], position_m=M.vec3(anchors[j]),
+                anchor_id=a, t_ns=t, seq=seqs[a], position_m=M.vec3(anchors[j]),
                 velocity_m_s=(0.0, 0.0, 0.0), position_sigma_m=(0.05, 0.05, 0.05),
                 velocity_sigma_m_s=0.02, range_rate_hz=rate_hz, t_pub_wall_ns=t))))
-            seqs[k] += 1
+            seqs[a] += 1
             for i, n in enumerate(node_ids):
                 k = keys.anchor_range(a, n)
                 items.append((rx + 1000 * (i + 1), k, enc(M.RangeMeasurement(
-                    anchor_id=a, node_id=n, t_ns=t, seq=seqs[k], range_m=float(r[i]),
+                    anchor_id=a, node_id=n, t_ns=t, seq=seqs[a], range_m=float(r[i]),
                     sigma_m=sigma_m, snr_db=20.0, t_pub_wall_ns=t))))
-                seqs[k] += 1
+                seqs[a] += 1
         tt = te + period_ns // 2
         pos_t = start + vel * ((tt - t0) * 1e-9)
         pos_t[:, 0] = np.clip(pos_t[:, 0], -19.5, 19.5)

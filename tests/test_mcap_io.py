@@ -37,8 +37,8 @@ def _sample_stream(n_epochs: int = 30, *, anchors=("a1", "a2", "a3"), nodes=("n1
                    seed: int = 0) -> list[tuple[str, bytes, int]]:
     """(key, payload, receive_ns) of a small but complete run, built with the real structs.
 
-    Sequence numbers are per key for anchors (one publisher per key) and one counter over
-    all estimates (the fusion's), starting at 0.
+    Sequence numbers as the services number them: one counter per anchor over its state and
+    all its ranges, one counter over all estimates (the fusion's).
     """
     rng = np.random.default_rng(seed)
     out: list[tuple[str, bytes, int]] = []
@@ -56,7 +56,7 @@ def _sample_stream(n_epochs: int = 30, *, anchors=("a1", "a2", "a3"), nodes=("n1
         t = t0 + e * 100_000_000
         for a in anchors:
             key = K.anchor_state(a)
-            put(key, M.AnchorState(anchor_id=a, t_ns=t, seq=nxt(key),
+            put(key, M.AnchorState(anchor_id=a, t_ns=t, seq=nxt(a),
                                    position_m=(float(rng.normal()), -20.0, 10.0),
                                    velocity_m_s=(1.0, 0.0, 0.0),
                                    position_sigma_m=(0.1, 0.1, 0.2), velocity_sigma_m_s=0.05,
@@ -64,7 +64,7 @@ def _sample_stream(n_epochs: int = 30, *, anchors=("a1", "a2", "a3"), nodes=("n1
             for n in nodes:
                 key = K.anchor_range(a, n)
                 r = None if rng.random() < 0.1 else float(30 + rng.normal())
-                put(key, M.RangeMeasurement(anchor_id=a, node_id=n, t_ns=t + 5, seq=nxt(key),
+                put(key, M.RangeMeasurement(anchor_id=a, node_id=n, t_ns=t + 5, seq=nxt(a),
                                             range_m=r, sigma_m=0.3, snr_db=12.5,
                                             t_pub_wall_ns=t + 3000), t + 4000)
         for n in nodes:
@@ -162,7 +162,7 @@ def test_sequence_gaps_are_counted(tmp_path):
         s = json.loads(payload).get("seq")
         if s is None:
             continue
-        stream = "estimates" if key.endswith("/estimate") else key
+        stream = "estimates" if key.endswith("/estimate") else key.split("/")[3]  # anchor id
         if stream in last:
             expected += s - last[stream] - 1
         last[stream] = s
