@@ -197,7 +197,7 @@ def levenberg_marquardt(
         bad = ~np.all(np.isfinite(dx), axis=-1)
         dx[bad] = 0.0
         xt = x_i + dx
-        pt, jt = model.evaluate(a_i, xt)
+        pt, jt = model.take(idx).evaluate(a_i, xt)
         rest = r_i - pt
         costt = cost_of(rest, sw_i, loss, loss_scale)
         c_old = cost[idx]

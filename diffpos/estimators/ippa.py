@@ -152,7 +152,7 @@ def ippa(
     status[pb.input_error != 0] = FixStatus.INVALID_INPUT
     reason = np.where(pb.present, ExclusionReason.NONE, ExclusionReason.MISSING).astype(np.int_)
     sw = use / pb.sigmas_m
-    t_stat = np.where(solvable, np.nansum((res * sw) ** 2, axis=-1), np.nan)
+    t_stat = np.where(solvable & pb.sigmas_given, np.nansum((res * sw) ** 2, axis=-1), np.nan)
     return FixResult(
         position_m=x,
         covariance_m2=np.full((b, 3, 3), np.nan),

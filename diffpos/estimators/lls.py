@@ -105,7 +105,7 @@ def lls(
     status[pb.input_error != 0] = FixStatus.INVALID_INPUT
     reason = np.where(pb.present, ExclusionReason.NONE, ExclusionReason.MISSING).astype(np.int_)
     sw = use / s
-    t_stat = np.where(solvable, np.nansum((res * sw) ** 2, axis=-1), np.nan)
+    t_stat = np.where(solvable & pb.sigmas_given, np.nansum((res * sw) ** 2, axis=-1), np.nan)
     return FixResult(
         position_m=x,
         covariance_m2=cov,
@@ -121,7 +121,7 @@ def lls(
         test_statistic=t_stat,
         test_threshold=np.full(b, np.nan),
         dof=np.maximum(n_used - 3, 0),
-        cost=0.5 * t_stat,
+        cost=np.where(solvable, 0.5 * np.nansum((res * sw) ** 2, axis=-1), np.nan),
         input_error=pb.input_error,
         method="lls",
         covariance_model="LoS FIM",

@@ -217,17 +217,25 @@ class FixResult:
                 "the position is unreliable" + excl_txt + test_txt
             )
         if st == FixStatus.OK_UNVERIFIED:
-            why = (
-                "gating disabled"
-                if self.method == "dnls" and not np.isfinite(self.test_threshold[i])
-                and n_used > 3 and self.sigmas_given
-                else "no sigmas_m given, residuals cannot be tested"
-                if not self.sigmas_given
-                else f"only {n_used} anchors, no redundancy to test the residuals"
-                if n_used <= 3
-                else "residuals not tested by this method"
-            )
+            if self.method == "lls":
+                return (
+                    f"solved in closed form with {n_used} anchors assuming LoS, unverified "
+                    "(LLS does not test its residuals)"
+                )
+            if self.method == "ippa":
+                return (
+                    f"stopped after {it} projection updates with {n_used} anchors, unverified "
+                    "(IPPA has no residual test)"
+                )
+            if not self.sigmas_given:
+                why = "no sigmas_m given, residuals cannot be tested"
+            elif n_used <= 3:
+                why = f"only {n_used} anchors, no redundancy to test the residuals"
+            else:
+                why = "gating disabled"
             return f"converged in {it} iterations, unverified ({why})" + excl_txt
+        if st == FixStatus.NOT_CONVERGED and self.method == "ippa":
+            return f"IPPA hit its limit of {it} projection updates ({n_used} anchors)"
         return f"converged in {it} iterations with {n_used} anchors" + excl_txt + test_txt
 
     def to_records(self) -> list[dict[str, Any]]:
