@@ -772,6 +772,7 @@ class _EstimateState:
     last_status: dict[str, str] = field(default_factory=dict)
     last_floor_bucket: int | None = None
     floors: dict[str, tuple[int, int]] = field(default_factory=dict)
+    residual_styled: set[str] = field(default_factory=set)
 
 
 def log_estimates(
@@ -884,7 +885,7 @@ def log_estimates(
         hp = has_pos[rows]
         n_pos = hp.astype(np.int64)
         label = [
-            f"{nid} F{ef if ef >= 0 else '?'}" + (f" (true F{tf})" if tf >= 0 else "")
+            f"{nid} F{ef if ef >= 0 else '?'}" + (f" (true F{tf})" if 0 <= tf != ef else "")
             for ef, tf in zip(est_floor[rows].tolist(), true_floor[rows].tolist(), strict=True)
         ]
         sel = rows[hp]
@@ -1009,6 +1010,13 @@ def log_estimates(
         # residual scatter per anchor and gating counts per fusion time
         used = est.link_used & np.isfinite(est.link_residual_m)
         for aid, lrows in _group(est.link_anchor_id[used]):
+            if aid not in st.residual_styled:
+                st.residual_styled.add(aid)
+                rec.log(
+                    f"metrics/residual_m/{aid}",
+                    rr.SeriesPoints(colors=[anchor_color(aid)], marker_sizes=[1.5], names=[aid]),
+                    static=True,
+                )
             li = np.flatnonzero(used)[lrows]
             li = li[np.argsort(t[lf[li]], kind="stable")]
             rec.send_columns(
@@ -1177,8 +1185,8 @@ def default_blueprint() -> rrb.Blueprint:
                     name="Building (3D): anchors, estimates, 95% ellipsoids, diffraction paths",
                     line_grid=rrb.LineGrid3D(visible=True, spacing=5.0),
                     eye_controls=rrb.EyeControls3D(
-                        position=(-40.0, -70.0, 35.0),
-                        look_target=(0.0, 10.0, 8.0),
+                        position=(-22.0, -40.0, 24.0),
+                        look_target=(0.0, 6.0, 7.0),
                         eye_up=(0, 0, 1),
                     ),
                 ),
@@ -1195,9 +1203,7 @@ def default_blueprint() -> rrb.Blueprint:
                 rrb.TimeSeriesView(origin="metrics/peb_m", name="PEB per node [m]"),
                 rrb.Tabs(
                     rrb.TimeSeriesView(
-                        origin="metrics/residual_m",
-                        name="Range residuals per anchor [m]",
-                        overrides={"metrics/residual_m": rr.SeriesPoints(marker_sizes=[1.5])},
+                        origin="metrics/residual_m", name="Range residuals per anchor [m]"
                     ),
                     rrb.TimeSeriesView(
                         origin="metrics/gating", name="Measurements used / excluded"
@@ -1205,9 +1211,9 @@ def default_blueprint() -> rrb.Blueprint:
                     rrb.TimeSeriesView(origin="metrics/fusion", name="Fusion counters"),
                 ),
             ),
-            column_shares=[3, 2],
+            column_shares=[1, 1],
         ),
-        rrb.TimePanel(timeline=TIMELINE),
+        rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
         collapse_panels=True,
     )
 
