@@ -1,0 +1,178 @@
+"""Offline replay: determinism, reproduction of the live estimates, accuracy statistics
+against a brute-force reference, what-if settings, damaged and foreign input, CLI outputs.
+
+Recordings are written without Zenoh by ``write_synthetic_recording`` (known truth, and a
+FusionCore playing the live fusion); the Zenoh path is covered by test_recorder.py.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diffpos_services import messages as M
+from diffpos_services.cli import main as cli_main
+from diffpos_services.mcap_io import McapScanner, McapSink, RecordingError
+from diffpos_services.replay import replay, write_synthetic_recording
+from diffpos_services.servicekit import ConfigError
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+
+@pytest.fixture(scope="module")
+def rec(tmp_path_factory) -> Path:
+    """3 s, 5 anchors, 3 nodes, 10 Hz, 8 % NLoS-like outliers, live estimates recorded."""
+    path = tmp_path_factory.mktemp("replay") / "synthetic.mcap"
+    write_synthetic_recording(path, n_anchors=5, n_nodes=3, duration_s=3.0,
+                              outlier_probability=0.08, seed=11, flush_every=200)
+    return path
+
+
+def _encoded(ests):
+    return [M.encode(e) for e in ests]
+
+
+def test_replay_is_deterministic_bit_for_bit(rec):
+    a = replay(rec)
+    b = replay(rec)
+    assert len(a.estimates) == 3 * 30  # every node, every epoch
+    assert _encoded(a.estimates) == _encoded(b.estimates)
+    ra, rb = dict(a.report), dict(b.report)
+    ra.pop("timing"), rb.pop("timing")
+    assert json.dumps(ra, sort_keys=True) == json.dumps(rb, sort_keys=True)
+
+
+def test_replay_with_live_settings_reproduces_live_estimates(rec):
+    r = replay(rec)
+    c = r.report["compare"]
+    assert r.report["settings_source"] == "metadata fusion_config"
+    # the recorded live fusion stepped on the same receive times: identical fixes; the only
+    # extra replayed fixes are the last epoch, which the live run never flushed
+    assert c["only_live"] == 0 and c["only_replayed"] == 3
+    assert c["matched"] == len(r.live_estimates) and c["status_agree"] == 1.0
+    assert c["identical_positions"] == c["with_positions"] > 0
+    live = {(e.node_id, e.epoch): e for e in r.live_estimates}
+    for e in r.estimates:
+        if (e.node_id, e.epoch) in live:
+            le = live[(e.node_id, e.epoch)]
+            assert (le.position_m, le.peb_m, le.used_anchors, le.excluded) == (
+                e.position_m, e.peb_m, e.used_anchors, e.excluded)
+
+
+def test_accuracy_report_matches_brute_force_reference(rec):
+    r = replay(rec)
+    truth: dict[str, list] = {}
+    for m in McapScanner(rec).messages():
+        if "/truth/node/" in m.topic:
+            d = json.loads(m.data)
+            truth.setdefault(d["id"], []).append((d["t_ns"], d["position_m"], d["floor_index"]))
+    errs, zerrs, floor_ok = [], [], []
+    for e in r.estimates:
+        if e.status not in ("OK", "OK_UNVERIFIED") or e.position_m is None:
+            continue
+        samples = sorted(truth[e.node_id])
+        # linear interpolation by hand between the bracketing samples
+        for (t0, p0, f0), (t1, p1, f1) in itertools.pairwise(samples):
+            if t0 <= e.t_ns <= t1:
+                w = (e.t_ns - t0) / (t1 - t0)
+                p = [p0[k] + w * (p1[k] - p0[k]) for k in range(3)]
+                f = f0 if e.t_ns - t0 <= t1 - e.t_ns else f1
+                break
+        else:
+            t, p, f = min(samples, key=lambda s: abs(s[0] - e.t_ns))
+            assert abs(t - e.t_ns) <= 0.5e9
+        d = [e.position_m[k] - p[k] for k in range(3)]
+        errs.append(sum(x * x for x in d) ** 0.5)
+        zerrs.append(abs(d[2]))
+        floor_ok.append(e.floor_index == f)
+    acc = r.report["accuracy"]["overall"]
+    assert acc["evaluated"] == len(errs) > 60
+    for p in (50, 90, 95):
+        assert acc["error_3d_m"][f"p{p}"] == pytest.approx(np.percentile(errs, p), rel=1e-9)
+        assert acc["error_z_m"][f"p{p}"] == pytest.approx(np.percentile(zerrs, p), rel=1e-9)
+    assert acc["floor_accuracy"] == pytest.approx(np.mean(floor_ok))
+    # and the fusion works on this data: sub-metre median with 10 cm ranging noise
+    assert acc["error_3d_m"]["p50"] < 1.0
+    per_node = r.report["accuracy"]["per_node"]
+    assert sum(v["evaluated"] for v in per_node.values()) == len(errs)
+
+
+def test_what_if_settings_change_the_outcome(rec):
+    base = replay(rec)
+    gated = sum(g["excluded"].get("RAIM", 0) for g in base.report["gating"].values())
+    assert gated > 0  # the outliers are caught
+    off = replay(rec, overrides={"gating": False})
+    assert off.report["settings"]["gating"] is False
+    assert all("RAIM" not in g["excluded"] for g in off.report["gating"].values())
+    strict = replay(rec, overrides={"false_alarm_probability": 0.2})
+    assert strict.report["settings"]["false_alarm_probability"] == 0.2
+    gated_strict = sum(g["excluded"].get("RAIM", 0) for g in strict.report["gating"].values())
+    assert gated_strict > gated  # a larger false-alarm rate excludes more
+    lls = replay(rec, method="lls")
+    assert lls.report["method"] == "lls"
+    assert _encoded(lls.estimates) != _encoded(base.estimates)
+    with pytest.raises(ConfigError, match="not a fusion setting"):
+        replay(rec, overrides={"no_such_field": 1})
+    with pytest.raises(ConfigError, match="false_alarm_probability"):
+        replay(rec, overrides={"false_alarm_probability": 3})
+
+
+def test_truncated_and_foreign_input(rec, tmp_path):
+    data = rec.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    r = replay(cut)
+    assert r.report["complete"] is False and r.report["damage"]["truncated"] is True
+    n_prefix = sum(1 for _ in McapScanner(cut).messages())
+    assert r.report["messages"]["total"] == n_prefix > 0
+    assert 0 < len(r.estimates) < 90
+    # unknown channels and a corrupt payload on a range key: skipped and counted
+    mixed = tmp_path / "mixed.mcap"
+    with McapSink(mixed) as sink:
+        for m in McapScanner(rec).messages():
+            sink.write(m.topic, m.data, m.log_ns)
+        sink.write("/camera/front", b"\x01\x02", 1)
+        sink.write("diffpos/synth/anchor/uav1/range/n01", b"{not json", 2)
+    r = replay(mixed)
+    assert r.report["messages"]["skipped_unknown"] == 1
+    assert r.report["messages"]["fusion_rejected"] == {"json": 1}
+    # a foreign MCAP with nothing to replay: a clear error, no traceback
+    foreign = tmp_path / "foreign.mcap"
+    with open(foreign, "wb") as f:
+        w = Writer(f)
+        w.start()
+        cid = w.register_channel("/imu", "cdr", 0)
+        w.add_message(cid, log_time=1, data=b"\x00", publish_time=1)
+        w.finish()
+    with pytest.raises(RecordingError, match="nothing to replay"):
+        replay(foreign)
+
+
+def test_cli_writes_report_plot_and_replayed_mcap(rec, tmp_path, capsys):
+    out = tmp_path / "out"
+    new = tmp_path / "replayed.mcap"
+    rc = cli_main(["replay", str(rec), "--out", str(out), "--compare", "--write-mcap", str(new),
+                   "--no-progress"])
+    text = capsys.readouterr().out
+    assert rc == 0
+    assert "recorded live vs replayed" in text and "ALL" in text
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["fixes"]["total"] == 90
+    assert (out / "cdf.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with open(new, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        replayed = [m for _, ch, m in reader.iter_messages() if "/replay/node/" in ch.topic]
+        topics = {ch.topic: summary.schemas[ch.schema_id].name
+                  for ch in summary.channels.values()}
+    assert len(replayed) == 90
+    assert topics["diffpos/synth/replay/node/n01/estimate"] == "diffpos.estimate.v1"
+    assert summary.statistics.message_count == 90 + sum(1 for _ in McapScanner(rec).messages())
+    # bad input: exit 2 with a one-line reason
+    assert cli_main(["replay", str(tmp_path / "nope.mcap"), "--no-files"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert cli_main(["replay", str(rec), "--set", "deadline_s", "--no-files"]) == 2
+    assert "FIELD=VALUE" in capsys.readouterr().err
