@@ -669,7 +669,8 @@ def first_arrival(
 
     The first arriving path of a pair is the existing MPC with the smallest delay among those
     with ``snr_db >= max(P_max - radio.fap_threshold_db, radio.detection_snr_db)``, ``P_max``
-    the pair's strongest MPC. Its measured range is ``c tau + n`` with
+    the pair's strongest MPC. Existence is re-evaluated with ``radio.detection_snr_db`` (so a
+    different detector can be applied to the same channel). Its measured range is ``c tau + n`` with
     ``n ~ N(0, sigma^2)``, ``sigma = c / sqrt(8 pi^2 B^2 SNR)``.
 
     Parameters
@@ -683,10 +684,11 @@ def first_arrival(
     -------
     FirstArrival
     """
-    snr = np.where(channel.exists, channel.snr_db, -np.inf)
+    exists = channel.valid & (channel.snr_db >= radio.detection_snr_db)
+    snr = np.where(exists, channel.snr_db, -np.inf)
     pmax = snr.max(axis=-1)
     thr = np.maximum(pmax - radio.fap_threshold_db, radio.detection_snr_db)
-    ok = channel.exists & (snr >= thr[..., None])
+    ok = exists & (snr >= thr[..., None])
     delay = np.where(ok, channel.delay_s, np.inf)
     slot = np.argmin(delay, axis=-1)
     detected = np.any(ok, axis=-1)
