@@ -49,7 +49,12 @@ from pathlib import Path
 
 import numpy as np
 
-from diffpos.bounds import DEFAULT_MAX_CONDITION, position_error_bound
+from diffpos.bounds import (
+    DEFAULT_MAX_CONDITION,
+    identifiability,
+    path_jacobian,
+    position_error_bound,
+)
 from diffpos.geometry import window_edge_path
 from diffpos.linkbudget import (
     db_to_linear,
@@ -301,6 +306,33 @@ def compute(cfg: BoundsConfig) -> list[FloorResult]:
     return out
 
 
+def explain_non_identifiable(cfg: BoundsConfig, results: list[FloorResult]) -> list[str]:
+    """Why nodes are not identifiable: one line per floor that has any (the first node)."""
+    lines = []
+    anchors = np.asarray(cfg.anchors_m)
+    half = 0.5 * cfg.width_m
+    for r in results:
+        bad = np.argwhere(~r.identifiable)
+        if bad.size == 0:
+            continue
+        iy, ix = bad[0]
+        node = np.array([r.x_m[ix], r.y_m[iy], r.z_m])
+        jac = path_jacobian(
+            anchors,
+            node,
+            model=cfg.model,
+            window_height_m=cfg.window_height_m,
+            delta_m=cfg.delta_m,
+            edge_x_m=(-half, half),
+        )
+        verdict = identifiability(jac, r.sigma_m[iy, ix], max_condition=cfg.max_condition)
+        lines.append(
+            f"floor {r.floor}: {len(bad)} node(s) not identifiable, e.g. at "
+            f"({node[0]:g}, {node[1]:g}, {node[2]:g}) m: {verdict.message[0]}"
+        )
+    return lines
+
+
 def _stats(values: np.ndarray, ok: np.ndarray) -> list[float]:
     v = values[ok]
     if v.size == 0:
@@ -538,6 +570,8 @@ def run(args: argparse.Namespace) -> int:
         t_z.add_row(str(r.floor), *(_fmt(v, scale) for v in z))
     console.print(t_peb)
     console.print(t_z)
+    for line in explain_non_identifiable(cfg, results):
+        console.print(line, highlight=False)
 
     csv_path = out / "bounds.csv"
     try:
