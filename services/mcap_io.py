@@ -392,7 +392,11 @@ class SinkStats:
     written : int
         Messages added to the MCAP writer (equal to ``received`` unless writing failed).
     flushed : int
-        Messages in chunks already written to the file (survive a SIGKILL).
+        Messages (incl. liveliness events) in chunks already written to the file (they
+        survive a SIGKILL).
+    flushed_written : int
+        Value of ``written`` at the last flush: the first ``flushed_written`` bus messages
+        are on disk.
     unknown_schema : int
         Messages on keys with no schema (recorded on a schema-less channel).
     undecodable : int
@@ -411,6 +415,7 @@ class SinkStats:
     received: int = 0
     written: int = 0
     flushed: int = 0
+    flushed_written: int = 0
     unknown_schema: int = 0
     undecodable: int = 0
     gaps: int = 0
@@ -425,6 +430,7 @@ class SinkStats:
             "received": self.received,
             "written": self.written,
             "flushed": self.flushed,
+            "flushed_written": self.flushed_written,
             "unknown_schema": self.unknown_schema,
             "undecodable": self.undecodable,
             "gaps": self.gaps,
@@ -689,6 +695,7 @@ class McapSink:
                 self._writer.flush()
                 self.stats.flushed += self._pending
                 self._pending = 0
+                self.stats.flushed_written = self.stats.written
             if fsync:
                 os.fsync(self._file.fileno())
             return self.stats.flushed
@@ -712,6 +719,7 @@ class McapSink:
             self._writer.finish()
             self.stats.flushed += self._pending
             self._pending = 0
+            self.stats.flushed_written = self.stats.written
             self._closed = True
             self._file.flush()
             if self._own_file:

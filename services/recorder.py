@@ -166,8 +166,9 @@ def record(
             if flushed != last:
                 last = flushed
                 st = sink.stats
-                emit("flush", {"flushed": flushed, "received": st.received,
-                               "written": st.written, "gaps": st.gaps})
+                emit("flush", {"flushed": flushed, "flushed_written": st.flushed_written,
+                               "received": st.received, "written": st.written,
+                               "gaps": st.gaps})
 
     t_end = None if options.duration_s is None else time.monotonic() + options.duration_s
     with zenoh.open(settings.to_config()) as session:
@@ -195,7 +196,8 @@ def record(
     drainer.join()
     flushed = sink.flush()
     st = sink.stats
-    emit("stopped", {"flushed": flushed, "received": st.received, "written": st.written,
+    emit("stopped", {"flushed": flushed, "flushed_written": st.flushed_written,
+                     "received": st.received, "written": st.written,
                      "gaps": st.gaps, "deletes_ignored": deletes})
     return st
 
