@@ -365,3 +365,12 @@ def test_cli_link_budget_fixed_and_utd() -> None:
     utd = path_gain_db(BoundsConfig(diffraction="utd"), ANCHORS, nodes, path.length_m)
     assert utd.shape == fspl_gain.shape and np.isfinite(utd).all()
     assert (utd < fspl_gain - 10.0).all() and (utd > fspl_gain - 60.0).all()
+
+
+def test_docstring_examples() -> None:
+    import doctest
+
+    import diffpos.bounds
+
+    result = doctest.testmod(diffpos.bounds, raise_on_error=False)
+    assert result.attempted >= 3 and result.failed == 0

@@ -445,3 +445,28 @@ def test_property_window_path_translation_and_reciprocity(a, n, shift, w, edge) 
     assert float(diffraction_point(n, a, p0, p1).length_m) == pytest.approx(
         float(base.length_m), rel=1e-9
     )
+
+
+def test_papers_printed_dz_jacobian_omits_the_outside_term() -> None:
+    """Pin a typo of the paper's appendix (Jacobian of p_j): its dp/dz_n keeps only the terms
+    through dq_x/dz_n and drops the direct derivative of OPL, (z_n + w/2 - z_a)/OPL. At an
+    interior diffraction point the law of diffraction makes the printed expression vanish
+    identically (rank(J) <= 2 everywhere, contradicting the paper's own identifiability
+    results); the library's dp/dz_n = (z_e - z_a)/OPL matches finite differences."""
+    rng = np.random.default_rng(12)
+    w = 1.5
+    a, nd = _window_cases(rng, 500)
+    path = window_edge_path(a, nd, window_height_m=w)
+    h = 1e-5
+    dz = np.array([0.0, 0.0, h])
+    qx_p = window_edge_path(a, nd + dz, window_height_m=w).point_m[:, 0]
+    qx_m = window_edge_path(a, nd - dz, window_height_m=w).point_m[:, 0]
+    dqx_dz = (qx_p - qx_m) / (2 * h)
+    qx = path.point_m[:, 0]
+    printed = dqx_dz * ((qx - a[:, 0]) / path.outside_m + (qx - nd[:, 0]) / path.inside_m)
+    np.testing.assert_allclose(printed, 0.0, atol=1e-9)
+    fd = _fd_jacobian(a, nd, window_height_m=w)[:, 2]
+    direct = (nd[:, 2] + 0.5 * w - a[:, 2]) / path.outside_m
+    np.testing.assert_allclose(fd, direct, rtol=1e-6)
+    np.testing.assert_allclose(path.jacobian[:, 2], direct, rtol=1e-12)
+    assert np.median(np.abs(fd)) > 0.1  # typically far from zero
