@@ -1,0 +1,228 @@
+"""Recorder write rate and replay speed; prints a table.
+
+Workload of the issue: 8 anchors x 50 nodes, 10 Hz ranging (4,000 ranges/s + 80 states/s +
+500 truth/s), ~200-byte JSON messages, zstd chunks.
+
+Rows
+----
+1. ``sink``: McapSink alone (what the recorder's drain thread does per message: read t_ns/seq
+   from the JSON, add to the chunk, zstd), 200-byte range messages, flush every 200 ms.
+2. ``bus``: the real recorder process behind a Python Zenoh router, one publisher process
+   publishing as fast as it can with congestion control BLOCK; rate = messages / (time from
+   the first publish to the recorder's flush status saying all of them are on disk), and
+   the recorder's own received/written/gap counters (loss check).
+3. ``scan``: reading a 10-minute recording of the workload back (McapScanner, messages/s).
+4. ``replay``: ``diffpos replay`` on S seconds of the workload (fusion incl. D-NLS solves),
+   as x real time; the same rate holds for the 10-minute recording (work is per epoch).
+
+Usage::
+
+    python benchmarks/bench_recorder.py                     # all rows (several minutes)
+    python benchmarks/bench_recorder.py --skip-bus --replay-seconds 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+
+def _payload_200(i: int) -> bytes:
+    from diffpos_services import messages as M
+
+    msg = M.RangeMeasurement(anchor_id="uav3", node_id=f"n{i % 50:02d}", t_ns=1_700_000_000_000_000_000 + i,
+                             seq=i, range_m=27.123456789 + (i % 97) * 1e-3, sigma_m=0.0123456,
+                             snr_db=18.25, t_pub_wall_ns=1_700_000_000_000_000_000 + i)
+    return M.encode(msg)
+
+
+def bench_sink(n: int, tmp: Path) -> dict:
+    from diffpos_services.mcap_io import McapSink
+
+    payloads = [_payload_200(i) for i in range(1000)]
+    size = sum(map(len, payloads)) / len(payloads)
+    keys = [f"diffpos/b/anchor/uav3/range/n{i:02d}" for i in range(50)]
+    path = tmp / "sink.mcap"
+    sink = McapSink(path)
+    t0 = time.perf_counter()
+    next_flush = t0 + 0.2
+    now_ns = time.time_ns
+    for i in range(n):
+        sink.write(keys[i % 50], payloads[i % 1000], now_ns())
+        if i % 1000 == 0 and time.perf_counter() >= next_flush:
+            sink.flush()
+            next_flush += 0.2
+    sink.close()
+    dt = time.perf_counter() - t0
+    return {"row": "sink", "messages": n, "bytes_per_msg": round(size), "seconds": dt,
+            "rate_msg_s": n / dt, "file_mb": path.stat().st_size / 1e6,
+            "written": sink.stats.written}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+_PUBLISHER = r"""
+import sys, time, zenoh
+from diffpos_services.zenoh_config import ZenohSettings
+sys.path.insert(0, {bench_dir!r})
+from bench_recorder import _payload_200
+ep, n = sys.argv[1], int(sys.argv[2])
+payloads = [_payload_200(i) for i in range(n)]
+with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
+    pubs = [s.declare_publisher(f"diffpos/b/anchor/uav3/range/n{{i:02d}}",
+                                congestion_control=zenoh.CongestionControl.BLOCK)
+            for i in range(50)]
+    while not all(p.matching_status.matching for p in pubs):
+        time.sleep(0.01)
+    print("start", time.time_ns(), flush=True)
+    for i in range(n):
+        pubs[i % 50].put(payloads[i])
+    print("sent", time.time_ns(), flush=True)
+    sys.stdin.readline()   # keep the session open until the recorder has everything
+"""
+
+
+def bench_bus(n: int, tmp: Path) -> dict:
+    from diffpos_services.recorder import build_command
+
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    env = dict(os.environ, DIFFPOS_LOG_LEVEL="warning")
+    procs = []
+
+    def start(argv, **kw):
+        p = subprocess.Popen(argv, start_new_session=True, env=env, text=True, **kw)
+        procs.append(p)
+        return p
+
+    try:
+        start([sys.executable, "-m", "diffpos_services.cli", "router", "--listen", ep],
+              stderr=subprocess.DEVNULL)
+        out = tmp / "bus.mcap"
+        rec = start(build_command(site="b", out=out, connect=[ep], flush_interval_s=0.2),
+                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=lambda: [lines.put(json.loads(x)) for x in rec.stdout],
+                         daemon=True).start()
+        while lines.get(timeout=60)["event"] != "ready":
+            pass
+        code = _PUBLISHER.format(bench_dir=str(Path(__file__).parent))
+        pub = start([sys.executable, "-c", code, ep, str(n)], stdout=subprocess.PIPE,
+                    stdin=subprocess.PIPE)
+        t_start = int(pub.stdout.readline().split()[1])
+        t_sent = int(pub.stdout.readline().split()[1])
+        while True:
+            ev = lines.get(timeout=120)
+            if ev["event"] == "flush" and ev["flushed_written"] >= n:
+                t_done = ev["t_wall_ns"]
+                break
+        pub.stdin.write("\n")
+        pub.stdin.flush()
+        pub.wait(timeout=60)
+        rec.send_signal(signal.SIGTERM)
+        while True:
+            ev = lines.get(timeout=60)
+            if ev["event"] == "closed":
+                break
+        rec.wait(timeout=60)
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+    dt = (t_done - t_start) / 1e9
+    return {"row": "bus", "messages": n, "seconds": dt, "rate_msg_s": n / dt,
+            "publish_rate_msg_s": n / ((t_sent - t_start) / 1e9), "received": ev["received"],
+            "written": ev["written"], "gaps": ev["gaps"], "lost": n - ev["written"]}
+
+
+def bench_scan(minutes: float, tmp: Path) -> dict:
+    from diffpos_services.mcap_io import McapScanner
+    from diffpos_services.replay import write_synthetic_recording
+
+    path = tmp / "ten_minutes.mcap"
+    t0 = time.perf_counter()
+    counts = write_synthetic_recording(path, n_anchors=8, n_nodes=50, duration_s=60 * minutes,
+                                       live=False, flush_every=0)
+    t_gen = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    n = 0
+    sc = McapScanner(path)
+    for batch in sc.iter_batches():
+        n += len(batch)
+    dt = time.perf_counter() - t0
+    return {"row": "scan", "minutes": minutes, "messages": n, "seconds": dt, "rate_msg_s": n / dt,
+            "x_real_time": 60 * minutes / dt, "file_mb": path.stat().st_size / 1e6,
+            "generate_s": t_gen, "counts": counts}
+
+
+def bench_replay(seconds: float, tmp: Path) -> dict:
+    from diffpos_services.replay import replay, write_synthetic_recording
+
+    path = tmp / "replay.mcap"
+    write_synthetic_recording(path, n_anchors=8, n_nodes=50, duration_s=seconds, live=False)
+    t0 = time.perf_counter()
+    r = replay(path)
+    dt = time.perf_counter() - t0
+    return {"row": "replay", "recording_s": seconds, "seconds": dt, "x_real_time": seconds / dt,
+            "fixes": len(r.estimates), "fixes_per_s": len(r.estimates) / dt,
+            "p50_3d_m": r.report["accuracy"]["overall"]["error_3d_m"]["p50"]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--messages", type=int, default=200_000, help="messages for sink/bus rows")
+    ap.add_argument("--scan-minutes", type=float, default=10.0)
+    ap.add_argument("--replay-seconds", type=float, default=30.0)
+    ap.add_argument("--skip-bus", action="store_true")
+    ap.add_argument("--skip-scan", action="store_true")
+    ap.add_argument("--skip-replay", action="store_true")
+    ap.add_argument("--json", action="store_true", help="print rows as JSON lines")
+    args = ap.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        rows.append(bench_sink(args.messages, tmp))
+        if not args.skip_bus:
+            rows.append(bench_bus(args.messages, tmp))
+        if not args.skip_scan:
+            rows.append(bench_scan(args.scan_minutes, tmp))
+        if not args.skip_replay:
+            rows.append(bench_replay(args.replay_seconds, tmp))
+    if args.json:
+        for r in rows:
+            print(json.dumps(r))
+        return 0
+    print(f"{'row':<8}{'what':<58}{'result':>22}")
+    for r in rows:
+        if r["row"] == "sink":
+            what = f"McapSink, {r['messages']} x {r['bytes_per_msg']} B, zstd"
+            print(f"{'sink':<8}{what:<58}{r['rate_msg_s']:>14,.0f} msg/s")
+        elif r["row"] == "bus":
+            what = (f"recorder via router, {r['messages']} msgs BLOCK, lost {r['lost']}, "
+                    f"gaps {r['gaps']}")
+            print(f"{'bus':<8}{what:<58}{r['rate_msg_s']:>14,.0f} msg/s")
+        elif r["row"] == "scan":
+            what = f"read {r['minutes']:g} min 8x50@10Hz ({r['messages']:,} msgs, {r['file_mb']:.0f} MB)"
+            print(f"{'scan':<8}{what:<58}{r['rate_msg_s']:>14,.0f} msg/s  ({r['x_real_time']:,.0f}x real time)")
+        elif r["row"] == "replay":
+            what = f"replay {r['recording_s']:g} s of 8x50@10Hz ({r['fixes']} fixes)"
+            print(f"{'replay':<8}{what:<58}{r['x_real_time']:>14.2f}x real time ({r['fixes_per_s']:.0f} fixes/s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
