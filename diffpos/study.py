@@ -247,8 +247,10 @@ def method_label(method: str, delta_case2_m: float = 1.5) -> str:
 def percentile_summary(values: ArrayLike) -> dict[str, float]:
     """Median, 80th and 95th percentiles and the mean of finite values [same unit].
 
-    Non-finite values (failed fixes) count as ``+inf`` errors for the percentiles; the mean
-    is over finite values only. Empty input gives NaN.
+    The ``p``-th percentile is the smallest value ``x`` with ``CDF(x) >= p`` (numpy's
+    ``inverted_cdf``), the value read off the empirical CDF plots. Non-finite values (failed
+    fixes) count as ``+inf`` errors; the mean is over finite values only. Empty input gives
+    NaN.
     """
     v = np.asarray(values, dtype=np.float64).ravel()
     if v.size == 0:
@@ -257,8 +259,8 @@ def percentile_summary(values: ArrayLike) -> dict[str, float]:
     s = np.sort(v)
     out = {}
     for k, p in PERCENTILES:
-        # 'lower' interpolation so an inf never mixes into a finite percentile
-        out[k] = float(np.percentile(s, p, method="lower"))
+        # the smallest value with CDF >= p (no interpolation: an inf never mixes in)
+        out[k] = float(np.percentile(s, p, method="inverted_cdf"))
     fin = s[np.isfinite(s)]
     out["mean"] = float(fin.mean()) if fin.size else float("nan")
     out["n"] = int(v.size)
