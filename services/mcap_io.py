@@ -289,7 +289,8 @@ class SchemaRegistry:
     ----------
     schema_dir : path or None
         Directory of ``*.json`` schema files (``<name>.v<N>.json``; the highest version of a
-        name wins). ``None``: the repository's ``schemas/`` next to ``services/``.
+        name wins). ``None``: the repository's ``schemas/`` next to ``services/`` (or, when
+        that does not exist, the same documents generated from the message structs).
     kind_to_stems : dict, optional
         Message kind -> candidate file stems; defaults to :data:`DEFAULT_KIND_TO_STEMS`.
     resolver : callable, optional
@@ -325,6 +326,17 @@ class SchemaRegistry:
                 name = str(doc.get("title") or path.name[: -len(".json")])
                 data = json.dumps(doc, separators=(",", ":"), sort_keys=True).encode()
                 self.by_stem[base] = SchemaEntry(name=name, data=data, source=path.name)
+                self.documents[name] = doc
+        elif schema_dir is None:
+            # installed without the repository's schemas/: the files are generated from the
+            # message structs, so generate the same documents
+            from diffpos_services import messages
+
+            for kind, stem in messages.MESSAGE_TYPES.items():
+                doc = messages.json_schema(kind)
+                data = json.dumps(doc, separators=(",", ":"), sort_keys=True).encode()
+                name = str(doc["title"])
+                self.by_stem[re.sub(r"\.v\d+$", "", stem)] = SchemaEntry(name, data, "generated")
                 self.documents[name] = doc
         live = json.dumps(LIVELINESS_SCHEMA, separators=(",", ":"), sort_keys=True).encode()
         self.by_stem.setdefault(

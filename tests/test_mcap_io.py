@@ -335,3 +335,14 @@ def test_inspect_reports_counts_anchors_nodes(tmp_path, capsys):
     for c in d["channels"]:
         by_kind[c["kind"]] = by_kind.get(c["kind"], 0) + c["count"]
     assert by_kind == {"anchor_state": 15, "range": 30, "truth_node": 10, "estimate": 10}
+
+
+def test_schema_registry_without_schema_files_generates_the_same_documents(monkeypatch):
+    import diffpos_services.mcap_io as mi
+
+    from_files = SchemaRegistry()
+    monkeypatch.setattr(mi, "default_schema_dir", lambda: Path("/nonexistent/schemas"))
+    generated = SchemaRegistry()
+    assert {e.source for e in generated.by_stem.values()} == {"generated", "builtin"}
+    for stem, entry in generated.by_stem.items():
+        assert from_files.by_stem[stem].data == entry.data, stem
