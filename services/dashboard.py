@@ -63,15 +63,21 @@ __all__ = [
     "Tracks",
     "TruthColumns",
     "anchor_columns_from_messages",
+    "building_from_scenario_file",
     "default_blueprint",
     "ellipsoid_axes",
     "estimate_columns_from_messages",
+    "key_of",
+    "liveliness_events",
     "log_anchors",
     "log_building",
     "log_diagnostics",
     "log_estimates",
     "log_events",
     "log_truth",
+    "mcap_to_rrd",
+    "rrd_rows",
+    "synthetic_run",
     "truth_columns_from_messages",
     "write_rrd",
     "write_rrd_from_messages",
@@ -1826,3 +1832,32 @@ def key_of(msg: Any, *, site: str = "demo") -> str:
     if name == "RangeMeasurement":
         return keys.anchor_range(msg.anchor_id, msg.node_id)
     raise ValueError(f"no bus key for message type {name}")
+
+
+def rrd_rows(path: str | Path) -> dict[str, list[tuple[int | None, dict[str, Any]]]]:
+    """Read an .rrd back with Rerun's own reader (``rerun.chunk.RrdReader``).
+
+    Returns
+    -------
+    dict
+        Entity path -> rows sorted by measurement time, each ``(t_ns, {column: value})``
+        (``t_ns`` is ``None`` for static rows). Columns are named like ``Points3D:positions``.
+        Meant for tests and quick checks of small files.
+    """
+    import rerun.chunk as rc
+
+    rows: dict[str, list[tuple[int | None, dict[str, Any]]]] = {}
+    for chunk in rc.RrdReader(path).stream():
+        rb = chunk.to_record_batch()
+        names = [n for n in rb.schema.names if n not in ("rerun.controls.RowId", TIMELINE)]
+        cols = {n: rb.column(n).to_pylist() for n in names}
+        if TIMELINE in rb.schema.names:
+            times = rb.column(TIMELINE).cast("int64").to_pylist()
+        else:
+            times = [None] * rb.num_rows
+        out = rows.setdefault(str(chunk.entity_path), [])
+        for i in range(rb.num_rows):
+            out.append((times[i], {n: cols[n][i] for n in names}))
+    for v in rows.values():
+        v.sort(key=lambda r: (r[0] is not None, r[0] or 0))
+    return rows

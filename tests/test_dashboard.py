@@ -23,24 +23,7 @@ RERUN_CLI = Path(sys.executable).with_name("rerun")
 
 
 # ------------------------------------------------------------------------------- helpers
-def read_rrd(path: Path) -> dict[str, list]:
-    """entity path -> list of (t_ns, {column: python value}) rows, from Rerun's reader."""
-    rows: dict[str, list] = defaultdict(list)
-    for chunk in rc.RrdReader(path).stream():
-        rb = chunk.to_record_batch()
-        names = [n for n in rb.schema.names if n != "rerun.controls.RowId"]
-        cols = {n: rb.column(n).to_pylist() for n in names}
-        if d.TIMELINE in cols:
-            times = rb.column(d.TIMELINE).cast("int64").to_pylist()
-        else:
-            times = [None] * rb.num_rows
-        for i in range(rb.num_rows):
-            rows[str(chunk.entity_path)].append(
-                (times[i], {n: cols[n][i] for n in names if n != d.TIMELINE})
-            )
-    for v in rows.values():
-        v.sort(key=lambda r: (r[0] is not None, r[0] or 0))
-    return rows
+read_rrd = d.rrd_rows
 
 
 @pytest.fixture(scope="module")
