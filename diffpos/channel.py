@@ -402,7 +402,7 @@ def _direct(c: _Ctx):
     b = c.b
     k_cross = b.floor_index(zc)
     k_node = c.floor[:, None]
-    n_slabs = np.abs(k_node - np.clip(k_cross, 0, b.n_floors - 1))
+    n_slabs = np.abs(k_node - k_cross)  # k_cross = -1 below the first floor (its slab too)
     # crossing another floor's window band (no wall) or a wall
     zlo_c, zhi_c = b.window_z_m(k_cross)
     other_window = ((k_cross >= 0) & (k_cross < b.n_floors) & (zc > zlo_c) & (zc < zhi_c)
