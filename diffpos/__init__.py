@@ -4,12 +4,14 @@ This package imports numpy and scipy only: no network, files, plots or viewers.
 See DEVELOPING.md for the layout and conventions.
 """
 
-from . import gtd
+from . import gtd, linkbudget
 from .bounds import (
     Bounds,
     Identifiability,
+    bounds_from_fim,
     fisher_information,
     identifiability,
+    path_jacobian,
     position_error_bound,
 )
 from .constants import BOLTZMANN_J_K, SPEED_OF_LIGHT_M_S
@@ -27,6 +29,13 @@ from .gtd import (
     power_ratio_exact,
     window_edge_fields,
 )
+from .linkbudget import (
+    db_to_linear,
+    free_space_path_gain_db,
+    noise_floor_dbm,
+    ranging_crlb_m,
+    snr_db,
+)
 
 __all__ = [
     "BOLTZMANN_J_K",
@@ -35,16 +44,24 @@ __all__ = [
     "DiffractionPoint",
     "EdgePath",
     "Identifiability",
+    "bounds_from_fim",
+    "db_to_linear",
     "diffracted_field",
     "diffraction_point",
     "fisher_information",
+    "free_space_path_gain_db",
     "gtd",
     "identifiability",
     "lemma1_roots",
+    "linkbudget",
     "los_path",
+    "noise_floor_dbm",
+    "path_jacobian",
     "position_error_bound",
     "power_ratio_approx",
     "power_ratio_exact",
+    "ranging_crlb_m",
+    "snr_db",
     "window_edge_fields",
     "window_edge_path",
 ]

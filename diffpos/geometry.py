@@ -54,8 +54,9 @@ class DiffractionPoint:
         holds); False where the unconstrained Fermat point lies beyond an end and Q was clamped
         to that end (corner diffraction, which the paper ignores).
     edge_param : ndarray, shape (...) [-]
-        Position of Q along the edge, 0 at ``edge_start_m`` and 1 at ``edge_end_m``. The paper's
-        ``lambda`` (Lemma 1) is ``1 - edge_param`` with ``X_1 = edge_end``, ``X_2 = edge_start``.
+        Position of Q along the edge, 0 at ``edge_start_m`` and 1 at ``edge_end_m``. With
+        ``X_2 = edge_start`` and ``X_1 = edge_end`` this is the paper's ``lambda`` (Lemma 1,
+        ``Q = X_2 + lambda (X_1 - X_2)``).
     """
 
     point_m: FloatArray
@@ -118,8 +119,11 @@ def diffraction_point(
     r_s = _norm(ds - s_t[..., None] * e)
     r_o = _norm(do - o_t[..., None] * e)
     denom = r_s + r_o
+    # Both points on the edge line (up to rounding): every point between them is optimal.
+    scale = np.abs(s_t) + np.abs(o_t) + r_s + r_o + edge_len
+    degenerate = denom <= 1e-12 * scale
     with np.errstate(invalid="ignore", divide="ignore"):
-        t_star = np.where(denom > 0.0, (s_t * r_o + o_t * r_s) / denom, 0.5 * (s_t + o_t))
+        t_star = np.where(degenerate, 0.5 * (s_t + o_t), (s_t * r_o + o_t * r_s) / denom)
     t = np.clip(t_star, 0.0, edge_len)
     on_edge = (t_star > 0.0) & (t_star < edge_len)
     q = p0 + t[..., None] * e
@@ -174,21 +178,30 @@ class EdgePath:
         Path length anchor -> edge point -> node (OPL + IPL).
     jacobian : ndarray, shape (..., 3) [m/m]
         Derivative of ``length_m`` with respect to the node position ``(x_n, y_n, z_n)``, the
-        edge moving with the node as the model prescribes.
-    point_m : ndarray, shape (..., 3) [m]
-        The diffraction point on the edge.
+        edge moving with the node as the model prescribes. NaN where the inside path length is
+        zero (node on the edge line, ``y_n = 0`` and ``Delta = w/2``): the length is not
+        differentiable there.
     on_edge : ndarray of bool, shape (...)
         False where the edge extent clamped the point (corner diffraction).
     outside_m, inside_m : ndarray, shape (...) [m]
         Outside path length |anchor - Q| (OPL) and inside path length |Q - node| (IPL).
+    point_x_m, point_z_m : ndarray, shape (...) [m]
+        Coordinates of the diffraction point Q = (point_x_m, 0, point_z_m).
     """
 
     length_m: FloatArray
     jacobian: FloatArray
-    point_m: FloatArray
     on_edge: BoolArray
     outside_m: FloatArray
     inside_m: FloatArray
+    point_x_m: FloatArray
+    point_z_m: FloatArray
+
+    @property
+    def point_m(self) -> FloatArray:
+        """The diffraction point Q, shape (..., 3) [m] (built on demand)."""
+        qx, qz = np.broadcast_arrays(self.point_x_m, self.point_z_m)
+        return np.stack([qx, np.zeros_like(qx), qz], axis=-1)
 
 
 def edge_height_offset_m(
@@ -253,36 +266,58 @@ def window_edge_path(
     h = edge_height_offset_m(window_height_m, delta_m, edge)
     xa, ya, za = a[..., 0], a[..., 1], a[..., 2]
     xn, yn, zn = n[..., 0], n[..., 1], n[..., 2]
-    ze = zn + h
-    dz_out = ze - za
-    r_s = np.sqrt(ya * ya + dz_out * dz_out)
+    shape = np.broadcast_shapes(xa.shape, xn.shape, h.shape)
+    # Unfolded closed form (module docstring): with r_s, r_o the distances of anchor and node to
+    # the edge line and L the straight unfolded length, similar triangles give
+    # OPL = L r_s / (r_s + r_o), IPL = L r_o / (r_s + r_o): two square roots per pair.
+    dz = zn + h - za  # z_e - z_a
+    r_s = np.sqrt(ya * ya + dz * dz)
     r_o = np.sqrt(yn * yn + h * h)
-    denom = r_s + r_o
+    tot = r_s + r_o
+    dx = xn - xa
+    length = np.sqrt(dx * dx + tot * tot)
     with np.errstate(invalid="ignore", divide="ignore"):
-        qx = np.where(denom > 0.0, (xa * r_o + xn * r_s) / denom, 0.5 * (xa + xn))
+        frac_s = r_s / tot
+        opl = length * frac_s
+        ipl = length - opl
+        qx = xa + dx * frac_s
+    jac = np.empty((*shape, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        np.divide(dx, length, out=jac[..., 0])
+        np.divide(yn, ipl, out=jac[..., 1])
+        np.divide(dz, opl, out=jac[..., 2])
+    length = np.broadcast_to(length, shape)
+    qx = np.broadcast_to(qx, shape)
+    on_edge = np.ones(shape, dtype=bool)
+
+    # Pairs needing the general (two-distance) formula: clamped to an end of a finite edge, or
+    # degenerate (anchor and node both on the edge line, tot == 0).
+    fix = ~(tot > 0.0)
     if edge_x_m is not None:
         x_lo, x_hi = min(edge_x_m), max(edge_x_m)
-        on_edge = (qx > x_lo) & (qx < x_hi)
-        qx = np.clip(qx, x_lo, x_hi)
-    else:
-        on_edge = np.ones(np.shape(qx), dtype=bool)
-    dx_out = qx - xa
-    dx_in = xn - qx
-    opl = np.sqrt(dx_out * dx_out + r_s * r_s)
-    ipl = np.sqrt(dx_in * dx_in + r_o * r_o)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        jac = np.stack(
-            np.broadcast_arrays(dx_in / ipl, yn / ipl, dz_out / opl),
-            axis=-1,
-        )
-    point = np.stack(np.broadcast_arrays(qx, np.zeros_like(qx), ze), axis=-1)
+        outside = (qx <= x_lo) | (qx >= x_hi)
+        on_edge = ~outside
+        fix = fix | outside
+    if np.any(fix):
+        length, qx, opl, ipl = (np.array(np.broadcast_to(v, shape)) for v in (length, qx, opl, ipl))
+        b = [np.broadcast_to(v, shape)[fix] for v in (xa, xn, yn, dz, r_s, r_o)]
+        xa_f, xn_f, yn_f, dz_f, rs_f, ro_f = b
+        q = np.where(rs_f + ro_f > 0.0, qx[fix], 0.5 * (xa_f + xn_f))
+        if edge_x_m is not None:
+            q = np.clip(q, x_lo, x_hi)
+        o = np.sqrt((q - xa_f) ** 2 + rs_f**2)
+        i = np.sqrt((xn_f - q) ** 2 + ro_f**2)
+        qx[fix], opl[fix], ipl[fix], length[fix] = q, o, i, o + i
+        with np.errstate(invalid="ignore", divide="ignore"):
+            jac[fix] = np.stack([(xn_f - q) / i, yn_f / i, dz_f / o], axis=-1)
     return EdgePath(
-        length_m=opl + ipl,
+        length_m=length,
         jacobian=jac,
-        point_m=point,
-        on_edge=np.broadcast_to(on_edge, np.shape(qx)).copy(),
-        outside_m=opl,
-        inside_m=ipl,
+        on_edge=on_edge,
+        outside_m=np.broadcast_to(opl, shape),
+        inside_m=np.broadcast_to(ipl, shape),
+        point_x_m=qx,
+        point_z_m=np.broadcast_to(zn + h, shape),
     )
 
 
