@@ -181,3 +181,38 @@ def test_reproduce_cli_errors_are_one_line(tmp_path, capsys):
     assert "Traceback" not in err
     assert main(["reproduce", "--channel", "raytrace", "--out", str(tmp_path)]) == 2
     assert "--channel" in capsys.readouterr().err
+
+
+def test_reproduce_accepts_a_raytrace_dataset(tmp_path, paper):
+    """The ray-tracer hook: a dataset in the 'diffpos raytrace' format (here filled with the
+    emulator's own paths) gives the same MPC table as the emulator."""
+    raytrace = pytest.importorskip("diffpos_services.raytrace")
+    from diffpos_services.cli import main
+
+    from diffpos.channel import MPC_CLASS, mpc_statistics
+
+    nodes = paper.node_positions_m()[::200]
+    anchors = paper.anchor_positions_m()
+    ch = emulate_channel(anchors, nodes, building=paper.building, radio=paper.radio)
+    shape = ch.valid.shape
+    with np.errstate(divide="ignore"):
+        gain_db = np.where(ch.valid, 20 * np.log10(np.abs(ch.gain)), -np.inf)
+    ds = raytrace.RaytraceDataset(
+        nodes_m=nodes, anchors_m=anchors, anchor_ids=tuple(paper.anchor_ids),
+        path_valid=ch.valid, path_length_m=np.where(ch.valid, ch.length_m, 0.0),
+        path_gain_db=gain_db.astype(np.float32), path_aod_deg=ch.aod_deg.astype(np.float32),
+        path_aoa_deg=ch.aoa_deg.astype(np.float32), path_chain=np.zeros(shape, np.uint16),
+        path_class=np.broadcast_to(MPC_CLASS, shape).astype(np.int8),
+        path_vertex_m=np.zeros((*shape, 3), np.float32),
+        metadata={"format": raytrace.DATASET_FORMAT, "scenario": paper.to_dict()},
+    )
+    path = raytrace.save_dataset(tmp_path / "rt.npz", ds)
+    out = tmp_path / "out"
+    assert main(["reproduce", "--no-progress", "--channel", f"raytrace:{path}",
+                 "--methods", "dnls_case1", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["n_receivers"] == len(nodes) and s["channel_source"].startswith("raytrace:")
+    want = mpc_statistics(ch, first_arrival(ch, radio=paper.radio))
+    for g in ("MPC-1", "MPC-2", "MPC-3", "MPC-4"):
+        for k in ("P_e", "P_fap"):
+            assert s["mpc_table_pct"][g][k] == pytest.approx(want[g][k], abs=0.5)
