@@ -505,7 +505,7 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
     g_db = _pattern_db(_zenith_deg(q - a), c.r.tx_hpbw_deg, c.r.tx_peak_deg)
     E = E * (10 ** (g_db / 20))[..., None]
     pts_last = q
-    loss = np.full(c.shape, c.glass_db * 0.0)
+    loss = np.zeros(c.shape)  # the diffracted ray passes the edge, not the glass
     if then is None:
         loss = loss + c.partition_loss_db(q, n)
     else:

@@ -337,3 +337,26 @@ def test_rejects_bad_positions(paper):
         emulate_channel([[0, 5.0, 1.0]], [[0, 5, 5.5]], building=b, radio=r)
     with pytest.raises(ValueError, match="nodes_m"):
         emulate_channel([[0, -5.0, 1.0]], [[0, 30, 5.5]], building=b, radio=r)
+
+
+def test_physical_invariants(small_channel):
+    """No path is shorter than the straight line; an extra bounce only lengthens a path;
+    specular paths carry at most the free-space gain of their unfolded length."""
+    ch = small_channel
+    d = np.linalg.norm(ch.nodes_m[:, None] - ch.anchors_m[None], axis=-1)
+    v = ch.valid
+    assert np.all(ch.length_m[v] >= np.broadcast_to(d[..., None], v.shape)[v] - 1e-9)
+    for edge in ("upper", "lower"):
+        k0 = SLOT[f"Tx-D({edge})-Rx"]
+        for then in ("floor", "ceiling"):
+            k = SLOT[f"Tx-D({edge})-R({then})-Rx"]
+            both = v[..., k] & v[..., k0]
+            assert np.all(ch.length_m[..., k][both] >= ch.length_m[..., k0][both])
+    lam = C / 28e9
+    spec = np.array([not m.count("D(") for m in MECHANISMS])
+    fs = lam / (4 * np.pi * ch.length_m[..., spec])
+    g = np.abs(ch.gain[..., spec])
+    ok = v[..., spec]
+    assert np.all(g[ok] <= fs[ok] * (1 + 1e-12))
+    fa = first_arrival(ch, radio=default_scenario().radio)
+    assert np.all(fa.true_path_m[fa.detected] >= d[fa.detected] - 1e-9)  # NLoS bias >= 0
