@@ -7,12 +7,11 @@ dropped from the working set, so the cost of an iteration falls as the batch con
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-
-from ..geometry import window_edge_path
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -28,13 +27,22 @@ class PathModel:
     delta_m: FloatArray | float
     edge_x_m: tuple[float, float] | None
 
+    @functools.cached_property
+    def edge_offset_m(self) -> FloatArray | float:
+        """Height of the upper edge above the node, ``0.5 w - Delta`` [m] (``(N, 1)`` or scalar)."""
+        wh = self.window_height_m
+        de = self.delta_m
+        if isinstance(wh, np.ndarray) or isinstance(de, np.ndarray):
+            return (0.5 * np.asarray(wh) - np.asarray(de)).reshape(-1, 1)
+        return 0.5 * wh - de
+
     def take(self, idx: NDArray[np.int_]) -> PathModel:
         """The model restricted to problems ``idx`` (per-problem arrays are indexed)."""
         wh = self.window_height_m
         de = self.delta_m
         return PathModel(
-            window_height_m=wh[idx] if np.ndim(wh) else wh,
-            delta_m=de[idx] if np.ndim(de) else de,
+            window_height_m=wh[idx] if isinstance(wh, np.ndarray) else wh,
+            delta_m=de[idx] if isinstance(de, np.ndarray) else de,
             edge_x_m=self.edge_x_m,
         )
 
@@ -43,23 +51,47 @@ class PathModel:
         wh = self.window_height_m
         de = self.delta_m
         return PathModel(
-            window_height_m=np.repeat(wh, k) if np.ndim(wh) else wh,
-            delta_m=np.repeat(de, k) if np.ndim(de) else de,
+            window_height_m=np.repeat(wh, k) if isinstance(wh, np.ndarray) else wh,
+            delta_m=np.repeat(de, k) if isinstance(de, np.ndarray) else de,
             edge_x_m=self.edge_x_m,
         )
 
     def evaluate(self, anchors_m: FloatArray, x_m: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Path lengths ``(N, M)`` [m] and Jacobians ``(N, M, 3)`` for nodes ``x_m (N, 3)``."""
-        wh = self.window_height_m
-        de = self.delta_m
-        ep = window_edge_path(
-            anchors_m,
-            x_m[:, None, :],
-            window_height_m=wh[:, None] if np.ndim(wh) else wh,
-            delta_m=de[:, None] if np.ndim(de) else de,
-            edge_x_m=self.edge_x_m,
-        )
-        return ep.length_m, ep.jacobian
+        """Path lengths ``(N, M)`` [m] and Jacobians ``(N, M, 3)`` for nodes ``x_m (N, 3)``.
+
+        The same formulas as :func:`diffpos.geometry.window_edge_path` (upper edge), fused
+        into the few operations the solver needs (no diffraction point, no edge flags): the
+        hot loop of D-NLS calls this once per iteration. ``tests/test_dnls.py`` checks it
+        against ``window_edge_path``.
+        """
+        h = self.edge_offset_m
+        xa = anchors_m[..., 0]
+        ya = anchors_m[..., 1]
+        za = anchors_m[..., 2]
+        xn = x_m[:, 0:1]
+        yn = x_m[:, 1:2]
+        dz_out = (x_m[:, 2:3] + h) - za
+        r_s = np.sqrt(ya * ya + dz_out * dz_out)
+        r_o = np.sqrt(yn * yn + h * h)
+        den = r_s + r_o
+        if den.min(initial=1.0) > 0.0:
+            qx = (xa * r_o + xn * r_s) / den
+        else:  # node and anchor both on the edge line: any point between is optimal
+            with np.errstate(invalid="ignore", divide="ignore"):
+                qx = np.where(den > 0.0, (xa * r_o + xn * r_s) / den, 0.5 * (xa + xn))
+        if self.edge_x_m is not None:
+            qx = np.clip(qx, self.edge_x_m[0], self.edge_x_m[1])
+        dx_out = qx - xa
+        dx_in = xn - qx
+        opl = np.sqrt(dx_out * dx_out + r_s * r_s)
+        ipl = np.sqrt(dx_in * dx_in + r_o * r_o)
+        jac = np.empty((*ipl.shape, 3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inv_ipl = 1.0 / ipl
+            np.multiply(dx_in, inv_ipl, out=jac[..., 0])
+            np.multiply(yn, inv_ipl, out=jac[..., 1])
+            np.divide(dz_out, opl, out=jac[..., 2])
+        return opl + ipl, jac
 
 
 def robust_rho(z: FloatArray, loss: str) -> tuple[FloatArray, FloatArray]:
@@ -154,70 +186,103 @@ def levenberg_marquardt(
     "Zero cost" means residuals at the rounding level of the ranges (``64 eps |r_j|``).
     """
     n = x0_m.shape[0]
-    x = np.array(x0_m, dtype=np.float64, copy=True)
-    p, jac = model.evaluate(anchors_m, x)
+    x_out = np.array(x0_m, dtype=np.float64, copy=True)
+    p, jac = model.evaluate(anchors_m, x_out)
     res = ranges_m - p
-    cost = cost_of(res, sw, loss, loss_scale)
-    lam = np.full(n, lambda0)
-    iters = np.zeros(n, dtype=np.int_)
-    conv = np.zeros(n, dtype=bool)
-    active = np.isfinite(cost)
+    cost_out = cost_of(res, sw, loss, loss_scale)
+    iters_out = np.zeros(n, dtype=np.int_)
+    conv_out = np.zeros(n, dtype=bool)
     # cost at the level of floating-point rounding of the ranges: an exact fit
     eps_r = 64.0 * np.finfo(float).eps * np.abs(ranges_m) * sw
-    cost_floor = 0.5 * np.einsum("nm,nm->n", eps_r, eps_r)
+    floor_all = 0.5 * np.einsum("nm,nm->n", eps_r, eps_r)
     tiny = np.finfo(float).tiny
+    diag = np.arange(3)
+
+    # Working set: the problems still iterating. It is compacted (rows gathered) only when
+    # fewer than half of its rows are live, so small batches pay no gather per iteration.
+    ids = np.flatnonzero(np.isfinite(cost_out))
+    if ids.size < n:
+        a_w, r_w, sw_w, x_w = anchors_m[ids], ranges_m[ids], sw[ids], x_out[ids]
+        res_w, jac_w, cost_w, floor_w = res[ids], jac[ids], cost_out[ids], floor_all[ids]
+        mdl_w = model.take(ids)
+    else:
+        a_w, r_w, sw_w, x_w = anchors_m, ranges_m, sw, x_out.copy()
+        res_w, jac_w, cost_w, floor_w = res, jac, cost_out.copy(), floor_all
+        mdl_w = model
+    lam_w = np.full(ids.size, lambda0)
+    it_w = np.zeros(ids.size, dtype=np.int_)
+    live = np.ones(ids.size, dtype=bool)
     for _ in range(max_iter):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
+        if ids.size == 0:
             break
-        a_i = anchors_m[idx]
-        r_i = ranges_m[idx]
-        sw_i = sw[idx]
-        x_i = x[idx]
-        res_i = res[idx]
         if loss == "linear":
-            ws = sw_i
+            ws = sw_w
         else:
-            _, drho = robust_rho((res_i * sw_i / loss_scale) ** 2, loss)
-            ws = sw_i * np.sqrt(drho)
-        jw = jac[idx] * ws[..., None]
-        rw = res_i * ws
-        h = np.einsum("nmi,nmj->nij", jw, jw)
-        g = np.einsum("nmi,nm->ni", jw, rw)
-        dh = np.einsum("nii->ni", h)
+            _, drho = robust_rho((res_w * sw_w / loss_scale) ** 2, loss)
+            ws = sw_w * np.sqrt(drho)
+        jw = jac_w * ws[..., None]
+        rw = res_w * ws
+        h = np.matmul(jw.transpose(0, 2, 1), jw)
+        g = np.matmul(rw[:, None, :], jw)[:, 0, :]
+        dh = h[:, diag, diag]
         dh = np.maximum(dh, 1e-12 * dh.max(axis=-1, keepdims=True) + tiny)
-        # Newton decrement of the undamped Gauss-Newton model: twice the cost decrease a full
-        # GN step would give. Tiny relative to the cost => stationary point.
-        dgn = solve3(h, g)
-        dec = np.einsum("ni,ni->n", g, dgn)
-        stationary = np.isfinite(dec) & (dec <= 2.0 * gtol * cost[idx] + 2.0 * cost_floor[idx])
-        a_mat = h.copy()
-        a_mat[:, [0, 1, 2], [0, 1, 2]] += lam[idx, None] * dh
-        dx = solve3(a_mat, g)
-        bad = ~np.all(np.isfinite(dx), axis=-1)
-        dx[bad] = 0.0
-        xt = x_i + dx
-        pt, jt = model.take(idx).evaluate(a_i, xt)
-        rest = r_i - pt
-        costt = cost_of(rest, sw_i, loss, loss_scale)
-        c_old = cost[idx]
-        accept = (costt < c_old) & ~bad & np.isfinite(costt)
-        acc_idx = idx[accept]
-        x[acc_idx] = xt[accept]
-        res[acc_idx] = rest[accept]
-        jac[acc_idx] = jt[accept]
-        cost[acc_idx] = costt[accept]
-        lam[acc_idx] = np.maximum(lam[acc_idx] / 3.0, 1e-12)
-        rej_idx = idx[~accept]
-        lam[rej_idx] = lam[rej_idx] * 8.0
-        iters[idx] += 1
-        step = np.sqrt(np.einsum("ni,ni->n", dx, dx))
-        xn = np.sqrt(np.einsum("ni,ni->n", x_i, x_i))
-        small_step = accept & (step <= xtol_m * (xtol_m + xn))
+        # one stacked solve: the damped LM step and the undamped Gauss-Newton step, whose
+        # Newton decrement g^T H^-1 g (twice the decrease a full GN step would give) tests
+        # for a stationary point
+        k = ids.size
+        a2 = np.concatenate([h, h])
+        a2[:k, diag, diag] += lam_w[:, None] * dh
+        sol = solve3(a2, np.concatenate([g, g]))
+        dx = sol[:k]
+        dec = np.einsum("ni,ni->n", g, sol[k:])
+        stationary = np.isfinite(dec) & (dec <= 2.0 * gtol * cost_w + 2.0 * floor_w)
+        bad = ~np.isfinite(dx).all(axis=-1)
+        if bad.any():
+            dx[bad] = 0.0
+        xt = x_w + dx
+        pt, jt = mdl_w.evaluate(a_w, xt)
+        rest = r_w - pt
+        costt = cost_of(rest, sw_w, loss, loss_scale)
+        c_old = cost_w
+        accept = (costt < c_old) & ~bad & live
+        x_w = np.where(accept[:, None], xt, x_w)
+        res_w = np.where(accept[:, None], rest, res_w)
+        jac_w = np.where(accept[:, None, None], jt, jac_w)
+        cost_w = np.where(accept, costt, c_old)
+        lam_w = np.where(accept, np.maximum(lam_w / 3.0, 1e-12), lam_w * 8.0)
+        it_w += live
+        step2 = np.einsum("ni,ni->n", dx, dx)
+        xn2 = np.einsum("ni,ni->n", x_w, x_w)
+        small_step = accept & (step2 <= (xtol_m * (xtol_m + np.sqrt(xn2))) ** 2)
         small_f = accept & (c_old - costt <= ftol * c_old)
-        zero = cost[idx] <= cost_floor[idx]
-        done_ok = stationary | small_step | small_f | zero
-        failed = ~done_ok & (lam[idx] > 1e12)
-        conv[idx] = done_ok
-        active[idx[done_ok | failed]] = False
-    return LMResult(x_m=x, cost=cost, iterations=iters, converged=conv)
+        zero = c_old <= floor_w
+        done_ok = live & (stationary | small_step | small_f | zero)
+        failed = live & ~done_ok & (lam_w > 1e12)
+        finished = done_ok | failed
+        if finished.any():
+            f_idx = np.flatnonzero(finished)
+            gid = ids[f_idx]
+            x_out[gid] = x_w[f_idx]
+            cost_out[gid] = cost_w[f_idx]
+            iters_out[gid] = it_w[f_idx]
+            conv_out[gid] = done_ok[f_idx]
+            live &= ~finished
+            n_live = int(live.sum())
+            if n_live == 0:
+                ids = ids[:0]
+                break
+            if n_live < 0.5 * ids.size:
+                keep = np.flatnonzero(live)
+                ids = ids[keep]
+                a_w, r_w, sw_w, x_w = a_w[keep], r_w[keep], sw_w[keep], x_w[keep]
+                res_w, jac_w, cost_w = res_w[keep], jac_w[keep], cost_w[keep]
+                floor_w, lam_w, it_w = floor_w[keep], lam_w[keep], it_w[keep]
+                mdl_w = mdl_w.take(keep)
+                live = np.ones(ids.size, dtype=bool)
+    if ids.size:  # iteration limit: write back the live rows, unconverged
+        l_idx = np.flatnonzero(live)
+        gid = ids[l_idx]
+        x_out[gid] = x_w[l_idx]
+        cost_out[gid] = cost_w[l_idx]
+        iters_out[gid] = it_w[l_idx]
+    return LMResult(x_m=x_out, cost=cost_out, iterations=iters_out, converged=conv_out)

@@ -35,6 +35,7 @@ exclusion needs ``|S| >= 5``; otherwise a failed test gives ``GATING_FAILED``.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,13 +96,18 @@ class GatingConfig:
             raise ValueError("GatingConfig.pregate_sigmas and pregate_margin_m must be >= 0")
 
 
+@functools.lru_cache(maxsize=1024)
+def _chi2_isf(dof: int, false_alarm_probability: float) -> float:
+    return float(chi2.isf(false_alarm_probability, dof))
+
+
 def chi2_threshold(dof: NDArray[np.int_], false_alarm_probability: float) -> FloatArray:
     """Chi-square test threshold per fix; NaN where ``dof < 1`` (no test possible)."""
     dof = np.asarray(dof)
-    out = np.full(dof.shape, np.nan)
-    ok = dof >= 1
-    out[ok] = chi2.isf(false_alarm_probability, dof[ok])
-    return out
+    table = np.full(int(dof.max(initial=0)) + 1, np.nan)
+    for d in np.unique(dof[dof >= 1]):
+        table[d] = _chi2_isf(int(d), float(false_alarm_probability))
+    return table[np.maximum(dof, 0)]
 
 
 def wall_pregate(
