@@ -42,9 +42,10 @@ detection_snr_db)``, SNR = received power + processing gain - kTB.
 
 Known limits of the ray tracer (measured, see docs/raytrace.md): no corner (vertex)
 diffraction and first-order diffraction only; transmissions are sampled in proportion to the
-transmitted energy, so paths through 0.2 m of concrete (about -90 dB) are practically never
-found (the emulator keeps them, far below the first-arrival threshold); the LLVM backend
-needs Debian's ``libllvm19`` (LLVM 14 is refused, LLVM 15 aborts).
+transmitted energy, so paths through concrete (about -90 dB per wall, -136 dB per slab) are
+found only now and then (harmless: far below the first-arrival threshold), and diffraction
+paths that then cross partitions (``Tx-D-T-Rx``) are found only partly at 1e5 samples; the
+LLVM backend needs Debian's ``libllvm19`` (LLVM 14 is refused, LLVM 15 aborts).
 
 Dataset file (``numpy.savez_compressed``; N receivers, M anchors, K paths per link, padded;
 paths of a link are sorted by delay, the padding has ``path_valid == False``):
