@@ -57,6 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .constants import SPEED_OF_LIGHT_M_S
 from .geometry import diffraction_point
+from .gtd import diffracted_field
 from .linkbudget import db_to_linear, noise_floor_dbm, ranging_crlb_m
 from .scenario import ITU_MATERIALS, Building, Radio, Scenario
 
@@ -264,6 +265,14 @@ def _unit(v: FloatArray) -> tuple[FloatArray, FloatArray]:
         return v / n[..., None], n
 
 
+def _cross(a: NDArray, b: NDArray) -> NDArray:
+    """``np.cross`` over the last axis (of length 3), without its axis bookkeeping."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack(np.broadcast_arrays(a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0),
+                    axis=-1)
+
+
 def _zenith_deg(d: FloatArray) -> FloatArray:
     u, _ = _unit(d)
     return np.degrees(np.arccos(np.clip(u[..., 2], -1.0, 1.0)))
@@ -294,14 +303,14 @@ def _reflect_field(E: NDArray, k_in: FloatArray, axis: int, eta: complex) -> NDA
     cos_t = np.abs(k_in[..., axis])
     k_out = k_in.copy()
     k_out[..., axis] = -k_in[..., axis]
-    s = np.cross(k_in, nrm)
+    s = _cross(k_in, nrm)
     s, sn = _unit(s)
     # normal incidence: any transverse direction works as s
     fallback = np.zeros(3)
     fallback[(axis + 1) % 3] = 1.0
     s = np.where((sn > 1e-12)[..., None], s, fallback)
-    p_in = np.cross(s, k_in)
-    p_out = np.cross(s, k_out)
+    p_in = _cross(s, k_in)
+    p_out = _cross(s, k_out)
     gs, gp = fresnel_coefficients(cos_t, eta)
     es = np.einsum("...i,...i->...", E, s)
     ep = np.einsum("...i,...i->...", E, p_in)
@@ -530,39 +539,10 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
 
 def _edge_field(source, observer, point, edge_dir, face_dir, e0, k, frequency_hz):
     """UTD diffracted field vector (unit source field at 1 m) at ``observer`` ``(..., 3)``."""
-    try:
-        from .gtd import diffracted_field
-    except ImportError:  # pragma: no cover - only until diffpos.gtd lands
-        return _keller_field(source, observer, point, edge_dir, face_dir, e0, k)
+    del k
     return diffracted_field(source, observer, point, edge_dir, face_dir, e0,
                             frequency_hz=frequency_hz, coefficients="utd",
                             spreading="spherical")
-
-
-def _keller_field(source, observer, point, edge_dir, face_dir, e0, k):  # pragma: no cover
-    """Keller (GTD) half-plane field, the paper's eqs. 7-11, spherical spreading (fallback)."""
-    sp, s1 = _unit(point - source)
-    s, s2 = _unit(observer - point)
-    e = np.broadcast_to(edge_dir, sp.shape)
-    t0 = np.asarray(face_dir, dtype=float)
-    n0 = np.cross(edge_dir, face_dir)
-    phip, _ = _unit(-np.cross(e, sp))
-    betap = np.cross(phip, sp)
-    phi, _ = _unit(np.cross(e, s))
-    beta = np.cross(phi, s)
-    stp, _ = _unit(sp - np.einsum("...i,i->...", sp, edge_dir)[..., None] * edge_dir)
-    st, _ = _unit(s - np.einsum("...i,i->...", s, edge_dir)[..., None] * edge_dir)
-    psip = np.pi - (np.pi - np.arccos(np.clip(-stp @ t0, -1, 1))) * np.sign(-stp @ n0)
-    psi = np.pi - (np.pi - np.arccos(np.clip(st @ t0, -1, 1))) * np.sign(st @ n0)
-    sin_g = np.sqrt(np.einsum("...i,...i->...", np.cross(e, sp), np.cross(e, sp)))
-    pre = -np.exp(-1j * np.pi / 4) / (2 * np.sqrt(2 * np.pi * k) * sin_g)
-    t1 = 1 / np.cos((psi - psip) / 2)
-    t2 = 1 / np.cos((psi + psip) / 2)
-    ds, dh = pre * (t1 - t2), pre * (t1 + t2)
-    ei_b = np.einsum("...i,i->...", betap, e0)
-    ei_p = np.einsum("...i,i->...", phip, e0)
-    spread = np.sqrt(s1 / (s2 * (s1 + s2))) / s1
-    return ((-ds * ei_b)[..., None] * beta + (-dh * ei_p)[..., None] * phi) * spread[..., None]
 
 
 # --------------------------------------------------------------------------------------------
