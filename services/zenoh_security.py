@@ -648,6 +648,7 @@ def session_config(
     except zenoh.ZError as exc:
         raise SecurityError(f"--zenoh-config {path}: zenoh rejects it: {exc}") from None
     effective = {
+        "mode": json.loads(cfg.get_json("mode")) or "peer",
         "connect": json.loads(cfg.get_json("connect")),
         "listen": json.loads(cfg.get_json("listen")),
         "transport": {
@@ -677,9 +678,10 @@ def insecure_transport_warning(config: Mapping[str, Any]) -> str | None:
     Otherwise :data:`PLAIN_TRANSPORT_WARNING` with the endpoints; a plain endpoint that is
     not loopback gets ``"NOT loopback: "`` prepended (log it at ERROR level).
     """
-    eps = list((config.get("connect") or {}).get("endpoints") or []) + list(
-        (config.get("listen") or {}).get("endpoints") or []
-    )
+    mode = config.get("mode") or "peer"
+    eps = _endpoints(config.get("connect"), mode)
+    if mode != "client":  # clients never listen
+        eps += _endpoints(config.get("listen"), mode)
     transport = config.get("transport") or {}
     auth = (transport.get("auth") or {}).get("usrpwd") or {}
     tls = (transport.get("link") or {}).get("tls") or {}
@@ -696,6 +698,14 @@ def insecure_transport_warning(config: Mapping[str, Any]) -> str | None:
     if any(not _is_loopback(e) for e in plain):
         msg = "NOT loopback: " + msg
     return msg
+
+
+def _endpoints(section: Mapping[str, Any] | None, mode: str) -> list[str]:
+    """Endpoints of a ``connect``/``listen`` section (a list, or a per-mode table)."""
+    eps = (section or {}).get("endpoints") or []
+    if isinstance(eps, Mapping):
+        eps = eps.get(mode) or []
+    return [str(e) for e in eps]
 
 
 def _is_loopback(endpoint: str) -> bool:

@@ -397,6 +397,12 @@ def test_insecure_transport_warning():
     assert not msg.startswith("NOT loopback")
     wide = {"mode": "router", "listen": {"endpoints": ["tcp/0.0.0.0:7447"]}}
     assert zs.insecure_transport_warning(wide).startswith("NOT loopback")
+    # zenoh's per-mode default: a router without explicit listen endpoints opens tcp/[::]:7447
+    default_router = {"mode": "router", "listen": {"endpoints": {"router": ["tcp/[::]:7447"], "peer": []}}}
+    assert zs.insecure_transport_warning(default_router).startswith("NOT loopback")
+    client_listen = {"mode": "client", "connect": {"endpoints": ["tcp/[::1]:7447"]},
+                     "listen": {"endpoints": {"router": ["tcp/[::]:7447"]}}}  # ignored by clients
+    assert not zs.insecure_transport_warning(client_listen).startswith("NOT loopback")
     tls_only = {"connect": {"endpoints": ["tls/router:7447"]}}
     assert zs.insecure_transport_warning(tls_only) is not None  # encrypted but anyone can log in
     profile = zs.load_profile(REPO / "security" / "profile.dev.toml")
@@ -453,3 +459,51 @@ def test_dev_certs_have_router_names(tmp_path):
     v = subprocess.run(["openssl", "verify", "-CAfile", str(paths["ca"]), str(paths["router"]),
                         str(paths["client:fusion"])], capture_output=True, text=True)
     assert v.returncode == 0, v.stderr
+
+
+# ----------------------------------------------------------------------------- service entry point
+def test_session_config_fallback_warns_and_file_does_not(bus, tmp_path):
+    """What a service does with and without --zenoh-config, end to end through the router."""
+    plain = {"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:7447"]}}
+    _, warning = zs.session_config(None, fallback=plain)
+    assert warning is not None and "UNAUTHENTICATED" in warning
+    # a rendered client file (absolute paths of this machine, the bus's port) opens a session
+    written = zs.render_profile(bus.profile, tmp_path / "zenoh", connect=[f"tls/localhost:{bus.port}"],
+                                listen=[f"tls/127.0.0.1:{bus.port}"], connect_timeout_ms=5000)
+    assert {p.name for p in written} == {"router.json5", "anchor-uav1.json5", "anchor-uav2.json5",
+                                         "fusion.json5", "recorder.json5", "dashboard.json5", "emulator.json5"}
+    cfg, warning = zs.session_config(tmp_path / "zenoh" / "fusion.json5")
+    assert warning is None
+    got = Collector(K.node_estimate("n05"))
+    with bus.open("recorder") as rec, zenoh.open(cfg) as fus:
+        rec.declare_subscriber(K.everything(), got)
+        pub = fus.declare_publisher(K.node_estimate("n05"), congestion_control=zenoh.CongestionControl.BLOCK)
+        _wait_matching(pub)
+        pub.put(b"{}")
+        assert got.done.wait(WAIT_S)
+    # an explicit --connect replaces the file's endpoints
+    cfg, _ = zs.session_config(tmp_path / "zenoh" / "fusion.json5", connect=["tls/other:7447"])
+    assert json.loads(cfg.get_json("connect/endpoints")) == ["tls/other:7447"]
+
+
+def test_session_config_errors_name_the_file(tmp_path):
+    with pytest.raises(zs.SecurityError, match="file not found"):
+        zs.session_config(tmp_path / "missing.json5")
+    bad = tmp_path / "bad.json5"
+    bad.write_text('{ mode: "client", transport: { link: { tls: { nonsense_key: 1 } } } }')
+    with pytest.raises(zs.SecurityError, match="bad.json5"):
+        zs.session_config(bad)
+    # the committed docker files point at /security/...: outside a container that is reported
+    if not Path("/security/certs/ca.pem").exists():
+        with pytest.raises(zs.SecurityError, match="root_ca_certificate"):
+            zs.session_config(REPO / "security" / "zenoh" / "fusion.json5")
+
+
+def test_ca_bundle_allows_overlapping_rotation(bus, tmp_path):
+    """A root_ca_certificate file holding the next CA and the current one still connects."""
+    nxt = zs.make_dev_certs(tmp_path / "next", hosts=("localhost",), days=1)
+    bundle = tmp_path / "bundle.pem"
+    bundle.write_text(Path(nxt["ca"]).read_text() + Path(bus.profile.path(bus.profile.ca_certificate)).read_text())
+    cfg = bus.config("recorder", timeout_ms=2000)
+    cfg["transport"]["link"]["tls"]["root_ca_certificate"] = str(bundle)
+    assert not _refused(cfg)
