@@ -76,9 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--drain-period",
         type=float,
-        default=0.2,
+        default=0.5,
         metavar="S",
-        help="seconds between draws (default 0.2)",
+        help="seconds between draws (default 0.5)",
     )
     parser.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"

@@ -20,8 +20,9 @@ Entity layout (see :func:`default_blueprint` for how it is shown)::
     world/anchors/<anchor>             anchor position (Points3D, self-reported AnchorState)
     world/anchors/<anchor>/trail       recent track of the anchor (LineStrips3D)
     world/nodes/<node>/truth           true node position (emulation only)
-    world/nodes/<node>/estimate        estimated position, label "<node> F<est> (true F<true>)"
-    world/nodes/<node>/uncertainty     confidence ellipsoid from the estimate covariance
+    world/nodes/<node>/estimate        estimated position (Points3D, label "<node> F<est>", plus
+                                       "(true F<true>)" when the floor is wrong) and its 95 %
+                                       confidence ellipsoid from the covariance (Ellipsoids3D)
     world/nodes/<node>/paths           anchor -> window-edge point -> estimate, one strip per
                                        anchor; used anchors in their colour, excluded in red
     metrics/error_3d_m/<node>          |estimate - truth| [m]
@@ -45,6 +46,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -425,6 +427,76 @@ class EventColumns:
         )
 
 
+# ============================================================================ message views
+class ExclusionView(msgspec.Struct, frozen=True, gc=False):
+    """The part of ``messages.Exclusion`` the dashboard reads."""
+
+    anchor_id: str
+    reason: str
+
+
+class AnchorStateView(msgspec.Struct, frozen=True, gc=False):
+    """The part of ``diffpos.anchor_state.v1`` the dashboard reads (other fields skipped)."""
+
+    anchor_id: str
+    t_ns: int
+    position_m: tuple[float, float, float]
+    t_pub_wall_ns: int = 0
+
+
+class TruthView(msgspec.Struct, frozen=True, gc=False):
+    """The part of ``diffpos.truth.v1`` the dashboard reads."""
+
+    entity: str
+    id: str
+    t_ns: int
+    position_m: tuple[float, float, float]
+    floor_index: int | None = None
+
+
+class EstimateView(msgspec.Struct, frozen=True, gc=False):
+    """The part of ``diffpos.estimate.v1`` the dashboard reads."""
+
+    node_id: str
+    t_ns: int
+    status: str
+    position_m: tuple[float, float, float] | None
+    covariance_m2: (
+        tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+        | None
+    )
+    peb_m: float | None
+    floor_index: int | None
+    used_anchors: list[str]
+    residuals_m: list[float]
+    excluded: list[ExclusionView]
+    t_pub_wall_ns: int = 0
+
+
+class DiagnosticsView(msgspec.Struct, frozen=True, gc=False):
+    """The part of ``diffpos.fusion_diagnostics.v1`` the dashboard reads."""
+
+    watermark_ns: int | None
+    gated: int
+    solved: int
+    published: int
+    late_ranges: int
+    pending_epochs: int
+    live_anchors: list[str]
+
+
+#: bus kind (``keys.parse_key``) -> fast JSON decoder of the dashboard's view of it. The
+#: dashboard is a viewer: it type-checks what it draws but leaves the value constraints of
+#: the full schemas (id patterns, bounds) to the fusion and the wire-contract tests.
+VIEW_DECODERS: dict[str, msgspec.json.Decoder] = {
+    "anchor_state": msgspec.json.Decoder(AnchorStateView),
+    "truth_node": msgspec.json.Decoder(TruthView),
+    "estimate": msgspec.json.Decoder(EstimateView),
+    "replay_estimate": msgspec.json.Decoder(EstimateView),
+    "diagnostics": msgspec.json.Decoder(DiagnosticsView),
+}
+
+
 # ============================================================================ messages -> columns
 def _nan3() -> tuple[float, float, float]:
     return (math.nan, math.nan, math.nan)
@@ -537,9 +609,17 @@ class Tracks:
         return sorted(self._data)
 
     def sample(
-        self, ids: ArrayLike, t_ns: ArrayLike
+        self, ids: ArrayLike, t_ns: ArrayLike, *, coded: tuple[ArrayLike, ArrayLike] | None = None
     ) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
         """Positions interpolated linearly in time (held constant beyond the ends).
+
+        Parameters
+        ----------
+        ids : array_like of str, shape (L,)
+        t_ns : array_like of int, shape (L,) [ns]
+        coded : (names, codes), optional
+            ``np.unique(ids, return_inverse=True)`` if the caller has it already (saves a
+            string sort); ``ids`` is then ignored.
 
         Returns
         -------
@@ -549,18 +629,23 @@ class Tracks:
             Latest ``extra`` value at or before each time (-1 where unknown).
         known : ndarray of bool, shape (L,)
         """
-        ids_q = _str_array(ids)
+        if coded is None:
+            names, codes = np.unique(_str_array(ids), return_inverse=True)
+        else:
+            names, codes = np.asarray(coded[0]), np.asarray(coded[1])
         t_q = np.asarray(t_ns, np.int64).reshape(-1)
         out = np.full((t_q.size, 3), np.nan)
         extra = np.full(t_q.size, -1, np.int64)
         known = np.zeros(t_q.size, bool)
         if not t_q.size:
             return out, extra, known
-        for name in np.unique(ids_q):
+        order = np.argsort(codes, kind="stable")
+        bounds = np.searchsorted(codes[order], np.arange(len(names) + 1))
+        for i, name in enumerate(names):
             track = self._data.get(str(name))
             if track is None:
                 continue
-            sel = np.flatnonzero(ids_q == name)
+            sel = order[bounds[i] : bounds[i + 1]]
             t, pos, ex = track
             tq = t_q[sel].astype(np.float64)
             tf = t.astype(np.float64)
@@ -595,8 +680,6 @@ def ellipsoid_axes(
     valid : ndarray of bool, shape (K,)
         False where the covariance is not finite (rows then hold zeros / identity).
     """
-    from scipy.spatial.transform import Rotation
-
     c = np.asarray(covariance_m2, np.float64).reshape(-1, 3, 3)
     valid = np.all(np.isfinite(c), axis=(1, 2))
     half = np.zeros((c.shape[0], 3))
@@ -607,8 +690,38 @@ def ellipsoid_axes(
         det = np.linalg.det(v)
         v[:, :, 2] *= np.sign(det)[:, None]  # proper rotation
         half[valid] = scale * np.sqrt(np.clip(w, 0.0, None))
-        quat[valid] = Rotation.from_matrix(v).as_quat()
+        quat[valid] = _matrix_to_quat_xyzw(v)
     return half, quat, valid
+
+
+def _matrix_to_quat_xyzw(r: FloatArray) -> FloatArray:
+    """Unit quaternions (x, y, z, w) of rotation matrices ``(K, 3, 3)`` (Shepperd's method)."""
+    m00, m11, m22 = r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]
+    tr = m00 + m11 + m22
+    cand = np.stack([tr, m00, m11, m22], axis=1).argmax(axis=1)
+    q = np.empty((r.shape[0], 4))
+    for case in range(4):
+        k = cand == case
+        if not k.any():
+            continue
+        rk = r[k]
+        if case == 0:
+            s = 2.0 * np.sqrt(1.0 + tr[k])
+            q[k] = np.stack([(rk[:, 2, 1] - rk[:, 1, 2]) / s, (rk[:, 0, 2] - rk[:, 2, 0]) / s,
+                             (rk[:, 1, 0] - rk[:, 0, 1]) / s, 0.25 * s], axis=1)  # fmt: skip
+        elif case == 1:
+            s = 2.0 * np.sqrt(1.0 + m00[k] - m11[k] - m22[k])
+            q[k] = np.stack([0.25 * s, (rk[:, 0, 1] + rk[:, 1, 0]) / s,
+                             (rk[:, 0, 2] + rk[:, 2, 0]) / s, (rk[:, 2, 1] - rk[:, 1, 2]) / s], axis=1)  # fmt: skip
+        elif case == 2:
+            s = 2.0 * np.sqrt(1.0 + m11[k] - m00[k] - m22[k])
+            q[k] = np.stack([(rk[:, 0, 1] + rk[:, 1, 0]) / s, 0.25 * s,
+                             (rk[:, 1, 2] + rk[:, 2, 1]) / s, (rk[:, 0, 2] - rk[:, 2, 0]) / s], axis=1)  # fmt: skip
+        else:
+            s = 2.0 * np.sqrt(1.0 + m22[k] - m00[k] - m11[k])
+            q[k] = np.stack([(rk[:, 0, 2] + rk[:, 2, 0]) / s, (rk[:, 1, 2] + rk[:, 2, 1]) / s,
+                             0.25 * s, (rk[:, 1, 0] - rk[:, 0, 1]) / s], axis=1)  # fmt: skip
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _group(ids: NDArray[np.str_]) -> list[tuple[str, NDArray[np.int64]]]:
@@ -850,10 +963,11 @@ def log_estimates(
     # ---- links: anchor positions and window-edge points (vectorised over all links)
     n_links = est.link_fix.size
     lf = est.link_fix
+    anc_u, anc_c = np.unique(est.link_anchor_id, return_inverse=True)
     link_ok = np.zeros(n_links, bool)
     strips = np.zeros((n_links, 3, 3))
     if n_links and anchors is not None:
-        a_pos, _, a_known = anchors.sample(est.link_anchor_id, t[lf])
+        a_pos, _, a_known = anchors.sample(None, t[lf], coded=(anc_u, anc_c))
         node = pos[lf]
         link_ok = a_known & has_pos[lf]
         if building is not None:
@@ -868,9 +982,7 @@ def log_estimates(
             q = 0.5 * (a_pos + node)
         strips = np.stack([a_pos, q, node], axis=1)
         link_ok &= np.all(np.isfinite(strips), axis=(1, 2))
-    link_colors = np.empty((n_links, 4), np.uint8)
-    for aid in np.unique(est.link_anchor_id):
-        link_colors[est.link_anchor_id == aid] = anchor_color(str(aid))
+    link_colors = _rgba([anchor_color(str(a)) for a in anc_u])[anc_c]
     link_colors[~est.link_used] = _EXCLUDED_COLOR
     link_radii = np.where(est.link_used, 0.05, 0.03).astype(np.float32)
 
@@ -895,28 +1007,27 @@ def log_estimates(
             for ef, tf in zip(est_floor[rows].tolist(), true_floor[rows].tolist(), strict=True)
         ]
         sel = rows[hp]
+        ok = cov_ok[rows]
+        sel_c = rows[ok]
+        # point and ellipsoid on one entity: one chunk per node and batch instead of two
         rec.send_columns(
             f"world/nodes/{nid}/estimate",
             indexes=[_time_column(tr)],
-            columns=rr.Points3D.columns(
-                positions=pos[sel],
-                colors=colors[sel],
-                radii=np.full(sel.size, 0.25, np.float32),
-                labels=np.asarray(label)[hp],
-            ).partition(n_pos),
-        )
-        ok = cov_ok[rows]
-        sel = rows[ok]
-        rec.send_columns(
-            f"world/nodes/{nid}/uncertainty",
-            indexes=[_time_column(tr)],
-            columns=rr.Ellipsoids3D.columns(
-                centers=pos[sel],
-                half_sizes=half[sel],
-                quaternions=quat[sel],
-                colors=colors[sel],
-                line_radii=np.full(sel.size, 0.02, np.float32),
-            ).partition(ok.astype(np.int64)),
+            columns=[
+                *rr.Points3D.columns(
+                    positions=pos[sel],
+                    colors=colors[sel],
+                    radii=np.full(sel.size, 0.25, np.float32),
+                    labels=np.asarray(label)[hp],
+                ).partition(n_pos),
+                *rr.Ellipsoids3D.columns(
+                    centers=pos[sel_c],
+                    half_sizes=half[sel_c],
+                    quaternions=quat[sel_c],
+                    colors=colors[sel_c],
+                    line_radii=np.full(sel_c.size, 0.02, np.float32),
+                ).partition(ok.astype(np.int64)),
+            ],
         )
         # diffraction paths, decimated in measurement time
         if n_links and anchors is not None:
@@ -977,37 +1088,46 @@ def log_estimates(
 
     # ---- exclusions: an event when an anchor becomes excluded (or changes reason) for a node
     if n_links:
-        lorder = np.lexsort((t[lf], est.link_anchor_id, est.node_id[lf]))
+        # integer codes: sorting and comparing ints is much cheaper than strings
+        node_u, node_c = np.unique(est.node_id, return_inverse=True)
+        cur_str = np.where(est.link_used, "", est.link_reason)
+        reason_u, reason_c = np.unique(cur_str, return_inverse=True)
+        lorder = np.lexsort((t[lf], anc_c, node_c[lf]))
         ex_t, ex_txt, ex_lvl = [], [], []
-        node_l, anc_l, used_l, reason_l, t_l = (
-            est.node_id[lf][lorder],
-            est.link_anchor_id[lorder],
-            est.link_used[lorder],
-            est.link_reason[lorder],
-            t[lf][lorder],
-        )
-        # transitions detected on the sorted arrays (vectorised), then state carried over
-        same = np.zeros(n_links, bool)
-        same[1:] = (node_l[1:] == node_l[:-1]) & (anc_l[1:] == anc_l[:-1])
-        prev_reason = np.empty(n_links, dtype=object)
-        prev_reason[1:] = np.where(used_l[:-1], "", reason_l[:-1])
-        first_idx = np.flatnonzero(~same)
+        nl, al, cl, tl = node_c[lf][lorder], anc_c[lorder], reason_c[lorder], t[lf][lorder]
+        empty = np.flatnonzero(reason_u == "")
+        empty_code = int(empty[0]) if empty.size else -1
+        first = np.ones(n_links, bool)
+        first[1:] = (nl[1:] != nl[:-1]) | (al[1:] != al[:-1])
+        changed = np.zeros(n_links, bool)
+        changed[1:] = cl[1:] != cl[:-1]
+        first_idx = np.flatnonzero(first)
+        # the first link of each (node, anchor) pair compares with the previous batch's state
         for i in first_idx:
-            prev_reason[i] = st.last_links.get(str(node_l[i]), {}).get(str(anc_l[i]), "")
-        cur_reason = np.where(used_l, "", reason_l)
-        becomes = (~used_l) & (cur_reason != prev_reason)
-        recovers = used_l & (prev_reason != "")
-        for i in np.flatnonzero(becomes | recovers):
-            ex_t.append(t_l[i])
-            if used_l[i]:
-                ex_txt.append(f"node {node_l[i]}: anchor {anc_l[i]} used again")
+            before = st.last_links.get(str(node_u[nl[i]]), {}).get(str(anc_u[al[i]]), "")
+            changed[i] = str(reason_u[cl[i]]) != before
+        is_used = cl == empty_code
+        prev_excluded = np.zeros(n_links, bool)
+        prev_excluded[1:] = cl[:-1] != empty_code
+        for i in first_idx:
+            prev_excluded[i] = bool(
+                st.last_links.get(str(node_u[nl[i]]), {}).get(str(anc_u[al[i]]), "")
+            )
+        events_idx = np.flatnonzero(changed & (~is_used | prev_excluded))
+        for i in events_idx:
+            ex_t.append(tl[i])
+            node_s, anc_s = node_u[nl[i]], anc_u[al[i]]
+            if is_used[i]:
+                ex_txt.append(f"node {node_s}: anchor {anc_s} used again")
                 ex_lvl.append("INFO")
             else:
-                ex_txt.append(f"node {node_l[i]}: anchor {anc_l[i]} excluded ({reason_l[i]})")
+                ex_txt.append(f"node {node_s}: anchor {anc_s} excluded ({reason_u[cl[i]]})")
                 ex_lvl.append("WARN")
         last_idx = np.r_[first_idx[1:] - 1, n_links - 1]
         for i in last_idx:
-            st.last_links.setdefault(str(node_l[i]), {})[str(anc_l[i])] = str(cur_reason[i])
+            st.last_links.setdefault(str(node_u[nl[i]]), {})[str(anc_u[al[i]])] = str(
+                reason_u[cl[i]]
+            )
         if ex_t:
             events_t.append(np.asarray(ex_t, np.int64))
             events_text.append(ex_txt)
@@ -1015,7 +1135,13 @@ def log_estimates(
 
         # residual scatter per anchor and gating counts per fusion time
         used = est.link_used & np.isfinite(est.link_residual_m)
-        for aid, lrows in _group(est.link_anchor_id[used]):
+        used_idx = np.flatnonzero(used)
+        used_order = used_idx[np.argsort(anc_c[used_idx], kind="stable")]
+        used_bounds = np.searchsorted(anc_c[used_order], np.arange(len(anc_u) + 1))
+        for ai, aid in enumerate(anc_u.tolist()):
+            li = used_order[used_bounds[ai] : used_bounds[ai + 1]]
+            if not li.size:
+                continue
             if aid not in st.residual_styled:
                 st.residual_styled.add(aid)
                 rec.log(
@@ -1023,7 +1149,6 @@ def log_estimates(
                     rr.SeriesPoints(colors=[anchor_color(aid)], marker_sizes=[1.5], names=[aid]),
                     static=True,
                 )
-            li = np.flatnonzero(used)[lrows]
             li = li[np.argsort(t[lf[li]], kind="stable")]
             rec.send_columns(
                 f"metrics/residual_m/{aid}",
@@ -1389,6 +1514,10 @@ _KIND_BY_CLASS = {
     "GroundTruth": "truth",
     "PositionEstimate": "estimate",
     "FusionDiagnostics": "diagnostics",
+    "AnchorStateView": "anchor_state",
+    "TruthView": "truth",
+    "EstimateView": "estimate",
+    "DiagnosticsView": "diagnostics",
 }
 
 
@@ -1610,25 +1739,25 @@ def vec3(v: ArrayLike) -> tuple[float, float, float]:
 
 
 # ============================================================================ MCAP -> .rrd
-class _KindFilter(set):
-    """Topic filter for :meth:`McapScanner.iter_batches` that selects topics by kind.
+def _kind_scanner(path: str | Path, kinds: set[str]):
+    """A damage-tolerant MCAP scanner plus the live set of topics of the wanted ``kinds``.
 
-    The scanner only asks ``topic in filter``; answering by :func:`parse_topic` kind lets the
-    converter skip the (many) range messages without knowing the topics in advance.
+    ``McapScanner.iter_batches(topics)`` filters with ``topic in topics`` (a C-level set
+    lookup); the set is filled as the scanner registers channels, so topics of other kinds
+    (the many range messages) are skipped without being copied or decoded.
     """
+    from diffpos_services.mcap_io import McapScanner, parse_topic
 
-    def __init__(self, kinds: set[str]) -> None:
-        super().__init__()
-        self.kinds = kinds
-        self._cache: dict[str, bool] = {}
+    wanted: set[str] = set()
 
-    def __contains__(self, topic: object) -> bool:
-        hit = self._cache.get(topic)  # type: ignore[arg-type]
-        if hit is None:
-            from diffpos_services.mcap_io import parse_topic
+    class _Scanner(McapScanner):
+        def _add_channel(self, body, pos=0):  # type: ignore[override]
+            super()._add_channel(body, pos)
+            for ch in self.channels.values():
+                if ch.topic not in wanted and parse_topic(ch.topic)[0] in kinds:
+                    wanted.add(ch.topic)
 
-            hit = self._cache[str(topic)] = parse_topic(str(topic))[0] in self.kinds
-        return hit
+    return _Scanner(path), wanted
 
 
 def building_from_scenario_file(path: str | Path) -> BuildingOutline:
@@ -1743,50 +1872,39 @@ def mcap_to_rrd(
     dict
         Counts per kind, ``building`` (bool) and ``damage`` notes of the MCAP scan.
     """
-    from diffpos_services import messages as m
-    from diffpos_services.mcap_io import McapScanner, parse_topic
+    from diffpos_services.mcap_io import parse_topic
 
-    decoders = {
-        "AnchorState": m.decoder(m.AnchorState),
-        "GroundTruth": m.decoder(m.GroundTruth),
-        "PositionEstimate": m.decoder(m.PositionEstimate),
-        "FusionDiagnostics": m.decoder(m.FusionDiagnostics),
-    }
     kinds = set(_MCAP_KINDS)
     if estimates is not None:
         kinds -= {"estimate", "replay_estimate"}
     else:
         kinds.discard("estimate" if use_replayed else "replay_estimate")
-    sc = McapScanner(mcap_path)
+    sc, wanted = _kind_scanner(mcap_path, kinds)
     kind_of: dict[str, str] = {}
     msgs: list[Any] = []
     live: list[dict[str, Any]] = []
     bad = 0
-    for batch in sc.iter_batches(_KindFilter(kinds)):
+    for batch in sc.iter_batches(wanted):
         for raw in batch:
             kind = kind_of.get(raw.topic)
             if kind is None:
                 kind = kind_of[raw.topic] = parse_topic(raw.topic)[0]
-            struct_name = _MCAP_KINDS[kind]
-            if struct_name is None:
-                try:
-                    live.append(msgspec_json_loads(raw.data))
-                except ValueError:
-                    bad += 1
-                continue
+            dec = VIEW_DECODERS.get(kind)
             try:
-                msgs.append(decoders[struct_name](raw.data))
-            except ValueError:
+                if dec is None:  # liveliness events
+                    live.append(msgspec.json.decode(raw.data))
+                else:
+                    msgs.append(dec.decode(raw.data))
+            except (msgspec.DecodeError, msgspec.ValidationError):
                 bad += 1
     if estimates is not None:
         msgs.extend(estimates)
     outline = BuildingOutline.from_object(building) if building is not None else None
     if outline is None:
         outline = _building_from_attachments(sc.attachments)
-    wall = [
-        x.t_pub_wall_ns for x in msgs if type(x).__name__ in ("AnchorState", "PositionEstimate")
-    ]
-    meas = [x.t_ns for x in msgs if type(x).__name__ in ("AnchorState", "PositionEstimate")]
+    timed = [x for x in msgs if getattr(x, "t_pub_wall_ns", 0) and hasattr(x, "t_ns")]
+    wall = [x.t_pub_wall_ns for x in timed]
+    meas = [x.t_ns for x in timed]
     events = liveliness_events(live, wall_ns=wall, meas_ns=meas)
     counts = write_rrd_from_messages(
         msgs,
@@ -1803,35 +1921,6 @@ def mcap_to_rrd(
         "complete": sc.complete,
         "damage": list(sc.damage.notes),
     }
-
-
-def msgspec_json_loads(data: bytes) -> Any:
-    """``json.loads`` via msgspec (raises ``ValueError`` on bad JSON)."""
-    import msgspec
-
-    try:
-        return msgspec.json.decode(data)
-    except msgspec.DecodeError as exc:
-        raise ValueError(str(exc)) from None
-
-
-def key_of(msg: Any, *, site: str = "demo") -> str:
-    """The bus key a message is published on (for writing synthetic runs to MCAP/Zenoh)."""
-    from diffpos_services.keys import Keys
-
-    keys = Keys(site)
-    name = type(msg).__name__
-    if name == "AnchorState":
-        return keys.anchor_state(msg.anchor_id)
-    if name == "PositionEstimate":
-        return keys.node_estimate(msg.node_id)
-    if name == "GroundTruth":
-        return keys.truth_node(msg.id) if msg.entity == "node" else keys.truth_anchor(msg.id)
-    if name == "FusionDiagnostics":
-        return keys.fusion_diagnostics()
-    if name == "RangeMeasurement":
-        return keys.anchor_range(msg.anchor_id, msg.node_id)
-    raise ValueError(f"no bus key for message type {name}")
 
 
 def rrd_rows(path: str | Path) -> dict[str, list[tuple[int | None, dict[str, Any]]]]:
@@ -1861,3 +1950,22 @@ def rrd_rows(path: str | Path) -> dict[str, list[tuple[int | None, dict[str, Any
     for v in rows.values():
         v.sort(key=lambda r: (r[0] is not None, r[0] or 0))
     return rows
+
+
+def key_of(msg: Any, *, site: str = "demo") -> str:
+    """The bus key a message is published on (for writing synthetic runs to MCAP/Zenoh)."""
+    from diffpos_services.keys import Keys
+
+    keys = Keys(site)
+    name = type(msg).__name__
+    if name == "AnchorState":
+        return keys.anchor_state(msg.anchor_id)
+    if name == "PositionEstimate":
+        return keys.node_estimate(msg.node_id)
+    if name == "GroundTruth":
+        return keys.truth_node(msg.id) if msg.entity == "node" else keys.truth_anchor(msg.id)
+    if name == "FusionDiagnostics":
+        return keys.fusion_diagnostics()
+    if name == "RangeMeasurement":
+        return keys.anchor_range(msg.anchor_id, msg.node_id)
+    raise ValueError(f"no bus key for message type {name}")

@@ -32,8 +32,14 @@ from typing import Any, ClassVar, Literal
 
 import rerun as rr
 
-from . import messages as m
-from .dashboard import APP_ID, BuildingOutline, Dashboard, EventColumns, default_blueprint
+from .dashboard import (
+    APP_ID,
+    VIEW_DECODERS,
+    BuildingOutline,
+    Dashboard,
+    EventColumns,
+    default_blueprint,
+)
 from .keys import Keys, parse_key
 from .servicekit import log_event
 
@@ -185,11 +191,10 @@ class DashboardService:
     logger : logging.Logger, optional
     """
 
+    #: the bus kinds drawn, and their fast view decoders (see ``dashboard.VIEW_DECODERS``)
     _DECODERS: ClassVar[dict[str, Any]] = {
-        "anchor_state": m.decoder(m.AnchorState),
-        "estimate": m.decoder(m.PositionEstimate),
-        "truth_node": m.decoder(m.GroundTruth),
-        "diagnostics": m.decoder(m.FusionDiagnostics),
+        k: VIEW_DECODERS[k].decode
+        for k in ("anchor_state", "estimate", "truth_node", "diagnostics")
     }
 
     def __init__(
@@ -200,7 +205,7 @@ class DashboardService:
         site: str,
         building: BuildingOutline | None = None,
         ring_size: int = 200_000,
-        drain_period_s: float = 0.2,
+        drain_period_s: float = 0.5,
         logger: logging.Logger | None = None,
     ) -> None:
         if ring_size < 1:
