@@ -835,9 +835,9 @@ def make_dev_certs(
     Keys are ECDSA P-256 in PKCS#8 PEM, private keys written with mode 0600.
     """
     out = Path(out_dir)
-    (out / "clients").mkdir(parents=True, exist_ok=True) if clients else out.mkdir(
-        parents=True, exist_ok=True
-    )
+    out.mkdir(parents=True, exist_ok=True)
+    if clients:
+        (out / "clients").mkdir(exist_ok=True)
     if not hosts:
         raise SecurityError(
             "hosts: the router certificate needs at least one DNS name or IP address"

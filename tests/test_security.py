@@ -508,3 +508,23 @@ def test_ca_bundle_allows_overlapping_rotation(bus, tmp_path):
     cfg = bus.config("recorder", timeout_ms=5000)
     cfg["transport"]["link"]["tls"]["root_ca_certificate"] = str(bundle)
     assert not _refused(cfg)
+
+
+def test_make_dev_certs_script_and_password_rotation(tmp_path):
+    """security/make_dev_certs.py writes certificates; --new-passwords rotates and re-renders."""
+    import shutil
+
+    for name in ("profile.dev.toml", "credentials.dev.txt"):
+        shutil.copy(REPO / "security" / name, tmp_path / name)
+    old = zs.read_credentials(tmp_path / "credentials.dev.txt")
+    r = subprocess.run([sys.executable, str(REPO / "security" / "make_dev_certs.py"), "--out",
+                        str(tmp_path / "certs"), "--days", "1", "--client", "fusion", "--new-passwords",
+                        "--profile", str(tmp_path / "profile.dev.toml")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "DEV ONLY" in r.stdout
+    for f in ("ca.pem", "ca.key", "router.pem", "router.key", "clients/fusion.pem", "clients/fusion.key"):
+        assert (tmp_path / "certs" / f).is_file(), f
+    new = zs.read_credentials(tmp_path / "credentials.dev.txt")
+    assert new.keys() == old.keys() and all(new[u] != old[u] for u in new)
+    fusion = (tmp_path / "zenoh" / "fusion.json5").read_text()
+    assert new["fusion"] in fusion and "/security/certs/ca.pem" in fusion
