@@ -50,6 +50,7 @@ __all__ = [
     "PositioningStudy",
     "empirical_cdf",
     "first_arrival_statistics",
+    "floor_starts_m",
     "percentile_summary",
     "positioning_study",
 ]
@@ -288,6 +289,16 @@ def _chunks(n: int, size: int) -> list[slice]:
     return [slice(i, min(i + size, n)) for i in range(0, n, size)]
 
 
+def floor_starts_m(building: Any) -> FloatArray:
+    """Nominal node height of every floor of ``building`` [m]: the floor hypotheses.
+
+    ``first_floor_z_m + k floor_height_m + sill_height_m + w/2`` for ``k = 0..n_floors-1``
+    (Assumption 1: the node at the window's mid-height).
+    """
+    k = np.arange(building.n_floors)
+    return np.asarray(building.floor_z_m(k) + building.nominal_node_height_m, dtype=np.float64)
+
+
 def positioning_study(
     data: FirstArrivalData,
     *,
@@ -295,6 +306,8 @@ def positioning_study(
     edge_x_m: tuple[float, float] | None = None,
     delta_case2_m: float = 1.5,
     methods: Sequence[str] = DEFAULT_METHODS,
+    z_starts_m: ArrayLike | None = None,
+    start_y_m: float | None = None,
     chunk_size: int = 2048,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> PositioningStudy:
@@ -309,6 +322,14 @@ def positioning_study(
         Extent of the window edges along x (the building width), known a priori (Cor. 3).
     delta_case2_m : float [m]
         Model offset of D-NLS Case-2 (paper: 1.5 m).
+    z_starts_m : array_like, shape (S,), optional [m]
+        Floor hypotheses for the multi-start of D-NLS and IPPA, e.g. the node heights of the
+        building's floors (the authors' ``ippa_floor.m`` starts once per floor). Default: the
+        estimators' generic grid (every 3 m from 0 to 30 m).
+    start_y_m : float, optional [m]
+        Depth of the IPPA starts (e.g. the middle of the building). IPPA with all-NLoS balls
+        barely moves in x-y when all anchors are on one side, so its x-y error is mostly the
+        distance from this start. Default: the estimator's default (3 m).
     methods : sequence of str
         Keys of :data:`METHOD_LABELS` (except ``"peb"``, always computed).
     chunk_size : int
@@ -333,15 +354,20 @@ def positioning_study(
     nlos = np.asarray(data.mpc_class) != 1
     dnls_delta = {"dnls_case1": 0.0, "dnls_case2": delta_case2_m, "dnls_lower": window_height_m}
 
+    ippa_start: dict[str, Any] = {"z_starts_m": z_starts_m}
+    if start_y_m is not None:
+        ippa_start["y_start_m"] = start_y_m
+
     def solve(method: str, sl: slice):
         b = sl.stop - sl.start
         a = np.broadcast_to(anchors, (b, *anchors.shape))
         if method == "lls":
             return lls(a, ranges[sl], None, mask=mask[sl])
         if method == "ippa":
-            return ippa(a, ranges[sl], None, mask=mask[sl], nlos=nlos[sl])
+            return ippa(a, ranges[sl], None, mask=mask[sl], nlos=nlos[sl], **ippa_start)
         return dnls(a, ranges[sl], None, mask=mask[sl], window_height_m=window_height_m,
-                    delta_m=dnls_delta[method], edge_x_m=edge_x_m, gating=None)
+                    delta_m=dnls_delta[method], edge_x_m=edge_x_m, gating=None,
+                    z_starts_m=z_starts_m)
 
     positions: dict[str, FloatArray] = {}
     e3: dict[str, FloatArray] = {}

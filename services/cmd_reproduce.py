@@ -66,6 +66,7 @@ from diffpos.study import (
     PositioningStudy,
     empirical_cdf,
     first_arrival_statistics,
+    floor_starts_m,
     method_label,
     positioning_study,
 )
@@ -220,6 +221,8 @@ def compute(args: argparse.Namespace, scenario: Scenario) -> dict[str, Any]:
             data, window_height_m=scenario.building.window_height_m,
             edge_x_m=scenario.building.edge_x_m, delta_case2_m=args.delta_m,
             methods=tuple(args.methods), progress=lambda m, d, n: prog.update(m, d),
+            z_starts_m=floor_starts_m(scenario.building),
+            start_y_m=0.5 * scenario.building.depth_m,
         )
         timing["positioning_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_all
