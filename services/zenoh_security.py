@@ -164,19 +164,7 @@ class SecurityProfile:
                 f"users: the user name(s) {sorted(dup)} are used by more than one identity"
             )
         for name in ("listen", "connect"):
-            eps = getattr(self, name)
-            if not eps:
-                raise SecurityError(f"{name}: give at least one endpoint")
-            for e in eps:
-                m = _ENDPOINT_RE.match(e)
-                if not m:
-                    raise SecurityError(
-                        f"{name}: {e!r} is not a Zenoh endpoint such as 'tls/router:7447'"
-                    )
-                if m.group(1) not in ("tls", "quic"):
-                    raise SecurityError(
-                        f"{name}: {e!r} is not encrypted; a security profile only uses 'tls/' (or 'quic/') endpoints"
-                    )
+            _check_encrypted(getattr(self, name), field_name=name)
 
     # -- identities ----------------------------------------------------------------------
     def identities(self) -> dict[str, tuple[str, str | None]]:
@@ -199,6 +187,21 @@ class SecurityProfile:
 def anchor_user(anchor_id: str) -> str:
     """User name of anchor ``anchor_id`` (``anchor-<id>``)."""
     return f"anchor-{anchor_id}"
+
+
+def _check_encrypted(endpoints: Sequence[str], *, field_name: str) -> None:
+    """Raise :class:`SecurityError` unless every endpoint is a ``tls/``/``quic/`` locator."""
+    if not endpoints:
+        raise SecurityError(f"{field_name}: give at least one endpoint")
+    for e in endpoints:
+        m = _ENDPOINT_RE.match(str(e))
+        if not m:
+            raise SecurityError(f"{field_name}: {e!r} is not a Zenoh endpoint such as 'tls/router:7447'")
+        if m.group(1) not in ("tls", "quic"):
+            raise SecurityError(
+                f"{field_name}: {e!r} is not encrypted; a security profile only uses "
+                "'tls/' (or 'quic/') endpoints"
+            )
 
 
 def _check_user(user: Any, *, field_name: str) -> str:
@@ -497,6 +500,7 @@ def router_config(
         container); default: its real location on this machine.
     """
     listen = tuple(listen) if listen is not None else profile.listen
+    _check_encrypted(listen, field_name="listen")
     tls: dict[str, Any] = {
         "root_ca_certificate": profile.path(profile.ca_certificate, base_dir=base_dir),
         "listen_certificate": profile.path(profile.router_certificate, base_dir=base_dir),
@@ -548,6 +552,8 @@ def client_config(
     base_dir : str or Path, optional
         As in :func:`router_config`.
     """
+    if connect is not None:
+        _check_encrypted(connect, field_name="connect")
     ids = profile.identities()
     if user not in ids:
         raise SecurityError(

@@ -528,3 +528,11 @@ def test_make_dev_certs_script_and_password_rotation(tmp_path):
     assert new.keys() == old.keys() and all(new[u] != old[u] for u in new)
     fusion = (tmp_path / "zenoh" / "fusion.json5").read_text()
     assert new["fusion"] in fusion and "/security/certs/ca.pem" in fusion
+
+
+def test_plain_endpoint_overrides_are_refused(tmp_path):
+    profile = zs.profile_from_dict({"anchors": ["uav1"]}, root=tmp_path)
+    with pytest.raises(zs.SecurityError, match=r"listen.*not encrypted"):
+        zs.router_config(profile, listen=["tcp/0.0.0.0:7447"])
+    with pytest.raises(zs.SecurityError, match=r"connect.*not encrypted"):
+        zs.client_config(profile, "anchor-uav1", password="x", connect=["tcp/router:7447"])
