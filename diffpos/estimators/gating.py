@@ -104,9 +104,12 @@ def _chi2_isf(dof: int, false_alarm_probability: float) -> float:
 def chi2_threshold(dof: NDArray[np.int_], false_alarm_probability: float) -> FloatArray:
     """Chi-square test threshold per fix; NaN where ``dof < 1`` (no test possible)."""
     dof = np.asarray(dof)
-    table = np.full(int(dof.max(initial=0)) + 1, np.nan)
-    for d in np.unique(dof[dof >= 1]):
-        table[d] = _chi2_isf(int(d), float(false_alarm_probability))
+    if dof.size == 0:
+        return np.full(dof.shape, np.nan)
+    hi = int(dof.max())
+    table = np.full(max(hi, 0) + 1, np.nan)
+    for d in range(1, hi + 1):  # dof <= number of anchors: a short loop over a cached table
+        table[d] = _chi2_isf(d, float(false_alarm_probability))
     return table[np.maximum(dof, 0)]
 
 
