@@ -31,6 +31,7 @@ examples:
   diffpos raytrace scenarios/paper.toml --receivers 2000 --out out/rt2000.npz
   diffpos raytrace scenarios/paper.toml --samples 1000000 --receivers 500
   diffpos raytrace scenarios/paper.toml               every receiver of the grid (minutes)
+  diffpos raytrace --compare tests/data/raytrace_small.npz    re-print the comparison
 """
 
 from __future__ import annotations
@@ -46,8 +47,11 @@ QUICK_RECEIVERS = 200
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scenario", help="scenario TOML file, or 'paper' for the built-in "
-                        "paper geometry")
+    parser.add_argument("scenario", nargs="?", help="scenario TOML file, or 'paper' for the "
+                        "built-in paper geometry")
+    parser.add_argument("--compare", type=Path, metavar="FILE",
+                        help="do not trace: print the emulator comparison for an existing "
+                        "dataset (needs no Sionna)")
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--receivers", type=int, metavar="N",
                       help="trace N receivers evenly spread over the scenario's grid "
@@ -124,6 +128,9 @@ def _report(ds, console) -> None:
     console.print(c)
     d = np.abs(cmp["path_diff_m"])
     console.print(f"first-arrival group agreement: {100 * cmp['class_agreement']:.1f} % of links")
+    console.print(f"the ray tracer has the emulator's first-arrival path (same length to 1 mm) on "
+                  f"{100 * cmp['found_emulator_fap']:.1f} % of links; group agreement there: "
+                  f"{100 * cmp['class_agreement_found']:.1f} %")
     if d.size:
         console.print(f"both MPC-3 ({cmp['both_mpc3']} links): |RT - emulator| first-arrival "
                       f"length median {np.median(d) * 1e3:.3f} mm, "
@@ -148,6 +155,20 @@ def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     err = lambda msg: console.print(f"diffpos raytrace: {msg}", style="red",  # noqa: E731
                                     markup=False, highlight=False, soft_wrap=True)
+    if args.compare is not None:
+        try:
+            ds = rtm.load_dataset(args.compare)
+        except ValueError as exc:
+            err(str(exc))
+            return 2
+        console.print(f"{args.compare}: {len(ds.nodes_m)} receivers x {len(ds.anchors_m)} "
+                      f"anchors, scenario {ds.metadata['scenario']['name']!r}, "
+                      f"{ds.metadata['settings']['samples_per_src']:.0e} samples")
+        _report(ds, console)
+        return 0
+    if args.scenario is None:
+        err("give a SCENARIO to trace (a TOML file or 'paper'), or --compare FILE")
+        return 2
     try:
         scenario = _load_scenario(args.scenario)
         settings = rtm.RaytraceSettings(max_depth=args.max_depth,

@@ -180,14 +180,26 @@ def check_sionna() -> dict[str, str]:
         raise RaytraceUnavailable(
             f"Mitsuba could not start its LLVM backend ({where}): {exc}. {INSTALL_HINT}"
         ) from None
+    import drjit as dr
+
+    try:
+        llvm_version = tuple(dr.detail.llvm_version())
+    except Exception:  # pragma: no cover - older Dr.Jit without the query
+        llvm_version = ()
+    if llvm_version and llvm_version[0] <= 15:
+        # LLVM 14 is refused by Dr.Jit, LLVM 15 loads but aborts the process on the first solve
+        raise RaytraceUnavailable(
+            f"Dr.Jit loaded LLVM {'.'.join(map(str, llvm_version))} "
+            f"({llvm or 'found on the library path'}), which crashes the ray tracer; "
+            f"{INSTALL_HINT}")
     try:
         import sionna.rt as rt
     except Exception as exc:
         raise RaytraceUnavailable(f"sionna.rt failed to import ({exc}): {INSTALL_HINT}") from None
-    import drjit as dr
 
     return {"sionna-rt": str(getattr(rt, "__version__", "?")), "mitsuba": mi.__version__,
-            "drjit": dr.__version__, "libllvm": llvm, "variant": VARIANT}
+            "drjit": dr.__version__, "libllvm": llvm, "variant": VARIANT,
+            "llvm": ".".join(map(str, llvm_version))}
 
 
 # --------------------------------------------------------------------------------------------
@@ -891,7 +903,9 @@ def compare_with_emulator(ds: RaytraceDataset, *, radio: Radio | None = None) ->
     -------
     dict
         ``links``; ``class_agreement`` (fraction of links with the same first-arrival group,
-        undetected = group 0); ``confusion`` (5 x 5 counts, rows emulator group 0..4, columns
+        undetected = group 0); ``found_emulator_fap`` (fraction of the emulator's detected
+        first-arrival paths that the ray tracer has too, same length to 1 mm) and
+        ``class_agreement_found`` (group agreement on those links); ``confusion`` (5 x 5 counts, rows emulator group 0..4, columns
         ray tracer); ``both_mpc3`` (links where both first arrivals are group 3);
         ``path_diff_m`` (ray tracer - emulator first-arrival length on those links, array);
         ``path_diff_all_m`` (on every link detected by both, array); ``stats_emulator`` and
@@ -911,7 +925,13 @@ def compare_with_emulator(ds: RaytraceDataset, *, radio: Radio | None = None) ->
     both = fe.detected & fr.detected
     fc = edge_fermat_check(ds)
     err = np.abs(fc["error_m"])
+    dmin = np.where(ds.path_valid, np.abs(ds.path_length_m - fe.true_path_m[..., None]),
+                    np.inf).min(axis=-1)
+    found = fe.detected & (dmin < 1e-3)
     return {
+        "found_emulator_fap": float(found.sum() / max(fe.detected.sum(), 1)),
+        "class_agreement_found": float(np.mean((fe.mpc_class == fr.mpc_class)[found]))
+        if found.any() else float("nan"),
         "links": int(fe.mpc_class.size),
         "class_agreement": float(np.mean(fe.mpc_class == fr.mpc_class)),
         "confusion": conf,

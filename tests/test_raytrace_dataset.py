@@ -345,3 +345,14 @@ def test_cli_bad_input_is_a_clear_error(capsys) -> None:
     assert "no such file" in capsys.readouterr().err
     assert cli.main(["raytrace", "paper", "--receivers", "0"]) == 2
     assert "--receivers" in capsys.readouterr().err
+
+
+def test_cli_compare_prints_the_comparison(capsys) -> None:
+    from diffpos_services import cli
+
+    assert cli.main(["raytrace", "--compare", str(DATA)]) == 0
+    err = capsys.readouterr().err
+    assert "Fermat check" in err and "first-arrival group agreement" in err
+    c = rt.compare_with_emulator(rt.load_dataset(DATA))
+    assert c["confusion"].sum() == c["links"] == 640
+    assert 0.5 < c["found_emulator_fap"] <= 1 and c["class_agreement_found"] > c["class_agreement"]
