@@ -216,3 +216,19 @@ def test_real_process_pipe():
     assert recs[0]["status"] == "ok" and recs[0]["id"] == 1
     assert recs[1]["status"] == "invalid_input" and "anchors_m" in recs[1]["message"]
     assert "Traceback" not in proc.stderr
+
+
+def test_batch_1_answers_each_line_before_the_next_arrives():
+    exe = Path(sys.executable).parent / "diffpos"
+    proc = subprocess.Popen([str(exe), "solve", "--batch", "1"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        for node in ([2.0, 5.0, 10.5], [-3.0, 7.0, 4.5]):
+            proc.stdin.write(json.dumps(_problem(node)) + "\n")
+            proc.stdin.flush()
+            rec = json.loads(proc.stdout.readline())  # blocks until this line is answered
+            assert np.allclose(rec["position_m"], node, atol=1e-6)
+    finally:
+        proc.stdin.close()
+        assert proc.wait(timeout=60) == 0
+        proc.stdout.close()
