@@ -39,6 +39,7 @@ from diffpos.alignment import (
 from . import messages as M
 from .keys import Keys, parse_key
 from .servicekit import LogOnce, log_event
+from .zenoh_config import ZenohSettings, open_session
 
 __all__ = ["FusionConfig", "FusionCore", "run_fusion"]
 
@@ -199,7 +200,10 @@ class FusionCore:
                 self._reject(key, "nonfinite")
                 return
             anchor.history.add(
-                msg.t_ns, msg.position_m, msg.velocity_m_s, msg.position_sigma_m,
+                msg.t_ns,
+                msg.position_m,
+                msg.velocity_m_s,
+                msg.position_sigma_m,
                 msg.velocity_sigma_m_s,
             )
             anchor.states += 1
@@ -209,10 +213,20 @@ class FusionCore:
             if r is not None and not np.isfinite(r):
                 self._reject(key, "nonfinite")
                 return
-            if r is not None and self.config.min_snr_db is not None and msg.snr_db < self.config.min_snr_db:
+            if msg.sigma_m is None or (
+                self.config.min_snr_db is not None
+                and (msg.snr_db is None or msg.snr_db < self.config.min_snr_db)
+            ):
                 r = None
             anchor.ranges += 1
-            entry = RangeEntry(msg.t_ns, r, msg.sigma_m, msg.snr_db, msg.t_pub_wall_ns, rx_wall_ns)
+            entry = RangeEntry(
+                msg.t_ns,
+                r,
+                msg.sigma_m or 1.0,
+                msg.snr_db if msg.snr_db is not None else -np.inf,
+                msg.t_pub_wall_ns,
+                rx_wall_ns,
+            )
             if not self.book.add(anchor.id, msg.node_id, entry):
                 self.rejected["late"] += 1
         if anchor.last_t_ns is None or msg.t_ns > anchor.last_t_ns:
@@ -249,8 +263,11 @@ class FusionCore:
         from diffpos.geometry import window_edge_path
 
         cfg = self.config
-        ids = sorted({a for pe in epochs for a in pe.ranges} | set(self.live_anchors)
-                     | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None})
+        ids = sorted(
+            {a for pe in epochs for a in pe.ranges}
+            | set(self.live_anchors)
+            | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None}
+        )
         col = {a: j for j, a in enumerate(ids)}
         b, m = len(epochs), len(ids)
         t = np.zeros((b, m), np.int64)
@@ -281,11 +298,11 @@ class FusionCore:
             apos[rows, j], asig[rows, j], have_state[rows, j] = p, s, ok
         use = detected & have_state
         n_use = use.sum(axis=1)
-        t_ref = np.where(
-            n_use > 0,
-            np.round(np.sum(np.where(use, t, 0), axis=1) / np.maximum(n_use, 1)),
-            np.max(np.where(reported, t, _NEG), axis=1),
-        ).astype(np.int64)
+        # mean time of the used ranges, relative to a per-row base (int64 sums of absolute
+        # ns times would overflow beyond 4 anchors)
+        base = np.max(np.where(reported, t, _NEG), axis=1)
+        rel = np.where(use, t - base[:, None], 0).astype(np.float64)
+        t_ref = base + np.round(rel.sum(axis=1) / np.maximum(n_use, 1)).astype(np.int64)
         dt_s = np.where(use, (t - t_ref[:, None]) * 1e-9, 0.0)
         # warm start / motion compensation from the node's track
         x0 = np.full((b, 3), np.nan)
@@ -305,17 +322,27 @@ class FusionCore:
         safe_apos = np.where(use[..., None], apos, 0.0)
         if np.any(comp):
             jac = window_edge_path(
-                safe_apos, np.where(comp[:, None], x0, 0.0)[:, None, :],
-                window_height_m=cfg.window_height_m, delta_m=cfg.delta_m, edge_x_m=cfg.edge_x_m,
+                safe_apos,
+                np.where(comp[:, None], x0, 0.0)[:, None, :],
+                window_height_m=cfg.window_height_m,
+                delta_m=cfg.delta_m,
+                edge_x_m=cfg.edge_x_m,
             ).jacobian
-            rng = np.where(comp[:, None] & use, compensate_node_motion(rng, jac, vel[:, None, :], dt_s), rng)
+            rng = np.where(
+                comp[:, None] & use, compensate_node_motion(rng, jac, vel[:, None, :], dt_s), rng
+            )
         speed_sigma = np.where(comp, cfg.velocity_sigma_m_s, cfg.node_speed_sigma_m_s)
-        los = np.where(np.isfinite(x0[:, None, :]), x0[:, None, :], np.array([0.0, 5.0, 6.0])) - safe_apos
+        los = (
+            np.where(np.isfinite(x0[:, None, :]), x0[:, None, :], np.array([0.0, 5.0, 6.0]))
+            - safe_apos
+        )
         sig_eff = effective_sigma_m(sig, asig, los, dt_s, speed_sigma[:, None])
         sig_eff = np.where(use, sig_eff, 1.0)
         rng_in = np.where(use, rng, 0.0)
         common: dict[str, Any] = dict(
-            window_height_m=cfg.window_height_m, delta_m=cfg.delta_m, edge_x_m=cfg.edge_x_m,
+            window_height_m=cfg.window_height_m,
+            delta_m=cfg.delta_m,
+            edge_x_m=cfg.edge_x_m,
             gating=self.gating,
         )
         warm = np.isfinite(x0).all(axis=1)
@@ -340,13 +367,21 @@ class FusionCore:
         good = (int(FixStatus.OK), int(FixStatus.OK_UNVERIFIED))
         rows_w = np.flatnonzero(warm)
         if rows_w.size:
-            fix = dnls(safe_apos[rows_w], rng_in[rows_w], sig_eff[rows_w], mask=use[rows_w],
-                       x0_m=x0[rows_w], **common)
+            fix = dnls(
+                safe_apos[rows_w],
+                rng_in[rows_w],
+                sig_eff[rows_w],
+                mask=use[rows_w],
+                x0_m=x0[rows_w],
+                **common,
+            )
             put(rows_w, fix)
         retry = ~warm | ~np.isin(res_status, good)
         rows_c = np.flatnonzero(retry)
         if rows_c.size:
-            fix = dnls(safe_apos[rows_c], rng_in[rows_c], sig_eff[rows_c], mask=use[rows_c], **common)
+            fix = dnls(
+                safe_apos[rows_c], rng_in[rows_c], sig_eff[rows_c], mask=use[rows_c], **common
+            )
             put(rows_c, fix)
         self.solved += b
 
@@ -371,7 +406,10 @@ class FusionCore:
                     else:
                         rcode = int(res_reason[i, j])
                         reason = ExclusionReason(rcode).name if rcode else "NOT_USED"
-                        if rcode in (int(ExclusionReason.RAIM), int(ExclusionReason.PREGATE_SHORTER_THAN_LOS)):
+                        if rcode in (
+                            int(ExclusionReason.RAIM),
+                            int(ExclusionReason.PREGATE_SHORTER_THAN_LOS),
+                        ):
                             self.gated += 1
                 elif a in lost:
                     reason = "ANCHOR_LOST"
@@ -473,17 +511,29 @@ def run_fusion(
         q.put((1, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, time.time_ns()))
 
     period_ns = int(config.diagnostics_period_s * 1e9)
-    with zenoh.open(zenoh_config) as session:
+    session = open_session(zenoh_config, stop, logger=log) if isinstance(
+        zenoh_config, ZenohSettings) else zenoh.open(zenoh_config)
+    if session is None:
+        return core
+    with session:
         est_pubs: dict[str, zenoh.Publisher] = {}
         diag_pub = session.declare_publisher(
-            keys.fusion_diagnostics(), encoding=zenoh.Encoding.APPLICATION_JSON,
+            keys.fusion_diagnostics(),
+            encoding=zenoh.Encoding.APPLICATION_JSON,
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         subs = [session.declare_subscriber(k, on_data) for k in keys.fusion_inputs()]
-        live_sub = session.liveliness().declare_subscriber(keys.alive_anchors(), on_alive, history=True)
+        live_sub = session.liveliness().declare_subscriber(
+            keys.alive_anchors(), on_alive, history=True
+        )
         token = session.liveliness().declare_token(keys.alive_fusion())
-        log_event(log, logging.INFO, "fusion ready", site=config.site,
-                  subscriptions=list(keys.fusion_inputs()))
+        log_event(
+            log,
+            logging.INFO,
+            "fusion ready",
+            site=config.site,
+            subscriptions=list(keys.fusion_inputs()),
+        )
         if on_ready is not None:
             on_ready()
         next_diag = time.time_ns() + period_ns
@@ -526,9 +576,12 @@ def run_fusion(
         finally:
             # flush what is pending so nothing already received is lost
             for est in core._solve(list(core.book.pending.values())) if core.book.pending else []:
-                session.put(keys.node_estimate(est.node_id), M.encode(est),
-                            encoding=zenoh.Encoding.APPLICATION_JSON,
-                            congestion_control=zenoh.CongestionControl.BLOCK)
+                session.put(
+                    keys.node_estimate(est.node_id),
+                    M.encode(est),
+                    encoding=zenoh.Encoding.APPLICATION_JSON,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
                 core.published += 1
             core.book.pending.clear()
             diag_pub.put(M.encode(core.diagnostics(time.time_ns())))
@@ -536,6 +589,12 @@ def run_fusion(
             live_sub.undeclare()
             for s in subs:
                 s.undeclare()
-            log_event(log, logging.INFO, "fusion stopped", solved=core.solved,
-                      published=core.published, rejected=dict(core.rejected))
+            log_event(
+                log,
+                logging.INFO,
+                "fusion stopped",
+                solved=core.solved,
+                published=core.published,
+                rejected=dict(core.rejected),
+            )
     return core

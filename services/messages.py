@@ -134,8 +134,8 @@ class AnchorState(_Msg, tag="diffpos.anchor_state.v1"):
 class RangeMeasurement(_Msg, tag="diffpos.range.v1"):
     """One first-arrival range from an anchor to a node.
 
-    ``range_m`` is ``null`` when no path was detected (the anchor still reports, so the fusion
-    knows not to wait for it).
+    ``range_m``, ``sigma_m`` and ``snr_db`` are ``null`` when no path was detected (the anchor
+    still reports, so the fusion knows not to wait for it).
     """
 
     anchor_id: Id
@@ -143,8 +143,10 @@ class RangeMeasurement(_Msg, tag="diffpos.range.v1"):
     t_ns: TimeNs
     seq: Seq
     range_m: Annotated[float, Meta(ge=0, description="Measured path length [m].")] | None
-    sigma_m: Annotated[float, Meta(gt=0, description="Ranging one-sigma (CRLB at the SNR) [m].")]
-    snr_db: Annotated[float, Meta(description="SNR of the first arriving path [dB].")]
+    sigma_m: (
+        Annotated[float, Meta(gt=0, description="Ranging one-sigma (CRLB at the SNR) [m].")] | None
+    )
+    snr_db: Annotated[float, Meta(description="SNR of the first arriving path [dB].")] | None
     t_pub_wall_ns: WallNs
 
 
@@ -171,7 +173,9 @@ class PositionEstimate(_Msg, tag="diffpos.estimate.v1"):
     """
 
     node_id: Id
-    t_ns: Annotated[int, Meta(description="Fix reference time (mean of the used range times) [ns].")]
+    t_ns: Annotated[
+        int, Meta(description="Fix reference time (mean of the used range times) [ns].")
+    ]
     epoch: Annotated[int, Meta(description="Fusion epoch index floor(t / epoch_period).")]
     seq: Seq
     status: FixStatusName
@@ -216,9 +220,10 @@ class FusionDiagnostics(_Msg, tag="diffpos.fusion_diagnostics.v1"):
     """Periodic counters of the fusion service (cumulative since start)."""
 
     t_wall_ns: WallNs
-    watermark_ns: Annotated[
-        int, Meta(description="Newest measurement time seen from any anchor [ns].")
-    ] | None
+    watermark_ns: (
+        Annotated[int, Meta(description="Newest measurement time seen from any anchor [ns].")]
+        | None
+    )
     received: Annotated[dict[str, int], Meta(description="Messages received per kind.")]
     rejected: Annotated[dict[str, int], Meta(description="Messages rejected per reason.")]
     gated: Annotated[int, Meta(ge=0, description="Measurements excluded by outlier gating.")]

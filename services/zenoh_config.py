@@ -131,3 +131,32 @@ def settings_from_args(args: argparse.Namespace) -> ZenohSettings:
         connect=tuple(args.connect or [DEFAULT_CONNECT]),
         connect_timeout_ms=int(args.connect_timeout_ms),
     )
+
+
+def open_session(settings: ZenohSettings, stop=None, *, logger=None, attempt_ms: int = 1000):
+    """Open a Zenoh session, retrying while the router is not up yet; ``None`` if ``stop``.
+
+    ``zenoh.open`` blocks inside Rust where Python signal handlers cannot run, so instead of
+    an unbounded wait (``connect_timeout_ms = -1``) this retries bounded attempts and checks
+    ``stop`` (a ``threading.Event``) between them: SIGTERM during start-up is honoured.
+    """
+    import logging
+
+    import zenoh
+
+    if settings.mode == "router" or settings.connect_timeout_ms >= 0:
+        return zenoh.open(settings.to_config())
+    bounded = ZenohSettings(mode=settings.mode, connect=settings.connect, listen=settings.listen,
+                            connect_timeout_ms=attempt_ms)
+    attempt = 0
+    while stop is None or not stop.is_set():
+        try:
+            return zenoh.open(bounded.to_config())
+        except zenoh.ZError as exc:
+            attempt += 1
+            if (logger is not None and attempt in (1, 10)) or attempt % 60 == 0:
+                (logger or logging.getLogger("diffpos")).info(
+                    "waiting for the router", extra={"fields": {
+                        "connect": list(settings.connect), "attempt": attempt,
+                        "error": str(exc).split(" at ")[0]}})
+    return None

@@ -32,17 +32,17 @@ def _cfg(**kw):
 
 
 def _feed_epoch(core, e, nodes, rng, *, anchors=ANCHORS, sigma=0.05, bias=None,
-                node_vel=None, phases=None, wall=0):
+                node_vel=None, phases=None, wall=0, t_base_ns=0):
     """All anchors report state + a range to every node at their own phase in epoch e."""
     for j, (aid, apos) in enumerate(anchors.items()):
         ph = (phases or {}).get(aid, 0.1 + 0.15 * j)
-        t_ns = e * PERIOD_NS + int(ph * PERIOD_NS)
+        t_ns = t_base_ns + e * PERIOD_NS + int(ph * PERIOD_NS)
         st = M.AnchorState(anchor_id=aid, t_ns=t_ns, seq=e, position_m=M.vec3(apos),
                            velocity_m_s=(0.0, 0.0, 0.0), position_sigma_m=(0.01, 0.01, 0.01),
                            velocity_sigma_m_s=0.0, range_rate_hz=10.0, t_pub_wall_ns=wall)
         core.on_sample(KEYS.anchor_state(aid), M.encode(st), wall)
         for nid, npos in nodes.items():
-            p = npos if node_vel is None else npos + node_vel[nid] * (t_ns * 1e-9)
+            p = npos if node_vel is None else npos + node_vel[nid] * ((t_ns - t_base_ns) * 1e-9)
             r = float(window_edge_path(apos, p, window_height_m=W, edge_x_m=EDGE).length_m)
             r += rng.normal(0, sigma) + (bias or {}).get((aid, nid), 0.0)
             msg = M.RangeMeasurement(anchor_id=aid, node_id=nid, t_ns=t_ns, seq=e, range_m=r,
@@ -202,3 +202,19 @@ def test_config_errors_name_the_field():
         _cfg(site="a/b")
     with pytest.raises(ConfigError, match="epoch_period_s"):
         _cfg(epoch_period_s="fast")
+
+
+def test_absolute_unix_times_with_many_anchors_do_not_overflow():
+    """8 anchors at ~1.8e18 ns: the fix time must stay inside the epoch (int64 sums overflow)."""
+    many = {f"u{i}": np.array([-20.0 + 5 * i, -10.0 - i, 1.0 + (i % 3) * 3]) for i in range(8)}
+    t_base = 1_795_257_866 * 10**9
+    core = FusionCore(_cfg())
+    rng = np.random.default_rng(8)
+    _feed_epoch(core, 0, NODES, rng, anchors=many, t_base_ns=t_base,
+                phases={a: 0.1 * (i + 1) for i, a in enumerate(many)})
+    out = core.step(0)
+    assert len(out) == 3
+    for g in out:
+        assert t_base <= g.t_ns < t_base + PERIOD_NS
+        assert g.t_ns == t_base + round(np.mean([0.1 * (i + 1) for i in range(8)]) * PERIOD_NS)
+        assert g.status == "OK"

@@ -82,8 +82,8 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
                 t_ns=10,
                 seq=2,
                 range_m=None,
-                sigma_m=1.0,
-                snr_db=-3.0,
+                sigma_m=None,
+                snr_db=None,
                 t_pub_wall_ns=12,
             ),
         ],
@@ -183,7 +183,7 @@ def test_schema_rejects_what_the_decoder_rejects():
     good = json.loads(M.encode(_examples()[M.RangeMeasurement][0]))
     dec = M.decoder(M.RangeMeasurement)
     for field, value in [
-        ("sigma_m", None),
+        ("sigma_m", 0.0),
         ("schema", "diffpos.range.v2"),
         ("t_ns", 1.5),
         ("node_id", "a/b"),
