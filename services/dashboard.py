@@ -97,9 +97,30 @@ FloatArray = NDArray[np.float64]
 
 _STATUS_COLORS = {
     "OK": (40, 200, 90, 255),
+    "OK_UNVERIFIED": (170, 210, 60, 255),
     "DEGRADED": (250, 170, 30, 255),
+    "NOT_CONVERGED": (250, 170, 30, 255),
+    "GATING_FAILED": (250, 120, 30, 255),
+    "NOT_IDENTIFIABLE": (230, 50, 50, 255),
     "UNIDENTIFIABLE": (230, 50, 50, 255),
 }
+#: fix statuses (diffpos.estimators.FixStatus names) that mean a usable fix
+GOOD_STATUSES = frozenset({"OK", "OK_UNVERIFIED"})
+#: statuses reported as "unidentifiable geometry"
+UNIDENTIFIABLE_STATUSES = frozenset({"NOT_IDENTIFIABLE", "UNIDENTIFIABLE"})
+#: exclusion reasons that are bookkeeping of the fusion (no range, no anchor state, ...), not
+#: outlier gating; their events are logged at DEBUG level (hidden by default in the viewer)
+BOOKKEEPING_REASONS = frozenset(
+    {
+        "NOT_REPORTED",
+        "NOT_DETECTED",
+        "NO_ANCHOR_STATE",
+        "STALE",
+        "ANCHOR_LOST",
+        "MISSING",
+        "NOT_USED",
+    }
+)
 _OTHER_STATUS_COLOR = (150, 150, 150, 255)
 _TRUTH_COLOR = (240, 240, 240, 255)
 _EXCLUDED_COLOR = (235, 40, 40, 220)
@@ -1065,7 +1086,7 @@ def log_estimates(
         change[1:] = stat[1:] != stat[:-1]
         if prev_status is not None:
             change[0] = stat[0] != prev_status
-        elif stat[0] == "OK":
+        elif stat[0] in GOOD_STATUSES:
             change[0] = False
         st.last_status[nid] = str(stat[-1])
         if change.any():
@@ -1074,11 +1095,12 @@ def log_estimates(
             txt, lvl = [], []
             for i in ci:
                 s = str(stat[i])
+                before = str(stat[i - 1]) if i > 0 else prev_status
                 txt.append(
                     f"node {nid}: status {s}"
-                    + (" (unidentifiable geometry)" if s == "UNIDENTIFIABLE" else "")
+                    + (" (unidentifiable geometry)" if s in UNIDENTIFIABLE_STATUSES else "")
                 )
-                lvl.append("INFO" if s == "OK" else ("ERROR" if s == "UNIDENTIFIABLE" else "WARN"))
+                lvl.append(_status_level(before, s))
             events_text.append(txt)
             events_level.append(lvl)
 
@@ -1114,15 +1136,21 @@ def log_estimates(
                 st.last_links.get(str(node_u[nl[i]]), {}).get(str(anc_u[al[i]]), "")
             )
         events_idx = np.flatnonzero(changed & (~is_used | prev_excluded))
+        first_set = set(first_idx.tolist())
         for i in events_idx:
             ex_t.append(tl[i])
             node_s, anc_s = node_u[nl[i]], anc_u[al[i]]
             if is_used[i]:
+                if i in first_set:
+                    before = st.last_links.get(str(node_s), {}).get(str(anc_s), "")
+                else:
+                    before = str(reason_u[cl[i - 1]])
                 ex_txt.append(f"node {node_s}: anchor {anc_s} used again")
-                ex_lvl.append("INFO")
+                ex_lvl.append("DEBUG" if before in BOOKKEEPING_REASONS else "INFO")
             else:
-                ex_txt.append(f"node {node_s}: anchor {anc_s} excluded ({reason_u[cl[i]]})")
-                ex_lvl.append("WARN")
+                reason = str(reason_u[cl[i]])
+                ex_txt.append(f"node {node_s}: anchor {anc_s} excluded ({reason})")
+                ex_lvl.append("DEBUG" if reason in BOOKKEEPING_REASONS else "WARN")
         last_idx = np.r_[first_idx[1:] - 1, n_links - 1]
         for i in last_idx:
             st.last_links.setdefault(str(node_u[nl[i]]), {})[str(anc_u[al[i]])] = str(
@@ -1245,6 +1273,15 @@ def _floor_tables(
     return texts
 
 
+def _status_level(before: str | None, status: str) -> str:
+    """Text-log level of a status change (ERROR unidentifiable, WARN bad, INFO recovered)."""
+    if status in UNIDENTIFIABLE_STATUSES:
+        return "ERROR"
+    if status in GOOD_STATUSES:
+        return "DEBUG" if before is None or before in GOOD_STATUSES else "INFO"
+    return "WARN"
+
+
 def log_events(rec: rr.RecordingStream, events: EventColumns) -> None:
     """Text events on the ``events`` entity (sorted by time)."""
     if not events.t_ns.size:
@@ -1323,7 +1360,13 @@ def default_blueprint() -> rrb.Blueprint:
                 ),
                 rrb.Horizontal(
                     rrb.TextDocumentView(origin="floors", name="Floor: estimated vs true"),
-                    rrb.TextLogView(origin="events", name="Events"),
+                    rrb.TextLogView(
+                        origin="events",
+                        name="Events (DEBUG hidden: see the view's level filter)",
+                        rows=rrb.TextLogRows(
+                            filter_by_log_level=["INFO", "WARN", "ERROR", "CRITICAL"]
+                        ),
+                    ),
                     column_shares=[1, 2],
                 ),
                 row_shares=[3, 1],
@@ -1594,8 +1637,8 @@ def synthetic_run(
 
     Anchors circle outside the facade (y < 0), nodes walk slowly on their floor at the
     window mid-height, estimates are truth plus Gaussian noise drawn from their own
-    covariance; every 7th fix of node 0 excludes one anchor (``RESIDUAL_OUTLIER``) and node 1
-    is ``UNIDENTIFIABLE`` (no position) for one second in the middle. The last anchor leaves
+    covariance; every 7th fix of node 0 excludes one anchor (``RAIM``) and node 1
+    is ``NOT_IDENTIFIABLE`` (no position) for one second in the middle. The last anchor leaves
     the fusion's live set after two thirds of the run (FusionDiagnostics every second).
 
     Returns
@@ -1687,7 +1730,7 @@ def synthetic_run(
             used = list(live)
             excluded = []
             if k == 0 and i % 7 == 3 and len(used) > 3:
-                excluded.append(m.Exclusion(anchor_id=used.pop(1), reason="RESIDUAL_OUTLIER"))
+                excluded.append(m.Exclusion(anchor_id=used.pop(1), reason="RAIM"))
             if i >= leave_at:
                 excluded.append(m.Exclusion(anchor_id=a_ids[-1], reason="ANCHOR_LOST"))
             unident = k == 1 and n_t // 2 <= i < n_t // 2 + int(rate_hz)
@@ -1698,7 +1741,7 @@ def synthetic_run(
                     t_ns=t,
                     epoch=i,
                     seq=i,
-                    status="UNIDENTIFIABLE" if unident else "OK",
+                    status="NOT_IDENTIFIABLE" if unident else "OK",
                     position_m=None if unident else vec3(e_pos[i, k]),
                     covariance_m2=None if unident else tuple(vec3(r) for r in cov[i, k]),
                     peb_m=None if unident else float(peb[i, k]),

@@ -239,8 +239,14 @@ def test_excluded_paths_are_red_and_used_ones_in_anchor_colour(bulk, run):
 
 
 def test_exclusion_and_status_events_match_a_plain_loop(bulk, run):
+    """Events (text and level) against a plain loop over the messages: an event when an anchor
+    becomes excluded or changes reason, when it is used again, when the status changes;
+    fusion bookkeeping reasons are DEBUG, gating WARN, unidentifiable geometry ERROR."""
     _, _, rows = bulk
     _, msgs = run
+    bookkeeping = {"NOT_REPORTED", "NOT_DETECTED", "NO_ANCHOR_STATE", "STALE", "ANCHOR_LOST",
+                   "MISSING", "NOT_USED"}  # fmt: skip
+    good = {"OK", "OK_UNVERIFIED"}
     expected = []
     last: dict[tuple[str, str], str] = {}
     status: dict[str, str] = {}
@@ -249,18 +255,33 @@ def test_exclusion_and_status_events_match_a_plain_loop(bulk, run):
         for a, reason in now.items():
             before = last.get((e.node_id, a), "")
             if reason and reason != before:
-                expected.append(f"node {e.node_id}: anchor {a} excluded ({reason})")
+                level = "DEBUG" if reason in bookkeeping else "WARN"
+                expected.append((f"node {e.node_id}: anchor {a} excluded ({reason})", level))
             elif not reason and before:
-                expected.append(f"node {e.node_id}: anchor {a} used again")
+                level = "DEBUG" if before in bookkeeping else "INFO"
+                expected.append((f"node {e.node_id}: anchor {a} used again", level))
             last[(e.node_id, a)] = reason
-        if status.get(e.node_id, "OK") != e.status:
-            expected.append(f"node {e.node_id}: status {e.status}")
+        before = status.get(e.node_id, "OK")
+        if before != e.status:
+            if e.status == "NOT_IDENTIFIABLE":
+                level = "ERROR"
+            elif e.status in good:
+                level = "DEBUG" if before in good else "INFO"
+            else:
+                level = "WARN"
+            expected.append((f"node {e.node_id}: status {e.status}", level))
         status[e.node_id] = e.status
-    texts = [txt for _, r in rows["/events"] for txt in r["TextLog:text"]]
-    got = [t.split(" (unidentifiable")[0] for t in texts if t.startswith("node ")]
+    texts = [
+        (t, lv)
+        for _, r in rows["/events"]
+        for t, lv in zip(r["TextLog:text"], r["TextLog:level"], strict=True)
+    ]
+    got = [(t.split(" (unidentifiable")[0], lv) for t, lv in texts if t.startswith("node ")]
     assert sorted(got) == sorted(expected)
-    assert any("UNIDENTIFIABLE" in t and "unidentifiable geometry" in t for t in texts)
-    assert "anchor uav5 left" in texts  # from the fusion's live-anchor set
+    levels = {lv for _, lv in expected}
+    assert {"WARN", "ERROR", "INFO", "DEBUG"} <= levels, "the synthetic run exercises every level"
+    assert any("NOT_IDENTIFIABLE (unidentifiable geometry)" in t for t, _ in texts)
+    assert ("anchor uav5 left", "WARN") in texts  # from the fusion's live-anchor set
 
 
 def test_floor_table_reports_wrong_floors(bulk, run):
