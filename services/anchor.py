@@ -75,23 +75,46 @@ def load_scenario_file(path: str | Path | None):
         raise ConfigError(f"scenario {path}: {exc}") from None
 
 
+def responders(building, *, count: int = 6, seed: int = 0, speed_m_s: float = 1.2) -> list[tuple[str, Any]]:
+    """A handful of responders walking inside ``building`` and taking the stairs.
+
+    Responder ``i`` starts on floor ``i mod n_floors``, walks along the facade at a fixed depth,
+    climbs (or descends) one floor on a 6 m stair run near a side wall and walks back, in a
+    loop, at ``speed_m_s``. On the level parts it is at the window's mid-height (the paper's
+    Assumption 1); on the stairs it is not (a realistic model mismatch). Ids ``r01``...
+    """
+    from diffpos.trajectory import trajectory_from_dict
+
+    rng = np.random.default_rng(seed)
+    b = building
+    x_lo, x_hi = b.edge_x_m
+    h = b.nominal_node_height_m
+    out = []
+    for i in range(count):
+        f0 = i % b.n_floors
+        f1 = f0 + 1 if f0 + 1 < b.n_floors else f0 - 1
+        z0 = float(b.floor_z_m(f0)) + h
+        z1 = float(b.floor_z_m(f1)) + h
+        y = float(rng.uniform(1.5, min(b.depth_m - 1.0, 10.0)))
+        xa = float(rng.uniform(x_lo + 8.0, x_hi - 12.0))
+        xs = x_hi - 4.0  # stairs start
+        pts = [[xa, y, z0], [xs, y, z0], [xs, y + 2.0, z0], [xs - 6.0, y + 2.0, z1],
+               [xa, y + 2.0, z1]]
+        traj = trajectory_from_dict({"kind": "waypoints", "points_m": pts,
+                                     "speed_m_s": speed_m_s, "loop": True})
+        out.append((f"r{i + 1:02d}", traj))
+    return out
+
+
 def emulation_nodes(scenario, *, max_nodes: int = 0, seed: int = 0) -> list[tuple[str, Any]]:
     """``[(node_id, trajectory)]`` to emulate.
 
-    The scenario's explicit nodes; if it only has a study grid, ``max_nodes`` (default 8)
-    static grid points drawn with ``seed`` (ids ``g0001``...). ``max_nodes > 0`` also caps the
-    explicit list.
+    The scenario's explicit nodes; if it only has a study grid (the paper's scenario), six
+    :func:`responders` moving between floors. ``max_nodes > 0`` caps the list.
     """
     nodes = [(n.id, n.trajectory) for n in scenario.nodes]
-    if not nodes and scenario.node_grid is not None:
-        from diffpos.trajectory import Static
-
-        grid = scenario.node_grid.positions_m(scenario.building)
-        k = min(max_nodes or 8, len(grid))
-        idx = np.sort(np.random.default_rng(seed).choice(len(grid), size=k, replace=False))
-        nodes = [
-            (f"g{i + 1:04d}", Static(tuple(float(v) for v in grid[j]))) for i, j in enumerate(idx)
-        ]
+    if not nodes:
+        nodes = responders(scenario.building, count=6, seed=seed)
     if max_nodes > 0:
         nodes = nodes[:max_nodes]
     return nodes

@@ -1,0 +1,475 @@
+"""The one-command emulation: router, anchors, fusion (+ recorder, dashboard) as processes.
+
+:class:`Emulation` starts every service as its own OS process (``python -m
+diffpos_services.cli <service> ...``, each in its own session so a terminal Ctrl-C reaches
+only the orchestrator), waits for readiness by liveliness tokens (never by sleeping), starts
+the run by publishing the time base (``RunControl``), publishes ground truth on its own keys,
+scores the estimates against the true trajectories, and shuts the services down in order
+(anchors, fusion, extras, router last) with SIGTERM, escalating to SIGKILL only if a process
+does not exit in time.
+
+Extra services (recorder, dashboard) are hooks: :data:`EXTRA_SERVICES` maps a name to a
+function building its command line; one is started only if its CLI module exists.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import importlib.util
+import logging
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import messages as M
+from .anchor import TimeBase, emulation_nodes
+from .keys import Keys, parse_key
+from .servicekit import ConfigError, log_event
+from .zenoh_config import ZenohSettings, open_session
+
+__all__ = ["EXTRA_SERVICES", "Emulation", "EmulationOptions", "Scorer", "free_tcp_port"]
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago (bind to port 0)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class EmulationOptions:
+    """What ``diffpos emulate`` runs (validated by :meth:`check`)."""
+
+    scenario: str | None = None
+    duration_s: float = 20.0
+    speed: float = 1.0
+    site: str = "demo"
+    seed: int = 0
+    endpoint: str | None = None
+    channel: str = "emulator"
+    max_nodes: int = 0
+    rate_hz: float = 10.0
+    clock_offset_max_ms: float = 2.0
+    record: str | None = "auto"
+    dashboard: list[str] = field(default_factory=lambda: ["auto"])
+    log_dir: str | None = None
+    progress: bool = True
+    ready_timeout_s: float = 60.0
+    log_level: str = "info"
+
+    def check(self) -> None:
+        if not self.duration_s > 0:
+            raise ConfigError(f"--duration must be > 0 seconds, got {self.duration_s}")
+        if not 0 < self.speed <= 1000:
+            raise ConfigError(f"--speed must be in (0, 1000], got {self.speed}")
+        if not self.rate_hz > 0:
+            raise ConfigError(f"--rate-hz must be > 0, got {self.rate_hz}")
+        if self.channel not in ("emulator", "ideal"):
+            raise ConfigError(f"--channel must be emulator or ideal, got {self.channel!r}")
+
+
+def _recorder_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
+    if o.record in (None, "off", ""):
+        return None
+    argv = ["recorder", "--site", o.site, "--connect", endpoint, "--name", f"emulate-{run_id}"]
+    if o.record != "auto":
+        argv += ["--out", o.record]
+    if o.scenario:
+        argv += ["--scenario", o.scenario]
+    return argv
+
+
+def _dashboard_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
+    if not o.dashboard or o.dashboard[0] == "off":
+        return None
+    argv = ["dashboard", "--site", o.site, "--connect", endpoint, "--rerun", *o.dashboard]
+    if o.scenario:
+        argv += ["--scenario", o.scenario]
+    return argv
+
+
+#: name -> (CLI module that must exist, argv builder). Add a service here to have
+#: ``diffpos emulate`` start (and stop) it with the others.
+EXTRA_SERVICES: dict[str, tuple[str, Callable[[EmulationOptions, str, str], list[str] | None]]] = {
+    "recorder": ("diffpos_services.cmd_recorder", _recorder_argv),
+    "dashboard": ("diffpos_services.cmd_dashboard", _dashboard_argv),
+}
+
+
+# ----------------------------------------------------------------------------- scoring
+class Scorer:
+    """Errors of the estimates against the true node trajectories (emulation only)."""
+
+    def __init__(self, nodes: list[tuple[str, Any]], building, t0_ns: int) -> None:
+        self.traj = dict(nodes)
+        self.building = building
+        self.t0_ns = t0_ns
+        self.count = 0
+        self.status: collections.Counter[str] = collections.Counter()
+        self.err3d: list[float] = []
+        self.errz: list[float] = []
+        self.floor_ok: list[bool] = []
+        self.peb: list[float] = []
+        self.epochs: dict[str, set[int]] = collections.defaultdict(set)
+
+    def add(self, est: M.PositionEstimate) -> float | None:
+        self.count += 1
+        self.status[est.status] += 1
+        self.epochs[est.node_id].add(est.epoch)
+        tr = self.traj.get(est.node_id)
+        if tr is None or est.position_m is None:
+            return None
+        truth = np.asarray(tr.position_m((est.t_ns - self.t0_ns) * 1e-9), float)
+        d = np.asarray(est.position_m) - truth
+        e = float(np.linalg.norm(d))
+        self.err3d.append(e)
+        self.errz.append(abs(float(d[2])))
+        if est.peb_m is not None:
+            self.peb.append(est.peb_m)
+        true_floor = int(self.building.floor_index(truth[2]))
+        self.floor_ok.append(est.floor_index == true_floor)
+        return e
+
+    def summary(self) -> dict[str, Any]:
+        def pct(v: list[float]) -> dict[str, float | None]:
+            a = np.asarray(v)
+            return {f"p{q}": (float(np.percentile(a, q)) if a.size else None) for q in (50, 67, 90, 95)}
+
+        return {
+            "estimates": self.count,
+            "with_position": len(self.err3d),
+            "status": dict(self.status),
+            "error_3d_m": pct(self.err3d),
+            "error_z_m": pct(self.errz),
+            "peb_m": pct(self.peb),
+            "floor_accuracy": (float(np.mean(self.floor_ok)) if self.floor_ok else None),
+        }
+
+
+# ----------------------------------------------------------------------------- processes
+@dataclass
+class _Proc:
+    name: str
+    popen: subprocess.Popen
+    log_path: Path | None
+
+
+class Emulation:
+    """Orchestrates one emulated run (see module docstring).
+
+    Parameters
+    ----------
+    options : EmulationOptions
+    logger : logging.Logger
+    stop : threading.Event
+        Set by SIGINT/SIGTERM: the run ends early but still shuts down in order and summarises.
+    """
+
+    def __init__(self, options: EmulationOptions, logger: logging.Logger,
+                 stop: threading.Event) -> None:
+        from .anchor import load_scenario_file
+
+        options.check()
+        self.o = options
+        self.log = logger
+        self.stop = stop
+        self.scenario = load_scenario_file(options.scenario)
+        self.keys = Keys(options.site)
+        self.nodes = emulation_nodes(self.scenario, max_nodes=options.max_nodes, seed=options.seed)
+        if not self.nodes:
+            raise ConfigError("the scenario has no nodes to emulate")
+        self.anchor_ids = [a.id for a in self.scenario.anchors]
+        self.endpoint = options.endpoint or f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.run_id = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + uuid.uuid4().hex[:6]
+        self.procs: list[_Proc] = []
+        self.log_dir = Path(options.log_dir) if options.log_dir else None
+        self.alive: set[str] = set()
+        self.alive_event = threading.Condition()
+        self.q: queue.Queue = queue.Queue()
+        self.diag: M.FusionDiagnostics | None = None
+
+    # -------------------------------------------------------------- process helpers
+    def _spawn(self, name: str, argv: list[str]) -> _Proc:
+        cmd = [sys.executable, "-m", "diffpos_services.cli", *argv, "--log-level", self.o.log_level]
+        log_path = None
+        if self.log_dir is not None:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+            log_path = self.log_dir / f"{name}.log"
+            err = open(log_path, "wb")
+        else:
+            err = subprocess.DEVNULL
+        env = dict(os.environ, DIFFPOS_LOG_FORMAT="json")
+        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                             start_new_session=True, env=env)
+        if err is not subprocess.DEVNULL:
+            err.close()
+        proc = _Proc(name, p, log_path)
+        self.procs.append(proc)
+        log_event(self.log, logging.DEBUG, "started", service=name, pid=p.pid, argv=" ".join(argv))
+        return proc
+
+    def _stop_procs(self, names: Callable[[str], bool], timeout_s: float = 8.0) -> None:
+        group = [p for p in self.procs if names(p.name) and p.popen.poll() is None]
+        for p in group:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.popen.pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        for p in group:
+            try:
+                p.popen.wait(max(deadline - time.monotonic(), 0.05))
+            except subprocess.TimeoutExpired:
+                log_event(self.log, logging.WARNING, "did not stop on SIGTERM, killing", service=p.name)
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.popen.pid, signal.SIGKILL)
+                p.popen.wait()
+
+    def shutdown(self) -> None:
+        """Stop in dependency order: anchors, fusion, extras, router."""
+        self._stop_procs(lambda n: n.startswith("anchor-"))
+        self._stop_procs(lambda n: n == "fusion")
+        self._stop_procs(lambda n: n in EXTRA_SERVICES)
+        self._stop_procs(lambda n: True)
+
+    def _check_children(self) -> None:
+        for p in self.procs:
+            rc = p.popen.poll()
+            if rc is not None:
+                hint = f" (log: {p.log_path})" if p.log_path else " (rerun with --log-dir DIR)"
+                raise ConfigError(f"service {p.name} exited early with code {rc}{hint}")
+
+    # -------------------------------------------------------------- run
+    def _on_alive(self, sample) -> None:
+        import zenoh
+
+        key = str(sample.key_expr)
+        with self.alive_event:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(key)
+            else:
+                self.alive.discard(key)
+            self.alive_event.notify_all()
+        self.q.put(("alive", key, sample.kind == zenoh.SampleKind.PUT))
+
+    def _on_data(self, sample) -> None:
+        self.q.put(("data", str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _wait_ready(self, need: set[str]) -> None:
+        deadline = time.monotonic() + self.o.ready_timeout_s
+        with self.alive_event:
+            while not need <= self.alive:
+                if self.stop.is_set():
+                    return
+                self._check_children()
+                if time.monotonic() > deadline:
+                    missing = sorted(need - self.alive)
+                    raise ConfigError(f"services not ready after {self.o.ready_timeout_s:.0f} s: {missing}")
+                self.alive_event.wait(0.2)
+
+    def run(self) -> dict[str, Any]:
+        """Run the emulation; returns the summary dictionary."""
+        import zenoh
+
+        o = self.o
+        rng = np.random.default_rng(o.seed)
+        offsets = rng.uniform(-o.clock_offset_max_ms, o.clock_offset_max_ms, len(self.anchor_ids))
+        scen = ["--scenario", o.scenario] if o.scenario else []
+        zs = ZenohSettings(connect=(self.endpoint,))
+        summary: dict[str, Any] = {}
+        try:
+            self._spawn("router", ["router", "--listen", self.endpoint])
+            session = open_session(zs, self.stop, logger=self.log)
+            if session is None:
+                return summary
+            with session:
+                live = session.liveliness().declare_subscriber(self.keys.alive_all(), self._on_alive,
+                                                               history=True)
+                subs = [session.declare_subscriber(k, self._on_data)
+                        for k in (self.keys.estimates(), self.keys.fusion_diagnostics())]
+                self._spawn("fusion", ["fusion", "--site", o.site, "--connect", self.endpoint,
+                                       "--epoch-period-s", str(1.0 / o.rate_hz), *scen])
+                for aid, off in zip(self.anchor_ids, offsets, strict=True):
+                    self._spawn(f"anchor-{aid}", [
+                        "anchor", "--id", aid, "--site", o.site, "--connect", self.endpoint,
+                        "--seed", str(o.seed), "--rate-hz", str(o.rate_hz), "--wait-start",
+                        "--clock-offset-ms", f"{off:.4f}", "--channel", o.channel,
+                        "--max-nodes", str(o.max_nodes), *scen])
+                for name, (module, build) in EXTRA_SERVICES.items():
+                    argv = build(o, self.endpoint, self.run_id)
+                    if argv is not None and importlib.util.find_spec(module) is not None:
+                        self._spawn(name, argv)
+                need = {self.keys.alive_anchor(a) for a in self.anchor_ids} | {self.keys.alive_fusion()}
+                t_ready = time.monotonic()
+                self._wait_ready(need)
+                if self.stop.is_set():
+                    return summary
+                log_event(self.log, logging.INFO, "all services ready",
+                          anchors=len(self.anchor_ids), nodes=len(self.nodes),
+                          ready_s=round(time.monotonic() - t_ready, 2), endpoint=self.endpoint)
+                wall_t0 = time.time_ns() + 300_000_000
+                rc = M.RunControl(run_id=self.run_id, t0_ns=wall_t0, wall_t0_ns=wall_t0,
+                                  speed=o.speed, duration_ns=round(o.duration_s * 1e9), seed=o.seed)
+                session.put(self.keys.run_control(), M.encode(rc),
+                            encoding=zenoh.Encoding.APPLICATION_JSON,
+                            congestion_control=zenoh.CongestionControl.BLOCK)
+                tb = TimeBase.from_control(rc)
+                summary = self._monitor(session, tb)
+                for s in subs:
+                    s.undeclare()
+                live.undeclare()
+        finally:
+            self.shutdown()
+        return summary
+
+    # -------------------------------------------------------------- monitoring
+    def _publish_truth(self, session, pubs: dict, tb: TimeBase, k: int) -> None:
+        t_ns = tb.t0_ns + round(k * 1e9 / self.o.rate_hz)
+        t_s = (t_ns - tb.t0_ns) * 1e-9
+        for nid, tr in self.nodes:
+            p = np.asarray(tr.position_m(t_s), float)
+            msg = M.GroundTruth(entity="node", id=nid, t_ns=t_ns, position_m=M.vec3(p),
+                                velocity_m_s=M.vec3(tr.velocity_m_s(t_s)),
+                                floor_index=int(self.scenario.building.floor_index(p[2])))
+            pubs[("node", nid)].put(M.encode(msg))
+        for a in self.scenario.anchors:
+            msg = M.GroundTruth(entity="anchor", id=a.id, t_ns=t_ns,
+                                position_m=M.vec3(a.trajectory.position_m(t_s)),
+                                velocity_m_s=M.vec3(a.trajectory.velocity_m_s(t_s)), floor_index=None)
+            pubs[("anchor", a.id)].put(M.encode(msg))
+
+    def _monitor(self, session, tb: TimeBase) -> dict[str, Any]:
+        import zenoh
+
+        o = self.o
+        enc, bc = zenoh.Encoding.APPLICATION_JSON, zenoh.CongestionControl.BLOCK
+        pubs = {("node", nid): session.declare_publisher(self.keys.truth_node(nid), encoding=enc,
+                                                         congestion_control=bc)
+                for nid, _ in self.nodes}
+        pubs.update({("anchor", a.id): session.declare_publisher(
+            self.keys.truth_anchor(a.id), encoding=enc, congestion_control=bc)
+            for a in self.scenario.anchors})
+        scorer = Scorer(self.nodes, self.scenario.building, tb.t0_ns)
+        dec_est, dec_diag = M.decoder(M.PositionEstimate), M.decoder(M.FusionDiagnostics)
+        end_ns = tb.t0_ns + round(o.duration_s * 1e9)
+        period_ns = round(1e9 / o.rate_hz)
+        k_truth = 0
+        recent: collections.deque[tuple[float, float | None]] = collections.deque()
+        next_status = time.monotonic()
+        finish_wall: float | None = None
+        lost_events = []
+        tty = sys.stderr.isatty()
+        while True:
+            now_wall = time.time_ns()
+            # truth, paced on the time base
+            while tb.t0_ns + k_truth * period_ns <= min(tb.now_ns(now_wall), end_ns - 1):
+                self._publish_truth(session, pubs, tb, k_truth)
+                k_truth += 1
+            if self.stop.is_set():
+                break
+            if finish_wall is None and tb.now_ns(now_wall) >= end_ns:
+                finish_wall = time.monotonic()
+            if finish_wall is not None:
+                wm = self.diag.watermark_ns if self.diag else None
+                # wait for the last epochs: fusion watermark past the end, or a short grace
+                if (wm is not None and wm >= end_ns - period_ns and self.diag.pending_epochs == 0) \
+                        or time.monotonic() - finish_wall > 2.0 + 2.0 / o.speed:
+                    break
+            try:
+                item = self.q.get(timeout=0.05)
+            except queue.Empty:
+                item = None
+            while item is not None:
+                if item[0] == "data":
+                    pk = parse_key(item[1])
+                    try:
+                        if pk is not None and pk.kind == "estimate":
+                            est = dec_est(item[2])
+                            recent.append((time.monotonic(), scorer.add(est)))
+                        elif pk is not None and pk.kind == "diagnostics":
+                            self.diag = dec_diag(item[2])
+                    except M.DecodeError as exc:
+                        log_event(self.log, logging.WARNING, "bad message", key=item[1], error=str(exc)[:200])
+                elif item[0] == "alive" and not item[2] and finish_wall is None:
+                    # (anchors leave on their own at the end of the run: not a loss)
+                    lost_events.append(item[1])
+                    log_event(self.log, logging.WARNING, "service lost", key=item[1])
+                try:
+                    item = self.q.get_nowait()
+                except queue.Empty:
+                    item = None
+            if o.progress and time.monotonic() >= next_status:
+                next_status = time.monotonic() + 0.5
+                t_now = time.monotonic()
+                while recent and recent[0][0] < t_now - 2.0:
+                    recent.popleft()
+                errs = [e for _, e in recent if e is not None]
+                rate = len(recent) / 2.0
+                med = f"{np.median(errs):.2f} m" if errs else "-"
+                gated = self.diag.gated if self.diag else 0
+                el = max(min(tb.now_ns(), end_ns) - tb.t0_ns, 0) * 1e-9
+                line = (f"t={el:5.1f}/{o.duration_s:.0f} s  fixes/s={rate:6.1f}  median err={med:>8}  "
+                        f"gated={gated}  fixes={scorer.count}")
+                if tty:
+                    print("\r" + line, end="", file=sys.stderr, flush=True)
+                else:
+                    log_event(self.log, logging.INFO, "progress", status=line)
+        if tty and o.progress:
+            print(file=sys.stderr)
+        for p in pubs.values():
+            p.undeclare()
+        out = scorer.summary()
+        expected_epochs = int(o.duration_s * o.rate_hz)
+        out.update(
+            run_id=self.run_id, endpoint=self.endpoint, anchors=len(self.anchor_ids),
+            nodes=len(self.nodes), duration_s=o.duration_s, speed=o.speed, channel=o.channel,
+            expected_epochs_per_node=expected_epochs,
+            epochs_per_node_min=min((len(v) for v in scorer.epochs.values()), default=0),
+            lost=lost_events,
+        )
+        if self.diag is not None:
+            d = self.diag
+            out["fusion"] = {"received": d.received, "rejected": d.rejected, "gated": d.gated,
+                             "solved": d.solved, "late_ranges": d.late_ranges,
+                             "latency_ms": {"p50": d.latency.p50_ms, "p99": d.latency.p99_ms}}
+        return out
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    """The summary as a plain-text table."""
+    def f(v: float | None, unit: str = " m") -> str:
+        return "-" if v is None else f"{v:.3f}{unit}"
+
+    rows = [
+        ("run", f"{s.get('run_id', '-')}  ({s.get('anchors')} anchors x {s.get('nodes')} nodes, "
+                f"{s.get('duration_s')} s at x{s.get('speed')}, channel {s.get('channel')})"),
+        ("estimates", f"{s.get('estimates', 0)} ({s.get('with_position', 0)} with a position)"),
+        ("status", ", ".join(f"{k} {v}" for k, v in sorted(s.get("status", {}).items())) or "-"),
+    ]
+    for name, key in (("3D error", "error_3d_m"), ("z error", "error_z_m"), ("PEB", "peb_m")):
+        p = s.get(key, {})
+        rows.append((name, "  ".join(f"p{q} {f(p.get(f'p{q}'))}" for q in (50, 67, 90, 95))))
+    fa = s.get("floor_accuracy")
+    rows.append(("floor accuracy", "-" if fa is None else f"{100 * fa:.1f} %"))
+    fu = s.get("fusion")
+    if fu:
+        lat = fu["latency_ms"]
+        rows.append(("gating", f"{fu['gated']} measurements excluded; rejected {fu['rejected'] or 0}; "
+                               f"late ranges {fu['late_ranges']}"))
+        rows.append(("fusion latency", f"p50 {f(lat['p50'], ' ms')}  p99 {f(lat['p99'], ' ms')}"))
+    if s.get("lost"):
+        rows.append(("lost", ", ".join(s["lost"])))
+    w = max(len(r[0]) for r in rows)
+    return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
