@@ -16,6 +16,7 @@ examples:
   diffpos to-rerun recordings/demo.mcap                      -> recordings/demo.rrd
   diffpos to-rerun run.mcap -o out/run.rrd --scenario scenarios/paper.toml
   diffpos to-rerun run.mcap --replayed                       estimates written by diffpos replay
+  diffpos to-rerun run.mcap --start 10 --end 40              only that slice of measurement time
   rerun out/run.rrd                                          look at it
   rerun rrd verify out/run.rrd                               check the file
 """
@@ -50,6 +51,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help="draw each node's diffraction paths at most every S seconds (default 0.5)",
     )
+    parser.add_argument(
+        "--start",
+        type=float,
+        default=None,
+        metavar="S",
+        help="keep messages from S seconds after the first anchor state (measurement time)",
+    )
+    parser.add_argument(
+        "--end",
+        type=float,
+        default=None,
+        metavar="S",
+        help="keep messages up to S seconds after the first anchor state",
+    )
     parser.add_argument("--json", action="store_true", help="print the counts as JSON")
 
 
@@ -64,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else src.with_suffix(".rrd")
     if out.suffix != ".rrd":
         print(f"error: --out {out}: the output must end in .rrd", file=sys.stderr)
+        return 2
+    if args.start is not None and args.end is not None and args.end <= args.start:
+        print(f"error: --end {args.end} must be after --start {args.start}", file=sys.stderr)
         return 2
     if args.path_period <= 0:
         print("error: --path-period must be > 0", file=sys.stderr)
@@ -93,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             use_replayed=args.replayed,
             recording_id=args.recording_id,
             path_period_s=args.path_period,
+            window_s=(args.start, args.end),
         )
     except RecordingError as exc:
         print(f"error: {src}: {exc}", file=sys.stderr)

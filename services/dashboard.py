@@ -913,6 +913,27 @@ class _EstimateState:
     last_floor_bucket: int | None = None
     floors: dict[str, tuple[int, int]] = field(default_factory=dict)
     residual_styled: set[str] = field(default_factory=set)
+    dropped_bad_time: int = 0
+
+
+def _select_fixes(est: EstimateColumns, keep: NDArray[np.bool_]) -> EstimateColumns:
+    """The fixes ``keep`` (bool, shape (K,)) of ``est`` with their links (re-indexed)."""
+    new_index = np.cumsum(keep) - 1
+    lk = keep[est.link_fix]
+    return EstimateColumns(
+        t_ns=est.t_ns[keep],
+        node_id=est.node_id[keep],
+        status=est.status[keep],
+        position_m=est.position_m[keep],
+        covariance_m2=est.covariance_m2[keep],
+        peb_m=est.peb_m[keep],
+        floor_index=est.floor_index[keep],
+        link_fix=new_index[est.link_fix[lk]],
+        link_anchor_id=est.link_anchor_id[lk],
+        link_used=est.link_used[lk],
+        link_residual_m=est.link_residual_m[lk],
+        link_reason=est.link_reason[lk],
+    )
 
 
 def log_estimates(
@@ -955,6 +976,22 @@ def log_estimates(
         Pass it to the next call when streaming.
     """
     st = state if state is not None else _EstimateState()
+    bad_time = est.t_ns < 0
+    if bad_time.any():  # invalid on the wire (times are ns since the Unix epoch): not drawn
+        n_bad = int(bad_time.sum())
+        st.dropped_bad_time += n_bad
+        est = _select_fixes(est, ~bad_time)
+        if len(est):
+            log_events(
+                rec,
+                EventColumns(
+                    [int(est.t_ns.max())],
+                    [
+                        f"{n_bad} estimates with a negative t_ns dropped (invalid time from the fusion)"
+                    ],
+                    ["ERROR"],
+                ),
+            )
     k = len(est)
     if k == 0:
         return st
@@ -1257,11 +1294,12 @@ def _floor_tables(
         hits = [
             (e == tr) for e, tr in zip(est_m[:, j], tru_m[:, j], strict=True) if e >= 0 and tr >= 0
         ]
-        head = (
-            f"**Floor estimate: {sum(hits)}/{len(hits)} nodes on the true floor**\n\n"
-            if hits
-            else "**Floor estimate** (no ground truth)\n\n"
-        )
+        if hits:
+            head = f"**Floor estimate: {sum(hits)}/{len(hits)} nodes on the true floor**\n\n"
+        elif np.any(tru_m[:, j] >= 0):
+            head = "**Floor estimate**: no node has a fix\n\n"
+        else:
+            head = "**Floor estimate** (no ground truth)\n\n"
         rows = ["| node | estimated | true | |", "|---|---|---|---|"]
         for i, nid in enumerate(nodes):
             e, tr = est_m[i, j], tru_m[i, j]
@@ -1878,6 +1916,28 @@ _MCAP_KINDS = {
 }
 
 
+def _msg_time_ns(x: Any) -> int | None:
+    t = getattr(x, "t_ns", None)
+    return t if t is not None else getattr(x, "watermark_ns", None)
+
+
+def _time_window(msgs: list[Any], window_s: tuple[float | None, float | None]) -> list[Any]:
+    """Messages within ``window_s`` seconds after the first anchor state (or first message)."""
+    starts = [x.t_ns for x in msgs if _KIND_BY_CLASS.get(type(x).__name__) == "anchor_state"]
+    times = [t for t in map(_msg_time_ns, msgs) if t is not None and t >= 0]
+    if not times:
+        return msgs
+    t0 = min(starts) if starts else min(times)
+    lo = -math.inf if window_s[0] is None else t0 + window_s[0] * 1e9
+    hi = math.inf if window_s[1] is None else t0 + window_s[1] * 1e9
+    out = []
+    for x in msgs:
+        t = _msg_time_ns(x)
+        if t is None or lo <= t <= hi:
+            out.append(x)
+    return out
+
+
 def mcap_to_rrd(
     mcap_path: str | Path,
     rrd_path: str | Path,
@@ -1887,6 +1947,7 @@ def mcap_to_rrd(
     use_replayed: bool = False,
     recording_id: str | None = None,
     path_period_s: float = 0.5,
+    window_s: tuple[float | None, float | None] = (None, None),
 ) -> dict[str, Any]:
     """Convert a diffpos MCAP recording into the dashboard .rrd (blueprint embedded).
 
@@ -1909,6 +1970,9 @@ def mcap_to_rrd(
         Use the recorded ``replay/node/<id>/estimate`` channels instead of the live ones.
     recording_id : str, optional
         Rerun recording id; default: the MCAP file stem.
+    window_s : (start, end) [s], optional
+        Keep only messages whose measurement time lies in this window, in seconds after the
+        first anchor state of the recording (``None``: open end).
 
     Returns
     -------
@@ -1942,6 +2006,8 @@ def mcap_to_rrd(
                 bad += 1
     if estimates is not None:
         msgs.extend(estimates)
+    if window_s != (None, None):
+        msgs = _time_window(msgs, window_s)
     outline = BuildingOutline.from_object(building) if building is not None else None
     if outline is None:
         outline = _building_from_attachments(sc.attachments)
@@ -1958,6 +2024,7 @@ def mcap_to_rrd(
         path_period_s=path_period_s,
     )
     return counts | {
+        "window_s": list(window_s),
         "liveliness": len(live),
         "undecodable": bad,
         "building": outline is not None,

@@ -284,6 +284,27 @@ def test_exclusion_and_status_events_match_a_plain_loop(bulk, run):
     assert ("anchor uav5 left", "WARN") in texts  # from the fusion's live-anchor set
 
 
+def test_estimates_with_negative_time_are_dropped_with_an_error_event(run, tmp_path):
+    """Seen in a real run: an int64 overflow in the fusion gave t_ns < 0; such fixes must not
+    stretch the timeline back to 1929."""
+    import msgspec
+
+    building, msgs = run
+    ests = [e for e in of(msgs, "PositionEstimate") if e.node_id == "n02"][:30]
+    broken = [msgspec.structs.replace(e, t_ns=-1279199486163474944) for e in ests[:4]]
+    path = tmp_path / "neg.rrd"
+    d.write_rrd_from_messages([*ests[4:], *broken], path, building=building)
+    rows = read_rrd(path)
+    times = [t for t, _ in rows["/world/nodes/n02/estimate"]]
+    assert times == [e.t_ns for e in ests[4:]]
+    errs = [
+        (t, r["TextLog:text"][0]) for t, r in rows["/events"] if r["TextLog:level"] == ["ERROR"]
+    ]
+    assert errs == [
+        (ests[-1].t_ns, "4 estimates with a negative t_ns dropped (invalid time from the fusion)")
+    ]
+
+
 def test_floor_table_reports_wrong_floors(bulk, run):
     _, _, rows = bulk
     t_last, row = rows["/floors"][-1]
@@ -436,3 +457,19 @@ def test_to_rerun_cli(run, tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
     assert cli.main(["to-rerun", str(mcap), "-o", str(tmp_path / "x.txt")]) == 2
     assert "must end in .rrd" in capsys.readouterr().err
+
+
+def test_to_rerun_time_window(run, tmp_path):
+    from diffpos_services import cli
+
+    _, msgs = run
+    mcap = tmp_path / "run.mcap"
+    _write_mcap(mcap, msgs)
+    out = tmp_path / "win.rrd"
+    assert cli.main(["to-rerun", str(mcap), "-o", str(out), "--start", "2", "--end", "4.05"]) == 0
+    t0 = min(a.t_ns for a in of(msgs, "AnchorState"))
+    want = [e.t_ns for e in of(msgs, "PositionEstimate")
+            if e.node_id == "n01" and t0 + 2e9 <= e.t_ns <= t0 + 4.05e9]  # fmt: skip
+    assert len(want) == 21
+    assert [t for t, _ in read_rrd(out)["/world/nodes/n01/estimate"]] == want
+    assert cli.main(["to-rerun", str(mcap), "--start", "4", "--end", "2"]) == 2
