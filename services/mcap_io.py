@@ -116,6 +116,7 @@ class RecordingError(Exception):
 # topics
 # ----------------------------------------------------------------------------------------
 
+
 def parse_topic(topic: str) -> tuple[str, dict[str, str]]:
     """Classify a key expression / MCAP topic.
 
@@ -138,7 +139,12 @@ def parse_topic(topic: str) -> tuple[str, dict[str, str]]:
     if len(parts) >= 4 and parts[0] == PREFIX:
         if parts[2:] == ["recorder", "liveliness"]:
             return "liveliness", {"site": parts[1]}
-        if len(parts) == 6 and parts[2] == "replay" and parts[3] == "node" and parts[5] == "estimate":
+        if (
+            len(parts) == 6
+            and parts[2] == "replay"
+            and parts[3] == "node"
+            and parts[5] == "estimate"
+        ):
             return "replay_estimate", {"site": parts[1], "node": parts[4]}
     pk = parse_key(topic)
     if pk is None:
@@ -527,6 +533,7 @@ class McapSink:
         self._channels: dict[str, int] = {}
         self.seq = SeqTracker()
         self._unknown_keys: set[str] = set()
+        self._alive: dict[str, bool] = {}
         self._pending = 0
         self._lock = threading.Lock()
         self._closed = False
@@ -552,9 +559,7 @@ class McapSink:
             meta = {"key_expr": key, "kind": kind}
             if entry is not None:
                 meta["schema_file"] = entry.source
-            cid = self._writer.register_channel(
-                key, MESSAGE_ENCODING, self._schema_id(entry), meta
-            )
+            cid = self._writer.register_channel(key, MESSAGE_ENCODING, self._schema_id(entry), meta)
             self._channels[key] = cid
         return cid
 
@@ -626,15 +631,21 @@ class McapSink:
         else:
             seq32 = 0
         self._writer.add_message(
-            cid, log_time=int(receive_ns), data=payload, publish_time=int(publish_ns),
+            cid,
+            log_time=int(receive_ns),
+            data=payload,
+            publish_time=int(publish_ns),
             sequence=seq32,
         )
         stats.written += 1
         stats.per_key[key] = stats.per_key.get(key, 0) + 1
         self._pending += 1
 
-    def write_liveliness(self, site: str, key: str, alive: bool, receive_ns: int) -> None:
+    def write_liveliness(self, site: str, key: str, alive: bool, receive_ns: int) -> bool:
         """Record a liveliness token appearing (``alive``) or disappearing.
+
+        Only changes are recorded: a liveliness subscriber with history may report a token
+        twice (from the history query and live), the repeat is dropped.
 
         Parameters
         ----------
@@ -646,29 +657,60 @@ class McapSink:
             ``True`` for PUT (joined), ``False`` for DELETE (left).
         receive_ns : int [ns]
             When the recorder saw it.
+
+        Returns
+        -------
+        bool
+            Whether an event was recorded (False for a repeat).
         """
         role, ident = "unknown", ""
         parts = key.split("/")
         if len(parts) >= 4 and parts[2] == "alive":  # diffpos/<site>/alive/<role>[/<id>]
             role, ident = parts[3], "/".join(parts[4:])
-        event = {"v": 1, "key": key, "alive": bool(alive), "t_ns": int(receive_ns),
-                 "role": role, "id": ident}
+        event = {
+            "v": 1,
+            "key": key,
+            "alive": bool(alive),
+            "t_ns": int(receive_ns),
+            "role": role,
+            "id": ident,
+        }
         payload = json.dumps(event, separators=(",", ":")).encode()
         topic = liveliness_topic(site)
         with self._lock:
+            if self._alive.get(key) == bool(alive):
+                return False
+            self._alive[key] = bool(alive)
             self.stats.liveliness_events += 1
             cid = self._channels.get(topic)
             if cid is None:
                 entry = self.registry.by_stem["liveliness"]
                 cid = self._writer.register_channel(
-                    topic, MESSAGE_ENCODING, self._schema_id(entry),
+                    topic,
+                    MESSAGE_ENCODING,
+                    self._schema_id(entry),
                     {"key_expr": topic, "kind": "liveliness", "schema_file": entry.source},
                 )
                 self._channels[topic] = cid
-            self._writer.add_message(cid, log_time=int(receive_ns), data=payload,
-                                     publish_time=int(receive_ns),
-                                     sequence=self.stats.liveliness_events - 1)
+            self._writer.add_message(
+                cid,
+                log_time=int(receive_ns),
+                data=payload,
+                publish_time=int(receive_ns),
+                sequence=self.stats.liveliness_events - 1,
+            )
             self._pending += 1
+        return True
+
+    def counts_by_kind(self) -> dict[str, int]:
+        """Messages written so far per message kind (see :func:`parse_topic`)."""
+        with self._lock:
+            items = list(self.stats.per_key.items())
+        out: dict[str, int] = {}
+        for key, n in items:
+            kind = self.registry.kind(key)
+            out[kind] = out.get(kind, 0) + n
+        return out
 
     # -- self-description ---------------------------------------------------------------------
 
@@ -679,14 +721,19 @@ class McapSink:
             self._writer.add_metadata(name, clean)
 
     def add_attachment(
-        self, name: str, data: bytes, *, media_type: str = "application/octet-stream",
+        self,
+        name: str,
+        data: bytes,
+        *,
+        media_type: str = "application/octet-stream",
         log_ns: int | None = None,
     ) -> None:
         """MCAP attachment (e.g. the scenario TOML), written immediately."""
         t = time.time_ns() if log_ns is None else int(log_ns)
         with self._lock:
-            self._writer.add_attachment(create_time=t, log_time=t, name=name,
-                                        media_type=media_type, data=bytes(data))
+            self._writer.add_attachment(
+                create_time=t, log_time=t, name=name, media_type=media_type, data=bytes(data)
+            )
             self._file.flush()
 
     # -- durability -----------------------------------------------------------------------
@@ -811,8 +858,9 @@ class Damage:
 
     @property
     def ok(self) -> bool:
-        return not (self.truncated or self.bad_chunks or self.bad_records
-                    or self.messages_without_channel)
+        return not (
+            self.truncated or self.bad_chunks or self.bad_records or self.messages_without_channel
+        )
 
 
 @dataclass(frozen=True)
@@ -886,7 +934,7 @@ class McapScanner:
         enc, pos = _str(body, pos)
         n = _U32.unpack_from(body, pos)[0]
         pos += 4
-        data = bytes(body[pos:pos + n])
+        data = bytes(body[pos : pos + n])
         if sid not in self.schemas:
             self.schemas[sid] = Schema(id=sid, name=name, encoding=enc, data=data)
 
@@ -907,7 +955,7 @@ class McapScanner:
         comp, pos = _str(body, 28)
         rlen = _U64.unpack_from(body, pos)[0]
         pos += 8
-        comp_data = body[pos:pos + rlen]
+        comp_data = body[pos : pos + rlen]
         if comp == "zstd":
             import zstandard
 
@@ -944,7 +992,7 @@ class McapScanner:
                     continue
                 if topic_filter is not None and topic not in topic_filter:
                     continue
-                append(RawMessage(topic, cid, seq, log_t, pub_t, data[b + 22:p]))
+                append(RawMessage(topic, cid, seq, log_t, pub_t, data[b + 22 : p]))
             elif op == _OP_CHANNEL:
                 self._add_channel(data, b)
                 topics = {c.id: c.topic for c in channels.values()}
@@ -1056,7 +1104,7 @@ def _str(buf, pos: int) -> tuple[str, int]:
     pos += 4
     if pos + n > len(buf):
         raise ValueError("string runs past the record")
-    return bytes(buf[pos:pos + n]).decode("utf-8"), pos + n
+    return bytes(buf[pos : pos + n]).decode("utf-8"), pos + n
 
 
 def _map(buf, pos: int) -> tuple[dict[str, str], int]:
@@ -1077,8 +1125,13 @@ def _attachment(body: bytes) -> Attachment:
     media, p = _str(body, p)
     n = _U64.unpack_from(body, p)[0]
     p += 8
-    return Attachment(log_time=log_t, create_time=create_t, name=name, media_type=media,
-                      data=bytes(body[p:p + n]))
+    return Attachment(
+        log_time=log_t,
+        create_time=create_t,
+        name=name,
+        media_type=media,
+        data=bytes(body[p : p + n]),
+    )
 
 
 def _statistics(body: bytes):
@@ -1147,10 +1200,13 @@ def recover(
     """
     src, dst = Path(src), Path(dst)
     if dst.exists() and src.exists() and os.path.samefile(src, dst):
-        raise RecordingError("recover writes a new file: give an output path different from the input")
+        raise RecordingError(
+            "recover writes a new file: give an output path different from the input"
+        )
     scanner = McapScanner(src)
-    comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-            "none": CompressionType.NONE}[compression]
+    comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
+        compression
+    ]
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = dst.with_name(dst.name + ".partial")
     n_msgs = 0
@@ -1164,8 +1220,10 @@ def recover(
         def ensure_started() -> None:
             nonlocal started
             if not started:
-                w.start(profile=scanner.header_profile, library=scanner.header_library
-                        or "diffpos-recover")
+                w.start(
+                    profile=scanner.header_profile,
+                    library=scanner.header_library or "diffpos-recover",
+                )
                 started = True
 
         def map_channel(cid: int) -> int:
@@ -1186,8 +1244,13 @@ def recover(
         for batch in scanner.iter_batches():
             ensure_started()
             for m in batch:
-                w.add_message(map_channel(m.channel_id), log_time=m.log_ns, data=m.data,
-                              publish_time=m.publish_ns, sequence=m.sequence)
+                w.add_message(
+                    map_channel(m.channel_id),
+                    log_time=m.log_ns,
+                    data=m.data,
+                    publish_time=m.publish_ns,
+                    sequence=m.sequence,
+                )
             n_msgs += len(batch)
             # metadata / attachments seen so far are written as they come
             while n_meta < len(scanner.metadata):
@@ -1206,19 +1269,26 @@ def recover(
         for a in scanner.attachments[n_att:]:
             w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
         if not scanner.complete and not any(m.name == "recovery" for m in scanner.metadata):
-            w.add_metadata("recovery", {
-                "source": src.name,
-                "truncated": json.dumps(scanner.damage.truncated),
-                "bad_chunks": str(scanner.damage.bad_chunks),
-                "unread_bytes": str(scanner.damage.unread_bytes),
-                "messages": str(n_msgs),
-            })
+            w.add_metadata(
+                "recovery",
+                {
+                    "source": src.name,
+                    "truncated": json.dumps(scanner.damage.truncated),
+                    "bad_chunks": str(scanner.damage.bad_chunks),
+                    "unread_bytes": str(scanner.damage.unread_bytes),
+                    "messages": str(n_msgs),
+                },
+            )
         w.finish()
     os.replace(tmp, dst)
     return RecoverReport(
-        messages=n_msgs, channels=len(channel_map), schemas=len(schema_map),
-        metadata=len(scanner.metadata), attachments=len(scanner.attachments),
-        damage=scanner.damage, was_complete=scanner.complete,
+        messages=n_msgs,
+        channels=len(channel_map),
+        schemas=len(schema_map),
+        metadata=len(scanner.metadata),
+        attachments=len(scanner.attachments),
+        damage=scanner.damage,
+        was_complete=scanner.complete,
     )
 
 
@@ -1293,15 +1363,23 @@ class RecordingSummary:
 
     def as_dict(self) -> dict[str, Any]:
         return {
-            "path": self.path, "size_bytes": self.size_bytes, "complete": self.complete,
-            "messages": self.messages, "start_ns": self.start_ns, "end_ns": self.end_ns,
+            "path": self.path,
+            "size_bytes": self.size_bytes,
+            "complete": self.complete,
+            "messages": self.messages,
+            "start_ns": self.start_ns,
+            "end_ns": self.end_ns,
             "duration_s": self.duration_s,
-            "channels": [c.__dict__ for c in self.channels], "schemas": self.schemas,
-            "anchors": self.anchors, "nodes": self.nodes, "liveliness": self.liveliness,
+            "channels": [c.__dict__ for c in self.channels],
+            "schemas": self.schemas,
+            "anchors": self.anchors,
+            "nodes": self.nodes,
+            "liveliness": self.liveliness,
             "metadata": self.metadata,
             "attachments": [list(a) for a in self.attachments],
             "damage": {**self.damage.__dict__, "ok": self.damage.ok},
-            "gaps": self.gaps, "out_of_order": self.out_of_order,
+            "gaps": self.gaps,
+            "out_of_order": self.out_of_order,
         }
 
 
@@ -1344,24 +1422,33 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
         if "node" in fields:
             nodes.add(fields["node"])
         sch = sc.schemas.get(ch.schema_id)
-        chans.append(ChannelSummary(
-            topic=ch.topic, kind=kind, schema=sch.name if sch else "",
-            message_encoding=ch.message_encoding, count=counts.get(cid, 0),
-            first_log_ns=first.get(cid, 0), last_log_ns=last.get(cid, 0),
-        ))
+        chans.append(
+            ChannelSummary(
+                topic=ch.topic,
+                kind=kind,
+                schema=sch.name if sch else "",
+                message_encoding=ch.message_encoding,
+                count=counts.get(cid, 0),
+                first_log_ns=first.get(cid, 0),
+                last_log_ns=last.get(cid, 0),
+            )
+        )
     for ev in live:
         if ev.get("role") == "anchor" and ev.get("id"):
             anchors.add(str(ev["id"]))
     chans.sort(key=lambda c: _natural(c.topic))
     total = sum(counts.values())
     return RecordingSummary(
-        path=str(path), size_bytes=Path(path).stat().st_size, complete=sc.complete,
+        path=str(path),
+        size_bytes=Path(path).stat().st_size,
+        complete=sc.complete,
         messages=total,
         start_ns=min(first.values()) if first else 0,
         end_ns=max(last.values()) if last else 0,
         channels=chans,
         schemas={s.name: s.encoding for s in sc.schemas.values()},
-        anchors=sorted(anchors, key=_natural), nodes=sorted(nodes, key=_natural),
+        anchors=sorted(anchors, key=_natural),
+        nodes=sorted(nodes, key=_natural),
         liveliness=live,
         metadata={m.name: dict(m.metadata) for m in sc.metadata},
         attachments=[(a.name, a.media_type, len(a.data)) for a in sc.attachments],

@@ -48,8 +48,9 @@ def alive_recorder_key(site: str) -> str:
     return f"{Keys(site).root}/alive/recorder"
 
 
-def default_output_path(scenario: str, *, directory: str | os.PathLike[str] = "recordings",
-                        now_ns: int | None = None) -> Path:
+def default_output_path(
+    scenario: str, *, directory: str | os.PathLike[str] = "recordings", now_ns: int | None = None
+) -> Path:
     """``<directory>/<scenario>-<UTC YYYYmmddTHHMMSSZ>.mcap``.
 
     Parameters
@@ -123,7 +124,8 @@ def record(
         Set it (e.g. from a signal handler) to end recording.
     on_status : callable, optional
         ``on_status(event, fields)`` with events ``ready`` (subscribed), ``flush`` (after each
-        flush that wrote something, fields ``flushed``/``received``/``written``) and
+        flush that wrote something, fields ``flushed``, ``flushed_written``, ``received``,
+        ``written``, ``gaps`` and ``by_kind``, written messages per kind) and
         ``stopped``. Called from the recorder's threads; keep it short.
 
     Returns
@@ -166,16 +168,26 @@ def record(
             if flushed != last:
                 last = flushed
                 st = sink.stats
-                emit("flush", {"flushed": flushed, "flushed_written": st.flushed_written,
-                               "received": st.received, "written": st.written,
-                               "gaps": st.gaps})
+                emit(
+                    "flush",
+                    {
+                        "flushed": flushed,
+                        "flushed_written": st.flushed_written,
+                        "received": st.received,
+                        "written": st.written,
+                        "gaps": st.gaps,
+                        "by_kind": sink.counts_by_kind(),
+                    },
+                )
 
     t_end = None if options.duration_s is None else time.monotonic() + options.duration_s
     with zenoh.open(settings.to_config()) as session:
-        sub = session.declare_subscriber(keys.everything(),
-                                         handlers.FifoChannel(options.queue_size))
-        live_sub = session.liveliness().declare_subscriber(keys.alive_all(), on_liveliness,
-                                                           history=True)
+        sub = session.declare_subscriber(
+            keys.everything(), handlers.FifoChannel(options.queue_size)
+        )
+        live_sub = session.liveliness().declare_subscriber(
+            keys.alive_all(), on_liveliness, history=True
+        )
         drainer = threading.Thread(target=drain, args=(sub,), name="recorder-drain", daemon=True)
         drainer.start()
         flush_thread = threading.Thread(target=flusher, name="recorder-flush", daemon=True)
@@ -190,20 +202,33 @@ def record(
         finally:
             stop.set()
             flush_thread.join()
+            live_sub.undeclare()  # first: our own token's DELETE is not an event
             token.undeclare()
-            live_sub.undeclare()
     # leaving the with block closed the session: recv() drains what is queued, then raises
     drainer.join()
     flushed = sink.flush()
     st = sink.stats
-    emit("stopped", {"flushed": flushed, "flushed_written": st.flushed_written,
-                     "received": st.received, "written": st.written,
-                     "gaps": st.gaps, "deletes_ignored": deletes})
+    emit(
+        "stopped",
+        {
+            "flushed": flushed,
+            "flushed_written": st.flushed_written,
+            "received": st.received,
+            "written": st.written,
+            "gaps": st.gaps,
+            "deletes_ignored": deletes,
+        },
+    )
     return st
 
 
-def run_metadata(settings: ZenohSettings, options: RecorderOptions, *,
-                 scenario: str | None, argv: list[str] | None = None) -> dict[str, Any]:
+def run_metadata(
+    settings: ZenohSettings,
+    options: RecorderOptions,
+    *,
+    scenario: str | None,
+    argv: list[str] | None = None,
+) -> dict[str, Any]:
     """The ``run`` metadata record written at the start of every recording."""
     return {
         "site": options.site,
@@ -250,8 +275,18 @@ def build_command(
     run_config : path, optional
         JSON file with the run configuration, attached to the recording.
     """
-    argv = [python or sys.executable, "-m", "diffpos_services.cli", "recorder", "--site", site,
-            "--out", str(out), "--flush-interval", repr(float(flush_interval_s))]
+    argv = [
+        python or sys.executable,
+        "-m",
+        "diffpos_services.cli",
+        "recorder",
+        "--site",
+        site,
+        "--out",
+        str(out),
+        "--flush-interval",
+        repr(float(flush_interval_s)),
+    ]
     for ep in connect:
         argv += ["--connect", ep]
     if scenario is not None:

@@ -50,6 +50,7 @@ __all__ = [
     "plot_cdf",
     "replay",
     "solver_override",
+    "synthetic_run",
     "write_synthetic_recording",
 ]
 
@@ -78,6 +79,7 @@ def live_fusion_settings(scanner: McapScanner) -> tuple[dict[str, Any], str]:
     source : str
         Where they came from (``"defaults"`` when the recording has none).
     """
+
     def decode(v: str) -> Any:
         try:
             return json.loads(v)
@@ -195,7 +197,8 @@ def error_stats(
         "floor_accuracy": float(np.mean(floor_ok)) if k else None,
         "peb_m": _pct(peb_m[finite_peb]),
         "within_2peb": float(np.mean(err_3d_m[finite_peb] <= 2 * peb_m[finite_peb]))
-        if finite_peb.any() else None,
+        if finite_peb.any()
+        else None,
     }
 
 
@@ -208,12 +211,16 @@ class _Truth:
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         t = np.asarray(self.t_ns, np.int64)
         order = np.argsort(t, kind="stable")
-        return t[order], np.asarray(self.pos, float).reshape(-1, 3)[order], \
-            np.asarray(self.floor, np.int64)[order]
+        return (
+            t[order],
+            np.asarray(self.pos, float).reshape(-1, 3)[order],
+            np.asarray(self.floor, np.int64)[order],
+        )
 
 
-def _evaluate(estimates: list[M.PositionEstimate], truth: dict[str, _Truth], *,
-              max_truth_gap_ns: int) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def _evaluate(
+    estimates: list[M.PositionEstimate], truth: dict[str, _Truth], *, max_truth_gap_ns: int
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Errors per node and overall; also returns the raw overall error arrays (for plots)."""
     by_node: dict[str, list[M.PositionEstimate]] = defaultdict(list)
     for e in estimates:
@@ -227,8 +234,14 @@ def _evaluate(estimates: list[M.PositionEstimate], truth: dict[str, _Truth], *,
         tr = truth.get(node)
         if tr is None or not tr.t_ns or not with_pos:
             no_truth += len(with_pos) if tr is None or not tr.t_ns else 0
-            per_node[node] = error_stats(np.empty(0), np.empty(0), np.empty(0),
-                                         np.empty(0, bool), np.empty(0), fixes=len(ests))
+            per_node[node] = error_stats(
+                np.empty(0),
+                np.empty(0),
+                np.empty(0),
+                np.empty(0, bool),
+                np.empty(0),
+                fixes=len(ests),
+            )
             continue
         tt, tp, tf = tr.arrays()
         te = np.array([e.t_ns for e in with_pos], np.int64)
@@ -260,8 +273,9 @@ def _evaluate(estimates: list[M.PositionEstimate], truth: dict[str, _Truth], *,
     for k in ("e3", "ez", "eh", "peb"):
         cat.setdefault(k, np.empty(0))
     cat.setdefault("fok", np.empty(0, bool))
-    overall = error_stats(cat["e3"], cat["ez"], cat["eh"], cat["fok"].astype(bool), cat["peb"],
-                          fixes=len(estimates))
+    overall = error_stats(
+        cat["e3"], cat["ez"], cat["eh"], cat["fok"].astype(bool), cat["peb"], fixes=len(estimates)
+    )
     overall["without_truth"] = no_truth
     return {"overall": overall, "per_node": per_node}, cat
 
@@ -280,12 +294,14 @@ def _gating(estimates: list[M.PositionEstimate]) -> dict[str, Any]:
         for x in e.excluded:
             excluded[x.anchor_id][x.reason] += 1
     anchors = sorted(set(used) | set(excluded), key=_natural)
-    return {a: {"used": used.get(a, 0), "excluded": dict(sorted(excluded[a].items()))}
-            for a in anchors}
+    return {
+        a: {"used": used.get(a, 0), "excluded": dict(sorted(excluded[a].items()))} for a in anchors
+    }
 
 
-def compare_estimates(live: list[M.PositionEstimate],
-                      replayed: list[M.PositionEstimate]) -> dict[str, Any]:
+def compare_estimates(
+    live: list[M.PositionEstimate], replayed: list[M.PositionEstimate]
+) -> dict[str, Any]:
     """Recorded-live vs replayed estimates, matched on (node, epoch).
 
     Returns
@@ -316,16 +332,24 @@ def compare_estimates(live: list[M.PositionEstimate],
     arr = np.asarray(diffs)
     order = np.argsort(-arr, kind="stable")[:5] if arr.size else []
     return {
-        "live": len(live), "replayed": len(replayed), "matched": len(both),
-        "only_live": len(set(lmap) - set(rmap)), "only_replayed": len(set(rmap) - set(lmap)),
+        "live": len(live),
+        "replayed": len(replayed),
+        "matched": len(both),
+        "only_live": len(set(lmap) - set(rmap)),
+        "only_replayed": len(set(rmap) - set(lmap)),
         "status_agree": (status_same / len(both)) if both else None,
         "with_positions": int(arr.size),
         "identical_positions": identical,
         "position_diff_m": _pct(arr),
         "peb_diff_m": float(max(peb_d)) if peb_d else None,
         "examples": [
-            {"node": keys_d[i][0], "epoch": keys_d[i][1], "diff_m": diffs[i],
-             "live_status": lmap[keys_d[i]].status, "replayed_status": rmap[keys_d[i]].status}
+            {
+                "node": keys_d[i][0],
+                "epoch": keys_d[i][1],
+                "diff_m": diffs[i],
+                "live_status": lmap[keys_d[i]].status,
+                "replayed_status": rmap[keys_d[i]].status,
+            }
             for i in order
         ],
     }
@@ -457,10 +481,16 @@ def replay(
     sink = None
     if out_mcap is not None:
         sink = McapSink(out_mcap, library="diffpos-replay")
-        sink.add_metadata("replay", {
-            "source": str(path), "method": method or "dnls", "step_ms": step_ms,
-            "settings": msgspec.to_builtins(config), "settings_source": source,
-        })
+        sink.add_metadata(
+            "replay",
+            {
+                "source": str(path),
+                "method": method or "dnls",
+                "step_ms": step_ms,
+                "settings": msgspec.to_builtins(config),
+                "settings_source": source,
+            },
+        )
 
     def emit(ests: list[M.PositionEstimate], now_ns: int) -> None:
         for e in ests:
@@ -484,8 +514,7 @@ def replay(
                     t_first = now
                 t_last = now
                 if sink is not None and copy_input:
-                    sink.write(m.topic, m.data, now, publish_ns=m.publish_ns,
-                               sequence=m.sequence)
+                    sink.write(m.topic, m.data, now, publish_ns=m.publish_ns, sequence=m.sequence)
                 if kind in _FUSION_INPUT_KINDS:
                     core.on_sample(m.topic, m.data, now)
                 elif kind == "liveliness":
@@ -532,7 +561,9 @@ def replay(
 
     gap_s = round(max_truth_gap_s * 1e9)
     accuracy, errs = _evaluate(out, truth, max_truth_gap_ns=gap_s)
-    live_accuracy, live_errs = _evaluate(live, truth, max_truth_gap_ns=gap_s) if live else (None, {})
+    live_accuracy, live_errs = (
+        _evaluate(live, truth, max_truth_gap_ns=gap_s) if live else (None, {})
+    )
     duration_s = ((t_last or 0) - (t_first or 0)) / 1e9
     wall = time.perf_counter() - t_wall0
     report: dict[str, Any] = {
@@ -558,24 +589,31 @@ def replay(
             "fusion_rejected": dict(core.rejected),
             "late_ranges": core.book.late,
         },
-        "fixes": {"total": len(out),
-                  "by_status": dict(sorted(Counter(e.status for e in out).items()))},
+        "fixes": {
+            "total": len(out),
+            "by_status": dict(sorted(Counter(e.status for e in out).items())),
+        },
         "nodes": sorted({e.node_id for e in out} | set(truth), key=_natural),
         "anchors": sorted(core.anchors, key=_natural),
         "accuracy": accuracy,
         "gating": _gating(out),
-        "live": None if live_accuracy is None else {
+        "live": None
+        if live_accuracy is None
+        else {
             "fixes": len(live),
             "by_status": dict(sorted(Counter(e.status for e in live).items())),
             "accuracy": live_accuracy,
             "gating": _gating(live),
         },
         "compare": compare_estimates(live, out) if live else None,
-        "timing": {"wall_s": wall,
-                   "speedup_x": (duration_s / wall) if wall > 0 and duration_s > 0 else None},
+        "timing": {
+            "wall_s": wall,
+            "speedup_x": (duration_s / wall) if wall > 0 and duration_s > 0 else None,
+        },
     }
-    return ReplayResult(estimates=out, live_estimates=live, report=report, errors=errs,
-                        live_errors=live_errs)
+    return ReplayResult(
+        estimates=out, live_estimates=live, report=report, errors=errs, live_errors=live_errs
+    )
 
 
 def _chain(first, rest):
@@ -604,11 +642,15 @@ def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
     method = result.report.get("method", "dnls").upper().replace("DNLS", "D-NLS")
-    curves = [(result.errors.get("e3"), f"3D error, replay ({method})", "C0", "-"),
-              (result.errors.get("ez"), f"z error, replay ({method})", "C1", "-")]
+    curves = [
+        (result.errors.get("e3"), f"3D error, replay ({method})", "C0", "-"),
+        (result.errors.get("ez"), f"z error, replay ({method})", "C1", "-"),
+    ]
     if result.live_estimates:
-        curves += [(result.live_errors.get("e3"), "3D error, recorded live", "C0", "--"),
-                   (result.live_errors.get("ez"), "z error, recorded live", "C1", "--")]
+        curves += [
+            (result.live_errors.get("e3"), "3D error, recorded live", "C0", "--"),
+            (result.live_errors.get("ez"), "z error, recorded live", "C1", "--"),
+        ]
     xmax = 0.0
     for arr, label, color, ls in curves:
         if arr is None or arr.size == 0:
@@ -626,8 +668,9 @@ def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None
     if xmax > 0:
         ax.legend(loc="lower right", fontsize=8)
     else:
-        ax.text(0.5, 0.5, "no fixes with ground truth to evaluate", ha="center",
-                transform=ax.transAxes)
+        ax.text(
+            0.5, 0.5, "no fixes with ground truth to evaluate", ha="center", transform=ax.transAxes
+        )
     fig.tight_layout()
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -642,13 +685,39 @@ def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None
 
 #: geometry of :func:`write_synthetic_recording` (the paper-like building of the scenario model)
 SYNTHETIC_FUSION = {
-    "window_height_m": 1.5, "edge_x_m": [-20.0, 20.0], "first_floor_z_m": 4.0,
-    "floor_height_m": 3.0, "n_floors": 5, "epoch_period_s": 0.1, "deadline_s": 0.3,
+    "window_height_m": 1.5,
+    "edge_x_m": [-20.0, 20.0],
+    "first_floor_z_m": 4.0,
+    "floor_height_m": 3.0,
+    "n_floors": 5,
+    "epoch_period_s": 0.1,
+    "deadline_s": 0.3,
 }
 
 
-def write_synthetic_recording(
-    path: str | Path,
+@dataclass(frozen=True)
+class SyntheticRun:
+    """An emulated run without Zenoh (see :func:`synthetic_run`).
+
+    Attributes
+    ----------
+    config : FusionConfig
+        Fusion settings matching the geometry.
+    anchor_ids, node_ids : list of str
+    t0_ns : int [ns]
+        Start of the run (emulated time).
+    epochs : iterator of list of (rx_ns, key, payload)
+        Per epoch, every message in receive order: anchor states, ranges and node truth.
+    """
+
+    config: FusionConfig
+    anchor_ids: list[str]
+    node_ids: list[str]
+    t0_ns: int
+    epochs: Iterator[list[tuple[int, str, bytes]]]
+
+
+def synthetic_run(
     *,
     n_anchors: int = 5,
     n_nodes: int = 4,
@@ -658,37 +727,31 @@ def write_synthetic_recording(
     outlier_probability: float = 0.0,
     seed: int = 0,
     site: str = "synth",
-    live: bool = True,
-    live_step_ms: float = 5.0,
-    flush_every: int = 0,
-) -> dict[str, int]:
-    """Write a recording of an emulated run without Zenoh, like the recorder would.
+    t0_ns: int = 100_000_000_000_000_000,
+) -> SyntheticRun:
+    """Messages of an emulated run, generated without Zenoh.
 
     Anchors hover outside the facade (``y < 0``), nodes walk slowly on their floor inside;
     ranges are the diffraction path lengths over the window edge (the fusion's own model)
     plus Gaussian noise and, with ``outlier_probability``, positive NLoS-like biases of
-    2-10 m. Each epoch an anchor reports its state and a range to every node at its own phase;
-    receive times add 0.2-1.2 ms of latency. With ``live`` a FusionCore run over the same
-    stream (stepped every ``live_step_ms`` of receive time) plays the live fusion and its
-    estimates are recorded on ``node/<id>/estimate``. The fusion settings are stored as
-    metadata ``fusion_config`` (what ``diffpos replay`` starts from).
+    2-10 m. Each epoch an anchor reports its state and a range to every node at its own phase
+    (one sequence counter per anchor, like the anchor service); receive times add 0.2-1.2 ms
+    of latency. The default ``t0_ns`` (1e17 ns, 1973) keeps FusionCore's int64 sum of an
+    epoch's range times from overflowing (present-day Unix times overflow with 5+ anchors:
+    reported upstream).
 
     Parameters
     ----------
-    path : path
-        Output MCAP.
     n_anchors, n_nodes : int
     duration_s : float [s]
     rate_hz : float [Hz]
         Ranging rate of every anchor (= fusion epoch rate).
     sigma_m : float [m]
         Ranging noise one-sigma.
+    outlier_probability : float
     seed : int
-
-    Returns
-    -------
-    counts : dict
-        Messages written per kind.
+    site : str
+    t0_ns : int [ns]
     """
     from diffpos_services.keys import Keys
 
@@ -696,90 +759,180 @@ def write_synthetic_recording(
 
     rng = np.random.default_rng(seed)
     keys = Keys(site)
-    fusion_cfg = dict(SYNTHETIC_FUSION, site=site, epoch_period_s=1.0 / rate_hz)
-    config = build_config(FusionConfig, fusion_cfg)
+    config = build_config(
+        FusionConfig, dict(SYNTHETIC_FUSION, site=site, epoch_period_s=1.0 / rate_hz)
+    )
     period_ns = round(1e9 / rate_hz)
     ang = np.linspace(0, np.pi, n_anchors)
-    anchors = np.stack([-18 + 36 * np.arange(n_anchors) / max(n_anchors - 1, 1),
-                        -8 - 10 * np.sin(ang), 1.0 + 3.0 * (np.arange(n_anchors) % 2)], axis=-1)
+    anchors = np.stack(
+        [
+            -18 + 36 * np.arange(n_anchors) / max(n_anchors - 1, 1),
+            -8 - 10 * np.sin(ang),
+            1.0 + 3.0 * (np.arange(n_anchors) % 2),
+        ],
+        axis=-1,
+    )
     anchor_ids = [f"uav{i + 1}" for i in range(n_anchors)]
     floors = rng.integers(0, 5, n_nodes)
-    start = np.stack([rng.uniform(-15, 15, n_nodes), rng.uniform(2, 15, n_nodes),
-                      4.0 + 3.0 * floors + 1.5], axis=-1)
+    start = np.stack(
+        [rng.uniform(-15, 15, n_nodes), rng.uniform(2, 15, n_nodes), 4.0 + 3.0 * floors + 1.5],
+        axis=-1,
+    )
     vel = np.concatenate([rng.normal(0, 0.5, (n_nodes, 2)), np.zeros((n_nodes, 1))], axis=-1)
     node_ids = [f"n{i + 1:02d}" for i in range(n_nodes)]
     phases = (0.05 + 0.9 * np.arange(n_anchors) / n_anchors) * period_ns
-    # 1e17 ns (1973): FusionCore sums the range times of an epoch in int64, which overflows
-    # for present-day Unix times with 5+ anchors (reported); emulated time is relative anyway
-    t0 = 100_000_000_000_000_000
     enc = M.encode
+    n_epochs = round(duration_s * rate_hz)
+
+    def node_pos(t_ns: int) -> np.ndarray:
+        p = start + vel * ((t_ns - t0_ns) * 1e-9)
+        p[:, 0] = np.clip(p[:, 0], -19.5, 19.5)
+        p[:, 1] = np.clip(p[:, 1], 0.5, 22.0)
+        return p
+
+    def epochs() -> Iterator[list[tuple[int, str, bytes]]]:
+        seqs: Counter[str] = Counter()
+        for e in range(n_epochs):
+            items: list[tuple[int, str, bytes]] = []
+            te = t0_ns + e * period_ns
+            for j, a in enumerate(anchor_ids):
+                t = te + int(phases[j])
+                r = window_edge_path(
+                    anchors[j], node_pos(t), window_height_m=1.5, edge_x_m=(-20.0, 20.0)
+                ).length_m
+                r = r + rng.normal(0, sigma_m, n_nodes)
+                if outlier_probability > 0:
+                    out = rng.random(n_nodes) < outlier_probability
+                    r = r + out * rng.uniform(2, 10, n_nodes)
+                rx = t + int(rng.integers(200_000, 1_200_000))
+                items.append(
+                    (
+                        rx,
+                        keys.anchor_state(a),
+                        enc(
+                            M.AnchorState(
+                                anchor_id=a,
+                                t_ns=t,
+                                seq=seqs[a],
+                                position_m=M.vec3(anchors[j]),
+                                velocity_m_s=(0.0, 0.0, 0.0),
+                                position_sigma_m=(0.05, 0.05, 0.05),
+                                velocity_sigma_m_s=0.02,
+                                range_rate_hz=rate_hz,
+                                t_pub_wall_ns=t,
+                            )
+                        ),
+                    )
+                )
+                seqs[a] += 1
+                for i, n in enumerate(node_ids):
+                    items.append(
+                        (
+                            rx + 1000 * (i + 1),
+                            keys.anchor_range(a, n),
+                            enc(
+                                M.RangeMeasurement(
+                                    anchor_id=a,
+                                    node_id=n,
+                                    t_ns=t,
+                                    seq=seqs[a],
+                                    range_m=float(r[i]),
+                                    sigma_m=sigma_m,
+                                    snr_db=20.0,
+                                    t_pub_wall_ns=t,
+                                )
+                            ),
+                        )
+                    )
+                    seqs[a] += 1
+            tt = te + period_ns // 2
+            pos_t = node_pos(tt)
+            for i, n in enumerate(node_ids):
+                items.append(
+                    (
+                        tt + 300_000,
+                        keys.truth_node(n),
+                        enc(
+                            M.GroundTruth(
+                                entity="node",
+                                id=n,
+                                t_ns=tt,
+                                position_m=M.vec3(pos_t[i]),
+                                velocity_m_s=M.vec3(vel[i]),
+                                floor_index=int(floors[i]),
+                            )
+                        ),
+                    )
+                )
+            items.sort(key=lambda x: x[0])
+            yield items
+
+    return SyntheticRun(config, anchor_ids, node_ids, t0_ns, epochs())
+
+
+def write_synthetic_recording(
+    path: str | Path,
+    *,
+    live: bool = True,
+    live_step_ms: float = 5.0,
+    flush_every: int = 0,
+    **run_kw: Any,
+) -> dict[str, int]:
+    """Write a recording of a :func:`synthetic_run` like the recorder would.
+
+    With ``live`` a FusionCore run over the same stream (stepped every ``live_step_ms`` of
+    receive time) plays the live fusion and its estimates are recorded on
+    ``node/<id>/estimate``. The fusion settings are stored as metadata ``fusion_config``
+    (what ``diffpos replay`` starts from).
+
+    Parameters
+    ----------
+    path : path
+        Output MCAP.
+    live : bool
+    live_step_ms : float [ms]
+    flush_every : int
+        Close a chunk every this many messages (0: only by size).
+    **run_kw
+        Passed to :func:`synthetic_run`.
+
+    Returns
+    -------
+    counts : dict
+        Messages written per kind.
+    """
+    run = synthetic_run(**run_kw)
+    site = run.config.site
+    from diffpos_services.keys import Keys
+
+    keys = Keys(site)
     sink = McapSink(path, library="diffpos-synthetic")
-    sink.add_metadata("run", {"scenario": "synthetic", "site": site, "seed": seed,
-                              "anchors": n_anchors, "nodes": n_nodes, "duration_s": duration_s})
-    sink.add_metadata("fusion_config", msgspec.to_builtins(config))
-    core = FusionCore(config, logger=_quiet_logger()) if live else None
+    sink.add_metadata("run", {"scenario": "synthetic", "site": site, **run_kw})
+    sink.add_metadata("fusion_config", msgspec.to_builtins(run.config))
+    core = FusionCore(run.config, logger=_quiet_logger()) if live else None
     counts: Counter[str] = Counter()
-    seqs: Counter[str] = Counter()  # one counter per anchor, like the anchor service
-    est_seq = 0
-    for a in anchor_ids:
-        sink.write_liveliness(site, keys.alive_anchor(a), True, t0 - 10_000_000)
+    for a in run.anchor_ids:
+        sink.write_liveliness(site, keys.alive_anchor(a), True, run.t0_ns - 10_000_000)
         if core is not None:
-            core.on_liveliness(a, True, t0 - 10_000_000)
+            core.on_liveliness(a, True, run.t0_ns - 10_000_000)
     next_step = None
     step_ns = round(live_step_ms * 1e6)
-    n_epochs = round(duration_s * rate_hz)
     written = 0
-    for e in range(n_epochs):
-        items: list[tuple[int, str, bytes]] = []
-        te = t0 + e * period_ns
-        for j, a in enumerate(anchor_ids):
-            t = te + int(phases[j])
-            ts = (t - t0) * 1e-9
-            pos_n = start + vel * ts
-            pos_n[:, 0] = np.clip(pos_n[:, 0], -19.5, 19.5)
-            pos_n[:, 1] = np.clip(pos_n[:, 1], 0.5, 22.0)
-            r = window_edge_path(anchors[j], pos_n, window_height_m=1.5,
-                                 edge_x_m=(-20.0, 20.0)).length_m
-            r = r + rng.normal(0, sigma_m, n_nodes)
-            if outlier_probability > 0:
-                out = rng.random(n_nodes) < outlier_probability
-                r = r + out * rng.uniform(2, 10, n_nodes)
-            rx = t + int(rng.integers(200_000, 1_200_000))
-            k = keys.anchor_state(a)
-            items.append((rx, k, enc(M.AnchorState(
-                anchor_id=a, t_ns=t, seq=seqs[a], position_m=M.vec3(anchors[j]),
-                velocity_m_s=(0.0, 0.0, 0.0), position_sigma_m=(0.05, 0.05, 0.05),
-                velocity_sigma_m_s=0.02, range_rate_hz=rate_hz, t_pub_wall_ns=t))))
-            seqs[a] += 1
-            for i, n in enumerate(node_ids):
-                k = keys.anchor_range(a, n)
-                items.append((rx + 1000 * (i + 1), k, enc(M.RangeMeasurement(
-                    anchor_id=a, node_id=n, t_ns=t, seq=seqs[a], range_m=float(r[i]),
-                    sigma_m=sigma_m, snr_db=20.0, t_pub_wall_ns=t))))
-                seqs[a] += 1
-        tt = te + period_ns // 2
-        pos_t = start + vel * ((tt - t0) * 1e-9)
-        pos_t[:, 0] = np.clip(pos_t[:, 0], -19.5, 19.5)
-        pos_t[:, 1] = np.clip(pos_t[:, 1], 0.5, 22.0)
-        for i, n in enumerate(node_ids):
-            items.append((tt + 300_000, keys.truth_node(n), enc(M.GroundTruth(
-                entity="node", id=n, t_ns=tt, position_m=M.vec3(pos_t[i]),
-                velocity_m_s=M.vec3(vel[i]), floor_index=int(floors[i])))))
-        items.sort(key=lambda x: x[0])
+    for items in run.epochs:
         for rx, k, payload in items:
             sink.write(k, payload, rx)
-            counts[parse_topic(k)[0]] += 1
+            kind = parse_topic(k)[0]
+            counts[kind] += 1
             written += 1
             if flush_every and written % flush_every == 0:
                 sink.flush()
-            if core is None or parse_topic(k)[0] not in _FUSION_INPUT_KINDS:
+            if core is None or kind not in _FUSION_INPUT_KINDS:
                 continue
             core.on_sample(k, payload, rx)
             if next_step is None or rx >= next_step:
                 for est in core.step(rx):
-                    est_seq += 1
                     est = msgspec.structs.replace(est, t_pub_wall_ns=rx)
-                    sink.write(keys.node_estimate(est.node_id), enc(est), rx + 50_000)
+                    sink.write(keys.node_estimate(est.node_id), M.encode(est), rx + 50_000)
                     counts["estimate"] += 1
                 next_step = rx + step_ns
     sink.close()

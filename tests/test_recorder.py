@@ -32,7 +32,7 @@ from mcap.reader import make_reader
 pytestmark = pytest.mark.slow
 SITE = "rt"
 K = Keys(SITE)
-TIMEOUT_S = 60.0
+TIMEOUT_S = 30.0
 
 
 def _free_port() -> int:
@@ -63,16 +63,18 @@ class _Proc:
 
     def wait_event(self, pred) -> dict:
         """Block until a status line satisfies ``pred`` (fails if the process exits first)."""
+        last = None
         while True:
             try:
                 ev = self.lines.get(timeout=TIMEOUT_S)
             except queue.Empty:
-                pytest.fail(f"no matching status line within {TIMEOUT_S} s; stderr: "
-                            + "".join(self.stderr)[-2000:])
+                pytest.fail(f"no matching status line within {TIMEOUT_S} s; last: {last}; "
+                            "stderr: " + "".join(self.stderr)[-2000:])
             if ev is None:
                 pytest.fail("process exited; stderr: " + "".join(self.stderr)[-2000:])
             if pred(ev):
                 return ev
+            last = ev
 
     def kill(self) -> None:
         if self.p.poll() is None:
@@ -237,3 +239,99 @@ def test_sigkill_then_recover_keeps_every_flushed_message(bus, tmp_path):
         seqs = [m.sequence for _, ch, m in make_reader(f).iter_messages()
                 if ch.topic == K.anchor_range("a9", "n1")]
     assert seqs == list(range(n))
+
+
+def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_path):
+    """Real fusion process + recorder; the test plays 5 anchors (synthetic ranges over the
+    window edge, paced at 10 Hz wall time) and the truth. Replaying the recording with the
+    recorded settings must give the live fixes (same (node, epoch) set, statuses and
+    positions; see the comment below for why not bit for bit)."""
+    import argparse
+
+    import msgspec
+    from diffpos_services import cmd_fusion
+    from diffpos_services.anchor import load_scenario_file
+    from diffpos_services.replay import replay, synthetic_run
+
+    ep, procs = bus
+    site = "e2e"
+    keys = Keys(site)
+    ns = argparse.ArgumentParser()
+    cmd_fusion.add_arguments(ns)
+    fusion_cfg = cmd_fusion.config_from_args(ns.parse_args(["--site", site]),
+                                             load_scenario_file(None))
+    run_cfg = tmp_path / "run.json"
+    run_cfg.write_text(json.dumps({"fusion": msgspec.to_builtins(fusion_cfg)}))
+    out = tmp_path / "live.mcap"
+    rec = _Proc(build_command(site=site, out=out, connect=[ep], run_config=run_cfg,
+                              flush_interval_s=0.05))
+    procs.append(rec)
+    fusion = _Proc([sys.executable, "-m", "diffpos_services.cli", "fusion", "--site", site,
+                    "--connect", ep])
+    procs.append(fusion)
+    rec.wait_event(lambda e: e["event"] == "ready")
+    run = synthetic_run(n_anchors=5, n_nodes=4, duration_s=3.0, seed=5, site=site)
+    n_epochs = 30
+    sent: Counter[str] = Counter()
+    with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
+        diag_ok = threading.Event()
+
+        def on_diag(sample) -> None:
+            d = json.loads(sample.payload.to_bytes())
+            if sorted(d["live_anchors"]) == sorted(run.anchor_ids):
+                diag_ok.set()
+
+        diag_sub = s.declare_subscriber(keys.fusion_diagnostics(), on_diag)
+        tokens = [s.liveliness().declare_token(keys.alive_anchor(a)) for a in run.anchor_ids]
+        assert diag_ok.wait(TIMEOUT_S), "fusion never saw the anchors' liveliness tokens"
+        block = zenoh.CongestionControl.BLOCK
+        pubs: dict[str, zenoh.Publisher] = {}
+        pace = threading.Event()  # never set: wait() paces the anchors at 10 Hz wall time
+        t_wall0 = time.monotonic()
+        for e, items in enumerate(run.epochs):
+            pace.wait(max(0.0, t_wall0 + 0.1 * e - time.monotonic()))
+            for _, key, payload in items:
+                pub = pubs.get(key)
+                if pub is None:
+                    pub = pubs[key] = s.declare_publisher(key, congestion_control=block)
+                    _wait_matching(pub)
+                pub.put(payload)
+                sent[key.split("/")[2] if "/truth/" not in key else "truth"] += 1
+        assert e == n_epochs - 1
+        # every epoch has all anchors' ranges, so the fusion solves each as soon as the last
+        # anchor reports: wait until the recorder holds all inputs and all fixes
+        want_est = n_epochs * len(run.node_ids)
+        rec.wait_event(lambda e: e["event"] == "flush"
+                       and e["by_kind"].get("estimate", 0) >= want_est
+                       and e["by_kind"].get("range", 0) + e["by_kind"].get("anchor_state", 0)
+                       == sent["anchor"])
+        fusion.p.send_signal(signal.SIGTERM)
+        assert fusion.p.wait(timeout=TIMEOUT_S) == 0, "".join(fusion.stderr)[-2000:]
+        for t in tokens:
+            t.undeclare()
+        diag_sub.undeclare()
+    rec.p.send_signal(signal.SIGTERM)
+    rec.wait_event(lambda e: e["event"] == "closed")
+
+    r = replay(out)
+    c = r.report["compare"]
+    assert r.report["settings_source"] == "metadata run_config.fusion"
+    as_json = json.loads(json.dumps(msgspec.to_builtins(fusion_cfg)))
+    assert json.loads(json.dumps(r.report["settings"])) == as_json
+    assert len(r.live_estimates) == want_est == len(r.estimates)
+    assert c["matched"] == want_est and c["only_live"] == 0 and c["only_replayed"] == 0
+    # Same inputs, same settings: the same (node, epoch) fixes from the same anchors.
+    # Usually bit for bit; on a loaded machine we have seen the live fusion drift from one
+    # epoch on by up to a few mm (p90 ~1e-4 m) with identical anchor sets, and a borderline
+    # fix flip between NOT_CONVERGED and NOT_IDENTIFIABLE. Replay itself is bit-identical
+    # across runs and processes and insensitive to its step size and to the order of an
+    # anchor's state vs its ranges (checked), so the drift is timing-dependent state inside
+    # the live process that the recording does not capture (see recordings/README.md).
+    live_by = {(e.node_id, e.epoch): e for e in r.live_estimates}
+    for e in r.estimates:
+        le = live_by[(e.node_id, e.epoch)]
+        assert (le.used_anchors, le.excluded) == (e.used_anchors, e.excluded)
+    assert c["status_agree"] >= 0.95
+    assert c["position_diff_m"]["p50"] <= 1e-4 and c["position_diff_m"]["p90"] < 1e-2
+    ok = r.report["accuracy"]["overall"]
+    assert ok["evaluated"] >= 0.9 * want_est and ok["error_3d_m"]["p50"] < 1.0
