@@ -106,15 +106,16 @@ def responders(building, *, count: int = 6, seed: int = 0, speed_m_s: float = 1.
     return out
 
 
-def emulation_nodes(scenario, *, max_nodes: int = 0, seed: int = 0) -> list[tuple[str, Any]]:
-    """``[(node_id, trajectory)]`` to emulate.
+def emulation_nodes(scenario, *, max_nodes: int = 0) -> list[tuple[str, Any]]:
+    """``[(node_id, trajectory)]`` to emulate (a function of the scenario only, so every
+    process of a run agrees on it).
 
     The scenario's explicit nodes; if it only has a study grid (the paper's scenario), six
-    :func:`responders` moving between floors. ``max_nodes > 0`` caps the list.
+    :func:`responders` (layout seed 0) moving between floors. ``max_nodes > 0`` caps the list.
     """
     nodes = [(n.id, n.trajectory) for n in scenario.nodes]
     if not nodes:
-        nodes = responders(scenario.building, count=6, seed=seed)
+        nodes = responders(scenario.building, count=6, seed=0)
     if max_nodes > 0:
         nodes = nodes[:max_nodes]
     return nodes
@@ -217,7 +218,7 @@ class AnchorEmulator:
         self.nodes = (
             nodes
             if nodes is not None
-            else emulation_nodes(scenario, max_nodes=config.max_nodes, seed=config.seed)
+            else emulation_nodes(scenario, max_nodes=config.max_nodes)
         )
         if not self.nodes:
             raise ConfigError(f"scenario {scenario.name!r} has no nodes to range to")
@@ -465,6 +466,11 @@ def run_anchor(
             while not stop.is_set():
                 t_true = emu.true_time_ns(k, tb)
                 if tb.duration_ns and t_true - tb.t0_ns >= tb.duration_ns:
+                    # run over: stay declared (idle) until told to stop, so the end of a
+                    # run does not look like a lost anchor
+                    log_event(log, logging.INFO, "run complete", anchor=config.anchor_id,
+                              epochs=epochs)
+                    stop.wait()
                     break
                 wait_s = (tb.wall_of(t_true) - time.time_ns()) * 1e-9
                 if wait_s > 0 and stop.wait(wait_s):  # pacing timer, not synchronisation

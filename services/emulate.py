@@ -189,7 +189,7 @@ class Emulation:
         self.stop = stop
         self.scenario = load_scenario_file(options.scenario)
         self.keys = Keys(options.site)
-        self.nodes = emulation_nodes(self.scenario, max_nodes=options.max_nodes, seed=options.seed)
+        self.nodes = emulation_nodes(self.scenario, max_nodes=options.max_nodes)
         if not self.nodes:
             raise ConfigError("the scenario has no nodes to emulate")
         self.anchor_ids = [a.id for a in self.scenario.anchors]
@@ -319,7 +319,9 @@ class Emulation:
                 log_event(self.log, logging.INFO, "all services ready",
                           anchors=len(self.anchor_ids), nodes=len(self.nodes),
                           ready_s=round(time.monotonic() - t_ready, 2), endpoint=self.endpoint)
-                wall_t0 = time.time_ns() + 300_000_000
+                # start 0.3 s from now, on the fusion's epoch grid (epoch k = [kT, (k+1)T))
+                period = round(1e9 / o.rate_hz)
+                wall_t0 = -(-(time.time_ns() + 300_000_000) // period) * period
                 rc = M.RunControl(run_id=self.run_id, t0_ns=wall_t0, wall_t0_ns=wall_t0,
                                   speed=o.speed, duration_ns=round(o.duration_s * 1e9), seed=o.seed)
                 session.put(self.keys.run_control(), M.encode(rc),

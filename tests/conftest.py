@@ -1,0 +1,112 @@
+"""Shared test fixtures: free ports and reaped service processes.
+
+``services`` starts ``diffpos <service> ...`` processes in their own process group
+(``start_new_session=True``) with their logs in the test's tmp dir, and in teardown sends
+SIGTERM to every group, escalates to SIGKILL after a timeout and asserts nothing is left.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def endpoint() -> str:
+    """A fresh loopback Zenoh endpoint on a free port."""
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+class ServiceProcesses:
+    """Start and reap ``diffpos`` service processes for one test."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, *argv: str) -> subprocess.Popen:
+        log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - closed below
+        env = dict(os.environ, DIFFPOS_LOG_FORMAT="text")
+        p = subprocess.Popen(
+            [sys.executable, "-m", "diffpos_services.cli", *argv],
+            stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+            start_new_session=True, env=env,
+        )
+        log.close()
+        self.procs[name] = p
+        return p
+
+    def log(self, name: str) -> str:
+        path = self.log_dir / f"{name}.log"
+        return path.read_text(errors="replace") if path.exists() else ""
+
+    def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.procs[name].pid, sig)
+
+    def check_running(self) -> None:
+        for name, p in self.procs.items():
+            if p.poll() is not None:
+                raise AssertionError(f"{name} exited early ({p.returncode}):\n{self.log(name)[-3000:]}")
+
+    def stop(self, names: list[str] | None = None, timeout_s: float = 10.0) -> dict[str, int]:
+        """SIGTERM the groups (in the given order), SIGKILL stragglers; return exit codes."""
+        names = list(self.procs) if names is None else names
+        codes = {}
+        for name in names:
+            p = self.procs[name]
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGTERM)
+            try:
+                codes[name] = p.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                codes[name] = p.wait()
+        return codes
+
+    def reap_all(self) -> None:
+        deadline = time.monotonic() + 10.0
+        for p in self.procs.values():
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGTERM)
+        for p in self.procs.values():
+            try:
+                p.wait(max(deadline - time.monotonic(), 0.1))
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+        # nothing of ours is left in any of the groups
+        for p in self.procs.values():
+            assert p.returncode is not None
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(p.pid, 0)
+                os.killpg(p.pid, signal.SIGKILL)  # a grandchild survived: kill it
+
+
+@pytest.fixture
+def services(tmp_path):
+    """Service processes reaped after the test (process groups, SIGTERM then SIGKILL)."""
+    sp = ServiceProcesses(tmp_path)
+    try:
+        yield sp
+    finally:
+        sp.reap_all()
