@@ -40,7 +40,7 @@ class ServiceProcesses:
         self.procs: dict[str, subprocess.Popen] = {}
 
     def start(self, name: str, *argv: str) -> subprocess.Popen:
-        log = open(self.log_dir / f"{name}.log", "wb")  # noqa: SIM115 - closed below
+        log = open(self.log_dir / f"{name}.log", "wb")
         env = dict(os.environ, DIFFPOS_LOG_FORMAT="text")
         p = subprocess.Popen(
             [sys.executable, "-m", "diffpos_services.cli", *argv],

@@ -14,7 +14,6 @@ import time
 import numpy as np
 import pytest
 import zenoh
-
 from diffpos_services import messages as M
 from diffpos_services.anchor import emulation_nodes, load_scenario_file
 from diffpos_services.keys import Keys, parse_key
