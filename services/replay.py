@@ -18,6 +18,7 @@ estimates side by side.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import logging
 import time
@@ -34,6 +35,7 @@ from diffpos_services.fusion import FusionConfig, FusionCore
 from diffpos_services.mcap_io import (
     McapScanner,
     McapSink,
+    RawMessage,
     RecordingError,
     SeqTracker,
     parse_topic,
@@ -45,6 +47,7 @@ __all__ = [
     "PERCENTILES",
     "ReplayResult",
     "compare_estimates",
+    "derived_fusion_settings",
     "error_stats",
     "live_fusion_settings",
     "plot_cdf",
@@ -103,6 +106,51 @@ def live_fusion_settings(scanner: McapScanner) -> tuple[dict[str, Any], str]:
             if isinstance(doc, dict) and isinstance(doc.get("fusion"), dict):
                 return doc["fusion"], "attachment run_config.json"
     return {}, "defaults"
+
+
+def derived_fusion_settings(
+    scanner: McapScanner, *, site: str, first_state: bytes | None
+) -> tuple[dict[str, Any], str]:
+    """Fusion settings as ``diffpos emulate`` would start the fusion, for recordings that do
+    not store them: the fusion CLI's defaults, the geometry of the attached scenario (TOML
+    attachment; else the built-in paper scenario) and an epoch period of one ranging period
+    of the anchors (``range_rate_hz`` of the first anchor state).
+
+    Returns
+    -------
+    values : dict
+    source : str
+    """
+    import argparse
+    import tomllib
+
+    from diffpos_services import cmd_fusion
+
+    from diffpos.scenario import Scenario, ScenarioError, default_scenario
+
+    scenario, what = None, "paper scenario (built in)"
+    for att in scanner.attachments:
+        if att.name.endswith(".toml"):
+            try:
+                scenario = Scenario.from_dict(tomllib.loads(att.data.decode("utf-8")))
+                what = f"scenario {att.name} (attached)"
+            except (UnicodeDecodeError, tomllib.TOMLDecodeError, ScenarioError):
+                continue
+            break
+    if scenario is None:
+        scenario = default_scenario()
+    argv = ["--site", site]
+    if first_state is not None:
+        try:
+            rate = M.decoder(M.AnchorState)(first_state).range_rate_hz
+            argv += ["--epoch-period-s", repr(1.0 / rate)]
+            what += f", epoch = 1/{rate:g} s from the anchors"
+        except M.DecodeError:
+            pass
+    parser = argparse.ArgumentParser()
+    cmd_fusion.add_arguments(parser)
+    cfg = cmd_fusion.config_from_args(parser.parse_args(argv), scenario)
+    return msgspec.to_builtins(cfg), f"derived: fusion CLI defaults, {what}"
 
 
 def _fusion_fields() -> set[str]:
@@ -438,12 +486,27 @@ def replay(
         logger = _quiet_logger()
     step_ns = max(0, round(step_ms * 1e6))
 
-    # settings need the metadata, which may sit anywhere in the data section: our recorder
-    # writes it first, so read the records before the first chunk, then decide.
+    # settings need the metadata (our recorder writes it before the first chunk) and, when
+    # the recording has none, the site and the anchors' ranging rate: read ahead until the
+    # first anchor state (at most 64 chunks), then decide.
     batches = scanner.iter_batches()
-    first_batch = next(batches, None)
-    recorded, source = live_fusion_settings(scanner)
+    ahead: list[list[RawMessage]] = []
+    first_state = None
+    for batch in batches:
+        ahead.append(batch)
+        first_state = next((m for m in batch if parse_topic(m.topic)[0] == "anchor_state"), None)
+        if first_state is not None or len(ahead) >= 64:
+            break
     sites: Counter[str] = Counter()
+    for ch in scanner.channels.values():
+        kind, fields = parse_topic(ch.topic)
+        if kind in _FUSION_INPUT_KINDS:
+            sites[fields["site"]] += 1
+    recorded, source = live_fusion_settings(scanner)
+    if not recorded and use_recorded_settings and sites:
+        recorded, source = derived_fusion_settings(
+            scanner, site=sites.most_common(1)[0][0],
+            first_state=None if first_state is None else first_state.data)
     base: dict[str, Any] = dict(recorded) if use_recorded_settings else {}
     if not use_recorded_settings:
         source = "defaults (--ignore-recorded-settings)"
@@ -457,13 +520,8 @@ def replay(
             f"{', '.join(sorted(_fusion_fields()))}"
         )
     base.update(overrides or {})
-    if "site" not in base:
-        for ch in scanner.channels.values():
-            kind, fields = parse_topic(ch.topic)
-            if kind in _FUSION_INPUT_KINDS:
-                sites[fields["site"]] += 1
-        if sites:
-            base["site"] = sites.most_common(1)[0][0]
+    if "site" not in base and sites:
+        base["site"] = sites.most_common(1)[0][0]
     config = build_config(FusionConfig, base)
     site = config.site
 
@@ -501,8 +559,7 @@ def replay(
 
     next_step = None
     with solver_override(method):
-        batch_iter = batches if first_batch is None else _chain(first_batch, batches)
-        for batch in batch_iter:
+        for batch in itertools.chain(ahead, batches):
             for m in batch:
                 kind = kind_of.get(m.channel_id)
                 if kind is None:
@@ -614,11 +671,6 @@ def replay(
     return ReplayResult(
         estimates=out, live_estimates=live, report=report, errors=errs, live_errors=live_errs
     )
-
-
-def _chain(first, rest):
-    yield first
-    yield from rest
 
 
 # ----------------------------------------------------------------------------------------
