@@ -124,13 +124,18 @@ def cost_of(residual_m: FloatArray, sw: FloatArray, loss: str, scale: float) -> 
 
 
 def solve3(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Batched solve of symmetric positive-definite 3x3 systems ``a x = b`` (cofactors).
+    """Batched solve of symmetric 3x3 systems ``a x = b`` (LAPACK or cofactors).
 
     Parameters
     ----------
     a : ndarray, shape (N, 3, 3)
     b : ndarray, shape (N, 3)
     """
+    if a.shape[0] <= 128:  # LAPACK is cheaper for a few systems, cofactors for many
+        try:
+            return np.linalg.solve(a, b[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            pass  # a singular system: the cofactor form gives inf/nan for that row only
     a00, a01, a02 = a[:, 0, 0], a[:, 0, 1], a[:, 0, 2]
     a11, a12, a22 = a[:, 1, 1], a[:, 1, 2], a[:, 2, 2]
     c00 = a11 * a22 - a12 * a12

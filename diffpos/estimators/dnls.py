@@ -147,7 +147,8 @@ def dnls(
     screen_iter : int
         Iterations of the screening phase.
     chunk_size : int
-        Fixes solved together per chunk (bounds memory; results do not depend on it).
+        Fixes solved together per chunk (bounds memory; results depend on it only at the
+        rounding level).
 
     Returns
     -------
