@@ -199,3 +199,46 @@ def run_main(fn: Callable[[], int], logger: logging.Logger) -> int:
     except Exception as exc:  # pragma: no cover - last resort, logged with traceback
         logger.exception("fatal: %s", exc)
         return 1
+
+
+# ----------------------------------------------------------------------------- health check
+def health_check(connect: list[str], liveliness_key: str, *, timeout_s: float = 3.0) -> bool:
+    """True if a liveliness token matching ``liveliness_key`` is alive on the bus.
+
+    Used by container healthchecks: ``python -m diffpos_services.servicekit health --connect
+    tcp/router:7447 --liveliness diffpos/demo/alive/fusion`` exits 0 when healthy.
+    """
+    import zenoh
+
+    from .zenoh_config import ZenohSettings
+
+    settings = ZenohSettings(connect=tuple(connect), connect_timeout_ms=round(timeout_s * 1000))
+    try:
+        with zenoh.open(settings.to_config()) as session:
+            replies = session.liveliness().get(liveliness_key, timeout=timeout_s)
+            for reply in replies:
+                if reply.ok is not None:
+                    return True
+    except zenoh.ZError:
+        return False
+    return False
+
+
+def _main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m diffpos_services.servicekit",
+        description="Service utilities. 'health': exit 0 if a liveliness token is alive.",
+    )
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    h = sub.add_parser("health", help="exit 0 if the liveliness token KEY is alive")
+    h.add_argument("--connect", action="append", required=True, metavar="ENDPOINT")
+    h.add_argument("--liveliness", required=True, metavar="KEY")
+    h.add_argument("--timeout", type=float, default=3.0, metavar="S")
+    args = parser.parse_args(argv)
+    ok = health_check(args.connect, args.liveliness, timeout_s=args.timeout)
+    print("healthy" if ok else "unhealthy")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(_main())
