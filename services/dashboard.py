@@ -24,7 +24,9 @@ Entity layout (see :func:`default_blueprint` for how it is shown)::
                                        "(true F<true>)" when the floor is wrong) and its 95 %
                                        confidence ellipsoid from the covariance (Ellipsoids3D)
     world/nodes/<node>/paths           anchor -> window-edge point -> estimate, one strip per
-                                       anchor; used anchors in their colour, excluded in red
+                                       anchor; used anchors in their colour, gated (excluded by
+                                       RAIM / pre-gate) in red; no strip for anchors without a
+                                       measurement (not reported, not detected, lost, ...)
     metrics/error_3d_m/<node>          |estimate - truth| [m]
     metrics/error_z_m/<node>           estimate z - true z [m]
     metrics/peb_m/<node>               position error bound [m]
@@ -1040,6 +1042,8 @@ def log_estimates(
             q = 0.5 * (a_pos + node)
         strips = np.stack([a_pos, q, node], axis=1)
         link_ok &= np.all(np.isfinite(strips), axis=(1, 2))
+        # no path for bookkeeping exclusions (nothing was measured); gated ones are drawn red
+        link_ok &= est.link_used | ~np.isin(est.link_reason, list(BOOKKEEPING_REASONS))
     link_colors = _rgba([anchor_color(str(a)) for a in anc_u])[anc_c]
     link_colors[~est.link_used] = _EXCLUDED_COLOR
     link_radii = np.where(est.link_used, 0.05, 0.03).astype(np.float32)
@@ -1391,8 +1395,8 @@ def default_blueprint() -> rrb.Blueprint:
                     name="Building (3D): anchors, estimates, 95% ellipsoids, diffraction paths",
                     line_grid=rrb.LineGrid3D(visible=True, spacing=5.0),
                     eye_controls=rrb.EyeControls3D(
-                        position=(-22.0, -40.0, 24.0),
-                        look_target=(0.0, 6.0, 7.0),
+                        position=(-20.0, -42.0, 30.0),
+                        look_target=(6.0, 6.0, 12.0),
                         eye_up=(0, 0, 1),
                     ),
                 ),
@@ -1423,7 +1427,7 @@ def default_blueprint() -> rrb.Blueprint:
                     rrb.TimeSeriesView(origin="metrics/fusion", name="Fusion counters"),
                 ),
             ),
-            column_shares=[1, 1],
+            column_shares=[0.96, 1.04],
         ),
         rrb.TimePanel(timeline=TIMELINE, play_state="following", state="collapsed"),
         collapse_panels=True,
@@ -1921,12 +1925,15 @@ def _msg_time_ns(x: Any) -> int | None:
     return t if t is not None else getattr(x, "watermark_ns", None)
 
 
-def _time_window(msgs: list[Any], window_s: tuple[float | None, float | None]) -> list[Any]:
-    """Messages within ``window_s`` seconds after the first anchor state (or first message)."""
+def _time_window(
+    msgs: list[Any], window_s: tuple[float | None, float | None]
+) -> tuple[list[Any], tuple[float, float]]:
+    """Messages within ``window_s`` seconds after the first anchor state (or first message),
+    and the window in measurement time [ns]."""
     starts = [x.t_ns for x in msgs if _KIND_BY_CLASS.get(type(x).__name__) == "anchor_state"]
     times = [t for t in map(_msg_time_ns, msgs) if t is not None and t >= 0]
     if not times:
-        return msgs
+        return msgs, (-math.inf, math.inf)
     t0 = min(starts) if starts else min(times)
     lo = -math.inf if window_s[0] is None else t0 + window_s[0] * 1e9
     hi = math.inf if window_s[1] is None else t0 + window_s[1] * 1e9
@@ -1935,7 +1942,7 @@ def _time_window(msgs: list[Any], window_s: tuple[float | None, float | None]) -
         t = _msg_time_ns(x)
         if t is None or lo <= t <= hi:
             out.append(x)
-    return out
+    return out, (lo, hi)
 
 
 def mcap_to_rrd(
@@ -2006,8 +2013,9 @@ def mcap_to_rrd(
                 bad += 1
     if estimates is not None:
         msgs.extend(estimates)
+    window_ns = (-math.inf, math.inf)
     if window_s != (None, None):
-        msgs = _time_window(msgs, window_s)
+        msgs, window_ns = _time_window(msgs, window_s)
     outline = BuildingOutline.from_object(building) if building is not None else None
     if outline is None:
         outline = _building_from_attachments(sc.attachments)
@@ -2015,6 +2023,8 @@ def mcap_to_rrd(
     wall = [x.t_pub_wall_ns for x in timed]
     meas = [x.t_ns for x in timed]
     events = liveliness_events(live, wall_ns=wall, meas_ns=meas)
+    inside = (events.t_ns >= window_ns[0]) & (events.t_ns <= window_ns[1])
+    events = EventColumns(events.t_ns[inside], events.text[inside], events.level[inside])
     counts = write_rrd_from_messages(
         msgs,
         rrd_path,
