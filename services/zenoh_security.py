@@ -347,7 +347,8 @@ def acl_config(profile: SecurityProfile) -> dict:
     ``learn-subscribers``       declare_subscriber egress on ``diffpos/**``  everybody
     ``anchor-<id>``             put ingress ``S/anchor/<id>/state``,         that anchor only
                                 ``S/anchor/<id>/range/*``; liveliness token
-                                ``S/alive/anchor/<id>``
+                                ``S/alive/anchor/<id>`` (declare, and query
+                                it: the container health check)
     ``run-control-read``        subscribe ``S/run/control``                  anchors
     ``fusion-publish``          put ingress estimates, diagnostics;          fusion
                                 liveliness token ``S/alive/fusion``
@@ -368,7 +369,7 @@ def acl_config(profile: SecurityProfile) -> dict:
 
     s = f"{PREFIX}/{profile.site}"
     read = ("declare_subscriber", "put")
-    watch = ("declare_liveliness_subscriber", "liveliness_query", "liveliness_token", "reply")
+    watch = ("declare_liveliness_subscriber", "liveliness_query", "liveliness_token")
     rules: list[dict] = [
         _rule("learn-subscribers", ["declare_subscriber"], ["egress"], [f"{PREFIX}/**"]),
         _rule("run-control-read", read[:1], ["ingress"], [f"{s}/run/control"]),
@@ -418,8 +419,26 @@ def acl_config(profile: SecurityProfile) -> dict:
         rules.append(
             _rule(f"{rid}-alive", ["liveliness_token"], ["ingress"], [f"{s}/alive/anchor/{a}"])
         )
+        # the container health check: a liveliness query for its own token only
+        rules.append(
+            _rule(f"{rid}-health-ask", ["liveliness_query"], ["ingress"], [f"{s}/alive/anchor/{a}"])
+        )
+        rules.append(
+            _rule(
+                f"{rid}-health-answer",
+                ["liveliness_token"],
+                ["egress"],
+                [f"{s}/alive/anchor/{a}"],
+            )
+        )
         subjects.append({"id": rid, "usernames": [anchor_user(a)]})
-        policies.append({"id": rid, "rules": [f"{rid}-publish", f"{rid}-alive"], "subjects": [rid]})
+        policies.append(
+            {
+                "id": rid,
+                "rules": [f"{rid}-publish", f"{rid}-alive", f"{rid}-health-ask", f"{rid}-health-answer"],
+                "subjects": [rid],
+            }
+        )
     if profile.anchors:
         subjects.append({"id": "anchors", "usernames": [anchor_user(a) for a in profile.anchors]})
         policies.append(

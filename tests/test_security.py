@@ -536,3 +536,25 @@ def test_plain_endpoint_overrides_are_refused(tmp_path):
         zs.router_config(profile, listen=["tcp/0.0.0.0:7447"])
     with pytest.raises(zs.SecurityError, match=r"connect.*not encrypted"):
         zs.client_config(profile, "anchor-uav1", password="x", connect=["tcp/router:7447"])
+
+
+def _alive(session, key: str) -> bool:
+    """What the container health check does: a liveliness query for ``key``."""
+    return any(r.ok is not None for r in session.liveliness().get(key, timeout=WAIT_S))
+
+
+def test_health_check_liveliness_query_per_identity(bus):
+    """Each container checks its own token with its own identity (a second session)."""
+    with bus.open("anchor-uav1") as anc, bus.open("anchor-uav2") as anc2, bus.open("fusion") as fus:
+        tok1 = anc.liveliness().declare_token(K.alive_anchor("uav1"))
+        tok2 = anc2.liveliness().declare_token(K.alive_anchor("uav2"))
+        tokf = fus.liveliness().declare_token(K.alive_fusion())
+        with bus.open("anchor-uav1") as probe:
+            assert _alive(probe, K.alive_anchor("uav1"))
+            assert not _alive(probe, K.alive_anchor("uav2"))  # an anchor sees only its own token
+        with bus.open("fusion") as probe:
+            assert _alive(probe, K.alive_fusion())
+        with bus.open("recorder") as probe:  # the recorder's container checks the fusion
+            assert _alive(probe, K.alive_fusion())
+            assert _alive(probe, K.alive_anchor("uav2"))
+        del tok1, tok2, tokf
