@@ -24,6 +24,7 @@ Model and assumptions
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -148,18 +149,35 @@ class StateHistory:
             raise ValueError("capacity must be >= 1")
         self.capacity = int(capacity)
         self.max_extrapolation_ns = int(max_extrapolation_ns)
-        self.t_ns = np.empty(0, dtype=np.int64)
-        self.pos_m = np.empty((0, 3))
-        self.vel_m_s = np.empty((0, 3))
-        self.sigma_m = np.empty((0, 3))
-        self.vel_sigma_m_s = np.empty(0)
+        # rows kept as Python lists (cheap in-order appends); numpy views rebuilt lazily
+        self._t: list[int] = []
+        self._rows: list[tuple] = []
+        self._dirty = True
+        self._arrays: tuple = ()
 
     def __len__(self) -> int:
-        return int(self.t_ns.size)
+        return len(self._t)
 
     @property
     def latest_t_ns(self) -> int | None:
-        return int(self.t_ns[-1]) if self.t_ns.size else None
+        return self._t[-1] if self._t else None
+
+    def _materialise(self) -> None:
+        if self._dirty:
+            n = len(self._t)
+            t = np.array(self._t, dtype=np.int64)
+            if n:
+                rows = np.array([r[:9] for r in self._rows], dtype=np.float64).reshape(n, 9)
+                vs = np.array([r[9] for r in self._rows], dtype=np.float64)
+            else:
+                rows, vs = np.empty((0, 9)), np.empty(0)
+            self._arrays = (t, rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], vs)
+            self._dirty = False
+
+    @property
+    def t_ns(self) -> NDArray[np.int64]:
+        self._materialise()
+        return self._arrays[0]
 
     def add(
         self,
@@ -170,25 +188,26 @@ class StateHistory:
         velocity_sigma_m_s: float = 0.0,
     ) -> None:
         """Insert a state (kept sorted by time; a duplicate time replaces the old state)."""
-        t = np.int64(t_ns)
-        i = int(np.searchsorted(self.t_ns, t))
-        p = np.asarray(position_m, float).reshape(1, 3)
-        v = np.asarray(velocity_m_s, float).reshape(1, 3)
-        sg = np.asarray(sigma_m, float).reshape(1, 3)
-        if i < self.t_ns.size and self.t_ns[i] == t:
-            self.pos_m[i], self.vel_m_s[i], self.sigma_m[i] = p[0], v[0], sg[0]
-            self.vel_sigma_m_s[i] = velocity_sigma_m_s
-            return
-        self.t_ns = np.insert(self.t_ns, i, t)
-        self.pos_m = np.insert(self.pos_m, i, p, axis=0)
-        self.vel_m_s = np.insert(self.vel_m_s, i, v, axis=0)
-        self.sigma_m = np.insert(self.sigma_m, i, sg, axis=0)
-        self.vel_sigma_m_s = np.insert(self.vel_sigma_m_s, i, velocity_sigma_m_s)
-        if self.t_ns.size > self.capacity:
-            k = self.t_ns.size - self.capacity
-            self.t_ns, self.pos_m = self.t_ns[k:], self.pos_m[k:]
-            self.vel_m_s, self.sigma_m = self.vel_m_s[k:], self.sigma_m[k:]
-            self.vel_sigma_m_s = self.vel_sigma_m_s[k:]
+        t = int(t_ns)
+        row = (*(float(v) for v in position_m), *(float(v) for v in velocity_m_s),
+               *(float(v) for v in sigma_m), float(velocity_sigma_m_s))
+        if len(row) != 10:
+            raise ValueError("position_m, velocity_m_s and sigma_m must have 3 components each")
+        if not self._t or t > self._t[-1]:
+            self._t.append(t)
+            self._rows.append(row)
+        else:
+            i = bisect.bisect_left(self._t, t)
+            if i < len(self._t) and self._t[i] == t:
+                self._rows[i] = row
+            else:
+                self._t.insert(i, t)
+                self._rows.insert(i, row)
+        if len(self._t) > self.capacity:
+            k = len(self._t) - self.capacity
+            del self._t[:k]
+            del self._rows[:k]
+        self._dirty = True
 
     def at(self, t_ns: ArrayLike) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
         """Anchor position and its one-sigma per axis at the query times.
@@ -206,38 +225,40 @@ class StateHistory:
         tq = np.asarray(t_ns, dtype=np.int64)
         shape = tq.shape
         tq = tq.reshape(-1)
-        n = self.t_ns.size
+        self._materialise()
+        t_hist, pos_hist, vel_hist, sig_hist, vsig_hist = self._arrays
+        n = t_hist.size
         pos = np.full((tq.size, 3), np.nan)
         sig = np.full((tq.size, 3), np.nan)
         if n == 0:
             return pos.reshape(*shape, 3), sig.reshape(*shape, 3), np.zeros(shape, bool)
-        j = np.searchsorted(self.t_ns, tq, side="right")  # t[j-1] <= tq < t[j]
+        j = np.searchsorted(t_hist, tq, side="right")  # t[j-1] <= tq < t[j]
         inside = (j > 0) & (j < n)
-        exact = (j > 0) & (self.t_ns[np.clip(j - 1, 0, n - 1)] == tq)
+        exact = (j > 0) & (t_hist[np.clip(j - 1, 0, n - 1)] == tq)
         if np.any(inside):
             i1 = j[inside]
             i0 = i1 - 1
             ts = 1e-9
             pos[inside] = hermite_interpolate(
-                (tq[inside] - self.t_ns[i0]) * ts,
+                (tq[inside] - t_hist[i0]) * ts,
                 np.zeros(i0.size),
-                (self.t_ns[i1] - self.t_ns[i0]) * ts,
-                self.pos_m[i0],
-                self.pos_m[i1],
-                self.vel_m_s[i0],
-                self.vel_m_s[i1],
+                (t_hist[i1] - t_hist[i0]) * ts,
+                pos_hist[i0],
+                pos_hist[i1],
+                vel_hist[i0],
+                vel_hist[i1],
             )
-            sig[inside] = np.maximum(self.sigma_m[i0], self.sigma_m[i1])
+            sig[inside] = np.maximum(sig_hist[i0], sig_hist[i1])
         out = ~inside
         if np.any(out):
             k = np.where(j[out] == 0, 0, n - 1)
-            dt_s = (tq[out] - self.t_ns[k]) * 1e-9
-            pos[out] = self.pos_m[k] + self.vel_m_s[k] * dt_s[:, None]
-            sig[out] = self.sigma_m[k] + (self.vel_sigma_m_s[k] * np.abs(dt_s))[:, None]
+            dt_s = (tq[out] - t_hist[k]) * 1e-9
+            pos[out] = pos_hist[k] + vel_hist[k] * dt_s[:, None]
+            sig[out] = sig_hist[k] + (vsig_hist[k] * np.abs(dt_s))[:, None]
         gap = np.where(
             inside | exact,
             0,
-            np.minimum(np.abs(tq - self.t_ns[0]), np.abs(tq - self.t_ns[-1])),
+            np.minimum(np.abs(tq - t_hist[0]), np.abs(tq - t_hist[-1])),
         )
         ok = gap <= self.max_extrapolation_ns
         pos[~ok] = np.nan
