@@ -99,7 +99,7 @@ def dnls(
     lls_start: bool = True,
     keep_starts: int | None = 3,
     screen_iter: int = 4,
-    chunk_size: int = 4096,
+    chunk_size: int = 1024,
 ) -> FixResult:
     """Batched D-NLS position fixes with optional outlier gating.
 
