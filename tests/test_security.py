@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -512,7 +513,6 @@ def test_ca_bundle_allows_overlapping_rotation(bus, tmp_path):
 
 def test_make_dev_certs_script_and_password_rotation(tmp_path):
     """security/make_dev_certs.py writes certificates; --new-passwords rotates and re-renders."""
-    import shutil
 
     for name in ("profile.dev.toml", "credentials.dev.txt"):
         shutil.copy(REPO / "security" / name, tmp_path / name)
@@ -558,3 +558,83 @@ def test_health_check_liveliness_query_per_identity(bus):
             assert _alive(probe, K.alive_fusion())
             assert _alive(probe, K.alive_anchor("uav2"))
         del tok1, tok2, tokf
+
+
+# ----------------------------------------------------------------------------- docker-compose
+def _load_yaml(path: Path) -> dict:
+    """PyYAML if importable, else the system python's PyYAML, else skip."""
+    try:
+        import yaml
+    except ImportError:
+        yaml = None
+    if yaml is not None:
+        return yaml.safe_load(path.read_text())
+    py = shutil.which("python3", path="/usr/bin:/usr/local/bin")
+    if py is None:
+        pytest.skip("PyYAML is not installed")
+    code = "import json, sys, yaml; json.dump(yaml.safe_load(open(sys.argv[1])), sys.stdout)"
+    r = subprocess.run([py, "-c", code, str(path)], capture_output=True, text=True, timeout=30)
+    if r.returncode != 0:
+        pytest.skip(f"PyYAML is not installed ({r.stderr.strip()[-200:]})")
+    return json.loads(r.stdout)
+
+
+def _strip_connect(argv: list[str]) -> list[str]:
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--connect":
+            skip = True
+        else:
+            out.append(a)
+    return out
+
+
+def _zenoh_file(argv: list[str]) -> str:
+    assert "--connect" not in argv, argv
+    return argv[argv.index("--zenoh-config") + 1]
+
+
+def test_secure_compose_override_matches_base_and_profile():
+    base_path = REPO / "docker-compose.yml"
+    if not base_path.exists():
+        pytest.skip("no docker-compose.yml yet")
+    base = _load_yaml(base_path)["services"]
+    over = _load_yaml(REPO / "security" / "docker-compose.secure.yml")["services"]
+    profile = zs.load_profile(REPO / "security" / "profile.dev.toml")
+    ids = profile.identities()
+    assert set(over) == set(base)
+    # router: the rendered router file from the mounted security folder
+    assert "./security:/security:ro" in over["router"]["volumes"]
+    assert over["router"]["command"] == ["-c", "/security/zenoh/router.json5"]
+    for name, svc in base.items():
+        if name == "router":
+            continue
+        o = over[name]
+        assert "./security:/security:ro" in o["volumes"], name
+        cfg = _zenoh_file(o["command"])
+        user = Path(cfg).stem
+        assert cfg == f"/security/zenoh/{user}.json5" and (REPO / "security" / "zenoh" / f"{user}.json5").is_file()
+        role, anchor_id = ids[user]
+        assert role == name.split("-")[0], (name, user)
+        if anchor_id is not None:
+            assert o["command"][o["command"].index("--id") + 1] == anchor_id
+        # the same command as the base file, with --connect replaced by --zenoh-config
+        assert _strip_connect(svc["command"]) == [a for a in o["command"] if a not in ("--zenoh-config", cfg)]
+        site = o["command"][o["command"].index("--site") + 1]
+        assert profile.site in ("*", site)
+        # health checks run with the service's own identity
+        test = (svc.get("healthcheck") or {}).get("test", [])
+        if "diffpos_services.servicekit" in test:
+            otest = o["healthcheck"]["test"]
+            assert _zenoh_file(otest) == cfg
+            assert _strip_connect(test) == [a for a in otest if a not in ("--zenoh-config", cfg)]
+    # the rendered client files dial the compose router by the name in its certificate
+    fusion = json.loads("\n".join(
+        ln for ln in (REPO / "security" / "zenoh" / "fusion.json5").read_text().splitlines()
+        if not ln.startswith("//")))
+    assert fusion["connect"]["endpoints"] == ["tls/router:7447"]
+    out = subprocess.run(["openssl", "x509", "-in", str(REPO / "security" / "certs" / "router.pem"),
+                          "-noout", "-ext", "subjectAltName"], capture_output=True, text=True, check=True).stdout
+    assert "DNS:router" in out
