@@ -315,7 +315,6 @@ def test_liveliness_tokens_only_for_own_anchor(bus):
         del spoof, fake_fusion, token, sub
 
 
-@pytest.mark.slow
 def test_mtls_requires_client_certificate(tmp_path):
     b = Bus(tmp_path, mtls=True)
     try:
