@@ -87,7 +87,7 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
-def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path) -> dict:
+def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, batch: bool = False) -> dict:
     site = f"bench{n_anchors}x{n_nodes}"
     keys = Keys(site)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -117,7 +117,8 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path) -> 
     def on_data(s):
         q.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns()))
 
-    result: dict = {"anchors": n_anchors, "nodes": n_nodes, "rate_hz": 10, "duration_s": duration_s}
+    result: dict = {"anchors": n_anchors, "nodes": n_nodes, "rate_hz": 10, "duration_s": duration_s,
+                    "range_batch": batch}
     try:
         start("router", "router", "--listen", endpoint)
         session = open_session(ZenohSettings(connect=(endpoint,)), threading.Event())
@@ -130,7 +131,8 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path) -> 
             for j in range(n_anchors):
                 start(f"uav{j + 1}", "anchor", "--id", f"uav{j + 1}", "--site", site,
                       "--connect", endpoint, "--scenario", str(scen), "--wait-start",
-                      "--channel", "ideal", "--seed", str(j), "--clock-offset-ms", "0.5")
+                      "--channel", "ideal", "--seed", str(j), "--clock-offset-ms", "0.5",
+                      *(["--range-batch"] if batch else []))
             need = {keys.alive_anchor(f"uav{j + 1}") for j in range(n_anchors)} | {keys.alive_fusion()}
             deadline = time.monotonic() + 120
             with cv:
@@ -214,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="anchors x nodes (repeatable; default 4x10 and 16x200)")
     ap.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds per load")
     ap.add_argument("--json", metavar="FILE", help="write the results as JSON")
+    ap.add_argument("--range-batch", choices=["auto", "on", "off"], default="auto",
+                    help="anchors publish one RangeBatch per epoch (auto: when nodes > 50)")
     ap.add_argument("--log-dir", metavar="DIR", help="keep the services' logs here")
     args = ap.parse_args(argv)
     loads = args.load or ["4x10", "16x200"]
@@ -223,14 +227,15 @@ def main(argv: list[str] | None = None) -> int:
         log_dir.mkdir(parents=True, exist_ok=True)
         for spec in loads:
             m, n = (int(v) for v in spec.lower().split("x"))
-            r = run_load(m, n, args.duration, log_dir)
+            batch = args.range_batch == "on" or (args.range_batch == "auto" and n > 50)
+            r = run_load(m, n, args.duration, log_dir, batch=batch)
             out.append(r)
     hdr = f"{'load':>10} {'fixes':>12} {'fusion p50/p99 ms':>20} {'e2e p50/p99 ms':>18} {'ranges rx/sent':>16} {'RSS MB 25%/end':>16}"
     print(hdr)
     for r in out:
         lf, le, mem, fu = r["latency_fusion_ms"], r["latency_e2e_ms"], r["fusion_rss_mb"], r.get("fusion", {})
         fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
-        print(f"{r['anchors']:>4}x{r['nodes']:<3}@10Hz {r['estimates_received']:>5}/{r['estimates_expected']:<6}"
+        print(f"{r['anchors']:>4}x{r['nodes']:<3}@10Hz{'b' if r['range_batch'] else ' '} {r['estimates_received']:>5}/{r['estimates_expected']:<6}"
               f" {fmt(lf['p50']):>9}/{fmt(lf['p99']):<9} {fmt(le['p50']):>8}/{fmt(le['p99']):<9}"
               f" {fu.get('ranges_received', '-'):>7}/{fu.get('ranges_sent', '-'):<8}"
               f" {fmt(mem['at_25pct']):>7}/{fmt(mem['end']):<7}")

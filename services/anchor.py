@@ -187,6 +187,7 @@ class AnchorConfig(msgspec.Struct, kw_only=True, frozen=True):
     max_nodes: Annotated[int, Meta(ge=0)] = 0
     wait_start: bool = False
     channel: Literal["emulator", "ideal"] = "emulator"
+    range_batch: bool = False
     ideal_snr_db: float = 20.0
 
     def check(self) -> None:
@@ -424,12 +425,19 @@ def run_anchor(
         state_pub = session.declare_publisher(
             keys.anchor_state(config.anchor_id), encoding=enc, congestion_control=bc
         )
-        range_pubs = {
-            nid: session.declare_publisher(
-                keys.anchor_range(config.anchor_id, nid), encoding=enc, congestion_control=bc
+        batch_pub = None
+        range_pubs = {}
+        if config.range_batch:
+            batch_pub = session.declare_publisher(
+                keys.anchor_range_batch(config.anchor_id), encoding=enc, congestion_control=bc
             )
-            for nid, _ in emu.nodes
-        }
+        else:
+            range_pubs = {
+                nid: session.declare_publisher(
+                    keys.anchor_range(config.anchor_id, nid), encoding=enc, congestion_control=bc
+                )
+                for nid, _ in emu.nodes
+            }
         token = session.liveliness().declare_token(keys.alive_anchor(config.anchor_id))
         log_event(
             log,
@@ -482,8 +490,17 @@ def run_anchor(
                     block = {int(k + i): (rr[i], ss[i], nn[i], dd[i]) for i in range(ts_.size)}
                 state, ranges = emu.messages(t_true, tb, block.pop(k))
                 state_pub.put(M.encode(state))
-                for nid, msg in ranges:
-                    range_pubs[nid].put(M.encode(msg))
+                if batch_pub is not None:
+                    batch_pub.put(M.encode(M.RangeBatch(
+                        anchor_id=config.anchor_id, t_ns=state.t_ns, seq=state.seq,
+                        node_ids=[nid for nid, _ in ranges],
+                        range_m=[m.range_m for _, m in ranges],
+                        sigma_m=[m.sigma_m for _, m in ranges],
+                        snr_db=[m.snr_db for _, m in ranges],
+                        t_pub_wall_ns=state.t_pub_wall_ns)))
+                else:
+                    for nid, msg in ranges:
+                        range_pubs[nid].put(M.encode(msg))
                 epochs += 1
                 if on_epoch is not None:
                     on_epoch(k)

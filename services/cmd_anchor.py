@@ -6,6 +6,7 @@ noise at the ranging CRLB) and publishes, at --rate-hz, with congestion control 
 
   diffpos/<site>/anchor/<id>/state          its own navigation estimate (GNSS/baro noise)
   diffpos/<site>/anchor/<id>/range/<node>   one range per node (null when not detected)
+  diffpos/<site>/anchor/<id>/ranges         instead, with --range-batch: one message per epoch
 
 and declares the liveliness token diffpos/<site>/alive/anchor/<id>. Every time on the wire
 is the anchor's own clock (true time + --clock-offset-ms + jitter) in integer ns.
@@ -80,6 +81,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--ideal-snr-db", type=float, default=20.0, help="SNR of --channel ideal [dB]"
     )
     parser.add_argument(
+        "--range-batch",
+        action="store_true",
+        help="publish one RangeBatch per epoch on .../anchor/<id>/ranges instead of one "
+        "message per node (large deployments)",
+    )
+    parser.add_argument(
         "--wait-start",
         action="store_true",
         help="wait for the run control message of `diffpos emulate`",
@@ -108,6 +115,7 @@ def config_from_args(args: argparse.Namespace):
             channel=args.channel,
             ideal_snr_db=args.ideal_snr_db,
             wait_start=args.wait_start,
+            range_batch=args.range_batch,
         ),
     )
 

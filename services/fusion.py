@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import queue
 import threading
 import time
@@ -158,6 +159,7 @@ class FusionCore:
         self.latencies_ns: collections.deque[int] = collections.deque(maxlen=4096)
         self._dec_state = M.decoder(M.AnchorState)
         self._dec_range = M.decoder(M.RangeMeasurement)
+        self._dec_batch = M.decoder(M.RangeBatch)
         self.changed = False  # liveliness changed since the last diagnostics
 
     # ------------------------------------------------------------------ ingestion
@@ -175,7 +177,9 @@ class FusionCore:
     def on_sample(self, key: str, payload: bytes, rx_wall_ns: int) -> None:
         """Ingest one data sample (never raises on bad input: counts and logs once)."""
         pk = parse_key(key)
-        if pk is None or pk.site != self.config.site or pk.kind not in ("anchor_state", "range"):
+        if pk is None or pk.site != self.config.site or pk.kind not in (
+            "anchor_state", "range", "range_batch"
+        ):
             self.received["other"] += 1
             self._reject(key, "unexpected_key")
             return
@@ -183,6 +187,8 @@ class FusionCore:
         try:
             if pk.kind == "range":
                 msg = self._dec_range(payload)
+            elif pk.kind == "range_batch":
+                msg = self._dec_batch(payload)
             else:
                 msg = self._dec_state(payload)
         except M.DecodeError as exc:
@@ -199,38 +205,40 @@ class FusionCore:
             if not all(np.isfinite(vals)):
                 self._reject(key, "nonfinite")
                 return
-            anchor.history.add(
-                msg.t_ns,
-                msg.position_m,
-                msg.velocity_m_s,
-                msg.position_sigma_m,
-                msg.velocity_sigma_m_s,
-            )
+            anchor.history.add(msg.t_ns, msg.position_m, msg.velocity_m_s,
+                               msg.position_sigma_m, msg.velocity_sigma_m_s)
             anchor.states += 1
             self.book.note_anchor_time(anchor.id, msg.t_ns)
+        elif pk.kind == "range":
+            self._add_range(key, anchor, msg.node_id, msg.t_ns, msg.range_m, msg.sigma_m,
+                            msg.snr_db, msg.t_pub_wall_ns, rx_wall_ns)
         else:
-            r = msg.range_m
-            if r is not None and not np.isfinite(r):
-                self._reject(key, "nonfinite")
+            n = len(msg.node_ids)
+            if not (len(msg.range_m) == len(msg.sigma_m) == len(msg.snr_db) == n):
+                self._reject(key, "schema", "range_batch lists differ in length")
                 return
-            if msg.sigma_m is None or (
-                self.config.min_snr_db is not None
-                and (msg.snr_db is None or msg.snr_db < self.config.min_snr_db)
-            ):
-                r = None
-            anchor.ranges += 1
-            entry = RangeEntry(
-                msg.t_ns,
-                r,
-                msg.sigma_m or 1.0,
-                msg.snr_db if msg.snr_db is not None else -np.inf,
-                msg.t_pub_wall_ns,
-                rx_wall_ns,
-            )
-            if not self.book.add(anchor.id, msg.node_id, entry):
-                self.rejected["late"] += 1
+            self.received["range"] += n
+            for nid, r, sg, snr in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db,
+                                       strict=True):
+                self._add_range(key, anchor, nid, msg.t_ns, r, sg, snr, msg.t_pub_wall_ns,
+                                rx_wall_ns)
         if anchor.last_t_ns is None or msg.t_ns > anchor.last_t_ns:
             anchor.last_t_ns = msg.t_ns
+
+    def _add_range(self, key, anchor, node_id, t_ns, r, sigma_m, snr_db, pub_wall, rx_wall) -> None:
+        if r is not None and not math.isfinite(r):
+            self._reject(key, "nonfinite")
+            return
+        if sigma_m is None or (
+            self.config.min_snr_db is not None
+            and (snr_db is None or snr_db < self.config.min_snr_db)
+        ):
+            r = None
+        anchor.ranges += 1
+        entry = RangeEntry(t_ns, r, sigma_m or 1.0, snr_db if snr_db is not None else -math.inf,
+                           pub_wall, rx_wall)
+        if not self.book.add(anchor.id, node_id, entry):
+            self.rejected["late"] += 1
 
     def on_liveliness(self, anchor_id: str, alive: bool, wall_ns: int) -> None:
         """Liveliness token of an anchor appeared (``alive``) or vanished."""

@@ -9,6 +9,7 @@ key expression                              message (schemas/)     publisher -> 
 ========================================== ===================== ===============================
 ``diffpos/<site>/anchor/<anchor>/state``    ``anchor_state.v1``    anchor -> fusion, recorder, UI
 ``diffpos/<site>/anchor/<anchor>/range/<node>`` ``range.v1``       anchor -> fusion, recorder, UI
+``diffpos/<site>/anchor/<anchor>/ranges``   ``range_batch.v1``     anchor (--range-batch) -> fusion, recorder
 ``diffpos/<site>/node/<node>/estimate``     ``estimate.v1``        fusion -> recorder, UI, emulate
 ``diffpos/<site>/fusion/diagnostics``       ``fusion_diagnostics.v1`` fusion -> recorder, UI
 ``diffpos/<site>/truth/node/<node>``        ``truth.v1``           emulate -> recorder, UI (never fusion)
@@ -45,6 +46,7 @@ _ID_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]{0,63}$")
 KeyKind = Literal[
     "anchor_state",
     "range",
+    "range_batch",
     "estimate",
     "diagnostics",
     "truth_node",
@@ -114,6 +116,10 @@ class Keys:
     def anchor_range(self, anchor_id: str, node_id: str) -> str:
         return f"{self.root}/anchor/{anchor_id}/range/{node_id}"
 
+    def anchor_range_batch(self, anchor_id: str) -> str:
+        """All ranges of one anchor epoch in one message (large deployments)."""
+        return f"{self.root}/anchor/{anchor_id}/ranges"
+
     def node_estimate(self, node_id: str) -> str:
         return f"{self.root}/node/{node_id}/estimate"
 
@@ -148,6 +154,9 @@ class Keys:
     def anchor_ranges(self) -> str:
         return f"{self.root}/anchor/*/range/*"
 
+    def anchor_range_batches(self) -> str:
+        return f"{self.root}/anchor/*/ranges"
+
     def estimates(self) -> str:
         return f"{self.root}/node/*/estimate"
 
@@ -164,7 +173,7 @@ class Keys:
 
     def fusion_inputs(self) -> tuple[str, ...]:
         """The data key expressions the fusion service subscribes to (no truth, by design)."""
-        return (self.anchor_states(), self.anchor_ranges())
+        return (self.anchor_states(), self.anchor_ranges(), self.anchor_range_batches())
 
 
 def parse_key(key: str) -> ParsedKey | None:
@@ -182,6 +191,8 @@ def parse_key(key: str) -> ParsedKey | None:
             return ParsedKey("anchor_state", site, anchor_id=a)
         case ["anchor", a, "range", n]:
             return ParsedKey("range", site, anchor_id=a, node_id=n)
+        case ["anchor", a, "ranges"]:
+            return ParsedKey("range_batch", site, anchor_id=a)
         case ["node", n, "estimate"]:
             return ParsedKey("estimate", site, node_id=n)
         case ["fusion", "diagnostics"]:

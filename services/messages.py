@@ -39,6 +39,7 @@ __all__ = [
     "GroundTruth",
     "LatencyStats",
     "PositionEstimate",
+    "RangeBatch",
     "RangeMeasurement",
     "RunControl",
     "decoder",
@@ -147,6 +148,28 @@ class RangeMeasurement(_Msg, tag="diffpos.range.v1"):
         Annotated[float, Meta(gt=0, description="Ranging one-sigma (CRLB at the SNR) [m].")] | None
     )
     snr_db: Annotated[float, Meta(description="SNR of the first arriving path [dB].")] | None
+    t_pub_wall_ns: WallNs
+
+
+class RangeBatch(_Msg, tag="diffpos.range_batch.v1"):
+    """All ranges of one anchor epoch in one message (columnar), for large deployments.
+
+    Equivalent to one :class:`RangeMeasurement` per node with the same ``anchor_id``,
+    ``t_ns`` and ``t_pub_wall_ns``; the lists are aligned with ``node_ids`` (``null`` entries
+    where no path was detected). An anchor publishes either batches or single ranges.
+    """
+
+    anchor_id: Id
+    t_ns: TimeNs
+    seq: Seq
+    node_ids: list[Id]
+    range_m: Annotated[
+        list[Annotated[float, Meta(ge=0)] | None], Meta(description="Measured path lengths [m].")
+    ]
+    sigma_m: Annotated[
+        list[Annotated[float, Meta(gt=0)] | None], Meta(description="Ranging one-sigmas [m].")
+    ]
+    snr_db: Annotated[list[float | None], Meta(description="First-path SNRs [dB].")]
     t_pub_wall_ns: WallNs
 
 
@@ -266,6 +289,7 @@ class RunControl(_Msg, tag="diffpos.run_control.v1"):
 MESSAGE_TYPES: dict[type[msgspec.Struct], str] = {
     AnchorState: "anchor_state.v1",
     RangeMeasurement: "range.v1",
+    RangeBatch: "range_batch.v1",
     PositionEstimate: "estimate.v1",
     FusionDiagnostics: "fusion_diagnostics.v1",
     GroundTruth: "truth.v1",

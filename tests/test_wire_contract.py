@@ -87,6 +87,11 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
                 t_pub_wall_ns=12,
             ),
         ],
+        M.RangeBatch: [
+            M.RangeBatch(anchor_id="uav3", t_ns=7, seq=9, node_ids=["n01", "n02"],
+                         range_m=[12.5, None], sigma_m=[0.01, None], snr_db=[20.0, None],
+                         t_pub_wall_ns=8),
+        ],
         M.PositionEstimate: [est_ok, est_bad],
         M.FusionDiagnostics: [
             M.FusionDiagnostics(
@@ -211,6 +216,7 @@ def test_keys_roundtrip_and_patterns():
     cases = {
         k.anchor_state("uav1"): ("anchor_state", "uav1", None),
         k.anchor_range("uav1", "n01"): ("range", "uav1", "n01"),
+        k.anchor_range_batch("uav1"): ("range_batch", "uav1", None),
         k.node_estimate("n01"): ("estimate", None, "n01"),
         k.fusion_diagnostics(): ("diagnostics", None, None),
         k.truth_node("n01"): ("truth_node", None, "n01"),
