@@ -65,6 +65,12 @@ class DiffractionPoint:
     edge_param: FloatArray
 
 
+def _full(v: FloatArray, shape: tuple[int, ...]) -> FloatArray:
+    """``v`` as a writable array of exactly ``shape`` (copies only when broadcasting)."""
+    v = np.asarray(v, dtype=np.float64)
+    return v if v.shape == shape else np.broadcast_to(v, shape).copy()
+
+
 def _norm(v: FloatArray) -> FloatArray:
     return np.sqrt(np.einsum("...i,...i->...", v, v))
 
@@ -286,8 +292,7 @@ def window_edge_path(
         np.divide(dx, length, out=jac[..., 0])
         np.divide(yn, ipl, out=jac[..., 1])
         np.divide(dz, opl, out=jac[..., 2])
-    length = np.broadcast_to(length, shape)
-    qx = np.broadcast_to(qx, shape)
+    length, qx, opl, ipl = (_full(v, shape) for v in (length, qx, opl, ipl))
     on_edge = np.ones(shape, dtype=bool)
 
     # Pairs needing the general (two-distance) formula: clamped to an end of a finite edge, or
@@ -299,7 +304,6 @@ def window_edge_path(
         on_edge = ~outside
         fix = fix | outside
     if np.any(fix):
-        length, qx, opl, ipl = (np.array(np.broadcast_to(v, shape)) for v in (length, qx, opl, ipl))
         b = [np.broadcast_to(v, shape)[fix] for v in (xa, xn, yn, dz, r_s, r_o)]
         xa_f, xn_f, yn_f, dz_f, rs_f, ro_f = b
         q = np.where(rs_f + ro_f > 0.0, qx[fix], 0.5 * (xa_f + xn_f))
@@ -314,10 +318,10 @@ def window_edge_path(
         length_m=length,
         jacobian=jac,
         on_edge=on_edge,
-        outside_m=np.broadcast_to(opl, shape),
-        inside_m=np.broadcast_to(ipl, shape),
+        outside_m=opl,
+        inside_m=ipl,
         point_x_m=qx,
-        point_z_m=np.broadcast_to(zn + h, shape),
+        point_z_m=_full(zn + h, shape),
     )
 
 
