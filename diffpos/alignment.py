@@ -373,6 +373,30 @@ class EpochBook:
         pe.ranges[anchor_id] = entry
         return True
 
+    def add_many(self, anchor_id: str, t_ns: int, entries: list[tuple[str, RangeEntry]]) -> int:
+        """Add ranges of one anchor taken at the same time ``t_ns`` (one epoch); returns how
+        many were late (their node's epoch already solved)."""
+        e = int(t_ns // self.config.epoch_period_ns)
+        prev = self.latest_t_ns.get(anchor_id)
+        if prev is None or t_ns > prev:
+            self.latest_t_ns[anchor_id] = int(t_ns)
+        late = 0
+        pending = self.pending
+        solved = self.solved_upto
+        floor = -(2**62)
+        for node_id, entry in entries:
+            if e <= solved.get(node_id, floor):
+                late += 1
+                continue
+            pe = pending.get((node_id, e))
+            if pe is None:
+                pe = pending[(node_id, e)] = PendingEpoch(node_id, e, entry.rx_wall_ns)
+            elif anchor_id in pe.ranges:
+                self.replaced += 1
+            pe.ranges[anchor_id] = entry
+        self.late += late
+        return late
+
     def note_anchor_time(self, anchor_id: str, t_ns: int) -> None:
         """Advance an anchor's latest time (e.g. from its state reports)."""
         prev = self.latest_t_ns.get(anchor_id)

@@ -218,10 +218,22 @@ class FusionCore:
                 self._reject(key, "schema", "range_batch lists differ in length")
                 return
             self.received["range"] += n
+            entries = []
+            min_snr = self.config.min_snr_db
             for nid, r, sg, snr in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db,
                                        strict=True):
-                self._add_range(key, anchor, nid, msg.t_ns, r, sg, snr, msg.t_pub_wall_ns,
-                                rx_wall_ns)
+                if r is not None and not math.isfinite(r):
+                    self._reject(key, "nonfinite")
+                    continue
+                if sg is None or (min_snr is not None and (snr is None or snr < min_snr)):
+                    r = None
+                entries.append((nid, RangeEntry(msg.t_ns, r, sg or 1.0,
+                                                snr if snr is not None else -math.inf,
+                                                msg.t_pub_wall_ns, rx_wall_ns)))
+            anchor.ranges += len(entries)
+            self.rejected["late"] += self.book.add_many(anchor.id, msg.t_ns, entries)
+            if not self.rejected["late"]:
+                del self.rejected["late"]
         if anchor.last_t_ns is None or msg.t_ns > anchor.last_t_ns:
             anchor.last_t_ns = msg.t_ns
 
@@ -393,62 +405,73 @@ class FusionCore:
             put(rows_c, fix)
         self.solved += b
 
-        # ---- messages
+        # ---- messages (vectorised reasons; numpy -> Python lists once, not per element)
         now = time.time_ns()
         out = []
-        lost = {a.id for a in self.anchors.values() if not a.alive}
-        floors = np.floor((res_pos[:, 2] - cfg.first_floor_z_m) / cfg.floor_height_m)
+        names = list(col)
+        lost_col = np.array([a in {x.id for x in self.anchors.values() if not x.alive}
+                             for a in names], bool)
+        gate_codes = (int(ExclusionReason.RAIM), int(ExclusionReason.PREGATE_SHORTER_THAN_LOS))
+        gated_mask = reported & detected & have_state & ~res_used & np.isin(res_reason, gate_codes)
+        self.gated += int(gated_mask.sum())
+        # reason codes: 0 used/absent-not-live, 1 NOT_DETECTED, 2 NO_ANCHOR_STATE, 3 gating
+        # reason (from res_reason), 4 NOT_USED, 5 ANCHOR_LOST, 6 NOT_REPORTED
+        code = np.zeros((b, m), np.int8)
+        code[~reported & ~lost_col[None, :]] = 6
+        code[~reported & lost_col[None, :]] = 5
+        code[reported & ~res_used] = 4
+        code[reported & detected & have_state & ~res_used & (res_reason != 0)] = 3
+        code[reported & detected & ~have_state] = 2
+        code[reported & ~detected] = 1
+        fixed = {1: "NOT_DETECTED", 2: "NO_ANCHOR_STATE", 4: "NOT_USED", 5: "ANCHOR_LOST",
+                 6: "NOT_REPORTED"}
+        reason_names = {int(r): r.name for r in ExclusionReason}
+        floors = np.clip(np.floor((res_pos[:, 2] - cfg.first_floor_z_m) / cfg.floor_height_m),
+                         -1, cfg.n_floors)
+        status_l = res_status.tolist()
+        finite_pos = np.all(np.isfinite(res_pos), axis=1)
+        finite_cov = np.all(np.isfinite(res_cov), axis=(1, 2))
+        pos_l, cov_l = res_pos.tolist(), res_cov.tolist()
+        peb_l, zb_l, floor_l = res_peb.tolist(), res_zb.tolist(), floors.tolist()
+        resid_l, used_l, code_l, rr_l = res_resid.tolist(), res_used.tolist(), code.tolist(), \
+            res_reason.tolist()
+        t_ref_l = t_ref.tolist()
+        in_wall_l = np.where(reported, pub_wall, 0).max(axis=1).tolist()
         for i, pe in enumerate(epochs):
-            st = FixStatus(int(res_status[i]))
-            ok = int(st) in good
-            self.by_status[st.name] += 1
-            excluded = []
-            for a, j in col.items():
-                if res_used[i, j]:
-                    continue
-                if reported[i, j]:
-                    if not detected[i, j]:
-                        reason = "NOT_DETECTED"
-                    elif not have_state[i, j]:
-                        reason = "NO_ANCHOR_STATE"
-                    else:
-                        rcode = int(res_reason[i, j])
-                        reason = ExclusionReason(rcode).name if rcode else "NOT_USED"
-                        if rcode in (
-                            int(ExclusionReason.RAIM),
-                            int(ExclusionReason.PREGATE_SHORTER_THAN_LOS),
-                        ):
-                            self.gated += 1
-                elif a in lost:
-                    reason = "ANCHOR_LOST"
-                else:
-                    reason = "NOT_REPORTED"
-                excluded.append(M.Exclusion(a, reason))
-            used_ids = [a for a, j in col.items() if res_used[i, j]]
-            resid = [float(res_resid[i, col[a]]) for a in used_ids]
-            if ok and np.all(np.isfinite(res_pos[i])):
-                pos = M.vec3(res_pos[i])
-                self.tracks[pe.node_id].update(int(t_ref[i]), res_pos[i])
-                cov = res_cov[i]
-                cov_t = tuple(M.vec3(row) for row in cov) if np.all(np.isfinite(cov)) else None
-                fl = int(np.clip(floors[i], -1, cfg.n_floors))
+            st = status_l[i]
+            st_name = FixStatus(st).name
+            ok = st in good
+            self.by_status[st_name] += 1
+            row_code, row_used = code_l[i], used_l[i]
+            excluded = [
+                M.Exclusion(names[j], reason_names[rr_l[i][j]] if c == 3 else fixed[c])
+                for j, c in enumerate(row_code) if c and not row_used[j]
+            ]
+            used_idx = [j for j in range(m) if row_used[j]]
+            used_ids = [names[j] for j in used_idx]
+            resid = [resid_l[i][j] for j in used_idx]
+            if ok and finite_pos[i]:
+                pos = tuple(pos_l[i])
+                self.tracks[pe.node_id].update(t_ref_l[i], res_pos[i])
+                cov_t = tuple(tuple(r) for r in cov_l[i]) if finite_cov[i] else None
+                fl = int(floor_l[i])
             else:
                 pos, cov_t, fl = None, None, None
-            in_wall = int(np.max(pub_wall[i])) if reported[i].any() else 0
+            in_wall = int(in_wall_l[i])
             self.seq += 1
             est = M.PositionEstimate(
                 node_id=pe.node_id,
-                t_ns=int(t_ref[i]),
+                t_ns=t_ref_l[i],
                 epoch=pe.epoch,
                 seq=self.seq,
-                status=st.name,
+                status=st_name,
                 position_m=pos,
                 covariance_m2=cov_t,  # type: ignore[arg-type]
-                peb_m=M.finite_or_none(res_peb[i]) if ok else None,
-                z_bound_m=M.finite_or_none(res_zb[i]) if ok else None,
+                peb_m=M.finite_or_none(peb_l[i]) if ok else None,
+                z_bound_m=M.finite_or_none(zb_l[i]) if ok else None,
                 floor_index=fl,
                 used_anchors=used_ids,
-                residuals_m=[r if np.isfinite(r) else 0.0 for r in resid],
+                residuals_m=[r if math.isfinite(r) else 0.0 for r in resid],
                 excluded=excluded,
                 message=res_msg[i],
                 t_input_wall_ns=max(in_wall, 0),
@@ -555,16 +578,22 @@ def run_fusion(
                     item = q.get(timeout=timeout)
                 except queue.Empty:
                     item = None
+                # ingest what is queued (bounded, so solving and diagnostics keep going);
+                # epoch deadlines count from ingestion, so a backlog does not release epochs
+                # before their queued ranges were seen
+                t_ingest = time.time_ns()
+                budget = 20_000
                 while item is not None:
                     kind, key, val, rx = item
                     if kind == 0:
-                        core.on_sample(key, val, rx)
+                        core.on_sample(key, val, t_ingest)
                     else:
                         pk = parse_key(key)
                         if pk is not None and pk.anchor_id is not None:
                             core.on_liveliness(pk.anchor_id, bool(val), rx)
+                    budget -= 1
                     try:
-                        item = q.get_nowait()
+                        item = q.get_nowait() if budget > 0 else None
                     except queue.Empty:
                         item = None
                 now = time.time_ns()
