@@ -7,11 +7,11 @@ depends only on the file and the settings: two replays give identical estimates,
 The fusion settings of the live run are taken from the recording (metadata) when present;
 options change them to answer "what if" questions on the same data.
 
-The report (stdout, and report.json + cdf.png in --out) has, per node and overall: 3D,
-horizontal and z error percentiles (50/67/90/95/99 %, max) against the truth interpolated at
-each fix time, floor accuracy, PEB percentiles and the share of fixes within 2 PEB, fix
-status counts; gating decisions per anchor (used / excluded and why); message counts and
-gaps in sequence numbers. --compare puts the recorded live estimates next to the replayed
+The report (stdout, and report.json + cdf.png in --out, default out/replay/<name>/) has,
+per node and overall: 3D, horizontal and z error percentiles (50/67/90/95/99 %, max) against
+the truth interpolated at each fix time, floor accuracy, PEB percentiles and the share of
+fixes within 2 PEB, fix status counts; gating decisions per anchor (used / excluded and why);
+message counts and gaps in sequence numbers. --compare puts the recorded live estimates next to the replayed
 ones (matched per node and epoch).
 
 examples:
@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "after every message; larger = bigger solver batches, faster)")
     o = parser.add_argument_group("output")
     o.add_argument("--out", metavar="DIR",
-                   help="directory for report.json and cdf.png (default <FILE>.replay/)")
+                   help="directory for report.json and cdf.png (default out/replay/<FILE stem>/)")
     o.add_argument("--no-files", action="store_true", help="do not write report.json / cdf.png")
     o.add_argument("--json", action="store_true", help="print the JSON report to stdout")
     o.add_argument("--compare", action="store_true",
@@ -209,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     rep = result.report
     if not args.no_files:
-        out_dir = Path(args.out) if args.out else src.with_name(src.stem + ".replay")
+        out_dir = Path(args.out) if args.out else Path("out") / "replay" / src.stem
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "report.json").write_text(json.dumps(rep, indent=2) + "\n", encoding="utf-8")
         plot_cdf(result, out_dir / "cdf.png")
