@@ -38,6 +38,7 @@ from diffpos_services.mcap_io import (
     RawMessage,
     RecordingError,
     SeqTracker,
+    _natural,
     parse_topic,
     replay_estimate_topic,
 )
@@ -326,12 +327,6 @@ def _evaluate(
     )
     overall["without_truth"] = no_truth
     return {"overall": overall, "per_node": per_node}, cat
-
-
-def _natural(s: str):
-    import re
-
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
 
 
 def _gating(estimates: list[M.PositionEstimate]) -> dict[str, Any]:

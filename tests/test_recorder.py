@@ -12,7 +12,6 @@ import json
 import os
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -33,12 +32,6 @@ pytestmark = pytest.mark.slow
 SITE = "rt"
 K = Keys(SITE)
 TIMEOUT_S = 30.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class _Proc:
@@ -86,9 +79,9 @@ class _Proc:
 
 
 @pytest.fixture
-def bus():
-    """A Python Zenoh router on a free loopback port; yields its endpoint."""
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+def bus(endpoint):
+    """A Python Zenoh router on a free loopback port (conftest ``endpoint``); yields it."""
+    ep = endpoint
     router = _Proc([sys.executable, "-m", "diffpos_services.cli", "router", "--listen", ep])
     procs: list[_Proc] = [router]
     yield ep, procs
