@@ -102,11 +102,16 @@ def _dashboard_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str
     return argv
 
 
-#: name -> (CLI module that must exist, argv builder). Add a service here to have
-#: ``diffpos emulate`` start (and stop) it with the others.
-EXTRA_SERVICES: dict[str, tuple[str, Callable[[EmulationOptions, str, str], list[str] | None]]] = {
-    "recorder": ("diffpos_services.cmd_recorder", _recorder_argv),
-    "dashboard": ("diffpos_services.cmd_dashboard", _dashboard_argv),
+#: name -> (CLI module that must exist, argv builder, liveliness key to wait for or None).
+#: Add a service here to have ``diffpos emulate`` start (and stop) it with the others; with
+#: a readiness key the run starts only once that token is alive (nothing is missed).
+EXTRA_SERVICES: dict[
+    str,
+    tuple[str, Callable[[EmulationOptions, str, str], list[str] | None],
+          Callable[[Keys], str] | None],
+] = {
+    "recorder": ("diffpos_services.cmd_recorder", _recorder_argv, Keys.alive_recorder),
+    "dashboard": ("diffpos_services.cmd_dashboard", _dashboard_argv, None),
 }
 
 
@@ -184,6 +189,14 @@ class Emulation:
         from .anchor import load_scenario_file
 
         options.check()
+        if options.scenario is not None:
+            # a shipped name ("paper") becomes its file, which every service can read
+            try:
+                from .scenario_io import resolve_scenario
+
+                options.scenario = str(resolve_scenario(options.scenario))
+            except ImportError:  # pragma: no cover
+                pass
         self.o = options
         self.log = logger
         self.stop = stop
@@ -307,11 +320,13 @@ class Emulation:
                         "--seed", str(o.seed), "--rate-hz", str(o.rate_hz), "--wait-start",
                         "--clock-offset-ms", f"{off:.4f}", "--channel", o.channel,
                         "--max-nodes", str(o.max_nodes), *scen])
-                for name, (module, build) in EXTRA_SERVICES.items():
+                need = {self.keys.alive_anchor(a) for a in self.anchor_ids} | {self.keys.alive_fusion()}
+                for name, (module, build, ready_key) in EXTRA_SERVICES.items():
                     argv = build(o, self.endpoint, self.run_id)
                     if argv is not None and importlib.util.find_spec(module) is not None:
                         self._spawn(name, argv)
-                need = {self.keys.alive_anchor(a) for a in self.anchor_ids} | {self.keys.alive_fusion()}
+                        if ready_key is not None:
+                            need.add(ready_key(self.keys))
                 t_ready = time.monotonic()
                 self._wait_ready(need)
                 if self.stop.is_set():

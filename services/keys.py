@@ -17,6 +17,7 @@ key expression                              message (schemas/)     publisher -> 
 ``diffpos/<site>/run/control``              ``run_control.v1``     emulate -> anchors (start gate)
 ``diffpos/<site>/alive/anchor/<anchor>``    liveliness token       anchor -> fusion, emulate
 ``diffpos/<site>/alive/fusion``             liveliness token       fusion -> emulate
+``diffpos/<site>/alive/recorder``           liveliness token       recorder -> emulate
 ========================================== ===================== ===============================
 
 Identifiers (site, anchor and node ids) are single key chunks: letters, digits, ``_`` and
@@ -54,6 +55,7 @@ KeyKind = Literal[
     "run_control",
     "alive_anchor",
     "alive_fusion",
+    "alive_recorder",
 ]
 
 
@@ -143,6 +145,10 @@ class Keys:
         """Liveliness token of the fusion service."""
         return f"{self.root}/alive/fusion"
 
+    def alive_recorder(self) -> str:
+        """Liveliness token of the MCAP recorder (declared once it is subscribed)."""
+        return f"{self.root}/alive/recorder"
+
     # -- patterns ------------------------------------------------------------------------
     def everything(self) -> str:
         """All data messages of the site (what a recorder subscribes to)."""
@@ -207,4 +213,6 @@ def parse_key(key: str) -> ParsedKey | None:
             return ParsedKey("alive_anchor", site, anchor_id=a)
         case ["alive", "fusion"]:
             return ParsedKey("alive_fusion", site)
+        case ["alive", "recorder"]:
+            return ParsedKey("alive_recorder", site)
     return None

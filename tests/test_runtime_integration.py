@@ -215,3 +215,37 @@ def test_killed_anchor_is_marked_lost_and_fixes_continue(services, endpoint):
     assert all(victim not in e.used_anchors for e in after)
     last_epoch = max(e.epoch for e in after)
     assert last_epoch >= rc.t0_ns // PERIOD_NS + int(duration_s * 10) - 2
+
+
+def test_emulate_one_command_runs_scores_and_cleans_up(services, tmp_path):
+    """`diffpos emulate`: all services as processes, summary JSON, recording, no leftovers."""
+    import json
+    from pathlib import Path
+
+    summary_path = tmp_path / "summary.json"
+    mcap = tmp_path / "run.mcap"
+    p = services.start("emulate", "emulate", "paper", "--duration", "3", "--speed", "3",
+                       "--channel", "ideal", "--record", str(mcap), "--dashboard", "off",
+                       "--json", str(summary_path), "--no-progress",
+                       "--log-dir", str(tmp_path / "logs"))
+    rc = p.wait(timeout=180)
+    assert rc == 0, services.log("emulate")[-3000:]
+    s = json.loads(summary_path.read_text())
+    assert s["anchors"] == 4 and s["nodes"] == 6
+    assert s["estimates"] == 6 * 30 and s["epochs_per_node_min"] == 30
+    assert s["status"].get("OK", 0) + s["status"].get("OK_UNVERIFIED", 0) >= 0.9 * s["estimates"]
+    assert s["error_3d_m"]["p50"] <= 2 * s["peb_m"]["p50"]
+    assert s["floor_accuracy"] >= 0.9
+    assert s["fusion"]["late_ranges"] == 0 and not s["lost"]
+    assert mcap.exists() and mcap.stat().st_size > 0
+    # every service the orchestrator started is gone (they run in their own sessions)
+    left = []
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            try:
+                cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            except OSError:
+                continue
+            if s["endpoint"] in cmd:
+                left.append(cmd)
+    assert not left, left

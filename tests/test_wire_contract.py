@@ -224,6 +224,7 @@ def test_keys_roundtrip_and_patterns():
         k.run_control(): ("run_control", None, None),
         k.alive_anchor("uav2"): ("alive_anchor", "uav2", None),
         k.alive_fusion(): ("alive_fusion", None, None),
+        k.alive_recorder(): ("alive_recorder", None, None),
     }
     for key, (kind, a, n) in cases.items():
         p = K.parse_key(key)
