@@ -367,20 +367,6 @@ class SchemaRegistry:
                 return entry
         return None
 
-    def validator(self, schema_name: str):
-        """A ``jsonschema`` validator for an MCAP schema name (needs the jsonschema package)."""
-        try:
-            import jsonschema
-        except ImportError as exc:  # pragma: no cover - test extra
-            raise RecordingError(
-                "schema validation needs the 'jsonschema' package: pip install jsonschema"
-            ) from exc
-        doc = self.documents.get(schema_name)
-        if doc is None:
-            return None
-        cls = jsonschema.validators.validator_for(doc)
-        return cls(doc)
-
 
 def default_schema_dir() -> Path:
     """The repository's ``schemas/`` directory (``services/../schemas``)."""
@@ -591,12 +577,6 @@ class McapSink:
         """
         with self._lock:
             self._write_locked(key, payload, receive_ns, publish_ns, sequence)
-
-    def write_many(self, items: list[tuple[str, bytes, int]]) -> None:
-        """Record a batch of ``(key, payload, receive_ns)`` tuples under one lock."""
-        with self._lock:
-            for key, payload, receive_ns in items:
-                self._write_locked(key, payload, receive_ns, None, None)
 
     def _write_locked(self, key, payload, receive_ns, publish_ns, sequence) -> None:
         stats = self.stats
