@@ -346,3 +346,17 @@ def test_schema_registry_without_schema_files_generates_the_same_documents(monke
     assert {e.source for e in generated.by_stem.values()} == {"generated", "builtin"}
     for stem, entry in generated.by_stem.items():
         assert from_files.by_stem[stem].data == entry.data, stem
+
+
+def test_wrong_schema_payloads_are_counted_not_fatal(tmp_path, capsys):
+    path = tmp_path / "w.mcap"
+    good = _sample_stream(n_epochs=2)
+    with McapSink(path) as sink:
+        for key, payload, rx in good:
+            sink.write(key, payload, rx)
+        # valid JSON, wrong shape for the range schema (missing fields, wrong type)
+        sink.write(K.anchor_range("a1", "n1"), b'{"schema": "diffpos.range.v1", "range_m": "far"}', 5)
+    assert cli_main(["inspect", str(path), "--validate"]) == 1
+    out = capsys.readouterr()
+    assert "1 invalid" in out.out and "Traceback" not in out.err
+    assert f"{K.anchor_range('a1', 'n1')} seq 0" in out.out  # names the message
