@@ -70,6 +70,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
     diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
     queue_size: Annotated[int, Meta(ge=16)] = 65536
+    linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
 
     def check(self) -> None:
         from .keys import check_id
@@ -568,6 +569,7 @@ def run_fusion(
         if on_ready is not None:
             on_ready()
         next_diag = time.time_ns() + period_ns
+        linger_s = config.linger_s
         try:
             while not stop.is_set():
                 now = time.time_ns()
@@ -595,7 +597,12 @@ def run_fusion(
                     try:
                         item = q.get_nowait() if budget > 0 else None
                     except queue.Empty:
-                        item = None
+                        # linger briefly: an anchor publishes its ranges to all nodes back to
+                        # back, so waiting ~1 ms batches them into one solve
+                        try:
+                            item = q.get(timeout=linger_s) if budget > 0 else None
+                        except queue.Empty:
+                            item = None
                 now = time.time_ns()
                 for est in core.step(now):
                     pub = est_pubs.get(est.node_id)
