@@ -1837,12 +1837,17 @@ def _kind_scanner(path: str | Path, kinds: set[str]):
 
     wanted: set[str] = set()
 
+    classified: set[int] = set()
+
     class _Scanner(McapScanner):
         def _add_channel(self, body, pos=0):  # type: ignore[override]
             super()._add_channel(body, pos)
-            for ch in self.channels.values():
-                if ch.topic not in wanted and parse_topic(ch.topic)[0] in kinds:
-                    wanted.add(ch.topic)
+            # channel records repeat in every chunk: classify each channel id once
+            for cid in self.channels.keys() - classified:
+                classified.add(cid)
+                topic = self.channels[cid].topic
+                if parse_topic(topic)[0] in kinds:
+                    wanted.add(topic)
 
     return _Scanner(path), wanted
 
