@@ -70,7 +70,8 @@ def load_scenario_file(path: str | Path | None):
     except FileNotFoundError:
         raise ConfigError(f"scenario file {str(path)!r} not found") from None
     except ScenarioError as exc:
-        raise ConfigError(f"scenario {path}: {exc}") from None
+        msg = str(exc)
+        raise ConfigError(msg if str(path) in msg else f"scenario {path}: {msg}") from None
     except ValueError as exc:  # tomllib.TOMLDecodeError is a ValueError
         raise ConfigError(f"scenario {path}: {exc}") from None
 
