@@ -43,7 +43,15 @@ from .dashboard import (
 from .keys import Keys, parse_key
 from .servicekit import log_event
 
-__all__ = ["DashboardService", "RerunTarget", "ServiceStats", "display_available", "open_rerun"]
+__all__ = [
+    "DashboardService",
+    "RerunTarget",
+    "ServiceStats",
+    "describe_target",
+    "display_available",
+    "open_rerun",
+    "web_viewer_url",
+]
 
 Mode = Literal["auto", "spawn", "serve", "save", "off"]
 
@@ -98,6 +106,34 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def web_viewer_url(url: str, *, host: str, web_port: int) -> str:
+    """URL of the hosted web viewer that connects to the gRPC server ``url``."""
+    return f"http://{host}:{web_port}/?url={urllib.parse.quote(url, safe='')}"
+
+
+def describe_target(target: RerunTarget) -> str:
+    """The sentence telling a user how to open the dashboard (nothing is opened).
+
+    ``diffpos emulate`` can print this for the dashboard process it starts. For ``serve``
+    the ports must be explicit (not 0) for the URL to be known in advance.
+    """
+    mode = target.mode
+    if mode == "auto":
+        mode = "spawn" if display_available() else "serve"
+    if mode == "spawn":
+        return "Rerun viewer spawned (native window)"
+    if mode == "serve":
+        url = f"rerun+http://{target.bind}:{target.grpc_port}/proxy"
+        view = web_viewer_url(url, host=target.bind, web_port=target.web_port)
+        return (
+            f"Rerun web viewer: open {view} in a browser, or run `rerun {url}` "
+            "for the native viewer"
+        )
+    if mode == "save":
+        return f"Rerun recording saved to {target.path} (open it with `rerun {target.path}`)"
+    return "Rerun output off"
+
+
 def open_rerun(
     target: RerunTarget, *, recording_id: str | None = None
 ) -> tuple[rr.RecordingStream, str]:
@@ -126,7 +162,7 @@ def open_rerun(
             grpc_port=grpc_port, default_blueprint=bp, server_memory_limit=target.memory_limit
         )
         rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=url)
-        view = f"http://{target.bind}:{web_port}/?url={urllib.parse.quote(url, safe='')}"
+        view = web_viewer_url(url, host=target.bind, web_port=web_port)
         return rec, (
             f"Rerun web viewer: open {view} in a browser, or run `rerun {url}` "
             "for the native viewer"

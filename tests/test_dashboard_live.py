@@ -24,6 +24,7 @@ from diffpos_services import messages as m
 from diffpos_services.dashboard_service import (
     DashboardService,
     RerunTarget,
+    describe_target,
     display_available,
     open_rerun,
 )
@@ -163,8 +164,10 @@ def test_serve_mode_serves_the_web_viewer_and_auto_never_spawns_headless(monkeyp
         with pytest.raises(RuntimeError, match="needs a display"):
             open_rerun(RerunTarget(mode="spawn"))
     web = free_port()
-    rec, how = open_rerun(RerunTarget(mode="auto", grpc_port=free_port(), web_port=web))
+    target = RerunTarget(mode="auto", grpc_port=free_port(), web_port=web)
+    rec, how = open_rerun(target)
     try:
+        assert how == describe_target(target), "emulate can print the same sentence"
         assert f"http://127.0.0.1:{web}/?url=rerun%2Bhttp" in how
         page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10).read()
         assert b"<html" in page.lower() or b"<!doctype" in page.lower()
