@@ -65,6 +65,10 @@ class AlignmentConfig:
         One-sigma node speed used to inflate sigmas when no velocity estimate is used.
     velocity_sigma_m_s : float [m/s]
         One-sigma error of a node velocity estimate used for motion compensation.
+    min_reports : int
+        An epoch is released before its deadline only with at least this many anchor reports
+        (3: fewer cannot give a 3D fix anyway): at start-up, before every anchor has been
+        seen, the first anchors alone must not complete an epoch.
     """
 
     epoch_period_ns: int = 100_000_000
@@ -73,6 +77,7 @@ class AlignmentConfig:
     max_state_extrapolation_ns: int = 500_000_000
     node_speed_sigma_m_s: float = 1.0
     velocity_sigma_m_s: float = 0.3
+    min_reports: int = 3
 
     def __post_init__(self) -> None:
         for name in ("epoch_period_ns", "deadline_ns"):
@@ -410,7 +415,8 @@ class EpochBook:
         """Remove and return the epochs that are ready, oldest first.
 
         Ready: every live anchor reported for it or its latest time passed the epoch end by
-        the clock tolerance; or the wall deadline since the first range passed. Epochs of a
+        the clock tolerance (and at least ``min_reports`` reports); or the wall deadline since
+        the first range passed. Epochs of a
         node are released in order (a later epoch never overtakes an earlier pending one).
         """
         cfg = self.config
@@ -422,7 +428,7 @@ class EpochBook:
                 continue
             end_ns = (pe.epoch + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
             done = now_wall_ns - pe.first_rx_wall_ns >= cfg.deadline_ns
-            if not done:
+            if not done and len(pe.ranges) >= cfg.min_reports:
                 done = all(
                     a in pe.ranges or self.latest_t_ns.get(a, -(2**62)) >= end_ns
                     for a in live_anchors

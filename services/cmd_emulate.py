@@ -61,6 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--channel", choices=["emulator", "ideal"], default="emulator",
                         help="emulator: O2I multipath + first arrival (default); ideal: the "
                         "D-NLS model's diffraction path with CRLB noise")
+    parser.add_argument("--delta-m", type=float, default=0.0, metavar="M",
+                        help="the fusion's model offset Delta [m] (default 0: Case-1)")
     parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes")
     parser.add_argument("--endpoint", metavar="ENDPOINT",
                         help="router endpoint (default tcp/127.0.0.1:<free port>)")
@@ -90,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
             dashboard=list(args.dashboard), log_dir=args.log_dir,
             progress=not args.no_progress, ready_timeout_s=args.ready_timeout,
             log_level=args.log_level,
+            delta_m=args.delta_m,
         )
         stop = Shutdown(log)
         emu = Emulation(opts, log, stop.event)

@@ -70,6 +70,7 @@ class EmulationOptions:
     progress: bool = True
     ready_timeout_s: float = 60.0
     log_level: str = "info"
+    delta_m: float = 0.0
 
     def check(self) -> None:
         if not self.duration_s > 0:
@@ -313,7 +314,8 @@ class Emulation:
                 subs = [session.declare_subscriber(k, self._on_data)
                         for k in (self.keys.estimates(), self.keys.fusion_diagnostics())]
                 self._spawn("fusion", ["fusion", "--site", o.site, "--connect", self.endpoint,
-                                       "--epoch-period-s", str(1.0 / o.rate_hz), *scen])
+                                       "--epoch-period-s", str(1.0 / o.rate_hz),
+                                       "--delta-m", str(o.delta_m), *scen])
                 for aid, off in zip(self.anchor_ids, offsets, strict=True):
                     self._spawn(f"anchor-{aid}", [
                         "anchor", "--id", aid, "--site", o.site, "--connect", self.endpoint,
@@ -400,9 +402,12 @@ class Emulation:
                 finish_wall = time.monotonic()
             if finish_wall is not None:
                 wm = self.diag.watermark_ns if self.diag else None
-                # wait for the last epochs: fusion watermark past the end, or a short grace
+                # wait for the last epochs: the fusion's watermark past the end with nothing
+                # pending; or, if the machine cannot keep up, until estimates stop coming
+                # (no estimate for 3 s after the end of the run)
+                last_est = recent[-1][0] if recent else finish_wall
                 if (wm is not None and wm >= end_ns - period_ns and self.diag.pending_epochs == 0) \
-                        or time.monotonic() - finish_wall > 2.0 + 2.0 / o.speed:
+                        or time.monotonic() - max(finish_wall, last_est) > 3.0:
                     break
             try:
                 item = self.q.get(timeout=0.05)

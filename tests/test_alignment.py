@@ -110,7 +110,8 @@ def test_epoch_ready_when_all_live_anchors_reported():
 
 
 def test_epoch_ready_when_missing_anchor_moved_on_or_deadline():
-    cfg = AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=5, deadline_ns=1000)
+    cfg = AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=5, deadline_ns=1000,
+                          min_reports=1)
     book = EpochBook(cfg)
     live = {"a", "b"}
     book.add("a", "n1", _entry(110, rx=0))
@@ -126,6 +127,21 @@ def test_epoch_ready_when_missing_anchor_moved_on_or_deadline():
     assert book.ready(live | {"c"}, 1049) == []
     assert book.next_deadline_wall_ns() == 1050
     assert [pe.node_id for pe in book.ready(live | {"c"}, 1050)] == ["n3"]
+
+
+def test_first_anchor_alone_does_not_complete_an_epoch_at_start_up():
+    """Before the other anchors are known, too few reports must not release the epoch early."""
+    book = EpochBook(AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=500))
+    book.add("a", "n1", _entry(110, rx=0))
+    book.add("b", "n1", _entry(120, rx=0))
+    # a and b are the anchors known so far (all "live"), but 2 reports < min_reports = 3
+    assert book.ready({"a", "b"}, 10) == []
+    book.add("c", "n1", _entry(130, rx=0))
+    assert [pe.epoch for pe in book.ready({"a", "b", "c"}, 10)] == [1]
+    # and the deadline always releases
+    book.add("a", "n3", _entry(110, rx=0))
+    assert book.ready({"a", "b", "c"}, 499) == []
+    assert [pe.node_id for pe in book.ready({"a", "b", "c"}, 500)] == ["n3"]
 
 
 def test_epochs_of_a_node_are_released_in_order_and_late_ranges_dropped():
