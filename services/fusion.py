@@ -69,7 +69,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     min_snr_db: float | None = None
     warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
     diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
-    queue_size: Annotated[int, Meta(ge=16)] = 65536
+    queue_size: Annotated[int, Meta(ge=16)] = 8192
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
 
     def check(self) -> None:
