@@ -13,7 +13,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -82,19 +81,18 @@ class ServiceProcesses:
         return codes
 
     def reap_all(self) -> None:
-        deadline = time.monotonic() + 10.0
-        for p in self.procs.values():
+        """Stop in reverse start order (the router, started first, goes last), each group
+        SIGTERM then SIGKILL after 5 s; then check that no group member survived."""
+        for p in reversed(list(self.procs.values())):
             if p.poll() is None:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGTERM)
-        for p in self.procs.values():
-            try:
-                p.wait(max(deadline - time.monotonic(), 0.1))
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
-        # nothing of ours is left in any of the groups
+                try:
+                    p.wait(5.0)
+                except subprocess.TimeoutExpired:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
         for p in self.procs.values():
             assert p.returncode is not None
             with contextlib.suppress(ProcessLookupError, PermissionError):
