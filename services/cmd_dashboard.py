@@ -56,7 +56,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="MODE",
         help="auto | spawn | serve | save PATH | off (default auto)",
     )
-    parser.add_argument("--scenario", metavar="FILE", help="scenario TOML: draws its building")
+    parser.add_argument(
+        "--scenario",
+        metavar="FILE",
+        help="scenario TOML, shipped name (paper, large) or 'default' (emulate's built-in): draws its building",
+    )
     parser.add_argument(
         "--grpc-port", type=int, default=9876, help="serve: gRPC port (default 9876, 0 = free)"
     )

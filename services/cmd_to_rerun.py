@@ -36,7 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "-o", "--out", metavar="OUT.rrd", help="output (default: FILE.rrd next to the input)"
     )
     parser.add_argument(
-        "--scenario", metavar="FILE", help="scenario TOML for the building (default: attached)"
+        "--scenario",
+        metavar="FILE",
+        help="scenario TOML, shipped name or 'default' for the building (default: the one attached)",
     )
     parser.add_argument(
         "--replayed",

@@ -1853,14 +1853,21 @@ def _kind_scanner(path: str | Path, kinds: set[str]):
 
 
 def building_from_scenario_file(path: str | Path) -> BuildingOutline:
-    """The building of a scenario TOML file (``diffpos.scenario``)."""
-    import tomllib
+    """The building of a scenario: a TOML file, a shipped name (``paper``, ``large``) or
+    ``default`` (the built-in scenario ``diffpos emulate`` runs without a file).
 
-    from diffpos.scenario import Scenario
+    Raises
+    ------
+    ValueError
+        (``ScenarioError``) naming the file and the problem.
+    """
+    if str(path) == "default":
+        from diffpos.scenario import default_scenario
 
-    with open(path, "rb") as f:
-        scen = Scenario.from_dict(tomllib.load(f))
-    return BuildingOutline.from_object(scen.building)
+        return BuildingOutline.from_object(default_scenario().building)
+    from diffpos_services.scenario_io import load_scenario
+
+    return BuildingOutline.from_object(load_scenario(path).building)
 
 
 def _building_from_attachments(attachments: Sequence[Any]) -> BuildingOutline | None:

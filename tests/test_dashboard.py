@@ -476,3 +476,24 @@ def test_to_rerun_time_window(run, tmp_path):
     assert len(want) == 21
     assert [t for t, _ in read_rrd(out)["/world/nodes/n01/estimate"]] == want
     assert cli.main(["to-rerun", str(mcap), "--start", "4", "--end", "2"]) == 2
+
+
+def test_building_from_scenario_names_files_and_default(tmp_path, capsys):
+    from diffpos_services import cli
+    from diffpos_services.scenario_io import load_scenario
+
+    from diffpos.scenario import default_scenario
+
+    assert d.building_from_scenario_file("default") == d.BuildingOutline.from_object(
+        default_scenario().building
+    )
+    large = d.building_from_scenario_file("large")
+    assert large == d.BuildingOutline.from_object(load_scenario("large").building)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[building]\nn_floors = -1\n")
+    with pytest.raises(ValueError, match=r"bad\.toml"):
+        d.building_from_scenario_file(bad)
+    mcap = tmp_path / "x.mcap"
+    mcap.write_bytes(b"")
+    assert cli.main(["to-rerun", str(mcap), "--scenario", str(tmp_path / "nope.toml")]) == 2
+    assert "nope.toml" in capsys.readouterr().err
