@@ -246,6 +246,23 @@ class AnchorEmulator:
         )
         self.last_bias_t_s: float | None = None
         self.seq = 0
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Import and exercise the channel code once (no random draws), so the first real
+        epoch is not late by the import time."""
+        t_s = np.zeros(1)
+        p = np.asarray(self.traj.position_m(t_s), float).reshape(1, 3)
+        n = np.asarray(self.nodes[0][1].position_m(t_s), float).reshape(1, 3)
+        if self.config.channel == "ideal":
+            from diffpos.geometry import window_edge_path
+
+            window_edge_path(p, n, window_height_m=self.scenario.building.window_height_m)
+        else:
+            from diffpos.channel import emulate_channel, first_arrival
+
+            ch = emulate_channel(p, n, building=self.scenario.building, radio=self.scenario.radio)
+            first_arrival(ch, radio=self.scenario.radio, rng=None)
 
     def true_time_ns(self, k: int, tb: TimeBase) -> int:
         """True (emulated) time of measurement ``k`` [ns]."""
@@ -414,6 +431,23 @@ def run_anchor(
         except M.DecodeError as exc:
             log_event(log, logging.WARNING, "bad run control ignored", detail=str(exc)[:200])
 
+    # lockstep runs: emulated time is released by RunClock messages
+    clock_cv = threading.Condition()
+    allowed_t = [-(2**62)]
+    dec_clock = M.decoder(M.RunClock)
+
+    def on_clock(sample: zenoh.Sample) -> None:
+        try:
+            rc = dec_clock(sample.payload.to_bytes())
+        except M.DecodeError as exc:
+            log_event(log, logging.WARNING, "bad run clock ignored", detail=str(exc)[:200])
+            return
+        with clock_cv:
+            # (a clock overtaking the run control is kept: same orchestrator, same run)
+            if (not control or rc.run_id == control[0].run_id) and rc.t_ns > allowed_t[0]:
+                allowed_t[0] = rc.t_ns
+                clock_cv.notify_all()
+
     epochs = 0
     bc = zenoh.CongestionControl.BLOCK
     enc = zenoh.Encoding.APPLICATION_JSON
@@ -423,6 +457,7 @@ def run_anchor(
         return 0
     with session:
         ctl_sub = session.declare_subscriber(keys.run_control(), on_control)
+        clock_sub = session.declare_subscriber(keys.run_clock(), on_clock)
         state_pub = session.declare_publisher(
             keys.anchor_state(config.anchor_id), encoding=enc, congestion_control=bc
         )
@@ -468,8 +503,10 @@ def run_anchor(
                 )
             else:
                 tb = TimeBase.free_running()
-            # first epoch not in the past
-            k = max(0, -(-(tb.now_ns() - tb.t0_ns - emu.phase_ns) // emu.period_ns))
+            lockstep = bool(control and control[0].lockstep and timebase is None)
+            # first epoch not in the past (lockstep: the first epoch of the run)
+            k = 0 if lockstep else max(
+                0, -(-(tb.now_ns() - tb.t0_ns - emu.phase_ns) // emu.period_ns))
             late = 0
             block: dict[int, tuple] = {}
             while not stop.is_set():
@@ -481,11 +518,18 @@ def run_anchor(
                               epochs=epochs)
                     stop.wait()
                     break
-                wait_s = (tb.wall_of(t_true) - time.time_ns()) * 1e-9
-                if wait_s > 0 and stop.wait(wait_s):  # pacing timer, not synchronisation
-                    break
-                if wait_s < -0.5 / config.rate_hz:
-                    late += 1
+                if lockstep:
+                    with clock_cv:
+                        while allowed_t[0] < t_true and not stop.is_set():
+                            clock_cv.wait(0.2)
+                    if stop.is_set():
+                        break
+                else:
+                    wait_s = (tb.wall_of(t_true) - time.time_ns()) * 1e-9
+                    if wait_s > 0 and stop.wait(wait_s):  # pacing timer, not synchronisation
+                        break
+                    if wait_s < -0.5 / config.rate_hz:
+                        late += 1
                 if k not in block:
                     ts_, (rr, ss, nn, dd) = emu.measure_block(k, emu.block_size(), tb)
                     block = {int(k + i): (rr[i], ss[i], nn[i], dd[i]) for i in range(ts_.size)}
@@ -509,6 +553,7 @@ def run_anchor(
         finally:
             token.undeclare()
             ctl_sub.undeclare()
+            clock_sub.undeclare()
             log_event(
                 log,
                 logging.INFO,

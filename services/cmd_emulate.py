@@ -24,6 +24,7 @@ examples:
   diffpos emulate                                  the paper's geometry, 20 s, real time
   diffpos emulate scenarios/large.toml --duration 30 --speed 2
   diffpos emulate --channel ideal --speed 5        model-matched ranges, 5x real time
+  diffpos emulate --speed 0 --duration 60          lockstep: as fast as the fusion keeps up
   diffpos emulate --dashboard serve --record run.mcap
   diffpos emulate --log-dir logs/ --json out.json  per-service logs and the summary as JSON
 
@@ -54,7 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, default=20.0, metavar="S",
                         help="emulated run length [s] (default 20)")
     parser.add_argument("--speed", type=float, default=1.0, metavar="X",
-                        help="emulated seconds per wall second (default 1 = real time)")
+                        help="emulated seconds per wall second (default 1 = real time); 0 = "
+                        "lockstep: as fast as the fusion keeps up")
     parser.add_argument("--site", default="demo", help="site name on the bus (default demo)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--rate-hz", type=float, default=10.0, help="anchor ranging rate [Hz]")

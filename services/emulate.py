@@ -75,8 +75,8 @@ class EmulationOptions:
     def check(self) -> None:
         if not self.duration_s > 0:
             raise ConfigError(f"--duration must be > 0 seconds, got {self.duration_s}")
-        if not 0 < self.speed <= 1000:
-            raise ConfigError(f"--speed must be in (0, 1000], got {self.speed}")
+        if not 0 <= self.speed <= 1000:
+            raise ConfigError(f"--speed must be in [0, 1000] (0 = lockstep), got {self.speed}")
         if not self.rate_hz > 0:
             raise ConfigError(f"--rate-hz must be > 0, got {self.rate_hz}")
         if self.channel not in ("emulator", "ideal"):
@@ -340,7 +340,8 @@ class Emulation:
                 period = round(1e9 / o.rate_hz)
                 wall_t0 = -(-(time.time_ns() + 300_000_000) // period) * period
                 rc = M.RunControl(run_id=self.run_id, t0_ns=wall_t0, wall_t0_ns=wall_t0,
-                                  speed=o.speed, duration_ns=round(o.duration_s * 1e9), seed=o.seed)
+                                  speed=o.speed or 1.0, duration_ns=round(o.duration_s * 1e9),
+                                  seed=o.seed, lockstep=o.speed == 0)
                 session.put(self.keys.run_control(), M.encode(rc),
                             encoding=zenoh.Encoding.APPLICATION_JSON,
                             congestion_control=zenoh.CongestionControl.BLOCK)
@@ -385,6 +386,33 @@ class Emulation:
         end_ns = tb.t0_ns + round(o.duration_s * 1e9)
         period_ns = round(1e9 / o.rate_hz)
         k_truth = 0
+        # lockstep (speed 0): release emulated time epoch by epoch, LOOKAHEAD epochs ahead of
+        # the oldest epoch whose estimates are not all in yet
+        lockstep = o.speed == 0
+        lookahead = 2
+        e0 = tb.t0_ns // period_ns
+        per_epoch: collections.Counter[int] = collections.Counter()
+        next_needed = 0
+        clock_k = -1
+        clock_wall = time.monotonic()
+        clock_pub = session.declare_publisher(self.keys.run_clock(), encoding=enc,
+                                              congestion_control=bc) if lockstep else None
+
+        def release(k: int) -> None:
+            nonlocal clock_k, clock_wall
+            clock_k = k
+            clock_wall = time.monotonic()
+            clock_pub.put(M.encode(M.RunClock(run_id=self.run_id,
+                                              t_ns=tb.t0_ns + (k + 1) * period_ns - 1)))
+
+        def emu_now(wall_ns: int | None = None) -> int:
+            if lockstep:
+                return tb.t0_ns + (clock_k + 1) * period_ns
+            return tb.now_ns(wall_ns)
+
+        if lockstep:
+            release(lookahead - 1)
+        last_est_wall = time.monotonic()
         recent: collections.deque[tuple[float, float | None]] = collections.deque()
         next_status = time.monotonic()
         finish_wall: float | None = None
@@ -393,21 +421,29 @@ class Emulation:
         while True:
             now_wall = time.time_ns()
             # truth, paced on the time base
-            while tb.t0_ns + k_truth * period_ns <= min(tb.now_ns(now_wall), end_ns - 1):
+            while tb.t0_ns + k_truth * period_ns <= min(emu_now(now_wall), end_ns - 1):
                 self._publish_truth(session, pubs, tb, k_truth)
                 k_truth += 1
             if self.stop.is_set():
                 break
-            if finish_wall is None and tb.now_ns(now_wall) >= end_ns:
+            if lockstep:
+                while per_epoch[next_needed] >= len(self.nodes):
+                    next_needed += 1
+                if next_needed + lookahead - 1 > clock_k:
+                    release(next_needed + lookahead - 1)
+                elif time.monotonic() - clock_wall > 2.0:
+                    # no progress (an estimate lost?): move on rather than deadlock
+                    next_needed += 1
+                    release(next_needed + lookahead - 1)
+            if finish_wall is None and emu_now(now_wall) >= end_ns:
                 finish_wall = time.monotonic()
             if finish_wall is not None:
                 wm = self.diag.watermark_ns if self.diag else None
                 # wait for the last epochs: the fusion's watermark past the end with nothing
                 # pending; or, if the machine cannot keep up, until estimates stop coming
                 # (no estimate for 3 s after the end of the run)
-                last_est = recent[-1][0] if recent else finish_wall
                 if (wm is not None and wm >= end_ns - period_ns and self.diag.pending_epochs == 0) \
-                        or time.monotonic() - max(finish_wall, last_est) > 3.0:
+                        or time.monotonic() - max(finish_wall, last_est_wall) > 3.0:
                     break
             try:
                 item = self.q.get(timeout=0.05)
@@ -419,7 +455,11 @@ class Emulation:
                     try:
                         if pk is not None and pk.kind == "estimate":
                             est = dec_est(item[2])
-                            recent.append((time.monotonic(), scorer.add(est)))
+                            last_est_wall = time.monotonic()
+                            per_epoch[est.epoch - e0] += 1
+                            recent.append((last_est_wall, scorer.add(est)))
+                            if not o.progress and len(recent) > 10_000:
+                                recent.popleft()
                         elif pk is not None and pk.kind == "diagnostics":
                             self.diag = dec_diag(item[2])
                     except M.DecodeError as exc:
@@ -441,7 +481,7 @@ class Emulation:
                 rate = len(recent) / 2.0
                 med = f"{np.median(errs):.2f} m" if errs else "-"
                 gated = self.diag.gated if self.diag else 0
-                el = max(min(tb.now_ns(), end_ns) - tb.t0_ns, 0) * 1e-9
+                el = max(min(emu_now(), end_ns) - tb.t0_ns, 0) * 1e-9
                 line = (f"t={el:5.1f}/{o.duration_s:.0f} s  fixes/s={rate:6.1f}  median err={med:>8}  "
                         f"gated={gated}  fixes={scorer.count}")
                 if tty:
@@ -452,6 +492,8 @@ class Emulation:
             print(file=sys.stderr)
         for p in pubs.values():
             p.undeclare()
+        if clock_pub is not None:
+            clock_pub.undeclare()
         out = scorer.summary()
         expected_epochs = int(o.duration_s * o.rate_hz)
         out.update(

@@ -15,6 +15,7 @@ key expression                              message (schemas/)     publisher -> 
 ``diffpos/<site>/truth/node/<node>``        ``truth.v1``           emulate -> recorder, UI (never fusion)
 ``diffpos/<site>/truth/anchor/<anchor>``    ``truth.v1``           emulate -> recorder, UI (never fusion)
 ``diffpos/<site>/run/control``              ``run_control.v1``     emulate -> anchors (start gate)
+``diffpos/<site>/run/clock``                ``run_clock.v1``       emulate -> anchors (lockstep runs)
 ``diffpos/<site>/alive/anchor/<anchor>``    liveliness token       anchor -> fusion, emulate
 ``diffpos/<site>/alive/fusion``             liveliness token       fusion -> emulate
 ``diffpos/<site>/alive/recorder``           liveliness token       recorder -> emulate
@@ -53,6 +54,7 @@ KeyKind = Literal[
     "truth_node",
     "truth_anchor",
     "run_control",
+    "run_clock",
     "alive_anchor",
     "alive_fusion",
     "alive_recorder",
@@ -137,6 +139,9 @@ class Keys:
     def run_control(self) -> str:
         return f"{self.root}/run/control"
 
+    def run_clock(self) -> str:
+        return f"{self.root}/run/clock"
+
     def alive_anchor(self, anchor_id: str) -> str:
         """Liveliness token of one anchor."""
         return f"{self.root}/alive/anchor/{anchor_id}"
@@ -209,6 +214,8 @@ def parse_key(key: str) -> ParsedKey | None:
             return ParsedKey("truth_anchor", site, anchor_id=a)
         case ["run", "control"]:
             return ParsedKey("run_control", site)
+        case ["run", "clock"]:
+            return ParsedKey("run_clock", site)
         case ["alive", "anchor", a]:
             return ParsedKey("alive_anchor", site, anchor_id=a)
         case ["alive", "fusion"]:

@@ -41,6 +41,7 @@ __all__ = [
     "PositionEstimate",
     "RangeBatch",
     "RangeMeasurement",
+    "RunClock",
     "RunControl",
     "decoder",
     "encode",
@@ -274,7 +275,9 @@ class GroundTruth(_Msg, tag="diffpos.truth.v1"):
 class RunControl(_Msg, tag="diffpos.run_control.v1"):
     """Time base of an emulated run, published by the orchestrator to start the anchors.
 
-    Emulated time ``t = t0_ns + speed * (time.time_ns() - wall_t0_ns)``.
+    Emulated time ``t = t0_ns + speed * (time.time_ns() - wall_t0_ns)``; with ``lockstep``
+    it is instead released step by step by :class:`RunClock` messages (as fast as the fusion
+    keeps up).
     """
 
     run_id: str
@@ -283,6 +286,16 @@ class RunControl(_Msg, tag="diffpos.run_control.v1"):
     speed: Annotated[float, Meta(gt=0, description="Emulated seconds per wall second.")]
     duration_ns: Annotated[int, Meta(ge=0, description="Emulated run length, 0 = unlimited [ns].")]
     seed: Annotated[int, Meta(ge=0)]
+    lockstep: Annotated[
+        bool, Meta(description="Emulated time advances only with RunClock messages.")
+    ] = False
+
+
+class RunClock(_Msg, tag="diffpos.run_clock.v1"):
+    """Lockstep emulation: anchors may measure up to emulated time ``t_ns`` (inclusive)."""
+
+    run_id: str
+    t_ns: TimeNs
 
 
 #: message struct -> schema file stem
@@ -294,6 +307,7 @@ MESSAGE_TYPES: dict[type[msgspec.Struct], str] = {
     FusionDiagnostics: "fusion_diagnostics.v1",
     GroundTruth: "truth.v1",
     RunControl: "run_control.v1",
+    RunClock: "run_clock.v1",
 }
 
 _ENCODER = msgspec.json.Encoder()

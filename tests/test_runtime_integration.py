@@ -218,13 +218,15 @@ def test_killed_anchor_is_marked_lost_and_fixes_continue(services, endpoint):
 
 
 def test_emulate_one_command_runs_scores_and_cleans_up(services, tmp_path):
-    """`diffpos emulate`: all services as processes, summary JSON, recording, no leftovers."""
+    """`diffpos emulate` (lockstep): all services as processes, summary JSON, recording, no
+    leftover processes."""
     import json
     from pathlib import Path
 
     summary_path = tmp_path / "summary.json"
     mcap = tmp_path / "run.mcap"
-    p = services.start("emulate", "emulate", "paper", "--duration", "3", "--speed", "3",
+    # --speed 0: lockstep, emulated time released epoch by epoch as the estimates come in
+    p = services.start("emulate", "emulate", "paper", "--duration", "3", "--speed", "0",
                        "--channel", "ideal", "--record", str(mcap), "--dashboard", "off",
                        "--json", str(summary_path), "--no-progress",
                        "--log-dir", str(tmp_path / "logs"))

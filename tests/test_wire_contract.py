@@ -123,8 +123,11 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
         M.RunControl: [
             M.RunControl(
                 run_id="r1", t0_ns=0, wall_t0_ns=5, speed=4.0, duration_ns=10**10, seed=1
-            )
+            ),
+            M.RunControl(run_id="r2", t0_ns=0, wall_t0_ns=5, speed=1.0, duration_ns=0, seed=0,
+                         lockstep=True),
         ],
+        M.RunClock: [M.RunClock(run_id="r2", t_ns=299_999_999)],
     }
 
 
@@ -222,6 +225,7 @@ def test_keys_roundtrip_and_patterns():
         k.truth_node("n01"): ("truth_node", None, "n01"),
         k.truth_anchor("uav2"): ("truth_anchor", "uav2", None),
         k.run_control(): ("run_control", None, None),
+        k.run_clock(): ("run_clock", None, None),
         k.alive_anchor("uav2"): ("alive_anchor", "uav2", None),
         k.alive_fusion(): ("alive_fusion", None, None),
         k.alive_recorder(): ("alive_recorder", None, None),
