@@ -536,8 +536,10 @@ def run_anchor(
                 state, ranges = emu.messages(t_true, tb, block.pop(k))
                 state_pub.put(M.encode(state))
                 if batch_pub is not None:
+                    # one sequence per anchor over states and batches: state n, batch n + 1
+                    emu.seq = state.seq + 1
                     batch_pub.put(M.encode(M.RangeBatch(
-                        anchor_id=config.anchor_id, t_ns=state.t_ns, seq=state.seq,
+                        anchor_id=config.anchor_id, t_ns=state.t_ns, seq=emu.seq,
                         node_ids=[nid for nid, _ in ranges],
                         range_m=[m.range_m for _, m in ranges],
                         sigma_m=[m.sigma_m for _, m in ranges],
