@@ -588,7 +588,7 @@ def run(args: argparse.Namespace) -> int:
             highlight=False,
         )
         return 2
-    console.print("wrote " + ", ".join(str(p) for p in written), highlight=False)
+    console.print("wrote " + ", ".join(str(p) for p in written), highlight=False, soft_wrap=True)
     return 0
 
 

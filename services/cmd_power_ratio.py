@@ -362,7 +362,7 @@ def _report(sweep: Sweep, args: argparse.Namespace, csv_path: Path, png_path: Pa
         f"'LoS from': the node sees the anchor directly through the window (the dip is the "
         f"lower edge's shadow boundary)."
     )
-    console.print(f"wrote {csv_path} and {png_path}")
+    console.print(f"wrote {csv_path} and {png_path}", highlight=False, soft_wrap=True)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -424,7 +424,7 @@ def _print_report(summary: dict[str, Any], files: list[Path]) -> None:
                                 for k in ("median", "p80", "p95")))
     con.print(t)
     con.print(f"run time {summary['timing_s']['total_s']:.1f} s; wrote "
-              + ", ".join(str(f) for f in files))
+              + ", ".join(str(f) for f in files), highlight=False, soft_wrap=True)
 
 
 def run(args: argparse.Namespace) -> int:
