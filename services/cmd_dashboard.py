@@ -170,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
             )
             log_event(log, logging.INFO, "dashboard subscribed", site=args.site)
             svc.run(stop.event)
-        rec.disconnect()
+        if rec.is_enabled():
+            rec.disconnect()
         return 0
 
     return run_main(body, log)
@@ -190,6 +191,8 @@ def _demo(rec, building, target) -> int:
         estimates=kinds["PositionEstimate"],
         diagnostics=kinds["FusionDiagnostics"],
     )
+    if not rec.is_enabled():
+        return 0
     rec.flush()
     if target.mode == "serve" or (target.mode == "auto" and not _display()):
         print("demo data sent; keep this process running to view it, Ctrl-C to stop", flush=True)

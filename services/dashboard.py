@@ -1478,7 +1478,7 @@ class Dashboard:
             "diagnostics": 0,
             "events": 0,
         }
-        if building is not None:
+        if building is not None and rec.is_enabled():
             log_building(rec, building)
 
     def _trim(self, cols, t_now: int):
@@ -1494,7 +1494,16 @@ class Dashboard:
         diagnostics: Sequence[Any] = (),
         events: EventColumns | None = None,
     ) -> None:
-        """Log one batch of decoded messages (any of them may be empty)."""
+        """Log one batch of decoded messages (any of them may be empty).
+
+        With a disabled recording stream (``--rerun off``) messages are only counted.
+        """
+        if not self.rec.is_enabled():
+            self.counts["anchor_states"] += len(anchor_states)
+            self.counts["truth"] += len(truth)
+            self.counts["estimates"] += len(estimates)
+            self.counts["diagnostics"] += len(diagnostics)
+            return
         if anchor_states:
             new = anchor_columns_from_messages(anchor_states)
             log_anchors(self.rec, new, history=self._anchors, trail_s=self.trail_s)

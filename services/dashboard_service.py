@@ -142,6 +142,10 @@ def open_rerun(
     Never spawns a viewer without a display (``auto`` falls back to ``serve``; an explicit
     ``spawn`` without a display raises ``RuntimeError`` with what to do instead).
     """
+    if target.mode == "off":  # a disabled stream: every log call is a cheap no-op
+        return rr.RecordingStream(APP_ID, recording_id=recording_id, default_enabled=False), (
+            "Rerun output off"
+        )
     rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
     bp = default_blueprint()
     mode = target.mode
@@ -172,9 +176,7 @@ def open_rerun(
         path.parent.mkdir(parents=True, exist_ok=True)
         rec.save(str(path), default_blueprint=bp)
         return rec, f"Rerun recording saved to {path} (open it with `rerun {path}`)"
-    # off: a disabled stream, every log call is a cheap no-op
-    rec = rr.RecordingStream(APP_ID, recording_id=recording_id, default_enabled=False)
-    return rec, "Rerun output off"
+    raise AssertionError(f"unhandled rerun mode {mode!r}")  # pragma: no cover
 
 
 @dataclass
@@ -318,7 +320,8 @@ class DashboardService:
                 pass
         self._subs.clear()
         self.drain(final=True)
-        self.rec.flush()
+        if self.rec.is_enabled():
+            self.rec.flush()
 
     # -- drain side ----------------------------------------------------------------------
     def drain(self, *, final: bool = False) -> int:

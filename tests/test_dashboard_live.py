@@ -100,7 +100,7 @@ def test_live_service_draws_what_fusion_published(sessions, tmp_path):
     rec, how = open_rerun(RerunTarget(mode="save", path=str(path)), recording_id="live1")
     assert str(path) in how
     svc = CountingService(sub_s, rec, site=site, building=building, drain_period_s=0.05)
-    svc.expected = len(msgs)
+    svc.expected = len(msgs) + 1
     svc.expected_live = 2
     svc.start()
     keys = [d.key_of(x, site=site) for x in msgs]
@@ -108,11 +108,12 @@ def test_live_service_draws_what_fusion_published(sessions, tmp_path):
     token = pub_s.liveliness().declare_token(f"diffpos/{site}/alive/anchor/uav1")
     for key, x in zip(keys, msgs, strict=True):
         pubs[key].put(m.encode(x))
+    pubs[keys[-1]].put(b'{"schema": "diffpos.estimate.v1", "node_id": 7}')  # garbage
     token.undeclare()
     assert svc.done.wait(TIMEOUT_S), (svc.stats, svc.n_live)
     svc.close()
     rec.disconnect()
-    assert svc.stats.dropped == 0 and svc.stats.undecodable == 0
+    assert svc.stats.dropped == 0 and svc.stats.undecodable == 1
     assert svc.stats.drawn == len(msgs)
 
     rows = d.rrd_rows(path)
