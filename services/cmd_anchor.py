@@ -20,6 +20,8 @@ examples:
   diffpos anchor --id uav1 --scenario scenarios/paper.toml
   diffpos anchor --id uav2 --scenario scenarios/paper.toml --clock-offset-ms 1.5
   diffpos anchor --id uav1 --channel ideal     upper-edge diffraction path only (benchmarks)
+  diffpos anchor --id uav1 --zenoh-config security/zenoh/anchor-uav1.json5
+                                               TLS + its own user/password (security/README.md)
 
 Stop with Ctrl-C or SIGTERM: the liveliness token is withdrawn and the session closed.
 """
@@ -29,14 +31,13 @@ from __future__ import annotations
 import argparse
 
 from .servicekit import (
-    ConfigError,
     Shutdown,
     add_logging_arguments,
     build_config,
     run_main,
     setup_logging,
 )
-from .zenoh_config import add_zenoh_arguments, settings_from_args
+from .zenoh_config import add_zenoh_arguments, service_settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -127,10 +128,7 @@ def run(args: argparse.Namespace) -> int:
         from .anchor import load_scenario_file, run_anchor
 
         cfg = config_from_args(args)
-        try:
-            zs = settings_from_args(args)
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+        zs = service_settings(args, log)
         scenario = load_scenario_file(cfg.scenario)
         stop = Shutdown(log)
         run_anchor(cfg, zs, stop.event, scenario=scenario, logger=log)

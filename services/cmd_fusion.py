@@ -19,6 +19,7 @@ never as a wrong fix. Anchors' clocks are assumed to agree within --clock-tolera
 examples:
   diffpos fusion --scenario scenarios/paper.toml
   diffpos fusion --window-height-m 1.5 --epoch-period-s 0.2 --connect tcp/router:7447
+  diffpos fusion --zenoh-config security/zenoh/fusion.json5   TLS + user/password + ACL
 
 Stop with Ctrl-C or SIGTERM: pending epochs are solved and published before the session closes.
 """
@@ -28,14 +29,13 @@ from __future__ import annotations
 import argparse
 
 from .servicekit import (
-    ConfigError,
     Shutdown,
     add_logging_arguments,
     build_config,
     run_main,
     setup_logging,
 )
-from .zenoh_config import add_zenoh_arguments, settings_from_args
+from .zenoh_config import add_zenoh_arguments, service_settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -114,10 +114,7 @@ def run(args: argparse.Namespace) -> int:
 
         scenario = load_scenario_file(args.scenario)
         cfg = config_from_args(args, scenario)
-        try:
-            zs = settings_from_args(args)
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+        zs = service_settings(args, log)
         stop = Shutdown(log)
         run_fusion(cfg, zs, stop.event, logger=log)
         return 0

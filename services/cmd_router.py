@@ -11,7 +11,11 @@ connections (clients started earlier simply wait for it, --connect-timeout-ms -1
 examples:
   diffpos router                                   listen on tcp/127.0.0.1:7447
   diffpos router --listen tcp/0.0.0.0:7447         accept connections from other hosts
+                                                   (plain, unauthenticated: logged as an ERROR)
   diffpos anchor --connect tcp/127.0.0.1:7447 ...  (in another terminal)
+  diffpos router --zenoh-config security/zenoh/router.json5
+                                                   TLS + user/password + access control
+                                                   (see security/README.md)
 
 Stop with Ctrl-C or SIGTERM (the session is closed cleanly).
 """
@@ -22,7 +26,7 @@ import argparse
 import logging
 
 from .servicekit import Shutdown, add_logging_arguments, log_event, run_main, setup_logging
-from .zenoh_config import add_zenoh_arguments, settings_from_args
+from .zenoh_config import add_zenoh_arguments, open_session, service_settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,16 +38,20 @@ def run(args: argparse.Namespace) -> int:
     log = setup_logging("router", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:
-        try:
-            settings = settings_from_args(args)
-        except ValueError as exc:
-            from .servicekit import ConfigError
-
-            raise ConfigError(str(exc)) from None
         import zenoh
 
+        settings = service_settings(args, log)
         stop = Shutdown(log)
-        with zenoh.open(settings.to_config()) as session:
+        try:
+            session = open_session(settings, stop.event, logger=log)
+        except zenoh.ZError as exc:
+            from .servicekit import ConfigError
+
+            raise ConfigError(
+                f"the router cannot listen on {', '.join(settings.listen)}: "
+                f"{str(exc).split(' at ')[0]} (port in use? certificate files readable?)"
+            ) from None
+        with session:
             log_event(log, logging.INFO, "router ready", listen=list(settings.listen), zid=str(session.zid()))
             stop.wait()
         log_event(log, logging.INFO, "router stopped")

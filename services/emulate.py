@@ -38,7 +38,7 @@ from . import messages as M
 from .anchor import TimeBase, emulation_nodes
 from .keys import Keys, parse_key
 from .servicekit import ConfigError, log_event
-from .zenoh_config import ZenohSettings, open_session
+from .zenoh_config import ZenohSettings, open_session, with_zenoh_config
 
 __all__ = ["EXTRA_SERVICES", "Emulation", "EmulationOptions", "Scorer", "free_tcp_port"]
 
@@ -301,7 +301,7 @@ class Emulation:
         rng = np.random.default_rng(o.seed)
         offsets = rng.uniform(-o.clock_offset_max_ms, o.clock_offset_max_ms, len(self.anchor_ids))
         scen = ["--scenario", o.scenario] if o.scenario else []
-        zs = ZenohSettings(connect=(self.endpoint,))
+        zs = with_zenoh_config(ZenohSettings(connect=(self.endpoint,)), logger=self.log)
         summary: dict[str, Any] = {}
         try:
             self._spawn("router", ["router", "--listen", self.endpoint])

@@ -202,19 +202,43 @@ def run_main(fn: Callable[[], int], logger: logging.Logger) -> int:
 
 
 # ----------------------------------------------------------------------------- health check
-def health_check(connect: list[str], liveliness_key: str, *, timeout_s: float = 3.0) -> bool:
+def health_check(
+    connect: list[str] | None,
+    liveliness_key: str,
+    *,
+    timeout_s: float = 3.0,
+    zenoh_config: str | None = None,
+) -> bool:
     """True if a liveliness token matching ``liveliness_key`` is alive on the bus.
 
     Used by container healthchecks: ``python -m diffpos_services.servicekit health --connect
-    tcp/router:7447 --liveliness diffpos/demo/alive/fusion`` exits 0 when healthy.
+    tcp/router:7447 --liveliness diffpos/demo/alive/fusion`` exits 0 when healthy; on a
+    secured bus ``--zenoh-config /security/zenoh/<user>.json5`` instead of ``--connect``
+    (the check logs in with that identity; the file's ``connect/timeout_ms`` is replaced
+    by ``timeout_s``).
+
+    Raises
+    ------
+    ConfigError
+        ``zenoh_config`` is missing, rejected by zenoh or names a missing certificate.
     """
     import zenoh
 
     from .zenoh_config import ZenohSettings
 
-    settings = ZenohSettings(connect=tuple(connect), connect_timeout_ms=round(timeout_s * 1000))
+    if zenoh_config is not None:
+        from .zenoh_security import SecurityError, session_config
+
+        try:
+            cfg, _ = session_config(zenoh_config, connect=connect or None)
+        except SecurityError as exc:
+            raise ConfigError(str(exc)) from None
+        cfg.insert_json5("connect/timeout_ms", json.dumps(round(timeout_s * 1000)))
+    else:
+        cfg = ZenohSettings(connect=tuple(connect or ()),
+                            connect_timeout_ms=round(timeout_s * 1000)).to_config()
     try:
-        with zenoh.open(settings.to_config()) as session:
+        with zenoh.open(cfg) as session:
             replies = session.liveliness().get(liveliness_key, timeout=timeout_s)
             for reply in replies:
                 if reply.ok is not None:
@@ -231,11 +255,21 @@ def _main(argv: list[str] | None = None) -> int:
     )
     sub = parser.add_subparsers(dest="cmd", required=True)
     h = sub.add_parser("health", help="exit 0 if the liveliness token KEY is alive")
-    h.add_argument("--connect", action="append", required=True, metavar="ENDPOINT")
+    where = h.add_mutually_exclusive_group(required=True)
+    where.add_argument("--connect", action="append", metavar="ENDPOINT",
+                       help="plain router endpoint (repeatable), e.g. tcp/router:7447")
+    where.add_argument("--zenoh-config", metavar="FILE",
+                       help="zenoh json5 file of the service's identity (secured bus), e.g. "
+                       "/security/zenoh/fusion.json5")
     h.add_argument("--liveliness", required=True, metavar="KEY")
     h.add_argument("--timeout", type=float, default=3.0, metavar="S")
     args = parser.parse_args(argv)
-    ok = health_check(args.connect, args.liveliness, timeout_s=args.timeout)
+    try:
+        ok = health_check(args.connect, args.liveliness, timeout_s=args.timeout,
+                          zenoh_config=args.zenoh_config)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print("healthy" if ok else "unhealthy")
     return 0 if ok else 1
 
