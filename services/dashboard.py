@@ -1760,7 +1760,7 @@ def synthetic_run(
                     anchor_id=aid,
                     t_ns=t,
                     seq=i,
-                    position_m=vec3(a_pos[i, j]),
+                    position_m=_vec3(a_pos[i, j]),
                     velocity_m_s=(0.0, 0.0, 0.0),
                     position_sigma_m=(0.1, 0.1, 0.2),
                     velocity_sigma_m_s=0.05,
@@ -1775,7 +1775,7 @@ def synthetic_run(
                     entity="node",
                     id=nid,
                     t_ns=t,
-                    position_m=vec3(n_pos[i, k]),
+                    position_m=_vec3(n_pos[i, k]),
                     velocity_m_s=(0.0, 0.0, 0.0),
                     floor_index=int(floors[k]),
                 )
@@ -1795,8 +1795,8 @@ def synthetic_run(
                     epoch=i,
                     seq=i,
                     status="NOT_IDENTIFIABLE" if unident else "OK",
-                    position_m=None if unident else vec3(e_pos[i, k]),
-                    covariance_m2=None if unident else tuple(vec3(r) for r in cov[i, k]),
+                    position_m=None if unident else _vec3(e_pos[i, k]),
+                    covariance_m2=None if unident else tuple(_vec3(r) for r in cov[i, k]),
                     peb_m=None if unident else float(peb[i, k]),
                     z_bound_m=None if unident else float(np.sqrt(cov[i, k, 2, 2])),
                     floor_index=None if unident else int(e_floor[i, k]),
@@ -1829,7 +1829,8 @@ def synthetic_run(
     return b, out
 
 
-def vec3(v: ArrayLike) -> tuple[float, float, float]:
+def _vec3(v: ArrayLike) -> tuple[float, float, float]:
+    """A plain (x, y, z) float tuple of a 3-vector (message fields)."""
     x, y, z = (float(c) for c in np.asarray(v).reshape(3))
     return (x, y, z)
 
