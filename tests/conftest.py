@@ -58,9 +58,10 @@ class ServiceProcesses:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(self.procs[name].pid, sig)
 
-    def check_running(self) -> None:
+    def check_running(self, ignore=()) -> None:
+        """Raise (with its log) if a process other than those in ``ignore`` has exited."""
         for name, p in self.procs.items():
-            if p.poll() is not None:
+            if name not in ignore and p.poll() is not None:
                 raise AssertionError(f"{name} exited early ({p.returncode}):\n{self.log(name)[-3000:]}")
 
     def stop(self, names: list[str] | None = None, timeout_s: float = 10.0) -> dict[str, int]:
