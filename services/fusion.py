@@ -39,7 +39,7 @@ from diffpos.alignment import (
 
 from . import messages as M
 from .keys import Keys, parse_key
-from .servicekit import LogOnce, log_event
+from .servicekit import log_event
 from .zenoh_config import ZenohSettings, open_session
 
 __all__ = ["FusionConfig", "FusionCore", "run_fusion"]
@@ -71,6 +71,22 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
     queue_size: Annotated[int, Meta(ge=16)] = 8192
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
+    # ---- what is accepted (docs/bad_input.md)
+    anchors: tuple[str, ...] | None = None
+    """Allow-list of anchor ids (``None``: any anchor with a valid id)."""
+    nodes: tuple[str, ...] | None = None
+    """Allow-list of node ids (``None``: any node with a valid id)."""
+    max_anchors: Annotated[int, Meta(ge=1, le=100_000)] = 256
+    max_nodes: Annotated[int, Meta(ge=1, le=10_000_000)] = 100_000
+    max_message_bytes: Annotated[int, Meta(ge=1024)] = 4 * 1024 * 1024
+    max_range_m: Annotated[float, Meta(gt=0)] = 10_000.0
+    min_sigma_m: Annotated[float, Meta(ge=0)] = 1e-4
+    max_sigma_m: Annotated[float, Meta(gt=0)] = 1_000.0
+    max_coordinate_m: Annotated[float, Meta(gt=0)] = 100_000.0
+    max_speed_m_s: Annotated[float, Meta(gt=0)] = 1_000.0
+    max_future_s: Annotated[float, Meta(gt=0, le=3600)] = 1.0
+    max_past_s: Annotated[float, Meta(gt=0, le=86_400)] = 30.0
+    time_resync_after: Annotated[int, Meta(ge=1, le=10_000)] = 20
 
     def check(self) -> None:
         from .keys import check_id
@@ -78,6 +94,12 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
         check_id(self.site, field="site")
         if self.edge_x_m is not None and self.edge_x_m[0] == self.edge_x_m[1]:
             raise ValueError("edge_x_m: the two x limits must differ")
+        for name in ("anchors", "nodes"):
+            for i, v in enumerate(getattr(self, name) or ()):
+                check_id(v, field=f"{name}[{i}]")
+        if self.min_sigma_m >= self.max_sigma_m:
+            raise ValueError(f"min_sigma_m={self.min_sigma_m} must be < max_sigma_m="
+                             f"{self.max_sigma_m} [m]")
 
     def alignment(self) -> AlignmentConfig:
         return AlignmentConfig(
@@ -91,7 +113,8 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
 
 
 class _Anchor:
-    __slots__ = ("alive", "history", "id", "last_t_ns", "lost_wall_ns", "ranges", "states", "token")
+    __slots__ = ("alive", "history", "id", "last_rx_wall_ns", "last_t_ns", "lost_wall_ns",
+                 "ranges", "resync", "seqs", "states", "token")
 
     def __init__(self, anchor_id: str, max_extrapolation_ns: int) -> None:
         self.id = anchor_id
@@ -101,7 +124,59 @@ class _Anchor:
         self.lost_wall_ns: int | None = None
         self.states = 0
         self.ranges = 0
-        self.last_t_ns: int | None = None
+        self.last_t_ns: int | None = None  # newest accepted measurement time [ns]
+        self.last_rx_wall_ns = 0  # ingestion wall time of the last accepted message [ns]
+        # recent sequence numbers per key kind ("state", "ranges", "range/<node>")
+        self.seqs: dict[str, collections.deque[int]] = {}
+        # (count, last t_ns) of consecutive time rejections (clock jump detection)
+        self.resync: tuple[int, int] = (0, 0)
+
+    def reset_stream(self) -> None:
+        """Forget sequence numbers and the clock reference (the anchor restarted)."""
+        self.seqs.clear()
+        self.last_t_ns = None
+        self.resync = (0, 0)
+
+
+class _RejectLog:
+    """Log each rejection reason once per source (an anchor, or the bus for bad keys).
+
+    ``seen[(key, reason)]`` counts every rejection per key (bounded number of keys); only
+    the first rejection of each ``(source, reason)`` is logged, so a flood of bad messages
+    gives a handful of log lines (their counts are in the diagnostics).
+    """
+
+    def __init__(self, logger: logging.Logger, *, max_keys: int = 10_000,
+                 max_logged: int = 1_000) -> None:
+        self.logger = logger
+        self.max_keys = max_keys
+        self.max_logged = max_logged
+        self.seen: dict[tuple[str, str], int] = {}
+        self.logged: set[tuple[str, str]] = set()
+        self.suppressed = False
+
+    def __call__(self, key: str, reason: str, detail: str = "", *, source: str = "bus",
+                 level: int = logging.WARNING) -> None:
+        k = (key, reason)
+        n = self.seen.get(k)
+        if n is not None:
+            self.seen[k] = n + 1
+        elif len(self.seen) < self.max_keys:
+            self.seen[k] = 1
+        s = (source, reason)
+        if s in self.logged:
+            return
+        if len(self.logged) >= self.max_logged:
+            if not self.suppressed:
+                self.suppressed = True
+                log_event(self.logger, logging.WARNING, "too many distinct rejection sources: "
+                          "further ones are only counted in the diagnostics",
+                          limit=self.max_logged)
+            return
+        self.logged.add(s)
+        log_event(self.logger, level, f"rejected {reason} from {source} (logged once; "
+                  "counted in diagnostics.rejected)", key=key[:200], reason=reason,
+                  source=source, detail=detail[:300])
 
 
 class _Track:
@@ -144,7 +219,15 @@ class FusionCore:
         self.anchors: dict[str, _Anchor] = {}
         self.tracks: dict[str, _Track] = collections.defaultdict(_Track)
         self.log = logger or logging.getLogger("diffpos.fusion")
-        self.log_once = LogOnce(self.log)
+        self.log_once = _RejectLog(self.log)
+        self._allowed_anchors = None if config.anchors is None else frozenset(config.anchors)
+        self._allowed_nodes = None if config.nodes is None else frozenset(config.nodes)
+        self._nodes: set[str] = set()
+        self._max_future_ns = round(config.max_future_s * 1e9)
+        self._max_past_ns = round(config.max_past_s * 1e9)
+        self._tref: int | None = None
+        self._tref_dirty = True
+        self._tref_wall_ns = 0
         self.gating = (
             GatingConfig(false_alarm_probability=config.false_alarm_probability)
             if config.gating
@@ -164,9 +247,10 @@ class FusionCore:
         self.changed = False  # liveliness changed since the last diagnostics
 
     # ------------------------------------------------------------------ ingestion
-    def _reject(self, key: str, reason: str, detail: str = "") -> None:
-        self.rejected[reason] += 1
-        self.log_once(key, reason, detail)
+    def _reject(self, key: str, reason: str, detail: str = "", *, source: str = "bus",
+                count: int = 1) -> None:
+        self.rejected[reason] += count
+        self.log_once(key, reason, detail, source=source)
 
     def _anchor(self, anchor_id: str) -> _Anchor:
         a = self.anchors.get(anchor_id)
@@ -175,8 +259,101 @@ class FusionCore:
             log_event(self.log, logging.INFO, "anchor seen", anchor=anchor_id)
         return a
 
+    def _anchor_refused(self, anchor_id: str) -> str | None:
+        """Reason why data of this anchor is not accepted at all (or None)."""
+        if self._allowed_anchors is not None and anchor_id not in self._allowed_anchors:
+            return "unknown_anchor"
+        if anchor_id not in self.anchors and len(self.anchors) >= self.config.max_anchors:
+            return "too_many_anchors"
+        return None
+
+    def _node_refused(self, node_id: str) -> str | None:
+        if self._allowed_nodes is not None and node_id not in self._allowed_nodes:
+            return "unknown_node"
+        if node_id not in self._nodes:
+            if len(self._nodes) >= self.config.max_nodes:
+                return "too_many_nodes"
+            self._nodes.add(node_id)
+        return None
+
+    def _time_reference(self, now_wall_ns: int) -> int | None:
+        """Consensus measurement time: the lower median of the newest accepted times of the
+        anchors that delivered within the last 2 s (wall), if at least 3 did; else None."""
+        if self._tref_dirty or now_wall_ns - self._tref_wall_ns > 100_000_000:
+            fresh = sorted(
+                a.last_t_ns for a in self.anchors.values()
+                if a.alive and a.last_t_ns is not None
+                and now_wall_ns - a.last_rx_wall_ns <= 2_000_000_000
+            )
+            self._tref = fresh[(len(fresh) - 1) // 2] if len(fresh) >= 3 else None
+            self._tref_dirty = False
+            self._tref_wall_ns = now_wall_ns
+        return self._tref
+
+    def _check_time(self, anchor: _Anchor | None, t_ns: int, now_wall_ns: int) -> str | None:
+        """``time_future``/``time_past`` if ``t_ns`` is implausible, else None.
+
+        Against the consensus of >= 3 fresh anchors (future: ``max_future_s``, past:
+        ``max_past_s``); without a consensus, against the anchor's own newest time (a jump
+        beyond ``max_past_s`` either way). ``time_resync_after`` consecutive rejections that
+        progress consistently mean the anchor's clock really jumped (a new run, a clock
+        fix): the anchor is re-synchronised and the message accepted.
+        """
+        ref = self._time_reference(now_wall_ns)
+        if ref is not None:
+            lo, hi = ref - self._max_past_ns, ref + self._max_future_ns
+        elif anchor is not None and anchor.last_t_ns is not None:
+            lo, hi = anchor.last_t_ns - self._max_past_ns, anchor.last_t_ns + self._max_past_ns
+        else:
+            return None
+        if lo <= t_ns <= hi:
+            if anchor is not None and anchor.resync[0]:
+                anchor.resync = (0, 0)
+            return None
+        reason = "time_future" if t_ns > hi else "time_past"
+        if anchor is not None:
+            n, t_prev = anchor.resync
+            consistent = n == 0 or 0 <= t_ns - t_prev <= self._max_future_ns
+            n = n + 1 if consistent else 1
+            if n >= self.config.time_resync_after:
+                anchor.reset_stream()
+                self._tref_dirty = True
+                log_event(self.log, logging.WARNING, "anchor clock jumped: re-synchronised",
+                          anchor=anchor.id, t_ns=t_ns, reference_ns=ref)
+                return None
+            anchor.resync = (n, t_ns)
+        return reason
+
+    def _check_seq(self, anchor: _Anchor | None, stream: str, seq: int) -> bool:
+        """True if ``seq`` was already accepted on this stream (one of its last 16)."""
+        if anchor is None:
+            return False
+        recent = anchor.seqs.get(stream)
+        return recent is not None and seq in recent
+
+    @staticmethod
+    def _note_seq(anchor: _Anchor, stream: str, seq: int) -> None:
+        recent = anchor.seqs.get(stream)
+        if recent is None:
+            recent = anchor.seqs[stream] = collections.deque(maxlen=16)
+        recent.append(seq)
+
+    def on_oversized(self, key: str, size: int) -> None:
+        """Count a sample dropped for its size before it was even copied (see run_fusion)."""
+        pk = parse_key(key)
+        self.received[pk.kind if pk is not None else "other"] += 1
+        src = f"anchor {pk.anchor_id}" if pk is not None and pk.anchor_id else "bus"
+        self._reject(key, "oversized", f"{size} bytes > max_message_bytes="
+                     f"{self.config.max_message_bytes}", source=src)
+
     def on_sample(self, key: str, payload: bytes, rx_wall_ns: int) -> None:
-        """Ingest one data sample (never raises on bad input: counts and logs once)."""
+        """Ingest one data sample.
+
+        Never raises on bad input: a rejected message is counted in
+        ``diagnostics().rejected[reason]`` and logged once per anchor and reason (the reasons
+        are listed in docs/bad_input.md). A message is accepted or rejected as a whole, except
+        the entries of a RangeBatch, which are checked one by one.
+        """
         pk = parse_key(key)
         if pk is None or pk.site != self.config.site or pk.kind not in (
             "anchor_state", "range", "range_batch"
@@ -185,6 +362,20 @@ class FusionCore:
             self._reject(key, "unexpected_key")
             return
         self.received[pk.kind] += 1
+        aid = pk.anchor_id
+        src = f"anchor {aid}"
+        cfg = self.config
+        if len(payload) > cfg.max_message_bytes:
+            self._reject(key, "oversized", f"{len(payload)} bytes > max_message_bytes="
+                         f"{cfg.max_message_bytes}", source=src)
+            return
+        why = self._anchor_refused(aid)
+        if why is None and pk.kind == "range" and self._allowed_nodes is not None \
+                and pk.node_id not in self._allowed_nodes:
+            why = "unknown_node"
+        if why is not None:
+            self._reject(key, why, f"anchor {aid!r}, node {pk.node_id!r}", source=src)
+            return
         try:
             if pk.kind == "range":
                 msg = self._dec_range(payload)
@@ -193,56 +384,136 @@ class FusionCore:
             else:
                 msg = self._dec_state(payload)
         except M.DecodeError as exc:
-            self._reject(key, exc.reason, exc.detail)
+            self._reject(key, exc.reason, exc.detail, source=src)
             return
-        if msg.anchor_id != pk.anchor_id or (pk.kind == "range" and msg.node_id != pk.node_id):
-            self._reject(key, "key_mismatch", "ids in the payload differ from the key")
+        if msg.anchor_id != aid or (pk.kind == "range" and msg.node_id != pk.node_id):
+            self._reject(key, "key_mismatch", "ids in the payload differ from the key",
+                         source=src)
             return
-        anchor = self._anchor(msg.anchor_id)
+        anchor = self.anchors.get(aid)
+        stream = "state" if pk.kind == "anchor_state" else (
+            "ranges" if pk.kind == "range_batch" else pk.node_id)
+        if pk.kind == "anchor_state":
+            bad = self._bad_state(msg)
+        elif pk.kind == "range":
+            bad = self._bad_range(msg.range_m, msg.sigma_m, msg.snr_db)
+            if bad is None:
+                why = self._node_refused(msg.node_id)
+                if why is not None:
+                    self._reject(key, why, f"node {msg.node_id!r}", source=src)
+                    return
+        else:
+            bad = self._bad_batch(msg)
+        if bad is not None:
+            self._reject(key, bad[0], bad[1], source=src)
+            return
+        if self._check_seq(anchor, stream, msg.seq):
+            self._reject(key, "duplicate_seq", f"seq {msg.seq} already received on this key",
+                         source=src)
+            return
+        why = self._check_time(anchor, msg.t_ns, rx_wall_ns)
+        if why is not None:
+            ref = self._tref
+            self._reject(key, why, f"t_ns={msg.t_ns} vs reference "
+                         f"{ref if ref is not None else anchor.last_t_ns} (allowed "
+                         f"-{cfg.max_past_s} s / +{cfg.max_future_s} s)", source=src)
+            return
+        # accepted: from here on the message is used
+        anchor = self._anchor(aid) if anchor is None else anchor
+        self._note_seq(anchor, stream, msg.seq)
+        anchor.last_rx_wall_ns = rx_wall_ns
+        if anchor.last_t_ns is None or msg.t_ns > anchor.last_t_ns:
+            anchor.last_t_ns = msg.t_ns
+            self._tref_dirty = True
         # (a lost anchor comes back only with its liveliness token: in-flight data from a
         # killed process must not revive it)
         if pk.kind == "anchor_state":
-            vals = (*msg.position_m, *msg.velocity_m_s, *msg.position_sigma_m)
-            if not all(np.isfinite(vals)):
-                self._reject(key, "nonfinite")
-                return
             anchor.history.add(msg.t_ns, msg.position_m, msg.velocity_m_s,
                                msg.position_sigma_m, msg.velocity_sigma_m_s)
             anchor.states += 1
             self.book.note_anchor_time(anchor.id, msg.t_ns)
         elif pk.kind == "range":
-            self._add_range(key, anchor, msg.node_id, msg.t_ns, msg.range_m, msg.sigma_m,
+            self._add_range(anchor, msg.node_id, msg.t_ns, msg.range_m, msg.sigma_m,
                             msg.snr_db, msg.t_pub_wall_ns, rx_wall_ns)
         else:
-            n = len(msg.node_ids)
-            if not (len(msg.range_m) == len(msg.sigma_m) == len(msg.snr_db) == n):
-                self._reject(key, "schema", "range_batch lists differ in length")
-                return
-            self.received["range"] += n
-            entries = []
-            min_snr = self.config.min_snr_db
-            for nid, r, sg, snr in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db,
-                                       strict=True):
-                if r is not None and not math.isfinite(r):
-                    self._reject(key, "nonfinite")
-                    continue
-                if sg is None or (min_snr is not None and (snr is None or snr < min_snr)):
-                    r = None
-                entries.append((nid, RangeEntry(msg.t_ns, r, sg or 1.0,
-                                                snr if snr is not None else -math.inf,
-                                                msg.t_pub_wall_ns, rx_wall_ns)))
-            anchor.ranges += len(entries)
-            self.rejected["late"] += self.book.add_many(anchor.id, msg.t_ns, entries)
-            if not self.rejected["late"]:
-                del self.rejected["late"]
-        if anchor.last_t_ns is None or msg.t_ns > anchor.last_t_ns:
-            anchor.last_t_ns = msg.t_ns
+            self._add_batch(key, src, anchor, msg, rx_wall_ns)
 
-    def _add_range(self, key, anchor, node_id, t_ns, r, sigma_m, snr_db, pub_wall, rx_wall) -> None:
-        if r is not None and not math.isfinite(r):
-            self._reject(key, "nonfinite")
-            return
-        if sigma_m is None or (
+    def _bad_value(self, range_m, sigma_m, snr_db) -> tuple[str, str] | None:
+        cfg = self.config
+        if range_m is not None:
+            if not math.isfinite(range_m):
+                return "nonfinite", "range_m"
+            if range_m > cfg.max_range_m:
+                return "absurd_value", (f"range_m={range_m:g} outside [0, max_range_m="
+                                        f"{cfg.max_range_m:g}] m")
+        if sigma_m is not None and not (cfg.min_sigma_m <= sigma_m <= cfg.max_sigma_m):
+            if not math.isfinite(sigma_m):
+                return "nonfinite", "sigma_m"
+            return "absurd_value", (f"sigma_m={sigma_m:g} outside [{cfg.min_sigma_m:g}, "
+                                    f"{cfg.max_sigma_m:g}] m")
+        if snr_db is not None and not -300.0 <= snr_db <= 300.0:
+            if not math.isfinite(snr_db):
+                return "nonfinite", "snr_db"
+            return "absurd_value", f"snr_db={snr_db:g} outside [-300, 300] dB"
+        return None
+
+    def _bad_range(self, range_m, sigma_m, snr_db) -> tuple[str, str] | None:
+        return self._bad_value(range_m, sigma_m, snr_db)
+
+    def _bad_state(self, msg: M.AnchorState) -> tuple[str, str] | None:
+        cfg = self.config
+        vals = (*msg.position_m, *msg.velocity_m_s, *msg.position_sigma_m,
+                msg.velocity_sigma_m_s, msg.range_rate_hz)
+        if not all(math.isfinite(v) for v in vals):
+            return "nonfinite", "position_m, velocity_m_s or a sigma is not finite"
+        if max(abs(v) for v in msg.position_m) > cfg.max_coordinate_m:
+            return "absurd_value", (f"position_m={list(msg.position_m)} beyond "
+                                    f"max_coordinate_m={cfg.max_coordinate_m:g} m")
+        if math.hypot(*msg.velocity_m_s) > cfg.max_speed_m_s:
+            return "absurd_value", (f"velocity_m_s={list(msg.velocity_m_s)} faster than "
+                                    f"max_speed_m_s={cfg.max_speed_m_s:g} m/s")
+        if max(msg.position_sigma_m) > cfg.max_sigma_m or msg.velocity_sigma_m_s > cfg.max_sigma_m:
+            return "absurd_value", f"a sigma exceeds max_sigma_m={cfg.max_sigma_m:g}"
+        return None
+
+    def _bad_batch(self, msg: M.RangeBatch) -> tuple[str, str] | None:
+        n = len(msg.node_ids)
+        if not (len(msg.range_m) == len(msg.sigma_m) == len(msg.snr_db) == n):
+            return "schema", "range_batch lists differ in length"
+        if n > self.config.max_nodes:
+            return "oversized", f"{n} nodes > max_nodes={self.config.max_nodes}"
+        if len(set(msg.node_ids)) != n:
+            return "schema", "range_batch node_ids has duplicates"
+        return None
+
+    def _add_batch(self, key: str, src: str, anchor: _Anchor, msg: M.RangeBatch,
+                   rx_wall_ns: int) -> None:
+        n = len(msg.node_ids)
+        self.received["range"] += n
+        entries = []
+        min_snr = self.config.min_snr_db
+        for nid, r, sg, snr in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db,
+                                   strict=True):
+            bad = self._bad_value(r, sg, snr)
+            if bad is None:
+                why = self._node_refused(nid)
+                if why is not None:
+                    bad = (why, f"node {nid!r}")
+            if bad is not None:
+                self._reject(key, bad[0], bad[1], source=src)
+                continue
+            if r is None or sg is None or (min_snr is not None and (snr is None or snr < min_snr)):
+                r = None
+            entries.append((nid, RangeEntry(msg.t_ns, r, sg or 1.0,
+                                            snr if snr is not None else -math.inf,
+                                            msg.t_pub_wall_ns, rx_wall_ns)))
+        anchor.ranges += len(entries)
+        late = self.book.add_many(anchor.id, msg.t_ns, entries)
+        if late:
+            self.rejected["late"] += late
+
+    def _add_range(self, anchor, node_id, t_ns, r, sigma_m, snr_db, pub_wall, rx_wall) -> None:
+        if r is None or sigma_m is None or (
             self.config.min_snr_db is not None
             and (snr_db is None or snr_db < self.config.min_snr_db)
         ):
@@ -254,17 +525,30 @@ class FusionCore:
             self.rejected["late"] += 1
 
     def on_liveliness(self, anchor_id: str, alive: bool, wall_ns: int) -> None:
-        """Liveliness token of an anchor appeared (``alive``) or vanished."""
+        """Liveliness token of an anchor appeared (``alive``) or vanished.
+
+        Tokens of anchors outside the allow-list (or beyond ``max_anchors``) are ignored, so
+        an unknown anchor can never make the fusion wait for it. A token that reappears
+        after the anchor was lost starts a new stream (sequence numbers and clock reference
+        are forgotten: the anchor restarted).
+        """
+        why = self._anchor_refused(anchor_id)
+        if why is not None:
+            self._reject(f"alive/anchor/{anchor_id}", why, "liveliness token ignored",
+                         source=f"anchor {anchor_id}", count=0)
+            return
         a = self._anchor(anchor_id)
         a.token = alive
         if alive:
             if not a.alive:
                 log_event(self.log, logging.INFO, "anchor back", anchor=anchor_id)
+                a.reset_stream()
             a.alive, a.lost_wall_ns = True, None
         else:
             a.alive, a.lost_wall_ns = False, wall_ns
             self.book.forget_anchor(anchor_id)
             log_event(self.log, logging.WARNING, "anchor lost", anchor=anchor_id)
+        self._tref_dirty = True
         self.changed = True
 
     def warm_up(self) -> None:
@@ -549,7 +833,13 @@ def run_fusion(
     keys = core.keys
     q: queue.Queue = queue.Queue(maxsize=config.queue_size)
 
+    max_bytes = config.max_message_bytes
+
     def on_data(sample: zenoh.Sample) -> None:
+        size = len(sample.payload)
+        if size > max_bytes:  # never copied nor queued: bounded memory whatever arrives
+            q.put((2, str(sample.key_expr), size, time.time_ns()))
+            return
         q.put((0, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
 
     def on_alive(sample: zenoh.Sample) -> None:
@@ -601,12 +891,19 @@ def run_fusion(
                 budget = 20_000
                 while item is not None:
                     kind, key, val, rx = item
-                    if kind == 0:
-                        core.on_sample(key, val, t_ingest)
-                    else:
-                        pk = parse_key(key)
-                        if pk is not None and pk.anchor_id is not None:
-                            core.on_liveliness(pk.anchor_id, bool(val), rx)
+                    try:
+                        if kind == 0:
+                            core.on_sample(key, val, t_ingest)
+                        elif kind == 2:
+                            core.on_oversized(key, val)
+                        else:
+                            pk = parse_key(key)
+                            if pk is not None and pk.anchor_id is not None:
+                                core.on_liveliness(pk.anchor_id, bool(val), rx)
+                    except Exception as exc:  # a bug, not bad input: count, log once, go on
+                        core.rejected["internal_error"] += 1
+                        if core.rejected["internal_error"] == 1:
+                            log.exception("internal error while ingesting %s: %s", key, exc)
                     budget -= 1
                     try:
                         item = q.get_nowait() if budget > 0 else None

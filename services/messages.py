@@ -21,6 +21,7 @@ import argparse
 import inspect
 import json
 import math
+import re
 import sys
 from collections.abc import Iterable
 from pathlib import Path
@@ -62,9 +63,19 @@ Id = Annotated[
         description="Identifier, a single Zenoh key chunk (letters, digits, '_' and '-').",
     ),
 ]
-TimeNs = Annotated[int, Meta(description="Time [ns] (integer nanoseconds).")]
-WallNs = Annotated[int, Meta(ge=0, description="Host wall-clock time, time.time_ns() [ns].")]
-Seq = Annotated[int, Meta(ge=0, description="Per-publisher sequence number, +1 per message.")]
+#: Every integer on the wire is a signed 64-bit value (MCAP, numpy): larger JSON integers are
+#: rejected by the decoder instead of overflowing later.
+INT64_MIN = -(2**63)
+INT64_MAX = 2**63 - 1
+TimeNs = Annotated[
+    int, Meta(ge=INT64_MIN, le=INT64_MAX, description="Time [ns] (integer nanoseconds).")
+]
+WallNs = Annotated[
+    int, Meta(ge=0, le=INT64_MAX, description="Host wall-clock time, time.time_ns() [ns].")
+]
+Seq = Annotated[
+    int, Meta(ge=0, le=INT64_MAX, description="Per-publisher sequence number, +1 per message.")
+]
 Vec3 = tuple[float, float, float]
 PosM = Annotated[Vec3, Meta(description="Position [x, y, z] in building coordinates [m].")]
 VelMS = Annotated[Vec3, Meta(description="Velocity [vx, vy, vz] in building coordinates [m/s].")]
@@ -311,16 +322,34 @@ MESSAGE_TYPES: dict[type[msgspec.Struct], str] = {
 }
 
 _ENCODER = msgspec.json.Encoder()
+_AT_RE = re.compile(r"- at `([^`]*)`")
+_MISSING_RE = re.compile(r"missing required field `([^`]*)`")
 _DECODERS: dict[type, msgspec.json.Decoder] = {}
 
 
 class DecodeError(ValueError):
-    """A payload that is not a valid message of the expected type (``reason`` is short)."""
+    """A payload that is not a valid message of the expected type.
+
+    Attributes
+    ----------
+    reason : str
+        ``"json"`` (not UTF-8 JSON, or nested deeper than the decoder's recursion limit) or
+        ``"schema"`` (valid JSON that is not this message: wrong or missing ``schema`` tag,
+        e.g. another version; a missing field; a wrong type; a value out of its range).
+    detail : str
+        msgspec's message, e.g. ``Expected `int` >= 0 - at `$.seq```.
+    field : str or None
+        The JSON path of the offending field (``"$.seq"``, ``"$.range_m[3]"``) when known.
+    """
 
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(f"{reason}: {detail}")
         self.reason = reason
         self.detail = detail
+        m = _AT_RE.search(detail) or _MISSING_RE.search(detail)
+        self.field: str | None = None
+        if m is not None:
+            self.field = m.group(1) if m.re is _AT_RE else "$." + m.group(1)
 
 
 def encode(msg: msgspec.Struct) -> bytes:
@@ -329,7 +358,11 @@ def encode(msg: msgspec.Struct) -> bytes:
 
 
 def decoder(kind: type[msgspec.Struct]):
-    """A function ``bytes -> kind`` raising :class:`DecodeError` (reason ``json``/``schema``)."""
+    """A function ``bytes -> kind`` raising :class:`DecodeError` (reason ``json``/``schema``).
+
+    It never raises anything else, whatever the bytes (fuzzed in ``tests/test_fuzz.py``).
+    Unknown extra fields are ignored (forward compatibility within a version).
+    """
     dec = _DECODERS.get(kind)
     if dec is None:
         dec = _DECODERS[kind] = msgspec.json.Decoder(kind)
@@ -341,6 +374,9 @@ def decoder(kind: type[msgspec.Struct]):
             raise DecodeError("schema", str(exc)) from None
         except msgspec.DecodeError as exc:
             raise DecodeError("json", str(exc)) from None
+        except RecursionError:
+            # msgspec skips unknown fields recursively: ~1000 nested arrays exhaust the stack
+            raise DecodeError("json", "JSON nested too deeply") from None
 
     return decode
 
