@@ -84,7 +84,6 @@ def test_constant_bias_20_sigma_is_excluded(short8):
     assert gated95 < 0.5 * ungated95
 
 
-@pytest.mark.slow
 def test_honest_false_alarm_rate_matches_pfa(matched8):
     """4,000 honest fixes at P_fa = 1e-2: the alarm and false-exclusion counts are binomial
     with p = P_fa (8 anchors: every alarm leads to an exclusion)."""
@@ -137,7 +136,6 @@ def test_noncentrality_matches_noise_free_fit(short8):
     np.testing.assert_allclose(pd, 1e-3, rtol=1e-6)
 
 
-@pytest.mark.slow
 def test_ramp_time_to_exclusion_matches_prediction(matched8):
     r = bs.run_case(matched8, bs.Fault("ramp", 0.1), GatingConfig(), ungated=False)
     first, sustained, never = r.time_to_exclusion_s()
