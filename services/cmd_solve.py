@@ -34,9 +34,12 @@ used_anchors, excluded_anchors ([{"index", "reason"}]), residuals_m (null where 
 test_statistic, test_threshold. Numbers that do not exist are null.
 
 A bad line (invalid JSON, wrong lengths, NaN/inf, negative range, fewer than 3 anchors, unknown
-field) gives a result with status "invalid_input" and a message naming the field; the filter
-keeps going. The exit status is 0 unless --strict is given and some line was invalid (1), or
-the input cannot be read (2).
+field, a value beyond the limits below, a line longer than --max-line-bytes, JSON nested too
+deeply, bytes that are not UTF-8) gives a result with status "invalid_input" and a message
+naming the field; the filter keeps going with the next line. Limits: at most 1024 anchors and
+1000 z_starts_m per problem, |coordinates|, ranges, sigmas and lengths at most 1e7 m, an id
+of at most 1000 characters of JSON. The exit status is 0 unless --strict is given and some
+line was invalid (1), or the input cannot be read (2).
 
 examples:
   echo '{"anchors_m": [[-15,-20,1],[0,-15,0],[0,-7,4],[15,-20,1]],
@@ -60,11 +63,18 @@ import math
 import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, TextIO
+from typing import Any, BinaryIO, TextIO
 
 import numpy as np
 
-__all__ = ["ProblemError", "parse_problem", "solve_lines", "solve_records"]
+__all__ = ["ProblemError", "parse_problem", "read_lines", "solve_lines", "solve_records"]
+
+#: Limits of one problem (bad input must not exhaust memory or time).
+MAX_ANCHORS = 1024
+MAX_Z_STARTS = 1000
+MAX_ABS_M = 1e7
+MAX_ID_CHARS = 1000
+MAX_LINE_BYTES = 1 << 20
 
 FIELDS = (
     "anchors_m", "ranges_m", "sigmas_m", "window_height_m", "edge_x_m", "delta_m", "method",
@@ -114,12 +124,18 @@ class Problem:
         )
 
 
-def _number(value: Any, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
+def _number(value: Any, name: str, *, positive: bool = False, nonneg: bool = False,
+            limit: float | None = MAX_ABS_M) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ProblemError(f"{name} must be a number, got {json.dumps(value)}")
-    v = float(value)
+        raise ProblemError(f"{name} must be a number, got {_short(value)}")
+    try:
+        v = float(value)
+    except OverflowError:  # an integer beyond the float range
+        v = math.inf
     if not math.isfinite(v):
-        raise ProblemError(f"{name} must be finite, got {value}")
+        raise ProblemError(f"{name} must be finite, got {_short(value)}")
+    if limit is not None and abs(v) > limit:
+        raise ProblemError(f"{name} = {v:g} is out of range (allowed [-{limit:g}, {limit:g}])")
     if positive and v <= 0:
         raise ProblemError(f"{name} must be > 0, got {value}")
     if nonneg and v < 0:
@@ -127,9 +143,21 @@ def _number(value: Any, name: str, *, positive: bool = False, nonneg: bool = Fal
     return v
 
 
-def _vector(value: Any, name: str, length: int | None = None, *, allow_null: bool = False):
+def _short(value: Any) -> str:
+    """JSON text of a value, cut to 40 characters (messages stay one short line)."""
+    try:
+        text = json.dumps(value)
+    except (ValueError, TypeError, RecursionError):
+        text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _vector(value: Any, name: str, length: int | None = None, *, allow_null: bool = False,
+            max_length: int | None = None):
     if not isinstance(value, list):
-        raise ProblemError(f"{name} must be a list, got {json.dumps(value)[:40]}")
+        raise ProblemError(f"{name} must be a list, got {_short(value)}")
+    if max_length is not None and len(value) > max_length:
+        raise ProblemError(f"{name} has {len(value)} entries; at most {max_length} are allowed")
     if length is not None and len(value) != length:
         raise ProblemError(f"{name} must have {length} entries (one per anchor), got {len(value)}")
     out = []
@@ -158,6 +186,9 @@ def parse_problem(obj: Any, *, default_method: str = "dnls") -> Problem:
     anchors = obj["anchors_m"]
     if not isinstance(anchors, list) or not anchors:
         raise ProblemError("anchors_m must be a non-empty list of [x, y, z] positions [m]")
+    if len(anchors) > MAX_ANCHORS:
+        raise ProblemError(f"anchors_m has {len(anchors)} anchors; at most {MAX_ANCHORS} are "
+                           "allowed")
     a = np.array(
         [_vector(p, f"anchors_m[{k}]", 3) for k, p in enumerate(anchors)], dtype=np.float64
     )
@@ -214,11 +245,12 @@ def parse_problem(obj: Any, *, default_method: str = "dnls") -> Problem:
                     raise ProblemError("gating.pregate must be true or false")
                 gating[k] = v
             elif k == "max_exclusions":
-                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                    raise ProblemError("gating.max_exclusions must be an integer >= 0")
+                if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= MAX_ANCHORS:
+                    raise ProblemError(f"gating.max_exclusions must be an integer in "
+                                       f"[0, {MAX_ANCHORS}]")
                 gating[k] = v
             else:
-                p = _number(v, "gating.false_alarm_probability")
+                p = _number(v, "gating.false_alarm_probability", limit=None)
                 if not 0 < p < 1:
                     raise ProblemError("gating.false_alarm_probability must be in (0, 1)")
                 gating[k] = p
@@ -232,7 +264,7 @@ def parse_problem(obj: Any, *, default_method: str = "dnls") -> Problem:
         x0 = np.array(_vector(x0, "x0_m", 3))
     zs = obj.get("z_starts_m")
     if zs is not None:
-        zs = tuple(_vector(zs, "z_starts_m"))
+        zs = tuple(_vector(zs, "z_starts_m", max_length=MAX_Z_STARTS))
         if not zs:
             raise ProblemError("z_starts_m must not be empty")
     nl = obj.get("nlos", True)
@@ -300,11 +332,11 @@ def solve_records(
     groups: dict[tuple, list[tuple[int, Problem]]] = {}
     ids: list[Any] = [None] * len(items)
     for k, obj in enumerate(items):
-        if isinstance(obj, dict):
-            ids[k] = obj.get("id")
         try:
             if isinstance(obj, ProblemError):
                 raise obj
+            if isinstance(obj, dict) and obj.get("id") is not None:
+                ids[k] = _check_id(obj["id"])
             prob = parse_problem(obj, default_method=default_method)
         except ProblemError as exc:
             out[k] = _invalid_record(str(exc))
@@ -313,8 +345,8 @@ def solve_records(
     for members in groups.values():
         try:
             recs = _solve_group([p for _, p in members])
-        except ValueError as exc:  # a check of the estimator the parser did not anticipate
-            recs = [_invalid_record(str(exc)) for _ in members]
+        except Exception:  # isolate the problem that broke the batch
+            recs = [_solve_alone(p) for _, p in members]
         for (k, _), rec in zip(members, recs, strict=True):
             out[k] = rec
     final = []
@@ -327,17 +359,48 @@ def solve_records(
     return final
 
 
-def _decode(line: str) -> Any:
+def _check_id(value: Any) -> Any:
+    """The id if it can be echoed as plain JSON (no NaN/Infinity) of bounded size."""
+    try:
+        text = json.dumps(value, allow_nan=False)
+    except (ValueError, TypeError, RecursionError):
+        raise ProblemError("id must be plain JSON without NaN or Infinity") from None
+    if len(text) > MAX_ID_CHARS:
+        raise ProblemError(f"id is {len(text)} characters of JSON; at most {MAX_ID_CHARS} "
+                           "are allowed")
+    return value
+
+
+def _solve_alone(prob: Problem) -> dict[str, Any]:
+    try:
+        return _solve_group([prob])[0]
+    except Exception as exc:  # reported on this line; the filter goes on
+        return _invalid_record(f"the solver failed on this problem ({type(exc).__name__}: "
+                               f"{str(exc)[:200]}); check the values for plausibility")
+
+
+def _decode(line: str | ProblemError) -> Any:
+    if isinstance(line, ProblemError):
+        return line
     try:
         return json.loads(line)
     except json.JSONDecodeError as exc:
         return ProblemError(f"invalid JSON: {exc.msg} at column {exc.colno}")
+    except RecursionError:
+        return ProblemError("invalid JSON: nested too deeply")
+    except ValueError as exc:  # e.g. an integer literal with more than 4300 digits
+        return ProblemError(f"invalid JSON: {str(exc)[:120]}")
 
 
-def solve_lines(lines: Iterable[str], *, batch: int = 256, default_method: str = "dnls"
-                ) -> Iterator[dict[str, Any]]:
-    """Solve JSON Lines (blank lines skipped, but counted in ``line``), yielding results."""
-    numbered = ((n, ln) for n, ln in enumerate(lines, start=1) if ln.strip())
+def solve_lines(lines: Iterable[str | ProblemError], *, batch: int = 256,
+                default_method: str = "dnls") -> Iterator[dict[str, Any]]:
+    """Solve JSON Lines (blank lines skipped, but counted in ``line``), yielding results.
+
+    Items may be :class:`ProblemError` instances for lines that could not be read (too
+    long, not UTF-8, see :func:`read_lines`): they are answered with ``invalid_input``.
+    """
+    numbered = ((n, ln) for n, ln in enumerate(lines, start=1)
+                if isinstance(ln, ProblemError) or ln.strip())
     while True:
         chunk = list(itertools.islice(numbered, max(batch, 1)))
         if not chunk:
@@ -363,47 +426,77 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--strict", action="store_true",
                         help="exit with status 1 if any line was invalid (all lines are "
                         "still answered)")
+    parser.add_argument("--max-line-bytes", type=int, default=MAX_LINE_BYTES, metavar="N",
+                        help=f"longer lines are answered with invalid_input without being "
+                        f"held in memory (default {MAX_LINE_BYTES})")
 
 
-def _lines(stream: TextIO) -> Iterator[str]:
-    # readline() rather than iteration so --batch 1 answers interactively
+def read_lines(stream: BinaryIO | TextIO, *, max_bytes: int = MAX_LINE_BYTES
+               ) -> Iterator[str | ProblemError]:
+    """Lines of a byte (or text) stream as ``str``, or :class:`ProblemError` for a line that
+    is longer than ``max_bytes`` (skipped in bounded memory) or not UTF-8.
+
+    ``readline`` rather than iteration, so ``--batch 1`` answers interactively.
+    """
+    chunk = max(int(max_bytes), 1) + 1
     while True:
-        line = stream.readline()
+        line = stream.readline(chunk)
         if not line:
             return
-        yield line
+        nl = b"\n" if isinstance(line, bytes) else "\n"
+        if len(line) >= chunk and not line.endswith(nl):
+            size = len(line)
+            while line and not line.endswith(nl):  # drain the rest of the line
+                line = stream.readline(1 << 16)
+                size += len(line)
+            yield ProblemError(f"line is longer than --max-line-bytes={max_bytes} "
+                               f"({size} bytes or more); split the problem or raise the limit")
+            continue
+        if isinstance(line, bytes):
+            try:
+                yield line.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                yield ProblemError(f"line is not UTF-8 text (byte 0x{line[exc.start]:02x} at "
+                                   f"column {exc.start + 1}); encode the input as UTF-8")
+        else:
+            yield line
 
 
 def run(args: argparse.Namespace) -> int:
     if args.batch < 1:
         print("diffpos solve: --batch must be >= 1", file=sys.stderr)
         return 2
+    if args.max_line_bytes < 16:
+        print("diffpos solve: --max-line-bytes must be >= 16", file=sys.stderr)
+        return 2
     if args.input and args.input != "-":
         try:
-            stream: TextIO = open(args.input, encoding="utf-8")
+            stream: BinaryIO | TextIO = open(args.input, "rb")
         except OSError as exc:
             print(f"diffpos solve: cannot read --input {args.input}: {exc.strerror}",
                   file=sys.stderr)
             return 2
     else:
-        stream = sys.stdin
+        # bytes, so that a non-UTF-8 line is one invalid line, not the end of the input
+        stream = getattr(sys.stdin, "buffer", sys.stdin)
     invalid = 0
     out = sys.stdout
     try:
-        for rec in solve_lines(_lines(stream), batch=args.batch, default_method=args.method):
+        for rec in solve_lines(read_lines(stream, max_bytes=args.max_line_bytes),
+                               batch=args.batch, default_method=args.method):
             if rec["status"] == "invalid_input":
                 invalid += 1
             out.write(json.dumps(rec, allow_nan=False, separators=(",", ":")) + "\n")
             if args.batch == 1:
                 out.flush()
         out.flush()
-    except UnicodeDecodeError as exc:
-        print(f"diffpos solve: input is not UTF-8 text ({exc.reason})", file=sys.stderr)
+    except OSError as exc:
+        if isinstance(exc, BrokenPipeError):
+            return 0
+        print(f"diffpos solve: cannot read the input ({exc.strerror or exc})", file=sys.stderr)
         return 2
-    except BrokenPipeError:
-        return 0
     finally:
-        if stream is not sys.stdin:
+        if args.input and args.input != "-":
             stream.close()
     if invalid:
         print(f"diffpos solve: {invalid} invalid line(s)", file=sys.stderr)

@@ -1,0 +1,435 @@
+"""Load and soak: M anchors x N nodes x 10 Hz through the real runtime, for minutes.
+
+Starts a router, the MCAP recorder, the fusion and M anchor processes (``--channel ideal``,
+``--range-batch``: one RangeBatch per anchor epoch) on loopback with congestion control
+BLOCK everywhere, runs in real time for ``--duration`` seconds and reports
+
+- loss (must be 0 with BLOCK): ranges received by the fusion vs sent, estimates received by
+  this subscriber vs expected (every node, every epoch), recorder received vs written and its
+  sequence gaps;
+- fusion latency (estimate publish - newest input publish) p50/p99/max overall and per
+  minute; ranges that arrived after their epoch was solved (``late``, not a transport loss);
+- RSS of every process (router, recorder, fusion, each anchor, this subscriber) after the
+  warm-up and at the end, growth, and the slope of a line fitted to the samples [MB/min];
+- the recorder file size.
+
+The scenario, RSS probe and ports come from ``bench_latency.py`` (same machinery, longer run,
+more processes watched)::
+
+    python benchmarks/bench_soak.py --load 16x200 --duration 600 --json soak.json
+    python benchmarks/bench_soak.py --load 16x50 --duration 60          # the CI size
+
+``tests/test_soak.py`` runs :func:`run_soak` for 60 s and asserts zero loss and bounded RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_latency import PERIOD_NS, free_port, rss_mb, scenario_toml
+from diffpos_services import messages as M
+from diffpos_services.keys import Keys, parse_key
+from diffpos_services.zenoh_config import ZenohSettings, open_session
+
+__all__ = ["LatencyHistogram", "run_soak"]
+
+
+class LatencyHistogram:
+    """Log-spaced histogram of latencies [ms] (1 % bins from 1 us to 1000 s): bounded memory
+    for millions of samples, percentiles to about 1 %."""
+
+    def __init__(self) -> None:
+        self.edges = np.geomspace(1e-3, 1e6, 2085)
+        self.counts = np.zeros(self.edges.size + 1, np.int64)
+        self.max_ms = 0.0
+
+    def add(self, values_ms) -> None:
+        v = np.asarray(values_ms, float)
+        if v.size:
+            self.counts += np.bincount(np.searchsorted(self.edges, v), minlength=self.counts.size)
+            self.max_ms = max(self.max_ms, float(v.max()))
+
+    @property
+    def count(self) -> int:
+        return int(self.counts.sum())
+
+    def percentile(self, q: float) -> float | None:
+        n = self.count
+        if n == 0:
+            return None
+        k = int(np.searchsorted(np.cumsum(self.counts), q / 100.0 * n))
+        return float(self.edges[min(k, self.edges.size - 1)])
+
+
+def _slope_mb_per_min(samples: list[tuple[float, float]]) -> float | None:
+    if len(samples) < 3:
+        return None
+    t = np.array([s[0] for s in samples]) / 60.0
+    r = np.array([s[1] for s in samples])
+    return float(np.polyfit(t - t[0], r, 1)[0])
+
+
+def run_soak(
+    n_anchors: int,
+    n_nodes: int,
+    duration_s: float,
+    log_dir: Path,
+    *,
+    recorder: bool = True,
+    warmup_s: float = 10.0,
+    rss_period_s: float = 2.0,
+    ready_timeout_s: float = 180.0,
+    site: str | None = None,
+) -> dict:
+    """Run the load and return the measurements (see the module docstring).
+
+    Parameters
+    ----------
+    n_anchors, n_nodes : int
+        Anchor processes and static nodes (every anchor ranges to every node at 10 Hz).
+    duration_s : float [s]
+        Emulated = wall run length (speed 1).
+    log_dir : Path
+        Service logs, the scenario and the recording go here.
+    warmup_s : float [s]
+        RSS "start" is the first sample after this much of the run.
+    """
+    site = site or f"soak{n_anchors}x{n_nodes}"
+    keys = Keys(site)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    log_dir.mkdir(parents=True, exist_ok=True)
+    scen = log_dir / f"{site}.toml"
+    scen.write_text(scenario_toml(n_anchors, n_nodes))
+    mcap = log_dir / f"{site}.mcap"
+    procs: dict[str, subprocess.Popen] = {}
+    env = dict(os.environ, DIFFPOS_LOG_FORMAT="text")
+
+    def start(name: str, *argv: str) -> subprocess.Popen:
+        with open(log_dir / f"{site}-{name}.log", "wb") as log:
+            p = subprocess.Popen([sys.executable, "-m", "diffpos_services.cli", *argv],
+                                 stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                 start_new_session=True, env=env)
+        procs[name] = p
+        return p
+
+    q: queue.Queue = queue.Queue()
+    alive: set[str] = set()
+    cv = threading.Condition()
+
+    def on_alive(s) -> None:
+        import zenoh
+
+        with cv:
+            (alive.add if s.kind == zenoh.SampleKind.PUT else alive.discard)(str(s.key_expr))
+            cv.notify_all()
+
+    def on_data(s) -> None:
+        q.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns()))
+
+    node_ids = [f"n{i + 1:03d}" for i in range(n_nodes)]
+    node_index = {n: i for i, n in enumerate(node_ids)}
+    n_epochs = round(duration_s * 10)
+    seen = np.zeros((n_nodes, n_epochs), np.uint8)
+    hist = LatencyHistogram()
+    per_minute: list[LatencyHistogram] = []
+    statuses: dict[str, int] = {}
+    rss: dict[str, list[tuple[float, float]]] = {}
+    out_of_run = 0
+    diag = None
+    result: dict = {"anchors": n_anchors, "nodes": n_nodes, "rate_hz": 10,
+                    "duration_s": duration_s, "range_batch": True, "recorder": recorder}
+    t0 = 0
+    try:
+        start("router", "router", "--listen", endpoint)
+        session = open_session(ZenohSettings(connect=(endpoint,)), threading.Event())
+        with session:
+            import zenoh
+
+            subs = [session.liveliness().declare_subscriber(keys.alive_all(), on_alive,
+                                                            history=True),
+                    session.declare_subscriber(keys.estimates(), on_data),
+                    session.declare_subscriber(keys.fusion_diagnostics(), on_data)]
+            need = {keys.alive_fusion()} | {keys.alive_anchor(f"uav{j + 1}")
+                                            for j in range(n_anchors)}
+            if recorder:
+                start("recorder", "recorder", "--site", site, "--out", str(mcap), "--connect",
+                      endpoint, "--scenario", str(scen), "--status")
+                need.add(keys.alive_recorder())
+            start("fusion", "fusion", "--site", site, "--connect", endpoint,
+                  "--scenario", str(scen), "--diagnostics-period-s", "1.0")
+            for j in range(n_anchors):
+                start(f"uav{j + 1}", "anchor", "--id", f"uav{j + 1}", "--site", site,
+                      "--connect", endpoint, "--scenario", str(scen), "--wait-start",
+                      "--channel", "ideal", "--seed", str(j), "--clock-offset-ms", "0.5",
+                      "--range-batch")
+            deadline = time.monotonic() + ready_timeout_s
+            with cv:
+                while not need <= alive:
+                    dead = [n for n, p in procs.items() if p.poll() is not None]
+                    if time.monotonic() > deadline or dead:
+                        raise RuntimeError(f"not ready: missing {sorted(need - alive)}, "
+                                           f"exited {dead} (logs in {log_dir})")
+                    cv.wait(0.2)
+            pids = {name: p.pid for name, p in procs.items()}
+            pids["bench"] = os.getpid()
+            t0 = -(-(time.time_ns() + 1_000_000_000) // PERIOD_NS) * PERIOD_NS
+            rc = M.RunControl(run_id=site, t0_ns=t0, wall_t0_ns=t0, speed=1.0,
+                              duration_ns=round(duration_s * 1e9), seed=0)
+            session.put(keys.run_control(), M.encode(rc),
+                        congestion_control=zenoh.CongestionControl.BLOCK)
+            end_ns = t0 + rc.duration_ns
+            e0 = t0 // PERIOD_NS
+            dec_e, dec_d = M.decoder(M.PositionEstimate), M.decoder(M.FusionDiagnostics)
+            lat_chunk: list[float] = []
+            next_rss = time.monotonic()
+            hard_end = time.monotonic() + duration_s + 60
+            received_est = 0
+            while time.monotonic() < hard_end:
+                now = time.monotonic()
+                if now >= next_rss:
+                    t_rel = (time.time_ns() - t0) * 1e-9
+                    for name, pid in pids.items():
+                        v = rss_mb(pid)
+                        if v is not None:
+                            rss.setdefault(name, []).append((t_rel, v))
+                    next_rss += rss_period_s
+                    hist.add(lat_chunk)
+                    minute = max(int(t_rel // 60), 0)
+                    while len(per_minute) <= minute:
+                        per_minute.append(LatencyHistogram())
+                    per_minute[minute].add(lat_chunk)
+                    lat_chunk = []
+                    for name, p in procs.items():
+                        if p.poll() is not None:
+                            raise RuntimeError(f"{name} exited ({p.returncode}) during the "
+                                               f"run (logs in {log_dir})")
+                try:
+                    key, val, _t_rx = q.get(timeout=0.2)
+                except queue.Empty:
+                    continue
+                pk = parse_key(key)
+                if pk.kind == "estimate":
+                    e = dec_e(val)
+                    received_est += 1
+                    k = e.epoch - e0
+                    i = node_index.get(e.node_id)
+                    if i is None or not 0 <= k < n_epochs:
+                        out_of_run += 1
+                    else:
+                        seen[i, k] = min(int(seen[i, k]) + 1, 255)
+                    statuses[e.status] = statuses.get(e.status, 0) + 1
+                    if e.t_input_wall_ns > 0:
+                        lat_chunk.append((e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6)
+                else:
+                    diag = dec_d(val)
+                    if (diag.watermark_ns is not None and diag.watermark_ns >= end_ns - PERIOD_NS
+                            and diag.pending_epochs == 0 and received_est >= diag.published):
+                        break
+            hist.add(lat_chunk)
+            for s in subs:
+                s.undeclare()
+    finally:
+        codes = _stop_all(procs)
+    result["exit_codes"] = codes
+    # ---- loss
+    expected = n_nodes * n_epochs
+    result.update(
+        estimates_expected=expected,
+        estimates_received=int(np.count_nonzero(seen)),
+        estimates_missing=int(np.count_nonzero(seen == 0)),
+        estimates_duplicated=int(np.count_nonzero(seen > 1)),
+        estimates_outside_run=out_of_run,
+        missing_by_epoch=_missing_summary(seen),
+        statuses=statuses,
+    )
+    if diag is not None:
+        result["fusion"] = {
+            "ranges_received": diag.received.get("range", 0),
+            "ranges_sent": n_anchors * n_nodes * n_epochs,
+            "states_received": diag.received.get("anchor_state", 0),
+            "rejected": diag.rejected, "late_ranges": diag.late_ranges,
+            "published": diag.published, "solved": diag.solved,
+        }
+    # ---- latency
+    result["latency_fusion_ms"] = {"p50": hist.percentile(50), "p99": hist.percentile(99),
+                                   "max": hist.max_ms, "count": hist.count}
+    result["latency_per_minute_ms"] = [
+        {"minute": k, "p50": h.percentile(50), "p99": h.percentile(99), "max": h.max_ms}
+        for k, h in enumerate(per_minute) if h.count
+    ]
+    # ---- memory
+    mem = {}
+    for name, samples in rss.items():
+        after = [s for s in samples if s[0] >= warmup_s] or samples
+        mem[name] = {"start_mb": after[0][1], "end_mb": samples[-1][1],
+                     "max_mb": max(v for _, v in samples),
+                     "growth_mb": samples[-1][1] - after[0][1],
+                     "slope_mb_per_min": _slope_mb_per_min(after)}
+    result["rss"] = mem
+    # ---- recorder
+    if recorder:
+        result["recorder"] = _recorder_summary(log_dir / f"{site}-recorder.log")
+        result["recorder"]["file_mb"] = mcap.stat().st_size / 2**20 if mcap.exists() else None
+        if mcap.exists():
+            result["recording"] = count_recording(mcap, n_anchors=n_anchors)
+    return result
+
+
+def count_recording(path: Path, *, n_anchors: int) -> dict:
+    """Messages per kind in the recording and holes in each anchor's sequence numbers
+    (an anchor numbers its states and range batches with one counter from 1: the recording
+    is complete iff every anchor's numbers are exactly 1..max)."""
+    from mcap.reader import make_reader
+
+    counts: dict[str, int] = {}
+    seqs: dict[str, list[int]] = {}
+    dec = msgspec_seq()
+    with open(path, "rb") as f:
+        for _schema, channel, message in make_reader(f).iter_messages():
+            pk = parse_key(channel.topic)
+            kind = pk.kind if pk is not None else "other"
+            counts[kind] = counts.get(kind, 0) + 1
+            if kind in ("anchor_state", "range_batch"):
+                seqs.setdefault(pk.anchor_id, []).append(dec(message.data).seq)
+    holes = {}
+    for aid, v in seqs.items():
+        a = np.sort(np.asarray(v, np.int64))
+        want = np.arange(1, a[-1] + 1)
+        missing = np.setdiff1d(want, a).size
+        dup = a.size - np.unique(a).size
+        if missing or dup:
+            holes[aid] = {"missing": int(missing), "duplicated": int(dup)}
+    return {"messages_by_kind": counts, "anchors_recorded": len(seqs),
+            "anchors_expected": n_anchors, "anchor_seq_holes": holes}
+
+
+def msgspec_seq():
+    """A decoder of just the ``seq`` field of any message."""
+    import msgspec
+
+    class _Seq(msgspec.Struct):
+        seq: int
+
+    d = msgspec.json.Decoder(_Seq)
+    return d.decode
+
+
+def _missing_summary(seen: np.ndarray) -> dict:
+    """Where estimates are missing: per epoch index (first/last few) and count."""
+    miss = (seen == 0).sum(axis=0)
+    idx = np.flatnonzero(miss)
+    return {"epochs_with_missing": int(idx.size),
+            "first": [[int(k), int(miss[k])] for k in idx[:5]],
+            "last": [[int(k), int(miss[k])] for k in idx[-5:]]}
+
+
+def _recorder_summary(log_path: Path) -> dict:
+    """The recorder's final JSON status line ("closed": received, written, gaps...)."""
+    out: dict = {}
+    if log_path.exists():
+        for line in log_path.read_text(errors="replace").splitlines():
+            if line.startswith("{"):
+                with contextlib.suppress(ValueError):
+                    ev = json.loads(line)
+                    if ev.get("event") == "closed":
+                        out = {k: ev.get(k) for k in ("received", "written", "gaps",
+                                                      "out_of_order", "unknown_schema")}
+    return out
+
+
+def _stop_all(procs: dict[str, subprocess.Popen]) -> dict[str, int]:
+    """SIGTERM anchors first, then fusion, recorder and router last; SIGKILL stragglers."""
+    order = [n for n in procs if n.startswith("uav")] + [
+        n for n in ("fusion", "recorder", "router") if n in procs]
+    codes = {}
+    for name in order:
+        p = procs[name]
+        if p.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+        try:
+            codes[name] = p.wait(30)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            codes[name] = p.wait()
+    return codes
+
+
+def format_report(r: dict) -> str:
+    """Human-readable summary of :func:`run_soak`'s result."""
+    fmt = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
+    fu, lat, rec = r.get("fusion", {}), r["latency_fusion_ms"], r.get("recorder", {})
+    lines = [
+        f"load {r['anchors']} anchors x {r['nodes']} nodes x 10 Hz, {r['duration_s']:.0f} s "
+        f"(range batches, recorder {'on' if r['recorder'] else 'off'})",
+        f"ranges rx/sent {fu.get('ranges_received')}/{fu.get('ranges_sent')}, late "
+        f"{fu.get('late_ranges')}, rejected {fu.get('rejected')}",
+        f"estimates {r['estimates_received']}/{r['estimates_expected']} (missing "
+        f"{r['estimates_missing']}, duplicated {r['estimates_duplicated']}), statuses "
+        f"{r['statuses']}",
+        f"fusion latency p50 {fmt(lat['p50'])} ms, p99 {fmt(lat['p99'])} ms, "
+        f"max {fmt(lat['max'])} ms",
+    ]
+    for m in r["latency_per_minute_ms"]:
+        lines.append(f"  minute {m['minute']}: p50 {fmt(m['p50'])} p99 {fmt(m['p99'])} "
+                     f"max {fmt(m['max'])} ms")
+    if rec:
+        lines.append(f"recorder received/written {rec.get('received')}/{rec.get('written')}, "
+                     f"file {fmt(rec.get('file_mb'))} MB")
+    if "recording" in r:
+        rg = r["recording"]
+        lines.append(f"recording: {rg['messages_by_kind']}, anchor sequence holes "
+                     f"{rg['anchor_seq_holes'] or 'none'}")
+    lines.append(f"{'process':>10} {'RSS start':>10} {'end':>8} {'max':>8} {'growth':>8} "
+                 f"{'MB/min':>8}")
+    for name, m in r["rss"].items():
+        lines.append(f"{name:>10} {m['start_mb']:>10.1f} {m['end_mb']:>8.1f} {m['max_mb']:>8.1f}"
+                     f" {m['growth_mb']:>8.1f} {fmt(m['slope_mb_per_min']):>8}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--load", default="16x200", metavar="MxN", help="anchors x nodes (16x200)")
+    ap.add_argument("--duration", type=float, default=600.0, metavar="S",
+                    help="run length [s] (default 600)")
+    ap.add_argument("--warmup", type=float, default=30.0, metavar="S",
+                    help="RSS 'start' sample after this long [s] (default 30)")
+    ap.add_argument("--no-recorder", action="store_true", help="run without the recorder")
+    ap.add_argument("--json", metavar="FILE", help="write the result as JSON")
+    ap.add_argument("--log-dir", metavar="DIR", help="keep logs and the recording here")
+    args = ap.parse_args(argv)
+    m, n = (int(v) for v in args.load.lower().split("x"))
+    with tempfile.TemporaryDirectory() as tmp:
+        log_dir = Path(args.log_dir or tmp)
+        load_before = os.getloadavg()
+        r = run_soak(m, n, args.duration, log_dir, recorder=not args.no_recorder,
+                     warmup_s=args.warmup, rss_period_s=5.0)
+        r["loadavg_before"] = load_before
+        r["loadavg_after"] = os.getloadavg()
+        r["cpus"] = os.cpu_count()
+    print(format_report(r))
+    print(f"load average before/after: {r['loadavg_before']} / {r['loadavg_after']} "
+          f"on {r['cpus']} CPUs")
+    if args.json:
+        Path(args.json).write_text(json.dumps(r, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
