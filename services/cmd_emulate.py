@@ -27,6 +27,9 @@ examples:
   diffpos emulate --speed 0 --duration 60          lockstep: as fast as the fusion keeps up
   diffpos emulate --dashboard serve --record run.mcap
   diffpos emulate --log-dir logs/ --json out.json  per-service logs and the summary as JSON
+  diffpos emulate --security-profile security/profile.dev.toml
+                                                   the secured bus: TLS + a user/password per
+                                                   service + access control (security/README.md)
 
 Ctrl-C ends the run early; services are stopped in order (anchors, fusion, recorder,
 dashboard, router) and the summary is still printed.
@@ -67,7 +70,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the fusion's model offset Delta [m] (default 0: Case-1)")
     parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes")
     parser.add_argument("--endpoint", metavar="ENDPOINT",
-                        help="router endpoint (default tcp/127.0.0.1:<free port>)")
+                        help="router endpoint (default tcp/127.0.0.1:<free port>; with "
+                        "--security-profile tls/localhost:<free port>)")
+    parser.add_argument("--security-profile", metavar="PROFILE.toml",
+                        help="run on the secured bus of this security profile (e.g. "
+                        "security/profile.dev.toml): TLS, one user/password per service, access "
+                        "control; rendered into a private temporary folder (not with --speed 0)")
     parser.add_argument("--record", default="auto", metavar="FILE.mcap",
                         help="MCAP recording: auto (recordings/<name>-<UTC>.mcap), a path, or off")
     parser.add_argument("--dashboard", nargs="+", default=["auto"], metavar="MODE",
@@ -95,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress, ready_timeout_s=args.ready_timeout,
             log_level=args.log_level,
             delta_m=args.delta_m,
+            security_profile=args.security_profile,
         )
         stop = Shutdown(log)
         emu = Emulation(opts, log, stop.event)

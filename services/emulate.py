@@ -10,6 +10,12 @@ does not exit in time.
 
 Extra services (recorder, dashboard) are hooks: :data:`EXTRA_SERVICES` maps a name to a
 function building its command line; one is started only if its CLI module exists.
+
+With ``security_profile`` (``diffpos emulate --security-profile FILE``) the bus is the
+secured one of security/README.md: the profile is rendered into a private temporary folder
+for a TLS endpoint on a free loopback port; the router loads its configuration (TLS
+listener, password dictionary, access control), every child gets its own identity file
+(``--zenoh-config <tmp>/<user>.json5``) and the orchestrator logs in as the emulator.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -71,6 +78,7 @@ class EmulationOptions:
     ready_timeout_s: float = 60.0
     log_level: str = "info"
     delta_m: float = 0.0
+    security_profile: str | None = None
 
     def check(self) -> None:
         if not self.duration_s > 0:
@@ -81,6 +89,15 @@ class EmulationOptions:
             raise ConfigError(f"--rate-hz must be > 0, got {self.rate_hz}")
         if self.channel not in ("emulator", "ideal"):
             raise ConfigError(f"--channel must be emulator or ideal, got {self.channel!r}")
+        if self.security_profile is not None:
+            if self.speed == 0:
+                raise ConfigError(
+                    "--security-profile with --speed 0: the access rules do not grant the "
+                    "lockstep run clock (diffpos/<site>/run/clock); use --speed > 0")
+            if self.endpoint is not None and not self.endpoint.startswith("tls/"):
+                raise ConfigError(
+                    f"--endpoint {self.endpoint}: with --security-profile use a tls/ endpoint "
+                    "whose host is in the router certificate, e.g. tls/localhost:7447")
 
 
 def _recorder_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
@@ -207,7 +224,18 @@ class Emulation:
         if not self.nodes:
             raise ConfigError("the scenario has no nodes to emulate")
         self.anchor_ids = [a.id for a in self.scenario.anchors]
-        self.endpoint = options.endpoint or f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.profile = None
+        if options.security_profile is not None:
+            self.profile = self._load_profile(options.security_profile)
+            port = free_tcp_port()
+            self.endpoint = options.endpoint or f"tls/localhost:{port}"
+            # the router listens on the loopback address of the host it is dialled by
+            host, _, port_s = self.endpoint[len("tls/"):].rpartition(":")
+            self.listen = f"tls/{'127.0.0.1' if host == 'localhost' else host}:{port_s}"
+        else:
+            self.endpoint = options.endpoint or f"tcp/127.0.0.1:{free_tcp_port()}"
+            self.listen = self.endpoint
+        self.zenoh_files: dict[str, str] = {}
         self.run_id = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + uuid.uuid4().hex[:6]
         self.procs: list[_Proc] = []
         self.log_dir = Path(options.log_dir) if options.log_dir else None
@@ -215,6 +243,54 @@ class Emulation:
         self.alive_event = threading.Condition()
         self.q: queue.Queue = queue.Queue()
         self.diag: M.FusionDiagnostics | None = None
+
+    # -------------------------------------------------------------- security
+    def _load_profile(self, path: str):
+        from .zenoh_security import SecurityError, anchor_user, check_profile, load_profile
+
+        try:
+            profile = load_profile(path)
+        except (SecurityError, OSError) as exc:
+            raise ConfigError(f"--security-profile {path}: {exc}") from None
+        problems = check_profile(profile)
+        if problems:
+            raise ConfigError(f"--security-profile {path}: {problems[0]}")
+        ids = profile.identities()
+        missing = [a for a in self.anchor_ids if anchor_user(a) not in ids]
+        if missing:
+            raise ConfigError(
+                f"--security-profile {path}: anchors {missing} of the scenario have no identity "
+                "(add them to 'anchors' in the profile and a password line for anchor-<id>)")
+        for role in ("fusion", "emulator"):
+            if role not in profile.users:
+                raise ConfigError(f"--security-profile {path}: users.{role} is missing")
+        if profile.site not in ("*", self.o.site):
+            raise ConfigError(
+                f"--security-profile {path}: it covers site {profile.site!r}, not --site {self.o.site}")
+        return profile
+
+    def _render_security(self, out_dir: str) -> None:
+        """Render the profile for this run's endpoint; remember each identity's file."""
+        from .zenoh_security import SecurityError, render_profile
+
+        try:
+            written = render_profile(self.profile, out_dir, connect=[self.endpoint],
+                                     listen=[self.listen])
+        except SecurityError as exc:
+            raise ConfigError(f"--security-profile {self.o.security_profile}: {exc}") from None
+        self.zenoh_files = {p.stem: str(p) for p in written}
+
+    def _zargs(self, role: str, anchor_id: str | None = None) -> list[str] | None:
+        """``--connect`` (plain) or ``--zenoh-config <file>`` of ``role``; ``None`` if the
+        profile has no identity for it."""
+        if self.profile is None:
+            return ["--connect", self.endpoint]
+        if role == "router":
+            return ["--zenoh-config", self.zenoh_files["router"]]
+        user = f"anchor-{anchor_id}" if role == "anchor" else self.profile.users.get(role)
+        if user is None or user not in self.zenoh_files:
+            return None
+        return ["--zenoh-config", self.zenoh_files[user]]
 
     # -------------------------------------------------------------- process helpers
     def _spawn(self, name: str, argv: list[str]) -> _Proc:
@@ -301,10 +377,18 @@ class Emulation:
         rng = np.random.default_rng(o.seed)
         offsets = rng.uniform(-o.clock_offset_max_ms, o.clock_offset_max_ms, len(self.anchor_ids))
         scen = ["--scenario", o.scenario] if o.scenario else []
-        zs = with_zenoh_config(ZenohSettings(connect=(self.endpoint,)), logger=self.log)
         summary: dict[str, Any] = {}
+        tmp = tempfile.TemporaryDirectory(prefix="diffpos-zenoh-") if self.profile else None
         try:
-            self._spawn("router", ["router", "--listen", self.endpoint])
+            if tmp is not None:
+                self._render_security(tmp.name)
+                self._spawn("router", ["router", *self._zargs("router")])
+                zs = with_zenoh_config(ZenohSettings(connect=(self.endpoint,)),
+                                       self.zenoh_files[self.profile.users["emulator"]],
+                                       logger=self.log)
+            else:
+                self._spawn("router", ["router", "--listen", self.listen])
+                zs = with_zenoh_config(ZenohSettings(connect=(self.endpoint,)), logger=self.log)
             session = open_session(zs, self.stop, logger=self.log)
             if session is None:
                 return summary
@@ -313,18 +397,28 @@ class Emulation:
                                                                history=True)
                 subs = [session.declare_subscriber(k, self._on_data)
                         for k in (self.keys.estimates(), self.keys.fusion_diagnostics())]
-                self._spawn("fusion", ["fusion", "--site", o.site, "--connect", self.endpoint,
+                self._spawn("fusion", ["fusion", "--site", o.site, *self._zargs("fusion"),
                                        "--epoch-period-s", str(1.0 / o.rate_hz),
                                        "--delta-m", str(o.delta_m), *scen])
                 for aid, off in zip(self.anchor_ids, offsets, strict=True):
                     self._spawn(f"anchor-{aid}", [
-                        "anchor", "--id", aid, "--site", o.site, "--connect", self.endpoint,
+                        "anchor", "--id", aid, "--site", o.site, *self._zargs("anchor", aid),
                         "--seed", str(o.seed), "--rate-hz", str(o.rate_hz), "--wait-start",
                         "--clock-offset-ms", f"{off:.4f}", "--channel", o.channel,
                         "--max-nodes", str(o.max_nodes), *scen])
                 need = {self.keys.alive_anchor(a) for a in self.anchor_ids} | {self.keys.alive_fusion()}
                 for name, (module, build, ready_key) in EXTRA_SERVICES.items():
                     argv = build(o, self.endpoint, self.run_id)
+                    if argv is not None and self.profile is not None:
+                        # the same command with this role's identity file instead of --connect
+                        z = self._zargs(name)
+                        if z is None:
+                            log_event(self.log, logging.WARNING, "not started: the security "
+                                      "profile has no identity for it", service=name)
+                            argv = None
+                        else:
+                            i = argv.index("--connect")
+                            argv = argv[:i] + z + argv[i + 2:]
                     if argv is not None and importlib.util.find_spec(module) is not None:
                         self._spawn(name, argv)
                         if ready_key is not None:
@@ -352,6 +446,8 @@ class Emulation:
                 live.undeclare()
         finally:
             self.shutdown()
+            if tmp is not None:
+                tmp.cleanup()
         return summary
 
     # -------------------------------------------------------------- monitoring
@@ -498,6 +594,7 @@ class Emulation:
         expected_epochs = int(o.duration_s * o.rate_hz)
         out.update(
             run_id=self.run_id, endpoint=self.endpoint, anchors=len(self.anchor_ids),
+            secured=self.profile is not None,
             nodes=len(self.nodes), duration_s=o.duration_s, speed=o.speed, channel=o.channel,
             expected_epochs_per_node=expected_epochs,
             epochs_per_node_min=min((len(v) for v in scorer.epochs.values()), default=0),

@@ -240,6 +240,8 @@ def test_anchor_killed_and_hung_fusion_continues_and_takes_it_back(services, end
     with _system(services, endpoint, tmp_path, site=site, scenario=scenario, anchors=anchors,
                  max_nodes=4, lease_file=True) as bus:
         ignore = {f"anchor-{killed}"}
+        # (a plain --zenoh-config file: the service says it is unauthenticated, once)
+        assert services.log("anchor-uav1").count("UNAUTHENTICATED") == 1
         # ---- SIGKILL
         t_kill = time.monotonic()
         services.kill(f"anchor-{killed}")
@@ -434,3 +436,109 @@ def test_router_killed_and_restarted_clients_reconnect_nothing_lost_after(
             recorder_liveliness_events=len(live))
     assert hole_s >= (t_restart - t_kill) * 0.9
     assert t_back - t_restart < 15.0
+
+
+# ----------------------------------------------------------------------------- secured bus
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_secured_emulation_every_service_logs_in(services, tmp_path):
+    """`diffpos emulate --security-profile`: router with TLS + passwords + ACL, each service
+    with its own identity file; the run scores as usual, no service runs unauthenticated,
+    the rendered secrets are removed afterwards."""
+    summary_path = tmp_path / "summary.json"
+    logs = tmp_path / "logs"
+    p = services.start("emulate", "emulate", "paper", "--duration", "2", "--channel", "ideal",
+                       "--security-profile", str(REPO / "security" / "profile.dev.toml"),
+                       "--record", "off", "--dashboard", "off", "--json", str(summary_path),
+                       "--no-progress", "--log-dir", str(logs))
+    assert p.wait(timeout=120) == 0, services.log("emulate")[-3000:]
+    s = json.loads(summary_path.read_text())
+    assert s["secured"] is True and s["endpoint"].startswith("tls/localhost:")
+    assert s["estimates"] == 6 * 20 and not s["lost"]
+    assert s["status"].get("OK", 0) >= 0.9 * s["estimates"]
+    names = {f.stem for f in logs.iterdir()}
+    assert names >= {"router", "fusion", "anchor-uav1", "anchor-uav4"}
+    for f in logs.iterdir():
+        text = f.read_text(errors="replace")
+        assert "UNAUTHENTICATED" not in text, f.name
+        assert "login is refused" not in text, f.name
+    # the orchestrator's own session is secured too, and the rendered files are gone
+    assert "UNAUTHENTICATED" not in services.log("emulate")
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            with contextlib.suppress(OSError):
+                assert b"diffpos-zenoh-" not in (proc / "cmdline").read_bytes()
+
+
+def test_zenoh_config_option_file_env_override_and_errors(tmp_path, monkeypatch, caplog):
+    """--zenoh-config (and its env default) replaces the plain default, an explicit
+    --connect replaces the file's endpoints, a missing file is a one-line ConfigError,
+    health takes --connect or --zenoh-config, never both."""
+    import argparse
+    import logging
+
+    from diffpos_services.servicekit import ConfigError
+    from diffpos_services.servicekit import _main as health_main
+    from diffpos_services.zenoh_config import add_zenoh_arguments, service_settings
+
+    f = tmp_path / "client.json5"
+    f.write_text('// a comment\n{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"],'
+                 ' timeout_ms: -1 }, transport: { auth: { usrpwd: { user: "u", password: "p" } } } }')
+    monkeypatch.setenv("DIFFPOS_ZENOH_CONFIG", str(f))
+    ap = argparse.ArgumentParser()
+    add_zenoh_arguments(ap)
+    log = logging.getLogger("diffpos.test")
+    with caplog.at_level(logging.WARNING, logger="diffpos.test"):
+        zs = service_settings(ap.parse_args([]), log)
+    assert zs.connect == ("tcp/127.0.0.1:7999",) and zs.config is not None
+    assert json.loads(zs.to_config().get_json("transport/auth/usrpwd"))["user"] == "u"
+    assert [r.levelno for r in caplog.records] == [logging.WARNING]  # plain tcp, loopback
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="diffpos.test"):
+        zs = service_settings(ap.parse_args(["--connect", "tcp/10.1.2.3:7447"]), log)
+    assert zs.connect == ("tcp/10.1.2.3:7447",)
+    assert caplog.records[0].levelno == logging.ERROR
+    assert caplog.records[0].getMessage().startswith("NOT loopback")
+    monkeypatch.delenv("DIFFPOS_ZENOH_CONFIG")
+    ap = argparse.ArgumentParser()
+    add_zenoh_arguments(ap, mode="router")
+    with pytest.raises(ConfigError, match=r"missing\.json5: file not found"):
+        service_settings(ap.parse_args(["--zenoh-config", str(tmp_path / "missing.json5")]))
+    zs = service_settings(ap.parse_args(["--listen", "tcp/127.0.0.1:7998"]))
+    assert zs.mode == "router" and zs.listen == ("tcp/127.0.0.1:7998",)
+    with pytest.raises(SystemExit):
+        health_main(["health", "--connect", "tcp/127.0.0.1:1", "--zenoh-config", str(f),
+                     "--liveliness", "diffpos/x/alive/fusion"])
+
+
+def test_open_session_waits_and_says_a_login_may_be_refused():
+    """With a user/password and no router the retry loop's message names both causes; the
+    stop event ends the wait (what SIGTERM does during start-up)."""
+    import logging
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    cfg = zenoh.Config.from_json5(json.dumps({
+        "mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"], "timeout_ms": -1},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"user": "fusion", "password": "nope"}}}}))
+    stop = threading.Event()
+    seen: list[str] = []
+
+    class Stopper(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            seen.append(record.getMessage())
+            stop.set()
+
+    log = logging.getLogger("diffpos.test.open")
+    log.addHandler(Stopper())
+    log.setLevel(logging.INFO)
+    t0 = time.monotonic()
+    assert open_session(cfg, stop, logger=log, attempt_ms=200) is None
+    assert seen == ["waiting for the router or the login is refused: check user/password"]
+    assert time.monotonic() - t0 < 5.0
+    # the caller's configuration is not modified (still waits forever)
+    assert json.loads(cfg.get_json("connect/timeout_ms")) == -1
