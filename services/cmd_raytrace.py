@@ -21,8 +21,9 @@ Install the extra first (about 350 MB, plus Debian's LLVM 19 for Dr.Jit's CPU ba
     pip install -e '.[raytrace]'
     apt-get install libllvm19      # DRJIT_LIBLLVM_PATH defaults to its libLLVM.so.19.1
 
-Cost grows with samples x receivers: about 6 s per 1000 links at 1e5 samples on 2 cores, so
-the paper's full grid (17,600 receivers x 4 anchors) takes several minutes. Sampling finds
+Cost grows with samples x receivers: 6-18 s per 1000 links at 1e5 samples on 2 cores
+(idle vs shared machine), so the paper's full grid (17,600 receivers x 4 anchors) takes
+7-22 minutes. Sampling finds
 almost every direct window-edge diffraction path at 1e5 samples, but diffraction paths that
 then cross partitions (Tx-D-T-Rx) are found only partly; raise --samples to find more.
 
