@@ -172,6 +172,7 @@ def liveliness_topic(site: str) -> str:
 SEQUENCE_STREAMS: dict[str, str] = {
     "anchor_state": "anchor/{anchor}/**",
     "range": "anchor/{anchor}/**",
+    "range_batch": "anchor/{anchor}/**",
     "estimate": "node/*/estimate",
     "replay_estimate": "replay/node/*/estimate",
 }
@@ -272,6 +273,8 @@ DEFAULT_KIND_TO_STEMS: dict[str, tuple[str, ...]] = {
     "truth_node": ("truth",),
     "truth_anchor": ("truth",),
     "run_control": ("run_control",),
+    "run_clock": ("run_clock",),
+    "range_batch": ("range_batch",),
     "replay_estimate": ("estimate",),
 }
 
