@@ -69,6 +69,11 @@ class AlignmentConfig:
         An epoch is released before its deadline only with at least this many anchor reports
         (3: fewer cannot give a 3D fix anyway): at start-up, before every anchor has been
         seen, the first anchors alone must not complete an epoch.
+    max_future_ns : int [ns]
+        An epoch starting more than this after the consensus time (lower median of the live
+        anchors' latest times, with >= 3 of them) is a *stray*: it is solved like any other
+        but does not move the node's "already solved" mark, so one range with a wrong
+        (future) time stamp cannot make the node's good ranges late.
     """
 
     epoch_period_ns: int = 100_000_000
@@ -78,12 +83,13 @@ class AlignmentConfig:
     node_speed_sigma_m_s: float = 1.0
     velocity_sigma_m_s: float = 0.3
     min_reports: int = 3
+    max_future_ns: int = 1_000_000_000
 
     def __post_init__(self) -> None:
         for name in ("epoch_period_ns", "deadline_ns"):
             if int(getattr(self, name)) <= 0:
                 raise ValueError(f"{name} must be > 0 [ns]")
-        for name in ("clock_tolerance_ns", "max_state_extrapolation_ns"):
+        for name in ("clock_tolerance_ns", "max_state_extrapolation_ns", "max_future_ns"):
             if int(getattr(self, name)) < 0:
                 raise ValueError(f"{name} must be >= 0 [ns]")
         for name in ("node_speed_sigma_m_s", "velocity_sigma_m_s"):
@@ -359,6 +365,7 @@ class EpochBook:
         self.solved_upto: dict[str, int] = {}  # node -> last solved epoch
         self.late = 0
         self.replaced = 0
+        self.strays = 0
 
     def add(self, anchor_id: str, node_id: str, entry: RangeEntry) -> bool:
         """Add a range; False (and ``late`` += 1) if its epoch was already solved."""
@@ -411,6 +418,15 @@ class EpochBook:
     def forget_anchor(self, anchor_id: str) -> None:
         self.latest_t_ns.pop(anchor_id, None)
 
+    def set_anchor_time(self, anchor_id: str, t_ns: int) -> None:
+        """Overwrite an anchor's latest time (its previous one was found implausible)."""
+        self.latest_t_ns[anchor_id] = int(t_ns)
+
+    def consensus_t_ns(self, live_anchors: set[str] | frozenset[str]) -> int | None:
+        """Lower median of the live anchors' latest times (None with fewer than 3)."""
+        ts = sorted(self.latest_t_ns[a] for a in live_anchors if a in self.latest_t_ns)
+        return ts[(len(ts) - 1) // 2] if len(ts) >= 3 else None
+
     def ready(self, live_anchors: set[str] | frozenset[str], now_wall_ns: int) -> list[PendingEpoch]:
         """Remove and return the epochs that are ready, oldest first.
 
@@ -422,6 +438,10 @@ class EpochBook:
         cfg = self.config
         out: list[PendingEpoch] = []
         blocked: set[str] = set()
+        if not self.pending:
+            return out
+        t_c = self.consensus_t_ns(live_anchors)
+        horizon = None if t_c is None else (t_c + cfg.max_future_ns) // cfg.epoch_period_ns
         for key in sorted(self.pending, key=lambda k: (k[1], k[0])):
             pe = self.pending[key]
             if pe.node_id in blocked:
@@ -436,6 +456,9 @@ class EpochBook:
             if done:
                 out.append(pe)
                 del self.pending[key]
+                if horizon is not None and pe.epoch > horizon:
+                    self.strays += 1
+                    continue
                 self.solved_upto[pe.node_id] = max(
                     pe.epoch, self.solved_upto.get(pe.node_id, -(2**62))
                 )

@@ -109,6 +109,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
             max_state_extrapolation_ns=round(self.max_state_extrapolation_s * 1e9),
             node_speed_sigma_m_s=self.node_speed_sigma_m_s,
             velocity_sigma_m_s=self.velocity_sigma_m_s,
+            max_future_ns=round(self.max_future_s * 1e9),
         )
 
 
@@ -307,8 +308,15 @@ class FusionCore:
         else:
             return None
         if lo <= t_ns <= hi:
-            if anchor is not None and anchor.resync[0]:
-                anchor.resync = (0, 0)
+            if anchor is not None:
+                if anchor.resync[0]:
+                    anchor.resync = (0, 0)
+                if ref is not None and anchor.last_t_ns is not None and anchor.last_t_ns > hi:
+                    # the anchor's own newest time is implausible (e.g. its first message
+                    # was far in the future): follow the consensus again
+                    anchor.last_t_ns = t_ns
+                    self.book.set_anchor_time(anchor.id, t_ns)
+                    self._tref_dirty = True
             return None
         reason = "time_future" if t_ns > hi else "time_past"
         if anchor is not None:

@@ -309,6 +309,10 @@ class RunClock(_Msg, tag="diffpos.run_clock.v1"):
     t_ns: TimeNs
 
 
+class _Untagged(_Msg, tag="diffpos.never-sent"):
+    """Sentinel member of the decoders' tagged unions (no message has this tag)."""
+
+
 #: message struct -> schema file stem
 MESSAGE_TYPES: dict[type[msgspec.Struct], str] = {
     AnchorState: "anchor_state.v1",
@@ -365,11 +369,14 @@ def decoder(kind: type[msgspec.Struct]):
     """
     dec = _DECODERS.get(kind)
     if dec is None:
-        dec = _DECODERS[kind] = msgspec.json.Decoder(kind)
+        # a tagged union (with a never-sent sentinel) makes msgspec require the ``schema`` tag:
+        # decoding the struct alone would accept a message without one
+        target = kind | _Untagged if issubclass(kind, _Msg) else kind
+        dec = _DECODERS[kind] = msgspec.json.Decoder(target)
 
     def decode(payload: bytes | bytearray | memoryview) -> Any:
         try:
-            return dec.decode(payload)
+            msg = dec.decode(payload)
         except msgspec.ValidationError as exc:
             raise DecodeError("schema", str(exc)) from None
         except msgspec.DecodeError as exc:
@@ -377,6 +384,10 @@ def decoder(kind: type[msgspec.Struct]):
         except RecursionError:
             # msgspec skips unknown fields recursively: ~1000 nested arrays exhaust the stack
             raise DecodeError("json", "JSON nested too deeply") from None
+        if type(msg) is not kind:
+            raise DecodeError("schema", f"Invalid value {_Untagged.__struct_config__.tag!r} - "
+                              "at `$.schema`")
+        return msg
 
     return decode
 
