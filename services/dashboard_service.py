@@ -106,6 +106,23 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _ensure_viewer_on_path() -> None:
+    """``spawn`` runs the ``rerun`` executable from PATH; the one of this Python environment
+    (rerun-sdk's wheel) is used when the venv is not activated (``/path/venv/bin/diffpos``)."""
+    import shutil
+
+    if shutil.which("rerun"):
+        return
+    here = Path(sys.executable).parent
+    if (here / "rerun").exists():
+        os.environ["PATH"] = f"{here}{os.pathsep}{os.environ.get('PATH', '')}"
+        return
+    raise RuntimeError(
+        "--rerun spawn needs the `rerun` viewer executable (it comes with rerun-sdk); it is "
+        "not on PATH: activate the virtual environment, or use --rerun serve / save PATH"
+    )
+
+
 def web_viewer_url(url: str, *, host: str, web_port: int) -> str:
     """URL of the hosted web viewer that connects to the gRPC server ``url``."""
     return f"http://{host}:{web_port}/?url={urllib.parse.quote(url, safe='')}"
@@ -157,6 +174,7 @@ def open_rerun(
                 "--rerun spawn needs a display (DISPLAY/WAYLAND_DISPLAY is not set); use "
                 "--rerun serve (web viewer) or --rerun save PATH instead"
             )
+        _ensure_viewer_on_path()
         rec.spawn(memory_limit=target.memory_limit, default_blueprint=bp)
         return rec, "Rerun viewer spawned (native window)"
     if mode == "serve":
