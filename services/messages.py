@@ -59,7 +59,8 @@ SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 Id = Annotated[
     str,
     Meta(
-        pattern=r"^[A-Za-z0-9_][A-Za-z0-9_\-]{0,63}$",
+        # "(?!\n)": Python's "$" (msgspec, jsonschema) also matches before a final newline
+        pattern=r"^[A-Za-z0-9_][A-Za-z0-9_\-]{0,63}$(?!\n)",
         description="Identifier, a single Zenoh key chunk (letters, digits, '_' and '-').",
     ),
 ]
@@ -100,7 +101,7 @@ FixStatusName = Annotated[
             "Fix status, the name of diffpos.estimators.FixStatus (e.g. OK, DEGRADED, "
             "UNIDENTIFIABLE, NOT_CONVERGED, INSUFFICIENT)."
         ),
-        pattern=r"^[A-Z][A-Z0-9_]*$",
+        pattern=r"^[A-Z][A-Z0-9_]*$(?!\n)",
     ),
 ]
 
