@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if not counts["building"]:
         print(
-            "note: no building (give --scenario FILE.toml): paths drawn as straight lines, no wireframe"
+            "note: no scenario in the recording: give --scenario FILE.toml, a shipped name or 'default' (emulate's built-in) for the building; without it paths are straight lines and there is no wireframe"
         )
     if not counts["estimate"]:
         print(
