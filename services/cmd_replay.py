@@ -23,6 +23,7 @@ examples:
   diffpos replay recordings/sample.mcap --set deadline_s=0.5 --set motion_compensation=false
   diffpos replay run.mcap --write-mcap run.replayed.mcap    # replayed estimates on
                                                             #  diffpos/<site>/replay/node/<id>/estimate
+  diffpos replay run.mcap --rrd run.replayed.rrd            # Rerun dashboard of the replay
 """
 
 from __future__ import annotations
@@ -60,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="recorded live estimates vs replayed, side by side")
     o.add_argument("--write-mcap", metavar="OUT.mcap",
                    help="write a copy of the recording plus the replayed estimates")
+    o.add_argument("--rrd", metavar="OUT.rrd",
+                   help="write the Rerun dashboard of the replay (replayed estimates, recorded "
+                   "anchors and truth; open with `rerun OUT.rrd`)")
     o.add_argument("--max-truth-gap", type=float, default=0.5, metavar="S",
                    help="only evaluate fixes within S seconds of a truth sample (default 0.5)")
     o.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -208,6 +212,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"diffpos replay: {exc.filename or src}: {exc.strerror}", file=sys.stderr)
         return 2
     rep = result.report
+    if args.rrd:
+        from diffpos_services.dashboard import mcap_to_rrd
+
+        mcap_to_rrd(src, args.rrd, estimates=result.estimates,
+                    recording_id=f"{src.stem}-replay")
     if not args.no_files:
         out_dir = Path(args.out) if args.out else Path("out") / "replay" / src.stem
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -224,4 +233,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"wrote {f}")
         if args.write_mcap:
             print(f"wrote {args.write_mcap}")
+        if args.rrd:
+            print(f"wrote {args.rrd}")
     return 0
