@@ -255,7 +255,10 @@ def test_anchor_killed_and_hung_fusion_continues_and_takes_it_back(services, end
         # ---- SIGKILL
         t_kill = time.monotonic()
         services.kill(f"anchor-{killed}")
-        bus.pump(lambda: bus.diag_alive(killed, False, t_kill) is not None, timeout_s=10,
+        # (the token's DELETE and the fusion's diagnostics reach this client on two
+        # subscriber threads: either may be handled first)
+        bus.pump(lambda: bus.diag_alive(killed, False, t_kill) is not None
+                 and bus.keys.alive_anchor(killed) not in bus.alive, timeout_s=10,
                  what="fusion marks the killed anchor lost", services=services, ignore=ignore)
         t_lost = bus.diag_alive(killed, False, t_kill)
         t_token = next(t for t, k, v in bus.alive_events if t >= t_kill and not v
@@ -361,12 +364,16 @@ def test_fusion_killed_and_restarted_resumes_without_conflicting_estimates(
                  what="fusion token gone", services=services, ignore=ignore)
         t_gone = next(t for t, k, v in bus.alive_events
                       if t >= t_kill and not v and k == bus.keys.alive_fusion())
-        t_restart = time.monotonic()
+        t_restart, w_restart = time.monotonic(), time.time_ns()
         services.start("fusion-restarted", "fusion", "--site", site, "--connect", endpoint,
                        "--scenario", scenario)
-        bus.pump(lambda: bus.first_estimate(t_restart) is not None, timeout_s=30,
+
+        def new(e: M.PositionEstimate) -> bool:  # published by the restarted process
+            return e.t_pub_wall_ns > w_restart
+
+        bus.pump(lambda: bus.first_estimate(t_restart, new) is not None, timeout_s=30,
                  what="estimates from the restarted fusion", services=services, ignore=ignore)
-        t_resume, w_resume = bus.first_estimate(t_restart), time.time_ns()
+        t_resume, w_resume = bus.first_estimate(t_restart, new), time.time_ns()
         bus.pump(lambda: bus.epochs_after(t_resume) >= 10 and all(
             any(e.node_id == n for t, e in bus.estimates if t >= t_resume) for n in bus.nodes),
             timeout_s=20, what="1 s of estimates after the restart", services=services,
@@ -420,6 +427,9 @@ def test_router_killed_and_restarted_clients_reconnect_nothing_lost_after(
                  timeout_s=30, what="fixes with every anchor after the restart",
                  services=services, ignore=ignore)
         t_fix = bus.first_estimate(t_restart, lambda e: set(e.used_anchors) == full)
+        bus.pump(lambda: all(bus.seqs[a][-1][0] > t_restart for a in anchors), timeout_s=20,
+                 what="a message from every anchor after the restart", services=services,
+                 ignore=ignore)
         n_first = {a: next(i for i, (t, _) in enumerate(bus.seqs[a]) if t > t_restart)
                    for a in anchors}
         bus.pump(lambda: all(len(bus.seqs[a]) - n_first[a] >= 40 for a in anchors),
