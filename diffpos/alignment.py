@@ -153,13 +153,18 @@ class StateHistory:
         States kept (older ones are dropped). 64 states at 10 Hz cover 6.4 s.
     max_extrapolation_ns : int [ns]
         See :class:`AlignmentConfig`.
+    max_age_ns : int or None [ns]
+        Also drop states older than this before the newest one (``None``: only the
+        capacity limits the history).
     """
 
-    def __init__(self, capacity: int = 64, *, max_extrapolation_ns: int = 500_000_000) -> None:
+    def __init__(self, capacity: int = 64, *, max_extrapolation_ns: int = 500_000_000,
+                 max_age_ns: int | None = None) -> None:
         if capacity < 1:
             raise ValueError("capacity must be >= 1")
         self.capacity = int(capacity)
         self.max_extrapolation_ns = int(max_extrapolation_ns)
+        self.max_age_ns = None if max_age_ns is None else int(max_age_ns)
         # rows kept as Python lists (cheap in-order appends); numpy views rebuilt lazily
         self._t: list[int] = []
         self._rows: list[tuple] = []
@@ -214,8 +219,10 @@ class StateHistory:
             else:
                 self._t.insert(i, t)
                 self._rows.insert(i, row)
-        if len(self._t) > self.capacity:
-            k = len(self._t) - self.capacity
+        k = len(self._t) - self.capacity
+        if self.max_age_ns is not None and self._t[0] < self._t[-1] - self.max_age_ns:
+            k = max(k, bisect.bisect_left(self._t, self._t[-1] - self.max_age_ns))
+        if k > 0:
             del self._t[:k]
             del self._rows[:k]
         self._dirty = True

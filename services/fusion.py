@@ -45,6 +45,7 @@ from .zenoh_config import ZenohSettings, open_session
 __all__ = ["FusionConfig", "FusionCore", "run_fusion"]
 
 _NEG = -(2**62)
+_ACCOUNTED_BYTES = 2048  # samples above this size count against max_queued_bytes
 
 
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
@@ -70,6 +71,8 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
     diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
     queue_size: Annotated[int, Meta(ge=16)] = 8192
+    max_queued_bytes: Annotated[int, Meta(ge=1 << 20)] = 32 << 20
+    state_history_s: Annotated[float, Meta(gt=0, le=3600)] = 60.0
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     # ---- what is accepted (docs/bad_input.md)
     anchors: tuple[str, ...] | None = None
@@ -117,9 +120,11 @@ class _Anchor:
     __slots__ = ("alive", "history", "id", "last_rx_wall_ns", "last_t_ns", "lost_wall_ns",
                  "ranges", "resync", "seqs", "states", "token")
 
-    def __init__(self, anchor_id: str, max_extrapolation_ns: int) -> None:
+    def __init__(self, anchor_id: str, max_extrapolation_ns: int, history_ns: int) -> None:
         self.id = anchor_id
-        self.history = StateHistory(64, max_extrapolation_ns=max_extrapolation_ns)
+        # states kept for history_ns (a backlog of unsolved epochs still finds its states)
+        self.history = StateHistory(4096, max_extrapolation_ns=max_extrapolation_ns,
+                                    max_age_ns=history_ns)
         self.alive = True
         self.token = False
         self.lost_wall_ns: int | None = None
@@ -256,7 +261,8 @@ class FusionCore:
     def _anchor(self, anchor_id: str) -> _Anchor:
         a = self.anchors.get(anchor_id)
         if a is None:
-            a = self.anchors[anchor_id] = _Anchor(anchor_id, self.align.max_state_extrapolation_ns)
+            a = self.anchors[anchor_id] = _Anchor(anchor_id, self.align.max_state_extrapolation_ns,
+                                                  round(self.config.state_history_s * 1e9))
             log_event(self.log, logging.INFO, "anchor seen", anchor=anchor_id)
         return a
 
@@ -842,12 +848,27 @@ def run_fusion(
     q: queue.Queue = queue.Queue(maxsize=config.queue_size)
 
     max_bytes = config.max_message_bytes
+    # the queue is bounded in samples (small ones) and in bytes (large ones, e.g. range
+    # batches): a full queue blocks Zenoh's thread, which paces BLOCK publishers
+    max_queued = config.max_queued_bytes
+    queued = [0]
+    room = threading.Condition()
+
+    def release(size: int) -> None:
+        with room:
+            queued[0] -= size
+            room.notify_all()
 
     def on_data(sample: zenoh.Sample) -> None:
         size = len(sample.payload)
         if size > max_bytes:  # never copied nor queued: bounded memory whatever arrives
             q.put((2, str(sample.key_expr), size, time.time_ns()))
             return
+        if size > _ACCOUNTED_BYTES:
+            with room:
+                while queued[0] > 0 and queued[0] + size > max_queued and not stop.is_set():
+                    room.wait(0.1)
+                queued[0] += size
         q.put((0, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
 
     def on_alive(sample: zenoh.Sample) -> None:
@@ -893,15 +914,16 @@ def run_fusion(
                 except queue.Empty:
                     item = None
                 # ingest what is queued (bounded, so solving and diagnostics keep going);
-                # epoch deadlines count from ingestion, so a backlog does not release epochs
-                # before their queued ranges were seen
-                t_ingest = time.time_ns()
+                # epoch deadlines count from each sample's own ingestion, so neither a backlog
+                # nor a long drain releases epochs before their queued ranges were seen
                 budget = 20_000
                 while item is not None:
                     kind, key, val, rx = item
                     try:
                         if kind == 0:
-                            core.on_sample(key, val, t_ingest)
+                            if len(val) > _ACCOUNTED_BYTES:
+                                release(len(val))
+                            core.on_sample(key, val, time.time_ns())
                         elif kind == 2:
                             core.on_oversized(key, val)
                         else:
