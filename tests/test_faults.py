@@ -279,7 +279,10 @@ def test_anchor_killed_and_hung_fusion_continues_and_takes_it_back(services, end
         bus.pump(lambda: bus.keys.alive_anchor(killed) in bus.alive, timeout_s=60,
                  what="restarted anchor's token", services=services, ignore=ignore)
         bus.start_run()  # the restarted anchor waits for the run's time base
-        bus.pump(lambda: bus.first_estimate(t_restart, lambda e: killed in e.used_anchors),
+        # (the fusion publishes the estimates of a loop iteration before its diagnostics:
+        # wait for both)
+        bus.pump(lambda: bus.first_estimate(t_restart, lambda e: killed in e.used_anchors)
+                 and bus.diag_alive(killed, True, t_restart) is not None,
                  timeout_s=20, what="fixes using the restarted anchor", services=services,
                  ignore=ignore)
         t_back_diag = bus.diag_alive(killed, True, t_restart)
@@ -311,9 +314,9 @@ def test_anchor_killed_and_hung_fusion_continues_and_takes_it_back(services, end
         finally:
             t_cont = time.monotonic()
             services.kill(f"anchor-{hung}", signal.SIGCONT)
-        bus.pump(lambda: bus.first_estimate(t_cont, lambda e: hung in e.used_anchors),
-                 timeout_s=20, what="fixes using the resumed anchor", services=services,
-                 ignore=ignore)
+        bus.pump(lambda: bus.first_estimate(t_cont, lambda e: hung in e.used_anchors)
+                 and bus.diag_alive(hung, True, t_cont) is not None, timeout_s=20,
+                 what="fixes using the resumed anchor", services=services, ignore=ignore)
         t_hung_back = bus.first_estimate(t_cont, lambda e: hung in e.used_anchors)
         assert bus.diag_alive(hung, True, t_cont) is not None, bus.context(t_stop)
         # while it was hung, fixes waited for its ranges until each epoch's deadline
