@@ -303,6 +303,9 @@ class Emulation:
         else:
             err = subprocess.DEVNULL
         env = dict(os.environ, DIFFPOS_LOG_FORMAT="json")
+        # each child gets its bus explicitly (--connect or its own --zenoh-config): an
+        # inherited default file would replace the run's router configuration
+        env.pop("DIFFPOS_ZENOH_CONFIG", None)
         p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
                              start_new_session=True, env=env)
         if err is not subprocess.DEVNULL:

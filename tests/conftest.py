@@ -41,6 +41,7 @@ class ServiceProcesses:
     def start(self, name: str, *argv: str) -> subprocess.Popen:
         log = open(self.log_dir / f"{name}.log", "wb")
         env = dict(os.environ, DIFFPOS_LOG_FORMAT="text")
+        env.pop("DIFFPOS_ZENOH_CONFIG", None)  # hermetic: the test says which bus
         p = subprocess.Popen(
             [sys.executable, "-m", "diffpos_services.cli", *argv],
             stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
