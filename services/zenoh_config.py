@@ -237,7 +237,7 @@ def with_zenoh_config(
     if warning:
         log = logger or logging.getLogger("diffpos")
         level = logging.ERROR if warning.startswith("NOT loopback") else logging.WARNING
-        log_event(log, level, warning, zenoh_config=config_file)
+        log_event(log, level, warning, **({"zenoh_config": str(config_file)} if config_file else {}))
     mode = json.loads(cfg.get_json("mode")) or "peer"
 
     def eps(section: str) -> tuple[str, ...]:
