@@ -121,6 +121,10 @@ class SecurityProfile:
         ``client_cert_dir/<user>.pem`` and ``<user>.key``.
     client_cert_dir : str
         Folder of the client certificates, relative to ``root`` (only with ``mtls``).
+    lease_ms : int or None [ms]
+        Link lease every client announces (``transport/link/tx/lease``): the router drops a
+        client that stays silent this long, so a hung service (or a link gone quiet) is
+        reported lost after it. ``None``: zenoh's default, 10000 ms (docs/faults.md).
     """
 
     root: Path
@@ -135,8 +139,18 @@ class SecurityProfile:
     connect: tuple[str, ...] = ("tls/router:7447",)
     mtls: bool = False
     client_cert_dir: str = "certs/clients"
+    lease_ms: int | None = None
 
     def __post_init__(self) -> None:
+        if self.lease_ms is not None and (
+            isinstance(self.lease_ms, bool)
+            or not isinstance(self.lease_ms, int)
+            or not 100 <= self.lease_ms <= 3_600_000
+        ):
+            raise SecurityError(
+                f"lease_ms={self.lease_ms!r}: give the client link lease in milliseconds, "
+                "an integer from 100 to 3600000 (zenoh's default is 10000)"
+            )
         if self.site != "*" and not _ID_RE.match(self.site):
             raise SecurityError(
                 f"site={self.site!r}: use one key chunk (letters, digits, '_', '-') or '*'"
@@ -248,6 +262,7 @@ def profile_from_dict(
         "connect",
         "mtls",
         "client_cert_dir",
+        "lease_ms",
     }
     unknown = sorted(set(raw) - allowed)
     if unknown:
@@ -266,6 +281,8 @@ def profile_from_dict(
             if not isinstance(v, bool):
                 raise SecurityError(f"{source}: mtls must be true or false")
             kw[k] = v
+        elif k == "lease_ms":
+            kw[k] = v  # checked by SecurityProfile
         else:
             if not isinstance(v, str):
                 raise SecurityError(f"{source}: {k} must be a string")
@@ -595,6 +612,9 @@ def client_config(
         tls["connect_private_key"] = profile.path(
             f"{profile.client_cert_dir}/{user}.key", base_dir=base_dir
         )
+    link: dict[str, Any] = {"protocols": ["tls", "quic"], "tls": tls}
+    if profile.lease_ms is not None:
+        link["tx"] = {"lease": int(profile.lease_ms)}
     return {
         "mode": "client",
         "connect": {
@@ -603,7 +623,7 @@ def client_config(
         },
         "scouting": {"multicast": {"enabled": False}},
         "transport": {
-            "link": {"protocols": ["tls", "quic"], "tls": tls},
+            "link": link,
             "auth": {"usrpwd": {"user": user, "password": password}},
         },
     }
