@@ -42,7 +42,7 @@ from .servicekit import (
     run_main,
     setup_logging,
 )
-from .zenoh_config import add_zenoh_arguments, settings_from_args
+from .zenoh_config import add_zenoh_arguments, open_session, service_settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -148,17 +148,18 @@ def run(args: argparse.Namespace) -> int:
         if args.demo:
             return _demo(rec, building, target)
         try:
-            settings = settings_from_args(args)
+            settings = service_settings(args, log)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         import threading
 
-        import zenoh
-
         stop = Shutdown(log)
         if args.duration is not None:
             threading.Timer(args.duration, stop.set).start()
-        with zenoh.open(settings.to_config()) as session:
+        session = open_session(settings, stop, logger=log)
+        if session is None:  # stopped while waiting for the router
+            return 0
+        with session:
             svc = DashboardService(
                 session,
                 rec,

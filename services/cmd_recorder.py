@@ -40,7 +40,7 @@ from diffpos_services.servicekit import (
     run_main,
     setup_logging,
 )
-from diffpos_services.zenoh_config import add_zenoh_arguments, settings_from_args
+from diffpos_services.zenoh_config import add_zenoh_arguments, service_settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -83,7 +83,7 @@ def _run(args: argparse.Namespace, logger: logging.Logger) -> int:
     )
 
     try:
-        settings = settings_from_args(args)
+        settings = service_settings(args, logger)
         options = RecorderOptions(site=args.site, flush_interval_s=args.flush_interval,
                                   queue_size=args.queue, duration_s=args.duration)
     except ValueError as exc:

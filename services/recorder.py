@@ -30,7 +30,7 @@ from typing import Any
 
 from diffpos_services.keys import Keys
 from diffpos_services.mcap_io import McapSink, SinkStats
-from diffpos_services.zenoh_config import ZenohSettings
+from diffpos_services.zenoh_config import ZenohSettings, open_session
 
 __all__ = [
     "RecorderOptions",
@@ -181,7 +181,10 @@ def record(
                 )
 
     t_end = None if options.duration_s is None else time.monotonic() + options.duration_s
-    with zenoh.open(settings.to_config()) as session:
+    session = open_session(settings, stop, logger=log)
+    if session is None:  # stopped while waiting for the router
+        return sink.stats
+    with session:
         sub = session.declare_subscriber(
             keys.everything(), handlers.FifoChannel(options.queue_size)
         )

@@ -81,7 +81,7 @@ def test_endpoints_ports_and_ids_are_consistent(compose):
     listen = _router_config()["listen"]["endpoints"]
     assert len(listen) == 1
     port = int(listen[0].rsplit(":", 1)[1])
-    assert f"{port}:{port}" in services["router"]["ports"]
+    assert f"127.0.0.1:{port}:{port}" in services["router"]["ports"]  # plain bus: loopback only
     expected = f"tcp/router:{port}"
     from diffpos_services.scenario_io import load_scenario
 
