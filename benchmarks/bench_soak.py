@@ -278,7 +278,8 @@ def run_soak(
         mem[name] = {"start_mb": after[0][1], "end_mb": samples[-1][1],
                      "max_mb": max(v for _, v in samples),
                      "growth_mb": samples[-1][1] - after[0][1],
-                     "slope_mb_per_min": _slope_mb_per_min(after)}
+                     "slope_mb_per_min": _slope_mb_per_min(after),
+                     "samples": [[round(t, 1), round(v, 1)] for t, v in samples]}
     result["rss"] = mem
     # ---- recorder
     if recorder:

@@ -336,7 +336,7 @@ def compensate_node_motion(
 
 
 # ----------------------------------------------------------------------------- epochs
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class RangeEntry:
     """One range in an epoch (what the fusion keeps of a RangeMeasurement)."""
 

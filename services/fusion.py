@@ -10,6 +10,12 @@ Two layers:
   drains the queue, decodes, solves and publishes (no work on Zenoh's threads).
 
 What the fusion assumes about time is documented in :mod:`diffpos.alignment`.
+
+Bad input (docs/bad_input.md): every sample is checked before it is used (size, key, allow-
+lists and id caps, JSON and schema, key/payload ids, plausible values, duplicate sequence
+numbers, plausible time against the anchors' consensus). A rejected sample is counted in
+``diagnostics.rejected[<reason>]`` and logged once per anchor and reason; ingestion never
+raises on bad input, and a rejected sample changes nothing else.
 """
 
 from __future__ import annotations
@@ -73,6 +79,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     queue_size: Annotated[int, Meta(ge=16)] = 8192
     max_queued_bytes: Annotated[int, Meta(ge=1 << 20)] = 32 << 20
     state_history_s: Annotated[float, Meta(gt=0, le=3600)] = 60.0
+    max_fixes_per_step: Annotated[int, Meta(ge=1)] = 4096
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     # ---- what is accepted (docs/bad_input.md)
     anchors: tuple[str, ...] | None = None
@@ -251,6 +258,7 @@ class FusionCore:
         self._dec_range = M.decoder(M.RangeMeasurement)
         self._dec_batch = M.decoder(M.RangeBatch)
         self.changed = False  # liveliness changed since the last diagnostics
+        self._ready: collections.deque[PendingEpoch] = collections.deque()
 
     # ------------------------------------------------------------------ ingestion
     def _reject(self, key: str, reason: str, detail: str = "", *, source: str = "bus",
@@ -584,11 +592,32 @@ class FusionCore:
 
     # ------------------------------------------------------------------ solving
     def step(self, now_wall_ns: int) -> list[M.PositionEstimate]:
-        """Solve every ready epoch (one batched D-NLS call) and return the estimates."""
-        ready = self.book.ready(self.live_anchors, now_wall_ns)
-        if not ready:
+        """Solve the ready epochs (one batched D-NLS call) and return the estimates.
+
+        At most ``max_fixes_per_step`` epochs, oldest first: after a stall the backlog is
+        solved in bounded chunks (bounded working memory; the caller ingests in between, see
+        :attr:`backlog`).
+        """
+        self._ready.extend(self.book.ready(self.live_anchors, now_wall_ns))
+        if not self._ready:
             return []
-        return self._solve(ready)
+        n = min(len(self._ready), self.config.max_fixes_per_step)
+        return self._solve([self._ready.popleft() for _ in range(n)])
+
+    @property
+    def backlog(self) -> int:
+        """Ready epochs not solved yet (call :meth:`step` again without waiting)."""
+        return len(self._ready)
+
+    def flush(self) -> list[M.PositionEstimate]:
+        """Solve everything ready or pending (at shutdown: nothing received is lost)."""
+        self._ready.extend(sorted(self.book.pending.values(), key=lambda p: p.epoch))
+        self.book.pending.clear()
+        out: list[M.PositionEstimate] = []
+        while self._ready:
+            n = min(len(self._ready), self.config.max_fixes_per_step)
+            out += self._solve([self._ready.popleft() for _ in range(n)])
+        return out
 
     def _solve(self, epochs: list[PendingEpoch]) -> list[M.PositionEstimate]:
         from diffpos.estimators import ExclusionReason, FixStatus, dnls
@@ -815,7 +844,7 @@ class FusionCore:
             published=self.published,
             fixes_by_status=dict(self.by_status),
             late_ranges=self.book.late,
-            pending_epochs=len(self.book.pending),
+            pending_epochs=len(self.book.pending) + len(self._ready),
             live_anchors=sorted(self.live_anchors),
             anchors=[
                 M.AnchorHealth(a.id, a.alive, a.states, a.ranges, a.last_t_ns, a.lost_wall_ns)
@@ -908,7 +937,7 @@ def run_fusion(
                 now = time.time_ns()
                 dl = core.book.next_deadline_wall_ns()
                 wake = min(next_diag, dl if dl is not None else next_diag)
-                timeout = min(max((wake - now) * 1e-9, 0.0), 0.1)
+                timeout = 0.0 if core.backlog else min(max((wake - now) * 1e-9, 0.0), 0.1)
                 try:
                     item = q.get(timeout=timeout)
                 except queue.Empty:
@@ -960,7 +989,7 @@ def run_fusion(
                     next_diag = now + period_ns
         finally:
             # flush what is pending so nothing already received is lost
-            for est in core._solve(list(core.book.pending.values())) if core.book.pending else []:
+            for est in core.flush():
                 session.put(
                     keys.node_estimate(est.node_id),
                     M.encode(est),
@@ -968,7 +997,6 @@ def run_fusion(
                     congestion_control=zenoh.CongestionControl.BLOCK,
                 )
                 core.published += 1
-            core.book.pending.clear()
             diag_pub.put(M.encode(core.diagnostics(time.time_ns())))
             token.undeclare()
             live_sub.undeclare()
