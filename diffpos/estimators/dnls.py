@@ -354,6 +354,25 @@ def _solve_chunk(
         gating_failed=np.zeros(n, dtype=bool),
         tested=np.zeros(n, dtype=bool),
     )
+    solve_candidates = None
+    if x0 is None:
+        sig_i = sigmas[idx]
+
+        def solve_candidates(pi, cu, warm):
+            # the first fit's multi-start on each candidate subset, plus the warm start
+            aa, rr = a[pi], r[pi]
+            st = grid_starts(aa, cu, z_starts, y_start)
+            if lls_start:
+                st = np.concatenate([st, _lls_starts(aa, rr, cu, st)], axis=1)
+            st = np.concatenate([st, warm[:, None, :]], axis=1)
+            xc, _c, ic, vc = multistart_fit(
+                aa, rr, cu / sig_i[pi], st, mdl.take(pi), loss=loss, loss_scale=loss_scale,
+                max_iter=max_iter, xtol=xtol, keep_starts=keep_starts,
+                screen_iter=screen_iter, recheck=cu.sum(axis=-1) - 3,
+            )
+            xc[:, 1] = np.abs(xc[:, 1])
+            return xc, ic, vc
+
     if gating is not None:
         run_gating(
             state,
@@ -366,6 +385,7 @@ def _solve_chunk(
             sigmas_given=sigmas_given,
             loss=loss,
             loss_scale=loss_scale,
+            solve_candidates=solve_candidates,
         )
         state.x_m[:, 1] = np.abs(state.x_m[:, 1])
     used = state.used
@@ -395,6 +415,10 @@ def _solve_chunk(
     status = np.full(n, int(FixStatus.OK), dtype=np.int_)
     status[~state.tested] = FixStatus.OK_UNVERIFIED
     status[state.gating_failed] = FixStatus.GATING_FAILED
+    if gating is not None and gating.z_range_m is not None:
+        z_lo, z_hi = gating.z_range_m
+        z = state.x_m[:, 2]
+        status[(status == FixStatus.OK) & ((z < z_lo) | (z > z_hi))] = FixStatus.GATING_FAILED
     status[~state.converged] = FixStatus.NOT_CONVERGED
     status[~bnd.identifiable] = FixStatus.NOT_IDENTIFIABLE
     status[n_used < 3] = FixStatus.TOO_FEW_ANCHORS

@@ -40,7 +40,9 @@ class FixStatus(enum.IntEnum):
     """Fewer than 3 usable measurements (paper Corollary 3: ``M >= 3`` is necessary)."""
     GATING_FAILED = 5
     """The residual test failed and no exclusion could make it pass (or too few anchors
-    remained to try). The position is returned but should not be trusted."""
+    remained to try), or the test passed but the position lies outside the plausible heights
+    (``GatingConfig.z_range_m``, default below ground; the message says which). The position
+    is returned but should not be trusted."""
     INVALID_INPUT = 6
     """A field of the problem is malformed (non-finite, negative range, bad sigma)."""
 
@@ -211,6 +213,14 @@ class FixResult:
             )
         if st == FixStatus.NOT_CONVERGED:
             return f"not converged after {it} iterations ({n_used} anchors)" + excl_txt + test_txt
+        if st == FixStatus.GATING_FAILED and self.test_statistic[i] <= self.test_threshold[i]:
+            # the test passed: only the plausibility check (GatingConfig.z_range_m) fails a fix
+            return (
+                f"residual test passed with {n_used} anchors, but the height "
+                f"z = {self.position_m[i, 2]:.3g} m is outside the plausible range "
+                "(GatingConfig.z_range_m, default above ground): likely a mirror solution, "
+                "the position is unreliable" + excl_txt + test_txt
+            )
         if st == FixStatus.GATING_FAILED:
             return (
                 f"residual test failed and exclusion could not fix it ({n_used} anchors left); "
