@@ -90,6 +90,65 @@ def test_exclusion_refit_equals_direct_fit_without_the_anchor():
     assert recs[0]["excluded_anchors"] == [{"index": 2, "reason": "raim"}]
 
 
+def test_large_fault_exclusion_matches_exhaustive_multistart_leave_one_out():
+    """+10 m on one of 6 anchors: the all-anchor fit often lands in a wrong basin. The gating
+    must pick the same anchor and position as a brute-force reference that solves every
+    leave-one-out subset from all starts (independent dnls calls, gating off) and keeps the
+    smallest statistic; warm-started candidates (the old behaviour) exclude honest anchors."""
+    rng = np.random.default_rng(27)
+    n = 120
+    anchors, nodes, p = _scene(rng, n)
+    r = p + SIGMA_M * rng.standard_normal(p.shape)
+    j = rng.integers(0, 6, n)
+    r[np.arange(n), j] += 10.0
+    fix = dnls(anchors, r, SIGMA_M, window_height_m=W_M)
+    # brute force: 6 subsets per fix, each a full multi-start solve
+    stat = np.empty((n, 6))
+    pos = np.empty((n, 6, 3))
+    for k in range(6):
+        mask = np.ones((n, 6), dtype=bool)
+        mask[:, k] = False
+        sub = dnls(anchors, r, SIGMA_M, mask=mask, window_height_m=W_M, gating=None)
+        stat[:, k] = sub.test_statistic
+        pos[:, k] = sub.position_m
+    best = np.argmin(stat, axis=1)
+    assert np.mean(best == j) >= 0.99  # the reference identifies the fault
+    got = np.argmax(fix.exclusion_reason == ExclusionReason.RAIM, axis=1)
+    assert np.all(fix.excluded.sum(axis=1) == 1)
+    assert np.mean(got == best) >= 0.99
+    same = got == best
+    assert np.allclose(fix.position_m[same], pos[same, best[same]], atol=1e-6)
+    assert np.mean(fix.status == FixStatus.OK) >= 0.99
+    honest = np.ones((n, 6), dtype=bool)
+    honest[np.arange(n), j] = False
+    warm = dnls(anchors, r, SIGMA_M, window_height_m=W_M,
+                gating=GatingConfig(multistart_exclusion=False))
+    assert np.sum(fix.excluded & honest) < np.sum(warm.excluded & honest)
+
+
+def test_z_range_flags_below_ground_fix():
+    """A consistent fix (noise-free, the test passes) below ground is not OK by default, OK
+    with the check off; a fix above ground is OK either way."""
+    anchors = SIX_ANCHORS_M
+    nodes = np.array([[2.0, 5.0, -2.5], [2.0, 5.0, 4.5]])
+    r = window_edge_path(anchors, nodes[:, None, :], window_height_m=W_M).length_m
+    fix = dnls(anchors, r, SIGMA_M, window_height_m=W_M, x0_m=nodes)
+    assert np.allclose(fix.position_m, nodes, atol=1e-6)
+    assert np.all(fix.test_statistic <= fix.test_threshold)
+    assert fix.status.tolist() == [FixStatus.GATING_FAILED, FixStatus.OK]
+    assert "outside the plausible range" in fix.message(0)
+    assert "z = -2.5 m" in fix.message(0)
+    off = dnls(anchors, r, SIGMA_M, window_height_m=W_M, x0_m=nodes,
+               gating=GatingConfig(z_range_m=None))
+    assert off.status.tolist() == [FixStatus.OK, FixStatus.OK]
+    band = dnls(anchors, r, SIGMA_M, window_height_m=W_M, x0_m=nodes,
+                gating=GatingConfig(z_range_m=[-3.0, 4.0]))  # a list is accepted
+    assert band.status.tolist() == [FixStatus.OK, FixStatus.GATING_FAILED]
+    # untestable fixes keep OK_UNVERIFIED (already not trusted)
+    three = dnls(anchors[:3], r[:, :3], SIGMA_M, window_height_m=W_M, x0_m=nodes)
+    assert three.status[0] in (FixStatus.OK_UNVERIFIED, FixStatus.NOT_IDENTIFIABLE)
+
+
 def test_wall_pregate_excludes_range_shorter_than_distance_to_wall():
     """A range shorter than the anchor's stand-off |y_a| is impossible for any inside node."""
     rng = np.random.default_rng(24)
@@ -161,5 +220,9 @@ def test_gating_config_validation():
         GatingConfig(max_exclusions=-1)
     with pytest.raises(ValueError, match="min_anchors_after_exclusion"):
         GatingConfig(min_anchors_after_exclusion=2)
+    for bad in ((1.0, 0.0), (0.0,), "high", (float("nan"), 1.0)):
+        with pytest.raises(ValueError, match="z_range_m"):
+            GatingConfig(z_range_m=bad)
+    assert GatingConfig(z_range_m=[0, 30]).z_range_m == (0.0, 30.0)
     with pytest.raises(TypeError, match="gating"):
         dnls(SIX_ANCHORS_M, np.ones(6), 0.1, window_height_m=1.0, gating="on")
