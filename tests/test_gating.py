@@ -97,7 +97,7 @@ def test_large_fault_exclusion_matches_exhaustive_multistart_leave_one_out():
     smallest statistic; warm-started candidates (the old behaviour) exclude honest anchors."""
     rng = np.random.default_rng(27)
     n = 120
-    anchors, nodes, p = _scene(rng, n)
+    anchors, _nodes, p = _scene(rng, n)
     r = p + SIGMA_M * rng.standard_normal(p.shape)
     j = rng.integers(0, 6, n)
     r[np.arange(n), j] += 10.0
