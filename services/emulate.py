@@ -103,21 +103,41 @@ class EmulationOptions:
 def _recorder_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
     if o.record in (None, "off", ""):
         return None
-    argv = ["recorder", "--site", o.site, "--connect", endpoint, "--name", f"emulate-{run_id}"]
-    if o.record != "auto":
-        argv += ["--out", o.record]
+    argv = ["recorder", "--site", o.site, "--connect", endpoint, "--out", recording_path(o, run_id)]
     if o.scenario:
         argv += ["--scenario", o.scenario]
     return argv
+
+
+def recording_path(o: EmulationOptions, run_id: str) -> str | None:
+    """Where the recorder writes: ``--record PATH``, or for ``auto``
+    ``recordings/<scenario>-<UTC run id>.mcap`` (``None`` when recording is off)."""
+    if o.record in (None, "off", ""):
+        return None
+    if o.record != "auto":
+        return o.record
+    scenario = Path(o.scenario).stem if o.scenario else "paper-default"
+    return str(Path("recordings") / f"{scenario}-{run_id}.mcap")
 
 
 def _dashboard_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
     if not o.dashboard or o.dashboard[0] == "off":
         return None
     argv = ["dashboard", "--site", o.site, "--connect", endpoint, "--rerun", *o.dashboard]
-    if o.scenario:
-        argv += ["--scenario", o.scenario]
+    # without a scenario file the run uses the built-in default: draw that building
+    argv += ["--scenario", o.scenario or "default"]
     return argv
+
+
+def dashboard_hint(o: EmulationOptions) -> str | None:
+    """How to open the dashboard that ``diffpos emulate`` starts (``None`` when it is off)."""
+    if not o.dashboard or o.dashboard[0] == "off":
+        return None
+    from diffpos_services.dashboard_service import RerunTarget, describe_target
+
+    mode = o.dashboard[0]
+    path = o.dashboard[1] if mode == "save" and len(o.dashboard) > 1 else None
+    return describe_target(RerunTarget(mode=mode, path=path))
 
 
 #: name -> (CLI module that must exist, argv builder, liveliness key to wait for or None).
@@ -433,6 +453,10 @@ class Emulation:
                 log_event(self.log, logging.INFO, "all services ready",
                           anchors=len(self.anchor_ids), nodes=len(self.nodes),
                           ready_s=round(time.monotonic() - t_ready, 2), endpoint=self.endpoint)
+                hint = dashboard_hint(o) if "dashboard" in {p.name for p in self.procs} else None
+                if hint:
+                    log_event(self.log, logging.INFO, "dashboard", how=hint)
+                    print(f"dashboard: {hint}", file=sys.stderr, flush=True)
                 # start 0.3 s from now, on the fusion's epoch grid (epoch k = [kT, (k+1)T))
                 period = round(1e9 / o.rate_hz)
                 wall_t0 = -(-(time.time_ns() + 300_000_000) // period) * period
@@ -602,6 +626,8 @@ class Emulation:
             expected_epochs_per_node=expected_epochs,
             epochs_per_node_min=min((len(v) for v in scorer.epochs.values()), default=0),
             lost=lost_events,
+            recording=recording_path(o, self.run_id)
+            if "recorder" in {p.name for p in self.procs} else None,
         )
         if self.diag is not None:
             d = self.diag
@@ -635,5 +661,7 @@ def format_summary(s: dict[str, Any]) -> str:
         rows.append(("fusion latency", f"p50 {f(lat['p50'], ' ms')}  p99 {f(lat['p99'], ' ms')}"))
     if s.get("lost"):
         rows.append(("lost", ", ".join(s["lost"])))
+    if s.get("recording"):
+        rows.append(("recording", f"{s['recording']}  (diffpos replay / inspect / to-rerun FILE)"))
     w = max(len(r[0]) for r in rows)
     return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
