@@ -810,6 +810,9 @@ def reference_table(data: EpochData, faults: Sequence[Fault], gating: GatingConf
 # main
 # --------------------------------------------------------------------------------------------
 
+#: Tables of the report, in order (``--sections``).
+SECTIONS = ("honest", "matched8", "identification", "paper4", "three", "emulator")
+
 
 def default_faults(quick: bool) -> dict[str, list[Fault]]:
     ax = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -834,7 +837,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1, help="noise seed (default 1)")
     ap.add_argument("--epochs", type=int, default=None,
                     help="epochs at 10 Hz (default 300 = 30 s; 60 with --quick)")
+    ap.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS),
+                    help="tables to print (default all): " + ", ".join(SECTIONS))
     args = ap.parse_args(argv)
+    sections = set(args.sections)
     if args.epochs is not None and args.epochs < SUSTAIN_FIXES:
         ap.error(f"--epochs must be >= {SUSTAIN_FIXES}")
     epochs = args.epochs or (60 if args.quick else 300)
@@ -852,10 +858,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     rng = np.random.default_rng(args.seed)
     m8 = simulate_epochs(large, epochs=epochs, source="matched", rng=rng, node_count=nodes)
-    m4 = simulate_epochs(sc4, epochs=epochs, source="matched", rng=rng, node_count=nodes)
-    m3 = simulate_epochs(sc3, epochs=epochs, source="matched", rng=rng, node_count=nodes)
-    em8 = simulate_epochs(large, epochs=epochs, source="emulator", rng=rng, node_count=nodes)
-    em4 = simulate_epochs(sc4, epochs=epochs, source="emulator", rng=rng, node_count=nodes)
+    if sections - {"matched8", "identification"}:  # same draws as a full run
+        m4 = simulate_epochs(sc4, epochs=epochs, source="matched", rng=rng, node_count=nodes)
+        m3 = simulate_epochs(sc3, epochs=epochs, source="matched", rng=rng, node_count=nodes)
+        em8 = simulate_epochs(large, epochs=epochs, source="emulator", rng=rng,
+                              node_count=nodes)
+        em4 = simulate_epochs(sc4, epochs=epochs, source="emulator", rng=rng,
+                              node_count=nodes)
     sig_med = float(np.median(m8.sigmas_m))
     print(f"matched model, 8 anchors: ranging sigma median {sig_med * 100:.1f} cm "
           f"(5-95 %: {np.percentile(m8.sigmas_m, 5) * 100:.1f}-"
@@ -870,74 +879,80 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(flush=True, end="")
 
     # 1. honest anchors: false alarms / exclusions vs P_fa
-    rows: list[list[str]] = []
-    for label, data in (("matched, 8 anchors", m8), ("matched, 4 anchors (paper)", m4)):
-        res = [run_case(data, honest, GatingConfig(false_alarm_probability=p), ungated=False)
-               for p in pfas]
-        rows += honest_rows(label, res)
-    for s_mod in (0.0, 0.3, 0.5, 0.7, 1.0):
-        d = em8.with_sigma_model(s_mod)
-        res = [run_case(d, honest, GatingConfig(false_alarm_probability=p), ungated=False)
-               for p in pfas]
-        rows += honest_rows(f"emulator, 8 anchors, sigma_model {s_mod:g} m", res)
-    print("## Honest anchors: false alarms and exclusions vs the configured P_fa\n")
-    print(table(rows, HONEST_HEADER) + "\n")
-    flush()
+    if "honest" in sections:
+        rows: list[list[str]] = []
+        for label, data in (("matched, 8 anchors", m8), ("matched, 4 anchors (paper)", m4)):
+            res = [run_case(data, honest, GatingConfig(false_alarm_probability=p), ungated=False)
+                   for p in pfas]
+            rows += honest_rows(label, res)
+        for s_mod in (0.0, 0.3, 0.5, 0.7, 1.0):
+            d = em8.with_sigma_model(s_mod)
+            res = [run_case(d, honest, GatingConfig(false_alarm_probability=p), ungated=False)
+                   for p in pfas]
+            rows += honest_rows(f"emulator, 8 anchors, sigma_model {s_mod:g} m", res)
+        print("## Honest anchors: false alarms and exclusions vs the configured P_fa\n")
+        print(table(rows, HONEST_HEADER) + "\n")
+        flush()
 
     # 2. matched, 8 anchors: every fault
-    print("## Matched model, 8 anchors (large.toml), P_fa = 1e-3\n")
-    print(fault_table(evaluate(m8, [honest, *all_faults], g3)) + "\n")
-    flush()
-    stride = 3 if args.quick else 5
-    print(f"## Identification: warm-started vs multi-start exclusion candidates vs exhaustive "
-          f"multi-start leave-one-out (reference), matched, 8 anchors, every {stride}th "
-          "epoch\n")
-    ref_faults = [Fault("bias", 2.0), Fault("bias", 10.0), Fault("bias", -1.0),
-                  Fault("bias", -5.0), Fault("offset", 10.0), Fault("offset", 3.0, (0.0, 0.0, 1.0)),
-                  Fault("ramp", 2.0)]
-    print(reference_table(m8, ref_faults, g3, stride=stride) + "\n")
-    flush()
+    if "matched8" in sections:
+        print("## Matched model, 8 anchors (large.toml), P_fa = 1e-3\n")
+        print(fault_table(evaluate(m8, [honest, *all_faults], g3)) + "\n")
+        flush()
+    if "identification" in sections:
+        stride = 3 if args.quick else 5
+        print(f"## Identification: warm-started vs multi-start exclusion candidates vs exhaustive "
+              f"multi-start leave-one-out (reference), matched, 8 anchors, every {stride}th "
+              "epoch\n")
+        ref_faults = [Fault("bias", 2.0), Fault("bias", 10.0), Fault("bias", -1.0),
+                      Fault("bias", -5.0), Fault("offset", 10.0), Fault("offset", 3.0, (0.0, 0.0, 1.0)),
+                      Fault("ramp", 2.0)]
+        print(reference_table(m8, ref_faults, g3, stride=stride) + "\n")
+        flush()
 
     # 3. the paper's 4 anchors: detection without identification; 3 anchors: nothing
-    print("## Matched model, the paper's 4 anchors: detection only "
-          "(min_anchors_after_exclusion = 4, the default)\n")
-    f4 = [honest, *faults["const"], *faults["ramp"][:3], *faults["offset"][-3:]]
-    print(fault_table(evaluate(m4, f4, g3)) + "\n")
-    flush()
-    print("## Matched model, 4 anchors with min_anchors_after_exclusion = 3 "
-          "(exclusion forced with 1 dof)\n")
-    sel4 = [f for f in f4 if f.kind in ("honest", "bias", "offset")]
-    print(fault_table(evaluate(m4, sel4, GatingConfig(min_anchors_after_exclusion=3)))
-          + "\n")
-    flush()
-    print("## Matched model, 3 anchors (paper's uav1-uav3): no redundancy\n")
-    rows3 = []
-    for r in evaluate(m3, [honest, Fault("bias", 2.0), Fault("bias", 10.0)], g3):
-        st = r.status
-        rows3.append([r.fault.label, _pct(float(np.mean(st == FixStatus.OK_UNVERIFIED))),
-                      _pct(float(np.mean(st == FixStatus.OK))),
-                      _pct(1.0 - float(np.mean(st == FixStatus.OK_UNVERIFIED))),
-                      f"{_m(_q(r.error_m, 50))} / {_m(_q(r.error_m, 95))}",
-                      _pct(float(np.mean((st == FixStatus.OK_UNVERIFIED)
-                                         & (r.error_m > ALERT_LIMIT_M))))])
-    print(table(rows3, ["fault", "OK_UNVERIFIED %", "OK %", "other status %",
-                        "err med/p95 [m]",
-                        f"unverified & err > {ALERT_LIMIT_M:g} m %"]) + "\n")
-    flush()
+    if "paper4" in sections:
+        print("## Matched model, the paper's 4 anchors: detection only "
+              "(min_anchors_after_exclusion = 4, the default)\n")
+        f4 = [honest, *faults["const"], *faults["ramp"][:3], *faults["offset"][-3:]]
+        print(fault_table(evaluate(m4, f4, g3)) + "\n")
+        flush()
+        print("## Matched model, 4 anchors with min_anchors_after_exclusion = 3 "
+              "(exclusion forced with 1 dof)\n")
+        sel4 = [f for f in f4 if f.kind in ("honest", "bias", "offset")]
+        print(fault_table(evaluate(m4, sel4, GatingConfig(min_anchors_after_exclusion=3)))
+              + "\n")
+        flush()
+    if "three" in sections:
+        print("## Matched model, 3 anchors (paper's uav1-uav3): no redundancy\n")
+        rows3 = []
+        for r in evaluate(m3, [honest, Fault("bias", 2.0), Fault("bias", 10.0)], g3):
+            st = r.status
+            rows3.append([r.fault.label, _pct(float(np.mean(st == FixStatus.OK_UNVERIFIED))),
+                          _pct(float(np.mean(st == FixStatus.OK))),
+                          _pct(1.0 - float(np.mean(st == FixStatus.OK_UNVERIFIED))),
+                          f"{_m(_q(r.error_m, 50))} / {_m(_q(r.error_m, 95))}",
+                          _pct(float(np.mean((st == FixStatus.OK_UNVERIFIED)
+                                             & (r.error_m > ALERT_LIMIT_M))))])
+        print(table(rows3, ["fault", "OK_UNVERIFIED %", "OK %", "other status %",
+                            "err med/p95 [m]",
+                            f"unverified & err > {ALERT_LIMIT_M:g} m %"]) + "\n")
+        flush()
 
     # 4. emulator first arrivals (model mismatch)
-    sel_em = [honest, Fault("bias", 1.0), Fault("bias", 2.0), Fault("bias", 5.0),
-              Fault("bias", 20.0), Fault("ramp", 0.5), Fault("offset", 10.0),
-              Fault("offset", 10.0, (0.0, 0.0, 1.0))]
-    for s_mod in (0.5, 1.0):
-        print(f"## Emulator first arrivals, 8 anchors, sigma_model = {s_mod:g} m, "
-              "P_fa = 1e-3\n")
-        d = em8.with_sigma_model(s_mod)
-        print(fault_table(evaluate(d, sel_em, g3), with_model=False) + "\n")
-        flush()
-    print("## Emulator first arrivals, paper's 4 anchors, sigma_model = 1 m, P_fa = 1e-3\n")
-    print(fault_table(evaluate(em4.with_sigma_model(1.0), sel_em[:5], g3), with_model=False)
-          + "\n")
+    if "emulator" in sections:
+        sel_em = [honest, Fault("bias", 1.0), Fault("bias", 2.0), Fault("bias", 5.0),
+                  Fault("bias", 20.0), Fault("ramp", 0.5), Fault("offset", 10.0),
+                  Fault("offset", 10.0, (0.0, 0.0, 1.0))]
+        for s_mod in (0.5, 1.0):
+            print(f"## Emulator first arrivals, 8 anchors, sigma_model = {s_mod:g} m, "
+                  "P_fa = 1e-3\n")
+            d = em8.with_sigma_model(s_mod)
+            print(fault_table(evaluate(d, sel_em, g3), with_model=False) + "\n")
+            flush()
+        print("## Emulator first arrivals, paper's 4 anchors, sigma_model = 1 m, P_fa = 1e-3\n")
+        print(fault_table(evaluate(em4.with_sigma_model(1.0), sel_em[:5], g3), with_model=False)
+              + "\n")
     print(f"total {time.perf_counter() - t_start:.0f} s")
     return 0
 
