@@ -263,7 +263,8 @@ class FusionCore:
     # ------------------------------------------------------------------ ingestion
     def _reject(self, key: str, reason: str, detail: str = "", *, source: str = "bus",
                 count: int = 1) -> None:
-        self.rejected[reason] += count
+        if count:
+            self.rejected[reason] += count
         self.log_once(key, reason, detail, source=source)
 
     def _anchor(self, anchor_id: str) -> _Anchor:
