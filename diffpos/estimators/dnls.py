@@ -354,42 +354,44 @@ def _solve_chunk(
         gating_failed=np.zeros(n, dtype=bool),
         tested=np.zeros(n, dtype=bool),
     )
-    solve_candidates = None
-    if x0 is None:
-        sig_i = sigmas[idx]
+    sig_i = sigmas[idx]
+    x0_i = None if x0 is None else x0[idx]
 
-        def solve_candidates(pi, cu, warm):
-            # The first fit's multi-start on each candidate subset, plus the warm start. The
-            # screening recheck is done per fix, not per candidate: the candidates that keep
-            # the faulty anchor all fail, and re-solving each of them from every start would
-            # only confirm it. A fix is re-solved from all starts (every candidate) only if
-            # none of its screened candidates passes the residual test itself.
-            aa, rr, swc, mc = a[pi], r[pi], cu / sig_i[pi], mdl.take(pi)
+    def solve_candidates(pi, cu, warm):
+        # The first fit's multi-start on each candidate subset, plus the warm start. The
+        # screening recheck is done per fix, not per candidate: the candidates that keep
+        # the faulty anchor all fail, and re-solving each of them from every start would
+        # only confirm it. A fix is re-solved from all starts (every candidate) only if
+        # none of its screened candidates passes the residual test itself.
+        aa, rr, swc, mc = a[pi], r[pi], cu / sig_i[pi], mdl.take(pi)
+        if x0_i is not None:  # one given start: it and the current solution
+            st = x0_i[pi][:, None, :]
+        else:
             st = grid_starts(aa, cu, z_starts, y_start)
             if lls_start:
                 st = np.concatenate([st, _lls_starts(aa, rr, cu, st)], axis=1)
-            st = np.concatenate([st, warm[:, None, :]], axis=1)
-            common = {"loss": loss, "loss_scale": loss_scale, "max_iter": max_iter,
-                      "xtol": xtol, "screen_iter": screen_iter}
-            dof_c = cu.sum(axis=-1) - 3
-            xc, cc, ic, vc = multistart_fit(aa, rr, swc, st, mc, keep_starts=keep_starts,
-                                            recheck=np.zeros_like(dof_c), **common)
-            if keep_starts is not None:
-                thr_c = chi2_threshold(dof_c, gating.false_alarm_probability)
-                good = (dof_c >= 1) & (2.0 * cc <= thr_c)
-                _, grp = np.unique(pi, return_inverse=True)
-                fix_good = np.zeros(grp.max(initial=-1) + 1, dtype=bool)
-                np.logical_or.at(fix_good, grp, good)
-                rows = np.flatnonzero(~fix_good[grp])
-                if rows.size:
-                    x2, c2, i2, v2 = multistart_fit(
-                        aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows),
-                        keep_starts=None, recheck=None, **common)
-                    b = c2 < cc[rows]
-                    rb = rows[b]
-                    xc[rb], ic[rb], vc[rb] = x2[b], i2[b], v2[b]
-            xc[:, 1] = np.abs(xc[:, 1])
-            return xc, ic, vc
+        st = np.concatenate([st, warm[:, None, :]], axis=1)
+        common = {"loss": loss, "loss_scale": loss_scale, "max_iter": max_iter,
+                  "xtol": xtol, "screen_iter": screen_iter}
+        dof_c = cu.sum(axis=-1) - 3
+        xc, cc, ic, vc = multistart_fit(aa, rr, swc, st, mc, keep_starts=keep_starts,
+                                        recheck=np.zeros_like(dof_c), **common)
+        if keep_starts is not None and st.shape[1] > keep_starts:
+            thr_c = chi2_threshold(dof_c, gating.false_alarm_probability)
+            good = (dof_c >= 1) & (2.0 * cc <= thr_c)
+            _, grp = np.unique(pi, return_inverse=True)
+            fix_good = np.zeros(grp.max(initial=-1) + 1, dtype=bool)
+            np.logical_or.at(fix_good, grp, good)
+            rows = np.flatnonzero(~fix_good[grp])
+            if rows.size:
+                x2, c2, i2, v2 = multistart_fit(
+                    aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows),
+                    keep_starts=None, recheck=None, **common)
+                b = c2 < cc[rows]
+                rb = rows[b]
+                xc[rb], ic[rb], vc[rb] = x2[b], i2[b], v2[b]
+        xc[:, 1] = np.abs(xc[:, 1])
+        return xc, ic, vc
 
     if gating is not None:
         run_gating(

@@ -84,11 +84,11 @@ class GatingConfig:
         ``sigmas_m`` the pre-gate runs only if this margin is > 0 (it is the whole tolerance).
     refit_max_iter : int
         Iteration limit of the warm-started refits (pre-gate confirmation, and the exclusion
-        candidates when ``multistart_exclusion`` is False or ``dnls`` got one start ``x0_m``).
+        candidates when ``multistart_exclusion`` is False).
     multistart_exclusion : bool
         Solve every exclusion candidate ``S \\ {j}`` of a *failing* fix from all starts of
-        the first fit (height grid + LLS, with the same screening) plus the current solution,
-        instead of only warm-starting at the current solution. A fault of metres pulls the
+        the first fit (height grid + LLS, with the same screening; or the given ``x0_m``)
+        plus the current solution, instead of only warm-starting at the current solution. A fault of metres pulls the
         all-anchor fit into a wrong local minimum; warm-started candidates stay in it and a
         second round then excludes an honest anchor (``docs/spoofing.md``). Costs up to
         ``M`` multi-start solves per failing fix; fixes that pass the test cost nothing more.
