@@ -592,18 +592,21 @@ class FusionCore:
         return frozenset(a.id for a in self.anchors.values() if a.alive)
 
     # ------------------------------------------------------------------ solving
-    def step(self, now_wall_ns: int) -> list[M.PositionEstimate]:
-        """Solve the ready epochs (one batched D-NLS call) and return the estimates.
+    def step(self, now_wall_ns: int, *, limit: int | None = None) -> list[M.PositionEstimate]:
+        """Solve the ready epochs (batched D-NLS calls of at most ``max_fixes_per_step``
+        epochs each, bounded working memory) and return the estimates, oldest first.
 
-        At most ``max_fixes_per_step`` epochs, oldest first: after a stall the backlog is
-        solved in bounded chunks (bounded working memory; the caller ingests in between, see
-        :attr:`backlog`).
+        With ``limit``, solve at most that many and keep the rest for the next call (the live
+        service ingests in between after a stall, see :attr:`backlog`); without, all.
         """
         self._ready.extend(self.book.ready(self.live_anchors, now_wall_ns))
-        if not self._ready:
-            return []
-        n = min(len(self._ready), self.config.max_fixes_per_step)
-        return self._solve([self._ready.popleft() for _ in range(n)])
+        out: list[M.PositionEstimate] = []
+        todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
+        while todo > 0:
+            n = min(todo, self.config.max_fixes_per_step)
+            out += self._solve([self._ready.popleft() for _ in range(n)])
+            todo -= n
+        return out
 
     @property
     def backlog(self) -> int:
@@ -975,7 +978,7 @@ def run_fusion(
                         except queue.Empty:
                             item = None
                 now = time.time_ns()
-                for est in core.step(now):
+                for est in core.step(now, limit=config.max_fixes_per_step):
                     pub = est_pubs.get(est.node_id)
                     if pub is None:
                         pub = est_pubs[est.node_id] = session.declare_publisher(

@@ -98,12 +98,15 @@ def test_backlog_is_solved_in_bounded_chunks_with_the_same_fixes():
         core.on_sample(k, p, w)
     chunks = []
     while True:
-        out = core.step(10**15)
+        out = core.step(10**15, limit=25)  # as the live service does
         if not out:
             break
         chunks.append(out)
         assert core.diagnostics(0).pending_epochs == core.backlog + len(core.book.pending)
     assert [len(c) for c in chunks] == [25] * 4 + [20]
+    # without a limit everything ready is returned (in internal chunks): what replay expects
+    core_all = FusionCore(build_config(FusionConfig, dict(base, max_fixes_per_step=25)))
+    assert len(run_stream(core_all, backlog)) == 120 and core_all.backlog == 0
     assert [g.epoch for c in chunks for g in c] == sorted(g.epoch for c in chunks for g in c)
     got = sorted((g for c in chunks for g in c), key=lambda g: (g.epoch, g.node_id))
     assert [(g.node_id, g.epoch, g.status) for g in got] == [
