@@ -27,9 +27,10 @@ Identifiers (site, anchor and node ids) are single key chunks: letters, digits, 
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from typing import Literal
+
+from diffpos.scenario import ID_PATTERN
 
 __all__ = [
     "PREFIX",
@@ -43,7 +44,7 @@ __all__ = [
 #: First chunk of every diffpos key.
 PREFIX = "diffpos"
 
-_ID_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_\-]{0,63}$")
+_ID_RE = ID_PATTERN  # one grammar for scenario files and the wire
 
 KeyKind = Literal[
     "anchor_state",
@@ -66,7 +67,7 @@ def check_id(value: str, *, field: str = "id") -> str:
 
     Valid: 1-64 characters from ``[A-Za-z0-9_-]``, not starting with ``-``.
     """
-    if not isinstance(value, str) or not _ID_RE.match(value):
+    if not isinstance(value, str) or not _ID_RE.fullmatch(value):
         raise ValueError(
             f"{field}={value!r} is not a valid identifier: use 1-64 characters from "
             "letters, digits, '_' and '-' (no '/', '*', '$', '?', '#' or spaces)"

@@ -443,8 +443,6 @@ def test_scenario_errors_name_field_and_allowed_range(mutate, needle):
     assert needle in str(info.value)
 
 
-@pytest.mark.xfail(strict=True, reason="scenario ids are not checked with the wire grammar of "
-                   "keys.check_id (fix described for the lead in docs/bad_input.md)")
 @pytest.mark.parametrize("bad_id", ["-uav", "u" * 65, "uäv"])
 def test_scenario_ids_follow_the_wire_grammar(bad_id):
     with pytest.raises(ScenarioError, match=r"anchors\[0\]\.id"):
