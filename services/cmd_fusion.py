@@ -62,6 +62,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=5.0,
         help="assumed bound on anchor clock offsets [ms] (default 5)",
     )
+    parser.add_argument(
+        "--method",
+        choices=["dnls", "lls", "ippa"],
+        default="dnls",
+        help="estimator: dnls (diffraction-aware D-NLS with gating, default), lls (line-of-"
+        "sight linear least squares, the paper's baseline), ippa (iterative parallel projection)",
+    )
     parser.add_argument("--no-gating", action="store_true", help="disable outlier gating")
     parser.add_argument(
         "--no-motion-compensation",
@@ -83,6 +90,7 @@ def config_from_args(args: argparse.Namespace, scenario=None):
 
     values = dict(
         site=args.site,
+        method=getattr(args, "method", "dnls"),
         delta_m=args.delta_m,
         epoch_period_s=args.epoch_period_s,
         deadline_s=args.deadline_s,

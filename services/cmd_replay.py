@@ -38,8 +38,9 @@ from typing import Any
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.mcap", help="recording to replay")
     g = parser.add_argument_group("what if (fusion settings)")
-    g.add_argument("--method", choices=["dnls", "lls", "ippa"], default="dnls",
-                   help="estimator: dnls (the fusion's D-NLS, default), lls (LoS linear least "
+    g.add_argument("--method", choices=["dnls", "lls", "ippa"], default=None,
+                   help="estimator (default: the recorded setting, else dnls): dnls (the "
+                        "fusion's D-NLS), lls (LoS linear least "
                         "squares), ippa (iterative parallel projection)")
     g.add_argument("--no-gating", action="store_true", help="turn outlier gating (RAIM FDE) off")
     g.add_argument("--pfa", type=float, metavar="P",

@@ -17,7 +17,6 @@ estimates side by side.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import json
 import logging
@@ -53,7 +52,6 @@ __all__ = [
     "live_fusion_settings",
     "plot_cdf",
     "replay",
-    "solver_override",
     "synthetic_run",
     "write_synthetic_recording",
 ]
@@ -156,36 +154,6 @@ def derived_fusion_settings(
 
 def _fusion_fields() -> set[str]:
     return set(FusionConfig.__struct_fields__)
-
-
-@contextlib.contextmanager
-def solver_override(method: str | None) -> Iterator[None]:
-    """Make the fusion solve with ``lls`` or ``ippa`` instead of D-NLS (what-if replays).
-
-    Interim: ``FusionCore`` has no estimator setting, so for the duration of the context the
-    name ``dnls`` in :mod:`diffpos.estimators` (which ``FusionCore`` looks up at each solve)
-    is replaced by an adapter that calls the chosen estimator with the same anchors, ranges,
-    sigmas and mask (LLS assumes line of sight; IPPA treats every range as possibly NLoS).
-    Gating, window geometry and warm starts are D-NLS-only and ignored by the adapters.
-    """
-    if method in (None, "dnls"):
-        yield
-        return
-    import diffpos.estimators as est
-
-    if method not in ("lls", "ippa"):
-        raise ConfigError(f"--method {method!r}: choose dnls, lls or ippa")
-    solver = est.lls if method == "lls" else est.ippa
-
-    def adapter(anchors_m, ranges_m, sigmas_m=None, *, mask=None, **_ignored):
-        return solver(anchors_m, ranges_m, sigmas_m, mask=mask)
-
-    original = est.dnls
-    est.dnls = adapter
-    try:
-        yield
-    finally:
-        est.dnls = original
 
 
 # ----------------------------------------------------------------------------------------
@@ -453,7 +421,8 @@ def replay(
         FusionConfig fields to change (e.g. ``{"gating": False}``,
         ``{"false_alarm_probability": 1e-4}``); applied on top of the recorded settings.
     method : {"dnls", "lls", "ippa"}, optional
-        Estimator (default: the fusion's D-NLS); see :func:`solver_override`.
+        Estimator (``FusionConfig.method``; default: the recorded setting, else D-NLS).
+        Overrides a ``method`` in ``overrides``.
     step_ms : float [ms]
         Fusion step granularity in recorded receive time (0 = after every message).
     use_recorded_settings : bool
@@ -515,6 +484,10 @@ def replay(
             f"{', '.join(sorted(_fusion_fields()))}"
         )
     base.update(overrides or {})
+    if method is not None:
+        if method not in ("dnls", "lls", "ippa"):
+            raise ConfigError(f"--method {method!r}: choose dnls, lls or ippa")
+        base["method"] = method
     if "site" not in base and sites:
         base["site"] = sites.most_common(1)[0][0]
     config = build_config(FusionConfig, base)
@@ -538,7 +511,7 @@ def replay(
             "replay",
             {
                 "source": str(path),
-                "method": method or "dnls",
+                "method": config.method,
                 "step_ms": step_ms,
                 "settings": msgspec.to_builtins(config),
                 "settings_source": source,
@@ -553,61 +526,60 @@ def replay(
                 sink.write(replay_estimate_topic(site, e.node_id), M.encode(e), now_ns)
 
     next_step = None
-    with solver_override(method):
-        for batch in itertools.chain(ahead, batches):
-            for m in batch:
-                kind = kind_of.get(m.channel_id)
-                if kind is None:
-                    kind = kind_of[m.channel_id] = parse_topic(m.topic)[0]
-                counts[kind] += 1
-                seq.add(m.topic, m.sequence)
-                now = m.log_ns
-                if t_first is None:
-                    t_first = now
-                t_last = now
-                if sink is not None and copy_input:
-                    sink.write(m.topic, m.data, now, publish_ns=m.publish_ns, sequence=m.sequence)
-                if kind in _FUSION_INPUT_KINDS:
-                    core.on_sample(m.topic, m.data, now)
-                elif kind == "liveliness":
-                    try:
-                        ev = json.loads(m.data)
-                        if ev.get("role") == "anchor" and ev.get("id"):
-                            core.on_liveliness(str(ev["id"]), bool(ev["alive"]), now)
-                    except (ValueError, KeyError, TypeError, AttributeError):
-                        bad_payloads[kind] += 1
-                elif kind == "truth_node":
-                    try:
-                        g = dec_truth(m.data)
-                    except M.DecodeError:
-                        bad_payloads[kind] += 1
-                    else:
-                        tr = truth[g.id]
-                        tr.t_ns.append(g.t_ns)
-                        tr.pos.append(g.position_m)
-                        tr.floor.append(-999 if g.floor_index is None else g.floor_index)
-                elif kind == "estimate":
-                    try:
-                        live.append(dec_est(m.data))
-                    except M.DecodeError:
-                        bad_payloads[kind] += 1
-                if next_step is None or now >= next_step:
-                    emit(core.step(now), now)
-                    next_step = now + step_ns
-            if progress is not None:
-                progress(scanner.offset, scanner.size_bytes)
-        if counts["anchor_state"] + counts["range"] == 0:
-            if sink is not None:
-                sink.close()
-            raise RecordingError(
-                f"{path} has no anchor states or ranges under diffpos/<site>/anchor/...: "
-                "nothing to replay (is it a diffpos recording? see diffpos inspect)"
-            )
-        end = (t_last or 0) + 10**12  # far past every deadline: what is pending is solved
-        emit(core.step(end), t_last or 0)
-        if core.book.pending:  # like the live service at shutdown
-            emit(core._solve(list(core.book.pending.values())), t_last or 0)
-            core.book.pending.clear()
+    for batch in itertools.chain(ahead, batches):
+        for m in batch:
+            kind = kind_of.get(m.channel_id)
+            if kind is None:
+                kind = kind_of[m.channel_id] = parse_topic(m.topic)[0]
+            counts[kind] += 1
+            seq.add(m.topic, m.sequence)
+            now = m.log_ns
+            if t_first is None:
+                t_first = now
+            t_last = now
+            if sink is not None and copy_input:
+                sink.write(m.topic, m.data, now, publish_ns=m.publish_ns, sequence=m.sequence)
+            if kind in _FUSION_INPUT_KINDS:
+                core.on_sample(m.topic, m.data, now)
+            elif kind == "liveliness":
+                try:
+                    ev = json.loads(m.data)
+                    if ev.get("role") == "anchor" and ev.get("id"):
+                        core.on_liveliness(str(ev["id"]), bool(ev["alive"]), now)
+                except (ValueError, KeyError, TypeError, AttributeError):
+                    bad_payloads[kind] += 1
+            elif kind == "truth_node":
+                try:
+                    g = dec_truth(m.data)
+                except M.DecodeError:
+                    bad_payloads[kind] += 1
+                else:
+                    tr = truth[g.id]
+                    tr.t_ns.append(g.t_ns)
+                    tr.pos.append(g.position_m)
+                    tr.floor.append(-999 if g.floor_index is None else g.floor_index)
+            elif kind == "estimate":
+                try:
+                    live.append(dec_est(m.data))
+                except M.DecodeError:
+                    bad_payloads[kind] += 1
+            if next_step is None or now >= next_step:
+                emit(core.step(now), now)
+                next_step = now + step_ns
+        if progress is not None:
+            progress(scanner.offset, scanner.size_bytes)
+    if counts["anchor_state"] + counts["range"] == 0:
+        if sink is not None:
+            sink.close()
+        raise RecordingError(
+            f"{path} has no anchor states or ranges under diffpos/<site>/anchor/...: "
+            "nothing to replay (is it a diffpos recording? see diffpos inspect)"
+        )
+    end = (t_last or 0) + 10**12  # far past every deadline: what is pending is solved
+    emit(core.step(end), t_last or 0)
+    if core.book.pending:  # like the live service at shutdown
+        emit(core._solve(list(core.book.pending.values())), t_last or 0)
+        core.book.pending.clear()
     if sink is not None:
         sink.close(final_metadata={"replayed_estimates": len(out)})
 
@@ -626,7 +598,7 @@ def replay(
         "settings_source": source,
         "ignored_recorded_fields": unknown_fields,
         "overrides": dict(overrides or {}),
-        "method": method or "dnls",
+        "method": config.method,
         "step_ms": step_ms,
         "recording_s": duration_s,
         "messages": {
