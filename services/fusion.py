@@ -610,7 +610,7 @@ class FusionCore:
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
         while todo > 0:
             n = min(todo, self.config.max_fixes_per_step)
-            out += self._solve([self._ready.popleft() for _ in range(n)])
+            out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns)
             todo -= n
         return out
 
@@ -619,17 +619,26 @@ class FusionCore:
         """Ready epochs not solved yet (call :meth:`step` again without waiting)."""
         return len(self._ready)
 
-    def flush(self) -> list[M.PositionEstimate]:
-        """Solve everything ready or pending (at shutdown: nothing received is lost)."""
+    def flush(self, now_wall_ns: int) -> list[M.PositionEstimate]:
+        """Solve everything ready or pending (at shutdown: nothing received is lost).
+
+        Parameters
+        ----------
+        now_wall_ns : int [ns]
+            Wall clock of the call (the estimates' ``t_pub_wall_ns``).
+        """
         self._ready.extend(sorted(self.book.pending.values(), key=lambda p: p.epoch))
         self.book.pending.clear()
         out: list[M.PositionEstimate] = []
         while self._ready:
             n = min(len(self._ready), self.config.max_fixes_per_step)
-            out += self._solve([self._ready.popleft() for _ in range(n)])
+            out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns)
         return out
 
-    def _solve(self, epochs: list[PendingEpoch]) -> list[M.PositionEstimate]:
+    def _solve(self, epochs: list[PendingEpoch], now_wall_ns: int) -> list[M.PositionEstimate]:
+        """Solve ``epochs`` in one batch; ``now_wall_ns`` [ns] is the caller's wall clock
+        (``t_pub_wall_ns`` and latency of the estimates): the result depends only on the
+        core's state and the arguments, never on the machine's clock."""
         from diffpos.estimators import ExclusionReason, FixStatus, dnls, ippa, lls
         from diffpos.geometry import window_edge_path
 
@@ -753,7 +762,7 @@ class FusionCore:
         self.solved += b
 
         # ---- messages (vectorised reasons; numpy -> Python lists once, not per element)
-        now = time.time_ns()
+        now = int(now_wall_ns)
         out = []
         names = list(col)
         lost_col = np.array([a in {x.id for x in self.anchors.values() if not x.alive}
@@ -995,7 +1004,7 @@ def run_fusion(
                     next_diag = now + period_ns
         finally:
             # flush what is pending so nothing already received is lost
-            for est in core.flush():
+            for est in core.flush(time.time_ns()):
                 session.put(
                     keys.node_estimate(est.node_id),
                     M.encode(est),

@@ -577,9 +577,7 @@ def replay(
         )
     end = (t_last or 0) + 10**12  # far past every deadline: what is pending is solved
     emit(core.step(end), t_last or 0)
-    if core.book.pending:  # like the live service at shutdown
-        emit(core._solve(list(core.book.pending.values())), t_last or 0)
-        core.book.pending.clear()
+    emit(core.flush(t_last or 0), t_last or 0)  # like the live service at shutdown
     if sink is not None:
         sink.close(final_metadata={"replayed_estimates": len(out)})
 

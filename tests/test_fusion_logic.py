@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import types
+
+import msgspec
 import numpy as np
 import pytest
 from diffpos_services import messages as M
@@ -260,3 +263,48 @@ def test_range_batches_give_the_same_fixes_as_single_ranges():
                        sigma_m=[0.1, 0.1], snr_db=[1.0, 1.0], t_pub_wall_ns=0)
     c2.on_sample(KEYS.anchor_range_batch("uav1"), M.encode(bad), 0)
     assert c2.diagnostics(0).rejected.get("schema") == 1
+
+
+def _run_stream(core, *, wall0):
+    """A fixed 8-epoch stream with an outlier, a lost anchor and a final flush; every wall
+    time is ``wall0`` + a fixed offset, and the estimates are returned encoded."""
+    rng = np.random.default_rng(5)
+    out = []
+    for a in ANCHORS:
+        core.on_liveliness(a, True, wall0)
+    for e in range(8):
+        wall = wall0 + e * PERIOD_NS
+        _feed_epoch(core, e, NODES, rng, wall=wall, bias={("uav2", "n02"): 6.0})
+        if e == 5:
+            core.on_liveliness("uav5", False, wall)
+        out += core.step(wall + 1000)
+    out += core.flush(wall0 + 10**9)
+    return out
+
+
+def test_output_depends_only_on_inputs_never_on_the_machine_clock(monkeypatch):
+    import diffpos_services.fusion as fusion_mod
+
+    def no_clock():
+        raise AssertionError("FusionCore read the machine clock")
+
+    # the core must not read the clock at all (only run_fusion does): the fusion module's
+    # `time` is replaced by a clock that fails (logging keeps the real one)
+    clock = types.SimpleNamespace(time_ns=no_clock, time=no_clock, monotonic_ns=no_clock,
+                                  monotonic=no_clock, perf_counter=no_clock)
+    monkeypatch.setattr(fusion_mod, "time", clock)
+    a = _run_stream(FusionCore(_cfg()), wall0=10**15)
+    b = _run_stream(FusionCore(_cfg()), wall0=10**15)
+    assert len(a) == len(NODES) * 8
+    assert [M.encode(x) for x in a] == [M.encode(x) for x in b]
+    # the caller's wall clock is what the estimates carry
+    step_walls = {10**15 + e * PERIOD_NS + 1000 for e in range(8)} | {10**15 + 10**9}
+    assert {x.t_pub_wall_ns for x in a} <= step_walls
+    # shifting every wall time shifts only the wall-clock fields, never a fix
+    c = _run_stream(FusionCore(_cfg()), wall0=3 * 10**15)
+
+    def strip(x):
+        return M.encode(msgspec.structs.replace(x, t_pub_wall_ns=0, t_input_wall_ns=0))
+
+    assert [strip(x) for x in a] == [strip(x) for x in c]
+    assert [x.t_pub_wall_ns - 10**15 for x in a] == [x.t_pub_wall_ns - 3 * 10**15 for x in c]
