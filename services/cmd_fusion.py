@@ -1,7 +1,8 @@
 """Fusion service: aligns ranges in time, D-NLS with outlier gating, publishes fixes
 
-Subscribes to every anchor of the site (diffpos/<site>/anchor/*/state and
-.../anchor/*/range/*, never the truth keys) and watches the anchors' liveliness tokens.
+Subscribes with one subscriber to diffpos/<site>/anchor/** (states, ranges and range
+batches of every anchor, each anchor's in publish order; never the truth keys) and watches
+the anchors' liveliness tokens.
 Ranges are grouped per node into epochs of --epoch-period-s; an epoch is solved as soon as
 every live anchor has reported for it (or moved past it), or --deadline-s after its first
 range. All ready nodes are solved in one batched D-NLS call with RAIM-style gating; each

@@ -48,10 +48,22 @@ from .keys import Keys, parse_key
 from .servicekit import log_event
 from .zenoh_config import ZenohSettings, open_session
 
-__all__ = ["FusionConfig", "FusionCore", "run_fusion"]
+__all__ = ["FusionConfig", "FusionCore", "fusion_subscription", "run_fusion"]
 
 _NEG = -(2**62)
 _ACCOUNTED_BYTES = 2048  # samples above this size count against max_queued_bytes
+
+
+def fusion_subscription(keys: Keys) -> str:
+    """The one key expression the fusion subscribes to: ``diffpos/<site>/anchor/**``.
+
+    One subscriber for states, ranges and range batches of every anchor, so each anchor's
+    messages reach the fusion's queue in their publish order (with several subscribers an
+    anchor's range could be queued before its state of the same instant, and the fusion then
+    extrapolated the anchor from its previous state). It never matches ``truth/**`` (tested).
+    Keys under ``anchor/`` that are not fusion inputs are counted as ``unexpected_key``.
+    """
+    return f"{keys.root}/anchor/**"
 
 
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
@@ -931,7 +943,8 @@ def run_fusion(
             encoding=zenoh.Encoding.APPLICATION_JSON,
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
-        subs = [session.declare_subscriber(k, on_data) for k in keys.fusion_inputs()]
+        # ONE subscriber: an anchor's states, ranges and batches keep their publish order
+        subs = [session.declare_subscriber(fusion_subscription(keys), on_data)]
         live_sub = session.liveliness().declare_subscriber(
             keys.alive_anchors(), on_alive, history=True
         )
@@ -941,7 +954,7 @@ def run_fusion(
             logging.INFO,
             "fusion ready",
             site=config.site,
-            subscriptions=list(keys.fusion_inputs()),
+            subscriptions=[fusion_subscription(keys)],
         )
         if on_ready is not None:
             on_ready()

@@ -308,3 +308,20 @@ def test_output_depends_only_on_inputs_never_on_the_machine_clock(monkeypatch):
 
     assert [strip(x) for x in a] == [strip(x) for x in c]
     assert [x.t_pub_wall_ns - 10**15 for x in a] == [x.t_pub_wall_ns - 3 * 10**15 for x in c]
+
+
+def test_single_subscription_sees_every_input_and_never_truth():
+    """run_fusion's one key expression covers states, ranges and batches of any anchor (so
+    an anchor's messages keep their publish order) and cannot intersect a truth key."""
+    zenoh = pytest.importorskip("zenoh")
+    from diffpos_services.fusion import fusion_subscription
+
+    k = Keys("s")
+    sub = zenoh.KeyExpr(fusion_subscription(k))
+    for key in (k.anchor_state("uav1"), k.anchor_range("uav1", "n01"),
+                k.anchor_range_batch("uav-2_x")):
+        assert sub.intersects(zenoh.KeyExpr(key)), key
+    for key in (k.truth_node("n01"), k.truth_anchor("uav1"), k.truth_all(),
+                k.node_estimate("n01"), k.fusion_diagnostics(), k.alive_anchor("uav1"),
+                Keys("other").anchor_state("uav1")):
+        assert not sub.intersects(zenoh.KeyExpr(key)), key
