@@ -21,6 +21,9 @@ examples:
   diffpos fusion --scenario scenarios/paper.toml
   diffpos fusion --window-height-m 1.5 --epoch-period-s 0.2 --connect tcp/router:7447
   diffpos fusion --zenoh-config security/zenoh/fusion.json5   TLS + user/password + ACL
+  diffpos fusion --scenario scenarios/paper.toml --anchors scenario --nodes scenario
+                                        accept only the scenario's anchors and nodes
+  diffpos fusion --anchors uav1,uav2,uav3,uav4 --method lls   allow-list; LoS baseline solver
 
 Stop with Ctrl-C or SIGTERM: pending epochs are solved and published before the session closes.
 """
@@ -70,6 +73,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="estimator: dnls (diffraction-aware D-NLS with gating, default), lls (line-of-"
         "sight linear least squares, the paper's baseline), ippa (iterative parallel projection)",
     )
+    parser.add_argument(
+        "--anchors",
+        metavar="ID,ID,...",
+        help="accept only these anchors (default: any valid id; 'scenario' = the scenario's "
+        "anchors); data and liveliness of other anchors are rejected as unknown_anchor",
+    )
+    parser.add_argument(
+        "--nodes",
+        metavar="ID,ID,...",
+        help="accept only ranges to these nodes (default: any valid id; 'scenario' = the nodes "
+        "the scenario is emulated with); others are rejected as unknown_node",
+    )
     parser.add_argument("--no-gating", action="store_true", help="disable outlier gating")
     parser.add_argument(
         "--no-motion-compensation",
@@ -111,7 +126,44 @@ def config_from_args(args: argparse.Namespace, scenario=None):
         )
     if args.window_height_m is not None:
         values["window_height_m"] = args.window_height_m
+    for name in ("anchors", "nodes"):
+        ids = allow_list(getattr(args, name, None), name, scenario)
+        if ids is not None:
+            values[name] = ids
     return build_config(FusionConfig, values)
+
+
+def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
+    """Parse ``--anchors`` / ``--nodes``: ``None`` (accept any), ``"scenario"`` or ``ID,ID,...``.
+
+    ``"scenario"`` means the scenario's anchors, or for nodes the nodes the scenario is
+    emulated with (:func:`diffpos_services.anchor.emulation_nodes`: its explicit nodes, or the
+    generated responders ``r01``... of a scenario with only a study grid). Ids are checked
+    by :class:`FusionConfig` (the error names ``anchors[i]`` / ``nodes[i]``).
+
+    Raises
+    ------
+    ConfigError
+        An empty list, or ``scenario`` without a scenario.
+    """
+    from .servicekit import ConfigError
+
+    if text is None:
+        return None
+    if text.strip() == "scenario":
+        if scenario is None:
+            raise ConfigError(f"--{name} scenario: no scenario given (use --scenario TOML)")
+        if name == "anchors":
+            return [a.id for a in scenario.anchors]
+        from .anchor import emulation_nodes  # the nodes the anchors actually range to
+
+        return [nid for nid, _ in emulation_nodes(scenario)]
+    ids = [v.strip() for v in text.split(",") if v.strip()]
+    if not ids:
+        raise ConfigError(f"--{name} {text!r}: give a comma-separated list of ids, e.g. "
+                          f"--{name} {'uav1,uav2' if name == 'anchors' else 'n01,n02'}, "
+                          "or 'scenario'")
+    return ids
 
 
 def run(args: argparse.Namespace) -> int:

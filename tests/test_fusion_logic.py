@@ -325,3 +325,54 @@ def test_single_subscription_sees_every_input_and_never_truth():
                 k.node_estimate("n01"), k.fusion_diagnostics(), k.alive_anchor("uav1"),
                 Keys("other").anchor_state("uav1")):
         assert not sub.intersects(zenoh.KeyExpr(key)), key
+
+
+def _fusion_args(*argv):
+    import argparse
+
+    from diffpos_services import cmd_fusion
+
+    p = argparse.ArgumentParser()
+    cmd_fusion.add_arguments(p)
+    return cmd_fusion, p.parse_args(list(argv))
+
+
+def test_cli_allow_lists_from_ids_and_from_the_scenario():
+    from diffpos_services.anchor import emulation_nodes
+
+    from diffpos.scenario import default_scenario
+
+    sc = default_scenario()
+    cmd, args = _fusion_args("--anchors", " uav1, uav3 ,", "--nodes", "n01")
+    cfg = cmd.config_from_args(args, sc)
+    assert cfg.anchors == ("uav1", "uav3") and cfg.nodes == ("n01",)
+    cmd, args = _fusion_args()
+    cfg = cmd.config_from_args(args, sc)
+    assert cfg.anchors is None and cfg.nodes is None and cfg.method == "dnls"
+    cmd, args = _fusion_args("--anchors", "scenario", "--nodes", "scenario", "--method", "ippa")
+    cfg = cmd.config_from_args(args, sc)
+    assert cfg.method == "ippa"
+    assert cfg.anchors == tuple(a.id for a in sc.anchors) and len(cfg.anchors) >= 3
+    # the paper scenario has only a study grid: its nodes are the emulated responders,
+    # not scenario.nodes (empty)
+    assert not sc.nodes
+    assert cfg.nodes == tuple(n for n, _ in emulation_nodes(sc)) and len(cfg.nodes) == 6
+    # the allow-list works in the core: an unlisted anchor and node are rejected
+    core = FusionCore(_cfg(anchors=("uav1", "uav2"), nodes=("n01",)))
+    _feed_epoch(core, 0, {"n01": NODES["n01"], "n02": NODES["n02"]}, np.random.default_rng(0))
+    assert core.rejected["unknown_anchor"] == 3 * 3  # uav3..5: state + 2 ranges each
+    assert core.rejected["unknown_node"] == 2  # uav1, uav2 -> n02
+    assert set(core.anchors) == {"uav1", "uav2"}
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--anchors", ","], "--anchors ','"),
+    (["--nodes", "n01,bad/id"], "nodes[1]"),
+    (["--anchors=-uav"], "anchors[0]"),
+])
+def test_cli_allow_list_errors_name_the_option(argv, message, capsys):
+    from diffpos_services.cli import main as cli_main
+
+    assert cli_main(["fusion", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
