@@ -18,7 +18,9 @@ Problem fields (JSON Schema: schemas/solve_problem.v1.json):
   delta_m          d                  Case-2 offset of the node below mid-window [m] (default 0)
   method           "dnls" | "lls" | "ippa"   (default dnls, or --method)
   gating           true | false | {"false_alarm_probability": 1e-3, "max_exclusions": 2,
-                                      "pregate": true}   (dnls only; default true)
+                                      "pregate": true, "multistart_exclusion": true,
+                                      "z_range_m": [0, 1e9] or null}   (dnls only; default true;
+                                      a fix outside z_range_m is gating_failed)
   loss             "linear" | "huber" | "soft_l1"   (dnls only; default linear)
   x0_m             [x, y, z]          one start instead of the floor grid (dnls, ippa)
   z_starts_m       [z, ...]           start heights (default every 3 m from 0 to 30 m)
@@ -82,7 +84,9 @@ FIELDS = (
 )
 METHODS = ("dnls", "lls", "ippa")
 LOSSES = ("linear", "huber", "soft_l1")
-GATING_FIELDS = ("false_alarm_probability", "max_exclusions", "pregate")
+GATING_FIELDS = (
+    "false_alarm_probability", "max_exclusions", "pregate", "multistart_exclusion", "z_range_m",
+)
 
 RESULT_KEYS = (
     "line", "id", "status", "message", "method", "position_m", "covariance_m2",
@@ -240,10 +244,21 @@ def parse_problem(obj: Any, *, default_method: str = "dnls") -> Problem:
         for k, v in gating_obj.items():
             if k not in GATING_FIELDS:
                 raise ProblemError(f"gating.{k} is not a gating setting; use {list(GATING_FIELDS)}")
-            if k == "pregate":
+            if k in ("pregate", "multistart_exclusion"):
                 if not isinstance(v, bool):
-                    raise ProblemError("gating.pregate must be true or false")
+                    raise ProblemError(f"gating.{k} must be true or false")
                 gating[k] = v
+            elif k == "z_range_m":
+                if v is None:
+                    gating[k] = None
+                    continue
+                if not isinstance(v, list) or len(v) != 2:
+                    raise ProblemError("gating.z_range_m must be null or [z_min, z_max] in metres")
+                lo = _number(v[0], "gating.z_range_m[0]", limit=None)
+                hi = _number(v[1], "gating.z_range_m[1]", limit=None)
+                if not lo < hi:
+                    raise ProblemError("gating.z_range_m must have z_min < z_max")
+                gating[k] = (lo, hi)
             elif k == "max_exclusions":
                 if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= MAX_ANCHORS:
                     raise ProblemError(f"gating.max_exclusions must be an integer in "

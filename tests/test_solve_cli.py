@@ -232,3 +232,30 @@ def test_batch_1_answers_each_line_before_the_next_arrives():
         proc.stdin.close()
         assert proc.wait(timeout=60) == 0
         proc.stdout.close()
+
+
+def test_gating_height_range_and_multistart_options(monkeypatch, capsys):
+    """gating.z_range_m flags an implausible height; bad values name the field."""
+    node = [2.0, 5.0, 10.5]
+    default = _problem(node, id="default")
+    narrow = _problem(node, id="narrow", gating={"z_range_m": [12.0, 30.0],
+                                                 "multistart_exclusion": False})
+    off = _problem(node, id="off", gating={"z_range_m": None})
+    bad = _problem(node, id="bad", gating={"z_range_m": [5.0]})
+    bad2 = _problem(node, id="bad2", gating={"multistart_exclusion": "yes"})
+    for p in (default, narrow, off):
+        jsonschema.validate(p, PROBLEM_SCHEMA)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(bad, PROBLEM_SCHEMA)
+    rc, recs, _ = _run([json.dumps(p) for p in (default, narrow, off, bad, bad2)], (),
+                       monkeypatch, capsys)
+    assert rc == 0
+    by_id = {r["id"]: r for r in recs}
+    assert by_id["default"]["status"] == "ok" and by_id["off"]["status"] == "ok"
+    assert by_id["narrow"]["status"] == "gating_failed"  # z = 10.5 m is outside [12, 30]
+    assert np.allclose(by_id["narrow"]["position_m"], node, atol=1e-6)
+    assert by_id["bad"]["status"] == "invalid_input" and "z_range_m" in by_id["bad"]["message"]
+    assert (by_id["bad2"]["status"] == "invalid_input"
+            and "multistart_exclusion" in by_id["bad2"]["message"])
+    for r in recs:
+        jsonschema.validate(r, RESULT_SCHEMA)
