@@ -370,9 +370,15 @@ def test_cli_allow_lists_from_ids_and_from_the_scenario():
     (["--nodes", "n01,bad/id"], "nodes[1]"),
     (["--anchors=-uav"], "anchors[0]"),
 ])
-def test_cli_allow_list_errors_name_the_option(argv, message, capsys):
+def test_cli_allow_list_errors_name_the_option(argv, message, capsys, monkeypatch):
+    import logging
+
+    from diffpos_services import cmd_fusion
     from diffpos_services.cli import main as cli_main
 
+    # the CLI configures process-wide logging: keep it out of the other tests
+    monkeypatch.setattr(cmd_fusion, "setup_logging",
+                        lambda *a, **k: logging.getLogger("diffpos.test.cli"))
     assert cli_main(["fusion", *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
