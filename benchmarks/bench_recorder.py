@@ -170,16 +170,45 @@ def bench_scan(minutes: float, tmp: Path) -> dict:
 
 
 def bench_replay(seconds: float, tmp: Path) -> dict:
+    """Replay speed, and where the time goes: ``solver_s`` (inside D-NLS, the estimator in
+    diffpos.estimators) and ``ingest_s`` (FusionCore.on_sample: checks, decoding, alignment);
+    the rest is the fusion's batch assembly and estimate building, and reading the file."""
+    from diffpos_services.fusion import FusionCore
     from diffpos_services.replay import replay, write_synthetic_recording
+
+    import diffpos.estimators as est
 
     path = tmp / "replay.mcap"
     write_synthetic_recording(path, n_anchors=8, n_nodes=50, duration_s=seconds, live=False)
+    replay(path)  # imports and first-call costs (scipy.stats) are not part of the rate
     t0 = time.perf_counter()
     r = replay(path)
     dt = time.perf_counter() - t0
+    # second run, instrumented (the wrappers cost a little, so it is not the rate)
+    spent = {"solver": 0.0, "ingest": 0.0}
+    dnls, on_sample = est.dnls, FusionCore.on_sample
+
+    def timed(fn, what):
+        def wrapper(*a, **k):
+            t = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[what] += time.perf_counter() - t
+        return wrapper
+
+    est.dnls, FusionCore.on_sample = timed(dnls, "solver"), timed(on_sample, "ingest")
+    try:
+        t1 = time.perf_counter()
+        replay(path)
+        dt_i = time.perf_counter() - t1
+    finally:
+        est.dnls, FusionCore.on_sample = dnls, on_sample
     return {"row": "replay", "recording_s": seconds, "seconds": dt, "x_real_time": seconds / dt,
             "fixes": len(r.estimates), "fixes_per_s": len(r.estimates) / dt,
-            "p50_3d_m": r.report["accuracy"]["overall"]["error_3d_m"]["p50"]}
+            "p50_3d_m": r.report["accuracy"]["overall"]["error_3d_m"]["p50"],
+            "solver_s": spent["solver"], "ingest_s": spent["ingest"], "instrumented_s": dt_i,
+            "solver_share": spent["solver"] / dt_i, "ingest_share": spent["ingest"] / dt_i}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -221,6 +250,8 @@ def main(argv: list[str] | None = None) -> int:
         elif r["row"] == "replay":
             what = f"replay {r['recording_s']:g} s of 8x50@10Hz ({r['fixes']} fixes)"
             print(f"{'replay':<8}{what:<58}{r['x_real_time']:>14.2f}x real time ({r['fixes_per_s']:.0f} fixes/s)")
+            print(f"{'':<8}{'  time in D-NLS / in ingestion (on_sample)':<58}"
+                  f"{100 * r['solver_share']:>13.0f}% / {100 * r['ingest_share']:.0f}%")
     return 0
 
 
