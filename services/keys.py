@@ -185,7 +185,8 @@ class Keys:
 
     def fusion_inputs(self) -> tuple[str, ...]:
         """The data key expressions the fusion service subscribes to (no truth, by design)."""
-        return (self.anchor_states(), self.anchor_ranges(), self.anchor_range_batches())
+        # one subscription: an anchor's state, ranges and range batches arrive in publish order
+        return (f"{self.root}/anchor/**",)
 
 
 def parse_key(key: str) -> ParsedKey | None:

@@ -402,13 +402,13 @@ def acl_config(profile: SecurityProfile) -> dict:
             "fusion-read-subscribe",
             read[:1],
             ["ingress"],
-            [f"{s}/anchor/*/state", f"{s}/anchor/*/range/*"],
+            [f"{s}/anchor/**"],  # states, ranges and range batches, in publish order
         ),
         _rule(
             "fusion-read-deliver",
             read[1:],
             ["egress"],
-            [f"{s}/anchor/*/state", f"{s}/anchor/*/range/*"],
+            [f"{s}/anchor/**"],  # states, ranges and range batches, in publish order
         ),
         _rule("emulator-publish", ["put"], ["ingress"], [f"{s}/truth/**", f"{s}/run/control"]),
         _rule("read-all-subscribe", read[:1], ["ingress"], [f"{s}/**"]),
