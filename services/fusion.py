@@ -93,6 +93,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     false_alarm_probability: Annotated[float, Meta(gt=0, lt=1)] = 1e-3
     min_snr_db: float | None = None
     warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
+    cold_retry_period_s: Annotated[float, Meta(ge=0)] = 1.0
     diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
     queue_size: Annotated[int, Meta(ge=16)] = 8192
     max_queued_bytes: Annotated[int, Meta(ge=1 << 20)] = 32 << 20
@@ -213,12 +214,14 @@ class _RejectLog:
 class _Track:
     """Last good fixes of a node (warm start and velocity for motion compensation)."""
 
-    __slots__ = ("pos", "t_ns", "vel")
+    __slots__ = ("cold_ns", "pos", "t_ns", "try_pos", "vel")
 
     def __init__(self) -> None:
         self.t_ns: int | None = None
         self.pos: np.ndarray | None = None
         self.vel: np.ndarray | None = None
+        self.cold_ns: int | None = None  # measurement time of the last cold (multi-start) solve
+        self.try_pos: np.ndarray | None = None  # its position, whatever its status
 
     def update(self, t_ns: int, pos: np.ndarray) -> None:
         if self.t_ns is not None and self.pos is not None and t_ns > self.t_ns:
@@ -701,6 +704,7 @@ class FusionCore:
         vel = np.zeros((b, 3))
         has_vel = np.zeros(b, bool)
         max_age = cfg.warm_start_max_age_s * 1e9
+        period_ns = round(cfg.cold_retry_period_s * 1e9)
         for i, pe in enumerate(epochs):
             tr = self.tracks.get(pe.node_id)
             if tr is not None and tr.t_ns is not None and abs(t_ref[i] - tr.t_ns) <= max_age:
@@ -710,6 +714,11 @@ class FusionCore:
                     x0[i] = tr.pos + tr.vel * dt
                 else:
                     x0[i] = tr.pos
+            elif (tr is not None and tr.try_pos is not None and tr.cold_ns is not None
+                  and 0 <= t_ref[i] - tr.cold_ns < period_ns):
+                # no good fix lately, but a cold solve within the retry period: start from its
+                # result instead of paying for another multi-start every epoch
+                x0[i] = tr.try_pos
         comp = has_vel & cfg.motion_compensation
         safe_apos = np.where(use[..., None], apos, 0.0)
         if np.any(comp):
@@ -766,11 +775,26 @@ class FusionCore:
                 fix = dnls(safe_apos[rows_w], rng_in[rows_w], sig_eff[rows_w],
                            mask=use[rows_w], x0_m=x0[rows_w], **common)
                 put(rows_w, fix)
-            rows_c = np.flatnonzero(~warm | ~np.isin(res_status, good))
+            # A warm fix that failed is re-solved from all starts (re-acquisition after a wrong
+            # basin), but at most once per cold_retry_period_s of measurement time per node:
+            # on realistic channels a third of the fixes fail every epoch for reasons a cold
+            # start does not change, and the multi-start re-solve costs ~10x a warm fix.
+            # Measurement time (not the wall clock) keeps replays deterministic.
+            retry = np.zeros(b, bool)
+            for i in np.flatnonzero(warm & ~np.isin(res_status, good)):
+                tr = self.tracks[epochs[i].node_id]
+                if tr.cold_ns is None or t_ref[i] - tr.cold_ns >= period_ns:
+                    retry[i] = True
+                    tr.cold_ns = int(t_ref[i])
+            rows_c = np.flatnonzero(~warm | retry)
             if rows_c.size:
                 fix = dnls(safe_apos[rows_c], rng_in[rows_c], sig_eff[rows_c],
                            mask=use[rows_c], **common)
                 put(rows_c, fix)
+                for i in rows_c:
+                    tr = self.tracks[epochs[i].node_id]
+                    tr.cold_ns = int(t_ref[i])
+                    tr.try_pos = res_pos[i].copy() if np.all(np.isfinite(res_pos[i])) else None
         self.solved += b
 
         # ---- messages (vectorised reasons; numpy -> Python lists once, not per element)

@@ -382,3 +382,35 @@ def test_cli_allow_list_errors_name_the_option(argv, message, capsys, monkeypatc
     assert cli_main(["fusion", *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+def test_persistently_failing_node_is_not_cold_solved_every_epoch(monkeypatch):
+    """A node whose fixes keep failing (4 anchors, one biased: detectable, not removable) gets a
+    multi-start (cold) solve at most once per cold_retry_period_s of measurement time; in
+    between it is warm-started from the last attempt. A healthy node stays warm throughout."""
+    import diffpos.estimators as est
+
+    calls = []
+    real = est.dnls
+
+    def counting(*args, **kw):
+        calls.append(("warm" if kw.get("x0_m") is not None else "cold", len(args[1])))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(est, "dnls", counting)
+    four = {k: ANCHORS[k] for k in ("uav1", "uav2", "uav3", "uav4")}
+    nodes = {"n02": NODES["n02"]}
+    core = FusionCore(_cfg(cold_retry_period_s=0.5))
+    rng = np.random.default_rng(7)
+    out = []
+    epochs = 20  # 2 s of measurement time
+    for e in range(epochs):
+        _feed_epoch(core, e, nodes, rng, anchors=four, sigma=0.03, bias={("uav2", "n02"): 8.0})
+        out += core.step(0)
+    out += core.step(10**12)
+    assert len(out) == epochs
+    assert sum(g.status == "GATING_FAILED" for g in out) >= epochs - 2  # the premise
+    cold_rows = sum(n for kind, n in calls if kind == "cold")
+    # first epoch + at most one retry per 0.5 s: <= 1 + 2 s / 0.5 s (+1 for phase rounding)
+    assert cold_rows <= 1 + 2 / 0.5 + 1, calls
+    assert cold_rows >= 2, "retries must still happen (re-acquisition)"
