@@ -68,6 +68,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "D-NLS model's diffraction path with CRLB noise")
     parser.add_argument("--delta-m", type=float, default=0.0, metavar="M",
                         help="the fusion's model offset Delta [m] (default 0: Case-1)")
+    parser.add_argument("--edge", choices=["auto", "upper", "lower"], default="auto",
+                        help="window edge the fusion models: upper (the paper's D-NLS), lower, "
+                        "or auto (default): lower when every anchor flies below the lowest "
+                        "window, because that diffracted path is then the shorter one and "
+                        "arrives first on the emulated channel; upper otherwise and for "
+                        "--channel ideal")
     parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes")
     parser.add_argument("--endpoint", metavar="ENDPOINT",
                         help="router endpoint (default tcp/127.0.0.1:<free port>; with "
@@ -102,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
             dashboard=list(args.dashboard), log_dir=args.log_dir,
             progress=not args.no_progress, ready_timeout_s=args.ready_timeout,
             log_level=args.log_level,
-            delta_m=args.delta_m,
+            delta_m=args.delta_m, edge=args.edge,
             security_profile=args.security_profile,
         )
         stop = Shutdown(log)
