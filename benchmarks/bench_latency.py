@@ -22,11 +22,9 @@ Targets (issue): p50 < 5 ms, p99 < 20 ms at 4 x 10 x 10 Hz; no loss and bounded 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import queue
-import signal
 import socket
 import subprocess
 import sys
@@ -38,6 +36,7 @@ from pathlib import Path
 import numpy as np
 from diffpos_services import messages as M
 from diffpos_services.keys import Keys, parse_key
+from diffpos_services.servicekit import stop_process_groups
 from diffpos_services.zenoh_config import ZenohSettings, open_session
 
 PERIOD_NS = 100_000_000
@@ -179,14 +178,7 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
                 s.undeclare()
     finally:
         for p in reversed(procs):  # anchors first, router last
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGTERM)
-            try:
-                p.wait(15)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
+            stop_process_groups([p], timeout_s=15)
     n_epochs = round(duration_s * 10)
     e0 = t0 // PERIOD_NS
     want = {(f"n{i + 1:03d}", e0 + k) for i in range(n_nodes) for k in range(n_epochs)}

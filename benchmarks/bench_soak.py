@@ -29,7 +29,6 @@ import contextlib
 import json
 import os
 import queue
-import signal
 import subprocess
 import sys
 import tempfile
@@ -43,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_latency import PERIOD_NS, free_port, rss_mb, scenario_toml
 from diffpos_services import messages as M
 from diffpos_services.keys import Keys, parse_key
+from diffpos_services.servicekit import stop_process_groups
 from diffpos_services.zenoh_config import ZenohSettings, open_session
 
 __all__ = ["LatencyHistogram", "run_soak"]
@@ -356,19 +356,7 @@ def _stop_all(procs: dict[str, subprocess.Popen]) -> dict[str, int]:
     """SIGTERM anchors first, then fusion, recorder and router last; SIGKILL stragglers."""
     order = [n for n in procs if n.startswith("uav")] + [
         n for n in ("fusion", "recorder", "router") if n in procs]
-    codes = {}
-    for name in order:
-        p = procs[name]
-        if p.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGTERM)
-        try:
-            codes[name] = p.wait(30)
-        except subprocess.TimeoutExpired:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGKILL)
-            codes[name] = p.wait()
-    return codes
+    return {name: stop_process_groups([procs[name]], timeout_s=30)[0] for name in order}
 
 
 def format_report(r: dict) -> str:

@@ -21,12 +21,10 @@ listener, password dictionary, access control), every child gets its own identit
 from __future__ import annotations
 
 import collections
-import contextlib
 import importlib.util
 import logging
 import os
 import queue
-import signal
 import socket
 import subprocess
 import sys
@@ -44,7 +42,7 @@ import numpy as np
 from . import messages as M
 from .anchor import TimeBase, emulation_nodes
 from .keys import Keys, parse_key
-from .servicekit import ConfigError, log_event
+from .servicekit import ConfigError, log_event, stop_process_groups
 from .zenoh_config import ZenohSettings, open_session, with_zenoh_config
 
 __all__ = ["EXTRA_SERVICES", "Emulation", "EmulationOptions", "Scorer", "free_tcp_port"]
@@ -368,19 +366,11 @@ class Emulation:
         return proc
 
     def _stop_procs(self, names: Callable[[str], bool], timeout_s: float = 8.0) -> None:
-        group = [p for p in self.procs if names(p.name) and p.popen.poll() is None]
-        for p in group:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.popen.pid, signal.SIGTERM)
-        deadline = time.monotonic() + timeout_s
-        for p in group:
-            try:
-                p.popen.wait(max(deadline - time.monotonic(), 0.05))
-            except subprocess.TimeoutExpired:
-                log_event(self.log, logging.WARNING, "did not stop on SIGTERM, killing", service=p.name)
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.popen.pid, signal.SIGKILL)
-                p.popen.wait()
+        group = {p.popen: p.name for p in self.procs if names(p.name) and p.popen.poll() is None}
+        stop_process_groups(
+            list(group), timeout_s=timeout_s,
+            on_kill=lambda pp: log_event(self.log, logging.WARNING,
+                                         "did not stop on SIGTERM, killing", service=group[pp]))
 
     def shutdown(self) -> None:
         """Stop in dependency order: anchors, fusion, extras, router."""

@@ -12,10 +12,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -33,9 +35,40 @@ __all__ = [
     "log_event",
     "run_main",
     "setup_logging",
+    "stop_process_groups",
 ]
 
 T = TypeVar("T")
+
+
+def stop_process_groups(
+    procs: list[subprocess.Popen],
+    *,
+    timeout_s: float,
+    on_kill: Callable[[subprocess.Popen], None] | None = None,
+) -> list[int]:
+    """Stop processes started with ``start_new_session=True``: SIGTERM each process group,
+    wait until ``timeout_s`` [s] after that (one shared deadline), SIGKILL the groups still
+    running (``on_kill(proc)`` is called first, e.g. to log it). Returns the exit codes.
+
+    Signalling the group, not just the process, also stops its children.
+    """
+    for p in procs:
+        if p.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout_s
+    codes = []
+    for p in procs:
+        try:
+            codes.append(p.wait(max(deadline - time.monotonic(), 0.05)))
+        except subprocess.TimeoutExpired:
+            if on_kill is not None:
+                on_kill(p)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            codes.append(p.wait())
+    return codes
 
 
 class ConfigError(ValueError):

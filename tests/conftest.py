@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from diffpos_services.servicekit import stop_process_groups
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -68,33 +69,14 @@ class ServiceProcesses:
     def stop(self, names: list[str] | None = None, timeout_s: float = 10.0) -> dict[str, int]:
         """SIGTERM the groups (in the given order), SIGKILL stragglers; return exit codes."""
         names = list(self.procs) if names is None else names
-        codes = {}
-        for name in names:
-            p = self.procs[name]
-            if p.poll() is None:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGTERM)
-            try:
-                codes[name] = p.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
-                codes[name] = p.wait()
-        return codes
+        return {name: stop_process_groups([self.procs[name]], timeout_s=timeout_s)[0]
+                for name in names}
 
     def reap_all(self) -> None:
         """Stop in reverse start order (the router, started first, goes last), each group
         SIGTERM then SIGKILL after 5 s; then check that no group member survived."""
         for p in reversed(list(self.procs.values())):
-            if p.poll() is None:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGTERM)
-                try:
-                    p.wait(5.0)
-                except subprocess.TimeoutExpired:
-                    with contextlib.suppress(ProcessLookupError):
-                        os.killpg(p.pid, signal.SIGKILL)
-                    p.wait()
+            stop_process_groups([p], timeout_s=5.0)
         for p in self.procs.values():
             assert p.returncode is not None
             with contextlib.suppress(ProcessLookupError, PermissionError):
