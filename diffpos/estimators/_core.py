@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ..bounds import sym3_cofactors
+
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
@@ -136,15 +138,9 @@ def solve3(a: FloatArray, b: FloatArray) -> FloatArray:
             return np.linalg.solve(a, b[..., None])[..., 0]
         except np.linalg.LinAlgError:
             pass  # a singular system: the cofactor form gives inf/nan for that row only
-    a00, a01, a02 = a[:, 0, 0], a[:, 0, 1], a[:, 0, 2]
-    a11, a12, a22 = a[:, 1, 1], a[:, 1, 2], a[:, 2, 2]
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    det = a00 * c00 + a01 * c01 + a02 * c02
+    c00, c01, c02, c11, c12, c22, det = sym3_cofactors(
+        a[:, 0, 0], a[:, 0, 1], a[:, 0, 2], a[:, 1, 1], a[:, 1, 2], a[:, 2, 2]
+    )
     b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         inv_det = 1.0 / det
