@@ -54,7 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi-square inverse survival function (chi2.isf)
 
 from ..geometry import los_path
 from ._core import PathModel, cost_of, levenberg_marquardt
@@ -141,7 +141,7 @@ class GatingConfig:
 
 @functools.lru_cache(maxsize=1024)
 def _chi2_isf(dof: int, false_alarm_probability: float) -> float:
-    return float(chi2.isf(false_alarm_probability, dof))
+    return float(chdtri(dof, false_alarm_probability))
 
 
 def chi2_threshold(dof: NDArray[np.int_], false_alarm_probability: float) -> FloatArray:
