@@ -31,11 +31,15 @@ Stop with Ctrl-C or SIGTERM: pending epochs are solved and published before the 
 from __future__ import annotations
 
 import argparse
+import logging
+
+import msgspec
 
 from .servicekit import (
     Shutdown,
     add_logging_arguments,
     build_config,
+    log_event,
     run_main,
     setup_logging,
 )
@@ -50,6 +54,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window-height-m", type=float, help="override the window height w [m]")
     parser.add_argument(
         "--delta-m", type=float, default=0.0, help="Case-2 offset Delta [m] (default 0)"
+    )
+    parser.add_argument(
+        "--edge", choices=["upper", "lower", "auto"], default="upper",
+        help="window edge of the path model: upper (the paper's D-NLS, default), lower, or auto: "
+        "lower when every anchor of the scenario flies below the lowest window (that diffracted "
+        "path is then the shorter one and usually arrives first), else upper",
     )
     parser.add_argument(
         "--epoch-period-s", type=float, default=0.1, help="epoch length [s] (default 0.1)"
@@ -130,7 +140,24 @@ def config_from_args(args: argparse.Namespace, scenario=None):
         ids = allow_list(getattr(args, name, None), name, scenario)
         if ids is not None:
             values[name] = ids
-    return build_config(FusionConfig, values)
+    cfg = build_config(FusionConfig, values)
+    if model_edge(args, scenario)[0] == "lower":
+        # the lower edge is the upper edge one window height lower: Delta + w
+        cfg = msgspec.structs.replace(cfg, delta_m=cfg.delta_m + cfg.window_height_m)
+    return cfg
+
+
+def model_edge(args: argparse.Namespace, scenario=None) -> tuple[str, str]:
+    """The window edge ``--edge`` selects, and why (``auto`` needs the scenario)."""
+    edge = getattr(args, "edge", "upper")
+    if edge != "auto":
+        return edge, f"--edge {edge}"
+    if scenario is None:
+        return "upper", "auto without a scenario: the paper's upper edge"
+    from diffpos.scenario import first_arrival_edge
+
+    chosen, why = first_arrival_edge(scenario)
+    return chosen, f"auto: {why}"
 
 
 def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
@@ -175,6 +202,8 @@ def run(args: argparse.Namespace) -> int:
 
         scenario = load_scenario_file(args.scenario)
         cfg = config_from_args(args, scenario)
+        edge, why = model_edge(args, scenario)
+        log_event(log, logging.INFO, "path model", edge=edge, delta_m=cfg.delta_m, why=why)
         zs = service_settings(args, log)
         stop = Shutdown(log)
         run_fusion(cfg, zs, stop.event, logger=log)

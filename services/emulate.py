@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import importlib.util
+import json
 import logging
 import os
 import queue
@@ -128,30 +129,6 @@ def _dashboard_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str
     # without a scenario file the run uses the built-in default: draw that building
     argv += ["--scenario", o.scenario or "default"]
     return argv
-
-
-def choose_edge(o: EmulationOptions, scenario: Any, *, horizon_s: float) -> tuple[str, str]:
-    """The window edge the fusion models, and why (``--edge auto``).
-
-    The first-arrival detector picks the earliest path within its threshold. For an anchor
-    below a window, the diffracted path over the window's *lower* edge is geometrically the
-    shorter one, and with the exact UTD field it is only a few dB weaker than the upper-edge
-    path the paper models (``diffpos power-ratio``), so on the emulated channel it is usually
-    the first arrival. ``auto`` therefore models the lower edge when every anchor stays below
-    the lowest window throughout the run, and the paper's upper edge otherwise. The ideal
-    channel generates the upper-edge path, so it always uses the upper edge.
-    """
-    if o.edge != "auto":
-        return o.edge, f"--edge {o.edge}"
-    if o.channel == "ideal":
-        return "upper", "auto: the ideal channel is the upper-edge path"
-    t = np.linspace(0.0, max(horizon_s, 0.0), 64)
-    top_anchor_z = max(float(np.max(a.trajectory.position_m(t)[..., 2])) for a in scenario.anchors)
-    lowest_window_z = float(scenario.building.window_z_m(0)[0])
-    if top_anchor_z < lowest_window_z:
-        return "lower", (f"auto: every anchor below the lowest window ({top_anchor_z:.1f} m < "
-                         f"{lowest_window_z:.2f} m), so the lower-edge path arrives first")
-    return "upper", "auto: some anchor is not below every window (the paper's upper edge)"
 
 
 def dashboard_hint(o: EmulationOptions) -> str | None:
@@ -269,11 +246,15 @@ class Emulation:
         if not self.nodes:
             raise ConfigError("the scenario has no nodes to emulate")
         self.anchor_ids = [a.id for a in self.scenario.anchors]
-        # the lower edge is the upper-edge model shifted down by one window height (Delta + w)
-        self.edge, self.edge_reason = choose_edge(options, self.scenario,
-                                                  horizon_s=options.duration_s)
-        self.model_delta_m = options.delta_m + (
-            self.scenario.building.window_height_m if self.edge == "lower" else 0.0)
+        # The fusion's path model: --edge auto is decided by the fusion from the scenario
+        # (lower edge when every UAV flies below the windows); the ideal channel generates the
+        # upper-edge path, so it gets the upper edge.
+        edge = "upper" if options.edge == "auto" and options.channel == "ideal" else options.edge
+        self.fusion_args = ["--epoch-period-s", str(1.0 / options.rate_hz),
+                            "--delta-m", str(options.delta_m), "--edge", edge]
+        if options.scenario:
+            self.fusion_args += ["--scenario", options.scenario]
+        self.fusion_config, self.edge, self.edge_reason = self._fusion_config()
         self.profile = None
         if options.security_profile is not None:
             self.profile = self._load_profile(options.security_profile)
@@ -372,12 +353,39 @@ class Emulation:
             on_kill=lambda pp: log_event(self.log, logging.WARNING,
                                          "did not stop on SIGTERM, killing", service=group[pp]))
 
+    def _fusion_config(self) -> tuple[Any, str, str]:
+        """The fusion's config exactly as ``diffpos fusion`` builds it from our arguments."""
+        import argparse
+
+        from . import cmd_fusion
+
+        parser = argparse.ArgumentParser()
+        cmd_fusion.add_arguments(parser)
+        args = parser.parse_args(["--site", self.o.site, *self.fusion_args])
+        cfg = cmd_fusion.config_from_args(args, self.scenario)
+        edge, why = cmd_fusion.model_edge(args, self.scenario)
+        return cfg, edge, why
+
+    def _write_run_config(self) -> str:
+        """A JSON run configuration for the recorder (``{"fusion": ..., "emulate": ...}``)."""
+        import msgspec
+
+        self._run_dir = tempfile.TemporaryDirectory(prefix="diffpos-run-")
+        path = Path(self._run_dir.name) / "run_config.json"
+        doc = {"fusion": msgspec.to_builtins(self.fusion_config),
+               "emulate": {"run_id": self.run_id, "channel": self.o.channel, "seed": self.o.seed,
+                           "edge": self.edge, "edge_reason": self.edge_reason}}
+        path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
+        return str(path)
+
     def shutdown(self) -> None:
         """Stop in dependency order: anchors, fusion, extras, router."""
         self._stop_procs(lambda n: n.startswith("anchor-"))
         self._stop_procs(lambda n: n == "fusion")
         self._stop_procs(lambda n: n in EXTRA_SERVICES)
         self._stop_procs(lambda n: True)
+        if getattr(self, "_run_dir", None) is not None:
+            self._run_dir.cleanup()
 
     def _check_children(self) -> None:
         for p in self.procs:
@@ -443,8 +451,7 @@ class Emulation:
                 subs = [session.declare_subscriber(k, self._on_data)
                         for k in (self.keys.estimates(), self.keys.fusion_diagnostics())]
                 self._spawn("fusion", ["fusion", "--site", o.site, *self._zargs("fusion"),
-                                       "--epoch-period-s", str(1.0 / o.rate_hz),
-                                       "--delta-m", str(self.model_delta_m), *scen])
+                                       *self.fusion_args])
                 for aid, off in zip(self.anchor_ids, offsets, strict=True):
                     self._spawn(f"anchor-{aid}", [
                         "anchor", "--id", aid, "--site", o.site, *self._zargs("anchor", aid),
@@ -464,6 +471,9 @@ class Emulation:
                         else:
                             i = argv.index("--connect")
                             argv = argv[:i] + z + argv[i + 2:]
+                    if argv is not None and name == "recorder":
+                        # the fusion settings travel with the recording: replay reproduces live
+                        argv = [*argv, "--run-config", self._write_run_config()]
                     if argv is not None and importlib.util.find_spec(module) is not None:
                         self._spawn(name, argv)
                         if ready_key is not None:

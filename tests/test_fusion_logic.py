@@ -414,3 +414,22 @@ def test_persistently_failing_node_is_not_cold_solved_every_epoch(monkeypatch):
     # first epoch + at most one retry per 0.5 s: <= 1 + 2 s / 0.5 s (+1 for phase rounding)
     assert cold_rows <= 1 + 2 / 0.5 + 1, calls
     assert cold_rows >= 2, "retries must still happen (re-acquisition)"
+
+
+def test_cli_edge_lower_is_the_upper_edge_model_one_window_lower():
+    from diffpos_services.anchor import load_scenario_file
+
+    sc = load_scenario_file(None)  # the paper's geometry: every UAV below the windows
+    w = sc.building.window_height_m
+    deltas = {}
+    for edge in ("upper", "lower", "auto"):
+        cmd_fusion, args = _fusion_args("--edge", edge, "--delta-m", "0.2")
+        deltas[edge] = cmd_fusion.config_from_args(args, sc).delta_m
+    assert deltas["upper"] == pytest.approx(0.2)
+    assert deltas["lower"] == pytest.approx(0.2 + w)
+    assert deltas["auto"] == deltas["lower"]
+    # the lower-edge model equals window_edge_path(edge="lower") at the same Delta
+    a, n = np.array([3.0, -15.0, 1.0]), np.array([-2.0, 6.0, 10.5])
+    lower = window_edge_path(a, n, window_height_m=w, delta_m=0.2, edge="lower").length_m
+    shifted = window_edge_path(a, n, window_height_m=w, delta_m=deltas["lower"]).length_m
+    assert float(lower) == pytest.approx(float(shifted), rel=1e-12)

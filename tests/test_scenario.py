@@ -210,3 +210,15 @@ def test_orbit_and_waypoint_geometry():
 def test_trajectory_errors(d, fragment):
     with pytest.raises(ValueError, match=fragment.replace("(", r"\(")):
         trajectory_from_dict(d)
+
+
+def test_first_arrival_edge_is_lower_only_when_every_anchor_is_below_the_windows():
+    from diffpos.scenario import first_arrival_edge
+
+    sc = default_scenario()
+    lowest = float(sc.building.window_z_m(0)[0])
+    assert max(a.position_m[2] for a in sc.anchors) < lowest
+    assert first_arrival_edge(sc)[0] == "lower"
+    d = sc.to_dict()
+    d["anchors"][0]["trajectory"]["position_m"][2] = lowest + 0.01  # one UAV at the lowest window
+    assert first_arrival_edge(Scenario.from_dict(d))[0] == "upper"
