@@ -62,19 +62,47 @@ class PathModel:
         """Path lengths ``(N, M)`` [m] and Jacobians ``(N, M, 3)`` for nodes ``x_m (N, 3)``.
 
         The same formulas as :func:`diffpos.geometry.window_edge_path` (upper edge), fused
-        into the few operations the solver needs (no diffraction point, no edge flags): the
-        hot loop of D-NLS calls this once per iteration. ``tests/test_dnls.py`` checks it
-        against ``window_edge_path``.
+        into the few operations the solver needs (no diffraction point, no edge flags).
+        ``tests/test_dnls.py`` checks it against ``window_edge_path``. The Jacobian is with
+        respect to ``(x, y, z)`` [m/m].
         """
+        yn = x_m[:, 1:2]
+        return self._evaluate(anchors_m, x_m[:, 0:1], yn * yn, x_m[:, 2:3], yn)
+
+    def evaluate_u(self, anchors_m: FloatArray, v_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Path lengths ``(N, M)`` [m] and Jacobians ``(N, M, 3)`` in ``v = (x, u = y^2, z)``.
+
+        The model depends on the depth ``y`` only through ``u = y^2``; in ``u`` it is smooth
+        and non-degenerate at the wall plane ``u = 0``: ``dp/du = 1 / (2 ipl)`` [1/m] (the
+        diffraction point is optimal, so its own dependence on ``u`` drops out, also when
+        it is clipped to the edge ends). This is what the hot loop of
+        :func:`levenberg_marquardt` calls, once per iteration.
+
+        Parameters
+        ----------
+        anchors_m : ndarray, shape (N, M, 3) [m]
+        v_m : ndarray, shape (N, 3)
+            ``(x [m], u [m^2], z [m])`` with ``u >= 0``.
+        """
+        return self._evaluate(anchors_m, v_m[:, 0:1], v_m[:, 1:2], v_m[:, 2:3], None)
+
+    def _evaluate(
+        self,
+        anchors_m: FloatArray,
+        xn: FloatArray,
+        yn2: FloatArray,
+        zn: FloatArray,
+        yn: FloatArray | None,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Lengths and Jacobian in ``y`` (``yn`` given) or in ``u = y^2`` (``yn`` None)."""
         h = self.edge_offset_m
         xa = anchors_m[..., 0]
         ya = anchors_m[..., 1]
         za = anchors_m[..., 2]
-        xn = x_m[:, 0:1]
-        yn = x_m[:, 1:2]
-        dz_out = (x_m[:, 2:3] + h) - za
+        dz_out = (zn + h) - za
         r_s = np.sqrt(ya * ya + dz_out * dz_out)
-        r_o = np.sqrt(yn * yn + h * h)
+        r_o2 = yn2 + h * h
+        r_o = np.sqrt(r_o2)
         den = r_s + r_o
         if den.min(initial=1.0) > 0.0:
             qx = (xa * r_o + xn * r_s) / den
@@ -86,12 +114,15 @@ class PathModel:
         dx_out = qx - xa
         dx_in = xn - qx
         opl = np.sqrt(dx_out * dx_out + r_s * r_s)
-        ipl = np.sqrt(dx_in * dx_in + r_o * r_o)
+        ipl = np.sqrt(dx_in * dx_in + r_o2)
         jac = np.empty((*ipl.shape, 3))
         with np.errstate(invalid="ignore", divide="ignore"):
             inv_ipl = 1.0 / ipl
             np.multiply(dx_in, inv_ipl, out=jac[..., 0])
-            np.multiply(yn, inv_ipl, out=jac[..., 1])
+            if yn is None:
+                np.multiply(0.5, inv_ipl, out=jac[..., 1])
+            else:
+                np.multiply(yn, inv_ipl, out=jac[..., 1])
             np.divide(dz_out, opl, out=jac[..., 2])
         return opl + ipl, jac
 
@@ -179,16 +210,50 @@ def levenberg_marquardt(
     Marquardt scaling ``H + lambda diag(H)``; robust losses via iteratively reweighted normal
     equations (weights ``rho'``), the true robust cost deciding step acceptance.
 
-    Convergence (per problem): an accepted step with ``|dx| <= xtol (xtol + |x|)`` or a relative
-    cost decrease ``<= ftol``; or a Gauss-Newton predicted decrease (half the Newton decrement
-    ``g^T H^-1 g``) below ``gtol`` times the cost (a stationary point, robust to rounding when
-    steps can no longer lower the cost); or a zero cost. A problem whose damping exceeds
-    ``1e12`` without an accepted step stops unconverged (unless its gradient test passes).
-    "Zero cost" means residuals at the rounding level of the ranges (``64 eps |r_j|``).
+    **Depth parameter.** The model depends on the depth ``y`` only through ``u = y^2``, so
+    the iteration runs in ``v = (x, u, z)`` with the bound ``u >= 0``
+    (:meth:`PathModel.evaluate_u`). In ``y`` the Jacobian column ``y / ipl`` vanishes at the
+    wall plane and fixes whose optimum is at ``y = 0`` (noise pushing a shallow node onto the
+    wall) would crawl there sublinearly; in ``u`` the model is regular at ``u = 0`` and the
+    bound is handled by projection with an active set: a step that would make ``u``
+    negative is cut at ``u = 0``, and a problem at ``u = 0`` whose gradient points to
+    ``u < 0`` solves the reduced ``(x, z)`` system with ``u`` fixed. Away from the wall the
+    linearised step is the same as in ``y`` (Marquardt scaling makes it invariant to the
+    change of variable ``du = 2 y dy``); only the update differs. ``x0_m`` may have any sign
+    of ``y``; the result has ``y = sqrt(u) >= 0`` (the model is even in ``y``).
+
+    Convergence (per problem): an accepted step with ``|dx| <= xtol (xtol + |x|)`` (measured
+    in ``(x, y, z)`` [m]) or a relative cost decrease ``<= ftol``; or a Gauss-Newton predicted
+    decrease (half the Newton decrement ``g^T H^-1 g`` over the free parameters: at an active
+    bound ``u = 0`` the reduced ``(x, z)`` system) below ``gtol`` times the cost (a
+    stationary point, robust to rounding when steps can no longer lower the cost); or a zero
+    cost. A problem whose damping exceeds ``1e12`` without an accepted step stops
+    unconverged (unless its gradient test passes). "Zero cost" means residuals at the
+    rounding level of the ranges (``64 eps |r_j|``). Problems with a non-finite initial
+    cost are returned as given, unconverged, with 0 iterations.
+
+    Parameters
+    ----------
+    anchors_m : ndarray, shape (N, M, 3) [m]
+    ranges_m : ndarray, shape (N, M) [m]
+    sw : ndarray, shape (N, M) [1/m]
+        ``mask / sigma``: 0 drops a measurement.
+    x0_m : ndarray, shape (N, 3) [m]
+        Starts.
+    model : PathModel
+        Scalars or per-problem ``(N,)`` arrays.
+
+    Returns
+    -------
+    LMResult
+        ``x_m (N, 3)`` [m] with ``y >= 0``, ``cost (N,)``, ``iterations (N,)``,
+        ``converged (N,)``.
     """
     n = x0_m.shape[0]
-    x_out = np.array(x0_m, dtype=np.float64, copy=True)
-    p, jac = model.evaluate(anchors_m, x_out)
+    x0 = np.asarray(x0_m, dtype=np.float64)
+    v_out = np.array(x0, copy=True)
+    v_out[:, 1] = x0[:, 1] * x0[:, 1]
+    p, jac = model.evaluate_u(anchors_m, v_out)
     res = ranges_m - p
     cost_out = cost_of(res, sw, loss, loss_scale)
     iters_out = np.zeros(n, dtype=np.int_)
@@ -203,11 +268,11 @@ def levenberg_marquardt(
     # fewer than half of its rows are live, so small batches pay no gather per iteration.
     ids = np.flatnonzero(np.isfinite(cost_out))
     if ids.size < n:
-        a_w, r_w, sw_w, x_w = anchors_m[ids], ranges_m[ids], sw[ids], x_out[ids]
+        a_w, r_w, sw_w, v_w = anchors_m[ids], ranges_m[ids], sw[ids], v_out[ids]
         res_w, jac_w, cost_w, floor_w = res[ids], jac[ids], cost_out[ids], floor_all[ids]
         mdl_w = model.take(ids)
     else:
-        a_w, r_w, sw_w, x_w = anchors_m, ranges_m, sw, x_out.copy()
+        a_w, r_w, sw_w, v_w = anchors_m, ranges_m, sw, v_out.copy()
         res_w, jac_w, cost_w, floor_w = res, jac, cost_out.copy(), floor_all
         mdl_w = model
     lam_w = np.full(ids.size, lambda0)
@@ -225,6 +290,16 @@ def levenberg_marquardt(
         rw = res_w * ws
         h = np.matmul(jw.transpose(0, 2, 1), jw)
         g = np.matmul(rw[:, None, :], jw)[:, 0, :]
+        huu = h[:, 1, 1].copy()
+        wsum = np.einsum("nm,nm->n", ws, ws)
+        # active bound: at u = 0 with the descent direction (+g) pointing to u < 0, u is
+        # held: the u row and column become the identity and g_u zero (the reduced system)
+        act = (v_w[:, 1] <= 0.0) & (g[:, 1] < 0.0)
+        if act.any():
+            h[act, 1, :] = 0.0
+            h[act, :, 1] = 0.0
+            h[act, 1, 1] = 1.0
+            g[act, 1] = 0.0
         dh = h[:, diag, diag]
         dh = np.maximum(dh, 1e-12 * dh.max(axis=-1, keepdims=True) + tiny)
         # one stacked solve: the damped LM step and the undamped Gauss-Newton step, whose
@@ -234,26 +309,66 @@ def levenberg_marquardt(
         a2 = np.concatenate([h, h])
         a2[:k, diag, diag] += lam_w[:, None] * dh
         sol = solve3(a2, np.concatenate([g, g]))
-        dx = sol[:k]
+        dv = sol[:k]
         dec = np.einsum("ni,ni->n", g, sol[k:])
         stationary = np.isfinite(dec) & (dec <= 2.0 * gtol * cost_w + 2.0 * floor_w)
-        bad = ~np.isfinite(dx).all(axis=-1)
+        bad = ~np.isfinite(dv).all(axis=-1)
         if bad.any():
-            dx[bad] = 0.0
-        xt = x_w + dx
-        pt, jt = mdl_w.evaluate(a_w, xt)
+            dv[bad] = 0.0
+        # Update of u. The linearised model changes p_j by du / (2 ipl_j) but the path
+        # sqrt(ipl_j^2 + du) is concave in u, so u + du overshoots towards the wall when the
+        # step is large. The update is made linear in an effective in-room path length
+        # s = sqrt(ipl_eff^2) instead (ipl_eff^-2 the weighted mean of ipl_j^-2): s + ds with
+        # ds = du / (2 s), i.e. u + du + du^2 / (4 s^2); this changes nothing to first order
+        # (local convergence is that of the u iteration), is the y update y + du / (2 y)
+        # when ipl_eff = y and the plain u update when ipl_eff >> y.
+        u_w = v_w[:, 1]
+        du = dv[:, 1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ipl2 = np.maximum(wsum / (4.0 * huu), u_w)
+            inv4 = np.where(np.isfinite(ipl2) & (ipl2 > 0.0), 0.25 / ipl2, 0.0)
+            s_eff = np.sqrt(ipl2)
+            # the linear du that takes s to the bound u = 0 (s = sqrt(ipl2 - u))
+            du_b = np.where(
+                inv4 > 0.0, -u_w * 2.0 * s_eff / (s_eff + np.sqrt(ipl2 - u_w)), -u_w
+            )
+        vt = v_w + dv
+        vt[:, 1] = np.maximum(u_w + du + inv4 * du * du, 0.0)
+        cut = du < du_b
+        if cut.any():
+            # the step crosses the wall plane: go to u = 0 exactly (du = du_b) and re-solve
+            # the damped (x, z) part of the same system with that du fixed
+            ci = np.flatnonzero(cut)
+            hc = a2[ci]
+            dub = du_b[ci]
+            gc = g[ci] - hc[:, :, 1] * dub[:, None]
+            hc[:, 1, :] = 0.0
+            hc[:, :, 1] = 0.0
+            hc[:, 1, 1] = 1.0
+            gc[:, 1] = 0.0
+            dvc = solve3(hc, gc)
+            okc = np.isfinite(dvc).all(axis=-1)
+            vt[ci[okc], 0] = v_w[ci[okc], 0] + dvc[okc, 0]
+            vt[ci[okc], 2] = v_w[ci[okc], 2] + dvc[okc, 2]
+            vt[ci, 1] = 0.0
+        pt, jt = mdl_w.evaluate_u(a_w, vt)
         rest = r_w - pt
         costt = cost_of(rest, sw_w, loss, loss_scale)
         c_old = cost_w
         accept = (costt < c_old) & ~bad & live
-        x_w = np.where(accept[:, None], xt, x_w)
+        # the step in (x, y, z) [m]: dy = sqrt(u_t) - sqrt(u) without cancellation
+        su, sut = np.sqrt(u_w), np.sqrt(vt[:, 1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dy = np.where(su + sut > 0.0, (vt[:, 1] - u_w) / (su + sut), 0.0)
+        dxz = vt[:, 0::2] - v_w[:, 0::2]
+        step2 = np.einsum("ni,ni->n", dxz, dxz) + dy * dy
+        v_w = np.where(accept[:, None], vt, v_w)
         res_w = np.where(accept[:, None], rest, res_w)
         jac_w = np.where(accept[:, None, None], jt, jac_w)
         cost_w = np.where(accept, costt, c_old)
         lam_w = np.where(accept, np.maximum(lam_w / 3.0, 1e-12), lam_w * 8.0)
         it_w += live
-        step2 = np.einsum("ni,ni->n", dx, dx)
-        xn2 = np.einsum("ni,ni->n", x_w, x_w)
+        xn2 = v_w[:, 0] * v_w[:, 0] + v_w[:, 1] + v_w[:, 2] * v_w[:, 2]
         small_step = accept & (step2 <= (xtol_m * (xtol_m + np.sqrt(xn2))) ** 2)
         small_f = accept & (c_old - costt <= ftol * c_old)
         zero = c_old <= floor_w
@@ -263,7 +378,7 @@ def levenberg_marquardt(
         if finished.any():
             f_idx = np.flatnonzero(finished)
             gid = ids[f_idx]
-            x_out[gid] = x_w[f_idx]
+            v_out[gid] = v_w[f_idx]
             cost_out[gid] = cost_w[f_idx]
             iters_out[gid] = it_w[f_idx]
             conv_out[gid] = done_ok[f_idx]
@@ -275,7 +390,7 @@ def levenberg_marquardt(
             if n_live < 0.5 * ids.size:
                 keep = np.flatnonzero(live)
                 ids = ids[keep]
-                a_w, r_w, sw_w, x_w = a_w[keep], r_w[keep], sw_w[keep], x_w[keep]
+                a_w, r_w, sw_w, v_w = a_w[keep], r_w[keep], sw_w[keep], v_w[keep]
                 res_w, jac_w, cost_w = res_w[keep], jac_w[keep], cost_w[keep]
                 floor_w, lam_w, it_w = floor_w[keep], lam_w[keep], it_w[keep]
                 mdl_w = mdl_w.take(keep)
@@ -283,7 +398,11 @@ def levenberg_marquardt(
     if ids.size:  # iteration limit: write back the live rows, unconverged
         l_idx = np.flatnonzero(live)
         gid = ids[l_idx]
-        x_out[gid] = x_w[l_idx]
+        v_out[gid] = v_w[l_idx]
         cost_out[gid] = cost_w[l_idx]
         iters_out[gid] = it_w[l_idx]
+    x_out = v_out
+    fin = np.isfinite(cost_out)
+    # rows never iterated (non-finite cost) keep their start as given
+    x_out[:, 1] = np.where(fin, np.sqrt(np.maximum(v_out[:, 1], 0.0)), x0[:, 1])
     return LMResult(x_m=x_out, cost=cost_out, iterations=iters_out, converged=conv_out)
