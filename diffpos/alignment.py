@@ -24,8 +24,8 @@ Model and assumptions
 
 from __future__ import annotations
 
-import bisect
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -165,35 +165,23 @@ class StateHistory:
         self.capacity = int(capacity)
         self.max_extrapolation_ns = int(max_extrapolation_ns)
         self.max_age_ns = None if max_age_ns is None else int(max_age_ns)
-        # rows kept as Python lists (cheap in-order appends); numpy views rebuilt lazily
-        self._t: list[int] = []
-        self._rows: list[tuple] = []
-        self._dirty = True
-        self._arrays: tuple = ()
+        # rows [lo, hi) of growable arrays hold the kept states, sorted by time: an in-order
+        # append writes one row, dropping old states moves ``lo`` (compacted when the
+        # arrays are full), so no per-state rebuild of the arrays
+        self._t = np.empty(16, dtype=np.int64)
+        self._rows = np.empty((16, 10))
+        self._lo = self._hi = 0
 
     def __len__(self) -> int:
-        return len(self._t)
+        return self._hi - self._lo
 
     @property
     def latest_t_ns(self) -> int | None:
-        return self._t[-1] if self._t else None
-
-    def _materialise(self) -> None:
-        if self._dirty:
-            n = len(self._t)
-            t = np.array(self._t, dtype=np.int64)
-            if n:
-                rows = np.array([r[:9] for r in self._rows], dtype=np.float64).reshape(n, 9)
-                vs = np.array([r[9] for r in self._rows], dtype=np.float64)
-            else:
-                rows, vs = np.empty((0, 9)), np.empty(0)
-            self._arrays = (t, rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], vs)
-            self._dirty = False
+        return int(self._t[self._hi - 1]) if self._hi > self._lo else None
 
     @property
     def t_ns(self) -> NDArray[np.int64]:
-        self._materialise()
-        return self._arrays[0]
+        return self._t[self._lo:self._hi]
 
     def add(
         self,
@@ -209,23 +197,47 @@ class StateHistory:
                *(float(v) for v in sigma_m), float(velocity_sigma_m_s))
         if len(row) != 10:
             raise ValueError("position_m, velocity_m_s and sigma_m must have 3 components each")
-        if not self._t or t > self._t[-1]:
-            self._t.append(t)
-            self._rows.append(row)
+        lo, hi = self._lo, self._hi
+        if hi == lo or t > self._t[hi - 1]:
+            if hi == self._t.size:
+                self._make_room()
+                lo, hi = self._lo, self._hi
+            self._t[hi] = t
+            self._rows[hi] = row
+            self._hi = hi = hi + 1
         else:
-            i = bisect.bisect_left(self._t, t)
-            if i < len(self._t) and self._t[i] == t:
+            i = lo + int(np.searchsorted(self._t[lo:hi], t, side="left"))
+            if i < hi and self._t[i] == t:
                 self._rows[i] = row
-            else:
-                self._t.insert(i, t)
-                self._rows.insert(i, row)
-        k = len(self._t) - self.capacity
-        if self.max_age_ns is not None and self._t[0] < self._t[-1] - self.max_age_ns:
-            k = max(k, bisect.bisect_left(self._t, self._t[-1] - self.max_age_ns))
+            else:  # out of order (rare): shift the newer rows by one
+                if hi == self._t.size:
+                    self._make_room()
+                    i += self._lo - lo
+                    lo, hi = self._lo, self._hi
+                self._t[i + 1:hi + 1] = self._t[i:hi].copy()
+                self._rows[i + 1:hi + 1] = self._rows[i:hi].copy()
+                self._t[i] = t
+                self._rows[i] = row
+                self._hi = hi = hi + 1
+        k = (hi - lo) - self.capacity
+        if self.max_age_ns is not None and self._t[lo] < self._t[hi - 1] - self.max_age_ns:
+            cut = int(np.searchsorted(self._t[lo:hi], self._t[hi - 1] - self.max_age_ns,
+                                      side="left"))
+            k = max(k, cut)
         if k > 0:
-            del self._t[:k]
-            del self._rows[:k]
-        self._dirty = True
+            self._lo = lo + k
+
+    def _make_room(self) -> None:
+        """Move the kept rows to the front, growing the arrays if they are more than half
+        full (amortised O(1) per appended state)."""
+        lo, hi = self._lo, self._hi
+        n = hi - lo
+        size = self._t.size if 2 * n <= self._t.size else 2 * self._t.size
+        t = np.empty(size, dtype=np.int64)
+        rows = np.empty((size, 10))
+        t[:n] = self._t[lo:hi]
+        rows[:n] = self._rows[lo:hi]
+        self._t, self._rows, self._lo, self._hi = t, rows, 0, n
 
     def at(self, t_ns: ArrayLike) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
         """Anchor position and its one-sigma per axis at the query times.
@@ -243,8 +255,9 @@ class StateHistory:
         tq = np.asarray(t_ns, dtype=np.int64)
         shape = tq.shape
         tq = tq.reshape(-1)
-        self._materialise()
-        t_hist, pos_hist, vel_hist, sig_hist, vsig_hist = self._arrays
+        t_hist = self._t[self._lo:self._hi]
+        rows = self._rows[self._lo:self._hi]
+        pos_hist, vel_hist, sig_hist, vsig_hist = rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], rows[:, 9]
         n = t_hist.size
         pos = np.full((tq.size, 3), np.nan)
         sig = np.full((tq.size, 3), np.nan)
@@ -336,9 +349,12 @@ def compensate_node_motion(
 
 
 # ----------------------------------------------------------------------------- epochs
-@dataclass(frozen=True, slots=True)
-class RangeEntry:
-    """One range in an epoch (what the fusion keeps of a RangeMeasurement)."""
+class RangeEntry(NamedTuple):
+    """One range in an epoch (what the fusion keeps of a RangeMeasurement).
+
+    A named tuple (immutable, created ~4x faster than a frozen dataclass: the fusion makes
+    one per range, 4,000 per second at 8 anchors x 50 nodes x 10 Hz).
+    """
 
     t_ns: int
     range_m: float | None
@@ -449,17 +465,23 @@ class EpochBook:
             return out
         t_c = self.consensus_t_ns(live_anchors)
         horizon = None if t_c is None else (t_c + cfg.max_future_ns) // cfg.epoch_period_ns
+        # per epoch index: the live anchors whose latest time has not passed its end (an
+        # epoch is complete when each of them reported for it)
+        waiting_for: dict[int, frozenset[str]] = {}
+        latest = self.latest_t_ns
         for key in sorted(self.pending, key=lambda k: (k[1], k[0])):
             pe = self.pending[key]
             if pe.node_id in blocked:
                 continue
-            end_ns = (pe.epoch + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
             done = now_wall_ns - pe.first_rx_wall_ns >= cfg.deadline_ns
             if not done and len(pe.ranges) >= cfg.min_reports:
-                done = all(
-                    a in pe.ranges or self.latest_t_ns.get(a, -(2**62)) >= end_ns
-                    for a in live_anchors
-                )
+                waiting = waiting_for.get(pe.epoch)
+                if waiting is None:
+                    end_ns = (pe.epoch + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
+                    waiting = waiting_for[pe.epoch] = frozenset(
+                        a for a in live_anchors if latest.get(a, -(2**62)) < end_ns
+                    )
+                done = waiting <= pe.ranges.keys()
             if done:
                 out.append(pe)
                 del self.pending[key]

@@ -212,26 +212,33 @@ class _RejectLog:
 
 
 class _Track:
-    """Last good fixes of a node (warm start and velocity for motion compensation)."""
+    """Last good fixes of a node (warm start and velocity for motion compensation).
+
+    Positions and velocities are lists of 3 floats (per-fix updates in plain Python cost a
+    fraction of the same arithmetic on 3-element numpy arrays; the values are identical).
+    """
 
     __slots__ = ("cold_ns", "pos", "t_ns", "try_pos", "vel")
 
     def __init__(self) -> None:
         self.t_ns: int | None = None
-        self.pos: np.ndarray | None = None
-        self.vel: np.ndarray | None = None
+        self.pos: list[float] | None = None
+        self.vel: list[float] | None = None
         self.cold_ns: int | None = None  # measurement time of the last cold (multi-start) solve
-        self.try_pos: np.ndarray | None = None  # its position, whatever its status
+        self.try_pos: list[float] | None = None  # its position, whatever its status
 
-    def update(self, t_ns: int, pos: np.ndarray) -> None:
-        if self.t_ns is not None and self.pos is not None and t_ns > self.t_ns:
+    def update(self, t_ns: int, pos: list[float]) -> None:
+        p0 = self.pos
+        if self.t_ns is not None and p0 is not None and t_ns > self.t_ns:
             dt = (t_ns - self.t_ns) * 1e-9
             if dt < 1.0:
-                v = (pos - self.pos) / dt
-                self.vel = v if self.vel is None else 0.5 * self.vel + 0.5 * v
+                v = [(pos[0] - p0[0]) / dt, (pos[1] - p0[1]) / dt, (pos[2] - p0[2]) / dt]
+                w = self.vel
+                self.vel = v if w is None else [0.5 * w[0] + 0.5 * v[0], 0.5 * w[1] + 0.5 * v[1],
+                                                0.5 * w[2] + 0.5 * v[2]]
             else:
                 self.vel = None
-        self.t_ns, self.pos = t_ns, pos.copy()
+        self.t_ns, self.pos = t_ns, list(pos)
 
 
 class FusionCore:
@@ -530,12 +537,50 @@ class FusionCore:
             return "schema", "range_batch node_ids has duplicates"
         return None
 
+    def _batch_all_good(self, msg: M.RangeBatch) -> bool:
+        """True if every entry of ``msg`` passes the per-entry checks of :meth:`_add_batch`
+        (no null, finite values within the configured limits, only known allowed nodes),
+        checked with a few vectorised operations instead of per entry."""
+        ids, r, sg, snr = msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db
+        if not ids or None in r or None in sg or None in snr:
+            return False
+        if not self._nodes.issuperset(ids) or (
+            self._allowed_nodes is not None and not self._allowed_nodes.issuperset(ids)
+        ):
+            return False
+        cfg = self.config
+        ra = np.array(r, dtype=np.float64)
+        sa = np.array(sg, dtype=np.float64)
+        na = np.array(snr, dtype=np.float64)
+        # NaN compares False: a non-finite value fails these and takes the checked path
+        return bool(
+            (ra.max() <= cfg.max_range_m) & (ra.min() >= 0.0)
+            & (sa.min() >= cfg.min_sigma_m) & (sa.max() <= cfg.max_sigma_m)
+            & (na.min() >= -300.0) & (na.max() <= 300.0)
+        )
+
     def _add_batch(self, key: str, src: str, anchor: _Anchor, msg: M.RangeBatch,
                    rx_wall_ns: int) -> None:
         n = len(msg.node_ids)
         self.received["range"] += n
-        entries = []
         min_snr = self.config.min_snr_db
+        if self._batch_all_good(msg):
+            # fast path (the usual batch): every entry valid and every node known, so the
+            # per-entry checks below would accept them all
+            t, pw = msg.t_ns, msg.t_pub_wall_ns
+            if min_snr is None:
+                entries = [(nid, RangeEntry(t, r, sg, snr, pw, rx_wall_ns)) for nid, r, sg, snr
+                           in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db, strict=True)]
+            else:
+                entries = [(nid, RangeEntry(t, r if snr >= min_snr else None, sg, snr, pw,
+                                            rx_wall_ns)) for nid, r, sg, snr
+                           in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db, strict=True)]
+            anchor.ranges += n
+            late = self.book.add_many(anchor.id, msg.t_ns, entries)
+            if late:
+                self.rejected["late"] += late
+            return
+        entries = []
         for nid, r, sg, snr in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db,
                                    strict=True):
             bad = self._bad_value(r, sg, snr)
@@ -671,16 +716,26 @@ class FusionCore:
         reported = np.zeros((b, m), bool)
         detected = np.zeros((b, m), bool)
         pub_wall = np.zeros((b, m), np.int64)
+        # gather every (epoch, anchor) entry in flat lists, then scatter with fancy indexing
+        ri: list[int] = []
+        rj: list[int] = []
+        ents: list[RangeEntry] = []
         for i, pe in enumerate(epochs):
-            for a, e in pe.ranges.items():
-                j = col[a]
-                reported[i, j] = True
-                t[i, j] = e.t_ns
-                pub_wall[i, j] = e.t_pub_wall_ns
-                if e.range_m is not None:
-                    detected[i, j] = True
-                    rng[i, j] = e.range_m
-                    sig[i, j] = e.sigma_m
+            k = len(pe.ranges)
+            ri += [i] * k
+            rj += [col[a] for a in pe.ranges]
+            ents += pe.ranges.values()
+        if ents:
+            e_t, e_r, e_s, _, e_pub, _ = zip(*ents, strict=True)
+            ri_a, rj_a = np.array(ri), np.array(rj)
+            reported[ri_a, rj_a] = True
+            t[ri_a, rj_a] = e_t
+            pub_wall[ri_a, rj_a] = e_pub
+            det = np.array([r is not None for r in e_r])
+            di, dj = ri_a[det], rj_a[det]
+            detected[di, dj] = True
+            rng[di, dj] = [r for r in e_r if r is not None]
+            sig[di, dj] = np.array(e_s, dtype=np.float64)[det]
         # anchor positions at each range's own time
         apos = np.full((b, m, 3), np.nan)
         asig = np.zeros((b, m, 3))
@@ -710,8 +765,9 @@ class FusionCore:
             if tr is not None and tr.t_ns is not None and abs(t_ref[i] - tr.t_ns) <= max_age:
                 dt = (t_ref[i] - tr.t_ns) * 1e-9
                 if tr.vel is not None:
-                    vel[i], has_vel[i] = tr.vel, True
-                    x0[i] = tr.pos + tr.vel * dt
+                    v = tr.vel
+                    vel[i], has_vel[i] = v, True
+                    x0[i] = [p + u * dt for p, u in zip(tr.pos, v, strict=True)]
                 else:
                     x0[i] = tr.pos
             elif (tr is not None and tr.try_pos is not None and tr.cold_ns is not None
@@ -762,8 +818,8 @@ class FusionCore:
             res_peb[rows], res_zb[rows] = fix.peb_m, fix.z_bound_m
             res_status[rows], res_resid[rows] = fix.status, fix.residuals_m
             res_used[rows], res_reason[rows] = fix.used, fix.exclusion_reason
-            for k, r in enumerate(rows):
-                res_msg[r] = fix.message(k)
+            for r, text in zip(rows.tolist(), fix.messages(), strict=True):
+                res_msg[r] = text
 
         good = (int(FixStatus.OK), int(FixStatus.OK_UNVERIFIED))
         if cfg.method != "dnls":
@@ -794,7 +850,7 @@ class FusionCore:
                 for i in rows_c:
                     tr = self.tracks[epochs[i].node_id]
                     tr.cold_ns = int(t_ref[i])
-                    tr.try_pos = res_pos[i].copy() if np.all(np.isfinite(res_pos[i])) else None
+                    tr.try_pos = res_pos[i].tolist() if np.all(np.isfinite(res_pos[i])) else None
         self.solved += b
 
         # ---- messages (vectorised reasons; numpy -> Python lists once, not per element)
@@ -818,53 +874,67 @@ class FusionCore:
         fixed = {1: "NOT_DETECTED", 2: "NO_ANCHOR_STATE", 4: "NOT_USED", 5: "ANCHOR_LOST",
                  6: "NOT_REPORTED"}
         reason_names = {int(r): r.name for r in ExclusionReason}
+        status_names = {int(st): st.name for st in FixStatus}
         floors = np.clip(np.floor((res_pos[:, 2] - cfg.first_floor_z_m) / cfg.floor_height_m),
                          -1, cfg.n_floors)
         status_l = res_status.tolist()
-        finite_pos = np.all(np.isfinite(res_pos), axis=1)
-        finite_cov = np.all(np.isfinite(res_cov), axis=(1, 2))
+        finite_pos = np.all(np.isfinite(res_pos), axis=1).tolist()
+        finite_cov = np.all(np.isfinite(res_cov), axis=(1, 2)).tolist()
         pos_l, cov_l = res_pos.tolist(), res_cov.tolist()
         peb_l, zb_l, floor_l = res_peb.tolist(), res_zb.tolist(), floors.tolist()
-        resid_l, used_l, code_l, rr_l = res_resid.tolist(), res_used.tolist(), code.tolist(), \
-            res_reason.tolist()
+        resid_l = np.where(np.isfinite(res_resid), res_resid, 0.0).tolist()
         t_ref_l = t_ref.tolist()
         in_wall_l = np.where(reported, pub_wall, 0).max(axis=1).tolist()
-        for i, pe in enumerate(epochs):
-            st = status_l[i]
-            st_name = FixStatus(st).name
-            ok = st in good
-            self.by_status[st_name] += 1
-            row_code, row_used = code_l[i], used_l[i]
+        # rows with the same used set and exclusion reasons share their anchor lists (most
+        # rows of an epoch batch use every anchor): built once per pattern, not per fix
+        why = np.where(code == 3, 16 + res_reason, code) * ~res_used
+        pattern = np.concatenate([res_used.astype(np.int64), why], axis=1)
+        first: dict[bytes, int] = {}  # pattern -> group id
+        reps: list[int] = []  # group id -> its first row
+        group_l: list[int] = []
+        for i, row in enumerate(pattern):
+            g = first.setdefault(row.tobytes(), len(first))
+            if g == len(reps):
+                reps.append(i)
+            group_l.append(g)
+        shared = []
+        for row in pattern[reps].tolist():
+            used_idx = [j for j in range(m) if row[j]]
             excluded = [
-                M.Exclusion(names[j], reason_names[rr_l[i][j]] if c == 3 else fixed[c])
-                for j, c in enumerate(row_code) if c and not row_used[j]
+                M.Exclusion(names[j], reason_names[c - 16] if c >= 16 else fixed[c])
+                for j, c in enumerate(row[m:]) if c
             ]
-            used_idx = [j for j in range(m) if row_used[j]]
-            used_ids = [names[j] for j in used_idx]
-            resid = [resid_l[i][j] for j in used_idx]
+            shared.append((used_idx, [names[j] for j in used_idx], excluded, len(used_idx) == m))
+        self.by_status.update(status_names[st] for st in status_l)
+        tracks = self.tracks
+        for i, (pe, gi) in enumerate(zip(epochs, group_l, strict=True)):
+            st = status_l[i]
+            used_idx, used_ids, excluded, all_used = shared[gi]
+            resid = resid_l[i] if all_used else [resid_l[i][j] for j in used_idx]
+            ok = st in good
             if ok and finite_pos[i]:
                 pos = tuple(pos_l[i])
-                self.tracks[pe.node_id].update(t_ref_l[i], res_pos[i])
-                cov_t = tuple(tuple(r) for r in cov_l[i]) if finite_cov[i] else None
+                tracks[pe.node_id].update(t_ref_l[i], pos_l[i])
+                cov_t = tuple(map(tuple, cov_l[i])) if finite_cov[i] else None
                 fl = int(floor_l[i])
             else:
                 pos, cov_t, fl = None, None, None
-            in_wall = int(in_wall_l[i])
+            in_wall = in_wall_l[i]
             self.seq += 1
             est = M.PositionEstimate(
                 node_id=pe.node_id,
                 t_ns=t_ref_l[i],
                 epoch=pe.epoch,
                 seq=self.seq,
-                status=st_name,
+                status=status_names[st],
                 position_m=pos,
                 covariance_m2=cov_t,  # type: ignore[arg-type]
                 peb_m=M.finite_or_none(peb_l[i]) if ok else None,
                 z_bound_m=M.finite_or_none(zb_l[i]) if ok else None,
                 floor_index=fl,
-                used_anchors=used_ids,
-                residuals_m=[r if math.isfinite(r) else 0.0 for r in resid],
-                excluded=excluded,
+                used_anchors=list(used_ids),
+                residuals_m=resid,
+                excluded=list(excluded),
                 message=res_msg[i],
                 t_input_wall_ns=max(in_wall, 0),
                 t_pub_wall_ns=now,

@@ -22,6 +22,7 @@ All times are integer nanoseconds since the Unix epoch.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -1366,8 +1367,10 @@ class RecordingSummary:
         }
 
 
-def _natural(s: str):
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
+@functools.lru_cache(maxsize=1 << 16)
+def _natural(s: str) -> tuple:
+    """Natural sort key (``n2`` < ``n10``); cached: replay sorts by node id per estimate."""
+    return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s))
 
 
 def summarize(path: str | os.PathLike[str]) -> RecordingSummary:

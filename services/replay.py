@@ -59,7 +59,7 @@ __all__ = [
 #: percentiles reported for every error distribution
 PERCENTILES = (50, 67, 90, 95, 99)
 _GOOD = ("OK", "OK_UNVERIFIED")
-_FUSION_INPUT_KINDS = ("anchor_state", "range")
+_FUSION_INPUT_KINDS = ("anchor_state", "range", "range_batch")
 
 
 # ----------------------------------------------------------------------------------------
@@ -568,7 +568,7 @@ def replay(
                 next_step = now + step_ns
         if progress is not None:
             progress(scanner.offset, scanner.size_bytes)
-    if counts["anchor_state"] + counts["range"] == 0:
+    if counts["anchor_state"] + counts["range"] + counts["range_batch"] == 0:
         if sink is not None:
             sink.close()
         raise RecordingError(
@@ -745,6 +745,7 @@ def synthetic_run(
     seed: int = 0,
     site: str = "synth",
     t0_ns: int = 100_000_000_000_000_000,
+    range_batch: bool = False,
 ) -> SyntheticRun:
     """Messages of an emulated run, generated without Zenoh.
 
@@ -769,6 +770,9 @@ def synthetic_run(
     seed : int
     site : str
     t0_ns : int [ns]
+    range_batch : bool
+        Anchors publish one :class:`RangeBatch` per epoch on ``anchor/<id>/ranges`` (like
+        ``diffpos anchor --range-batch``) instead of one message per node.
     """
     from diffpos_services.keys import Keys
 
@@ -842,6 +846,27 @@ def synthetic_run(
                     )
                 )
                 seqs[a] += 1
+                if range_batch:
+                    items.append(
+                        (
+                            rx + 1000,
+                            keys.anchor_range_batch(a),
+                            enc(
+                                M.RangeBatch(
+                                    anchor_id=a,
+                                    t_ns=t,
+                                    seq=seqs[a],
+                                    node_ids=node_ids,
+                                    range_m=r.tolist(),
+                                    sigma_m=[sigma_m] * n_nodes,
+                                    snr_db=[20.0] * n_nodes,
+                                    t_pub_wall_ns=t,
+                                )
+                            ),
+                        )
+                    )
+                    seqs[a] += 1
+                    continue
                 for i, n in enumerate(node_ids):
                     items.append(
                         (

@@ -69,6 +69,42 @@ def test_state_history_interpolates_orbit_and_handles_extrapolation():
     assert np.all(np.isnan(pos[5:]))
 
 
+def test_state_history_storage_matches_sorted_list_reference():
+    """Mostly in-order appends with some late, duplicate and far-past states, over many
+    growths and compactions of the arrays: the kept states equal a plain sorted-list model
+    (capacity and age limits applied after every insert) and ``at`` returns the kept rows."""
+    rng = np.random.default_rng(7)
+    for capacity, max_age_ns in [(64, None), (40, 2_000_000_000), (5, None), (300, 500_000_000)]:
+        h = StateHistory(capacity, max_extrapolation_ns=10**12, max_age_ns=max_age_ns)
+        ref: dict[int, tuple] = {}
+        t = 0
+        for k in range(1500):
+            u = rng.random()
+            if u < 0.8:
+                t += int(rng.integers(1, 200_000_000))
+                tk = t
+            elif u < 0.9 and ref:
+                tk = int(rng.choice(list(ref)))  # duplicate time: replaces
+            else:
+                tk = t - int(rng.integers(1, 3_000_000_000))  # late
+            row = tuple(rng.normal(size=10).tolist())
+            h.add(tk, row[0:3], row[3:6], row[6:9], row[9])
+            ref[tk] = row
+            keep = sorted(ref)
+            drop = max(0, len(keep) - capacity)
+            if max_age_ns is not None:
+                drop = max(drop, sum(1 for x in keep if x < keep[-1] - max_age_ns))
+            for x in keep[:drop]:
+                del ref[x]
+            if k % 97 == 0 or k > 1490:
+                keep = sorted(ref)
+                assert h.t_ns.tolist() == keep
+                assert h.latest_t_ns == keep[-1] and len(h) == len(keep)
+                pos, _, ok = h.at(np.array(keep))
+                assert ok.all()
+                np.testing.assert_array_equal(pos, [ref[x][0:3] for x in keep])
+
+
 def test_effective_sigma_closed_form():
     s = effective_sigma_m(0.03, np.array([0.0, 0.04, 0.0]), np.array([0.0, 2.0, 0.0]), 0.05, 2.0)
     assert s == pytest.approx(np.sqrt(0.03**2 + 0.04**2 + 0.1**2))

@@ -9,6 +9,7 @@ Every estimator (:func:`~diffpos.estimators.dnls`, :func:`~diffpos.estimators.ll
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -175,23 +176,41 @@ class FixResult:
 
     def message(self, i: int) -> str:
         """Human-readable verdict of fix ``i``."""
-        st = FixStatus(int(self.status[i]))
-        n_used = int(np.sum(self.used[i]))
-        excl = ", ".join(
-            f"anchor {d['index']} ({_REASON_TEXT[ExclusionReason[d['reason'].upper()]]})"
-            for d in self.excluded_list(i)
+        return self.messages(np.array([i]))[0]
+
+    def messages(self, rows: ArrayLike | None = None) -> list[str]:
+        """Human-readable verdicts of fixes ``rows`` (default: all), like :meth:`message`.
+
+        The arrays are converted to Python values once for the whole selection (the fusion
+        builds one verdict per fix: ~1-2 us each here instead of ~15 us through
+        :meth:`message` per row).
+        """
+        idx = np.arange(len(self)) if rows is None else np.asarray(rows, dtype=np.intp)
+        ex = self.excluded[idx]
+        reasons = self.exclusion_reason[idx]
+        excl_txt = [""] * idx.size
+        for k, j in zip(*np.nonzero(ex), strict=True):  # exclusions are rare: loop over them only
+            reason = _REASON_TEXT[ExclusionReason(int(reasons[k, j]))]
+            excl_txt[k] += (", " if excl_txt[k] else "; excluded ") + f"anchor {j} ({reason})"
+        cond = self.condition[idx].tolist() if self.condition is not None else None
+        cols = zip(
+            self.status[idx].tolist(), self.used[idx].sum(axis=-1).tolist(), excl_txt,
+            self.test_statistic[idx].tolist(), self.test_threshold[idx].tolist(),
+            self.dof[idx].tolist(), self.iterations[idx].tolist(),
+            self.input_error[idx].tolist(), self.position_m[idx, 2].tolist(),
+            cond if cond is not None else [None] * idx.size,
+            strict=True,
         )
-        excl_txt = f"; excluded {excl}" if excl else ""
+        return [self._verdict(*c) for c in cols]
+
+    def _verdict(self, st: int, n_used: int, excl_txt: str, stat: float, thr: float,
+                 dof: int, it: int, input_error: int, z_m: float, cond: float | None) -> str:
         test_txt = ""
-        if np.isfinite(self.test_threshold[i]):
-            test_txt = (
-                f"; residual test {self.test_statistic[i]:.3g} vs threshold "
-                f"{self.test_threshold[i]:.3g} (chi2, {int(self.dof[i])} dof)"
-            )
-        it = int(self.iterations[i])
+        if math.isfinite(thr):
+            test_txt = f"; residual test {stat:.3g} vs threshold {thr:.3g} (chi2, {dof} dof)"
         if st == FixStatus.INVALID_INPUT:
             return "invalid input: " + _INPUT_ERROR_TEXT.get(
-                InputError(int(self.input_error[i])), "malformed problem"
+                InputError(input_error), "malformed problem"
             )
         if st == FixStatus.TOO_FEW_ANCHORS:
             return (
@@ -199,10 +218,10 @@ class FixResult:
                 "needed for a 3D fix" + excl_txt
             )
         if st == FixStatus.NOT_IDENTIFIABLE and self.method == "lls":
-            cond = float(self.condition[i]) if self.condition is not None else float("inf")
+            c = float(cond) if cond is not None else float("inf")
             return (
                 f"not identifiable: the LLS system of {n_used} anchors is rank deficient or "
-                f"ill-conditioned (condition {cond:.3g}); differencing needs >= 4 anchors not "
+                f"ill-conditioned (condition {c:.3g}); differencing needs >= 4 anchors not "
                 "in one plane. No minimum-norm answer is returned"
             )
         if st == FixStatus.NOT_IDENTIFIABLE:
@@ -211,13 +230,13 @@ class FixResult:
                 "ill-conditioned; the anchors do not constrain every direction (e.g. all "
                 "anchors and the node in one vertical plane x = const)" + excl_txt
             )
-        if st == FixStatus.NOT_CONVERGED:
+        if st == FixStatus.NOT_CONVERGED and self.method != "ippa":
             return f"not converged after {it} iterations ({n_used} anchors)" + excl_txt + test_txt
-        if st == FixStatus.GATING_FAILED and self.test_statistic[i] <= self.test_threshold[i]:
+        if st == FixStatus.GATING_FAILED and stat <= thr:
             # the test passed: only the plausibility check (GatingConfig.z_range_m) fails a fix
             return (
                 f"residual test passed with {n_used} anchors, but the height "
-                f"z = {self.position_m[i, 2]:.3g} m is outside the plausible range "
+                f"z = {z_m:.3g} m is outside the plausible range "
                 "(GatingConfig.z_range_m, default above ground): likely a mirror solution, "
                 "the position is unreliable" + excl_txt + test_txt
             )
@@ -244,7 +263,7 @@ class FixResult:
             else:
                 why = "gating disabled"
             return f"converged in {it} iterations, unverified ({why})" + excl_txt
-        if st == FixStatus.NOT_CONVERGED and self.method == "ippa":
+        if st == FixStatus.NOT_CONVERGED:  # ippa
             return f"IPPA hit its limit of {it} projection updates ({n_used} anchors)"
         return f"converged in {it} iterations with {n_used} anchors" + excl_txt + test_txt
 
