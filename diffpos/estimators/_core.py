@@ -1,8 +1,10 @@
 """Batched Levenberg-Marquardt core shared by D-NLS and its gating (internal).
 
 All problems of a batch are iterated together: one model evaluation, one batch of 3x3
-normal-equation solves per iteration; a problem that has converged (or failed) is frozen and
-dropped from the working set, so the cost of an iteration falls as the batch converges.
+normal-equation solves per iteration (plus one for the few steps that reach the wall plane);
+a problem that has converged (or failed) is frozen and dropped from the working set, so the
+cost of an iteration falls as the batch converges. The depth is iterated as ``u = y^2 >= 0``
+(see :func:`levenberg_marquardt`).
 """
 
 from __future__ import annotations
@@ -183,10 +185,24 @@ def solve3(a: FloatArray, b: FloatArray) -> FloatArray:
 
 @dataclass(frozen=True)
 class LMResult:
-    x_m: FloatArray  # (N, 3)
-    cost: FloatArray  # (N,)
-    iterations: NDArray[np.int_]  # (N,)
-    converged: BoolArray  # (N,)
+    """Result of :func:`levenberg_marquardt`.
+
+    Attributes
+    ----------
+    x_m : ndarray, shape (N, 3) [m]
+        Solutions with ``y >= 0`` (rows with a non-finite initial cost: the start as given).
+    cost : ndarray, shape (N,) [-]
+        ``0.5 c^2 sum rho(...)`` at ``x_m``.
+    iterations : ndarray of int, shape (N,)
+        Iterations used (accepted and rejected steps).
+    converged : ndarray of bool, shape (N,)
+        A convergence test passed (see :func:`levenberg_marquardt`).
+    """
+
+    x_m: FloatArray
+    cost: FloatArray
+    iterations: NDArray[np.int_]
+    converged: BoolArray
 
 
 def levenberg_marquardt(
@@ -324,14 +340,10 @@ def levenberg_marquardt(
         # when ipl_eff = y and the plain u update when ipl_eff >> y.
         u_w = v_w[:, 1]
         du = dv[:, 1]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            ipl2 = np.maximum(wsum / (4.0 * huu), u_w)
-            inv4 = np.where(np.isfinite(ipl2) & (ipl2 > 0.0), 0.25 / ipl2, 0.0)
-            s_eff = np.sqrt(ipl2)
-            # the linear du that takes s to the bound u = 0 (s = sqrt(ipl2 - u))
-            du_b = np.where(
-                inv4 > 0.0, -u_w * 2.0 * s_eff / (s_eff + np.sqrt(ipl2 - u_w)), -u_w
-            )
+        # 1 / (4 ipl_eff^2) = H_uu / sum(w), at most 1 / (4 u) (ipl_j^2 >= u); 0: plain u update
+        inv4 = np.minimum(huu / np.maximum(wsum, tiny), 0.25 / np.maximum(u_w, tiny))
+        # the linear du that takes s to the bound u = 0 (s = sqrt(ipl_eff^2 - u)): in [-2u, -u]
+        du_b = -2.0 * u_w / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * u_w * inv4, 0.0)))
         vt = v_w + dv
         vt[:, 1] = np.maximum(u_w + du + inv4 * du * du, 0.0)
         cut = du < du_b
@@ -357,9 +369,7 @@ def levenberg_marquardt(
         c_old = cost_w
         accept = (costt < c_old) & ~bad & live
         # the step in (x, y, z) [m]: dy = sqrt(u_t) - sqrt(u) without cancellation
-        su, sut = np.sqrt(u_w), np.sqrt(vt[:, 1])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            dy = np.where(su + sut > 0.0, (vt[:, 1] - u_w) / (su + sut), 0.0)
+        dy = (vt[:, 1] - u_w) / (np.sqrt(u_w) + np.sqrt(vt[:, 1]) + tiny)
         dxz = vt[:, 0::2] - v_w[:, 0::2]
         step2 = np.einsum("ni,ni->n", dxz, dxz) + dy * dy
         v_w = np.where(accept[:, None], vt, v_w)
