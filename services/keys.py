@@ -27,6 +27,7 @@ Identifiers (site, anchor and node ids) are single key chunks: letters, digits, 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -194,8 +195,15 @@ def parse_key(key: str) -> ParsedKey | None:
 
     >>> parse_key("diffpos/demo/anchor/uav1/range/n03")
     ParsedKey(kind='range', site='demo', anchor_id='uav1', node_id='n03')
+
+    Cached (the same few thousand keys arrive over and over; results are immutable).
     """
-    parts = str(key).split("/")
+    return _parse_key(str(key))
+
+
+@functools.lru_cache(maxsize=1 << 14)
+def _parse_key(key: str) -> ParsedKey | None:
+    parts = key.split("/")
     if len(parts) < 3 or parts[0] != PREFIX:
         return None
     site, rest = parts[1], parts[2:]
