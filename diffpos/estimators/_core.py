@@ -267,7 +267,9 @@ def levenberg_marquardt(
     """
     n = x0_m.shape[0]
     x0 = np.asarray(x0_m, dtype=np.float64)
-    v_out = np.array(x0, copy=True)
+    x_out = np.array(x0, copy=True)
+    x_out[:, 1] = np.abs(x0[:, 1])
+    v_out = np.array(x0, copy=True)  # (x, u, z)
     v_out[:, 1] = x0[:, 1] * x0[:, 1]
     p, jac = model.evaluate_u(anchors_m, v_out)
     res = ranges_m - p
@@ -282,18 +284,21 @@ def levenberg_marquardt(
 
     # Working set: the problems still iterating. It is compacted (rows gathered) only when
     # fewer than half of its rows are live, so small batches pay no gather per iteration.
+    # Each row is held both as v = (x, u, z) (the iteration) and as (x, y, z) (step tests).
     ids = np.flatnonzero(np.isfinite(cost_out))
     if ids.size < n:
-        a_w, r_w, sw_w, v_w = anchors_m[ids], ranges_m[ids], sw[ids], v_out[ids]
+        a_w, r_w, sw_w, v_w, x_w = anchors_m[ids], ranges_m[ids], sw[ids], v_out[ids], x_out[ids]
         res_w, jac_w, cost_w, floor_w = res[ids], jac[ids], cost_out[ids], floor_all[ids]
         mdl_w = model.take(ids)
     else:
-        a_w, r_w, sw_w, v_w = anchors_m, ranges_m, sw, v_out.copy()
+        a_w, r_w, sw_w, v_w, x_w = anchors_m, ranges_m, sw, v_out.copy(), x_out.copy()
         res_w, jac_w, cost_w, floor_w = res, jac, cost_out.copy(), floor_all
         mdl_w = model
     lam_w = np.full(ids.size, lambda0)
     it_w = np.zeros(ids.size, dtype=np.int_)
     live = np.ones(ids.size, dtype=bool)
+    wsum_w = np.maximum(np.einsum("nm,nm->n", sw_w, sw_w), tiny)  # sum of weights (linear)
+    at_wall = bool(np.any(v_w[:, 1] <= 0.0))  # some row may be on the wall plane u = 0
     for _ in range(max_iter):
         if ids.size == 0:
             break
@@ -306,16 +311,22 @@ def levenberg_marquardt(
         rw = res_w * ws
         h = np.matmul(jw.transpose(0, 2, 1), jw)
         g = np.matmul(rw[:, None, :], jw)[:, 0, :]
-        huu = h[:, 1, 1].copy()
-        wsum = np.einsum("nm,nm->n", ws, ws)
-        # active bound: at u = 0 with the descent direction (+g) pointing to u < 0, u is
-        # held: the u row and column become the identity and g_u zero (the reduced system)
-        act = (v_w[:, 1] <= 0.0) & (g[:, 1] < 0.0)
-        if act.any():
-            h[act, 1, :] = 0.0
-            h[act, :, 1] = 0.0
-            h[act, 1, 1] = 1.0
-            g[act, 1] = 0.0
+        # 1 / (4 ipl_eff^2) = H_uu / sum_j w_j, the weighted mean of 1 / (4 ipl_j^2) (see the
+        # update of u below); 0 when no weight (then u + du)
+        if loss != "linear":
+            wsum_w = np.maximum(np.einsum("nm,nm->n", ws, ws), tiny)
+        inv4 = h[:, 1, 1] / wsum_w
+        u_w = v_w[:, 1]
+        if at_wall:
+            # active bound: at u = 0 with the descent direction (+g) pointing to u < 0, u is
+            # held: its row and column become the identity and g_u zero (the reduced system)
+            act = (u_w <= 0.0) & (g[:, 1] < 0.0)
+            if act.any():
+                free = (~act)[:, None]
+                h[:, 1, :] *= free
+                h[:, :, 1] *= free
+                h[:, 1, 1] += act
+                g[:, 1:2] *= free
         dh = h[:, diag, diag]
         dh = np.maximum(dh, 1e-12 * dh.max(axis=-1, keepdims=True) + tiny)
         # one stacked solve: the damped LM step and the undamped Gauss-Newton step, whose
@@ -331,28 +342,25 @@ def levenberg_marquardt(
         bad = ~np.isfinite(dv).all(axis=-1)
         if bad.any():
             dv[bad] = 0.0
-        # Update of u. The linearised model changes p_j by du / (2 ipl_j) but the path
+        # Update of u. The linearised model changes p_j by du / (2 ipl_j), but the path
         # sqrt(ipl_j^2 + du) is concave in u, so u + du overshoots towards the wall when the
         # step is large. The update is made linear in an effective in-room path length
-        # s = sqrt(ipl_eff^2) instead (ipl_eff^-2 the weighted mean of ipl_j^-2): s + ds with
-        # ds = du / (2 s), i.e. u + du + du^2 / (4 s^2); this changes nothing to first order
-        # (local convergence is that of the u iteration), is the y update y + du / (2 y)
-        # when ipl_eff = y and the plain u update when ipl_eff >> y.
-        u_w = v_w[:, 1]
+        # s = ipl_eff instead: s + du / (2 s), i.e. u + du + du^2 / (4 s^2). To first order
+        # this is the u step (local convergence is that of the u iteration); it is the y
+        # update y + du / (2 y) when ipl_eff = y and the plain u update when ipl_eff >> y.
         du = dv[:, 1]
-        # 1 / (4 ipl_eff^2) = H_uu / sum(w), at most 1 / (4 u) (ipl_j^2 >= u); 0: plain u update
-        inv4 = np.minimum(huu / np.maximum(wsum, tiny), 0.25 / np.maximum(u_w, tiny))
-        # the linear du that takes s to the bound u = 0 (s = sqrt(ipl_eff^2 - u)): in [-2u, -u]
-        du_b = -2.0 * u_w / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * u_w * inv4, 0.0)))
         vt = v_w + dv
-        vt[:, 1] = np.maximum(u_w + du + inv4 * du * du, 0.0)
-        cut = du < du_b
-        if cut.any():
-            # the step crosses the wall plane: go to u = 0 exactly (du = du_b) and re-solve
-            # the damped (x, z) part of the same system with that du fixed
-            ci = np.flatnonzero(cut)
+        fac = 1.0 + inv4 * du  # (u_t - u) / du: <= 0.5 past the vertex of the parabola
+        np.add(u_w, du * fac, out=vt[:, 1])
+        # s reaches the wall (u = 0) at s = sqrt(ipl_eff^2 - u), i.e. at a linear step du_b in
+        # [-2u, -u]; a step beyond it (the parabola negative, or past its vertex) goes to u = 0
+        # exactly (du = du_b) and the damped (x, z) part of the same system is re-solved with
+        # that du fixed
+        if np.fmin.reduce(vt[:, 1]) < 0.0 or np.fmin.reduce(fac) <= 0.5:  # NaN rows ignored
+            ci = np.flatnonzero((vt[:, 1] < 0.0) | (fac <= 0.5))
+            uc = u_w[ci]
+            dub = -2.0 * uc / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * uc * inv4[ci], 0.0)))
             hc = a2[ci]
-            dub = du_b[ci]
             gc = g[ci] - hc[:, :, 1] * dub[:, None]
             hc[:, 1, :] = 0.0
             hc[:, :, 1] = 0.0
@@ -363,22 +371,24 @@ def levenberg_marquardt(
             vt[ci[okc], 0] = v_w[ci[okc], 0] + dvc[okc, 0]
             vt[ci[okc], 2] = v_w[ci[okc], 2] + dvc[okc, 2]
             vt[ci, 1] = 0.0
+            at_wall = True
+        xt = vt.copy()
+        np.sqrt(vt[:, 1], out=xt[:, 1])
         pt, jt = mdl_w.evaluate_u(a_w, vt)
         rest = r_w - pt
         costt = cost_of(rest, sw_w, loss, loss_scale)
         c_old = cost_w
         accept = (costt < c_old) & ~bad & live
-        # the step in (x, y, z) [m]: dy = sqrt(u_t) - sqrt(u) without cancellation
-        dy = (vt[:, 1] - u_w) / (np.sqrt(u_w) + np.sqrt(vt[:, 1]) + tiny)
-        dxz = vt[:, 0::2] - v_w[:, 0::2]
-        step2 = np.einsum("ni,ni->n", dxz, dxz) + dy * dy
+        step = xt - x_w  # in (x, y, z) [m]
+        step2 = np.einsum("ni,ni->n", step, step)
         v_w = np.where(accept[:, None], vt, v_w)
+        x_w = np.where(accept[:, None], xt, x_w)
         res_w = np.where(accept[:, None], rest, res_w)
         jac_w = np.where(accept[:, None, None], jt, jac_w)
         cost_w = np.where(accept, costt, c_old)
         lam_w = np.where(accept, np.maximum(lam_w / 3.0, 1e-12), lam_w * 8.0)
         it_w += live
-        xn2 = v_w[:, 0] * v_w[:, 0] + v_w[:, 1] + v_w[:, 2] * v_w[:, 2]
+        xn2 = np.einsum("ni,ni->n", x_w, x_w)
         small_step = accept & (step2 <= (xtol_m * (xtol_m + np.sqrt(xn2))) ** 2)
         small_f = accept & (c_old - costt <= ftol * c_old)
         zero = c_old <= floor_w
@@ -388,7 +398,7 @@ def levenberg_marquardt(
         if finished.any():
             f_idx = np.flatnonzero(finished)
             gid = ids[f_idx]
-            v_out[gid] = v_w[f_idx]
+            x_out[gid] = x_w[f_idx]
             cost_out[gid] = cost_w[f_idx]
             iters_out[gid] = it_w[f_idx]
             conv_out[gid] = done_ok[f_idx]
@@ -401,18 +411,18 @@ def levenberg_marquardt(
                 keep = np.flatnonzero(live)
                 ids = ids[keep]
                 a_w, r_w, sw_w, v_w = a_w[keep], r_w[keep], sw_w[keep], v_w[keep]
-                res_w, jac_w, cost_w = res_w[keep], jac_w[keep], cost_w[keep]
+                x_w, res_w, jac_w, cost_w = x_w[keep], res_w[keep], jac_w[keep], cost_w[keep]
                 floor_w, lam_w, it_w = floor_w[keep], lam_w[keep], it_w[keep]
+                wsum_w = wsum_w[keep]
                 mdl_w = mdl_w.take(keep)
                 live = np.ones(ids.size, dtype=bool)
     if ids.size:  # iteration limit: write back the live rows, unconverged
         l_idx = np.flatnonzero(live)
         gid = ids[l_idx]
-        v_out[gid] = v_w[l_idx]
+        x_out[gid] = x_w[l_idx]
         cost_out[gid] = cost_w[l_idx]
         iters_out[gid] = it_w[l_idx]
-    x_out = v_out
-    fin = np.isfinite(cost_out)
     # rows never iterated (non-finite cost) keep their start as given
-    x_out[:, 1] = np.where(fin, np.sqrt(np.maximum(v_out[:, 1], 0.0)), x0[:, 1])
+    bad_rows = ~np.isfinite(cost_out)
+    x_out[bad_rows] = x0[bad_rows]
     return LMResult(x_m=x_out, cost=cost_out, iterations=iters_out, converged=conv_out)
