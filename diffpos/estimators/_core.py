@@ -230,13 +230,16 @@ def levenberg_marquardt(
     the iteration runs in ``v = (x, u, z)`` with the bound ``u >= 0``
     (:meth:`PathModel.evaluate_u`). In ``y`` the Jacobian column ``y / ipl`` vanishes at the
     wall plane and fixes whose optimum is at ``y = 0`` (noise pushing a shallow node onto the
-    wall) would crawl there sublinearly; in ``u`` the model is regular at ``u = 0`` and the
-    bound is handled by projection with an active set: a step that would make ``u``
-    negative is cut at ``u = 0``, and a problem at ``u = 0`` whose gradient points to
-    ``u < 0`` solves the reduced ``(x, z)`` system with ``u`` fixed. Away from the wall the
-    linearised step is the same as in ``y`` (Marquardt scaling makes it invariant to the
-    change of variable ``du = 2 y dy``); only the update differs. ``x0_m`` may have any sign
-    of ``y``; the result has ``y = sqrt(u) >= 0`` (the model is even in ``y``).
+    wall) would crawl there sublinearly (and a row exactly at ``y = 0`` could never leave
+    it); in ``u`` the model is regular at ``u = 0`` (``dp/du = 1 / (2 ipl)``) and the bound
+    is handled with an active set: a step that would cross ``u = 0`` goes to ``u = 0`` with
+    its ``(x, z)`` part re-solved for that ``du``, and a problem at ``u = 0`` whose gradient
+    points to ``u < 0`` solves the reduced ``(x, z)`` system with ``u`` fixed. Away from the
+    wall the linearised step is the one in ``y`` (Marquardt scaling makes it invariant to
+    the change of variable ``du = 2 y dy``); ``u`` is updated linearly in an effective
+    in-room path length ``s`` (``u + du + du^2 / (4 s^2)``, ``s^-2`` the weighted mean of
+    ``ipl_j^-2``), which does not overshoot towards the wall on long steps. ``x0_m`` may
+    have any sign of ``y``; the result has ``y = sqrt(u) >= 0`` (the model is even in ``y``).
 
     Convergence (per problem): an accepted step with ``|dx| <= xtol (xtol + |x|)`` (measured
     in ``(x, y, z)`` [m]) or a relative cost decrease ``<= ftol``; or a Gauss-Newton predicted
@@ -299,123 +302,126 @@ def levenberg_marquardt(
     live = np.ones(ids.size, dtype=bool)
     wsum_w = np.maximum(np.einsum("nm,nm->n", sw_w, sw_w), tiny)  # sum of weights (linear)
     at_wall = bool(np.any(v_w[:, 1] <= 0.0))  # some row may be on the wall plane u = 0
-    for _ in range(max_iter):
-        if ids.size == 0:
-            break
-        if loss == "linear":
-            ws = sw_w
-        else:
-            _, drho = robust_rho((res_w * sw_w / loss_scale) ** 2, loss)
-            ws = sw_w * np.sqrt(drho)
-        jw = jac_w * ws[..., None]
-        rw = res_w * ws
-        h = np.matmul(jw.transpose(0, 2, 1), jw)
-        g = np.matmul(rw[:, None, :], jw)[:, 0, :]
-        # 1 / (4 ipl_eff^2) = H_uu / sum_j w_j, the weighted mean of 1 / (4 ipl_j^2) (see the
-        # update of u below); 0 when no weight (then u + du)
-        if loss != "linear":
-            wsum_w = np.maximum(np.einsum("nm,nm->n", ws, ws), tiny)
-        inv4 = h[:, 1, 1] / wsum_w
-        u_w = v_w[:, 1]
-        if at_wall:
-            # active bound: at u = 0 with the descent direction (+g) pointing to u < 0, u is
-            # held: its row and column become the identity and g_u zero (the reduced system)
-            act = (u_w <= 0.0) & (g[:, 1] < 0.0)
-            if act.any():
-                free = (~act)[:, None]
-                h[:, 1, :] *= free
-                h[:, :, 1] *= free
-                h[:, 1, 1] += act
-                g[:, 1:2] *= free
-        dh = h[:, diag, diag]
-        dh = np.maximum(dh, 1e-12 * dh.max(axis=-1, keepdims=True) + tiny)
-        # one stacked solve: the damped LM step and the undamped Gauss-Newton step, whose
-        # Newton decrement g^T H^-1 g (twice the decrease a full GN step would give) tests
-        # for a stationary point
-        k = ids.size
-        a2 = np.concatenate([h, h])
-        a2[:k, diag, diag] += lam_w[:, None] * dh
-        sol = solve3(a2, np.concatenate([g, g]))
-        dv = sol[:k]
-        dec = np.einsum("ni,ni->n", g, sol[k:])
-        stationary = np.isfinite(dec) & (dec <= 2.0 * gtol * cost_w + 2.0 * floor_w)
-        bad = ~np.isfinite(dv).all(axis=-1)
-        if bad.any():
-            dv[bad] = 0.0
-        # Update of u. The linearised model changes p_j by du / (2 ipl_j), but the path
-        # sqrt(ipl_j^2 + du) is concave in u, so u + du overshoots towards the wall when the
-        # step is large. The update is made linear in an effective in-room path length
-        # s = ipl_eff instead: s + du / (2 s), i.e. u + du + du^2 / (4 s^2). To first order
-        # this is the u step (local convergence is that of the u iteration); it is the y
-        # update y + du / (2 y) when ipl_eff = y and the plain u update when ipl_eff >> y.
-        du = dv[:, 1]
-        vt = v_w + dv
-        fac = 1.0 + inv4 * du  # (u_t - u) / du: <= 0.5 past the vertex of the parabola
-        np.add(u_w, du * fac, out=vt[:, 1])
-        # s reaches the wall (u = 0) at s = sqrt(ipl_eff^2 - u), i.e. at a linear step du_b in
-        # [-2u, -u]; a step beyond it (the parabola negative, or past its vertex) goes to u = 0
-        # exactly (du = du_b) and the damped (x, z) part of the same system is re-solved with
-        # that du fixed
-        if np.fmin.reduce(vt[:, 1]) < 0.0 or np.fmin.reduce(fac) <= 0.5:  # NaN rows ignored
-            ci = np.flatnonzero((vt[:, 1] < 0.0) | (fac <= 0.5))
-            uc = u_w[ci]
-            dub = -2.0 * uc / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * uc * inv4[ci], 0.0)))
-            hc = a2[ci]
-            gc = g[ci] - hc[:, :, 1] * dub[:, None]
-            hc[:, 1, :] = 0.0
-            hc[:, :, 1] = 0.0
-            hc[:, 1, 1] = 1.0
-            gc[:, 1] = 0.0
-            dvc = solve3(hc, gc)
-            okc = np.isfinite(dvc).all(axis=-1)
-            vt[ci[okc], 0] = v_w[ci[okc], 0] + dvc[okc, 0]
-            vt[ci[okc], 2] = v_w[ci[okc], 2] + dvc[okc, 2]
-            vt[ci, 1] = 0.0
-            at_wall = True
-        xt = vt.copy()
-        np.sqrt(vt[:, 1], out=xt[:, 1])
-        pt, jt = mdl_w.evaluate_u(a_w, vt)
-        rest = r_w - pt
-        costt = cost_of(rest, sw_w, loss, loss_scale)
-        c_old = cost_w
-        accept = (costt < c_old) & ~bad & live
-        step = xt - x_w  # in (x, y, z) [m]
-        step2 = np.einsum("ni,ni->n", step, step)
-        v_w = np.where(accept[:, None], vt, v_w)
-        x_w = np.where(accept[:, None], xt, x_w)
-        res_w = np.where(accept[:, None], rest, res_w)
-        jac_w = np.where(accept[:, None, None], jt, jac_w)
-        cost_w = np.where(accept, costt, c_old)
-        lam_w = np.where(accept, np.maximum(lam_w / 3.0, 1e-12), lam_w * 8.0)
-        it_w += live
-        xn2 = np.einsum("ni,ni->n", x_w, x_w)
-        small_step = accept & (step2 <= (xtol_m * (xtol_m + np.sqrt(xn2))) ** 2)
-        small_f = accept & (c_old - costt <= ftol * c_old)
-        zero = c_old <= floor_w
-        done_ok = live & (stationary | small_step | small_f | zero)
-        failed = live & ~done_ok & (lam_w > 1e12)
-        finished = done_ok | failed
-        if finished.any():
-            f_idx = np.flatnonzero(finished)
-            gid = ids[f_idx]
-            x_out[gid] = x_w[f_idx]
-            cost_out[gid] = cost_w[f_idx]
-            iters_out[gid] = it_w[f_idx]
-            conv_out[gid] = done_ok[f_idx]
-            live &= ~finished
-            n_live = int(live.sum())
-            if n_live == 0:
-                ids = ids[:0]
+    # non-finite rows (e.g. a start on the edge line itself, where dp/du is infinite) are
+    # handled explicitly (their steps are never accepted): no floating-point warnings
+    with np.errstate(invalid="ignore"):
+        for _ in range(max_iter):
+            if ids.size == 0:
                 break
-            if n_live < 0.5 * ids.size:
-                keep = np.flatnonzero(live)
-                ids = ids[keep]
-                a_w, r_w, sw_w, v_w = a_w[keep], r_w[keep], sw_w[keep], v_w[keep]
-                x_w, res_w, jac_w, cost_w = x_w[keep], res_w[keep], jac_w[keep], cost_w[keep]
-                floor_w, lam_w, it_w = floor_w[keep], lam_w[keep], it_w[keep]
-                wsum_w = wsum_w[keep]
-                mdl_w = mdl_w.take(keep)
-                live = np.ones(ids.size, dtype=bool)
+            if loss == "linear":
+                ws = sw_w
+            else:
+                _, drho = robust_rho((res_w * sw_w / loss_scale) ** 2, loss)
+                ws = sw_w * np.sqrt(drho)
+            jw = jac_w * ws[..., None]
+            rw = res_w * ws
+            h = np.matmul(jw.transpose(0, 2, 1), jw)
+            g = np.matmul(rw[:, None, :], jw)[:, 0, :]
+            # 1 / (4 ipl_eff^2) = H_uu / sum_j w_j, the weighted mean of 1 / (4 ipl_j^2) (see the
+            # update of u below); 0 when no weight (then u + du)
+            if loss != "linear":
+                wsum_w = np.maximum(np.einsum("nm,nm->n", ws, ws), tiny)
+            inv4 = h[:, 1, 1] / wsum_w
+            u_w = v_w[:, 1]
+            if at_wall:
+                # active bound: at u = 0 with the descent direction (+g) pointing to u < 0, u is
+                # held: its row and column become the identity and g_u zero (the reduced system)
+                act = (u_w <= 0.0) & (g[:, 1] < 0.0)
+                if act.any():
+                    free = (~act)[:, None]
+                    h[:, 1, :] *= free
+                    h[:, :, 1] *= free
+                    h[:, 1, 1] += act
+                    g[:, 1:2] *= free
+            dh = h[:, diag, diag]
+            dh = np.maximum(dh, 1e-12 * dh.max(axis=-1, keepdims=True) + tiny)
+            # one stacked solve: the damped LM step and the undamped Gauss-Newton step, whose
+            # Newton decrement g^T H^-1 g (twice the decrease a full GN step would give) tests
+            # for a stationary point
+            k = ids.size
+            a2 = np.concatenate([h, h])
+            a2[:k, diag, diag] += lam_w[:, None] * dh
+            sol = solve3(a2, np.concatenate([g, g]))
+            dv = sol[:k]
+            dec = np.einsum("ni,ni->n", g, sol[k:])
+            stationary = np.isfinite(dec) & (dec <= 2.0 * gtol * cost_w + 2.0 * floor_w)
+            bad = ~np.isfinite(dv).all(axis=-1)
+            if bad.any():
+                dv[bad] = 0.0
+            # Update of u. The linearised model changes p_j by du / (2 ipl_j), but the path
+            # sqrt(ipl_j^2 + du) is concave in u, so u + du overshoots towards the wall when the
+            # step is large. The update is made linear in an effective in-room path length
+            # s = ipl_eff instead: s + du / (2 s), i.e. u + du + du^2 / (4 s^2). To first order
+            # this is the u step (local convergence is that of the u iteration); it is the y
+            # update y + du / (2 y) when ipl_eff = y and the plain u update when ipl_eff >> y.
+            du = dv[:, 1]
+            vt = v_w + dv
+            fac = 1.0 + inv4 * du  # (u_t - u) / du: <= 0.5 past the vertex of the parabola
+            np.add(u_w, du * fac, out=vt[:, 1])
+            # s reaches the wall (u = 0) at s = sqrt(ipl_eff^2 - u), i.e. at a linear step du_b in
+            # [-2u, -u]; a step beyond it (the parabola negative, or past its vertex) goes to u = 0
+            # exactly (du = du_b) and the damped (x, z) part of the same system is re-solved with
+            # that du fixed
+            if np.fmin.reduce(vt[:, 1]) < 0.0 or np.fmin.reduce(fac) <= 0.5:  # NaN rows ignored
+                ci = np.flatnonzero((vt[:, 1] < 0.0) | (fac <= 0.5))
+                uc = u_w[ci]
+                dub = -2.0 * uc / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * uc * inv4[ci], 0.0)))
+                hc = a2[ci]
+                gc = g[ci] - hc[:, :, 1] * dub[:, None]
+                hc[:, 1, :] = 0.0
+                hc[:, :, 1] = 0.0
+                hc[:, 1, 1] = 1.0
+                gc[:, 1] = 0.0
+                dvc = solve3(hc, gc)
+                okc = np.isfinite(dvc).all(axis=-1)
+                vt[ci[okc], 0] = v_w[ci[okc], 0] + dvc[okc, 0]
+                vt[ci[okc], 2] = v_w[ci[okc], 2] + dvc[okc, 2]
+                vt[ci, 1] = 0.0
+                at_wall = True
+            xt = vt.copy()
+            np.sqrt(vt[:, 1], out=xt[:, 1])
+            pt, jt = mdl_w.evaluate_u(a_w, vt)
+            rest = r_w - pt
+            costt = cost_of(rest, sw_w, loss, loss_scale)
+            c_old = cost_w
+            accept = (costt < c_old) & ~bad & live
+            step = xt - x_w  # in (x, y, z) [m]
+            step2 = np.einsum("ni,ni->n", step, step)
+            v_w = np.where(accept[:, None], vt, v_w)
+            x_w = np.where(accept[:, None], xt, x_w)
+            res_w = np.where(accept[:, None], rest, res_w)
+            jac_w = np.where(accept[:, None, None], jt, jac_w)
+            cost_w = np.where(accept, costt, c_old)
+            lam_w = np.where(accept, np.maximum(lam_w / 3.0, 1e-12), lam_w * 8.0)
+            it_w += live
+            xn2 = np.einsum("ni,ni->n", x_w, x_w)
+            small_step = accept & (step2 <= (xtol_m * (xtol_m + np.sqrt(xn2))) ** 2)
+            small_f = accept & (c_old - costt <= ftol * c_old)
+            zero = c_old <= floor_w
+            done_ok = live & (stationary | small_step | small_f | zero)
+            failed = live & ~done_ok & (lam_w > 1e12)
+            finished = done_ok | failed
+            if finished.any():
+                f_idx = np.flatnonzero(finished)
+                gid = ids[f_idx]
+                x_out[gid] = x_w[f_idx]
+                cost_out[gid] = cost_w[f_idx]
+                iters_out[gid] = it_w[f_idx]
+                conv_out[gid] = done_ok[f_idx]
+                live &= ~finished
+                n_live = int(live.sum())
+                if n_live == 0:
+                    ids = ids[:0]
+                    break
+                if n_live < 0.5 * ids.size:
+                    keep = np.flatnonzero(live)
+                    ids = ids[keep]
+                    a_w, r_w, sw_w, v_w = a_w[keep], r_w[keep], sw_w[keep], v_w[keep]
+                    x_w, res_w, jac_w, cost_w = x_w[keep], res_w[keep], jac_w[keep], cost_w[keep]
+                    floor_w, lam_w, it_w = floor_w[keep], lam_w[keep], it_w[keep]
+                    wsum_w = wsum_w[keep]
+                    mdl_w = mdl_w.take(keep)
+                    live = np.ones(ids.size, dtype=bool)
     if ids.size:  # iteration limit: write back the live rows, unconverged
         l_idx = np.flatnonzero(live)
         gid = ids[l_idx]
