@@ -387,12 +387,16 @@ def levenberg_marquardt(
             accept = (costt < c_old) & ~bad & live
             step = xt - x_w  # in (x, y, z) [m]
             step2 = np.einsum("ni,ni->n", step, step)
-            v_w = np.where(accept[:, None], vt, v_w)
-            x_w = np.where(accept[:, None], xt, x_w)
-            res_w = np.where(accept[:, None], rest, res_w)
-            jac_w = np.where(accept[:, None, None], jt, jac_w)
-            cost_w = np.where(accept, costt, c_old)
-            lam_w = np.where(accept, np.maximum(lam_w / 3.0, 1e-12), lam_w * 8.0)
+            if accept.all():  # the common case: every step accepted, no selection needed
+                v_w, x_w, res_w, jac_w, cost_w = vt, xt, rest, jt, costt
+                lam_w = np.maximum(lam_w / 3.0, 1e-12)
+            else:
+                v_w = np.where(accept[:, None], vt, v_w)
+                x_w = np.where(accept[:, None], xt, x_w)
+                res_w = np.where(accept[:, None], rest, res_w)
+                jac_w = np.where(accept[:, None, None], jt, jac_w)
+                cost_w = np.where(accept, costt, c_old)
+                lam_w = np.where(accept, np.maximum(lam_w / 3.0, 1e-12), lam_w * 8.0)
             it_w += live
             xn2 = np.einsum("ni,ni->n", x_w, x_w)
             small_step = accept & (step2 <= (xtol_m * (xtol_m + np.sqrt(xn2))) ** 2)
