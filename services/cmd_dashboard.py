@@ -88,6 +88,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
     )
     parser.add_argument(
+        "--report-every",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="seconds between 'dashboard running' status log lines with the received / drawn "
+        "/ dropped counts (default 10)",
+    )
+    parser.add_argument(
         "--demo",
         action="store_true",
         help="no bus: draw a synthetic run (8 anchors x 20 nodes, 60 s) and exit",
@@ -135,8 +143,8 @@ def run(args: argparse.Namespace) -> int:
     def body() -> int:
         target = _target(args)
         building = _building(args)
-        if args.ring_size < 1 or args.drain_period <= 0:
-            raise ConfigError("--ring-size must be >= 1 and --drain-period > 0")
+        if args.ring_size < 1 or args.drain_period <= 0 or args.report_every <= 0:
+            raise ConfigError("--ring-size must be >= 1, --drain-period and --report-every > 0")
         from .dashboard_service import DashboardService, open_rerun
 
         try:
@@ -170,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
                 logger=log,
             )
             log_event(log, logging.INFO, "dashboard subscribed", site=args.site)
-            svc.run(stop.event)
+            svc.run(stop.event, report_every_s=args.report_every)
         if rec.is_enabled():
             rec.disconnect()
         return 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import socket
 import subprocess
@@ -198,9 +199,20 @@ def test_dashboard_cli_process_end_to_end(tmp_path):
     router = subprocess.Popen([*exe, "router", "--listen", ep], env=env, stderr=subprocess.DEVNULL)
     dash = subprocess.Popen(
         [*exe, "dashboard", "--connect", ep, "--site", "cli", "--rerun", "save", str(out),
-         "--drain-period", "0.05"],
+         "--drain-period", "0.05", "--report-every", "0.1"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
+    status: queue.Queue = queue.Queue()  # the dashboard's structured log lines, as they come
+    err_lines: list[str] = []
+
+    def read_stderr() -> None:
+        for line in dash.stderr:
+            err_lines.append(line)
+            if '"dashboard running"' in line:
+                status.put(json.loads(line))
+
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
     try:
         _, msgs = d.synthetic_run(n_anchors=2, n_nodes=2, duration_s=2.0, seed=9)
         ests = [x for x in msgs if isinstance(x, m.PositionEstimate)]
@@ -209,8 +221,16 @@ def test_dashboard_cli_process_end_to_end(tmp_path):
             pubs = publishers_matched(s, keys)  # the dashboard process has subscribed
             for key, x in zip(keys, msgs, strict=True):
                 pubs[key].put(m.encode(x))
+            # readiness: the dashboard's own status says it received every message (only
+            # then SIGTERM; before, a stop could overtake messages still in flight)
+            received = 0
+            while received < len(msgs):
+                received = status.get(timeout=60)["received"]
         dash.send_signal(signal.SIGTERM)
-        stdout, stderr = dash.communicate(timeout=60)
+        stdout = dash.stdout.read()
+        dash.wait(timeout=60)
+        reader.join(timeout=60)
+        stderr = "".join(err_lines)
         assert dash.returncode == 0, stderr
         assert "saved to" in stdout
         final = [json.loads(line) for line in stderr.splitlines() if '"dashboard stopped"' in line]

@@ -298,3 +298,18 @@ def test_range_batch_recording_replays_like_single_ranges(rec, tmp_path):
         s = single[(e.node_id, e.epoch)]
         assert (e.status, e.position_m, e.used_anchors, e.excluded) == (
             s.status, s.position_m, s.used_anchors, s.excluded)
+
+
+def test_replay_restores_the_garbage_collector_thresholds(rec, tmp_path):
+    """Replay runs the cyclic GC less often while it holds its estimates; the process's own
+    thresholds are back afterwards, also when the replay fails."""
+    import gc
+
+    before = gc.get_threshold()
+    assert len(replay(rec).estimates) == 3 * 30
+    assert gc.get_threshold() == before
+    bad = tmp_path / "not.mcap"
+    bad.write_bytes(b"not an mcap file")
+    with pytest.raises(RecordingError):
+        replay(bad)
+    assert gc.get_threshold() == before
