@@ -329,28 +329,28 @@ def compare_estimates(
     """
     lmap = {(e.node_id, e.epoch): e for e in live}
     rmap = {(e.node_id, e.epoch): e for e in replayed}
-    both = sorted(set(lmap) & set(rmap), key=lambda k: (_natural(k[0]), k[1]))
-    status_same = sum(lmap[k].status == rmap[k].status for k in both)
-    diffs, keys_d, peb_d = [], [], []
-    identical = 0
-    for k in both:
-        a, b = lmap[k].position_m, rmap[k].position_m
-        if a is not None and b is not None:
-            d = float(np.linalg.norm(np.subtract(a, b)))
-            diffs.append(d)
-            keys_d.append(k)
-            identical += tuple(a) == tuple(b)
-            pa, pb = lmap[k].peb_m, rmap[k].peb_m
-            if pa is not None and pb is not None:
-                peb_d.append(abs(pa - pb))
-    arr = np.asarray(diffs)
+    lkeys, rkeys = lmap.keys(), rmap.keys()
+    both = sorted(lkeys & rkeys, key=lambda k: (_natural(k[0]), k[1]))
+    pairs = [(lmap[k], rmap[k]) for k in both]
+    status_same = sum(a.status == b.status for a, b in pairs)
+    # pairs where both have a position, as arrays (one vectorised difference, not per pair)
+    sel = [i for i, (a, b) in enumerate(pairs)
+           if a.position_m is not None and b.position_m is not None]
+    keys_d = [both[i] for i in sel]
+    pa_m = np.array([pairs[i][0].position_m for i in sel], dtype=np.float64).reshape(-1, 3)
+    pb_m = np.array([pairs[i][1].position_m for i in sel], dtype=np.float64).reshape(-1, 3)
+    arr = np.sqrt(np.sum((pa_m - pb_m) ** 2, axis=1))
+    diffs = arr.tolist()
+    identical = int(np.all(pa_m == pb_m, axis=1).sum())
+    peb_d = [abs(a.peb_m - b.peb_m) for a, b in (pairs[i] for i in sel)
+             if a.peb_m is not None and b.peb_m is not None]
     order = np.argsort(-arr, kind="stable")[:5] if arr.size else []
     return {
         "live": len(live),
         "replayed": len(replayed),
         "matched": len(both),
-        "only_live": len(set(lmap) - set(rmap)),
-        "only_replayed": len(set(rmap) - set(lmap)),
+        "only_live": len(lkeys - rkeys),
+        "only_replayed": len(rkeys - lkeys),
         "status_agree": (status_same / len(both)) if both else None,
         "with_positions": int(arr.size),
         "identical_positions": identical,

@@ -105,6 +105,30 @@ def test_state_history_storage_matches_sorted_list_reference():
                 np.testing.assert_array_equal(pos, [ref[x][0:3] for x in keep])
 
 
+def test_state_history_single_time_path_is_bitwise_the_array_path():
+    """Queries that all share one time take a scalar path; it must give exactly what the
+    array path gives (the fusion's results must not depend on which one ran): inside the
+    history, at state times, before/after it within and beyond the extrapolation limit."""
+    rng = np.random.default_rng(3)
+    h = StateHistory(64, max_extrapolation_ns=300_000_000)
+    for k in range(40):
+        t = 10**17 + k * 100_000_000 + int(rng.integers(-5_000_000, 5_000_000))
+        h.add(t, rng.normal(0, 20, 3), rng.normal(0, 2, 3), rng.uniform(0.01, 0.2, 3),
+              float(rng.uniform(0, 0.3)))
+    t0, t1 = int(h.t_ns[0]), int(h.t_ns[-1])
+    queries = [*rng.integers(t0 - 600_000_000, t1 + 600_000_000, 400).tolist(),
+               *h.t_ns.tolist(), t0 - 300_000_000, t1 + 300_000_000, t1 + 300_000_001]
+    other = t0 + 12_345  # a second time forces the array path
+    for tq in queries:
+        p1, s1, ok1 = h.at(np.array([tq, tq, tq]))
+        p2, s2, ok2 = h.at(np.array([tq, other]))
+        np.testing.assert_array_equal(p1, np.repeat(p2[:1], 3, axis=0))
+        np.testing.assert_array_equal(s1, np.repeat(s2[:1], 3, axis=0))
+        assert ok1.tolist() == [bool(ok2[0])] * 3
+    p0, _, ok0 = h.at(np.int64(t1 + 1))  # a scalar query keeps its shape
+    assert p0.shape == (3,) and ok0.shape == () and bool(ok0)
+
+
 def test_effective_sigma_closed_form():
     s = effective_sigma_m(0.03, np.array([0.0, 0.04, 0.0]), np.array([0.0, 2.0, 0.0]), 0.05, 2.0)
     assert s == pytest.approx(np.sqrt(0.03**2 + 0.04**2 + 0.1**2))
