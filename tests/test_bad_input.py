@@ -333,6 +333,34 @@ def test_batch_entries_are_checked_one_by_one():
     assert core.anchors["uav3"].ranges == n + 2  # n01 and the undetected n03
 
 
+@pytest.mark.parametrize("min_snr_db", [None, 15.0])
+def test_batch_fast_path_equals_single_ranges(min_snr_db):
+    """A batch whose entries are all valid and whose nodes are known takes a vectorised
+    acceptance path; what it stores must equal the same ranges sent one message each
+    (including ``min_snr_db``: an entry below it is kept as 'not detected')."""
+    nodes = ["n01", "n02", "n03"]
+    batched = FusionCore(_cfg(min_snr_db=min_snr_db))
+    single = FusionCore(_cfg(min_snr_db=min_snr_db))
+    for e in range(3):  # epoch 0 registers the nodes (checked path), then the fast path
+        t = e * PERIOD_NS + 7
+        r, sg, snr = [20.0 + e, 21.5, 23.25], [0.05, 0.1, 0.2], [20.0, 10.0, 16.0]
+        b = M.RangeBatch(anchor_id="uav1", t_ns=t, seq=e, node_ids=nodes, range_m=r,
+                         sigma_m=sg, snr_db=snr, t_pub_wall_ns=t + 1)
+        batched.on_sample(KEYS.anchor_range_batch("uav1"), M.encode(b), t + 2)
+        for i, n in enumerate(nodes):
+            rm = M.RangeMeasurement(anchor_id="uav1", node_id=n, t_ns=t, seq=10 * e + i,
+                                    range_m=r[i], sigma_m=sg[i], snr_db=snr[i],
+                                    t_pub_wall_ns=t + 1)
+            single.on_sample(KEYS.anchor_range("uav1", n), M.encode(rm), t + 2)
+    assert not batched.rejected and not single.rejected
+    got = {k: dict(pe.ranges) for k, pe in batched.book.pending.items()}
+    want = {k: dict(pe.ranges) for k, pe in single.book.pending.items()}
+    assert got == want and len(got) == 9
+    low = [e.range_m for pe in got.values() for e in pe.values() if e.snr_db == 10.0]
+    assert low == ([None] * 3 if min_snr_db is not None else [21.5] * 3)
+    assert batched.anchors["uav1"].ranges == single.anchors["uav1"].ranges == 9
+
+
 def test_oversized_sample_counted_without_copy():
     core = FusionCore(_cfg())
     core.on_oversized(KEYS.anchor_range_batch("uav1"), 10**9)
