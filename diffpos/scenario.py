@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .constants import SPEED_OF_LIGHT_M_S
 from .trajectory import Hover, Static, Trajectory, Waypoints, trajectory_from_dict
 
 __all__ = [
@@ -259,7 +260,7 @@ class Radio:
     @property
     def wavelength_m(self) -> float:
         """Carrier wavelength [m]."""
-        return 299_792_458.0 / self.frequency_hz
+        return SPEED_OF_LIGHT_M_S / self.frequency_hz
 
 
 @dataclass(frozen=True)
