@@ -647,20 +647,18 @@ def _trajectory(d: Mapping[str, Any], path: str) -> tuple[Trajectory, str]:
         raise ScenarioError(f"{key}{sep}{msg}") from None
 
 
-def _sample_times(traj: Trajectory) -> FloatArray:
+def _sample_points(traj: Trajectory) -> FloatArray:
+    """Positions to check a trajectory's path against the building, shape (K, 3) [m]."""
+    if isinstance(traj, Waypoints):
+        return np.asarray(traj.points)  # the building is convex: the vertices suffice
     if isinstance(traj, Static):
-        return np.zeros(1)
-    if isinstance(traj, Waypoints):
-        return np.asarray(traj.times)  # the building is convex: the vertices suffice
+        return traj.position_m(np.zeros(1))
     period = traj.period_s * (2.0 if isinstance(traj, Hover) else 1.0)
-    return np.linspace(0.0, period, 721)
+    return traj.position_m(np.linspace(0.0, period, 721))
 
 
-def _check_anchor(traj: Trajectory, key: str, b: Building) -> None:
-    if isinstance(traj, Waypoints):
-        pts = np.asarray(traj.points)
-    else:
-        pts = traj.position_m(_sample_times(traj))
+def _check_anchor(traj: Trajectory, key: str) -> None:
+    pts = _sample_points(traj)
     bad = np.flatnonzero(pts[:, 1] >= 0.0)
     if bad.size:
         y = pts[bad[0], 1]
@@ -672,10 +670,7 @@ def _check_anchor(traj: Trajectory, key: str, b: Building) -> None:
 
 
 def _check_node(traj: Trajectory, key: str, b: Building) -> None:
-    if isinstance(traj, Waypoints):
-        pts = np.asarray(traj.points)
-    else:
-        pts = traj.position_m(_sample_times(traj))
+    pts = _sample_points(traj)
     ok = b.inside(pts)
     if not np.all(ok):
         p = pts[np.flatnonzero(~ok)[0]]
@@ -729,7 +724,7 @@ def _parse_scenario(d: Mapping[str, Any]) -> Scenario:
         _check_keys(ad, ("id", "position_m", "trajectory"), p)
         aid = _id(ad.get("id", f"uav{i + 1}"), f"{p}.id", seen)
         traj, key = _trajectory(ad, p)
-        _check_anchor(traj, key, b)
+        _check_anchor(traj, key)
         anchors.append(AnchorSpec(aid, traj))
     raw_nodes = d.get("nodes", {})
     _check_keys(raw_nodes, ("grid", "list"), "nodes")
