@@ -561,55 +561,46 @@ class FusionCore:
 
     def _add_batch(self, key: str, src: str, anchor: _Anchor, msg: M.RangeBatch,
                    rx_wall_ns: int) -> None:
-        n = len(msg.node_ids)
-        self.received["range"] += n
-        min_snr = self.config.min_snr_db
+        self.received["range"] += len(msg.node_ids)
+        t, pw = msg.t_ns, msg.t_pub_wall_ns
+        rows = zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db, strict=True)
         if self._batch_all_good(msg):
-            # fast path (the usual batch): every entry valid and every node known, so the
-            # per-entry checks below would accept them all
-            t, pw = msg.t_ns, msg.t_pub_wall_ns
-            if min_snr is None:
-                entries = [(nid, RangeEntry(t, r, sg, snr, pw, rx_wall_ns)) for nid, r, sg, snr
-                           in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db, strict=True)]
-            else:
-                entries = [(nid, RangeEntry(t, r if snr >= min_snr else None, sg, snr, pw,
-                                            rx_wall_ns)) for nid, r, sg, snr
-                           in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db, strict=True)]
-            anchor.ranges += n
-            late = self.book.add_many(anchor.id, msg.t_ns, entries)
-            if late:
-                self.rejected["late"] += late
-            return
-        entries = []
-        for nid, r, sg, snr in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db,
-                                   strict=True):
-            bad = self._bad_value(r, sg, snr)
-            if bad is None:
-                why = self._node_refused(nid)
-                if why is not None:
-                    bad = (why, f"node {nid!r}")
-            if bad is not None:
-                self._reject(key, bad[0], bad[1], source=src)
-                continue
-            if r is None or sg is None or (min_snr is not None and (snr is None or snr < min_snr)):
-                r = None
-            entries.append((nid, RangeEntry(msg.t_ns, r, sg or 1.0,
-                                            snr if snr is not None else -math.inf,
-                                            msg.t_pub_wall_ns, rx_wall_ns)))
+            # the usual batch: every entry valid and every node known, so the per-entry checks
+            # would accept them all and no value is None (what _entry then does, inlined)
+            min_snr = self.config.min_snr_db
+            entries = [(nid, RangeEntry(t, r if min_snr is None or snr >= min_snr else None,
+                                        sg, snr, pw, rx_wall_ns)) for nid, r, sg, snr in rows]
+        else:
+            entries = []
+            for nid, r, sg, snr in rows:
+                bad = self._bad_value(r, sg, snr)
+                if bad is None:
+                    why = self._node_refused(nid)
+                    if why is not None:
+                        bad = (why, f"node {nid!r}")
+                if bad is not None:
+                    self._reject(key, bad[0], bad[1], source=src)
+                    continue
+                entries.append((nid, self._entry(t, r, sg, snr, pw, rx_wall_ns)))
         anchor.ranges += len(entries)
-        late = self.book.add_many(anchor.id, msg.t_ns, entries)
+        late = self.book.add_many(anchor.id, t, entries)
         if late:
             self.rejected["late"] += late
 
-    def _add_range(self, anchor, node_id, t_ns, r, sigma_m, snr_db, pub_wall, rx_wall) -> None:
-        if r is None or sigma_m is None or (
-            self.config.min_snr_db is not None
-            and (snr_db is None or snr_db < self.config.min_snr_db)
-        ):
+    def _entry(self, t_ns: int, r: float | None, sigma_m: float | None, snr_db: float | None,
+               pub_wall: int, rx_wall: int) -> RangeEntry:
+        """What the fusion keeps of one accepted range: ``range_m`` None when no path was
+        detected or its SNR is below ``min_snr_db``."""
+        min_snr = self.config.min_snr_db
+        if r is None or sigma_m is None or (min_snr is not None
+                                            and (snr_db is None or snr_db < min_snr)):
             r = None
+        return RangeEntry(t_ns, r, sigma_m or 1.0, snr_db if snr_db is not None else -math.inf,
+                          pub_wall, rx_wall)
+
+    def _add_range(self, anchor, node_id, t_ns, r, sigma_m, snr_db, pub_wall, rx_wall) -> None:
         anchor.ranges += 1
-        entry = RangeEntry(t_ns, r, sigma_m or 1.0, snr_db if snr_db is not None else -math.inf,
-                           pub_wall, rx_wall)
+        entry = self._entry(t_ns, r, sigma_m, snr_db, pub_wall, rx_wall)
         if not self.book.add(anchor.id, node_id, entry):
             self.rejected["late"] += 1
 

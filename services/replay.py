@@ -18,7 +18,6 @@ estimates side by side.
 from __future__ import annotations
 
 import contextlib
-import functools
 import gc
 import itertools
 import json
@@ -400,17 +399,6 @@ class ReplayResult:
     live_errors: dict[str, np.ndarray]
 
 
-def _fewer_gc_passes_during(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """Decorator: run ``fn`` inside :func:`_fewer_gc_passes`."""
-
-    @functools.wraps(fn)
-    def wrapper(*args: Any, **kwargs: Any) -> Any:
-        with _fewer_gc_passes():
-            return fn(*args, **kwargs)
-
-    return wrapper
-
-
 @contextlib.contextmanager
 def _fewer_gc_passes() -> Iterator[None]:
     """Run the cyclic garbage collector less often for the duration (restored after).
@@ -428,7 +416,7 @@ def _fewer_gc_passes() -> Iterator[None]:
         gc.set_threshold(*old)
 
 
-@_fewer_gc_passes_during
+@_fewer_gc_passes()  # a contextmanager is also a decorator (fresh per call)
 def replay(
     path: str | Path,
     *,
@@ -852,9 +840,6 @@ def synthetic_run(
         v[:, :2] = np.where(back, -vel[:, :2], vel[:, :2])
         return p, v
 
-    def node_pos(t_ns: int) -> np.ndarray:
-        return node_state(t_ns)[0]
-
     def epochs() -> Iterator[list[tuple[int, str, bytes]]]:
         seqs: Counter[str] = Counter()
         for e in range(n_epochs):
@@ -863,7 +848,7 @@ def synthetic_run(
             for j, a in enumerate(anchor_ids):
                 t = te + int(phases[j])
                 r = window_edge_path(
-                    anchors[j], node_pos(t), window_height_m=1.5, edge_x_m=(-20.0, 20.0)
+                    anchors[j], node_state(t)[0], window_height_m=1.5, edge_x_m=(-20.0, 20.0)
                 ).length_m
                 r = r + rng.normal(0, sigma_m, n_nodes)
                 if outlier_probability > 0:
@@ -891,46 +876,18 @@ def synthetic_run(
                 )
                 seqs[a] += 1
                 if range_batch:
-                    items.append(
-                        (
-                            rx + 1000,
-                            keys.anchor_range_batch(a),
-                            enc(
-                                M.RangeBatch(
-                                    anchor_id=a,
-                                    t_ns=t,
-                                    seq=seqs[a],
-                                    node_ids=node_ids,
-                                    range_m=r.tolist(),
-                                    sigma_m=[sigma_m] * n_nodes,
-                                    snr_db=[20.0] * n_nodes,
-                                    t_pub_wall_ns=t,
-                                )
-                            ),
-                        )
-                    )
+                    batch = M.RangeBatch(anchor_id=a, t_ns=t, seq=seqs[a], node_ids=node_ids,
+                                         range_m=r.tolist(), sigma_m=[sigma_m] * n_nodes,
+                                         snr_db=[20.0] * n_nodes, t_pub_wall_ns=t)
+                    items.append((rx + 1000, keys.anchor_range_batch(a), enc(batch)))
                     seqs[a] += 1
-                    continue
-                for i, n in enumerate(node_ids):
-                    items.append(
-                        (
-                            rx + 1000 * (i + 1),
-                            keys.anchor_range(a, n),
-                            enc(
-                                M.RangeMeasurement(
-                                    anchor_id=a,
-                                    node_id=n,
-                                    t_ns=t,
-                                    seq=seqs[a],
-                                    range_m=float(r[i]),
-                                    sigma_m=sigma_m,
-                                    snr_db=20.0,
-                                    t_pub_wall_ns=t,
-                                )
-                            ),
-                        )
-                    )
-                    seqs[a] += 1
+                else:
+                    for i, n in enumerate(node_ids):
+                        rm = M.RangeMeasurement(anchor_id=a, node_id=n, t_ns=t, seq=seqs[a],
+                                                range_m=float(r[i]), sigma_m=sigma_m,
+                                                snr_db=20.0, t_pub_wall_ns=t)
+                        items.append((rx + 1000 * (i + 1), keys.anchor_range(a, n), enc(rm)))
+                        seqs[a] += 1
             tt = te + period_ns // 2
             pos_t, vel_t = node_state(tt)
             for i, n in enumerate(node_ids):
