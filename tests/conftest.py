@@ -10,26 +10,19 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from diffpos_services.emulate import free_tcp_port
 from diffpos_services.servicekit import stop_process_groups
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago."""
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture
 def endpoint() -> str:
     """A fresh loopback Zenoh endpoint on a free port."""
-    return f"tcp/127.0.0.1:{free_port()}"
+    return f"tcp/127.0.0.1:{free_tcp_port()}"
 
 
 class ServiceProcesses:

@@ -10,7 +10,6 @@ import json
 import os
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -29,21 +28,16 @@ from diffpos_services.dashboard_service import (
     display_available,
     open_rerun,
 )
+from diffpos_services.emulate import free_tcp_port
 from diffpos_services.zenoh_config import ZenohSettings
 
 TIMEOUT_S = 30.0
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture
 def sessions():
     """Two peer sessions on loopback: ``pub`` listens, ``sub`` connects to it."""
-    ep = f"tcp/127.0.0.1:{free_port()}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     pub = zenoh.open(ZenohSettings(mode="peer", connect=(), listen=(ep,)).to_config())
     sub = zenoh.open(ZenohSettings(mode="peer", connect=(ep,)).to_config())
     yield pub, sub
@@ -165,8 +159,8 @@ def test_serve_mode_serves_the_web_viewer_and_auto_never_spawns_headless(monkeyp
         assert not display_available()
         with pytest.raises(RuntimeError, match="needs a display"):
             open_rerun(RerunTarget(mode="spawn"))
-    web = free_port()
-    target = RerunTarget(mode="auto", grpc_port=free_port(), web_port=web)
+    web = free_tcp_port()
+    target = RerunTarget(mode="auto", grpc_port=free_tcp_port(), web_port=web)
     rec, how = open_rerun(target)
     try:
         assert how == describe_target(target), "emulate can print the same sentence"
@@ -190,7 +184,7 @@ def test_bad_rerun_targets_are_clear_errors():
 @pytest.mark.slow
 def test_dashboard_cli_process_end_to_end(tmp_path):
     """diffpos router + diffpos dashboard --rerun save as processes; SIGTERM closes the file."""
-    port = free_port()
+    port = free_tcp_port()
     ep = f"tcp/127.0.0.1:{port}"
     exe = [sys.executable, "-m", "diffpos_services.cli"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")

@@ -28,6 +28,7 @@ import msgspec
 import pytest
 import zenoh
 from diffpos_services import messages as M
+from diffpos_services.emulate import free_tcp_port
 from diffpos_services.keys import Keys, parse_key
 from diffpos_services.zenoh_config import ZenohSettings, open_session
 
@@ -548,11 +549,7 @@ def test_open_session_waits_and_says_a_login_may_be_refused():
     """With a user/password and no router the retry loop's message names both causes; the
     stop event ends the wait (what SIGTERM does during start-up)."""
     import logging
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    port = free_tcp_port()
     cfg = zenoh.Config.from_json5(json.dumps({
         "mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"], "timeout_ms": -1},
         "scouting": {"multicast": {"enabled": False}},

@@ -14,7 +14,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -22,6 +21,7 @@ from pathlib import Path
 
 import pytest
 from diffpos_services import zenoh_security as zs
+from diffpos_services.emulate import free_tcp_port
 from diffpos_services.keys import Keys, parse_key
 
 zenoh = pytest.importorskip("zenoh")
@@ -41,12 +41,6 @@ with zenoh.open(cfg) as s:
 
 
 # ----------------------------------------------------------------------------- fixtures
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _write_profile(root: Path, *, mtls: bool = False) -> zs.SecurityProfile:
     clients = ["anchor-uav1", "anchor-uav2", "fusion", "recorder", "dashboard", "emulator"] if mtls else []
     zs.make_dev_certs(root / "certs", hosts=("localhost", "127.0.0.1"), clients=clients, days=2)
@@ -71,7 +65,7 @@ class Bus:
 
     def __init__(self, root: Path, *, mtls: bool = False) -> None:
         self.profile = _write_profile(root, mtls=mtls)
-        self.port = _free_port()
+        self.port = free_tcp_port()
         # the router runs from the rendered json5 file, exactly as zenohd -c / docker-compose would
         zs.render_profile(self.profile, root / "zenoh", listen=[f"tls/127.0.0.1:{self.port}"],
                           connect=[f"tls/localhost:{self.port}"])
