@@ -82,16 +82,8 @@ def _load_scenario(spec: str):
     path = Path(spec)
     if not path.is_file():
         raise ValueError(f"scenario: no such file {spec!r} (give a TOML file or 'paper')")
-    try:
-        from diffpos_services.scenario_io import load_scenario
-    except ImportError:  # pragma: no cover - scenario_io is part of the package
-        import tomllib
+    from diffpos_services.scenario_io import load_scenario
 
-        from diffpos.scenario import Scenario
-
-        def load_scenario(p):
-            with open(p, "rb") as f:
-                return Scenario.from_dict(tomllib.load(f))
     try:
         return load_scenario(path)
     except ScenarioError as exc:
