@@ -58,7 +58,7 @@ from numpy.typing import ArrayLike, NDArray
 from .constants import SPEED_OF_LIGHT_M_S
 from .geometry import diffraction_point
 from .gtd import diffracted_field
-from .linkbudget import db_to_linear, noise_floor_dbm, ranging_crlb_m
+from .linkbudget import db_to_linear, ranging_crlb_m, snr_db
 from .scenario import ITU_MATERIALS, Building, Radio, Scenario
 
 __all__ = [
@@ -620,9 +620,9 @@ def emulate_channel(
     with np.errstate(divide="ignore"):
         power = (radio.tx_power_dbm + radio.tx_gain_dbi + radio.rx_gain_dbi + rx_db
                  + 20 * np.log10(np.abs(gain)))
-    n0 = float(noise_floor_dbm(radio.bandwidth_hz, temperature_k=radio.noise_temperature_k,
-                               noise_figure_db=radio.noise_figure_db))
-    snr = power + radio.processing_gain_db - n0
+    snr = snr_db(power, bandwidth_hz=radio.bandwidth_hz,
+                 processing_gain_db=radio.processing_gain_db,
+                 temperature_k=radio.noise_temperature_k, noise_figure_db=radio.noise_figure_db)
     power = np.where(valid, power, -np.inf)
     snr = np.where(valid, snr, -np.inf)
     exists = valid & (snr >= radio.detection_snr_db)
