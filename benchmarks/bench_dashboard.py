@@ -88,11 +88,11 @@ def bench_live(args, tmp: Path) -> dict:
 
 
 def bench_zenoh(args, tmp: Path) -> dict:
-    import socket
     import threading
 
     import zenoh
     from diffpos_services.dashboard_service import DashboardService, RerunTarget, open_rerun
+    from diffpos_services.emulate import free_tcp_port
     from diffpos_services.zenoh_config import ZenohSettings
 
     building, msgs = d.synthetic_run(
@@ -102,9 +102,7 @@ def bench_zenoh(args, tmp: Path) -> dict:
         rate_hz=args.rate,
         seed=2,
     )
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     pub_s = zenoh.open(ZenohSettings(mode="peer", connect=(), listen=(ep,)).to_config())
     sub_s = zenoh.open(ZenohSettings(mode="peer", connect=(ep,)).to_config())
     rec, _ = open_rerun(RerunTarget(mode="save", path=str(tmp / "zenoh.rrd")))

@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import queue
-import socket
 import subprocess
 import sys
 import tempfile
@@ -35,17 +34,12 @@ from pathlib import Path
 
 import numpy as np
 from diffpos_services import messages as M
+from diffpos_services.emulate import free_tcp_port
 from diffpos_services.keys import Keys, parse_key
 from diffpos_services.servicekit import stop_process_groups
 from diffpos_services.zenoh_config import ZenohSettings, open_session
 
 PERIOD_NS = 100_000_000
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def scenario_toml(n_anchors: int, n_nodes: int, seed: int = 0) -> str:
@@ -89,7 +83,7 @@ def rss_mb(pid: int) -> float | None:
 def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, batch: bool = False) -> dict:
     site = f"bench{n_anchors}x{n_nodes}"
     keys = Keys(site)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     scen = log_dir / f"{site}.toml"
     scen.write_text(scenario_toml(n_anchors, n_nodes))
     procs: list[subprocess.Popen] = []

@@ -36,7 +36,6 @@ import json
 import os
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -77,12 +76,6 @@ def bench_sink(n: int, tmp: Path) -> dict:
             "written": sink.stats.written}
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 _PUBLISHER = r"""
 import sys, time, zenoh
 from diffpos_services.zenoh_config import ZenohSettings
@@ -105,9 +98,10 @@ with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
 
 
 def bench_bus(n: int, tmp: Path) -> dict:
+    from diffpos_services.emulate import free_tcp_port
     from diffpos_services.recorder import build_command
 
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     env = dict(os.environ, DIFFPOS_LOG_LEVEL="warning")
     procs = []
 

@@ -39,8 +39,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_latency import PERIOD_NS, free_port, rss_mb, scenario_toml
+from bench_latency import PERIOD_NS, rss_mb, scenario_toml
 from diffpos_services import messages as M
+from diffpos_services.emulate import free_tcp_port
 from diffpos_services.keys import Keys, parse_key
 from diffpos_services.servicekit import stop_process_groups
 from diffpos_services.zenoh_config import ZenohSettings, open_session
@@ -110,7 +111,7 @@ def run_soak(
     """
     site = site or f"soak{n_anchors}x{n_nodes}"
     keys = Keys(site)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     log_dir.mkdir(parents=True, exist_ok=True)
     scen = log_dir / f"{site}.toml"
     scen.write_text(scenario_toml(n_anchors, n_nodes))
