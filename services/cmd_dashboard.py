@@ -205,8 +205,6 @@ def _demo(rec, building, target) -> int:
     rec.flush()
     if target.mode == "serve" or (target.mode == "auto" and not _display()):
         print("demo data sent; keep this process running to view it, Ctrl-C to stop", flush=True)
-        from .servicekit import Shutdown
-
         Shutdown().wait()
     rec.disconnect()
     return 0

@@ -36,6 +36,7 @@ import logging
 import msgspec
 
 from .servicekit import (
+    ConfigError,
     Shutdown,
     add_logging_arguments,
     build_config,
@@ -173,8 +174,6 @@ def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
     ConfigError
         An empty list, or ``scenario`` without a scenario.
     """
-    from .servicekit import ConfigError
-
     if text is None:
         return None
     if text.strip() == "scenario":

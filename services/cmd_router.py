@@ -25,7 +25,14 @@ from __future__ import annotations
 import argparse
 import logging
 
-from .servicekit import Shutdown, add_logging_arguments, log_event, run_main, setup_logging
+from .servicekit import (
+    ConfigError,
+    Shutdown,
+    add_logging_arguments,
+    log_event,
+    run_main,
+    setup_logging,
+)
 from .zenoh_config import add_zenoh_arguments, open_session, service_settings
 
 
@@ -45,8 +52,6 @@ def run(args: argparse.Namespace) -> int:
         try:
             session = open_session(settings, stop.event, logger=log)
         except zenoh.ZError as exc:
-            from .servicekit import ConfigError
-
             raise ConfigError(
                 f"the router cannot listen on {', '.join(settings.listen)}: "
                 f"{str(exc).split(' at ')[0]} (port in use? certificate files readable?)"
