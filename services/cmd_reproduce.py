@@ -327,13 +327,12 @@ def write_markdown(path: Path, s: dict[str, Any]) -> None:
     lines += ["", "## Positioning error [m]", "",
               "| method | 3D median | 3D 80% | 3D 95% | z median | z 80% | z 95% | solved |",
               "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for key, v in s["positioning_m"].items():
+    for v in s["positioning_m"].values():
         solved = v.get("solved_fraction")
         lines.append(
             f"| {v['label']} | {_fmt(v['3d']['median'])} | {_fmt(v['3d']['p80'])} | "
             f"{_fmt(v['3d']['p95'])} | {_fmt(v['z']['median'])} | {_fmt(v['z']['p80'])} | "
             f"{_fmt(v['z']['p95'])} | {'' if solved is None else f'{100 * solved:.1f}%'} |")
-        del key
     if abs(s["delta_case2_m"] - s["window_height_m"]) < 1e-12:
         lines += ["", f"Note: with Delta = w = {s['window_height_m']:g} m the Case-2 model's "
                   "upper edge sits exactly where the lower edge of the Case-1 model is, so "
