@@ -57,7 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .constants import SPEED_OF_LIGHT_M_S
 from .geometry import diffraction_point
-from .gtd import diffracted_field
+from .gtd import diffracted_field, wavenumber_rad_m
 from .linkbudget import db_to_linear, ranging_crlb_m, snr_db
 from .scenario import ITU_MATERIALS, Building, Radio, Scenario
 
@@ -140,7 +140,7 @@ def slab_loss_db(material: str, thickness_m: float, frequency_hz: float) -> floa
     """
     eta = itu_permittivity(material, frequency_hz)
     n = np.sqrt(eta)  # principal root: Im(n) <= 0 for eta'' <= 0
-    k0 = 2 * np.pi * frequency_hz / _C
+    k0 = float(wavenumber_rad_m(frequency_hz))
     alpha_np_m = -k0 * n.imag
     g0 = (1 - n) / (1 + n)
     return float(8.685889638 * alpha_np_m * thickness_m - 2 * 10 * np.log10(1 - abs(g0) ** 2))
@@ -324,8 +324,8 @@ class _Ctx:
         b, r = building, radio
         self.b, self.r = b, r
         self.f = r.frequency_hz
-        self.k = 2 * np.pi * self.f / _C
-        self.lam = _C / self.f
+        self.k = float(wavenumber_rad_m(self.f))
+        self.lam = r.wavelength_m
         self.e0 = np.asarray(r.polarization, dtype=np.float64)
         self.node = nodes[:, None, :]  # (N,1,3)
         self.anchor = anchors[None, :, :]  # (1,M,3)
@@ -509,7 +509,8 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
     valid = dp.on_edge.copy()
     e_dir = np.array([1.0, 0.0, 0.0]) if edge == "upper" else np.array([-1.0, 0.0, 0.0])
     face = np.array([0.0, 0.0, 1.0]) if edge == "upper" else np.array([0.0, 0.0, -1.0])
-    E = _edge_field(a, obs, q, e_dir, face, c.e0, c.k, c.f)
+    E = diffracted_field(a, obs, q, e_dir, face, c.e0, frequency_hz=c.f, coefficients="utd",
+                         spreading="spherical")
     # antenna pattern on departure
     g_db = _pattern_db(_zenith_deg(q - a), c.r.tx_hpbw_deg, c.r.tx_peak_deg)
     E = E * (10 ** (g_db / 20))[..., None]
@@ -535,14 +536,6 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
     valid &= np.isfinite(amp)
     return (length, np.where(valid, gain, 0), _zenith_deg(q - a), _zenith_deg(pts_last - n),
             valid)
-
-
-def _edge_field(source, observer, point, edge_dir, face_dir, e0, k, frequency_hz):
-    """UTD diffracted field vector (unit source field at 1 m) at ``observer`` ``(..., 3)``."""
-    del k
-    return diffracted_field(source, observer, point, edge_dir, face_dir, e0,
-                            frequency_hz=frequency_hz, coefficients="utd",
-                            spreading="spherical")
 
 
 # --------------------------------------------------------------------------------------------
