@@ -87,6 +87,21 @@ def bench_live(args, tmp: Path) -> dict:
     }
 
 
+def _wait_matched(pubs, *, timeout_s: float) -> None:
+    """Block until every Zenoh publisher in ``pubs`` has a matching subscriber (no sleeps)."""
+    import threading
+
+    for pub in pubs:
+        matched = threading.Event()
+        listener = pub.declare_matching_listener(lambda st, ev=matched: st.matching and ev.set())
+        if pub.matching_status.matching:
+            matched.set()
+        ok = matched.wait(timeout_s)
+        listener.undeclare()
+        if not ok:
+            raise RuntimeError(f"no subscriber matched {pub.key_expr} within {timeout_s} s")
+
+
 def bench_zenoh(args, tmp: Path) -> dict:
     import threading
 
@@ -110,11 +125,9 @@ def bench_zenoh(args, tmp: Path) -> dict:
     stop = threading.Event()
     th = threading.Thread(target=svc.run, args=(stop,), kwargs={"report_every_s": 1e9})
     th.start()
-    while svc.stats.received == 0 and not svc._subs:  # subscribers declared by run()
-        time.sleep(0.01)
     keys = [d.key_of(x, site="bench") for x in msgs]
     pubs = {k: pub_s.declare_publisher(k) for k in set(keys)}
-    time.sleep(1.0)  # benchmark only: let the subscriptions propagate
+    _wait_matched(pubs.values(), timeout_s=30.0)  # run() has declared its subscribers
     import msgspec
 
     t_of = [getattr(x, "t_ns", None) or x.watermark_ns for x in msgs]
