@@ -454,7 +454,7 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
         cur_src = src
         cur_img = img
         t_last = t_f
-        for i, (axis, coord) in enumerate(axes_coords):
+        for axis, coord in axes_coords:
             dd = cur_img - cur_src
             t = (coord - cur_src[..., axis]) / dd[..., axis]
             valid &= (t > t_last) & (t < 1)
@@ -465,7 +465,6 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
             cur_img = _mirror(cur_img, axis, coord)
             cur_src = _mirror(cur_src, axis, coord)
             t_last = t
-            del i
         pts.append(n)
     # field: departure, ground bounce, then inside bounces
     first_target = pts[0] if not ground else src + t_g[..., None] * d
