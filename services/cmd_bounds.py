@@ -64,6 +64,8 @@ from diffpos.linkbudget import (
     snr_db,
 )
 
+from .servicekit import ConfigError
+
 PAPER_ANCHORS_M: tuple[tuple[float, float, float], ...] = (
     (-15.0, -20.0, 1.0),
     (0.0, -15.0, 0.0),
@@ -144,10 +146,6 @@ class BoundsConfig:
         n_y = np.floor((self.depth_m - 0.5 * step - self.y_min_m) / step + 1e-9)
         y = self.y_min_m + np.arange(n_y + 1) * step
         return x, y
-
-
-class ConfigError(ValueError):
-    """A bad option; the message names it and the allowed range."""
 
 
 def _check_range(name: str, value: float, lo: float, hi: float, *, lo_open=True) -> None:
