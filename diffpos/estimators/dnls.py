@@ -329,14 +329,21 @@ def _solve_chunk(
         return
     a = anchors[idx]
     r = ranges[idx]
-    sw = mask[idx] / sigmas[idx]
+    sig_i = sigmas[idx]
+    sw = mask[idx] / sig_i
     mdl = model.take(idx)
-    if x0 is not None:
-        starts = x0[idx][:, None, :]
-    else:
-        starts = grid_starts(a, mask[idx], z_starts, y_start)
+    x0_i = None if x0 is None else x0[idx]
+
+    def make_starts(aa, rr, cu, rows):
+        # the given start, or the z grid (plus the LLS fix): (len(rows), S, 3)
+        if x0_i is not None:
+            return x0_i[rows][:, None, :]
+        st = grid_starts(aa, cu, z_starts, y_start)
         if lls_start:
-            starts = np.concatenate([starts, _lls_starts(a, r, mask[idx], starts)], axis=1)
+            st = np.concatenate([st, _lls_starts(aa, rr, cu, st)], axis=1)
+        return st
+
+    starts = make_starts(a, r, mask[idx], slice(None))
     n = starts.shape[0]
     x, cost_best, iters_best, conv_best = multistart_fit(
         a, r, sw, starts, mdl, loss=loss, loss_scale=loss_scale, max_iter=max_iter, xtol=xtol,
@@ -354,8 +361,6 @@ def _solve_chunk(
         gating_failed=np.zeros(n, dtype=bool),
         tested=np.zeros(n, dtype=bool),
     )
-    sig_i = sigmas[idx]
-    x0_i = None if x0 is None else x0[idx]
 
     def solve_candidates(pi, cu, warm):
         # The first fit's multi-start on each candidate subset, plus the warm start. The
@@ -364,13 +369,8 @@ def _solve_chunk(
         # only confirm it. A fix is re-solved from all starts (every candidate) only if
         # none of its screened candidates passes the residual test itself.
         aa, rr, swc, mc = a[pi], r[pi], cu / sig_i[pi], mdl.take(pi)
-        if x0_i is not None:  # one given start: it and the current solution
-            st = x0_i[pi][:, None, :]
-        else:
-            st = grid_starts(aa, cu, z_starts, y_start)
-            if lls_start:
-                st = np.concatenate([st, _lls_starts(aa, rr, cu, st)], axis=1)
-        st = np.concatenate([st, warm[:, None, :]], axis=1)
+        # one given start (or the grid) plus the warm start (the current solution)
+        st = np.concatenate([make_starts(aa, rr, cu, pi), warm[:, None, :]], axis=1)
         common = {"loss": loss, "loss_scale": loss_scale, "max_iter": max_iter,
                   "xtol": xtol, "screen_iter": screen_iter}
         dof_c = cu.sum(axis=-1) - 3
@@ -398,7 +398,7 @@ def _solve_chunk(
             state,
             a,
             r,
-            sigmas[idx],
+            sig_i,
             mdl,
             gating,
             active=np.ones(n, dtype=bool),
@@ -412,10 +412,10 @@ def _solve_chunk(
     p, jac = mdl.evaluate(a, state.x_m)
     res = r - p
     n_used = used.sum(axis=-1)
-    fim = fisher_information(jac, sigmas[idx], used)
+    fim = fisher_information(jac, sig_i, used)
     bnd = bounds_from_fim(fim)
     cov = bnd.crlb_m2
-    cost_final = cost_of(res, used / sigmas[idx], loss, loss_scale)
+    cost_final = cost_of(res, used / sig_i, loss, loss_scale)
     if not sigmas_given:
         # a-posteriori variance factor (unit weights were used)
         ssr = np.einsum("nm,nm->n", res * used, res * used)
@@ -424,7 +424,7 @@ def _solve_chunk(
         cov = cov * s2[:, None, None]
     peb = np.sqrt(np.trace(cov, axis1=-2, axis2=-1))
     zb = np.sqrt(cov[:, 2, 2])
-    sw_used = used / sigmas[idx]
+    sw_used = used / sig_i
     t_stat = np.einsum("nm,nm->n", res * sw_used, res * sw_used)
     dof = n_used - 3
     thr = (
