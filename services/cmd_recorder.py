@@ -36,6 +36,7 @@ from diffpos_services.servicekit import (
     ConfigError,
     Shutdown,
     add_logging_arguments,
+    load_json_option,
     log_event,
     run_main,
     setup_logging,
@@ -95,12 +96,7 @@ def _run(args: argparse.Namespace, logger: logging.Logger) -> int:
         except OSError as exc:
             raise ConfigError(f"--scenario {args.scenario}: cannot read it ({exc.strerror})") from None
     if args.run_config:
-        try:
-            run_config = json.loads(Path(args.run_config).read_text(encoding="utf-8"))
-        except OSError as exc:
-            raise ConfigError(f"--run-config {args.run_config}: cannot read it ({exc.strerror})") from None
-        except ValueError as exc:
-            raise ConfigError(f"--run-config {args.run_config}: not valid JSON ({exc})") from None
+        run_config = load_json_option("--run-config", args.run_config)
     name = args.name or (Path(args.scenario).stem if args.scenario else args.site)
     out = Path(args.out) if args.out else default_output_path(name, directory=args.dir)
     shutdown = Shutdown(logger)

@@ -74,16 +74,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
-    from diffpos_services.servicekit import ConfigError
+    from diffpos_services.servicekit import ConfigError, load_json_option
 
     out: dict[str, Any] = {}
     if args.config:
-        try:
-            doc = json.loads(Path(args.config).read_text(encoding="utf-8"))
-        except OSError as exc:
-            raise ConfigError(f"--config {args.config}: cannot read it ({exc.strerror})") from None
-        except ValueError as exc:
-            raise ConfigError(f"--config {args.config}: not valid JSON ({exc})") from None
+        doc = load_json_option("--config", args.config)
         if not isinstance(doc, dict):
             raise ConfigError(f"--config {args.config}: must hold a JSON object of settings")
         out.update(doc)

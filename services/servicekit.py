@@ -32,6 +32,7 @@ __all__ = [
     "Shutdown",
     "add_logging_arguments",
     "build_config",
+    "load_json_option",
     "log_event",
     "run_main",
     "setup_logging",
@@ -95,6 +96,24 @@ def build_config(kind: type[T], values: Mapping[str, Any]) -> T:
         except ValueError as exc:
             raise ConfigError(f"invalid {kind.__name__}: {exc}") from None
     return cfg
+
+
+def load_json_option(option: str, path: str) -> Any:
+    """The JSON document in the file ``path`` given to the command-line ``option``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the option and the file, e.g. ``--config run.json: cannot read it (No such
+        file or directory)`` or ``... not valid JSON (...)``.
+    """
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except OSError as exc:
+        raise ConfigError(f"{option} {path}: cannot read it ({exc.strerror})") from None
+    except ValueError as exc:
+        raise ConfigError(f"{option} {path}: not valid JSON ({exc})") from None
 
 
 # ----------------------------------------------------------------------------- logging
