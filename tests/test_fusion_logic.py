@@ -8,30 +8,13 @@ import msgspec
 import numpy as np
 import pytest
 from diffpos_services import messages as M
-from diffpos_services.fusion import FusionConfig, FusionCore
+from diffpos_services.fusion import FusionCore
 from diffpos_services.keys import Keys
-from diffpos_services.servicekit import ConfigError, build_config
+from diffpos_services.servicekit import ConfigError
+from fusion_scene import ANCHORS, EDGE, KEYS, NODES, PERIOD_NS, W
+from fusion_scene import fusion_config as _cfg
 
 from diffpos.geometry import window_edge_path
-
-W = 1.5
-EDGE = (-20.0, 20.0)
-ANCHORS = {
-    "uav1": np.array([-15.0, -20.0, 1.0]),
-    "uav2": np.array([0.0, -15.0, 0.0]),
-    "uav3": np.array([0.0, -7.0, 4.0]),
-    "uav4": np.array([15.0, -20.0, 1.0]),
-    "uav5": np.array([-5.0, -12.0, 8.0]),
-}
-PERIOD_NS = 100_000_000
-KEYS = Keys("t")
-
-
-def _cfg(**kw):
-    base = dict(site="t", window_height_m=W, edge_x_m=EDGE, epoch_period_s=0.1,
-                deadline_s=0.3, first_floor_z_m=3.0, floor_height_m=3.0)
-    base.update(kw)
-    return build_config(FusionConfig, base)
 
 
 def _feed_epoch(core, e, nodes, rng, *, anchors=ANCHORS, sigma=0.05, bias=None,
@@ -52,12 +35,6 @@ def _feed_epoch(core, e, nodes, rng, *, anchors=ANCHORS, sigma=0.05, bias=None,
                                      sigma_m=sigma, snr_db=20.0, t_pub_wall_ns=wall)
             core.on_sample(KEYS.anchor_range(aid, nid), M.encode(msg), wall)
 
-
-NODES = {
-    "n01": np.array([-8.0, 4.0, 3.0 + 0.75 + 0.75]),
-    "n02": np.array([3.0, 8.0, 9.0 + 1.5]),
-    "n03": np.array([12.0, 2.5, 15.0 + 1.5]),
-}
 
 
 def test_every_node_every_epoch_and_error_within_peb():
