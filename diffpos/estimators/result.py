@@ -395,9 +395,8 @@ def prepare_batch(
         err = np.where(np.any(bad, axis=-1), int(code), err)
     valid_fix = err == 0
     use = present & valid_fix[:, None]
-    a_safe = np.where(use[..., None], a, 0.0)
     # Masked anchors get a harmless finite placeholder (never enters a sum: weight 0).
-    a_safe = np.where(use[..., None], a_safe, np.array([0.0, -1.0, 0.0]))
+    a_safe = np.where(use[..., None], a, np.array([0.0, -1.0, 0.0]))
     r_safe = np.where(use, r, 0.0)
     s_safe = np.where(use, s, 1.0)
     return PreparedBatch(
