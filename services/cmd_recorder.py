@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import threading
 from pathlib import Path
 
 from diffpos_services.servicekit import (
@@ -110,7 +109,7 @@ def _run(args: argparse.Namespace, logger: logging.Logger) -> int:
         media = "application/toml" if args.scenario.endswith(".toml") else "text/plain"
         sink.add_attachment(Path(args.scenario).name, scenario_bytes, media_type=media)
     if run_config is not None:
-        sink.add_metadata("run_config", {k: v for k, v in run_config.items()}
+        sink.add_metadata("run_config", dict(run_config)
                           if isinstance(run_config, dict) else {"value": run_config})
         sink.add_attachment("run_config.json", json.dumps(run_config, indent=2).encode(),
                             media_type="application/json")
@@ -123,9 +122,8 @@ def _run(args: argparse.Namespace, logger: logging.Logger) -> int:
             emit(event, fields)
 
     log_event(logger, logging.INFO, "recording", path=str(out), site=args.site)
-    stop: threading.Event = shutdown.event
     try:
-        stats = record(settings, sink, options, stop=stop, on_status=on_status)
+        stats = record(settings, sink, options, stop=shutdown.event, on_status=on_status)
     finally:
         final = sink.close(final_metadata={"stopped_by": shutdown.signal_name or "duration"})
     summary = final.as_dict()
