@@ -256,11 +256,11 @@ def compute(cfg: BoundsConfig) -> list[FloorResult]:
     """Bounds for every floor of the grid (vectorised over the nodes of a floor)."""
     anchors = np.asarray(cfg.anchors_m, dtype=np.float64)
     x, y = cfg.grid_xy_m()
+    xx, yy = np.meshgrid(x, y)  # the same grid on every floor
     half = 0.5 * cfg.width_m
     out = []
     for k in range(1, cfg.n_floors + 1):
         z = cfg.node_height_m(k)
-        xx, yy = np.meshgrid(x, y)
         nodes = np.stack([xx, yy, np.full_like(xx, z)], axis=-1)  # (ny, nx, 3)
         path = window_edge_path(
             anchors,
