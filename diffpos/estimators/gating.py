@@ -156,6 +156,16 @@ def chi2_threshold(dof: NDArray[np.int_], false_alarm_probability: float) -> Flo
     return table[np.maximum(dof, 0)]
 
 
+def _pregate_tol_m(
+    config: GatingConfig, sigmas_m: FloatArray, sigmas_given: bool
+) -> FloatArray | float | None:
+    """Pre-gate tolerance ``k sigma_j + margin`` [m]; ``None`` when the pre-gate is off (disabled,
+    or neither sigmas nor a margin to judge "shorter than LoS" by)."""
+    if not config.pregate or not (sigmas_given or config.pregate_margin_m > 0):
+        return None
+    return config.pregate_sigmas * (sigmas_m if sigmas_given else 0.0) + config.pregate_margin_m
+
+
 def wall_pregate(
     anchors_m: FloatArray,
     ranges_m: FloatArray,
@@ -172,9 +182,9 @@ def wall_pregate(
     ndarray of bool, shape (B, M)
         True for used measurements that no node inside the building can explain.
     """
-    if not config.pregate or not (sigmas_given or config.pregate_margin_m > 0):
+    tol = _pregate_tol_m(config, sigmas_m, sigmas_given)
+    if tol is None:
         return np.zeros(ranges_m.shape, dtype=bool)
-    tol = config.pregate_sigmas * (sigmas_m if sigmas_given else 0.0) + config.pregate_margin_m
     return used & (ranges_m < np.abs(anchors_m[..., 1]) - tol)
 
 
@@ -247,9 +257,9 @@ def run_gating(
         # 1. physical pre-gate
         pg_excl = np.zeros(idx.size, dtype=bool)
         pg_j = np.zeros(idx.size, dtype=np.int_)
-        if config.pregate and (sigmas_given or config.pregate_margin_m > 0):
+        tol = _pregate_tol_m(config, s, sigmas_given)
+        if tol is not None:
             los, _ = los_path(a, x[:, None, :])
-            tol = config.pregate_sigmas * (s if sigmas_given else 0.0) + config.pregate_margin_m
             short = np.where(used, (los - r) - tol, -np.inf)
             worst = (los - r) / (s if sigmas_given else 1.0)
             worst = np.where(used & (short > 0), worst, -np.inf)
