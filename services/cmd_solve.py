@@ -234,43 +234,7 @@ def parse_problem(obj: Any, *, default_method: str = "dnls") -> Problem:
         if ev[0] == ev[1]:
             raise ProblemError("edge_x_m must be two different x values [x1, x2] [m]")
         edge = (min(ev), max(ev))
-    gating_obj = obj.get("gating", True)
-    if gating_obj is True:
-        gating: dict[str, Any] | None = {}
-    elif gating_obj is False or gating_obj is None:
-        gating = None
-    elif isinstance(gating_obj, dict):
-        gating = {}
-        for k, v in gating_obj.items():
-            if k not in GATING_FIELDS:
-                raise ProblemError(f"gating.{k} is not a gating setting; use {list(GATING_FIELDS)}")
-            if k in ("pregate", "multistart_exclusion"):
-                if not isinstance(v, bool):
-                    raise ProblemError(f"gating.{k} must be true or false")
-                gating[k] = v
-            elif k == "z_range_m":
-                if v is None:
-                    gating[k] = None
-                    continue
-                if not isinstance(v, list) or len(v) != 2:
-                    raise ProblemError("gating.z_range_m must be null or [z_min, z_max] in metres")
-                lo = _number(v[0], "gating.z_range_m[0]", limit=None)
-                hi = _number(v[1], "gating.z_range_m[1]", limit=None)
-                if not lo < hi:
-                    raise ProblemError("gating.z_range_m must have z_min < z_max")
-                gating[k] = (lo, hi)
-            elif k == "max_exclusions":
-                if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= MAX_ANCHORS:
-                    raise ProblemError(f"gating.max_exclusions must be an integer in "
-                                       f"[0, {MAX_ANCHORS}]")
-                gating[k] = v
-            else:
-                p = _number(v, "gating.false_alarm_probability", limit=None)
-                if not 0 < p < 1:
-                    raise ProblemError("gating.false_alarm_probability must be in (0, 1)")
-                gating[k] = p
-    else:
-        raise ProblemError("gating must be true, false or an object of gating settings")
+    gating = _parse_gating(obj.get("gating", True))
     loss = obj.get("loss", "linear")
     if loss not in LOSSES:
         raise ProblemError(f"loss must be one of {list(LOSSES)}, got {json.dumps(loss)}")
@@ -299,6 +263,46 @@ def parse_problem(obj: Any, *, default_method: str = "dnls") -> Problem:
         window_height_m=wh, delta_m=delta, edge_x_m=edge, gating=gating, loss=loss, x0_m=x0,
         z_starts_m=zs, nlos=nlos, nlos_bias_m=bias,
     )
+
+
+def _parse_gating(value: Any) -> dict[str, Any] | None:
+    """The ``gating`` field: ``None`` (off), ``{}`` (defaults) or the validated settings."""
+    if value is True:
+        return {}
+    if value is False or value is None:
+        return None
+    if not isinstance(value, dict):
+        raise ProblemError("gating must be true, false or an object of gating settings")
+    gating: dict[str, Any] = {}
+    for k, v in value.items():
+        if k not in GATING_FIELDS:
+            raise ProblemError(f"gating.{k} is not a gating setting; use {list(GATING_FIELDS)}")
+        if k in ("pregate", "multistart_exclusion"):
+            if not isinstance(v, bool):
+                raise ProblemError(f"gating.{k} must be true or false")
+            gating[k] = v
+        elif k == "z_range_m":
+            if v is None:
+                gating[k] = None
+                continue
+            if not isinstance(v, list) or len(v) != 2:
+                raise ProblemError("gating.z_range_m must be null or [z_min, z_max] in metres")
+            lo = _number(v[0], "gating.z_range_m[0]", limit=None)
+            hi = _number(v[1], "gating.z_range_m[1]", limit=None)
+            if not lo < hi:
+                raise ProblemError("gating.z_range_m must have z_min < z_max")
+            gating[k] = (lo, hi)
+        elif k == "max_exclusions":
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= MAX_ANCHORS:
+                raise ProblemError(f"gating.max_exclusions must be an integer in "
+                                   f"[0, {MAX_ANCHORS}]")
+            gating[k] = v
+        else:
+            p = _number(v, "gating.false_alarm_probability", limit=None)
+            if not 0 < p < 1:
+                raise ProblemError("gating.false_alarm_probability must be in (0, 1)")
+            gating[k] = p
+    return gating
 
 
 def _invalid_record(message: str) -> dict[str, Any]:
