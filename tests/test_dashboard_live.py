@@ -35,9 +35,9 @@ TIMEOUT_S = 30.0
 
 
 @pytest.fixture
-def sessions():
+def sessions(endpoint):
     """Two peer sessions on loopback: ``pub`` listens, ``sub`` connects to it."""
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    ep = endpoint
     pub = zenoh.open(ZenohSettings(mode="peer", connect=(), listen=(ep,)).to_config())
     sub = zenoh.open(ZenohSettings(mode="peer", connect=(ep,)).to_config())
     yield pub, sub
@@ -182,10 +182,9 @@ def test_bad_rerun_targets_are_clear_errors():
 
 
 @pytest.mark.slow
-def test_dashboard_cli_process_end_to_end(tmp_path):
+def test_dashboard_cli_process_end_to_end(tmp_path, endpoint):
     """diffpos router + diffpos dashboard --rerun save as processes; SIGTERM closes the file."""
-    port = free_tcp_port()
-    ep = f"tcp/127.0.0.1:{port}"
+    ep = endpoint
     exe = [sys.executable, "-m", "diffpos_services.cli"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.pop("DISPLAY", None)
