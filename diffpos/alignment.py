@@ -428,6 +428,10 @@ class PendingEpoch:
     ranges: dict[str, RangeEntry] = field(default_factory=dict)
 
 
+#: "Before any time" for the latest-time and solved-epoch maps [ns or epoch index].
+_NEVER = -(2**62)
+
+
 class EpochBook:
     """Groups ranges per (node, epoch) and decides when an epoch is ready to solve.
 
@@ -447,10 +451,8 @@ class EpochBook:
     def add(self, anchor_id: str, node_id: str, entry: RangeEntry) -> bool:
         """Add a range; False (and ``late`` += 1) if its epoch was already solved."""
         e = int(entry.t_ns // self.config.epoch_period_ns)
-        prev = self.latest_t_ns.get(anchor_id)
-        if prev is None or entry.t_ns > prev:
-            self.latest_t_ns[anchor_id] = entry.t_ns
-        if e <= self.solved_upto.get(node_id, -(2**62)):
+        self.note_anchor_time(anchor_id, entry.t_ns)
+        if e <= self.solved_upto.get(node_id, _NEVER):
             self.late += 1
             return False
         key = (node_id, e)
@@ -466,15 +468,12 @@ class EpochBook:
         """Add ranges of one anchor taken at the same time ``t_ns`` (one epoch); returns how
         many were late (their node's epoch already solved)."""
         e = int(t_ns // self.config.epoch_period_ns)
-        prev = self.latest_t_ns.get(anchor_id)
-        if prev is None or t_ns > prev:
-            self.latest_t_ns[anchor_id] = int(t_ns)
+        self.note_anchor_time(anchor_id, t_ns)
         late = 0
         pending = self.pending
         solved = self.solved_upto
-        floor = -(2**62)
         for node_id, entry in entries:
-            if e <= solved.get(node_id, floor):
+            if e <= solved.get(node_id, _NEVER):
                 late += 1
                 continue
             pe = pending.get((node_id, e))
@@ -533,7 +532,7 @@ class EpochBook:
                 if waiting is None:
                     end_ns = (pe.epoch + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
                     waiting = waiting_for[pe.epoch] = frozenset(
-                        a for a in live_anchors if latest.get(a, -(2**62)) < end_ns
+                        a for a in live_anchors if latest.get(a, _NEVER) < end_ns
                     )
                 done = waiting <= pe.ranges.keys()
             if done:
@@ -543,7 +542,7 @@ class EpochBook:
                     self.strays += 1
                     continue
                 self.solved_upto[pe.node_id] = max(
-                    pe.epoch, self.solved_upto.get(pe.node_id, -(2**62))
+                    pe.epoch, self.solved_upto.get(pe.node_id, _NEVER)
                 )
             else:
                 blocked.add(pe.node_id)
