@@ -85,7 +85,6 @@ __all__ = [
     "noncentrality",
     "predicted_detection",
     "reference_fde",
-    "resolve_after_exclusion",
     "run_case",
     "simulate_epochs",
     "with_anchors",
@@ -716,38 +715,6 @@ def reference_fde(
     excl = np.zeros((e * n, m), dtype=bool)
     hit = np.flatnonzero(excluded >= 0)
     excl[hit, excluded[hit]] = True
-    return _score(sub, fault, excl, pos)
-
-
-def resolve_after_exclusion(
-    data: EpochData,
-    fault: Fault,
-    gating: GatingConfig,
-    *,
-    stride: int = 1,
-) -> dict[str, float]:
-    """Lighter fix candidate: gating with one exclusion, then the kept subset re-solved from
-    all starts (with gating again, one more exclusion allowed).
-
-    Returns the same keys as :func:`reference_fde`.
-    """
-    sub = _every(data, stride)
-    e, n, m = sub.shape
-    anchors, ranges, _ = apply_fault(sub, fault)
-    a = anchors.reshape(e * n, m, 3)
-    r = ranges.reshape(e * n, m)
-    s = sub.sigmas_m.reshape(e * n, m)
-    kw = {"window_height_m": sub.window_height_m, "delta_m": sub.delta_m,
-          "edge_x_m": sub.edge_x_m}
-    g1 = dataclasses.replace(gating, max_exclusions=1)
-    fix = dnls(a, r, s, mask=sub.mask.reshape(e * n, m), gating=g1, **kw)
-    pos = fix.position_m.copy()
-    excl = fix.excluded.copy()
-    rows = np.flatnonzero(fix.excluded.any(axis=-1))
-    if rows.size:
-        again = dnls(a[rows], r[rows], s[rows], mask=fix.used[rows], gating=g1, **kw)
-        pos[rows] = again.position_m
-        excl[rows] |= again.excluded
     return _score(sub, fault, excl, pos)
 
 
