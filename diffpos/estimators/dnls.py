@@ -79,6 +79,14 @@ def check_edge_x(edge_x_m: ArrayLike | None) -> tuple[float, float] | None:
     return (float(min(e)), float(max(e)))
 
 
+def _check_z_starts(z_starts_m: ArrayLike | None) -> FloatArray:
+    """The start heights (default :data:`DEFAULT_Z_STARTS_M`), validated, shape (S,) [m]."""
+    zs = np.asarray(DEFAULT_Z_STARTS_M if z_starts_m is None else z_starts_m, float)
+    if zs.ndim != 1 or zs.size == 0 or not np.all(np.isfinite(zs)):
+        raise ValueError("z_starts_m must be a non-empty 1-D array of finite heights [m]")
+    return zs
+
+
 def dnls(
     anchors_m: ArrayLike,
     ranges_m: ArrayLike,
@@ -189,9 +197,7 @@ def dnls(
         starts = None
     else:
         x0 = None
-        starts = np.asarray(DEFAULT_Z_STARTS_M if z_starts_m is None else z_starts_m, float)
-        if starts.ndim != 1 or starts.size == 0 or not np.all(np.isfinite(starts)):
-            raise ValueError("z_starts_m must be a non-empty 1-D array of finite heights [m]")
+        starts = _check_z_starts(z_starts_m)
 
     out = _alloc(bsz, m)
     for lo in range(0, bsz, max(int(chunk_size), 1)):

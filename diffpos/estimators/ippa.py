@@ -37,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .dnls import DEFAULT_Z_STARTS_M, grid_starts
+from .dnls import _check_z_starts, grid_starts
 from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
 
 __all__ = ["ippa"]
@@ -98,10 +98,7 @@ def ippa(
         x0 = np.asarray(x0_m, dtype=np.float64)
         starts = np.broadcast_to(x0.reshape(-1, 3) if x0.ndim == 1 else x0, (b, 3))[:, None]
     else:
-        zs = np.asarray(DEFAULT_Z_STARTS_M if z_starts_m is None else z_starts_m, float)
-        if zs.ndim != 1 or zs.size == 0 or not np.all(np.isfinite(zs)):
-            raise ValueError("z_starts_m must be a non-empty 1-D array of finite heights [m]")
-        starts = grid_starts(a, use, zs, y_start_m)
+        starts = grid_starts(a, use, _check_z_starts(z_starts_m), y_start_m)
     s = starts.shape[1]
     n = b * s
     aa = np.repeat(a, s, axis=0)
