@@ -376,16 +376,14 @@ def positioning_study(
     for m in methods:
         est = np.full((n, 3), np.nan)
         n_ok = 0
-        done = 0
         for sl in _chunks(n, chunk_size):
             res = solve(m, sl)
             # like the paper, every estimate counts, whatever its status (ill-conditioned or
             # not converged within the iteration limit); only missing estimates are failures
             est[sl] = res.position_m
             n_ok += int(np.sum(res.ok))
-            done = sl.stop
             if progress is not None:
-                progress(m, done, n)
+                progress(m, sl.stop, n)
         positions[m] = est
         ok_frac[m] = n_ok / n if n else 0.0
         err = np.linalg.norm(est - truth, axis=1)
