@@ -265,6 +265,11 @@ def _unit(v: FloatArray) -> tuple[FloatArray, FloatArray]:
         return v / n[..., None], n
 
 
+def _field_norm(e: NDArray) -> FloatArray:
+    """Magnitude ``sqrt(e . conj(e))`` of complex field vectors ``(..., 3)``."""
+    return np.sqrt(np.einsum("...i,...i->...", e, e.conj()).real)
+
+
 def _cross(a: NDArray, b: NDArray) -> NDArray:
     """``np.cross`` over the last axis (of length 3), without its axis bookkeeping."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
@@ -420,7 +425,7 @@ def _direct(c: _Ctx):
     entry = a + t[..., None] * d
     loss = loss + c.partition_loss_db(entry, n)
     E = c.tx_field(u)
-    amp = np.sqrt(np.einsum("...i,...i->...", E, E.conj()).real)
+    amp = _field_norm(E)
     gain = amp * (c.lam / (4 * np.pi * length)) * 10 ** (-loss / 20) * np.exp(-1j * c.k * length)
     valid = np.ones(c.shape, dtype=bool)
     return length, gain, _zenith_deg(u), _zenith_deg(-u), valid
@@ -484,7 +489,7 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
         loss = loss + c.partition_loss_db(pts[j], pts[j + 1])
         k_in, _ = _unit(pts[j + 2] - pts[j + 1])
     loss = loss + c.partition_loss_db(pts[-2], pts[-1])
-    amp = np.sqrt(np.einsum("...i,...i->...", E, E.conj()).real)
+    amp = _field_norm(E)
     gain = amp * (c.lam / (4 * np.pi * length)) * 10 ** (-loss / 20) * np.exp(-1j * c.k * length)
     aoa = _zenith_deg(pts[-2] - n)
     valid &= np.isfinite(length) & np.isfinite(amp)
@@ -530,7 +535,7 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
         pts_last = rp
     length = dp.length_m
     amp_vec = E * (c.lam / (4 * np.pi)) * 10 ** (-loss / 20)[..., None]
-    amp = np.sqrt(np.einsum("...i,...i->...", amp_vec, amp_vec.conj()).real)
+    amp = _field_norm(amp_vec)
     gain = amp * np.exp(-1j * c.k * length)
     valid &= np.isfinite(amp)
     return (length, np.where(valid, gain, 0), _zenith_deg(q - a), _zenith_deg(pts_last - n),
