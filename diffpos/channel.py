@@ -383,6 +383,12 @@ class _Ctx:
         g_db = _pattern_db(_zenith_deg(d_unit), self.r.tx_hpbw_deg, self.r.tx_peak_deg)
         return _transverse(self.e0, d_unit) * (10 ** (g_db / 20))[..., None]
 
+    def ray_gain(self, amp: FloatArray, length_m: FloatArray, loss_db: FloatArray) -> NDArray:
+        """Complex gain of a ray of unfolded length ``length_m``: field magnitude ``amp``, Friis
+        spreading ``lambda / (4 pi d)``, penetration loss and the phase ``exp(-j k d)``."""
+        return (amp * (self.lam / (4 * np.pi * length_m)) * 10 ** (-loss_db / 20)
+                * np.exp(-1j * self.k * length_m))
+
     def plane_coord(self, name: str) -> tuple[int, FloatArray | float]:
         if name == "floor":
             return 2, self.z_floor
@@ -426,7 +432,7 @@ def _direct(c: _Ctx):
     loss = loss + c.partition_loss_db(entry, n)
     E = c.tx_field(u)
     amp = _field_norm(E)
-    gain = amp * (c.lam / (4 * np.pi * length)) * 10 ** (-loss / 20) * np.exp(-1j * c.k * length)
+    gain = c.ray_gain(amp, length, loss)
     valid = np.ones(c.shape, dtype=bool)
     return length, gain, _zenith_deg(u), _zenith_deg(-u), valid
 
@@ -490,7 +496,7 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
         k_in, _ = _unit(pts[j + 2] - pts[j + 1])
     loss = loss + c.partition_loss_db(pts[-2], pts[-1])
     amp = _field_norm(E)
-    gain = amp * (c.lam / (4 * np.pi * length)) * 10 ** (-loss / 20) * np.exp(-1j * c.k * length)
+    gain = c.ray_gain(amp, length, loss)
     aoa = _zenith_deg(pts[-2] - n)
     valid &= np.isfinite(length) & np.isfinite(amp)
     return length, np.where(valid, gain, 0), _zenith_deg(u0), aoa, valid
