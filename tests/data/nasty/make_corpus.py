@@ -141,7 +141,7 @@ SOLVE = [
     ("s07-int-too-long.txt", "invalid JSON", "a 4400-digit integer (Python's int limit)",
      b'{"ranges_m": [' + b"9" * 4400 + b"]}\n"),
     ("s08-nan-id.txt", "id must be plain JSON", "id NaN",
-     json.dumps(dict(GOOD_PROBLEM, id="@@")).replace('"@@"', "NaN").encode() + b"\n"),
+     raw_replace(GOOD_PROBLEM, "id", "NaN") + b"\n"),
     ("s09-absurd-coordinate.txt", "out of range", "an anchor 1e300 m away",
      problem(anchors_m=[[1e300, -20, 1], [0, -15, 0], [0, -7, 4], [15, -20, 1]])),
     ("s10-bool-range.txt", "ranges_m[1] must be a number", "true as a range",
@@ -156,7 +156,7 @@ SOLVE = [
      problem(z_starts_m=[1.0] * 5000)),
     ("s16-nul-bytes.txt", "invalid JSON", "NUL bytes", b"\x00\x00\x00\n"),
     ("s17-infinity.txt", "must be finite", "Infinity as a sigma",
-     json.dumps(dict(GOOD_PROBLEM, sigmas_m="@@")).replace('"@@"', "Infinity").encode() + b"\n"),
+     raw_replace(GOOD_PROBLEM, "sigmas_m", "Infinity") + b"\n"),
 ]
 
 
