@@ -54,19 +54,10 @@ def load_scenario_file(path: str | Path | None):
 
     if path is None:
         return default_scenario()
-    try:
-        from .scenario_io import load_scenario  # the scenario helper's loader
-    except ImportError:  # pragma: no cover - until scenario_io lands
-        load_scenario = None
-    try:
-        if load_scenario is not None:
-            return load_scenario(path)
-        import tomllib
+    from .scenario_io import load_scenario
 
-        from diffpos.scenario import Scenario
-
-        with open(path, "rb") as f:
-            return Scenario.from_dict(tomllib.load(f))
+    try:
+        return load_scenario(path)
     except FileNotFoundError:
         raise ConfigError(f"scenario file {str(path)!r} not found") from None
     except ScenarioError as exc:
