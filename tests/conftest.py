@@ -1,4 +1,4 @@
-"""Shared test fixtures: free ports and reaped service processes.
+"""Shared test fixtures: the paper scenario, free ports and reaped service processes.
 
 ``services`` starts ``diffpos <service> ...`` processes in their own process group
 (``start_new_session=True``) with their logs in the test's tmp dir, and in teardown sends
@@ -17,6 +17,14 @@ from pathlib import Path
 import pytest
 from diffpos_services.emulate import free_tcp_port
 from diffpos_services.servicekit import stop_process_groups
+
+from diffpos.scenario import Scenario, default_scenario
+
+
+@pytest.fixture(scope="module")
+def paper() -> Scenario:
+    """The paper's default scenario (one per test module)."""
+    return default_scenario()
 
 
 @pytest.fixture

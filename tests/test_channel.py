@@ -25,11 +25,6 @@ SLOT = {m: i for i, m in enumerate(MECHANISMS)}
 
 
 @pytest.fixture(scope="module")
-def paper():
-    return default_scenario()
-
-
-@pytest.fixture(scope="module")
 def small_channel(paper):
     rng = np.random.default_rng(5)
     nodes = paper.node_positions_m()[rng.choice(17600, 300, replace=False)]

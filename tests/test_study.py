@@ -9,7 +9,6 @@ import pytest
 
 from diffpos.channel import emulate_channel, first_arrival
 from diffpos.geometry import window_edge_path
-from diffpos.scenario import default_scenario
 from diffpos.study import (
     FirstArrivalData,
     empirical_cdf,
@@ -17,11 +16,6 @@ from diffpos.study import (
     percentile_summary,
     positioning_study,
 )
-
-
-@pytest.fixture(scope="module")
-def paper():
-    return default_scenario()
 
 
 def _emulated(paper, n, seed):
