@@ -125,16 +125,9 @@ def _target(args: argparse.Namespace):
 
 
 def _building(args: argparse.Namespace):
-    if not args.scenario:
-        return None
-    from .dashboard import building_from_scenario_file
+    from .dashboard import building_for_option
 
-    try:
-        return building_from_scenario_file(args.scenario)
-    except OSError as exc:
-        raise ConfigError(f"--scenario {args.scenario}: cannot read it ({exc.strerror})") from None
-    except ValueError as exc:
-        raise ConfigError(f"--scenario {args.scenario}: {exc}") from None
+    return building_for_option(args.scenario)
 
 
 def run(args: argparse.Namespace) -> int:

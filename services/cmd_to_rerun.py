@@ -88,22 +88,15 @@ def run(args: argparse.Namespace) -> int:
     if args.path_period <= 0:
         print("error: --path-period must be > 0", file=sys.stderr)
         return 2
-    from .dashboard import building_from_scenario_file, mcap_to_rrd
+    from .dashboard import building_for_option, mcap_to_rrd
     from .mcap_io import RecordingError
+    from .servicekit import ConfigError
 
-    building = None
-    if args.scenario:
-        try:
-            building = building_from_scenario_file(args.scenario)
-        except OSError as exc:
-            print(
-                f"error: --scenario {args.scenario}: cannot read it ({exc.strerror})",
-                file=sys.stderr,
-            )
-            return 2
-        except ValueError as exc:
-            print(f"error: --scenario {args.scenario}: {exc}", file=sys.stderr)
-            return 2
+    try:
+        building = building_for_option(args.scenario)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     try:
         counts = mcap_to_rrd(

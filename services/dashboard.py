@@ -1880,6 +1880,26 @@ def building_from_scenario_file(path: str | Path) -> BuildingOutline:
     return BuildingOutline.from_object(load_scenario(path).building)
 
 
+def building_for_option(value: str | None, *, option: str = "--scenario") -> BuildingOutline | None:
+    """:func:`building_from_scenario_file` for a command-line option (``None`` if not given).
+
+    Raises
+    ------
+    ConfigError
+        Worded for the option: ``--scenario X: cannot read it (...)`` or the scenario error.
+    """
+    if not value:
+        return None
+    from .servicekit import ConfigError
+
+    try:
+        return building_from_scenario_file(value)
+    except OSError as exc:
+        raise ConfigError(f"{option} {value}: cannot read it ({exc.strerror})") from None
+    except ValueError as exc:
+        raise ConfigError(f"{option} {value}: {exc}") from None
+
+
 def _building_from_attachments(attachments: Sequence[Any]) -> BuildingOutline | None:
     import tomllib
 
