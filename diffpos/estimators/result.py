@@ -279,12 +279,13 @@ class FixResult:
             return _nan_to_none(lst)
 
         out = []
+        messages = self.messages()  # all verdicts at once (message(i) converts per call)
         for i in range(len(self)):
             st = FixStatus(int(self.status[i]))
             out.append(
                 {
                     "status": st.name.lower(),
-                    "message": self.message(i),
+                    "message": messages[i],
                     "method": self.method,
                     "position_m": clean(self.position_m[i]),
                     "covariance_m2": clean(self.covariance_m2[i]),
