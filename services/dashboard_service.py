@@ -41,7 +41,7 @@ from .dashboard import (
     default_blueprint,
 )
 from .keys import Keys, parse_key
-from .servicekit import log_event
+from .servicekit import free_tcp_port, log_event
 
 __all__ = [
     "DashboardService",
@@ -96,14 +96,6 @@ class RerunTarget:
             port = getattr(self, name)
             if not 0 <= port < 65536:
                 raise ValueError(f"{name}={port} must be a TCP port (0 = any free port)")
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _ensure_viewer_on_path() -> None:
@@ -178,8 +170,8 @@ def open_rerun(
         rec.spawn(memory_limit=target.memory_limit, default_blueprint=bp)
         return rec, "Rerun viewer spawned (native window)"
     if mode == "serve":
-        grpc_port = target.grpc_port or _free_port()
-        web_port = target.web_port or _free_port()
+        grpc_port = target.grpc_port or free_tcp_port()
+        web_port = target.web_port or free_tcp_port()
         url = rec.serve_grpc(
             grpc_port=grpc_port, default_blueprint=bp, server_memory_limit=target.memory_limit
         )

@@ -26,7 +26,6 @@ import json
 import logging
 import os
 import queue
-import socket
 import subprocess
 import sys
 import tempfile
@@ -43,17 +42,10 @@ import numpy as np
 from . import messages as M
 from .anchor import TimeBase, emulation_nodes
 from .keys import Keys, parse_key
-from .servicekit import ConfigError, log_event, stop_process_groups
+from .servicekit import ConfigError, free_tcp_port, log_event, stop_process_groups
 from .zenoh_config import ZenohSettings, open_session, with_zenoh_config
 
 __all__ = ["EXTRA_SERVICES", "Emulation", "EmulationOptions", "Scorer", "free_tcp_port"]
-
-
-def free_tcp_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago (bind to port 0)."""
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
