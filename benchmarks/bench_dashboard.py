@@ -22,6 +22,7 @@ The machine is shared; numbers are noisy. The recording is generated, not timed.
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -142,7 +143,9 @@ def bench_zenoh(args, tmp: Path) -> dict:
         if isinstance(x, m.PositionEstimate):  # publish stamp = now, for the lag
             x = msgspec.structs.replace(x, t_pub_wall_ns=time.time_ns())
         pubs[k].put(m.encode(x))
-    time.sleep(1.0)
+    if not svc.wait_received(len(msgs), timeout_s=60.0):  # all arrived; then stop (close draws)
+        print(f"warning: only {svc.stats.received} of {len(msgs)} messages arrived in 60 s",
+              file=sys.stderr)
     stop.set()
     th.join()
     rec.disconnect()

@@ -276,6 +276,8 @@ class DashboardService:
         self._clock_offset_ns: int | None = None  # measurement time - wall time
         self._pending_live: list[tuple[int, str, bool]] = []
         self._lock = threading.Lock()
+        self._received_cv = threading.Condition()
+        self._want_received: int | None = None  # set while wait_received() waits
 
     # -- zenoh side (never blocks) -------------------------------------------------------
     def _on_sample(self, sample: Any) -> None:
@@ -292,6 +294,22 @@ class DashboardService:
             self.stats.dropped += 1
         ring.append((kind, sample.payload.to_bytes(), time.time_ns()))
         self.stats.received += 1
+        want = self._want_received
+        if want is not None and self.stats.received >= want:
+            with self._received_cv:
+                self._received_cv.notify_all()
+
+    def wait_received(self, n: int, *, timeout_s: float) -> bool:
+        """Block until ``n`` data samples were received in total (or ``timeout_s`` [s]
+        passed); True if they were. For tests and benchmarks that must not stop the service
+        before what they published has arrived."""
+        with self._received_cv:
+            self._want_received = n
+            try:
+                return self._received_cv.wait_for(lambda: self.stats.received >= n,
+                                                  timeout=timeout_s)
+            finally:
+                self._want_received = None
 
     def _on_liveliness(self, sample: Any) -> None:
         import zenoh

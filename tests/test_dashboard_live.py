@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 import urllib.request
 
 import numpy as np
@@ -244,3 +245,29 @@ def test_dashboard_cli_process_end_to_end(tmp_path, endpoint):
                     p.wait(timeout=20)
                 except subprocess.TimeoutExpired:
                     p.kill()
+
+
+def test_wait_received_returns_once_everything_arrived(sessions, tmp_path):
+    """``DashboardService.wait_received(n)`` wakes up when the n-th sample arrives (what a
+    caller waits on before stopping the service) and says False on a timeout."""
+    pub_s, sub_s = sessions
+    _, msgs = d.synthetic_run(n_anchors=2, n_nodes=2, duration_s=1.0, seed=3)
+    rec, _ = open_rerun(RerunTarget(mode="save", path=str(tmp_path / "w.rrd")))
+    svc = DashboardService(sub_s, rec, site="wait1")
+    svc.start()
+    keys = [d.key_of(x, site="wait1") for x in msgs]
+    pubs = publishers_matched(pub_s, keys)
+    done = threading.Event()
+    waiter = threading.Thread(
+        target=lambda: done.set() if svc.wait_received(len(msgs), timeout_s=TIMEOUT_S) else None)
+    waiter.start()
+    for key, x in zip(keys, msgs, strict=True):
+        pubs[key].put(m.encode(x))
+    t0 = time.monotonic()
+    waiter.join(TIMEOUT_S)
+    # woken by the last sample, not by its timeout
+    assert done.is_set() and time.monotonic() - t0 < 0.5 * TIMEOUT_S
+    assert svc.stats.received == len(msgs)
+    assert not svc.wait_received(len(msgs) + 1, timeout_s=0.05)  # nothing more comes
+    svc.close()
+    rec.disconnect()
