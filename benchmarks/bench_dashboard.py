@@ -90,16 +90,10 @@ def bench_live(args, tmp: Path) -> dict:
 
 def _wait_matched(pubs, *, timeout_s: float) -> None:
     """Block until every Zenoh publisher in ``pubs`` has a matching subscriber (no sleeps)."""
-    import threading
+    from diffpos_services.zenoh_config import wait_matching
 
     for pub in pubs:
-        matched = threading.Event()
-        listener = pub.declare_matching_listener(lambda st, ev=matched: st.matching and ev.set())
-        if pub.matching_status.matching:
-            matched.set()
-        ok = matched.wait(timeout_s)
-        listener.undeclare()
-        if not ok:
+        if not wait_matching(pub, timeout_s=timeout_s):
             raise RuntimeError(f"no subscriber matched {pub.key_expr} within {timeout_s} s")
 
 

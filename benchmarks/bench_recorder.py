@@ -77,8 +77,8 @@ def bench_sink(n: int, tmp: Path) -> dict:
 
 
 _PUBLISHER = r"""
-import sys, threading, time, zenoh
-from diffpos_services.zenoh_config import ZenohSettings
+import sys, time, zenoh
+from diffpos_services.zenoh_config import ZenohSettings, wait_matching
 sys.path.insert(0, {bench_dir!r})
 from bench_recorder import _payload_200
 ep, n = sys.argv[1], int(sys.argv[2])
@@ -87,14 +87,8 @@ with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
     pubs = [s.declare_publisher(f"diffpos/b/anchor/uav3/range/n{{i:02d}}",
                                 congestion_control=zenoh.CongestionControl.BLOCK)
             for i in range(50)]
-    matched = [threading.Event() for _ in pubs]
-    listeners = [p.declare_matching_listener(lambda st, ev=ev: st.matching and ev.set())
-                 for p, ev in zip(pubs, matched)]
-    for p, ev in zip(pubs, matched):
-        if p.matching_status.matching:
-            ev.set()
-    for ev in matched:
-        ev.wait()
+    for p in pubs:
+        wait_matching(p, timeout_s=3600.0)
     print("start", time.time_ns(), flush=True)
     for i in range(n):
         pubs[i % 50].put(payloads[i])

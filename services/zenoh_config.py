@@ -34,6 +34,7 @@ __all__ = [
     "open_session",
     "service_settings",
     "settings_from_args",
+    "wait_matching",
     "with_zenoh_config",
 ]
 
@@ -325,3 +326,24 @@ def open_session(settings, stop=None, *, logger=None, attempt_ms: int = 1000):
                         "connect": endpoints, "attempt": attempt,
                         "error": str(exc).split(" at ")[0]}})
     return None
+
+
+def wait_matching(publisher: Any, *, timeout_s: float) -> bool:
+    """Block until ``publisher`` has a matching subscriber (readiness, no polling).
+
+    Zenoh reports matching through a listener; the current status is checked after the
+    listener is declared, so a match that happened before is not missed. Returns False after
+    ``timeout_s`` [s] without a match.
+    """
+    import threading
+
+    matched = threading.Event()
+    listener = publisher.declare_matching_listener(
+        lambda status: matched.set() if status.matching else None
+    )
+    try:
+        if publisher.matching_status.matching:
+            matched.set()
+        return matched.wait(timeout_s)
+    finally:
+        listener.undeclare()

@@ -30,7 +30,7 @@ from diffpos_services.dashboard_service import (
     open_rerun,
 )
 from diffpos_services.emulate import free_tcp_port
-from diffpos_services.zenoh_config import ZenohSettings
+from diffpos_services.zenoh_config import ZenohSettings, wait_matching
 
 TIMEOUT_S = 30.0
 
@@ -74,17 +74,9 @@ class CountingService(DashboardService):
 
 def publishers_matched(session, keys):
     """Declare one publisher per key and wait until each has a matching subscriber."""
-    pubs, events = {}, []
-    for key in sorted(set(keys)):
-        ev = threading.Event()
-        pub = session.declare_publisher(key)
-        pub.declare_matching_listener(lambda st, ev=ev: ev.set() if st.matching else None)
-        if pub.matching_status.matching:
-            ev.set()
-        pubs[key] = pub
-        events.append((key, ev))
-    for key, ev in events:
-        assert ev.wait(TIMEOUT_S), f"no subscriber matched {key}"
+    pubs = {key: session.declare_publisher(key) for key in sorted(set(keys))}
+    for key, pub in pubs.items():
+        assert wait_matching(pub, timeout_s=TIMEOUT_S), f"no subscriber matched {key}"
     return pubs
 
 

@@ -25,7 +25,7 @@ from diffpos_services import messages as M
 from diffpos_services.keys import Keys
 from diffpos_services.mcap_io import JsonDecoderFactory
 from diffpos_services.recorder import build_command
-from diffpos_services.zenoh_config import ZenohSettings
+from diffpos_services.zenoh_config import ZenohSettings, wait_matching
 from mcap.reader import make_reader
 
 pytestmark = pytest.mark.slow
@@ -90,12 +90,7 @@ def bus(endpoint):
 
 
 def _wait_matching(pub) -> None:
-    matched = threading.Event()
-    listener = pub.declare_matching_listener(lambda st: st.matching and matched.set())
-    if pub.matching_status.matching:
-        matched.set()
-    assert matched.wait(TIMEOUT_S), "publisher never matched the recorder's subscriber"
-    listener.undeclare()
+    assert wait_matching(pub, timeout_s=TIMEOUT_S), "publisher never matched the recorder's subscriber"
 
 
 def _state(a: str, t: int, seq: int) -> M.AnchorState:

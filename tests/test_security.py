@@ -23,6 +23,7 @@ import pytest
 from diffpos_services import zenoh_security as zs
 from diffpos_services.emulate import free_tcp_port
 from diffpos_services.keys import Keys, parse_key
+from diffpos_services.zenoh_config import wait_matching
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -130,12 +131,7 @@ class Collector:
 
 def _wait_matching(pub) -> None:
     """Wait until the router has told ``pub`` that a subscriber matches (no sleeps)."""
-    ok = threading.Event()
-    listener = pub.declare_matching_listener(lambda st: ok.set() if st.matching else None)
-    if pub.matching_status.matching:
-        ok.set()
-    assert ok.wait(WAIT_S), f"no matching subscriber for {pub.key_expr}"
-    listener.undeclare()
+    assert wait_matching(pub, timeout_s=WAIT_S), f"no matching subscriber for {pub.key_expr}"
 
 
 def _refused(cfg: dict) -> bool:
