@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
-from diffpos_services import dashboard as d
-from diffpos_services import messages as m
+from diffpos_services.dashboard import views as d
+from diffpos_services.wire import messages as m
 
 
 def _batches(msgs, period_ns):
@@ -90,7 +90,7 @@ def bench_live(args, tmp: Path) -> dict:
 
 def _wait_matched(pubs, *, timeout_s: float) -> None:
     """Block until every Zenoh publisher in ``pubs`` has a matching subscriber (no sleeps)."""
-    from diffpos_services.zenoh_config import wait_matching
+    from diffpos_services.bus.session import wait_matching
 
     for pub in pubs:
         if not wait_matching(pub, timeout_s=timeout_s):
@@ -101,9 +101,9 @@ def bench_zenoh(args, tmp: Path) -> dict:
     import threading
 
     import zenoh
-    from diffpos_services.dashboard_service import DashboardService, RerunTarget, open_rerun
+    from diffpos_services.bus.session import ZenohSettings
+    from diffpos_services.dashboard.service import DashboardService, RerunTarget, open_rerun
     from diffpos_services.emulate import free_tcp_port
-    from diffpos_services.zenoh_config import ZenohSettings
 
     building, msgs = d.synthetic_run(
         n_anchors=args.anchors,
@@ -159,7 +159,7 @@ def bench_zenoh(args, tmp: Path) -> dict:
 
 def write_recording(args, path: Path) -> int:
     """The synthetic run (plus every range message unless --no-ranges) as an MCAP file."""
-    from diffpos_services.mcap_io import McapSink
+    from diffpos_services.recording.mcap_io import McapSink
 
     t = time.perf_counter()
     _, msgs = d.synthetic_run(

@@ -33,11 +33,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from diffpos_services import messages as M
+from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.emulate import free_tcp_port
-from diffpos_services.keys import Keys, parse_key
-from diffpos_services.servicekit import stop_process_groups
-from diffpos_services.zenoh_config import ZenohSettings, open_session
+from diffpos_services.kit import stop_process_groups
+from diffpos_services.wire import messages as M
+from diffpos_services.wire.keys import Keys, parse_key
 
 PERIOD_NS = 100_000_000
 
@@ -90,7 +90,7 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
 
     def start(name: str, *argv: str) -> subprocess.Popen:
         with open(log_dir / f"{site}-{name}.log", "wb") as log:
-            p = subprocess.Popen([sys.executable, "-m", "diffpos_services.cli", *argv],
+            p = subprocess.Popen([sys.executable, "-m", "diffpos_services.cli.main", *argv],
                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                  start_new_session=True, env=dict(os.environ, DIFFPOS_LOG_FORMAT="text"))
         procs.append(p)

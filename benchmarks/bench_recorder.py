@@ -45,7 +45,7 @@ from pathlib import Path
 
 
 def _payload_200(i: int) -> bytes:
-    from diffpos_services import messages as M
+    from diffpos_services.wire import messages as M
 
     msg = M.RangeMeasurement(anchor_id="uav3", node_id=f"n{i % 50:02d}", t_ns=1_700_000_000_000_000_000 + i,
                              seq=i, range_m=27.123456789 + (i % 97) * 1e-3, sigma_m=0.0123456,
@@ -54,7 +54,7 @@ def _payload_200(i: int) -> bytes:
 
 
 def bench_sink(n: int, tmp: Path) -> dict:
-    from diffpos_services.mcap_io import McapSink
+    from diffpos_services.recording.mcap_io import McapSink
 
     payloads = [_payload_200(i) for i in range(1000)]
     size = sum(map(len, payloads)) / len(payloads)
@@ -78,7 +78,7 @@ def bench_sink(n: int, tmp: Path) -> dict:
 
 _PUBLISHER = r"""
 import sys, time, zenoh
-from diffpos_services.zenoh_config import ZenohSettings, wait_matching
+from diffpos_services.bus.session import ZenohSettings, wait_matching
 sys.path.insert(0, {bench_dir!r})
 from bench_recorder import _payload_200
 ep, n = sys.argv[1], int(sys.argv[2])
@@ -111,7 +111,7 @@ def bench_bus(n: int, tmp: Path) -> dict:
         return p
 
     try:
-        start([sys.executable, "-m", "diffpos_services.cli", "router", "--listen", ep],
+        start([sys.executable, "-m", "diffpos_services.cli.main", "router", "--listen", ep],
               stderr=subprocess.DEVNULL)
         out = tmp / "bus.mcap"
         rec = start(build_command(site="b", out=out, connect=[ep], flush_interval_s=0.2),
@@ -152,8 +152,8 @@ def bench_bus(n: int, tmp: Path) -> dict:
 
 
 def bench_scan(minutes: float, tmp: Path) -> dict:
-    from diffpos_services.mcap_io import McapScanner
-    from diffpos_services.replay import write_synthetic_recording
+    from diffpos_services.recording.mcap_io import McapScanner
+    from diffpos_services.recording.replay import write_synthetic_recording
 
     path = tmp / "ten_minutes.mcap"
     t0 = time.perf_counter()
@@ -172,7 +172,7 @@ def bench_scan(minutes: float, tmp: Path) -> dict:
 
 
 def _recording(seconds: float, tmp: Path, *, range_batch: bool) -> Path:
-    from diffpos_services.replay import write_synthetic_recording
+    from diffpos_services.recording.replay import write_synthetic_recording
 
     path = tmp / f"replay_{seconds:g}s_{'batch' if range_batch else 'single'}.mcap"
     if not path.exists():  # with the live fusion's estimates (what --compare checks against)
@@ -184,8 +184,8 @@ def _recording(seconds: float, tmp: Path, *, range_batch: bool) -> Path:
 def bench_read_floor(seconds: float, tmp: Path, *, range_batch: bool) -> dict:
     """What replay costs before any fusion work: read every message, track its sequence
     number, decode it with its schema (no fusion, no report)."""
-    from diffpos_services import messages as M
-    from diffpos_services.mcap_io import McapScanner, SeqTracker, parse_topic
+    from diffpos_services.recording.mcap_io import McapScanner, SeqTracker, parse_topic
+    from diffpos_services.wire import messages as M
 
     path = _recording(seconds, tmp, range_batch=range_batch)
     decoders = {"estimate": M.decoder(M.PositionEstimate), "truth_node": M.decoder(M.GroundTruth),
@@ -218,8 +218,8 @@ def bench_replay(seconds: float, tmp: Path, *, range_batch: bool, step_ms: float
     diffpos.estimators) and ``ingest_s`` (FusionCore.on_sample: checks, decoding, alignment);
     the rest is the fusion's batch assembly and estimate building, reading the file and the
     report."""
-    from diffpos_services.fusion import FusionCore
-    from diffpos_services.replay import replay
+    from diffpos_services.fusion.core import FusionCore
+    from diffpos_services.recording.replay import replay
 
     import diffpos.estimators as est
 

@@ -40,11 +40,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_latency import PERIOD_NS, rss_mb, scenario_toml
-from diffpos_services import messages as M
+from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.emulate import free_tcp_port
-from diffpos_services.keys import Keys, parse_key
-from diffpos_services.servicekit import stop_process_groups
-from diffpos_services.zenoh_config import ZenohSettings, open_session
+from diffpos_services.kit import stop_process_groups
+from diffpos_services.wire import messages as M
+from diffpos_services.wire.keys import Keys, parse_key
 
 __all__ = ["LatencyHistogram", "run_soak"]
 
@@ -121,7 +121,7 @@ def run_soak(
 
     def start(name: str, *argv: str) -> subprocess.Popen:
         with open(log_dir / f"{site}-{name}.log", "wb") as log:
-            p = subprocess.Popen([sys.executable, "-m", "diffpos_services.cli", *argv],
+            p = subprocess.Popen([sys.executable, "-m", "diffpos_services.cli.main", *argv],
                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                  start_new_session=True, env=env)
         procs[name] = p

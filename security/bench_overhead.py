@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 from diffpos_services import zenoh_security as zs
-from diffpos_services.keys import Keys
+from diffpos_services.wire.keys import Keys
 
 ROUTER = """
 import sys, zenoh

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 from diffpos_services.emulate import free_tcp_port
-from diffpos_services.servicekit import stop_process_groups
+from diffpos_services.kit import stop_process_groups
 
 from diffpos.scenario import Scenario, default_scenario
 
@@ -45,7 +45,7 @@ class ServiceProcesses:
         env = dict(os.environ, DIFFPOS_LOG_FORMAT="text")
         env.pop("DIFFPOS_ZENOH_CONFIG", None)  # hermetic: the test says which bus
         p = subprocess.Popen(
-            [sys.executable, "-m", "diffpos_services.cli", *argv],
+            [sys.executable, "-m", "diffpos_services.cli.main", *argv],
             stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
             start_new_session=True, env=env,
         )
@@ -93,3 +93,14 @@ def services(tmp_path):
         yield sp
     finally:
         sp.reap_all()
+
+
+_SYSTEM_DIR = Path(__file__).resolve().parent / "system"
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Everything under tests/system/ (processes and a real bus) is marked ``system``, so the
+    fast inner loop is ``pytest -m "not system"``."""
+    for item in items:
+        if _SYSTEM_DIR in Path(str(item.fspath)).resolve().parents:
+            item.add_marker(pytest.mark.system)

@@ -1,0 +1,1 @@
+"""anchor: see DEVELOPING.md."""

@@ -1,0 +1,137 @@
+"""One UAV anchor: flies its trajectory, ranges to nodes, publishes over Zenoh
+
+The anchor ANCHOR_ID of the scenario flies its trajectory (hover, orbit, waypoints), runs
+the outdoor-to-indoor channel emulator to every node (first arriving path, its SNR, range
+noise at the ranging CRLB) and publishes, at --rate-hz, with congestion control BLOCK:
+
+  diffpos/<site>/anchor/<id>/state          its own navigation estimate (GNSS/baro noise)
+  diffpos/<site>/anchor/<id>/range/<node>   one range per node (null when not detected)
+  diffpos/<site>/anchor/<id>/ranges         instead, with --range-batch: one message per epoch
+
+and declares the liveliness token diffpos/<site>/alive/anchor/<id>. Every time on the wire
+is the anchor's own clock (true time + --clock-offset-ms + jitter) in integer ns.
+
+Time base: with --wait-start the anchor waits for the run control message of
+`diffpos emulate` (emulated time, --speed); without it, it runs in real time with the
+origin at the start of the current UTC hour (so independently started anchors agree).
+
+examples:
+  diffpos router &
+  diffpos anchor --id uav1 --scenario scenarios/paper.toml
+  diffpos anchor --id uav2 --scenario scenarios/paper.toml --clock-offset-ms 1.5
+  diffpos anchor --id uav1 --channel ideal     upper-edge diffraction path only (benchmarks)
+  diffpos anchor --id uav1 --zenoh-config security/zenoh/anchor-uav1.json5
+                                               TLS + its own user/password (security/README.md)
+
+Stop with Ctrl-C or SIGTERM: the liveliness token is withdrawn and the session closed.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from diffpos_services.bus.session import add_zenoh_arguments, service_settings
+from diffpos_services.kit import (
+    Shutdown,
+    add_logging_arguments,
+    build_config,
+    run_main,
+    setup_logging,
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--id", dest="anchor_id", required=True, help="anchor id in the scenario (e.g. uav1)"
+    )
+    parser.add_argument("--scenario", metavar="TOML", help="scenario file (default: the paper's)")
+    parser.add_argument(
+        "--site", default="demo", help="site name, the second key chunk (default demo)"
+    )
+    parser.add_argument(
+        "--rate-hz", type=float, default=10.0, help="ranging rate [Hz] (default 10)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument(
+        "--phase",
+        type=float,
+        default=None,
+        help="measurement phase within the period, 0..1 (default: random from the seed)",
+    )
+    parser.add_argument("--clock-offset-ms", type=float, default=0.0, help="clock offset [ms]")
+    parser.add_argument(
+        "--clock-jitter-us", type=float, default=20.0, help="clock jitter sigma [us]"
+    )
+    parser.add_argument(
+        "--gnss-sigma-h-m", type=float, default=0.02, help="horizontal position sigma [m]"
+    )
+    parser.add_argument(
+        "--gnss-sigma-v-m", type=float, default=0.03, help="vertical position sigma [m]"
+    )
+    parser.add_argument(
+        "--max-nodes", type=int, default=0, help="range to the first N nodes only (0 = all)"
+    )
+    parser.add_argument(
+        "--channel",
+        choices=["emulator", "ideal"],
+        default="emulator",
+        help="emulator: O2I multipath + first arrival (default); ideal: the "
+        "D-NLS model's path with CRLB noise at --ideal-snr-db",
+    )
+    parser.add_argument(
+        "--ideal-snr-db", type=float, default=20.0, help="SNR of --channel ideal [dB]"
+    )
+    parser.add_argument(
+        "--range-batch",
+        action="store_true",
+        help="publish one RangeBatch per epoch on .../anchor/<id>/ranges instead of one "
+        "message per node (large deployments)",
+    )
+    parser.add_argument(
+        "--wait-start",
+        action="store_true",
+        help="wait for the run control message of `diffpos emulate`",
+    )
+    add_zenoh_arguments(parser)
+    add_logging_arguments(parser)
+
+
+def config_from_args(args: argparse.Namespace):
+    from diffpos_services.anchor.service import AnchorConfig
+
+    return build_config(
+        AnchorConfig,
+        dict(
+            site=args.site,
+            anchor_id=args.anchor_id,
+            scenario=args.scenario,
+            rate_hz=args.rate_hz,
+            seed=args.seed,
+            phase=args.phase,
+            clock_offset_ns=round(args.clock_offset_ms * 1e6),
+            clock_jitter_ns=round(args.clock_jitter_us * 1e3),
+            gnss_sigma_h_m=args.gnss_sigma_h_m,
+            gnss_sigma_v_m=args.gnss_sigma_v_m,
+            max_nodes=args.max_nodes,
+            channel=args.channel,
+            ideal_snr_db=args.ideal_snr_db,
+            wait_start=args.wait_start,
+            range_batch=args.range_batch,
+        ),
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    log = setup_logging(f"anchor.{args.anchor_id}", level=args.log_level, fmt=args.log_format)
+
+    def body() -> int:
+        from diffpos_services.anchor.service import load_scenario_file, run_anchor
+
+        cfg = config_from_args(args)
+        zs = service_settings(args, log)
+        scenario = load_scenario_file(cfg.scenario)
+        stop = Shutdown(log)
+        run_anchor(cfg, zs, stop.event, scenario=scenario, logger=log)
+        return 0
+
+    return run_main(body, log)

@@ -1,0 +1,213 @@
+"""Fusion service: aligns ranges in time, D-NLS with outlier gating, publishes fixes
+
+Subscribes with one subscriber to diffpos/<site>/anchor/** (states, ranges and range
+batches of every anchor, each anchor's in publish order; never the truth keys) and watches
+the anchors' liveliness tokens.
+Ranges are grouped per node into epochs of --epoch-period-s; an epoch is solved as soon as
+every live anchor has reported for it (or moved past it), or --deadline-s after its first
+range. All ready nodes are solved in one batched D-NLS call with RAIM-style gating; each
+range is paired with its anchor's self-reported position interpolated at the range's own
+time. Publishes
+
+  diffpos/<site>/node/<node>/estimate   position, covariance, PEB, floor, status, used and
+                                        excluded anchors with reasons, residuals
+  diffpos/<site>/fusion/diagnostics     counters (received, rejected by reason, gated,
+                                        solved), live/lost anchors, latency p50/p99
+
+An unidentifiable or degraded geometry is published as a status with a null position,
+never as a wrong fix. Anchors' clocks are assumed to agree within --clock-tolerance-ms.
+
+examples:
+  diffpos fusion --scenario scenarios/paper.toml
+  diffpos fusion --window-height-m 1.5 --epoch-period-s 0.2 --connect tcp/router:7447
+  diffpos fusion --zenoh-config security/zenoh/fusion.json5   TLS + user/password + ACL
+  diffpos fusion --scenario scenarios/paper.toml --anchors scenario --nodes scenario
+                                        accept only the scenario's anchors and nodes
+  diffpos fusion --anchors uav1,uav2,uav3,uav4 --method lls   allow-list; LoS baseline solver
+
+Stop with Ctrl-C or SIGTERM: pending epochs are solved and published before the session closes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+import msgspec
+
+from diffpos_services.bus.session import add_zenoh_arguments, service_settings
+from diffpos_services.kit import (
+    ConfigError,
+    Shutdown,
+    add_logging_arguments,
+    build_config,
+    log_event,
+    run_main,
+    setup_logging,
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--scenario", metavar="TOML", help="scenario file: building geometry (default: the paper's)"
+    )
+    parser.add_argument("--site", default="demo", help="site name (default demo)")
+    parser.add_argument("--window-height-m", type=float, help="override the window height w [m]")
+    parser.add_argument(
+        "--delta-m", type=float, default=0.0, help="Case-2 offset Delta [m] (default 0)"
+    )
+    parser.add_argument(
+        "--edge", choices=["upper", "lower", "auto"], default="upper",
+        help="window edge of the path model: upper (the paper's D-NLS, default), lower, or auto: "
+        "lower when every anchor of the scenario flies below the lowest window (that diffracted "
+        "path is then the shorter one and usually arrives first), else upper",
+    )
+    parser.add_argument(
+        "--epoch-period-s", type=float, default=0.1, help="epoch length [s] (default 0.1)"
+    )
+    parser.add_argument(
+        "--deadline-s",
+        type=float,
+        default=0.3,
+        help="solve an epoch this long (wall time) after its first range [s]",
+    )
+    parser.add_argument(
+        "--clock-tolerance-ms",
+        type=float,
+        default=5.0,
+        help="assumed bound on anchor clock offsets [ms] (default 5)",
+    )
+    parser.add_argument(
+        "--method",
+        choices=["dnls", "lls", "ippa"],
+        default="dnls",
+        help="estimator: dnls (diffraction-aware D-NLS with gating, default), lls (line-of-"
+        "sight linear least squares, the paper's baseline), ippa (iterative parallel projection)",
+    )
+    parser.add_argument(
+        "--anchors",
+        metavar="ID,ID,...",
+        help="accept only these anchors (default: any valid id; 'scenario' = the scenario's "
+        "anchors); data and liveliness of other anchors are rejected as unknown_anchor",
+    )
+    parser.add_argument(
+        "--nodes",
+        metavar="ID,ID,...",
+        help="accept only ranges to these nodes (default: any valid id; 'scenario' = the nodes "
+        "the scenario is emulated with); others are rejected as unknown_node",
+    )
+    parser.add_argument("--no-gating", action="store_true", help="disable outlier gating")
+    parser.add_argument(
+        "--no-motion-compensation",
+        action="store_true",
+        help="only inflate sigmas for node motion within an epoch",
+    )
+    parser.add_argument(
+        "--diagnostics-period-s",
+        type=float,
+        default=1.0,
+        help="diagnostics publish period [s] (default 1)",
+    )
+    add_zenoh_arguments(parser)
+    add_logging_arguments(parser)
+
+
+def config_from_args(args: argparse.Namespace, scenario=None):
+    from diffpos_services.fusion.core import FusionConfig
+
+    values = dict(
+        site=args.site,
+        method=getattr(args, "method", "dnls"),
+        delta_m=args.delta_m,
+        epoch_period_s=args.epoch_period_s,
+        deadline_s=args.deadline_s,
+        clock_tolerance_s=args.clock_tolerance_ms * 1e-3,
+        gating=not args.no_gating,
+        motion_compensation=not args.no_motion_compensation,
+        diagnostics_period_s=args.diagnostics_period_s,
+    )
+    if scenario is not None:
+        b = scenario.building
+        values.update(
+            window_height_m=b.window_height_m,
+            edge_x_m=tuple(b.edge_x_m),
+            first_floor_z_m=b.first_floor_z_m,
+            floor_height_m=b.floor_height_m,
+            n_floors=b.n_floors,
+        )
+    if args.window_height_m is not None:
+        values["window_height_m"] = args.window_height_m
+    for name in ("anchors", "nodes"):
+        ids = allow_list(getattr(args, name, None), name, scenario)
+        if ids is not None:
+            values[name] = ids
+    cfg = build_config(FusionConfig, values)
+    if model_edge(args, scenario)[0] == "lower":
+        # the lower edge is the upper edge one window height lower: Delta + w
+        cfg = msgspec.structs.replace(cfg, delta_m=cfg.delta_m + cfg.window_height_m)
+    return cfg
+
+
+def model_edge(args: argparse.Namespace, scenario=None) -> tuple[str, str]:
+    """The window edge ``--edge`` selects, and why (``auto`` needs the scenario)."""
+    edge = getattr(args, "edge", "upper")
+    if edge != "auto":
+        return edge, f"--edge {edge}"
+    if scenario is None:
+        return "upper", "auto without a scenario: the paper's upper edge"
+    from diffpos.scenario import first_arrival_edge
+
+    chosen, why = first_arrival_edge(scenario)
+    return chosen, f"auto: {why}"
+
+
+def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
+    """Parse ``--anchors`` / ``--nodes``: ``None`` (accept any), ``"scenario"`` or ``ID,ID,...``.
+
+    ``"scenario"`` means the scenario's anchors, or for nodes the nodes the scenario is
+    emulated with (:func:`diffpos_services.anchor.service.emulation_nodes`: its explicit nodes, or the
+    generated responders ``r01``... of a scenario with only a study grid). Ids are checked
+    by :class:`FusionConfig` (the error names ``anchors[i]`` / ``nodes[i]``).
+
+    Raises
+    ------
+    ConfigError
+        An empty list, or ``scenario`` without a scenario.
+    """
+    if text is None:
+        return None
+    if text.strip() == "scenario":
+        if scenario is None:
+            raise ConfigError(f"--{name} scenario: no scenario given (use --scenario TOML)")
+        if name == "anchors":
+            return [a.id for a in scenario.anchors]
+        from diffpos_services.anchor.service import (
+            emulation_nodes,  # the nodes the anchors actually range to
+        )
+
+        return [nid for nid, _ in emulation_nodes(scenario)]
+    ids = [v.strip() for v in text.split(",") if v.strip()]
+    if not ids:
+        raise ConfigError(f"--{name} {text!r}: give a comma-separated list of ids, e.g. "
+                          f"--{name} {'uav1,uav2' if name == 'anchors' else 'n01,n02'}, "
+                          "or 'scenario'")
+    return ids
+
+
+def run(args: argparse.Namespace) -> int:
+    log = setup_logging("fusion", level=args.log_level, fmt=args.log_format)
+
+    def body() -> int:
+        from diffpos_services.anchor.service import load_scenario_file
+        from diffpos_services.fusion.core import run_fusion
+
+        scenario = load_scenario_file(args.scenario)
+        cfg = config_from_args(args, scenario)
+        edge, why = model_edge(args, scenario)
+        log_event(log, logging.INFO, "path model", edge=edge, delta_m=cfg.delta_m, why=why)
+        zs = service_settings(args, log)
+        stop = Shutdown(log)
+        run_fusion(cfg, zs, stop.event, logger=log)
+        return 0
+
+    return run_main(body, log)

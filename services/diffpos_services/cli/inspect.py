@@ -1,0 +1,160 @@
+"""Channels, schemas, counts, time span, anchors and nodes of an MCAP recording
+
+Like `mcap info`, in diffpos terms: which anchors and nodes the recording holds, how many
+messages of each kind, the time span, gaps in the publishers' sequence numbers, the liveliness
+events (anchors joining and leaving), the run metadata and attachments. Works on truncated
+recordings too (it says so and suggests `diffpos recover`). With --validate every message is
+checked against its channel's JSON Schema (needs the jsonschema package).
+
+examples:
+  diffpos inspect recordings/sample.mcap
+  diffpos inspect recordings/sample.mcap --channels       # one line per channel
+  diffpos inspect recordings/sample.mcap --validate       # schema-check every message
+  diffpos inspect recordings/sample.mcap --json > info.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import Counter
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="FILE.mcap", help="recording to inspect")
+    parser.add_argument("--channels", action="store_true", help="list every channel")
+    parser.add_argument("--validate", action="store_true",
+                        help="validate every message against its JSON Schema")
+    parser.add_argument("--json", action="store_true", help="print everything as JSON")
+
+
+def _utc(ns: int) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(ns / 1e9)) + f".{(ns // 1_000_000) % 1000:03d}Z"
+
+
+def validate_file(path) -> dict:
+    """Validate every message of a recording against its channel's embedded JSON Schema.
+
+    Returns
+    -------
+    dict
+        ``checked``, ``invalid`` (count), ``no_schema`` (messages on schema-less channels),
+        ``not_json`` and ``examples`` (first 10 problems as strings).
+    """
+    import jsonschema
+
+    from diffpos_services.recording.mcap_io import McapScanner
+
+    sc = McapScanner(path)
+    validators: dict[int, object] = {}
+    out = {"checked": 0, "invalid": 0, "no_schema": 0, "not_json": 0, "examples": []}
+    for m in sc.messages():
+        v = validators.get(m.channel_id)
+        if v is None:
+            sch = sc.schema_of(m.channel_id)
+            if sch is None or sch.encoding != "jsonschema":
+                v = False
+            else:
+                doc = json.loads(sch.data)
+                v = jsonschema.validators.validator_for(doc)(doc)
+            validators[m.channel_id] = v
+        try:
+            obj = json.loads(m.data)
+        except ValueError:
+            out["not_json"] += 1
+            continue
+        if v is False:
+            out["no_schema"] += 1
+            continue
+        out["checked"] += 1
+        err = jsonschema.exceptions.best_match(v.iter_errors(obj))
+        if err is not None:
+            out["invalid"] += 1
+            if len(out["examples"]) < 10:
+                out["examples"].append(f"{m.topic} seq {m.sequence}: {err.message}")
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from diffpos_services.recording.mcap_io import RecordingError, summarize
+
+    try:
+        s = summarize(args.file)
+    except RecordingError as exc:
+        print(f"diffpos inspect: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"diffpos inspect: {args.file}: {exc.strerror}", file=sys.stderr)
+        return 2
+    validation = None
+    if args.validate:
+        try:
+            validation = validate_file(args.file)
+        except ImportError:
+            print("diffpos inspect: --validate needs the jsonschema package", file=sys.stderr)
+            return 2
+    if args.json:
+        d = s.as_dict()
+        if validation is not None:
+            d["validation"] = validation
+        print(json.dumps(d, indent=2, default=str))
+        return 0 if s.damage.ok and not (validation and validation["invalid"]) else 1
+
+    print(f"file:      {s.path} ({s.size_bytes / 1e6:.2f} MB)")
+    if s.complete:
+        print("status:    complete (footer and index present)")
+    else:
+        print(f"status:    TRUNCATED - {'; '.join(s.damage.notes[:2])}")
+        print(f"           run: diffpos recover {s.path}")
+    if s.damage.bad_chunks or s.damage.bad_records or s.damage.messages_without_channel:
+        print(f"damage:    {s.damage.bad_chunks} corrupt chunks, {s.damage.bad_records} bad "
+              f"records, {s.damage.messages_without_channel} messages without channel (skipped)")
+    if s.messages:
+        print(f"span:      {_utc(s.start_ns)} .. {_utc(s.end_ns)} ({s.duration_s:.3f} s)")
+    print(f"messages:  {s.messages} on {len(s.channels)} channels")
+    kinds: Counter[str] = Counter()
+    kind_ch: Counter[str] = Counter()
+    gaps = sum(s.gaps.values())
+    for c in s.channels:
+        kinds[c.kind] += c.count
+        kind_ch[c.kind] += 1
+    for kind, n in sorted(kinds.items(), key=lambda kv: -kv[1]):
+        rate = f", {n / s.duration_s:.1f}/s" if s.duration_s > 0 else ""
+        print(f"  {kind:<16} {n:>9} messages on {kind_ch[kind]:>4} channels{rate}")
+    detail = ", ".join(f"{k}: {n}" for k, n in s.gaps.items())
+    print(f"gaps:      {gaps} messages missing by sequence number"
+          + (f" ({detail[:300]})" if gaps else ""))
+    if s.out_of_order:
+        print(f"repeats:   {sum(s.out_of_order.values())} sequence numbers went backwards "
+              "(publisher restarted?)")
+    print(f"schemas:   {', '.join(f'{n} ({e})' for n, e in sorted(s.schemas.items())) or '-'}")
+    print(f"anchors:   {len(s.anchors)}: {' '.join(s.anchors)}")
+    nodes = " ".join(s.nodes[:40]) + (" ..." if len(s.nodes) > 40 else "")
+    print(f"nodes:     {len(s.nodes)}: {nodes}")
+    if s.liveliness:
+        print("liveliness:")
+        t0 = s.start_ns or s.liveliness[0].get("t_ns", 0)
+        for ev in s.liveliness[:30]:
+            what = "joined" if ev.get("alive") else "left"
+            dt = (ev.get("t_ns", t0) - t0) / 1e9
+            print(f"  {dt:+9.3f} s  {ev.get('role', '?'):<9} {ev.get('id', '') or '-':<10} {what}")
+        if len(s.liveliness) > 30:
+            print(f"  ... {len(s.liveliness) - 30} more")
+    for name, md in s.metadata.items():
+        keys = ", ".join(f"{k}={v if len(v) < 40 else v[:37] + '...'}" for k, v in list(md.items())[:8])
+        print(f"metadata:  {name}: {keys}")
+    for name, media, size in s.attachments:
+        print(f"attachment: {name} ({media}, {size} bytes)")
+    if args.channels:
+        print("channels:")
+        for c in s.channels:
+            print(f"  {c.topic:<48} {c.schema:<32} {c.count:>8}")
+    if validation is not None:
+        print(f"validation: {validation['checked']} checked, {validation['invalid']} invalid, "
+              f"{validation['no_schema']} without schema, {validation['not_json']} not JSON")
+        for ex in validation["examples"]:
+            print(f"  {ex}")
+    bad = (not s.damage.ok) or (validation is not None and validation["invalid"] > 0)
+    return 1 if bad else 0

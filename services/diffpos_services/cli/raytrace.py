@@ -1,0 +1,222 @@
+"""Ray-trace the scenario with Sionna RT (optional extra) for an independent check
+
+Builds the scenario's building as a Sionna RT scene (thin concrete facade with the window
+bands as holes, side/back walls, floor slabs, plasterboard partitions, ground), traces every
+anchor x receiver link with line of sight, reflections, transmissions and first-order edge
+diffraction, classifies each path into the paper's MPC groups 1..4 (Tx-Rx, Tx-R-Rx,
+Tx-D[-T..]-Rx, the rest), and writes a dataset (.npz) with every path's length, gain,
+angles, interaction chain and first interaction point.
+
+The dataset replaces the channel emulator in the positioning study:
+
+    diffpos reproduce --channel raytrace:out/raytrace-paper.npz
+
+and the command prints how the emulator and the ray tracer agree on the same receivers: the
+paper's P_e / P_fap table from both, the first-arrival group confusion matrix, and the
+Fermat check (every ray-traced window-edge diffraction path vs the analytic length of
+diffpos.geometry; they agree to micrometres).
+
+Install the extra first (about 350 MB, plus Debian's LLVM 19 for Dr.Jit's CPU backend):
+
+    pip install -e '.[raytrace]'
+    apt-get install libllvm19      # DRJIT_LIBLLVM_PATH defaults to its libLLVM.so.19.1
+
+Cost grows with samples x receivers: 6-18 s per 1000 links at 1e5 samples on 2 cores
+(idle vs shared machine), so the paper's full grid (17,600 receivers x 4 anchors) takes
+7-22 minutes. Sampling finds
+almost every direct window-edge diffraction path at 1e5 samples, but diffraction paths that
+then cross partitions (Tx-D-T-Rx) are found only partly; raise --samples to find more.
+
+examples:
+  diffpos raytrace paper --quick                      200 receivers, about half a minute
+  diffpos raytrace scenarios/paper.toml --receivers 2000 --out out/rt2000.npz
+  diffpos raytrace scenarios/paper.toml --samples 1000000 --receivers 500
+  diffpos raytrace scenarios/paper.toml               every receiver of the grid (minutes)
+  diffpos raytrace --compare tests/data/raytrace_small.npz    re-print the comparison
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+QUICK_RECEIVERS = 200
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenario", nargs="?", help="scenario TOML file, or 'paper' for the "
+                        "built-in paper geometry")
+    parser.add_argument("--compare", type=Path, metavar="FILE",
+                        help="do not trace: print the emulator comparison for an existing "
+                        "dataset (needs no Sionna)")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--receivers", type=int, metavar="N",
+                      help="trace N receivers evenly spread over the scenario's grid "
+                      "(default: all)")
+    size.add_argument("--quick", action="store_true",
+                      help=f"{QUICK_RECEIVERS} receivers (a check in about half a minute)")
+    parser.add_argument("--samples", type=float, default=1e5, metavar="S",
+                        help="rays per transmitter (default 1e5; cost is linear in S)")
+    parser.add_argument("--max-depth", type=int, default=3, metavar="D",
+                        help="maximum interactions per path (default 3, covers Tx-D-T-T-Rx)")
+    parser.add_argument("--seed", type=int, default=1, help="sampling seed (default 1)")
+    parser.add_argument("--batch", type=int, default=2000, metavar="B",
+                        help="receivers per solver call (default 2000)")
+    parser.add_argument("--deterministic", action="store_true",
+                        help="Sionna's deterministic candidate generator (reproducible, slower)")
+    parser.add_argument("--out", type=Path, default=None, metavar="FILE",
+                        help="dataset file (default out/raytrace-<scenario name>.npz)")
+    parser.add_argument("--no-compare", action="store_true",
+                        help="skip the comparison with the channel emulator")
+
+
+def _load_scenario(spec: str):
+    from diffpos.scenario import ScenarioError, default_scenario
+
+    if spec == "paper":
+        return default_scenario()
+    path = Path(spec)
+    if not path.is_file():
+        raise ValueError(f"scenario: no such file {spec!r} (give a TOML file or 'paper')")
+    from diffpos_services.scenario_io import load_scenario
+
+    try:
+        return load_scenario(path)
+    except ScenarioError as exc:
+        raise ValueError(f"{spec}: {exc}") from None
+
+
+def _pick_receivers(nodes: np.ndarray, n: int | None) -> np.ndarray:
+    if n is None or n >= len(nodes):
+        return np.arange(len(nodes))
+    return np.unique(np.linspace(0, len(nodes) - 1, n).round().astype(int))
+
+
+def _report(ds, console) -> None:
+    from rich.table import Table
+
+    from diffpos_services.raytrace import compare_with_emulator
+
+    cmp = compare_with_emulator(ds)
+    t = Table(title=f"MPC groups over {cmp['links']} links (emulator | ray tracer) [%]")
+    t.add_column("group")
+    for c in ("P_e emu", "P_e RT", "P_fap emu", "P_fap RT"):
+        t.add_column(c, justify="right")
+    se, sr = cmp["stats_emulator"], cmp["stats_raytrace"]
+    for g in ("MPC-1", "MPC-2", "MPC-3", "MPC-4"):
+        t.add_row(g, f"{se[g]['P_e']:.1f}", f"{sr[g]['P_e']:.1f}", f"{se[g]['P_fap']:.1f}",
+                  f"{sr[g]['P_fap']:.1f}")
+    t.add_row("none", "", "", f"{se['none']['P_fap']:.1f}", f"{sr['none']['P_fap']:.1f}")
+    console.print(t)
+    conf = cmp["confusion"]
+    c = Table(title="first-arrival group: rows emulator, columns ray tracer (0 = none)")
+    c.add_column("")
+    for g in range(5):
+        c.add_column(str(g), justify="right")
+    for g in range(5):
+        c.add_row(str(g), *(str(v) for v in conf[g]))
+    console.print(c)
+    d = np.abs(cmp["path_diff_m"])
+    console.print(f"first-arrival group agreement: {100 * cmp['class_agreement']:.1f} % of links")
+    console.print(f"the ray tracer has the emulator's first-arrival path (same length to 1 mm) on "
+                  f"{100 * cmp['found_emulator_fap']:.1f} % of links; group agreement there: "
+                  f"{100 * cmp['class_agreement_found']:.1f} %")
+    if d.size:
+        console.print(f"both MPC-3 ({cmp['both_mpc3']} links): |RT - emulator| first-arrival "
+                      f"length median {np.median(d) * 1e3:.3f} mm, "
+                      f"{100 * np.mean(d < 1e-3):.1f} % within 1 mm, max {d.max():.3f} m")
+    f = cmp["fermat"]
+    console.print(f"Fermat check: {f['count']} ray-traced window-edge diffraction paths, "
+                  f"max |traced - analytic| = {f['max_abs_m'] * 1e3:.4f} mm")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from diffpos_services import raytrace as rtm
+
+    console = Console(stderr=True)
+    err = lambda msg: console.print(f"diffpos raytrace: {msg}", style="red",  # noqa: E731
+                                    markup=False, highlight=False, soft_wrap=True)
+    if args.compare is not None:
+        try:
+            ds = rtm.load_dataset(args.compare)
+        except ValueError as exc:
+            err(str(exc))
+            return 2
+        console.print(f"{args.compare}: {len(ds.nodes_m)} receivers x {len(ds.anchors_m)} "
+                      f"anchors, scenario {ds.metadata['scenario']['name']!r}, "
+                      f"{ds.metadata['settings']['samples_per_src']:.0e} samples")
+        _report(ds, console)
+        return 0
+    if args.scenario is None:
+        err("give a SCENARIO to trace (a TOML file or 'paper'), or --compare FILE")
+        return 2
+    try:
+        scenario = _load_scenario(args.scenario)
+        settings = rtm.RaytraceSettings(max_depth=args.max_depth,
+                                        samples_per_src=int(args.samples), seed=args.seed,
+                                        batch_size=args.batch, deterministic=args.deterministic)
+        if args.receivers is not None and args.receivers < 1:
+            raise ValueError(f"--receivers: must be >= 1, got {args.receivers}")
+    except ValueError as exc:
+        err(str(exc))
+        return 2
+    try:
+        versions = rtm.check_sionna()
+    except rtm.RaytraceUnavailable as exc:
+        err(str(exc))
+        return 3
+    nodes = scenario.node_positions_m()
+    if len(nodes) == 0:
+        err("scenario: no receivers (add a [nodes.grid] table or [[nodes.list]] entries)")
+        return 2
+    n_req = QUICK_RECEIVERS if args.quick else args.receivers
+    nodes = nodes[_pick_receivers(nodes, n_req)]
+    out = args.out or Path("out") / f"raytrace-{scenario.name}.npz"
+    console.print(f"Sionna RT {versions['sionna-rt']} ({versions['variant']}, LLVM "
+                  f"{versions['libllvm'] or 'default'}): {len(nodes)} receivers x "
+                  f"{len(scenario.anchors)} anchors, {settings.samples_per_src:.0e} samples, "
+                  f"max depth {settings.max_depth}")
+    t0 = time.perf_counter()
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("links"), TimeElapsedColumn(), TimeRemainingColumn(),
+                  console=console, transient=False) as bar:
+        task = bar.add_task("tracing", total=len(nodes) * len(scenario.anchors))
+
+        def progress(done: int, total: int, label: str) -> None:
+            bar.update(task, completed=done, description=f"tracing {label}")
+
+        try:
+            ds = rtm.trace(scenario, nodes, settings=settings, progress=progress)
+        except ValueError as exc:
+            err(str(exc))
+            return 2
+    path = rtm.save_dataset(out, ds)
+    meta = ds.metadata
+    console.print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, "
+                  f"{ds.path_valid.shape[-1]} paths max per link) in "
+                  f"{time.perf_counter() - t0:.1f} s; "
+                  f"{meta['s_per_1000_links']:.2f} s per 1000 links")
+    if not args.no_compare:
+        _report(ds, console)
+    console.print(f"use it: diffpos reproduce --channel raytrace:{path}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from diffpos_services.cli.main import main
+
+    sys.exit(main(["raytrace", *sys.argv[1:]]))

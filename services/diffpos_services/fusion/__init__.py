@@ -1,0 +1,1 @@
+"""fusion: see DEVELOPING.md."""

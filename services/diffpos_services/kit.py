@@ -1,0 +1,338 @@
+"""What every diffpos bus service shares: typed config, structured logs, clean shutdown.
+
+- :func:`build_config` turns plain options into a typed, validated ``msgspec.Struct`` and
+  raises :class:`ConfigError` naming the bad field (the CLI prints it, no traceback).
+- :func:`setup_logging` writes one JSON object per line to stderr (``--log-format text`` for
+  humans); :func:`log_event` attaches key/value fields; :class:`LogOnce` logs a recurring
+  problem once per (key, reason).
+- :class:`Shutdown` turns SIGINT/SIGTERM into an event the main loop waits on, so sessions
+  are closed by their ``with`` blocks and buffers are flushed before exit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar
+
+import msgspec
+
+__all__ = [
+    "ConfigError",
+    "LogOnce",
+    "Shutdown",
+    "add_logging_arguments",
+    "build_config",
+    "load_json_option",
+    "log_event",
+    "run_main",
+    "setup_logging",
+    "stop_process_groups",
+]
+
+T = TypeVar("T")
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago (bind to port 0)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def stop_process_groups(
+    procs: list[subprocess.Popen],
+    *,
+    timeout_s: float,
+    on_kill: Callable[[subprocess.Popen], None] | None = None,
+) -> list[int]:
+    """Stop processes started with ``start_new_session=True``: SIGTERM each process group,
+    wait until ``timeout_s`` [s] after that (one shared deadline), SIGKILL the groups still
+    running (``on_kill(proc)`` is called first, e.g. to log it). Returns the exit codes.
+
+    Signalling the group, not just the process, also stops its children.
+    """
+    for p in procs:
+        if p.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout_s
+    codes = []
+    for p in procs:
+        try:
+            codes.append(p.wait(max(deadline - time.monotonic(), 0.05)))
+        except subprocess.TimeoutExpired:
+            if on_kill is not None:
+                on_kill(p)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            codes.append(p.wait())
+    return codes
+
+
+class ConfigError(ValueError):
+    """Invalid service configuration; the message names the field and what to fix."""
+
+
+def build_config(kind: type[T], values: Mapping[str, Any]) -> T:
+    """Validate ``values`` into the typed config struct ``kind``.
+
+    Raises
+    ------
+    ConfigError
+        With msgspec's path to the offending field, e.g.
+        ``invalid fusion config: Expected `float` >= 0.0 - at `$.deadline_s```.
+    """
+    try:
+        cfg = msgspec.convert(dict(values), type=kind, strict=False)
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"invalid {kind.__name__}: {exc}") from None
+    check = getattr(cfg, "check", None)
+    if check is not None:
+        try:
+            check()
+        except ValueError as exc:
+            raise ConfigError(f"invalid {kind.__name__}: {exc}") from None
+    return cfg
+
+
+def load_json_option(option: str, path: str) -> Any:
+    """The JSON document in the file ``path`` given to the command-line ``option``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the option and the file, e.g. ``--config run.json: cannot read it (No such
+        file or directory)`` or ``... not valid JSON (...)``.
+    """
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except OSError as exc:
+        raise ConfigError(f"{option} {path}: cannot read it ({exc.strerror})") from None
+    except ValueError as exc:
+        raise ConfigError(f"{option} {path}: not valid JSON ({exc})") from None
+
+
+# ----------------------------------------------------------------------------- logging
+class _JsonFormatter(logging.Formatter):
+    def __init__(self, service: str) -> None:
+        super().__init__()
+        self.service = service
+
+    def format(self, record: logging.LogRecord) -> str:
+        out = {
+            "ts": round(record.created, 6),
+            "level": record.levelname.lower(),
+            "service": self.service,
+            "pid": record.process,
+            "msg": record.getMessage(),
+        }
+        fields = getattr(record, "fields", None)
+        if fields:
+            out.update(fields)
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out, default=str)
+
+
+class _TextFormatter(logging.Formatter):
+    def __init__(self, service: str) -> None:
+        super().__init__()
+        self.service = service
+
+    def format(self, record: logging.LogRecord) -> str:
+        fields = getattr(record, "fields", None) or {}
+        extra = " ".join(f"{k}={v}" for k, v in fields.items())
+        stamp = time.strftime("%H:%M:%S", time.localtime(record.created))
+        line = f"{stamp} {record.levelname.lower():<7} {self.service}: {record.getMessage()}"
+        if extra:
+            line += " " + extra
+        if record.exc_info:
+            line += "\n" + self.formatException(record.exc_info)
+        return line
+
+
+def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--log-level`` and ``--log-format`` options."""
+    g = parser.add_argument_group("logging")
+    g.add_argument(
+        "--log-level",
+        default=os.environ.get("DIFFPOS_LOG_LEVEL", "info"),
+        choices=["debug", "info", "warning", "error"],
+        help="log verbosity (default info, env DIFFPOS_LOG_LEVEL)",
+    )
+    g.add_argument(
+        "--log-format",
+        default=os.environ.get("DIFFPOS_LOG_FORMAT", "json"),
+        choices=["json", "text"],
+        help="json: one object per line on stderr (default, env DIFFPOS_LOG_FORMAT); text: human",
+    )
+
+
+def setup_logging(service: str, *, level: str = "info", fmt: str = "json") -> logging.Logger:
+    """Configure the root logger for a service process; return the service's logger."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_JsonFormatter(service) if fmt == "json" else _TextFormatter(service))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+    return logging.getLogger(f"diffpos.{service}")
+
+
+def log_event(logger: logging.Logger, level: int, msg: str, **fields: Any) -> None:
+    """Log ``msg`` with structured key/value ``fields``."""
+    if logger.isEnabledFor(level):
+        logger.log(level, msg, extra={"fields": fields})
+
+
+class LogOnce:
+    """Log a recurring problem once per ``(key, reason)``; count every occurrence."""
+
+    def __init__(self, logger: logging.Logger, *, max_keys: int = 10_000) -> None:
+        self.logger = logger
+        self.max_keys = max_keys
+        self.seen: dict[tuple[str, str], int] = {}
+
+    def __call__(self, key: str, reason: str, detail: str = "", level: int = logging.WARNING) -> None:
+        k = (key, reason)
+        n = self.seen.get(k, 0)
+        if n == 0 and len(self.seen) < self.max_keys:
+            log_event(self.logger, level, f"{reason} on {key}", key=key, reason=reason, detail=detail[:300])
+        if n or len(self.seen) < self.max_keys:
+            self.seen[k] = n + 1
+
+
+# ----------------------------------------------------------------------------- shutdown
+class Shutdown:
+    """SIGINT/SIGTERM -> ``event``; the main loop waits on it and exits its ``with`` blocks.
+
+    A second signal while shutting down raises ``KeyboardInterrupt`` (escape hatch).
+    Must be created in the main thread.
+    """
+
+    def __init__(self, logger: logging.Logger | None = None) -> None:
+        self.event = threading.Event()
+        self.signal_name: str | None = None
+        self._logger = logger
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._handle)
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self.event.is_set():
+            raise KeyboardInterrupt(name)
+        self.signal_name = name
+        if self._logger is not None:
+            log_event(self._logger, logging.INFO, "shutdown requested", signal=name)
+        self.event.set()
+
+    def is_set(self) -> bool:
+        return self.event.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return self.event.wait(timeout)
+
+    def set(self) -> None:
+        self.event.set()
+
+
+def run_main(fn: Callable[[], int], logger: logging.Logger) -> int:
+    """Run a service body; map :class:`ConfigError` to exit code 2 with a one-line message."""
+    try:
+        return int(fn() or 0)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:  # pragma: no cover - last resort, logged with traceback
+        logger.exception("fatal: %s", exc)
+        return 1
+
+
+# ----------------------------------------------------------------------------- health check
+def health_check(
+    connect: list[str] | None,
+    liveliness_key: str,
+    *,
+    timeout_s: float = 3.0,
+    zenoh_config: str | None = None,
+) -> bool:
+    """True if a liveliness token matching ``liveliness_key`` is alive on the bus.
+
+    Used by container healthchecks: ``python -m diffpos_services.kit health --connect
+    tcp/router:7447 --liveliness diffpos/demo/alive/fusion`` exits 0 when healthy; on a
+    secured bus ``--zenoh-config /security/zenoh/<user>.json5`` instead of ``--connect``
+    (the check logs in with that identity; the file's ``connect/timeout_ms`` is replaced
+    by ``timeout_s``).
+
+    Raises
+    ------
+    ConfigError
+        ``zenoh_config`` is missing, rejected by zenoh or names a missing certificate.
+    """
+    import zenoh
+
+    from diffpos_services.bus.session import ZenohSettings
+
+    if zenoh_config is not None:
+        from diffpos_services.bus.security import SecurityError, session_config
+
+        try:
+            cfg, _ = session_config(zenoh_config, connect=connect or None)
+        except SecurityError as exc:
+            raise ConfigError(str(exc)) from None
+        cfg.insert_json5("connect/timeout_ms", json.dumps(round(timeout_s * 1000)))
+    else:
+        cfg = ZenohSettings(connect=tuple(connect or ()),
+                            connect_timeout_ms=round(timeout_s * 1000)).to_config()
+    try:
+        with zenoh.open(cfg) as session:
+            replies = session.liveliness().get(liveliness_key, timeout=timeout_s)
+            for reply in replies:
+                if reply.ok is not None:
+                    return True
+    except zenoh.ZError:
+        return False
+    return False
+
+
+def _main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m diffpos_services.kit",
+        description="Service utilities. 'health': exit 0 if a liveliness token is alive.",
+    )
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    h = sub.add_parser("health", help="exit 0 if the liveliness token KEY is alive")
+    where = h.add_mutually_exclusive_group(required=True)
+    where.add_argument("--connect", action="append", metavar="ENDPOINT",
+                       help="plain router endpoint (repeatable), e.g. tcp/router:7447")
+    where.add_argument("--zenoh-config", metavar="FILE",
+                       help="zenoh json5 file of the service's identity (secured bus), e.g. "
+                       "/security/zenoh/fusion.json5")
+    h.add_argument("--liveliness", required=True, metavar="KEY")
+    h.add_argument("--timeout", type=float, default=3.0, metavar="S")
+    args = parser.parse_args(argv)
+    try:
+        ok = health_check(args.connect, args.liveliness, timeout_s=args.timeout,
+                          zenoh_config=args.zenoh_config)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print("healthy" if ok else "unhealthy")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(_main())

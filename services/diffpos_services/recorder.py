@@ -1,0 +1,315 @@
+"""The recorder service: every message under ``diffpos/<site>/**`` into an MCAP file.
+
+A thin Zenoh wrapper around :class:`diffpos_services.recording.mcap_io.McapSink`:
+
+* one data subscriber on ``diffpos/<site>/**`` with a bounded ``FifoChannel`` handler, drained
+  by a thread of ours (when the channel is full Zenoh blocks, and publishers using
+  ``CongestionControl.BLOCK`` slow down instead of losing messages);
+* one liveliness subscriber on ``diffpos/<site>/alive/**`` (``history=True``), whose rare
+  events (anchor joined / left) go to the ``diffpos/<site>/recorder/liveliness`` channel;
+* a flush thread closing the chunk in progress every ``flush_interval_s`` so that after a
+  SIGKILL at most the last interval is lost (``diffpos recover`` rewrites the rest into a
+  valid file);
+* the recorder's own liveliness token ``diffpos/<site>/alive/recorder`` is declared once both
+  subscribers exist, so whoever waits for it knows recording has started.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from diffpos_services.bus.session import ZenohSettings, open_session
+from diffpos_services.recording.mcap_io import McapSink, SinkStats
+from diffpos_services.wire.keys import Keys
+
+__all__ = [
+    "RecorderOptions",
+    "alive_recorder_key",
+    "build_command",
+    "default_output_path",
+    "record",
+]
+
+log = logging.getLogger("diffpos.recorder")
+
+
+def alive_recorder_key(site: str) -> str:
+    """Liveliness token the recorder declares once it is subscribed."""
+    return f"{Keys(site).root}/alive/recorder"
+
+
+def default_output_path(
+    scenario: str, *, directory: str | os.PathLike[str] = "recordings", now_ns: int | None = None
+) -> Path:
+    """``<directory>/<scenario>-<UTC YYYYmmddTHHMMSSZ>.mcap``.
+
+    Parameters
+    ----------
+    scenario : str
+        Scenario name (file stem); characters outside ``[A-Za-z0-9_-]`` become ``_``.
+    now_ns : int [ns], optional
+        Time stamp to use (default: now).
+    """
+    t = time.time_ns() if now_ns is None else now_ns
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(t / 1e9))
+    safe = "".join(c if c.isalnum() or c in "_-" else "_" for c in scenario) or "run"
+    return Path(directory) / f"{safe}-{stamp}.mcap"
+
+
+@dataclass(frozen=True)
+class RecorderOptions:
+    """How :func:`record` runs.
+
+    Attributes
+    ----------
+    site : str
+        Site whose ``diffpos/<site>/**`` is recorded.
+    flush_interval_s : float [s]
+        Chunk flush period: at most this much is lost on SIGKILL.
+    queue_size : int
+        Slots of the Zenoh FIFO between the network and the drain thread.
+    duration_s : float or None [s]
+        Stop on its own after this long (``None``: until ``stop`` is set).
+    """
+
+    site: str
+    flush_interval_s: float = 0.2
+    queue_size: int = 65536
+    duration_s: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        Keys(self.site)  # validates the site id
+        if not self.flush_interval_s > 0:
+            raise ValueError(f"flush_interval_s={self.flush_interval_s} must be > 0 [s]")
+        if self.queue_size < 1:
+            raise ValueError(f"queue_size={self.queue_size} must be >= 1")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ValueError(f"duration_s={self.duration_s} must be > 0 [s]")
+
+
+StatusCallback = Callable[[str, dict[str, Any]], None]
+
+
+def record(
+    settings: ZenohSettings,
+    sink: McapSink,
+    options: RecorderOptions,
+    *,
+    stop: threading.Event,
+    on_status: StatusCallback | None = None,
+) -> SinkStats:
+    """Record until ``stop`` is set (or ``options.duration_s`` elapses).
+
+    The sink is flushed but not closed (the caller closes it, adding final metadata).
+
+    Parameters
+    ----------
+    settings : ZenohSettings
+        How to join the bus.
+    sink : McapSink
+        Where messages go.
+    options : RecorderOptions
+    stop : threading.Event
+        Set it (e.g. from a signal handler) to end recording.
+    on_status : callable, optional
+        ``on_status(event, fields)`` with events ``ready`` (subscribed), ``flush`` (after each
+        flush that wrote something, fields ``flushed``, ``flushed_written``, ``received``,
+        ``written``, ``gaps`` and ``by_kind``, written messages per kind) and
+        ``stopped``. Called from the recorder's threads; keep it short.
+
+    Returns
+    -------
+    stats : SinkStats
+    """
+    import zenoh
+    from zenoh import handlers
+
+    keys = Keys(options.site)
+    emit = on_status or (lambda _e, _f: None)
+    deletes = 0
+
+    def drain(sub) -> None:
+        nonlocal deletes
+        write = sink.write
+        put = zenoh.SampleKind.PUT
+        now = time.time_ns
+        try:
+            while True:
+                sample = sub.recv()
+                if sample.kind != put:
+                    deletes += 1
+                    continue
+                write(str(sample.key_expr), sample.payload.to_bytes(), now())
+        except zenoh.ZError:
+            return  # channel closed: session closed and every queued sample drained
+        except Exception:  # pragma: no cover - never let the drain thread die silently
+            log.exception("recorder drain thread failed")
+            stop.set()
+
+    def on_liveliness(sample) -> None:
+        alive = sample.kind == zenoh.SampleKind.PUT
+        sink.write_liveliness(options.site, str(sample.key_expr), alive, time.time_ns())
+
+    def flusher() -> None:
+        last = -1
+        while not stop.wait(options.flush_interval_s):
+            flushed = sink.flush()
+            if flushed != last:
+                last = flushed
+                st = sink.stats
+                emit(
+                    "flush",
+                    {
+                        "flushed": flushed,
+                        "flushed_written": st.flushed_written,
+                        "received": st.received,
+                        "written": st.written,
+                        "gaps": st.gaps,
+                        "by_kind": sink.counts_by_kind(),
+                    },
+                )
+
+    t_end = None if options.duration_s is None else time.monotonic() + options.duration_s
+    session = open_session(settings, stop, logger=log)
+    if session is None:  # stopped while waiting for the router
+        return sink.stats
+    with session:
+        sub = session.declare_subscriber(
+            keys.everything(), handlers.FifoChannel(options.queue_size)
+        )
+        live_sub = session.liveliness().declare_subscriber(
+            keys.alive_all(), on_liveliness, history=True
+        )
+        drainer = threading.Thread(target=drain, args=(sub,), name="recorder-drain", daemon=True)
+        drainer.start()
+        flush_thread = threading.Thread(target=flusher, name="recorder-flush", daemon=True)
+        flush_thread.start()
+        token = session.liveliness().declare_token(alive_recorder_key(options.site))
+        emit("ready", {"key": keys.everything(), "path": str(sink.path or "")})
+        try:
+            if t_end is None:
+                stop.wait()
+            else:
+                stop.wait(max(0.0, t_end - time.monotonic()))
+        finally:
+            stop.set()
+            flush_thread.join()
+            live_sub.undeclare()  # first: our own token's DELETE is not an event
+            token.undeclare()
+    # leaving the with block closed the session: recv() drains what is queued, then raises
+    drainer.join()
+    flushed = sink.flush()
+    st = sink.stats
+    emit(
+        "stopped",
+        {
+            "flushed": flushed,
+            "flushed_written": st.flushed_written,
+            "received": st.received,
+            "written": st.written,
+            "gaps": st.gaps,
+            "deletes_ignored": deletes,
+        },
+    )
+    return st
+
+
+def run_metadata(
+    settings: ZenohSettings,
+    options: RecorderOptions,
+    *,
+    scenario: str | None,
+    argv: list[str] | None = None,
+) -> dict[str, Any]:
+    """The ``run`` metadata record written at the start of every recording."""
+    return {
+        "site": options.site,
+        "scenario": scenario or "",
+        "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "started_ns": time.time_ns(),
+        "host": platform.node(),
+        "pid": os.getpid(),
+        "argv": list(sys.argv if argv is None else argv),
+        "zenoh": settings.to_json(),
+        "flush_interval_s": options.flush_interval_s,
+        "recorder": "diffpos recorder (mcap, jsonschema + json channels, zstd chunks)",
+        **options.extra,
+    }
+
+
+def build_command(
+    *,
+    site: str,
+    out: str | os.PathLike[str],
+    connect: list[str] | tuple[str, ...],
+    scenario: str | os.PathLike[str] | None = None,
+    run_config: str | os.PathLike[str] | None = None,
+    flush_interval_s: float = 0.2,
+    status: bool = True,
+    python: str | None = None,
+) -> list[str]:
+    """argv that starts the recorder as a subprocess (for ``diffpos emulate`` and tests).
+
+    Run it in its own process group (``start_new_session=True``) and stop it with SIGTERM
+    (SIGINT also works): it then writes the footer and exits 0. With ``status`` it prints
+    JSON lines to stdout: ``{"event": "ready", ...}`` once subscribed, ``{"event": "flush",
+    "flushed": N, ...}`` after each flush and ``{"event": "closed", ...}`` at the end.
+
+    Parameters
+    ----------
+    site : str
+    out : path
+        MCAP file to write.
+    connect : list of str
+        Router endpoints.
+    scenario : path, optional
+        Scenario TOML, attached to the recording.
+    run_config : path, optional
+        JSON file with the run configuration, attached to the recording.
+    """
+    argv = [
+        python or sys.executable,
+        "-m",
+        "diffpos_services.cli.main",
+        "recorder",
+        "--site",
+        site,
+        "--out",
+        str(out),
+        "--flush-interval",
+        repr(float(flush_interval_s)),
+    ]
+    for ep in connect:
+        argv += ["--connect", ep]
+    if scenario is not None:
+        argv += ["--scenario", str(scenario)]
+    if run_config is not None:
+        argv += ["--run-config", str(run_config)]
+    if status:
+        argv.append("--status")
+    return argv
+
+
+def status_printer(stream=None) -> StatusCallback:
+    """An ``on_status`` callback printing one JSON object per line (flushed at once)."""
+    out = sys.stdout if stream is None else stream
+    lock = threading.Lock()
+
+    def emit(event: str, fields: dict[str, Any]) -> None:
+        line = json.dumps({"event": event, "t_wall_ns": time.time_ns(), **fields})
+        with lock:
+            out.write(line + "\n")
+            out.flush()
+
+    return emit

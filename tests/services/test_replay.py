@@ -1,0 +1,315 @@
+"""Offline replay: determinism, reproduction of the live estimates, accuracy statistics
+against a brute-force reference, what-if settings, damaged and foreign input, CLI outputs.
+
+Recordings are written without Zenoh by ``write_synthetic_recording`` (known truth, and a
+FusionCore playing the live fusion); the Zenoh path is covered by test_recorder.py.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diffpos_services.cli.main import main as cli_main
+from diffpos_services.kit import ConfigError
+from diffpos_services.recording.mcap_io import McapScanner, McapSink, RecordingError
+from diffpos_services.recording.replay import replay, write_synthetic_recording
+from diffpos_services.wire import messages as M
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+
+@pytest.fixture(scope="module")
+def rec(tmp_path_factory) -> Path:
+    """3 s, 5 anchors, 3 nodes, 10 Hz, 8 % NLoS-like outliers, live estimates recorded."""
+    path = tmp_path_factory.mktemp("replay") / "synthetic.mcap"
+    write_synthetic_recording(path, n_anchors=5, n_nodes=3, duration_s=3.0,
+                              outlier_probability=0.08, seed=11, flush_every=200)
+    return path
+
+
+def _encoded(ests):
+    return [M.encode(e) for e in ests]
+
+
+def test_replay_is_deterministic_bit_for_bit(rec):
+    a = replay(rec)
+    b = replay(rec)
+    assert len(a.estimates) == 3 * 30  # every node, every epoch
+    assert _encoded(a.estimates) == _encoded(b.estimates)
+    ra, rb = dict(a.report), dict(b.report)
+    ra.pop("timing"), rb.pop("timing")
+    assert json.dumps(ra, sort_keys=True) == json.dumps(rb, sort_keys=True)
+
+
+def test_replay_with_live_settings_reproduces_live_estimates(rec):
+    r = replay(rec)
+    c = r.report["compare"]
+    assert r.report["settings_source"] == "metadata fusion_config"
+    # the recorded live fusion stepped on the same receive times: identical fixes; the only
+    # extra replayed fixes are the last epoch, which the live run never flushed
+    assert c["only_live"] == 0 and c["only_replayed"] == 3
+    assert c["matched"] == len(r.live_estimates) and c["status_agree"] == 1.0
+    assert c["identical_positions"] == c["with_positions"] > 0
+    live = {(e.node_id, e.epoch): e for e in r.live_estimates}
+    for e in r.estimates:
+        if (e.node_id, e.epoch) in live:
+            le = live[(e.node_id, e.epoch)]
+            assert (le.position_m, le.peb_m, le.used_anchors, le.excluded) == (
+                e.position_m, e.peb_m, e.used_anchors, e.excluded)
+
+
+def test_accuracy_report_matches_brute_force_reference(rec):
+    r = replay(rec)
+    truth: dict[str, list] = {}
+    for m in McapScanner(rec).messages():
+        if "/truth/node/" in m.topic:
+            d = json.loads(m.data)
+            truth.setdefault(d["id"], []).append((d["t_ns"], d["position_m"], d["floor_index"]))
+    errs, zerrs, floor_ok = [], [], []
+    for e in r.estimates:
+        if e.status not in ("OK", "OK_UNVERIFIED") or e.position_m is None:
+            continue
+        samples = sorted(truth[e.node_id])
+        # linear interpolation by hand between the bracketing samples
+        for (t0, p0, f0), (t1, p1, f1) in itertools.pairwise(samples):
+            if t0 <= e.t_ns <= t1:
+                w = (e.t_ns - t0) / (t1 - t0)
+                p = [p0[k] + w * (p1[k] - p0[k]) for k in range(3)]
+                f = f0 if e.t_ns - t0 <= t1 - e.t_ns else f1
+                break
+        else:
+            t, p, f = min(samples, key=lambda s: abs(s[0] - e.t_ns))
+            assert abs(t - e.t_ns) <= 0.5e9
+        d = [e.position_m[k] - p[k] for k in range(3)]
+        errs.append(sum(x * x for x in d) ** 0.5)
+        zerrs.append(abs(d[2]))
+        floor_ok.append(e.floor_index == f)
+    acc = r.report["accuracy"]["overall"]
+    assert acc["evaluated"] == len(errs) > 60
+    for p in (50, 90, 95):
+        assert acc["error_3d_m"][f"p{p}"] == pytest.approx(np.percentile(errs, p), rel=1e-9)
+        assert acc["error_z_m"][f"p{p}"] == pytest.approx(np.percentile(zerrs, p), rel=1e-9)
+    assert acc["floor_accuracy"] == pytest.approx(np.mean(floor_ok))
+    # and the fusion works on this data: sub-metre median with 10 cm ranging noise
+    assert acc["error_3d_m"]["p50"] < 1.0
+    per_node = r.report["accuracy"]["per_node"]
+    assert sum(v["evaluated"] for v in per_node.values()) == len(errs)
+
+
+def test_what_if_settings_change_the_outcome(rec):
+    base = replay(rec)
+    gated = sum(g["excluded"].get("RAIM", 0) for g in base.report["gating"].values())
+    assert gated > 0  # the outliers are caught
+    off = replay(rec, overrides={"gating": False})
+    assert off.report["settings"]["gating"] is False
+    assert all("RAIM" not in g["excluded"] for g in off.report["gating"].values())
+    strict = replay(rec, overrides={"false_alarm_probability": 0.2})
+    assert strict.report["settings"]["false_alarm_probability"] == 0.2
+    gated_strict = sum(g["excluded"].get("RAIM", 0) for g in strict.report["gating"].values())
+    assert gated_strict > gated  # a larger false-alarm rate excludes more
+    lls = replay(rec, method="lls")
+    assert lls.report["method"] == "lls"
+    assert _encoded(lls.estimates) != _encoded(base.estimates)
+    with pytest.raises(ConfigError, match="not a fusion setting"):
+        replay(rec, overrides={"no_such_field": 1})
+    with pytest.raises(ConfigError, match="false_alarm_probability"):
+        replay(rec, overrides={"false_alarm_probability": 3})
+
+
+def test_truncated_and_foreign_input(rec, tmp_path):
+    data = rec.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    r = replay(cut)
+    assert r.report["complete"] is False and r.report["damage"]["truncated"] is True
+    n_prefix = sum(1 for _ in McapScanner(cut).messages())
+    assert r.report["messages"]["total"] == n_prefix > 0
+    assert 0 < len(r.estimates) < 90
+    # unknown channels and a corrupt payload on a range key: skipped and counted
+    mixed = tmp_path / "mixed.mcap"
+    with McapSink(mixed) as sink:
+        for m in McapScanner(rec).messages():
+            sink.write(m.topic, m.data, m.log_ns)
+        sink.write("/camera/front", b"\x01\x02", 1)
+        sink.write("diffpos/synth/anchor/uav1/range/n01", b"{not json", 2)
+    r = replay(mixed)
+    assert r.report["messages"]["skipped_unknown"] == 1
+    assert r.report["messages"]["fusion_rejected"] == {"json": 1}
+    # a foreign MCAP with nothing to replay: a clear error, no traceback
+    foreign = tmp_path / "foreign.mcap"
+    with open(foreign, "wb") as f:
+        w = Writer(f)
+        w.start()
+        cid = w.register_channel("/imu", "cdr", 0)
+        w.add_message(cid, log_time=1, data=b"\x00", publish_time=1)
+        w.finish()
+    with pytest.raises(RecordingError, match="nothing to replay"):
+        replay(foreign)
+
+
+def test_cli_writes_report_plot_and_replayed_mcap(rec, tmp_path, capsys):
+    out = tmp_path / "out"
+    new = tmp_path / "replayed.mcap"
+    rc = cli_main(["replay", str(rec), "--out", str(out), "--compare", "--write-mcap", str(new),
+                   "--no-progress"])
+    text = capsys.readouterr().out
+    assert rc == 0
+    assert "recorded live vs replayed" in text and "ALL" in text
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["fixes"]["total"] == 90
+    assert (out / "cdf.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with open(new, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        replayed = [m for _, ch, m in reader.iter_messages() if "/replay/node/" in ch.topic]
+        topics = {ch.topic: summary.schemas[ch.schema_id].name
+                  for ch in summary.channels.values()}
+    assert len(replayed) == 90
+    assert topics["diffpos/synth/replay/node/n01/estimate"] == "diffpos.estimate.v1"
+    assert summary.statistics.message_count == 90 + sum(1 for _ in McapScanner(rec).messages())
+    # bad input: exit 2 with a one-line reason
+    assert cli_main(["replay", str(tmp_path / "nope.mcap"), "--no-files"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert cli_main(["replay", str(rec), "--set", "deadline_s", "--no-files"]) == 2
+    assert "FIELD=VALUE" in capsys.readouterr().err
+
+
+SAMPLE = Path(__file__).resolve().parents[2] / "recordings" / "sample.mcap"
+
+
+def test_committed_sample_recording(tmp_path):
+    """recordings/sample.mcap (a real emulate run): self-describing, valid, consistent counts,
+    and the replay reproduces the recorded live fixes (see recordings/README.md for why not
+    bit for bit)."""
+    from diffpos_services.cli.inspect import validate_file
+    from diffpos_services.recording.mcap_io import summarize
+
+    s = summarize(SAMPLE)
+    assert s.complete and s.damage.ok and sum(s.gaps.values()) == 0
+    assert s.anchors == ["uav1", "uav2", "uav3", "uav4"] and len(s.nodes) == 6
+    v = validate_file(SAMPLE)
+    assert v["invalid"] == 0 and v["no_schema"] == 0 and v["checked"] == s.messages
+    kinds: dict[str, int] = {}
+    for c in s.channels:
+        kinds[c.kind] = kinds.get(c.kind, 0) + c.count
+    # every anchor state comes with one range per node; one fix per node per epoch
+    assert kinds["range"] == kinds["anchor_state"] * len(s.nodes)
+    assert kinds["estimate"] == kinds["anchor_state"] // len(s.anchors) * len(s.nodes)
+    assert {"run", "recorder_stats"} <= set(s.metadata)
+    assert [a[0] for a in s.attachments] == ["paper.toml"]
+    joined = {ev["id"] for ev in s.liveliness if ev["role"] == "anchor" and ev["alive"]}
+    assert joined == set(s.anchors)
+
+    r = replay(SAMPLE, out_mcap=None)
+    assert r.report["settings_source"].startswith("derived")
+    assert list(r.report["settings"]["edge_x_m"]) == [-20.0, 20.0]  # the attached scenario
+    c = r.report["compare"]
+    assert c["matched"] == len(r.live_estimates) == len(r.estimates) == kinds["estimate"]
+    assert c["status_agree"] == 1.0 and c["position_diff_m"]["p50"] < 1e-3
+    live = {(e.node_id, e.epoch): e.used_anchors for e in r.live_estimates}
+    assert all(live[(e.node_id, e.epoch)] == e.used_anchors for e in r.estimates)
+    acc = r.report["accuracy"]["overall"]
+    assert acc["error_3d_m"]["p50"] < 0.3 and acc["floor_accuracy"] > 0.95
+
+
+def test_replay_rrd_holds_the_replayed_estimates(rec, tmp_path, capsys):
+    """`diffpos replay --rrd` writes the dashboard of the *replayed* fixes (read back by Rerun)."""
+    from diffpos_services.dashboard.views import rrd_rows
+
+    out = tmp_path / "replay.rrd"
+    assert cli_main(["replay", str(rec), "--no-files", "--no-progress", "--rrd", str(out)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    expected = {}
+    for e in replay(rec).estimates:
+        if e.position_m is not None:
+            expected[(e.node_id, e.t_ns)] = np.asarray(e.position_m)
+    rows = rrd_rows(out)
+    got = {}
+    for entity, entries in rows.items():
+        parts = entity.strip("/").split("/")
+        if parts[:2] != ["world", "nodes"] or parts[-1] != "estimate":
+            continue
+        for t_ns, comps in entries:
+            positions = comps.get("Points3D:positions") or []
+            if positions:  # an empty row clears the node: a fix without a position
+                got[(parts[2], t_ns)] = np.asarray(positions[0])
+    assert expected, "the synthetic recording must yield fixes"
+    assert got.keys() == expected.keys()
+    for key, pos in expected.items():
+        np.testing.assert_allclose(got[key], pos, atol=1e-5)  # float32 in the .rrd
+
+
+def test_replay_method_lls_gives_the_lls_fix_of_each_epoch(rec):
+    """``--method lls`` goes through FusionConfig.method: every fix equals diffpos.estimators.lls
+    called directly on that epoch's recorded anchor positions and ranges (static anchors, no
+    motion compensation, so the fusion's inputs are exactly the recorded values)."""
+    from diffpos.estimators import lls
+
+    r = replay(rec, method="lls", overrides={"motion_compensation": False})
+    assert r.report["method"] == r.report["settings"]["method"] == "lls"
+    period = round(r.report["settings"]["epoch_period_s"] * 1e9)
+    anchor_pos, ranges = {}, {}
+    reader = make_reader(rec.open("rb"))
+    for _s, ch, msg in reader.iter_messages():
+        parts = ch.topic.split("/")
+        if parts[2:3] == ["anchor"] and parts[4] == "state":
+            anchor_pos[parts[3]] = json.loads(msg.data)["position_m"]
+        elif parts[2:3] == ["anchor"] and parts[4] == "range":
+            d = json.loads(msg.data)
+            ranges[(d["node_id"], d["t_ns"] // period, d["anchor_id"])] = d["range_m"]
+    checked = 0
+    for e in r.estimates:
+        if e.position_m is None:
+            continue
+        ids = sorted(e.used_anchors)
+        a = np.array([anchor_pos[i] for i in ids])
+        rr = np.array([ranges[(e.node_id, e.epoch, i)] for i in ids])
+        ref = lls(a[None], rr[None])
+        np.testing.assert_allclose(e.position_m, ref.position_m[0], rtol=0, atol=1e-9)
+        checked += 1
+    assert checked >= 80  # 3 nodes x 30 epochs, LLS solves every complete epoch
+    # the default is still D-NLS, and it differs
+    d = replay(rec, overrides={"motion_compensation": False})
+    assert d.report["method"] == "dnls"
+    assert _encoded(d.estimates) != _encoded(r.estimates)
+
+
+def test_range_batch_recording_replays_like_single_ranges(rec, tmp_path):
+    """Anchors publishing one RangeBatch per epoch (``--range-batch``): the replay feeds the
+    batches to the fusion (it used to skip them), reproduces the recorded live estimates,
+    and gives the same fixes as the same run recorded with one message per range."""
+    path = tmp_path / "batched.mcap"
+    counts = write_synthetic_recording(path, n_anchors=5, n_nodes=3, duration_s=3.0,
+                                       outlier_probability=0.08, seed=11, flush_every=200,
+                                       range_batch=True)
+    assert counts["range_batch"] == 5 * 30 and "range" not in counts
+    r = replay(path)
+    assert r.report["messages"]["fusion_received"]["range_batch"] == 5 * 30
+    c = r.report["compare"]
+    assert c["only_live"] == 0 and c["status_agree"] == 1.0
+    assert c["identical_positions"] == c["with_positions"] > 0
+    single = {(e.node_id, e.epoch): e for e in replay(rec).estimates}
+    assert len(r.estimates) == len(single) == 3 * 30
+    for e in r.estimates:
+        s = single[(e.node_id, e.epoch)]
+        assert (e.status, e.position_m, e.used_anchors, e.excluded) == (
+            s.status, s.position_m, s.used_anchors, s.excluded)
+
+
+def test_replay_restores_the_garbage_collector_thresholds(rec, tmp_path):
+    """Replay runs the cyclic GC less often while it holds its estimates; the process's own
+    thresholds are back afterwards, also when the replay fails."""
+    import gc
+
+    before = gc.get_threshold()
+    assert len(replay(rec).estimates) == 3 * 30
+    assert gc.get_threshold() == before
+    bad = tmp_path / "not.mcap"
+    bad.write_bytes(b"not an mcap file")
+    with pytest.raises(RecordingError):
+        replay(bad)
+    assert gc.get_threshold() == before

@@ -1,0 +1,261 @@
+"""`diffpos solve`: JSON Lines in/out, order, schemas, invalid lines, --strict, Python entry."""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+from diffpos_services.cli import main as cli
+from diffpos_services.cli.solve import solve_records
+
+from diffpos.geometry import los_path, window_edge_path
+
+ROOT = Path(__file__).resolve().parents[2]
+PROBLEM_SCHEMA = json.loads((ROOT / "schemas" / "solve_problem.v1.json").read_text())
+RESULT_SCHEMA = json.loads((ROOT / "schemas" / "solve_result.v1.json").read_text())
+ANCHORS = [
+    [-15.0, -20.0, 1.0],
+    [0.0, -15.0, 0.0],
+    [0.0, -7.0, 4.0],
+    [15.0, -20.0, 1.0],
+    [5.0, -30.0, 20.0],
+]
+
+
+def _problem(node, **extra):
+    r = window_edge_path(np.array(ANCHORS), np.array(node), window_height_m=1.0).length_m
+    prob = {"anchors_m": ANCHORS, "ranges_m": r.tolist(), "sigmas_m": 0.01, "window_height_m": 1.0}
+    prob.update(extra)
+    return prob
+
+
+def _run(lines, argv=(), monkeypatch=None, capsys=None):
+    monkeypatch.setattr(sys, "stdin", io.StringIO("".join(line + "\n" for line in lines)))
+    rc = cli.main(["solve", *argv])
+    out, err = capsys.readouterr()
+    return rc, [json.loads(x) for x in out.splitlines()], err
+
+
+def test_valid_problems_in_order_and_schema_valid(monkeypatch, capsys):
+    nodes = [[2.0, 5.0, 10.5], [-4.0, 3.0, 1.5], [6.0, 8.0, 22.5]]
+    lines = [json.dumps(_problem(n, id=f"n{k}")) for k, n in enumerate(nodes)]
+    rc, recs, _ = _run(lines, ["--batch", "2"], monkeypatch, capsys)
+    assert rc == 0 and len(recs) == 3
+    for k, (rec, node) in enumerate(zip(recs, nodes, strict=True)):
+        jsonschema.validate(rec, RESULT_SCHEMA)
+        assert rec["line"] == k + 1 and rec["id"] == f"n{k}"
+        assert rec["status"] == "ok" and rec["method"] == "dnls"
+        assert np.allclose(rec["position_m"], node, atol=1e-6)
+        assert rec["used_anchors"] == [0, 1, 2, 3, 4]
+        assert rec["covariance_model"] == "diffraction FIM"
+    for line in lines:
+        jsonschema.validate(json.loads(line), PROBLEM_SCHEMA)
+
+
+BAD_LINES = [
+    ("{not json", "invalid JSON"),
+    ("[1, 2]", "JSON object"),
+    (json.dumps({"ranges_m": [1, 2, 3]}), "anchors_m"),
+    (
+        json.dumps({"anchors_m": ANCHORS[:3], "ranges_m": [1, 2], "window_height_m": 1}),
+        "ranges_m must have 3 entries",
+    ),
+    (
+        '{"anchors_m": [[0,-5,0],[1,-5,0],[2,-6,1]], "ranges_m": [1, NaN, 3], '
+        '"window_height_m": 1}',
+        "ranges_m[1] must be finite",
+    ),
+    (
+        '{"anchors_m": [[0,-5,0],[1,-5,Infinity],[2,-6,1]], "ranges_m": [1, 2, 3], '
+        '"window_height_m": 1}',
+        "anchors_m[1][2] must be finite",
+    ),
+    (
+        json.dumps({"anchors_m": ANCHORS[:3], "ranges_m": [1, -2, 3], "window_height_m": 1}),
+        "ranges_m[1] is negative",
+    ),
+    (
+        json.dumps({"anchors_m": ANCHORS[:3], "ranges_m": [1, None, 3], "window_height_m": 1}),
+        "fewer than 3 anchors",
+    ),
+    (
+        json.dumps({"anchors_m": ANCHORS[:2], "ranges_m": [1, 2], "window_height_m": 1}),
+        "fewer than 3 anchors",
+    ),
+    (
+        json.dumps({"anchors_m": [[0, -5]] * 3, "ranges_m": [1, 2, 3], "window_height_m": 1}),
+        "anchors_m[0] must have 3 entries",
+    ),
+    (json.dumps({"anchors_m": ANCHORS[:3], "ranges_m": [1, 2, 3]}), "window_height_m"),
+    (
+        json.dumps(
+            {"anchors_m": ANCHORS[:3], "ranges_m": [1, 2, 3], "window_height_m": 1, "sigma_m": 0.1}
+        ),
+        "did you mean 'sigmas_m'",
+    ),
+    (
+        json.dumps(
+            {
+                "anchors_m": ANCHORS[:3],
+                "ranges_m": [1, 2, 3],
+                "window_height_m": 1,
+                "sigmas_m": [0.1, 0, 0.1],
+            }
+        ),
+        "sigmas_m[1]",
+    ),
+    (
+        json.dumps(
+            {"anchors_m": ANCHORS[:3], "ranges_m": [1, 2, 3], "window_height_m": 1, "method": "gps"}
+        ),
+        "method",
+    ),
+    (
+        json.dumps(
+            {
+                "anchors_m": ANCHORS[:3],
+                "ranges_m": [1, 2, 3],
+                "window_height_m": 1,
+                "gating": {"false_alarm_probability": 2},
+            }
+        ),
+        "gating.false_alarm_probability",
+    ),
+]
+
+
+@pytest.mark.parametrize(("line", "needle"), BAD_LINES, ids=[n for _, n in BAD_LINES])
+def test_bad_line_gives_invalid_input_and_filter_continues(line, needle, monkeypatch, capsys):
+    good = json.dumps(_problem([1.0, 4.0, 7.5]))
+    rc, recs, err = _run([good, line, good], [], monkeypatch, capsys)
+    assert rc == 0
+    assert [r["status"] for r in recs] == ["ok", "invalid_input", "ok"]
+    assert needle in recs[1]["message"], recs[1]["message"]
+    assert recs[1]["line"] == 2
+    jsonschema.validate(recs[1], RESULT_SCHEMA)
+    assert "1 invalid line" in err
+    rc, recs, _ = _run([good, line, good], ["--strict"], monkeypatch, capsys)
+    assert rc == 1 and len(recs) == 3
+
+
+def test_problem_schema_rejects_what_it_can_express():
+    for bad in (
+        {"ranges_m": [1, 2, 3]},
+        {"anchors_m": ANCHORS[:3], "ranges_m": [1, -2, 3]},
+        {"anchors_m": ANCHORS[:3], "ranges_m": [1, 2, 3], "sigma_m": 1},
+        {"anchors_m": [[0, 1]] * 3, "ranges_m": [1, 2, 3]},
+    ):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(bad, PROBLEM_SCHEMA)
+
+
+def test_methods_mixed_in_one_batch_match_single_solves():
+    node = [1.0, 4.0, 7.5]
+    los = los_path(np.array(ANCHORS), np.array(node))[0].tolist()
+    probs = [
+        _problem(node),
+        {"anchors_m": ANCHORS, "ranges_m": los, "method": "lls"},
+        _problem([3.0, 6.0, 13.5], delta_m=0.0, gating=False),
+        {"anchors_m": ANCHORS[:4], "ranges_m": los[:4], "method": "ippa", "nlos": False},
+        _problem(node, ranges_m=[*_problem(node)["ranges_m"][:4], None]),
+    ]
+    together = solve_records(probs)
+    alone = [solve_records([p])[0] for p in probs]
+    for t, a in zip(together, alone, strict=True):
+        assert t["status"] == a["status"]
+        assert np.allclose(t["position_m"], a["position_m"], atol=1e-9)
+    assert together[1]["method"] == "lls"
+    assert np.allclose(together[1]["position_m"], node, atol=1e-8)
+    assert together[2]["status"] == "ok_unverified"
+    assert together[4]["used_anchors"] == [0, 1, 2, 3]
+    assert together[4]["residuals_m"][4] is None
+    assert [r["line"] for r in together] == [1, 2, 3, 4, 5]
+
+
+def test_gated_exclusion_is_reported(monkeypatch, capsys):
+    prob = _problem([2.0, 5.0, 10.5])
+    prob["ranges_m"][2] += 1.0  # 100 sigma
+    rc, recs, _ = _run([json.dumps(prob)], [], monkeypatch, capsys)
+    assert rc == 0
+    assert recs[0]["excluded_anchors"] == [{"index": 2, "reason": "raim"}]
+    assert recs[0]["residuals_m"][2] is None
+    assert np.allclose(recs[0]["position_m"], [2.0, 5.0, 10.5], atol=0.05)
+
+
+def test_input_file_and_missing_file(tmp_path, capsys):
+    path = tmp_path / "p.jsonl"
+    path.write_text(json.dumps(_problem([2.0, 5.0, 10.5])) + "\n\n" + "oops\n")
+    rc = cli.main(["solve", "--input", str(path)])
+    out, _ = capsys.readouterr()
+    recs = [json.loads(x) for x in out.splitlines()]
+    assert rc == 0 and [r["line"] for r in recs] == [1, 3]  # blank line skipped but counted
+    rc = cli.main(["solve", "--input", str(tmp_path / "missing.jsonl")])
+    _, err = capsys.readouterr()
+    assert rc == 2 and "cannot read --input" in err
+
+
+def test_real_process_pipe():
+    lines = json.dumps(_problem([2.0, 5.0, 10.5], id=1)) + "\n" + "{}\n"
+    exe = Path(sys.executable).parent / "diffpos"
+    proc = subprocess.run(
+        [str(exe), "solve", "--strict", "--batch", "1"],
+        input=lines,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    recs = [json.loads(x) for x in proc.stdout.splitlines()]
+    assert proc.returncode == 1
+    assert recs[0]["status"] == "ok" and recs[0]["id"] == 1
+    assert recs[1]["status"] == "invalid_input" and "anchors_m" in recs[1]["message"]
+    assert "Traceback" not in proc.stderr
+
+
+def test_batch_1_answers_each_line_before_the_next_arrives():
+    exe = Path(sys.executable).parent / "diffpos"
+    proc = subprocess.Popen([str(exe), "solve", "--batch", "1"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        for node in ([2.0, 5.0, 10.5], [-3.0, 7.0, 4.5]):
+            proc.stdin.write(json.dumps(_problem(node)) + "\n")
+            proc.stdin.flush()
+            rec = json.loads(proc.stdout.readline())  # blocks until this line is answered
+            assert np.allclose(rec["position_m"], node, atol=1e-6)
+    finally:
+        proc.stdin.close()
+        assert proc.wait(timeout=60) == 0
+        proc.stdout.close()
+
+
+def test_gating_height_range_and_multistart_options(monkeypatch, capsys):
+    """gating.z_range_m flags an implausible height; bad values name the field."""
+    node = [2.0, 5.0, 10.5]
+    default = _problem(node, id="default")
+    narrow = _problem(node, id="narrow", gating={"z_range_m": [12.0, 30.0],
+                                                 "multistart_exclusion": False})
+    off = _problem(node, id="off", gating={"z_range_m": None})
+    bad = _problem(node, id="bad", gating={"z_range_m": [5.0]})
+    bad2 = _problem(node, id="bad2", gating={"multistart_exclusion": "yes"})
+    for p in (default, narrow, off):
+        jsonschema.validate(p, PROBLEM_SCHEMA)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(bad, PROBLEM_SCHEMA)
+    rc, recs, _ = _run([json.dumps(p) for p in (default, narrow, off, bad, bad2)], (),
+                       monkeypatch, capsys)
+    assert rc == 0
+    by_id = {r["id"]: r for r in recs}
+    assert by_id["default"]["status"] == "ok" and by_id["off"]["status"] == "ok"
+    assert by_id["narrow"]["status"] == "gating_failed"  # z = 10.5 m is outside [12, 30]
+    assert np.allclose(by_id["narrow"]["position_m"], node, atol=1e-6)
+    assert by_id["bad"]["status"] == "invalid_input" and "z_range_m" in by_id["bad"]["message"]
+    assert (by_id["bad2"]["status"] == "invalid_input"
+            and "multistart_exclusion" in by_id["bad2"]["message"])
+    for r in recs:
+        jsonschema.validate(r, RESULT_SCHEMA)

@@ -1,0 +1,258 @@
+"""Wire contract: checked-in schemas == generated ones; real messages validate; keys parse."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import msgspec
+import pytest
+from diffpos_services.wire import keys as K
+from diffpos_services.wire import messages as M
+
+SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas"
+
+
+def _examples() -> dict[type, list[msgspec.Struct]]:
+    est_ok = M.PositionEstimate(
+        node_id="n01",
+        t_ns=1_700_000_000_000_000_000,
+        epoch=17_000_000_000,
+        seq=3,
+        status="OK",
+        position_m=(1.0, 2.0, 7.5),
+        covariance_m2=((0.01, 0.0, 0.0), (0.0, 0.02, 0.0), (0.0, 0.0, 0.03)),
+        peb_m=0.245,
+        z_bound_m=0.17,
+        floor_index=2,
+        used_anchors=["uav1", "uav2", "uav3"],
+        residuals_m=[0.01, -0.02, 0.003],
+        excluded=[M.Exclusion("uav4", "GATED")],
+        message="ok",
+        t_input_wall_ns=5,
+        t_pub_wall_ns=6,
+    )
+    est_bad = M.PositionEstimate(
+        node_id="n02",
+        t_ns=-5,
+        epoch=-1,
+        seq=0,
+        status="UNIDENTIFIABLE",
+        position_m=None,
+        covariance_m2=None,
+        peb_m=M.finite_or_none(float("inf")),
+        z_bound_m=None,
+        floor_index=None,
+        used_anchors=[],
+        residuals_m=[],
+        excluded=[M.Exclusion("uav1", "ANCHOR_LOST")],
+        message="2 anchors: z not identifiable",
+        t_input_wall_ns=0,
+        t_pub_wall_ns=0,
+    )
+    return {
+        M.AnchorState: [
+            M.AnchorState(
+                anchor_id="uav1",
+                t_ns=10,
+                seq=0,
+                position_m=(-20.0, -30.0, 5.0),
+                velocity_m_s=(0.0, 1.0, 0.0),
+                position_sigma_m=(0.02, 0.02, 0.05),
+                velocity_sigma_m_s=0.05,
+                range_rate_hz=10.0,
+                t_pub_wall_ns=11,
+            )
+        ],
+        M.RangeMeasurement: [
+            M.RangeMeasurement(
+                anchor_id="uav1",
+                node_id="n01",
+                t_ns=10,
+                seq=1,
+                range_m=41.25,
+                sigma_m=0.01,
+                snr_db=23.5,
+                t_pub_wall_ns=12,
+            ),
+            M.RangeMeasurement(
+                anchor_id="uav2",
+                node_id="n-7_x",
+                t_ns=10,
+                seq=2,
+                range_m=None,
+                sigma_m=None,
+                snr_db=None,
+                t_pub_wall_ns=12,
+            ),
+        ],
+        M.RangeBatch: [
+            M.RangeBatch(anchor_id="uav3", t_ns=7, seq=9, node_ids=["n01", "n02"],
+                         range_m=[12.5, None], sigma_m=[0.01, None], snr_db=[20.0, None],
+                         t_pub_wall_ns=8),
+        ],
+        M.PositionEstimate: [est_ok, est_bad],
+        M.FusionDiagnostics: [
+            M.FusionDiagnostics(
+                t_wall_ns=1,
+                watermark_ns=None,
+                received={"range": 10, "anchor_state": 2},
+                rejected={"schema": 1},
+                gated=2,
+                solved=3,
+                published=3,
+                fixes_by_status={"OK": 3},
+                late_ranges=0,
+                pending_epochs=1,
+                live_anchors=["uav1"],
+                anchors=[M.AnchorHealth("uav1", True, 2, 10, 5, None)],
+                latency=M.LatencyStats(3, 1.0, 2.0, 2.5),
+            )
+        ],
+        M.GroundTruth: [
+            M.GroundTruth(
+                entity="node",
+                id="n01",
+                t_ns=1,
+                position_m=(1.0, 2.0, 3.0),
+                velocity_m_s=(0.0, 0.0, 0.0),
+                floor_index=0,
+            ),
+        ],
+        M.RunControl: [
+            M.RunControl(
+                run_id="r1", t0_ns=0, wall_t0_ns=5, speed=4.0, duration_ns=10**10, seed=1
+            ),
+            M.RunControl(run_id="r2", t0_ns=0, wall_t0_ns=5, speed=1.0, duration_ns=0, seed=0,
+                         lockstep=True),
+        ],
+        M.RunClock: [M.RunClock(run_id="r2", t_ns=299_999_999)],
+    }
+
+
+@pytest.mark.parametrize("kind", list(M.MESSAGE_TYPES), ids=lambda k: k.__name__)
+def test_checked_in_schema_matches_code(kind):
+    path = SCHEMA_DIR / M.schema_filename(kind)
+    assert path.exists(), f"{path} missing: run python -m diffpos_services.wire.messages --write-schemas schemas/"
+    assert path.read_text() == M.schema_text(kind), (
+        f"{path.name} drifted from the {kind.__name__} struct: regenerate with "
+        "python -m diffpos_services.wire.messages --write-schemas schemas/ (and bump the version "
+        "if the change is breaking)"
+    )
+
+
+@pytest.mark.parametrize("kind", list(M.MESSAGE_TYPES), ids=lambda k: k.__name__)
+def test_schema_is_2020_12_object_at_top(kind):
+    schema = json.loads((SCHEMA_DIR / M.schema_filename(kind)).read_text())
+    jsonschema.Draft202012Validator.check_schema(schema)
+    assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+    assert schema["type"] == "object"
+    text = json.dumps(schema)
+    # only internal references (Foxglove / MCAP viewers)
+    assert all(ref.startswith("#/") for ref in _refs(schema))
+    # every time field is an integer, every physical float names its unit
+    for name, prop in schema["properties"].items():
+        if name.endswith("_ns"):
+            assert "integer" in json.dumps(prop), name
+    assert "schema" in schema["required"]
+    assert M.MESSAGE_TYPES[kind].split(".")[0] in text
+
+
+def _refs(obj):
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            if k == "$ref":
+                yield v
+            else:
+                yield from _refs(v)
+    elif isinstance(obj, list):
+        for v in obj:
+            yield from _refs(v)
+
+
+@pytest.mark.parametrize("kind", list(M.MESSAGE_TYPES), ids=lambda k: k.__name__)
+def test_encoded_messages_validate_and_roundtrip(kind):
+    schema = json.loads((SCHEMA_DIR / M.schema_filename(kind)).read_text())
+    validator = jsonschema.Draft202012Validator(schema)
+    dec = M.decoder(kind)
+    for msg in _examples()[kind]:
+        raw = M.encode(msg)
+        doc = json.loads(raw)
+        validator.validate(doc)
+        assert doc["schema"] == "diffpos." + M.MESSAGE_TYPES[kind]
+        assert dec(raw) == msg
+
+
+def test_schema_rejects_what_the_decoder_rejects():
+    """Negative cases: a NaN turned into null, a wrong tag, a float time, a bad id."""
+    schema = json.loads((SCHEMA_DIR / "range.v1.json").read_text())
+    validator = jsonschema.Draft202012Validator(schema)
+    good = json.loads(M.encode(_examples()[M.RangeMeasurement][0]))
+    dec = M.decoder(M.RangeMeasurement)
+    for field, value in [
+        ("sigma_m", 0.0),
+        ("schema", "diffpos.range.v2"),
+        ("t_ns", 1.5),
+        ("node_id", "a/b"),
+        ("range_m", -1.0),
+        ("seq", -1),
+    ]:
+        bad = dict(good, **{field: value})
+        assert not validator.is_valid(bad), field
+        with pytest.raises(M.DecodeError) as info:
+            dec(json.dumps(bad).encode())
+        assert info.value.reason == "schema"
+    with pytest.raises(M.DecodeError) as info:
+        dec(b"{not json")
+    assert info.value.reason == "json"
+
+
+def test_nonfinite_values_never_reach_the_wire():
+    assert M.finite_or_none(float("nan")) is None
+    assert M.finite_or_none(float("inf")) is None
+    assert M.finite_or_none(2) == 2.0
+
+
+def test_keys_roundtrip_and_patterns():
+    k = K.Keys("site-1")
+    cases = {
+        k.anchor_state("uav1"): ("anchor_state", "uav1", None),
+        k.anchor_range("uav1", "n01"): ("range", "uav1", "n01"),
+        k.anchor_range_batch("uav1"): ("range_batch", "uav1", None),
+        k.node_estimate("n01"): ("estimate", None, "n01"),
+        k.fusion_diagnostics(): ("diagnostics", None, None),
+        k.truth_node("n01"): ("truth_node", None, "n01"),
+        k.truth_anchor("uav2"): ("truth_anchor", "uav2", None),
+        k.run_control(): ("run_control", None, None),
+        k.run_clock(): ("run_clock", None, None),
+        k.alive_anchor("uav2"): ("alive_anchor", "uav2", None),
+        k.alive_fusion(): ("alive_fusion", None, None),
+        k.alive_recorder(): ("alive_recorder", None, None),
+    }
+    for key, (kind, a, n) in cases.items():
+        p = K.parse_key(key)
+        assert p == K.ParsedKey(kind, "site-1", a, n), key
+        assert key.startswith(k.root + "/")
+    assert K.parse_key("other/x/anchor/a/state") is None
+    assert K.parse_key("diffpos/s/anchor/a/bogus") is None
+    with pytest.raises(ValueError, match="site"):
+        K.Keys("a/b")
+    with pytest.raises(ValueError, match="anchor_id"):
+        K.check_id("*", field="anchor_id")
+
+
+def test_fusion_inputs_never_include_truth():
+    """The fusion's subscriptions must not intersect the truth keys (checked structurally)."""
+    import zenoh
+
+    k = K.Keys("s")
+    truth = [zenoh.KeyExpr(k.truth_node("n01")), zenoh.KeyExpr(k.truth_anchor("uav1")),
+             zenoh.KeyExpr(k.truth_all())]
+    for pattern in k.fusion_inputs():
+        ke = zenoh.KeyExpr(pattern)
+        for t in truth:
+            assert not ke.intersects(t), (pattern, str(t))
+    # and they do see what they need
+    assert zenoh.KeyExpr(k.anchor_ranges()).intersects(zenoh.KeyExpr(k.anchor_range("uav1", "n1")))
+    assert zenoh.KeyExpr(k.everything()).intersects(truth[0])
