@@ -29,6 +29,7 @@ import msgspec
 
 __all__ = [
     "ConfigError",
+    "DiffposError",
     "LogOnce",
     "Shutdown",
     "add_logging_arguments",
@@ -80,8 +81,20 @@ def stop_process_groups(
     return codes
 
 
-class ConfigError(ValueError):
+class DiffposError(Exception):
+    """Base of every error diffpos reports to a person: the message says what to fix.
+
+    ``exit_code`` is the process exit code the CLI returns for it (one place:
+    :func:`diffpos_services.cli.main.main` and :func:`run_main`); subclasses set their own.
+    """
+
+    exit_code: int = 1
+
+
+class ConfigError(DiffposError, ValueError):
     """Invalid service configuration; the message names the field and what to fix."""
+
+    exit_code = 2
 
 
 def build_config(kind: type[T], values: Mapping[str, Any]) -> T:
@@ -248,12 +261,12 @@ class Shutdown:
 
 
 def run_main(fn: Callable[[], int], logger: logging.Logger) -> int:
-    """Run a service body; map :class:`ConfigError` to exit code 2 with a one-line message."""
+    """Run a service body; map a :class:`DiffposError` to its exit code with a one-line message."""
     try:
         return int(fn() or 0)
-    except ConfigError as exc:
+    except DiffposError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     except KeyboardInterrupt:
         return 130
     except Exception as exc:  # pragma: no cover - last resort, logged with traceback
