@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 from diffpos_services.dashboard import views as d
+from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.wire import messages as m
 
 
@@ -55,7 +56,7 @@ def _batches(msgs, period_ns):
 
 
 def bench_live(args, tmp: Path) -> dict:
-    building, msgs = d.synthetic_run(
+    building, msgs = synthetic_run(
         n_anchors=args.anchors,
         n_nodes=args.nodes,
         duration_s=args.live_seconds,
@@ -105,7 +106,7 @@ def bench_zenoh(args, tmp: Path) -> dict:
     from diffpos_services.dashboard.service import DashboardService, RerunTarget, open_rerun
     from diffpos_services.emulate import free_tcp_port
 
-    building, msgs = d.synthetic_run(
+    building, msgs = synthetic_run(
         n_anchors=args.anchors,
         n_nodes=args.nodes,
         duration_s=args.zenoh_seconds,
@@ -162,7 +163,7 @@ def write_recording(args, path: Path) -> int:
     from diffpos_services.recording.mcap_io import McapSink
 
     t = time.perf_counter()
-    _, msgs = d.synthetic_run(
+    _, msgs = synthetic_run(
         n_anchors=args.anchors,
         n_nodes=args.nodes,
         duration_s=args.minutes * 60.0,

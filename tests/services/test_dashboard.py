@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import rerun.chunk as rc
 from diffpos_services.dashboard import views as d
+from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.wire import messages as m
 
 RERUN_CLI = Path(sys.executable).with_name("rerun")
@@ -28,7 +29,7 @@ read_rrd = d.rrd_rows
 
 @pytest.fixture(scope="module")
 def run():
-    building, msgs = d.synthetic_run(n_anchors=5, n_nodes=4, duration_s=8.0, rate_hz=10.0, seed=3)
+    building, msgs = synthetic_run(n_anchors=5, n_nodes=4, duration_s=8.0, rate_hz=10.0, seed=3)
     return building, msgs
 
 

@@ -29,6 +29,7 @@ from diffpos_services.dashboard.service import (
     display_available,
     open_rerun,
 )
+from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.emulate import free_tcp_port
 from diffpos_services.wire import messages as m
 
@@ -82,7 +83,7 @@ def publishers_matched(session, keys):
 
 def test_live_service_draws_what_fusion_published(sessions, tmp_path):
     pub_s, sub_s = sessions
-    building, msgs = d.synthetic_run(n_anchors=3, n_nodes=3, duration_s=3.0, seed=5)
+    building, msgs = synthetic_run(n_anchors=3, n_nodes=3, duration_s=3.0, seed=5)
     site = "live1"
     path = tmp_path / "live.rrd"
     rec, how = open_rerun(RerunTarget(mode="save", path=str(path)), recording_id="live1")
@@ -125,7 +126,7 @@ def test_live_service_draws_what_fusion_published(sessions, tmp_path):
 
 def test_ring_buffer_drops_the_oldest_and_never_blocks_the_publisher(sessions, tmp_path):
     pub_s, sub_s = sessions
-    _, msgs = d.synthetic_run(n_anchors=3, n_nodes=1, duration_s=20.0, seed=2)
+    _, msgs = synthetic_run(n_anchors=3, n_nodes=1, duration_s=20.0, seed=2)
     ests = [x for x in msgs if isinstance(x, m.PositionEstimate)][:200]
     site = "ring"
     path = tmp_path / "ring.rrd"
@@ -200,7 +201,7 @@ def test_dashboard_cli_process_end_to_end(tmp_path, endpoint):
     reader = threading.Thread(target=read_stderr, daemon=True)
     reader.start()
     try:
-        _, msgs = d.synthetic_run(n_anchors=2, n_nodes=2, duration_s=2.0, seed=9)
+        _, msgs = synthetic_run(n_anchors=2, n_nodes=2, duration_s=2.0, seed=9)
         ests = [x for x in msgs if isinstance(x, m.PositionEstimate)]
         with zenoh.open(ZenohSettings(mode="client", connect=(ep,)).to_config()) as s:
             keys = [d.key_of(x, site="cli") for x in msgs]
@@ -243,7 +244,7 @@ def test_wait_received_returns_once_everything_arrived(sessions, tmp_path):
     """``DashboardService.wait_received(n)`` wakes up when the n-th sample arrives (what a
     caller waits on before stopping the service) and says False on a timeout."""
     pub_s, sub_s = sessions
-    _, msgs = d.synthetic_run(n_anchors=2, n_nodes=2, duration_s=1.0, seed=3)
+    _, msgs = synthetic_run(n_anchors=2, n_nodes=2, duration_s=1.0, seed=3)
     rec, _ = open_rerun(RerunTarget(mode="save", path=str(tmp_path / "w.rrd")))
     svc = DashboardService(sub_s, rec, site="wait1")
     svc.start()

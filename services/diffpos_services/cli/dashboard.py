@@ -180,7 +180,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _demo(rec, building, target) -> int:
-    from diffpos_services.dashboard.views import Dashboard, synthetic_run
+    from diffpos_services.dashboard.synthetic import synthetic_run
+    from diffpos_services.dashboard.views import Dashboard
 
     b, msgs = synthetic_run(n_anchors=8, n_nodes=20, duration_s=60.0, seed=1)
     dash = Dashboard(rec, building=building or b)
