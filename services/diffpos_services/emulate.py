@@ -41,6 +41,7 @@ import numpy as np
 
 from diffpos_services.anchor.service import TimeBase, emulation_nodes
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
+from diffpos_services.fusion.config import FusionConfig, model_edge
 from diffpos_services.kit import ConfigError, free_tcp_port, log_event, stop_process_groups
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
@@ -246,7 +247,7 @@ class Emulation:
                             "--delta-m", str(options.delta_m), "--edge", edge]
         if options.scenario:
             self.fusion_args += ["--scenario", options.scenario]
-        self.fusion_config, self.edge, self.edge_reason = self._fusion_config()
+        self.fusion_config, self.edge, self.edge_reason = self._fusion_config(edge)
         self.profile = None
         if options.security_profile is not None:
             self.profile = self._load_profile(options.security_profile)
@@ -350,17 +351,12 @@ class Emulation:
             on_kill=lambda pp: log_event(self.log, logging.WARNING,
                                          "did not stop on SIGTERM, killing", service=group[pp]))
 
-    def _fusion_config(self) -> tuple[Any, str, str]:
-        """The fusion's config exactly as ``diffpos fusion`` builds it from our arguments."""
-        import argparse
-
-        from diffpos_services.cli import fusion as cmd_fusion
-
-        parser = argparse.ArgumentParser()
-        cmd_fusion.add_arguments(parser)
-        args = parser.parse_args(["--site", self.o.site, *self.fusion_args])
-        cfg = cmd_fusion.config_from_args(args, self.scenario)
-        edge, why = cmd_fusion.model_edge(args, self.scenario)
+    def _fusion_config(self, edge: str) -> tuple[FusionConfig, str, str]:
+        """The fusion's config exactly as ``diffpos fusion`` builds it from ``fusion_args``."""
+        cfg = FusionConfig.from_scenario(self.scenario, edge=edge, site=self.o.site,
+                                         delta_m=self.o.delta_m,
+                                         epoch_period_s=1.0 / self.o.rate_hz)
+        edge, why = model_edge(edge, self.scenario)
         return cfg, edge, why
 
     def _write_run_config(self) -> str:

@@ -33,14 +33,14 @@ from __future__ import annotations
 import argparse
 import logging
 
-import msgspec
-
+from diffpos_services.anchor.service import emulation_nodes, load_scenario_file
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
+from diffpos_services.fusion.config import EDGES, FusionConfig, model_edge
+from diffpos_services.fusion.core import run_fusion
 from diffpos_services.kit import (
     ConfigError,
     Shutdown,
     add_logging_arguments,
-    build_config,
     log_event,
     run_main,
     setup_logging,
@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--delta-m", type=float, default=0.0, help="Case-2 offset Delta [m] (default 0)"
     )
     parser.add_argument(
-        "--edge", choices=["upper", "lower", "auto"], default="upper",
+        "--edge", choices=list(EDGES), default="upper",
         help="window edge of the path model: upper (the paper's D-NLS, default), lower, or auto: "
         "lower when every anchor of the scenario flies below the lowest window (that diffracted "
         "path is then the shorter one and usually arrives first), else upper",
@@ -112,9 +112,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_logging_arguments(parser)
 
 
-def config_from_args(args: argparse.Namespace, scenario=None):
-    from diffpos_services.fusion.core import FusionConfig
-
+def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
+    """The :class:`FusionConfig` of the command line (geometry and edge rule: ``from_scenario``)."""
     values = dict(
         site=args.site,
         method=getattr(args, "method", "dnls"),
@@ -126,39 +125,13 @@ def config_from_args(args: argparse.Namespace, scenario=None):
         motion_compensation=not args.no_motion_compensation,
         diagnostics_period_s=args.diagnostics_period_s,
     )
-    if scenario is not None:
-        b = scenario.building
-        values.update(
-            window_height_m=b.window_height_m,
-            edge_x_m=tuple(b.edge_x_m),
-            first_floor_z_m=b.first_floor_z_m,
-            floor_height_m=b.floor_height_m,
-            n_floors=b.n_floors,
-        )
     if args.window_height_m is not None:
         values["window_height_m"] = args.window_height_m
     for name in ("anchors", "nodes"):
         ids = allow_list(getattr(args, name, None), name, scenario)
         if ids is not None:
             values[name] = ids
-    cfg = build_config(FusionConfig, values)
-    if model_edge(args, scenario)[0] == "lower":
-        # the lower edge is the upper edge one window height lower: Delta + w
-        cfg = msgspec.structs.replace(cfg, delta_m=cfg.delta_m + cfg.window_height_m)
-    return cfg
-
-
-def model_edge(args: argparse.Namespace, scenario=None) -> tuple[str, str]:
-    """The window edge ``--edge`` selects, and why (``auto`` needs the scenario)."""
-    edge = getattr(args, "edge", "upper")
-    if edge != "auto":
-        return edge, f"--edge {edge}"
-    if scenario is None:
-        return "upper", "auto without a scenario: the paper's upper edge"
-    from diffpos.scenario import first_arrival_edge
-
-    chosen, why = first_arrival_edge(scenario)
-    return chosen, f"auto: {why}"
+    return FusionConfig.from_scenario(scenario, edge=getattr(args, "edge", "upper"), **values)
 
 
 def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
@@ -181,10 +154,6 @@ def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
             raise ConfigError(f"--{name} scenario: no scenario given (use --scenario TOML)")
         if name == "anchors":
             return [a.id for a in scenario.anchors]
-        from diffpos_services.anchor.service import (
-            emulation_nodes,  # the nodes the anchors actually range to
-        )
-
         return [nid for nid, _ in emulation_nodes(scenario)]
     ids = [v.strip() for v in text.split(",") if v.strip()]
     if not ids:
@@ -198,12 +167,9 @@ def run(args: argparse.Namespace) -> int:
     log = setup_logging("fusion", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:
-        from diffpos_services.anchor.service import load_scenario_file
-        from diffpos_services.fusion.core import run_fusion
-
         scenario = load_scenario_file(args.scenario)
         cfg = config_from_args(args, scenario)
-        edge, why = model_edge(args, scenario)
+        edge, why = model_edge(args.edge, scenario)
         log_event(log, logging.INFO, "path model", edge=edge, delta_m=cfg.delta_m, why=why)
         zs = service_settings(args, log)
         stop = Shutdown(log)

@@ -27,14 +27,11 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import Annotated, Any, Literal
+from typing import Any
 
-import msgspec
 import numpy as np
-from msgspec import Meta
 
 from diffpos.alignment import (
-    AlignmentConfig,
     EpochBook,
     PendingEpoch,
     RangeEntry,
@@ -43,6 +40,7 @@ from diffpos.alignment import (
     effective_sigma_m,
 )
 from diffpos_services.bus.session import ZenohSettings, open_session
+from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
@@ -63,82 +61,6 @@ def fusion_subscription(keys: Keys) -> str:
     Keys under ``anchor/`` that are not fusion inputs are counted as ``unexpected_key``.
     """
     return f"{keys.root}/anchor/**"
-
-
-class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
-    """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
-
-    site: str = "demo"
-    method: Literal["dnls", "lls", "ippa"] = "dnls"
-    """Estimator of the solve step: ``dnls`` (diffraction-aware D-NLS with gating and warm
-    starts, default), ``lls`` (line-of-sight linear least squares, the paper's baseline) or
-    ``ippa`` (iterative parallel projection, every range possibly NLoS). Gating, window
-    geometry and warm starts are D-NLS-only; ``lls``/``ippa`` get the same (motion-
-    compensated) ranges, effective sigmas and masks."""
-    window_height_m: Annotated[float, Meta(gt=0)] = 1.5
-    delta_m: float = 0.0
-    edge_x_m: tuple[float, float] | None = None
-    first_floor_z_m: float = 3.0
-    floor_height_m: Annotated[float, Meta(gt=0)] = 3.0
-    n_floors: Annotated[int, Meta(ge=1)] = 5
-    epoch_period_s: Annotated[float, Meta(gt=0, le=10)] = 0.1
-    clock_tolerance_s: Annotated[float, Meta(ge=0, le=1)] = 0.005
-    deadline_s: Annotated[float, Meta(gt=0, le=60)] = 0.3
-    max_state_extrapolation_s: Annotated[float, Meta(ge=0)] = 0.5
-    node_speed_sigma_m_s: Annotated[float, Meta(ge=0)] = 1.0
-    velocity_sigma_m_s: Annotated[float, Meta(ge=0)] = 0.3
-    motion_compensation: bool = True
-    gating: bool = True
-    false_alarm_probability: Annotated[float, Meta(gt=0, lt=1)] = 1e-3
-    min_snr_db: float | None = None
-    warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
-    cold_retry_period_s: Annotated[float, Meta(ge=0)] = 1.0
-    diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
-    queue_size: Annotated[int, Meta(ge=16)] = 8192
-    max_queued_bytes: Annotated[int, Meta(ge=1 << 20)] = 32 << 20
-    state_history_s: Annotated[float, Meta(gt=0, le=3600)] = 60.0
-    max_fixes_per_step: Annotated[int, Meta(ge=1)] = 4096
-    linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
-    # ---- what is accepted (docs/bad_input.md)
-    anchors: tuple[str, ...] | None = None
-    """Allow-list of anchor ids (``None``: any anchor with a valid id)."""
-    nodes: tuple[str, ...] | None = None
-    """Allow-list of node ids (``None``: any node with a valid id)."""
-    max_anchors: Annotated[int, Meta(ge=1, le=100_000)] = 256
-    max_nodes: Annotated[int, Meta(ge=1, le=10_000_000)] = 100_000
-    max_message_bytes: Annotated[int, Meta(ge=1024)] = 4 * 1024 * 1024
-    max_range_m: Annotated[float, Meta(gt=0)] = 10_000.0
-    min_sigma_m: Annotated[float, Meta(ge=0)] = 1e-4
-    max_sigma_m: Annotated[float, Meta(gt=0)] = 1_000.0
-    max_coordinate_m: Annotated[float, Meta(gt=0)] = 100_000.0
-    max_speed_m_s: Annotated[float, Meta(gt=0)] = 1_000.0
-    max_future_s: Annotated[float, Meta(gt=0, le=3600)] = 1.0
-    max_past_s: Annotated[float, Meta(gt=0, le=86_400)] = 30.0
-    time_resync_after: Annotated[int, Meta(ge=1, le=10_000)] = 20
-
-    def check(self) -> None:
-        from diffpos_services.wire.keys import check_id
-
-        check_id(self.site, field="site")
-        if self.edge_x_m is not None and self.edge_x_m[0] == self.edge_x_m[1]:
-            raise ValueError("edge_x_m: the two x limits must differ")
-        for name in ("anchors", "nodes"):
-            for i, v in enumerate(getattr(self, name) or ()):
-                check_id(v, field=f"{name}[{i}]")
-        if self.min_sigma_m >= self.max_sigma_m:
-            raise ValueError(f"min_sigma_m={self.min_sigma_m} must be < max_sigma_m="
-                             f"{self.max_sigma_m} [m]")
-
-    def alignment(self) -> AlignmentConfig:
-        return AlignmentConfig(
-            epoch_period_ns=round(self.epoch_period_s * 1e9),
-            clock_tolerance_ns=round(self.clock_tolerance_s * 1e9),
-            deadline_ns=round(self.deadline_s * 1e9),
-            max_state_extrapolation_ns=round(self.max_state_extrapolation_s * 1e9),
-            node_speed_sigma_m_s=self.node_speed_sigma_m_s,
-            velocity_sigma_m_s=self.velocity_sigma_m_s,
-            max_future_ns=round(self.max_future_s * 1e9),
-        )
 
 
 class _Anchor:

@@ -1,0 +1,186 @@
+"""The fusion's configuration and its path-model rule, in one place.
+
+:class:`FusionConfig` is the typed, validated configuration of the fusion service. It is built
+from a scenario by :meth:`FusionConfig.from_scenario` (the ``diffpos fusion`` and ``diffpos
+emulate`` path) or, for a recording that does not store its settings, by
+:meth:`FusionConfig.from_recording` (``diffpos replay``). Both apply the one window-edge rule
+(:func:`model_edge`): ``"upper"`` is the paper's D-NLS, ``"lower"`` is the same model one window
+height lower (``Delta + w``), and ``"auto"`` asks :func:`diffpos.scenario.first_arrival_edge`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Annotated, Any, Literal
+
+import msgspec
+from msgspec import Meta
+
+from diffpos.alignment import AlignmentConfig
+from diffpos.scenario import Scenario, first_arrival_edge
+from diffpos_services.kit import build_config
+from diffpos_services.wire.keys import check_id
+
+__all__ = ["EDGES", "FusionConfig", "model_edge"]
+
+#: The window edges of the path model (``--edge``).
+EDGES = ("upper", "lower", "auto")
+
+# the building geometry a scenario gives the fusion (FusionConfig field names)
+_GEOMETRY = ("window_height_m", "edge_x_m", "first_floor_z_m", "floor_height_m", "n_floors")
+
+
+def model_edge(edge: str, scenario: Scenario | None = None) -> tuple[str, str]:
+    """The window edge of the path model that ``edge`` selects, and why.
+
+    ``"upper"`` and ``"lower"`` are taken as given; ``"auto"`` is the edge whose diffracted
+    path arrives first for the scenario's anchors (:func:`diffpos.scenario.first_arrival_edge`:
+    lower when every anchor flies below the lowest window), or the paper's upper edge when
+    there is no scenario.
+
+    Returns
+    -------
+    edge : {"upper", "lower"}
+    why : str
+        One line for the log and the run configuration.
+    """
+    if edge != "auto":
+        return edge, f"--edge {edge}"
+    if scenario is None:
+        return "upper", "auto without a scenario: the paper's upper edge"
+    chosen, why = first_arrival_edge(scenario)
+    return chosen, f"auto: {why}"
+
+
+class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
+    """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
+
+    site: str = "demo"
+    method: Literal["dnls", "lls", "ippa"] = "dnls"
+    """Estimator of the solve step: ``dnls`` (diffraction-aware D-NLS with gating and warm
+    starts, default), ``lls`` (line-of-sight linear least squares, the paper's baseline) or
+    ``ippa`` (iterative parallel projection, every range possibly NLoS). Gating, window
+    geometry and warm starts are D-NLS-only; ``lls``/``ippa`` get the same (motion-
+    compensated) ranges, effective sigmas and masks."""
+    window_height_m: Annotated[float, Meta(gt=0)] = 1.5
+    delta_m: float = 0.0
+    edge_x_m: tuple[float, float] | None = None
+    first_floor_z_m: float = 3.0
+    floor_height_m: Annotated[float, Meta(gt=0)] = 3.0
+    n_floors: Annotated[int, Meta(ge=1)] = 5
+    epoch_period_s: Annotated[float, Meta(gt=0, le=10)] = 0.1
+    clock_tolerance_s: Annotated[float, Meta(ge=0, le=1)] = 0.005
+    deadline_s: Annotated[float, Meta(gt=0, le=60)] = 0.3
+    max_state_extrapolation_s: Annotated[float, Meta(ge=0)] = 0.5
+    node_speed_sigma_m_s: Annotated[float, Meta(ge=0)] = 1.0
+    velocity_sigma_m_s: Annotated[float, Meta(ge=0)] = 0.3
+    motion_compensation: bool = True
+    gating: bool = True
+    false_alarm_probability: Annotated[float, Meta(gt=0, lt=1)] = 1e-3
+    min_snr_db: float | None = None
+    warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
+    cold_retry_period_s: Annotated[float, Meta(ge=0)] = 1.0
+    diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
+    queue_size: Annotated[int, Meta(ge=16)] = 8192
+    max_queued_bytes: Annotated[int, Meta(ge=1 << 20)] = 32 << 20
+    state_history_s: Annotated[float, Meta(gt=0, le=3600)] = 60.0
+    max_fixes_per_step: Annotated[int, Meta(ge=1)] = 4096
+    linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
+    # ---- what is accepted (docs/bad_input.md)
+    anchors: tuple[str, ...] | None = None
+    """Allow-list of anchor ids (``None``: any anchor with a valid id)."""
+    nodes: tuple[str, ...] | None = None
+    """Allow-list of node ids (``None``: any node with a valid id)."""
+    max_anchors: Annotated[int, Meta(ge=1, le=100_000)] = 256
+    max_nodes: Annotated[int, Meta(ge=1, le=10_000_000)] = 100_000
+    max_message_bytes: Annotated[int, Meta(ge=1024)] = 4 * 1024 * 1024
+    max_range_m: Annotated[float, Meta(gt=0)] = 10_000.0
+    min_sigma_m: Annotated[float, Meta(ge=0)] = 1e-4
+    max_sigma_m: Annotated[float, Meta(gt=0)] = 1_000.0
+    max_coordinate_m: Annotated[float, Meta(gt=0)] = 100_000.0
+    max_speed_m_s: Annotated[float, Meta(gt=0)] = 1_000.0
+    max_future_s: Annotated[float, Meta(gt=0, le=3600)] = 1.0
+    max_past_s: Annotated[float, Meta(gt=0, le=86_400)] = 30.0
+    time_resync_after: Annotated[int, Meta(ge=1, le=10_000)] = 20
+
+    def check(self) -> None:
+        check_id(self.site, field="site")
+        if self.edge_x_m is not None and self.edge_x_m[0] == self.edge_x_m[1]:
+            raise ValueError("edge_x_m: the two x limits must differ")
+        for name in ("anchors", "nodes"):
+            for i, v in enumerate(getattr(self, name) or ()):
+                check_id(v, field=f"{name}[{i}]")
+        if self.min_sigma_m >= self.max_sigma_m:
+            raise ValueError(f"min_sigma_m={self.min_sigma_m} must be < max_sigma_m="
+                             f"{self.max_sigma_m} [m]")
+
+    def alignment(self) -> AlignmentConfig:
+        return AlignmentConfig(
+            epoch_period_ns=round(self.epoch_period_s * 1e9),
+            clock_tolerance_ns=round(self.clock_tolerance_s * 1e9),
+            deadline_ns=round(self.deadline_s * 1e9),
+            max_state_extrapolation_ns=round(self.max_state_extrapolation_s * 1e9),
+            node_speed_sigma_m_s=self.node_speed_sigma_m_s,
+            velocity_sigma_m_s=self.velocity_sigma_m_s,
+            max_future_ns=round(self.max_future_s * 1e9),
+        )
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_scenario(cls, scenario: Scenario | None, *, edge: str = "upper",
+                      **overrides: Any) -> FusionConfig:
+        """The fusion's configuration for ``scenario``'s building, with ``overrides``.
+
+        Parameters
+        ----------
+        scenario : Scenario or None
+            Gives the building geometry (window height, edge x limits, floors); ``None``
+            keeps the defaults.
+        edge : {"upper", "lower", "auto"}
+            Window edge of the path model (:func:`model_edge`); the lower edge is the upper
+            edge one window height lower, so it adds ``window_height_m`` to ``delta_m``.
+        **overrides
+            Any :class:`FusionConfig` field; they win over the scenario's geometry
+            (e.g. ``window_height_m``).
+
+        Raises
+        ------
+        ConfigError
+            Naming the invalid field.
+        """
+        values = {k: v for k, v in overrides.items() if k not in _GEOMETRY}
+        if scenario is not None:
+            b = scenario.building
+            values.update(
+                window_height_m=b.window_height_m,
+                edge_x_m=tuple(b.edge_x_m),
+                first_floor_z_m=b.first_floor_z_m,
+                floor_height_m=b.floor_height_m,
+                n_floors=b.n_floors,
+            )
+        values.update({k: v for k, v in overrides.items() if k in _GEOMETRY})
+        cfg = build_config(cls, values)
+        if model_edge(edge, scenario)[0] == "lower":
+            # the lower edge is the upper edge one window height lower: Delta + w
+            cfg = msgspec.structs.replace(cfg, delta_m=cfg.delta_m + cfg.window_height_m)
+        return cfg
+
+    @classmethod
+    def from_recording(cls, run_metadata: Mapping[str, Any],
+                       scenario: Scenario | None) -> FusionConfig:
+        """The settings ``diffpos emulate`` starts the fusion with, for a recording that does
+        not store them.
+
+        Parameters
+        ----------
+        run_metadata : mapping
+            ``site`` (str) and, if known, ``range_rate_hz`` (float, the anchors' ranging
+            rate from the first anchor state: the epoch period is one ranging period).
+        scenario : Scenario or None
+            The recording's scenario (its building geometry).
+        """
+        overrides: dict[str, Any] = {"site": run_metadata["site"]}
+        rate = run_metadata.get("range_rate_hz")
+        if rate is not None:
+            overrides["epoch_period_s"] = 1.0 / rate
+        return cls.from_scenario(scenario, **overrides)
