@@ -1,0 +1,87 @@
+"""diffpos.metrics against values computed by hand."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from diffpos import metrics
+
+NAN3 = [math.nan] * 3
+
+
+def test_percentiles_linear_interpolation_max_mean():
+    out = metrics.percentiles([4.0, 1.0, 3.0, 2.0], (50, 90))
+    # sorted 1 2 3 4: p50 at index 1.5 -> 2.5, p90 at index 2.7 -> 3.7
+    assert out == pytest.approx({"p50": 2.5, "p90": 3.7, "max": 4.0, "mean": 2.5})
+    assert list(out) == ["p50", "p90", "max", "mean"]
+
+
+def test_percentiles_empty_and_without_max_mean():
+    assert metrics.percentiles([]) == {
+        "p50": None, "p67": None, "p90": None, "p95": None, "p99": None, "max": None, "mean": None
+    }
+    assert metrics.percentiles([1.0, 3.0], (50,), max_mean=False) == {"p50": 2.0}
+
+
+def test_availability_counts_a_missing_position_as_a_miss():
+    assert metrics.availability([True, False, True, True]) == 0.75
+    assert metrics.availability([]) is None
+
+
+def test_floor_accuracy_over_all_node_epochs_and_over_fixes():
+    # the 4th node-epoch has the right floor index but no position: a miss for "all"
+    all_, fixes = metrics.floor_accuracy([0, 1, 2, 2], [0, 1, 1, 2], [True, True, True, False])
+    assert all_ == 2 / 4
+    assert fixes == 2 / 3
+    assert metrics.floor_accuracy([], []) == (None, None)
+
+
+def test_ellipsoid_coverage_chi2_3dof_95():
+    # chi2_3 95 % quantile = 7.8147: d^T C^-1 d = 4 (in), 9 (out), 9/4 (in), NaN row left out
+    d = [[2.0, 0, 0], [3.0, 0, 0], [3.0, 0, 0], NAN3]
+    c = [np.eye(3), np.eye(3), 4 * np.eye(3), np.eye(3)]
+    assert metrics.ellipsoid_coverage(d, c) == pytest.approx(2 / 3)
+    # 99 %: quantile 11.34 -> all three inside
+    assert metrics.ellipsoid_coverage(d, c, probability=0.99) == 1.0
+    assert metrics.ellipsoid_coverage([NAN3], [np.eye(3)]) is None
+
+
+def test_score_all_quantities():
+    est = [[1.0, 0, 0], NAN3, [0, 3.0, 4.0]]
+    s = metrics.score(est, np.zeros((3, 3)), estimate_floor=[0, 0, 1], truth_floor=[0, 0, 0],
+                      covariance_m2=[np.eye(3), np.full((3, 3), np.nan), np.eye(3)], q=(50,))
+    assert s.node_epochs == 3 and s.fixes == 2
+    assert s.availability == pytest.approx(2 / 3)
+    assert s.error_3d_m == pytest.approx({"p50": 3.0, "max": 5.0, "mean": 3.0})
+    assert s.error_z_m == pytest.approx({"p50": 2.0, "max": 4.0, "mean": 2.0})
+    assert s.error_h_m == pytest.approx({"p50": 2.0, "max": 3.0, "mean": 2.0})
+    assert s.rmse_3d_m == pytest.approx(math.sqrt(13.0))
+    assert s.floor_accuracy_all == pytest.approx(1 / 3)
+    assert s.floor_accuracy_fixes == 0.5
+    assert s.ellipsoid_coverage == 0.5  # |d|^2 = 1 inside, 25 outside
+    assert s.as_dict()["fixes"] == 2
+
+
+def test_score_without_floors_or_covariances():
+    s = metrics.score([NAN3], [[0.0, 0, 0]])
+    assert (s.fixes, s.availability, s.rmse_3d_m) == (0, 0.0, None)
+    assert s.floor_accuracy_all is None and s.ellipsoid_coverage is None
+    with pytest.raises(ValueError, match="shape"):
+        metrics.score(np.zeros((2, 3)), np.zeros((3, 3)))
+
+
+def test_error_stats_replay_group():
+    e3 = np.array([1.0, 2.0])
+    out = metrics.error_stats(e3, np.array([0.5, 1.0]), np.array([0.8, 1.5]),
+                              np.array([True, False]), np.array([0.6, np.nan]), fixes=4)
+    assert out["fixes"] == 4 and out["evaluated"] == 2 and out["availability"] == 0.5
+    assert out["rmse_3d_m"] == pytest.approx(math.sqrt(2.5))
+    assert out["floor_accuracy"] == 0.5
+    assert out["peb_m"]["p50"] == 0.6
+    assert out["within_2peb"] == 1.0  # 1.0 <= 2 * 0.6; the NaN PEB row is not counted
+    empty = metrics.error_stats(np.empty(0), np.empty(0), np.empty(0), np.empty(0, bool),
+                                np.empty(0), fixes=0)
+    assert empty["availability"] is None and empty["within_2peb"] is None
