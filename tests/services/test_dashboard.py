@@ -17,6 +17,8 @@ import numpy as np
 import pytest
 import rerun.chunk as rc
 from diffpos_services.dashboard import views as d
+from diffpos_services.dashboard.common import _EXCLUDED_COLOR
+from diffpos_services.dashboard.convert import _kind_scanner
 from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.wire import messages as m
 
@@ -237,7 +239,7 @@ def test_excluded_paths_are_red_and_used_ones_in_anchor_colour(bulk, run):
     order = sorted([(a, True) for a in e.used_anchors] + [(a, False) for a in gated])
     got = sorted(tuple(rgba(c)) for c in colors)
     want = sorted(
-        tuple(d.anchor_color(a)) if used else tuple(d._EXCLUDED_COLOR) for a, used in order
+        tuple(d.anchor_color(a)) if used else tuple(_EXCLUDED_COLOR) for a, used in order
     )
     assert got == want
 
@@ -420,7 +422,7 @@ def test_mcap_to_rrd_skips_ranges_and_maps_liveliness_to_measurement_time(run, t
     assert counts["liveliness"] == 1 and counts["undecodable"] == 0 and counts["complete"]
     rows = read_rrd(out)
     assert not any("/range" in k for k in rows)
-    sc, wanted = d._kind_scanner(mcap, {"estimate", "anchor_state"})
+    sc, wanted = _kind_scanner(mcap, {"estimate", "anchor_state"})
     seen = {r.topic for batch in sc.iter_batches(wanted) for r in batch}
     assert seen and all(t.endswith(("/estimate", "/state")) for t in seen)  # ranges skipped
     left = [(t, r) for t, r in rows["/events"] if r["TextLog:text"] == ["anchor uav5 left"]]

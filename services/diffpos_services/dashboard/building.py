@@ -4,8 +4,8 @@ band per floor), built from a scenario building or a plain mapping."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -35,6 +35,11 @@ class BuildingOutline:
         Window height ``w``: the upper (lintel) edge is at ``sill + w`` above the floor.
     first_floor_z_m : float [m]
         Height of the lowest modelled floor (floor ``k`` starts at ``first + k h``).
+    edge : {"upper", "lower"}
+        The window edge the diffraction paths are drawn over: the one the fusion models
+        (:func:`diffpos_services.dashboard.scenario.building_of_scenario` applies the fusion's
+        ``--edge auto`` rule). Not part of equality: it is a property of the run's model, not
+        of the building's geometry.
     """
 
     x_min_m: float
@@ -45,6 +50,7 @@ class BuildingOutline:
     sill_height_m: float
     window_height_m: float
     first_floor_z_m: float = 0.0
+    edge: Literal["upper", "lower"] = field(default="upper", compare=False)
 
     def __post_init__(self) -> None:
         if not self.x_max_m > self.x_min_m:
@@ -61,6 +67,8 @@ class BuildingOutline:
             raise ValueError(
                 "BuildingOutline: need 0 <= sill_height_m and sill + window height <= floor height"
             )
+        if self.edge not in ("upper", "lower"):
+            raise ValueError("BuildingOutline: edge must be 'upper' or 'lower'")
 
     @classmethod
     def from_object(cls, obj: Any) -> BuildingOutline:
@@ -123,3 +131,14 @@ class BuildingOutline:
             + self.window_height_m
         )
 
+
+    def lower_edge_z_m(self, floor_index: ArrayLike) -> FloatArray:
+        """Height of the lower (sill) window edge of each floor [m]."""
+        k = np.asarray(floor_index, dtype=np.float64)
+        return self.first_floor_z_m + k * self.floor_height_m + self.sill_height_m
+
+    def edge_z_m(self, floor_index: ArrayLike) -> FloatArray:
+        """Height of the modelled window edge (:attr:`edge`) of each floor [m]."""
+        if self.edge == "lower":
+            return self.lower_edge_z_m(floor_index)
+        return self.upper_edge_z_m(floor_index)

@@ -9,7 +9,7 @@ The service is deliberately *outside* the fusion hot path:
   behind, the *oldest* undrawn messages are dropped and counted, the publishers are never
   slowed down;
 * a drain loop wakes every ``drain_period_s``, decodes the batch and logs it with
-  ``send_columns`` through :class:`diffpos_services.dashboard.views.Dashboard` (one call per entity
+  ``send_columns`` through :class:`diffpos_services.dashboard.stream.Dashboard` (one call per entity
   per batch, not per message).
 
 Rerun output (``RerunTarget``): ``spawn`` a native viewer (needs a display), ``serve`` a gRPC
@@ -32,14 +32,12 @@ from typing import Any, ClassVar, Literal
 
 import rerun as rr
 
-from diffpos_services.dashboard.views import (
-    APP_ID,
-    VIEW_DECODERS,
-    BuildingOutline,
-    Dashboard,
-    EventColumns,
-    default_blueprint,
-)
+from diffpos_services.dashboard.blueprint import default_blueprint
+from diffpos_services.dashboard.building import BuildingOutline
+from diffpos_services.dashboard.columns import EventColumns
+from diffpos_services.dashboard.common import APP_ID
+from diffpos_services.dashboard.decode import VIEW_DECODERS
+from diffpos_services.dashboard.stream import Dashboard
 from diffpos_services.kit import free_tcp_port, log_event
 from diffpos_services.wire.keys import Keys, parse_key
 

@@ -1,0 +1,76 @@
+"""The building of a scenario as the dashboard draws it (:class:`BuildingOutline`, with the
+window edge the fusion models): from a file, a shipped name, the default scenario, a
+command-line option, or the scenario attached to a recording.
+
+Files are read by :mod:`diffpos_services.scenario_io` (the one scenario loader); the edge is
+the fusion's ``--edge auto`` rule, :func:`diffpos.scenario.first_arrival_edge`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from diffpos.scenario import Scenario, first_arrival_edge
+from diffpos_services.dashboard.building import BuildingOutline
+from diffpos_services.kit import ConfigError
+from diffpos_services.scenario_io import scenario_or_default
+
+__all__ = [
+    "building_for_option",
+    "building_from_attachments",
+    "building_from_scenario_file",
+    "building_of_scenario",
+]
+
+
+def building_of_scenario(scenario: Scenario) -> BuildingOutline:
+    """The outline of ``scenario``'s building, drawn with the window edge the fusion models
+    for it by default (``--edge auto``: :func:`diffpos.scenario.first_arrival_edge`)."""
+    edge, _why = first_arrival_edge(scenario)
+    return dataclasses.replace(BuildingOutline.from_object(scenario.building), edge=edge)
+
+
+def building_from_scenario_file(path: str | Path) -> BuildingOutline:
+    """The building of a scenario: a TOML file, a shipped name (``paper``, ``large``) or
+    ``default`` (the built-in scenario ``diffpos emulate`` runs without a file).
+
+    Raises
+    ------
+    ValueError
+        (``ScenarioError``) naming the file and the problem.
+    """
+    return building_of_scenario(scenario_or_default(None if str(path) == "default" else path))
+
+
+def building_for_option(value: str | None, *, option: str = "--scenario") -> BuildingOutline | None:
+    """:func:`building_from_scenario_file` for a command-line option (``None`` if not given).
+
+    Raises
+    ------
+    ConfigError
+        Worded for the option: ``--scenario X: cannot read it (...)`` or the scenario error.
+    """
+    if not value:
+        return None
+    try:
+        return building_from_scenario_file(value)
+    except OSError as exc:
+        raise ConfigError(f"{option} {value}: cannot read it ({exc.strerror})") from None
+    except ValueError as exc:
+        raise ConfigError(f"{option} {value}: {exc}") from None
+
+
+def building_from_attachments(attachments: Sequence[Any]) -> BuildingOutline | None:
+    """The building of the first scenario TOML attached to a recording (``None`` if none)."""
+    for att in attachments:
+        if str(att.name).endswith(".toml") or "toml" in str(att.media_type):
+            try:
+                scen = Scenario.from_dict(tomllib.loads(bytes(att.data).decode()))
+            except Exception:  # not a scenario: ignore
+                continue
+            return building_of_scenario(scen)
+    return None
