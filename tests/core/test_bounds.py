@@ -312,8 +312,9 @@ def test_cli_bounds_writes_csv_and_pngs(tmp_path, capsys) -> None:
         png = out / f"floor{k}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = list(csv.DictReader((out / "bounds.csv").open()))
-    assert len(rows) == 5 * 19 * 10  # x = -18..18, y = 0.5..18.5 step 2, 5 floors
-    assert {r["z_m"] for r in rows} == {"4.500", "7.500", "10.500", "13.500", "16.500"}
+    # the paper scenario's building (22.5 m deep, floors at z = 4, 7, ... 16 m)
+    assert len(rows) == 5 * 19 * 11  # x = -18..18, y = 0.5..20.5 step 2, 5 floors
+    assert {r["z_m"] for r in rows} == {"5.500", "8.500", "11.500", "14.500", "17.500"}
     # the CSV numbers are the core's numbers for the same sigmas
     r0 = rows[0]
     node = [float(r0["x_m"]), float(r0["y_m"]), float(r0["z_m"])]
@@ -332,7 +333,7 @@ def test_cli_bounds_papers_counter_example_and_errors(tmp_path, capsys) -> None:
     assert cli.main([*args, "--anchors", "0,-20,1;0,-15,0;0,-7,4"]) == 0
     text = " ".join(capsys.readouterr().out.split())  # undo rich's line wrapping
     assert "5.3 %" in text  # the x = 0 column: 1 of 19 per floor
-    assert "floor 1: 10 node(s) not identifiable, e.g. at (0, 0.5, 4.5) m" in text
+    assert "floor 1: 11 node(s) not identifiable, e.g. at (0, 0.5, 5.5) m" in text
     assert "no information about x" in text
     assert cli.main([*args, "--anchors", "-15,-20,1;0,15,0;0,-7,4"]) == 2
     err = capsys.readouterr().err
@@ -346,13 +347,19 @@ def test_cli_bounds_papers_counter_example_and_errors(tmp_path, capsys) -> None:
 
 
 def test_cli_link_budget_fixed_and_utd() -> None:
-    from diffpos_services.cli.bounds import BoundsConfig, compute, path_gain_db
+    import dataclasses
 
-    cfg = BoundsConfig(grid_step_m=4.0, n_floors=2)
-    res = compute(cfg)
+    from diffpos.bound_maps import BoundMapSettings, compute, path_gain_db
+    from diffpos.scenario import default_scenario
+
+    paper = default_scenario()
+    scenario = dataclasses.replace(
+        paper, building=dataclasses.replace(paper.building, n_floors=2)
+    )
+    res = compute(scenario, BoundMapSettings(grid_step_m=4.0))
     r = res[1]
     xx, yy = np.meshgrid(r.x_m, r.y_m)
-    nodes = np.stack([xx, yy, np.full_like(xx, 7.5)], axis=-1)
+    nodes = np.stack([xx, yy, np.full_like(xx, 8.5)], axis=-1)
     path = window_edge_path(ANCHORS, nodes[..., None, :], window_height_m=W, edge_x_m=(-20, 20))
     lam = 299_792_458.0 / 28e9
     fspl_gain = 20 * np.log10(lam / (4 * np.pi * path.length_m))
@@ -362,7 +369,7 @@ def test_cli_link_budget_fixed_and_utd() -> None:
         r.sigma_m, 299_792_458.0 / np.sqrt(8 * np.pi**2 * 400e6**2 * 10 ** (r.snr_db / 10))
     )
     # UTD: the diffracted field is weaker than free space over the same unfolded length
-    utd = path_gain_db(BoundsConfig(diffraction="utd"), ANCHORS, nodes, path.length_m)
+    utd = path_gain_db(paper, BoundMapSettings(diffraction="utd"), ANCHORS, nodes, path.length_m)
     assert utd.shape == fspl_gain.shape and np.isfinite(utd).all()
     assert (utd < fspl_gain - 10.0).all() and (utd > fspl_gain - 60.0).all()
 
