@@ -12,11 +12,12 @@ import math
 from pathlib import Path
 
 import jsonschema
-from diffpos_services.cli.solve import read_lines, solve_lines, solve_records
 from diffpos_services.fusion.core import FusionConfig, FusionCore
 from diffpos_services.kit import build_config
+from diffpos_services.solve import solve_lines, solve_records
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
+from diffpos_services.wire.solve_io import read_lines
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 

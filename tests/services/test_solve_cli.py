@@ -12,7 +12,7 @@ import jsonschema
 import numpy as np
 import pytest
 from diffpos_services.cli import main as cli
-from diffpos_services.cli.solve import solve_records
+from diffpos_services.solve import solve_records
 
 from diffpos.geometry import los_path, window_edge_path
 
