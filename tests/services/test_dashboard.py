@@ -218,6 +218,40 @@ def test_diffraction_paths_cross_the_window_edge_at_the_shortest_point(bulk, run
     assert n_strips > 20
 
 
+def test_paths_are_drawn_over_the_edge_the_fusion_models(run, tmp_path):
+    """The fusion's ``--edge auto`` rule (``first_arrival_edge``) gives the lower edge for the
+    default (paper) scenario, whose UAVs fly below the windows; the dashboard draws the paths
+    over that edge (it drew the upper one before), and over the upper edge when the rule says
+    so or without a scenario."""
+    import dataclasses
+
+    from diffpos.scenario import default_scenario, first_arrival_edge
+
+    assert first_arrival_edge(default_scenario())[0] == "lower"
+    assert d.building_from_scenario_file("default").edge == "lower"
+    assert d.building_for_option("paper").edge == first_arrival_edge(default_scenario())[0]
+    assert d.BuildingOutline.from_object(default_scenario().building).edge == "upper"
+    building, msgs = run
+    for edge in ("upper", "lower"):
+        b = dataclasses.replace(building, edge=edge)
+        assert b == building  # the edge is the model's, not the building's geometry
+        out = d.write_rrd_from_messages(msgs, tmp_path / f"{edge}.rrd", building=b)
+        rows = d.rrd_rows(tmp_path / f"{edge}.rrd")
+        assert out["estimate"]
+        n_strips = 0
+        for e in of(msgs, "PositionEstimate"):
+            row = dict(rows[f"/world/nodes/{e.node_id}/paths"]).get(e.t_ns)
+            if row is None or e.position_m is None:
+                continue
+            k = e.floor_index
+            z_sill = b.first_floor_z_m + k * b.floor_height_m + b.sill_height_m
+            want = z_sill if edge == "lower" else z_sill + b.window_height_m
+            for _a, q, _n in row["LineStrips3D:strips"]:
+                assert q[2] == pytest.approx(want, abs=1e-5)
+                n_strips += 1
+        assert n_strips > 20
+
+
 def test_excluded_paths_are_red_and_used_ones_in_anchor_colour(bulk, run):
     _, _, rows = bulk
     _, msgs = run

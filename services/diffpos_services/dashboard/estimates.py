@@ -9,8 +9,7 @@ import numpy as np
 import rerun as rr
 from numpy.typing import NDArray
 
-from diffpos.geometry import diffraction_point
-from diffpos_services.dashboard.building import BuildingOutline
+from diffpos_services.dashboard.building import BuildingOutline, FloatArray
 from diffpos_services.dashboard.columns import EstimateColumns, EventColumns
 from diffpos_services.dashboard.common import (
     _EXCLUDED_COLOR,
@@ -27,7 +26,7 @@ from diffpos_services.dashboard.common import (
     anchor_color,
 )
 from diffpos_services.dashboard.events import _status_level, log_events
-from diffpos_services.dashboard.geometry import Tracks, ellipsoid_axes
+from diffpos_services.dashboard.geometry import Tracks, ellipsoid_axes, path_strips
 
 
 def _scalar_series(
@@ -73,6 +72,40 @@ def _select_fixes(est: EstimateColumns, keep: NDArray[np.bool_]) -> EstimateColu
     )
 
 
+@dataclass(frozen=True)
+class _Batch:
+    """One batch of fixes and what the streams derive from it once (all arrays per fix,
+    ``anchor_ids``/``anchor_code`` per link: ``np.unique(est.link_anchor_id, return_inverse)``)."""
+
+    est: EstimateColumns
+    has_pos: NDArray[np.bool_]
+    est_floor: NDArray[np.int64]
+    true_floor: NDArray[np.int64]
+    err_3d: FloatArray
+    err_z: FloatArray
+    colors: NDArray[np.uint8]
+    half_m: FloatArray
+    quat_xyzw: FloatArray
+    cov_ok: NDArray[np.bool_]
+    anchor_ids: NDArray[np.str_]
+    anchor_code: NDArray[np.int64]
+
+    @property
+    def t(self) -> NDArray[np.int64]:
+        return self.est.t_ns
+
+
+@dataclass(frozen=True)
+class _Paths:
+    """Diffraction paths of every link of a batch: ``strips`` (L, 3, 3) anchor -> window-edge
+    point -> estimate, drawable ``ok``, and their colours and radii."""
+
+    strips: FloatArray
+    ok: NDArray[np.bool_]
+    colors: NDArray[np.uint8]
+    radii: NDArray[np.float32]
+
+
 def log_estimates(
     rec: rr.RecordingStream,
     est: EstimateColumns,
@@ -87,6 +120,11 @@ def log_estimates(
 ) -> _EstimateState:
     """Estimates, uncertainty, diffraction paths, metrics, floor table and events.
 
+    One function per logged stream (:func:`_log_estimate_points`, :func:`_log_paths`,
+    :func:`_log_errors`, :func:`_log_residuals`, :func:`_log_gating`,
+    :func:`_log_floor_table`, events from :func:`_status_events` and
+    :func:`_exclusion_events`), called in this order.
+
     Parameters
     ----------
     est : EstimateColumns
@@ -97,7 +135,8 @@ def log_estimates(
         True node positions over time with the true floor as ``extra``; gives the error
         series and the true floor.
     building : BuildingOutline, optional
-        Gives the window edge of the estimated floor for the paths, and true floors from z.
+        Gives the window edge of the estimated floor for the paths (the edge the fusion
+        models, :attr:`BuildingOutline.edge`), and true floors from z.
     confidence_scale : float
         Mahalanobis radius of the drawn ellipsoid (default: 95 % in 3D).
     path_period_s : float [s]
@@ -113,30 +152,63 @@ def log_estimates(
         Pass it to the next call when streaming.
     """
     st = state if state is not None else _EstimateState()
-    bad_time = est.t_ns < 0
-    if bad_time.any():  # invalid on the wire (times are ns since the Unix epoch): not drawn
-        n_bad = int(bad_time.sum())
-        st.dropped_bad_time += n_bad
-        est = _select_fixes(est, ~bad_time)
-        if len(est):
-            log_events(
-                rec,
-                EventColumns(
-                    [int(est.t_ns.max())],
-                    [
-                        f"{n_bad} estimates with a negative t_ns dropped (invalid time from the fusion)"
-                    ],
-                    ["ERROR"],
-                ),
-            )
-    k = len(est)
-    if k == 0:
+    est = _drop_bad_times(rec, est, st)
+    if len(est) == 0:
         return st
-    t = est.t_ns
-    pos = est.position_m
-    has_pos = np.all(np.isfinite(pos), axis=1)
+    b = _batch(est, truth, building, confidence_scale)
+    paths = _diffraction_paths(b, anchors, building)
+    path_period_ns = max(1, int(path_period_s * 1e9))
+    events: list[EventColumns] = []
+    for nid, rows in _group(est.node_id):
+        rows = _sorted_by_time(b.t, rows)
+        _log_estimate_points(rec, nid, rows, b)
+        if paths is not None:
+            _log_paths(rec, nid, rows, b, paths, path_period_ns, st)
+        _log_errors(rec, nid, rows, b)
+        events.append(_status_events(nid, rows, b, st))
+        last = rows[-1]  # latest floors for the floor table
+        st.floors[nid] = (int(b.est_floor[last]), int(b.true_floor[last]))
+    if est.link_fix.size:
+        events.append(_exclusion_events(b, st))
+        _log_residuals(rec, b, st)
+        _log_gating(rec, b)
+    _log_floor_table(rec, b, floor_period_s, st)
+    log_events(rec, EventColumns.concat(events))
+    return st
 
-    # ---- truth, errors, floors
+
+def _drop_bad_times(
+    rec: rr.RecordingStream, est: EstimateColumns, st: _EstimateState
+) -> EstimateColumns:
+    """``est`` without fixes of negative ``t_ns`` (invalid on the wire: times are ns since the
+    Unix epoch), counted in ``st`` and reported by one ERROR event."""
+    bad_time = est.t_ns < 0
+    if not bad_time.any():
+        return est
+    n_bad = int(bad_time.sum())
+    st.dropped_bad_time += n_bad
+    est = _select_fixes(est, ~bad_time)
+    if len(est):
+        log_events(
+            rec,
+            EventColumns(
+                [int(est.t_ns.max())],
+                [f"{n_bad} estimates with a negative t_ns dropped (invalid time from the fusion)"],
+                ["ERROR"],
+            ),
+        )
+    return est
+
+
+def _batch(
+    est: EstimateColumns,
+    truth: Tracks | None,
+    building: BuildingOutline | None,
+    confidence_scale: float,
+) -> _Batch:
+    """Truth, errors, floors, status colours and ellipsoids of a batch of fixes."""
+    k, t, pos = len(est), est.t_ns, est.position_m
+    has_pos = np.all(np.isfinite(pos), axis=1)
     if truth is not None:
         true_pos, true_floor, known = truth.sample(est.node_id, t)
     else:
@@ -146,260 +218,278 @@ def log_estimates(
     if building is not None:
         derived = building.floor_of(true_pos[:, 2])
         true_floor = np.where(known & (true_floor < 0), derived, true_floor)
-    err_3d = np.linalg.norm(pos - true_pos, axis=1)
-    err_z = pos[:, 2] - true_pos[:, 2]
     est_floor = est.floor_index
     if building is not None:
         est_floor = np.where((est_floor < 0) & has_pos, building.floor_of(pos[:, 2]), est_floor)
-
     half, quat, cov_ok = ellipsoid_axes(est.covariance_m2, scale=confidence_scale)
-    cov_ok &= has_pos
-
-    # ---- links: anchor positions and window-edge points (vectorised over all links)
-    n_links = est.link_fix.size
-    lf = est.link_fix
-    anc_u, anc_c = np.unique(est.link_anchor_id, return_inverse=True)
-    link_ok = np.zeros(n_links, bool)
-    strips = np.zeros((n_links, 3, 3))
-    if n_links and anchors is not None:
-        a_pos, _, a_known = anchors.sample(None, t[lf], coded=(anc_u, anc_c))
-        node = pos[lf]
-        link_ok = a_known & has_pos[lf]
-        if building is not None:
-            fl = np.where(est_floor[lf] >= 0, est_floor[lf], building.floor_of(node[:, 2]))
-            ze = building.upper_edge_z_m(fl)
-            start = np.stack([np.full(n_links, building.x_min_m), np.zeros(n_links), ze], axis=1)
-            end = start.copy()
-            end[:, 0] = building.x_max_m
-            with np.errstate(invalid="ignore"):
-                q = diffraction_point(a_pos, node, start, end).point_m
-        else:
-            q = 0.5 * (a_pos + node)
-        strips = np.stack([a_pos, q, node], axis=1)
-        link_ok &= np.all(np.isfinite(strips), axis=(1, 2))
-        # no path for bookkeeping exclusions (nothing was measured); gated ones are drawn red
-        link_ok &= est.link_used | ~np.isin(est.link_reason, list(BOOKKEEPING_REASONS))
-    link_colors = _rgba([anchor_color(str(a)) for a in anc_u])[anc_c]
-    link_colors[~est.link_used] = _EXCLUDED_COLOR
-    link_radii = np.where(est.link_used, 0.05, 0.03).astype(np.float32)
-
+    statuses = np.unique(est.status)
     status_colors = np.array(
-        [_STATUS_COLORS.get(s, _OTHER_STATUS_COLOR) for s in np.unique(est.status)], np.uint8
+        [_STATUS_COLORS.get(s, _OTHER_STATUS_COLOR) for s in statuses], np.uint8
     )
-    status_idx = np.searchsorted(np.unique(est.status), est.status)
-    colors = status_colors[status_idx]
+    anc_u, anc_c = np.unique(est.link_anchor_id, return_inverse=True)
+    return _Batch(
+        est=est,
+        has_pos=has_pos,
+        est_floor=est_floor,
+        true_floor=true_floor,
+        err_3d=np.linalg.norm(pos - true_pos, axis=1),
+        err_z=pos[:, 2] - true_pos[:, 2],
+        colors=status_colors[np.searchsorted(statuses, est.status)],
+        half_m=half,
+        quat_xyzw=quat,
+        cov_ok=cov_ok & has_pos,
+        anchor_ids=anc_u,
+        anchor_code=anc_c,
+    )
 
-    path_period_ns = max(1, int(path_period_s * 1e9))
-    events_t: list[np.ndarray] = []
-    events_text: list[list[str]] = []
-    events_level: list[list[str]] = []
 
-    for nid, rows in _group(est.node_id):
-        rows = _sorted_by_time(t, rows)
-        tr = t[rows]
-        hp = has_pos[rows]
-        n_pos = hp.astype(np.int64)
-        label = [
-            f"{nid} F{ef if ef >= 0 else '?'}" + (f" (true F{tf})" if 0 <= tf != ef else "")
-            for ef, tf in zip(est_floor[rows].tolist(), true_floor[rows].tolist(), strict=True)
-        ]
-        sel = rows[hp]
-        ok = cov_ok[rows]
-        sel_c = rows[ok]
-        # point and ellipsoid on one entity: one chunk per node and batch instead of two
-        rec.send_columns(
-            f"world/nodes/{nid}/estimate",
-            indexes=[_time_column(tr)],
-            columns=[
-                *rr.Points3D.columns(
-                    positions=pos[sel],
-                    colors=colors[sel],
-                    radii=np.full(sel.size, 0.25, np.float32),
-                    labels=np.asarray(label)[hp],
-                ).partition(n_pos),
-                *rr.Ellipsoids3D.columns(
-                    centers=pos[sel_c],
-                    half_sizes=half[sel_c],
-                    quaternions=quat[sel_c],
-                    colors=colors[sel_c],
-                    line_radii=np.full(sel_c.size, 0.02, np.float32),
-                ).partition(ok.astype(np.int64)),
-            ],
+def _diffraction_paths(
+    b: _Batch, anchors: Tracks | None, building: BuildingOutline | None
+) -> _Paths | None:
+    """The path of every link (vectorised), or None without links or anchor tracks."""
+    est, lf = b.est, b.est.link_fix
+    if not lf.size or anchors is None:
+        return None
+    a_pos, _, a_known = anchors.sample(None, b.t[lf], coded=(b.anchor_ids, b.anchor_code))
+    strips = path_strips(a_pos, est.position_m[lf], b.est_floor[lf], building)
+    ok = a_known & b.has_pos[lf] & np.all(np.isfinite(strips), axis=(1, 2))
+    # no path for bookkeeping exclusions (nothing was measured); gated ones are drawn red
+    ok &= est.link_used | ~np.isin(est.link_reason, list(BOOKKEEPING_REASONS))
+    colors = _rgba([anchor_color(str(a)) for a in b.anchor_ids])[b.anchor_code]
+    colors[~est.link_used] = _EXCLUDED_COLOR
+    radii = np.where(est.link_used, 0.05, 0.03).astype(np.float32)
+    return _Paths(strips=strips, ok=ok, colors=colors, radii=radii)
+
+
+def _log_estimate_points(
+    rec: rr.RecordingStream, nid: str, rows: NDArray[np.int64], b: _Batch
+) -> None:
+    """``world/nodes/<node>/estimate``: labelled point and 95 % ellipsoid of each fix (one
+    entity: one chunk per node and batch instead of two)."""
+    hp = b.has_pos[rows]
+    label = [
+        f"{nid} F{ef if ef >= 0 else '?'}" + (f" (true F{tf})" if 0 <= tf != ef else "")
+        for ef, tf in zip(b.est_floor[rows].tolist(), b.true_floor[rows].tolist(), strict=True)
+    ]
+    sel = rows[hp]
+    ok = b.cov_ok[rows]
+    sel_c = rows[ok]
+    pos = b.est.position_m
+    rec.send_columns(
+        f"world/nodes/{nid}/estimate",
+        indexes=[_time_column(b.t[rows])],
+        columns=[
+            *rr.Points3D.columns(
+                positions=pos[sel],
+                colors=b.colors[sel],
+                radii=np.full(sel.size, 0.25, np.float32),
+                labels=np.asarray(label)[hp],
+            ).partition(hp.astype(np.int64)),
+            *rr.Ellipsoids3D.columns(
+                centers=pos[sel_c],
+                half_sizes=b.half_m[sel_c],
+                quaternions=b.quat_xyzw[sel_c],
+                colors=b.colors[sel_c],
+                line_radii=np.full(sel_c.size, 0.02, np.float32),
+            ).partition(ok.astype(np.int64)),
+        ],
+    )
+
+
+def _log_paths(
+    rec: rr.RecordingStream,
+    nid: str,
+    rows: NDArray[np.int64],
+    b: _Batch,
+    paths: _Paths,
+    period_ns: int,
+    st: _EstimateState,
+) -> None:
+    """``world/nodes/<node>/paths``: the diffraction paths of the node's fixes, at most one
+    fix per ``period_ns`` of measurement time (the first fix of each period)."""
+    tr = b.t[rows]
+    bucket = tr // period_ns
+    first = np.ones(len(rows), bool)
+    first[1:] = bucket[1:] != bucket[:-1]
+    prev = st.last_path_bucket.get(nid)
+    if prev is not None:
+        first &= bucket != prev
+    if not first.any():
+        return
+    st.last_path_bucket[nid] = int(bucket[-1])
+    lf = b.est.link_fix
+    prow = rows[first]
+    rank = np.full(len(b.est), -1, np.int64)
+    rank[prow] = np.arange(prow.size)
+    lsel = np.flatnonzero((rank[lf] >= 0) & paths.ok)
+    lsel = lsel[np.argsort(rank[lf[lsel]], kind="stable")]
+    per_row = np.bincount(rank[lf[lsel]], minlength=prow.size)
+    rec.send_columns(
+        f"world/nodes/{nid}/paths",
+        indexes=[_time_column(tr[first])],
+        columns=rr.LineStrips3D.columns(
+            strips=paths.strips[lsel],
+            colors=paths.colors[lsel],
+            radii=paths.radii[lsel],
+        ).partition(per_row),
+    )
+
+
+def _log_errors(rec: rr.RecordingStream, nid: str, rows: NDArray[np.int64], b: _Batch) -> None:
+    """``metrics/error_3d_m/<node>``, ``metrics/error_z_m/<node>``, ``metrics/peb_m/<node>``."""
+    tr = b.t[rows]
+    _scalar_series(rec, f"metrics/error_3d_m/{nid}", tr, b.err_3d[rows])
+    _scalar_series(rec, f"metrics/error_z_m/{nid}", tr, b.err_z[rows])
+    _scalar_series(rec, f"metrics/peb_m/{nid}", tr, b.est.peb_m[rows])
+
+
+def _status_events(
+    nid: str, rows: NDArray[np.int64], b: _Batch, st: _EstimateState
+) -> EventColumns:
+    """Status changes of a node (the first fix compares with the previous batch's status;
+    a node starting good is no event)."""
+    tr = b.t[rows]
+    prev_status = st.last_status.get(nid)
+    stat = b.est.status[rows]
+    change = np.ones(len(rows), bool)
+    change[1:] = stat[1:] != stat[:-1]
+    if prev_status is not None:
+        change[0] = stat[0] != prev_status
+    elif stat[0] in GOOD_STATUSES:
+        change[0] = False
+    st.last_status[nid] = str(stat[-1])
+    ci = np.flatnonzero(change)
+    txt, lvl = [], []
+    for i in ci:
+        s = str(stat[i])
+        before = str(stat[i - 1]) if i > 0 else prev_status
+        txt.append(
+            f"node {nid}: status {s}"
+            + (" (unidentifiable geometry)" if s in UNIDENTIFIABLE_STATUSES else "")
         )
-        # diffraction paths, decimated in measurement time
-        if n_links and anchors is not None:
-            bucket = tr // path_period_ns
-            first = np.ones(len(rows), bool)
-            first[1:] = bucket[1:] != bucket[:-1]
-            prev = st.last_path_bucket.get(nid)
-            if prev is not None:
-                first &= bucket != prev
-            if first.any():
-                st.last_path_bucket[nid] = int(bucket[-1])
-                prow = rows[first]
-                rank = np.full(k, -1, np.int64)
-                rank[prow] = np.arange(prow.size)
-                lsel = np.flatnonzero((rank[lf] >= 0) & link_ok)
-                lsel = lsel[np.argsort(rank[lf[lsel]], kind="stable")]
-                per_row = np.bincount(rank[lf[lsel]], minlength=prow.size)
-                rec.send_columns(
-                    f"world/nodes/{nid}/paths",
-                    indexes=[_time_column(tr[first])],
-                    columns=rr.LineStrips3D.columns(
-                        strips=strips[lsel],
-                        colors=link_colors[lsel],
-                        radii=link_radii[lsel],
-                    ).partition(per_row),
-                )
-        _scalar_series(rec, f"metrics/error_3d_m/{nid}", tr, err_3d[rows])
-        _scalar_series(rec, f"metrics/error_z_m/{nid}", tr, err_z[rows])
-        _scalar_series(rec, f"metrics/peb_m/{nid}", tr, est.peb_m[rows])
+        lvl.append(_status_level(before, s))
+    return EventColumns(tr[ci], txt, lvl)
 
-        # status changes -> events
-        prev_status = st.last_status.get(nid)
-        stat = est.status[rows]
-        change = np.ones(len(rows), bool)
-        change[1:] = stat[1:] != stat[:-1]
-        if prev_status is not None:
-            change[0] = stat[0] != prev_status
-        elif stat[0] in GOOD_STATUSES:
-            change[0] = False
-        st.last_status[nid] = str(stat[-1])
-        if change.any():
-            ci = np.flatnonzero(change)
-            events_t.append(tr[ci])
-            txt, lvl = [], []
-            for i in ci:
-                s = str(stat[i])
-                before = str(stat[i - 1]) if i > 0 else prev_status
-                txt.append(
-                    f"node {nid}: status {s}"
-                    + (" (unidentifiable geometry)" if s in UNIDENTIFIABLE_STATUSES else "")
-                )
-                lvl.append(_status_level(before, s))
-            events_text.append(txt)
-            events_level.append(lvl)
 
-        # latest floors for the floor table
-        last = rows[-1]
-        st.floors[nid] = (int(est_floor[last]), int(true_floor[last]))
+def _exclusion_events(b: _Batch, st: _EstimateState) -> EventColumns:
+    """An event when an anchor becomes excluded for a node (or changes reason), and when it
+    is used again; ``st.last_links`` carries the last reason per (node, anchor) over batches."""
+    est, t, lf = b.est, b.t, b.est.link_fix
+    anc_u, anc_c = b.anchor_ids, b.anchor_code
+    n_links = lf.size
+    # integer codes: sorting and comparing ints is much cheaper than strings
+    node_u, node_c = np.unique(est.node_id, return_inverse=True)
+    cur_str = np.where(est.link_used, "", est.link_reason)
+    reason_u, reason_c = np.unique(cur_str, return_inverse=True)
+    lorder = np.lexsort((t[lf], anc_c, node_c[lf]))
+    ex_t, ex_txt, ex_lvl = [], [], []
+    nl, al, cl, tl = node_c[lf][lorder], anc_c[lorder], reason_c[lorder], t[lf][lorder]
+    empty = np.flatnonzero(reason_u == "")
+    empty_code = int(empty[0]) if empty.size else -1
 
-    # ---- exclusions: an event when an anchor becomes excluded (or changes reason) for a node
-    if n_links:
-        # integer codes: sorting and comparing ints is much cheaper than strings
-        node_u, node_c = np.unique(est.node_id, return_inverse=True)
-        cur_str = np.where(est.link_used, "", est.link_reason)
-        reason_u, reason_c = np.unique(cur_str, return_inverse=True)
-        lorder = np.lexsort((t[lf], anc_c, node_c[lf]))
-        ex_t, ex_txt, ex_lvl = [], [], []
-        nl, al, cl, tl = node_c[lf][lorder], anc_c[lorder], reason_c[lorder], t[lf][lorder]
-        empty = np.flatnonzero(reason_u == "")
-        empty_code = int(empty[0]) if empty.size else -1
-        first = np.ones(n_links, bool)
-        first[1:] = (nl[1:] != nl[:-1]) | (al[1:] != al[:-1])
-        changed = np.zeros(n_links, bool)
-        changed[1:] = cl[1:] != cl[:-1]
-        first_idx = np.flatnonzero(first)
-        # the first link of each (node, anchor) pair compares with the previous batch's state
-        for i in first_idx:
-            before = st.last_links.get(str(node_u[nl[i]]), {}).get(str(anc_u[al[i]]), "")
-            changed[i] = str(reason_u[cl[i]]) != before
-        is_used = cl == empty_code
-        prev_excluded = np.zeros(n_links, bool)
-        prev_excluded[1:] = cl[:-1] != empty_code
-        for i in first_idx:
-            prev_excluded[i] = bool(
-                st.last_links.get(str(node_u[nl[i]]), {}).get(str(anc_u[al[i]]), "")
-            )
-        events_idx = np.flatnonzero(changed & (~is_used | prev_excluded))
-        first_set = set(first_idx.tolist())
-        for i in events_idx:
-            ex_t.append(tl[i])
-            node_s, anc_s = node_u[nl[i]], anc_u[al[i]]
-            if is_used[i]:
-                if i in first_set:
-                    before = st.last_links.get(str(node_s), {}).get(str(anc_s), "")
-                else:
-                    before = str(reason_u[cl[i - 1]])
-                ex_txt.append(f"node {node_s}: anchor {anc_s} used again")
-                ex_lvl.append("DEBUG" if before in BOOKKEEPING_REASONS else "INFO")
-            else:
-                reason = str(reason_u[cl[i]])
-                ex_txt.append(f"node {node_s}: anchor {anc_s} excluded ({reason})")
-                ex_lvl.append("DEBUG" if reason in BOOKKEEPING_REASONS else "WARN")
-        last_idx = np.r_[first_idx[1:] - 1, n_links - 1]
-        for i in last_idx:
-            st.last_links.setdefault(str(node_u[nl[i]]), {})[str(anc_u[al[i]])] = str(
-                reason_u[cl[i]]
-            )
-        if ex_t:
-            events_t.append(np.asarray(ex_t, np.int64))
-            events_text.append(ex_txt)
-            events_level.append(ex_lvl)
+    def before_batch(i: int) -> str:  # last reason of link i's (node, anchor) before the batch
+        return st.last_links.get(str(node_u[nl[i]]), {}).get(str(anc_u[al[i]]), "")
 
-        # residual scatter per anchor and gating counts per fusion time
-        used = est.link_used & np.isfinite(est.link_residual_m)
-        used_idx = np.flatnonzero(used)
-        used_order = used_idx[np.argsort(anc_c[used_idx], kind="stable")]
-        used_bounds = np.searchsorted(anc_c[used_order], np.arange(len(anc_u) + 1))
-        for ai, aid in enumerate(anc_u.tolist()):
-            li = used_order[used_bounds[ai] : used_bounds[ai + 1]]
-            if not li.size:
-                continue
-            if aid not in st.residual_styled:
-                st.residual_styled.add(aid)
-                rec.log(
-                    f"metrics/residual_m/{aid}",
-                    rr.SeriesPoints(colors=[anchor_color(aid)], marker_sizes=[1.5], names=[aid]),
-                    static=True,
-                )
-            li = li[np.argsort(t[lf[li]], kind="stable")]
-            rec.send_columns(
+    first = np.ones(n_links, bool)
+    first[1:] = (nl[1:] != nl[:-1]) | (al[1:] != al[:-1])
+    changed = np.zeros(n_links, bool)
+    changed[1:] = cl[1:] != cl[:-1]
+    first_idx = np.flatnonzero(first)
+    # the first link of each (node, anchor) pair compares with the previous batch's state
+    for i in first_idx:
+        changed[i] = str(reason_u[cl[i]]) != before_batch(i)
+    is_used = cl == empty_code
+    prev_excluded = np.zeros(n_links, bool)
+    prev_excluded[1:] = cl[:-1] != empty_code
+    for i in first_idx:
+        prev_excluded[i] = bool(before_batch(i))
+    events_idx = np.flatnonzero(changed & (~is_used | prev_excluded))
+    first_set = set(first_idx.tolist())
+    for i in events_idx:
+        ex_t.append(tl[i])
+        node_s, anc_s = node_u[nl[i]], anc_u[al[i]]
+        if is_used[i]:
+            before = before_batch(i) if i in first_set else str(reason_u[cl[i - 1]])
+            ex_txt.append(f"node {node_s}: anchor {anc_s} used again")
+            ex_lvl.append("DEBUG" if before in BOOKKEEPING_REASONS else "INFO")
+        else:
+            reason = str(reason_u[cl[i]])
+            ex_txt.append(f"node {node_s}: anchor {anc_s} excluded ({reason})")
+            ex_lvl.append("DEBUG" if reason in BOOKKEEPING_REASONS else "WARN")
+    last_idx = np.r_[first_idx[1:] - 1, n_links - 1]
+    for i in last_idx:
+        st.last_links.setdefault(str(node_u[nl[i]]), {})[str(anc_u[al[i]])] = str(
+            reason_u[cl[i]]
+        )
+    return EventColumns(np.asarray(ex_t, np.int64), ex_txt, ex_lvl)
+
+
+def _log_residuals(rec: rr.RecordingStream, b: _Batch, st: _EstimateState) -> None:
+    """``metrics/residual_m/<anchor>``: post-fit residuals of the used links (points, styled
+    once per anchor)."""
+    est, t, lf = b.est, b.t, b.est.link_fix
+    used = est.link_used & np.isfinite(est.link_residual_m)
+    used_idx = np.flatnonzero(used)
+    used_order = used_idx[np.argsort(b.anchor_code[used_idx], kind="stable")]
+    used_bounds = np.searchsorted(b.anchor_code[used_order], np.arange(len(b.anchor_ids) + 1))
+    for ai, aid in enumerate(b.anchor_ids.tolist()):
+        li = used_order[used_bounds[ai] : used_bounds[ai + 1]]
+        if not li.size:
+            continue
+        if aid not in st.residual_styled:
+            st.residual_styled.add(aid)
+            rec.log(
                 f"metrics/residual_m/{aid}",
-                indexes=[_time_column(t[lf[li]])],
-                columns=rr.Scalars.columns(scalars=est.link_residual_m[li]),
+                rr.SeriesPoints(colors=[anchor_color(aid)], marker_sizes=[1.5], names=[aid]),
+                static=True,
             )
-        ut, inv = np.unique(t[lf], return_inverse=True)
-        n_ex = np.bincount(inv, weights=(~est.link_used).astype(float), minlength=ut.size)
-        n_used = np.bincount(inv, weights=est.link_used.astype(float), minlength=ut.size)
+        li = li[np.argsort(t[lf[li]], kind="stable")]
         rec.send_columns(
-            "metrics/gating/excluded",
-            indexes=[_time_column(ut)],
-            columns=rr.Scalars.columns(scalars=n_ex),
-        )
-        rec.send_columns(
-            "metrics/gating/used",
-            indexes=[_time_column(ut)],
-            columns=rr.Scalars.columns(scalars=n_used),
+            f"metrics/residual_m/{aid}",
+            indexes=[_time_column(t[lf[li]])],
+            columns=rr.Scalars.columns(scalars=est.link_residual_m[li]),
         )
 
-    # ---- floor table, refreshed at most once per floor period (latest fix per node)
+
+def _log_gating(rec: rr.RecordingStream, b: _Batch) -> None:
+    """``metrics/gating/excluded`` and ``metrics/gating/used``: counts per fusion time."""
+    est = b.est
+    ut, inv = np.unique(b.t[est.link_fix], return_inverse=True)
+    n_ex = np.bincount(inv, weights=(~est.link_used).astype(float), minlength=ut.size)
+    n_used = np.bincount(inv, weights=est.link_used.astype(float), minlength=ut.size)
+    rec.send_columns(
+        "metrics/gating/excluded",
+        indexes=[_time_column(ut)],
+        columns=rr.Scalars.columns(scalars=n_ex),
+    )
+    rec.send_columns(
+        "metrics/gating/used",
+        indexes=[_time_column(ut)],
+        columns=rr.Scalars.columns(scalars=n_used),
+    )
+
+
+def _log_floor_table(
+    rec: rr.RecordingStream, b: _Batch, floor_period_s: float, st: _EstimateState
+) -> None:
+    """``floors``: the floor table, refreshed at most once per floor period (latest fix per
+    node at the end of each period)."""
+    t = b.t
     floor_period_ns = max(1, int(floor_period_s * 1e9))
     fb = t // floor_period_ns
     ub = np.unique(fb)
     if st.last_floor_bucket is not None:
         ub = ub[ub != st.last_floor_bucket]
-    if ub.size:
-        # snapshot at the end of each bucket: latest fix per node up to that time
-        snap_t = np.array([t[fb == b].max() for b in ub], np.int64)
-        texts = _floor_tables(est, est_floor, true_floor, snap_t, st)
-        st.last_floor_bucket = int(ub[-1])
-        rec.send_columns(
-            "floors",
-            indexes=[_time_column(snap_t)],
-            columns=rr.TextDocument.columns(text=texts, media_type=["text/markdown"] * len(texts)),
-        )
-
-    if events_t:
-        log_events(
-            rec,
-            EventColumns(
-                np.concatenate(events_t),
-                [x for part in events_text for x in part],
-                [x for part in events_level for x in part],
-            ),
-        )
-    return st
+    if not ub.size:
+        return
+    snap_t = np.array([t[fb == k].max() for k in ub], np.int64)
+    texts = _floor_tables(b.est, b.est_floor, b.true_floor, snap_t, st)
+    st.last_floor_bucket = int(ub[-1])
+    rec.send_columns(
+        "floors",
+        indexes=[_time_column(snap_t)],
+        columns=rr.TextDocument.columns(text=texts, media_type=["text/markdown"] * len(texts)),
+    )
 
 
 def _floor_tables(

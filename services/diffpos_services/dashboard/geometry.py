@@ -8,7 +8,8 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from diffpos_services.dashboard.building import FloatArray
+from diffpos.geometry import diffraction_point
+from diffpos_services.dashboard.building import BuildingOutline, FloatArray
 from diffpos_services.dashboard.common import CHI2_3DOF_95, _str_array
 
 
@@ -164,3 +165,41 @@ def _matrix_to_quat_xyzw(r: FloatArray) -> FloatArray:
             q[k] = np.stack([(rk[:, 0, 2] + rk[:, 2, 0]) / s, (rk[:, 1, 2] + rk[:, 2, 1]) / s,
                              0.25 * s, (rk[:, 1, 0] - rk[:, 0, 1]) / s], axis=1)  # fmt: skip
     return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def path_strips(
+    anchor_m: FloatArray,
+    node_m: FloatArray,
+    floor_index: NDArray[np.int64],
+    building: BuildingOutline | None,
+) -> FloatArray:
+    """Diffraction paths anchor -> window-edge point -> node, one per row.
+
+    The edge point is the Fermat point (:func:`diffpos.geometry.diffraction_point`) on the
+    window edge the fusion models (:meth:`BuildingOutline.edge_z_m`) of the given floor
+    (of the node's height where ``floor_index < 0``), spanning the facade ``y = 0``; without
+    a building it is the midpoint (a straight line).
+
+    Parameters
+    ----------
+    anchor_m, node_m : ndarray, shape (L, 3) [m]
+    floor_index : ndarray of int, shape (L,)
+    building : BuildingOutline, optional
+
+    Returns
+    -------
+    ndarray, shape (L, 3, 3) [m]
+        NaN where the inputs are (or the edge point is undefined).
+    """
+    if building is not None:
+        fl = np.where(floor_index >= 0, floor_index, building.floor_of(node_m[:, 2]))
+        ze = building.edge_z_m(fl)
+        n = ze.shape[0]
+        start = np.stack([np.full(n, building.x_min_m), np.zeros(n), ze], axis=1)
+        end = start.copy()
+        end[:, 0] = building.x_max_m
+        with np.errstate(invalid="ignore"):
+            q = diffraction_point(anchor_m, node_m, start, end).point_m
+    else:
+        q = 0.5 * (anchor_m + node_m)
+    return np.stack([anchor_m, q, node_m], axis=1)
