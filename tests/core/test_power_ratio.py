@@ -8,9 +8,10 @@ import math
 import numpy as np
 import pytest
 from diffpos_services.cli import main as cli
-from diffpos_services.cli import power_ratio as cmd_power_ratio
+from diffpos_services.reports.power_ratio import CSV_COLUMNS
 
 from diffpos import gtd
+from diffpos.power_ratio_sweep import first_crossing_deg
 
 F_HZ = 28e9
 
@@ -38,7 +39,7 @@ def test_approx_closed_form_and_5db_threshold():
     )
     # the command's crossing finder on the same curve
     th_deg = np.rad2deg(th)
-    assert cmd_power_ratio.first_crossing_deg(th_deg, _db(ratio), 5.0) == pytest.approx(
+    assert first_crossing_deg(th_deg, _db(ratio), 5.0) == pytest.approx(
         58.70, abs=0.02
     )
 
@@ -167,7 +168,7 @@ def test_cli_writes_png_and_csv_matching_core(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     with (out / "power_ratio.csv").open() as fh:
         rows = list(csv.DictReader(fh))
-    assert tuple(rows[0].keys()) == cmd_power_ratio.CSV_COLUMNS
+    assert tuple(rows[0].keys()) == CSV_COLUMNS
     assert len(rows) == 2 * 89  # 2..90 deg in 1 deg steps, two depths
     depth = np.array([float(r["depth_m"]) for r in rows])
     theta = np.array([float(r["theta_deg"]) for r in rows])

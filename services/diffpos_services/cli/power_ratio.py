@@ -43,29 +43,12 @@ examples:
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from diffpos import gtd
-
-CSV_NAME = "power_ratio.csv"
-PNG_NAME = "power_ratio.png"
-CSV_COLUMNS = (
-    "depth_m",
-    "theta_deg",
-    "window_center_z_m",
-    "node_z_m",
-    "ratio_approx",
-    "ratio_approx_db",
-    "ratio_exact",
-    "ratio_exact_db",
-    "los_through_window",
-)
+from diffpos.power_ratio_sweep import PowerRatioSweep, compute_sweep
+from diffpos_services.reports import power_ratio as report
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -143,24 +126,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-@dataclass(frozen=True)
-class Sweep:
-    """Result of the sweep: angles (T,), depths (D,), ratios (D, T) (linear).
-
-    ``los`` (D, T) is True where the node sees the anchor directly through the window opening
-    (there the direct path, not a diffraction, arrives first).
-    """
-
-    theta_deg: np.ndarray
-    depth_m: np.ndarray
-    window_center_z_m: np.ndarray
-    node_z_m: np.ndarray
-    ratio_approx: np.ndarray
-    ratio_exact: np.ndarray
-    los: np.ndarray
-
-
 def _validate(args: argparse.Namespace) -> str | None:
+    """The first option that is out of range, as a message naming it (None if all are fine)."""
     if not args.depths_m or any(not (d > 0 and math.isfinite(d)) for d in args.depths_m):
         return "--depths-m: every depth must be a positive number of metres (node inside, y > 0)"
     for name in ("window_height_m", "anchor_distance_m", "frequency_hz", "theta_step_deg"):
@@ -177,192 +144,22 @@ def _validate(args: argparse.Namespace) -> str | None:
     return None
 
 
-def compute_sweep(args: argparse.Namespace) -> Sweep:
-    """Run the sweep described by parsed arguments (vectorised over depths x angles)."""
-    n_steps = round((args.theta_max_deg - args.theta_min_deg) / args.theta_step_deg)
-    theta_deg = np.linspace(args.theta_min_deg, args.theta_max_deg, n_steps + 1)
-    depth = np.asarray(args.depths_m, dtype=np.float64)
-    anchor, node = gtd.elevation_sweep_positions(
-        np.deg2rad(theta_deg)[None, :],
-        depth[:, None],
+def config_from_args(args: argparse.Namespace) -> PowerRatioSweep:
+    """The sweep the options describe."""
+    return PowerRatioSweep(
+        depths_m=tuple(args.depths_m),
+        window_height_m=args.window_height_m,
         anchor_distance_m=args.anchor_distance_m,
         anchor_height_m=args.anchor_height_m,
-        delta_m=args.delta_m,
-    )
-    exact = gtd.power_ratio_exact(
-        anchor,
-        node,
-        window_height_m=args.window_height_m,
-        e0=np.asarray(args.e0, dtype=np.float64),
         delta_m=args.delta_m,
         frequency_hz=args.frequency_hz,
         coefficients=args.coefficients,
         spreading=args.spreading,
+        e0=tuple(args.e0),
+        theta_min_deg=args.theta_min_deg,
+        theta_max_deg=args.theta_max_deg,
+        theta_step_deg=args.theta_step_deg,
     )
-    # direct anchor -> node line through the window opening (between the two edges)?
-    y_a, z_a = anchor[..., 1], anchor[..., 2]
-    y_n, z_n = node[..., 1], node[..., 2]
-    z_cross = z_a + (z_n - z_a) * (-y_a) / (y_n - y_a)
-    z_centre = z_n - args.delta_m
-    los = np.abs(z_cross - z_centre) < 0.5 * args.window_height_m
-    return Sweep(
-        theta_deg=theta_deg,
-        los=los,
-        depth_m=depth,
-        window_center_z_m=node[0, :, 2] - args.delta_m,
-        node_z_m=node[0, :, 2],
-        ratio_approx=gtd.power_ratio_approx(np.deg2rad(theta_deg)),
-        ratio_exact=exact,
-    )
-
-
-def first_crossing_deg(theta_deg: np.ndarray, value_db: np.ndarray, level_db: float) -> float:
-    """Smallest angle where ``value_db`` falls below ``level_db`` (linear interpolation) [deg].
-
-    NaN if it never does on the grid; ``theta_deg[0]`` if it starts below.
-    """
-    below = np.nonzero(value_db < level_db)[0]
-    if below.size == 0:
-        return float("nan")
-    i = int(below[0])
-    if i == 0:
-        return float(theta_deg[0])
-    t0, t1 = theta_deg[i - 1], theta_deg[i]
-    v0, v1 = value_db[i - 1], value_db[i]
-    return float(t0 + (level_db - v0) * (t1 - t0) / (v1 - v0))
-
-
-def _db(x: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore"):
-        return 10.0 * np.log10(x)
-
-
-def write_csv(path: Path, sweep: Sweep) -> None:
-    approx_db = _db(sweep.ratio_approx)
-    exact_db = _db(sweep.ratio_exact)
-    with path.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(CSV_COLUMNS)
-        for i, d in enumerate(sweep.depth_m):
-            for j, th in enumerate(sweep.theta_deg):
-                w.writerow(
-                    [
-                        f"{d:.6g}",
-                        f"{th:.10g}",
-                        f"{sweep.window_center_z_m[j]:.12g}",
-                        f"{sweep.node_z_m[j]:.12g}",
-                        f"{sweep.ratio_approx[j]:.10g}",
-                        f"{approx_db[j]:.6f}",
-                        f"{sweep.ratio_exact[i, j]:.10g}",
-                        f"{exact_db[i, j]:.6f}",
-                        int(sweep.los[i, j]),
-                    ]
-                )
-
-
-def write_png(path: Path, sweep: Sweep, args: argparse.Namespace) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7.0, 4.6), dpi=130)
-    ax.plot(
-        sweep.theta_deg,
-        _db(sweep.ratio_approx),
-        "k-",
-        lw=2.2,
-        label=r"Theorem 3: $(1+\cos\theta)/(1-\cos\theta)$",
-    )
-    for i, d in enumerate(sweep.depth_m):
-        ax.plot(
-            sweep.theta_deg,
-            _db(sweep.ratio_exact[i]),
-            lw=1.3,
-            ls="--",
-            label=f"exact, $y_n$ = {d:g} m",
-        )
-    ax.axhline(args.threshold_db, color="0.5", lw=0.8, ls=":")
-    ax.axhline(0.0, color="0.7", lw=0.6)
-    ax.set_xlabel(r"elevation angle of the anchor $\theta$ [deg]")
-    ax.set_ylabel(r"$P^u / P^l$ [dB]")
-    ax.set_xlim(sweep.theta_deg[0], sweep.theta_deg[-1])
-    finite = _db(np.concatenate([sweep.ratio_approx[None, :], sweep.ratio_exact]))
-    finite = finite[np.isfinite(finite)]
-    lo = max(float(np.min(finite)), -30.0) if finite.size else -30.0
-    hi = min(float(np.max(finite)), 45.0) if finite.size else 45.0
-    ax.set_ylim(lo - 2.0, hi + 2.0)
-    e0 = ", ".join(f"{v:g}" for v in args.e0)
-    ax.set_title(
-        f"Upper/lower window-edge diffraction power ratio\n"
-        f"w = {args.window_height_m:g} m, |y_a| = {args.anchor_distance_m:g} m, "
-        f"{args.frequency_hz / 1e9:g} GHz, E0 = ({e0}), {args.coefficients.upper()}, {args.spreading}",
-        fontsize=9,
-    )
-    ax.grid(True, alpha=0.3)
-    ax.plot(
-        [], [], lw=3.5, alpha=0.25, color="0.3", label="direct line of sight through the window"
-    )
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-
-
-def _report(sweep: Sweep, args: argparse.Namespace, csv_path: Path, png_path: Path) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    thr = args.threshold_db
-    ratio_lin = 10.0 ** (thr / 10.0)
-    cos_star = (ratio_lin - 1.0) / (ratio_lin + 1.0)
-    console = Console()
-    table = Table(title="P_upper / P_lower vs elevation theta (angles in deg, ratios in dB)")
-    table.add_column("curve", no_wrap=True)
-    table.add_column(f">{thr:g} dB below", justify="right")
-    table.add_column("P_l > P_u from", justify="right")
-    table.add_column("LoS from", justify="right")
-    for col in ("30 deg", "45 deg", "60 deg"):
-        table.add_column(col, justify="right")
-
-    def at(values_db: np.ndarray, deg: float) -> str:
-        if not sweep.theta_deg[0] <= deg <= sweep.theta_deg[-1]:
-            return "-"
-        return f"{np.interp(deg, sweep.theta_deg, values_db):.2f}"
-
-    def fmt(x: float) -> str:
-        return "never" if math.isnan(x) else f"{x:.2f}"
-
-    approx_db = _db(sweep.ratio_approx)
-    table.add_row(
-        "Theorem 3",
-        f"{math.degrees(math.acos(cos_star)):.2f}" if ratio_lin > 1 else "-",
-        fmt(first_crossing_deg(sweep.theta_deg, approx_db, 0.0)),
-        "-",
-        at(approx_db, 30),
-        at(approx_db, 45),
-        at(approx_db, 60),
-    )
-    for i, d in enumerate(sweep.depth_m):
-        ex_db = _db(sweep.ratio_exact[i])
-        table.add_row(
-            f"exact, y_n {d:g} m",
-            fmt(first_crossing_deg(sweep.theta_deg, ex_db, thr)),
-            fmt(first_crossing_deg(sweep.theta_deg, ex_db, 0.0)),
-            fmt(first_crossing_deg(sweep.theta_deg, np.where(sweep.los[i], -1.0, 1.0), 0.0)),
-            at(ex_db, 30),
-            at(ex_db, 45),
-            at(ex_db, 60),
-        )
-    console.print(table)
-    console.print(
-        f"closed form: (1+cos)/(1-cos) = {thr:g} dB at cos theta = {cos_star:.5f}; the paper's "
-        f"'at least 5 dB for theta < 60 deg' holds for the approximation below 58.70 deg. The "
-        f"exact curves approach it only for w << y_n and w << |y_a| (see diffpos.gtd). "
-        f"'LoS from': the node sees the anchor directly through the window (the dip is the "
-        f"lower edge's shadow boundary)."
-    )
-    console.print(f"wrote {csv_path} and {png_path}", highlight=False, soft_wrap=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -370,19 +167,20 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         print(f"diffpos power-ratio: {problem}", file=sys.stderr)
         return 2
+    cfg = config_from_args(args)
     try:
-        sweep = compute_sweep(args)
+        sweep = compute_sweep(cfg)
     except ValueError as exc:
         print(f"diffpos power-ratio: {exc}", file=sys.stderr)
         return 2
     try:
         args.out.mkdir(parents=True, exist_ok=True)
-        csv_path = args.out / CSV_NAME
-        png_path = args.out / PNG_NAME
-        write_csv(csv_path, sweep)
-        write_png(png_path, sweep, args)
+        csv_path = args.out / report.CSV_NAME
+        png_path = args.out / report.PNG_NAME
+        report.write_csv(csv_path, sweep)
+        report.write_png(png_path, sweep, cfg, args.threshold_db)
     except OSError as exc:
         print(f"diffpos power-ratio: cannot write to --out {args.out}: {exc}", file=sys.stderr)
         return 1
-    _report(sweep, args, csv_path, png_path)
+    report.print_report(sweep, args.threshold_db, csv_path, png_path)
     return 0
