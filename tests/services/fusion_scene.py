@@ -8,7 +8,7 @@ epochs of 0.1 s. tests/data/nasty/README.md describes the corpus against this sc
 from __future__ import annotations
 
 import numpy as np
-from diffpos_services.fusion.core import FusionConfig
+from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.kit import build_config
 from diffpos_services.wire.keys import Keys
 

@@ -261,6 +261,8 @@ def _run_stream(core, *, wall0):
 
 def test_output_depends_only_on_inputs_never_on_the_machine_clock(monkeypatch):
     import diffpos_services.fusion.core as fusion_mod
+    import diffpos_services.fusion.ingest as ingest_mod
+    import diffpos_services.fusion.solve as solve_mod
 
     def no_clock():
         raise AssertionError("FusionCore read the machine clock")
@@ -269,7 +271,8 @@ def test_output_depends_only_on_inputs_never_on_the_machine_clock(monkeypatch):
     # `time` is replaced by a clock that fails (logging keeps the real one)
     clock = types.SimpleNamespace(time_ns=no_clock, time=no_clock, monotonic_ns=no_clock,
                                   monotonic=no_clock, perf_counter=no_clock)
-    monkeypatch.setattr(fusion_mod, "time", clock)
+    for mod in (fusion_mod, ingest_mod, solve_mod):  # the core's modules (none imports time)
+        monkeypatch.setattr(mod, "time", clock, raising=False)
     a = _run_stream(FusionCore(_cfg()), wall0=10**15)
     b = _run_stream(FusionCore(_cfg()), wall0=10**15)
     assert len(a) == len(NODES) * 8
@@ -291,7 +294,7 @@ def test_single_subscription_sees_every_input_and_never_truth():
     """run_fusion's one key expression covers states, ranges and batches of any anchor (so
     an anchor's messages keep their publish order) and cannot intersect a truth key."""
     zenoh = pytest.importorskip("zenoh")
-    from diffpos_services.fusion.core import fusion_subscription
+    from diffpos_services.fusion.service import fusion_subscription
 
     k = Keys("s")
     sub = zenoh.KeyExpr(fusion_subscription(k))

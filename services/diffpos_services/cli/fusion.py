@@ -36,7 +36,7 @@ import logging
 from diffpos_services.anchor.service import emulation_nodes, load_scenario_file
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.fusion.config import EDGES, FusionConfig, model_edge
-from diffpos_services.fusion.core import run_fusion
+from diffpos_services.fusion.service import run_fusion
 from diffpos_services.kit import (
     ConfigError,
     Shutdown,

@@ -1,0 +1,333 @@
+"""The fusion's batched solve in named steps (used by :meth:`FusionCore._solve`).
+
+gather arrays -> prepare the batch -> warm/cold/retry solve policy -> messages:
+
+- :func:`gather`: the ready epochs as ``(B, M)`` arrays (ranges, sigmas, times, masks) and
+  every anchor's self-reported position at each range's own time;
+- :func:`prepare`: warm starts from the node tracks, motion compensation, effective sigmas;
+- :func:`solve_batch`: the estimator of ``method``; for D-NLS the warm fixes, then the cold
+  (multi-start) fixes of rows without a warm start or whose warm fix failed (at most once per
+  ``cold_retry_period_s`` of measurement time per node);
+- :func:`exclusion_groups`: why each anchor of each row was not used, grouped by pattern so a
+  batch builds its anchor lists once per pattern (the messages themselves are built by the
+  core, which owns the counters and tracks).
+
+Every step is a function of its arguments (no clock, no network).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+import diffpos.estimators as est  # module attribute lookup: tests count est.dnls calls
+from diffpos.alignment import PendingEpoch, RangeEntry, compensate_node_motion, effective_sigma_m
+from diffpos.estimators import ExclusionReason, FixStatus
+from diffpos.geometry import window_edge_path
+from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.wire import messages as M
+
+__all__ = ["GOOD_STATUS", "Batch", "Prepared", "Results", "exclusion_groups", "gather",
+           "prepare", "solve_batch"]
+
+_NEG = -(2**62)
+#: statuses of a usable fix (a position is published and the node's track updated)
+GOOD_STATUS = (int(FixStatus.OK), int(FixStatus.OK_UNVERIFIED))
+# fixed exclusion reasons by code (see exclusion_groups); 3 = the estimator's reason
+_FIXED = {1: "NOT_DETECTED", 2: "NO_ANCHOR_STATE", 4: "NOT_USED", 5: "ANCHOR_LOST",
+          6: "NOT_REPORTED"}
+_REASON_NAMES = {int(r): r.name for r in ExclusionReason}
+_GATE_CODES = (int(ExclusionReason.RAIM), int(ExclusionReason.PREGATE_SHORTER_THAN_LOS))
+
+
+@dataclass
+class Batch:
+    """``B`` epochs x ``M`` anchors (columns ``names``), as gathered from the epochs."""
+
+    names: list[str]
+    t: np.ndarray  # (B, M) int64 [ns] measurement time of each range
+    rng: np.ndarray  # (B, M) [m], NaN where not detected
+    sig: np.ndarray  # (B, M) [m]
+    reported: np.ndarray  # (B, M) bool: the anchor reported for this epoch
+    detected: np.ndarray  # (B, M) bool: ... with a range
+    pub_wall: np.ndarray  # (B, M) int64 [ns] publish wall time
+    apos: np.ndarray  # (B, M, 3) [m] anchor position at the range's time
+    asig: np.ndarray  # (B, M, 3) [m] its sigma
+    have_state: np.ndarray  # (B, M) bool: an anchor state was available
+    use: np.ndarray  # (B, M) bool: detected and with a state
+    t_ref: np.ndarray  # (B,) int64 [ns] mean time of the used ranges
+    dt_s: np.ndarray  # (B, M) [s] range time - t_ref
+
+
+@dataclass
+class Prepared:
+    """Solver inputs of a :class:`Batch`."""
+
+    x0: np.ndarray  # (B, 3) warm start, NaN rows: cold
+    safe_apos: np.ndarray  # (B, M, 3) anchor positions, 0 where unused
+    rng_in: np.ndarray  # (B, M) motion-compensated ranges, 0 where unused
+    sig_eff: np.ndarray  # (B, M) effective sigmas, 1 where unused
+    warm: np.ndarray  # (B,) bool
+
+
+class Results:
+    """The fixes of a batch, row by row (filled by :meth:`put`)."""
+
+    def __init__(self, b: int, m: int) -> None:
+        self.pos = np.full((b, 3), np.nan)
+        self.cov = np.full((b, 3, 3), np.nan)
+        self.peb = np.full(b, np.nan)
+        self.zb = np.full(b, np.nan)
+        self.status = np.full(b, int(FixStatus.TOO_FEW_ANCHORS))
+        self.resid = np.full((b, m), np.nan)
+        self.used = np.zeros((b, m), bool)
+        self.reason = np.zeros((b, m), int)
+        self.msg: list[str] = [""] * b
+
+    def put(self, rows: np.ndarray, fix: Any) -> None:
+        """Store the :class:`~diffpos.estimators.FixResult` ``fix`` of ``rows``."""
+        self.pos[rows], self.cov[rows] = fix.position_m, fix.covariance_m2
+        self.peb[rows], self.zb[rows] = fix.peb_m, fix.z_bound_m
+        self.status[rows], self.resid[rows] = fix.status, fix.residuals_m
+        self.used[rows], self.reason[rows] = fix.used, fix.exclusion_reason
+        for r, text in zip(rows.tolist(), fix.messages(), strict=True):
+            self.msg[r] = text
+
+
+# ------------------------------------------------------------------------------- gather
+def gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, Any]) -> Batch:
+    """The epochs' ranges as ``(B, M)`` arrays over the anchor columns ``ids``; anchor
+    positions from each anchor's state history (``anchors[id].history``) at the range times."""
+    col = {a: j for j, a in enumerate(ids)}
+    b, m = len(epochs), len(ids)
+    t = np.zeros((b, m), np.int64)
+    rng = np.full((b, m), np.nan)
+    sig = np.ones((b, m))
+    reported = np.zeros((b, m), bool)
+    detected = np.zeros((b, m), bool)
+    pub_wall = np.zeros((b, m), np.int64)
+    # gather every (epoch, anchor) entry in flat lists, then scatter with fancy indexing
+    ri: list[int] = []
+    rj: list[int] = []
+    ents: list[RangeEntry] = []
+    for i, pe in enumerate(epochs):
+        k = len(pe.ranges)
+        ri += [i] * k
+        rj += [col[a] for a in pe.ranges]
+        ents += pe.ranges.values()
+    if ents:
+        e_t, e_r, e_s, _, e_pub, _ = zip(*ents, strict=True)
+        ri_a, rj_a = np.array(ri), np.array(rj)
+        reported[ri_a, rj_a] = True
+        t[ri_a, rj_a] = e_t
+        pub_wall[ri_a, rj_a] = e_pub
+        det = np.array([r is not None for r in e_r])
+        di, dj = ri_a[det], rj_a[det]
+        detected[di, dj] = True
+        rng[di, dj] = [r for r in e_r if r is not None]
+        sig[di, dj] = np.array(e_s, dtype=np.float64)[det]
+    apos, asig, have_state = _anchor_positions(col, anchors, t, detected)
+    use = detected & have_state
+    t_ref, dt_s = _reference_times(t, reported, use)
+    return Batch(list(col), t, rng, sig, reported, detected, pub_wall, apos, asig, have_state,
+                 use, t_ref, dt_s)
+
+
+def _anchor_positions(col: dict[str, int], anchors: dict[str, Any], t: np.ndarray,
+                      detected: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Anchor positions, their sigmas and availability at each detected range's own time."""
+    b, m = t.shape
+    apos = np.full((b, m, 3), np.nan)
+    asig = np.zeros((b, m, 3))
+    have_state = np.zeros((b, m), bool)
+    for a, j in col.items():
+        rows = np.flatnonzero(detected[:, j])
+        if rows.size == 0 or a not in anchors:
+            continue
+        p, s, ok = anchors[a].history.at(t[rows, j])
+        apos[rows, j], asig[rows, j], have_state[rows, j] = p, s, ok
+    return apos, asig, have_state
+
+
+def _reference_times(t: np.ndarray, reported: np.ndarray,
+                     use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's mean time of the used ranges [ns] and each range's offset from it [s]."""
+    n_use = use.sum(axis=1)
+    # relative to a per-row base (int64 sums of absolute ns times would overflow beyond 4
+    # anchors)
+    base = np.max(np.where(reported, t, _NEG), axis=1)
+    rel = np.where(use, t - base[:, None], 0).astype(np.float64)
+    t_ref = base + np.round(rel.sum(axis=1) / np.maximum(n_use, 1)).astype(np.int64)
+    dt_s = np.where(use, (t - t_ref[:, None]) * 1e-9, 0.0)
+    return t_ref, dt_s
+
+
+# ------------------------------------------------------------------------------ prepare
+def _start_points(epochs: list[PendingEpoch], tracks: Any, t_ref: np.ndarray,
+                  cfg: FusionConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Warm start (NaN: cold) and velocity of each row from its node's track."""
+    b = len(epochs)
+    x0 = np.full((b, 3), np.nan)
+    vel = np.zeros((b, 3))
+    has_vel = np.zeros(b, bool)
+    max_age = cfg.warm_start_max_age_s * 1e9
+    period_ns = round(cfg.cold_retry_period_s * 1e9)
+    for i, pe in enumerate(epochs):
+        tr = tracks.get(pe.node_id)
+        if tr is not None and tr.t_ns is not None and abs(t_ref[i] - tr.t_ns) <= max_age:
+            dt = (t_ref[i] - tr.t_ns) * 1e-9
+            if tr.vel is not None:
+                v = tr.vel
+                vel[i], has_vel[i] = v, True
+                x0[i] = [p + u * dt for p, u in zip(tr.pos, v, strict=True)]
+            else:
+                x0[i] = tr.pos
+        elif (tr is not None and tr.try_pos is not None and tr.cold_ns is not None
+              and 0 <= t_ref[i] - tr.cold_ns < period_ns):
+            # no good fix lately, but a cold solve within the retry period: start from its
+            # result instead of paying for another multi-start every epoch
+            x0[i] = tr.try_pos
+    return x0, vel, has_vel
+
+
+def prepare(batch: Batch, epochs: list[PendingEpoch], tracks: Any,
+            cfg: FusionConfig) -> Prepared:
+    """Warm starts, motion-compensated ranges and effective sigmas of ``batch``."""
+    use = batch.use
+    x0, vel, has_vel = _start_points(epochs, tracks, batch.t_ref, cfg)
+    comp = has_vel & cfg.motion_compensation
+    safe_apos = np.where(use[..., None], batch.apos, 0.0)
+    rng = batch.rng
+    if np.any(comp):
+        jac = window_edge_path(
+            safe_apos,
+            np.where(comp[:, None], x0, 0.0)[:, None, :],
+            window_height_m=cfg.window_height_m,
+            delta_m=cfg.delta_m,
+            edge_x_m=cfg.edge_x_m,
+        ).jacobian
+        rng = np.where(
+            comp[:, None] & use, compensate_node_motion(rng, jac, vel[:, None, :], batch.dt_s),
+            rng
+        )
+    speed_sigma = np.where(comp, cfg.velocity_sigma_m_s, cfg.node_speed_sigma_m_s)
+    los = (
+        np.where(np.isfinite(x0[:, None, :]), x0[:, None, :], np.array([0.0, 5.0, 6.0]))
+        - safe_apos
+    )
+    sig_eff = effective_sigma_m(batch.sig, batch.asig, los, batch.dt_s, speed_sigma[:, None])
+    sig_eff = np.where(use, sig_eff, 1.0)
+    rng_in = np.where(use, rng, 0.0)
+    return Prepared(x0, safe_apos, rng_in, sig_eff, np.isfinite(x0).all(axis=1))
+
+
+# -------------------------------------------------------------------------------- solve
+def solve_batch(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], tracks: Any,
+                cfg: FusionConfig, gating: Any) -> Results:
+    """The fixes of every row: ``lls``/``ippa`` in one call; D-NLS warm, then cold.
+
+    Updates the tracks' cold-solve bookkeeping (``cold_ns``, ``try_pos``).
+    """
+    b = len(epochs)
+    res = Results(b, len(batch.names))
+    use = batch.use
+    if cfg.method != "dnls":
+        solver = est.lls if cfg.method == "lls" else est.ippa
+        res.put(np.arange(b), solver(prep.safe_apos, prep.rng_in, prep.sig_eff, mask=use))
+        return res
+    common: dict[str, Any] = dict(
+        window_height_m=cfg.window_height_m,
+        delta_m=cfg.delta_m,
+        edge_x_m=cfg.edge_x_m,
+        gating=gating,
+    )
+    warm = prep.warm
+    rows_w = np.flatnonzero(warm)
+    if rows_w.size:
+        fix = est.dnls(prep.safe_apos[rows_w], prep.rng_in[rows_w], prep.sig_eff[rows_w],
+                       mask=use[rows_w], x0_m=prep.x0[rows_w], **common)
+        res.put(rows_w, fix)
+    retry = _cold_retries(warm, res.status, epochs, tracks, batch.t_ref, cfg)
+    rows_c = np.flatnonzero(~warm | retry)
+    if rows_c.size:
+        fix = est.dnls(prep.safe_apos[rows_c], prep.rng_in[rows_c], prep.sig_eff[rows_c],
+                       mask=use[rows_c], **common)
+        res.put(rows_c, fix)
+        for i in rows_c:
+            tr = tracks[epochs[i].node_id]
+            tr.cold_ns = int(batch.t_ref[i])
+            tr.try_pos = res.pos[i].tolist() if np.all(np.isfinite(res.pos[i])) else None
+    return res
+
+
+def _cold_retries(warm: np.ndarray, status: np.ndarray, epochs: list[PendingEpoch],
+                  tracks: Any, t_ref: np.ndarray, cfg: FusionConfig) -> np.ndarray:
+    """Rows whose warm fix failed and whose node is due a cold (multi-start) retry.
+
+    A warm fix that failed is re-solved from all starts (re-acquisition after a wrong basin),
+    but at most once per cold_retry_period_s of measurement time per node: on realistic
+    channels a third of the fixes fail every epoch for reasons a cold start does not change,
+    and the multi-start re-solve costs ~10x a warm fix. Measurement time (not the wall clock)
+    keeps replays deterministic.
+    """
+    period_ns = round(cfg.cold_retry_period_s * 1e9)
+    retry = np.zeros(len(epochs), bool)
+    for i in np.flatnonzero(warm & ~np.isin(status, GOOD_STATUS)):
+        tr = tracks[epochs[i].node_id]
+        if tr.cold_ns is None or t_ref[i] - tr.cold_ns >= period_ns:
+            retry[i] = True
+            tr.cold_ns = int(t_ref[i])
+    return retry
+
+
+# ----------------------------------------------------------------------------- messages
+def gated_count(batch: Batch, res: Results) -> int:
+    """Ranges excluded by the gating (RAIM or the LoS pre-gate)."""
+    gated = (batch.reported & batch.detected & batch.have_state & ~res.used
+             & np.isin(res.reason, _GATE_CODES))
+    return int(gated.sum())
+
+
+def exclusion_groups(batch: Batch, res: Results, lost: set[str]
+                     ) -> tuple[list[int], list[tuple[list[int], list[str], list[M.Exclusion], bool]]]:
+    """Each row's group of identical (used anchors, exclusion reasons), and per group
+    ``(used column indices, used anchor ids, exclusions, every anchor used)``.
+
+    Rows with the same used set and exclusion reasons share their anchor lists (most rows of
+    an epoch batch use every anchor): built once per pattern, not per fix.
+    """
+    names = batch.names
+    m = len(names)
+    reported, detected, have_state = batch.reported, batch.detected, batch.have_state
+    res_used, res_reason = res.used, res.reason
+    lost_col = np.array([a in lost for a in names], bool)
+    # reason codes: 0 used/absent-not-live, 1 NOT_DETECTED, 2 NO_ANCHOR_STATE, 3 gating
+    # reason (from res_reason), 4 NOT_USED, 5 ANCHOR_LOST, 6 NOT_REPORTED
+    code = np.zeros(reported.shape, np.int8)
+    code[~reported & ~lost_col[None, :]] = 6
+    code[~reported & lost_col[None, :]] = 5
+    code[reported & ~res_used] = 4
+    code[reported & detected & have_state & ~res_used & (res_reason != 0)] = 3
+    code[reported & detected & ~have_state] = 2
+    code[reported & ~detected] = 1
+    why = np.where(code == 3, 16 + res_reason, code) * ~res_used
+    pattern = np.concatenate([res_used.astype(np.int64), why], axis=1)
+    first: dict[bytes, int] = {}  # pattern -> group id
+    reps: list[int] = []  # group id -> its first row
+    group_l: list[int] = []
+    for i, row in enumerate(pattern):
+        g = first.setdefault(row.tobytes(), len(first))
+        if g == len(reps):
+            reps.append(i)
+        group_l.append(g)
+    shared = []
+    for row in pattern[reps].tolist():
+        used_idx = [j for j in range(m) if row[j]]
+        excluded = [
+            M.Exclusion(names[j], _REASON_NAMES[c - 16] if c >= 16 else _FIXED[c])
+            for j, c in enumerate(row[m:]) if c
+        ]
+        shared.append((used_idx, [names[j] for j in used_idx], excluded, len(used_idx) == m))
+    return group_l, shared
