@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
-from diffpos_services import zenoh_security as zs
+from diffpos_services.bus import security as zs
 from diffpos_services.wire.keys import Keys
 
 ROUTER = """

@@ -24,23 +24,13 @@ examples:
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import secrets
 import sys
 from pathlib import Path
 
+from diffpos_services.bus import security as zs
+
 HERE = Path(__file__).resolve().parent
-
-
-def _load_module():
-    try:
-        from diffpos_services import zenoh_security
-    except ImportError:  # not installed: load the module file directly
-        spec = importlib.util.spec_from_file_location("zenoh_security", HERE.parent / "services" / "zenoh_security.py")
-        zenoh_security = importlib.util.module_from_spec(spec)
-        sys.modules["zenoh_security"] = zenoh_security
-        spec.loader.exec_module(zenoh_security)
-    return zenoh_security
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -55,7 +45,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="write new random passwords to credentials.dev.txt and re-render zenoh/*.json5")
     ap.add_argument("--profile", type=Path, default=HERE / "profile.dev.toml")
     args = ap.parse_args(argv)
-    zs = _load_module()
     try:
         hosts = args.host or ["localhost", "router", "127.0.0.1"]
         paths = zs.make_dev_certs(args.out, hosts=hosts, clients=args.client, days=args.days, backend=args.backend)

@@ -1,4 +1,10 @@
-"""What every diffpos bus service shares: typed config, structured logs, clean shutdown.
+"""What every diffpos command shares: errors, typed config, structured logs, clean shutdown.
+
+Standard library and msgspec only (no zenoh: the bus health check is
+:mod:`diffpos_services.bus.health`).
+
+- :class:`DiffposError` is the one base of the errors a person sees; its ``exit_code`` is
+  what the CLI returns (mapped in one place, :func:`diffpos_services.cli.main.main`).
 
 - :func:`build_config` turns plain options into a typed, validated ``msgspec.Struct`` and
   raises :class:`ConfigError` naming the bad field (the CLI prints it, no traceback).
@@ -85,7 +91,7 @@ class DiffposError(Exception):
     """Base of every error diffpos reports to a person: the message says what to fix.
 
     ``exit_code`` is the process exit code the CLI returns for it (one place:
-    :func:`diffpos_services.cli.main.main` and :func:`run_main`); subclasses set their own.
+    :func:`diffpos_services.cli.main.main`); subclasses set their own.
     """
 
     exit_code: int = 1
@@ -261,91 +267,15 @@ class Shutdown:
 
 
 def run_main(fn: Callable[[], int], logger: logging.Logger) -> int:
-    """Run a service body; map a :class:`DiffposError` to its exit code with a one-line message."""
+    """Run a service body; an unexpected exception is logged with its traceback (exit 1).
+
+    A :class:`DiffposError` (and ``KeyboardInterrupt``) goes up to the CLI, which maps it
+    to its exit code with a one-line message (:func:`diffpos_services.cli.main.main`).
+    """
     try:
         return int(fn() or 0)
-    except DiffposError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return exc.exit_code
-    except KeyboardInterrupt:
-        return 130
+    except (DiffposError, KeyboardInterrupt):
+        raise
     except Exception as exc:  # pragma: no cover - last resort, logged with traceback
         logger.exception("fatal: %s", exc)
         return 1
-
-
-# ----------------------------------------------------------------------------- health check
-def health_check(
-    connect: list[str] | None,
-    liveliness_key: str,
-    *,
-    timeout_s: float = 3.0,
-    zenoh_config: str | None = None,
-) -> bool:
-    """True if a liveliness token matching ``liveliness_key`` is alive on the bus.
-
-    Used by container healthchecks: ``python -m diffpos_services.kit health --connect
-    tcp/router:7447 --liveliness diffpos/demo/alive/fusion`` exits 0 when healthy; on a
-    secured bus ``--zenoh-config /security/zenoh/<user>.json5`` instead of ``--connect``
-    (the check logs in with that identity; the file's ``connect/timeout_ms`` is replaced
-    by ``timeout_s``).
-
-    Raises
-    ------
-    ConfigError
-        ``zenoh_config`` is missing, rejected by zenoh or names a missing certificate.
-    """
-    import zenoh
-
-    from diffpos_services.bus.session import ZenohSettings
-
-    if zenoh_config is not None:
-        from diffpos_services.bus.security import SecurityError, session_config
-
-        try:
-            cfg, _ = session_config(zenoh_config, connect=connect or None)
-        except SecurityError as exc:
-            raise ConfigError(str(exc)) from None
-        cfg.insert_json5("connect/timeout_ms", json.dumps(round(timeout_s * 1000)))
-    else:
-        cfg = ZenohSettings(connect=tuple(connect or ()),
-                            connect_timeout_ms=round(timeout_s * 1000)).to_config()
-    try:
-        with zenoh.open(cfg) as session:
-            replies = session.liveliness().get(liveliness_key, timeout=timeout_s)
-            for reply in replies:
-                if reply.ok is not None:
-                    return True
-    except zenoh.ZError:
-        return False
-    return False
-
-
-def _main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m diffpos_services.kit",
-        description="Service utilities. 'health': exit 0 if a liveliness token is alive.",
-    )
-    sub = parser.add_subparsers(dest="cmd", required=True)
-    h = sub.add_parser("health", help="exit 0 if the liveliness token KEY is alive")
-    where = h.add_mutually_exclusive_group(required=True)
-    where.add_argument("--connect", action="append", metavar="ENDPOINT",
-                       help="plain router endpoint (repeatable), e.g. tcp/router:7447")
-    where.add_argument("--zenoh-config", metavar="FILE",
-                       help="zenoh json5 file of the service's identity (secured bus), e.g. "
-                       "/security/zenoh/fusion.json5")
-    h.add_argument("--liveliness", required=True, metavar="KEY")
-    h.add_argument("--timeout", type=float, default=3.0, metavar="S")
-    args = parser.parse_args(argv)
-    try:
-        ok = health_check(args.connect, args.liveliness, timeout_s=args.timeout,
-                          zenoh_config=args.zenoh_config)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print("healthy" if ok else "unhealthy")
-    return 0 if ok else 1
-
-
-if __name__ == "__main__":
-    sys.exit(_main())

@@ -13,7 +13,6 @@ from pathlib import Path
 import pytest
 from diffpos_services.bus.session import check_endpoint
 from diffpos_services.cli import main as cli
-from diffpos_services.kit import _main as servicekit_main
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE = ROOT / "docker-compose.yml"
@@ -101,15 +100,15 @@ def test_endpoints_ports_and_ids_are_consistent(compose):
             assert aid in [a.id for a in scen.anchors]
         # the healthcheck uses the same endpoint and a liveliness key of this site
         test = svc["healthcheck"]["test"]
-        if "diffpos_services.kit" in test:
-            hc = test[test.index("diffpos_services.kit") + 1:]
+        if "health" in test:
+            hc = test[test.index("diffpos") + 1:]
             assert hc[hc.index("--connect") + 1] == expected
             key = hc[hc.index("--liveliness") + 1]
             assert key.startswith("diffpos/demo/alive/")
             if cmd[0] == "anchor":
                 assert key == f"diffpos/demo/alive/anchor/{cmd[cmd.index('--id') + 1]}"
             with pytest.raises(SystemExit):  # options parse (then --help exits)
-                servicekit_main([*hc, "--help"])
+                cli.main([*hc, "--help"])
     dash = services["dashboard"]["command"]
     for opt in ("--web-port", "--grpc-port"):
         p = dash[dash.index(opt) + 1]

@@ -512,8 +512,8 @@ def test_zenoh_config_option_file_env_override_and_errors(tmp_path, monkeypatch,
     import logging
 
     from diffpos_services.bus.session import add_zenoh_arguments, service_settings
+    from diffpos_services.cli.main import main as health_main
     from diffpos_services.kit import ConfigError
-    from diffpos_services.kit import _main as health_main
 
     f = tmp_path / "client.json5"
     f.write_text('// a comment\n{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"],'

@@ -615,7 +615,7 @@ def test_secure_compose_override_matches_base_and_profile():
         assert profile.site in ("*", site)
         # health checks run with the service's own identity
         test = (svc.get("healthcheck") or {}).get("test", [])
-        if "diffpos_services.kit" in test:
+        if "health" in test:
             otest = o["healthcheck"]["test"]
             assert _zenoh_file(otest) == cfg
             assert _strip_connect(test) == [a for a in otest if a not in ("--zenoh-config", cfg)]

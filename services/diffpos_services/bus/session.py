@@ -21,8 +21,14 @@ import json
 import logging
 import os
 import re
+import threading
 from dataclasses import dataclass, field
 from typing import Any, Literal
+
+import zenoh
+
+from diffpos_services.bus.security import SecurityError, session_config
+from diffpos_services.kit import ConfigError, log_event
 
 __all__ = [
     "DEFAULT_CONNECT",
@@ -113,9 +119,7 @@ class ZenohSettings:
         return cfg
 
     def to_config(self):
-        """A fresh ``zenoh.Config`` (imports zenoh): a copy of :attr:`config` if set."""
-        import zenoh
-
+        """A fresh ``zenoh.Config``: a copy of :attr:`config` if set."""
         if self.config is not None:
             return zenoh.Config.from_json5(str(self.config))
         return zenoh.Config.from_json5(json.dumps(self.to_json()))
@@ -195,8 +199,6 @@ def service_settings(args: argparse.Namespace, logger: logging.Logger | None = N
         Bad endpoint, or the file is missing / rejected by zenoh / names a missing
         certificate (the message names the file).
     """
-    from diffpos_services.kit import ConfigError
-
     try:
         settings = settings_from_args(args)
     except ValueError as exc:
@@ -226,9 +228,6 @@ def with_zenoh_config(
     :func:`diffpos_services.bus.security.session_config` and logs its transport warning
     once (ERROR if ``"NOT loopback"``, else WARNING). Raises ``ConfigError``.
     """
-    from diffpos_services.bus.security import SecurityError, session_config
-    from diffpos_services.kit import ConfigError, log_event
-
     try:
         cfg, warning = session_config(config_file, fallback=settings.to_json(), connect=connect,
                                       listen=listen)
@@ -260,8 +259,6 @@ def _init_zenoh_log() -> None:
     """Route zenoh's own log (ERROR and up, or ``RUST_LOG``) to stderr, once per process:
     a refused login is only visible there (``Received a close message ... OpenSyn``)."""
     if not _LOG_INIT:
-        import zenoh
-
         _LOG_INIT.append(True)
         try:
             zenoh.init_log_from_env_or("error")
@@ -295,8 +292,6 @@ def open_session(settings, stop=None, *, logger=None, attempt_ms: int = 1000):
     start-up is honoured. A refused login looks the same as a router that is down (zenoh
     says ``Timeout``), so with a user/password the "waiting for the router" message says so.
     """
-    import zenoh
-
     _init_zenoh_log()
     if isinstance(settings, ZenohSettings):
         cfg = settings.to_config()
@@ -335,8 +330,6 @@ def wait_matching(publisher: Any, *, timeout_s: float) -> bool:
     listener is declared, so a match that happened before is not missed. Returns False after
     ``timeout_s`` [s] without a match.
     """
-    import threading
-
     matched = threading.Event()
     listener = publisher.declare_matching_listener(
         lambda status: matched.set() if status.matching else None

@@ -4,32 +4,46 @@ Each subcommand lives in its own module ``diffpos_services.cli.<name>`` with a m
 docstring (first line = one-line help), ``add_arguments(parser)`` and ``run(args) -> int``.
 Modules are imported only when their subcommand runs, so ``diffpos --help`` stays fast and a
 numeric command never pays for importing Zenoh or Rerun.
+
+Errors are mapped to exit codes here and nowhere else: a :class:`~diffpos_services.kit.DiffposError`
+prints one line ``diffpos <verb>: error: <message>`` and returns its ``exit_code``;
+Ctrl-C returns 130.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.metadata
+import importlib.util
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
-#: subcommand -> (module, one-line help). The order is the order shown by ``--help``.
-COMMANDS: dict[str, tuple[str, str]] = {
-    "emulate": ("emulate", "Run the whole system on this machine: router, anchors, fusion, recorder, dashboard"),
-    "solve": ("solve", "Position fixes from JSON Lines problems on stdin (D-NLS, LLS, IPPA)"),
-    "reproduce": ("reproduce", "Regenerate the paper's study: MPC table, first-arrival stats, error CDFs"),
-    "bounds": ("bounds", "PEB and z-axis bound over a grid of indoor nodes, heat maps per floor"),
-    "power-ratio": ("power_ratio", "Upper/lower edge diffraction power ratio (Theorem 3): PNG + CSV"),
-    "router": ("router", "Zenoh router in this Python process (no zenohd binary needed)"),
-    "anchor": ("anchor", "One UAV anchor: flies its trajectory, ranges to nodes, publishes over Zenoh"),
-    "fusion": ("fusion", "Fusion service: aligns ranges in time, D-NLS with outlier gating, publishes fixes"),
-    "recorder": ("recorder", "Record every message on the bus to MCAP (with liveliness events and config)"),
-    "replay": ("replay", "Re-run fusion offline from an MCAP recording; error report, CDF plot, what-ifs"),
-    "inspect": ("inspect", "Channels, schemas, counts, time span, anchors and nodes of an MCAP recording"),
-    "recover": ("recover", "Rewrite a truncated MCAP recording (e.g. after SIGKILL) into a valid one"),
-    "dashboard": ("dashboard", "Live Rerun dashboard of a running system (viewer, web viewer or .rrd)"),
-    "to-rerun": ("to_rerun", "Convert an MCAP recording into a Rerun .rrd dashboard"),
-    "raytrace": ("raytrace", "Ray-trace the scenario with Sionna RT (optional extra) for an independent check"),
+from diffpos_services.kit import DiffposError
+
+#: subcommand -> module of ``diffpos_services.cli``. The order is the order shown by ``--help``;
+#: the one-line help is the first line of the module's docstring (read without importing it).
+COMMANDS: dict[str, str] = {
+    "emulate": "emulate",
+    "solve": "solve",
+    "reproduce": "reproduce",
+    "bounds": "bounds",
+    "power-ratio": "power_ratio",
+    "router": "router",
+    "anchor": "anchor",
+    "fusion": "fusion",
+    "recorder": "recorder",
+    "replay": "replay",
+    "inspect": "inspect",
+    "recover": "recover",
+    "dashboard": "dashboard",
+    "to-rerun": "to_rerun",
+    "raytrace": "raytrace",
+    "health": "health",
+    "security": "security",
+    "schemas": "schemas",
 }
 
 EPILOG = """\
@@ -43,10 +57,25 @@ Coordinates: the facade with the windows is the plane y = 0, the inside is y > 0
 """
 
 
+def summary(name: str) -> str:
+    """The one-line help of subcommand ``name``: its module docstring's first line."""
+    spec = importlib.util.find_spec(f"diffpos_services.cli.{COMMANDS[name]}")
+    tree = ast.parse(Path(spec.origin).read_text(encoding="utf-8"))
+    return (ast.get_docstring(tree) or "").strip().splitlines()[0]
+
+
+def version() -> str:
+    """The installed version of the ``diffpos`` distribution."""
+    try:
+        return importlib.metadata.version("diffpos")
+    except importlib.metadata.PackageNotFoundError:  # pragma: no cover - not installed
+        return "unknown"
+
+
 def _top_parser() -> argparse.ArgumentParser:
     width = max(len(name) for name in COMMANDS) + 2
-    listing = "\n".join(f"  {name:<{width}}{text}" for name, (_, text) in COMMANDS.items())
-    return argparse.ArgumentParser(
+    listing = "\n".join(f"  {name:<{width}}{summary(name)}" for name in COMMANDS)
+    parser = argparse.ArgumentParser(
         prog="diffpos",
         description=(
             "Diffraction-aided positioning: find people inside buildings from UAV anchors "
@@ -56,11 +85,12 @@ def _top_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="store_true", help="print the version and exit")
+    return parser
 
 
 def _load(name: str):
-    module_name, _ = COMMANDS[name]
-    return importlib.import_module(f"diffpos_services.cli.{module_name}")
+    return importlib.import_module(f"diffpos_services.cli.{COMMANDS[name]}")
 
 
 def build_parser(name: str) -> argparse.ArgumentParser:
@@ -78,7 +108,11 @@ def build_parser(name: str) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``diffpos VERB [options]``; return the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "--version":
+        print(f"diffpos {version()}")
+        return 0
     top = _top_parser()
     if not argv or argv[0] in ("-h", "--help"):
         top.print_help()
@@ -94,6 +128,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(rest)
     try:
         return int(args._run(args) or 0)
+    except DiffposError as exc:
+        print(f"diffpos {name}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
     except KeyboardInterrupt:
         return 130
 
