@@ -33,8 +33,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import threading
 
 from diffpos_services.bus.session import add_zenoh_arguments, open_session, service_settings
+from diffpos_services.dashboard.scenario import building_for_option
+from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.kit import (
     ConfigError,
     Shutdown,
@@ -106,6 +109,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _target(args: argparse.Namespace):
+    # deferred here and below: the dashboard service imports rerun (~0.6 s), which
+    # `diffpos dashboard --help` must not pay for
     from diffpos_services.dashboard.service import RerunTarget
 
     mode, *rest = args.rerun
@@ -124,18 +129,12 @@ def _target(args: argparse.Namespace):
         raise ConfigError(str(exc)) from None
 
 
-def _building(args: argparse.Namespace):
-    from diffpos_services.dashboard.views import building_for_option
-
-    return building_for_option(args.scenario)
-
-
 def run(args: argparse.Namespace) -> int:
     log = setup_logging("dashboard", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:
         target = _target(args)
-        building = _building(args)
+        building = building_for_option(args.scenario)
         if args.ring_size < 1 or args.drain_period <= 0 or args.report_every <= 0:
             raise ConfigError("--ring-size must be >= 1, --drain-period and --report-every > 0")
         from diffpos_services.dashboard.service import DashboardService, open_rerun
@@ -152,8 +151,6 @@ def run(args: argparse.Namespace) -> int:
             settings = service_settings(args, log)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
-        import threading
-
         stop = Shutdown(log)
         if args.duration is not None:
             threading.Timer(args.duration, stop.set).start()
@@ -180,8 +177,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _demo(rec, building, target) -> int:
-    from diffpos_services.dashboard.synthetic import synthetic_run
-    from diffpos_services.dashboard.views import Dashboard
+    from diffpos_services.dashboard.stream import Dashboard  # deferred: imports rerun
 
     b, msgs = synthetic_run(n_anchors=8, n_nodes=20, duration_s=60.0, seed=1)
     dash = Dashboard(rec, building=building or b)

@@ -29,6 +29,9 @@ import sys
 import time
 from pathlib import Path
 
+from diffpos_services.dashboard.scenario import building_for_option
+from diffpos_services.kit import ConfigError
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("mcap", metavar="FILE.mcap", help="diffpos MCAP recording")
@@ -88,8 +91,9 @@ def run(args: argparse.Namespace) -> int:
     if args.path_period <= 0:
         print("error: --path-period must be > 0", file=sys.stderr)
         return 2
-    from diffpos_services.dashboard.views import building_for_option, mcap_to_rrd
-    from diffpos_services.kit import ConfigError
+    # deferred: the converter imports rerun and the MCAP reader (~1 s), which `--help` and the
+    # argument checks above must not pay for
+    from diffpos_services.dashboard.convert import mcap_to_rrd
     from diffpos_services.recording.mcap_io import RecordingError
 
     try:

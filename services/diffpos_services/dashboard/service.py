@@ -22,6 +22,7 @@ from __future__ import annotations
 import collections
 import logging
 import os
+import shutil
 import sys
 import threading
 import time
@@ -31,6 +32,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import rerun as rr
+import zenoh  # this module is the dashboard process's service (liveliness sample kinds)
 
 from diffpos_services.dashboard.blueprint import default_blueprint
 from diffpos_services.dashboard.building import BuildingOutline
@@ -99,8 +101,6 @@ class RerunTarget:
 def _ensure_viewer_on_path() -> None:
     """``spawn`` runs the ``rerun`` executable from PATH; the one of this Python environment
     (rerun-sdk's wheel) is used when the venv is not activated (``/path/venv/bin/diffpos``)."""
-    import shutil
-
     if shutil.which("rerun"):
         return
     here = Path(sys.executable).parent
@@ -310,8 +310,6 @@ class DashboardService:
                 self._want_received = None
 
     def _on_liveliness(self, sample: Any) -> None:
-        import zenoh
-
         key = str(sample.key_expr)
         pk = parse_key(key)
         if pk is None or pk.kind not in ("alive_anchor", "alive_fusion"):
@@ -327,7 +325,7 @@ class DashboardService:
         for expr in (
             k.anchor_states(),
             k.estimates(),
-            f"{k.root}/truth/node/*",
+            k.truth_node("*"),  # every node's truth (wire/keys has no truth_nodes() pattern)
             k.fusion_diagnostics(),
         ):
             self._subs.append(self.session.declare_subscriber(expr, self._on_sample))
