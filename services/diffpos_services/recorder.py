@@ -1,6 +1,6 @@
 """The recorder service: every message under ``diffpos/<site>/**`` into an MCAP file.
 
-A thin Zenoh wrapper around :class:`diffpos_services.recording.mcap_io.McapSink`:
+A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
 
 * one data subscriber on ``diffpos/<site>/**`` with a bounded ``FifoChannel`` handler, drained
   by a thread of ours (when the channel is full Zenoh blocks, and publishers using
@@ -28,24 +28,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import zenoh
+from zenoh import handlers
+
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.recording.mcap_io import McapSink, SinkStats
+from diffpos_services.recording.writer import McapSink, SinkStats
 from diffpos_services.wire.keys import Keys
 
 __all__ = [
     "RecorderOptions",
-    "alive_recorder_key",
     "build_command",
     "default_output_path",
     "record",
 ]
 
 log = logging.getLogger("diffpos.recorder")
-
-
-def alive_recorder_key(site: str) -> str:
-    """Liveliness token the recorder declares once it is subscribed."""
-    return f"{Keys(site).root}/alive/recorder"
 
 
 def default_output_path(
@@ -132,9 +129,6 @@ def record(
     -------
     stats : SinkStats
     """
-    import zenoh
-    from zenoh import handlers
-
     keys = Keys(options.site)
     emit = on_status or (lambda _e, _f: None)
     deletes = 0
@@ -195,7 +189,7 @@ def record(
         drainer.start()
         flush_thread = threading.Thread(target=flusher, name="recorder-flush", daemon=True)
         flush_thread.start()
-        token = session.liveliness().declare_token(alive_recorder_key(options.site))
+        token = session.liveliness().declare_token(keys.alive_recorder())
         emit("ready", {"key": keys.everything(), "path": str(sink.path or "")})
         try:
             if t_end is None:

@@ -15,15 +15,12 @@ import jsonschema
 import numpy as np
 import pytest
 from diffpos_services.cli.main import main as cli_main
-from diffpos_services.recording.mcap_io import (
-    JsonDecoderFactory,
-    McapScanner,
-    McapSink,
-    RecordingError,
-    SchemaRegistry,
-    recover,
-    summarize,
-)
+from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.reader import JsonDecoderFactory, McapScanner
+from diffpos_services.recording.repair import recover
+from diffpos_services.recording.schemas import SchemaRegistry
+from diffpos_services.recording.summary import summarize
+from diffpos_services.recording.writer import McapSink
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 from mcap.reader import make_reader
@@ -338,7 +335,7 @@ def test_inspect_reports_counts_anchors_nodes(tmp_path, capsys):
 
 
 def test_schema_registry_without_schema_files_generates_the_same_documents(monkeypatch):
-    import diffpos_services.recording.mcap_io as mi
+    import diffpos_services.recording.schemas as mi
 
     from_files = SchemaRegistry()
     monkeypatch.setattr(mi, "default_schema_dir", lambda: Path("/nonexistent/schemas"))

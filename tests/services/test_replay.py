@@ -15,8 +15,11 @@ import numpy as np
 import pytest
 from diffpos_services.cli.main import main as cli_main
 from diffpos_services.kit import ConfigError
-from diffpos_services.recording.mcap_io import McapScanner, McapSink, RecordingError
-from diffpos_services.recording.replay import replay, write_synthetic_recording
+from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.reader import McapScanner
+from diffpos_services.recording.replay import replay
+from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.recording.writer import McapSink
 from diffpos_services.wire import messages as M
 from mcap.reader import make_reader
 from mcap.writer import Writer
@@ -186,7 +189,7 @@ def test_committed_sample_recording(tmp_path):
     and the replay reproduces the recorded live fixes (see recordings/README.md for why not
     bit for bit)."""
     from diffpos_services.cli.inspect import validate_file
-    from diffpos_services.recording.mcap_io import summarize
+    from diffpos_services.recording.summary import summarize
 
     s = summarize(SAMPLE)
     assert s.complete and s.damage.ok and sum(s.gaps.values()) == 0

@@ -23,7 +23,7 @@ import pytest
 import zenoh
 from diffpos_services.bus.session import ZenohSettings, wait_matching
 from diffpos_services.recorder import build_command
-from diffpos_services.recording.mcap_io import JsonDecoderFactory
+from diffpos_services.recording.reader import JsonDecoderFactory
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 from mcap.reader import make_reader
@@ -239,7 +239,8 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
     import msgspec
     from diffpos_services.anchor.service import load_scenario_file
     from diffpos_services.cli import fusion as cmd_fusion
-    from diffpos_services.recording.replay import replay, synthetic_run
+    from diffpos_services.recording.replay import replay
+    from diffpos_services.recording.synthetic import synthetic_run
 
     ep, procs = bus
     site = "e2e"

@@ -21,6 +21,10 @@ import sys
 import time
 from collections import Counter
 
+from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.reader import McapScanner
+from diffpos_services.recording.summary import summarize
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.mcap", help="recording to inspect")
@@ -43,9 +47,7 @@ def validate_file(path) -> dict:
         ``checked``, ``invalid`` (count), ``no_schema`` (messages on schema-less channels),
         ``not_json`` and ``examples`` (first 10 problems as strings).
     """
-    import jsonschema
-
-    from diffpos_services.recording.mcap_io import McapScanner
+    import jsonschema  # optional (the test extra): --validate says so when it is missing
 
     sc = McapScanner(path)
     validators: dict[int, object] = {}
@@ -78,8 +80,6 @@ def validate_file(path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from diffpos_services.recording.mcap_io import RecordingError, summarize
-
     try:
         s = summarize(args.file)
     except RecordingError as exc:

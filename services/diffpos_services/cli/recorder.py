@@ -41,6 +41,15 @@ from diffpos_services.kit import (
     run_main,
     setup_logging,
 )
+from diffpos_services.recorder import (
+    RecorderOptions,
+    default_output_path,
+    record,
+    run_metadata,
+    status_printer,
+)
+from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.writer import McapSink
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -73,15 +82,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, logger: logging.Logger) -> int:
-    from diffpos_services.recorder import (
-        RecorderOptions,
-        default_output_path,
-        record,
-        run_metadata,
-        status_printer,
-    )
-    from diffpos_services.recording.mcap_io import McapSink, RecordingError
-
     try:
         settings = service_settings(args, logger)
         options = RecorderOptions(site=args.site, flush_interval_s=args.flush_interval,

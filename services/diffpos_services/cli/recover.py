@@ -20,6 +20,9 @@ import json
 import sys
 from pathlib import Path
 
+from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.repair import recover
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.mcap", help="recording to recover")
@@ -30,8 +33,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from diffpos_services.recording.mcap_io import RecordingError, recover
-
     src = Path(args.file)
     out = Path(args.out) if args.out else src.with_name(src.stem + ".recovered.mcap")
     try:

@@ -34,6 +34,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+from diffpos_services.kit import ConfigError, load_json_option
+from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.replay import replay
+from diffpos_services.reports.replay import plot_cdf
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.mcap", help="recording to replay")
@@ -74,8 +81,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
-    from diffpos_services.kit import ConfigError, load_json_option
-
     out: dict[str, Any] = {}
     if args.config:
         doc = load_json_option("--config", args.config)
@@ -176,18 +181,12 @@ def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from diffpos_services.kit import ConfigError
-    from diffpos_services.recording.mcap_io import RecordingError
-    from diffpos_services.recording.replay import plot_cdf, replay
-
     src = Path(args.file)
     try:
         overrides = _overrides(args)
         progress = None
         bar = None
         if not args.no_progress and sys.stderr.isatty():
-            from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
             bar = Progress(TextColumn("replay"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                            TimeRemainingColumn(), transient=True)
             task = bar.add_task("replay", total=max(src.stat().st_size, 1))
@@ -212,6 +211,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     rep = result.report
     if args.rrd:
+        # rerun is a heavy import that `diffpos replay --help` and plain replays must not pay
         from diffpos_services.dashboard.views import mcap_to_rrd
 
         mcap_to_rrd(src, args.rrd, estimates=result.estimates,

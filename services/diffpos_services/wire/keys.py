@@ -21,6 +21,12 @@ key expression                              message (schemas/)     publisher -> 
 ``diffpos/<site>/alive/recorder``           liveliness token       recorder -> emulate
 ========================================== ===================== ===============================
 
+Two more topics exist only in MCAP recordings (never on the bus):
+``diffpos/<site>/recorder/liveliness`` (the recorder's liveliness events, one JSON object per
+token appearing or disappearing: :meth:`Keys.recorder_liveliness`) and
+``diffpos/<site>/replay/node/<node>/estimate`` (estimates written by ``diffpos replay
+--write-mcap``, kept apart from the live ones: :meth:`Keys.replay_estimate`).
+
 Identifiers (site, anchor and node ids) are single key chunks: letters, digits, ``_`` and
 ``-`` only (no ``/``, no wildcards).
 """
@@ -35,17 +41,29 @@ from diffpos.scenario import ID_PATTERN
 
 __all__ = [
     "PREFIX",
+    "SEQUENCE_STREAMS",
     "KeyKind",
     "Keys",
     "ParsedKey",
     "check_id",
     "parse_key",
+    "parse_recording_topic",
 ]
 
 #: First chunk of every diffpos key.
 PREFIX = "diffpos"
 
 _ID_RE = ID_PATTERN  # one grammar for scenario files and the wire
+
+#: message kind -> its sequence stream (the key pattern of one publisher's counter): an anchor
+#: numbers its state and all its ranges with one counter, the fusion all its estimates
+SEQUENCE_STREAMS: dict[str, str] = {
+    "anchor_state": "anchor/{anchor}/**",
+    "range": "anchor/{anchor}/**",
+    "range_batch": "anchor/{anchor}/**",
+    "estimate": "node/*/estimate",
+    "replay_estimate": "replay/node/*/estimate",
+}
 
 KeyKind = Literal[
     "anchor_state",
@@ -156,6 +174,15 @@ class Keys:
         """Liveliness token of the MCAP recorder (declared once it is subscribed)."""
         return f"{self.root}/alive/recorder"
 
+    # -- recording-only topics (MCAP channels, never published) ----------------------------
+    def recorder_liveliness(self) -> str:
+        """MCAP topic of the recorder's liveliness-event channel."""
+        return f"{self.root}/recorder/liveliness"
+
+    def replay_estimate(self, node_id: str) -> str:
+        """MCAP topic of a replayed estimate (kept apart from the live ``node/<id>/estimate``)."""
+        return f"{self.root}/replay/node/{node_id}/estimate"
+
     # -- patterns ------------------------------------------------------------------------
     def everything(self) -> str:
         """All data messages of the site (what a recorder subscribes to)."""
@@ -233,3 +260,16 @@ def _parse_key(key: str) -> ParsedKey | None:
         case ["alive", "recorder"]:
             return ParsedKey("alive_recorder", site)
     return None
+
+
+def parse_recording_topic(topic: str) -> ParsedKey | None:
+    """:func:`parse_key` plus the recording-only topics: kinds ``liveliness``
+    (:meth:`Keys.recorder_liveliness`) and ``replay_estimate`` (:meth:`Keys.replay_estimate`).
+    """
+    parts = topic.split("/")
+    if len(parts) >= 4 and parts[0] == PREFIX:
+        if parts[2:] == ["recorder", "liveliness"]:
+            return ParsedKey("liveliness", parts[1])
+        if len(parts) == 6 and parts[2:4] == ["replay", "node"] and parts[5] == "estimate":
+            return ParsedKey("replay_estimate", parts[1], node_id=parts[4])
+    return parse_key(topic)

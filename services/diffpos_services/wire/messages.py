@@ -31,6 +31,7 @@ import msgspec
 from msgspec import Meta
 
 __all__ = [
+    "GOOD_STATUSES",
     "MESSAGE_TYPES",
     "AnchorHealth",
     "AnchorState",
@@ -104,6 +105,9 @@ FixStatusName = Annotated[
         pattern=r"^[A-Z][A-Z0-9_]*$(?!\n)",
     ),
 ]
+
+#: statuses of a fix whose position can be used (``FixResult.ok`` of the core, by name)
+GOOD_STATUSES = frozenset({"OK", "OK_UNVERIFIED"})
 
 
 def finite_or_none(value: float | None) -> float | None:
