@@ -13,14 +13,15 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     DIFFPOS_LOG_FORMAT=json
 
 WORKDIR /app
-# dependency layer first (changes rarely), then the sources
-COPY pyproject.toml README.md ./
+# packaging files first (change rarely), then the sources
+COPY pyproject.toml setup.py README.md ./
 COPY diffpos ./diffpos
 COPY services ./services
 COPY schemas ./schemas
 COPY scenarios ./scenarios
-# editable install: the services read schemas/ and scenarios/ next to the sources
-RUN pip install -e . \
+# a regular (non-editable) install: setup.py's build hook ships schemas/ and scenarios/ inside
+# the package (diffpos_services/_data, found by diffpos_services.resources)
+RUN pip install . \
  && useradd --create-home --uid 10001 diffpos \
  && mkdir -p /data/recordings \
  && chown -R diffpos /data
