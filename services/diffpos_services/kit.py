@@ -5,14 +5,15 @@ Standard library and msgspec only (no zenoh: the bus health check is
 
 - :class:`DiffposError` is the one base of the errors a person sees; its ``exit_code`` is
   what the CLI returns (mapped in one place, :func:`diffpos_services.cli.main.main`).
-
 - :func:`build_config` turns plain options into a typed, validated ``msgspec.Struct`` and
   raises :class:`ConfigError` naming the bad field (the CLI prints it, no traceback).
 - :func:`setup_logging` writes one JSON object per line to stderr (``--log-format text`` for
   humans); :func:`log_event` attaches key/value fields; :class:`LogOnce` logs a recurring
   problem once per (key, reason).
 - :class:`Shutdown` turns SIGINT/SIGTERM into an event the main loop waits on, so sessions
-  are closed by their ``with`` blocks and buffers are flushed before exit.
+  are closed by their ``with`` blocks and buffers are flushed before exit; :func:`run_main`
+  runs a service body; :func:`stop_process_groups` and :func:`free_tcp_port` help the
+  commands that start processes (``diffpos emulate``, tests, benchmarks).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ __all__ = [
     "Shutdown",
     "add_logging_arguments",
     "build_config",
+    "free_tcp_port",
     "load_json_option",
     "log_event",
     "run_main",

@@ -1,4 +1,4 @@
-"""Zenoh transport security: TLS + user/password + access control (services/zenoh_security.py).
+"""Zenoh transport security: TLS + user/password + access control (diffpos_services.bus.security).
 
 The bus tests start a real zenoh router (Python, router mode) in a subprocess with the
 rendered router configuration on a free loopback TLS port; certificates and passwords are
