@@ -24,13 +24,20 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import rerun as rr
+import zenoh
+from diffpos_services.bus.session import ZenohSettings, wait_matching
 from diffpos_services.dashboard import views as d
+from diffpos_services.dashboard.service import DashboardService, RerunTarget, open_rerun
 from diffpos_services.dashboard.synthetic import synthetic_run
+from diffpos_services.kit import free_tcp_port
+from diffpos_services.recording.mcap_io import McapSink
 from diffpos_services.wire import messages as m
 
 
@@ -91,21 +98,12 @@ def bench_live(args, tmp: Path) -> dict:
 
 def _wait_matched(pubs, *, timeout_s: float) -> None:
     """Block until every Zenoh publisher in ``pubs`` has a matching subscriber (no sleeps)."""
-    from diffpos_services.bus.session import wait_matching
-
     for pub in pubs:
         if not wait_matching(pub, timeout_s=timeout_s):
             raise RuntimeError(f"no subscriber matched {pub.key_expr} within {timeout_s} s")
 
 
 def bench_zenoh(args, tmp: Path) -> dict:
-    import threading
-
-    import zenoh
-    from diffpos_services.bus.session import ZenohSettings
-    from diffpos_services.dashboard.service import DashboardService, RerunTarget, open_rerun
-    from diffpos_services.emulate import free_tcp_port
-
     building, msgs = synthetic_run(
         n_anchors=args.anchors,
         n_nodes=args.nodes,
@@ -124,7 +122,6 @@ def bench_zenoh(args, tmp: Path) -> dict:
     keys = [d.key_of(x, site="bench") for x in msgs]
     pubs = {k: pub_s.declare_publisher(k) for k in set(keys)}
     _wait_matched(pubs.values(), timeout_s=30.0)  # run() has declared its subscribers
-    import msgspec
 
     t_of = [getattr(x, "t_ns", None) or x.watermark_ns for x in msgs]
     t0_data, t0_wall = t_of[0], time.perf_counter()
@@ -160,8 +157,6 @@ def bench_zenoh(args, tmp: Path) -> dict:
 
 def write_recording(args, path: Path) -> int:
     """The synthetic run (plus every range message unless --no-ranges) as an MCAP file."""
-    from diffpos_services.recording.mcap_io import McapSink
-
     t = time.perf_counter()
     _, msgs = synthetic_run(
         n_anchors=args.anchors,
