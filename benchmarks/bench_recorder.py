@@ -43,10 +43,20 @@ import threading
 import time
 from pathlib import Path
 
+from diffpos_services.fusion.core import FusionCore
+from diffpos_services.kit import free_tcp_port
+from diffpos_services.recorder import build_command
+from diffpos_services.recording.reader import McapScanner
+from diffpos_services.recording.replay import replay
+from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.recording.topics import SeqTracker, parse_topic
+from diffpos_services.recording.writer import McapSink
+from diffpos_services.wire import messages as M
+
+import diffpos.estimators as est
+
 
 def _payload_200(i: int) -> bytes:
-    from diffpos_services.wire import messages as M
-
     msg = M.RangeMeasurement(anchor_id="uav3", node_id=f"n{i % 50:02d}", t_ns=1_700_000_000_000_000_000 + i,
                              seq=i, range_m=27.123456789 + (i % 97) * 1e-3, sigma_m=0.0123456,
                              snr_db=18.25, t_pub_wall_ns=1_700_000_000_000_000_000 + i)
@@ -54,8 +64,6 @@ def _payload_200(i: int) -> bytes:
 
 
 def bench_sink(n: int, tmp: Path) -> dict:
-    from diffpos_services.recording.mcap_io import McapSink
-
     payloads = [_payload_200(i) for i in range(1000)]
     size = sum(map(len, payloads)) / len(payloads)
     keys = [f"diffpos/b/anchor/uav3/range/n{i:02d}" for i in range(50)]
@@ -98,9 +106,6 @@ with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
 
 
 def bench_bus(n: int, tmp: Path) -> dict:
-    from diffpos_services.emulate import free_tcp_port
-    from diffpos_services.recorder import build_command
-
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     env = dict(os.environ, DIFFPOS_LOG_LEVEL="warning")
     procs = []
@@ -152,9 +157,6 @@ def bench_bus(n: int, tmp: Path) -> dict:
 
 
 def bench_scan(minutes: float, tmp: Path) -> dict:
-    from diffpos_services.recording.mcap_io import McapScanner
-    from diffpos_services.recording.replay import write_synthetic_recording
-
     path = tmp / "ten_minutes.mcap"
     t0 = time.perf_counter()
     counts = write_synthetic_recording(path, n_anchors=8, n_nodes=50, duration_s=60 * minutes,
@@ -172,8 +174,6 @@ def bench_scan(minutes: float, tmp: Path) -> dict:
 
 
 def _recording(seconds: float, tmp: Path, *, range_batch: bool) -> Path:
-    from diffpos_services.recording.replay import write_synthetic_recording
-
     path = tmp / f"replay_{seconds:g}s_{'batch' if range_batch else 'single'}.mcap"
     if not path.exists():  # with the live fusion's estimates (what --compare checks against)
         write_synthetic_recording(path, n_anchors=8, n_nodes=50, duration_s=seconds,
@@ -184,9 +184,6 @@ def _recording(seconds: float, tmp: Path, *, range_batch: bool) -> Path:
 def bench_read_floor(seconds: float, tmp: Path, *, range_batch: bool) -> dict:
     """What replay costs before any fusion work: read every message, track its sequence
     number, decode it with its schema (no fusion, no report)."""
-    from diffpos_services.recording.mcap_io import McapScanner, SeqTracker, parse_topic
-    from diffpos_services.wire import messages as M
-
     path = _recording(seconds, tmp, range_batch=range_batch)
     decoders = {"estimate": M.decoder(M.PositionEstimate), "truth_node": M.decoder(M.GroundTruth),
                 "range_batch": M.decoder(M.RangeBatch), "range": M.decoder(M.RangeMeasurement),
@@ -218,11 +215,6 @@ def bench_replay(seconds: float, tmp: Path, *, range_batch: bool, step_ms: float
     diffpos.estimators) and ``ingest_s`` (FusionCore.on_sample: checks, decoding, alignment);
     the rest is the fusion's batch assembly and estimate building, reading the file and the
     report."""
-    from diffpos_services.fusion.core import FusionCore
-    from diffpos_services.recording.replay import replay
-
-    import diffpos.estimators as est
-
     path = _recording(seconds, tmp, range_batch=range_batch)
     replay(path, step_ms=step_ms)  # imports and first-call costs are not part of the rate
     dt = float("inf")

@@ -131,49 +131,6 @@ def record(
     """
     keys = Keys(options.site)
     emit = on_status or (lambda _e, _f: None)
-    deletes = 0
-
-    def drain(sub) -> None:
-        nonlocal deletes
-        write = sink.write
-        put = zenoh.SampleKind.PUT
-        now = time.time_ns
-        try:
-            while True:
-                sample = sub.recv()
-                if sample.kind != put:
-                    deletes += 1
-                    continue
-                write(str(sample.key_expr), sample.payload.to_bytes(), now())
-        except zenoh.ZError:
-            return  # channel closed: session closed and every queued sample drained
-        except Exception:  # pragma: no cover - never let the drain thread die silently
-            log.exception("recorder drain thread failed")
-            stop.set()
-
-    def on_liveliness(sample) -> None:
-        alive = sample.kind == zenoh.SampleKind.PUT
-        sink.write_liveliness(options.site, str(sample.key_expr), alive, time.time_ns())
-
-    def flusher() -> None:
-        last = -1
-        while not stop.wait(options.flush_interval_s):
-            flushed = sink.flush()
-            if flushed != last:
-                last = flushed
-                st = sink.stats
-                emit(
-                    "flush",
-                    {
-                        "flushed": flushed,
-                        "flushed_written": st.flushed_written,
-                        "received": st.received,
-                        "written": st.written,
-                        "gaps": st.gaps,
-                        "by_kind": sink.counts_by_kind(),
-                    },
-                )
-
     t_end = None if options.duration_s is None else time.monotonic() + options.duration_s
     session = open_session(settings, stop, logger=log)
     if session is None:  # stopped while waiting for the router
@@ -183,11 +140,12 @@ def record(
             keys.everything(), handlers.FifoChannel(options.queue_size)
         )
         live_sub = session.liveliness().declare_subscriber(
-            keys.alive_all(), on_liveliness, history=True
+            keys.alive_all(), _liveliness_writer(sink, options.site), history=True
         )
-        drainer = threading.Thread(target=drain, args=(sub,), name="recorder-drain", daemon=True)
+        drainer = _Drain(sub, sink, stop)
         drainer.start()
-        flush_thread = threading.Thread(target=flusher, name="recorder-flush", daemon=True)
+        flush_thread = threading.Thread(target=_flush_loop, args=(sink, options, stop, emit),
+                                        name="recorder-flush", daemon=True)
         flush_thread.start()
         token = session.liveliness().declare_token(keys.alive_recorder())
         emit("ready", {"key": keys.everything(), "path": str(sink.path or "")})
@@ -213,10 +171,70 @@ def record(
             "received": st.received,
             "written": st.written,
             "gaps": st.gaps,
-            "deletes_ignored": deletes,
+            "deletes_ignored": drainer.deletes,
         },
     )
     return st
+
+
+class _Drain(threading.Thread):
+    """The thread moving samples from the Zenoh FIFO into the sink (DELETEs are counted, not
+    recorded). Ends when the session is closed and every queued sample is written."""
+
+    def __init__(self, sub: Any, sink: McapSink, stop: threading.Event) -> None:
+        super().__init__(name="recorder-drain", daemon=True)
+        self.sub, self.sink, self.stop = sub, sink, stop
+        self.deletes = 0
+
+    def run(self) -> None:
+        write = self.sink.write
+        put = zenoh.SampleKind.PUT
+        now = time.time_ns
+        try:
+            while True:
+                sample = self.sub.recv()
+                if sample.kind != put:
+                    self.deletes += 1
+                    continue
+                write(str(sample.key_expr), sample.payload.to_bytes(), now())
+        except zenoh.ZError:
+            return  # channel closed: session closed and every queued sample drained
+        except Exception:  # pragma: no cover - never let the drain thread die silently
+            log.exception("recorder drain thread failed")
+            self.stop.set()
+
+
+def _liveliness_writer(sink: McapSink, site: str) -> Callable[[Any], None]:
+    """Liveliness subscriber callback: token PUT / DELETE -> the sink's liveliness channel."""
+
+    def on_liveliness(sample) -> None:
+        alive = sample.kind == zenoh.SampleKind.PUT
+        sink.write_liveliness(site, str(sample.key_expr), alive, time.time_ns())
+
+    return on_liveliness
+
+
+def _flush_loop(sink: McapSink, options: RecorderOptions, stop: threading.Event,
+                emit: StatusCallback) -> None:
+    """Flush every ``flush_interval_s`` until ``stop``; a ``flush`` status after each flush
+    that wrote something."""
+    last = -1
+    while not stop.wait(options.flush_interval_s):
+        flushed = sink.flush()
+        if flushed != last:
+            last = flushed
+            st = sink.stats
+            emit(
+                "flush",
+                {
+                    "flushed": flushed,
+                    "flushed_written": st.flushed_written,
+                    "received": st.received,
+                    "written": st.written,
+                    "gaps": st.gaps,
+                    "by_kind": sink.counts_by_kind(),
+                },
+            )
 
 
 def run_metadata(

@@ -134,10 +134,10 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
 @pytest.mark.parametrize("kind", list(M.MESSAGE_TYPES), ids=lambda k: k.__name__)
 def test_checked_in_schema_matches_code(kind):
     path = SCHEMA_DIR / M.schema_filename(kind)
-    assert path.exists(), f"{path} missing: run python -m diffpos_services.wire.messages --write-schemas schemas/"
+    assert path.exists(), f"{path} missing: run diffpos schemas --write schemas/"
     assert path.read_text() == M.schema_text(kind), (
         f"{path.name} drifted from the {kind.__name__} struct: regenerate with "
-        "python -m diffpos_services.wire.messages --write-schemas schemas/ (and bump the version "
+        "diffpos schemas --write schemas/ (and bump the version "
         "if the change is breaking)"
     )
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from mcap.writer import Writer
 
 from diffpos_services.recording.errors import RecordingError
-from diffpos_services.recording.reader import Damage, McapScanner
+from diffpos_services.recording.reader import Damage, McapScanner, RawMessage
 from diffpos_services.recording.writer import COMPRESSION
 
 __all__ = ["RecoverReport", "recover"]
@@ -77,84 +77,98 @@ def recover(
     comp = COMPRESSION[compression]
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = dst.with_name(dst.name + ".partial")
-    n_msgs = 0
     with open(tmp, "wb") as f:
-        w = Writer(f, compression=comp)
-        started = False
-        schema_map: dict[int, int] = {}
-        channel_map: dict[int, int] = {}
-        n_meta = n_att = 0
-
-        def ensure_started() -> None:
-            nonlocal started
-            if not started:
-                w.start(
-                    profile=scanner.header_profile,
-                    library=scanner.header_library or "diffpos-recover",
-                )
-                started = True
-
-        def map_channel(cid: int) -> int:
-            new = channel_map.get(cid)
-            if new is None:
-                ch = scanner.channels[cid]
-                sid = 0
-                if ch.schema_id:
-                    sid = schema_map.get(ch.schema_id, 0)
-                    sch = scanner.schemas.get(ch.schema_id)
-                    if sid == 0 and sch is not None:
-                        sid = w.register_schema(sch.name, sch.encoding, sch.data)
-                        schema_map[ch.schema_id] = sid
-                new = w.register_channel(ch.topic, ch.message_encoding, sid, ch.metadata)
-                channel_map[cid] = new
-            return new
-
+        copy = _Copy(scanner, Writer(f, compression=comp))
         for batch in scanner.iter_batches():
-            ensure_started()
-            for m in batch:
-                w.add_message(
-                    map_channel(m.channel_id),
-                    log_time=m.log_ns,
-                    data=m.data,
-                    publish_time=m.publish_ns,
-                    sequence=m.sequence,
-                )
-            n_msgs += len(batch)
-            # metadata / attachments seen so far are written as they come
-            while n_meta < len(scanner.metadata):
-                md = scanner.metadata[n_meta]
-                w.add_metadata(md.name, md.metadata)
-                n_meta += 1
-            while n_att < len(scanner.attachments):
-                a = scanner.attachments[n_att]
-                w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
-                n_att += 1
+            copy.messages(batch)
+            copy.side_records()  # metadata / attachments seen so far are written as they come
             if progress is not None:
-                progress(n_msgs)
-        ensure_started()
-        for md in scanner.metadata[n_meta:]:
-            w.add_metadata(md.name, md.metadata)
-        for a in scanner.attachments[n_att:]:
-            w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
-        if not scanner.complete and not any(m.name == "recovery" for m in scanner.metadata):
-            w.add_metadata(
-                "recovery",
-                {
-                    "source": src.name,
-                    "truncated": json.dumps(scanner.damage.truncated),
-                    "bad_chunks": str(scanner.damage.bad_chunks),
-                    "unread_bytes": str(scanner.damage.unread_bytes),
-                    "messages": str(n_msgs),
-                },
-            )
-        w.finish()
+                progress(copy.n_msgs)
+        copy.finish(src.name)
     os.replace(tmp, dst)
     return RecoverReport(
-        messages=n_msgs,
-        channels=len(channel_map),
-        schemas=len(schema_map),
+        messages=copy.n_msgs,
+        channels=len(copy.channel_map),
+        schemas=len(copy.schema_map),
         metadata=len(scanner.metadata),
         attachments=len(scanner.attachments),
         damage=scanner.damage,
         was_complete=scanner.complete,
     )
+
+
+class _Copy:
+    """The state of one :func:`recover` copy: the writer, started on first use with the
+    input's header, and the input -> output schema and channel ids."""
+
+    def __init__(self, scanner: McapScanner, writer: Writer) -> None:
+        self.scanner = scanner
+        self.w = writer
+        self.started = False
+        self.schema_map: dict[int, int] = {}
+        self.channel_map: dict[int, int] = {}
+        self.n_msgs = self.n_meta = self.n_att = 0
+
+    def start(self) -> None:
+        if not self.started:
+            sc = self.scanner
+            self.w.start(profile=sc.header_profile, library=sc.header_library or "diffpos-recover")
+            self.started = True
+
+    def channel(self, cid: int) -> int:
+        """Output channel id of input channel ``cid`` (registered with its schema on first use)."""
+        new = self.channel_map.get(cid)
+        if new is None:
+            ch = self.scanner.channels[cid]
+            sid = 0
+            if ch.schema_id:
+                sid = self.schema_map.get(ch.schema_id, 0)
+                sch = self.scanner.schemas.get(ch.schema_id)
+                if sid == 0 and sch is not None:
+                    sid = self.w.register_schema(sch.name, sch.encoding, sch.data)
+                    self.schema_map[ch.schema_id] = sid
+            new = self.w.register_channel(ch.topic, ch.message_encoding, sid, ch.metadata)
+            self.channel_map[cid] = new
+        return new
+
+    def messages(self, batch: list[RawMessage]) -> None:
+        self.start()
+        for m in batch:
+            self.w.add_message(
+                self.channel(m.channel_id),
+                log_time=m.log_ns,
+                data=m.data,
+                publish_time=m.publish_ns,
+                sequence=m.sequence,
+            )
+        self.n_msgs += len(batch)
+
+    def side_records(self) -> None:
+        """Metadata and attachments read since the last call."""
+        sc = self.scanner
+        while self.n_meta < len(sc.metadata):
+            md = sc.metadata[self.n_meta]
+            self.w.add_metadata(md.name, md.metadata)
+            self.n_meta += 1
+        while self.n_att < len(sc.attachments):
+            a = sc.attachments[self.n_att]
+            self.w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
+            self.n_att += 1
+
+    def finish(self, source_name: str) -> None:
+        """The rest of the side records, a ``recovery`` note for a damaged input, the footer."""
+        self.start()
+        self.side_records()
+        sc = self.scanner
+        if not sc.complete and not any(m.name == "recovery" for m in sc.metadata):
+            self.w.add_metadata(
+                "recovery",
+                {
+                    "source": source_name,
+                    "truncated": json.dumps(sc.damage.truncated),
+                    "bad_chunks": str(sc.damage.bad_chunks),
+                    "unread_bytes": str(sc.damage.unread_bytes),
+                    "messages": str(self.n_msgs),
+                },
+            )
+        self.w.finish()

@@ -10,19 +10,17 @@ undefined (an unidentifiable fix has no finite PEB) are ``null``, never NaN.
 
 The checked-in ``schemas/<name>.v1.json`` files are generated from these structs::
 
-    python -m diffpos_services.wire.messages --write-schemas schemas/
+    diffpos schemas --write schemas/
 
-and ``tests/test_wire_contract.py`` fails when code and files drift apart.
+(:func:`write_schemas`) and ``tests/services/test_wire_contract.py`` fails when code and files drift apart.
 """
 
 from __future__ import annotations
 
-import argparse
 import inspect
 import json
 import math
 import re
-import sys
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -443,15 +441,3 @@ def write_schemas(directory: str | Path) -> list[Path]:
         paths.append(path)
     return paths
 
-
-def _main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Write the bus message JSON Schemas.")
-    parser.add_argument("--write-schemas", metavar="DIR", required=True)
-    args = parser.parse_args(argv)
-    for path in write_schemas(args.write_schemas):
-        print(path)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(_main())
