@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from diffpos_services.anchor.service import TimeBase, emulation_nodes
+from diffpos.emulation import TimeBase, emulation_nodes
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
 from diffpos_services.fusion.config import FusionConfig, model_edge
 from diffpos_services.kit import ConfigError, free_tcp_port, log_event, stop_process_groups

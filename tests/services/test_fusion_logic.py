@@ -318,8 +318,7 @@ def _fusion_args(*argv):
 
 
 def test_cli_allow_lists_from_ids_and_from_the_scenario():
-    from diffpos_services.anchor.service import emulation_nodes
-
+    from diffpos.emulation import emulation_nodes
     from diffpos.scenario import default_scenario
 
     sc = default_scenario()

@@ -14,10 +14,12 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from diffpos_services.anchor.service import emulation_nodes, load_scenario_file
+from diffpos_services.anchor.service import load_scenario_file
 from diffpos_services.bus.session import ZenohSettings
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
+
+from diffpos.emulation import emulation_nodes
 
 pytestmark = pytest.mark.slow
 

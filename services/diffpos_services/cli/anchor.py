@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 
+from diffpos_services.anchor.service import AnchorConfig, load_scenario_file, run_anchor
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.kit import (
     Shutdown,
@@ -96,9 +97,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_logging_arguments(parser)
 
 
-def config_from_args(args: argparse.Namespace):
-    from diffpos_services.anchor.service import AnchorConfig
-
+def config_from_args(args: argparse.Namespace) -> AnchorConfig:
     return build_config(
         AnchorConfig,
         dict(
@@ -125,8 +124,6 @@ def run(args: argparse.Namespace) -> int:
     log = setup_logging(f"anchor.{args.anchor_id}", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:
-        from diffpos_services.anchor.service import load_scenario_file, run_anchor
-
         cfg = config_from_args(args)
         zs = service_settings(args, log)
         scenario = load_scenario_file(cfg.scenario)
