@@ -37,7 +37,7 @@ from diffpos_services.dashboard import views as d
 from diffpos_services.dashboard.service import DashboardService, RerunTarget, open_rerun
 from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.kit import free_tcp_port
-from diffpos_services.recording.mcap_io import McapSink
+from diffpos_services.recording.writer import McapSink
 from diffpos_services.wire import messages as m
 
 

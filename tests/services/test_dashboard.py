@@ -420,7 +420,7 @@ def test_streaming_in_small_batches_gives_the_same_dashboard(run, bulk, tmp_path
 
 # ------------------------------------------------------------------------------- MCAP -> rrd
 def _write_mcap(path: Path, msgs, *, extra=()):
-    from diffpos_services.recording.mcap_io import McapSink
+    from diffpos_services.recording.writer import McapSink
 
     with McapSink(path) as sink:
         for x in [*msgs, *extra]:

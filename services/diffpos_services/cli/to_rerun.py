@@ -31,6 +31,7 @@ from pathlib import Path
 
 from diffpos_services.dashboard.scenario import building_for_option
 from diffpos_services.kit import ConfigError
+from diffpos_services.recording.errors import RecordingError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -94,7 +95,6 @@ def run(args: argparse.Namespace) -> int:
     # deferred: the converter imports rerun and the MCAP reader (~1 s), which `--help` and the
     # argument checks above must not pay for
     from diffpos_services.dashboard.convert import mcap_to_rrd
-    from diffpos_services.recording.mcap_io import RecordingError
 
     try:
         building = building_for_option(args.scenario)

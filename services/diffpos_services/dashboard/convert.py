@@ -20,13 +20,22 @@ from diffpos_services.dashboard.decode import _LIST_DECODERS, VIEW_DECODERS
 from diffpos_services.dashboard.events import liveliness_events
 from diffpos_services.dashboard.scenario import building_from_attachments
 from diffpos_services.dashboard.stream import _KIND_BY_CLASS, write_rrd_from_messages
-from diffpos_services.recording.mcap_io import McapScanner, parse_topic
-from diffpos_services.wire.keys import Keys
+
+# the MCAP reader of the recording package: the one cross-service import of the dashboard
+# (converting a recording needs its damage-tolerant scanner)
+from diffpos_services.recording.reader import McapScanner
+from diffpos_services.wire.keys import Keys, parse_recording_topic
 
 __all__ = ["key_of", "mcap_to_rrd", "rrd_rows"]
 
 
 # ============================================================================ MCAP -> .rrd
+def _topic_kind(topic: str) -> str:
+    """The message kind of an MCAP topic (``unknown`` for foreign channels)."""
+    pk = parse_recording_topic(topic)
+    return "unknown" if pk is None else pk.kind
+
+
 def _kind_scanner(path: str | Path, kinds: set[str]):
     """A damage-tolerant MCAP scanner plus the live set of topics of the wanted ``kinds``.
 
@@ -45,7 +54,7 @@ def _kind_scanner(path: str | Path, kinds: set[str]):
             for cid in self.channels.keys() - classified:
                 classified.add(cid)
                 topic = self.channels[cid].topic
-                if parse_topic(topic)[0] in kinds:
+                if _topic_kind(topic) in kinds:
                     wanted.add(topic)
 
     return _Scanner(path), wanted
@@ -163,7 +172,7 @@ def mcap_to_rrd(
         for raw in batch:
             kind = kind_of.get(raw.topic)
             if kind is None:
-                kind = kind_of[raw.topic] = parse_topic(raw.topic)[0]
+                kind = kind_of[raw.topic] = _topic_kind(raw.topic)
             payloads.setdefault(kind, []).append(raw.data)
     for kind, datas in payloads.items():
         if kind not in VIEW_DECODERS:  # liveliness events (plain JSON objects)
