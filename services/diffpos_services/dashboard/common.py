@@ -27,8 +27,6 @@ _STATUS_COLORS = {
     "NOT_IDENTIFIABLE": (230, 50, 50, 255),
     "UNIDENTIFIABLE": (230, 50, 50, 255),
 }
-#: fix statuses (diffpos.estimators.FixStatus names) that mean a usable fix
-GOOD_STATUSES = frozenset({"OK", "OK_UNVERIFIED"})
 #: statuses reported as "unidentifiable geometry"
 UNIDENTIFIABLE_STATUSES = frozenset({"NOT_IDENTIFIABLE", "UNIDENTIFIABLE"})
 #: exclusion reasons that are bookkeeping of the fusion (no range, no anchor state, ...), not

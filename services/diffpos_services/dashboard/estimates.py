@@ -17,7 +17,6 @@ from diffpos_services.dashboard.common import (
     _STATUS_COLORS,
     BOOKKEEPING_REASONS,
     CHI2_3DOF_95,
-    GOOD_STATUSES,
     UNIDENTIFIABLE_STATUSES,
     _group,
     _rgba,
@@ -27,6 +26,7 @@ from diffpos_services.dashboard.common import (
 )
 from diffpos_services.dashboard.events import _status_level, log_events
 from diffpos_services.dashboard.geometry import Tracks, ellipsoid_axes, path_strips
+from diffpos_services.wire.messages import GOOD_STATUSES
 
 
 def _scalar_series(

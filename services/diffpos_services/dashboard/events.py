@@ -10,7 +10,8 @@ import rerun as rr
 from numpy.typing import ArrayLike
 
 from diffpos_services.dashboard.columns import EventColumns
-from diffpos_services.dashboard.common import GOOD_STATUSES, UNIDENTIFIABLE_STATUSES, _time_column
+from diffpos_services.dashboard.common import UNIDENTIFIABLE_STATUSES, _time_column
+from diffpos_services.wire.messages import GOOD_STATUSES
 
 
 def _status_level(before: str | None, status: str) -> str:

@@ -65,7 +65,6 @@ from diffpos_services.dashboard.common import (
     APP_ID,
     BOOKKEEPING_REASONS,
     CHI2_3DOF_95,
-    GOOD_STATUSES,
     TIMELINE,
     UNIDENTIFIABLE_STATUSES,
     anchor_color,
@@ -78,6 +77,7 @@ from diffpos_services.dashboard.geometry import Tracks, ellipsoid_axes
 from diffpos_services.dashboard.scenario import building_for_option, building_from_scenario_file
 from diffpos_services.dashboard.scene import log_anchors, log_building, log_truth
 from diffpos_services.dashboard.stream import Dashboard, write_rrd, write_rrd_from_messages
+from diffpos_services.wire.messages import GOOD_STATUSES
 
 __all__ = [
     "APP_ID",
