@@ -38,11 +38,25 @@ examples:
 from __future__ import annotations
 
 import argparse
-import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Table
+
+from diffpos.scenario import Scenario, ScenarioError
+from diffpos_services import raytrace as rtm
+from diffpos_services.scenario_io import load_scenario, resolve_scenario, scenario_or_default
 
 QUICK_RECEIVERS = 200
 
@@ -74,16 +88,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the comparison with the channel emulator")
 
 
-def _load_scenario(spec: str):
-    from diffpos.scenario import ScenarioError, default_scenario
-
+def _load_scenario(spec: str) -> Scenario:
+    """'paper' (the built-in geometry), a TOML file or a shipped scenario's name."""
     if spec == "paper":
-        return default_scenario()
-    path = Path(spec)
+        return scenario_or_default(None)
+    path = resolve_scenario(spec)
     if not path.is_file():
         raise ValueError(f"scenario: no such file {spec!r} (give a TOML file or 'paper')")
-    from diffpos_services.scenario_io import load_scenario
-
     try:
         return load_scenario(path)
     except ScenarioError as exc:
@@ -96,12 +107,9 @@ def _pick_receivers(nodes: np.ndarray, n: int | None) -> np.ndarray:
     return np.unique(np.linspace(0, len(nodes) - 1, n).round().astype(int))
 
 
-def _report(ds, console) -> None:
-    from rich.table import Table
-
-    from diffpos_services.raytrace import compare_with_emulator
-
-    cmp = compare_with_emulator(ds)
+def _report(ds: rtm.RaytraceDataset, console: Console) -> None:
+    """The emulator comparison of a dataset: MPC table, confusion matrix, Fermat check."""
+    cmp = rtm.compare_with_emulator(ds)
     t = Table(title=f"MPC groups over {cmp['links']} links (emulator | ray tracer) [%]")
     t.add_column("group")
     for c in ("P_e emu", "P_e RT", "P_fap emu", "P_fap RT"):
@@ -134,43 +142,55 @@ def _report(ds, console) -> None:
                   f"max |traced - analytic| = {f['max_abs_m'] * 1e3:.4f} mm")
 
 
+def _compare_only(args: argparse.Namespace, console: Console, err: Callable[[str], None]) -> int:
+    """--compare FILE: the emulator comparison of an existing dataset (no Sionna needed)."""
+    try:
+        ds = rtm.load_dataset(args.compare)
+    except ValueError as exc:
+        err(str(exc))
+        return 2
+    console.print(f"{args.compare}: {len(ds.nodes_m)} receivers x {len(ds.anchors_m)} "
+                  f"anchors, scenario {ds.metadata['scenario']['name']!r}, "
+                  f"{ds.metadata['settings']['samples_per_src']:.0e} samples")
+    _report(ds, console)
+    return 0
+
+
+def _settings(args: argparse.Namespace) -> tuple[Scenario, rtm.RaytraceSettings]:
+    """The scenario and the solver settings of the options (ValueError names the option)."""
+    scenario = _load_scenario(args.scenario)
+    settings = rtm.RaytraceSettings(max_depth=args.max_depth,
+                                    samples_per_src=int(args.samples), seed=args.seed,
+                                    batch_size=args.batch, deterministic=args.deterministic)
+    if args.receivers is not None and args.receivers < 1:
+        raise ValueError(f"--receivers: must be >= 1, got {args.receivers}")
+    return scenario, settings
+
+
+def _trace_with_progress(scenario: Scenario, nodes: np.ndarray, settings: rtm.RaytraceSettings,
+                         console: Console) -> rtm.RaytraceDataset:
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("links"), TimeElapsedColumn(), TimeRemainingColumn(),
+                  console=console, transient=False) as bar:
+        task = bar.add_task("tracing", total=len(nodes) * len(scenario.anchors))
+
+        def progress(done: int, total: int, label: str) -> None:
+            bar.update(task, completed=done, description=f"tracing {label}")
+
+        return rtm.trace(scenario, nodes, settings=settings, progress=progress)
+
+
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    from diffpos_services import raytrace as rtm
-
     console = Console(stderr=True)
     err = lambda msg: console.print(f"diffpos raytrace: {msg}", style="red",  # noqa: E731
                                     markup=False, highlight=False, soft_wrap=True)
     if args.compare is not None:
-        try:
-            ds = rtm.load_dataset(args.compare)
-        except ValueError as exc:
-            err(str(exc))
-            return 2
-        console.print(f"{args.compare}: {len(ds.nodes_m)} receivers x {len(ds.anchors_m)} "
-                      f"anchors, scenario {ds.metadata['scenario']['name']!r}, "
-                      f"{ds.metadata['settings']['samples_per_src']:.0e} samples")
-        _report(ds, console)
-        return 0
+        return _compare_only(args, console, err)
     if args.scenario is None:
         err("give a SCENARIO to trace (a TOML file or 'paper'), or --compare FILE")
         return 2
     try:
-        scenario = _load_scenario(args.scenario)
-        settings = rtm.RaytraceSettings(max_depth=args.max_depth,
-                                        samples_per_src=int(args.samples), seed=args.seed,
-                                        batch_size=args.batch, deterministic=args.deterministic)
-        if args.receivers is not None and args.receivers < 1:
-            raise ValueError(f"--receivers: must be >= 1, got {args.receivers}")
+        scenario, settings = _settings(args)
     except ValueError as exc:
         err(str(exc))
         return 2
@@ -178,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
         versions = rtm.check_sionna()
     except rtm.RaytraceUnavailable as exc:
         err(str(exc))
-        return 3
+        return exc.exit_code
     nodes = scenario.node_positions_m()
     if len(nodes) == 0:
         err("scenario: no receivers (add a [nodes.grid] table or [[nodes.list]] entries)")
@@ -191,32 +211,17 @@ def run(args: argparse.Namespace) -> int:
                   f"{len(scenario.anchors)} anchors, {settings.samples_per_src:.0e} samples, "
                   f"max depth {settings.max_depth}")
     t0 = time.perf_counter()
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                  TextColumn("links"), TimeElapsedColumn(), TimeRemainingColumn(),
-                  console=console, transient=False) as bar:
-        task = bar.add_task("tracing", total=len(nodes) * len(scenario.anchors))
-
-        def progress(done: int, total: int, label: str) -> None:
-            bar.update(task, completed=done, description=f"tracing {label}")
-
-        try:
-            ds = rtm.trace(scenario, nodes, settings=settings, progress=progress)
-        except ValueError as exc:
-            err(str(exc))
-            return 2
+    try:
+        ds = _trace_with_progress(scenario, nodes, settings, console)
+    except ValueError as exc:
+        err(str(exc))
+        return 2
     path = rtm.save_dataset(out, ds)
-    meta = ds.metadata
     console.print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, "
                   f"{ds.path_valid.shape[-1]} paths max per link) in "
                   f"{time.perf_counter() - t0:.1f} s; "
-                  f"{meta['s_per_1000_links']:.2f} s per 1000 links")
+                  f"{ds.metadata['s_per_1000_links']:.2f} s per 1000 links")
     if not args.no_compare:
         _report(ds, console)
     console.print(f"use it: diffpos reproduce --channel raytrace:{path}")
     return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    from diffpos_services.cli.main import main
-
-    sys.exit(main(["raytrace", *sys.argv[1:]]))
