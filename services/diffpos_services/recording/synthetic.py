@@ -95,7 +95,7 @@ def synthetic_run(
     t0_ns: int = 100_000_000_000_000_000,
     range_batch: bool = False,
 ) -> SyntheticRun:
-    """Messages of an emulated run, generated without Zenoh.
+    """The fusion's inputs of an emulated run, generated without Zenoh.
 
     Anchors hover outside the facade (``y < 0``), nodes walk slowly on their floor inside
     (straight lines, reflected at the walls of a 39 m x 21.5 m floor);
@@ -123,39 +123,58 @@ def synthetic_run(
         Anchors publish one :class:`RangeBatch` per epoch on ``anchor/<id>/ranges`` (like
         ``diffpos anchor --range-batch``) instead of one message per node.
     """
-    rng = np.random.default_rng(seed)
-    keys = Keys(site)
+    scene = _HoverScene(n_anchors=n_anchors, n_nodes=n_nodes, rate_hz=rate_hz, sigma_m=sigma_m,
+                        outlier_probability=outlier_probability, seed=seed, site=site,
+                        t0_ns=t0_ns, range_batch=range_batch)
     config = build_config(
         FusionConfig, dict(SYNTHETIC_FUSION, site=site, epoch_period_s=1.0 / rate_hz)
     )
-    period_ns = round(1e9 / rate_hz)
-    ang = np.linspace(0, np.pi, n_anchors)
-    anchors = np.stack(
-        [
-            -18 + 36 * np.arange(n_anchors) / max(n_anchors - 1, 1),
-            -8 - 10 * np.sin(ang),
-            1.0 + 3.0 * (np.arange(n_anchors) % 2),
-        ],
-        axis=-1,
-    )
-    anchor_ids = [f"uav{i + 1}" for i in range(n_anchors)]
-    floors = rng.integers(0, 5, n_nodes)
-    start = np.stack(
-        [rng.uniform(-15, 15, n_nodes), rng.uniform(2, 15, n_nodes), 4.0 + 3.0 * floors + 1.5],
-        axis=-1,
-    )
-    vel = np.concatenate([rng.normal(0, 0.5, (n_nodes, 2)), np.zeros((n_nodes, 1))], axis=-1)
-    node_ids = [f"n{i + 1:02d}" for i in range(n_nodes)]
-    phases = (0.05 + 0.9 * np.arange(n_anchors) / n_anchors) * period_ns
-    enc = M.encode
-    n_epochs = round(duration_s * rate_hz)
+    return SyntheticRun(config, scene.anchor_ids, scene.node_ids, t0_ns,
+                        scene.epochs(round(duration_s * rate_hz)))
 
-    lo, hi = np.array([-19.5, 0.5]), np.array([19.5, 22.0])  # x, y extent of the walk [m]
 
-    def node_state(t_ns: int) -> tuple[np.ndarray, np.ndarray]:
+class _HoverScene:
+    """The geometry and random stream of :func:`synthetic_run` (the order of the random draws
+    is part of the seeded data the tests pin)."""
+
+    #: x, y extent of the nodes' walk [m]
+    LO, HI = np.array([-19.5, 0.5]), np.array([19.5, 22.0])
+
+    def __init__(self, *, n_anchors: int, n_nodes: int, rate_hz: float, sigma_m: float,
+                 outlier_probability: float, seed: int, site: str, t0_ns: int,
+                 range_batch: bool) -> None:
+        self.rng = rng = np.random.default_rng(seed)
+        self.keys = Keys(site)
+        self.rate_hz, self.sigma_m, self.t0_ns = rate_hz, sigma_m, t0_ns
+        self.outlier_probability, self.range_batch = outlier_probability, range_batch
+        self.period_ns = round(1e9 / rate_hz)
+        ang = np.linspace(0, np.pi, n_anchors)
+        self.anchors = np.stack(
+            [
+                -18 + 36 * np.arange(n_anchors) / max(n_anchors - 1, 1),
+                -8 - 10 * np.sin(ang),
+                1.0 + 3.0 * (np.arange(n_anchors) % 2),
+            ],
+            axis=-1,
+        )
+        self.anchor_ids = [f"uav{i + 1}" for i in range(n_anchors)]
+        self.floors = rng.integers(0, 5, n_nodes)
+        self.start = np.stack(
+            [rng.uniform(-15, 15, n_nodes), rng.uniform(2, 15, n_nodes),
+             4.0 + 3.0 * self.floors + 1.5],
+            axis=-1,
+        )
+        self.vel = np.concatenate([rng.normal(0, 0.5, (n_nodes, 2)), np.zeros((n_nodes, 1))],
+                                  axis=-1)
+        self.node_ids = [f"n{i + 1:02d}" for i in range(n_nodes)]
+        self.phases = (0.05 + 0.9 * np.arange(n_anchors) / n_anchors) * self.period_ns
+        self.seqs: Counter[str] = Counter()
+
+    def node_state(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """Positions and velocities: straight walks reflected at the walls of the floor, so
         long runs keep the nodes spread over the floor (not piled up in the corners)."""
-        raw = start + vel * ((t_ns - t0_ns) * 1e-9)
+        lo, hi, vel = self.LO, self.HI, self.vel
+        raw = self.start + vel * ((t_ns - self.t0_ns) * 1e-9)
         span = hi - lo
         q = np.mod(raw[:, :2] - lo, 2.0 * span)
         back = q > span
@@ -164,77 +183,62 @@ def synthetic_run(
         v[:, :2] = np.where(back, -vel[:, :2], vel[:, :2])
         return p, v
 
-    def epochs() -> Iterator[list[tuple[int, str, bytes]]]:
-        seqs: Counter[str] = Counter()
+    def epochs(self, n_epochs: int) -> Iterator[list[tuple[int, str, bytes]]]:
+        """Per epoch, every message in receive order."""
         for e in range(n_epochs):
+            te = self.t0_ns + e * self.period_ns
             items: list[tuple[int, str, bytes]] = []
-            te = t0_ns + e * period_ns
-            for j, a in enumerate(anchor_ids):
-                t = te + int(phases[j])
-                r = window_edge_path(
-                    anchors[j], node_state(t)[0], window_height_m=1.5, edge_x_m=(-20.0, 20.0)
-                ).length_m
-                r = r + rng.normal(0, sigma_m, n_nodes)
-                if outlier_probability > 0:
-                    out = rng.random(n_nodes) < outlier_probability
-                    r = r + out * rng.uniform(2, 10, n_nodes)
-                rx = t + int(rng.integers(200_000, 1_200_000))
-                items.append(
-                    (
-                        rx,
-                        keys.anchor_state(a),
-                        enc(
-                            M.AnchorState(
-                                anchor_id=a,
-                                t_ns=t,
-                                seq=seqs[a],
-                                position_m=M.vec3(anchors[j]),
-                                velocity_m_s=(0.0, 0.0, 0.0),
-                                position_sigma_m=(0.05, 0.05, 0.05),
-                                velocity_sigma_m_s=0.02,
-                                range_rate_hz=rate_hz,
-                                t_pub_wall_ns=t,
-                            )
-                        ),
-                    )
-                )
-                seqs[a] += 1
-                if range_batch:
-                    batch = M.RangeBatch(anchor_id=a, t_ns=t, seq=seqs[a], node_ids=node_ids,
-                                         range_m=r.tolist(), sigma_m=[sigma_m] * n_nodes,
-                                         snr_db=[20.0] * n_nodes, t_pub_wall_ns=t)
-                    items.append((rx + 1000, keys.anchor_range_batch(a), enc(batch)))
-                    seqs[a] += 1
-                else:
-                    for i, n in enumerate(node_ids):
-                        rm = M.RangeMeasurement(anchor_id=a, node_id=n, t_ns=t, seq=seqs[a],
-                                                range_m=float(r[i]), sigma_m=sigma_m,
-                                                snr_db=20.0, t_pub_wall_ns=t)
-                        items.append((rx + 1000 * (i + 1), keys.anchor_range(a, n), enc(rm)))
-                        seqs[a] += 1
-            tt = te + period_ns // 2
-            pos_t, vel_t = node_state(tt)
-            for i, n in enumerate(node_ids):
-                items.append(
-                    (
-                        tt + 300_000,
-                        keys.truth_node(n),
-                        enc(
-                            M.GroundTruth(
-                                entity="node",
-                                id=n,
-                                t_ns=tt,
-                                position_m=M.vec3(pos_t[i]),
-                                velocity_m_s=M.vec3(vel_t[i]),
-                                floor_index=int(floors[i]),
-                            )
-                        ),
-                    )
-                )
+            for j, a in enumerate(self.anchor_ids):
+                items += self.anchor_items(j, a, te + int(self.phases[j]))
+            items += self.truth_items(te + self.period_ns // 2)
             items.sort(key=lambda x: x[0])
             yield items
 
-    return SyntheticRun(config, anchor_ids, node_ids, t0_ns, epochs())
+    def anchor_items(self, j: int, a: str, t: int) -> list[tuple[int, str, bytes]]:
+        """Anchor ``a``'s state and ranges (or range batch) measured at ``t``."""
+        rng, keys, n_nodes, sigma_m = self.rng, self.keys, len(self.node_ids), self.sigma_m
+        r = window_edge_path(
+            self.anchors[j], self.node_state(t)[0], window_height_m=1.5, edge_x_m=(-20.0, 20.0)
+        ).length_m
+        r = r + rng.normal(0, sigma_m, n_nodes)
+        if self.outlier_probability > 0:
+            out = rng.random(n_nodes) < self.outlier_probability
+            r = r + out * rng.uniform(2, 10, n_nodes)
+        rx = t + int(rng.integers(200_000, 1_200_000))
+        state = M.AnchorState(anchor_id=a, t_ns=t, seq=self._next_seq(a),
+                              position_m=M.vec3(self.anchors[j]), velocity_m_s=(0.0, 0.0, 0.0),
+                              position_sigma_m=(0.05, 0.05, 0.05), velocity_sigma_m_s=0.02,
+                              range_rate_hz=self.rate_hz, t_pub_wall_ns=t)
+        items = [(rx, keys.anchor_state(a), M.encode(state))]
+        if self.range_batch:
+            batch = M.RangeBatch(anchor_id=a, t_ns=t, seq=self._next_seq(a),
+                                 node_ids=self.node_ids, range_m=r.tolist(),
+                                 sigma_m=[sigma_m] * n_nodes, snr_db=[20.0] * n_nodes,
+                                 t_pub_wall_ns=t)
+            items.append((rx + 1000, keys.anchor_range_batch(a), M.encode(batch)))
+            return items
+        for i, n in enumerate(self.node_ids):
+            rm = M.RangeMeasurement(anchor_id=a, node_id=n, t_ns=t, seq=self._next_seq(a),
+                                    range_m=float(r[i]), sigma_m=sigma_m, snr_db=20.0,
+                                    t_pub_wall_ns=t)
+            items.append((rx + 1000 * (i + 1), keys.anchor_range(a, n), M.encode(rm)))
+        return items
+
+    def truth_items(self, tt: int) -> list[tuple[int, str, bytes]]:
+        """Every node's truth at ``tt`` (received 0.3 ms later)."""
+        pos_t, vel_t = self.node_state(tt)
+        return [
+            (tt + 300_000, self.keys.truth_node(n), M.encode(M.GroundTruth(
+                entity="node", id=n, t_ns=tt, position_m=M.vec3(pos_t[i]),
+                velocity_m_s=M.vec3(vel_t[i]), floor_index=int(self.floors[i]))))
+            for i, n in enumerate(self.node_ids)
+        ]
+
+    def _next_seq(self, anchor_id: str) -> int:
+        """The anchor's sequence counter (one per anchor over its state and ranges)."""
+        s = self.seqs[anchor_id]
+        self.seqs[anchor_id] = s + 1
+        return s
 
 
 def write_synthetic_recording(
