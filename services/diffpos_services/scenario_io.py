@@ -1,9 +1,14 @@
-"""Reading scenario files (TOML) into :class:`diffpos.scenario.Scenario`.
+"""Reading scenario files (TOML) into :class:`diffpos.scenario.Scenario`: the ONE loader.
 
 The core (:mod:`diffpos.scenario`) validates plain dicts and never touches files; this module
 does the I/O and turns every failure (missing file, TOML syntax error, invalid field) into a
 :class:`diffpos.scenario.ScenarioError` whose message starts with the file name, so a CLI can
 print it as one line.
+
+- :func:`load_scenario`: a file, or a shipped scenario's name (``paper``, ``large``);
+- :func:`resolve_scenario`: the file such an argument refers to;
+- :func:`scenario_or_default`: :func:`load_scenario`, or the built-in paper scenario for None;
+- :func:`scenario_from_toml`: TOML text from elsewhere (a recording's attachment).
 """
 
 from __future__ import annotations
@@ -15,7 +20,13 @@ from pathlib import Path
 from diffpos.scenario import Scenario, ScenarioError, default_scenario
 from diffpos_services.resources import scenario_dir
 
-__all__ = ["SCENARIO_DIR", "load_scenario", "resolve_scenario"]
+__all__ = [
+    "SCENARIO_DIR",
+    "load_scenario",
+    "resolve_scenario",
+    "scenario_from_toml",
+    "scenario_or_default",
+]
 
 #: The shipped ``scenarios/`` (packaged copy in a wheel, the repository's in a checkout).
 SCENARIO_DIR = scenario_dir()
@@ -49,14 +60,31 @@ def load_scenario(path: str | os.PathLike[str]) -> Scenario:
                             ) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{p}: cannot read the file ({exc})") from None
+    return scenario_from_toml(text, source=str(p))
+
+
+def scenario_from_toml(data: str | bytes, *, source: str) -> Scenario:
+    """The scenario of TOML text, e.g. a scenario file attached to a recording.
+
+    Raises
+    ------
+    ScenarioError
+        ``"<source>: ..."`` for bytes that are not UTF-8, a TOML syntax error or an invalid
+        field.
+    """
+    if isinstance(data, bytes | bytearray | memoryview):
+        try:
+            data = bytes(data).decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ScenarioError(f"{source}: not UTF-8 text ({exc})") from None
     try:
-        data = tomllib.loads(text)
+        doc = tomllib.loads(data)
     except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{p}: TOML syntax error: {exc}") from None
+        raise ScenarioError(f"{source}: TOML syntax error: {exc}") from None
     try:
-        return Scenario.from_dict(data)
+        return Scenario.from_dict(doc)
     except ScenarioError as exc:
-        raise ScenarioError(f"{p}: {exc}") from None
+        raise ScenarioError(f"{source}: {exc}") from None
 
 
 def resolve_scenario(path: str | os.PathLike[str]) -> Path:
