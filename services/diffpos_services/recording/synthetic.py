@@ -1,17 +1,23 @@
-"""Synthetic runs without Zenoh: bus messages with receive times, and recordings of them.
+"""Synthetic runs without Zenoh: the one place that makes up bus traffic.
 
 * :func:`synthetic_run` - the fusion's inputs of an emulated run (anchor states, ranges or
   range batches, node truth) as ``(receive_ns, key, payload)`` per epoch, from a known
   geometry (tests, benchmarks, ``diffpos replay`` checks).
-* :func:`write_synthetic_recording` - such a run written like the recorder would, optionally
-  with a live fusion's estimates.
+* :func:`display_run` - the fusion's outputs of a plausible run (anchor states, truth, fixes
+  with covariances, exclusions, diagnostics) as message structs (the dashboard's demo, tests
+  and benchmarks); :func:`keyed` puts any such list in the recorded ``(receive_ns, key,
+  payload)`` form of :func:`synthetic_run`.
+* :func:`write_synthetic_recording` - a :func:`synthetic_run` written like the recorder
+  would, optionally with a live fusion's estimates.
+
+The two runs keep their own geometry and random streams: tests pin their seeded data.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,9 +35,12 @@ from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 
 __all__ = [
+    "DISPLAY_BUILDING",
     "FUSION_INPUT_KINDS",
     "SYNTHETIC_FUSION",
     "SyntheticRun",
+    "display_run",
+    "keyed",
     "quiet_logger",
     "synthetic_run",
     "write_synthetic_recording",
@@ -306,3 +315,182 @@ def write_synthetic_recording(
                 next_step = rx + step_ns
     sink.close()
     return dict(counts)
+
+
+# ----------------------------------------------------------------------------------------
+# the fusion's outputs (what the dashboard draws)
+# ----------------------------------------------------------------------------------------
+
+#: the building of :func:`display_run` (the fields of the dashboard's ``BuildingOutline``;
+#: first floor at z = 0)
+DISPLAY_BUILDING: dict[str, float] = {
+    "x_min_m": -12.0,
+    "x_max_m": 12.0,
+    "depth_m": 14.0,
+    "n_floors": 4,
+    "floor_height_m": 3.5,
+    "sill_height_m": 0.9,
+    "window_height_m": 1.6,
+}
+
+
+def display_run(
+    *,
+    n_anchors: int = 4,
+    n_nodes: int = 6,
+    duration_s: float = 20.0,
+    rate_hz: float = 10.0,
+    seed: int = 0,
+    t0_ns: int = 1_700_000_000_000_000_000,
+) -> tuple[dict[str, float], list[Any]]:
+    """A plausible run as the fusion's outputs, for demos, tests and benchmarks of the
+    dashboard (:func:`keyed` turns the list into recorded form).
+
+    Anchors circle outside the facade (y < 0), nodes walk slowly on their floor at the
+    window mid-height, estimates are truth plus Gaussian noise drawn from their own
+    covariance; every 7th fix of node 0 excludes one anchor (``RAIM``) and node 1
+    is ``NOT_IDENTIFIABLE`` (no position) for one second in the middle. The last anchor leaves
+    the fusion's live set after two thirds of the run (FusionDiagnostics every second).
+
+    Returns
+    -------
+    building : dict
+        :data:`DISPLAY_BUILDING`.
+    messages : list
+        ``AnchorState``, ``GroundTruth`` (nodes), ``PositionEstimate`` and
+        ``FusionDiagnostics`` structs of :mod:`diffpos_services.wire.messages`, in time order.
+    """
+    tracks = _DisplayTracks(n_anchors=n_anchors, n_nodes=n_nodes, duration_s=duration_s,
+                            rate_hz=rate_hz, seed=seed, t0_ns=t0_ns)
+    return dict(DISPLAY_BUILDING), tracks.messages()
+
+
+def _floor_of(z_m: np.ndarray) -> np.ndarray:
+    """Floor index of heights in :data:`DISPLAY_BUILDING` (clipped; -1 where z is NaN)."""
+    b = DISPLAY_BUILDING
+    z = np.asarray(z_m, dtype=np.float64)
+    k = np.floor((np.where(np.isfinite(z), z, 0.0) - 0.0) / b["floor_height_m"])
+    k = np.clip(k, 0, b["n_floors"] - 1).astype(np.int64)
+    return np.where(np.isfinite(z), k, -1)
+
+
+class _DisplayTracks:
+    """Every seeded array of :func:`display_run`, drawn in one fixed order (part of the data
+    the dashboard tests pin); :meth:`messages` only reads them."""
+
+    WALL_NS = 1_800_000_000_000_000_000  # the publishers' wall clock at t0
+
+    def __init__(self, *, n_anchors: int, n_nodes: int, duration_s: float, rate_hz: float,
+                 seed: int, t0_ns: int) -> None:
+        b = DISPLAY_BUILDING
+        rng = np.random.default_rng(seed)
+        self.rate_hz, self.t0_ns = rate_hz, t0_ns
+        n_t = self.n_t = max(1, round(duration_s * rate_hz))
+        self.t_ns = t0_ns + (np.arange(n_t) * (1e9 / rate_hz)).astype(np.int64)
+        ts = (self.t_ns - t0_ns) / 1e9
+        # anchors: ellipses outside the facade
+        phase = rng.uniform(0, 2 * np.pi, n_anchors)
+        ang = phase[None, :] + 0.05 * ts[:, None]
+        self.a_pos = np.stack(
+            [
+                14.0 * np.cos(ang),
+                -12.0 - 4.0 * np.sin(ang),
+                np.linspace(4.0, 14.0, n_anchors)[None, :] + 1.0 * np.sin(2 * ang),
+            ],
+            axis=-1,
+        )  # (T, A, 3)
+        self.a_ids = [f"uav{i + 1}" for i in range(n_anchors)]
+        # nodes: random walk on a floor at window mid-height
+        self.floors = rng.integers(0, b["n_floors"], n_nodes)
+        z_mid = self.floors * b["floor_height_m"] + b["sill_height_m"] + 0.5 * b["window_height_m"]
+        start = np.stack([rng.uniform(-9, 9, n_nodes), rng.uniform(2, 12, n_nodes), z_mid],
+                         axis=-1)
+        steps = rng.normal(0.0, 0.03, (n_t, n_nodes, 3))
+        steps[..., 2] = 0.0
+        self.n_pos = start[None] + np.cumsum(steps, axis=0)
+        self.n_pos[..., 0] = np.clip(self.n_pos[..., 0], -11, 11)
+        self.n_pos[..., 1] = np.clip(self.n_pos[..., 1], 0.5, 13.5)
+        self.n_ids = [f"n{i:02d}" for i in range(n_nodes)]
+        # estimates: per fix a random covariance (axes 0.2..1.5 m, random rotation)
+        sig = rng.uniform(0.2, 1.5, (n_t, n_nodes, 3))
+        q, _ = np.linalg.qr(rng.normal(size=(n_t, n_nodes, 3, 3)))
+        self.cov = q @ (sig[..., :, None] ** 2 * np.swapaxes(q, -1, -2))
+        noise = np.einsum("...ij,...j->...i", q, sig * rng.normal(size=(n_t, n_nodes, 3)))
+        self.e_pos = self.n_pos + noise
+        self.peb = np.sqrt(np.einsum("...ii->...", self.cov))
+        self.e_floor = _floor_of(self.e_pos[..., 2])
+        self.res = rng.normal(0.0, 0.3, (n_t, n_nodes, n_anchors))
+        self.leave_at = int(n_t * 2 / 3)
+
+    def messages(self) -> list[Any]:
+        out: list[Any] = []
+        for i in range(self.n_t):
+            t = int(self.t_ns[i])
+            wall = self.WALL_NS + t - self.t0_ns
+            live = self.a_ids if i < self.leave_at else self.a_ids[:-1]
+            out += self.anchor_states(i, t, wall)
+            for k in range(len(self.n_ids)):
+                out += self.node_messages(i, k, t, wall, live)
+            if i % max(1, round(self.rate_hz)) == 0:
+                out.append(self.diagnostics(i, t, wall, live))
+        return out
+
+    def anchor_states(self, i: int, t: int, wall: int) -> list[M.AnchorState]:
+        return [
+            M.AnchorState(anchor_id=aid, t_ns=t, seq=i, position_m=M.vec3(self.a_pos[i, j]),
+                          velocity_m_s=(0.0, 0.0, 0.0), position_sigma_m=(0.1, 0.1, 0.2),
+                          velocity_sigma_m_s=0.05, range_rate_hz=self.rate_hz,
+                          t_pub_wall_ns=wall)
+            for j, aid in enumerate(self.a_ids)
+            if not (j == len(self.a_ids) - 1 and i >= self.leave_at)
+        ]
+
+    def node_messages(self, i: int, k: int, t: int, wall: int, live: list[str]) -> list[Any]:
+        """Node ``k``'s truth and fix at step ``i``."""
+        nid, a_ids = self.n_ids[k], self.a_ids
+        truth = M.GroundTruth(entity="node", id=nid, t_ns=t, position_m=M.vec3(self.n_pos[i, k]),
+                              velocity_m_s=(0.0, 0.0, 0.0), floor_index=int(self.floors[k]))
+        used = list(live)
+        excluded = []
+        if k == 0 and i % 7 == 3 and len(used) > 3:
+            excluded.append(M.Exclusion(anchor_id=used.pop(1), reason="RAIM"))
+        if i >= self.leave_at:
+            excluded.append(M.Exclusion(anchor_id=a_ids[-1], reason="ANCHOR_LOST"))
+        unident = k == 1 and self.n_t // 2 <= i < self.n_t // 2 + int(self.rate_hz)
+        cov = self.cov[i, k]
+        fix = M.PositionEstimate(
+            node_id=nid, t_ns=t, epoch=i, seq=i,
+            status="NOT_IDENTIFIABLE" if unident else "OK",
+            position_m=None if unident else M.vec3(self.e_pos[i, k]),
+            covariance_m2=None if unident else tuple(M.vec3(r) for r in cov),
+            peb_m=None if unident else float(self.peb[i, k]),
+            z_bound_m=None if unident else float(np.sqrt(cov[2, 2])),
+            floor_index=None if unident else int(self.e_floor[i, k]),
+            used_anchors=used,
+            residuals_m=[float(self.res[i, k, a_ids.index(a)]) for a in used],
+            excluded=excluded, message="", t_input_wall_ns=wall,
+            t_pub_wall_ns=wall + 1_000_000,
+        )
+        return [truth, fix]
+
+    def diagnostics(self, i: int, t: int, wall: int, live: list[str]) -> M.FusionDiagnostics:
+        n = len(self.n_ids)
+        return M.FusionDiagnostics(
+            t_wall_ns=wall, watermark_ns=t, received={"range": i * n}, rejected={},
+            gated=i // 7, solved=i * n, published=i * n, fixes_by_status={"OK": i * n},
+            late_ranges=0, pending_epochs=0, live_anchors=list(live), anchors=[],
+            latency=M.LatencyStats(count=0, p50_ms=None, p99_ms=None, max_ms=None),
+        )
+
+
+def keyed(messages: Iterable[Any], *, site: str = "demo",
+          latency_ns: int = 2_000_000) -> list[tuple[int, str, bytes]]:
+    """Synthetic messages in recorded form: ``(receive_ns, key, payload)`` with the receive
+    time ``latency_ns`` after the message's own time (``t_ns``, else ``watermark_ns``), the
+    form :func:`synthetic_run` yields and :class:`McapSink.write` takes."""
+    keys = Keys(site)
+    out = []
+    for x in messages:
+        t_ns = getattr(x, "t_ns", None) or x.watermark_ns
+        out.append((t_ns + latency_ns, keys.of(x), M.encode(x)))
+    return out

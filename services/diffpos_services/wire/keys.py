@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 from diffpos.scenario import ID_PATTERN
 
@@ -173,6 +173,28 @@ class Keys:
     def alive_recorder(self) -> str:
         """Liveliness token of the MCAP recorder (declared once it is subscribed)."""
         return f"{self.root}/alive/recorder"
+
+    def of(self, msg: Any) -> str:
+        """The key a message struct of :mod:`diffpos_services.wire.messages` is published on
+        (by its type and ids; for writing synthetic runs to MCAP or the bus)."""
+        name = type(msg).__name__
+        if name == "AnchorState":
+            return self.anchor_state(msg.anchor_id)
+        if name == "RangeMeasurement":
+            return self.anchor_range(msg.anchor_id, msg.node_id)
+        if name == "RangeBatch":
+            return self.anchor_range_batch(msg.anchor_id)
+        if name == "PositionEstimate":
+            return self.node_estimate(msg.node_id)
+        if name == "GroundTruth":
+            return self.truth_node(msg.id) if msg.entity == "node" else self.truth_anchor(msg.id)
+        if name == "FusionDiagnostics":
+            return self.fusion_diagnostics()
+        if name == "RunControl":
+            return self.run_control()
+        if name == "RunClock":
+            return self.run_clock()
+        raise ValueError(f"no bus key for message type {name}")
 
     # -- recording-only topics (MCAP channels, never published) ----------------------------
     def recorder_liveliness(self) -> str:
