@@ -28,7 +28,7 @@ import msgspec
 import pytest
 import zenoh
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.emulate import free_tcp_port
+from diffpos_services.kit import free_tcp_port
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 

@@ -40,7 +40,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 
+from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
 from diffpos_services.kit import (
     ConfigError,
     Shutdown,
@@ -99,8 +101,6 @@ def run(args: argparse.Namespace) -> int:
     log = setup_logging("emulate", level=args.log_level, fmt=fmt)
 
     def body() -> int:
-        from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
-
         opts = EmulationOptions(
             scenario=args.scenario, duration_s=args.duration, speed=args.speed, site=args.site,
             seed=args.seed, endpoint=args.endpoint, channel=args.channel,
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
             security_profile=args.security_profile,
         )
         stop = Shutdown(log)
-        emu = Emulation(opts, log, stop.event)
+        emu = Emulation(opts, log, stop.event, dashboard_hint=dashboard_hint(opts))
         log_event(log, logging.INFO, "starting", scenario=args.scenario or "paper (default)",
                   anchors=len(emu.anchor_ids), nodes=len(emu.nodes), endpoint=emu.endpoint)
         summary = emu.run()
@@ -130,6 +130,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _tty() -> bool:
-    import sys
-
     return sys.stderr.isatty()
+
+
+def dashboard_hint(o: EmulationOptions) -> str | None:
+    """How to open the dashboard that ``diffpos emulate`` starts (``None`` when it is off)."""
+    if not o.dashboard or o.dashboard[0] == "off":
+        return None
+    # the dashboard service imports rerun (heavy): only when a dashboard is started, and
+    # never for --help
+    from diffpos_services.dashboard.service import RerunTarget, describe_target
+
+    mode = o.dashboard[0]
+    path = o.dashboard[1] if mode == "save" and len(o.dashboard) > 1 else None
+    return describe_target(RerunTarget(mode=mode, path=path))

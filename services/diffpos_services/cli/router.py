@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 import logging
 
+import zenoh
+
 from diffpos_services.bus.session import add_zenoh_arguments, open_session, service_settings
 from diffpos_services.kit import (
     ConfigError,
@@ -45,8 +47,6 @@ def run(args: argparse.Namespace) -> int:
     log = setup_logging("router", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:
-        import zenoh
-
         settings = service_settings(args, log)
         stop = Shutdown(log)
         try:

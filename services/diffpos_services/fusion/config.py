@@ -21,7 +21,7 @@ from diffpos.scenario import Scenario, first_arrival_edge
 from diffpos_services.kit import build_config
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["EDGES", "FusionConfig", "model_edge"]
+__all__ = ["EDGES", "FusionConfig", "channel_edge", "model_edge"]
 
 #: The window edges of the path model (``--edge``).
 EDGES = ("upper", "lower", "auto")
@@ -50,6 +50,16 @@ def model_edge(edge: str, scenario: Scenario | None = None) -> tuple[str, str]:
         return "upper", "auto without a scenario: the paper's upper edge"
     chosen, why = first_arrival_edge(scenario)
     return chosen, f"auto: {why}"
+
+
+def channel_edge(edge: str, channel: str) -> str:
+    """The ``edge`` a fusion fed by an emulated ``channel`` is started with.
+
+    ``auto`` is left to :func:`model_edge` (the fusion decides from the scenario), except on
+    the ideal channel (``diffpos emulate --channel ideal``): it generates the upper-edge path,
+    so it gets the upper edge.
+    """
+    return "upper" if edge == "auto" and channel == "ideal" else edge
 
 
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):

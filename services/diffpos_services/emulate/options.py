@@ -1,0 +1,105 @@
+"""What ``diffpos emulate`` runs: its options and the command lines of the extra services."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from diffpos_services.fusion.config import EDGES
+from diffpos_services.kit import ConfigError
+from diffpos_services.wire.keys import Keys
+
+__all__ = ["EXTRA_SERVICES", "EmulationOptions", "dashboard_argv", "recorder_argv",
+           "recording_path"]
+
+
+@dataclass
+class EmulationOptions:
+    """What ``diffpos emulate`` runs (validated by :meth:`check`)."""
+
+    scenario: str | None = None
+    duration_s: float = 20.0
+    speed: float = 1.0
+    site: str = "demo"
+    seed: int = 0
+    endpoint: str | None = None
+    channel: str = "emulator"
+    max_nodes: int = 0
+    rate_hz: float = 10.0
+    clock_offset_max_ms: float = 2.0
+    record: str | None = "auto"
+    dashboard: list[str] = field(default_factory=lambda: ["auto"])
+    log_dir: str | None = None
+    progress: bool = True
+    ready_timeout_s: float = 60.0
+    log_level: str = "info"
+    delta_m: float = 0.0
+    edge: str = "auto"
+    security_profile: str | None = None
+
+    def check(self) -> None:
+        if not self.duration_s > 0:
+            raise ConfigError(f"--duration must be > 0 seconds, got {self.duration_s}")
+        if not 0 <= self.speed <= 1000:
+            raise ConfigError(f"--speed must be in [0, 1000] (0 = lockstep), got {self.speed}")
+        if not self.rate_hz > 0:
+            raise ConfigError(f"--rate-hz must be > 0, got {self.rate_hz}")
+        if self.channel not in ("emulator", "ideal"):
+            raise ConfigError(f"--channel must be emulator or ideal, got {self.channel!r}")
+        if self.edge not in EDGES:
+            raise ConfigError(f"--edge must be auto, upper or lower, got {self.edge!r}")
+        if self.security_profile is not None:
+            if self.speed == 0:
+                raise ConfigError(
+                    "--security-profile with --speed 0: the access rules do not grant the "
+                    "lockstep run clock (diffpos/<site>/run/clock); use --speed > 0")
+            if self.endpoint is not None and not self.endpoint.startswith("tls/"):
+                raise ConfigError(
+                    f"--endpoint {self.endpoint}: with --security-profile use a tls/ endpoint "
+                    "whose host is in the router certificate, e.g. tls/localhost:7447")
+
+
+def recorder_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
+    """``diffpos recorder`` arguments of the run (``None`` when recording is off): the one
+    recorder command line ``diffpos emulate`` builds."""
+    if o.record in (None, "off", ""):
+        return None
+    argv = ["recorder", "--site", o.site, "--connect", endpoint, "--out", recording_path(o, run_id)]
+    if o.scenario:
+        argv += ["--scenario", o.scenario]
+    return argv
+
+
+def recording_path(o: EmulationOptions, run_id: str) -> str | None:
+    """Where the recorder writes: ``--record PATH``, or for ``auto``
+    ``recordings/<scenario>-<UTC run id>.mcap`` (``None`` when recording is off)."""
+    if o.record in (None, "off", ""):
+        return None
+    if o.record != "auto":
+        return o.record
+    scenario = Path(o.scenario).stem if o.scenario else "paper-default"
+    return str(Path("recordings") / f"{scenario}-{run_id}.mcap")
+
+
+def dashboard_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
+    """``diffpos dashboard`` arguments of the run (``None`` when the dashboard is off)."""
+    if not o.dashboard or o.dashboard[0] == "off":
+        return None
+    argv = ["dashboard", "--site", o.site, "--connect", endpoint, "--rerun", *o.dashboard]
+    # without a scenario file the run uses the built-in default: draw that building
+    argv += ["--scenario", o.scenario or "default"]
+    return argv
+
+
+#: name -> (CLI module that must exist, argv builder, liveliness key to wait for or None).
+#: Add a service here to have ``diffpos emulate`` start (and stop) it with the others; with
+#: a readiness key the run starts only once that token is alive (nothing is missed).
+EXTRA_SERVICES: dict[
+    str,
+    tuple[str, Callable[[EmulationOptions, str, str], list[str] | None],
+          Callable[[Keys], str] | None],
+] = {
+    "recorder": ("diffpos_services.cli.recorder", recorder_argv, Keys.alive_recorder),
+    "dashboard": ("diffpos_services.cli.dashboard", dashboard_argv, None),
+}

@@ -1,0 +1,391 @@
+"""The orchestrator of ``diffpos emulate``: :class:`Emulation` (see the package docstring).
+
+Steps of :meth:`Emulation.run`: start the router -> open the orchestrator's session ->
+start the fusion, anchors and extra services -> wait for their liveliness tokens -> publish
+the run control -> :class:`~diffpos_services.emulate.monitor.Monitor` the run -> summary;
+the services are always stopped in order (anchors, fusion, extras, router).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import os
+import queue
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+import zenoh
+
+from diffpos.emulation import TimeBase, emulation_nodes
+from diffpos.scenario import Scenario, ScenarioError
+from diffpos_services.bus.security import (
+    SecurityError,
+    anchor_user,
+    check_profile,
+    load_profile,
+    render_profile,
+)
+from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
+from diffpos_services.emulate.monitor import Monitor
+from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions, recording_path
+from diffpos_services.emulate.scoring import Scorer
+from diffpos_services.fusion.config import FusionConfig, channel_edge, model_edge
+from diffpos_services.kit import ConfigError, free_tcp_port, log_event, stop_process_groups
+from diffpos_services.scenario_io import resolve_scenario, scenario_or_default
+from diffpos_services.wire import messages as M
+from diffpos_services.wire.keys import Keys
+
+__all__ = ["Emulation"]
+
+
+def _load_scenario(path: str | None) -> Scenario:
+    """The run's scenario (``path`` is already resolved, so the error names the file).
+
+    Raises
+    ------
+    ConfigError
+        The file's error (missing, TOML syntax, invalid field) as one line.
+    """
+    try:
+        return scenario_or_default(path)
+    except ScenarioError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+# ----------------------------------------------------------------------------- processes
+@dataclass
+class _Proc:
+    name: str
+    popen: subprocess.Popen
+    log_path: Path | None
+
+
+class Emulation:
+    """Orchestrates one emulated run (see module docstring).
+
+    Parameters
+    ----------
+    options : EmulationOptions
+    logger : logging.Logger
+    stop : threading.Event
+        Set by SIGINT/SIGTERM: the run ends early but still shuts down in order and summarises.
+    """
+
+    def __init__(self, options: EmulationOptions, logger: logging.Logger,
+                 stop: threading.Event, *, dashboard_hint: str | None = None) -> None:
+        options.check()
+        if options.scenario is not None:
+            # a shipped name ("paper") becomes its file, which every service can read
+            options.scenario = str(resolve_scenario(options.scenario))
+        self.o = options
+        self.log = logger
+        self.stop = stop
+        self.dashboard_hint = dashboard_hint
+        self.scenario = _load_scenario(options.scenario)
+        self.keys = Keys(options.site)
+        self.nodes = emulation_nodes(self.scenario, max_nodes=options.max_nodes)
+        if not self.nodes:
+            raise ConfigError("the scenario has no nodes to emulate")
+        self.anchor_ids = [a.id for a in self.scenario.anchors]
+        # the fusion's path model (fusion.config: the one edge rule)
+        edge = channel_edge(options.edge, options.channel)
+        self.fusion_args = ["--epoch-period-s", str(1.0 / options.rate_hz),
+                            "--delta-m", str(options.delta_m), "--edge", edge]
+        if options.scenario:
+            self.fusion_args += ["--scenario", options.scenario]
+        self.fusion_config, self.edge, self.edge_reason = self._fusion_config(edge)
+        self.profile = None
+        if options.security_profile is not None:
+            self.profile = self._load_profile(options.security_profile)
+            port = free_tcp_port()
+            self.endpoint = options.endpoint or f"tls/localhost:{port}"
+            # the router listens on the loopback address of the host it is dialled by
+            host, _, port_s = self.endpoint[len("tls/"):].rpartition(":")
+            self.listen = f"tls/{'127.0.0.1' if host == 'localhost' else host}:{port_s}"
+        else:
+            self.endpoint = options.endpoint or f"tcp/127.0.0.1:{free_tcp_port()}"
+            self.listen = self.endpoint
+        self.zenoh_files: dict[str, str] = {}
+        self.run_id = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + uuid.uuid4().hex[:6]
+        self.procs: list[_Proc] = []
+        self.log_dir = Path(options.log_dir) if options.log_dir else None
+        self.alive: set[str] = set()
+        self.alive_event = threading.Condition()
+        self.q: queue.Queue = queue.Queue()
+        self.diag: M.FusionDiagnostics | None = None
+
+    # -------------------------------------------------------------- security
+    def _load_profile(self, path: str):
+        try:
+            profile = load_profile(path)
+        except (SecurityError, OSError) as exc:
+            raise ConfigError(f"--security-profile {path}: {exc}") from None
+        problems = check_profile(profile)
+        if problems:
+            raise ConfigError(f"--security-profile {path}: {problems[0]}")
+        ids = profile.identities()
+        missing = [a for a in self.anchor_ids if anchor_user(a) not in ids]
+        if missing:
+            raise ConfigError(
+                f"--security-profile {path}: anchors {missing} of the scenario have no identity "
+                "(add them to 'anchors' in the profile and a password line for anchor-<id>)")
+        for role in ("fusion", "emulator"):
+            if role not in profile.users:
+                raise ConfigError(f"--security-profile {path}: users.{role} is missing")
+        if profile.site not in ("*", self.o.site):
+            raise ConfigError(
+                f"--security-profile {path}: it covers site {profile.site!r}, not --site {self.o.site}")
+        return profile
+
+    def _render_security(self, out_dir: str) -> None:
+        """Render the profile for this run's endpoint; remember each identity's file."""
+        try:
+            written = render_profile(self.profile, out_dir, connect=[self.endpoint],
+                                     listen=[self.listen])
+        except SecurityError as exc:
+            raise ConfigError(f"--security-profile {self.o.security_profile}: {exc}") from None
+        self.zenoh_files = {p.stem: str(p) for p in written}
+
+    def _zargs(self, role: str, anchor_id: str | None = None) -> list[str] | None:
+        """``--connect`` (plain) or ``--zenoh-config <file>`` of ``role``; ``None`` if the
+        profile has no identity for it."""
+        if self.profile is None:
+            return ["--connect", self.endpoint]
+        if role == "router":
+            return ["--zenoh-config", self.zenoh_files["router"]]
+        user = f"anchor-{anchor_id}" if role == "anchor" else self.profile.users.get(role)
+        if user is None or user not in self.zenoh_files:
+            return None
+        return ["--zenoh-config", self.zenoh_files[user]]
+
+    # -------------------------------------------------------------- process helpers
+    def _spawn(self, name: str, argv: list[str]) -> _Proc:
+        cmd = [sys.executable, "-m", "diffpos_services.cli.main", *argv, "--log-level", self.o.log_level]
+        log_path = None
+        if self.log_dir is not None:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+            log_path = self.log_dir / f"{name}.log"
+            err = open(log_path, "wb")
+        else:
+            err = subprocess.DEVNULL
+        env = dict(os.environ, DIFFPOS_LOG_FORMAT="json")
+        # each child gets its bus explicitly (--connect or its own --zenoh-config): an
+        # inherited default file would replace the run's router configuration
+        env.pop("DIFFPOS_ZENOH_CONFIG", None)
+        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                             start_new_session=True, env=env)
+        if err is not subprocess.DEVNULL:
+            err.close()
+        proc = _Proc(name, p, log_path)
+        self.procs.append(proc)
+        log_event(self.log, logging.DEBUG, "started", service=name, pid=p.pid, argv=" ".join(argv))
+        return proc
+
+    def _stop_procs(self, names: Callable[[str], bool], timeout_s: float = 8.0) -> None:
+        group = {p.popen: p.name for p in self.procs if names(p.name) and p.popen.poll() is None}
+        stop_process_groups(
+            list(group), timeout_s=timeout_s,
+            on_kill=lambda pp: log_event(self.log, logging.WARNING,
+                                         "did not stop on SIGTERM, killing", service=group[pp]))
+
+    def _fusion_config(self, edge: str) -> tuple[FusionConfig, str, str]:
+        """The fusion's config exactly as ``diffpos fusion`` builds it from ``fusion_args``."""
+        cfg = FusionConfig.from_scenario(self.scenario, edge=edge, site=self.o.site,
+                                         delta_m=self.o.delta_m,
+                                         epoch_period_s=1.0 / self.o.rate_hz)
+        edge, why = model_edge(edge, self.scenario)
+        return cfg, edge, why
+
+    def _write_run_config(self) -> str:
+        """A JSON run configuration for the recorder (``{"fusion": ..., "emulate": ...}``)."""
+        self._run_dir = tempfile.TemporaryDirectory(prefix="diffpos-run-")
+        path = Path(self._run_dir.name) / "run_config.json"
+        doc = {"fusion": msgspec.to_builtins(self.fusion_config),
+               "emulate": {"run_id": self.run_id, "channel": self.o.channel, "seed": self.o.seed,
+                           "edge": self.edge, "edge_reason": self.edge_reason}}
+        path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
+        return str(path)
+
+    def shutdown(self) -> None:
+        """Stop in dependency order: anchors, fusion, extras, router."""
+        self._stop_procs(lambda n: n.startswith("anchor-"))
+        self._stop_procs(lambda n: n == "fusion")
+        self._stop_procs(lambda n: n in EXTRA_SERVICES)
+        self._stop_procs(lambda n: True)
+        if getattr(self, "_run_dir", None) is not None:
+            self._run_dir.cleanup()
+
+    def _check_children(self) -> None:
+        for p in self.procs:
+            rc = p.popen.poll()
+            if rc is not None:
+                hint = f" (log: {p.log_path})" if p.log_path else " (rerun with --log-dir DIR)"
+                raise ConfigError(f"service {p.name} exited early with code {rc}{hint}")
+
+    # -------------------------------------------------------------- run
+    def _on_alive(self, sample) -> None:
+        key = str(sample.key_expr)
+        with self.alive_event:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(key)
+            else:
+                self.alive.discard(key)
+            self.alive_event.notify_all()
+        self.q.put(("alive", key, sample.kind == zenoh.SampleKind.PUT))
+
+    def _on_data(self, sample) -> None:
+        self.q.put(("data", str(sample.key_expr), sample.payload.to_bytes()))
+
+    def _wait_ready(self, need: set[str]) -> None:
+        deadline = time.monotonic() + self.o.ready_timeout_s
+        with self.alive_event:
+            while not need <= self.alive:
+                if self.stop.is_set():
+                    return
+                self._check_children()
+                if time.monotonic() > deadline:
+                    missing = sorted(need - self.alive)
+                    raise ConfigError(f"services not ready after {self.o.ready_timeout_s:.0f} s: {missing}")
+                self.alive_event.wait(0.2)
+
+    def run(self) -> dict[str, Any]:
+        """Run the emulation; returns the summary dictionary (empty if stopped before the
+        run started)."""
+        tmp = tempfile.TemporaryDirectory(prefix="diffpos-zenoh-") if self.profile else None
+        try:
+            session = open_session(self._start_router(tmp), self.stop, logger=self.log)
+            if session is None:
+                return {}
+            with session:
+                live = session.liveliness().declare_subscriber(self.keys.alive_all(),
+                                                               self._on_alive, history=True)
+                subs = [session.declare_subscriber(k, self._on_data)
+                        for k in (self.keys.estimates(), self.keys.fusion_diagnostics())]
+                need = self._start_services()
+                t_ready = time.monotonic()
+                self._wait_ready(need)
+                if self.stop.is_set():
+                    return {}
+                self._announce_ready(t_ready)
+                monitor = Monitor(self, session, self._start_run(session))
+                monitor.run()
+                for s in subs:
+                    s.undeclare()
+                live.undeclare()
+                return self._summary(monitor.scorer, monitor.lost_events)
+        finally:
+            self.shutdown()
+            if tmp is not None:
+                tmp.cleanup()
+
+    def _start_router(self, tmp: tempfile.TemporaryDirectory | None) -> ZenohSettings:
+        """Start the router (secured: render the profile into ``tmp`` first); the
+        orchestrator's own bus settings."""
+        if tmp is not None:
+            self._render_security(tmp.name)
+            self._spawn("router", ["router", *self._zargs("router")])
+            return with_zenoh_config(ZenohSettings(connect=(self.endpoint,)),
+                                     self.zenoh_files[self.profile.users["emulator"]],
+                                     logger=self.log)
+        self._spawn("router", ["router", "--listen", self.listen])
+        return with_zenoh_config(ZenohSettings(connect=(self.endpoint,)), logger=self.log)
+
+    def _start_services(self) -> set[str]:
+        """Start the fusion, the anchors and the extra services; the liveliness keys to
+        wait for."""
+        o = self.o
+        rng = np.random.default_rng(o.seed)
+        offsets = rng.uniform(-o.clock_offset_max_ms, o.clock_offset_max_ms, len(self.anchor_ids))
+        scen = ["--scenario", o.scenario] if o.scenario else []
+        self._spawn("fusion", ["fusion", "--site", o.site, *self._zargs("fusion"),
+                               *self.fusion_args])
+        for aid, off in zip(self.anchor_ids, offsets, strict=True):
+            self._spawn(f"anchor-{aid}", [
+                "anchor", "--id", aid, "--site", o.site, *self._zargs("anchor", aid),
+                "--seed", str(o.seed), "--rate-hz", str(o.rate_hz), "--wait-start",
+                "--clock-offset-ms", f"{off:.4f}", "--channel", o.channel,
+                "--max-nodes", str(o.max_nodes), *scen])
+        need = {self.keys.alive_anchor(a) for a in self.anchor_ids} | {self.keys.alive_fusion()}
+        for name, (module, build, ready_key) in EXTRA_SERVICES.items():
+            argv = self._extra_argv(name, build)
+            if argv is not None and importlib.util.find_spec(module) is not None:
+                self._spawn(name, argv)
+                if ready_key is not None:
+                    need.add(ready_key(self.keys))
+        return need
+
+    def _extra_argv(self, name: str, build: Callable[..., list[str] | None]) -> list[str] | None:
+        """The command line of extra service ``name`` (None: not started)."""
+        argv = build(self.o, self.endpoint, self.run_id)
+        if argv is not None and self.profile is not None:
+            # the same command with this role's identity file instead of --connect
+            z = self._zargs(name)
+            if z is None:
+                log_event(self.log, logging.WARNING, "not started: the security "
+                          "profile has no identity for it", service=name)
+                argv = None
+            else:
+                i = argv.index("--connect")
+                argv = argv[:i] + z + argv[i + 2:]
+        if argv is not None and name == "recorder":
+            # the fusion settings travel with the recording: replay reproduces live
+            argv = [*argv, "--run-config", self._write_run_config()]
+        return argv
+
+    def _announce_ready(self, t_ready: float) -> None:
+        log_event(self.log, logging.INFO, "all services ready",
+                  anchors=len(self.anchor_ids), nodes=len(self.nodes),
+                  ready_s=round(time.monotonic() - t_ready, 2), endpoint=self.endpoint)
+        hint = self.dashboard_hint if "dashboard" in {p.name for p in self.procs} else None
+        if hint:
+            log_event(self.log, logging.INFO, "dashboard", how=hint)
+            print(f"dashboard: {hint}", file=sys.stderr, flush=True)
+
+    def _start_run(self, session: Any) -> TimeBase:
+        """Publish the run control: the run starts 0.3 s from now, on the fusion's epoch grid
+        (epoch k = [kT, (k+1)T))."""
+        o = self.o
+        period = round(1e9 / o.rate_hz)
+        wall_t0 = -(-(time.time_ns() + 300_000_000) // period) * period
+        rc = M.RunControl(run_id=self.run_id, t0_ns=wall_t0, wall_t0_ns=wall_t0,
+                          speed=o.speed or 1.0, duration_ns=round(o.duration_s * 1e9),
+                          seed=o.seed, lockstep=o.speed == 0)
+        session.put(self.keys.run_control(), M.encode(rc),
+                    encoding=zenoh.Encoding.APPLICATION_JSON,
+                    congestion_control=zenoh.CongestionControl.BLOCK)
+        return TimeBase.from_control(rc)
+
+    def _summary(self, scorer: Scorer, lost: list[str]) -> dict[str, Any]:
+        """The run's summary: the scorer's statistics, the run and the fusion's counters."""
+        o = self.o
+        out = scorer.summary()
+        expected_epochs = int(o.duration_s * o.rate_hz)
+        out.update(
+            run_id=self.run_id, endpoint=self.endpoint, anchors=len(self.anchor_ids),
+            secured=self.profile is not None,
+            nodes=len(self.nodes), duration_s=o.duration_s, speed=o.speed, channel=o.channel,
+            expected_epochs_per_node=expected_epochs,
+            epochs_per_node_min=min((len(v) for v in scorer.epochs.values()), default=0),
+            lost=lost,
+            model=f"{self.edge} window edge, Delta {o.delta_m:g} m ({self.edge_reason})",
+            recording=recording_path(o, self.run_id)
+            if "recorder" in {p.name for p in self.procs} else None,
+        )
+        if self.diag is not None:
+            d = self.diag
+            out["fusion"] = {"received": d.received, "rejected": d.rejected, "gated": d.gated,
+                             "solved": d.solved, "late_ranges": d.late_ranges,
+                             "latency_ms": {"p50": d.latency.p50_ms, "p99": d.latency.p99_ms}}
+        return out
