@@ -1,16 +1,17 @@
-"""The recorder service: every message under ``diffpos/<site>/**`` into an MCAP file.
+"""The recorder service: every data message of a site into an MCAP file.
 
 A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
 
-* one data subscriber on ``diffpos/<site>/**`` with a bounded ``FifoChannel`` handler, drained
-  by a thread of ours (when the channel is full Zenoh blocks, and publishers using
-  ``CongestionControl.BLOCK`` slow down instead of losing messages);
-* one liveliness subscriber on ``diffpos/<site>/alive/**`` (``history=True``), whose rare
-  events (anchor joined / left) go to the ``diffpos/<site>/recorder/liveliness`` channel;
+* one data subscriber on every data key of the site (:meth:`Keys.everything`) with a bounded
+  ``FifoChannel`` handler, drained by a thread of ours (when the channel is full Zenoh blocks,
+  and publishers using ``CongestionControl.BLOCK`` slow down instead of losing messages);
+* one liveliness subscriber on every token of the site (:meth:`Keys.alive_all`,
+  ``history=True``), whose rare events (anchor joined / left) go to the recorder's liveliness
+  channel (:meth:`Keys.recorder_liveliness`);
 * a flush thread closing the chunk in progress every ``flush_interval_s`` so that after a
   SIGKILL at most the last interval is lost (``diffpos recover`` rewrites the rest into a
   valid file);
-* the recorder's own liveliness token ``diffpos/<site>/alive/recorder`` is declared once both
+* the recorder's own liveliness token (:meth:`Keys.alive_recorder`) is declared once both
   subscribers exist, so whoever waits for it knows recording has started.
 """
 

@@ -28,6 +28,8 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
+from diffpos_services.kit import DiffposError
+
 __all__ = [
     "GOOD_STATUSES",
     "MESSAGE_TYPES",
@@ -334,8 +336,11 @@ _MISSING_RE = re.compile(r"missing required field `([^`]*)`")
 _DECODERS: dict[type, msgspec.json.Decoder] = {}
 
 
-class DecodeError(ValueError):
+class DecodeError(DiffposError, ValueError):
     """A payload that is not a valid message of the expected type.
+
+    The services catch it per message (counted, logged); one that reaches the command line
+    ends it with exit code 1, as an uncaught error did before.
 
     Attributes
     ----------
