@@ -44,14 +44,7 @@ from diffpos_services.scenario_io import scenario_or_default
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, check_id
 
-__all__ = [
-    "AnchorConfig",
-    "AnchorEmulator",
-    "TimeBase",
-    "emulation_nodes",
-    "load_scenario_file",
-    "run_anchor",
-]
+__all__ = ["AnchorConfig", "AnchorEmulator", "load_scenario_file", "run_anchor"]
 
 
 # ----------------------------------------------------------------------------- scenario
