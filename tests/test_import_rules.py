@@ -1,0 +1,231 @@
+"""The layout's rules, checked on the source (DEVELOPING.md, "Layout and import rules").
+
+Each rule is a function over the parsed modules of ``diffpos_services``; a violation names the
+file, the line and the rule. The pure-core rule itself is in ``test_layout.py``.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+import pkgutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import diffpos_services
+import pytest
+from diffpos_services.kit import DiffposError
+
+PKG = Path(diffpos_services.__file__).resolve().parent
+CORE = PKG.parents[1] / "diffpos"
+
+#: Service modules (one role each) -> service name. They may import the shared layers (kit,
+#: wire, bus, resources, scenario_io, reports, and recording's file-format modules: reader,
+#: writer, repair, ...), and each other only where listed in ALLOWED_SERVICE_IMPORTS.
+SERVICES = {
+    "anchor": "anchor", "fusion": "fusion", "recorder": "recorder", "dashboard": "dashboard",
+    "emulate": "emulate", "raytrace": "raytrace",
+    "recording.replay": "replay", "recording.evaluate": "replay",
+}
+ALLOWED_SERVICE_IMPORTS = {
+    ("replay", "fusion"),  # replay re-runs the fusion core offline
+    ("emulate", "fusion"),  # emulate builds the fusion's config to start and score it
+}
+#: Where ``import zenoh`` may appear: the bus layer and the process entry points.
+ZENOH_ALLOWED = ("bus", "anchor.service", "fusion.service", "recorder", "dashboard.service",
+                 "emulate", "cli.router")
+#: Plot/terminal libraries: only reports and the CLI.
+PRESENTATION = ("matplotlib", "rich")
+PRESENTATION_ALLOWED = ("reports", "cli")
+#: Imports allowed inside functions: optional extras (not installed by default: sionna and
+#: its JIT, cryptography, jsonschema of the test extra) and the Rerun viewer stack (rerun-sdk
+#: and the dashboard modules that import it at module level: ~1 s that a verb's --help or a
+#: run without a dashboard must not pay).
+LAZY_ALLOWED = ("sionna", "drjit", "mitsuba", "cryptography", "jsonschema", "rerun", "pyarrow",
+                "diffpos_services.dashboard")
+MAX_FILE_LINES = 600
+MAX_FUNCTION_LINES = 80
+#: Chosen exceptions to the size rules, each with its reason (DEVELOPING.md repeats them).
+SIZE_EXCEPTIONS: dict[str, str] = {}
+
+
+@dataclass(frozen=True)
+class Module:
+    name: str  # dotted, relative to diffpos_services ("fusion.core")
+    path: Path
+    tree: ast.Module
+    lines: list[str]
+
+
+def _modules() -> list[Module]:
+    out = []
+    for path in sorted(PKG.rglob("*.py")):
+        rel = path.relative_to(PKG).with_suffix("")
+        parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+        name = ".".join(parts) or "__init__"
+        src = path.read_text()
+        out.append(Module(name, path, ast.parse(src, filename=str(path)), src.splitlines()))
+    assert out, "no service modules found"
+    return out
+
+
+MODULES = _modules()
+
+
+def _in(name: str, prefixes: tuple[str, ...]) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def _imports(mod: Module):
+    """(line, absolute dotted module, inside a function?) for every import of ``mod``."""
+    func_ranges = [(n.lineno, n.end_lineno) for n in ast.walk(mod.tree)
+                   if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef)]
+    for node in ast.walk(mod.tree):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = mod.name.split(".")[: -node.level or None] if mod.path.name != "__init__.py" \
+                    else mod.name.split(".")[: len(mod.name.split(".")) - node.level + 1]
+                names = ["diffpos_services." + ".".join([*base, node.module or ""]).strip(".")]
+            else:
+                names = [node.module or ""]
+                names += [f"{node.module}.{a.name}" for a in node.names]
+        else:
+            continue
+        inside = any(a <= node.lineno <= b for a, b in func_ranges)
+        for n in names:
+            yield node.lineno, n, inside
+
+
+def _service_of(name: str) -> str | None:
+    """The service a ``diffpos_services``-relative module belongs to, or None (shared/cli)."""
+    for prefix, service in SERVICES.items():
+        if _in(name, (prefix,)):
+            return service
+    return None
+
+
+def _violations(rule) -> list[str]:
+    return [f"{m.path.relative_to(PKG.parents[1])}:{line}: {msg}"
+            for m in MODULES for line, msg in rule(m)]
+
+
+def rule_nothing_imports_cli(m: Module):
+    if _in(m.name, ("cli",)):
+        return
+    for line, name, _ in _imports(m):
+        if _in(name, ("diffpos_services.cli",)):
+            yield line, f"imports {name} (nothing outside cli/ imports the CLI)"
+
+
+def rule_services_stay_apart(m: Module):
+    mine = _service_of(m.name)
+    if mine is None:
+        return
+    for line, name, _ in _imports(m):
+        if not name.startswith("diffpos_services."):
+            continue
+        other = _service_of(name.removeprefix("diffpos_services."))
+        if other and other != mine and (mine, other) not in ALLOWED_SERVICE_IMPORTS:
+            yield line, f"service {mine} imports service {other} ({name})"
+
+
+def rule_zenoh_only_in_bus_and_entry_points(m: Module):
+    if _in(m.name, ZENOH_ALLOWED):
+        return
+    for line, name, _ in _imports(m):
+        if name.split(".")[0] == "zenoh":
+            yield line, "imports zenoh outside bus/ and the process entry points"
+
+
+def rule_presentation_only_in_reports_and_cli(m: Module):
+    if _in(m.name, PRESENTATION_ALLOWED):
+        return
+    for line, name, _ in _imports(m):
+        if name.split(".")[0] in PRESENTATION:
+            yield line, f"imports {name.split('.')[0]} outside reports/ and cli/"
+
+
+def rule_no_imports_inside_functions(m: Module):
+    for line, name, inside in _imports(m):
+        if inside and not any(name == p or name.startswith(p + ".") for p in LAZY_ALLOWED):
+            yield line, f"imports {name} inside a function (module level, unless an optional extra)"
+
+
+def rule_key_strings_in_keys(m: Module):
+    if m.name == "wire.keys":
+        return
+    docs = {id(n.value) for n in ast.walk(m.tree)
+            if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)}
+    for node in ast.walk(m.tree):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs:
+            s = node.value
+            if s.startswith("diffpos/") or "/alive/" in s or s.endswith("/**"):
+                yield node.lineno, f"key string {s!r} outside wire/keys.py"
+
+
+def rule_sizes(m: Module):
+    rel = str(m.path.relative_to(PKG))
+    if rel in SIZE_EXCEPTIONS:
+        return
+    if len(m.lines) > MAX_FILE_LINES:
+        yield 1, f"{len(m.lines)} lines (> {MAX_FILE_LINES})"
+    for node in ast.walk(m.tree):
+        if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            continue
+        doc = ast.get_docstring(node, clean=False)
+        skip = set()
+        if doc is not None:
+            d = node.body[0]
+            skip = set(range(d.lineno, d.end_lineno + 1))
+        n = sum(1 for i in range(node.lineno, node.end_lineno + 1)
+                if i not in skip and m.lines[i - 1].strip()
+                and not m.lines[i - 1].strip().startswith("#"))
+        if n > MAX_FUNCTION_LINES:
+            yield node.lineno, f"function {node.name} has {n} lines of code (> {MAX_FUNCTION_LINES})"
+
+
+RULES = [rule_nothing_imports_cli, rule_services_stay_apart, rule_zenoh_only_in_bus_and_entry_points,
+         rule_presentation_only_in_reports_and_cli, rule_no_imports_inside_functions,
+         rule_key_strings_in_keys, rule_sizes]
+
+
+@pytest.mark.parametrize("rule", RULES, ids=lambda r: r.__name__.removeprefix("rule_"))
+def test_layout_rule(rule) -> None:
+    bad = _violations(rule)
+    assert not bad, f"{rule.__doc__ or rule.__name__}:\n" + "\n".join(bad)
+
+
+def test_core_never_imports_services() -> None:
+    bad = []
+    for path in sorted(CORE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            bad += [f"{path}:{node.lineno}: {n}" for n in names if n.startswith("diffpos_services")]
+    assert not bad, "the core imports services:\n" + "\n".join(bad)
+
+
+def test_every_error_class_derives_from_the_one_base() -> None:
+    bad = []
+    for info in pkgutil.walk_packages(diffpos_services.__path__, "diffpos_services."):
+        if ".raytrace" in info.name and "sionna" in info.name:
+            continue
+        module = importlib.import_module(info.name)
+        for _, cls in inspect.getmembers(module, inspect.isclass):
+            if (cls.__module__ == module.__name__ and issubclass(cls, Exception)
+                    and not issubclass(cls, DiffposError)):
+                bad.append(f"{info.name}.{cls.__name__}")
+    assert not bad, "error classes not derived from kit.DiffposError: " + ", ".join(bad)
+
+
+@pytest.mark.parametrize("rule", [rule_no_imports_inside_functions, rule_services_stay_apart],
+                         ids=["lazy_import", "service_import"])
+def test_rules_catch_a_violation(rule, tmp_path) -> None:
+    """The checker itself fails on a planted violation (so a silent checker cannot pass)."""
+    src = ("from diffpos_services.dashboard import views\n"
+           "def f():\n    import json\n    return json\n")
+    planted = Module("fusion.core", tmp_path / "x.py", ast.parse(src), src.splitlines())
+    assert list(rule(planted)), f"{rule.__name__} missed a planted violation"
