@@ -35,10 +35,18 @@ import zenoh
 from diffpos_services.bus.session import ZenohSettings, wait_matching
 from diffpos_services.dashboard import views as d
 from diffpos_services.dashboard.service import DashboardService, RerunTarget, open_rerun
-from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.kit import free_tcp_port
+from diffpos_services.recording.synthetic import display_run
 from diffpos_services.recording.writer import McapSink
 from diffpos_services.wire import messages as m
+from diffpos_services.wire.keys import Keys
+
+
+def synthetic_run(**kw):
+    """The dashboard's synthetic run (``recording.synthetic.display_run``), its building as
+    the outline the dashboard draws."""
+    building, msgs = display_run(**kw)
+    return d.BuildingOutline.from_object(building), msgs
 
 
 def _batches(msgs, period_ns):
@@ -119,7 +127,7 @@ def bench_zenoh(args, tmp: Path) -> dict:
     stop = threading.Event()
     th = threading.Thread(target=svc.run, args=(stop,), kwargs={"report_every_s": 1e9})
     th.start()
-    keys = [d.key_of(x, site="bench") for x in msgs]
+    keys = [Keys("bench").of(x) for x in msgs]
     pubs = {k: pub_s.declare_publisher(k) for k in set(keys)}
     _wait_matched(pubs.values(), timeout_s=30.0)  # run() has declared its subscribers
 
@@ -169,13 +177,13 @@ def write_recording(args, path: Path) -> int:
     n = 0
     anchors = [f"uav{i + 1}" for i in range(args.anchors)]
     nodes = [f"n{i:02d}" for i in range(args.nodes)]
-    range_keys = [[d.key_of(m.RangeMeasurement(anchor_id=a, node_id=nn, t_ns=0, seq=0, range_m=1.0,
-                   sigma_m=1.0, snr_db=0.0, t_pub_wall_ns=0)) for nn in nodes] for a in anchors]  # fmt: skip
+    keys = Keys("demo")
+    range_keys = [[keys.anchor_range(a, nn) for nn in nodes] for a in anchors]
     rng = np.random.default_rng(0)
     with McapSink(path) as sink:
         for x in msgs:
             t_ns = getattr(x, "t_ns", None) or x.watermark_ns
-            sink.write(d.key_of(x), m.encode(x), t_ns + 2_000_000)
+            sink.write(Keys("demo").of(x), m.encode(x), t_ns + 2_000_000)
             n += 1
             if not args.no_ranges and isinstance(x, m.AnchorState):
                 j = anchors.index(x.anchor_id)

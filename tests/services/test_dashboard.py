@@ -19,8 +19,17 @@ import rerun.chunk as rc
 from diffpos_services.dashboard import views as d
 from diffpos_services.dashboard.common import _EXCLUDED_COLOR
 from diffpos_services.dashboard.convert import _kind_scanner
-from diffpos_services.dashboard.synthetic import synthetic_run
+from diffpos_services.recording.synthetic import display_run
 from diffpos_services.wire import messages as m
+from diffpos_services.wire.keys import Keys
+
+
+def synthetic_run(**kw):
+    """The dashboard's synthetic run (``recording.synthetic.display_run``), its building as
+    the outline the dashboard draws."""
+    building, msgs = display_run(**kw)
+    return d.BuildingOutline.from_object(building), msgs
+
 
 RERUN_CLI = Path(sys.executable).with_name("rerun")
 
@@ -425,7 +434,7 @@ def _write_mcap(path: Path, msgs, *, extra=()):
     with McapSink(path) as sink:
         for x in [*msgs, *extra]:
             t = getattr(x, "t_ns", None) or x.watermark_ns
-            sink.write(d.key_of(x), m.encode(x), t + 5_000_000)
+            sink.write(Keys("demo").of(x), m.encode(x), t + 5_000_000)
         last_wall = max(x.t_pub_wall_ns for x in msgs if hasattr(x, "t_pub_wall_ns"))
         sink.write_liveliness(
             "demo", "diffpos/demo/alive/anchor/uav5", False, last_wall - 2_000_000_000

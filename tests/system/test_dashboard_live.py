@@ -29,9 +29,18 @@ from diffpos_services.dashboard.service import (
     display_available,
     open_rerun,
 )
-from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.emulate import free_tcp_port
+from diffpos_services.recording.synthetic import display_run
 from diffpos_services.wire import messages as m
+from diffpos_services.wire.keys import Keys
+
+
+def synthetic_run(**kw):
+    """The dashboard's synthetic run (``recording.synthetic.display_run``), its building as
+    the outline the dashboard draws."""
+    building, msgs = display_run(**kw)
+    return d.BuildingOutline.from_object(building), msgs
+
 
 TIMEOUT_S = 30.0
 
@@ -92,7 +101,7 @@ def test_live_service_draws_what_fusion_published(sessions, tmp_path):
     svc.expected = len(msgs) + 1
     svc.expected_live = 2
     svc.start()
-    keys = [d.key_of(x, site=site) for x in msgs]
+    keys = [Keys(site).of(x) for x in msgs]
     pubs = publishers_matched(pub_s, keys)
     token = pub_s.liveliness().declare_token(f"diffpos/{site}/alive/anchor/uav1")
     for key, x in zip(keys, msgs, strict=True):
@@ -134,7 +143,7 @@ def test_ring_buffer_drops_the_oldest_and_never_blocks_the_publisher(sessions, t
     svc = CountingService(sub_s, rec, site=site, ring_size=20)
     svc.expected = len(ests)
     svc.start()  # subscribed, but nothing drains: the "viewer" is stuck
-    pubs = publishers_matched(pub_s, [d.key_of(ests[0], site=site)])
+    pubs = publishers_matched(pub_s, [Keys(site).of(ests[0])])
     pub = next(iter(pubs.values()))
     for e in ests:
         pub.put(m.encode(e))
@@ -204,7 +213,7 @@ def test_dashboard_cli_process_end_to_end(tmp_path, endpoint):
         _, msgs = synthetic_run(n_anchors=2, n_nodes=2, duration_s=2.0, seed=9)
         ests = [x for x in msgs if isinstance(x, m.PositionEstimate)]
         with zenoh.open(ZenohSettings(mode="client", connect=(ep,)).to_config()) as s:
-            keys = [d.key_of(x, site="cli") for x in msgs]
+            keys = [Keys("cli").of(x) for x in msgs]
             pubs = publishers_matched(s, keys)  # the dashboard process has subscribed
             for key, x in zip(keys, msgs, strict=True):
                 pubs[key].put(m.encode(x))
@@ -248,7 +257,7 @@ def test_wait_received_returns_once_everything_arrived(sessions, tmp_path):
     rec, _ = open_rerun(RerunTarget(mode="save", path=str(tmp_path / "w.rrd")))
     svc = DashboardService(sub_s, rec, site="wait1")
     svc.start()
-    keys = [d.key_of(x, site="wait1") for x in msgs]
+    keys = [Keys("wait1").of(x) for x in msgs]
     pubs = publishers_matched(pub_s, keys)
     done = threading.Event()
     waiter = threading.Thread(

@@ -36,8 +36,8 @@ import logging
 import threading
 
 from diffpos_services.bus.session import add_zenoh_arguments, open_session, service_settings
+from diffpos_services.dashboard.building import BuildingOutline
 from diffpos_services.dashboard.scenario import building_for_option
-from diffpos_services.dashboard.synthetic import synthetic_run
 from diffpos_services.kit import (
     ConfigError,
     Shutdown,
@@ -46,6 +46,7 @@ from diffpos_services.kit import (
     run_main,
     setup_logging,
 )
+from diffpos_services.recording.synthetic import display_run
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -179,8 +180,8 @@ def run(args: argparse.Namespace) -> int:
 def _demo(rec, building, target) -> int:
     from diffpos_services.dashboard.stream import Dashboard  # deferred: imports rerun
 
-    b, msgs = synthetic_run(n_anchors=8, n_nodes=20, duration_s=60.0, seed=1)
-    dash = Dashboard(rec, building=building or b)
+    b, msgs = display_run(n_anchors=8, n_nodes=20, duration_s=60.0, seed=1)
+    dash = Dashboard(rec, building=building or BuildingOutline.from_object(b))
     kinds = {"AnchorState": [], "GroundTruth": [], "PositionEstimate": [], "FusionDiagnostics": []}
     for msg in msgs:
         kinds[type(msg).__name__].append(msg)

@@ -24,9 +24,9 @@ from diffpos_services.dashboard.stream import _KIND_BY_CLASS, write_rrd_from_mes
 # the MCAP reader of the recording package: the one cross-service import of the dashboard
 # (converting a recording needs its damage-tolerant scanner)
 from diffpos_services.recording.reader import McapScanner
-from diffpos_services.wire.keys import Keys, parse_recording_topic
+from diffpos_services.wire.keys import parse_recording_topic
 
-__all__ = ["key_of", "mcap_to_rrd", "rrd_rows"]
+__all__ = ["mcap_to_rrd", "rrd_rows"]
 
 
 # ============================================================================ MCAP -> .rrd
@@ -247,20 +247,3 @@ def rrd_rows(path: str | Path) -> dict[str, list[tuple[int | None, dict[str, Any
     for v in rows.values():
         v.sort(key=lambda r: (r[0] is not None, r[0] or 0))
     return rows
-
-
-def key_of(msg: Any, *, site: str = "demo") -> str:
-    """The bus key a message is published on (for writing synthetic runs to MCAP/Zenoh)."""
-    keys = Keys(site)
-    name = type(msg).__name__
-    if name == "AnchorState":
-        return keys.anchor_state(msg.anchor_id)
-    if name == "PositionEstimate":
-        return keys.node_estimate(msg.node_id)
-    if name == "GroundTruth":
-        return keys.truth_node(msg.id) if msg.entity == "node" else keys.truth_anchor(msg.id)
-    if name == "FusionDiagnostics":
-        return keys.fusion_diagnostics()
-    if name == "RangeMeasurement":
-        return keys.anchor_range(msg.anchor_id, msg.node_id)
-    raise ValueError(f"no bus key for message type {name}")

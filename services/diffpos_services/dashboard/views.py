@@ -69,7 +69,7 @@ from diffpos_services.dashboard.common import (
     UNIDENTIFIABLE_STATUSES,
     anchor_color,
 )
-from diffpos_services.dashboard.convert import key_of, mcap_to_rrd, rrd_rows
+from diffpos_services.dashboard.convert import mcap_to_rrd, rrd_rows
 from diffpos_services.dashboard.decode import VIEW_DECODERS
 from diffpos_services.dashboard.estimates import log_estimates
 from diffpos_services.dashboard.events import liveliness_events, log_diagnostics, log_events
@@ -101,7 +101,6 @@ __all__ = [
     "default_blueprint",
     "ellipsoid_axes",
     "estimate_columns_from_messages",
-    "key_of",
     "liveliness_events",
     "log_anchors",
     "log_building",
