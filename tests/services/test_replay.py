@@ -188,8 +188,7 @@ def test_committed_sample_recording(tmp_path):
     """recordings/sample.mcap (a real emulate run): self-describing, valid, consistent counts,
     and the replay reproduces the recorded live fixes (see recordings/README.md for why not
     bit for bit)."""
-    from diffpos_services.cli.inspect import validate_file
-    from diffpos_services.recording.summary import summarize
+    from diffpos_services.recording.summary import summarize, validate_file
 
     s = summarize(SAMPLE)
     assert s.complete and s.damage.ok and sum(s.gaps.values()) == 0

@@ -22,8 +22,7 @@ import time
 from collections import Counter
 
 from diffpos_services.recording.errors import RecordingError
-from diffpos_services.recording.reader import McapScanner
-from diffpos_services.recording.summary import summarize
+from diffpos_services.recording.summary import summarize, validate_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,47 +35,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _utc(ns: int) -> str:
     return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(ns / 1e9)) + f".{(ns // 1_000_000) % 1000:03d}Z"
-
-
-def validate_file(path) -> dict:
-    """Validate every message of a recording against its channel's embedded JSON Schema.
-
-    Returns
-    -------
-    dict
-        ``checked``, ``invalid`` (count), ``no_schema`` (messages on schema-less channels),
-        ``not_json`` and ``examples`` (first 10 problems as strings).
-    """
-    import jsonschema  # optional (the test extra): --validate says so when it is missing
-
-    sc = McapScanner(path)
-    validators: dict[int, object] = {}
-    out = {"checked": 0, "invalid": 0, "no_schema": 0, "not_json": 0, "examples": []}
-    for m in sc.messages():
-        v = validators.get(m.channel_id)
-        if v is None:
-            sch = sc.schema_of(m.channel_id)
-            if sch is None or sch.encoding != "jsonschema":
-                v = False
-            else:
-                doc = json.loads(sch.data)
-                v = jsonschema.validators.validator_for(doc)(doc)
-            validators[m.channel_id] = v
-        try:
-            obj = json.loads(m.data)
-        except ValueError:
-            out["not_json"] += 1
-            continue
-        if v is False:
-            out["no_schema"] += 1
-            continue
-        out["checked"] += 1
-        err = jsonschema.exceptions.best_match(v.iter_errors(obj))
-        if err is not None:
-            out["invalid"] += 1
-            if len(out["examples"]) < 10:
-                out["examples"].append(f"{m.topic} seq {m.sequence}: {err.message}")
-    return out
 
 
 def run(args: argparse.Namespace) -> int:
