@@ -7,6 +7,9 @@ import math
 from pathlib import Path
 
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
 from rich.console import Console
 from rich.table import Table
 
@@ -121,16 +124,10 @@ def plot_floor(
     path: Path, r: FloorResult, scenario: Scenario, settings: BoundMapSettings
 ) -> None:
     """floor<k>.png: PEB and z-bound heat maps of one floor, top view, anchors marked."""
-    # matplotlib is imported when a plot is drawn: --no-plots and --help do not pay for it
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
-
     anchors = scenario.anchor_positions_m()
     radio, w = scenario.radio, scenario.building.window_height_m
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.2), constrained_layout=True)
+    fig = Figure(figsize=(13, 5.2), constrained_layout=True)
+    axes = fig.subplots(1, 2)
     step = settings.grid_step_m
     extent = (r.x_m[0] - step / 2, r.x_m[-1] + step / 2, r.y_m[0] - step / 2, r.y_m[-1] + step / 2)
     for ax, data, title in (
@@ -138,7 +135,7 @@ def plot_floor(
         (axes[1], r.z_bound_m, "z-axis bound"),
     ):
         finite = np.where(np.isfinite(data), data, np.nan)
-        cmap = plt.get_cmap("viridis").with_extremes(bad="0.6")
+        cmap = colormaps["viridis"].with_extremes(bad="0.6")
         vals = finite[np.isfinite(finite)]
         norm = LogNorm(vmin=vals.min(), vmax=vals.max()) if vals.size and vals.min() > 0 else None
         im = ax.imshow(finite, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
@@ -163,4 +160,3 @@ def plot_floor(
         f"P_tx = {radio.tx_power_dbm:g} dBm, f = {radio.frequency_hz / 1e9:g} GHz, w = {w:g} m"
     )
     fig.savefig(path, dpi=110)
-    plt.close(fig)

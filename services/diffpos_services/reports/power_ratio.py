@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 from rich.console import Console
 from rich.table import Table
 
@@ -60,13 +61,8 @@ def write_csv(path: Path, sweep: Sweep) -> None:
 
 def write_png(path: Path, sweep: Sweep, cfg: PowerRatioSweep, threshold_db: float) -> None:
     """power_ratio.png: the ratio in dB vs theta, Theorem 3 and one exact curve per depth."""
-    # matplotlib is imported when the plot is drawn (a --help does not pay for it)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7.0, 4.6), dpi=130)
+    fig = Figure(figsize=(7.0, 4.6), dpi=130)
+    ax = fig.subplots()
     ax.plot(
         sweep.theta_deg,
         _db(sweep.ratio_approx),
@@ -106,7 +102,6 @@ def write_png(path: Path, sweep: Sweep, cfg: PowerRatioSweep, threshold_db: floa
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 def print_report(sweep: Sweep, threshold_db: float, csv_path: Path, png_path: Path) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
@@ -133,19 +134,14 @@ def write_markdown(path: Path, s: dict[str, Any]) -> None:
 
 def write_figures(out: Path, res: Reproduction, delta_m: float) -> list[Path]:
     """cdf_3d_error.png, cdf_z_error.png and first_arrival_boxplots.png; their paths."""
-    # matplotlib is imported when the figures are drawn (a --help does not pay for it)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     study, data = res.study, res.data
     paths = []
     for kind, errs, bound, blabel, fname in (
         ("3D", study.error_3d_m, study.peb_m, "PEB", "cdf_3d_error.png"),
         ("z-axis", study.error_z_m, study.z_bound_m, "z bound", "cdf_z_error.png"),
     ):
-        fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=120)
+        fig = Figure(figsize=(6.4, 4.4), dpi=120)
+        ax = fig.subplots()
         for m in study.methods:
             x, f = empirical_cdf(errs[m])
             ax.step(x, f, where="post", color=COLORS.get(m), label=method_label(m, delta_m))
@@ -162,11 +158,11 @@ def write_figures(out: Path, res: Reproduction, delta_m: float) -> list[Path]:
         fig.tight_layout()
         p = out / fname
         fig.savefig(p)
-        plt.close(fig)
         paths.append(p)
     det = np.asarray(data.detected)
     m = det.shape[1]
-    fig, axes = plt.subplots(1, 2, figsize=(8.8, 4.0), dpi=120)
+    fig = Figure(figsize=(8.8, 4.0), dpi=120)
+    axes = fig.subplots(1, 2)
     labels = [f"anchor {j + 1}" for j in range(m)] + ["all"]
     for ax, arr, ylabel in ((axes[0], data.aoa_deg, "first-arrival AoA (zenith) [deg]"),
                             (axes[1], data.snr_db, "first-arrival SNR [dB]")):
@@ -185,7 +181,6 @@ def write_figures(out: Path, res: Reproduction, delta_m: float) -> list[Path]:
     fig.tight_layout()
     p = out / "first_arrival_boxplots.png"
     fig.savefig(p)
-    plt.close(fig)
     paths.append(p)
     return paths
 
