@@ -1,1 +1,19 @@
-"""recording: see DEVELOPING.md."""
+"""MCAP recordings: write, read, repair, summarise, replay (pure Python, no Zenoh).
+
+Split by role like the ``mcap`` package:
+
+========== =====================================================================
+errors     ``RecordingError`` (a ``kit.DiffposError``, exit code 2)
+topics     ``parse_topic`` (kind and ids of a topic), ``SeqTracker`` (sequence gaps)
+schemas    ``SchemaRegistry``: the JSON Schema of each channel
+writer     ``McapSink``: what the recorder service writes with
+reader     ``McapScanner``: sequential, damage-tolerant reading
+repair     ``recover``: a truncated file -> a valid, indexed one
+summary    ``summarize``, ``validate_file``: ``diffpos inspect``
+replay     ``replay``: settings -> feed the fusion core -> outputs -> report
+evaluate   fixes against the recorded truth (math in ``diffpos.metrics``)
+synthetic  synthetic runs without Zenoh (tests, benchmarks, the dashboard's demo)
+========== =====================================================================
+
+Key expressions and MCAP topics are spelled in :mod:`diffpos_services.wire.keys` only.
+"""

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from diffpos_services.recording.replay import ReplayResult
+if TYPE_CHECKING:  # reports draw results; they do not depend on the services that make them
+    from diffpos_services.recording.replay import ReplayResult
 
 __all__ = ["plot_cdf"]
 
