@@ -29,3 +29,21 @@ def test_synthetic_run_items_are_keyed_like_keyed_would():
         for _rx, key, payload in items:
             msg = M.decoder(dec[parse_topic(key)[0]])(payload)
             assert keyed([msg], site="synth", latency_ns=0)[0][1:] == (key, payload)
+
+
+def test_recording_only_topics_round_trip_through_keys():
+    from diffpos_services.wire.keys import Keys, parse_key, parse_recording_topic
+
+    k = Keys("s1")
+    assert parse_recording_topic(k.recorder_liveliness()).kind == "liveliness"
+    pk = parse_recording_topic(k.replay_estimate("n7"))
+    assert (pk.kind, pk.site, pk.node_id) == ("replay_estimate", "s1", "n7")
+    assert parse_key(k.replay_estimate("n7")) is None  # never a bus key
+    assert parse_topic(k.anchor_range("a1", "n2")) == ("range", {"site": "s1", "anchor": "a1",
+                                                                 "node": "n2"})
+    try:
+        k.of(object())
+    except ValueError as exc:
+        assert "object" in str(exc)
+    else:  # pragma: no cover
+        raise AssertionError("Keys.of accepted a non-message")
