@@ -237,21 +237,14 @@ def _write(out: Path, results, scenario: Scenario, settings, *, plots: bool) -> 
 
 
 def run(args: argparse.Namespace) -> int:
-    err = Console(stderr=True)
-
-    def fail(message: str) -> int:
-        err.print(f"[bold red]diffpos bounds: error:[/] {message}", highlight=False)
-        return 2
-
-    try:
-        scenario, settings = config_from_args(args)
-    except ConfigError as exc:
-        return fail(str(exc))
+    """Options -> bound maps -> tables, CSV and heat maps; a bad option or an unwritable
+    --out is a :class:`ConfigError` (exit 2, printed by :func:`diffpos_services.cli.main.main`)."""
+    scenario, settings = config_from_args(args)
     out: Path = args.out
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        return fail(f"--out: cannot create {out}: {exc}")
+        raise ConfigError(f"--out: cannot create {out}: {exc}") from None
     results = bound_maps.compute(scenario, settings)
     console = Console()
     explanations = bound_maps.explain_non_identifiable(scenario, settings, results)
@@ -259,6 +252,6 @@ def run(args: argparse.Namespace) -> int:
     try:
         written = _write(out, results, scenario, settings, plots=not args.no_plots)
     except OSError as exc:
-        return fail(f"--out: cannot write to {out}: {exc}")
+        raise ConfigError(f"--out: cannot write to {out}: {exc}") from None
     console.print("wrote " + ", ".join(str(p) for p in written), highlight=False, soft_wrap=True)
     return 0
