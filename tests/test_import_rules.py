@@ -26,7 +26,7 @@ CORE = PKG.parents[1] / "diffpos"
 SERVICES = {
     "anchor": "anchor", "fusion": "fusion", "recorder": "recorder", "dashboard": "dashboard",
     "emulate": "emulate", "raytrace": "raytrace",
-    "recording.replay": "replay", "recording.evaluate": "replay",
+    "recording.replay": "replay", "recording.evaluate": "replay", "recording.synthetic": "replay",
 }
 ALLOWED_SERVICE_IMPORTS = {
     ("replay", "fusion"),  # replay re-runs the fusion core offline
