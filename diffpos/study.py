@@ -149,12 +149,14 @@ class FirstArrivalData:
 
     @classmethod
     def from_arrays(
-        cls, arrays: Mapping[str, ArrayLike], *, bandwidth_hz: float | None = None
+        cls, arrays: Mapping[str, ArrayLike], *, bandwidth_hz: float | None = None,
+        range_error_floor_m: float = 0.0,
     ) -> FirstArrivalData:
         """From a mapping with the attribute names as keys (e.g. a loaded ``.npz``).
 
         ``anchors_m, nodes_m, range_m, snr_db, detected`` are required. ``sigma_m`` may be
-        omitted if ``bandwidth_hz`` is given (then it is the ranging CRLB at ``snr_db``);
+        omitted if ``bandwidth_hz`` is given (then it is ``sqrt(CRLB^2 + floor^2)``, the ranging
+        CRLB at ``snr_db`` and ``range_error_floor_m``, as :func:`diffpos.channel.first_arrival`);
         ``mpc_class`` defaults to 0 (unknown) and ``aoa_deg`` to NaN.
         """
         missing = [k for k in ("anchors_m", "nodes_m", "range_m", "snr_db", "detected")
@@ -167,7 +169,8 @@ class FirstArrivalData:
         if "sigma_m" in arrays:
             sigma = np.asarray(arrays["sigma_m"], dtype=np.float64)
         elif bandwidth_hz is not None:
-            sigma = np.where(det, ranging_crlb_m(db_to_linear(snr), bandwidth_hz), np.inf)
+            crlb = ranging_crlb_m(db_to_linear(snr), bandwidth_hz)
+            sigma = np.where(det, np.hypot(crlb, range_error_floor_m), np.inf)
         else:
             raise ValueError("first-arrival data lacks sigma_m: give it or bandwidth_hz")
         return cls(
