@@ -105,6 +105,15 @@ class TrackerConfig:
         ceiling).
     box_sigma_m : float [m]
         Standard deviation of the box pseudo-measurement applied outside the box.
+    exist_margin_m : float [m]
+        A specular path whose entry point is within this distance of the window band's
+        boundary may or may not exist (the entry point's uncertainty while tracking).
+    height_sigma_m, stairs_weight : float [m], [-]
+        Device height above the floor: with probability ``1 - stairs_weight`` at the
+        building's nominal node height (hand/chest carry, +- ``height_sigma_m``), otherwise
+        anywhere between floor and ceiling (stairs, crouching); a max-mixture pseudo-measurement
+        of every epoch (the ranges alone observe the height weakly: with 4 anchors a track
+        drifted 1.5 m in z along a family of mechanism combinations with small residuals).
     sigma_model_m : float [m]
         Model error added to every range sigma (anchor navigation error).
     outlier_weight : float [-]
@@ -135,6 +144,9 @@ class TrackerConfig:
     z_mix_sigma_m: float = 0.5
     z_margin_m: float = 0.05
     box_sigma_m: float = 0.02
+    exist_margin_m: float = 0.2
+    height_sigma_m: float = 0.3
+    stairs_weight: float = 0.1
     sigma_model_m: float = 0.03
     outlier_weight: float = 0.02
     outlier_span_m: float = 30.0

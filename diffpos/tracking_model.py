@@ -12,7 +12,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .paths import DIFFRACTION_SLOTS, MECHANISMS, first_arrival_paths
+from .paths import (
+    _RECIPES,
+    DIFFRACTION_SLOTS,
+    MECHANISMS,
+    FloorFrame,
+    diffracted_path,
+    direct_opening,
+    specular_path,
+)
 
 FloatArray = NDArray[np.float64]
 K_SLOTS = len(MECHANISMS)
@@ -50,15 +58,68 @@ def _los(pos: FloatArray, anchors: FloatArray) -> tuple[FloatArray, FloatArray]:
     return n, d / np.maximum(n, 1e-12)[..., None]
 
 
-def all_paths(pos: FloatArray, links: Links, floor: NDArray, building):
-    """Every mechanism for every hypothesis: lengths/valid (N, H, M, K), Jacobians (..., K, 3)."""
+@dataclass(frozen=True)
+class PathEval:
+    """Mechanisms at hypotheses, (..., K) (slot axis last; Jacobians (..., K, 3)).
+
+    ``length`` and ``jac`` are the raw geometric values (also where the path does not exist,
+    so an iterate may cross an existence boundary of its chosen mechanism). ``strict`` is the
+    existence of :func:`diffpos.paths.first_arrival_paths`; for the specular slots ``loose``
+    and ``sure`` also hold with the window band widened / narrowed by ``relax_m`` (the entry
+    point is uncertain by about that much); diffraction slots: all three are ``strict``.
+    """
+
+    length: FloatArray
+    jac: FloatArray
+    strict: NDArray[np.bool_]
+    loose: NDArray[np.bool_]
+    sure: NDArray[np.bool_]
+
+
+def eval_paths(nodes_m: FloatArray, anchors_m: FloatArray, floor, building, relax_m: float,
+               slots=None) -> PathEval:
+    """The first-arrival path model (same geometry functions as
+    :func:`diffpos.paths.first_arrival_paths`) with raw lengths and graded existence."""
+    shape = np.broadcast_shapes(nodes_m.shape, anchors_m.shape)[:-1]
+    n = np.broadcast_to(nodes_m, (*shape, 3)).copy()
+    a = np.broadcast_to(anchors_m, (*shape, 3)).copy()
+    fr = FloorFrame.from_building(building, np.broadcast_to(np.asarray(floor), shape))
+    loose_fr = FloorFrame(fr.z_floor, fr.z_ceil, fr.win_lo - relax_m, fr.win_hi + relax_m,
+                          fr.x0, fr.x1, fr.depth_m)
+    out = []
+    for k in (range(K_SLOTS) if slots is None else slots):
+        rec = _RECIPES[k]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if rec[0] == "direct":
+                d = n - a
+                length = np.sqrt(np.einsum("...i,...i->...", d, d))
+                jac = d / length[..., None]
+                _, z_in, loose = direct_opening(a, n, loose_fr)
+            elif rec[0] == "spec":
+                g = specular_path(a, n, loose_fr, rec[1], ground=rec[2])
+                length, jac, loose, z_in = g.length_m, g.jacobian, g.valid, g.points[0][..., 2]
+            else:
+                g = diffracted_path(a, n, fr, rec[1], rec[2])
+                length, jac, loose, z_in = g.length_m, g.jacobian, g.valid, None
+            if z_in is None:
+                strict = sure = loose
+            else:
+                margin = np.minimum(z_in - fr.win_lo, fr.win_hi - z_in)
+                strict, sure = loose & (margin > 0), loose & (margin > relax_m)
+        out.append((length, jac, strict, loose, sure))
+    st = [np.stack([o[i] for o in out], axis=-1) for i in (0, 2, 3, 4)]
+    jac = np.stack([o[1] for o in out], axis=-2)
+    return PathEval(length=st[0], jac=jac, strict=st[1], loose=st[2], sure=st[3])
+
+
+def all_paths(pos: FloatArray, links: Links, floor, building, relax_m: float) -> PathEval:
+    """Every mechanism for every hypothesis (N, H, M, K) at positions ``pos`` (N, H, 3)."""
     fl = np.broadcast_to(np.asarray(floor), pos.shape[:2])[:, :, None]
-    ps = first_arrival_paths(pos[:, :, None, :], links.anchors, building, floor=fl)
-    return ps.length_m, ps.valid, ps.jacobian
+    return eval_paths(pos[:, :, None, :], links.anchors, fl, building, relax_m)
 
 
-def slot_paths(pos: FloatArray, links: Links, floor: NDArray, slot: NDArray, building):
-    """Length, Jacobian and existence of the chosen slot per link (slot -1: NaN, False).
+def slot_paths(pos: FloatArray, links: Links, floor, slot: NDArray, building):
+    """Raw length and Jacobian of the chosen slot per link (slot -1: NaN, 0).
 
     The path model is evaluated once per distinct slot on the links that use it (the cost
     of one full evaluation divided by the number of slots).
@@ -71,33 +132,32 @@ def slot_paths(pos: FloatArray, links: Links, floor: NDArray, slot: NDArray, bui
     s = slot.reshape(-1)
     length = np.full(s.shape, np.nan)
     jac = np.zeros((s.size, 3))
-    ok = np.zeros(s.shape, bool)
     for k in np.unique(s[s >= 0]):
         idx = np.flatnonzero(s == k)
-        ps = first_arrival_paths(p[idx], a[idx], building, floor=fl[idx], slots=[int(k)])
-        length[idx] = ps.length_m[:, 0]
-        jac[idx] = ps.jacobian[:, 0]
-        ok[idx] = ps.valid[:, 0]
-    return length.reshape(shape), jac.reshape(*shape, 3), ok.reshape(shape)
+        pe = eval_paths(p[idx], a[idx], fl[idx], building, 0.0, slots=[int(k)])
+        length[idx] = pe.length[:, 0]
+        jac[idx] = pe.jac[:, 0]
+    ok = np.isfinite(length) & np.all(np.isfinite(jac), axis=-1)
+    return length.reshape(shape), np.where(ok[:, None], jac, 0.0).reshape(*shape, 3), \
+        ok.reshape(shape)
 
 
-def candidates(lengths: FloatArray, valid: NDArray[np.bool_]) -> NDArray[np.bool_]:
+def candidates(pe: PathEval) -> NDArray[np.bool_]:
     """Mechanisms that can be the detected first arrival at a hypothesis, (..., K).
 
     The first-arrival rule: a first arrival is never later than an existing specular path
     (direct, single or double bounce entering through the opening: Fresnel losses of a few dB,
     always within the detector's 15 dB of the strongest path), while an edge-diffraction path
     (UTD shadow loss 10-30 dB) may be too weak and be skipped. So the candidates are the
-    earliest existing specular path and every existing diffraction path earlier than it.
-    Measured with the emulator on 3,000 random nodes x every anchor of five geometries (the
-    shipped two and the three held-out variants of ``benchmarks/bench_tracking.py``): no
+    earliest specular path that surely exists, every specular path that may exist (entry
+    within ``relax_m`` of the band) and is not later, and every diffraction path earlier than
+    it. Measured with the emulator on 3,000 random nodes x every anchor of five geometries
+    (the shipped two and the three held-out variants of ``benchmarks/bench_tracking.py``): no
     detected first arrival was later than an existing specular path, and every skipped earlier
     path was a diffraction slot (7-13).
     """
-    spec = np.where(valid & ~_IS_DIFF, lengths, np.inf)
-    e_spec = spec.min(axis=-1, keepdims=True)
-    first_spec = (spec == e_spec) & np.isfinite(e_spec)
-    return valid & ((_IS_DIFF & (lengths < e_spec)) | first_spec)
+    e_spec = np.where(pe.sure & ~_IS_DIFF, pe.length, np.inf).min(axis=-1, keepdims=True)
+    return pe.loose & np.where(_IS_DIFF, pe.length < e_spec, pe.length <= e_spec)
 
 
 @dataclass(frozen=True)
@@ -109,14 +169,15 @@ class Selection:
     nis: FloatArray  # e^2 / S of the chosen slot at the prior (NaN where not used)
 
 
-def select(pos_cov: FloatArray, links: Links, lengths, valid, jac, config) -> Selection:
+def select(pos_cov: FloatArray, links: Links, pe: PathEval, config) -> Selection:
     """Most likely mechanism per link given the predicted position Gaussian.
 
     ``pos_cov``: (N, H, 3, 3). Component log-likelihoods: ``log((1 - eps) / n_cand) + log
     N(rho; L_k, J_k P J_k^T + R)`` for every candidate slot (:func:`candidates`),
     ``log(eps / span)`` for the outlier.
     """
-    valid = candidates(lengths, valid)
+    valid = candidates(pe)
+    lengths, jac = pe.length, np.where(valid[..., None], pe.jac, 0.0)
     s_var = np.einsum("nhmki,nhij,nhmkj->nhmk", jac, pos_cov, jac) + links.var[..., None]
     e = links.rho[..., None] - lengths
     n_ok = np.maximum(valid.sum(axis=-1), 1)
@@ -169,29 +230,44 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     x = x_prior.copy()
     lo, hi = _box(x, floor, building, config.z_margin_m)
     wb = 1.0 / config.box_sigma_m**2
+    # device height above the floor: on the level (Gaussian about the nominal height) or
+    # anywhere on the floor (stairs, crouching: uniform), chosen at the prior (max-mixture)
+    z_nom = building.floor_z_m(np.broadcast_to(np.asarray(floor), x.shape[:2])) + \
+        building.nominal_node_height_m
+    sh = config.height_sigma_m
+    ll_lvl = (np.log1p(-config.stairs_weight) - 0.5 * ((x[..., 2] - z_nom) / sh) ** 2
+              - np.log(sh) - 0.5 * _LOG2PI)
+    ll_any = np.log(config.stairs_weight / building.floor_height_m)
+    level = ll_lvl > ll_any
+    wh = np.where(level, 1.0 / sh**2, 0.0)
+    h_const = np.where(level, np.log1p(-config.stairs_weight) - np.log(sh) - 0.5 * _LOG2PI,
+                       ll_any)
     for it in range(config.gn_iterations + 1):
         model, jm, w = _model(x[..., :3], links, floor, sel, building)
         e = links.rho - model
         p3 = x[..., :3]
         eb = np.clip(p3, lo, hi) - p3  # pseudo-measurement residuals (0 inside the box)
+        eh = z_nom - x[..., 2]
         hth = np.einsum("nhmi,nhm,nhmj->nhij", jm, w, jm)
         a = y.copy()
         a[..., :3, :3] += hth
         a[..., [0, 1, 2], [0, 1, 2]] += np.where(eb != 0, wb, 0.0)
+        a[..., 2, 2] += wh
         if it == config.gn_iterations:
             break
         g = -np.einsum("nhij,nhj->nhi", y, x - x_prior)
         g[..., :3] += np.einsum("nhmi,nhm->nhi", jm, w * e) + wb * eb
+        g[..., 2] += wh * eh
         x = x + np.linalg.solve(a, g[..., None])[..., 0]
     p = np.linalg.inv(a)
     p = 0.5 * (p + np.swapaxes(p, -1, -2))
     d = x - x_prior
     quad = (np.einsum("nhi,nhij,nhj->nh", d, y, d) + np.sum(w * e * e, axis=-1)
-            + wb * np.sum(eb * eb, axis=-1))
+            + wb * np.sum(eb * eb, axis=-1) + wh * eh * eh)
     used = w > 0
     norm = np.sum(np.where(used, -0.5 * (np.log(links.var) + _LOG2PI), 0.0), axis=-1)
     logdet = np.linalg.slogdet(a)[1] - np.linalg.slogdet(y)[1]
-    log_ev = norm - 0.5 * quad - 0.5 * logdet + np.sum(sel.log_weight, axis=-1)
+    log_ev = norm + h_const - 0.5 * quad - 0.5 * logdet + np.sum(sel.log_weight, axis=-1)
     residual = np.where(sel.slot >= 0, e, np.nan)
     return x, p, log_ev, residual
 
@@ -209,8 +285,8 @@ def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArra
 
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual."""
-    lengths, valid, jac = all_paths(x_prior[..., :3], links, floor, building)
-    sel = select(p_prior[..., :3, :3], links, lengths, valid, jac, config)
+    pe = all_paths(x_prior[..., :3], links, floor, building, config.exist_margin_m)
+    sel = select(p_prior[..., :3, :3], links, pe, config)
     x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
@@ -243,9 +319,9 @@ def grid_starts(links: Links, building, config) -> tuple[FloatArray, NDArray]:
     starts = np.zeros((n, nf * config.init_starts, 3))
     for i in range(n):  # one node at a time keeps the arrays small (K x F x C x M)
         li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1], links.anchors[i:i + 1])
-        lengths, valid, _ = all_paths(pos, li, floor, building)
-        valid = candidates(lengths, valid)
-        e = li.rho[..., None] - lengths
+        pe = all_paths(pos, li, floor, building, 0.5 * config.init_grid_m)
+        valid = candidates(pe)
+        e = li.rho[..., None] - pe.length
         cost = np.where(valid, 0.5 * e * e / var[i:i + 1, ..., None], np.inf).min(axis=-1)
         los, _ = _los(pos, li.anchors)
         short = np.minimum(li.rho - los, 0.0)
