@@ -38,14 +38,17 @@ pattern; the receiver collects the full field magnitude (dual-polarised receiver
 
 Simplifications (documented, not tuned): through-wall paths are straight (no refraction, no
 extra delay in the material); slab/wall loss is the normal-incidence loss; corner diffraction
-(Fermat point clamped to an edge end) is ignored, as in the paper; reflections off partitions
+(Fermat point clamped to an edge end) is dropped, identically in the path model
+(:mod:`diffpos.paths` says why); reflections off partitions
 and paths entering through another floor's window are not modelled (they cross >= 1 concrete
 slab, > 100 dB).
 
 The ranging part, :func:`first_arrival`, implements the paper's detector: the first arriving
 path is the MPC with the smallest delay whose SNR (received power + processing gain - kTB) is
 above ``max(P_max - 15 dB, detection floor)``; the measured range is ``c tau`` plus Gaussian
-noise with the ranging CRLB ``c / sqrt(8 pi^2 B^2 SNR)`` at that path's SNR.
+noise of standard deviation ``sqrt(CRLB^2 + floor^2)``: the ranging CRLB ``c / sqrt(8 pi^2 B^2
+SNR)`` at that path's SNR and the radio's ``range_error_floor_m`` (calibration, residual
+multipath, clock).
 """
 
 from __future__ import annotations
@@ -56,9 +59,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .constants import SPEED_OF_LIGHT_M_S
-from .geometry import diffraction_point
 from .gtd import diffracted_field, wavenumber_rad_m
 from .linkbudget import db_to_linear, ranging_crlb_m, snr_db
+from .paths import MECHANISMS, FloorFrame, diffracted_path, direct_opening, specular_path
 from .scenario import ITU_MATERIALS, Building, Radio, Scenario
 
 __all__ = [
@@ -78,27 +81,7 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-#: Slot labels, in slot order (see the module docstring).
-MECHANISMS: tuple[str, ...] = (
-    "Tx-Rx",
-    "Tx-R(ground)-Rx",
-    "Tx-R(floor)-Rx",
-    "Tx-R(ceiling)-Rx",
-    "Tx-R(back)-Rx",
-    "Tx-R(side x1)-Rx",
-    "Tx-R(side x2)-Rx",
-    "Tx-D(upper)-Rx",
-    "Tx-D(lower)-Rx",
-    "Tx-D(upper)-R(floor)-Rx",
-    "Tx-D(upper)-R(ceiling)-Rx",
-    "Tx-D(lower)-R(floor)-Rx",
-    "Tx-D(lower)-R(ceiling)-Rx",
-    "Tx-D(upper)-R(back)-Rx",
-    "Tx-R(ground)-R(ceiling)-Rx",
-    "Tx-R(ceiling)-R(floor)-Rx",
-    "Tx-R(floor)-R(ceiling)-Rx",
-    "Tx-R(ceiling)-R(back)-Rx",
-)
+# Slot labels (MECHANISMS) come from diffpos.paths, the one geometry implementation.
 #: MPC group (1..4, the paper's Table) of every slot.
 MPC_CLASS: NDArray[np.int8] = np.array([1, 2, 2, 2, 2, 2, 2, 3, 3, 4, 4, 4, 4, 4, 4, 4, 4, 4],
                                        dtype=np.int8)
@@ -233,7 +216,8 @@ class FirstArrival:
     snr_db : ndarray, shape (N, M) [dB]
         SNR of the first-arriving path.
     sigma_m : ndarray, shape (N, M) [m]
-        Ranging CRLB at that SNR (inf where not detected).
+        Ranging standard deviation ``sqrt(CRLB^2 + range_error_floor_m^2)`` at that SNR (inf
+        where not detected).
     mpc_class : ndarray of int8, shape (N, M)
         Group (1..4) of the first-arriving path, 0 where not detected.
     slot : ndarray of int, shape (N, M)
@@ -339,10 +323,9 @@ class _Ctx:
         self.floor = floor
         self.z_floor = b.floor_z_m(floor)[:, None]  # (N,1)
         self.z_ceil = self.z_floor + b.floor_height_m
-        zlo, zhi = b.window_z_m(floor)
-        self.win_lo = zlo[:, None]
-        self.win_hi = zhi[:, None]
-        self.x0, self.x1 = b.edge_x_m
+        # the node floor's planes, shared with the path model (diffpos.paths)
+        self.frame = FloorFrame.from_building(b, floor[:, None])
+        self.x0, self.x1 = self.frame.x0, self.frame.x1
         self.eta_ground = itu_permittivity(b.ground_material, self.f)
         self.eta_in = itu_permittivity(b.interior_material, self.f)
         self.wall_db = (b.wall_loss_db if b.wall_loss_db is not None
@@ -370,14 +353,6 @@ class _Ctx:
             loss = loss + np.where(cross & (o > lo) & (o < hi), db, 0.0)
         return loss
 
-    def in_window(self, z: FloatArray, x: FloatArray) -> BoolArray:
-        return (z > self.win_lo) & (z < self.win_hi) & (x > self.x0) & (x < self.x1)
-
-    def in_floor_box(self, p: FloatArray, tol: float = 1e-9) -> BoolArray:
-        return ((p[..., 0] >= self.x0 - tol) & (p[..., 0] <= self.x1 + tol)
-                & (p[..., 1] >= -tol) & (p[..., 1] <= self.b.depth_m + tol)
-                & (p[..., 2] >= self.z_floor - tol) & (p[..., 2] <= self.z_ceil + tol))
-
     def tx_field(self, d_unit: FloatArray) -> NDArray[np.complex128]:
         """Dipole field (with antenna pattern amplitude) leaving the anchor along ``d_unit``."""
         g_db = _pattern_db(_zenith_deg(d_unit), self.r.tx_hpbw_deg, self.r.tx_peak_deg)
@@ -389,22 +364,6 @@ class _Ctx:
         return (amp * (self.lam / (4 * np.pi * length_m)) * 10 ** (-loss_db / 20)
                 * np.exp(-1j * self.k * length_m))
 
-    def plane_coord(self, name: str) -> tuple[int, FloatArray | float]:
-        if name == "floor":
-            return 2, self.z_floor
-        if name == "ceiling":
-            return 2, self.z_ceil
-        if name == "back":
-            return 1, self.b.depth_m
-        if name == "side x1":
-            return 0, self.x0
-        if name == "side x2":
-            return 0, self.x1
-        if name == "ground":
-            return 2, 0.0
-        raise ValueError(name)
-
-
 # --------------------------------------------------------------------------------------------
 # slot builders: each returns (length_m, gain, aod_deg, aoa_deg, valid), shapes (N, M)
 # --------------------------------------------------------------------------------------------
@@ -415,9 +374,7 @@ def _direct(c: _Ctx):
     d = n - a
     u, length = _unit(d)
     t = -a[..., 1] / d[..., 1]  # facade crossing (anchor y < 0 < node y)
-    zc = a[..., 2] + t * d[..., 2]
-    xc = a[..., 0] + t * d[..., 0]
-    through_window = c.in_window(zc, xc)
+    xc, zc, through_window = direct_opening(a, n, c.frame)
     # slabs crossed between the facade crossing and the node
     b = c.b
     k_cross = b.floor_index(zc)
@@ -438,47 +395,15 @@ def _direct(c: _Ctx):
 
 
 def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
-    """Specular path anchor [-> ground] -> window -> planes... -> node (image method)."""
+    """Specular path anchor [-> ground] -> window -> planes... -> node (image method; the
+    geometry is :func:`diffpos.paths.specular_path`, shared with the path model)."""
     a = np.broadcast_to(c.anchor, (*c.shape, 3)).copy()
     n = np.broadcast_to(c.node, (*c.shape, 3)).copy()
-    src = _mirror(a, 2, 0.0) if ground else a
-    # unfold the node across the inside planes, last plane first
-    img = n
-    axes_coords = [c.plane_coord(p) for p in planes]
-    for axis, coord in reversed(axes_coords):
-        img = _mirror(img, axis, coord)
-    d = img - src
-    length = np.sqrt(np.einsum("...i,...i->...", d, d))
-    valid = np.ones(c.shape, dtype=bool)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t_f = (0.0 - src[..., 1]) / d[..., 1]
-        t_prev = np.zeros(c.shape)
-        if ground:
-            t_g = (0.0 - src[..., 2]) / d[..., 2]
-            valid &= (t_g > 0) & (t_g < t_f)
-            t_prev = t_g
-        valid &= (t_f > t_prev) & (t_f < 1)
-        entry = src + t_f[..., None] * d
-        valid &= c.in_window(entry[..., 2], entry[..., 0])
-        # walk the real path: reflection points on each inside plane
-        pts = [entry]
-        cur_src = src
-        cur_img = img
-        t_last = t_f
-        for axis, coord in axes_coords:
-            dd = cur_img - cur_src
-            t = (coord - cur_src[..., axis]) / dd[..., axis]
-            valid &= (t > t_last) & (t < 1)
-            rp = cur_src + t[..., None] * dd
-            valid &= c.in_floor_box(rp)
-            pts.append(rp)
-            # un-mirror the remaining image across this plane for the next leg
-            cur_img = _mirror(cur_img, axis, coord)
-            cur_src = _mirror(cur_src, axis, coord)
-            t_last = t
-        pts.append(n)
+    g = specular_path(a, n, c.frame, planes, ground=ground)
+    length, valid, pts = g.length_m, g.valid.copy(), g.points
+    axes_coords = [c.frame.plane(p) for p in planes]
     # field: departure, ground bounce, then inside bounces
-    first_target = pts[0] if not ground else src + t_g[..., None] * d
+    first_target = pts[0] if not ground else g.ground_point
     u0, _ = _unit(first_target - a)
     E = c.tx_field(u0)
     loss = np.full(c.shape, c.glass_db)
@@ -503,20 +428,18 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
 
 
 def _diffracted(c: _Ctx, edge: str, then: str | None = None):
-    """Anchor -> window edge (UTD) [-> one inside reflection] -> node."""
+    """Anchor -> window edge (UTD) [-> one inside reflection] -> node (geometry:
+    :func:`diffpos.paths.diffracted_path`, shared with the path model; corner diffraction is
+    dropped in both)."""
     a = np.broadcast_to(c.anchor, (*c.shape, 3))
     n = np.broadcast_to(c.node, (*c.shape, 3))
-    z_e = c.win_hi if edge == "upper" else c.win_lo
-    z_e = np.broadcast_to(z_e, c.shape)
-    p0 = np.stack([np.full(c.shape, c.x0), np.zeros(c.shape), z_e], axis=-1)
-    p1 = np.stack([np.full(c.shape, c.x1), np.zeros(c.shape), z_e], axis=-1)
+    g = diffracted_path(a, n, c.frame, edge, then)
+    q = g.points[0]
+    valid = g.valid.copy()
     obs = n
     if then is not None:
-        axis, coord = c.plane_coord(then)
+        axis, coord = c.frame.plane(then)
         obs = _mirror(np.array(n), axis, np.broadcast_to(coord, c.shape))
-    dp = diffraction_point(a, obs, p0, p1)
-    q = dp.point_m
-    valid = dp.on_edge.copy()
     e_dir = np.array([1.0, 0.0, 0.0]) if edge == "upper" else np.array([-1.0, 0.0, 0.0])
     face = np.array([0.0, 0.0, 1.0]) if edge == "upper" else np.array([0.0, 0.0, -1.0])
     E = diffracted_field(a, obs, q, e_dir, face, c.e0, frequency_hz=c.f, coefficients="utd",
@@ -530,16 +453,12 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
         loss = loss + c.partition_loss_db(q, n)
     else:
         d = obs - q
-        with np.errstate(invalid="ignore", divide="ignore"):
-            t = (coord - q[..., axis]) / d[..., axis]
-        valid &= (t > 0) & (t < 1)
-        rp = q + t[..., None] * d
-        valid &= c.in_floor_box(rp)
+        rp = g.points[1]
         k_in, _ = _unit(d)
         E = _reflect_field(E, k_in, axis, c.eta_in)
         loss = loss + c.partition_loss_db(q, rp) + c.partition_loss_db(rp, n)
         pts_last = rp
-    length = dp.length_m
+    length = g.length_m
     amp_vec = E * (c.lam / (4 * np.pi)) * 10 ** (-loss / 20)[..., None]
     amp = _field_norm(amp_vec)
     gain = amp * np.exp(-1j * c.k * length)
@@ -654,7 +573,9 @@ def first_arrival(
     with ``snr_db >= max(P_max - radio.fap_threshold_db, radio.detection_snr_db)``, ``P_max``
     the pair's strongest MPC. Existence is re-evaluated with ``radio.detection_snr_db`` (so a
     different detector can be applied to the same channel). Its measured range is ``c tau + n`` with
-    ``n ~ N(0, sigma^2)``, ``sigma = c / sqrt(8 pi^2 B^2 SNR)``.
+    ``n ~ N(0, sigma^2)``, ``sigma = sqrt(CRLB^2 + radio.range_error_floor_m^2)``, ``CRLB = c /
+    sqrt(8 pi^2 B^2 SNR)`` (the floor: calibration, residual multipath, clock; see
+    :class:`~diffpos.scenario.Radio`).
 
     Parameters
     ----------
@@ -678,7 +599,8 @@ def first_arrival(
     take = lambda arr: np.take_along_axis(arr, slot[..., None], axis=-1)[..., 0]  # noqa: E731
     true_path = np.where(detected, take(channel.length_m), np.nan)
     snr_f = np.where(detected, take(snr), -np.inf)
-    sigma = np.where(detected, ranging_crlb_m(db_to_linear(snr_f), radio.bandwidth_hz), np.inf)
+    crlb = ranging_crlb_m(db_to_linear(snr_f), radio.bandwidth_hz)
+    sigma = np.where(detected, np.hypot(crlb, radio.range_error_floor_m), np.inf)
     if rng is None:
         rng_noise = np.zeros(true_path.shape)
     else:

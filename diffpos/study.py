@@ -19,7 +19,15 @@ key                method
 ``dnls_case1``     D-NLS with the upper-edge diffraction model, ``Delta = 0`` (Assumption 1)
 ``dnls_case2``     D-NLS with the model offset ``Delta`` (default 1.5 m, half a floor)
 ``dnls_lower``     (extra) D-NLS modelling the *lower* window edge (``Delta = w``)
+``mnls``           M-NLS: mechanism-aware NLS on the first-arrival path model
+                   (:func:`diffpos.estimators.mnls`; needs the ``building``, uses the SNR
+                   with the ``radio``)
 =================  ==========================================================================
+
+With the ``building`` given, the study also reports each method's *floor accuracy*: the share
+of all receivers whose estimate lies on the receiver's floor (a failed fix is a miss), and for
+``mnls`` the share of fixes whose reported 95 % ellipsoid holds the truth
+(:meth:`PositioningStudy.ellipsoid_coverage`).
 
 All estimators are unweighted, like the paper's (their least-squares costs have no
 ``1/sigma^2``); D-NLS runs without outlier gating (the paper's plain Gauss-Newton) over the
@@ -40,7 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .bounds import position_error_bound
-from .estimators import dnls, ippa, lls
+from .estimators import dnls, ippa, lls, mnls
 from .linkbudget import db_to_linear, ranging_crlb_m
 
 __all__ = [
@@ -50,6 +58,7 @@ __all__ = [
     "PositioningStudy",
     "empirical_cdf",
     "first_arrival_statistics",
+    "floor_accuracy",
     "floor_starts_m",
     "percentile_summary",
     "positioning_study",
@@ -63,6 +72,7 @@ METHOD_LABELS: dict[str, str] = {
     "dnls_case1": "D-NLS (Case-1)",
     "dnls_case2": "D-NLS (Case-2)",
     "dnls_lower": "D-NLS (lower edge)",
+    "mnls": "M-NLS (first-arrival model)",
     "peb": "PEB",
 }
 DEFAULT_METHODS: tuple[str, ...] = ("lls", "ippa", "dnls_case1", "dnls_case2")
@@ -149,12 +159,14 @@ class FirstArrivalData:
 
     @classmethod
     def from_arrays(
-        cls, arrays: Mapping[str, ArrayLike], *, bandwidth_hz: float | None = None
+        cls, arrays: Mapping[str, ArrayLike], *, bandwidth_hz: float | None = None,
+        range_error_floor_m: float = 0.0,
     ) -> FirstArrivalData:
         """From a mapping with the attribute names as keys (e.g. a loaded ``.npz``).
 
         ``anchors_m, nodes_m, range_m, snr_db, detected`` are required. ``sigma_m`` may be
-        omitted if ``bandwidth_hz`` is given (then it is the ranging CRLB at ``snr_db``);
+        omitted if ``bandwidth_hz`` is given (then it is ``sqrt(CRLB^2 + floor^2)``, the ranging
+        CRLB at ``snr_db`` and ``range_error_floor_m``, as :func:`diffpos.channel.first_arrival`);
         ``mpc_class`` defaults to 0 (unknown) and ``aoa_deg`` to NaN.
         """
         missing = [k for k in ("anchors_m", "nodes_m", "range_m", "snr_db", "detected")
@@ -167,7 +179,8 @@ class FirstArrivalData:
         if "sigma_m" in arrays:
             sigma = np.asarray(arrays["sigma_m"], dtype=np.float64)
         elif bandwidth_hz is not None:
-            sigma = np.where(det, ranging_crlb_m(db_to_linear(snr), bandwidth_hz), np.inf)
+            crlb = ranging_crlb_m(db_to_linear(snr), bandwidth_hz)
+            sigma = np.where(det, np.hypot(crlb, range_error_floor_m), np.inf)
         else:
             raise ValueError("first-arrival data lacks sigma_m: give it or bandwidth_hz")
         return cls(
@@ -203,7 +216,9 @@ class PositioningStudy:
     delta_case2_m : float [m]
     extra : dict
         ``status_ok_fraction``: per method, the share of fixes whose estimator status is OK
-        (the others still count if they returned an estimate).
+        (the others still count if they returned an estimate). With a building:
+        ``floor_accuracy`` per method [-]. For methods with a covariance (``mnls``):
+        ``covariance_m2`` per method, shape (N, 3, 3) [m^2].
     """
 
     positions_m: dict[str, FloatArray]
@@ -234,10 +249,34 @@ class PositioningStudy:
                 "z": percentile_summary(ez),
                 "solved_fraction": float(np.mean(np.isfinite(e3))) if e3.size else 0.0,
                 "status_ok_fraction": self.extra.get("status_ok_fraction", {}).get(m),
+                "floor_accuracy": self.extra.get("floor_accuracy", {}).get(m),
             }
+            if m in self.extra.get("covariance_m2", {}):
+                out[m]["ellipsoid95_coverage"] = self.ellipsoid_coverage(m)
         out["peb"] = {"label": "PEB", "3d": percentile_summary(self.peb_m),
                       "z": percentile_summary(self.z_bound_m)}
         return out
+
+
+    def ellipsoid_coverage(self, method: str, probability: float = 0.95) -> float:
+        """Share of the method's fixes whose reported ellipsoid holds the truth [-].
+
+        The ellipsoid is ``d^T C^-1 d <= chi2_3(probability)`` with ``C`` the reported
+        covariance and ``d`` the error; over the fixes with an estimate and a finite
+        covariance (NaN if none or the method reports no covariance).
+        """
+        from scipy.stats import chi2
+
+        cov = self.extra.get("covariance_m2", {}).get(method)
+        if cov is None:
+            return float("nan")
+        d = self.positions_m[method] - self.extra["truth_m"]
+        ok = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(cov.reshape(len(d), -1)), axis=1)
+        if not np.any(ok):
+            return float("nan")
+        with np.errstate(invalid="ignore"):
+            m2 = np.einsum("ni,ni->n", d[ok], np.linalg.solve(cov[ok], d[ok][..., None])[..., 0])
+        return float(np.mean(m2 <= chi2.ppf(probability, 3)))
 
 
 def method_label(method: str, delta_case2_m: float = 1.5) -> str:
@@ -310,6 +349,8 @@ def positioning_study(
     start_y_m: float | None = None,
     chunk_size: int = 2048,
     progress: Callable[[str, int, int], None] | None = None,
+    building: Any = None,
+    radio: Any = None,
 ) -> PositioningStudy:
     """Position every receiver with each method and compute the bounds.
 
@@ -335,6 +376,10 @@ def positioning_study(
     chunk_size : int
         Receivers per estimator call; ``progress`` is called after each chunk.
     progress : callable(method, done, total), optional
+    building : diffpos.scenario.Building, optional
+        Required by ``mnls``; enables the per-method floor accuracy.
+    radio : diffpos.scenario.Radio, optional
+        Link budget for ``mnls``'s SNR test and its error floor / bandwidth.
 
     Returns
     -------
@@ -344,6 +389,8 @@ def positioning_study(
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; choose from "
                          f"{[k for k in METHOD_LABELS if k != 'peb']}")
+    if "mnls" in methods and building is None:
+        raise ValueError("method 'mnls' needs the building (positioning_study(building=...))")
     anchors = np.asarray(data.anchors_m, dtype=np.float64)
     truth = np.asarray(data.nodes_m, dtype=np.float64)
     n = truth.shape[0]
@@ -365,6 +412,12 @@ def positioning_study(
             return lls(a, ranges[sl], None, mask=mask[sl])
         if method == "ippa":
             return ippa(a, ranges[sl], None, mask=mask[sl], nlos=nlos[sl], **ippa_start)
+        if method == "mnls":
+            rkw = {} if radio is None else {"bandwidth_hz": radio.bandwidth_hz,
+                                            "error_floor_m": radio.range_error_floor_m}
+            return mnls(a, ranges[sl], np.where(mask[sl], data.sigma_m[sl], 1.0),
+                        mask=mask[sl], building=building, snr_db=data.snr_db[sl], radio=radio,
+                        **rkw)
         return dnls(a, ranges[sl], None, mask=mask[sl], window_height_m=window_height_m,
                     delta_m=dnls_delta[method], edge_x_m=edge_x_m, gating=None,
                     z_starts_m=z_starts_m)
@@ -373,18 +426,23 @@ def positioning_study(
     e3: dict[str, FloatArray] = {}
     ez: dict[str, FloatArray] = {}
     ok_frac: dict[str, float] = {}
+    covs: dict[str, FloatArray] = {}
     for m in methods:
         est = np.full((n, 3), np.nan)
+        cov = np.full((n, 3, 3), np.nan)
         n_ok = 0
         for sl in _chunks(n, chunk_size):
             res = solve(m, sl)
             # like the paper, every estimate counts, whatever its status (ill-conditioned or
             # not converged within the iteration limit); only missing estimates are failures
             est[sl] = res.position_m
+            cov[sl] = res.covariance_m2
             n_ok += int(np.sum(res.ok))
             if progress is not None:
                 progress(m, sl.stop, n)
         positions[m] = est
+        if m == "mnls":
+            covs[m] = cov
         ok_frac[m] = n_ok / n if n else 0.0
         err = np.linalg.norm(est - truth, axis=1)
         e3[m] = np.where(np.isfinite(err), err, np.inf)
@@ -398,8 +456,22 @@ def positioning_study(
     return PositioningStudy(
         positions_m=positions, error_3d_m=e3, error_z_m=ez, peb_m=bnd.peb_m,
         z_bound_m=bnd.z_bound_m, methods=tuple(methods), delta_case2_m=float(delta_case2_m),
-        extra={"status_ok_fraction": ok_frac},
+        extra={"status_ok_fraction": ok_frac, "covariance_m2": covs, "truth_m": truth,
+               "floor_accuracy": ({} if building is None else
+                                  {m: floor_accuracy(positions[m], truth, building)
+                                   for m in methods})},
     )
+
+
+def floor_accuracy(estimates_m: ArrayLike, truth_m: ArrayLike, building: Any) -> float:
+    """Share of ALL receivers whose estimate is on the receiver's floor (no estimate: miss)."""
+    est = np.asarray(estimates_m, dtype=np.float64)
+    tru = np.asarray(truth_m, dtype=np.float64)
+    if tru.shape[0] == 0:
+        return float("nan")
+    ok = np.isfinite(est[:, 2])
+    k_est = building.floor_index(np.where(ok, est[:, 2], -1e9))
+    return float(np.mean(ok & (k_est == building.floor_index(tru[:, 2]))))
 
 
 def first_arrival_statistics(

@@ -277,7 +277,8 @@ def test_first_arrival_matches_a_per_pair_loop(small_channel, paper):
             assert fa.slot[i, j] == k
             assert fa.mpc_class[i, j] == MPC_CLASS[k]
             assert fa.snr_db[i, j] == snr[k]
-            sigma = C / np.sqrt(8 * np.pi**2 * r.bandwidth_hz**2 * 10 ** (snr[k] / 10))
+            crlb = C / np.sqrt(8 * np.pi**2 * r.bandwidth_hz**2 * 10 ** (snr[k] / 10))
+            sigma = np.sqrt(crlb**2 + r.range_error_floor_m**2)  # CRLB + the error floor
             assert fa.sigma_m[i, j] == pytest.approx(sigma, rel=1e-12)
 
 

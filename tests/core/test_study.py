@@ -51,7 +51,8 @@ def test_first_arrival_data_validation_and_arrays(paper):
     del arrays["sigma_m"]
     with pytest.raises(ValueError, match="sigma_m"):
         FirstArrivalData.from_arrays(arrays)
-    again = FirstArrivalData.from_arrays(arrays, bandwidth_hz=paper.radio.bandwidth_hz)
+    again = FirstArrivalData.from_arrays(arrays, bandwidth_hz=paper.radio.bandwidth_hz,
+                                         range_error_floor_m=paper.radio.range_error_floor_m)
     np.testing.assert_allclose(again.sigma_m[d.detected], d.sigma_m[d.detected], rtol=1e-12)
     with pytest.raises(ValueError, match=r"range_m: expected shape \(N, M\)"):
         FirstArrivalData(d.anchors_m, d.nodes_m, d.range_m[:, :3], d.snr_db, d.sigma_m,

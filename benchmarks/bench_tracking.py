@@ -1,0 +1,208 @@
+"""Tracker accuracy and cost: lockstep 10 Hz emulation, every node-epoch scored.
+
+Usage: ``python benchmarks/bench_tracking.py [--duration 20] [--seed 0] [--only NAME ...]``
+
+For every scenario the emulator (:func:`diffpos.channel.emulate_channel` + the paper's
+first-arrival detector :func:`diffpos.channel.first_arrival` with the channel's own noise)
+produces ranges of every anchor to every node at every 100 ms epoch (all anchors at the same
+instant: lockstep), anchor positions are reported with a GNSS error (per-anchor bias plus white
+noise, 2 cm horizontal / 3 cm vertical in all), and :func:`diffpos.tracking.update` runs over
+them. Scored over ALL node-epochs after the first 2 s (a missing position is a miss):
+availability, floor accuracy, 3D and |z| error p50/p90 (on the epochs with a position), truth
+inside the reported 95 % ellipsoid, and the tracker's wall time per epoch.
+
+Scenarios: ``default`` (the paper's building and 4 UAVs with the six walking responders of
+``diffpos emulate``: ``diffpos_services.anchor.responders``, replicated here with the core's
+trajectory API), ``large`` (scenarios/large.toml, 8 UAVs, 50 nodes) and held-out variants
+(another building: 3.6 m floors, 2 m windows, 7 floors; UAVs above the window height; anchors
+beyond the facade ends).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from diffpos.channel import emulate_channel, first_arrival
+from diffpos.scenario import AnchorSpec, Building, NodeSpec, Scenario, default_scenario
+from diffpos.tracking import TrackerConfig, init_state, update
+from diffpos.trajectory import Static, trajectory_from_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+CHI2_3_95 = 7.814727903251178
+
+
+def responders(building, *, count: int = 6, seed: int = 0, speed_m_s: float = 1.2):
+    """Copy of ``diffpos_services.anchor.responders`` (walk, stairs one floor, walk back)."""
+    rng = np.random.default_rng(seed)
+    b = building
+    x_lo, x_hi = b.edge_x_m
+    h = b.nominal_node_height_m
+    out = []
+    for i in range(count):
+        f0 = i % b.n_floors
+        f1 = f0 + 1 if f0 + 1 < b.n_floors else f0 - 1
+        z0 = float(b.floor_z_m(f0)) + h
+        z1 = float(b.floor_z_m(f1)) + h
+        y = float(rng.uniform(1.5, min(b.depth_m - 1.0, 10.0)))
+        xa = float(rng.uniform(x_lo + 8.0, x_hi - 12.0))
+        xs = x_hi - 4.0
+        pts = [[xa, y, z0], [xs, y, z0], [xs, y + 2.0, z0], [xs - 6.0, y + 2.0, z1],
+               [xa, y + 2.0, z1]]
+        traj = trajectory_from_dict({"kind": "waypoints", "points_m": pts,
+                                     "speed_m_s": speed_m_s, "loop": True})
+        out.append(NodeSpec(f"r{i + 1:02d}", traj))
+    return tuple(out)
+
+
+def _with_responders(sc: Scenario, count: int = 6, seed: int = 0) -> Scenario:
+    return dataclasses.replace(sc, node_grid=None,
+                               nodes=responders(sc.building, count=count, seed=seed))
+
+
+def _anchors(points) -> tuple:
+    return tuple(AnchorSpec(f"uav{i + 1}", Static(tuple(map(float, p))))
+                 for i, p in enumerate(points))
+
+
+def scenarios() -> dict[str, Scenario]:
+    """The scored scenarios (name -> Scenario with explicit moving nodes)."""
+    paper = default_scenario()
+    large = Scenario.from_dict(tomllib.loads((ROOT / "scenarios/large.toml").read_text()))
+    other_b = dataclasses.replace(paper.building, n_floors=7, floor_height_m=3.6,
+                                  first_floor_z_m=3.0, sill_height_m=0.9, window_height_m=2.0,
+                                  width_m=30.0, depth_m=15.0, partitions=())
+    other = dataclasses.replace(
+        paper, name="other-building", building=other_b,
+        anchors=_anchors([[-10, -18, 1.5], [0, -12, 2.5], [10, -18, 1.0], [5, -25, 3.0]]))
+    above = dataclasses.replace(  # UAVs at and above the windows of the lower floors
+        paper, name="uavs-above-windows",
+        anchors=_anchors([[-15, -20, 9.0], [0, -15, 12.0], [12, -10, 6.0], [15, -20, 16.0]]))
+    beyond = dataclasses.replace(  # two UAVs beyond the facade ends (x outside [-20, 20])
+        paper, name="anchors-beyond-ends",
+        anchors=_anchors([[-28, -8, 2.0], [28, -10, 3.0], [0, -15, 1.0], [-5, -22, 2.0],
+                          [8, -18, 0.5]]))
+    return {"default": _with_responders(paper), "large": large,
+            "other-building": _with_responders(other, count=7, seed=1),
+            "uavs-above-windows": _with_responders(above, seed=2),
+            "anchors-beyond-ends": _with_responders(beyond, seed=3)}
+
+
+def emulate(sc: Scenario, *, duration_s: float, rate_hz: float, seed: int):
+    """Yield ``(t_ns, anchors_rep (M,3), ranges (N,M), sigmas (N,M), mask (N,M), truth (N,3))``."""
+    rng = np.random.default_rng(seed)
+    m = len(sc.anchors)
+    sig = np.array([0.02, 0.02, 0.03])
+    bias = rng.standard_normal((m, 3)) * sig * np.sqrt(0.5)
+    period_ns = round(1e9 / rate_hz)
+    for k in range(round(duration_s * rate_hz)):
+        t_ns = k * period_ns
+        t_s = t_ns * 1e-9
+        anchors = sc.anchor_positions_m(t_s)
+        nodes = sc.node_positions_m(t_s)
+        ch = emulate_channel(anchors, nodes, building=sc.building, radio=sc.radio)
+        fa = first_arrival(ch, radio=sc.radio, rng=rng)
+        rep = anchors + bias + rng.standard_normal((m, 3)) * sig * np.sqrt(0.5)
+        yield t_ns, rep, fa.range_m, fa.sigma_m, fa.detected, nodes
+
+
+def run(sc: Scenario, *, duration_s: float = 20.0, rate_hz: float = 10.0, seed: int = 0,
+        config: TrackerConfig | None = None, skip_s: float = 2.0) -> dict:
+    """Track one scenario and score every node-epoch after ``skip_s``."""
+    cfg = config or TrackerConfig()
+    b = sc.building
+    n = len(sc.nodes)
+    state = init_state(n, b)
+    rows = []
+    wall = []
+    for t_ns, anc, rng_m, sg, det, truth in emulate(sc, duration_s=duration_s, rate_hz=rate_hz,
+                                                     seed=seed):
+        a = np.broadcast_to(anc, (n, *anc.shape))
+        t0 = time.perf_counter()
+        state, out = update(state, a, rng_m, sg, det, t_ns, b, cfg)
+        wall.append(time.perf_counter() - t0)
+        if t_ns * 1e-9 >= skip_s - 1e-9:
+            rows.append((out, truth))
+    return score(rows, b) | {"ms_per_epoch": 1e3 * float(np.median(wall)), "nodes": n,
+                             "anchors": len(sc.anchors)}
+
+
+def score(rows, building) -> dict:
+    """Availability, floor accuracy (all node-epochs), 3D/z percentiles, 95 % coverage."""
+    pos = np.stack([o.position_m for o, _ in rows])
+    cov = np.stack([o.covariance_m2 for o, _ in rows])
+    fl = np.stack([o.floor_index for o, _ in rows])
+    truth = np.stack([t for _, t in rows])
+    has = np.all(np.isfinite(pos), axis=-1)
+    tf = building.floor_index(truth[..., 2])
+    err = pos - truth
+    e3 = np.linalg.norm(err, axis=-1)[has]
+    ez = np.abs(err[..., 2])[has]
+    d = err[has]
+    c = cov[has]
+    nees = np.einsum("ki,ki->k", d, np.linalg.solve(c, d[..., None])[..., 0])
+    pct = lambda a, q: float(np.percentile(a, q)) if a.size else float("nan")  # noqa: E731
+    return {"availability": float(has.mean()), "floor": float(np.mean(has & (fl == tf))),
+            "p50_3d": pct(e3, 50), "p90_3d": pct(e3, 90), "p50_z": pct(ez, 50),
+            "p90_z": pct(ez, 90), "coverage95": float(np.mean(nees <= CHI2_3_95))
+            if nees.size else float("nan"), "node_epochs": int(has.size)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=20.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--only", nargs="*", default=None)
+    ap.add_argument("--no-cost", action="store_true")
+    args = ap.parse_args(argv)
+    hdr = (f"{'scenario':22s} {'N':>3s} {'M':>2s} {'avail':>6s} {'floor':>6s} {'3D p50':>7s} "
+           f"{'3D p90':>7s} {'z p50':>6s} {'z p90':>6s} {'cov95':>6s} {'ms/ep':>6s}")
+    print(hdr)
+    for name, sc in scenarios().items():
+        if args.only and name not in args.only:
+            continue
+        r = run(sc, duration_s=args.duration, seed=args.seed)
+        print(f"{name:22s} {r['nodes']:3d} {r['anchors']:2d} {100 * r['availability']:5.1f}% "
+              f"{100 * r['floor']:5.1f}% {r['p50_3d']:7.2f} {r['p90_3d']:7.2f} {r['p50_z']:6.2f} "
+              f"{r['p90_z']:6.2f} {100 * r['coverage95']:5.1f}% {r['ms_per_epoch']:6.1f}",
+              flush=True)
+    if not args.no_cost:
+        cost()
+    return 0
+
+
+def cost(epochs: int = 20) -> None:
+    """Wall time per tracked epoch (median) for 50 and 200 nodes x 16 anchors."""
+    b = Building()
+    rng = np.random.default_rng(0)
+    for n in (50, 200):
+        anchors = np.stack([rng.uniform(-25, 25, 16), rng.uniform(-25, -5, 16),
+                            rng.uniform(0, 4, 16)], axis=-1)
+        x0 = np.stack([rng.uniform(-18, 18, n), rng.uniform(1, 21, n),
+                       b.floor_z_m(rng.integers(0, 5, n)) + 1.5], axis=-1)
+        v = rng.normal(0, 0.8, (n, 3)) * [1, 1, 0]
+        radio = default_scenario().radio
+        state = init_state(n, b)
+        times = []
+        for k in range(epochs):
+            nodes = x0 + v * 0.1 * k
+            nodes[:, :2] = np.clip(nodes[:, :2], [-19.5, 0.5], [19.5, 22])
+            fa = first_arrival(emulate_channel(anchors, nodes, building=b, radio=radio),
+                               radio=radio, rng=rng)
+            a = np.broadcast_to(anchors, (n, 16, 3))
+            t0 = time.perf_counter()
+            state, _ = update(state, a, fa.range_m, fa.sigma_m, fa.detected, k * 10**8, b,
+                              TrackerConfig())
+            times.append(time.perf_counter() - t0)
+        print(f"cost: {n} nodes x 16 anchors: init {1e3 * times[0]:.0f} ms, tracking "
+              f"{1e3 * float(np.median(times[1:])):.1f} ms per epoch (median)", flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,423 @@
+"""M-NLS: mechanism-aware non-linear least squares on the first-arrival path model.
+
+The measured range of a link is the length of its *first arrival*, which is one of the
+mechanisms of :mod:`diffpos.paths` (direct through the window, specular reflections entering
+through the window, diffraction over the physical upper/lower window edge, diffraction +
+reflection, double bounces), not always the paper's upper-edge diffraction. M-NLS estimates
+the node position and, per link, which mechanism arrived first.
+
+Model (every number below was measured on the emulator, default scenario, all 70,400 links,
+seed 0; ``benchmarks/bench_mnls.py --measure`` prints them):
+
+* **Floor hypotheses.** The floor fixes the window band and the floor/ceiling planes, so each
+  floor of the building is a separate hypothesis (``floor`` passed to the path model); the
+  node is confined to its floor's box. Per floor, a coarse (x, y) grid at mid-floor height is
+  scored and the ``keep_starts`` best cells are refined.
+* **Latent mechanism (max-mixture).** At every iteration, per link, the mechanism is the
+  existing one whose length best explains the range under the likelihood below. Ambiguous
+  links (two mechanisms within a few cm) pick either; the covariance accounts for it.
+* **First arrival never later than a specular path through the opening.** A direct or
+  specular path that enters through the window is strong (SNR of such first arrivals: p1 24 dB,
+  median 38 dB, vs. -2 dB median for single diffraction) and is always detected: the first
+  arrival was later than the shortest existing one on 0 of 32,480 links, and when the direct
+  path passes the opening it *is* the first arrival on 100 % of 4,880 links. Diffraction is
+  weak and often below the detection threshold (first arrival later than the lower-edge
+  diffraction on 51 % of links), so it does not constrain. Hence the candidate mechanisms of
+  a link are those no longer than its shortest existing specular path.
+* **Robust likelihood.** Gaussian core ``N(0, sigma^2)`` on ``r - L_m`` plus a one-sided
+  exponential component for an unmodelled positive excess (NLoS excess is positive: blocked
+  or unmodelled paths only delay the first arrival): ``p(e) = (1 - eps) N(e; 0, sigma^2) +
+  eps / lambda exp(-e / lambda) [e > 0]``, used as a max-mixture (the cheaper component per
+  link). ``eps = 0.02`` (a prior share of links outside the model; the emulator has none: the
+  first arrival is a model mechanism on 100 % of links), ``lambda = c / B`` (0.75 m at 400 MHz:
+  an unresolved path delays the detected peak by up to one resolution cell). Links that end
+  in the tail component are reported as excluded (RAIM).
+* **Noise.** ``sigma_j = max(sigmas_m, error_floor_m)``: the caller's ranging sigma (the
+  emulator's is ``sqrt(CRLB^2 + floor^2)``), never below the chain's error floor.
+* **z observability and the floor prior.** With the physical edges an edge path fixes only x
+  and the distance to the edge line; z comes from combining mechanisms and anchors at
+  different elevations. A weak prior keeps unobservable directions finite: the node is
+  uniform over its floor's height, approximated by ``N(z_floor + H/2, H^2/12)`` (H the floor
+  height); the node is also kept inside the floor's box.
+* **Floor posterior.** Laplace approximation of each floor's best mode:
+  ``p_k ~ exp(-C_k) det(H_k)^(-1/2)`` (``C_k`` the cost, ``H_k`` its Gauss-Newton Hessian),
+  normalised over the floors. The answer is the most probable floor's mode.
+* **Covariance.** ``sum_k p_k (H_k^-1 + (mu_k - x)(mu_k - x)^T)``: the inverse information of
+  each floor's mode (with per-link variance ``sigma_j^2`` plus ``(dL / 2)^2`` for an
+  alternative mechanism within ``3 sigma_j`` whose length differs by ``dL``), mixed over the
+  floor posterior around the answer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..constants import SPEED_OF_LIGHT_M_S
+from ..linkbudget import snr_db as _snr_db
+from ..paths import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, first_arrival_paths
+from .gating import chi2_threshold
+from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
+
+__all__ = ["MnlsResult", "mnls"]
+
+FloatArray = NDArray[np.float64]
+
+#: Prior share of links whose first arrival is outside the path model (module docstring).
+OUTLIER_PRIOR = 0.02
+#: UTD: a diffracted field is at most half the incident one (at the shadow boundary), so a
+#: path with a diffraction is >= 6.02 dB below free space at its length [dB].
+DIFFRACTION_MIN_LOSS_DB = 20 * np.log10(2.0)
+_DIFF_MASK = np.zeros(len(MECHANISMS), dtype=bool)
+_DIFF_MASK[list(DIFFRACTION_SLOTS)] = True
+#: Default false-alarm probability of the residual test.
+FALSE_ALARM_PROBABILITY = 1e-3
+
+
+@dataclass(frozen=True)
+class MnlsResult(FixResult):
+    """:class:`FixResult` plus the mechanism-aware fields.
+
+    Attributes
+    ----------
+    floor : ndarray of int, shape (B,)
+        Most probable floor (-1 where no fix).
+    floor_probability : ndarray, shape (B, F) [-]
+        Posterior probability of every floor of the building.
+    mechanism : ndarray of int, shape (B, M)
+        Slot of :data:`diffpos.paths.MECHANISMS` explaining each link at the answer (-1
+        where unused or missing).
+    """
+
+    floor: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, dtype=int))
+    floor_probability: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    mechanism: NDArray[np.int_] = field(default_factory=lambda: np.zeros((0, 0), dtype=int))
+
+
+@dataclass
+class _Problem:
+    """Flattened hypotheses: N = fixes x floors x starts rows (internal)."""
+
+    anchors: FloatArray  # (N, M, 3)
+    r: FloatArray  # (N, M)
+    sig: FloatArray  # (N, M)
+    mask: NDArray[np.bool_]  # (N, M)
+    floor: NDArray[np.int_]  # (N,)
+    lo: FloatArray  # (N, 3) box of the floor
+    hi: FloatArray
+    z_mid: FloatArray  # (N,)
+    prior_var: float
+    tail_a: FloatArray  # (N, M) tail offset
+    lam: float
+    nodiff: NDArray[np.bool_]  # (N, M) the SNR rules out any diffracted mechanism
+
+
+def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
+    """Paths at ``x`` (N, 3), mechanism choice and the cost terms of every link."""
+    ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
+    length = ps.length_m
+    valid = ps.valid
+    spec = np.zeros(length.shape[-1], dtype=bool)
+    spec[list(SPECULAR_SLOTS)] = True
+    l_spec = np.min(np.where(valid & spec, length, np.inf), axis=-1)
+    cand = valid & (length <= l_spec[..., None])
+    cand &= ~(p.nodiff[..., None] & _DIFF_MASK[:length.shape[-1]])
+    e = p.r[..., None] - length  # (N, M, K)
+    z = e / p.sig[..., None]
+    gauss = 0.5 * z * z
+    tail = np.where(e > 0, p.tail_a[..., None] + e / p.lam, np.inf)
+    cost_k = np.where(cand, np.minimum(gauss, tail), np.inf)
+    slot = np.argmin(cost_k, axis=-1)
+    take = lambda a: np.take_along_axis(a, slot[..., None], axis=-1)[..., 0]  # noqa: E731
+    cost = take(cost_k)
+    none = ~np.isfinite(cost)
+    is_tail = take(tail) < take(gauss)
+    res = np.where(none, 0.0, take(e))
+    jac = np.take_along_axis(ps.jacobian, slot[..., None, None], axis=-2)[..., 0, :]
+    jac = np.where(none[..., None], 0.0, jac)
+    # IRLS weight: the tail's gradient is 1/lambda, i.e. weight sigma^2 / (lambda e)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(is_tail, p.sig**2 / (p.lam * np.maximum(res, 1e-9)), 1.0)
+    # a link with no candidate (all paths clamped) costs like a far outlier
+    cost = np.where(none, p.tail_a + 10.0, cost)
+    m = p.mask
+    w = np.where(m & ~none, w, 0.0)
+    cost = np.where(m, cost, 0.0)
+    prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
+    return {"cost": cost.sum(axis=-1) + prior, "res": res, "jac": jac, "w": w, "slot": slot,
+            "tail": is_tail & m, "none": none & m, "length": length, "cand": cand}
+
+
+def _lm(p: _Problem, x: FloatArray, building, iters: int) -> tuple[FloatArray, dict]:
+    """Projected Levenberg-Marquardt with max-mixture re-assignment at every step."""
+    t = _link_terms(p, x, building)
+    lam = np.full(x.shape[0], 1e-3)
+    for _ in range(iters):
+        ws = t["w"] / p.sig**2
+        h = np.einsum("nm,nmi,nmj->nij", ws, t["jac"], t["jac"])
+        g = np.einsum("nm,nm,nmi->ni", ws, t["res"], t["jac"])
+        h[:, 2, 2] += 1.0 / p.prior_var
+        g[:, 2] -= (x[:, 2] - p.z_mid) / p.prior_var
+        diag = np.diagonal(h, axis1=1, axis2=2)
+        hd = h + lam[:, None, None] * np.eye(3) * (diag + 1e-9)[:, None, :]
+        step = np.linalg.solve(hd, g[..., None])[..., 0]
+        x_new = np.clip(x + step, p.lo, p.hi)
+        t_new = _link_terms(p, x_new, building)
+        ok = t_new["cost"] < t["cost"]
+        x = np.where(ok[:, None], x_new, x)
+        for k in t:
+            sel = ok.reshape((-1,) + (1,) * (t[k].ndim - 1))
+            t[k] = np.where(sel, t_new[k], t[k])
+        lam = np.where(ok, lam / 3.0, lam * 4.0)
+    return x, t
+
+
+def _floor_boxes(building, floors: NDArray[np.int_], margin: float = 1e-3):
+    x0, x1 = building.edge_x_m
+    zf = building.floor_z_m(floors)
+    lo = np.stack([np.full(floors.shape, x0 + margin), np.full(floors.shape, margin),
+                   zf + margin], axis=-1)
+    hi = np.stack([np.full(floors.shape, x1 - margin),
+                   np.full(floors.shape, building.depth_m - margin),
+                   zf + building.floor_height_m - margin], axis=-1)
+    return lo, hi, zf + 0.5 * building.floor_height_m
+
+
+def _problem(a, r, sig, mask, floors, building, lam, nodiff) -> _Problem:
+    lo, hi, zmid = _floor_boxes(building, floors)
+    # tail offset: -log(eps / lambda) + log((1 - eps) / (sigma sqrt(2 pi)))
+    tail_a = np.log((1 - OUTLIER_PRIOR) / OUTLIER_PRIOR * lam / (sig * np.sqrt(2 * np.pi)))
+    return _Problem(anchors=a, r=r, sig=sig, mask=mask, floor=floors, lo=lo, hi=hi,
+                    z_mid=zmid, prior_var=building.floor_height_m**2 / 12.0,
+                    tail_a=tail_a, lam=lam, nodiff=nodiff)
+
+
+def _grid(building, nx: int, ny: int) -> FloatArray:
+    """Cell centres of an nx x ny grid over the floor plan, (nx * ny, 2) [m]."""
+    x0, x1 = building.edge_x_m
+    xs = x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx
+    ys = (np.arange(ny) + 0.5) * building.depth_m / ny
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    return np.stack([gx.ravel(), gy.ravel()], axis=-1)
+
+
+def _solve_chunk(a, r, sig, mask, nodiff, building, *, grid, keep, iters, lam):
+    """All floors x starts of B fixes; returns per-fix-per-floor modes and terms."""
+    b = r.shape[0]
+    nf = building.n_floors
+    g = grid.shape[0]
+    floors = np.tile(np.repeat(np.arange(nf), g), b)  # (B*F*G,)
+    rep = nf * g
+    p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
+                  np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
+                  building, lam, np.repeat(nodiff, rep, axis=0))
+    x = np.empty((b * rep, 3))
+    x[:, :2] = np.tile(grid, (b * nf, 1))
+    x[:, 2] = p0.z_mid
+    c0 = _link_terms(p0, x, building)["cost"].reshape(b, nf, g)
+    best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
+    rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g + best).ravel()
+    p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
+                 building, lam, p0.nodiff[rows])
+    x, t = _lm(p, x[rows], building, iters)
+    cost = t["cost"].reshape(b, nf, keep)
+    pick = np.argmin(cost, axis=-1)  # best start per floor
+    sel = ((np.arange(b)[:, None] * nf + np.arange(nf)[None, :]) * keep + pick).ravel()
+    return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel
+
+
+def _information(p: _Problem, sel, t) -> tuple[FloatArray, FloatArray]:
+    """Gauss-Newton Hessian with the mechanism-ambiguity variance, and per-link variance."""
+    sig = p.sig[sel]
+    e_all = p.r[sel][..., None] - t["length"]
+    near = t["cand"] & (np.abs(e_all) < 3 * sig[..., None])
+    chosen = np.take_along_axis(t["length"], t["slot"][..., None], axis=-1)
+    dl = np.where(near, np.abs(t["length"] - chosen), 0.0)
+    var = sig**2 + (0.5 * np.nanmax(np.where(near, dl, 0.0), axis=-1)) ** 2
+    used = p.mask[sel] & ~t["tail"] & ~t["none"]
+    ws = np.where(used, 1.0 / var, 0.0)
+    h = np.einsum("nm,nmi,nmj->nij", ws, t["jac"], t["jac"])
+    # the uniform-over-the-floor prior: z as in the cost, x and y (W^2/12, D^2/12) only here,
+    # to keep directions no link constrains finite (negligible next to any range)
+    h[:, 2, 2] += 1.0 / p.prior_var
+    box = (p.hi - p.lo)[sel]
+    h[:, 0, 0] += 12.0 / box[:, 0] ** 2
+    h[:, 1, 1] += 12.0 / box[:, 1] ** 2
+    return h, var
+
+
+def _posterior(cost: FloatArray, h: FloatArray) -> FloatArray:
+    """Laplace floor posterior from (B, F) costs and (B, F, 3, 3) Hessians."""
+    sign, logdet = np.linalg.slogdet(h)
+    logdet = np.where(sign > 0, logdet, np.inf)
+    lp = -cost - 0.5 * logdet
+    lp = np.where(np.isfinite(lp), lp, -np.inf)
+    mx = np.max(lp, axis=-1, keepdims=True)
+    w = np.exp(lp - np.where(np.isfinite(mx), mx, 0.0))
+    s = w.sum(axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(s > 0, w / s, 1.0 / cost.shape[-1])
+
+
+def mnls(
+    anchors_m: ArrayLike,
+    ranges_m: ArrayLike,
+    sigmas_m: ArrayLike | None = None,
+    *,
+    building,
+    mask: ArrayLike | None = None,
+    snr_db: ArrayLike | None = None,
+    radio=None,
+    snr_margin_db: float = 3.0,
+    error_floor_m: float = 0.05,
+    bandwidth_hz: float = 400e6,
+    grid_shape: tuple[int, int] = (6, 3),
+    keep_starts: int = 2,
+    max_iter: int = 15,
+    false_alarm_probability: float = FALSE_ALARM_PROBABILITY,
+    chunk_size: int = 256,
+) -> MnlsResult:
+    """Batched mechanism-aware position fixes (module docstring).
+
+    Parameters
+    ----------
+    anchors_m : array_like, shape (B, M, 3) or (M, 3) [m]
+    ranges_m : array_like, shape (B, M) or (M,) [m]
+        Measured first-arrival ranges.
+    sigmas_m : array_like, shape (B, M), scalar or None [m]
+        Ranging standard deviations (e.g. ``FirstArrival.sigma_m``); ``None``: the error floor.
+    building : diffpos.scenario.Building
+        Floors, window bands, width and depth (the path model's geometry).
+    mask : array_like of bool, shape (B, M), optional
+        Which measurements exist.
+    snr_db : array_like, shape (B, M), optional [dB]
+        Measured SNR of each first arrival; with ``radio``, a link whose SNR is less than
+        ``DIFFRACTION_MIN_LOSS_DB - snr_margin_db`` below the free-space SNR at its range
+        cannot be a diffracted path (module docstring).
+    radio : diffpos.scenario.Radio, optional
+        Link budget for the free-space SNR (power, gains, processing gain, noise).
+    snr_margin_db : float [dB]
+        Calibration margin of that test (transmit power / antenna gain uncertainty).
+    error_floor_m : float [m]
+        Lower bound of every link's sigma (the ranging chain's error floor).
+    bandwidth_hz : float [Hz]
+        Signal bandwidth; the NLoS excess scale is ``c / B``.
+    grid_shape : (int, int)
+        Coarse start grid (cells along x, along y) per floor.
+    keep_starts : int
+        Grid cells refined per floor.
+    max_iter : int
+        Levenberg-Marquardt iterations per start.
+    false_alarm_probability : float
+        Of the chi-square residual test on the links kept (Gaussian component).
+    chunk_size : int
+        Fixes solved together (memory bound).
+
+    Returns
+    -------
+    MnlsResult
+        ``method="mnls"``, ``covariance_model="first-arrival model, floor mixture"``.
+    """
+    if not error_floor_m >= 0 or not bandwidth_hz > 0:
+        raise ValueError("error_floor_m must be >= 0 and bandwidth_hz > 0")
+    bi = prepare_batch(anchors_m, ranges_m, sigmas_m, mask)
+    bsz, m = bi.ranges_m.shape
+    nf = building.n_floors
+    sig = bi.sigmas_m if bi.sigmas_given else np.full((bsz, m), max(error_floor_m, 1e-3))
+    sig = np.maximum(sig, max(error_floor_m, 1e-6))
+    lam = SPEED_OF_LIGHT_M_S / bandwidth_hz
+    grid = _grid(building, *grid_shape)
+    nodiff = _no_diffraction(bi.ranges_m, snr_db, radio, snr_margin_db, (bsz, m))
+    out = {
+        "position_m": np.full((bsz, 3), np.nan), "covariance_m2": np.full((bsz, 3, 3), np.nan),
+        "residuals_m": np.full((bsz, m), np.nan), "used": np.zeros((bsz, m), dtype=bool),
+        "tail": np.zeros((bsz, m), dtype=bool), "mechanism": np.full((bsz, m), -1),
+        "floor": np.full(bsz, -1), "floor_probability": np.full((bsz, nf), np.nan),
+        "cost": np.full(bsz, np.nan), "stat": np.full(bsz, np.nan),
+    }
+    solvable = np.flatnonzero(bi.mask.sum(axis=-1) >= 3)
+    step = max(int(chunk_size), 1)
+    for lo in range(0, solvable.size, step):
+        idx = solvable[lo:lo + step]
+        _finish(out, idx, *_solve_chunk(bi.anchors_m[idx], bi.ranges_m[idx], sig[idx],
+                                         bi.mask[idx], nodiff[idx], building, grid=grid,
+                                         keep=keep_starts,
+                                         iters=max_iter, lam=lam), nf=nf)
+    return _result(out, bi, false_alarm_probability)
+
+
+def _no_diffraction(r, snr, radio, margin_db, shape) -> NDArray[np.bool_]:
+    """Links whose SNR is too close to free space for any diffracted mechanism."""
+    if snr is None or radio is None:
+        return np.zeros(shape, dtype=bool)
+    snr = np.broadcast_to(np.asarray(snr, dtype=np.float64), shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p_fs = (radio.tx_power_dbm + radio.tx_gain_dbi + radio.rx_gain_dbi
+                - 20 * np.log10(4 * np.pi * np.maximum(r, 1e-3) / radio.wavelength_m))
+    snr_fs = _snr_db(p_fs, bandwidth_hz=radio.bandwidth_hz,
+                     processing_gain_db=radio.processing_gain_db,
+                     temperature_k=radio.noise_temperature_k,
+                     noise_figure_db=radio.noise_figure_db)
+    return np.isfinite(snr) & (snr_fs - snr < DIFFRACTION_MIN_LOSS_DB - margin_db)
+
+
+def _finish(out, idx, p, xk, t, sel, *, nf: int) -> None:
+    b = idx.size
+    h, var = _information(p, sel, t)
+    h = h.reshape(b, nf, 3, 3)
+    cost = t["cost"].reshape(b, nf)
+    post = _posterior(cost, h)
+    kb = np.argmax(post, axis=-1)
+    rows = np.arange(b) * nf + kb
+    x = xk[np.arange(b), kb]
+    with np.errstate(invalid="ignore", over="ignore"):
+        cov_k = np.linalg.inv(h)
+        d = xk - x[:, None, :]
+        cov = np.einsum("bf,bfij->bij", post, cov_k + d[..., :, None] * d[..., None, :])
+    used = p.mask[sel][rows] & ~t["tail"][rows] & ~t["none"][rows]
+    res = t["res"][rows]
+    out["position_m"][idx] = x
+    out["covariance_m2"][idx] = cov
+    out["residuals_m"][idx] = np.where(p.mask[sel][rows], res, np.nan)
+    out["used"][idx] = used
+    out["tail"][idx] = t["tail"][rows]
+    out["mechanism"][idx] = np.where(p.mask[sel][rows], t["slot"][rows], -1)
+    out["floor"][idx] = kb
+    out["floor_probability"][idx] = post
+    out["cost"][idx] = cost[np.arange(b), kb]
+    out["stat"][idx] = np.sum(np.where(used, res**2 / var[rows], 0.0), axis=-1)
+
+
+def _result(out, bi, pfa: float) -> MnlsResult:
+    bsz, m = bi.ranges_m.shape
+    used = out["used"]
+    n_used = used.sum(axis=-1)
+    dof = n_used - 3
+    thr = np.where(dof >= 1, chi2_threshold(np.maximum(dof, 1), pfa), np.nan)
+    has = np.isfinite(out["position_m"][:, 0])
+    cov = out["covariance_m2"]
+    finite_cov = np.all(np.isfinite(cov.reshape(bsz, -1)), axis=-1)
+    status = np.full(bsz, int(FixStatus.OK))
+    status[has & (dof < 1)] = FixStatus.OK_UNVERIFIED
+    status[has & (dof >= 1) & ~(out["stat"] <= thr)] = FixStatus.GATING_FAILED
+    status[has & ~finite_cov] = FixStatus.NOT_IDENTIFIABLE
+    status[~has | (n_used < 3)] = FixStatus.TOO_FEW_ANCHORS
+    status[bi.input_error != 0] = FixStatus.INVALID_INPUT
+    reason = np.zeros((bsz, m), dtype=np.int_)
+    reason[out["tail"]] = ExclusionReason.RAIM
+    reason[~bi.present] = ExclusionReason.MISSING
+    with np.errstate(invalid="ignore"):
+        peb = np.sqrt(np.trace(cov, axis1=-2, axis2=-1))
+    return MnlsResult(
+        position_m=out["position_m"], covariance_m2=cov, peb_m=peb,
+        z_bound_m=np.sqrt(cov[:, 2, 2]), iterations=np.zeros(bsz, dtype=np.int_),
+        converged=has.copy(), status=status, residuals_m=out["residuals_m"], used=used,
+        excluded=out["tail"].copy(), exclusion_reason=reason, test_statistic=out["stat"],
+        test_threshold=thr, dof=np.maximum(dof, 0), cost=out["cost"],
+        input_error=bi.input_error, method="mnls",
+        covariance_model="first-arrival model, floor mixture", sigmas_given=bi.sigmas_given,
+        floor=out["floor"], floor_probability=out["floor_probability"],
+        mechanism=out["mechanism"],
+    )

@@ -1,0 +1,453 @@
+"""Per-responder tracker: an IMM over floors, one iterated EKF per floor hypothesis and node.
+
+Functional core (pure numpy, vectorised over nodes, deterministic; no randomness at all):
+:func:`init_state` -> (:func:`predict`) -> :func:`update` -> ``(TrackerState, TrackOutput)``.
+
+Design
+------
+* **State per node and floor hypothesis f** (``F = building.n_floors``): position and velocity
+  ``[x, y, z, vx, vy, vz]``, a Gaussian (mean, covariance) and the floor's log-probability.
+  Every floor keeps its own filter, so a floor the data has not yet decided stays alive (a
+  particle filter over the same ranges locked whole tracks onto a wrong floor).
+* **Motion:** nearly-constant velocity (white acceleration), per axis
+  ``Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]``. Horizontal ``q_h = 1.5 m^2/s^3``: a walker changes
+  its velocity by about its walking speed (1.2 m/s: start, stop, a 90 degree turn) within ~1 s,
+  ``q_h ~ (1.2 m/s)^2 / 1 s``. Vertical ``q_v = 0.36 m^2/s^3``: on stairs the vertical speed
+  (0.3-0.6 m/s, 17 cm risers at ~2 steps/s, fast ascent) is reached within ~1 s.
+* **Floor transitions (IMM mixing):** a walker moving vertically at the stair speed
+  ``v_stairs = 0.6 m/s`` crosses one floor height ``H`` in ``H / v_stairs`` seconds, so the
+  probability of moving to each adjacent floor within ``dt`` is ``dt v_stairs / H`` (0.02 for
+  10 Hz, 3 m floors); any floor can be re-acquired with ``jump_rate_hz * dt`` (recovery from a
+  wrong lock). Mixed into floor ``g`` a state from floor ``f`` keeps x, y and the velocity, its
+  height is moved into floor g's band and its height variance inflated (``z_mix_sigma_m``).
+* **Measurement model:** the first-arrival path model :func:`diffpos.paths.first_arrival_paths`
+  for the hypothesis' floor. Per link the mechanism is a latent choice (max-mixture): the
+  existing mechanism with the largest marginal likelihood of the range given the predicted
+  state (innovation variance ``J P J^T + R``, mechanism prior ``1 / n_existing``: a
+  hypothesis where few mechanisms exist is not rewarded for flexibility), or an outlier.
+  Robust likelihood: Gaussian core with ``R = sigma_m^2 + sigma_model^2`` (``sigma_model``:
+  anchor navigation error, 2-3 cm GNSS) and a one-sided outlier component, uniform over
+  ``[|a - p|, |a - p| + outlier_span_m]``: a range is never shorter than the straight line
+  (the hinge ``rho < |a - p|`` stays a Gaussian penalty on the straight line), but may be
+  longer than any modelled mechanism (an unmodelled later arrival).
+* **Update:** iterated Gauss-Newton (IEKF, information form) per node and floor with the
+  mechanisms fixed after the selection at the prior; the floor's log-probability is updated
+  with the Laplace marginal likelihood (prior term, residuals, log-determinants, mechanism
+  and outlier weights).
+* **Published estimate:** the most probable floor's mean; its covariance plus the spread of
+  the other floors' means about it (the mean-square error of the reported point under the
+  mixture, so model/floor uncertainty is in it); per-floor probabilities; per anchor the
+  mechanism slot (-1: outlier/missing) and the residual.
+* **Lifecycle:** nodes start UNINITIALISED; with >= ``min_ranges_init`` ranges a snapshot
+  initialisation (grid over every floor's (x, y) at the nominal height with the path model,
+  then the IEKF from the best cells with a broad prior) gives every floor a state and a
+  probability (INITIALISING until ``confirm_epochs`` consistent updates, then TRACKING);
+  without usable ranges the filter only predicts (COASTING, the covariance grows); after
+  ``lost_after_s`` without ranges it is LOST (no position published). Divergence: an
+  exponentially averaged normalised innovation (NIS per used range) above ``nis_limit`` or a
+  majority of outlier links for ``diverge_epochs`` epochs re-initialises the node.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .tracking_model import Links, measurement_update, snapshot_init
+
+__all__ = [
+    "TrackOutput",
+    "TrackStatus",
+    "TrackerConfig",
+    "TrackerState",
+    "init_state",
+    "predict",
+    "process_noise",
+    "update",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+class TrackStatus(enum.IntEnum):
+    """Status of one node's track (stored as int8 in :attr:`TrackerState.status`)."""
+
+    UNINITIALISED = 0
+    """No snapshot yet (too few ranges so far): no position."""
+    INITIALISING = 1
+    """Initialised from a snapshot, not yet confirmed by ``confirm_epochs`` updates."""
+    TRACKING = 2
+    COASTING = 3
+    """No usable ranges this epoch: predicted only, the covariance grows."""
+    LOST = 4
+    """No usable ranges for ``lost_after_s``: no position published until re-initialised."""
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Tracker constants (module docstring gives the physical source of each).
+
+    Attributes
+    ----------
+    q_h_m2_s3, q_v_m2_s3 : float [m^2/s^3]
+        White-acceleration spectral densities, horizontal and vertical.
+    v_stairs_m_s : float [m/s]
+        Vertical speed on stairs; sets the adjacent-floor transition probability.
+    jump_rate_hz : float [1/s]
+        Rate of a jump to any floor (re-acquisition after a wrong lock).
+    z_mix_sigma_m : float [m]
+        Height standard deviation added when a state is mixed into another floor.
+    z_margin_m : float [m]
+        A floor hypothesis' position is kept ``margin`` inside its floor's box (walls, floor,
+        ceiling).
+    box_sigma_m : float [m]
+        Standard deviation of the box pseudo-measurement applied outside the box.
+    exist_margin_m : float [m]
+        A specular path whose entry point is within this distance of the window band's
+        boundary may or may not exist (the entry point's uncertainty while tracking).
+    height_sigma_m, stairs_weight : float [m], [-]
+        Device height above the floor: with probability ``1 - stairs_weight`` at the
+        building's nominal node height (hand/chest carry, +- ``height_sigma_m``), otherwise
+        anywhere between floor and ceiling (stairs, crouching); a max-mixture pseudo-measurement
+        of every epoch (the ranges alone observe the height weakly: with 4 anchors a track
+        drifted 1.5 m in z along a family of mechanism combinations with small residuals).
+    sigma_model_m : float [m]
+        Model error added to every range sigma (anchor navigation error).
+    outlier_weight : float [-]
+        Prior probability that a range is none of the modelled mechanisms.
+    outlier_span_m : float [m]
+        Width of the one-sided outlier density.
+    gn_iterations : int
+    init_grid_m : float [m]
+        Grid step of the snapshot initialisation.
+    init_starts : int
+        Best grid cells per floor refined by the IEKF at initialisation.
+    init_sigma_v_m_s : float [m/s]
+        Initial velocity standard deviation (walking speed).
+    min_ranges_init : int
+    confirm_epochs : int
+    lost_after_s : float [s]
+    nis_limit : float [-]
+        Limit of the averaged NIS per used range (divergence).
+    nis_alpha : float [-]
+        Weight of the newest epoch in the NIS average.
+    diverge_epochs : int
+    """
+
+    q_h_m2_s3: float = 1.5
+    q_v_m2_s3: float = 0.36
+    v_stairs_m_s: float = 0.6
+    jump_rate_hz: float = 1e-3
+    z_mix_sigma_m: float = 0.5
+    z_margin_m: float = 0.05
+    box_sigma_m: float = 0.02
+    exist_margin_m: float = 0.2
+    height_sigma_m: float = 0.3
+    stairs_weight: float = 0.1
+    sigma_model_m: float = 0.03
+    outlier_weight: float = 0.02
+    outlier_span_m: float = 30.0
+    gn_iterations: int = 3
+    init_grid_m: float = 1.0
+    init_starts: int = 2
+    init_sigma_v_m_s: float = 1.0
+    min_ranges_init: int = 3
+    confirm_epochs: int = 5
+    lost_after_s: float = 5.0
+    nis_limit: float = 9.0
+    nis_alpha: float = 0.2
+    diverge_epochs: int = 10
+
+
+@dataclass(frozen=True)
+class TrackerState:
+    """Filter bank of every node (arrays over N nodes and F floor hypotheses).
+
+    Attributes
+    ----------
+    mean : ndarray, shape (N, F, 6) [m, m/s]
+    cov : ndarray, shape (N, F, 6, 6)
+    log_prob : ndarray, shape (N, F)
+        Normalised log-probability of every floor hypothesis.
+    status : ndarray of int8, shape (N,)
+        :class:`TrackStatus`.
+    t_ns : ndarray of int64, shape (N,) [ns]
+        Time the state refers to.
+    last_fix_ns : ndarray of int64, shape (N,) [ns]
+        Last epoch with usable ranges.
+    nis : ndarray, shape (N,)
+        Averaged NIS per used range.
+    good, bad : ndarray of int, shape (N,)
+        Consecutive consistent / inconsistent epochs.
+    """
+
+    mean: FloatArray
+    cov: FloatArray
+    log_prob: FloatArray
+    status: NDArray[np.int8]
+    t_ns: NDArray[np.int64]
+    last_fix_ns: NDArray[np.int64]
+    nis: FloatArray
+    good: NDArray[np.int_]
+    bad: NDArray[np.int_]
+
+
+@dataclass(frozen=True)
+class TrackOutput:
+    """Published estimate of every node.
+
+    Attributes
+    ----------
+    position_m : ndarray, shape (N, 3) [m]
+        NaN where no position is published (UNINITIALISED, LOST).
+    covariance_m2 : ndarray, shape (N, 3, 3) [m^2]
+    floor_index : ndarray of int, shape (N,)
+        Most probable floor (-1 without a position).
+    floor_probabilities : ndarray, shape (N, F)
+    status : ndarray of int8, shape (N,)
+    mechanism : ndarray of int, shape (N, M)
+        Slot of :data:`diffpos.paths.MECHANISMS` used per anchor on the chosen floor (-1:
+        missing or treated as an outlier).
+    residual_m : ndarray, shape (N, M) [m]
+        Range minus the chosen mechanism's length at the estimate (NaN where -1).
+    nis : ndarray, shape (N,)
+        Averaged normalised innovation per used range.
+    """
+
+    position_m: FloatArray
+    covariance_m2: FloatArray
+    floor_index: NDArray[np.int_]
+    floor_probabilities: FloatArray
+    status: NDArray[np.int8]
+    mechanism: NDArray[np.int_]
+    residual_m: FloatArray
+    nis: FloatArray
+
+
+# --------------------------------------------------------------------------------------------
+# motion model and IMM mixing
+# --------------------------------------------------------------------------------------------
+
+
+def process_noise(dt_s: ArrayLike, config: TrackerConfig) -> FloatArray:
+    """White-acceleration process noise ``Q(dt)``, shape ``(..., 6, 6)`` (state x,y,z,vx,vy,vz)."""
+    dt = np.asarray(dt_s, dtype=np.float64)[..., None]
+    q = np.array([config.q_h_m2_s3, config.q_h_m2_s3, config.q_v_m2_s3])
+    out = np.zeros((*dt.shape[:-1], 6, 6))
+    i = np.arange(3)
+    out[..., i, i] = q * dt**3 / 3.0
+    out[..., i, i + 3] = q * dt**2 / 2.0
+    out[..., i + 3, i] = q * dt**2 / 2.0
+    out[..., i + 3, i + 3] = q * dt
+    return out
+
+
+def _transition_matrix(n_floors: int, dt_s: FloatArray, building, config: TrackerConfig
+                       ) -> FloatArray:
+    """Floor transition probabilities ``pi[n, f, g]`` over ``dt_s`` (shape (N,))."""
+    f = np.arange(n_floors)
+    adj = (np.abs(f[:, None] - f[None, :]) == 1).astype(np.float64)
+    other = (f[:, None] != f[None, :]).astype(np.float64)
+    dt = np.maximum(dt_s, 0.0)[:, None, None]
+    p_adj = np.minimum(dt * config.v_stairs_m_s / building.floor_height_m, 0.45)
+    p_jump = np.minimum(dt * config.jump_rate_hz, 0.05) / max(n_floors - 1, 1)
+    pi = adj * p_adj + other * p_jump
+    pi = pi + np.eye(n_floors) * (1.0 - pi.sum(axis=-1, keepdims=True))
+    return pi
+
+
+def _floor_band(building, n_floors: int, config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
+    zf = building.floor_z_m(np.arange(n_floors))
+    return zf + config.z_margin_m, zf + building.floor_height_m - config.z_margin_m
+
+
+def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
+         ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """IMM interaction: mixed means/covariances and predicted floor log-probabilities."""
+    nf = state.log_prob.shape[1]
+    pi = _transition_matrix(nf, dt_s, building, config)  # (N, F, G)
+    lw = state.log_prob
+    mx = lw.max(axis=1, keepdims=True)
+    w = np.exp(lw - mx)  # (N, F)
+    joint = w[:, :, None] * pi  # (N, F, G)
+    c = joint.sum(axis=1)  # (N, G)
+    mu = joint / np.maximum(c[:, None, :], 1e-300)  # mu[f | g]
+    lo, hi = _floor_band(building, nf, config)
+    # state of floor f moved into floor g: (N, F, G, 6)
+    xs = np.broadcast_to(state.mean[:, :, None, :], (*joint.shape, 6)).copy()
+    xs[..., 2] = np.clip(xs[..., 2], lo[None, None, :], hi[None, None, :])
+    moved = xs[..., 2] != state.mean[:, :, None, 2]
+    ps = np.broadcast_to(state.cov[:, :, None], (*joint.shape, 6, 6)).copy()
+    ps[..., 2, 2] += np.where(moved, config.z_mix_sigma_m**2, 0.0)
+    ps[..., 5, 5] += np.where(moved, (config.v_stairs_m_s / 2) ** 2, 0.0)
+    x0 = np.einsum("nfg,nfgi->ngi", mu, xs)
+    d = xs - x0[:, None]
+    p0 = np.einsum("nfg,nfgij->ngij", mu, ps + d[..., :, None] * d[..., None, :])
+    log_pred = np.log(np.maximum(c, 1e-300)) + mx
+    log_pred = log_pred - _logsumexp(log_pred)[:, None]
+    return x0, p0, log_pred
+
+
+def _logsumexp(a: FloatArray) -> FloatArray:
+    m = a.max(axis=-1)
+    return m + np.log(np.exp(a - m[..., None]).sum(axis=-1))
+
+
+def _propagate(x: FloatArray, p: FloatArray, dt_s: FloatArray, config: TrackerConfig
+               ) -> tuple[FloatArray, FloatArray]:
+    """NCV prediction of every floor's Gaussian over ``dt_s`` (shape (N,))."""
+    dt = dt_s[:, None]
+    xn = x.copy()
+    xn[..., :3] = x[..., :3] + dt[..., None] * x[..., 3:]
+    phi = np.broadcast_to(np.eye(6), (dt_s.shape[0], 6, 6)).copy()
+    i = np.arange(3)
+    phi[:, i, i + 3] = dt_s[:, None]
+    q = process_noise(dt_s, config)[:, None]
+    pn = phi[:, None] @ p @ np.swapaxes(phi, -1, -2)[:, None] + q
+    return xn, 0.5 * (pn + np.swapaxes(pn, -1, -2))
+
+
+def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
+    """Empty tracker for ``n_nodes`` nodes (all UNINITIALISED) at time ``t_ns``."""
+    nf = int(building.n_floors)
+    return TrackerState(
+        mean=np.zeros((n_nodes, nf, 6)), cov=np.broadcast_to(np.eye(6), (n_nodes, nf, 6, 6)).copy(),
+        log_prob=np.full((n_nodes, nf), -np.log(nf)),
+        status=np.zeros(n_nodes, np.int8), t_ns=np.full(n_nodes, t_ns, np.int64),
+        last_fix_ns=np.full(n_nodes, t_ns, np.int64), nis=np.ones(n_nodes),
+        good=np.zeros(n_nodes, int), bad=np.zeros(n_nodes, int))
+
+
+def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
+            ) -> TrackerState:
+    """IMM mixing and NCV prediction of every initialised node to ``t_ns`` (scalar or (N,)).
+
+    A node whose state is already at or after ``t_ns`` is left unchanged.
+    """
+    t = np.broadcast_to(np.asarray(t_ns, dtype=np.int64), state.t_ns.shape)
+    live = (state.status != TrackStatus.UNINITIALISED) & (t > state.t_ns)
+    if not np.any(live):
+        return replace(state, t_ns=np.where(state.status == 0, t, state.t_ns))
+    dt = np.where(live, (t - state.t_ns) * 1e-9, 0.0)
+    x0, p0, lp = _mix(state, dt, building, config)
+    xn, pn = _propagate(x0, p0, dt, config)
+    lv = live[:, None]
+    return replace(
+        state, mean=np.where(lv[..., None], xn, state.mean),
+        cov=np.where(lv[..., None, None], pn, state.cov),
+        log_prob=np.where(lv, lp, state.log_prob),
+        t_ns=np.where(live | (state.status == 0), t, state.t_ns))
+
+
+# --------------------------------------------------------------------------------------------
+# update and published estimate
+# --------------------------------------------------------------------------------------------
+
+
+def _normalise(lp: FloatArray) -> FloatArray:
+    lp = np.maximum(lp - lp.max(axis=1, keepdims=True), -700.0)
+    return lp - np.log(np.exp(lp).sum(axis=1, keepdims=True))
+
+
+def _publish(state: TrackerState, mech: NDArray, resid: FloatArray) -> TrackOutput:
+    n = state.mean.shape[0]
+    rows = np.arange(n)
+    best = np.argmax(state.log_prob, axis=1)
+    prob = np.exp(state.log_prob)
+    pos = state.mean[rows, best, :3]
+    d = state.mean[..., :3] - pos[:, None]
+    cov = state.cov[rows, best, :3, :3] + np.einsum("nf,nfi,nfj->nij", prob, d, d)
+    has = (state.status != TrackStatus.UNINITIALISED) & (state.status != TrackStatus.LOST)
+    return TrackOutput(
+        position_m=np.where(has[:, None], pos, np.nan),
+        covariance_m2=np.where(has[:, None, None], cov, np.nan),
+        floor_index=np.where(has, best, -1), floor_probabilities=prob,
+        status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
+        residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
+
+
+def _track_update(state: TrackerState, links: Links, idx: NDArray, building,
+                  config: TrackerConfig):
+    """Measurement update of the nodes ``idx``: new arrays and their mechanism/residual."""
+    nf = state.mean.shape[1]
+    sub = Links(links.rho[idx], links.var[idx], links.mask[idx], links.anchors[idx])
+    x, p, ev, sel, res = measurement_update(state.mean[idx], state.cov[idx], sub,
+                                            np.arange(nf), building, config)
+    lp = _normalise(state.log_prob[idx] + np.where(np.isfinite(ev), ev, -1e300))
+    best = np.argmax(lp, axis=1)
+    r = np.arange(idx.size)
+    nis_b = sel.nis[r, best]
+    n_in = np.sum(np.isfinite(nis_b), axis=1)
+    n_meas = np.sum(sub.mask[:, 0], axis=1)
+    nis_epoch = np.where(n_in > 0, np.nansum(nis_b, axis=1) / np.maximum(n_in, 1), np.inf)
+    nis = (1 - config.nis_alpha) * state.nis[idx] + config.nis_alpha * np.minimum(nis_epoch, 1e3)
+    bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
+    return x, p, lp, nis, bad_epoch, sel.slot[r, best], res[r, best]
+
+
+def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
+           mask: ArrayLike, t_ns: ArrayLike, building, config: TrackerConfig
+           ) -> tuple[TrackerState, TrackOutput]:
+    """Predict every node to ``t_ns`` and update it with one epoch of ranges.
+
+    Parameters
+    ----------
+    state : TrackerState
+    anchors_m : array_like, shape (N, M, 3) [m]
+        Anchor positions of every node's ranges (padding rows are ignored via ``mask``).
+    ranges_m, sigmas_m : array_like, shape (N, M) [m]
+        Measured first-arrival ranges and their standard deviations.
+    mask : array_like of bool, shape (N, M)
+        Which ranges are present (non-finite values are dropped too).
+    t_ns : int or array_like of int, shape (N,) [ns]
+    building : diffpos.scenario.Building
+    config : TrackerConfig
+
+    Returns
+    -------
+    (TrackerState, TrackOutput)
+    """
+    links = Links.from_arrays(np.asarray(anchors_m, float), np.asarray(ranges_m, float),
+                              np.asarray(sigmas_m, float), mask, config.sigma_model_m)
+    n, m = links.rho.shape[0], links.rho.shape[2]
+    t = np.broadcast_to(np.asarray(t_ns, dtype=np.int64), (n,))
+    st = predict(state, t, building, config)
+    mean, cov, lp = st.mean.copy(), st.cov.copy(), st.log_prob.copy()
+    status, nis, good, bad = st.status.copy(), st.nis.copy(), st.good.copy(), st.bad.copy()
+    last = st.last_fix_ns.copy()
+    mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
+    n_meas = links.mask[:, 0].sum(axis=1)
+    live = np.isin(status, (TrackStatus.INITIALISING, TrackStatus.TRACKING, TrackStatus.COASTING))
+    idx = np.flatnonzero(live & (n_meas > 0))
+    if idx.size:
+        x, p, lpi, nisi, bad_epoch, mech[idx], resid[idx] = _track_update(st, links, idx, building,
+                                                                          config)
+        mean[idx], cov[idx], lp[idx], nis[idx] = x, p, lpi, nisi
+        bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
+        good[idx] = np.where(bad_epoch, 0, good[idx] + 1)
+        last[idx] = t[idx]
+        status[idx] = np.where(status[idx] == TrackStatus.COASTING, TrackStatus.TRACKING,
+                               status[idx])
+    coast = live & (n_meas == 0)
+    status[coast] = TrackStatus.COASTING
+    status[coast & ((t - last) * 1e-9 > config.lost_after_s)] = TrackStatus.LOST
+    need = ((status == TrackStatus.UNINITIALISED) | (status == TrackStatus.LOST)
+            | (bad >= config.diverge_epochs)) & (n_meas >= config.min_ranges_init)
+    jdx = np.flatnonzero(need)
+    if jdx.size:
+        sub = Links(links.rho[jdx], links.var[jdx], links.mask[jdx], links.anchors[jdx])
+        x, p, lpi, sel, res = snapshot_init(sub, building, config)
+        mean[jdx], cov[jdx], lp[jdx] = x, p, lpi
+        best = np.argmax(lpi, axis=1)
+        r = np.arange(jdx.size)
+        mech[jdx], resid[jdx] = sel.slot[r, best], res[r, best]
+        status[jdx] = TrackStatus.INITIALISING
+        nis[jdx], good[jdx], bad[jdx], last[jdx] = 1.0, 0, 0, t[jdx]
+    status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
+        TrackStatus.TRACKING)
+    new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
+                       t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad)
+    return new, _publish(new, mech, resid)
