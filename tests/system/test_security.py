@@ -18,12 +18,13 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import get_args
 
 import pytest
 from diffpos_services.bus import security as zs
 from diffpos_services.bus.session import wait_matching
 from diffpos_services.emulate import free_tcp_port
-from diffpos_services.wire.keys import Keys, parse_key
+from diffpos_services.wire.keys import KeyKind, Keys, parse_key
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -342,20 +343,31 @@ def test_acl_publish_matrix_matches_key_table(tmp_path):
         k = Keys(site)
         keys = [k.anchor_state("uav1"), k.anchor_state("uav2"), k.anchor_range("uav1", "n1"),
                 k.anchor_range("uav2", "n7"), k.node_estimate("n1"), k.fusion_diagnostics(),
-                k.truth_node("n1"), k.truth_anchor("uav1"), k.run_control()]
+                k.anchor_range_batch("uav1"), k.anchor_range_batch("uav2"),
+                k.truth_node("n1"), k.truth_anchor("uav1"), k.run_control(), k.run_clock()]
+        alive = [(k.alive_anchor("uav1"), "anchor-uav1"), (k.alive_anchor("uav2"), "anchor-uav2"),
+                 (k.alive_fusion(), "fusion"), (k.alive_recorder(), "recorder")]
+        # every kind of key of keys.py's table is covered (a new key needs its ACL rule)
+        assert {parse_key(x).kind for x in [*keys, *(t for t, _ in alive)]} == set(get_args(KeyKind))
         for key in keys:
             pk = parse_key(key)
             expected = {
                 "anchor_state": {zs.anchor_user(pk.anchor_id or "")},
                 "range": {zs.anchor_user(pk.anchor_id or "")},
+                "range_batch": {zs.anchor_user(pk.anchor_id or "")},
                 "estimate": {"fusion"}, "diagnostics": {"fusion"},
                 "truth_node": {"emulator"}, "truth_anchor": {"emulator"}, "run_control": {"emulator"},
+                "run_clock": {"emulator"},
             }[pk.kind]
             got = {u for u in users if _acl_allows(acl, u, "put", "ingress", key)}
             assert got == expected, key
-        for key, owner in [(k.alive_anchor("uav1"), "anchor-uav1"), (k.alive_anchor("uav2"), "anchor-uav2"),
-                           (k.alive_fusion(), "fusion")]:
+        for key, owner in alive:
             assert {u for u in users if _acl_allows(acl, u, "liveliness_token", "ingress", key)} == {owner}
+        # anchors receive the run's start gate and lockstep clock
+        for a in ("uav1", "uav2"):
+            for key in (k.run_control(), k.run_clock()):
+                assert _acl_allows(acl, zs.anchor_user(a), "declare_subscriber", "ingress", key)
+                assert _acl_allows(acl, zs.anchor_user(a), "put", "egress", key)
         # fusion reads anchors, never truth; readers read everything
         assert _acl_allows(acl, "fusion", "put", "egress", k.anchor_range("uav2", "n1"))
         assert not _acl_allows(acl, "fusion", "put", "egress", k.truth_node("n1"))

@@ -13,15 +13,20 @@ rule                        what                                         subject
 ========================== ============================================ =====================
 ``learn-subscribers``       declare_subscriber egress on ``diffpos/**``  everybody
 ``anchor-<id>``             put ingress ``S/anchor/<id>/state``,         that anchor only
-                            ``S/anchor/<id>/range/*``; liveliness token
-                            ``L/anchor/<id>`` (declare, and query it:
-                            the container health check)
-``run-control-read``        subscribe ``S/run/control``                  anchors
+                            ``S/anchor/<id>/range/*``,
+                            ``S/anchor/<id>/ranges`` (range batches);
+                            liveliness token ``L/anchor/<id>`` (declare,
+                            and query it: the container health check)
+``run-control-read``        subscribe ``S/run/control`` (start gate),    anchors
+                            ``S/run/clock`` (lockstep clock)
 ``fusion-publish``          put ingress estimates, diagnostics;          fusion
                             liveliness token ``L/fusion``
 ``fusion-read``             subscribe ``S/anchor/**`` (states, ranges,   fusion
                             range batches; never truth)
-``emulator-publish``        put ingress ``S/truth/**``, ``S/run/control`` emulator
+``emulator-publish``        put ingress ``S/truth/**``,                  emulator
+                            ``S/run/control``, ``S/run/clock``
+``recorder-alive``          liveliness token ``L/recorder`` (declared    recorder
+                            once it records: emulate waits for it)
 ``read-all``                subscribe ``S/**``                           recorder, dashboard,
                                                                          emulator
 ``watch-alive``             liveliness subscriber/query on               fusion, recorder,
@@ -83,13 +88,15 @@ class _SiteKeys(Keys):
 RULES: tuple[Rule, ...] = (
     # every key of every site (diffpos/**): subscriptions are matched by inclusion
     Rule("learn-subscribers", _SUBSCRIBE, "egress", lambda k: (_SiteKeys("**").root,)),
-    Rule("run-control-read", _SUBSCRIBE, "ingress", lambda k: (k.run_control(),)),
-    Rule("run-control-deliver", _DELIVER, "egress", lambda k: (k.run_control(),)),
+    Rule("run-control-read", _SUBSCRIBE, "ingress", lambda k: (k.run_control(), k.run_clock())),
+    Rule("run-control-deliver", _DELIVER, "egress", lambda k: (k.run_control(), k.run_clock())),
     Rule("fusion-publish", _PUT, "ingress", lambda k: (k.estimates(), k.fusion_diagnostics())),
     Rule("fusion-alive", _TOKEN, "ingress", lambda k: (k.alive_fusion(),)),
     Rule("fusion-read-subscribe", _SUBSCRIBE, "ingress", lambda k: k.fusion_inputs()),
     Rule("fusion-read-deliver", _DELIVER, "egress", lambda k: k.fusion_inputs()),
-    Rule("emulator-publish", _PUT, "ingress", lambda k: (k.truth_all(), k.run_control())),
+    Rule("emulator-publish", _PUT, "ingress",
+         lambda k: (k.truth_all(), k.run_control(), k.run_clock())),
+    Rule("recorder-alive", _TOKEN, "ingress", lambda k: (k.alive_recorder(),)),
     Rule("read-all-subscribe", _SUBSCRIBE, "ingress", lambda k: (k.everything(),)),
     Rule("read-all-deliver", _DELIVER, "egress", lambda k: (k.everything(),)),
     Rule("watch-alive-ask", _WATCH, "ingress", lambda k: (k.alive_all(),)),
@@ -98,7 +105,8 @@ RULES: tuple[Rule, ...] = (
 
 #: The rules of anchor ``a`` (rule ids ``anchor-<a>-<id>``): its own keys only.
 ANCHOR_RULES: tuple[Rule, ...] = (
-    Rule("publish", _PUT, "ingress", lambda k, a: (k.anchor_state(a), k.anchor_range(a, "*"))),
+    Rule("publish", _PUT, "ingress",
+         lambda k, a: (k.anchor_state(a), k.anchor_range(a, "*"), k.anchor_range_batch(a))),
     Rule("alive", _TOKEN, "ingress", lambda k, a: (k.alive_anchor(a),)),
     # the container health check: a liveliness query for its own token only
     Rule("health-ask", ("liveliness_query",), "ingress", lambda k, a: (k.alive_anchor(a),)),
@@ -114,7 +122,7 @@ ROLE_RULES: dict[str, tuple[str, ...]] = {
     "anchors": ("run-control-read", "run-control-deliver"),
     "fusion": ("fusion-publish", "fusion-alive", "fusion-read-subscribe", "fusion-read-deliver",
                *_WATCH_ALIVE),
-    "recorder": (*_READ_ALL, *_WATCH_ALIVE),
+    "recorder": ("recorder-alive", *_READ_ALL, *_WATCH_ALIVE),
     "dashboard": (*_READ_ALL, *_WATCH_ALIVE),
     "emulator": ("emulator-publish", *_READ_ALL, *_WATCH_ALIVE),
 }
