@@ -33,8 +33,8 @@ from diffpos.scenario import Scenario, ScenarioError
 from diffpos_services.bus.security import (
     SecurityError,
     anchor_user,
-    check_profile,
     load_profile,
+    per_run_profile,
     render_profile,
 )
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
@@ -132,9 +132,7 @@ class Emulation:
             profile = load_profile(path)
         except (SecurityError, OSError) as exc:
             raise ConfigError(f"--security-profile {path}: {exc}") from None
-        problems = check_profile(profile)
-        if problems:
-            raise ConfigError(f"--security-profile {path}: {problems[0]}")
+        # only its identities are used: the run gets fresh secrets (_render_security)
         ids = profile.identities()
         missing = [a for a in self.anchor_ids if anchor_user(a) not in ids]
         if missing:
@@ -150,13 +148,20 @@ class Emulation:
         return profile
 
     def _render_security(self, out_dir: str) -> None:
-        """Render the profile for this run's endpoint; remember each identity's file."""
+        """Fresh passwords and certificates for this run in the private folder ``out_dir``
+        (never the profile's committed dev secrets), the profile rendered from them for this
+        run's endpoint; remember each identity's file."""
+        host = self.endpoint[len("tls/"):].rpartition(":")[0].strip("[]")
         try:
-            written = render_profile(self.profile, out_dir, connect=[self.endpoint],
-                                     listen=[self.listen])
+            run_profile = per_run_profile(self.profile, out_dir,
+                                          hosts=[host, "localhost", "127.0.0.1"])
+            written = render_profile(run_profile, Path(out_dir) / "zenoh",
+                                     connect=[self.endpoint], listen=[self.listen])
         except SecurityError as exc:
             raise ConfigError(f"--security-profile {self.o.security_profile}: {exc}") from None
         self.zenoh_files = {p.stem: str(p) for p in written}
+        log_event(self.log, logging.INFO, "secured bus: fresh passwords and certificates for "
+                  "this run (removed at the end)", dir=out_dir)
 
     def _zargs(self, role: str, anchor_id: str | None = None) -> list[str] | None:
         """``--connect`` (plain) or ``--zenoh-config <file>`` of ``role``; ``None`` if the

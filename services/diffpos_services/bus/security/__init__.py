@@ -19,7 +19,8 @@ Modules by role: :mod:`.profile` (the profile and its validation, :class:`Securi
 :mod:`.credentials` (the password dictionary), :mod:`.acl` (the access rules as a table per
 role), :mod:`.configs` (router/client configurations, the configuration a service opens and
 its plain-transport warning), :mod:`.render` (json5 files from a profile),
-:mod:`.certs` (DEV ONLY certificates).
+:mod:`.certs` (DEV ONLY certificates), :mod:`.per_run` (fresh secrets for one ``diffpos emulate``
+run: the committed dev ones are public).
 
 Zenoh facts this relies on (measured with eclipse-zenoh 1.10.2, see ``security/README.md``):
 
@@ -51,6 +52,7 @@ from diffpos_services.bus.security.configs import (
     to_zenoh,
 )
 from diffpos_services.bus.security.credentials import read_credentials, write_credentials
+from diffpos_services.bus.security.per_run import per_run_profile
 from diffpos_services.bus.security.profile import (
     ROLES,
     SecurityError,
@@ -73,6 +75,7 @@ __all__ = [
     "insecure_transport_warning",
     "load_profile",
     "make_dev_certs",
+    "per_run_profile",
     "profile_from_dict",
     "read_credentials",
     "render_profile",
