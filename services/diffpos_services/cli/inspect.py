@@ -4,7 +4,9 @@ Like `mcap info`, in diffpos terms: which anchors and nodes the recording holds,
 messages of each kind, the time span, gaps in the publishers' sequence numbers, the liveliness
 events (anchors joining and leaving), the run metadata and attachments. Works on truncated
 recordings too (it says so and suggests `diffpos recover`). With --validate every message is
-checked against its channel's JSON Schema (needs the jsonschema package).
+checked against diffpos' own JSON Schema (schemas/) named by its "schema" tag, not against
+the schema embedded in the file, and channels whose embedded schema differs from ours are
+listed (needs the jsonschema package).
 
 examples:
   diffpos inspect recordings/sample.mcap
@@ -29,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.mcap", help="recording to inspect")
     parser.add_argument("--channels", action="store_true", help="list every channel")
     parser.add_argument("--validate", action="store_true",
-                        help="validate every message against its JSON Schema")
+                        help="validate every message against diffpos' own JSON Schemas (schemas/)")
     parser.add_argument("--json", action="store_true", help="print everything as JSON")
 
 
@@ -112,7 +114,11 @@ def run(args: argparse.Namespace) -> int:
     if validation is not None:
         print(f"validation: {validation['checked']} checked, {validation['invalid']} invalid, "
               f"{validation['no_schema']} without schema, {validation['not_json']} not JSON")
+        print("            against diffpos' own schemas (schemas/), by each message's schema tag")
         for ex in validation["examples"]:
             print(f"  {ex}")
+        for mm in validation["schema_mismatch"]:
+            print(f"  embedded schema differs from ours: {mm['embedded']} vs {mm['ours']} on "
+                  f"{mm['channels']} channels (e.g. {mm['example']})")
     bad = (not s.damage.ok) or (validation is not None and validation["invalid"] > 0)
     return 1 if bad else 0

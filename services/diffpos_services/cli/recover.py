@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 
 from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.outputs import check_output
 from diffpos_services.recording.repair import recover
 
 
@@ -35,6 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     src = Path(args.file)
     out = Path(args.out) if args.out else src.with_name(src.stem + ".recovered.mcap")
+    check_output(out, option="--out", inputs=[src])  # ConfigError, exit 2, before any work
     try:
         rep = recover(src, out, compression=args.compression)
     except RecordingError as exc:

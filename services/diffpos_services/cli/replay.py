@@ -38,6 +38,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from diffpos_services.kit import ConfigError, load_json_option
 from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.replay import replay
 from diffpos_services.reports.replay import plot_cdf
 
@@ -113,6 +114,8 @@ def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
                                      "replayed up to its last complete chunk)"))
     changed = ", ".join(f"{k}={v}" for k, v in rep["overrides"].items()) or "none"
     p(f"  settings from {rep['settings_source']}; method {rep['method']}; changed: {changed}")
+    if rep.get("settings_warning"):
+        p(f"  WARNING: {rep['settings_warning']}")
     msgs = rep["messages"]
     kinds = ", ".join(f"{k} {n}" for k, n in msgs["by_kind"].items())
     p(f"  {msgs['total']} messages ({kinds}); gaps {msgs['gaps']}; "
@@ -180,8 +183,40 @@ def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
                   f"({ex['live_status']} / {ex['replayed_status']})")
 
 
+def check_outputs(args: argparse.Namespace) -> Path | None:
+    """Every output option, checked before any work (ConfigError, exit 2): none may be the
+    input, a directory where a file goes (or a file where the --out directory goes), or
+    unwritable. Returns the report directory (``None`` with --no-files)."""
+    src = Path(args.file)
+    if args.write_mcap:
+        check_output(args.write_mcap, option="--write-mcap", inputs=[src])
+    if args.rrd:
+        check_output(args.rrd, option="--rrd", inputs=[src])
+    if args.no_files:
+        return None
+    out_dir = Path(args.out) if args.out else Path("out") / "replay" / src.stem
+    check_output(out_dir, option="--out", directory=True)
+    for name in ("report.json", "cdf.png"):
+        check_output(out_dir / name, option="--out", inputs=[src])
+    outs = [Path(p) for p in (args.write_mcap, args.rrd) if p]
+    for a, b in ((a, b) for i, a in enumerate(outs) for b in outs[i + 1:]):
+        if a.resolve() == b.resolve():
+            raise ConfigError(f"--write-mcap and --rrd both name {a}: give two files")
+    return out_dir
+
+
+def _write_report_files(result: Any, out_dir: Path) -> list[str]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_dir / "report.json") as tmp:
+        tmp.write_text(json.dumps(result.report, indent=2) + "\n", encoding="utf-8")
+    with atomic_path(out_dir / "cdf.png") as tmp:
+        plot_cdf(result, tmp)
+    return [str(out_dir / "report.json"), str(out_dir / "cdf.png")]
+
+
 def run(args: argparse.Namespace) -> int:
     src = Path(args.file)
+    out_dir = check_outputs(args)
     try:
         overrides = _overrides(args)
         progress = None
@@ -210,20 +245,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"diffpos replay: {exc.filename or src}: {exc.strerror}", file=sys.stderr)
         return 2
     rep = result.report
+    if rep.get("settings_warning"):
+        print(f"diffpos replay: WARNING: {rep['settings_warning']}", file=sys.stderr)
     if args.rrd:
         # rerun is a heavy import that `diffpos replay --help` and plain replays must not pay
         from diffpos_services.dashboard.views import mcap_to_rrd
 
-        mcap_to_rrd(src, args.rrd, estimates=result.estimates,
-                    recording_id=f"{src.stem}-replay")
-    if not args.no_files:
-        out_dir = Path(args.out) if args.out else Path("out") / "replay" / src.stem
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "report.json").write_text(json.dumps(rep, indent=2) + "\n", encoding="utf-8")
-        plot_cdf(result, out_dir / "cdf.png")
-        rep_files = [str(out_dir / "report.json"), str(out_dir / "cdf.png")]
-    else:
-        rep_files = []
+        with atomic_path(args.rrd) as tmp:
+            mcap_to_rrd(src, tmp, estimates=result.estimates,
+                        recording_id=f"{src.stem}-replay")
+    rep_files = [] if out_dir is None else _write_report_files(result, out_dir)
     if args.json:
         print(json.dumps(rep, indent=2))
     else:

@@ -32,6 +32,7 @@ from pathlib import Path
 from diffpos_services.dashboard.scenario import building_for_option
 from diffpos_services.kit import ConfigError
 from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.outputs import atomic_path, check_output
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     if args.path_period <= 0:
         print("error: --path-period must be > 0", file=sys.stderr)
         return 2
+    check_output(out, option="--out", inputs=[src])  # ConfigError, exit 2, before any work
     # deferred: the converter imports rerun and the MCAP reader (~1 s), which `--help` and the
     # argument checks above must not pay for
     from diffpos_services.dashboard.convert import mcap_to_rrd
@@ -103,18 +105,19 @@ def run(args: argparse.Namespace) -> int:
         return 2
     t0 = time.perf_counter()
     try:
-        counts = mcap_to_rrd(
-            src,
-            out,
-            building=building,
-            use_replayed=args.replayed,
-            recording_id=args.recording_id,
-            path_period_s=args.path_period,
-            window_s=(args.start, args.end),
-        )
+        with atomic_path(out) as tmp:  # renamed to OUT.rrd only once complete
+            counts = mcap_to_rrd(
+                src,
+                tmp,
+                building=building,
+                use_replayed=args.replayed,
+                recording_id=args.recording_id or src.stem,
+                path_period_s=args.path_period,
+                window_s=(args.start, args.end),
+            )
     except RecordingError as exc:
         print(f"error: {src}: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     counts["seconds"] = round(time.perf_counter() - t0, 3)
     counts["out"] = str(out)
     if args.json:

@@ -23,6 +23,7 @@ from diffpos_services.dashboard.stream import _KIND_BY_CLASS, write_rrd_from_mes
 
 # the MCAP reader of the recording package: the one cross-service import of the dashboard
 # (converting a recording needs its damage-tolerant scanner)
+from diffpos_services.recording.errors import ForeignRecordingError
 from diffpos_services.recording.reader import McapScanner
 from diffpos_services.wire.keys import parse_recording_topic
 
@@ -174,6 +175,13 @@ def mcap_to_rrd(
             if kind is None:
                 kind = kind_of[raw.topic] = _topic_kind(raw.topic)
             payloads.setdefault(kind, []).append(raw.data)
+    ours = [c.topic for c in sc.channels.values() if _topic_kind(c.topic) != "unknown"]
+    if not ours:
+        found = ", ".join(sorted({c.topic for c in sc.channels.values()})[:5]) or "no channels"
+        raise ForeignRecordingError(
+            f"no diffpos channels (diffpos/<site>/...) in it ({found}): not a diffpos "
+            "recording, nothing to draw; no .rrd written"
+        )
     for kind, datas in payloads.items():
         if kind not in VIEW_DECODERS:  # liveliness events (plain JSON objects)
             for data in datas:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from diffpos_services.kit import DiffposError
 
-__all__ = ["RecordingError"]
+__all__ = ["ForeignRecordingError", "RecordingError"]
 
 
 class RecordingError(DiffposError):
@@ -14,3 +14,12 @@ class RecordingError(DiffposError):
     """
 
     exit_code = 2
+
+
+class ForeignRecordingError(RecordingError):
+    """A valid MCAP file that holds no diffpos channel (nothing of ours to convert or replay).
+
+    Exit code 1: the file is readable, it is just not a diffpos recording.
+    """
+
+    exit_code = 1

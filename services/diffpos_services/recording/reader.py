@@ -35,6 +35,8 @@ __all__ = [
     "JsonDecoderFactory",
     "McapScanner",
     "RawMessage",
+    "SideRecords",
+    "side_records",
 ]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -393,3 +395,133 @@ def _attachment(body: bytes) -> Attachment:
 
 def _statistics(body: bytes) -> Statistics:
     return Statistics.read(ReadDataStream(io.BytesIO(body)))
+
+
+# -- metadata and attachments anywhere in the file ---------------------------------------
+
+_OP_ATTACHMENT_INDEX = 0x0A
+_OP_METADATA_INDEX = 0x0D
+_FOOTER = struct.Struct("<BQQQI")  # opcode, length (20), summary_start, summary_offset_start, crc
+
+
+@dataclass
+class SideRecords:
+    """The metadata and attachment records of a file, wherever they are.
+
+    Attributes
+    ----------
+    metadata : list of mcap.records.Metadata
+    attachments : list of mcap.records.Attachment
+    source : str
+        ``"summary index"`` (read through the summary section's metadata / attachment
+        indexes) or ``"scan"`` (every top-level record visited, chunks skipped unread).
+    """
+
+    metadata: list[Metadata] = field(default_factory=list)
+    attachments: list[Attachment] = field(default_factory=list)
+    source: str = "scan"
+
+
+def side_records(path: str | os.PathLike[str]) -> SideRecords:
+    """Every metadata and attachment record of an MCAP file, before reading any message.
+
+    Writers put metadata anywhere in the data section: our recorder before the first chunk,
+    the standard ``mcap`` writer and ``diffpos replay --write-mcap`` wherever it was added
+    (often after the chunks). A complete file is read through its summary section's
+    metadata and attachment indexes (a few seeks); a file without them, or a truncated one,
+    is scanned record by record, seeking over chunks without decompressing them.
+
+    Raises
+    ------
+    RecordingError
+        Missing or not MCAP (see :class:`McapScanner`).
+    """
+    McapScanner(path)  # existence and magic checks with their messages
+    with open(path, "rb") as f:
+        out = _side_records_from_summary(f)
+        if out is None:
+            out = _side_records_by_scan(f)
+    return out
+
+
+def _read_record(f, offset: int) -> tuple[int, bytes]:
+    f.seek(offset)
+    head = f.read(9)
+    if len(head) < 9:
+        raise ValueError("record header past the end of the file")
+    op, ln = _REC_HEAD.unpack(head)
+    body = f.read(ln)
+    if len(body) < ln:
+        raise ValueError("record past the end of the file")
+    return op, body
+
+
+def _side_records_from_summary(f) -> SideRecords | None:
+    size = f.seek(0, os.SEEK_END)
+    if size < 8 + _FOOTER.size + 8:
+        return None
+    f.seek(size - 8 - _FOOTER.size)
+    tail = f.read(_FOOTER.size + 8)
+    if tail[-8:] != MCAP_MAGIC:
+        return None
+    op, ln, summary_start, _offsets, _crc = _FOOTER.unpack(tail[:-8])
+    if op != _OP_FOOTER or ln != 20 or not 8 <= summary_start < size:
+        return None
+    f.seek(summary_start)
+    summary = f.read(size - 8 - _FOOTER.size - summary_start)
+    meta_at: list[tuple[int, int]] = []
+    att_at: list[tuple[int, int]] = []
+    stats = None
+    try:
+        p = 0
+        while p + 9 <= len(summary):
+            op, ln = _REC_HEAD.unpack_from(summary, p)
+            body = summary[p + 9 : p + 9 + ln]
+            p += 9 + ln
+            if op == _OP_METADATA_INDEX:
+                meta_at.append(struct.unpack_from("<QQ", body, 0))
+            elif op == _OP_ATTACHMENT_INDEX:
+                att_at.append(struct.unpack_from("<QQ", body, 0))
+            elif op == _OP_STATISTICS:
+                stats = _statistics(body)
+        if stats is None or (stats.metadata_count, stats.attachment_count) != (
+            len(meta_at), len(att_at)
+        ):
+            return None  # indexes missing or incomplete: scan instead
+        out = SideRecords(source="summary index")
+        for offset, _length in meta_at:
+            op, body = _read_record(f, offset)
+            if op != _OP_METADATA:
+                return None
+            name, q = _str(body, 0)
+            out.metadata.append(Metadata(name=name, metadata=_map(body, q)[0]))
+        for offset, _length in att_at:
+            op, body = _read_record(f, offset)
+            if op != _OP_ATTACHMENT:
+                return None
+            out.attachments.append(_attachment(body))
+    except (struct.error, UnicodeDecodeError, ValueError):
+        return None
+    return out
+
+
+def _side_records_by_scan(f) -> SideRecords:
+    out = SideRecords(source="scan")
+    size = f.seek(0, os.SEEK_END)
+    offset = 8
+    while offset + 9 <= size:
+        f.seek(offset)
+        op, ln = _REC_HEAD.unpack(f.read(9))
+        if ln > size - offset - 9 or op == _OP_FOOTER:
+            break
+        try:
+            if op == _OP_METADATA:
+                body = f.read(ln)
+                name, q = _str(body, 0)
+                out.metadata.append(Metadata(name=name, metadata=_map(body, q)[0]))
+            elif op == _OP_ATTACHMENT:
+                out.attachments.append(_attachment(f.read(ln)))
+        except (struct.error, UnicodeDecodeError, ValueError):
+            pass  # a damaged side record: the message scan reports damage
+        offset += 9 + ln
+    return out

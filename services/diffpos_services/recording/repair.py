@@ -11,7 +11,7 @@ from pathlib import Path
 
 from mcap.writer import Writer
 
-from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.reader import Damage, McapScanner, RawMessage
 from diffpos_services.recording.writer import COMPRESSION
 
@@ -66,18 +66,15 @@ def recover(
     Raises
     ------
     RecordingError
-        ``src`` missing / not MCAP, or ``src`` and ``dst`` are the same file.
+        ``src`` missing / not MCAP.
+    ConfigError
+        ``dst`` is ``src`` (same inode), a directory, or not writable.
     """
     src, dst = Path(src), Path(dst)
-    if dst.exists() and src.exists() and os.path.samefile(src, dst):
-        raise RecordingError(
-            "recover writes a new file: give an output path different from the input"
-        )
+    check_output(dst, option="--out", inputs=[src])
     scanner = McapScanner(src)
     comp = COMPRESSION[compression]
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(dst.name + ".partial")
-    with open(tmp, "wb") as f:
+    with atomic_path(dst) as tmp, open(tmp, "wb") as f:  # renamed to dst once complete
         copy = _Copy(scanner, Writer(f, compression=comp))
         for batch in scanner.iter_batches():
             copy.messages(batch)
@@ -85,7 +82,6 @@ def recover(
             if progress is not None:
                 progress(copy.n_msgs)
         copy.finish(src.name)
-    os.replace(tmp, dst)
     return RecoverReport(
         messages=copy.n_msgs,
         channels=len(copy.channel_map),

@@ -25,7 +25,6 @@ import itertools
 import json
 import logging
 import time
-import tomllib
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -35,7 +34,6 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from diffpos.scenario import Scenario, ScenarioError, default_scenario
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.kit import ConfigError, build_config
@@ -46,7 +44,9 @@ from diffpos_services.recording.evaluate import (
     evaluate,
     gating_counts,
 )
-from diffpos_services.recording.reader import McapScanner, RawMessage
+from diffpos_services.recording.outputs import atomic_path, check_output
+from diffpos_services.recording.reader import McapScanner, RawMessage, SideRecords, side_records
+from diffpos_services.recording.summary import attached_scenario, live_fusion_settings
 from diffpos_services.recording.synthetic import FUSION_INPUT_KINDS, quiet_logger
 from diffpos_services.recording.topics import SeqTracker, natural_key, parse_topic
 from diffpos_services.recording.writer import McapSink
@@ -71,61 +71,8 @@ _READ_AHEAD_BATCHES = 64
 # ----------------------------------------------------------------------------------------
 
 
-def live_fusion_settings(scanner: McapScanner) -> tuple[dict[str, Any], str]:
-    """The fusion settings the live run used, as far as the recording says.
-
-    Looks for a metadata record ``fusion_config`` (key -> JSON value), then a ``fusion``
-    entry in the ``run_config`` metadata / ``run_config.json`` attachment. Must be called
-    after the scanner has been iterated (metadata is read on the way).
-
-    Returns
-    -------
-    values : dict
-        FusionConfig fields (possibly empty).
-    source : str
-        Where they came from (``"defaults"`` when the recording has none).
-    """
-
-    def decode(v: str) -> Any:
-        try:
-            return json.loads(v)
-        except ValueError:
-            return v
-
-    for md in scanner.metadata:
-        if md.name == "fusion_config":
-            return {k: decode(v) for k, v in md.metadata.items()}, "metadata fusion_config"
-    for md in scanner.metadata:
-        if md.name == "run_config" and "fusion" in md.metadata:
-            val = decode(md.metadata["fusion"])
-            if isinstance(val, dict):
-                return val, "metadata run_config.fusion"
-    for att in scanner.attachments:
-        if att.name == "run_config.json":
-            try:
-                doc = json.loads(att.data)
-            except ValueError:
-                continue
-            if isinstance(doc, dict) and isinstance(doc.get("fusion"), dict):
-                return doc["fusion"], "attachment run_config.json"
-    return {}, "defaults"
-
-
-def attached_scenario(scanner: McapScanner) -> tuple[Scenario, str]:
-    """The scenario of the first valid TOML attachment, else the built-in paper scenario;
-    and where it came from."""
-    for att in scanner.attachments:
-        if att.name.endswith(".toml"):
-            try:
-                scenario = Scenario.from_dict(tomllib.loads(att.data.decode("utf-8")))
-            except (UnicodeDecodeError, tomllib.TOMLDecodeError, ScenarioError):
-                continue
-            return scenario, f"scenario {att.name} (attached)"
-    return default_scenario(), "paper scenario (built in)"
-
-
 def derived_fusion_settings(
-    scanner: McapScanner, *, site: str, first_state: bytes | None
+    scanner: SideRecords | McapScanner, *, site: str, first_state: bytes | None
 ) -> tuple[dict[str, Any], str]:
     """Fusion settings as ``diffpos emulate`` would start the fusion, for recordings that do
     not store them (:meth:`FusionConfig.from_recording`): the fusion's defaults, the geometry
@@ -167,20 +114,23 @@ class ReplaySettings:
         Recorded fields that are not (or no longer) fusion settings.
     overrides : dict
         The what-ifs applied on top.
+    warning : str or None
+        Set when the recording holds no fusion settings and defaults were used.
     """
 
     config: FusionConfig
     source: str
     ignored_recorded_fields: list[str]
     overrides: dict[str, Any]
+    warning: str | None = None
 
 
 def read_ahead(
     scanner: McapScanner,
 ) -> tuple[list[list[RawMessage]], Iterator[list[RawMessage]], RawMessage | None]:
-    """Read chunks until the first anchor state (at most 64): the settings need the metadata
-    (our recorder writes it before the first chunk) and, when the recording has none, the
-    anchors' ranging rate. Returns the chunks read, the rest, and the first anchor state."""
+    """Read chunks until the first anchor state (at most 64): when the recording holds no
+    fusion settings, derived ones need the anchors' ranging rate. Returns the chunks read,
+    the rest, and the first anchor state."""
     batches = scanner.iter_batches()
     ahead: list[list[RawMessage]] = []
     first_state = None
@@ -205,6 +155,7 @@ def recorded_site(scanner: McapScanner) -> str | None:
 def replay_settings(
     scanner: McapScanner,
     *,
+    side: SideRecords,
     first_state: RawMessage | None,
     overrides: dict[str, Any] | None = None,
     method: str | None = None,
@@ -218,10 +169,16 @@ def replay_settings(
         An override that is not a fusion setting, an unknown method, an invalid value.
     """
     site = recorded_site(scanner)
-    recorded, source = live_fusion_settings(scanner)
-    if not recorded and use_recorded_settings and site is not None:
-        recorded, source = derived_fusion_settings(
-            scanner, site=site, first_state=None if first_state is None else first_state.data)
+    recorded, source = live_fusion_settings(side)
+    warning = None
+    if not recorded and use_recorded_settings:
+        warning = (f"the recording holds no fusion settings (no metadata fusion_config / "
+                   f"run_config, {len(side.metadata)} metadata records found by "
+                   f"{side.source}): replaying with DEFAULT settings")
+        if site is not None:
+            recorded, source = derived_fusion_settings(
+                side, site=site, first_state=None if first_state is None else first_state.data)
+            warning += f" ({source})"
     base: dict[str, Any] = dict(recorded) if use_recorded_settings else {}
     if not use_recorded_settings:
         source = "defaults (--ignore-recorded-settings)"
@@ -242,7 +199,7 @@ def replay_settings(
     if "site" not in base and site is not None:
         base["site"] = site
     config = build_config(FusionConfig, base)
-    return ReplaySettings(config, source, ignored, dict(overrides or {}))
+    return ReplaySettings(config, source, ignored, dict(overrides or {}), warning)
 
 
 # ----------------------------------------------------------------------------------------
@@ -256,12 +213,17 @@ class _Outputs:
     (a copy of the input and) the fixes on ``diffpos/<site>/replay/node/<id>/estimate``."""
 
     def __init__(self, out_mcap: str | Path | None, *, copy_input: bool, site: str,
-                 header: dict[str, Any]) -> None:
+                 header: dict[str, Any], side: SideRecords) -> None:
         self.estimates: list[M.PositionEstimate] = []
         self.keys = Keys(site)
         self.sink = None
-        if out_mcap is not None:
+        if out_mcap is not None:  # the input's metadata and attachments first, then ours
             self.sink = McapSink(out_mcap, library="diffpos-replay")
+            for md in side.metadata:
+                self.sink.add_metadata(md.name, md.metadata)
+            for a in side.attachments:
+                self.sink.add_attachment(a.name, a.data, media_type=a.media_type,
+                                         log_ns=a.log_time, create_ns=a.create_time)
             self.sink.add_metadata("replay", header)
         self.copy_input = copy_input and self.sink is not None
 
@@ -464,6 +426,7 @@ def _report(
         "damage": {**scanner.damage.__dict__, "ok": scanner.damage.ok},
         "settings": msgspec.to_builtins(config),
         "settings_source": settings.source,
+        "settings_warning": settings.warning,
         "ignored_recorded_fields": settings.ignored_recorded_fields,
         "overrides": settings.overrides,
         "method": config.method,
@@ -551,13 +514,28 @@ def replay(
         Invalid settings (names the field).
     """
     t_wall0 = time.perf_counter()
+    if out_mcap is not None:
+        check_output(out_mcap, option="out_mcap", inputs=[path])
     scanner = McapScanner(path)
+    side = side_records(path)
     ahead, rest, first_state = read_ahead(scanner)
-    settings = replay_settings(scanner, first_state=first_state, overrides=overrides,
+    settings = replay_settings(scanner, side=side, first_state=first_state, overrides=overrides,
                                method=method, use_recorded_settings=use_recorded_settings)
+    if settings.warning:
+        (logger or logging.getLogger("diffpos.replay")).warning("%s", settings.warning)
+    with contextlib.ExitStack() as stack:
+        tmp = None if out_mcap is None else stack.enter_context(atomic_path(out_mcap))
+        return _run(path, scanner, settings, ahead, rest, tmp, side=side, copy_input=copy_input,
+                    step_ms=step_ms, max_truth_gap_s=max_truth_gap_s, progress=progress,
+                    logger=logger, t_wall0=t_wall0)
+
+
+def _run(path, scanner, settings, ahead, rest, tmp, *, side, copy_input, step_ms,
+         max_truth_gap_s, progress, logger, t_wall0) -> ReplayResult:
+    """Steps 2-4 of :func:`replay` (``tmp``: where the output MCAP goes until complete)."""
     config = settings.config
     core = FusionCore(config, logger=quiet_logger() if logger is None else logger)
-    outputs = _Outputs(out_mcap, copy_input=copy_input, site=config.site, header={
+    outputs = _Outputs(tmp, copy_input=copy_input, site=config.site, side=side, header={
         "source": str(path),
         "method": config.method,
         "step_ms": step_ms,

@@ -1,20 +1,31 @@
 """What is in a recording: :func:`summarize` (channels, schemas, counts, time span, anchors,
 nodes, liveliness events; ``diffpos inspect``) and :func:`validate_file` (every message
-against its channel's JSON Schema; ``diffpos inspect --validate``). Works on truncated files
-too."""
+against diffpos' own JSON Schema of its kind; ``diffpos inspect --validate``). Works on
+truncated files too. Also the run settings a recording stores (:func:`live_fusion_settings`,
+:func:`attached_scenario`)."""
 
 from __future__ import annotations
 
 import json
 import os
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from diffpos_services.recording.reader import Damage, McapScanner
+from diffpos.scenario import Scenario, ScenarioError, default_scenario
+from diffpos_services.recording.reader import Damage, McapScanner, SideRecords
+from diffpos_services.recording.schemas import SchemaRegistry
 from diffpos_services.recording.topics import SeqTracker, natural_key, parse_topic
 
-__all__ = ["ChannelSummary", "RecordingSummary", "summarize", "validate_file"]
+__all__ = [
+    "ChannelSummary",
+    "RecordingSummary",
+    "attached_scenario",
+    "live_fusion_settings",
+    "summarize",
+    "validate_file",
+]
 
 
 @dataclass(frozen=True)
@@ -177,13 +188,21 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
 
 
 def validate_file(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Validate every message of a recording against its channel's embedded JSON Schema.
+    """Validate every message of a recording against diffpos' OWN JSON Schemas (``schemas/``,
+    :class:`SchemaRegistry`), not the schema embedded in the file (a file may embed
+    ``{"type": "object"}`` and carry anything).
+
+    A message is checked against the schema its ``schema`` tag names (e.g.
+    ``diffpos.range.v1``); an untagged message (liveliness events) against the schema of its
+    topic. A tag that is not one of ours, or not the one of the topic's kind, is invalid.
+    Channels whose embedded schema differs from ours are reported in ``schema_mismatch``.
 
     Returns
     -------
     dict
-        ``checked``, ``invalid`` (count), ``no_schema`` (messages on schema-less channels),
-        ``not_json`` and ``examples`` (first 10 problems as strings).
+        ``checked``, ``invalid`` (count), ``no_schema`` (messages on channels that are not
+        diffpos keys, untagged), ``not_json``, ``schema_mismatch`` (one ``{"ours", "embedded",
+        "channels", "example"}`` per differing pair) and ``examples`` (first 10 problems as strings).
 
     Raises
     ------
@@ -193,30 +212,124 @@ def validate_file(path: str | os.PathLike[str]) -> dict[str, Any]:
     import jsonschema  # optional (the test extra): diffpos inspect --validate says so
 
     sc = McapScanner(path)
-    validators: dict[int, object] = {}
-    out = {"checked": 0, "invalid": 0, "no_schema": 0, "not_json": 0, "examples": []}
+    reg = SchemaRegistry()
+    validators: dict[str, Any] = {}
+    expected: dict[int, str | None] = {}  # channel id -> our schema name for its topic
+    out: dict[str, Any] = {"checked": 0, "invalid": 0, "no_schema": 0, "not_json": 0,
+                           "schema_mismatch": [], "examples": []}
+
+    def problem(text: str) -> None:
+        out["invalid"] += 1
+        if len(out["examples"]) < 10:
+            out["examples"].append(text)
+
     for m in sc.messages():
-        v = validators.get(m.channel_id)
-        if v is None:
-            sch = sc.schema_of(m.channel_id)
-            if sch is None or sch.encoding != "jsonschema":
-                v = False
-            else:
-                doc = json.loads(sch.data)
-                v = jsonschema.validators.validator_for(doc)(doc)
-            validators[m.channel_id] = v
+        if m.channel_id not in expected:
+            expected[m.channel_id] = _expected_schema(sc, m.channel_id, reg, out)
         try:
             obj = json.loads(m.data)
         except ValueError:
             out["not_json"] += 1
             continue
-        if v is False:
+        tag = obj.get("schema") if isinstance(obj, dict) else None
+        name = tag if isinstance(tag, str) else expected[m.channel_id]
+        where = f"{m.topic} seq {m.sequence}"
+        if name is None:
             out["no_schema"] += 1
             continue
         out["checked"] += 1
+        doc = reg.documents.get(name)
+        if doc is None:
+            problem(f"{where}: schema tag {name!r} is not a diffpos schema")
+            continue
+        if expected[m.channel_id] not in (None, name):
+            problem(f"{where}: schema tag {name!r} on a {expected[m.channel_id]} channel")
+            continue
+        v = validators.get(name)
+        if v is None:
+            v = validators[name] = jsonschema.validators.validator_for(doc)(doc)
         err = jsonschema.exceptions.best_match(v.iter_errors(obj))
         if err is not None:
-            out["invalid"] += 1
-            if len(out["examples"]) < 10:
-                out["examples"].append(f"{m.topic} seq {m.sequence}: {err.message}")
+            problem(f"{where}: {err.message}")
     return out
+
+
+def _expected_schema(sc: McapScanner, cid: int, reg: SchemaRegistry,
+                     out: dict[str, Any]) -> str | None:
+    """Our schema name for channel ``cid`` (``None``: not a diffpos key); notes a channel
+    whose embedded schema differs from ours in ``out["schema_mismatch"]``."""
+    ch = sc.channels[cid]
+    entry = reg.for_key(ch.topic)
+    if entry is None:
+        return None
+    sch = sc.schema_of(cid)
+    try:
+        embedded = None if sch is None else json.loads(sch.data)
+    except ValueError:
+        embedded = None
+    if embedded != reg.documents.get(entry.name):
+        label = "none" if sch is None else f"{sch.name} ({len(sch.data)} bytes)"
+        for row in out["schema_mismatch"]:
+            if (row["ours"], row["embedded"]) == (entry.name, label):
+                row["channels"] += 1
+                break
+        else:
+            out["schema_mismatch"].append(
+                {"ours": entry.name, "embedded": label, "channels": 1, "example": ch.topic})
+    return entry.name
+
+
+# -- the run settings a recording stores ---------------------------------------------------
+
+
+def live_fusion_settings(scanner: SideRecords | McapScanner) -> tuple[dict[str, Any], str]:
+    """The fusion settings the live run used, as far as the recording says.
+
+    Looks for a metadata record ``fusion_config`` (key -> JSON value), then a ``fusion``
+    entry in the ``run_config`` metadata / ``run_config.json`` attachment, in the records of
+    :func:`~diffpos_services.recording.reader.side_records` (found anywhere in the file).
+
+    Returns
+    -------
+    values : dict
+        FusionConfig fields (possibly empty).
+    source : str
+        Where they came from (``"defaults"`` when the recording has none).
+    """
+
+    def decode(v: str) -> Any:
+        try:
+            return json.loads(v)
+        except ValueError:
+            return v
+
+    for md in scanner.metadata:
+        if md.name == "fusion_config":
+            return {k: decode(v) for k, v in md.metadata.items()}, "metadata fusion_config"
+    for md in scanner.metadata:
+        if md.name == "run_config" and "fusion" in md.metadata:
+            val = decode(md.metadata["fusion"])
+            if isinstance(val, dict):
+                return val, "metadata run_config.fusion"
+    for att in scanner.attachments:
+        if att.name == "run_config.json":
+            try:
+                doc = json.loads(att.data)
+            except ValueError:
+                continue
+            if isinstance(doc, dict) and isinstance(doc.get("fusion"), dict):
+                return doc["fusion"], "attachment run_config.json"
+    return {}, "defaults"
+
+
+def attached_scenario(scanner: SideRecords | McapScanner) -> tuple[Scenario, str]:
+    """The scenario of the first valid TOML attachment, else the built-in paper scenario;
+    and where it came from."""
+    for att in scanner.attachments:
+        if att.name.endswith(".toml"):
+            try:
+                scenario = Scenario.from_dict(tomllib.loads(att.data.decode("utf-8")))
+            except (UnicodeDecodeError, tomllib.TOMLDecodeError, ScenarioError):
+                continue
+            return scenario, f"scenario {att.name} (attached)"
+    return default_scenario(), "paper scenario (built in)"

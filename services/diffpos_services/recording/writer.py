@@ -366,12 +366,14 @@ class McapSink:
         *,
         media_type: str = "application/octet-stream",
         log_ns: int | None = None,
+        create_ns: int | None = None,
     ) -> None:
         """MCAP attachment (e.g. the scenario TOML), written immediately."""
         t = time.time_ns() if log_ns is None else int(log_ns)
+        c = t if create_ns is None else int(create_ns)
         with self._lock:
             self._writer.add_attachment(
-                create_time=t, log_time=t, name=name, media_type=media_type, data=bytes(data)
+                create_time=c, log_time=t, name=name, media_type=media_type, data=bytes(data)
             )
             self._file.flush()
 
