@@ -139,45 +139,6 @@ def test_dnls_beats_lls_and_ippa_on_the_default_scenario(paper):
 
 
 # ------------------------------------------------------------------ CLI end to end
-def test_reproduce_cli_quick_and_arrivals_round_trip(tmp_path, capsys):
-    from diffpos_services.cli.main import main
-
-    out = tmp_path / "r"
-    rc = main(["reproduce", "--quick", "--quick-nodes", "200", "--no-progress", "--seed", "3",
-               "--out", str(out)])
-    assert rc == 0
-    for f in ("summary.json", "summary.md", "first_arrival.npz", "cdf_3d_error.png",
-              "cdf_z_error.png", "first_arrival_boxplots.png"):
-        assert (out / f).stat().st_size > 0, f
-    s = json.loads((out / "summary.json").read_text())
-    assert s["n_receivers"] == 200 and s["seed"] == 3 and s["quick"]
-    assert set(s["positioning_m"]) == {"lls", "ippa", "dnls_case1", "dnls_case2", "peb"}
-    assert set(s["mpc_table_pct"]) == {"MPC-1", "MPC-2", "MPC-3", "MPC-4", "none"}
-    assert "| MPC-3 |" in (out / "summary.md").read_text()
-    # the same first arrivals fed back give the same positioning numbers
-    out2 = tmp_path / "r2"
-    rc = main(["reproduce", "--no-progress", "--channel",
-               f"arrivals:{out / 'first_arrival.npz'}", "--out", str(out2)])
-    assert rc == 0
-    s2 = json.loads((out2 / "summary.json").read_text())
-    assert s2["positioning_m"] == s["positioning_m"]
-    assert s2["mpc_table_pct"] is None
-    capsys.readouterr()
-
-
-def test_reproduce_cli_errors_are_one_line(tmp_path, capsys):
-    from diffpos_services.cli.main import main
-
-    bad = tmp_path / "bad.toml"
-    bad.write_text("[[anchors]]\nid = 'a'\nposition_m = [0, 2, 0]\n[nodes.grid]\n")
-    assert main(["reproduce", "--scenario", str(bad), "--out", str(tmp_path)]) == 2
-    err = capsys.readouterr().err
-    assert "anchors[0].position_m: y=2 is inside the building" in err
-    assert "Traceback" not in err
-    assert main(["reproduce", "--channel", "raytrace", "--out", str(tmp_path)]) == 2
-    assert "--channel" in capsys.readouterr().err
-
-
 def test_reproduce_accepts_a_raytrace_dataset(tmp_path, paper):
     """The ray-tracer hook: a dataset in the 'diffpos raytrace' format (here filled with the
     emulator's own paths) gives the same MPC table as the emulator."""

@@ -18,13 +18,19 @@ What it does, in order:
 3. Statistics. P_e (an MPC group exists) and P_fap (the first arrival belongs to it) per group,
    the paper's Table; the first arrival's AoA and SNR distributions (box plots).
 4. Positioning. Every receiver is located from its 4 ranges by LLS, IPPA, D-NLS Case-1
-   (node at the window mid-height) and D-NLS Case-2 (model offset Delta = 1.5 m), compared
-   with the position error bound (PEB) and the z bound of the diffraction model.
+   (node at the window mid-height), D-NLS Case-2 (model offset Delta = 1.5 m) and M-NLS
+   (mnls: mechanism-aware NLS on the first-arrival path model, floor hypotheses from the
+   scenario's building, the measured SNR with its radio), compared with the position error
+   bound (PEB) and the z bound of the diffraction model.
+5. Floor accuracy of every method: the share of ALL receivers whose estimate lies on the
+   receiver's floor (a failed fix is a miss); for methods that report a covariance (M-NLS)
+   the share of fixes whose 95 % ellipsoid holds the truth.
 
 Outputs in --out (default out/reproduce): summary.json and summary.md (tables, with the
-paper's numbers side by side), cdf_3d_error.png, cdf_z_error.png, first_arrival_boxplots.png
-and first_arrival.npz (the per-link first-arrival data; feed it back with
---channel arrivals:FILE to re-run only the positioning).
+paper's numbers side by side, and the wall time of every method), cdf_3d_error.png,
+cdf_z_error.png, first_arrival_boxplots.png and first_arrival.npz (the per-link
+first-arrival data; feed it back with --channel arrivals:FILE to re-run only the
+positioning).
 
 The emulator is not the paper's commercial ray tracer: expect the same mechanisms and ordering,
 not the same percentages (summary.md compares them).
@@ -35,8 +41,8 @@ Other channel sources (the hook for ray-traced data):
                               snr_db, detected [, sigma_m, mpc_class, aoa_deg])
 
 examples:
-  diffpos reproduce                              full study, about a minute on 2 cores
-  diffpos reproduce --quick --out out/quick      1,500 random receivers, a few seconds
+  diffpos reproduce                              full study (M-NLS dominates the run time)
+  diffpos reproduce --quick --out out/quick      1,500 random receivers, under a minute
   diffpos reproduce --seed 7 --methods dnls_case1 dnls_lower
   diffpos reproduce --scenario scenarios/paper.toml --delta-m 1.0
 """
@@ -52,6 +58,7 @@ import numpy as np
 from diffpos.reproduction import (
     ALL_METHODS,
     DEFAULT_QUICK_NODES,
+    REPRODUCE_METHODS,
     Arrivals,
     ReproduceConfig,
     build_summary,
@@ -80,9 +87,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--channel", default="emulator", metavar="SOURCE",
                         help="emulator (default), raytrace:FILE or arrivals:FILE.npz")
     parser.add_argument("--methods", nargs="+", choices=ALL_METHODS,
-                        default=["lls", "ippa", "dnls_case1", "dnls_case2"],
-                        help="estimators to run (default: the paper's four; dnls_lower models "
-                             "the lower window edge)")
+                        default=list(REPRODUCE_METHODS),
+                        help="estimators to run (default: the paper's four and mnls, "
+                             f"{' '.join(REPRODUCE_METHODS)}; dnls_lower models the lower "
+                             "window edge; mnls uses the scenario's building and radio)")
     parser.add_argument("--delta-m", type=float, default=1.5,
                         help="D-NLS Case-2 model offset Delta [m] (default: 1.5, the paper's)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -20,7 +20,7 @@ from diffpos.study import empirical_cdf, method_label
 __all__ = ["ProgressBars", "print_report", "write_figures", "write_markdown", "write_outputs"]
 
 COLORS = {"lls": "tab:red", "ippa": "tab:orange", "dnls_case1": "tab:blue",
-          "dnls_case2": "tab:green", "dnls_lower": "tab:purple"}
+          "dnls_case2": "tab:green", "dnls_lower": "tab:purple", "mnls": "tab:brown"}
 
 
 class ProgressBars:
@@ -72,6 +72,38 @@ def _fmt(v: Any, nd: int = 2) -> str:
     return f"{v:.{nd}f}"
 
 
+def _pct(v: Any) -> str:
+    """A share [-] as a percentage; blank where the method has none (the PEB row)."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return ""
+    return f"{100 * v:.1f}%"
+
+
+def _positioning_lines(s: dict[str, Any]) -> list[str]:
+    """summary.md's positioning table, the floor-accuracy definition and the method times."""
+    lines = ["## Positioning error [m]", "",
+             "| method | 3D median | 3D 80% | 3D 95% | z median | z 80% | z 95% | solved "
+             "| right floor | 95% ellipsoid holds truth |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for v in s["positioning_m"].values():
+        lines.append(
+            f"| {v['label']} | {_fmt(v['3d']['median'])} | {_fmt(v['3d']['p80'])} | "
+            f"{_fmt(v['3d']['p95'])} | {_fmt(v['z']['median'])} | {_fmt(v['z']['p80'])} | "
+            f"{_fmt(v['z']['p95'])} | {_pct(v.get('solved_fraction'))} | "
+            f"{_pct(v.get('floor_accuracy'))} | {_pct(v.get('ellipsoid95_coverage'))} |")
+    lines += ["", "*right floor*: share of ALL receivers whose estimate lies on the receiver's "
+              "floor (a failed fix is a miss). *95% ellipsoid*: share of the fixes whose "
+              "reported covariance's 95 % ellipsoid holds the truth (methods reporting a "
+              "covariance)."]
+    method_s = s["timing_s"].get("method_s") or {}
+    n = max(int(s["n_receivers"]), 1)
+    times = [f"{s['positioning_m'][m]['label']} {t:.1f} s ({1e3 * t / n:.2f} ms/fix)"
+             for m, t in method_s.items() if m in s["positioning_m"] and m != "peb"]
+    if times:
+        lines += ["", "Wall time per method: " + "; ".join(times) + "."]
+    return lines
+
+
 def write_markdown(path: Path, s: dict[str, Any]) -> None:
     """summary.md: the tables, with the paper's numbers side by side."""
     lines = [
@@ -113,15 +145,7 @@ def write_markdown(path: Path, s: dict[str, Any]) -> None:
                      f"{sn['q3']:.1f} dB; {fa['snr_above_floor_pct']:.1f}% above "
                      f"{fa['snr_floor_db']:g} dB (paper: typically).")
     lines.append(f"- Links with a detected first arrival: {fa['detected_pct']:.2f}%.")
-    lines += ["", "## Positioning error [m]", "",
-              "| method | 3D median | 3D 80% | 3D 95% | z median | z 80% | z 95% | solved |",
-              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for v in s["positioning_m"].values():
-        solved = v.get("solved_fraction")
-        lines.append(
-            f"| {v['label']} | {_fmt(v['3d']['median'])} | {_fmt(v['3d']['p80'])} | "
-            f"{_fmt(v['3d']['p95'])} | {_fmt(v['z']['median'])} | {_fmt(v['z']['p80'])} | "
-            f"{_fmt(v['z']['p95'])} | {'' if solved is None else f'{100 * solved:.1f}%'} |")
+    lines += ["", *_positioning_lines(s)]
     if abs(s["delta_case2_m"] - s["window_height_m"]) < 1e-12:
         lines += ["", f"Note: with Delta = w = {s['window_height_m']:g} m the Case-2 model's "
                   "upper edge sits exactly where the lower edge of the Case-1 model is, so "
@@ -133,7 +157,10 @@ def write_markdown(path: Path, s: dict[str, Any]) -> None:
 
 
 def write_figures(out: Path, res: Reproduction, delta_m: float) -> list[Path]:
-    """cdf_3d_error.png, cdf_z_error.png and first_arrival_boxplots.png; their paths."""
+    """cdf_3d_error.png, cdf_z_error.png and first_arrival_boxplots.png; their paths.
+
+    The CDF legends give each method's floor accuracy (share of all receivers on the right
+    floor)."""
     study, data = res.study, res.data
     paths = []
     for kind, errs, bound, blabel, fname in (
@@ -142,9 +169,13 @@ def write_figures(out: Path, res: Reproduction, delta_m: float) -> list[Path]:
     ):
         fig = Figure(figsize=(6.4, 4.4), dpi=120)
         ax = fig.subplots()
+        floor = study.extra.get("floor_accuracy", {})
         for m in study.methods:
             x, f = empirical_cdf(errs[m])
-            ax.step(x, f, where="post", color=COLORS.get(m), label=method_label(m, delta_m))
+            label = method_label(m, delta_m)
+            if m in floor:
+                label += f", {_pct(floor[m])} right floor"
+            ax.step(x, f, where="post", color=COLORS.get(m), label=label)
         x, f = empirical_cdf(bound)
         ax.step(x, f, where="post", color="black", ls="--", label=blabel)
         ax.set_xscale("log")
@@ -216,11 +247,15 @@ def print_report(summary: dict[str, Any], files: list[Path]) -> None:
                       f"{p['P_fap']:.2f}")
         con.print(t)
     t = Table(title=f"Position error \\[m], {summary['n_receivers']} receivers")
-    for c in ("method", "3D med", "3D 80%", "3D 95%", "z med", "z 80%", "z 95%"):
+    for c in ("method", "3D med", "3D 80%", "3D 95%", "z med", "z 80%", "z 95%", "floor",
+              "ell. 95%"):
         t.add_column(c, justify="right")
     for v in summary["positioning_m"].values():
         t.add_row(v["label"], *(_fmt(v[a][k]) for a in ("3d", "z")
-                                for k in ("median", "p80", "p95")))
+                                for k in ("median", "p80", "p95")),
+                  _pct(v.get("floor_accuracy")), _pct(v.get("ellipsoid95_coverage")))
     con.print(t)
+    con.print("floor: share of all receivers on the right floor (a failed fix is a miss); "
+              "ell. 95%: share of fixes whose 95 % ellipsoid holds the truth", highlight=False)
     con.print(f"run time {summary['timing_s']['total_s']:.1f} s; wrote "
               + ", ".join(str(f) for f in files), highlight=False, soft_wrap=True)
