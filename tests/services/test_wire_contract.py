@@ -11,6 +11,8 @@ import pytest
 from diffpos_services.wire import keys as K
 from diffpos_services.wire import messages as M
 
+from diffpos.paths import MECHANISMS
+
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas"
 
 
@@ -51,7 +53,15 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
         t_input_wall_ns=0,
         t_pub_wall_ns=0,
     )
+    est_v2 = _estimate_v2()
+    est_v2_lost = M.PositionEstimateV2(
+        node_id="n03", t_ns=7, epoch=0, seq=1, method="mnls+tracking", status="LOST",
+        position_m=None, covariance_m2=None, peb_m=None, z_bound_m=None, floor_index=None,
+        floor_probabilities=[], snapshot=None, links=[], used_anchors=[], residuals_m=[],
+        excluded=[M.Exclusion("uav1", "NOT_DETECTED")], message="", t_input_wall_ns=0,
+        t_pub_wall_ns=0)
     return {
+        M.PositionEstimateV2: [est_v2, est_v2_lost],
         M.AnchorState: [
             M.AnchorState(
                 anchor_id="uav1",
@@ -129,6 +139,72 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
         ],
         M.RunClock: [M.RunClock(run_id="r2", t_ns=299_999_999)],
     }
+
+
+def _estimate_v2() -> M.PositionEstimateV2:
+    """A tracked estimate with a snapshot, mechanisms and an outlier (the golden message)."""
+    cov = ((0.04, 0.001, 0.0), (0.001, 0.05, 0.0), (0.0, 0.0, 0.09))
+    return M.PositionEstimateV2(
+        node_id="r01", t_ns=1_700_000_000_100_000_000, epoch=17_000_000_001, seq=42,
+        method="mnls+tracking", status="TRACKING", position_m=(1.5, 4.25, 8.5),
+        covariance_m2=cov, peb_m=0.4243, z_bound_m=0.3, floor_index=1,
+        floor_probabilities=[0.0, 0.97, 0.03, 0.0, 0.0],
+        snapshot=M.SnapshotFix(method="mnls", status="OK", position_m=(1.4, 4.3, 8.4),
+                               covariance_m2=cov, floor_index=1,
+                               floor_probabilities=[0.0, 0.9, 0.1, 0.0, 0.0]),
+        links=[M.AnchorLink("uav1", "Tx-D(lower)-Rx", 0.012),
+               M.AnchorLink("uav2", "Tx-R(ceiling)-Rx", -0.03),
+               M.AnchorLink("uav3", None, 2.5)],
+        used_anchors=["uav1", "uav2"], residuals_m=[0.012, -0.03],
+        excluded=[M.Exclusion("uav3", "RAIM"), M.Exclusion("uav4", "NOT_DETECTED")],
+        message="", t_input_wall_ns=1_700_000_000_101_000_000,
+        t_pub_wall_ns=1_700_000_000_102_500_000)
+
+
+#: the golden encoding of _estimate_v2 (field order = the struct's; a change here is a change
+#: of the wire format: bump the version)
+GOLDEN_V2 = (
+    b'{"schema":"diffpos.estimate.v2","node_id":"r01","t_ns":1700000000100000000,'
+    b'"epoch":17000000001,"seq":42,"method":"mnls+tracking","status":"TRACKING",'
+    b'"position_m":[1.5,4.25,8.5],"covariance_m2":[[0.04,0.001,0.0],[0.001,0.05,0.0],'
+    b'[0.0,0.0,0.09]],"peb_m":0.4243,"z_bound_m":0.3,"floor_index":1,'
+    b'"floor_probabilities":[0.0,0.97,0.03,0.0,0.0],"snapshot":{"method":"mnls",'
+    b'"status":"OK","position_m":[1.4,4.3,8.4],"covariance_m2":[[0.04,0.001,0.0],'
+    b'[0.001,0.05,0.0],[0.0,0.0,0.09]],"floor_index":1,'
+    b'"floor_probabilities":[0.0,0.9,0.1,0.0,0.0]},"links":[{"anchor_id":"uav1",'
+    b'"mechanism":"Tx-D(lower)-Rx","residual_m":0.012},{"anchor_id":"uav2",'
+    b'"mechanism":"Tx-R(ceiling)-Rx","residual_m":-0.03},{"anchor_id":"uav3",'
+    b'"mechanism":null,"residual_m":2.5}],"used_anchors":["uav1","uav2"],'
+    b'"residuals_m":[0.012,-0.03],"excluded":[{"anchor_id":"uav3","reason":"RAIM"},'
+    b'{"anchor_id":"uav4","reason":"NOT_DETECTED"}],"message":"",'
+    b'"t_input_wall_ns":1700000000101000000,"t_pub_wall_ns":1700000000102500000}'
+)
+
+
+def test_estimate_v2_golden_bytes_and_both_versions_decode():
+    """Estimate v2 encodes to the golden bytes (validated by the checked-in schema), decodes
+    back equal; :func:`estimate_decoder` reads v1 and v2 by their tag and rejects anything
+    else (another message, an unknown version) as a schema error."""
+    raw = M.encode(_estimate_v2())
+    assert raw == GOLDEN_V2
+    schema = json.loads((SCHEMA_DIR / "estimate.v2.json").read_text())
+    jsonschema.Draft202012Validator(schema).validate(json.loads(raw))
+    for label in [x["mechanism"] for x in json.loads(raw)["links"] if x["mechanism"]]:
+        assert label in MECHANISMS
+    dec = M.estimate_decoder()
+    assert dec(raw) == _estimate_v2()
+    v1 = _examples()[M.PositionEstimate][0]
+    got = dec(M.encode(v1))
+    assert type(got) is M.PositionEstimate and got == v1
+    for bad in (M.encode(_examples()[M.RunClock][0]),
+                raw.replace(b"diffpos.estimate.v2", b"diffpos.estimate.v3"),
+                raw.replace(b'"epoch":17000000001,', b"")):
+        with pytest.raises(M.DecodeError) as info:
+            dec(bad)
+        assert info.value.reason == "schema"
+    # a v1 reader still rejects v2 (a new version is a new tag)
+    with pytest.raises(M.DecodeError):
+        M.decoder(M.PositionEstimate)(raw)
 
 
 @pytest.mark.parametrize("kind", list(M.MESSAGE_TYPES), ids=lambda k: k.__name__)

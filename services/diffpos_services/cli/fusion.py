@@ -1,16 +1,21 @@
-"""Fusion service: aligns ranges in time, D-NLS with outlier gating, publishes fixes
+"""Fusion service: aligns ranges in time, tracks every responder (mnls + IMM), publishes estimates
 
 Subscribes with one subscriber to diffpos/<site>/anchor/** (states, ranges and range
 batches of every anchor, each anchor's in publish order; never the truth keys) and watches
 the anchors' liveliness tokens.
 Ranges are grouped per node into epochs of --epoch-period-s; an epoch is solved as soon as
 every live anchor has reported for it (or moved past it), or --deadline-s after its first
-range. All ready nodes are solved in one batched D-NLS call with RAIM-style gating; each
-range is paired with its anchor's self-reported position interpolated at the range's own
-time. Publishes
+range. Each range is paired with its anchor's self-reported position interpolated at the
+range's own time. The default method, mnls + tracking, fits the first-arrival path model of
+the scenario's building (which mechanism arrived first on each link: window, reflections,
+edge diffraction) and runs a per-responder tracker (an IMM over the floors: every floor
+hypothesis stays alive until the data decides); a responder without ranges coasts. --method
+dnls|lls|ippa select the earlier snapshot estimators (estimate v1, as before). Publishes
 
-  diffpos/<site>/node/<node>/estimate   position, covariance, PEB, floor, status, used and
-                                        excluded anchors with reasons, residuals
+  diffpos/<site>/node/<node>/estimate   estimate v2: filtered position, covariance (95 %
+                                        ellipsoid), floor and per-floor probabilities, track
+                                        status, the snapshot fix, per anchor the mechanism and
+                                        residual, used and excluded anchors
   diffpos/<site>/fusion/diagnostics     counters (received, rejected by reason, gated,
                                         solved), live/lost anchors, latency p50/p99
 
@@ -24,6 +29,7 @@ examples:
   diffpos fusion --scenario scenarios/paper.toml --anchors scenario --nodes scenario
                                         accept only the scenario's anchors and nodes
   diffpos fusion --anchors uav1,uav2,uav3,uav4 --method lls   allow-list; LoS baseline solver
+  diffpos fusion --scenario scenarios/large.toml --no-tracking    mnls snapshot fixes only
 
 Stop with Ctrl-C or SIGTERM: pending epochs are solved and published before the session closes.
 """
@@ -35,7 +41,7 @@ import logging
 
 from diffpos_services.anchor.service import emulation_nodes, load_scenario_file
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
-from diffpos_services.fusion.config import EDGES, FusionConfig, model_edge
+from diffpos_services.fusion.config import DEFAULT_METHOD, EDGES, METHODS, FusionConfig, model_edge
 from diffpos_services.fusion.service import run_fusion
 from diffpos_services.kit import (
     ConfigError,
@@ -79,10 +85,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--method",
-        choices=["dnls", "lls", "ippa"],
-        default="dnls",
-        help="estimator: dnls (diffraction-aware D-NLS with gating, default), lls (line-of-"
-        "sight linear least squares, the paper's baseline), ippa (iterative parallel projection)",
+        choices=list(METHODS),
+        default=DEFAULT_METHOD,
+        help="estimator: mnls (mechanism-aware NLS on the first-arrival path model of the "
+        "scenario's building, floor probabilities; default, with the tracker unless "
+        "--no-tracking), dnls (diffraction-aware D-NLS with gating), lls (line-of-sight linear "
+        "least squares, the paper's baseline), ippa (iterative parallel projection)",
+    )
+    parser.add_argument(
+        "--no-tracking", action="store_true",
+        help="mnls: publish the snapshot fix of every epoch instead of the tracked estimate",
     )
     parser.add_argument(
         "--anchors",
@@ -116,7 +128,8 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
     """The :class:`FusionConfig` of the command line (geometry and edge rule: ``from_scenario``)."""
     values = dict(
         site=args.site,
-        method=getattr(args, "method", "dnls"),
+        method=getattr(args, "method", DEFAULT_METHOD),
+        tracking=not getattr(args, "no_tracking", False),
         delta_m=args.delta_m,
         epoch_period_s=args.epoch_period_s,
         deadline_s=args.deadline_s,

@@ -56,10 +56,12 @@ class Monitor:
         self.pubs.update({("anchor", a.id): session.declare_publisher(
             keys.truth_anchor(a.id), encoding=enc, congestion_control=bc)
             for a in emu.scenario.anchors})
-        self.scorer = Scorer(emu.nodes, emu.scenario.building, tb.t0_ns)
-        self.dec_est, self.dec_diag = M.decoder(M.PositionEstimate), M.decoder(M.FusionDiagnostics)
         self.end_ns = tb.t0_ns + round(o.duration_s * 1e9)
         self.period_ns = round(1e9 / o.rate_hz)
+        self.scorer = Scorer(emu.nodes, emu.scenario.building, tb.t0_ns,
+                             period_ns=self.period_ns, end_ns=self.end_ns)
+        # estimates v2 (mnls, tracking) or v1 (dnls, lls, ippa)
+        self.dec_est, self.dec_diag = M.estimate_decoder(), M.decoder(M.FusionDiagnostics)
         self.k_truth = 0
         # lockstep (speed 0): release emulated time epoch by epoch, LOOKAHEAD epochs ahead of
         # the oldest epoch whose estimates are not all in yet
@@ -179,11 +181,24 @@ class Monitor:
             log_event(self.emu.log, logging.WARNING, "bad message", key=key, error=str(exc)[:200])
 
     # ------------------------------------------------------------------ status line
+    def status_line(self) -> str:
+        """Progress, then the counts the summary ends with: availability over the node-epochs
+        due so far after the first seconds (every node x every epoch emulated: a missing
+        estimate is a miss) and the estimates per status."""
+        o, sc = self.o, self.scorer
+        el = max(min(self.emu_now(time.time_ns()), self.end_ns) - self.tb.t0_ns, 0) * 1e-9
+        due = len(self.emu.nodes) * max(int(el * 1e9) // self.period_ns - sc.k_skip, 0)
+        _, with_pos = sc.live_counts()
+        avail = f"{100 * min(with_pos / due, 1.0):5.1f}%" if due else "    -"
+        st = " ".join(f"{k}={v}" for k, v in sorted(sc.status.items()))
+        return (f"t={el:5.1f}/{o.duration_s:.0f} s  avail={avail}  estimates={sc.count} "
+                f"({st})")
+
     def progress(self) -> None:
-        """The status line every 0.5 s: fixes/s and median error over the last 2 s."""
+        """The status line every 0.5 s: fixes/s and median error over the last 2 s, then
+        :meth:`status_line`."""
         if not self.o.progress or time.monotonic() < self.next_status:
             return
-        o = self.o
         self.next_status = time.monotonic() + 0.5
         t_now = time.monotonic()
         recent = self.recent
@@ -192,10 +207,7 @@ class Monitor:
         errs = [e for _, e in recent if e is not None]
         rate = len(recent) / 2.0
         med = f"{np.median(errs):.2f} m" if errs else "-"
-        gated = self.emu.diag.gated if self.emu.diag else 0
-        el = max(min(self.emu_now(time.time_ns()), self.end_ns) - self.tb.t0_ns, 0) * 1e-9
-        line = (f"t={el:5.1f}/{o.duration_s:.0f} s  fixes/s={rate:6.1f}  median err={med:>8}  "
-                f"gated={gated}  fixes={self.scorer.count}")
+        line = f"{self.status_line()}  fixes/s={rate:.1f}  median err={med}"
         if self.tty:
             print("\r" + line, end="", file=sys.stderr, flush=True)
         else:

@@ -1,7 +1,11 @@
 """Scoring of a live emulation against the true trajectories, and its summary table.
 
-The statistics are :mod:`diffpos.metrics` (the one scorer of emulate, replay and the
-benchmarks); this module only collects the estimates as they arrive.
+Every node-epoch counts: the run's node-epochs are every emulated node x every fusion epoch of
+the run after the first ``skip_s`` (2 s: the anchors start and the trackers initialise); a
+node-epoch without an estimate, or whose estimate has no position, is a miss (it counts
+against availability and the floor accuracy over all node-epochs). The statistics are
+:func:`diffpos.metrics.score` (the one scorer of emulate, replay and the benchmarks); this
+module only collects the estimates (v1 or v2) as they arrive.
 """
 
 from __future__ import annotations
@@ -11,66 +15,139 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.metrics import floor_accuracy, percentiles
+from diffpos.metrics import percentiles, score
 from diffpos_services.wire import messages as M
 
-__all__ = ["SUMMARY_PERCENTILES", "Scorer", "format_summary"]
+__all__ = ["SKIP_S", "SUMMARY_PERCENTILES", "Scorer", "format_summary"]
 
 #: percentiles of the emulate summary
 SUMMARY_PERCENTILES = (50, 67, 90, 95)
+#: node-epochs of the first seconds are not scored
+SKIP_S = 2.0
 
 
 class Scorer:
-    """Errors of the estimates against the true node trajectories (emulation only)."""
+    """The estimates of a run against the true node trajectories (emulation only).
 
-    def __init__(self, nodes: list[tuple[str, Any]], building, t0_ns: int) -> None:
+    Parameters
+    ----------
+    nodes : list of (node_id, trajectory)
+        Every emulated node (``trajectory.position_m(t_s)``).
+    building : diffpos.scenario.Building
+    t0_ns : int [ns]
+        Start of the run (emulated time 0; on the fusion's epoch grid).
+    period_ns : int [ns]
+        Fusion epoch period.
+    end_ns : int or None [ns]
+        End of the run (its epochs up to it are expected); None: up to the newest estimate.
+    skip_s : float [s]
+        Node-epochs before ``t0 + skip_s`` are not scored.
+    """
+
+    def __init__(self, nodes: list[tuple[str, Any]], building, t0_ns: int, *,
+                 period_ns: int = 100_000_000, end_ns: int | None = None,
+                 skip_s: float = SKIP_S) -> None:
         self.traj = dict(nodes)
         self.building = building
         self.t0_ns = t0_ns
+        self.period_ns = period_ns
+        self.end_ns = end_ns
+        self.e0 = t0_ns // period_ns
+        self.k_skip = int(np.ceil(skip_s * 1e9 / period_ns - 1e-9))
         self.count = 0
         self.status: collections.Counter[str] = collections.Counter()
-        self.err3d: list[float] = []
-        self.errz: list[float] = []
-        self.floor_est: list[int | None] = []
-        self.floor_true: list[int] = []
-        self.peb: list[float] = []
         self.epochs: dict[str, set[int]] = collections.defaultdict(set)
+        # (node, epoch) -> (t_ns, position or None, covariance or None, floor or None, peb)
+        self.rows: dict[tuple[str, int], tuple] = {}
+        self.scored = 0  # estimates in the scored window
+        self.scored_with_position = 0
 
-    def add(self, est: M.PositionEstimate) -> float | None:
-        """Count ``est``; its 3D error [m] if it has a position and a known node, else None."""
+    def add(self, est: Any) -> float | None:
+        """Count ``est`` (v1 or v2); its 3D error [m] if it has a usable position and a known
+        node, else None."""
         self.count += 1
         self.status[est.status] += 1
         self.epochs[est.node_id].add(est.epoch)
         tr = self.traj.get(est.node_id)
-        if tr is None or est.position_m is None:
+        usable = est.position_m is not None and est.status in M.GOOD_STATUSES
+        if est.epoch - self.e0 >= self.k_skip and tr is not None:
+            self.scored += 1
+            self.scored_with_position += usable
+        self.rows[(est.node_id, est.epoch)] = (
+            est.t_ns, est.position_m if usable else None,
+            est.covariance_m2 if usable else None, est.floor_index if usable else None,
+            est.peb_m if usable else None)
+        if tr is None or not usable:
             return None
         truth = np.asarray(tr.position_m((est.t_ns - self.t0_ns) * 1e-9), float)
-        d = np.asarray(est.position_m) - truth
-        e = float(np.linalg.norm(d))
-        self.err3d.append(e)
-        self.errz.append(abs(float(d[2])))
-        if est.peb_m is not None:
-            self.peb.append(est.peb_m)
-        self.floor_est.append(est.floor_index)
-        self.floor_true.append(int(self.building.floor_index(truth[2])))
-        return e
+        return float(np.linalg.norm(np.asarray(est.position_m) - truth))
+
+    def live_counts(self) -> tuple[int, int]:
+        """Estimates so far in the scored window, and those with a position (the status line;
+        the summary's availability divides the latter by every expected node-epoch)."""
+        return self.scored, self.scored_with_position
+
+    def _grid(self) -> list[tuple[str, int]]:
+        """Every scored node-epoch ``(node, epoch)``."""
+        if self.end_ns is not None:
+            k_end = -(-(self.end_ns - self.t0_ns) // self.period_ns)
+        else:
+            k_end = max((e for _, e in self.rows), default=self.e0 - 1) - self.e0 + 1
+        return [(nid, self.e0 + k) for nid in self.traj for k in range(self.k_skip, k_end)]
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Estimate, truth, floors, covariance and PEB of every scored node-epoch (NaN / -1
+        where there is no position)."""
+        grid = self._grid()
+        n = len(grid)
+        est = np.full((n, 3), np.nan)
+        cov = np.full((n, 3, 3), np.nan)
+        truth = np.zeros((n, 3))
+        e_floor = np.full(n, -1, np.int64)
+        peb = np.full(n, np.nan)
+        for i, (nid, ep) in enumerate(grid):
+            row = self.rows.get((nid, ep))
+            t_ns = row[0] if row is not None else ep * self.period_ns
+            truth[i] = self.traj[nid].position_m((t_ns - self.t0_ns) * 1e-9)
+            if row is None or row[1] is None:
+                continue
+            est[i] = row[1]
+            if row[2] is not None:
+                cov[i] = row[2]
+            e_floor[i] = -1 if row[3] is None else row[3]
+            peb[i] = np.nan if row[4] is None else row[4]
+        t_floor = np.asarray(self.building.floor_index(truth[:, 2]), np.int64)
+        return {"estimate": est, "truth": truth, "estimate_floor": e_floor,
+                "truth_floor": t_floor, "covariance": cov, "peb": peb,
+                "missing": np.array([(g not in self.rows) for g in grid], bool)}
 
     def summary(self) -> dict[str, Any]:
-        def pct(v: list[float]) -> dict[str, float | None]:
-            return percentiles(v, SUMMARY_PERCENTILES, max_mean=False)
-
-        # a fix without a floor index never matches a true floor
-        floors = np.array([-(2**31) if f is None else f for f in self.floor_est], np.int64)
+        a = self.arrays()
+        s = score(a["estimate"], a["truth"], estimate_floor=a["estimate_floor"],
+                  truth_floor=a["truth_floor"], covariance_m2=a["covariance"],
+                  q=SUMMARY_PERCENTILES)
+        strip = lambda d: {k: v for k, v in d.items() if k.startswith("p")}  # noqa: E731
+        peb = a["peb"][np.isfinite(a["peb"])]
         return {
             "estimates": self.count,
-            "with_position": len(self.err3d),
+            "with_position": sum(r[1] is not None for r in self.rows.values()),
             "status": dict(self.status),
-            "error_3d_m": pct(self.err3d),
-            "error_z_m": pct(self.errz),
-            "peb_m": pct(self.peb),
-            # over the fixes with a position (each has its floor)
-            "floor_accuracy": floor_accuracy(floors, np.array(self.floor_true, np.int64))[0],
+            "skip_s": self.k_skip * self.period_ns * 1e-9,
+            "node_epochs": s.node_epochs,
+            "node_epochs_without_estimate": int(a["missing"].sum()),
+            "availability": s.availability,
+            "error_3d_m": strip(s.error_3d_m),
+            "error_z_m": strip(s.error_z_m),
+            "peb_m": percentiles(peb, SUMMARY_PERCENTILES, max_mean=False),
+            # over ALL scored node-epochs (a miss is a wrong floor); and over the fixes
+            "floor_accuracy": s.floor_accuracy_all,
+            "floor_accuracy_fixes": s.floor_accuracy_fixes,
+            "ellipsoid_coverage_95": s.ellipsoid_coverage,
         }
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.1f} %"
 
 
 def format_summary(s: dict[str, Any]) -> str:
@@ -84,12 +161,17 @@ def format_summary(s: dict[str, Any]) -> str:
         ("model", s.get("model", "-")),
         ("estimates", f"{s.get('estimates', 0)} ({s.get('with_position', 0)} with a position)"),
         ("status", ", ".join(f"{k} {v}" for k, v in sorted(s.get("status", {}).items())) or "-"),
+        ("node-epochs", f"{s.get('node_epochs', 0)} after the first {s.get('skip_s', 0):g} s "
+                        f"({s.get('node_epochs_without_estimate', 0)} without an estimate)"),
+        ("availability", _pct(s.get("availability"))),
+        ("floor accuracy", f"{_pct(s.get('floor_accuracy'))} of all node-epochs "
+                           f"({_pct(s.get('floor_accuracy_fixes'))} of the fixes)"),
     ]
     for name, key in (("3D error", "error_3d_m"), ("z error", "error_z_m"), ("PEB", "peb_m")):
         p = s.get(key, {})
         rows.append((name, "  ".join(f"p{q} {f(p.get(f'p{q}'))}" for q in SUMMARY_PERCENTILES)))
-    fa = s.get("floor_accuracy")
-    rows.append(("floor accuracy", "-" if fa is None else f"{100 * fa:.1f} %"))
+    rows.append(("95 % ellipsoid", f"{_pct(s.get('ellipsoid_coverage_95'))} of the fixes hold "
+                                   "the truth"))
     fu = s.get("fusion")
     if fu:
         lat = fu["latency_ms"]

@@ -6,6 +6,14 @@ emulate`` path) or, for a recording that does not store its settings, by
 :meth:`FusionConfig.from_recording` (``diffpos replay``). Both apply the one window-edge rule
 (:func:`model_edge`): ``"upper"`` is the paper's D-NLS, ``"lower"`` is the same model one window
 height lower (``Delta + w``), and ``"auto"`` asks :func:`diffpos.scenario.first_arrival_edge`.
+
+The mechanism-aware methods (``mnls``, and the tracker on top of it) need the whole building
+(window band per floor, floor and ceiling planes, depth, edge ends): :attr:`FusionConfig.building`
+carries the scenario's ``[building]`` table as a plain dict (so it travels in the recorded run
+configuration and a replay rebuilds the same :class:`~diffpos.scenario.Building`).
+:meth:`FusionConfig.from_scenario` fills it and selects ``mnls`` + tracking unless told
+otherwise; :meth:`FusionConfig.from_recording` (recordings that do not store their settings,
+which were all made by the D-NLS fusion) keeps ``dnls``.
 """
 
 from __future__ import annotations
@@ -17,17 +25,42 @@ import msgspec
 from msgspec import Meta
 
 from diffpos.alignment import AlignmentConfig
-from diffpos.scenario import Scenario, first_arrival_edge
+from diffpos.scenario import Building, Scenario, ScenarioError, first_arrival_edge
 from diffpos_services.kit import build_config
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["EDGES", "FusionConfig", "channel_edge", "model_edge"]
+__all__ = ["DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig", "building_of", "channel_edge",
+           "model_edge"]
+
+#: The estimators of the solve step (``--method``).
+METHODS = ("mnls", "dnls", "lls", "ippa")
+#: What ``diffpos fusion``, :meth:`FusionConfig.from_scenario` and ``diffpos emulate`` run.
+DEFAULT_METHOD = "mnls"
 
 #: The window edges of the path model (``--edge``).
 EDGES = ("upper", "lower", "auto")
 
 # the building geometry a scenario gives the fusion (FusionConfig field names)
 _GEOMETRY = ("window_height_m", "edge_x_m", "first_floor_z_m", "floor_height_m", "n_floors")
+# of those, the ones that are also fields of the building table
+_BUILDING_OVERRIDES = ("window_height_m", "first_floor_z_m", "floor_height_m", "n_floors")
+# a placeholder anchor and node grid: Scenario.from_dict validates a building only inside a
+# scenario (the one validation of diffpos.scenario, with its field paths)
+_SHELL = {"anchors": [{"id": "a", "position_m": [0.0, -10.0, 1.0]}], "nodes": {"grid": {}}}
+
+
+def building_of(table: Mapping[str, Any]) -> Building:
+    """The :class:`~diffpos.scenario.Building` of a scenario's ``[building]`` table.
+
+    Raises
+    ------
+    ValueError
+        The table is invalid (the message names the field, e.g. ``building.n_floors``).
+    """
+    try:
+        return Scenario.from_dict({"building": dict(table), **_SHELL}).building
+    except ScenarioError as exc:
+        raise ValueError(str(exc)) from None
 
 
 def model_edge(edge: str, scenario: Scenario | None = None) -> tuple[str, str]:
@@ -66,12 +99,26 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
 
     site: str = "demo"
-    method: Literal["dnls", "lls", "ippa"] = "dnls"
-    """Estimator of the solve step: ``dnls`` (diffraction-aware D-NLS with gating and warm
-    starts, default), ``lls`` (line-of-sight linear least squares, the paper's baseline) or
-    ``ippa`` (iterative parallel projection, every range possibly NLoS). Gating, window
-    geometry and warm starts are D-NLS-only; ``lls``/``ippa`` get the same (motion-
-    compensated) ranges, effective sigmas and masks."""
+    method: Literal["mnls", "dnls", "lls", "ippa"] = "dnls"
+    """Estimator of the solve step: ``mnls`` (mechanism-aware NLS on the first-arrival path
+    model of :attr:`building`, floor probabilities; the default of ``diffpos fusion`` and
+    :meth:`from_scenario`), ``dnls`` (diffraction-aware D-NLS with gating and warm starts, the
+    struct's default for settings that do not name a method: recordings made before mnls),
+    ``lls`` (line-of-sight linear least squares, the paper's baseline) or ``ippa`` (iterative
+    parallel projection, every range possibly NLoS). Gating, the window-edge geometry and warm
+    starts are D-NLS-only; ``lls``/``ippa`` get the same (motion-compensated) ranges,
+    effective sigmas and masks."""
+    tracking: bool = True
+    """With ``mnls``: run the per-responder tracker (:mod:`diffpos.tracking`, an IMM over
+    floors) on every epoch's ranges and publish its filtered estimate (the mnls snapshot fix
+    rides along); ignored by the other methods."""
+    snapshot_period_s: Annotated[float, Meta(ge=0)] = 1.0
+    """Tracking: a node whose track is confirmed (TRACKING) gets an mnls snapshot fix at most
+    once per this much measurement time (every epoch while it is not confirmed; 0: every
+    epoch). The snapshot costs ~10x the tracker's update."""
+    building: dict[str, Any] | None = None
+    """The scenario's ``[building]`` table (:func:`building_of`); ``None``: the paper's
+    building with this config's window height, edge ends and floors."""
     window_height_m: Annotated[float, Meta(gt=0)] = 1.5
     delta_m: float = 0.0
     edge_x_m: tuple[float, float] | None = None
@@ -123,6 +170,23 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
         if self.min_sigma_m >= self.max_sigma_m:
             raise ValueError(f"min_sigma_m={self.min_sigma_m} must be < max_sigma_m="
                              f"{self.max_sigma_m} [m]")
+        self.building_model()
+
+    def building_model(self) -> Building:
+        """The :class:`~diffpos.scenario.Building` of the path model (mnls, tracker).
+
+        From :attr:`building` when set; else the paper's building with this config's window
+        height, edge ends, first floor, floor height and number of floors.
+        """
+        if self.building is not None:
+            return building_of(self.building)
+        table: dict[str, Any] = {k: getattr(self, k) for k in _BUILDING_OVERRIDES}
+        if self.edge_x_m is not None:
+            x0, x1 = sorted(self.edge_x_m)
+            table.update(width_m=x1 - x0, center_x_m=0.5 * (x0 + x1))
+        # the default sill must leave room for the window in the floor
+        table["sill_height_m"] = min(0.75, max(self.floor_height_m - self.window_height_m, 0.0))
+        return building_of(table)
 
     def alignment(self) -> AlignmentConfig:
         return AlignmentConfig(
@@ -141,11 +205,14 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
                       **overrides: Any) -> FusionConfig:
         """The fusion's configuration for ``scenario``'s building, with ``overrides``.
 
+        The method is :data:`DEFAULT_METHOD` (``mnls`` with tracking) unless ``overrides``
+        name one.
+
         Parameters
         ----------
         scenario : Scenario or None
-            Gives the building geometry (window height, edge x limits, floors); ``None``
-            keeps the defaults.
+            Gives the building geometry (window height, edge x limits, floors, and the whole
+            ``[building]`` table as :attr:`building`); ``None`` keeps the defaults.
         edge : {"upper", "lower", "auto"}
             Window edge of the path model (:func:`model_edge`); the lower edge is the upper
             edge one window height lower, so it adds ``window_height_m`` to ``delta_m``.
@@ -158,7 +225,9 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
         ConfigError
             Naming the invalid field.
         """
-        values = {k: v for k, v in overrides.items() if k not in _GEOMETRY}
+        values = {"method": DEFAULT_METHOD}
+        values.update({k: v for k, v in overrides.items() if k not in _GEOMETRY})
+        geometry = {k: v for k, v in overrides.items() if k in _GEOMETRY}
         if scenario is not None:
             b = scenario.building
             values.update(
@@ -168,7 +237,11 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
                 floor_height_m=b.floor_height_m,
                 n_floors=b.n_floors,
             )
-        values.update({k: v for k, v in overrides.items() if k in _GEOMETRY})
+            if "building" not in overrides:
+                table = scenario.to_dict()["building"]
+                table.update({k: v for k, v in geometry.items() if k in _BUILDING_OVERRIDES})
+                values["building"] = table
+        values.update(geometry)
         cfg = build_config(cls, values)
         if model_edge(edge, scenario)[0] == "lower":
             # the lower edge is the upper edge one window height lower: Delta + w
@@ -186,10 +259,13 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
         run_metadata : mapping
             ``site`` (str) and, if known, ``range_rate_hz`` (float, the anchors' ranging
             rate from the first anchor state: the epoch period is one ranging period).
+            ``method`` (optional): default ``dnls``, the fusion every recording without
+            stored settings was made with.
         scenario : Scenario or None
             The recording's scenario (its building geometry).
         """
-        overrides: dict[str, Any] = {"site": run_metadata["site"]}
+        overrides: dict[str, Any] = {"site": run_metadata["site"],
+                                     "method": run_metadata.get("method", "dnls")}
         rate = run_metadata.get("range_rate_hz")
         if rate is not None:
             overrides["epoch_period_s"] = 1.0 / rate

@@ -1,7 +1,10 @@
 """The fusion's logic without any network: :class:`FusionCore`.
 
 Feed it raw ``(key, payload)`` samples and liveliness events, call :meth:`FusionCore.step`
-and get :class:`~diffpos_services.wire.messages.PositionEstimate` messages back. The unit
+and get estimates back: :class:`~diffpos_services.wire.messages.PositionEstimateV2` for the
+method ``mnls`` (with the per-responder tracker of :mod:`diffpos_services.fusion.tracked`
+when ``tracking``), :class:`~diffpos_services.wire.messages.PositionEstimate` (v1, as before)
+for ``dnls``/``lls``/``ippa``. The unit
 tests drive it in memory, ``diffpos replay`` re-runs it offline, and
 :func:`diffpos_services.fusion.service.run_fusion` wires it to Zenoh.
 
@@ -37,6 +40,7 @@ from diffpos_services.fusion.ingest import (
     bad_batch,
     bad_state,
     bad_value,
+    batch_all_good,
 )
 from diffpos_services.fusion.solve import (
     GOOD_STATUS,
@@ -48,6 +52,7 @@ from diffpos_services.fusion.solve import (
     prepare,
     solve_batch,
 )
+from diffpos_services.fusion.tracked import TrackBank, estimates_v2, solve_mnls
 from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
@@ -101,6 +106,11 @@ class FusionCore:
         self._dec_batch = M.decoder(M.RangeBatch)
         self.changed = False  # liveliness changed since the last diagnostics
         self._ready: collections.deque[PendingEpoch] = collections.deque()
+        # mnls: the building of the path model; with tracking, every node's tracker state
+        self.building = config.building_model() if config.method == "mnls" else None
+        self.bank = (TrackBank(self.building) if self.building is not None and config.tracking
+                     else None)
+        self.method_name = config.method + ("+tracking" if self.bank is not None else "")
 
     # ------------------------------------------------------------------ ingestion
     def _reject(self, key: str, reason: str, detail: str = "", *, source: str = "bus",
@@ -331,34 +341,12 @@ class FusionCore:
         else:
             self._add_batch(key, src, anchor, msg, rx_wall_ns)
 
-    def _batch_all_good(self, msg: M.RangeBatch) -> bool:
-        """True if every entry of ``msg`` passes the per-entry checks of :meth:`_add_batch`
-        (no null, finite values within the configured limits, only known allowed nodes),
-        checked with a few vectorised operations instead of per entry."""
-        ids, r, sg, snr = msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db
-        if not ids or None in r or None in sg or None in snr:
-            return False
-        if not self._nodes.issuperset(ids) or (
-            self._allowed_nodes is not None and not self._allowed_nodes.issuperset(ids)
-        ):
-            return False
-        cfg = self.config
-        ra = np.array(r, dtype=np.float64)
-        sa = np.array(sg, dtype=np.float64)
-        na = np.array(snr, dtype=np.float64)
-        # NaN compares False: a non-finite value fails these and takes the checked path
-        return bool(
-            (ra.max() <= cfg.max_range_m) & (ra.min() >= 0.0)
-            & (sa.min() >= cfg.min_sigma_m) & (sa.max() <= cfg.max_sigma_m)
-            & (na.min() >= -300.0) & (na.max() <= 300.0)
-        )
-
     def _add_batch(self, key: str, src: str, anchor: AnchorStream, msg: M.RangeBatch,
                    rx_wall_ns: int) -> None:
         self.received["range"] += len(msg.node_ids)
         t, pw = msg.t_ns, msg.t_pub_wall_ns
         rows = zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db, strict=True)
-        if self._batch_all_good(msg):
+        if batch_all_good(self.config, msg, self._nodes, self._allowed_nodes):
             # the usual batch: every entry valid and every node known, so the per-entry checks
             # would accept them all and no value is None (what _entry then does, inlined)
             min_snr = self.config.min_snr_db
@@ -434,6 +422,11 @@ class FusionCore:
         r = window_edge_path(anchors, node, window_height_m=self.config.window_height_m).length_m
         est.dnls(anchors[None], r[None], np.full((1, 4), 0.1),
              window_height_m=self.config.window_height_m, gating=self.gating)
+        if self.building is not None:  # a throw-away tracker: the core's state is untouched
+            est.mnls(anchors[None], r[None], np.full((1, 4), 0.1), building=self.building)
+            TrackBank(self.building).update(["warm-up"], anchors[None], r[None],
+                                            np.full((1, 4), 0.1), np.ones((1, 4), bool),
+                                            np.zeros(1, np.int64))
 
     @property
     def live_anchors(self) -> frozenset[str]:
@@ -491,9 +484,24 @@ class FusionCore:
         )
         batch = gather(epochs, ids, self.anchors)
         prep = prepare(batch, epochs, self.tracks, self.config)
-        res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
         self.solved += len(epochs)
+        if self.building is not None:
+            solved = solve_mnls(batch, prep, epochs, self.config, self.building, self.bank)
+            return self._count(batch, solved.res, estimates_v2(
+                epochs, batch, solved, {x.id for x in self.anchors.values() if not x.alive},
+                seq0=self.seq, now=int(now_wall_ns), method=self.method_name))
+        res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
         return self._to_messages(epochs, batch, res, int(now_wall_ns))
+
+    def _count(self, batch: Batch, res: Results, out: list) -> list:
+        """Counters and latencies of the v2 estimates ``out`` of a batch (``_to_messages``
+        does the same for v1)."""
+        self.gated += gated_count(batch, res)
+        self.seq += len(out)
+        self.by_status.update(e.status for e in out)
+        self.latencies_ns.extend(e.t_pub_wall_ns - e.t_input_wall_ns for e in out
+                                 if e.t_input_wall_ns > 0)
+        return out
 
     def _to_messages(self, epochs: list[PendingEpoch], batch: Batch, res: Results,
                      now: int) -> list[M.PositionEstimate]:

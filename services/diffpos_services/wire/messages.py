@@ -8,7 +8,13 @@ Conventions: units in field names (``range_m``, ``snr_db``), times as integer na
 the building frame (front wall ``y = 0``, inside ``y > 0``, ``z`` up). Quantities that can be
 undefined (an unidentifiable fix has no finite PEB) are ``null``, never NaN.
 
-The checked-in ``schemas/<name>.v1.json`` files are generated from these structs::
+Estimates come in two versions: :class:`PositionEstimate` (``diffpos.estimate.v1``, the
+D-NLS snapshot fix, still decoded: old recordings) and :class:`PositionEstimateV2`
+(``diffpos.estimate.v2``, what the fusion publishes: the tracked or snapshot fix with floor
+probabilities, the snapshot beside the filtered one, the mechanism per anchor);
+:func:`estimate_decoder` reads both.
+
+The checked-in ``schemas/<name>.v<N>.json`` files are generated from these structs::
 
     diffpos schemas --write schemas/
 
@@ -31,9 +37,12 @@ from msgspec import Meta
 from diffpos_services.kit import DiffposError
 
 __all__ = [
+    "ESTIMATE_TYPES",
     "GOOD_STATUSES",
     "MESSAGE_TYPES",
+    "TRACK_STATUSES",
     "AnchorHealth",
+    "AnchorLink",
     "AnchorState",
     "DecodeError",
     "Exclusion",
@@ -41,12 +50,15 @@ __all__ = [
     "GroundTruth",
     "LatencyStats",
     "PositionEstimate",
+    "PositionEstimateV2",
     "RangeBatch",
     "RangeMeasurement",
     "RunClock",
     "RunControl",
+    "SnapshotFix",
     "decoder",
     "encode",
+    "estimate_decoder",
     "finite_or_none",
     "json_schema",
     "schema_filename",
@@ -106,8 +118,11 @@ FixStatusName = Annotated[
     ),
 ]
 
-#: statuses of a fix whose position can be used (``FixResult.ok`` of the core, by name)
-GOOD_STATUSES = frozenset({"OK", "OK_UNVERIFIED"})
+#: statuses of a track (``diffpos.tracking.TrackStatus`` names) in estimate v2
+TRACK_STATUSES = ("UNINITIALISED", "INITIALISING", "TRACKING", "COASTING", "LOST")
+#: statuses of an estimate whose position can be used: a good snapshot fix (``FixResult.ok``
+#: of the core, by name) or a track that publishes a position
+GOOD_STATUSES = frozenset({"OK", "OK_UNVERIFIED", "INITIALISING", "TRACKING", "COASTING"})
 
 
 def finite_or_none(value: float | None) -> float | None:
@@ -236,6 +251,83 @@ class PositionEstimate(_Msg, tag="diffpos.estimate.v1"):
     t_pub_wall_ns: WallNs
 
 
+FloorProbs = Annotated[
+    list[Annotated[float, Meta(ge=0, le=1)]],
+    Meta(description="Probability of every floor of the building, index = floor index "
+                     "(empty when the method gives none).")]
+
+
+class AnchorLink(msgspec.Struct, frozen=True, gc=False):
+    """What the fix made of one anchor's range: the path mechanism it was explained by."""
+
+    anchor_id: Id
+    mechanism: Annotated[str, Meta(description=(
+        "Label of the first-arrival mechanism used for this range (diffpos.paths.MECHANISMS, "
+        "e.g. 'Tx-D(lower)-Rx'); null where the range was not explained by one (an outlier, "
+        "or a method without mechanisms)."))] | None
+    residual_m: Annotated[float, Meta(description=(
+        "Range minus the model path length at the published position [m]."))] | None
+
+
+class SnapshotFix(msgspec.Struct, frozen=True, gc=False):
+    """The snapshot (single-epoch) fix of the same ranges, beside the filtered estimate."""
+
+    method: Annotated[str, Meta(description="Estimator, e.g. mnls.")]
+    status: FixStatusName
+    position_m: PosM | None
+    covariance_m2: Cov3 | None
+    floor_index: Annotated[int, Meta(description="Most probable floor, 0 = ground floor.")] | None
+    floor_probabilities: FloorProbs
+
+
+class PositionEstimateV2(_Msg, tag="diffpos.estimate.v2"):
+    """Estimate of one node for one fusion epoch: the tracked position (or a snapshot fix).
+
+    With tracking (``method`` ``mnls+tracking``) ``status`` is the track's:
+    INITIALISING (initialised from a snapshot, not yet confirmed), TRACKING, COASTING (no
+    usable range this epoch: predicted, the covariance grows), LOST (no position) or
+    UNINITIALISED (too few ranges so far); ``snapshot`` holds the epoch's own mnls fix when it
+    was computed. Without tracking ``status`` is the snapshot status (a
+    diffpos.estimators.FixStatus name) and ``snapshot`` is null. ``position_m`` is null when
+    there is no usable position; ``covariance_m2`` includes the floor mixture and the model
+    uncertainty. ``used_anchors``/``residuals_m``/``excluded`` keep their v1 meaning;
+    ``links`` gives every anchor's mechanism and residual.
+    """
+
+    node_id: Id
+    t_ns: Annotated[
+        int, Meta(description="Estimate time (mean of the used range times) [ns].")
+    ]
+    epoch: Annotated[int, Meta(description="Fusion epoch index floor(t / epoch_period).")]
+    seq: Seq
+    method: Annotated[str, Meta(description="mnls+tracking, mnls, dnls, lls or ippa.")]
+    status: FixStatusName
+    position_m: PosM | None
+    covariance_m2: Cov3 | None
+    peb_m: Annotated[float, Meta(ge=0, description=(
+        "sqrt(trace(covariance)) [m].")) ] | None
+    z_bound_m: Annotated[float, Meta(ge=0, description="sqrt(covariance zz) [m].")] | None
+    floor_index: Annotated[int, Meta(description="Floor index, 0 = ground floor.")] | None
+    floor_probabilities: FloorProbs
+    snapshot: SnapshotFix | None
+    links: Annotated[list[AnchorLink], Meta(description=(
+        "Every anchor with a range in this epoch: mechanism and residual."))]
+    used_anchors: list[Id]
+    residuals_m: Annotated[
+        list[float], Meta(description="Residual per used anchor, same order [m].")
+    ]
+    excluded: list[Exclusion]
+    message: str
+    t_input_wall_ns: Annotated[
+        int, Meta(ge=0, description="Latest t_pub_wall_ns among the ranges of this fix [ns].")
+    ]
+    t_pub_wall_ns: WallNs
+
+
+#: the estimate versions a reader accepts (:func:`estimate_decoder`)
+ESTIMATE_TYPES = (PositionEstimate, PositionEstimateV2)
+
+
 class LatencyStats(msgspec.Struct, frozen=True, gc=False):
     """Latency from the newest input's publish to the estimate's publish, over a window."""
 
@@ -324,6 +416,7 @@ MESSAGE_TYPES: dict[type[msgspec.Struct], str] = {
     RangeMeasurement: "range.v1",
     RangeBatch: "range_batch.v1",
     PositionEstimate: "estimate.v1",
+    PositionEstimateV2: "estimate.v2",
     FusionDiagnostics: "fusion_diagnostics.v1",
     GroundTruth: "truth.v1",
     RunControl: "run_control.v1",
@@ -393,6 +486,32 @@ def decoder(kind: type[msgspec.Struct]):
             # msgspec skips unknown fields recursively: ~1000 nested arrays exhaust the stack
             raise DecodeError("json", "JSON nested too deeply") from None
         if type(msg) is not kind:
+            raise DecodeError("schema", f"Invalid value {_Untagged.__struct_config__.tag!r} - "
+                              "at `$.schema`")
+        return msg
+
+    return decode
+
+
+def estimate_decoder():
+    """A function ``bytes -> PositionEstimate | PositionEstimateV2`` (by the ``schema`` tag),
+    raising :class:`DecodeError` like :func:`decoder`: the consumers of estimates read both
+    versions (v1 in recordings made before estimate v2)."""
+    dec = _DECODERS.get(PositionEstimateV2 | PositionEstimate)
+    if dec is None:
+        dec = _DECODERS[PositionEstimateV2 | PositionEstimate] = msgspec.json.Decoder(
+            PositionEstimate | PositionEstimateV2 | _Untagged)
+
+    def decode(payload: bytes | bytearray | memoryview) -> Any:
+        try:
+            msg = dec.decode(payload)
+        except msgspec.ValidationError as exc:
+            raise DecodeError("schema", str(exc)) from None
+        except msgspec.DecodeError as exc:
+            raise DecodeError("json", str(exc)) from None
+        except RecursionError:
+            raise DecodeError("json", "JSON nested too deeply") from None
+        if type(msg) not in ESTIMATE_TYPES:
             raise DecodeError("schema", f"Invalid value {_Untagged.__struct_config__.tag!r} - "
                               "at `$.schema`")
         return msg

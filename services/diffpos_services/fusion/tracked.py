@@ -1,0 +1,255 @@
+"""The mechanism-aware solve step (``method = "mnls"``) and the per-responder tracker.
+
+Used by :meth:`FusionCore._solve <diffpos_services.fusion.core.FusionCore._solve>` when the
+method is ``mnls``: the epochs of a batch (gathered and prepared by
+:mod:`diffpos_services.fusion.solve`) get
+
+- the snapshot fix :func:`diffpos.estimators.mnls` on the scenario's building (every row
+  without tracking; with tracking only the rows whose node has no confirmed track, or whose
+  last snapshot is ``snapshot_period_s`` of measurement time old);
+- with tracking, the update of :mod:`diffpos.tracking` (an IMM over floors per node): all the
+  batch's nodes in one vectorised call per *round* (a round holds at most one epoch per node,
+  oldest first, so a backlog of several epochs of one node is applied in time order). A node
+  whose epoch has no usable range is predicted only (COASTING, the covariance grows).
+
+:class:`TrackBank` holds the tracker state of every node the core has seen (rows of one
+:class:`~diffpos.tracking.TrackerState`); it is part of the network-free core, so a replay
+re-runs it. Everything is a function of the inputs: no clock, no randomness; a node's result
+depends only on its own epochs (rows are independent in every vectorised step), so the
+batching of the live service and of a replay gives the same numbers bit for bit.
+
+:func:`estimates_v2` turns a solved batch into :class:`~diffpos_services.wire.messages.
+PositionEstimateV2` messages.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+import diffpos.estimators as est
+from diffpos.alignment import PendingEpoch
+from diffpos.estimators import ExclusionReason, FixStatus
+from diffpos.paths import MECHANISMS
+from diffpos.tracking import TrackerConfig, TrackerState, TrackStatus, init_state, update
+from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
+from diffpos_services.wire import messages as M
+
+__all__ = ["Solved", "TrackBank", "estimates_v2", "solve_mnls"]
+
+_FIX_NAMES = {int(s): s.name for s in FixStatus}
+_TRACK_NAMES = {int(s): s.name for s in TrackStatus}
+_NO_POSITION = (int(TrackStatus.UNINITIALISED), int(TrackStatus.LOST))
+_RAIM = int(ExclusionReason.RAIM)
+
+
+class TrackBank:
+    """Tracker state of every node, grown as nodes appear (row ``index[node_id]``).
+
+    Parameters
+    ----------
+    building : diffpos.scenario.Building
+    config : TrackerConfig, optional
+    """
+
+    def __init__(self, building: Any, config: TrackerConfig | None = None) -> None:
+        self.building = building
+        self.config = config or TrackerConfig()
+        self.index: dict[str, int] = {}
+        self.state: TrackerState = init_state(0, building)
+        self.snapshot_ns: dict[str, int] = {}  # measurement time of each node's last snapshot
+
+    def rows_of(self, node_ids: list[str]) -> np.ndarray:
+        """State rows of ``node_ids`` (new nodes get new, uninitialised rows)."""
+        new = [n for n in dict.fromkeys(node_ids) if n not in self.index]
+        if new:
+            for n in new:
+                self.index[n] = len(self.index)
+            more = init_state(len(new), self.building)
+            self.state = TrackerState(*(np.concatenate([getattr(self.state, f), getattr(more, f)])
+                                        for f in TrackerState.__dataclass_fields__))
+        return np.array([self.index[n] for n in node_ids], dtype=np.int64)
+
+    def status_of(self, node_ids: list[str]) -> np.ndarray:
+        """Current track status of ``node_ids`` (UNINITIALISED for unknown nodes)."""
+        return np.array([self.state.status[self.index[n]] if n in self.index
+                         else int(TrackStatus.UNINITIALISED) for n in node_ids], dtype=np.int8)
+
+    def update(self, node_ids: list[str], anchors: np.ndarray, ranges: np.ndarray,
+               sigmas: np.ndarray, mask: np.ndarray, t_ns: np.ndarray):
+        """One epoch of ranges for distinct ``node_ids``: :func:`diffpos.tracking.update` on
+        their rows; returns the :class:`~diffpos.tracking.TrackOutput`."""
+        rows = self.rows_of(node_ids)
+        fields = TrackerState.__dataclass_fields__
+        sub = TrackerState(*(getattr(self.state, f)[rows] for f in fields))
+        new, out = update(sub, anchors, ranges, sigmas, mask, t_ns, self.building, self.config)
+        full = {f: getattr(self.state, f).copy() for f in fields}
+        for f in fields:
+            full[f][rows] = getattr(new, f)
+        self.state = replace(self.state, **full)
+        return out
+
+
+@dataclass
+class Solved:
+    """A batch solved by :func:`solve_mnls` (rows = epochs, columns = the batch's anchors)."""
+
+    res: Results  # the published fix per row (used / exclusion reasons / residuals)
+    status: list[str]  # status name per row
+    floor_prob: np.ndarray  # (B, F), NaN rows: none
+    mechanism: np.ndarray  # (B, M) slot or -1
+    snap: Results | None  # the mnls snapshot of the rows that got one (tracking only)
+    snap_rows: np.ndarray  # (B,) bool: row has a snapshot
+    snap_floor: np.ndarray  # (B,) floor of the snapshot, -1
+    snap_prob: np.ndarray  # (B, F)
+    tracking: bool
+
+
+def _mnls_rows(res: Results, rows: np.ndarray, prep: Prepared, use: np.ndarray, building,
+               floor: np.ndarray, prob: np.ndarray, mech: np.ndarray) -> None:
+    """The mnls fixes of ``rows`` into ``res`` and the floor/mechanism arrays."""
+    if rows.size == 0:
+        return
+    fix = est.mnls(prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
+                   building=building, mask=use[rows])
+    res.put(rows, fix)
+    floor[rows] = fix.floor
+    prob[rows] = fix.floor_probability
+    mech[rows] = np.where(fix.used, fix.mechanism, -1)
+
+
+def _rounds(epochs: list[PendingEpoch]) -> list[list[int]]:
+    """Row indices in rounds of distinct nodes, each node's epochs oldest first."""
+    order = sorted(range(len(epochs)), key=lambda i: (epochs[i].epoch, epochs[i].node_id))
+    rounds: list[list[int]] = []
+    depth: dict[str, int] = {}
+    for i in order:
+        k = depth.get(epochs[i].node_id, 0)
+        depth[epochs[i].node_id] = k + 1
+        if k == len(rounds):
+            rounds.append([])
+        rounds[k].append(i)
+    return rounds
+
+
+def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray,
+                  cfg: FusionConfig) -> np.ndarray:
+    """Rows that get an mnls snapshot while tracking (module docstring)."""
+    ids = [pe.node_id for pe in epochs]
+    confirmed = bank.status_of(ids) == int(TrackStatus.TRACKING)
+    period = round(cfg.snapshot_period_s * 1e9)
+    due = np.ones(len(epochs), bool)
+    for i, (nid, ok) in enumerate(zip(ids, confirmed.tolist(), strict=True)):
+        last = bank.snapshot_ns.get(nid)
+        if ok and last is not None and 0 <= t_ref[i] - last < period:
+            due[i] = False
+    for i in np.flatnonzero(due):
+        bank.snapshot_ns[ids[i]] = int(t_ref[i])
+    return due
+
+
+def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: FusionConfig,
+               building, bank: TrackBank | None) -> Solved:
+    """The mnls snapshot fixes and, with ``bank``, the tracked estimates of ``batch``."""
+    b, m = len(epochs), len(batch.names)
+    nf = building.n_floors
+    use = batch.use
+    snap = Results(b, m)
+    s_floor, s_prob = np.full(b, -1), np.full((b, nf), np.nan)
+    s_mech = np.full((b, m), -1)
+    if bank is None:
+        _mnls_rows(snap, np.arange(b), prep, use, building, s_floor, s_prob, s_mech)
+        return Solved(snap, [_FIX_NAMES[int(s)] for s in snap.status], s_prob, s_mech, None,
+                      np.zeros(b, bool), s_floor, s_prob, False)
+    due = _snapshot_due(bank, epochs, batch.t_ref, cfg)
+    _mnls_rows(snap, np.flatnonzero(due), prep, use, building, s_floor, s_prob, s_mech)
+    res = Results(b, m)
+    status = [""] * b
+    prob = np.full((b, nf), np.nan)
+    mech = np.full((b, m), -1)
+    for rows_l in _rounds(epochs):
+        rows = np.array(rows_l)
+        out = bank.update([epochs[i].node_id for i in rows_l], prep.safe_apos[rows],
+                          prep.rng_in[rows], prep.sig_eff[rows], use[rows], batch.t_ref[rows])
+        res.pos[rows], res.cov[rows] = out.position_m, out.covariance_m2
+        mech[rows] = np.where(use[rows], out.mechanism, -1)
+        res.resid[rows] = np.where(mech[rows] >= 0, out.residual_m, np.nan)
+        has = np.isin(out.status, _NO_POSITION, invert=True)
+        prob[rows] = np.where(has[:, None], out.floor_probabilities, np.nan)
+        for r, st in zip(rows_l, out.status.tolist(), strict=True):
+            status[r] = _TRACK_NAMES[st]
+    res.used = mech >= 0
+    res.reason = np.where(use & ~res.used, _RAIM, 0)
+    with np.errstate(invalid="ignore"):
+        res.peb = np.sqrt(np.trace(res.cov, axis1=1, axis2=2))
+        res.zb = np.sqrt(res.cov[:, 2, 2])
+    return Solved(res, status, prob, mech, snap, due, s_floor, s_prob, True)
+
+
+# ----------------------------------------------------------------------------- messages
+def _cov_tuple(c: list[list[float]]) -> Any:
+    return tuple(map(tuple, c)) if all(np.isfinite(v) for row in c for v in row) else None
+
+
+def _probs(row: list[float]) -> list[float]:
+    """Floor probabilities for the wire (empty when unknown; clipped into [0, 1])."""
+    if not row or not all(np.isfinite(row)):
+        return []
+    return [min(max(p, 0.0), 1.0) for p in row]
+
+
+def _snapshot_msg(s: Solved, i: int, pos_l, cov_l, prob_l) -> M.SnapshotFix | None:
+    if not s.tracking or not s.snap_rows[i]:
+        return None
+    st = _FIX_NAMES[int(s.snap.status[i])]
+    ok = st in M.GOOD_STATUSES and all(np.isfinite(pos_l[i]))
+    return M.SnapshotFix(
+        method="mnls", status=st, position_m=tuple(pos_l[i]) if ok else None,
+        covariance_m2=_cov_tuple(cov_l[i]) if ok else None,
+        floor_index=int(s.snap_floor[i]) if ok and s.snap_floor[i] >= 0 else None,
+        floor_probabilities=_probs(prob_l[i]))
+
+
+def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[str], *,
+                 seq0: int, now: int, method: str) -> list[M.PositionEstimateV2]:
+    """One :class:`PositionEstimateV2` per row of a batch solved by :func:`solve_mnls`
+    (sequence numbers ``seq0 + 1 ...``, ``t_pub_wall_ns = now``)."""
+    res, names = s.res, batch.names
+    group_l, shared = exclusion_groups(batch, res, lost)
+    pos_l, cov_l = res.pos.tolist(), res.cov.tolist()
+    peb_l, zb_l = res.peb.tolist(), res.zb.tolist()
+    prob_l, mech_l = s.floor_prob.tolist(), s.mechanism.tolist()
+    resid_l = res.resid.tolist()
+    use_l = batch.use.tolist()
+    t_ref_l = batch.t_ref.tolist()
+    in_wall_l = np.where(batch.reported, batch.pub_wall, 0).max(axis=1).tolist()
+    snap_pos = s.snap.pos.tolist() if s.tracking else []
+    snap_cov = s.snap.cov.tolist() if s.tracking else []
+    snap_prob = s.snap_prob.tolist() if s.tracking else []
+    out = []
+    for i, (pe, gi) in enumerate(zip(epochs, group_l, strict=True)):
+        st = s.status[i]
+        used_idx, used_ids, excluded, _ = shared[gi]
+        has = st in M.GOOD_STATUSES and all(np.isfinite(pos_l[i]))
+        probs = _probs(prob_l[i]) if has else []
+        fl = int(np.argmax(probs)) if probs else None
+        links = [M.AnchorLink(names[j], MECHANISMS[mech_l[i][j]] if mech_l[i][j] >= 0 else None,
+                              M.finite_or_none(resid_l[i][j]))
+                 for j in range(len(names)) if use_l[i][j]]
+        out.append(M.PositionEstimateV2(
+            node_id=pe.node_id, t_ns=t_ref_l[i], epoch=pe.epoch, seq=seq0 + i + 1,
+            method=method, status=st,
+            position_m=tuple(pos_l[i]) if has else None,
+            covariance_m2=_cov_tuple(cov_l[i]) if has else None,
+            peb_m=M.finite_or_none(peb_l[i]) if has else None,
+            z_bound_m=M.finite_or_none(zb_l[i]) if has else None,
+            floor_index=fl, floor_probabilities=probs,
+            snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob),
+            links=links, used_anchors=list(used_ids),
+            residuals_m=[resid_l[i][j] if np.isfinite(resid_l[i][j]) else 0.0 for j in used_idx],
+            excluded=list(excluded), message=res.msg[i] if not s.tracking else "",
+            t_input_wall_ns=max(in_wall_l[i], 0), t_pub_wall_ns=now))
+    return out
