@@ -10,6 +10,7 @@ allowed one arrives the forbidden one must not have (one transport link is FIFO)
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -510,6 +511,38 @@ def test_ca_bundle_allows_overlapping_rotation(bus, tmp_path):
     cfg = bus.config("recorder", timeout_ms=5000)
     cfg["transport"]["link"]["tls"]["root_ca_certificate"] = str(bundle)
     assert not _refused(cfg)
+
+
+def test_per_run_profile_fresh_secrets_in_a_private_folder(tmp_path):
+    """What `diffpos emulate --security-profile` runs with: the profile's identities with
+    fresh passwords and certificates (client certificates with mTLS), the CA key deleted;
+    another run gets other secrets; a folder other users may enter is refused."""
+    dev = zs.load_profile(REPO / "security" / "profile.dev.toml")
+    dev_pw = zs.read_credentials(dev.path(dev.dictionary_file))
+    runs = []
+    for name, mtls in (("run1", True), ("run2", False)):
+        out = tmp_path / name
+        out.mkdir()
+        os.chmod(out, 0o700)
+        run = zs.per_run_profile(dataclasses.replace(dev, mtls=mtls), out,
+                                 hosts=["localhost", "127.0.0.1", "localhost"])
+        assert run.root == out and run.identities() == dev.identities() and run.mtls == mtls
+        assert zs.check_profile(run) == []  # every file it names exists (mTLS: client certs)
+        assert not (out / "certs" / "ca.key").exists()
+        assert Path(run.path(run.ca_certificate)).read_bytes() != \
+            Path(dev.path(dev.ca_certificate)).read_bytes()
+        pw = zs.read_credentials(run.path(run.dictionary_file))
+        assert set(pw) == set(dev_pw) and all(len(p) >= 32 for p in pw.values())
+        assert not set(pw.values()) & set(dev_pw.values())
+        assert Path(run.path(run.dictionary_file)).stat().st_mode & 0o077 == 0
+        runs.append(pw)
+    assert not set(runs[0].values()) & set(runs[1].values())
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o755)
+    with pytest.raises(zs.SecurityError, match="0700"):
+        zs.per_run_profile(dev, shared, hosts=["localhost"])
+    assert list(shared.iterdir()) == []  # nothing written there
 
 
 def test_make_dev_certs_script_and_password_rotation(tmp_path):
