@@ -271,6 +271,8 @@ def build_command(
     flush_interval_s: float = 0.2,
     status: bool = True,
     python: str | None = None,
+    split_duration_s: float | None = None,
+    split_size_mb: float | None = None,
 ) -> list[str]:
     """argv that starts the recorder as a subprocess (for ``diffpos emulate`` and tests).
 
@@ -290,6 +292,8 @@ def build_command(
         Scenario TOML, attached to the recording.
     run_config : path, optional
         JSON file with the run configuration, attached to the recording.
+    split_duration_s, split_size_mb : float, optional
+        ``--split-duration`` / ``--split-size`` (default: the recorder's defaults; 0 = off).
     """
     argv = [
         python or sys.executable,
@@ -309,6 +313,10 @@ def build_command(
         argv += ["--scenario", str(scenario)]
     if run_config is not None:
         argv += ["--run-config", str(run_config)]
+    if split_duration_s is not None:
+        argv += ["--split-duration", repr(float(split_duration_s))]
+    if split_size_mb is not None:
+        argv += ["--split-size", repr(float(split_size_mb))]
     if status:
         argv.append("--status")
     return argv

@@ -16,11 +16,20 @@ footer-less file into a valid one. SIGINT/SIGTERM end recording cleanly (footer 
 final counters as metadata "recorder_stats"). Received vs written counts and gaps in sequence
 numbers are logged at the end.
 
+Long recordings are split (like rosbag2) so the recorder's memory stays bounded: the MCAP
+writer keeps an index entry per chunk and channel until the file is finished (+~10 MB per
+minute at 8 anchors x 50 nodes x 10 Hz), so a new file is started every --split-duration
+seconds or --split-size MB. Part 0 is --out itself, part k is <stem>_000k.mcap next to it;
+every part is a complete, indexed MCAP with the run metadata and the scenario attachment
+(replay, inspect and to-rerun accept any part). See docs/soak.md for the measurement.
+An existing --out (or part) is never overwritten.
+
 examples:
   diffpos router &                                        # the bus, tcp/127.0.0.1:7447
   diffpos recorder --site demo                            # -> recordings/demo-<UTC>.mcap
   diffpos recorder --site demo --out run1.mcap --scenario scenarios/paper.toml
   diffpos recorder --site demo --duration 60 --status     # stop after 60 s; JSON status lines
+  diffpos recorder --site demo --split-duration 60        # a new file every minute
   diffpos inspect run1.mcap                               # what is in it
 """
 
@@ -49,7 +58,30 @@ from diffpos_services.recorder import (
     status_printer,
 )
 from diffpos_services.recording.errors import RecordingError
-from diffpos_services.recording.writer import McapSink
+from diffpos_services.recording.writer import McapSink, SplitPolicy, part_path
+
+#: default part length [s] and size [MB]: ~50 MB of writer index at the issue's load
+DEFAULT_SPLIT_S = 300.0
+DEFAULT_SPLIT_MB = 1024.0
+
+
+def split_policy(args: argparse.Namespace) -> SplitPolicy:
+    """--split-duration / --split-size as a :class:`SplitPolicy` (0 = that limit off)."""
+    for opt, v in (("--split-duration", args.split_duration), ("--split-size", args.split_size)):
+        if not v >= 0:
+            raise ConfigError(f"{opt} {v}: must be >= 0 (0 = no limit)")
+    return SplitPolicy(
+        max_bytes=round(args.split_size * 1e6) if args.split_size > 0 else None,
+        max_duration_s=args.split_duration if args.split_duration > 0 else None,
+    )
+
+
+def _refuse_existing(out: Path) -> None:
+    """A recording is never written over an existing file (or an existing later part)."""
+    for path in (out, part_path(out, 1)):
+        if path.exists():
+            raise ConfigError(f"--out {out}: {path} already exists; recordings are never "
+                              "overwritten: give a new name (or move the old file)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -70,6 +102,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--queue", type=int, default=65536, metavar="N",
                         help="samples buffered between Zenoh and the writer (default 65536)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--split-duration", type=float, default=DEFAULT_SPLIT_S, metavar="S",
+                        help="start a new file (part) after S seconds of recording, bounding "
+                             f"memory (default {DEFAULT_SPLIT_S:g}; 0 = never)")
+    parser.add_argument("--split-size", type=float, default=DEFAULT_SPLIT_MB, metavar="MB",
+                        help=f"start a new file once the current one holds MB megabytes "
+                             f"(default {DEFAULT_SPLIT_MB:g}; 0 = never)")
     parser.add_argument("--status", action="store_true",
                         help="print JSON status lines to stdout (ready, flush, closed)")
     add_zenoh_arguments(parser)
@@ -98,9 +136,11 @@ def _run(args: argparse.Namespace, logger: logging.Logger) -> int:
         run_config = load_json_option("--run-config", args.run_config)
     name = args.name or (Path(args.scenario).stem if args.scenario else args.site)
     out = Path(args.out) if args.out else default_output_path(name, directory=args.dir)
+    split = split_policy(args)
+    _refuse_existing(out)
     shutdown = Shutdown(logger)
     try:
-        sink = McapSink(out, compression=args.compression)
+        sink = McapSink(out, compression=args.compression, split=split)
     except (OSError, RecordingError) as exc:
         raise ConfigError(f"--out {out}: cannot create it ({exc})") from None
     meta = run_metadata(settings, options, scenario=name)
@@ -135,6 +175,9 @@ def _run(args: argparse.Namespace, logger: logging.Logger) -> int:
         for key, first, last in final.gap_list[:20]:
             log_event(logger, logging.WARNING, "sequence gap", key=key, first_missing=first,
                       last_missing=last)
+    if len(sink.parts) > 1:
+        log_event(logger, logging.INFO, "recording split", parts=len(sink.parts),
+                  last=str(sink.parts[-1]))
     if emit is not None:
-        emit("closed", {"path": str(out), **summary})
+        emit("closed", {"path": str(out), "parts": [str(p) for p in sink.parts], **summary})
     return 0 if stats.written == stats.received else 1

@@ -31,7 +31,7 @@ from diffpos_services.recording.schemas import (
 from diffpos_services.recording.topics import SeqTracker
 from diffpos_services.wire.keys import Keys
 
-__all__ = ["COMPRESSION", "McapSink", "SinkStats"]
+__all__ = ["COMPRESSION", "McapSink", "SinkStats", "SplitPolicy", "part_path"]
 
 #: ``compression`` option -> MCAP chunk compression
 COMPRESSION = {
@@ -39,6 +39,46 @@ COMPRESSION = {
     "lz4": CompressionType.LZ4,
     "none": CompressionType.NONE,
 }
+
+
+@dataclass(frozen=True)
+class SplitPolicy:
+    """When :class:`McapSink` starts a new file (checked at each :meth:`McapSink.flush`).
+
+    The mcap writer keeps an index entry per chunk and channel in memory until the file is
+    finished (~35 kB per chunk with ~500 channels: +10 MB per minute at 5 flushes/s);
+    finishing the file every ``max_bytes`` / ``max_duration_s`` bounds that memory, like
+    rosbag2's ``--max-bag-size`` / ``--max-bag-duration``. Every part is a complete,
+    indexed MCAP file with the recording's metadata and attachments.
+
+    Attributes
+    ----------
+    max_bytes : int or None [bytes]
+        Start a new part once the current one is this large (``None``: no size limit).
+    max_duration_s : float or None [s]
+        Start a new part once the current one spans this much receive time.
+    """
+
+    max_bytes: int | None = None
+    max_duration_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.max_bytes is not None and self.max_bytes <= 0:
+            raise ValueError(f"split size {self.max_bytes} must be > 0 [bytes]")
+        if self.max_duration_s is not None and not self.max_duration_s > 0:
+            raise ValueError(f"split duration {self.max_duration_s} must be > 0 [s]")
+
+    @property
+    def active(self) -> bool:
+        return self.max_bytes is not None or self.max_duration_s is not None
+
+
+def part_path(first: str | os.PathLike[str], index: int) -> Path:
+    """Path of part ``index`` of a split recording: part 0 is ``first`` itself (what the
+    recorder was told to write, so whoever waits for that file finds it), part k > 0 is
+    ``<stem>_<k:04d>.mcap`` next to it."""
+    first = Path(first)
+    return first if index == 0 else first.with_name(f"{first.stem}_{index:04d}{first.suffix}")
 
 
 class _Stamp(msgspec.Struct):
@@ -128,6 +168,10 @@ class McapSink:
         Payload fields holding the measurement time [ns] and the publisher's sequence number.
     profile : str
         MCAP header profile (empty: no well-known profile).
+    split : SplitPolicy, optional
+        Start a new file (see :func:`part_path`) when the current one is too large or too
+        long (needs a path ``output``). Metadata and attachments added before are repeated in
+        every part; sequence gaps and counters span the parts.
 
     Examples
     --------
@@ -147,23 +191,33 @@ class McapSink:
         seq_field: str = "seq",
         profile: str = "",
         library: str = "diffpos-recorder",
+        split: SplitPolicy | None = None,
     ) -> None:
         comp = COMPRESSION.get(compression)
         if comp is None:
             raise RecordingError(f"compression must be zstd, lz4 or none, not {compression!r}")
         self.registry = registry if registry is not None else SchemaRegistry()
+        self._writer_args = {"chunk_size": chunk_size, "compression": comp}
+        self._header = {"profile": profile, "library": library}
+        self.split = split if split is not None and split.active else None
+        self.path: Path | None = None
+        self.parts: list[Path] = []
+        self._side: list[tuple[str, tuple]] = []  # metadata / attachments, for every part
+        self._part_first_ns: int | None = None
+        self._part_last_ns = 0
+        self._part_written = 0
+        self._part_done = False  # the current part is full: next message opens a new one
         if isinstance(output, (str, os.PathLike)):
-            path = Path(output)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self._file: IO[bytes] = open(path, "wb")
+            self.path = Path(output)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
             self._own_file = True
-            self.path: Path | None = path
+            self._open_part(self.path)
         else:
-            self._file = output
+            if self.split is not None:
+                raise RecordingError("splitting a recording needs a file path, not a stream")
+            self._file: IO[bytes] = output
             self._own_file = False
-            self.path = None
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=comp)
-        self._writer.start(profile=profile, library=library)
+            self._start_writer()
         if (time_field, seq_field) == ("t_ns", "seq"):
             stamp_type: type = _Stamp
         else:
@@ -174,8 +228,6 @@ class McapSink:
         self._stamp_decoder = msgspec.json.Decoder(stamp_type)
         self._time_field = time_field
         self._seq_field = seq_field
-        self._schema_ids: dict[str, int] = {}
-        self._channels: dict[str, int] = {}
         self.seq = SeqTracker()
         self._unknown_keys: set[str] = set()
         self._alive: dict[str, bool] = {}
@@ -183,6 +235,47 @@ class McapSink:
         self._lock = threading.Lock()
         self._closed = False
         self.stats = SinkStats()
+
+    # -- parts ----------------------------------------------------------------------------
+
+    def _start_writer(self) -> None:
+        self._writer = Writer(self._file, **self._writer_args)
+        self._writer.start(**self._header)
+        self._schema_ids: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+
+    def _open_part(self, path: Path) -> None:
+        self._file = open(path, "wb")
+        self.parts.append(path)
+        self._start_writer()
+        for what, args in self._side:  # the recording's metadata and attachments, again
+            if what == "metadata":
+                self._writer.add_metadata(*args)
+            else:
+                self._writer.add_attachment(*args)
+        self._part_first_ns, self._part_written = None, 0
+
+    def _part_full(self) -> bool:
+        sp = self.split
+        if sp is None or self._part_written == 0:
+            return False
+        if sp.max_bytes is not None and self._file.tell() >= sp.max_bytes:
+            return True
+        return (sp.max_duration_s is not None and self._part_first_ns is not None
+                and self._part_last_ns - self._part_first_ns >= sp.max_duration_s * 1e9)
+
+    def _next_part(self) -> None:
+        """Finish the current (full) part, complete and indexed, and open the next one; called
+        before the first message after the part filled up (so no part is empty)."""
+        self._part_done = False
+        index = len(self.parts)
+        self._writer.add_metadata("part", {
+            "index": str(index - 1), "messages": str(self._part_written),
+            "next": part_path(self.parts[0], index).name,
+        })
+        self._writer.finish()
+        self._file.close()
+        self._open_part(part_path(self.parts[0], index))
 
     # -- channels -------------------------------------------------------------------------
 
@@ -242,6 +335,8 @@ class McapSink:
         stats.received += 1
         if self._closed:
             raise RecordingError("write() after close()")
+        if self._part_done:
+            self._next_part()
         if publish_ns is None or sequence is None:
             try:
                 stamp = self._stamp_decoder.decode(payload)
@@ -279,6 +374,10 @@ class McapSink:
         stats.written += 1
         stats.per_key[key] = stats.per_key.get(key, 0) + 1
         self._pending += 1
+        self._part_written += 1
+        if self._part_first_ns is None:
+            self._part_first_ns = int(receive_ns)
+        self._part_last_ns = int(receive_ns)
 
     def write_liveliness(self, site: str, key: str, alive: bool, receive_ns: int) -> bool:
         """Record a liveliness token appearing (``alive``) or disappearing.
@@ -321,6 +420,8 @@ class McapSink:
                 return False
             self._alive[key] = bool(alive)
             self.stats.liveliness_events += 1
+            if self._part_done:
+                self._next_part()
             cid = self._channels.get(topic)
             if cid is None:
                 entry = self.registry.by_stem["liveliness"]
@@ -358,6 +459,7 @@ class McapSink:
         clean = {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
         with self._lock:
             self._writer.add_metadata(name, clean)
+            self._side.append(("metadata", (name, clean)))
 
     def add_attachment(
         self,
@@ -372,9 +474,9 @@ class McapSink:
         t = time.time_ns() if log_ns is None else int(log_ns)
         c = t if create_ns is None else int(create_ns)
         with self._lock:
-            self._writer.add_attachment(
-                create_time=c, log_time=t, name=name, media_type=media_type, data=bytes(data)
-            )
+            args = (c, t, name, media_type, bytes(data))
+            self._writer.add_attachment(*args)
+            self._side.append(("attachment", args))
             self._file.flush()
 
     # -- durability -----------------------------------------------------------------------
@@ -396,6 +498,8 @@ class McapSink:
                 self.stats.flushed += self._pending
                 self._pending = 0
                 self.stats.flushed_written = self.stats.written
+            if self._part_full():
+                self._part_done = True
             if fsync:
                 os.fsync(self._file.fileno())
             return self.stats.flushed
@@ -416,6 +520,9 @@ class McapSink:
                 meta.update(final_metadata)
             clean = {k: v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()}
             self._writer.add_metadata("recorder_stats", clean)
+            if self.split is not None:
+                self._writer.add_metadata("part", {"index": str(len(self.parts) - 1),
+                                                   "messages": str(self._part_written), "next": ""})
             self._writer.finish()
             self.stats.flushed += self._pending
             self._pending = 0
