@@ -12,7 +12,9 @@ Writes, next to this script unless told otherwise:
   profile, then ``zenoh/*.json5`` re-rendered from ``profile.dev.toml``.
 
 Uses the ``cryptography`` package when it is importable, else the ``openssl`` command.
-Everything written here is for development only: the keys and passwords are committed.
+Everything written here is for development only: the keys and passwords are committed, and
+only the docker-compose example uses them (``diffpos emulate --security-profile`` makes fresh
+ones for every run, see security/README.md).
 
 examples:
   python security/make_dev_certs.py                         regenerate the dev CA + router cert
