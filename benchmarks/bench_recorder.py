@@ -23,10 +23,22 @@ Rows
    agreement line says how much). Work is per epoch, so the rate holds for longer
    recordings (``--replay-seconds 600`` measures the issue's 10 minutes).
 
+6. ``soak`` (``--soak-minutes M``, alone): the recorder's memory over a long run. M minutes
+   of the workload (8 anchor states + 400 ranges + 50 truth per 100 ms, real payloads with
+   running sequence numbers) go as fast as possible through the recorder's code path: the
+   real :class:`McapSink` with the recorder's default split policy (``--no-split``: one
+   file), ``write(key, payload, receive_ns)`` per message as the drain thread does and a
+   ``flush()`` every 200 ms of simulated time as the flush thread does. RSS (VmRSS) is
+   sampled at 0, 30, 60, 120 simulated minutes (and every ``--soak-every`` minutes);
+   finished parts are deleted as they close (disk only, no effect on memory). docs/soak.md
+   has the table.
+
 Usage::
 
     python benchmarks/bench_recorder.py                     # all rows (several minutes)
     python benchmarks/bench_recorder.py --skip-bus --skip-scan --replay-seconds 30
+    python benchmarks/bench_recorder.py --soak-minutes 120              # 2 h, split parts
+    python benchmarks/bench_recorder.py --soak-minutes 30 --no-split    # one growing file
 """
 
 from __future__ import annotations
@@ -43,6 +55,7 @@ import threading
 import time
 from pathlib import Path
 
+from diffpos_services.cli.recorder import DEFAULT_SPLIT_MB, DEFAULT_SPLIT_S
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.kit import free_tcp_port
 from diffpos_services.recorder import build_command
@@ -50,7 +63,7 @@ from diffpos_services.recording.reader import McapScanner
 from diffpos_services.recording.replay import replay
 from diffpos_services.recording.synthetic import write_synthetic_recording
 from diffpos_services.recording.topics import SeqTracker, parse_topic
-from diffpos_services.recording.writer import McapSink
+from diffpos_services.recording.writer import McapSink, SplitPolicy
 from diffpos_services.wire import messages as M
 
 import diffpos.estimators as est
@@ -96,7 +109,8 @@ with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
                                 congestion_control=zenoh.CongestionControl.BLOCK)
             for i in range(50)]
     for p in pubs:
-        wait_matching(p, timeout_s=3600.0)
+        if not wait_matching(p, timeout_s=120.0):
+            sys.exit(f"no recorder subscriber matched {{p.key_expr}} within 120 s")
     print("start", time.time_ns(), flush=True)
     for i in range(n):
         pubs[i % 50].put(payloads[i])
@@ -129,7 +143,10 @@ def bench_bus(n: int, tmp: Path) -> dict:
         code = _PUBLISHER.format(bench_dir=str(Path(__file__).parent))
         pub = start([sys.executable, "-c", code, ep, str(n)], stdout=subprocess.PIPE,
                     stdin=subprocess.PIPE)
-        t_start = int(pub.stdout.readline().split()[1])
+        first = pub.stdout.readline()
+        if not first.startswith("start"):  # it exited (no match within its bound): say so
+            raise RuntimeError(f"publisher failed (exit {pub.wait(timeout=60)}); see above")
+        t_start = int(first.split()[1])
         t_sent = int(pub.stdout.readline().split()[1])
         while True:
             ev = lines.get(timeout=120)
@@ -254,6 +271,78 @@ def bench_replay(seconds: float, tmp: Path, *, range_batch: bool, step_ms: float
             "solver_share": spent["solver"] / dt_i, "ingest_share": spent["ingest"] / dt_i}
 
 
+def _rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _soak_epoch(e: int, t: int, seqs: dict[str, int]) -> list[tuple[str, bytes]]:
+    """One 100-ms epoch of the workload: 8 anchor states, 8 x 50 ranges, 50 truth."""
+    out = []
+    for a in range(8):
+        aid = f"uav{a}"
+        seqs[aid] += 1
+        out.append((f"diffpos/soak/anchor/{aid}/state", M.encode(M.AnchorState(
+            anchor_id=aid, t_ns=t, seq=seqs[aid], position_m=(a * 3.0, -15.0, 10.0),
+            velocity_m_s=(0.1, 0.0, 0.0), position_sigma_m=(0.1, 0.1, 0.2),
+            velocity_sigma_m_s=0.05, range_rate_hz=10.0, t_pub_wall_ns=t))))
+        for n in range(50):
+            seqs[aid] += 1
+            out.append((f"diffpos/soak/anchor/{aid}/range/n{n:02d}", M.encode(M.RangeMeasurement(
+                anchor_id=aid, node_id=f"n{n:02d}", t_ns=t, seq=seqs[aid],
+                range_m=20.0 + ((e * 7 + n * 13 + a) % 1000) * 1e-2, sigma_m=0.2, snr_db=15.0,
+                t_pub_wall_ns=t))))
+    for n in range(50):
+        out.append((f"diffpos/soak/truth/node/n{n:02d}", M.encode(M.GroundTruth(
+            entity="node", id=f"n{n:02d}", t_ns=t, position_m=(n * 0.5, 5.0, 4.0),
+            velocity_m_s=(0.0, 0.0, 0.0), floor_index=1))))
+    return out
+
+
+def bench_soak(minutes: float, tmp: Path, *, split: bool, every_min: float) -> dict:
+    """RSS of the recorder's sink over ``minutes`` of simulated workload (see row 6)."""
+    policy = SplitPolicy(max_bytes=round(DEFAULT_SPLIT_MB * 1e6),
+                         max_duration_s=DEFAULT_SPLIT_S) if split else None
+    sink = McapSink(tmp / "soak.mcap", split=policy)
+    sink.add_metadata("run", {"site": "soak", "scenario": "bench"})
+    seqs = {f"uav{a}": 0 for a in range(8)}
+    t0_ns = 1_700_000_000_000_000_000
+    epochs = round(minutes * 600)
+    marks = sorted({0.0, 30.0, 60.0, 120.0, minutes} | {
+        k * every_min for k in range(1, int(minutes / every_min) + 1)})
+    marks = [m for m in marks if m <= minutes]
+    samples = []
+    deleted = 0
+    wall0 = time.perf_counter()
+    for e in range(epochs + 1):
+        sim_min = e / 600
+        if marks and sim_min >= marks[0]:
+            marks.pop(0)
+            samples.append({"sim_min": round(sim_min, 2), "rss_mb": round(_rss_mb(), 1),
+                            "messages": sink.stats.written, "parts": len(sink.parts),
+                            "wall_s": round(time.perf_counter() - wall0, 1)})
+            print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
+        if e == epochs:
+            break
+        t = t0_ns + e * 100_000_000
+        for key, payload in _soak_epoch(e, t, seqs):
+            sink.write(key, payload, t + 2_000_000)
+        if e % 2 == 1:
+            sink.flush()  # the recorder's flush thread: every 200 ms
+            for old in sink.parts[deleted:-1]:  # finished parts: disk only
+                old.unlink()
+                deleted += 1
+    sink.close()
+    return {"row": "soak", "minutes": minutes, "split": split, "samples": samples,
+            "messages": sink.stats.written, "parts": len(sink.parts),
+            "wall_s": time.perf_counter() - wall0,
+            "policy": None if policy is None else
+            {"max_bytes": policy.max_bytes, "max_duration_s": policy.max_duration_s}}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--messages", type=int, default=200_000, help="messages for sink/bus rows")
@@ -266,8 +355,28 @@ def main(argv: list[str] | None = None) -> int:
                     help="replay step granularities to measure (5 ms: as the live service, "
                          "reproduces its estimates; 1000 ms: epochs solved in 1-s batches)")
     ap.add_argument("--json", action="store_true", help="print rows as JSON lines")
+    ap.add_argument("--soak-minutes", type=float, metavar="M",
+                    help="only the soak row: M simulated minutes through the recorder's sink")
+    ap.add_argument("--soak-every", type=float, default=10.0, metavar="M",
+                    help="soak: also sample RSS every M simulated minutes (default 10)")
+    ap.add_argument("--no-split", action="store_true", help="soak: one file, no split policy")
     args = ap.parse_args(argv)
     rows = []
+    if args.soak_minutes:
+        with tempfile.TemporaryDirectory() as d:
+            r = bench_soak(args.soak_minutes, Path(d), split=not args.no_split,
+                           every_min=args.soak_every)
+        if args.json:
+            print(json.dumps(r))
+            return 0
+        print(f"soak: {r['minutes']:g} simulated minutes, {r['messages']:,} messages, "
+              f"{'split ' + json.dumps(r['policy']) if r['split'] else 'one file'}, "
+              f"{r['parts']} parts, {r['wall_s']:.0f} s wall")
+        print(f"{'simulated min':>14}{'messages':>14}{'parts':>7}{'RSS MB':>9}")
+        for smp in r["samples"]:
+            print(f"{smp['sim_min']:>14g}{smp['messages']:>14,}{smp['parts']:>7}"
+                  f"{smp['rss_mb']:>9.1f}")
+        return 0
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         rows.append(bench_sink(args.messages, tmp))
