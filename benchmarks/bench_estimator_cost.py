@@ -1,0 +1,147 @@
+"""Per-fix cost of M-NLS (mechanism-aware) vs D-NLS, single and batched, 4 and 8 anchors.
+
+One markdown table, ratios side by side. Target (issue 13): M-NLS <= 2 ms per node-epoch on
+average with 8 anchors.
+
+Input: first arrivals of the O2I emulator (diffpos.channel) on the paper's building, nodes
+uniform over the floor plans of all floors at a random height 0.3-2.7 m above their floor
+(not only the window mid-height). 4 anchors: the paper's. 8 anchors: the paper's plus one at
+a window band's height, one above the windows, one beyond a facade end and one high and far.
+
+Methods, as they would run live on one node-epoch:
+
+* ``dnls``: D-NLS with its live defaults (multi-start over the default height grid and the
+  LLS position, RAIM gating), the building's window height and edge extent, the measured sigmas.
+* ``mnls``: M-NLS with its defaults (every floor a hypothesis, coarse grid + LM per floor), the
+  building, the measured SNR and the radio (the SNR test), the measured sigmas.
+
+Timing: *single* is one fix per call (the median over ``--single`` calls, each a different
+node); *batched* is every fix in one call (total / fixes). Both by wall clock and by this
+thread's CPU time; CPU time is the figure to compare when other processes share the cores.
+Both solve cold (no warm start), the worst case of a live epoch.
+
+Run:  .venv/bin/python benchmarks/bench_estimator_cost.py [--quick] [--seed N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from diffpos.channel import emulate_channel, first_arrival
+from diffpos.estimators import dnls, mnls
+from diffpos.scenario import Scenario, default_scenario
+
+TARGET_MS = 2.0
+#: Extra anchors of the 8-anchor layout [m]: at floor 1's window band (7.75-9.25 m), above
+#: every window but the top floor's, beyond the facade end (x > 20 m), high and far.
+EXTRA_ANCHORS_M = np.array([[-25.0, -12.0, 8.5], [10.0, -10.0, 14.0], [28.0, -18.0, 5.5],
+                            [-30.0, -25.0, 19.0]])
+
+
+def nodes_on_floors(sc: Scenario, rng: np.random.Generator, n: int) -> np.ndarray:
+    """``n`` nodes uniform over the floor plans, random floor, 0.3-2.7 m above the floor."""
+    b = sc.building
+    x0, x1 = b.edge_x_m
+    k = rng.integers(0, b.n_floors, n)
+    z = b.floor_z_m(k) + rng.uniform(0.3, min(2.7, b.floor_height_m - 0.3), n)
+    return np.stack([rng.uniform(x0 + 0.2, x1 - 0.2, n), rng.uniform(0.2, b.depth_m - 0.2, n),
+                     z], axis=-1)
+
+
+def measurements(sc: Scenario, anchors: np.ndarray, nodes: np.ndarray,
+                 rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Batched solver inputs from the emulator's first arrivals."""
+    fa = first_arrival(emulate_channel(anchors, nodes, building=sc.building, radio=sc.radio),
+                       radio=sc.radio, rng=rng)
+    det = np.asarray(fa.detected, dtype=bool)
+    return {"a": np.broadcast_to(anchors, (len(nodes), *anchors.shape)),
+            "r": np.where(det, fa.range_m, 0.0), "sig": np.where(det, fa.sigma_m, 1.0),
+            "mask": det, "snr": np.asarray(fa.snr_db)}
+
+
+def solvers(sc: Scenario):
+    b = sc.building
+
+    def run_dnls(meas, sl):
+        return dnls(meas["a"][sl], meas["r"][sl], meas["sig"][sl], mask=meas["mask"][sl],
+                    window_height_m=b.window_height_m, edge_x_m=b.edge_x_m)
+
+    def run_mnls(meas, sl):
+        return mnls(meas["a"][sl], meas["r"][sl], meas["sig"][sl], mask=meas["mask"][sl],
+                    building=b, snr_db=meas["snr"][sl], radio=sc.radio,
+                    bandwidth_hz=sc.radio.bandwidth_hz,
+                    error_floor_m=sc.radio.range_error_floor_m)
+
+    return {"dnls": run_dnls, "mnls": run_mnls}
+
+
+def timed(fn, meas, sl) -> tuple[float, float, object]:
+    """(wall, CPU) seconds of one call and its result."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    res = fn(meas, sl)
+    return time.perf_counter() - t0, time.thread_time() - c0, res
+
+
+def cost_rows(sc: Scenario, anchors: np.ndarray, rng: np.random.Generator, n_batch: int,
+              n_single: int) -> tuple[list[str], list[str]]:
+    nodes = nodes_on_floors(sc, rng, n_batch)
+    meas = measurements(sc, anchors, nodes, rng)
+    fns = solvers(sc)
+    m = anchors.shape[0]
+    ms: dict[tuple[str, str], tuple[float, float]] = {}
+    acc = []
+    for name, fn in fns.items():
+        fn(meas, slice(0, 1))  # warm-up (imports, caches)
+        single = np.array([timed(fn, meas, slice(i, i + 1))[:2] for i in range(n_single)])
+        ms[name, "single"] = tuple(1e3 * np.median(single, axis=0))
+        wall, cpu, res = timed(fn, meas, slice(0, n_batch))
+        ms[name, "batched"] = (1e3 * wall / n_batch, 1e3 * cpu / n_batch)
+        err = np.linalg.norm(res.position_m - nodes, axis=1)
+        floor_ok = sc.building.floor_index(np.where(np.isfinite(res.position_m[:, 2]),
+                                                    res.position_m[:, 2], -1e9))
+        floor_ok = np.mean(floor_ok == sc.building.floor_index(nodes[:, 2]))
+        acc.append(f"| {m} | {name} | {np.median(np.where(np.isfinite(err), err, np.inf)):.2f} "
+                   f"| {100 * floor_ok:.1f}% |")
+    rows = []
+    for mode, batch in (("single", 1), ("batched", n_batch)):
+        d, mn = ms["dnls", mode], ms["mnls", mode]
+        verdict = ("yes" if mn[1] <= TARGET_MS else "NO") if m == 8 else ""
+        rows.append(f"| {m} | {mode} ({batch:,}) | {d[0]:.2f} / {d[1]:.2f} | "
+                    f"{mn[0]:.2f} / {mn[1]:.2f} | {mn[0] / d[0]:.1f}x / {mn[1] / d[1]:.1f}x | "
+                    f"{verdict} |")
+    return rows, acc
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer fixes (128 batched, 20 single)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    rng = np.random.default_rng(args.seed)
+    sc = default_scenario()
+    n_batch, n_single = (128, 20) if args.quick else (1024, 100)
+    layouts = {4: sc.anchor_positions_m(),
+               8: np.concatenate([sc.anchor_positions_m(), EXTRA_ANCHORS_M])}
+    rows = ["| anchors | mode (fixes per call) | D-NLS ms/fix wall / CPU | "
+            "M-NLS ms/fix wall / CPU | M-NLS / D-NLS wall / CPU | "
+            f"M-NLS CPU <= {TARGET_MS:g} ms (8 anchors) |",
+            "| ---: | --- | ---: | ---: | ---: | --- |"]
+    acc = ["| anchors | method | median 3D error [m] | right floor |",
+           "| ---: | --- | ---: | ---: |"]
+    for anchors in layouts.values():
+        r, a = cost_rows(sc, anchors, rng, n_batch, n_single)
+        rows += r
+        acc += a
+    print(f"## Per-fix cost, M-NLS vs D-NLS (scenario {sc.name}, seed {args.seed})\n")
+    print("\n".join(rows))
+    print(f"\nsingle: median over {n_single} one-fix calls; batched: {n_batch:,} fixes in one "
+          "call, total / fixes. Cold solves (no warm start).\n")
+    print("## Accuracy of the batched fixes (context)\n")
+    print("\n".join(acc))
+
+
+if __name__ == "__main__":
+    main()
