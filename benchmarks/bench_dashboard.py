@@ -128,7 +128,9 @@ def bench_zenoh(args, tmp: Path) -> dict:
     th = threading.Thread(target=svc.run, args=(stop,), kwargs={"report_every_s": 1e9})
     th.start()
     keys = [Keys("bench").of(x) for x in msgs]
-    pubs = {k: pub_s.declare_publisher(k) for k in set(keys)}
+    # BLOCK: the benchmark counts what arrives; Zenoh's default (DROP) loses under load
+    block = zenoh.CongestionControl.BLOCK
+    pubs = {k: pub_s.declare_publisher(k, congestion_control=block) for k in set(keys)}
     _wait_matched(pubs.values(), timeout_s=30.0)  # run() has declared its subscribers
 
     t_of = [getattr(x, "t_ns", None) or x.watermark_ns for x in msgs]

@@ -96,7 +96,8 @@ def _run_system(services, endpoint, *, scenario, anchors, duration_s, speed, sit
                            "--max-nodes", str(max_nodes))
         bus.wait_alive({keys.alive_anchor(a) for a in anchors} | {keys.alive_fusion()}, services)
         # the fusion must not be a truth subscriber: nobody matches a truth publisher
-        truth_pub = session.declare_publisher(keys.truth_node("n01"))
+        truth_pub = session.declare_publisher(keys.truth_node("n01"),
+                                              congestion_control=zenoh.CongestionControl.BLOCK)
         rc = bus.start_run(speed=speed, duration_s=duration_s)
         end_ns = rc.t0_ns + rc.duration_ns
         estimates: list[tuple[float, M.PositionEstimate]] = []
