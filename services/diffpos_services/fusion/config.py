@@ -25,7 +25,7 @@ import msgspec
 from msgspec import Meta
 
 from diffpos.alignment import AlignmentConfig
-from diffpos.scenario import Building, Scenario, ScenarioError, first_arrival_edge
+from diffpos.scenario import Building, Radio, Scenario, ScenarioError, first_arrival_edge
 from diffpos_services.kit import build_config
 from diffpos_services.wire.keys import check_id
 
@@ -119,6 +119,10 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     building: dict[str, Any] | None = None
     """The scenario's ``[building]`` table (:func:`building_of`); ``None``: the paper's
     building with this config's window height, edge ends and floors."""
+    radio: dict[str, Any] | None = None
+    """The scenario's ``[radio]`` table: with it mnls compares each range's measured SNR with
+    the free-space link budget (a link too strong for any diffracted path); ``None``: no SNR
+    test."""
     window_height_m: Annotated[float, Meta(gt=0)] = 1.5
     delta_m: float = 0.0
     edge_x_m: tuple[float, float] | None = None
@@ -171,6 +175,16 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
             raise ValueError(f"min_sigma_m={self.min_sigma_m} must be < max_sigma_m="
                              f"{self.max_sigma_m} [m]")
         self.building_model()
+        self.radio_model()
+
+    def radio_model(self) -> Radio | None:
+        """The :class:`~diffpos.scenario.Radio` of :attr:`radio` (``None`` without one)."""
+        if self.radio is None:
+            return None
+        try:
+            return Scenario.from_dict({"radio": dict(self.radio), **_SHELL}).radio
+        except ScenarioError as exc:
+            raise ValueError(str(exc)) from None
 
     def building_model(self) -> Building:
         """The :class:`~diffpos.scenario.Building` of the path model (mnls, tracker).
@@ -237,10 +251,13 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
                 floor_height_m=b.floor_height_m,
                 n_floors=b.n_floors,
             )
+            tables = scenario.to_dict()
             if "building" not in overrides:
-                table = scenario.to_dict()["building"]
+                table = tables["building"]
                 table.update({k: v for k, v in geometry.items() if k in _BUILDING_OVERRIDES})
                 values["building"] = table
+            if "radio" not in overrides:
+                values["radio"] = tables["radio"]
         values.update(geometry)
         cfg = build_config(cls, values)
         if model_edge(edge, scenario)[0] == "lower":

@@ -108,6 +108,7 @@ class FusionCore:
         self._ready: collections.deque[PendingEpoch] = collections.deque()
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
+        self.model = (self.building, config.radio_model())
         self.bank = (TrackBank(self.building) if self.building is not None and config.tracking
                      else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")
@@ -486,7 +487,7 @@ class FusionCore:
         prep = prepare(batch, epochs, self.tracks, self.config)
         self.solved += len(epochs)
         if self.building is not None:
-            solved = solve_mnls(batch, prep, epochs, self.config, self.building, self.bank)
+            solved = solve_mnls(batch, prep, epochs, self.config, self.model, self.bank)
             return self._count(batch, solved.res, estimates_v2(
                 epochs, batch, solved, {x.id for x in self.anchors.values() if not x.alive},
                 seq0=self.seq, now=int(now_wall_ns), method=self.method_name))

@@ -59,6 +59,7 @@ class Batch:
     use: np.ndarray  # (B, M) bool: detected and with a state
     t_ref: np.ndarray  # (B,) int64 [ns] mean time of the used ranges
     dt_s: np.ndarray  # (B, M) [s] range time - t_ref
+    snr: np.ndarray  # (B, M) [dB] SNR of each detected range, NaN where none
 
 
 @dataclass
@@ -105,6 +106,7 @@ def gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, Any]) 
     t = np.zeros((b, m), np.int64)
     rng = np.full((b, m), np.nan)
     sig = np.ones((b, m))
+    snr = np.full((b, m), np.nan)
     reported = np.zeros((b, m), bool)
     detected = np.zeros((b, m), bool)
     pub_wall = np.zeros((b, m), np.int64)
@@ -118,7 +120,7 @@ def gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, Any]) 
         rj += [col[a] for a in pe.ranges]
         ents += pe.ranges.values()
     if ents:
-        e_t, e_r, e_s, _, e_pub, _ = zip(*ents, strict=True)
+        e_t, e_r, e_s, e_snr, e_pub, _ = zip(*ents, strict=True)
         ri_a, rj_a = np.array(ri), np.array(rj)
         reported[ri_a, rj_a] = True
         t[ri_a, rj_a] = e_t
@@ -128,11 +130,12 @@ def gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, Any]) 
         detected[di, dj] = True
         rng[di, dj] = [r for r in e_r if r is not None]
         sig[di, dj] = np.array(e_s, dtype=np.float64)[det]
+        snr[di, dj] = np.array(e_snr, dtype=np.float64)[det]
     apos, asig, have_state = _anchor_positions(col, anchors, t, detected)
     use = detected & have_state
     t_ref, dt_s = _reference_times(t, reported, use)
     return Batch(list(col), t, rng, sig, reported, detected, pub_wall, apos, asig, have_state,
-                 use, t_ref, dt_s)
+                 use, t_ref, dt_s, np.where(np.isfinite(snr), snr, np.nan))
 
 
 def _anchor_positions(col: dict[str, int], anchors: dict[str, Any], t: np.ndarray,

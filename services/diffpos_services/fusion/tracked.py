@@ -108,13 +108,16 @@ class Solved:
     tracking: bool
 
 
-def _mnls_rows(res: Results, rows: np.ndarray, prep: Prepared, use: np.ndarray, building,
+def _mnls_rows(res: Results, rows: np.ndarray, prep: Prepared, batch: Batch, model,
                floor: np.ndarray, prob: np.ndarray, mech: np.ndarray) -> None:
-    """The mnls fixes of ``rows`` into ``res`` and the floor/mechanism arrays."""
+    """The mnls fixes of ``rows`` into ``res`` and the floor/mechanism arrays (``model``:
+    (building, radio or None))."""
     if rows.size == 0:
         return
+    building, radio = model
     fix = est.mnls(prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
-                   building=building, mask=use[rows])
+                   building=building, mask=batch.use[rows],
+                   snr_db=None if radio is None else batch.snr[rows], radio=radio)
     res.put(rows, fix)
     floor[rows] = fix.floor
     prob[rows] = fix.floor_probability
@@ -152,26 +155,30 @@ def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray
 
 
 def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: FusionConfig,
-               building, bank: TrackBank | None) -> Solved:
-    """The mnls snapshot fixes and, with ``bank``, the tracked estimates of ``batch``."""
+               model: tuple, bank: TrackBank | None) -> Solved:
+    """The mnls snapshot fixes and, with ``bank``, the tracked estimates of ``batch``
+    (``model``: the building and the radio or None)."""
     b, m = len(epochs), len(batch.names)
-    nf = building.n_floors
+    nf = model[0].n_floors
     use = batch.use
     snap = Results(b, m)
     s_floor, s_prob = np.full(b, -1), np.full((b, nf), np.nan)
     s_mech = np.full((b, m), -1)
     if bank is None:
-        _mnls_rows(snap, np.arange(b), prep, use, building, s_floor, s_prob, s_mech)
+        _mnls_rows(snap, np.arange(b), prep, batch, model, s_floor, s_prob, s_mech)
         return Solved(snap, [_FIX_NAMES[int(s)] for s in snap.status], s_prob, s_mech, None,
                       np.zeros(b, bool), s_floor, s_prob, False)
-    due = _snapshot_due(bank, epochs, batch.t_ref, cfg)
-    _mnls_rows(snap, np.flatnonzero(due), prep, use, building, s_floor, s_prob, s_mech)
+    due = np.zeros(b, bool)
     res = Results(b, m)
     status = [""] * b
     prob = np.full((b, nf), np.nan)
     mech = np.full((b, m), -1)
     for rows_l in _rounds(epochs):
         rows = np.array(rows_l)
+        # the snapshot decision of a round sees the tracks as the previous round left them
+        # (a node's epochs in one batch are decided as if they came one call at a time)
+        due[rows] = _snapshot_due(bank, [epochs[i] for i in rows_l], batch.t_ref[rows], cfg)
+        _mnls_rows(snap, rows[due[rows]], prep, batch, model, s_floor, s_prob, s_mech)
         out = bank.update([epochs[i].node_id for i in rows_l], prep.safe_apos[rows],
                           prep.rng_in[rows], prep.sig_eff[rows], use[rows], batch.t_ref[rows])
         res.pos[rows], res.cov[rows] = out.position_m, out.covariance_m2

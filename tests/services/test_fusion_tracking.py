@@ -1,0 +1,228 @@
+"""The fusion with mnls + tracking (the default): estimate v2 for every node-epoch, determinism,
+replay equivalence, coasting; the old v1 sample still replays.
+
+The fusion's input is made independently of the fusion: the channel emulator
+(:func:`diffpos.channel.emulate_channel` + the first-arrival detector) ranges from five static
+UAVs to three walkers of the default building (one takes the stairs), packed into the wire
+messages an anchor publishes (AnchorState + RangeBatch per anchor and epoch). No processes, no
+bus; fixed seeds.
+"""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.core import FusionCore
+from diffpos_services.recording.replay import replay
+from diffpos_services.recording.synthetic import quiet_logger
+from diffpos_services.recording.writer import McapSink
+from diffpos_services.wire import messages as M
+from diffpos_services.wire.keys import Keys
+
+from diffpos.channel import emulate_channel, first_arrival
+from diffpos.paths import MECHANISMS
+from diffpos.scenario import default_scenario
+from diffpos.trajectory import trajectory_from_dict
+
+SC = default_scenario()
+B = SC.building
+KEYS = Keys("t")
+PERIOD = 100_000_000
+T0 = 1_800_000_000_000_000_000  # on the epoch grid
+ANCHORS = {"uav1": [-15.0, -20.0, 1.0], "uav2": [0.0, -15.0, 0.0], "uav3": [0.0, -7.0, 4.0],
+           "uav4": [15.0, -20.0, 1.0], "uav5": [-25.0, -12.0, 3.0]}
+H = B.nominal_node_height_m
+WALKERS = {
+    "w1": [[-10.0, 5.0, 4.0 + H], [0.0, 5.0, 4.0 + H]],
+    "w2": [[5.0, 8.0, 7.0 + H], [5.0, 3.0, 7.0 + H], [12.0, 3.0, 7.0 + H]],
+    "w3": [[2.0, 4.0, 10.0 + H], [6.0, 4.0, 11.5 + H], [8.0, 4.0, 13.0 + H]],  # up the stairs
+}
+EPOCHS = 30
+
+
+def _config(**kw) -> FusionConfig:
+    return FusionConfig.from_scenario(SC, site="t", epoch_period_s=0.1, **kw)
+
+
+def _inputs(epochs: int = EPOCHS, *, dark: dict[str, int] | None = None, seed: int = 0):
+    """``(rx_ns, key, payload)`` of every anchor's state and range batch per epoch.
+
+    ``dark``: node -> first epoch from which no anchor detects it (ranges null)."""
+    rng = np.random.default_rng(seed)
+    trajs = {n: trajectory_from_dict({"kind": "waypoints", "points_m": p, "speed_m_s": 1.0})
+             for n, p in WALKERS.items()}
+    ids = list(trajs)
+    a_ids = list(ANCHORS)
+    anchors = np.array([ANCHORS[a] for a in a_ids])
+    out = []
+    for k in range(epochs):
+        t = T0 + k * PERIOD + 20_000_000
+        nodes = np.stack([trajs[n].position_m(k * 0.1) for n in ids])
+        fa = first_arrival(emulate_channel(anchors, nodes, building=B, radio=SC.radio),
+                           radio=SC.radio, rng=rng)
+        for j, a in enumerate(a_ids):
+            rx = t + 1_000_000 + 100_000 * j
+            st = M.AnchorState(anchor_id=a, t_ns=t, seq=k, position_m=M.vec3(anchors[j]),
+                               velocity_m_s=(0.0, 0.0, 0.0), position_sigma_m=(0.02, 0.02, 0.03),
+                               velocity_sigma_m_s=0.05, range_rate_hz=10.0, t_pub_wall_ns=rx)
+            det = [bool(fa.detected[i, j]) and (dark or {}).get(n, 10**9) > k
+                   for i, n in enumerate(ids)]
+            batch = M.RangeBatch(
+                anchor_id=a, t_ns=t, seq=k, node_ids=ids,
+                range_m=[float(fa.range_m[i, j]) if det[i] else None for i in range(len(ids))],
+                sigma_m=[float(fa.sigma_m[i, j]) if det[i] else None for i in range(len(ids))],
+                snr_db=[float(fa.snr_db[i, j]) if det[i] else None for i in range(len(ids))],
+                t_pub_wall_ns=rx)
+            out += [(rx, KEYS.anchor_state(a), M.encode(st)),
+                    (rx + 10, KEYS.anchor_range_batch(a), M.encode(batch))]
+    return out
+
+
+def _run(samples, *, step_every: int = 1, config: FusionConfig | None = None):
+    """The live fusion over ``samples``: stepped after every ``step_every`` samples, flushed."""
+    core = FusionCore(config or _config(), logger=quiet_logger())
+    for a in ANCHORS:
+        core.on_liveliness(a, True, T0 - 10**8)
+    out = []
+    for i, (rx, key, payload) in enumerate(samples):
+        core.on_sample(key, payload, rx)
+        if i % step_every == step_every - 1:
+            out += [msgspec.structs.replace(e, t_pub_wall_ns=rx) for e in core.step(rx)]
+    last = samples[-1][0]
+    out += [msgspec.structs.replace(e, t_pub_wall_ns=last) for e in core.step(last + 10**12)]
+    out += [msgspec.structs.replace(e, t_pub_wall_ns=last) for e in core.flush(last)]
+    return core, out
+
+
+def _by_key(ests):
+    """(node, epoch) -> encoded estimate without the publish-order fields (seq, publish time)."""
+    return {(e.node_id, e.epoch): M.encode(msgspec.structs.replace(e, seq=0, t_pub_wall_ns=0))
+            for e in ests}
+
+
+@pytest.fixture(scope="module")
+def live():
+    samples = _inputs()
+    core, ests = _run(samples)
+    return samples, core, ests
+
+
+def test_every_node_epoch_gets_a_v2_estimate(live):
+    """One PositionEstimateV2 per node and epoch; a position with a consistent floor, floor
+    probabilities summing to 1 and a mechanism label per used anchor once initialised."""
+    _, core, ests = live
+    assert core.method_name == "mnls+tracking"
+    assert all(type(e) is M.PositionEstimateV2 and e.method == "mnls+tracking" for e in ests)
+    keys = [(e.node_id, e.epoch) for e in ests]
+    assert len(keys) == len(set(keys)) == len(WALKERS) * EPOCHS
+    assert {e.status for e in ests} <= set(M.TRACK_STATUSES)
+    with_pos = [e for e in ests if e.position_m is not None]
+    assert len(with_pos) >= 0.9 * len(ests)
+    for e in with_pos:
+        assert e.status in M.GOOD_STATUSES and e.covariance_m2 is not None
+        assert sum(e.floor_probabilities) == pytest.approx(1.0, abs=1e-9)
+        assert e.floor_index == int(np.argmax(e.floor_probabilities))
+        assert np.all(np.linalg.eigvalsh(np.array(e.covariance_m2)) > 0)
+        assert e.peb_m == pytest.approx(np.sqrt(np.trace(np.array(e.covariance_m2))))
+        used = {lk.anchor_id: lk for lk in e.links if lk.mechanism is not None}
+        assert set(e.used_anchors) == set(used)
+        assert all(lk.mechanism in MECHANISMS for lk in used.values())
+        assert e.residuals_m == pytest.approx([used[a].residual_m for a in e.used_anchors])
+    # the snapshot rides along while a track is not confirmed, then once per second
+    first = min(e.epoch for e in ests)
+    assert all(e.snapshot is not None for e in ests if e.epoch == first)
+    assert 0 < sum(e.snapshot is not None for e in ests) < len(ests)
+
+
+def test_estimates_are_close_to_the_truth_for_a_walker_on_the_level(live):
+    """The tracked walker w1 (5 anchors, floor 0) stays within 1 m and on its floor after the
+    first second (a loose bound: accuracy is the benchmark's job)."""
+    _, _, ests = live
+    traj = trajectory_from_dict({"kind": "waypoints", "points_m": WALKERS["w1"],
+                                 "speed_m_s": 1.0})
+    for e in ests:
+        k = e.epoch - T0 // PERIOD
+        if e.node_id != "w1" or k < 10:
+            continue
+        truth = traj.position_m((e.t_ns - T0) * 1e-9)
+        assert e.floor_index == 0
+        assert np.linalg.norm(np.array(e.position_m) - truth) < 1.0
+
+
+def test_two_runs_are_bit_identical_and_batching_does_not_matter(live):
+    """The same input gives the same bytes; stepping after every epoch's messages (larger
+    batches, as a replay or a busy live service does) gives the same estimates per node-epoch."""
+    samples, _, ests = live
+    _, again = _run(samples)
+    assert [M.encode(e) for e in again] == [M.encode(e) for e in ests]
+    _, batched = _run(samples, step_every=len(ANCHORS) * 2 * 3)
+    assert _by_key(batched) == _by_key(ests)
+
+
+def test_replay_of_a_tracked_recording_reproduces_live(live, tmp_path):
+    """Recorded like the recorder does (inputs, liveliness, the live estimates and the fusion
+    settings), ``replay`` re-runs the same tracker and gets every estimate bit for bit."""
+    samples, core, ests = live
+    path = tmp_path / "tracked.mcap"
+    with McapSink(path, library="test") as sink:
+        sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
+        for a in ANCHORS:
+            sink.write_liveliness("t", KEYS.alive_anchor(a), True, T0 - 10**8)
+        for rx, key, payload in samples:
+            sink.write(key, payload, rx)
+        for e in ests:
+            sink.write(KEYS.node_estimate(e.node_id), M.encode(e), e.t_pub_wall_ns + 1)
+    r = replay(path)
+    assert r.report["settings"]["method"] == "mnls" and r.report["settings"]["tracking"]
+    assert _by_key(r.estimates) == _by_key(ests)
+
+
+def test_a_node_without_ranges_coasts_with_growing_covariance():
+    """w1 loses every range at epoch 15: it coasts (a position, status COASTING) with a
+    covariance trace that grows every epoch; the other nodes keep tracking."""
+    samples = _inputs(24, dark={"w1": 15})
+    _, ests = _run(samples)
+    w1 = sorted((e for e in ests if e.node_id == "w1"), key=lambda e: e.epoch)
+    before = [e for e in w1 if e.epoch - T0 // PERIOD < 15]
+    after = [e for e in w1 if e.epoch - T0 // PERIOD >= 15]
+    assert before[-1].status in ("TRACKING", "INITIALISING") and before[-1].position_m
+    assert all(e.status == "COASTING" and e.position_m is not None for e in after)
+    assert all(not e.used_anchors and all(lk.mechanism is None for lk in e.links) for e in after)
+    tr = [np.trace(np.array(e.covariance_m2)) for e in [before[-1], *after]]
+    assert all(b > a for a, b in itertools.pairwise(tr)), tr
+    others = [e for e in ests if e.node_id != "w1" and e.epoch - T0 // PERIOD >= 15]
+    assert all(e.status != "COASTING" for e in others)
+
+
+def test_methods_other_than_mnls_still_publish_v1_unchanged(live):
+    """--method dnls keeps estimate v1 (D-NLS, bit-identical to before: no tracker involved)."""
+    samples, _, _ = live
+    core, ests = _run(samples[: 2 * len(ANCHORS) * 8], config=_config(method="dnls"))
+    assert core.bank is None and core.building is None
+    assert ests and all(type(e) is M.PositionEstimate for e in ests)
+
+
+def test_mnls_without_tracking_publishes_snapshot_statuses(live):
+    samples, _, _ = live
+    core, ests = _run(samples[: 2 * len(ANCHORS) * 6], config=_config(tracking=False))
+    assert core.method_name == "mnls"
+    assert all(type(e) is M.PositionEstimateV2 and e.snapshot is None for e in ests)
+    assert {e.status for e in ests} <= {s for s in M.GOOD_STATUSES | {
+        "NOT_CONVERGED", "NOT_IDENTIFIABLE", "TOO_FEW_ANCHORS", "GATING_FAILED",
+        "INVALID_INPUT"} if s not in M.TRACK_STATUSES}
+    assert sum(e.position_m is not None for e in ests) >= 0.8 * len(ests)
+
+
+def test_the_v1_sample_still_replays_with_d_nls():
+    """recordings/sample.mcap (estimate v1, no stored settings) replays with the fusion that
+    made it (D-NLS, derived settings) and every replayed fix is v1."""
+    sample = Path(__file__).resolve().parents[2] / "recordings" / "sample.mcap"
+    r = replay(sample, out_mcap=None)
+    assert r.report["settings"]["method"] == "dnls"
+    assert r.estimates and all(type(e) is M.PositionEstimate for e in r.estimates)
+    assert len(r.estimates) == len(r.live_estimates) > 0
