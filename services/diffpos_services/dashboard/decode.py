@@ -6,7 +6,11 @@ type-checks them and leaves the value constraints of the full schemas
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import msgspec
+import numpy as np
 
 
 # ============================================================================ message views
@@ -36,8 +40,17 @@ class TruthView(msgspec.Struct, frozen=True, gc=False):
     floor_index: int | None = None
 
 
+class LinkView(msgspec.Struct, frozen=True, gc=False):
+    """The part of ``messages.AnchorLink`` (estimate v2) the dashboard reads."""
+
+    anchor_id: str
+    mechanism: str | None = None
+    residual_m: float | None = None
+
+
 class EstimateView(msgspec.Struct, frozen=True, gc=False):
-    """The part of ``diffpos.estimate.v1`` the dashboard reads."""
+    """The part of ``diffpos.estimate.v1`` and ``diffpos.estimate.v2`` the dashboard reads
+    (the v2-only fields default to empty for v1: no floor probabilities, no mechanisms)."""
 
     node_id: str
     t_ns: int
@@ -53,6 +66,8 @@ class EstimateView(msgspec.Struct, frozen=True, gc=False):
     residuals_m: list[float]
     excluded: list[ExclusionView]
     t_pub_wall_ns: int = 0
+    floor_probabilities: list[float] = []
+    links: list[LinkView] = []
 
 
 class DiagnosticsView(msgspec.Struct, frozen=True, gc=False):
@@ -80,3 +95,29 @@ VIEW_DECODERS: dict[str, msgspec.json.Decoder] = {
 
 
 _LIST_DECODERS = {kind: msgspec.json.Decoder(list[dec.type]) for kind, dec in VIEW_DECODERS.items()}
+
+
+def estimate_extras(msgs: Sequence[Any]) -> dict[str, Any]:
+    """The estimate-v2 columns the dashboard draws beyond ``EstimateColumns``' v1 fields,
+    aligned with :func:`~diffpos_services.dashboard.columns.estimate_columns_from_messages`
+    (links: every fix's used anchors, then every fix's excluded ones).
+
+    Returns
+    -------
+    dict
+        ``link_mechanism`` (ndarray of str, shape (L,): the mechanism label of each used link,
+        ``""`` where unknown: v1, excluded) and ``floor_probability`` (ndarray, shape (K,):
+        the probability of the estimated floor, NaN where unknown).
+    """
+    used = []
+    for m in msgs:
+        mech = {lk.anchor_id: lk.mechanism or "" for lk in getattr(m, "links", ())}
+        used += [mech.get(a, "") for a in m.used_anchors]
+    n_ex = sum(len(m.excluded) for m in msgs)
+    prob = np.full(len(msgs), np.nan)
+    for i, m in enumerate(msgs):
+        p = getattr(m, "floor_probabilities", None)
+        if p and m.floor_index is not None and 0 <= m.floor_index < len(p):
+            prob[i] = p[m.floor_index]
+    return {"link_mechanism": np.array(used + [""] * n_ex, dtype=str),
+            "floor_probability": prob}

@@ -26,6 +26,7 @@ from diffpos_services.dashboard.common import (
 )
 from diffpos_services.dashboard.events import _status_level, log_events
 from diffpos_services.dashboard.geometry import Tracks, ellipsoid_axes, path_strips
+from diffpos_services.dashboard.mechanisms import MAX_VERTICES, mechanism_strips
 from diffpos_services.wire.messages import GOOD_STATUSES
 
 
@@ -47,7 +48,7 @@ class _EstimateState:
     last_links: dict[str, dict[str, str]] = field(default_factory=dict)
     last_status: dict[str, str] = field(default_factory=dict)
     last_floor_bucket: int | None = None
-    floors: dict[str, tuple[int, int]] = field(default_factory=dict)
+    floors: dict[str, tuple[int, int, float]] = field(default_factory=dict)
     residual_styled: set[str] = field(default_factory=set)
     dropped_bad_time: int = 0
 
@@ -97,8 +98,9 @@ class _Batch:
 
 @dataclass(frozen=True)
 class _Paths:
-    """Diffraction paths of every link of a batch: ``strips`` (L, 3, 3) anchor -> window-edge
-    point -> estimate, drawable ``ok``, and their colours and radii."""
+    """Paths of every link of a batch: ``strips`` (L, MAX_VERTICES, 3) anchor -> interaction
+    points -> estimate (the mechanism the fusion used, estimate v2; else anchor -> window-edge
+    point of the modelled edge -> estimate), drawable ``ok``, and their colours and radii."""
 
     strips: FloatArray
     ok: NDArray[np.bool_]
@@ -166,8 +168,9 @@ def log_estimates(
             _log_paths(rec, nid, rows, b, paths, path_period_ns, st)
         _log_errors(rec, nid, rows, b)
         events.append(_status_events(nid, rows, b, st))
-        last = rows[-1]  # latest floors for the floor table
-        st.floors[nid] = (int(b.est_floor[last]), int(b.true_floor[last]))
+        last = rows[-1]  # latest floors (and the estimate's floor probability) for the table
+        st.floors[nid] = (int(b.est_floor[last]), int(b.true_floor[last]),
+                          float(_floor_probability(est)[last]))
     if est.link_fix.size:
         events.append(_exclusion_events(b, st))
         _log_residuals(rec, b, st)
@@ -246,12 +249,23 @@ def _batch(
 def _diffraction_paths(
     b: _Batch, anchors: Tracks | None, building: BuildingOutline | None
 ) -> _Paths | None:
-    """The path of every link (vectorised), or None without links or anchor tracks."""
+    """The path of every link (vectorised), or None without links or anchor tracks.
+
+    A used link whose estimate names its mechanism (estimate v2: ``est.link_mechanism``, a
+    column the estimate columns may carry) is drawn along that mechanism's interaction
+    points; the others over the modelled window edge (estimate v1)."""
     est, lf = b.est, b.est.link_fix
     if not lf.size or anchors is None:
         return None
     a_pos, _, a_known = anchors.sample(None, b.t[lf], coded=(b.anchor_ids, b.anchor_code))
-    strips = path_strips(a_pos, est.position_m[lf], b.est_floor[lf], building)
+    edge = path_strips(a_pos, est.position_m[lf], b.est_floor[lf], building)
+    strips = np.concatenate([edge, np.repeat(edge[:, -1:], MAX_VERTICES - edge.shape[1], 1)], 1)
+    labels = getattr(est, "link_mechanism", None)
+    if labels is not None and building is not None:
+        labels = np.where(est.link_used, np.asarray(labels, str), "")
+        if np.any(labels != ""):
+            mech = mechanism_strips(a_pos, est.position_m[lf], b.est_floor[lf], labels, building)
+            strips = np.where((labels != "")[:, None, None], mech, strips)
     ok = a_known & b.has_pos[lf] & np.all(np.isfinite(strips), axis=(1, 2))
     # no path for bookkeeping exclusions (nothing was measured); gated ones are drawn red
     ok &= est.link_used | ~np.isin(est.link_reason, list(BOOKKEEPING_REASONS))
@@ -469,6 +483,13 @@ def _log_gating(rec: rr.RecordingStream, b: _Batch) -> None:
     )
 
 
+def _floor_probability(est: EstimateColumns) -> FloatArray:
+    """Probability of each fix's estimated floor (estimate v2: ``est.floor_probability``, a
+    column the estimate columns may carry; NaN where unknown)."""
+    p = getattr(est, "floor_probability", None)
+    return np.full(len(est), np.nan) if p is None else np.asarray(p, np.float64)
+
+
 def _log_floor_table(
     rec: rr.RecordingStream, b: _Batch, floor_period_s: float, st: _EstimateState
 ) -> None:
@@ -499,17 +520,20 @@ def _floor_tables(
     snap_t: NDArray[np.int64],
     st: _EstimateState,
 ) -> list[str]:
-    """Markdown tables (one per snapshot time) of the latest estimated/true floor per node."""
+    """Markdown tables (one per snapshot time) of the latest estimated floor (with its
+    probability when the estimate gives one) and true floor per node."""
     groups = _group(est.node_id)
     nodes = sorted(set(st.floors) | {g for g, _ in groups})
-    # latest (est, true) per node at each snapshot: (n_nodes, n_snap)
+    # latest (est, true, probability) per node at each snapshot: (n_nodes, n_snap)
     est_m = np.full((len(nodes), snap_t.size), -2, np.int64)
     tru_m = np.full((len(nodes), snap_t.size), -2, np.int64)
+    prob_m = np.full((len(nodes), snap_t.size), np.nan)
     pos = {n: i for i, n in enumerate(nodes)}
     prior = dict(st.floors)
     for nid, i in pos.items():
         if nid in prior:
-            est_m[i, :], tru_m[i, :] = prior[nid]
+            est_m[i, :], tru_m[i, :], prob_m[i, :] = prior[nid]
+    prob = _floor_probability(est)
     for nid, rows in groups:
         rows = _sorted_by_time(est.t_ns, rows)
         k = np.searchsorted(est.t_ns[rows], snap_t, side="right") - 1
@@ -517,6 +541,7 @@ def _floor_tables(
         i = pos[nid]
         est_m[i, have] = est_floor[rows][k[have]]
         tru_m[i, have] = true_floor[rows][k[have]]
+        prob_m[i, have] = prob[rows][k[have]]
     fmt = lambda v: "?" if v < 0 else str(v)  # noqa: E731
     texts = []
     for j in range(snap_t.size):
@@ -529,12 +554,13 @@ def _floor_tables(
             head = "**Floor estimate**: no node has a fix\n\n"
         else:
             head = "**Floor estimate** (no ground truth)\n\n"
-        rows = ["| node | estimated | true | |", "|---|---|---|---|"]
+        rows = ["| node | estimated | probability | true | |", "|---|---|---|---|---|"]
         for i, nid in enumerate(nodes):
-            e, tr = est_m[i, j], tru_m[i, j]
+            e, tr, p = est_m[i, j], tru_m[i, j], prob_m[i, j]
             if e == -2:
                 continue
             mark = "" if e < 0 or tr < 0 else ("ok" if e == tr else "**WRONG**")
-            rows.append(f"| {nid} | {fmt(e)} | {fmt(tr)} | {mark} |")
+            ptxt = f"{100 * p:.0f} %" if np.isfinite(p) and e >= 0 else "-"
+            rows.append(f"| {nid} | {fmt(e)} | {ptxt} | {fmt(tr)} | {mark} |")
         texts.append(head + "\n".join(rows))
     return texts
