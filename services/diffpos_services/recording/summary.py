@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -242,8 +243,9 @@ def validate_file(path: str | os.PathLike[str]) -> dict[str, Any]:
         if doc is None:
             problem(f"{where}: schema tag {name!r} is not a diffpos schema")
             continue
-        if expected[m.channel_id] not in (None, name):
-            problem(f"{where}: schema tag {name!r} on a {expected[m.channel_id]} channel")
+        want = expected[m.channel_id]
+        if want is not None and _unversioned(want) != _unversioned(name):  # any version of ours
+            problem(f"{where}: schema tag {name!r} on a {want} channel")
             continue
         v = validators.get(name)
         if v is None:
@@ -252,6 +254,11 @@ def validate_file(path: str | os.PathLike[str]) -> dict[str, Any]:
         if err is not None:
             problem(f"{where}: {err.message}")
     return out
+
+
+def _unversioned(name: str) -> str:
+    """``diffpos.estimate.v2`` -> ``diffpos.estimate``."""
+    return re.sub(r"\.v\d+$", "", name)
 
 
 def _expected_schema(sc: McapScanner, cid: int, reg: SchemaRegistry,
@@ -267,7 +274,8 @@ def _expected_schema(sc: McapScanner, cid: int, reg: SchemaRegistry,
         embedded = None if sch is None else json.loads(sch.data)
     except ValueError:
         embedded = None
-    if embedded != reg.documents.get(entry.name):
+    ours = reg.documents.get(sch.name) if sch is not None else None  # same version of ours
+    if embedded != (ours if ours is not None else reg.documents.get(entry.name)):
         label = "none" if sch is None else f"{sch.name} ({len(sch.data)} bytes)"
         for row in out["schema_mismatch"]:
             if (row["ours"], row["embedded"]) == (entry.name, label):
