@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
+import ctypes.util
 import json
 import logging
 import os
@@ -41,6 +43,8 @@ __all__ = [
     "Shutdown",
     "add_logging_arguments",
     "build_config",
+    "child_env",
+    "die_with_parent",
     "free_tcp_port",
     "load_json_option",
     "log_event",
@@ -48,6 +52,11 @@ __all__ = [
     "setup_logging",
     "stop_process_groups",
 ]
+
+#: environment variable naming the parent process a service must not outlive
+#: (:func:`child_env` sets it, :class:`Shutdown` acts on it)
+PARENT_PID_ENV = "DIFFPOS_PARENT_PID"
+_PR_SET_PDEATHSIG = 1
 
 T = TypeVar("T")
 
@@ -87,6 +96,34 @@ def stop_process_groups(
                 os.killpg(p.pid, signal.SIGKILL)
             codes.append(p.wait())
     return codes
+
+
+def child_env(env: Mapping[str, str] | None = None) -> dict[str, str]:
+    """The environment of a child service that must die with this process: ``env`` (default
+    ``os.environ``) plus :data:`PARENT_PID_ENV` = this process's pid (see
+    :func:`die_with_parent`). Nothing runs between fork and exec (no ``preexec_fn``), so it
+    is safe after ``zenoh.open()``."""
+    return dict(os.environ if env is None else env, **{PARENT_PID_ENV: str(os.getpid())})
+
+
+def die_with_parent(sig: int = signal.SIGTERM) -> bool:
+    """If :data:`PARENT_PID_ENV` is set: ask the kernel for ``sig`` when the parent dies
+    (``prctl(PR_SET_PDEATHSIG)``, Linux; it survives ``exec``), even by SIGKILL. Returns
+    False if the parent is already gone (the caller stops at once), else True.
+
+    The signal comes when the *thread* that started this process ends: parents start their
+    children from threads that outlive them (``diffpos emulate``: the main thread and the
+    supervisor, joined after the children are stopped).
+    """
+    want = os.environ.get(PARENT_PID_ENV)
+    if not want:
+        return True
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0)
+    # the parent may have died before prctl: then we were re-parented already
+    return str(os.getppid()) == want
 
 
 class DiffposError(Exception):
@@ -236,18 +273,26 @@ class LogOnce:
 
 # ----------------------------------------------------------------------------- shutdown
 class Shutdown:
-    """SIGINT/SIGTERM -> ``event``; the main loop waits on it and exits its ``with`` blocks.
+    """SIGINT/SIGTERM/SIGHUP -> ``event``; the main loop waits on it and exits its ``with``
+    blocks (a closed terminal stops a service cleanly instead of killing it mid-write).
 
     A second signal while shutting down raises ``KeyboardInterrupt`` (escape hatch).
-    Must be created in the main thread.
+    Must be created in the main thread. A child of a diffpos process (:func:`child_env`)
+    also gets SIGTERM when its parent dies (:func:`die_with_parent`), and stops at once
+    if the parent is already gone.
     """
 
     def __init__(self, logger: logging.Logger | None = None) -> None:
         self.event = threading.Event()
         self.signal_name: str | None = None
         self._logger = logger
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, self._handle)
+        if not die_with_parent(signal.SIGTERM):
+            if logger is not None:
+                log_event(logger, logging.WARNING, "parent process gone: stopping")
+            self.signal_name = "parent-death"
+            self.event.set()
 
     def _handle(self, signum: int, _frame: Any) -> None:
         name = signal.Signals(signum).name

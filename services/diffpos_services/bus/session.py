@@ -274,6 +274,16 @@ def _has_login(cfg) -> bool:
     return bool(auth.get("user"))
 
 
+def _open_error(mode: str, endpoints: list, timeout: Any, cfg: Any, exc: Exception) -> str:
+    """One line for a session that did not open (no traceback): what to check."""
+    why = str(exc).split(" at ")[0]
+    if mode == "router":
+        listen = json.loads(cfg.get_json("listen/endpoints")) or []
+        return f"--listen {' '.join(map(str, listen))}: cannot listen there ({why})"
+    return (f"--connect {' '.join(map(str, endpoints))}: no router answered within "
+            f"--connect-timeout-ms {timeout} ({why}); is the router running at that endpoint?")
+
+
 def open_session(settings, stop=None, *, logger=None, attempt_ms: int = 1000):
     """Open a Zenoh session, retrying while the router is not up yet; ``None`` if ``stop``.
 
@@ -304,7 +314,10 @@ def open_session(settings, stop=None, *, logger=None, attempt_ms: int = 1000):
     if isinstance(timeout, dict):
         timeout = timeout.get(mode)
     if mode == "router" or (timeout is not None and int(timeout) >= 0) or not endpoints:
-        return zenoh.open(cfg)
+        try:
+            return zenoh.open(cfg)
+        except zenoh.ZError as exc:
+            raise ConfigError(_open_error(mode, endpoints, timeout, cfg, exc)) from None
     cfg.insert_json5("connect/timeout_ms", json.dumps(int(attempt_ms)))
     msg = "waiting for the router"
     if _has_login(cfg):

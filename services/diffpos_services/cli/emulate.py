@@ -31,8 +31,17 @@ examples:
                                                    the secured bus: TLS + a user/password per
                                                    service + access control (security/README.md)
 
-Ctrl-C ends the run early; services are stopped in order (anchors, fusion, recorder,
-dashboard, router) and the summary is still printed.
+Ctrl-C (or SIGTERM, or closing the terminal) ends the run early; services are stopped in
+order (anchors, fusion, recorder, dashboard, router) and the summary is still printed. The
+services also stop if emulate itself is killed (parent-death signal).
+
+Faults: a fusion or recorder that dies is started again (the recorder with a new file, the
+dead one's file recovered in place); every service that died is listed under "faults" in the
+summary, and the exit code is then 3 (the run lost data). Estimates not published by the
+fusion this run started (another process on the bus) are never counted: they are reported
+under "foreign".
+
+exit codes: 0 ok, 2 bad option, 3 a service died (data lost), 130 interrupted
 """
 
 from __future__ import annotations
@@ -43,6 +52,7 @@ import logging
 import sys
 
 from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
+from diffpos_services.emulate.supervise import format_faults
 from diffpos_services.kit import (
     ConfigError,
     Shutdown,
@@ -111,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
             delta_m=args.delta_m, edge=args.edge,
             security_profile=args.security_profile,
         )
+        opts.check()  # every option before anything starts (the dashboard hint needs them)
         stop = Shutdown(log)
         emu = Emulation(opts, log, stop.event, dashboard_hint=dashboard_hint(opts))
         log_event(log, logging.INFO, "starting", scenario=args.scenario or "paper (default)",
@@ -121,12 +132,44 @@ def run(args: argparse.Namespace) -> int:
                 return 130
             raise ConfigError("the run produced no summary")
         print(format_summary(summary))
+        for block in (format_faults(summary.get("faults", [])), format_foreign(summary),
+                      format_recordings(summary)):
+            if block:
+                print(block)
         if args.json:
             with open(args.json, "w", encoding="utf-8") as f:
                 json.dump(summary, f, indent=2)
-        return 130 if stop.is_set() else 0
+        if stop.is_set():
+            return 130
+        return EXIT_DATA_LOST if summary.get("faults") else 0
 
     return run_main(body, log)
+
+
+#: exit code of a run in which a service died (data lost, see the summary's faults)
+EXIT_DATA_LOST = 3
+
+
+def format_foreign(summary: dict) -> str:
+    """The summary's block of messages from other publishers (empty if none)."""
+    f = summary.get("foreign") or {}
+    if not f.get("count"):
+        return ""
+    keys = sorted(f["keys"].items(), key=lambda kv: -kv[1])
+    shown = ", ".join(f"{k} x{n}" for k, n in keys[:8]) + (" ..." if len(keys) > 8 else "")
+    return (f"foreign: {f['count']} messages not from this run's fusion were ignored (not "
+            f"counted or scored; another process publishes on this bus): {shown}")
+
+
+def format_recordings(summary: dict) -> str:
+    """The recording files when the recorder was restarted (empty otherwise)."""
+    recs = summary.get("recordings") or []
+    if len(recs) < 2:
+        return ""
+    lines = [f"recording: {len(recs)} files (the recorder was restarted)"]
+    lines += [f"  {r}" for r in recs]
+    lines += [f"  {n}" for n in summary.get("recording_notes", [])]
+    return "\n".join(lines)
 
 
 def _tty() -> bool:

@@ -320,7 +320,9 @@ class DashboardService:
             self._pending_live.append((time.time_ns(), who, alive))
 
     def start(self) -> None:
-        """Declare the subscribers (data keys and liveliness)."""
+        """Declare the subscribers (data keys and liveliness), then the dashboard's own
+        liveliness token (:meth:`Keys.alive_dashboard`): who waits for it (``diffpos
+        emulate``) knows from then on every published sample reaches the Rerun sink."""
         k = self.keys
         for expr in (
             k.anchor_states(),
@@ -334,6 +336,7 @@ class DashboardService:
                 k.alive_all(), self._on_liveliness, history=True
             )
         )
+        self._subs.append(self.session.liveliness().declare_token(k.alive_dashboard()))
 
     def close(self) -> None:
         """Undeclare the subscribers, draw what is left, flush the recording."""

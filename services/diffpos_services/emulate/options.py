@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from diffpos_services.bus.session import check_endpoint
 from diffpos_services.fusion.config import EDGES
 from diffpos_services.kit import ConfigError
 from diffpos_services.wire.keys import Keys
@@ -49,11 +51,57 @@ class EmulationOptions:
             raise ConfigError(f"--channel must be emulator or ideal, got {self.channel!r}")
         if self.edge not in EDGES:
             raise ConfigError(f"--edge must be auto, upper or lower, got {self.edge!r}")
+        if self.endpoint is not None:
+            try:
+                check_endpoint(self.endpoint, field_name="--endpoint")
+            except ValueError as exc:
+                raise ConfigError(str(exc).replace("--endpoint=", "--endpoint ")) from None
+        self._check_dashboard()
+        self._check_record()
         if self.security_profile is not None:
             if self.endpoint is not None and not self.endpoint.startswith("tls/"):
                 raise ConfigError(
                     f"--endpoint {self.endpoint}: with --security-profile use a tls/ endpoint "
                     "whose host is in the router certificate, e.g. tls/localhost:7447")
+
+
+    def _check_dashboard(self) -> None:
+        """``--dashboard``: one mode; ``save`` with exactly one writable .rrd path."""
+        d = self.dashboard
+        if not d:
+            return
+        mode, rest = d[0], d[1:]
+        if mode not in DASHBOARD_MODES:
+            raise ConfigError(f"--dashboard {' '.join(d)}: use auto, spawn, serve, save "
+                              "FILE.rrd or off")
+        if mode == "save":
+            if len(rest) != 1:
+                raise ConfigError(f"--dashboard {' '.join(d)}: save needs one path, e.g. "
+                                  "--dashboard save out/run.rrd")
+            _check_writable("--dashboard save", rest[0])
+        elif rest:
+            raise ConfigError(f"--dashboard {' '.join(d)}: only save takes a path")
+
+    def _check_record(self) -> None:
+        if self.record not in (None, "off", "", "auto"):
+            _check_writable("--record", self.record)
+
+
+#: what ``--dashboard`` accepts
+DASHBOARD_MODES = ("auto", "spawn", "serve", "save", "off")
+
+
+def _check_writable(option: str, path: str) -> None:
+    """``path`` can be created: not a directory, its folder exists (or can be made)."""
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{option} {path}: is a directory; give a file name")
+    parent = p.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise ConfigError(f"{option} {path}: cannot write there ({parent} is not a writable "
+                          "folder)")
 
 
 def recorder_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
@@ -97,5 +145,5 @@ EXTRA_SERVICES: dict[
           Callable[[Keys], str] | None],
 ] = {
     "recorder": ("diffpos_services.cli.recorder", recorder_argv, Keys.alive_recorder),
-    "dashboard": ("diffpos_services.cli.dashboard", dashboard_argv, None),
+    "dashboard": ("diffpos_services.cli.dashboard", dashboard_argv, Keys.alive_dashboard),
 }

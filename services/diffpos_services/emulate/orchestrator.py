@@ -8,11 +8,13 @@ the services are always stopped in order (anchors, fusion, extras, router).
 
 from __future__ import annotations
 
+import collections
 import importlib.util
 import json
 import logging
 import os
 import queue
+import secrets
 import subprocess
 import sys
 import tempfile
@@ -39,10 +41,17 @@ from diffpos_services.bus.security import (
 )
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
 from diffpos_services.emulate.monitor import Monitor
-from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions, recording_path
+from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
 from diffpos_services.emulate.scoring import Scorer
+from diffpos_services.emulate.supervise import Supervisor, recover_in_place
 from diffpos_services.fusion.config import FusionConfig, channel_edge, model_edge
-from diffpos_services.kit import ConfigError, free_tcp_port, log_event, stop_process_groups
+from diffpos_services.kit import (
+    ConfigError,
+    child_env,
+    free_tcp_port,
+    log_event,
+    stop_process_groups,
+)
 from diffpos_services.scenario_io import resolve_scenario, scenario_or_default
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
@@ -70,6 +79,7 @@ class _Proc:
     name: str
     popen: subprocess.Popen
     log_path: Path | None
+    argv: list[str]
 
 
 class Emulation:
@@ -101,8 +111,10 @@ class Emulation:
         self.anchor_ids = [a.id for a in self.scenario.anchors]
         # the fusion's path model (fusion.config: the one edge rule)
         edge = channel_edge(options.edge, options.channel)
+        # only the scenario's anchors: a foreign publisher's anchor is never used in a fix
         self.fusion_args = ["--epoch-period-s", str(1.0 / options.rate_hz),
-                            "--delta-m", str(options.delta_m), "--edge", edge]
+                            "--delta-m", str(options.delta_m), "--edge", edge,
+                            "--anchors", ",".join(self.anchor_ids)]
         if options.scenario:
             self.fusion_args += ["--scenario", options.scenario]
         self.fusion_config, self.edge, self.edge_reason = self._fusion_config(edge)
@@ -125,6 +137,15 @@ class Emulation:
         self.alive_event = threading.Condition()
         self.q: queue.Queue = queue.Queue()
         self.diag: M.FusionDiagnostics | None = None
+        # estimates count only from the fusion this run started: its zenoh ids (one per
+        # start), seen in the timestamps its session puts on every sample
+        self.fusion_ids: set[str] = set()
+        self.foreign: collections.Counter[str] = collections.Counter()
+        self.tmp: tempfile.TemporaryDirectory | None = None
+        self.supervisor = Supervisor(lambda: [(p.name, p.popen) for p in self.procs],
+                                     self._restart, logger)
+        self.recordings: list[str] = []
+        self.recording_notes: list[str] = []
 
     # -------------------------------------------------------------- security
     def _load_profile(self, path: str):
@@ -175,6 +196,50 @@ class Emulation:
             return None
         return ["--zenoh-config", self.zenoh_files[user]]
 
+    def _fusion_zargs(self) -> list[str]:
+        """``--zenoh-config <file>`` of a fusion start: its bus settings (plain, or its
+        identity file of the secured bus) with a fresh zenoh id and timestamping on, so every
+        sample it publishes carries that id (:meth:`_on_data` counts only those)."""
+        base = self._zargs("fusion")
+        if base is None:
+            raise ConfigError("the security profile has no identity for the fusion")
+        if base[0] == "--zenoh-config":
+            cfg = zenoh.Config.from_file(base[1])
+        else:
+            cfg = ZenohSettings(connect=(self.endpoint,)).to_config()
+        zid = f"{secrets.randbits(124) | (1 << 124):x}"  # 16 bytes, no leading zero
+        cfg.insert_json5("id", json.dumps(zid))
+        cfg.insert_json5("timestamping/enabled", "true")
+        path = Path(self.tmp.name) / f"fusion-{len(self.fusion_ids)}.json5"
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(str(cfg))
+        self.fusion_ids.add(zid)
+        return ["--zenoh-config", str(path)]
+
+    def _restart(self, name: str, n: int) -> str:
+        """Start service ``name`` again (the supervisor's ``n``-th restart of it); what was
+        done, for the faults report."""
+        old = next(p for p in reversed(self.procs) if p.name == name)
+        argv = list(old.argv)
+        note = ""
+        if name == "fusion":
+            i = argv.index("--zenoh-config")
+            argv[i:i + 2] = self._fusion_zargs()
+            note = "resumed from the bus (epochs while it was down have no estimate)"
+        elif name == "recorder":
+            i = argv.index("--out")
+            dead = argv[i + 1]
+            first = Path(self.recordings[0])
+            new = first.with_name(f"{first.stem}-restart{n}{first.suffix}")
+            argv[i + 1] = str(new)
+            self.recordings.append(str(new))
+        self._spawn(name, argv)
+        if name == "recorder":
+            note = f"new file {new}; {recover_in_place(dead)}"
+            self.recording_notes.append(note)
+        return note
+
     # -------------------------------------------------------------- process helpers
     def _spawn(self, name: str, argv: list[str]) -> _Proc:
         cmd = [sys.executable, "-m", "diffpos_services.cli.main", *argv, "--log-level", self.o.log_level]
@@ -182,10 +247,12 @@ class Emulation:
         if self.log_dir is not None:
             self.log_dir.mkdir(parents=True, exist_ok=True)
             log_path = self.log_dir / f"{name}.log"
-            err = open(log_path, "wb")
+            # a restarted service appends to the log of the one that died
+            err = open(log_path, "ab" if any(p.name == name for p in self.procs) else "wb")
         else:
             err = subprocess.DEVNULL
-        env = dict(os.environ, DIFFPOS_LOG_FORMAT="json")
+        # the child stops when emulate dies, even by SIGKILL (kit.die_with_parent)
+        env = child_env(dict(os.environ, DIFFPOS_LOG_FORMAT="json"))
         # each child gets its bus explicitly (--connect or its own --zenoh-config): an
         # inherited default file would replace the run's router configuration
         env.pop("DIFFPOS_ZENOH_CONFIG", None)
@@ -193,7 +260,7 @@ class Emulation:
                              start_new_session=True, env=env)
         if err is not subprocess.DEVNULL:
             err.close()
-        proc = _Proc(name, p, log_path)
+        proc = _Proc(name, p, log_path, list(argv))
         self.procs.append(proc)
         log_event(self.log, logging.DEBUG, "started", service=name, pid=p.pid, argv=" ".join(argv))
         return proc
@@ -208,6 +275,7 @@ class Emulation:
     def _fusion_config(self, edge: str) -> tuple[FusionConfig, str, str]:
         """The fusion's config exactly as ``diffpos fusion`` builds it from ``fusion_args``."""
         cfg = FusionConfig.from_scenario(self.scenario, edge=edge, site=self.o.site,
+                                         anchors=list(self.anchor_ids),
                                          delta_m=self.o.delta_m,
                                          epoch_period_s=1.0 / self.o.rate_hz)
         edge, why = model_edge(edge, self.scenario)
@@ -224,11 +292,14 @@ class Emulation:
         return str(path)
 
     def shutdown(self) -> None:
-        """Stop in dependency order: anchors, fusion, extras, router."""
+        """Stop in dependency order: anchors, fusion, extras, router (no restarts from now
+        on; the supervisor's thread ends after the children it started)."""
+        self.supervisor.stopping()
         self._stop_procs(lambda n: n.startswith("anchor-"))
         self._stop_procs(lambda n: n == "fusion")
         self._stop_procs(lambda n: n in EXTRA_SERVICES)
         self._stop_procs(lambda n: True)
+        self.supervisor.close()
         if getattr(self, "_run_dir", None) is not None:
             self._run_dir.cleanup()
 
@@ -251,7 +322,13 @@ class Emulation:
         self.q.put(("alive", key, sample.kind == zenoh.SampleKind.PUT))
 
     def _on_data(self, sample) -> None:
-        self.q.put(("data", str(sample.key_expr), sample.payload.to_bytes()))
+        key = str(sample.key_expr)
+        ts = sample.timestamp
+        if ts is None or str(ts.get_id()) not in self.fusion_ids:
+            # not from the fusion this run started: reported, never counted or scored
+            self.foreign[key] += 1
+            return
+        self.q.put(("data", key, sample.payload.to_bytes()))
 
     def _wait_ready(self, need: set[str]) -> None:
         deadline = time.monotonic() + self.o.ready_timeout_s
@@ -268,9 +345,11 @@ class Emulation:
     def run(self) -> dict[str, Any]:
         """Run the emulation; returns the summary dictionary (empty if stopped before the
         run started)."""
-        tmp = tempfile.TemporaryDirectory(prefix="diffpos-zenoh-") if self.profile else None
+        # private (0700): the run's secrets and the fusion's bus configuration
+        self.tmp = tmp = tempfile.TemporaryDirectory(prefix="diffpos-zenoh-")
         try:
-            session = open_session(self._start_router(tmp), self.stop, logger=self.log)
+            session = open_session(self._start_router(tmp if self.profile else None), self.stop,
+                                   logger=self.log)
             if session is None:
                 return {}
             with session:
@@ -284,16 +363,18 @@ class Emulation:
                 if self.stop.is_set():
                     return {}
                 self._announce_ready(t_ready)
-                monitor = Monitor(self, session, self._start_run(session))
+                tb = self._start_run(session)
+                self.supervisor.start(t0=time.monotonic())
+                monitor = Monitor(self, session, tb)
                 monitor.run()
+                self.supervisor.stopping()
                 for s in subs:
                     s.undeclare()
                 live.undeclare()
                 return self._summary(monitor.scorer, monitor.lost_events)
         finally:
             self.shutdown()
-            if tmp is not None:
-                tmp.cleanup()
+            tmp.cleanup()
 
     def _start_router(self, tmp: tempfile.TemporaryDirectory | None) -> ZenohSettings:
         """Start the router (secured: render the profile into ``tmp`` first); the
@@ -314,7 +395,7 @@ class Emulation:
         rng = np.random.default_rng(o.seed)
         offsets = rng.uniform(-o.clock_offset_max_ms, o.clock_offset_max_ms, len(self.anchor_ids))
         scen = ["--scenario", o.scenario] if o.scenario else []
-        self._spawn("fusion", ["fusion", "--site", o.site, *self._zargs("fusion"),
+        self._spawn("fusion", ["fusion", "--site", o.site, *self._fusion_zargs(),
                                *self.fusion_args])
         for aid, off in zip(self.anchor_ids, offsets, strict=True):
             self._spawn(f"anchor-{aid}", [
@@ -347,6 +428,7 @@ class Emulation:
         if argv is not None and name == "recorder":
             # the fusion settings travel with the recording: replay reproduces live
             argv = [*argv, "--run-config", self._write_run_config()]
+            self.recordings = [argv[argv.index("--out") + 1]]
         return argv
 
     def _announce_ready(self, t_ready: float) -> None:
@@ -385,8 +467,10 @@ class Emulation:
             epochs_per_node_min=min((len(v) for v in scorer.epochs.values()), default=0),
             lost=lost,
             model=f"{self.edge} window edge, Delta {o.delta_m:g} m ({self.edge_reason})",
-            recording=recording_path(o, self.run_id)
-            if "recorder" in {p.name for p in self.procs} else None,
+            recording=self.recordings[0] if self.recordings else None,
+            recordings=list(self.recordings), recording_notes=list(self.recording_notes),
+            faults=[f.as_dict() for f in self.supervisor.faults],
+            foreign={"count": sum(self.foreign.values()), "keys": dict(self.foreign)},
         )
         if self.diag is not None:
             d = self.diag

@@ -78,6 +78,7 @@ KeyKind = Literal[
     "alive_anchor",
     "alive_fusion",
     "alive_recorder",
+    "alive_dashboard",
 ]
 
 
@@ -173,6 +174,11 @@ class Keys:
     def alive_recorder(self) -> str:
         """Liveliness token of the MCAP recorder (declared once it is subscribed)."""
         return f"{self.root}/alive/recorder"
+
+    def alive_dashboard(self) -> str:
+        """Liveliness token of the live dashboard (declared once it is subscribed and its
+        Rerun sink is open: ``diffpos emulate`` waits for it, so a saved .rrd misses nothing)."""
+        return f"{self.root}/alive/dashboard"
 
     def of(self, msg: Any) -> str:
         """The key a message struct of :mod:`diffpos_services.wire.messages` is published on
@@ -281,6 +287,8 @@ def _parse_key(key: str) -> ParsedKey | None:
             return ParsedKey("alive_fusion", site)
         case ["alive", "recorder"]:
             return ParsedKey("alive_recorder", site)
+        case ["alive", "dashboard"]:
+            return ParsedKey("alive_dashboard", site)
     return None
 
 

@@ -27,6 +27,8 @@ rule                        what                                         subject
                             ``S/run/control``, ``S/run/clock``
 ``recorder-alive``          liveliness token ``L/recorder`` (declared    recorder
                             once it records: emulate waits for it)
+``dashboard-alive``         liveliness token ``L/dashboard`` (declared   dashboard
+                            once it draws: emulate waits for it)
 ``read-all``                subscribe ``S/**``                           recorder, dashboard,
                                                                          emulator
 ``watch-alive``             liveliness subscriber/query on               fusion, recorder,
@@ -97,6 +99,7 @@ RULES: tuple[Rule, ...] = (
     Rule("emulator-publish", _PUT, "ingress",
          lambda k: (k.truth_all(), k.run_control(), k.run_clock())),
     Rule("recorder-alive", _TOKEN, "ingress", lambda k: (k.alive_recorder(),)),
+    Rule("dashboard-alive", _TOKEN, "ingress", lambda k: (k.alive_dashboard(),)),
     Rule("read-all-subscribe", _SUBSCRIBE, "ingress", lambda k: (k.everything(),)),
     Rule("read-all-deliver", _DELIVER, "egress", lambda k: (k.everything(),)),
     Rule("watch-alive-ask", _WATCH, "ingress", lambda k: (k.alive_all(),)),
@@ -123,7 +126,7 @@ ROLE_RULES: dict[str, tuple[str, ...]] = {
     "fusion": ("fusion-publish", "fusion-alive", "fusion-read-subscribe", "fusion-read-deliver",
                *_WATCH_ALIVE),
     "recorder": ("recorder-alive", *_READ_ALL, *_WATCH_ALIVE),
-    "dashboard": (*_READ_ALL, *_WATCH_ALIVE),
+    "dashboard": ("dashboard-alive", *_READ_ALL, *_WATCH_ALIVE),
     "emulator": ("emulator-publish", *_READ_ALL, *_WATCH_ALIVE),
 }
 
