@@ -72,8 +72,16 @@ OUTLIER_PRIOR = 0.02
 #: by up to a factor 2 in field (6 dB); measured excess - J(nu) >= -4.8 dB over all 58,000
 #: diffracted first arrivals of the default study.
 SNR_MARGIN_DB = 20 * np.log10(2.0)
+#: Standard deviation of a predicted path SNR against the measured one [dB]: the same factor
+#: 2 in field (modelling error of the amplitudes: antenna patterns, materials, wedge vs.
+#: UTD), applied when the floor modes are re-scored with the SNR.
+SNR_SIGMA_DB = 20 * np.log10(2.0)
 _DIFF_MASK = np.zeros(len(MECHANISMS), dtype=bool)
 _DIFF_MASK[list(DIFFRACTION_SLOTS)] = True
+#: Levenberg-Marquardt iterations of the refinement with the SNR-chosen mechanisms held.
+REFINE_ITER = 6
+#: Iterations between refreshes of the SNR cost during the search.
+SNR_EVERY = 3
 #: Default false-alarm probability of the residual test.
 FALSE_ALARM_PROBABILITY = 1e-3
 
@@ -116,6 +124,10 @@ class _Problem:
     excess_db: FloatArray  # (N, M) free-space SNR at the range minus measured SNR (NaN: none)
     wavelength_m: float
     allowed: NDArray[np.bool_] | None = None  # (N, M, K) optional restriction (tests/oracle)
+    snr_cost: FloatArray | None = None  # (N, M, K) SNR cost of every slot (held between updates)
+    snr_meas: FloatArray | None = None  # (N, M) measured SNR (with radio: SNR-aware search)
+    radio: object = None
+    strong: NDArray[np.bool_] | None = None  # (N, M, K) predicted surely detected
 
 
 def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
@@ -126,6 +138,8 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     spec = np.zeros(length.shape[-1], dtype=bool)
     spec[list(SPECULAR_SLOTS)] = True
     l_spec = np.min(np.where(valid & spec, length, np.inf), axis=-1)
+    if p.strong is not None:  # nothing surely detected arrives before the first arrival
+        l_spec = np.minimum(l_spec, np.min(np.where(valid & p.strong, length, np.inf), axis=-1))
     cand = valid & (length <= l_spec[..., None]) & ~_dominated(ps)
     with np.errstate(invalid="ignore"):
         too_strong = p.excess_db[..., None] < _knife_edge_loss_db(ps, p.wavelength_m) - SNR_MARGIN_DB
@@ -136,7 +150,10 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     z = e / p.sig[..., None]
     gauss = 0.5 * z * z
     tail = np.where(e > 0, p.tail_a[..., None] + e / p.lam, np.inf)
-    cost_k = np.where(cand, np.minimum(gauss, tail), np.inf)
+    cost_k = np.minimum(gauss, tail)
+    if p.snr_cost is not None:
+        cost_k = cost_k + p.snr_cost
+    cost_k = np.where(cand, cost_k, np.inf)
     slot = np.argmin(cost_k, axis=-1)
     take = lambda a: np.take_along_axis(a, slot[..., None], axis=-1)[..., 0]  # noqa: E731
     cost = take(cost_k)
@@ -155,7 +172,8 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     cost = np.where(m, cost, 0.0)
     prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
     return {"cost": cost.sum(axis=-1) + prior, "res": res, "jac": jac, "w": w, "slot": slot,
-            "tail": is_tail & m, "none": none & m, "length": length, "cand": cand}
+            "tail": is_tail & m, "none": none & m, "length": length, "cand": cand,
+            "jac_all": ps.jacobian}
 
 
 #: (diffraction + reflection slot, plain diffraction slot over the same edge)
@@ -179,11 +197,36 @@ def _dominated(ps) -> NDArray[np.bool_]:
     return dom
 
 
+def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
+    """Gaussian SNR cost of every slot at ``x``: measured vs predicted (:data:`SNR_SIGMA_DB`)."""
+    if p.snr_meas is None or p.radio is None:
+        return None
+    from ..channel import pair_snr_db
+
+    pred = pair_snr_db(p.anchors, x, building=building, radio=p.radio)
+    meas = p.snr_meas[..., None]
+    with np.errstate(invalid="ignore"):
+        c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
+        # the detector keeps paths above max(P_max - fap_threshold, detection floor): a
+        # first arrival far below the predicted strongest path's threshold is inconsistent
+        thr = np.maximum(np.max(pred, axis=-1, keepdims=True) - p.radio.fap_threshold_db,
+                         p.radio.detection_snr_db)
+        short = np.maximum(thr - SNR_SIGMA_DB - meas, 0.0)
+        c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
+    c = np.where(np.isfinite(pred), c, np.inf)  # a slot that does not exist is not received
+    p.strong = pred >= thr + SNR_SIGMA_DB  # surely detected at this hypothesis
+    return np.where(np.isfinite(p.snr_meas)[..., None], c, 0.0)
+
+
 def _lm(p: _Problem, x: FloatArray, building, iters: int) -> tuple[FloatArray, dict]:
-    """Projected Levenberg-Marquardt with max-mixture re-assignment at every step."""
-    t = _link_terms(p, x, building)
+    """Projected Levenberg-Marquardt with max-mixture re-assignment at every step; with the
+    measured SNR, the SNR cost of every slot is refreshed every :data:`SNR_EVERY` steps."""
     lam = np.full(x.shape[0], 1e-3)
-    for _ in range(iters):
+    t = None
+    for i in range(iters):
+        if t is None or (p.snr_meas is not None and i % SNR_EVERY == 0):
+            p.snr_cost = _snr_cost(p, x, building)
+            t = _link_terms(p, x, building)
         ws = t["w"] / p.sig**2
         h = np.einsum("nm,nmi,nmj->nij", ws, t["jac"], t["jac"])
         g = np.einsum("nm,nm,nmi->ni", ws, t["res"], t["jac"])
@@ -200,6 +243,8 @@ def _lm(p: _Problem, x: FloatArray, building, iters: int) -> tuple[FloatArray, d
             sel = ok.reshape((-1,) + (1,) * (t[k].ndim - 1))
             t[k] = np.where(sel, t_new[k], t[k])
         lam = np.where(ok, lam / 3.0, lam * 4.0)
+    if t is None:
+        t = _link_terms(p, x, building)
     return x, t
 
 
@@ -232,7 +277,8 @@ def _grid(building, nx: int, ny: int) -> FloatArray:
     return np.stack([gx.ravel(), gy.ravel()], axis=-1)
 
 
-def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, wavelength):
+def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, wavelength,
+                 snr=None, radio=None):
     """All floors x starts of B fixes; returns per-fix-per-floor modes and terms."""
     b = r.shape[0]
     nf = building.n_floors
@@ -250,11 +296,16 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     # height) are a few cm to dm longer than the straight line, so it lands in their basin
     last = np.arange(b * nf) * g + g - 1
     x[last] = _los_start(p0, last, building)
+    if snr is not None and radio is not None:  # score the grid with the SNR too
+        p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
+        p0.snr_cost = _snr_cost(p0, x, building)
     c0 = _link_terms(p0, x, building)["cost"].reshape(b, nf, g)
     best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
     rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g + best).ravel()
     p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
                  building, lam, p0.excess_db[rows], wavelength)
+    if snr is not None and radio is not None:
+        p.snr_meas, p.radio = np.repeat(snr, rep, axis=0)[rows], radio
     x, t = _lm(p, x[rows], building, iters)
     cost = t["cost"].reshape(b, nf, keep)
     pick = np.argmin(cost, axis=-1)  # best start per floor
@@ -379,6 +430,8 @@ def mnls(
     lam = SPEED_OF_LIGHT_M_S / bandwidth_hz
     grid = _grid(building, *grid_shape)
     excess = _excess_loss_db(bi.ranges_m, snr_db, radio, (bsz, m))
+    snr_all = None if snr_db is None else np.broadcast_to(
+        np.asarray(snr_db, dtype=np.float64), (bsz, m))
     wavelength = SPEED_OF_LIGHT_M_S / (28e9 if radio is None else radio.frequency_hz)
     out = {
         "position_m": np.full((bsz, 3), np.nan), "covariance_m2": np.full((bsz, 3, 3), np.nan),
@@ -394,7 +447,11 @@ def mnls(
         _finish(out, idx, *_solve_chunk(bi.anchors_m[idx], bi.ranges_m[idx], sig[idx],
                                          bi.mask[idx], excess[idx], building, grid=grid,
                                          keep=keep_starts, wavelength=wavelength,
-                                         iters=max_iter, lam=lam), nf=nf)
+                                         iters=max_iter, lam=lam, radio=radio,
+                                         snr=None if snr_all is None else snr_all[idx]),
+                nf=nf,
+                snr_meas=None if snr_db is None else snr_all[idx], building=building,
+                radio=radio)
     return _result(out, bi, false_alarm_probability)
 
 
@@ -430,8 +487,41 @@ def _knife_edge_loss_db(ps, wavelength_m: float) -> FloatArray:
     return np.where(nu > -0.78, j, 0.0)
 
 
-def _finish(out, idx, p, xk, t, sel, *, nf: int) -> None:
+def _take(p: _Problem, rows) -> _Problem:
+    """The hypotheses ``rows`` of a problem."""
+    kw = {f: getattr(p, f) for f in ("prior_var", "lam", "wavelength_m")}
+    for f in ("anchors", "r", "sig", "mask", "floor", "lo", "hi", "z_mid", "tail_a",
+              "excess_db"):
+        kw[f] = getattr(p, f)[rows]
+    return _Problem(**kw)
+
+
+def _replace_snr(p: _Problem) -> _Problem:
+    """A copy of ``p`` with the SNR terms held (no refresh during the refinement)."""
+    q = _take(p, slice(None))
+    q.allowed, q.snr_cost, q.strong = p.allowed, p.snr_cost, p.strong
+    return q
+
+
+def _finish(out, idx, p, xk, t, sel, *, nf: int, snr_meas=None, building=None,
+            radio=None) -> None:
     b = idx.size
+    if radio is not None and snr_meas is not None:
+        # refine every floor's mode with the mechanisms chosen there held, then score all
+        # floors with the SNR terms evaluated at their final modes
+        ps = _take(p, sel)
+        ps.snr_meas, ps.radio = np.repeat(snr_meas, nf, axis=0), radio
+        x = xk.reshape(-1, 3)
+        ps.snr_cost = _snr_cost(ps, x, building)
+        t = _link_terms(ps, x, building)
+        k = t["length"].shape[-1]
+        ps.allowed = np.where(t["tail"][..., None], True, np.arange(k) == t["slot"][..., None])
+        snr_hold = ps.snr_cost
+        x, _ = _lm(_replace_snr(ps), x, building, REFINE_ITER)
+        ps.allowed = None
+        xk = x.reshape(xk.shape)
+        ps.snr_cost = _snr_cost(ps, x, building) if snr_hold is not None else None
+        t = _link_terms(ps, x, building)
     h, var = _information(p, sel, t)
     h = h.reshape(b, nf, 3, 3)
     cost = t["cost"].reshape(b, nf)
