@@ -80,6 +80,8 @@ _DIFF_MASK = np.zeros(len(MECHANISMS), dtype=bool)
 _DIFF_MASK[list(DIFFRACTION_SLOTS)] = True
 #: Levenberg-Marquardt iterations of the refinement with the SNR-chosen mechanisms held.
 REFINE_ITER = 6
+#: Levenberg-Marquardt steps from every grid cell before the best ``keep_starts`` go on.
+SCREEN_ITER = 4
 #: Iterations between refreshes of the SNR cost during the search.
 SNR_EVERY = 3
 #: Default false-alarm probability of the residual test.
@@ -296,10 +298,21 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     # height) are a few cm to dm longer than the straight line, so it lands in their basin
     last = np.arange(b * nf) * g + g - 1
     x[last] = _los_start(p0, last, building)
+    # two more cells: a free-z straight-line fit is the node's image when the links are
+    # specular; the node is then its ceiling image (2 z_c - z) or, for the ceiling-floor double
+    # bounce, 2H below it (image method), clipped into the floor
+    if g >= 4:
+        img = _los_start(p0, last, building, free_z=True)
+        h = building.floor_height_m
+        for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
+            x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
+                                               p0.hi[last])
     if snr is not None and radio is not None:  # score the grid with the SNR too
         p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
-        p0.snr_cost = _snr_cost(p0, x, building)
-    c0 = _link_terms(p0, x, building)["cost"].reshape(b, nf, g)
+    # screening: a few LM steps from every cell (a cell's cost before any step says little:
+    # a metre off, every link is explained by the wrong mechanism)
+    x, t0 = _lm(p0, x, building, SCREEN_ITER)
+    c0 = t0["cost"].reshape(b, nf, g)
     best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
     rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g + best).ravel()
     p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
@@ -313,21 +326,24 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel
 
 
-def _los_start(p: _Problem, rows, building, iters: int = 8) -> FloatArray:
-    """Gauss-Newton in (x, y) on straight-line ranges at z = mid-floor, from the floor's
-    centre, clipped to the floor plan; (len(rows), 3)."""
+def _los_start(p: _Problem, rows, building, iters: int = 8, free_z: bool = False
+               ) -> FloatArray:
+    """Gauss-Newton on straight-line ranges from the floor's centre: in (x, y) at z =
+    mid-floor, clipped to the floor plan, or (``free_z``) in 3D with y >= 0 and z unbounded
+    (damped); (len(rows), 3)."""
     a, r, w = p.anchors[rows], p.r[rows], p.mask[rows].astype(float)
     x = np.stack([0.5 * (p.lo[rows, 0] + p.hi[rows, 0]), 0.5 * (p.lo[rows, 1] + p.hi[rows, 1]),
                   p.z_mid[rows]], axis=-1)
+    nd = 3 if free_z else 2
     for _ in range(iters):
         d = x[:, None, :] - a
         dist = np.sqrt(np.einsum("nmi,nmi->nm", d, d))
-        jac = d[..., :2] / dist[..., None]
+        jac = d[..., :nd] / dist[..., None]
         res = r - dist
-        h = np.einsum("nm,nmi,nmj->nij", w, jac, jac) + 1e-6 * np.eye(2)
+        h = np.einsum("nm,nmi,nmj->nij", w, jac, jac) + 1e-2 * np.eye(nd)
         g = np.einsum("nm,nm,nmi->ni", w, res, jac)
-        x[:, :2] = np.clip(x[:, :2] + np.linalg.solve(h, g[..., None])[..., 0],
-                           p.lo[rows, :2], p.hi[rows, :2])
+        x[:, :nd] += np.linalg.solve(h, g[..., None])[..., 0]
+        x[:, :2] = np.clip(x[:, :2], p.lo[rows, :2], p.hi[rows, :2])
     return x
 
 
