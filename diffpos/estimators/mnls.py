@@ -83,7 +83,7 @@ REFINE_ITER = 6
 #: Levenberg-Marquardt steps from every grid cell before the best ``keep_starts`` go on.
 SCREEN_ITER = 4
 #: Iterations between refreshes of the SNR cost during the search.
-SNR_EVERY = 3
+SNR_EVERY = 4
 #: Default false-alarm probability of the residual test.
 FALSE_ALARM_PROBABILITY = 1e-3
 
@@ -220,13 +220,14 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     return np.where(np.isfinite(p.snr_meas)[..., None], c, 0.0)
 
 
-def _lm(p: _Problem, x: FloatArray, building, iters: int) -> tuple[FloatArray, dict]:
+def _lm(p: _Problem, x: FloatArray, building, iters: int, snr_every: int | None = None
+        ) -> tuple[FloatArray, dict]:
     """Projected Levenberg-Marquardt with max-mixture re-assignment at every step; with the
     measured SNR, the SNR cost of every slot is refreshed every :data:`SNR_EVERY` steps."""
     lam = np.full(x.shape[0], 1e-3)
     t = None
     for i in range(iters):
-        if t is None or (p.snr_meas is not None and i % SNR_EVERY == 0):
+        if t is None or (p.snr_meas is not None and i % (snr_every or SNR_EVERY) == 0):
             p.snr_cost = _snr_cost(p, x, building)
             t = _link_terms(p, x, building)
         ws = t["w"] / p.sig**2
@@ -311,7 +312,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism)
-    x, t0 = _lm(p0, x, building, SCREEN_ITER)
+    x, t0 = _lm(p0, x, building, SCREEN_ITER, snr_every=SCREEN_ITER)
     c0 = t0["cost"].reshape(b, nf, g)
     best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
     rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g + best).ravel()
@@ -393,7 +394,7 @@ def mnls(
     bandwidth_hz: float = 400e6,
     grid_shape: tuple[int, int] = (6, 3),
     keep_starts: int = 2,
-    max_iter: int = 15,
+    max_iter: int = 10,
     false_alarm_probability: float = FALSE_ALARM_PROBABILITY,
     chunk_size: int = 256,
 ) -> MnlsResult:
