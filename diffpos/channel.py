@@ -74,6 +74,7 @@ __all__ = [
     "fresnel_coefficients",
     "itu_permittivity",
     "mpc_statistics",
+    "pair_snr_db",
     "scenario_channel",
     "slab_loss_db",
 ]
@@ -317,8 +318,9 @@ class _Ctx:
         self.lam = r.wavelength_m
         self.e0 = np.asarray(r.polarization, dtype=np.float64)
         self.node = nodes[:, None, :]  # (N,1,3)
-        self.anchor = anchors[None, :, :]  # (1,M,3)
-        self.shape = (nodes.shape[0], anchors.shape[0])
+        # (1,M,3) shared anchors, or (N,M,3) per-node anchors (pair_snr_db)
+        self.anchor = anchors[None, :, :] if anchors.ndim == 2 else anchors
+        self.shape = (nodes.shape[0], self.anchor.shape[1])
         floor = b.floor_index(nodes[:, 2])
         self.floor = floor
         self.z_floor = b.floor_z_m(floor)[:, None]  # (N,1)
@@ -467,6 +469,64 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
             valid)
 
 
+def _slots(c: _Ctx, radio: Radio):
+    """Every slot of every pair: length, gain, aod, aoa, valid, power, snr (N, M, K)."""
+    results = [
+        _direct(c),
+        _reflections(c, [], ground=True),
+        _reflections(c, ["floor"]),
+        _reflections(c, ["ceiling"]),
+        _reflections(c, ["back"]),
+        _reflections(c, ["side x1"]),
+        _reflections(c, ["side x2"]),
+        _diffracted(c, "upper"),
+        _diffracted(c, "lower"),
+        _diffracted(c, "upper", "floor"),
+        _diffracted(c, "upper", "ceiling"),
+        _diffracted(c, "lower", "floor"),
+        _diffracted(c, "lower", "ceiling"),
+        _diffracted(c, "upper", "back"),
+        _reflections(c, ["ceiling"], ground=True),
+        _reflections(c, ["ceiling", "floor"]),
+        _reflections(c, ["floor", "ceiling"]),
+        _reflections(c, ["ceiling", "back"]),
+    ]
+    length = np.stack([r[0] for r in results], axis=-1)
+    gain = np.stack([r[1] for r in results], axis=-1).astype(np.complex128)
+    aod = np.stack([r[2] for r in results], axis=-1)
+    aoa = np.stack([r[3] for r in results], axis=-1)
+    valid = np.stack([r[4] for r in results], axis=-1) & np.isfinite(length)
+    gain = np.where(valid, gain, 0)
+    length = np.where(valid, length, np.nan)
+    rx_db = _pattern_db(aoa, radio.rx_hpbw_deg, radio.rx_peak_deg)
+    with np.errstate(divide="ignore"):
+        power = (radio.tx_power_dbm + radio.tx_gain_dbi + radio.rx_gain_dbi + rx_db
+                 + 20 * np.log10(np.abs(gain)))
+    snr = snr_db(power, bandwidth_hz=radio.bandwidth_hz,
+                 processing_gain_db=radio.processing_gain_db,
+                 temperature_k=radio.noise_temperature_k, noise_figure_db=radio.noise_figure_db)
+    power = np.where(valid, power, -np.inf)
+    snr = np.where(valid, snr, -np.inf)
+    return length, gain, aod, aoa, valid, power, snr
+
+
+def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
+                radio: Radio) -> FloatArray:
+    """SNR of every slot for per-node anchor sets: anchors ``(N, M, 3)``, nodes ``(N, 3)``.
+
+    The same amplitudes as :func:`emulate_channel` (which pairs every node with every anchor),
+    for estimators scoring position hypotheses; ``-inf`` where a slot is not valid. Nodes must
+    be inside the building and anchors outside (not checked).
+
+    Returns
+    -------
+    ndarray, shape (N, M, K) [dB]
+    """
+    anchors = np.asarray(anchors_m, dtype=np.float64)
+    nodes = np.asarray(nodes_m, dtype=np.float64)
+    return _slots(_Ctx(building, radio, nodes, anchors), radio)[-1]
+
+
 # --------------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------------
@@ -511,42 +571,7 @@ def emulate_channel(
         raise ValueError(f"nodes_m: {int(bad.sum())} node(s) outside the building's floors, "
                          f"e.g. {nodes[bad][0].tolist()}")
     c = _Ctx(building, radio, nodes, anchors)
-    results = [
-        _direct(c),
-        _reflections(c, [], ground=True),
-        _reflections(c, ["floor"]),
-        _reflections(c, ["ceiling"]),
-        _reflections(c, ["back"]),
-        _reflections(c, ["side x1"]),
-        _reflections(c, ["side x2"]),
-        _diffracted(c, "upper"),
-        _diffracted(c, "lower"),
-        _diffracted(c, "upper", "floor"),
-        _diffracted(c, "upper", "ceiling"),
-        _diffracted(c, "lower", "floor"),
-        _diffracted(c, "lower", "ceiling"),
-        _diffracted(c, "upper", "back"),
-        _reflections(c, ["ceiling"], ground=True),
-        _reflections(c, ["ceiling", "floor"]),
-        _reflections(c, ["floor", "ceiling"]),
-        _reflections(c, ["ceiling", "back"]),
-    ]
-    length = np.stack([r[0] for r in results], axis=-1)
-    gain = np.stack([r[1] for r in results], axis=-1).astype(np.complex128)
-    aod = np.stack([r[2] for r in results], axis=-1)
-    aoa = np.stack([r[3] for r in results], axis=-1)
-    valid = np.stack([r[4] for r in results], axis=-1) & np.isfinite(length)
-    gain = np.where(valid, gain, 0)
-    length = np.where(valid, length, np.nan)
-    rx_db = _pattern_db(aoa, radio.rx_hpbw_deg, radio.rx_peak_deg)
-    with np.errstate(divide="ignore"):
-        power = (radio.tx_power_dbm + radio.tx_gain_dbi + radio.rx_gain_dbi + rx_db
-                 + 20 * np.log10(np.abs(gain)))
-    snr = snr_db(power, bandwidth_hz=radio.bandwidth_hz,
-                 processing_gain_db=radio.processing_gain_db,
-                 temperature_k=radio.noise_temperature_k, noise_figure_db=radio.noise_figure_db)
-    power = np.where(valid, power, -np.inf)
-    snr = np.where(valid, snr, -np.inf)
+    length, gain, aod, aoa, valid, power, snr = _slots(c, radio)
     exists = valid & (snr >= radio.detection_snr_db)
     return Channel(
         delay_s=length / _C, length_m=length, gain=gain, power_dbm=power, snr_db=snr,

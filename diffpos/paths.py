@@ -196,6 +196,8 @@ class _Geom:
     jacobian: FloatArray
     points: list  # interaction points in path order (entry/diffraction point, reflections)
     ground_point: FloatArray | None = None
+    deviation_cos: FloatArray | None = None  # diffraction: cos(incident, diffracted ray)
+    outside_m: FloatArray | None = None  # diffraction: anchor -> diffraction point [m]
 
 
 def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
@@ -284,10 +286,15 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
             rp = q + t[..., None] * d
             valid &= frame.in_floor_box(rp)
             pts.append(rp)
-        jac = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None] * sign
+        u_out = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
+        u_in = q - a
+        d_in = np.sqrt(np.einsum("...i,...i->...", u_in, u_in))
+        u_in = u_in / d_in[..., None]
+        jac = u_out * sign
     pts.append(n)
     return _Geom(length_m=dp.length_m, valid=valid & np.isfinite(dp.length_m), jacobian=jac,
-                 points=pts)
+                 points=pts, deviation_cos=np.einsum("...i,...i->...", u_in, u_out),
+                 outside_m=d_in)
 
 
 def direct_opening(anchor: FloatArray, node: FloatArray, frame: FloorFrame
@@ -319,12 +326,20 @@ class PathSet:
         ``d length_m / d node`` (0 where not valid).
     floor : ndarray of int, shape (...)
         The floor hypothesis the paths were computed for.
+    deviation_cos : ndarray, shape (..., K) [-]
+        For diffraction slots, the cosine of the angle between the incident ray and the
+        diffracted ray (towards the node or its image): 1 on the shadow boundary, smaller deeper
+        in the shadow, where the UTD field is weaker; NaN for the other slots.
+    outside_m : ndarray, shape (..., K) [m]
+        For diffraction slots, the length anchor -> diffraction point; NaN otherwise.
     """
 
     length_m: FloatArray
     valid: BoolArray
     jacobian: FloatArray
     floor: NDArray[np.int_]
+    deviation_cos: FloatArray | None = None
+    outside_m: FloatArray | None = None
 
     @property
     def earliest_slot(self) -> NDArray[np.int_]:
@@ -367,9 +382,11 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
     k = np.broadcast_to(k, shape)
     frame = FloorFrame.from_building(building, k)
     sel = range(len(MECHANISMS)) if slots is None else [int(s) for s in np.ravel(slots)]
-    lens, vals, jacs = [], [], []
+    lens, vals, jacs, devs, outs = [], [], [], [], []
     for s in sel:
         rec = _RECIPES[s]
+        dev = np.full(shape, np.nan)
+        out = np.full(shape, np.nan)
         if rec[0] == "direct":
             d = n - a
             length = np.sqrt(np.einsum("...i,...i->...", d, d))
@@ -381,11 +398,15 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
             length, valid, jac = g.length_m, g.valid, g.jacobian
         else:
             g = diffracted_path(a, n, frame, rec[1], rec[2])
-            length, valid, jac = g.length_m, g.valid, g.jacobian
+            length, valid, jac, dev = g.length_m, g.valid, g.jacobian, g.deviation_cos
+            out = g.outside_m
+        devs.append(dev)
+        outs.append(out)
         lens.append(length)
         vals.append(valid)
         jacs.append(jac)
     valid = np.stack(vals, axis=-1)
     length = np.where(valid, np.stack(lens, axis=-1), np.nan)
     jac = np.where(valid[..., None], np.stack(jacs, axis=-2), 0.0)
-    return PathSet(length_m=length, valid=valid, jacobian=jac, floor=np.asarray(k))
+    return PathSet(length_m=length, valid=valid, jacobian=jac, floor=np.asarray(k),
+                   deviation_cos=np.stack(devs, axis=-1), outside_m=np.stack(outs, axis=-1))

@@ -216,7 +216,7 @@ def _rows(b: Building, n: int) -> SimpleNamespace:
 
 @pytest.mark.parametrize("n_buildings, n_nodes, n_anchors, seed", [
     (10, 10, 6, 20261123),  # 600 geometries, a few seconds
-    pytest.param(40, 20, 8, 7, marks=pytest.mark.slow),  # 6,400 geometries
+    pytest.param(25, 16, 8, 7, marks=pytest.mark.slow),  # 3,200 geometries
 ])
 def test_lengths_and_existence_match_brute_force_and_emulator(n_buildings, n_nodes, n_anchors,
                                                               seed):
