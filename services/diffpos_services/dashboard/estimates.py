@@ -258,14 +258,15 @@ def _diffraction_paths(
     if not lf.size or anchors is None:
         return None
     a_pos, _, a_known = anchors.sample(None, b.t[lf], coded=(b.anchor_ids, b.anchor_code))
-    edge = path_strips(a_pos, est.position_m[lf], b.est_floor[lf], building)
-    strips = np.concatenate([edge, np.repeat(edge[:, -1:], MAX_VERTICES - edge.shape[1], 1)], 1)
+    strips = path_strips(a_pos, est.position_m[lf], b.est_floor[lf], building)
     labels = getattr(est, "link_mechanism", None)
     if labels is not None and building is not None:
         labels = np.where(est.link_used, np.asarray(labels, str), "")
-        if np.any(labels != ""):
+        if np.any(labels != ""):  # (L, MAX_VERTICES, 3): edge paths repeat their last point
+            pad = np.repeat(strips[:, -1:], MAX_VERTICES - strips.shape[1], axis=1)
             mech = mechanism_strips(a_pos, est.position_m[lf], b.est_floor[lf], labels, building)
-            strips = np.where((labels != "")[:, None, None], mech, strips)
+            strips = np.where((labels != "")[:, None, None], mech,
+                              np.concatenate([strips, pad], axis=1))
     ok = a_known & b.has_pos[lf] & np.all(np.isfinite(strips), axis=(1, 2))
     # no path for bookkeeping exclusions (nothing was measured); gated ones are drawn red
     ok &= est.link_used | ~np.isin(est.link_reason, list(BOOKKEEPING_REASONS))
@@ -554,13 +555,16 @@ def _floor_tables(
             head = "**Floor estimate**: no node has a fix\n\n"
         else:
             head = "**Floor estimate** (no ground truth)\n\n"
-        rows = ["| node | estimated | probability | true | |", "|---|---|---|---|---|"]
+        # the probability column only when an estimate gives floor probabilities (v2)
+        with_p = bool(np.isfinite(prob_m[:, j]).any())
+        rows = (["| node | estimated | probability | true | |", "|---|---|---|---|---|"]
+                if with_p else ["| node | estimated | true | |", "|---|---|---|---|"])
         for i, nid in enumerate(nodes):
             e, tr, p = est_m[i, j], tru_m[i, j], prob_m[i, j]
             if e == -2:
                 continue
             mark = "" if e < 0 or tr < 0 else ("ok" if e == tr else "**WRONG**")
-            ptxt = f"{100 * p:.0f} %" if np.isfinite(p) and e >= 0 else "-"
-            rows.append(f"| {nid} | {fmt(e)} | {ptxt} | {fmt(tr)} | {mark} |")
+            ptxt = f" {100 * p:.0f} % |" if np.isfinite(p) and e >= 0 else " - |"
+            rows.append(f"| {nid} | {fmt(e)} |{ptxt if with_p else ''} {fmt(tr)} | {mark} |")
         texts.append(head + "\n".join(rows))
     return texts

@@ -44,9 +44,21 @@ EDGES = ("upper", "lower", "auto")
 _GEOMETRY = ("window_height_m", "edge_x_m", "first_floor_z_m", "floor_height_m", "n_floors")
 # of those, the ones that are also fields of the building table
 _BUILDING_OVERRIDES = ("window_height_m", "first_floor_z_m", "floor_height_m", "n_floors")
-# a placeholder anchor and node grid: Scenario.from_dict validates a building only inside a
-# scenario (the one validation of diffpos.scenario, with its field paths)
-_SHELL = {"anchors": [{"id": "a", "position_m": [0.0, -10.0, 1.0]}], "nodes": {"grid": {}}}
+
+
+def _shell(table: Mapping[str, Any]) -> dict[str, Any]:
+    """A placeholder anchor and one node in the middle of the building of ``table``:
+    Scenario.from_dict validates a building (or radio) only inside a scenario (the one
+    validation of diffpos.scenario, with its field paths)."""
+    dflt = Building()
+    get = lambda k: table.get(k, getattr(dflt, k))  # noqa: E731
+    try:
+        node = [float(get("center_x_m")), 0.5 * float(get("depth_m")),
+                float(get("first_floor_z_m")) + 0.5 * float(get("floor_height_m"))]
+    except (TypeError, ValueError):
+        node = [0.0, 1.0, 1.0]  # the building's own validation names the bad field
+    return {"anchors": [{"id": "a", "position_m": [0.0, -10.0, 1.0]}],
+            "nodes": {"list": [{"id": "n", "position_m": node}]}}
 
 
 def building_of(table: Mapping[str, Any]) -> Building:
@@ -58,7 +70,7 @@ def building_of(table: Mapping[str, Any]) -> Building:
         The table is invalid (the message names the field, e.g. ``building.n_floors``).
     """
     try:
-        return Scenario.from_dict({"building": dict(table), **_SHELL}).building
+        return Scenario.from_dict({"building": dict(table), **_shell(table)}).building
     except ScenarioError as exc:
         raise ValueError(str(exc)) from None
 
@@ -182,7 +194,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
         if self.radio is None:
             return None
         try:
-            return Scenario.from_dict({"radio": dict(self.radio), **_SHELL}).radio
+            return Scenario.from_dict({"radio": dict(self.radio), **_shell({})}).radio
         except ScenarioError as exc:
             raise ValueError(str(exc)) from None
 

@@ -1,0 +1,308 @@
+"""Accuracy of the whole system: lockstep ``diffpos emulate`` runs scored from their recordings.
+
+Usage::
+
+    python benchmarks/bench_accuracy.py            # every run, 20 s each
+    python benchmarks/bench_accuracy.py --quick    # a short check (6 s, default + 2 variants)
+    python benchmarks/bench_accuracy.py --only default large --duration 30 --json out.json
+
+Every run is the real system: ``diffpos emulate --speed 0 --record FILE`` (router, anchors,
+fusion with its default method, recorder as processes; lockstep: emulated time advances as
+fast as the fusion keeps up, so the machine's speed changes the latency, never the result).
+The recording is then scored against the ground truth it holds with :func:`diffpos.metrics.
+score` over EVERY node-epoch after the first 2 s (every truth sample of every node: a
+node-epoch without an estimate, or whose estimate has no position, is a miss):
+availability, floor accuracy over all node-epochs, 3D and |z| error p50/p90 over the fixes,
+truth inside the reported 95 % ellipsoid, and the fusion latency (estimate publish time minus
+the newest input's publish time) p50/p99 of the recorded estimates.
+
+Runs: ``default`` (the paper's building, 4 UAVs, 6 walking responders), ``large``
+(scenarios/large.toml: 8 UAVs, 50 nodes), ``ideal`` (the default with ``--channel ideal``:
+the paper's moving-edge diffraction path with CRLB noise, which the first-arrival model does
+not contain) and variants written here as TOML (not in scenarios/, not tuned for):
+
+- ``tall-floors``: 4 floors of 3.6 m from 2.5 m, 1.0 m sill, 1.2 m windows, 30 x 15 m;
+- ``wide-windows``: 3.2 m floors, 0.4 m sill, 2.4 m windows (the band covers most of a floor);
+- ``uavs-above-windows``: the default building with the UAVs at 6.5-13 m (at and above the
+  windows of the lower floors);
+- ``anchors-beyond-ends``: two UAVs beyond the facade ends (x = -27, +26 m) and three in front.
+
+The table (and ``--json``) names the command and the machine; the README's accuracy table is
+regenerated from it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from diffpos_services.recording.reader import McapScanner
+from diffpos_services.recording.topics import parse_topic
+from diffpos_services.wire import messages as M
+
+from diffpos.metrics import percentiles, score
+from diffpos.scenario import default_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+SKIP_S = 2.0
+
+
+# ----------------------------------------------------------------------------- scenarios
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()
+                               if x is not None) + "}"
+    raise TypeError(f"no TOML for {v!r}")
+
+
+def to_toml(d: dict[str, Any], prefix: str = "") -> str:
+    """A scenario dict (:meth:`Scenario.to_dict`) as TOML (tables, arrays of tables)."""
+    lines, tables = [], []
+    for k, v in d.items():
+        if v is None:
+            continue
+        if isinstance(v, dict):
+            tables.append((k, v))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            tables.append((k, v))
+        else:
+            lines.append(f"{k} = {_toml_value(v)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for k, v in tables:
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out += f"\n[{name}]\n" + to_toml(v, prefix=name + ".")
+        else:
+            for item in v:
+                out += f"\n[[{name}]]\n" + to_toml(item, prefix=name + ".")
+    return out
+
+
+def _anchors(points: Iterable[Iterable[float]]) -> list[dict[str, Any]]:
+    return [{"id": f"uav{i + 1}", "position_m": [float(x) for x in p]}
+            for i, p in enumerate(points)]
+
+
+def variants() -> dict[str, dict[str, Any]]:
+    """The held-out geometries (scenario dicts; the nodes are the emulator's walking
+    responders of each building)."""
+    base = default_scenario().to_dict()
+    base["nodes"] = {"grid": {}}
+
+    def make(name: str, building: dict[str, Any] | None = None,
+             anchors: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+        d = json.loads(json.dumps(base))
+        d["name"], d["description"] = name, f"bench_accuracy variant {name}"
+        if building is not None:
+            d["building"].update(building)
+            w = d["building"]["width_m"] / 2
+            d["building"]["partitions"] = [
+                {"axis": "x", "position_m": 0.0, "span_m": [0.0, d["building"]["depth_m"]],
+                 "material": "plasterboard", "thickness_m": 0.025},
+                {"axis": "y", "position_m": d["building"]["depth_m"] / 2, "span_m": [-w, w],
+                 "material": "plasterboard", "thickness_m": 0.025}]
+        if anchors is not None:
+            d["anchors"] = anchors
+        d["nodes"] = {"grid": {"y_max_m": min(22.0, d["building"]["depth_m"] - 1.0)}}
+        return d
+
+    return {
+        "tall-floors": make("tall-floors", {
+            "n_floors": 4, "floor_height_m": 3.6, "first_floor_z_m": 2.5, "sill_height_m": 1.0,
+            "window_height_m": 1.2, "width_m": 30.0, "depth_m": 15.0},
+            _anchors([[-12, -16, 1.5], [0, -11, 0.5], [11, -17, 2.0], [4, -24, 1.0]])),
+        "wide-windows": make("wide-windows", {
+            "floor_height_m": 3.2, "sill_height_m": 0.4, "window_height_m": 2.4,
+            "first_floor_z_m": 3.5}),
+        "uavs-above-windows": make("uavs-above-windows", anchors=_anchors(
+            [[-14, -18, 6.5], [0, -13, 13.0], [13, -11, 9.0], [6, -22, 11.0]])),
+        "anchors-beyond-ends": make("anchors-beyond-ends", anchors=_anchors(
+            [[-27, -9, 2.0], [26, -12, 3.0], [0, -15, 1.0], [-6, -21, 2.5], [9, -17, 0.5]])),
+    }
+
+
+# ----------------------------------------------------------------------------- scoring
+def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, Any]:
+    """Every node-epoch of a recording after ``skip_s`` against its recorded truth.
+
+    The node-epochs are the recorded truth samples of the nodes (one per node and fusion
+    epoch of the run); the estimate of a node-epoch is the recorded live estimate of that node
+    and epoch (v1 or v2) with a usable position (status in ``GOOD_STATUSES``), else a miss.
+    """
+    dec_est, dec_truth = M.estimate_decoder(), M.decoder(M.GroundTruth)
+    dec_rc = M.decoder(M.RunControl)
+    truth, est, t0, period = [], {}, None, None
+    for batch in McapScanner(path).iter_batches():
+        for m in batch:
+            kind = parse_topic(m.topic)[0]
+            if kind == "truth_node":
+                truth.append(dec_truth(m.data))
+            elif kind == "estimate":
+                e = dec_est(m.data)
+                est[(e.node_id, e.epoch)] = e
+            elif kind == "run_control":
+                t0 = dec_rc(m.data).t0_ns
+    if t0 is None or not truth:
+        raise RuntimeError(f"{path}: no run control or no truth recorded")
+    ts = np.unique([g.t_ns for g in truth])
+    period = int(np.min(np.diff(ts))) if ts.size > 1 else 100_000_000
+    rows = [g for g in truth if g.t_ns >= t0 + round(skip_s * 1e9)]
+    n = len(rows)
+    pos, cov = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
+    e_floor, t_floor = np.full(n, -1), np.array([g.floor_index for g in rows])
+    tru = np.array([g.position_m for g in rows], float)
+    status: dict[str, int] = {}
+    for i, g in enumerate(rows):
+        e = est.get((g.id, g.t_ns // period))
+        if e is None:
+            status["(none)"] = status.get("(none)", 0) + 1
+            continue
+        status[e.status] = status.get(e.status, 0) + 1
+        if e.position_m is None or e.status not in M.GOOD_STATUSES:
+            continue
+        pos[i] = e.position_m
+        if e.covariance_m2 is not None:
+            cov[i] = e.covariance_m2
+        e_floor[i] = -1 if e.floor_index is None else e.floor_index
+    s = score(pos, tru, estimate_floor=e_floor, truth_floor=t_floor, covariance_m2=cov,
+              q=(50, 90))
+    lat = [(e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6 for e in est.values()
+           if e.t_input_wall_ns > 0]
+    return {"node_epochs": s.node_epochs, "availability": s.availability,
+            "floor": s.floor_accuracy_all, "floor_fixes": s.floor_accuracy_fixes,
+            "p50_3d": s.error_3d_m["p50"], "p90_3d": s.error_3d_m["p90"],
+            "p50_z": s.error_z_m["p50"], "p90_z": s.error_z_m["p90"],
+            "coverage95": s.ellipsoid_coverage,
+            "latency_ms": percentiles(lat, (50, 99), max_mean=False),
+            "status": dict(sorted(status.items())),
+            "nodes": len({g.id for g in truth}), "method": _method(est.values())}
+
+
+def _method(ests: Iterable[Any]) -> str:
+    for e in ests:
+        return getattr(e, "method", "dnls (estimate v1)")
+    return "-"
+
+
+# ----------------------------------------------------------------------------- runs
+def emulate_cmd(scenario: str | None, *, out: Path, duration_s: float, seed: int,
+                channel: str = "emulator") -> list[str]:
+    exe = Path(sys.executable).parent / "diffpos"
+    cmd = [str(exe) if exe.exists() else "diffpos", "emulate"]
+    if scenario is not None:
+        cmd.append(scenario)
+    return [*cmd, "--speed", "0", "--duration", f"{duration_s:g}", "--seed", str(seed),
+            "--channel", channel, "--dashboard", "off", "--no-progress", "--record", str(out)]
+
+
+def runs(tmp: Path, names: list[str] | None) -> dict[str, tuple[str | None, str]]:
+    """name -> (scenario argument, channel)."""
+    out: dict[str, tuple[str | None, str]] = {
+        "default": (None, "emulator"),
+        "large": (str(ROOT / "scenarios" / "large.toml"), "emulator"),
+        "ideal": (None, "ideal"),
+    }
+    for name, d in variants().items():
+        path = tmp / f"{name}.toml"
+        path.write_text(to_toml(d), encoding="utf-8")
+        out[name] = (str(path), "emulator")
+    return {k: v for k, v in out.items() if names is None or k in names}
+
+
+def machine() -> str:
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    return (f"{platform.node()} {platform.machine()} {os.cpu_count()} cores, "
+            f"{platform.processor() or platform.system()}, Python {platform.python_version()}, "
+            f"load avg {load[0]:.1f}")
+
+
+def _f(v: float | None, scale: float = 1.0, fmt: str = "6.2f") -> str:
+    return "     -" if v is None else format(v * scale, fmt)
+
+
+def table(results: dict[str, dict[str, Any]]) -> str:
+    head = (f"{'run':20s} {'N':>3s} {'avail':>6s} {'floor':>6s} {'3D p50':>7s} {'3D p90':>7s} "
+            f"{'z p50':>6s} {'z p90':>6s} {'cov95':>6s} {'lat p50':>8s} {'lat p99':>8s}")
+    lines = [head, "-" * len(head)]
+    for name, r in results.items():
+        if "error" in r:
+            lines.append(f"{name:20s} failed: {r['error']}")
+            continue
+        lat = r["latency_ms"]
+        lines.append(
+            f"{name:20s} {r['nodes']:3d} {_f(r['availability'], 100, '5.1f')}% "
+            f"{_f(r['floor'], 100, '5.1f')}% {_f(r['p50_3d'], 1, '7.2f')} "
+            f"{_f(r['p90_3d'], 1, '7.2f')} {_f(r['p50_z'])} {_f(r['p90_z'])} "
+            f"{_f(r['coverage95'], 100, '5.1f')}% {_f(lat['p50'], 1, '8.1f')} "
+            f"{_f(lat['p99'], 1, '8.1f')}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=20.0, help="emulated seconds per run")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--only", nargs="*", help="run only these (default, large, ideal, "
+                    + ", ".join(variants()) + ")")
+    ap.add_argument("--quick", action="store_true",
+                    help="6 s runs of default, tall-floors and anchors-beyond-ends")
+    ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    ap.add_argument("--keep", metavar="DIR", help="keep the recordings in DIR")
+    args = ap.parse_args(argv)
+    duration = 6.0 if args.quick else args.duration
+    only = args.only or (["default", "tall-floors", "anchors-beyond-ends"] if args.quick else None)
+    results: dict[str, dict[str, Any]] = {}
+    commands: dict[str, str] = {}
+    with tempfile.TemporaryDirectory(prefix="bench-accuracy-") as tmp_s:
+        tmp = Path(args.keep) if args.keep else Path(tmp_s)
+        tmp.mkdir(parents=True, exist_ok=True)
+        for name, (scenario, channel) in runs(Path(tmp_s), only).items():
+            out = tmp / f"{name}.mcap"
+            out.unlink(missing_ok=True)
+            cmd = emulate_cmd(scenario, out=out, duration_s=duration, seed=args.seed,
+                              channel=channel)
+            commands[name] = shlex.join(cmd)
+            print(f"# {name}: {commands[name]}", file=sys.stderr, flush=True)
+            t = time.perf_counter()
+            p = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_s)
+            if p.returncode != 0 or not out.exists():
+                results[name] = {"error": f"exit {p.returncode}: {p.stderr.strip()[-300:]}"}
+                continue
+            results[name] = score_recording(out) | {"wall_s": time.perf_counter() - t}
+    print(f"bench_accuracy: lockstep diffpos emulate --speed 0, {duration:g} s per run, seed "
+          f"{args.seed}, every node-epoch after the first {SKIP_S:g} s (a missing position is a "
+          f"miss); floor over all node-epochs; 3D/z in m over the fixes; cov95 = truth inside "
+          f"the reported 95 % ellipsoid; latency in ms (estimate publish - newest input)")
+    print(f"command: python benchmarks/bench_accuracy.py {' '.join(argv or sys.argv[1:])}")
+    print(f"machine: {machine()}")
+    method = next((r["method"] for r in results.values() if "method" in r), "-")
+    print(f"fusion: {method}\n")
+    print(table(results))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"duration_s": duration, "seed": args.seed,
+                                               "machine": machine(), "commands": commands,
+                                               "results": results}, indent=2))
+    return 0 if all("error" not in r for r in results.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
