@@ -1,0 +1,199 @@
+"""`diffpos emulate` under faults (issue 15, items 6, 7, 9 and the dashboard's readiness):
+children die with it, a dead fusion/recorder is restarted and reported, only the run's own
+fusion is counted, a short run's .rrd holds every estimate. Real processes, real Zenoh."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import select
+import signal
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+from diffpos_services.bus.session import ZenohSettings, open_session
+from diffpos_services.kit import free_tcp_port
+from diffpos_services.recording.reader import McapScanner
+from diffpos_services.wire.keys import Keys, parse_key
+
+
+def complete(path: Path) -> bool:
+    """The MCAP file has its footer (read through)."""
+    scanner = McapScanner(path)
+    for _ in scanner.iter_batches():
+        pass
+    return scanner.complete
+
+
+def wait_log(services, name: str, text: str, timeout_s: float = 90.0) -> str:
+    """Block until ``text`` appears in ``name``'s log (readiness by a log line)."""
+    tick = threading.Event()
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        log = services.log(name)
+        if text in log:
+            return log
+        if services.procs[name].poll() is not None:
+            raise AssertionError(f"{name} exited before {text!r}:\n{log[-3000:]}")
+        tick.wait(0.05)
+    raise AssertionError(f"no {text!r} in {name}'s log after {timeout_s} s:\n"
+                         f"{services.log(name)[-3000:]}")
+
+
+def children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                stat = Path(f"/proc/{entry}/stat").read_text()
+                if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(entry))
+    return out
+
+
+def wait_gone(pids: list[int], timeout_s: float) -> list[int]:
+    """Wait (pidfds, no sleeps) until every pid has exited; the pids still running after
+    ``timeout_s`` [s]."""
+    fds = {}
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError):
+            fds[os.pidfd_open(pid)] = pid
+    deadline = time.monotonic() + timeout_s
+    try:
+        poller = select.poll()
+        for fd in fds:
+            poller.register(fd, select.POLLIN)
+        left = set(fds)
+        while left and time.monotonic() < deadline:
+            for fd, _ in poller.poll(max(deadline - time.monotonic(), 0) * 1000):
+                left.discard(fd)
+                poller.unregister(fd)
+        return sorted(fds[fd] for fd in left)
+    finally:
+        for fd in fds:
+            os.close(fd)
+
+
+def _start_emulate(services, tmp_path, *extra: str):
+    p = services.start("emulate", "emulate", "--no-progress", "--log-dir", str(tmp_path / "logs"),
+                       "--json", str(tmp_path / "summary.json"), *extra)
+    wait_log(services, "emulate", "all services ready")
+    kids = children(p.pid)
+    # router, fusion, 4 anchors, recorder
+    assert len(kids) >= 7, kids
+    return p, kids
+
+
+def test_sighup_stops_every_child(services, tmp_path):
+    """Closing the terminal (SIGHUP to emulate): the run ends, no child is left running."""
+    p, kids = _start_emulate(services, tmp_path, "--duration", "120", "--dashboard", "off",
+                             "--record", str(tmp_path / "run.mcap"))
+    os.kill(p.pid, signal.SIGHUP)
+    assert p.wait(timeout=60) == 130, services.log("emulate")[-3000:]
+    assert wait_gone(kids, 1.0) == []
+    # the recording was closed properly (complete: footer and index)
+    assert complete(tmp_path / "run.mcap")
+
+
+def test_sigkill_of_emulate_stops_every_child(services, tmp_path):
+    """emulate SIGKILLed: its children get the parent-death signal and stop."""
+    p, kids = _start_emulate(services, tmp_path, "--duration", "120", "--dashboard", "off",
+                             "--record", str(tmp_path / "run.mcap"))
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait(timeout=10)
+    assert wait_gone(kids, 30.0) == []
+
+
+def _pid_of(tmp_path: Path, kids: list[int], service: str) -> int:
+    for pid in kids:
+        with contextlib.suppress(OSError):
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            if b"diffpos_services.cli.main" in cmd and cmd[cmd.index(b"diffpos_services.cli.main") + 1] == service.encode():
+                return pid
+    raise AssertionError(f"no {service} among {kids}")
+
+
+def test_dead_fusion_and_recorder_are_restarted_and_reported(services, tmp_path):
+    out = tmp_path / "run.mcap"
+    p, kids = _start_emulate(services, tmp_path, "--duration", "25", "--dashboard", "off",
+                             "--record", str(out))
+    os.kill(_pid_of(tmp_path, kids, "fusion"), signal.SIGKILL)
+    wait_log(services, "emulate", "service restarted service=fusion")
+    os.kill(_pid_of(tmp_path, kids, "recorder"), signal.SIGKILL)
+    log = wait_log(services, "emulate", "service restarted service=recorder")
+    rc = p.wait(timeout=120)
+    log = services.log("emulate")
+    assert rc == 3, log[-3000:]  # the run lost data
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    faults = {f["service"]: f for f in summary["faults"]}
+    assert set(faults) == {"fusion", "recorder"}, summary["faults"]
+    for f in faults.values():
+        assert f["exit_code"] == -signal.SIGKILL
+        assert f["restarted_s"] is not None and f["restarted_s"] >= f["died_s"]
+    assert "faults: 2" in log and "fusion: died at" in log and "recorder: died at" in log
+    # the dead recorder's file is recovered in place (complete), the new one holds what the
+    # restarted fusion published
+    new = tmp_path / "run-restart1.mcap"
+    assert summary["recordings"] == [str(out), str(new)]
+    assert complete(out)
+    est = 0
+    for batch in McapScanner(new).iter_batches():
+        est += sum(1 for m in batch if (pk := parse_key(m.topic)) and pk.kind == "estimate")
+    assert est > 0, "the restarted fusion's estimates were recorded in the new file"
+
+
+def test_foreign_estimates_not_counted_but_reported(services, tmp_path):
+    """Another process on the emulate bus republishes every estimate it sees: the summary
+    counts each of the fusion's estimates once and reports the copies as foreign."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    keys = Keys("demo")
+    p = services.start("emulate", "emulate", "--no-progress", "--endpoint", endpoint,
+                       "--speed", "0", "--duration", "2", "--dashboard", "off", "--record", "off",
+                       "--json", str(tmp_path / "summary.json"))
+    stop = threading.Event()
+    session = open_session(ZenohSettings(connect=(endpoint,)), stop)
+    copies = []
+    with session:
+        def copy(sample) -> None:
+            # a foreign publisher: same key, same bytes (BLOCK: every copy arrives); our own
+            # copies come back unstamped (local delivery): not copied again
+            if sample.timestamp is not None:
+                session.put(str(sample.key_expr), sample.payload.to_bytes(),
+                            congestion_control=zenoh.CongestionControl.BLOCK)
+                copies.append(str(sample.key_expr))
+
+        sub = session.declare_subscriber(keys.estimates(), copy)
+        rc = p.wait(timeout=180)
+        sub.undeclare()
+    assert rc == 0, services.log("emulate")[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    mine = summary["estimates"]
+    n_expected = 6 * 20  # 6 nodes x 2 s at 10 Hz, lockstep: every epoch
+    assert summary["foreign"]["count"] >= 1
+    assert all(parse_key(k).kind == "estimate" for k in summary["foreign"]["keys"])
+    assert summary["foreign"]["count"] <= len(copies)
+    assert mine == n_expected, (mine, summary["foreign"])
+    assert "foreign:" in services.log("emulate")
+
+
+def test_short_run_rrd_holds_every_estimate(services, tmp_path):
+    """Lockstep run with --dashboard save: emulate waits for the dashboard's liveliness token,
+    so the .rrd has a row for every estimate of the run."""
+    import rerun.chunk as rc  # the Rerun stack: optional extra, heavy
+
+    rrd = tmp_path / "run.rrd"
+    p = services.start("emulate", "emulate", "--no-progress", "--speed", "0", "--duration", "2",
+                       "--dashboard", "save", str(rrd), "--record", "off",
+                       "--json", str(tmp_path / "summary.json"))
+    assert p.wait(timeout=180) == 0, services.log("emulate")[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    rows = 0
+    for chunk in rc.RrdReader(str(rrd)).stream():
+        if chunk.entity_path.endswith("/estimate") and chunk.entity_path.startswith("/world/nodes/"):
+            rows += chunk.num_rows
+    assert rows == 6 * 20 == summary["estimates"]
