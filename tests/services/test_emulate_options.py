@@ -3,13 +3,18 @@ the option, exit 2, no traceback, nothing started."""
 
 from __future__ import annotations
 
+import json
+import logging
 import os
 import subprocess
 import sys
+import threading
 
 import pytest
-from diffpos_services.emulate import EmulationOptions
+import zenoh
+from diffpos_services.emulate import EXTRA_SERVICES, Emulation, EmulationOptions
 from diffpos_services.kit import ConfigError, free_tcp_port
+from diffpos_services.wire.keys import Keys
 
 
 def _diffpos(*argv: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
@@ -61,3 +66,47 @@ def test_anchor_unreachable_router_is_one_line_exit_2():
     assert "Traceback" not in r.stderr
     assert "diffpos anchor: error: --connect" in r.stderr, r.stderr
     assert "--connect-timeout-ms 500" in r.stderr
+
+
+def test_emulate_waits_for_the_dashboards_token_which_the_service_declares():
+    """The dashboard declares its liveliness token once subscribed (real Zenoh, loopback) and
+    ``diffpos emulate`` waits for it before the run starts (a short run's .rrd misses
+    nothing; tests/system/test_emulate_faults.py::test_short_run_rrd_holds_every_estimate)."""
+    import rerun as rr  # the Rerun stack: optional extra, heavy
+    from diffpos_services.dashboard.service import DashboardService
+
+    keys = Keys("demo")
+    assert EXTRA_SERVICES["dashboard"][2](keys) == keys.alive_dashboard()
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+
+    def cfg(**kv):
+        c = zenoh.Config()
+        c.insert_json5("scouting/multicast/enabled", "false")
+        for k, v in kv.items():
+            c.insert_json5(k.replace("__", "/"), json.dumps(v))
+        return c
+
+    seen = threading.Event()
+    with zenoh.open(cfg(mode="router", listen__endpoints=[ep])) as router, \
+            zenoh.open(cfg(mode="client", connect__endpoints=[ep])) as watcher:
+        sub = watcher.liveliness().declare_subscriber(
+            keys.alive_dashboard(),
+            lambda s: seen.set() if s.kind == zenoh.SampleKind.PUT else None, history=True)
+        svc = DashboardService(router, rr.RecordingStream("test-token"), site="demo")
+        svc.start()
+        try:
+            assert seen.wait(10.0), "no dashboard liveliness token"
+        finally:
+            svc.close()
+            sub.undeclare()
+
+
+def test_fusion_started_by_emulate_accepts_only_the_scenarios_anchors():
+    """A foreign anchor (``uav9``) on the emulate bus is rejected by the fusion as an unknown
+    anchor: emulate passes the scenario's anchors as its allow-list (and the recorded run
+    configuration says so, for replay)."""
+    emu = Emulation(EmulationOptions(record="off", dashboard=["off"]),
+                    logging.getLogger("test"), threading.Event())
+    i = emu.fusion_args.index("--anchors")
+    assert emu.fusion_args[i + 1].split(",") == emu.anchor_ids == ["uav1", "uav2", "uav3", "uav4"]
+    assert list(emu.fusion_config.anchors) == emu.anchor_ids
