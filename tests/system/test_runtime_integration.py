@@ -103,7 +103,7 @@ def _run_system(services, endpoint, *, scenario, anchors, duration_s, speed, sit
         estimates: list[tuple[float, M.PositionEstimate]] = []
         diags: list[tuple[float, M.FusionDiagnostics]] = []
         events = []
-        dec_e, dec_d = M.decoder(M.PositionEstimate), M.decoder(M.FusionDiagnostics)
+        dec_e, dec_d = M.estimate_decoder(), M.decoder(M.FusionDiagnostics)  # estimate v1/v2
         deadline = time.monotonic() + duration_s / speed + extra_timeout_s
         while True:
             assert time.monotonic() < deadline, "run did not finish"
@@ -238,7 +238,8 @@ def test_emulate_one_command_runs_scores_and_cleans_up(services, tmp_path):
     s = json.loads(summary_path.read_text())
     assert s["anchors"] == 4 and s["nodes"] == 6
     assert s["estimates"] == 6 * 30 and s["epochs_per_node_min"] == 30
-    assert s["status"].get("OK", 0) + s["status"].get("OK_UNVERIFIED", 0) >= 0.9 * s["estimates"]
+    # OK/OK_UNVERIFIED (snapshot fixes) or the tracker's INITIALISING/TRACKING/COASTING
+    assert sum(s["status"].get(k, 0) for k in M.GOOD_STATUSES) >= 0.9 * s["estimates"], s["status"]
     assert s["error_3d_m"]["p50"] <= 2 * s["peb_m"]["p50"]
     assert s["floor_accuracy"] >= 0.9
     assert s["fusion"]["late_ranges"] == 0 and not s["lost"]
