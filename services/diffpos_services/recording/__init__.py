@@ -3,13 +3,15 @@
 Split by role like the ``mcap`` package:
 
 ========== =====================================================================
-errors     ``RecordingError`` (a ``kit.DiffposError``, exit code 2)
+errors     ``RecordingError`` (a ``kit.DiffposError``, exit code 2), ``ForeignRecordingError``
 topics     ``parse_topic`` (kind and ids of a topic), ``SeqTracker`` (sequence gaps)
 schemas    ``SchemaRegistry``: the JSON Schema of each channel
-writer     ``McapSink``: what the recorder service writes with
-reader     ``McapScanner``: sequential, damage-tolerant reading
+writer     ``McapSink``: what the recorder service writes with (``SplitPolicy``: parts)
+reader     ``McapScanner``: sequential, damage-tolerant reading; ``side_records``
+           (metadata and attachments wherever they are in the file)
 repair     ``recover``: a truncated file -> a valid, indexed one
-summary    ``summarize``, ``validate_file``: ``diffpos inspect``
+outputs    ``check_output`` (never over an input), ``atomic_path`` (temp file + rename)
+summary    ``summarize``, ``validate_file`` (against ``schemas/``): ``diffpos inspect``
 replay     ``replay``: settings -> feed the fusion core -> outputs -> report
 evaluate   fixes against the recorded truth (math in ``diffpos.metrics``)
 synthetic  synthetic runs without Zenoh (tests, benchmarks, the dashboard's demo)
