@@ -4,6 +4,16 @@ Problems are validated by :func:`diffpos_services.wire.solve_io.parse_problem`, 
 what must be equal for one batched estimator call (method, anchor count, options), solved with
 the vectorised estimators of :mod:`diffpos.estimators` and returned in input order. A problem
 that breaks its batch is re-solved alone, so one bad line never costs the others their fixes.
+
+Bounded work: every line is decoded and validated as soon as it is read (only the compact
+validated problem is kept for its batch, never the line's text or decoded JSON), the
+per-problem limits of :class:`~diffpos_services.wire.solve_io.Limits` bound each problem's
+arrays, and a group is solved in chunks of at most :data:`CHUNK_ELEMENTS` solver elements
+(anchors^2 x starts per problem), so a batch of large problems cannot add up to gigabytes.
+
+Only a status with a trustworthy position (``ok``, ``ok_unverified``) publishes one: every
+other status has ``position_m``, ``covariance_m2``, ``peb_m`` and ``z_bound_m`` null (an
+unidentifiable or diverged fit can sit hundreds of kilometres away).
 """
 
 from __future__ import annotations
@@ -15,8 +25,11 @@ from typing import Any
 import numpy as np
 
 from diffpos.estimators import GatingConfig, dnls, ippa, lls
+from diffpos.estimators.dnls import DEFAULT_Z_STARTS_M
 from diffpos_services.wire.solve_io import (
+    DEFAULT_LIMITS,
     RESULT_KEYS,
+    Limits,
     Problem,
     ProblemError,
     check_id,
@@ -25,7 +38,18 @@ from diffpos_services.wire.solve_io import (
     parse_problem,
 )
 
-__all__ = ["solve_lines", "solve_records"]
+__all__ = ["CHUNK_ELEMENTS", "POSITION_STATUSES", "solve_lines", "solve_records"]
+
+#: Statuses whose position is published; any other status has no trustworthy position.
+POSITION_STATUSES = ("ok", "ok_unverified")
+#: Result fields that only exist with a trustworthy position.
+_POSITION_KEYS = ("position_m", "covariance_m2", "peb_m", "z_bound_m")
+#: Problems of one group are solved together up to this many solver elements
+#: (anchors^2 x (starts + 2) each): at most about 70 MB of working memory (measured).
+CHUNK_ELEMENTS = 1 << 18
+
+# (line number or index, id, validated problem or the record of an invalid line)
+_Prepared = tuple[int, Any, Problem | dict[str, Any]]
 
 
 def _solve_group(problems: list[Problem]) -> list[dict[str, Any]]:
@@ -64,69 +88,82 @@ def _solve_alone(prob: Problem) -> dict[str, Any]:
                               f"{str(exc)[:200]}); check the values for plausibility")
 
 
-def _validate_all(items: list[Any], default_method: str, out: list, ids: list
-                  ) -> dict[tuple, list[tuple[int, Problem]]]:
-    """Parse every item; invalid ones get their record in ``out``, valid ones are grouped."""
+def _prepare(line: int, obj: Any, default_method: str, limits: Limits) -> _Prepared:
+    """Validate one decoded problem (or the :class:`ProblemError` of an unreadable line)."""
+    ident = None
+    try:
+        if isinstance(obj, ProblemError):
+            raise obj
+        if isinstance(obj, dict) and obj.get("id") is not None:
+            ident = check_id(obj["id"])
+        return line, ident, parse_problem(obj, default_method=default_method, limits=limits)
+    except ProblemError as exc:
+        return line, ident, invalid_record(str(exc))
+
+
+def _chunk_size(prob: Problem) -> int:
+    """How many problems like ``prob`` are solved in one estimator call."""
+    m = prob.ranges_m.size
+    starts = 1 if prob.x0_m is not None else len(prob.z_starts_m or DEFAULT_Z_STARTS_M)
+    return max(1, CHUNK_ELEMENTS // (m * m * (starts + 2)))
+
+
+def _solve_prepared(items: list[_Prepared]) -> list[dict[str, Any]]:
+    """Result records of validated items, in order: groups solved in bounded chunks."""
+    out: list[dict[str, Any]] = []
     groups: dict[tuple, list[tuple[int, Problem]]] = {}
-    for k, obj in enumerate(items):
-        try:
-            if isinstance(obj, ProblemError):
-                raise obj
-            if isinstance(obj, dict) and obj.get("id") is not None:
-                ids[k] = check_id(obj["id"])
-            prob = parse_problem(obj, default_method=default_method)
-        except ProblemError as exc:
-            out[k] = invalid_record(str(exc))
-            continue
-        groups.setdefault(prob.group_key(), []).append((k, prob))
-    return groups
-
-
-def solve_records(
-    problems: Iterable[Any], *, default_method: str = "dnls", first_line: int = 1
-) -> list[dict[str, Any]]:
-    """Solve decoded problems (dicts, or :class:`ProblemError` instances for lines that
-    failed to decode); return one JSON-ready result dict per problem, in order."""
-    items = list(problems)
-    out: list[dict[str, Any] | None] = [None] * len(items)
-    ids: list[Any] = [None] * len(items)
-    groups = _validate_all(items, default_method, out, ids)
+    for k, (_, _, prob) in enumerate(items):
+        out.append(prob if isinstance(prob, dict) else {})
+        if isinstance(prob, Problem):
+            groups.setdefault(prob.group_key(), []).append((k, prob))
     for members in groups.values():
-        try:
-            recs = _solve_group([p for _, p in members])
-        except Exception:  # isolate the problem that broke the batch
-            recs = [_solve_alone(p) for _, p in members]
-        for (k, _), rec in zip(members, recs, strict=True):
-            out[k] = rec
+        step = _chunk_size(members[0][1])
+        for lo in range(0, len(members), step):
+            part = members[lo:lo + step]
+            try:
+                recs = _solve_group([p for _, p in part])
+            except Exception:  # isolate the problem that broke the batch
+                recs = [_solve_alone(p) for _, p in part]
+            for (k, _), rec in zip(part, recs, strict=True):
+                out[k] = rec
     final = []
-    for k, rec in enumerate(out):
-        assert rec is not None
+    for (line, ident, _), rec in zip(items, out, strict=True):
         rec = {key: rec.get(key) for key in RESULT_KEYS}
-        rec["line"] = first_line + k
-        rec["id"] = ids[k]
+        if rec["status"] not in POSITION_STATUSES:
+            rec.update(dict.fromkeys(_POSITION_KEYS))  # no trustworthy position: publish none
+        rec["line"] = line
+        rec["id"] = ident
         final.append(rec)
     return final
 
 
-def solve_lines(lines: Iterable[str | ProblemError], *, batch: int = 256,
-                default_method: str = "dnls") -> Iterator[dict[str, Any]]:
-    """Solve JSON Lines (blank lines skipped, but counted in ``line``), yielding results.
+def solve_records(
+    problems: Iterable[Any], *, default_method: str = "dnls", first_line: int = 1,
+    limits: Limits = DEFAULT_LIMITS,
+) -> list[dict[str, Any]]:
+    """Solve decoded problems (dicts, or :class:`ProblemError` instances for lines that
+    failed to decode); return one JSON-ready result dict per problem, in order."""
+    return _solve_prepared([_prepare(first_line + k, obj, default_method, limits)
+                            for k, obj in enumerate(problems)])
 
-    Items may be :class:`ProblemError` instances for lines that could not be read (too
-    long, not UTF-8, see :func:`~diffpos_services.wire.solve_io.read_lines`): they are
-    answered with ``invalid_input``.
+
+def solve_lines(lines: Iterable[str | ProblemError], *, batch: int = 256,
+                default_method: str = "dnls", limits: Limits = DEFAULT_LIMITS
+                ) -> Iterator[dict[str, Any]]:
+    """Solve JSON Lines, yielding exactly one result per line that is not blank.
+
+    Blank (whitespace-only) lines are skipped without a result but counted in ``line``, so
+    results keep the input's line numbers. Items may be :class:`ProblemError` instances for
+    lines that could not be read (too long, not UTF-8, see
+    :func:`~diffpos_services.wire.solve_io.read_lines`): they are answered with
+    ``invalid_input``. Each line is decoded and validated as soon as it is read; a batch
+    holds only validated problems (bounded by ``limits``), never the lines' text.
     """
     numbered = ((n, ln) for n, ln in enumerate(lines, start=1)
                 if isinstance(ln, ProblemError) or ln.strip())
+    prepared = (_prepare(n, decode_line(ln), default_method, limits) for n, ln in numbered)
     while True:
-        chunk = list(itertools.islice(numbered, max(batch, 1)))
+        chunk = list(itertools.islice(prepared, max(batch, 1)))
         if not chunk:
             return
-        # results are numbered by input line even across blank lines
-        for (n, _), rec in zip(
-            chunk,
-            solve_records([decode_line(ln) for _, ln in chunk], default_method=default_method),
-            strict=True,
-        ):
-            rec["line"] = n
-            yield rec
+        yield from _solve_prepared(chunk)

@@ -211,6 +211,8 @@ def test_solve_records_always_valid_json_results(changes):
         assert rec["message"]
     elif rec["position_m"] is not None:
         assert all(v is None or math.isfinite(v) for v in rec["position_m"])
+    if rec["status"] not in ("ok", "ok_unverified"):  # no trustworthy position: none published
+        assert rec["position_m"] is None and rec["peb_m"] is None
 
 
 @FUZZ

@@ -169,7 +169,10 @@ def test_methods_mixed_in_one_batch_match_single_solves():
     alone = [solve_records([p])[0] for p in probs]
     for t, a in zip(together, alone, strict=True):
         assert t["status"] == a["status"]
-        assert np.allclose(t["position_m"], a["position_m"], atol=1e-9)
+        if t["status"] in ("ok", "ok_unverified"):
+            assert np.allclose(t["position_m"], a["position_m"], atol=1e-9)
+        else:  # no trustworthy position, none published
+            assert t["position_m"] is None and a["position_m"] is None
     assert together[1]["method"] == "lls"
     assert np.allclose(together[1]["position_m"], node, atol=1e-8)
     assert together[2]["status"] == "ok_unverified"
@@ -253,9 +256,83 @@ def test_gating_height_range_and_multistart_options(monkeypatch, capsys):
     by_id = {r["id"]: r for r in recs}
     assert by_id["default"]["status"] == "ok" and by_id["off"]["status"] == "ok"
     assert by_id["narrow"]["status"] == "gating_failed"  # z = 10.5 m is outside [12, 30]
-    assert np.allclose(by_id["narrow"]["position_m"], node, atol=1e-6)
+    assert by_id["narrow"]["position_m"] is None  # gating_failed publishes no position
     assert by_id["bad"]["status"] == "invalid_input" and "z_range_m" in by_id["bad"]["message"]
     assert (by_id["bad2"]["status"] == "invalid_input"
             and "multistart_exclusion" in by_id["bad2"]["message"])
     for r in recs:
         jsonschema.validate(r, RESULT_SCHEMA)
+
+
+# ----------------------------------------------------------------------------- issue 15, item 11
+@pytest.mark.parametrize(("y", "where"), [(5.0, "inside the building (y = 5 > 0)"),
+                                          (0.0, "on the facade (y = 0)")])
+def test_anchor_not_outside_is_invalid_naming_the_anchor(y, where, monkeypatch, capsys):
+    """An anchor at y >= 0 is not where an anchor can be: before, the line was solved (ok)."""
+    node = [2.0, 5.0, 10.5]
+    prob = _problem(node)
+    prob["anchors_m"] = [list(a) for a in ANCHORS]
+    prob["anchors_m"][2][1] = y
+    good = json.dumps(_problem(node))
+    rc, recs, _ = _run([good, json.dumps(prob), good], [], monkeypatch, capsys)
+    assert rc == 0 and [r["status"] for r in recs] == ["ok", "invalid_input", "ok"]
+    msg = recs[1]["message"]
+    assert msg.startswith(f"anchors_m[2] = [0.0, {y}, 4.0] is {where}"), msg
+    assert "anchors must be outside, y < 0" in msg
+    for method in ("lls", "ippa"):  # every method uses the building frame
+        (rec,) = solve_records([dict(prob, method=method)])
+        assert rec["status"] == "invalid_input" and rec["message"] == msg
+
+
+def _unidentifiable():
+    # four anchors at one point: the diffraction geometry constrains one direction only
+    return {"anchors_m": [[0.0, -5.0, 1.0]] * 4, "ranges_m": [10.0] * 4, "sigmas_m": 0.01,
+            "window_height_m": 1.0, "id": "same-point"}
+
+
+def test_statuses_without_a_trustworthy_position_publish_none(monkeypatch, capsys):
+    """Before: not_identifiable carried positions like y = 925 km. Now only ok and
+    ok_unverified publish position_m, covariance_m2, peb_m, z_bound_m."""
+    node = [1.0, 4.0, 7.5]
+    los = los_path(np.array(ANCHORS), np.array(node))[0].tolist()
+    far = _problem([2.0, 5.0, 10.5], id="gating", gating={"z_range_m": [12.0, 30.0]})
+    ippa_cap = {"anchors_m": ANCHORS[:4], "ranges_m": los[:4], "method": "ippa",
+                "nlos": False, "id": "ippa"}
+    lines = [json.dumps(p) for p in (_unidentifiable(), far, ippa_cap, _problem(node))]
+    rc, recs, _ = _run(lines, [], monkeypatch, capsys)
+    assert rc == 0
+    by_id = {r["id"]: r for r in recs}
+    assert by_id["same-point"]["status"] == "not_identifiable"
+    assert by_id["gating"]["status"] == "gating_failed"
+    assert by_id["ippa"]["status"] == "not_converged"
+    for r in recs:
+        jsonschema.validate(r, RESULT_SCHEMA)
+        fields = [r[k] for k in ("position_m", "covariance_m2", "peb_m", "z_bound_m")]
+        if r["status"] in ("ok", "ok_unverified"):
+            assert all(f is not None for f in fields), r
+        else:
+            assert fields == [None] * 4, r
+            assert r["message"]  # the verdict still says why
+    assert recs[-1]["status"] == "ok"
+    assert np.allclose(recs[-1]["position_m"], node, atol=1e-6)
+
+
+def test_blank_lines_are_skipped_as_help_and_docs_say(monkeypatch, capsys):
+    """Every non-blank line gets exactly one result; blank (whitespace-only) lines get none
+    but are counted in "line". --help and docs/bad_input.md say so (they said every line)."""
+    good = json.dumps(_problem([2.0, 5.0, 10.5]))
+    rc, recs, _ = _run([good, "", "   ", "\t", good, "{}", " "], [], monkeypatch, capsys)
+    assert rc == 0
+    assert [(r["line"], r["status"]) for r in recs] == [(1, "ok"), (5, "ok"),
+                                                        (6, "invalid_input")]
+    help_text = subprocess.run([str(Path(sys.executable).parent / "diffpos"), "solve", "--help"],
+                               capture_output=True, text=True, timeout=60, check=True).stdout
+    flat = " ".join(help_text.split())
+    assert "exactly one result line (JSON object) to stdout for every input line that is not " \
+           "blank" in flat
+    assert "Blank (whitespace-only) lines are skipped without a result, but counted in the " \
+           "result's \"line\" number." in flat
+    doc = " ".join((ROOT / "docs" / "bad_input.md").read_text().split())
+    assert "Every line that is not blank gets exactly one result line" in doc
+    assert "blank (whitespace-only) lines are skipped without a result" in doc
+    assert "Every line gets exactly one result" not in doc

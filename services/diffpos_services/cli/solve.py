@@ -1,14 +1,17 @@
 """Position fixes from JSON Lines problems on stdin (D-NLS, LLS, IPPA)
 
 A filter: reads one positioning problem per line (JSON object) from stdin or --input, writes
-one result per line (JSON object) to stdout, in the same order. Problems are solved in
-batches (--batch lines at a time) with the vectorised estimators of diffpos.estimators.
+exactly one result line (JSON object) to stdout for every input line that is not blank, in
+the same order. Blank (whitespace-only) lines are skipped without a result, but counted in
+the result's "line" number. Problems are solved in batches (--batch lines at a time) with
+the vectorised estimators of diffpos.estimators.
 
 Coordinates (building frame): the facade with the windows is the plane y = 0, the inside is
-y > 0, anchors are outside (y < 0), x runs along the window edges, z is up. SI units.
+y > 0, anchors are outside (y < 0: an anchor with y >= 0 makes the line invalid_input, naming
+the anchor), x runs along the window edges, z is up. SI units.
 
 Problem fields (JSON Schema: schemas/solve_problem.v1.json):
-  anchors_m        [[x, y, z], ...]   anchor positions [m], at least 3
+  anchors_m        [[x, y, z], ...]   anchor positions [m], at least 3, all with y < 0
   ranges_m         [r, ...]           measured ranges [m], one per anchor; null = not measured
   sigmas_m         s or [s, ...]      ranging standard deviations [m] (optional; without them
                                       the residual test is skipped and the covariance is
@@ -33,15 +36,21 @@ ok_unverified, not_converged, not_identifiable, too_few_anchors, gating_failed,
 invalid_input), message, method, position_m, covariance_m2 (3x3, the inverse FIM at the
 estimate; covariance_model says which model), peb_m, z_bound_m, iterations, converged,
 used_anchors, excluded_anchors ([{"index", "reason"}]), residuals_m (null where unused),
-test_statistic, test_threshold. Numbers that do not exist are null.
+test_statistic, test_threshold. Numbers that do not exist are null. Only ok and
+ok_unverified publish a position: with any other status position_m, covariance_m2, peb_m and
+z_bound_m are null (the fit is not trustworthy; message, residuals and the test say why).
 
 A bad line (invalid JSON, wrong lengths, NaN/inf, negative range, fewer than 3 anchors, unknown
 field, a value beyond the limits below, a line longer than --max-line-bytes, JSON nested too
-deeply, bytes that are not UTF-8) gives a result with status "invalid_input" and a message
-naming the field; the filter keeps going with the next line. Limits: at most 1024 anchors and
-1000 z_starts_m per problem, |coordinates|, ranges, sigmas and lengths at most 1e7 m, an id
-of at most 1000 characters of JSON. The exit status is 0 unless --strict is given and some
-line was invalid (1), or the input cannot be read (2).
+deeply, bytes that are not UTF-8, an anchor not outside) gives a result with status
+"invalid_input" and a message naming the field; the filter keeps going with the next line.
+
+Limits (the work of one line is bounded; a line beyond them is invalid_input naming the
+limit): --max-line-bytes bytes per line, --max-anchors anchors and --max-starts z_starts_m
+per problem (the solver's work grows with anchors^2 x starts; raise them up to 1024 anchors
+and 1000 starts if you need to), |coordinates|, ranges, sigmas and lengths at most 1e7 m, an
+id of at most 1000 characters of JSON. The exit status is 0 unless --strict is given and
+some line was invalid (1), an option is out of range (2) or the input cannot be read (2).
 
 examples:
   echo '{"anchors_m": [[-15,-20,1],[0,-15,0],[0,-7,4],[15,-20,1]],
@@ -62,8 +71,18 @@ import json
 import sys
 from typing import BinaryIO, TextIO
 
+from diffpos_services.kit import ConfigError
 from diffpos_services.solve import solve_lines
-from diffpos_services.wire.solve_io import MAX_LINE_BYTES, METHODS, read_lines
+from diffpos_services.wire.solve_io import (
+    DEFAULT_MAX_ANCHORS,
+    DEFAULT_MAX_STARTS,
+    MAX_ANCHORS,
+    MAX_LINE_BYTES,
+    MAX_Z_STARTS,
+    METHODS,
+    Limits,
+    read_lines,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,22 +99,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-line-bytes", type=int, default=MAX_LINE_BYTES, metavar="N",
                         help=f"longer lines are answered with invalid_input without being "
                         f"held in memory (default {MAX_LINE_BYTES})")
+    parser.add_argument("--max-anchors", type=int, default=DEFAULT_MAX_ANCHORS, metavar="N",
+                        help=f"a problem with more anchors is answered with invalid_input "
+                        f"(default {DEFAULT_MAX_ANCHORS}, at most {MAX_ANCHORS}; the work "
+                        "per problem grows with the square of the anchor count)")
+    parser.add_argument("--max-starts", type=int, default=DEFAULT_MAX_STARTS, metavar="N",
+                        help=f"a problem with more z_starts_m is answered with invalid_input "
+                        f"(default {DEFAULT_MAX_STARTS}, at most {MAX_Z_STARTS})")
 
 
-def _check_args(args: argparse.Namespace) -> str | None:
+def _limits(args: argparse.Namespace) -> Limits:
+    """The per-line limits of the options; :class:`ConfigError` (exit 2) if out of range."""
     if args.batch < 1:
-        return "--batch must be >= 1"
-    if args.max_line_bytes < 16:
-        return "--max-line-bytes must be >= 16"
-    return None
+        raise ConfigError(f"--batch must be >= 1, got {args.batch}")
+    return Limits(max_anchors=args.max_anchors, max_starts=args.max_starts,
+                  max_line_bytes=args.max_line_bytes)
 
 
-def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace) -> int:
+def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: Limits) -> int:
     """Solve the stream's lines to stdout; the number of invalid lines."""
     invalid = 0
     out = sys.stdout
-    for rec in solve_lines(read_lines(stream, max_bytes=args.max_line_bytes),
-                           batch=args.batch, default_method=args.method):
+    for rec in solve_lines(read_lines(stream, max_bytes=limits.max_line_bytes),
+                           batch=args.batch, default_method=args.method, limits=limits):
         if rec["status"] == "invalid_input":
             invalid += 1
         out.write(json.dumps(rec, allow_nan=False, separators=(",", ":")) + "\n")
@@ -106,10 +132,7 @@ def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    problem = _check_args(args)
-    if problem:
-        print(f"diffpos solve: {problem}", file=sys.stderr)
-        return 2
+    limits = _limits(args)
     from_file = bool(args.input and args.input != "-")
     if from_file:
         try:
@@ -122,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
         # bytes, so that a non-UTF-8 line is one invalid line, not the end of the input
         stream = getattr(sys.stdin, "buffer", sys.stdin)
     try:
-        invalid = _write_results(stream, args)
+        invalid = _write_results(stream, args, limits)
     except OSError as exc:
         if isinstance(exc, BrokenPipeError):
             return 0

@@ -6,11 +6,19 @@ steps (fields, anchors and ranges, sigmas, method and model, gating, starts, IPP
 raises :class:`ProblemError` naming the field; :func:`read_lines` and :func:`decode_line` turn
 a byte stream into decoded problems, bounding a line's size; :func:`invalid_record` is the
 result of a line that could not be solved.
+
+The work of one line is bounded by :class:`Limits` (``--max-anchors``, ``--max-starts``,
+``--max-line-bytes``): the solver's arrays for one problem grow with anchors^2 x starts
+(the gating refits every leave-one-out subset from every start), so a single line with 1000
+anchors would cost minutes and gigabytes. The format itself allows at most
+:data:`MAX_ANCHORS` anchors and :data:`MAX_Z_STARTS` start heights (the ceilings of those
+options).
 """
 
 from __future__ import annotations
 
 import difflib
+import gc
 import json
 import math
 from collections.abc import Iterator
@@ -19,15 +27,19 @@ from typing import Any, BinaryIO, TextIO
 
 import numpy as np
 
-from diffpos_services.kit import DiffposError
+from diffpos_services.kit import ConfigError, DiffposError
 
 __all__ = [
+    "DEFAULT_LIMITS",
     "FIELDS",
     "GATING_FIELDS",
     "LOSSES",
+    "MAX_ANCHORS",
     "MAX_LINE_BYTES",
+    "MAX_Z_STARTS",
     "METHODS",
     "RESULT_KEYS",
+    "Limits",
     "Problem",
     "ProblemError",
     "check_id",
@@ -37,12 +49,19 @@ __all__ = [
     "read_lines",
 ]
 
-#: Limits of one problem (bad input must not exhaust memory or time).
+#: Ceilings of the format (bad input must not exhaust memory or time); the per-run limits
+#: below (:class:`Limits`) may be raised up to them.
 MAX_ANCHORS = 1024
 MAX_Z_STARTS = 1000
 MAX_ABS_M = 1e7
 MAX_ID_CHARS = 1000
+#: Defaults of the per-run limits (``--max-line-bytes``, ``--max-anchors``, ``--max-starts``).
+#: At these, the worst problem (random ranges, gating excluding down to 3 anchors, 32 starts)
+#: costs well under a second and about 30 MB.
 MAX_LINE_BYTES = 1 << 20
+MAX_LINE_BYTES_CEILING = 1 << 30
+DEFAULT_MAX_ANCHORS = 32
+DEFAULT_MAX_STARTS = 32
 
 FIELDS = (
     "anchors_m", "ranges_m", "sigmas_m", "window_height_m", "edge_x_m", "delta_m", "method",
@@ -69,6 +88,32 @@ class ProblemError(DiffposError, ValueError):
     """
 
     exit_code = 1
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Work limits of one problem line; :class:`ConfigError` (exit 2) if out of range.
+
+    ``max_anchors`` (``--max-anchors``): anchors per problem, at most :data:`MAX_ANCHORS`;
+    ``max_starts`` (``--max-starts``): ``z_starts_m`` entries, at most :data:`MAX_Z_STARTS`;
+    ``max_line_bytes`` (``--max-line-bytes``): bytes of one input line.
+    """
+
+    max_anchors: int = DEFAULT_MAX_ANCHORS
+    max_starts: int = DEFAULT_MAX_STARTS
+    max_line_bytes: int = MAX_LINE_BYTES
+
+    def __post_init__(self) -> None:
+        for option, value, lo, hi in (
+            ("--max-anchors", self.max_anchors, 3, MAX_ANCHORS),
+            ("--max-starts", self.max_starts, 1, MAX_Z_STARTS),
+            ("--max-line-bytes", self.max_line_bytes, 16, MAX_LINE_BYTES_CEILING),
+        ):
+            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+                raise ConfigError(f"{option} must be an integer in [{lo}, {hi}], got {value!r}")
+
+
+DEFAULT_LIMITS = Limits()
 
 
 @dataclass
@@ -129,12 +174,9 @@ def _short(value: Any) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def _vector(value: Any, name: str, length: int | None = None, *, allow_null: bool = False,
-            max_length: int | None = None):
+def _vector(value: Any, name: str, length: int | None = None, *, allow_null: bool = False):
     if not isinstance(value, list):
         raise ProblemError(f"{name} must be a list, got {_short(value)}")
-    if max_length is not None and len(value) > max_length:
-        raise ProblemError(f"{name} has {len(value)} entries; at most {max_length} are allowed")
     if length is not None and len(value) != length:
         raise ProblemError(f"{name} must have {length} entries (one per anchor), got {len(value)}")
     out = []
@@ -163,16 +205,30 @@ def _check_fields(obj: Any) -> None:
         raise ProblemError("ranges_m is required: a list of measured ranges [m], one per anchor")
 
 
-def _parse_anchors(value: Any) -> np.ndarray:
-    """``anchors_m`` -> ``(M, 3)``."""
+def _parse_anchors(value: Any, limits: Limits) -> np.ndarray:
+    """``anchors_m`` -> ``(M, 3)``: at most ``limits.max_anchors``, every one outside (y < 0)."""
     if not isinstance(value, list) or not value:
         raise ProblemError("anchors_m must be a non-empty list of [x, y, z] positions [m]")
-    if len(value) > MAX_ANCHORS:
-        raise ProblemError(f"anchors_m has {len(value)} anchors; at most {MAX_ANCHORS} are "
-                           "allowed")
-    return np.array(
+    if len(value) > limits.max_anchors:
+        raise ProblemError(
+            f"anchors_m has {len(value)} anchors; at most {limits.max_anchors} per problem are "
+            f"allowed (raise it with --max-anchors, default {DEFAULT_MAX_ANCHORS}, at most "
+            f"{MAX_ANCHORS}; the work per problem grows with the square of the anchor count)"
+        )
+    a = np.array(
         [_vector(p, f"anchors_m[{k}]", 3) for k, p in enumerate(value)], dtype=np.float64
     )
+    not_outside = np.flatnonzero(~(a[:, 1] < 0))
+    if not_outside.size:
+        k = int(not_outside[0])
+        y = a[k, 1]
+        where = "on the facade (y = 0)" if y == 0 else f"inside the building (y = {y:g} > 0)"
+        more = f" ({not_outside.size} anchors are not outside)" if not_outside.size > 1 else ""
+        raise ProblemError(
+            f"anchors_m[{k}] = {_short(value[k])} is {where}; anchors must be outside, y < 0 "
+            f"(the facade with the windows is the plane y = 0){more}"
+        )
+    return a
 
 
 def _parse_ranges(value: Any, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -226,8 +282,9 @@ def _parse_model(obj: dict[str, Any], default_method: str) -> tuple[str, float |
     return method, wh, delta, edge
 
 
-def _parse_starts(obj: dict[str, Any]) -> tuple[str, np.ndarray | None, tuple[float, ...] | None]:
-    """``loss``, ``x0_m`` and ``z_starts_m``."""
+def _parse_starts(obj: dict[str, Any], limits: Limits
+                  ) -> tuple[str, np.ndarray | None, tuple[float, ...] | None]:
+    """``loss``, ``x0_m`` and ``z_starts_m`` (at most ``limits.max_starts``)."""
     loss = obj.get("loss", "linear")
     if loss not in LOSSES:
         raise ProblemError(f"loss must be one of {list(LOSSES)}, got {json.dumps(loss)}")
@@ -236,7 +293,13 @@ def _parse_starts(obj: dict[str, Any]) -> tuple[str, np.ndarray | None, tuple[fl
         x0 = np.array(_vector(x0, "x0_m", 3))
     zs = obj.get("z_starts_m")
     if zs is not None:
-        zs = tuple(_vector(zs, "z_starts_m", max_length=MAX_Z_STARTS))
+        if isinstance(zs, list) and len(zs) > limits.max_starts:  # before parsing them
+            raise ProblemError(
+                f"z_starts_m has {len(zs)} entries; at most {limits.max_starts} per problem are "
+                f"allowed (raise it with --max-starts, default {DEFAULT_MAX_STARTS}, at most "
+                f"{MAX_Z_STARTS})"
+            )
+        zs = tuple(_vector(zs, "z_starts_m"))
         if not zs:
             raise ProblemError("z_starts_m must not be empty")
     return loss, x0, zs
@@ -302,19 +365,20 @@ def _parse_gating(value: Any) -> dict[str, Any] | None:
     return gating
 
 
-def parse_problem(obj: Any, *, default_method: str = "dnls") -> Problem:
+def parse_problem(obj: Any, *, default_method: str = "dnls",
+                  limits: Limits = DEFAULT_LIMITS) -> Problem:
     """Validate one decoded JSON problem; raise :class:`ProblemError` naming the field.
 
     The steps run in the order the fields are checked (the first problem found is reported).
     """
     _check_fields(obj)
-    a = _parse_anchors(obj["anchors_m"])
+    a = _parse_anchors(obj["anchors_m"], limits)
     m = a.shape[0]
     r, mask = _parse_ranges(obj["ranges_m"], m)
     sig = _parse_sigmas(obj.get("sigmas_m"), m, mask)
     method, wh, delta, edge = _parse_model(obj, default_method)
     gating = _parse_gating(obj.get("gating", True))
-    loss, x0, zs = _parse_starts(obj)
+    loss, x0, zs = _parse_starts(obj, limits)
     nlos, bias = _parse_ippa(obj, m)
     return Problem(
         anchors_m=a, ranges_m=np.where(mask, r, 0.0), mask=mask, sigmas_m=sig, method=method,
@@ -345,12 +409,25 @@ def invalid_record(message: str) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------- lines
+def _loads(line: str) -> Any:
+    """``json.loads`` with the cyclic garbage collector paused: a decoded JSON value has no
+    cycles, and a 1 MiB line of nested empty lists decodes 2-3x faster without the collector
+    scanning its hundreds of thousands of new containers."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return json.loads(line)
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def decode_line(line: str | ProblemError) -> Any:
     """A line's JSON value, or :class:`ProblemError` (returned, not raised) if it is not JSON."""
     if isinstance(line, ProblemError):
         return line
     try:
-        return json.loads(line)
+        return _loads(line)
     except json.JSONDecodeError as exc:
         return ProblemError(f"invalid JSON: {exc.msg} at column {exc.colno}")
     except RecursionError:

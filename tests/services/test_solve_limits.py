@@ -1,0 +1,234 @@
+"""`diffpos solve` bounds the work of every line: a hostile stream cannot exhaust memory or time.
+
+Each case runs the real ``diffpos solve`` process on a stream and measures that process alone
+(``os.wait4``: its own CPU time and peak RSS, not those of other children of the test run). As
+a safety net for the shared test machine the child's address space is capped at 2 GiB
+(``RLIMIT_AS``): a filter that held what it should not runs out of memory there instead of
+swapping the machine, and the test fails on the exit code or the traceback.
+
+Measured on the 2-core test machine with the limits in place: one line with 1000 anchors is
+refused in 0.7 s CPU and 54 MB (before the limits: 102 s and 3.9 GB); the worst problem the
+default limits allow (32 anchors, random ranges, gating excluding down to 3 anchors, 32
+starts) costs about 0.5 s CPU per line, and a batch of them stays near 120 MB.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diffpos_services.wire.solve_io import DEFAULT_MAX_ANCHORS, DEFAULT_MAX_STARTS
+
+from diffpos.geometry import window_edge_path
+
+EXE = Path(sys.executable).parent / "diffpos"
+AS_LIMIT = 2 << 30  # [bytes] the child's address space (a safety net, not the assertion)
+NODE = [2.0, 5.0, 10.5]
+GOOD = {"anchors_m": [[-15, -20, 1], [0, -15, 0], [0, -7, 4], [15, -20, 1]],
+        "ranges_m": [32.233, 23.711, 15.058, 30.315], "sigmas_m": 0.005,
+        "window_height_m": 1.0}
+GOOD_LINE = json.dumps(GOOD).encode() + b"\n"
+MIB = 1 << 20
+
+
+@dataclass
+class Child:
+    rc: int
+    records: list[dict]
+    stderr: str
+    cpu_s: float
+    rss_mb: float
+
+
+def _cap_memory() -> None:  # runs in the child before exec
+    resource.setrlimit(resource.RLIMIT_AS, (AS_LIMIT, AS_LIMIT))
+
+
+def run_solve(chunks: Iterator[bytes], *argv: str) -> Child:
+    """Feed ``chunks`` to ``diffpos solve ARGV`` on stdin (from a thread, never all in memory
+    here); the results and the child's own CPU time and peak RSS."""
+    with tempfile.TemporaryFile() as err:
+        proc = subprocess.Popen([str(EXE), "solve", *argv], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, stderr=err, preexec_fn=_cap_memory)
+
+        def feed() -> None:
+            try:
+                for c in chunks:
+                    proc.stdin.write(c)
+            except BrokenPipeError:  # the child died: the assertions below say how
+                pass
+            finally:
+                try:
+                    proc.stdin.close()
+                except BrokenPipeError:
+                    pass
+
+        writer = threading.Thread(target=feed, daemon=True)
+        writer.start()
+        out = proc.stdout.read()
+        proc.stdout.close()
+        writer.join(timeout=60)
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        err.seek(0)
+        text = err.read().decode(errors="replace")
+    return Child(rc=proc.returncode, records=[json.loads(x) for x in out.splitlines()],
+                 stderr=text, cpu_s=usage.ru_utime + usage.ru_stime,
+                 rss_mb=usage.ru_maxrss / 1024)
+
+
+def _anchors(m: int, rng: np.random.Generator) -> np.ndarray:
+    return np.c_[rng.uniform(-30, 30, m), rng.uniform(-40, -5, m), rng.uniform(0, 30, m)]
+
+
+def _problem_line(m: int, seed: int, **extra) -> bytes:
+    """A line with ``m`` anchors; ``random_ranges`` makes every anchor look faulty (the
+    gating then refits every leave-one-out subset, round after round: the worst case)."""
+    rng = np.random.default_rng(seed)
+    a = _anchors(m, rng)
+    if extra.pop("random_ranges", False):
+        r = rng.uniform(10, 60, m)
+    else:
+        r = window_edge_path(a, np.array(NODE), window_height_m=1.0).length_m
+    prob = {"anchors_m": a.tolist(), "ranges_m": r.tolist(), "sigmas_m": 0.01,
+            "window_height_m": 1.0, **extra}
+    return json.dumps(prob).encode() + b"\n"
+
+
+# ----------------------------------------------------------------------------- per problem
+def test_a_thousand_anchor_line_is_refused_at_once_naming_the_option():
+    """Before: this one line cost 102 s CPU and 3.9 GB, now it is refused in well under a
+    second and the lines around it are solved."""
+    bad = _problem_line(1000, 1, random_ranges=True)
+    child = run_solve(iter([GOOD_LINE, bad, GOOD_LINE]))
+    assert child.rc == 0, child.stderr
+    assert [r["status"] for r in child.records] == ["ok", "invalid_input", "ok"]
+    msg = child.records[1]["message"]
+    assert msg.startswith(f"anchors_m has 1000 anchors; at most {DEFAULT_MAX_ANCHORS} per "
+                          "problem"), msg
+    assert f"--max-anchors, default {DEFAULT_MAX_ANCHORS}, at most 1024" in msg
+    assert child.cpu_s < 15 and child.rss_mb < 250, (child.cpu_s, child.rss_mb)
+
+
+def test_anchor_and_start_limits_are_options_with_their_defaults_in_help():
+    help_text = subprocess.run([str(EXE), "solve", "--help"], capture_output=True, text=True,
+                               check=True, timeout=60).stdout
+    flat = " ".join(help_text.split())
+    assert f"--max-anchors N a problem with more anchors is answered with invalid_input " \
+           f"(default {DEFAULT_MAX_ANCHORS}" in flat
+    assert f"(default {DEFAULT_MAX_STARTS}, at most 1000)" in flat
+    assert "--max-line-bytes N longer lines" in flat
+    m = DEFAULT_MAX_ANCHORS + 1
+    line = _problem_line(m, 2)
+    refused = run_solve(iter([line]))
+    assert refused.records[0]["status"] == "invalid_input"
+    allowed = run_solve(iter([line]), "--max-anchors", str(m))
+    assert allowed.records[0]["status"] == "ok", allowed.records[0]["message"]
+    starts = {"z_starts_m": [float(z) for z in range(DEFAULT_MAX_STARTS + 1)]}
+    line = _problem_line(5, 3, **starts)
+    refused = run_solve(iter([line]))
+    assert "--max-starts, default 32, at most 1000" in refused.records[0]["message"]
+    allowed = run_solve(iter([line]), "--max-starts", "64")
+    assert allowed.records[0]["status"] == "ok", allowed.records[0]["message"]
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["--max-anchors", "2000"], "--max-anchors must be an integer in [3, 1024], got 2000"),
+    (["--max-anchors", "2"], "--max-anchors must be an integer in [3, 1024], got 2"),
+    (["--max-starts", "0"], "--max-starts must be an integer in [1, 1000], got 0"),
+    (["--max-line-bytes", "8"], "--max-line-bytes must be an integer in [16, 1073741824]"),
+    (["--batch", "0"], "--batch must be >= 1, got 0"),
+])
+def test_limit_options_out_of_range_exit_2_naming_the_option(argv, needle):
+    proc = subprocess.run([str(EXE), "solve", *argv], input=GOOD_LINE, capture_output=True,
+                          timeout=60, check=False)
+    err = proc.stderr.decode()
+    assert proc.returncode == 2 and proc.stdout == b""
+    assert f"diffpos solve: error: {needle}" in err and "Traceback" not in err
+
+
+def test_worst_problems_the_defaults_allow_are_bounded_per_line():
+    """32 anchors, 32 starts, every anchor faulty, gating allowed to exclude down to 3: the
+    most work one line can ask for at the defaults; a batch of them is solved in chunks."""
+    extra = {"random_ranges": True, "z_starts_m": [float(z) for z in range(32)],
+             "gating": {"max_exclusions": 29}}
+    n = 8
+    child = run_solve(_problem_line(32, 100 + k, **dict(extra)) for k in range(n))
+    assert child.rc == 0, child.stderr
+    assert len(child.records) == n
+    assert child.cpu_s < 3 + 4 * n, child.cpu_s  # measured ~0.5 s per line (plus start-up)
+    assert child.rss_mb < 400, child.rss_mb  # measured ~120 MB
+
+
+# ----------------------------------------------------------------------------- streams
+def _heavy_lines(n: int) -> Iterator[bytes]:
+    """Lines just under the default 1 MiB that decode to ~30 MB of Python objects each
+    (a list of empty lists as the id): a batch of them must never be held at once."""
+    unit = b"[[]],"
+    body = b'{"id": [' + unit * ((MIB - 32) // len(unit)) + b'0]}\n'
+    assert len(body) < MIB
+    for _ in range(n):
+        yield body
+    yield GOOD_LINE
+
+
+def _giant_line(size: int) -> Iterator[bytes]:
+    """One line of ``size`` bytes (never complete in memory anywhere), then a good line."""
+    piece = b"x" * MIB
+    yield b'{"id": "'
+    for _ in range(size // MIB):
+        yield piece
+    yield b'"}\n' + GOOD_LINE
+
+
+def _deep_lines(n: int) -> Iterator[bytes]:
+    """Lines nested as deep as a line allows: arrays, objects, and just under the decoder's
+    recursion limit (valid JSON, refused by the field checks)."""
+    for k in range(n):
+        if k % 3 == 0:
+            yield b"[" * (MIB - 2) + b"\n"
+        elif k % 3 == 1:
+            yield b'{"a":' * ((MIB - 2) // 5) + b"\n"
+        else:
+            yield b"[" * 900 + b"]" * 900 + b"\n"
+    yield GOOD_LINE
+
+
+def _many_blank_and_short(n: int) -> Iterator[bytes]:
+    """Many tiny junk lines and blank lines: per-line overhead, not per-line size."""
+    for _ in range(n):
+        yield b"{}\n\n   \nnull\n"
+    yield GOOD_LINE
+
+
+STREAMS: list[tuple[str, Callable[[], Iterator[bytes]], int]] = [
+    # (case, stream, expected number of results)
+    ("many-huge-lines", lambda: _heavy_lines(64), 65),
+    ("one-giant-line", lambda: _giant_line(512 * MIB), 2),
+    ("deep-nesting", lambda: _deep_lines(60), 61),
+    ("many-short-lines", lambda: _many_blank_and_short(20000), 40001),
+]
+
+
+@pytest.mark.parametrize(("case", "stream", "n_results"), STREAMS, ids=[s[0] for s in STREAMS])
+def test_hostile_stream_cannot_exhaust_memory_or_time(case, stream, n_results):
+    """Default options (1 MiB lines, batches of 256): every non-blank line is answered, the
+    good line at the end is solved, and the process stays small and quick."""
+    child = run_solve(stream())
+    assert child.rc == 0 and "Traceback" not in child.stderr, (child.rc, child.stderr[-2000:])
+    assert len(child.records) == n_results
+    assert all(r["status"] == "invalid_input" for r in child.records[:-1])
+    assert child.records[-1]["status"] == "ok"
+    # a batch of 64 decoded heavy lines would be ~1.9 GB; a giant line held whole 512 MB
+    assert child.rss_mb < 300, (case, child.rss_mb)
+    assert child.cpu_s < 60, (case, child.cpu_s)
