@@ -39,6 +39,17 @@ def _utc(ns: int) -> str:
     return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(ns / 1e9)) + f".{(ns // 1_000_000) % 1000:03d}Z"
 
 
+def _print_validation(validation: dict) -> None:
+    print(f"validation: {validation['checked']} checked, {validation['invalid']} invalid, "
+          f"{validation['no_schema']} without schema, {validation['not_json']} not JSON")
+    print("            against diffpos' own schemas (schemas/), by each message's schema tag")
+    for ex in validation["examples"]:
+        print(f"  {ex}")
+    for mm in validation["schema_mismatch"]:
+        print(f"  embedded schema differs from ours: {mm['embedded']} vs {mm['ours']} on "
+              f"{mm['channels']} channels (e.g. {mm['example']})")
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         s = summarize(args.file)
@@ -112,13 +123,6 @@ def run(args: argparse.Namespace) -> int:
         for c in s.channels:
             print(f"  {c.topic:<48} {c.schema:<32} {c.count:>8}")
     if validation is not None:
-        print(f"validation: {validation['checked']} checked, {validation['invalid']} invalid, "
-              f"{validation['no_schema']} without schema, {validation['not_json']} not JSON")
-        print("            against diffpos' own schemas (schemas/), by each message's schema tag")
-        for ex in validation["examples"]:
-            print(f"  {ex}")
-        for mm in validation["schema_mismatch"]:
-            print(f"  embedded schema differs from ours: {mm['embedded']} vs {mm['ours']} on "
-                  f"{mm['channels']} channels (e.g. {mm['example']})")
+        _print_validation(validation)
     bad = (not s.damage.ok) or (validation is not None and validation["invalid"] > 0)
     return 1 if bad else 0

@@ -71,6 +71,16 @@ _MCAP_KINDS = {
 }
 
 
+def _refuse_foreign(sc: McapScanner) -> None:
+    """A valid MCAP without any diffpos channel: nothing to draw (exit code 1, no file)."""
+    if not any(_topic_kind(c.topic) != "unknown" for c in sc.channels.values()):
+        found = ", ".join(sorted({c.topic for c in sc.channels.values()})[:5]) or "no channels"
+        raise ForeignRecordingError(
+            f"no diffpos channels (diffpos/<site>/...) in it ({found}): not a diffpos "
+            "recording, nothing to draw; no .rrd written"
+        )
+
+
 def _msg_time_ns(x: Any) -> int | None:
     t = getattr(x, "t_ns", None)
     return t if t is not None else getattr(x, "watermark_ns", None)
@@ -175,13 +185,7 @@ def mcap_to_rrd(
             if kind is None:
                 kind = kind_of[raw.topic] = _topic_kind(raw.topic)
             payloads.setdefault(kind, []).append(raw.data)
-    ours = [c.topic for c in sc.channels.values() if _topic_kind(c.topic) != "unknown"]
-    if not ours:
-        found = ", ".join(sorted({c.topic for c in sc.channels.values()})[:5]) or "no channels"
-        raise ForeignRecordingError(
-            f"no diffpos channels (diffpos/<site>/...) in it ({found}): not a diffpos "
-            "recording, nothing to draw; no .rrd written"
-        )
+    _refuse_foreign(sc)
     for kind, datas in payloads.items():
         if kind not in VIEW_DECODERS:  # liveliness events (plain JSON objects)
             for data in datas:
