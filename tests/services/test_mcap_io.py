@@ -302,7 +302,7 @@ def test_schema_registry_maps_every_bus_key():
     expect = {
         K.anchor_state("a"): "diffpos.anchor_state.v1",
         K.anchor_range("a", "n"): "diffpos.range.v1",
-        K.node_estimate("n"): "diffpos.estimate.v1",
+        K.node_estimate("n"): "diffpos.estimate.v2",  # the newest version of the key's schema
         K.fusion_diagnostics(): "diffpos.fusion_diagnostics.v1",
         K.truth_node("n"): "diffpos.truth.v1",
         K.truth_anchor("a"): "diffpos.truth.v1",
@@ -357,3 +357,24 @@ def test_wrong_schema_payloads_are_counted_not_fatal(tmp_path, capsys):
     out = capsys.readouterr()
     assert "1 invalid" in out.out and "Traceback" not in out.err
     assert f"{K.anchor_range('a1', 'n1')} seq 0" in out.out  # names the message
+
+
+def test_channel_schema_is_the_version_the_messages_carry(tmp_path):
+    """Estimates exist as v1 (dnls/lls/ippa) and v2 (mnls): each channel is registered with the
+    schema version its messages are tagged with, so Foxglove decodes them with the right one
+    (the newest version only for untagged payloads)."""
+    reg = SchemaRegistry()
+    assert reg.for_key(K.node_estimate("n")).name == "diffpos.estimate.v2"
+    path = tmp_path / "versions.mcap"
+    with McapSink(path) as sink:
+        sink.write(K.node_estimate("n1"), b'{"schema":"diffpos.estimate.v1","t_ns":1,"seq":1}', 1)
+        sink.write(K.node_estimate("n2"), b'{"schema":"diffpos.estimate.v2","t_ns":1,"seq":1}', 1)
+        sink.write(K.node_estimate("n3"), b'{"t_ns":1,"seq":1}', 1)
+        sink.write(K.node_estimate("n4"), b'{"schema":"evil.v1","t_ns":1,"seq":1}', 1)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    names = {ch.topic: summary.schemas[ch.schema_id].name for ch in summary.channels.values()}
+    assert names == {K.node_estimate("n1"): "diffpos.estimate.v1",
+                     K.node_estimate("n2"): "diffpos.estimate.v2",
+                     K.node_estimate("n3"): "diffpos.estimate.v2",
+                     K.node_estimate("n4"): "diffpos.estimate.v2"}

@@ -129,6 +129,7 @@ class SchemaRegistry:
         self._kind_to_stems = dict(kind_to_stems or DEFAULT_KIND_TO_STEMS)
         self._resolver = resolver
         self.by_stem: dict[str, SchemaEntry] = {}
+        self.by_name: dict[str, SchemaEntry] = {}  # every version, by schema name
         self.documents: dict[str, dict[str, Any]] = {}
         versions: dict[str, int] = {}
         if self.schema_dir.is_dir():
@@ -140,13 +141,14 @@ class SchemaRegistry:
                         f"schema file {path} is not valid JSON ({exc}); fix or remove it"
                     ) from exc
                 base, ver = _stem_base(path), _stem_version(path)
+                name = str(doc.get("title") or path.name[: -len(".json")])
+                data = json.dumps(doc, separators=(",", ":"), sort_keys=True).encode()
+                self.by_name[name] = SchemaEntry(name=name, data=data, source=path.name)
+                self.documents[name] = doc
                 if base in versions and versions[base] > ver:
                     continue
                 versions[base] = ver
-                name = str(doc.get("title") or path.name[: -len(".json")])
-                data = json.dumps(doc, separators=(",", ":"), sort_keys=True).encode()
-                self.by_stem[base] = SchemaEntry(name=name, data=data, source=path.name)
-                self.documents[name] = doc
+                self.by_stem[base] = self.by_name[name]
         elif schema_dir is None:
             # installed without the repository's schemas/: the files are generated from the
             # message structs, so generate the same documents
@@ -154,7 +156,8 @@ class SchemaRegistry:
                 doc = messages.json_schema(kind)
                 data = json.dumps(doc, separators=(",", ":"), sort_keys=True).encode()
                 name = str(doc["title"])
-                self.by_stem[re.sub(r"\.v\d+$", "", stem)] = SchemaEntry(name, data, "generated")
+                self.by_name[name] = SchemaEntry(name, data, "generated")
+                self.by_stem[re.sub(r"\.v\d+$", "", stem)] = self.by_name[name]
                 self.documents[name] = doc
         live = json.dumps(LIVELINESS_SCHEMA, separators=(",", ":"), sort_keys=True).encode()
         self.by_stem.setdefault(
@@ -171,8 +174,18 @@ class SchemaRegistry:
                 return kind
         return parse_topic(key)[0]
 
-    def for_key(self, key: str) -> SchemaEntry | None:
-        """The schema of the messages published on ``key``, or ``None`` if unknown."""
+    def for_key(self, key: str, tag: str | None = None) -> SchemaEntry | None:
+        """The schema of the messages published on ``key``, or ``None`` if unknown.
+
+        ``tag``: the ``schema`` field of a message on it; when it names another version of
+        the key's schema (``diffpos.estimate.v1`` where v2 is the newest), that version."""
+        entry = self._for_key(key)
+        if tag and entry is not None and tag != entry.name and tag in self.by_name:
+            if re.sub(r"\.v\d+$", "", tag) == re.sub(r"\.v\d+$", "", entry.name):
+                return self.by_name[tag]
+        return entry
+
+    def _for_key(self, key: str) -> SchemaEntry | None:
         for stem in self._kind_to_stems.get(self.kind(key), ()):
             entry = self.by_stem.get(stem)
             if entry is not None:

@@ -88,6 +88,15 @@ class _Stamp(msgspec.Struct):
     seq: int | None = None
 
 
+class _Tag(msgspec.Struct):
+    """The ``schema`` tag of a payload (read once per channel, at registration)."""
+
+    schema: Any = None
+
+
+_TAG_DECODER = msgspec.json.Decoder(_Tag)
+
+
 @dataclass
 class SinkStats:
     """Counters of a :class:`McapSink`.
@@ -288,11 +297,12 @@ class McapSink:
             self._schema_ids[entry.name] = sid
         return sid
 
-    def channel(self, key: str) -> int:
-        """Channel id of ``key`` (registered on first use with its schema)."""
+    def channel(self, key: str, tag: str | None = None) -> int:
+        """Channel id of ``key`` (registered on first use with its schema: the version the
+        first message's ``schema`` tag names, else the newest)."""
         cid = self._channels.get(key)
         if cid is None:
-            entry = self.registry.for_key(key)
+            entry = self.registry.for_key(key, tag)
             kind = self.registry.kind(key)
             meta = {"key_expr": key, "kind": kind}
             if entry is not None:
@@ -351,7 +361,7 @@ class McapSink:
                 sequence = s
         cid = self._channels.get(key)
         if cid is None:
-            cid = self.channel(key)
+            cid = self.channel(key, self._tag(payload))
             if self.registry.for_key(key) is None:
                 self._unknown_keys.add(key)
         if key in self._unknown_keys:
@@ -378,6 +388,14 @@ class McapSink:
         if self._part_first_ns is None:
             self._part_first_ns = int(receive_ns)
         self._part_last_ns = int(receive_ns)
+
+    @staticmethod
+    def _tag(payload: bytes) -> str | None:
+        try:
+            tag = _TAG_DECODER.decode(payload).schema
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            return None
+        return tag if isinstance(tag, str) else None
 
     def write_liveliness(self, site: str, key: str, alive: bool, receive_ns: int) -> bool:
         """Record a liveliness token appearing (``alive``) or disappearing.
