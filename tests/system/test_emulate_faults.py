@@ -17,6 +17,7 @@ import zenoh
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.kit import free_tcp_port
 from diffpos_services.recording.reader import McapScanner
+from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
 
@@ -146,9 +147,11 @@ def test_dead_fusion_and_recorder_are_restarted_and_reported(services, tmp_path)
     assert est > 0, "the restarted fusion's estimates were recorded in the new file"
 
 
-def test_foreign_estimates_not_counted_but_reported(services, tmp_path):
-    """Another process on the emulate bus republishes every estimate it sees: the summary
-    counts each of the fusion's estimates once and reports the copies as foreign."""
+def test_foreign_estimates_and_anchor_not_used_but_reported(services, tmp_path):
+    """Another process on the emulate bus (a real zenoh session) republishes every estimate it
+    sees and poses as a fake anchor ``uav9`` (copies of uav1's messages): the summary counts
+    each of the fusion's estimates once, reports the copies as foreign, and no fix uses
+    ``uav9``."""
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     keys = Keys("demo")
@@ -157,28 +160,42 @@ def test_foreign_estimates_not_counted_but_reported(services, tmp_path):
                        "--json", str(tmp_path / "summary.json"))
     stop = threading.Event()
     session = open_session(ZenohSettings(connect=(endpoint,)), stop)
-    copies = []
+    copies, used = [], set()
+    dec = M.estimate_decoder()
+    block = zenoh.CongestionControl.BLOCK
     with session:
         def copy(sample) -> None:
             # a foreign publisher: same key, same bytes (BLOCK: every copy arrives); our own
             # copies come back unstamped (local delivery): not copied again
             if sample.timestamp is not None:
-                session.put(str(sample.key_expr), sample.payload.to_bytes(),
-                            congestion_control=zenoh.CongestionControl.BLOCK)
+                data = sample.payload.to_bytes()
+                used.update(dec(data).used_anchors)
+                session.put(str(sample.key_expr), data, congestion_control=block)
                 copies.append(str(sample.key_expr))
 
-        sub = session.declare_subscriber(keys.estimates(), copy)
+        def fake_anchor(sample) -> None:
+            key = str(sample.key_expr)
+            if "/anchor/uav1/" in key:
+                doc = json.loads(sample.payload.to_bytes())
+                doc["anchor_id"] = "uav9"
+                session.put(key.replace("/anchor/uav1/", "/anchor/uav9/"),
+                            json.dumps(doc).encode(), congestion_control=block)
+
+        token = session.liveliness().declare_token(keys.alive_anchor("uav9"))
+        subs = [session.declare_subscriber(keys.estimates(), copy),
+                session.declare_subscriber(f"{keys.root}/anchor/uav1/**", fake_anchor)]
         rc = p.wait(timeout=180)
-        sub.undeclare()
+        for sub in subs:
+            sub.undeclare()
+        token.undeclare()
     assert rc == 0, services.log("emulate")[-3000:]
     summary = json.loads((tmp_path / "summary.json").read_text())
-    mine = summary["estimates"]
-    n_expected = 6 * 20  # 6 nodes x 2 s at 10 Hz, lockstep: every epoch
     assert summary["foreign"]["count"] >= 1
     assert all(parse_key(k).kind == "estimate" for k in summary["foreign"]["keys"])
     assert summary["foreign"]["count"] <= len(copies)
-    assert mine == n_expected, (mine, summary["foreign"])
+    assert summary["estimates"] == 6 * 20, summary["foreign"]  # 6 nodes x 20 epochs, once
     assert "foreign:" in services.log("emulate")
+    assert used and "uav9" not in used, used
 
 
 def test_short_run_rrd_holds_every_estimate(services, tmp_path):
