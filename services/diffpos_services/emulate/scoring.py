@@ -56,6 +56,7 @@ class Scorer:
         self.k_skip = int(np.ceil(skip_s * 1e9 / period_ns - 1e-9))
         self.count = 0
         self.status: collections.Counter[str] = collections.Counter()
+        self.methods: collections.Counter[str] = collections.Counter()
         self.epochs: dict[str, set[int]] = collections.defaultdict(set)
         # (node, epoch) -> (t_ns, position or None, covariance or None, floor or None, peb)
         self.rows: dict[tuple[str, int], tuple] = {}
@@ -67,6 +68,7 @@ class Scorer:
         node, else None."""
         self.count += 1
         self.status[est.status] += 1
+        self.methods[getattr(est, "method", "dnls, lls or ippa (estimate v1)")] += 1
         self.epochs[est.node_id].add(est.epoch)
         tr = self.traj.get(est.node_id)
         usable = est.position_m is not None and est.status in M.GOOD_STATUSES
@@ -132,6 +134,7 @@ class Scorer:
             "estimates": self.count,
             "with_position": sum(r[1] is not None for r in self.rows.values()),
             "status": dict(self.status),
+            "fusion_method": ", ".join(sorted(self.methods)) or None,
             "skip_s": self.k_skip * self.period_ns * 1e-9,
             "node_epochs": s.node_epochs,
             "node_epochs_without_estimate": int(a["missing"].sum()),
@@ -150,6 +153,15 @@ def _pct(v: float | None) -> str:
     return "-" if v is None else f"{100 * v:.1f} %"
 
 
+def _model(s: dict[str, Any]) -> str:
+    """The fusion's method (from its estimates) and, for D-NLS, the orchestrator's edge."""
+    method = s.get("fusion_method")
+    if method and method.startswith("mnls"):
+        return (f"{method}: the first-arrival path model of the scenario's building (every "
+                "mechanism, per floor)")
+    return s.get("model", "-") if not method else f"{method}; {s.get('model', '-')}"
+
+
 def format_summary(s: dict[str, Any]) -> str:
     """The summary as a plain-text table."""
     def f(v: float | None, unit: str = " m") -> str:
@@ -158,7 +170,7 @@ def format_summary(s: dict[str, Any]) -> str:
     rows = [
         ("run", f"{s.get('run_id', '-')}  ({s.get('anchors')} anchors x {s.get('nodes')} nodes, "
                 f"{s.get('duration_s')} s at x{s.get('speed')}, channel {s.get('channel')})"),
-        ("model", s.get("model", "-")),
+        ("model", _model(s)),
         ("estimates", f"{s.get('estimates', 0)} ({s.get('with_position', 0)} with a position)"),
         ("status", ", ".join(f"{k} {v}" for k, v in sorted(s.get("status", {}).items())) or "-"),
         ("node-epochs", f"{s.get('node_epochs', 0)} after the first {s.get('skip_s', 0):g} s "
