@@ -150,13 +150,14 @@ def test_dead_fusion_and_recorder_are_restarted_and_reported(services, tmp_path)
 def test_foreign_estimates_and_anchor_not_used_but_reported(services, tmp_path):
     """Another process on the emulate bus (a real zenoh session) republishes every estimate it
     sees and poses as a fake anchor ``uav9`` (copies of uav1's messages): the summary counts
-    each of the fusion's estimates once, reports the copies as foreign, and no fix uses
-    ``uav9``."""
+    each of the fusion's estimates once, reports the copies as foreign, no fix uses ``uav9``,
+    and the dashboard draws no copy."""
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     keys = Keys("demo")
     p = services.start("emulate", "emulate", "--no-progress", "--endpoint", endpoint,
-                       "--speed", "0", "--duration", "2", "--dashboard", "off", "--record", "off",
+                       "--speed", "0", "--duration", "2", "--dashboard", "save",
+                       str(tmp_path / "run.rrd"), "--record", "off",
                        "--json", str(tmp_path / "summary.json"))
     stop = threading.Event()
     session = open_session(ZenohSettings(connect=(endpoint,)), stop)
@@ -196,21 +197,28 @@ def test_foreign_estimates_and_anchor_not_used_but_reported(services, tmp_path):
     assert summary["estimates"] == 6 * 20, summary["foreign"]  # 6 nodes x 20 epochs, once
     assert "foreign:" in services.log("emulate")
     assert used and "uav9" not in used, used
+    # the dashboard draws only the run's fusion: one row per estimate, no copies
+    assert estimate_rows(tmp_path / "run.rrd") == 6 * 20
 
 
 def test_short_run_rrd_holds_every_estimate(services, tmp_path):
     """Lockstep run with --dashboard save: emulate waits for the dashboard's liveliness token,
     so the .rrd has a row for every estimate of the run."""
-    import rerun.chunk as rc  # the Rerun stack: optional extra, heavy
-
     rrd = tmp_path / "run.rrd"
     p = services.start("emulate", "emulate", "--no-progress", "--speed", "0", "--duration", "2",
                        "--dashboard", "save", str(rrd), "--record", "off",
                        "--json", str(tmp_path / "summary.json"))
     assert p.wait(timeout=180) == 0, services.log("emulate")[-3000:]
     summary = json.loads((tmp_path / "summary.json").read_text())
+    assert estimate_rows(rrd) == 6 * 20 == summary["estimates"]
+
+
+def estimate_rows(rrd: Path) -> int:
+    """Rows of the estimate entities in a saved .rrd."""
+    import rerun.chunk as rc  # the Rerun stack: optional extra, heavy
+
     rows = 0
     for chunk in rc.RrdReader(str(rrd)).stream():
         if chunk.entity_path.endswith("/estimate") and chunk.entity_path.startswith("/world/nodes/"):
             rows += chunk.num_rows
-    assert rows == 6 * 20 == summary["estimates"]
+    return rows

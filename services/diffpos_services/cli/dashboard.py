@@ -105,6 +105,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="no bus: draw a synthetic run (8 anchors x 20 nodes, 60 s) and exit",
     )
     parser.add_argument("--recording-id", default=None, help="Rerun recording id (default random)")
+    parser.add_argument(
+        "--estimates-from",
+        metavar="ZID_PREFIX",
+        default=None,
+        help="draw only estimates/diagnostics published by a zenoh session whose id starts "
+        "with this (with timestamping on; diffpos emulate passes its fusion's); others are "
+        "counted as foreign",
+    )
     add_zenoh_arguments(parser, mode="client")
     add_logging_arguments(parser)
 
@@ -167,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
                 ring_size=args.ring_size,
                 drain_period_s=args.drain_period,
                 logger=log,
+                estimates_from=args.estimates_from,
             )
             log_event(log, logging.INFO, "dashboard subscribed", site=args.site)
             svc.run(stop.event, report_every_s=args.report_every)

@@ -207,6 +207,9 @@ class ServiceStats:
         Largest batch.
     lag_ms : float [ms]
         Wall time from the newest estimate's publish to the end of its batch's logging.
+    foreign : int
+        Estimates and diagnostics not drawn because another publisher than the expected
+        fusion sent them (``estimates_from``).
     """
 
     received: int = 0
@@ -218,6 +221,7 @@ class ServiceStats:
     log_time_s: float = 0.0
     lag_ms: float = 0.0
     per_kind: dict[str, int] = field(default_factory=dict)
+    foreign: int = 0
 
 
 class DashboardService:
@@ -234,6 +238,10 @@ class DashboardService:
         Capacity of the ring buffer [messages]; the oldest are dropped beyond it.
     drain_period_s : float [s]
         How often the buffer is drained into Rerun.
+    estimates_from : str, optional
+        Draw only estimates and diagnostics whose sample timestamp names a zenoh id starting
+        with this (``diffpos emulate`` gives its fusion such an id); others are counted as
+        ``foreign``. ``None``: draw every publisher's.
     logger : logging.Logger, optional
     """
 
@@ -253,6 +261,7 @@ class DashboardService:
         ring_size: int = 200_000,
         drain_period_s: float = 0.5,
         logger: logging.Logger | None = None,
+        estimates_from: str | None = None,
     ) -> None:
         if ring_size < 1:
             raise ValueError("ring_size must be >= 1")
@@ -264,6 +273,7 @@ class DashboardService:
         self.dashboard = Dashboard(rec, building=building)
         self.ring: collections.deque[tuple[str, bytes, int]] = collections.deque(maxlen=ring_size)
         self.ring_size = ring_size
+        self.estimates_from = estimates_from
         self.drain_period_s = drain_period_s
         self.stats = ServiceStats()
         self.log = logger or logging.getLogger("diffpos.dashboard")
@@ -287,6 +297,11 @@ class DashboardService:
             self._kind_cache[key] = kind
         if kind is None:
             return
+        if self.estimates_from is not None and kind in ("estimate", "diagnostics"):
+            ts = sample.timestamp
+            if ts is None or not str(ts.get_id()).startswith(self.estimates_from):
+                self.stats.foreign += 1
+                return
         ring = self.ring
         if len(ring) == self.ring_size:
             self.stats.dropped += 1
@@ -448,4 +463,5 @@ class DashboardService:
             log_time_s=round(s.log_time_s, 3),
             lag_ms=round(s.lag_ms, 1),
             per_kind=s.per_kind,
+            foreign=s.foreign,
         )

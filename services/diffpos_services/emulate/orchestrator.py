@@ -140,6 +140,8 @@ class Emulation:
         # estimates count only from the fusion this run started: its zenoh ids (one per
         # start), seen in the timestamps its session puts on every sample
         self.fusion_ids: set[str] = set()
+        # every fusion start's id begins with the run's prefix (the dashboard checks that)
+        self.fusion_id_prefix = f"{secrets.randbits(60) | (1 << 60):x}"
         self.foreign: collections.Counter[str] = collections.Counter()
         self.tmp: tempfile.TemporaryDirectory | None = None
         self.supervisor = Supervisor(lambda: [(p.name, p.popen) for p in self.procs],
@@ -207,7 +209,7 @@ class Emulation:
             cfg = zenoh.Config.from_file(base[1])
         else:
             cfg = ZenohSettings(connect=(self.endpoint,)).to_config()
-        zid = f"{secrets.randbits(124) | (1 << 124):x}"  # 16 bytes, no leading zero
+        zid = f"{self.fusion_id_prefix}{secrets.randbits(64):016x}"  # 16 bytes
         cfg.insert_json5("id", json.dumps(zid))
         cfg.insert_json5("timestamping/enabled", "true")
         path = Path(self.tmp.name) / f"fusion-{len(self.fusion_ids)}.json5"
@@ -425,6 +427,8 @@ class Emulation:
             else:
                 i = argv.index("--connect")
                 argv = argv[:i] + z + argv[i + 2:]
+        if argv is not None and name == "dashboard":
+            argv = [*argv, "--estimates-from", self.fusion_id_prefix]
         if argv is not None and name == "recorder":
             # the fusion settings travel with the recording: replay reproduces live
             argv = [*argv, "--run-config", self._write_run_config()]
