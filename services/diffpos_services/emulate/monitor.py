@@ -29,6 +29,12 @@ __all__ = ["LOOKAHEAD", "Monitor"]
 
 #: lockstep: emulated time runs this many epochs ahead of the oldest incomplete epoch
 LOOKAHEAD = 2
+#: lockstep: an incomplete epoch is given up (an estimate lost, e.g. the fusion restarted)
+#: 2 s after the last estimate once the fusion's diagnostics show it idle (nothing pending);
+#: a fusion that is busy (no diagnostics while it solves: initialising the trackers of 50
+#: nodes takes tens of seconds on a loaded 2-core machine) is waited for up to this long [s],
+#: so a slow machine changes the run's duration, not its result.
+LOCKSTEP_STALL_S = 120.0
 
 
 class Monitor:
@@ -74,6 +80,7 @@ class Monitor:
         self.clock_pub = session.declare_publisher(keys.run_clock(), encoding=enc,
                                                    congestion_control=bc) if self.lockstep else None
         self.last_est_wall = 0.0
+        self.last_diag_wall = 0.0  # monotonic time of the last fusion diagnostics
         self.recent: collections.deque[tuple[float, float | None]] = collections.deque()
         self.next_status = 0.0
         self.finish_wall: float | None = None
@@ -101,10 +108,19 @@ class Monitor:
             self.next_needed += 1
         if self.next_needed + LOOKAHEAD - 1 > self.clock_k:
             self.release(self.next_needed + LOOKAHEAD - 1)
-        elif time.monotonic() - self.clock_wall > 2.0:
+        elif self._stalled():
             # no progress (an estimate lost?): move on rather than deadlock
             self.next_needed += 1
             self.release(self.next_needed + LOOKAHEAD - 1)
+
+    def _stalled(self) -> bool:
+        """Lockstep: no estimate for 2 s although the fusion reported itself idle since, or
+        none for :data:`LOCKSTEP_STALL_S` at all."""
+        since = max(self.clock_wall, self.last_est_wall, self.finish_wall or 0.0)
+        quiet = time.monotonic() - since
+        diag = self.emu.diag
+        idle = self.last_diag_wall > since and diag is not None and diag.pending_epochs == 0
+        return (quiet > 2.0 and idle) or quiet > LOCKSTEP_STALL_S
 
     # ------------------------------------------------------------------ truth
     def publish_truth(self, now_wall: int) -> None:
@@ -133,15 +149,19 @@ class Monitor:
 
     # ------------------------------------------------------------------ end of run
     def finished(self, now_wall: int) -> bool:
-        """True once the last epochs are in: the fusion's watermark past the end with nothing
-        pending; or, if the machine cannot keep up, once estimates stop coming (none for 3 s
-        after the end of the run)."""
+        """True once the last epochs are in. Lockstep: every node's estimate of every epoch of
+        the run arrived (or the fusion stalled, :meth:`_stalled`). Otherwise: the fusion's
+        watermark past the end with nothing pending; or, if the machine cannot keep up, once
+        estimates stop coming (none for 3 s after the end of the run)."""
         if self.finish_wall is None and self.emu_now(now_wall) >= self.end_ns:
             self.finish_wall = time.monotonic()
         if self.finish_wall is None:
             return False
         diag = self.emu.diag
         wm = diag.watermark_ns if diag else None
+        if self.lockstep:  # every node-epoch in, or the fusion stalled
+            n_epochs = -(-(self.end_ns - self.tb.t0_ns) // self.period_ns)
+            return bool(self.next_needed >= n_epochs or self._stalled())
         return bool((wm is not None and wm >= self.end_ns - self.period_ns
                      and diag.pending_epochs == 0)
                     or time.monotonic() - max(self.finish_wall, self.last_est_wall) > 3.0)
@@ -177,6 +197,7 @@ class Monitor:
                     self.recent.popleft()
             elif pk is not None and pk.kind == "diagnostics":
                 self.emu.diag = self.dec_diag(payload)
+                self.last_diag_wall = time.monotonic()
         except M.DecodeError as exc:
             log_event(self.emu.log, logging.WARNING, "bad message", key=key, error=str(exc)[:200])
 
