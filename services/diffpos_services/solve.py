@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.estimators import GatingConfig, dnls, ippa, lls
+from diffpos.estimators import GatingConfig, dnls, ippa, lls, mnls
 from diffpos.estimators.dnls import DEFAULT_Z_STARTS_M
 from diffpos_services.wire.solve_io import (
     DEFAULT_LIMITS,
@@ -43,7 +43,12 @@ __all__ = ["CHUNK_ELEMENTS", "POSITION_STATUSES", "solve_lines", "solve_records"
 #: Statuses whose position is published; any other status has no trustworthy position.
 POSITION_STATUSES = ("ok", "ok_unverified")
 #: Result fields that only exist with a trustworthy position.
-_POSITION_KEYS = ("position_m", "covariance_m2", "peb_m", "z_bound_m")
+_POSITION_KEYS = ("position_m", "covariance_m2", "peb_m", "z_bound_m", "floor",
+                  "floor_probability")
+#: M-NLS's coarse start grid per floor (cells; its default ``grid_shape``) and path slots,
+#: for the chunk size of its working arrays (problems x floors x cells x anchors x slots).
+_MNLS_CELLS = 18
+_MNLS_SLOTS = 18
 #: Problems of one group are solved together up to this many solver elements
 #: (anchors^2 x (starts + 2) each): at most about 70 MB of working memory (measured).
 CHUNK_ELEMENTS = 1 << 18
@@ -71,6 +76,8 @@ def _solve_group(problems: list[Problem]) -> list[dict[str, Any]]:
         )
     elif p0.method == "lls":
         fix = lls(a, r, sig, mask=mask)
+    elif p0.method == "mnls":
+        return _solve_mnls(problems, a, r, sig, mask)
     else:
         fix = ippa(
             a, r, sig, mask=mask, nlos=np.stack([p.nlos for p in problems]),
@@ -78,6 +85,26 @@ def _solve_group(problems: list[Problem]) -> list[dict[str, Any]]:
             z_starts_m=p0.z_starts_m,
         )
     return fix.to_records()
+
+
+def _solve_mnls(problems: list[Problem], a: np.ndarray, r: np.ndarray, sig: np.ndarray | None,
+                mask: np.ndarray) -> list[dict[str, Any]]:
+    """M-NLS in the ``--scenario`` building; the records get the floor and its posterior."""
+    p0 = problems[0]
+    sc = p0.scenario
+    snr = None if p0.snr_db is None else np.stack([p.snr_db for p in problems])
+    pfa = (p0.gating or {}).get("false_alarm_probability")
+    fix = mnls(a, r, sig, building=sc.building, mask=mask, snr_db=snr, radio=sc.radio,
+               bandwidth_hz=sc.radio.bandwidth_hz, error_floor_m=sc.radio.range_error_floor_m,
+               chunk_size=_chunk_size(p0), **({} if pfa is None else
+                                              {"false_alarm_probability": pfa}))
+    recs = fix.to_records()
+    for i, rec in enumerate(recs):
+        has = int(fix.floor[i]) >= 0
+        rec["floor"] = int(fix.floor[i]) if has else None
+        rec["floor_probability"] = ([float(v) for v in fix.floor_probability[i]] if has
+                                    else None)
+    return recs
 
 
 def _solve_alone(prob: Problem) -> dict[str, Any]:
@@ -88,7 +115,8 @@ def _solve_alone(prob: Problem) -> dict[str, Any]:
                               f"{str(exc)[:200]}); check the values for plausibility")
 
 
-def _prepare(line: int, obj: Any, default_method: str, limits: Limits) -> _Prepared:
+def _prepare(line: int, obj: Any, default_method: str, limits: Limits, scenario: Any = None
+             ) -> _Prepared:
     """Validate one decoded problem (or the :class:`ProblemError` of an unreadable line)."""
     ident = None
     try:
@@ -96,7 +124,8 @@ def _prepare(line: int, obj: Any, default_method: str, limits: Limits) -> _Prepa
             raise obj
         if isinstance(obj, dict) and obj.get("id") is not None:
             ident = check_id(obj["id"])
-        return line, ident, parse_problem(obj, default_method=default_method, limits=limits)
+        return line, ident, parse_problem(obj, default_method=default_method, limits=limits,
+                                          scenario=scenario)
     except ProblemError as exc:
         return line, ident, invalid_record(str(exc))
 
@@ -104,6 +133,9 @@ def _prepare(line: int, obj: Any, default_method: str, limits: Limits) -> _Prepa
 def _chunk_size(prob: Problem) -> int:
     """How many problems like ``prob`` are solved in one estimator call."""
     m = prob.ranges_m.size
+    if prob.method == "mnls":
+        floors = prob.scenario.building.n_floors
+        return max(1, CHUNK_ELEMENTS // (m * floors * _MNLS_CELLS * _MNLS_SLOTS))
     starts = 1 if prob.x0_m is not None else len(prob.z_starts_m or DEFAULT_Z_STARTS_M)
     return max(1, CHUNK_ELEMENTS // (m * m * (starts + 2)))
 
@@ -139,17 +171,21 @@ def _solve_prepared(items: list[_Prepared]) -> list[dict[str, Any]]:
 
 def solve_records(
     problems: Iterable[Any], *, default_method: str = "dnls", first_line: int = 1,
-    limits: Limits = DEFAULT_LIMITS,
+    limits: Limits = DEFAULT_LIMITS, scenario: Any = None,
 ) -> list[dict[str, Any]]:
     """Solve decoded problems (dicts, or :class:`ProblemError` instances for lines that
-    failed to decode); return one JSON-ready result dict per problem, in order."""
-    return _solve_prepared([_prepare(first_line + k, obj, default_method, limits)
+    failed to decode); return one JSON-ready result dict per problem, in order.
+
+    ``scenario`` (a :class:`diffpos.scenario.Scenario`): the building of every problem
+    (``mnls`` needs it; ``dnls`` takes its window height and edges where a line has none).
+    """
+    return _solve_prepared([_prepare(first_line + k, obj, default_method, limits, scenario)
                             for k, obj in enumerate(problems)])
 
 
 def solve_lines(lines: Iterable[str | ProblemError], *, batch: int = 256,
-                default_method: str = "dnls", limits: Limits = DEFAULT_LIMITS
-                ) -> Iterator[dict[str, Any]]:
+                default_method: str = "dnls", limits: Limits = DEFAULT_LIMITS,
+                scenario: Any = None) -> Iterator[dict[str, Any]]:
     """Solve JSON Lines, yielding exactly one result per line that is not blank.
 
     Blank (whitespace-only) lines are skipped without a result but counted in ``line``, so
@@ -158,10 +194,12 @@ def solve_lines(lines: Iterable[str | ProblemError], *, batch: int = 256,
     :func:`~diffpos_services.wire.solve_io.read_lines`): they are answered with
     ``invalid_input``. Each line is decoded and validated as soon as it is read; a batch
     holds only validated problems (bounded by ``limits``), never the lines' text.
+    ``scenario``: as :func:`solve_records`.
     """
     numbered = ((n, ln) for n, ln in enumerate(lines, start=1)
                 if isinstance(ln, ProblemError) or ln.strip())
-    prepared = (_prepare(n, decode_line(ln), default_method, limits) for n, ln in numbered)
+    prepared = (_prepare(n, decode_line(ln), default_method, limits, scenario)
+                for n, ln in numbered)
     while True:
         chunk = list(itertools.islice(prepared, max(batch, 1)))
         if not chunk:

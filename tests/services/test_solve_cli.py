@@ -12,9 +12,12 @@ import jsonschema
 import numpy as np
 import pytest
 from diffpos_services.cli import main as cli
+from diffpos_services.scenario_io import load_scenario
 from diffpos_services.solve import solve_records
 
+from diffpos.estimators import mnls
 from diffpos.geometry import los_path, window_edge_path
+from diffpos.paths import first_arrival_paths
 
 ROOT = Path(__file__).resolve().parents[2]
 PROBLEM_SCHEMA = json.loads((ROOT / "schemas" / "solve_problem.v1.json").read_text())
@@ -336,3 +339,121 @@ def test_blank_lines_are_skipped_as_help_and_docs_say(monkeypatch, capsys):
     assert "Every line that is not blank gets exactly one result line" in doc
     assert "blank (whitespace-only) lines are skipped without a result" in doc
     assert "Every line gets exactly one result" not in doc
+
+
+# ----------------------------------------------------------------------------- mnls (issue 13)
+HELD_OUT_TOML = """
+name = "held-out"
+[building]
+width_m = 24.0
+center_x_m = 3.0
+depth_m = 12.0
+n_floors = 3
+floor_height_m = 3.4
+first_floor_z_m = 2.0
+sill_height_m = 0.9
+window_height_m = 1.2
+[[anchors]]
+position_m = [-14.0, -9.0, 1.0]
+[nodes.grid]
+spacing_m = 3.0
+y_max_m = 10.0
+"""
+# 6 UAVs: below, at and above the window bands, one beyond each facade end (x in [-9, 15])
+HELD_OUT_ANCHORS = [[-14.0, -9.0, 1.0], [3.0, -6.0, 3.5], [20.0, -10.0, 6.8],
+                    [9.0, -4.0, 11.5], [-5.0, -12.0, 0.5], [12.0, -15.0, 2.0]]
+HELD_OUT_NODES = [[0.0, 4.0, 3.5], [6.5, 2.0, 7.6], [10.0, 6.0, 4.2], [-2.0, 5.0, 10.9]]
+
+
+@pytest.fixture
+def held_out(tmp_path):
+    """A building that is not a shipped scenario, and first-arrival ranges of its nodes: the
+    shortest existing mechanism of every link (what arrives first on a noiseless channel)."""
+    path = tmp_path / "held_out.toml"
+    path.write_text(HELD_OUT_TOML)
+    sc = load_scenario(path)
+    a = np.array(HELD_OUT_ANCHORS)
+    ps = first_arrival_paths(np.array(HELD_OUT_NODES)[:, None, :], a[None], sc.building)
+    ranges = np.min(np.where(ps.valid, ps.length_m, np.inf), axis=-1)
+    assert np.all(np.isfinite(ranges))
+    return path, sc, ranges
+
+
+def test_mnls_with_scenario_equals_the_estimator_and_finds_the_floor(held_out, monkeypatch,
+                                                                     capsys):
+    path, sc, ranges = held_out
+    probs = [{"anchors_m": HELD_OUT_ANCHORS, "ranges_m": r.tolist(), "sigmas_m": 0.05,
+              "method": "mnls", "id": k} for k, r in enumerate(ranges)]
+    lines = [json.dumps(p) for p in probs]
+    for p in probs:
+        jsonschema.validate(p, PROBLEM_SCHEMA)
+    rc, recs, _ = _run(lines, ["--scenario", str(path), "--batch", "3"], monkeypatch, capsys)
+    assert rc == 0 and [r["line"] for r in recs] == [1, 2, 3, 4]
+    direct = mnls(np.array(HELD_OUT_ANCHORS), ranges, 0.05, building=sc.building,
+                  bandwidth_hz=sc.radio.bandwidth_hz, error_floor_m=sc.radio.range_error_floor_m)
+    truth_floor = sc.building.floor_index(np.array(HELD_OUT_NODES)[:, 2])
+    for i, rec in enumerate(recs):
+        jsonschema.validate(rec, RESULT_SCHEMA)
+        assert rec["method"] == "mnls" and rec["status"] == "ok", rec["message"]
+        assert rec["covariance_model"] == "first-arrival model, floor mixture"
+        assert np.allclose(rec["position_m"], direct.position_m[i], atol=1e-9)
+        assert np.allclose(rec["floor_probability"], direct.floor_probability[i], atol=1e-12)
+        assert rec["floor"] == int(truth_floor[i]) == int(direct.floor[i])
+        assert sum(rec["floor_probability"]) == pytest.approx(1.0)
+        assert np.linalg.norm(np.subtract(rec["position_m"], HELD_OUT_NODES[i])) < 0.2
+    # the default method from the command line, and the Python entry point
+    rc, recs2, _ = _run([json.dumps({k: v for k, v in probs[0].items() if k != "method"})],
+                        ["--scenario", str(path), "--method", "mnls"], monkeypatch, capsys)
+    assert rc == 0 and recs2[0]["position_m"] == recs[0]["position_m"]
+    (rec,) = solve_records([probs[0]], scenario=sc)
+    assert rec["position_m"] == recs[0]["position_m"]
+
+
+def test_mnls_without_the_building_is_refused(held_out, tmp_path, monkeypatch, capsys):
+    _, _, ranges = held_out
+    prob = {"anchors_m": HELD_OUT_ANCHORS, "ranges_m": ranges[0].tolist(), "method": "mnls"}
+    good = json.dumps(_problem([1.0, 4.0, 7.5]))
+    rc, recs, _ = _run([good, json.dumps(prob), good], [], monkeypatch, capsys)
+    assert rc == 0 and [r["status"] for r in recs] == ["ok", "invalid_input", "ok"]
+    assert "--scenario" in recs[1]["message"] and "mnls" in recs[1]["message"]
+    assert recs[1]["floor"] is None and recs[0]["floor"] is None  # not mnls: no floor
+    rc = cli.main(["solve", "--method", "mnls"])
+    assert rc == 2 and "--scenario" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[building]\nn_floors = 0\n")
+    rc = cli.main(["solve", "--scenario", str(bad)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "building.n_floors" in err and "Traceback" not in err
+
+
+def test_scenario_gives_dnls_its_window_height_and_edges(held_out, monkeypatch, capsys):
+    path, sc, _ = held_out
+    node = np.array([4.0, 5.0, 5.3])
+    a = np.array(HELD_OUT_ANCHORS)
+    r = window_edge_path(a, node, window_height_m=sc.building.window_height_m,
+                         edge_x_m=sc.building.edge_x_m).length_m.tolist()
+    bare = {"anchors_m": HELD_OUT_ANCHORS, "ranges_m": r, "sigmas_m": 0.01}
+    explicit = dict(bare, window_height_m=1.2, edge_x_m=[-9.0, 15.0])
+    rc, recs, _ = _run([json.dumps(bare), json.dumps(explicit)], ["--scenario", str(path)],
+                       monkeypatch, capsys)
+    assert rc == 0 and recs[0]["status"] == recs[1]["status"] == "ok"
+    assert recs[0]["position_m"] == recs[1]["position_m"]
+    assert np.allclose(recs[0]["position_m"], node, atol=1e-6)
+    (rec,) = solve_records([bare])  # without the building, w is required
+    assert rec["status"] == "invalid_input" and "window_height_m" in rec["message"]
+
+
+def test_snr_db_is_optional_and_checked(held_out, monkeypatch, capsys):
+    path, _, ranges = held_out
+    base = {"anchors_m": HELD_OUT_ANCHORS, "ranges_m": ranges[1].tolist(), "method": "mnls"}
+    with_snr = dict(base, snr_db=[20.0, None, 35.5, -3.0, 12.0, 8.0])
+    short = dict(base, snr_db=[20.0, 30.0])
+    jsonschema.validate(with_snr, PROBLEM_SCHEMA)
+    rc, recs, _ = _run([json.dumps(p) for p in (base, with_snr, short)],
+                       ["--scenario", str(path)], monkeypatch, capsys)
+    assert rc == 0
+    assert recs[0]["status"] == "ok" and recs[1]["status"] in ("ok", "ok_unverified")
+    assert recs[2]["status"] == "invalid_input" and "snr_db" in recs[2]["message"]
+    # an earlier v1 result (no floor fields) still validates
+    old = {k: v for k, v in recs[0].items() if k not in ("floor", "floor_probability")}
+    jsonschema.validate(old, RESULT_SCHEMA)

@@ -1,4 +1,4 @@
-"""Position fixes from JSON Lines problems on stdin (D-NLS, LLS, IPPA)
+"""Position fixes from JSON Lines problems on stdin (D-NLS, LLS, IPPA, M-NLS)
 
 A filter: reads one positioning problem per line (JSON object) from stdin or --input, writes
 exactly one result line (JSON object) to stdout for every input line that is not blank, in
@@ -16,10 +16,12 @@ Problem fields (JSON Schema: schemas/solve_problem.v1.json):
   sigmas_m         s or [s, ...]      ranging standard deviations [m] (optional; without them
                                       the residual test is skipped and the covariance is
                                       scaled by the a-posteriori variance factor)
-  window_height_m  w                  window height [m] (required for dnls)
-  edge_x_m         [x1, x2]           extent of the window edges along x [m] (default unbounded)
+  window_height_m  w                  window height [m] (required for dnls unless --scenario)
+  edge_x_m         [x1, x2]           extent of the window edges along x [m] (default: the
+                                      --scenario building's, else unbounded)
   delta_m          d                  Case-2 offset of the node below mid-window [m] (default 0)
-  method           "dnls" | "lls" | "ippa"   (default dnls, or --method)
+  method           "dnls" | "lls" | "ippa" | "mnls"   (default dnls, or --method; mnls needs
+                                      --scenario)
   gating           true | false | {"false_alarm_probability": 1e-3, "max_exclusions": 2,
                                       "pregate": true, "multistart_exclusion": true,
                                       "z_range_m": [0, 1e9] or null}   (dnls only; default true;
@@ -29,16 +31,32 @@ Problem fields (JSON Schema: schemas/solve_problem.v1.json):
   z_starts_m       [z, ...]           start heights (default every 3 m from 0 to 30 m)
   nlos             bool or [bool,...] IPPA NLoS flags (default all true)
   nlos_bias_m      b or [b, ...]      IPPA mean NLoS bias subtracted from the ranges [m]
+  snr_db           [s, ...]           measured SNR of each first arrival [dB], null = unknown
+                                      (mnls: with the --scenario radio, a link too strong to be
+                                      diffracted is not modelled as a diffraction)
   id               any JSON value     echoed back unchanged
+
+M-NLS (method mnls) is the mechanism-aware estimator (diffpos.estimators.mnls): every floor of
+the building a hypothesis, the first-arrival mechanism of each link (window, reflections,
+diffraction over the physical edges, double bounces) a latent choice, a one-sided robust
+likelihood, a floor posterior and a covariance that includes the model ambiguity. It needs
+the building's floors, window band, depth and edges, which a problem line does not carry:
+--scenario FILE gives them for every line (a site is one building; the scenario TOML is the
+file the fusion and the emulator read). Its radio sets the error floor of the ranging sigmas,
+the NLoS excess scale c/B and the SNR test. gating: mnls runs its own residual test (only
+false_alarm_probability applies); loss, x0_m, z_starts_m, nlos are not used by mnls. With
+--scenario, dnls lines without window_height_m / edge_x_m take the building's.
 
 Result fields (JSON Schema: schemas/solve_result.v1.json): line, id, status (ok,
 ok_unverified, not_converged, not_identifiable, too_few_anchors, gating_failed,
 invalid_input), message, method, position_m, covariance_m2 (3x3, the inverse FIM at the
 estimate; covariance_model says which model), peb_m, z_bound_m, iterations, converged,
 used_anchors, excluded_anchors ([{"index", "reason"}]), residuals_m (null where unused),
-test_statistic, test_threshold. Numbers that do not exist are null. Only ok and
-ok_unverified publish a position: with any other status position_m, covariance_m2, peb_m and
-z_bound_m are null (the fit is not trustworthy; message, residuals and the test say why).
+test_statistic, test_threshold, floor and floor_probability (mnls: the most probable floor,
+0 = the building's lowest, and the posterior of every floor; null for the other methods).
+Numbers that do not exist are null. Only ok and ok_unverified publish a position: with any
+other status position_m, covariance_m2, peb_m, z_bound_m, floor and floor_probability are
+null (the fit is not trustworthy; message, residuals and the test say why).
 
 A bad line (invalid JSON, wrong lengths, NaN/inf, negative range, fewer than 3 anchors, unknown
 field, a value beyond the limits below, a line longer than --max-line-bytes, JSON nested too
@@ -59,9 +77,10 @@ examples:
   diffpos solve --input problems.jsonl > fixes.jsonl
   diffpos solve --method lls --strict < problems.jsonl
   diffpos solve --batch 1 < fifo         answer each line as soon as it arrives
+  diffpos solve --method mnls --scenario scenarios/paper.toml < problems.jsonl
 
-From Python: diffpos_services.solve.solve_records(list_of_problem_dicts) returns the
-result dicts; diffpos.estimators.dnls / lls / ippa work on numpy arrays directly.
+From Python: diffpos_services.solve.solve_records(list_of_problem_dicts, scenario=...) returns
+the result dicts; diffpos.estimators.dnls / lls / ippa / mnls work on numpy arrays directly.
 """
 
 from __future__ import annotations
@@ -71,7 +90,9 @@ import json
 import sys
 from typing import BinaryIO, TextIO
 
+from diffpos.scenario import Scenario, ScenarioError
 from diffpos_services.kit import ConfigError
+from diffpos_services.scenario_io import load_scenario
 from diffpos_services.solve import solve_lines
 from diffpos_services.wire.solve_io import (
     DEFAULT_MAX_ANCHORS,
@@ -89,7 +110,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--input", "-i", metavar="FILE",
                         help="read problems from FILE instead of stdin ('-' = stdin)")
     parser.add_argument("--method", choices=METHODS, default="dnls",
-                        help="method for problems without a 'method' field (default dnls)")
+                        help="method for problems without a 'method' field (default dnls; "
+                        "mnls needs --scenario)")
+    parser.add_argument("--scenario", metavar="FILE",
+                        help="scenario TOML file or shipped name: the building every line is "
+                        "in (floors, window band, depth, edges) and its radio; needed by mnls, "
+                        "the default window_height_m / edge_x_m of dnls (default: none)")
     parser.add_argument("--batch", type=int, default=256, metavar="N",
                         help="solve N lines together (default 256; 1 = answer every line "
                         "as soon as it is read)")
@@ -116,12 +142,26 @@ def _limits(args: argparse.Namespace) -> Limits:
                   max_line_bytes=args.max_line_bytes)
 
 
-def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: Limits) -> int:
+def _scenario(args: argparse.Namespace) -> Scenario | None:
+    """``--scenario``'s scenario (None without it); :class:`ConfigError` (exit 2) if invalid."""
+    if args.scenario is None:
+        if args.method == "mnls":
+            raise ConfigError("--method mnls needs the building: give --scenario FILE")
+        return None
+    try:
+        return load_scenario(args.scenario)
+    except ScenarioError as exc:
+        raise ConfigError(f"--scenario: {exc}") from None
+
+
+def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: Limits,
+                   scenario: Scenario | None) -> int:
     """Solve the stream's lines to stdout; the number of invalid lines."""
     invalid = 0
     out = sys.stdout
     for rec in solve_lines(read_lines(stream, max_bytes=limits.max_line_bytes),
-                           batch=args.batch, default_method=args.method, limits=limits):
+                           batch=args.batch, default_method=args.method, limits=limits,
+                           scenario=scenario):
         if rec["status"] == "invalid_input":
             invalid += 1
         out.write(json.dumps(rec, allow_nan=False, separators=(",", ":")) + "\n")
@@ -133,6 +173,7 @@ def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: 
 
 def run(args: argparse.Namespace) -> int:
     limits = _limits(args)
+    scenario = _scenario(args)
     from_file = bool(args.input and args.input != "-")
     if from_file:
         try:
@@ -145,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
         # bytes, so that a non-UTF-8 line is one invalid line, not the end of the input
         stream = getattr(sys.stdin, "buffer", sys.stdin)
     try:
-        invalid = _write_results(stream, args, limits)
+        invalid = _write_results(stream, args, limits, scenario)
     except OSError as exc:
         if isinstance(exc, BrokenPipeError):
             return 0

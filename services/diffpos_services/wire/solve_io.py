@@ -65,9 +65,12 @@ DEFAULT_MAX_STARTS = 32
 
 FIELDS = (
     "anchors_m", "ranges_m", "sigmas_m", "window_height_m", "edge_x_m", "delta_m", "method",
-    "gating", "loss", "x0_m", "z_starts_m", "nlos", "nlos_bias_m", "id",
+    "gating", "loss", "x0_m", "z_starts_m", "nlos", "nlos_bias_m", "snr_db", "id",
 )
-METHODS = ("dnls", "lls", "ippa")
+METHODS = ("dnls", "lls", "ippa", "mnls")
+#: What ``mnls`` needs and a problem line does not carry: the building (``--scenario``).
+MNLS_NEEDS_SCENARIO = ("method mnls needs the building (floors, window band, depth, edges): "
+                       "give it with diffpos solve --scenario FILE")
 LOSSES = ("linear", "huber", "soft_l1")
 GATING_FIELDS = (
     "false_alarm_probability", "max_exclusions", "pregate", "multistart_exclusion", "z_range_m",
@@ -76,7 +79,8 @@ GATING_FIELDS = (
 RESULT_KEYS = (
     "line", "id", "status", "message", "method", "position_m", "covariance_m2",
     "covariance_model", "peb_m", "z_bound_m", "iterations", "converged", "used_anchors",
-    "excluded_anchors", "residuals_m", "test_statistic", "test_threshold",
+    "excluded_anchors", "residuals_m", "test_statistic", "test_threshold", "floor",
+    "floor_probability",
 )
 
 
@@ -135,13 +139,15 @@ class Problem:
     nlos: np.ndarray
     nlos_bias_m: np.ndarray
     extra: dict[str, Any] = field(default_factory=dict)
+    snr_db: np.ndarray | None = None  # (M,), NaN where unknown
+    scenario: Any = None  # --scenario's Scenario (the same object for every line)
 
     def group_key(self) -> tuple:
         """Problems with equal keys are solved in one batched call."""
         g = None if self.gating is None else tuple(sorted(self.gating.items()))
         return (
             self.method, self.ranges_m.size, self.edge_x_m, g, self.loss, self.z_starts_m,
-            self.sigmas_m is None, self.x0_m is None,
+            self.sigmas_m is None, self.x0_m is None, self.snr_db is None,
         )
 
 
@@ -261,17 +267,33 @@ def _parse_sigmas(value: Any, m: int, mask: np.ndarray) -> np.ndarray | None:
     return np.where(mask, sig, 1.0)
 
 
-def _parse_model(obj: dict[str, Any], default_method: str) -> tuple[str, float | None, float,
-                                                                     tuple[float, float] | None]:
-    """``method``, ``window_height_m`` (required for dnls), ``delta_m`` and ``edge_x_m``."""
+def _parse_snr(value: Any, m: int) -> np.ndarray | None:
+    """``snr_db`` (one per anchor, null = unknown) -> ``(M,)`` with NaN where unknown."""
+    if value is None:
+        return None
+    return np.array(_vector(value, "snr_db", m, allow_null=True))
+
+
+def _parse_model(obj: dict[str, Any], default_method: str, building: Any = None
+                 ) -> tuple[str, float | None, float, tuple[float, float] | None]:
+    """``method``, ``window_height_m`` (required for dnls), ``delta_m`` and ``edge_x_m``.
+
+    With a ``building`` (``--scenario``), a missing ``window_height_m`` / ``edge_x_m`` is the
+    building's; without one, ``mnls`` is refused.
+    """
     method = obj.get("method", default_method)
     if method not in METHODS:
         raise ProblemError(f"method must be one of {list(METHODS)}, got {json.dumps(method)}")
+    if method == "mnls" and building is None:
+        raise ProblemError(MNLS_NEEDS_SCENARIO)
     wh = obj.get("window_height_m")
     if wh is not None:
         wh = _number(wh, "window_height_m", positive=True)
+    elif building is not None:
+        wh = float(building.window_height_m)
     elif method == "dnls":
-        raise ProblemError("window_height_m is required for method dnls (window height w [m])")
+        raise ProblemError("window_height_m is required for method dnls (window height w [m]; "
+                           "or give the building with --scenario)")
     delta = _number(obj.get("delta_m", 0.0), "delta_m")
     edge = obj.get("edge_x_m")
     if edge is not None:
@@ -279,6 +301,8 @@ def _parse_model(obj: dict[str, Any], default_method: str) -> tuple[str, float |
         if ev[0] == ev[1]:
             raise ProblemError("edge_x_m must be two different x values [x1, x2] [m]")
         edge = (min(ev), max(ev))
+    elif building is not None:
+        edge = tuple(float(v) for v in building.edge_x_m)
     return method, wh, delta, edge
 
 
@@ -366,24 +390,29 @@ def _parse_gating(value: Any) -> dict[str, Any] | None:
 
 
 def parse_problem(obj: Any, *, default_method: str = "dnls",
-                  limits: Limits = DEFAULT_LIMITS) -> Problem:
+                  limits: Limits = DEFAULT_LIMITS, scenario: Any = None) -> Problem:
     """Validate one decoded JSON problem; raise :class:`ProblemError` naming the field.
 
     The steps run in the order the fields are checked (the first problem found is reported).
+    ``scenario`` (``--scenario``, a :class:`diffpos.scenario.Scenario`) gives the building
+    every line is in: ``mnls`` needs it, and it is the default window height and edge extent
+    of ``dnls``.
     """
+    building = None if scenario is None else scenario.building
     _check_fields(obj)
     a = _parse_anchors(obj["anchors_m"], limits)
     m = a.shape[0]
     r, mask = _parse_ranges(obj["ranges_m"], m)
     sig = _parse_sigmas(obj.get("sigmas_m"), m, mask)
-    method, wh, delta, edge = _parse_model(obj, default_method)
+    method, wh, delta, edge = _parse_model(obj, default_method, building)
     gating = _parse_gating(obj.get("gating", True))
     loss, x0, zs = _parse_starts(obj, limits)
     nlos, bias = _parse_ippa(obj, m)
     return Problem(
         anchors_m=a, ranges_m=np.where(mask, r, 0.0), mask=mask, sigmas_m=sig, method=method,
         window_height_m=wh, delta_m=delta, edge_x_m=edge, gating=gating, loss=loss, x0_m=x0,
-        z_starts_m=zs, nlos=nlos, nlos_bias_m=bias,
+        z_starts_m=zs, nlos=nlos, nlos_bias_m=bias, snr_db=_parse_snr(obj.get("snr_db"), m),
+        scenario=scenario,
     )
 
 
