@@ -56,7 +56,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .tracking_model import Links, measurement_update, snapshot_init
+from .tracking_model import Links, measurement_update, snapshot, snapshot_init
 
 __all__ = [
     "TrackOutput",
@@ -120,7 +120,16 @@ class TrackerConfig:
         Prior probability that a range is none of the modelled mechanisms.
     outlier_span_m : float [m]
         Width of the one-sided outlier density.
+    mixing : {"select", "imm"}
+        How a floor's prior is formed from the previous floors: ``"select"`` continues every
+        floor from its most probable predecessor (its own state unless a neighbour moving in
+        is more probable than staying: a floor that the data has not yet decided keeps its own
+        position instead of being dragged towards a different position on another floor);
+        ``"imm"`` moment-matches all predecessors (the classic IMM interaction).
     gn_iterations : int
+    select_passes : int
+        Mechanism selections per update: the first at the prior mean, each further one at the
+        previous pass' fit (then the IEKF restarts from the prior).
     init_grid_m : float [m]
         Grid step of the snapshot initialisation.
     init_starts : int
@@ -135,6 +144,13 @@ class TrackerConfig:
     nis_alpha : float [-]
         Weight of the newest epoch in the NIS average.
     diverge_epochs : int
+    reseed_epochs : int
+        Consecutive bad epochs after which a floor hypothesis is re-seeded from a snapshot of
+        its floor (so every floor keeps the best explanation of the data on that floor).
+    reseed_max : int
+        At most this many floor hypotheses are re-seeded per call (bounded cost). Default 0
+        (off): measured on the default and large scenarios it changed no floor decision
+        (46.0 % / 88.5 % with and without) and a snapshot costs ~0.1-0.3 s per node-floor.
     """
 
     q_h_m2_s3: float = 1.5
@@ -150,7 +166,9 @@ class TrackerConfig:
     sigma_model_m: float = 0.03
     outlier_weight: float = 0.02
     outlier_span_m: float = 30.0
+    mixing: str = "select"
     gn_iterations: int = 3
+    select_passes: int = 2
     init_grid_m: float = 1.0
     init_starts: int = 2
     init_sigma_v_m_s: float = 1.0
@@ -160,6 +178,8 @@ class TrackerConfig:
     nis_limit: float = 9.0
     nis_alpha: float = 0.2
     diverge_epochs: int = 10
+    reseed_epochs: int = 3
+    reseed_max: int = 0
 
 
 @dataclass(frozen=True)
@@ -182,6 +202,10 @@ class TrackerState:
         Averaged NIS per used range.
     good, bad : ndarray of int, shape (N,)
         Consecutive consistent / inconsistent epochs.
+    floor_bad : ndarray of int, shape (N, F)
+        Consecutive epochs in which a floor hypothesis explained fewer than half of the ranges
+        or had an NIS above ``nis_limit`` (at ``reseed_epochs`` it is re-seeded from a
+        snapshot of that floor).
     """
 
     mean: FloatArray
@@ -193,6 +217,7 @@ class TrackerState:
     nis: FloatArray
     good: NDArray[np.int_]
     bad: NDArray[np.int_]
+    floor_bad: NDArray[np.int_]
 
 
 @dataclass(frozen=True)
@@ -283,9 +308,14 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
     ps = np.broadcast_to(state.cov[:, :, None], (*joint.shape, 6, 6)).copy()
     ps[..., 2, 2] += np.where(moved, config.z_mix_sigma_m**2, 0.0)
     ps[..., 5, 5] += np.where(moved, (config.v_stairs_m_s / 2) ** 2, 0.0)
-    x0 = np.einsum("nfg,nfgi->ngi", mu, xs)
-    d = xs - x0[:, None]
-    p0 = np.einsum("nfg,nfgij->ngij", mu, ps + d[..., :, None] * d[..., None, :])
+    if config.mixing == "imm":
+        x0 = np.einsum("nfg,nfgi->ngi", mu, xs)
+        d = xs - x0[:, None]
+        p0 = np.einsum("nfg,nfgij->ngij", mu, ps + d[..., :, None] * d[..., None, :])
+    else:  # "select": every floor continues from its most probable predecessor
+        src = np.argmax(joint, axis=1)  # (N, G)
+        rows, cols = np.arange(joint.shape[0])[:, None], np.arange(nf)[None, :]
+        x0, p0 = xs[rows, src, cols], ps[rows, src, cols]
     log_pred = np.log(np.maximum(c, 1e-300)) + mx
     log_pred = log_pred - _logsumexp(log_pred)[:, None]
     return x0, p0, log_pred
@@ -318,7 +348,8 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         log_prob=np.full((n_nodes, nf), -np.log(nf)),
         status=np.zeros(n_nodes, np.int8), t_ns=np.full(n_nodes, t_ns, np.int64),
         last_fix_ns=np.full(n_nodes, t_ns, np.int64), nis=np.ones(n_nodes),
-        good=np.zeros(n_nodes, int), bad=np.zeros(n_nodes, int))
+        good=np.zeros(n_nodes, int), bad=np.zeros(n_nodes, int),
+        floor_bad=np.zeros((n_nodes, nf), int))
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
@@ -385,7 +416,24 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, building,
     nis_epoch = np.where(n_in > 0, np.nansum(nis_b, axis=1) / np.maximum(n_in, 1), np.inf)
     nis = (1 - config.nis_alpha) * state.nis[idx] + config.nis_alpha * np.minimum(nis_epoch, 1e3)
     bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
-    return x, p, lp, nis, bad_epoch, sel.slot[r, best], res[r, best]
+    n_in_f = np.sum(np.isfinite(sel.nis), axis=2)
+    nis_f = np.nansum(sel.nis, axis=2) / np.maximum(n_in_f, 1)
+    bad_f = (2 * n_in_f < n_meas[:, None]) | (nis_f > config.nis_limit)
+    return x, p, lp, nis, bad_epoch, bad_f, sel.slot[r, best], res[r, best]
+
+
+def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: TrackerConfig):
+    """Re-seed the worst floor hypotheses (at most ``reseed_max`` per epoch) from snapshots."""
+    cand = (floor_bad >= config.reseed_epochs) & eligible[:, None]
+    if not np.any(cand):
+        return
+    flat = np.flatnonzero(cand)
+    order = np.argsort(-floor_bad.reshape(-1)[flat], kind="stable")[:config.reseed_max]
+    nodes, floors = np.unravel_index(flat[order], floor_bad.shape)
+    sub = Links(links.rho[nodes], links.var[nodes], links.mask[nodes], links.anchors[nodes])
+    x, p, _, _, _ = snapshot(sub, floors[:, None], building, config)
+    mean[nodes, floors], cov[nodes, floors] = x[:, 0], p[:, 0]
+    floor_bad[nodes, floors] = 0
 
 
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
@@ -417,20 +465,24 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     st = predict(state, t, building, config)
     mean, cov, lp = st.mean.copy(), st.cov.copy(), st.log_prob.copy()
     status, nis, good, bad = st.status.copy(), st.nis.copy(), st.good.copy(), st.bad.copy()
+    floor_bad = st.floor_bad.copy()
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
     live = np.isin(status, (TrackStatus.INITIALISING, TrackStatus.TRACKING, TrackStatus.COASTING))
     idx = np.flatnonzero(live & (n_meas > 0))
     if idx.size:
-        x, p, lpi, nisi, bad_epoch, mech[idx], resid[idx] = _track_update(st, links, idx, building,
-                                                                          config)
+        x, p, lpi, nisi, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
+            st, links, idx, building, config)
         mean[idx], cov[idx], lp[idx], nis[idx] = x, p, lpi, nisi
+        floor_bad[idx] = np.where(bad_f, floor_bad[idx] + 1, 0)
         bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
         good[idx] = np.where(bad_epoch, 0, good[idx] + 1)
         last[idx] = t[idx]
         status[idx] = np.where(status[idx] == TrackStatus.COASTING, TrackStatus.TRACKING,
                                status[idx])
+    _reseed(mean, cov, floor_bad, links, live & (n_meas >= config.min_ranges_init), building,
+            config)
     coast = live & (n_meas == 0)
     status[coast] = TrackStatus.COASTING
     status[coast & ((t - last) * 1e-9 > config.lost_after_s)] = TrackStatus.LOST
@@ -446,8 +498,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         mech[jdx], resid[jdx] = sel.slot[r, best], res[r, best]
         status[jdx] = TrackStatus.INITIALISING
         nis[jdx], good[jdx], bad[jdx], last[jdx] = 1.0, 0, 0, t[jdx]
+        floor_bad[jdx] = 0
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
-                       t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad)
+                       t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
+                       floor_bad=floor_bad)
     return new, _publish(new, mech, resid)

@@ -162,11 +162,16 @@ def candidates(pe: PathEval) -> NDArray[np.bool_]:
 
 @dataclass(frozen=True)
 class Selection:
-    """Max-mixture choice per link (N, H, M): slot (-1 outlier/missing), its log-weight."""
+    """Max-mixture choice per link (N, H, M): slot (-1 outlier/missing), its log-weight, the
+    NIS of the chosen slot at the prior (NaN where not used) and the mechanism-ambiguity
+    variance ``sum_k p_k (L_k - L_chosen)^2`` over the candidates (their posterior weights
+    ``p_k`` given the range): the moment-matched spread of the mixture about the chosen
+    mechanism, added to the range variance (model uncertainty)."""
 
     slot: NDArray[np.int_]
     log_weight: FloatArray
-    nis: FloatArray  # e^2 / S of the chosen slot at the prior (NaN where not used)
+    nis: FloatArray
+    extra_var: FloatArray
 
 
 def select(pos_cov: FloatArray, links: Links, pe: PathEval, config) -> Selection:
@@ -181,7 +186,8 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config) -> Selection
     s_var = np.einsum("nhmki,nhij,nhmkj->nhmk", jac, pos_cov, jac) + links.var[..., None]
     e = links.rho[..., None] - lengths
     n_ok = np.maximum(valid.sum(axis=-1), 1)
-    ll = -0.5 * (e * e / s_var + np.log(s_var) + _LOG2PI)
+    with np.errstate(invalid="ignore"):
+        ll = -0.5 * (e * e / s_var + np.log(s_var) + _LOG2PI)
     ll = np.where(valid, ll, -np.inf)
     best = np.argmax(ll, axis=-1)
     ll_best = np.take_along_axis(ll, best[..., None], axis=-1)[..., 0]
@@ -191,7 +197,14 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config) -> Selection
     slot = np.where(inlier, best, -1)
     log_w = np.where(inlier, w_in, np.where(links.mask, w_out, 0.0))
     nis = np.where(inlier, np.take_along_axis(e * e / s_var, best[..., None], -1)[..., 0], np.nan)
-    return Selection(slot=slot, log_weight=log_w, nis=nis)
+    with np.errstate(invalid="ignore"):
+        pk = np.where(valid, np.exp(ll - np.where(np.isfinite(ll_best), ll_best, 0.0)[..., None]),
+                      0.0)
+        pk = pk / np.maximum(pk.sum(axis=-1, keepdims=True), 1e-300)
+        l_best = np.take_along_axis(lengths, best[..., None], axis=-1)
+        extra = np.sum(np.where(valid, pk * (lengths - l_best) ** 2, 0.0), axis=-1)
+    extra = np.where(inlier & np.isfinite(extra), extra, 0.0)
+    return Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
 
 
 def _model(pos, links: Links, floor, sel: Selection, building):
@@ -265,7 +278,7 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     quad = (np.einsum("nhi,nhij,nhj->nh", d, y, d) + np.sum(w * e * e, axis=-1)
             + wb * np.sum(eb * eb, axis=-1) + wh * eh * eh)
     used = w > 0
-    norm = np.sum(np.where(used, -0.5 * (np.log(links.var) + _LOG2PI), 0.0), axis=-1)
+    norm = np.sum(np.where(used, 0.5 * (np.log(np.where(used, w, 1.0)) - _LOG2PI), 0.0), axis=-1)
     logdet = np.linalg.slogdet(a)[1] - np.linalg.slogdet(y)[1]
     log_ev = norm + h_const - 0.5 * quad - 0.5 * logdet + np.sum(sel.log_weight, axis=-1)
     residual = np.where(sel.slot >= 0, e, np.nan)
@@ -285,9 +298,11 @@ def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArra
 
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual."""
-    pe = all_paths(x_prior[..., :3], links, floor, building, config.exist_margin_m)
-    sel = select(p_prior[..., :3, :3], links, pe, config)
-    x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
+    x = x_prior
+    for _ in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
+        pe = all_paths(x[..., :3], links, floor, building, config.exist_margin_m)
+        sel = select(p_prior[..., :3, :3], links, pe, config)
+        x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
 
@@ -299,61 +314,70 @@ def _grid_cells(building, step_m: float) -> FloatArray:
     return np.stack([gx.ravel(), gy.ravel()], axis=-1)
 
 
-def grid_starts(links: Links, building, config) -> tuple[FloatArray, NDArray]:
-    """Best ``init_starts`` grid cells of every floor per node: (N, F * S, 3) and floors.
+def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
+    """Best ``init_starts`` grid cells on each listed floor per node: (N, Fs * S, 3).
 
-    The cost of a cell is the robust max-mixture cost over the links with the range variance
-    widened by the grid's own resolution (``(step / 2)^2``).
+    ``floors`` (N, Fs): the floors to search for every node. The cost of a cell is the robust
+    max-mixture cost over the links with the range variance widened by the grid's own
+    resolution (``(step / 2)^2``).
     """
-    nf = building.n_floors
     cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
-    h = building.nominal_node_height_m
-    z = building.floor_z_m(np.arange(nf)) + h
-    n, c = links.rho.shape[0], cells.shape[0]
-    pos = np.concatenate([np.broadcast_to(cells[None], (nf, c, 2)),
-                          np.broadcast_to(z[:, None, None], (nf, c, 1))], axis=-1)
-    pos = pos.reshape(1, nf * c, 3)
-    floor = np.repeat(np.arange(nf), c)
+    n, nf = floors.shape
+    c, ns = cells.shape[0], config.init_starts
+    z = building.floor_z_m(floors) + building.nominal_node_height_m  # (N, Fs)
     var = links.var + (0.5 * config.init_grid_m) ** 2
-    w_out = 0.5 * (2.0 * np.log(config.outlier_span_m / config.outlier_weight))
-    starts = np.zeros((n, nf * config.init_starts, 3))
-    for i in range(n):  # one node at a time keeps the arrays small (K x F x C x M)
+    w_out = np.log(config.outlier_span_m / config.outlier_weight)
+    starts = np.zeros((n, nf * ns, 3))
+    for i in range(n):  # one node at a time keeps the arrays small (K x Fs x C x M)
+        pos = np.concatenate([np.broadcast_to(cells[None], (nf, c, 2)),
+                              np.broadcast_to(z[i][:, None, None], (nf, c, 1))], axis=-1)
+        pos = pos.reshape(1, nf * c, 3)
         li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1], links.anchors[i:i + 1])
-        pe = all_paths(pos, li, floor, building, 0.5 * config.init_grid_m)
-        valid = candidates(pe)
+        pe = all_paths(pos, li, np.repeat(floors[i], c)[None], building,
+                       0.5 * config.init_grid_m)
         e = li.rho[..., None] - pe.length
-        cost = np.where(valid, 0.5 * e * e / var[i:i + 1, ..., None], np.inf).min(axis=-1)
+        cost = np.where(candidates(pe), 0.5 * e * e / li.var[..., None], np.inf).min(axis=-1)
         los, _ = _los(pos, li.anchors)
         short = np.minimum(li.rho - los, 0.0)
-        cost = np.minimum(cost, w_out + 0.5 * short**2 / var[i:i + 1])
+        cost = np.minimum(cost, w_out + 0.5 * short**2 / li.var)
         total = np.where(li.mask, cost, 0.0).sum(axis=-1)[0].reshape(nf, c)
-        order = np.argsort(total, axis=1, kind="stable")[:, :config.init_starts]
+        order = np.argsort(total, axis=1, kind="stable")[:, :ns]
         starts[i] = pos[0].reshape(nf, c, 3)[np.arange(nf)[:, None], order].reshape(-1, 3)
-    return starts, np.repeat(np.arange(nf), config.init_starts)
+    return starts
 
 
-def snapshot_init(links: Links, building, config):
-    """Snapshot initialisation of every floor hypothesis (grid, then the IEKF twice).
+def snapshot(links: Links, floors: NDArray, building, config):
+    """Snapshot fit of every listed floor per node (grid, then the IEKF from the best cells).
 
-    Returns ``(x, P, log_prob, sel, residual)`` per node and floor: (N, F, 6), (N, F, 6, 6),
-    (N, F) normalised, the selection and residuals (N, F, M) of the best start per floor.
+    ``floors`` (N, Fs). Returns ``(x, P, log_evidence, sel, residual)`` of the best start per
+    node and floor: (N, Fs, 6), (N, Fs, 6, 6), (N, Fs), the selection and residuals (N, Fs, M).
     """
-    nf, ns = building.n_floors, config.init_starts
-    starts, floors = grid_starts(links, building, config)
-    n = starts.shape[0]
+    n, nf = floors.shape
+    ns = config.init_starts
     x = np.zeros((n, nf * ns, 6))
-    x[..., :3] = starts
+    x[..., :3] = grid_starts(links, floors, building, config)
+    fl = np.repeat(floors, ns, axis=1)
     g, v = config.init_grid_m, config.init_sigma_v_m_s
     p0 = np.diag([g * g, g * g, (building.floor_height_m / 4) ** 2, v * v, v * v,
                   (config.v_stairs_m_s / 2) ** 2])
     p0 = np.broadcast_to(p0, (n, nf * ns, 6, 6))
     for _ in range(2):  # second pass: mechanisms re-selected at the first pass' estimate
-        x, p, ev, sel, res = measurement_update(x, p0, links, floors, building, config)
+        x, p, ev, sel, res = measurement_update(x, p0, links, fl, building, config)
     ev = np.where(np.isfinite(ev), ev, -1e300).reshape(n, nf, ns)
-    best = np.argmax(ev, axis=-1)  # (N, F)
+    best = np.argmax(ev, axis=-1)  # (N, Fs)
     idx = (np.arange(n)[:, None], np.arange(nf)[None, :] * ns + best)
-    lp = np.take_along_axis(ev, best[..., None], axis=-1)[..., 0]
-    lp = lp - lp.max(axis=1, keepdims=True)
+    lev = np.take_along_axis(ev, best[..., None], axis=-1)[..., 0]
+    sel_best = Selection(slot=sel.slot[idx], log_weight=sel.log_weight[idx], nis=sel.nis[idx],
+                         extra_var=sel.extra_var[idx])
+    return x[idx], p[idx], lev, sel_best, res[idx]
+
+
+def snapshot_init(links: Links, building, config):
+    """Snapshot initialisation of every floor hypothesis: :func:`snapshot` over all floors,
+    the floor log-probabilities normalised from the evidences."""
+    n, nf = links.rho.shape[0], building.n_floors
+    x, p, lev, sel, res = snapshot(links, np.broadcast_to(np.arange(nf), (n, nf)), building,
+                                   config)
+    lp = lev - lev.max(axis=1, keepdims=True)
     lp = lp - np.log(np.exp(lp).sum(axis=1, keepdims=True))
-    sel_best = Selection(slot=sel.slot[idx], log_weight=sel.log_weight[idx], nis=sel.nis[idx])
-    return x[idx], p[idx], lp, sel_best, res[idx]
+    return x, p, lp, sel, res

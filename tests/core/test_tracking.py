@@ -77,7 +77,7 @@ def test_update_matches_grid_posterior():
     x0[0, 0, :3] = truth + np.array([0.1, -0.15, 0.05])
     p0 = np.diag([0.2, 0.2, 0.1, 1.0, 1.0, 0.1]) ** 2
     sel = Selection(slot=np.full((1, 1, 6), 8), log_weight=np.zeros((1, 1, 6)),
-                    nis=np.zeros((1, 1, 6)))
+                    nis=np.zeros((1, 1, 6)), extra_var=np.zeros((1, 1, 6)))
     cfg = TrackerConfig(height_sigma_m=1e6, stairs_weight=1e-9, gn_iterations=8)
     x, p, _, _ = iekf(x0, p0[None, None], links, np.array([floor]), sel, B, cfg)
     # grid posterior over position (velocity is unobserved: its marginal stays the prior's)
