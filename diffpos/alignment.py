@@ -18,15 +18,31 @@ Model and assumptions
   reported position uncertainty projected on the line of sight.
 * An epoch of a node is **ready** (:class:`EpochBook`) when every live anchor has either
   reported for it or moved past its end (``latest t_ns >= end + clock_tolerance``), or when
-  a wall-clock deadline after its first range passed (protects against hung anchors, which
-  liveliness only detects after the lease).
+  the **watermark** passed its end by the **allowance** (``release="measurement"``, the
+  default). Both are measurement times, so the decision depends on what arrived and in which
+  order, never on how fast the fusion's machine is (CPU load, replay speed):
+
+  - watermark: the ``min_reports``-th newest latest time of the anchors (one or two stalled
+    or hung anchors do not hold it back; a single future-stamped anchor does not push it;
+    none with fewer anchors);
+  - allowance: how far behind the watermark the anchors' data arrives, measured per anchor
+    (the largest of its last 256 lags, plus a quarter), the largest over anchors that keep
+    up, bounded to ``[deadline_ns, max_lag_ns]``; an anchor lagging beyond ``max_lag_ns`` (stalled,
+    replaying a backlog) is not waited for: its ranges are late until it caught up.
+
+  Wall-clock fallbacks only when measurement time stops: the bus was quiet for
+  ``max_lag_ns`` (no range ingested: end of a run, every anchor gone) or an epoch waited
+  ``max_lag_ns`` of wall time (fewer anchors than ``min_reports`` advance, a hung anchor
+  among too few).
+  ``release="wall"`` is the former rule (a wall deadline after the first range).
 """
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -57,8 +73,9 @@ class AlignmentConfig:
     clock_tolerance_ns : int [ns]
         Assumed bound on the clock offset between anchors.
     deadline_ns : int [ns]
-        Wall-clock time after the first range of an epoch at which it is solved with
-        whatever arrived.
+        The smallest allowance (measurement time past the watermark) an epoch waits for
+        missing anchors. With ``release="wall"``: the wall time after the first range
+        of an epoch at which it is solved (the former fixed deadline).
     max_state_extrapolation_ns : int [ns]
         How far beyond the newest (or before the oldest) anchor state a position may be
         extrapolated; beyond it the range is rejected as ``NO_ANCHOR_STATE``.
@@ -75,6 +92,11 @@ class AlignmentConfig:
         anchors' latest times, with >= 3 of them) is a *stray*: it is solved like any other
         but does not move the node's "already solved" mark, so one range with a wrong
         (future) time stamp cannot make the node's good ranges late.
+    max_lag_ns : int or None [ns]
+        The largest allowance (``None``: ``10 * deadline_ns``); an anchor whose data lags
+        the watermark by more is not waited for. Also the wall-time bound of an epoch's wait.
+    release : "measurement" or "wall"
+        Epoch release rule (see the module docstring).
     """
 
     epoch_period_ns: int = 100_000_000
@@ -85,8 +107,14 @@ class AlignmentConfig:
     velocity_sigma_m_s: float = 0.3
     min_reports: int = 3
     max_future_ns: int = 1_000_000_000
+    max_lag_ns: int | None = None
+    release: Literal["measurement", "wall"] = "measurement"
 
     def __post_init__(self) -> None:
+        if self.release not in ("measurement", "wall"):
+            raise ValueError("release must be 'measurement' or 'wall'")
+        if self.max_lag_ns is not None and int(self.max_lag_ns) < int(self.deadline_ns):
+            raise ValueError("max_lag_ns must be >= deadline_ns [ns]")
         for name in ("epoch_period_ns", "deadline_ns"):
             if int(getattr(self, name)) <= 0:
                 raise ValueError(f"{name} must be > 0 [ns]")
@@ -430,13 +458,18 @@ class PendingEpoch:
 
 #: "Before any time" for the latest-time and solved-epoch maps [ns or epoch index].
 _NEVER = -(2**62)
+#: Lag samples kept per anchor, and how many new ones trigger a new allowance.
+_LAG_SAMPLES = 256
+_LAG_REFRESH = 32
 
 
 class EpochBook:
     """Groups ranges per (node, epoch) and decides when an epoch is ready to solve.
 
     Anchors are expected to publish their measurements in time order (they do); a range for
-    an epoch that was already solved is counted as *late* and dropped.
+    an epoch that was already solved is counted as *late* (per anchor in ``late_by_anchor``)
+    and dropped. ``watermark_ns`` and ``allowance_ns`` are the release rule in force (module
+    docstring); ``lag_ns(anchor)`` is an anchor's observed lag behind the watermark.
     """
 
     def __init__(self, config: AlignmentConfig) -> None:
@@ -445,15 +478,25 @@ class EpochBook:
         self.latest_t_ns: dict[str, int] = {}
         self.solved_upto: dict[str, int] = {}  # node -> last solved epoch
         self.late = 0
+        self.late_by_anchor: collections.Counter[str] = collections.Counter()
         self.replaced = 0
         self.strays = 0
+        self.max_lag_ns = (10 * int(config.deadline_ns) if config.max_lag_ns is None
+                           else int(config.max_lag_ns))
+        self.allowance_ns = int(config.deadline_ns)
+        self.watermark_ns: int | None = None
+        self.last_rx_wall_ns: int | None = None  # newest ingestion wall time of a range
+        self._lags: dict[str, collections.deque[int]] = {}
+        self._lag_new = 0
 
     def add(self, anchor_id: str, node_id: str, entry: RangeEntry) -> bool:
         """Add a range; False (and ``late`` += 1) if its epoch was already solved."""
         e = int(entry.t_ns // self.config.epoch_period_ns)
         self.note_anchor_time(anchor_id, entry.t_ns)
+        self._note_rx(entry.rx_wall_ns)
         if e <= self.solved_upto.get(node_id, _NEVER):
             self.late += 1
+            self.late_by_anchor[anchor_id] += 1
             return False
         key = (node_id, e)
         pe = self.pending.get(key)
@@ -482,40 +525,104 @@ class EpochBook:
             elif anchor_id in pe.ranges:
                 self.replaced += 1
             pe.ranges[anchor_id] = entry
-        self.late += late
+        if entries:
+            self._note_rx(entries[-1][1].rx_wall_ns)
+        if late:
+            self.late += late
+            self.late_by_anchor[anchor_id] += late
         return late
 
+    def _note_rx(self, rx_wall_ns: int) -> None:
+        if self.last_rx_wall_ns is None or rx_wall_ns > self.last_rx_wall_ns:
+            self.last_rx_wall_ns = int(rx_wall_ns)
+
     def note_anchor_time(self, anchor_id: str, t_ns: int) -> None:
-        """Advance an anchor's latest time (e.g. from its state reports)."""
+        """Advance an anchor's latest time (e.g. from its state reports); a new time is also
+        a lag sample: how far the watermark was ahead of it when it arrived."""
         prev = self.latest_t_ns.get(anchor_id)
         if prev is None or t_ns > prev:
-            self.latest_t_ns[anchor_id] = int(t_ns)
+            t = int(t_ns)
+            wm = self.watermark_ns
+            if wm is not None:
+                lags = self._lags.get(anchor_id)
+                if lags is None:
+                    lags = self._lags[anchor_id] = collections.deque(maxlen=_LAG_SAMPLES)
+                lags.append(max(wm - t, 0))
+                self._lag_new += 1
+            self.latest_t_ns[anchor_id] = t
+            if wm is None or t > wm:
+                self._update_watermark()
+
+    def _update_watermark(self) -> None:
+        """The ``min_reports``-th newest anchor time (None with fewer anchors: then only the
+        wall fallbacks release epochs)."""
+        ts = sorted(self.latest_t_ns.values(), reverse=True)
+        k = max(self.config.min_reports, 1)
+        self.watermark_ns = ts[k - 1] if len(ts) >= k else None
+
+    def lag_ns(self, anchor_id: str) -> int | None:
+        """The largest of an anchor's recent lags behind the watermark [ns] (None: no
+        samples yet)."""
+        lags = self._lags.get(anchor_id)
+        return max(lags) if lags else None
+
+    def _allowance(self) -> int:
+        """The allowance in force: the largest recent lag of the anchors that keep up (+25 %),
+        bounded to ``[deadline_ns, max_lag_ns]`` (recomputed every few lag samples)."""
+        if self._lag_new >= _LAG_REFRESH:
+            self._lag_new = 0
+            keep = [q for a in self._lags if (q := self.lag_ns(a)) is not None
+                    and q <= self.max_lag_ns]
+            # a quarter more than seen: the next delay is often a little longer
+            self.allowance_ns = min(max([int(self.config.deadline_ns), *keep]) * 5 // 4,
+                                    self.max_lag_ns)
+        return self.allowance_ns
 
     def forget_anchor(self, anchor_id: str) -> None:
         self.latest_t_ns.pop(anchor_id, None)
+        self._lags.pop(anchor_id, None)
+        self._update_watermark()
 
     def set_anchor_time(self, anchor_id: str, t_ns: int) -> None:
         """Overwrite an anchor's latest time (its previous one was found implausible)."""
         self.latest_t_ns[anchor_id] = int(t_ns)
+        self._update_watermark()
 
     def consensus_t_ns(self, live_anchors: set[str] | frozenset[str]) -> int | None:
         """Lower median of the live anchors' latest times (None with fewer than 3)."""
         ts = sorted(self.latest_t_ns[a] for a in live_anchors if a in self.latest_t_ns)
         return ts[(len(ts) - 1) // 2] if len(ts) >= 3 else None
 
+    def _timed_out(self, now_wall_ns: int):
+        """``f(pe) -> bool``: the epoch is released without waiting for missing anchors
+        (measurement watermark past its end + allowance, or a wall-clock fallback)."""
+        cfg = self.config
+        if cfg.release == "wall":
+            return lambda pe: now_wall_ns - pe.first_rx_wall_ns >= cfg.deadline_ns
+        quiet = (self.last_rx_wall_ns is not None
+                 and now_wall_ns - self.last_rx_wall_ns >= self.max_lag_ns)
+        if quiet:
+            return lambda pe: True
+        wm, hard = self.watermark_ns, self.max_lag_ns
+        # epochs e with (e + 1) T + tolerance + allowance <= watermark
+        last = (_NEVER if wm is None else
+                (wm - cfg.clock_tolerance_ns - self._allowance()) // cfg.epoch_period_ns - 1)
+        return lambda pe: pe.epoch <= last or now_wall_ns - pe.first_rx_wall_ns >= hard
+
     def ready(self, live_anchors: set[str] | frozenset[str], now_wall_ns: int) -> list[PendingEpoch]:
         """Remove and return the epochs that are ready, oldest first.
 
         Ready: every live anchor reported for it or its latest time passed the epoch end by
-        the clock tolerance (and at least ``min_reports`` reports); or the wall deadline since
-        the first range passed. Epochs of a
-        node are released in order (a later epoch never overtakes an earlier pending one).
+        the clock tolerance (and at least ``min_reports`` reports); or it timed out (module
+        docstring: watermark + allowance, or a wall fallback). Epochs of a node are released
+        in order (a later epoch never overtakes an earlier pending one).
         """
         cfg = self.config
         out: list[PendingEpoch] = []
         blocked: set[str] = set()
         if not self.pending:
             return out
+        timed_out = self._timed_out(now_wall_ns)
         t_c = self.consensus_t_ns(live_anchors)
         horizon = None if t_c is None else (t_c + cfg.max_future_ns) // cfg.epoch_period_ns
         # per epoch index: the live anchors whose latest time has not passed its end (an
@@ -526,7 +633,7 @@ class EpochBook:
             pe = self.pending[key]
             if pe.node_id in blocked:
                 continue
-            done = now_wall_ns - pe.first_rx_wall_ns >= cfg.deadline_ns
+            done = timed_out(pe)
             if not done and len(pe.ranges) >= cfg.min_reports:
                 waiting = waiting_for.get(pe.epoch)
                 if waiting is None:
@@ -549,7 +656,11 @@ class EpochBook:
         return out
 
     def next_deadline_wall_ns(self) -> int | None:
-        """Earliest wall time at which a pending epoch times out (for the main loop wait)."""
+        """Earliest wall time at which a pending epoch times out by a wall-clock rule (for
+        the main loop wait)."""
         if not self.pending:
             return None
-        return min(pe.first_rx_wall_ns for pe in self.pending.values()) + self.config.deadline_ns
+        first = min(pe.first_rx_wall_ns for pe in self.pending.values())
+        if self.config.release == "wall":
+            return first + self.config.deadline_ns
+        return first + self.max_lag_ns

@@ -171,7 +171,7 @@ def test_epoch_ready_when_all_live_anchors_reported():
 
 def test_epoch_ready_when_missing_anchor_moved_on_or_deadline():
     cfg = AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=5, deadline_ns=1000,
-                          min_reports=1)
+                          min_reports=1, max_lag_ns=1000)  # the wall fallback at 1000
     book = EpochBook(cfg)
     live = {"a", "b"}
     book.add("a", "n1", _entry(110, rx=0))
@@ -191,7 +191,8 @@ def test_epoch_ready_when_missing_anchor_moved_on_or_deadline():
 
 def test_first_anchor_alone_does_not_complete_an_epoch_at_start_up():
     """Before the other anchors are known, too few reports must not release the epoch early."""
-    book = EpochBook(AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=500))
+    book = EpochBook(AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=500,
+                                     max_lag_ns=500))
     book.add("a", "n1", _entry(110, rx=0))
     book.add("b", "n1", _entry(120, rx=0))
     # a and b are the anchors known so far (all "live"), but 2 reports < min_reports = 3
@@ -205,7 +206,8 @@ def test_first_anchor_alone_does_not_complete_an_epoch_at_start_up():
 
 
 def test_epochs_of_a_node_are_released_in_order_and_late_ranges_dropped():
-    book = EpochBook(AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=10))
+    book = EpochBook(AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=10,
+                                     max_lag_ns=10))
     live = {"a", "b", "hung"}
     book.add("a", "n1", _entry(110, rx=5))
     book.add("a", "n1", _entry(10, rx=0))
@@ -216,8 +218,63 @@ def test_epochs_of_a_node_are_released_in_order_and_late_ranges_dropped():
     assert book.late == 1
 
 
+def test_watermark_releases_without_a_hung_anchor_and_without_wall_time():
+    """Measurement time only: three anchors move on, the hung fourth is not waited for once
+    the watermark (3rd newest time) passed the epoch end by the allowance; the wall clock
+    never advances."""
+    cfg = AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=50)
+    book = EpochBook(cfg)
+    live = {"a", "b", "c", "hung"}
+    book.note_anchor_time("hung", 5)
+    for a in ("a", "b", "c"):
+        book.add(a, "n1", _entry(110))
+    assert book.ready(live, 0) == []  # hung is live and has not passed epoch 1
+    for a in ("a", "b", "c"):
+        book.note_anchor_time(a, 249)
+    assert book.watermark_ns == 249 and book.ready(live, 0) == []  # 200 + 50 > 249
+    book.note_anchor_time("c", 250)
+    assert book.ready(live, 0) == []  # the 3rd newest is still 249
+    book.note_anchor_time("b", 250)
+    assert book.watermark_ns == 249 and book.ready(live, 0) == []
+    book.note_anchor_time("a", 250)
+    assert [pe.epoch for pe in book.ready(live, 0)] == [1]
+    # the hung anchor's backlog is late, counted as its own
+    assert book.add("hung", "n1", _entry(150)) is False
+    assert dict(book.late_by_anchor) == {"hung": 1}
+    # the former rule would still wait (wall 0 < deadline)
+    old = EpochBook(AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=50,
+                                    release="wall"))
+    old.note_anchor_time("hung", 5)
+    for a in ("a", "b", "c"):
+        old.add(a, "n1", _entry(110))
+        old.note_anchor_time(a, 250)
+    assert old.ready(live, 0) == [] and [pe.epoch for pe in old.ready(live, 50)] == [1]
+
+
+def test_allowance_follows_observed_lags_within_bounds_and_ignores_a_stalled_anchor():
+    cfg = AlignmentConfig(epoch_period_ns=100, clock_tolerance_ns=0, deadline_ns=50,
+                          max_lag_ns=1000)
+    book = EpochBook(cfg)
+    for k in range(1, 80):  # a, b, c on time; d always 200 behind; e replays a 5000 backlog
+        for a in ("a", "b", "c"):
+            book.note_anchor_time(a, 100 * k)
+        book.note_anchor_time("d", 100 * k - 200)
+        book.note_anchor_time("e", 100 * k - 5000)
+    assert book.lag_ns("d") == 200 and book.lag_ns("e") > 1000
+    assert book._allowance() == 250  # d's lag + 25 %; e (beyond max_lag_ns) not waited for
+    for k in range(80, 200):  # d falls 900 behind
+        for a in ("a", "b", "c"):
+            book.note_anchor_time(a, 100 * k)
+        book.note_anchor_time("d", 100 * k - 900)
+    assert book._allowance() == 1000  # 900 + 25 %, bounded
+
+
 def test_config_validation_names_field():
     with pytest.raises(ValueError, match="epoch_period_ns"):
         AlignmentConfig(epoch_period_ns=0)
     with pytest.raises(ValueError, match="node_speed_sigma_m_s"):
         AlignmentConfig(node_speed_sigma_m_s=-1)
+    with pytest.raises(ValueError, match="max_lag_ns"):
+        AlignmentConfig(deadline_ns=100, max_lag_ns=10)
+    with pytest.raises(ValueError, match="release"):
+        AlignmentConfig(release="sometimes")
