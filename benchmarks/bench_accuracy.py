@@ -141,8 +141,16 @@ def variants() -> dict[str, dict[str, Any]]:
 
 
 # ----------------------------------------------------------------------------- scoring
+def recording_parts(path: str | Path) -> list[Path]:
+    """``path`` and the files ``emulate`` continued it in when the recorder was restarted
+    (``<stem>_0001.mcap``, ...), in order."""
+    p = Path(path)
+    return [p, *sorted(p.parent.glob(f"{p.stem}_[0-9][0-9][0-9][0-9]{p.suffix}"))]
+
+
 def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, Any]:
-    """Every node-epoch of a recording after ``skip_s`` against its recorded truth.
+    """Every node-epoch of a recording (all its parts) after ``skip_s`` against its recorded
+    truth.
 
     The node-epochs are the recorded truth samples of the nodes (one per node and fusion
     epoch of the run); the estimate of a node-epoch is the recorded live estimate of that node
@@ -150,17 +158,21 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, An
     """
     dec_est, dec_truth = M.estimate_decoder(), M.decoder(M.GroundTruth)
     dec_rc = M.decoder(M.RunControl)
-    truth, est, t0, period = [], {}, None, None
-    for batch in McapScanner(path).iter_batches():
-        for m in batch:
-            kind = parse_topic(m.topic)[0]
-            if kind == "truth_node":
-                truth.append(dec_truth(m.data))
-            elif kind == "estimate":
-                e = dec_est(m.data)
-                est[(e.node_id, e.epoch)] = e
-            elif kind == "run_control":
-                t0 = dec_rc(m.data).t0_ns
+    truth_d, est, t0, period = {}, {}, None, None
+    parts = recording_parts(path)
+    for part in parts:
+        for batch in McapScanner(part).iter_batches():
+            for m in batch:
+                kind = parse_topic(m.topic)[0]
+                if kind == "truth_node":
+                    g = dec_truth(m.data)
+                    truth_d[(g.id, g.t_ns)] = g
+                elif kind == "estimate":
+                    e = dec_est(m.data)
+                    est[(e.node_id, e.epoch)] = e
+                elif kind == "run_control" and t0 is None:
+                    t0 = dec_rc(m.data).t0_ns
+    truth = list(truth_d.values())
     if t0 is None or not truth:
         raise RuntimeError(f"{path}: no run control or no truth recorded")
     ts = np.unique([g.t_ns for g in truth])
@@ -194,7 +206,8 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, An
             "coverage95": s.ellipsoid_coverage,
             "latency_ms": percentiles(lat, (50, 99), max_mean=False),
             "status": dict(sorted(status.items())),
-            "nodes": len({g.id for g in truth}), "method": _method(est.values())}
+            "nodes": len({g.id for g in truth}), "method": _method(est.values()),
+            "recording_parts": len(parts)}
 
 
 def _method(ests: Iterable[Any]) -> str:
@@ -253,7 +266,9 @@ def table(results: dict[str, dict[str, Any]]) -> str:
             f"{_f(r['floor'], 100, '5.1f')}% {_f(r['p50_3d'], 1, '7.2f')} "
             f"{_f(r['p90_3d'], 1, '7.2f')} {_f(r['p50_z'])} {_f(r['p90_z'])} "
             f"{_f(r['coverage95'], 100, '5.1f')}% {_f(lat['p50'], 1, '8.1f')} "
-            f"{_f(lat['p99'], 1, '8.1f')}")
+            f"{_f(lat['p99'], 1, '8.1f')}"
+            + (f"  ({r['recording_parts']} recording files: the recorder was restarted)"
+               if r.get("recording_parts", 1) > 1 else ""))
     return "\n".join(lines)
 
 
