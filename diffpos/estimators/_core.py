@@ -268,171 +268,331 @@ def levenberg_marquardt(
         ``x_m (N, 3)`` [m] with ``y >= 0``, ``cost (N,)``, ``iterations (N,)``,
         ``converged (N,)``.
     """
-    n = x0_m.shape[0]
     x0 = np.asarray(x0_m, dtype=np.float64)
-    x_out = np.array(x0, copy=True)
-    x_out[:, 1] = np.abs(x0[:, 1])
-    v_out = np.array(x0, copy=True)  # (x, u, z)
-    v_out[:, 1] = x0[:, 1] * x0[:, 1]
-    p, jac = model.evaluate_u(anchors_m, v_out)
-    res = ranges_m - p
-    cost_out = cost_of(res, sw, loss, loss_scale)
-    iters_out = np.zeros(n, dtype=np.int_)
-    conv_out = np.zeros(n, dtype=bool)
-    # cost at the level of floating-point rounding of the ranges: an exact fit
-    eps_r = 64.0 * np.finfo(float).eps * np.abs(ranges_m) * sw
-    floor_all = 0.5 * np.einsum("nm,nm->n", eps_r, eps_r)
-    tiny = np.finfo(float).tiny
-    diag = np.arange(3)
-
-    # Working set: the problems still iterating. It is compacted (rows gathered) only when
-    # fewer than half of its rows are live, so small batches pay no gather per iteration.
-    # Each row is held both as v = (x, u, z) (the iteration) and as (x, y, z) (step tests).
-    ids = np.flatnonzero(np.isfinite(cost_out))
-    if ids.size < n:
-        a_w, r_w, sw_w, v_w, x_w = anchors_m[ids], ranges_m[ids], sw[ids], v_out[ids], x_out[ids]
-        res_w, jac_w, cost_w, floor_w = res[ids], jac[ids], cost_out[ids], floor_all[ids]
-        mdl_w = model.take(ids)
-    else:
-        a_w, r_w, sw_w, v_w, x_w = anchors_m, ranges_m, sw, v_out.copy(), x_out.copy()
-        res_w, jac_w, cost_w, floor_w = res, jac, cost_out.copy(), floor_all
-        mdl_w = model
-    lam_w = np.full(ids.size, lambda0)
-    it_w = np.zeros(ids.size, dtype=np.int_)
-    live = np.ones(ids.size, dtype=bool)
-    wsum_w = np.maximum(np.einsum("nm,nm->n", sw_w, sw_w), tiny)  # sum of weights (linear)
-    at_wall = bool(np.any(v_w[:, 1] <= 0.0))  # some row may be on the wall plane u = 0
+    out = _LMOutput.at_start(x0, anchors_m, ranges_m, sw, model, loss, loss_scale)
+    w = _WorkingSet.of_finite(out, anchors_m, ranges_m, sw, model, lambda0)
     # non-finite rows (e.g. a start on the edge line itself, where dp/du is infinite) are
     # handled explicitly (their steps are never accepted): no floating-point warnings
     with np.errstate(invalid="ignore"):
         for _ in range(max_iter):
-            if ids.size == 0:
+            if w.ids.size == 0:
                 break
-            if loss == "linear":
-                ws = sw_w
-            else:
-                _, drho = robust_rho((res_w * sw_w / loss_scale) ** 2, loss)
-                ws = sw_w * np.sqrt(drho)
-            jw = jac_w * ws[..., None]
-            rw = res_w * ws
-            h = np.matmul(jw.transpose(0, 2, 1), jw)
-            g = np.matmul(rw[:, None, :], jw)[:, 0, :]
-            # 1 / (4 ipl_eff^2) = H_uu / sum_j w_j, the weighted mean of 1 / (4 ipl_j^2) (see the
-            # update of u below); 0 when no weight (then u + du)
-            if loss != "linear":
-                wsum_w = np.maximum(np.einsum("nm,nm->n", ws, ws), tiny)
-            inv4 = h[:, 1, 1] / wsum_w
-            u_w = v_w[:, 1]
-            if at_wall:
-                # active bound: at u = 0 with the descent direction (+g) pointing to u < 0, u is
-                # held: its row and column become the identity and g_u zero (the reduced system)
-                act = (u_w <= 0.0) & (g[:, 1] < 0.0)
-                if act.any():
-                    free = (~act)[:, None]
-                    h[:, 1, :] *= free
-                    h[:, :, 1] *= free
-                    h[:, 1, 1] += act
-                    g[:, 1:2] *= free
-            dh = h[:, diag, diag]
-            dh = np.maximum(dh, 1e-12 * dh.max(axis=-1, keepdims=True) + tiny)
-            # one stacked solve: the damped LM step and the undamped Gauss-Newton step, whose
-            # Newton decrement g^T H^-1 g (twice the decrease a full GN step would give) tests
-            # for a stationary point
-            k = ids.size
-            a2 = np.concatenate([h, h])
-            a2[:k, diag, diag] += lam_w[:, None] * dh
-            sol = solve3(a2, np.concatenate([g, g]))
-            dv = sol[:k]
-            dec = np.einsum("ni,ni->n", g, sol[k:])
-            stationary = np.isfinite(dec) & (dec <= 2.0 * gtol * cost_w + 2.0 * floor_w)
-            bad = ~np.isfinite(dv).all(axis=-1)
-            if bad.any():
-                dv[bad] = 0.0
-            # Update of u. The linearised model changes p_j by du / (2 ipl_j), but the path
-            # sqrt(ipl_j^2 + du) is concave in u, so u + du overshoots towards the wall when the
-            # step is large. The update is made linear in an effective in-room path length
-            # s = ipl_eff instead: s + du / (2 s), i.e. u + du + du^2 / (4 s^2). To first order
-            # this is the u step (local convergence is that of the u iteration); it is the y
-            # update y + du / (2 y) when ipl_eff = y and the plain u update when ipl_eff >> y.
-            du = dv[:, 1]
-            vt = v_w + dv
-            fac = 1.0 + inv4 * du  # (u_t - u) / du: <= 0.5 past the vertex of the parabola
-            np.add(u_w, du * fac, out=vt[:, 1])
-            # s reaches the wall (u = 0) at s = sqrt(ipl_eff^2 - u), i.e. at a linear step du_b in
-            # [-2u, -u]; a step beyond it (the parabola negative, or past its vertex) goes to u = 0
-            # exactly (du = du_b) and the damped (x, z) part of the same system is re-solved with
-            # that du fixed
-            if np.fmin.reduce(vt[:, 1]) < 0.0 or np.fmin.reduce(fac) <= 0.5:  # NaN rows ignored
-                ci = np.flatnonzero((vt[:, 1] < 0.0) | (fac <= 0.5))
-                uc = u_w[ci]
-                dub = -2.0 * uc / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * uc * inv4[ci], 0.0)))
-                hc = a2[ci]
-                gc = g[ci] - hc[:, :, 1] * dub[:, None]
-                hc[:, 1, :] = 0.0
-                hc[:, :, 1] = 0.0
-                hc[:, 1, 1] = 1.0
-                gc[:, 1] = 0.0
-                dvc = solve3(hc, gc)
-                okc = np.isfinite(dvc).all(axis=-1)
-                vt[ci[okc], 0] = v_w[ci[okc], 0] + dvc[okc, 0]
-                vt[ci[okc], 2] = v_w[ci[okc], 2] + dvc[okc, 2]
-                vt[ci, 1] = 0.0
-                at_wall = True
-            xt = vt.copy()
-            np.sqrt(vt[:, 1], out=xt[:, 1])
-            pt, jt = mdl_w.evaluate_u(a_w, vt)
-            rest = r_w - pt
-            costt = cost_of(rest, sw_w, loss, loss_scale)
-            c_old = cost_w
-            accept = (costt < c_old) & ~bad & live
-            step = xt - x_w  # in (x, y, z) [m]
-            step2 = np.einsum("ni,ni->n", step, step)
-            if accept.all():  # the common case: every step accepted, no selection needed
-                v_w, x_w, res_w, jac_w, cost_w = vt, xt, rest, jt, costt
-                lam_w = np.maximum(lam_w / 3.0, 1e-12)
-            else:
-                v_w = np.where(accept[:, None], vt, v_w)
-                x_w = np.where(accept[:, None], xt, x_w)
-                res_w = np.where(accept[:, None], rest, res_w)
-                jac_w = np.where(accept[:, None, None], jt, jac_w)
-                cost_w = np.where(accept, costt, c_old)
-                lam_w = np.where(accept, np.maximum(lam_w / 3.0, 1e-12), lam_w * 8.0)
-            it_w += live
-            xn2 = np.einsum("ni,ni->n", x_w, x_w)
-            small_step = accept & (step2 <= (xtol_m * (xtol_m + np.sqrt(xn2))) ** 2)
-            small_f = accept & (c_old - costt <= ftol * c_old)
-            zero = c_old <= floor_w
-            done_ok = live & (stationary | small_step | small_f | zero)
-            failed = live & ~done_ok & (lam_w > 1e12)
+            h, g, inv4 = _normal_equations(w, loss, loss_scale)
+            if w.at_wall:
+                _hold_active_bound(w.v[:, 1], h, g)
+            a2, dv, stationary, bad = _damped_and_gauss_newton_steps(w, h, g, gtol)
+            vt = _trial_point(w, dv, a2, g, inv4)
+            accept, step2, c_old, costt = _evaluate_and_accept(w, vt, bad, loss, loss_scale)
+            done_ok, failed = _convergence_tests(
+                w, accept, step2, c_old, costt, stationary, xtol_m, ftol
+            )
             finished = done_ok | failed
-            if finished.any():
-                f_idx = np.flatnonzero(finished)
-                gid = ids[f_idx]
-                x_out[gid] = x_w[f_idx]
-                cost_out[gid] = cost_w[f_idx]
-                iters_out[gid] = it_w[f_idx]
-                conv_out[gid] = done_ok[f_idx]
-                live &= ~finished
-                n_live = int(live.sum())
-                if n_live == 0:
-                    ids = ids[:0]
-                    break
-                if n_live < 0.5 * ids.size:
-                    keep = np.flatnonzero(live)
-                    ids = ids[keep]
-                    a_w, r_w, sw_w, v_w = a_w[keep], r_w[keep], sw_w[keep], v_w[keep]
-                    x_w, res_w, jac_w, cost_w = x_w[keep], res_w[keep], jac_w[keep], cost_w[keep]
-                    floor_w, lam_w, it_w = floor_w[keep], lam_w[keep], it_w[keep]
-                    wsum_w = wsum_w[keep]
-                    mdl_w = mdl_w.take(keep)
-                    live = np.ones(ids.size, dtype=bool)
-    if ids.size:  # iteration limit: write back the live rows, unconverged
-        l_idx = np.flatnonzero(live)
-        gid = ids[l_idx]
-        x_out[gid] = x_w[l_idx]
-        cost_out[gid] = cost_w[l_idx]
-        iters_out[gid] = it_w[l_idx]
+            if finished.any() and _retire(w, out, finished, done_ok):
+                break
+    if w.ids.size:  # iteration limit: write back the live rows, unconverged
+        out.write_back(w, np.flatnonzero(w.live))
     # rows never iterated (non-finite cost) keep their start as given
-    bad_rows = ~np.isfinite(cost_out)
-    x_out[bad_rows] = x0[bad_rows]
-    return LMResult(x_m=x_out, cost=cost_out, iterations=iters_out, converged=conv_out)
+    bad_rows = ~np.isfinite(out.cost)
+    out.x[bad_rows] = x0[bad_rows]
+    return LMResult(x_m=out.x, cost=out.cost, iterations=out.iterations, converged=out.converged)
+
+
+@dataclass
+class _LMOutput:
+    """Per-problem results of :func:`levenberg_marquardt`, filled as problems finish.
+
+    ``v`` (the start in ``(x, u, z)``), ``res``, ``jac`` and ``floor`` (the zero-cost level)
+    are the starting values the working set is built from.
+    """
+
+    x: FloatArray
+    cost: FloatArray
+    iterations: NDArray[np.int_]
+    converged: BoolArray
+    v: FloatArray
+    res: FloatArray
+    jac: FloatArray
+    floor: FloatArray
+
+    @classmethod
+    def at_start(
+        cls,
+        x0: FloatArray,
+        anchors_m: FloatArray,
+        ranges_m: FloatArray,
+        sw: FloatArray,
+        model: PathModel,
+        loss: str,
+        loss_scale: float,
+    ) -> _LMOutput:
+        """Every problem at its start: ``y = |y0|``, ``u = y0^2``, cost of the start."""
+        n = x0.shape[0]
+        x_out = np.array(x0, copy=True)
+        x_out[:, 1] = np.abs(x0[:, 1])
+        v_out = np.array(x0, copy=True)  # (x, u, z)
+        v_out[:, 1] = x0[:, 1] * x0[:, 1]
+        p, jac = model.evaluate_u(anchors_m, v_out)
+        res = ranges_m - p
+        # cost at the level of floating-point rounding of the ranges: an exact fit
+        eps_r = 64.0 * np.finfo(float).eps * np.abs(ranges_m) * sw
+        return cls(
+            x=x_out,
+            cost=cost_of(res, sw, loss, loss_scale),
+            iterations=np.zeros(n, dtype=np.int_),
+            converged=np.zeros(n, dtype=bool),
+            v=v_out,
+            res=res,
+            jac=jac,
+            floor=0.5 * np.einsum("nm,nm->n", eps_r, eps_r),
+        )
+
+    def write_back(self, w: _WorkingSet, rows: NDArray[np.int_]) -> None:
+        """Copy working rows ``rows`` to their problems (position, cost, iterations)."""
+        gid = w.ids[rows]
+        self.x[gid] = w.x[rows]
+        self.cost[gid] = w.cost[rows]
+        self.iterations[gid] = w.it[rows]
+
+
+@dataclass
+class _WorkingSet:
+    """The problems still iterating: batch rows ``ids`` and their per-row state.
+
+    Each row is held both as ``v = (x, u, z)`` (the iteration) and as ``x = (x, y, z)``
+    (step tests). It is compacted (rows gathered) only when fewer than half of its rows are
+    live, so small batches pay no gather per iteration.
+    """
+
+    ids: NDArray[np.int_]
+    a: FloatArray
+    r: FloatArray
+    sw: FloatArray
+    v: FloatArray
+    x: FloatArray
+    res: FloatArray
+    jac: FloatArray
+    cost: FloatArray
+    floor: FloatArray
+    mdl: PathModel
+    lam: FloatArray
+    it: NDArray[np.int_]
+    live: BoolArray
+    wsum: FloatArray  # sum of weights (linear loss; recomputed per iteration otherwise)
+    at_wall: bool  # some row may be on the wall plane u = 0
+
+    @classmethod
+    def of_finite(
+        cls,
+        out: _LMOutput,
+        anchors_m: FloatArray,
+        ranges_m: FloatArray,
+        sw: FloatArray,
+        model: PathModel,
+        lambda0: float,
+    ) -> _WorkingSet:
+        """The problems with a finite starting cost (all of them: no gather)."""
+        ids = np.flatnonzero(np.isfinite(out.cost))
+        if ids.size < out.cost.shape[0]:
+            a_w, r_w, sw_w, v_w, x_w = anchors_m[ids], ranges_m[ids], sw[ids], out.v[ids], out.x[ids]
+            res_w, jac_w, cost_w, floor_w = out.res[ids], out.jac[ids], out.cost[ids], out.floor[ids]
+            mdl_w = model.take(ids)
+        else:
+            a_w, r_w, sw_w, v_w, x_w = anchors_m, ranges_m, sw, out.v.copy(), out.x.copy()
+            res_w, jac_w, cost_w, floor_w = out.res, out.jac, out.cost.copy(), out.floor
+            mdl_w = model
+        tiny = np.finfo(float).tiny
+        return cls(
+            ids=ids, a=a_w, r=r_w, sw=sw_w, v=v_w, x=x_w, res=res_w, jac=jac_w, cost=cost_w,
+            floor=floor_w, mdl=mdl_w,
+            lam=np.full(ids.size, lambda0),
+            it=np.zeros(ids.size, dtype=np.int_),
+            live=np.ones(ids.size, dtype=bool),
+            wsum=np.maximum(np.einsum("nm,nm->n", sw_w, sw_w), tiny),
+            at_wall=bool(np.any(v_w[:, 1] <= 0.0)),
+        )
+
+    def compact(self, keep: NDArray[np.int_]) -> None:
+        """Keep only rows ``keep`` (all of them live)."""
+        self.ids = self.ids[keep]
+        self.a, self.r, self.sw, self.v = self.a[keep], self.r[keep], self.sw[keep], self.v[keep]
+        self.x, self.res, self.jac = self.x[keep], self.res[keep], self.jac[keep]
+        self.cost, self.floor, self.lam = self.cost[keep], self.floor[keep], self.lam[keep]
+        self.it, self.wsum = self.it[keep], self.wsum[keep]
+        self.mdl = self.mdl.take(keep)
+        self.live = np.ones(self.ids.size, dtype=bool)
+
+
+def _normal_equations(
+    w: _WorkingSet, loss: str, loss_scale: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Weighted ``H = J^T W J`` ``(K, 3, 3)``, gradient ``g = J^T W r`` ``(K, 3)`` and
+    ``1 / (4 ipl_eff^2)`` ``(K,)`` (robust losses: IRLS weights ``rho'``)."""
+    if loss == "linear":
+        ws = w.sw
+    else:
+        _, drho = robust_rho((w.res * w.sw / loss_scale) ** 2, loss)
+        ws = w.sw * np.sqrt(drho)
+    jw = w.jac * ws[..., None]
+    rw = w.res * ws
+    h = np.matmul(jw.transpose(0, 2, 1), jw)
+    g = np.matmul(rw[:, None, :], jw)[:, 0, :]
+    # 1 / (4 ipl_eff^2) = H_uu / sum_j w_j, the weighted mean of 1 / (4 ipl_j^2) (see the
+    # update of u in _trial_point); 0 when no weight (then u + du)
+    if loss != "linear":
+        w.wsum = np.maximum(np.einsum("nm,nm->n", ws, ws), np.finfo(float).tiny)
+    return h, g, h[:, 1, 1] / w.wsum
+
+
+def _hold_active_bound(u_w: FloatArray, h: FloatArray, g: FloatArray) -> None:
+    """Active bound, in place: at ``u = 0`` with the descent direction (+g) pointing to
+    ``u < 0``, ``u`` is held: its row and column of ``h`` become the identity and ``g_u`` zero
+    (the reduced ``(x, z)`` system)."""
+    act = (u_w <= 0.0) & (g[:, 1] < 0.0)
+    if act.any():
+        free = (~act)[:, None]
+        h[:, 1, :] *= free
+        h[:, :, 1] *= free
+        h[:, 1, 1] += act
+        g[:, 1:2] *= free
+
+
+def _damped_and_gauss_newton_steps(
+    w: _WorkingSet, h: FloatArray, g: FloatArray, gtol: float
+) -> tuple[FloatArray, FloatArray, BoolArray, BoolArray]:
+    """One stacked solve: the damped LM step and the undamped Gauss-Newton step.
+
+    The Gauss-Newton step's Newton decrement ``g^T H^-1 g`` (twice the decrease a full GN step
+    would give) tests for a stationary point. Returns the damped matrices ``a2[:K]`` (with the
+    undamped ones below), the LM step ``dv`` (0 where non-finite), ``stationary`` and ``bad``
+    (non-finite step).
+    """
+    diag = np.arange(3)
+    dh = h[:, diag, diag]
+    dh = np.maximum(dh, 1e-12 * dh.max(axis=-1, keepdims=True) + np.finfo(float).tiny)
+    k = w.ids.size
+    a2 = np.concatenate([h, h])
+    a2[:k, diag, diag] += w.lam[:, None] * dh
+    sol = solve3(a2, np.concatenate([g, g]))
+    dv = sol[:k]
+    dec = np.einsum("ni,ni->n", g, sol[k:])
+    stationary = np.isfinite(dec) & (dec <= 2.0 * gtol * w.cost + 2.0 * w.floor)
+    bad = ~np.isfinite(dv).all(axis=-1)
+    if bad.any():
+        dv[bad] = 0.0
+    return a2, dv, stationary, bad
+
+
+def _trial_point(
+    w: _WorkingSet, dv: FloatArray, a2: FloatArray, g: FloatArray, inv4: FloatArray
+) -> FloatArray:
+    """The trial point ``v + dv`` in ``(x, u, z)``, with ``u`` updated along the path length.
+
+    The linearised model changes ``p_j`` by ``du / (2 ipl_j)``, but the path
+    ``sqrt(ipl_j^2 + du)`` is concave in ``u``, so ``u + du`` overshoots towards the wall when
+    the step is large. The update is made linear in an effective in-room path length
+    ``s = ipl_eff`` instead: ``s + du / (2 s)``, i.e. ``u + du + du^2 / (4 s^2)``. To first
+    order this is the ``u`` step (local convergence is that of the ``u`` iteration); it is the
+    ``y`` update ``y + du / (2 y)`` when ``ipl_eff = y`` and the plain ``u`` update when
+    ``ipl_eff >> y``. Steps that would cross the wall go to it (:func:`_clamp_to_wall`).
+    """
+    u_w = w.v[:, 1]
+    du = dv[:, 1]
+    vt = w.v + dv
+    fac = 1.0 + inv4 * du  # (u_t - u) / du: <= 0.5 past the vertex of the parabola
+    np.add(u_w, du * fac, out=vt[:, 1])
+    if np.fmin.reduce(vt[:, 1]) < 0.0 or np.fmin.reduce(fac) <= 0.5:  # NaN rows ignored
+        _clamp_to_wall(w, vt, fac, a2, g, inv4)
+    return vt
+
+
+def _clamp_to_wall(
+    w: _WorkingSet, vt: FloatArray, fac: FloatArray, a2: FloatArray, g: FloatArray, inv4: FloatArray
+) -> None:
+    """Steps past the wall, in place: ``s`` reaches the wall (``u = 0``) at
+    ``s = sqrt(ipl_eff^2 - u)``, i.e. at a linear step ``du_b`` in ``[-2u, -u]``; a step beyond
+    it (the parabola negative, or past its vertex) goes to ``u = 0`` exactly (``du = du_b``)
+    and the damped ``(x, z)`` part of the same system is re-solved with that ``du`` fixed."""
+    v_w = w.v
+    ci = np.flatnonzero((vt[:, 1] < 0.0) | (fac <= 0.5))
+    uc = v_w[ci, 1]
+    dub = -2.0 * uc / (1.0 + np.sqrt(np.maximum(1.0 - 4.0 * uc * inv4[ci], 0.0)))
+    hc = a2[ci]
+    gc = g[ci] - hc[:, :, 1] * dub[:, None]
+    hc[:, 1, :] = 0.0
+    hc[:, :, 1] = 0.0
+    hc[:, 1, 1] = 1.0
+    gc[:, 1] = 0.0
+    dvc = solve3(hc, gc)
+    okc = np.isfinite(dvc).all(axis=-1)
+    vt[ci[okc], 0] = v_w[ci[okc], 0] + dvc[okc, 0]
+    vt[ci[okc], 2] = v_w[ci[okc], 2] + dvc[okc, 2]
+    vt[ci, 1] = 0.0
+    w.at_wall = True
+
+
+def _evaluate_and_accept(
+    w: _WorkingSet, vt: FloatArray, bad: BoolArray, loss: str, loss_scale: float
+) -> tuple[BoolArray, FloatArray, FloatArray, FloatArray]:
+    """Evaluate the trial points, move the rows whose cost falls and adapt the damping
+    (``lambda / 3`` on success, ``x 8`` on failure); count the iteration.
+
+    Returns ``accept``, the squared step ``|dx|^2`` in ``(x, y, z)`` [m^2], the old and the
+    trial cost.
+    """
+    xt = vt.copy()
+    np.sqrt(vt[:, 1], out=xt[:, 1])
+    pt, jt = w.mdl.evaluate_u(w.a, vt)
+    rest = w.r - pt
+    costt = cost_of(rest, w.sw, loss, loss_scale)
+    c_old = w.cost
+    accept = (costt < c_old) & ~bad & w.live
+    step = xt - w.x  # in (x, y, z) [m]
+    step2 = np.einsum("ni,ni->n", step, step)
+    if accept.all():  # the common case: every step accepted, no selection needed
+        w.v, w.x, w.res, w.jac, w.cost = vt, xt, rest, jt, costt
+        w.lam = np.maximum(w.lam / 3.0, 1e-12)
+    else:
+        w.v = np.where(accept[:, None], vt, w.v)
+        w.x = np.where(accept[:, None], xt, w.x)
+        w.res = np.where(accept[:, None], rest, w.res)
+        w.jac = np.where(accept[:, None, None], jt, w.jac)
+        w.cost = np.where(accept, costt, c_old)
+        w.lam = np.where(accept, np.maximum(w.lam / 3.0, 1e-12), w.lam * 8.0)
+    w.it += w.live
+    return accept, step2, c_old, costt
+
+
+def _convergence_tests(
+    w: _WorkingSet,
+    accept: BoolArray,
+    step2: FloatArray,
+    c_old: FloatArray,
+    costt: FloatArray,
+    stationary: BoolArray,
+    xtol_m: float,
+    ftol: float,
+) -> tuple[BoolArray, BoolArray]:
+    """``(done_ok, failed)`` per working row: converged (stationary, small step, small cost
+    decrease or zero cost), or given up (damping above ``1e12``)."""
+    xn2 = np.einsum("ni,ni->n", w.x, w.x)
+    small_step = accept & (step2 <= (xtol_m * (xtol_m + np.sqrt(xn2))) ** 2)
+    small_f = accept & (c_old - costt <= ftol * c_old)
+    zero = c_old <= w.floor
+    done_ok = w.live & (stationary | small_step | small_f | zero)
+    failed = w.live & ~done_ok & (w.lam > 1e12)
+    return done_ok, failed
+
+
+def _retire(w: _WorkingSet, out: _LMOutput, finished: BoolArray, done_ok: BoolArray) -> bool:
+    """Write the finished rows back and drop them; True when no row is left."""
+    f_idx = np.flatnonzero(finished)
+    out.write_back(w, f_idx)
+    out.converged[w.ids[f_idx]] = done_ok[f_idx]
+    w.live &= ~finished
+    n_live = int(w.live.sum())
+    if n_live == 0:
+        w.ids = w.ids[:0]
+        return True
+    if n_live < 0.5 * w.ids.size:
+        w.compact(np.flatnonzero(w.live))
+    return False
