@@ -18,7 +18,8 @@ iterates plain Gauss-Newton from one start and notes that it falls into local mi
   (Case-2); with 5, 6 or 8 anchors none. ``x0_m`` replaces all of this by one given start.
 * **Screening.** By default every start gets 4 iterations and only the 3 best go on; fixes
   whose residual statistic is then suspicious (above the 90 % chi-square quantile, or any
-  fix without ``sigmas_m``) are re-solved from all starts (:func:`multistart_fit`). This
+  fix without ``sigmas_m``) are re-solved from all starts
+  (:func:`diffpos.estimators._dnls_fit.multistart_fit`). This
   keeps the single-fix latency low; on 20,000 noisy random 4-anchor fixes it ended with a
   higher cost than running every start in 0.07 % of fixes (``keep_starts=None`` disables
   it).
@@ -41,9 +42,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..bounds import bounds_from_fim, fisher_information
-from ._core import LOSSES, PathModel, cost_of, levenberg_marquardt
-from .gating import GateState, GatingConfig, chi2_threshold, run_gating, wall_pregate
+from ._core import LOSSES, PathModel
+from ._dnls_fit import FitSettings, solve_chunk
+from ._dnls_fit import _lls_starts as _lls_starts  # re-exported (benchmarks)
+from ._dnls_fit import grid_starts as grid_starts  # re-exported (ippa, benchmarks)
+from .gating import GatingConfig
 from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
 
 __all__ = ["DEFAULT_Z_STARTS_M", "dnls"]
@@ -199,10 +202,23 @@ def dnls(
         x0 = None
         starts = _check_z_starts(z_starts_m)
 
+    cfg = FitSettings(
+        z_starts=starts,
+        y_start=y_start_m,
+        lls_start=lls_start,
+        gating=gating,
+        loss=loss,
+        loss_scale=loss_scale,
+        max_iter=max_iter,
+        xtol=xtol_m,
+        sigmas_given=batch_in.sigmas_given,
+        keep_starts=keep_starts,
+        screen_iter=screen_iter,
+    )
     out = _alloc(bsz, m)
     for lo in range(0, bsz, max(int(chunk_size), 1)):
         sl = slice(lo, min(lo + max(int(chunk_size), 1), bsz))
-        _solve_chunk(
+        solve_chunk(
             out,
             sl,
             batch_in.anchors_m[sl],
@@ -210,18 +226,8 @@ def dnls(
             batch_in.sigmas_m[sl],
             batch_in.mask[sl],
             model.take(np.arange(sl.start, sl.stop)),
-            x0=None if x0 is None else x0[sl],
-            z_starts=starts,
-            y_start=y_start_m,
-            gating=gating,
-            loss=loss,
-            loss_scale=loss_scale,
-            max_iter=max_iter,
-            xtol=xtol_m,
-            sigmas_given=batch_in.sigmas_given,
-            keep_starts=keep_starts,
-            screen_iter=screen_iter,
-            lls_start=lls_start,
+            None if x0 is None else x0[sl],
+            cfg,
         )
     invalid = batch_in.input_error != 0
     out["status"][invalid] = FixStatus.INVALID_INPUT
@@ -269,276 +275,3 @@ def _alloc(b: int, m: int) -> dict[str, np.ndarray]:
         "dof": np.zeros(b, dtype=np.int_),
         "cost": np.full(b, np.nan),
     }
-
-
-def _lls_starts(
-    a: FloatArray, r: FloatArray, mask: NDArray[np.bool_], grid: FloatArray
-) -> FloatArray:
-    """One extra start per fix from LLS; falls back to the middle grid start."""
-    from .lls import lls_positions
-
-    x, _, ok = lls_positions(a, r, mask)
-    fallback = grid[:, grid.shape[1] // 2]
-    x = np.where(ok[:, None], x, fallback)
-    x[:, 1] = np.maximum(np.abs(x[:, 1]), 0.5)
-    return x[:, None, :]
-
-
-def grid_starts(
-    anchors_m: FloatArray, mask: NDArray[np.bool_], z_starts: FloatArray, y_start: float
-) -> FloatArray:
-    """Multi-start points ``(B, S, 3)``: x = mean anchor x, y = ``y_start``, z from the grid."""
-    cnt = np.maximum(mask.sum(axis=-1), 1)
-    xm = np.where(mask, anchors_m[..., 0], 0.0).sum(axis=-1) / cnt
-    b, s = xm.shape[0], z_starts.size
-    st = np.empty((b, s, 3))
-    st[..., 0] = xm[:, None]
-    st[..., 1] = y_start
-    st[..., 2] = z_starts[None, :]
-    return st
-
-
-def _solve_chunk(
-    out: dict[str, np.ndarray],
-    sl: slice,
-    anchors: FloatArray,
-    ranges: FloatArray,
-    sigmas: FloatArray,
-    mask: NDArray[np.bool_],
-    model: PathModel,
-    *,
-    x0: FloatArray | None,
-    z_starts: FloatArray | None,
-    y_start: float,
-    gating: GatingConfig | None,
-    loss: str,
-    loss_scale: float,
-    max_iter: int,
-    xtol: float,
-    sigmas_given: bool,
-    keep_starts: int | None,
-    screen_iter: int,
-    lls_start: bool,
-) -> None:
-    m = ranges.shape[1]
-    reason0 = np.zeros((ranges.shape[0], m), dtype=np.int_)
-    if gating is not None:
-        wall = wall_pregate(anchors, ranges, sigmas, mask, gating, sigmas_given=sigmas_given)
-        if np.any(wall):
-            mask = mask & ~wall
-            reason0[wall] = ExclusionReason.PREGATE_SHORTER_THAN_LOS
-            out["exclusion_reason"][sl] = reason0
-            out["used"][sl] = mask
-    solvable = mask.sum(axis=-1) >= 3
-    idx = np.flatnonzero(solvable)
-    if idx.size == 0:
-        return
-    a = anchors[idx]
-    r = ranges[idx]
-    sig_i = sigmas[idx]
-    sw = mask[idx] / sig_i
-    mdl = model.take(idx)
-    x0_i = None if x0 is None else x0[idx]
-
-    def make_starts(aa, rr, cu, rows):
-        # the given start, or the z grid (plus the LLS fix): (len(rows), S, 3)
-        if x0_i is not None:
-            return x0_i[rows][:, None, :]
-        st = grid_starts(aa, cu, z_starts, y_start)
-        if lls_start:
-            st = np.concatenate([st, _lls_starts(aa, rr, cu, st)], axis=1)
-        return st
-
-    starts = make_starts(a, r, mask[idx], slice(None))
-    n = starts.shape[0]
-    x, cost_best, iters_best, conv_best = multistart_fit(
-        a, r, sw, starts, mdl, loss=loss, loss_scale=loss_scale, max_iter=max_iter, xtol=xtol,
-        keep_starts=keep_starts, screen_iter=screen_iter,
-        recheck=mask[idx].sum(axis=-1) - 3 if sigmas_given else None,
-    )
-    x[:, 1] = np.abs(x[:, 1])  # mirror symmetry y -> -y of the model
-    state = GateState(
-        x_m=x,
-        cost=cost_best,
-        iterations=iters_best,
-        converged=conv_best,
-        used=mask[idx].copy(),
-        reason=reason0[idx].copy(),
-        gating_failed=np.zeros(n, dtype=bool),
-        tested=np.zeros(n, dtype=bool),
-    )
-
-    def solve_candidates(pi, cu, warm):
-        # The first fit's multi-start on each candidate subset, plus the warm start. The
-        # screening recheck is done per fix, not per candidate: the candidates that keep
-        # the faulty anchor all fail, and re-solving each of them from every start would
-        # only confirm it. A fix is re-solved from all starts (every candidate) only if
-        # none of its screened candidates passes the residual test itself.
-        aa, rr, swc, mc = a[pi], r[pi], cu / sig_i[pi], mdl.take(pi)
-        # one given start (or the grid) plus the warm start (the current solution)
-        st = np.concatenate([make_starts(aa, rr, cu, pi), warm[:, None, :]], axis=1)
-        common = {"loss": loss, "loss_scale": loss_scale, "max_iter": max_iter,
-                  "xtol": xtol, "screen_iter": screen_iter}
-        dof_c = cu.sum(axis=-1) - 3
-        xc, cc, ic, vc = multistart_fit(aa, rr, swc, st, mc, keep_starts=keep_starts,
-                                        recheck=np.zeros_like(dof_c), **common)
-        if keep_starts is not None and st.shape[1] > keep_starts:
-            thr_c = chi2_threshold(dof_c, gating.false_alarm_probability)
-            good = (dof_c >= 1) & (2.0 * cc <= thr_c)
-            _, grp = np.unique(pi, return_inverse=True)
-            fix_good = np.zeros(grp.max(initial=-1) + 1, dtype=bool)
-            np.logical_or.at(fix_good, grp, good)
-            rows = np.flatnonzero(~fix_good[grp])
-            if rows.size:
-                x2, c2, i2, v2 = multistart_fit(
-                    aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows),
-                    keep_starts=None, recheck=None, **common)
-                b = c2 < cc[rows]
-                rb = rows[b]
-                xc[rb], ic[rb], vc[rb] = x2[b], i2[b], v2[b]
-        xc[:, 1] = np.abs(xc[:, 1])
-        return xc, ic, vc
-
-    if gating is not None:
-        run_gating(
-            state,
-            a,
-            r,
-            sig_i,
-            mdl,
-            gating,
-            active=np.ones(n, dtype=bool),
-            sigmas_given=sigmas_given,
-            loss=loss,
-            loss_scale=loss_scale,
-            solve_candidates=solve_candidates,
-        )
-        state.x_m[:, 1] = np.abs(state.x_m[:, 1])
-    used = state.used
-    p, jac = mdl.evaluate(a, state.x_m)
-    res = r - p
-    n_used = used.sum(axis=-1)
-    fim = fisher_information(jac, sig_i, used)
-    bnd = bounds_from_fim(fim)
-    cov = bnd.crlb_m2
-    cost_final = cost_of(res, used / sig_i, loss, loss_scale)
-    if not sigmas_given:
-        # a-posteriori variance factor (unit weights were used)
-        ssr = np.einsum("nm,nm->n", res * used, res * used)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s2 = np.where(n_used > 3, ssr / (n_used - 3), 1.0)
-        cov = cov * s2[:, None, None]
-    peb = np.sqrt(np.trace(cov, axis1=-2, axis2=-1))
-    zb = np.sqrt(cov[:, 2, 2])
-    sw_used = used / sig_i
-    t_stat = np.einsum("nm,nm->n", res * sw_used, res * sw_used)
-    dof = n_used - 3
-    thr = (
-        chi2_threshold(dof, gating.false_alarm_probability)
-        if gating is not None and sigmas_given
-        else np.full(n, np.nan)
-    )
-    status = np.full(n, int(FixStatus.OK), dtype=np.int_)
-    status[~state.tested] = FixStatus.OK_UNVERIFIED
-    status[state.gating_failed] = FixStatus.GATING_FAILED
-    if gating is not None and gating.z_range_m is not None:
-        z_lo, z_hi = gating.z_range_m
-        z = state.x_m[:, 2]
-        status[(status == FixStatus.OK) & ((z < z_lo) | (z > z_hi))] = FixStatus.GATING_FAILED
-    status[~state.converged] = FixStatus.NOT_CONVERGED
-    status[~bnd.identifiable] = FixStatus.NOT_IDENTIFIABLE
-    status[n_used < 3] = FixStatus.TOO_FEW_ANCHORS
-    gi = sl.start + idx
-    out["position_m"][gi] = state.x_m
-    out["covariance_m2"][gi] = cov
-    out["peb_m"][gi] = peb
-    out["z_bound_m"][gi] = zb
-    out["iterations"][gi] = state.iterations
-    out["converged"][gi] = state.converged
-    out["status"][gi] = status
-    out["residuals_m"][gi] = np.where(used, res, np.nan)
-    out["used"][gi] = used
-    out["exclusion_reason"][gi] = state.reason
-    out["test_statistic"][gi] = np.where(sigmas_given, t_stat, np.nan)
-    out["test_threshold"][gi] = thr
-    out["dof"][gi] = dof
-    out["cost"][gi] = cost_final
-
-
-#: Screened fixes whose residual statistic exceeds this quantile are re-solved from all starts.
-RECHECK_PROBABILITY = 0.1
-
-
-def multistart_fit(
-    a: FloatArray,
-    r: FloatArray,
-    sw: FloatArray,
-    starts: FloatArray,
-    mdl: PathModel,
-    *,
-    loss: str,
-    loss_scale: float,
-    max_iter: int,
-    xtol: float,
-    keep_starts: int | None,
-    screen_iter: int,
-    recheck: NDArray[np.int_] | None,
-) -> tuple[FloatArray, FloatArray, NDArray[np.int_], NDArray[np.bool_]]:
-    """Best-of-starts LM fit per problem: ``starts (N, S, 3)`` -> x, cost, iterations, converged.
-
-    With screening (``keep_starts``), every start gets ``screen_iter`` iterations and only the
-    ``keep_starts`` lowest-cost ones go on. Screening can drop the start that would have
-    reached the global minimum (measured: 0.3 % of random 4-anchor fixes), which then shows
-    up as a large residual; so fixes whose statistic ``2 cost`` exceeds the
-    ``1 - RECHECK_PROBABILITY`` chi-square quantile for ``recheck`` dof (or all fixes, if
-    ``recheck`` is None: no noise model to judge) are re-solved from all starts and the
-    better answer kept.
-    """
-    n, s = starts.shape[0], starts.shape[1]
-    common = {"loss": loss, "loss_scale": loss_scale, "xtol_m": xtol}
-
-    def full(rows: NDArray[np.int_]):
-        k = rows.size
-        fit = levenberg_marquardt(
-            np.repeat(a[rows], s, axis=0), np.repeat(r[rows], s, axis=0),
-            np.repeat(sw[rows], s, axis=0), starts[rows].reshape(k * s, 3),
-            mdl.take(rows).repeat(s), max_iter=max_iter, **common,
-        )
-        return _pick_best(fit.x_m, fit.cost, fit.iterations, fit.converged, k, s)
-
-    if keep_starts is None or s <= keep_starts or max_iter <= screen_iter:
-        return full(np.arange(n))
-    scr = levenberg_marquardt(
-        np.repeat(a, s, axis=0), np.repeat(r, s, axis=0), np.repeat(sw, s, axis=0),
-        starts.reshape(n * s, 3), mdl.repeat(s), max_iter=screen_iter, **common,
-    )
-    c_scr = np.where(np.isfinite(scr.cost), scr.cost, np.inf).reshape(n, s)
-    k = keep_starts
-    order = np.argsort(c_scr, axis=-1, kind="stable")[:, :k]
-    pick = (np.arange(n)[:, None] * s + order).ravel()
-    fit = levenberg_marquardt(
-        np.repeat(a, k, axis=0), np.repeat(r, k, axis=0), np.repeat(sw, k, axis=0),
-        scr.x_m[pick], mdl.repeat(k), max_iter=max_iter - screen_iter, **common,
-    )
-    x, cost, iters, conv = _pick_best(
-        fit.x_m, fit.cost, scr.iterations[pick] + fit.iterations, fit.converged, n, k
-    )
-    if recheck is None:
-        redo = np.ones(n, dtype=bool)
-    else:
-        thr = chi2_threshold(recheck, RECHECK_PROBABILITY)
-        redo = ~np.isfinite(cost) | ((recheck >= 1) & (2.0 * cost > thr))
-    rows = np.flatnonzero(redo)
-    if rows.size:
-        x2, c2, i2, v2 = full(rows)
-        better = c2 < cost[rows]
-        rb = rows[better]
-        x[rb], cost[rb], iters[rb], conv[rb] = x2[better], c2[better], i2[better], v2[better]
-    return x, cost, iters, conv
-
-
-def _pick_best(x_m, cost, iters, conv, n, s):
-    c = np.where(np.isfinite(cost), cost, np.inf).reshape(n, s)
-    best = np.argmin(c, axis=-1)
-    sel = np.arange(n) * s + best
-    return x_m[sel].copy(), cost[sel].copy(), iters[sel].copy(), conv[sel].copy()
