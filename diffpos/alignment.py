@@ -25,6 +25,9 @@ Model and assumptions
   - watermark: the ``min_reports``-th newest latest time of the anchors (one or two stalled
     or hung anchors do not hold it back; a single future-stamped anchor does not push it;
     none with fewer anchors);
+  - an epoch is *closed* the moment the watermark passes it (later ranges for it are late),
+    so which ranges a fix uses depends on the arrival order only, not on when the fusion's
+    loop happens to run (live and replay decide alike);
   - allowance: how far behind the watermark the anchors' data arrives, measured per anchor
     (the largest of its last 256 lags, plus a quarter), the largest over anchors that keep
     up, bounded to ``[deadline_ns, max_lag_ns]``; an anchor lagging beyond ``max_lag_ns`` (stalled,
@@ -486,6 +489,9 @@ class EpochBook:
         self.allowance_ns = int(config.deadline_ns)
         self.watermark_ns: int | None = None
         self.last_rx_wall_ns: int | None = None  # newest ingestion wall time of a range
+        # epochs up to this one are closed by the watermark (measurement release): decided
+        # when the watermark moves, i.e. by arrival order, not by when step() runs
+        self.closed_upto = _NEVER
         self._lags: dict[str, collections.deque[int]] = {}
         self._lag_new = 0
 
@@ -494,7 +500,7 @@ class EpochBook:
         e = int(entry.t_ns // self.config.epoch_period_ns)
         self.note_anchor_time(anchor_id, entry.t_ns)
         self._note_rx(entry.rx_wall_ns)
-        if e <= self.solved_upto.get(node_id, _NEVER):
+        if e <= self.solved_upto.get(node_id, _NEVER) or e <= self.closed_upto:
             self.late += 1
             self.late_by_anchor[anchor_id] += 1
             return False
@@ -515,8 +521,9 @@ class EpochBook:
         late = 0
         pending = self.pending
         solved = self.solved_upto
+        closed = e <= self.closed_upto
         for node_id, entry in entries:
-            if e <= solved.get(node_id, _NEVER):
+            if closed or e <= solved.get(node_id, _NEVER):
                 late += 1
                 continue
             pe = pending.get((node_id, e))
@@ -552,6 +559,17 @@ class EpochBook:
             self.latest_t_ns[anchor_id] = t
             if wm is None or t > wm:
                 self._update_watermark()
+                self._close()
+
+    def _close(self) -> None:
+        """Advance ``closed_upto``: epochs whose end + tolerance + allowance the watermark
+        passed (measurement release only; never moves back)."""
+        cfg = self.config
+        wm = self.watermark_ns
+        if cfg.release == "measurement" and wm is not None:
+            last = (wm - cfg.clock_tolerance_ns - self._allowance()) // cfg.epoch_period_ns - 1
+            if last > self.closed_upto:
+                self.closed_upto = int(last)
 
     def _update_watermark(self) -> None:
         """The ``min_reports``-th newest anchor time (None with fewer anchors: then only the
@@ -603,10 +621,8 @@ class EpochBook:
                  and now_wall_ns - self.last_rx_wall_ns >= self.max_lag_ns)
         if quiet:
             return lambda pe: True
-        wm, hard = self.watermark_ns, self.max_lag_ns
-        # epochs e with (e + 1) T + tolerance + allowance <= watermark
-        last = (_NEVER if wm is None else
-                (wm - cfg.clock_tolerance_ns - self._allowance()) // cfg.epoch_period_ns - 1)
+        # epochs e with (e + 1) T + tolerance + allowance <= watermark (closed on arrival)
+        last, hard = self.closed_upto, self.max_lag_ns
         return lambda pe: pe.epoch <= last or now_wall_ns - pe.first_rx_wall_ns >= hard
 
     def ready(self, live_anchors: set[str] | frozenset[str], now_wall_ns: int) -> list[PendingEpoch]:

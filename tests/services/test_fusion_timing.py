@@ -173,3 +173,37 @@ def test_anchors_lagging_by_seconds_do_not_make_the_others_implausible(caplog):
         _run(core, _stream(200, _lagging({"uav1": 5 * 10**9, "uav2": 5 * 10**9})))
     assert "clock jumped" not in caplog.text
     assert core.rejected.get("time_future", 0) == 0, dict(core.rejected)
+
+
+def _run_stepping_every(core: FusionCore, events: list[tuple], step_ns: int) -> list:
+    """Like :func:`_run`, but the loop runs only every ``step_ns`` of wall time (a busy or
+    a replaying fusion)."""
+    heapq.heapify(events)
+    out, next_step = [], None
+    while events:
+        wall, _, kind, p = heapq.heappop(events)
+        if kind == "live":
+            core.on_liveliness(p[0], p[1], wall)
+        else:
+            core.on_sample(p[0], p[1], wall)
+        if next_step is None or wall >= next_step:
+            out += core.step(wall)
+            next_step = wall + step_ns
+    return out + core.flush(10**15)
+
+
+def test_which_ranges_a_fix_uses_depends_on_arrival_order_not_on_when_the_loop_runs():
+    """Issue 15 item 3: the same arrivals, the loop run after every message or only every
+    0.4 s: every epoch uses the same anchors (the watermark closes epochs on arrival)."""
+    def used(out):
+        return {(g.node_id, g.epoch): (tuple(sorted(g.used_anchors)), tuple(sorted((x.anchor_id, x.reason) for x in g.excluded)))
+                for g in out}
+    a = used(_run(FusionCore(fusion_config()), _stream(200, _load_delay, seed=5)))
+    b = used(_run_stepping_every(FusionCore(fusion_config()), _stream(200, _load_delay, seed=5),
+                                 400_000_000))
+    assert a == b
+    # the former wall deadline decides differently with the loop's timing
+    c = used(_run(_wall_release(FusionCore(fusion_config())), _stream(200, _load_delay, seed=5)))
+    d = used(_run_stepping_every(_wall_release(FusionCore(fusion_config())),
+                                 _stream(200, _load_delay, seed=5), 400_000_000))
+    assert c != d
