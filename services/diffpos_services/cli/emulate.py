@@ -53,6 +53,7 @@ import sys
 
 from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
 from diffpos_services.emulate.supervise import format_faults
+from diffpos_services.fusion.config import DEFAULT_METHOD, METHODS
 from diffpos_services.kit import (
     ConfigError,
     Shutdown,
@@ -86,6 +87,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "window, because that diffracted path is then the shorter one and "
                         "arrives first on the emulated channel; upper otherwise and for "
                         "--channel ideal")
+    parser.add_argument("--method", choices=METHODS, default=None,
+                        help=f"the fusion's estimator (default {DEFAULT_METHOD}, as diffpos "
+                        "fusion): mnls = the first-arrival model of every mechanism + a tracker "
+                        "per responder (needs lockstep, --speed 0, to keep up on 2 cores); dnls = "
+                        "the paper's window-edge D-NLS with gating; lls, ippa = the baselines")
     parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes")
     parser.add_argument("--endpoint", metavar="ENDPOINT",
                         help="router endpoint (default tcp/127.0.0.1:<free port>; with "
@@ -118,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
             dashboard=list(args.dashboard), log_dir=args.log_dir,
             progress=not args.no_progress, ready_timeout_s=args.ready_timeout,
             log_level=args.log_level,
-            delta_m=args.delta_m, edge=args.edge,
+            delta_m=args.delta_m, edge=args.edge, method=args.method,
             security_profile=args.security_profile,
         )
         opts.check()  # every option before anything starts (the dashboard hint needs them)

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from diffpos_services.bus.session import check_endpoint
-from diffpos_services.fusion.config import EDGES
+from diffpos_services.fusion.config import EDGES, METHODS
 from diffpos_services.kit import ConfigError
 from diffpos_services.wire.keys import Keys
 
@@ -38,6 +38,7 @@ class EmulationOptions:
     log_level: str = "info"
     delta_m: float = 0.0
     edge: str = "auto"
+    method: str | None = None
     security_profile: str | None = None
 
     def check(self) -> None:
@@ -49,6 +50,8 @@ class EmulationOptions:
             raise ConfigError(f"--rate-hz must be > 0, got {self.rate_hz}")
         if self.channel not in ("emulator", "ideal"):
             raise ConfigError(f"--channel must be emulator or ideal, got {self.channel!r}")
+        if self.method is not None and self.method not in METHODS:
+            raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if self.edge not in EDGES:
             raise ConfigError(f"--edge must be auto, upper or lower, got {self.edge!r}")
         if self.endpoint is not None:

@@ -117,6 +117,8 @@ class Emulation:
                             "--anchors", ",".join(self.anchor_ids)]
         if options.scenario:
             self.fusion_args += ["--scenario", options.scenario]
+        if options.method is not None:
+            self.fusion_args += ["--method", options.method]
         self.fusion_config, self.edge, self.edge_reason = self._fusion_config(edge)
         self.profile = None
         if options.security_profile is not None:
@@ -279,7 +281,9 @@ class Emulation:
         cfg = FusionConfig.from_scenario(self.scenario, edge=edge, site=self.o.site,
                                          anchors=list(self.anchor_ids),
                                          delta_m=self.o.delta_m,
-                                         epoch_period_s=1.0 / self.o.rate_hz)
+                                         epoch_period_s=1.0 / self.o.rate_hz,
+                                         **({} if self.o.method is None
+                                            else {"method": self.o.method}))
         edge, why = model_edge(edge, self.scenario)
         return cfg, edge, why
 
