@@ -47,7 +47,7 @@ from ._dnls_fit import FitSettings, solve_chunk
 from ._dnls_fit import _lls_starts as _lls_starts  # re-exported (benchmarks)
 from ._dnls_fit import grid_starts as grid_starts  # re-exported (ippa, benchmarks)
 from .gating import GatingConfig
-from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
+from .result import ExclusionReason, FixResult, FixStatus, PreparedBatch, prepare_batch
 
 __all__ = ["DEFAULT_Z_STARTS_M", "dnls"]
 
@@ -178,30 +178,11 @@ def dnls(
     >>> bool(np.allclose(fix.position_m[0], node, atol=1e-6))
     True
     """
-    if loss not in LOSSES:
-        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-    if not loss_scale > 0:
-        raise ValueError("loss_scale must be > 0")
-    if gating is not None and not isinstance(gating, GatingConfig):
-        raise TypeError("gating must be a GatingConfig or None")
+    _check_options(loss, loss_scale, gating)
     batch_in = prepare_batch(anchors_m, ranges_m, sigmas_m, mask)
     bsz, m = batch_in.ranges_m.shape
-    wh = _per_fix(window_height_m, bsz, "window_height_m")
-    if np.any(np.asarray(wh) <= 0):
-        raise ValueError("window_height_m must be > 0")
-    de = _per_fix(delta_m, bsz, "delta_m")
-    edge = check_edge_x(edge_x_m)
-    model = PathModel(window_height_m=wh, delta_m=de, edge_x_m=edge)
-    if x0_m is not None:
-        x0 = np.asarray(x0_m, dtype=np.float64)
-        x0 = np.broadcast_to(x0.reshape(-1, 3) if x0.ndim == 1 else x0, (bsz, 3))
-        if not np.all(np.isfinite(x0)):
-            raise ValueError("x0_m must be finite")
-        starts = None
-    else:
-        x0 = None
-        starts = _check_z_starts(z_starts_m)
-
+    model = _path_model(window_height_m, delta_m, edge_x_m, bsz)
+    x0, starts = _start_option(x0_m, z_starts_m, bsz)
     cfg = FitSettings(
         z_starts=starts,
         y_start=y_start_m,
@@ -229,6 +210,49 @@ def dnls(
             None if x0 is None else x0[sl],
             cfg,
         )
+    return _fix_result(out, batch_in)
+
+
+def _check_options(loss: str, loss_scale: float, gating: GatingConfig | None) -> None:
+    """Validate the loss and the gating settings."""
+    if loss not in LOSSES:
+        raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+    if not loss_scale > 0:
+        raise ValueError("loss_scale must be > 0")
+    if gating is not None and not isinstance(gating, GatingConfig):
+        raise TypeError("gating must be a GatingConfig or None")
+
+
+def _path_model(
+    window_height_m: float | ArrayLike,
+    delta_m: float | ArrayLike,
+    edge_x_m: ArrayLike | None,
+    bsz: int,
+) -> PathModel:
+    """The validated path model (scalars or per-fix ``(B,)`` arrays)."""
+    wh = _per_fix(window_height_m, bsz, "window_height_m")
+    if np.any(np.asarray(wh) <= 0):
+        raise ValueError("window_height_m must be > 0")
+    de = _per_fix(delta_m, bsz, "delta_m")
+    edge = check_edge_x(edge_x_m)
+    return PathModel(window_height_m=wh, delta_m=de, edge_x_m=edge)
+
+
+def _start_option(
+    x0_m: ArrayLike | None, z_starts_m: ArrayLike | None, bsz: int
+) -> tuple[FloatArray | None, FloatArray | None]:
+    """``(x0 (B, 3), None)`` for one given start per fix, else ``(None, start heights)``."""
+    if x0_m is not None:
+        x0 = np.asarray(x0_m, dtype=np.float64)
+        x0 = np.broadcast_to(x0.reshape(-1, 3) if x0.ndim == 1 else x0, (bsz, 3))
+        if not np.all(np.isfinite(x0)):
+            raise ValueError("x0_m must be finite")
+        return x0, None
+    return None, _check_z_starts(z_starts_m)
+
+
+def _fix_result(out: dict[str, np.ndarray], batch_in: PreparedBatch) -> FixResult:
+    """The :class:`FixResult` of the filled output arrays (invalid and missing marked)."""
     invalid = batch_in.input_error != 0
     out["status"][invalid] = FixStatus.INVALID_INPUT
     reason = out["exclusion_reason"]
