@@ -57,7 +57,7 @@ from numpy.typing import NDArray
 from scipy.special import chdtri  # chi-square inverse survival function (chi2.isf)
 
 from ..geometry import los_path
-from ._core import PathModel, cost_of, levenberg_marquardt
+from ._core import LMResult, PathModel, cost_of, levenberg_marquardt
 from .result import ExclusionReason
 
 __all__ = ["GatingConfig", "chi2_threshold", "wall_pregate"]
@@ -236,148 +236,248 @@ def run_gating(
     ``problem_idx[i]`` restricted to the anchors ``used[i]``) from all starts of the first fit
     plus the warm start ``warm_x[i]`` and returns ``(x_m, iterations, converged)``; ``None``
     (or ``config.multistart_exclusion = False``) refits them warm-started only.
+
+    Each round (:func:`_gating_round`) checks the pending fixes (:func:`_check_fixes`), excludes
+    at most one anchor per fix (:func:`_raim_exclude`, :func:`_confirm_pregate`) and retires
+    the fixes that pass; fixes still pending after ``max_exclusions`` rounds are decided by
+    their final test (:func:`_final_test`).
     """
-    b, m = ranges_m.shape
+    gate = _Gate(
+        anchors_m=anchors_m,
+        ranges_m=ranges_m,
+        sigmas_m=sigmas_m,
+        model=model,
+        config=config,
+        sigmas_given=sigmas_given,
+        loss=loss,
+        loss_scale=loss_scale,
+        solve_candidates=solve_candidates,
+    )
     pending = active.copy()
-    n_excl = np.zeros(b, dtype=np.int_)
+    n_excl = np.zeros(ranges_m.shape[0], dtype=np.int_)
     for _round in range(config.max_exclusions + 1):
         idx = np.flatnonzero(pending)
         if idx.size == 0:
             break
-        x = state.x_m[idx]
-        used = state.used[idx]
-        a = anchors_m[idx]
-        r = ranges_m[idx]
-        s = sigmas_m[idx]
-        sw = used / s
-        p, _ = model.take(idx).evaluate(a, x)
-        res = r - p
-        n_used = used.sum(axis=-1)
-        can_exclude = n_excl[idx] < config.max_exclusions
-        # 1. physical pre-gate
-        pg_excl = np.zeros(idx.size, dtype=bool)
-        pg_j = np.zeros(idx.size, dtype=np.int_)
-        tol = _pregate_tol_m(config, s, sigmas_given)
-        if tol is not None:
-            los, _ = los_path(a, x[:, None, :])
-            short = np.where(used, (los - r) - tol, -np.inf)
-            worst = (los - r) / (s if sigmas_given else 1.0)
-            worst = np.where(used & (short > 0), worst, -np.inf)
-            pg_j = np.argmax(worst, axis=-1)
-            pg_excl = np.isfinite(worst.max(axis=-1)) & (n_used - 1 >= 3) & can_exclude
-        # 2. chi-square test
-        dof = n_used - 3
-        t_stat = np.einsum("nm,nm->n", res * sw, res * sw)
-        thr = chi2_threshold(dof, config.false_alarm_probability)
-        testable = (dof >= 1) & sigmas_given
-        fail = testable & (t_stat > thr)
-        state.tested[idx] = testable
-        raim = fail & (n_used - 1 >= config.min_anchors_after_exclusion) & can_exclude
-        # the post-fit pre-gate acts only on fits the residual test accepts (or cannot test):
-        # in a failing fit a positive fault elsewhere makes honest ranges look "too short"
-        pg_excl &= ~fail
-        # fixes that pass (and have no pre-gate violation) are done
-        done = ~pg_excl & ~raim
-        state.gating_failed[idx[done]] = fail[done]
-        pending[idx[done]] = False
-        # apply pre-gate exclusions (refit below with the others)
-        new_used = used.copy()
-        rows = np.flatnonzero(pg_excl)
-        new_used[rows, pg_j[rows]] = False
-        state.reason[idx[rows], pg_j[rows]] = ExclusionReason.PREGATE_SHORTER_THAN_LOS
-        # RAIM candidates: refit every leave-one-out subset in one batch
-        rrows = np.flatnonzero(raim)
-        if rrows.size:
-            k = rrows.size
-            cand_used = np.repeat(used[rrows][:, None, :], m, axis=1)  # (k, m, m)
-            eye = np.eye(m, dtype=bool)
-            valid_cand = used[rrows]  # candidate j must currently be used
-            cand_used &= ~eye[None]
-            cu = cand_used.reshape(k * m, m)
-            rep_idx = np.repeat(idx[rrows], m)
-            warm = np.repeat(x[rrows], m, axis=0)
-            if solve_candidates is not None and config.multistart_exclusion:
-                # only the candidates that exist (anchor j currently used) are solved
-                live = valid_cand.ravel()
-                fit_x = warm.copy()
-                fit_it = np.zeros(k * m, dtype=np.int_)
-                fit_cv = np.zeros(k * m, dtype=bool)
-                li = np.flatnonzero(live)
-                fx, fi, fc = solve_candidates(rep_idx[li], cu[li], warm[li])
-                fit_x[li], fit_it[li], fit_cv[li] = fx, fi, fc
-                fit = _Fit(fit_x, fit_it, fit_cv)
-            else:
-                fit = levenberg_marquardt(
-                    anchors_m[rep_idx],
-                    ranges_m[rep_idx],
-                    cu / sigmas_m[rep_idx],
-                    warm,
-                    model.take(rep_idx),
-                    loss=loss,
-                    loss_scale=loss_scale,
-                    max_iter=config.refit_max_iter,
-                )
-            pc, _ = model.take(rep_idx).evaluate(anchors_m[rep_idx], fit.x_m)
-            rc = (ranges_m[rep_idx] - pc) * (cu / sigmas_m[rep_idx])
-            tc = np.einsum("nm,nm->n", rc, rc).reshape(k, m)
-            tc = np.where(valid_cand, tc, np.inf)
-            best = np.argmin(tc, axis=-1)
-            sel = np.arange(k) * m + best
-            gi = idx[rrows]
-            state.x_m[gi] = fit.x_m[sel]
-            state.iterations[gi] = fit.iterations[sel]
-            state.converged[gi] = fit.converged[sel]
-            new_used[rrows, best] = False
-            state.reason[gi, best] = ExclusionReason.RAIM
-        # refit the pre-gated fixes from their current position, then confirm: the excluded
-        # range must also be impossible at the new solution, otherwise revert (a fit pulled by
-        # a positive fault elsewhere can make an honest range look too short)
-        if rows.size:
-            gi = idx[rows]
-            fit = levenberg_marquardt(
-                anchors_m[gi],
-                ranges_m[gi],
-                new_used[rows] / sigmas_m[gi],
-                state.x_m[gi],
-                model.take(gi),
-                loss=loss,
-                loss_scale=loss_scale,
-                max_iter=config.refit_max_iter,
-            )
-            jj = pg_j[rows]
-            los_new, _ = los_path(anchors_m[gi, jj], fit.x_m)
-            tol_j = config.pregate_sigmas * (sigmas_m[gi, jj] if sigmas_given else 0.0)
-            confirmed = ranges_m[gi, jj] < los_new - tol_j - config.pregate_margin_m
-            keep = rows[confirmed]
-            gk = idx[keep]
-            state.x_m[gk] = fit.x_m[confirmed]
-            state.iterations[gk] = fit.iterations[confirmed]
-            state.converged[gk] = fit.converged[confirmed]
-            back = rows[~confirmed]
-            new_used[back, pg_j[back]] = True
-            state.reason[idx[back], pg_j[back]] = ExclusionReason.NONE
-            pg_excl[back] = False
-            state.gating_failed[idx[back]] = fail[back]
-            pending[idx[back]] = False
-        changed = pg_excl | raim
-        state.used[idx] = new_used
-        n_excl[idx[changed]] += 1
-        gi = idx[changed]
-        if gi.size:
-            pf, _ = model.take(gi).evaluate(anchors_m[gi], state.x_m[gi])
-            state.cost[gi] = cost_of(
-                ranges_m[gi] - pf, state.used[gi] / sigmas_m[gi], loss, loss_scale
-            )
+        _gating_round(gate, state, idx, pending, n_excl)
     # fixes still pending hit the exclusion limit: their final test decides
     idx = np.flatnonzero(pending)
     if idx.size:
-        x = state.x_m[idx]
-        used = state.used[idx]
-        p, _ = model.take(idx).evaluate(anchors_m[idx], x)
-        res = (ranges_m[idx] - p) * used / sigmas_m[idx]
-        dof = used.sum(axis=-1) - 3
-        t_stat = np.einsum("nm,nm->n", res, res)
-        thr = chi2_threshold(dof, config.false_alarm_probability)
-        testable = (dof >= 1) & sigmas_given
-        state.tested[idx] = testable
-        state.gating_failed[idx] = testable & (t_stat > thr)
+        _final_test(gate, state, idx)
+
+
+@dataclass(frozen=True)
+class _Gate:
+    """The problems and settings of one :func:`run_gating` call."""
+
+    anchors_m: FloatArray
+    ranges_m: FloatArray
+    sigmas_m: FloatArray
+    model: PathModel
+    config: GatingConfig
+    sigmas_given: bool
+    loss: str
+    loss_scale: float
+    solve_candidates: CandidateSolver | None
+
+    def refit(self, rows: NDArray[np.int_], used: BoolArray, x_start: FloatArray) -> LMResult:
+        """Warm-started LM refit of problems ``rows`` on the anchors ``used``."""
+        return levenberg_marquardt(
+            self.anchors_m[rows],
+            self.ranges_m[rows],
+            used / self.sigmas_m[rows],
+            x_start,
+            self.model.take(rows),
+            loss=self.loss,
+            loss_scale=self.loss_scale,
+            max_iter=self.config.refit_max_iter,
+        )
+
+
+@dataclass
+class _Checks:
+    """The checks of one round on the pending fixes ``idx`` (rows of ``idx``)."""
+
+    x: FloatArray  # (K, 3) current solutions
+    used: BoolArray  # (K, M) anchors used before this round
+    fail: BoolArray  # (K,) the chi-square test failed
+    raim: BoolArray  # (K,) RAIM exclusion to try
+    pg_excl: BoolArray  # (K,) post-fit pre-gate exclusion to try
+    pg_j: NDArray[np.int_]  # (K,) its anchor
+
+
+def _gating_round(
+    gate: _Gate,
+    state: GateState,
+    idx: NDArray[np.int_],
+    pending: BoolArray,
+    n_excl: NDArray[np.int_],
+) -> None:
+    """One test-and-exclude round on the pending fixes ``idx`` (updates all arguments)."""
+    c = _check_fixes(gate, state, idx, n_excl)
+    # fixes that pass (and have no pre-gate violation) are done
+    done = ~c.pg_excl & ~c.raim
+    state.gating_failed[idx[done]] = c.fail[done]
+    pending[idx[done]] = False
+    # apply pre-gate exclusions (refit below with the others)
+    new_used = c.used.copy()
+    rows = np.flatnonzero(c.pg_excl)
+    new_used[rows, c.pg_j[rows]] = False
+    state.reason[idx[rows], c.pg_j[rows]] = ExclusionReason.PREGATE_SHORTER_THAN_LOS
+    rrows = np.flatnonzero(c.raim)
+    if rrows.size:
+        _raim_exclude(gate, state, idx, rrows, c, new_used)
+    if rows.size:
+        _confirm_pregate(gate, state, idx, rows, c, new_used, pending)
+    changed = c.pg_excl | c.raim
+    state.used[idx] = new_used
+    n_excl[idx[changed]] += 1
+    gi = idx[changed]
+    if gi.size:
+        pf, _ = gate.model.take(gi).evaluate(gate.anchors_m[gi], state.x_m[gi])
+        state.cost[gi] = cost_of(
+            gate.ranges_m[gi] - pf, state.used[gi] / gate.sigmas_m[gi], gate.loss, gate.loss_scale
+        )
+
+
+def _check_fixes(
+    gate: _Gate, state: GateState, idx: NDArray[np.int_], n_excl: NDArray[np.int_]
+) -> _Checks:
+    """Post-fit pre-gate (worst "shorter than LoS" range) and chi-square test at the current
+    solutions; records which fixes were tested."""
+    config = gate.config
+    x = state.x_m[idx]
+    used = state.used[idx]
+    a = gate.anchors_m[idx]
+    r = gate.ranges_m[idx]
+    s = gate.sigmas_m[idx]
+    sw = used / s
+    p, _ = gate.model.take(idx).evaluate(a, x)
+    res = r - p
+    n_used = used.sum(axis=-1)
+    can_exclude = n_excl[idx] < config.max_exclusions
+    # 1. physical pre-gate
+    pg_excl = np.zeros(idx.size, dtype=bool)
+    pg_j = np.zeros(idx.size, dtype=np.int_)
+    tol = _pregate_tol_m(config, s, gate.sigmas_given)
+    if tol is not None:
+        los, _ = los_path(a, x[:, None, :])
+        short = np.where(used, (los - r) - tol, -np.inf)
+        worst = (los - r) / (s if gate.sigmas_given else 1.0)
+        worst = np.where(used & (short > 0), worst, -np.inf)
+        pg_j = np.argmax(worst, axis=-1)
+        pg_excl = np.isfinite(worst.max(axis=-1)) & (n_used - 1 >= 3) & can_exclude
+    # 2. chi-square test
+    dof = n_used - 3
+    t_stat = np.einsum("nm,nm->n", res * sw, res * sw)
+    thr = chi2_threshold(dof, config.false_alarm_probability)
+    testable = (dof >= 1) & gate.sigmas_given
+    fail = testable & (t_stat > thr)
+    state.tested[idx] = testable
+    raim = fail & (n_used - 1 >= config.min_anchors_after_exclusion) & can_exclude
+    # the post-fit pre-gate acts only on fits the residual test accepts (or cannot test):
+    # in a failing fit a positive fault elsewhere makes honest ranges look "too short"
+    pg_excl &= ~fail
+    return _Checks(x=x, used=used, fail=fail, raim=raim, pg_excl=pg_excl, pg_j=pg_j)
+
+
+def _raim_exclude(
+    gate: _Gate,
+    state: GateState,
+    idx: NDArray[np.int_],
+    rrows: NDArray[np.int_],
+    c: _Checks,
+    new_used: BoolArray,
+) -> None:
+    """RAIM exclusion for rows ``rrows`` of ``idx``: refit every leave-one-out subset in one
+    batch and exclude the anchor whose exclusion gives the smallest test statistic."""
+    m = gate.ranges_m.shape[1]
+    k = rrows.size
+    cand_used = np.repeat(c.used[rrows][:, None, :], m, axis=1)  # (k, m, m)
+    eye = np.eye(m, dtype=bool)
+    valid_cand = c.used[rrows]  # candidate j must currently be used
+    cand_used &= ~eye[None]
+    cu = cand_used.reshape(k * m, m)
+    rep_idx = np.repeat(idx[rrows], m)
+    warm = np.repeat(c.x[rrows], m, axis=0)
+    fit = _fit_candidates(gate, rep_idx, cu, warm, valid_cand.ravel())
+    pc, _ = gate.model.take(rep_idx).evaluate(gate.anchors_m[rep_idx], fit.x_m)
+    rc = (gate.ranges_m[rep_idx] - pc) * (cu / gate.sigmas_m[rep_idx])
+    tc = np.einsum("nm,nm->n", rc, rc).reshape(k, m)
+    tc = np.where(valid_cand, tc, np.inf)
+    best = np.argmin(tc, axis=-1)
+    sel = np.arange(k) * m + best
+    gi = idx[rrows]
+    state.x_m[gi] = fit.x_m[sel]
+    state.iterations[gi] = fit.iterations[sel]
+    state.converged[gi] = fit.converged[sel]
+    new_used[rrows, best] = False
+    state.reason[gi, best] = ExclusionReason.RAIM
+
+
+def _fit_candidates(
+    gate: _Gate,
+    rep_idx: NDArray[np.int_],
+    cu: BoolArray,
+    warm: FloatArray,
+    live: BoolArray,
+) -> _Fit | LMResult:
+    """Solve the exclusion candidates: multi-start (only those that exist, ``live``: anchor j
+    currently used) with ``solve_candidates``, else warm-started refits of all of them."""
+    if gate.solve_candidates is not None and gate.config.multistart_exclusion:
+        n = rep_idx.size
+        fit_x = warm.copy()
+        fit_it = np.zeros(n, dtype=np.int_)
+        fit_cv = np.zeros(n, dtype=bool)
+        li = np.flatnonzero(live)
+        fx, fi, fc = gate.solve_candidates(rep_idx[li], cu[li], warm[li])
+        fit_x[li], fit_it[li], fit_cv[li] = fx, fi, fc
+        return _Fit(fit_x, fit_it, fit_cv)
+    return gate.refit(rep_idx, cu, warm)
+
+
+def _confirm_pregate(
+    gate: _Gate,
+    state: GateState,
+    idx: NDArray[np.int_],
+    rows: NDArray[np.int_],
+    c: _Checks,
+    new_used: BoolArray,
+    pending: BoolArray,
+) -> None:
+    """Refit the pre-gated rows ``rows`` of ``idx`` from their current position, then
+    confirm: the excluded range must also be impossible at the new solution, otherwise
+    revert (a fit pulled by a positive fault elsewhere can make an honest range look too
+    short) and retire the fix with its test result."""
+    config = gate.config
+    gi = idx[rows]
+    fit = gate.refit(gi, new_used[rows], state.x_m[gi])
+    jj = c.pg_j[rows]
+    los_new, _ = los_path(gate.anchors_m[gi, jj], fit.x_m)
+    tol_j = config.pregate_sigmas * (gate.sigmas_m[gi, jj] if gate.sigmas_given else 0.0)
+    confirmed = gate.ranges_m[gi, jj] < los_new - tol_j - config.pregate_margin_m
+    keep = rows[confirmed]
+    gk = idx[keep]
+    state.x_m[gk] = fit.x_m[confirmed]
+    state.iterations[gk] = fit.iterations[confirmed]
+    state.converged[gk] = fit.converged[confirmed]
+    back = rows[~confirmed]
+    new_used[back, c.pg_j[back]] = True
+    state.reason[idx[back], c.pg_j[back]] = ExclusionReason.NONE
+    c.pg_excl[back] = False
+    state.gating_failed[idx[back]] = c.fail[back]
+    pending[idx[back]] = False
+
+
+def _final_test(gate: _Gate, state: GateState, idx: NDArray[np.int_]) -> None:
+    """The chi-square test of fixes ``idx`` on their final anchor set (no more exclusions)."""
+    x = state.x_m[idx]
+    used = state.used[idx]
+    p, _ = gate.model.take(idx).evaluate(gate.anchors_m[idx], x)
+    res = (gate.ranges_m[idx] - p) * used / gate.sigmas_m[idx]
+    dof = used.sum(axis=-1) - 3
+    t_stat = np.einsum("nm,nm->n", res, res)
+    thr = chi2_threshold(dof, gate.config.false_alarm_probability)
+    testable = (dof >= 1) & gate.sigmas_given
+    state.tested[idx] = testable
+    state.gating_failed[idx] = testable & (t_stat > thr)
