@@ -35,12 +35,15 @@ IPPA has no noise model, so ``covariance_m2`` is NaN (``covariance_model="none"`
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from .dnls import _check_z_starts, grid_starts
-from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
+from .result import ExclusionReason, FixResult, FixStatus, PreparedBatch, prepare_batch
 
 __all__ = ["ippa"]
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 
 def ippa(
@@ -88,25 +91,65 @@ def ippa(
     """
     pb = prepare_batch(anchors_m, ranges_m, sigmas_m, mask)
     a, r, use = pb.anchors_m, pb.ranges_m, pb.mask
+    b = r.shape[0]
+    flags, rr = _nlos_flags_and_ranges(nlos, nlos_bias_m, r)
+    starts = _starts(a, use, x0_m, z_starts_m, y_start_m)
+    s = starts.shape[1]
+    # every start of every fix iterated as one problem: rows b * s + start
+    aa = np.repeat(a, s, axis=0)
+    rrr = np.repeat(rr, s, axis=0)
+    uu = np.repeat(use, s, axis=0)
+    ff = np.repeat(flags, s, axis=0)
+    theta, iters, stopped = _project_iterations(
+        aa, rrr, uu, ff, starts.reshape(b * s, 3).copy(), max_iter=max_iter, tol_m2=tol_m2
+    )
+    return _best_start_result(pb, aa, rrr, uu, theta, iters, stopped, s)
+
+
+def _nlos_flags_and_ranges(
+    nlos: bool | ArrayLike, nlos_bias_m: float | ArrayLike, r: FloatArray
+) -> tuple[BoolArray, FloatArray]:
+    """NLoS flags ``(B, M)`` and the ranges minus the NLoS bias ``r - b`` ``(B, M)`` [m]."""
     b, m = r.shape
     flags = np.broadcast_to(np.asarray(nlos, dtype=bool), (b, m))
     bias = np.broadcast_to(np.asarray(nlos_bias_m, dtype=np.float64), (b, m))
     if not np.all(np.isfinite(bias)):
         raise ValueError("nlos_bias_m must be finite")
-    rr = r - bias
+    return flags, r - bias
+
+
+def _starts(
+    a: FloatArray,
+    use: BoolArray,
+    x0_m: ArrayLike | None,
+    z_starts_m: ArrayLike | None,
+    y_start_m: float,
+) -> FloatArray:
+    """Starts ``(B, S, 3)``: the given one per fix, or the D-NLS floor grid."""
     if x0_m is not None:
         x0 = np.asarray(x0_m, dtype=np.float64)
-        starts = np.broadcast_to(x0.reshape(-1, 3) if x0.ndim == 1 else x0, (b, 3))[:, None]
-    else:
-        starts = grid_starts(a, use, _check_z_starts(z_starts_m), y_start_m)
-    s = starts.shape[1]
-    n = b * s
-    aa = np.repeat(a, s, axis=0)
-    rrr = np.repeat(rr, s, axis=0)
-    uu = np.repeat(use, s, axis=0)
-    ff = np.repeat(flags, s, axis=0)
+        return np.broadcast_to(x0.reshape(-1, 3) if x0.ndim == 1 else x0, (a.shape[0], 3))[:, None]
+    return grid_starts(a, use, _check_z_starts(z_starts_m), y_start_m)
+
+
+def _project_iterations(
+    aa: FloatArray,
+    rrr: FloatArray,
+    uu: BoolArray,
+    ff: BoolArray,
+    theta: FloatArray,
+    *,
+    max_iter: int,
+    tol_m2: float,
+) -> tuple[FloatArray, NDArray[np.int_], BoolArray]:
+    """The parallel projections from starts ``theta (N, 3)`` (updated in place).
+
+    Returns the estimates, the updates made and whether the stopping rule fired (no active
+    measurement, or ``|phi_k - phi_{k-1}| < tol_m2``); rows with fewer than 3 used
+    measurements are not iterated.
+    """
+    n = theta.shape[0]
     cnt = np.maximum(uu.sum(axis=-1), 1)
-    theta = starts.reshape(n, 3).copy()
     phi_old = np.zeros(n)
     iters = np.zeros(n, dtype=np.int_)
     stopped = np.zeros(n, dtype=bool)
@@ -131,6 +174,23 @@ def ippa(
         phi_old[idx] = phi
         stopped[idx[stop]] = True
         active[idx[stop]] = False
+    return theta, iters, stopped
+
+
+def _best_start_result(
+    pb: PreparedBatch,
+    aa: FloatArray,
+    rrr: FloatArray,
+    uu: BoolArray,
+    theta: FloatArray,
+    iters: NDArray[np.int_],
+    stopped: BoolArray,
+    s: int,
+) -> FixResult:
+    """The start with the lowest ``phi`` at its estimate, per fix, as a :class:`FixResult`."""
+    r, use = pb.ranges_m, pb.mask
+    b, m = r.shape
+    cnt = np.maximum(uu.sum(axis=-1), 1)
     d = theta[:, None, :] - aa
     dist = np.sqrt(np.einsum("nmi,nmi->nm", d, d))
     phi_end = np.where(uu, (rrr - dist) ** 2, 0.0).sum(axis=-1) / cnt
