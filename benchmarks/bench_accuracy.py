@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from diffpos_services.recording.reader import McapScanner
 from diffpos_services.recording.topics import parse_topic
+from diffpos_services.recording.writer import part_path
 from diffpos_services.wire import messages as M
 
 from diffpos.metrics import percentiles, score
@@ -142,10 +143,12 @@ def variants() -> dict[str, dict[str, Any]]:
 
 # ----------------------------------------------------------------------------- scoring
 def recording_parts(path: str | Path) -> list[Path]:
-    """``path`` and the files ``emulate`` continued it in when the recorder was restarted
-    (``<stem>_0001.mcap``, ...), in order."""
-    p = Path(path)
-    return [p, *sorted(p.parent.glob(f"{p.stem}_[0-9][0-9][0-9][0-9]{p.suffix}"))]
+    """``path`` and the parts the recorder split the run into (``<stem>_0001.mcap``, ...:
+    :func:`diffpos_services.recording.writer.part_path`), in order."""
+    parts = [Path(path)]
+    while part_path(path, len(parts)).exists():
+        parts.append(part_path(path, len(parts)))
+    return parts
 
 
 def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, Any]:
@@ -267,7 +270,7 @@ def table(results: dict[str, dict[str, Any]]) -> str:
             f"{_f(r['p90_3d'], 1, '7.2f')} {_f(r['p50_z'])} {_f(r['p90_z'])} "
             f"{_f(r['coverage95'], 100, '5.1f')}% {_f(lat['p50'], 1, '8.1f')} "
             f"{_f(lat['p99'], 1, '8.1f')}"
-            + (f"  ({r['recording_parts']} recording files: the recorder was restarted)"
+            + (f"  ({r['recording_parts']} recording parts)"
                if r.get("recording_parts", 1) > 1 else ""))
     return "\n".join(lines)
 
