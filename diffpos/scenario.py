@@ -6,6 +6,21 @@ problem raises :class:`ScenarioError` whose message starts with the field path a
 is allowed, e.g. ``anchors[1].position_m: y=15.0 is inside the building (anchors must be
 outside, y < 0)``. No file I/O here (see ``diffpos_services.scenario_io.load_scenario``).
 
+Physical limits (a number outside them is a typo or garbage, never a building; the error
+names the field and the limit):
+
+- every coordinate (anchor and node positions along their whole trajectory, ``center_x_m``,
+  ``first_floor_z_m``, partition spans) within ``|c| <= 100 km`` (:data:`MAX_COORDINATE_M`);
+- every building dimension (``width_m``, ``depth_m``, ``floor_height_m``, ``sill_height_m``,
+  ``window_height_m``, wall/slab/partition thicknesses) and the total height
+  ``n_floors * floor_height_m`` at most 10 km (:data:`MAX_BUILDING_SIZE_M`);
+- ``n_floors`` in [1, 200] (:data:`MAX_FLOORS`);
+- two anchors whose positions stay within 1 cm of each other (:data:`MIN_ANCHOR_SEPARATION_M`)
+  over the first hour are co-located: rejected, naming both ids (they add no geometry).
+
+Fewer than 3 anchors is valid (e.g. to study a link) but no 3D fix is ever possible: it is
+reported in :attr:`Scenario.warnings` (the core prints nothing; the loader surfaces them).
+
 Building frame (DEVELOPING.md): the facade with the windows is the plane ``y = 0``, the
 inside is ``0 < y < depth``, ``x`` runs along the window edges, ``z`` is up (0 = ground).
 
@@ -52,6 +67,10 @@ from .trajectory import Hover, Static, Trajectory, Waypoints, trajectory_from_di
 
 __all__ = [
     "ITU_MATERIALS",
+    "MAX_BUILDING_SIZE_M",
+    "MAX_COORDINATE_M",
+    "MAX_FLOORS",
+    "MIN_ANCHOR_SEPARATION_M",
     "AnchorSpec",
     "Building",
     "NodeGrid",
@@ -63,6 +82,17 @@ __all__ = [
     "default_scenario",
     "first_arrival_edge",
 ]
+
+#: Largest accepted ``|coordinate|`` of any position in a scenario [m] (100 km).
+MAX_COORDINATE_M = 100_000.0
+#: Largest accepted building dimension and total building height [m] (10 km).
+MAX_BUILDING_SIZE_M = 10_000.0
+#: Largest accepted number of floors.
+MAX_FLOORS = 200
+#: Anchors closer than this over the whole checked horizon are co-located (rejected) [m].
+MIN_ANCHOR_SEPARATION_M = 0.01
+#: Horizon over which anchor trajectories are compared for co-location [s].
+_COLOCATION_HORIZON_S = 3600.0
 
 FloatArray = NDArray[np.float64]
 
@@ -351,6 +381,9 @@ class Scenario:
         Explicit nodes (for emulation); may be empty when ``node_grid`` is given.
     node_grid : NodeGrid or None
         Static receiver grid for studies.
+    warnings : tuple of str
+        Validation warnings (valid but useless for fixing, e.g. fewer than 3 anchors), each
+        starting with the field path; set by :meth:`from_dict`, not compared, not serialised.
     """
 
     name: str = "paper"
@@ -360,6 +393,7 @@ class Scenario:
     anchors: tuple[AnchorSpec, ...] = ()
     nodes: tuple[NodeSpec, ...] = ()
     node_grid: NodeGrid | None = None
+    warnings: tuple[str, ...] = field(default=(), compare=False)
 
     # ---------------------------------------------------------------- convenience
     @property
@@ -392,6 +426,9 @@ class Scenario:
         ------
         ScenarioError
             With the field path and the allowed values/range in the message.
+
+        Valid scenarios that can never give a fix (fewer than 3 anchors) come back with
+        :attr:`warnings` set.
         """
         return _parse_scenario(d)
 
@@ -523,14 +560,19 @@ def _parse_building(d: Mapping[str, Any]) -> Building:
     _check_keys(d, (*_BUILDING_FIELDS, "partitions"), path)
     dflt = Building()
     n = lambda k, **kw: _num(d, k, getattr(dflt, k), path, **kw)  # noqa: E731
-    width = n("width_m", lo=0.0, lo_open=True)
-    depth = n("depth_m", lo=0.0, lo_open=True)
+    size = MAX_BUILDING_SIZE_M
+    width = n("width_m", lo=0.0, lo_open=True, hi=size)
+    depth = n("depth_m", lo=0.0, lo_open=True, hi=size)
     nf = d.get("n_floors", dflt.n_floors)
-    if isinstance(nf, bool) or not isinstance(nf, int) or not 1 <= nf <= 200:
-        raise _fail(f"{path}.n_floors", f"expected an integer in [1, 200], got {nf!r}")
-    fh = n("floor_height_m", lo=0.0, lo_open=True)
-    sill = n("sill_height_m", lo=0.0)
-    w = n("window_height_m", lo=0.0, lo_open=True)
+    if isinstance(nf, bool) or not isinstance(nf, int) or not 1 <= nf <= MAX_FLOORS:
+        raise _fail(f"{path}.n_floors", f"expected an integer in [1, {MAX_FLOORS}], got {nf!r}")
+    fh = n("floor_height_m", lo=0.0, lo_open=True, hi=size)
+    if nf * fh > size:
+        raise _fail(f"{path}.floor_height_m",
+                    f"n_floors * floor_height_m = {nf * fh:g} m exceeds the building height "
+                    f"limit {size:g} m")
+    sill = n("sill_height_m", lo=0.0, hi=size)
+    w = n("window_height_m", lo=0.0, lo_open=True, hi=size)
     if sill + w > fh:
         raise _fail(f"{path}.window_height_m",
                     f"sill_height_m + window_height_m = {sill + w:g} m exceeds floor_height_m = "
@@ -538,7 +580,8 @@ def _parse_building(d: Mapping[str, Any]) -> Building:
     windows = d.get("windows", dflt.windows)
     if windows not in ("glass", "open"):
         raise _fail(f"{path}.windows", f"must be 'glass' or 'open', got {windows!r}")
-    x0, x1 = n("center_x_m") - 0.5 * width, n("center_x_m") + 0.5 * width
+    cx = n("center_x_m", lo=-MAX_COORDINATE_M, hi=MAX_COORDINATE_M)
+    x0, x1 = cx - 0.5 * width, cx + 0.5 * width
     parts = []
     raw_parts = d.get("partitions", [])
     if not isinstance(raw_parts, list):
@@ -558,21 +601,25 @@ def _parse_building(d: Mapping[str, Any]) -> Building:
         arr = np.asarray(span, dtype=float) if isinstance(span, list) else np.zeros(0)
         if arr.shape != (2,) or not np.all(np.isfinite(arr)) or arr[0] >= arr[1]:
             raise _fail(f"{pp}.span_m", f"expected [lo, hi] with lo < hi in metres, got {span!r}")
+        if np.any(np.abs(arr) > MAX_COORDINATE_M):
+            raise _fail(f"{pp}.span_m", f"{span!r} is out of range (allowed |c| <= "
+                        f"{MAX_COORDINATE_M:g} m)")
         parts.append(Partition(
             axis=axis, position_m=pos, span_m=(float(arr[0]), float(arr[1])),
             material=_material(pd, "material", "plasterboard", pp),
-            thickness_m=_num(pd, "thickness_m", 0.025, pp, lo=0.0, lo_open=True),
+            thickness_m=_num(pd, "thickness_m", 0.025, pp, lo=0.0, lo_open=True, hi=size),
             loss_db=_num(pd, "loss_db", None, pp, lo=0.0, allow_none=True),
         ))
     return Building(
-        width_m=width, center_x_m=n("center_x_m"), depth_m=depth, n_floors=nf,
-        floor_height_m=fh, first_floor_z_m=n("first_floor_z_m", lo=0.0), sill_height_m=sill,
+        width_m=width, center_x_m=cx, depth_m=depth, n_floors=nf,
+        floor_height_m=fh, first_floor_z_m=n("first_floor_z_m", lo=0.0, hi=MAX_COORDINATE_M),
+        sill_height_m=sill,
         window_height_m=w, windows=windows, glass_loss_db=n("glass_loss_db", lo=0.0),
         wall_material=_material(d, "wall_material", dflt.wall_material, path),
-        wall_thickness_m=n("wall_thickness_m", lo=0.0, lo_open=True),
+        wall_thickness_m=n("wall_thickness_m", lo=0.0, lo_open=True, hi=size),
         wall_loss_db=_num(d, "wall_loss_db", None, path, lo=0.0, allow_none=True),
         slab_material=_material(d, "slab_material", dflt.slab_material, path),
-        slab_thickness_m=n("slab_thickness_m", lo=0.0, lo_open=True),
+        slab_thickness_m=n("slab_thickness_m", lo=0.0, lo_open=True, hi=size),
         slab_loss_db=_num(d, "slab_loss_db", None, path, lo=0.0, allow_none=True),
         ground_material=_material(d, "ground_material", dflt.ground_material, path),
         interior_material=_material(d, "interior_material", dflt.interior_material, path),
@@ -669,8 +716,19 @@ def _sample_points(traj: Trajectory) -> FloatArray:
     return traj.position_m(np.linspace(0.0, period, 721))
 
 
+def _check_bounded(pts: FloatArray, traj: Trajectory, key: str) -> None:
+    """Every sampled position within ``|c| <= MAX_COORDINATE_M``."""
+    bad = np.flatnonzero(~np.all(np.abs(pts) <= MAX_COORDINATE_M, axis=-1))
+    if bad.size:
+        p = pts[bad[0]]
+        where = "" if isinstance(traj, Static) else " (somewhere along its trajectory)"
+        raise _fail(key, f"({p[0]:g}, {p[1]:g}, {p[2]:g}){where} is out of range (allowed "
+                    f"|x|, |y|, |z| <= {MAX_COORDINATE_M:g} m)")
+
+
 def _check_anchor(traj: Trajectory, key: str) -> None:
     pts = _sample_points(traj)
+    _check_bounded(pts, traj, key)
     bad = np.flatnonzero(pts[:, 1] >= 0.0)
     if bad.size:
         y = pts[bad[0], 1]
@@ -683,6 +741,7 @@ def _check_anchor(traj: Trajectory, key: str) -> None:
 
 def _check_node(traj: Trajectory, key: str, b: Building) -> None:
     pts = _sample_points(traj)
+    _check_bounded(pts, traj, key)
     ok = b.inside(pts)
     if not np.all(ok):
         p = pts[np.flatnonzero(~ok)[0]]
@@ -738,6 +797,8 @@ def _parse_scenario(d: Mapping[str, Any]) -> Scenario:
         traj, key = _trajectory(ad, p)
         _check_anchor(traj, key)
         anchors.append(AnchorSpec(aid, traj))
+    _check_colocated(anchors)
+    warnings = _anchor_warnings(anchors)
     raw_nodes = d.get("nodes", {})
     _check_keys(raw_nodes, ("grid", "list"), "nodes")
     grid = _parse_grid(raw_nodes["grid"], b) if "grid" in raw_nodes else None
@@ -756,7 +817,31 @@ def _parse_scenario(d: Mapping[str, Any]) -> Scenario:
     if grid is None and not nodes:
         raise _fail("nodes", "need a [nodes.grid] table or at least one [[nodes.list]] entry")
     return Scenario(name=name, description=desc, building=b, radio=r, anchors=tuple(anchors),
-                    nodes=tuple(nodes), node_grid=grid)
+                    nodes=tuple(nodes), node_grid=grid, warnings=warnings)
+
+
+def _check_colocated(anchors: list[AnchorSpec]) -> None:
+    """Reject two anchors that stay within ``MIN_ANCHOR_SEPARATION_M`` of each other."""
+    if len(anchors) < 2:
+        return
+    t = np.linspace(0.0, _COLOCATION_HORIZON_S, 3601)
+    pos = np.stack([a.trajectory.position_m(t) for a in anchors])  # (M, T, 3)
+    for i in range(len(anchors)):
+        far = np.max(np.linalg.norm(pos[i + 1:] - pos[i], axis=-1), axis=-1)
+        close = np.flatnonzero(far < MIN_ANCHOR_SEPARATION_M)
+        if close.size:
+            j = i + 1 + int(close[0])
+            raise _fail(f"anchors[{j}]", f"anchor {anchors[j].id!r} is co-located with anchor "
+                        f"{anchors[i].id!r} (anchors[{i}]): within {MIN_ANCHOR_SEPARATION_M:g} m "
+                        f"of it over the first {_COLOCATION_HORIZON_S:g} s; a second anchor at "
+                        "the same place adds no geometry (move or remove one)")
+
+
+def _anchor_warnings(anchors: list[AnchorSpec]) -> tuple[str, ...]:
+    if len(anchors) < 3:
+        return (f"anchors: only {len(anchors)} anchor(s): no 3D fix is ever possible "
+                "(need 3 or more)",)
+    return ()
 
 
 def first_arrival_edge(scenario: Scenario, *, horizon_s: float = 60.0) -> tuple[str, str]:
