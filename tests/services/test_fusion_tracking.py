@@ -226,3 +226,9 @@ def test_the_v1_sample_still_replays_with_d_nls():
     assert r.report["settings"]["method"] == "dnls"
     assert r.estimates and all(type(e) is M.PositionEstimate for e in r.estimates)
     assert len(r.estimates) == len(r.live_estimates) > 0
+    # the report also scores every node-epoch after 2 s of truth (diffpos.metrics.score):
+    # 720 truth samples of 6 nodes at 10 Hz minus the first 2 s
+    ne, live_ne = r.report["node_epochs"], r.report["live"]["node_epochs"]
+    assert ne["node_epochs"] == live_ne["node_epochs"] == 720 - 6 * 20
+    assert ne["fixes"] <= ne["node_epochs"] and ne["availability"] > 0.5
+    assert ne["floor_accuracy_all"] <= ne["availability"]

@@ -12,11 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.metrics import error_stats, percentiles
+from diffpos.metrics import error_stats, percentiles, score
 from diffpos_services.recording.topics import natural_key
 from diffpos_services.wire import messages as M
 
-__all__ = ["TruthTracks", "compare_estimates", "evaluate", "gating_counts"]
+__all__ = ["TruthTracks", "compare_estimates", "evaluate", "gating_counts",
+           "node_epoch_accuracy"]
 
 
 @dataclass
@@ -173,3 +174,50 @@ def compare_estimates(
             for i in order
         ],
     }
+
+
+def node_epoch_accuracy(estimates: list[Any], truth: dict[str, TruthTracks], *,
+                        skip_s: float = 2.0) -> dict[str, Any]:
+    """Every node-epoch after the first ``skip_s`` of the truth: :func:`diffpos.metrics.score`.
+
+    The node-epochs are the recorded truth samples of every node (one per node and epoch of
+    an emulated run) from ``skip_s`` after the first one; a node-epoch's estimate is the fix of
+    that node whose ``t_ns`` falls in the same epoch (the truth sample spacing), if it has a
+    usable position (``GOOD_STATUSES``), else it is a miss (availability and floor accuracy
+    over all node-epochs count it). v1 and v2 estimates alike.
+
+    Returns
+    -------
+    dict
+        :meth:`diffpos.metrics.Score.as_dict` plus ``skip_s``; ``{}`` without truth.
+    """
+    tracks = {n: tr.arrays() for n, tr in truth.items() if tr.t_ns}
+    if not tracks:
+        return {}
+    t_all = np.unique(np.concatenate([t for t, _, _ in tracks.values()]))
+    period = int(np.min(np.diff(t_all))) if t_all.size > 1 else 0
+    if period <= 0:
+        return {}
+    start = int(t_all[0]) + round(skip_s * 1e9)
+    fixes: dict[tuple[str, int], Any] = {}
+    for e in estimates:
+        if e.position_m is not None and e.status in M.GOOD_STATUSES:
+            fixes[(e.node_id, e.t_ns // period)] = e
+    est, tru, e_floor, t_floor, cov = [], [], [], [], []
+    for node in sorted(tracks, key=natural_key):
+        tt, tp, tf = tracks[node]
+        for t, p, f in zip(tt.tolist(), tp, tf.tolist(), strict=True):
+            if t < start:
+                continue
+            e = fixes.get((node, t // period))
+            est.append(e.position_m if e is not None else (np.nan,) * 3)
+            cov.append(e.covariance_m2 if e is not None and e.covariance_m2 is not None
+                       else np.full((3, 3), np.nan))
+            e_floor.append(-1 if e is None or e.floor_index is None else e.floor_index)
+            tru.append(p)
+            t_floor.append(f)
+    if not est:
+        return {}
+    s = score(np.array(est, float), np.array(tru, float), estimate_floor=e_floor,
+              truth_floor=t_floor, covariance_m2=np.array(cov, float))
+    return s.as_dict() | {"skip_s": skip_s}

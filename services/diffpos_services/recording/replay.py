@@ -34,7 +34,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.config import METHODS, FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.kit import ConfigError, build_config
 from diffpos_services.recording.errors import RecordingError
@@ -43,6 +43,7 @@ from diffpos_services.recording.evaluate import (
     compare_estimates,
     evaluate,
     gating_counts,
+    node_epoch_accuracy,
 )
 from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.reader import McapScanner, RawMessage, SideRecords, side_records
@@ -193,8 +194,8 @@ def replay_settings(
         )
     base.update(overrides or {})
     if method is not None:
-        if method not in ("dnls", "lls", "ippa"):
-            raise ConfigError(f"--method {method!r}: choose dnls, lls or ippa")
+        if method not in METHODS:
+            raise ConfigError(f"--method {method!r}: choose {', '.join(METHODS)}")
         base["method"] = method
     if "site" not in base and site is not None:
         base["site"] = site
@@ -257,7 +258,7 @@ class _Recorded:
     t_first: int | None = None
     t_last: int | None = None
 
-    _dec_est = staticmethod(M.decoder(M.PositionEstimate))
+    _dec_est = staticmethod(M.estimate_decoder())  # v2, or v1 in older recordings
     _dec_truth = staticmethod(M.decoder(M.GroundTruth))
 
     @property
@@ -440,6 +441,7 @@ def _report(
         "nodes": sorted({e.node_id for e in out} | set(rec.truth), key=natural_key),
         "anchors": sorted(core.anchors, key=natural_key),
         "accuracy": accuracy,
+        "node_epochs": node_epoch_accuracy(out, rec.truth),
         "gating": gating_counts(out),
         "live": None
         if live_accuracy is None
@@ -447,6 +449,7 @@ def _report(
             "fixes": len(live),
             "by_status": dict(sorted(Counter(e.status for e in live).items())),
             "accuracy": live_accuracy,
+            "node_epochs": node_epoch_accuracy(live, rec.truth),
             "gating": gating_counts(live),
         },
         "compare": compare_estimates(live, out) if live else None,
@@ -489,7 +492,7 @@ def replay(
     overrides : dict, optional
         FusionConfig fields to change (e.g. ``{"gating": False}``,
         ``{"false_alarm_probability": 1e-4}``); applied on top of the recorded settings.
-    method : {"dnls", "lls", "ippa"}, optional
+    method : {"mnls", "dnls", "lls", "ippa"}, optional
         Estimator (``FusionConfig.method``; default: the recorded setting, else D-NLS).
         Overrides a ``method`` in ``overrides``.
     step_ms : float [ms]
