@@ -11,9 +11,9 @@ names the field and the limit):
 
 - every coordinate (anchor and node positions along their whole trajectory, ``center_x_m``,
   ``first_floor_z_m``, partition spans) within ``|c| <= 100 km`` (:data:`MAX_COORDINATE_M`);
-- every building dimension (``width_m``, ``depth_m``, ``floor_height_m``, ``sill_height_m``,
-  ``window_height_m``, wall/slab/partition thicknesses) and the total height
-  ``n_floors * floor_height_m`` at most 10 km (:data:`MAX_BUILDING_SIZE_M`);
+- every building dimension (``width_m``, ``depth_m``, ``floor_height_m``, wall/slab/partition
+  thicknesses) and the total height ``n_floors * floor_height_m`` at most 10 km
+  (:data:`MAX_BUILDING_SIZE_M`; ``sill_height_m + window_height_m`` must fit in a floor);
 - ``n_floors`` in [1, 200] (:data:`MAX_FLOORS`);
 - two anchors whose positions stay within 1 cm of each other (:data:`MIN_ANCHOR_SEPARATION_M`)
   over the first hour are co-located: rejected, naming both ids (they add no geometry).
@@ -571,8 +571,8 @@ def _parse_building(d: Mapping[str, Any]) -> Building:
         raise _fail(f"{path}.floor_height_m",
                     f"n_floors * floor_height_m = {nf * fh:g} m exceeds the building height "
                     f"limit {size:g} m")
-    sill = n("sill_height_m", lo=0.0, hi=size)
-    w = n("window_height_m", lo=0.0, lo_open=True, hi=size)
+    sill = n("sill_height_m", lo=0.0)  # sill + window <= floor height <= 10 km (below)
+    w = n("window_height_m", lo=0.0, lo_open=True)
     if sill + w > fh:
         raise _fail(f"{path}.window_height_m",
                     f"sill_height_m + window_height_m = {sill + w:g} m exceeds floor_height_m = "
