@@ -50,6 +50,21 @@ class Child:
     rss_mb: float
 
 
+#: ``diffpos solve`` in a process that reports its own peak RSS (VmHWM of its address space
+#: after exec) on stderr at exit. ``wait4``'s ``ru_maxrss`` is no good here: Linux carries the
+#: forked pytest's high-water mark (hundreds of MB late in a run) across the exec.
+_HWM_TAG = "\nVmHWM_kB "
+_REPORT_HWM = (
+    "import atexit, sys\n"
+    "from diffpos_services.cli.main import main\n"
+    "def _hwm():\n"
+    "    kb = [ln.split()[1] for ln in open('/proc/self/status') if ln.startswith('VmHWM:')]\n"
+    f"    sys.stderr.write({_HWM_TAG!r} + kb[0] + '\\n')\n"
+    "atexit.register(_hwm)\n"
+    "sys.exit(main(sys.argv[1:]))\n"
+)
+
+
 def _cap_memory() -> None:  # runs in the child before exec
     resource.setrlimit(resource.RLIMIT_AS, (AS_LIMIT, AS_LIMIT))
 
@@ -58,7 +73,8 @@ def run_solve(chunks: Iterator[bytes], *argv: str) -> Child:
     """Feed ``chunks`` to ``diffpos solve ARGV`` on stdin (from a thread, never all in memory
     here); the results and the child's own CPU time and peak RSS."""
     with tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen([str(EXE), "solve", *argv], stdin=subprocess.PIPE,
+        proc = subprocess.Popen([sys.executable, "-c", _REPORT_HWM, "solve", *argv],
+                                stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, stderr=err, preexec_fn=_cap_memory)
 
         def feed() -> None:
@@ -82,9 +98,10 @@ def run_solve(chunks: Iterator[bytes], *argv: str) -> Child:
         proc.returncode = os.waitstatus_to_exitcode(status)
         err.seek(0)
         text = err.read().decode(errors="replace")
+    text, _, hwm = text.rpartition(_HWM_TAG)
     return Child(rc=proc.returncode, records=[json.loads(x) for x in out.splitlines()],
                  stderr=text, cpu_s=usage.ru_utime + usage.ru_stime,
-                 rss_mb=usage.ru_maxrss / 1024)
+                 rss_mb=int(hwm.split()[0]) / 1024)
 
 
 def _anchors(m: int, rng: np.random.Generator) -> np.ndarray:
