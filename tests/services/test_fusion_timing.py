@@ -161,9 +161,6 @@ def _lagging(lag_ns: dict[str, int]):
     return arrival
 
 
-@pytest.mark.xfail(strict=True, reason="needs FusionCore._time_reference on the second "
-                   "newest fresh anchor time instead of the lower median (core.py, issue 15 "
-                   "item 2 report); remove this mark with that change")
 def test_anchors_lagging_by_seconds_do_not_make_the_others_implausible(caplog):
     """Two anchors 5 s behind: the two on time must not be rejected as ``time_future``
     against a reference taken from the lagging ones (issue 15 item 2: 30 "anchor clock

@@ -46,7 +46,9 @@ EPOCHS = 30
 
 
 def _config(**kw) -> FusionConfig:
-    return FusionConfig.from_scenario(SC, site="t", epoch_period_s=0.1, **kw)
+    """The tracked fusion (mnls + tracking) unless ``kw`` names another method."""
+    return FusionConfig.from_scenario(SC, site="t", epoch_period_s=0.1,
+                                      **{"method": "mnls", **kw})
 
 
 def _inputs(epochs: int = EPOCHS, *, dark: dict[str, int] | None = None, seed: int = 0):

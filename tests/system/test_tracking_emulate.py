@@ -40,7 +40,8 @@ def _recorded(path):
 def test_lockstep_emulate_tracks_every_responder(services, tmp_path):
     summary_path = tmp_path / "summary.json"
     mcap = tmp_path / "run.mcap"
-    p = services.start("emulate", "emulate", "--duration", "5", "--speed", "0",
+    p = services.start("emulate", "emulate", "--method", "mnls", "--duration", "5",
+                       "--speed", "0",
                        "--record", str(mcap), "--dashboard", "off", "--json", str(summary_path),
                        "--no-progress", "--log-dir", str(tmp_path / "logs"))
     rc = p.wait(timeout=600)

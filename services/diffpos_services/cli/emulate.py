@@ -90,8 +90,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=METHODS, default=None,
                         help=f"the fusion's estimator (default {DEFAULT_METHOD}, as diffpos "
                         "fusion): mnls = the first-arrival model of every mechanism + a tracker "
-                        "per responder (needs lockstep, --speed 0, to keep up on 2 cores); dnls = "
-                        "the paper's window-edge D-NLS with gating; lls, ippa = the baselines")
+                        "per responder (needs lockstep, --speed 0, to keep up on 2 cores: diffpos "
+                        "emulate --method mnls --speed 0); dnls = the paper's window-edge D-NLS "
+                        "with gating; lls, ippa = the baselines")
     parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes")
     parser.add_argument("--endpoint", metavar="ENDPOINT",
                         help="router endpoint (default tcp/127.0.0.1:<free port>; with "

@@ -46,7 +46,7 @@ from diffpos_services.reports.replay import plot_cdf
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.mcap", help="recording to replay")
     g = parser.add_argument_group("what if (fusion settings)")
-    g.add_argument("--method", choices=["dnls", "lls", "ippa"], default=None,
+    g.add_argument("--method", choices=["dnls", "mnls", "lls", "ippa"], default=None,
                    help="estimator (default: the recorded setting, else dnls): dnls (the "
                         "fusion's D-NLS), lls (LoS linear least "
                         "squares), ippa (iterative parallel projection)")

@@ -35,7 +35,9 @@ __all__ = ["DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig", "building_of", 
 #: The estimators of the solve step (``--method``).
 METHODS = ("mnls", "dnls", "lls", "ippa")
 #: What ``diffpos fusion``, :meth:`FusionConfig.from_scenario` and ``diffpos emulate`` run.
-DEFAULT_METHOD = "mnls"
+#: D-NLS keeps up in real time on 2 cores; ``mnls`` (+ the tracker) is far more accurate per
+#: node-epoch but costs 30-500 ms CPU per fix, so it needs lockstep (``--speed 0``) there.
+DEFAULT_METHOD = "dnls"
 
 #: The window edges of the path model (``--edge``).
 EDGES = ("upper", "lower", "auto")
@@ -231,8 +233,8 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
                       **overrides: Any) -> FusionConfig:
         """The fusion's configuration for ``scenario``'s building, with ``overrides``.
 
-        The method is :data:`DEFAULT_METHOD` (``mnls`` with tracking) unless ``overrides``
-        name one.
+        The method is :data:`DEFAULT_METHOD` (``dnls``) unless ``overrides`` name one
+        (``method="mnls"``: the first-arrival model with the per-responder tracker).
 
         Parameters
         ----------

@@ -146,7 +146,7 @@ class FusionCore:
         return None
 
     def _time_reference(self, now_wall_ns: int) -> int | None:
-        """Consensus measurement time: the lower median of the newest accepted times of the
+        """Consensus measurement time: the second newest of the newest accepted times of the
         anchors that delivered within the last 2 s (wall), if at least 3 did; else None."""
         if self._tref_dirty or now_wall_ns - self._tref_wall_ns > 100_000_000:
             fresh = sorted(
@@ -154,7 +154,7 @@ class FusionCore:
                 if a.alive and a.last_t_ns is not None
                 and now_wall_ns - a.last_rx_wall_ns <= 2_000_000_000
             )
-            self._tref = fresh[(len(fresh) - 1) // 2] if len(fresh) >= 3 else None
+            self._tref = fresh[-2] if len(fresh) >= 3 else None
             self._tref_dirty = False
             self._tref_wall_ns = now_wall_ns
         return self._tref

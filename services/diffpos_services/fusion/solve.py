@@ -35,6 +35,11 @@ __all__ = ["GOOD_STATUS", "Batch", "Prepared", "Results", "exclusion_groups", "g
 _NEG = -(2**62)
 #: statuses of a usable fix (a position is published and the node's track updated)
 GOOD_STATUS = (int(FixStatus.OK), int(FixStatus.OK_UNVERIFIED))
+#: Fastest plausible node (a responder running) [m/s]. A track velocity above it comes from a
+#: wrong fix (an unverified LLS/IPPA fix hundreds of metres off): it is neither extrapolated
+#: nor used for motion compensation, which would shift the ranges by (J . v) dt, e.g.
+#: 4.4 km/s x 25 ms = 110 m, turning 24 m ranges negative (issue 15, item 14).
+MAX_TRACK_SPEED_M_S = 15.0
 # fixed exclusion reasons by code (see exclusion_groups); 3 = the estimator's reason
 _FIXED = {1: "NOT_DETECTED", 2: "NO_ANCHOR_STATE", 4: "NOT_USED", 5: "ANCHOR_LOST",
           6: "NOT_REPORTED"}
@@ -181,8 +186,8 @@ def _start_points(epochs: list[PendingEpoch], tracks: Any, t_ref: np.ndarray,
         tr = tracks.get(pe.node_id)
         if tr is not None and tr.t_ns is not None and abs(t_ref[i] - tr.t_ns) <= max_age:
             dt = (t_ref[i] - tr.t_ns) * 1e-9
-            if tr.vel is not None:
-                v = tr.vel
+            v = tr.vel
+            if v is not None and sum(u * u for u in v) <= MAX_TRACK_SPEED_M_S**2:
                 vel[i], has_vel[i] = v, True
                 x0[i] = [p + u * dt for p, u in zip(tr.pos, v, strict=True)]
             else:
