@@ -221,13 +221,15 @@ def _method(ests: Iterable[Any]) -> str:
 
 # ----------------------------------------------------------------------------- runs
 def emulate_cmd(scenario: str | None, *, out: Path, duration_s: float, seed: int,
-                channel: str = "emulator") -> list[str]:
+                channel: str = "emulator", methods: list[str] | None = None) -> list[str]:
     exe = Path(sys.executable).parent / "diffpos"
     cmd = [str(exe) if exe.exists() else "diffpos", "emulate"]
     if scenario is not None:
         cmd.append(scenario)
+    method = ["--method", *methods] if methods else []
     return [*cmd, "--speed", "0", "--duration", f"{duration_s:g}", "--seed", str(seed),
-            "--channel", channel, "--dashboard", "off", "--no-progress", "--record", str(out)]
+            "--channel", channel, *method, "--dashboard", "off", "--no-progress",
+            "--record", str(out)]
 
 
 def runs(tmp: Path, names: list[str] | None) -> dict[str, tuple[str | None, str]]:
@@ -285,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="6 s runs of default, tall-floors and anchors-beyond-ends")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     ap.add_argument("--keep", metavar="DIR", help="keep the recordings in DIR")
+    ap.add_argument("--method", choices=["dnls", "mnls", "lls", "ippa"], default=None,
+                    help="the fusion's estimator (default: diffpos emulate's default, dnls)")
     args = ap.parse_args(argv)
     duration = 6.0 if args.quick else args.duration
     only = args.only or (["default", "tall-floors", "anchors-beyond-ends"] if args.quick else None)
@@ -297,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
             out = tmp / f"{name}.mcap"
             out.unlink(missing_ok=True)
             cmd = emulate_cmd(scenario, out=out, duration_s=duration, seed=args.seed,
-                              channel=channel)
+                              channel=channel, methods=[args.method] if args.method else None)
             commands[name] = shlex.join(cmd)
             print(f"# {name}: {commands[name]}", file=sys.stderr, flush=True)
             t = time.perf_counter()
