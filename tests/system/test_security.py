@@ -347,7 +347,8 @@ def test_acl_publish_matrix_matches_key_table(tmp_path):
                 k.anchor_range_batch("uav1"), k.anchor_range_batch("uav2"),
                 k.truth_node("n1"), k.truth_anchor("uav1"), k.run_control(), k.run_clock()]
         alive = [(k.alive_anchor("uav1"), "anchor-uav1"), (k.alive_anchor("uav2"), "anchor-uav2"),
-                 (k.alive_fusion(), "fusion"), (k.alive_recorder(), "recorder")]
+                 (k.alive_fusion(), "fusion"), (k.alive_recorder(), "recorder"),
+                 (k.alive_dashboard(), "dashboard")]
         # every kind of key of keys.py's table is covered (a new key needs its ACL rule)
         assert {parse_key(x).kind for x in [*keys, *(t for t, _ in alive)]} == set(get_args(KeyKind))
         for key in keys:
