@@ -19,7 +19,7 @@ more processes watched)::
     python benchmarks/bench_soak.py --load 16x200 --duration 600 --json soak.json
     python benchmarks/bench_soak.py --load 16x50 --duration 60          # the CI size
 
-``tests/test_soak.py`` runs :func:`run_soak` for 60 s and asserts zero loss and bounded RSS.
+``tests/system/test_soak.py`` runs :func:`run_soak` for 60 s and asserts zero loss and bounded RSS.
 """
 
 from __future__ import annotations
