@@ -30,40 +30,19 @@ from pathlib import Path
 import numpy as np
 
 from diffpos.channel import emulate_channel, first_arrival
+from diffpos.emulation import responders
 from diffpos.scenario import AnchorSpec, Building, NodeSpec, Scenario, default_scenario
 from diffpos.tracking import TrackerConfig, init_state, update
-from diffpos.trajectory import Static, trajectory_from_dict
+from diffpos.trajectory import Static
 
 ROOT = Path(__file__).resolve().parents[1]
 CHI2_3_95 = 7.814727903251178
 
 
-def responders(building, *, count: int = 6, seed: int = 0, speed_m_s: float = 1.2):
-    """Copy of ``diffpos_services.anchor.responders`` (walk, stairs one floor, walk back)."""
-    rng = np.random.default_rng(seed)
-    b = building
-    x_lo, x_hi = b.edge_x_m
-    h = b.nominal_node_height_m
-    out = []
-    for i in range(count):
-        f0 = i % b.n_floors
-        f1 = f0 + 1 if f0 + 1 < b.n_floors else f0 - 1
-        z0 = float(b.floor_z_m(f0)) + h
-        z1 = float(b.floor_z_m(f1)) + h
-        y = float(rng.uniform(1.5, min(b.depth_m - 1.0, 10.0)))
-        xa = float(rng.uniform(x_lo + 8.0, x_hi - 12.0))
-        xs = x_hi - 4.0
-        pts = [[xa, y, z0], [xs, y, z0], [xs, y + 2.0, z0], [xs - 6.0, y + 2.0, z1],
-               [xa, y + 2.0, z1]]
-        traj = trajectory_from_dict({"kind": "waypoints", "points_m": pts,
-                                     "speed_m_s": speed_m_s, "loop": True})
-        out.append(NodeSpec(f"r{i + 1:02d}", traj))
-    return tuple(out)
-
-
 def _with_responders(sc: Scenario, count: int = 6, seed: int = 0) -> Scenario:
     return dataclasses.replace(sc, node_grid=None,
-                               nodes=responders(sc.building, count=count, seed=seed))
+                               nodes=tuple(NodeSpec(i, tr) for i, tr in
+                                           responders(sc.building, count=count, seed=seed)))
 
 
 def _anchors(points) -> tuple:
