@@ -13,6 +13,7 @@ print it as one line.
 
 from __future__ import annotations
 
+import logging
 import os
 import tomllib
 from pathlib import Path
@@ -30,6 +31,9 @@ __all__ = [
 
 #: The shipped ``scenarios/`` (packaged copy in a wheel, the repository's in a checkout).
 SCENARIO_DIR = scenario_dir()
+
+
+_LOG = logging.getLogger("diffpos.scenario")
 
 
 def load_scenario(path: str | os.PathLike[str]) -> Scenario:
@@ -71,6 +75,9 @@ def scenario_from_toml(data: str | bytes, *, source: str) -> Scenario:
     ScenarioError
         ``"<source>: ..."`` for bytes that are not UTF-8, a TOML syntax error or an invalid
         field.
+
+    Every validation warning of the scenario (e.g. fewer than 3 anchors: no fix is ever
+    possible) is logged as a WARNING of the ``diffpos.scenario`` logger, naming ``source``.
     """
     if isinstance(data, bytes | bytearray | memoryview):
         try:
@@ -82,9 +89,12 @@ def scenario_from_toml(data: str | bytes, *, source: str) -> Scenario:
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{source}: TOML syntax error: {exc}") from None
     try:
-        return Scenario.from_dict(doc)
+        scenario = Scenario.from_dict(doc)
     except ScenarioError as exc:
         raise ScenarioError(f"{source}: {exc}") from None
+    for warning in scenario.warnings:  # valid, but useless for fixing (the core prints nothing)
+        _LOG.warning("%s: %s", source, warning)
+    return scenario
 
 
 def resolve_scenario(path: str | os.PathLike[str]) -> Path:

@@ -4,9 +4,10 @@ when no fix is ever possible (issue 15, item 13)."""
 from __future__ import annotations
 
 import copy
+import logging
 
 import pytest
-from diffpos_services.scenario_io import SCENARIO_DIR, load_scenario
+from diffpos_services.scenario_io import SCENARIO_DIR, load_scenario, scenario_from_toml
 
 from diffpos.scenario import (
     MAX_BUILDING_SIZE_M,
@@ -121,3 +122,18 @@ def test_shipped_scenarios_stay_valid_without_warnings():
     # warnings are not part of the value (round trip and equality unchanged)
     s = default_scenario()
     assert Scenario.from_dict(s.to_dict()) == s
+
+
+def test_loader_logs_the_scenarios_warnings(caplog):
+    """A valid scenario with two anchors loads, and the loader says why it is useless."""
+    lines = (SCENARIO_DIR / "paper.toml").read_text().splitlines(keepends=True)
+    starts = [i for i, ln in enumerate(lines) if ln.startswith("[[anchors]]")]
+    assert len(starts) == 4
+    # drop the last two anchor tables: keep up to the third, then skip to the next table
+    nxt = next(i for i in range(starts[3] + 1, len(lines)) if lines[i].startswith("["))
+    two = "".join(lines[: starts[2]] + lines[nxt:])
+    with caplog.at_level(logging.WARNING, logger="diffpos.scenario"):
+        sc = scenario_from_toml(two, source="two.toml")
+    assert len(sc.anchors) == 2 and sc.warnings
+    assert any(r.getMessage().startswith("two.toml: ") and "anchor" in r.getMessage()
+               for r in caplog.records), caplog.text
