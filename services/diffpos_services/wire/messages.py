@@ -474,6 +474,12 @@ def decoder(kind: type[msgspec.Struct]):
         # decoding the struct alone would accept a message without one
         target = kind | _Untagged if issubclass(kind, _Msg) else kind
         dec = _DECODERS[kind] = msgspec.json.Decoder(target)
+    return _checked_decode(dec, (kind,))
+
+
+def _checked_decode(dec: msgspec.json.Decoder, accepted: tuple[type, ...]):
+    """``bytes -> message`` through ``dec``, every failure a :class:`DecodeError`, and a
+    message of another type than ``accepted`` (the never-sent sentinel) rejected."""
 
     def decode(payload: bytes | bytearray | memoryview) -> Any:
         try:
@@ -485,7 +491,7 @@ def decoder(kind: type[msgspec.Struct]):
         except RecursionError:
             # msgspec skips unknown fields recursively: ~1000 nested arrays exhaust the stack
             raise DecodeError("json", "JSON nested too deeply") from None
-        if type(msg) is not kind:
+        if type(msg) not in accepted:
             raise DecodeError("schema", f"Invalid value {_Untagged.__struct_config__.tag!r} - "
                               "at `$.schema`")
         return msg
@@ -501,22 +507,7 @@ def estimate_decoder():
     if dec is None:
         dec = _DECODERS[PositionEstimateV2 | PositionEstimate] = msgspec.json.Decoder(
             PositionEstimate | PositionEstimateV2 | _Untagged)
-
-    def decode(payload: bytes | bytearray | memoryview) -> Any:
-        try:
-            msg = dec.decode(payload)
-        except msgspec.ValidationError as exc:
-            raise DecodeError("schema", str(exc)) from None
-        except msgspec.DecodeError as exc:
-            raise DecodeError("json", str(exc)) from None
-        except RecursionError:
-            raise DecodeError("json", "JSON nested too deeply") from None
-        if type(msg) not in ESTIMATE_TYPES:
-            raise DecodeError("schema", f"Invalid value {_Untagged.__struct_config__.tag!r} - "
-                              "at `$.schema`")
-        return msg
-
-    return decode
+    return _checked_decode(dec, ESTIMATE_TYPES)
 
 
 def schema_filename(kind: type[msgspec.Struct]) -> str:
