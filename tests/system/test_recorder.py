@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import queue
 import signal
 import subprocess
 import sys
@@ -27,6 +26,7 @@ from diffpos_services.recording.reader import JsonDecoderFactory
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 from mcap.reader import make_reader
+from service_proc import ServiceProc
 
 pytestmark = pytest.mark.slow
 SITE = "rt"
@@ -34,48 +34,8 @@ K = Keys(SITE)
 TIMEOUT_S = 30.0
 
 
-class _Proc:
-    """A child process in its own group whose stdout JSON lines are collected by a thread."""
-
-    def __init__(self, argv: list[str]) -> None:
-        env = dict(os.environ, DIFFPOS_LOG_FORMAT="json", DIFFPOS_LOG_LEVEL="warning")
-        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  text=True, start_new_session=True, env=env)
-        self.lines: queue.Queue = queue.Queue()
-        self.stderr: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-        threading.Thread(target=lambda: self.stderr.extend(self.p.stderr), daemon=True).start()
-
-    def _read(self) -> None:
-        for line in self.p.stdout:
-            try:
-                self.lines.put(json.loads(line))
-            except ValueError:
-                self.lines.put({"event": "text", "line": line})
-        self.lines.put(None)
-
-    def wait_event(self, pred) -> dict:
-        """Block until a status line satisfies ``pred`` (fails if the process exits first)."""
-        last = None
-        while True:
-            try:
-                ev = self.lines.get(timeout=TIMEOUT_S)
-            except queue.Empty:
-                pytest.fail(f"no matching status line within {TIMEOUT_S} s; last: {last}; "
-                            "stderr: " + "".join(self.stderr)[-2000:])
-            if ev is None:
-                pytest.fail("process exited; stderr: " + "".join(self.stderr)[-2000:])
-            if pred(ev):
-                return ev
-            last = ev
-
-    def kill(self) -> None:
-        if self.p.poll() is None:
-            try:
-                os.killpg(self.p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        self.p.wait(timeout=TIMEOUT_S)
+def _Proc(argv: list[str]) -> ServiceProc:
+    return ServiceProc(argv, timeout_s=TIMEOUT_S)
 
 
 @pytest.fixture
@@ -83,7 +43,7 @@ def bus(endpoint):
     """A Python Zenoh router on a free loopback port (conftest ``endpoint``); yields it."""
     ep = endpoint
     router = _Proc([sys.executable, "-m", "diffpos_services.cli.main", "router", "--listen", ep])
-    procs: list[_Proc] = [router]
+    procs: list[ServiceProc] = [router]
     yield ep, procs
     for p in reversed(procs):
         p.kill()

@@ -7,13 +7,9 @@ matching status, the "flush" status saying every message is on disk, the "closed
 
 from __future__ import annotations
 
-import json
 import os
-import queue
 import signal
-import subprocess
 import sys
-import threading
 from collections import Counter
 
 import pytest
@@ -24,6 +20,7 @@ from diffpos_services.recorder import build_command
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 from mcap.reader import make_reader
+from service_proc import ServiceProc
 
 pytestmark = pytest.mark.slow
 SITE = "sp"
@@ -31,45 +28,8 @@ K = Keys(SITE)
 TIMEOUT_S = 60.0
 
 
-class _Proc:
-    """A child in its own process group; stdout JSON lines collected by a thread."""
-
-    def __init__(self, argv: list[str]) -> None:
-        env = dict(os.environ, DIFFPOS_LOG_FORMAT="json", DIFFPOS_LOG_LEVEL="warning")
-        env.pop("DIFFPOS_ZENOH_CONFIG", None)
-        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  text=True, start_new_session=True, env=env)
-        self.lines: queue.Queue = queue.Queue()
-        self.stderr: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-        threading.Thread(target=lambda: self.stderr.extend(self.p.stderr), daemon=True).start()
-
-    def _read(self) -> None:
-        for line in self.p.stdout:
-            try:
-                self.lines.put(json.loads(line))
-            except ValueError:
-                self.lines.put({"event": "text", "line": line})
-        self.lines.put(None)
-
-    def wait_event(self, pred) -> dict:
-        while True:
-            try:
-                ev = self.lines.get(timeout=TIMEOUT_S)
-            except queue.Empty:
-                pytest.fail("no matching status line; stderr: " + "".join(self.stderr)[-2000:])
-            if ev is None:
-                pytest.fail("process exited; stderr: " + "".join(self.stderr)[-2000:])
-            if pred(ev):
-                return ev
-
-    def kill(self) -> None:
-        if self.p.poll() is None:
-            try:
-                os.killpg(self.p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-        self.p.wait(timeout=TIMEOUT_S)
+def _Proc(argv: list[str]) -> ServiceProc:
+    return ServiceProc(argv, timeout_s=TIMEOUT_S)
 
 
 @pytest.fixture
