@@ -56,6 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._kernels.paths_nb import eval_paths_kernel
 from .geometry import diffraction_point
 
 __all__ = [
@@ -354,6 +355,10 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
                         ) -> PathSet:
     """Lengths, existence and Jacobians of the first-arrival mechanisms (module docstring).
 
+    Computed by the compiled kernel :func:`diffpos._kernels.paths_nb.paths_kernel` (one loop
+    over node-anchor pairs and slots); :func:`_first_arrival_paths_numpy` is the numpy
+    reference it is tested against (same results to rounding, same existence).
+
     Parameters
     ----------
     nodes_m : array_like, shape (..., 3) [m]
@@ -372,6 +377,61 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
     Returns
     -------
     PathSet
+    """
+    rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots)
+    length, valid, jac, dev, outm, _ = eval_paths_kernel(*rows.args)
+    sh = (*rows.shape, rows.slots.shape[0])
+    return PathSet(length_m=length.reshape(sh), valid=valid.reshape(sh),
+                   jacobian=jac.reshape((*sh, 3)), floor=rows.floor,
+                   deviation_cos=dev.reshape(sh), outside_m=outm.reshape(sh))
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """Flat kernel inputs of one call (internal)."""
+
+    shape: tuple[int, ...]
+    floor: NDArray[np.int_]
+    slots: NDArray[np.int64]
+    args: tuple
+
+
+def _slot_array(slots: ArrayLike | None) -> NDArray[np.int64]:
+    k = len(MECHANISMS)
+    if slots is None:
+        return np.arange(k, dtype=np.int64)
+    sel = np.array([int(s) for s in np.ravel(slots)], dtype=np.int64)
+    if np.any((sel < -k) | (sel >= k)):
+        raise IndexError(f"slots must lie in [0, {k}) (MECHANISMS); got {sel.tolist()}")
+    return sel % k
+
+
+def _kernel_rows(nodes_m: ArrayLike, anchors_m: ArrayLike, building,
+                 floor: ArrayLike | None, slots: ArrayLike | None) -> _Rows:
+    """Broadcast nodes, anchors and floors to flat C-contiguous rows for the kernel."""
+    n = np.asarray(nodes_m, dtype=np.float64)
+    a = np.asarray(anchors_m, dtype=np.float64)
+    shape = np.broadcast_shapes(n.shape, a.shape)[:-1]
+    n = np.broadcast_to(n, (*shape, 3)).reshape(-1, 3).copy()
+    a = np.broadcast_to(a, (*shape, 3)).reshape(-1, 3).copy()
+    k = building.floor_index(n[:, 2].reshape(shape)) if floor is None else np.asarray(floor)
+    k = np.broadcast_to(k, shape)
+    z_f = np.array(building.floor_z_m(k), dtype=np.float64).reshape(-1)
+    z_c = z_f + building.floor_height_m
+    lo, hi = (np.array(v, dtype=np.float64).reshape(-1) for v in building.window_z_m(k))
+    x0, x1 = (float(v) for v in building.edge_x_m)
+    sel = _slot_array(slots)
+    if x0 == x1 and np.any(np.isin(sel, DIFFRACTION_SLOTS)):
+        raise ValueError("the window edge has zero length (edge_x_m equal)")
+    args = (n, a, z_f, z_c, lo, hi, x0, x1, float(building.depth_m), sel)
+    return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args)
+
+
+def _first_arrival_paths_numpy(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
+                               floor: ArrayLike | None = None,
+                               slots: ArrayLike | None = None) -> PathSet:
+    """The numpy reference of :func:`first_arrival_paths` (same arguments and results), built on
+    :func:`specular_path` and :func:`diffracted_path`; the tests hold the kernel to it.
     """
     n = np.asarray(nodes_m, dtype=np.float64)
     a = np.asarray(anchors_m, dtype=np.float64)
