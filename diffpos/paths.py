@@ -56,7 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._kernels.paths_nb import eval_paths_kernel
+from ._kernels.paths_nb import building_planes, eval_paths_kernel
 from .geometry import diffraction_point
 
 __all__ = [
@@ -409,21 +409,22 @@ def _slot_array(slots: ArrayLike | None) -> NDArray[np.int64]:
 def _kernel_rows(nodes_m: ArrayLike, anchors_m: ArrayLike, building,
                  floor: ArrayLike | None, slots: ArrayLike | None) -> _Rows:
     """Broadcast nodes, anchors and floors to flat C-contiguous rows for the kernel."""
+    sel = _slot_array(slots)
     n = np.asarray(nodes_m, dtype=np.float64)
     a = np.asarray(anchors_m, dtype=np.float64)
     shape = np.broadcast_shapes(n.shape, a.shape)[:-1]
-    n = np.broadcast_to(n, (*shape, 3)).reshape(-1, 3).copy()
-    a = np.broadcast_to(a, (*shape, 3)).reshape(-1, 3).copy()
-    k = building.floor_index(n[:, 2].reshape(shape)) if floor is None else np.asarray(floor)
+    rows_n = np.empty((*shape, 3))  # fresh C-contiguous writable copies: the one signature
+    rows_n[...] = n
+    rows_a = np.empty((*shape, 3))
+    rows_a[...] = a
+    k = building.floor_index(rows_n[..., 2]) if floor is None else np.asarray(floor)
     k = np.broadcast_to(k, shape)
-    z_f = np.array(building.floor_z_m(k), dtype=np.float64).reshape(-1)
-    z_c = z_f + building.floor_height_m
-    lo, hi = (np.array(v, dtype=np.float64).reshape(-1) for v in building.window_z_m(k))
-    x0, x1 = (float(v) for v in building.edge_x_m)
-    sel = _slot_array(slots)
-    if x0 == x1 and np.any(np.isin(sel, DIFFRACTION_SLOTS)):
+    k_f = np.empty(shape)
+    k_f[...] = k
+    planes = building_planes(building)
+    if planes[4] == planes[5] and np.any(np.isin(sel, DIFFRACTION_SLOTS)):
         raise ValueError("the window edge has zero length (edge_x_m equal)")
-    args = (n, a, z_f, z_c, lo, hi, x0, x1, float(building.depth_m), sel)
+    args = (rows_n.reshape(-1, 3), rows_a.reshape(-1, 3), k_f.reshape(-1), planes, sel)
     return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args)
 
 

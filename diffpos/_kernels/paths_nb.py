@@ -32,7 +32,8 @@ import time
 import numpy as np
 from numba import njit, types
 
-__all__ = ["N_SLOTS", "SIGNATURE", "eval_paths_kernel", "paths_kernel", "warm_paths"]
+__all__ = ["N_SLOTS", "SIGNATURE", "building_planes", "eval_paths_kernel", "paths_kernel",
+           "warm_paths"]
 
 #: Slot recipes, the compiled twin of ``diffpos.paths._RECIPES`` (a test checks they agree).
 #: kind: 0 direct, 1 specular, 2 diffraction. Plane codes: 0 floor, 1 ceiling, 2 back,
@@ -52,7 +53,8 @@ _f8_1d = types.float64[::1]
 #: The one compiled signature of :func:`paths_kernel`.
 SIGNATURE = types.void(
     _f8_2d, _f8_2d,  # nodes (P, 3), anchors (P, 3)
-    _f8_1d, _f8_1d, _f8_1d, _f8_1d,  # z_floor, z_ceil, win_lo, win_hi (P,)
+    _f8_1d,  # floor index of every row (P,), as float64
+    types.float64, types.float64, types.float64, types.float64,  # first floor z, H, sill, w
     types.float64, types.float64, types.float64,  # x0, x1, depth
     types.int64[::1],  # slots (S,)
     types.boolean, types.boolean,  # raw, want_jac
@@ -222,14 +224,22 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth):
 
 
 @njit(**_OPTS)
-def paths_kernel(nodes, anchors, z_floor, z_ceil, win_lo, win_hi, x0, x1, depth, slots, raw,
-                 want_jac, length, valid, jac, dev, outm, entry_z):
-    """Every requested slot for every row (module docstring); writes the output arrays."""
+def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, depth, slots,
+                 raw, want_jac, length, valid, jac, dev, outm, entry_z):
+    """Every requested slot for every row (module docstring); writes the output arrays.
+
+    The planes of row ``p`` are those of ``Building.floor_z_m`` / ``window_z_m`` with the same
+    operations: ``z_f = first_z + floor[p] * floor_h``, ceiling ``z_f + floor_h``, window band
+    ``[z_f + sill, z_f + sill + win_h]``.
+    """
     nan = np.nan
     for p in range(nodes.shape[0]):
         a0, a1, a2 = anchors[p, 0], anchors[p, 1], anchors[p, 2]
         n0, n1, n2 = nodes[p, 0], nodes[p, 1], nodes[p, 2]
-        zf, zc, lo, hi = z_floor[p], z_ceil[p], win_lo[p], win_hi[p]
+        zf = first_z + floor[p] * floor_h
+        zc = zf + floor_h
+        lo = zf + sill
+        hi = lo + win_h
         for j in range(slots.shape[0]):
             s = slots[j]
             kind = _KIND[s]
@@ -290,14 +300,14 @@ def warm_paths() -> float:
     return time.perf_counter() - t0
 
 
-def eval_paths_kernel(nodes: np.ndarray, anchors: np.ndarray, z_floor: np.ndarray,
-                      z_ceil: np.ndarray, win_lo: np.ndarray, win_hi: np.ndarray, x0: float,
-                      x1: float, depth: float, slots: np.ndarray, *, raw: bool = False,
-                      want_jac: bool = True) -> tuple[np.ndarray, ...]:
+def eval_paths_kernel(nodes: np.ndarray, anchors: np.ndarray, floor: np.ndarray,
+                      building_planes: tuple[float, ...], slots: np.ndarray, *,
+                      raw: bool = False, want_jac: bool = True) -> tuple[np.ndarray, ...]:
     """Allocate the outputs and run the kernel on flat rows.
 
-    ``nodes``, ``anchors``: C-contiguous writable float64 ``(P, 3)``; the four plane arrays
-    float64 ``(P,)``; ``slots`` int64 ``(S,)`` with values in ``[0, 18)``. Returns
+    ``nodes``, ``anchors``: C-contiguous writable float64 ``(P, 3)``; ``floor``: float64
+    ``(P,)`` floor index per row; ``building_planes``: :func:`building_planes` of the building;
+    ``slots`` int64 ``(S,)`` with values in ``[0, 18)``. Returns
     ``(length (P, S), valid (P, S), jac (P, S, 3), deviation_cos, outside_m, entry_z)``; with
     ``want_jac=False`` the last three float outputs except ``entry_z`` are uninitialised.
     """
@@ -309,7 +319,15 @@ def eval_paths_kernel(nodes: np.ndarray, anchors: np.ndarray, z_floor: np.ndarra
     dev = np.empty((p, s) if want_jac else (0, 0))
     outm = np.empty((p, s) if want_jac else (0, 0))
     entry_z = np.empty((p, s))
-    paths_kernel(nodes, anchors, z_floor, z_ceil, win_lo, win_hi, float(x0), float(x1),
-                 float(depth), slots, bool(raw), bool(want_jac), length, valid, jac, dev, outm,
-                 entry_z)
+    paths_kernel(nodes, anchors, floor, *building_planes, slots, bool(raw), bool(want_jac),
+                 length, valid, jac, dev, outm, entry_z)
     return length, valid, jac, dev, outm, entry_z
+
+
+def building_planes(building) -> tuple[float, ...]:
+    """The building's scalars the kernel needs, in argument order: first floor z, floor
+    height, sill height, window height, edge x0, x1, depth [m]."""
+    x0, x1 = building.edge_x_m
+    return (float(building.first_floor_z_m), float(building.floor_height_m),
+            float(building.sill_height_m), float(building.window_height_m), float(x0),
+            float(x1), float(building.depth_m))

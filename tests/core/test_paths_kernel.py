@@ -167,12 +167,10 @@ def test_raw_mode_gives_unmasked_geometry_and_band_free_existence() -> None:
     relax = 0.05
     fr = FloorFrame.from_building(b, floors)
     loose = dataclasses.replace(fr, win_lo=fr.win_lo - relax, win_hi=fr.win_hi + relax)
-    zf = b.floor_z_m(floors)
     lo, hi = b.window_z_m(floors)
-    x0, x1 = b.edge_x_m
     slots = np.arange(18, dtype=np.int64)
     length, ok, jac, dev, _, entry_z = paths_nb.eval_paths_kernel(
-        nodes.copy(), anchors.copy(), zf, zf + b.floor_height_m, lo, hi, x0, x1, b.depth_m,
+        nodes.copy(), anchors.copy(), floors.astype(np.float64), paths_nb.building_planes(b),
         slots, raw=True)
     with np.errstate(invalid="ignore"):
         widened = ok & (entry_z > lo[:, None] - relax) & (entry_z < hi[:, None] + relax)
@@ -215,4 +213,7 @@ def test_one_compiled_signature_and_idempotent_warm_up() -> None:
     nodes = np.broadcast_to(np.array([1, 5, 8]), (4, 3))
     first_arrival_paths(nodes, np.array([[0.0, -10.0, 5.0]]), b, floor=np.int32(1))
     first_arrival_paths(nodes.astype(np.float32), np.array([0.0, -10.0, 5.0]), b, slots=[3])
+    ro = np.array([[1.0, 5.0, 8.5]])
+    ro.flags.writeable = False
+    first_arrival_paths(ro, ro * [1, -1, 1], b, floor=np.broadcast_to(np.float64(2), (1,)))
     assert len(paths_nb.paths_kernel.signatures) == 1
