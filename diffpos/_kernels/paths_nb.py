@@ -113,13 +113,13 @@ def _direct(a0, a1, a2, n0, n1, n2, x0, x1):
     zc = a2 + t * d2
     xc = a0 + t * d0
     ok = (xc > x0) and (xc < x1)
-    return length, ok, zc, d0 / length, d1 / length, d2 / length
+    return length, ok, zc, d0, d1, d2, 1.0, 1.0, 1.0
 
 
 @njit(**_OPTS)
 def _specular(a0, a1, a2, n0, n1, n2, ground, pl0, pl1, zf, zc, x0, x1, depth):
     """paths.specular_path for <= 2 planes: length, ok (without the entry's band test),
-    entry z, Jacobian."""
+    entry z, unfolded ray ``d`` and the mirror signs (Jacobian ``d / length * sign``)."""
     s0, s1, s2 = a0, a1, a2
     if ground:
         s2 = 2.0 * 0.0 - a2
@@ -161,13 +161,14 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, pl0, pl1, zf, zc, x0, x1, depth):
         c0, c1, c2 = _mirror(c0, c1, c2, ax, c)
         t_last = t
     ok = ok and math.isfinite(length)
-    return length, ok, ez, d0 / length * g0, d1 / length * g1, d2 / length * g2
+    return length, ok, ez, d0, d1, d2, g0, g1, g2
 
 
 @njit(**_OPTS)
-def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth):
+def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth, edge):
     """paths.diffracted_path (geometry.diffraction_point on the edge ``y = 0, z = z_e``):
-    length, ok, Jacobian, deviation cosine, anchor -> diffraction point length."""
+    length, ok, Jacobian, deviation cosine, anchor -> diffraction point length. ``edge``:
+    :func:`_edge_axis` (length and unit vector of the edge, the same for every row)."""
     o0, o1, o2 = n0, n1, n2
     g0 = g1 = g2 = 1.0
     ax = 0
@@ -182,9 +183,7 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth):
         else:
             g2 = -1.0
     # geometry.diffraction_point with p0 = (x0, 0, z_e), p1 = (x1, 0, z_e)
-    w0, w1, w2 = x1 - x0, 0.0 - 0.0, z_e - z_e
-    edge_len = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    e0, e1, e2 = w0 / edge_len, w1 / edge_len, w2 / edge_len
+    edge_len, e0, e1, e2 = edge
     ds0, ds1, ds2 = a0 - x0, a1 - 0.0, a2 - z_e
     do0, do1, do2 = o0 - x0, o1 - 0.0, o2 - z_e
     s_t = ds0 * e0 + ds1 * e1 + ds2 * e2
@@ -224,6 +223,15 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth):
 
 
 @njit(**_OPTS)
+def _edge_axis(x0, x1):
+    """Length and unit vector of the edge ``(x0, 0, z) -> (x1, 0, z)`` as
+    geometry.diffraction_point computes them (``z - z = 0`` for every finite z)."""
+    w0, w1, w2 = x1 - x0, 0.0 - 0.0, 0.0
+    edge_len = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    return edge_len, w0 / edge_len, w1 / edge_len, w2 / edge_len
+
+
+@njit(**_OPTS)
 def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, depth, slots,
                  raw, want_jac, length, valid, jac, dev, outm, entry_z):
     """Every requested slot for every row (module docstring); writes the output arrays.
@@ -233,6 +241,7 @@ def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, d
     ``[z_f + sill, z_f + sill + win_h]``.
     """
     nan = np.nan
+    edge = _edge_axis(x0, x1)
     for p in range(nodes.shape[0]):
         a0, a1, a2 = anchors[p, 0], anchors[p, 1], anchors[p, 2]
         n0, n1, n2 = nodes[p, 0], nodes[p, 1], nodes[p, 2]
@@ -245,19 +254,24 @@ def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, d
             kind = _KIND[s]
             dv = nan
             om = nan
-            if kind == 0:
-                ln, ok, ez, j0, j1, j2 = _direct(a0, a1, a2, n0, n1, n2, x0, x1)
-            elif kind == 1:
-                ln, ok, ez, j0, j1, j2 = _specular(a0, a1, a2, n0, n1, n2, _GROUND[s] == 1,
-                                                   _PLANE0[s], _PLANE1[s], zf, zc, x0, x1,
-                                                   depth)
-            else:
+            if kind == 2:
                 z_e = hi if _EDGE[s] == 0 else lo
                 ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, z_e,
-                                                         _PLANE0[s], zf, zc, x0, x1, depth)
+                                                         _PLANE0[s], zf, zc, x0, x1, depth, edge)
                 ez = nan
-            if kind != 2 and not raw:
-                ok = ok and (ez > lo) and (ez < hi)
+            else:
+                if kind == 0:
+                    ln, ok, ez, d0, d1, d2, g0, g1, g2 = _direct(a0, a1, a2, n0, n1, n2, x0,
+                                                                 x1)
+                else:
+                    ln, ok, ez, d0, d1, d2, g0, g1, g2 = _specular(
+                        a0, a1, a2, n0, n1, n2, _GROUND[s] == 1, _PLANE0[s], _PLANE1[s], zf,
+                        zc, x0, x1, depth)
+                if not raw:
+                    ok = ok and (ez > lo) and (ez < hi)
+                j0 = j1 = j2 = 0.0
+                if want_jac and (ok or raw):  # the reference's d / length * sign
+                    j0, j1, j2 = d0 / ln * g0, d1 / ln * g1, d2 / ln * g2
             entry_z[p, j] = ez
             valid[p, j] = ok
             if ok or raw:
