@@ -64,9 +64,11 @@ __all__ = [
     "MECHANISMS",
     "SPECULAR_SLOTS",
     "FloorFrame",
+    "GradedPaths",
     "PathSet",
     "diffracted_path",
     "first_arrival_paths",
+    "graded_paths",
     "specular_path",
 ]
 
@@ -384,6 +386,64 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
     return PathSet(length_m=length.reshape(sh), valid=valid.reshape(sh),
                    jacobian=jac.reshape((*sh, 3)), floor=rows.floor,
                    deviation_cos=dev.reshape(sh), outside_m=outm.reshape(sh))
+
+
+@dataclass(frozen=True)
+class GradedPaths:
+    """Raw geometry of every mechanism with graded existence, shapes (..., K) / (..., K, 3).
+
+    For an iterate that may cross an existence boundary of its chosen mechanism (a tracker):
+
+    Attributes
+    ----------
+    length_m : ndarray [m]
+        Path length also where the mechanism does not exist.
+    jacobian : ndarray [m/m]
+        ``d length_m / d node``, also where the mechanism does not exist.
+    strict : ndarray of bool
+        Existence as in :func:`first_arrival_paths` (``PathSet.valid``).
+    loose, sure : ndarray of bool
+        Existence with the window band widened / narrowed by ``relax_m`` at the entry point
+        of the specular slots (incl. the direct one); the diffraction slots: ``strict``.
+    entry_z_m : ndarray [m]
+        Height of the facade entry point of the specular slots (NaN for diffraction).
+    """
+
+    length_m: FloatArray
+    jacobian: FloatArray
+    strict: BoolArray
+    loose: BoolArray
+    sure: BoolArray
+    entry_z_m: FloatArray
+
+
+def graded_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *, relax_m: float,
+                 floor: ArrayLike | None = None, slots: ArrayLike | None = None
+                 ) -> GradedPaths:
+    """:func:`first_arrival_paths` without the masking, with existence graded by ``relax_m``.
+
+    Same arguments as :func:`first_arrival_paths` plus ``relax_m`` [m] (>= 0), the uncertainty
+    of the entry point's height: ``loose`` holds where the entry lies strictly inside the band
+    widened by ``relax_m`` (``z > win_lo - relax_m``), ``sure`` where its margin to both band
+    limits exceeds ``relax_m`` (``min(z - win_lo, win_hi - z) > relax_m``), ``strict`` where the
+    margin is > 0; every other condition of the mechanism applies unchanged. One kernel pass
+    (``raw=True``); the band tests are a few vectorised comparisons.
+    """
+    if not relax_m >= 0.0:
+        raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
+    rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots)
+    length, ok, jac, _, _, z_in = eval_paths_kernel(*rows.args, raw=True)
+    lo, hi = (v[:, None] for v in building.window_z_m(rows.args[2]))
+    band = np.isin(rows.slots, SPECULAR_SLOTS)
+    with np.errstate(invalid="ignore"):
+        margin = np.minimum(z_in - lo, hi - z_in)
+        loose = ok & np.where(band, (z_in > lo - relax_m) & (z_in < hi + relax_m), True)
+        strict = loose & np.where(band, margin > 0, True)
+        sure = loose & np.where(band, margin > relax_m, True)
+    sh = (*rows.shape, rows.slots.shape[0])
+    return GradedPaths(length_m=length.reshape(sh), jacobian=jac.reshape((*sh, 3)),
+                       strict=strict.reshape(sh), loose=loose.reshape(sh),
+                       sure=sure.reshape(sh), entry_z_m=z_in.reshape(sh))
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,9 @@ from diffpos.paths import (
     FloorFrame,
     _first_arrival_paths_numpy,
     diffracted_path,
+    direct_opening,
     first_arrival_paths,
+    graded_paths,
     specular_path,
 )
 from diffpos.scenario import Building
@@ -187,6 +189,49 @@ def test_raw_mode_gives_unmasked_geometry_and_band_free_existence() -> None:
             continue
         np.testing.assert_allclose(length[:, s], g.length_m, rtol=RTOL)
         np.testing.assert_allclose(jac[:, s], g.jacobian, rtol=0.0, atol=ATOL_JAC)
+
+
+def test_graded_paths_widened_and_narrowed_band() -> None:
+    """graded_paths: strict = first_arrival_paths' existence; loose = the reference geometry
+    with the window band widened by relax_m; sure = narrowed (away from rounding ties); raw
+    lengths and Jacobians everywhere."""
+    b = BUILDINGS["tall_floors"]
+    rng = np.random.default_rng(5)
+    nodes, anchors, floors = _geometries(b, rng, 3000)
+    relax = 0.2
+    g = graded_paths(nodes, anchors, b, floor=floors, relax_m=relax)
+    ref = _first_arrival_paths_numpy(nodes, anchors, b, floor=floors)
+    np.testing.assert_array_equal(g.strict, ref.valid)
+    fr = FloorFrame.from_building(b, floors)
+    wide = dataclasses.replace(fr, win_lo=fr.win_lo - relax, win_hi=fr.win_hi + relax)
+    narrow = dataclasses.replace(fr, win_lo=fr.win_lo + relax, win_hi=fr.win_hi - relax)
+    for s, rec in enumerate(_RECIPES):
+        if rec[0] == "direct":
+            xc, zc, loose = direct_opening(anchors, nodes, wide)
+            sure, z_in = direct_opening(anchors, nodes, narrow)[2], zc
+        elif rec[0] == "spec":
+            gw = specular_path(anchors, nodes, wide, rec[1], ground=rec[2])
+            loose, z_in = gw.valid, gw.points[0][:, 2]
+            sure = specular_path(anchors, nodes, narrow, rec[1], ground=rec[2]).valid
+            np.testing.assert_allclose(g.length_m[:, s], gw.length_m, rtol=RTOL)
+            np.testing.assert_allclose(g.jacobian[:, s], gw.jacobian, rtol=0, atol=ATOL_JAC)
+        else:
+            gd = diffracted_path(anchors, nodes, fr, rec[1], rec[2])
+            loose = sure = gd.valid
+            z_in = None
+            np.testing.assert_allclose(g.length_m[:, s], gd.length_m, rtol=RTOL)
+        np.testing.assert_array_equal(g.loose[:, s], loose)
+        far = np.ones(len(nodes), dtype=bool)
+        if z_in is not None:
+            lo, hi = b.window_z_m(floors)
+            with np.errstate(invalid="ignore"):
+                far = np.minimum(np.abs(z_in - lo - relax), np.abs(hi - relax - z_in)) > 1e-9
+        np.testing.assert_array_equal(g.sure[far, s], sure[far])
+        assert np.all(g.strict[:, s] <= g.loose[:, s]) and np.all(g.sure[:, s] <= g.strict[:, s])
+    # the band grading matters on this sample
+    assert g.loose.sum() > g.strict.sum() > g.sure.sum()
+    with pytest.raises(ValueError, match="relax_m"):
+        graded_paths(nodes, anchors, b, relax_m=-0.1)
 
 
 def test_compiled_recipes_match_the_reference_recipes() -> None:
