@@ -207,7 +207,7 @@ def test_graded_paths_widened_and_narrowed_band() -> None:
     narrow = dataclasses.replace(fr, win_lo=fr.win_lo + relax, win_hi=fr.win_hi - relax)
     for s, rec in enumerate(_RECIPES):
         if rec[0] == "direct":
-            xc, zc, loose = direct_opening(anchors, nodes, wide)
+            _, zc, loose = direct_opening(anchors, nodes, wide)
             sure, z_in = direct_opening(anchors, nodes, narrow)[2], zc
         elif rec[0] == "spec":
             gw = specular_path(anchors, nodes, wide, rec[1], ground=rec[2])
