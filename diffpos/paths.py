@@ -3,7 +3,20 @@
 One geometry implementation shared by the channel emulator (:mod:`diffpos.channel` calls
 :func:`specular_path` and :func:`diffracted_path` for lengths, validity and interaction points
 and only adds amplitudes) and by the mechanism-aware estimator (:func:`diffpos.estimators.mnls`
-calls :func:`first_arrival_paths`). Pure numpy, vectorised over any batch shape.
+calls :func:`first_arrival_paths`). Vectorised over any batch shape.
+
+:func:`first_arrival_paths` (and :func:`graded_paths`, the unmasked variant with existence
+graded by the entry height, for a tracker) run the compiled kernel
+:mod:`diffpos._kernels.paths_nb`: one loop over (node, anchor, floor) rows and slots performing
+the numpy reference's floating-point operations in the same order (the reference,
+:func:`_first_arrival_paths_numpy` on :func:`specular_path` / :func:`diffracted_path`, stays
+here; tests/core/test_paths_kernel.py holds the kernel to it: lengths <= 1e-12 relative,
+existence exactly). Call :func:`diffpos._kernels.paths_nb.warm_paths` at service start: the
+first call compiles (a few s CPU) or loads numba's on-disk cache (~0.4 s).
+Cost per row, all 18 slots with Jacobians: ``benchmarks/bench_path_model.py``. Only lengths
+(``want_jac=False`` of the kernel) saves < 10 %, so there is no separate public entry point
+for it; a subset of slots (``slots=``) costs in proportion (the diffraction slots are ~2x the
+specular ones).
 
 Mechanisms (slot order = :data:`MECHANISMS` = ``diffpos.channel.MECHANISMS``)
 
