@@ -2,6 +2,7 @@
 window-edge model and the bounds.
 
 Run:  .venv/bin/python benchmarks/bench_path_model.py [--repeats 7] [--only first-arrival|geometry]
+      .venv/bin/python benchmarks/bench_path_model.py --profile-mnls 64   (where M-NLS spends)
 
 One thread (OMP/OPENBLAS/MKL_NUM_THREADS=1, set below); every time is the median of the repeats,
 by wall clock and by this thread's CPU time (the figure to compare when other processes share
@@ -24,6 +25,17 @@ existence, Jacobians, deviation cosines; the inner loop of M-NLS and of the trac
 
 The kernel is checked against the reference (1e-12 relative, existence exactly) before timing.
 
+**Where an M-NLS fix spends** (``--profile-mnls N``: cProfile of one batched ``mnls`` call on
+N emulated first arrivals, 8 anchors, with the measured SNR and the radio as live; shares of
+the total thread CPU, cumulative; ``--numpy-paths`` for the numpy path model): the path model, the channel's per-slot SNR prediction
+(``diffpos.channel.pair_snr_db``, the M-NLS SNR cost) and the rest (the estimator's own numpy).
+Measured 2026-11-23 on the shared 2-core VM (load ~10), 64 fixes, thread CPU: with the numpy
+path model 4.4 s, first_arrival_paths 37 % / pair_snr_db 50 % / rest 13 %; with the kernel
+3.0 s, 8 % / 63 % / 28 % (the rest: ``_link_terms`` without the path model, and
+``_knife_edge_loss_db``, computed on all 18 slots where only 7 are diffraction slots). One
+fix per call (cProfile, 5 calls): pair_snr_db 84 %, path kernel 2 %. The 2 ms per node-epoch
+target of M-NLS therefore hinges on the SNR prediction, not on the path model any more.
+
 **Window-edge model and bounds** (the paper's Corollary-1 geometry, target < 100 ns per pair):
 
 - ``window_edge_path`` on 1,000,000 node-anchor pairs (250,000 nodes x 4 anchors), lengths +
@@ -44,7 +56,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import argparse
+import cProfile
+import importlib
 import json
+import pstats
 import subprocess
 import sys
 import tempfile
@@ -55,6 +70,8 @@ import numpy as np
 
 from diffpos._kernels import paths_nb
 from diffpos.bounds import bounds_from_fim, fisher_information, position_error_bound
+from diffpos.channel import emulate_channel, first_arrival
+from diffpos.estimators import mnls
 from diffpos.geometry import diffraction_point, window_edge_path
 from diffpos.paths import _first_arrival_paths_numpy, _kernel_rows, first_arrival_paths
 from diffpos.scenario import default_scenario
@@ -227,6 +244,8 @@ def geometry_table(args: argparse.Namespace) -> None:
 ANCHORS_8 = np.concatenate([default_scenario().anchor_positions_m(), np.array(
     [[-25.0, -12.0, 8.5], [10.0, -10.0, 14.0], [28.0, -18.0, 5.5], [-30.0, -25.0, 19.0]])])
 N_FLOORS_FA = 5
+#: The estimator's module (the package exports the function under the same name).
+mnls_module = importlib.import_module("diffpos.estimators.mnls")
 
 _COMPILE_PROBE = """
 import json, time
@@ -339,6 +358,50 @@ def first_arrival_table(args: argparse.Namespace) -> None:
         print(f"| {name} | {w:.2f} | {c:.2f} |")
 
 
+def profile_mnls(n_fixes: int, numpy_paths: bool) -> None:
+    """Shares of one batched M-NLS call: path model, SNR prediction, the rest (docstring)."""
+    sc = default_scenario()
+    rng = np.random.default_rng(0)
+    b = sc.building
+    k = rng.integers(0, b.n_floors, n_fixes)
+    nodes = np.stack([rng.uniform(-19.8, 19.8, n_fixes), rng.uniform(0.2, b.depth_m - 0.2,
+                      n_fixes), b.floor_z_m(k) + rng.uniform(0.3, 2.7, n_fixes)], axis=-1)
+    fa = first_arrival(emulate_channel(ANCHORS_8, nodes, building=b, radio=sc.radio),
+                       radio=sc.radio, rng=rng)
+    det = np.asarray(fa.detected, dtype=bool)
+
+    def run(sl):
+        return mnls(np.broadcast_to(ANCHORS_8, (n_fixes, *ANCHORS_8.shape))[sl],
+                    np.where(det, fa.range_m, 0.0)[sl], np.where(det, fa.sigma_m, 1.0)[sl],
+                    mask=det[sl], building=b, snr_db=np.asarray(fa.snr_db)[sl],
+                    radio=sc.radio, bandwidth_hz=sc.radio.bandwidth_hz,
+                    error_floor_m=sc.radio.range_error_floor_m)
+
+    paths_nb.warm_paths()
+    if numpy_paths:  # A/B: the estimator on the numpy reference of the path model
+        if not hasattr(mnls_module, "first_arrival_paths"):
+            raise SystemExit("mnls no longer calls first_arrival_paths: nothing to swap")
+        mnls_module.first_arrival_paths = _first_arrival_paths_numpy
+    run(slice(0, 1))  # imports, caches
+    prof = cProfile.Profile(time.thread_time)  # CPU time: the machine is shared
+    prof.runcall(run, slice(0, n_fixes))
+    st = pstats.Stats(prof).stats  # (file, line, name) -> (cc, nc, tottime, cumtime, callers)
+    total = sum(v[2] for v in st.values())
+
+    def cum(name: str) -> float:
+        return sum(v[3] for key, v in st.items() if key[2] == name)
+
+    fap = cum("first_arrival_paths") + cum("_first_arrival_paths_numpy")
+    snr = cum("pair_snr_db")
+    which = "numpy reference" if numpy_paths else "compiled kernel"
+    print(f"## M-NLS, {n_fixes} fixes x {len(ANCHORS_8)} anchors in one call, path model: "
+          f"{which}: {total:.2f} s thread CPU under cProfile\n")
+    print("| part | share |\n| --- | ---: |")
+    for name, t in (("first_arrival_paths (path model)", fap),
+                    ("channel.pair_snr_db (SNR cost)", snr), ("rest", total - fap - snr)):
+        print(f"| {name} | {100 * t / total:.0f} % |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=1_000_000)
@@ -347,7 +410,14 @@ def main() -> None:
     parser.add_argument("--fa-nodes", type=int, default=2_000,
                         help="nodes of the batched first-arrival rows (x 5 floors x 8 anchors)")
     parser.add_argument("--only", choices=("first-arrival", "geometry"), default=None)
+    parser.add_argument("--profile-mnls", type=int, default=0, metavar="N",
+                        help="only profile one batched M-NLS call on N fixes")
+    parser.add_argument("--numpy-paths", action="store_true",
+                        help="with --profile-mnls: the estimator on the numpy path model (A/B)")
     args = parser.parse_args()
+    if args.profile_mnls:
+        profile_mnls(args.profile_mnls, args.numpy_paths)
+        return
     if args.only in (None, "first-arrival"):
         first_arrival_table(args)
     if args.only in (None, "geometry"):
