@@ -27,8 +27,9 @@ The kernel is checked against the reference (1e-12 relative, existence exactly) 
 
 **Where an M-NLS fix spends** (``--profile-mnls N``: cProfile of one batched ``mnls`` call on
 N emulated first arrivals, 8 anchors, with the measured SNR and the radio as live; shares of
-the total thread CPU, cumulative; ``--numpy-paths`` for the numpy path model): the path model, the channel's per-slot SNR prediction
-(``diffpos.channel.pair_snr_db``, the M-NLS SNR cost) and the rest (the estimator's own numpy).
+the total thread CPU, cumulative; ``--numpy-paths`` runs the estimator on the numpy path
+model): the path model, the channel's per-slot SNR prediction (``diffpos.channel.pair_snr_db``,
+the M-NLS SNR cost) and the rest (the estimator's own numpy).
 Measured 2026-11-23 on the shared 2-core VM (load ~10), 64 fixes, thread CPU: with the numpy
 path model 4.4 s, first_arrival_paths 37 % / pair_snr_db 50 % / rest 13 %; with the kernel
 3.0 s, 8 % / 63 % / 28 % (the rest: ``_link_terms`` without the path model, and
