@@ -32,6 +32,7 @@ from typing import Any
 import zenoh
 from zenoh import handlers
 
+from diffpos_services.bus.commands import recorder_args
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.recording.writer import McapSink, SinkStats
 from diffpos_services.wire.keys import Keys
@@ -274,7 +275,9 @@ def build_command(
     split_duration_s: float | None = None,
     split_size_mb: float | None = None,
 ) -> list[str]:
-    """argv that starts the recorder as a subprocess (for ``diffpos emulate`` and tests).
+    """argv that starts the recorder as a subprocess (tests, benchmarks): ``python -m
+    diffpos_services.cli.main`` + :func:`diffpos_services.bus.commands.recorder_args` (the
+    one recorder command line, also ``diffpos emulate``'s).
 
     Run it in its own process group (``start_new_session=True``) and stop it with SIGTERM
     (SIGINT also works): it then writes the footer and exits 0. With ``status`` it prints
@@ -295,31 +298,11 @@ def build_command(
     split_duration_s, split_size_mb : float, optional
         ``--split-duration`` / ``--split-size`` (default: the recorder's defaults; 0 = off).
     """
-    argv = [
-        python or sys.executable,
-        "-m",
-        "diffpos_services.cli.main",
-        "recorder",
-        "--site",
-        site,
-        "--out",
-        str(out),
-        "--flush-interval",
-        repr(float(flush_interval_s)),
-    ]
-    for ep in connect:
-        argv += ["--connect", ep]
-    if scenario is not None:
-        argv += ["--scenario", str(scenario)]
-    if run_config is not None:
-        argv += ["--run-config", str(run_config)]
-    if split_duration_s is not None:
-        argv += ["--split-duration", repr(float(split_duration_s))]
-    if split_size_mb is not None:
-        argv += ["--split-size", repr(float(split_size_mb))]
-    if status:
-        argv.append("--status")
-    return argv
+    return [python or sys.executable, "-m", "diffpos_services.cli.main",
+            *recorder_args(site=site, out=out, connect=connect, scenario=scenario,
+                           run_config=run_config, flush_interval_s=flush_interval_s,
+                           split_duration_s=split_duration_s, split_size_mb=split_size_mb,
+                           status=status)]
 
 
 def status_printer(stream=None) -> StatusCallback:

@@ -31,7 +31,6 @@ import numpy as np
 import zenoh
 
 from diffpos.emulation import TimeBase, emulation_nodes
-from diffpos.scenario import Scenario, ScenarioError
 from diffpos_services.bus.security import (
     SecurityError,
     anchor_user,
@@ -52,25 +51,11 @@ from diffpos_services.kit import (
     log_event,
     stop_process_groups,
 )
-from diffpos_services.scenario_io import resolve_scenario, scenario_or_default
+from diffpos_services.scenario_io import load_scenario_option, resolve_scenario
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 
 __all__ = ["Emulation"]
-
-
-def _load_scenario(path: str | None) -> Scenario:
-    """The run's scenario (``path`` is already resolved, so the error names the file).
-
-    Raises
-    ------
-    ConfigError
-        The file's error (missing, TOML syntax, invalid field) as one line.
-    """
-    try:
-        return scenario_or_default(path)
-    except ScenarioError as exc:
-        raise ConfigError(str(exc)) from None
 
 
 # ----------------------------------------------------------------------------- processes
@@ -103,7 +88,7 @@ class Emulation:
         self.log = logger
         self.stop = stop
         self.dashboard_hint = dashboard_hint
-        self.scenario = _load_scenario(options.scenario)
+        self.scenario = load_scenario_option(options.scenario)
         self.keys = Keys(options.site)
         self.nodes = emulation_nodes(self.scenario, max_nodes=options.max_nodes)
         if not self.nodes:
