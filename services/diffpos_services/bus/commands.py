@@ -2,7 +2,8 @@
 
 :func:`recorder_args` is the ``diffpos recorder`` command line: ``diffpos emulate`` starts
 its recorder with it (:func:`diffpos_services.emulate.options.recorder_argv`) and tests and
-benchmarks start theirs with it (:func:`diffpos_services.recorder.build_command`). It lives in
+benchmarks start theirs with it (:func:`diffpos_services.recorder.build_command`);
+:func:`foreign_path` is where a recorder keeps the foreign messages of a recording. They live in
 the shared bus layer because services do not import each other (DEVELOPING.md).
 """
 
@@ -10,8 +11,9 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from pathlib import Path
 
-__all__ = ["recorder_args"]
+__all__ = ["foreign_path", "recorder_args"]
 
 
 def recorder_args(
@@ -61,3 +63,11 @@ def recorder_args(
     if status:
         argv.append("--status")
     return argv
+
+
+def foreign_path(out: str | os.PathLike[str]) -> Path:
+    """Where the recorder keeps the foreign messages of recording ``out`` (messages on the
+    run's keys that are not the run's own, see :mod:`diffpos_services.recorder`):
+    ``<stem>.foreign.mcap`` next to it."""
+    p = Path(out)
+    return p.with_name(f"{p.stem}.foreign{p.suffix or '.mcap'}")

@@ -31,6 +31,7 @@ import numpy as np
 import zenoh
 
 from diffpos.emulation import TimeBase, emulation_nodes
+from diffpos_services.bus.commands import foreign_path
 from diffpos_services.bus.security import (
     SecurityError,
     anchor_user,
@@ -40,6 +41,7 @@ from diffpos_services.bus.security import (
 )
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
 from diffpos_services.emulate.monitor import Monitor
+from diffpos_services.emulate.notes import foreign_notes, fusion_notes, loss_notes, recording_notes
 from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
 from diffpos_services.emulate.scoring import Scorer
 from diffpos_services.emulate.supervise import Supervisor, recover_in_place
@@ -135,6 +137,7 @@ class Emulation:
                                      self._restart, logger)
         self.recordings: list[str] = []
         self.recording_notes: list[str] = []
+        self.t0_wall_ns: int | None = None  # wall clock of the run's start [ns]
 
     # -------------------------------------------------------------- security
     def _load_profile(self, path: str):
@@ -278,7 +281,9 @@ class Emulation:
         path = Path(self._run_dir.name) / "run_config.json"
         doc = {"fusion": msgspec.to_builtins(self.fusion_config),
                "emulate": {"run_id": self.run_id, "channel": self.o.channel, "seed": self.o.seed,
-                           "edge": self.edge, "edge_reason": self.edge_reason}}
+                           "edge": self.edge, "edge_reason": self.edge_reason,
+                           # the recorder keeps other publishers' estimates apart (recorder.py)
+                           "fusion_id_prefix": self.fusion_id_prefix}}
         path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
         return str(path)
 
@@ -445,6 +450,7 @@ class Emulation:
         session.put(self.keys.run_control(), M.encode(rc),
                     encoding=zenoh.Encoding.APPLICATION_JSON,
                     congestion_control=zenoh.CongestionControl.BLOCK)
+        self.t0_wall_ns = wall_t0
         return TimeBase.from_control(rc)
 
     def _summary(self, scorer: Scorer, lost: list[str]) -> dict[str, Any]:
@@ -465,6 +471,11 @@ class Emulation:
             faults=[f.as_dict() for f in self.supervisor.faults],
             foreign={"count": sum(self.foreign.values()), "keys": dict(self.foreign)},
         )
+        # when and why fixes were lost, every file written, foreign messages: plain lines
+        out["notes"] = [*loss_notes(scorer), *fusion_notes(self.diag, self.t0_wall_ns),
+                        *recording_notes(self.recordings,
+                                         [foreign_path(r) for r in self.recordings]),
+                        *foreign_notes(self.foreign)]
         if self.diag is not None:
             d = self.diag
             out["fusion"] = {"received": d.received, "rejected": d.rejected, "gated": d.gated,
