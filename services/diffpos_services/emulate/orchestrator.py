@@ -324,7 +324,9 @@ class Emulation:
             # not from the fusion this run started: reported, never counted or scored
             self.foreign[key] += 1
             return
-        self.q.put(("data", key, sample.payload.to_bytes()))
+        # (kind, key, payload, receive wall time [ns]: the end-to-end latency of an estimate
+        # is this minus its t_input_wall_ns)
+        self.q.put(("data", key, sample.payload.to_bytes(), time.time_ns()))
 
     def _wait_ready(self, need: set[str]) -> None:
         deadline = time.monotonic() + self.o.ready_timeout_s
