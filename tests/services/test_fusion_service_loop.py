@@ -19,6 +19,7 @@ from diffpos_services.fusion.service import (
     INGEST_BUDGET_S,
     ServiceLoop,
     _Inbox,
+    ingest_rest,
 )
 from diffpos_services.wire import messages as M
 from fusion_scene import ANCHORS, EDGE, KEYS, NODES, PERIOD_NS, W, fusion_config
@@ -114,3 +115,22 @@ def test_published_latency_includes_the_solve():
     assert d.count == lat.size
     assert abs(d.max_ms - lat.max()) < 1e-6
     assert abs(d.p50_ms - float(np.percentile(lat, 50))) < 1e-6
+
+
+def test_at_stop_everything_queued_or_still_delivered_is_ingested():
+    """Stopping with a backlog queued, while the bus still delivers (the unsubscribe call
+    puts more items, as a Zenoh callback finishing during undeclare would): every item is
+    ingested before the final flush."""
+    core, inbox, loop, n, _, _, _ = _loop(200, seed=7)
+    loop.turn()
+    queued = inbox.q.qsize()
+    assert queued > 0
+    extra = [(_DATA, KEYS.anchor_state("uav1"), b"{}", time.time_ns()) for _ in range(50)]
+
+    def unsubscribe():
+        for item in extra:
+            inbox.q.put(item)
+
+    got = ingest_rest(core, inbox, unsubscribe, LOG)
+    assert got == queued + len(extra) and inbox.q.qsize() == 0
+    assert sum(core.received.values()) + sum(core.rejected.values()) >= n

@@ -35,7 +35,8 @@ from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
-__all__ = ["ServiceLoop", "Turn", "fusion_subscription", "run_fusion", "stamp_published"]
+__all__ = ["ServiceLoop", "Turn", "fusion_subscription", "ingest_rest", "run_fusion",
+           "stamp_published"]
 
 _ACCOUNTED_BYTES = 2048  # samples above this size count against max_queued_bytes
 #: longest ingest between two solve steps [s]: a backlog never delays a solve by more
@@ -221,6 +222,33 @@ def stamp_published(core: FusionCore, estimates: list, put: Callable[[Any], None
             lat.append(est.t_pub_wall_ns - est.t_input_wall_ns)
 
 
+def ingest_rest(core: FusionCore, inbox: _Inbox, unsubscribe: Callable[[], Any],
+                log: logging.Logger) -> int:
+    """At stop: ingest everything queued and everything Zenoh delivers until ``unsubscribe``
+    (run on a helper thread: a Zenoh callback blocked on the full queue must be able to
+    finish while the subscribers are undeclared) has returned, so nothing received is lost.
+    Returns the number of items ingested."""
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            unsubscribe()
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name="fusion-unsubscribe", daemon=True).start()
+    n = 0
+    while True:
+        try:
+            item = inbox.q.get(timeout=0.01) if not done.is_set() else inbox.q.get_nowait()
+        except queue.Empty:
+            if done.is_set():
+                return n
+            continue
+        _ingest(core, inbox, item, log)
+        n += 1
+
+
 @dataclass
 class Turn:
     """What one turn of the service loop did (wall and monotonic times [ns])."""
@@ -302,12 +330,12 @@ def _serve(core: FusionCore, inbox: _Inbox, ends: _Endpoints, stop: threading.Ev
         while not stop.is_set():
             loop.turn()
     finally:
+        left = ingest_rest(core, inbox, lambda: [s.undeclare() for s in ends.subs], log)
         stamp_published(core, core.flush(time.time_ns()), ends.put_estimate)
         ends.diag_pub.put(M.encode(core.diagnostics(time.time_ns())))
         ends.token.undeclare()
         ends.live_sub.undeclare()
-        for s in ends.subs:
-            s.undeclare()
+        log_event(log, logging.INFO, "ingested the queue at stop", items=left)
         log_event(log, logging.INFO, "fusion stopped", solved=core.solved,
                   published=core.published, rejected=dict(core.rejected))
 
