@@ -4,10 +4,14 @@ written by the real sink."""
 
 from __future__ import annotations
 
+import msgspec
+import numpy as np
 from diffpos_services.bus.commands import foreign_path
 from diffpos_services.emulate.notes import (
+    EndToEnd,
     foreign_notes,
     fusion_notes,
+    latency_notes,
     loss_notes,
     recording_notes,
 )
@@ -120,3 +124,24 @@ def test_foreign_notes():
     assert note == ["foreign: 4 messages not from this run's fusion were ignored (not counted "
                     "or scored; another process publishes on this bus): "
                     "diffpos/s/node/n1/estimate 3, diffpos/s/fusion/diagnostics 1"]
+
+
+def test_end_to_end_latency_from_the_estimates_input_stamps():
+    """rx - t_input_wall_ns per estimate (no input stamp: not counted; not JSON: ignored);
+    percentiles against numpy's on the same values; the window drops older receipts."""
+    e2e = EndToEnd()
+    lat_ms = [3.0, 5.0, 7.0, 40.0, 9.0]
+    for i, ms in enumerate(lat_ms):
+        est = msgspec.structs.replace(_est("a", i), t_input_wall_ns=10**18 + i, t_pub_wall_ns=1)
+        e2e.add(M.encode(est), 10**18 + i + round(ms * 1e6))
+    e2e.add(M.encode(_est("a", 9)), 10**18 + 10**9)  # t_input_wall_ns 0: no input stamp
+    e2e.add(b"not json", 10**18)
+    s = e2e.stats_ms()
+    assert s["count"] == 5 and s["max"] == 40.0
+    assert abs(s["p50"] - 7.0) < 1e-9 and abs(s["p99"] - float(np.percentile(lat_ms, 99))) < 1e-9
+    late = e2e.stats_ms(since_wall_ns=10**18 + 4 + 9_000_001)  # only the 40 ms one is newer
+    assert late["count"] == 1 and late["max"] == 40.0
+    assert latency_notes(s) == [
+        "end-to-end latency (anchor publish -> estimate received by emulate, solve included): "
+        f"p50 7.0 ms, p99 {s['p99']:.1f} ms, max 40.0 ms over 5 estimates"]
+    assert latency_notes(EndToEnd().stats_ms()) == []

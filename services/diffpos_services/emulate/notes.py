@@ -12,9 +12,13 @@ from __future__ import annotations
 
 import collections
 import os
+import threading
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
+
+import msgspec
+import numpy as np
 
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.summary import summarize
@@ -163,3 +167,52 @@ def foreign_notes(foreign: Mapping[str, int]) -> list[str]:
         return []
     return [f"foreign: {n} messages not from this run's fusion were ignored (not counted or "
             f"scored; another process publishes on this bus): {_top(foreign, 8)}"]
+
+
+class _InputStamp(msgspec.Struct):
+    t_input_wall_ns: int = 0
+
+
+class EndToEnd:
+    """End-to-end latency of the run's estimates: anchor publish (the estimate's newest input,
+    ``t_input_wall_ns``) -> the estimate received by ``emulate`` [ns], the figure a user of
+    the positions sees (the fusion's own latency stops at its publish).
+
+    :meth:`add` is cheap (one small decode) and thread-safe: Zenoh's callback calls it.
+    Keeps the last ``keep`` values.
+    """
+
+    def __init__(self, keep: int = 100_000) -> None:
+        self._dec = msgspec.json.Decoder(_InputStamp)
+        self._lat: collections.deque[tuple[int, int]] = collections.deque(maxlen=keep)
+        self._lock = threading.Lock()
+
+    def add(self, payload: bytes, rx_wall_ns: int) -> None:
+        """One estimate (its JSON) received at ``rx_wall_ns`` [ns]."""
+        try:
+            t_in = self._dec.decode(payload).t_input_wall_ns
+        except msgspec.DecodeError:
+            return
+        if t_in > 0:
+            with self._lock:
+                self._lat.append((rx_wall_ns, rx_wall_ns - t_in))
+
+    def stats_ms(self, since_wall_ns: int | None = None) -> dict[str, float | int | None]:
+        """``count``, ``p50``, ``p99``, ``max`` [ms] (of the estimates received since
+        ``since_wall_ns``; all kept ones by default)."""
+        with self._lock:
+            lat = [d for rx, d in self._lat if since_wall_ns is None or rx >= since_wall_ns]
+        if not lat:
+            return {"count": 0, "p50": None, "p99": None, "max": None}
+        a = np.asarray(lat, np.float64) * 1e-6
+        return {"count": int(a.size), "p50": float(np.percentile(a, 50)),
+                "p99": float(np.percentile(a, 99)), "max": float(a.max())}
+
+
+def latency_notes(stats: Mapping[str, Any]) -> list[str]:
+    """The end-to-end latency line of the summary (nothing without estimates)."""
+    if not stats.get("count"):
+        return []
+    return [f"end-to-end latency (anchor publish -> estimate received by emulate, solve "
+            f"included): p50 {stats['p50']:.1f} ms, p99 {stats['p99']:.1f} ms, max "
+            f"{stats['max']:.1f} ms over {stats['count']} estimates"]

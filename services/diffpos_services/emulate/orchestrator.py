@@ -41,7 +41,14 @@ from diffpos_services.bus.security import (
 )
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
 from diffpos_services.emulate.monitor import Monitor
-from diffpos_services.emulate.notes import foreign_notes, fusion_notes, loss_notes, recording_notes
+from diffpos_services.emulate.notes import (
+    EndToEnd,
+    foreign_notes,
+    fusion_notes,
+    latency_notes,
+    loss_notes,
+    recording_notes,
+)
 from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
 from diffpos_services.emulate.scoring import Scorer
 from diffpos_services.emulate.supervise import Supervisor, recover_in_place
@@ -55,7 +62,7 @@ from diffpos_services.kit import (
 )
 from diffpos_services.scenario_io import load_scenario_option, resolve_scenario
 from diffpos_services.wire import messages as M
-from diffpos_services.wire.keys import Keys
+from diffpos_services.wire.keys import Keys, parse_key
 
 __all__ = ["Emulation"]
 
@@ -138,6 +145,9 @@ class Emulation:
         self.recordings: list[str] = []
         self.recording_notes: list[str] = []
         self.t0_wall_ns: int | None = None  # wall clock of the run's start [ns]
+        # anchor publish -> estimate received here, per estimate (the live status may show
+        # e2e.stats_ms(since) of the last seconds)
+        self.e2e = EndToEnd()
 
     # -------------------------------------------------------------- security
     def _load_profile(self, path: str):
@@ -326,7 +336,11 @@ class Emulation:
             return
         # (kind, key, payload, receive wall time [ns]: the end-to-end latency of an estimate
         # is this minus its t_input_wall_ns)
-        self.q.put(("data", key, sample.payload.to_bytes(), time.time_ns()))
+        payload, rx = sample.payload.to_bytes(), time.time_ns()
+        pk = parse_key(key)
+        if pk is not None and pk.kind == "estimate":
+            self.e2e.add(payload, rx)
+        self.q.put(("data", key, payload, rx))
 
     def _wait_ready(self, need: set[str]) -> None:
         deadline = time.monotonic() + self.o.ready_timeout_s
@@ -473,11 +487,12 @@ class Emulation:
             faults=[f.as_dict() for f in self.supervisor.faults],
             foreign={"count": sum(self.foreign.values()), "keys": dict(self.foreign)},
         )
+        out["latency_e2e_ms"] = self.e2e.stats_ms()
         # when and why fixes were lost, every file written, foreign messages: plain lines
         out["notes"] = [*loss_notes(scorer), *fusion_notes(self.diag, self.t0_wall_ns),
                         *recording_notes(self.recordings,
                                          [foreign_path(r) for r in self.recordings]),
-                        *foreign_notes(self.foreign)]
+                        *foreign_notes(self.foreign), *latency_notes(out["latency_e2e_ms"])]
         if self.diag is not None:
             d = self.diag
             out["fusion"] = {"received": d.received, "rejected": d.rejected, "gated": d.gated,
