@@ -70,6 +70,8 @@ def _select_fixes(est: EstimateColumns, keep: NDArray[np.bool_]) -> EstimateColu
         link_used=est.link_used[lk],
         link_residual_m=est.link_residual_m[lk],
         link_reason=est.link_reason[lk],
+        link_mechanism=est.link_mechanism[lk],
+        floor_probability=est.floor_probability[keep],
     )
 
 
@@ -251,17 +253,16 @@ def _diffraction_paths(
 ) -> _Paths | None:
     """The path of every link (vectorised), or None without links or anchor tracks.
 
-    A used link whose estimate names its mechanism (estimate v2: ``est.link_mechanism``, a
-    column the estimate columns may carry) is drawn along that mechanism's interaction
+    A used link whose estimate names its mechanism (estimate v2: ``est.link_mechanism``) is
+    drawn along that mechanism's interaction
     points; the others over the modelled window edge (estimate v1)."""
     est, lf = b.est, b.est.link_fix
     if not lf.size or anchors is None:
         return None
     a_pos, _, a_known = anchors.sample(None, b.t[lf], coded=(b.anchor_ids, b.anchor_code))
     strips = path_strips(a_pos, est.position_m[lf], b.est_floor[lf], building)
-    labels = getattr(est, "link_mechanism", None)
-    if labels is not None and building is not None:
-        labels = np.where(est.link_used, np.asarray(labels, str), "")
+    if building is not None:
+        labels = np.where(est.link_used, est.link_mechanism, "")
         if np.any(labels != ""):  # (L, MAX_VERTICES, 3): edge paths repeat their last point
             pad = np.repeat(strips[:, -1:], MAX_VERTICES - strips.shape[1], axis=1)
             mech = mechanism_strips(a_pos, est.position_m[lf], b.est_floor[lf], labels, building)
@@ -485,10 +486,8 @@ def _log_gating(rec: rr.RecordingStream, b: _Batch) -> None:
 
 
 def _floor_probability(est: EstimateColumns) -> FloatArray:
-    """Probability of each fix's estimated floor (estimate v2: ``est.floor_probability``, a
-    column the estimate columns may carry; NaN where unknown)."""
-    p = getattr(est, "floor_probability", None)
-    return np.full(len(est), np.nan) if p is None else np.asarray(p, np.float64)
+    """Probability of each fix's estimated floor (estimate v2; NaN where unknown)."""
+    return est.floor_probability
 
 
 def _log_floor_table(
