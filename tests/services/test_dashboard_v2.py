@@ -113,12 +113,12 @@ def test_v2_estimates_draw_the_mechanism_path_and_the_floor_probability(tmp_path
                   floor_period_s=10.0)
     rec.flush()
     rows = rrd_rows(path)
-    strips = rows["/world/nodes/r01/paths"][0][1]["LineStrips3D:strips"]
+    strips = rows["/world/paths/r01"][0][1]["LineStrips3D:strips"]
     want = mechanism_strips(a_pos[:1], np.array([pos]), np.array([1]), np.array([label]),
                             OUTLINE)[0]
     np.testing.assert_allclose(np.array(strips[0], float), want, atol=1e-5)
     table = rows["/floors"][-1][1]["TextDocument:text"][0]
-    assert "| r01 | 1 | 93 % |" in table
+    assert "| F1 | r01 93 % |" in table
     # a v1 estimate decodes with empty v2 fields and keeps the window-edge path
     v1 = VIEW_DECODERS["estimate"].decode(M.encode(M.PositionEstimate(
         node_id="n1", t_ns=t0, epoch=0, seq=0, status="OK", position_m=pos,
