@@ -118,7 +118,7 @@ def test_v2_estimates_draw_the_mechanism_path_and_the_floor_probability(tmp_path
                             OUTLINE)[0]
     np.testing.assert_allclose(np.array(strips[0], float), want, atol=1e-5)
     table = rows["/floors"][-1][1]["TextDocument:text"][0]
-    assert "| F1 | r01 93 % |" in table
+    assert "- **F1** (1): r01 93 %" in table
     # a v1 estimate decodes with empty v2 fields and keeps the window-edge path
     v1 = VIEW_DECODERS["estimate"].decode(M.encode(M.PositionEstimate(
         node_id="n1", t_ns=t0, epoch=0, seq=0, status="OK", position_m=pos,

@@ -325,17 +325,16 @@ def _log_estimate_points(
 ) -> None:
     """``world/nodes/<node>/estimate``: one marker per responder (size in ui points: visible
     at any zoom) labelled ``<node> F<floor>``, and the 95 % ellipsoid of the fix (outline in
-    ui points). A fix without a position keeps the marker on the node's last fix, grey, with
-    the age of that fix in its label (``n07 F2? 3 s``) and no ellipsoid; before the node's
+    ui points). A fix without a position keeps the marker on the node's last fix, grey,
+    labelled ``<node>?`` (its age is in the floor table), without ellipsoid; before the node's
     first fix there is no marker. One entity: one chunk per node and batch."""
     pos, t_fix, floor = _last_fix_rows(nid, rows, b, st)
     hp = b.has_pos[rows]
     shown = t_fix >= 0
-    age_s = (b.t[rows] - t_fix) * 1e-9
     fl = lambda f: "?" if f < 0 else str(f)  # noqa: E731
     label = [
-        f"{nid} F{fl(f)}" if fresh else f"{nid} F{fl(f)}? {a:.0f} s"
-        for f, fresh, a in zip(floor.tolist(), hp.tolist(), age_s.tolist(), strict=True)
+        f"{nid} F{fl(f)}" if fresh else f"{nid}?"
+        for f, fresh in zip(floor.tolist(), hp.tolist(), strict=True)
     ]
     colors = np.where(hp[:, None], b.colors[rows], np.asarray(_STALE_COLOR, np.uint8))
     ok = b.cov_ok[rows]
@@ -623,11 +622,13 @@ def _floor_tables(
         head = (f"**{hits}/{judged} responders on their true floor**" if judged else
                 "**Responders per floor** (no ground truth)" if nodes else
                 "**No responder has a fix yet**")
-        lines = [head, "", "| floor | who is there (floor probability, age of the last fix) |",
-                 "|---|---|"]
+        # one wrapped line per floor (a markdown table would cut long rows of 50 names)
+        lines = [head, "", "*per floor, top first: responder, probability of the floor, age "
+                 "of the last fix*", ""]
         for f in sorted(by_floor, reverse=True):
-            lines.append(f"| {'F' + str(f) if f >= 0 else '?'} | {', '.join(by_floor[f])} |")
+            name = f"F{f}" if f >= 0 else "floor ?"
+            lines.append(f"- **{name}** ({len(by_floor[f])}): {', '.join(by_floor[f])}")
         if waiting:
-            lines.append(f"| no fix yet | {', '.join(waiting)} |")
+            lines.append(f"- **no fix yet** ({len(waiting)}): {', '.join(waiting)}")
         texts.append("\n".join(lines))
     return texts
