@@ -35,6 +35,13 @@ from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
 RERUN = Path(sys.executable).with_name("rerun")
+try:  # the viewer binary itself (the script above is a Python wrapper that would orphan it)
+    import rerun_cli
+
+    if Path(rerun_cli.__file__).with_name("rerun").exists():
+        RERUN = Path(rerun_cli.__file__).with_name("rerun")
+except ImportError:  # pragma: no cover
+    pass
 DIFFPOS = [str(Path(sys.executable).with_name("diffpos"))]
 WINDOW = (1600, 900)
 #: an emulation per run name (20 s of emulated time; large in lockstep: as fast as the fusion)
@@ -169,12 +176,14 @@ def _loaded(png: bytes) -> bool:
     import io
 
     img = Image.open(io.BytesIO(png)).convert("L").resize((160, 90))
-    return len(set(img.getdata())) > 40
+    return len(set(img.get_flattened_data() if hasattr(img, "get_flattened_data")
+                   else img.getdata())) > 40
 
 
 def shoot_web(rrd: Path, png: Path, chrome: Chromium) -> None:
     """``rerun --serve-web FILE`` and a screenshot of its page once the viewer has drawn the
-    data and stopped changing (polled, at most 5 minutes)."""
+    data and stopped changing (two polls 3 s apart within 3 % in PNG size), or, when the
+    plots keep redrawing, 90 s after it first drew its panels (at most 8 minutes)."""
     web, grpc = free_port(), free_port()
     server = subprocess.Popen([str(RERUN), "--serve-web", "--web-viewer-port", str(web),
                                "--port", str(grpc), str(rrd)],
@@ -186,21 +195,23 @@ def shoot_web(rrd: Path, png: Path, chrome: Chromium) -> None:
         session = chrome.call("Target.attachToTarget",
                               {"targetId": target, "flatten": True})["sessionId"]
         chrome.call("Emulation.setDeviceMetricsOverride", {
-            "width": WINDOW[0], "height": WINDOW[1], "deviceScaleFactor": 2, "mobile": False},
+            "width": WINDOW[0], "height": WINDOW[1], "deviceScaleFactor": 1, "mobile": False},
             session)
         chrome.call("Page.navigate", {"url": url}, session)
-        deadline, last = time.monotonic() + 300, None
+        deadline, last, drawn = time.monotonic() + 480, None, None
         while time.monotonic() < deadline:
             time.sleep(3)  # poll period of a screen that settles (not a synchronisation)
             shot = base64.b64decode(chrome.call("Page.captureScreenshot", {"format": "png"},
                                                 session)["data"])
-            if _loaded(shot) and last is not None and abs(len(shot) - len(last)) < 0.01 * len(
-                    shot):
-                png.write_bytes(shot)
-                break
+            if _loaded(shot):
+                drawn = drawn or time.monotonic()
+                stable = last is not None and abs(len(shot) - len(last)) < 0.03 * len(shot)
+                if stable or time.monotonic() - drawn > 90:
+                    png.write_bytes(shot)
+                    break
             last = shot
         else:
-            raise SystemExit(f"{rrd}: the web viewer did not settle in 5 minutes")
+            raise SystemExit(f"{rrd}: the web viewer did not draw in 8 minutes")
         chrome.call("Target.closeTarget", {"targetId": target})
     finally:
         server.terminate()
@@ -208,9 +219,11 @@ def shoot_web(rrd: Path, png: Path, chrome: Chromium) -> None:
 
 
 def shrink(png: Path, dest: Path) -> None:
-    """Half size (3200x1800 -> 1600x900), no metadata, palette PNG: docs stay small."""
+    """At most 1600 wide (the native viewer's 3200x1800 halved), no metadata, palette PNG:
+    docs stay small."""
     img = Image.open(png).convert("RGB")
-    img = img.resize((img.width // 2, img.height // 2), Image.LANCZOS)
+    if img.width > WINDOW[0]:
+        img = img.resize((img.width // 2, img.height // 2), Image.LANCZOS)
     img.quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(dest, optimize=True)
 
 

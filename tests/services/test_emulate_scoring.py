@@ -75,7 +75,7 @@ def _full_summary() -> dict:
         "error_z_m": {"p50": 0.2, "p67": 0.3, "p90": 1.0, "p95": 1.4},
         "peb_m": {"p50": 0.5, "p67": 0.5, "p90": 0.6, "p95": 0.6},
         "ellipsoid_coverage_95": 0.9,
-        "fusion": {"gated": 0, "rejected": 0, "late_ranges": 2,
+        "fusion": {"gated": 0, "rejected": {"late": 2, "time_future": 94}, "late_ranges": 2,
                    "latency_ms": {"p50": 25.9, "p99": 158.2}},
         "recording": "/very/long/folder/name/recordings/large-20261123T190347Z-476082.mcap",
         "notes": ["fault injected at t=5 s: anchor uav3 stopped (SIGSTOP) for 3 s; its ranges "
@@ -100,6 +100,7 @@ def test_summary_fits_the_width_and_keeps_every_value(width):
     assert len(note_lines) == 1 and lines[-1].strip() == "second note"
     # the gating row names the same count as the status row (no "gated 0" next to 689)
     assert "689 estimates GATING_FAILED" in flat
+    assert "rejected: late 2, time_future 94" in flat
 
 
 def test_summary_without_notes_has_no_notes_row():

@@ -190,10 +190,13 @@ def _gating_rows(s: dict[str, Any], f) -> list[tuple[str, str]]:
         return []
     lat = fu["latency_ms"]
     failed = s.get("status", {}).get("GATING_FAILED", 0)
+    rej = fu["rejected"] or 0
+    if isinstance(rej, dict):  # per reason
+        rej = ", ".join(f"{k} {v}" for k, v in sorted(rej.items())) or "0"
     return [
         ("gating", f"{failed} estimates GATING_FAILED (whole fix rejected); "
-                   f"{fu['gated']} single measurements excluded from fixes; rejected "
-                   f"{fu['rejected'] or 0}; late ranges {fu['late_ranges']}"),
+                   f"{fu['gated']} single measurements excluded from fixes; ranges "
+                   f"rejected: {rej}; late ranges {fu['late_ranges']}"),
         ("fusion latency", f"p50 {f(lat['p50'], ' ms')}  p99 {f(lat['p99'], ' ms')}"),
     ]
 
