@@ -172,12 +172,12 @@ class Chromium:
 
 
 def _loaded(png: bytes) -> bool:
-    """The viewer has drawn its panels (the loading screen is one flat colour)."""
+    """The viewer has drawn its panels: thousands of colours (plots, 3D view, text); its
+    loading screen (dark, one line of text) has a few hundred at most (threshold 1500)."""
     import io
 
-    img = Image.open(io.BytesIO(png)).convert("L").resize((160, 90))
-    return len(set(img.get_flattened_data() if hasattr(img, "get_flattened_data")
-                   else img.getdata())) > 40
+    img = Image.open(io.BytesIO(png)).convert("RGB")
+    return len(img.getcolors(maxcolors=1 << 20) or ()) > 1500
 
 
 def shoot_web(rrd: Path, png: Path, chrome: Chromium) -> None:
