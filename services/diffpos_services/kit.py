@@ -9,7 +9,8 @@ Standard library and msgspec only (no zenoh: the bus health check is
   raises :class:`ConfigError` naming the bad field (the CLI prints it, no traceback).
 - :func:`setup_logging` writes one JSON object per line to stderr (``--log-format text`` for
   humans); :func:`log_event` attaches key/value fields; :class:`LogOnce` logs a recurring
-  problem once per (key, reason).
+  problem once per (key, reason); :data:`STATUS` is the one live status line of a terminal
+  (log records print above it: the handler clears and redraws it).
 - :class:`Shutdown` turns SIGINT/SIGTERM into an event the main loop waits on, so sessions
   are closed by their ``with`` blocks and buffers are flushed before exit; :func:`run_main`
   runs a service body; :func:`stop_process_groups` and :func:`free_tcp_port` help the
@@ -25,6 +26,7 @@ import ctypes.util
 import json
 import logging
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -37,10 +39,12 @@ from typing import Any, TypeVar
 import msgspec
 
 __all__ = [
+    "STATUS",
     "ConfigError",
     "DiffposError",
     "LogOnce",
     "Shutdown",
+    "StatusLine",
     "add_logging_arguments",
     "build_config",
     "child_env",
@@ -221,6 +225,96 @@ class _TextFormatter(logging.Formatter):
         return line
 
 
+class StatusLine:
+    """One live status line at the bottom of a terminal, with log records printed above it.
+
+    :meth:`show` (re)draws the line in place (``\\r`` + erase to end of line), cut to the
+    terminal's width so it never wraps; the log handler of :func:`setup_logging` erases it,
+    writes the record on its own line and draws it again (:meth:`above`), so a warning is
+    never glued to the status. On a stream that is not a terminal nothing is drawn (callers
+    log their progress instead). Thread-safe.
+
+    Parameters
+    ----------
+    stream : file, optional
+        Default: ``sys.stderr`` at the time of each write (so redirections are honoured).
+    """
+
+    ERASE = "\r\x1b[K"
+
+    def __init__(self, stream: Any = None) -> None:
+        self._stream = stream
+        self.text = ""
+        self._lock = threading.RLock()
+
+    @property
+    def stream(self) -> Any:
+        return self._stream if self._stream is not None else sys.stderr
+
+    def active(self) -> bool:
+        """A line is shown (and the stream is a terminal)."""
+        return bool(self.text) and _isatty(self.stream)
+
+    @staticmethod
+    def width() -> int:
+        """Columns available for the line (the terminal's width minus one, at least 20)."""
+        return max(20, shutil.get_terminal_size((80, 24)).columns - 1)
+
+    def fit(self, text: str) -> str:
+        """``text`` cut to :meth:`width` (an ellipsis marks the cut)."""
+        w = self.width()
+        return text if len(text) <= w else text[: w - 1] + "\u2026"
+
+    def show(self, text: str) -> None:
+        """Draw ``text`` as the status line (replacing the previous one)."""
+        with self._lock:
+            self.text = text
+            if _isatty(self.stream):
+                self.stream.write(self.ERASE + self.fit(text))
+                self.stream.flush()
+
+    def done(self) -> None:
+        """Leave the last line on screen and end it (later output starts on a new line)."""
+        with self._lock:
+            if self.active():
+                self.stream.write("\n")
+                self.stream.flush()
+            self.text = ""
+
+    @contextlib.contextmanager
+    def above(self) -> Any:
+        """Erase the line, let the caller write full lines, draw the line again."""
+        with self._lock:
+            active = self.active()
+            if active:
+                self.stream.write(self.ERASE)
+            try:
+                yield
+            finally:
+                if active:
+                    self.stream.write(self.fit(self.text))
+                    self.stream.flush()
+
+
+def _isatty(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # closed or not a file
+        return False
+
+
+#: the process's one status line (``diffpos emulate``'s progress)
+STATUS = StatusLine()
+
+
+class _StatusAwareHandler(logging.StreamHandler):
+    """A stderr handler that prints each record above :data:`STATUS`."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with STATUS.above():
+            super().emit(record)
+
+
 def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
     """``--log-level`` and ``--log-format`` options."""
     g = parser.add_argument_group("logging")
@@ -240,7 +334,7 @@ def add_logging_arguments(parser: argparse.ArgumentParser) -> None:
 
 def setup_logging(service: str, *, level: str = "info", fmt: str = "json") -> logging.Logger:
     """Configure the root logger for a service process; return the service's logger."""
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _StatusAwareHandler(sys.stderr)
     handler.setFormatter(_JsonFormatter(service) if fmt == "json" else _TextFormatter(service))
     root = logging.getLogger()
     root.handlers[:] = [handler]

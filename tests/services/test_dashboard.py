@@ -124,7 +124,8 @@ def test_entities_blueprint_and_timeline(bulk, run):
         "/metrics/fusion/gated",
     }
     for n in nodes:
-        expected |= {f"/world/nodes/{n}/{e}" for e in ("truth", "estimate", "paths")}
+        expected |= {f"/world/nodes/{n}/{e}" for e in ("truth", "estimate")}
+        expected.add(f"/world/paths/{n}")
         expected |= {f"/metrics/{s}/{n}" for s in ("error_3d_m", "error_z_m", "peb_m")}
     for a in anchors:
         expected |= {f"/world/anchors/{a}", f"/world/anchors/{a}/trail", f"/metrics/residual_m/{a}"}
@@ -149,15 +150,24 @@ def test_rerun_cli_verifies_the_file(bulk):
 def test_estimate_positions_equal_the_published_ones(bulk, run):
     _, _, rows = bulk
     _, msgs = run
-    for e in of(msgs, "PositionEstimate"):
+    last_fix: dict[str, tuple] = {}
+    for e in sorted(of(msgs, "PositionEstimate"), key=lambda x: x.t_ns):
         logged = dict(rows[f"/world/nodes/{e.node_id}/estimate"])[e.t_ns]
-        if e.position_m is None:  # unidentifiable: the row exists and clears the point
-            assert logged["Points3D:positions"] == []
+        if e.position_m is None:
+            # no position: the marker stays on the node's last fix (grey, label with the age
+            # of that fix), or there is none before the first fix; never an ellipsoid
+            prev = last_fix.get(e.node_id)
+            if prev is None:
+                assert logged["Points3D:positions"] == []
+            else:
+                np.testing.assert_allclose(logged["Points3D:positions"][0], prev[1], atol=6e-5)
+                assert logged["Points3D:labels"][0] == f"{e.node_id}?"
             assert (
                 dict(rows[f"/world/nodes/{e.node_id}/estimate"])[e.t_ns]["Ellipsoids3D:half_sizes"]
                 == []
             )
         else:
+            last_fix[e.node_id] = (e.t_ns, e.position_m)
             np.testing.assert_allclose(
                 logged["Points3D:positions"][0], e.position_m, rtol=0, atol=2e-6 * 30
             )
@@ -173,7 +183,10 @@ def test_errors_and_peb_against_the_truth(bulk, run):
         ez = dict(rows[f"/metrics/error_z_m/{e.node_id}"])
         peb = dict(rows[f"/metrics/peb_m/{e.node_id}"])
         if e.position_m is None:
-            assert e.t_ns not in e3 and e.t_ns not in peb  # no fake values for a missing fix
+            # no fake value for a missing fix: a clear (a gap in the plotted line)
+            for series in (e3, peb):
+                assert "Scalars:scalars" not in series[e.t_ns]
+                assert series[e.t_ns]["Clear:is_recursive"] == [False]
             continue
         diff = np.array(e.position_m) - truth[(e.node_id, e.t_ns)]
         assert e3[e.t_ns]["Scalars:scalars"][0] == pytest.approx(np.linalg.norm(diff), abs=1e-9)
@@ -205,7 +218,7 @@ def test_diffraction_paths_cross_the_window_edge_at_the_shortest_point(bulk, run
     building, msgs = run
     n_strips = 0
     for e in of(msgs, "PositionEstimate")[::3]:
-        row = dict(rows[f"/world/nodes/{e.node_id}/paths"]).get(e.t_ns)
+        row = dict(rows[f"/world/paths/{e.node_id}"]).get(e.t_ns)
         if row is None or e.position_m is None:
             continue
         strips = row["LineStrips3D:strips"]
@@ -249,7 +262,7 @@ def test_paths_are_drawn_over_the_edge_the_fusion_models(run, tmp_path):
         assert out["estimate"]
         n_strips = 0
         for e in of(msgs, "PositionEstimate"):
-            row = dict(rows[f"/world/nodes/{e.node_id}/paths"]).get(e.t_ns)
+            row = dict(rows[f"/world/paths/{e.node_id}"]).get(e.t_ns)
             if row is None or e.position_m is None:
                 continue
             k = e.floor_index
@@ -269,9 +282,9 @@ def test_excluded_paths_are_red_and_used_ones_in_anchor_colour(bulk, run):
         for x in of(msgs, "PositionEstimate")
         if any(ex.reason == "RAIM" for ex in x.excluded)
         and x.position_m is not None
-        and x.t_ns in dict(rows[f"/world/nodes/{x.node_id}/paths"])
+        and x.t_ns in dict(rows[f"/world/paths/{x.node_id}"])
     )
-    row = dict(rows[f"/world/nodes/{e.node_id}/paths"])[e.t_ns]
+    row = dict(rows[f"/world/paths/{e.node_id}"])[e.t_ns]
     colors = row["LineStrips3D:colors"]
 
     def rgba(c):
@@ -355,21 +368,24 @@ def test_estimates_with_negative_time_are_dropped_with_an_error_event(run, tmp_p
 
 
 def test_floor_table_reports_wrong_floors(bulk, run):
+    """Per floor, who is there: each node on the floor of its latest fix with a position
+    (reference: the published estimates), wrong floors marked with the true one."""
     _, _, rows = bulk
     t_last, row = rows["/floors"][-1]
     text = row["TextDocument:text"][0]
     _, msgs = run
     latest = {}
     for e in sorted(of(msgs, "PositionEstimate"), key=lambda x: x.t_ns):
-        if e.t_ns <= t_last:
+        if e.t_ns <= t_last and e.position_m is not None:
             latest[e.node_id] = e
     truth = {t.id: t.floor_index for t in of(msgs, "GroundTruth")}
-    hits = sum(
-        latest[n].floor_index == truth[n] for n in latest if latest[n].floor_index is not None
-    )
-    assert f"{hits}/{len(latest)} nodes on the true floor" in text
+    hits = sum(latest[n].floor_index == truth[n] for n in latest)
+    assert f"{hits}/{len(latest)} responders on their true floor" in text
+    table = {ln.split("**")[1]: ln.split("): ", 1)[1] for ln in text.splitlines()
+             if ln.startswith("- **F")}
     for n, e in latest.items():
-        assert f"| {n} | {e.floor_index} | {truth[n]} |" in text
+        cell = next(c for c in table[f"F{e.floor_index}"].split(", ") if c.split()[0] == n)
+        assert ("**true F" in cell) == (e.floor_index != truth[n])
 
 
 def test_gating_counts_per_fusion_time(bulk, run):
@@ -417,7 +433,7 @@ def test_streaming_in_small_batches_gives_the_same_dashboard(run, bulk, tmp_path
         "/world/nodes/n00/estimate",
         "/metrics/error_3d_m/n01",
         "/metrics/residual_m/uav1",
-        "/world/nodes/n02/paths",
+        "/world/paths/n02",
         "/world/anchors/uav2/trail",
         "/metrics/gating/excluded",
     ):

@@ -7,13 +7,11 @@ the logged rows read back with Rerun's reader.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 import rerun as rr
 from diffpos_services.dashboard.building import BuildingOutline
-from diffpos_services.dashboard.columns import EstimateColumns, estimate_columns_from_messages
+from diffpos_services.dashboard.columns import estimate_columns_from_messages
 from diffpos_services.dashboard.convert import rrd_rows
 from diffpos_services.dashboard.decode import VIEW_DECODERS, estimate_extras
 from diffpos_services.dashboard.estimates import log_estimates
@@ -88,14 +86,6 @@ def _v2(seq: int, t_ns: int, pos, mech: str | None) -> bytes:
         t_pub_wall_ns=2))
 
 
-@dataclass(frozen=True)
-class _V2Columns(EstimateColumns):
-    """EstimateColumns with the two estimate-v2 columns the dashboard draws."""
-
-    link_mechanism: np.ndarray | None = None
-    floor_probability: np.ndarray | None = None
-
-
 def test_v2_estimates_draw_the_mechanism_path_and_the_floor_probability(tmp_path):
     """Decoded by the dashboard's view (v1 and v2 alike), the mechanism the fusion used is
     drawn through its interaction points and the floor table shows the chosen floor's
@@ -110,7 +100,10 @@ def test_v2_estimates_draw_the_mechanism_path_and_the_floor_probability(tmp_path
     extras = estimate_extras(msgs)
     assert list(extras["link_mechanism"]) == [label, label, label, "", "", ""]
     np.testing.assert_array_equal(extras["floor_probability"], [0.93] * 3)
-    est = _V2Columns(**cols.__dict__, **extras)
+    # the estimate columns carry both (and keep them through a selection of fixes)
+    assert list(cols.link_mechanism) == list(extras["link_mechanism"])
+    np.testing.assert_array_equal(cols.floor_probability, extras["floor_probability"])
+    est = cols
     a_pos = np.array([[-15.0, -20.0, 1.0], [15.0, -20.0, 1.0]])
     anchors = Tracks([t0, t0], ["uav1", "uav2"], a_pos)
     rec = rr.RecordingStream("test-v2", recording_id="v2")
@@ -120,12 +113,12 @@ def test_v2_estimates_draw_the_mechanism_path_and_the_floor_probability(tmp_path
                   floor_period_s=10.0)
     rec.flush()
     rows = rrd_rows(path)
-    strips = rows["/world/nodes/r01/paths"][0][1]["LineStrips3D:strips"]
+    strips = rows["/world/paths/r01"][0][1]["LineStrips3D:strips"]
     want = mechanism_strips(a_pos[:1], np.array([pos]), np.array([1]), np.array([label]),
                             OUTLINE)[0]
     np.testing.assert_allclose(np.array(strips[0], float), want, atol=1e-5)
     table = rows["/floors"][-1][1]["TextDocument:text"][0]
-    assert "| r01 | 1 | 93 % |" in table
+    assert "- **F1** (1): r01 93 %" in table
     # a v1 estimate decodes with empty v2 fields and keeps the window-edge path
     v1 = VIEW_DECODERS["estimate"].decode(M.encode(M.PositionEstimate(
         node_id="n1", t_ns=t0, epoch=0, seq=0, status="OK", position_m=pos,

@@ -56,5 +56,54 @@ def test_every_node_epoch_after_2_s_counts():
     assert s["status"] == {"TRACKING": 24 + 29, "LOST": 1} and s["estimates"] == 54
     assert sc.live_counts() == (n_in + 10, n_in + 9)
     text = format_summary(s)
-    assert "availability    85.0 %" in text and "80.0 % of all node-epochs" in text
+    assert "availability    85.0 % of the node-epochs" in text and "80.0 % of all node-epochs" in text
     assert "mnls+tracking" in text
+
+
+def _full_summary() -> dict:
+    """A summary with every row filled, long values included (a long recording path)."""
+    return {
+        "run_id": "20261123T190347Z-476082", "anchors": 8, "nodes": 50, "duration_s": 20.0,
+        "speed": 0.0, "channel": "emulator", "fusion_method": "dnls",
+        "model": "lower window edge, Delta 0 m (auto: every anchor below the lowest window "
+                 "(4.0 m < 4.75 m): the lower-edge path arrives first)",
+        "estimates": 10_000, "with_position": 9_000,
+        "status": {"GATING_FAILED": 689, "NOT_CONVERGED": 20, "OK": 9_291},
+        "skip_s": 2.0, "node_epochs": 9_000, "node_epochs_without_estimate": 3,
+        "availability": 0.9, "floor_accuracy": 0.85, "floor_accuracy_fixes": 0.94,
+        "error_3d_m": {"p50": 0.3, "p67": 0.4, "p90": 1.2, "p95": 1.6},
+        "error_z_m": {"p50": 0.2, "p67": 0.3, "p90": 1.0, "p95": 1.4},
+        "peb_m": {"p50": 0.5, "p67": 0.5, "p90": 0.6, "p95": 0.6},
+        "ellipsoid_coverage_95": 0.9,
+        "fusion": {"gated": 0, "rejected": {"late": 2, "time_future": 94}, "late_ranges": 2,
+                   "latency_ms": {"p50": 25.9, "p99": 158.2}},
+        "recording": "/very/long/folder/name/recordings/large-20261123T190347Z-476082.mcap",
+        "notes": ["fault injected at t=5 s: anchor uav3 stopped (SIGSTOP) for 3 s; its ranges "
+                  "of that window are missing from the recording and the fixes",
+                  "second note"],
+    }
+
+
+@pytest.mark.parametrize("width", [60, 80, 100])
+def test_summary_fits_the_width_and_keeps_every_value(width):
+    s = _full_summary()
+    text = format_summary(s, width=width)
+    lines = text.splitlines()
+    assert max(map(len, lines)) <= width
+    flat = " ".join(x.strip() for x in lines)
+    # every value is still there (wrapping only moves words to the next line)
+    for word in ("GATING_FAILED 689", "90.0 %", "85.0 %", "p99 158.200 ms", "second note",
+                 "(SIGSTOP)", "lower-edge"):
+        assert word in flat
+    # the notes: one paragraph each, the first line named "notes", continuation indented
+    note_lines = [i for i, x in enumerate(lines) if x.startswith("notes")]
+    assert len(note_lines) == 1 and lines[-1].strip() == "second note"
+    # the gating row names the same count as the status row (no "gated 0" next to 689)
+    assert "689 estimates GATING_FAILED" in flat
+    assert "rejected: late 2, time_future 94" in flat
+
+
+def test_summary_without_notes_has_no_notes_row():
+    s = _full_summary()
+    del s["notes"]
+    assert "notes" not in format_summary(s, width=80)

@@ -59,18 +59,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="measurement phase within the period, 0..1 (default: random from the seed)",
     )
-    parser.add_argument("--clock-offset-ms", type=float, default=0.0, help="clock offset [ms]")
+    parser.add_argument("--clock-offset-ms", type=float, default=0.0, help="clock offset [ms] (default 0)")
     parser.add_argument(
-        "--clock-jitter-us", type=float, default=20.0, help="clock jitter sigma [us]"
+        "--clock-jitter-us", type=float, default=20.0, help="clock jitter sigma [us] (default 20)"
     )
     parser.add_argument(
-        "--gnss-sigma-h-m", type=float, default=0.02, help="horizontal position sigma [m]"
+        "--gnss-sigma-h-m", type=float, default=0.02, help="GNSS horizontal position sigma [m] (default 0.02)"
     )
     parser.add_argument(
-        "--gnss-sigma-v-m", type=float, default=0.03, help="vertical position sigma [m]"
+        "--gnss-sigma-v-m", type=float, default=0.03, help="GNSS vertical position sigma [m] (default 0.03)"
     )
     parser.add_argument(
-        "--max-nodes", type=int, default=0, help="range to the first N nodes only (0 = all)"
+        "--max-nodes", type=int, default=0, help="range to the first N nodes only (default 0 = all)"
     )
     parser.add_argument(
         "--channel",
@@ -80,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "D-NLS model's path with CRLB noise at --ideal-snr-db",
     )
     parser.add_argument(
-        "--ideal-snr-db", type=float, default=20.0, help="SNR of --channel ideal [dB]"
+        "--ideal-snr-db", type=float, default=20.0, help="SNR of --channel ideal [dB] (default 20)"
     )
     parser.add_argument(
         "--range-batch",

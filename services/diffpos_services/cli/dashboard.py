@@ -71,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--web-port", type=int, default=9090, help="serve: web viewer port (default 9090, 0 = free)"
     )
-    parser.add_argument("--host", default="127.0.0.1", help="serve: host name printed in the URL")
+    parser.add_argument("--host", default="127.0.0.1", help="serve: host name printed in the URL (default 127.0.0.1)")
     parser.add_argument(
         "--memory-limit", default="1GiB", help="viewer/server memory budget (default 1GiB)"
     )

@@ -75,7 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "lockstep: as fast as the fusion keeps up")
     parser.add_argument("--site", default="demo", help="site name on the bus (default demo)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--rate-hz", type=float, default=10.0, help="anchor ranging rate [Hz]")
+    parser.add_argument("--rate-hz", type=float, default=10.0, help="anchor ranging rate [Hz] (default 10)")
     parser.add_argument("--channel", choices=["emulator", "ideal"], default="emulator",
                         help="emulator: O2I multipath + first arrival (default); ideal: the "
                         "D-NLS model's diffraction path with CRLB noise")
@@ -93,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "per responder (needs lockstep, --speed 0, to keep up on 2 cores: diffpos "
                         "emulate --method mnls --speed 0); dnls = the paper's window-edge D-NLS "
                         "with gating; lls, ippa = the baselines")
-    parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes")
+    parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes (default 0 = all)")
     parser.add_argument("--endpoint", metavar="ENDPOINT",
                         help="router endpoint (default tcp/127.0.0.1:<free port>; with "
                         "--security-profile tls/localhost:<free port>)")
@@ -102,7 +102,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "security/profile.dev.toml): TLS, one user/password per service, access "
                         "control; rendered into a private temporary folder (not with --speed 0)")
     parser.add_argument("--record", default="auto", metavar="FILE.mcap",
-                        help="MCAP recording: auto (recordings/<name>-<UTC>.mcap), a path, or off")
+                        help="MCAP recording: auto (default: recordings/<name>-<UTC>.mcap), a path, or off")
     parser.add_argument("--dashboard", nargs="+", default=["auto"], metavar="MODE",
                         help="dashboard: auto | spawn | serve | save FILE.rrd | off (default auto)")
     parser.add_argument("--log-dir", metavar="DIR", help="write each service's log to DIR/<service>.log")

@@ -77,7 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--deadline-s",
         type=float,
         default=0.3,
-        help="solve an epoch this long (wall time) after its first range [s]",
+        help="solve an epoch this long (wall time) after its first range [s] (default 0.3)",
     )
     parser.add_argument(
         "--clock-tolerance-ms",

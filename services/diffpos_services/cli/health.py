@@ -24,8 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument("--zenoh-config", metavar="FILE",
                        help="zenoh json5 file of the service's identity (secured bus), e.g. "
                        "/security/zenoh/fusion.json5")
-    parser.add_argument("--liveliness", required=True, metavar="KEY")
-    parser.add_argument("--timeout", type=float, default=3.0, metavar="S")
+    parser.add_argument("--liveliness", required=True, metavar="KEY",
+                        help="liveliness key expression the service declares (required)")
+    parser.add_argument("--timeout", type=float, default=3.0, metavar="S",
+                        help="give up after S seconds [s] (default 3)")
 
 
 def run(args: argparse.Namespace) -> int:

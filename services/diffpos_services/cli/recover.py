@@ -29,7 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.mcap", help="recording to recover")
     parser.add_argument("--out", metavar="OUT.mcap",
                         help="output file (default FILE.recovered.mcap next to the input)")
-    parser.add_argument("--compression", default="zstd", choices=["zstd", "lz4", "none"])
+    parser.add_argument("--compression", default="zstd", choices=["zstd", "lz4", "none"],
+                        help="chunk compression of the recovered file (default zstd)")
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
 
 

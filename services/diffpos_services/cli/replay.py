@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--ignore-recorded-settings", action="store_true",
                    help="start from the defaults instead of the settings in the recording")
     g.add_argument("--step-ms", type=float, default=5.0, metavar="MS",
-                   help="fusion step granularity in recorded receive time (default 5: like "
+                   help="fusion step granularity in recorded receive time [ms] (default 5: like "
                         "the live service, reproduces its fixes; 0 = after every message; "
                         "larger = several epochs per solver batch, ~1.3x faster at 1000, but "
                         "warm starts and motion compensation then use older tracks and fixes "

@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"a random subsample of --quick-nodes receivers "
                              f"(default {DEFAULT_QUICK_NODES})")
     parser.add_argument("--quick-nodes", type=int, default=DEFAULT_QUICK_NODES, metavar="N",
-                        help="receivers kept by --quick")
+                        help=f"receivers kept by --quick (default {DEFAULT_QUICK_NODES})")
     parser.add_argument("--channel", default="emulator", metavar="SOURCE",
                         help="emulator (default), raytrace:FILE or arrivals:FILE.npz")
     parser.add_argument("--methods", nargs="+", choices=ALL_METHODS,

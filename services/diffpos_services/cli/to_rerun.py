@@ -5,7 +5,8 @@ work too) and writes the same dashboard as the live `diffpos dashboard`, in bulk
 (send_columns), with the default blueprint embedded: open the result with `rerun OUT.rrd`
 (or drag it into the web viewer at https://rerun.io/viewer, version 0.41).
 
-Shown: the building (from --scenario, else the scenario file attached to the recording),
+Shown: the building (from --scenario, else the scenario file attached to the recording, else
+the building of the run configuration `diffpos emulate` attaches),
 anchors with trails, true and estimated node positions with 95% ellipsoids and diffraction
 paths (excluded anchors in red), 3D/z error and PEB per node, residuals per anchor, gating
 counts, the floor table and the event log (liveliness, exclusions, unidentifiable fixes).
@@ -130,7 +131,9 @@ def run(args: argparse.Namespace) -> int:
     )
     if not counts["building"]:
         print(
-            "note: no scenario in the recording: give --scenario FILE.toml, a shipped name or 'default' (emulate's built-in) for the building; without it paths are straight lines and there is no wireframe"
+            "note: no building in the recording (neither a scenario TOML nor a run configuration "
+            "attached): give --scenario FILE.toml, a shipped name or 'default' (emulate's "
+            "built-in); without it paths are straight lines and there is no wireframe"
         )
     if not counts["estimate"]:
         print(

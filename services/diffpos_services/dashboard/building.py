@@ -75,7 +75,7 @@ class BuildingOutline:
         """Build from a scenario building (duck-typed) or a plain mapping.
 
         Accepted spellings: ``x_min_m``/``x_max_m`` or ``x_extent_m``/``edge_x_m`` (a pair) or
-        ``width_m`` (centred on x = 0); ``depth_m``; ``n_floors``/``floors``;
+        ``width_m`` (centred on ``center_x_m``, default 0); ``depth_m``; ``n_floors``/``floors``;
         ``floor_height_m``; ``sill_height_m``; ``window_height_m``.
         """
         if isinstance(obj, BuildingOutline):
@@ -98,7 +98,8 @@ class BuildingOutline:
             x0, x1 = float(get("x_min_m")), float(get("x_max_m"))
         else:
             width = float(get("width_m"))
-            x0, x1 = -0.5 * width, 0.5 * width
+            center = float(get("center_x_m", default=0.0))
+            x0, x1 = center - 0.5 * width, center + 0.5 * width
         floors = get("n_floors", "floors", "num_floors")
         n_floors = len(floors) if isinstance(floors, Sequence) else int(floors)
         return cls(

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from diffpos_services.dashboard.building import FloatArray
 from diffpos_services.dashboard.common import _check_len, _str_array
+from diffpos_services.dashboard.decode import estimate_extras
 
 
 # ============================================================================ input columns
@@ -112,6 +113,13 @@ class EstimateColumns:
         Post-fit residual of used links, NaN for excluded ones.
     link_reason : ndarray of str, shape (L,)
         Exclusion reason, ``""`` for used links.
+    link_mechanism : ndarray of str, shape (L,)
+        Estimate v2: the first-arrival mechanism the fusion explained the link's range by (a
+        label of :data:`diffpos.paths.MECHANISMS`); ``""`` where unknown (v1, excluded).
+        Default: all ``""``.
+    floor_probability : ndarray, shape (K,)
+        Estimate v2: the probability of the estimated floor; NaN where unknown (v1).
+        Default: all NaN.
     """
 
     t_ns: NDArray[np.int64]
@@ -126,6 +134,8 @@ class EstimateColumns:
     link_used: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     link_residual_m: FloatArray = field(default_factory=lambda: np.zeros(0))
     link_reason: NDArray[np.str_] = field(default_factory=lambda: np.zeros(0, "<U1"))
+    link_mechanism: NDArray[np.str_] | None = None
+    floor_probability: FloatArray | None = None
 
     def __post_init__(self) -> None:
         s = object.__setattr__
@@ -142,10 +152,15 @@ class EstimateColumns:
         s(self, "link_used", np.asarray(self.link_used, dtype=bool).reshape(-1))
         s(self, "link_residual_m", np.asarray(self.link_residual_m, dtype=np.float64).reshape(-1))
         s(self, "link_reason", _str_array(self.link_reason))
-        for name in ("node_id", "status", "peb_m", "floor_index"):
-            _check_len(f"EstimateColumns.{name}", getattr(self, name), n)
         n_links = self.link_fix.shape[0]
-        for name in ("link_anchor_id", "link_used", "link_residual_m", "link_reason"):
+        s(self, "link_mechanism", np.full(n_links, "", "<U1") if self.link_mechanism is None
+          else _str_array(self.link_mechanism))
+        s(self, "floor_probability", np.full(n, np.nan) if self.floor_probability is None
+          else np.asarray(self.floor_probability, np.float64).reshape(-1))
+        for name in ("node_id", "status", "peb_m", "floor_index", "floor_probability"):
+            _check_len(f"EstimateColumns.{name}", getattr(self, name), n)
+        for name in ("link_anchor_id", "link_used", "link_residual_m", "link_reason",
+                     "link_mechanism"):
             _check_len(f"EstimateColumns.{name}", getattr(self, name), n_links)
         if n_links and (self.link_fix.min() < 0 or self.link_fix.max() >= n):
             raise ValueError("EstimateColumns.link_fix must index rows 0..K-1")
@@ -217,7 +232,9 @@ def truth_columns_from_messages(msgs: Sequence[Any]) -> TruthColumns:
 
 
 def estimate_columns_from_messages(msgs: Sequence[Any]) -> EstimateColumns:
-    """Columns from ``PositionEstimate`` messages (diffpos.estimate.v1)."""
+    """Columns from ``PositionEstimate`` messages (diffpos.estimate.v1 or v2: with v2 the
+    mechanism of each used link and the estimated floor's probability,
+    :func:`~diffpos_services.dashboard.decode.estimate_extras`)."""
     n = len(msgs)
     nan_cov = (_nan3(), _nan3(), _nan3())
     # links flattened with comprehensions (no per-link Python calls): used ones first, then
@@ -261,4 +278,5 @@ def estimate_columns_from_messages(msgs: Sequence[Any]) -> EstimateColumns:
         link_used=link_used,
         link_residual_m=link_res,
         link_reason=link_reason,
+        **estimate_extras(msgs),
     )

@@ -25,6 +25,7 @@ from diffpos_services.dashboard.common import (
     anchor_color,
 )
 from diffpos_services.dashboard.events import _status_level, log_events
+from diffpos_services.dashboard.floors import _log_floor_table
 from diffpos_services.dashboard.geometry import Tracks, ellipsoid_axes, path_strips
 from diffpos_services.dashboard.mechanisms import MAX_VERTICES, mechanism_strips
 from diffpos_services.wire.messages import GOOD_STATUSES
@@ -33,11 +34,16 @@ from diffpos_services.wire.messages import GOOD_STATUSES
 def _scalar_series(
     rec: rr.RecordingStream, path: str, t_ns: np.ndarray, values: np.ndarray
 ) -> None:
+    """Values at their times; a missing value (NaN: no position, no truth) is a gap in the
+    plotted line (a ``Clear`` at that time), never a line drawn across it."""
     ok = np.isfinite(values)
     if ok.any():
         rec.send_columns(
             path, indexes=[_time_column(t_ns[ok])], columns=rr.Scalars.columns(scalars=values[ok])
         )
+    if not ok.all():
+        rec.send_columns(path, indexes=[_time_column(t_ns[~ok])],
+                         columns=rr.Clear.columns(is_recursive=np.zeros(int((~ok).sum()), bool)))
 
 
 @dataclass
@@ -48,7 +54,11 @@ class _EstimateState:
     last_links: dict[str, dict[str, str]] = field(default_factory=dict)
     last_status: dict[str, str] = field(default_factory=dict)
     last_floor_bucket: int | None = None
-    floors: dict[str, tuple[int, int, float]] = field(default_factory=dict)
+    #: node -> (estimated floor, true floor, probability, time of the fix [ns]) of its
+    #: latest fix with a position (the floor table)
+    floors: dict[str, tuple[int, int, float, int]] = field(default_factory=dict)
+    #: node -> (time [ns], position [m], floor) of its latest fix with a position (markers)
+    last_fix: dict[str, tuple[int, FloatArray, int]] = field(default_factory=dict)
     residual_styled: set[str] = field(default_factory=set)
     dropped_bad_time: int = 0
 
@@ -70,6 +80,8 @@ def _select_fixes(est: EstimateColumns, keep: NDArray[np.bool_]) -> EstimateColu
         link_used=est.link_used[lk],
         link_residual_m=est.link_residual_m[lk],
         link_reason=est.link_reason[lk],
+        link_mechanism=est.link_mechanism[lk],
+        floor_probability=est.floor_probability[keep],
     )
 
 
@@ -163,14 +175,16 @@ def log_estimates(
     events: list[EventColumns] = []
     for nid, rows in _group(est.node_id):
         rows = _sorted_by_time(b.t, rows)
-        _log_estimate_points(rec, nid, rows, b)
+        _log_estimate_points(rec, nid, rows, b, st)
         if paths is not None:
             _log_paths(rec, nid, rows, b, paths, path_period_ns, st)
         _log_errors(rec, nid, rows, b)
         events.append(_status_events(nid, rows, b, st))
-        last = rows[-1]  # latest floors (and the estimate's floor probability) for the table
-        st.floors[nid] = (int(b.est_floor[last]), int(b.true_floor[last]),
-                          float(_floor_probability(est)[last]))
+        fixed = rows[b.has_pos[rows]]
+        if fixed.size:  # the latest fix with a position, for the floor table
+            last = fixed[-1]
+            st.floors[nid] = (int(b.est_floor[last]), int(b.true_floor[last]),
+                              float(est.floor_probability[last]), int(b.t[last]))
     if est.link_fix.size:
         events.append(_exclusion_events(b, st))
         _log_residuals(rec, b, st)
@@ -251,17 +265,16 @@ def _diffraction_paths(
 ) -> _Paths | None:
     """The path of every link (vectorised), or None without links or anchor tracks.
 
-    A used link whose estimate names its mechanism (estimate v2: ``est.link_mechanism``, a
-    column the estimate columns may carry) is drawn along that mechanism's interaction
+    A used link whose estimate names its mechanism (estimate v2: ``est.link_mechanism``) is
+    drawn along that mechanism's interaction
     points; the others over the modelled window edge (estimate v1)."""
     est, lf = b.est, b.est.link_fix
     if not lf.size or anchors is None:
         return None
     a_pos, _, a_known = anchors.sample(None, b.t[lf], coded=(b.anchor_ids, b.anchor_code))
     strips = path_strips(a_pos, est.position_m[lf], b.est_floor[lf], building)
-    labels = getattr(est, "link_mechanism", None)
-    if labels is not None and building is not None:
-        labels = np.where(est.link_used, np.asarray(labels, str), "")
+    if building is not None:
+        labels = np.where(est.link_used, est.link_mechanism, "")
         if np.any(labels != ""):  # (L, MAX_VERTICES, 3): edge paths repeat their last point
             pad = np.repeat(strips[:, -1:], MAX_VERTICES - strips.shape[1], axis=1)
             mech = mechanism_strips(a_pos, est.position_m[lf], b.est_floor[lf], labels, building)
@@ -276,36 +289,74 @@ def _diffraction_paths(
     return _Paths(strips=strips, ok=ok, colors=colors, radii=radii)
 
 
-def _log_estimate_points(
-    rec: rr.RecordingStream, nid: str, rows: NDArray[np.int64], b: _Batch
-) -> None:
-    """``world/nodes/<node>/estimate``: labelled point and 95 % ellipsoid of each fix (one
-    entity: one chunk per node and batch instead of two)."""
+#: marker of a responder [ui points: the same size on screen at any zoom]
+MARKER_RADIUS_UI = 7.0
+#: outline of the 95 % ellipsoid [ui points]
+ELLIPSOID_LINE_UI = 1.5
+#: marker of a responder whose latest estimate has no position: its last fix, in grey
+_STALE_COLOR = (150, 150, 150, 255)
+
+
+def _last_fix_rows(
+    nid: str, rows: NDArray[np.int64], b: _Batch, st: _EstimateState
+) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.int64]]:
+    """For each fix of a node (time-sorted ``rows``): the position, time and floor of the
+    node's latest fix with a position up to it (this batch or, before it, ``st.last_fix``);
+    time -1 where the node never had one. Updates ``st.last_fix``."""
     hp = b.has_pos[rows]
+    idx = np.where(hp, np.arange(len(rows)), -1)
+    np.maximum.accumulate(idx, out=idx)
+    prev = st.last_fix.get(nid)
+    pos = np.full((len(rows), 3), np.nan)
+    t_fix = np.full(len(rows), -1, np.int64)
+    floor = np.full(len(rows), -1, np.int64)
+    have = idx >= 0
+    pos[have] = b.est.position_m[rows[idx[have]]]
+    t_fix[have] = b.t[rows[idx[have]]]
+    floor[have] = b.est_floor[rows[idx[have]]]
+    if prev is not None:
+        pos[~have], t_fix[~have], floor[~have] = prev[1], prev[0], prev[2]
+    if t_fix[-1] >= 0:
+        st.last_fix[nid] = (int(t_fix[-1]), pos[-1].copy(), int(floor[-1]))
+    return pos, t_fix, floor
+
+
+def _log_estimate_points(
+    rec: rr.RecordingStream, nid: str, rows: NDArray[np.int64], b: _Batch, st: _EstimateState
+) -> None:
+    """``world/nodes/<node>/estimate``: one marker per responder (size in ui points: visible
+    at any zoom) labelled ``<node> F<floor>``, and the 95 % ellipsoid of the fix (outline in
+    ui points). A fix without a position keeps the marker on the node's last fix, grey,
+    labelled ``<node>?`` (its age is in the floor table), without ellipsoid; before the node's
+    first fix there is no marker. One entity: one chunk per node and batch."""
+    pos, t_fix, floor = _last_fix_rows(nid, rows, b, st)
+    hp = b.has_pos[rows]
+    shown = t_fix >= 0
+    fl = lambda f: "?" if f < 0 else str(f)  # noqa: E731
     label = [
-        f"{nid} F{ef if ef >= 0 else '?'}" + (f" (true F{tf})" if 0 <= tf != ef else "")
-        for ef, tf in zip(b.est_floor[rows].tolist(), b.true_floor[rows].tolist(), strict=True)
+        f"{nid} F{fl(f)}" if fresh else f"{nid}?"
+        for f, fresh in zip(floor.tolist(), hp.tolist(), strict=True)
     ]
-    sel = rows[hp]
+    colors = np.where(hp[:, None], b.colors[rows], np.asarray(_STALE_COLOR, np.uint8))
     ok = b.cov_ok[rows]
     sel_c = rows[ok]
-    pos = b.est.position_m
+    n_shown, n_c = int(shown.sum()), int(sel_c.size)
     rec.send_columns(
         f"world/nodes/{nid}/estimate",
         indexes=[_time_column(b.t[rows])],
         columns=[
             *rr.Points3D.columns(
-                positions=pos[sel],
-                colors=b.colors[sel],
-                radii=np.full(sel.size, 0.25, np.float32),
-                labels=np.asarray(label)[hp],
-            ).partition(hp.astype(np.int64)),
+                positions=pos[shown],
+                colors=colors[shown],
+                radii=np.full(n_shown, -MARKER_RADIUS_UI, np.float32),
+                labels=np.asarray(label)[shown],
+            ).partition(shown.astype(np.int64)),
             *rr.Ellipsoids3D.columns(
-                centers=pos[sel_c],
+                centers=b.est.position_m[sel_c],
                 half_sizes=b.half_m[sel_c],
                 quaternions=b.quat_xyzw[sel_c],
                 colors=b.colors[sel_c],
-                line_radii=np.full(sel_c.size, 0.02, np.float32),
+                line_radii=np.full(n_c, -ELLIPSOID_LINE_UI, np.float32),
             ).partition(ok.astype(np.int64)),
         ],
     )
@@ -320,8 +371,9 @@ def _log_paths(
     period_ns: int,
     st: _EstimateState,
 ) -> None:
-    """``world/nodes/<node>/paths``: the diffraction paths of the node's fixes, at most one
-    fix per ``period_ns`` of measurement time (the first fix of each period)."""
+    """``world/paths/<node>``: the paths of the node's fixes (detail on demand: hidden by the
+    default blueprint, shown per responder), at most one fix per ``period_ns`` of measurement
+    time (the first fix of each period)."""
     tr = b.t[rows]
     bucket = tr // period_ns
     first = np.ones(len(rows), bool)
@@ -340,7 +392,7 @@ def _log_paths(
     lsel = lsel[np.argsort(rank[lf[lsel]], kind="stable")]
     per_row = np.bincount(rank[lf[lsel]], minlength=prow.size)
     rec.send_columns(
-        f"world/nodes/{nid}/paths",
+        f"world/paths/{nid}",
         indexes=[_time_column(tr[first])],
         columns=rr.LineStrips3D.columns(
             strips=paths.strips[lsel],
@@ -482,89 +534,3 @@ def _log_gating(rec: rr.RecordingStream, b: _Batch) -> None:
         indexes=[_time_column(ut)],
         columns=rr.Scalars.columns(scalars=n_used),
     )
-
-
-def _floor_probability(est: EstimateColumns) -> FloatArray:
-    """Probability of each fix's estimated floor (estimate v2: ``est.floor_probability``, a
-    column the estimate columns may carry; NaN where unknown)."""
-    p = getattr(est, "floor_probability", None)
-    return np.full(len(est), np.nan) if p is None else np.asarray(p, np.float64)
-
-
-def _log_floor_table(
-    rec: rr.RecordingStream, b: _Batch, floor_period_s: float, st: _EstimateState
-) -> None:
-    """``floors``: the floor table, refreshed at most once per floor period (latest fix per
-    node at the end of each period)."""
-    t = b.t
-    floor_period_ns = max(1, int(floor_period_s * 1e9))
-    fb = t // floor_period_ns
-    ub = np.unique(fb)
-    if st.last_floor_bucket is not None:
-        ub = ub[ub != st.last_floor_bucket]
-    if not ub.size:
-        return
-    snap_t = np.array([t[fb == k].max() for k in ub], np.int64)
-    texts = _floor_tables(b.est, b.est_floor, b.true_floor, snap_t, st)
-    st.last_floor_bucket = int(ub[-1])
-    rec.send_columns(
-        "floors",
-        indexes=[_time_column(snap_t)],
-        columns=rr.TextDocument.columns(text=texts, media_type=["text/markdown"] * len(texts)),
-    )
-
-
-def _floor_tables(
-    est: EstimateColumns,
-    est_floor: NDArray[np.int64],
-    true_floor: NDArray[np.int64],
-    snap_t: NDArray[np.int64],
-    st: _EstimateState,
-) -> list[str]:
-    """Markdown tables (one per snapshot time) of the latest estimated floor (with its
-    probability when the estimate gives one) and true floor per node."""
-    groups = _group(est.node_id)
-    nodes = sorted(set(st.floors) | {g for g, _ in groups})
-    # latest (est, true, probability) per node at each snapshot: (n_nodes, n_snap)
-    est_m = np.full((len(nodes), snap_t.size), -2, np.int64)
-    tru_m = np.full((len(nodes), snap_t.size), -2, np.int64)
-    prob_m = np.full((len(nodes), snap_t.size), np.nan)
-    pos = {n: i for i, n in enumerate(nodes)}
-    prior = dict(st.floors)
-    for nid, i in pos.items():
-        if nid in prior:
-            est_m[i, :], tru_m[i, :], prob_m[i, :] = prior[nid]
-    prob = _floor_probability(est)
-    for nid, rows in groups:
-        rows = _sorted_by_time(est.t_ns, rows)
-        k = np.searchsorted(est.t_ns[rows], snap_t, side="right") - 1
-        have = k >= 0
-        i = pos[nid]
-        est_m[i, have] = est_floor[rows][k[have]]
-        tru_m[i, have] = true_floor[rows][k[have]]
-        prob_m[i, have] = prob[rows][k[have]]
-    fmt = lambda v: "?" if v < 0 else str(v)  # noqa: E731
-    texts = []
-    for j in range(snap_t.size):
-        hits = [
-            (e == tr) for e, tr in zip(est_m[:, j], tru_m[:, j], strict=True) if e >= 0 and tr >= 0
-        ]
-        if hits:
-            head = f"**Floor estimate: {sum(hits)}/{len(hits)} nodes on the true floor**\n\n"
-        elif np.any(tru_m[:, j] >= 0):
-            head = "**Floor estimate**: no node has a fix\n\n"
-        else:
-            head = "**Floor estimate** (no ground truth)\n\n"
-        # the probability column only when an estimate gives floor probabilities (v2)
-        with_p = bool(np.isfinite(prob_m[:, j]).any())
-        rows = (["| node | estimated | probability | true | |", "|---|---|---|---|---|"]
-                if with_p else ["| node | estimated | true | |", "|---|---|---|---|"])
-        for i, nid in enumerate(nodes):
-            e, tr, p = est_m[i, j], tru_m[i, j], prob_m[i, j]
-            if e == -2:
-                continue
-            mark = "" if e < 0 or tr < 0 else ("ok" if e == tr else "**WRONG**")
-            ptxt = f" {100 * p:.0f} % |" if np.isfinite(p) and e >= 0 else " - |"
-            rows.append(f"| {nid} | {fmt(e)} |{ptxt if with_p else ''} {fmt(tr)} | {mark} |")
-        texts.append(head + "\n".join(rows))
-    return texts

@@ -9,6 +9,7 @@ the fusion's ``--edge auto`` rule, :func:`diffpos.scenario.first_arrival_edge`.
 from __future__ import annotations
 
 import dataclasses
+import json
 import tomllib
 from collections.abc import Sequence
 from pathlib import Path
@@ -65,7 +66,11 @@ def building_for_option(value: str | None, *, option: str = "--scenario") -> Bui
 
 
 def building_from_attachments(attachments: Sequence[Any]) -> BuildingOutline | None:
-    """The building of the first scenario TOML attached to a recording (``None`` if none)."""
+    """The building of a recording: the first scenario TOML attached to it, else the
+    building of the fusion settings of its run configuration (``run_config.json``, which
+    ``diffpos emulate`` attaches to every recording, the default scenario included:
+    ``fusion.building`` with the edge the run modelled, ``emulate.edge``); ``None`` if
+    neither."""
     for att in attachments:
         if str(att.name).endswith(".toml") or "toml" in str(att.media_type):
             try:
@@ -73,4 +78,21 @@ def building_from_attachments(attachments: Sequence[Any]) -> BuildingOutline | N
             except Exception:  # not a scenario: ignore
                 continue
             return building_of_scenario(scen)
+    for att in attachments:
+        if str(att.name).endswith(".json") or "json" in str(att.media_type):
+            outline = _building_of_run_config(bytes(att.data))
+            if outline is not None:
+                return outline
     return None
+
+
+def _building_of_run_config(data: bytes) -> BuildingOutline | None:
+    """The building of a run configuration's fusion settings (``None``: not one)."""
+    try:
+        doc = json.loads(data)
+        table = doc["fusion"]["building"]
+        outline = BuildingOutline.from_object(table)
+    except (ValueError, KeyError, TypeError):
+        return None
+    edge = (doc.get("emulate") or {}).get("edge")
+    return dataclasses.replace(outline, edge=edge) if edge in ("upper", "lower") else outline

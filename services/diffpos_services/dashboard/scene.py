@@ -91,7 +91,7 @@ def log_anchors(
             columns=rr.Points3D.columns(
                 positions=pos,
                 colors=_rgba([color] * len(rows)),
-                radii=np.full(len(rows), 0.35, np.float32),
+                radii=np.full(len(rows), -9.0, np.float32),  # ui points: any zoom
                 labels=np.full(len(rows), aid),
             ),
         )
@@ -142,6 +142,6 @@ def log_truth(rec: rr.RecordingStream, truth: TruthColumns) -> None:
             columns=rr.Points3D.columns(
                 positions=truth.position_m[rows],
                 colors=_rgba([_TRUTH_COLOR] * n),
-                radii=np.full(n, 0.12, np.float32),
+                radii=np.full(n, -3.0, np.float32),  # ui points
             ),
         )

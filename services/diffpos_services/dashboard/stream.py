@@ -166,7 +166,8 @@ def write_rrd(
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
-    rec.save(str(out), default_blueprint=default_blueprint())
+    rec.save(str(out), default_blueprint=default_blueprint(
+        view_points_m=_view_points(building, anchors)))
     try:
         if building is not None:
             log_building(rec, building)
@@ -195,6 +196,18 @@ def write_rrd(
         rec.flush()
         rec.disconnect()
     return out
+
+
+def _view_points(building: BuildingOutline | None, anchors: AnchorColumns | None) -> np.ndarray:
+    """What the default camera must show: the building's corners and every anchor position."""
+    pts = [np.zeros((0, 3))]
+    if building is not None:
+        top = building.first_floor_z_m + building.n_floors * building.floor_height_m
+        pts.append(np.array([[x, y, z] for x in (building.x_min_m, building.x_max_m)
+                             for y in (0.0, building.depth_m) for z in (0.0, top)]))
+    if anchors is not None and len(anchors):
+        pts.append(anchors.position_m)
+    return np.concatenate(pts)
 
 
 _KIND_BY_CLASS = {

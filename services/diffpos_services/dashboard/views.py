@@ -29,13 +29,14 @@ Entity layout (see :func:`default_blueprint` for how it is shown)::
     world/anchors/<anchor>             anchor position (Points3D, self-reported AnchorState)
     world/anchors/<anchor>/trail       recent track of the anchor (LineStrips3D)
     world/nodes/<node>/truth           true node position (emulation only)
-    world/nodes/<node>/estimate        estimated position (Points3D, label "<node> F<est>", plus
-                                       "(true F<true>)" when the floor is wrong) and its 95 %
-                                       confidence ellipsoid from the covariance (Ellipsoids3D)
-    world/nodes/<node>/paths           anchor -> window-edge point -> estimate, one strip per
-                                       anchor; used anchors in their colour, gated (excluded by
-                                       RAIM / pre-gate) in red; no strip for anchors without a
-                                       measurement (not reported, not detected, lost, ...)
+    world/nodes/<node>/estimate        one marker per responder (Points3D, radius in ui points,
+                                       label "<node> F<est>"; on the last fix, grey, "<node>?",
+                                       when the newest estimate has no position) and the 95 %
+                                       ellipsoid of the fix (Ellipsoids3D)
+    world/paths/<node>                 the path of each anchor's mechanism (estimate v2) or
+                                       anchor -> window-edge point -> estimate; used anchors in
+                                       their colour, gated in red; hidden by the blueprint
+                                       until shown per responder (detail on demand)
     metrics/error_3d_m/<node>          |estimate - truth| [m]
     metrics/error_z_m/<node>           estimate z - true z [m]
     metrics/peb_m/<node>               position error bound [m]
@@ -43,7 +44,8 @@ Entity layout (see :func:`default_blueprint` for how it is shown)::
     metrics/gating/excluded            excluded measurements per fusion time (all nodes)
     metrics/gating/used                used measurements per fusion time (all nodes)
     metrics/fusion/<counter>           cumulative fusion counters (FusionDiagnostics)
-    floors                             markdown table: estimated vs true floor per node
+    floors                             who is on which floor now: per floor the responders, the
+                                       floor's probability, the age of the last fix
     events                             text log: anchors joined/left, exclusions with reasons,
                                        status changes (unidentifiable geometry, ...)
 """

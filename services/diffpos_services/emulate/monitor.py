@@ -21,7 +21,7 @@ import zenoh
 
 from diffpos.emulation import TimeBase
 from diffpos_services.emulate.scoring import Scorer
-from diffpos_services.kit import log_event
+from diffpos_services.kit import STATUS, log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
@@ -203,21 +203,23 @@ class Monitor:
 
     # ------------------------------------------------------------------ status line
     def status_line(self) -> str:
-        """Progress, then the counts the summary ends with: availability over the node-epochs
-        due so far after the first seconds (every node x every epoch emulated: a missing
-        estimate is a miss) and the estimates per status."""
+        """Progress, then the counts the summary ends with, in the summary's words:
+        availability over the node-epochs due so far after the first seconds (every node x
+        every epoch emulated: a missing estimate is a miss), the estimates so far and their
+        count per status (the summary's ``status`` row: ``GATING_FAILED`` there is
+        ``GATING_FAILED`` here)."""
         o, sc = self.o, self.scorer
         el = max(min(self.emu_now(time.time_ns()), self.end_ns) - self.tb.t0_ns, 0) * 1e-9
         due = len(self.emu.nodes) * max(int(el * 1e9) // self.period_ns - sc.k_skip, 0)
         _, with_pos = sc.live_counts()
-        avail = f"{100 * min(with_pos / due, 1.0):5.1f}%" if due else "    -"
-        st = " ".join(f"{k}={v}" for k, v in sorted(sc.status.items()))
-        return (f"t={el:5.1f}/{o.duration_s:.0f} s  avail={avail}  estimates={sc.count} "
-                f"({st})")
+        avail = f"{100 * min(with_pos / due, 1.0):.1f}%" if due else "-"
+        st = " ".join(f"{k} {v}" for k, v in sorted(sc.status.items(), key=lambda kv: -kv[1]))
+        return f"t {el:.1f}/{o.duration_s:.0f} s  avail {avail}  estimates {sc.count}: {st}"
 
     def progress(self) -> None:
-        """The status line every 0.5 s: fixes/s and median error over the last 2 s, then
-        :meth:`status_line`."""
+        """The status line every 0.5 s (:data:`~diffpos_services.kit.STATUS`: log records
+        print above it, cut to the terminal's width): :meth:`status_line`, then fixes/s and
+        the median error over the last 2 s. Not a terminal: logged at INFO every 0.5 s."""
         if not self.o.progress or time.monotonic() < self.next_status:
             return
         self.next_status = time.monotonic() + 0.5
@@ -228,9 +230,9 @@ class Monitor:
         errs = [e for _, e in recent if e is not None]
         rate = len(recent) / 2.0
         med = f"{np.median(errs):.2f} m" if errs else "-"
-        line = f"{self.status_line()}  fixes/s={rate:.1f}  median err={med}"
+        line = f"{self.status_line()}  |  {rate:.0f} fixes/s, median error {med}"
         if self.tty:
-            print("\r" + line, end="", file=sys.stderr, flush=True)
+            STATUS.show(line)
         else:
             log_event(self.emu.log, logging.INFO, "progress", status=line)
 
@@ -254,7 +256,7 @@ class Monitor:
             self.drain()
             self.progress()
         if self.tty and self.o.progress:
-            print(file=sys.stderr)
+            STATUS.done()
         for p in self.pubs.values():
             p.undeclare()
         if self.clock_pub is not None:

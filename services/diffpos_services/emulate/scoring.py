@@ -11,6 +11,8 @@ module only collects the estimates (v1 or v2) as they arrive.
 from __future__ import annotations
 
 import collections
+import shutil
+import textwrap
 from typing import Any
 
 import numpy as np
@@ -18,7 +20,7 @@ import numpy as np
 from diffpos.metrics import percentiles, score
 from diffpos_services.wire import messages as M
 
-__all__ = ["SKIP_S", "SUMMARY_PERCENTILES", "Scorer", "format_summary"]
+__all__ = ["SKIP_S", "SUMMARY_PERCENTILES", "Scorer", "format_summary", "summary_width"]
 
 #: percentiles of the emulate summary
 SUMMARY_PERCENTILES = (50, 67, 90, 95)
@@ -162,11 +164,51 @@ def _model(s: dict[str, Any]) -> str:
     return s.get("model", "-") if not method else f"{method}; {s.get('model', '-')}"
 
 
-def format_summary(s: dict[str, Any]) -> str:
-    """The summary as a plain-text table."""
+def summary_width() -> int:
+    """Width of the summary: the terminal's (80 when not a terminal), kept within 60..100."""
+    return min(max(shutil.get_terminal_size((80, 24)).columns, 60), 100)
+
+
+def _wrap_rows(rows: list[tuple[str, str]], width: int) -> str:
+    """``name  value`` rows, values wrapped under themselves so no line exceeds ``width``."""
+    w = max(len(r[0]) for r in rows)
+    out = []
+    for k, v in rows:
+        lines = textwrap.wrap(v, max(width - w - 2, 20), break_long_words=True,
+                              break_on_hyphens=False) or [""]
+        out.append(f"{k:<{w}}  {lines[0]}")
+        out += [f"{'':<{w}}  {line}" for line in lines[1:]]
+    return "\n".join(out)
+
+
+def _gating_rows(s: dict[str, Any], f) -> list[tuple[str, str]]:
+    """The fusion's counters, worded so they cannot be mistaken for the status counts: a fix
+    that failed the consistency test is a GATING_FAILED estimate (the ``status`` row); the
+    fusion's ``gated`` counter counts single measurements excluded from fixes."""
+    fu = s.get("fusion")
+    if not fu:
+        return []
+    lat = fu["latency_ms"]
+    failed = s.get("status", {}).get("GATING_FAILED", 0)
+    rej = fu["rejected"] or 0
+    if isinstance(rej, dict):  # per reason
+        rej = ", ".join(f"{k} {v}" for k, v in sorted(rej.items())) or "0"
+    return [
+        ("gating", f"{failed} estimates GATING_FAILED (whole fix rejected); "
+                   f"{fu['gated']} single measurements excluded from fixes; ranges "
+                   f"rejected: {rej}; late ranges {fu['late_ranges']}"),
+        ("fusion latency", f"p50 {f(lat['p50'], ' ms')}  p99 {f(lat['p99'], ' ms')}"),
+    ]
+
+
+def format_summary(s: dict[str, Any], *, width: int | None = None) -> str:
+    """The summary as a plain-text table that fits ``width`` columns (default
+    :func:`summary_width`): values wrap under themselves. An optional ``notes`` entry (list
+    of str) is printed last, one wrapped paragraph per note."""
     def f(v: float | None, unit: str = " m") -> str:
         return "-" if v is None else f"{v:.3f}{unit}"
 
+    width = summary_width() if width is None else width
     rows = [
         ("run", f"{s.get('run_id', '-')}  ({s.get('anchors')} anchors x {s.get('nodes')} nodes, "
                 f"{s.get('duration_s')} s at x{s.get('speed')}, channel {s.get('channel')})"),
@@ -175,7 +217,7 @@ def format_summary(s: dict[str, Any]) -> str:
         ("status", ", ".join(f"{k} {v}" for k, v in sorted(s.get("status", {}).items())) or "-"),
         ("node-epochs", f"{s.get('node_epochs', 0)} after the first {s.get('skip_s', 0):g} s "
                         f"({s.get('node_epochs_without_estimate', 0)} without an estimate)"),
-        ("availability", _pct(s.get("availability"))),
+        ("availability", f"{_pct(s.get('availability'))} of the node-epochs have a position"),
         ("floor accuracy", f"{_pct(s.get('floor_accuracy'))} of all node-epochs "
                            f"({_pct(s.get('floor_accuracy_fixes'))} of the fixes)"),
     ]
@@ -184,15 +226,11 @@ def format_summary(s: dict[str, Any]) -> str:
         rows.append((name, "  ".join(f"p{q} {f(p.get(f'p{q}'))}" for q in SUMMARY_PERCENTILES)))
     rows.append(("95 % ellipsoid", f"{_pct(s.get('ellipsoid_coverage_95'))} of the fixes hold "
                                    "the truth"))
-    fu = s.get("fusion")
-    if fu:
-        lat = fu["latency_ms"]
-        rows.append(("gating", f"{fu['gated']} measurements excluded; rejected {fu['rejected'] or 0}; "
-                               f"late ranges {fu['late_ranges']}"))
-        rows.append(("fusion latency", f"p50 {f(lat['p50'], ' ms')}  p99 {f(lat['p99'], ' ms')}"))
+    rows += _gating_rows(s, f)
     if s.get("lost"):
         rows.append(("lost", ", ".join(s["lost"])))
     if s.get("recording"):
         rows.append(("recording", f"{s['recording']}  (diffpos replay / inspect / to-rerun FILE)"))
-    w = max(len(r[0]) for r in rows)
-    return "\n".join(f"{k:<{w}}  {v}" for k, v in rows)
+    for i, note in enumerate(s.get("notes") or ()):
+        rows.append(("notes" if i == 0 else "", str(note)))
+    return _wrap_rows(rows, width)

@@ -61,6 +61,12 @@ def write_csv(path: Path, sweep: Sweep) -> None:
 
 def write_png(path: Path, sweep: Sweep, cfg: PowerRatioSweep, threshold_db: float) -> None:
     """power_ratio.png: the ratio in dB vs theta, Theorem 3 and one exact curve per depth."""
+    figure(sweep, cfg, threshold_db).savefig(path)
+
+
+def figure(sweep: Sweep, cfg: PowerRatioSweep, threshold_db: float) -> Figure:
+    """The figure of :func:`write_png`: every legend entry is an artist drawn on the axes
+    (the line-of-sight band only where some depth has a direct path)."""
     fig = Figure(figsize=(7.0, 4.6), dpi=130)
     ax = fig.subplots()
     ax.plot(
@@ -96,12 +102,14 @@ def write_png(path: Path, sweep: Sweep, cfg: PowerRatioSweep, threshold_db: floa
         fontsize=9,
     )
     ax.grid(True, alpha=0.3)
-    ax.plot(
-        [], [], lw=3.5, alpha=0.25, color="0.3", label="direct line of sight through the window"
-    )
+    los = np.asarray(sweep.los, bool).any(axis=0)
+    if los.any():  # the band is drawn where it is listed (no legend entry without it)
+        ax.fill_between(sweep.theta_deg, 0, 1, where=los, transform=ax.get_xaxis_transform(),
+                        color="0.3", alpha=0.15, lw=0,
+                        label="direct line of sight through the window (some depth)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path)
+    return fig
 
 
 def print_report(sweep: Sweep, threshold_db: float, csv_path: Path, png_path: Path) -> None:
