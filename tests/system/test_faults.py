@@ -568,7 +568,7 @@ def test_open_session_waits_and_says_a_login_may_be_refused():
     t0 = time.monotonic()
     assert open_session(cfg, stop, logger=log, attempt_ms=200) is None
     assert seen == ["waiting for the router or the login is refused: check user/password"]
-    assert time.monotonic() - t0 < 5.0
+    assert time.monotonic() - t0 < 8.0  # the first message comes at the 10th attempt (200 ms each)
     # the caller's configuration is not modified (still waits forever)
     assert json.loads(cfg.get_json("connect/timeout_ms")) == -1
 

@@ -328,7 +328,8 @@ def open_session(settings, stop=None, *, logger=None, attempt_ms: int = 1000):
             return zenoh.open(cfg)
         except zenoh.ZError as exc:
             attempt += 1
-            if (logger is not None and attempt in (1, 10)) or attempt % 60 == 0:
+            if (logger is not None and attempt == 10) or attempt % 60 == 0:
+                # not on the first attempt: a router still starting is normal, not news
                 (logger or logging.getLogger("diffpos")).info(
                     msg, extra={"fields": {
                         "connect": endpoints, "attempt": attempt,

@@ -139,10 +139,9 @@ def run(args: argparse.Namespace) -> int:
                 return 130
             raise ConfigError("the run produced no summary")
         print(format_summary(summary))
-        for block in (format_faults(summary.get("faults", [])), format_foreign(summary),
-                      format_recordings(summary)):
-            if block:
-                print(block)
+        faults = format_faults(summary.get("faults", []))
+        if faults:  # foreign messages and recording files are among the summary's notes
+            print(faults)
         if args.json:
             with open(args.json, "w", encoding="utf-8") as f:
                 json.dump(summary, f, indent=2)
@@ -155,28 +154,6 @@ def run(args: argparse.Namespace) -> int:
 
 #: exit code of a run in which a service died (data lost, see the summary's faults)
 EXIT_DATA_LOST = 3
-
-
-def format_foreign(summary: dict) -> str:
-    """The summary's block of messages from other publishers (empty if none)."""
-    f = summary.get("foreign") or {}
-    if not f.get("count"):
-        return ""
-    keys = sorted(f["keys"].items(), key=lambda kv: -kv[1])
-    shown = ", ".join(f"{k} x{n}" for k, n in keys[:8]) + (" ..." if len(keys) > 8 else "")
-    return (f"foreign: {f['count']} messages not from this run's fusion were ignored (not "
-            f"counted or scored; another process publishes on this bus): {shown}")
-
-
-def format_recordings(summary: dict) -> str:
-    """The recording files when the recorder was restarted (empty otherwise)."""
-    recs = summary.get("recordings") or []
-    if len(recs) < 2:
-        return ""
-    lines = [f"recording: {len(recs)} files (the recorder was restarted)"]
-    lines += [f"  {r}" for r in recs]
-    lines += [f"  {n}" for n in summary.get("recording_notes", [])]
-    return "\n".join(lines)
 
 
 def _tty() -> bool:

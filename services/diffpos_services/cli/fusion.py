@@ -41,7 +41,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from diffpos_services.anchor.service import emulation_nodes, load_scenario_file
+from diffpos_services.anchor.service import emulation_nodes
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.fusion.config import DEFAULT_METHOD, EDGES, METHODS, FusionConfig, model_edge
 from diffpos_services.fusion.service import run_fusion
@@ -53,6 +53,7 @@ from diffpos_services.kit import (
     run_main,
     setup_logging,
 )
+from diffpos_services.scenario_io import load_scenario_option
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -183,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     log = setup_logging("fusion", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:
-        scenario = load_scenario_file(args.scenario)
+        scenario = load_scenario_option(args.scenario)
         cfg = config_from_args(args, scenario)
         edge, why = model_edge(args.edge, scenario)
         log_event(log, logging.INFO, "path model", edge=edge, delta_m=cfg.delta_m, why=why)
