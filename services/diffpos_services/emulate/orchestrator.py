@@ -451,7 +451,7 @@ class Emulation:
                   ready_s=round(time.monotonic() - t_ready, 2), endpoint=self.endpoint)
         hint = self.dashboard_hint if "dashboard" in {p.name for p in self.procs} else None
         if hint:
-            log_event(self.log, logging.INFO, "dashboard", how=hint)
+            log_event(self.log, logging.DEBUG, "dashboard", how=hint)  # the line below says it
             print(f"dashboard: {hint}", file=sys.stderr, flush=True)
 
     def _start_run(self, session: Any) -> TimeBase:
