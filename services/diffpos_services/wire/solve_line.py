@@ -54,8 +54,8 @@ class _Line(msgspec.Struct, forbid_unknown_fields=True):
 _DECODER = msgspec.json.Decoder(_Line)
 
 
-class _Unusual(Exception):
-    """The line needs the checked path (internal)."""
+class _Unusual(ProblemError):
+    """The line needs the checked path (internal; never leaves :func:`parse_line`)."""
 
 
 def _in_range(arr: np.ndarray) -> bool:
@@ -190,7 +190,7 @@ def parse_line(line: str, *, default_method: str, limits: Limits, scenario: Any 
         wh, delta, edge = _model(p, method, None if scenario is None else scenario.building)
         gating = _parse_gating(p.gating)
         opt = _options(p, a.shape[0], limits)
-    except (msgspec.DecodeError, ProblemError, _Unusual):
+    except (msgspec.DecodeError, ProblemError):  # incl. _Unusual
         return None
     return ident, Problem(anchors_m=a, ranges_m=r, mask=mask, sigmas_m=sig, method=method,
                           window_height_m=wh, delta_m=delta, edge_x_m=edge, gating=gating,
