@@ -24,6 +24,7 @@ from diffpos_services.wire.solve_io import (
     Limits,
     Problem,
     ProblemError,
+    _loads,
     _parse_gating,
     check_id,
 )
@@ -48,7 +49,9 @@ class _Line(msgspec.Struct, forbid_unknown_fields=True):
     nlos: bool | list[bool] = True
     nlos_bias_m: float | list[float] = 0.0
     snr_db: list[float | None] | None = None
-    id: Any = None
+    # kept as raw JSON: decoded (with the collector paused, as the checked path does) only
+    # for a line that is otherwise good, so a huge id is scanned once, never built twice
+    id: msgspec.Raw = msgspec.Raw(b"null")
 
 
 _DECODER = msgspec.json.Decoder(_Line)
@@ -185,7 +188,8 @@ def parse_line(line: str, *, default_method: str, limits: Limits, scenario: Any 
         method = default_method if p.method is msgspec.UNSET else p.method
         if method not in METHODS or method == "mnls":
             return None
-        ident = None if p.id is None else check_id(p.id)
+        raw_id = bytes(p.id)
+        ident = None if raw_id == b"null" else check_id(_loads(raw_id))
         a, r, mask, sig = _arrays(p, limits)
         wh, delta, edge = _model(p, method, None if scenario is None else scenario.building)
         gating = _parse_gating(p.gating)
