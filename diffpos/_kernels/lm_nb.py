@@ -192,11 +192,10 @@ def lm_fit(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, out_x):
     returns ``(cost, iterations, converged)``. A non-finite starting cost returns the start as
     given, unconverged, with 0 iterations (as the reference)."""
     ftol, gtol, m = 1e-12, 1e-10, r.shape[0]
-    p, pt = np.zeros(m), np.zeros(m)
-    jac, jt = np.zeros((m, 3)), np.zeros((m, 3))
-    res = np.zeros(m)
-    ws3 = np.zeros((3, 3, 3))
-    hm, g, v, vt, x, xt = np.zeros((3, 3)), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3)
+    bm, bj, b3, bv = np.zeros((3, m)), np.zeros((2, m, 3)), np.zeros((4, 3, 3)), np.zeros((5, 3))
+    p, pt, res, jac, jt = bm[0], bm[1], bm[2], bj[0], bj[1]  # 4 allocations, not 11
+    ws3, hm = b3[:3], b3[3]
+    g, v, vt, x, xt = bv[0], bv[1], bv[2], bv[3], bv[4]
     v[0], v[1], v[2] = x0[0], x0[1] * x0[1], x0[2]
     x[0], x[1], x[2] = x0[0], abs(x0[1]), x0[2]
     evaluate(a, used, v[0], v[1], v[2], 0.0, True, h, elo, ehi, p, jac)

@@ -40,6 +40,7 @@ functions that give the PEB of the study), and the outlier gating of
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -61,9 +62,14 @@ FloatArray = NDArray[np.float64]
 DEFAULT_Z_STARTS_M = tuple(float(z) for z in np.arange(0.0, 30.0 + 1e-9, 3.0))
 
 _DEFAULT_GATING = GatingConfig()
+_PREGATE, _RAIM = int(ExclusionReason.PREGATE_SHORTER_THAN_LOS), int(ExclusionReason.RAIM)
 
 
 def _per_fix(value: ArrayLike, batch: int, name: str) -> FloatArray | float:
+    if isinstance(value, float | int) and not isinstance(value, bool):
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {float(value)}")
+        return float(value)
     arr = np.asarray(value, dtype=np.float64)
     if arr.ndim == 0:
         if not np.isfinite(arr):
@@ -244,7 +250,9 @@ def _solve_compiled(batch_in: PreparedBatch, model: PathModel, x0: FloatArray | 
         keep_starts=keep_starts, screen_iter=screen_iter, lls_start=lls_start,
         sigmas_given=batch_in.sigmas_given, y_start=y_start, edge_x_m=model.edge_x_m,
         gating=gating)
-    h = np.array(np.broadcast_to(model.edge_offset_m, (bsz, 1))[:, 0], np.float64)  # writable
+    h_m = model.edge_offset_m
+    h = (np.full(bsz, h_m) if isinstance(h_m, float)
+         else np.array(np.broadcast_to(h_m, (bsz, 1))[:, 0], np.float64))  # writable
     if x0 is None:
         x0_c, has_x0 = np.zeros((bsz, 3)), np.zeros(bsz, bool)
     else:
@@ -274,7 +282,7 @@ def _path_model(
 ) -> PathModel:
     """The validated path model (scalars or per-fix ``(B,)`` arrays)."""
     wh = _per_fix(window_height_m, bsz, "window_height_m")
-    if np.any(np.asarray(wh) <= 0):
+    if (wh <= 0) if isinstance(wh, float) else np.any(wh <= 0):
         raise ValueError("window_height_m must be > 0")
     de = _per_fix(delta_m, bsz, "delta_m")
     edge = check_edge_x(edge_x_m)
@@ -287,7 +295,8 @@ def _start_option(
     """``(x0 (B, 3), None)`` for one given start per fix, else ``(None, start heights)``."""
     if x0_m is not None:
         x0 = np.asarray(x0_m, dtype=np.float64)
-        x0 = np.broadcast_to(x0.reshape(-1, 3) if x0.ndim == 1 else x0, (bsz, 3))
+        x0 = x0.reshape(-1, 3) if x0.ndim == 1 else x0
+        x0 = x0 if x0.shape == (bsz, 3) else np.broadcast_to(x0, (bsz, 3))
         if not np.all(np.isfinite(x0)):
             raise ValueError("x0_m must be finite")
         return x0, None
@@ -297,10 +306,12 @@ def _start_option(
 def _fix_result(out: dict[str, np.ndarray], batch_in: PreparedBatch) -> FixResult:
     """The :class:`FixResult` of the filled output arrays (invalid and missing marked)."""
     invalid = batch_in.input_error != 0
-    out["status"][invalid] = FixStatus.INVALID_INPUT
     reason = out["exclusion_reason"]
-    reason[~batch_in.present] = ExclusionReason.MISSING
-    reason[invalid[:, None] & batch_in.present] = ExclusionReason.NONE
+    if invalid.any():
+        out["status"][invalid] = FixStatus.INVALID_INPUT
+        reason[invalid[:, None] & batch_in.present] = ExclusionReason.NONE
+    if not batch_in.present.all():
+        reason[~batch_in.present] = ExclusionReason.MISSING
     return FixResult(
         position_m=out["position_m"],
         covariance_m2=out["covariance_m2"],
@@ -311,8 +322,7 @@ def _fix_result(out: dict[str, np.ndarray], batch_in: PreparedBatch) -> FixResul
         status=out["status"],
         residuals_m=out["residuals_m"],
         used=out["used"],
-        excluded=(reason == ExclusionReason.PREGATE_SHORTER_THAN_LOS)
-        | (reason == ExclusionReason.RAIM),
+        excluded=(reason == _PREGATE) | (reason == _RAIM),
         exclusion_reason=reason,
         test_statistic=out["test_statistic"],
         test_threshold=out["test_threshold"],

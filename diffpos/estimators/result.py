@@ -270,38 +270,54 @@ class FixResult:
     def to_records(self) -> list[dict[str, Any]]:
         """JSON-ready dicts, one per fix (the ``diffpos solve`` output fields).
 
-        Non-finite numbers become ``None`` (JSON ``null``).
+        Non-finite numbers become ``None`` (JSON ``null``). Built column by column: every
+        array is converted to Python values once for the whole batch, and only the rows that
+        hold a non-finite number are cleaned element by element.
         """
-
-        def clean(a: ArrayLike) -> Any:
-            arr = np.asarray(a, dtype=np.float64)
-            lst = np.where(np.isfinite(arr), arr, np.nan).tolist()
-            return _nan_to_none(lst)
-
-        out = []
+        b = len(self)
+        names = [_STATUS_NAMES[s] for s in self.status.tolist()]
         messages = self.messages()  # all verdicts at once (message(i) converts per call)
-        for i in range(len(self)):
-            st = FixStatus(int(self.status[i]))
-            out.append(
-                {
-                    "status": st.name.lower(),
-                    "message": messages[i],
-                    "method": self.method,
-                    "position_m": clean(self.position_m[i]),
-                    "covariance_m2": clean(self.covariance_m2[i]),
-                    "covariance_model": self.covariance_model,
-                    "peb_m": clean(self.peb_m[i]),
-                    "z_bound_m": clean(self.z_bound_m[i]),
-                    "iterations": int(self.iterations[i]),
-                    "converged": bool(self.converged[i]),
-                    "used_anchors": [int(j) for j in np.flatnonzero(self.used[i])],
-                    "excluded_anchors": self.excluded_list(i),
-                    "residuals_m": clean(self.residuals_m[i]),
-                    "test_statistic": clean(self.test_statistic[i]),
-                    "test_threshold": clean(self.test_threshold[i]),
-                }
-            )
+        pos, cov, res = (_clean_rows(self.position_m), _clean_rows(self.covariance_m2),
+                         _clean_rows(self.residuals_m))
+        peb, zb = _clean_scalars(self.peb_m), _clean_scalars(self.z_bound_m)
+        stat, thr = _clean_scalars(self.test_statistic), _clean_scalars(self.test_threshold)
+        iters, conv = self.iterations.tolist(), self.converged.tolist()
+        m = self.used.shape[1]
+        all_used = list(range(m))
+        used_rows = self.used.tolist()
+        any_excl = self.excluded.any(axis=1).tolist()
+        out = []
+        for i in range(b):
+            u = used_rows[i]
+            out.append({
+                "status": names[i], "message": messages[i], "method": self.method,
+                "position_m": pos[i], "covariance_m2": cov[i],
+                "covariance_model": self.covariance_model, "peb_m": peb[i], "z_bound_m": zb[i],
+                "iterations": iters[i], "converged": conv[i],
+                "used_anchors": all_used.copy() if all(u) else [j for j in range(m) if u[j]],
+                "excluded_anchors": self.excluded_list(i) if any_excl[i] else [],
+                "residuals_m": res[i], "test_statistic": stat[i], "test_threshold": thr[i],
+            })
         return out
+
+
+_STATUS_NAMES = {int(s): s.name.lower() for s in FixStatus}
+
+
+def _clean_rows(a: np.ndarray) -> list[Any]:
+    """Rows of ``a`` as nested lists, non-finite numbers as ``None``."""
+    arr = np.asarray(a, dtype=np.float64)
+    rows = arr.tolist()
+    fin = np.isfinite(arr).reshape(arr.shape[0], -1).all(axis=1)
+    for i in np.flatnonzero(~fin).tolist():
+        rows[i] = _nan_to_none(np.where(np.isfinite(arr[i]), arr[i], np.nan).tolist())
+    return rows
+
+
+def _clean_scalars(a: np.ndarray) -> list[float | None]:
+    """``a (B,)`` as floats, non-finite as ``None``."""
+    arr = np.asarray(a, dtype=np.float64)
+    return [v if math.isfinite(v) else None for v in arr.tolist()]
 
 
 def _nan_to_none(x: Any) -> Any:
@@ -356,15 +372,19 @@ def prepare_batch(
     for name, arr in (("anchors_m", a), ("ranges_m", r)):
         if arr.shape[0] not in (1, batch):
             raise ValueError(f"{name} batch size {arr.shape[0]} does not match {batch}")
-    a = np.broadcast_to(a, (batch, m, 3))
-    r = np.broadcast_to(r, (batch, m))
+    if a.shape[0] != batch:
+        a = np.broadcast_to(a, (batch, m, 3))
+    if r.shape[0] != batch:
+        r = np.broadcast_to(r, (batch, m))
     sigmas_given = sigmas_m is not None
     if sigmas_m is None:
         s = np.ones((batch, m))
+    elif isinstance(sigmas_m, float | int) and not isinstance(sigmas_m, bool):
+        s = np.full((batch, m), float(sigmas_m))
     else:
         s = np.asarray(sigmas_m, dtype=np.float64)
         try:
-            s = np.broadcast_to(s, (batch, m))
+            s = s if s.shape == (batch, m) else np.broadcast_to(s, (batch, m))
         except ValueError:
             raise ValueError(
                 f"sigmas_m must be a scalar or broadcast to (B, M) = {(batch, m)}, got {s.shape}"
@@ -385,28 +405,8 @@ def prepare_batch(
         present.all() and np.isfinite(a).all() and np.isfinite(r).all() and (r >= 0).all()
         and (s > 0).all() and np.isfinite(s).all()
     ):  # the common case: every value valid and present, nothing to mask (same result)
-        return PreparedBatch(
-            anchors_m=np.array(a, np.float64, order="C"),
-            ranges_m=np.array(r, np.float64, order="C"),
-            sigmas_m=np.array(s, np.float64, order="C"),
-            mask=present,
-            present=present.copy(),
-            input_error=np.zeros(batch, dtype=np.int_),
-            sigmas_given=sigmas_given,
-        )
-    err = np.zeros(batch, dtype=np.int_)
-    bad_r_neg = present & (r < 0)
-    bad_r_nf = present & ~np.isfinite(r)
-    bad_a = present & ~np.all(np.isfinite(a), axis=-1)
-    bad_s = present & ~(np.isfinite(s) & (s > 0))
-    # Report the first offending field in order anchors, ranges, sigmas.
-    for code, bad in (
-        (InputError.SIGMAS, bad_s),
-        (InputError.RANGES_NEGATIVE, bad_r_neg),
-        (InputError.RANGES_NONFINITE, bad_r_nf),
-        (InputError.ANCHORS, bad_a),
-    ):
-        err = np.where(np.any(bad, axis=-1), int(code), err)
+        return _as_given(a, r, s, present, sigmas_given)
+    err = _input_errors(a, r, s, present)
     valid_fix = err == 0
     use = present & valid_fix[:, None]
     # Masked anchors get a harmless finite placeholder (never enters a sum: weight 0).
@@ -420,5 +420,38 @@ def prepare_batch(
         mask=use,
         present=present,
         input_error=err,
+        sigmas_given=sigmas_given,
+    )
+
+
+def _input_errors(a: np.ndarray, r: np.ndarray, s: np.ndarray, present: np.ndarray
+                  ) -> IntArray:
+    """Per fix the first offending field (:class:`InputError`), 0 where valid."""
+    err = np.zeros(r.shape[0], dtype=np.int_)
+    bad_r_neg = present & (r < 0)
+    bad_r_nf = present & ~np.isfinite(r)
+    bad_a = present & ~np.all(np.isfinite(a), axis=-1)
+    bad_s = present & ~(np.isfinite(s) & (s > 0))
+    # Report the first offending field in order anchors, ranges, sigmas.
+    for code, bad in (
+        (InputError.SIGMAS, bad_s),
+        (InputError.RANGES_NEGATIVE, bad_r_neg),
+        (InputError.RANGES_NONFINITE, bad_r_nf),
+        (InputError.ANCHORS, bad_a),
+    ):
+        err = np.where(np.any(bad, axis=-1), int(code), err)
+    return err
+
+
+def _as_given(a: np.ndarray, r: np.ndarray, s: np.ndarray, present: np.ndarray,
+              sigmas_given: bool) -> PreparedBatch:
+    """The batch of valid, all-present inputs (contiguous copies)."""
+    return PreparedBatch(
+        anchors_m=np.array(a, np.float64, order="C"),
+        ranges_m=np.array(r, np.float64, order="C"),
+        sigmas_m=np.array(s, np.float64, order="C"),
+        mask=present,
+        present=present.copy(),
+        input_error=np.zeros(r.shape[0], dtype=np.int_),
         sigmas_given=sigmas_given,
     )

@@ -5,7 +5,9 @@ what must be equal for one batched estimator call (method, anchor count, options
 the vectorised estimators of :mod:`diffpos.estimators` and returned in input order. A problem
 that breaks its batch is re-solved alone, so one bad line never costs the others their fixes.
 
-Bounded work: every line is decoded and validated as soon as it is read (only the compact
+Bounded work: every line is decoded (one typed msgspec decode of the whole line; the generic
+checked path only for unusual lines, see :mod:`diffpos_services.wire.solve_line`) and
+validated as soon as it is read (only the compact
 validated problem is kept for its batch, never the line's text or decoded JSON), the
 per-problem limits of :class:`~diffpos_services.wire.solve_io.Limits` bound each problem's
 arrays, and a group is solved in chunks of at most :data:`CHUNK_ELEMENTS` solver elements
@@ -37,6 +39,7 @@ from diffpos_services.wire.solve_io import (
     invalid_record,
     parse_problem,
 )
+from diffpos_services.wire.solve_line import parse_line
 
 __all__ = ["CHUNK_ELEMENTS", "POSITION_STATUSES", "solve_lines", "solve_records"]
 
@@ -130,6 +133,17 @@ def _prepare(line: int, obj: Any, default_method: str, limits: Limits, scenario:
         return line, ident, invalid_record(str(exc))
 
 
+def _prepare_line(line: int, text: str | ProblemError, default_method: str, limits: Limits,
+                  scenario: Any = None) -> _Prepared:
+    """One input line: the typed fast decode (:func:`~diffpos_services.wire.solve_line.
+    parse_line`), or for anything unusual the checked path that names the error."""
+    if not isinstance(text, ProblemError):
+        fast = parse_line(text, default_method=default_method, limits=limits, scenario=scenario)
+        if fast is not None:
+            return line, fast[0], fast[1]
+    return _prepare(line, decode_line(text), default_method, limits, scenario)
+
+
 def _chunk_size(prob: Problem) -> int:
     """How many problems like ``prob`` are solved in one estimator call."""
     m = prob.ranges_m.size
@@ -198,8 +212,7 @@ def solve_lines(lines: Iterable[str | ProblemError], *, batch: int = 256,
     """
     numbered = ((n, ln) for n, ln in enumerate(lines, start=1)
                 if isinstance(ln, ProblemError) or ln.strip())
-    prepared = (_prepare(n, decode_line(ln), default_method, limits, scenario)
-                for n, ln in numbered)
+    prepared = (_prepare_line(n, ln, default_method, limits, scenario) for n, ln in numbered)
     while True:
         chunk = list(itertools.islice(prepared, max(batch, 1)))
         if not chunk:

@@ -14,6 +14,8 @@ import pytest
 from diffpos_services.cli import main as cli
 from diffpos_services.scenario_io import load_scenario
 from diffpos_services.solve import solve_records
+from diffpos_services.wire.solve_io import DEFAULT_LIMITS, decode_line, parse_problem
+from diffpos_services.wire.solve_line import parse_line
 
 from diffpos.estimators import mnls
 from diffpos.geometry import los_path, window_edge_path
@@ -457,3 +459,43 @@ def test_snr_db_is_optional_and_checked(held_out, monkeypatch, capsys):
     # an earlier v1 result (no floor fields) still validates
     old = {k: v for k, v in recs[0].items() if k not in ("floor", "floor_probability")}
     jsonschema.validate(old, RESULT_SCHEMA)
+
+
+def _fields_equal(fast, slow) -> None:
+    for k in slow.__dataclass_fields__:
+        x, y = getattr(fast, k), getattr(slow, k)
+        if isinstance(y, np.ndarray):
+            assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), k
+        else:
+            assert x == y and type(x) is type(y), k
+
+
+def test_fast_line_parser_builds_the_checked_parsers_problem_or_defers_to_it():
+    """The typed msgspec decode (wire/solve_line.py) gives the same Problem as the checked
+    path on well-formed lines (nulls, per-anchor sigmas, every option) and returns None on
+    anything the checked path rejects, so error messages stay the checked path's."""
+    rng = np.random.default_rng(11)
+    good = [_problem([rng.uniform(-5, 5), rng.uniform(1, 10), 1.5 + 3 * k], id=k)
+            for k in range(20)]
+    good.append(_problem([1.0, 4.0, 7.5], ranges_m=[20.0, None, 15.0, 21.0, 30.0],
+                         sigmas_m=[0.1, None, 0.2, 0.3, 0.1], edge_x_m=[5, -5], x0_m=[1, 2, 3],
+                         z_starts_m=[1, 2], gating={"max_exclusions": 1}, loss="huber",
+                         delta_m=1, snr_db=[10, None, 20, 30, 25], id={"a": [1, "b"]}))
+    good.append(_problem([1.0, 4.0, 7.5], method="ippa", nlos=[True, False, True, True, True],
+                         nlos_bias_m=[0.1, 0, 0, 0, 0.2], sigmas_m=0.2, gating=False))
+    for prob in good:
+        line = json.dumps(prob)
+        fast = parse_line(line, default_method="dnls", limits=DEFAULT_LIMITS)
+        assert fast is not None and fast[0] == prob.get("id")
+        _fields_equal(fast[1], parse_problem(decode_line(line), limits=DEFAULT_LIMITS))
+    bad = [dict(good[0], anchors_m=[[0.0, 1.0, 2.0], *ANCHORS[1:]]),
+           dict(good[0], ranges_m=[1.0, 2.0, True, 3.0, 4.0]),
+           dict(good[0], ranges_m=[1.0, None, None, None, 4.0]),
+           dict(good[0], ranges_m=[1.0, 2.0, -3.0, 3.0, 4.0]),
+           dict(good[0], sigmas_m=0), dict(good[0], delta_m=None), dict(good[0], unknown=1),
+           dict(good[0], window_height_m=None), dict(good[0], ranges_m=[1.0, 2.0, 3.0]),
+           dict(good[0], anchors_m=[[0.0, -1.0], *ANCHORS[1:]]),
+           dict(good[0], ranges_m=[1e8, 2.0, 3.0, 3.0, 4.0]), dict(good[0], method="mnls")]
+    for prob in bad:
+        assert parse_line(json.dumps(prob), default_method="dnls", limits=DEFAULT_LIMITS) is None
+    assert parse_line('{"anchors_m": NaN}', default_method="dnls", limits=DEFAULT_LIMITS) is None

@@ -79,7 +79,8 @@ class Prepared:
 
 
 class Results:
-    """The fixes of a batch, row by row (filled by :meth:`put`)."""
+    """The fixes of a batch as columns (filled by :meth:`put`); the verdict texts are built
+    only when read (:attr:`msg`, at publish time), from the columns of every stored fix."""
 
     def __init__(self, b: int, m: int) -> None:
         self.pos = np.full((b, 3), np.nan)
@@ -90,16 +91,29 @@ class Results:
         self.resid = np.full((b, m), np.nan)
         self.used = np.zeros((b, m), bool)
         self.reason = np.zeros((b, m), int)
-        self.msg: list[str] = [""] * b
+        self._parts: list[tuple[np.ndarray, Any]] = []
+        self._msg: list[str] | None = None
 
     def put(self, rows: np.ndarray, fix: Any) -> None:
-        """Store the :class:`~diffpos.estimators.FixResult` ``fix`` of ``rows``."""
+        """Store the :class:`~diffpos.estimators.FixResult` ``fix`` of ``rows`` (a later fix
+        of the same rows replaces an earlier one, also in :attr:`msg`)."""
         self.pos[rows], self.cov[rows] = fix.position_m, fix.covariance_m2
         self.peb[rows], self.zb[rows] = fix.peb_m, fix.z_bound_m
         self.status[rows], self.resid[rows] = fix.status, fix.residuals_m
         self.used[rows], self.reason[rows] = fix.used, fix.exclusion_reason
-        for r, text in zip(rows.tolist(), fix.messages(), strict=True):
-            self.msg[r] = text
+        self._parts.append((np.asarray(rows), fix))
+        self._msg = None
+
+    @property
+    def msg(self) -> list[str]:
+        """Each row's verdict text ("" where no fix was stored), built on first read."""
+        if self._msg is None:
+            msg = [""] * self.pos.shape[0]
+            for rows, fix in self._parts:  # in put order: later fixes overwrite
+                for r, text in zip(rows.tolist(), fix.messages(), strict=True):
+                    msg[r] = text
+            self._msg = msg
+        return self._msg
 
 
 # ------------------------------------------------------------------------------- gather
