@@ -90,7 +90,8 @@ def scenarios() -> dict[str, Scenario]:
 
 
 def emulate(sc: Scenario, *, duration_s: float, rate_hz: float, seed: int):
-    """Yield ``(t_ns, anchors_rep (M,3), ranges (N,M), sigmas (N,M), mask (N,M), truth (N,3))``."""
+    """Yield ``(t_ns, anchors_rep (M,3), ranges (N,M), sigmas (N,M), mask (N,M), truth (N,3),
+    snr_db (N,M))``."""
     rng = np.random.default_rng(seed)
     m = len(sc.anchors)
     sig = np.array([0.02, 0.02, 0.03])
@@ -104,23 +105,25 @@ def emulate(sc: Scenario, *, duration_s: float, rate_hz: float, seed: int):
         ch = emulate_channel(anchors, nodes, building=sc.building, radio=sc.radio)
         fa = first_arrival(ch, radio=sc.radio, rng=rng)
         rep = anchors + bias + rng.standard_normal((m, 3)) * sig * np.sqrt(0.5)
-        yield t_ns, rep, fa.range_m, fa.sigma_m, fa.detected, nodes
+        yield t_ns, rep, fa.range_m, fa.sigma_m, fa.detected, nodes, fa.snr_db
 
 
 def run(sc: Scenario, *, duration_s: float = 20.0, rate_hz: float = 10.0, seed: int = 0,
-        config: TrackerConfig | None = None, skip_s: float = 2.0) -> dict:
-    """Track one scenario and score every node-epoch after ``skip_s``."""
+        config: TrackerConfig | None = None, skip_s: float = 2.0, use_snr: bool = True) -> dict:
+    """Track one scenario and score every node-epoch after ``skip_s`` (``use_snr``: the
+    tracker scores each mechanism's predicted SNR against the measured one)."""
     cfg = config or TrackerConfig()
     b = sc.building
     n = len(sc.nodes)
     state = init_state(n, b)
     rows = []
     wall = []
-    for t_ns, anc, rng_m, sg, det, truth in emulate(sc, duration_s=duration_s, rate_hz=rate_hz,
-                                                     seed=seed):
+    for t_ns, anc, rng_m, sg, det, truth, snr in emulate(sc, duration_s=duration_s,
+                                                          rate_hz=rate_hz, seed=seed):
         a = np.broadcast_to(anc, (n, *anc.shape))
         t0 = time.perf_counter()
-        state, out = update(state, a, rng_m, sg, det, t_ns, b, cfg)
+        state, out = update(state, a, rng_m, sg, det, t_ns, b, cfg,
+                            snr_db=snr if use_snr else None, radio=sc.radio)
         wall.append(time.perf_counter() - t0)
         if t_ns * 1e-9 >= skip_s - 1e-9:
             rows.append((out, truth))
@@ -155,6 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", nargs="*", default=None)
     ap.add_argument("--no-cost", action="store_true")
+    ap.add_argument("--no-snr", action="store_true", help="ranges only (no SNR scoring)")
     args = ap.parse_args(argv)
     hdr = (f"{'scenario':22s} {'N':>3s} {'M':>2s} {'avail':>6s} {'floor':>6s} {'3D p50':>7s} "
            f"{'3D p90':>7s} {'z p50':>6s} {'z p90':>6s} {'cov95':>6s} {'ms/ep':>6s}")
@@ -162,7 +166,7 @@ def main(argv=None) -> int:
     for name, sc in scenarios().items():
         if args.only and name not in args.only:
             continue
-        r = run(sc, duration_s=args.duration, seed=args.seed)
+        r = run(sc, duration_s=args.duration, seed=args.seed, use_snr=not args.no_snr)
         print(f"{name:22s} {r['nodes']:3d} {r['anchors']:2d} {100 * r['availability']:5.1f}% "
               f"{100 * r['floor']:5.1f}% {r['p50_3d']:7.2f} {r['p90_3d']:7.2f} {r['p50_z']:6.2f} "
               f"{r['p90_z']:6.2f} {100 * r['coverage95']:5.1f}% {r['ms_per_epoch']:6.1f}",

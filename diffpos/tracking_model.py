@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .channel import pair_snr_db
 from .paths import (
     _RECIPES,
     DIFFRACTION_SLOTS,
@@ -26,29 +27,81 @@ FloatArray = NDArray[np.float64]
 K_SLOTS = len(MECHANISMS)
 _IS_DIFF = np.isin(np.arange(K_SLOTS), DIFFRACTION_SLOTS)
 _LOG2PI = float(np.log(2.0 * np.pi))
+#: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
+#: field (antenna patterns, materials, wedge vs. UTD), the value M-NLS uses.
+SNR_SIGMA_DB = 20 * np.log10(2.0)
+#: Width of the SNR density of a range that is none of the modelled mechanisms [dB].
+SNR_SPAN_DB = 60.0
 
 
 @dataclass(frozen=True)
 class Links:
     """The measurements of one epoch, shaped to broadcast against ``(N, H, M)``.
 
-    ``rho``, ``var``, ``mask``: (N, 1, M); ``anchors``: (N, 1, M, 3).
+    ``rho``, ``var``, ``mask``: (N, 1, M); ``anchors``: (N, 1, M, 3); ``snr``: (N, 1, M)
+    measured SNR [dB] (NaN: unknown) with the ``radio`` that predicts every slot's SNR, or
+    None (ranges only).
     """
 
     rho: FloatArray
     var: FloatArray
     mask: NDArray[np.bool_]
     anchors: FloatArray
+    snr: FloatArray | None = None
+    radio: object | None = None
+
+    def take(self, idx) -> Links:
+        """The links of the nodes ``idx``."""
+        return Links(self.rho[idx], self.var[idx], self.mask[idx], self.anchors[idx],
+                     None if self.snr is None else self.snr[idx], self.radio)
 
     @classmethod
-    def from_arrays(cls, anchors_m, ranges_m, sigmas_m, mask, sigma_model_m: float) -> Links:
+    def from_arrays(cls, anchors_m, ranges_m, sigmas_m, mask, sigma_model_m: float,
+                    snr_db=None, radio=None) -> Links:
         m = np.asarray(mask, bool) & np.isfinite(ranges_m) & np.isfinite(sigmas_m)
         m &= np.all(np.isfinite(anchors_m), axis=-1)
         rho = np.where(m, ranges_m, 0.0)
         var = np.where(m, np.asarray(sigmas_m, float) ** 2 + sigma_model_m**2, 1.0)
         # a missing link gets a harmless placeholder anchor (its weight is 0)
         anc = np.where(m[..., None], anchors_m, np.array([0.0, -1.0, 0.0]))
-        return cls(rho=rho[:, None], var=var[:, None], mask=m[:, None], anchors=anc[:, None])
+        snr = None
+        if snr_db is not None and radio is not None:
+            snr = np.where(m, np.asarray(snr_db, float), np.nan)[:, None]
+        return cls(rho=rho[:, None], var=var[:, None], mask=m[:, None], anchors=anc[:, None],
+                   snr=snr, radio=radio if snr is not None else None)
+
+
+def snr_cost(pos: FloatArray, links: Links, building) -> FloatArray | None:
+    """SNR negative log-likelihood of every slot at the hypotheses ``pos`` (N, H, 3):
+    (N, H, M, K), +inf where the slot carries no power, 0 where the SNR is unknown; None
+    without SNR.
+
+    The measured SNR against the slot's SNR predicted by the emulator's amplitude model
+    (:func:`diffpos.channel.pair_snr_db`), Gaussian with :data:`SNR_SIGMA_DB`, plus the
+    detector's rule: a first arrival is not far below the predicted strongest path's
+    threshold ``P_max - fap_threshold_db`` (as in M-NLS). This is what separates floors that
+    the ranges alone cannot: a ceiling reflection and the floor above's lower-edge
+    diffraction have nearly the same length but 20-40 dB different strength.
+    """
+    if links.snr is None:
+        return None
+    n, h = pos.shape[:2]
+    if n * h == 0:
+        return np.zeros((n, h, links.rho.shape[-1], K_SLOTS))
+    m = links.rho.shape[-1]
+    anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(n * h, m, 3)
+    pred = pair_snr_db(anc, pos.reshape(n * h, 3), building=building, radio=links.radio)
+    pred = pred.reshape(n, h, m, K_SLOTS)
+    meas = links.snr[..., None]
+    r = links.radio
+    with np.errstate(invalid="ignore"):
+        c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
+        thr = np.maximum(np.max(pred, axis=-1, keepdims=True) - r.fap_threshold_db,
+                         r.detection_snr_db)
+        short = np.maximum(thr - SNR_SIGMA_DB - meas, 0.0)
+        c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
+    c = np.where(np.isfinite(pred), c, np.inf)
+    return np.where(np.isfinite(meas), c, 0.0)
 
 
 def _los(pos: FloatArray, anchors: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -174,28 +227,39 @@ class Selection:
     extra_var: FloatArray
 
 
-def select(pos_cov: FloatArray, links: Links, pe: PathEval, config) -> Selection:
+def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
+           snr_c: FloatArray | None = None) -> Selection:
     """Most likely mechanism per link given the predicted position Gaussian.
 
     ``pos_cov``: (N, H, 3, 3). Component log-likelihoods: ``log((1 - eps) / n_cand) + log
     N(rho; L_k, J_k P J_k^T + R)`` for every candidate slot (:func:`candidates`),
-    ``log(eps / span)`` for the outlier.
+    ``log(eps / span)`` for the outlier; with ``snr_c`` (:func:`snr_cost`) every candidate's
+    SNR log-likelihood is added (the outlier's SNR is uniform over ``SNR_SPAN_DB``), and it
+    is part of the link's log-weight (so of the floor evidence).
     """
     valid = candidates(pe)
+    if snr_c is not None:
+        valid = valid & np.isfinite(snr_c)
+        has_snr = np.isfinite(links.snr)
+        s_ll = np.where(has_snr[..., None], -snr_c - np.log(SNR_SIGMA_DB) - 0.5 * _LOG2PI, 0.0)
+        s_out = np.where(has_snr, -np.log(SNR_SPAN_DB), 0.0)
+    else:
+        s_ll, s_out = 0.0, 0.0
     lengths, jac = pe.length, np.where(valid[..., None], pe.jac, 0.0)
     s_var = np.einsum("nhmki,nhij,nhmkj->nhmk", jac, pos_cov, jac) + links.var[..., None]
     e = links.rho[..., None] - lengths
     n_ok = np.maximum(valid.sum(axis=-1), 1)
     with np.errstate(invalid="ignore"):
         ll = -0.5 * (e * e / s_var + np.log(s_var) + _LOG2PI)
-    ll = np.where(valid, ll, -np.inf)
+    ll = np.where(valid, ll + s_ll, -np.inf)
     best = np.argmax(ll, axis=-1)
     ll_best = np.take_along_axis(ll, best[..., None], axis=-1)[..., 0]
+    s_best = np.take_along_axis(np.broadcast_to(s_ll, ll.shape), best[..., None], -1)[..., 0]
     w_in = np.log1p(-config.outlier_weight) - np.log(n_ok)
-    w_out = np.log(config.outlier_weight / config.outlier_span_m)
+    w_out = np.log(config.outlier_weight / config.outlier_span_m) + s_out
     inlier = links.mask & np.isfinite(ll_best) & (ll_best + w_in > w_out)
     slot = np.where(inlier, best, -1)
-    log_w = np.where(inlier, w_in, np.where(links.mask, w_out, 0.0))
+    log_w = np.where(inlier, w_in + s_best, np.where(links.mask, w_out, 0.0))
     nis = np.where(inlier, np.take_along_axis(e * e / s_var, best[..., None], -1)[..., 0], np.nan)
     with np.errstate(invalid="ignore"):
         pk = np.where(valid, np.exp(ll - np.where(np.isfinite(ll_best), ll_best, 0.0)[..., None]),
@@ -301,7 +365,9 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
     x = x_prior
     for _ in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         pe = all_paths(x[..., :3], links, floor, building, config.exist_margin_m)
-        sel = select(p_prior[..., :3, :3], links, pe, config)
+        sel = select(p_prior[..., :3, :3], links, pe, config,
+                     snr_cost(clamp_to_floor(x[..., :3], floor, building, config.z_margin_m),
+                              links, building))
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
@@ -332,7 +398,8 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
         pos = np.concatenate([np.broadcast_to(cells[None], (nf, c, 2)),
                               np.broadcast_to(z[i][:, None, None], (nf, c, 1))], axis=-1)
         pos = pos.reshape(1, nf * c, 3)
-        li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1], links.anchors[i:i + 1])
+        li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1],
+                   links.anchors[i:i + 1])
         pe = all_paths(pos, li, np.repeat(floors[i], c)[None], building,
                        0.5 * config.init_grid_m)
         e = li.rho[..., None] - pe.length
