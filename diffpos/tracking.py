@@ -169,8 +169,8 @@ class TrackerConfig:
     mixing: str = "select"
     gn_iterations: int = 3
     select_passes: int = 2
-    init_grid_m: float = 1.0
-    init_starts: int = 2
+    init_grid_m: float = 2.0
+    init_starts: int = 3
     init_sigma_v_m_s: float = 1.0
     min_ranges_init: int = 3
     confirm_epochs: int = 5

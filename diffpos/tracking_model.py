@@ -239,9 +239,17 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     """
     valid = candidates(pe)
     if snr_c is not None:
-        valid = valid & np.isfinite(snr_c)
+        # a slot without power at the hypothesis is no candidate, unless the hypothesis is
+        # within the entry point's uncertainty of the slot's existence boundary (the
+        # prediction flips from a strong path to none over a few cm there): its SNR is then
+        # uninformative (uniform over SNR_SPAN_DB)
+        powered = np.isfinite(snr_c)
+        valid = valid & (powered | ~pe.sure)
         has_snr = np.isfinite(links.snr)
-        s_ll = np.where(has_snr[..., None], -snr_c - np.log(SNR_SIGMA_DB) - 0.5 * _LOG2PI, 0.0)
+        with np.errstate(invalid="ignore"):
+            g = np.where(powered, -snr_c - np.log(SNR_SIGMA_DB) - 0.5 * _LOG2PI,
+                         -np.log(SNR_SPAN_DB))
+        s_ll = np.where(has_snr[..., None], g, 0.0)
         s_out = np.where(has_snr, -np.log(SNR_SPAN_DB), 0.0)
     else:
         s_ll, s_out = 0.0, 0.0
@@ -259,13 +267,19 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     w_out = np.log(config.outlier_weight / config.outlier_span_m) + s_out
     inlier = links.mask & np.isfinite(ll_best) & (ll_best + w_in > w_out)
     slot = np.where(inlier, best, -1)
-    log_w = np.where(inlier, w_in + s_best, np.where(links.mask, w_out, 0.0))
     nis = np.where(inlier, np.take_along_axis(e * e / s_var, best[..., None], -1)[..., 0], np.nan)
     with np.errstate(invalid="ignore"):
         pk = np.where(valid, np.exp(ll - np.where(np.isfinite(ll_best), ll_best, 0.0)[..., None]),
                       0.0)
-        pk = pk / np.maximum(pk.sum(axis=-1, keepdims=True), 1e-300)
-        l_best = np.take_along_axis(lengths, best[..., None], axis=-1)
+        mass = pk.sum(axis=-1)
+        pk = pk / np.maximum(mass[..., None], 1e-300)
+    # the link's likelihood is the mixture's sum over the candidates, not its largest term:
+    # a hypothesis where two mechanisms explain the range equally well is not penalised
+    # (log of sum / max >= 0, the chosen slot's own term is in the IEKF's residual)
+    mix = np.log(np.maximum(np.where(inlier, mass, 1.0), 1.0))
+    log_w = np.where(inlier, w_in + s_best + mix, np.where(links.mask, w_out, 0.0))
+    l_best = np.take_along_axis(lengths, best[..., None], axis=-1)
+    with np.errstate(invalid="ignore"):
         extra = np.sum(np.where(valid, pk * (lengths - l_best) ** 2, 0.0), axis=-1)
     extra = np.where(inlier & np.isfinite(extra), extra, 0.0)
     return Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
@@ -279,7 +293,9 @@ def _model(pos, links: Links, floor, sel: Selection, building):
     hinge = links.mask & ~use & (links.rho < los)
     model = np.where(use, length, np.where(hinge, los, links.rho))
     jm = np.where(use[..., None], jac, np.where(hinge[..., None], jlos, 0.0))
-    w = np.where(use | hinge, 1.0 / links.var, 0.0)
+    # a link whose range two mechanisms explain about equally gets their spread as extra
+    # variance (model uncertainty: the covariance must not pretend the choice is known)
+    w = np.where(use, 1.0 / (links.var + sel.extra_var), np.where(hinge, 1.0 / links.var, 0.0))
     return model, jm, w
 
 
@@ -363,11 +379,12 @@ def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArra
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual."""
     x = x_prior
+    # the SNR of every slot at the prior (a path's strength changes little over the fit)
+    snr_c = snr_cost(clamp_to_floor(x[..., :3], floor, building, config.z_margin_m), links,
+                     building)
     for _ in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         pe = all_paths(x[..., :3], links, floor, building, config.exist_margin_m)
-        sel = select(p_prior[..., :3, :3], links, pe, config,
-                     snr_cost(clamp_to_floor(x[..., :3], floor, building, config.z_margin_m),
-                              links, building))
+        sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
