@@ -13,15 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .channel import pair_snr_db
-from .paths import (
-    _RECIPES,
-    DIFFRACTION_SLOTS,
-    MECHANISMS,
-    FloorFrame,
-    diffracted_path,
-    direct_opening,
-    specular_path,
-)
+from .paths import DIFFRACTION_SLOTS, MECHANISMS, graded_paths
 
 FloatArray = NDArray[np.float64]
 K_SLOTS = len(MECHANISMS)
@@ -131,38 +123,12 @@ class PathEval:
 
 def eval_paths(nodes_m: FloatArray, anchors_m: FloatArray, floor, building, relax_m: float,
                slots=None) -> PathEval:
-    """The first-arrival path model (same geometry functions as
-    :func:`diffpos.paths.first_arrival_paths`) with raw lengths and graded existence."""
-    shape = np.broadcast_shapes(nodes_m.shape, anchors_m.shape)[:-1]
-    n = np.broadcast_to(nodes_m, (*shape, 3)).copy()
-    a = np.broadcast_to(anchors_m, (*shape, 3)).copy()
-    fr = FloorFrame.from_building(building, np.broadcast_to(np.asarray(floor), shape))
-    loose_fr = FloorFrame(fr.z_floor, fr.z_ceil, fr.win_lo - relax_m, fr.win_hi + relax_m,
-                          fr.x0, fr.x1, fr.depth_m)
-    out = []
-    for k in (range(K_SLOTS) if slots is None else slots):
-        rec = _RECIPES[k]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            if rec[0] == "direct":
-                d = n - a
-                length = np.sqrt(np.einsum("...i,...i->...", d, d))
-                jac = d / length[..., None]
-                _, z_in, loose = direct_opening(a, n, loose_fr)
-            elif rec[0] == "spec":
-                g = specular_path(a, n, loose_fr, rec[1], ground=rec[2])
-                length, jac, loose, z_in = g.length_m, g.jacobian, g.valid, g.points[0][..., 2]
-            else:
-                g = diffracted_path(a, n, fr, rec[1], rec[2])
-                length, jac, loose, z_in = g.length_m, g.jacobian, g.valid, None
-            if z_in is None:
-                strict = sure = loose
-            else:
-                margin = np.minimum(z_in - fr.win_lo, fr.win_hi - z_in)
-                strict, sure = loose & (margin > 0), loose & (margin > relax_m)
-        out.append((length, jac, strict, loose, sure))
-    st = [np.stack([o[i] for o in out], axis=-1) for i in (0, 2, 3, 4)]
-    jac = np.stack([o[1] for o in out], axis=-2)
-    return PathEval(length=st[0], jac=jac, strict=st[1], loose=st[2], sure=st[3])
+    """The first-arrival path model with raw lengths and graded existence: the compiled
+    kernel of :func:`diffpos.paths.graded_paths` (same geometry as
+    :func:`diffpos.paths.first_arrival_paths`)."""
+    g = graded_paths(nodes_m, anchors_m, building, relax_m=relax_m, floor=floor, slots=slots)
+    return PathEval(length=g.length_m, jac=g.jacobian, strict=g.strict, loose=g.loose,
+                    sure=g.sure)
 
 
 def all_paths(pos: FloatArray, links: Links, floor, building, relax_m: float) -> PathEval:
