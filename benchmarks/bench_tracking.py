@@ -17,21 +17,23 @@ trajectory API), ``large`` (scenarios/large.toml, 8 UAVs, 50 nodes) and held-out
 (another building: 3.6 m floors, 2 m windows, 7 floors; UAVs above the window height; anchors
 beyond the facade ends).
 
-Measured (commit bdee58a, seed 0, 20 s; shared machine at load average ~22, so the times are
-upper bounds):
+Measured (commit 06f1b49, identical results after 2d: the compiled path kernel; seed 0, 20 s,
+with the SNR; shared 2-core machine at load average 10-25, so the times are upper bounds;
+``large`` not re-run here, see bench_accuracy.py):
 
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====  =====
-scenario               N   M  avail  floor  3D p50  3D p90  z p50  z p90  cov95  ms/ep
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====  =====
-default                6   4  100 %  46.0   2.54    4.09    2.36   3.24   20.8   231
-large                  50  8  100 %  88.5   0.24    3.04    0.09   2.88   43.7   462
-other-building         7   4  100 %  68.2   0.76    8.18    0.27   7.23   39.8   312
-uavs-above-windows     6   4  100 %  81.7   1.14    1.75    0.97   1.67   27.1   314
-anchors-beyond-ends    6   5  100 %  69.9   1.19    3.58    0.50   3.07   24.7   266
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====  =====
+=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
+scenario               N   M  avail  floor  3D p50  3D p90  z p50  z p90  cov95
+=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
+default                6   4  100 %  88.9   0.10    2.65    -      2.12   81.4
+other-building         7   4  100 %  84.7   0.12    4.59    -      3.74   72.1
+uavs-above-windows     6   4  100 %  99.9   0.08    0.20    -      0.14   92.4
+anchors-beyond-ends    6   5  100 %  89.8   0.08    2.24    -      1.75   85.6
+=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
 
-Cost, 16 anchors: 50 nodes 864 ms per tracked epoch (init 48 s), 200 nodes 1172 ms (init
-217 s): far above the 100 ms of a 10 Hz fusion.
+Before this session (ranges only, floor states dragged across floors by the IMM selection):
+floor 46.0 / 68.2 / 81.7 / 69.9 %, cov95 21-40 %. Cost (graded_paths kernel, load ~20):
+50 nodes x 8 anchors 0.7-1.4 s per tracked epoch, about half of it the SNR prediction
+(:func:`diffpos.channel.pair_snr_db`); still far above the 100 ms of a 10 Hz fusion.
 """
 
 from __future__ import annotations

@@ -14,12 +14,26 @@ Design
   its velocity by about its walking speed (1.2 m/s: start, stop, a 90 degree turn) within ~1 s,
   ``q_h ~ (1.2 m/s)^2 / 1 s``. Vertical ``q_v = 0.36 m^2/s^3``: on stairs the vertical speed
   (0.3-0.6 m/s, 17 cm risers at ~2 steps/s, fast ascent) is reached within ~1 s.
-* **Floor transitions (IMM mixing):** a walker moving vertically at the stair speed
-  ``v_stairs = 0.6 m/s`` crosses one floor height ``H`` in ``H / v_stairs`` seconds, so the
-  probability of moving to each adjacent floor within ``dt`` is ``dt v_stairs / H`` (0.02 for
-  10 Hz, 3 m floors); any floor can be re-acquired with ``jump_rate_hz * dt`` (recovery from a
-  wrong lock). Mixed into floor ``g`` a state from floor ``f`` keeps x, y and the velocity, its
-  height is moved into floor g's band and its height variance inflated (``z_mix_sigma_m``).
+* **Floor transitions (IMM mixing), only where physically possible:** a walker moving
+  vertically at the stair speed ``v_stairs = 0.6 m/s`` crosses one floor height ``H`` in
+  ``H / v_stairs`` seconds, so the probability of moving to an adjacent floor within ``dt`` is
+  ``dt v_stairs / H`` (0.02 for 10 Hz, 3 m floors) times ``exp(-d^2 / 2 P_zz)``, ``d`` the
+  height gap from the hypothesis to that floor's band beyond the reach ``dt v_stairs`` (a
+  level walker 1.5 m below the next band never moves; one at the top of the stairs does).
+  Any floor keeps ``jump_rate_hz * dt`` of probability (recovery from a wrong lock) but a jump
+  never moves a state: every floor hypothesis keeps its own track until the data decides
+  (measured: with the old selection a leading wrong floor overwrote the true floor's state
+  with its mirror image, and the true floor never recovered). Mixed into floor ``g`` a state
+  from floor ``f`` keeps x, y and the velocity, its height is moved into floor g's band and
+  its height variance inflated (``z_mix_sigma_m``).
+* **SNR** (``snr_db`` with the scenario's ``radio``): every mechanism's predicted SNR
+  (the emulator's amplitude model, :func:`diffpos.channel.pair_snr_db`, as M-NLS) against the
+  measured one, Gaussian with a factor 2 in field (6 dB), plus the detector's rule (a first
+  arrival is not far below the strongest path's threshold); a slot with no power at the
+  hypothesis is no candidate, except within ``exist_margin_m`` of its existence boundary.
+  Part of the mechanism choice and of the floor evidence: with 4 anchors the ranges alone
+  leave another floor's mirror solution as good as the true one; with the SNR the floor is
+  right for 85-100 % of node-epochs (bench_tracking.py).
 * **Measurement model:** the first-arrival path model :func:`diffpos.paths.first_arrival_paths`
   for the hypothesis' floor. Per link the mechanism is a latent choice (max-mixture): the
   existing mechanism with the largest marginal likelihood of the range given the predicted
