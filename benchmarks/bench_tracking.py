@@ -17,21 +17,23 @@ trajectory API), ``large`` (scenarios/large.toml, 8 UAVs, 50 nodes) and held-out
 (another building: 3.6 m floors, 2 m windows, 7 floors; UAVs above the window height; anchors
 beyond the facade ends).
 
-Measured (commit bdee58a, seed 0, 20 s; shared machine at load average ~22, so the times are
-upper bounds):
+Measured (commit 06f1b49, identical results after 2d: the compiled path kernel; seed 0, 20 s,
+with the SNR; shared 2-core machine at load average 10-25, so the times are upper bounds;
+``large`` not re-run here, see bench_accuracy.py):
 
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====  =====
-scenario               N   M  avail  floor  3D p50  3D p90  z p50  z p90  cov95  ms/ep
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====  =====
-default                6   4  100 %  46.0   2.54    4.09    2.36   3.24   20.8   231
-large                  50  8  100 %  88.5   0.24    3.04    0.09   2.88   43.7   462
-other-building         7   4  100 %  68.2   0.76    8.18    0.27   7.23   39.8   312
-uavs-above-windows     6   4  100 %  81.7   1.14    1.75    0.97   1.67   27.1   314
-anchors-beyond-ends    6   5  100 %  69.9   1.19    3.58    0.50   3.07   24.7   266
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====  =====
+=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
+scenario               N   M  avail  floor  3D p50  3D p90  z p50  z p90  cov95
+=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
+default                6   4  100 %  88.9   0.10    2.65    -      2.12   81.4
+other-building         7   4  100 %  84.7   0.12    4.59    -      3.74   72.1
+uavs-above-windows     6   4  100 %  99.9   0.08    0.20    -      0.14   92.4
+anchors-beyond-ends    6   5  100 %  89.8   0.08    2.24    -      1.75   85.6
+=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
 
-Cost, 16 anchors: 50 nodes 864 ms per tracked epoch (init 48 s), 200 nodes 1172 ms (init
-217 s): far above the 100 ms of a 10 Hz fusion.
+Before this session (ranges only, floor states dragged across floors by the IMM selection):
+floor 46.0 / 68.2 / 81.7 / 69.9 %, cov95 21-40 %. Cost (graded_paths kernel, load ~20):
+50 nodes x 8 anchors 0.7-1.4 s per tracked epoch, about half of it the SNR prediction
+(:func:`diffpos.channel.pair_snr_db`); still far above the 100 ms of a 10 Hz fusion.
 """
 
 from __future__ import annotations
@@ -90,7 +92,8 @@ def scenarios() -> dict[str, Scenario]:
 
 
 def emulate(sc: Scenario, *, duration_s: float, rate_hz: float, seed: int):
-    """Yield ``(t_ns, anchors_rep (M,3), ranges (N,M), sigmas (N,M), mask (N,M), truth (N,3))``."""
+    """Yield ``(t_ns, anchors_rep (M,3), ranges (N,M), sigmas (N,M), mask (N,M), truth (N,3),
+    snr_db (N,M))``."""
     rng = np.random.default_rng(seed)
     m = len(sc.anchors)
     sig = np.array([0.02, 0.02, 0.03])
@@ -104,23 +107,25 @@ def emulate(sc: Scenario, *, duration_s: float, rate_hz: float, seed: int):
         ch = emulate_channel(anchors, nodes, building=sc.building, radio=sc.radio)
         fa = first_arrival(ch, radio=sc.radio, rng=rng)
         rep = anchors + bias + rng.standard_normal((m, 3)) * sig * np.sqrt(0.5)
-        yield t_ns, rep, fa.range_m, fa.sigma_m, fa.detected, nodes
+        yield t_ns, rep, fa.range_m, fa.sigma_m, fa.detected, nodes, fa.snr_db
 
 
 def run(sc: Scenario, *, duration_s: float = 20.0, rate_hz: float = 10.0, seed: int = 0,
-        config: TrackerConfig | None = None, skip_s: float = 2.0) -> dict:
-    """Track one scenario and score every node-epoch after ``skip_s``."""
+        config: TrackerConfig | None = None, skip_s: float = 2.0, use_snr: bool = True) -> dict:
+    """Track one scenario and score every node-epoch after ``skip_s`` (``use_snr``: the
+    tracker scores each mechanism's predicted SNR against the measured one)."""
     cfg = config or TrackerConfig()
     b = sc.building
     n = len(sc.nodes)
     state = init_state(n, b)
     rows = []
     wall = []
-    for t_ns, anc, rng_m, sg, det, truth in emulate(sc, duration_s=duration_s, rate_hz=rate_hz,
-                                                     seed=seed):
+    for t_ns, anc, rng_m, sg, det, truth, snr in emulate(sc, duration_s=duration_s,
+                                                          rate_hz=rate_hz, seed=seed):
         a = np.broadcast_to(anc, (n, *anc.shape))
         t0 = time.perf_counter()
-        state, out = update(state, a, rng_m, sg, det, t_ns, b, cfg)
+        state, out = update(state, a, rng_m, sg, det, t_ns, b, cfg,
+                            snr_db=snr if use_snr else None, radio=sc.radio)
         wall.append(time.perf_counter() - t0)
         if t_ns * 1e-9 >= skip_s - 1e-9:
             rows.append((out, truth))
@@ -155,6 +160,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", nargs="*", default=None)
     ap.add_argument("--no-cost", action="store_true")
+    ap.add_argument("--no-snr", action="store_true", help="ranges only (no SNR scoring)")
     args = ap.parse_args(argv)
     hdr = (f"{'scenario':22s} {'N':>3s} {'M':>2s} {'avail':>6s} {'floor':>6s} {'3D p50':>7s} "
            f"{'3D p90':>7s} {'z p50':>6s} {'z p90':>6s} {'cov95':>6s} {'ms/ep':>6s}")
@@ -162,7 +168,7 @@ def main(argv=None) -> int:
     for name, sc in scenarios().items():
         if args.only and name not in args.only:
             continue
-        r = run(sc, duration_s=args.duration, seed=args.seed)
+        r = run(sc, duration_s=args.duration, seed=args.seed, use_snr=not args.no_snr)
         print(f"{name:22s} {r['nodes']:3d} {r['anchors']:2d} {100 * r['availability']:5.1f}% "
               f"{100 * r['floor']:5.1f}% {r['p50_3d']:7.2f} {r['p90_3d']:7.2f} {r['p50_z']:6.2f} "
               f"{r['p90_z']:6.2f} {100 * r['coverage95']:5.1f}% {r['ms_per_epoch']:6.1f}",

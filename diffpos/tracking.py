@@ -14,12 +14,26 @@ Design
   its velocity by about its walking speed (1.2 m/s: start, stop, a 90 degree turn) within ~1 s,
   ``q_h ~ (1.2 m/s)^2 / 1 s``. Vertical ``q_v = 0.36 m^2/s^3``: on stairs the vertical speed
   (0.3-0.6 m/s, 17 cm risers at ~2 steps/s, fast ascent) is reached within ~1 s.
-* **Floor transitions (IMM mixing):** a walker moving vertically at the stair speed
-  ``v_stairs = 0.6 m/s`` crosses one floor height ``H`` in ``H / v_stairs`` seconds, so the
-  probability of moving to each adjacent floor within ``dt`` is ``dt v_stairs / H`` (0.02 for
-  10 Hz, 3 m floors); any floor can be re-acquired with ``jump_rate_hz * dt`` (recovery from a
-  wrong lock). Mixed into floor ``g`` a state from floor ``f`` keeps x, y and the velocity, its
-  height is moved into floor g's band and its height variance inflated (``z_mix_sigma_m``).
+* **Floor transitions (IMM mixing), only where physically possible:** a walker moving
+  vertically at the stair speed ``v_stairs = 0.6 m/s`` crosses one floor height ``H`` in
+  ``H / v_stairs`` seconds, so the probability of moving to an adjacent floor within ``dt`` is
+  ``dt v_stairs / H`` (0.02 for 10 Hz, 3 m floors) times ``exp(-d^2 / 2 P_zz)``, ``d`` the
+  height gap from the hypothesis to that floor's band beyond the reach ``dt v_stairs`` (a
+  level walker 1.5 m below the next band never moves; one at the top of the stairs does).
+  Any floor keeps ``jump_rate_hz * dt`` of probability (recovery from a wrong lock) but a jump
+  never moves a state: every floor hypothesis keeps its own track until the data decides
+  (measured: with the old selection a leading wrong floor overwrote the true floor's state
+  with its mirror image, and the true floor never recovered). Mixed into floor ``g`` a state
+  from floor ``f`` keeps x, y and the velocity, its height is moved into floor g's band and
+  its height variance inflated (``z_mix_sigma_m``).
+* **SNR** (``snr_db`` with the scenario's ``radio``): every mechanism's predicted SNR
+  (the emulator's amplitude model, :func:`diffpos.channel.pair_snr_db`, as M-NLS) against the
+  measured one, Gaussian with a factor 2 in field (6 dB), plus the detector's rule (a first
+  arrival is not far below the strongest path's threshold); a slot with no power at the
+  hypothesis is no candidate, except within ``exist_margin_m`` of its existence boundary.
+  Part of the mechanism choice and of the floor evidence: with 4 anchors the ranges alone
+  leave another floor's mirror solution as good as the true one; with the SNR the floor is
+  right for 85-100 % of node-epochs (bench_tracking.py).
 * **Measurement model:** the first-arrival path model :func:`diffpos.paths.first_arrival_paths`
   for the hypothesis' floor. Per link the mechanism is a latent choice (max-mixture): the
   existing mechanism with the largest marginal likelihood of the range given the predicted
@@ -169,8 +183,8 @@ class TrackerConfig:
     mixing: str = "select"
     gn_iterations: int = 3
     select_passes: int = 2
-    init_grid_m: float = 1.0
-    init_starts: int = 2
+    init_grid_m: float = 2.0
+    init_starts: int = 3
     init_sigma_v_m_s: float = 1.0
     min_ranges_init: int = 3
     confirm_epochs: int = 5
@@ -270,18 +284,35 @@ def process_noise(dt_s: ArrayLike, config: TrackerConfig) -> FloatArray:
     return out
 
 
-def _transition_matrix(n_floors: int, dt_s: FloatArray, building, config: TrackerConfig
-                       ) -> FloatArray:
-    """Floor transition probabilities ``pi[n, f, g]`` over ``dt_s`` (shape (N,))."""
-    f = np.arange(n_floors)
+def _transition_matrix(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
+                       config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
+    """Floor transition probabilities over ``dt_s`` (shape (N,)): ``(pi, pi_move)``, (N, F, G).
+
+    ``pi_move`` is the physical part: a walker leaves floor ``f`` for an adjacent floor ``g``
+    only where it can get there, i.e. at most ``dt v_stairs`` vertical travel from hypothesis
+    f's height to g's band (stairs or any vertical move): with the height gap ``d`` beyond that
+    reach, ``pi_move[f, g] = dt v_stairs / H * exp(-d^2 / (2 P_zz))`` (a level walker 1.5 m
+    below the next floor's band never moves; one at the top of the stairs does). ``pi`` adds
+    the jump to any floor (``jump_rate_hz``: a floor the data has not decided is never given
+    up, so a wrong lock can be left), which moves probability but never a state.
+    """
+    nf = mean.shape[1]
+    f = np.arange(nf)
     adj = (np.abs(f[:, None] - f[None, :]) == 1).astype(np.float64)
     other = (f[:, None] != f[None, :]).astype(np.float64)
     dt = np.maximum(dt_s, 0.0)[:, None, None]
+    lo, hi = _floor_band(building, nf, config)
+    z = mean[:, :, None, 2]  # (N, F, 1)
+    gap = np.maximum(np.maximum(lo[None, None, :] - z, z - hi[None, None, :]), 0.0)
+    reach = gap - dt * config.v_stairs_m_s
+    var_z = np.maximum(cov[:, :, None, 2, 2], 1e-6)
+    near = np.exp(-0.5 * np.maximum(reach, 0.0) ** 2 / var_z)
     p_adj = np.minimum(dt * config.v_stairs_m_s / building.floor_height_m, 0.45)
-    p_jump = np.minimum(dt * config.jump_rate_hz, 0.05) / max(n_floors - 1, 1)
-    pi = adj * p_adj + other * p_jump
-    pi = pi + np.eye(n_floors) * (1.0 - pi.sum(axis=-1, keepdims=True))
-    return pi
+    p_jump = np.minimum(dt * config.jump_rate_hz, 0.05) / max(nf - 1, 1)
+    move = adj * p_adj * near
+    pi = move + other * p_jump
+    diag = np.eye(nf) * (1.0 - pi.sum(axis=-1, keepdims=True))
+    return pi + diag, move + np.eye(nf) * (1.0 - pi.sum(axis=-1, keepdims=True))
 
 
 def _floor_band(building, n_floors: int, config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
@@ -293,7 +324,7 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
          ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """IMM interaction: mixed means/covariances and predicted floor log-probabilities."""
     nf = state.log_prob.shape[1]
-    pi = _transition_matrix(nf, dt_s, building, config)  # (N, F, G)
+    pi, pi_move = _transition_matrix(state.mean, state.cov, dt_s, building, config)
     lw = state.log_prob
     mx = lw.max(axis=1, keepdims=True)
     w = np.exp(lw - mx)  # (N, F)
@@ -313,7 +344,7 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
         d = xs - x0[:, None]
         p0 = np.einsum("nfg,nfgij->ngij", mu, ps + d[..., :, None] * d[..., None, :])
     else:  # "select": every floor continues from its most probable predecessor
-        src = np.argmax(joint, axis=1)  # (N, G)
+        src = np.argmax(w[:, :, None] * pi_move, axis=1)  # (N, G)
         rows, cols = np.arange(joint.shape[0])[:, None], np.arange(nf)[None, :]
         x0, p0 = xs[rows, src, cols], ps[rows, src, cols]
     log_pred = np.log(np.maximum(c, 1e-300)) + mx
@@ -404,7 +435,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, building,
                   config: TrackerConfig):
     """Measurement update of the nodes ``idx``: new arrays and their mechanism/residual."""
     nf = state.mean.shape[1]
-    sub = Links(links.rho[idx], links.var[idx], links.mask[idx], links.anchors[idx])
+    sub = links.take(idx)
     x, p, ev, sel, res = measurement_update(state.mean[idx], state.cov[idx], sub,
                                             np.arange(nf), building, config)
     lp = _normalise(state.log_prob[idx] + np.where(np.isfinite(ev), ev, -1e300))
@@ -430,15 +461,15 @@ def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: Trac
     flat = np.flatnonzero(cand)
     order = np.argsort(-floor_bad.reshape(-1)[flat], kind="stable")[:config.reseed_max]
     nodes, floors = np.unravel_index(flat[order], floor_bad.shape)
-    sub = Links(links.rho[nodes], links.var[nodes], links.mask[nodes], links.anchors[nodes])
+    sub = links.take(nodes)
     x, p, _, _, _ = snapshot(sub, floors[:, None], building, config)
     mean[nodes, floors], cov[nodes, floors] = x[:, 0], p[:, 0]
     floor_bad[nodes, floors] = 0
 
 
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
-           mask: ArrayLike, t_ns: ArrayLike, building, config: TrackerConfig
-           ) -> tuple[TrackerState, TrackOutput]:
+           mask: ArrayLike, t_ns: ArrayLike, building, config: TrackerConfig, *,
+           snr_db: ArrayLike | None = None, radio=None) -> tuple[TrackerState, TrackOutput]:
     """Predict every node to ``t_ns`` and update it with one epoch of ranges.
 
     Parameters
@@ -453,13 +484,17 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     t_ns : int or array_like of int, shape (N,) [ns]
     building : diffpos.scenario.Building
     config : TrackerConfig
+    snr_db : array_like, shape (N, M), optional [dB]
+        Measured SNR of every range (NaN: unknown); used with ``radio``
+        (:class:`diffpos.scenario.Radio`) to score each mechanism's predicted strength.
 
     Returns
     -------
     (TrackerState, TrackOutput)
     """
     links = Links.from_arrays(np.asarray(anchors_m, float), np.asarray(ranges_m, float),
-                              np.asarray(sigmas_m, float), mask, config.sigma_model_m)
+                              np.asarray(sigmas_m, float), mask, config.sigma_model_m,
+                              snr_db=snr_db, radio=radio)
     n, m = links.rho.shape[0], links.rho.shape[2]
     t = np.broadcast_to(np.asarray(t_ns, dtype=np.int64), (n,))
     st = predict(state, t, building, config)
@@ -490,7 +525,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             | (bad >= config.diverge_epochs)) & (n_meas >= config.min_ranges_init)
     jdx = np.flatnonzero(need)
     if jdx.size:
-        sub = Links(links.rho[jdx], links.var[jdx], links.mask[jdx], links.anchors[jdx])
+        sub = links.take(jdx)
         x, p, lpi, sel, res = snapshot_init(sub, building, config)
         mean[jdx], cov[jdx], lp[jdx] = x, p, lpi
         best = np.argmax(lpi, axis=1)

@@ -12,43 +12,88 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .paths import (
-    _RECIPES,
-    DIFFRACTION_SLOTS,
-    MECHANISMS,
-    FloorFrame,
-    diffracted_path,
-    direct_opening,
-    specular_path,
-)
+from .channel import pair_snr_db
+from .paths import DIFFRACTION_SLOTS, MECHANISMS, graded_paths
 
 FloatArray = NDArray[np.float64]
 K_SLOTS = len(MECHANISMS)
 _IS_DIFF = np.isin(np.arange(K_SLOTS), DIFFRACTION_SLOTS)
 _LOG2PI = float(np.log(2.0 * np.pi))
+#: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
+#: field (antenna patterns, materials, wedge vs. UTD), the value M-NLS uses.
+SNR_SIGMA_DB = 20 * np.log10(2.0)
+#: Width of the SNR density of a range that is none of the modelled mechanisms [dB].
+SNR_SPAN_DB = 60.0
 
 
 @dataclass(frozen=True)
 class Links:
     """The measurements of one epoch, shaped to broadcast against ``(N, H, M)``.
 
-    ``rho``, ``var``, ``mask``: (N, 1, M); ``anchors``: (N, 1, M, 3).
+    ``rho``, ``var``, ``mask``: (N, 1, M); ``anchors``: (N, 1, M, 3); ``snr``: (N, 1, M)
+    measured SNR [dB] (NaN: unknown) with the ``radio`` that predicts every slot's SNR, or
+    None (ranges only).
     """
 
     rho: FloatArray
     var: FloatArray
     mask: NDArray[np.bool_]
     anchors: FloatArray
+    snr: FloatArray | None = None
+    radio: object | None = None
+
+    def take(self, idx) -> Links:
+        """The links of the nodes ``idx``."""
+        return Links(self.rho[idx], self.var[idx], self.mask[idx], self.anchors[idx],
+                     None if self.snr is None else self.snr[idx], self.radio)
 
     @classmethod
-    def from_arrays(cls, anchors_m, ranges_m, sigmas_m, mask, sigma_model_m: float) -> Links:
+    def from_arrays(cls, anchors_m, ranges_m, sigmas_m, mask, sigma_model_m: float,
+                    snr_db=None, radio=None) -> Links:
         m = np.asarray(mask, bool) & np.isfinite(ranges_m) & np.isfinite(sigmas_m)
         m &= np.all(np.isfinite(anchors_m), axis=-1)
         rho = np.where(m, ranges_m, 0.0)
         var = np.where(m, np.asarray(sigmas_m, float) ** 2 + sigma_model_m**2, 1.0)
         # a missing link gets a harmless placeholder anchor (its weight is 0)
         anc = np.where(m[..., None], anchors_m, np.array([0.0, -1.0, 0.0]))
-        return cls(rho=rho[:, None], var=var[:, None], mask=m[:, None], anchors=anc[:, None])
+        snr = None
+        if snr_db is not None and radio is not None:
+            snr = np.where(m, np.asarray(snr_db, float), np.nan)[:, None]
+        return cls(rho=rho[:, None], var=var[:, None], mask=m[:, None], anchors=anc[:, None],
+                   snr=snr, radio=radio if snr is not None else None)
+
+
+def snr_cost(pos: FloatArray, links: Links, building) -> FloatArray | None:
+    """SNR negative log-likelihood of every slot at the hypotheses ``pos`` (N, H, 3):
+    (N, H, M, K), +inf where the slot carries no power, 0 where the SNR is unknown; None
+    without SNR.
+
+    The measured SNR against the slot's SNR predicted by the emulator's amplitude model
+    (:func:`diffpos.channel.pair_snr_db`), Gaussian with :data:`SNR_SIGMA_DB`, plus the
+    detector's rule: a first arrival is not far below the predicted strongest path's
+    threshold ``P_max - fap_threshold_db`` (as in M-NLS). This is what separates floors that
+    the ranges alone cannot: a ceiling reflection and the floor above's lower-edge
+    diffraction have nearly the same length but 20-40 dB different strength.
+    """
+    if links.snr is None:
+        return None
+    n, h = pos.shape[:2]
+    if n * h == 0:
+        return np.zeros((n, h, links.rho.shape[-1], K_SLOTS))
+    m = links.rho.shape[-1]
+    anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(n * h, m, 3)
+    pred = pair_snr_db(anc, pos.reshape(n * h, 3), building=building, radio=links.radio)
+    pred = pred.reshape(n, h, m, K_SLOTS)
+    meas = links.snr[..., None]
+    r = links.radio
+    with np.errstate(invalid="ignore"):
+        c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
+        thr = np.maximum(np.max(pred, axis=-1, keepdims=True) - r.fap_threshold_db,
+                         r.detection_snr_db)
+        short = np.maximum(thr - SNR_SIGMA_DB - meas, 0.0)
+        c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
+    c = np.where(np.isfinite(pred), c, np.inf)
+    return np.where(np.isfinite(meas), c, 0.0)
 
 
 def _los(pos: FloatArray, anchors: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -78,38 +123,12 @@ class PathEval:
 
 def eval_paths(nodes_m: FloatArray, anchors_m: FloatArray, floor, building, relax_m: float,
                slots=None) -> PathEval:
-    """The first-arrival path model (same geometry functions as
-    :func:`diffpos.paths.first_arrival_paths`) with raw lengths and graded existence."""
-    shape = np.broadcast_shapes(nodes_m.shape, anchors_m.shape)[:-1]
-    n = np.broadcast_to(nodes_m, (*shape, 3)).copy()
-    a = np.broadcast_to(anchors_m, (*shape, 3)).copy()
-    fr = FloorFrame.from_building(building, np.broadcast_to(np.asarray(floor), shape))
-    loose_fr = FloorFrame(fr.z_floor, fr.z_ceil, fr.win_lo - relax_m, fr.win_hi + relax_m,
-                          fr.x0, fr.x1, fr.depth_m)
-    out = []
-    for k in (range(K_SLOTS) if slots is None else slots):
-        rec = _RECIPES[k]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            if rec[0] == "direct":
-                d = n - a
-                length = np.sqrt(np.einsum("...i,...i->...", d, d))
-                jac = d / length[..., None]
-                _, z_in, loose = direct_opening(a, n, loose_fr)
-            elif rec[0] == "spec":
-                g = specular_path(a, n, loose_fr, rec[1], ground=rec[2])
-                length, jac, loose, z_in = g.length_m, g.jacobian, g.valid, g.points[0][..., 2]
-            else:
-                g = diffracted_path(a, n, fr, rec[1], rec[2])
-                length, jac, loose, z_in = g.length_m, g.jacobian, g.valid, None
-            if z_in is None:
-                strict = sure = loose
-            else:
-                margin = np.minimum(z_in - fr.win_lo, fr.win_hi - z_in)
-                strict, sure = loose & (margin > 0), loose & (margin > relax_m)
-        out.append((length, jac, strict, loose, sure))
-    st = [np.stack([o[i] for o in out], axis=-1) for i in (0, 2, 3, 4)]
-    jac = np.stack([o[1] for o in out], axis=-2)
-    return PathEval(length=st[0], jac=jac, strict=st[1], loose=st[2], sure=st[3])
+    """The first-arrival path model with raw lengths and graded existence: the compiled
+    kernel of :func:`diffpos.paths.graded_paths` (same geometry as
+    :func:`diffpos.paths.first_arrival_paths`)."""
+    g = graded_paths(nodes_m, anchors_m, building, relax_m=relax_m, floor=floor, slots=slots)
+    return PathEval(length=g.length_m, jac=g.jacobian, strict=g.strict, loose=g.loose,
+                    sure=g.sure)
 
 
 def all_paths(pos: FloatArray, links: Links, floor, building, relax_m: float) -> PathEval:
@@ -174,34 +193,59 @@ class Selection:
     extra_var: FloatArray
 
 
-def select(pos_cov: FloatArray, links: Links, pe: PathEval, config) -> Selection:
+def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
+           snr_c: FloatArray | None = None) -> Selection:
     """Most likely mechanism per link given the predicted position Gaussian.
 
     ``pos_cov``: (N, H, 3, 3). Component log-likelihoods: ``log((1 - eps) / n_cand) + log
     N(rho; L_k, J_k P J_k^T + R)`` for every candidate slot (:func:`candidates`),
-    ``log(eps / span)`` for the outlier.
+    ``log(eps / span)`` for the outlier; with ``snr_c`` (:func:`snr_cost`) every candidate's
+    SNR log-likelihood is added (the outlier's SNR is uniform over ``SNR_SPAN_DB``), and it
+    is part of the link's log-weight (so of the floor evidence).
     """
     valid = candidates(pe)
+    if snr_c is not None:
+        # a slot without power at the hypothesis is no candidate, unless the hypothesis is
+        # within the entry point's uncertainty of the slot's existence boundary (the
+        # prediction flips from a strong path to none over a few cm there): its SNR is then
+        # uninformative (uniform over SNR_SPAN_DB)
+        powered = np.isfinite(snr_c)
+        valid = valid & (powered | ~pe.sure)
+        has_snr = np.isfinite(links.snr)
+        with np.errstate(invalid="ignore"):
+            g = np.where(powered, -snr_c - np.log(SNR_SIGMA_DB) - 0.5 * _LOG2PI,
+                         -np.log(SNR_SPAN_DB))
+        s_ll = np.where(has_snr[..., None], g, 0.0)
+        s_out = np.where(has_snr, -np.log(SNR_SPAN_DB), 0.0)
+    else:
+        s_ll, s_out = 0.0, 0.0
     lengths, jac = pe.length, np.where(valid[..., None], pe.jac, 0.0)
     s_var = np.einsum("nhmki,nhij,nhmkj->nhmk", jac, pos_cov, jac) + links.var[..., None]
     e = links.rho[..., None] - lengths
     n_ok = np.maximum(valid.sum(axis=-1), 1)
     with np.errstate(invalid="ignore"):
         ll = -0.5 * (e * e / s_var + np.log(s_var) + _LOG2PI)
-    ll = np.where(valid, ll, -np.inf)
+    ll = np.where(valid, ll + s_ll, -np.inf)
     best = np.argmax(ll, axis=-1)
     ll_best = np.take_along_axis(ll, best[..., None], axis=-1)[..., 0]
+    s_best = np.take_along_axis(np.broadcast_to(s_ll, ll.shape), best[..., None], -1)[..., 0]
     w_in = np.log1p(-config.outlier_weight) - np.log(n_ok)
-    w_out = np.log(config.outlier_weight / config.outlier_span_m)
+    w_out = np.log(config.outlier_weight / config.outlier_span_m) + s_out
     inlier = links.mask & np.isfinite(ll_best) & (ll_best + w_in > w_out)
     slot = np.where(inlier, best, -1)
-    log_w = np.where(inlier, w_in, np.where(links.mask, w_out, 0.0))
     nis = np.where(inlier, np.take_along_axis(e * e / s_var, best[..., None], -1)[..., 0], np.nan)
     with np.errstate(invalid="ignore"):
         pk = np.where(valid, np.exp(ll - np.where(np.isfinite(ll_best), ll_best, 0.0)[..., None]),
                       0.0)
-        pk = pk / np.maximum(pk.sum(axis=-1, keepdims=True), 1e-300)
-        l_best = np.take_along_axis(lengths, best[..., None], axis=-1)
+        mass = pk.sum(axis=-1)
+        pk = pk / np.maximum(mass[..., None], 1e-300)
+    # the link's likelihood is the mixture's sum over the candidates, not its largest term:
+    # a hypothesis where two mechanisms explain the range equally well is not penalised
+    # (log of sum / max >= 0, the chosen slot's own term is in the IEKF's residual)
+    mix = np.log(np.maximum(np.where(inlier, mass, 1.0), 1.0))
+    log_w = np.where(inlier, w_in + s_best + mix, np.where(links.mask, w_out, 0.0))
+    l_best = np.take_along_axis(lengths, best[..., None], axis=-1)
+    with np.errstate(invalid="ignore"):
         extra = np.sum(np.where(valid, pk * (lengths - l_best) ** 2, 0.0), axis=-1)
     extra = np.where(inlier & np.isfinite(extra), extra, 0.0)
     return Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
@@ -215,7 +259,9 @@ def _model(pos, links: Links, floor, sel: Selection, building):
     hinge = links.mask & ~use & (links.rho < los)
     model = np.where(use, length, np.where(hinge, los, links.rho))
     jm = np.where(use[..., None], jac, np.where(hinge[..., None], jlos, 0.0))
-    w = np.where(use | hinge, 1.0 / links.var, 0.0)
+    # a link whose range two mechanisms explain about equally gets their spread as extra
+    # variance (model uncertainty: the covariance must not pretend the choice is known)
+    w = np.where(use, 1.0 / (links.var + sel.extra_var), np.where(hinge, 1.0 / links.var, 0.0))
     return model, jm, w
 
 
@@ -299,9 +345,12 @@ def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArra
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual."""
     x = x_prior
+    # the SNR of every slot at the prior (a path's strength changes little over the fit)
+    snr_c = snr_cost(clamp_to_floor(x[..., :3], floor, building, config.z_margin_m), links,
+                     building)
     for _ in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         pe = all_paths(x[..., :3], links, floor, building, config.exist_margin_m)
-        sel = select(p_prior[..., :3, :3], links, pe, config)
+        sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
@@ -332,7 +381,8 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
         pos = np.concatenate([np.broadcast_to(cells[None], (nf, c, 2)),
                               np.broadcast_to(z[i][:, None, None], (nf, c, 1))], axis=-1)
         pos = pos.reshape(1, nf * c, 3)
-        li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1], links.anchors[i:i + 1])
+        li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1],
+                   links.anchors[i:i + 1])
         pe = all_paths(pos, li, np.repeat(floors[i], c)[None], building,
                        0.5 * config.init_grid_m)
         e = li.rho[..., None] - pe.length

@@ -36,7 +36,10 @@ __all__ = ["DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig", "building_of", 
 METHODS = ("mnls", "dnls", "lls", "ippa")
 #: What ``diffpos fusion``, :meth:`FusionConfig.from_scenario` and ``diffpos emulate`` run.
 #: D-NLS keeps up in real time on 2 cores; ``mnls`` (+ the tracker) is far more accurate per
-#: node-epoch but costs 30-500 ms CPU per fix, so it needs lockstep (``--speed 0``) there.
+#: node-epoch but does not keep up yet, so it needs lockstep (``--speed 0``) there. Measured
+#: (track branch, shared 2-core VM at load ~14): a real-time ``diffpos emulate
+#: --method mnls --duration 20`` gave 100 % availability, floor 81.3 % of all node-epochs, but
+#: a fusion latency p50/p99 of 12.6/14.0 s (a growing backlog): not switched.
 DEFAULT_METHOD = "dnls"
 
 #: The window edges of the path model (``--edge``).

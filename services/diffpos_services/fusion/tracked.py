@@ -53,10 +53,15 @@ class TrackBank:
     ----------
     building : diffpos.scenario.Building
     config : TrackerConfig, optional
+    radio : diffpos.scenario.Radio, optional
+        The scenario's radio: the tracker then scores each mechanism's predicted SNR against
+        the measured one (what separates floors that the ranges alone cannot).
     """
 
-    def __init__(self, building: Any, config: TrackerConfig | None = None) -> None:
+    def __init__(self, building: Any, config: TrackerConfig | None = None, radio: Any = None
+                 ) -> None:
         self.building = building
+        self.radio = radio  # with it, the measured SNR scores every mechanism's strength
         self.config = config or TrackerConfig()
         self.index: dict[str, int] = {}
         self.state: TrackerState = init_state(0, building)
@@ -79,13 +84,16 @@ class TrackBank:
                          else int(TrackStatus.UNINITIALISED) for n in node_ids], dtype=np.int8)
 
     def update(self, node_ids: list[str], anchors: np.ndarray, ranges: np.ndarray,
-               sigmas: np.ndarray, mask: np.ndarray, t_ns: np.ndarray):
-        """One epoch of ranges for distinct ``node_ids``: :func:`diffpos.tracking.update` on
-        their rows; returns the :class:`~diffpos.tracking.TrackOutput`."""
+               sigmas: np.ndarray, mask: np.ndarray, t_ns: np.ndarray,
+               snr_db: np.ndarray | None = None, radio: Any = None):
+        """One epoch of ranges (and their SNR, NaN: unknown) for distinct ``node_ids``:
+        :func:`diffpos.tracking.update` on their rows (``radio`` overrides the bank's);
+        returns the :class:`~diffpos.tracking.TrackOutput`."""
         rows = self.rows_of(node_ids)
         fields = TrackerState.__dataclass_fields__
         sub = TrackerState(*(getattr(self.state, f)[rows] for f in fields))
-        new, out = update(sub, anchors, ranges, sigmas, mask, t_ns, self.building, self.config)
+        new, out = update(sub, anchors, ranges, sigmas, mask, t_ns, self.building, self.config,
+                          snr_db=snr_db, radio=self.radio if radio is None else radio)
         full = {f: getattr(self.state, f).copy() for f in fields}
         for f in fields:
             full[f][rows] = getattr(new, f)
@@ -180,7 +188,8 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
         due[rows] = _snapshot_due(bank, [epochs[i] for i in rows_l], batch.t_ref[rows], cfg)
         _mnls_rows(snap, rows[due[rows]], prep, batch, model, s_floor, s_prob, s_mech)
         out = bank.update([epochs[i].node_id for i in rows_l], prep.safe_apos[rows],
-                          prep.rng_in[rows], prep.sig_eff[rows], use[rows], batch.t_ref[rows])
+                          prep.rng_in[rows], prep.sig_eff[rows], use[rows], batch.t_ref[rows],
+                          snr_db=batch.snr[rows], radio=model[1])
         res.pos[rows], res.cov[rows] = out.position_m, out.covariance_m2
         mech[rows] = np.where(use[rows], out.mechanism, -1)
         res.resid[rows] = np.where(mech[rows] >= 0, out.residual_m, np.nan)
