@@ -12,12 +12,20 @@ stated otherwise):
 * **Floor hypotheses.** The floor fixes the window band and the floor/ceiling planes, so each
   floor of the building is a separate hypothesis (``floor`` passed to the path model); the
   node is confined to its floor's box.
-* **Search.** Per floor, an ``nx x ny`` grid of (x, y) cells at mid-floor height, one cell
-  replaced by a straight-line multilateration (most first arrivals are a few cm to dm longer
-  than the straight line) and two by the images a free-z straight-line fit gives for specular
-  links (ceiling image, ceiling-floor double bounce). Every cell gets ``SCREEN_ITER`` LM steps
-  (a cell's cost before any step says little: a metre off, every link picks the wrong
-  mechanism), the ``keep_starts`` best per floor run ``max_iter`` steps.
+* **Search.** Per floor, an ``nx x ny`` grid of (x, y) cells at mid-floor height (default
+  4 x 2), five cells replaced by closed-form starts of one-mechanism hypotheses: a
+  straight-line multilateration (direct path; most first arrivals are a few cm to dm longer
+  than the straight line), the images a free-z straight-line fit gives for specular links
+  (ceiling image, ceiling-floor double bounce), and, per window edge, "every link diffracts
+  over this edge" (the Fermat length over a horizontal edge is ``sqrt((x_a - x)^2 + (rho_a +
+  rho)^2)``, ``rho`` the distance to the edge line: a straight-line multilateration in the
+  (x, rho) half-plane). Optionally a caller's start ``x0_m`` (a tracker's prediction). Every
+  cell gets ``SCREEN_ITER`` LM steps (a cell's cost before any step says little: a metre
+  off, every link picks the wrong mechanism), the ``keep_starts`` best per floor run
+  ``max_iter`` steps, on the floors whose best screened cost is within ``PRUNE_NATS`` of the
+  best floor's (the others keep their screened mode and get zero posterior). Measured on
+  400 receivers of the default study (seed 0): the edge starts took the floor accuracy from
+  89.0 % to 93.0 % (6 x 3 grid); a start at the truth would give 95.2 %.
 * **Same-edge dominance** (:mod:`._mnls_rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
@@ -84,6 +92,7 @@ from ._mnls_rules import (
     _excess_loss_db,
     _knife_edge_loss_db,
 )
+from ._mnls_starts import _edge_start, _grid, _los_start
 from .gating import chi2_threshold
 from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
 
@@ -98,8 +107,13 @@ OUTLIER_PRIOR = 0.02
 REFINE_ITER = 6
 #: Levenberg-Marquardt steps from every grid cell before the best ``keep_starts`` go on.
 SCREEN_ITER = 4
+#: Whether the screening steps use the SNR terms too.
+SCREEN_SNR = True
 #: Iterations between refreshes of the SNR cost during the search.
 SNR_EVERY = 4
+#: A floor whose best screened cost exceeds the best floor's by this much [nats] is not
+#: refined (posterior odds below exp(-PRUNE_NATS) before refinement).
+PRUNE_NATS = 30.0
 #: Default false-alarm probability of the residual test.
 FALSE_ALARM_PROBABILITY = 1e-3
 
@@ -266,17 +280,8 @@ def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength) -> _Pro
                     tail_a=tail_a, lam=lam, excess_db=excess, wavelength_m=wavelength)
 
 
-def _grid(building, nx: int, ny: int) -> FloatArray:
-    """Cell centres of an nx x ny grid over the floor plan, (nx * ny, 2) [m]."""
-    x0, x1 = building.edge_x_m
-    xs = x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx
-    ys = (np.arange(ny) + 0.5) * building.depth_m / ny
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    return np.stack([gx.ravel(), gy.ravel()], axis=-1)
-
-
 def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, wavelength,
-                 snr=None, radio=None):
+                 snr=None, radio=None, x0=None):
     """All floors x starts of B fixes; returns per-fix-per-floor modes and terms."""
     b = r.shape[0]
     nf = building.n_floors
@@ -303,7 +308,19 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
             x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
                                                p0.hi[last])
-    if snr is not None and radio is not None:  # score the grid with the SNR too
+    # per floor and window edge, the closed-form start of "every link diffracts over this
+    # edge" (the Fermat path over a horizontal edge unfolds to a straight line in (x, rho))
+    if g >= 6:
+        zf = p0.lo[last, 2] - 1e-3
+        for cell, ze in ((g - 4, zf + building.sill_height_m),
+                         (g - 5, zf + building.sill_height_m + building.window_height_m)):
+            x[last - (g - 1) + cell] = _edge_start(p0, last, ze)
+    if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
+        has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
+        k0 = np.clip(building.floor_index(x0[has, 2]), 0, nf - 1)
+        row0 = (has * nf + k0) * g
+        x[row0] = np.clip(x0[has], p0.lo[row0], p0.hi[row0])
+    if SCREEN_SNR and snr is not None and radio is not None:  # score the grid with the SNR
         p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism)
@@ -311,36 +328,25 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     c0 = t0["cost"].reshape(b, nf, g)
     best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
     rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g + best).ravel()
+    # floors whose best screened cost is PRUNE_NATS above the best floor's are not refined
+    fbest = np.min(c0, axis=-1)
+    active = fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS  # (B, F)
     p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
                  building, lam, p0.excess_db[rows], wavelength)
+    x = x[rows]
+    t = {k: v[rows] for k, v in t0.items()}
+    sub = np.flatnonzero(np.repeat(active.ravel(), keep))
+    ps = _take(p, sub)
     if snr is not None and radio is not None:
-        p.snr_meas, p.radio = np.repeat(snr, rep, axis=0)[rows], radio
-    x, t = _lm(p, x[rows], building, iters)
+        ps.snr_meas, ps.radio = np.repeat(np.repeat(snr, nf, axis=0)[active.ravel()], keep,
+                                          axis=0), radio
+    x[sub], ts = _lm(ps, x[sub], building, iters)
+    for k in t:
+        t[k][sub] = ts[k]
     cost = t["cost"].reshape(b, nf, keep)
     pick = np.argmin(cost, axis=-1)  # best start per floor
     sel = ((np.arange(b)[:, None] * nf + np.arange(nf)[None, :]) * keep + pick).ravel()
-    return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel
-
-
-def _los_start(p: _Problem, rows, building, iters: int = 8, free_z: bool = False
-               ) -> FloatArray:
-    """Gauss-Newton on straight-line ranges from the floor's centre: in (x, y) at z =
-    mid-floor, clipped to the floor plan, or (``free_z``) in 3D with y >= 0 and z unbounded
-    (damped); (len(rows), 3)."""
-    a, r, w = p.anchors[rows], p.r[rows], p.mask[rows].astype(float)
-    x = np.stack([0.5 * (p.lo[rows, 0] + p.hi[rows, 0]), 0.5 * (p.lo[rows, 1] + p.hi[rows, 1]),
-                  p.z_mid[rows]], axis=-1)
-    nd = 3 if free_z else 2
-    for _ in range(iters):
-        d = x[:, None, :] - a
-        dist = np.sqrt(np.einsum("nmi,nmi->nm", d, d))
-        jac = d[..., :nd] / dist[..., None]
-        res = r - dist
-        h = np.einsum("nm,nmi,nmj->nij", w, jac, jac) + 1e-2 * np.eye(nd)
-        g = np.einsum("nm,nm,nmi->ni", w, res, jac)
-        x[:, :nd] += np.linalg.solve(h, g[..., None])[..., 0]
-        x[:, :2] = np.clip(x[:, :2], p.lo[rows, :2], p.hi[rows, :2])
-    return x
+    return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
 
 
 def _information(p: _Problem, sel, t) -> tuple[FloatArray, FloatArray]:
@@ -387,11 +393,12 @@ def mnls(
     radio=None,
     error_floor_m: float = 0.05,
     bandwidth_hz: float = 400e6,
-    grid_shape: tuple[int, int] = (6, 3),
+    grid_shape: tuple[int, int] = (4, 2),
     keep_starts: int = 2,
     max_iter: int = 10,
     false_alarm_probability: float = FALSE_ALARM_PROBABILITY,
     chunk_size: int = 256,
+    x0_m: ArrayLike | None = None,
 ) -> MnlsResult:
     """Batched mechanism-aware position fixes (module docstring).
 
@@ -426,6 +433,9 @@ def mnls(
         Of the chi-square residual test on the links kept (Gaussian component).
     chunk_size : int
         Fixes solved together (memory bound).
+    x0_m : array_like, shape (B, 3) or (3,), optional [m]
+        An extra start per fix (e.g. a tracker's prediction), searched on the floor it lies
+        on beside the regular starts (NaN rows: none).
 
     Returns
     -------
@@ -452,6 +462,8 @@ def mnls(
         "floor": np.full(bsz, -1), "floor_probability": np.full((bsz, nf), np.nan),
         "cost": np.full(bsz, np.nan), "stat": np.full(bsz, np.nan),
     }
+    x0 = None if x0_m is None else np.broadcast_to(np.asarray(x0_m, dtype=np.float64),
+                                                    (bsz, 3))
     solvable = np.flatnonzero(bi.mask.sum(axis=-1) >= 3)
     step = max(int(chunk_size), 1)
     for lo in range(0, solvable.size, step):
@@ -460,7 +472,8 @@ def mnls(
                                          bi.mask[idx], excess[idx], building, grid=grid,
                                          keep=keep_starts, wavelength=wavelength,
                                          iters=max_iter, lam=lam, radio=radio,
-                                         snr=None if snr_all is None else snr_all[idx]),
+                                         snr=None if snr_all is None else snr_all[idx],
+                                         x0=None if x0 is None else x0[idx]),
                 nf=nf,
                 snr_meas=None if snr_db is None else snr_all[idx], building=building,
                 radio=radio)
@@ -483,28 +496,34 @@ def _replace_snr(p: _Problem) -> _Problem:
     return q
 
 
-def _finish(out, idx, p, xk, t, sel, *, nf: int, snr_meas=None, building=None,
+def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building=None,
             radio=None) -> None:
     b = idx.size
+    act = np.flatnonzero(active)
     if radio is not None and snr_meas is not None:
-        # refine every floor's mode with the mechanisms chosen there held, then score all
-        # floors with the SNR terms evaluated at their final modes
-        ps = _take(p, sel)
-        ps.snr_meas, ps.radio = np.repeat(snr_meas, nf, axis=0), radio
-        x = xk.reshape(-1, 3)
+        # refine every active floor's mode with the mechanisms chosen there held, then score
+        # them with the SNR terms evaluated at their final modes
+        ps = _take(p, sel[act])
+        ps.snr_meas, ps.radio = np.repeat(snr_meas, nf, axis=0)[act], radio
+        x = xk.reshape(-1, 3)[act]
         ps.snr_cost = _snr_cost(ps, x, building)
-        t = _link_terms(ps, x, building)
-        k = t["length"].shape[-1]
-        ps.allowed = np.where(t["tail"][..., None], True, np.arange(k) == t["slot"][..., None])
+        ta = _link_terms(ps, x, building)
+        k = ta["length"].shape[-1]
+        ps.allowed = np.where(ta["tail"][..., None], True, np.arange(k) == ta["slot"][..., None])
         snr_hold = ps.snr_cost
         x, _ = _lm(_replace_snr(ps), x, building, REFINE_ITER)
         ps.allowed = None
-        xk = x.reshape(xk.shape)
+        xk = xk.reshape(-1, 3).copy()
+        xk[act] = x
+        xk = xk.reshape(b, nf, 3)
         ps.snr_cost = _snr_cost(ps, x, building) if snr_hold is not None else None
-        t = _link_terms(ps, x, building)
+        ta = _link_terms(ps, x, building)
+        t = {key: v.copy() for key, v in t.items()}
+        for key in t:
+            t[key][act] = ta[key]
     h, var = _information(p, sel, t)
     h = h.reshape(b, nf, 3, 3)
-    cost = t["cost"].reshape(b, nf)
+    cost = np.where(active, t["cost"], np.inf).reshape(b, nf)
     post = _posterior(cost, h)
     kb = np.argmax(post, axis=-1)
     rows = np.arange(b) * nf + kb
@@ -512,7 +531,8 @@ def _finish(out, idx, p, xk, t, sel, *, nf: int, snr_meas=None, building=None,
     with np.errstate(invalid="ignore", over="ignore"):
         cov_k = np.linalg.inv(h)
         d = xk - x[:, None, :]
-        cov = np.einsum("bf,bfij->bij", post, cov_k + d[..., :, None] * d[..., None, :])
+        mix = np.where(post[..., None, None] > 0, cov_k + d[..., :, None] * d[..., None, :], 0.0)
+        cov = np.einsum("bf,bfij->bij", post, mix)
     used = p.mask[sel][rows] & ~t["tail"][rows] & ~t["none"][rows]
     res = t["res"][rows]
     out["position_m"][idx] = x
@@ -523,7 +543,7 @@ def _finish(out, idx, p, xk, t, sel, *, nf: int, snr_meas=None, building=None,
     out["mechanism"][idx] = np.where(p.mask[sel][rows], t["slot"][rows], -1)
     out["floor"][idx] = kb
     out["floor_probability"][idx] = post
-    out["cost"][idx] = cost[np.arange(b), kb]
+    out["cost"][idx] = t["cost"].reshape(b, nf)[np.arange(b), kb]
     out["stat"][idx] = np.sum(np.where(used, res**2 / var[rows], 0.0), axis=-1)
 
 
