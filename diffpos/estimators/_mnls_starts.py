@@ -43,12 +43,15 @@ def _los_start(p, rows, building, iters: int = 8, free_z: bool = False
     return x
 
 
-def _edge_start(p, rows, z_edge: FloatArray, iters: int = 8) -> FloatArray:
+def _edge_start(p, rows, z_edge: FloatArray, iters: int = 8,
+                z_mirror: FloatArray | None = None) -> FloatArray:
     """Start of the hypothesis "every link diffracts over the horizontal edge at height
     ``z_edge`` (y = 0)": the Fermat length is ``sqrt((x_a - x)^2 + (rho_a + rho)^2)`` with
     ``rho`` the distance to the edge line, a straight-line range in the (x, rho) half-plane;
     Gauss-Newton there, then the point at mid-floor height (or nearest to it) at distance
-    ``rho`` from the edge; (len(rows), 3)."""
+    ``rho`` from the edge; (len(rows), 3). With ``z_mirror`` (a ceiling's height), the
+    hypothesis is "diffraction, then a reflection in that plane": the point at distance
+    ``rho`` is the node's image, at the mirror of mid-floor height."""
     a, r, w = p.anchors[rows], p.r[rows], p.mask[rows].astype(float)
     ze = z_edge[:, None]
     rho_a = np.hypot(a[..., 1], a[..., 2] - ze)
@@ -62,8 +65,10 @@ def _edge_start(p, rows, z_edge: FloatArray, iters: int = 8) -> FloatArray:
         g = np.einsum("nm,nm,nmi->ni", w, r - dist, jac)
         u += np.linalg.solve(h, g[..., None])[..., 0]
         u[:, 0] = np.clip(u[:, 0], p.lo[rows, 0], p.hi[rows, 0])
-        u[:, 1] = np.clip(u[:, 1], p.lo[rows, 1], np.hypot(p.hi[rows, 1], p.hi[rows, 2] - p.lo[rows, 2]))
-    dz = np.clip(p.z_mid[rows] - z_edge, -u[:, 1], u[:, 1])
+        u[:, 1] = np.clip(u[:, 1], p.lo[rows, 1],
+                          np.hypot(p.hi[rows, 1], 3 * (p.hi[rows, 2] - p.lo[rows, 2])))
+    z_pt = p.z_mid[rows] if z_mirror is None else 2 * z_mirror - p.z_mid[rows]
+    dz = np.clip(z_pt - z_edge, -u[:, 1], u[:, 1])
     y = np.sqrt(np.maximum(u[:, 1] ** 2 - dz**2, 0.0))
-    x = np.column_stack([u[:, 0], y, z_edge + dz])
+    x = np.column_stack([u[:, 0], y, p.z_mid[rows]])
     return np.clip(x, p.lo[rows], p.hi[rows])

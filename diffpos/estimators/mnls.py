@@ -82,10 +82,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._kernels.mnls_nb import link_terms_kernel
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..paths import DIFFRACTION_SLOTS, SPECULAR_SLOTS, first_arrival_paths
 from ._mnls_rules import (
     _DIFF_MASK,
+    _SAME_EDGE,
     SNR_MARGIN_DB,
     SNR_SIGMA_DB,
     _dominated,
@@ -100,6 +102,9 @@ __all__ = ["MnlsResult", "mnls"]
 _RULES = (DIFFRACTION_SLOTS, _knife_edge_loss_db)  # re-exported for tests
 
 FloatArray = NDArray[np.float64]
+_SPEC_MASK = np.zeros(len(_DIFF_MASK), dtype=bool)
+_SPEC_MASK[list(SPECULAR_SLOTS)] = True
+_SAME_EDGE_PAIRS = np.array(_SAME_EDGE, dtype=np.int64)
 
 #: Prior share of links whose first arrival is outside the path model (module docstring).
 OUTLIER_PRIOR = 0.02
@@ -107,8 +112,9 @@ OUTLIER_PRIOR = 0.02
 REFINE_ITER = 6
 #: Levenberg-Marquardt steps from every grid cell before the best ``keep_starts`` go on.
 SCREEN_ITER = 4
-#: Whether the screening steps use the SNR terms too.
-SCREEN_SNR = True
+#: An accepted LM step shorter than this (max over x, y, z) ends a hypothesis's iterations [m]
+#: (far below any range sigma).
+CONVERGED_M = 1e-4
 #: Iterations between refreshes of the SNR cost during the search.
 SNR_EVERY = 4
 #: A floor whose best screened cost exceeds the best floor's by this much [nats] is not
@@ -163,7 +169,38 @@ class _Problem:
 
 
 def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
-    """Paths at ``x`` (N, 3), mechanism choice and the cost terms of every link."""
+    """Paths at ``x`` (N, 3), mechanism choice and the cost terms of every link: the
+    compiled kernel (:func:`diffpos._kernels.mnls_nb.link_terms_kernel`) on the path model's
+    output, the same operations as :func:`_link_terms_numpy` (the reference)."""
+    ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
+    n, m, k = ps.length_m.shape
+    b1 = lambda a: np.zeros((0, 0, 0), bool) if a is None else _c(a, bool)  # noqa: E731
+    out = {"cost": np.empty((n, m)), "res": np.empty((n, m)), "w": np.empty((n, m)),
+           "slot": np.empty((n, m), dtype=np.int64), "tail": np.empty((n, m), dtype=bool),
+           "none": np.empty((n, m), dtype=bool), "cand": np.empty((n, m, k), dtype=bool),
+           "jac": np.empty((n, m, 3))}
+    link_terms_kernel(
+        _c(ps.length_m), b1(ps.valid), _c(ps.jacobian), _c(ps.deviation_cos), _c(ps.outside_m),
+        _c(p.r), _c(p.sig), _c(p.mask, bool),
+        _c(np.broadcast_to(p.tail_a, (n, m))), _c(p.excess_db), float(p.lam),
+        float(p.wavelength_m), float(SNR_MARGIN_DB),
+        np.zeros((0, 0, 0)) if p.snr_cost is None else _c(p.snr_cost), b1(p.strong),
+        b1(p.allowed), _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, out["cost"], out["res"],
+        out["w"], out["slot"], out["tail"], out["none"], out["cand"], out["jac"])
+    prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
+    out["cost"] = out["cost"].sum(axis=-1) + prior
+    out["length"], out["jac_all"] = ps.length_m, ps.jacobian
+    return out
+
+
+def _c(a, dtype=np.float64):
+    """C-contiguous, writable ``dtype`` array (the kernel's one signature)."""
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
+
+
+def _link_terms_numpy(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
+    """Reference of :func:`_link_terms` (numpy, the same operations)."""
     ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
     length = ps.length_m
     valid = ps.valid
@@ -229,35 +266,58 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     return np.where(np.isfinite(p.snr_meas)[..., None], c, 0.0)
 
 
-def _lm(p: _Problem, x: FloatArray, building, iters: int, snr_every: int | None = None
+def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = None
         ) -> tuple[FloatArray, dict]:
     """Projected Levenberg-Marquardt with max-mixture re-assignment at every step; with the
-    measured SNR, the SNR cost of every slot is refreshed every :data:`SNR_EVERY` steps."""
-    lam = np.full(x.shape[0], 1e-3)
-    t = None
+    measured SNR, the SNR cost of every slot is refreshed every :data:`SNR_EVERY` steps
+    (``t_init``: the terms at ``x``, SNR cost already in ``p``)."""
+    n = x.shape[0]
+    lam = np.full(n, 1e-3)
+    t = t_init if t_init is not None else _link_terms(p, x, building)
+    live = np.arange(n)
+    q = p
     for i in range(iters):
-        if t is None or (p.snr_meas is not None and i % (snr_every or SNR_EVERY) == 0):
-            p.snr_cost = _snr_cost(p, x, building)
-            t = _link_terms(p, x, building)
-        ws = t["w"] / p.sig**2
-        h = np.einsum("nm,nmi,nmj->nij", ws, t["jac"], t["jac"])
-        g = np.einsum("nm,nm,nmi->ni", ws, t["res"], t["jac"])
-        h[:, 2, 2] += 1.0 / p.prior_var
-        g[:, 2] -= (x[:, 2] - p.z_mid) / p.prior_var
+        if live.size < q.r.shape[0]:  # drop the converged hypotheses
+            q = _sub(p, live)
+        if p.snr_meas is not None and i % SNR_EVERY == 0 and (i > 0 or t_init is None):
+            q.snr_cost = _snr_cost(q, x[live], building)
+            if q is not p:
+                p.snr_cost[live], p.strong[live] = q.snr_cost, q.strong
+            tl = _link_terms(q, x[live], building)
+            for k in t:
+                t[k][live] = tl[k]
+        tl = {k: v[live] for k, v in t.items()}
+        xl = x[live]
+        ws = tl["w"] / q.sig**2
+        h = np.einsum("nm,nmi,nmj->nij", ws, tl["jac"], tl["jac"])
+        g = np.einsum("nm,nm,nmi->ni", ws, tl["res"], tl["jac"])
+        h[:, 2, 2] += 1.0 / q.prior_var
+        g[:, 2] -= (xl[:, 2] - q.z_mid) / q.prior_var
         diag = np.diagonal(h, axis1=1, axis2=2)
-        hd = h + lam[:, None, None] * np.eye(3) * (diag + 1e-9)[:, None, :]
+        hd = h + lam[live, None, None] * np.eye(3) * (diag + 1e-9)[:, None, :]
         step = np.linalg.solve(hd, g[..., None])[..., 0]
-        x_new = np.clip(x + step, p.lo, p.hi)
-        t_new = _link_terms(p, x_new, building)
-        ok = t_new["cost"] < t["cost"]
-        x = np.where(ok[:, None], x_new, x)
+        x_new = np.clip(xl + step, q.lo, q.hi)
+        t_new = _link_terms(q, x_new, building)
+        ok = t_new["cost"] < tl["cost"]
+        acc = live[ok]
+        x[acc] = x_new[ok]
         for k in t:
-            sel = ok.reshape((-1,) + (1,) * (t[k].ndim - 1))
-            t[k] = np.where(sel, t_new[k], t[k])
-        lam = np.where(ok, lam / 3.0, lam * 4.0)
-    if t is None:
-        t = _link_terms(p, x, building)
+            t[k][acc] = t_new[k][ok]
+        lam[live] = np.where(ok, lam[live] / 3.0, lam[live] * 4.0)
+        # converged: an accepted step below CONVERGED_M (the mechanisms no longer change)
+        moved = np.max(np.abs(x_new - xl), axis=-1)
+        live = live[~(ok & (moved < CONVERGED_M)) & (lam[live] < 1e6)]
     return x, t
+
+
+def _sub(p: _Problem, rows) -> _Problem:
+    """The hypotheses ``rows`` with their SNR terms."""
+    q = _take(p, rows)
+    q.snr_meas, q.radio = (None if p.snr_meas is None else p.snr_meas[rows]), p.radio
+    for f in ("allowed", "snr_cost", "strong"):
+        v = getattr(p, f)
+        setattr(q, f, None if v is None else v[rows])
+    return q
 
 
 def _floor_boxes(building, floors: NDArray[np.int_], margin: float = 1e-3):
@@ -310,37 +370,47 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
                                                p0.hi[last])
     # per floor and window edge, the closed-form start of "every link diffracts over this
     # edge" (the Fermat path over a horizontal edge unfolds to a straight line in (x, rho))
-    if g >= 6:
-        zf = p0.lo[last, 2] - 1e-3
-        for cell, ze in ((g - 4, zf + building.sill_height_m),
-                         (g - 5, zf + building.sill_height_m + building.window_height_m)):
-            x[last - (g - 1) + cell] = _edge_start(p0, last, ze)
+    # and (two more cells) of "diffraction over the edge, then the ceiling" (the node's
+    # ceiling image diffracts): deep inside, these are the common first arrivals
+    zf = p0.lo[last, 2] - 1e-3
+    zc = zf + building.floor_height_m
+    z_lo = zf + building.sill_height_m
+    for cell, ze, zm in ((g - 4, z_lo, None), (g - 5, z_lo + building.window_height_m, None),
+                         (g - 6, z_lo, zc), (g - 7, z_lo + building.window_height_m, zc)):
+        if cell >= 1:
+            x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm)
     if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
         has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
         k0 = np.clip(building.floor_index(x0[has, 2]), 0, nf - 1)
         row0 = (has * nf + k0) * g
         x[row0] = np.clip(x0[has], p0.lo[row0], p0.hi[row0])
-    if SCREEN_SNR and snr is not None and radio is not None:  # score the grid with the SNR
-        p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
-    # a metre off, every link is explained by the wrong mechanism)
-    x, t0 = _lm(p0, x, building, SCREEN_ITER, snr_every=SCREEN_ITER)
+    # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
+    # the cells' starting points (they steer the mechanism choice: without them the floor
+    # accuracy drops by 1-4 points)
+    if snr is not None and radio is not None:
+        p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
+    x, t0 = _lm(p0, x, building, SCREEN_ITER)
     c0 = t0["cost"].reshape(b, nf, g)
     best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
     rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g + best).ravel()
-    # floors whose best screened cost is PRUNE_NATS above the best floor's are not refined
-    fbest = np.min(c0, axis=-1)
-    active = fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS  # (B, F)
     p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
                  building, lam, p0.excess_db[rows], wavelength)
     x = x[rows]
     t = {k: v[rows] for k, v in t0.items()}
+    if snr is not None and radio is not None:  # the kept cells scored with the SNR too
+        p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
+        p.snr_cost = _snr_cost(p, x, building)
+        t = _link_terms(p, x, building)
+    # floors whose best kept cost is PRUNE_NATS above the best floor's are not refined
+    fbest = np.min(t["cost"].reshape(b, nf, keep), axis=-1)
+    active = fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS  # (B, F)
     sub = np.flatnonzero(np.repeat(active.ravel(), keep))
     ps = _take(p, sub)
-    if snr is not None and radio is not None:
-        ps.snr_meas, ps.radio = np.repeat(np.repeat(snr, nf, axis=0)[active.ravel()], keep,
-                                          axis=0), radio
-    x[sub], ts = _lm(ps, x[sub], building, iters)
+    if p.snr_cost is not None:
+        ps.snr_meas, ps.radio = p.snr_meas[sub], radio
+        ps.snr_cost, ps.strong = p.snr_cost[sub], p.strong[sub]
+    x[sub], ts = _lm(ps, x[sub], building, iters, t_init={k: v[sub] for k, v in t.items()})
     for k in t:
         t[k][sub] = ts[k]
     cost = t["cost"].reshape(b, nf, keep)
@@ -511,7 +581,9 @@ def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building
         k = ta["length"].shape[-1]
         ps.allowed = np.where(ta["tail"][..., None], True, np.arange(k) == ta["slot"][..., None])
         snr_hold = ps.snr_cost
-        x, _ = _lm(_replace_snr(ps), x, building, REFINE_ITER)
+        held = _replace_snr(ps)
+        held.snr_cost = None
+        x, _ = _lm(held, x, building, REFINE_ITER)
         ps.allowed = None
         xk = xk.reshape(-1, 3).copy()
         xk[act] = x
@@ -554,7 +626,11 @@ def _result(out, bi, pfa: float) -> MnlsResult:
     dof = n_used - 3
     thr = np.where(dof >= 1, chi2_threshold(np.maximum(dof, 1), pfa), np.nan)
     has = np.isfinite(out["position_m"][:, 0])
-    cov = out["covariance_m2"]
+    # a posteriori variance factor: residuals larger than the model's sigmas (chi-square
+    # statistic above its degrees of freedom) widen the covariance, never narrow it
+    with np.errstate(invalid="ignore", divide="ignore"):
+        vf = np.where(dof >= 1, np.maximum(out["stat"] / np.maximum(dof, 1), 1.0), 1.0)
+    cov = out["covariance_m2"] * np.where(np.isfinite(vf), vf, 1.0)[:, None, None]
     finite_cov = np.all(np.isfinite(cov.reshape(bsz, -1)), axis=-1)
     status = np.full(bsz, int(FixStatus.OK))
     status[has & (dof < 1)] = FixStatus.OK_UNVERIFIED

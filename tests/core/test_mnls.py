@@ -215,9 +215,10 @@ def test_held_out_random_buildings_and_uav_layouts():
     """Six random buildings (floor heights 2.8-4 m, windows 35-60 % of the floor height at
     random sills, 2-5 floors, ground floor 0-6 m up) with six random UAVs each (from the
     ground to 5 m above the roof, up to 15 m beyond the facade ends), nodes anywhere inside
-    (every height). Every node counts (a failed fix is a miss). Measured (seed 99): right
-    floor 93.6 %, median 3D error 0.18 m; asserted: floor >= 88 %, median <= 0.3 m, 95 %
-    ellipsoid coverage in [80 %, 99.5 %] (360 fixes: +-2.5 % binomial sd around 90 %)."""
+    (every height). Every node counts (a failed fix is a miss, also for the ellipsoid).
+    Measured (seed 99): right floor 92.5 %, median 3D error 0.19 m, 95 % ellipsoid coverage
+    86 % (below 85 % on two of the six); asserted: floor >= 88 %, median <= 0.3 m, mean
+    coverage in [78 %, 99.5 %] (360 fixes: +-2 % binomial sd)."""
     rng = np.random.default_rng(99)
     ok, err, cov = [], [], []
     for _ in range(6):
@@ -230,7 +231,7 @@ def test_held_out_random_buildings_and_uav_layouts():
     floor_ok, med = np.mean(np.concatenate(ok)), np.median(np.concatenate(err))
     assert floor_ok >= 0.88, floor_ok
     assert med <= 0.3, med
-    assert 0.8 <= np.mean(cov) <= 0.995, cov
+    assert 0.78 <= np.mean(cov) <= 0.995, cov
 
 
 def test_uavs_above_windows_and_beyond_facade_ends():
@@ -289,3 +290,37 @@ def test_caller_start_is_used_and_nan_rows_ignored():
     ok = fix.floor == b.floor_index(nodes[:, 2])
     ok2 = fix2.floor == b.floor_index(nodes[:, 2])
     assert np.all(ok2 | ~ok) and np.sum(ok2) >= np.sum(ok)
+
+
+@pytest.mark.parametrize("with_snr", [False, True])
+def test_link_terms_kernel_matches_numpy_reference(with_snr):
+    """The compiled link terms equal the numpy reference: same slots, tail/none flags and
+    candidates, values to 1e-12 relative; random hypotheses (also outside their floor's box)
+    on the variant building, with and without the SNR terms and a held restriction."""
+    b = _variant()
+    radio = Radio()
+    anchors = _anchors_variant(b)
+    rng = np.random.default_rng(12)
+    n = 300
+    nodes = _nodes(b, n, rng)
+    floors = np.clip(b.floor_index(nodes[:, 2]) + rng.integers(-1, 2, n), 0, b.n_floors - 1)
+    truth = _nodes(b, n, rng)
+    ps = first_arrival_paths(truth[:, None], anchors[None], b)
+    r = np.min(np.where(ps.valid, ps.length_m, np.inf), axis=-1)
+    r = np.where(np.isfinite(r), r + rng.normal(0, 0.1, r.shape), 30.0)
+    mask = rng.random(r.shape) > 0.1
+    a = np.broadcast_to(anchors, (n, *anchors.shape))
+    snr = rng.uniform(-5, 45, r.shape)
+    p = _mn._problem(a, r, np.full(r.shape, 0.05), mask, floors, b, 0.75,
+                     _mn._excess_loss_db(r, snr, radio, r.shape), radio.wavelength_m)
+    if with_snr:
+        p.snr_meas, p.radio = snr, radio
+        p.snr_cost = _mn._snr_cost(p, nodes, b)
+        p.allowed = rng.random((*r.shape, 18)) > 0.2
+    got = _mn._link_terms(p, nodes, b)
+    ref = _mn._link_terms_numpy(p, nodes, b)
+    for k in ("slot", "tail", "none", "cand"):
+        np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
+    for k in ("cost", "res", "w", "jac"):
+        np.testing.assert_allclose(got[k], ref[k], rtol=1e-12, atol=1e-12, err_msg=k)
+    assert got["tail"].any() and got["none"].any() and (got["slot"] > 0).any()
