@@ -13,7 +13,7 @@ stated otherwise):
   floor of the building is a separate hypothesis (``floor`` passed to the path model); the
   node is confined to its floor's box.
 * **Search.** Per floor, an ``nx x ny`` grid of (x, y) cells at mid-floor height (default
-  4 x 2), five cells replaced by closed-form starts of one-mechanism hypotheses: a
+  4 x 3), seven cells replaced by closed-form starts of one-mechanism hypotheses: a
   straight-line multilateration (direct path; most first arrivals are a few cm to dm longer
   than the straight line), the images a free-z straight-line fit gives for specular links
   (ceiling image, ceiling-floor double bounce), and, per window edge, "every link diffracts
@@ -463,7 +463,7 @@ def mnls(
     radio=None,
     error_floor_m: float = 0.05,
     bandwidth_hz: float = 400e6,
-    grid_shape: tuple[int, int] = (4, 2),
+    grid_shape: tuple[int, int] = (4, 3),
     keep_starts: int = 2,
     max_iter: int = 10,
     false_alarm_probability: float = FALSE_ALARM_PROBABILITY,
