@@ -21,6 +21,20 @@ thread's CPU time; CPU time is the figure to compare when other processes share 
 Both solve cold (no warm start), the worst case of a live epoch.
 
 Run:  .venv/bin/python benchmarks/bench_estimator_cost.py [--quick] [--seed N]
+
+Measured (``--quick``, seed 0, branch mnls after merging the compiled path model; 2-core
+x86_64 VM, Python 3.11.7, shared with other jobs: load average ~29 during the run, so wall
+times are inflated 4-8x; compare the CPU figures). Per fix, ms wall / CPU:
+
+    anchors  mode           D-NLS          M-NLS            target M-NLS CPU <= 2 ms (8)
+    4        single         30.9 / 5.7     678 / 114
+    4        batched (128)  2.5 / 0.40     85 / 13.4
+    8        single         90.7 / 15.6    1166 / 179       NO
+    8        batched (128)  16.4 / 2.4     177 / 20.9       NO (was 55 ms CPU before)
+
+Where the M-NLS CPU goes now (``benchmarks/bench_path_model.py --profile-mnls 64``, 8
+anchors): the channel's per-slot SNR prediction ``diffpos.channel.pair_snr_db`` (numpy) 75 %,
+the compiled path model 11 %, the rest (compiled link terms, LM steps, starts) 14 %.
 """
 
 from __future__ import annotations

@@ -4,6 +4,8 @@
   plain diffraction over the same edge never arrives first.
 * Knife-edge SNR bound: a diffracted first arrival is not much stronger than the ITU-R P.526
   knife-edge prediction at its geometry.
+
+And :func:`_link_terms_numpy`, the numpy reference of M-NLS's per-link terms that apply them.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..linkbudget import snr_db as _snr_db
-from ..paths import DIFFRACTION_SLOTS, MECHANISMS
+from ..paths import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, first_arrival_paths
 
 FloatArray = NDArray[np.float64]
 
@@ -79,3 +81,51 @@ def _knife_edge_loss_db(ps, wavelength_m: float) -> FloatArray:
         nu = theta * np.sqrt(2 * d1 * d2 / (wavelength_m * length))
         j = 6.9 + 20 * np.log10(np.sqrt((nu - 0.1) ** 2 + 1) + nu - 0.1)
     return np.where(nu > -0.78, j, 0.0)
+
+
+def _link_terms_numpy(p, x: FloatArray, building) -> dict:
+    """Numpy reference of :func:`diffpos.estimators.mnls._link_terms` (the compiled kernel
+    does the same operations): paths at ``x``, candidates by the rules above, max-mixture
+    cost, chosen slot and its residual, Jacobian and IRLS weight of every link."""
+    ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
+    length = ps.length_m
+    valid = ps.valid
+    spec = np.zeros(length.shape[-1], dtype=bool)
+    spec[list(SPECULAR_SLOTS)] = True
+    l_spec = np.min(np.where(valid & spec, length, np.inf), axis=-1)
+    if p.strong is not None:  # nothing surely detected arrives before the first arrival
+        l_spec = np.minimum(l_spec, np.min(np.where(valid & p.strong, length, np.inf), axis=-1))
+    cand = valid & (length <= l_spec[..., None]) & ~_dominated(ps)
+    with np.errstate(invalid="ignore"):
+        too_strong = p.excess_db[..., None] < _knife_edge_loss_db(ps, p.wavelength_m) - SNR_MARGIN_DB
+    cand &= ~(too_strong & _DIFF_MASK)
+    if p.allowed is not None:
+        cand &= p.allowed
+    e = p.r[..., None] - length  # (N, M, K)
+    z = e / p.sig[..., None]
+    gauss = 0.5 * z * z
+    tail = np.where(e > 0, p.tail_a[..., None] + e / p.lam, np.inf)
+    cost_k = np.minimum(gauss, tail)
+    if p.snr_cost is not None:
+        cost_k = cost_k + p.snr_cost
+    cost_k = np.where(cand, cost_k, np.inf)
+    slot = np.argmin(cost_k, axis=-1)
+    take = lambda a: np.take_along_axis(a, slot[..., None], axis=-1)[..., 0]  # noqa: E731
+    cost = take(cost_k)
+    none = ~np.isfinite(cost)
+    is_tail = take(tail) < take(gauss)
+    res = np.where(none, 0.0, take(e))
+    jac = np.take_along_axis(ps.jacobian, slot[..., None, None], axis=-2)[..., 0, :]
+    jac = np.where(none[..., None], 0.0, jac)
+    # IRLS weight: the tail's gradient is 1/lambda, i.e. weight sigma^2 / (lambda e)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(is_tail, p.sig**2 / (p.lam * np.maximum(res, 1e-9)), 1.0)
+    # a link with no candidate (all paths clamped) costs like a far outlier
+    cost = np.where(none, p.tail_a + 10.0, cost)
+    m = p.mask
+    w = np.where(m & ~none, w, 0.0)
+    cost = np.where(m, cost, 0.0)
+    prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
+    return {"cost": cost.sum(axis=-1) + prior, "res": res, "jac": jac, "w": w, "slot": slot,
+            "tail": is_tail & m, "none": none & m, "length": length, "cand": cand,
+            "jac_all": ps.jacobian}

@@ -1,0 +1,74 @@
+"""Start points of the M-NLS search (:mod:`diffpos.estimators.mnls`): the coarse grid and
+the closed-form starts of one-mechanism hypotheses (straight line, images, window edges).
+
+``p`` is the estimator's flattened problem (anchors, ranges, mask, floor boxes ``lo``/``hi``,
+mid-floor heights ``z_mid``); ``rows`` selects its hypotheses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def _grid(building, nx: int, ny: int) -> FloatArray:
+    """Cell centres of an nx x ny grid over the floor plan, (nx * ny, 2) [m]."""
+    x0, x1 = building.edge_x_m
+    xs = x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx
+    ys = (np.arange(ny) + 0.5) * building.depth_m / ny
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    return np.stack([gx.ravel(), gy.ravel()], axis=-1)
+
+
+def _los_start(p, rows, building, iters: int = 8, free_z: bool = False
+               ) -> FloatArray:
+    """Gauss-Newton on straight-line ranges from the floor's centre: in (x, y) at z =
+    mid-floor, clipped to the floor plan, or (``free_z``) in 3D with y >= 0 and z unbounded
+    (damped); (len(rows), 3)."""
+    a, r, w = p.anchors[rows], p.r[rows], p.mask[rows].astype(float)
+    x = np.stack([0.5 * (p.lo[rows, 0] + p.hi[rows, 0]), 0.5 * (p.lo[rows, 1] + p.hi[rows, 1]),
+                  p.z_mid[rows]], axis=-1)
+    nd = 3 if free_z else 2
+    for _ in range(iters):
+        d = x[:, None, :] - a
+        dist = np.sqrt(np.einsum("nmi,nmi->nm", d, d))
+        jac = d[..., :nd] / dist[..., None]
+        res = r - dist
+        h = np.einsum("nm,nmi,nmj->nij", w, jac, jac) + 1e-2 * np.eye(nd)
+        g = np.einsum("nm,nm,nmi->ni", w, res, jac)
+        x[:, :nd] += np.linalg.solve(h, g[..., None])[..., 0]
+        x[:, :2] = np.clip(x[:, :2], p.lo[rows, :2], p.hi[rows, :2])
+    return x
+
+
+def _edge_start(p, rows, z_edge: FloatArray, iters: int = 8,
+                z_mirror: FloatArray | None = None) -> FloatArray:
+    """Start of the hypothesis "every link diffracts over the horizontal edge at height
+    ``z_edge`` (y = 0)": the Fermat length is ``sqrt((x_a - x)^2 + (rho_a + rho)^2)`` with
+    ``rho`` the distance to the edge line, a straight-line range in the (x, rho) half-plane;
+    Gauss-Newton there, then the point at mid-floor height (or nearest to it) at distance
+    ``rho`` from the edge; (len(rows), 3). With ``z_mirror`` (a ceiling's height), the
+    hypothesis is "diffraction, then a reflection in that plane": the point at distance
+    ``rho`` is the node's image, at the mirror of mid-floor height."""
+    a, r, w = p.anchors[rows], p.r[rows], p.mask[rows].astype(float)
+    ze = z_edge[:, None]
+    rho_a = np.hypot(a[..., 1], a[..., 2] - ze)
+    u = np.stack([0.5 * (p.lo[rows, 0] + p.hi[rows, 0]), 0.5 * p.hi[rows, 1]], axis=-1)
+    for _ in range(iters):
+        dx = u[:, None, 0] - a[..., 0]
+        dr = u[:, None, 1] + rho_a
+        dist = np.maximum(np.hypot(dx, dr), 1e-9)
+        jac = np.stack([dx, dr], axis=-1) / dist[..., None]
+        h = np.einsum("nm,nmi,nmj->nij", w, jac, jac) + 1e-2 * np.eye(2)
+        g = np.einsum("nm,nm,nmi->ni", w, r - dist, jac)
+        u += np.linalg.solve(h, g[..., None])[..., 0]
+        u[:, 0] = np.clip(u[:, 0], p.lo[rows, 0], p.hi[rows, 0])
+        u[:, 1] = np.clip(u[:, 1], p.lo[rows, 1],
+                          np.hypot(p.hi[rows, 1], 3 * (p.hi[rows, 2] - p.lo[rows, 2])))
+    z_pt = p.z_mid[rows] if z_mirror is None else 2 * z_mirror - p.z_mid[rows]
+    dz = np.clip(z_pt - z_edge, -u[:, 1], u[:, 1])
+    y = np.sqrt(np.maximum(u[:, 1] ** 2 - dz**2, 0.0))
+    x = np.column_stack([u[:, 0], y, p.z_mid[rows]])
+    return np.clip(x, p.lo[rows], p.hi[rows])
