@@ -219,7 +219,8 @@ class Monitor:
     def progress(self) -> None:
         """The status line every 0.5 s (:data:`~diffpos_services.kit.STATUS`: log records
         print above it, cut to the terminal's width): :meth:`status_line`, then fixes/s and
-        the median error over the last 2 s. Not a terminal: logged at INFO every 0.5 s."""
+        the median error and the end-to-end latency (anchor publish -> estimate received here,
+        solve included) over the last 2 s. Not a terminal: logged at INFO every 0.5 s."""
         if not self.o.progress or time.monotonic() < self.next_status:
             return
         self.next_status = time.monotonic() + 0.5
@@ -230,7 +231,9 @@ class Monitor:
         errs = [e for _, e in recent if e is not None]
         rate = len(recent) / 2.0
         med = f"{np.median(errs):.2f} m" if errs else "-"
-        line = f"{self.status_line()}  |  {rate:.0f} fixes/s, median error {med}"
+        lat = self.emu.e2e.stats_ms(time.time_ns() - 2_000_000_000)
+        e2e = f", latency p50/p99 {lat['p50']:.0f}/{lat['p99']:.0f} ms" if lat["count"] else ""
+        line = f"{self.status_line()}  |  {rate:.0f} fixes/s, median error {med}{e2e}"
         if self.tty:
             STATUS.show(line)
         else:
