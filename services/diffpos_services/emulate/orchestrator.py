@@ -54,6 +54,7 @@ from diffpos_services.emulate.scoring import Scorer
 from diffpos_services.emulate.supervise import Supervisor, recover_in_place
 from diffpos_services.fusion.config import FusionConfig, channel_edge, model_edge
 from diffpos_services.kit import (
+    STATUS,
     ConfigError,
     child_env,
     free_tcp_port,
@@ -354,12 +355,33 @@ class Emulation:
                     raise ConfigError(f"services not ready after {self.o.ready_timeout_s:.0f} s: {missing}")
                 self.alive_event.wait(0.2)
 
+    def _prepare_kernels(self) -> None:
+        """Compile the numba kernels (or load them from numba's on-disk cache) in this process
+        before any service starts, so the fusion and the anchors load them in about a second
+        instead of each compiling them for about a minute of CPU on a fresh machine (which
+        would also run past the services' readiness timeout). Said on the status line first,
+        logged with its duration when it took long (the first run on a machine)."""
+        STATUS.show("preparing the compiled solver kernels (the first run on a machine "
+                    "compiles them: about a minute) ...")
+        t0 = time.monotonic()
+        # imported here, after the message: importing dnls_nb compiles it (explicit signatures)
+        # (dnls_nb, mnls_nb and lm_nb compile on import; every service imports all three)
+        from diffpos._kernels import dnls_nb, mnls_nb, paths_nb  # noqa: F401
+        paths_nb.warm_paths()
+        dnls_nb.warm_dnls()
+        took = time.monotonic() - t0
+        STATUS.show("")
+        if took > 5.0:
+            log_event(self.log, logging.INFO, "compiled the solver kernels (cached for later runs)",
+                      seconds=round(took, 1))
+
     def run(self) -> dict[str, Any]:
         """Run the emulation; returns the summary dictionary (empty if stopped before the
         run started)."""
         # private (0700): the run's secrets and the fusion's bus configuration
         self.tmp = tmp = tempfile.TemporaryDirectory(prefix="diffpos-zenoh-")
         try:
+            self._prepare_kernels()
             session = open_session(self._start_router(tmp if self.profile else None), self.stop,
                                    logger=self.log)
             if session is None:
