@@ -79,8 +79,10 @@ class DecisionLog:
         return len(self._ops)
 
     def take(self) -> M.DecisionChunk:
-        """The events since the last call as one chunk (numbered from 0), and a fresh start.
-        Wall times are deltas from the previous event (the first one absolute)."""
+        """The events since the last call as one chunk, and a fresh start. Chunks with events
+        are numbered 0, 1, ...; an empty one carries the number of the next (a reader that
+        missed it missed nothing). Wall times are deltas from the previous event (the first
+        one absolute)."""
         walls, prev = [], 0
         for w in self._walls:
             walls.append(w - prev)
@@ -88,7 +90,8 @@ class DecisionLog:
         out = M.DecisionChunk(chunk=self.chunk, keys=list(self._keys), ops=self._ops,
                               refs=self._refs, values=self._vals, wall_delta_ns=walls,
                               dropped=self.dropped)
-        self.chunk += 1
+        if self._ops or self.dropped:
+            self.chunk += 1  # empty chunks share the next one's number: losing them loses nothing
         self.dropped = 0
         self._keys, self._ops, self._refs, self._vals, self._walls = {}, [], [], [], []
         return out

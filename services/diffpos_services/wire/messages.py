@@ -331,7 +331,8 @@ class DecisionChunk(msgspec.Struct, frozen=True, gc=False):
     step (``values[i]`` its limit, -1 none), 5 flush. Wall times are deltas from the
     previous event of the chunk (the first one absolute)."""
 
-    chunk: Annotated[int, Meta(ge=0, description="Chunk number, from 0 (gaps: lost chunks).")]
+    chunk: Annotated[int, Meta(ge=0, description=(
+        "Chunks with events before this one (a gap: a lost chunk).")) ]
     keys: list[str]
     ops: list[Annotated[int, Meta(ge=0, le=5)]]
     refs: list[Annotated[int, Meta(ge=0)]]
