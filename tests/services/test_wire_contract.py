@@ -400,3 +400,15 @@ def test_fusion_inputs_never_include_truth():
     # and they do see what they need
     assert zenoh.KeyExpr(k.anchor_ranges()).intersects(zenoh.KeyExpr(k.anchor_range("uav1", "n1")))
     assert zenoh.KeyExpr(k.everything()).intersects(truth[0])
+
+
+def test_keys_of_every_message_type():
+    """Keys.of knows every published message type, estimate v2 and diagnostics v1 included."""
+    k = K.Keys("s")
+    ex = _examples()
+    assert k.of(_estimate_v2()) == k.node_estimate(_estimate_v2().node_id)
+    assert k.of(ex[M.PositionEstimate][0]) == k.node_estimate(ex[M.PositionEstimate][0].node_id)
+    assert k.of(ex[M.FusionDiagnosticsV1][0]) == k.of(_diagnostics_v2()) == k.fusion_diagnostics()
+    for kind in M.MESSAGE_TYPES:
+        for msg in ex[kind]:
+            assert K.parse_key(k.of(msg)) is not None, kind
