@@ -205,7 +205,7 @@ class FixStream:
         self._pending: dict[str, collections.deque] = defaultdict(collections.deque)
         # node-epochs: good fixes by (node, slot) until their truth sample is scored
         self._ne_fix: dict[tuple[str, int], tuple] = {}
-        self._ne_done = 0  # truth samples scored (index into the node's processed truth)
+        self._unkeyed = False
         self._ne_next: dict[str, int] = {}  # per node: next truth time to score
         self._ne_d = array.array("f")
         self._ne_ef = array.array("b")
@@ -250,8 +250,9 @@ class FixStream:
     # -- per node-epoch (node_epoch_accuracy) ----------------------------------------------
     def _ne_add(self, node: str, fix: tuple) -> None:
         period = self.truth.period
-        if period is None:  # not known yet: keep it with the pending ones (scored later)
+        if period is None:  # not known yet: keyed by -t until it is (_ne_rekey)
             self._ne_fix[(node, -fix[0])] = fix
+            self._unkeyed = True
             return
         self._ne_fix[(node, fix[0] // period)] = fix
 
@@ -316,8 +317,9 @@ class FixStream:
             tb.finish_period()
             if tb.period is None:
                 return
-        if any(k < 0 for _, k in self._ne_fix):
+        if self._unkeyed:
             self._ne_rekey()
+            self._unkeyed = False
         for node in list(tb.t):
             newest = tb.newest(node)
             if newest is not None:
