@@ -1,9 +1,43 @@
-"""Speed of the path model and the bounds: ns per node-anchor pair.
+"""Speed of the path models: the first-arrival model (numpy reference vs compiled kernel), the
+window-edge model and the bounds.
 
-Run:  /work/venv/bin/python benchmarks/bench_path_model.py [--pairs 1000000] [--repeats 7]
+Run:  .venv/bin/python benchmarks/bench_path_model.py [--repeats 7] [--only first-arrival|geometry]
+      .venv/bin/python benchmarks/bench_path_model.py --profile-mnls 64   (where M-NLS spends)
 
-Times (median of the repeats, each on fresh inputs of the same size, one thread: set
-OMP_NUM_THREADS=1 / OPENBLAS_NUM_THREADS=1 before numpy loads, done below) for
+One thread (OMP/OPENBLAS/MKL_NUM_THREADS=1, set below); every time is the median of the repeats,
+by wall clock and by this thread's CPU time (the figure to compare when other processes share
+the cores); inputs are made outside the timed region.
+
+**First-arrival path model** (:func:`diffpos.paths.first_arrival_paths`, all 18 slots with
+existence, Jacobians, deviation cosines; the inner loop of M-NLS and of the tracker), per
+*row* = one (node, anchor, floor hypothesis) evaluation, on the default building, 8 anchors
+(the paper's 4 and 4 more: at a window band, above the windows, beyond a facade end, high):
+
+- *batched*: ``--fa-nodes`` nodes x 5 floor hypotheses x 8 anchors in one call;
+- *single*: one node x 8 anchors x its floor per call (a live one-fix call);
+- reference = the numpy implementation kept as ``diffpos.paths._first_arrival_paths_numpy``;
+  kernel = ``first_arrival_paths`` (row preparation + numba kernel); kernel alone = the
+  compiled loop on prepared rows (what a caller holding flat rows pays); lengths only =
+  ``want_jac=False``;
+- compile: ``warm_paths()`` in a fresh process with an empty numba cache (first start on a
+  machine) and again with that cache (every later start), plus the import of the module
+  (numba itself), each by wall clock and process CPU time.
+
+The kernel is checked against the reference (1e-12 relative, existence exactly) before timing.
+
+**Where an M-NLS fix spends** (``--profile-mnls N``: cProfile of one batched ``mnls`` call on
+N emulated first arrivals, 8 anchors, with the measured SNR and the radio as live; shares of
+the total thread CPU, cumulative; ``--numpy-paths`` runs the estimator on the numpy path
+model): the path model, the channel's per-slot SNR prediction (``diffpos.channel.pair_snr_db``,
+the M-NLS SNR cost) and the rest (the estimator's own numpy).
+Measured 2026-11-23 on the shared 2-core VM (load ~10), 64 fixes, thread CPU: with the numpy
+path model 4.4 s, first_arrival_paths 37 % / pair_snr_db 50 % / rest 13 %; with the kernel
+3.0 s, 8 % / 63 % / 28 % (the rest: ``_link_terms`` without the path model, and
+``_knife_edge_loss_db``, computed on all 18 slots where only 7 are diffraction slots). One
+fix per call (cProfile, 5 calls): pair_snr_db 84 %, path kernel 2 %. The 2 ms per node-epoch
+target of M-NLS therefore hinges on the SNR prediction, not on the path model any more.
+
+**Window-edge model and bounds** (the paper's Corollary-1 geometry, target < 100 ns per pair):
 
 - ``window_edge_path`` on 1,000,000 node-anchor pairs (250,000 nodes x 4 anchors), lengths +
   Jacobians, unbounded edge and clamped to the building width;
@@ -12,8 +46,6 @@ OMP_NUM_THREADS=1 / OPENBLAS_NUM_THREADS=1 before numpy loads, done below) for
   pair plus one per node), structure-of-arrays output and cache-sized chunks;
 - ``diffraction_point`` (general edge orientation) on the paper's 17,485 nodes x 4 anchors;
 - ``position_error_bound`` on 17,485 nodes x 4 anchors (Jacobian + FIM + eigvalsh + inverse).
-
-The target is < 100 ns per pair for lengths + Jacobians on one core.
 """
 
 from __future__ import annotations
@@ -25,12 +57,25 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import argparse
+import cProfile
+import importlib
+import json
+import pstats
+import subprocess
+import sys
+import tempfile
 import time
 
+import numba
 import numpy as np
 
+from diffpos._kernels import paths_nb
 from diffpos.bounds import bounds_from_fim, fisher_information, position_error_bound
+from diffpos.channel import emulate_channel, first_arrival
+from diffpos.estimators import mnls
 from diffpos.geometry import diffraction_point, window_edge_path
+from diffpos.paths import _first_arrival_paths_numpy, _kernel_rows, first_arrival_paths
+from diffpos.scenario import default_scenario
 
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0]])
 W = 1.5
@@ -125,12 +170,8 @@ def _time(fn, make_inputs, repeats: int) -> float:
     return float(np.median(times))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, default=1_000_000)
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--paper-nodes", type=int, default=17_485)
-    args = parser.parse_args()
+def geometry_table(args: argparse.Namespace) -> None:
+    """The window-edge model and the bounds (module docstring)."""
     rng = np.random.default_rng(0)
     m = len(ANCHORS)
     n_big = args.pairs // m
@@ -190,11 +231,198 @@ def main() -> None:
     rows.append(("  of which bounds_from_fim", n_paper * m, t))
 
     name_w = max(len(r[0]) for r in rows)
-    print(f"numpy {np.__version__}, median of {args.repeats} runs, one thread")
+    print(f"\n## Window-edge model and bounds (numpy {np.__version__}, median of {args.repeats}"
+          " runs, one thread)\n")
     print(f"{'what':<{name_w}}  {'pairs':>9}  {'total [ms]':>10}  {'ns/pair':>8}")
     print("-" * (name_w + 33))
     for name, pairs, sec in rows:
         print(f"{name:<{name_w}}  {pairs:>9,}  {sec * 1e3:>10.2f}  {sec / pairs * 1e9:>8.1f}")
+
+
+#: The 8-anchor layout: the default scenario's 4 plus one at floor 1's window band, one above
+#: the windows, one beyond the facade end (x > 20 m) and one high and far [m] (the layout of
+#: benchmarks/bench_estimator_cost.py).
+ANCHORS_8 = np.concatenate([default_scenario().anchor_positions_m(), np.array(
+    [[-25.0, -12.0, 8.5], [10.0, -10.0, 14.0], [28.0, -18.0, 5.5], [-30.0, -25.0, 19.0]])])
+N_FLOORS_FA = 5
+#: The estimator's module (the package exports the function under the same name).
+mnls_module = importlib.import_module("diffpos.estimators.mnls")
+
+_COMPILE_PROBE = """
+import json, time
+t0, c0 = time.perf_counter(), time.process_time()
+from diffpos._kernels import paths_nb
+t1, c1 = time.perf_counter(), time.process_time()
+paths_nb.warm_paths()
+t2, c2 = time.perf_counter(), time.process_time()
+print(json.dumps({"import": [t1 - t0, c1 - c0], "warm": [t2 - t1, c2 - c1],
+                  "signatures": len(paths_nb.paths_kernel.signatures)}))
+"""
+
+
+def _time2(fn, make_inputs, repeats: int) -> tuple[float, float]:
+    """Median (wall, thread CPU) seconds over ``repeats`` calls (inputs made outside)."""
+    fn(*make_inputs())
+    wall, cpu = [], []
+    for _ in range(repeats):
+        args = make_inputs()
+        t0, c0 = time.perf_counter(), time.thread_time()
+        fn(*args)
+        cpu.append(time.thread_time() - c0)
+        wall.append(time.perf_counter() - t0)
+    return float(np.median(wall)), float(np.median(cpu))
+
+
+def compile_costs() -> list[tuple[str, float, float]]:
+    """(what, wall s, CPU s) of the module import and warm_paths(), cold and cached cache."""
+    out = []
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        for label in ("empty cache (first start)", "cache filled (later starts)"):
+            r = json.loads(subprocess.run([sys.executable, "-c", _COMPILE_PROBE], env=env,
+                                          check=True, capture_output=True, text=True).stdout)
+            out.append((f"warm_paths(), {label}", *r["warm"]))
+            out.append((f"  import diffpos._kernels.paths_nb (numba), {label}", *r["import"]))
+    return out
+
+
+def _fa_nodes(rng: np.random.Generator, n: int) -> np.ndarray:
+    b = default_scenario().building
+    k = rng.integers(0, b.n_floors, n)
+    return np.stack([rng.uniform(-19.5, 19.5, n), rng.uniform(0.3, b.depth_m - 0.3, n),
+                     b.floor_z_m(k) + rng.uniform(0.3, 2.7, n)], axis=-1)
+
+
+def _fa_rows(nodes: np.ndarray) -> np.ndarray:
+    """Nodes (B, 3) as (B, floors, 1, 3): every node under every floor hypothesis."""
+    return np.ascontiguousarray(np.broadcast_to(nodes[:, None, None, :],
+                                                (len(nodes), N_FLOORS_FA, 1, 3)))
+
+
+def first_arrival_table(args: argparse.Namespace) -> None:
+    """Reference vs kernel per (node, anchor, floor) row (module docstring)."""
+    b = default_scenario().building
+    rng = np.random.default_rng(1)
+    m, nb = len(ANCHORS_8), args.fa_nodes
+    floors = np.arange(N_FLOORS_FA)[None, :, None]
+    paths_nb.warm_paths()
+    chk = _fa_rows(_fa_nodes(rng, 500))
+    ref = _first_arrival_paths_numpy(chk, ANCHORS_8, b, floor=floors)
+    got = first_arrival_paths(chk, ANCHORS_8, b, floor=floors)
+    assert np.array_equal(ref.valid, got.valid)
+    np.testing.assert_allclose(got.length_m, ref.length_m, rtol=1e-12, equal_nan=True)
+    np.testing.assert_allclose(got.jacobian, ref.jacobian, rtol=0, atol=1e-12)
+
+    def batch():
+        return (_fa_rows(_fa_nodes(rng, nb)),)
+
+    def single():
+        nd = _fa_nodes(rng, 1)
+        return (nd[:, None, :], b.floor_index(nd[:, 2])[:, None])
+
+    def rows_of(nd):
+        return (_kernel_rows(nd, ANCHORS_8, b, floors, None),)
+
+    def kernel_only(r, want_jac=True):
+        paths_nb.eval_paths_kernel(*r.args, want_jac=want_jac)
+
+    n_rows = nb * N_FLOORS_FA * m
+    rows: list[tuple[str, int, tuple[float, float]]] = [
+        ("batched: numpy reference", n_rows,
+         _time2(lambda nd: _first_arrival_paths_numpy(nd, ANCHORS_8, b, floor=floors), batch,
+                max(1, args.repeats // 2))),
+        ("batched: kernel (first_arrival_paths)", n_rows,
+         _time2(lambda nd: first_arrival_paths(nd, ANCHORS_8, b, floor=floors), batch,
+                args.repeats)),
+        ("batched: kernel alone on prepared rows", n_rows,
+         _time2(kernel_only, lambda: rows_of(batch()[0]), args.repeats)),
+        ("batched: kernel alone, lengths only (want_jac=False)", n_rows,
+         _time2(lambda r: kernel_only(r, False), lambda: rows_of(batch()[0]), args.repeats)),
+    ]
+    n_single = 20 * args.repeats
+    for name, fn in (("single: numpy reference", _first_arrival_paths_numpy),
+                     ("single: kernel (first_arrival_paths)", first_arrival_paths)):
+        rows.append((name, m, _time2(lambda nd, k, fn=fn: fn(nd, ANCHORS_8, b, floor=k),
+                                     single, n_single)))
+    print(f"## First-arrival path model, 18 slots + Jacobians (default building, {m} anchors; "
+          f"numba {numba.__version__}, median, one thread)\n")
+    print("| what | rows per call | ms per call wall / CPU | ns per row wall / CPU | "
+          "speed-up vs numpy (CPU) |")
+    print("| --- | ---: | ---: | ---: | ---: |")
+    base = {"batched": rows[0][2][1] / rows[0][1], "single": rows[4][2][1] / rows[4][1]}
+    for name, n, (w, c) in rows:
+        up = base[name.split(":")[0]] / (c / n)
+        print(f"| {name} | {n:,} | {w * 1e3:.3f} / {c * 1e3:.3f} | {w / n * 1e9:,.0f} / "
+              f"{c / n * 1e9:,.0f} | {up:,.1f}x |")
+    print("\n| compile / load | wall [s] | process CPU [s] |\n| --- | ---: | ---: |")
+    for name, w, c in compile_costs():
+        print(f"| {name} | {w:.2f} | {c:.2f} |")
+
+
+def profile_mnls(n_fixes: int, numpy_paths: bool) -> None:
+    """Shares of one batched M-NLS call: path model, SNR prediction, the rest (docstring)."""
+    sc = default_scenario()
+    rng = np.random.default_rng(0)
+    b = sc.building
+    k = rng.integers(0, b.n_floors, n_fixes)
+    nodes = np.stack([rng.uniform(-19.8, 19.8, n_fixes), rng.uniform(0.2, b.depth_m - 0.2,
+                      n_fixes), b.floor_z_m(k) + rng.uniform(0.3, 2.7, n_fixes)], axis=-1)
+    fa = first_arrival(emulate_channel(ANCHORS_8, nodes, building=b, radio=sc.radio),
+                       radio=sc.radio, rng=rng)
+    det = np.asarray(fa.detected, dtype=bool)
+
+    def run(sl):
+        return mnls(np.broadcast_to(ANCHORS_8, (n_fixes, *ANCHORS_8.shape))[sl],
+                    np.where(det, fa.range_m, 0.0)[sl], np.where(det, fa.sigma_m, 1.0)[sl],
+                    mask=det[sl], building=b, snr_db=np.asarray(fa.snr_db)[sl],
+                    radio=sc.radio, bandwidth_hz=sc.radio.bandwidth_hz,
+                    error_floor_m=sc.radio.range_error_floor_m)
+
+    paths_nb.warm_paths()
+    if numpy_paths:  # A/B: the estimator on the numpy reference of the path model
+        if not hasattr(mnls_module, "first_arrival_paths"):
+            raise SystemExit("mnls no longer calls first_arrival_paths: nothing to swap")
+        mnls_module.first_arrival_paths = _first_arrival_paths_numpy
+    run(slice(0, 1))  # imports, caches
+    prof = cProfile.Profile(time.thread_time)  # CPU time: the machine is shared
+    prof.runcall(run, slice(0, n_fixes))
+    st = pstats.Stats(prof).stats  # (file, line, name) -> (cc, nc, tottime, cumtime, callers)
+    total = sum(v[2] for v in st.values())
+
+    def cum(name: str) -> float:
+        return sum(v[3] for key, v in st.items() if key[2] == name)
+
+    fap = cum("first_arrival_paths") + cum("_first_arrival_paths_numpy")
+    snr = cum("pair_snr_db")
+    which = "numpy reference" if numpy_paths else "compiled kernel"
+    print(f"## M-NLS, {n_fixes} fixes x {len(ANCHORS_8)} anchors in one call, path model: "
+          f"{which}: {total:.2f} s thread CPU under cProfile\n")
+    print("| part | share |\n| --- | ---: |")
+    for name, t in (("first_arrival_paths (path model)", fap),
+                    ("channel.pair_snr_db (SNR cost)", snr), ("rest", total - fap - snr)):
+        print(f"| {name} | {100 * t / total:.0f} % |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", type=int, default=1_000_000)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--paper-nodes", type=int, default=17_485)
+    parser.add_argument("--fa-nodes", type=int, default=2_000,
+                        help="nodes of the batched first-arrival rows (x 5 floors x 8 anchors)")
+    parser.add_argument("--only", choices=("first-arrival", "geometry"), default=None)
+    parser.add_argument("--profile-mnls", type=int, default=0, metavar="N",
+                        help="only profile one batched M-NLS call on N fixes")
+    parser.add_argument("--numpy-paths", action="store_true",
+                        help="with --profile-mnls: the estimator on the numpy path model (A/B)")
+    args = parser.parse_args()
+    if args.profile_mnls:
+        profile_mnls(args.profile_mnls, args.numpy_paths)
+        return
+    if args.only in (None, "first-arrival"):
+        first_arrival_table(args)
+    if args.only in (None, "geometry"):
+        geometry_table(args)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,20 @@
 One geometry implementation shared by the channel emulator (:mod:`diffpos.channel` calls
 :func:`specular_path` and :func:`diffracted_path` for lengths, validity and interaction points
 and only adds amplitudes) and by the mechanism-aware estimator (:func:`diffpos.estimators.mnls`
-calls :func:`first_arrival_paths`). Pure numpy, vectorised over any batch shape.
+calls :func:`first_arrival_paths`). Vectorised over any batch shape.
+
+:func:`first_arrival_paths` (and :func:`graded_paths`, the unmasked variant with existence
+graded by the entry height, for a tracker) run the compiled kernel
+:mod:`diffpos._kernels.paths_nb`: one loop over (node, anchor, floor) rows and slots performing
+the numpy reference's floating-point operations in the same order (the reference,
+:func:`_first_arrival_paths_numpy` on :func:`specular_path` / :func:`diffracted_path`, stays
+here; tests/core/test_paths_kernel.py holds the kernel to it: lengths <= 1e-12 relative,
+existence exactly). Call :func:`diffpos._kernels.paths_nb.warm_paths` at service start: the
+first call compiles (a few s CPU) or loads numba's on-disk cache (~0.4 s).
+Cost per row, all 18 slots with Jacobians: ``benchmarks/bench_path_model.py``. Only lengths
+(``want_jac=False`` of the kernel) saves < 10 %, so there is no separate public entry point
+for it; a subset of slots (``slots=``) costs in proportion (the diffraction slots are ~2x the
+specular ones).
 
 Mechanisms (slot order = :data:`MECHANISMS` = ``diffpos.channel.MECHANISMS``)
 
@@ -56,6 +69,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._kernels.paths_nb import building_planes, eval_paths_kernel
 from .geometry import diffraction_point
 
 __all__ = [
@@ -63,9 +77,11 @@ __all__ = [
     "MECHANISMS",
     "SPECULAR_SLOTS",
     "FloorFrame",
+    "GradedPaths",
     "PathSet",
     "diffracted_path",
     "first_arrival_paths",
+    "graded_paths",
     "specular_path",
 ]
 
@@ -354,6 +370,10 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
                         ) -> PathSet:
     """Lengths, existence and Jacobians of the first-arrival mechanisms (module docstring).
 
+    Computed by the compiled kernel :func:`diffpos._kernels.paths_nb.paths_kernel` (one loop
+    over node-anchor pairs and slots); :func:`_first_arrival_paths_numpy` is the numpy
+    reference it is tested against (same results to rounding, same existence).
+
     Parameters
     ----------
     nodes_m : array_like, shape (..., 3) [m]
@@ -372,6 +392,120 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
     Returns
     -------
     PathSet
+    """
+    rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots)
+    length, valid, jac, dev, outm, _ = eval_paths_kernel(*rows.args)
+    sh = (*rows.shape, rows.slots.shape[0])
+    return PathSet(length_m=length.reshape(sh), valid=valid.reshape(sh),
+                   jacobian=jac.reshape((*sh, 3)), floor=rows.floor,
+                   deviation_cos=dev.reshape(sh), outside_m=outm.reshape(sh))
+
+
+@dataclass(frozen=True)
+class GradedPaths:
+    """Raw geometry of every mechanism with graded existence, shapes (..., K) / (..., K, 3).
+
+    For an iterate that may cross an existence boundary of its chosen mechanism (a tracker):
+
+    Attributes
+    ----------
+    length_m : ndarray [m]
+        Path length also where the mechanism does not exist.
+    jacobian : ndarray [m/m]
+        ``d length_m / d node``, also where the mechanism does not exist.
+    strict : ndarray of bool
+        Existence as in :func:`first_arrival_paths` (``PathSet.valid``).
+    loose, sure : ndarray of bool
+        Existence with the window band widened / narrowed by ``relax_m`` at the entry point
+        of the specular slots (incl. the direct one); the diffraction slots: ``strict``.
+    entry_z_m : ndarray [m]
+        Height of the facade entry point of the specular slots (NaN for diffraction).
+    """
+
+    length_m: FloatArray
+    jacobian: FloatArray
+    strict: BoolArray
+    loose: BoolArray
+    sure: BoolArray
+    entry_z_m: FloatArray
+
+
+def graded_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *, relax_m: float,
+                 floor: ArrayLike | None = None, slots: ArrayLike | None = None
+                 ) -> GradedPaths:
+    """:func:`first_arrival_paths` without the masking, with existence graded by ``relax_m``.
+
+    Same arguments as :func:`first_arrival_paths` plus ``relax_m`` [m] (>= 0), the uncertainty
+    of the entry point's height: ``loose`` holds where the entry lies strictly inside the band
+    widened by ``relax_m`` (``z > win_lo - relax_m``), ``sure`` where its margin to both band
+    limits exceeds ``relax_m`` (``min(z - win_lo, win_hi - z) > relax_m``), ``strict`` where the
+    margin is > 0; every other condition of the mechanism applies unchanged. One kernel pass
+    (``raw=True``); the band tests are a few vectorised comparisons.
+    """
+    if not relax_m >= 0.0:
+        raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
+    rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots)
+    length, ok, jac, _, _, z_in = eval_paths_kernel(*rows.args, raw=True)
+    lo, hi = (v[:, None] for v in building.window_z_m(rows.args[2]))
+    band = np.isin(rows.slots, SPECULAR_SLOTS)
+    with np.errstate(invalid="ignore"):
+        margin = np.minimum(z_in - lo, hi - z_in)
+        loose = ok & np.where(band, (z_in > lo - relax_m) & (z_in < hi + relax_m), True)
+        strict = loose & np.where(band, margin > 0, True)
+        sure = loose & np.where(band, margin > relax_m, True)
+    sh = (*rows.shape, rows.slots.shape[0])
+    return GradedPaths(length_m=length.reshape(sh), jacobian=jac.reshape((*sh, 3)),
+                       strict=strict.reshape(sh), loose=loose.reshape(sh),
+                       sure=sure.reshape(sh), entry_z_m=z_in.reshape(sh))
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """Flat kernel inputs of one call (internal)."""
+
+    shape: tuple[int, ...]
+    floor: NDArray[np.int_]
+    slots: NDArray[np.int64]
+    args: tuple
+
+
+def _slot_array(slots: ArrayLike | None) -> NDArray[np.int64]:
+    k = len(MECHANISMS)
+    if slots is None:
+        return np.arange(k, dtype=np.int64)
+    sel = np.array([int(s) for s in np.ravel(slots)], dtype=np.int64)
+    if np.any((sel < -k) | (sel >= k)):
+        raise IndexError(f"slots must lie in [0, {k}) (MECHANISMS); got {sel.tolist()}")
+    return sel % k
+
+
+def _kernel_rows(nodes_m: ArrayLike, anchors_m: ArrayLike, building,
+                 floor: ArrayLike | None, slots: ArrayLike | None) -> _Rows:
+    """Broadcast nodes, anchors and floors to flat C-contiguous rows for the kernel."""
+    sel = _slot_array(slots)
+    n = np.asarray(nodes_m, dtype=np.float64)
+    a = np.asarray(anchors_m, dtype=np.float64)
+    shape = np.broadcast_shapes(n.shape, a.shape)[:-1]
+    rows_n = np.empty((*shape, 3))  # fresh C-contiguous writable copies: the one signature
+    rows_n[...] = n
+    rows_a = np.empty((*shape, 3))
+    rows_a[...] = a
+    k = building.floor_index(rows_n[..., 2]) if floor is None else np.asarray(floor)
+    k = np.broadcast_to(k, shape)
+    k_f = np.empty(shape)
+    k_f[...] = k
+    planes = building_planes(building)
+    if planes[4] == planes[5] and np.any(np.isin(sel, DIFFRACTION_SLOTS)):
+        raise ValueError("the window edge has zero length (edge_x_m equal)")
+    args = (rows_n.reshape(-1, 3), rows_a.reshape(-1, 3), k_f.reshape(-1), planes, sel)
+    return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args)
+
+
+def _first_arrival_paths_numpy(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
+                               floor: ArrayLike | None = None,
+                               slots: ArrayLike | None = None) -> PathSet:
+    """The numpy reference of :func:`first_arrival_paths` (same arguments and results), built on
+    :func:`specular_path` and :func:`diffracted_path`; the tests hold the kernel to it.
     """
     n = np.asarray(nodes_m, dtype=np.float64)
     a = np.asarray(anchors_m, dtype=np.float64)

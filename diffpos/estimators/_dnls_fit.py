@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from ..bounds import bounds_from_fim, fisher_information
 from ._core import PathModel, cost_of, levenberg_marquardt
 from .gating import GateState, GatingConfig, chi2_threshold, run_gating, wall_pregate
+from .lls import lls_positions
 from .result import ExclusionReason, FixStatus
 
 FloatArray = NDArray[np.float64]
@@ -56,8 +57,6 @@ def _lls_starts(
     a: FloatArray, r: FloatArray, mask: NDArray[np.bool_], grid: FloatArray
 ) -> FloatArray:
     """One extra start per fix from LLS; falls back to the middle grid start."""
-    from .lls import lls_positions
-
     x, _, ok = lls_positions(a, r, mask)
     fallback = grid[:, grid.shape[1] // 2]
     x = np.where(ok[:, None], x, fallback)
@@ -149,7 +148,9 @@ def _pregate_walls(
     mask: BoolArray,
     cfg: FitSettings,
 ) -> tuple[BoolArray, NDArray[np.int_]]:
-    """Drop ranges shorter than the anchor's distance to the wall (recorded in ``out``).
+    """Drop ranges shorter than the anchor's distance to the wall (recorded in ``out``: the
+    reasons of every fix, also of those left with too few anchors to solve, whose ``used``
+    stays False).
 
     Returns the remaining mask and the exclusion reasons ``(n, M)``.
     """
@@ -162,7 +163,6 @@ def _pregate_walls(
             mask = mask & ~wall
             reason0[wall] = ExclusionReason.PREGATE_SHORTER_THAN_LOS
             out["exclusion_reason"][sl] = reason0
-            out["used"][sl] = mask
     return mask, reason0
 
 

@@ -39,14 +39,18 @@ functions that give the PEB of the study), and the outlier gating of
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._kernels import dnls_nb
+from .._kernels.lm_nb import LOSS_CODES
 from ._core import LOSSES, PathModel
-from ._dnls_fit import FitSettings, solve_chunk
+from ._dnls_fit import RECHECK_PROBABILITY, FitSettings, solve_chunk
 from ._dnls_fit import _lls_starts as _lls_starts  # re-exported (benchmarks)
 from ._dnls_fit import grid_starts as grid_starts  # re-exported (ippa, benchmarks)
-from .gating import GatingConfig
+from .gating import GatingConfig, chi2_threshold
 from .result import ExclusionReason, FixResult, FixStatus, PreparedBatch, prepare_batch
 
 __all__ = ["DEFAULT_Z_STARTS_M", "dnls"]
@@ -111,6 +115,7 @@ def dnls(
     keep_starts: int | None = 3,
     screen_iter: int = 4,
     chunk_size: int = 1024,
+    kernel: bool = True,
 ) -> FixResult:
     """Batched D-NLS position fixes with optional outlier gating.
 
@@ -158,8 +163,12 @@ def dnls(
     screen_iter : int
         Iterations of the screening phase.
     chunk_size : int
-        Fixes solved together per chunk (bounds memory; results depend on it only at the
-        rounding level).
+        Fixes solved together per chunk by the numpy reference (bounds memory; results depend
+        on it only at the rounding level).
+    kernel : bool
+        Solve with the compiled kernel (:mod:`diffpos._kernels.dnls_nb`, the default: same
+        statuses, used anchors and exclusions; positions equal at the rounding level) or with
+        the numpy reference implementation (``False``).
 
     Returns
     -------
@@ -183,6 +192,10 @@ def dnls(
     bsz, m = batch_in.ranges_m.shape
     model = _path_model(window_height_m, delta_m, edge_x_m, bsz)
     x0, starts = _start_option(x0_m, z_starts_m, bsz)
+    if kernel:
+        out = _solve_compiled(batch_in, model, x0, starts, gating, loss, loss_scale, max_iter,
+                              xtol_m, lls_start, keep_starts, screen_iter, y_start_m)
+        return _fix_result(out, batch_in)
     cfg = FitSettings(
         z_starts=starts,
         y_start=y_start_m,
@@ -211,6 +224,36 @@ def dnls(
             cfg,
         )
     return _fix_result(out, batch_in)
+
+
+@functools.lru_cache(maxsize=64)
+def _thresholds(m: int, false_alarm_probability: float) -> FloatArray:
+    """Chi-square thresholds by dof ``0..m`` (NaN below 1 dof; shared: never written)."""
+    return chi2_threshold(np.arange(m + 1), false_alarm_probability)
+
+
+def _solve_compiled(batch_in: PreparedBatch, model: PathModel, x0: FloatArray | None,
+                    starts: FloatArray | None, gating: GatingConfig | None, loss: str,
+                    loss_scale: float, max_iter: int, xtol: float, lls_start: bool,
+                    keep_starts: int | None, screen_iter: int, y_start: float
+                    ) -> dict[str, np.ndarray]:
+    """The whole batch through the compiled kernel; the output arrays of :func:`_alloc`."""
+    bsz, m = batch_in.ranges_m.shape
+    ipar, fpar = dnls_nb.options(
+        loss=LOSS_CODES[loss], loss_scale=loss_scale, max_iter=max_iter, xtol=xtol,
+        keep_starts=keep_starts, screen_iter=screen_iter, lls_start=lls_start,
+        sigmas_given=batch_in.sigmas_given, y_start=y_start, edge_x_m=model.edge_x_m,
+        gating=gating)
+    h = np.array(np.broadcast_to(model.edge_offset_m, (bsz, 1))[:, 0], np.float64)  # writable
+    if x0 is None:
+        x0_c, has_x0 = np.zeros((bsz, 3)), np.zeros(bsz, bool)
+    else:
+        x0_c, has_x0 = np.array(x0, np.float64, order="C"), np.ones(bsz, bool)
+    zs = np.zeros(1) if starts is None else np.ascontiguousarray(starts, np.float64)
+    pfa = gating.false_alarm_probability if gating is not None else 0.5
+    return dnls_nb.run(batch_in.anchors_m, batch_in.ranges_m, batch_in.sigmas_m, batch_in.mask,
+                       h, x0_c, has_x0, zs, ipar, fpar, _thresholds(m, pfa),
+                       _thresholds(m, RECHECK_PROBABILITY))
 
 
 def _check_options(loss: str, loss_scale: float, gating: GatingConfig | None) -> None:

@@ -381,6 +381,19 @@ def prepare_batch(
             raise ValueError(
                 f"mask must broadcast to (B, M) = {(batch, m)}, got {pm.shape}"
             ) from None
+    if (
+        present.all() and np.isfinite(a).all() and np.isfinite(r).all() and (r >= 0).all()
+        and (s > 0).all() and np.isfinite(s).all()
+    ):  # the common case: every value valid and present, nothing to mask (same result)
+        return PreparedBatch(
+            anchors_m=np.array(a, np.float64, order="C"),
+            ranges_m=np.array(r, np.float64, order="C"),
+            sigmas_m=np.array(s, np.float64, order="C"),
+            mask=present,
+            present=present.copy(),
+            input_error=np.zeros(batch, dtype=np.int_),
+            sigmas_given=sigmas_given,
+        )
     err = np.zeros(batch, dtype=np.int_)
     bad_r_neg = present & (r < 0)
     bad_r_nf = present & ~np.isfinite(r)

@@ -13,6 +13,18 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
   valid file);
 * the recorder's own liveliness token (:meth:`Keys.alive_recorder`) is declared once both
   subscribers exist, so whoever waits for it knows recording has started.
+
+Foreign messages (issue 15 item 9). When the recording carries a run configuration naming
+the run's fusion (``emulate.fusion_id_prefix``: every sample of the fusion ``diffpos
+emulate`` started carries a zenoh id with that prefix) or its anchors (``fusion.anchors``),
+a message on an estimate or diagnostics key from another publisher, or on the key of an
+anchor outside that list, is *foreign*: it is not written to the recording (which replay,
+``to-rerun`` and the dashboard read as the run) but kept apart, unchanged, in
+``<stem>.foreign.mcap`` next to it (evidence of who else published), counted per key, and the
+counts are written into the recording as metadata ``foreign``. Why: a user replaying or
+drawing a run expects the run's own data, and someone investigating expects the intruder's
+messages not to vanish. Without such a run configuration (a stand-alone ``diffpos
+recorder``) every message is recorded as before.
 """
 
 from __future__ import annotations
@@ -32,14 +44,17 @@ from typing import Any
 import zenoh
 from zenoh import handlers
 
+from diffpos_services.bus.commands import foreign_path, recorder_args
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.recording.writer import McapSink, SinkStats
-from diffpos_services.wire.keys import Keys
+from diffpos_services.wire.keys import Keys, parse_key
 
 __all__ = [
+    "Provenance",
     "RecorderOptions",
     "build_command",
     "default_output_path",
+    "foreign_path",
     "record",
 ]
 
@@ -98,6 +113,112 @@ class RecorderOptions:
 
 StatusCallback = Callable[[str, dict[str, Any]], None]
 
+#: key kinds only the run's fusion publishes
+_FUSION_KINDS = frozenset({"estimate", "diagnostics"})
+#: key kinds an anchor publishes (its id in the key)
+_ANCHOR_KINDS = frozenset({"anchor_state", "range", "range_batch"})
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """Which messages belong to the run (see the module docstring).
+
+    Attributes
+    ----------
+    fusion_id_prefix : str or None
+        Zenoh id prefix of the run's fusion (``None``: any publisher's estimates belong).
+    anchors : frozenset of str or None
+        The run's anchors (``None``: any anchor belongs).
+    """
+
+    fusion_id_prefix: str | None = None
+    anchors: frozenset[str] | None = None
+
+    @classmethod
+    def from_run_config(cls, run_config: dict[str, Any] | None) -> Provenance | None:
+        """From a run configuration (``{"fusion": {...}, "emulate": {...}}``, values possibly
+        JSON text as in MCAP metadata); ``None`` if it names neither."""
+        if not run_config:
+            return None
+        fusion, emu = (run_config.get(k) or {} for k in ("fusion", "emulate"))
+        fusion, emu = (json.loads(v) if isinstance(v, str) else v for v in (fusion, emu))
+        prefix = emu.get("fusion_id_prefix") if isinstance(emu, dict) else None
+        anchors = fusion.get("anchors") if isinstance(fusion, dict) else None
+        if not prefix and not anchors:
+            return None
+        return cls(str(prefix) if prefix else None,
+                   frozenset(map(str, anchors)) if anchors else None)
+
+    def foreign(self, key: str, sample: Any) -> bool:
+        """True if the message on ``key`` (a zenoh sample) is not the run's own."""
+        pk = parse_key(key)
+        if pk is None:
+            return False
+        if pk.kind in _FUSION_KINDS and self.fusion_id_prefix is not None:
+            ts = sample.timestamp
+            return ts is None or not str(ts.get_id()).startswith(self.fusion_id_prefix)
+        if pk.kind in _ANCHOR_KINDS and self.anchors is not None:
+            return pk.anchor_id not in self.anchors
+        return False
+
+
+class _ForeignSink:
+    """The foreign messages of a recording: counted per key and written, unchanged, to
+    :func:`foreign_path` (opened on the first one)."""
+
+    def __init__(self, out: Path | None, compression: str = "zstd") -> None:
+        self.path = foreign_path(out) if out is not None else None
+        self.compression = compression
+        self.sink: McapSink | None = None
+        self.counts: dict[str, int] = {}
+        self.lock = threading.Lock()
+
+    def write(self, key: str, payload: bytes, rx_ns: int) -> None:
+        with self.lock:
+            self.counts[key] = self.counts.get(key, 0) + 1
+            if self.path is None:
+                return
+            if self.sink is None:
+                k = 1
+                while self.path.exists():  # never over an existing file
+                    self.path = foreign_path(self.path.with_name(
+                        self.path.name.replace(".foreign", f"-{k}", 1)))
+                    k += 1
+                self.sink = McapSink(self.path, compression=self.compression)
+                self.sink.add_metadata("foreign", {
+                    "what": "messages on the run's keys that were not the run's own (not "
+                            "from the run's fusion, or from an anchor outside the run): kept "
+                            "apart from the recording, unchanged"})
+            self.sink.write(key, payload, rx_ns)
+
+    @property
+    def count(self) -> int:
+        return sum(self.counts.values())
+
+    def flush(self) -> None:
+        with self.lock:
+            if self.sink is not None:
+                self.sink.flush()
+
+    def close(self, main: McapSink) -> dict[str, Any]:
+        """Close the foreign file; record the counts in ``main`` (metadata ``foreign``)."""
+        with self.lock:
+            if self.sink is not None:
+                self.sink.close()
+        info = {"count": self.count, "file": self.path.name if self.sink is not None else "",
+                "keys": dict(sorted(self.counts.items(), key=lambda kv: -kv[1])[:50])}
+        if self.count:
+            main.add_metadata("foreign", info)
+        return info
+
+
+def _run_config_of(sink: McapSink) -> dict[str, Any] | None:
+    """The ``run_config`` metadata the sink was given (it repeats it in every part)."""
+    for what, args in getattr(sink, "_side", ()):
+        if what == "metadata" and args[0] == "run_config":
+            return dict(args[1])
+    return None
+
 
 def record(
     settings: ZenohSettings,
@@ -132,6 +253,8 @@ def record(
     """
     keys = Keys(options.site)
     emit = on_status or (lambda _e, _f: None)
+    provenance = Provenance.from_run_config(_run_config_of(sink))
+    foreign = _ForeignSink(sink.path)
     t_end = None if options.duration_s is None else time.monotonic() + options.duration_s
     session = open_session(settings, stop, logger=log)
     if session is None:  # stopped while waiting for the router
@@ -143,9 +266,10 @@ def record(
         live_sub = session.liveliness().declare_subscriber(
             keys.alive_all(), _liveliness_writer(sink, options.site), history=True
         )
-        drainer = _Drain(sub, sink, stop)
+        drainer = _Drain(sub, sink, stop, provenance, foreign)
         drainer.start()
-        flush_thread = threading.Thread(target=_flush_loop, args=(sink, options, stop, emit),
+        flush_thread = threading.Thread(target=_flush_loop,
+                                        args=(sink, options, stop, emit, foreign),
                                         name="recorder-flush", daemon=True)
         flush_thread.start()
         token = session.liveliness().declare_token(keys.alive_recorder())
@@ -162,6 +286,7 @@ def record(
             token.undeclare()
     # leaving the with block closed the session: recv() drains what is queued, then raises
     drainer.join()
+    foreign_info = foreign.close(sink)
     flushed = sink.flush()
     st = sink.stats
     emit(
@@ -173,6 +298,7 @@ def record(
             "written": st.written,
             "gaps": st.gaps,
             "deletes_ignored": drainer.deletes,
+            "foreign": foreign_info,
         },
     )
     return st
@@ -180,15 +306,18 @@ def record(
 
 class _Drain(threading.Thread):
     """The thread moving samples from the Zenoh FIFO into the sink (DELETEs are counted, not
-    recorded). Ends when the session is closed and every queued sample is written."""
+    recorded; foreign messages go to ``foreign``, see :class:`Provenance`). Ends when the
+    session is closed and every queued sample is written."""
 
-    def __init__(self, sub: Any, sink: McapSink, stop: threading.Event) -> None:
+    def __init__(self, sub: Any, sink: McapSink, stop: threading.Event,
+                 provenance: Provenance | None, foreign: _ForeignSink) -> None:
         super().__init__(name="recorder-drain", daemon=True)
         self.sub, self.sink, self.stop = sub, sink, stop
+        self.provenance, self.foreign = provenance, foreign
         self.deletes = 0
 
     def run(self) -> None:
-        write = self.sink.write
+        write, prov = self.sink.write, self.provenance
         put = zenoh.SampleKind.PUT
         now = time.time_ns
         try:
@@ -197,7 +326,11 @@ class _Drain(threading.Thread):
                 if sample.kind != put:
                     self.deletes += 1
                     continue
-                write(str(sample.key_expr), sample.payload.to_bytes(), now())
+                key = str(sample.key_expr)
+                if prov is not None and prov.foreign(key, sample):
+                    self.foreign.write(key, sample.payload.to_bytes(), now())
+                    continue
+                write(key, sample.payload.to_bytes(), now())
         except zenoh.ZError:
             return  # channel closed: session closed and every queued sample drained
         except Exception:  # pragma: no cover - never let the drain thread die silently
@@ -216,11 +349,12 @@ def _liveliness_writer(sink: McapSink, site: str) -> Callable[[Any], None]:
 
 
 def _flush_loop(sink: McapSink, options: RecorderOptions, stop: threading.Event,
-                emit: StatusCallback) -> None:
+                emit: StatusCallback, foreign: _ForeignSink) -> None:
     """Flush every ``flush_interval_s`` until ``stop``; a ``flush`` status after each flush
     that wrote something."""
     last = -1
     while not stop.wait(options.flush_interval_s):
+        foreign.flush()
         flushed = sink.flush()
         if flushed != last:
             last = flushed
@@ -234,6 +368,7 @@ def _flush_loop(sink: McapSink, options: RecorderOptions, stop: threading.Event,
                     "written": st.written,
                     "gaps": st.gaps,
                     "by_kind": sink.counts_by_kind(),
+                    "foreign": foreign.count,
                 },
             )
 
@@ -274,7 +409,9 @@ def build_command(
     split_duration_s: float | None = None,
     split_size_mb: float | None = None,
 ) -> list[str]:
-    """argv that starts the recorder as a subprocess (for ``diffpos emulate`` and tests).
+    """argv that starts the recorder as a subprocess (tests, benchmarks): ``python -m
+    diffpos_services.cli.main`` + :func:`diffpos_services.bus.commands.recorder_args` (the
+    one recorder command line, also ``diffpos emulate``'s).
 
     Run it in its own process group (``start_new_session=True``) and stop it with SIGTERM
     (SIGINT also works): it then writes the footer and exits 0. With ``status`` it prints
@@ -295,31 +432,11 @@ def build_command(
     split_duration_s, split_size_mb : float, optional
         ``--split-duration`` / ``--split-size`` (default: the recorder's defaults; 0 = off).
     """
-    argv = [
-        python or sys.executable,
-        "-m",
-        "diffpos_services.cli.main",
-        "recorder",
-        "--site",
-        site,
-        "--out",
-        str(out),
-        "--flush-interval",
-        repr(float(flush_interval_s)),
-    ]
-    for ep in connect:
-        argv += ["--connect", ep]
-    if scenario is not None:
-        argv += ["--scenario", str(scenario)]
-    if run_config is not None:
-        argv += ["--run-config", str(run_config)]
-    if split_duration_s is not None:
-        argv += ["--split-duration", repr(float(split_duration_s))]
-    if split_size_mb is not None:
-        argv += ["--split-size", repr(float(split_size_mb))]
-    if status:
-        argv.append("--status")
-    return argv
+    return [python or sys.executable, "-m", "diffpos_services.cli.main",
+            *recorder_args(site=site, out=out, connect=connect, scenario=scenario,
+                           run_config=run_config, flush_interval_s=flush_interval_s,
+                           split_duration_s=split_duration_s, split_size_mb=split_size_mb,
+                           status=status)]
 
 
 def status_printer(stream=None) -> StatusCallback:

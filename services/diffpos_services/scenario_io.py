@@ -8,6 +8,8 @@ print it as one line.
 - :func:`load_scenario`: a file, or a shipped scenario's name (``paper``, ``large``);
 - :func:`resolve_scenario`: the file such an argument refers to;
 - :func:`scenario_or_default`: :func:`load_scenario`, or the built-in paper scenario for None;
+- :func:`load_scenario_option`: the same for a command-line option, failures as
+  :class:`~diffpos_services.kit.ConfigError` (exit code 2) saying what to fix;
 - :func:`scenario_from_toml`: TOML text from elsewhere (a recording's attachment).
 """
 
@@ -19,11 +21,13 @@ import tomllib
 from pathlib import Path
 
 from diffpos.scenario import Scenario, ScenarioError, default_scenario
+from diffpos_services.kit import ConfigError
 from diffpos_services.resources import scenario_dir
 
 __all__ = [
     "SCENARIO_DIR",
     "load_scenario",
+    "load_scenario_option",
     "resolve_scenario",
     "scenario_from_toml",
     "scenario_or_default",
@@ -108,3 +112,23 @@ def resolve_scenario(path: str | os.PathLike[str]) -> Path:
 def scenario_or_default(path: str | os.PathLike[str] | None) -> Scenario:
     """:func:`load_scenario` of ``path``, or the paper's scenario when ``path`` is None."""
     return default_scenario() if path is None else load_scenario(path)
+
+
+def load_scenario_option(path: str | os.PathLike[str] | None, *,
+                         option: str = "--scenario") -> Scenario:
+    """The scenario a command-line option names (``None``: the built-in paper scenario):
+    the one loader of every service's ``--scenario`` (anchor, fusion, emulate).
+
+    Raises
+    ------
+    ConfigError
+        One line: the option, the file, what is wrong (missing file with the shipped names,
+        TOML syntax with line and column, the invalid field) and what to do about it.
+    """
+    try:
+        return scenario_or_default(path)
+    except ScenarioError as exc:
+        msg = str(exc)
+        where = f"{option} {path}: " if str(path) not in msg else f"{option}: "
+        raise ConfigError(f"{where}{msg} (fix the file, or give another scenario file or a "
+                          "shipped name)") from None

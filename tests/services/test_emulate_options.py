@@ -3,6 +3,7 @@ the option, exit 2, no traceback, nothing started."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
@@ -12,8 +13,14 @@ import threading
 
 import pytest
 import zenoh
+from diffpos_services.anchor.service import load_scenario_file
+from diffpos_services.bus.commands import recorder_args
+from diffpos_services.cli import recorder as cli_recorder
 from diffpos_services.emulate import EXTRA_SERVICES, Emulation, EmulationOptions
+from diffpos_services.emulate.options import recorder_argv
 from diffpos_services.kit import ConfigError, free_tcp_port
+from diffpos_services.recorder import build_command
+from diffpos_services.scenario_io import load_scenario_option
 from diffpos_services.wire.keys import Keys
 
 
@@ -110,3 +117,51 @@ def test_fusion_started_by_emulate_accepts_only_the_scenarios_anchors():
     i = emu.fusion_args.index("--anchors")
     assert emu.fusion_args[i + 1].split(",") == emu.anchor_ids == ["uav1", "uav2", "uav3", "uav4"]
     assert list(emu.fusion_config.anchors) == emu.anchor_ids
+
+
+# ------------------------------------------------------------------ one recorder command line
+def test_recorder_command_line_is_built_once():
+    """emulate's recorder argv and recorder.build_command are both bus.commands.recorder_args;
+    the argv parses with the real recorder CLI into the values given."""
+    o = EmulationOptions(record="r.mcap", scenario="scenarios/paper.toml", site="s1")
+    argv = recorder_argv(o, "tcp/127.0.0.1:7", "run")
+    assert argv == recorder_args(site="s1", out="r.mcap", connect=["tcp/127.0.0.1:7"],
+                                 scenario="scenarios/paper.toml")
+    cmd = build_command(site="s1", out="r.mcap", connect=["tcp/127.0.0.1:7"],
+                        scenario="scenarios/paper.toml", flush_interval_s=0.1,
+                        split_duration_s=5, split_size_mb=0, status=True, python="py")
+    assert cmd[:3] == ["py", "-m", "diffpos_services.cli.main"]
+    assert cmd[3:] == recorder_args(site="s1", out="r.mcap", connect=["tcp/127.0.0.1:7"],
+                                    scenario="scenarios/paper.toml", flush_interval_s=0.1,
+                                    split_duration_s=5, split_size_mb=0, status=True)
+    parser = argparse.ArgumentParser()
+    cli_recorder.add_arguments(parser)
+    a = parser.parse_args(cmd[4:])
+    assert (a.site, a.out, a.connect, a.scenario, a.flush_interval, a.split_duration,
+            a.split_size, a.status) == ("s1", "r.mcap", ["tcp/127.0.0.1:7"],
+                                        "scenarios/paper.toml", 0.1, 5.0, 0.0, True)
+    assert recorder_argv(EmulationOptions(record="off"), "tcp/127.0.0.1:7", "run") is None
+
+
+# ------------------------------------------------------------------ one scenario loader
+@pytest.mark.parametrize(("text", "says"), [
+    (None, "no such scenario file"),
+    ("[building\n", "TOML syntax error"),
+    ("[building]\nwidth_m = -3\n", "building"),
+])
+def test_scenario_option_errors_are_one_config_error_naming_option_and_file(tmp_path, text, says):
+    """anchor, fusion and emulate load --scenario with scenario_io.load_scenario_option: a
+    ConfigError (exit 2) naming the option, the file and the problem."""
+    path = tmp_path / "s.toml"
+    if text is not None:
+        path.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        load_scenario_option(str(path))
+    msg = str(exc.value)
+    assert msg.startswith("--scenario") and str(path) in msg and says in msg, msg
+    assert "\n" not in msg and exc.value.exit_code == 2
+    assert load_scenario_file is load_scenario_option
+    with pytest.raises(ConfigError, match=str(path)):
+        Emulation(EmulationOptions(scenario=str(path), record="off", dashboard=["off"]),
+                  logging.getLogger("t"), threading.Event())
+    assert load_scenario_option(None).anchors  # the built-in paper scenario

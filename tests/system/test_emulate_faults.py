@@ -145,6 +145,10 @@ def test_dead_fusion_and_recorder_are_restarted_and_reported(services, tmp_path)
     for batch in McapScanner(new).iter_batches():
         est += sum(1 for m in batch if (pk := parse_key(m.topic)) and pk.kind == "estimate")
     assert est > 0, "the restarted fusion's estimates were recorded in the new file"
+    # the summary's notes name every file written and say fixes were lost
+    notes = summary["notes"]
+    assert f"recording: {out}" in notes and f"recording: {new}" in notes, notes
+    assert any(n.startswith("fixes lost: ") for n in notes), notes
 
 
 def test_foreign_estimates_and_anchor_not_used_but_reported(services, tmp_path):
@@ -196,6 +200,8 @@ def test_foreign_estimates_and_anchor_not_used_but_reported(services, tmp_path):
     assert summary["foreign"]["count"] <= len(copies)
     assert summary["estimates"] == 6 * 20, summary["foreign"]  # 6 nodes x 20 epochs, once
     assert "foreign:" in services.log("emulate")
+    assert any(n.startswith(f"foreign: {summary['foreign']['count']} messages")
+               for n in summary["notes"]), summary["notes"]
     assert used and "uav9" not in used, used
     # the dashboard draws only the run's fusion: one row per estimate, no copies
     assert estimate_rows(tmp_path / "run.rrd") == 6 * 20

@@ -21,7 +21,6 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -37,10 +36,9 @@ from diffpos.emulation import (
     first_arrivals,
     warm_up_channel,
 )
-from diffpos.scenario import ScenarioError
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.kit import ConfigError, log_event
-from diffpos_services.scenario_io import scenario_or_default
+from diffpos_services.scenario_io import load_scenario_option
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, check_id
 
@@ -48,17 +46,9 @@ __all__ = ["AnchorConfig", "AnchorEmulator", "load_scenario_file", "run_anchor"]
 
 
 # ----------------------------------------------------------------------------- scenario
-def load_scenario_file(path: str | Path | None):
-    """The scenario of a TOML file (``None``: the built-in paper scenario), via
-    :mod:`diffpos_services.scenario_io`.
-
-    Raises :class:`ConfigError` naming the file and the bad field.
-    """
-    try:
-        return scenario_or_default(path)
-    except ScenarioError as exc:
-        msg = str(exc)
-        raise ConfigError(msg if str(path) in msg else f"scenario {path}: {msg}") from None
+#: Kept for the callers that still import it from here (``cli/anchor.py``, ``cli/fusion.py``,
+#: tests): the one loader is :func:`diffpos_services.scenario_io.load_scenario_option`.
+load_scenario_file = load_scenario_option
 
 
 # ----------------------------------------------------------------------------- config

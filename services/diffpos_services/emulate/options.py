@@ -7,6 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from diffpos_services.bus.commands import recorder_args
 from diffpos_services.bus.session import check_endpoint
 from diffpos_services.fusion.config import EDGES, METHODS
 from diffpos_services.kit import ConfigError
@@ -108,14 +109,12 @@ def _check_writable(option: str, path: str) -> None:
 
 
 def recorder_argv(o: EmulationOptions, endpoint: str, run_id: str) -> list[str] | None:
-    """``diffpos recorder`` arguments of the run (``None`` when recording is off): the one
-    recorder command line ``diffpos emulate`` builds."""
+    """``diffpos recorder`` arguments of the run (``None`` when recording is off), from
+    :func:`diffpos_services.bus.commands.recorder_args` (the one recorder command line)."""
     if o.record in (None, "off", ""):
         return None
-    argv = ["recorder", "--site", o.site, "--connect", endpoint, "--out", recording_path(o, run_id)]
-    if o.scenario:
-        argv += ["--scenario", o.scenario]
-    return argv
+    return recorder_args(site=o.site, connect=[endpoint], out=recording_path(o, run_id),
+                         scenario=o.scenario or None)
 
 
 def recording_path(o: EmulationOptions, run_id: str) -> str | None:

@@ -31,7 +31,7 @@ import numpy as np
 import zenoh
 
 from diffpos.emulation import TimeBase, emulation_nodes
-from diffpos.scenario import Scenario, ScenarioError
+from diffpos_services.bus.commands import foreign_path
 from diffpos_services.bus.security import (
     SecurityError,
     anchor_user,
@@ -41,6 +41,14 @@ from diffpos_services.bus.security import (
 )
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
 from diffpos_services.emulate.monitor import Monitor
+from diffpos_services.emulate.notes import (
+    EndToEnd,
+    foreign_notes,
+    fusion_notes,
+    latency_notes,
+    loss_notes,
+    recording_notes,
+)
 from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
 from diffpos_services.emulate.scoring import Scorer
 from diffpos_services.emulate.supervise import Supervisor, recover_in_place
@@ -52,25 +60,11 @@ from diffpos_services.kit import (
     log_event,
     stop_process_groups,
 )
-from diffpos_services.scenario_io import resolve_scenario, scenario_or_default
+from diffpos_services.scenario_io import load_scenario_option, resolve_scenario
 from diffpos_services.wire import messages as M
-from diffpos_services.wire.keys import Keys
+from diffpos_services.wire.keys import Keys, parse_key
 
 __all__ = ["Emulation"]
-
-
-def _load_scenario(path: str | None) -> Scenario:
-    """The run's scenario (``path`` is already resolved, so the error names the file).
-
-    Raises
-    ------
-    ConfigError
-        The file's error (missing, TOML syntax, invalid field) as one line.
-    """
-    try:
-        return scenario_or_default(path)
-    except ScenarioError as exc:
-        raise ConfigError(str(exc)) from None
 
 
 # ----------------------------------------------------------------------------- processes
@@ -103,7 +97,7 @@ class Emulation:
         self.log = logger
         self.stop = stop
         self.dashboard_hint = dashboard_hint
-        self.scenario = _load_scenario(options.scenario)
+        self.scenario = load_scenario_option(options.scenario)
         self.keys = Keys(options.site)
         self.nodes = emulation_nodes(self.scenario, max_nodes=options.max_nodes)
         if not self.nodes:
@@ -150,6 +144,10 @@ class Emulation:
                                      self._restart, logger)
         self.recordings: list[str] = []
         self.recording_notes: list[str] = []
+        self.t0_wall_ns: int | None = None  # wall clock of the run's start [ns]
+        # anchor publish -> estimate received here, per estimate (the live status may show
+        # e2e.stats_ms(since) of the last seconds)
+        self.e2e = EndToEnd()
 
     # -------------------------------------------------------------- security
     def _load_profile(self, path: str):
@@ -293,7 +291,9 @@ class Emulation:
         path = Path(self._run_dir.name) / "run_config.json"
         doc = {"fusion": msgspec.to_builtins(self.fusion_config),
                "emulate": {"run_id": self.run_id, "channel": self.o.channel, "seed": self.o.seed,
-                           "edge": self.edge, "edge_reason": self.edge_reason}}
+                           "edge": self.edge, "edge_reason": self.edge_reason,
+                           # the recorder keeps other publishers' estimates apart (recorder.py)
+                           "fusion_id_prefix": self.fusion_id_prefix}}
         path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
         return str(path)
 
@@ -334,7 +334,13 @@ class Emulation:
             # not from the fusion this run started: reported, never counted or scored
             self.foreign[key] += 1
             return
-        self.q.put(("data", key, sample.payload.to_bytes()))
+        # (kind, key, payload, receive wall time [ns]: the end-to-end latency of an estimate
+        # is this minus its t_input_wall_ns)
+        payload, rx = sample.payload.to_bytes(), time.time_ns()
+        pk = parse_key(key)
+        if pk is not None and pk.kind == "estimate":
+            self.e2e.add(payload, rx)
+        self.q.put(("data", key, payload, rx))
 
     def _wait_ready(self, need: set[str]) -> None:
         deadline = time.monotonic() + self.o.ready_timeout_s
@@ -460,6 +466,7 @@ class Emulation:
         session.put(self.keys.run_control(), M.encode(rc),
                     encoding=zenoh.Encoding.APPLICATION_JSON,
                     congestion_control=zenoh.CongestionControl.BLOCK)
+        self.t0_wall_ns = wall_t0
         return TimeBase.from_control(rc)
 
     def _summary(self, scorer: Scorer, lost: list[str]) -> dict[str, Any]:
@@ -480,6 +487,12 @@ class Emulation:
             faults=[f.as_dict() for f in self.supervisor.faults],
             foreign={"count": sum(self.foreign.values()), "keys": dict(self.foreign)},
         )
+        out["latency_e2e_ms"] = self.e2e.stats_ms()
+        # when and why fixes were lost, every file written, foreign messages: plain lines
+        out["notes"] = [*loss_notes(scorer), *fusion_notes(self.diag, self.t0_wall_ns),
+                        *recording_notes(self.recordings,
+                                         [foreign_path(r) for r in self.recordings]),
+                        *foreign_notes(self.foreign), *latency_notes(out["latency_e2e_ms"])]
         if self.diag is not None:
             d = self.diag
             out["fusion"] = {"received": d.received, "rejected": d.rejected, "gated": d.gated,

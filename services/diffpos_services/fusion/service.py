@@ -4,8 +4,15 @@ Zenoh's callbacks only put raw samples on a bounded queue (:class:`_Inbox`; a fu
 blocks Zenoh, which with congestion control BLOCK pushes back on the anchors instead of
 dropping); the main thread drains the queue, decodes, aligns, solves and publishes (no work
 on Zenoh's threads). Steps of :func:`run_fusion`: open the session -> declare publishers,
-the one subscriber and the liveliness token -> serve (wait, ingest, step, publish,
-diagnostics) until ``stop`` -> flush what is pending and undeclare.
+the one subscriber and the liveliness token -> serve (:class:`ServiceLoop`: wait, ingest,
+step, publish, diagnostics) until ``stop`` -> flush what is pending and undeclare.
+
+Timing (issue 16 item 2): each turn ingests for at most :data:`INGEST_BUDGET_S` (a backlog
+of any size never delays a solve step by more), solves a number of epochs that adapts to the
+measured solve cost (about :data:`SOLVE_BUDGET_S` per step, so ingesting and solving
+alternate every few ms instead of long ingests followed by huge solves), and stamps each
+estimate's ``t_pub_wall_ns`` just before it is handed to the bus, after its solve: the
+published and diagnosed latency is anchor publish -> fusion publish, solve included.
 """
 
 from __future__ import annotations
@@ -14,10 +21,11 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import msgspec
 import zenoh
 
 from diffpos_services.bus.session import ZenohSettings, open_session
@@ -27,10 +35,16 @@ from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
-__all__ = ["fusion_subscription", "run_fusion"]
+__all__ = ["ServiceLoop", "Turn", "fusion_subscription", "ingest_rest", "run_fusion",
+           "stamp_published"]
 
 _ACCOUNTED_BYTES = 2048  # samples above this size count against max_queued_bytes
-_DRAIN_BUDGET = 20_000  # samples ingested between two solve steps at most
+#: longest ingest between two solve steps [s]: a backlog never delays a solve by more
+INGEST_BUDGET_S = 0.005
+#: target duration of one solve step [s] (its epoch limit adapts to the measured cost)
+SOLVE_BUDGET_S = 0.02
+#: epochs a solve step may always take (the first step, before any cost is measured)
+MIN_STEP_EPOCHS = 64
 # queue items: (kind, key, value, receive wall time [ns])
 _DATA, _ALIVE, _OVERSIZED = 0, 1, 2
 
@@ -97,20 +111,19 @@ class _Endpoints:
     subs: list[Any]
     live_sub: Any
     token: Any
+    keys: Keys
     est_pubs: dict[str, Any]
 
-    def publish(self, core: FusionCore, estimates: Iterable[M.PositionEstimate]) -> None:
-        """Publish estimates, one publisher per node (declared on its first estimate)."""
-        for est in estimates:
-            pub = self.est_pubs.get(est.node_id)
-            if pub is None:
-                pub = self.est_pubs[est.node_id] = self.session.declare_publisher(
-                    core.keys.node_estimate(est.node_id),
-                    encoding=zenoh.Encoding.APPLICATION_JSON,
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                )
-            pub.put(M.encode(est))
-            core.published += 1
+    def put_estimate(self, est: Any) -> None:
+        """Publish one estimate on its node's publisher (declared on its first estimate)."""
+        pub = self.est_pubs.get(est.node_id)
+        if pub is None:
+            pub = self.est_pubs[est.node_id] = self.session.declare_publisher(
+                self.keys.node_estimate(est.node_id),
+                encoding=zenoh.Encoding.APPLICATION_JSON,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        pub.put(M.encode(est))
 
 
 def _declare(session: Any, keys: Keys, inbox: _Inbox) -> _Endpoints:
@@ -125,7 +138,7 @@ def _declare(session: Any, keys: Keys, inbox: _Inbox) -> _Endpoints:
         keys.alive_anchors(), inbox.on_alive, history=True
     )
     token = session.liveliness().declare_token(keys.alive_fusion())
-    return _Endpoints(session, diag_pub, subs, live_sub, token, {})
+    return _Endpoints(session, diag_pub, subs, live_sub, token, keys, {})
 
 
 def _ingest(core: FusionCore, inbox: _Inbox, item: tuple, log: logging.Logger) -> None:
@@ -149,23 +162,30 @@ def _ingest(core: FusionCore, inbox: _Inbox, item: tuple, log: logging.Logger) -
 
 
 def _drain(core: FusionCore, inbox: _Inbox, item: tuple | None, linger_s: float,
-           log: logging.Logger) -> None:
-    """Ingest ``item`` and what is queued after it (bounded, so solving and diagnostics
-    keep going). Epoch deadlines count from each sample's own ingestion, so neither a
-    backlog nor a long drain releases epochs before their queued ranges were seen."""
-    budget = _DRAIN_BUDGET
+           log: logging.Logger, until_ns: int) -> int:
+    """Ingest ``item`` and what is queued after it until the queue is empty or the
+    monotonic clock reaches ``until_ns`` (bounded in time, so a backlog never delays the
+    next solve step and the diagnostics by more than the ingest budget). Epoch deadlines
+    count from each sample's own ingestion, so neither a backlog nor a long drain releases
+    epochs before their queued ranges were seen. Returns the number of items ingested."""
+    n = 0
+    clock = time.monotonic_ns
     while item is not None:
         _ingest(core, inbox, item, log)
-        budget -= 1
+        n += 1
+        left_ns = until_ns - clock()
+        if left_ns <= 0:
+            break
         try:
-            item = inbox.q.get_nowait() if budget > 0 else None
+            item = inbox.q.get_nowait()
         except queue.Empty:
             # linger briefly: an anchor publishes its ranges to all nodes back to back, so
             # waiting ~1 ms batches them into one solve
             try:
-                item = inbox.q.get(timeout=linger_s) if budget > 0 else None
+                item = inbox.q.get(timeout=min(linger_s, left_ns * 1e-9))
             except queue.Empty:
                 item = None
+    return n
 
 
 def _next_item(core: FusionCore, inbox: _Inbox, next_diag: int) -> tuple | None:
@@ -181,39 +201,143 @@ def _next_item(core: FusionCore, inbox: _Inbox, next_diag: int) -> tuple | None:
         return None
 
 
+def stamp_published(core: FusionCore, estimates: list, put: Callable[[Any], None]) -> None:
+    """Publish ``estimates`` with ``put``, each stamped ``t_pub_wall_ns`` = the wall clock
+    just before it is handed to the bus (after its solve), and the core's latency record
+    rewritten to match: the published and diagnosed latency (anchor publish -> fusion
+    publish) includes the solve and the publishing of the estimates before it.
+
+    The core appends one latency per estimate with an input time, in order, stamped with
+    the step's start time; those entries are replaced by the after-solve ones.
+    """
+    lat = core.latencies_ns
+    for _ in range(min(sum(e.t_input_wall_ns > 0 for e in estimates), len(lat))):
+        lat.pop()
+    replace, now = msgspec.structs.replace, time.time_ns
+    for est in estimates:
+        est = replace(est, t_pub_wall_ns=now())
+        put(est)
+        core.published += 1
+        if est.t_input_wall_ns > 0:
+            lat.append(est.t_pub_wall_ns - est.t_input_wall_ns)
+
+
+def ingest_rest(core: FusionCore, inbox: _Inbox, unsubscribe: Callable[[], Any],
+                log: logging.Logger) -> int:
+    """At stop: ingest everything queued and everything Zenoh delivers until ``unsubscribe``
+    (run on a helper thread: a Zenoh callback blocked on the full queue must be able to
+    finish while the subscribers are undeclared) has returned, so nothing received is lost.
+    Returns the number of items ingested."""
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            unsubscribe()
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name="fusion-unsubscribe", daemon=True).start()
+    n = 0
+    while True:
+        try:
+            item = inbox.q.get(timeout=0.01) if not done.is_set() else inbox.q.get_nowait()
+        except queue.Empty:
+            if done.is_set():
+                return n
+            continue
+        _ingest(core, inbox, item, log)
+        n += 1
+
+
+@dataclass
+class Turn:
+    """What one turn of the service loop did (wall and monotonic times [ns])."""
+
+    ingested: int
+    published: int
+    ingest_ns: int  # time spent ingesting (monotonic)
+    solve_start_wall_ns: int
+    solve_end_wall_ns: int  # the solve step returned (before publishing)
+
+
+class ServiceLoop:
+    """The fusion's main-thread loop without the bus: wait, ingest (bounded in time), solve
+    (a number of epochs that adapts to the measured solve cost), publish, diagnostics.
+
+    Parameters
+    ----------
+    core : FusionCore
+    inbox : _Inbox
+        The queue Zenoh's callbacks fill.
+    put_estimate, put_diagnostics : callable
+        Hand one message to the bus (the service: its publishers).
+    ingest_budget_s : float [s]
+        Longest ingest between two solve steps.
+    solve_budget_s : float [s]
+        Target duration of one solve step: the step's epoch limit is this over the measured
+        cost per epoch (at least :data:`MIN_STEP_EPOCHS`, at most ``max_fixes_per_step``).
+    """
+
+    def __init__(self, core: FusionCore, inbox: _Inbox, put_estimate: Callable[[Any], None],
+                 put_diagnostics: Callable[[Any], None], log: logging.Logger, *,
+                 ingest_budget_s: float = INGEST_BUDGET_S,
+                 solve_budget_s: float = SOLVE_BUDGET_S) -> None:
+        self.core, self.inbox, self.log = core, inbox, log
+        self.put_estimate, self.put_diagnostics = put_estimate, put_diagnostics
+        self.ingest_budget_ns = round(ingest_budget_s * 1e9)
+        self.solve_budget_ns = round(solve_budget_s * 1e9)
+        self.period_ns = round(core.config.diagnostics_period_s * 1e9)
+        self.next_diag = time.time_ns() + self.period_ns
+        self.cost_ns: float | None = None  # solve cost per epoch (moving average) [ns]
+
+    def step_limit(self) -> int:
+        """Epochs the next solve step may take (adaptive, see the class docstring)."""
+        top = self.core.config.max_fixes_per_step
+        if self.cost_ns is None:
+            return min(MIN_STEP_EPOCHS, top)
+        return max(min(int(self.solve_budget_ns / max(self.cost_ns, 1.0)), top),
+                   min(MIN_STEP_EPOCHS, top))
+
+    def turn(self) -> Turn:
+        """Wait for input (at most until the next deadline or diagnostics), ingest for at
+        most the ingest budget, solve one step, publish, diagnostics when due."""
+        core = self.core
+        item = _next_item(core, self.inbox, self.next_diag)
+        t_in = time.monotonic_ns()
+        n_in = _drain(core, self.inbox, item, core.config.linger_s, self.log,
+                      t_in + self.ingest_budget_ns)
+        ingest_ns = time.monotonic_ns() - t_in
+        t_solve = time.time_ns()
+        out = core.step(t_solve, limit=self.step_limit())
+        t_done = time.time_ns()
+        if out:
+            per = (t_done - t_solve) / len(out)
+            self.cost_ns = per if self.cost_ns is None else 0.8 * self.cost_ns + 0.2 * per
+        stamp_published(core, out, self.put_estimate)
+        if t_done >= self.next_diag or core.changed:
+            self.put_diagnostics(core.diagnostics(t_done))
+            self.next_diag = t_done + self.period_ns
+        return Turn(n_in, len(out), ingest_ns, t_solve, t_done)
+
+
 def _serve(core: FusionCore, inbox: _Inbox, ends: _Endpoints, stop: threading.Event,
            log: logging.Logger) -> None:
-    """Wait, ingest, solve and publish until ``stop``; diagnostics every period and on
-    every liveliness change."""
-    config = core.config
-    period_ns = int(config.diagnostics_period_s * 1e9)
-    next_diag = time.time_ns() + period_ns
-    while not stop.is_set():
-        _drain(core, inbox, _next_item(core, inbox, next_diag), config.linger_s, log)
-        now = time.time_ns()
-        ends.publish(core, core.step(now, limit=config.max_fixes_per_step))
-        if now >= next_diag or core.changed:
-            ends.diag_pub.put(M.encode(core.diagnostics(now)))
-            next_diag = now + period_ns
-
-
-def _close(core: FusionCore, ends: _Endpoints, log: logging.Logger) -> None:
-    """Flush what is pending (nothing already received is lost), then undeclare."""
-    for est in core.flush(time.time_ns()):
-        ends.session.put(
-            core.keys.node_estimate(est.node_id),
-            M.encode(est),
-            encoding=zenoh.Encoding.APPLICATION_JSON,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        )
-        core.published += 1
-    ends.diag_pub.put(M.encode(core.diagnostics(time.time_ns())))
-    ends.token.undeclare()
-    ends.live_sub.undeclare()
-    for s in ends.subs:
-        s.undeclare()
-    log_event(log, logging.INFO, "fusion stopped", solved=core.solved,
-              published=core.published, rejected=dict(core.rejected))
+    """Turns of :class:`ServiceLoop` until ``stop``; then flush what is pending (nothing
+    already received is lost) and undeclare."""
+    loop = ServiceLoop(core, inbox, ends.put_estimate,
+                       lambda d: ends.diag_pub.put(M.encode(d)), log)
+    try:
+        while not stop.is_set():
+            loop.turn()
+    finally:
+        left = ingest_rest(core, inbox, lambda: [s.undeclare() for s in ends.subs], log)
+        stamp_published(core, core.flush(time.time_ns()), ends.put_estimate)
+        ends.diag_pub.put(M.encode(core.diagnostics(time.time_ns())))
+        ends.token.undeclare()
+        ends.live_sub.undeclare()
+        log_event(log, logging.INFO, "ingested the queue at stop", items=left)
+        log_event(log, logging.INFO, "fusion stopped", solved=core.solved,
+                  published=core.published, rejected=dict(core.rejected))
 
 
 def run_fusion(
@@ -243,8 +367,5 @@ def run_fusion(
                   subscriptions=[fusion_subscription(core.keys)])
         if on_ready is not None:
             on_ready()
-        try:
-            _serve(core, inbox, ends, stop, log)
-        finally:
-            _close(core, ends, log)
+        _serve(core, inbox, ends, stop, log)
     return core

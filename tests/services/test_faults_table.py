@@ -1,0 +1,84 @@
+"""scripts/faults_table.py: the fault table of docs/faults.md comes from injecting each fault
+into real runs, only the text between its markers changes, ``--check`` ignores measured
+numbers but not outcomes or exit codes, and the committed doc lists every case with tests
+that exist."""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "scripts" / "faults_table.py"
+DOC = ROOT / "docs" / "faults.md"
+
+
+def _script():
+    if "faults_table" in sys.modules:
+        return sys.modules["faults_table"]
+    spec = importlib.util.spec_from_file_location("faults_table", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def _rows(text: str, ft) -> list[str]:
+    section = text.split(ft.BEGIN, 1)[1].split(ft.END, 1)[0]
+    return [ln for ln in section.splitlines() if ln.startswith("| ") and "---" not in ln][1:]
+
+
+def test_committed_doc_has_a_row_for_every_case_naming_existing_tests():
+    """Adding a case without regenerating the doc fails here (cheap: nothing is run)."""
+    ft = _script()
+    rows = _rows(DOC.read_text(), ft)
+    assert [re.match(r"\| [^|]+ \| (.+?) \| exit ", r).group(1) for r in rows] == [
+        c.tried for c in ft.CASES]
+    assert all("**" not in r for r in rows), [r for r in rows if "**" in r]
+    for case in ft.CASES:
+        for test in case.test.split(" + "):
+            path, name = test.split("::")
+            tree = ast.parse((ROOT / path).read_text())
+            assert name in {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}, test
+
+
+def test_masking_keeps_exit_codes_and_words():
+    ft = _script()
+    a = "exit 3; fault reported: fusion died at 3.8 s (exit code -9); uav2 used in 100 % | 15.6"
+    b = "exit 3; fault reported: fusion died at 4.1 s (exit code -9); uav2 used in 97 % | 15.6"
+    assert ft.masked(a) == ft.masked(b)
+    assert ft.masked("exit -9; x") != ft.masked("exit 0; x")
+    assert ft.masked("no fix used uav9") != ft.masked("**2 fixes used uav9**")
+    assert ft.splice("# Doc\n", "BODY") == f"# Doc\n\n{ft.BEGIN}\nBODY\n{ft.END}\n"
+
+
+@pytest.mark.system
+def test_regenerating_one_case_rewrites_only_the_marked_table(tmp_path):
+    """The SIGHUP case run for real into a scratch doc: prose kept byte for byte, one row
+    describing what happened; ``--check`` against a fresh run passes (timings differ, words
+    and exit codes do not) and fails on a changed exit code."""
+    ft = _script()
+    doc = tmp_path / "faults.md"
+    before, after = "# Title\n\nprose | with a pipe\n\n", "\n\nmore prose\n"
+    doc.write_text(f"{before}{ft.BEGIN}\nstale row\n{ft.END}{after}")
+    cmd = [sys.executable, str(SCRIPT), "--doc", str(doc), "--only", "SIGHUP"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr
+    text = doc.read_text()
+    assert text.startswith(before + ft.BEGIN) and text.endswith(ft.END + after)
+    rows = _rows(text, ft)
+    assert len(rows) == 1 and "stale" not in text
+    assert rows[0].startswith("| 15.7 | SIGHUP to `emulate`")
+    assert "| exit 130; all 7 children gone " in rows[0], rows[0]
+    assert "recording complete (footer and index)" in rows[0]
+    check = subprocess.run([*cmd, "--check"], capture_output=True, timeout=600, check=False)
+    assert check.returncode == 0, check.stderr
+    doc.write_text(text.replace("exit 130", "exit 0"))
+    check = subprocess.run([*cmd, "--check"], capture_output=True, timeout=600, check=False)
+    assert check.returncode == 1
