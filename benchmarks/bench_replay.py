@@ -61,9 +61,12 @@ def child_replay(path: str, mode: str) -> dict:
     c = rep["compare"] or {}
     out = {
         "mode": mode,
-        "recording_s": rep["recording_s"],
+        # the run's length in emulated time (truth span): a lockstep recording's receive
+        # times span longer than the run
+        "recording_s": rep["truth_s"] or rep["recording_s"],
         "wall_s": wall,
-        "speed_x": rep["recording_s"] / wall if wall > 0 else None,
+        "cpu_s": time.process_time(),
+        "speed_x": (rep["truth_s"] or rep["recording_s"]) / wall if wall > 0 else None,
         "fixes": rep["fixes"]["total"],
         "live": c.get("live"),
         "only_live": c.get("only_live"),
@@ -129,8 +132,9 @@ def _fmt(v, spec: str = "") -> str:
 def _row(name: str, r: dict) -> str:
     ident = (f"{r['identical_positions']}/{r['with_positions']}"
              if r.get("with_positions") is not None else "-")
+    cpu_x = r["recording_s"] / r["cpu_s"] if r.get("cpu_s") else None
     return (f"{name:<34} {r['recording_s']:>8.1f} {r['wall_s']:>8.1f} "
-            f"{_fmt(r['speed_x'], '.2f'):>8} {r['fixes']:>8} {_fmt(r['status_agree'], '.4f'):>7} "
+            f"{_fmt(r['speed_x'], '.2f'):>8} {_fmt(cpu_x, '.2f'):>8} {r['fixes']:>8} {_fmt(r['status_agree'], '.4f'):>7} "
             f"{ident:>15} {_fmt(r['max_diff_m'], '.3g'):>9} {r['peak_rss_mb']:>8.0f}")
 
 

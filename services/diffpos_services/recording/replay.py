@@ -401,6 +401,8 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, co
         "step_ms": step_ms,
         "decisions": None if rec.decided is None else rec.decided.report,
         "recording_s": duration_s,
+        "truth_s": (None if rec.truth.first_t is None
+                    else (rec.truth.last_t - rec.truth.first_t) / 1e9),
         "messages": _messages_section(rec, core),
         "fixes": {"total": out.total, "by_status": dict(sorted(out.by_status.items()))},
         "nodes": sorted(nodes, key=natural_key),

@@ -105,6 +105,7 @@ class TruthBook:
         self.p: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
         self.f: dict[str, list[int]] = defaultdict(list)
         self.first_t: int | None = None
+        self.last_t: int | None = None
         self.period: int | None = None
         self._times: set[int] = set()
         self.samples = 0
@@ -113,6 +114,8 @@ class TruthBook:
         self.samples += 1
         if self.first_t is None or t < self.first_t:
             self.first_t = t
+        if self.last_t is None or t > self.last_t:
+            self.last_t = t
         if self.period is None:  # the spacing of the first samples (as the scorer had it)
             self._times.add(t)
             if len(self._times) >= 64:
