@@ -139,7 +139,7 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
 
             session.put(keys.run_control(), M.encode(rc), congestion_control=zenoh.CongestionControl.BLOCK)
             end_ns = t0 + rc.duration_ns
-            dec_e, dec_d = M.decoder(M.PositionEstimate), M.decoder(M.FusionDiagnostics)
+            dec_e, dec_d = M.estimate_decoder(), M.decoder(M.FusionDiagnostics)  # estimate v1 and v2
             lat_pub, lat_rx, seen = [], [], set()
             statuses: dict[str, int] = {}
             diag = None

@@ -202,7 +202,8 @@ def bench_read_floor(seconds: float, tmp: Path, *, range_batch: bool) -> dict:
     """What replay costs before any fusion work: read every message, track its sequence
     number, decode it with its schema (no fusion, no report)."""
     path = _recording(seconds, tmp, range_batch=range_batch)
-    decoders = {"estimate": M.decoder(M.PositionEstimate), "truth_node": M.decoder(M.GroundTruth),
+    decoders = {"estimate": M.estimate_decoder(),  # v1 and v2
+                "truth_node": M.decoder(M.GroundTruth),
                 "range_batch": M.decoder(M.RangeBatch), "range": M.decoder(M.RangeMeasurement),
                 "anchor_state": M.decoder(M.AnchorState)}
     best, n = float("inf"), 0

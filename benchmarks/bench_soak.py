@@ -193,7 +193,7 @@ def run_soak(
                         congestion_control=zenoh.CongestionControl.BLOCK)
             end_ns = t0 + rc.duration_ns
             e0 = t0 // PERIOD_NS
-            dec_e, dec_d = M.decoder(M.PositionEstimate), M.decoder(M.FusionDiagnostics)
+            dec_e, dec_d = M.estimate_decoder(), M.decoder(M.FusionDiagnostics)  # estimate v1 and v2
             lat_chunk: list[float] = []
             next_rss = time.monotonic()
             hard_end = time.monotonic() + duration_s + 60

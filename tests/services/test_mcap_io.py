@@ -303,7 +303,7 @@ def test_schema_registry_maps_every_bus_key():
         K.anchor_state("a"): "diffpos.anchor_state.v1",
         K.anchor_range("a", "n"): "diffpos.range.v1",
         K.node_estimate("n"): "diffpos.estimate.v2",  # the newest version of the key's schema
-        K.fusion_diagnostics(): "diffpos.fusion_diagnostics.v1",
+        K.fusion_diagnostics(): "diffpos.fusion_diagnostics.v2",
         K.truth_node("n"): "diffpos.truth.v1",
         K.truth_anchor("a"): "diffpos.truth.v1",
         K.run_control(): "diffpos.run_control.v1",

@@ -93,9 +93,9 @@ def test_accuracy_report_matches_brute_force_reference(rec):
         floor_ok.append(e.floor_index == f)
     acc = r.report["accuracy"]["overall"]
     assert acc["evaluated"] == len(errs) > 60
-    for p in (50, 90, 95):
-        assert acc["error_3d_m"][f"p{p}"] == pytest.approx(np.percentile(errs, p), rel=1e-9)
-        assert acc["error_z_m"][f"p{p}"] == pytest.approx(np.percentile(zerrs, p), rel=1e-9)
+    for p in (50, 90, 95):  # the report keeps errors as float32 (rounding 6e-8 relative)
+        assert acc["error_3d_m"][f"p{p}"] == pytest.approx(np.percentile(errs, p), rel=1e-7)
+        assert acc["error_z_m"][f"p{p}"] == pytest.approx(np.percentile(zerrs, p), rel=1e-7)
     assert acc["floor_accuracy"] == pytest.approx(np.mean(floor_ok))
     # and the fusion works on this data: sub-metre median with 10 cm ranging noise
     assert acc["error_3d_m"]["p50"] < 1.0

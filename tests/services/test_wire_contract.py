@@ -103,6 +103,23 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
                          t_pub_wall_ns=8),
         ],
         M.PositionEstimate: [est_ok, est_bad],
+        M.FusionDiagnosticsV1: [
+            M.FusionDiagnosticsV1(
+                t_wall_ns=1,
+                watermark_ns=None,
+                received={"range": 10, "anchor_state": 2},
+                rejected={"schema": 1},
+                gated=2,
+                solved=3,
+                published=3,
+                fixes_by_status={"OK": 3},
+                late_ranges=0,
+                pending_epochs=1,
+                live_anchors=["uav1"],
+                anchors=[M.AnchorHealth("uav1", True, 2, 10, 5, None)],
+                latency=M.LatencyStats(3, 1.0, 2.0, 2.5),
+            )
+        ],
         M.FusionDiagnostics: [
             M.FusionDiagnostics(
                 t_wall_ns=1,
@@ -118,7 +135,8 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
                 live_anchors=["uav1"],
                 anchors=[M.AnchorHealth("uav1", True, 2, 10, 5, None)],
                 latency=M.LatencyStats(3, 1.0, 2.0, 2.5),
-            )
+            ),
+            _diagnostics_v2(),
         ],
         M.GroundTruth: [
             M.GroundTruth(
@@ -179,6 +197,56 @@ GOLDEN_V2 = (
     b'{"anchor_id":"uav4","reason":"NOT_DETECTED"}],"message":"",'
     b'"t_input_wall_ns":1700000000101000000,"t_pub_wall_ns":1700000000102500000}'
 )
+
+
+def _diagnostics_v2() -> M.FusionDiagnostics:
+    """Diagnostics v2 with every new field set (the golden message)."""
+    return M.FusionDiagnostics(
+        t_wall_ns=1, watermark_ns=7, received={"range": 2}, rejected={}, gated=0, solved=1,
+        published=1, fixes_by_status={"OK": 1}, late_ranges=1, pending_epochs=0,
+        live_anchors=["uav1"], anchors=[M.AnchorHealth("uav1", True, 1, 2, 7, None)],
+        latency=M.LatencyStats(1, 1.0, 1.0, 1.0), late_by_anchor={"uav1": 1},
+        deadline_ns=300_000_000, max_lag_ns=3_000_000_000, lag_by_anchor={"uav1": 5},
+        releases={"complete": 1, "flush": 0},
+        decisions=M.DecisionChunk(chunk=0, keys=["diffpos/s/anchor/uav1/ranges", ""],
+                                  ops=[0, 4], refs=[0, 1], values=[123, -1],
+                                  wall_delta_ns=[10, 5], dropped=0))
+
+
+_DIAG_V2_GOLDEN = (
+    b'{"schema":"diffpos.fusion_diagnostics.v2","t_wall_ns":1,"watermark_ns":7,'
+    b'"received":{"range":2},"rejected":{},"gated":0,"solved":1,"published":1,'
+    b'"fixes_by_status":{"OK":1},"late_ranges":1,"pending_epochs":0,"live_anchors":["uav1"],'
+    b'"anchors":[{"anchor_id":"uav1","alive":true,"states":1,"ranges":2,"last_t_ns":7,'
+    b'"lost_wall_ns":null}],"latency":{"count":1,"p50_ms":1.0,"p99_ms":1.0,"max_ms":1.0},'
+    b'"late_by_anchor":{"uav1":1},"deadline_ns":300000000,"max_lag_ns":3000000000,'
+    b'"lag_by_anchor":{"uav1":5},"releases":{"complete":1,"flush":0},"decisions":{"chunk":0,'
+    b'"keys":["diffpos/s/anchor/uav1/ranges",""],"ops":[0,4],"refs":[0,1],"values":[123,-1],'
+    b'"wall_delta_ns":[10,5],"dropped":0}}'
+)
+
+
+def test_diagnostics_v2_golden_bytes_and_v1_still_decodes():
+    """Diagnostics v2 encodes to the golden bytes (valid against the checked-in v2 schema);
+    a v1 message (old recordings) decodes through the same decoder as v2 with the new fields
+    at their defaults, and the v1 schema file still validates it."""
+    d = _diagnostics_v2()
+    raw = M.encode(d)
+    assert raw == _DIAG_V2_GOLDEN
+    jsonschema.Draft202012Validator(json.loads(
+        (SCHEMA_DIR / "fusion_diagnostics.v2.json").read_text())).validate(json.loads(raw))
+    dec = M.decoder(M.FusionDiagnostics)
+    assert dec(raw) == d
+    old = _examples()[M.FusionDiagnosticsV1][0]
+    old_raw = M.encode(old)
+    jsonschema.Draft202012Validator(json.loads(
+        (SCHEMA_DIR / "fusion_diagnostics.v1.json").read_text())).validate(json.loads(old_raw))
+    up = dec(old_raw)
+    assert type(up) is M.FusionDiagnostics
+    assert all(getattr(up, f) == getattr(old, f) for f in old.__struct_fields__)
+    assert (up.late_by_anchor, up.releases, up.decisions, up.deadline_ns) == ({}, {}, None, None)
+    with pytest.raises(M.DecodeError):  # a v2 decoder still wants a diagnostics tag
+        dec(M.encode(_examples()[M.RunClock][0]))
 
 
 def test_estimate_v2_golden_bytes_and_both_versions_decode():
@@ -332,3 +400,15 @@ def test_fusion_inputs_never_include_truth():
     # and they do see what they need
     assert zenoh.KeyExpr(k.anchor_ranges()).intersects(zenoh.KeyExpr(k.anchor_range("uav1", "n1")))
     assert zenoh.KeyExpr(k.everything()).intersects(truth[0])
+
+
+def test_keys_of_every_message_type():
+    """Keys.of knows every published message type, estimate v2 and diagnostics v1 included."""
+    k = K.Keys("s")
+    ex = _examples()
+    assert k.of(_estimate_v2()) == k.node_estimate(_estimate_v2().node_id)
+    assert k.of(ex[M.PositionEstimate][0]) == k.node_estimate(ex[M.PositionEstimate][0].node_id)
+    assert k.of(ex[M.FusionDiagnosticsV1][0]) == k.of(_diagnostics_v2()) == k.fusion_diagnostics()
+    for kind in M.MESSAGE_TYPES:
+        for msg in ex[kind]:
+            assert K.parse_key(k.of(msg)) is not None, kind

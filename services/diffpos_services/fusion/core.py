@@ -33,6 +33,8 @@ from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
 from diffpos.estimators import FixStatus, GatingConfig
 from diffpos.geometry import window_edge_path
 from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.decisions import DecisionLog
+from diffpos_services.fusion.estimates_v1 import v1_estimates
 from diffpos_services.fusion.ingest import (
     AnchorStream,
     RejectLog,
@@ -43,10 +45,8 @@ from diffpos_services.fusion.ingest import (
     batch_all_good,
 )
 from diffpos_services.fusion.solve import (
-    GOOD_STATUS,
     Batch,
     Results,
-    exclusion_groups,
     gated_count,
     gather,
     prepare,
@@ -60,6 +60,8 @@ from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
 __all__ = ["FusionConfig", "FusionCore"]
 
 _STATUS_NAMES = {int(st): st.name for st in FixStatus}
+#: why an epoch was released (FusionDiagnostics.releases)
+RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
 
 
 class FusionCore:
@@ -69,9 +71,13 @@ class FusionCore:
     ----------
     config : FusionConfig
     logger : logging.Logger, optional
+    record_decisions : bool
+        Keep the decision record (:mod:`diffpos_services.fusion.decisions`), handed out with
+        every :meth:`diagnostics` (the live fusion; replay turns it off).
     """
 
-    def __init__(self, config: FusionConfig, *, logger: logging.Logger | None = None) -> None:
+    def __init__(self, config: FusionConfig, *, logger: logging.Logger | None = None,
+                 record_decisions: bool = True) -> None:
         self.config = config
         self.keys = Keys(config.site)
         self.align = config.alignment()
@@ -101,6 +107,8 @@ class FusionCore:
         self.published = 0
         self.seq = 0
         self.latencies_ns: collections.deque[int] = collections.deque(maxlen=4096)
+        self.releases: collections.Counter[str] = collections.Counter()
+        self.decisions = DecisionLog(200_000) if record_decisions else None
         self._dec_state = M.decoder(M.AnchorState)
         self._dec_range = M.decoder(M.RangeMeasurement)
         self._dec_batch = M.decoder(M.RangeBatch)
@@ -216,6 +224,8 @@ class FusionCore:
 
     def on_oversized(self, key: str, size: int) -> None:
         """Count a sample dropped for its size before it was even copied (see run_fusion)."""
+        if self.decisions is not None:
+            self.decisions.oversized(key, size)
         pk = parse_key(key)
         self.received[pk.kind if pk is not None else "other"] += 1
         src = f"anchor {pk.anchor_id}" if pk is not None and pk.anchor_id else "bus"
@@ -230,6 +240,8 @@ class FusionCore:
         are listed in docs/bad_input.md). A message is accepted or rejected as a whole, except
         the entries of a RangeBatch, which are checked one by one.
         """
+        if self.decisions is not None:
+            self.decisions.sample(key, payload, rx_wall_ns)
         pk = self._admit_key(key, len(payload))
         if pk is None:
             return
@@ -395,6 +407,8 @@ class FusionCore:
         after the anchor was lost starts a new stream (sequence numbers and clock reference
         are forgotten: the anchor restarted).
         """
+        if self.decisions is not None:
+            self.decisions.liveliness(anchor_id, alive, wall_ns)
         why = self._anchor_refused(anchor_id)
         if why is not None:
             self._reject(f"alive/anchor/{anchor_id}", why, "liveliness token ignored",
@@ -441,7 +455,13 @@ class FusionCore:
         With ``limit``, solve at most that many and keep the rest for the next call (the live
         service ingests in between after a stall, see :attr:`backlog`); without, all.
         """
-        self._ready.extend(self.book.ready(self.live_anchors, now_wall_ns))
+        live = self.live_anchors
+        released = self.book.ready(live, now_wall_ns)
+        if self.decisions is not None and (released or self._ready):
+            self.decisions.step(now_wall_ns, limit, len(released) + len(self._ready))
+        if released:
+            self._count_releases(released, live)
+        self._ready.extend(released)
         out: list[M.PositionEstimate] = []
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
         while todo > 0:
@@ -449,6 +469,25 @@ class FusionCore:
             out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns)
             todo -= n
         return out
+
+    def _count_releases(self, released: list[PendingEpoch], live: frozenset[str]) -> None:
+        """Why each released epoch was released (:data:`RELEASE_REASONS`)."""
+        period, tol = self.align.epoch_period_ns, self.align.clock_tolerance_ns
+        latest, closed = self.book.latest_t_ns, self.book.closed_upto
+        rel = self.releases
+        for pe in released:
+            missing = live - pe.ranges.keys()
+            if not missing:
+                rel["complete"] += 1
+                continue
+            end = (pe.epoch + 1) * period + tol
+            if len(pe.ranges) >= self.align.min_reports and all(
+                    latest.get(a, end - 1) >= end for a in missing):
+                rel["passed"] += 1
+            elif pe.epoch <= closed:
+                rel["watermark"] += 1
+            else:
+                rel["wall_fallback"] += 1
 
     @property
     def backlog(self) -> int:
@@ -463,6 +502,9 @@ class FusionCore:
         now_wall_ns : int [ns]
             Wall clock of the call (the estimates' ``t_pub_wall_ns``).
         """
+        if self.decisions is not None:
+            self.decisions.flush(now_wall_ns)
+        self.releases["flush"] += len(self.book.pending)
         self._ready.extend(sorted(self.book.pending.values(), key=lambda p: p.epoch))
         self.book.pending.clear()
         out: list[M.PositionEstimate] = []
@@ -492,10 +534,10 @@ class FusionCore:
                 epochs, batch, solved, {x.id for x in self.anchors.values() if not x.alive},
                 seq0=self.seq, now=int(now_wall_ns), method=self.method_name))
         res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
-        return self._to_messages(epochs, batch, res, int(now_wall_ns))
+        return v1_estimates(self, epochs, batch, res, int(now_wall_ns))
 
     def _count(self, batch: Batch, res: Results, out: list) -> list:
-        """Counters and latencies of the v2 estimates ``out`` of a batch (``_to_messages``
+        """Counters and latencies of the v2 estimates ``out`` of a batch (``v1_estimates``
         does the same for v1)."""
         self.gated += gated_count(batch, res)
         self.seq += len(out)
@@ -504,66 +546,11 @@ class FusionCore:
                                  if e.t_input_wall_ns > 0)
         return out
 
-    def _to_messages(self, epochs: list[PendingEpoch], batch: Batch, res: Results,
-                     now: int) -> list[M.PositionEstimate]:
-        """One :class:`PositionEstimate` per epoch; updates the counters, the node tracks of
-        good fixes and the latencies (numpy -> Python lists once, not per element)."""
-        cfg = self.config
-        self.gated += gated_count(batch, res)
-        lost = {x.id for x in self.anchors.values() if not x.alive}
-        group_l, shared = exclusion_groups(batch, res, lost)
-        floors = np.clip(np.floor((res.pos[:, 2] - cfg.first_floor_z_m) / cfg.floor_height_m),
-                         -1, cfg.n_floors)
-        status_l = res.status.tolist()
-        finite_pos = np.all(np.isfinite(res.pos), axis=1).tolist()
-        finite_cov = np.all(np.isfinite(res.cov), axis=(1, 2)).tolist()
-        pos_l, cov_l = res.pos.tolist(), res.cov.tolist()
-        peb_l, zb_l, floor_l = res.peb.tolist(), res.zb.tolist(), floors.tolist()
-        resid_l = np.where(np.isfinite(res.resid), res.resid, 0.0).tolist()
-        t_ref_l = batch.t_ref.tolist()
-        in_wall_l = np.where(batch.reported, batch.pub_wall, 0).max(axis=1).tolist()
-        self.by_status.update(_STATUS_NAMES[st] for st in status_l)
-        tracks = self.tracks
-        out = []
-        for i, (pe, gi) in enumerate(zip(epochs, group_l, strict=True)):
-            st = status_l[i]
-            used_idx, used_ids, excluded, all_used = shared[gi]
-            resid = resid_l[i] if all_used else [resid_l[i][j] for j in used_idx]
-            ok = st in GOOD_STATUS
-            if ok and finite_pos[i]:
-                pos = tuple(pos_l[i])
-                tracks[pe.node_id].update(t_ref_l[i], pos_l[i])
-                cov_t = tuple(map(tuple, cov_l[i])) if finite_cov[i] else None
-                fl = int(floor_l[i])
-            else:
-                pos, cov_t, fl = None, None, None
-            in_wall = in_wall_l[i]
-            self.seq += 1
-            estimate = M.PositionEstimate(
-                node_id=pe.node_id,
-                t_ns=t_ref_l[i],
-                epoch=pe.epoch,
-                seq=self.seq,
-                status=_STATUS_NAMES[st],
-                position_m=pos,
-                covariance_m2=cov_t,  # type: ignore[arg-type]
-                peb_m=M.finite_or_none(peb_l[i]) if ok else None,
-                z_bound_m=M.finite_or_none(zb_l[i]) if ok else None,
-                floor_index=fl,
-                used_anchors=list(used_ids),
-                residuals_m=resid,
-                excluded=list(excluded),
-                message=res.msg[i],
-                t_input_wall_ns=max(in_wall, 0),
-                t_pub_wall_ns=now,
-            )
-            if in_wall > 0:
-                self.latencies_ns.append(now - in_wall)
-            out.append(estimate)
-        return out
-
     # ------------------------------------------------------------------ diagnostics
     def diagnostics(self, now_wall_ns: int) -> M.FusionDiagnostics:
+        """Counters, why fixes were lost (late ranges per anchor, the release rule in force,
+        release reasons) and the decision record since the previous call (``decisions``:
+        handed out once, so call this only to publish it)."""
         lat = np.asarray(self.latencies_ns, dtype=np.float64) * 1e-6
         stats = M.LatencyStats(
             count=int(lat.size),
@@ -573,6 +560,8 @@ class FusionCore:
         )
         wm = [a.last_t_ns for a in self.anchors.values() if a.last_t_ns is not None]
         self.changed = False
+        book = self.book
+        lags = {a: q for a in sorted(self.anchors) if (q := book.lag_ns(a)) is not None}
         return M.FusionDiagnostics(
             t_wall_ns=now_wall_ns,
             watermark_ns=max(wm) if wm else None,
@@ -590,4 +579,10 @@ class FusionCore:
                 for a in sorted(self.anchors.values(), key=lambda x: x.id)
             ],
             latency=stats,
+            late_by_anchor=dict(sorted(book.late_by_anchor.items())),
+            deadline_ns=int(book.allowance_ns),
+            max_lag_ns=int(book.max_lag_ns),
+            lag_by_anchor=lags,
+            releases={r: self.releases[r] for r in RELEASE_REASONS},
+            decisions=None if self.decisions is None else self.decisions.take(),
         )

@@ -22,12 +22,11 @@ from __future__ import annotations
 import contextlib
 import gc
 import itertools
-import json
 import logging
 import time
-from collections import Counter, defaultdict
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,19 +36,14 @@ import numpy as np
 from diffpos_services.fusion.config import METHODS, FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.kit import ConfigError, build_config
+from diffpos_services.recording.decided import DecisionReplayer
 from diffpos_services.recording.errors import RecordingError
-from diffpos_services.recording.evaluate import (
-    TruthTracks,
-    compare_estimates,
-    evaluate,
-    gating_counts,
-    node_epoch_accuracy,
-)
 from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.reader import McapScanner, RawMessage, SideRecords, side_records
+from diffpos_services.recording.report_stream import Recorded
 from diffpos_services.recording.summary import attached_scenario, live_fusion_settings
 from diffpos_services.recording.synthetic import FUSION_INPUT_KINDS, quiet_logger
-from diffpos_services.recording.topics import SeqTracker, natural_key, parse_topic
+from diffpos_services.recording.topics import natural_key, parse_topic
 from diffpos_services.recording.writer import McapSink
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
@@ -63,8 +57,10 @@ __all__ = [
     "replay_settings",
 ]
 
-#: chunks read ahead for the settings (until the first anchor state)
+#: chunks read ahead for the settings (until the first anchor state and diagnostics)
 _READ_AHEAD_BATCHES = 64
+#: how far apart (recording time) a fix, its truth and its live/replayed twin may be
+_WINDOW_NS = 30_000_000_000
 
 
 # ----------------------------------------------------------------------------------------
@@ -128,19 +124,29 @@ class ReplaySettings:
 
 def read_ahead(
     scanner: McapScanner,
-) -> tuple[list[list[RawMessage]], Iterator[list[RawMessage]], RawMessage | None]:
-    """Read chunks until the first anchor state (at most 64): when the recording holds no
-    fusion settings, derived ones need the anchors' ranging rate. Returns the chunks read,
-    the rest, and the first anchor state."""
+) -> tuple[list[list[RawMessage]], Iterator[list[RawMessage]], RawMessage | None,
+           M.FusionDiagnostics | None]:
+    """Read chunks until the first anchor state and the first fusion diagnostics (at most 64
+    chunks): when the recording holds no fusion settings, derived ones need the anchors'
+    ranging rate; the diagnostics say whether the live fusion recorded its decisions.
+    Returns the chunks read, the rest, the first anchor state and the first diagnostics."""
     batches = scanner.iter_batches()
     ahead: list[list[RawMessage]] = []
-    first_state = None
+    first_state = first_diag = None
+    dec = M.decoder(M.FusionDiagnostics)
     for batch in batches:
         ahead.append(batch)
-        first_state = next((m for m in batch if parse_topic(m.topic)[0] == "anchor_state"), None)
-        if first_state is not None or len(ahead) >= _READ_AHEAD_BATCHES:
+        for m in batch:
+            kind = parse_topic(m.topic)[0]
+            if kind == "anchor_state" and first_state is None:
+                first_state = m
+            elif kind == "diagnostics" and first_diag is None:
+                with contextlib.suppress(M.DecodeError):
+                    first_diag = dec(m.data)
+        if (first_state is not None and first_diag is not None) or \
+                len(ahead) >= _READ_AHEAD_BATCHES:
             break
-    return ahead, batches, first_state
+    return ahead, batches, first_state, first_diag
 
 
 def recorded_site(scanner: McapScanner) -> str | None:
@@ -209,15 +215,18 @@ def replay_settings(
 
 
 class _Outputs:
-    """Where the replayed fixes go: a list (``t_pub_wall_ns`` = the recorded receive time of
-    the message after which the fix was computed) and, with ``out_mcap``, an MCAP file with
-    (a copy of the input and) the fixes on ``diffpos/<site>/replay/node/<id>/estimate``."""
+    """Where the replayed fixes go: the report's streams, with ``keep`` a list
+    (``t_pub_wall_ns`` = the time of the step that computed the fix: the recorded receive
+    time of the message after which it was computed, or the live fusion's step time when
+    replaying by its decision record) and, with ``out_mcap``, an MCAP file with (a copy of
+    the input and) the fixes on ``diffpos/<site>/replay/node/<id>/estimate``."""
 
     def __init__(self, out_mcap: str | Path | None, *, copy_input: bool, site: str,
-                 header: dict[str, Any], side: SideRecords) -> None:
-        self.estimates: list[M.PositionEstimate] = []
+                 header: dict[str, Any], side: SideRecords, rec: Recorded) -> None:
+        self.rec = rec
         self.keys = Keys(site)
         self.sink = None
+        self.count = 0
         if out_mcap is not None:  # the input's metadata and attachments first, then ours
             self.sink = McapSink(out_mcap, library="diffpos-replay")
             for md in side.metadata:
@@ -235,82 +244,45 @@ class _Outputs:
                             sequence=m.sequence)
 
     def emit(self, ests: list[M.PositionEstimate], now_ns: int) -> None:
+        rec = self.rec
         for e in ests:
-            e = msgspec.structs.replace(e, t_pub_wall_ns=now_ns)
-            self.estimates.append(e)
-            if self.sink is not None:
-                self.sink.write(self.keys.replay_estimate(e.node_id), M.encode(e), now_ns)
+            self.count += 1
+            if rec.keep is not None or self.sink is not None:
+                e = msgspec.structs.replace(e, t_pub_wall_ns=now_ns)
+                if rec.keep is not None:
+                    rec.keep[1].append(e)
+                if self.sink is not None:
+                    self.sink.write(self.keys.replay_estimate(e.node_id), M.encode(e), now_ns)
+            rec.replayed.add(e)
+            rec.compare.add(1, e, rec.t_last or 0)
 
     def close(self, final_metadata: dict[str, Any] | None = None) -> None:
         if self.sink is not None:
             self.sink.close(final_metadata=final_metadata)
 
 
-@dataclass
-class _Recorded:
-    """What the feed collects besides the fusion's input: truth, live fixes, counts."""
-
-    truth: dict[str, TruthTracks] = field(default_factory=lambda: defaultdict(TruthTracks))
-    live: list[M.PositionEstimate] = field(default_factory=list)
-    counts: Counter[str] = field(default_factory=Counter)
-    bad_payloads: Counter[str] = field(default_factory=Counter)
-    seq: SeqTracker = field(default_factory=SeqTracker)
-    t_first: int | None = None
-    t_last: int | None = None
-
-    _dec_est = staticmethod(M.estimate_decoder())  # v2, or v1 in older recordings
-    _dec_truth = staticmethod(M.decoder(M.GroundTruth))
-
-    @property
-    def fusion_inputs(self) -> int:
-        return sum(self.counts[k] for k in FUSION_INPUT_KINDS)
-
-    def take(self, kind: str, m: RawMessage, core: FusionCore) -> None:
-        """A recorded message that is not a fusion input: anchor liveliness (to the core),
-        node truth, live estimates."""
-        if kind == "liveliness":
-            try:
-                ev = json.loads(m.data)
-                if ev.get("role") == "anchor" and ev.get("id"):
-                    core.on_liveliness(str(ev["id"]), bool(ev["alive"]), m.log_ns)
-            except (ValueError, KeyError, TypeError, AttributeError):
-                self.bad_payloads[kind] += 1
-        elif kind == "truth_node":
-            try:
-                g = self._dec_truth(m.data)
-            except M.DecodeError:
-                self.bad_payloads[kind] += 1
-            else:
-                tr = self.truth[g.id]
-                tr.t_ns.append(g.t_ns)
-                tr.pos.append(g.position_m)
-                tr.floor.append(-999 if g.floor_index is None else g.floor_index)
-        elif kind == "estimate":
-            try:
-                self.live.append(self._dec_est(m.data))
-            except M.DecodeError:
-                self.bad_payloads[kind] += 1
-
-
 def _feed(
     core: FusionCore,
     batches: Iterable[list[RawMessage]],
     outputs: _Outputs,
+    rec: Recorded,
     *,
     step_ns: int,
     after_batch: Callable[[], None],
-) -> _Recorded:
-    """Every recorded message in file order into the core (fusion inputs) or the collector,
-    stepping the core each ``step_ns`` of receive time; then solve what is pending."""
-    rec = _Recorded()
-    kind_of: dict[int, str] = {}
-    counts, seq = rec.counts, rec.seq
+) -> Recorded:
+    """Every recorded message in file order into the core (fusion inputs; through the
+    decision record when there is one) or the collector, stepping the core each ``step_ns``
+    of receive time (without a decision record); then solve what is pending."""
+    kind_of: dict[int, tuple[str, str | None]] = {}
+    counts, seq, decided = rec.counts, rec.seq, rec.decided
     next_step = None
     for batch in batches:
         for m in batch:
-            kind = kind_of.get(m.channel_id)
-            if kind is None:
-                kind = kind_of[m.channel_id] = parse_topic(m.topic)[0]
+            kn = kind_of.get(m.channel_id)
+            if kn is None:
+                kind, fields = parse_topic(m.topic)
+                kn = kind_of[m.channel_id] = (kind, fields.get("node"))
+            kind = kn[0]
             counts[kind] += 1
             seq.add(m.topic, m.sequence)
             now = m.log_ns
@@ -319,19 +291,25 @@ def _feed(
             rec.t_last = now
             outputs.copy(m)
             if kind in FUSION_INPUT_KINDS:
+                if decided is not None:
+                    decided.add_input(m.topic, m.data, now)
+                    continue
                 core.on_sample(m.topic, m.data, now)
             else:
-                rec.take(kind, m, core)
-            if next_step is None or now >= next_step:
+                rec.take(kind, m, core, kn[1])
+            if decided is None and (next_step is None or now >= next_step):
                 outputs.emit(core.step(now), now)
                 next_step = now + step_ns
+        rec.advance(rec.t_last or 0)
         after_batch()
+    if decided is not None:
+        decided.finish()
     return rec
 
 
 def _drain(core: FusionCore, outputs: _Outputs, t_last_ns: int) -> None:
     """Solve what is pending (far past every deadline), then flush like the live service at
-    shutdown."""
+    shutdown (after a complete decision record: nothing is pending any more)."""
     outputs.emit(core.step(t_last_ns + 10**12), t_last_ns)
     outputs.emit(core.flush(t_last_ns), t_last_ns)
 
@@ -348,10 +326,10 @@ class ReplayResult:
     Attributes
     ----------
     estimates : list of PositionEstimate
-        Replayed fixes in the order produced (``t_pub_wall_ns`` = the recorded receive time
-        of the message after which the fix was computed, so the list is reproducible).
+        Replayed fixes in the order produced (``t_pub_wall_ns`` = the time of the step that
+        computed it, so the list is reproducible); empty unless ``keep_estimates``.
     live_estimates : list of PositionEstimate
-        The estimates recorded from the live fusion.
+        The estimates recorded from the live fusion (empty unless ``keep_estimates``).
     report : dict
         JSON-able report (see ``diffpos replay --help``); ``report["timing"]`` is the only
         part that changes between identical runs.
@@ -371,10 +349,10 @@ class ReplayResult:
 def _fewer_gc_passes() -> Iterator[None]:
     """Run the cyclic garbage collector less often for the duration (restored after).
 
-    A replay keeps every replayed and recorded estimate until the report (300,000 each for
-    10 minutes of 8 x 50 nodes at 10 Hz); they hold no reference cycles, but with the default
-    thresholds the collector traverses them again and again (measured: 17 % of a 2-minute
-    replay). Cycles are still collected, just in larger batches.
+    The feed allocates many short-lived objects (decoded messages, pending epochs) without
+    reference cycles; with the default thresholds the collector traverses the long-lived ones
+    again and again (measured: 17 % of a 2-minute replay when every estimate was kept).
+    Cycles are still collected, just in larger batches.
     """
     old = gc.get_threshold()
     gc.set_threshold(max(old[0], 100_000), max(old[1], 50), max(old[2], 1000))
@@ -384,7 +362,7 @@ def _fewer_gc_passes() -> Iterator[None]:
         gc.set_threshold(*old)
 
 
-def _messages_section(rec: _Recorded, core: FusionCore) -> dict[str, Any]:
+def _messages_section(rec: Recorded, core: FusionCore) -> dict[str, Any]:
     return {
         "by_kind": dict(sorted(rec.counts.items())),
         "total": sum(rec.counts.values()),
@@ -399,28 +377,17 @@ def _messages_section(rec: _Recorded, core: FusionCore) -> dict[str, Any]:
     }
 
 
-def _report(
-    path: str | Path,
-    scanner: McapScanner,
-    settings: ReplaySettings,
-    core: FusionCore,
-    rec: _Recorded,
-    out: list[M.PositionEstimate],
-    *,
-    step_ms: float,
-    max_truth_gap_s: float,
-    t_wall0: float,
-) -> ReplayResult:
+def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, core: FusionCore,
+            rec: Recorded, *, step_ms: float, t_wall0: float) -> ReplayResult:
     """Accuracy of the replayed (and recorded live) fixes, and the JSON report."""
-    gap_ns = round(max_truth_gap_s * 1e9)
-    accuracy, errs = evaluate(out, rec.truth, max_truth_gap_ns=gap_ns)
-    live = rec.live
-    live_accuracy, live_errs = (
-        evaluate(live, rec.truth, max_truth_gap_ns=gap_ns) if live else (None, {})
-    )
+    rec.advance(rec.t_last or 0, final=True)
+    out, live = rec.replayed, rec.live
+    accuracy, errs = out.accuracy()
+    live_accuracy, live_errs = live.accuracy() if live.total else (None, {})
     config = settings.config
     duration_s = ((rec.t_last or 0) - (rec.t_first or 0)) / 1e9
     wall = time.perf_counter() - t_wall0
+    nodes = set(out.fixes_by_node) | set(rec.truth.t)
     report: dict[str, Any] = {
         "file": str(path),
         "complete": scanner.complete,
@@ -432,35 +399,33 @@ def _report(
         "overrides": settings.overrides,
         "method": config.method,
         "step_ms": step_ms,
+        "decisions": None if rec.decided is None else rec.decided.report,
         "recording_s": duration_s,
+        "truth_s": (None if rec.truth.first_t is None
+                    else (rec.truth.last_t - rec.truth.first_t) / 1e9),
         "messages": _messages_section(rec, core),
-        "fixes": {
-            "total": len(out),
-            "by_status": dict(sorted(Counter(e.status for e in out).items())),
-        },
-        "nodes": sorted({e.node_id for e in out} | set(rec.truth), key=natural_key),
+        "fixes": {"total": out.total, "by_status": dict(sorted(out.by_status.items()))},
+        "nodes": sorted(nodes, key=natural_key),
         "anchors": sorted(core.anchors, key=natural_key),
         "accuracy": accuracy,
-        "node_epochs": node_epoch_accuracy(out, rec.truth),
-        "gating": gating_counts(out),
-        "live": None
-        if live_accuracy is None
-        else {
-            "fixes": len(live),
-            "by_status": dict(sorted(Counter(e.status for e in live).items())),
+        "node_epochs": out.node_epochs(),
+        "gating": out.gating(),
+        "live": None if live_accuracy is None else {
+            "fixes": live.total,
+            "by_status": dict(sorted(live.by_status.items())),
             "accuracy": live_accuracy,
-            "node_epochs": node_epoch_accuracy(live, rec.truth),
-            "gating": gating_counts(live),
+            "node_epochs": live.node_epochs(),
+            "gating": live.gating(),
         },
-        "compare": compare_estimates(live, out) if live else None,
+        "compare": rec.compare.result() if live.total else None,
         "timing": {
             "wall_s": wall,
             "speedup_x": (duration_s / wall) if wall > 0 and duration_s > 0 else None,
         },
     }
-    return ReplayResult(
-        estimates=out, live_estimates=live, report=report, errors=errs, live_errors=live_errs
-    )
+    kept = rec.keep or ([], [])
+    return ReplayResult(estimates=kept[1], live_estimates=kept[0], report=report,
+                        errors=errs, live_errors=live_errs)
 
 
 # ----------------------------------------------------------------------------------------
@@ -481,6 +446,8 @@ def replay(
     max_truth_gap_s: float = 0.5,
     progress: Callable[[int, int], None] | None = None,
     logger: logging.Logger | None = None,
+    keep_estimates: bool = True,
+    use_decisions: bool = True,
 ) -> ReplayResult:
     """Re-run the fusion on a recording.
 
@@ -508,6 +475,14 @@ def replay(
         ``progress(bytes_read, bytes_total)`` after each chunk.
     logger : logging.Logger, optional
         Logger handed to the fusion (default: a quiet one).
+    keep_estimates : bool
+        Also return every live and replayed estimate (``ReplayResult.estimates``; ~5 KB per
+        fix). Without, memory stays ~40 bytes per fix: the report is computed as a stream.
+    use_decisions : bool
+        Replay by the live fusion's decision record when the recording holds one (from its
+        first diagnostics on): the live run's ingest order, liveliness and step times, so the
+        fixes are the live ones bit for bit (``report["decisions"]`` counts what matched).
+        Without (or without a record) the recording's order and ``step_ms`` are used.
 
     Raises
     ------
@@ -521,24 +496,29 @@ def replay(
         check_output(out_mcap, option="out_mcap", inputs=[path])
     scanner = McapScanner(path)
     side = side_records(path)
-    ahead, rest, first_state = read_ahead(scanner)
+    ahead, rest, first_state, first_diag = read_ahead(scanner)
     settings = replay_settings(scanner, side=side, first_state=first_state, overrides=overrides,
                                method=method, use_recorded_settings=use_recorded_settings)
     if settings.warning:
         (logger or logging.getLogger("diffpos.replay")).warning("%s", settings.warning)
     with contextlib.ExitStack() as stack:
         tmp = None if out_mcap is None else stack.enter_context(atomic_path(out_mcap))
-        return _run(path, scanner, settings, ahead, rest, tmp, side=side, copy_input=copy_input,
-                    step_ms=step_ms, max_truth_gap_s=max_truth_gap_s, progress=progress,
-                    logger=logger, t_wall0=t_wall0)
+        decided = (use_decisions and first_diag is not None
+                   and first_diag.decisions is not None and first_diag.decisions.chunk == 0)
+        rec = Recorded(FUSION_INPUT_KINDS, max_truth_gap_ns=round(max_truth_gap_s * 1e9),
+                       keep_estimates=keep_estimates, window_ns=_WINDOW_NS)
+        return _run(path, scanner, settings, ahead, rest, tmp, rec, side=side,
+                    copy_input=copy_input, step_ms=step_ms, progress=progress, logger=logger,
+                    t_wall0=t_wall0, decided=decided)
 
 
-def _run(path, scanner, settings, ahead, rest, tmp, *, side, copy_input, step_ms,
-         max_truth_gap_s, progress, logger, t_wall0) -> ReplayResult:
+def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, step_ms,
+         progress, logger, t_wall0, decided) -> ReplayResult:
     """Steps 2-4 of :func:`replay` (``tmp``: where the output MCAP goes until complete)."""
     config = settings.config
-    core = FusionCore(config, logger=quiet_logger() if logger is None else logger)
-    outputs = _Outputs(tmp, copy_input=copy_input, site=config.site, side=side, header={
+    core = FusionCore(config, logger=quiet_logger() if logger is None else logger,
+                      record_decisions=False)
+    outputs = _Outputs(tmp, copy_input=copy_input, site=config.site, side=side, rec=rec, header={
         "source": str(path),
         "method": config.method,
         "step_ms": step_ms,
@@ -550,8 +530,10 @@ def _run(path, scanner, settings, ahead, rest, tmp, *, side, copy_input, step_ms
         if progress is not None:
             progress(scanner.offset, scanner.size_bytes)
 
-    rec = _feed(core, itertools.chain(ahead, rest), outputs,
-                step_ns=max(0, round(step_ms * 1e6)), after_batch=after_batch)
+    if decided:
+        rec.decided = DecisionReplayer(core, outputs.emit)
+    _feed(core, itertools.chain(ahead, rest), outputs, rec,
+          step_ns=max(0, round(step_ms * 1e6)), after_batch=after_batch)
     if rec.fusion_inputs == 0:
         outputs.close()
         raise RecordingError(
@@ -559,6 +541,5 @@ def _run(path, scanner, settings, ahead, rest, tmp, *, side, copy_input, step_ms
             "nothing to replay (is it a diffpos recording? see diffpos inspect)"
         )
     _drain(core, outputs, rec.t_last or 0)
-    outputs.close(final_metadata={"replayed_estimates": len(outputs.estimates)})
-    return _report(path, scanner, settings, core, rec, outputs.estimates, step_ms=step_ms,
-                   max_truth_gap_s=max_truth_gap_s, t_wall0=t_wall0)
+    outputs.close(final_metadata={"replayed_estimates": outputs.count})
+    return _report(path, scanner, settings, core, rec, step_ms=step_ms, t_wall0=t_wall0)

@@ -43,6 +43,7 @@ __all__ = [
     "keyed",
     "quiet_logger",
     "synthetic_run",
+    "write_late_recording",
     "write_synthetic_recording",
 ]
 
@@ -313,6 +314,74 @@ def write_synthetic_recording(
                     sink.write(keys.node_estimate(est.node_id), M.encode(est), rx + 50_000)
                     counts["estimate"] += 1
                 next_step = rx + step_ns
+    sink.close()
+    return dict(counts)
+
+
+def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
+                         late_ns: int = 500_000_000, step_ms: float = 5.0, seed: int = 0,
+                         **run_kw: Any) -> dict[str, int]:
+    """Like :func:`write_synthetic_recording`, but the live fusion receives in ITS order: a
+    seeded ``late_fraction`` of the anchors' epochs reaches it ``late_ns`` late (a loaded
+    machine; each anchor's messages stay in publish order), while the recorder gets every
+    message on time. The fusion publishes diagnostics (with its decision record) every second
+    of its time and flushes at the end, like the live service; so replay only reproduces the
+    live fixes by the record, not by the recorder's order.
+    """
+    run = synthetic_run(seed=seed, **run_kw)
+    keys, site = Keys(run.config.site), run.config.site
+    rng = np.random.default_rng(seed + 7919)
+    sink = McapSink(path, library="diffpos-synthetic")
+    sink.add_metadata("run", {"scenario": "synthetic-late", "site": site, **run_kw})
+    sink.add_metadata("fusion_config", msgspec.to_builtins(run.config))
+    core = FusionCore(run.config, logger=quiet_logger())
+    counts: Counter[str] = Counter()
+    t_alive = run.t0_ns - 10_000_000
+    for a in run.anchor_ids:
+        sink.write_liveliness(site, keys.alive_anchor(a), True, t_alive)
+        core.on_liveliness(a, True, t_alive)
+    queue: list[tuple[int, int, str, bytes]] = []  # the fusion's inbox: (rx, n, key, payload)
+    last_rx: dict[str, int] = {}
+    late: dict[tuple[str, int], bool] = {}
+    state = {"next_step": 0, "next_diag": run.t0_ns + 1_000_000_000, "n": 0}
+    period_ns = round(run.config.epoch_period_s * 1e9)
+
+    def fusion_until(t: int) -> None:
+        queue.sort()
+        while queue and queue[0][0] <= t:
+            rx, _, k, payload = queue.pop(0)
+            core.on_sample(k, payload, rx)
+            if rx >= state["next_step"]:
+                publish(core.step(rx), rx)
+                state["next_step"] = rx + round(step_ms * 1e6)
+            if rx >= state["next_diag"]:
+                sink.write(keys.fusion_diagnostics(), M.encode(core.diagnostics(rx)), rx + 1)
+                state["next_diag"] = rx + 1_000_000_000
+
+    def publish(ests: list, now: int) -> None:
+        for est in ests:
+            sink.write(keys.node_estimate(est.node_id), M.encode(est), now + 50_000)
+            counts["estimate"] += 1
+
+    for items in run.epochs:
+        for rx, k, payload in items:
+            sink.write(k, payload, rx)
+            kind, fields = parse_topic(k)
+            counts[kind] += 1
+            if kind in FUSION_INPUT_KINDS:
+                a = fields["anchor"]
+                slot = (a, rx // period_ns)
+                if slot not in late:
+                    late[slot] = bool(rng.random() < late_fraction)
+                frx = max(rx + (late_ns if late[slot] else 0), last_rx.get(a, 0) + 1)
+                last_rx[a] = frx
+                state["n"] += 1
+                queue.append((frx, state["n"], k, payload))
+            fusion_until(rx)
+    end = max([q[0] for q in queue], default=0) + late_ns
+    fusion_until(end)
+    publish(core.flush(end), end)
+    sink.write(keys.fusion_diagnostics(), M.encode(core.diagnostics(end)), end + 1)
     sink.close()
     return dict(counts)
 

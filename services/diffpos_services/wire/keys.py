@@ -190,11 +190,11 @@ class Keys:
             return self.anchor_range(msg.anchor_id, msg.node_id)
         if name == "RangeBatch":
             return self.anchor_range_batch(msg.anchor_id)
-        if name == "PositionEstimate":
+        if name in ("PositionEstimate", "PositionEstimateV2"):
             return self.node_estimate(msg.node_id)
         if name == "GroundTruth":
             return self.truth_node(msg.id) if msg.entity == "node" else self.truth_anchor(msg.id)
-        if name == "FusionDiagnostics":
+        if name in ("FusionDiagnostics", "FusionDiagnosticsV1"):
             return self.fusion_diagnostics()
         if name == "RunControl":
             return self.run_control()

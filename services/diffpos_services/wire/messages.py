@@ -25,9 +25,7 @@ from __future__ import annotations
 
 import inspect
 import json
-import math
 import re
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -37,6 +35,7 @@ from msgspec import Meta
 from diffpos_services.kit import DiffposError
 
 __all__ = [
+    "DECISION_OPS",
     "ESTIMATE_TYPES",
     "GOOD_STATUSES",
     "MESSAGE_TYPES",
@@ -44,9 +43,11 @@ __all__ = [
     "AnchorHealth",
     "AnchorLink",
     "AnchorState",
+    "DecisionChunk",
     "DecodeError",
     "Exclusion",
     "FusionDiagnostics",
+    "FusionDiagnosticsV1",
     "GroundTruth",
     "LatencyStats",
     "PositionEstimate",
@@ -66,81 +67,27 @@ __all__ = [
     "write_schemas",
 ]
 
-SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
-
-# ----------------------------------------------------------------------------- field types
-Id = Annotated[
-    str,
-    Meta(
-        # "(?!\n)": Python's "$" (msgspec, jsonschema) also matches before a final newline
-        pattern=r"^[A-Za-z0-9_][A-Za-z0-9_\-]{0,63}$(?!\n)",
-        description="Identifier, a single Zenoh key chunk (letters, digits, '_' and '-').",
-    ),
-]
-#: Every integer on the wire is a signed 64-bit value (MCAP, numpy): larger JSON integers are
-#: rejected by the decoder instead of overflowing later.
-INT64_MIN = -(2**63)
-INT64_MAX = 2**63 - 1
-TimeNs = Annotated[
-    int, Meta(ge=INT64_MIN, le=INT64_MAX, description="Time [ns] (integer nanoseconds).")
-]
-WallNs = Annotated[
-    int, Meta(ge=0, le=INT64_MAX, description="Host wall-clock time, time.time_ns() [ns].")
-]
-Seq = Annotated[
-    int, Meta(ge=0, le=INT64_MAX, description="Per-publisher sequence number, +1 per message.")
-]
-Vec3 = tuple[float, float, float]
-PosM = Annotated[Vec3, Meta(description="Position [x, y, z] in building coordinates [m].")]
-VelMS = Annotated[Vec3, Meta(description="Velocity [vx, vy, vz] in building coordinates [m/s].")]
-SigmaM3 = Annotated[
-    tuple[
-        Annotated[float, Meta(ge=0)],
-        Annotated[float, Meta(ge=0)],
-        Annotated[float, Meta(ge=0)],
-    ],
-    Meta(description="One-sigma uncertainty per axis [m] (x, y, z)."),
-]
-NonNeg = Annotated[float, Meta(ge=0)]
-Cov3 = Annotated[
-    tuple[Vec3, Vec3, Vec3],
-    Meta(description="3x3 covariance, row-major nested [[xx,xy,xz],[yx,yy,yz],[zx,zy,zz]] [m^2]."),
-]
-
-FixStatusName = Annotated[
-    str,
-    Meta(
-        description=(
-            "Fix status, the name of diffpos.estimators.FixStatus (e.g. OK, DEGRADED, "
-            "UNIDENTIFIABLE, NOT_CONVERGED, INSUFFICIENT)."
-        ),
-        pattern=r"^[A-Z][A-Z0-9_]*$(?!\n)",
-    ),
-]
-
-#: statuses of a track (``diffpos.tracking.TrackStatus`` names) in estimate v2
-TRACK_STATUSES = ("UNINITIALISED", "INITIALISING", "TRACKING", "COASTING", "LOST")
-#: statuses of an estimate whose position can be used: a good snapshot fix (``FixResult.ok``
-#: of the core, by name) or a track that publishes a position
-GOOD_STATUSES = frozenset({"OK", "OK_UNVERIFIED", "INITIALISING", "TRACKING", "COASTING"})
-
-
-def finite_or_none(value: float | None) -> float | None:
-    """``float(value)`` if finite, else ``None`` (JSON has no NaN/inf)."""
-    if value is None:
-        return None
-    v = float(value)
-    return v if math.isfinite(v) else None
-
-
-def vec3(values: Iterable[float]) -> Vec3:
-    """A plain ``(x, y, z)`` float tuple from any 3-sequence (numpy row, list)."""
-    x, y, z = (float(v) for v in values)
-    return (x, y, z)
-
-
-class _Msg(msgspec.Struct, frozen=True, gc=False, tag_field="schema", kw_only=True):
-    """Base of all bus messages (tagged with their ``schema`` name)."""
+from diffpos_services.wire.fields import (  # noqa: F401 (re-exported: M.Id, M.INT64_MAX, ...)
+    GOOD_STATUSES,
+    INT64_MAX,
+    INT64_MIN,
+    SCHEMA_DIALECT,
+    TRACK_STATUSES,
+    Cov3,
+    FixStatusName,
+    Id,
+    NonNeg,
+    PosM,
+    Seq,
+    SigmaM3,
+    TimeNs,
+    Vec3,
+    VelMS,
+    WallNs,
+    _Msg,
+    finite_or_none,
+    vec3,
+)
 
 
 # ----------------------------------------------------------------------------- messages
@@ -348,7 +295,9 @@ class AnchorHealth(msgspec.Struct, frozen=True, gc=False):
     lost_wall_ns: Annotated[int, Meta(ge=0, description="When the anchor was lost [ns].")] | None
 
 
-class FusionDiagnostics(_Msg, tag="diffpos.fusion_diagnostics.v1"):
+# what recordings made before FusionDiagnostics v2 hold (decoder() returns it as v2 with the
+# new fields at their defaults); its docstring is the v1 schema's description: unchanged
+class FusionDiagnosticsV1(_Msg, tag="diffpos.fusion_diagnostics.v1"):
     """Periodic counters of the fusion service (cumulative since start)."""
 
     t_wall_ns: WallNs
@@ -367,6 +316,66 @@ class FusionDiagnostics(_Msg, tag="diffpos.fusion_diagnostics.v1"):
     live_anchors: list[Id]
     anchors: list[AnchorHealth]
     latency: LatencyStats
+
+
+#: operation codes of :class:`DecisionChunk` (``ops``): sample, oversized, alive, lost, step,
+#: flush
+DECISION_OPS = (0, 1, 2, 3, 4, 5)
+
+
+class DecisionChunk(msgspec.Struct, frozen=True, gc=False):
+    """A part of the fusion's decision record (``diffpos_services.fusion.decisions``): its
+    state-changing calls in order, as columns. ``ops[i]``: 0 sample (``keys[refs[i]]`` is
+    the key, ``values[i]`` the CRC-32 of the payload, the wall time its receive time), 1
+    oversized sample (``values[i]`` its size), 2/3 anchor ``keys[refs[i]]`` alive/lost, 4
+    step (``values[i]`` its limit, -1 none), 5 flush. Wall times are deltas from the
+    previous event of the chunk (the first one absolute)."""
+
+    chunk: Annotated[int, Meta(ge=0, description=(
+        "Chunks with events before this one (a gap: a lost chunk).")) ]
+    keys: list[str]
+    ops: list[Annotated[int, Meta(ge=0, le=5)]]
+    refs: list[Annotated[int, Meta(ge=0)]]
+    values: list[int]
+    wall_delta_ns: list[int]
+    dropped: Annotated[int, Meta(ge=0, description="Events not recorded (record overflow).")]
+
+
+class FusionDiagnostics(_Msg, tag="diffpos.fusion_diagnostics.v2"):
+    """Periodic counters of the fusion service (cumulative since start), v2: v1 plus why fixes
+    were lost (late ranges per anchor, the release rule in force, how epochs were released)
+    and the fusion's decision record since the previous diagnostics (``decisions``: what
+    ``diffpos replay`` needs to make the live fusion's decisions again)."""
+
+    t_wall_ns: WallNs
+    watermark_ns: (
+        Annotated[int, Meta(description="Newest measurement time seen from any anchor [ns].")]
+        | None
+    )
+    received: Annotated[dict[str, int], Meta(description="Messages received per kind.")]
+    rejected: Annotated[dict[str, int], Meta(description="Messages rejected per reason.")]
+    gated: Annotated[int, Meta(ge=0, description="Measurements excluded by outlier gating.")]
+    solved: Annotated[int, Meta(ge=0, description="Fixes computed.")]
+    published: Annotated[int, Meta(ge=0, description="Estimates published.")]
+    fixes_by_status: dict[str, int]
+    late_ranges: Annotated[int, Meta(ge=0, description="Ranges for already-solved epochs.")]
+    pending_epochs: Annotated[int, Meta(ge=0)]
+    live_anchors: list[Id]
+    anchors: list[AnchorHealth]
+    latency: LatencyStats
+    late_by_anchor: Annotated[dict[str, int], Meta(description=(
+        "Ranges dropped as late (their epoch already released), per anchor."))] = {}  # noqa: RUF012
+    deadline_ns: Annotated[int, Meta(ge=0, description=(
+        "Lateness allowance in force: an epoch is released when the measurement watermark "
+        "passed its end by this much [ns]."))] | None = None
+    max_lag_ns: Annotated[int, Meta(ge=0, description=(
+        "Largest allowance (and the wall-clock fallback) [ns]."))] | None = None
+    lag_by_anchor: Annotated[dict[str, int], Meta(description=(
+        "Each anchor's largest recent lag behind the watermark [ns]."))] = {}  # noqa: RUF012
+    releases: Annotated[dict[str, int], Meta(description=(
+        "Epochs released per reason: complete (every live anchor reported), watermark "
+        "(closed by measurement time), wall_fallback (a wall-clock timeout), flush."))] = {}  # noqa: RUF012
+    decisions: DecisionChunk | None = None
 
 
 class GroundTruth(_Msg, tag="diffpos.truth.v1"):
@@ -417,11 +426,15 @@ MESSAGE_TYPES: dict[type[msgspec.Struct], str] = {
     RangeBatch: "range_batch.v1",
     PositionEstimate: "estimate.v1",
     PositionEstimateV2: "estimate.v2",
-    FusionDiagnostics: "fusion_diagnostics.v1",
+    FusionDiagnosticsV1: "fusion_diagnostics.v1",
+    FusionDiagnostics: "fusion_diagnostics.v2",
     GroundTruth: "truth.v1",
     RunControl: "run_control.v1",
     RunClock: "run_clock.v1",
 }
+
+#: older versions :func:`decoder` still reads (and returns as the newest): recordings
+_OLDER_VERSIONS: dict[type, tuple[type, ...]] = {FusionDiagnostics: (FusionDiagnosticsV1,)}
 
 _ENCODER = msgspec.json.Encoder()
 _AT_RE = re.compile(r"- at `([^`]*)`")
@@ -466,15 +479,33 @@ def decoder(kind: type[msgspec.Struct]):
     """A function ``bytes -> kind`` raising :class:`DecodeError` (reason ``json``/``schema``).
 
     It never raises anything else, whatever the bytes (fuzzed in ``tests/test_fuzz.py``).
-    Unknown extra fields are ignored (forward compatibility within a version).
+    Unknown extra fields are ignored (forward compatibility within a version). For
+    :class:`FusionDiagnostics` it also reads v1 (recordings made before v2) and returns it as
+    v2 with the new fields at their defaults.
     """
+    older = _OLDER_VERSIONS.get(kind, ())
     dec = _DECODERS.get(kind)
     if dec is None:
         # a tagged union (with a never-sent sentinel) makes msgspec require the ``schema`` tag:
         # decoding the struct alone would accept a message without one
         target = kind | _Untagged if issubclass(kind, _Msg) else kind
+        for old in older:
+            target = target | old
         dec = _DECODERS[kind] = msgspec.json.Decoder(target)
-    return _checked_decode(dec, (kind,))
+    if not older:
+        return _checked_decode(dec, (kind,))
+    checked = _checked_decode(dec, (kind, *older))
+
+    def decode_upgraded(payload: bytes | bytearray | memoryview) -> Any:
+        msg = checked(payload)
+        return msg if type(msg) is kind else _upgrade(kind, msg)
+
+    return decode_upgraded
+
+
+def _upgrade(kind: type[msgspec.Struct], msg: msgspec.Struct) -> Any:
+    """An older version of ``kind`` as ``kind`` (the fields it lacks at their defaults)."""
+    return kind(**{f: getattr(msg, f) for f in msg.__struct_fields__})
 
 
 def _checked_decode(dec: msgspec.json.Decoder, accepted: tuple[type, ...]):

@@ -1,0 +1,503 @@
+"""Replay's report as a stream: what each fix contributes is reduced as it comes.
+
+Before, ``diffpos replay`` kept every live and replayed estimate (~5 KB per fix: 511 MB for 3
+minutes of 8 x 50 nodes at 10 Hz) until the report. Here a fix is matched to the truth and to
+its live/replayed twin while the recording is read (both are local in recording time), and
+only what the scorer needs stays: per evaluated fix its 3D/z/horizontal error, PEB and floor
+check (float32), per node-epoch the error vector and the floors. About 40 bytes per fix and
+stream, so the memory still grows with the recording, 100x slower (benchmarks/bench_replay.py
+measures it). The numbers are those of :mod:`diffpos.metrics` (the one scorer) on these
+arrays; errors are kept as float32 (relative rounding 6e-8).
+
+Recorded estimates and truth are decoded into slim structs (only the fields the report reads,
+no per-message id regex: the ids are checked against the topic's).
+"""
+
+from __future__ import annotations
+
+import array
+import bisect
+import collections
+import dataclasses
+import heapq
+import itertools
+import json
+import math
+from collections import Counter, defaultdict
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from diffpos.metrics import ellipsoid_coverage, error_stats, percentiles, score
+from diffpos_services.recording.decided import DecisionReplayer
+from diffpos_services.recording.reader import RawMessage
+from diffpos_services.recording.topics import SeqTracker, natural_key
+from diffpos_services.wire import messages as M
+
+__all__ = ["Comparison", "FixStream", "Recorded", "SlimEstimate", "SlimTruth", "TruthBook",
+           "slim_decoders"]
+
+_NAN3 = (math.nan, math.nan, math.nan)
+_COV_BATCH = 4096
+
+
+class SlimExclusion(msgspec.Struct, frozen=True, gc=False):
+    anchor_id: str
+    reason: str
+
+
+class SlimEstimate(msgspec.Struct, frozen=True, gc=False):
+    """The fields of an estimate (v1 or v2) the report reads."""
+
+    schema: str
+    node_id: str
+    t_ns: int
+    epoch: int
+    status: str
+    position_m: tuple[float, float, float] | None = None
+    covariance_m2: tuple[tuple[float, float, float], tuple[float, float, float],
+                         tuple[float, float, float]] | None = None
+    peb_m: float | None = None
+    floor_index: int | None = None
+    used_anchors: list[str] = []
+    excluded: list[SlimExclusion] = []
+
+
+class SlimTruth(msgspec.Struct, frozen=True, gc=False):
+    schema: str
+    entity: str
+    id: str
+    t_ns: int
+    position_m: tuple[float, float, float]
+    floor_index: int | None = None
+
+
+_EST_TAGS = frozenset(t.__struct_config__.tag for t in M.ESTIMATE_TYPES)
+
+
+def slim_decoders():
+    """``(estimate, truth)`` decoders: bytes -> slim struct, ``ValueError`` on bad input
+    (malformed JSON, a wrong type, another message's schema tag)."""
+    de, dt = msgspec.json.Decoder(SlimEstimate), msgspec.json.Decoder(SlimTruth)
+
+    def estimate(data: bytes) -> SlimEstimate:
+        e = de.decode(data)
+        if e.schema not in _EST_TAGS:
+            raise ValueError(f"not an estimate: {e.schema!r}")
+        return e
+
+    def truth(data: bytes) -> SlimTruth:
+        g = dt.decode(data)
+        if g.schema != "diffpos.truth.v1":
+            raise ValueError(f"not ground truth: {g.schema!r}")
+        return g
+
+    return estimate, truth
+
+
+class TruthBook:
+    """Recorded truth per node, the last ``window_ns`` of it (plus the sampling period)."""
+
+    def __init__(self, window_ns: int) -> None:
+        self.window_ns = window_ns
+        self.t: dict[str, list[int]] = defaultdict(list)
+        self.p: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
+        self.f: dict[str, list[int]] = defaultdict(list)
+        self.first_t: int | None = None
+        self.last_t: int | None = None
+        self.period: int | None = None
+        self._times: set[int] = set()
+        self.samples = 0
+
+    def add(self, node: str, t: int, pos, floor: int) -> None:
+        self.samples += 1
+        if self.first_t is None or t < self.first_t:
+            self.first_t = t
+        if self.last_t is None or t > self.last_t:
+            self.last_t = t
+        if self.period is None:  # the spacing of the first samples (as the scorer had it)
+            self._times.add(t)
+            if len(self._times) >= 64:
+                ts = sorted(self._times)
+                self.period = min((b - a for a, b in itertools.pairwise(ts) if b > a),
+                                  default=None)
+                self._times = set()
+        ts = self.t[node]
+        if ts and t < ts[-1]:  # rare: out of order
+            i = bisect.bisect_right(ts, t)
+            ts.insert(i, t)
+            self.p[node].insert(i, tuple(pos))
+            self.f[node].insert(i, floor)
+        else:
+            ts.append(t)
+            self.p[node].append(tuple(pos))
+            self.f[node].append(floor)
+        if ts[-1] - ts[0] > 2 * self.window_ns:  # keep the last window
+            cut = bisect.bisect_left(ts, ts[-1] - self.window_ns)
+            del ts[:cut], self.p[node][:cut], self.f[node][:cut]
+
+    def finish_period(self) -> None:
+        if self.period is None and len(self._times) > 1:
+            ts = sorted(self._times)
+            self.period = min((b - a for a, b in itertools.pairwise(ts) if b > a),
+                              default=None)
+
+    def newest(self, node: str) -> int | None:
+        ts = self.t.get(node)
+        return ts[-1] if ts else None
+
+    def at(self, node: str, t: int, max_gap_ns: int):
+        """(position interpolated at t, floor of the nearest sample) or None (no sample
+        within ``max_gap_ns``): what :func:`..evaluate.evaluate` did over the whole track."""
+        ts = self.t.get(node)
+        if not ts:
+            return None
+        n = len(ts)
+        j = bisect.bisect_left(ts, t)
+        left, right = max(j - 1, 0), min(j, n - 1)
+        dl, dr = abs(t - ts[left]), abs(t - ts[right])
+        near = left if dl <= dr else right
+        if min(dl, dr) > max_gap_ns:
+            return None
+        ps = self.p[node]
+        if t <= ts[0]:
+            pos = ps[0]
+        elif t >= ts[-1]:
+            pos = ps[-1]
+        else:
+            t0, t1 = ts[j - 1], ts[j]
+            w = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+            a, b = ps[j - 1], ps[j]
+            pos = (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * (b[2] - a[2]))
+        return pos, self.f[node][near]
+
+
+@dataclasses.dataclass
+class _Errors:
+    node: array.array = dataclasses.field(default_factory=lambda: array.array("H"))
+    e3: array.array = dataclasses.field(default_factory=lambda: array.array("f"))
+    ez: array.array = dataclasses.field(default_factory=lambda: array.array("f"))
+    eh: array.array = dataclasses.field(default_factory=lambda: array.array("f"))
+    peb: array.array = dataclasses.field(default_factory=lambda: array.array("f"))
+    fok: array.array = dataclasses.field(default_factory=lambda: array.array("b"))
+
+
+class FixStream:
+    """One stream of fixes (the live or the replayed one) reduced for the report.
+
+    ``add`` a fix (any object with the estimate fields), ``advance`` with the recording time,
+    ``finish`` at the end, then :meth:`accuracy`, :meth:`node_epochs`, :meth:`gating`.
+    """
+
+    def __init__(self, truth: TruthBook, *, max_truth_gap_ns: int, window_ns: int,
+                 skip_s: float = 2.0) -> None:
+        self.truth = truth
+        self.gap = max_truth_gap_ns
+        self.window_ns = window_ns
+        self.skip_ns = round(skip_s * 1e9)
+        self.skip_s = skip_s
+        self.total = 0
+        self.by_status: Counter[str] = Counter()
+        self.fixes_by_node: Counter[str] = Counter()
+        self.used: Counter[str] = Counter()
+        self.excluded: dict[str, Counter[str]] = defaultdict(Counter)
+        self.no_truth = 0
+        self._nodes: dict[str, int] = {}
+        self._err = _Errors()
+        self._pending: dict[str, collections.deque] = defaultdict(collections.deque)
+        # node-epochs: good fixes by (node, slot) until their truth sample is scored
+        self._ne_fix: dict[tuple[str, int], tuple] = {}
+        self._unkeyed = False
+        self._ne_next: dict[str, int] = {}  # per node: next truth time to score
+        self._ne_d = array.array("f")
+        self._ne_ef = array.array("b")
+        self._ne_tf = array.array("b")
+        self._cov_d: list = []
+        self._cov_c: list = []
+        self._cov_in = 0
+        self._cov_ok = 0
+
+    def add(self, e: Any) -> None:
+        self.total += 1
+        self.by_status[e.status] += 1
+        self.fixes_by_node[e.node_id] += 1
+        self.used.update(e.used_anchors)
+        for x in e.excluded:
+            self.excluded[x.anchor_id][x.reason] += 1
+        if e.position_m is not None and e.status in M.GOOD_STATUSES:
+            fix = (e.t_ns, tuple(e.position_m), e.peb_m, e.floor_index, e.covariance_m2)
+            self._pending[e.node_id].append(fix)
+            self._ne_add(e.node_id, fix)
+
+    # -- per fix against the truth (evaluate) ----------------------------------------------
+    def _score_fix(self, node: str, fix: tuple) -> None:
+        t, pos, peb, floor, _ = fix
+        at = self.truth.at(node, t, self.gap)
+        if at is None:
+            self.no_truth += 1
+            return
+        tp, tf = at
+        dx, dy, dz = pos[0] - tp[0], pos[1] - tp[1], pos[2] - tp[2]
+        err = self._err
+        i = self._nodes.get(node)
+        if i is None:
+            i = self._nodes[node] = len(self._nodes)
+        err.node.append(i)
+        err.e3.append(math.sqrt(dx * dx + dy * dy + dz * dz))
+        err.ez.append(abs(dz))
+        err.eh.append(math.sqrt(dx * dx + dy * dy))
+        err.peb.append(math.nan if peb is None else peb)
+        err.fok.append((-999 if floor is None else floor) == tf)
+
+    # -- per node-epoch (node_epoch_accuracy) ----------------------------------------------
+    def _ne_add(self, node: str, fix: tuple) -> None:
+        period = self.truth.period
+        if period is None:  # not known yet: keyed by -t until it is (_ne_rekey)
+            self._ne_fix[(node, -fix[0])] = fix
+            self._unkeyed = True
+            return
+        self._ne_fix[(node, fix[0] // period)] = fix
+
+    def _ne_rekey(self) -> None:
+        period = self.truth.period
+        old = self._ne_fix
+        self._ne_fix = {}
+        for (node, k), fix in old.items():
+            self._ne_fix[(node, fix[0] // period if k < 0 else k)] = fix
+
+    def _ne_score(self, node: str, upto_t: int) -> None:
+        """Score the node's truth samples up to ``upto_t`` (older ones than the window)."""
+        tb = self.truth
+        period, start = tb.period, tb.first_t + self.skip_ns
+        ts, ps, fs = tb.t[node], tb.p[node], tb.f[node]
+        i = bisect.bisect_left(ts, max(self._ne_next.get(node, start), start))
+        while i < len(ts) and ts[i] <= upto_t:
+            t = ts[i]
+            fix = self._ne_fix.pop((node, t // period), None)
+            p = ps[i]
+            if fix is None:
+                self._ne_d.extend(_NAN3)
+                self._ne_ef.append(-1)
+            else:
+                fp = fix[1]
+                d = (fp[0] - p[0], fp[1] - p[1], fp[2] - p[2])
+                self._ne_d.extend(d)
+                self._ne_ef.append(-1 if fix[3] is None else fix[3])
+                if fix[4] is not None:
+                    self._cov_d.append(d)
+                    self._cov_c.append(fix[4])
+            self._ne_tf.append(fs[i])
+            i += 1
+            self._ne_next[node] = t + 1
+        if len(self._cov_d) >= _COV_BATCH:
+            self._coverage()
+
+    def _coverage(self) -> None:
+        if not self._cov_d:
+            return
+        d, c = np.array(self._cov_d, float), np.array(self._cov_c, float).reshape(-1, 3, 3)
+        ok = int((np.isfinite(d).all(axis=1) & np.isfinite(c).all(axis=(1, 2))).sum())
+        cov = ellipsoid_coverage(d, c)
+        if cov is not None:
+            self._cov_in += round(cov * ok)
+            self._cov_ok += ok
+        self._cov_d, self._cov_c = [], []
+
+    # -- time ------------------------------------------------------------------------------
+    def advance(self, now_ns: int, *, final: bool = False) -> None:
+        """Score what the truth now covers: fixes the node's truth has passed (or all, when
+        ``final``); node-epochs a window older than the node's newest truth."""
+        tb = self.truth
+        for node, q in self._pending.items():
+            newest = tb.newest(node)
+            while q and (final or (newest is not None and newest >= q[0][0])
+                         or now_ns - q[0][0] > self.window_ns):
+                self._score_fix(node, q.popleft())
+        if tb.period is None:
+            if not final:
+                return
+            tb.finish_period()
+            if tb.period is None:
+                return
+        if self._unkeyed:
+            self._ne_rekey()
+            self._unkeyed = False
+        for node in list(tb.t):
+            newest = tb.newest(node)
+            if newest is not None:
+                self._ne_score(node, newest if final else newest - self.window_ns // 2)
+        if final:
+            self._ne_fix.clear()
+            self._coverage()
+        elif len(self._ne_fix) > 64 * 1024:  # fixes whose node-epoch has no truth
+            horizon = (now_ns - 2 * self.window_ns) // tb.period
+            self._ne_fix = {k: v for k, v in self._ne_fix.items() if k[1] >= horizon}
+
+    # -- results ---------------------------------------------------------------------------
+    def accuracy(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """``evaluate``'s result: per node and overall error stats, and the overall arrays."""
+        err = self._err
+        node = np.frombuffer(err.node, np.uint16) if len(err.node) else np.empty(0, np.uint16)
+        cols = {k: np.asarray(getattr(err, k), np.float64) for k in ("e3", "ez", "eh", "peb")}
+        cols["fok"] = np.asarray(err.fok, bool)
+        per_node: dict[str, Any] = {}
+        for name in sorted(self.fixes_by_node, key=natural_key):
+            i = self._nodes.get(name)
+            sel = node == i if i is not None else np.zeros(node.shape, bool)
+            per_node[name] = error_stats(cols["e3"][sel], cols["ez"][sel], cols["eh"][sel],
+                                         cols["fok"][sel], cols["peb"][sel],
+                                         fixes=self.fixes_by_node[name])
+        overall = error_stats(cols["e3"], cols["ez"], cols["eh"], cols["fok"], cols["peb"],
+                              fixes=self.total)
+        overall["without_truth"] = self.no_truth
+        return {"overall": overall, "per_node": per_node}, cols
+
+    def node_epochs(self) -> dict[str, Any]:
+        """``node_epoch_accuracy``'s result (every node-epoch of the truth; a miss counts)."""
+        if not self._ne_tf:
+            return {}
+        d = np.asarray(self._ne_d, np.float64).reshape(-1, 3)
+        s = score(d, np.zeros_like(d), estimate_floor=np.asarray(self._ne_ef),
+                  truth_floor=np.asarray(self._ne_tf))
+        cover = self._cov_in / self._cov_ok if self._cov_ok else None
+        s = dataclasses.replace(s, ellipsoid_coverage=cover)
+        return s.as_dict() | {"skip_s": self.skip_s}
+
+    def gating(self) -> dict[str, Any]:
+        anchors = sorted(set(self.used) | set(self.excluded), key=natural_key)
+        return {a: {"used": self.used.get(a, 0),
+                    "excluded": dict(sorted(self.excluded[a].items()))} for a in anchors}
+
+
+class Comparison:
+    """Recorded-live vs replayed fixes matched on (node, epoch) as they come
+    (``compare_estimates``' result; unmatched ones older than the window are counted)."""
+
+    def __init__(self, window_ns: int) -> None:
+        self.window_ns = window_ns
+        self.sides: tuple[dict, dict] = ({}, {})
+        self.counts = Counter()
+        self.diffs = array.array("d")
+        self.identical = 0
+        self.peb_max: float | None = None
+        self.top: list[tuple[float, int, tuple]] = []
+        self._n = 0
+
+    def add(self, side: int, e: Any, now_ns: int) -> None:
+        """``side`` 0: live, 1: replayed."""
+        self.counts["live" if side == 0 else "replayed"] += 1
+        key = (e.node_id, e.epoch)
+        other = self.sides[1 - side].pop(key, None)
+        item = (e.status, e.position_m, e.peb_m, now_ns)
+        if other is None:
+            if self.sides[side].pop(key, None) is not None:  # a repeat: the last one counts
+                self.counts["only_live" if side == 0 else "only_replayed"] += 1
+            self.sides[side][key] = item
+            return
+        a, b = (item, other) if side == 0 else (other, item)
+        c = self.counts
+        c["matched"] += 1
+        c["status_same"] += a[0] == b[0]
+        if a[1] is not None and b[1] is not None:
+            pa, pb = a[1], b[1]
+            c["with_positions"] += 1
+            if tuple(pa) == tuple(pb):
+                self.identical += 1
+            else:
+                dist = math.dist(pa, pb)
+                self.diffs.append(dist)
+                self._n += 1
+                ex = (dist, -self._n, (key[0], key[1], a[0], b[0]))
+                (heapq.heappush if len(self.top) < 5 else heapq.heappushpop)(self.top, ex)
+            if a[2] is not None and b[2] is not None:
+                dp = abs(a[2] - b[2])
+                self.peb_max = dp if self.peb_max is None else max(self.peb_max, dp)
+
+    def expire(self, now_ns: int, *, final: bool = False) -> None:
+        for side, name in ((0, "only_live"), (1, "only_replayed")):
+            d = self.sides[side]
+            old = [k for k, v in d.items() if final or now_ns - v[3] > self.window_ns]
+            for k in old:
+                del d[k]
+            self.counts[name] += len(old)
+
+    def result(self) -> dict[str, Any]:
+        c = self.counts
+        n = c["matched"]
+        arr = np.concatenate([np.zeros(self.identical), np.asarray(self.diffs, float)])
+        return {
+            "live": c["live"], "replayed": c["replayed"], "matched": n,
+            "only_live": c["only_live"], "only_replayed": c["only_replayed"],
+            "status_agree": (c["status_same"] / n) if n else None,
+            "with_positions": c["with_positions"],
+            "identical_positions": self.identical,
+            "position_diff_m": percentiles(arr),
+            "peb_diff_m": self.peb_max,
+            "examples": [{"node": k[0], "epoch": k[1], "diff_m": dist, "live_status": k[2],
+                          "replayed_status": k[3]}
+                         for dist, _, k in sorted(self.top, reverse=True)],
+        }
+
+
+class Recorded:
+    """What replay's feed collects besides the fusion's input (``input_kinds``): truth, live
+    and replayed fixes (reduced as they come), their comparison, counts, the decision
+    replayer when there is a record; with ``keep_estimates`` also the estimates."""
+
+    def __init__(self, input_kinds: tuple[str, ...], *, max_truth_gap_ns: int,
+                 keep_estimates: bool, window_ns: int) -> None:
+        self.input_kinds = input_kinds
+        self.truth = TruthBook(window_ns)
+        kw = {"max_truth_gap_ns": max_truth_gap_ns, "window_ns": window_ns}
+        self.live, self.replayed = FixStream(self.truth, **kw), FixStream(self.truth, **kw)
+        self.compare = Comparison(window_ns)
+        self.keep: tuple[list, list] | None = ([], []) if keep_estimates else None
+        self.counts: Counter[str] = Counter()
+        self.bad_payloads: Counter[str] = Counter()
+        self.seq = SeqTracker()
+        self.t_first: int | None = None
+        self.t_last: int | None = None
+        self.decided: DecisionReplayer | None = None
+        self._dec_est, self._dec_truth = slim_decoders()
+        self._dec_full = M.estimate_decoder()
+        self._dec_diag = M.decoder(M.FusionDiagnostics)
+
+    @property
+    def fusion_inputs(self) -> int:
+        return sum(self.counts[k] for k in self.input_kinds)
+
+    def advance(self, now_ns: int, *, final: bool = False) -> None:
+        self.live.advance(now_ns, final=final)
+        self.replayed.advance(now_ns, final=final)
+        self.compare.expire(now_ns, final=final)
+
+    def take(self, kind: str, m: RawMessage, core: Any, node: str | None) -> None:
+        """A recorded message that is not a fusion input: anchor liveliness (to the core,
+        unless replaying by the decision record), node truth, live estimates, decisions."""
+        try:
+            if kind == "liveliness":
+                if self.decided is None:
+                    ev = json.loads(m.data)
+                    if ev.get("role") == "anchor" and ev.get("id"):
+                        core.on_liveliness(str(ev["id"]), bool(ev["alive"]), m.log_ns)
+            elif kind == "truth_node":
+                g = self._dec_truth(m.data)
+                if g.id != node:
+                    raise ValueError("id differs from the topic's")
+                self.truth.add(g.id, g.t_ns, g.position_m,
+                               -999 if g.floor_index is None else g.floor_index)
+            elif kind == "estimate":
+                e = self._dec_est(m.data)
+                if e.node_id != node:
+                    raise ValueError("node_id differs from the topic's")
+                if self.keep is not None:
+                    self.keep[0].append(self._dec_full(m.data))
+                self.live.add(e)
+                self.compare.add(0, e, m.log_ns)
+            elif kind == "diagnostics" and self.decided is not None:
+                d = self._dec_diag(m.data)
+                if d.decisions is not None:
+                    self.decided.add_chunk(d.decisions, m.log_ns)
+        except (ValueError, KeyError, TypeError, AttributeError, msgspec.DecodeError):
+            self.bad_payloads[kind] += 1
