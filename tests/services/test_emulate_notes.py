@@ -145,3 +145,15 @@ def test_end_to_end_latency_from_the_estimates_input_stamps():
         "end-to-end latency (anchor publish -> estimate received by emulate, solve included): "
         f"p50 7.0 ms, p99 {s['p99']:.1f} ms, max 40.0 ms over 5 estimates"]
     assert latency_notes(EndToEnd().stats_ms()) == []
+
+
+def test_fusion_notes_say_why_ranges_were_late():
+    """The diagnostics v2 fields (allowance, lags, release reasons) reach the summary's words."""
+    notes = fusion_notes(_diag(late_by_anchor={"uav2": 20, "uav1": 5}, deadline_ns=150_000_000,
+                               max_lag_ns=400_000_000, lag_by_anchor={"uav2": 380_000_000},
+                               releases={"watermark": 90, "wall_fallback": 10}))
+    assert notes[0] == ("fusion: 25 ranges arrived after their epoch was solved and were not "
+                        "used (by anchor: uav2 20, uav1 5); lateness allowance in force 150 ms, "
+                        "largest allowance 400 ms")
+    assert notes[1] == "fusion: anchors lagging behind the others (largest recent lag): uav2 380 ms"
+    assert notes[2].startswith("fusion: 10 of 100 epochs were released by the wall-clock fallback")

@@ -234,7 +234,9 @@ def run(args: argparse.Namespace) -> int:
             result = replay(src, overrides=overrides, method=args.method, step_ms=args.step_ms,
                             use_recorded_settings=not args.ignore_recorded_settings,
                             out_mcap=args.write_mcap, max_truth_gap_s=args.max_truth_gap,
-                            progress=progress)
+                            progress=progress,
+                            # the estimate lists only for the .rrd (bounded memory otherwise)
+                            keep_estimates=bool(args.rrd))
         finally:
             if bar is not None:
                 bar.stop()

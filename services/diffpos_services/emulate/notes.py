@@ -106,14 +106,23 @@ def fusion_notes(diag: M.FusionDiagnostics | None, t0_wall_ns: int | None = None
         by_anchor = getattr(diag, "late_by_anchor", None)
         if by_anchor:
             line += f" (by anchor: {_top(by_anchor)})"
-        extra = [f"{label} {v:g} {unit}" for label, name, unit in (
-            ("lateness allowance in force", "deadline_ms", "ms"),
-            ("lateness allowance in force", "allowance_ms", "ms"),
-            ("largest anchor lag", "max_lag_ms", "ms"))
+        extra = [f"{label} {v * 1e-6:.0f} ms" for label, name in (
+            ("lateness allowance in force", "deadline_ns"),
+            ("largest allowance", "max_lag_ns"))
             if isinstance(v := getattr(diag, name, None), int | float)]
         if extra:
             line += "; " + ", ".join(extra)
         notes.append(line)
+    lags = {k: v for k, v in (getattr(diag, "lag_by_anchor", None) or {}).items() if v}
+    if diag.late_ranges and lags:
+        worst = sorted(lags.items(), key=lambda kv: -kv[1])[:4]
+        notes.append("fusion: anchors lagging behind the others (largest recent lag): "
+                     + ", ".join(f"{k} {v * 1e-6:.0f} ms" for k, v in worst))
+    releases = {k: v for k, v in (getattr(diag, "releases", None) or {}).items() if v}
+    if releases.get("wall_fallback"):
+        notes.append(f"fusion: {releases['wall_fallback']} of {sum(releases.values())} epochs "
+                     "were released by the wall-clock fallback (an anchor's ranges never came "
+                     f"in time); releases by reason: {_top(releases)}")
     for a in diag.anchors:
         if not a.alive:
             when = ""

@@ -46,7 +46,7 @@ def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None
         (result.errors.get("ez"), f"|z|, replay ({method})", "C1", "-",
          result.report.get("node_epochs")),
     ]
-    if result.live_estimates:
+    if (result.report.get("live") or {}).get("fixes"):
         curves += [
             (result.live_errors.get("e3"), "3D, recorded live", "C0", "--", live_ne),
             (result.live_errors.get("ez"), "|z|, recorded live", "C1", "--", live_ne),
