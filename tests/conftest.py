@@ -35,6 +35,12 @@ def endpoint() -> str:
     return f"tcp/127.0.0.1:{free_tcp_port()}"
 
 
+#: environment variable every process a test starts (and their children) carries: the test's
+#: log dir, so a test can find its own processes among those of concurrent tests (xdist) and
+#: of other users of the machine
+TEST_RUN_ENV = "DIFFPOS_TEST_RUN"
+
+
 class ServiceProcesses:
     """Start and reap ``diffpos`` service processes for one test."""
 
@@ -44,7 +50,7 @@ class ServiceProcesses:
 
     def start(self, name: str, *argv: str) -> subprocess.Popen:
         log = open(self.log_dir / f"{name}.log", "wb")
-        env = dict(os.environ, DIFFPOS_LOG_FORMAT="text")
+        env = dict(os.environ, DIFFPOS_LOG_FORMAT="text", **{TEST_RUN_ENV: str(self.log_dir)})
         env.pop("DIFFPOS_ZENOH_CONFIG", None)  # hermetic: the test says which bus
         p = subprocess.Popen(
             [sys.executable, "-m", "diffpos_services.cli.main", *argv],
@@ -62,6 +68,21 @@ class ServiceProcesses:
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(self.procs[name].pid, sig)
+
+    def own_processes(self, needle: bytes = b"") -> list[int]:
+        """Pids of live processes this test started, directly or not (they inherit
+        :data:`TEST_RUN_ENV`), whose command line holds ``needle``. Concurrent tests' and other
+        users' processes are not counted (a scan of all of /proc fails under ``-n 2``)."""
+        tag = f"{TEST_RUN_ENV}={self.log_dir}".encode()
+        pids = []
+        for proc in Path("/proc").iterdir():
+            if not proc.name.isdigit():
+                continue
+            with contextlib.suppress(OSError):
+                if (tag in (proc / "environ").read_bytes().split(b"\0")
+                        and needle in (proc / "cmdline").read_bytes()):
+                    pids.append(int(proc.name))
+        return pids
 
     def check_running(self, ignore=()) -> None:
         """Raise (with its log) if a process other than those in ``ignore`` has exited."""
