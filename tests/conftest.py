@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
 import signal
 import subprocess
 import sys
+from collections import defaultdict
 from pathlib import Path
 
 import pytest
@@ -33,6 +35,12 @@ def endpoint() -> str:
     return f"tcp/127.0.0.1:{free_tcp_port()}"
 
 
+#: environment variable every process a test starts (and their children) carries: the test's
+#: log dir, so a test can find its own processes among those of concurrent tests (xdist) and
+#: of other users of the machine
+TEST_RUN_ENV = "DIFFPOS_TEST_RUN"
+
+
 class ServiceProcesses:
     """Start and reap ``diffpos`` service processes for one test."""
 
@@ -42,7 +50,7 @@ class ServiceProcesses:
 
     def start(self, name: str, *argv: str) -> subprocess.Popen:
         log = open(self.log_dir / f"{name}.log", "wb")
-        env = dict(os.environ, DIFFPOS_LOG_FORMAT="text")
+        env = dict(os.environ, DIFFPOS_LOG_FORMAT="text", **{TEST_RUN_ENV: str(self.log_dir)})
         env.pop("DIFFPOS_ZENOH_CONFIG", None)  # hermetic: the test says which bus
         p = subprocess.Popen(
             [sys.executable, "-m", "diffpos_services.cli.main", *argv],
@@ -60,6 +68,21 @@ class ServiceProcesses:
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(self.procs[name].pid, sig)
+
+    def own_processes(self, needle: bytes = b"") -> list[int]:
+        """Pids of live processes this test started, directly or not (they inherit
+        :data:`TEST_RUN_ENV`), whose command line holds ``needle``. Concurrent tests' and other
+        users' processes are not counted (a scan of all of /proc fails under ``-n 2``)."""
+        tag = f"{TEST_RUN_ENV}={self.log_dir}".encode()
+        pids = []
+        for proc in Path("/proc").iterdir():
+            if not proc.name.isdigit():
+                continue
+            with contextlib.suppress(OSError):
+                if (tag in (proc / "environ").read_bytes().split(b"\0")
+                        and needle in (proc / "cmdline").read_bytes()):
+                    pids.append(int(proc.name))
+        return pids
 
     def check_running(self, ignore=()) -> None:
         """Raise (with its log) if a process other than those in ``ignore`` has exited."""
@@ -104,3 +127,65 @@ def pytest_collection_modifyitems(config, items) -> None:
     for item in items:
         if _SYSTEM_DIR in Path(str(item.fspath)).resolve().parents:
             item.add_marker(pytest.mark.system)
+
+
+# --cpu-durations: on a shared machine wall-clock durations (--durations) mostly measure the
+# other jobs; CPU seconds of the test process and of the children it waited for (the
+# `diffpos ...` processes a test runs) are what a test costs. Works under xdist (the number
+# travels in the report's user_properties).
+
+def pytest_addoption(parser) -> None:
+    parser.addoption("--cpu-durations", type=int, default=None, metavar="N",
+                     help="show the N tests and test files using the most CPU time (test "
+                          "process + waited-for children, setup to teardown); 0 for all")
+
+
+def _cpu_s() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+_CPU_T0 = pytest.StashKey[float]()
+_CPU_KEY = "cpu_s"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item):
+    item.stash[_CPU_T0] = _cpu_s()
+    yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    if call.when == "teardown" and _CPU_T0 in item.stash:
+        item.user_properties.append((_CPU_KEY, _cpu_s() - item.stash[_CPU_T0]))
+    yield
+
+
+_cpu_by_test: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report) -> None:
+    if report.when == "teardown":
+        for key, value in report.user_properties:
+            if key == _CPU_KEY:
+                _cpu_by_test[report.nodeid] = value
+
+
+def pytest_terminal_summary(terminalreporter, config) -> None:
+    n = config.getoption("--cpu-durations")
+    if n is None or not _cpu_by_test:
+        return
+    tr = terminalreporter
+    ranked = sorted(_cpu_by_test.items(), key=lambda kv: -kv[1])
+    by_file: dict[str, float] = defaultdict(float)
+    for nodeid, cpu in ranked:
+        by_file[nodeid.split("::")[0]] += cpu
+    total = sum(by_file.values())
+    tr.write_sep("=", f"CPU seconds per test file (process + children; total {total:.1f} s)")
+    for path, cpu in sorted(by_file.items(), key=lambda kv: -kv[1])[:n or None]:
+        tr.write_line(f"{cpu:8.2f}  {path}")
+    tr.write_sep("=", "CPU seconds per test")
+    for nodeid, cpu in ranked[:n or None]:
+        tr.write_line(f"{cpu:8.2f}  {nodeid}")

@@ -102,26 +102,41 @@ def _reference(b, a: np.ndarray, n: np.ndarray, slot: int):
         starts.append(p @ m)
     u = np.concatenate(starts, axis=1)
 
-    eps2 = [1e-2]
-
-    def evaluate(u):
-        p = (base_full + u @ bfull.T).reshape(nb, k, 3)
+    def evaluate(u, a, n, base_full, eps2):
+        p = (base_full + u @ bfull.T).reshape(u.shape[0], k, 3)
         pts = np.concatenate([a[:, None], p, n[:, None]], axis=1)
         seg = np.diff(pts, axis=1)
         # smoothed segment length sqrt(|d|^2 + eps^2): the plain sum of norms has kinks where a
         # segment vanishes (e.g. the ground and facade points meeting at the wall's foot),
         # where Newton stalls; continuation eps^2 = 1e-2 -> 1e-6 -> 1e-12 -> 1e-20 (the last
         # changes a length by ~1e-20 m and leaves a kink's vanishing segment ~1e-8 m long)
-        ln = np.sqrt(np.einsum("...i,...i->...", seg, seg) + eps2[0])
+        ln = np.sqrt(np.einsum("...i,...i->...", seg, seg) + eps2[:, None])
         return pts, seg, ln
 
-    for it in range(200):
-        eps2[0] = 1e-2 if it < 20 else 1e-6 if it < 40 else 1e-12 if it < 60 else 1e-20
-        pts, seg, ln = evaluate(u)
+    # continuation, per row: a row moves to the next eps^2 when its gradient is below the
+    # stage's tolerance or after 20 Newton steps at that stage (200 steps in all at most). At
+    # the last stage a row is done when it is stationary (gradient below 1e-12) or stalled:
+    # 5 steps in a row that lower the cost by no more than rounding (1e-15 relative), as a
+    # minimiser stuck on a kink does (it cycles there; more steps change nothing). Rows are
+    # independent, so only the rows not yet done are iterated.
+    eps2_stages = np.array([1e-2, 1e-6, 1e-12, 1e-20])
+    g_tol = np.array([1e-6, 1e-9, 1e-12, 1e-12])
+    stage = np.zeros(nb, dtype=int)
+    steps_in_stage = np.zeros(nb, dtype=int)
+    stalled = np.zeros(nb, dtype=int)
+    g_max = np.full(nb, np.inf)
+    active = np.arange(nb)
+    for _it in range(200):
+        if active.size == 0:
+            break
+        ua, aa, na, ba = u[active], a[active], n[active], base_full[active]
+        eps2 = eps2_stages[stage[active]]
+        pts, seg, ln = evaluate(ua, aa, na, ba, eps2)
         f = ln.sum(axis=1)
         e = seg / ln[..., None]
-        g = np.zeros((nb, k, 3))
-        h = np.zeros((nb, 3 * k, 3 * k))
+        m = active.size
+        g = np.zeros((m, k, 3))
+        h = np.zeros((m, 3 * k, 3 * k))
         for i in range(k + 1):  # segment i joins point i and i+1 (0: anchor, k+1: node)
             hi_ = (np.eye(3) - e[:, i, :, None] * e[:, i, None, :]) / ln[:, i, None, None]
             if i >= 1:
@@ -133,27 +148,43 @@ def _reference(b, a: np.ndarray, n: np.ndarray, slot: int):
             if 1 <= i < k:
                 h[:, 3 * (i - 1):3 * i, 3 * i:3 * i + 3] -= hi_
                 h[:, 3 * i:3 * i + 3, 3 * (i - 1):3 * i] -= hi_
-        gu = g.reshape(nb, 3 * k) @ bfull
+        gu = g.reshape(m, 3 * k) @ bfull
+        g_max[active] = np.abs(gu).max(axis=1)
         # regularised Newton (mu = |g| / length): a segment's Hessian has no curvature along itself,
         # so the plain Hessian can be near-singular far from the solution
         mu = (np.linalg.norm(gu, axis=1) / f)[:, None, None] + 1e-15
         hu = bfull.T @ h @ bfull + mu * np.eye(dtot)
         step = -np.linalg.solve(hu, gu[..., None])[..., 0]
-        # backtracking line search on the Newton direction (the cost is convex)
-        alpha = np.ones(nb)
+        # backtracking line search on the Newton direction (the cost is convex), re-evaluating
+        # only the rows whose step was rejected
+        alpha = np.ones(m)
         f_ok = f + 1e-14 * f  # rounding: at the minimum a step may not decrease the cost
+        f_acc = f.copy()
+        bad = np.arange(m)
         for _ls in range(30):
-            f_new = evaluate(u + alpha[:, None] * step)[2].sum(axis=1)
-            bad = ~(f_new <= f_ok)
-            if not bad.any():
+            f_new = evaluate(ua[bad] + alpha[bad, None] * step[bad], aa[bad], na[bad], ba[bad],
+                             eps2[bad])[2].sum(axis=1)
+            ok = f_new <= f_ok[bad]
+            f_acc[bad[ok]] = f_new[ok]
+            if ok.all():
                 break
-            alpha = np.where(bad, 0.5 * alpha, alpha)
-        alpha = np.where(f_new <= f_ok, alpha, 0.0)
-        u = u + alpha[:, None] * step
-        g_max = np.abs(gu).max(axis=1)
-        if it >= 60 and np.all(g_max < 1e-12):
-            break
-    pts, seg, _ = evaluate(u)
+            bad = bad[~ok]
+            alpha[bad] *= 0.5
+        else:
+            alpha[bad] = 0.0
+        u[active] = ua + alpha[:, None] * step
+        # stage bookkeeping (the gradient is the one before this step, as a fixed point test)
+        st = stage[active]
+        steps_in_stage[active] += 1
+        conv = g_max[active] < g_tol[st]
+        last = st == len(eps2_stages) - 1
+        stalled[active] = np.where(last & (f_acc >= f - 1e-15 * f), stalled[active] + 1, 0)
+        finished = last & (conv | (stalled[active] >= 5))
+        advance = ~finished & (st < len(eps2_stages) - 1) & (conv | (steps_in_stage[active] >= 20))
+        stage[active[advance]] += 1
+        steps_in_stage[active[advance]] = 0
+        active = active[~finished]
+    pts, seg, _ = evaluate(u, a, n, base_full, np.zeros(nb))
     seg_len = np.linalg.norm(seg, axis=-1)
     length = seg_len.sum(axis=1)
     # a minimiser where two points meet (a segment of zero length) is a kink on a plane

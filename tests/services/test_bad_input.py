@@ -454,7 +454,9 @@ def test_scenario_ids_follow_the_wire_grammar(bad_id):
         _scenario(lambda d: d["anchors"][0].update(id=bad_id))
 
 
-def test_service_cli_config_errors_are_one_line_naming_the_field(tmp_path):
+def test_service_cli_config_errors_are_one_line_naming_the_field(tmp_path, capsys):
+    """Every case through the CLI's one error mapping (cli.main.main, in this process); the
+    first also as a real ``diffpos`` process (exit code and stderr as a user sees them)."""
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "x"\n[building]\nn_floors = 0\n[[anchors]]\nposition_m = [0, -5, 1]\n'
                    "[nodes.grid]\n")
@@ -466,8 +468,12 @@ def test_service_cli_config_errors_are_one_line_naming_the_field(tmp_path):
         (["fusion", "--scenario", str(tmp_path / "missing.toml")], "missing.toml"),
     ]
     for argv, needle in cases:
-        proc = subprocess.run([str(exe), *argv], capture_output=True, text=True, timeout=60,
-                              check=False, stdin=subprocess.DEVNULL)
-        assert proc.returncode == 2, (argv, proc.stderr)
-        assert needle in proc.stderr, (argv, proc.stderr)
-        assert "Traceback" not in proc.stderr
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert needle in err and err.count("\n") == 1 and "Traceback" not in err, (argv, err)
+    argv, needle = cases[0]
+    proc = subprocess.run([str(exe), *argv], capture_output=True, text=True, timeout=60,
+                          check=False, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 2, (argv, proc.stderr)
+    assert needle in proc.stderr, (argv, proc.stderr)
+    assert "Traceback" not in proc.stderr

@@ -7,6 +7,7 @@ Derandomised (fixed examples in CI, see ``settings``); raise ``max_examples`` lo
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -98,8 +99,8 @@ def test_decoder_accepts_exactly_what_the_schema_accepts(data):
     kind = data.draw(st.sampled_from(list(EXAMPLES)))
     doc = data.draw(_mutations(kind))
     raw = json.dumps(doc).encode()
-    schema = json.loads((SCHEMAS / M.schema_filename(kind)).read_text())
-    valid = jsonschema.Draft202012Validator(schema).is_valid(doc)
+    validator = _validator(M.schema_filename(kind))
+    valid = validator.is_valid(doc)
     try:
         msg = M.decoder(kind)(raw)
     except M.DecodeError as exc:
@@ -110,7 +111,15 @@ def test_decoder_accepts_exactly_what_the_schema_accepts(data):
         return
     assert valid, doc
     # and what was accepted encodes back to a schema-valid document
-    jsonschema.validate(json.loads(M.encode(msg)), schema)
+    validator.validate(json.loads(M.encode(msg)))
+
+
+@functools.cache
+def _validator(filename: str) -> jsonschema.Draft202012Validator:
+    """The checked-in schema's validator, built once (the schema itself checked once)."""
+    schema = json.loads((SCHEMAS / filename).read_text())
+    jsonschema.Draft202012Validator.check_schema(schema)
+    return jsonschema.Draft202012Validator(schema)
 
 
 def _has_integral_float(obj) -> bool:
@@ -194,7 +203,6 @@ def _reseq(payload: bytes) -> bytes:
 PROBLEM = {"anchors_m": [[-15, -20, 1], [0, -15, 0], [0, -7, 4], [15, -20, 1]],
            "ranges_m": [32.233, 23.711, 15.058, 30.315], "sigmas_m": 0.005,
            "window_height_m": 1.0}
-RESULT_SCHEMA = json.loads((SCHEMAS / "solve_result.v1.json").read_text())
 
 
 @settings(FUZZ, max_examples=50)
@@ -206,7 +214,7 @@ def test_solve_records_always_valid_json_results(changes):
     prob = _apply(PROBLEM, changes)
     (rec,) = solve_records([prob])
     text = json.dumps(rec, allow_nan=False)
-    jsonschema.validate(json.loads(text), RESULT_SCHEMA)
+    _validator("solve_result.v1.json").validate(json.loads(text))
     if rec["status"] == "invalid_input":
         assert rec["message"]
     elif rec["position_m"] is not None:
