@@ -170,7 +170,7 @@ def test_reproduce_cli_quick_and_arrivals_round_trip(tmp_path, capsys):
     from diffpos_services.cli.main import main
 
     out = tmp_path / "r"
-    rc = main(["reproduce", "--quick", "--quick-nodes", "200", "--no-progress", "--seed", "3",
+    rc = main(["reproduce", "--quick", "--quick-nodes", "50", "--no-progress", "--seed", "3",
                "--out", str(out)])
     assert rc == 0
     for f in ("summary.json", "summary.md", "first_arrival.npz", "cdf_3d_error.png",
