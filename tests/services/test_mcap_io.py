@@ -274,9 +274,16 @@ def test_foreign_and_broken_inputs_give_clear_errors(tmp_path, capsys):
     junk.write_bytes(b"hello, not an mcap file\n")
     with pytest.raises(RecordingError, match="not an MCAP file"):
         McapScanner(junk)
-    assert cli_main(["inspect", str(junk)]) == 2
+    assert cli_main(["inspect", str(junk)]) == 1  # foreign input: exit 1, as a foreign MCAP
     err = capsys.readouterr().err
     assert "not an MCAP file" in err and "Traceback" not in err
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    for verb in (["to-rerun", str(empty), "-o", str(tmp_path / "e.rrd")],
+                 ["replay", str(empty), "--no-files"], ["inspect", str(empty)]):
+        assert cli_main(verb) == 1, verb
+        assert "is empty (0 bytes)" in capsys.readouterr().err
+    assert not (tmp_path / "e.rrd").exists()
     assert cli_main(["recover", str(tmp_path / "missing.mcap")]) == 2
     assert "does not exist" in capsys.readouterr().err
     # a foreign MCAP: protobuf channel with an unknown topic, no diffpos keys at all

@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         s = summarize(args.file)
     except RecordingError as exc:
         print(f"diffpos inspect: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code  # 1 for a file that is not ours, 2 for a broken one
     except OSError as exc:
         print(f"diffpos inspect: {args.file}: {exc.strerror}", file=sys.stderr)
         return 2

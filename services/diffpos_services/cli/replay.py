@@ -242,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
                 bar.stop()
     except (RecordingError, ConfigError) as exc:
         print(f"diffpos replay: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code  # 1: not a diffpos recording; 2: broken input or options
     except OSError as exc:
         print(f"diffpos replay: {exc.filename or src}: {exc.strerror}", file=sys.stderr)
         return 2

@@ -17,9 +17,10 @@ class RecordingError(DiffposError):
 
 
 class ForeignRecordingError(RecordingError):
-    """A valid MCAP file that holds no diffpos channel (nothing of ours to convert or replay).
+    """Not a diffpos recording: an empty file, a file that is not MCAP, or a valid MCAP file
+    that holds no diffpos channel (nothing of ours to convert or replay).
 
-    Exit code 1: the file is readable, it is just not a diffpos recording.
+    Exit code 1: nothing is wrong with the command, the input is just not ours.
     """
 
     exit_code = 1

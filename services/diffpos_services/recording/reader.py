@@ -25,7 +25,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.decoder import DecoderFactory
 from mcap.records import Attachment, Metadata, Schema, Statistics
 
-from diffpos_services.recording.errors import RecordingError
+from diffpos_services.recording.errors import ForeignRecordingError, RecordingError
 from diffpos_services.recording.schemas import MESSAGE_ENCODING
 
 __all__ = [
@@ -171,8 +171,10 @@ class McapScanner:
             raise RecordingError(f"recording {self.path} does not exist (or is not a file)")
         with open(self.path, "rb") as f:
             head = f.read(8)
+        if not head:
+            raise ForeignRecordingError(f"{self.path} is empty (0 bytes): not a recording")
         if head != MCAP_MAGIC:
-            raise RecordingError(
+            raise ForeignRecordingError(
                 f"{self.path} is not an MCAP file (it does not start with the MCAP magic bytes)"
             )
         self.validate_crcs = validate_crcs
