@@ -159,7 +159,8 @@ class Emulate:
                 break
             if rec is None:
                 raise RuntimeError("emulate exited early: " + "".join(self.log[-5:]))
-            m = re.search(r"t=\s*([\d.]+)/", str(rec.get("status", "")))
+            # the status line's run time: "t 1.0/20 s" (older lines: "t=1.0/20")
+            m = re.search(r"\bt[= ]\s*([\d.]+)/", str(rec.get("status", "")))
             if m:
                 self.t_run = float(m.group(1))
             if pred(rec):
