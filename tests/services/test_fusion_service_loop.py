@@ -78,13 +78,17 @@ def test_a_backlog_never_delays_the_first_solve_beyond_the_ingest_budget():
     n_epochs = 1900  # 30,400 items
     core, inbox, loop, n, published, _, e0 = _loop(n_epochs)
     first = loop.turn()
-    assert first.published > 0, "no solve in the first turn"
     assert first.ingested < n / 4, first
     assert inbox.q.qsize() > n / 2
     turns = [first]
     while inbox.q.qsize() or core.backlog:
         turns.append(loop.turn())
         assert len(turns) < 100_000
+    # the first publication comes after a small part of the backlog was ingested (on an idle
+    # machine in the first turn; a descheduled turn may ingest too little to complete an
+    # epoch, so the check is on what was ingested before it, not on the turn count)
+    k = next(i for i, t in enumerate(turns) if t.published > 0)
+    assert sum(t.ingested for t in turns[: k + 1]) < n / 4, turns[: k + 1]
     # no turn drains the backlog at once: each ingest stops at the budget (plus one item;
     # 50 ms of slack for a loaded machine, still far below the ~1 s the whole backlog costs)
     assert max(t.ingested for t in turns) < n / 4
