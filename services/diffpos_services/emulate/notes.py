@@ -22,7 +22,7 @@ import numpy as np
 
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.summary import summarize
-from diffpos_services.recording.writer import part_path
+from diffpos_services.recording.writer import existing_parts
 from diffpos_services.wire import messages as M
 
 __all__ = ["foreign_notes", "fusion_notes", "loss_notes", "recording_notes"]
@@ -143,11 +143,7 @@ def recording_notes(recordings: Iterable[str | os.PathLike[str]],
     notes = []
     for rec in recordings:
         first = Path(rec)
-        parts = []
-        k = 0
-        while part_path(first, k).exists():
-            parts.append(part_path(first, k))
-            k += 1
+        parts = existing_parts(first)
         if not parts:
             notes.append(f"recording {first}: not written")
         elif len(parts) == 1:

@@ -27,7 +27,7 @@ from typing import Any
 
 from diffpos_services.kit import DiffposError, log_event
 from diffpos_services.recording.repair import recover
-from diffpos_services.recording.writer import part_path
+from diffpos_services.recording.writer import existing_parts
 
 __all__ = ["MAX_RESTARTS", "Fault", "Supervisor", "format_faults", "recover_in_place"]
 
@@ -69,11 +69,7 @@ def recover_in_place(path: str | os.PathLike[str]) -> str:
     """Recover a dead recorder's file set in place: its last part (the only one that can be
     truncated) is rewritten complete and indexed. Returns what was done, for the report."""
     first = Path(path)
-    parts = []
-    k = 0
-    while part_path(first, k).exists():
-        parts.append(part_path(first, k))
-        k += 1
+    parts = existing_parts(first)
     if not parts:
         return f"{first}: not written (the recorder died before its first message)"
     last = parts[-1]

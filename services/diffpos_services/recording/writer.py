@@ -31,7 +31,7 @@ from diffpos_services.recording.schemas import (
 from diffpos_services.recording.topics import SeqTracker
 from diffpos_services.wire.keys import Keys
 
-__all__ = ["COMPRESSION", "McapSink", "SinkStats", "SplitPolicy", "part_path"]
+__all__ = ["COMPRESSION", "McapSink", "SinkStats", "SplitPolicy", "existing_parts", "part_path"]
 
 #: ``compression`` option -> MCAP chunk compression
 COMPRESSION = {
@@ -79,6 +79,15 @@ def part_path(first: str | os.PathLike[str], index: int) -> Path:
     ``<stem>_<k:04d>.mcap`` next to it."""
     first = Path(first)
     return first if index == 0 else first.with_name(f"{first.stem}_{index:04d}{first.suffix}")
+
+
+def existing_parts(first: str | os.PathLike[str]) -> list[Path]:
+    """The parts of a split recording that exist on disk, in order (:func:`part_path` 0, 1,
+    ... up to the first missing one); empty if not even ``first`` was written."""
+    parts = []
+    while (p := part_path(first, len(parts))).exists():
+        parts.append(p)
+    return parts
 
 
 class _Stamp(msgspec.Struct):
