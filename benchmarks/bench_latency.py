@@ -79,7 +79,8 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
-def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, batch: bool = False) -> dict:
+def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, batch: bool = False,
+             profile: str | None = None) -> dict:
     site = f"bench{n_anchors}x{n_nodes}"
     keys = Keys(site)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
@@ -88,8 +89,9 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
     procs: list[subprocess.Popen] = []
 
     def start(name: str, *argv: str) -> subprocess.Popen:
+        prof = ["-m", "cProfile", "-o", profile] if profile and name == "fusion" else []
         with open(log_dir / f"{site}-{name}.log", "wb") as log:
-            p = subprocess.Popen([sys.executable, "-m", "diffpos_services.cli.main", *argv],
+            p = subprocess.Popen([sys.executable, *prof, "-m", "diffpos_services.cli.main", *argv],
                                  stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                  start_new_session=True, env=dict(os.environ, DIFFPOS_LOG_FORMAT="text"))
         procs.append(p)
@@ -124,7 +126,7 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
                 start(f"uav{j + 1}", "anchor", "--id", f"uav{j + 1}", "--site", site,
                       "--connect", endpoint, "--scenario", str(scen), "--wait-start",
                       "--channel", "ideal", "--seed", str(j), "--clock-offset-ms", "0.5",
-                      *(["--range-batch"] if batch else []))
+                      "--range-batch" if batch else "--no-range-batch")
             need = {keys.alive_anchor(f"uav{j + 1}") for j in range(n_anchors)} | {keys.alive_fusion()}
             deadline = time.monotonic() + 120
             with cv:
@@ -140,7 +142,7 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
             session.put(keys.run_control(), M.encode(rc), congestion_control=zenoh.CongestionControl.BLOCK)
             end_ns = t0 + rc.duration_ns
             dec_e, dec_d = M.estimate_decoder(), M.decoder(M.FusionDiagnostics)  # estimate v1 and v2
-            lat_pub, lat_rx, seen = [], [], set()
+            lat_pub, lat_rx, seen, lat_ep = [], [], set(), {}
             statuses: dict[str, int] = {}
             diag = None
             rss = []
@@ -162,6 +164,7 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
                     if e.t_input_wall_ns > 0:
                         lat_pub.append((e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6)
                         lat_rx.append((t_rx - e.t_input_wall_ns) * 1e-6)
+                        lat_ep[e.epoch] = max(lat_ep.get(e.epoch, 0.0), lat_pub[-1])
                 else:
                     diag = dec_d(val)
                     if diag.watermark_ns is not None and diag.watermark_ns >= end_ns - PERIOD_NS \
@@ -186,6 +189,8 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
         missing=len(want - seen), statuses=statuses,
         latency_fusion_ms={"p50": pct(lat_pub, 50), "p99": pct(lat_pub, 99), "max": max(lat_pub, default=None)},
         latency_e2e_ms={"p50": pct(lat_rx, 50), "p99": pct(lat_rx, 99), "max": max(lat_rx, default=None)},
+        worst_epochs_ms=sorted(((round(v, 1), int(k - e0)) for k, v in lat_ep.items()),
+                               reverse=True)[:5],
         fusion_rss_mb={"at_25pct": q1, "end": rs[-1] if rs else None, "max": max(rs, default=None)},
     )
     if diag is not None:
@@ -204,6 +209,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--range-batch", choices=["auto", "on", "off"], default="auto",
                     help="anchors publish one RangeBatch per epoch (auto: when nodes > 50)")
     ap.add_argument("--log-dir", metavar="DIR", help="keep the services' logs here")
+    ap.add_argument("--profile-fusion", metavar="FILE",
+                    help="run the fusion under cProfile, stats to FILE (last load; slows it)")
     args = ap.parse_args(argv)
     loads = args.load or ["4x10", "16x200"]
     out = []
@@ -213,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         for spec in loads:
             m, n = (int(v) for v in spec.lower().split("x"))
             batch = args.range_batch == "on" or (args.range_batch == "auto" and n > 50)
-            r = run_load(m, n, args.duration, log_dir, batch=batch)
+            r = run_load(m, n, args.duration, log_dir, batch=batch, profile=args.profile_fusion)
             out.append(r)
     hdr = f"{'load':>10} {'fixes':>12} {'fusion p50/p99 ms':>20} {'e2e p50/p99 ms':>18} {'ranges rx/sent':>16} {'RSS MB 25%/end':>16}"
     print(hdr)

@@ -6,7 +6,9 @@ noise at the ranging CRLB) and publishes, at --rate-hz, with congestion control 
 
   diffpos/<site>/anchor/<id>/state          its own navigation estimate (GNSS/baro noise)
   diffpos/<site>/anchor/<id>/range/<node>   one range per node (null when not detected)
-  diffpos/<site>/anchor/<id>/ranges         instead, with --range-batch: one message per epoch
+  diffpos/<site>/anchor/<id>/ranges         instead, one RangeBatch per epoch: by default when
+                                            the anchor ranges more than 8 nodes (--range-batch,
+                                            --no-range-batch force it)
 
 and declares the liveliness token diffpos/<site>/alive/anchor/<id>. Every time on the wire
 is the anchor's own clock (true time + --clock-offset-ms + jitter) in integer ns.
@@ -84,9 +86,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--range-batch",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="publish one RangeBatch per epoch on .../anchor/<id>/ranges instead of one "
-        "message per node (large deployments)",
+        "message per node (default: when the anchor ranges more than 8 nodes)",
     )
     parser.add_argument(
         "--wait-start",

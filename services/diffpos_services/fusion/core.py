@@ -24,13 +24,14 @@ from __future__ import annotations
 import collections
 import logging
 import math
+from itertools import repeat
 from typing import Any
 
 import numpy as np
 
 import diffpos.estimators as est  # module attribute lookup: tests count est.dnls calls
 from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
-from diffpos.estimators import FixStatus, GatingConfig
+from diffpos.estimators import GatingConfig
 from diffpos.geometry import window_edge_path
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.decisions import DecisionLog
@@ -59,7 +60,7 @@ from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
 
 __all__ = ["FusionConfig", "FusionCore"]
 
-_STATUS_NAMES = {int(st): st.name for st in FixStatus}
+_new_tuple = tuple.__new__
 #: why an epoch was released (FusionDiagnostics.releases)
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
 
@@ -358,16 +359,22 @@ class FusionCore:
                    rx_wall_ns: int) -> None:
         self.received["range"] += len(msg.node_ids)
         t, pw = msg.t_ns, msg.t_pub_wall_ns
-        rows = zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db, strict=True)
         if batch_all_good(self.config, msg, self._nodes, self._allowed_nodes):
             # the usual batch: every entry valid and every node known, so the per-entry checks
-            # would accept them all and no value is None (what _entry then does, inlined)
-            min_snr = self.config.min_snr_db
-            entries = [(nid, RangeEntry(t, r if min_snr is None or snr >= min_snr else None,
-                                        sg, snr, pw, rx_wall_ns)) for nid, r, sg, snr in rows]
+            # would accept them all and no value is None (what _entry then does, by columns)
+            min_snr, r_col, snr_col = self.config.min_snr_db, msg.range_m, msg.snr_db
+            if min_snr is not None and min(snr_col) < min_snr:
+                r_col = [r if snr >= min_snr else None for r, snr in zip(r_col, snr_col, strict=True)]
+            n = len(r_col)
+            # RangeEntry tuples built in C (the named tuple's __new__ costs 2 us per range)
+            entries = list(zip(msg.node_ids, map(
+                _new_tuple, repeat(RangeEntry, n),
+                zip(repeat(t, n), r_col, msg.sigma_m, snr_col, repeat(pw, n),
+                    repeat(rx_wall_ns, n), strict=True)), strict=True))
         else:
             entries = []
-            for nid, r, sg, snr in rows:
+            for nid, r, sg, snr in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db,
+                                       strict=True):
                 bad = bad_value(self.config, r, sg, snr)
                 if bad is None:
                     why = self._node_refused(nid)
@@ -442,6 +449,11 @@ class FusionCore:
             TrackBank(self.building).update(["warm-up"], anchors[None], r[None],
                                             np.full((1, 4), 0.1), np.ones((1, 4), bool),
                                             np.zeros(1, np.int64))
+
+    @property
+    def node_ids(self) -> set[str]:
+        """The nodes whose ranges were accepted so far (do not modify)."""
+        return self._nodes
 
     @property
     def live_anchors(self) -> frozenset[str]:
