@@ -8,6 +8,7 @@ published estimates are collected with the wall time they were handed over.
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 
@@ -138,3 +139,44 @@ def test_at_stop_everything_queued_or_still_delivered_is_ingested():
     got = ingest_rest(core, inbox, unsubscribe, LOG)
     assert got == queued + len(extra) and inbox.q.qsize() == 0
     assert sum(core.received.values()) + sum(core.rejected.values()) >= n
+
+
+def _fed_core(n_epochs: int, **overrides) -> FusionCore:
+    """A core that ingested ``n_epochs`` epochs (4 anchors x 3 nodes) without solving."""
+    core = FusionCore(fusion_config(**overrides))
+    inbox = _Inbox(core.config, threading.Event())
+    inbox.q = queue.Queue()  # unbounded: the whole run is queued at once
+    t0 = (time.time_ns() // PERIOD_NS - n_epochs - 10) * PERIOD_NS
+    _fill(inbox, n_epochs, seed=8, t0_ns=t0)
+    while not inbox.q.empty():
+        kind, key, val, rx = inbox.q.get_nowait()
+        if kind == _ALIVE:
+            core.on_liveliness(key.rsplit("/", 1)[-1], True, rx)
+        else:
+            core.on_sample(key, val, rx)
+    return core
+
+
+def test_a_fusion_slower_than_its_input_drops_old_epochs_and_counts_them():
+    """With max_backlog_s (the live fusion's setting), ready epochs more than that much older
+    than the newest ready one are dropped unsolved when a step cannot take them all, and
+    counted as rejected 'overloaded': bounded latency and memory, every node-epoch either
+    published or counted. Without the setting, or for a step without a limit (replay,
+    flush), nothing is dropped."""
+    n_epochs, nodes = 60, len(NODES)
+    core = _fed_core(n_epochs, max_backlog_s=1.0)  # 10 epochs at 10 Hz
+    out = []
+    while batch := core.step(time.time_ns(), limit=5):
+        out += batch
+    epochs = sorted({e.epoch for e in out})
+    assert len(epochs) == 11 and epochs[-1] - epochs[0] == 10
+    assert len(out) == 11 * nodes
+    assert core.rejected["overloaded"] + len(out) == n_epochs * nodes  # all released
+    assert core.backlog == 0
+    # the same input without the setting, and with it but no step limit: every epoch solved
+    for overrides, limit in (({}, 5), ({"max_backlog_s": 1.0}, None)):
+        c = _fed_core(n_epochs, **overrides)
+        got = []
+        while batch := c.step(time.time_ns(), limit=limit):
+            got += batch
+        assert len(got) == core.rejected["overloaded"] + len(out) and not c.rejected["overloaded"]

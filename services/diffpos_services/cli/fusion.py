@@ -43,7 +43,14 @@ import logging
 
 from diffpos_services.anchor.service import emulation_nodes
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
-from diffpos_services.fusion.config import DEFAULT_METHOD, EDGES, METHODS, FusionConfig, model_edge
+from diffpos_services.fusion.config import (
+    DEFAULT_METHOD,
+    EDGES,
+    LIVE_MAX_BACKLOG_S,
+    METHODS,
+    FusionConfig,
+    model_edge,
+)
 from diffpos_services.fusion.service import run_fusion
 from diffpos_services.kit import (
     ConfigError,
@@ -119,6 +126,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="only inflate sigmas for node motion within an epoch",
     )
     parser.add_argument(
+        "--max-backlog-s",
+        type=float,
+        default=LIVE_MAX_BACKLOG_S,
+        metavar="S",
+        help="when the fusion is slower than its input, drop ready epochs more than S "
+        "seconds older than the newest (counted as rejected 'overloaded'); 0: never drop "
+        f"(default {LIVE_MAX_BACKLOG_S:g})",
+    )
+    parser.add_argument(
         "--diagnostics-period-s",
         type=float,
         default=1.0,
@@ -141,6 +157,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         gating=not args.no_gating,
         motion_compensation=not args.no_motion_compensation,
         diagnostics_period_s=args.diagnostics_period_s,
+        max_backlog_s=getattr(args, "max_backlog_s", LIVE_MAX_BACKLOG_S) or None,
     )
     if args.window_height_m is not None:
         values["window_height_m"] = args.window_height_m

@@ -52,7 +52,12 @@ from diffpos_services.emulate.notes import (
 from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
 from diffpos_services.emulate.scoring import Scorer
 from diffpos_services.emulate.supervise import Supervisor, recover_in_place
-from diffpos_services.fusion.config import FusionConfig, channel_edge, model_edge
+from diffpos_services.fusion.config import (
+    LIVE_MAX_BACKLOG_S,
+    FusionConfig,
+    channel_edge,
+    model_edge,
+)
 from diffpos_services.kit import (
     STATUS,
     ConfigError,
@@ -281,6 +286,7 @@ class Emulation:
                                          anchors=list(self.anchor_ids),
                                          delta_m=self.o.delta_m,
                                          epoch_period_s=1.0 / self.o.rate_hz,
+                                         max_backlog_s=LIVE_MAX_BACKLOG_S,
                                          **({} if self.o.method is None
                                             else {"method": self.o.method}))
         edge, why = model_edge(edge, self.scenario)

@@ -112,6 +112,12 @@ def channel_edge(edge: str, channel: str) -> str:
     return "upper" if edge == "auto" and channel == "ideal" else edge
 
 
+#: ``max_backlog_s`` of the live fusion (``diffpos fusion``, ``diffpos emulate``) [s]: a
+#: stall shorter than this is worked off without loss; a fusion persistently slower than its
+#: input publishes epochs at most this old and counts the rest as ``overloaded``.
+LIVE_MAX_BACKLOG_S = 2.0
+
+
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
 
@@ -163,6 +169,13 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     max_queued_bytes: Annotated[int, Meta(ge=1 << 20)] = 32 << 20
     state_history_s: Annotated[float, Meta(gt=0, le=3600)] = 60.0
     max_fixes_per_step: Annotated[int, Meta(ge=1)] = 4096
+    max_backlog_s: Annotated[float, Meta(gt=0)] | None = None
+    """Steps with a ``limit`` (the live service): a ready epoch more than this much
+    measurement time older than the newest ready one is dropped unsolved (counted in
+    ``rejected["overloaded"]``), so a fusion slower than its input degrades to solving the
+    recent epochs with bounded latency and memory instead of an ever-growing backlog.
+    ``None`` (the struct's default: replay, tests): never drop. ``diffpos fusion`` and
+    ``diffpos emulate`` use :data:`LIVE_MAX_BACKLOG_S`."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     # ---- what is accepted (docs/bad_input.md)
     anchors: tuple[str, ...] | None = None

@@ -44,6 +44,7 @@ from diffpos_services.fusion.ingest import (
     bad_state,
     bad_value,
     batch_all_good,
+    count_releases,
 )
 from diffpos_services.fusion.solve import (
     Batch,
@@ -115,6 +116,8 @@ class FusionCore:
         self._dec_batch = M.decoder(M.RangeBatch)
         self.changed = False  # liveliness changed since the last diagnostics
         self._ready: collections.deque[PendingEpoch] = collections.deque()
+        self._max_backlog_epochs = (None if config.max_backlog_s is None else
+                                    math.ceil(config.max_backlog_s / config.epoch_period_s))
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
         self.model = (self.building, config.radio_model())
@@ -472,8 +475,10 @@ class FusionCore:
         if self.decisions is not None and (released or self._ready):
             self.decisions.step(now_wall_ns, limit, len(released) + len(self._ready))
         if released:
-            self._count_releases(released, live)
+            count_releases(self.book, released, live, self.releases)
         self._ready.extend(released)
+        if limit is not None and len(self._ready) > limit and self._max_backlog_epochs:
+            self._shed()
         out: list[M.PositionEstimate] = []
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
         while todo > 0:
@@ -482,24 +487,15 @@ class FusionCore:
             todo -= n
         return out
 
-    def _count_releases(self, released: list[PendingEpoch], live: frozenset[str]) -> None:
-        """Why each released epoch was released (:data:`RELEASE_REASONS`)."""
-        period, tol = self.align.epoch_period_ns, self.align.clock_tolerance_ns
-        latest, closed = self.book.latest_t_ns, self.book.closed_upto
-        rel = self.releases
-        for pe in released:
-            missing = live - pe.ranges.keys()
-            if not missing:
-                rel["complete"] += 1
-                continue
-            end = (pe.epoch + 1) * period + tol
-            if len(pe.ranges) >= self.align.min_reports and all(
-                    latest.get(a, end - 1) >= end for a in missing):
-                rel["passed"] += 1
-            elif pe.epoch <= closed:
-                rel["watermark"] += 1
-            else:
-                rel["wall_fallback"] += 1
+    def _shed(self) -> None:
+        """Drop the ready epochs older than ``max_backlog_s`` before the newest ready one
+        (the live fusion is slower than its input: see FusionConfig.max_backlog_s)."""
+        keep_from = max(pe.epoch for pe in self._ready) - self._max_backlog_epochs
+        if min(pe.epoch for pe in self._ready) < keep_from:
+            n = len(self._ready)
+            self._ready = collections.deque(pe for pe in self._ready if pe.epoch >= keep_from)
+            self.rejected["overloaded"] += n - len(self._ready)
+
 
     @property
     def backlog(self) -> int:

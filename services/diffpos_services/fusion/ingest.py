@@ -6,7 +6,8 @@
 - :class:`Track`: a node's last good fixes (warm start, velocity);
 - :func:`bad_value`, :func:`bad_state`, :func:`bad_batch`: ``(reason, detail)`` of an
   implausible range, anchor state or range batch, or ``None``; :func:`batch_all_good`: the
-  vectorised check that a whole range batch is plausible.
+  vectorised check that a whole range batch is plausible;
+- :func:`count_releases`: why each released epoch was released (diagnostics).
 """
 
 from __future__ import annotations
@@ -17,13 +18,13 @@ import math
 
 import numpy as np
 
-from diffpos.alignment import StateHistory
+from diffpos.alignment import EpochBook, PendingEpoch, StateHistory
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 
 __all__ = ["AnchorStream", "RejectLog", "Track", "bad_batch", "bad_state", "bad_value",
-           "batch_all_good"]
+           "batch_all_good", "count_releases"]
 
 
 class AnchorStream:
@@ -201,3 +202,26 @@ def batch_all_good(cfg: FusionConfig, msg: M.RangeBatch, nodes: set[str],
         & (sa.min() >= cfg.min_sigma_m) & (sa.max() <= cfg.max_sigma_m)
         & (na.min() >= -300.0) & (na.max() <= 300.0)
     )
+
+
+def count_releases(book: EpochBook, released: list[PendingEpoch], live: frozenset[str],
+                   rel: collections.Counter) -> None:
+    """Count in ``rel`` why each released epoch was released (``complete``: every live anchor
+    reported; ``passed``: the missing ones' clocks passed its end; ``watermark``;
+    ``wall_fallback``)."""
+    align = book.config
+    period, tol = align.epoch_period_ns, align.clock_tolerance_ns
+    latest, closed = book.latest_t_ns, book.closed_upto
+    for pe in released:
+        missing = live - pe.ranges.keys()
+        if not missing:
+            rel["complete"] += 1
+            continue
+        end = (pe.epoch + 1) * period + tol
+        if len(pe.ranges) >= align.min_reports and all(
+                latest.get(a, end - 1) >= end for a in missing):
+            rel["passed"] += 1
+        elif pe.epoch <= closed:
+            rel["watermark"] += 1
+        else:
+            rel["wall_fallback"] += 1
