@@ -494,6 +494,10 @@ class EpochBook:
         self.closed_upto = _NEVER
         self._lags: dict[str, collections.deque[int]] = {}
         self._lag_new = 0
+        self._adds = 0  # ranges added (a change of the pending epochs' contents)
+        # (state, live anchors, wall time before which nothing can time out) of the last
+        # ready() call that released nothing: the same state releases nothing until then
+        self._idle: tuple | None = None
 
     def add(self, anchor_id: str, node_id: str, entry: RangeEntry) -> bool:
         """Add a range; False (and ``late`` += 1) if its epoch was already solved."""
@@ -511,6 +515,7 @@ class EpochBook:
         if anchor_id in pe.ranges:
             self.replaced += 1
         pe.ranges[anchor_id] = entry
+        self._adds += 1
         return True
 
     def add_many(self, anchor_id: str, t_ns: int, entries: list[tuple[str, RangeEntry]]) -> int:
@@ -533,6 +538,7 @@ class EpochBook:
                 self.replaced += 1
             pe.ranges[anchor_id] = entry
         if entries:
+            self._adds += 1
             self._note_rx(entries[-1][1].rx_wall_ns)
         if late:
             self.late += late
@@ -638,6 +644,11 @@ class EpochBook:
         blocked: set[str] = set()
         if not self.pending:
             return out
+        state = self._state()
+        idle = self._idle
+        if idle is not None and idle[0] == state and now_wall_ns < idle[2] and (
+                idle[1] is live_anchors or idle[1] == live_anchors):
+            return out  # nothing changed and nothing can have timed out since (cheap no-op)
         timed_out = self._timed_out(now_wall_ns)
         t_c = self.consensus_t_ns(live_anchors)
         horizon = None if t_c is None else (t_c + cfg.max_future_ns) // cfg.epoch_period_ns
@@ -669,7 +680,24 @@ class EpochBook:
                 )
             else:
                 blocked.add(pe.node_id)
+        self._idle = None if out else (state, live_anchors, self._wake_wall_ns())
         return out
+
+    def _state(self) -> tuple:
+        """What ready() depends on besides the live anchors and the wall clock."""
+        return (self._adds, len(self.pending), self.closed_upto, self.watermark_ns,
+                self.max_lag_ns, self.last_rx_wall_ns, self.config,
+                tuple(self.latest_t_ns.items()))
+
+    def _wake_wall_ns(self) -> int:
+        """The earliest wall time at which a pending epoch can time out (see _timed_out)."""
+        first = min(pe.first_rx_wall_ns for pe in self.pending.values())
+        if self.config.release == "wall":
+            return first + self.config.deadline_ns
+        wake = first + self.max_lag_ns
+        if self.last_rx_wall_ns is not None:
+            wake = min(wake, self.last_rx_wall_ns + self.max_lag_ns)
+        return wake
 
     def next_deadline_wall_ns(self) -> int | None:
         """Earliest wall time at which a pending epoch times out by a wall-clock rule (for
