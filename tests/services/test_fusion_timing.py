@@ -10,6 +10,7 @@ event at that wall time, as the live service does.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import heapq
 import logging
 
@@ -27,6 +28,13 @@ T0 = 1_700_000_000_000_000_000  # absolute Unix-like measurement times [ns]
 GOOD = ("OK", "OK_UNVERIFIED")
 
 
+@functools.cache
+def _true_range(aid: str, nid: str) -> float:
+    """Anchor-node path length [m] (static anchors and nodes: computed once per pair)."""
+    return float(window_edge_path(FOUR[aid], NODES[nid], window_height_m=W,
+                                  edge_x_m=EDGE).length_m)
+
+
 def _epoch_messages(aid: str, e: int, rng) -> tuple[int, list[tuple[str, bytes]]]:
     """Anchor ``aid``'s state and ranges of epoch ``e`` (measurement time, messages)."""
     t = T0 + e * PERIOD_NS + int((0.1 + 0.2 * list(FOUR).index(aid)) * PERIOD_NS)
@@ -35,8 +43,8 @@ def _epoch_messages(aid: str, e: int, rng) -> tuple[int, list[tuple[str, bytes]]
         anchor_id=aid, t_ns=t, seq=e, position_m=M.vec3(apos), velocity_m_s=(0.0, 0.0, 0.0),
         position_sigma_m=(0.01, 0.01, 0.01), velocity_sigma_m_s=0.0, range_rate_hz=10.0,
         t_pub_wall_ns=0)))]
-    for nid, p in NODES.items():
-        r = float(window_edge_path(apos, p, window_height_m=W, edge_x_m=EDGE).length_m)
+    for nid in NODES:
+        r = _true_range(aid, nid)
         out.append((KEYS.anchor_range(aid, nid), M.encode(M.RangeMeasurement(
             anchor_id=aid, node_id=nid, t_ns=t, seq=e, range_m=r + rng.normal(0, 0.05),
             sigma_m=0.05, snr_db=20.0, t_pub_wall_ns=0))))
