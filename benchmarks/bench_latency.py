@@ -9,7 +9,9 @@ static nodes spread over the floors; subscribes to the estimates and diagnostics
   (anchor publish -> estimate publish, the issue's definition), p50 / p99 / max;
 - latency e2e: the same to the estimate's arrival at this subscriber;
 - loss: estimates expected (N x epochs) vs received, ranges received by the fusion vs sent;
-- fusion memory: RSS at 25 % of the run and at the end (bounded = no growth trend).
+- fusion memory: RSS at 25 % of the run and at the end (bounded = no growth trend);
+- CPU seconds per second of run of the router, the fusion and all anchors together (the
+  machine's 2 cores are shared: compare these, not wall times), and the worst epochs.
 
     python benchmarks/bench_latency.py                      # both loads of the issue
     python benchmarks/bench_latency.py --load 4x10 --duration 20
@@ -79,6 +81,24 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
+def cpu_s(pid: int) -> float | None:
+    """User + system CPU time of a process so far [s] (None if it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_by_role(procs: list[subprocess.Popen]) -> dict[str, float]:
+    """CPU seconds so far of the router, the fusion and all anchors together."""
+    out: dict[str, float] = {}
+    for p in procs:
+        role = p.args[p.args.index("diffpos_services.cli.main") + 1]
+        out[role] = out.get(role, 0.0) + (cpu_s(p.pid) or 0.0)
+    return out
+
+
 def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, batch: bool = False,
              profile: str | None = None) -> dict:
     site = f"bench{n_anchors}x{n_nodes}"
@@ -134,6 +154,7 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
                     if time.monotonic() > deadline or any(p.poll() is not None for p in procs):
                         raise RuntimeError(f"not ready: {sorted(need - alive)} (logs in {log_dir})")
                     cv.wait(0.2)
+            cpu0 = cpu_by_role(procs)
             t0 = -(-(time.time_ns() + 500_000_000) // PERIOD_NS) * PERIOD_NS
             rc = M.RunControl(run_id=site, t0_ns=t0, wall_t0_ns=t0, speed=1.0,
                               duration_ns=round(duration_s * 1e9), seed=0)
@@ -170,6 +191,9 @@ def run_load(n_anchors: int, n_nodes: int, duration_s: float, log_dir: Path, *, 
                     if diag.watermark_ns is not None and diag.watermark_ns >= end_ns - PERIOD_NS \
                             and diag.pending_epochs == 0:
                         break
+            cpu1 = cpu_by_role(procs)
+            result["cpu_s_per_s"] = {k: round((cpu1[k] - cpu0.get(k, 0.0)) / duration_s, 3)
+                                     for k in cpu1}
             for s in subs:
                 s.undeclare()
     finally:
@@ -231,6 +255,9 @@ def main(argv: list[str] | None = None) -> int:
               f" {fmt(lf['p50']):>9}/{fmt(lf['p99']):<9} {fmt(le['p50']):>8}/{fmt(le['p99']):<9}"
               f" {fu.get('ranges_received', '-'):>7}/{fu.get('ranges_sent', '-'):<8}"
               f" {fmt(mem['at_25pct']):>7}/{fmt(mem['end']):<7}")
+        print(f"{'':>10} CPU s per s of run: " + ", ".join(
+            f"{k} {v:.2f}" for k, v in r.get("cpu_s_per_s", {}).items())
+            + f"; worst epochs [ms, epoch]: {r['worst_epochs_ms'][:3]}")
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2))
     return 0

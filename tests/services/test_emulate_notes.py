@@ -91,6 +91,11 @@ def test_fusion_notes_late_ranges_lost_anchors_rejections():
         "fusion rejected messages: unknown_anchor 7 (docs/bad_input.md)"]
     assert fusion_notes(_diag(late_ranges=0, rejected={}, anchors=[])) == []
     assert "never reported" in fusion_notes(None)[0]
+    # epochs an overloaded fusion dropped unsolved are said apart from bad input
+    over = fusion_notes(_diag(late_ranges=0, anchors=[],
+                              rejected={"overloaded": 40, "unknown_anchor": 7}))
+    assert over[0].startswith("fusion: overloaded: 40 node-epochs dropped unsolved")
+    assert over[1] == "fusion rejected messages: unknown_anchor 7 (docs/bad_input.md)"
 
 
 def _recording(path, n, split=None):

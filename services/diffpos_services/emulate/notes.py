@@ -131,6 +131,10 @@ def fusion_notes(diag: M.FusionDiagnostics | None, t0_wall_ns: int | None = None
             notes.append(f"fusion: anchor {a.anchor_id} lost{when} and not back by the end "
                          "(its liveliness token is gone)")
     rejected = {k: v for k, v in diag.rejected.items() if v}
+    if rejected.get("overloaded"):
+        notes.append(f"fusion: overloaded: {rejected.pop('overloaded')} node-epochs dropped "
+                     "unsolved (the fusion was slower than its input and kept only the last "
+                     "max_backlog_s of ready epochs; diffpos fusion --max-backlog-s)")
     if rejected:
         notes.append(f"fusion rejected messages: {_top(rejected, 8)} (docs/bad_input.md)")
     return notes
