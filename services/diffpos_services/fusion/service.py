@@ -7,8 +7,9 @@ on Zenoh's threads). Steps of :func:`run_fusion`: open the session -> declare pu
 the one subscriber and the liveliness token -> serve (:class:`ServiceLoop`: wait, ingest,
 step, publish, diagnostics) until ``stop`` -> flush what is pending and undeclare.
 
-Timing (issue 16 item 2): each turn ingests for at most :data:`INGEST_BUDGET_S` (a backlog
-of any size never delays a solve step by more), solves a number of epochs that adapts to the
+Timing (issue 16 item 2): each turn ingests for at most :data:`INGEST_BUDGET_S`, or
+:data:`INGEST_SHARE` of the previous solve step if longer (a backlog of any size never delays
+a solve step by more, and ingest keeps up with the input however slow the solve), solves a number of epochs that adapts to the
 measured solve cost (about :data:`SOLVE_BUDGET_S` per step, so ingesting and solving
 alternate every few ms instead of long ingests followed by huge solves), and stamps each
 estimate's ``t_pub_wall_ns`` just before it is handed to the bus, after its solve: the
@@ -43,8 +44,16 @@ _ACCOUNTED_BYTES = 2048  # samples above this size count against max_queued_byte
 INGEST_BUDGET_S = 0.005
 #: target duration of one solve step [s] (its epoch limit adapts to the measured cost)
 SOLVE_BUDGET_S = 0.02
-#: epochs a solve step may always take (the first step, before any cost is measured)
+#: epochs the first solve step may take (before any cost is measured)
 MIN_STEP_EPOCHS = 64
+#: epochs a solve step may always take once the cost is measured (a slow estimator, e.g. mnls
+#: with the tracker at ~20 ms per fix, still solves in batches)
+MIN_MEASURED_STEP_EPOCHS = 8
+#: ingest budget of a turn as a share of the previous solve step's duration (at least
+#: INGEST_BUDGET_S): ingest keeps up with the input however long the steps get, so an
+#: overloaded fusion sees the newest epochs and drops the old ones (max_backlog_s) instead of
+#: letting the input queue up unseen
+INGEST_SHARE = 0.5
 # queue items: (kind, key, value, receive wall time [ns])
 _DATA, _ALIVE, _OVERSIZED = 0, 1, 2
 
@@ -267,6 +276,7 @@ class Turn:
     ingested: int
     published: int
     ingest_ns: int  # time spent ingesting (monotonic)
+    budget_ns: int  # the turn's ingest budget
     solve_start_wall_ns: int
     solve_end_wall_ns: int  # the solve step returned (before publishing)
 
@@ -305,6 +315,7 @@ class ServiceLoop:
         self.period_ns = round(core.config.diagnostics_period_s * 1e9)
         self.next_diag = time.time_ns() + self.period_ns
         self.cost_ns: float | None = None  # solve cost per epoch (moving average) [ns]
+        self.last_step_ns = 0  # duration of the previous solve step [ns]
 
     def step_limit(self) -> int:
         """Epochs the next solve step may take (adaptive, see the class docstring)."""
@@ -312,7 +323,12 @@ class ServiceLoop:
         if self.cost_ns is None:
             return min(MIN_STEP_EPOCHS, top)
         return max(min(int(self.solve_budget_ns / max(self.cost_ns, 1.0)), top),
-                   min(MIN_STEP_EPOCHS, top))
+                   min(MIN_MEASURED_STEP_EPOCHS, top))
+
+    def ingest_budget(self) -> int:
+        """This turn's ingest budget [ns]: the configured one, or INGEST_SHARE of the
+        previous solve step if that is longer."""
+        return max(self.ingest_budget_ns, int(INGEST_SHARE * self.last_step_ns))
 
     def turn(self) -> Turn:
         """Wait for input (at most until the next deadline or diagnostics), ingest for at
@@ -320,12 +336,13 @@ class ServiceLoop:
         core = self.core
         item = _next_item(core, self.inbox, self.next_diag)
         t_in = time.monotonic_ns()
-        n_in = _drain(core, self.inbox, item, core.config.linger_s, self.log,
-                      t_in + self.ingest_budget_ns)
+        budget = self.ingest_budget()
+        n_in = _drain(core, self.inbox, item, core.config.linger_s, self.log, t_in + budget)
         ingest_ns = time.monotonic_ns() - t_in
         t_solve = time.time_ns()
         out = core.step(t_solve, limit=self.step_limit())
         t_done = time.time_ns()
+        self.last_step_ns = t_done - t_solve
         if out:
             per = (t_done - t_solve) / len(out)
             self.cost_ns = per if self.cost_ns is None else 0.8 * self.cost_ns + 0.2 * per
@@ -336,7 +353,7 @@ class ServiceLoop:
         if t_done >= self.next_diag or core.changed:
             self.put_diagnostics(core.diagnostics(t_done))
             self.next_diag = t_done + self.period_ns
-        return Turn(n_in, len(out), ingest_ns, t_solve, t_done)
+        return Turn(n_in, len(out), ingest_ns, budget, t_solve, t_done)
 
 
 def _serve(core: FusionCore, inbox: _Inbox, ends: _Endpoints, stop: threading.Event,
