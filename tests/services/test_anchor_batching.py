@@ -7,11 +7,14 @@ than ``BATCH_MIN_NODES`` nodes batches by default; ``range_batch`` True/False fo
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from diffpos_services.anchor.service import BATCH_MIN_NODES, AnchorConfig, AnchorEmulator
 from diffpos_services.cli.anchor import config_from_args
 from diffpos_services.cli.main import build_parser
 from diffpos_services.scenario_io import load_scenario_option
+
+from diffpos.emulation import TimeBase
 
 
 def _scenario(tmp_path, n_nodes: int):
@@ -44,3 +47,20 @@ def test_anchors_batch_by_default_above_the_node_threshold(tmp_path, n_nodes, se
 def test_cli_range_batch_flag_is_tristate(flag, value):
     args = build_parser("anchor").parse_args(["--id", "uav1", *flag])
     assert config_from_args(args).range_batch is value
+
+
+def test_static_nodes_cached_give_the_same_measurements_as_evaluating_every_node():
+    """The emulator takes static nodes' positions once (not one trajectory call per node and
+    epoch): the measurements equal those with every node's trajectory evaluated, bit for bit
+    (large scenario: static and moving nodes, emulator channel, same seed)."""
+    sc = load_scenario_option("scenarios/large.toml")
+    cfg = AnchorConfig(anchor_id=sc.anchors[0].id, seed=3)
+    fast, slow = AnchorEmulator(sc, cfg), AnchorEmulator(sc, cfg)
+    assert 0 < len(fast._moving) < len(fast.nodes)  # both kinds present
+    slow._moving = list(range(len(slow.nodes)))  # every node evaluated (the reference)
+    tb = TimeBase.free_running(1_800_000_000_000_000_000)
+    for k in range(3):
+        _, a = fast.measure_block(k, 1, tb)
+        _, b = slow.measure_block(k, 1, tb)
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)

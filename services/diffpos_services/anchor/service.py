@@ -36,6 +36,7 @@ from diffpos.emulation import (
     first_arrivals,
     warm_up_channel,
 )
+from diffpos.trajectory import Static
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.kit import ConfigError, log_event
 from diffpos_services.scenario_io import load_scenario_option
@@ -118,6 +119,9 @@ class AnchorEmulator:
             raise ConfigError(f"scenario {scenario.name!r} has no nodes to range to")
         self.batched = (len(self.nodes) > BATCH_MIN_NODES if config.range_batch is None
                         else bool(config.range_batch))
+        self._static_m = np.array([tr.position if isinstance(tr, Static) else (np.nan,) * 3
+                                   for _, tr in self.nodes], float).reshape(-1, 3)
+        self._moving = [i for i, (_, tr) in enumerate(self.nodes) if not isinstance(tr, Static)]
         # independent streams per anchor and purpose, reproducible from (seed, anchor index)
         idx = ids.index(config.anchor_id)
         ss = np.random.SeedSequence([config.seed, idx])
@@ -159,9 +163,9 @@ class AnchorEmulator:
         """Range, sigma, snr, detected for each epoch time: arrays (B, N)."""
         b = t_s.size
         p_true = np.asarray(self.traj.position_m(t_s), float).reshape(b, 3)
-        nodes_m = np.stack(
-            [np.asarray(tr.position_m(t_s), float).reshape(b, 3) for _, tr in self.nodes], axis=1
-        )  # (B, N, 3)
+        nodes_m = np.repeat(self._static_m[None], b, axis=0)  # (B, N, 3)
+        for i in self._moving:  # (static nodes: their fixed position, not one call each)
+            nodes_m[:, i] = np.asarray(self.nodes[i][1].position_m(t_s), float).reshape(b, 3)
         return first_arrivals(p_true, nodes_m, self.scenario, channel=self.config.channel,
                               ideal_snr_db=self.config.ideal_snr_db, rng=self.rng_range)
 
