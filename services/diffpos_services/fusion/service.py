@@ -56,6 +56,11 @@ MIN_MEASURED_STEP_EPOCHS = 8
 #: (max_backlog_s) instead of letting the input queue up unseen (measured: 16 x 200 on a
 #: machine at load 12, share 0.5: shed 7,306 node-epochs and still 6-8 s behind)
 INGEST_SHARE = 2.0
+#: longest ingest of a turn whatever the previous step took [s] (a descheduled step must not
+#: let the next turn drain a whole backlog)
+INGEST_MAX_S = 0.1
+#: estimate publishers declared per loop turn at most (~1 ms each)
+DECLARES_PER_TURN = 8
 # queue items: (kind, key, value, receive wall time [ns])
 _DATA, _ALIVE, _OVERSIZED = 0, 1, 2
 
@@ -133,19 +138,25 @@ class _Endpoints:
         )
         return pub
 
-    def declare_nodes(self, node_ids: Any) -> None:
-        """Declare the estimate publishers of ``node_ids`` not declared yet (~1 ms each:
-        done when a node's first range is ingested, not in its first estimate's publish)."""
-        for nid in node_ids:
-            if nid not in self.est_pubs:
-                self._publisher(nid)
+    def declare_nodes(self, node_ids: Any, limit: int | None = None) -> bool:
+        """Declare the estimate publishers of ``node_ids`` not declared yet, at most
+        ``limit`` of them (~1 ms each: a few per loop turn when nodes are first ingested, not
+        200 in one turn or in their first estimate's publish). True when all are declared."""
+        todo = [nid for nid in node_ids if nid not in self.est_pubs]
+        for nid in todo[:limit]:
+            self._publisher(nid)
+        return limit is None or len(todo) <= limit
 
     def put_estimate(self, est: Any) -> None:
-        """Publish one estimate on its node's publisher (declared if not yet)."""
+        """Publish one estimate on its node's publisher (a session put while the publisher
+        is not declared yet: same key, encoding and congestion control)."""
         pub = self.est_pubs.get(est.node_id)
         if pub is None:
-            pub = self._publisher(est.node_id)
-        pub.put(M.encode(est))
+            self.session.put(self.keys.node_estimate(est.node_id), M.encode(est),
+                             encoding=zenoh.Encoding.APPLICATION_JSON,
+                             congestion_control=zenoh.CongestionControl.BLOCK)
+        else:
+            pub.put(M.encode(est))
 
 
 def _declare(session: Any, keys: Keys, inbox: _Inbox) -> _Endpoints:
@@ -300,17 +311,18 @@ class ServiceLoop:
         Target duration of one solve step: the step's epoch limit is this over the measured
         cost per epoch (at least :data:`MIN_STEP_EPOCHS`, at most ``max_fixes_per_step``).
     declare_nodes : callable, optional
-        Called after a turn with the core's node ids when new nodes were accepted (the
-        service declares their estimate publishers before their first epoch is ready).
+        ``declare_nodes(node_ids, limit) -> done``: called after a turn while accepted nodes
+        may lack an estimate publisher (the service declares :data:`DECLARES_PER_TURN` per
+        turn, before or soon after their first epoch is ready).
     """
 
     def __init__(self, core: FusionCore, inbox: _Inbox, put_estimate: Callable[[Any], None],
                  put_diagnostics: Callable[[Any], None], log: logging.Logger, *,
                  ingest_budget_s: float = INGEST_BUDGET_S,
                  solve_budget_s: float = SOLVE_BUDGET_S,
-                 declare_nodes: Callable[[Any], None] | None = None) -> None:
+                 declare_nodes: Callable[[Any, int], bool] | None = None) -> None:
         self.core, self.inbox, self.log = core, inbox, log
-        self.declare_nodes, self._n_nodes = declare_nodes, 0
+        self.declare_nodes, self._n_nodes, self._declared = declare_nodes, 0, True
         self.put_estimate, self.put_diagnostics = put_estimate, put_diagnostics
         self.ingest_budget_ns = round(ingest_budget_s * 1e9)
         self.solve_budget_ns = round(solve_budget_s * 1e9)
@@ -329,8 +341,9 @@ class ServiceLoop:
 
     def ingest_budget(self) -> int:
         """This turn's ingest budget [ns]: the configured one, or INGEST_SHARE times the
-        previous solve step if that is longer."""
-        return max(self.ingest_budget_ns, int(INGEST_SHARE * self.last_step_ns))
+        previous solve step (at most INGEST_MAX_S) if that is longer."""
+        return max(self.ingest_budget_ns,
+                   min(int(INGEST_SHARE * self.last_step_ns), round(INGEST_MAX_S * 1e9)))
 
     def turn(self) -> Turn:
         """Wait for input (at most until the next deadline or diagnostics), ingest for at
@@ -349,9 +362,10 @@ class ServiceLoop:
             per = (t_done - t_solve) / len(out)
             self.cost_ns = per if self.cost_ns is None else 0.8 * self.cost_ns + 0.2 * per
         stamp_published(core, out, self.put_estimate)
-        if self.declare_nodes is not None and len(core.node_ids) != self._n_nodes:
-            self.declare_nodes(core.node_ids)
+        if self.declare_nodes is not None and (
+                not self._declared or len(core.node_ids) != self._n_nodes):
             self._n_nodes = len(core.node_ids)
+            self._declared = self.declare_nodes(core.node_ids, DECLARES_PER_TURN)
         if t_done >= self.next_diag or core.changed:
             self.put_diagnostics(core.diagnostics(t_done))
             self.next_diag = t_done + self.period_ns
