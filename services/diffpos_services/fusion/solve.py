@@ -44,6 +44,7 @@ GOOD_STATUS = (int(FixStatus.OK), int(FixStatus.OK_UNVERIFIED))
 #: nor used for motion compensation, which would shift the ranges by (J . v) dt, e.g.
 #: 4.4 km/s x 25 ms = 110 m, turning 24 m ranges negative (issue 15, item 14).
 MAX_TRACK_SPEED_M_S = 15.0
+_MAX_SPEED2 = MAX_TRACK_SPEED_M_S**2
 # fixed exclusion reasons by code (see exclusion_groups); 3 = the estimator's reason
 _FIXED = {1: "NOT_DETECTED", 2: "NO_ANCHOR_STATE", 4: "NOT_USED", 5: "ANCHOR_LOST",
           6: "NOT_REPORTED"}
@@ -202,7 +203,7 @@ def _start_points(epochs: list[PendingEpoch], tracks: Any, t_ref: np.ndarray,
         if tr is not None and tr.t_ns is not None and abs(t_ref[i] - tr.t_ns) <= max_age:
             dt = (t_ref[i] - tr.t_ns) * 1e-9
             v = tr.vel
-            if v is not None and sum(u * u for u in v) <= MAX_TRACK_SPEED_M_S**2:
+            if v is not None and v[0] * v[0] + v[1] * v[1] + v[2] * v[2] <= _MAX_SPEED2:
                 vel[i], has_vel[i] = v, True
                 x0[i] = [p + u * dt for p, u in zip(tr.pos, v, strict=True)]
             else:
