@@ -94,6 +94,7 @@ def run_soak(
     rss_period_s: float = 2.0,
     ready_timeout_s: float = 180.0,
     site: str | None = None,
+    max_backlog_s: float | None = None,
 ) -> dict:
     """Run the load and return the measurements (see the module docstring).
 
@@ -107,6 +108,8 @@ def run_soak(
         Service logs, the scenario and the recording go here.
     warmup_s : float [s]
         RSS "start" is the first sample after this much of the run.
+    max_backlog_s : float [s], optional
+        The fusion's ``--max-backlog-s`` (None: the live default; 0: never drop epochs).
     """
     site = site or f"soak{n_anchors}x{n_nodes}"
     keys = Keys(site)
@@ -170,7 +173,8 @@ def run_soak(
                       endpoint, "--scenario", str(scen), "--status")
                 need.add(keys.alive_recorder())
             start("fusion", "fusion", "--site", site, "--connect", endpoint,
-                  "--scenario", str(scen), "--diagnostics-period-s", "1.0")
+                  "--scenario", str(scen), "--diagnostics-period-s", "1.0",
+                  *([] if max_backlog_s is None else ["--max-backlog-s", str(max_backlog_s)]))
             for j in range(n_anchors):
                 start(f"uav{j + 1}", "anchor", "--id", f"uav{j + 1}", "--site", site,
                       "--connect", endpoint, "--scenario", str(scen), "--wait-start",
@@ -400,6 +404,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=float, default=30.0, metavar="S",
                     help="RSS 'start' sample after this long [s] (default 30)")
     ap.add_argument("--no-recorder", action="store_true", help="run without the recorder")
+    ap.add_argument("--max-backlog-s", type=float, metavar="S",
+                    help="the fusion's --max-backlog-s (default: the live fusion's; 0: a "
+                    "fusion that falls behind never drops epochs, it only lags)")
     ap.add_argument("--json", metavar="FILE", help="write the result as JSON")
     ap.add_argument("--log-dir", metavar="DIR", help="keep logs and the recording here")
     args = ap.parse_args(argv)
@@ -408,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
         log_dir = Path(args.log_dir or tmp)
         load_before = os.getloadavg()
         r = run_soak(m, n, args.duration, log_dir, recorder=not args.no_recorder,
-                     warmup_s=args.warmup, rss_period_s=5.0)
+                     warmup_s=args.warmup, rss_period_s=5.0, max_backlog_s=args.max_backlog_s)
         r["loadavg_before"] = load_before
         r["loadavg_after"] = os.getloadavg()
         r["cpus"] = os.cpu_count()

@@ -30,8 +30,10 @@ N_ANCHORS, N_NODES, DURATION_S, WARMUP_S = 16, 50, 60.0, 15.0
 def test_soak_zero_loss_and_bounded_memory(tmp_path):
     from bench_soak import format_report, run_soak
 
+    # (a fusion that falls behind on a loaded CI machine lags but drops nothing: the zero
+    # loss asserted here is the transport's and the fusion's, not the live overload policy's)
     r = run_soak(N_ANCHORS, N_NODES, DURATION_S, tmp_path, recorder=True, warmup_s=WARMUP_S,
-                 rss_period_s=2.0)
+                 rss_period_s=2.0, max_backlog_s=0)
     report = format_report(r)
     n_epochs = round(DURATION_S * 10)
     # every process ended cleanly (SIGTERM -> 0; the recorder exits 1 if it lost anything)
