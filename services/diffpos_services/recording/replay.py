@@ -39,7 +39,13 @@ from diffpos_services.kit import ConfigError, build_config
 from diffpos_services.recording.decided import DecisionReplayer
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
-from diffpos_services.recording.reader import McapScanner, RawMessage, SideRecords, side_records
+from diffpos_services.recording.reader import (
+    McapScanner,
+    PartsScanner,
+    RawMessage,
+    SideRecords,
+    side_records,
+)
 from diffpos_services.recording.report_stream import Recorded
 from diffpos_services.recording.summary import attached_scenario, live_fusion_settings
 from diffpos_services.recording.synthetic import FUSION_INPUT_KINDS, quiet_logger
@@ -61,6 +67,8 @@ __all__ = [
 _READ_AHEAD_BATCHES = 64
 #: how far apart (recording time) a fix, its truth and its live/replayed twin may be
 _WINDOW_NS = 30_000_000_000
+#: how often (recording time) the streamed report scores what the truth covers
+_ADVANCE_NS = 1_000_000_000
 
 
 # ----------------------------------------------------------------------------------------
@@ -273,35 +281,44 @@ def _feed(
     """Every recorded message in file order into the core (fusion inputs; through the
     decision record when there is one) or the collector, stepping the core each ``step_ns``
     of receive time (without a decision record); then solve what is pending."""
-    kind_of: dict[int, tuple[str, str | None]] = {}
-    counts, seq, decided = rec.counts, rec.seq, rec.decided
-    next_step = None
+    routes: dict[str, tuple] = {}  # topic -> (kind, node, sequence stream, is input)
+    per_topic: Counter[str] = Counter()
+    seq, decided = rec.seq, rec.decided
+    add_input = None if decided is None else decided.add_input
+    copy = outputs.copy if outputs.copy_input else None
+    next_step = next_advance = None
     for batch in batches:
+        if rec.t_first is None and batch:
+            rec.t_first = batch[0].log_ns
         for m in batch:
-            kn = kind_of.get(m.channel_id)
-            if kn is None:
-                kind, fields = parse_topic(m.topic)
-                kn = kind_of[m.channel_id] = (kind, fields.get("node"))
-            kind = kn[0]
-            counts[kind] += 1
-            seq.add(m.topic, m.sequence)
-            now = m.log_ns
-            if rec.t_first is None:
-                rec.t_first = now
-            rec.t_last = now
-            outputs.copy(m)
-            if kind in FUSION_INPUT_KINDS:
-                if decided is not None:
-                    decided.add_input(m.topic, m.data, now)
+            topic = m.topic
+            route = routes.get(topic)
+            if route is None:
+                kind, fields = parse_topic(topic)
+                route = routes[topic] = (kind, fields.get("node"), seq.stream_of(topic),
+                                         kind in FUSION_INPUT_KINDS)
+            per_topic[topic] += 1
+            if route[2] is not None:
+                seq.add_stream(route[2], m.sequence)
+            now = rec.t_last = m.log_ns
+            if copy is not None:
+                copy(m)
+            if route[3]:
+                if add_input is not None:
+                    add_input(topic, m.data, now)
                     continue
-                core.on_sample(m.topic, m.data, now)
+                core.on_sample(topic, m.data, now)
             else:
-                rec.take(kind, m, core, kn[1])
+                rec.take(route[0], m, core, route[1])
             if decided is None and (next_step is None or now >= next_step):
                 outputs.emit(core.step(now), now)
                 next_step = now + step_ns
-        rec.advance(rec.t_last or 0)
+        if rec.t_last is not None and (next_advance is None or rec.t_last >= next_advance):
+            rec.advance(rec.t_last)  # score what the truth covers (bounded memory)
+            next_advance = rec.t_last + _ADVANCE_NS
         after_batch()
+    for topic, n in per_topic.items():
+        rec.counts[routes[topic][0]] += n
     if decided is not None:
         decided.finish()
     return rec
@@ -391,6 +408,7 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, co
     report: dict[str, Any] = {
         "file": str(path),
         "complete": scanner.complete,
+        "parts": [p.path.name for p in getattr(scanner, "parts", [scanner])],
         "damage": {**scanner.damage.__dict__, "ok": scanner.damage.ok},
         "settings": msgspec.to_builtins(config),
         "settings_source": settings.source,
@@ -494,7 +512,7 @@ def replay(
     t_wall0 = time.perf_counter()
     if out_mcap is not None:
         check_output(out_mcap, option="out_mcap", inputs=[path])
-    scanner = McapScanner(path)
+    scanner = PartsScanner(path)  # a split recording's parts in turn
     side = side_records(path)
     ahead, rest, first_state, first_diag = read_ahead(scanner)
     settings = replay_settings(scanner, side=side, first_state=first_state, overrides=overrides,
