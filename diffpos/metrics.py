@@ -397,15 +397,20 @@ class QuantileSketch:
             return np.concatenate(self._exact) if self._exact else np.empty(0)
         return np.concatenate([np.zeros(self._zeros), np.repeat(self._centres(), self._hist)])
 
+    def sorted_values(self) -> np.ndarray:
+        """:meth:`values` sorted."""
+        return np.sort(self.values())
+
     def _centres(self) -> np.ndarray:
         g = self._gamma
         return np.minimum(2 * _SKETCH_LO * g ** np.arange(self._hist.size) / (g + 1), self._max)
 
     def summary(self, q: Sequence[float] = PERCENTILES, *,
                 max_mean: bool = True) -> dict[str, float | None]:
-        """:func:`percentiles` of everything added (see the class for the error bound)."""
+        """:func:`percentiles` of everything added (see the class for the error bound; while
+        exact, of the sorted values: the same result whatever the order they came in)."""
         if self._hist is None or self.count == 0:
-            return percentiles(self.values(), q, max_mean=max_mean)
+            return percentiles(self.sorted_values(), q, max_mean=max_mean)
         cum = np.cumsum(self._hist, dtype=np.int64) + self._zeros
         centres = self._centres()
 
@@ -460,7 +465,7 @@ class StreamingErrorStats:
         """:func:`error_stats`' dict (identical to it while the sketches are exact)."""
         k = self.evaluated
         if k and self.e3.exact:
-            e3 = self.e3.values()
+            e3 = self.e3.sorted_values()
             rmse = float(np.sqrt(np.mean(e3**2)))
         else:
             rmse = float(np.sqrt(self._sumsq / k)) if k else None
@@ -515,7 +520,7 @@ class StreamingScore:
                ellipsoid_coverage: float | None = None) -> Score:
         n, k = self.node_epochs, self.fixes
         exact = self.e3.exact
-        e3 = self.e3.values() if exact else None
+        e3 = self.e3.sorted_values() if exact else None
         fl = (None, None)
         if self._floors and n:
             fl = (self._right / n, (self._right / k) if k else None)
