@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import gc
-import itertools
 import logging
 import time
 from collections import Counter
@@ -65,6 +64,8 @@ __all__ = [
 
 #: chunks read ahead for the settings (until the first anchor state and diagnostics)
 _READ_AHEAD_BATCHES = 64
+#: ... and recording time past the first anchor state
+_READ_AHEAD_NS = 10_000_000_000
 #: how far apart (recording time) a fix, its truth and its live/replayed twin may be
 _WINDOW_NS = 30_000_000_000
 #: how often (recording time) the streamed report scores what the truth covers
@@ -135,26 +136,42 @@ def read_ahead(
 ) -> tuple[list[list[RawMessage]], Iterator[list[RawMessage]], RawMessage | None,
            M.FusionDiagnostics | None]:
     """Read chunks until the first anchor state and the first fusion diagnostics (at most 64
-    chunks): when the recording holds no fusion settings, derived ones need the anchors'
-    ranging rate; the diagnostics say whether the live fusion recorded its decisions.
+    chunks, and at most 10 s of recording time past the first anchor state when no
+    diagnostics come: a recording without a live fusion is not held in memory): when the
+    recording holds no fusion settings, derived ones need the anchors' ranging rate; the
+    diagnostics say whether the live fusion recorded its decisions.
     Returns the chunks read, the rest, the first anchor state and the first diagnostics."""
     batches = scanner.iter_batches()
     ahead: list[list[RawMessage]] = []
     first_state = first_diag = None
     dec = M.decoder(M.FusionDiagnostics)
+    kinds: dict[str, str] = {}
     for batch in batches:
         ahead.append(batch)
         for m in batch:
-            kind = parse_topic(m.topic)[0]
+            kind = kinds.get(m.topic)
+            if kind is None:
+                kind = kinds[m.topic] = parse_topic(m.topic)[0]
             if kind == "anchor_state" and first_state is None:
                 first_state = m
             elif kind == "diagnostics" and first_diag is None:
                 with contextlib.suppress(M.DecodeError):
                     first_diag = dec(m.data)
         if (first_state is not None and first_diag is not None) or \
-                len(ahead) >= _READ_AHEAD_BATCHES:
+                len(ahead) >= _READ_AHEAD_BATCHES or (
+                    first_state is not None and batch
+                    and batch[-1].log_ns - first_state.log_ns > _READ_AHEAD_NS):
             break
     return ahead, batches, first_state, first_diag
+
+
+def _consume(ahead: list[list[RawMessage]],
+             rest: Iterator[list[RawMessage]]) -> Iterator[list[RawMessage]]:
+    """The chunks read ahead (each let go once handed out), then the rest."""
+    ahead.reverse()
+    while ahead:
+        yield ahead.pop()
+    yield from rest
 
 
 def recorded_site(scanner: McapScanner) -> str | None:
@@ -550,7 +567,7 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
 
     if decided:
         rec.decided = DecisionReplayer(core, outputs.emit)
-    _feed(core, itertools.chain(ahead, rest), outputs, rec,
+    _feed(core, _consume(ahead, rest), outputs, rec,
           step_ns=max(0, round(step_ms * 1e6)), after_batch=after_batch)
     if rec.fusion_inputs == 0:
         outputs.close()
