@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -356,3 +357,47 @@ def test_split_recording_replays_as_one(rec, base, tmp_path):
     assert r.report["compare"] == base.report["compare"]
     assert r.report["accuracy"] == base.report["accuracy"]
     assert r.report["messages"]["by_kind"] == base.report["messages"]["by_kind"]
+
+
+def test_streamed_report_stays_bounded_and_within_its_stated_error():
+    """The report of a long run: 2 nodes x 10 Hz x 10 min of fixes against a known truth
+    (the truth at the fix times, errors from a seeded generator) through the replay's
+    FixStream: every fix evaluated, the percentiles within 0.5 % of numpy's over all errors
+    (the sketches left their exact mode), counts exact, and nothing kept per fix."""
+    from diffpos_services.recording.report_stream import FixStream, SlimEstimate, TruthBook
+
+    rng = np.random.default_rng(5)
+    period, n = 100_000_000, 6_000
+    noise = rng.normal(scale=0.5, size=(n, 2, 3)).tolist()
+    tb = TruthBook(window_ns=30_000_000_000)
+    fs = FixStream(tb, max_truth_gap_ns=500_000_000, window_ns=30_000_000_000)
+    errs = []
+    for k in range(n):
+        t = (k + 1) * period
+        for j, node in enumerate(("n1", "n2")):
+            truth = (float(k % 50), 2.0, 1.0)
+            tb.add(node, t, truth, 0)
+            d = noise[k][j]
+            errs.append(math.hypot(*d))
+            pos = (truth[0] + d[0], truth[1] + d[1], truth[2] + d[2])
+            fs.add(SlimEstimate("diffpos.estimate.v1", node, t, k, "OK", position_m=pos,
+                                peb_m=0.4, floor_index=0))
+        if k % 100 == 99:
+            fs.advance(t)
+    fs.advance(n * period, final=True)
+    acc, arrays = fs.accuracy()
+    overall = acc["overall"]
+    assert overall["evaluated"] == overall["fixes"] == 2 * n
+    assert overall["floor_accuracy"] == 1.0 and overall["without_truth"] == 0
+    assert not fs._overall.e3.exact  # beyond 4,096 values: the histogram
+    ref = np.percentile(errs, [50, 90, 99])
+    got = [overall["error_3d_m"][k] for k in ("p50", "p90", "p99")]
+    np.testing.assert_allclose(got, ref, rtol=0.005)
+    assert overall["error_3d_m"]["max"] == pytest.approx(max(errs), rel=1e-12)
+    assert overall["within_2peb"] == pytest.approx(np.mean(np.array(errs) <= 0.8))
+    ne = fs.node_epochs()
+    assert ne["node_epochs"] == ne["fixes"] == 2 * (n - 20)  # the first 2 s are skipped
+    # nothing per fix is left: the pending queues and buffers are empty, truth is windowed
+    assert all(not q for q in fs._pending.values()) and len(fs._err.e3) == 0
+    assert len(tb.t["n1"]) <= 2 * 300 + 1
+    assert arrays["e3"].size == 2 * n  # for plots, made on access
