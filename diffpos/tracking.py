@@ -425,7 +425,10 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray) -> TrackOutp
     prob = np.exp(state.log_prob)
     pos = state.mean[rows, best, :3]
     d = state.mean[..., :3] - pos[:, None]
-    cov = state.cov[rows, best, :3, :3] + np.einsum("nf,nfi,nfj->nij", prob, d, d)
+    # a posteriori variance factor: the averaged NIS per used range above 1 says the ranges
+    # scatter more than their sigmas (model mismatch), so the covariance is widened by it
+    vf = np.clip(state.nis, 1.0, 100.0)[:, None, None]
+    cov = vf * state.cov[rows, best, :3, :3] + np.einsum("nf,nfi,nfj->nij", prob, d, d)
     has = (state.status != TrackStatus.UNINITIALISED) & (state.status != TrackStatus.LOST)
     return TrackOutput(
         position_m=np.where(has[:, None], pos, np.nan),
