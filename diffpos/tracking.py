@@ -140,9 +140,6 @@ class TrackerConfig:
         is more probable than staying: a floor that the data has not yet decided keeps its own
         position instead of being dragged towards a different position on another floor);
         ``"imm"`` moment-matches all predecessors (the classic IMM interaction).
-    height_both : bool
-        The last mechanism pass fits both height components (level carry, anywhere on the
-        floor) and keeps the more probable one per hypothesis (else: chosen at the prior).
     gn_iterations : int
     select_passes : int
         Mechanism selections per update: the first at the prior mean, each further one at the
@@ -184,7 +181,6 @@ class TrackerConfig:
     outlier_weight: float = 0.02
     outlier_span_m: float = 30.0
     mixing: str = "select"
-    height_both: bool = True
     gn_iterations: int = 3
     select_passes: int = 2
     init_grid_m: float = 2.0

@@ -321,7 +321,7 @@ def _box(x: FloatArray, floor, building, margin_m: float) -> tuple[FloatArray, F
 
 
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
-         building, config, level: NDArray | None = None):
+         building, config):
     """Iterated EKF (Gauss-Newton on the MAP cost) of every hypothesis with fixed mechanisms.
 
     The hypothesis' floor box is a hard-ish constraint: a coordinate outside it gets a
@@ -342,8 +342,7 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     ll_lvl = (np.log1p(-config.stairs_weight) - 0.5 * ((x[..., 2] - z_nom) / sh) ** 2
               - np.log(sh) - 0.5 * _LOG2PI)
     ll_any = np.log(config.stairs_weight / building.floor_height_m)
-    if level is None:  # the height component at the prior (max-mixture)
-        level = ll_lvl > ll_any
+    level = ll_lvl > ll_any
     wh = np.where(level, 1.0 / sh**2, 0.0)
     h_const = np.where(level, np.log1p(-config.stairs_weight) - np.log(sh) - 0.5 * _LOG2PI,
                        ll_any)
@@ -394,22 +393,10 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
     # the SNR of every slot at the prior (a path's strength changes little over the fit)
     snr_c = snr_cost_near(clamp_to_floor(x[..., :3], floor, building, config.z_margin_m),
                           links, floor, building, config.exist_margin_m)
-    for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
+    for _ in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         pe = all_paths(x[..., :3], links, floor, building, config.exist_margin_m)
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
-        if k + 1 < config.select_passes or not config.height_both:
-            x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
-            continue
-        # the last pass fits both height components (level carry / anywhere on the floor,
-        # e.g. on the stairs) and keeps the more probable one per hypothesis: chosen at the
-        # prior, a track on the level at the nominal height could never follow a walker up
-        # the stairs (the level prior pulled every fit back to the nominal height)
-        shape = x_prior.shape[:2]
-        fits = [iekf(x_prior, p_prior, links, floor, sel, building, config,
-                     level=np.full(shape, lv)) for lv in (True, False)]
-        pick = fits[0][2] >= fits[1][2]
-        x, p, log_ev, res = (np.where(pick.reshape(shape + (1,) * (a.ndim - 2)), a, b)
-                             for a, b in zip(fits[0], fits[1], strict=True))
+        x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
 
