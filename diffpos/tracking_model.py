@@ -106,8 +106,8 @@ def _pair_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building,
     return np.where(np.isfinite(meas), c, 0.0)
 
 
-def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m: float
-                  ) -> FloatArray | None:
+def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m: float,
+                  pe: PathEval | None = None) -> FloatArray | None:
     """:func:`snr_cost` where a slot that exists within ``relax_m`` of the hypothesis (its
     window entry point within the entry's uncertainty of the band) but carries no power at
     the point itself is scored at the nearest height (``pos`` +- ``relax_m`` in z) where it
@@ -117,7 +117,8 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m: float
     accumulated into a wrong floor lock (default run, top-floor walker)."""
     if links.snr is None:
         return None
-    pe = all_paths(pos, links, floor, building, relax_m)
+    if pe is None:  # the paths at ``pos`` with ``relax_m`` (a caller may pass them)
+        pe = all_paths(pos, links, floor, building, relax_m)
     # the detector's threshold is set by the strongest path that surely exists (a path that
     # exists only on one side of a band edge a few cm away is no evidence of a strong path)
     c = snr_cost(pos, links, building, trust=pe.sure)
@@ -390,11 +391,16 @@ def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArra
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual."""
     x = x_prior
-    # the SNR of every slot at the prior (a path's strength changes little over the fit)
-    snr_c = snr_cost_near(clamp_to_floor(x[..., :3], floor, building, config.z_margin_m),
-                          links, floor, building, config.exist_margin_m)
-    for _ in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
-        pe = all_paths(x[..., :3], links, floor, building, config.exist_margin_m)
+    # the SNR of every slot at the prior (a path's strength changes little over the fit);
+    # the paths at the prior serve the SNR term and the first selection (the same point
+    # unless the prediction left its floor's box)
+    xc = clamp_to_floor(x[..., :3], floor, building, config.z_margin_m)
+    same = np.array_equal(xc, x[..., :3])
+    pe0 = all_paths(xc, links, floor, building, config.exist_margin_m)
+    snr_c = snr_cost_near(xc, links, floor, building, config.exist_margin_m, pe0)
+    for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
+        pe = pe0 if k == 0 and same else all_paths(x[..., :3], links, floor, building,
+                                                   config.exist_margin_m)
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
