@@ -471,9 +471,8 @@ def _single_fix(a: np.ndarray, r: np.ndarray, sigmas_m: ArrayLike | None
                 ) -> PreparedBatch | None:
     """The common single-fix call (anchors ``(M, 3)``, ranges ``(M,)``, sigma scalar or None,
     no mask) when every value is valid, else None (the general path then gives the same
-    batch or the per-fix input errors). The sums are a sufficient finiteness test: a NaN or
-    inf makes them non-finite; finite values that overflow the sum only send the fix to the
-    general path's exact test."""
+    batch or the per-fix input errors). Finite minimum and maximum = every value finite
+    (NaN propagates through both)."""
     m = r.shape[0]
     if a.shape != (m, 3) or m == 0:
         return None
@@ -485,8 +484,10 @@ def _single_fix(a: np.ndarray, r: np.ndarray, sigmas_m: ArrayLike | None
             return None
     else:
         return None
-    if not (math.isfinite(float(np.add.reduce(a, None)))
-            and math.isfinite(float(np.add.reduce(r))) and float(np.minimum.reduce(r)) >= 0):
+    r_lo, r_hi = float(np.minimum.reduce(r)), float(np.maximum.reduce(r))
+    if not (math.isfinite(float(np.minimum.reduce(a, None)))
+            and math.isfinite(float(np.maximum.reduce(a, None)))
+            and r_lo >= 0 and math.isfinite(r_hi)):  # min/max propagate NaN
         return None
     s = np.empty((1, m))
     s.fill(sig)
