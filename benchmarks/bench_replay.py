@@ -19,6 +19,10 @@ Usage::
     python benchmarks/bench_replay.py                          # defaults below
     python benchmarks/bench_replay.py --realistic r.mcap       # reuse a recording
     python benchmarks/bench_replay.py --emulate-s 600 --minutes 10 60 --profile
+    python benchmarks/bench_replay.py --realistic r600.mcap --synthetic s10.mcap s60.mcap
+
+A split recording (``r.mcap``, ``r_0001.mcap``, ...: the recorder splits long runs) is given
+by its first part and replayed whole.
 
 The machine and Python are printed with the table (shared machines: say so next to any
 figure quoted from it).
@@ -77,6 +81,8 @@ def child_replay(path: str, mode: str) -> dict:
         "max_diff_m": (c.get("position_diff_m") or {}).get("max"),
         "decisions": rep["decisions"],
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "parts": len(rep.get("parts") or [path]),
+        "load": os.getloadavg()[0],
     }
     if not new and r.live_estimates:  # before: every field of every fix
         def bare(e):
@@ -135,7 +141,8 @@ def _row(name: str, r: dict) -> str:
     cpu_x = r["recording_s"] / r["cpu_s"] if r.get("cpu_s") else None
     return (f"{name:<34} {r['recording_s']:>8.1f} {r['wall_s']:>8.1f} "
             f"{_fmt(r['speed_x'], '.2f'):>8} {_fmt(cpu_x, '.2f'):>8} {r['fixes']:>8} {_fmt(r['status_agree'], '.4f'):>7} "
-            f"{ident:>15} {_fmt(r['max_diff_m'], '.3g'):>9} {r['peak_rss_mb']:>8.0f}")
+            f"{ident:>15} {_fmt(r['max_diff_m'], '.3g'):>9} {r['peak_rss_mb']:>8.0f} "
+            f"{r.get('parts', 1):>5} {r.get('load', 0):>5.1f}")
 
 
 def main() -> None:
@@ -145,6 +152,9 @@ def main() -> None:
                     help="emulated seconds of the realistic recording to make (default 600)")
     ap.add_argument("--minutes", type=float, nargs="*", default=[10.0, 60.0],
                     help="lengths of the synthetic recordings for the flat-memory check")
+    ap.add_argument("--synthetic", nargs="*", default=None, metavar="MCAP",
+                    help="existing synthetic recordings for the flat-memory check (instead of "
+                         "making --minutes ones)")
     ap.add_argument("--before", action="store_true",
                     help="also replay the realistic recording as before (every estimate kept)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
@@ -168,18 +178,23 @@ def main() -> None:
     rows.append(("realistic, now (decision record)", _run_child(str(real), "now")))
     if args.before:
         rows.append(("realistic, before (recorder order)", _run_child(str(real), "before")))
-    for minutes in args.minutes:
-        p = tmp / f"synthetic_{minutes:g}min.mcap"
-        t0 = time.perf_counter()
-        _synthetic(p, minutes)
-        notes.append(f"made {p.name} ({time.perf_counter() - t0:.0f} s wall)")
-        rows.append((f"synthetic {minutes:g} min, now", _run_child(str(p), "now")))
+    if args.synthetic is not None:
+        for p in args.synthetic:
+            rows.append((f"synthetic {Path(p).name}, now", _run_child(p, "now")))
+    else:
+        for minutes in args.minutes:
+            p = tmp / f"synthetic_{minutes:g}min.mcap"
+            t0 = time.perf_counter()
+            _synthetic(p, minutes)
+            notes.append(f"made {p.name} ({time.perf_counter() - t0:.0f} s wall)")
+            rows.append((f"synthetic {minutes:g} min, now", _run_child(str(p), "now")))
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python "
           f"{platform.python_version()} (shared with other jobs: absolute times vary)")
     for n in notes:
         print("  " + n)
-    print(f"\n{'replay':<34} {'rec [s]':>8} {'wall [s]':>8} {'x real':>8} {'fixes':>8} "
-          f"{'status=':>7} {'identical pos':>15} {'max d [m]':>9} {'RSS [MB]':>8}")
+    print(f"\n{'replay':<34} {'rec [s]':>8} {'wall [s]':>8} {'x real':>8} {'x cpu':>8} "
+          f"{'fixes':>8} {'status=':>7} {'identical pos':>15} {'max d [m]':>9} {'RSS [MB]':>8} "
+          f"{'parts':>5} {'load':>5}")
     for name, r in rows:
         print(_row(name, r))
     for name, r in rows:

@@ -133,7 +133,7 @@ def _run_solve(inp: Path) -> tuple[float, float, int]:
     return cpu, wall, n_out
 
 
-def solve_table(rng: np.random.Generator, n: int, subset: int) -> list[str]:
+def solve_table(rng: np.random.Generator, n: int, subset: int, runs: int = 3) -> list[str]:
     a, _, r = _problems(rng, n, 8, False)
     zs = np.asarray(DEFAULT_Z_STARTS_M)
     sub = slice(0, subset)
@@ -148,8 +148,10 @@ def solve_table(rng: np.random.Generator, n: int, subset: int) -> list[str]:
     with tempfile.TemporaryDirectory() as tmp:
         inp = Path(tmp) / "problems.jsonl"
         _write_lines(inp, a, r)
-        cpu, wall, n_out = _run_solve(inp)
-    assert n_out == n, f"diffpos solve wrote {n_out} results for {n} lines"
+        meas = [_run_solve(inp) for _ in range(runs)]
+    assert all(k[2] == n for k in meas), f"diffpos solve wrote {[k[2] for k in meas]} for {n}"
+    cpu, wall = float(np.median([k[0] for k in meas])), float(np.median([k[1] for k in meas]))
+    each = ", ".join(f"{k[0]:.1f}/{k[1]:.1f}" for k in meas)
     return [
         "| fixes (8 anchors) | scipy loop CPU [s] | diffpos solve CPU [s] | ratio (CPU) | "
         "scipy loop wall [s] | diffpos solve wall [s] | ratio (wall) |",
@@ -158,7 +160,8 @@ def solve_table(rng: np.random.Generator, n: int, subset: int) -> list[str]:
         f"{wall:,.1f} | {sp_wall / wall:.0f}x |",
         "",
         f"scipy loop timed on {subset} fixes and extrapolated to {n:,}; diffpos solve measured "
-        "whole-process (start to exit) on all of them.",
+        f"whole-process (start to exit) on all of them, median of {runs} runs (CPU/wall s: "
+        f"{each}); load average {os.getloadavg()[0]:.1f} at the end.",
     ]
 
 
@@ -169,6 +172,8 @@ def main() -> None:
     ap.add_argument("--fixes", type=int, default=100_000, help="diffpos solve lines")
     ap.add_argument("--batch", type=int, default=10_000, help="batched table size")
     ap.add_argument("--scipy-subset", type=int, default=200)
+    ap.add_argument("--runs", type=int, default=3, help="diffpos solve runs (median reported)")
+    ap.add_argument("--only-solve", action="store_true", help="only the diffpos solve table")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     warm_dnls()  # compiled (or loaded from numba's cache) when dnls_nb was imported
@@ -176,13 +181,16 @@ def main() -> None:
           "(shared with other jobs); the kernel is loaded before the tables (numba's cache: "
           "the first compile on a machine costs ~45-52 s CPU, a cached load ~0.7 s CPU)\n")
     n_single = 100 if args.quick else 500
+    if args.only_solve:
+        print("\n".join(solve_table(rng, args.fixes, args.scipy_subset, args.runs)))
+        return
     print("## Single fix\n")
     print("\n".join(single_table(rng, n_single)))
     print("\n## Batched\n")
     print("\n".join(batch_table(rng, 2000 if args.quick else args.batch)))
     print("\n## diffpos solve vs a scipy least_squares loop\n")
     print("\n".join(solve_table(rng, 10_000 if args.quick else args.fixes,
-                                50 if args.quick else args.scipy_subset)))
+                                50 if args.quick else args.scipy_subset, args.runs)))
 
 
 if __name__ == "__main__":

@@ -63,7 +63,8 @@ class Links:
                    snr=snr, radio=radio if snr is not None else None)
 
 
-def snr_cost(pos: FloatArray, links: Links, building) -> FloatArray | None:
+def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
+             ) -> FloatArray | None:
     """SNR negative log-likelihood of every slot at the hypotheses ``pos`` (N, H, 3):
     (N, H, M, K), +inf where the slot carries no power, 0 where the SNR is unknown; None
     without SNR.
@@ -78,22 +79,67 @@ def snr_cost(pos: FloatArray, links: Links, building) -> FloatArray | None:
     if links.snr is None:
         return None
     n, h = pos.shape[:2]
-    if n * h == 0:
-        return np.zeros((n, h, links.rho.shape[-1], K_SLOTS))
     m = links.rho.shape[-1]
-    anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(n * h, m, 3)
-    pred = pair_snr_db(anc, pos.reshape(n * h, 3), building=building, radio=links.radio)
-    pred = pred.reshape(n, h, m, K_SLOTS)
-    meas = links.snr[..., None]
-    r = links.radio
+    if n * h == 0:
+        return np.zeros((n, h, m, K_SLOTS))
+    anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(-1, 3)
+    p = np.broadcast_to(pos[:, :, None, :], (n, h, m, 3)).reshape(-1, 3)
+    meas = np.broadcast_to(links.snr, (n, h, m)).reshape(-1)
+    tr = None if trust is None else np.broadcast_to(trust, (n, h, m, K_SLOTS)).reshape(-1, K_SLOTS)
+    return _pair_snr_cost(anc, p, meas, building, links.radio, tr).reshape(n, h, m, K_SLOTS)
+
+
+def _pair_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building, radio,
+                   trust: NDArray | None = None) -> FloatArray:
+    """:func:`snr_cost` of P (anchor, node) pairs: (P, K); ``trust`` (P, K): the slots whose
+    power sets the detector's threshold (default all)."""
+    pred = pair_snr_db(anc[:, None, :], pos, building=building, radio=radio)[:, 0]
+    meas = meas[:, None]
+    strong = pred if trust is None else np.where(trust, pred, -np.inf)
     with np.errstate(invalid="ignore"):
         c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
-        thr = np.maximum(np.max(pred, axis=-1, keepdims=True) - r.fap_threshold_db,
-                         r.detection_snr_db)
+        thr = np.maximum(np.max(strong, axis=-1, keepdims=True) - radio.fap_threshold_db,
+                         radio.detection_snr_db)
         short = np.maximum(thr - SNR_SIGMA_DB - meas, 0.0)
         c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
     c = np.where(np.isfinite(pred), c, np.inf)
     return np.where(np.isfinite(meas), c, 0.0)
+
+
+def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m: float,
+                  pe: PathEval | None = None) -> FloatArray | None:
+    """:func:`snr_cost` where a slot that exists within ``relax_m`` of the hypothesis (its
+    window entry point within the entry's uncertainty of the band) but carries no power at
+    the point itself is scored at the nearest height (``pos`` +- ``relax_m`` in z) where it
+    does: the best-matching prediction over the position's uncertainty. At the point alone a
+    node at the nominal height just below a band edge lost 1.4 nats per such link and epoch
+    (the slot's SNR counted as unknown) whenever its prior was a few cm too high, which
+    accumulated into a wrong floor lock (default run, top-floor walker)."""
+    if links.snr is None:
+        return None
+    if pe is None:  # the paths at ``pos`` with ``relax_m`` (a caller may pass them)
+        pe = all_paths(pos, links, floor, building, relax_m)
+    # the detector's threshold is set by the strongest path that surely exists (a path that
+    # exists only on one side of a band edge a few cm away is no evidence of a strong path)
+    c = snr_cost(pos, links, building, trust=pe.sure)
+    hole = ~np.isfinite(c) & pe.loose
+    pairs = np.argwhere(np.any(hole, axis=-1))  # (P, 3): n, h, m
+    if pairs.size == 0:
+        return c
+    n_i, h_i, m_i = pairs.T
+    anc = np.broadcast_to(links.anchors, (*c.shape[:3], 3))[n_i, h_i, m_i]
+    meas = np.broadcast_to(links.snr, c.shape[:3])[n_i, h_i, m_i]
+    fl = np.broadcast_to(np.asarray(floor), pos.shape[:2])[n_i, h_i]
+    zf = building.floor_z_m(fl)
+    best = np.full((len(pairs), K_SLOTS), np.inf)
+    for dz in (-relax_m, relax_m):
+        p = pos[n_i, h_i].copy()
+        p[:, 2] = np.clip(p[:, 2] + dz, zf + 0.01, zf + building.floor_height_m - 0.01)
+        best = np.minimum(best, _pair_snr_cost(anc, p, meas, building, links.radio,
+                                               pe.sure[n_i, h_i, m_i]))
+    sub = c[n_i, h_i, m_i]
+    c[n_i, h_i, m_i] = np.where(hole[n_i, h_i, m_i], best, sub)
+    return c
 
 
 def _los(pos: FloatArray, anchors: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -345,11 +391,16 @@ def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArra
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual."""
     x = x_prior
-    # the SNR of every slot at the prior (a path's strength changes little over the fit)
-    snr_c = snr_cost(clamp_to_floor(x[..., :3], floor, building, config.z_margin_m), links,
-                     building)
-    for _ in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
-        pe = all_paths(x[..., :3], links, floor, building, config.exist_margin_m)
+    # the SNR of every slot at the prior (a path's strength changes little over the fit);
+    # the paths at the prior serve the SNR term and the first selection (the same point
+    # unless the prediction left its floor's box)
+    xc = clamp_to_floor(x[..., :3], floor, building, config.z_margin_m)
+    same = np.array_equal(xc, x[..., :3])
+    pe0 = all_paths(xc, links, floor, building, config.exist_margin_m)
+    snr_c = snr_cost_near(xc, links, floor, building, config.exist_margin_m, pe0)
+    for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
+        pe = pe0 if k == 0 and same else all_paths(x[..., :3], links, floor, building,
+                                                   config.exist_margin_m)
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res

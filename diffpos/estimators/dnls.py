@@ -62,7 +62,11 @@ FloatArray = NDArray[np.float64]
 DEFAULT_Z_STARTS_M = tuple(float(z) for z in np.arange(0.0, 30.0 + 1e-9, 3.0))
 
 _DEFAULT_GATING = GatingConfig()
+_DEFAULT_ZS = np.asarray(DEFAULT_Z_STARTS_M, np.float64)
 _PREGATE, _RAIM = int(ExclusionReason.PREGATE_SHORTER_THAN_LOS), int(ExclusionReason.RAIM)
+_EXCLUSIONS = np.array([_PREGATE, _RAIM])
+#: The two gating reasons are the highest codes: ``excluded`` is one comparison.
+_EXCLUSIONS_LAST = sorted(int(c) for c in ExclusionReason)[-2:] == sorted((_PREGATE, _RAIM))
 
 
 def _per_fix(value: ArrayLike, batch: int, name: str) -> FloatArray | float:
@@ -245,23 +249,62 @@ def _solve_compiled(batch_in: PreparedBatch, model: PathModel, x0: FloatArray | 
                     ) -> dict[str, np.ndarray]:
     """The whole batch through the compiled kernel; the output arrays of :func:`_alloc`."""
     bsz, m = batch_in.ranges_m.shape
-    ipar, fpar = dnls_nb.options(
-        loss=LOSS_CODES[loss], loss_scale=loss_scale, max_iter=max_iter, xtol=xtol,
-        keep_starts=keep_starts, screen_iter=screen_iter, lls_start=lls_start,
-        sigmas_given=batch_in.sigmas_given, y_start=y_start, edge_x_m=model.edge_x_m,
-        gating=gating)
+    ipar, fpar = _kernel_options(LOSS_CODES[loss], float(loss_scale), int(max_iter), float(xtol),
+                                 keep_starts, int(screen_iter), bool(lls_start),
+                                 batch_in.sigmas_given, float(y_start), model.edge_x_m, gating)
     h_m = model.edge_offset_m
-    h = (np.full(bsz, h_m) if isinstance(h_m, float)
-         else np.array(np.broadcast_to(h_m, (bsz, 1))[:, 0], np.float64))  # writable
+    if isinstance(h_m, float):
+        h = np.empty(bsz)
+        h.fill(h_m)
+    else:
+        h = np.array(np.broadcast_to(h_m, (bsz, 1))[:, 0], np.float64)  # writable
     if x0 is None:
         x0_c, has_x0 = np.zeros((bsz, 3)), np.zeros(bsz, bool)
     else:
         x0_c, has_x0 = np.array(x0, np.float64, order="C"), np.ones(bsz, bool)
     zs = np.zeros(1) if starts is None else np.ascontiguousarray(starts, np.float64)
     pfa = gating.false_alarm_probability if gating is not None else 0.5
-    return dnls_nb.run(batch_in.anchors_m, batch_in.ranges_m, batch_in.sigmas_m, batch_in.mask,
+    out = _kernel_outputs(bsz, m)
+    dnls_nb.dnls_batch(batch_in.anchors_m, batch_in.ranges_m, batch_in.sigmas_m, batch_in.mask,
                        h, x0_c, has_x0, zs, ipar, fpar, _thresholds(m, pfa),
-                       _thresholds(m, RECHECK_PROBABILITY))
+                       _thresholds(m, RECHECK_PROBABILITY), *out)
+    pos, cov, out_i, out_f, resid, used, reason = out
+    return {
+        "position_m": pos, "covariance_m2": cov, "peb_m": out_f[:, 0], "z_bound_m": out_f[:, 1],
+        "iterations": out_i[:, 0], "converged": out_i[:, 1] != 0, "status": out_i[:, 2],
+        "residuals_m": resid, "used": used, "exclusion_reason": reason,
+        "test_statistic": out_f[:, 2], "test_threshold": out_f[:, 3], "dof": out_i[:, 3],
+        "cost": out_f[:, 4],
+    }
+
+
+@functools.lru_cache(maxsize=256)
+def _kernel_options(loss: int, loss_scale: float, max_iter: int, xtol: float,
+                    keep_starts: int | None, screen_iter: int, lls_start: bool,
+                    sigmas_given: bool, y_start: float, edge_x_m: tuple[float, float] | None,
+                    gating: GatingConfig | None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`diffpos._kernels.dnls_nb.options`, once per distinct option set (the kernel only
+    reads ``ipar``/``fpar``; shared arrays, never written)."""
+    return dnls_nb.options(loss=loss, loss_scale=loss_scale, max_iter=max_iter, xtol=xtol,
+                           keep_starts=keep_starts, screen_iter=screen_iter, lls_start=lls_start,
+                           sigmas_given=sigmas_given, y_start=y_start, edge_x_m=edge_x_m,
+                           gating=gating)
+
+
+def _kernel_outputs(bsz: int, m: int) -> tuple[np.ndarray, ...]:
+    """The output arrays of :func:`dnls_nb.dnls_batch` filled with an unsolved fix's values
+    (as ``dnls_nb.run``): pos, cov, out_i (iterations, converged, status, dof), out_f (peb,
+    z bound, statistic, threshold, cost), residuals, used, exclusion reason."""
+    fl = np.empty(bsz * (3 + 9 + 5 + m))
+    fl.fill(np.nan)
+    pos = fl[: 3 * bsz].reshape(bsz, 3)
+    cov = fl[3 * bsz: 12 * bsz].reshape(bsz, 3, 3)
+    out_f = fl[12 * bsz: 17 * bsz].reshape(bsz, 5)
+    resid = fl[17 * bsz:].reshape(bsz, m)
+    out_i = np.zeros((bsz, 4), np.int64)
+    out_i[:, 2] = FixStatus.TOO_FEW_ANCHORS
+    return (pos, cov, out_i, out_f, resid, np.zeros((bsz, m), np.bool_),
+            np.zeros((bsz, m), np.int64))
 
 
 def _check_options(loss: str, loss_scale: float, gating: GatingConfig | None) -> None:
@@ -300,39 +343,26 @@ def _start_option(
         if not np.all(np.isfinite(x0)):
             raise ValueError("x0_m must be finite")
         return x0, None
+    if z_starts_m is None:
+        return None, _DEFAULT_ZS  # validated once; the solvers only read it
     return None, _check_z_starts(z_starts_m)
 
 
 def _fix_result(out: dict[str, np.ndarray], batch_in: PreparedBatch) -> FixResult:
     """The :class:`FixResult` of the filled output arrays (invalid and missing marked)."""
-    invalid = batch_in.input_error != 0
     reason = out["exclusion_reason"]
-    if invalid.any():
-        out["status"][invalid] = FixStatus.INVALID_INPUT
-        reason[invalid[:, None] & batch_in.present] = ExclusionReason.NONE
-    if not batch_in.present.all():
-        reason[~batch_in.present] = ExclusionReason.MISSING
-    return FixResult(
-        position_m=out["position_m"],
-        covariance_m2=out["covariance_m2"],
-        peb_m=out["peb_m"],
-        z_bound_m=out["z_bound_m"],
-        iterations=out["iterations"],
-        converged=out["converged"],
-        status=out["status"],
-        residuals_m=out["residuals_m"],
-        used=out["used"],
-        excluded=(reason == _PREGATE) | (reason == _RAIM),
-        exclusion_reason=reason,
-        test_statistic=out["test_statistic"],
-        test_threshold=out["test_threshold"],
-        dof=out["dof"],
-        cost=out["cost"],
-        input_error=batch_in.input_error,
-        method="dnls",
-        covariance_model="diffraction FIM",
-        sigmas_given=batch_in.sigmas_given,
-    )
+    if not batch_in.all_valid:
+        invalid = batch_in.input_error != 0
+        if invalid.any():
+            out["status"][invalid] = FixStatus.INVALID_INPUT
+            reason[invalid[:, None] & batch_in.present] = ExclusionReason.NONE
+        if not batch_in.present.all():
+            reason[~batch_in.present] = ExclusionReason.MISSING
+    out["excluded"] = (reason >= _PREGATE) if _EXCLUSIONS_LAST else np.isin(reason, _EXCLUSIONS)
+    out["input_error"] = batch_in.input_error
+    out["sigmas_given"] = batch_in.sigmas_given
+    out["method"], out["covariance_model"] = "dnls", "diffraction FIM"
+    return FixResult.from_fields(out)
 
 
 def _alloc(b: int, m: int) -> dict[str, np.ndarray]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -318,3 +319,54 @@ def test_wall_plane_optima_converge():
         ref = lsq(fun, s0, bounds=([-np.inf, 0.0, -np.inf], np.inf), method="trf",
                   xtol=1e-15, ftol=1e-15, gtol=1e-15)
         assert np.isclose(warm.cost[i], ref.cost, rtol=1e-9), (i, warm.cost[i], ref.cost)
+
+
+def _same_fix(f1, f2) -> None:
+    """Every array field equal (NaN where NaN), every scalar field equal."""
+    for fld in dataclasses.fields(f1):
+        v1, v2 = getattr(f1, fld.name), getattr(f2, fld.name)
+        if isinstance(v1, np.ndarray):
+            np.testing.assert_array_equal(v1, v2, err_msg=fld.name)
+            assert v1.shape == v2.shape and v1.dtype == v2.dtype, fld.name
+        else:
+            assert v1 == v2, fld.name
+
+
+def test_single_fix_fast_path_gives_the_general_paths_result():
+    """One (M, 3)/(M,) fix without a mask takes a shortcut through input preparation; an
+    all-True mask forces the general path: same result field by field, bit for bit (seed 7,
+    Case-1 and Case-2, with and without sigmas, one faulty anchor)."""
+    rng = np.random.default_rng(7)
+    for k in range(12):
+        m = 5 + k % 4
+        a = np.c_[rng.uniform(-30, 30, m), rng.uniform(-40, -5, m), rng.uniform(0, 30, m)]
+        node = np.array([rng.uniform(-10, 10), rng.uniform(1, 10), rng.uniform(1, 25)])
+        delta = 1.5 * (k % 2)
+        r = window_edge_path(a, node, window_height_m=1.0, delta_m=delta).length_m
+        r = r + 0.05 * rng.standard_normal(m)
+        r[0] += 8.0 * (k % 3 == 0)
+        sig = None if k % 4 == 1 else 0.05
+        kw = {"window_height_m": 1.0, "delta_m": delta}
+        _same_fix(dnls(a, r, sig, **kw), dnls(a, r, sig, mask=np.ones(m, bool), **kw))
+
+
+@pytest.mark.parametrize("bad", ["nan_anchor", "inf_range", "negative_range", "overflow"])
+def test_single_fix_fast_path_leaves_bad_values_to_the_checked_path(bad):
+    """NaN/inf, a negative range, or huge finite values (their sum would overflow): the
+    checked path's verdict (input error, or a fix for valid values), exactly as with a mask."""
+    rng = np.random.default_rng(3)
+    a = np.c_[rng.uniform(-30, 30, 6), rng.uniform(-40, -5, 6), rng.uniform(0, 30, 6)]
+    r = window_edge_path(a, np.array([1.0, 4.0, 7.0]), window_height_m=1.0).length_m
+    if bad == "nan_anchor":
+        a[2, 1] = np.nan
+    elif bad == "inf_range":
+        r[1] = np.inf
+    elif bad == "negative_range":
+        r[3] = -1.0
+    else:
+        a[:, 0] = 1e308  # finite, but the sum overflows
+    f1 = dnls(a, r, 0.05, window_height_m=1.0)
+    f2 = dnls(a, r, 0.05, window_height_m=1.0, mask=np.ones(6, bool))
+    _same_fix(f1, f2)
+    if bad != "overflow":
+        assert f1.status[0] == FixStatus.INVALID_INPUT and f1.input_error[0] != 0

@@ -85,3 +85,93 @@ def test_error_stats_replay_group():
     empty = metrics.error_stats(np.empty(0), np.empty(0), np.empty(0), np.empty(0, bool),
                                 np.empty(0), fixes=0)
     assert empty["availability"] is None and empty["within_2peb"] is None
+
+
+# -- the streaming summaries (bounded memory) against the array functions -----------------
+
+
+def _errors(rng, n):
+    d = rng.normal(scale=0.8, size=(n, 3)) * rng.lognormal(sigma=1.0, size=(n, 1))
+    d[rng.random(n) < 0.1] = np.nan  # misses
+    return d
+
+
+def test_quantile_sketch_is_exact_up_to_its_limit_then_within_its_relative_bound():
+    rng = np.random.default_rng(7)
+    v = np.abs(rng.standard_cauchy(50_000))  # heavy tail: 1e-5 .. 1e4
+    v[:50] = 0.0
+    exact = metrics.QuantileSketch(exact_limit=len(v))
+    sk = metrics.QuantileSketch(exact_limit=1000, relative_accuracy=0.005)
+    for part in np.array_split(v, 37):
+        exact.add(part)
+        sk.add(part)
+    ref = metrics.percentiles(v, (1, 50, 67, 90, 99, 99.9))
+    # exact: the same (the mean summed in sorted order: independent of the batches)
+    assert exact.exact and exact.summary((1, 50, 67, 90, 99, 99.9)) == metrics.percentiles(
+        np.sort(v), (1, 50, 67, 90, 99, 99.9))
+    assert exact.summary((1, 50, 67, 90, 99, 99.9)) == pytest.approx(ref, rel=1e-14)
+    assert not sk.exact
+    out = sk.summary((1, 50, 67, 90, 99, 99.9))
+    for k in ("p1", "p50", "p67", "p90", "p99", "p99.9"):
+        assert abs(out[k] - ref[k]) <= 0.005 * ref[k] + 1e-6, k
+    assert out["max"] == ref["max"]
+    assert out["mean"] == pytest.approx(ref["mean"], rel=1e-12)
+    assert sk.values().size == v.size
+    # memory does not follow the stream: the histogram's size is fixed
+    n_buckets = sk._hist.size
+    sk.add(np.abs(rng.standard_cauchy(200_000)))
+    assert sk._hist.size == n_buckets and sk.count == 250_000
+
+
+def test_streaming_error_stats_equal_error_stats_while_exact_and_close_beyond():
+    rng = np.random.default_rng(3)
+    n = 6000
+    e3 = np.abs(rng.normal(size=n)) * 2
+    ez, eh = e3 * rng.random(n), e3 * rng.random(n)
+    fok = rng.random(n) < 0.9
+    peb = np.where(rng.random(n) < 0.2, np.nan, rng.random(n) * 3)
+    order = np.argsort(e3)  # the streaming summaries sum the mean in sorted order
+    e3, ez, eh, fok, peb = e3[order], np.sort(ez), np.sort(eh), fok[order], peb[order]
+    peb[np.isfinite(peb)] = np.sort(peb[np.isfinite(peb)])
+    ref = metrics.error_stats(e3, ez, eh, fok, peb, fixes=n + 17)
+    exact = metrics.StreamingErrorStats(exact_limit=n)
+    approx = metrics.StreamingErrorStats(exact_limit=500)
+    for sl in np.array_split(np.arange(n), 11):
+        for s in (exact, approx):
+            s.add(e3[sl], ez[sl], eh[sl], fok[sl], peb[sl])
+    assert exact.result(fixes=n + 17) == ref
+    out = approx.result(fixes=n + 17)
+    for k in ("fixes", "evaluated", "availability", "floor_accuracy", "within_2peb"):
+        assert out[k] == ref[k], k
+    assert out["rmse_3d_m"] == pytest.approx(ref["rmse_3d_m"], rel=1e-12)
+    for dist in ("error_3d_m", "error_z_m", "error_h_m", "peb_m"):
+        for k, x in ref[dist].items():
+            assert out[dist][k] == pytest.approx(x, rel=0.005, abs=1e-6), (dist, k)
+
+
+def test_streaming_score_equals_score_over_all_node_epochs():
+    rng = np.random.default_rng(11)
+    d = _errors(rng, 5000)
+    ef, tf = rng.integers(0, 3, 5000), rng.integers(0, 3, 5000)
+    ref = metrics.score(d, np.zeros_like(d), estimate_floor=ef, truth_floor=tf)
+    exact, approx = metrics.StreamingScore(exact_limit=5000), metrics.StreamingScore(
+        exact_limit=300)
+    for sl in np.array_split(np.arange(5000), 7):
+        for s in (exact, approx):
+            s.add(d[sl], estimate_floor=ef[sl], truth_floor=tf[sl])
+    got = exact.result()  # identical, but the means: summed in sorted order (rounding)
+    for k, x in ref.as_dict().items():
+        assert getattr(got, k) == (pytest.approx(x, rel=1e-14) if k == "rmse_3d_m" or isinstance(
+            x, dict) else x), k
+    assert [got.error_3d_m[k] for k in ("p50", "p99", "max")] == [
+        ref.error_3d_m[k] for k in ("p50", "p99", "max")]
+    out = approx.result()
+    for k in ("node_epochs", "fixes", "availability", "floor_accuracy_all",
+              "floor_accuracy_fixes"):
+        assert getattr(out, k) == getattr(ref, k), k
+    for dist in ("error_3d_m", "error_z_m", "error_h_m"):
+        for k, x in getattr(ref, dist).items():
+            assert getattr(out, dist)[k] == pytest.approx(x, rel=0.005, abs=1e-6), (dist, k)
+    empty = metrics.StreamingScore().result()
+    assert empty == metrics.score(np.empty((0, 3)), np.empty((0, 3)), estimate_floor=[],
+                                  truth_floor=[])

@@ -8,7 +8,6 @@ emulator's channel for the ranges. Fixed seeds, tolerances stated per test.
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from scipy.linalg import expm
 
 from diffpos.channel import emulate_channel, first_arrival
@@ -149,26 +148,26 @@ def test_divergence_reinitialises():
     assert seen
 
 
-@pytest.mark.parametrize("up", [True, False])
-def test_stairs_floor_change_within_2s(up):
-    """A responder walking up (or down) the stairs (1.2 m/s, 6 m run per 3 m rise, 8 UAVs,
-    ranges and SNR of the emulator's channel) changes floor in the estimate within 2 s of the
-    truth and stays there; before, it was on the right floor for >= 80 % of the epochs
+def test_stairs_floor_change_within_2s():
+    """A responder walking up and one walking down the stairs (1.2 m/s, 6 m run per 3 m
+    rise, 8 UAVs, ranges and SNR of the emulator's channel; both tracked in one vectorised
+    run, which halves the cost of two runs) change floor in the estimate within 2 s of the
+    truth and stay there; before, each was on the right floor for >= 80 % of the epochs
     after the first second."""
     z0 = float(B.floor_z_m(1)) + B.nominal_node_height_m
     pts = [[10.0, 5.0, z0], [12.0, 5.0, z0], [12.0, 7.0, z0], [6.0, 7.0, z0 + 3.0],
            [2.0, 7.0, z0 + 3.0]]
-    f_from, f_to = (1, 2) if up else (2, 1)
-    tr = [_walker(pts if up else pts[::-1], speed=1.2)]
+    trs = [_walker(pts, speed=1.2), _walker(pts[::-1], speed=1.2)]
     t = np.arange(0, 11.0, 0.1)
-    _, outs = _run(tr, ANCHORS8, t)
-    true_f = np.array([B.floor_index(tr_[0, 2]) for _, tr_ in outs])
-    est_f = np.array([o.floor_index[0] for o, _ in outs])
-    assert true_f[-1] == f_to
-    t_true = t[np.argmax(true_f == f_to)]
-    settled = np.flatnonzero(est_f != f_to)
-    assert settled.size == 0 or settled[-1] + 1 < t.size, "never settled on the new floor"
-    t_est = t[settled[-1] + 1] if settled.size else t[0]
-    assert t_est - t_true <= 2.0
-    before = (t >= 1.0) & (t < t_true - 1.0)
-    assert np.mean(est_f[before] == f_from) >= 0.8  # and it was on the right floor before
+    _, outs = _run(trs, ANCHORS8, t)
+    for i, (f_from, f_to) in enumerate([(1, 2), (2, 1)]):
+        true_f = np.array([B.floor_index(tr_[i, 2]) for _, tr_ in outs])
+        est_f = np.array([o.floor_index[i] for o, _ in outs])
+        assert true_f[-1] == f_to
+        t_true = t[np.argmax(true_f == f_to)]
+        settled = np.flatnonzero(est_f != f_to)
+        assert settled.size == 0 or settled[-1] + 1 < t.size, "never settled on the new floor"
+        t_est = t[settled[-1] + 1] if settled.size else t[0]
+        assert t_est - t_true <= 2.0, (i, t_est, t_true)
+        before = (t >= 1.0) & (t < t_true - 1.0)
+        assert np.mean(est_f[before] == f_from) >= 0.8  # and it was on the right floor before

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -34,12 +35,24 @@ def rec(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def base(rec):
+    """The replay of ``rec`` with its recorded settings (read-only: shared by the tests)."""
+    return replay(rec)
+
+
+@pytest.fixture(scope="module")
+def no_motion_comp(rec):
+    """The replay of ``rec`` without motion compensation (read-only, shared)."""
+    return replay(rec, overrides={"motion_compensation": False})
+
+
 def _encoded(ests):
     return [M.encode(e) for e in ests]
 
 
-def test_replay_is_deterministic_bit_for_bit(rec):
-    a = replay(rec)
+def test_replay_is_deterministic_bit_for_bit(rec, base):
+    a = base
     b = replay(rec)
     assert len(a.estimates) == 3 * 30  # every node, every epoch
     assert _encoded(a.estimates) == _encoded(b.estimates)
@@ -48,8 +61,8 @@ def test_replay_is_deterministic_bit_for_bit(rec):
     assert json.dumps(ra, sort_keys=True) == json.dumps(rb, sort_keys=True)
 
 
-def test_replay_with_live_settings_reproduces_live_estimates(rec):
-    r = replay(rec)
+def test_replay_with_live_settings_reproduces_live_estimates(base, no_motion_comp):
+    r = base
     c = r.report["compare"]
     assert r.report["settings_source"] == "metadata fusion_config"
     # the recorded live fusion stepped on the same receive times: identical fixes; the only
@@ -65,8 +78,8 @@ def test_replay_with_live_settings_reproduces_live_estimates(rec):
                 e.position_m, e.peb_m, e.used_anchors, e.excluded)
 
 
-def test_accuracy_report_matches_brute_force_reference(rec):
-    r = replay(rec)
+def test_accuracy_report_matches_brute_force_reference(rec, base):
+    r = base
     truth: dict[str, list] = {}
     for m in McapScanner(rec).messages():
         if "/truth/node/" in m.topic:
@@ -103,8 +116,7 @@ def test_accuracy_report_matches_brute_force_reference(rec):
     assert sum(v["evaluated"] for v in per_node.values()) == len(errs)
 
 
-def test_what_if_settings_change_the_outcome(rec):
-    base = replay(rec)
+def test_what_if_settings_change_the_outcome(rec, base):
     gated = sum(g["excluded"].get("RAIM", 0) for g in base.report["gating"].values())
     assert gated > 0  # the outliers are caught
     off = replay(rec, overrides={"gating": False})
@@ -219,7 +231,7 @@ def test_committed_sample_recording(tmp_path):
     assert acc["error_3d_m"]["p50"] < 0.3 and acc["floor_accuracy"] > 0.95
 
 
-def test_replay_rrd_holds_the_replayed_estimates(rec, tmp_path, capsys):
+def test_replay_rrd_holds_the_replayed_estimates(rec, base, tmp_path, capsys):
     """`diffpos replay --rrd` writes the dashboard of the *replayed* fixes (read back by Rerun)."""
     from diffpos_services.dashboard.views import rrd_rows
 
@@ -227,7 +239,7 @@ def test_replay_rrd_holds_the_replayed_estimates(rec, tmp_path, capsys):
     assert cli_main(["replay", str(rec), "--no-files", "--no-progress", "--rrd", str(out)]) == 0
     assert f"wrote {out}" in capsys.readouterr().out
     expected = {}
-    for e in replay(rec).estimates:
+    for e in base.estimates:
         if e.position_m is not None:
             expected[(e.node_id, e.t_ns)] = np.asarray(e.position_m)
     rows = rrd_rows(out)
@@ -247,7 +259,7 @@ def test_replay_rrd_holds_the_replayed_estimates(rec, tmp_path, capsys):
         np.testing.assert_allclose(got[key], pos, atol=1e-5)  # float32 in the .rrd
 
 
-def test_replay_method_lls_gives_the_lls_fix_of_each_epoch(rec):
+def test_replay_method_lls_gives_the_lls_fix_of_each_epoch(rec, no_motion_comp):
     """``--method lls`` goes through FusionConfig.method: every fix equals diffpos.estimators.lls
     called directly on that epoch's recorded anchor positions and ranges (static anchors, no
     motion compensation, so the fusion's inputs are exactly the recorded values)."""
@@ -277,12 +289,12 @@ def test_replay_method_lls_gives_the_lls_fix_of_each_epoch(rec):
         checked += 1
     assert checked >= 80  # 3 nodes x 30 epochs, LLS solves every complete epoch
     # the default is still D-NLS, and it differs
-    d = replay(rec, overrides={"motion_compensation": False})
+    d = no_motion_comp
     assert d.report["method"] == "dnls"
     assert _encoded(d.estimates) != _encoded(r.estimates)
 
 
-def test_range_batch_recording_replays_like_single_ranges(rec, tmp_path):
+def test_range_batch_recording_replays_like_single_ranges(base, tmp_path):
     """Anchors publishing one RangeBatch per epoch (``--range-batch``): the replay feeds the
     batches to the fusion (it used to skip them), reproduces the recorded live estimates,
     and gives the same fixes as the same run recorded with one message per range."""
@@ -296,7 +308,7 @@ def test_range_batch_recording_replays_like_single_ranges(rec, tmp_path):
     c = r.report["compare"]
     assert c["only_live"] == 0 and c["status_agree"] == 1.0
     assert c["identical_positions"] == c["with_positions"] > 0
-    single = {(e.node_id, e.epoch): e for e in replay(rec).estimates}
+    single = {(e.node_id, e.epoch): e for e in base.estimates}
     assert len(r.estimates) == len(single) == 3 * 30
     for e in r.estimates:
         s = single[(e.node_id, e.epoch)]
@@ -317,3 +329,75 @@ def test_replay_restores_the_garbage_collector_thresholds(rec, tmp_path):
     with pytest.raises(RecordingError):
         replay(bad)
     assert gc.get_threshold() == before
+
+
+def test_split_recording_replays_as_one(rec, base, tmp_path):
+    """A recording the recorder split into parts (``--split-duration``: r.mcap, r_0001.mcap, ...,
+    channel ids restarting in every part) replays as the whole run: the same fixes and report
+    as the unsplit file, the parts named in the report."""
+    from diffpos_services.recording.reader import side_records
+    from diffpos_services.recording.writer import SplitPolicy, existing_parts
+
+    first = tmp_path / "split.mcap"
+    side = side_records(rec)
+    sink = McapSink(first, split=SplitPolicy(max_duration_s=1.0))
+    for md in side.metadata:
+        sink.add_metadata(md.name, md.metadata)
+    for i, m in enumerate(McapScanner(rec).messages()):
+        sink.write(m.topic, m.data, m.log_ns, publish_ns=m.publish_ns, sequence=m.sequence)
+        if i % 50 == 49:
+            sink.flush()  # the recorder's flush: where a full part is closed
+    sink.close()
+    parts = existing_parts(first)
+    assert len(parts) >= 3
+    r = replay(first)
+    assert r.report["parts"] == [p.name for p in parts]
+    assert r.report["complete"] and r.report["damage"]["ok"]
+    assert _encoded(r.estimates) == _encoded(base.estimates)
+    assert r.report["compare"] == base.report["compare"]
+    assert r.report["accuracy"] == base.report["accuracy"]
+    assert r.report["messages"]["by_kind"] == base.report["messages"]["by_kind"]
+
+
+def test_streamed_report_stays_bounded_and_within_its_stated_error():
+    """The report of a long run: 2 nodes x 10 Hz x 10 min of fixes against a known truth
+    (the truth at the fix times, errors from a seeded generator) through the replay's
+    FixStream: every fix evaluated, the percentiles within 0.5 % of numpy's over all errors
+    (the sketches left their exact mode), counts exact, and nothing kept per fix."""
+    from diffpos_services.recording.report_stream import FixStream, SlimEstimate, TruthBook
+
+    rng = np.random.default_rng(5)
+    period, n = 100_000_000, 6_000
+    noise = rng.normal(scale=0.5, size=(n, 2, 3)).tolist()
+    tb = TruthBook(window_ns=30_000_000_000)
+    fs = FixStream(tb, max_truth_gap_ns=500_000_000, window_ns=30_000_000_000)
+    errs = []
+    for k in range(n):
+        t = (k + 1) * period
+        for j, node in enumerate(("n1", "n2")):
+            truth = (float(k % 50), 2.0, 1.0)
+            tb.add(node, t, truth, 0)
+            d = noise[k][j]
+            errs.append(math.hypot(*d))
+            pos = (truth[0] + d[0], truth[1] + d[1], truth[2] + d[2])
+            fs.add(SlimEstimate("diffpos.estimate.v1", node, t, k, "OK", position_m=pos,
+                                peb_m=0.4, floor_index=0))
+        if k % 100 == 99:
+            fs.advance(t)
+    fs.advance(n * period, final=True)
+    acc, arrays = fs.accuracy()
+    overall = acc["overall"]
+    assert overall["evaluated"] == overall["fixes"] == 2 * n
+    assert overall["floor_accuracy"] == 1.0 and overall["without_truth"] == 0
+    assert not fs._overall.e3.exact  # beyond 4,096 values: the histogram
+    ref = np.percentile(errs, [50, 90, 99])
+    got = [overall["error_3d_m"][k] for k in ("p50", "p90", "p99")]
+    np.testing.assert_allclose(got, ref, rtol=0.005)
+    assert overall["error_3d_m"]["max"] == pytest.approx(max(errs), rel=1e-12)
+    assert overall["within_2peb"] == pytest.approx(np.mean(np.array(errs) <= 0.8))
+    ne = fs.node_epochs()
+    assert ne["node_epochs"] == ne["fixes"] == 2 * (n - 20)  # the first 2 s are skipped
+    # nothing per fix is left: the pending queues and buffers are empty, truth is windowed
+    assert all(not q for q in fs._pending.values()) and len(fs._err.e3) == 0
+    assert len(tb.t["n1"]) <= 2 * 300 + 1
+    assert arrays["e3"].size == 2 * n  # for plots, made on access

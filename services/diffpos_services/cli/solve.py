@@ -163,15 +163,28 @@ def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: 
                    scenario: Scenario | None) -> int:
     """Solve the stream's lines to stdout; the number of invalid lines."""
     invalid = 0
-    out = sys.stdout
+    out = getattr(sys.stdout, "buffer", None)
+    if out is None:  # a text-only stdout (tests replacing sys.stdout)
+        out = sys.stdout
+        enc = lambda rec: _ENCODER.encode(rec).decode() + "\n"  # noqa: E731
+        sep: str | bytes = ""
+    else:
+        sys.stdout.flush()  # anything printed before goes first
+        enc = lambda rec: _ENCODER.encode(rec) + b"\n"  # noqa: E731
+        sep = b""
+    pending: list = []
     for rec in solve_lines(read_lines(stream, max_bytes=limits.max_line_bytes),
                            batch=args.batch, default_method=args.method, limits=limits,
                            scenario=scenario):
         if rec["status"] == "invalid_input":
             invalid += 1
-        out.write(_ENCODER.encode(rec).decode() + "\n")
-        if args.batch == 1:
+        pending.append(enc(rec))
+        if len(pending) >= args.batch:  # one write per solved batch (--batch 1: every line)
+            out.write(sep.join(pending))
             out.flush()
+            pending.clear()
+    if pending:
+        out.write(sep.join(pending))
     out.flush()
     return invalid
 

@@ -55,6 +55,10 @@ class DecisionReplayer:
         self._events: collections.deque[tuple[int, str, int, int, int]] = collections.deque()
         self._next_chunk = 0
         self.counts: collections.Counter[str] = collections.Counter()
+        # the sample the record waits for (key, named at log_ns): inputs of other keys only
+        # join the pool until it comes (nothing else can be issued before it)
+        self._blocked: tuple[str, int] | None = None
+        self._blocked_named_ns = 0
 
     # ------------------------------------------------------------------ input
     def add_input(self, topic: str, data: bytes, log_ns: int) -> None:
@@ -64,7 +68,13 @@ class DecisionReplayer:
         if q is None:
             q = self._pool[k] = collections.deque()
         q.append(data)
-        self._arrivals.append((log_ns, k))
+        arrivals = self._arrivals
+        arrivals.append((log_ns, k))
+        horizon = log_ns - self.window_ns
+        if arrivals[0][0] >= horizon and (not self._events or (
+                self._blocked is not None and k != self._blocked
+                and self._blocked_named_ns >= horizon)):
+            return  # nothing to issue (or still waiting for another sample), nothing expires
         self._run(log_ns)
 
     def add_chunk(self, chunk: M.DecisionChunk, log_ns: int) -> None:
@@ -100,12 +110,14 @@ class DecisionReplayer:
         """Issue the recorded calls whose samples are here (in order: a missing one blocks
         the rest until it comes or its wait expires), then forget stale inputs."""
         ev, pool, core, c = self._events, self._pool, self.core, self.counts
+        self._blocked = None
         while ev:
             op, key, val, wall, named_ns = ev[0]
             if op == OP_SAMPLE:
                 q = pool.get((key, val))
                 if not q:
                     if now_log_ns - named_ns <= self.window_ns:
+                        self._blocked, self._blocked_named_ns = (key, val), named_ns
                         break
                     c["samples_missing"] += 1
                     ev.popleft()

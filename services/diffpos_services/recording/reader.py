@@ -27,6 +27,7 @@ from mcap.records import Attachment, Metadata, Schema, Statistics
 
 from diffpos_services.recording.errors import ForeignRecordingError, RecordingError
 from diffpos_services.recording.schemas import MESSAGE_ENCODING
+from diffpos_services.recording.writer import existing_parts
 
 __all__ = [
     "MCAP_MAGIC",
@@ -34,6 +35,7 @@ __all__ = [
     "Damage",
     "JsonDecoderFactory",
     "McapScanner",
+    "PartsScanner",
     "RawMessage",
     "SideRecords",
     "side_records",
@@ -358,6 +360,71 @@ class McapScanner:
     def schema_of(self, channel_id: int) -> Schema | None:
         ch = self.channels.get(channel_id)
         return None if ch is None else self.schemas.get(ch.schema_id)
+
+
+class PartsScanner:
+    """The parts of a split recording (``r.mcap``, ``r_0001.mcap``, ...: the recorder's
+    ``--split-size`` / ``--split-duration``, see :func:`..writer.existing_parts`) read as one,
+    in order, with :class:`McapScanner`'s interface. Channel ids restart in every part: a
+    :class:`RawMessage`'s ``channel_id`` is its part's; use the topic across parts.
+
+    Attributes
+    ----------
+    parts : list of McapScanner
+    """
+
+    def __init__(self, first: str | os.PathLike[str], *, validate_crcs: bool = True) -> None:
+        paths = existing_parts(first) or [Path(first)]
+        self.parts = [McapScanner(p, validate_crcs=validate_crcs) for p in paths]
+        self.path = self.parts[0].path
+        self.size_bytes = sum(p.size_bytes for p in self.parts)
+        self._done_bytes = 0
+        self._current = self.parts[0]
+
+    def __getattr__(self, name: str):  # metadata, attachments, header, schemas: part 0's
+        if name in ("metadata", "attachments", "header_library", "header_profile",
+                    "statistics", "schemas", "validate_crcs"):
+            return getattr(self.parts[0], name)
+        raise AttributeError(name)
+
+    @property
+    def offset(self) -> int:
+        return self._done_bytes + self._current.offset
+
+    @property
+    def channels(self) -> dict[tuple[int, int], ChannelInfo]:
+        """Every part's channels, keyed by (part index, channel id)."""
+        return {(i, cid): ch for i, p in enumerate(self.parts) for cid, ch in p.channels.items()}
+
+    @property
+    def complete(self) -> bool:
+        return all(p.complete for p in self.parts)
+
+    @property
+    def damage(self) -> Damage:
+        out = Damage()
+        for p in self.parts:
+            d = p.damage
+            out.truncated |= d.truncated
+            out.bad_chunks += d.bad_chunks
+            out.bad_records += d.bad_records
+            out.unread_bytes += d.unread_bytes
+            out.messages_without_channel += d.messages_without_channel
+            out.notes += [f"{p.path.name}: {n}" for n in d.notes]
+        return out
+
+    def iter_batches(self, topics: set[str] | None = None) -> Iterator[list[RawMessage]]:
+        """:meth:`McapScanner.iter_batches` over every part in turn."""
+        for p in self.parts:
+            self._current = p
+            yield from p.iter_batches(topics)
+            self._done_bytes += p.size_bytes
+        self._current = McapScanner.__new__(McapScanner)
+        self._current.offset = 0
+
+    def messages(self, topics: set[str] | None = None) -> Iterator[RawMessage]:
+        for batch in self.iter_batches(topics):
+            yield from batch
 
 
 def _str(buf, pos: int) -> tuple[str, int]:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import gc
-import itertools
 import logging
 import time
 from collections import Counter
@@ -39,7 +38,13 @@ from diffpos_services.kit import ConfigError, build_config
 from diffpos_services.recording.decided import DecisionReplayer
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
-from diffpos_services.recording.reader import McapScanner, RawMessage, SideRecords, side_records
+from diffpos_services.recording.reader import (
+    McapScanner,
+    PartsScanner,
+    RawMessage,
+    SideRecords,
+    side_records,
+)
 from diffpos_services.recording.report_stream import Recorded
 from diffpos_services.recording.summary import attached_scenario, live_fusion_settings
 from diffpos_services.recording.synthetic import FUSION_INPUT_KINDS, quiet_logger
@@ -59,8 +64,12 @@ __all__ = [
 
 #: chunks read ahead for the settings (until the first anchor state and diagnostics)
 _READ_AHEAD_BATCHES = 64
+#: ... and recording time past the first anchor state
+_READ_AHEAD_NS = 10_000_000_000
 #: how far apart (recording time) a fix, its truth and its live/replayed twin may be
 _WINDOW_NS = 30_000_000_000
+#: how often (recording time) the streamed report scores what the truth covers
+_ADVANCE_NS = 1_000_000_000
 
 
 # ----------------------------------------------------------------------------------------
@@ -127,26 +136,42 @@ def read_ahead(
 ) -> tuple[list[list[RawMessage]], Iterator[list[RawMessage]], RawMessage | None,
            M.FusionDiagnostics | None]:
     """Read chunks until the first anchor state and the first fusion diagnostics (at most 64
-    chunks): when the recording holds no fusion settings, derived ones need the anchors'
-    ranging rate; the diagnostics say whether the live fusion recorded its decisions.
+    chunks, and at most 10 s of recording time past the first anchor state when no
+    diagnostics come: a recording without a live fusion is not held in memory): when the
+    recording holds no fusion settings, derived ones need the anchors' ranging rate; the
+    diagnostics say whether the live fusion recorded its decisions.
     Returns the chunks read, the rest, the first anchor state and the first diagnostics."""
     batches = scanner.iter_batches()
     ahead: list[list[RawMessage]] = []
     first_state = first_diag = None
     dec = M.decoder(M.FusionDiagnostics)
+    kinds: dict[str, str] = {}
     for batch in batches:
         ahead.append(batch)
         for m in batch:
-            kind = parse_topic(m.topic)[0]
+            kind = kinds.get(m.topic)
+            if kind is None:
+                kind = kinds[m.topic] = parse_topic(m.topic)[0]
             if kind == "anchor_state" and first_state is None:
                 first_state = m
             elif kind == "diagnostics" and first_diag is None:
                 with contextlib.suppress(M.DecodeError):
                     first_diag = dec(m.data)
         if (first_state is not None and first_diag is not None) or \
-                len(ahead) >= _READ_AHEAD_BATCHES:
+                len(ahead) >= _READ_AHEAD_BATCHES or (
+                    first_state is not None and batch
+                    and batch[-1].log_ns - first_state.log_ns > _READ_AHEAD_NS):
             break
     return ahead, batches, first_state, first_diag
+
+
+def _consume(ahead: list[list[RawMessage]],
+             rest: Iterator[list[RawMessage]]) -> Iterator[list[RawMessage]]:
+    """The chunks read ahead (each let go once handed out), then the rest."""
+    ahead.reverse()
+    while ahead:
+        yield ahead.pop()
+    yield from rest
 
 
 def recorded_site(scanner: McapScanner) -> str | None:
@@ -273,35 +298,44 @@ def _feed(
     """Every recorded message in file order into the core (fusion inputs; through the
     decision record when there is one) or the collector, stepping the core each ``step_ns``
     of receive time (without a decision record); then solve what is pending."""
-    kind_of: dict[int, tuple[str, str | None]] = {}
-    counts, seq, decided = rec.counts, rec.seq, rec.decided
-    next_step = None
+    routes: dict[str, tuple] = {}  # topic -> (kind, node, sequence stream, is input)
+    per_topic: Counter[str] = Counter()
+    seq, decided = rec.seq, rec.decided
+    add_input = None if decided is None else decided.add_input
+    copy = outputs.copy if outputs.copy_input else None
+    next_step = next_advance = None
     for batch in batches:
+        if rec.t_first is None and batch:
+            rec.t_first = batch[0].log_ns
         for m in batch:
-            kn = kind_of.get(m.channel_id)
-            if kn is None:
-                kind, fields = parse_topic(m.topic)
-                kn = kind_of[m.channel_id] = (kind, fields.get("node"))
-            kind = kn[0]
-            counts[kind] += 1
-            seq.add(m.topic, m.sequence)
-            now = m.log_ns
-            if rec.t_first is None:
-                rec.t_first = now
-            rec.t_last = now
-            outputs.copy(m)
-            if kind in FUSION_INPUT_KINDS:
-                if decided is not None:
-                    decided.add_input(m.topic, m.data, now)
+            topic = m.topic
+            route = routes.get(topic)
+            if route is None:
+                kind, fields = parse_topic(topic)
+                route = routes[topic] = (kind, fields.get("node"), seq.stream_of(topic),
+                                         kind in FUSION_INPUT_KINDS)
+            per_topic[topic] += 1
+            if route[2] is not None:
+                seq.add_stream(route[2], m.sequence)
+            now = rec.t_last = m.log_ns
+            if copy is not None:
+                copy(m)
+            if route[3]:
+                if add_input is not None:
+                    add_input(topic, m.data, now)
                     continue
-                core.on_sample(m.topic, m.data, now)
+                core.on_sample(topic, m.data, now)
             else:
-                rec.take(kind, m, core, kn[1])
+                rec.take(route[0], m, core, route[1])
             if decided is None and (next_step is None or now >= next_step):
                 outputs.emit(core.step(now), now)
                 next_step = now + step_ns
-        rec.advance(rec.t_last or 0)
+        if rec.t_last is not None and (next_advance is None or rec.t_last >= next_advance):
+            rec.advance(rec.t_last)  # score what the truth covers (bounded memory)
+            next_advance = rec.t_last + _ADVANCE_NS
         after_batch()
+    for topic, n in per_topic.items():
+        rec.counts[routes[topic][0]] += n
     if decided is not None:
         decided.finish()
     return rec
@@ -391,6 +425,7 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, co
     report: dict[str, Any] = {
         "file": str(path),
         "complete": scanner.complete,
+        "parts": [p.path.name for p in getattr(scanner, "parts", [scanner])],
         "damage": {**scanner.damage.__dict__, "ok": scanner.damage.ok},
         "settings": msgspec.to_builtins(config),
         "settings_source": settings.source,
@@ -494,7 +529,7 @@ def replay(
     t_wall0 = time.perf_counter()
     if out_mcap is not None:
         check_output(out_mcap, option="out_mcap", inputs=[path])
-    scanner = McapScanner(path)
+    scanner = PartsScanner(path)  # a split recording's parts in turn
     side = side_records(path)
     ahead, rest, first_state, first_diag = read_ahead(scanner)
     settings = replay_settings(scanner, side=side, first_state=first_state, overrides=overrides,
@@ -532,7 +567,7 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
 
     if decided:
         rec.decided = DecisionReplayer(core, outputs.emit)
-    _feed(core, itertools.chain(ahead, rest), outputs, rec,
+    _feed(core, _consume(ahead, rest), outputs, rec,
           step_ns=max(0, round(step_ms * 1e6)), after_batch=after_batch)
     if rec.fusion_inputs == 0:
         outputs.close()

@@ -3,11 +3,13 @@
 Before, ``diffpos replay`` kept every live and replayed estimate (~5 KB per fix: 511 MB for 3
 minutes of 8 x 50 nodes at 10 Hz) until the report. Here a fix is matched to the truth and to
 its live/replayed twin while the recording is read (both are local in recording time), and
-only what the scorer needs stays: per evaluated fix its 3D/z/horizontal error, PEB and floor
-check (float32), per node-epoch the error vector and the floors. About 40 bytes per fix and
-stream, so the memory still grows with the recording, 100x slower (benchmarks/bench_replay.py
-measures it). The numbers are those of :mod:`diffpos.metrics` (the one scorer) on these
-arrays; errors are kept as float32 (relative rounding 6e-8).
+goes in batches into the bounded-memory summaries of :mod:`diffpos.metrics` (the one scorer:
+:class:`~diffpos.metrics.StreamingErrorStats` per node and overall,
+:class:`~diffpos.metrics.StreamingScore` over the node-epochs): the memory does not grow with
+the recording's length (benchmarks/bench_replay.py measures it). The figures are exact (those
+of :func:`~diffpos.metrics.error_stats` / :func:`~diffpos.metrics.score` on every value) while
+a distribution has at most 4,096 values, then within 0.5 % (percentiles; counts, shares and
+max stay exact).
 
 Recorded estimates and truth are decoded into slim structs (only the fields the report reads,
 no per-message id regex: the ids are checked against the topic's).
@@ -18,18 +20,20 @@ from __future__ import annotations
 import array
 import bisect
 import collections
+import copy
 import dataclasses
 import heapq
 import itertools
 import json
 import math
 from collections import Counter, defaultdict
+from collections.abc import Mapping
 from typing import Any
 
 import msgspec
 import numpy as np
 
-from diffpos.metrics import ellipsoid_coverage, error_stats, percentiles, score
+from diffpos.metrics import QuantileSketch, StreamingErrorStats, StreamingScore, ellipsoid_coverage
 from diffpos_services.recording.decided import DecisionReplayer
 from diffpos_services.recording.reader import RawMessage
 from diffpos_services.recording.topics import SeqTracker, natural_key
@@ -40,6 +44,8 @@ __all__ = ["Comparison", "FixStream", "Recorded", "SlimEstimate", "SlimTruth", "
 
 _NAN3 = (math.nan, math.nan, math.nan)
 _COV_BATCH = 4096
+#: scored fixes / node-epochs buffered before they go into the summaries
+_BATCH = 8192
 
 
 class SlimExclusion(msgspec.Struct, frozen=True, gc=False):
@@ -175,12 +181,33 @@ class TruthBook:
 
 @dataclasses.dataclass
 class _Errors:
+    """The scored fixes of one batch (flushed into the per-node summaries)."""
+
     node: array.array = dataclasses.field(default_factory=lambda: array.array("H"))
-    e3: array.array = dataclasses.field(default_factory=lambda: array.array("f"))
-    ez: array.array = dataclasses.field(default_factory=lambda: array.array("f"))
-    eh: array.array = dataclasses.field(default_factory=lambda: array.array("f"))
-    peb: array.array = dataclasses.field(default_factory=lambda: array.array("f"))
+    e3: array.array = dataclasses.field(default_factory=lambda: array.array("d"))
+    ez: array.array = dataclasses.field(default_factory=lambda: array.array("d"))
+    eh: array.array = dataclasses.field(default_factory=lambda: array.array("d"))
+    peb: array.array = dataclasses.field(default_factory=lambda: array.array("d"))
     fok: array.array = dataclasses.field(default_factory=lambda: array.array("b"))
+
+
+class ErrorArrays(Mapping):
+    """The overall error arrays of a stream (``e3``, ``ez``, ``eh``, ``peb`` [m]) for plots,
+    made when read: the recorded values while the summary is exact, else its histogram's
+    bucket centres (within 0.5 %, see :class:`diffpos.metrics.QuantileSketch`); O(fixes)
+    memory only then."""
+
+    def __init__(self, stats: StreamingErrorStats) -> None:
+        self._src = {"e3": stats.e3, "ez": stats.ez, "eh": stats.eh, "peb": stats.peb}
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self._src[key].values()
+
+    def __iter__(self):
+        return iter(self._src)
+
+    def __len__(self) -> int:
+        return len(self._src)
 
 
 class FixStream:
@@ -210,9 +237,12 @@ class FixStream:
         self._ne_fix: dict[tuple[str, int], tuple] = {}
         self._unkeyed = False
         self._ne_next: dict[str, int] = {}  # per node: next truth time to score
-        self._ne_d = array.array("f")
-        self._ne_ef = array.array("b")
-        self._ne_tf = array.array("b")
+        self._ne_d = array.array("d")
+        self._ne_ef = array.array("h")
+        self._ne_tf = array.array("h")
+        self._stats: dict[int, StreamingErrorStats] = {}  # per node index
+        self._overall = StreamingErrorStats()
+        self._ne_stats = StreamingScore()
         self._cov_d: list = []
         self._cov_c: list = []
         self._cov_in = 0
@@ -249,6 +279,26 @@ class FixStream:
         err.eh.append(math.sqrt(dx * dx + dy * dy))
         err.peb.append(math.nan if peb is None else peb)
         err.fok.append((-999 if floor is None else floor) == tf)
+        if len(err.e3) >= _BATCH:
+            self._flush_errors()
+
+    def _flush_errors(self) -> None:
+        """The batch of scored fixes into the per-node and overall summaries."""
+        err = self._err
+        if not len(err.e3):
+            return
+        node = np.frombuffer(err.node, np.uint16)
+        cols = [np.frombuffer(getattr(err, k), np.float64) for k in ("e3", "ez", "eh")]
+        fok = np.frombuffer(err.fok, np.int8).astype(bool)
+        peb = np.frombuffer(err.peb, np.float64)
+        self._overall.add(*cols, fok, peb)
+        for i in np.unique(node):
+            sel = node == i
+            st = self._stats.get(int(i))
+            if st is None:
+                st = self._stats[int(i)] = StreamingErrorStats()
+            st.add(*(c[sel] for c in cols), fok[sel], peb[sel])
+        self._err = _Errors()
 
     # -- per node-epoch (node_epoch_accuracy) ----------------------------------------------
     def _ne_add(self, node: str, fix: tuple) -> None:
@@ -292,6 +342,16 @@ class FixStream:
             self._ne_next[node] = t + 1
         if len(self._cov_d) >= _COV_BATCH:
             self._coverage()
+        if len(self._ne_tf) >= _BATCH:
+            self._flush_node_epochs()
+
+    def _flush_node_epochs(self) -> None:
+        if not len(self._ne_tf):
+            return
+        self._ne_stats.add(np.frombuffer(self._ne_d, np.float64).reshape(-1, 3),
+                           estimate_floor=np.frombuffer(self._ne_ef, np.int16),
+                           truth_floor=np.frombuffer(self._ne_tf, np.int16))
+        self._ne_d, self._ne_ef, self._ne_tf = array.array("d"), array.array("h"), array.array("h")
 
     def _coverage(self) -> None:
         if not self._cov_d:
@@ -330,38 +390,34 @@ class FixStream:
         if final:
             self._ne_fix.clear()
             self._coverage()
+            self._flush_errors()
+            self._flush_node_epochs()
         elif len(self._ne_fix) > 64 * 1024:  # fixes whose node-epoch has no truth
             horizon = (now_ns - 2 * self.window_ns) // tb.period
             self._ne_fix = {k: v for k, v in self._ne_fix.items() if k[1] >= horizon}
 
     # -- results ---------------------------------------------------------------------------
-    def accuracy(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-        """``evaluate``'s result: per node and overall error stats, and the overall arrays."""
-        err = self._err
-        node = np.frombuffer(err.node, np.uint16) if len(err.node) else np.empty(0, np.uint16)
-        cols = {k: np.asarray(getattr(err, k), np.float64) for k in ("e3", "ez", "eh", "peb")}
-        cols["fok"] = np.asarray(err.fok, bool)
+    def accuracy(self) -> tuple[dict[str, Any], ErrorArrays]:
+        """``evaluate``'s result: per node and overall error stats, and the overall error
+        arrays (made on access, see :class:`ErrorArrays`). Call after ``advance(final=True)``."""
+        self._flush_errors()
         per_node: dict[str, Any] = {}
+        empty = StreamingErrorStats()
         for name in sorted(self.fixes_by_node, key=natural_key):
             i = self._nodes.get(name)
-            sel = node == i if i is not None else np.zeros(node.shape, bool)
-            per_node[name] = error_stats(cols["e3"][sel], cols["ez"][sel], cols["eh"][sel],
-                                         cols["fok"][sel], cols["peb"][sel],
-                                         fixes=self.fixes_by_node[name])
-        overall = error_stats(cols["e3"], cols["ez"], cols["eh"], cols["fok"], cols["peb"],
-                              fixes=self.total)
+            st = self._stats.get(i, empty) if i is not None else empty
+            per_node[name] = st.result(fixes=self.fixes_by_node[name])
+        overall = self._overall.result(fixes=self.total)
         overall["without_truth"] = self.no_truth
-        return {"overall": overall, "per_node": per_node}, cols
+        return {"overall": overall, "per_node": per_node}, ErrorArrays(self._overall)
 
     def node_epochs(self) -> dict[str, Any]:
         """``node_epoch_accuracy``'s result (every node-epoch of the truth; a miss counts)."""
-        if not self._ne_tf:
+        self._flush_node_epochs()
+        if not self._ne_stats.node_epochs:
             return {}
-        d = np.asarray(self._ne_d, np.float64).reshape(-1, 3)
-        s = score(d, np.zeros_like(d), estimate_floor=np.asarray(self._ne_ef),
-                  truth_floor=np.asarray(self._ne_tf))
         cover = self._cov_in / self._cov_ok if self._cov_ok else None
-        s = dataclasses.replace(s, ellipsoid_coverage=cover)
+        s = self._ne_stats.result(ellipsoid_coverage=cover)
         return s.as_dict() | {"skip_s": self.skip_s}
 
     def gating(self) -> dict[str, Any]:
@@ -378,7 +434,8 @@ class Comparison:
         self.window_ns = window_ns
         self.sides: tuple[dict, dict] = ({}, {})
         self.counts = Counter()
-        self.diffs = array.array("d")
+        self.diffs = array.array("d")  # the latest differing positions' distances [m]
+        self._diff_sketch = QuantileSketch()  # ... and the older ones (bounded memory)
         self.identical = 0
         self.peb_max: float | None = None
         self.top: list[tuple[float, int, tuple]] = []
@@ -407,6 +464,9 @@ class Comparison:
             else:
                 dist = math.dist(pa, pb)
                 self.diffs.append(dist)
+                if len(self.diffs) >= _BATCH:
+                    self._diff_sketch.add(np.frombuffer(self.diffs, np.float64))
+                    self.diffs = array.array("d")
                 self._n += 1
                 ex = (dist, -self._n, (key[0], key[1], a[0], b[0]))
                 (heapq.heappush if len(self.top) < 5 else heapq.heappushpop)(self.top, ex)
@@ -425,14 +485,17 @@ class Comparison:
     def result(self) -> dict[str, Any]:
         c = self.counts
         n = c["matched"]
-        arr = np.concatenate([np.zeros(self.identical), np.asarray(self.diffs, float)])
+        diffs = copy.deepcopy(self._diff_sketch)  # bounded memory: see diffpos.metrics
+        for i in range(0, self.identical, _BATCH):
+            diffs.add(np.zeros(min(_BATCH, self.identical - i)))
+        diffs.add(np.frombuffer(self.diffs, np.float64))
         return {
             "live": c["live"], "replayed": c["replayed"], "matched": n,
             "only_live": c["only_live"], "only_replayed": c["only_replayed"],
             "status_agree": (c["status_same"] / n) if n else None,
             "with_positions": c["with_positions"],
             "identical_positions": self.identical,
-            "position_diff_m": percentiles(arr),
+            "position_diff_m": diffs.summary(),
             "peb_diff_m": self.peb_max,
             "examples": [{"node": k[0], "epoch": k[1], "diff_m": dist, "live_status": k[2],
                           "replayed_status": k[3]}

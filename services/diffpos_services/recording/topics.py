@@ -92,6 +92,10 @@ class SeqTracker:
         st = self.stream_of(topic)
         if st is None:
             return 0
+        return self.add_stream(st, seq)
+
+    def add_stream(self, st: str, seq: int) -> int:
+        """:meth:`add` with the topic's stream already known (:meth:`stream_of`)."""
         last = self._last.get(st)
         self._last[st] = seq
         if last is None:

@@ -20,6 +20,7 @@ import numpy as np
 from diffpos_services.wire.solve_io import (
     LOSSES,
     MAX_ABS_M,
+    MAX_ID_CHARS,
     METHODS,
     Limits,
     Problem,
@@ -88,6 +89,13 @@ for _mask in _ALL:
     _mask.setflags(write=False)
 
 
+def _filled(m: int, value: Any, dtype: Any = np.float64) -> np.ndarray:
+    """``np.full(m, value, dtype)`` without its Python wrapper (~1 us less per call)."""
+    out = np.empty(m, dtype)
+    out.fill(value)
+    return out
+
+
 def _scalar(v: float, *, positive: bool = False) -> float:
     if abs(v) > MAX_ABS_M or (positive and v <= 0):
         raise _Unusual
@@ -128,7 +136,7 @@ def _arrays(p: _Line, limits: Limits) -> tuple[np.ndarray, np.ndarray, np.ndarra
                 raise _Unusual
             sig = np.where(mask, sig, 1.0)
         elif _scalar(p.sigmas_m) > 0:
-            sig = np.full(m, p.sigmas_m) if all_measured else np.where(mask, p.sigmas_m, 1.0)
+            sig = _filled(m, p.sigmas_m) if all_measured else np.where(mask, p.sigmas_m, 1.0)
         else:
             raise _Unusual
     return a, r if all_measured else np.where(mask, r, 0.0), mask.copy(), sig
@@ -165,13 +173,13 @@ def _options(p: _Line, m: int, limits: Limits) -> dict[str, Any]:
             raise _Unusual
         zs = tuple(_vec(p.z_starts_m, len(p.z_starts_m)).tolist())
     if isinstance(p.nlos, bool):
-        nlos = np.full(m, p.nlos)  # the same array parse_problem builds
+        nlos = _filled(m, p.nlos, bool)  # the same array parse_problem builds
     elif len(p.nlos) == m:
         nlos = np.array(p.nlos, dtype=bool)
     else:
         raise _Unusual
     nb = p.nlos_bias_m
-    bias = _vec(nb, m) if isinstance(nb, list) else np.full(m, _scalar(nb))
+    bias = _vec(nb, m) if isinstance(nb, list) else _filled(m, _scalar(nb))
     snr = None if p.snr_db is None else _nullable(p.snr_db, m)[0]
     x0 = None if p.x0_m is None else _vec(p.x0_m, 3)
     return {"loss": p.loss, "x0_m": x0, "z_starts_m": zs, "nlos": nlos, "nlos_bias_m": bias,
@@ -189,7 +197,9 @@ def parse_line(line: str, *, default_method: str, limits: Limits, scenario: Any 
         if method not in METHODS or method == "mnls":
             return None
         raw_id = bytes(p.id)
-        ident = None if raw_id == b"null" else check_id(_loads(raw_id))
+        ident = None if raw_id == b"null" else _loads(raw_id)
+        if not (type(ident) is int and len(raw_id) <= MAX_ID_CHARS):  # an int is plain JSON
+            ident = None if ident is None else check_id(ident)
         a, r, mask, sig = _arrays(p, limits)
         wh, delta, edge = _model(p, method, None if scenario is None else scenario.building)
         gating = _parse_gating(p.gating)
