@@ -4,7 +4,8 @@ Two references: (1) synthetic "traced" paths built from the model's own interact
 (:func:`diffpos.paths.specular_path` / :func:`diffracted_path`) on a building that is not the
 paper's (other floor height, window band, width, a partition), which the classifier must map
 back to their slot; (2) the committed Sionna RT dataset ``tests/data/raytrace_mech_small.npz``
-(48 receivers x 4 anchors of the paper scenario, 1e5 samples, seed 1), whose classified paths
+(60 receivers x 4 anchors of the paper scenario, 1e5 samples, seed 1: a subset of
+``diffpos raytrace scenarios/paper.toml --receivers 2000``, see its metadata), whose classified paths
 must have the model's closed-form length for their mechanism (<= 0.1 mm: Sionna's single
 precision leaves ~10 um).
 """
@@ -144,10 +145,11 @@ def test_traced_paths_have_the_model_length_of_their_mechanism(traced) -> None:
     res = mm.mechanism_length_check(traced)
     assert len(res) >= 12, sorted(res)
     total = sum(r["paths"] for r in res.values())
-    assert total >= 1000
+    assert total >= 500
     for name, r in res.items():
         assert r["max_abs_m"] < 1e-4, (name, r)
         assert r["model_exists"] >= 0.9, (name, r)
+        assert r["exists_on_band"] == 1.0, (name, r)  # the rest enter on a band limit
 
 
 def test_traced_first_arrival_mix_and_causes_add_up(traced) -> None:
@@ -158,8 +160,11 @@ def test_traced_first_arrival_mix_and_causes_add_up(traced) -> None:
     assert cmp["agreement"] + sum(cmp["causes"].values()) == pytest.approx(100.0)
     same = cmp["emu_code"] == cmp["rt_code"]
     both = same & (cmp["emu_code"] >= 0)
-    # the same mechanism on both sides is the same path length (to Sionna's precision) except
-    # where the ray tracer picked the same mechanism over another window edge (none here:
-    # the edge is fixed by the slot) -> the lengths agree to 0.1 mm
-    d = np.abs(cmp["rt_length_m"] - cmp["emu_length_m"])[both]
-    assert both.sum() >= 50 and np.max(d) < 1e-4
+    # the same mechanism is the same path (a slot fixes edge and planes): equal lengths to
+    # 0.1 mm, except the ground slots: the scene's ground lies 1 cm below the emulator's
+    # (an anchor sits at z = 0), which changes their length by at most 2 cm
+    ground = np.isin(cmp["emu_code"], [i for i, s in enumerate(MECHANISMS) if "ground" in s])
+    d = np.abs(cmp["rt_length_m"] - cmp["emu_length_m"])
+    assert both.sum() >= 50
+    assert np.max(d[both & ~ground]) < 1e-4
+    assert np.max(d[both & ground], initial=0.0) < 2 * abs(mm.ground_z_m(traced)) + 1e-4

@@ -11,6 +11,10 @@ cause                  meaning
 =====================  =====================================================================
 ``rt_none``            the ray tracer detects no path on the link
 ``emu_none``           the emulator detects none (the ray tracer does)
+``edge_tie``           both first arrivals have the same length (+-1 mm) but different labels:
+                       the ray grazes a window edge (e.g. the ceiling reflection entering
+                       exactly at the upper edge, where the model's strict band test says
+                       "diffraction + reflection" and Sionna's float32 says "reflection")
 ``rt_other``           the ray tracer's first arrival is a mechanism the model leaves out
                        (label in ``other_labels``: e.g. a triple bounce)
 ``not_traced``         the ray tracer has no path of the emulator's first-arrival length
@@ -41,7 +45,7 @@ from diffpos_services.raytrace.evaluate import dataset_first_arrival, path_snr_d
 from diffpos_services.raytrace.mechanisms import NO_PATH, OTHER, classify_mechanisms
 
 #: Disagreement causes, in the order they are tested (module docstring).
-CAUSES = ("rt_none", "emu_none", "rt_other", "not_traced", "emu_weaker", "emu_lacks",
+CAUSES = ("rt_none", "emu_none", "edge_tie", "rt_other", "not_traced", "emu_weaker", "emu_lacks",
           "rt_threshold")
 #: Two paths with lengths within this are the same path [m].
 SAME_PATH_M = 1e-3
@@ -52,8 +56,9 @@ def _take(a: NDArray, idx: NDArray) -> NDArray:
 
 
 def _causes(ds: RaytraceDataset, ch: Any, fe: Any, fr: Any, rt_code: NDArray,
-            thr_rt: NDArray) -> NDArray[np.object_]:
-    """One cause per link (``""`` where the mechanisms agree)."""
+            thr_rt: NDArray) -> tuple[NDArray[np.object_], NDArray[np.bool_]]:
+    """One cause per link (``""`` where the mechanisms agree) and whether the ray tracer has
+    the emulator's first-arrival path (same length to 1 mm)."""
     emu_code = np.where(fe.detected, fe.slot, NO_PATH)
     cause = np.full(emu_code.shape, "", dtype=object)
     differ = emu_code != rt_code
@@ -68,6 +73,7 @@ def _causes(ds: RaytraceDataset, ch: Any, fe: Any, fr: Any, rt_code: NDArray,
     rules = (
         ("rt_none", ~fr.detected),
         ("emu_none", ~fe.detected),
+        ("edge_tie", np.abs(fr.true_path_m - fe.true_path_m) < SAME_PATH_M),
         ("rt_other", rt_code == OTHER),
         ("not_traced", ~has_emu_path),
         ("emu_weaker", earlier & emu_has),
@@ -76,7 +82,7 @@ def _causes(ds: RaytraceDataset, ch: Any, fe: Any, fr: Any, rt_code: NDArray,
     )
     for name, cond in rules:
         cause = np.where(differ & (cause == "") & cond, name, cause)
-    return np.where(differ & (cause == ""), "unexplained", cause)
+    return np.where(differ & (cause == ""), "unexplained", cause), has_emu_path
 
 
 def _rt_snr(ds: RaytraceDataset) -> NDArray:
@@ -95,7 +101,8 @@ def compare_mechanisms(ds: RaytraceDataset) -> dict[str, Any]:
         undetected counts as agreement); ``causes`` (cause -> % of links, module docstring);
         ``other_labels`` (label -> links, the ray tracer's "other" first arrivals);
         ``confusion`` (Counter of (emulator label, ray-tracer label) pairs);
-        ``emu_code`` / ``rt_code`` / ``cause`` (per-link arrays).
+        ``emu_code`` / ``rt_code`` / ``cause`` / ``rt_has_emu_path`` / ``emu_length_m`` /
+        ``rt_length_m`` (per-link arrays).
     """
     radio = ds.scenario.radio
     ch = emulate_channel(ds.anchors_m, ds.nodes_m, building=ds.scenario.building, radio=radio)
@@ -107,7 +114,7 @@ def compare_mechanisms(ds: RaytraceDataset) -> dict[str, Any]:
     snr = _rt_snr(ds)
     pmax = snr.max(axis=-1)
     thr_rt = np.maximum(pmax - radio.fap_threshold_db, radio.detection_snr_db)
-    cause = _causes(ds, ch, fe, fr, rt_code, thr_rt)
+    cause, has_emu_path = _causes(ds, ch, fe, fr, rt_code, thr_rt)
     links = int(rt_code.size)
     names = np.array([*MECHANISMS, "none"], dtype=object)
     emu_label = names[np.where(fe.detected, fe.slot, len(MECHANISMS))]
@@ -125,5 +132,6 @@ def compare_mechanisms(ds: RaytraceDataset) -> dict[str, Any]:
         "confusion": Counter(zip(emu_label.ravel().tolist(), rt_key.ravel().tolist(),
                                  strict=True)),
         "emu_code": emu_code, "rt_code": rt_code, "cause": cause,
+        "rt_has_emu_path": has_emu_path,
         "emu_length_m": fe.true_path_m, "rt_length_m": fr.true_path_m,
     }
