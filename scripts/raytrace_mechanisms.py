@@ -2,6 +2,7 @@
 
     python scripts/raytrace_mechanisms.py out/rt-paper-2000.npz \
         --emulator-arrivals out/emu-paper-2000.npz
+    python scripts/raytrace_mechanisms.py --positioning out/rep-emu-paper out/rep-rt-paper
 
 For a dataset written by ``diffpos raytrace`` (with ``path_vertices_m``) prints, as markdown:
 every traced path classified into the 18 mechanisms of diffpos.paths and its length vs the
@@ -16,6 +17,7 @@ raytrace:FILE`` (the same standard normals), for ``diffpos reproduce --channel a
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -90,12 +92,44 @@ def write_emulator_arrivals(ds: rt.RaytraceDataset, path: Path, seed: int) -> No
              mpc_class=fa.mpc_class, aoa_deg=fa.aoa_deg)
 
 
+def positioning_table(dirs: list[Path]) -> list[str]:
+    """3D median / p80 / p95 and right floor per method from ``diffpos reproduce`` outputs."""
+    runs = [(d, json.loads((d / "summary.json").read_text())) for d in dirs]
+    rows = ["| method | " + " | ".join(f"{d.name}: 3D med / p80 / p95 [m], right floor"
+                                         for d, _ in runs) + " |",
+            "| --- |" + " --- |" * len(runs)]
+    for key in runs[0][1]["positioning_m"]:
+        if key == "peb":
+            continue
+        cells = []
+        for _, s in runs:
+            p = s["positioning_m"].get(key)
+            if p is None:
+                cells.append("")
+                continue
+            q = p["3d"]
+            f = [("inf" if q[k] is None else f"{q[k]:.2f}") for k in ("median", "p80", "p95")]
+            cells.append(f"{f[0]} / {f[1]} / {f[2]}, "
+                         f"{100 * p.get('floor_accuracy', float('nan')):.1f} %")
+        rows.append(f"| {runs[0][1]['positioning_m'][key]['label']} | " + " | ".join(cells)
+                    + " |")
+    rows.append("receivers: " + ", ".join(f"{d.name} {s['n_receivers']}" for d, s in runs))
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("dataset", type=Path)
+    ap.add_argument("dataset", type=Path, nargs="?")
+    ap.add_argument("--positioning", type=Path, nargs="+", metavar="DIR",
+                    help="only print the position-error table of these reproduce --out dirs")
     ap.add_argument("--emulator-arrivals", type=Path, metavar="FILE")
     ap.add_argument("--seed", type=int, default=0, help="reproduce's --seed (range noise)")
     args = ap.parse_args()
+    if args.positioning:
+        print("\n".join(positioning_table(args.positioning)))
+        return
+    if args.dataset is None:
+        ap.error("give a DATASET or --positioning DIR...")
     ds = rt.load_dataset(args.dataset)
     st = ds.metadata["settings"]
     print(f"{args.dataset}: {len(ds.nodes_m)} receivers x {len(ds.anchors_m)} anchors, "
