@@ -140,6 +140,27 @@ def _report(ds: rtm.RaytraceDataset, console: Console) -> None:
     f = cmp["fermat"]
     console.print(f"Fermat check: {f['count']} ray-traced window-edge diffraction paths, "
                   f"max |traced - analytic| = {f['max_abs_m'] * 1e3:.4f} mm")
+    if ds.path_vertices_m is not None:
+        _report_mechanisms(ds, console)
+
+
+def _report_mechanisms(ds: rtm.RaytraceDataset, console: Console) -> None:
+    """First-arrival share per mechanism of diffpos.paths (emulator | ray tracer)."""
+    mix = rtm.compare_mechanisms(ds)
+    t = Table(title=f"first-arrival mechanism over {mix['links']} links [%] (same mechanism on "
+              f"{mix['agreement']:.1f} % of links)")
+    for c, j in (("mechanism", "left"), ("emulator", "right"), ("ray tracer", "right")):
+        t.add_column(c, justify=j)
+    se, sr = mix["share_emulator"], mix["share_raytrace"]
+    for k in sorted(set(se) | set(sr), key=lambda k: -(se.get(k, 0) + sr.get(k, 0)))[:16]:
+        t.add_row(k, f"{se.get(k, 0.0):.1f}", f"{sr.get(k, 0.0):.1f}")
+    console.print(t)
+    console.print("where they differ [% of links]: " + ", ".join(
+        f"{k} {v:.1f}" for k, v in mix["causes"].items()))
+    worst = max((r["max_abs_m"] for r in rtm.mechanism_length_check(ds).values()),
+                default=float("nan"))
+    console.print(f"traced paths vs the model's closed-form length per mechanism: max "
+                  f"|traced - model| = {worst * 1e6:.1f} um")
 
 
 def _compare_only(args: argparse.Namespace, console: Console, err: Callable[[str], None]) -> int:

@@ -3,8 +3,11 @@
 Modules by role: :mod:`.backend` (importing Sionna lazily, :class:`RaytraceUnavailable`),
 :mod:`.scene` (building surfaces, the Sionna scene), :mod:`.paths` (interaction chains ->
 MPC groups), :mod:`.tracing` (:func:`trace`), :mod:`.dataset` (the ``.npz`` file) and
-:mod:`.evaluate` (SNR, first arrival, statistics, comparison with the emulator). Importing
-this package does not import Sionna.
+:mod:`.evaluate` (SNR, first arrival, statistics, comparison with the emulator),
+:mod:`.mechanisms` (every traced path -> one of the 18 first-arrival mechanisms of
+:mod:`diffpos.paths`, or "other" by name, and its length vs the model's closed form) and
+:mod:`.mechanism_mix` (the first-arrival mechanism mix, emulator vs ray tracer, with the cause
+of every difference). Importing this package does not import Sionna.
 
 The scenario's building is rebuilt as a Sionna RT scene, every anchor x receiver link is
 ray traced (line of sight, specular reflection, refraction and first-order edge/wedge
@@ -73,6 +76,8 @@ array                  shape, dtype    meaning
                                        0-3), see :func:`chain_label`
 ``path_class``         (N, M, K) i1    MPC group 1..4 (0 = padding)
 ``path_vertex_m``      (N, M, K, 3) f4 first interaction point (NaN for ``Tx-Rx``) [m]
+``path_vertices_m``    (N, M, K, D, 3) every interaction point in order, D = max depth (NaN
+                       f4              past the last); optional: absent in older files
 ``metadata_json``      () str          JSON: format, scenario (as a dict), solver settings,
                                        versions, run time, the scene surfaces
 =====================  ==============  ======================================================
@@ -107,6 +112,12 @@ from diffpos_services.raytrace.evaluate import (
     edge_fermat_check,
     path_snr_db,
 )
+from diffpos_services.raytrace.mechanism_mix import compare_mechanisms
+from diffpos_services.raytrace.mechanisms import (
+    Mechanisms,
+    classify_mechanisms,
+    mechanism_length_check,
+)
 from diffpos_services.raytrace.paths import (
     DIFFRACTION,
     DIFFUSE,
@@ -129,6 +140,7 @@ __all__ = [
     "SIONNA_REQUIREMENT",
     "SPECULAR",
     "VARIANT",
+    "Mechanisms",
     "RaytraceDataset",
     "RaytraceSettings",
     "RaytraceUnavailable",
@@ -138,6 +150,8 @@ __all__ = [
     "chain_label",
     "check_sionna",
     "classify_chains",
+    "classify_mechanisms",
+    "compare_mechanisms",
     "compare_with_emulator",
     "dataset_arrivals",
     "dataset_channel",
@@ -146,6 +160,7 @@ __all__ = [
     "edge_fermat_check",
     "encode_chains",
     "load_dataset",
+    "mechanism_length_check",
     "path_snr_db",
     "save_dataset",
     "trace",

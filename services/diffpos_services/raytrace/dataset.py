@@ -36,6 +36,10 @@ class RaytraceDataset:
     path_class : ndarray of int8, shape (N, M, K)
     path_vertex_m : ndarray, shape (N, M, K, 3) [m]
     metadata : dict
+    path_vertices_m : ndarray, shape (N, M, K, D, 3) [m], optional
+        Every interaction point of every path in order (NaN past the path's last interaction);
+        ``None`` for datasets traced before it was stored (the mechanism classification of
+        :mod:`.mechanisms` needs it).
     """
 
     nodes_m: NDArray[np.float64]
@@ -50,6 +54,7 @@ class RaytraceDataset:
     path_class: NDArray[np.int8]
     path_vertex_m: NDArray[np.float32]
     metadata: dict[str, Any]
+    path_vertices_m: NDArray[np.float32] | None = None
 
     @property
     def scenario(self) -> Scenario:
@@ -61,7 +66,7 @@ class RaytraceDataset:
         idx = np.asarray(nodes)
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         for name, v in fields.items():
-            if name.startswith("path_") or name == "nodes_m":
+            if (name.startswith("path_") or name == "nodes_m") and v is not None:
                 fields[name] = v[idx]
         return RaytraceDataset(**fields)
 
@@ -75,6 +80,8 @@ def save_dataset(path: str | os.PathLike[str], ds: RaytraceDataset) -> Path:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     arrays = {n: getattr(ds, n) for n in _ARRAYS}
+    if ds.path_vertices_m is not None:
+        arrays["path_vertices_m"] = ds.path_vertices_m
     with p.open("wb") as f:
         np.savez_compressed(f, anchor_ids=np.asarray(ds.anchor_ids, dtype=str),
                             metadata_json=np.asarray(json.dumps(ds.metadata)), **arrays)
@@ -113,9 +120,11 @@ def load_dataset(path: str | os.PathLike[str], *, scenario: Scenario | None = No
     if meta.get("format") != DATASET_FORMAT:
         raise ValueError(f"{p}: format {meta.get('format')!r}, expected {DATASET_FORMAT!r}")
     ds = RaytraceDataset(anchor_ids=tuple(str(s) for s in data["anchor_ids"]), metadata=meta,
+                         path_vertices_m=data.get("path_vertices_m"),
                          **{n: data[n] for n in _ARRAYS})
     n, m = len(ds.nodes_m), len(ds.anchors_m)
-    for name in _ARRAYS[2:]:
+    optional = ("path_vertices_m",) if ds.path_vertices_m is not None else ()
+    for name in (*_ARRAYS[2:], *optional):
         if getattr(ds, name).shape[:2] != (n, m):
             raise ValueError(f"{p}: {name} has shape {getattr(ds, name).shape}, expected "
                              f"({n}, {m}, K)")

@@ -90,7 +90,8 @@ def _trace_batch(scene: Any, solver: Any, rt: Any, mi: Any, nodes: NDArray, sett
         power = (np.asarray(ar, dtype=np.float64) ** 2
                  + np.asarray(ai, dtype=np.float64) ** 2).sum(axis=(1, 3))[:, 0, :]
         inter = np.asarray(paths.interactions)[:, :, 0, :]  # (D, R, P)
-        verts = np.asarray(paths.vertices, dtype=np.float32)[0, :, 0, :, :]  # (R, P, 3)
+        all_verts = np.asarray(paths.vertices, dtype=np.float32)[:, :, 0, :, :]  # (D, R, P, 3)
+        verts = all_verts[0]  # (R, P, 3)
         theta_t = np.asarray(paths.theta_t, dtype=np.float64)[:, 0, :]
         theta_r = np.asarray(paths.theta_r, dtype=np.float64)[:, 0, :]
     finally:
@@ -98,10 +99,13 @@ def _trace_batch(scene: Any, solver: Any, rt: Any, mi: Any, nodes: NDArray, sett
             scene.remove(name)
     chain = encode_chains(inter)
     verts = np.where((chain != 0)[..., None], verts, np.nan).astype(np.float32)
+    chain_v = np.moveaxis(all_verts, 0, 2)  # (R, P, D, 3)
+    used = (inter != 0).transpose(1, 2, 0)[..., None]  # (R, P, D, 1)
+    chain_v = np.where(used, chain_v, np.nan).astype(np.float32)
     with np.errstate(divide="ignore"):
         gain_db = 10.0 * np.log10(power) - _DIPOLE_DB
     return {"valid": valid & np.isfinite(tau) & (power > 0), "length": tau * _C,
-            "gain_db": gain_db, "chain": chain, "vertex": verts,
+            "gain_db": gain_db, "chain": chain, "vertex": verts, "vertices": chain_v,
             "aod": np.degrees(theta_t), "aoa": np.degrees(theta_r)}
 
 
@@ -110,12 +114,12 @@ def _pack(batches: list[dict[str, NDArray]]) -> dict[str, NDArray]:
     k = max(int(bt["valid"].sum(axis=1).max(initial=0)) for bt in batches)
     k = max(k, 1)
     out: dict[str, list[NDArray]] = {n: [] for n in ("valid", "length", "gain_db", "chain",
-                                                     "vertex", "aod", "aoa")}
+                                                     "vertex", "vertices", "aod", "aoa")}
     for bt in batches:
         key = np.where(bt["valid"], bt["length"], np.inf)
         order = np.argsort(key, axis=1, kind="stable")
         take = lambda a, o=order: np.take_along_axis(  # noqa: E731
-            a, o if a.ndim == 2 else o[..., None], axis=1)
+            a, o.reshape(o.shape + (1,) * (a.ndim - 2)), axis=1)
         p = bt["valid"].shape[1]
         for name in out:
             arr = take(bt[name])
@@ -255,4 +259,5 @@ def trace(
         path_chain=arrays["chain"].astype(np.uint16),
         path_class=np.where(arrays["valid"], classify_chains(arrays["chain"]), 0).astype(np.int8),
         path_vertex_m=arrays["vertex"].astype(np.float32), metadata=metadata,
+        path_vertices_m=arrays["vertices"].astype(np.float32),
     )
