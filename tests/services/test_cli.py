@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 from diffpos_services.cli import main as cli
 
@@ -29,6 +31,21 @@ def test_unknown_subcommand_is_a_clear_error(capsys: pytest.CaptureFixture[str])
     assert cli.main(["bouns"]) == 2
     err = capsys.readouterr().err
     assert "unknown subcommand 'bouns'" in err and "bounds" in err
+
+
+def test_a_service_verb_run_in_process_leaves_root_logging_as_it_found_it(capsys) -> None:
+    """``fusion`` configures the root logger (level info, a stderr handler) before its config
+    error; run through ``cli.main`` in-process (as tests do) the root logger gets its level and
+    handlers back, so later caplog assertions do not depend on test order."""
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    root.setLevel(logging.ERROR)
+    try:
+        assert cli.main(["fusion", "--deadline-s", "100", "--log-level", "debug"]) == 2
+        assert "deadline_s" in capsys.readouterr().err
+        assert root.level == logging.ERROR and root.handlers == handlers
+    finally:
+        root.setLevel(level)
 
 
 #: unit suffixes of option names and how their help may state the unit (or the metavar)

@@ -17,8 +17,10 @@ import ast
 import importlib
 import importlib.metadata
 import importlib.util
+import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from diffpos_services.kit import DiffposError
@@ -107,6 +109,21 @@ def build_parser(name: str) -> argparse.ArgumentParser:
     return parser
 
 
+@contextmanager
+def _root_logging_restored() -> Iterator[None]:
+    """Give the root logger back its handlers and level when a verb returns: a service verb
+    configures logging for its process (``kit.setup_logging``), and a caller running
+    :func:`main` in-process (tests, scripts) must not inherit that level or a handler bound to
+    a stream that is gone."""
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    try:
+        yield
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``diffpos VERB [options]``; return the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -127,7 +144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser(name)
     args = parser.parse_args(rest)
     try:
-        return int(args._run(args) or 0)
+        with _root_logging_restored():
+            return int(args._run(args) or 0)
     except DiffposError as exc:
         print(f"diffpos {name}: error: {exc}", file=sys.stderr)
         return exc.exit_code
