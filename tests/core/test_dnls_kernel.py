@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from diffpos._kernels.dnls_nb import warm_dnls
-from diffpos.emulation import first_arrivals
+from diffpos.channel import emulate_channel, first_arrival
 from diffpos.estimators import FixStatus, GatingConfig, dnls
 from diffpos.geometry import window_edge_path
 from diffpos.scenario import default_scenario
@@ -108,10 +108,10 @@ def test_kernel_equals_reference_on_emulated_channel_ranges():
     a = np.stack([rng.uniform(-35, 35, (n, m)), rng.uniform(-40, -5, (n, m)),
                   rng.uniform(0, 1.3 * b.n_floors * b.floor_height_m, (n, m))], axis=-1)
     r, s, mask = np.zeros((n, m)), np.ones((n, m)), np.zeros((n, m), bool)
-    for i in range(n):  # one epoch per fix: the anchors of fix i against its node
-        for j in range(m):
-            ri, si, _, di = first_arrivals(a[i, j][None], nodes[i][None, None], sc, rng=rng)
-            r[i, j], s[i, j], mask[i, j] = ri[0, 0], si[0, 0], di[0, 0]
+    for i in range(n):  # one channel per fix: the 8 anchors of fix i against its node
+        fa = first_arrival(emulate_channel(a[i], nodes[i][None], building=b, radio=sc.radio),
+                           radio=sc.radio, rng=rng)
+        r[i], s[i], mask[i] = fa.range_m[0], fa.sigma_m[0], fa.detected[0]
     r = np.where(mask, r, 0.0)
     common = dict(mask=mask, window_height_m=b.window_height_m, edge_x_m=b.edge_x_m)
     for kw in ({}, {"x0_m": nodes + rng.normal(0.0, 0.5, nodes.shape)}):
