@@ -54,10 +54,12 @@ multipath, clock).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ._kernels.channel_nb import channel_params, eval_snr_kernel
 from .constants import SPEED_OF_LIGHT_M_S
 from .gtd import diffracted_field, wavenumber_rad_m
 from .linkbudget import db_to_linear, ranging_crlb_m, snr_db
@@ -307,6 +309,24 @@ def _reflect_field(E: NDArray, k_in: FloatArray, axis: int, eta: complex) -> NDA
     return (gs * es)[..., None] * s + (gp * ep)[..., None] * p_out
 
 
+def _materials(b: Building, frequency_hz: float) -> tuple:
+    """``(eta_ground, eta_in, wall_db, slab_db, glass_db, parts)`` of a building at a carrier:
+    the permittivities of the ground and of the interior surfaces, the wall / slab / glass
+    losses [dB] and the partitions as ``(axis 0|1, position_m, span_m, loss_db)``."""
+    f = frequency_hz
+    wall_db = (b.wall_loss_db if b.wall_loss_db is not None
+               else slab_loss_db(b.wall_material, b.wall_thickness_m, f))
+    slab_db = (b.slab_loss_db if b.slab_loss_db is not None
+               else slab_loss_db(b.slab_material, b.slab_thickness_m, f))
+    parts = [
+        (0 if p.axis == "x" else 1, p.position_m, p.span_m,
+         p.loss_db if p.loss_db is not None else slab_loss_db(p.material, p.thickness_m, f))
+        for p in b.partitions
+    ]
+    return (itu_permittivity(b.ground_material, f), itu_permittivity(b.interior_material, f),
+            wall_db, slab_db, b.glass_loss_db if b.windows == "glass" else 0.0, parts)
+
+
 class _Ctx:
     """Per-call constants shared by the slot builders."""
 
@@ -328,19 +348,8 @@ class _Ctx:
         # the node floor's planes, shared with the path model (diffpos.paths)
         self.frame = FloorFrame.from_building(b, floor[:, None])
         self.x0, self.x1 = self.frame.x0, self.frame.x1
-        self.eta_ground = itu_permittivity(b.ground_material, self.f)
-        self.eta_in = itu_permittivity(b.interior_material, self.f)
-        self.wall_db = (b.wall_loss_db if b.wall_loss_db is not None
-                        else slab_loss_db(b.wall_material, b.wall_thickness_m, self.f))
-        self.slab_db = (b.slab_loss_db if b.slab_loss_db is not None
-                        else slab_loss_db(b.slab_material, b.slab_thickness_m, self.f))
-        self.glass_db = b.glass_loss_db if b.windows == "glass" else 0.0
-        self.parts = [
-            (0 if p.axis == "x" else 1, p.position_m, p.span_m,
-             p.loss_db if p.loss_db is not None else slab_loss_db(p.material, p.thickness_m,
-                                                                   self.f))
-            for p in b.partitions
-        ]
+        (self.eta_ground, self.eta_in, self.wall_db, self.slab_db, self.glass_db,
+         self.parts) = _materials(b, self.f)
 
     def partition_loss_db(self, p: FloatArray, q: FloatArray) -> FloatArray:
         """Total loss of the partitions crossed by segments ``p -> q`` (inside) [dB]."""
@@ -510,6 +519,12 @@ def _slots(c: _Ctx, radio: Radio):
     return length, gain, aod, aoa, valid, power, snr
 
 
+@lru_cache(maxsize=64)
+def _kernel_params(building: Building, radio: Radio) -> tuple[np.ndarray, ...]:
+    """The compiled kernel's constants of a building and radio (cached: both are frozen)."""
+    return channel_params(building, radio, _materials(building, radio.frequency_hz))
+
+
 def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
                 radio: Radio) -> FloatArray:
     """SNR of every slot for per-node anchor sets: anchors ``(N, M, 3)``, nodes ``(N, 3)``.
@@ -518,10 +533,34 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     for estimators scoring position hypotheses; ``-inf`` where a slot is not valid. Nodes must
     be inside the building and anchors outside (not checked).
 
+    Computed by the compiled kernel :func:`diffpos._kernels.channel_nb.channel_snr_kernel`
+    (one loop over node-anchor pairs and slots, the emulator's operations with its common
+    phase factors left out and Weideman's Faddeeva function); :func:`_pair_snr_db_numpy` is
+    the numpy reference (the emulator's own :func:`_slots`). tests/core/test_channel_kernel.py
+    holds them together: the same ``-inf`` pattern and finite values within 1e-9 dB. Inputs
+    with a non-finite coordinate go to the reference. Anchors ``(M, 3)`` are shared by all
+    nodes.
+
     Returns
     -------
     ndarray, shape (N, M, K) [dB]
     """
+    anchors = np.asarray(anchors_m, dtype=np.float64)
+    nodes = np.asarray(nodes_m, dtype=np.float64)
+    if anchors.ndim == 2:
+        anchors = np.broadcast_to(anchors[None], (nodes.shape[0], *anchors.shape))
+    if not (np.isfinite(anchors).all() and np.isfinite(nodes).all()):
+        return _pair_snr_db_numpy(anchors, nodes, building=building, radio=radio)
+    try:
+        params = _kernel_params(building, radio)
+    except TypeError:  # an unhashable field (e.g. partitions given as a list)
+        params = channel_params(building, radio, _materials(building, radio.frequency_hz))
+    return eval_snr_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes), params)
+
+
+def _pair_snr_db_numpy(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
+                       radio: Radio) -> FloatArray:
+    """:func:`pair_snr_db` by the numpy emulator (the reference of the compiled kernel)."""
     anchors = np.asarray(anchors_m, dtype=np.float64)
     nodes = np.asarray(nodes_m, dtype=np.float64)
     return _slots(_Ctx(building, radio, nodes, anchors), radio)[-1]
