@@ -65,7 +65,8 @@ from .paths_nb import (
     row_planes,
 )
 
-__all__ = ["ASYMPTOTIC_MIN_ABS", "SIGNATURE", "WEIDEMAN_N", "channel_params", "channel_snr_kernel", "eval_snr_kernel",
+__all__ = ["ASYMPTOTIC_MIN_ABS", "SIGNATURE", "TRANSITION_ASYMPTOTIC_MIN", "transition",
+           "transition_asymptotic", "WEIDEMAN_N", "channel_params", "channel_snr_kernel", "eval_snr_kernel",
            "faddeeva", "faddeeva_kernel", "warm_channel", "weideman_coefficients"]
 
 #: Terms of Weideman's approximation of the Faddeeva function (accuracy: module docstring).
@@ -88,7 +89,10 @@ def weideman_coefficients(n_terms: int = WEIDEMAN_N) -> tuple[float, np.ndarray]
 _W_L, _W_A = weideman_coefficients()
 _INV_SQRT_PI = 1.0 / math.sqrt(math.pi)
 _SQRT_PI = math.sqrt(math.pi)
-_EXP_J_3PI4 = complex(np.exp(0.75j * np.pi))  # as diffpos.gtd computes it
+_EXP_J_3PI4 = complex(np.exp(0.75j * np.pi))  # as diffpos.gtd computes them
+_EXP_J_PI4 = complex(np.exp(0.25j * np.pi))
+#: ``X`` from which :func:`transition` sums its asymptotic series (see there).
+TRANSITION_ASYMPTOTIC_MIN = 64.0
 _RAD2DEG = 180.0 / math.pi
 #: ``|z|`` from which :func:`faddeeva` sums the asymptotic series (see there).
 ASYMPTOTIC_MIN_ABS = 8.0
@@ -215,8 +219,11 @@ def _cross(a0, a1, a2, b0, b1, b2):
 
 @njit(**_OPTS)
 def _unit(v0, v1, v2):
+    """Unit vector and norm (one division: the field's directions, never an existence
+    test, so the 1-ulp difference to numpy's three divisions is immaterial)."""
     n = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-    return v0 / n, v1 / n, v2 / n, n
+    inv = 1.0 / n
+    return v0 * inv, v1 * inv, v2 * inv, n
 
 
 @njit(**_OPTS)
@@ -384,17 +391,63 @@ def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_
 
 @njit(**_OPTS)
 def _mod_2pi(x):
-    """numpy.mod(x, 2 pi) (numba's float ``%`` has Python's, i.e. numpy's, semantics)."""
-    return x % _TWO_PI
+    """numpy.mod(x, 2 pi) of an ``atan2`` result (in [-pi, pi]): numpy's ``fmod`` is the
+    identity there and adds 2 pi to a negative remainder (avoids the slow ``fmod``)."""
+    return x + _TWO_PI if x < 0.0 else x
+
+
+@njit(**_OPTS)
+def transition_asymptotic(x):
+    """UTD transition function ``F(X) ~ sum_n (2n-1)!! (j / (2X))^n`` for ``X >=``
+    :data:`TRANSITION_ASYMPTOTIC_MIN` (gtd.transition_function's large-argument limit), in
+    real arithmetic, summed until a term is below 1e-17: the error of the truncated series is
+    below its first omitted term, so < 1e-16 relative for ``X >= 64`` (16 terms there, 5-8
+    at the typical ``X ~ 1e3`` of a window edge)."""
+    r = 0.5 / x
+    term = 1.0
+    re = 1.0
+    im = 0.0
+    for n in range(1, 60):
+        term = term * ((2 * n - 1) * r)
+        m = n % 4
+        if m == 1:
+            im += term
+        elif m == 2:
+            re -= term
+        elif m == 3:
+            im -= term
+        else:
+            re += term
+        if term < 1e-17:
+            break
+    return complex(re, im)
+
+
+@njit(**_OPTS)
+def transition(x):
+    """UTD transition function ``F(X) = sqrt(pi X) exp(j pi/4) w(exp(j 3 pi/4) sqrt X)``
+    (gtd.transition_function) for ``X >= 0``: :func:`transition_asymptotic` from
+    :data:`TRANSITION_ASYMPTOTIC_MIN` on, :func:`faddeeva` below."""
+    if x >= TRANSITION_ASYMPTOTIC_MIN:
+        return transition_asymptotic(x)
+    r = math.sqrt(x)
+    return _SQRT_PI * r * _EXP_J_PI4 * faddeeva(_EXP_J_3PI4 * r)
 
 
 @njit(**_OPTS)
 def _utd_term(beta, kl):
-    """gtd._utd_term without its common factor exp(j pi/4)."""
+    """gtd._utd_term ``F(k L a(b)) / cos(b/2)``, ``a = 2 cos^2(b/2)``, finite at ``cos(b/2) =
+    0``: ``sgn sqrt(pi) sqrt(2kL) exp(j pi/4) w(exp(j 3 pi/4) sqrt(2kL) |cos(b/2)|)``, the
+    same operations as numpy; from ``X = (sqrt(2kL) |cos(b/2)|)^2 >=``
+    :data:`TRANSITION_ASYMPTOTIC_MIN` on, ``sgn F(X) / |cos(b/2)|`` with the asymptotic F
+    (the same function: ``sqrt(pi) sqrt(2kL) w = F(X) exp(-j pi/4) / |cos(b/2)|``)."""
     c = math.cos(0.5 * beta)
     sgn = 1.0 if c >= 0.0 else -1.0
     root = math.sqrt(2.0 * kl)
-    return sgn * _SQRT_PI * root * faddeeva(_EXP_J_3PI4 * root * abs(c))
+    t = root * abs(c)
+    if t * t >= TRANSITION_ASYMPTOTIC_MIN:
+        return sgn * transition_asymptotic(t * t) / abs(c)
+    return sgn * _SQRT_PI * root * _EXP_J_PI4 * faddeeva(_EXP_J_3PI4 * root * abs(c))
 
 
 @njit(**_OPTS)
@@ -426,11 +479,13 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
     de = so0 * e0 + so1 * e1 + so2 * e2
     st0, st1, st2, _ = _unit(so0 - de * e0, so1 - de * e1, so2 - de * e2)
     psi = _mod_2pi(math.atan2(st0 * nn0 + st1 * nn1 + st2 * nn2, st0 * t0 + st1 * t1 + st2 * t2))
-    gamma0 = math.atan2(sin_g, abs(si0 * e0 + si1 * e1 + si2 * e2))
+    # sin(gamma0) with gamma0 = atan2(sin_g, |s' . e|) (EdgeFrame), without atan2 and sin
+    cos_g = abs(si0 * e0 + si1 * e1 + si2 * e2)
+    sin_gamma0 = sin_g / math.sqrt(sin_g * sin_g + cos_g * cos_g)
     k = prm[_P_K]
     # utd_coefficients with L = s s' sin^2 gamma0 / (s + s') (distance_parameter_m)
     big_l = s_out_m * s_in_m * sin_g ** 2 / (s_out_m + s_in_m)
-    pre = 1.0 / (2.0 * math.sqrt(2.0 * math.pi * k) * math.sin(gamma0))  # |prefactor|
+    pre = 1.0 / (2.0 * math.sqrt(2.0 * math.pi * k) * sin_gamma0)  # |prefactor|
     kl = k * big_l
     t_minus = _utd_term(psi - psi_in, kl)
     t_plus = _utd_term(psi + psi_in, kl)
