@@ -9,35 +9,91 @@ Prints a table of wall-clock times (median of the repeats) on the paper's scenar
   partition losses, SNR);
 - ``first_arrival``: the detector and the noisy ranges;
 - the positioning study per estimator (LLS, IPPA, D-NLS Case-1, D-NLS Case-2) and the PEB;
-- the total, i.e. what ``diffpos reproduce`` spends computing (without figures).
+- the total, i.e. what ``diffpos reproduce`` spends computing (without figures);
+- ``pair_snr_db``: the per-slot SNR prediction of the estimators (M-NLS, tracker) on the same
+  links, numpy reference (``diffpos.channel._pair_snr_db_numpy``, the emulator's own code) vs
+  the compiled kernel (``diffpos._kernels.channel_nb``), by this thread's CPU time per link
+  (median of the repeats; the figure to compare on a shared machine), after a warm-up call;
+  plus the kernel's first call in a fresh process (compile, or load numba's on-disk cache).
+  ``--snr-only`` runs just this part.
 
-Targets (issue "O2I channel emulator and reproduction of the paper's study"): the channels of
-the full study in seconds, the full study in under 60 s on 2 cores. The machine is shared, so
-the numbers are noisy; threads are not pinned (numpy may use both cores).
+MEASURED_PLACEHOLDER
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
+import sys
+import tempfile
 import time
 
 import numpy as np
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel import _pair_snr_db_numpy, emulate_channel, first_arrival, pair_snr_db
 from diffpos.scenario import default_scenario
 from diffpos.study import DEFAULT_METHODS, FirstArrivalData, method_label, positioning_study
+
+#: The extra anchors of benchmarks/bench_estimator_cost.py's 8-anchor layout [m].
+EXTRA_ANCHORS_M = np.array([[-25.0, -12.0, 8.5], [10.0, -10.0, 14.0], [28.0, -18.0, 5.5],
+                            [-30.0, -25.0, 19.0]])
+_FIRST_CALL = """
+import time
+t = time.process_time()
+from diffpos._kernels.channel_nb import warm_channel
+t1 = time.process_time()
+warm_channel()
+print(t1 - t, time.process_time() - t1)
+"""
+
+
+def snr_rows(sc, anchors: np.ndarray, nodes: np.ndarray, repeats: int) -> None:
+    """pair_snr_db numpy vs kernel, CPU per link, and the kernel's first call."""
+    b, r = sc.building, sc.radio
+    per_node = np.ascontiguousarray(np.broadcast_to(anchors, (len(nodes), *anchors.shape)))
+    eight = np.vstack([anchors, EXTRA_ANCHORS_M])[None]  # the 8-anchor layout of M-NLS' bench
+    cases = {"all links in one call": (per_node, nodes),
+             "one node x 8 anchors per call": (np.ascontiguousarray(eight), nodes[:1])}
+    print(f"\npair_snr_db, CPU per link (thread time), median of {repeats}")
+    print(f"{'call':<32} {'numpy us':>9} {'kernel us':>9} {'speed-up':>8}")
+    for name, (anc, nod) in cases.items():
+        n_calls = 1 if len(nod) > 1 else 200
+        pair_snr_db(anc, nod, building=b, radio=r)  # warm-up (compile or cache load)
+        times = {}
+        for label, fn in (("numpy", _pair_snr_db_numpy), ("kernel", pair_snr_db)):
+            ts = []
+            for _ in range(repeats):
+                t = time.thread_time()
+                for _ in range(n_calls):
+                    fn(anc, nod, building=b, radio=r)
+                ts.append((time.thread_time() - t) / (n_calls * anc.shape[0] * anc.shape[1]))
+            times[label] = float(np.median(ts))
+        print(f"{name:<32} {1e6 * times['numpy']:9.2f} {1e6 * times['kernel']:9.3f} "
+              f"{times['numpy'] / times['kernel']:7.1f}x")
+    with tempfile.TemporaryDirectory() as empty:
+        for label, env in (("empty numba cache (compile)", {"NUMBA_CACHE_DIR": empty}),
+                           ("numba's on-disk cache", {})):
+            out = subprocess.run([sys.executable, "-c", _FIRST_CALL], capture_output=True,
+                                 text=True, check=True, env={**os.environ, **env}).stdout.split()
+            print(f"kernel first call in a fresh process, {label}: import of diffpos "
+                  f"{float(out[0]):.2f} s CPU, warm_channel {float(out[1]):.2f} s CPU")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--nodes", type=int, default=None, help="subsample of receivers")
+    ap.add_argument("--snr-only", action="store_true", help="only the pair_snr_db rows")
     args = ap.parse_args()
     sc = default_scenario()
     nodes = sc.node_positions_m()
     if args.nodes:
         nodes = nodes[:: max(len(nodes) // args.nodes, 1)][: args.nodes]
     anchors = sc.anchor_positions_m()
+    if args.snr_only:
+        snr_rows(sc, anchors, nodes, args.repeats)
+        return
     rows: dict[str, list[float]] = {}
 
     def timed(name, fn):
@@ -77,6 +133,7 @@ def main() -> None:
     for name, ts in rows.items():
         med = float(np.median(ts))
         print(f"{name:<34} {med:9.3f} {1e6 * med / n_links:9.2f}")
+    snr_rows(sc, anchors, nodes, args.repeats)
 
 
 if __name__ == "__main__":
