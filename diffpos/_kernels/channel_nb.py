@@ -65,9 +65,10 @@ from .paths_nb import (
     row_planes,
 )
 
-__all__ = ["ASYMPTOTIC_MIN_ABS", "SIGNATURE", "TRANSITION_ASYMPTOTIC_MIN", "transition",
-           "transition_asymptotic", "WEIDEMAN_N", "channel_params", "channel_snr_kernel", "eval_snr_kernel",
-           "faddeeva", "faddeeva_kernel", "warm_channel", "weideman_coefficients"]
+__all__ = ["ASYMPTOTIC_MIN_ABS", "SIGNATURE", "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N",
+           "channel_params", "channel_snr_kernel", "eval_snr_kernel", "faddeeva",
+           "faddeeva_kernel", "transition", "transition_asymptotic", "warm_channel",
+           "weideman_coefficients"]
 
 #: Terms of Weideman's approximation of the Faddeeva function (accuracy: module docstring).
 WEIDEMAN_N = 40
@@ -97,7 +98,6 @@ _RAD2DEG = 180.0 / math.pi
 #: ``|z|`` from which :func:`faddeeva` sums the asymptotic series (see there).
 ASYMPTOTIC_MIN_ABS = 8.0
 _ASYM_MIN_ABS2 = ASYMPTOTIC_MIN_ABS * ASYMPTOTIC_MIN_ABS
-_TWO_PI = 2.0 * math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 
 # params (float64 vector) layout, filled by channel_params
@@ -390,10 +390,18 @@ def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_
 
 
 @njit(**_OPTS)
-def _mod_2pi(x):
-    """numpy.mod(x, 2 pi) of an ``atan2`` result (in [-pi, pi]): numpy's ``fmod`` is the
-    identity there and adds 2 pi to a negative remainder (avoids the slow ``fmod``)."""
-    return x + _TWO_PI if x < 0.0 else x
+def _half_angle(x, y):
+    """``(cos(a/2), sin(a/2))`` of ``a = atan2(y, x) mod 2 pi`` in ``[0, 2 pi)`` for a unit
+    vector ``(x, y)`` (so ``a/2`` in ``[0, pi)``, ``sin(a/2) >= 0``): the component that is
+    >= 1/sqrt(2) from ``sqrt((1 +- x) / 2)``, the other from ``sin a = 2 sin(a/2) cos(a/2)``,
+    each to a few ulp (no cancellation). ``y = -0.0`` counts as ``a = 0`` (numpy's mod)."""
+    if x >= 0.0:
+        c = math.sqrt(0.5 * (1.0 + x))
+        if y < 0.0:
+            c = -c
+        return c, y / (2.0 * c)
+    s = math.sqrt(0.5 * (1.0 - x))
+    return y / (2.0 * s), s
 
 
 @njit(**_OPTS)
@@ -435,13 +443,12 @@ def transition(x):
 
 
 @njit(**_OPTS)
-def _utd_term(beta, kl):
-    """gtd._utd_term ``F(k L a(b)) / cos(b/2)``, ``a = 2 cos^2(b/2)``, finite at ``cos(b/2) =
-    0``: ``sgn sqrt(pi) sqrt(2kL) exp(j pi/4) w(exp(j 3 pi/4) sqrt(2kL) |cos(b/2)|)``, the
-    same operations as numpy; from ``X = (sqrt(2kL) |cos(b/2)|)^2 >=``
-    :data:`TRANSITION_ASYMPTOTIC_MIN` on, ``sgn F(X) / |cos(b/2)|`` with the asymptotic F
-    (the same function: ``sqrt(pi) sqrt(2kL) w = F(X) exp(-j pi/4) / |cos(b/2)|``)."""
-    c = math.cos(0.5 * beta)
+def _utd_term(c, kl):
+    """gtd._utd_term ``F(k L a(b)) / cos(b/2)`` of ``c = cos(b/2)``, ``a = 2 cos^2(b/2)``,
+    finite at ``c = 0``: ``sgn sqrt(pi) sqrt(2kL) exp(j pi/4) w(exp(j 3 pi/4) sqrt(2kL) |c|)``,
+    the same operations as numpy; from ``X = (sqrt(2kL) |c|)^2 >=``
+    :data:`TRANSITION_ASYMPTOTIC_MIN` on, ``sgn F(X) / |c|`` with the asymptotic F (the same
+    function: ``sqrt(pi) sqrt(2kL) w = F(X) exp(-j pi/4) / |c|``)."""
     sgn = 1.0 if c >= 0.0 else -1.0
     root = math.sqrt(2.0 * kl)
     t = root * abs(c)
@@ -474,11 +481,13 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
     bo0, bo1, bo2 = _cross(po0, po1, po2, so0, so1, so2)
     de = si0 * e0 + si1 * e1 + si2 * e2
     st0, st1, st2, _ = _unit(si0 - de * e0, si1 - de * e1, si2 - de * e2)
-    psi_in = _mod_2pi(math.atan2(-(st0 * nn0 + st1 * nn1 + st2 * nn2),
-                                 -(st0 * t0 + st1 * t1 + st2 * t2)))
+    # psi' = atan2(y', x') mod 2 pi and psi = atan2(y, x) mod 2 pi (EdgeFrame) enter only as
+    # cos((psi -/+ psi') / 2): from their half-angle vectors, without atan2 and cos
+    hc_in, hs_in = _half_angle(-(st0 * t0 + st1 * t1 + st2 * t2),
+                               -(st0 * nn0 + st1 * nn1 + st2 * nn2))
     de = so0 * e0 + so1 * e1 + so2 * e2
     st0, st1, st2, _ = _unit(so0 - de * e0, so1 - de * e1, so2 - de * e2)
-    psi = _mod_2pi(math.atan2(st0 * nn0 + st1 * nn1 + st2 * nn2, st0 * t0 + st1 * t1 + st2 * t2))
+    hc, hs = _half_angle(st0 * t0 + st1 * t1 + st2 * t2, st0 * nn0 + st1 * nn1 + st2 * nn2)
     # sin(gamma0) with gamma0 = atan2(sin_g, |s' . e|) (EdgeFrame), without atan2 and sin
     cos_g = abs(si0 * e0 + si1 * e1 + si2 * e2)
     sin_gamma0 = sin_g / math.sqrt(sin_g * sin_g + cos_g * cos_g)
@@ -487,8 +496,8 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
     big_l = s_out_m * s_in_m * sin_g ** 2 / (s_out_m + s_in_m)
     pre = 1.0 / (2.0 * math.sqrt(2.0 * math.pi * k) * sin_gamma0)  # |prefactor|
     kl = k * big_l
-    t_minus = _utd_term(psi - psi_in, kl)
-    t_plus = _utd_term(psi + psi_in, kl)
+    t_minus = _utd_term(hc * hc_in + hs * hs_in, kl)  # cos((psi - psi') / 2)
+    t_plus = _utd_term(hc * hc_in - hs * hs_in, kl)  # cos((psi + psi') / 2)
     d_s = pre * (t_minus - t_plus)
     d_h = pre * (t_minus + t_plus)
     ex, ey, ez = prm[_P_E0], prm[_P_E0 + 1], prm[_P_E0 + 2]
