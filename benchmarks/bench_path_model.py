@@ -71,7 +71,7 @@ import numpy as np
 
 from diffpos._kernels import paths_nb
 from diffpos.bounds import bounds_from_fim, fisher_information, position_error_bound
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel import _pair_snr_db_numpy, emulate_channel, first_arrival
 from diffpos.estimators import mnls
 from diffpos.geometry import diffraction_point, window_edge_path
 from diffpos.paths import _first_arrival_paths_numpy, _kernel_rows, first_arrival_paths
@@ -247,6 +247,7 @@ ANCHORS_8 = np.concatenate([default_scenario().anchor_positions_m(), np.array(
 N_FLOORS_FA = 5
 #: The estimator's module (the package exports the function under the same name).
 mnls_module = importlib.import_module("diffpos.estimators.mnls")
+channel_module = importlib.import_module("diffpos.channel")
 
 _COMPILE_PROBE = """
 import json, time
@@ -359,8 +360,10 @@ def first_arrival_table(args: argparse.Namespace) -> None:
         print(f"| {name} | {w:.2f} | {c:.2f} |")
 
 
-def profile_mnls(n_fixes: int, numpy_paths: bool) -> None:
-    """Shares of one batched M-NLS call: path model, SNR prediction, the rest (docstring)."""
+def profile_mnls(n_fixes: int, numpy_paths: bool, numpy_snr: bool = False,
+                 top: int = 12) -> None:
+    """Shares of one batched M-NLS call: path model, SNR prediction, the rest, and the
+    ``top`` functions by own CPU time (docstring)."""
     sc = default_scenario()
     rng = np.random.default_rng(0)
     b = sc.building
@@ -383,6 +386,8 @@ def profile_mnls(n_fixes: int, numpy_paths: bool) -> None:
         if not hasattr(mnls_module, "first_arrival_paths"):
             raise SystemExit("mnls no longer calls first_arrival_paths: nothing to swap")
         mnls_module.first_arrival_paths = _first_arrival_paths_numpy
+    if numpy_snr:  # A/B: the SNR cost on the numpy emulator instead of the compiled kernel
+        channel_module.pair_snr_db = _pair_snr_db_numpy
     run(slice(0, 1))  # imports, caches
     prof = cProfile.Profile(time.thread_time)  # CPU time: the machine is shared
     prof.runcall(run, slice(0, n_fixes))
@@ -393,14 +398,24 @@ def profile_mnls(n_fixes: int, numpy_paths: bool) -> None:
         return sum(v[3] for key, v in st.items() if key[2] == name)
 
     fap = cum("first_arrival_paths") + cum("_first_arrival_paths_numpy")
-    snr = cum("pair_snr_db")
+    snr = cum("pair_snr_db") + cum("_pair_snr_db_numpy")
     which = "numpy reference" if numpy_paths else "compiled kernel"
+    which_snr = "numpy emulator" if numpy_snr else "compiled kernel"
     print(f"## M-NLS, {n_fixes} fixes x {len(ANCHORS_8)} anchors in one call, path model: "
-          f"{which}: {total:.2f} s thread CPU under cProfile\n")
+          f"{which}, SNR: {which_snr}: {total:.2f} s thread CPU under cProfile "
+          f"({1e3 * total / n_fixes:.2f} ms per fix)\n")
     print("| part | share |\n| --- | ---: |")
     for name, t in (("first_arrival_paths (path model)", fap),
                     ("channel.pair_snr_db (SNR cost)", snr), ("rest", total - fap - snr)):
         print(f"| {name} | {100 * t / total:.0f} % |")
+    print(f"\nTop {top} functions by own CPU time (tottime; numba kernels count as their "
+          f"dispatcher call):\n")
+    print("| function | calls | own CPU share | cumulative share |\n| --- | ---: | ---: | ---: |")
+    rows = sorted(st.items(), key=lambda kv: -kv[1][2])[:top]
+    for (file, line, name), (_cc, nc, tt, ct, _callers) in rows:
+        where = f"{os.path.basename(file)}:{line}" if line else file
+        print(f"| `{name}` ({where}) | {nc} | {100 * tt / total:.1f} % | "
+              f"{100 * ct / total:.1f} % |")
 
 
 def main() -> None:
@@ -415,9 +430,11 @@ def main() -> None:
                         help="only profile one batched M-NLS call on N fixes")
     parser.add_argument("--numpy-paths", action="store_true",
                         help="with --profile-mnls: the estimator on the numpy path model (A/B)")
+    parser.add_argument("--numpy-snr", action="store_true",
+                        help="with --profile-mnls: the SNR cost on the numpy emulator (A/B)")
     args = parser.parse_args()
     if args.profile_mnls:
-        profile_mnls(args.profile_mnls, args.numpy_paths)
+        profile_mnls(args.profile_mnls, args.numpy_paths, args.numpy_snr)
         return
     if args.only in (None, "first-arrival"):
         first_arrival_table(args)

@@ -23,8 +23,8 @@ Tolerances:
 Geometries: random (fixed seeds) on the default building and on variants (other floor heights,
 window sizes, off-centre facade, glass windows with loss, partitions, wall/slab loss overrides,
 antenna patterns on and off, another polarisation), anchors below, at and above the window
-bands and beyond the facade ends, nodes anywhere in the floors and within 1e-6 m of the window
-band's edges.
+bands and beyond the facade ends, nodes anywhere in the floors, within 1e-6 m of the window
+band's edges and (estimator hypotheses) outside the building.
 """
 
 from __future__ import annotations
@@ -203,6 +203,22 @@ def test_kernel_uavs_at_and_above_the_windows_and_beyond_the_ends() -> None:
     anchors = np.stack([ax, -rng.uniform(1.0, 30.0, (600, 4)), az], axis=-1)
     for r in RADIOS.values():
         _compare(b, r, nodes, anchors)
+
+
+def test_kernel_hypotheses_outside_the_building() -> None:
+    """Position hypotheses of an estimator or tracker may stray: nodes beyond the facade ends,
+    behind the back wall, below the first floor (floor index -1), above the top floor and
+    just outside the facade (``y < 0``); still the reference's -inf pattern and values."""
+    b = BUILDINGS["tall_glass_parts"]
+    rng = np.random.default_rng(6)
+    x0, x1 = b.edge_x_m
+    n = 1500
+    nodes = np.stack([rng.uniform(x0 - 5, x1 + 5, n), rng.uniform(-0.5, b.depth_m + 2, n),
+                      rng.uniform(-1.0, b.top_z_m + 4, n)], axis=-1)
+    anchors = np.stack([rng.uniform(x0 - 20, x1 + 20, (n, 3)), rng.uniform(-30, -0.6, (n, 3)),
+                        rng.uniform(0, 25, (n, 3))], axis=-1)
+    with np.errstate(all="ignore"):
+        _compare(b, RADIOS["patterns"], nodes, anchors)
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the numpy reference on a NaN node
