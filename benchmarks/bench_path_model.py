@@ -27,15 +27,25 @@ The kernel is checked against the reference (1e-12 relative, existence exactly) 
 
 **Where an M-NLS fix spends** (``--profile-mnls N``: cProfile of one batched ``mnls`` call on
 N emulated first arrivals, 8 anchors, with the measured SNR and the radio as live; shares of
-the total thread CPU, cumulative; ``--numpy-paths`` runs the estimator on the numpy path
-model): the path model, the channel's per-slot SNR prediction (``diffpos.channel.pair_snr_db``,
-the M-NLS SNR cost) and the rest (the estimator's own numpy).
-Measured 2026-11-23 on the shared 2-core VM (load ~10), 64 fixes, thread CPU: with the numpy
-path model 4.4 s, first_arrival_paths 37 % / pair_snr_db 50 % / rest 13 %; with the kernel
-3.0 s, 8 % / 63 % / 28 % (the rest: ``_link_terms`` without the path model, and
-``_knife_edge_loss_db``, computed on all 18 slots where only 7 are diffraction slots). One
-fix per call (cProfile, 5 calls): pair_snr_db 84 %, path kernel 2 %. The 2 ms per node-epoch
-target of M-NLS therefore hinges on the SNR prediction, not on the path model any more.
+the total thread CPU, cumulative; then the top functions by own CPU; ``--numpy-paths`` runs
+the estimator on the numpy path model, ``--numpy-snr`` its SNR cost on the numpy emulator
+instead of the compiled ``diffpos._kernels.channel_nb``): the path model, the channel's
+per-slot SNR prediction (``diffpos.channel.pair_snr_db``, the M-NLS SNR cost) and the rest.
+History: 2026-11-23 (load ~10), 64 fixes: numpy path model 4.4 s, first_arrival_paths 37 % /
+pair_snr_db 50 % / rest 13 %; compiled path model 3.0 s, 8 % / 63 % / 28 %.
+Measured 2026-11-27 05:39 UTC (shared 2-core VM, load 6-8), 64 fixes, thread CPU under
+cProfile:
+
+    SNR cost by         total    per fix   path model  pair_snr_db  rest
+    numpy emulator      1.18 s   18.5 ms   10 %         75 %         15 %
+    compiled kernel     0.44 s    6.8 ms   35 %         22 %         43 %
+
+With the compiled SNR the own-CPU ranking is: ``paths_kernel`` 33 %, ``channel_snr_kernel``
+22 % (~880 node-anchor pairs per fix at ~2.3 us), ``link_terms_kernel`` (mnls_nb) 16 %, the
+estimator's Python/numpy (``_lm``, a dict comprehension in ``_lm``, einsum, ``solve``, the
+edge starts) ~20 %. The 2 ms per node-epoch target of M-NLS is therefore no longer a matter
+of the SNR prediction: the path model's evaluations and the number of hypotheses the search
+evaluates (diffpos/estimators/mnls.py) dominate.
 
 **Window-edge model and bounds** (the paper's Corollary-1 geometry, target < 100 ns per pair):
 
