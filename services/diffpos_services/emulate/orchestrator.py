@@ -372,9 +372,10 @@ class Emulation:
         t0 = time.monotonic()
         # imported here, after the message: importing dnls_nb compiles it (explicit signatures)
         # (dnls_nb, mnls_nb and lm_nb compile on import; every service imports all three)
-        from diffpos._kernels import dnls_nb, mnls_nb, paths_nb  # noqa: F401
+        from diffpos._kernels import channel_nb, dnls_nb, mnls_nb, paths_nb  # noqa: F401
         paths_nb.warm_paths()
         dnls_nb.warm_dnls()
+        channel_nb.warm_channel()  # the SNR prediction of mnls and the tracker
         took = time.monotonic() - t0
         STATUS.show("")
         if took > 5.0:

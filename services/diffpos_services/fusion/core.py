@@ -31,6 +31,7 @@ import numpy as np
 
 import diffpos.estimators as est  # module attribute lookup: tests count est.dnls calls
 from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
+from diffpos.channel import pair_snr_db
 from diffpos.estimators import GatingConfig
 from diffpos.geometry import window_edge_path
 from diffpos_services.fusion.config import FusionConfig
@@ -449,6 +450,9 @@ class FusionCore:
              window_height_m=self.config.window_height_m, gating=self.gating)
         if self.building is not None:  # a throw-away tracker: the core's state is untouched
             est.mnls(anchors[None], r[None], np.full((1, 4), 0.1), building=self.building)
+            if self.model[1] is not None:  # the compiled SNR prediction (loaded from cache)
+                pair_snr_db(anchors[None], node[None], building=self.building,
+                            radio=self.model[1])
             TrackBank(self.building).update(["warm-up"], anchors[None], r[None],
                                             np.full((1, 4), 0.1), np.ones((1, 4), bool),
                                             np.zeros(1, np.int64))
