@@ -327,8 +327,10 @@ def test_cli_allow_lists_from_ids_and_from_the_scenario():
     assert cfg.anchors == ("uav1", "uav3") and cfg.nodes == ("n01",)
     cmd, args = _fusion_args()
     cfg = cmd.config_from_args(args, sc)
-    # the default method: D-NLS (mnls + tracking is opt-in)
-    assert cfg.anchors is None and cfg.nodes is None and cfg.method == "dnls"
+    # the default method: mnls + tracking (the first-arrival model), with the scenario's
+    # building and radio; D-NLS is opt-in
+    assert cfg.anchors is None and cfg.nodes is None and cfg.method == "mnls" and cfg.tracking
+    assert cfg.building is not None and cfg.radio is not None
     cmd, args = _fusion_args("--anchors", "scenario", "--nodes", "scenario", "--method", "ippa")
     cfg = cmd.config_from_args(args, sc)
     assert cfg.method == "ippa"

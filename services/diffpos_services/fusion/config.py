@@ -40,7 +40,7 @@ METHODS = ("mnls", "dnls", "lls", "ippa")
 #: (track branch, shared 2-core VM at load ~14): a real-time ``diffpos emulate
 #: --method mnls --duration 20`` gave 100 % availability, floor 81.3 % of all node-epochs, but
 #: a fusion latency p50/p99 of 12.6/14.0 s (a growing backlog): not switched.
-DEFAULT_METHOD = "dnls"
+DEFAULT_METHOD = "mnls"
 
 #: The window edges of the path model (``--edge``).
 EDGES = ("upper", "lower", "auto")
