@@ -1,11 +1,13 @@
 """scripts/bad_input_table.py: the bad-input table of docs/bad_input.md comes from running the
-cases, only the text between its markers changes, and the committed doc lists every case."""
+cases, only the text between its markers changes, and the committed doc lists every case.
+
+In this process with the runs stubbed; a real run of the script and of ``diffpos`` is
+tests/system/test_bad_input_table_run.py."""
 
 from __future__ import annotations
 
 import importlib.util
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -28,27 +30,30 @@ def _section(text: str, bit) -> str:
     return text.split(bit.BEGIN, 1)[1].split(bit.END, 1)[0]
 
 
-def test_regenerating_rewrites_only_the_marked_table_from_real_runs(tmp_path):
+def test_regenerating_rewrites_only_the_marked_table_and_check_never_writes(tmp_path,
+                                                                          monkeypatch):
+    """main() in this process with the runs stubbed: the prose around the markers is kept byte
+    for byte, the rows are the selected cases, ``--check`` agrees with a fresh table and
+    reports a changed doc without rewriting it. The same with real runs of ``diffpos``:
+    tests/system/test_bad_input_table_run.py."""
     bit = _script()
+    ran = []
+    monkeypatch.setattr(bit, "run_case", lambda case, exe: ran.append(case) or "exit 0; stub")
     doc = tmp_path / "bad_input.md"
     prose_before, prose_after = "# Title\n\nprose | with a pipe\n\n", "\n\nmore prose\n"
     doc.write_text(f"{prose_before}{bit.BEGIN}\nstale hand-written row\n{bit.END}{prose_after}")
-    proc = subprocess.run([sys.executable, str(SCRIPT), "--doc", str(doc), "--only", "facade"],
-                          capture_output=True, text=True, timeout=300, check=False)
-    assert proc.returncode == 0, proc.stderr
+    assert bit.main(["--doc", str(doc), "--only", "facade"]) == 0
     text = doc.read_text()
     assert text.startswith(prose_before + bit.BEGIN) and text.endswith(bit.END + prose_after)
     rows = _section(text, bit).strip().splitlines()
-    assert rows[:2] == ["| item | tried | now | test |", "| --- | --- | --- | --- |"]
-    assert len(rows) == 3 and "stale" not in text
-    assert rows[2].startswith("| 15.11 | `solve`: anchor 2 on the facade (y = 0) | exit 0; "
-                              "`invalid_input`: anchors_m[2] = [0, 0.0, 4] is on the facade")
-    assert rows[2].endswith("test_anchor_not_outside_is_invalid_naming_the_anchor` |")
-    # up to date now: --check agrees; a changed doc is reported, not rewritten
-    check = [sys.executable, str(SCRIPT), "--doc", str(doc), "--only", "facade", "--check"]
-    assert subprocess.run(check, capture_output=True, timeout=300, check=False).returncode == 0
+    facade = [c for c in bit.CASES if "facade" in f"{c.item} {c.tried}"]
+    assert ran == facade and len(facade) == 1
+    assert rows == ["| item | tried | now | test |", "| --- | --- | --- | --- |",
+                    f"| 15.11 | {facade[0].tried} | exit 0; stub | `{facade[0].test}` |"]
+    check = ["--doc", str(doc), "--only", "facade", "--check"]
+    assert bit.main(check) == 0
     doc.write_text(text.replace("exit 0", "exit 9"))
-    assert subprocess.run(check, capture_output=True, timeout=300, check=False).returncode == 1
+    assert bit.main(check) == 1
     assert "exit 9" in doc.read_text()
 
 

@@ -1,34 +1,26 @@
 """Bad options of ``diffpos emulate`` / ``diffpos anchor`` (issue 15, item 12): one line naming
-the option, exit 2, no traceback, nothing started."""
+the option, exit 2, no traceback, nothing started.
+
+In this process (``cli.main.main``); the same as real ``diffpos`` processes, the anchor's
+unreachable router and the dashboard's liveliness token on a real Zenoh bus are
+tests/system/test_emulate_options_process.py."""
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
-import subprocess
-import sys
 import threading
 
 import pytest
-import zenoh
 from diffpos_services.anchor.service import load_scenario_file
 from diffpos_services.bus.commands import recorder_args
+from diffpos_services.cli import main as cli
 from diffpos_services.cli import recorder as cli_recorder
-from diffpos_services.emulate import EXTRA_SERVICES, Emulation, EmulationOptions
+from diffpos_services.emulate import Emulation, EmulationOptions
 from diffpos_services.emulate.options import recorder_argv
-from diffpos_services.kit import ConfigError, free_tcp_port
+from diffpos_services.kit import ConfigError
 from diffpos_services.recorder import build_command
 from diffpos_services.scenario_io import load_scenario_option
-from diffpos_services.wire.keys import Keys
-
-
-def _diffpos(*argv: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
-    env = dict(os.environ, DIFFPOS_LOG_FORMAT="text")
-    env.pop("DIFFPOS_ZENOH_CONFIG", None)
-    return subprocess.run([sys.executable, "-m", "diffpos_services.cli.main", *argv],
-                          capture_output=True, text=True, timeout=timeout, env=env)
 
 
 @pytest.mark.parametrize(("dashboard", "names"), [
@@ -47,65 +39,23 @@ def test_dashboard_save_to_a_directory_refused(tmp_path):
         EmulationOptions(dashboard=["save", str(tmp_path)]).check()
 
 
-def test_emulate_dashboard_save_without_path_is_one_line_exit_2():
-    r = _diffpos("emulate", "--dashboard", "save", "--no-progress", timeout=30)
-    assert r.returncode == 2, r.stderr
-    assert "Traceback" not in r.stderr
-    err = [line for line in r.stderr.splitlines() if "error:" in line]
-    assert err and "--dashboard save" in err[0] and "--rerun" not in err[0], r.stderr
+def test_emulate_dashboard_save_without_path_is_one_line_exit_2_in_process(capsys):
+    """Through cli.main in this process; as a real process (and an unreachable router for
+    ``diffpos anchor``): tests/system/test_emulate_options_process.py."""
+    assert cli.main(["emulate", "--dashboard", "save", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.count("\n") == 1, err
+    assert "diffpos emulate: error: --dashboard save" in err and "--rerun" not in err, err
     # validated before any process started (no router, no "starting" line)
-    assert "starting" not in r.stderr and "waiting for the router" not in r.stderr
+    assert "starting" not in err and "waiting for the router" not in err
 
 
-def test_emulate_bad_endpoint_is_one_line_exit_2():
-    r = _diffpos("emulate", "--endpoint", "foo", "--no-progress", timeout=30)
-    assert r.returncode == 2, r.stderr
-    assert "Traceback" not in r.stderr
-    assert "diffpos emulate: error: --endpoint 'foo' is not a Zenoh endpoint" in r.stderr, r.stderr
-    assert "starting" not in r.stderr
-
-
-def test_anchor_unreachable_router_is_one_line_exit_2():
-    port = free_tcp_port()  # nobody listens there
-    r = _diffpos("anchor", "--id", "uav1", "--connect", f"tcp/127.0.0.1:{port}",
-                 "--connect-timeout-ms", "500", timeout=60)
-    assert r.returncode == 2, r.stderr
-    assert "Traceback" not in r.stderr
-    assert "diffpos anchor: error: --connect" in r.stderr, r.stderr
-    assert "--connect-timeout-ms 500" in r.stderr
-
-
-def test_emulate_waits_for_the_dashboards_token_which_the_service_declares():
-    """The dashboard declares its liveliness token once subscribed (real Zenoh, loopback) and
-    ``diffpos emulate`` waits for it before the run starts (a short run's .rrd misses
-    nothing; tests/system/test_emulate_faults.py::test_short_run_rrd_holds_every_estimate)."""
-    import rerun as rr  # the Rerun stack: optional extra, heavy
-    from diffpos_services.dashboard.service import DashboardService
-
-    keys = Keys("demo")
-    assert EXTRA_SERVICES["dashboard"][2](keys) == keys.alive_dashboard()
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-
-    def cfg(**kv):
-        c = zenoh.Config()
-        c.insert_json5("scouting/multicast/enabled", "false")
-        for k, v in kv.items():
-            c.insert_json5(k.replace("__", "/"), json.dumps(v))
-        return c
-
-    seen = threading.Event()
-    with zenoh.open(cfg(mode="router", listen__endpoints=[ep])) as router, \
-            zenoh.open(cfg(mode="client", connect__endpoints=[ep])) as watcher:
-        sub = watcher.liveliness().declare_subscriber(
-            keys.alive_dashboard(),
-            lambda s: seen.set() if s.kind == zenoh.SampleKind.PUT else None, history=True)
-        svc = DashboardService(router, rr.RecordingStream("test-token"), site="demo")
-        svc.start()
-        try:
-            assert seen.wait(10.0), "no dashboard liveliness token"
-        finally:
-            svc.close()
-            sub.undeclare()
+def test_emulate_bad_endpoint_is_one_line_exit_2_in_process(capsys):
+    assert cli.main(["emulate", "--endpoint", "foo", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.count("\n") == 1, err
+    assert "diffpos emulate: error: --endpoint 'foo' is not a Zenoh endpoint" in err, err
+    assert "starting" not in err
 
 
 def test_fusion_started_by_emulate_accepts_only_the_scenarios_anchors():

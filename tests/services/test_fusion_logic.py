@@ -347,6 +347,20 @@ def test_cli_allow_lists_from_ids_and_from_the_scenario():
     assert set(core.anchors) == {"uav1", "uav2"}
 
 
+def test_cli_max_backlog_is_the_live_default_and_0_never_drops():
+    """--max-backlog-s goes to FusionConfig.max_backlog_s: the live default, a given value,
+    and 0 = never drop (the struct's None; 0 itself is not a valid backlog)."""
+    from diffpos_services.fusion.config import LIVE_MAX_BACKLOG_S
+
+    from diffpos.scenario import default_scenario
+
+    sc = default_scenario()
+    for argv, expected in (((), LIVE_MAX_BACKLOG_S), (("--max-backlog-s", "0.7"), 0.7),
+                           (("--max-backlog-s", "0"), None)):
+        cmd, args = _fusion_args(*argv)
+        assert cmd.config_from_args(args, sc).max_backlog_s == expected, argv
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--anchors", ","], "--anchors ','"),
     (["--nodes", "n01,bad/id"], "nodes[1]"),

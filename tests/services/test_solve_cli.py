@@ -1,10 +1,13 @@
-"""`diffpos solve`: JSON Lines in/out, order, schemas, invalid lines, --strict, Python entry."""
+"""`diffpos solve`: JSON Lines in/out, order, schemas, invalid lines, --strict, Python entry.
+
+Everything runs the verb in this process (``cli.main.main`` with stdin replaced); the real
+``diffpos solve`` process (a pipe, --batch 1 answering line by line) is
+tests/system/test_solve_process.py."""
 
 from __future__ import annotations
 
 import io
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -208,40 +211,6 @@ def test_input_file_and_missing_file(tmp_path, capsys):
     assert rc == 2 and "cannot read --input" in err
 
 
-def test_real_process_pipe():
-    lines = json.dumps(_problem([2.0, 5.0, 10.5], id=1)) + "\n" + "{}\n"
-    exe = Path(sys.executable).parent / "diffpos"
-    proc = subprocess.run(
-        [str(exe), "solve", "--strict", "--batch", "1"],
-        input=lines,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    recs = [json.loads(x) for x in proc.stdout.splitlines()]
-    assert proc.returncode == 1
-    assert recs[0]["status"] == "ok" and recs[0]["id"] == 1
-    assert recs[1]["status"] == "invalid_input" and "anchors_m" in recs[1]["message"]
-    assert "Traceback" not in proc.stderr
-
-
-def test_batch_1_answers_each_line_before_the_next_arrives():
-    exe = Path(sys.executable).parent / "diffpos"
-    proc = subprocess.Popen([str(exe), "solve", "--batch", "1"], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)
-    try:
-        for node in ([2.0, 5.0, 10.5], [-3.0, 7.0, 4.5]):
-            proc.stdin.write(json.dumps(_problem(node)) + "\n")
-            proc.stdin.flush()
-            rec = json.loads(proc.stdout.readline())  # blocks until this line is answered
-            assert np.allclose(rec["position_m"], node, atol=1e-6)
-    finally:
-        proc.stdin.close()
-        assert proc.wait(timeout=60) == 0
-        proc.stdout.close()
-
-
 def test_gating_height_range_and_multistart_options(monkeypatch, capsys):
     """gating.z_range_m flags an implausible height; bad values name the field."""
     node = [2.0, 5.0, 10.5]
@@ -330,9 +299,10 @@ def test_blank_lines_are_skipped_as_help_and_docs_say(monkeypatch, capsys):
     assert rc == 0
     assert [(r["line"], r["status"]) for r in recs] == [(1, "ok"), (5, "ok"),
                                                         (6, "invalid_input")]
-    help_text = subprocess.run([str(Path(sys.executable).parent / "diffpos"), "solve", "--help"],
-                               capture_output=True, text=True, timeout=60, check=True).stdout
-    flat = " ".join(help_text.split())
+    with pytest.raises(SystemExit) as info:
+        cli.main(["solve", "--help"])
+    assert info.value.code == 0
+    flat = " ".join(capsys.readouterr().out.split())
     assert "exactly one result line (JSON object) to stdout for every input line that is not " \
            "blank" in flat
     assert "Blank (whitespace-only) lines are skipped without a result, but counted in the " \

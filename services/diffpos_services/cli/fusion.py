@@ -148,8 +148,8 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
     """The :class:`FusionConfig` of the command line (geometry and edge rule: ``from_scenario``)."""
     values = dict(
         site=args.site,
-        method=getattr(args, "method", DEFAULT_METHOD),
-        tracking=not getattr(args, "no_tracking", False),
+        method=args.method,
+        tracking=not args.no_tracking,
         delta_m=args.delta_m,
         epoch_period_s=args.epoch_period_s,
         deadline_s=args.deadline_s,
@@ -157,7 +157,8 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         gating=not args.no_gating,
         motion_compensation=not args.no_motion_compensation,
         diagnostics_period_s=args.diagnostics_period_s,
-        max_backlog_s=getattr(args, "max_backlog_s", LIVE_MAX_BACKLOG_S) or None,
+        # FusionConfig.max_backlog_s: None never drops; --max-backlog-s 0 means the same
+        max_backlog_s=args.max_backlog_s or None,
     )
     if args.window_height_m is not None:
         values["window_height_m"] = args.window_height_m
@@ -165,7 +166,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         ids = allow_list(getattr(args, name, None), name, scenario)
         if ids is not None:
             values[name] = ids
-    return FusionConfig.from_scenario(scenario, edge=getattr(args, "edge", "upper"), **values)
+    return FusionConfig.from_scenario(scenario, edge=args.edge, **values)
 
 
 def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:

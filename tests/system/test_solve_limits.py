@@ -6,10 +6,16 @@ a safety net for the shared test machine the child's address space is capped at 
 (``RLIMIT_AS``): a filter that held what it should not runs out of memory there instead of
 swapping the machine, and the test fails on the exit code or the traceback.
 
-Measured on the 2-core test machine with the limits in place: one line with 1000 anchors is
-refused in 0.7 s CPU and 54 MB (before the limits: 102 s and 3.9 GB); the worst problem the
-default limits allow (32 anchors, random ranges, gating excluding down to 3 anchors, 32
-starts) costs about 0.5 s CPU per line, and a batch of them stays near 120 MB.
+Measured on the 2-core test machine with the limits in place (2026-11-27): a process solving
+one good line costs 1.2 s CPU and peaks at 171 MB (start-up: imports and numba's compiled
+kernels); one line with 1000 anchors is refused within that, 1.7 s and 171 MB in all (before
+the limits: 102 s and 3.9 GB); 8 of the worst problems the default limits allow (32 anchors,
+random ranges, gating excluding down to 3 anchors, 32 starts) cost 2.0 s and 171 MB in all
+(earlier, before the numba kernels: ~0.5 s per line, ~120 MB).
+
+A system test (real processes, ~25 s CPU): the same limits through ``cli.main`` in the test
+process, without the CPU and memory measurements, are the fast loop's
+tests/services/test_solve_limit_options.py.
 """
 
 from __future__ import annotations
@@ -25,19 +31,14 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pytest
 from diffpos_services.wire.solve_io import DEFAULT_MAX_ANCHORS, DEFAULT_MAX_STARTS
+from test_solve_limit_options import GOOD_LINE, problem_line
 
-from diffpos.geometry import window_edge_path
+pytestmark = pytest.mark.system
 
 EXE = Path(sys.executable).parent / "diffpos"
 AS_LIMIT = 2 << 30  # [bytes] the child's address space (a safety net, not the assertion)
-NODE = [2.0, 5.0, 10.5]
-GOOD = {"anchors_m": [[-15, -20, 1], [0, -15, 0], [0, -7, 4], [15, -20, 1]],
-        "ranges_m": [32.233, 23.711, 15.058, 30.315], "sigmas_m": 0.005,
-        "window_height_m": 1.0}
-GOOD_LINE = json.dumps(GOOD).encode() + b"\n"
 MIB = 1 << 20
 
 
@@ -104,29 +105,11 @@ def run_solve(chunks: Iterator[bytes], *argv: str) -> Child:
                  rss_mb=int(hwm.split()[0]) / 1024)
 
 
-def _anchors(m: int, rng: np.random.Generator) -> np.ndarray:
-    return np.c_[rng.uniform(-30, 30, m), rng.uniform(-40, -5, m), rng.uniform(0, 30, m)]
-
-
-def _problem_line(m: int, seed: int, **extra) -> bytes:
-    """A line with ``m`` anchors; ``random_ranges`` makes every anchor look faulty (the
-    gating then refits every leave-one-out subset, round after round: the worst case)."""
-    rng = np.random.default_rng(seed)
-    a = _anchors(m, rng)
-    if extra.pop("random_ranges", False):
-        r = rng.uniform(10, 60, m)
-    else:
-        r = window_edge_path(a, np.array(NODE), window_height_m=1.0).length_m
-    prob = {"anchors_m": a.tolist(), "ranges_m": r.tolist(), "sigmas_m": 0.01,
-            "window_height_m": 1.0, **extra}
-    return json.dumps(prob).encode() + b"\n"
-
-
 # ----------------------------------------------------------------------------- per problem
 def test_a_thousand_anchor_line_is_refused_at_once_naming_the_option():
     """Before: this one line cost 102 s CPU and 3.9 GB, now it is refused in well under a
     second and the lines around it are solved."""
-    bad = _problem_line(1000, 1, random_ranges=True)
+    bad = problem_line(1000, 1, random_ranges=True)
     child = run_solve(iter([GOOD_LINE, bad, GOOD_LINE]))
     assert child.rc == 0, child.stderr
     assert [r["status"] for r in child.records] == ["ok", "invalid_input", "ok"]
@@ -148,9 +131,9 @@ def test_anchor_and_start_limits_are_options_with_their_defaults_in_help():
     # one process per option setting: both over-limit lines refused at the defaults, both
     # solved when the options allow them (two lines per process instead of one each)
     m = DEFAULT_MAX_ANCHORS + 1
-    many_anchors = _problem_line(m, 2)
+    many_anchors = problem_line(m, 2)
     starts = {"z_starts_m": [float(z) for z in range(DEFAULT_MAX_STARTS + 1)]}
-    many_starts = _problem_line(5, 3, **starts)
+    many_starts = problem_line(5, 3, **starts)
     refused = run_solve(iter([many_anchors, many_starts]))
     assert [r["status"] for r in refused.records] == ["invalid_input", "invalid_input"]
     assert "--max-anchors" in refused.records[0]["message"]
@@ -181,11 +164,11 @@ def test_worst_problems_the_defaults_allow_are_bounded_per_line():
     extra = {"random_ranges": True, "z_starts_m": [float(z) for z in range(32)],
              "gating": {"max_exclusions": 29}}
     n = 8
-    child = run_solve(_problem_line(32, 100 + k, **dict(extra)) for k in range(n))
+    child = run_solve(problem_line(32, 100 + k, **dict(extra)) for k in range(n))
     assert child.rc == 0, child.stderr
     assert len(child.records) == n
-    assert child.cpu_s < 3 + 4 * n, child.cpu_s  # measured ~0.5 s per line (plus start-up)
-    assert child.rss_mb < 400, child.rss_mb  # measured ~120 MB
+    assert child.cpu_s < 3 + 4 * n, child.cpu_s  # measured 2.0 s for all 8 (1.2 s start-up)
+    assert child.rss_mb < 400, child.rss_mb  # measured 171 MB (the start-up's peak)
 
 
 # ----------------------------------------------------------------------------- streams
