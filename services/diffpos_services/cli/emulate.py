@@ -5,7 +5,7 @@ Zenoh router on a free loopback port:
 
   router                  a Python Zenoh router (no zenohd needed)
   anchor x M              one per UAV of the scenario, each with its own clock offset
-  fusion                  D-NLS with gating, publishes estimates and diagnostics
+  fusion                  first-arrival model + tracker (mnls), publishes estimates
   recorder                MCAP file of everything on the bus (--record)
   dashboard               live Rerun view (--dashboard)
 
@@ -90,8 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=METHODS, default=None,
                         help=f"the fusion's estimator (default {DEFAULT_METHOD}, as diffpos "
                         "fusion): mnls = the first-arrival model of every mechanism + a tracker "
-                        "per responder (needs lockstep, --speed 0, to keep up on 2 cores: diffpos "
-                        "emulate --method mnls --speed 0); dnls = the paper's window-edge D-NLS "
+                        "per responder (keeps up in real time on the paper's geometry; for large "
+                        "scenarios on 2 cores use lockstep, --speed 0); dnls = the paper's window-edge D-NLS "
                         "with gating; lls, ippa = the baselines")
     parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes (default 0 = all)")
     parser.add_argument("--endpoint", metavar="ENDPOINT",

@@ -6,13 +6,14 @@ the anchors' liveliness tokens.
 Ranges are grouped per node into epochs of --epoch-period-s; an epoch is solved as soon as
 every live anchor has reported for it (or moved past it), or --deadline-s after its first
 range. Each range is paired with its anchor's self-reported position interpolated at the
-range's own time. The default method is dnls: the paper's D-NLS on the window-edge
-diffraction path with RAIM gating (estimate v1; keeps up in real time). --method mnls fits the
-first-arrival path model of the scenario's building (which mechanism arrived first on each
-link: window, reflections, edge diffraction) and runs a per-responder tracker (an IMM over the
-floors: every floor hypothesis stays alive until the data decides; a responder without ranges
-coasts); it is far more accurate per node-epoch but costs 30-500 ms CPU per fix, so on 2 cores
-it keeps up only in lockstep (diffpos emulate --speed 0). With mnls it publishes
+range's own time. The default method is mnls: it fits the first-arrival path model of the
+scenario's building (which mechanism arrived first on each link: window, reflections, edge
+diffraction) and runs a per-responder tracker (an IMM over the floors: every floor hypothesis
+stays alive until the data decides; a responder without ranges coasts). On 2 cores it keeps up
+in real time with the paper's 4 UAVs and 6 responders; with 8 UAVs x 50 responders it does not
+yet (use lockstep, diffpos emulate --speed 0, or --method dnls). --method dnls is the paper's
+D-NLS on the window-edge diffraction path with RAIM gating (estimate v1, ~0.1 ms per fix).
+With mnls it publishes
 
   diffpos/<site>/node/<node>/estimate   estimate v2: filtered position, covariance (95 %
                                         ellipsoid), floor and per-floor probabilities, track
@@ -97,10 +98,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--method",
         choices=list(METHODS),
         default=DEFAULT_METHOD,
-        help="estimator: dnls (diffraction-aware D-NLS with gating; default), mnls "
-        "(mechanism-aware NLS on the first-arrival path model of the scenario's building, "
-        "floor probabilities, with the tracker unless --no-tracking; needs lockstep to keep "
-        "up on 2 cores), lls (line-of-sight linear least squares, the paper's baseline), ippa "
+        help="estimator: mnls (default: mechanism-aware NLS on the first-arrival path model "
+        "of the scenario's building, floor probabilities, with the tracker unless "
+        "--no-tracking), dnls (the paper's diffraction-aware D-NLS with gating), lls (line-of-sight linear least squares, the paper's baseline), ippa "
         "(iterative parallel projection)",
     )
     parser.add_argument(

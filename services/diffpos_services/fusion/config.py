@@ -34,12 +34,11 @@ __all__ = ["DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig", "building_of", 
 
 #: The estimators of the solve step (``--method``).
 METHODS = ("mnls", "dnls", "lls", "ippa")
-#: What ``diffpos fusion``, :meth:`FusionConfig.from_scenario` and ``diffpos emulate`` run.
-#: D-NLS keeps up in real time on 2 cores; ``mnls`` (+ the tracker) is far more accurate per
-#: node-epoch but does not keep up yet, so it needs lockstep (``--speed 0``) there. Measured
-#: (track branch, shared 2-core VM at load ~14): a real-time ``diffpos emulate
-#: --method mnls --duration 20`` gave 100 % availability, floor 81.3 % of all node-epochs, but
-#: a fusion latency p50/p99 of 12.6/14.0 s (a growing backlog): not switched.
+#: What ``diffpos fusion``, :meth:`FusionConfig.from_scenario` and ``diffpos emulate`` run:
+#: the first-arrival model with the per-responder tracker. With the compiled SNR prediction
+#: (diffpos/_kernels/channel_nb.py) a real-time ``diffpos emulate`` of the paper's geometry
+#: keeps up on 2 cores (2026-11-27, load 3: 100 % availability, 86.3 % right floor, end-to-end
+#: latency p50 34 / p99 249 ms); ``scenarios/large.toml`` (8 x 50) does not yet at real time.
 DEFAULT_METHOD = "mnls"
 
 #: The window edges of the path model (``--edge``).
@@ -249,7 +248,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
                       **overrides: Any) -> FusionConfig:
         """The fusion's configuration for ``scenario``'s building, with ``overrides``.
 
-        The method is :data:`DEFAULT_METHOD` (``dnls``) unless ``overrides`` name one
+        The method is :data:`DEFAULT_METHOD` (``mnls``) unless ``overrides`` name one
         (``method="mnls"``: the first-arrival model with the per-responder tracker).
 
         Parameters
