@@ -115,13 +115,11 @@ class TrackerConfig:
     Attributes
     ----------
     q_h_m2_s3, q_v_m2_s3 : float [m^2/s^3]
-        White-acceleration spectral densities, horizontal and vertical (the vertical one of
-        the vertical-motion mode: stairs).
-    q_v_level_m2_s3 : float [m^2/s^3]
-        Vertical white-acceleration density of the level mode: a carried device bobs by a
-        few cm, its vertical speed changes by ~0.1 m/s within ~1 s, ``(0.1 m/s)^2 / 1 s``.
+        White-acceleration spectral densities, horizontal and vertical (both modes; measured:
+        a stiffer level mode, 0.01 m^2/s^3, pinned early wrong-floor locks for longer).
     v_level_sigma_m_s : float [m/s]
-        Vertical speed standard deviation given to a state entering the level mode.
+        Vertical speed standard deviation given to a state entering the level mode (the end of
+        a flight: the carry's bobbing, ~0.1 m/s).
     v_stairs_m_s : float [m/s]
         Vertical speed on stairs; sets the adjacent-floor transition probability.
     jump_rate_hz : float [1/s]
@@ -185,7 +183,6 @@ class TrackerConfig:
 
     q_h_m2_s3: float = 1.5
     q_v_m2_s3: float = 0.36
-    q_v_level_m2_s3: float = 0.01
     v_level_sigma_m_s: float = 0.1
     v_stairs_m_s: float = 0.6
     jump_rate_hz: float = 1e-3
@@ -289,13 +286,10 @@ class TrackOutput:
 # --------------------------------------------------------------------------------------------
 
 
-def process_noise(dt_s: ArrayLike, config: TrackerConfig, q_v_m2_s3: float | None = None
-                  ) -> FloatArray:
-    """White-acceleration process noise ``Q(dt)``, shape ``(..., 6, 6)`` (state x,y,z,vx,vy,vz);
-    vertical density ``q_v_m2_s3`` (default ``config.q_v_m2_s3``, the vertical mode's)."""
+def process_noise(dt_s: ArrayLike, config: TrackerConfig) -> FloatArray:
+    """White-acceleration process noise ``Q(dt)``, shape ``(..., 6, 6)`` (state x,y,z,vx,vy,vz)."""
     dt = np.asarray(dt_s, dtype=np.float64)[..., None]
-    q_v = config.q_v_m2_s3 if q_v_m2_s3 is None else q_v_m2_s3
-    q = np.array([config.q_h_m2_s3, config.q_h_m2_s3, q_v])
+    q = np.array([config.q_h_m2_s3, config.q_h_m2_s3, config.q_v_m2_s3])
     out = np.zeros((*dt.shape[:-1], 6, 6))
     i = np.arange(3)
     out[..., i, i] = q * dt**3 / 3.0
@@ -376,7 +370,13 @@ def _transition_matrix(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, buil
     same_floor = (fl[:, None] == fl[None, :]).astype(np.float64)
     own = same_floor * np.where(same_mode > 0, 1.0 - p_switch[..., None], p_switch[..., None])
     own = own * stay[..., None]
-    return own + cross_f + cross_j, own + cross_f
+    # entering the vertical mode moves probability but not the level track's state: the
+    # vertical hypothesis keeps its own track (free height), which is what accumulates the
+    # evidence of a climb (restarted from the level track every epoch it could not: measured
+    # on other-building, a descending walker's level track stayed pinned at the nominal height
+    # and the track was lost to a mirror floor)
+    start = (~vert[:, None] & vert[None, :]).astype(np.float64)
+    return own + cross_f + cross_j, own * (1.0 - start) + cross_f
 
 
 def _floor_band(building, n_floors: int, config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
@@ -434,18 +434,14 @@ def _logsumexp(a: FloatArray) -> FloatArray:
 
 def _propagate(x: FloatArray, p: FloatArray, dt_s: FloatArray, config: TrackerConfig
                ) -> tuple[FloatArray, FloatArray]:
-    """NCV prediction of every hypothesis' Gaussian over ``dt_s`` (shape (N,)); the level
-    hypotheses with the level mode's vertical density."""
+    """NCV prediction of every hypothesis' Gaussian over ``dt_s`` (shape (N,))."""
     dt = dt_s[:, None]
-    nf = x.shape[1] // 2
     xn = x.copy()
     xn[..., :3] = x[..., :3] + dt[..., None] * x[..., 3:]
     phi = np.broadcast_to(np.eye(6), (dt_s.shape[0], 6, 6)).copy()
     i = np.arange(3)
     phi[:, i, i + 3] = dt_s[:, None]
-    q_lvl = process_noise(dt_s, config, config.q_v_level_m2_s3)[:, None]
-    q_vert = process_noise(dt_s, config)[:, None]
-    q = np.where(hypothesis_vertical(nf)[None, :, None, None], q_vert, q_lvl)
+    q = process_noise(dt_s, config)[:, None]
     pn = phi[:, None] @ p @ np.swapaxes(phi, -1, -2)[:, None] + q
     return xn, 0.5 * (pn + np.swapaxes(pn, -1, -2))
 
