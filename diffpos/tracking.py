@@ -1,14 +1,33 @@
-"""Per-responder tracker: an IMM over floors, one iterated EKF per floor hypothesis and node.
+"""Per-responder tracker: an IMM over floors x vertical modes, one iterated EKF per hypothesis.
 
 Functional core (pure numpy, vectorised over nodes, deterministic; no randomness at all):
 :func:`init_state` -> (:func:`predict`) -> :func:`update` -> ``(TrackerState, TrackOutput)``.
 
 Design
 ------
-* **State per node and floor hypothesis f** (``F = building.n_floors``): position and velocity
-  ``[x, y, z, vx, vy, vz]``, a Gaussian (mean, covariance) and the floor's log-probability.
-  Every floor keeps its own filter, so a floor the data has not yet decided stays alive (a
-  particle filter over the same ranges locked whole tracks onto a wrong floor).
+* **State per node and hypothesis h = (floor f, vertical mode)** (``F = building.n_floors``,
+  ``H = 2F``, ``h = mode * F + f``, mode 0 level, 1 vertical): position and velocity
+  ``[x, y, z, vx, vy, vz]``, a Gaussian (mean, covariance) and the hypothesis'
+  log-probability. Every hypothesis keeps its own filter, so a floor the data has not yet
+  decided stays alive (a particle filter over the same ranges locked whole tracks onto a wrong
+  floor).
+* **Vertical modes (stairs):** in the *level* mode the device is at the building's nominal
+  height above its floor (``height_sigma_m``, a pseudo-measurement of every epoch: with 4
+  anchors the ranges alone observe the height weakly); in the *vertical* mode (stairs,
+  crouching) it is anywhere between floor and ceiling (uniform) and its height follows the
+  ranges. Before, one filter per floor chose between the two at the prior of every epoch
+  (max-mixture): while a responder walked down the stairs the prior stayed within 0.8 m of
+  the nominal height, so the level term (0.3 m, every epoch) held the track level; 1-1.5 m
+  off in height the floor's mechanisms no longer fitted and a mirror floor won (the two
+  stairs walkers of the default scenario: 44 % and 91 % right floor). Now each mode has its
+  own track and the data decides between them by their accumulated evidence. Mode
+  transitions (Markov, per floor): vertical -> level at ``r_out = v_stairs / H`` (a flight
+  spans one floor height), level -> vertical at ``r_in = r_out w / (1 - w)`` so that the
+  long-run fraction of time on stairs is ``w = stairs_weight``. Entering the vertical mode
+  moves probability but never the level track's state (the vertical track accumulates the
+  evidence of a climb; restarted from the level track every epoch it never could); entering
+  the level mode (the end of a flight) takes the vertical track's state with zero vertical
+  speed (+- ``v_level_sigma_m_s``). The stairs' location is not assumed anywhere.
 * **Motion:** nearly-constant velocity (white acceleration), per axis
   ``Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]``. Horizontal ``q_h = 1.5 m^2/s^3``: a walker changes
   its velocity by about its walking speed (1.2 m/s: start, stop, a 90 degree turn) within ~1 s,
@@ -19,8 +38,8 @@ Design
   ``H / v_stairs`` seconds, so the probability of moving to an adjacent floor within ``dt`` is
   ``dt v_stairs / H`` (0.02 for 10 Hz, 3 m floors) times ``exp(-d^2 / 2 P_zz)``, ``d`` the
   height gap from the hypothesis to that floor's band beyond the reach ``dt v_stairs`` (a
-  level walker 1.5 m below the next band never moves; one at the top of the stairs does).
-  Any floor keeps ``jump_rate_hz * dt`` of probability (recovery from a wrong lock) but a jump
+  level walker 1.5 m below the next band never moves; one at the top of the stairs does);
+  a hypothesis keeps its mode when it changes floor. Any floor keeps ``jump_rate_hz * dt`` of probability (recovery from a wrong lock) but a jump
   never moves a state: every floor hypothesis keeps its own track until the data decides
   (measured: with the old selection a leading wrong floor overwrote the true floor's state
   with its mirror image, and the true floor never recovered). Mixed into floor ``g`` a state
@@ -56,14 +75,16 @@ Design
   mechanisms fixed after the selection at the prior; the floor's log-probability is updated
   with the Laplace marginal likelihood (prior term, residuals, log-determinants, mechanism
   and outlier weights).
-* **Published estimate:** the most probable floor's mean; its covariance plus the spread of
-  the other floors' means about it (the mean-square error of the reported point under the
-  mixture, so model/floor uncertainty is in it); per-floor probabilities; per anchor the
-  mechanism slot (-1: outlier/missing) and the residual.
+* **Published estimate:** the most probable floor (marginal over modes); the probability-
+  weighted mean of its two modes; its covariance is the mode-mixture covariance of that floor
+  plus the spread of every hypothesis' mean about the point (the mean-square error of the
+  reported point under the mixture, so model/floor/mode uncertainty is in it); per-floor
+  probabilities; per anchor the mechanism slot (-1: outlier/missing) and the residual of the
+  most probable hypothesis.
 * **Lifecycle:** nodes start UNINITIALISED; with >= ``min_ranges_init`` ranges a snapshot
   initialisation (grid over every floor's (x, y) at the nominal height with the path model,
   then the IEKF from the best cells with a broad prior) gives every floor a state and a
-  probability (INITIALISING until ``confirm_epochs`` consistent updates, then TRACKING);
+  probability (both modes start from it, with the mode prior ``stairs_weight``) (INITIALISING until ``confirm_epochs`` consistent updates, then TRACKING);
   without usable ranges the filter only predicts (COASTING, the covariance grows); after
   ``lost_after_s`` without ranges it is LOST (no position published). Divergence: an
   exponentially averaged normalised innovation (NIS per used range) above ``nis_limit`` or a
@@ -85,6 +106,8 @@ __all__ = [
     "TrackStatus",
     "TrackerConfig",
     "TrackerState",
+    "hypothesis_floor",
+    "hypothesis_vertical",
     "init_state",
     "predict",
     "process_noise",
@@ -213,14 +236,16 @@ class TrackerConfig:
 
 @dataclass(frozen=True)
 class TrackerState:
-    """Filter bank of every node (arrays over N nodes and F floor hypotheses).
+    """Filter bank of every node (arrays over N nodes and H = 2F hypotheses: hypothesis
+    ``h = mode * F + floor``, mode 0 level, 1 vertical; :func:`hypothesis_floor`,
+    :func:`hypothesis_vertical`).
 
     Attributes
     ----------
-    mean : ndarray, shape (N, F, 6) [m, m/s]
-    cov : ndarray, shape (N, F, 6, 6)
-    log_prob : ndarray, shape (N, F)
-        Normalised log-probability of every floor hypothesis.
+    mean : ndarray, shape (N, H, 6) [m, m/s]
+    cov : ndarray, shape (N, H, 6, 6)
+    log_prob : ndarray, shape (N, H)
+        Normalised joint log-probability of every (floor, mode) hypothesis.
     status : ndarray of int8, shape (N,)
         :class:`TrackStatus`.
     t_ns : ndarray of int64, shape (N,) [ns]
@@ -231,8 +256,8 @@ class TrackerState:
         Averaged NIS per used range.
     good, bad : ndarray of int, shape (N,)
         Consecutive consistent / inconsistent epochs.
-    floor_bad : ndarray of int, shape (N, F)
-        Consecutive epochs in which a floor hypothesis explained fewer than half of the ranges
+    floor_bad : ndarray of int, shape (N, H)
+        Consecutive epochs in which a hypothesis explained fewer than half of the ranges
         or had an NIS above ``nis_limit`` (at ``reseed_epochs`` it is re-seeded from a
         snapshot of that floor).
     """
