@@ -573,7 +573,7 @@ def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: Trac
     """Re-seed the worst hypotheses (at most ``reseed_max`` per epoch) from snapshots of their
     floors."""
     cand = (floor_bad >= config.reseed_epochs) & eligible[:, None]
-    if not np.any(cand):
+    if config.reseed_max <= 0 or not np.any(cand):  # (off by default: no empty snapshot)
         return
     flat = np.flatnonzero(cand)
     order = np.argsort(-floor_bad.reshape(-1)[flat], kind="stable")[:config.reseed_max]
