@@ -17,23 +17,28 @@ trajectory API), ``large`` (scenarios/large.toml, 8 UAVs, 50 nodes) and held-out
 (another building: 3.6 m floors, 2 m windows, 7 floors; UAVs above the window height; anchors
 beyond the facade ends).
 
-Measured (commit 06f1b49, identical results after 2d: the compiled path kernel; seed 0, 20 s,
-with the SNR; shared 2-core machine at load average 10-25, so the times are upper bounds;
-``large`` not re-run here, see bench_accuracy.py):
+Measured (seed 0, 20 s, with the SNR; shared 2-core machine, load average 1.5-3; ``large``
+not run here, see bench_accuracy.py), before (commit 5b6edd3: one filter per floor, the
+device-height term chosen at the prior of every epoch) -> after (the vertical-motion mode:
+floor x {level, stairs} hypotheses, each with its own track):
 
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
-scenario               N   M  avail  floor  3D p50  3D p90  z p50  z p90  cov95
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
-default                6   4  100 %  88.9   0.10    2.65    -      2.12   81.4
-other-building         7   4  100 %  84.7   0.12    4.59    -      3.74   72.1
-uavs-above-windows     6   4  100 %  99.9   0.08    0.20    -      0.14   92.4
-anchors-beyond-ends    6   5  100 %  89.8   0.08    2.24    -      1.75   85.6
-=====================  ==  =  =====  =====  ======  ======  =====  =====  =====
+=====================  ==  =  =====  ============  ============  ============  ============
+scenario               N   M  avail  floor %       3D p50 [m]    3D p90 [m]    cov95 %
+=====================  ==  =  =====  ============  ============  ============  ============
+default                6   4  100 %  88.6 -> 93.0  0.10 -> 0.10  3.51 -> 1.05  79.4 -> 85.0
+other-building         7   4  100 %  87.6 -> 88.9  0.12 -> 0.12  4.51 -> 4.61  76.5 -> 82.6
+uavs-above-windows     6   4  100 %  99.4 -> 100   0.08 -> 0.08  0.20 -> 0.15  91.8 -> 99.0
+anchors-beyond-ends    6   5  100 %  92.5 -> 94.0  0.08 -> 0.07  0.98 -> 0.21  86.6 -> 92.5
+=====================  ==  =  =====  ============  ============  ============  ============
 
-Before this session (ranges only, floor states dragged across floors by the IMM selection):
-floor 46.0 / 68.2 / 81.7 / 69.9 %, cov95 21-40 %. Cost (graded_paths kernel, load ~20):
-50 nodes x 8 anchors 0.7-1.4 s per tracked epoch, about half of it the SNR prediction
-(:func:`diffpos.channel.pair_snr_db`); still far above the 100 ms of a 10 Hz fusion.
+Per node (default): the stairs walkers r03/r05 91 -> 100 % and 44 -> 58 % right floor (r05's
+descent from the top floor with 4 UAVs: its track's height lags at the foot of the flight and
+the mirror floor below wins for a few seconds). The other-building miss is r06 (29 -> 30 %):
+a level walker whose snapshot initialisation locked onto a mirror floor for ~12 s, no stairs
+involved. Cost (tracker CPU per epoch, ``time.process_time``, 50 nodes x 16 anchors with the
+SNR): 2.6 -> 4.5 ms per node-epoch (twice the hypotheses; most of it is
+:func:`diffpos.channel.pair_snr_db`); for the 6 nodes of ``default`` the per-call overhead
+dominates: 7.7 -> 7.5 ms per node-epoch (an empty re-seed snapshot is no longer computed).
 """
 
 from __future__ import annotations

@@ -1,14 +1,33 @@
-"""Per-responder tracker: an IMM over floors, one iterated EKF per floor hypothesis and node.
+"""Per-responder tracker: an IMM over floors x vertical modes, one iterated EKF per hypothesis.
 
 Functional core (pure numpy, vectorised over nodes, deterministic; no randomness at all):
 :func:`init_state` -> (:func:`predict`) -> :func:`update` -> ``(TrackerState, TrackOutput)``.
 
 Design
 ------
-* **State per node and floor hypothesis f** (``F = building.n_floors``): position and velocity
-  ``[x, y, z, vx, vy, vz]``, a Gaussian (mean, covariance) and the floor's log-probability.
-  Every floor keeps its own filter, so a floor the data has not yet decided stays alive (a
-  particle filter over the same ranges locked whole tracks onto a wrong floor).
+* **State per node and hypothesis h = (floor f, vertical mode)** (``F = building.n_floors``,
+  ``H = 2F``, ``h = mode * F + f``, mode 0 level, 1 vertical): position and velocity
+  ``[x, y, z, vx, vy, vz]``, a Gaussian (mean, covariance) and the hypothesis'
+  log-probability. Every hypothesis keeps its own filter, so a floor the data has not yet
+  decided stays alive (a particle filter over the same ranges locked whole tracks onto a wrong
+  floor).
+* **Vertical modes (stairs):** in the *level* mode the device is at the building's nominal
+  height above its floor (``height_sigma_m``, a pseudo-measurement of every epoch: with 4
+  anchors the ranges alone observe the height weakly); in the *vertical* mode (stairs,
+  crouching) it is anywhere between floor and ceiling (uniform) and its height follows the
+  ranges. Before, one filter per floor chose between the two at the prior of every epoch
+  (max-mixture): while a responder walked down the stairs the prior stayed within 0.8 m of
+  the nominal height, so the level term (0.3 m, every epoch) held the track level; 1-1.5 m
+  off in height the floor's mechanisms no longer fitted and a mirror floor won (the two
+  stairs walkers of the default scenario: 44 % and 91 % right floor). Now each mode has its
+  own track and the data decides between them by their accumulated evidence. Mode
+  transitions (Markov, per floor): vertical -> level at ``r_out = v_stairs / H`` (a flight
+  spans one floor height), level -> vertical at ``r_in = r_out w / (1 - w)`` so that the
+  long-run fraction of time on stairs is ``w = stairs_weight``. Entering the vertical mode
+  moves probability but never the level track's state (the vertical track accumulates the
+  evidence of a climb; restarted from the level track every epoch it never could); entering
+  the level mode (the end of a flight) takes the vertical track's state with zero vertical
+  speed (+- ``v_level_sigma_m_s``). The stairs' location is not assumed anywhere.
 * **Motion:** nearly-constant velocity (white acceleration), per axis
   ``Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]``. Horizontal ``q_h = 1.5 m^2/s^3``: a walker changes
   its velocity by about its walking speed (1.2 m/s: start, stop, a 90 degree turn) within ~1 s,
@@ -19,8 +38,8 @@ Design
   ``H / v_stairs`` seconds, so the probability of moving to an adjacent floor within ``dt`` is
   ``dt v_stairs / H`` (0.02 for 10 Hz, 3 m floors) times ``exp(-d^2 / 2 P_zz)``, ``d`` the
   height gap from the hypothesis to that floor's band beyond the reach ``dt v_stairs`` (a
-  level walker 1.5 m below the next band never moves; one at the top of the stairs does).
-  Any floor keeps ``jump_rate_hz * dt`` of probability (recovery from a wrong lock) but a jump
+  level walker 1.5 m below the next band never moves; one at the top of the stairs does);
+  a hypothesis keeps its mode when it changes floor. Any floor keeps ``jump_rate_hz * dt`` of probability (recovery from a wrong lock) but a jump
   never moves a state: every floor hypothesis keeps its own track until the data decides
   (measured: with the old selection a leading wrong floor overwrote the true floor's state
   with its mirror image, and the true floor never recovered). Mixed into floor ``g`` a state
@@ -56,14 +75,16 @@ Design
   mechanisms fixed after the selection at the prior; the floor's log-probability is updated
   with the Laplace marginal likelihood (prior term, residuals, log-determinants, mechanism
   and outlier weights).
-* **Published estimate:** the most probable floor's mean; its covariance plus the spread of
-  the other floors' means about it (the mean-square error of the reported point under the
-  mixture, so model/floor uncertainty is in it); per-floor probabilities; per anchor the
-  mechanism slot (-1: outlier/missing) and the residual.
+* **Published estimate:** the most probable floor (marginal over modes); the probability-
+  weighted mean of its two modes; its covariance is the mode-mixture covariance of that floor
+  plus the spread of every hypothesis' mean about the point (the mean-square error of the
+  reported point under the mixture, so model/floor/mode uncertainty is in it); per-floor
+  probabilities; per anchor the mechanism slot (-1: outlier/missing) and the residual of the
+  most probable hypothesis.
 * **Lifecycle:** nodes start UNINITIALISED; with >= ``min_ranges_init`` ranges a snapshot
   initialisation (grid over every floor's (x, y) at the nominal height with the path model,
   then the IEKF from the best cells with a broad prior) gives every floor a state and a
-  probability (INITIALISING until ``confirm_epochs`` consistent updates, then TRACKING);
+  probability (both modes start from it, with the mode prior ``stairs_weight``) (INITIALISING until ``confirm_epochs`` consistent updates, then TRACKING);
   without usable ranges the filter only predicts (COASTING, the covariance grows); after
   ``lost_after_s`` without ranges it is LOST (no position published). Divergence: an
   exponentially averaged normalised innovation (NIS per used range) above ``nis_limit`` or a
@@ -85,6 +106,8 @@ __all__ = [
     "TrackStatus",
     "TrackerConfig",
     "TrackerState",
+    "hypothesis_floor",
+    "hypothesis_vertical",
     "init_state",
     "predict",
     "process_noise",
@@ -115,7 +138,11 @@ class TrackerConfig:
     Attributes
     ----------
     q_h_m2_s3, q_v_m2_s3 : float [m^2/s^3]
-        White-acceleration spectral densities, horizontal and vertical.
+        White-acceleration spectral densities, horizontal and vertical (both modes; measured:
+        a stiffer level mode, 0.01 m^2/s^3, pinned early wrong-floor locks for longer).
+    v_level_sigma_m_s : float [m/s]
+        Vertical speed standard deviation given to a state entering the level mode (the end of
+        a flight: the carry's bobbing, ~0.1 m/s).
     v_stairs_m_s : float [m/s]
         Vertical speed on stairs; sets the adjacent-floor transition probability.
     jump_rate_hz : float [1/s]
@@ -131,11 +158,13 @@ class TrackerConfig:
         A specular path whose entry point is within this distance of the window band's
         boundary may or may not exist (the entry point's uncertainty while tracking).
     height_sigma_m, stairs_weight : float [m], [-]
-        Device height above the floor: with probability ``1 - stairs_weight`` at the
-        building's nominal node height (hand/chest carry, +- ``height_sigma_m``), otherwise
-        anywhere between floor and ceiling (stairs, crouching); a max-mixture pseudo-measurement
-        of every epoch (the ranges alone observe the height weakly: with 4 anchors a track
-        drifted 1.5 m in z along a family of mechanism combinations with small residuals).
+        Device height above the floor in the level mode: the building's nominal node height
+        (hand/chest carry, +- ``height_sigma_m``), a pseudo-measurement of every epoch (the
+        ranges alone observe the height weakly: with 4 anchors a track drifted 1.5 m in z along
+        a family of mechanism combinations with small residuals); in the vertical mode
+        anywhere between floor and ceiling. ``stairs_weight``: the long-run fraction of time in
+        the vertical mode (sets the rate of entering it, see the module docstring; also the
+        mode prior at initialisation).
     sigma_model_m : float [m]
         Model error added to every range sigma (anchor navigation error).
     outlier_weight : float [-]
@@ -177,6 +206,7 @@ class TrackerConfig:
 
     q_h_m2_s3: float = 1.5
     q_v_m2_s3: float = 0.36
+    v_level_sigma_m_s: float = 0.1
     v_stairs_m_s: float = 0.6
     jump_rate_hz: float = 1e-3
     z_mix_sigma_m: float = 0.5
@@ -206,14 +236,16 @@ class TrackerConfig:
 
 @dataclass(frozen=True)
 class TrackerState:
-    """Filter bank of every node (arrays over N nodes and F floor hypotheses).
+    """Filter bank of every node (arrays over N nodes and H = 2F hypotheses: hypothesis
+    ``h = mode * F + floor``, mode 0 level, 1 vertical; :func:`hypothesis_floor`,
+    :func:`hypothesis_vertical`).
 
     Attributes
     ----------
-    mean : ndarray, shape (N, F, 6) [m, m/s]
-    cov : ndarray, shape (N, F, 6, 6)
-    log_prob : ndarray, shape (N, F)
-        Normalised log-probability of every floor hypothesis.
+    mean : ndarray, shape (N, H, 6) [m, m/s]
+    cov : ndarray, shape (N, H, 6, 6)
+    log_prob : ndarray, shape (N, H)
+        Normalised joint log-probability of every (floor, mode) hypothesis.
     status : ndarray of int8, shape (N,)
         :class:`TrackStatus`.
     t_ns : ndarray of int64, shape (N,) [ns]
@@ -224,8 +256,8 @@ class TrackerState:
         Averaged NIS per used range.
     good, bad : ndarray of int, shape (N,)
         Consecutive consistent / inconsistent epochs.
-    floor_bad : ndarray of int, shape (N, F)
-        Consecutive epochs in which a floor hypothesis explained fewer than half of the ranges
+    floor_bad : ndarray of int, shape (N, H)
+        Consecutive epochs in which a hypothesis explained fewer than half of the ranges
         or had an NIS above ``nis_limit`` (at ``reseed_epochs`` it is re-seeded from a
         snapshot of that floor).
     """
@@ -292,35 +324,84 @@ def process_noise(dt_s: ArrayLike, config: TrackerConfig) -> FloatArray:
     return out
 
 
+def n_floors_of(state: TrackerState) -> int:
+    """Number of floors of a state (its hypotheses are floors x 2 vertical modes)."""
+    return state.log_prob.shape[1] // 2
+
+
+def hypothesis_floor(n_floors: int) -> NDArray[np.int_]:
+    """Floor of every hypothesis ``h = mode * F + floor``, shape (2F,)."""
+    return np.tile(np.arange(n_floors), 2)
+
+
+def hypothesis_vertical(n_floors: int) -> NDArray[np.bool_]:
+    """Vertical mode (stairs) of every hypothesis, shape (2F,) (the first F are level)."""
+    return np.repeat([False, True], n_floors)
+
+
+def _mode_rates(building, config: TrackerConfig) -> tuple[float, float]:
+    """Rates [1/s] of entering and leaving the vertical mode.
+
+    Leaving: a flight of stairs spans one floor height at ``v_stairs``, so the walker is on it
+    for ``H / v_stairs`` s. Entering: chosen so that the long-run fraction of time in the
+    vertical mode is ``stairs_weight``: ``r_in = r_out * w / (1 - w)``.
+    """
+    r_out = config.v_stairs_m_s / building.floor_height_m
+    w = config.stairs_weight
+    return r_out * w / (1.0 - w), r_out
+
+
 def _transition_matrix(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
                        config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
-    """Floor transition probabilities over ``dt_s`` (shape (N,)): ``(pi, pi_move)``, (N, F, G).
+    """Transition probabilities between the hypotheses (floor x vertical mode) over ``dt_s``
+    (shape (N,)): ``(pi, pi_move)``, both (N, H, H), rows = from, columns = to.
 
-    ``pi_move`` is the physical part: a walker leaves floor ``f`` for an adjacent floor ``g``
-    only where it can get there, i.e. at most ``dt v_stairs`` vertical travel from hypothesis
-    f's height to g's band (stairs or any vertical move): with the height gap ``d`` beyond that
-    reach, ``pi_move[f, g] = dt v_stairs / H * exp(-d^2 / (2 P_zz))`` (a level walker 1.5 m
-    below the next floor's band never moves; one at the top of the stairs does). ``pi`` adds
-    the jump to any floor (``jump_rate_hz``: a floor the data has not decided is never given
-    up, so a wrong lock can be left), which moves probability but never a state.
+    Floors: a walker leaves floor ``f`` for an adjacent floor ``g`` only where it can get
+    there, i.e. at most ``dt v_stairs`` vertical travel from hypothesis f's height to g's band
+    (stairs or any vertical move): with the height gap ``d`` beyond that reach,
+    ``dt v_stairs / H * exp(-d^2 / (2 P_zz))`` (a level walker 1.5 m below the next floor's
+    band never moves; one at the top of the stairs does); it keeps its mode. ``pi`` adds the
+    jump to any floor (``jump_rate_hz``: a floor the data has not decided is never given up, so
+    a wrong lock can be left), which moves probability but never a state (it is not in
+    ``pi_move``). Modes (same floor): level -> vertical at ``r_in dt``, vertical -> level at
+    ``r_out dt`` (:func:`_mode_rates`).
     """
-    nf = mean.shape[1]
-    f = np.arange(nf)
-    adj = (np.abs(f[:, None] - f[None, :]) == 1).astype(np.float64)
-    other = (f[:, None] != f[None, :]).astype(np.float64)
+    h = mean.shape[1]
+    nf = h // 2
+    fl, vert = hypothesis_floor(nf), hypothesis_vertical(nf)
+    g = np.arange(nf)
+    adj = (np.abs(fl[:, None] - g[None, :]) == 1).astype(np.float64)  # (H, F)
+    other = (fl[:, None] != g[None, :]).astype(np.float64)
     dt = np.maximum(dt_s, 0.0)[:, None, None]
     lo, hi = _floor_band(building, nf, config)
-    z = mean[:, :, None, 2]  # (N, F, 1)
+    z = mean[:, :, None, 2]  # (N, H, 1)
     gap = np.maximum(np.maximum(lo[None, None, :] - z, z - hi[None, None, :]), 0.0)
     reach = gap - dt * config.v_stairs_m_s
     var_z = np.maximum(cov[:, :, None, 2, 2], 1e-6)
     near = np.exp(-0.5 * np.maximum(reach, 0.0) ** 2 / var_z)
     p_adj = np.minimum(dt * config.v_stairs_m_s / building.floor_height_m, 0.45)
     p_jump = np.minimum(dt * config.jump_rate_hz, 0.05) / max(nf - 1, 1)
-    move = adj * p_adj * near
-    pi = move + other * p_jump
-    diag = np.eye(nf) * (1.0 - pi.sum(axis=-1, keepdims=True))
-    return pi + diag, move + np.eye(nf) * (1.0 - pi.sum(axis=-1, keepdims=True))
+    move = adj * p_adj * near  # (N, H, F): to floor g in the same mode
+    jump = other * p_jump
+    stay = 1.0 - (move + jump).sum(axis=-1)  # (N, H): stays on its floor
+    r_in, r_out = _mode_rates(building, config)
+    dt1 = dt[:, :, 0]
+    p_switch = np.where(vert[None, :], np.minimum(r_out * dt1, 0.5),
+                        np.minimum(r_in * dt1, 0.5))  # (N, H)
+    same_mode = (vert[:, None] == vert[None, :]).astype(np.float64)  # (H, H)
+    to_floor = (fl[None, :] == g[:, None]).astype(np.float64)  # (F, H): floor g -> hyp h
+    cross_f = np.einsum("nhf,fk->nhk", move, to_floor) * same_mode
+    cross_j = np.einsum("nhf,fk->nhk", jump, to_floor) * same_mode
+    same_floor = (fl[:, None] == fl[None, :]).astype(np.float64)
+    own = same_floor * np.where(same_mode > 0, 1.0 - p_switch[..., None], p_switch[..., None])
+    own = own * stay[..., None]
+    # entering the vertical mode moves probability but not the level track's state: the
+    # vertical hypothesis keeps its own track (free height), which is what accumulates the
+    # evidence of a climb (restarted from the level track every epoch it could not: measured
+    # on other-building, a descending walker's level track stayed pinned at the nominal height
+    # and the track was lost to a mirror floor)
+    start = (~vert[:, None] & vert[None, :]).astype(np.float64)
+    return own + cross_f + cross_j, own * (1.0 - start) + cross_f
 
 
 def _floor_band(building, n_floors: int, config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
@@ -330,30 +411,41 @@ def _floor_band(building, n_floors: int, config: TrackerConfig) -> tuple[FloatAr
 
 def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
          ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """IMM interaction: mixed means/covariances and predicted floor log-probabilities."""
-    nf = state.log_prob.shape[1]
+    """IMM interaction: mixed means/covariances and predicted log-probabilities (N, H)."""
+    h = state.log_prob.shape[1]
+    nf = h // 2
+    fl, vert = hypothesis_floor(nf), hypothesis_vertical(nf)
     pi, pi_move = _transition_matrix(state.mean, state.cov, dt_s, building, config)
     lw = state.log_prob
     mx = lw.max(axis=1, keepdims=True)
-    w = np.exp(lw - mx)  # (N, F)
-    joint = w[:, :, None] * pi  # (N, F, G)
-    c = joint.sum(axis=1)  # (N, G)
+    w = np.exp(lw - mx)  # (N, H)
+    joint = w[:, :, None] * pi  # (N, H, H)
+    c = joint.sum(axis=1)  # (N, H)
     mu = joint / np.maximum(c[:, None, :], 1e-300)  # mu[f | g]
     lo, hi = _floor_band(building, nf, config)
-    # state of floor f moved into floor g: (N, F, G, 6)
+    # state of hypothesis f moved into hypothesis g: (N, H, H, 6)
     xs = np.broadcast_to(state.mean[:, :, None, :], (*joint.shape, 6)).copy()
-    xs[..., 2] = np.clip(xs[..., 2], lo[None, None, :], hi[None, None, :])
+    xs[..., 2] = np.clip(xs[..., 2], lo[fl][None, None, :], hi[fl][None, None, :])
     moved = xs[..., 2] != state.mean[:, :, None, 2]
     ps = np.broadcast_to(state.cov[:, :, None], (*joint.shape, 6, 6)).copy()
     ps[..., 2, 2] += np.where(moved, config.z_mix_sigma_m**2, 0.0)
     ps[..., 5, 5] += np.where(moved, (config.v_stairs_m_s / 2) ** 2, 0.0)
+    # entering the vertical mode: the walker may start up or down the stairs at v_stairs
+    start = (~vert[:, None] & vert[None, :])[None]  # (1, H, H)
+    ps[..., 5, 5] += np.where(start, (config.v_stairs_m_s / 2) ** 2, 0.0)
+    # entering the level mode: no vertical speed beyond the carry's (v_level_sigma)
+    stop = (vert[:, None] & ~vert[None, :])[None]
+    xs[..., 5] = np.where(stop, 0.0, xs[..., 5])
+    ps[..., 5, :] = np.where(stop[..., None], 0.0, ps[..., 5, :])
+    ps[..., :, 5] = np.where(stop[..., None], 0.0, ps[..., :, 5])
+    ps[..., 5, 5] = np.where(stop, config.v_level_sigma_m_s**2, ps[..., 5, 5])
     if config.mixing == "imm":
         x0 = np.einsum("nfg,nfgi->ngi", mu, xs)
         d = xs - x0[:, None]
         p0 = np.einsum("nfg,nfgij->ngij", mu, ps + d[..., :, None] * d[..., None, :])
-    else:  # "select": every floor continues from its most probable predecessor
-        src = np.argmax(w[:, :, None] * pi_move, axis=1)  # (N, G)
-        rows, cols = np.arange(joint.shape[0])[:, None], np.arange(nf)[None, :]
+    else:  # "select": every hypothesis continues from its most probable predecessor
+        src = np.argmax(w[:, :, None] * pi_move, axis=1)  # (N, H)
+        rows, cols = np.arange(joint.shape[0])[:, None], np.arange(h)[None, :]
         x0, p0 = xs[rows, src, cols], ps[rows, src, cols]
     log_pred = np.log(np.maximum(c, 1e-300)) + mx
     log_pred = log_pred - _logsumexp(log_pred)[:, None]
@@ -367,7 +459,7 @@ def _logsumexp(a: FloatArray) -> FloatArray:
 
 def _propagate(x: FloatArray, p: FloatArray, dt_s: FloatArray, config: TrackerConfig
                ) -> tuple[FloatArray, FloatArray]:
-    """NCV prediction of every floor's Gaussian over ``dt_s`` (shape (N,))."""
+    """NCV prediction of every hypothesis' Gaussian over ``dt_s`` (shape (N,))."""
     dt = dt_s[:, None]
     xn = x.copy()
     xn[..., :3] = x[..., :3] + dt[..., None] * x[..., 3:]
@@ -381,14 +473,14 @@ def _propagate(x: FloatArray, p: FloatArray, dt_s: FloatArray, config: TrackerCo
 
 def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
     """Empty tracker for ``n_nodes`` nodes (all UNINITIALISED) at time ``t_ns``."""
-    nf = int(building.n_floors)
+    h = 2 * int(building.n_floors)
     return TrackerState(
-        mean=np.zeros((n_nodes, nf, 6)), cov=np.broadcast_to(np.eye(6), (n_nodes, nf, 6, 6)).copy(),
-        log_prob=np.full((n_nodes, nf), -np.log(nf)),
+        mean=np.zeros((n_nodes, h, 6)), cov=np.broadcast_to(np.eye(6), (n_nodes, h, 6, 6)).copy(),
+        log_prob=np.full((n_nodes, h), -np.log(h)),
         status=np.zeros(n_nodes, np.int8), t_ns=np.full(n_nodes, t_ns, np.int64),
         last_fix_ns=np.full(n_nodes, t_ns, np.int64), nis=np.ones(n_nodes),
         good=np.zeros(n_nodes, int), bad=np.zeros(n_nodes, int),
-        floor_bad=np.zeros((n_nodes, nf), int))
+        floor_bad=np.zeros((n_nodes, h), int))
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
@@ -423,16 +515,28 @@ def _normalise(lp: FloatArray) -> FloatArray:
 
 
 def _publish(state: TrackerState, mech: NDArray, resid: FloatArray) -> TrackOutput:
-    n = state.mean.shape[0]
+    n, h = state.log_prob.shape
+    nf = h // 2
     rows = np.arange(n)
-    best = np.argmax(state.log_prob, axis=1)
-    prob = np.exp(state.log_prob)
-    pos = state.mean[rows, best, :3]
+    prob_h = np.exp(state.log_prob)  # (N, H)
+    prob = prob_h[:, :nf] + prob_h[:, nf:]  # floor marginals
+    best = np.argmax(prob, axis=1)
+    # the most probable floor's estimate: the mixture of its two modes (moment-matched)
+    pair = np.stack([best, best + nf], axis=1)  # (N, 2)
+    w = np.take_along_axis(prob_h, pair, axis=1)
+    w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    xm = state.mean[rows[:, None], pair, :3]  # (N, 2, 3)
+    pos = np.einsum("nm,nmi->ni", w, xm)
+    pm = np.einsum("nm,nmij->nij", w, state.cov[rows[:, None], pair, :3, :3])
+    # spread of every hypothesis' mean about the published point (floor and mode uncertainty):
+    # the mean-square error of the point under the mixture
     d = state.mean[..., :3] - pos[:, None]
     # a posteriori variance factor: the averaged NIS per used range above 1 says the ranges
     # scatter more than their sigmas (model mismatch), so the covariance is widened by it
     vf = np.clip(state.nis, 1.0, 100.0)[:, None, None]
-    cov = vf * state.cov[rows, best, :3, :3] + np.einsum("nf,nfi,nfj->nij", prob, d, d)
+    dm = xm - pos[:, None]
+    cov = (vf * pm + np.einsum("nh,nhi,nhj->nij", prob_h, d, d)
+           + np.einsum("nm,nmi,nmj->nij", w * (1.0 - prob[rows, best])[:, None], dm, dm))
     has = (state.status != TrackStatus.UNINITIALISED) & (state.status != TrackStatus.LOST)
     return TrackOutput(
         position_m=np.where(has[:, None], pos, np.nan),
@@ -445,10 +549,11 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray) -> TrackOutp
 def _track_update(state: TrackerState, links: Links, idx: NDArray, building,
                   config: TrackerConfig):
     """Measurement update of the nodes ``idx``: new arrays and their mechanism/residual."""
-    nf = state.mean.shape[1]
+    nf = n_floors_of(state)
     sub = links.take(idx)
     x, p, ev, sel, res = measurement_update(state.mean[idx], state.cov[idx], sub,
-                                            np.arange(nf), building, config)
+                                            hypothesis_floor(nf), building, config,
+                                            level=~hypothesis_vertical(nf))
     lp = _normalise(state.log_prob[idx] + np.where(np.isfinite(ev), ev, -1e300))
     best = np.argmax(lp, axis=1)
     r = np.arange(idx.size)
@@ -465,17 +570,29 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, building,
 
 
 def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: TrackerConfig):
-    """Re-seed the worst floor hypotheses (at most ``reseed_max`` per epoch) from snapshots."""
+    """Re-seed the worst hypotheses (at most ``reseed_max`` per epoch) from snapshots of their
+    floors."""
     cand = (floor_bad >= config.reseed_epochs) & eligible[:, None]
-    if not np.any(cand):
+    if config.reseed_max <= 0 or not np.any(cand):  # (off by default: no empty snapshot)
         return
     flat = np.flatnonzero(cand)
     order = np.argsort(-floor_bad.reshape(-1)[flat], kind="stable")[:config.reseed_max]
-    nodes, floors = np.unravel_index(flat[order], floor_bad.shape)
+    nodes, hyps = np.unravel_index(flat[order], floor_bad.shape)
+    floors = hyps % (floor_bad.shape[1] // 2)
     sub = links.take(nodes)
     x, p, _, _, _ = snapshot(sub, floors[:, None], building, config)
-    mean[nodes, floors], cov[nodes, floors] = x[:, 0], p[:, 0]
-    floor_bad[nodes, floors] = 0
+    mean[nodes, hyps], cov[nodes, hyps] = x[:, 0], p[:, 0]
+    floor_bad[nodes, hyps] = 0
+
+
+def _init_hypotheses(x, p, lp_floor, config: TrackerConfig):
+    """Both modes of every floor from a snapshot (N, F, ...): the same Gaussian, the mode
+    prior ``stairs_weight`` (the vertical one with the stairs' vertical speed spread)."""
+    xv, pv = x.copy(), p.copy()
+    pv[..., 5, 5] += (config.v_stairs_m_s / 2) ** 2
+    w = config.stairs_weight
+    lp = np.concatenate([lp_floor + np.log1p(-w), lp_floor + np.log(w)], axis=1)
+    return np.concatenate([x, xv], axis=1), np.concatenate([p, pv], axis=1), lp
 
 
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
@@ -538,7 +655,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     if jdx.size:
         sub = links.take(jdx)
         x, p, lpi, sel, res = snapshot_init(sub, building, config)
-        mean[jdx], cov[jdx], lp[jdx] = x, p, lpi
+        mean[jdx], cov[jdx], lp[jdx] = _init_hypotheses(x, p, lpi, config)
         best = np.argmax(lpi, axis=1)
         r = np.arange(jdx.size)
         mech[jdx], resid[jdx] = sel.slot[r, best], res[r, best]

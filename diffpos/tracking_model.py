@@ -322,12 +322,19 @@ def _box(x: FloatArray, floor, building, margin_m: float) -> tuple[FloatArray, F
 
 
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
-         building, config):
+         building, config, level=None):
     """Iterated EKF (Gauss-Newton on the MAP cost) of every hypothesis with fixed mechanisms.
 
     The hypothesis' floor box is a hard-ish constraint: a coordinate outside it gets a
     pseudo-measurement of the nearest bound with ``box_sigma_m`` (so the fit and its evidence
     are those of a position on the floor the paths were computed for).
+
+    ``level`` (bool, broadcastable to (N, H)): the hypothesis' vertical mode. Level: the
+    device is at the building's nominal height above its floor (Gaussian, ``height_sigma_m``);
+    vertical (stairs): anywhere between floor and ceiling (uniform); the mode's prior
+    probability is the caller's. ``None`` (snapshot initialisation, no mode yet): a
+    max-mixture of both chosen at the prior, weighted ``1 - stairs_weight`` /
+    ``stairs_weight``.
     Returns ``(x, P, log_evidence, residual)``: posterior means (N, H, 6), covariances
     (N, H, 6, 6), the Laplace log marginal likelihood (N, H) and the residuals (N, H, M).
     """
@@ -335,18 +342,21 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     x = x_prior.copy()
     lo, hi = _box(x, floor, building, config.z_margin_m)
     wb = 1.0 / config.box_sigma_m**2
-    # device height above the floor: on the level (Gaussian about the nominal height) or
-    # anywhere on the floor (stairs, crouching: uniform), chosen at the prior (max-mixture)
     z_nom = building.floor_z_m(np.broadcast_to(np.asarray(floor), x.shape[:2])) + \
         building.nominal_node_height_m
     sh = config.height_sigma_m
-    ll_lvl = (np.log1p(-config.stairs_weight) - 0.5 * ((x[..., 2] - z_nom) / sh) ** 2
-              - np.log(sh) - 0.5 * _LOG2PI)
-    ll_any = np.log(config.stairs_weight / building.floor_height_m)
-    level = ll_lvl > ll_any
+    ll_gauss = -np.log(sh) - 0.5 * _LOG2PI
+    ll_any = -np.log(building.floor_height_m)
+    if level is None:
+        # device height above the floor: on the level (Gaussian about the nominal height) or
+        # anywhere on the floor (stairs, crouching: uniform), chosen at the prior
+        w_lvl, w_any = np.log1p(-config.stairs_weight), np.log(config.stairs_weight)
+        level = (w_lvl + ll_gauss - 0.5 * ((x[..., 2] - z_nom) / sh) ** 2) > w_any + ll_any
+    else:
+        w_lvl = w_any = 0.0
+    level = np.broadcast_to(level, x.shape[:2])
     wh = np.where(level, 1.0 / sh**2, 0.0)
-    h_const = np.where(level, np.log1p(-config.stairs_weight) - np.log(sh) - 0.5 * _LOG2PI,
-                       ll_any)
+    h_const = np.where(level, w_lvl + ll_gauss, w_any + ll_any)
     for it in range(config.gn_iterations + 1):
         model, jm, w = _model(x[..., :3], links, floor, sel, building)
         e = links.rho - model
@@ -388,8 +398,10 @@ def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArra
     return out
 
 
-def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
-    """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual."""
+def measurement_update(x_prior, p_prior, links: Links, floor, building, config, level=None):
+    """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual.
+
+    ``level``: the hypotheses' vertical modes (see :func:`iekf`)."""
     x = x_prior
     # the SNR of every slot at the prior (a path's strength changes little over the fit);
     # the paths at the prior serve the SNR term and the first selection (the same point
@@ -402,7 +414,8 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config):
         pe = pe0 if k == 0 and same else all_paths(x[..., :3], links, floor, building,
                                                    config.exist_margin_m)
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
-        x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config)
+        x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
+                                 level)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
 
