@@ -214,8 +214,9 @@ def _system(services, endpoint, tmp_path, *, site, scenario, anchors, max_nodes,
             services.start("recorder", "recorder", "--site", site, "--connect", endpoint,
                            "--out", str(recorder), "--flush-interval", "0.1")
             need.add(keys.alive_recorder())
+        # ideal-channel anchors (D-NLS's path model): the fault tests run D-NLS
         services.start("fusion", "fusion", "--site", site, "--connect", endpoint,
-                       "--scenario", scenario)
+                       "--scenario", scenario, "--method", "dnls")
         zargs = (["--zenoh-config", _lease_config(tmp_path / "anchor-zenoh.json5", endpoint)]
                  if lease_file else ["--connect", endpoint])
         for a in anchors:
@@ -370,7 +371,7 @@ def test_fusion_killed_and_restarted_resumes_without_conflicting_estimates(
                       if t >= t_kill and not v and k == bus.keys.alive_fusion())
         t_restart, w_restart = time.monotonic(), time.time_ns()
         services.start("fusion-restarted", "fusion", "--site", site, "--connect", endpoint,
-                       "--scenario", scenario)
+                       "--scenario", scenario, "--method", "dnls")
 
         def new(e: M.PositionEstimate) -> bool:  # published by the restarted process
             return e.t_pub_wall_ns > w_restart

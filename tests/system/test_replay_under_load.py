@@ -58,7 +58,8 @@ def test_live_run_under_cpu_load_replays_bit_identically(services, tmp_path, bus
     rep = r.report
     d = rep["decisions"]
     assert d is not None, "the live fusion's decision record was recorded and used"
-    assert d["samples"] > 1000 and d["steps"] > 100
+    # 150 epochs per node; mnls + tracking solves several epochs per step under load
+    assert d["samples"] > 1000 and d["steps"] > 50
     assert d["chunks_missing"] == d["samples_missing"] == d["events_not_recorded"] == 0, d
     c = rep["compare"]
     assert c["only_live"] == c["only_replayed"] == 0, c

@@ -87,8 +87,10 @@ def _run_system(services, endpoint, *, scenario, anchors, duration_s, speed, sit
     session = open_session(settings, stop)
     with session:
         bus = Bus(session, keys)
+        # the ideal channel is D-NLS's path model: this pipeline test runs D-NLS (at 4x real
+        # time; the default mnls + tracker is covered by tests/system/test_tracking_emulate.py)
         services.start("fusion", "fusion", "--site", site, "--connect", endpoint,
-                       "--scenario", scenario)
+                       "--scenario", scenario, "--method", "dnls")
         for a in anchors:
             services.start(f"anchor-{a}", "anchor", "--id", a, "--site", site, "--connect", endpoint,
                            "--scenario", scenario, "--wait-start", "--channel", "ideal",
@@ -230,7 +232,8 @@ def test_emulate_one_command_runs_scores_and_cleans_up(services, tmp_path):
     mcap = tmp_path / "run.mcap"
     # --speed 0: lockstep, emulated time released epoch by epoch as the estimates come in
     p = services.start("emulate", "emulate", "paper", "--duration", "3", "--speed", "0",
-                       "--channel", "ideal", "--record", str(mcap), "--dashboard", "off",
+                       "--channel", "ideal", "--method", "dnls",  # PEB: D-NLS's model
+                       "--record", str(mcap), "--dashboard", "off",
                        "--json", str(summary_path), "--no-progress",
                        "--log-dir", str(tmp_path / "logs"))
     rc = p.wait(timeout=180)

@@ -503,6 +503,9 @@ class Emulation:
         o = self.o
         out = scorer.summary()
         expected_epochs = int(o.duration_s * o.rate_hz)
+        # one snapshot of the foreign counter for the summary and its note (the bus callback
+        # may still count copies of the last estimates while the summary is written)
+        foreign = dict(self.foreign)
         out.update(
             run_id=self.run_id, endpoint=self.endpoint, anchors=len(self.anchor_ids),
             secured=self.profile is not None,
@@ -514,14 +517,14 @@ class Emulation:
             recording=self.recordings[0] if self.recordings else None,
             recordings=list(self.recordings), recording_notes=list(self.recording_notes),
             faults=[f.as_dict() for f in self.supervisor.faults],
-            foreign={"count": sum(self.foreign.values()), "keys": dict(self.foreign)},
+            foreign={"count": sum(foreign.values()), "keys": foreign},
         )
         out["latency_e2e_ms"] = self.e2e.stats_ms()
         # when and why fixes were lost, every file written, foreign messages: plain lines
         out["notes"] = [*loss_notes(scorer), *fusion_notes(self.diag, self.t0_wall_ns),
                         *recording_notes(self.recordings,
                                          [foreign_path(r) for r in self.recordings]),
-                        *foreign_notes(self.foreign), *latency_notes(out["latency_e2e_ms"])]
+                        *foreign_notes(foreign), *latency_notes(out["latency_e2e_ms"])]
         if self.diag is not None:
             d = self.diag
             out["fusion"] = {"received": d.received, "rejected": d.rejected, "gated": d.gated,
