@@ -85,6 +85,8 @@ stated otherwise):
 
 from __future__ import annotations
 
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -132,6 +134,35 @@ SNR_EVERY = 4
 PRUNE_NATS = 30.0
 #: Default false-alarm probability of the residual test.
 FALSE_ALARM_PROBABILITY = 1e-3
+#: Per-stage counters (``benchmarks/bench_mnls.py --stages``): ``None`` (off, the default) or
+#: a dict that :func:`mnls` fills with ``stage -> {"paths": node-anchor pairs through the
+#: path model, "snr": pairs through pair_snr_db, "cpu_s", "paths_cpu_s", "snr_cpu_s": thread
+#: CPU time of the stage and of those two calls in it [s]}``; stages ``starts``, ``screen``,
+#: ``rescore``, ``refine``, ``final``.
+STAGE_STATS: dict | None = None
+_STAGE = ["starts"]  # the stage being counted
+
+
+@contextmanager
+def _stage(name: str):
+    """Count the enclosed work under stage ``name`` when :data:`STAGE_STATS` is on."""
+    if STAGE_STATS is None:
+        yield
+        return
+    prev, _STAGE[0] = _STAGE[0], name
+    c0 = time.thread_time()
+    try:
+        yield
+    finally:
+        _count("cpu_s", time.thread_time() - c0)
+        _STAGE[0] = prev
+
+
+def _count(key: str, value: float) -> None:
+    if STAGE_STATS is not None:
+        d = STAGE_STATS.setdefault(_STAGE[0], dict.fromkeys(
+            ("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s"), 0.0))
+        d[key] += value
 
 
 @dataclass(frozen=True)
@@ -182,8 +213,11 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     """Paths at ``x`` (N, 3), mechanism choice and the cost terms of every link: the
     compiled kernel (:func:`diffpos._kernels.mnls_nb.link_terms_kernel`) on the path model's
     output, the same operations as :func:`_link_terms_numpy` (the reference)."""
+    c0 = time.thread_time()
     ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
     n, m, k = ps.length_m.shape
+    _count("paths_cpu_s", time.thread_time() - c0)
+    _count("paths", n * m)
     b1 = lambda a: np.zeros((0, 0, 0), bool) if a is None else _c(a, bool)  # noqa: E731
     out = {"cost": np.empty((n, m)), "res": np.empty((n, m)), "w": np.empty((n, m)),
            "slot": np.empty((n, m), dtype=np.int64), "tail": np.empty((n, m), dtype=bool),
@@ -215,7 +249,10 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
         return None
     from ..channel import pair_snr_db
 
+    c0 = time.thread_time()
     pred = pair_snr_db(p.anchors, x, building=building, radio=p.radio)
+    _count("snr_cpu_s", time.thread_time() - c0)
+    _count("snr", p.anchors.shape[0] * p.anchors.shape[1])
     meas = p.snr_meas[..., None]
     with np.errstate(invalid="ignore"):
         c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
@@ -312,10 +349,57 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     g = grid.shape[0]
     floors = np.tile(np.repeat(np.arange(nf), g), b)  # (B*F*G,)
     rep = nf * g
-    p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
-                  np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
-                  building, lam, np.repeat(excess, rep, axis=0), wavelength)
-    x = np.empty((b * rep, 3))
+    with _stage("starts"):
+        p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
+                      np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
+                      building, lam, np.repeat(excess, rep, axis=0), wavelength)
+        x = _start_points(p0, grid, building, b, x0)
+    # screening: a few LM steps from every cell (a cell's cost before any step says little:
+    # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
+    # the cells' starting points (they steer the mechanism choice: without them the floor
+    # accuracy drops by 1-4 points)
+    if snr is not None and radio is not None:
+        p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
+    with _stage("screen"):
+        x, t0 = _lm(p0, x, building, SCREEN_ITER)
+    with _stage("rescore"):
+        c0 = t0["cost"].reshape(b, nf, g)
+        best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
+        rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g
+                + best).ravel()
+        p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
+                     building, lam, p0.excess_db[rows], wavelength)
+        x = x[rows]
+        t = {k: v[rows] for k, v in t0.items()}
+        if snr is not None and radio is not None:  # the kept cells scored with the SNR too
+            p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
+            p.snr_cost = _snr_cost(p, x, building)
+            t = _link_terms(p, x, building)
+        # floors whose best kept cost is PRUNE_NATS above the best floor's are not refined
+        fbest = np.min(t["cost"].reshape(b, nf, keep), axis=-1)
+        active = fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS  # (B, F)
+    with _stage("refine"):
+        sub = np.flatnonzero(np.repeat(active.ravel(), keep))
+        ps = _take(p, sub)
+        if p.snr_cost is not None:
+            ps.snr_meas, ps.radio = p.snr_meas[sub], radio
+            ps.snr_cost, ps.strong = p.snr_cost[sub], p.strong[sub]
+        x[sub], ts = _lm(ps, x[sub], building, iters,
+                         t_init={k: v[sub] for k, v in t.items()})
+        for k in t:
+            t[k][sub] = ts[k]
+        cost = t["cost"].reshape(b, nf, keep)
+        pick = np.argmin(cost, axis=-1)  # best start per floor
+    sel = ((np.arange(b)[:, None] * nf + np.arange(nf)[None, :]) * keep + pick).ravel()
+    return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
+
+
+def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> FloatArray:
+    """The start of every row of ``p0`` (B fixes x F floors x G cells): the grid at mid-floor
+    height with seven cells replaced by the closed-form starts, and the caller's start."""
+    nf = building.n_floors
+    g = grid.shape[0]
+    x = np.empty((b * nf * g, 3))
     x[:, :2] = np.tile(grid, (b * nf, 1))
     x[:, 2] = p0.z_mid
     # the last cell of every floor is replaced by a straight-line (LoS) multilateration at
@@ -348,39 +432,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         k0 = np.clip(building.floor_index(x0[has, 2]), 0, nf - 1)
         row0 = (has * nf + k0) * g
         x[row0] = np.clip(x0[has], p0.lo[row0], p0.hi[row0])
-    # screening: a few LM steps from every cell (a cell's cost before any step says little:
-    # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
-    # the cells' starting points (they steer the mechanism choice: without them the floor
-    # accuracy drops by 1-4 points)
-    if snr is not None and radio is not None:
-        p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
-    x, t0 = _lm(p0, x, building, SCREEN_ITER)
-    c0 = t0["cost"].reshape(b, nf, g)
-    best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
-    rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g + best).ravel()
-    p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
-                 building, lam, p0.excess_db[rows], wavelength)
-    x = x[rows]
-    t = {k: v[rows] for k, v in t0.items()}
-    if snr is not None and radio is not None:  # the kept cells scored with the SNR too
-        p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
-        p.snr_cost = _snr_cost(p, x, building)
-        t = _link_terms(p, x, building)
-    # floors whose best kept cost is PRUNE_NATS above the best floor's are not refined
-    fbest = np.min(t["cost"].reshape(b, nf, keep), axis=-1)
-    active = fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS  # (B, F)
-    sub = np.flatnonzero(np.repeat(active.ravel(), keep))
-    ps = _take(p, sub)
-    if p.snr_cost is not None:
-        ps.snr_meas, ps.radio = p.snr_meas[sub], radio
-        ps.snr_cost, ps.strong = p.snr_cost[sub], p.strong[sub]
-    x[sub], ts = _lm(ps, x[sub], building, iters, t_init={k: v[sub] for k, v in t.items()})
-    for k in t:
-        t[k][sub] = ts[k]
-    cost = t["cost"].reshape(b, nf, keep)
-    pick = np.argmin(cost, axis=-1)  # best start per floor
-    sel = ((np.arange(b)[:, None] * nf + np.arange(nf)[None, :]) * keep + pick).ravel()
-    return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
+    return x
 
 
 def mnls(
@@ -469,15 +521,14 @@ def mnls(
     step = max(int(chunk_size), 1)
     for lo in range(0, solvable.size, step):
         idx = solvable[lo:lo + step]
-        _finish(out, idx, *_solve_chunk(bi.anchors_m[idx], bi.ranges_m[idx], sig[idx],
-                                         bi.mask[idx], excess[idx], building, grid=grid,
-                                         keep=keep_starts, wavelength=wavelength,
-                                         iters=max_iter, lam=lam, radio=radio,
-                                         snr=None if snr_all is None else snr_all[idx],
-                                         x0=None if x0 is None else x0[idx]),
-                nf=nf,
-                snr_meas=None if snr_db is None else snr_all[idx], building=building,
-                radio=radio)
+        modes = _solve_chunk(bi.anchors_m[idx], bi.ranges_m[idx], sig[idx], bi.mask[idx],
+                             excess[idx], building, grid=grid, keep=keep_starts,
+                             wavelength=wavelength, iters=max_iter, lam=lam, radio=radio,
+                             snr=None if snr_all is None else snr_all[idx],
+                             x0=None if x0 is None else x0[idx])
+        with _stage("final"):
+            _finish(out, idx, *modes, nf=nf, snr_meas=None if snr_db is None else snr_all[idx],
+                    building=building, radio=radio)
     return _result(out, bi, false_alarm_probability)
 
 
