@@ -132,6 +132,12 @@ SNR_EVERY = 4
 #: A floor whose best screened cost exceeds the best floor's by this much [nats] is not
 #: refined (posterior odds below exp(-PRUNE_NATS) before refinement).
 PRUNE_NATS = 30.0
+#: The grid cells of a floor are screened only when its best closed-form start, screened,
+#: is within this much of the best floor's [nats].
+GRID_PRUNE_NATS = np.inf
+#: The kept cells of a floor are re-scored with the SNR only when its best screened cost is
+#: within this much of the best floor's [nats] (the others are not refined).
+RESCORE_NATS = 2 * PRUNE_NATS
 #: Default false-alarm probability of the residual test.
 FALSE_ALARM_PROBABILITY = 1e-3
 #: Per-stage counters (``benchmarks/bench_mnls.py --stages``): ``None`` (off, the default) or
@@ -233,7 +239,7 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
         out["w"], out["slot"], out["tail"], out["none"], out["cand"], out["jac"])
     prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
     out["cost"] = out["cost"].sum(axis=-1) + prior
-    out["length"], out["jac_all"] = ps.length_m, ps.jacobian
+    out["length"] = ps.length_m
     return out
 
 
@@ -244,15 +250,24 @@ def _c(a, dtype=np.float64):
 
 
 def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
-    """Gaussian SNR cost of every slot at ``x``: measured vs predicted (:data:`SNR_SIGMA_DB`)."""
+    """Gaussian SNR cost of every slot at ``x``: measured vs predicted (:data:`SNR_SIGMA_DB`);
+    predicted for the links in the mask only (a link outside it costs nothing whatever its
+    terms; its cost and ``strong`` are 0 / False)."""
     if p.snr_meas is None or p.radio is None:
         return None
     from ..channel import pair_snr_db
 
     c0 = time.thread_time()
-    pred = pair_snr_db(p.anchors, x, building=building, radio=p.radio)
+    m = p.mask
+    if m.all():
+        pred = pair_snr_db(p.anchors, x, building=building, radio=p.radio)
+    else:  # the linked pairs only, one anchor per row
+        xm = np.broadcast_to(x[:, None, :], p.anchors.shape)[m]
+        pm = pair_snr_db(p.anchors[m][:, None, :], xm, building=building, radio=p.radio)
+        pred = np.full((*m.shape, pm.shape[-1]), -np.inf)
+        pred[m] = pm[:, 0]
     _count("snr_cpu_s", time.thread_time() - c0)
-    _count("snr", p.anchors.shape[0] * p.anchors.shape[1])
+    _count("snr", np.count_nonzero(m))
     meas = p.snr_meas[..., None]
     with np.errstate(invalid="ignore"):
         c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
@@ -264,7 +279,7 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
         c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
     c = np.where(np.isfinite(pred), c, np.inf)  # a slot that does not exist is not received
     p.strong = pred >= thr + SNR_SIGMA_DB  # surely detected at this hypothesis
-    return np.where(np.isfinite(p.snr_meas)[..., None], c, 0.0)
+    return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
 
 
 def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = None
@@ -274,20 +289,25 @@ def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = 
     (``t_init``: the terms at ``x``, SNR cost already in ``p``)."""
     n = x.shape[0]
     lam = np.full(n, 1e-3)
-    t = t_init if t_init is not None else _link_terms(p, x, building)
+    if t_init is None:  # the SNR cost at the start first: the terms are computed once
+        if p.snr_meas is not None:
+            p.snr_cost = _snr_cost(p, x, building)
+        t = _link_terms(p, x, building)
+    else:
+        t = t_init
     live = np.arange(n)
     q = p
     for i in range(iters):
         if live.size < q.r.shape[0]:  # drop the converged hypotheses
             q = _sub(p, live)
-        if p.snr_meas is not None and i % SNR_EVERY == 0 and (i > 0 or t_init is None):
+        if p.snr_meas is not None and i > 0 and i % SNR_EVERY == 0:
             q.snr_cost = _snr_cost(q, x[live], building)
             if q is not p:
                 p.snr_cost[live], p.strong[live] = q.snr_cost, q.strong
             tl = _link_terms(q, x[live], building)
             for k in t:
                 t[k][live] = tl[k]
-        tl = {k: v[live] for k, v in t.items()}
+        tl = t if live.size == n else {k: t[k][live] for k in ("cost", "w", "res", "jac")}
         xl = x[live]
         ws = tl["w"] / q.sig**2
         h = np.einsum("nm,nmi,nmj->nij", ws, tl["jac"], tl["jac"])
@@ -353,7 +373,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
                       np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
                       building, lam, np.repeat(excess, rep, axis=0), wavelength)
-        x = _start_points(p0, grid, building, b, x0)
+        x, closed = _start_points(p0, grid, building, b, x0)
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
     # the cells' starting points (they steer the mechanism choice: without them the floor
@@ -361,7 +381,8 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     if snr is not None and radio is not None:
         p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
     with _stage("screen"):
-        x, t0 = _lm(p0, x, building, SCREEN_ITER)
+        x, t0 = _screen(p0, x, building, closed if keep <= _min_per_floor(closed, g) else None,
+                        (b, nf, g))
     with _stage("rescore"):
         c0 = t0["cost"].reshape(b, nf, g)
         best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
@@ -373,8 +394,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         t = {k: v[rows] for k, v in t0.items()}
         if snr is not None and radio is not None:  # the kept cells scored with the SNR too
             p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
-            p.snr_cost = _snr_cost(p, x, building)
-            t = _link_terms(p, x, building)
+            t = _rescore(p, x, t, c0, keep, building)
         # floors whose best kept cost is PRUNE_NATS above the best floor's are not refined
         fbest = np.min(t["cost"].reshape(b, nf, keep), axis=-1)
         active = fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS  # (B, F)
@@ -394,12 +414,71 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
 
 
-def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> FloatArray:
+def _screen(p0: _Problem, x: FloatArray, building, closed, shape) -> tuple[FloatArray, dict]:
+    """:data:`SCREEN_ITER` LM steps from the starts ``x``: all of them (``closed`` None), or
+    first the closed-form ones (``closed``, a row mask), then the grid cells of the floors
+    whose best closed-form cost is within :data:`GRID_PRUNE_NATS` of the fix's best floor;
+    rows left out keep their start and an infinite cost."""
+    if closed is None:
+        return _lm(p0, x, building, SCREEN_ITER)
+    first = np.flatnonzero(closed)
+    x1, t1 = _lm(_sub(p0, first), x[first], building, SCREEN_ITER)
+    c = np.full(x.shape[0], np.inf)
+    c[first] = t1["cost"]
+    fbest = np.min(c.reshape(shape), axis=-1)  # (B, F)
+    go = fbest <= np.min(fbest, axis=-1, keepdims=True) + GRID_PRUNE_NATS
+    second = np.flatnonzero(~closed & np.repeat(go.ravel(), shape[-1]))
+    parts = [(first, x1, t1)]
+    if second.size:
+        parts.append((second, *_lm(_sub(p0, second), x[second], building, SCREEN_ITER)))
+    x = x.copy()
+    t = {k: np.zeros((x.shape[0], *v.shape[1:]), v.dtype) for k, v in t1.items()}
+    t["cost"][:] = np.inf
+    for rows, xr, tr in parts:
+        x[rows] = xr
+        for k in t:
+            t[k][rows] = tr[k]
+    return x, t
+
+
+def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, building
+             ) -> dict:
+    """The kept cells' terms with the SNR at their screened points, for the floors whose
+    screened best ``c0`` (B, F, G) is within :data:`RESCORE_NATS` of the fix's best floor;
+    the other floors' cells get an infinite cost."""
+    f0 = np.min(c0, axis=-1)
+    go = np.repeat((f0 <= np.min(f0, axis=-1, keepdims=True) + RESCORE_NATS).ravel(), keep)
+    if go.all():
+        p.snr_cost = _snr_cost(p, x, building)
+        return _link_terms(p, x, building)
+    rows = np.flatnonzero(go)
+    q = _sub(p, rows)
+    q.snr_cost = _snr_cost(q, x[rows], building)
+    tq = _link_terms(q, x[rows], building)
+    n, m, k = t["length"].shape
+    p.snr_cost, p.strong = np.zeros((n, m, k)), np.zeros((n, m, k), dtype=bool)
+    p.snr_cost[rows], p.strong[rows] = q.snr_cost, q.strong
+    t = {key: v.copy() for key, v in t.items()}
+    for key in t:
+        t[key][rows] = tq[key]
+    t["cost"][~go] = np.inf
+    return t
+
+
+def _min_per_floor(closed, g: int) -> int:
+    """The fewest closed-form starts of any floor (row mask ``closed`` of G-cell floors)."""
+    return int(np.min(closed.reshape(-1, g).sum(axis=-1))) if closed.size else 0
+
+
+def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
+                  ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """The start of every row of ``p0`` (B fixes x F floors x G cells): the grid at mid-floor
-    height with seven cells replaced by the closed-form starts, and the caller's start."""
+    height with seven cells replaced by the closed-form starts, and the caller's start; and
+    which rows are closed-form or the caller's starts."""
     nf = building.n_floors
     g = grid.shape[0]
     x = np.empty((b * nf * g, 3))
+    closed = np.zeros(b * nf * g, dtype=bool)
     x[:, :2] = np.tile(grid, (b * nf, 1))
     x[:, 2] = p0.z_mid
     # the last cell of every floor is replaced by a straight-line (LoS) multilateration at
@@ -407,6 +486,7 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> 
     # height) are a few cm to dm longer than the straight line, so it lands in their basin
     last = np.arange(b * nf) * g + g - 1
     x[last] = _los_start(p0, last, building)
+    closed[last] = True
     # two more cells: a free-z straight-line fit is the node's image when the links are
     # specular; the node is then its ceiling image (2 z_c - z) or, for the ceiling-floor double
     # bounce, 2H below it (image method), clipped into the floor
@@ -416,6 +496,7 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> 
         for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
             x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
                                                p0.hi[last])
+            closed[last - (g - 1) + cell] = True
     # per floor and window edge, the closed-form start of "every link diffracts over this
     # edge" (the Fermat path over a horizontal edge unfolds to a straight line in (x, rho))
     # and (two more cells) of "diffraction over the edge, then the ceiling" (the node's
@@ -427,12 +508,14 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> 
                          (g - 6, z_lo, zc), (g - 7, z_lo + building.window_height_m, zc)):
         if cell >= 1:
             x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm)
+            closed[last - (g - 1) + cell] = True
     if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
         has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
         k0 = np.clip(building.floor_index(x0[has, 2]), 0, nf - 1)
         row0 = (has * nf + k0) * g
         x[row0] = np.clip(x0[has], p0.lo[row0], p0.hi[row0])
-    return x
+        closed[row0] = True
+    return x, closed
 
 
 def mnls(
