@@ -24,13 +24,32 @@ stated otherwise):
   ``x0_m`` (a tracker's prediction). Every cell gets ``SCREEN_ITER`` LM steps with the SNR
   terms of its starting point (a cell's cost before any step says little: a metre off,
   every link picks the wrong mechanism); the ``keep_starts`` best per floor are re-scored
-  with the SNR at their screened point; floors whose best is ``PRUNE_NATS`` above the best
-  floor's keep that mode with zero posterior, the others run up to ``max_iter`` LM steps
-  (a hypothesis stops when an accepted step is below ``CONVERGED_M``). Measured on the
-  default study (seed 0, receivers subsampled): the edge starts took the floor accuracy from
-  89.0 % to 93.0 % (400 receivers), the edge + ceiling starts from 89.8 % to 91.7 % (1,500
-  receivers, 4 x 2 grid); with a start at the truth it would be 92.9 %: the remaining floor
-  misses are mostly ambiguity, not search.
+  with the SNR at their screened point (only on floors whose best screened cost is within
+  ``RESCORE_NATS`` of the best floor's; the others are dropped); floors whose best is
+  ``PRUNE_NATS`` above the best floor's keep that mode with zero posterior, the others run
+  up to ``max_iter`` LM steps (a hypothesis stops when an accepted step is below
+  ``CONVERGED_M``). Measured on the default study (seed 0, receivers subsampled): the edge
+  starts took the floor accuracy from 89.0 % to 93.0 % (400 receivers), the edge + ceiling
+  starts from 89.8 % to 91.7 % (1,500 receivers, 4 x 2 grid); with a start at the truth it
+  would be 92.9 %: the remaining floor misses are mostly ambiguity, not search.
+* **Search cost** (``benchmarks/bench_mnls.py --stages``: node-anchor pairs through the path
+  model and the SNR prediction per fix and stage). The screen is ~90 % of both: every start
+  of every floor gets one SNR prediction and ``SCREEN_ITER + 1`` path-model evaluations.
+  Cut without changing answers: the start's terms computed once (were twice), the SNR
+  predicted for the linked pairs only, re-scoring only floors within ``RESCORE_NATS``
+  (512 synthetic fixes each at 4 and 8 anchors and a 1,500-receiver study: identical
+  positions and floors). ``SCREEN_ITER`` 4 -> 3 changes ~5 % of the fixes, in both
+  directions: right floor in one run only 5 vs 7 of 2,048 paired synthetic fixes (4 and 8
+  anchors), 3D error 0.1 m worse 17 vs better 23, ellipsoid coverage +-0.5 points, and
+  floor accuracy 91.9 / 91.9 % and 92.2 / 92.1 % in two 1,500-receiver studies (seeds 0
+  and 1, ``diffpos reproduce --quick``); 2 steps lose floors (-4 of 512 at 8 anchors).
+  Measured and *not* taken (each loses floors in paired runs, 8 anchors, 512 fixes):
+  dropping the 5 grid cells (-5 floors), screening a floor's grid cells only when its
+  closed-form starts come within 30 nats of the best floor (-3; even within 200 nats: -2: a
+  grid cell sometimes rescues the true floor when all its closed-form starts fail), one kept
+  start per floor (-1; at 4 anchors 4 vs 9), a range-only pre-screen (its ranks are
+  unrelated to the SNR-aware screen's), dropping screened rows by their cost after 1-2
+  steps (a row 10^4 nats behind after 2 steps can end first).
 * **Same-edge dominance** (:mod:`._mnls_rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
@@ -123,7 +142,7 @@ OUTLIER_PRIOR = 0.02
 #: Levenberg-Marquardt iterations of the refinement with the SNR-chosen mechanisms held.
 REFINE_ITER = 6
 #: Levenberg-Marquardt steps from every grid cell before the best ``keep_starts`` go on.
-SCREEN_ITER = 4
+SCREEN_ITER = 3
 #: An accepted LM step shorter than this (max over x, y, z) ends a hypothesis's iterations [m]
 #: (far below any range sigma).
 CONVERGED_M = 1e-4
@@ -132,9 +151,6 @@ SNR_EVERY = 4
 #: A floor whose best screened cost exceeds the best floor's by this much [nats] is not
 #: refined (posterior odds below exp(-PRUNE_NATS) before refinement).
 PRUNE_NATS = 30.0
-#: The grid cells of a floor are screened only when its best closed-form start, screened,
-#: is within this much of the best floor's [nats].
-GRID_PRUNE_NATS = np.inf
 #: The kept cells of a floor are re-scored with the SNR only when its best screened cost is
 #: within this much of the best floor's [nats] (the others are not refined).
 RESCORE_NATS = 2 * PRUNE_NATS
@@ -373,7 +389,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
                       np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
                       building, lam, np.repeat(excess, rep, axis=0), wavelength)
-        x, closed = _start_points(p0, grid, building, b, x0)
+        x = _start_points(p0, grid, building, b, x0)
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
     # the cells' starting points (they steer the mechanism choice: without them the floor
@@ -381,8 +397,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     if snr is not None and radio is not None:
         p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
     with _stage("screen"):
-        x, t0 = _screen(p0, x, building, closed if keep <= _min_per_floor(closed, g) else None,
-                        (b, nf, g))
+        x, t0 = _lm(p0, x, building, SCREEN_ITER)
     with _stage("rescore"):
         c0 = t0["cost"].reshape(b, nf, g)
         best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
@@ -414,33 +429,6 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
 
 
-def _screen(p0: _Problem, x: FloatArray, building, closed, shape) -> tuple[FloatArray, dict]:
-    """:data:`SCREEN_ITER` LM steps from the starts ``x``: all of them (``closed`` None), or
-    first the closed-form ones (``closed``, a row mask), then the grid cells of the floors
-    whose best closed-form cost is within :data:`GRID_PRUNE_NATS` of the fix's best floor;
-    rows left out keep their start and an infinite cost."""
-    if closed is None:
-        return _lm(p0, x, building, SCREEN_ITER)
-    first = np.flatnonzero(closed)
-    x1, t1 = _lm(_sub(p0, first), x[first], building, SCREEN_ITER)
-    c = np.full(x.shape[0], np.inf)
-    c[first] = t1["cost"]
-    fbest = np.min(c.reshape(shape), axis=-1)  # (B, F)
-    go = fbest <= np.min(fbest, axis=-1, keepdims=True) + GRID_PRUNE_NATS
-    second = np.flatnonzero(~closed & np.repeat(go.ravel(), shape[-1]))
-    parts = [(first, x1, t1)]
-    if second.size:
-        parts.append((second, *_lm(_sub(p0, second), x[second], building, SCREEN_ITER)))
-    x = x.copy()
-    t = {k: np.zeros((x.shape[0], *v.shape[1:]), v.dtype) for k, v in t1.items()}
-    t["cost"][:] = np.inf
-    for rows, xr, tr in parts:
-        x[rows] = xr
-        for k in t:
-            t[k][rows] = tr[k]
-    return x, t
-
-
 def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, building
              ) -> dict:
     """The kept cells' terms with the SNR at their screened points, for the floors whose
@@ -465,20 +453,12 @@ def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, bui
     return t
 
 
-def _min_per_floor(closed, g: int) -> int:
-    """The fewest closed-form starts of any floor (row mask ``closed`` of G-cell floors)."""
-    return int(np.min(closed.reshape(-1, g).sum(axis=-1))) if closed.size else 0
-
-
-def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
-                  ) -> tuple[FloatArray, NDArray[np.bool_]]:
+def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> FloatArray:
     """The start of every row of ``p0`` (B fixes x F floors x G cells): the grid at mid-floor
-    height with seven cells replaced by the closed-form starts, and the caller's start; and
-    which rows are closed-form or the caller's starts."""
+    height with seven cells replaced by the closed-form starts, and the caller's start."""
     nf = building.n_floors
     g = grid.shape[0]
     x = np.empty((b * nf * g, 3))
-    closed = np.zeros(b * nf * g, dtype=bool)
     x[:, :2] = np.tile(grid, (b * nf, 1))
     x[:, 2] = p0.z_mid
     # the last cell of every floor is replaced by a straight-line (LoS) multilateration at
@@ -486,7 +466,6 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
     # height) are a few cm to dm longer than the straight line, so it lands in their basin
     last = np.arange(b * nf) * g + g - 1
     x[last] = _los_start(p0, last, building)
-    closed[last] = True
     # two more cells: a free-z straight-line fit is the node's image when the links are
     # specular; the node is then its ceiling image (2 z_c - z) or, for the ceiling-floor double
     # bounce, 2H below it (image method), clipped into the floor
@@ -496,7 +475,6 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
         for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
             x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
                                                p0.hi[last])
-            closed[last - (g - 1) + cell] = True
     # per floor and window edge, the closed-form start of "every link diffracts over this
     # edge" (the Fermat path over a horizontal edge unfolds to a straight line in (x, rho))
     # and (two more cells) of "diffraction over the edge, then the ceiling" (the node's
@@ -508,14 +486,12 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
                          (g - 6, z_lo, zc), (g - 7, z_lo + building.window_height_m, zc)):
         if cell >= 1:
             x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm)
-            closed[last - (g - 1) + cell] = True
     if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
         has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
         k0 = np.clip(building.floor_index(x0[has, 2]), 0, nf - 1)
         row0 = (has * nf + k0) * g
         x[row0] = np.clip(x0[has], p0.lo[row0], p0.hi[row0])
-        closed[row0] = True
-    return x, closed
+    return x
 
 
 def mnls(
