@@ -324,3 +324,96 @@ def test_link_terms_kernel_matches_numpy_reference(with_snr):
     for k in ("cost", "res", "w", "jac"):
         np.testing.assert_allclose(got[k], ref[k], rtol=1e-12, atol=1e-12, err_msg=k)
     assert got["tail"].any() and got["none"].any() and (got["slot"] > 0).any()
+
+
+def test_snr_cost_of_linked_pairs_equals_the_full_prediction():
+    """The SNR cost predicted for the linked pairs only (a mask with gaps) equals, on those
+    links, the cost and ``strong`` flags of the prediction for every pair (all-true mask, the
+    reference); a link outside the mask costs 0 and is not ``strong``. Variant building,
+    random hypotheses, 20 % of the links masked out, some measured SNRs missing."""
+    b = _variant()
+    radio = Radio()
+    anchors = _anchors_variant(b)
+    rng = np.random.default_rng(31)
+    n = 60
+    nodes = _nodes(b, n, rng)
+    floors = b.floor_index(nodes[:, 2])
+    r = rng.uniform(8.0, 40.0, (n, len(anchors)))
+    snr = np.where(rng.random(r.shape) < 0.1, np.nan, rng.uniform(-5, 45, r.shape))
+    mask = rng.random(r.shape) > 0.2
+    a = np.broadcast_to(anchors, (n, *anchors.shape))
+
+    def problem(m):
+        p = _mn._problem(a, r, np.full(r.shape, 0.05), m, floors, b, 0.75,
+                         _mn._excess_loss_db(r, snr, radio, r.shape), radio.wavelength_m)
+        p.snr_meas, p.radio = snr, radio
+        return p
+
+    p_all, p_linked = problem(np.ones(r.shape, bool)), problem(mask)
+    ref, got = _mn._snr_cost(p_all, nodes, b), _mn._snr_cost(p_linked, nodes, b)
+    assert np.isinf(ref[mask]).any() and (ref[mask] > 0).any() and p_all.strong[mask].any()
+    np.testing.assert_array_equal(got[mask], ref[mask])
+    np.testing.assert_array_equal(p_linked.strong[mask], p_all.strong[mask])
+    assert np.all(got[~mask] == 0.0) and not p_linked.strong[~mask].any()
+
+
+def test_stage_counters_one_snr_prediction_per_start(monkeypatch):
+    """With the stage counters on (``STAGE_STATS``), the screen predicts the SNR once per
+    start and linked pair (B fixes x F floors x G cells x linked links, counted here
+    independently) and runs the path model at most ``SCREEN_ITER + 1`` times per start and
+    pair; the other stages are counted too, and counting changes no answer. Variant
+    building, its 8 UAVs, 6 emulated fixes, a caller's mask without 5 of the links."""
+    b = _variant()
+    radio = Radio()
+    anchors = _anchors_variant(b)
+    nodes = _nodes(b, 6, np.random.default_rng(41))
+    fa = first_arrival(emulate_channel(anchors, nodes, building=b, radio=radio), radio=radio,
+                       rng=np.random.default_rng(42))
+    mask = fa.detected.copy()
+    mask[[0, 1, 1, 3, 5], [2, 0, 7, 4, 6]] = False
+
+    def run():
+        return mnls(np.broadcast_to(anchors, (len(nodes), *anchors.shape)),
+                    np.where(fa.detected, fa.range_m, 0.0),
+                    np.where(fa.detected, fa.sigma_m, 1.0), mask=mask, building=b,
+                    snr_db=fa.snr_db, radio=radio)
+
+    fix = run()
+    monkeypatch.setattr(_mn, "STAGE_STATS", {})
+    fix2 = run()
+    st = _mn.STAGE_STATS
+    assert set(st) == {"starts", "screen", "rescore", "refine", "final"}
+    starts = b.n_floors * 12  # default 4 x 3 grid per floor
+    linked = int(np.count_nonzero(mask))
+    assert linked < mask.size
+    pairs = starts * len(anchors) * len(nodes)
+    assert st["screen"]["snr"] == starts * linked
+    assert pairs <= st["screen"]["paths"] <= (_mn.SCREEN_ITER + 1) * pairs
+    assert 0 < st["rescore"]["snr"] <= b.n_floors * 2 * linked  # keep_starts = 2
+    assert st["final"]["snr"] > 0 and st["refine"]["paths"] > 0
+    assert all(d["cpu_s"] >= d["paths_cpu_s"] + d["snr_cpu_s"] - 1e-9 for d in st.values())
+    np.testing.assert_array_equal(fix2.position_m, fix.position_m)
+    np.testing.assert_array_equal(fix2.floor, fix.floor)
+
+
+def test_rescore_gate_changes_no_answer(monkeypatch):
+    """Re-scoring only the floors within ``RESCORE_NATS`` of the best screened floor gives
+    the same fixes as re-scoring every floor (``RESCORE_NATS = inf``), on a held-out
+    building with 6 floors and 5 UAVs above the windows / beyond the facade ends (24 nodes:
+    the gate leaves out ~4 % of the re-scoring's SNR predictions here)."""
+    b = Building(width_m=22.0, center_x_m=2.0, depth_m=11.0, n_floors=6, floor_height_m=3.0,
+                 first_floor_z_m=0.5, sill_height_m=0.9, window_height_m=1.1)
+    x0, x1 = b.edge_x_m
+    anchors = np.array([[x0 - 7.0, -9.0, 14.0], [x1 + 5.0, -12.0, 4.0], [1.0, -16.0, 19.5],
+                        [x1 + 9.0, -6.0, 10.0], [x0 + 5.0, -18.0, 8.2]])
+    nodes = _nodes(b, 24, np.random.default_rng(51))
+    monkeypatch.setattr(_mn, "STAGE_STATS", {})
+    fix, _ = _emulated_fixes(b, anchors, nodes, np.random.default_rng(52))
+    gated = _mn.STAGE_STATS["rescore"]["snr"]
+    monkeypatch.setattr(_mn, "STAGE_STATS", {})
+    monkeypatch.setattr(_mn, "RESCORE_NATS", np.inf)
+    ref, _ = _emulated_fixes(b, anchors, nodes, np.random.default_rng(52))
+    assert 0 < gated < _mn.STAGE_STATS["rescore"]["snr"]  # the gate left floors out
+    np.testing.assert_array_equal(fix.floor, ref.floor)
+    np.testing.assert_allclose(fix.position_m, ref.position_m, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fix.covariance_m2, ref.covariance_m2, rtol=1e-12, atol=1e-15)
