@@ -39,8 +39,9 @@ stated otherwise):
   predicted for the linked pairs only, re-scoring only floors within ``RESCORE_NATS``
   (512 synthetic fixes each at 4 and 8 anchors and a 1,500-receiver study: identical
   positions and floors). ``SCREEN_ITER`` 4 -> 3 changes ~5 % of the fixes, in both
-  directions: right floor in one run only 5 vs 7 of 2,048 paired synthetic fixes (4 and 8
-  anchors), 3D error 0.1 m worse 17 vs better 23, ellipsoid coverage +-0.5 points, and
+  directions: of 3,072 paired synthetic fixes (4 and 8 anchors, seeds 0-2), the floor is
+  right only with 4 steps for 9, only with 3 steps for 6; the 3D error 0.1 m worse for 28,
+  better for 30; ellipsoid coverage within +-0.5 points; and
   floor accuracy 91.9 / 91.9 % and 92.2 / 92.1 % in two 1,500-receiver studies (seeds 0
   and 1, ``diffpos reproduce --quick``); 2 steps lose floors (-4 of 512 at 8 anchors).
   Measured and *not* taken (each loses floors in paired runs, 8 anchors, 512 fixes):
