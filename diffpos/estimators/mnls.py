@@ -390,18 +390,22 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
                       np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
                       building, lam, np.repeat(excess, rep, axis=0), wavelength)
-        x = _start_points(p0, grid, building, b, x0)
+        x, closed = _start_points(p0, grid, building, b, x0)
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
-    # the cells' starting points (they steer the mechanism choice: without them the floor
-    # accuracy drops by 1-4 points)
+    # the closed-form starts' starting points (they steer the mechanism choice: without them
+    # the floor accuracy drops by 1-4 points); the grid cells with ranges only
     if snr is not None and radio is not None:
         p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
+    split = closed.reshape(b, nf, g) if p0.snr_meas is not None else None
+    if split is not None and not (split.sum(-1).min() >= keep and (~split).sum(-1).min() >= 1):
+        split = None  # too few closed-form starts or no grid cell: every start with the SNR
     with _stage("screen"):
-        x, t0 = _lm(p0, x, building, SCREEN_ITER)
+        x, t0 = _screen(p0, x, None if split is None else closed, building)
     with _stage("rescore"):
         c0 = t0["cost"].reshape(b, nf, g)
-        best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
+        best = _kept(c0, split, keep)  # (B, F, keep (+ 1 grid cell))
+        keep = best.shape[-1]
         rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g
                 + best).ravel()
         p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
@@ -430,6 +434,34 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
 
 
+def _screen(p0: _Problem, x: FloatArray, closed, building) -> tuple[FloatArray, dict]:
+    """:data:`SCREEN_ITER` LM steps from every start ``x``; with the measured SNR, the SNR
+    terms at the start held for the steps: of every start (``closed`` None) or only of the
+    closed-form and caller's starts (``closed``, a row mask; the grid cells' SNR cost is 0
+    and nothing is ``strong`` there: screened with the ranges only)."""
+    if closed is None:
+        return _lm(p0, x, building, SCREEN_ITER)
+    rows = np.flatnonzero(closed)
+    q = _sub(p0, rows)
+    q.snr_cost = _snr_cost(q, x[rows], building)
+    p0.snr_cost = np.zeros((*p0.mask.shape, q.snr_cost.shape[-1]))
+    p0.strong = np.zeros(p0.snr_cost.shape, dtype=bool)
+    p0.snr_cost[rows], p0.strong[rows] = q.snr_cost, q.strong
+    return _lm(p0, x, building, SCREEN_ITER, t_init=_link_terms(p0, x, building))
+
+
+def _kept(c0: FloatArray, split, keep: int) -> NDArray[np.int_]:
+    """Per fix and floor, the cells that go on, (B, F, keep) or (B, F, keep + 1): the
+    ``keep`` lowest screened costs ``c0`` (B, F, G); with ``split`` (B, F, G: the cells
+    screened with the SNR), the ``keep`` lowest of those and the lowest grid cell (its
+    range-only cost is not comparable with the others before the re-scoring)."""
+    if split is None:
+        return np.argsort(c0, axis=-1, kind="stable")[..., :keep]
+    b1 = np.argsort(np.where(split, c0, np.inf), axis=-1, kind="stable")[..., :keep]
+    b2 = np.argsort(np.where(split, np.inf, c0), axis=-1, kind="stable")[..., :1]
+    return np.concatenate([b1, b2], axis=-1)
+
+
 def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, building
              ) -> dict:
     """The kept cells' terms with the SNR at their screened points, for the floors whose
@@ -454,12 +486,15 @@ def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, bui
     return t
 
 
-def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> FloatArray:
+def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
+                  ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """The start of every row of ``p0`` (B fixes x F floors x G cells): the grid at mid-floor
-    height with seven cells replaced by the closed-form starts, and the caller's start."""
+    height with seven cells replaced by the closed-form starts, and the caller's start; and
+    which rows hold a closed-form or the caller's start (the others: grid cells)."""
     nf = building.n_floors
     g = grid.shape[0]
     x = np.empty((b * nf * g, 3))
+    closed = np.zeros(b * nf * g, dtype=bool)
     x[:, :2] = np.tile(grid, (b * nf, 1))
     x[:, 2] = p0.z_mid
     # the last cell of every floor is replaced by a straight-line (LoS) multilateration at
@@ -467,6 +502,7 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> 
     # height) are a few cm to dm longer than the straight line, so it lands in their basin
     last = np.arange(b * nf) * g + g - 1
     x[last] = _los_start(p0, last, building)
+    closed[last] = True
     # two more cells: a free-z straight-line fit is the node's image when the links are
     # specular; the node is then its ceiling image (2 z_c - z) or, for the ceiling-floor double
     # bounce, 2H below it (image method), clipped into the floor
@@ -476,6 +512,7 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> 
         for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
             x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
                                                p0.hi[last])
+            closed[last - (g - 1) + cell] = True
     # per floor and window edge, the closed-form start of "every link diffracts over this
     # edge" (the Fermat path over a horizontal edge unfolds to a straight line in (x, rho))
     # and (two more cells) of "diffraction over the edge, then the ceiling" (the node's
@@ -487,12 +524,14 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None) -> 
                          (g - 6, z_lo, zc), (g - 7, z_lo + building.window_height_m, zc)):
         if cell >= 1:
             x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm)
+            closed[last - (g - 1) + cell] = True
     if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
         has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
         k0 = np.clip(building.floor_index(x0[has, 2]), 0, nf - 1)
         row0 = (has * nf + k0) * g
         x[row0] = np.clip(x0[has], p0.lo[row0], p0.hi[row0])
-    return x
+        closed[row0] = True
+    return x, closed
 
 
 def mnls(

@@ -359,10 +359,11 @@ def test_snr_cost_of_linked_pairs_equals_the_full_prediction():
 
 def test_stage_counters_one_snr_prediction_per_start(monkeypatch):
     """With the stage counters on (``STAGE_STATS``), the screen predicts the SNR once per
-    start and linked pair (B fixes x F floors x G cells x linked links, counted here
-    independently) and runs the path model at most ``SCREEN_ITER + 1`` times per start and
-    pair; the other stages are counted too, and counting changes no answer. Variant
-    building, its 8 UAVs, 6 emulated fixes, a caller's mask without 5 of the links."""
+    closed-form start and linked pair (B fixes x F floors x 7 starts x linked links, counted
+    here independently; the grid cells are screened with the ranges only) and runs the path
+    model at most ``SCREEN_ITER + 1`` times per start (12 per floor) and pair; the other
+    stages are counted too, and counting changes no answer. Variant building, its 8 UAVs,
+    6 emulated fixes, a caller's mask without 5 of the links."""
     b = _variant()
     radio = Radio()
     anchors = _anchors_variant(b)
@@ -383,13 +384,13 @@ def test_stage_counters_one_snr_prediction_per_start(monkeypatch):
     fix2 = run()
     st = _mn.STAGE_STATS
     assert set(st) == {"starts", "screen", "rescore", "refine", "final"}
-    starts = b.n_floors * 12  # default 4 x 3 grid per floor
+    starts = b.n_floors * 12  # default 4 x 3 grid per floor, 7 of its cells closed-form
     linked = int(np.count_nonzero(mask))
     assert linked < mask.size
     pairs = starts * len(anchors) * len(nodes)
-    assert st["screen"]["snr"] == starts * linked
+    assert st["screen"]["snr"] == b.n_floors * 7 * linked
     assert pairs <= st["screen"]["paths"] <= (_mn.SCREEN_ITER + 1) * pairs
-    assert 0 < st["rescore"]["snr"] <= b.n_floors * 2 * linked  # keep_starts = 2
+    assert 0 < st["rescore"]["snr"] <= b.n_floors * 3 * linked  # keep_starts 2 + 1 grid cell
     assert st["final"]["snr"] > 0 and st["refine"]["paths"] > 0
     assert all(d["cpu_s"] >= d["paths_cpu_s"] + d["snr_cpu_s"] - 1e-9 for d in st.values())
     np.testing.assert_array_equal(fix2.position_m, fix.position_m)
