@@ -21,36 +21,47 @@ stated otherwise):
   ``sqrt((x_a - x)^2 + (rho_a + rho)^2)``, ``rho`` the distance to the edge line: a
   straight-line multilateration in the (x, rho) half-plane) and "diffraction over this edge,
   then the ceiling" (the same for the node's ceiling image). Optionally a caller's start
-  ``x0_m`` (a tracker's prediction). Every cell gets ``SCREEN_ITER`` LM steps with the SNR
-  terms of its starting point (a cell's cost before any step says little: a metre off,
-  every link picks the wrong mechanism); the ``keep_starts`` best per floor are re-scored
-  with the SNR at their screened point (only on floors whose best screened cost is within
-  ``RESCORE_NATS`` of the best floor's; the others are dropped); floors whose best is
-  ``PRUNE_NATS`` above the best floor's keep that mode with zero posterior, the others run
-  up to ``max_iter`` LM steps (a hypothesis stops when an accepted step is below
-  ``CONVERGED_M``). Measured on the default study (seed 0, receivers subsampled): the edge
-  starts took the floor accuracy from 89.0 % to 93.0 % (400 receivers), the edge + ceiling
-  starts from 89.8 % to 91.7 % (1,500 receivers, 4 x 2 grid); with a start at the truth it
-  would be 92.9 %: the remaining floor misses are mostly ambiguity, not search.
+  ``x0_m`` (a tracker's prediction). Every cell gets ``SCREEN_ITER`` LM steps (a cell's cost
+  before any step says little: a metre off, every link picks the wrong mechanism), the
+  closed-form and caller's starts with the SNR terms of their starting point, the remaining
+  grid cells with the ranges only; per floor the ``keep_starts`` best of the former and the
+  best grid cell are re-scored with the SNR at their screened point (only on floors whose best
+  screened cost is within ``RESCORE_NATS`` of the best floor's; the others are dropped);
+  floors whose best is ``PRUNE_NATS`` above the best floor's keep that mode with zero
+  posterior, the others run up to ``max_iter`` LM steps (a hypothesis stops when an accepted
+  step is below ``CONVERGED_M``). Measured on the default study (seed 0, receivers
+  subsampled): the edge starts took the floor accuracy from 89.0 % to 93.0 % (400 receivers),
+  the edge + ceiling starts from 89.8 % to 91.7 % (1,500 receivers, 4 x 2 grid); with a start
+  at the truth it would be 92.9 %: the remaining floor misses are mostly ambiguity, not
+  search.
 * **Search cost** (``benchmarks/bench_mnls.py --stages``: node-anchor pairs through the path
-  model and the SNR prediction per fix and stage). The screen is ~90 % of both: every start
-  of every floor gets one SNR prediction and ``SCREEN_ITER + 1`` path-model evaluations.
-  Cut without changing answers: the start's terms computed once (were twice), the SNR
-  predicted for the linked pairs only, re-scoring only floors within ``RESCORE_NATS``
-  (512 synthetic fixes each at 4 and 8 anchors and a 1,500-receiver study: identical
-  positions and floors). ``SCREEN_ITER`` 4 -> 3 changes ~5 % of the fixes, in both
-  directions: of 3,072 paired synthetic fixes (4 and 8 anchors, seeds 0-2), the floor is
-  right only with 4 steps for 9, only with 3 steps for 6; the 3D error 0.1 m worse for 28,
-  better for 30; ellipsoid coverage within +-0.5 points; and
-  floor accuracy 91.9 / 91.9 % and 92.2 / 92.1 % in two 1,500-receiver studies (seeds 0
-  and 1, ``diffpos reproduce --quick``); 2 steps lose floors (-4 of 512 at 8 anchors).
-  Measured and *not* taken (each loses floors in paired runs, 8 anchors, 512 fixes):
-  dropping the 5 grid cells (-5 floors), screening a floor's grid cells only when its
-  closed-form starts come within 30 nats of the best floor (-3; even within 200 nats: -2: a
-  grid cell sometimes rescues the true floor when all its closed-form starts fail), one kept
-  start per floor (-1; at 4 anchors 4 vs 9), a range-only pre-screen (its ranks are
-  unrelated to the SNR-aware screen's), dropping screened rows by their cost after 1-2
-  steps (a row 10^4 nats behind after 2 steps can end first).
+  model and the SNR prediction per fix and stage). The screen is most of both: every start of
+  every floor gets ``SCREEN_ITER + 1`` path-model evaluations, every closed-form start one SNR
+  prediction. 8 anchors (``bench_estimator_cost.py``'s layout, 512 fixes, seed 1), per fix:
+  path-model pairs 3,116 -> 2,214, SNR pairs 594 -> 367 (screen 480 -> 265). Grid cells with
+  the ranges only (were with the SNR, and the ``keep_starts`` best of all cells went on): SNR
+  pairs -30 % at 8 anchors, -20 % at 4, and better answers: of 3,072 paired synthetic fixes (4
+  and 8 anchors, seeds 0-2) the floor right only with it for 39, only without for 28; 3D error
+  0.1 m better for 162, worse for 51; ellipsoid coverage +0.8 to +1.6 points; two
+  1,500-receiver studies (``diffpos reproduce --quick``, seeds 0 and 1): floor 91.9 -> 92.3 %,
+  92.2 -> 92.5 %, p80 0.57 -> 0.55 m, 0.55 -> 0.52 m. Screening every start with the ranges
+  only loses floors at 4 anchors (-11 net of 1,024); all but the straight-line and image
+  starts gave +13 floors but -1.1 points of coverage at 4 anchors (not taken: undecided). Cut
+  without changing answers: the start's terms computed once (were twice), the SNR predicted
+  for the linked pairs only, re-scoring only floors within ``RESCORE_NATS`` (512 synthetic
+  fixes each at 4 and 8 anchors and a 1,500-receiver study: identical positions and floors).
+  ``SCREEN_ITER`` 4 -> 3 changes ~5 % of the fixes, in both directions: of 3,072 paired
+  synthetic fixes (4 and 8 anchors, seeds 0-2), the floor is right only with 4 steps for 9,
+  only with 3 steps for 6; the 3D error 0.1 m worse for 28, better for 30; ellipsoid coverage
+  within +-0.5 points; and floor accuracy 91.9 / 91.9 % and 92.2 / 92.1 % in two
+  1,500-receiver studies (seeds 0 and 1, ``diffpos reproduce --quick``); 2 steps lose floors
+  (-4 of 512 at 8 anchors). Measured and *not* taken (each loses floors in paired runs, 8
+  anchors, 512 fixes): dropping the 5 grid cells (-5 floors), screening a floor's grid cells
+  only when its closed-form starts come within 30 nats of the best floor (-3; even within 200
+  nats: -2: a grid cell sometimes rescues the true floor when all its closed-form starts
+  fail), one kept start per floor (-1; at 4 anchors 4 vs 9), a range-only pre-screen (its
+  ranks are unrelated to the SNR-aware screen's), dropping screened rows by their cost after
+  1-2 steps (a row 10^4 nats behind after 2 steps can end first).
 * **Same-edge dominance** (:mod:`._mnls_rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
@@ -578,7 +589,9 @@ def mnls(
     grid_shape : (int, int)
         Coarse start grid (cells along x, along y) per floor.
     keep_starts : int
-        Grid cells refined per floor.
+        Closed-form (or caller's) starts refined per floor, by their SNR-aware screened cost;
+        with ``snr_db`` and ``radio`` the best grid cell (screened with the ranges only) is
+        refined beside them.
     max_iter : int
         Levenberg-Marquardt iterations per start.
     false_alarm_probability : float
