@@ -45,8 +45,9 @@ stated otherwise):
   0.1 m better for 162, worse for 51; ellipsoid coverage +0.8 to +1.6 points; two
   1,500-receiver studies (``diffpos reproduce --quick``, seeds 0 and 1): floor 91.9 -> 92.3 %,
   92.2 -> 92.5 %, p80 0.57 -> 0.55 m, 0.55 -> 0.52 m. Screening every start with the ranges
-  only loses floors at 4 anchors (-11 net of 1,024); all but the straight-line and image
-  starts gave +13 floors but -1.1 points of coverage at 4 anchors (not taken: undecided). Cut
+  only loses floors at 4 anchors (-11 net of 1,024); with the SNR at the straight-line and
+  image starts only: +13 floors of 1,024 synthetic fixes at 4 anchors, but in the two studies
+  floor 92.3 -> 91.6 %, 92.5 -> 91.2 % and coverage -1.5 / -0.9 points (not taken). Cut
   without changing answers: the start's terms computed once (were twice), the SNR predicted
   for the linked pairs only, re-scoring only floors within ``RESCORE_NATS`` (512 synthetic
   fixes each at 4 and 8 anchors and a 1,500-receiver study: identical positions and floors).
