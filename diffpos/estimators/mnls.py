@@ -21,16 +21,48 @@ stated otherwise):
   ``sqrt((x_a - x)^2 + (rho_a + rho)^2)``, ``rho`` the distance to the edge line: a
   straight-line multilateration in the (x, rho) half-plane) and "diffraction over this edge,
   then the ceiling" (the same for the node's ceiling image). Optionally a caller's start
-  ``x0_m`` (a tracker's prediction). Every cell gets ``SCREEN_ITER`` LM steps with the SNR
-  terms of its starting point (a cell's cost before any step says little: a metre off,
-  every link picks the wrong mechanism); the ``keep_starts`` best per floor are re-scored
-  with the SNR at their screened point; floors whose best is ``PRUNE_NATS`` above the best
-  floor's keep that mode with zero posterior, the others run up to ``max_iter`` LM steps
-  (a hypothesis stops when an accepted step is below ``CONVERGED_M``). Measured on the
-  default study (seed 0, receivers subsampled): the edge starts took the floor accuracy from
-  89.0 % to 93.0 % (400 receivers), the edge + ceiling starts from 89.8 % to 91.7 % (1,500
-  receivers, 4 x 2 grid); with a start at the truth it would be 92.9 %: the remaining floor
-  misses are mostly ambiguity, not search.
+  ``x0_m`` (a tracker's prediction). Every cell gets ``SCREEN_ITER`` LM steps (a cell's cost
+  before any step says little: a metre off, every link picks the wrong mechanism), the
+  closed-form and caller's starts with the SNR terms of their starting point, the remaining
+  grid cells with the ranges only; per floor the ``keep_starts`` best of the former and the
+  best grid cell are re-scored with the SNR at their screened point (only on floors whose best
+  screened cost is within ``RESCORE_NATS`` of the best floor's; the others are dropped);
+  floors whose best is ``PRUNE_NATS`` above the best floor's keep that mode with zero
+  posterior, the others run up to ``max_iter`` LM steps (a hypothesis stops when an accepted
+  step is below ``CONVERGED_M``). Measured on the default study (seed 0, receivers
+  subsampled): the edge starts took the floor accuracy from 89.0 % to 93.0 % (400 receivers),
+  the edge + ceiling starts from 89.8 % to 91.7 % (1,500 receivers, 4 x 2 grid); with a start
+  at the truth it would be 92.9 %: the remaining floor misses are mostly ambiguity, not
+  search.
+* **Search cost** (``benchmarks/bench_mnls.py --stages``: node-anchor pairs through the path
+  model and the SNR prediction per fix and stage). The screen is most of both: every start of
+  every floor gets ``SCREEN_ITER + 1`` path-model evaluations, every closed-form start one SNR
+  prediction. 8 anchors (``bench_estimator_cost.py``'s layout, 512 fixes, seed 1), per fix:
+  path-model pairs 3,116 -> 2,214, SNR pairs 594 -> 367 (screen 480 -> 265). Grid cells with
+  the ranges only (were with the SNR, and the ``keep_starts`` best of all cells went on): SNR
+  pairs -30 % at 8 anchors, -20 % at 4, and better answers: of 3,072 paired synthetic fixes (4
+  and 8 anchors, seeds 0-2) the floor right only with it for 39, only without for 28; 3D error
+  0.1 m better for 162, worse for 51; ellipsoid coverage +0.8 to +1.6 points; two
+  1,500-receiver studies (``diffpos reproduce --quick``, seeds 0 and 1): floor 91.9 -> 92.3 %,
+  92.2 -> 92.5 %, p80 0.57 -> 0.55 m, 0.55 -> 0.52 m. Screening every start with the ranges
+  only loses floors at 4 anchors (-11 net of 1,024); with the SNR at the straight-line and
+  image starts only: +13 floors of 1,024 synthetic fixes at 4 anchors, but in the two studies
+  floor 92.3 -> 91.6 %, 92.5 -> 91.2 % and coverage -1.5 / -0.9 points (not taken). Cut
+  without changing answers: the start's terms computed once (were twice), the SNR predicted
+  for the linked pairs only, re-scoring only floors within ``RESCORE_NATS`` (512 synthetic
+  fixes each at 4 and 8 anchors and a 1,500-receiver study: identical positions and floors).
+  ``SCREEN_ITER`` 4 -> 3 changes ~5 % of the fixes, in both directions: of 3,072 paired
+  synthetic fixes (4 and 8 anchors, seeds 0-2), the floor is right only with 4 steps for 9,
+  only with 3 steps for 6; the 3D error 0.1 m worse for 28, better for 30; ellipsoid coverage
+  within +-0.5 points; and floor accuracy 91.9 / 91.9 % and 92.2 / 92.1 % in two
+  1,500-receiver studies (seeds 0 and 1, ``diffpos reproduce --quick``); 2 steps lose floors
+  (-4 of 512 at 8 anchors). Measured and *not* taken (each loses floors in paired runs, 8
+  anchors, 512 fixes): dropping the 5 grid cells (-5 floors), screening a floor's grid cells
+  only when its closed-form starts come within 30 nats of the best floor (-3; even within 200
+  nats: -2: a grid cell sometimes rescues the true floor when all its closed-form starts
+  fail), one kept start per floor (-1; at 4 anchors 4 vs 9), a range-only pre-screen (its
+  ranks are unrelated to the SNR-aware screen's), dropping screened rows by their cost after
+  1-2 steps (a row 10^4 nats behind after 2 steps can end first).
 * **Same-edge dominance** (:mod:`._mnls_rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
@@ -85,6 +117,8 @@ stated otherwise):
 
 from __future__ import annotations
 
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -121,7 +155,7 @@ OUTLIER_PRIOR = 0.02
 #: Levenberg-Marquardt iterations of the refinement with the SNR-chosen mechanisms held.
 REFINE_ITER = 6
 #: Levenberg-Marquardt steps from every grid cell before the best ``keep_starts`` go on.
-SCREEN_ITER = 4
+SCREEN_ITER = 3
 #: An accepted LM step shorter than this (max over x, y, z) ends a hypothesis's iterations [m]
 #: (far below any range sigma).
 CONVERGED_M = 1e-4
@@ -130,8 +164,40 @@ SNR_EVERY = 4
 #: A floor whose best screened cost exceeds the best floor's by this much [nats] is not
 #: refined (posterior odds below exp(-PRUNE_NATS) before refinement).
 PRUNE_NATS = 30.0
+#: The kept cells of a floor are re-scored with the SNR only when its best screened cost is
+#: within this much of the best floor's [nats] (the others are not refined).
+RESCORE_NATS = 2 * PRUNE_NATS
 #: Default false-alarm probability of the residual test.
 FALSE_ALARM_PROBABILITY = 1e-3
+#: Per-stage counters (``benchmarks/bench_mnls.py --stages``): ``None`` (off, the default) or
+#: a dict that :func:`mnls` fills with ``stage -> {"paths": node-anchor pairs through the
+#: path model, "snr": pairs through pair_snr_db, "cpu_s", "paths_cpu_s", "snr_cpu_s": thread
+#: CPU time of the stage and of those two calls in it [s]}``; stages ``starts``, ``screen``,
+#: ``rescore``, ``refine``, ``final``.
+STAGE_STATS: dict | None = None
+_STAGE = ["starts"]  # the stage being counted
+
+
+@contextmanager
+def _stage(name: str):
+    """Count the enclosed work under stage ``name`` when :data:`STAGE_STATS` is on."""
+    if STAGE_STATS is None:
+        yield
+        return
+    prev, _STAGE[0] = _STAGE[0], name
+    c0 = time.thread_time()
+    try:
+        yield
+    finally:
+        _count("cpu_s", time.thread_time() - c0)
+        _STAGE[0] = prev
+
+
+def _count(key: str, value: float) -> None:
+    if STAGE_STATS is not None:
+        d = STAGE_STATS.setdefault(_STAGE[0], dict.fromkeys(
+            ("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s"), 0.0))
+        d[key] += value
 
 
 @dataclass(frozen=True)
@@ -182,8 +248,11 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     """Paths at ``x`` (N, 3), mechanism choice and the cost terms of every link: the
     compiled kernel (:func:`diffpos._kernels.mnls_nb.link_terms_kernel`) on the path model's
     output, the same operations as :func:`_link_terms_numpy` (the reference)."""
+    c0 = time.thread_time()
     ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
     n, m, k = ps.length_m.shape
+    _count("paths_cpu_s", time.thread_time() - c0)
+    _count("paths", n * m)
     b1 = lambda a: np.zeros((0, 0, 0), bool) if a is None else _c(a, bool)  # noqa: E731
     out = {"cost": np.empty((n, m)), "res": np.empty((n, m)), "w": np.empty((n, m)),
            "slot": np.empty((n, m), dtype=np.int64), "tail": np.empty((n, m), dtype=bool),
@@ -199,7 +268,7 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
         out["w"], out["slot"], out["tail"], out["none"], out["cand"], out["jac"])
     prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
     out["cost"] = out["cost"].sum(axis=-1) + prior
-    out["length"], out["jac_all"] = ps.length_m, ps.jacobian
+    out["length"] = ps.length_m
     return out
 
 
@@ -210,12 +279,24 @@ def _c(a, dtype=np.float64):
 
 
 def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
-    """Gaussian SNR cost of every slot at ``x``: measured vs predicted (:data:`SNR_SIGMA_DB`)."""
+    """Gaussian SNR cost of every slot at ``x``: measured vs predicted (:data:`SNR_SIGMA_DB`);
+    predicted for the links in the mask only (a link outside it costs nothing whatever its
+    terms; its cost and ``strong`` are 0 / False)."""
     if p.snr_meas is None or p.radio is None:
         return None
     from ..channel import pair_snr_db
 
-    pred = pair_snr_db(p.anchors, x, building=building, radio=p.radio)
+    c0 = time.thread_time()
+    m = p.mask
+    if m.all():
+        pred = pair_snr_db(p.anchors, x, building=building, radio=p.radio)
+    else:  # the linked pairs only, one anchor per row
+        xm = np.broadcast_to(x[:, None, :], p.anchors.shape)[m]
+        pm = pair_snr_db(p.anchors[m][:, None, :], xm, building=building, radio=p.radio)
+        pred = np.full((*m.shape, pm.shape[-1]), -np.inf)
+        pred[m] = pm[:, 0]
+    _count("snr_cpu_s", time.thread_time() - c0)
+    _count("snr", np.count_nonzero(m))
     meas = p.snr_meas[..., None]
     with np.errstate(invalid="ignore"):
         c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
@@ -227,7 +308,7 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
         c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
     c = np.where(np.isfinite(pred), c, np.inf)  # a slot that does not exist is not received
     p.strong = pred >= thr + SNR_SIGMA_DB  # surely detected at this hypothesis
-    return np.where(np.isfinite(p.snr_meas)[..., None], c, 0.0)
+    return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
 
 
 def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = None
@@ -237,20 +318,25 @@ def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = 
     (``t_init``: the terms at ``x``, SNR cost already in ``p``)."""
     n = x.shape[0]
     lam = np.full(n, 1e-3)
-    t = t_init if t_init is not None else _link_terms(p, x, building)
+    if t_init is None:  # the SNR cost at the start first: the terms are computed once
+        if p.snr_meas is not None:
+            p.snr_cost = _snr_cost(p, x, building)
+        t = _link_terms(p, x, building)
+    else:
+        t = t_init
     live = np.arange(n)
     q = p
     for i in range(iters):
         if live.size < q.r.shape[0]:  # drop the converged hypotheses
             q = _sub(p, live)
-        if p.snr_meas is not None and i % SNR_EVERY == 0 and (i > 0 or t_init is None):
+        if p.snr_meas is not None and i > 0 and i % SNR_EVERY == 0:
             q.snr_cost = _snr_cost(q, x[live], building)
             if q is not p:
                 p.snr_cost[live], p.strong[live] = q.snr_cost, q.strong
             tl = _link_terms(q, x[live], building)
             for k in t:
                 t[k][live] = tl[k]
-        tl = {k: v[live] for k, v in t.items()}
+        tl = t if live.size == n else {k: t[k][live] for k in ("cost", "w", "res", "jac")}
         xl = x[live]
         ws = tl["w"] / q.sig**2
         h = np.einsum("nm,nmi,nmj->nij", ws, tl["jac"], tl["jac"])
@@ -312,10 +398,115 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     g = grid.shape[0]
     floors = np.tile(np.repeat(np.arange(nf), g), b)  # (B*F*G,)
     rep = nf * g
-    p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
-                  np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
-                  building, lam, np.repeat(excess, rep, axis=0), wavelength)
-    x = np.empty((b * rep, 3))
+    with _stage("starts"):
+        p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
+                      np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
+                      building, lam, np.repeat(excess, rep, axis=0), wavelength)
+        x, closed = _start_points(p0, grid, building, b, x0)
+    # screening: a few LM steps from every cell (a cell's cost before any step says little:
+    # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
+    # the closed-form starts' starting points (they steer the mechanism choice: without them
+    # the floor accuracy drops by 1-4 points); the grid cells with ranges only
+    if snr is not None and radio is not None:
+        p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
+    split = closed.reshape(b, nf, g) if p0.snr_meas is not None else None
+    if split is not None and not (split.sum(-1).min() >= keep and (~split).sum(-1).min() >= 1):
+        split = None  # too few closed-form starts or no grid cell: every start with the SNR
+    with _stage("screen"):
+        x, t0 = _screen(p0, x, None if split is None else closed, building)
+    with _stage("rescore"):
+        c0 = t0["cost"].reshape(b, nf, g)
+        best = _kept(c0, split, keep)  # (B, F, keep (+ 1 grid cell))
+        keep = best.shape[-1]
+        rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g
+                + best).ravel()
+        p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
+                     building, lam, p0.excess_db[rows], wavelength)
+        x = x[rows]
+        t = {k: v[rows] for k, v in t0.items()}
+        if snr is not None and radio is not None:  # the kept cells scored with the SNR too
+            p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
+            t = _rescore(p, x, t, c0, keep, building)
+        # floors whose best kept cost is PRUNE_NATS above the best floor's are not refined
+        fbest = np.min(t["cost"].reshape(b, nf, keep), axis=-1)
+        active = fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS  # (B, F)
+    with _stage("refine"):
+        sub = np.flatnonzero(np.repeat(active.ravel(), keep))
+        ps = _take(p, sub)
+        if p.snr_cost is not None:
+            ps.snr_meas, ps.radio = p.snr_meas[sub], radio
+            ps.snr_cost, ps.strong = p.snr_cost[sub], p.strong[sub]
+        x[sub], ts = _lm(ps, x[sub], building, iters,
+                         t_init={k: v[sub] for k, v in t.items()})
+        for k in t:
+            t[k][sub] = ts[k]
+        cost = t["cost"].reshape(b, nf, keep)
+        pick = np.argmin(cost, axis=-1)  # best start per floor
+    sel = ((np.arange(b)[:, None] * nf + np.arange(nf)[None, :]) * keep + pick).ravel()
+    return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
+
+
+def _screen(p0: _Problem, x: FloatArray, closed, building) -> tuple[FloatArray, dict]:
+    """:data:`SCREEN_ITER` LM steps from every start ``x``; with the measured SNR, the SNR
+    terms at the start held for the steps: of every start (``closed`` None) or only of the
+    closed-form and caller's starts (``closed``, a row mask; the grid cells' SNR cost is 0
+    and nothing is ``strong`` there: screened with the ranges only)."""
+    if closed is None:
+        return _lm(p0, x, building, SCREEN_ITER)
+    rows = np.flatnonzero(closed)
+    q = _sub(p0, rows)
+    q.snr_cost = _snr_cost(q, x[rows], building)
+    p0.snr_cost = np.zeros((*p0.mask.shape, q.snr_cost.shape[-1]))
+    p0.strong = np.zeros(p0.snr_cost.shape, dtype=bool)
+    p0.snr_cost[rows], p0.strong[rows] = q.snr_cost, q.strong
+    return _lm(p0, x, building, SCREEN_ITER, t_init=_link_terms(p0, x, building))
+
+
+def _kept(c0: FloatArray, split, keep: int) -> NDArray[np.int_]:
+    """Per fix and floor, the cells that go on, (B, F, keep) or (B, F, keep + 1): the
+    ``keep`` lowest screened costs ``c0`` (B, F, G); with ``split`` (B, F, G: the cells
+    screened with the SNR), the ``keep`` lowest of those and the lowest grid cell (its
+    range-only cost is not comparable with the others before the re-scoring)."""
+    if split is None:
+        return np.argsort(c0, axis=-1, kind="stable")[..., :keep]
+    b1 = np.argsort(np.where(split, c0, np.inf), axis=-1, kind="stable")[..., :keep]
+    b2 = np.argsort(np.where(split, np.inf, c0), axis=-1, kind="stable")[..., :1]
+    return np.concatenate([b1, b2], axis=-1)
+
+
+def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, building
+             ) -> dict:
+    """The kept cells' terms with the SNR at their screened points, for the floors whose
+    screened best ``c0`` (B, F, G) is within :data:`RESCORE_NATS` of the fix's best floor;
+    the other floors' cells get an infinite cost."""
+    f0 = np.min(c0, axis=-1)
+    go = np.repeat((f0 <= np.min(f0, axis=-1, keepdims=True) + RESCORE_NATS).ravel(), keep)
+    if go.all():
+        p.snr_cost = _snr_cost(p, x, building)
+        return _link_terms(p, x, building)
+    rows = np.flatnonzero(go)
+    q = _sub(p, rows)
+    q.snr_cost = _snr_cost(q, x[rows], building)
+    tq = _link_terms(q, x[rows], building)
+    n, m, k = t["length"].shape
+    p.snr_cost, p.strong = np.zeros((n, m, k)), np.zeros((n, m, k), dtype=bool)
+    p.snr_cost[rows], p.strong[rows] = q.snr_cost, q.strong
+    t = {key: v.copy() for key, v in t.items()}
+    for key in t:
+        t[key][rows] = tq[key]
+    t["cost"][~go] = np.inf
+    return t
+
+
+def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
+                  ) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """The start of every row of ``p0`` (B fixes x F floors x G cells): the grid at mid-floor
+    height with seven cells replaced by the closed-form starts, and the caller's start; and
+    which rows hold a closed-form or the caller's start (the others: grid cells)."""
+    nf = building.n_floors
+    g = grid.shape[0]
+    x = np.empty((b * nf * g, 3))
+    closed = np.zeros(b * nf * g, dtype=bool)
     x[:, :2] = np.tile(grid, (b * nf, 1))
     x[:, 2] = p0.z_mid
     # the last cell of every floor is replaced by a straight-line (LoS) multilateration at
@@ -323,6 +514,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     # height) are a few cm to dm longer than the straight line, so it lands in their basin
     last = np.arange(b * nf) * g + g - 1
     x[last] = _los_start(p0, last, building)
+    closed[last] = True
     # two more cells: a free-z straight-line fit is the node's image when the links are
     # specular; the node is then its ceiling image (2 z_c - z) or, for the ceiling-floor double
     # bounce, 2H below it (image method), clipped into the floor
@@ -332,6 +524,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
             x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
                                                p0.hi[last])
+            closed[last - (g - 1) + cell] = True
     # per floor and window edge, the closed-form start of "every link diffracts over this
     # edge" (the Fermat path over a horizontal edge unfolds to a straight line in (x, rho))
     # and (two more cells) of "diffraction over the edge, then the ceiling" (the node's
@@ -343,44 +536,14 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
                          (g - 6, z_lo, zc), (g - 7, z_lo + building.window_height_m, zc)):
         if cell >= 1:
             x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm)
+            closed[last - (g - 1) + cell] = True
     if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
         has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
         k0 = np.clip(building.floor_index(x0[has, 2]), 0, nf - 1)
         row0 = (has * nf + k0) * g
         x[row0] = np.clip(x0[has], p0.lo[row0], p0.hi[row0])
-    # screening: a few LM steps from every cell (a cell's cost before any step says little:
-    # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
-    # the cells' starting points (they steer the mechanism choice: without them the floor
-    # accuracy drops by 1-4 points)
-    if snr is not None and radio is not None:
-        p0.snr_meas, p0.radio = np.repeat(snr, rep, axis=0), radio
-    x, t0 = _lm(p0, x, building, SCREEN_ITER)
-    c0 = t0["cost"].reshape(b, nf, g)
-    best = np.argsort(c0, axis=-1, kind="stable")[..., :keep]  # (B, F, keep)
-    rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g + best).ravel()
-    p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
-                 building, lam, p0.excess_db[rows], wavelength)
-    x = x[rows]
-    t = {k: v[rows] for k, v in t0.items()}
-    if snr is not None and radio is not None:  # the kept cells scored with the SNR too
-        p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
-        p.snr_cost = _snr_cost(p, x, building)
-        t = _link_terms(p, x, building)
-    # floors whose best kept cost is PRUNE_NATS above the best floor's are not refined
-    fbest = np.min(t["cost"].reshape(b, nf, keep), axis=-1)
-    active = fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS  # (B, F)
-    sub = np.flatnonzero(np.repeat(active.ravel(), keep))
-    ps = _take(p, sub)
-    if p.snr_cost is not None:
-        ps.snr_meas, ps.radio = p.snr_meas[sub], radio
-        ps.snr_cost, ps.strong = p.snr_cost[sub], p.strong[sub]
-    x[sub], ts = _lm(ps, x[sub], building, iters, t_init={k: v[sub] for k, v in t.items()})
-    for k in t:
-        t[k][sub] = ts[k]
-    cost = t["cost"].reshape(b, nf, keep)
-    pick = np.argmin(cost, axis=-1)  # best start per floor
-    sel = ((np.arange(b)[:, None] * nf + np.arange(nf)[None, :]) * keep + pick).ravel()
-    return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
+        closed[row0] = True
+    return x, closed
 
 
 def mnls(
@@ -427,7 +590,9 @@ def mnls(
     grid_shape : (int, int)
         Coarse start grid (cells along x, along y) per floor.
     keep_starts : int
-        Grid cells refined per floor.
+        Closed-form (or caller's) starts refined per floor, by their SNR-aware screened cost;
+        with ``snr_db`` and ``radio`` the best grid cell (screened with the ranges only) is
+        refined beside them.
     max_iter : int
         Levenberg-Marquardt iterations per start.
     false_alarm_probability : float
@@ -469,15 +634,14 @@ def mnls(
     step = max(int(chunk_size), 1)
     for lo in range(0, solvable.size, step):
         idx = solvable[lo:lo + step]
-        _finish(out, idx, *_solve_chunk(bi.anchors_m[idx], bi.ranges_m[idx], sig[idx],
-                                         bi.mask[idx], excess[idx], building, grid=grid,
-                                         keep=keep_starts, wavelength=wavelength,
-                                         iters=max_iter, lam=lam, radio=radio,
-                                         snr=None if snr_all is None else snr_all[idx],
-                                         x0=None if x0 is None else x0[idx]),
-                nf=nf,
-                snr_meas=None if snr_db is None else snr_all[idx], building=building,
-                radio=radio)
+        modes = _solve_chunk(bi.anchors_m[idx], bi.ranges_m[idx], sig[idx], bi.mask[idx],
+                             excess[idx], building, grid=grid, keep=keep_starts,
+                             wavelength=wavelength, iters=max_iter, lam=lam, radio=radio,
+                             snr=None if snr_all is None else snr_all[idx],
+                             x0=None if x0 is None else x0[idx])
+        with _stage("final"):
+            _finish(out, idx, *modes, nf=nf, snr_meas=None if snr_db is None else snr_all[idx],
+                    building=building, radio=radio)
     return _result(out, bi, false_alarm_probability)
 
 
