@@ -63,7 +63,14 @@ from ._kernels.channel_nb import channel_params, eval_snr_kernel
 from .constants import SPEED_OF_LIGHT_M_S
 from .gtd import diffracted_field, wavenumber_rad_m
 from .linkbudget import db_to_linear, ranging_crlb_m, snr_db
-from .paths import MECHANISMS, FloorFrame, diffracted_path, direct_opening, specular_path
+from .paths import (
+    MECHANISMS,
+    FloorFrame,
+    diffracted_path,
+    direct_opening,
+    first_arrival_paths,
+    specular_path,
+)
 from .scenario import ITU_MATERIALS, Building, Radio, Scenario
 
 __all__ = [
@@ -76,6 +83,7 @@ __all__ = [
     "fresnel_coefficients",
     "itu_permittivity",
     "mpc_statistics",
+    "pair_first_arrival",
     "pair_snr_db",
     "scenario_channel",
     "slab_loss_db",
@@ -603,12 +611,7 @@ def emulate_channel(
     nodes = np.atleast_2d(np.asarray(nodes_m, dtype=np.float64))
     if anchors.shape[-1] != 3 or nodes.shape[-1] != 3:
         raise ValueError("anchors_m and nodes_m must have shape (M, 3) and (N, 3)")
-    if np.any(anchors[:, 1] >= 0):
-        raise ValueError("anchors_m: every anchor must be outside the building (y < 0)")
-    bad = ~building.inside(nodes)
-    if np.any(bad):
-        raise ValueError(f"nodes_m: {int(bad.sum())} node(s) outside the building's floors, "
-                         f"e.g. {nodes[bad][0].tolist()}")
+    _check_pairs(anchors, nodes, building)
     c = _Ctx(building, radio, nodes, anchors)
     length, gain, aod, aoa, valid, power, snr = _slots(c, radio)
     exists = valid & (snr >= radio.detection_snr_db)
@@ -652,16 +655,32 @@ def first_arrival(
     -------
     FirstArrival
     """
-    exists = channel.valid & (channel.snr_db >= radio.detection_snr_db)
-    snr = np.where(exists, channel.snr_db, -np.inf)
+    d = _detect(channel.valid, channel.snr_db, channel.delay_s, channel.length_m, radio, rng)
+    measured, true_path, snr_f, sigma, slot, detected = d
+    take = lambda arr: np.take_along_axis(arr, slot[..., None], axis=-1)[..., 0]  # noqa: E731
+    return FirstArrival(
+        range_m=measured, true_path_m=true_path, snr_db=snr_f, sigma_m=sigma,
+        mpc_class=np.where(detected, channel.mpc_class[slot], 0).astype(np.int8),
+        slot=np.where(detected, slot, -1), aoa_deg=np.where(detected, take(channel.aoa_deg),
+                                                            np.nan),
+        detected=detected,
+    )
+
+
+def _detect(valid: NDArray, snr_db: FloatArray, delay_s: FloatArray, length_m: FloatArray,
+            radio: Radio, rng: np.random.Generator | None):
+    """The detector of :func:`first_arrival` on slot arrays (..., K): measured range, true
+    path, SNR, sigma, slot (argmin, meaningful where detected) and detection (..., )."""
+    exists = valid & (snr_db >= radio.detection_snr_db)
+    snr = np.where(exists, snr_db, -np.inf)
     pmax = snr.max(axis=-1)
     thr = np.maximum(pmax - radio.fap_threshold_db, radio.detection_snr_db)
     ok = exists & (snr >= thr[..., None])
-    delay = np.where(ok, channel.delay_s, np.inf)
+    delay = np.where(ok, delay_s, np.inf)
     slot = np.argmin(delay, axis=-1)
     detected = np.any(ok, axis=-1)
     take = lambda arr: np.take_along_axis(arr, slot[..., None], axis=-1)[..., 0]  # noqa: E731
-    true_path = np.where(detected, take(channel.length_m), np.nan)
+    true_path = np.where(detected, take(length_m), np.nan)
     snr_f = np.where(detected, take(snr), -np.inf)
     crlb = ranging_crlb_m(db_to_linear(snr_f), radio.bandwidth_hz)
     sigma = np.where(detected, np.hypot(crlb, radio.range_error_floor_m), np.inf)
@@ -671,13 +690,57 @@ def first_arrival(
         rng_noise = rng.standard_normal(true_path.shape)
     with np.errstate(invalid="ignore"):
         measured = np.where(detected, true_path + sigma * rng_noise, np.nan)
-    return FirstArrival(
-        range_m=measured, true_path_m=true_path, snr_db=snr_f, sigma_m=sigma,
-        mpc_class=np.where(detected, channel.mpc_class[slot], 0).astype(np.int8),
-        slot=np.where(detected, slot, -1), aoa_deg=np.where(detected, take(channel.aoa_deg),
-                                                            np.nan),
-        detected=detected,
-    )
+    return measured, true_path, snr_f, sigma, slot, detected
+
+
+def pair_first_arrival(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
+                       radio: Radio, rng: np.random.Generator | None = None
+                       ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray]:
+    """:func:`first_arrival` of :func:`emulate_channel` for P (anchor, node) pairs, compiled.
+
+    The detector and the noise draws are those of :func:`first_arrival` (same generator
+    calls, same shapes); the slot SNRs come from the compiled :func:`pair_snr_db` and the
+    slot lengths from the compiled path model (:func:`diffpos.paths.first_arrival_paths`,
+    the emulator's own geometry), so the result equals the numpy emulator's to rounding
+    (``tests/core/test_channel_kernel.py``) at ~10x less CPU: what an emulated anchor needs per
+    epoch (no gains, phases or angles are kept).
+
+    Parameters
+    ----------
+    anchors_m, nodes_m : array_like, shape (P, 3) [m]
+        Pair ``p`` is anchor ``anchors_m[p]`` to node ``nodes_m[p]``.
+
+    Returns
+    -------
+    range_m, sigma_m, snr_db, true_path_m : ndarray, shape (P,)
+    detected : ndarray of bool, shape (P,)
+
+    Raises
+    ------
+    ValueError
+        As :func:`emulate_channel`: an anchor not outside or a node not inside the floors.
+    """
+    anchors = np.asarray(anchors_m, dtype=np.float64).reshape(-1, 3)
+    nodes = np.asarray(nodes_m, dtype=np.float64).reshape(-1, 3)
+    if anchors.shape != nodes.shape:
+        raise ValueError("anchors_m and nodes_m must have the same shape (P, 3)")
+    _check_pairs(anchors, nodes, building)
+    snr = pair_snr_db(anchors[:, None, :], nodes, building=building, radio=radio)[:, 0]
+    length = first_arrival_paths(nodes, anchors, building).length_m
+    valid = np.isfinite(snr)
+    length = np.where(valid, length, np.nan)
+    measured, true_path, snr_f, sigma, _, detected = _detect(valid, snr, length / _C, length,
+                                                             radio, rng)
+    return measured, sigma, snr_f, true_path, detected
+
+
+def _check_pairs(anchors: FloatArray, nodes: FloatArray, building: Building) -> None:
+    if np.any(anchors[:, 1] >= 0):
+        raise ValueError("anchors_m: every anchor must be outside the building (y < 0)")
+    bad = ~building.inside(nodes)
+    if np.any(bad):
+        raise ValueError(f"nodes_m: {int(bad.sum())} node(s) outside the building's floors, "
+                         f"e.g. {nodes[bad][0].tolist()}")
 
 
 def mpc_statistics(

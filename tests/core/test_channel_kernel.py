@@ -276,3 +276,60 @@ def test_mnls_fixes_unchanged_with_the_kernel(monkeypatch: pytest.MonkeyPatch) -
     np.testing.assert_array_equal(with_kernel.mechanism, with_numpy.mechanism)
     np.testing.assert_allclose(with_kernel.position_m, with_numpy.position_m, rtol=0, atol=1e-9)
     assert np.isfinite(with_kernel.position_m).all()
+
+
+# ------------------------------------------------------------------------------------------
+# the anchors' compiled first-arrival detector
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("bname", ["default", "tall_glass_parts", "slit_open"])
+def test_pair_first_arrival_equals_the_numpy_emulator(bname: str) -> None:
+    """:func:`diffpos.channel.pair_first_arrival` (compiled SNR + compiled path lengths) vs
+    :func:`emulate_channel` + :func:`first_arrival` on the same pairs with the same noise
+    draws: the same detections and first-arrival choice (true path equal to 1e-9 m: lengths
+    agree to rounding, so a different slot would differ by centimetres at least), SNR within
+    ``ATOL_DB``, measured ranges within 1e-9 m."""
+    b = BUILDINGS[bname]
+    r = RADIOS["patterns"] if bname == "tall_glass_parts" else RADIOS["isotropic"]
+    rng = np.random.default_rng(11)
+    nodes, anchors = _geometries(b, rng, 400, 1)
+    anchors = anchors[:, 0]
+    got = channel.pair_first_arrival(anchors, nodes, building=b, radio=r,
+                                     rng=np.random.default_rng(3))
+    # the numpy reference on the diagonal of one channel: pair p = (node p, anchor p)
+    ch = emulate_channel(anchors, nodes, building=b, radio=r)
+    idx = np.arange(len(nodes))
+    diag = dataclasses.replace(ch, **{f.name: getattr(ch, f.name)[idx, idx][:, None]
+                                      for f in dataclasses.fields(ch)
+                                      if isinstance(getattr(ch, f.name), np.ndarray)
+                                      and getattr(ch, f.name).ndim == 3})
+    fa = first_arrival(diag, radio=r, rng=np.random.default_rng(3))
+    rng_m, sigma, snr, true_path, det = got
+    assert np.array_equal(det, fa.detected[:, 0])
+    assert 0.3 < det.mean() <= 1.0  # a realistic mix of detected and undetected links
+    np.testing.assert_allclose(true_path, fa.true_path_m[:, 0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(snr[det], fa.snr_db[det, 0], rtol=0, atol=ATOL_DB)
+    np.testing.assert_allclose(rng_m, fa.range_m[:, 0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sigma[det], fa.sigma_m[det, 0], rtol=1e-9)
+    with pytest.raises(ValueError, match="outside the building"):
+        channel.pair_first_arrival(anchors[:1] * [1, -1, 1], nodes[:1], building=b, radio=r)
+
+
+def test_anchor_first_arrivals_kernel_equals_numpy() -> None:
+    """:func:`diffpos.emulation.first_arrivals` (what an anchor process measures per block of
+    epochs) with the compiled detector vs the numpy emulator: same detections, ranges within
+    1e-9 m from the same generator state, several epochs per call (the anchor moves)."""
+    from diffpos.emulation import first_arrivals
+    from diffpos.scenario import default_scenario
+
+    sc = default_scenario()
+    rng = np.random.default_rng(2)
+    nodes, anchors = _geometries(sc.building, rng, 3 * 40, 1)
+    nodes = nodes.reshape(3, 40, 3)
+    anchor_m = anchors[:3, 0]
+    a = first_arrivals(anchor_m, nodes, sc, rng=np.random.default_rng(9))
+    b = first_arrivals(anchor_m, nodes, sc, rng=np.random.default_rng(9), kernel=False)
+    assert np.array_equal(a[3], b[3])
+    for x, y in zip(a[:3], b[:3], strict=True):
+        np.testing.assert_allclose(x[a[3]], y[a[3]], rtol=0, atol=1e-9)
