@@ -15,7 +15,9 @@ Prints a table of wall-clock times (median of the repeats) on the paper's scenar
   the compiled kernel (``diffpos._kernels.channel_nb``), by this thread's CPU time per link
   (median of the repeats; the figure to compare on a shared machine), after a warm-up call;
   plus the kernel's first call in a fresh process (compile, or load numba's on-disk cache).
-  ``--snr-only`` runs just this part.
+  ``--snr-only`` runs just this part, with one more row: what an anchor process computes
+  per epoch (:func:`diffpos.emulation.first_arrivals`, one anchor to 50 nodes), the numpy
+  emulator vs the compiled per-pair detector (:func:`diffpos.channel.pair_first_arrival`).
 
 Measured 2026-11-27 05:40 UTC (``--snr-only``, 70,400 links, 3 repeats; shared 2-core x86_64
 VM, Python 3.11.7, load average 8-10 from other jobs), thread CPU per link:
@@ -24,7 +26,9 @@ VM, Python 3.11.7, load average 8-10 from other jobs), thread CPU per link:
     all links in one call                16.26      2.436      6.7x
     one node x 8 anchors per call      1561.77      2.679    583.0x
 
-(an earlier run at load 4.4: 13.7 / 2.45 us and 1250 / 2.9 us). numpy's per-call overhead
+(an earlier run at load 4.4: 13.7 / 2.45 us and 1250 / 2.9 us). Re-run 06:26 UTC at load 0.8
+with the anchor row: 15.35 / 2.04 us (7.5x), 1144.8 / 2.60 us (441x), anchor epoch of 50
+nodes 10.62 / 0.292 ms (36x). numpy's per-call overhead
 (~2,000 small array operations for the 18 slots) dominates one-node calls, which is what a
 single live M-NLS fix or a tracker epoch makes. The kernel's first call in a fresh process:
 6.9 s CPU with an empty numba cache (compile; 5.5 s at load 4), 0.25 s with the on-disk cache.
@@ -81,6 +85,7 @@ def snr_rows(sc, anchors: np.ndarray, nodes: np.ndarray, repeats: int) -> None:
             times[label] = float(np.median(ts))
         print(f"{name:<32} {1e6 * times['numpy']:9.2f} {1e6 * times['kernel']:9.3f} "
               f"{times['numpy'] / times['kernel']:7.1f}x")
+    anchor_epoch_rows(sc, anchors, nodes, repeats)
     with tempfile.TemporaryDirectory() as empty:
         for label, env in (("empty numba cache (compile)", {"NUMBA_CACHE_DIR": empty}),
                            ("numba's on-disk cache", {})):
@@ -88,6 +93,30 @@ def snr_rows(sc, anchors: np.ndarray, nodes: np.ndarray, repeats: int) -> None:
                                  text=True, check=True, env={**os.environ, **env}).stdout.split()
             print(f"kernel first call in a fresh process, {label}: import of diffpos "
                   f"{float(out[0]):.2f} s CPU, warm_channel {float(out[1]):.2f} s CPU")
+
+
+def anchor_epoch_rows(sc, anchors: np.ndarray, nodes: np.ndarray, repeats: int,
+                      n_nodes: int = 50, n_epochs: int = 40) -> None:
+    """What an anchor process computes per epoch: :func:`diffpos.emulation.first_arrivals`
+    of one anchor to ``n_nodes`` nodes, numpy emulator (``kernel=False``) vs the compiled
+    per-pair detector, thread CPU per anchor epoch (median of ``repeats``)."""
+    from diffpos.emulation import first_arrivals
+
+    nod = nodes[:: max(len(nodes) // n_nodes, 1)][:n_nodes][None]
+    times = {}
+    for kernel in (False, True):
+        first_arrivals(anchors[:1], nod, sc, rng=np.random.default_rng(0), kernel=kernel)
+        ts = []
+        for _ in range(repeats):
+            t = time.thread_time()
+            for k in range(n_epochs):
+                first_arrivals(anchors[k % len(anchors)][None], nod, sc,
+                               rng=np.random.default_rng(k), kernel=kernel)
+            ts.append((time.thread_time() - t) / n_epochs)
+        times[kernel] = float(np.median(ts))
+    print(f"{'anchor epoch, 1 x ' + str(nod.shape[1]) + ' nodes (ms)':<32} "
+          f"{1e3 * times[False]:9.2f} {1e3 * times[True]:9.3f} "
+          f"{times[False] / times[True]:7.1f}x")
 
 
 def main() -> None:
