@@ -124,7 +124,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._kernels.mnls_nb import link_terms_kernel
+from .._kernels.mnls_nb import link_terms_kernel, screen_kernel
+from .._kernels.paths_nb import building_planes
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..paths import DIFFRACTION_SLOTS, SPECULAR_SLOTS, first_arrival_paths
 from ._mnls_posterior import _information, _posterior
@@ -196,7 +197,7 @@ def _stage(name: str):
 def _count(key: str, value: float) -> None:
     if STAGE_STATS is not None:
         d = STAGE_STATS.setdefault(_STAGE[0], dict.fromkeys(
-            ("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s"), 0.0))
+            ("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s", "kernel_cpu_s"), 0.0))
         d[key] += value
 
 
@@ -391,7 +392,7 @@ def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength) -> _Pro
 
 
 def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, wavelength,
-                 snr=None, radio=None, x0=None):
+                 snr=None, radio=None, x0=None, kernel=False):
     """All floors x starts of B fixes; returns per-fix-per-floor modes and terms."""
     b = r.shape[0]
     nf = building.n_floors
@@ -413,7 +414,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     if split is not None and not (split.sum(-1).min() >= keep and (~split).sum(-1).min() >= 1):
         split = None  # too few closed-form starts or no grid cell: every start with the SNR
     with _stage("screen"):
-        x, t0 = _screen(p0, x, None if split is None else closed, building)
+        x, t0 = _screen(p0, x, None if split is None else closed, building, kernel=kernel)
     with _stage("rescore"):
         c0 = t0["cost"].reshape(b, nf, g)
         best = _kept(c0, split, keep)  # (B, F, keep (+ 1 grid cell))
@@ -423,7 +424,10 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
                      building, lam, p0.excess_db[rows], wavelength)
         x = x[rows]
-        t = {k: v[rows] for k, v in t0.items()}
+        if "res" in t0:
+            t = {k: v[rows] for k, v in t0.items()}
+        else:  # the kernel returned the costs only: the kept rows' terms at their points
+            t = _link_terms(_sub(p0, rows), x, building)
         if snr is not None and radio is not None:  # the kept cells scored with the SNR too
             p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
             t = _rescore(p, x, t, c0, keep, building)
@@ -446,20 +450,59 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
 
 
-def _screen(p0: _Problem, x: FloatArray, closed, building) -> tuple[FloatArray, dict]:
+def _screen(p0: _Problem, x: FloatArray, closed, building, kernel: bool = False
+            ) -> tuple[FloatArray, dict]:
     """:data:`SCREEN_ITER` LM steps from every start ``x``; with the measured SNR, the SNR
     terms at the start held for the steps: of every start (``closed`` None) or only of the
     closed-form and caller's starts (``closed``, a row mask; the grid cells' SNR cost is 0
-    and nothing is ``strong`` there: screened with the ranges only)."""
+    and nothing is ``strong`` there: screened with the ranges only). With ``kernel``, the
+    steps run in :func:`diffpos._kernels.mnls_nb.screen_kernel` and the terms returned hold
+    the ``cost`` only (the caller evaluates the rows it keeps)."""
+    if kernel and SCREEN_ITER <= SNR_EVERY:  # no SNR refresh within the screen's steps
+        if closed is None:
+            if p0.snr_meas is not None:
+                p0.snr_cost = _snr_cost(p0, x, building)
+        else:
+            _closed_snr(p0, x, closed, building)
+        return _screen_compiled(p0, x, building)
     if closed is None:
         return _lm(p0, x, building, SCREEN_ITER)
+    _closed_snr(p0, x, closed, building)
+    return _lm(p0, x, building, SCREEN_ITER, t_init=_link_terms(p0, x, building))
+
+
+def _closed_snr(p0: _Problem, x: FloatArray, closed, building) -> None:
+    """The SNR cost and ``strong`` flags of the ``closed`` rows at ``x``, 0 / False on the
+    other rows (set on ``p0``)."""
     rows = np.flatnonzero(closed)
     q = _sub(p0, rows)
     q.snr_cost = _snr_cost(q, x[rows], building)
     p0.snr_cost = np.zeros((*p0.mask.shape, q.snr_cost.shape[-1]))
     p0.strong = np.zeros(p0.snr_cost.shape, dtype=bool)
     p0.snr_cost[rows], p0.strong[rows] = q.snr_cost, q.strong
-    return _lm(p0, x, building, SCREEN_ITER, t_init=_link_terms(p0, x, building))
+
+
+def _screen_compiled(p0: _Problem, x: FloatArray, building) -> tuple[FloatArray, dict]:
+    """:data:`SCREEN_ITER` steps of :func:`_lm` with the SNR terms held, in one compiled
+    call; returns the points and ``{"cost": ...}`` there."""
+    n = x.shape[0]
+    x = _c(x).copy()
+    cost = np.empty(n)
+    evals = np.empty(n, dtype=np.int64)
+    e3 = np.zeros((0, 0, 0))
+    c0 = time.thread_time()
+    screen_kernel(
+        _c(p0.anchors), _c(p0.r), _c(p0.sig), _c(p0.mask, bool),
+        _c(np.broadcast_to(p0.tail_a, p0.r.shape)), _c(p0.excess_db), _c(p0.floor),
+        _c(p0.lo), _c(p0.hi), _c(p0.z_mid), float(p0.prior_var), float(p0.lam),
+        float(p0.wavelength_m), float(SNR_MARGIN_DB), np.array(building_planes(building)),
+        e3 if p0.snr_cost is None else _c(p0.snr_cost),
+        e3.astype(bool) if p0.strong is None else _c(p0.strong, bool),
+        _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, int(SCREEN_ITER), float(CONVERGED_M),
+        x, cost, evals)
+    _count("kernel_cpu_s", time.thread_time() - c0)
+    _count("paths", int(evals.sum()))
+    return x, {"cost": cost}
 
 
 def _kept(c0: FloatArray, split, keep: int) -> NDArray[np.int_]:
@@ -563,6 +606,7 @@ def mnls(
     false_alarm_probability: float = FALSE_ALARM_PROBABILITY,
     chunk_size: int = 256,
     x0_m: ArrayLike | None = None,
+    kernel: bool = True,
 ) -> MnlsResult:
     """Batched mechanism-aware position fixes (module docstring).
 
@@ -602,6 +646,10 @@ def mnls(
     x0_m : array_like, shape (B, 3) or (3,), optional [m]
         An extra start per fix (e.g. a tracker's prediction), searched on the floor it lies
         on beside the regular starts (NaN rows: none).
+    kernel : bool
+        Screen with the compiled kernel (:func:`diffpos._kernels.mnls_nb.screen_kernel`, the
+        default) or with the numpy/numba reference steps (``False``; the same answers,
+        positions to rounding: tests/core/test_mnls.py).
 
     Returns
     -------
@@ -638,7 +686,7 @@ def mnls(
                              excess[idx], building, grid=grid, keep=keep_starts,
                              wavelength=wavelength, iters=max_iter, lam=lam, radio=radio,
                              snr=None if snr_all is None else snr_all[idx],
-                             x0=None if x0 is None else x0[idx])
+                             x0=None if x0 is None else x0[idx], kernel=kernel)
         with _stage("final"):
             _finish(out, idx, *modes, nf=nf, snr_meas=None if snr_db is None else snr_all[idx],
                     building=building, radio=radio)
