@@ -1,4 +1,4 @@
-"""Compiled M-NLS kernels: the link terms and the screen's Levenberg-Marquardt steps.
+"""Compiled M-NLS kernels: the link terms and the Levenberg-Marquardt steps.
 
 :func:`link_terms_kernel` is :func:`diffpos.estimators.mnls._link_terms_numpy` in one loop.
 For every hypothesis row and link, the candidate mechanisms (existence, never later than the
@@ -8,11 +8,11 @@ knife-edge SNR bound, an optional restriction), the max-mixture cost of every ca
 residual, Jacobian and IRLS weight: the same operations as the numpy reference, which stays
 in :mod:`diffpos.estimators.mnls` and is what the tests compare against
 (tests/core/test_mnls.py: equal slots and flags, values to rounding). One link's choice is
-:func:`link_choice`, shared with the screen kernel.
+:func:`link_choice`, shared with the LM kernel.
 
-:func:`screen_kernel` is the screen of M-NLS (``mnls._lm`` for ``SCREEN_ITER`` steps with the
-SNR terms held, as the screen runs it) for every row in one loop: the path model per row and
-slot (:func:`diffpos._kernels.paths_nb.slot_path`, the operations of ``paths_kernel``), the
+:func:`lm_kernel` is M-NLS's Levenberg-Marquardt (``mnls._lm``; the SNR terms held: the
+caller refreshes them between calls every ``SNR_EVERY`` steps) for every row in one loop:
+the path model per row and slot (:func:`diffpos._kernels.paths_nb.slot_path`, the operations of ``paths_kernel``), the
 link choice above, the cost summed in numpy's order (pairwise over >= 8 links), the damped
 3x3 normal equations in einsum's order solved by LAPACK's ``gesv`` (numba's
 ``np.linalg.solve``: bitwise numpy's on the tested matrices), the box clamp, acceptance, the
@@ -20,7 +20,7 @@ damping update and the convergence test of ``mnls._lm``. Links outside the mask 
 evaluated (they add exact zeros to the reference's sums). Its reference is the numpy/numba
 path in :mod:`diffpos.estimators.mnls` (``mnls(..., kernel=False)``; tests/core/test_mnls.py).
 
-Fixed compiled signatures (:data:`SIGNATURE`, :data:`SCREEN_SIGNATURE`, C-contiguous inputs);
+Fixed compiled signatures (:data:`SIGNATURE`, :data:`LM_SIGNATURE`, C-contiguous inputs);
 ``cache=True``.
 """
 
@@ -33,8 +33,7 @@ from numba import njit, types
 
 from .paths_nb import N_SLOTS, edge_axis, row_planes, slot_path
 
-__all__ = ["SCREEN_SIGNATURE", "SIGNATURE", "link_choice", "link_terms_kernel",
-           "screen_kernel"]
+__all__ = ["LM_SIGNATURE", "SIGNATURE", "link_choice", "link_terms_kernel", "lm_kernel"]
 
 _f8_1d = types.float64[::1]
 _f8_2d = types.float64[:, ::1]
@@ -59,16 +58,17 @@ SIGNATURE = types.void(
     _f8_2d, _f8_2d, _f8_2d, _i8_2d, _b1_2d, _b1_2d, _b1_3d, _f8_3d,
 )
 
-#: The one compiled signature of :func:`screen_kernel`.
-SCREEN_SIGNATURE = types.void(
+#: The one compiled signature of :func:`lm_kernel`.
+LM_SIGNATURE = types.void(
     _f8_3d, _f8_2d, _f8_2d, _b1_2d, _f8_2d, _f8_2d,  # anchors, r, sig, mask, tail_a, excess
     _f8_1d, _f8_2d, _f8_2d, _f8_1d,  # floor index (float), lo, hi (N, 3), z_mid (N,)
     types.float64, types.float64, types.float64, types.float64,  # prior var, lam, wl, margin
     _f8_1d,  # building planes (first z, H, sill, window h, x0, x1, depth)
-    _f8_3d, _b1_3d,  # snr_cost, strong (N, M, K) or (0, 0, 0)
+    _f8_3d, _b1_3d, _b1_3d,  # snr_cost, strong, allowed (N, M, K) or (0, 0, 0)
     _b1_1d, _b1_1d, _i8_2d,  # specular slots, diffraction slots, same-edge pairs
     types.int64, types.float64,  # LM steps, convergence step [m]
-    _f8_2d, _f8_1d, _i8_1d,  # in/out: x (N, 3); out: cost (N,), link evaluations (N,)
+    # in/out: x (N, 3), damping (N,), live (N,); out: cost (N,), link evaluations (N,)
+    _f8_2d, _f8_1d, _b1_1d, _f8_1d, _i8_1d,
 )
 
 
@@ -167,42 +167,38 @@ def link_terms_kernel(length, valid, jac_all, dev, outm, r, sig, mask, tail_a, e
 
 
 @njit(**_OPTS)
-def _pairwise_sum(a, lo, n):
-    """numpy's pairwise summation of ``a[lo:lo + n]`` (``np.add.reduce`` on a contiguous
-    axis: sequential below 8 terms, 8 accumulators up to 128, halves above)."""
+def _pairwise_sum(a, n):
+    """numpy's pairwise summation of ``a[:n]``, ``n <= 128`` (``np.add.reduce`` on a
+    contiguous axis: sequential below 8 terms, else 8 accumulators; above 128 numpy halves
+    recursively, which the caller leaves to the reference path)."""
     if n < 8:
         res = 0.0
         for i in range(n):
-            res += a[lo + i]
+            res += a[i]
         return res
-    if n <= 128:
-        r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
-        r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
-        i = 8
-        while i < n - (n % 8):
-            r0 += a[lo + i]
-            r1 += a[lo + i + 1]
-            r2 += a[lo + i + 2]
-            r3 += a[lo + i + 3]
-            r4 += a[lo + i + 4]
-            r5 += a[lo + i + 5]
-            r6 += a[lo + i + 6]
-            r7 += a[lo + i + 7]
-            i += 8
-        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-        while i < n:
-            res += a[lo + i]
-            i += 1
-        return res
-    n2 = n // 2
-    n2 -= n2 % 8
-    return _pairwise_sum(a, lo, n2) + _pairwise_sum(a, lo + n2, n - n2)
+    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[i]
+        r1 += a[i + 1]
+        r2 += a[i + 2]
+        r3 += a[i + 3]
+        r4 += a[i + 4]
+        r5 += a[i + 5]
+        r6 += a[i + 6]
+        r7 += a[i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[i]
+        i += 1
+    return res
 
 
 @njit(**_OPTS)
 def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mid, prior_var,
                lam, wavelength, margin_db, planes, edge, snr_cost, has_snr, strong, has_strong,
-               spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev, buf_out, cand,
+               allowed, has_allowed, spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev, buf_out, cand,
                gauss, tail, no_f, no_b, link_cost, h, g):
     """Cost of row ``i`` at ``(x0, x1, x2)`` (``mnls._link_terms``: links + floor prior) and
     its normal equations ``h`` (3, 3), ``g`` (3,) without the prior (``mnls._lm``'s einsums);
@@ -234,8 +230,9 @@ def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mi
         best, _slot, e, w, _tail, none, j0, j1, j2 = link_choice(
             buf_len, buf_valid, buf_jac, buf_dev, buf_out, r[i, j], sig[i, j], tail_a[i, j],
             excess[i, j], lam, wavelength, margin_db, snr_cost[i, j] if has_snr else no_f,
-            has_snr, strong[i, j] if has_strong else no_b, has_strong, no_b, False, spec,
-            diff, same_edge, cand, gauss, tail)
+            has_snr, strong[i, j] if has_strong else no_b, has_strong,
+            allowed[i, j] if has_allowed else no_b, has_allowed, spec, diff, same_edge, cand,
+            gauss, tail)
         link_cost[j] = best
         if none:
             continue  # weight 0: adds exact zeros in the reference
@@ -248,20 +245,22 @@ def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mi
             g[u] += (ws * e) * jj[u]
     dz = x2 - z_mid[i]
     prior = 0.5 * dz ** 2 / prior_var
-    return _pairwise_sum(link_cost, 0, m) + prior, n_eval
+    return _pairwise_sum(link_cost, m) + prior, n_eval
 
 
-@njit(SCREEN_SIGNATURE, **_OPTS)
-def screen_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior_var, lam,
-                  wavelength, margin_db, planes, snr_cost, strong, spec, diff, same_edge, iters,
-                  conv_m, x, cost_out, evals_out):
-    """``iters`` projected LM steps of ``mnls._lm`` from every row's start ``x`` (updated in
-    place), the SNR terms held; ``cost_out``: the cost at the returned point,
+@njit(LM_SIGNATURE, **_OPTS)
+def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior_var, lam,
+              wavelength, margin_db, planes, snr_cost, strong, allowed, spec, diff, same_edge,
+              iters, conv_m, x, damp, live, cost_out, evals_out):
+    """``iters`` projected LM steps of ``mnls._lm`` (SNR terms held) from ``x`` for every
+    ``live`` row: ``x``, the damping ``damp`` and ``live`` (False once converged or the
+    damping reaches 1e6) are updated in place; ``cost_out``: the cost at the returned point,
     ``evals_out``: links through the path model per row (module docstring)."""
     n, m = r.shape
     k = N_SLOTS
     has_snr = snr_cost.shape[0] > 0
     has_strong = strong.shape[0] > 0
+    has_allowed = allowed.shape[0] > 0
     edge = edge_axis(planes[4], planes[5])
     buf_len = np.empty(k)
     buf_valid = np.empty(k, dtype=np.bool_)
@@ -280,16 +279,22 @@ def screen_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, p
     g_new = np.empty(3)
     hd = np.empty((3, 3))
     rhs = np.empty(3)
+    step = np.empty(3)
+    xn = np.empty(3)
     eye = np.eye(3)
     for i in range(n):
+        evals_out[i] = 0
+        if not live[i]:
+            cost_out[i] = np.nan
+            continue
         xc0, xc1, xc2 = x[i, 0], x[i, 1], x[i, 2]
         cost, ne = _row_terms(i, xc0, xc1, xc2, anchors, r, sig, mask, tail_a, excess, floor,
                               z_mid, prior_var, lam, wavelength, margin_db, planes, edge,
-                              snr_cost, has_snr, strong, has_strong, spec, diff, same_edge,
-                              buf_len, buf_valid, buf_jac, buf_dev, buf_out, cand, gauss, tail,
-                              no_f, no_b, link_cost, h, g)
+                              snr_cost, has_snr, strong, has_strong, allowed, has_allowed,
+                              spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev,
+                              buf_out, cand, gauss, tail, no_f, no_b, link_cost, h, g)
         evals = ne
-        damp = 1e-3
+        dmp = damp[i]
         for _ in range(iters):
             for u in range(3):
                 rhs[u] = g[u]
@@ -298,23 +303,22 @@ def screen_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, p
             hd[2, 2] += 1.0 / prior_var
             rhs[2] -= (xc2 - z_mid[i]) / prior_var
             d0, d1, d2 = hd[0, 0], hd[1, 1], hd[2, 2]
-            for u in range(3):
-                hd[u, 0] = hd[u, 0] + damp * eye[u, 0] * (d0 + 1e-9)
-                hd[u, 1] = hd[u, 1] + damp * eye[u, 1] * (d1 + 1e-9)
-                hd[u, 2] = hd[u, 2] + damp * eye[u, 2] * (d2 + 1e-9)
+            for u in range(3):  # h + lam * eye * (diag + 1e-9), as numpy evaluates it
+                hd[u, 0] = hd[u, 0] + dmp * eye[u, 0] * (d0 + 1e-9)
+                hd[u, 1] = hd[u, 1] + dmp * eye[u, 1] * (d1 + 1e-9)
+                hd[u, 2] = hd[u, 2] + dmp * eye[u, 2] * (d2 + 1e-9)
             finite = True
             for u in range(3):
                 finite = finite and math.isfinite(rhs[u])
                 for v in range(3):
                     finite = finite and math.isfinite(hd[u, v])
             if finite:
-                step = np.linalg.solve(hd, rhs)
+                step[:] = np.linalg.solve(hd, rhs)
             else:
-                step = np.full(3, np.nan)
-            xn = np.empty(3)
-            xo = (xc0, xc1, xc2)
+                step[:] = np.nan
+            xo0, xo1, xo2 = xc0, xc1, xc2
             for u in range(3):
-                v = xo[u] + step[u]
+                v = (xo0 if u == 0 else (xo1 if u == 1 else xo2)) + step[u]
                 if v < lo[i, u]:  # np.clip: max then min, NaN stays NaN
                     v = lo[i, u]
                 if v > hi[i, u]:
@@ -323,18 +327,14 @@ def screen_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, p
             c_new, ne = _row_terms(i, xn[0], xn[1], xn[2], anchors, r, sig, mask, tail_a,
                                    excess, floor, z_mid, prior_var, lam, wavelength,
                                    margin_db, planes, edge, snr_cost, has_snr, strong,
-                                   has_strong, spec, diff, same_edge, buf_len, buf_valid,
-                                   buf_jac, buf_dev, buf_out, cand, gauss, tail, no_f, no_b,
-                                   link_cost, h_new, g_new)
+                                   has_strong, allowed, has_allowed, spec, diff, same_edge,
+                                   buf_len, buf_valid, buf_jac, buf_dev, buf_out, cand, gauss,
+                                   tail, no_f, no_b, link_cost, h_new, g_new)
             evals += ne
             ok = c_new < cost
-            moved = -math.inf
-            for u in range(3):
-                dm = abs(xn[u] - xo[u])
-                if math.isnan(dm) or math.isnan(moved):
-                    moved = math.nan
-                elif dm > moved:
-                    moved = dm
+            moved = max(abs(xn[0] - xo0), abs(xn[1] - xo1), abs(xn[2] - xo2))
+            if math.isnan(xn[0] - xo0) or math.isnan(xn[1] - xo1) or math.isnan(xn[2] - xo2):
+                moved = np.nan  # np.max propagates NaN
             if ok:
                 xc0, xc1, xc2 = xn[0], xn[1], xn[2]
                 cost = c_new
@@ -342,11 +342,13 @@ def screen_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, p
                     g[u] = g_new[u]
                     for v in range(3):
                         h[u, v] = h_new[u, v]
-                damp = damp / 3.0
+                dmp = dmp / 3.0
             else:
-                damp = damp * 4.0
-            if (ok and moved < conv_m) or not (damp < 1e6):
+                dmp = dmp * 4.0
+            if (ok and moved < conv_m) or not (dmp < 1e6):
+                live[i] = False
                 break
         x[i, 0], x[i, 1], x[i, 2] = xc0, xc1, xc2
+        damp[i] = dmp
         cost_out[i] = cost
         evals_out[i] = evals

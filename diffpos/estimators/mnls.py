@@ -124,7 +124,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._kernels.mnls_nb import link_terms_kernel, screen_kernel
+from .._kernels.mnls_nb import link_terms_kernel, lm_kernel
 from .._kernels.paths_nb import building_planes
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..paths import DIFFRACTION_SLOTS, SPECULAR_SLOTS, first_arrival_paths
@@ -168,6 +168,9 @@ PRUNE_NATS = 30.0
 #: The kept cells of a floor are re-scored with the SNR only when its best screened cost is
 #: within this much of the best floor's [nats] (the others are not refined).
 RESCORE_NATS = 2 * PRUNE_NATS
+#: Most links per fix the compiled LM (``kernel=True``) takes (numpy's pairwise summation
+#: order is reproduced up to 128 terms); more: the reference steps.
+_KERNEL_MAX_LINKS = 128
 #: Default false-alarm probability of the residual test.
 FALSE_ALARM_PROBABILITY = 1e-3
 #: Per-stage counters (``benchmarks/bench_mnls.py --stages``): ``None`` (off, the default) or
@@ -312,11 +315,13 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
 
 
-def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = None
-        ) -> tuple[FloatArray, dict]:
+def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = None,
+        kernel: bool = False) -> tuple[FloatArray, dict]:
     """Projected Levenberg-Marquardt with max-mixture re-assignment at every step; with the
     measured SNR, the SNR cost of every slot is refreshed every :data:`SNR_EVERY` steps
     (``t_init``: the terms at ``x``, SNR cost already in ``p``)."""
+    if kernel and p.r.shape[1] <= _KERNEL_MAX_LINKS:
+        return _lm_compiled(p, x, building, iters, snr_at_start=t_init is None)
     n = x.shape[0]
     lam = np.full(n, 1e-3)
     if t_init is None:  # the SNR cost at the start first: the terms are computed once
@@ -441,7 +446,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
             ps.snr_meas, ps.radio = p.snr_meas[sub], radio
             ps.snr_cost, ps.strong = p.snr_cost[sub], p.strong[sub]
         x[sub], ts = _lm(ps, x[sub], building, iters,
-                         t_init={k: v[sub] for k, v in t.items()})
+                         t_init={k: v[sub] for k, v in t.items()}, kernel=kernel)
         for k in t:
             t[k][sub] = ts[k]
         cost = t["cost"].reshape(b, nf, keep)
@@ -456,18 +461,16 @@ def _screen(p0: _Problem, x: FloatArray, closed, building, kernel: bool = False
     terms at the start held for the steps: of every start (``closed`` None) or only of the
     closed-form and caller's starts (``closed``, a row mask; the grid cells' SNR cost is 0
     and nothing is ``strong`` there: screened with the ranges only). With ``kernel``, the
-    steps run in :func:`diffpos._kernels.mnls_nb.screen_kernel` and the terms returned hold
-    the ``cost`` only (the caller evaluates the rows it keeps)."""
-    if kernel and SCREEN_ITER <= SNR_EVERY:  # no SNR refresh within the screen's steps
-        if closed is None:
-            if p0.snr_meas is not None:
-                p0.snr_cost = _snr_cost(p0, x, building)
-        else:
-            _closed_snr(p0, x, closed, building)
-        return _screen_compiled(p0, x, building)
+    steps run in :func:`diffpos._kernels.mnls_nb.lm_kernel` and the terms returned hold the
+    ``cost`` only (the caller evaluates the rows it keeps)."""
+    compiled = kernel and p0.r.shape[1] <= _KERNEL_MAX_LINKS
     if closed is None:
+        if compiled:
+            return _lm_compiled(p0, x, building, SCREEN_ITER, want_terms=False)
         return _lm(p0, x, building, SCREEN_ITER)
     _closed_snr(p0, x, closed, building)
+    if compiled:
+        return _lm_compiled(p0, x, building, SCREEN_ITER, snr_at_start=False, want_terms=False)
     return _lm(p0, x, building, SCREEN_ITER, t_init=_link_terms(p0, x, building))
 
 
@@ -482,27 +485,52 @@ def _closed_snr(p0: _Problem, x: FloatArray, closed, building) -> None:
     p0.snr_cost[rows], p0.strong[rows] = q.snr_cost, q.strong
 
 
-def _screen_compiled(p0: _Problem, x: FloatArray, building) -> tuple[FloatArray, dict]:
-    """:data:`SCREEN_ITER` steps of :func:`_lm` with the SNR terms held, in one compiled
-    call; returns the points and ``{"cost": ...}`` there."""
+def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start: bool = True,
+                 want_terms: bool = True) -> tuple[FloatArray, dict]:
+    """:func:`_lm` in :func:`diffpos._kernels.mnls_nb.lm_kernel`: the steps between two SNR
+    refreshes in one compiled call, the refreshes as in :func:`_lm`; the terms at the
+    returned points evaluated once at the end (the same values: row by row the same function
+    of the point and the held SNR terms), or ``{"cost": ...}`` only (``want_terms`` False).
+    ``snr_at_start`` False: the SNR terms in ``p`` are those at ``x`` (``_lm``'s ``t_init``)."""
     n = x.shape[0]
     x = _c(x).copy()
-    cost = np.empty(n)
-    evals = np.empty(n, dtype=np.int64)
+    if p.snr_meas is not None and snr_at_start:  # the SNR cost at the start
+        p.snr_cost = _snr_cost(p, x, building)
+    damp = np.full(n, 1e-3)
+    live = np.ones(n, dtype=bool)
+    cost = np.full(n, np.nan)
     e3 = np.zeros((0, 0, 0))
-    c0 = time.thread_time()
-    screen_kernel(
-        _c(p0.anchors), _c(p0.r), _c(p0.sig), _c(p0.mask, bool),
-        _c(np.broadcast_to(p0.tail_a, p0.r.shape)), _c(p0.excess_db), _c(p0.floor),
-        _c(p0.lo), _c(p0.hi), _c(p0.z_mid), float(p0.prior_var), float(p0.lam),
-        float(p0.wavelength_m), float(SNR_MARGIN_DB), np.array(building_planes(building)),
-        e3 if p0.snr_cost is None else _c(p0.snr_cost),
-        e3.astype(bool) if p0.strong is None else _c(p0.strong, bool),
-        _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, int(SCREEN_ITER), float(CONVERGED_M),
-        x, cost, evals)
-    _count("kernel_cpu_s", time.thread_time() - c0)
-    _count("paths", int(evals.sum()))
-    return x, {"cost": cost}
+    args = [_c(p.anchors), _c(p.r), _c(p.sig), _c(p.mask, bool),
+            _c(np.broadcast_to(p.tail_a, p.r.shape)), _c(p.excess_db), _c(p.floor), _c(p.lo),
+            _c(p.hi), _c(p.z_mid), float(p.prior_var), float(p.lam), float(p.wavelength_m),
+            float(SNR_MARGIN_DB), np.array(building_planes(building))]
+    allowed = e3.astype(bool) if p.allowed is None else _c(p.allowed, bool)
+    done = 0
+    while done < iters and live.any():
+        seg = iters - done
+        if p.snr_meas is not None and p.snr_cost is not None:
+            if done > 0:  # refresh the SNR terms of the live rows (as _lm at i % SNR_EVERY)
+                rows = np.flatnonzero(live)
+                q = _sub(p, rows)
+                q.snr_cost = _snr_cost(q, x[rows], building)
+                p.snr_cost[rows], p.strong[rows] = q.snr_cost, q.strong
+            seg = min(seg, SNR_EVERY)
+        c_seg = np.empty(n)
+        evals = np.empty(n, dtype=np.int64)
+        live_after = live.copy()
+        c0 = time.thread_time()
+        lm_kernel(*args, e3 if p.snr_cost is None else _c(p.snr_cost),
+                  e3.astype(bool) if p.strong is None else _c(p.strong, bool), allowed,
+                  _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, int(seg), float(CONVERGED_M), x,
+                  damp, live_after, c_seg, evals)
+        _count("kernel_cpu_s", time.thread_time() - c0)
+        _count("paths", int(evals.sum()))
+        cost = np.where(live, c_seg, cost)  # rows live at the call: their cost now
+        live = live_after
+        done += seg
+    if not want_terms:
+        return x, {"cost": cost}
+    return x, _link_terms(p, x, building)
 
 
 def _kept(c0: FloatArray, split, keep: int) -> NDArray[np.int_]:
@@ -647,9 +675,9 @@ def mnls(
         An extra start per fix (e.g. a tracker's prediction), searched on the floor it lies
         on beside the regular starts (NaN rows: none).
     kernel : bool
-        Screen with the compiled kernel (:func:`diffpos._kernels.mnls_nb.screen_kernel`, the
-        default) or with the numpy/numba reference steps (``False``; the same answers,
-        positions to rounding: tests/core/test_mnls.py).
+        Levenberg-Marquardt steps (screen, refinement) in the compiled kernel
+        (:func:`diffpos._kernels.mnls_nb.lm_kernel`, the default) or in the numpy/numba
+        reference steps (``False``); the same answers (tests/core/test_mnls.py).
 
     Returns
     -------
@@ -689,7 +717,7 @@ def mnls(
                              x0=None if x0 is None else x0[idx], kernel=kernel)
         with _stage("final"):
             _finish(out, idx, *modes, nf=nf, snr_meas=None if snr_db is None else snr_all[idx],
-                    building=building, radio=radio)
+                    building=building, radio=radio, kernel=kernel)
     return _result(out, bi, false_alarm_probability)
 
 
@@ -710,7 +738,7 @@ def _replace_snr(p: _Problem) -> _Problem:
 
 
 def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building=None,
-            radio=None) -> None:
+            radio=None, kernel: bool = False) -> None:
     b = idx.size
     act = np.flatnonzero(active)
     if radio is not None and snr_meas is not None:
@@ -726,7 +754,7 @@ def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building
         snr_hold = ps.snr_cost
         held = _replace_snr(ps)
         held.snr_cost = None
-        x, _ = _lm(held, x, building, REFINE_ITER)
+        x, _ = _lm(held, x, building, REFINE_ITER, kernel=kernel)
         ps.allowed = None
         xk = xk.reshape(-1, 3).copy()
         xk[act] = x
