@@ -408,7 +408,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
                       np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
                       building, lam, np.repeat(excess, rep, axis=0), wavelength)
-        x, closed = _start_points(p0, grid, building, b, x0)
+        x, closed = _start_points(p0, grid, building, b, x0, kernel=kernel)
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
     # the closed-form starts' starting points (they steer the mechanism choice: without them
@@ -569,8 +569,8 @@ def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, bui
     return t
 
 
-def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
-                  ) -> tuple[FloatArray, NDArray[np.bool_]]:
+def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None,
+                  kernel: bool = False) -> tuple[FloatArray, NDArray[np.bool_]]:
     """The start of every row of ``p0`` (B fixes x F floors x G cells): the grid at mid-floor
     height with seven cells replaced by the closed-form starts, and the caller's start; and
     which rows hold a closed-form or the caller's start (the others: grid cells)."""
@@ -584,13 +584,13 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
     # mid-floor height: most first arrivals (direct, lower-edge diffraction near the window's
     # height) are a few cm to dm longer than the straight line, so it lands in their basin
     last = np.arange(b * nf) * g + g - 1
-    x[last] = _los_start(p0, last, building)
+    x[last] = _los_start(p0, last, building, kernel=kernel)
     closed[last] = True
     # two more cells: a free-z straight-line fit is the node's image when the links are
     # specular; the node is then its ceiling image (2 z_c - z) or, for the ceiling-floor double
     # bounce, 2H below it (image method), clipped into the floor
     if g >= 4:
-        img = _los_start(p0, last, building, free_z=True)
+        img = _los_start(p0, last, building, free_z=True, kernel=kernel)
         h = building.floor_height_m
         for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
             x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
@@ -606,7 +606,7 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
     for cell, ze, zm in ((g - 4, z_lo, None), (g - 5, z_lo + building.window_height_m, None),
                          (g - 6, z_lo, zc), (g - 7, z_lo + building.window_height_m, zc)):
         if cell >= 1:
-            x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm)
+            x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm, kernel=kernel)
             closed[last - (g - 1) + cell] = True
     if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
         has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
