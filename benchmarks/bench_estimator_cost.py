@@ -76,7 +76,7 @@ def measurements(sc: Scenario, anchors: np.ndarray, nodes: np.ndarray,
             "mask": det, "snr": np.asarray(fa.snr_db)}
 
 
-def solvers(sc: Scenario):
+def solvers(sc: Scenario, kernel: bool = True):
     b = sc.building
 
     def run_dnls(meas, sl):
@@ -87,7 +87,7 @@ def solvers(sc: Scenario):
         return mnls(meas["a"][sl], meas["r"][sl], meas["sig"][sl], mask=meas["mask"][sl],
                     building=b, snr_db=meas["snr"][sl], radio=sc.radio,
                     bandwidth_hz=sc.radio.bandwidth_hz,
-                    error_floor_m=sc.radio.range_error_floor_m)
+                    error_floor_m=sc.radio.range_error_floor_m, kernel=kernel)
 
     return {"dnls": run_dnls, "mnls": run_mnls}
 
@@ -100,10 +100,10 @@ def timed(fn, meas, sl) -> tuple[float, float, object]:
 
 
 def cost_rows(sc: Scenario, anchors: np.ndarray, rng: np.random.Generator, n_batch: int,
-              n_single: int) -> tuple[list[str], list[str]]:
+              n_single: int, kernel: bool = True) -> tuple[list[str], list[str]]:
     nodes = nodes_on_floors(sc, rng, n_batch)
     meas = measurements(sc, anchors, nodes, rng)
-    fns = solvers(sc)
+    fns = solvers(sc, kernel)
     m = anchors.shape[0]
     ms: dict[tuple[str, str], tuple[float, float]] = {}
     acc = []
@@ -133,6 +133,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer fixes (128 batched, 20 single)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--reference", action="store_true",
+                    help="M-NLS with its numpy/numba reference steps (kernel=False)")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     sc = default_scenario()
@@ -146,10 +148,11 @@ def main() -> None:
     acc = ["| anchors | method | median 3D error [m] | right floor |",
            "| ---: | --- | ---: | ---: |"]
     for anchors in layouts.values():
-        r, a = cost_rows(sc, anchors, rng, n_batch, n_single)
+        r, a = cost_rows(sc, anchors, rng, n_batch, n_single, kernel=not args.reference)
         rows += r
         acc += a
-    print(f"## Per-fix cost, M-NLS vs D-NLS (scenario {sc.name}, seed {args.seed})\n")
+    how = "reference steps, kernel=False" if args.reference else "compiled LM"
+    print(f"## Per-fix cost, M-NLS ({how}) vs D-NLS (scenario {sc.name}, seed {args.seed})\n")
     print("\n".join(rows))
     print(f"\nsingle: median over {n_single} one-fix calls; batched: {n_batch:,} fixes in one "
           "call, total / fixes. Cold solves (no warm start).\n")

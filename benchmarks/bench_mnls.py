@@ -86,6 +86,8 @@ def main() -> None:
     ap.add_argument("--anchors", type=int, choices=(4, 8), default=8, help="with --stages")
     ap.add_argument("--seed", type=int, default=0, help="with --stages")
     ap.add_argument("--save", help="with --stages: write the fixes to this .npz")
+    ap.add_argument("--reference", action="store_true",
+                    help="with --stages: M-NLS's numpy/numba reference steps (kernel=False)")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="paired comparison")
     args = ap.parse_args()
     if args.compare:
@@ -126,7 +128,7 @@ def stages(args) -> None:
         anchors = np.concatenate([anchors, EXTRA_ANCHORS_M])
     nodes = nodes_on_floors(sc, rng, args.batch)
     meas = measurements(sc, anchors, nodes, rng)
-    run = solvers(sc)["mnls"]
+    run = solvers(sc, kernel=not args.reference)["mnls"]
     run(meas, slice(0, 1))  # warm-up (imports, compiled kernels)
     _mn.STAGE_STATS = {}
     c0 = time.thread_time()
@@ -137,15 +139,18 @@ def stages(args) -> None:
     finally:
         _mn.STAGE_STATS = None
     n = args.batch
-    print(f"## M-NLS per stage ({n} fixes batched, {len(anchors)} anchors, seed {args.seed})\n")
+    how = "reference steps, kernel=False" if args.reference else "compiled LM, kernel=True"
+    print(f"## M-NLS per stage ({n} fixes batched, {len(anchors)} anchors, seed {args.seed}, "
+          f"{how})\n")
     print("| stage | path-model pairs/fix | SNR pairs/fix | CPU ms/fix | of it path model | "
-          "of it SNR |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: |")
-    tot = dict.fromkeys(("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s"), 0.0)
+          "of it SNR | of it compiled LM |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    tot = dict.fromkeys(("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s", "kernel_cpu_s"),
+                        0.0)
     for name in [*STAGES, *(k for k in st if k not in STAGES)]:
         d = st.get(name, tot | {k: 0.0 for k in tot})
         for k in tot:
-            tot[k] += d[k]
+            tot[k] += d.get(k, 0.0)
         print(_stage_row(name, d, n))
     print(_stage_row("**sum**", tot, n))
     print(f"\nwhole mnls call: {1e3 * cpu / n:.2f} ms CPU per fix (thread time; the rest is "
@@ -164,7 +169,7 @@ def stages(args) -> None:
 def _stage_row(name, d, n) -> str:
     return (f"| {name} | {d['paths'] / n:,.0f} | {d['snr'] / n:,.0f} | "
             f"{1e3 * d['cpu_s'] / n:.2f} | {1e3 * d['paths_cpu_s'] / n:.2f} | "
-            f"{1e3 * d['snr_cpu_s'] / n:.2f} |")
+            f"{1e3 * d['snr_cpu_s'] / n:.2f} | {1e3 * d.get('kernel_cpu_s', 0.0) / n:.2f} |")
 
 
 def accuracy(res, nodes, building) -> dict[str, float]:

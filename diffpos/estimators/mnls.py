@@ -431,8 +431,12 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         x = x[rows]
         if "res" in t0:
             t = {k: v[rows] for k, v in t0.items()}
-        else:  # the kernel returned the costs only: the kept rows' terms at their points
-            t = _link_terms(_sub(p0, rows), x, building)
+        else:  # the compiled screen returned the costs only: the kept rows' terms at their
+            # points when needed (with the SNR: only of the rows the re-scoring leaves out)
+            def t_rows(sel):
+                return _link_terms(_sub(p0, rows[sel]), x[sel], building)
+
+            t = t_rows if snr is not None and radio is not None else t_rows(slice(None))
         if snr is not None and radio is not None:  # the kept cells scored with the SNR too
             p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
             t = _rescore(p, x, t, c0, keep, building)
@@ -545,11 +549,13 @@ def _kept(c0: FloatArray, split, keep: int) -> NDArray[np.int_]:
     return np.concatenate([b1, b2], axis=-1)
 
 
-def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, building
+def _rescore(p: _Problem, x: FloatArray, t, c0: FloatArray, keep: int, building
              ) -> dict:
     """The kept cells' terms with the SNR at their screened points, for the floors whose
     screened best ``c0`` (B, F, G) is within :data:`RESCORE_NATS` of the fix's best floor;
-    the other floors' cells get an infinite cost."""
+    the other floors' cells get an infinite cost. ``t``: the screened terms of the kept
+    cells, or a function of a row selection returning them (evaluated for the rows left
+    out only)."""
     f0 = np.min(c0, axis=-1)
     go = np.repeat((f0 <= np.min(f0, axis=-1, keepdims=True) + RESCORE_NATS).ravel(), keep)
     if go.all():
@@ -559,14 +565,28 @@ def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, bui
     q = _sub(p, rows)
     q.snr_cost = _snr_cost(q, x[rows], building)
     tq = _link_terms(q, x[rows], building)
-    n, m, k = t["length"].shape
+    n, (m, k) = go.size, tq["length"].shape[1:]
     p.snr_cost, p.strong = np.zeros((n, m, k)), np.zeros((n, m, k), dtype=bool)
     p.snr_cost[rows], p.strong[rows] = q.snr_cost, q.strong
-    t = {key: v.copy() for key, v in t.items()}
-    for key in t:
-        t[key][rows] = tq[key]
-    t["cost"][~go] = np.inf
-    return t
+    if callable(t):
+        out = _link_terms_rows(t, ~go, n)
+    else:
+        out = {key: v.copy() for key, v in t.items()}
+    for key in out:
+        out[key][rows] = tq[key]
+    out["cost"][~go] = np.inf
+    return out
+
+
+def _link_terms_rows(t_rows, sel: NDArray[np.bool_], n: int) -> dict:
+    """Arrays of ``n`` rows holding ``t_rows(sel)`` on the rows ``sel`` (the others are
+    written by the caller)."""
+    ts = t_rows(np.flatnonzero(sel))
+    out = {}
+    for key, v in ts.items():
+        out[key] = np.empty((n, *v.shape[1:]), dtype=v.dtype)
+        out[key][sel] = v
+    return out
 
 
 def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None,
