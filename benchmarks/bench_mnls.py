@@ -34,6 +34,25 @@ counters) -> after (this branch):
     95 % ellipsoid 89.8 -> 91.4 %
 
 The SNR prediction (``pair_snr_db``) is still ~70 % of the CPU, the path model ~15 %.
+(That was before the compiled SNR prediction.)
+
+``--reference``: M-NLS's numpy/numba reference steps (``kernel=False``). Measured
+2026-11-27 06:35 UTC (``--stages --batch 128``, 8 anchors, seed 0; load 4.5-4.9), before =
+commit adf3856 (compiled SNR, numpy steps) -> after (compiled starts and LM); per fix:
+
+    stage     path pairs      SNR pairs   CPU ms        of it compiled LM
+    starts        0 -> 0        0 -> 0     0.30 -> 0.19
+    screen    1,920 -> 1,806  263 -> 263   5.45 -> 3.03  2.0 (SNR 0.87 -> 0.88)
+    rescore      70 -> 120     64 -> 64    0.34 -> 0.42
+    refine      179 -> 225     19 -> 19    0.25 -> 0.26  0.15
+    final        62 -> 70      20 -> 20    0.14 -> 0.18  0.04
+    sum       2,231 -> 2,220  366 -> 366   6.48 -> 4.07
+    accuracy (the same fixes, bitwise): median 3D 0.133 m, p80 0.343 m, right floor 99.2 %,
+    95 % ellipsoid 91.4 %
+
+Path pairs after: the compiled LM evaluates the linked pairs only (screen -6 %) and the
+terms at the returned points once more (rescore: the kept rows the re-scoring leaves out;
+refine, final: once per run).
 """
 
 from __future__ import annotations

@@ -63,6 +63,26 @@ stated otherwise):
   fail), one kept start per floor (-1; at 4 anchors 4 vs 9), a range-only pre-screen (its
   ranks are unrelated to the SNR-aware screen's), dropping screened rows by their cost after
   1-2 steps (a row 10^4 nats behind after 2 steps can end first).
+* **Compiled steps** (``kernel=True``, the default): every Levenberg-Marquardt run (the
+  screen, the refinement between two SNR refreshes, the final refinement with the mechanisms
+  held) is one call of :func:`diffpos._kernels.mnls_nb.lm_kernel` per chunk (path model per
+  row and slot, link choice, cost, damped 3x3 normal equations, box clamp, acceptance), and
+  the closed-form starts are :mod:`diffpos._kernels.mnls_starts_nb`; both reproduce numpy's
+  operation order (einsum's and ``sum``'s summation orders, LAPACK ``gesv``), so the answers
+  are those of the reference steps (``kernel=False``): bitwise equal positions, covariances,
+  floors, mechanisms and statuses on ``bench_estimator_cost.py``'s sets (4 and 8 anchors,
+  256 fixes, seeds 0 and 1) and on the tests' held-out buildings (tests/core/test_mnls.py
+  asserts 1e-9 m). Cost per fix (``bench_estimator_cost.py --quick``, 8 anchors, CPU;
+  2026-11-27 06:35 UTC, 2-core VM shared, load 4.5-6.2, before = commit adf3856, two
+  interleaved runs each): batched 6.03 / 4.91 -> 3.79 / 3.07 ms, single 14.6 / 13.4 -> 6.57 /
+  5.41 ms (4 anchors: batched 4.03 / 3.42 -> 2.25 / 2.25, single 13.0 / 16.2 -> 4.17 / 4.15);
+  the issue-13 target (<= 2 ms at 8 anchors) is not met. Where it goes now
+  (``bench_mnls.py --stages --batch 128``, 8 anchors, per fix): screen 3.0 ms (compiled LM
+  2.0, SNR prediction at the closed-form starts 0.9), rescore 0.4, refine 0.3, final 0.2,
+  starts 0.2; cProfile of 64 fixes (``bench_path_model.py --profile-mnls 64``): ``lm_kernel``
+  52 %, ``pair_snr_db`` 26 %, the rest 22 %. The compiled LM spends ~0.8-1.1 us per
+  node-anchor pair and step, nearly all in the path model's 18 slots; a further cut needs
+  fewer evaluations (the search's answers change) or a faster path model / SNR prediction.
 * **Same-edge dominance** (:mod:`._mnls_rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
