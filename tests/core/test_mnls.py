@@ -11,7 +11,7 @@ import pytest
 from diffpos.channel import emulate_channel, first_arrival
 from diffpos.estimators import FixStatus, MnlsResult, mnls
 from diffpos.paths import first_arrival_paths
-from diffpos.scenario import Building, Radio
+from diffpos.scenario import Building, Radio, default_scenario
 
 _mn = sys.modules["diffpos.estimators.mnls"]
 
@@ -442,8 +442,6 @@ def test_compiled_lm_equals_reference_steps():
     narrow high windows, UAVs above the windows and beyond the facade ends), on a 6-floor
     building with 4 UAVs and a caller's start (one NaN row), and without the SNR (ranges
     only, model-matched): 8-12 emulated fixes each, a caller's mask with gaps."""
-    from diffpos.scenario import default_scenario
-
     sc = default_scenario()
     seven = np.concatenate([sc.anchor_positions_m(),
                             [[-25.0, -12.0, 8.5], [10.0, -10.0, 14.0], [28.0, -18.0, 5.5]]])
