@@ -21,7 +21,11 @@ evaluated (they add exact zeros to the reference's sums). Its reference is the n
 path in :mod:`diffpos.estimators.mnls` (``mnls(..., kernel=False)``; tests/core/test_mnls.py).
 
 Fixed compiled signatures (:data:`SIGNATURE`, :data:`LM_SIGNATURE`, C-contiguous inputs);
-``cache=True``.
+``cache=True``. numba's cache is keyed by this file only: :func:`lm_kernel` compiles
+``paths_nb.slot_path`` into itself, so after a change of ``paths_nb.py`` a stale cache of this
+module keeps the old path model (delete ``__pycache__/mnls_nb*``); the kernel-vs-reference
+test (tests/core/test_mnls.py, the reference runs the fresh ``paths_kernel``) fails then.
+Compile from an empty cache: ~12 s CPU (2-core VM, 2026-11-27).
 """
 
 from __future__ import annotations
