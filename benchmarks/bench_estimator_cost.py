@@ -22,19 +22,26 @@ Both solve cold (no warm start), the worst case of a live epoch.
 
 Run:  .venv/bin/python benchmarks/bench_estimator_cost.py [--quick] [--seed N]
 
-Measured (``--quick``, seed 0, branch mnls after merging the compiled path model; 2-core
-x86_64 VM, Python 3.11.7, shared with other jobs: load average ~29 during the run, so wall
-times are inflated 4-8x; compare the CPU figures). Per fix, ms wall / CPU:
+``--reference``: M-NLS with its numpy/numba reference steps (``kernel=False``: the same
+answers, the steps as before the compiled LM).
 
-    anchors  mode           D-NLS          M-NLS            target M-NLS CPU <= 2 ms (8)
-    4        single         30.9 / 5.7     678 / 114
-    4        batched (128)  2.5 / 0.40     85 / 13.4
-    8        single         90.7 / 15.6    1166 / 179       NO
-    8        batched (128)  16.4 / 2.4     177 / 20.9       NO (was 55 ms CPU before)
+Measured 2026-11-27 06:35 UTC (``--quick``, seed 0; 2-core x86_64 VM, Python 3.11.7, shared
+with two other jobs: load average 4.5-6.2, CPU figures move by +-20 % between runs, so the
+runs were interleaved): before = commit adf3856 (the SNR kernel and the morning's search
+changes in, M-NLS's steps in numpy around the compiled path model and link terms), after =
+the compiled starts and LM (``kernel=True``). M-NLS ms CPU per fix, two runs each:
 
-Where the M-NLS CPU goes now (``benchmarks/bench_path_model.py --profile-mnls 64``, 8
-anchors): the channel's per-slot SNR prediction ``diffpos.channel.pair_snr_db`` (numpy) 75 %,
-the compiled path model 11 %, the rest (compiled link terms, LM steps, starts) 14 %.
+    anchors  mode           before        after         target M-NLS CPU <= 2 ms (8)
+    4        single         13.0, 16.2    4.17, 4.15
+    4        batched (128)  4.03, 3.42    2.25, 2.25
+    8        single         14.6, 13.4    6.57, 5.41    NO
+    8        batched (128)  6.03, 4.91    3.79, 3.07    NO
+
+(``--reference`` in the same window: 8 anchors batched 5.44 / 4.26, single 14.4 / 9.85 ms;
+at load 0.2, 06:19 UTC, before: 8 anchors batched 4.18, single 9.19 ms.) The fixes are
+bitwise the same before and after. Where the M-NLS CPU goes now (``bench_path_model.py
+--profile-mnls 64``, 8 anchors): the compiled LM (path model + link terms + steps) 52 %, the
+SNR prediction ``diffpos.channel.pair_snr_db`` 26 %, the rest 22 %.
 """
 
 from __future__ import annotations
@@ -76,7 +83,7 @@ def measurements(sc: Scenario, anchors: np.ndarray, nodes: np.ndarray,
             "mask": det, "snr": np.asarray(fa.snr_db)}
 
 
-def solvers(sc: Scenario):
+def solvers(sc: Scenario, kernel: bool = True):
     b = sc.building
 
     def run_dnls(meas, sl):
@@ -87,7 +94,7 @@ def solvers(sc: Scenario):
         return mnls(meas["a"][sl], meas["r"][sl], meas["sig"][sl], mask=meas["mask"][sl],
                     building=b, snr_db=meas["snr"][sl], radio=sc.radio,
                     bandwidth_hz=sc.radio.bandwidth_hz,
-                    error_floor_m=sc.radio.range_error_floor_m)
+                    error_floor_m=sc.radio.range_error_floor_m, kernel=kernel)
 
     return {"dnls": run_dnls, "mnls": run_mnls}
 
@@ -100,10 +107,10 @@ def timed(fn, meas, sl) -> tuple[float, float, object]:
 
 
 def cost_rows(sc: Scenario, anchors: np.ndarray, rng: np.random.Generator, n_batch: int,
-              n_single: int) -> tuple[list[str], list[str]]:
+              n_single: int, kernel: bool = True) -> tuple[list[str], list[str]]:
     nodes = nodes_on_floors(sc, rng, n_batch)
     meas = measurements(sc, anchors, nodes, rng)
-    fns = solvers(sc)
+    fns = solvers(sc, kernel)
     m = anchors.shape[0]
     ms: dict[tuple[str, str], tuple[float, float]] = {}
     acc = []
@@ -133,6 +140,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer fixes (128 batched, 20 single)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--reference", action="store_true",
+                    help="M-NLS with its numpy/numba reference steps (kernel=False)")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     sc = default_scenario()
@@ -146,10 +155,11 @@ def main() -> None:
     acc = ["| anchors | method | median 3D error [m] | right floor |",
            "| ---: | --- | ---: | ---: |"]
     for anchors in layouts.values():
-        r, a = cost_rows(sc, anchors, rng, n_batch, n_single)
+        r, a = cost_rows(sc, anchors, rng, n_batch, n_single, kernel=not args.reference)
         rows += r
         acc += a
-    print(f"## Per-fix cost, M-NLS vs D-NLS (scenario {sc.name}, seed {args.seed})\n")
+    how = "reference steps, kernel=False" if args.reference else "compiled LM"
+    print(f"## Per-fix cost, M-NLS ({how}) vs D-NLS (scenario {sc.name}, seed {args.seed})\n")
     print("\n".join(rows))
     print(f"\nsingle: median over {n_single} one-fix calls; batched: {n_batch:,} fixes in one "
           "call, total / fixes. Cold solves (no warm start).\n")

@@ -34,6 +34,25 @@ counters) -> after (this branch):
     95 % ellipsoid 89.8 -> 91.4 %
 
 The SNR prediction (``pair_snr_db``) is still ~70 % of the CPU, the path model ~15 %.
+(That was before the compiled SNR prediction.)
+
+``--reference``: M-NLS's numpy/numba reference steps (``kernel=False``). Measured
+2026-11-27 06:35 UTC (``--stages --batch 128``, 8 anchors, seed 0; load 4.5-4.9), before =
+commit adf3856 (compiled SNR, numpy steps) -> after (compiled starts and LM); per fix:
+
+    stage     path pairs      SNR pairs   CPU ms        of it compiled LM
+    starts        0 -> 0        0 -> 0     0.30 -> 0.19
+    screen    1,920 -> 1,806  263 -> 263   5.45 -> 3.03  2.0 (SNR 0.87 -> 0.88)
+    rescore      70 -> 120     64 -> 64    0.34 -> 0.42
+    refine      179 -> 225     19 -> 19    0.25 -> 0.26  0.15
+    final        62 -> 70      20 -> 20    0.14 -> 0.18  0.04
+    sum       2,231 -> 2,220  366 -> 366   6.48 -> 4.07
+    accuracy (the same fixes, bitwise): median 3D 0.133 m, p80 0.343 m, right floor 99.2 %,
+    95 % ellipsoid 91.4 %
+
+Path pairs after: the compiled LM evaluates the linked pairs only (screen -6 %) and the
+terms at the returned points once more (rescore: the kept rows the re-scoring leaves out;
+refine, final: once per run).
 """
 
 from __future__ import annotations
@@ -86,6 +105,8 @@ def main() -> None:
     ap.add_argument("--anchors", type=int, choices=(4, 8), default=8, help="with --stages")
     ap.add_argument("--seed", type=int, default=0, help="with --stages")
     ap.add_argument("--save", help="with --stages: write the fixes to this .npz")
+    ap.add_argument("--reference", action="store_true",
+                    help="with --stages: M-NLS's numpy/numba reference steps (kernel=False)")
     ap.add_argument("--compare", nargs=2, metavar=("A", "B"), help="paired comparison")
     args = ap.parse_args()
     if args.compare:
@@ -126,7 +147,7 @@ def stages(args) -> None:
         anchors = np.concatenate([anchors, EXTRA_ANCHORS_M])
     nodes = nodes_on_floors(sc, rng, args.batch)
     meas = measurements(sc, anchors, nodes, rng)
-    run = solvers(sc)["mnls"]
+    run = solvers(sc, kernel=not args.reference)["mnls"]
     run(meas, slice(0, 1))  # warm-up (imports, compiled kernels)
     _mn.STAGE_STATS = {}
     c0 = time.thread_time()
@@ -137,15 +158,18 @@ def stages(args) -> None:
     finally:
         _mn.STAGE_STATS = None
     n = args.batch
-    print(f"## M-NLS per stage ({n} fixes batched, {len(anchors)} anchors, seed {args.seed})\n")
+    how = "reference steps, kernel=False" if args.reference else "compiled LM, kernel=True"
+    print(f"## M-NLS per stage ({n} fixes batched, {len(anchors)} anchors, seed {args.seed}, "
+          f"{how})\n")
     print("| stage | path-model pairs/fix | SNR pairs/fix | CPU ms/fix | of it path model | "
-          "of it SNR |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: |")
-    tot = dict.fromkeys(("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s"), 0.0)
+          "of it SNR | of it compiled LM |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    tot = dict.fromkeys(("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s", "kernel_cpu_s"),
+                        0.0)
     for name in [*STAGES, *(k for k in st if k not in STAGES)]:
         d = st.get(name, tot | {k: 0.0 for k in tot})
         for k in tot:
-            tot[k] += d[k]
+            tot[k] += d.get(k, 0.0)
         print(_stage_row(name, d, n))
     print(_stage_row("**sum**", tot, n))
     print(f"\nwhole mnls call: {1e3 * cpu / n:.2f} ms CPU per fix (thread time; the rest is "
@@ -164,7 +188,7 @@ def stages(args) -> None:
 def _stage_row(name, d, n) -> str:
     return (f"| {name} | {d['paths'] / n:,.0f} | {d['snr'] / n:,.0f} | "
             f"{1e3 * d['cpu_s'] / n:.2f} | {1e3 * d['paths_cpu_s'] / n:.2f} | "
-            f"{1e3 * d['snr_cpu_s'] / n:.2f} |")
+            f"{1e3 * d['snr_cpu_s'] / n:.2f} | {1e3 * d.get('kernel_cpu_s', 0.0) / n:.2f} |")
 
 
 def accuracy(res, nodes, building) -> dict[str, float]:

@@ -46,6 +46,10 @@ estimator's Python/numpy (``_lm``, a dict comprehension in ``_lm``, einsum, ``so
 edge starts) ~20 %. The 2 ms per node-epoch target of M-NLS is therefore no longer a matter
 of the SNR prediction: the path model's evaluations and the number of hypotheses the search
 evaluates (diffpos/estimators/mnls.py) dominate.
+Since the compiled starts and LM (``mnls(kernel=True)``; ``--reference``: the numpy steps),
+2026-11-27 06:35 UTC, load ~4.9, 64 fixes: 0.22 s thread CPU under cProfile (3.5 ms per
+fix): ``mnls_nb.lm_kernel`` (path model + link terms + LM steps) 52 %, ``pair_snr_db`` 26 %
+(``channel_snr_kernel`` own 26 %), ``first_arrival_paths`` outside the LM 4 %, the rest 18 %.
 
 **Window-edge model and bounds** (the paper's Corollary-1 geometry, target < 100 ns per pair):
 
@@ -371,9 +375,11 @@ def first_arrival_table(args: argparse.Namespace) -> None:
 
 
 def profile_mnls(n_fixes: int, numpy_paths: bool, numpy_snr: bool = False,
-                 top: int = 12) -> None:
-    """Shares of one batched M-NLS call: path model, SNR prediction, the rest, and the
-    ``top`` functions by own CPU time (docstring)."""
+                 top: int = 12, reference: bool = False) -> None:
+    """Shares of one batched M-NLS call: path model, SNR prediction, compiled LM, the rest,
+    and the ``top`` functions by own CPU time (docstring). ``reference`` (or
+    ``numpy_paths``): M-NLS's reference steps (``kernel=False``)."""
+    kernel = not (reference or numpy_paths)
     sc = default_scenario()
     rng = np.random.default_rng(0)
     b = sc.building
@@ -389,7 +395,7 @@ def profile_mnls(n_fixes: int, numpy_paths: bool, numpy_snr: bool = False,
                     np.where(det, fa.range_m, 0.0)[sl], np.where(det, fa.sigma_m, 1.0)[sl],
                     mask=det[sl], building=b, snr_db=np.asarray(fa.snr_db)[sl],
                     radio=sc.radio, bandwidth_hz=sc.radio.bandwidth_hz,
-                    error_floor_m=sc.radio.range_error_floor_m)
+                    error_floor_m=sc.radio.range_error_floor_m, kernel=kernel)
 
     paths_nb.warm_paths()
     if numpy_paths:  # A/B: the estimator on the numpy reference of the path model
@@ -409,14 +415,18 @@ def profile_mnls(n_fixes: int, numpy_paths: bool, numpy_snr: bool = False,
 
     fap = cum("first_arrival_paths") + cum("_first_arrival_paths_numpy")
     snr = cum("pair_snr_db") + cum("_pair_snr_db_numpy")
+    lmk = cum("lm_kernel")
     which = "numpy reference" if numpy_paths else "compiled kernel"
     which_snr = "numpy emulator" if numpy_snr else "compiled kernel"
-    print(f"## M-NLS, {n_fixes} fixes x {len(ANCHORS_8)} anchors in one call, path model: "
-          f"{which}, SNR: {which_snr}: {total:.2f} s thread CPU under cProfile "
+    steps = "compiled LM (kernel=True)" if kernel else "reference steps (kernel=False)"
+    print(f"## M-NLS, {n_fixes} fixes x {len(ANCHORS_8)} anchors in one call, {steps}, "
+          f"path model: {which}, SNR: {which_snr}: {total:.2f} s thread CPU under cProfile "
           f"({1e3 * total / n_fixes:.2f} ms per fix)\n")
     print("| part | share |\n| --- | ---: |")
     for name, t in (("first_arrival_paths (path model)", fap),
-                    ("channel.pair_snr_db (SNR cost)", snr), ("rest", total - fap - snr)):
+                    ("channel.pair_snr_db (SNR cost)", snr),
+                    ("mnls_nb.lm_kernel (path model + link terms + LM steps)", lmk),
+                    ("rest", total - fap - snr - lmk)):
         print(f"| {name} | {100 * t / total:.0f} % |")
     print(f"\nTop {top} functions by own CPU time (tottime; numba kernels count as their "
           f"dispatcher call):\n")
@@ -438,13 +448,16 @@ def main() -> None:
     parser.add_argument("--only", choices=("first-arrival", "geometry"), default=None)
     parser.add_argument("--profile-mnls", type=int, default=0, metavar="N",
                         help="only profile one batched M-NLS call on N fixes")
+    parser.add_argument("--reference", action="store_true",
+                        help="with --profile-mnls: M-NLS's reference steps (kernel=False)")
     parser.add_argument("--numpy-paths", action="store_true",
                         help="with --profile-mnls: the estimator on the numpy path model (A/B)")
     parser.add_argument("--numpy-snr", action="store_true",
                         help="with --profile-mnls: the SNR cost on the numpy emulator (A/B)")
     args = parser.parse_args()
     if args.profile_mnls:
-        profile_mnls(args.profile_mnls, args.numpy_paths, args.numpy_snr)
+        profile_mnls(args.profile_mnls, args.numpy_paths, args.numpy_snr,
+                     reference=args.reference)
         return
     if args.only in (None, "first-arrival"):
         first_arrival_table(args)

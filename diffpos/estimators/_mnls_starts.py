@@ -2,13 +2,17 @@
 the closed-form starts of one-mechanism hypotheses (straight line, images, window edges).
 
 ``p`` is the estimator's flattened problem (anchors, ranges, mask, floor boxes ``lo``/``hi``,
-mid-floor heights ``z_mid``); ``rows`` selects its hypotheses.
+mid-floor heights ``z_mid``); ``rows`` selects its hypotheses. ``kernel=True``: the same
+steps in :mod:`diffpos._kernels.mnls_starts_nb` (bitwise the same starts on the tested
+sets; these numpy functions are the reference).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+
+from .._kernels.mnls_starts_nb import edge_start_kernel, los_start_kernel
 
 FloatArray = NDArray[np.float64]
 
@@ -22,11 +26,22 @@ def _grid(building, nx: int, ny: int) -> FloatArray:
     return np.stack([gx.ravel(), gy.ravel()], axis=-1)
 
 
-def _los_start(p, rows, building, iters: int = 8, free_z: bool = False
+def _c(a, dtype=np.float64):
+    """A C-contiguous writable copy (the kernels' one signature)."""
+    return np.array(a, dtype=dtype, order="C")
+
+
+def _los_start(p, rows, building, iters: int = 8, free_z: bool = False, kernel: bool = False
                ) -> FloatArray:
     """Gauss-Newton on straight-line ranges from the floor's centre: in (x, y) at z =
     mid-floor, clipped to the floor plan, or (``free_z``) in 3D with y >= 0 and z unbounded
     (damped); (len(rows), 3)."""
+    if kernel:
+        out = np.empty((len(rows), 3))
+        los_start_kernel(_c(p.anchors[rows]), _c(p.r[rows]), _c(p.mask[rows], bool),
+                         _c(p.lo[rows]), _c(p.hi[rows]), _c(p.z_mid[rows]), int(iters),
+                         bool(free_z), out)
+        return out
     a, r, w = p.anchors[rows], p.r[rows], p.mask[rows].astype(float)
     x = np.stack([0.5 * (p.lo[rows, 0] + p.hi[rows, 0]), 0.5 * (p.lo[rows, 1] + p.hi[rows, 1]),
                   p.z_mid[rows]], axis=-1)
@@ -44,7 +59,7 @@ def _los_start(p, rows, building, iters: int = 8, free_z: bool = False
 
 
 def _edge_start(p, rows, z_edge: FloatArray, iters: int = 8,
-                z_mirror: FloatArray | None = None) -> FloatArray:
+                z_mirror: FloatArray | None = None, kernel: bool = False) -> FloatArray:
     """Start of the hypothesis "every link diffracts over the horizontal edge at height
     ``z_edge`` (y = 0)": the Fermat length is ``sqrt((x_a - x)^2 + (rho_a + rho)^2)`` with
     ``rho`` the distance to the edge line, a straight-line range in the (x, rho) half-plane;
@@ -52,6 +67,14 @@ def _edge_start(p, rows, z_edge: FloatArray, iters: int = 8,
     ``rho`` from the edge; (len(rows), 3). With ``z_mirror`` (a ceiling's height), the
     hypothesis is "diffraction, then a reflection in that plane": the point at distance
     ``rho`` is the node's image, at the mirror of mid-floor height."""
+    if kernel:
+        out = np.empty((len(rows), 3))
+        ze = _c(np.broadcast_to(z_edge, (len(rows),)))
+        edge_start_kernel(_c(p.anchors[rows]), _c(p.r[rows]), _c(p.mask[rows], bool),
+                          _c(p.lo[rows]), _c(p.hi[rows]), _c(p.z_mid[rows]), ze,
+                          ze if z_mirror is None else _c(np.broadcast_to(z_mirror, ze.shape)),
+                          int(iters), z_mirror is not None, out)
+        return out
     a, r, w = p.anchors[rows], p.r[rows], p.mask[rows].astype(float)
     ze = z_edge[:, None]
     rho_a = np.hypot(a[..., 1], a[..., 2] - ze)

@@ -63,6 +63,26 @@ stated otherwise):
   fail), one kept start per floor (-1; at 4 anchors 4 vs 9), a range-only pre-screen (its
   ranks are unrelated to the SNR-aware screen's), dropping screened rows by their cost after
   1-2 steps (a row 10^4 nats behind after 2 steps can end first).
+* **Compiled steps** (``kernel=True``, the default): every Levenberg-Marquardt run (the
+  screen, the refinement between two SNR refreshes, the final refinement with the mechanisms
+  held) is one call of :func:`diffpos._kernels.mnls_nb.lm_kernel` per chunk (path model per
+  row and slot, link choice, cost, damped 3x3 normal equations, box clamp, acceptance), and
+  the closed-form starts are :mod:`diffpos._kernels.mnls_starts_nb`; both reproduce numpy's
+  operation order (einsum's and ``sum``'s summation orders, LAPACK ``gesv``), so the answers
+  are those of the reference steps (``kernel=False``): bitwise equal positions, covariances,
+  floors, mechanisms and statuses on ``bench_estimator_cost.py``'s sets (4 and 8 anchors,
+  256 fixes, seeds 0 and 1) and on the tests' held-out buildings (tests/core/test_mnls.py
+  asserts 1e-9 m). Cost per fix (``bench_estimator_cost.py --quick``, 8 anchors, CPU;
+  2026-11-27 06:35 UTC, 2-core VM shared, load 4.5-6.2, before = commit adf3856, two
+  interleaved runs each): batched 6.03 / 4.91 -> 3.79 / 3.07 ms, single 14.6 / 13.4 -> 6.57 /
+  5.41 ms (4 anchors: batched 4.03 / 3.42 -> 2.25 / 2.25, single 13.0 / 16.2 -> 4.17 / 4.15);
+  the issue-13 target (<= 2 ms at 8 anchors) is not met. Where it goes now
+  (``bench_mnls.py --stages --batch 128``, 8 anchors, per fix): screen 3.0 ms (compiled LM
+  2.0, SNR prediction at the closed-form starts 0.9), rescore 0.4, refine 0.3, final 0.2,
+  starts 0.2; cProfile of 64 fixes (``bench_path_model.py --profile-mnls 64``): ``lm_kernel``
+  52 %, ``pair_snr_db`` 26 %, the rest 22 %. The compiled LM spends ~0.8-1.1 us per
+  node-anchor pair and step, nearly all in the path model's 18 slots; a further cut needs
+  fewer evaluations (the search's answers change) or a faster path model / SNR prediction.
 * **Same-edge dominance** (:mod:`._mnls_rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
@@ -124,7 +144,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._kernels.mnls_nb import link_terms_kernel
+from .._kernels.mnls_nb import link_terms_kernel, lm_kernel
+from .._kernels.paths_nb import building_planes
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..paths import DIFFRACTION_SLOTS, SPECULAR_SLOTS, first_arrival_paths
 from ._mnls_posterior import _information, _posterior
@@ -167,6 +188,9 @@ PRUNE_NATS = 30.0
 #: The kept cells of a floor are re-scored with the SNR only when its best screened cost is
 #: within this much of the best floor's [nats] (the others are not refined).
 RESCORE_NATS = 2 * PRUNE_NATS
+#: Most links per fix the compiled LM (``kernel=True``) takes (numpy's pairwise summation
+#: order is reproduced up to 128 terms); more: the reference steps.
+_KERNEL_MAX_LINKS = 128
 #: Default false-alarm probability of the residual test.
 FALSE_ALARM_PROBABILITY = 1e-3
 #: Per-stage counters (``benchmarks/bench_mnls.py --stages``): ``None`` (off, the default) or
@@ -196,7 +220,7 @@ def _stage(name: str):
 def _count(key: str, value: float) -> None:
     if STAGE_STATS is not None:
         d = STAGE_STATS.setdefault(_STAGE[0], dict.fromkeys(
-            ("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s"), 0.0))
+            ("paths", "snr", "cpu_s", "paths_cpu_s", "snr_cpu_s", "kernel_cpu_s"), 0.0))
         d[key] += value
 
 
@@ -311,11 +335,13 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
 
 
-def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = None
-        ) -> tuple[FloatArray, dict]:
+def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = None,
+        kernel: bool = False) -> tuple[FloatArray, dict]:
     """Projected Levenberg-Marquardt with max-mixture re-assignment at every step; with the
     measured SNR, the SNR cost of every slot is refreshed every :data:`SNR_EVERY` steps
     (``t_init``: the terms at ``x``, SNR cost already in ``p``)."""
+    if kernel and p.r.shape[1] <= _KERNEL_MAX_LINKS:
+        return _lm_compiled(p, x, building, iters, snr_at_start=t_init is None)
     n = x.shape[0]
     lam = np.full(n, 1e-3)
     if t_init is None:  # the SNR cost at the start first: the terms are computed once
@@ -391,7 +417,7 @@ def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength) -> _Pro
 
 
 def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, wavelength,
-                 snr=None, radio=None, x0=None):
+                 snr=None, radio=None, x0=None, kernel=False):
     """All floors x starts of B fixes; returns per-fix-per-floor modes and terms."""
     b = r.shape[0]
     nf = building.n_floors
@@ -402,7 +428,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
                       np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
                       building, lam, np.repeat(excess, rep, axis=0), wavelength)
-        x, closed = _start_points(p0, grid, building, b, x0)
+        x, closed = _start_points(p0, grid, building, b, x0, kernel=kernel)
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
     # the closed-form starts' starting points (they steer the mechanism choice: without them
@@ -413,7 +439,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     if split is not None and not (split.sum(-1).min() >= keep and (~split).sum(-1).min() >= 1):
         split = None  # too few closed-form starts or no grid cell: every start with the SNR
     with _stage("screen"):
-        x, t0 = _screen(p0, x, None if split is None else closed, building)
+        x, t0 = _screen(p0, x, None if split is None else closed, building, kernel=kernel)
     with _stage("rescore"):
         c0 = t0["cost"].reshape(b, nf, g)
         best = _kept(c0, split, keep)  # (B, F, keep (+ 1 grid cell))
@@ -423,7 +449,14 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
                      building, lam, p0.excess_db[rows], wavelength)
         x = x[rows]
-        t = {k: v[rows] for k, v in t0.items()}
+        if "res" in t0:
+            t = {k: v[rows] for k, v in t0.items()}
+        else:  # the compiled screen returned the costs only: the kept rows' terms at their
+            # points when needed (with the SNR: only of the rows the re-scoring leaves out)
+            def t_rows(sel):
+                return _link_terms(_sub(p0, rows[sel]), x[sel], building)
+
+            t = t_rows if snr is not None and radio is not None else t_rows(slice(None))
         if snr is not None and radio is not None:  # the kept cells scored with the SNR too
             p.snr_meas, p.radio = np.repeat(snr, nf * keep, axis=0), radio
             t = _rescore(p, x, t, c0, keep, building)
@@ -437,7 +470,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
             ps.snr_meas, ps.radio = p.snr_meas[sub], radio
             ps.snr_cost, ps.strong = p.snr_cost[sub], p.strong[sub]
         x[sub], ts = _lm(ps, x[sub], building, iters,
-                         t_init={k: v[sub] for k, v in t.items()})
+                         t_init={k: v[sub] for k, v in t.items()}, kernel=kernel)
         for k in t:
             t[k][sub] = ts[k]
         cost = t["cost"].reshape(b, nf, keep)
@@ -446,20 +479,82 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
 
 
-def _screen(p0: _Problem, x: FloatArray, closed, building) -> tuple[FloatArray, dict]:
+def _screen(p0: _Problem, x: FloatArray, closed, building, kernel: bool = False
+            ) -> tuple[FloatArray, dict]:
     """:data:`SCREEN_ITER` LM steps from every start ``x``; with the measured SNR, the SNR
     terms at the start held for the steps: of every start (``closed`` None) or only of the
     closed-form and caller's starts (``closed``, a row mask; the grid cells' SNR cost is 0
-    and nothing is ``strong`` there: screened with the ranges only)."""
+    and nothing is ``strong`` there: screened with the ranges only). With ``kernel``, the
+    steps run in :func:`diffpos._kernels.mnls_nb.lm_kernel` and the terms returned hold the
+    ``cost`` only (the caller evaluates the rows it keeps)."""
+    compiled = kernel and p0.r.shape[1] <= _KERNEL_MAX_LINKS
     if closed is None:
+        if compiled:
+            return _lm_compiled(p0, x, building, SCREEN_ITER, want_terms=False)
         return _lm(p0, x, building, SCREEN_ITER)
+    _closed_snr(p0, x, closed, building)
+    if compiled:
+        return _lm_compiled(p0, x, building, SCREEN_ITER, snr_at_start=False, want_terms=False)
+    return _lm(p0, x, building, SCREEN_ITER, t_init=_link_terms(p0, x, building))
+
+
+def _closed_snr(p0: _Problem, x: FloatArray, closed, building) -> None:
+    """The SNR cost and ``strong`` flags of the ``closed`` rows at ``x``, 0 / False on the
+    other rows (set on ``p0``)."""
     rows = np.flatnonzero(closed)
     q = _sub(p0, rows)
     q.snr_cost = _snr_cost(q, x[rows], building)
     p0.snr_cost = np.zeros((*p0.mask.shape, q.snr_cost.shape[-1]))
     p0.strong = np.zeros(p0.snr_cost.shape, dtype=bool)
     p0.snr_cost[rows], p0.strong[rows] = q.snr_cost, q.strong
-    return _lm(p0, x, building, SCREEN_ITER, t_init=_link_terms(p0, x, building))
+
+
+def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start: bool = True,
+                 want_terms: bool = True) -> tuple[FloatArray, dict]:
+    """:func:`_lm` in :func:`diffpos._kernels.mnls_nb.lm_kernel`: the steps between two SNR
+    refreshes in one compiled call, the refreshes as in :func:`_lm`; the terms at the
+    returned points evaluated once at the end (the same values: row by row the same function
+    of the point and the held SNR terms), or ``{"cost": ...}`` only (``want_terms`` False).
+    ``snr_at_start`` False: the SNR terms in ``p`` are those at ``x`` (``_lm``'s ``t_init``)."""
+    n = x.shape[0]
+    x = _c(x).copy()
+    if p.snr_meas is not None and snr_at_start:  # the SNR cost at the start
+        p.snr_cost = _snr_cost(p, x, building)
+    damp = np.full(n, 1e-3)
+    live = np.ones(n, dtype=bool)
+    cost = np.full(n, np.nan)
+    e3 = np.zeros((0, 0, 0))
+    args = [_c(p.anchors), _c(p.r), _c(p.sig), _c(p.mask, bool),
+            _c(np.broadcast_to(p.tail_a, p.r.shape)), _c(p.excess_db), _c(p.floor), _c(p.lo),
+            _c(p.hi), _c(p.z_mid), float(p.prior_var), float(p.lam), float(p.wavelength_m),
+            float(SNR_MARGIN_DB), np.array(building_planes(building))]
+    allowed = e3.astype(bool) if p.allowed is None else _c(p.allowed, bool)
+    done = 0
+    while done < iters and live.any():
+        seg = iters - done
+        if p.snr_meas is not None and p.snr_cost is not None:
+            if done > 0:  # refresh the SNR terms of the live rows (as _lm at i % SNR_EVERY)
+                rows = np.flatnonzero(live)
+                q = _sub(p, rows)
+                q.snr_cost = _snr_cost(q, x[rows], building)
+                p.snr_cost[rows], p.strong[rows] = q.snr_cost, q.strong
+            seg = min(seg, SNR_EVERY)
+        c_seg = np.empty(n)
+        evals = np.empty(n, dtype=np.int64)
+        live_after = live.copy()
+        c0 = time.thread_time()
+        lm_kernel(*args, e3 if p.snr_cost is None else _c(p.snr_cost),
+                  e3.astype(bool) if p.strong is None else _c(p.strong, bool), allowed,
+                  _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, int(seg), float(CONVERGED_M), x,
+                  damp, live_after, c_seg, evals)
+        _count("kernel_cpu_s", time.thread_time() - c0)
+        _count("paths", int(evals.sum()))
+        cost = np.where(live, c_seg, cost)  # rows live at the call: their cost now
+        live = live_after
+        done += seg
+    if not want_terms:
+        return x, {"cost": cost}
+    return x, _link_terms(p, x, building)
 
 
 def _kept(c0: FloatArray, split, keep: int) -> NDArray[np.int_]:
@@ -474,11 +569,13 @@ def _kept(c0: FloatArray, split, keep: int) -> NDArray[np.int_]:
     return np.concatenate([b1, b2], axis=-1)
 
 
-def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, building
+def _rescore(p: _Problem, x: FloatArray, t, c0: FloatArray, keep: int, building
              ) -> dict:
     """The kept cells' terms with the SNR at their screened points, for the floors whose
     screened best ``c0`` (B, F, G) is within :data:`RESCORE_NATS` of the fix's best floor;
-    the other floors' cells get an infinite cost."""
+    the other floors' cells get an infinite cost. ``t``: the screened terms of the kept
+    cells, or a function of a row selection returning them (evaluated for the rows left
+    out only)."""
     f0 = np.min(c0, axis=-1)
     go = np.repeat((f0 <= np.min(f0, axis=-1, keepdims=True) + RESCORE_NATS).ravel(), keep)
     if go.all():
@@ -488,18 +585,32 @@ def _rescore(p: _Problem, x: FloatArray, t: dict, c0: FloatArray, keep: int, bui
     q = _sub(p, rows)
     q.snr_cost = _snr_cost(q, x[rows], building)
     tq = _link_terms(q, x[rows], building)
-    n, m, k = t["length"].shape
+    n, (m, k) = go.size, tq["length"].shape[1:]
     p.snr_cost, p.strong = np.zeros((n, m, k)), np.zeros((n, m, k), dtype=bool)
     p.snr_cost[rows], p.strong[rows] = q.snr_cost, q.strong
-    t = {key: v.copy() for key, v in t.items()}
-    for key in t:
-        t[key][rows] = tq[key]
-    t["cost"][~go] = np.inf
-    return t
+    if callable(t):
+        out = _link_terms_rows(t, ~go, n)
+    else:
+        out = {key: v.copy() for key, v in t.items()}
+    for key in out:
+        out[key][rows] = tq[key]
+    out["cost"][~go] = np.inf
+    return out
 
 
-def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
-                  ) -> tuple[FloatArray, NDArray[np.bool_]]:
+def _link_terms_rows(t_rows, sel: NDArray[np.bool_], n: int) -> dict:
+    """Arrays of ``n`` rows holding ``t_rows(sel)`` on the rows ``sel`` (the others are
+    written by the caller)."""
+    ts = t_rows(np.flatnonzero(sel))
+    out = {}
+    for key, v in ts.items():
+        out[key] = np.empty((n, *v.shape[1:]), dtype=v.dtype)
+        out[key][sel] = v
+    return out
+
+
+def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None,
+                  kernel: bool = False) -> tuple[FloatArray, NDArray[np.bool_]]:
     """The start of every row of ``p0`` (B fixes x F floors x G cells): the grid at mid-floor
     height with seven cells replaced by the closed-form starts, and the caller's start; and
     which rows hold a closed-form or the caller's start (the others: grid cells)."""
@@ -513,13 +624,13 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
     # mid-floor height: most first arrivals (direct, lower-edge diffraction near the window's
     # height) are a few cm to dm longer than the straight line, so it lands in their basin
     last = np.arange(b * nf) * g + g - 1
-    x[last] = _los_start(p0, last, building)
+    x[last] = _los_start(p0, last, building, kernel=kernel)
     closed[last] = True
     # two more cells: a free-z straight-line fit is the node's image when the links are
     # specular; the node is then its ceiling image (2 z_c - z) or, for the ceiling-floor double
     # bounce, 2H below it (image method), clipped into the floor
     if g >= 4:
-        img = _los_start(p0, last, building, free_z=True)
+        img = _los_start(p0, last, building, free_z=True, kernel=kernel)
         h = building.floor_height_m
         for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
             x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
@@ -535,7 +646,7 @@ def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None
     for cell, ze, zm in ((g - 4, z_lo, None), (g - 5, z_lo + building.window_height_m, None),
                          (g - 6, z_lo, zc), (g - 7, z_lo + building.window_height_m, zc)):
         if cell >= 1:
-            x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm)
+            x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm, kernel=kernel)
             closed[last - (g - 1) + cell] = True
     if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
         has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
@@ -563,6 +674,7 @@ def mnls(
     false_alarm_probability: float = FALSE_ALARM_PROBABILITY,
     chunk_size: int = 256,
     x0_m: ArrayLike | None = None,
+    kernel: bool = True,
 ) -> MnlsResult:
     """Batched mechanism-aware position fixes (module docstring).
 
@@ -602,6 +714,10 @@ def mnls(
     x0_m : array_like, shape (B, 3) or (3,), optional [m]
         An extra start per fix (e.g. a tracker's prediction), searched on the floor it lies
         on beside the regular starts (NaN rows: none).
+    kernel : bool
+        Levenberg-Marquardt steps (screen, refinement) in the compiled kernel
+        (:func:`diffpos._kernels.mnls_nb.lm_kernel`, the default) or in the numpy/numba
+        reference steps (``False``); the same answers (tests/core/test_mnls.py).
 
     Returns
     -------
@@ -638,10 +754,10 @@ def mnls(
                              excess[idx], building, grid=grid, keep=keep_starts,
                              wavelength=wavelength, iters=max_iter, lam=lam, radio=radio,
                              snr=None if snr_all is None else snr_all[idx],
-                             x0=None if x0 is None else x0[idx])
+                             x0=None if x0 is None else x0[idx], kernel=kernel)
         with _stage("final"):
             _finish(out, idx, *modes, nf=nf, snr_meas=None if snr_db is None else snr_all[idx],
-                    building=building, radio=radio)
+                    building=building, radio=radio, kernel=kernel)
     return _result(out, bi, false_alarm_probability)
 
 
@@ -662,7 +778,7 @@ def _replace_snr(p: _Problem) -> _Problem:
 
 
 def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building=None,
-            radio=None) -> None:
+            radio=None, kernel: bool = False) -> None:
     b = idx.size
     act = np.flatnonzero(active)
     if radio is not None and snr_meas is not None:
@@ -678,7 +794,7 @@ def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building
         snr_hold = ps.snr_cost
         held = _replace_snr(ps)
         held.snr_cost = None
-        x, _ = _lm(held, x, building, REFINE_ITER)
+        x, _ = _lm(held, x, building, REFINE_ITER, kernel=kernel)
         ps.allowed = None
         xk = xk.reshape(-1, 3).copy()
         xk[act] = x
