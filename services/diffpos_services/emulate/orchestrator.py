@@ -371,8 +371,15 @@ class Emulation:
                     "compiles them: about a minute) ...")
         t0 = time.monotonic()
         # imported here, after the message: importing dnls_nb compiles it (explicit signatures)
-        # (dnls_nb, mnls_nb and lm_nb compile on import; every service imports all three)
-        from diffpos._kernels import channel_nb, dnls_nb, mnls_nb, paths_nb  # noqa: F401
+        # (dnls_nb, mnls_nb, mnls_starts_nb and lm_nb compile on import; every service imports
+        # them)
+        from diffpos._kernels import (  # noqa: F401
+            channel_nb,
+            dnls_nb,
+            mnls_nb,
+            mnls_starts_nb,
+            paths_nb,
+        )
         paths_nb.warm_paths()
         dnls_nb.warm_dnls()
         channel_nb.warm_channel()  # the SNR prediction of mnls and the tracker
