@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ._kernels.paths_nb import building_planes
+from ._kernels.tracking_nb import model_kernel
 from .channel import pair_snr_db
 from .paths import DIFFRACTION_SLOTS, MECHANISMS, graded_paths
 
@@ -298,7 +300,26 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
 
 
 def _model(pos, links: Links, floor, sel: Selection, building):
-    """Model values, Jacobians and weights of the used links at ``pos`` (incl. the hinge)."""
+    """Model values, Jacobians and weights of the used links at ``pos`` (incl. the hinge):
+    (N, H, M), (N, H, M, 3), (N, H, M). One compiled pass over every link
+    (:func:`diffpos._kernels.tracking_nb.model_kernel`), bit-identical to
+    :func:`_model_numpy`."""
+    n, h, m = sel.slot.shape
+    fl = np.empty((n, h))
+    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
+    model, jm, w = np.empty((n, h, m)), np.empty((n, h, m, 3)), np.empty((n, h, m))
+    model_kernel(np.ascontiguousarray(pos, dtype=np.float64),
+                 np.ascontiguousarray(links.anchors[:, 0]), fl,
+                 np.ascontiguousarray(sel.slot, dtype=np.int64),
+                 np.ascontiguousarray(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=np.float64),
+                 np.ascontiguousarray(links.rho[:, 0]), np.ascontiguousarray(links.var[:, 0]),
+                 np.ascontiguousarray(links.mask[:, 0]), *building_planes(building),
+                 model, jm, w)
+    return model, jm, w
+
+
+def _model_numpy(pos, links: Links, floor, sel: Selection, building):
+    """The numpy reference of :func:`_model` (the path model once per distinct slot)."""
     length, jac, ok = slot_paths(pos, links, floor, sel.slot, building)
     los, jlos = _los(pos, links.anchors)
     use = (sel.slot >= 0) & ok

@@ -7,7 +7,8 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
 - the snapshot fix :func:`diffpos.estimators.mnls` on the scenario's building (every row
   without tracking; with tracking only the rows whose node has no confirmed track, or whose
   last snapshot is ``snapshot_period_s`` of measurement time old);
-- with tracking, the update of :mod:`diffpos.tracking` (an IMM over floors per node): all the
+- with tracking, the update of :mod:`diffpos.tracking` (per node: floor x {level, vertical}
+  hypotheses, one iterated EKF each, mixed between epochs): all the
   batch's nodes in one vectorised call per *round* (a round holds at most one epoch per node,
   oldest first, so a backlog of several epochs of one node is applied in time order). A node
   whose epoch has no usable range is predicted only (COASTING, the covariance grows).

@@ -1,0 +1,79 @@
+"""The tracker's compiled measurement model against its numpy reference.
+
+:func:`diffpos.tracking_model._model` (one compiled pass, ``diffpos._kernels.tracking_nb``)
+must give the same numbers bit for bit as :func:`diffpos.tracking_model._model_numpy` (the
+path model once per distinct slot + the straight line by ``einsum``): the kernel calls the
+same per-row path function the path kernel runs for ``graded_paths`` and computes the
+straight line with the same operations in the same order, so equality is exact, not a
+tolerance. Inputs are random (fixed seeds) on buildings other than the shipped ones: other
+floor heights and window sizes, anchors above the windows and beyond the facade ends, every
+slot including -1 (outlier), missing links and hinge links (range shorter than the line).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from diffpos.paths import MECHANISMS
+from diffpos.scenario import Building
+from diffpos.tracking_model import Links, Selection, _model, _model_numpy
+
+_BUILDINGS = [
+    Building(),
+    dataclasses.replace(Building(), n_floors=7, floor_height_m=3.6, first_floor_z_m=3.0,
+                        sill_height_m=0.9, window_height_m=2.0, width_m=30.0, depth_m=15.0,
+                        partitions=()),
+    dataclasses.replace(Building(), floor_height_m=2.7, window_height_m=0.8, sill_height_m=1.2),
+]
+
+
+def _case(b, seed, n=7, h=6, m=9):
+    rng = np.random.default_rng(seed)
+    x0, x1 = b.edge_x_m
+    floor = rng.integers(0, b.n_floors, (n, h))
+    zf = b.floor_z_m(floor)
+    pos = np.stack([rng.uniform(x0 - 2, x1 + 2, (n, h)), rng.uniform(0.05, b.depth_m, (n, h)),
+                    zf + rng.uniform(-0.2, b.floor_height_m + 0.2, (n, h))], axis=-1)
+    # anchors: in front, above the windows, beyond the facade ends
+    anc = np.stack([rng.uniform(x0 - 10, x1 + 10, (n, m)), rng.uniform(-30, -2, (n, m)),
+                    rng.uniform(0, b.floor_z_m(b.n_floors - 1) + 6, (n, m))], axis=-1)
+    ranges = np.linalg.norm(pos[:, :1, None] - anc[:, None], axis=-1)[:, 0] \
+        + rng.uniform(-1.0, 6.0, (n, m))  # some shorter than the straight line (hinge)
+    mask = rng.random((n, m)) > 0.15
+    links = Links.from_arrays(anc, ranges, rng.uniform(0.01, 0.3, (n, m)), mask, 0.03)
+    slot = np.where(rng.random((n, h, m)) < 0.2, -1,
+                    rng.integers(0, len(MECHANISMS), (n, h, m)))
+    sel = Selection(slot=slot, log_weight=np.zeros((n, h, m)), nis=np.zeros((n, h, m)),
+                    extra_var=rng.uniform(0, 0.1, (n, h, m)) * (slot >= 0))
+    return pos, links, floor, sel
+
+
+@pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
+def test_model_kernel_bit_identical_to_numpy(bi):
+    b = _BUILDINGS[bi]
+    for seed in range(4):
+        pos, links, floor, sel = _case(b, 100 * bi + seed)
+        got = _model(pos, links, floor, sel, b)
+        ref = _model_numpy(pos, links, floor, sel, b)
+        for g, r in zip(got, ref, strict=True):
+            assert g.shape == r.shape
+            np.testing.assert_array_equal(g, r)
+        # the case exercises every branch: used slots, hinges and unused links
+        w = ref[2]
+        assert np.any(w > 0) and np.any(w == 0)
+        assert np.any((sel.slot < 0) & (w > 0))  # a hinge
+
+
+def test_model_kernel_floor_broadcast():
+    """A per-hypothesis floor vector (H,) as the tracker passes it gives the same values as
+    the explicit (N, H) array."""
+    b = _BUILDINGS[1]
+    pos, links, floor, sel = _case(b, 7, h=b.n_floors)
+    fl = np.arange(b.n_floors)
+    got = _model(pos, links, fl, sel, b)
+    ref = _model_numpy(pos, links, np.broadcast_to(fl, floor.shape), sel, b)
+    for g, r in zip(got, ref, strict=True):
+        np.testing.assert_array_equal(g, r)
