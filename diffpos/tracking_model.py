@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.paths_nb import building_planes
-from ._kernels.tracking_nb import model_kernel
+from ._kernels.tracking_nb import model_kernel, select_prep_kernel
 from .channel import pair_snr_db
 from .paths import DIFFRACTION_SLOTS, MECHANISMS, graded_paths
 
@@ -241,6 +241,44 @@ class Selection:
     extra_var: FloatArray
 
 
+def _select_prep(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
+    """Candidates, SNR log-likelihood term and innovation variance of every slot, (N, H, M, K)
+    (:func:`diffpos._kernels.tracking_nb.select_prep_kernel`)."""
+    shape = pe.length.shape
+    n, h, m, k = shape
+    valid = np.empty(shape, dtype=np.bool_)
+    s_ll, s_var = np.empty(shape), np.empty(shape)
+    use_snr = snr_c is not None
+    snr = np.ascontiguousarray(links.snr[:, 0]) if use_snr else np.zeros((n, m))
+    sc = np.ascontiguousarray(snr_c) if use_snr else np.zeros((1, 1, 1, 1))
+    select_prep_kernel(
+        np.ascontiguousarray(pe.length), np.ascontiguousarray(pe.jac),
+        np.ascontiguousarray(pe.sure), np.ascontiguousarray(pe.loose), _IS_DIFF,
+        np.ascontiguousarray(np.broadcast_to(pos_cov, (n, h, 3, 3))),
+        np.ascontiguousarray(links.var[:, 0]), snr, sc, use_snr,
+        np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
+        valid, s_ll, s_var)
+    return valid, s_ll, s_var
+
+
+def _select_prep_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
+    """The numpy reference of :func:`_select_prep`."""
+    valid = candidates(pe)
+    if snr_c is not None:
+        powered = np.isfinite(snr_c)
+        valid = valid & (powered | ~pe.sure)
+        has_snr = np.isfinite(links.snr)
+        with np.errstate(invalid="ignore"):
+            g = np.where(powered, -snr_c - np.log(SNR_SIGMA_DB) - 0.5 * _LOG2PI,
+                         -np.log(SNR_SPAN_DB))
+        s_ll = np.where(has_snr[..., None], g, 0.0)
+    else:
+        s_ll = np.zeros(pe.length.shape)
+    jac = np.where(valid[..., None], pe.jac, 0.0)
+    s_var = np.einsum("nhmki,nhij,nhmkj->nhmk", jac, pos_cov, jac) + links.var[..., None]
+    return valid, s_ll, s_var
+
+
 def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
            snr_c: FloatArray | None = None) -> Selection:
     """Most likely mechanism per link given the predicted position Gaussian.
@@ -251,24 +289,17 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     SNR log-likelihood is added (the outlier's SNR is uniform over ``SNR_SPAN_DB``), and it
     is part of the link's log-weight (so of the floor evidence).
     """
-    valid = candidates(pe)
+    # the candidates (a slot without power at the hypothesis is no candidate, unless the
+    # hypothesis is within the entry point's uncertainty of the slot's existence boundary: the
+    # prediction flips from a strong path to none over a few cm there, so its SNR is then
+    # uninformative, uniform over SNR_SPAN_DB), every candidate's SNR log-likelihood and
+    # innovation variance: one compiled pass, bit-identical to _select_prep_numpy
+    valid, s_ll, s_var = _select_prep(pos_cov, links, pe, snr_c)
     if snr_c is not None:
-        # a slot without power at the hypothesis is no candidate, unless the hypothesis is
-        # within the entry point's uncertainty of the slot's existence boundary (the
-        # prediction flips from a strong path to none over a few cm there): its SNR is then
-        # uninformative (uniform over SNR_SPAN_DB)
-        powered = np.isfinite(snr_c)
-        valid = valid & (powered | ~pe.sure)
-        has_snr = np.isfinite(links.snr)
-        with np.errstate(invalid="ignore"):
-            g = np.where(powered, -snr_c - np.log(SNR_SIGMA_DB) - 0.5 * _LOG2PI,
-                         -np.log(SNR_SPAN_DB))
-        s_ll = np.where(has_snr[..., None], g, 0.0)
-        s_out = np.where(has_snr, -np.log(SNR_SPAN_DB), 0.0)
+        s_out = np.where(np.isfinite(links.snr), -np.log(SNR_SPAN_DB), 0.0)
     else:
-        s_ll, s_out = 0.0, 0.0
-    lengths, jac = pe.length, np.where(valid[..., None], pe.jac, 0.0)
-    s_var = np.einsum("nhmki,nhij,nhmkj->nhmk", jac, pos_cov, jac) + links.var[..., None]
+        s_out = 0.0
+    lengths = pe.length
     e = links.rho[..., None] - lengths
     n_ok = np.maximum(valid.sum(axis=-1), 1)
     with np.errstate(invalid="ignore"):

@@ -20,7 +20,7 @@ from numba import njit
 
 from .paths_nb import edge_axis, row_planes, slot_path
 
-__all__ = ["model_kernel"]
+__all__ = ["model_kernel", "select_prep_kernel"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 
@@ -80,3 +80,56 @@ def model_kernel(pos, anchors, floor, slot, extra_var, rho, var, mask, first_z, 
                     jm[n, h, m, 1] = 0.0
                     jm[n, h, m, 2] = 0.0
                     w[n, h, m] = 0.0
+
+
+@njit(**_OPTS)
+def select_prep_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr_c, use_snr,
+                       g_const, span_ll, valid, s_ll, s_var):
+    """The transcendental-free part of ``tracking_model.select`` per (node, hypothesis,
+    anchor, slot): the candidates (``tracking_model.candidates``, then without power only
+    near an existence boundary), the SNR log-likelihood term ``s_ll`` and the innovation
+    variance ``s_var = J P J^T + R`` (0 Jacobian for a non-candidate), with numpy's order of
+    operations (``einsum`` sums ``(J_i P_ij) J_j`` over i outer, j inner), so bit-identical.
+
+    ``length`` (N, H, M, K), ``jac`` (N, H, M, K, 3), ``sure``/``loose`` (N, H, M, K) bool,
+    ``is_diff`` (K,) bool, ``pos_cov`` (N, H, 3, 3), ``var`` (N, M), ``snr`` (N, M) and
+    ``snr_c`` (N, H, M, K) (ignored unless ``use_snr``), ``g_const``: ``log(sigma_snr) +
+    log(2 pi) / 2`` is subtracted as ``(-c - log(sigma)) - log(2 pi) / 2``: given as the two
+    terms ``g_const[0]``, ``g_const[1]``; ``span_ll = -log(SNR_SPAN_DB)``.
+    """
+    n_n, n_h, n_m, n_k = length.shape
+    for n in range(n_n):
+        for h in range(n_h):
+            for m in range(n_m):
+                e_spec = np.inf  # earliest sure specular path (NaN propagates as in min)
+                for k in range(n_k):
+                    if sure[n, h, m, k] and not is_diff[k]:
+                        ln = length[n, h, m, k]
+                        if math.isnan(ln):
+                            e_spec = np.nan
+                            break
+                        if ln < e_spec:
+                            e_spec = ln
+                has_snr = use_snr and math.isfinite(snr[n, m])
+                for k in range(n_k):
+                    ln = length[n, h, m, k]
+                    ok = loose[n, h, m, k] and ((ln < e_spec) if is_diff[k] else (ln <= e_spec))
+                    sl = 0.0
+                    if use_snr:
+                        c = snr_c[n, h, m, k]
+                        powered = math.isfinite(c)
+                        ok = ok and (powered or not sure[n, h, m, k])
+                        if has_snr:
+                            sl = ((-c - g_const[0]) - g_const[1]) if powered else span_ll
+                    valid[n, h, m, k] = ok
+                    s_ll[n, h, m, k] = sl
+                    acc = 0.0
+                    if ok:
+                        for i in range(3):
+                            for j in range(3):
+                                acc += jac[n, h, m, k, i] * pos_cov[n, h, i, j] * jac[n, h, m, k, j]
+                    else:
+                        for i in range(3):
+                            for j in range(3):
+                                acc += 0.0 * pos_cov[n, h, i, j] * 0.0
+                    s_var[n, h, m, k] = acc + var[n, m]

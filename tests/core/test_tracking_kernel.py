@@ -18,8 +18,18 @@ import numpy as np
 import pytest
 
 from diffpos.paths import MECHANISMS
-from diffpos.scenario import Building
-from diffpos.tracking_model import Links, Selection, _model, _model_numpy
+from diffpos.scenario import Building, default_scenario
+from diffpos.tracking_model import (
+    Links,
+    Selection,
+    _model,
+    _model_numpy,
+    _select_prep,
+    _select_prep_numpy,
+    all_paths,
+    clamp_to_floor,
+    snr_cost_near,
+)
 
 _BUILDINGS = [
     Building(),
@@ -77,3 +87,29 @@ def test_model_kernel_floor_broadcast():
     ref = _model_numpy(pos, links, np.broadcast_to(fl, floor.shape), sel, b)
     for g, r in zip(got, ref, strict=True):
         np.testing.assert_array_equal(g, r)
+
+
+@pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
+def test_select_prep_kernel_bit_identical_to_numpy(bi):
+    """Candidates, SNR term and innovation variance of the compiled selection equal the numpy
+    reference exactly (no transcendental function in the kernel: the constants come in), with
+    and without the SNR, with unknown SNRs and non-finite raw path values."""
+    b = _BUILDINGS[bi]
+    radio = default_scenario().radio
+    for seed in range(3):
+        pos, links, floor, _ = _case(b, 50 + 100 * bi + seed)
+        rng = np.random.default_rng(seed)
+        n, h, m = pos.shape[0], pos.shape[1], links.rho.shape[-1]
+        snr = np.where(rng.random((n, m)) < 0.2, np.nan, rng.uniform(-5, 40, (n, m)))
+        ls = Links(links.rho, links.var, links.mask, links.anchors, snr[:, None], radio)
+        pos = clamp_to_floor(pos, floor, b, 0.05)
+        pe = all_paths(pos, ls, floor, b, 0.2)
+        a = rng.normal(size=(n, h, 3, 3)) * 0.5
+        cov = a @ np.swapaxes(a, -1, -2) + 0.01 * np.eye(3)
+        for snr_c in (snr_cost_near(pos, ls, floor, b, 0.2, pe), None):
+            got = _select_prep(cov, ls, pe, snr_c)
+            ref = _select_prep_numpy(cov, ls, pe, snr_c)
+            for g, r in zip(got, ref, strict=True):
+                assert g.shape == r.shape and g.dtype == r.dtype
+                np.testing.assert_array_equal(g, r)
+            assert np.any(got[0]) and not np.all(got[0])
