@@ -245,7 +245,7 @@ def _select_prep(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
     """Candidates, SNR log-likelihood term and innovation variance of every slot, (N, H, M, K)
     (:func:`diffpos._kernels.tracking_nb.select_prep_kernel`)."""
     shape = pe.length.shape
-    n, h, m, k = shape
+    n, h, m = shape[:3]
     valid = np.empty(shape, dtype=np.bool_)
     s_ll, s_var = np.empty(shape), np.empty(shape)
     use_snr = snr_c is not None
@@ -373,8 +373,14 @@ def _box(x: FloatArray, floor, building, margin_m: float) -> tuple[FloatArray, F
     return lo, hi
 
 
+def prior_information(p_prior: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Information matrix of the prior and its log-determinant (N, H, 6, 6), (N, H)."""
+    y = np.linalg.inv(p_prior)
+    return y, np.linalg.slogdet(y)[1]
+
+
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
-         building, config, level=None):
+         building, config, level=None, prior_info=None):
     """Iterated EKF (Gauss-Newton on the MAP cost) of every hypothesis with fixed mechanisms.
 
     The hypothesis' floor box is a hard-ish constraint: a coordinate outside it gets a
@@ -387,10 +393,12 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     probability is the caller's. ``None`` (snapshot initialisation, no mode yet): a
     max-mixture of both chosen at the prior, weighted ``1 - stairs_weight`` /
     ``stairs_weight``.
+    ``prior_info``: :func:`prior_information` of ``p_prior`` if the caller has it (the
+    selection passes of one update share the prior).
     Returns ``(x, P, log_evidence, residual)``: posterior means (N, H, 6), covariances
     (N, H, 6, 6), the Laplace log marginal likelihood (N, H) and the residuals (N, H, M).
     """
-    y = np.linalg.inv(p_prior)
+    y, logdet_y = prior_information(p_prior) if prior_info is None else prior_info
     x = x_prior.copy()
     lo, hi = _box(x, floor, building, config.z_margin_m)
     wb = 1.0 / config.box_sigma_m**2
@@ -433,7 +441,7 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
             + wb * np.sum(eb * eb, axis=-1) + wh * eh * eh)
     used = w > 0
     norm = np.sum(np.where(used, 0.5 * (np.log(np.where(used, w, 1.0)) - _LOG2PI), 0.0), axis=-1)
-    logdet = np.linalg.slogdet(a)[1] - np.linalg.slogdet(y)[1]
+    logdet = np.linalg.slogdet(a)[1] - logdet_y
     log_ev = norm + h_const - 0.5 * quad - 0.5 * logdet + np.sum(sel.log_weight, axis=-1)
     residual = np.where(sel.slot >= 0, e, np.nan)
     return x, p, log_ev, residual
@@ -462,12 +470,13 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     same = np.array_equal(xc, x[..., :3])
     pe0 = all_paths(xc, links, floor, building, config.exist_margin_m)
     snr_c = snr_cost_near(xc, links, floor, building, config.exist_margin_m, pe0)
+    info = prior_information(p_prior)  # shared by the passes
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         pe = pe0 if k == 0 and same else all_paths(x[..., :3], links, floor, building,
                                                    config.exist_margin_m)
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
-                                 level)
+                                 level, info)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
 
