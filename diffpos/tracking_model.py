@@ -13,13 +13,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.paths_nb import building_planes
-from ._kernels.tracking_nb import model_kernel, select_prep_kernel
+from ._kernels.tracking_nb import grid_cost_kernel, model_kernel, select_prep_kernel
 from .channel import pair_snr_db
-from .paths import DIFFRACTION_SLOTS, MECHANISMS, graded_paths
+from .paths import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, graded_paths
 
 FloatArray = NDArray[np.float64]
 K_SLOTS = len(MECHANISMS)
 _IS_DIFF = np.isin(np.arange(K_SLOTS), DIFFRACTION_SLOTS)
+_IS_BAND = np.isin(np.arange(K_SLOTS), SPECULAR_SLOTS)  # entry point in the window band
 _LOG2PI = float(np.log(2.0 * np.pi))
 #: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
 #: field (antenna patterns, materials, wedge vs. UTD), the value M-NLS uses.
@@ -493,8 +494,35 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
 
     ``floors`` (N, Fs): the floors to search for every node. The cost of a cell is the robust
     max-mixture cost over the links with the range variance widened by the grid's own
-    resolution (``(step / 2)^2``).
+    resolution (``(step / 2)^2``). Every cell of every node in one compiled pass
+    (:func:`diffpos._kernels.tracking_nb.grid_cost_kernel`: lengths without Jacobians, no
+    temporaries), bit-identical to :func:`_grid_starts_numpy`.
     """
+    cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
+    n, nf = floors.shape
+    m = links.rho.shape[-1]
+    if m > 128:  # the kernel's summation order is numpy's up to 128 links
+        return _grid_starts_numpy(links, floors, building, config)
+    c, ns = cells.shape[0], config.init_starts
+    z = building.floor_z_m(floors) + building.nominal_node_height_m  # (N, Fs)
+    var = links.var + (0.5 * config.init_grid_m) ** 2
+    w_out = np.log(config.outlier_span_m / config.outlier_weight)
+    total = np.empty((n, nf, c))
+    fl = np.empty((n, nf))
+    fl[...] = floors
+    grid_cost_kernel(np.ascontiguousarray(cells), np.ascontiguousarray(z, dtype=np.float64), fl,
+                     np.ascontiguousarray(links.anchors[:, 0]),
+                     np.ascontiguousarray(links.rho[:, 0]), np.ascontiguousarray(var[:, 0]),
+                     np.ascontiguousarray(links.mask[:, 0]), _IS_BAND, _IS_DIFF,
+                     0.5 * config.init_grid_m, float(w_out), *building_planes(building), total)
+    order = np.argsort(total, axis=2, kind="stable")[..., :ns]  # (N, Fs, S)
+    pos = np.concatenate([np.broadcast_to(cells[None, None], (n, nf, c, 2)),
+                          np.broadcast_to(z[:, :, None, None], (n, nf, c, 1))], axis=-1)
+    return np.take_along_axis(pos, order[..., None], axis=2).reshape(n, nf * ns, 3)
+
+
+def _grid_starts_numpy(links: Links, floors: NDArray, building, config) -> FloatArray:
+    """The numpy reference of :func:`grid_starts` (one node at a time)."""
     cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
     n, nf = floors.shape
     c, ns = cells.shape[0], config.init_starts

@@ -20,7 +20,7 @@ from numba import njit
 
 from .paths_nb import edge_axis, row_planes, slot_path
 
-__all__ = ["model_kernel", "select_prep_kernel"]
+__all__ = ["grid_cost_kernel", "model_kernel", "select_prep_kernel"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 
@@ -133,3 +133,112 @@ def select_prep_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr
                             for j in range(3):
                                 acc += 0.0 * pos_cov[n, h, i, j] * 0.0
                     s_var[n, h, m, k] = acc + var[n, m]
+
+
+@njit(**_OPTS)
+def _pairwise_sum(a, n):
+    """``numpy.sum`` of the first ``n`` (<= 128) values of ``a`` in numpy's order (its
+    pairwise summation: 8 accumulators for 8 <= n <= 128, a plain loop below 8)."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[i]
+        r1 += a[i + 1]
+        r2 += a[i + 2]
+        r3 += a[i + 3]
+        r4 += a[i + 4]
+        r5 += a[i + 5]
+        r6 += a[i + 6]
+        r7 += a[i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[i]
+        i += 1
+    return res
+
+
+@njit(**_OPTS)
+def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff, relax, w_out,
+                     first_z, floor_h, sill, win_h, x0, x1, depth, total):
+    """Robust max-mixture cost of every grid cell of the snapshot initialisation
+    (``tracking_model.grid_starts``): writes ``total`` (N, Fs, C).
+
+    ``cells`` (C, 2) x, y; ``z`` (N, Fs) cell height per node and listed floor, ``floor``
+    (N, Fs) float64 floor index; ``anchors`` (N, M, 3); ``rho``, ``var`` (N, M) (``var``
+    already widened by the grid's resolution), ``mask`` (N, M); ``is_band`` / ``is_diff``
+    (K,): the slots whose entry point must lie in the window band / the diffraction slots;
+    ``relax``: the band's widening (``graded_paths``' ``relax_m``); ``w_out``: the outlier's
+    cost. Per link: the smallest ``0.5 e^2 / var`` over the candidate mechanisms (lengths
+    without Jacobians; existence graded as ``graded_paths``, candidates as
+    ``tracking_model.candidates``), capped by the outlier's cost plus the hinge; summed over
+    the present links in numpy's order.
+    """
+    edge = edge_axis(x0, x1)
+    n_n, n_f = z.shape
+    n_c = cells.shape[0]
+    n_m = anchors.shape[1]
+    n_k = is_band.shape[0]
+    length = np.empty(n_k)
+    loose = np.empty(n_k, dtype=np.bool_)
+    sure = np.empty(n_k, dtype=np.bool_)
+    link = np.empty(n_m)
+    for n in range(n_n):
+        for f in range(n_f):
+            zf, zc, lo, hi = row_planes(floor[n, f], first_z, floor_h, sill, win_h)
+            p2 = z[n, f]
+            for c in range(n_c):
+                p0, p1 = cells[c, 0], cells[c, 1]
+                for m in range(n_m):
+                    if not mask[n, m]:
+                        link[m] = 0.0
+                        continue
+                    a0, a1, a2 = anchors[n, m, 0], anchors[n, m, 1], anchors[n, m, 2]
+                    e_spec = np.inf
+                    spec_nan = False
+                    for k in range(n_k):
+                        ln, ok, _, _, _, _, _, ez = slot_path(k, a0, a1, a2, p0, p1, p2, zf,
+                                                              zc, lo, hi, x0, x1, depth, edge,
+                                                              True, False)
+                        lz = ok
+                        sz = ok
+                        if is_band[k]:
+                            lz = ok and (ez > lo - relax) and (ez < hi + relax)
+                            m1, m2 = ez - lo, hi - ez
+                            sz = lz and (m1 if m1 < m2 else m2) > relax
+                        length[k], loose[k], sure[k] = ln, lz, sz
+                        if sz and not is_diff[k]:
+                            if math.isnan(ln):
+                                spec_nan = True
+                            elif ln < e_spec:
+                                e_spec = ln
+                    if spec_nan:
+                        e_spec = np.nan
+                    cost = np.inf
+                    for k in range(n_k):
+                        ln = length[k]
+                        cand = loose[k] and ((ln < e_spec) if is_diff[k] else (ln <= e_spec))
+                        if cand:
+                            e = rho[n, m] - ln
+                            v = 0.5 * e * e / var[n, m]
+                            if math.isnan(v) or math.isnan(cost):
+                                cost = np.nan
+                            elif v < cost:
+                                cost = v
+                    d0, d1, d2 = p0 - a0, p1 - a1, p2 - a2
+                    los = math.sqrt((d0 * d0 + d2 * d2) + d1 * d1)
+                    short = rho[n, m] - los
+                    if not short < 0.0 and not math.isnan(short):
+                        short = 0.0
+                    out = w_out + 0.5 * (short * short) / var[n, m]
+                    if math.isnan(cost) or math.isnan(out):
+                        cost = np.nan
+                    elif out < cost:
+                        cost = out
+                    link[m] = cost
+                total[n, f, c] = _pairwise_sum(link, n_m)

@@ -19,15 +19,18 @@ import pytest
 
 from diffpos.paths import MECHANISMS
 from diffpos.scenario import Building, default_scenario
+from diffpos.tracking import TrackerConfig
 from diffpos.tracking_model import (
     Links,
     Selection,
+    _grid_starts_numpy,
     _model,
     _model_numpy,
     _select_prep,
     _select_prep_numpy,
     all_paths,
     clamp_to_floor,
+    grid_starts,
     snr_cost_near,
 )
 
@@ -113,3 +116,19 @@ def test_select_prep_kernel_bit_identical_to_numpy(bi):
                 assert g.shape == r.shape and g.dtype == r.dtype
                 np.testing.assert_array_equal(g, r)
             assert np.any(got[0]) and not np.all(got[0])
+
+
+@pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
+def test_grid_starts_kernel_bit_identical_to_numpy(bi):
+    """The compiled grid search of the snapshot initialisation picks the same cells (same
+    positions, same order) as the numpy reference, with missing links, 3 to 9 anchors (numpy's
+    pairwise summation below and above 8 terms) and a subset of floors per node."""
+    b = _BUILDINGS[bi]
+    cfg = TrackerConfig()
+    for seed, m in ((0, 3), (1, 8), (2, 9)):
+        _, links, _, _ = _case(b, 200 + 10 * bi + seed, n=4, m=m)
+        rng = np.random.default_rng(seed)
+        floors = np.sort(rng.choice(b.n_floors, (4, 2)), axis=1)
+        got = grid_starts(links, floors, b, cfg)
+        ref = _grid_starts_numpy(links, floors, b, cfg)
+        np.testing.assert_array_equal(got, ref)
