@@ -39,6 +39,31 @@ involved. Cost (tracker CPU per epoch, ``time.process_time``, 50 nodes x 16 anch
 SNR): 2.6 -> 4.5 ms per node-epoch (twice the hypotheses; most of it is
 :func:`diffpos.channel.pair_snr_db`); for the 6 nodes of ``default`` the per-call overhead
 dominates: 7.7 -> 7.5 ms per node-epoch (an empty re-seed snapshot is no longer computed).
+
+Cost since the compiled measurement model (``diffpos._kernels.tracking_nb``: the IEKF's link
+model, the selection's candidates and variances, the initialisation's grid search; outputs
+bit-identical, tests/core/test_tracking_kernel.py, the table above unchanged). The ``ms/ep``
+column is now the tracker's CPU time (``time.process_time``) per epoch after the
+initialisation, ``ms/ne`` per node-epoch. ``--only default large --duration 4``, two
+interleaved runs each, shared 2-core machine, load 1.8-4.8 (the spread is the machine's),
+before -> after:
+
+===========================  =====================  =====================
+run                          ms per epoch           ms per node-epoch
+===========================  =====================  =====================
+large, 50 x 8, SNR           61.2-75.6 -> 42.4-56.6  1.22-1.51 -> 0.85-1.13
+default, 6 x 4, SNR          13.9-26.5 -> 5.4-7.9    2.32-4.41 -> 0.89-1.31
+cost, 50 x 8, ranges only    53.3-67.5 -> 25.7-37.2  1.07-1.35 -> 0.51-0.74
+cost, 50 x 16, ranges only   71.0-72.8 -> 47.7-60.0  1.42-1.46 -> 0.95-1.20
+cost, 200 x 16, ranges only  268-289 -> 162-223      1.34-1.44 -> 0.81-1.12
+===========================  =====================  =====================
+
+Initialisation (50 x 8 / 200 x 16, ranges only): ~630 / ~5000 ms -> 330 / 2660 ms. What is
+left of a large epoch (50 nodes x 10 hypotheses x 8 anchors): the predicted SNR of every slot
+(:func:`diffpos.channel.pair_snr_db`, ~15-18 ms: 4,000 pairs plus ~1,200 re-scored near an
+existence boundary), the path model at the prior and at the first fit (~4-8 ms each), the
+IEKF's batched 6 x 6 algebra (~6 ms per selection pass) and the selection's exp/log (numpy's
+SIMD exp/log differ from libm in the last bit, so they stay in numpy to keep the outputs).
 """
 
 from __future__ import annotations
