@@ -13,7 +13,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.paths_nb import building_planes
-from ._kernels.tracking_nb import grid_cost_kernel, model_kernel, select_prep_kernel
+from ._kernels.tracking_nb import (
+    all_paths_kernel,
+    grid_cost_kernel,
+    model_kernel,
+    select_prep_kernel,
+)
 from .channel import pair_snr_db
 from .paths import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, graded_paths
 
@@ -181,7 +186,28 @@ def eval_paths(nodes_m: FloatArray, anchors_m: FloatArray, floor, building, rela
 
 
 def all_paths(pos: FloatArray, links: Links, floor, building, relax_m: float) -> PathEval:
-    """Every mechanism for every hypothesis (N, H, M, K) at positions ``pos`` (N, H, 3)."""
+    """Every mechanism for every hypothesis (N, H, M, K) at positions ``pos`` (N, H, 3):
+    one compiled pass (:func:`diffpos._kernels.tracking_nb.all_paths_kernel`), bit-identical
+    to :func:`_all_paths_numpy` (:func:`eval_paths`)."""
+    if not relax_m >= 0.0:
+        raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
+    n, h = pos.shape[:2]
+    m = links.anchors.shape[-2]
+    shape = (n, h, m, K_SLOTS)
+    fl = np.empty((n, h))
+    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
+    length, jac = np.empty(shape), np.empty((*shape, 3))
+    strict, loose, sure = (np.empty(shape, dtype=np.bool_) for _ in range(3))
+    anc = np.empty((n, m, 3))
+    anc[...] = links.anchors[:, 0]
+    all_paths_kernel(np.ascontiguousarray(pos, dtype=np.float64), anc, fl, float(relax_m),
+                     _IS_BAND, *building_planes(building), length, jac, strict, loose, sure)
+    return PathEval(length=length, jac=jac, strict=strict, loose=loose, sure=sure)
+
+
+def _all_paths_numpy(pos: FloatArray, links: Links, floor, building, relax_m: float
+                     ) -> PathEval:
+    """The reference of :func:`all_paths`: :func:`eval_paths` (``graded_paths``)."""
     fl = np.broadcast_to(np.asarray(floor), pos.shape[:2])[:, :, None]
     return eval_paths(pos[:, :, None, :], links.anchors, fl, building, relax_m)
 

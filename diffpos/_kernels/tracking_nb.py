@@ -21,7 +21,8 @@ from numba import njit
 
 from .paths_nb import edge_axis, row_planes, slot_path
 
-__all__ = ["grid_cost_kernel", "model_kernel", "select_prep_kernel", "warm_tracking"]
+__all__ = ["all_paths_kernel", "grid_cost_kernel", "model_kernel", "select_prep_kernel",
+           "warm_tracking"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 
@@ -245,6 +246,44 @@ def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff,
                 total[n, f, c] = _pairwise_sum(link, n_m)
 
 
+@njit(**_OPTS)
+def all_paths_kernel(pos, anchors, floor, relax, is_band, first_z, floor_h, sill, win_h, x0,
+                     x1, depth, length, jac, strict, loose, sure):
+    """Every slot of every (node, hypothesis, anchor) link with graded existence, as
+    ``diffpos.paths.graded_paths`` computes it for ``tracking_model.all_paths`` (the same
+    per-row path function with ``raw=True`` and the same band tests), without its flat-row
+    broadcasting: ``pos`` (N, H, 3), ``anchors`` (N, M, 3), ``floor`` (N, H) float64;
+    writes ``length`` (N, H, M, K), ``jac`` (N, H, M, K, 3) and the three existence grades.
+    """
+    edge = edge_axis(x0, x1)
+    n_n, n_h, n_m, n_k = length.shape
+    for n in range(n_n):
+        for h in range(n_h):
+            p0, p1, p2 = pos[n, h, 0], pos[n, h, 1], pos[n, h, 2]
+            zf, zc, lo, hi = row_planes(floor[n, h], first_z, floor_h, sill, win_h)
+            for m in range(n_m):
+                a0, a1, a2 = anchors[n, m, 0], anchors[n, m, 1], anchors[n, m, 2]
+                for k in range(n_k):
+                    ln, ok, j0, j1, j2, _, _, ez = slot_path(k, a0, a1, a2, p0, p1, p2, zf, zc,
+                                                             lo, hi, x0, x1, depth, edge, True,
+                                                             True)
+                    length[n, h, m, k] = ln
+                    jac[n, h, m, k, 0] = j0
+                    jac[n, h, m, k, 1] = j1
+                    jac[n, h, m, k, 2] = j2
+                    if is_band[k]:
+                        lz = ok and (ez > lo - relax) and (ez < hi + relax)
+                        m1, m2 = ez - lo, hi - ez
+                        margin = m1 if m1 < m2 else m2
+                        strict[n, h, m, k] = lz and margin > 0
+                        sure[n, h, m, k] = lz and margin > relax
+                    else:
+                        lz = ok
+                        strict[n, h, m, k] = lz
+                        sure[n, h, m, k] = lz
+                    loose[n, h, m, k] = lz
+
+
 def warm_tracking() -> float:
     """Compile the tracker's kernels (or load them from numba's on-disk cache) on tiny inputs:
     ~3 s CPU the first time on a machine, then ~0.1 s. Returns the seconds it took. (The
@@ -267,4 +306,7 @@ def warm_tracking() -> float:
                        np.empty((1, 1, 1, k)), np.empty((1, 1, 1, k)))
     grid_cost_kernel(np.ones((1, 2)), np.array([[4.5]]), np.zeros((1, 1)), anc, one, one, mask,
                      flags, flags, 1.0, 7.0, *planes, np.empty((1, 1, 1)))
+    b4 = np.empty((1, 1, 1, k), np.bool_)
+    all_paths_kernel(pos, anc, np.zeros((1, 1)), 0.2, flags, *planes, np.empty((1, 1, 1, k)),
+                     np.empty((1, 1, 1, k, 3)), b4, b4.copy(), b4.copy())
     return time.perf_counter() - t0

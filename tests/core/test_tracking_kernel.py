@@ -23,6 +23,7 @@ from diffpos.tracking import TrackerConfig
 from diffpos.tracking_model import (
     Links,
     Selection,
+    _all_paths_numpy,
     _grid_starts_numpy,
     _model,
     _model_numpy,
@@ -132,3 +133,22 @@ def test_grid_starts_kernel_bit_identical_to_numpy(bi):
         got = grid_starts(links, floors, b, cfg)
         ref = _grid_starts_numpy(links, floors, b, cfg)
         np.testing.assert_array_equal(got, ref)
+
+
+@pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
+def test_all_paths_kernel_bit_identical_to_graded_paths(bi):
+    """Every slot's raw length, Jacobian and existence grades of the compiled pass equal
+    :func:`diffpos.paths.graded_paths` (the tracker's previous route), for hypotheses inside
+    and outside their floor's box and several band widenings (0 included)."""
+    b = _BUILDINGS[bi]
+    for seed, relax in ((0, 0.0), (1, 0.2), (2, 1.0)):
+        pos, links, floor, _ = _case(b, 300 + 10 * bi + seed)
+        got = all_paths(pos, links, floor, b, relax)
+        ref = _all_paths_numpy(pos, links, floor, b, relax)
+        for f in ("length", "jac", "strict", "loose", "sure"):
+            g, r = getattr(got, f), getattr(ref, f)
+            assert g.shape == r.shape and g.dtype == r.dtype
+            np.testing.assert_array_equal(g, r, err_msg=f)
+        assert np.any(ref.strict) and np.any(~ref.loose)
+        if relax > 0:  # the case has links within the widening of a band edge
+            assert np.any(ref.loose & ~ref.sure)
