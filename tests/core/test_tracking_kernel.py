@@ -5,7 +5,11 @@ must give the same numbers bit for bit as :func:`diffpos.tracking_model._model_n
 path model once per distinct slot + the straight line by ``einsum``): the kernel calls the
 same per-row path function the path kernel runs for ``graded_paths`` and computes the
 straight line with the same operations in the same order, so equality is exact, not a
-tolerance. Inputs are random (fixed seeds) on buildings other than the shipped ones: other
+tolerance. One caveat: numpy's ``einsum`` sums a 3-vector's squares in an order set by its
+SIMD dispatch (``(d0^2 + d2^2) + d1^2`` on the AVX-512 machine this was written on, the
+order the kernel uses); where numpy sums otherwise (:func:`_einsum_order_matches` probes it)
+the straight line of a hinge link may differ in the last bit, and only there a 2-ulp
+tolerance applies. Inputs are random (fixed seeds) on buildings other than the shipped ones: other
 floor heights and window sizes, anchors above the windows and beyond the facade ends, every
 slot including -1 (outlier), missing links and hinge links (range shorter than the line).
 """
@@ -65,6 +69,26 @@ def _case(b, seed, n=7, h=6, m=9):
     return pos, links, floor, sel
 
 
+def _einsum_order_matches() -> bool:
+    """Whether numpy's einsum sums 3-vectors as the kernel does (module docstring)."""
+    d = np.random.default_rng(0).normal(size=(4096, 3)) * 30.0
+    return bool(np.array_equal(np.einsum("...i,...i->...", d, d),
+                               (d[:, 0] * d[:, 0] + d[:, 2] * d[:, 2]) + d[:, 1] * d[:, 1]))
+
+
+def _assert_same_model(got, ref, sel):
+    hinge = (sel.slot < 0) & (ref[2] > 0)
+    exact = _einsum_order_matches()
+    for g, r in zip(got, ref, strict=True):
+        assert g.shape == r.shape
+        if exact:
+            np.testing.assert_array_equal(g, r)
+            continue
+        other = ~hinge if g.ndim == 3 else ~hinge[..., None] & np.ones(g.shape, bool)
+        np.testing.assert_array_equal(g[other], r[other])
+        np.testing.assert_allclose(g[~other], r[~other], rtol=4.5e-16, atol=0.0)
+
+
 @pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
 def test_model_kernel_bit_identical_to_numpy(bi):
     b = _BUILDINGS[bi]
@@ -72,9 +96,7 @@ def test_model_kernel_bit_identical_to_numpy(bi):
         pos, links, floor, sel = _case(b, 100 * bi + seed)
         got = _model(pos, links, floor, sel, b)
         ref = _model_numpy(pos, links, floor, sel, b)
-        for g, r in zip(got, ref, strict=True):
-            assert g.shape == r.shape
-            np.testing.assert_array_equal(g, r)
+        _assert_same_model(got, ref, sel)
         # the case exercises every branch: used slots, hinges and unused links
         w = ref[2]
         assert np.any(w > 0) and np.any(w == 0)
@@ -89,8 +111,7 @@ def test_model_kernel_floor_broadcast():
     fl = np.arange(b.n_floors)
     got = _model(pos, links, fl, sel, b)
     ref = _model_numpy(pos, links, np.broadcast_to(fl, floor.shape), sel, b)
-    for g, r in zip(got, ref, strict=True):
-        np.testing.assert_array_equal(g, r)
+    _assert_same_model(got, ref, sel)
 
 
 @pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
