@@ -40,30 +40,32 @@ SNR): 2.6 -> 4.5 ms per node-epoch (twice the hypotheses; most of it is
 :func:`diffpos.channel.pair_snr_db`); for the 6 nodes of ``default`` the per-call overhead
 dominates: 7.7 -> 7.5 ms per node-epoch (an empty re-seed snapshot is no longer computed).
 
-Cost since the compiled measurement model (``diffpos._kernels.tracking_nb``: the IEKF's link
-model, the selection's candidates and variances, the initialisation's grid search; outputs
-bit-identical, tests/core/test_tracking_kernel.py, the table above unchanged). The ``ms/ep``
-column is now the tracker's CPU time (``time.process_time``) per epoch after the
-initialisation, ``ms/ne`` per node-epoch. ``--only default large --duration 4``, two
-interleaved runs each, shared 2-core machine, load 1.8-4.8 (the spread is the machine's),
-before -> after:
+Cost since the compiled measurement model (``diffpos._kernels.tracking_nb``: the paths of
+every slot with graded existence, the IEKF's link model, the selection's candidates and
+variances, the initialisation's grid search; outputs bit-identical: tests/core/
+test_tracking_kernel.py, and the table above is unchanged). The ``ms/ep`` column is now the
+tracker's CPU time (``time.process_time``) per epoch after the initialisation, ``ms/ne`` per
+node-epoch. ``--only default large --duration 4``, two interleaved runs each (commit 1003e05
+against cdd1043), shared 2-core machine, load 0.6-1.0, before -> after:
 
-===========================  =====================  =====================
-run                          ms per epoch           ms per node-epoch
-===========================  =====================  =====================
-large, 50 x 8, SNR           61.2-75.6 -> 42.4-56.6  1.22-1.51 -> 0.85-1.13
-default, 6 x 4, SNR          13.9-26.5 -> 5.4-7.9    2.32-4.41 -> 0.89-1.31
-cost, 50 x 8, ranges only    53.3-67.5 -> 25.7-37.2  1.07-1.35 -> 0.51-0.74
-cost, 50 x 16, ranges only   71.0-72.8 -> 47.7-60.0  1.42-1.46 -> 0.95-1.20
-cost, 200 x 16, ranges only  268-289 -> 162-223      1.34-1.44 -> 0.81-1.12
-===========================  =====================  =====================
+===========================  =======================  =======================
+run                          ms per epoch             ms per node-epoch
+===========================  =======================  =======================
+large, 50 x 8, SNR           72.1-86.8 -> 36.4-42.1   1.44-1.74 -> 0.73-0.84
+default, 6 x 4, SNR          13.8-26.0 -> 4.9-5.8     2.30-4.34 -> 0.81-0.97
+cost, 50 x 8, ranges only    43.3-54.4 -> 22.2-22.3   0.87-1.09 -> 0.45
+cost, 50 x 16, ranges only   70.7-106.8 -> 39.7-40.8  1.41-2.14 -> 0.79-0.82
+cost, 200 x 16, ranges only  269-386 -> 139-160       1.35-1.93 -> 0.69-0.80
+===========================  =======================  =======================
 
-Initialisation (50 x 8 / 200 x 16, ranges only): ~630 / ~5000 ms -> 330 / 2660 ms. What is
-left of a large epoch (50 nodes x 10 hypotheses x 8 anchors): the predicted SNR of every slot
-(:func:`diffpos.channel.pair_snr_db`, ~15-18 ms: 4,000 pairs plus ~1,200 re-scored near an
-existence boundary), the path model at the prior and at the first fit (~4-8 ms each), the
-IEKF's batched 6 x 6 algebra (~6 ms per selection pass) and the selection's exp/log (numpy's
-SIMD exp/log differ from libm in the last bit, so they stay in numpy to keep the outputs).
+Initialisation (50 x 8 / 200 x 16, ranges only): 635-657 / 4967-5387 ms -> 233-235 / 1962 ms.
+The held-out table above: 14-24 -> 4.7-5.9 ms per epoch. What is left of a large epoch (50
+nodes x 10 hypotheses x 8 anchors): the predicted SNR of every slot
+(:func:`diffpos.channel.pair_snr_db`, ~13-17 ms: 4,000 pairs plus ~1,200 re-scored near an
+existence boundary), the path model at the prior and at the first fit, the IEKF's batched
+6 x 6 algebra (numpy/LAPACK) and the selection's exp/log (numpy's SIMD exp/log differ from
+libm in the last bit, so they stay in numpy to keep the outputs); per call ~4 ms of numpy
+overhead (the 6-node default).
 """
 
 from __future__ import annotations
