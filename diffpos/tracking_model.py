@@ -2,7 +2,13 @@
 
 Arrays are over N nodes, H hypotheses per node (the floors, or floors x starts at
 initialisation) and M anchors; ``floor`` gives every hypothesis' floor index. See
-:mod:`diffpos.tracking` for the design; everything here is pure numpy and deterministic.
+:mod:`diffpos.tracking` for the design; everything here is deterministic. The hot loops
+(every slot's paths, the IEKF's link model, the selection's candidates and variances, the
+initialisation's grid search) run in the compiled kernels of
+:mod:`diffpos._kernels.tracking_nb`, each bit-identical to the numpy reference kept next to
+it (``_all_paths_numpy``, ``_model_numpy``, ``_select_prep_numpy``, ``_grid_starts_numpy``;
+tests/core/test_tracking_kernel.py); the transcendental functions and the 6 x 6 algebra stay
+in numpy (numba's libm exp/log and numpy's SIMD ones differ in the last bit).
 """
 
 from __future__ import annotations
