@@ -22,6 +22,7 @@ from ._kernels.paths_nb import building_planes
 from ._kernels.tracking_nb import (
     all_paths_kernel,
     grid_cost_kernel,
+    iekf_terms_kernel,
     model_kernel,
     select_prep_kernel,
 )
@@ -75,6 +76,13 @@ class Links:
             snr = np.where(m, np.asarray(snr_db, float), np.nan)[:, None]
         return cls(rho=rho[:, None], var=var[:, None], mask=m[:, None], anchors=anc[:, None],
                    snr=snr, radio=radio if snr is not None else None)
+
+
+def _c(a, dtype=None) -> NDArray:
+    """``a`` as a C-contiguous writable array (a kernel's one compiled signature per argument:
+    a read-only view, e.g. from ``broadcast_to``, would compile a second one)."""
+    out = np.ascontiguousarray(a, dtype=dtype)
+    return out if out.flags.writeable else out.copy()
 
 
 def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
@@ -206,7 +214,7 @@ def all_paths(pos: FloatArray, links: Links, floor, building, relax_m: float) ->
     strict, loose, sure = (np.empty(shape, dtype=np.bool_) for _ in range(3))
     anc = np.empty((n, m, 3))
     anc[...] = links.anchors[:, 0]
-    all_paths_kernel(np.ascontiguousarray(pos, dtype=np.float64), anc, fl, float(relax_m),
+    all_paths_kernel(_c(pos, dtype=np.float64), anc, fl, float(relax_m),
                      _IS_BAND, *building_planes(building), length, jac, strict, loose, sure)
     return PathEval(length=length, jac=jac, strict=strict, loose=loose, sure=sure)
 
@@ -282,13 +290,13 @@ def _select_prep(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
     valid = np.empty(shape, dtype=np.bool_)
     s_ll, s_var = np.empty(shape), np.empty(shape)
     use_snr = snr_c is not None
-    snr = np.ascontiguousarray(links.snr[:, 0]) if use_snr else np.zeros((n, m))
-    sc = np.ascontiguousarray(snr_c) if use_snr else np.zeros((1, 1, 1, 1))
+    snr = _c(links.snr[:, 0]) if use_snr else np.zeros((n, m))
+    sc = _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1))
     select_prep_kernel(
-        np.ascontiguousarray(pe.length), np.ascontiguousarray(pe.jac),
-        np.ascontiguousarray(pe.sure), np.ascontiguousarray(pe.loose), _IS_DIFF,
-        np.ascontiguousarray(np.broadcast_to(pos_cov, (n, h, 3, 3))),
-        np.ascontiguousarray(links.var[:, 0]), snr, sc, use_snr,
+        _c(pe.length), _c(pe.jac),
+        _c(pe.sure), _c(pe.loose), _IS_DIFF,
+        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))),
+        _c(links.var[:, 0]), snr, sc, use_snr,
         np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
         valid, s_ll, s_var)
     return valid, s_ll, s_var
@@ -372,12 +380,12 @@ def _model(pos, links: Links, floor, sel: Selection, building):
     fl = np.empty((n, h))
     fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
     model, jm, w = np.empty((n, h, m)), np.empty((n, h, m, 3)), np.empty((n, h, m))
-    model_kernel(np.ascontiguousarray(pos, dtype=np.float64),
-                 np.ascontiguousarray(links.anchors[:, 0]), fl,
-                 np.ascontiguousarray(sel.slot, dtype=np.int64),
-                 np.ascontiguousarray(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=np.float64),
-                 np.ascontiguousarray(links.rho[:, 0]), np.ascontiguousarray(links.var[:, 0]),
-                 np.ascontiguousarray(links.mask[:, 0]), *building_planes(building),
+    model_kernel(_c(pos, dtype=np.float64),
+                 _c(links.anchors[:, 0]), fl,
+                 _c(sel.slot, dtype=np.int64),
+                 _c(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=np.float64),
+                 _c(links.rho[:, 0]), _c(links.var[:, 0]),
+                 _c(links.mask[:, 0]), *building_planes(building),
                  model, jm, w)
     return model, jm, w
 
@@ -410,6 +418,38 @@ def prior_information(p_prior: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Information matrix of the prior and its log-determinant (N, H, 6, 6), (N, H)."""
     y = np.linalg.inv(p_prior)
     return y, np.linalg.slogdet(y)[1]
+
+
+def _iekf_terms(y, x, lo, hi, z_nom, rho, model, jm, w, wb: float, wh):
+    """Information matrix (N, H, 6, 6), residuals of the links (N, H, M), of the box (N, H, 3)
+    and of the height (N, H), and the position gradient ``J^T W e + wb eb`` (N, H, 3) of one
+    Gauss-Newton iteration (:func:`diffpos._kernels.tracking_nb.iekf_terms_kernel`),
+    bit-identical to :func:`_iekf_terms_numpy`. ``rho`` (N, 1, M)."""
+    n, h, m = model.shape
+    c = _c
+    a, e, eb, eh = np.empty((n, h, 6, 6)), np.empty((n, h, m)), np.empty((n, h, 3)), \
+        np.empty((n, h))
+    gpart = np.empty((n, h, 3))
+    iekf_terms_kernel(c(np.broadcast_to(y, (n, h, 6, 6))), c(x),
+                      c(np.broadcast_to(lo, (n, h, 3))), c(np.broadcast_to(hi, (n, h, 3))),
+                      c(np.broadcast_to(z_nom, (n, h)), dtype=np.float64),
+                      c(np.broadcast_to(rho[:, 0], (n, m))), model, jm, w, float(wb),
+                      c(np.broadcast_to(wh, (n, h)), dtype=np.float64), a, e, eb, eh, gpart)
+    return a, e, eb, eh, gpart
+
+
+def _iekf_terms_numpy(y, x, lo, hi, z_nom, rho, model, jm, w, wb: float, wh):
+    """The numpy reference of :func:`_iekf_terms`."""
+    e = rho - model
+    p3 = x[..., :3]
+    eb = np.clip(p3, lo, hi) - p3  # pseudo-measurement residuals (0 inside the box)
+    eh = z_nom - x[..., 2]
+    hth = np.einsum("nhmi,nhm,nhmj->nhij", jm, w, jm)
+    a = np.broadcast_to(y, (*x.shape[:2], 6, 6)).copy()
+    a[..., :3, :3] += hth
+    a[..., [0, 1, 2], [0, 1, 2]] += np.where(eb != 0, wb, 0.0)
+    a[..., 2, 2] += wh
+    return a, e, eb, eh, np.einsum("nhmi,nhm->nhi", jm, w * e) + wb * eb
 
 
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
@@ -450,21 +490,17 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     level = np.broadcast_to(level, x.shape[:2])
     wh = np.where(level, 1.0 / sh**2, 0.0)
     h_const = np.where(level, w_lvl + ll_gauss, w_any + ll_any)
+    z_nom, wh = (_c(np.broadcast_to(v, x.shape[:2]), dtype=np.float64)
+                 for v in (z_nom, wh))
     for it in range(config.gn_iterations + 1):
         model, jm, w = _model(x[..., :3], links, floor, sel, building)
-        e = links.rho - model
-        p3 = x[..., :3]
-        eb = np.clip(p3, lo, hi) - p3  # pseudo-measurement residuals (0 inside the box)
-        eh = z_nom - x[..., 2]
-        hth = np.einsum("nhmi,nhm,nhmj->nhij", jm, w, jm)
-        a = y.copy()
-        a[..., :3, :3] += hth
-        a[..., [0, 1, 2], [0, 1, 2]] += np.where(eb != 0, wb, 0.0)
-        a[..., 2, 2] += wh
+        # information matrix, residuals (links, box: 0 inside it, height) and the position
+        # gradient in one compiled pass
+        a, e, eb, eh, gpart = _iekf_terms(y, x, lo, hi, z_nom, links.rho, model, jm, w, wb, wh)
         if it == config.gn_iterations:
             break
         g = -np.einsum("nhij,nhj->nhi", y, x - x_prior)
-        g[..., :3] += np.einsum("nhmi,nhm->nhi", jm, w * e) + wb * eb
+        g[..., :3] += gpart
         g[..., 2] += wh * eh
         x = x + np.linalg.solve(a, g[..., None])[..., 0]
     p = np.linalg.inv(a)
@@ -542,10 +578,10 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
     total = np.empty((n, nf, c))
     fl = np.empty((n, nf))
     fl[...] = floors
-    grid_cost_kernel(np.ascontiguousarray(cells), np.ascontiguousarray(z, dtype=np.float64), fl,
-                     np.ascontiguousarray(links.anchors[:, 0]),
-                     np.ascontiguousarray(links.rho[:, 0]), np.ascontiguousarray(var[:, 0]),
-                     np.ascontiguousarray(links.mask[:, 0]), _IS_BAND, _IS_DIFF,
+    grid_cost_kernel(_c(cells), _c(z, dtype=np.float64), fl,
+                     _c(links.anchors[:, 0]),
+                     _c(links.rho[:, 0]), _c(var[:, 0]),
+                     _c(links.mask[:, 0]), _IS_BAND, _IS_DIFF,
                      0.5 * config.init_grid_m, float(w_out), *building_planes(building), total)
     order = np.argsort(total, axis=2, kind="stable")[..., :ns]  # (N, Fs, S)
     pos = np.concatenate([np.broadcast_to(cells[None, None], (n, nf, c, 2)),

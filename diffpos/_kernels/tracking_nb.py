@@ -21,8 +21,8 @@ from numba import njit
 
 from .paths_nb import edge_axis, row_planes, slot_path
 
-__all__ = ["all_paths_kernel", "grid_cost_kernel", "model_kernel", "select_prep_kernel",
-           "warm_tracking"]
+__all__ = ["all_paths_kernel", "grid_cost_kernel", "iekf_terms_kernel", "model_kernel",
+           "select_prep_kernel", "warm_tracking"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 
@@ -284,10 +284,51 @@ def all_paths_kernel(pos, anchors, floor, relax, is_band, first_z, floor_h, sill
                     loose[n, h, m, k] = lz
 
 
+@njit(**_OPTS)
+def iekf_terms_kernel(y, x, lo, hi, z_nom, rho, model, jm, w, wb, wh, a, e, eb, eh, gpart):
+    """One Gauss-Newton iteration's terms of ``tracking_model.iekf`` except the prior's
+    gradient ``-Y (x - x_prior)`` and the solve, with numpy's operations in numpy's order
+    (``einsum`` sums over the links in sequence): writes the information matrix ``a`` (N, H,
+    6, 6) = Y + J^T W J + the box and height pseudo-measurements, the residuals ``e`` (N, H,
+    M), the box residuals ``eb`` (N, H, 3), the height residual ``eh`` (N, H) and the
+    position gradient ``gpart`` (N, H, 3) = J^T W e + wb eb.
+    """
+    n_n, n_h, n_m = model.shape
+    for n in range(n_n):
+        for h in range(n_h):
+            for m in range(n_m):
+                e[n, h, m] = rho[n, m] - model[n, h, m]
+            for i in range(6):
+                for j in range(6):
+                    a[n, h, i, j] = y[n, h, i, j]
+            for i in range(3):
+                p = x[n, h, i]
+                c = p if p > lo[n, h, i] else lo[n, h, i]  # np.clip: min(max(p, lo), hi)
+                c = c if c < hi[n, h, i] else hi[n, h, i]
+                eb[n, h, i] = c - p
+            eh[n, h] = z_nom[n, h] - x[n, h, 2]
+            for i in range(3):
+                for j in range(3):
+                    acc = 0.0
+                    for m in range(n_m):
+                        acc += jm[n, h, m, i] * w[n, h, m] * jm[n, h, m, j]
+                    a[n, h, i, j] = a[n, h, i, j] + acc
+            for i in range(3):
+                a[n, h, i, i] = a[n, h, i, i] + (wb if eb[n, h, i] != 0 else 0.0)
+            a[n, h, 2, 2] = a[n, h, 2, 2] + wh[n, h]
+            for i in range(3):
+                acc = 0.0
+                for m in range(n_m):
+                    acc += jm[n, h, m, i] * (w[n, h, m] * e[n, h, m])
+                gpart[n, h, i] = acc + wb * eb[n, h, i]
+
+
 def warm_tracking() -> float:
     """Compile the tracker's kernels (or load them from numba's on-disk cache) on tiny inputs:
-    ~3 s CPU the first time on a machine, then ~0.1 s. Returns the seconds it took. (The
-    fusion's warm-up runs a throw-away tracker update, which does the same.)"""
+    ~4-6 s the first time on a machine, then ~0.2-0.3 s (the callers in
+    ``tracking_model`` pass C-contiguous writable arrays, so one signature per kernel).
+    Returns the seconds it took. (The fusion's warm-up runs a throw-away tracker update,
+    which does the same.)"""
     t0 = time.perf_counter()
     f8 = np.float64
     planes = (3.0, 3.0, 0.9, 1.5, -20.0, 20.0, 22.0)
@@ -309,4 +350,8 @@ def warm_tracking() -> float:
     b4 = np.empty((1, 1, 1, k), np.bool_)
     all_paths_kernel(pos, anc, np.zeros((1, 1)), 0.2, flags, *planes, np.empty((1, 1, 1, k)),
                      np.empty((1, 1, 1, k, 3)), b4, b4.copy(), b4.copy())
+    x6, p3 = np.ones((1, 1, 6)), np.ones((1, 1, 3))
+    iekf_terms_kernel(np.ones((1, 1, 6, 6)), x6, p3, p3, one, one, onef, np.ones((1, 1, 1, 3)),
+                      onef, 1.0, one, np.empty((1, 1, 6, 6)), np.empty((1, 1, 1)),
+                      np.empty((1, 1, 3)), np.empty((1, 1)), np.empty((1, 1, 3)))
     return time.perf_counter() - t0

@@ -28,7 +28,10 @@ from diffpos.tracking_model import (
     Links,
     Selection,
     _all_paths_numpy,
+    _box,
     _grid_starts_numpy,
+    _iekf_terms,
+    _iekf_terms_numpy,
     _model,
     _model_numpy,
     _select_prep,
@@ -173,3 +176,29 @@ def test_all_paths_kernel_bit_identical_to_graded_paths(bi):
         assert np.any(ref.strict) and np.any(~ref.loose)
         if relax > 0:  # the case has links within the widening of a band edge
             assert np.any(ref.loose & ~ref.sure)
+
+
+def test_iekf_terms_kernel_bit_identical_to_numpy():
+    """The Gauss-Newton terms of the compiled IEKF iteration (information matrix, residuals,
+    gradient) equal numpy's einsum/indexing version exactly, with hypotheses inside and outside
+    their floor's box (box pseudo-measurements on and off), level and vertical modes and
+    unused links (weight 0)."""
+    b = _BUILDINGS[1]
+    for seed in range(3):
+        pos, links, floor, sel = _case(b, 400 + seed)
+        n, h = pos.shape[:2]
+        rng = np.random.default_rng(seed)
+        model, jm, w = _model(pos, links, floor, sel, b)
+        a0 = rng.normal(size=(n, h, 6, 6))
+        y = a0 @ np.swapaxes(a0, -1, -2) + np.eye(6)
+        x = np.concatenate([pos, rng.normal(size=(n, h, 3))], axis=-1)
+        lo, hi = _box(x, floor, b, 0.05)
+        z_nom = b.floor_z_m(floor) + b.nominal_node_height_m
+        wh = np.where(rng.random((n, h)) < 0.5, 1 / 0.3**2, 0.0)
+        got = _iekf_terms(y, x, lo, hi, z_nom, links.rho, model, jm, w, 2500.0, wh)
+        ref = _iekf_terms_numpy(y, x, lo, hi, z_nom, links.rho, model, jm, w, 2500.0, wh)
+        for g, r in zip(got, ref, strict=True):
+            assert g.shape == r.shape
+            np.testing.assert_array_equal(g, r)
+        eb = ref[2]
+        assert np.any(eb != 0) and np.any(eb == 0) and np.any(w == 0)
