@@ -2,7 +2,13 @@
 
 Arrays are over N nodes, H hypotheses per node (the floors, or floors x starts at
 initialisation) and M anchors; ``floor`` gives every hypothesis' floor index. See
-:mod:`diffpos.tracking` for the design; everything here is pure numpy and deterministic.
+:mod:`diffpos.tracking` for the design; everything here is deterministic. The hot loops
+(every slot's paths, the IEKF's link model, the selection's candidates and variances, the
+initialisation's grid search) run in the compiled kernels of
+:mod:`diffpos._kernels.tracking_nb`, each bit-identical to the numpy reference kept next to
+it (``_all_paths_numpy``, ``_model_numpy``, ``_select_prep_numpy``, ``_grid_starts_numpy``;
+tests/core/test_tracking_kernel.py); the transcendental functions and the 6 x 6 algebra stay
+in numpy (numba's libm exp/log and numpy's SIMD ones differ in the last bit).
 """
 
 from __future__ import annotations
@@ -12,12 +18,21 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ._kernels.paths_nb import building_planes
+from ._kernels.tracking_nb import (
+    all_paths_kernel,
+    grid_cost_kernel,
+    iekf_terms_kernel,
+    model_kernel,
+    select_prep_kernel,
+)
 from .channel import pair_snr_db
-from .paths import DIFFRACTION_SLOTS, MECHANISMS, graded_paths
+from .paths import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, graded_paths
 
 FloatArray = NDArray[np.float64]
 K_SLOTS = len(MECHANISMS)
 _IS_DIFF = np.isin(np.arange(K_SLOTS), DIFFRACTION_SLOTS)
+_IS_BAND = np.isin(np.arange(K_SLOTS), SPECULAR_SLOTS)  # entry point in the window band
 _LOG2PI = float(np.log(2.0 * np.pi))
 #: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
 #: field (antenna patterns, materials, wedge vs. UTD), the value M-NLS uses.
@@ -61,6 +76,13 @@ class Links:
             snr = np.where(m, np.asarray(snr_db, float), np.nan)[:, None]
         return cls(rho=rho[:, None], var=var[:, None], mask=m[:, None], anchors=anc[:, None],
                    snr=snr, radio=radio if snr is not None else None)
+
+
+def _c(a, dtype=None) -> NDArray:
+    """``a`` as a C-contiguous writable array (a kernel's one compiled signature per argument:
+    a read-only view, e.g. from ``broadcast_to``, would compile a second one)."""
+    out = np.ascontiguousarray(a, dtype=dtype)
+    return out if out.flags.writeable else out.copy()
 
 
 def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
@@ -178,7 +200,28 @@ def eval_paths(nodes_m: FloatArray, anchors_m: FloatArray, floor, building, rela
 
 
 def all_paths(pos: FloatArray, links: Links, floor, building, relax_m: float) -> PathEval:
-    """Every mechanism for every hypothesis (N, H, M, K) at positions ``pos`` (N, H, 3)."""
+    """Every mechanism for every hypothesis (N, H, M, K) at positions ``pos`` (N, H, 3):
+    one compiled pass (:func:`diffpos._kernels.tracking_nb.all_paths_kernel`), bit-identical
+    to :func:`_all_paths_numpy` (:func:`eval_paths`)."""
+    if not relax_m >= 0.0:
+        raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
+    n, h = pos.shape[:2]
+    m = links.anchors.shape[-2]
+    shape = (n, h, m, K_SLOTS)
+    fl = np.empty((n, h))
+    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
+    length, jac = np.empty(shape), np.empty((*shape, 3))
+    strict, loose, sure = (np.empty(shape, dtype=np.bool_) for _ in range(3))
+    anc = np.empty((n, m, 3))
+    anc[...] = links.anchors[:, 0]
+    all_paths_kernel(_c(pos, dtype=np.float64), anc, fl, float(relax_m),
+                     _IS_BAND, *building_planes(building), length, jac, strict, loose, sure)
+    return PathEval(length=length, jac=jac, strict=strict, loose=loose, sure=sure)
+
+
+def _all_paths_numpy(pos: FloatArray, links: Links, floor, building, relax_m: float
+                     ) -> PathEval:
+    """The reference of :func:`all_paths`: :func:`eval_paths` (``graded_paths``)."""
     fl = np.broadcast_to(np.asarray(floor), pos.shape[:2])[:, :, None]
     return eval_paths(pos[:, :, None, :], links.anchors, fl, building, relax_m)
 
@@ -239,6 +282,44 @@ class Selection:
     extra_var: FloatArray
 
 
+def _select_prep(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
+    """Candidates, SNR log-likelihood term and innovation variance of every slot, (N, H, M, K)
+    (:func:`diffpos._kernels.tracking_nb.select_prep_kernel`)."""
+    shape = pe.length.shape
+    n, h, m = shape[:3]
+    valid = np.empty(shape, dtype=np.bool_)
+    s_ll, s_var = np.empty(shape), np.empty(shape)
+    use_snr = snr_c is not None
+    snr = _c(links.snr[:, 0]) if use_snr else np.zeros((n, m))
+    sc = _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1))
+    select_prep_kernel(
+        _c(pe.length), _c(pe.jac),
+        _c(pe.sure), _c(pe.loose), _IS_DIFF,
+        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))),
+        _c(links.var[:, 0]), snr, sc, use_snr,
+        np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
+        valid, s_ll, s_var)
+    return valid, s_ll, s_var
+
+
+def _select_prep_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
+    """The numpy reference of :func:`_select_prep`."""
+    valid = candidates(pe)
+    if snr_c is not None:
+        powered = np.isfinite(snr_c)
+        valid = valid & (powered | ~pe.sure)
+        has_snr = np.isfinite(links.snr)
+        with np.errstate(invalid="ignore"):
+            g = np.where(powered, -snr_c - np.log(SNR_SIGMA_DB) - 0.5 * _LOG2PI,
+                         -np.log(SNR_SPAN_DB))
+        s_ll = np.where(has_snr[..., None], g, 0.0)
+    else:
+        s_ll = np.zeros(pe.length.shape)
+    jac = np.where(valid[..., None], pe.jac, 0.0)
+    s_var = np.einsum("nhmki,nhij,nhmkj->nhmk", jac, pos_cov, jac) + links.var[..., None]
+    return valid, s_ll, s_var
+
+
 def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
            snr_c: FloatArray | None = None) -> Selection:
     """Most likely mechanism per link given the predicted position Gaussian.
@@ -249,24 +330,17 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     SNR log-likelihood is added (the outlier's SNR is uniform over ``SNR_SPAN_DB``), and it
     is part of the link's log-weight (so of the floor evidence).
     """
-    valid = candidates(pe)
+    # the candidates (a slot without power at the hypothesis is no candidate, unless the
+    # hypothesis is within the entry point's uncertainty of the slot's existence boundary: the
+    # prediction flips from a strong path to none over a few cm there, so its SNR is then
+    # uninformative, uniform over SNR_SPAN_DB), every candidate's SNR log-likelihood and
+    # innovation variance: one compiled pass, bit-identical to _select_prep_numpy
+    valid, s_ll, s_var = _select_prep(pos_cov, links, pe, snr_c)
     if snr_c is not None:
-        # a slot without power at the hypothesis is no candidate, unless the hypothesis is
-        # within the entry point's uncertainty of the slot's existence boundary (the
-        # prediction flips from a strong path to none over a few cm there): its SNR is then
-        # uninformative (uniform over SNR_SPAN_DB)
-        powered = np.isfinite(snr_c)
-        valid = valid & (powered | ~pe.sure)
-        has_snr = np.isfinite(links.snr)
-        with np.errstate(invalid="ignore"):
-            g = np.where(powered, -snr_c - np.log(SNR_SIGMA_DB) - 0.5 * _LOG2PI,
-                         -np.log(SNR_SPAN_DB))
-        s_ll = np.where(has_snr[..., None], g, 0.0)
-        s_out = np.where(has_snr, -np.log(SNR_SPAN_DB), 0.0)
+        s_out = np.where(np.isfinite(links.snr), -np.log(SNR_SPAN_DB), 0.0)
     else:
-        s_ll, s_out = 0.0, 0.0
-    lengths, jac = pe.length, np.where(valid[..., None], pe.jac, 0.0)
-    s_var = np.einsum("nhmki,nhij,nhmkj->nhmk", jac, pos_cov, jac) + links.var[..., None]
+        s_out = 0.0
+    lengths = pe.length
     e = links.rho[..., None] - lengths
     n_ok = np.maximum(valid.sum(axis=-1), 1)
     with np.errstate(invalid="ignore"):
@@ -298,7 +372,26 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
 
 
 def _model(pos, links: Links, floor, sel: Selection, building):
-    """Model values, Jacobians and weights of the used links at ``pos`` (incl. the hinge)."""
+    """Model values, Jacobians and weights of the used links at ``pos`` (incl. the hinge):
+    (N, H, M), (N, H, M, 3), (N, H, M). One compiled pass over every link
+    (:func:`diffpos._kernels.tracking_nb.model_kernel`), bit-identical to
+    :func:`_model_numpy`."""
+    n, h, m = sel.slot.shape
+    fl = np.empty((n, h))
+    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
+    model, jm, w = np.empty((n, h, m)), np.empty((n, h, m, 3)), np.empty((n, h, m))
+    model_kernel(_c(pos, dtype=np.float64),
+                 _c(links.anchors[:, 0]), fl,
+                 _c(sel.slot, dtype=np.int64),
+                 _c(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=np.float64),
+                 _c(links.rho[:, 0]), _c(links.var[:, 0]),
+                 _c(links.mask[:, 0]), *building_planes(building),
+                 model, jm, w)
+    return model, jm, w
+
+
+def _model_numpy(pos, links: Links, floor, sel: Selection, building):
+    """The numpy reference of :func:`_model` (the path model once per distinct slot)."""
     length, jac, ok = slot_paths(pos, links, floor, sel.slot, building)
     los, jlos = _los(pos, links.anchors)
     use = (sel.slot >= 0) & ok
@@ -321,8 +414,46 @@ def _box(x: FloatArray, floor, building, margin_m: float) -> tuple[FloatArray, F
     return lo, hi
 
 
+def prior_information(p_prior: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Information matrix of the prior and its log-determinant (N, H, 6, 6), (N, H)."""
+    y = np.linalg.inv(p_prior)
+    return y, np.linalg.slogdet(y)[1]
+
+
+def _iekf_terms(y, x, lo, hi, z_nom, rho, model, jm, w, wb: float, wh):
+    """Information matrix (N, H, 6, 6), residuals of the links (N, H, M), of the box (N, H, 3)
+    and of the height (N, H), and the position gradient ``J^T W e + wb eb`` (N, H, 3) of one
+    Gauss-Newton iteration (:func:`diffpos._kernels.tracking_nb.iekf_terms_kernel`),
+    bit-identical to :func:`_iekf_terms_numpy`. ``rho`` (N, 1, M)."""
+    n, h, m = model.shape
+    c = _c
+    a, e, eb, eh = np.empty((n, h, 6, 6)), np.empty((n, h, m)), np.empty((n, h, 3)), \
+        np.empty((n, h))
+    gpart = np.empty((n, h, 3))
+    iekf_terms_kernel(c(np.broadcast_to(y, (n, h, 6, 6))), c(x),
+                      c(np.broadcast_to(lo, (n, h, 3))), c(np.broadcast_to(hi, (n, h, 3))),
+                      c(np.broadcast_to(z_nom, (n, h)), dtype=np.float64),
+                      c(np.broadcast_to(rho[:, 0], (n, m))), model, jm, w, float(wb),
+                      c(np.broadcast_to(wh, (n, h)), dtype=np.float64), a, e, eb, eh, gpart)
+    return a, e, eb, eh, gpart
+
+
+def _iekf_terms_numpy(y, x, lo, hi, z_nom, rho, model, jm, w, wb: float, wh):
+    """The numpy reference of :func:`_iekf_terms`."""
+    e = rho - model
+    p3 = x[..., :3]
+    eb = np.clip(p3, lo, hi) - p3  # pseudo-measurement residuals (0 inside the box)
+    eh = z_nom - x[..., 2]
+    hth = np.einsum("nhmi,nhm,nhmj->nhij", jm, w, jm)
+    a = np.broadcast_to(y, (*x.shape[:2], 6, 6)).copy()
+    a[..., :3, :3] += hth
+    a[..., [0, 1, 2], [0, 1, 2]] += np.where(eb != 0, wb, 0.0)
+    a[..., 2, 2] += wh
+    return a, e, eb, eh, np.einsum("nhmi,nhm->nhi", jm, w * e) + wb * eb
+
+
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
-         building, config, level=None):
+         building, config, level=None, prior_info=None):
     """Iterated EKF (Gauss-Newton on the MAP cost) of every hypothesis with fixed mechanisms.
 
     The hypothesis' floor box is a hard-ish constraint: a coordinate outside it gets a
@@ -335,10 +466,12 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     probability is the caller's. ``None`` (snapshot initialisation, no mode yet): a
     max-mixture of both chosen at the prior, weighted ``1 - stairs_weight`` /
     ``stairs_weight``.
+    ``prior_info``: :func:`prior_information` of ``p_prior`` if the caller has it (the
+    selection passes of one update share the prior).
     Returns ``(x, P, log_evidence, residual)``: posterior means (N, H, 6), covariances
     (N, H, 6, 6), the Laplace log marginal likelihood (N, H) and the residuals (N, H, M).
     """
-    y = np.linalg.inv(p_prior)
+    y, logdet_y = prior_information(p_prior) if prior_info is None else prior_info
     x = x_prior.copy()
     lo, hi = _box(x, floor, building, config.z_margin_m)
     wb = 1.0 / config.box_sigma_m**2
@@ -357,21 +490,17 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     level = np.broadcast_to(level, x.shape[:2])
     wh = np.where(level, 1.0 / sh**2, 0.0)
     h_const = np.where(level, w_lvl + ll_gauss, w_any + ll_any)
+    z_nom, wh = (_c(np.broadcast_to(v, x.shape[:2]), dtype=np.float64)
+                 for v in (z_nom, wh))
     for it in range(config.gn_iterations + 1):
         model, jm, w = _model(x[..., :3], links, floor, sel, building)
-        e = links.rho - model
-        p3 = x[..., :3]
-        eb = np.clip(p3, lo, hi) - p3  # pseudo-measurement residuals (0 inside the box)
-        eh = z_nom - x[..., 2]
-        hth = np.einsum("nhmi,nhm,nhmj->nhij", jm, w, jm)
-        a = y.copy()
-        a[..., :3, :3] += hth
-        a[..., [0, 1, 2], [0, 1, 2]] += np.where(eb != 0, wb, 0.0)
-        a[..., 2, 2] += wh
+        # information matrix, residuals (links, box: 0 inside it, height) and the position
+        # gradient in one compiled pass
+        a, e, eb, eh, gpart = _iekf_terms(y, x, lo, hi, z_nom, links.rho, model, jm, w, wb, wh)
         if it == config.gn_iterations:
             break
         g = -np.einsum("nhij,nhj->nhi", y, x - x_prior)
-        g[..., :3] += np.einsum("nhmi,nhm->nhi", jm, w * e) + wb * eb
+        g[..., :3] += gpart
         g[..., 2] += wh * eh
         x = x + np.linalg.solve(a, g[..., None])[..., 0]
     p = np.linalg.inv(a)
@@ -381,7 +510,7 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
             + wb * np.sum(eb * eb, axis=-1) + wh * eh * eh)
     used = w > 0
     norm = np.sum(np.where(used, 0.5 * (np.log(np.where(used, w, 1.0)) - _LOG2PI), 0.0), axis=-1)
-    logdet = np.linalg.slogdet(a)[1] - np.linalg.slogdet(y)[1]
+    logdet = np.linalg.slogdet(a)[1] - logdet_y
     log_ev = norm + h_const - 0.5 * quad - 0.5 * logdet + np.sum(sel.log_weight, axis=-1)
     residual = np.where(sel.slot >= 0, e, np.nan)
     return x, p, log_ev, residual
@@ -410,12 +539,13 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     same = np.array_equal(xc, x[..., :3])
     pe0 = all_paths(xc, links, floor, building, config.exist_margin_m)
     snr_c = snr_cost_near(xc, links, floor, building, config.exist_margin_m, pe0)
+    info = prior_information(p_prior)  # shared by the passes
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         pe = pe0 if k == 0 and same else all_paths(x[..., :3], links, floor, building,
                                                    config.exist_margin_m)
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
-                                 level)
+                                 level, info)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
 
@@ -432,8 +562,35 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
 
     ``floors`` (N, Fs): the floors to search for every node. The cost of a cell is the robust
     max-mixture cost over the links with the range variance widened by the grid's own
-    resolution (``(step / 2)^2``).
+    resolution (``(step / 2)^2``). Every cell of every node in one compiled pass
+    (:func:`diffpos._kernels.tracking_nb.grid_cost_kernel`: lengths without Jacobians, no
+    temporaries), bit-identical to :func:`_grid_starts_numpy`.
     """
+    cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
+    n, nf = floors.shape
+    m = links.rho.shape[-1]
+    if m > 128:  # the kernel's summation order is numpy's up to 128 links
+        return _grid_starts_numpy(links, floors, building, config)
+    c, ns = cells.shape[0], config.init_starts
+    z = building.floor_z_m(floors) + building.nominal_node_height_m  # (N, Fs)
+    var = links.var + (0.5 * config.init_grid_m) ** 2
+    w_out = np.log(config.outlier_span_m / config.outlier_weight)
+    total = np.empty((n, nf, c))
+    fl = np.empty((n, nf))
+    fl[...] = floors
+    grid_cost_kernel(_c(cells), _c(z, dtype=np.float64), fl,
+                     _c(links.anchors[:, 0]),
+                     _c(links.rho[:, 0]), _c(var[:, 0]),
+                     _c(links.mask[:, 0]), _IS_BAND, _IS_DIFF,
+                     0.5 * config.init_grid_m, float(w_out), *building_planes(building), total)
+    order = np.argsort(total, axis=2, kind="stable")[..., :ns]  # (N, Fs, S)
+    pos = np.concatenate([np.broadcast_to(cells[None, None], (n, nf, c, 2)),
+                          np.broadcast_to(z[:, :, None, None], (n, nf, c, 1))], axis=-1)
+    return np.take_along_axis(pos, order[..., None], axis=2).reshape(n, nf * ns, 3)
+
+
+def _grid_starts_numpy(links: Links, floors: NDArray, building, config) -> FloatArray:
+    """The numpy reference of :func:`grid_starts` (one node at a time)."""
     cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
     n, nf = floors.shape
     c, ns = cells.shape[0], config.init_starts

@@ -131,9 +131,9 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     starts are D-NLS-only; ``lls``/``ippa`` get the same (motion-compensated) ranges,
     effective sigmas and masks."""
     tracking: bool = True
-    """With ``mnls``: run the per-responder tracker (:mod:`diffpos.tracking`, an IMM over
-    floors) on every epoch's ranges and publish its filtered estimate (the mnls snapshot fix
-    rides along); ignored by the other methods."""
+    """With ``mnls``: run the per-responder tracker (:mod:`diffpos.tracking`: floor x
+    {level, vertical} hypotheses, one iterated EKF each) on every epoch's ranges and publish
+    its filtered estimate (the mnls snapshot fix rides along); ignored by the other methods."""
     snapshot_period_s: Annotated[float, Meta(ge=0)] = 1.0
     """Tracking: a node whose track is confirmed (TRACKING) gets an mnls snapshot fix at most
     once per this much measurement time (every epoch while it is not confirmed; 0: every
