@@ -379,10 +379,12 @@ class Emulation:
             mnls_nb,
             mnls_starts_nb,
             paths_nb,
+            tracking_nb,
         )
         paths_nb.warm_paths()
         dnls_nb.warm_dnls()
         channel_nb.warm_channel()  # the SNR prediction of mnls and the tracker
+        tracking_nb.warm_tracking()  # the tracker's measurement model
         took = time.monotonic() - t0
         STATUS.show("")
         if took > 5.0:
