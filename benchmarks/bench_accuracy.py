@@ -288,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     ap.add_argument("--keep", metavar="DIR", help="keep the recordings in DIR")
     ap.add_argument("--method", choices=["dnls", "mnls", "lls", "ippa"], default=None,
-                    help="the fusion's estimator (default: diffpos emulate's default, dnls)")
+                    help="the fusion's estimator (default: diffpos emulate's default, mnls)")
     args = ap.parse_args(argv)
     duration = 6.0 if args.quick else args.duration
     only = args.only or (["default", "tall-floors", "anchors-beyond-ends"] if args.quick else None)
