@@ -297,13 +297,18 @@ def test_pair_first_arrival_equals_the_numpy_emulator(bname: str) -> None:
     anchors = anchors[:, 0]
     got = channel.pair_first_arrival(anchors, nodes, building=b, radio=r,
                                      rng=np.random.default_rng(3))
-    # the numpy reference on the diagonal of one channel: pair p = (node p, anchor p)
-    ch = emulate_channel(anchors, nodes, building=b, radio=r)
-    idx = np.arange(len(nodes))
-    diag = dataclasses.replace(ch, **{f.name: getattr(ch, f.name)[idx, idx][:, None]
-                                      for f in dataclasses.fields(ch)
-                                      if isinstance(getattr(ch, f.name), np.ndarray)
-                                      and getattr(ch, f.name).ndim == 3})
+    # the numpy reference on the diagonals of channels of 20 x 20 pairs: pair p = (node p,
+    # anchor p); the diagonals stacked in order, then the detector with the same draws
+    diags = []
+    for k in range(0, len(nodes), 20):
+        ch = emulate_channel(anchors[k:k + 20], nodes[k:k + 20], building=b, radio=r)
+        idx = np.arange(len(nodes[k:k + 20]))
+        diags.append({f.name: getattr(ch, f.name)[idx, idx][:, None]
+                      for f in dataclasses.fields(ch)
+                      if isinstance(getattr(ch, f.name), np.ndarray)
+                      and getattr(ch, f.name).ndim == 3})
+    diag = dataclasses.replace(ch, **{k: np.concatenate([d[k] for d in diags])
+                                      for k in diags[0]})
     fa = first_arrival(diag, radio=r, rng=np.random.default_rng(3))
     rng_m, sigma, snr, true_path, det = got
     assert np.array_equal(det, fa.detected[:, 0])

@@ -94,8 +94,12 @@ def test_a_backlog_never_delays_the_first_solve_beyond_the_ingest_budget():
     k = next(i for i, t in enumerate(turns) if t.published > 0)
     assert sum(t.ingested for t in turns[: k + 1]) < n / 4, turns[: k + 1]
     # no turn drains the backlog at once: each ingest stops at the budget (plus one item;
-    # 50 ms of slack for a loaded machine, still far below the ~1 s the whole backlog costs)
-    assert max(t.ingested for t in turns) < n / 4
+    # 50 ms of slack for a loaded machine, still far below the ~1 s the whole backlog costs).
+    # A turn at the base budget ingests a small part; after a slow solve step (a loaded
+    # machine) the budget grows with it (checked below), and so may that turn's count.
+    base_ns = round(INGEST_BUDGET_S * 1e9)
+    assert max(t.ingested for t in turns if t.budget_ns == base_ns) < n / 4
+    assert sum(1 for t in turns if t.ingested) >= 4, turns
     assert max(t.ingest_ns - t.budget_ns for t in turns) < 50e6
     # the budget is the configured one, or INGEST_SHARE x the previous solve step (at most
     # INGEST_MAX_S) if longer
