@@ -137,7 +137,10 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     snapshot_period_s: Annotated[float, Meta(ge=0)] = 1.0
     """Tracking: a node whose track is confirmed (TRACKING) gets an mnls snapshot fix at most
     once per this much measurement time (every epoch while it is not confirmed; 0: every
-    epoch). The snapshot costs ~10x the tracker's update."""
+    epoch); a *confident* track (floor probability >= 0.99, averaged NIS <= 4) every
+    ``tracked.CONFIDENT_SNAPSHOT_PERIOD_S`` (10 s). The snapshot is published beside the
+    tracked estimate and never feeds the tracker; it costs several times the tracker's
+    update (3-4 ms vs ~1 ms CPU with 8 anchors)."""
     building: dict[str, Any] | None = None
     """The scenario's ``[building]`` table (:func:`building_of`); ``None``: the paper's
     building with this config's window height, edge ends and floors."""
