@@ -145,10 +145,13 @@ def test_dead_fusion_and_recorder_are_restarted_and_reported(services, tmp_path)
     for batch in McapScanner(new).iter_batches():
         est += sum(1 for m in batch if (pk := parse_key(m.topic)) and pk.kind == "estimate")
     assert est > 0, "the restarted fusion's estimates were recorded in the new file"
-    # the summary's notes name every file written and say fixes were lost
+    # the summary's notes name every file written, and say fixes were lost exactly when some
+    # scored node-epoch has no position (the tracker of the default fusion may bridge the
+    # restart inside the first, unscored seconds: then there is nothing to report)
     notes = summary["notes"]
     assert f"recording: {out}" in notes and f"recording: {new}" in notes, notes
-    assert any(n.startswith("fixes lost: ") for n in notes), notes
+    lost = any(n.startswith("fixes lost: ") for n in notes)
+    assert lost == (summary["availability"] < 1.0), (summary["availability"], notes)
 
 
 def test_foreign_estimates_and_anchor_not_used_but_reported(services, tmp_path):
