@@ -260,6 +260,5 @@ def warm_up_channel(anchor_m: np.ndarray, node_m: np.ndarray, scenario: Scenario
     if channel == "ideal":
         window_edge_path(anchor_m, node_m, window_height_m=scenario.building.window_height_m)
     else:
-        ch = emulate_channel(anchor_m, node_m, building=scenario.building, radio=scenario.radio)
-        first_arrival(ch, radio=scenario.radio, rng=None)
+        # what first_arrivals runs (its compiled detector)
         pair_first_arrival(anchor_m, node_m, building=scenario.building, radio=scenario.radio)

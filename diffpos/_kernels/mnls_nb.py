@@ -35,6 +35,7 @@ import math
 import numpy as np
 from numba import njit, types
 
+from .npsum_nb import pairwise_sum as _pairwise_sum
 from .paths_nb import N_SLOTS, edge_axis, row_planes, slot_path
 
 __all__ = ["LM_SIGNATURE", "SIGNATURE", "link_choice", "link_terms_kernel", "lm_kernel"]
@@ -168,35 +169,6 @@ def link_terms_kernel(length, valid, jac_all, dev, outm, r, sig, mask, tail_a, e
             cost_out[i, j] = best if mask[i, j] else 0.0
             tail_out[i, j] = is_tail and mask[i, j]
             none_out[i, j] = none and mask[i, j]
-
-
-@njit(**_OPTS)
-def _pairwise_sum(a, n):
-    """numpy's pairwise summation of ``a[:n]``, ``n <= 128`` (``np.add.reduce`` on a
-    contiguous axis: sequential below 8 terms, else 8 accumulators; above 128 numpy halves
-    recursively, which the caller leaves to the reference path)."""
-    if n < 8:
-        res = 0.0
-        for i in range(n):
-            res += a[i]
-        return res
-    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
-    i = 8
-    while i < n - (n % 8):
-        r0 += a[i]
-        r1 += a[i + 1]
-        r2 += a[i + 2]
-        r3 += a[i + 3]
-        r4 += a[i + 4]
-        r5 += a[i + 5]
-        r6 += a[i + 6]
-        r7 += a[i + 7]
-        i += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[i]
-        i += 1
-    return res
 
 
 @njit(**_OPTS)

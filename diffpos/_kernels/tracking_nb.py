@@ -19,6 +19,7 @@ import time
 import numpy as np
 from numba import njit
 
+from .npsum_nb import pairwise_sum as _pairwise_sum
 from .paths_nb import edge_axis, row_planes, slot_path
 
 __all__ = ["all_paths_kernel", "grid_cost_kernel", "iekf_terms_kernel", "model_kernel",
@@ -130,39 +131,11 @@ def select_prep_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr
                         for i in range(3):
                             for j in range(3):
                                 acc += jac[n, h, m, k, i] * pos_cov[n, h, i, j] * jac[n, h, m, k, j]
-                    else:
-                        for i in range(3):
+                    else:  # the reference's einsum over a zeroed Jacobian: 0, or NaN
+                        for i in range(3):  # when the covariance holds inf/NaN
                             for j in range(3):
                                 acc += 0.0 * pos_cov[n, h, i, j] * 0.0
                     s_var[n, h, m, k] = acc + var[n, m]
-
-
-@njit(**_OPTS)
-def _pairwise_sum(a, n):
-    """``numpy.sum`` of the first ``n`` (<= 128) values of ``a`` in numpy's order (its
-    pairwise summation: 8 accumulators for 8 <= n <= 128, a plain loop below 8)."""
-    if n < 8:
-        res = 0.0
-        for i in range(n):
-            res += a[i]
-        return res
-    r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
-    i = 8
-    while i < n - (n % 8):
-        r0 += a[i]
-        r1 += a[i + 1]
-        r2 += a[i + 2]
-        r3 += a[i + 3]
-        r4 += a[i + 4]
-        r5 += a[i + 5]
-        r6 += a[i + 6]
-        r7 += a[i + 7]
-        i += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        res += a[i]
-        i += 1
-    return res
 
 
 @njit(**_OPTS)
