@@ -18,12 +18,31 @@ FloatArray = NDArray[np.float64]
 
 
 def _grid(building, nx: int, ny: int) -> FloatArray:
-    """Cell centres of an nx x ny grid over the floor plan, (nx * ny, 2) [m]."""
+    """Cell centres of an nx x ny grid over the floor plan, (nx * ny, 2) [m], in farthest-point
+    order: the cell nearest the plan's centre first, then each time the cell farthest from
+    those already taken (ties: the lowest raster index). The search replaces the LAST cells by
+    its closed-form starts, so whatever number of cells stays a grid cell covers the whole plan
+    (in raster order the 5 cells left of a 4 x 3 grid all lay in the left half)."""
     x0, x1 = building.edge_x_m
     xs = x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx
     ys = (np.arange(ny) + 0.5) * building.depth_m / ny
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    return np.stack([gx.ravel(), gy.ravel()], axis=-1)
+    cells = np.stack([gx.ravel(), gy.ravel()], axis=-1)
+    return cells[_farthest_point_order(cells, np.array([(x0 + x1) / 2, building.depth_m / 2]))]
+
+
+def _farthest_point_order(cells: FloatArray, centre: FloatArray) -> NDArray[np.int_]:
+    """Greedy farthest-point order of ``cells`` (n, 2) starting from the one nearest ``centre``."""
+    n = cells.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.int_)
+    order = [int(np.argmin(np.sum((cells - centre) ** 2, axis=1)))]
+    d = np.sum((cells - cells[order[0]]) ** 2, axis=1)
+    for _ in range(n - 1):
+        k = int(np.argmax(d))
+        order.append(k)
+        d = np.minimum(d, np.sum((cells - cells[k]) ** 2, axis=1))
+    return np.asarray(order)
 
 
 def _c(a, dtype=np.float64):

@@ -13,8 +13,9 @@ stated otherwise):
   floor of the building is a separate hypothesis (``floor`` passed to the path model); the
   node is confined to its floor's box.
 * **Search.** Per floor, an ``nx x ny`` grid of (x, y) cells at mid-floor height (default
-  4 x 3), seven cells replaced by closed-form starts of one-mechanism hypotheses
-  (:mod:`._mnls_starts`): a straight-line multilateration (direct path; most first arrivals
+  4 x 3, in farthest-point order so that the cells left over cover the whole plan: in raster
+  order the 5 left of 4 x 3 all lay in its left half), seven cells replaced by closed-form
+  starts of one-mechanism hypotheses (:mod:`._mnls_starts`): a straight-line multilateration (direct path; most first arrivals
   are a few cm to dm longer than the straight line); the images a free-z straight-line fit
   gives for specular links (ceiling image, ceiling-floor double bounce); per window edge,
   "every link diffracts over this edge" (the Fermat length over a horizontal edge is
