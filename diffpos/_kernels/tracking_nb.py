@@ -225,7 +225,8 @@ def all_paths_kernel(pos, anchors, floor, relax, is_band, first_z, floor_h, sill
     """Every slot of every (node, hypothesis, anchor) link with graded existence, as
     ``diffpos.paths.graded_paths`` computes it for ``tracking_model.all_paths`` (the same
     per-row path function with ``raw=True`` and the same band tests), without its flat-row
-    broadcasting: ``pos`` (N, H, 3), ``anchors`` (N, M, 3), ``floor`` (N, H) float64;
+    broadcasting: ``pos`` (N, H, 3), ``anchors`` (N, M, 3), ``floor`` (N, H) float64,
+    ``relax`` (N, H) float64 (every hypothesis' own widening of the band, [m]);
     writes ``length`` (N, H, M, K), ``jac`` (N, H, M, K, 3) and the three existence grades.
     """
     edge = edge_axis(x0, x1)
@@ -234,6 +235,7 @@ def all_paths_kernel(pos, anchors, floor, relax, is_band, first_z, floor_h, sill
         for h in range(n_h):
             p0, p1, p2 = pos[n, h, 0], pos[n, h, 1], pos[n, h, 2]
             zf, zc, lo, hi = row_planes(floor[n, h], first_z, floor_h, sill, win_h)
+            r = relax[n, h]
             for m in range(n_m):
                 a0, a1, a2 = anchors[n, m, 0], anchors[n, m, 1], anchors[n, m, 2]
                 for k in range(n_k):
@@ -245,11 +247,11 @@ def all_paths_kernel(pos, anchors, floor, relax, is_band, first_z, floor_h, sill
                     jac[n, h, m, k, 1] = j1
                     jac[n, h, m, k, 2] = j2
                     if is_band[k]:
-                        lz = ok and (ez > lo - relax) and (ez < hi + relax)
+                        lz = ok and (ez > lo - r) and (ez < hi + r)
                         m1, m2 = ez - lo, hi - ez
                         margin = m1 if m1 < m2 else m2
                         strict[n, h, m, k] = lz and margin > 0
-                        sure[n, h, m, k] = lz and margin > relax
+                        sure[n, h, m, k] = lz and margin > r
                     else:
                         lz = ok
                         strict[n, h, m, k] = lz
@@ -321,8 +323,8 @@ def warm_tracking() -> float:
     grid_cost_kernel(np.ones((1, 2)), np.array([[4.5]]), np.zeros((1, 1)), anc, one, one, mask,
                      flags, flags, 1.0, 7.0, *planes, np.empty((1, 1, 1)))
     b4 = np.empty((1, 1, 1, k), np.bool_)
-    all_paths_kernel(pos, anc, np.zeros((1, 1)), 0.2, flags, *planes, np.empty((1, 1, 1, k)),
-                     np.empty((1, 1, 1, k, 3)), b4, b4.copy(), b4.copy())
+    all_paths_kernel(pos, anc, np.zeros((1, 1)), np.full((1, 1), 0.2), flags, *planes,
+                     np.empty((1, 1, 1, k)), np.empty((1, 1, 1, k, 3)), b4, b4.copy(), b4.copy())
     x6, p3 = np.ones((1, 1, 6)), np.ones((1, 1, 3))
     iekf_terms_kernel(np.ones((1, 1, 6, 6)), x6, p3, p3, one, one, onef, np.ones((1, 1, 1, 3)),
                       onef, 1.0, one, np.empty((1, 1, 6, 6)), np.empty((1, 1, 1)),
