@@ -49,6 +49,7 @@ __all__ = [
     "floor_accuracy",
     "percentiles",
     "score",
+    "truth_at",
 ]
 
 #: percentiles reported for every error distribution (``diffpos replay``)
@@ -252,6 +253,32 @@ class Score:
     def as_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (field order)."""
         return dict(self.__dict__)
+
+
+def truth_at(t_ns: ArrayLike, truth_t_ns: ArrayLike, truth_position_m: ArrayLike,
+             truth_floor: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """One node's truth at the times ``t_ns`` (K,) of its estimates: the position linearly
+    interpolated between its samples (``truth_t_ns`` (S,) ascending, ``truth_position_m``
+    (S, 3); held at the first/last sample outside them) and the floor of the nearest sample.
+
+    An estimate states the time its position refers to (the fusion: the mean time of the
+    ranges it used, up to a period after the epoch's truth sample); every scorer compares it
+    with the truth at that time. At 1.2 m/s walking speed the epoch-start sample is up to
+    ~12 cm away from it, as large as a tracker's horizontal standard deviation.
+    """
+    t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+    tt = np.asarray(truth_t_ns, dtype=np.int64).reshape(-1)
+    tp = np.asarray(truth_position_m, dtype=float).reshape(-1, 3)
+    if tt.size == 0 or tt.size != tp.shape[0]:
+        raise ValueError("truth_t_ns and truth_position_m must be non-empty and of equal length")
+    q, grid = (t - tt[0]).astype(float), (tt - tt[0]).astype(float)
+    pos = np.stack([np.interp(q, grid, tp[:, k]) for k in range(3)], axis=-1)
+    if truth_floor is None:
+        return pos, None
+    j = np.searchsorted(tt, t)
+    left, right = np.clip(j - 1, 0, tt.size - 1), np.clip(j, 0, tt.size - 1)
+    nearest = np.where(np.abs(t - tt[left]) <= np.abs(t - tt[right]), left, right)
+    return pos, np.asarray(truth_floor).reshape(-1)[nearest]
 
 
 def score(

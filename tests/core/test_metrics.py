@@ -175,3 +175,25 @@ def test_streaming_score_equals_score_over_all_node_epochs():
     empty = metrics.StreamingScore().result()
     assert empty == metrics.score(np.empty((0, 3)), np.empty((0, 3)), estimate_floor=[],
                                   truth_floor=[])
+
+
+def test_truth_at_interpolates_a_straight_walk_and_takes_the_nearest_floor() -> None:
+    """A walker on a straight line at constant speed, sampled every 100 ms: the truth at any
+    time between samples is the line itself (closed form); the floor is the nearest sample's;
+    before/after the samples the first/last position is held."""
+    from diffpos.metrics import truth_at
+
+    t = np.arange(0, 1_000_000_001, 100_000_000, dtype=np.int64)
+    v = np.array([1.2, -0.3, 0.05])  # m/s
+    p0 = np.array([-3.0, 5.0, 7.5])
+    pos = p0 + (t * 1e-9)[:, None] * v
+    floor = (t >= 450_000_000).astype(int)  # the floor changes between two samples
+    q = np.array([0, 76_300_000, 430_000_000, 460_000_000, 999_999_999], np.int64)
+    got, f = truth_at(q, t, pos, floor)
+    np.testing.assert_allclose(got, p0 + (q * 1e-9)[:, None] * v, atol=1e-12)
+    assert f.tolist() == [0, 0, 0, 1, 1]  # 430 ms: nearest 400 ms (floor 0); 460: nearest 500
+    out, none = truth_at([-5, 2_000_000_000], t, pos)
+    assert none is None
+    np.testing.assert_array_equal(out, pos[[0, -1]])
+    with pytest.raises(ValueError):
+        truth_at([0], [], np.empty((0, 3)))

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.metrics import error_stats, percentiles, score
+from diffpos.metrics import error_stats, percentiles, score, truth_at
 from diffpos_services.recording.topics import natural_key
 from diffpos_services.wire import messages as M
 
@@ -184,7 +184,8 @@ def node_epoch_accuracy(estimates: list[Any], truth: dict[str, TruthTracks], *,
     an emulated run) from ``skip_s`` after the first one; a node-epoch's estimate is the fix of
     that node whose ``t_ns`` falls in the same epoch (the truth sample spacing), if it has a
     usable position (``GOOD_STATUSES``), else it is a miss (availability and floor accuracy
-    over all node-epochs count it). v1 and v2 estimates alike.
+    over all node-epochs count it); a fix is compared with the truth at its own ``t_ns``
+    (:func:`diffpos.metrics.truth_at`). v1 and v2 estimates alike.
 
     Returns
     -------
@@ -214,6 +215,8 @@ def node_epoch_accuracy(estimates: list[Any], truth: dict[str, TruthTracks], *,
             cov.append(e.covariance_m2 if e is not None and e.covariance_m2 is not None
                        else np.full((3, 3), np.nan))
             e_floor.append(-1 if e is None or e.floor_index is None else e.floor_index)
+            if e is not None:  # the truth at the estimate's own time
+                (p,), (f,) = truth_at([e.t_ns], tt, tp, tf)
             tru.append(p)
             t_floor.append(f)
     if not est:

@@ -325,11 +325,12 @@ class FixStream:
         while i < len(ts) and ts[i] <= upto_t:
             t = ts[i]
             fix = self._ne_fix.pop((node, t // period), None)
-            p = ps[i]
+            p, f = ps[i], fs[i]
             if fix is None:
                 self._ne_d.extend(_NAN3)
                 self._ne_ef.append(-1)
-            else:
+            else:  # the truth at the fix's own time (diffpos.metrics.truth_at)
+                p, f = tb.at(node, fix[0], period) or (p, f)
                 fp = fix[1]
                 d = (fp[0] - p[0], fp[1] - p[1], fp[2] - p[2])
                 self._ne_d.extend(d)
@@ -337,7 +338,7 @@ class FixStream:
                 if fix[4] is not None:
                     self._cov_d.append(d)
                     self._cov_c.append(fix[4])
-            self._ne_tf.append(fs[i])
+            self._ne_tf.append(f)
             i += 1
             self._ne_next[node] = t + 1
         if len(self._cov_d) >= _COV_BATCH:
