@@ -12,78 +12,9 @@ stated otherwise):
 * **Floor hypotheses.** The floor fixes the window band and the floor/ceiling planes, so each
   floor of the building is a separate hypothesis (``floor`` passed to the path model); the
   node is confined to its floor's box.
-* **Search.** Per floor, an ``nx x ny`` grid of (x, y) cells at mid-floor height (default
-  4 x 3, in farthest-point order so that the cells left over cover the whole plan: in raster
-  order the 5 left of 4 x 3 all lay in its left half), seven cells replaced by closed-form
-  starts of one-mechanism hypotheses (:mod:`._mnls_starts`): a straight-line multilateration (direct path; most first arrivals
-  are a few cm to dm longer than the straight line); the images a free-z straight-line fit
-  gives for specular links (ceiling image, ceiling-floor double bounce); per window edge,
-  "every link diffracts over this edge" (the Fermat length over a horizontal edge is
-  ``sqrt((x_a - x)^2 + (rho_a + rho)^2)``, ``rho`` the distance to the edge line: a
-  straight-line multilateration in the (x, rho) half-plane) and "diffraction over this edge,
-  then the ceiling" (the same for the node's ceiling image). Optionally a caller's start
-  ``x0_m`` (a tracker's prediction). Every cell gets ``SCREEN_ITER`` LM steps (a cell's cost
-  before any step says little: a metre off, every link picks the wrong mechanism), the
-  closed-form and caller's starts with the SNR terms of their starting point, the remaining
-  grid cells with the ranges only; per floor the ``keep_starts`` best of the former and the
-  best grid cell are re-scored with the SNR at their screened point (only on floors whose best
-  screened cost is within ``RESCORE_NATS`` of the best floor's; the others are dropped);
-  floors whose best is ``PRUNE_NATS`` above the best floor's keep that mode with zero
-  posterior, the others run up to ``max_iter`` LM steps (a hypothesis stops when an accepted
-  step is below ``CONVERGED_M``). Measured on the default study (seed 0, receivers
-  subsampled): the edge starts took the floor accuracy from 89.0 % to 93.0 % (400 receivers),
-  the edge + ceiling starts from 89.8 % to 91.7 % (1,500 receivers, 4 x 2 grid); with a start
-  at the truth it would be 92.9 %: the remaining floor misses are mostly ambiguity, not
-  search.
-* **Search cost** (``benchmarks/bench_mnls.py --stages``: node-anchor pairs through the path
-  model and the SNR prediction per fix and stage). The screen is most of both: every start of
-  every floor gets ``SCREEN_ITER + 1`` path-model evaluations, every closed-form start one SNR
-  prediction. 8 anchors (``bench_estimator_cost.py``'s layout, 512 fixes, seed 1), per fix:
-  path-model pairs 3,116 -> 2,214, SNR pairs 594 -> 367 (screen 480 -> 265). Grid cells with
-  the ranges only (were with the SNR, and the ``keep_starts`` best of all cells went on): SNR
-  pairs -30 % at 8 anchors, -20 % at 4, and better answers: of 3,072 paired synthetic fixes (4
-  and 8 anchors, seeds 0-2) the floor right only with it for 39, only without for 28; 3D error
-  0.1 m better for 162, worse for 51; ellipsoid coverage +0.8 to +1.6 points; two
-  1,500-receiver studies (``diffpos reproduce --quick``, seeds 0 and 1): floor 91.9 -> 92.3 %,
-  92.2 -> 92.5 %, p80 0.57 -> 0.55 m, 0.55 -> 0.52 m. Screening every start with the ranges
-  only loses floors at 4 anchors (-11 net of 1,024); with the SNR at the straight-line and
-  image starts only: +13 floors of 1,024 synthetic fixes at 4 anchors, but in the two studies
-  floor 92.3 -> 91.6 %, 92.5 -> 91.2 % and coverage -1.5 / -0.9 points (not taken). Cut
-  without changing answers: the start's terms computed once (were twice), the SNR predicted
-  for the linked pairs only, re-scoring only floors within ``RESCORE_NATS`` (512 synthetic
-  fixes each at 4 and 8 anchors and a 1,500-receiver study: identical positions and floors).
-  ``SCREEN_ITER`` 4 -> 3 changes ~5 % of the fixes, in both directions: of 3,072 paired
-  synthetic fixes (4 and 8 anchors, seeds 0-2), the floor is right only with 4 steps for 9,
-  only with 3 steps for 6; the 3D error 0.1 m worse for 28, better for 30; ellipsoid coverage
-  within +-0.5 points; and floor accuracy 91.9 / 91.9 % and 92.2 / 92.1 % in two
-  1,500-receiver studies (seeds 0 and 1, ``diffpos reproduce --quick``); 2 steps lose floors
-  (-4 of 512 at 8 anchors). Measured and *not* taken (each loses floors in paired runs, 8
-  anchors, 512 fixes): dropping the 5 grid cells (-5 floors), screening a floor's grid cells
-  only when its closed-form starts come within 30 nats of the best floor (-3; even within 200
-  nats: -2: a grid cell sometimes rescues the true floor when all its closed-form starts
-  fail), one kept start per floor (-1; at 4 anchors 4 vs 9), a range-only pre-screen (its
-  ranks are unrelated to the SNR-aware screen's), dropping screened rows by their cost after
-  1-2 steps (a row 10^4 nats behind after 2 steps can end first).
-* **Compiled steps** (``kernel=True``, the default): every Levenberg-Marquardt run (the
-  screen, the refinement between two SNR refreshes, the final refinement with the mechanisms
-  held) is one call of :func:`diffpos._kernels.mnls_nb.lm_kernel` per chunk (path model per
-  row and slot, link choice, cost, damped 3x3 normal equations, box clamp, acceptance), and
-  the closed-form starts are :mod:`diffpos._kernels.mnls_starts_nb`; both reproduce numpy's
-  operation order (einsum's and ``sum``'s summation orders, LAPACK ``gesv``), so the answers
-  are those of the reference steps (``kernel=False``): bitwise equal positions, covariances,
-  floors, mechanisms and statuses on ``bench_estimator_cost.py``'s sets (4 and 8 anchors,
-  256 fixes, seeds 0 and 1) and on the tests' held-out buildings (tests/core/test_mnls.py
-  asserts 1e-9 m). Cost per fix (``bench_estimator_cost.py --quick``, 8 anchors, CPU;
-  2026-11-27 06:35 UTC, 2-core VM shared, load 4.5-6.2, before = commit adf3856, two
-  interleaved runs each): batched 6.03 / 4.91 -> 3.79 / 3.07 ms, single 14.6 / 13.4 -> 6.57 /
-  5.41 ms (4 anchors: batched 4.03 / 3.42 -> 2.25 / 2.25, single 13.0 / 16.2 -> 4.17 / 4.15);
-  the issue-13 target (<= 2 ms at 8 anchors) is not met. Where it goes now
-  (``bench_mnls.py --stages --batch 128``, 8 anchors, per fix): screen 3.0 ms (compiled LM
-  2.0, SNR prediction at the closed-form starts 0.9), rescore 0.4, refine 0.3, final 0.2,
-  starts 0.2; cProfile of 64 fixes (``bench_path_model.py --profile-mnls 64``): ``lm_kernel``
-  52 %, ``pair_snr_db`` 26 %, the rest 22 %. The compiled LM spends ~0.8-1.1 us per
-  node-anchor pair and step, nearly all in the path model's 18 slots; a further cut needs
-  fewer evaluations (the search's answers change) or a faster path model / SNR prediction.
+* **Search**, its measured **cost** and the **compiled steps** (``kernel=True``, the
+  default: the same answers as the numpy reference steps, bitwise on the tested sets):
+  :mod:`._mnls_search`.
 * **Same-edge dominance** (:mod:`._mnls_rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
@@ -140,7 +71,6 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -150,6 +80,8 @@ from .._kernels.paths_nb import building_planes
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..paths import DIFFRACTION_SLOTS, SPECULAR_SLOTS, first_arrival_paths
 from ._mnls_posterior import _information, _posterior
+from ._mnls_problem import OUTLIER_PRIOR, _c, _Problem, _problem, _replace_snr, _sub, _take
+from ._mnls_result import MnlsResult, _result
 from ._mnls_rules import (
     _DIFF_MASK,
     _SAME_EDGE,
@@ -160,20 +92,19 @@ from ._mnls_rules import (
     _knife_edge_loss_db,
     _link_terms_numpy,
 )
+from ._mnls_search import _kept, _link_terms_rows, _start_points
 from ._mnls_starts import _edge_start, _grid, _los_start
-from .gating import chi2_threshold
-from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
+from .result import prepare_batch
 
 __all__ = ["MnlsResult", "mnls"]
 _RULES = (DIFFRACTION_SLOTS, _knife_edge_loss_db, _dominated, _link_terms_numpy)  # for tests
+_MOVED = (OUTLIER_PRIOR, _edge_start, _los_start)  # still importable from here (tests)
 
 FloatArray = NDArray[np.float64]
 _SPEC_MASK = np.zeros(len(_DIFF_MASK), dtype=bool)
 _SPEC_MASK[list(SPECULAR_SLOTS)] = True
 _SAME_EDGE_PAIRS = np.array(_SAME_EDGE, dtype=np.int64)
 
-#: Prior share of links whose first arrival is outside the path model (module docstring).
-OUTLIER_PRIOR = 0.02
 #: Levenberg-Marquardt iterations of the refinement with the SNR-chosen mechanisms held.
 REFINE_ITER = 6
 #: Levenberg-Marquardt steps from every grid cell before the best ``keep_starts`` go on.
@@ -225,49 +156,6 @@ def _count(key: str, value: float) -> None:
         d[key] += value
 
 
-@dataclass(frozen=True)
-class MnlsResult(FixResult):
-    """:class:`FixResult` plus the mechanism-aware fields.
-
-    Attributes
-    ----------
-    floor : ndarray of int, shape (B,)
-        Most probable floor (-1 where no fix).
-    floor_probability : ndarray, shape (B, F) [-]
-        Posterior probability of every floor of the building.
-    mechanism : ndarray of int, shape (B, M)
-        Slot of :data:`diffpos.paths.MECHANISMS` explaining each link at the answer (-1
-        where unused or missing).
-    """
-
-    floor: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, dtype=int))
-    floor_probability: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
-    mechanism: NDArray[np.int_] = field(default_factory=lambda: np.zeros((0, 0), dtype=int))
-
-
-@dataclass
-class _Problem:
-    """Flattened hypotheses: N = fixes x floors x starts rows (internal)."""
-
-    anchors: FloatArray  # (N, M, 3)
-    r: FloatArray  # (N, M)
-    sig: FloatArray  # (N, M)
-    mask: NDArray[np.bool_]  # (N, M)
-    floor: NDArray[np.int_]  # (N,)
-    lo: FloatArray  # (N, 3) box of the floor
-    hi: FloatArray
-    z_mid: FloatArray  # (N,)
-    prior_var: float
-    tail_a: FloatArray  # (N, M) tail offset
-    lam: float
-    excess_db: FloatArray  # (N, M) free-space SNR at the range minus measured SNR (NaN: none)
-    wavelength_m: float
-    allowed: NDArray[np.bool_] | None = None  # (N, M, K) optional restriction (tests/oracle)
-    snr_cost: FloatArray | None = None  # (N, M, K) SNR cost of every slot (held between updates)
-    snr_meas: FloatArray | None = None  # (N, M) measured SNR (with radio: SNR-aware search)
-    radio: object = None
-    strong: NDArray[np.bool_] | None = None  # (N, M, K) predicted surely detected
-
 
 def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     """Paths at ``x`` (N, 3), mechanism choice and the cost terms of every link: the
@@ -295,12 +183,6 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     out["cost"] = out["cost"].sum(axis=-1) + prior
     out["length"] = ps.length_m
     return out
-
-
-def _c(a, dtype=np.float64):
-    """C-contiguous, writable ``dtype`` array (the kernel's one signature)."""
-    a = np.ascontiguousarray(a, dtype=dtype)
-    return a if a.flags.writeable else a.copy()
 
 
 def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
@@ -385,36 +267,6 @@ def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = 
         moved = np.max(np.abs(x_new - xl), axis=-1)
         live = live[~(ok & (moved < CONVERGED_M)) & (lam[live] < 1e6)]
     return x, t
-
-
-def _sub(p: _Problem, rows) -> _Problem:
-    """The hypotheses ``rows`` with their SNR terms."""
-    q = _take(p, rows)
-    q.snr_meas, q.radio = (None if p.snr_meas is None else p.snr_meas[rows]), p.radio
-    for f in ("allowed", "snr_cost", "strong"):
-        v = getattr(p, f)
-        setattr(q, f, None if v is None else v[rows])
-    return q
-
-
-def _floor_boxes(building, floors: NDArray[np.int_], margin: float = 1e-3):
-    x0, x1 = building.edge_x_m
-    zf = building.floor_z_m(floors)
-    lo = np.stack([np.full(floors.shape, x0 + margin), np.full(floors.shape, margin),
-                   zf + margin], axis=-1)
-    hi = np.stack([np.full(floors.shape, x1 - margin),
-                   np.full(floors.shape, building.depth_m - margin),
-                   zf + building.floor_height_m - margin], axis=-1)
-    return lo, hi, zf + 0.5 * building.floor_height_m
-
-
-def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength) -> _Problem:
-    lo, hi, zmid = _floor_boxes(building, floors)
-    # tail offset: -log(eps / lambda) + log((1 - eps) / (sigma sqrt(2 pi)))
-    tail_a = np.log((1 - OUTLIER_PRIOR) / OUTLIER_PRIOR * lam / (sig * np.sqrt(2 * np.pi)))
-    return _Problem(anchors=a, r=r, sig=sig, mask=mask, floor=floors, lo=lo, hi=hi,
-                    z_mid=zmid, prior_var=building.floor_height_m**2 / 12.0,
-                    tail_a=tail_a, lam=lam, excess_db=excess, wavelength_m=wavelength)
 
 
 def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, wavelength,
@@ -558,18 +410,6 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
     return x, _link_terms(p, x, building)
 
 
-def _kept(c0: FloatArray, split, keep: int) -> NDArray[np.int_]:
-    """Per fix and floor, the cells that go on, (B, F, keep) or (B, F, keep + 1): the
-    ``keep`` lowest screened costs ``c0`` (B, F, G); with ``split`` (B, F, G: the cells
-    screened with the SNR), the ``keep`` lowest of those and the lowest grid cell (its
-    range-only cost is not comparable with the others before the re-scoring)."""
-    if split is None:
-        return np.argsort(c0, axis=-1, kind="stable")[..., :keep]
-    b1 = np.argsort(np.where(split, c0, np.inf), axis=-1, kind="stable")[..., :keep]
-    b2 = np.argsort(np.where(split, np.inf, c0), axis=-1, kind="stable")[..., :1]
-    return np.concatenate([b1, b2], axis=-1)
-
-
 def _rescore(p: _Problem, x: FloatArray, t, c0: FloatArray, keep: int, building
              ) -> dict:
     """The kept cells' terms with the SNR at their screened points, for the floors whose
@@ -597,65 +437,6 @@ def _rescore(p: _Problem, x: FloatArray, t, c0: FloatArray, keep: int, building
         out[key][rows] = tq[key]
     out["cost"][~go] = np.inf
     return out
-
-
-def _link_terms_rows(t_rows, sel: NDArray[np.bool_], n: int) -> dict:
-    """Arrays of ``n`` rows holding ``t_rows(sel)`` on the rows ``sel`` (the others are
-    written by the caller)."""
-    ts = t_rows(np.flatnonzero(sel))
-    out = {}
-    for key, v in ts.items():
-        out[key] = np.empty((n, *v.shape[1:]), dtype=v.dtype)
-        out[key][sel] = v
-    return out
-
-
-def _start_points(p0: _Problem, grid: FloatArray, building, b: int, x0=None,
-                  kernel: bool = False) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """The start of every row of ``p0`` (B fixes x F floors x G cells): the grid at mid-floor
-    height with seven cells replaced by the closed-form starts, and the caller's start; and
-    which rows hold a closed-form or the caller's start (the others: grid cells)."""
-    nf = building.n_floors
-    g = grid.shape[0]
-    x = np.empty((b * nf * g, 3))
-    closed = np.zeros(b * nf * g, dtype=bool)
-    x[:, :2] = np.tile(grid, (b * nf, 1))
-    x[:, 2] = p0.z_mid
-    # the last cell of every floor is replaced by a straight-line (LoS) multilateration at
-    # mid-floor height: most first arrivals (direct, lower-edge diffraction near the window's
-    # height) are a few cm to dm longer than the straight line, so it lands in their basin
-    last = np.arange(b * nf) * g + g - 1
-    x[last] = _los_start(p0, last, building, kernel=kernel)
-    closed[last] = True
-    # two more cells: a free-z straight-line fit is the node's image when the links are
-    # specular; the node is then its ceiling image (2 z_c - z) or, for the ceiling-floor double
-    # bounce, 2H below it (image method), clipped into the floor
-    if g >= 4:
-        img = _los_start(p0, last, building, free_z=True, kernel=kernel)
-        h = building.floor_height_m
-        for cell, z in ((g - 2, 2 * (p0.lo[last, 2] + h) - img[:, 2]), (g - 3, img[:, 2] - 2 * h)):
-            x[last - (g - 1) + cell] = np.clip(np.column_stack([img[:, :2], z]), p0.lo[last],
-                                               p0.hi[last])
-            closed[last - (g - 1) + cell] = True
-    # per floor and window edge, the closed-form start of "every link diffracts over this
-    # edge" (the Fermat path over a horizontal edge unfolds to a straight line in (x, rho))
-    # and (two more cells) of "diffraction over the edge, then the ceiling" (the node's
-    # ceiling image diffracts): deep inside, these are the common first arrivals
-    zf = p0.lo[last, 2] - 1e-3
-    zc = zf + building.floor_height_m
-    z_lo = zf + building.sill_height_m
-    for cell, ze, zm in ((g - 4, z_lo, None), (g - 5, z_lo + building.window_height_m, None),
-                         (g - 6, z_lo, zc), (g - 7, z_lo + building.window_height_m, zc)):
-        if cell >= 1:
-            x[last - (g - 1) + cell] = _edge_start(p0, last, ze, z_mirror=zm, kernel=kernel)
-            closed[last - (g - 1) + cell] = True
-    if x0 is not None:  # a caller's start (e.g. a tracker's prediction) on its own floor
-        has = np.flatnonzero(np.all(np.isfinite(x0), axis=-1))
-        k0 = np.clip(building.floor_index(x0[has, 2]), 0, nf - 1)
-        row0 = (has * nf + k0) * g
-        x[row0] = np.clip(x0[has], p0.lo[row0], p0.hi[row0])
-        closed[row0] = True
-    return x, closed
 
 
 def mnls(
@@ -762,22 +543,6 @@ def mnls(
     return _result(out, bi, false_alarm_probability)
 
 
-def _take(p: _Problem, rows) -> _Problem:
-    """The hypotheses ``rows`` of a problem."""
-    kw = {f: getattr(p, f) for f in ("prior_var", "lam", "wavelength_m")}
-    for f in ("anchors", "r", "sig", "mask", "floor", "lo", "hi", "z_mid", "tail_a",
-              "excess_db"):
-        kw[f] = getattr(p, f)[rows]
-    return _Problem(**kw)
-
-
-def _replace_snr(p: _Problem) -> _Problem:
-    """A copy of ``p`` with the SNR terms held (no refresh during the refinement)."""
-    q = _take(p, slice(None))
-    q.allowed, q.snr_cost, q.strong = p.allowed, p.snr_cost, p.strong
-    return q
-
-
 def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building=None,
             radio=None, kernel: bool = False) -> None:
     b = idx.size
@@ -829,40 +594,3 @@ def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building
     out["floor_probability"][idx] = post
     out["cost"][idx] = t["cost"].reshape(b, nf)[np.arange(b), kb]
     out["stat"][idx] = np.sum(np.where(used, res**2 / var[rows], 0.0), axis=-1)
-
-
-def _result(out, bi, pfa: float) -> MnlsResult:
-    bsz, m = bi.ranges_m.shape
-    used = out["used"]
-    n_used = used.sum(axis=-1)
-    dof = n_used - 3
-    thr = np.where(dof >= 1, chi2_threshold(np.maximum(dof, 1), pfa), np.nan)
-    has = np.isfinite(out["position_m"][:, 0])
-    # a posteriori variance factor: residuals larger than the model's sigmas (chi-square
-    # statistic above its degrees of freedom) widen the covariance, never narrow it
-    with np.errstate(invalid="ignore", divide="ignore"):
-        vf = np.where(dof >= 1, np.maximum(out["stat"] / np.maximum(dof, 1), 1.0), 1.0)
-    cov = out["covariance_m2"] * np.where(np.isfinite(vf), vf, 1.0)[:, None, None]
-    finite_cov = np.all(np.isfinite(cov.reshape(bsz, -1)), axis=-1)
-    status = np.full(bsz, int(FixStatus.OK))
-    status[has & (dof < 1)] = FixStatus.OK_UNVERIFIED
-    status[has & (dof >= 1) & ~(out["stat"] <= thr)] = FixStatus.GATING_FAILED
-    status[has & ~finite_cov] = FixStatus.NOT_IDENTIFIABLE
-    status[~has | (n_used < 3)] = FixStatus.TOO_FEW_ANCHORS
-    status[bi.input_error != 0] = FixStatus.INVALID_INPUT
-    reason = np.zeros((bsz, m), dtype=np.int_)
-    reason[out["tail"]] = ExclusionReason.RAIM
-    reason[~bi.present] = ExclusionReason.MISSING
-    with np.errstate(invalid="ignore"):
-        peb = np.sqrt(np.trace(cov, axis1=-2, axis2=-1))
-    return MnlsResult(
-        position_m=out["position_m"], covariance_m2=cov, peb_m=peb,
-        z_bound_m=np.sqrt(cov[:, 2, 2]), iterations=np.zeros(bsz, dtype=np.int_),
-        converged=has.copy(), status=status, residuals_m=out["residuals_m"], used=used,
-        excluded=out["tail"].copy(), exclusion_reason=reason, test_statistic=out["stat"],
-        test_threshold=thr, dof=np.maximum(dof, 0), cost=out["cost"],
-        input_error=bi.input_error, method="mnls",
-        covariance_model="first-arrival model, floor mixture", sigmas_given=bi.sigmas_given,
-        floor=out["floor"], floor_probability=out["floor_probability"],
-        mechanism=out["mechanism"],
-    )
