@@ -2,7 +2,9 @@
 
 Arrays are over N nodes, H hypotheses per node (the floors, or floors x starts at
 initialisation) and M anchors; ``floor`` gives every hypothesis' floor index. See
-:mod:`diffpos.tracking` for the design; everything here is deterministic. The hot loops
+:mod:`diffpos.tracking` for the design; everything here is deterministic. The links and the
+path evaluation are in :mod:`diffpos.tracking_paths`, the initialisation's grid search in
+:mod:`diffpos.tracking_init` (both re-exported here). The hot loops
 (every slot's paths, the IEKF's link model, the selection's candidates and variances, the
 initialisation's grid search) run in the compiled kernels of
 :mod:`diffpos._kernels.tracking_nb`, each bit-identical to the numpy reference kept next to
@@ -35,20 +37,27 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.paths_nb import building_planes
-from ._kernels.tracking_nb import (
-    all_paths_kernel,
-    grid_cost_kernel,
-    iekf_terms_kernel,
-    model_kernel,
-    select_prep_kernel,
-)
+from ._kernels.tracking_nb import iekf_terms_kernel, model_kernel, select_prep_kernel
 from .channel import pair_snr_db
-from .paths import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, graded_paths
+from .tracking_init import _grid_starts_numpy, grid_starts
+from .tracking_paths import (
+    _IS_DIFF,
+    K_SLOTS,
+    Links,
+    PathEval,
+    _all_paths_numpy,
+    _c,
+    _los,
+    _relax,
+    all_paths,
+    candidates,
+    eval_paths,
+    slot_paths,
+)
 
 FloatArray = NDArray[np.float64]
-K_SLOTS = len(MECHANISMS)
-_IS_DIFF = np.isin(np.arange(K_SLOTS), DIFFRACTION_SLOTS)
-_IS_BAND = np.isin(np.arange(K_SLOTS), SPECULAR_SLOTS)  # entry point in the window band
+#: Moved to tracking_paths / tracking_init, still importable from here (tests).
+_MOVED = (_all_paths_numpy, eval_paths, _grid_starts_numpy)
 _LOG2PI = float(np.log(2.0 * np.pi))
 #: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
 #: field (antenna patterns, materials, wedge vs. UTD), the value M-NLS uses.
@@ -58,50 +67,6 @@ SNR_SPAN_DB = 60.0
 #: Standard deviations of a hypothesis' height within which a window entry point may lie
 #: (:func:`existence_margin`): two, the 95 % interval of a Gaussian.
 ENTRY_SIGMAS = 2.0
-
-
-@dataclass(frozen=True)
-class Links:
-    """The measurements of one epoch, shaped to broadcast against ``(N, H, M)``.
-
-    ``rho``, ``var``, ``mask``: (N, 1, M); ``anchors``: (N, 1, M, 3); ``snr``: (N, 1, M)
-    measured SNR [dB] (NaN: unknown) with the ``radio`` that predicts every slot's SNR, or
-    None (ranges only).
-    """
-
-    rho: FloatArray
-    var: FloatArray
-    mask: NDArray[np.bool_]
-    anchors: FloatArray
-    snr: FloatArray | None = None
-    radio: object | None = None
-
-    def take(self, idx) -> Links:
-        """The links of the nodes ``idx``."""
-        return Links(self.rho[idx], self.var[idx], self.mask[idx], self.anchors[idx],
-                     None if self.snr is None else self.snr[idx], self.radio)
-
-    @classmethod
-    def from_arrays(cls, anchors_m, ranges_m, sigmas_m, mask, sigma_model_m: float,
-                    snr_db=None, radio=None) -> Links:
-        m = np.asarray(mask, bool) & np.isfinite(ranges_m) & np.isfinite(sigmas_m)
-        m &= np.all(np.isfinite(anchors_m), axis=-1)
-        rho = np.where(m, ranges_m, 0.0)
-        var = np.where(m, np.asarray(sigmas_m, float) ** 2 + sigma_model_m**2, 1.0)
-        # a missing link gets a harmless placeholder anchor (its weight is 0)
-        anc = np.where(m[..., None], anchors_m, np.array([0.0, -1.0, 0.0]))
-        snr = None
-        if snr_db is not None and radio is not None:
-            snr = np.where(m, np.asarray(snr_db, float), np.nan)[:, None]
-        return cls(rho=rho[:, None], var=var[:, None], mask=m[:, None], anchors=anc[:, None],
-                   snr=snr, radio=radio if snr is not None else None)
-
-
-def _c(a, dtype=None) -> NDArray:
-    """``a`` as a C-contiguous writable array (a kernel's one compiled signature per argument:
-    a read-only view, e.g. from ``broadcast_to``, would compile a second one)."""
-    out = np.ascontiguousarray(a, dtype=dtype)
-    return out if out.flags.writeable else out.copy()
 
 
 def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
@@ -182,132 +147,6 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     sub = c[n_i, h_i, m_i]
     c[n_i, h_i, m_i] = np.where(hole[n_i, h_i, m_i], best, sub)
     return c
-
-
-def _los(pos: FloatArray, anchors: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Straight-line length and its Jacobian d/d node, shapes (N, H, M) and (N, H, M, 3)."""
-    d = pos[:, :, None, :] - anchors
-    n = np.sqrt(np.einsum("...i,...i->...", d, d))
-    return n, d / np.maximum(n, 1e-12)[..., None]
-
-
-@dataclass(frozen=True)
-class PathEval:
-    """Mechanisms at hypotheses, (..., K) (slot axis last; Jacobians (..., K, 3)).
-
-    ``length`` and ``jac`` are the raw geometric values (also where the path does not exist,
-    so an iterate may cross an existence boundary of its chosen mechanism). ``strict`` is the
-    existence of :func:`diffpos.paths.first_arrival_paths`; for the specular slots ``loose``
-    and ``sure`` also hold with the window band widened / narrowed by ``relax_m`` (the entry
-    point is uncertain by about that much); diffraction slots: all three are ``strict``.
-    """
-
-    length: FloatArray
-    jac: FloatArray
-    strict: NDArray[np.bool_]
-    loose: NDArray[np.bool_]
-    sure: NDArray[np.bool_]
-
-
-def eval_paths(nodes_m: FloatArray, anchors_m: FloatArray, floor, building, relax_m: float,
-               slots=None) -> PathEval:
-    """The first-arrival path model with raw lengths and graded existence: the compiled
-    kernel of :func:`diffpos.paths.graded_paths` (same geometry as
-    :func:`diffpos.paths.first_arrival_paths`)."""
-    g = graded_paths(nodes_m, anchors_m, building, relax_m=relax_m, floor=floor, slots=slots)
-    return PathEval(length=g.length_m, jac=g.jacobian, strict=g.strict, loose=g.loose,
-                    sure=g.sure)
-
-
-def _relax(relax_m, shape) -> FloatArray:
-    """``relax_m`` (scalar or broadcastable to ``shape`` = (N, H)) as a C-contiguous float64
-    (N, H) array, checked >= 0 [m]."""
-    r = np.empty(shape)
-    r[...] = np.broadcast_to(np.asarray(relax_m, dtype=np.float64), shape)
-    if not np.all(r >= 0.0):
-        raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
-    return r
-
-
-def all_paths(pos: FloatArray, links: Links, floor, building, relax_m) -> PathEval:
-    """Every mechanism for every hypothesis (N, H, M, K) at positions ``pos`` (N, H, 3):
-    one compiled pass (:func:`diffpos._kernels.tracking_nb.all_paths_kernel`), bit-identical
-    to :func:`_all_paths_numpy` (:func:`eval_paths`). ``relax_m`` [m]: the widening of the
-    window band at the entry point, a scalar or one per hypothesis (broadcastable to (N, H))."""
-    n, h = pos.shape[:2]
-    r = _relax(relax_m, (n, h))
-    m = links.anchors.shape[-2]
-    shape = (n, h, m, K_SLOTS)
-    fl = np.empty((n, h))
-    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
-    length, jac = np.empty(shape), np.empty((*shape, 3))
-    strict, loose, sure = (np.empty(shape, dtype=np.bool_) for _ in range(3))
-    anc = np.empty((n, m, 3))
-    anc[...] = links.anchors[:, 0]
-    all_paths_kernel(_c(pos, dtype=np.float64), anc, fl, r,
-                     _IS_BAND, *building_planes(building), length, jac, strict, loose, sure)
-    return PathEval(length=length, jac=jac, strict=strict, loose=loose, sure=sure)
-
-
-def _all_paths_numpy(pos: FloatArray, links: Links, floor, building, relax_m) -> PathEval:
-    """The reference of :func:`all_paths`: :func:`diffpos.paths.graded_paths` with the widest
-    widening, then every hypothesis' band test with its own (the same comparisons)."""
-    n, h = pos.shape[:2]
-    r = _relax(relax_m, (n, h))
-    fl = np.broadcast_to(np.asarray(floor), (n, h))
-    g = graded_paths(pos[:, :, None, :], links.anchors, building, relax_m=float(r.max()),
-                     floor=fl[:, :, None])
-    lo, hi = (v[:, :, None, None] for v in building.window_z_m(fl))
-    rr = r[:, :, None, None]
-    z = g.entry_z_m
-    with np.errstate(invalid="ignore"):
-        margin = np.minimum(z - lo, hi - z)
-        loose = g.loose & np.where(_IS_BAND, (z > lo - rr) & (z < hi + rr), True)
-        strict = loose & np.where(_IS_BAND, margin > 0, True)
-        sure = loose & np.where(_IS_BAND, margin > rr, True)
-    return PathEval(length=g.length_m, jac=g.jacobian, strict=strict, loose=loose, sure=sure)
-
-
-def slot_paths(pos: FloatArray, links: Links, floor, slot: NDArray, building):
-    """Raw length and Jacobian of the chosen slot per link (slot -1: NaN, 0).
-
-    The path model is evaluated once per distinct slot on the links that use it (the cost
-    of one full evaluation divided by the number of slots).
-    """
-    shape = slot.shape  # (N, H, M)
-    p = np.broadcast_to(pos[:, :, None, :], (*shape, 3)).reshape(-1, 3)
-    a = np.broadcast_to(links.anchors, (*shape, 3)).reshape(-1, 3)
-    fl = np.broadcast_to(np.broadcast_to(np.asarray(floor), shape[:2])[..., None],
-                         shape).reshape(-1)
-    s = slot.reshape(-1)
-    length = np.full(s.shape, np.nan)
-    jac = np.zeros((s.size, 3))
-    for k in np.unique(s[s >= 0]):
-        idx = np.flatnonzero(s == k)
-        pe = eval_paths(p[idx], a[idx], fl[idx], building, 0.0, slots=[int(k)])
-        length[idx] = pe.length[:, 0]
-        jac[idx] = pe.jac[:, 0]
-    ok = np.isfinite(length) & np.all(np.isfinite(jac), axis=-1)
-    return length.reshape(shape), np.where(ok[:, None], jac, 0.0).reshape(*shape, 3), \
-        ok.reshape(shape)
-
-
-def candidates(pe: PathEval) -> NDArray[np.bool_]:
-    """Mechanisms that can be the detected first arrival at a hypothesis, (..., K).
-
-    The first-arrival rule: a first arrival is never later than an existing specular path
-    (direct, single or double bounce entering through the opening: Fresnel losses of a few dB,
-    always within the detector's 15 dB of the strongest path), while an edge-diffraction path
-    (UTD shadow loss 10-30 dB) may be too weak and be skipped. So the candidates are the
-    earliest specular path that surely exists, every specular path that may exist (entry
-    within ``relax_m`` of the band) and is not later, and every diffraction path earlier than
-    it. Measured with the emulator on 3,000 random nodes x every anchor of five geometries
-    (the shipped two and the three held-out variants of ``benchmarks/bench_tracking.py``): no
-    detected first arrival was later than an existing specular path, and every skipped earlier
-    path was a diffraction slot (7-13).
-    """
-    e_spec = np.where(pe.sure & ~_IS_DIFF, pe.length, np.inf).min(axis=-1, keepdims=True)
-    return pe.loose & np.where(_IS_DIFF, pe.length < e_spec, pe.length <= e_spec)
 
 
 @dataclass(frozen=True)
@@ -616,74 +455,6 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
                                  level, info)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
-
-
-def _grid_cells(building, step_m: float) -> FloatArray:
-    x0, x1 = building.edge_x_m
-    xs = np.arange(x0 + step_m / 2, x1, step_m)
-    ys = np.arange(step_m / 2, building.depth_m, step_m)
-    gx, gy = np.meshgrid(xs, ys, indexing="ij")
-    return np.stack([gx.ravel(), gy.ravel()], axis=-1)
-
-
-def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
-    """Best ``init_starts`` grid cells on each listed floor per node: (N, Fs * S, 3).
-
-    ``floors`` (N, Fs): the floors to search for every node. The cost of a cell is the robust
-    max-mixture cost over the links with the range variance widened by the grid's own
-    resolution (``(step / 2)^2``). Every cell of every node in one compiled pass
-    (:func:`diffpos._kernels.tracking_nb.grid_cost_kernel`: lengths without Jacobians, no
-    temporaries), bit-identical to :func:`_grid_starts_numpy`.
-    """
-    cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
-    n, nf = floors.shape
-    m = links.rho.shape[-1]
-    if m > 128:  # the kernel's summation order is numpy's up to 128 links
-        return _grid_starts_numpy(links, floors, building, config)
-    c, ns = cells.shape[0], config.init_starts
-    z = building.floor_z_m(floors) + building.nominal_node_height_m  # (N, Fs)
-    var = links.var + (0.5 * config.init_grid_m) ** 2
-    w_out = np.log(config.outlier_span_m / config.outlier_weight)
-    total = np.empty((n, nf, c))
-    fl = np.empty((n, nf))
-    fl[...] = floors
-    grid_cost_kernel(_c(cells), _c(z, dtype=np.float64), fl,
-                     _c(links.anchors[:, 0]),
-                     _c(links.rho[:, 0]), _c(var[:, 0]),
-                     _c(links.mask[:, 0]), _IS_BAND, _IS_DIFF,
-                     0.5 * config.init_grid_m, float(w_out), *building_planes(building), total)
-    order = np.argsort(total, axis=2, kind="stable")[..., :ns]  # (N, Fs, S)
-    pos = np.concatenate([np.broadcast_to(cells[None, None], (n, nf, c, 2)),
-                          np.broadcast_to(z[:, :, None, None], (n, nf, c, 1))], axis=-1)
-    return np.take_along_axis(pos, order[..., None], axis=2).reshape(n, nf * ns, 3)
-
-
-def _grid_starts_numpy(links: Links, floors: NDArray, building, config) -> FloatArray:
-    """The numpy reference of :func:`grid_starts` (one node at a time)."""
-    cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
-    n, nf = floors.shape
-    c, ns = cells.shape[0], config.init_starts
-    z = building.floor_z_m(floors) + building.nominal_node_height_m  # (N, Fs)
-    var = links.var + (0.5 * config.init_grid_m) ** 2
-    w_out = np.log(config.outlier_span_m / config.outlier_weight)
-    starts = np.zeros((n, nf * ns, 3))
-    for i in range(n):  # one node at a time keeps the arrays small (K x Fs x C x M)
-        pos = np.concatenate([np.broadcast_to(cells[None], (nf, c, 2)),
-                              np.broadcast_to(z[i][:, None, None], (nf, c, 1))], axis=-1)
-        pos = pos.reshape(1, nf * c, 3)
-        li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1],
-                   links.anchors[i:i + 1])
-        pe = all_paths(pos, li, np.repeat(floors[i], c)[None], building,
-                       0.5 * config.init_grid_m)
-        e = li.rho[..., None] - pe.length
-        cost = np.where(candidates(pe), 0.5 * e * e / li.var[..., None], np.inf).min(axis=-1)
-        los, _ = _los(pos, li.anchors)
-        short = np.minimum(li.rho - los, 0.0)
-        cost = np.minimum(cost, w_out + 0.5 * short**2 / li.var)
-        total = np.where(li.mask, cost, 0.0).sum(axis=-1)[0].reshape(nf, c)
-        order = np.argsort(total, axis=1, kind="stable")[:, :ns]
-        starts[i] = pos[0].reshape(nf, c, 3)[np.arange(nf)[:, None], order].reshape(-1, 3)
-    return starts
 
 
 def snapshot(links: Links, floors: NDArray, building, config):
