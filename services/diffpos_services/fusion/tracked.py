@@ -304,66 +304,79 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
 
 
 # ----------------------------------------------------------------------------- messages
-def _cov_tuple(c: list[list[float]]) -> Any:
-    return tuple(map(tuple, c)) if all(np.isfinite(v) for row in c for v in row) else None
-
-
-def _probs(row: list[float]) -> list[float]:
+def _probs(row: list[float], finite: bool) -> list[float]:
     """Floor probabilities for the wire (empty when unknown; clipped into [0, 1])."""
-    if not row or not all(np.isfinite(row)):
+    if not row or not finite:
         return []
     return [min(max(p, 0.0), 1.0) for p in row]
 
 
-def _snapshot_msg(s: Solved, i: int, pos_l, cov_l, prob_l) -> M.SnapshotFix | None:
+def _finite_rows(a: np.ndarray) -> list[bool]:
+    """Whether every value of each row of ``a`` (B, ...) is finite (no NaN rows: non-empty)."""
+    return np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1).tolist()
+
+
+def _snapshot_msg(s: Solved, i: int, pos_l, cov_l, prob_l, fin) -> M.SnapshotFix | None:
     if not s.tracking or not s.snap_rows[i]:
         return None
     st = _FIX_NAMES[int(s.snap.status[i])]
-    ok = st in M.GOOD_STATUSES and all(np.isfinite(pos_l[i]))
+    pos_ok, cov_ok, prob_ok = fin
+    ok = st in M.GOOD_STATUSES and pos_ok[i]
     return M.SnapshotFix(
         method="mnls", status=st, position_m=tuple(pos_l[i]) if ok else None,
-        covariance_m2=_cov_tuple(cov_l[i]) if ok else None,
+        covariance_m2=tuple(map(tuple, cov_l[i])) if ok and cov_ok[i] else None,
         floor_index=int(s.snap_floor[i]) if ok and s.snap_floor[i] >= 0 else None,
-        floor_probabilities=_probs(prob_l[i]))
+        floor_probabilities=_probs(prob_l[i], prob_ok[i]))
 
 
 def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[str], *,
                  seq0: int, now: int, method: str) -> list[M.PositionEstimateV2]:
     """One :class:`PositionEstimateV2` per row of a batch solved by :func:`solve_mnls`
-    (sequence numbers ``seq0 + 1 ...``, ``t_pub_wall_ns = now``)."""
+    (sequence numbers ``seq0 + 1 ...``, ``t_pub_wall_ns = now``). The finiteness tests are
+    made per batch on the arrays, the per-row work is list indexing."""
     res, names = s.res, batch.names
     group_l, shared = exclusion_groups(batch, res, lost)
     pos_l, cov_l = res.pos.tolist(), res.cov.tolist()
+    pos_ok, cov_ok, prob_ok = (_finite_rows(a) for a in (res.pos, res.cov, s.floor_prob))
     peb_l, zb_l = res.peb.tolist(), res.zb.tolist()
     prob_l, mech_l = s.floor_prob.tolist(), s.mechanism.tolist()
-    resid_l = res.resid.tolist()
+    best_l = np.argmax(np.where(np.isnan(s.floor_prob), -np.inf,
+                                np.clip(s.floor_prob, 0.0, 1.0)), axis=1).tolist()
+    resid = res.resid
+    resid_l = resid.tolist()
+    resid_wire_l = np.where(np.isfinite(resid), resid, 0.0).tolist()
     use_l = batch.use.tolist()
     t_ref_l = batch.t_ref.tolist()
     in_wall_l = np.where(batch.reported, batch.pub_wall, 0).max(axis=1).tolist()
-    snap_pos = s.snap.pos.tolist() if s.tracking else []
-    snap_cov = s.snap.cov.tolist() if s.tracking else []
-    snap_prob = s.snap_prob.tolist() if s.tracking else []
+    if s.tracking:
+        snap_pos, snap_cov, snap_prob = (s.snap.pos.tolist(), s.snap.cov.tolist(),
+                                         s.snap_prob.tolist())
+        snap_fin = tuple(_finite_rows(a) for a in (s.snap.pos, s.snap.cov, s.snap_prob))
+    else:
+        snap_pos = snap_cov = snap_prob = snap_fin = None
+    mech_names = MECHANISMS
+    finite_or_none = M.finite_or_none
     out = []
     for i, (pe, gi) in enumerate(zip(epochs, group_l, strict=True)):
         st = s.status[i]
         used_idx, used_ids, excluded, _ = shared[gi]
-        has = st in M.GOOD_STATUSES and all(np.isfinite(pos_l[i]))
-        probs = _probs(prob_l[i]) if has else []
-        fl = int(np.argmax(probs)) if probs else None
-        links = [M.AnchorLink(names[j], MECHANISMS[mech_l[i][j]] if mech_l[i][j] >= 0 else None,
-                              M.finite_or_none(resid_l[i][j]))
-                 for j in range(len(names)) if use_l[i][j]]
+        has = st in M.GOOD_STATUSES and pos_ok[i]
+        probs = _probs(prob_l[i], prob_ok[i]) if has else []
+        mech_i, resid_i = mech_l[i], resid_l[i]
+        links = [M.AnchorLink(names[j], mech_names[mech_i[j]] if mech_i[j] >= 0 else None,
+                              finite_or_none(resid_i[j]))
+                 for j, u in enumerate(use_l[i]) if u]
         out.append(M.PositionEstimateV2(
             node_id=pe.node_id, t_ns=t_ref_l[i], epoch=pe.epoch, seq=seq0 + i + 1,
             method=method, status=st,
             position_m=tuple(pos_l[i]) if has else None,
-            covariance_m2=_cov_tuple(cov_l[i]) if has else None,
-            peb_m=M.finite_or_none(peb_l[i]) if has else None,
-            z_bound_m=M.finite_or_none(zb_l[i]) if has else None,
-            floor_index=fl, floor_probabilities=probs,
-            snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob),
+            covariance_m2=tuple(map(tuple, cov_l[i])) if has and cov_ok[i] else None,
+            peb_m=finite_or_none(peb_l[i]) if has else None,
+            z_bound_m=finite_or_none(zb_l[i]) if has else None,
+            floor_index=best_l[i] if probs else None, floor_probabilities=probs,
+            snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob, snap_fin),
             links=links, used_anchors=list(used_ids),
-            residuals_m=[resid_l[i][j] if np.isfinite(resid_l[i][j]) else 0.0 for j in used_idx],
+            residuals_m=[resid_wire_l[i][j] for j in used_idx],
             excluded=list(excluded), message=res.msg[i] if not s.tracking else "",
             t_input_wall_ns=max(in_wall_l[i], 0), t_pub_wall_ns=now))
     return out
