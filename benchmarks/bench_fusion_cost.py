@@ -38,7 +38,8 @@ receive times, on a virtual wall clock that advances by the CPU time the loop us
 have on one core of its own, whatever else loads the machine (other processes' load changes
 the wall figures of ``diffpos emulate``, not these), and prints end-to-end latency (input
 publish -> estimate handed to the bus) overall and over the first 2 s (start-up), the steps'
-sizes and the CPU per node-epoch. Run with another checkout's ``services`` on ``PYTHONPATH``
+sizes and the CPU per node-epoch (the estimates are encoded as the publisher does; the bus
+itself is not simulated). Run with another checkout's ``services`` on ``PYTHONPATH``
 it measures that code on the same input (before vs after).
 """
 
@@ -122,21 +123,40 @@ class _ScheduledQueue:
         return sum(1 for rx, _ in self.items if rx <= now)
 
 
-def schedule(path: Path, startup_s: float = 2.0) -> dict:
-    """The live loop on the recorded real-time input, on a virtual clock (module docstring)."""
+def _fusion_config(path: Path, fusion_argv: list[str] | None):
+    """The recorded live fusion settings, or those of ``diffpos fusion FUSION_ARGV`` (a
+    recording without settings, e.g. bench_soak's recorder)."""
+    from diffpos_services.fusion.config import FusionConfig
+    from diffpos_services.recording.reader import side_records
+    from diffpos_services.recording.summary import live_fusion_settings
+
+    if fusion_argv is not None:
+        from diffpos_services.cli import fusion as cli
+        from diffpos_services.scenario_io import load_scenario_option
+
+        ap = argparse.ArgumentParser()
+        cli.add_arguments(ap)
+        args = ap.parse_args(fusion_argv)
+        return cli.config_from_args(args, load_scenario_option(args.scenario))
+    settings, _ = live_fusion_settings(side_records(path))
+    known = set(FusionConfig.__struct_fields__)
+    return msgspec.convert({k: v for k, v in settings.items() if k in known}, FusionConfig)
+
+
+def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None,
+             fusion_argv: list[str] | None = None) -> dict:
+    """The live loop on the recorded real-time input, on a virtual clock (module docstring):
+    the first ``seconds`` of input (None: all), the recorded fusion settings or those of
+    ``fusion_argv``."""
     import logging
 
     from diffpos_services.fusion import service
-    from diffpos_services.fusion.config import FusionConfig
     from diffpos_services.fusion.core import FusionCore
-    from diffpos_services.recording.reader import McapScanner, side_records
-    from diffpos_services.recording.summary import live_fusion_settings
+    from diffpos_services.recording.reader import McapScanner
     from diffpos_services.recording.synthetic import FUSION_INPUT_KINDS
     from diffpos_services.recording.topics import parse_topic
 
-    settings, _ = live_fusion_settings(side_records(path))
-    known = set(FusionConfig.__struct_fields__)
-    cfg = msgspec.convert({k: v for k, v in settings.items() if k in known}, FusionConfig)
+    cfg = _fusion_config(path, fusion_argv)
     items, anchors = [], set()
     for m in McapScanner(path).messages():
         kind, fields = parse_topic(m.topic)
@@ -145,6 +165,8 @@ def schedule(path: Path, startup_s: float = 2.0) -> dict:
             items.append((m.log_ns, (service._DATA, m.topic, m.data, m.log_ns)))
     items.sort(key=lambda x: x[0])
     t0 = items[0][0]
+    if seconds is not None:
+        items = [x for x in items if x[0] < t0 + round(seconds * 1e9)]
     keys = service.Keys(cfg.site)
     items[:0] = [(t0 - 1, (service._ALIVE, keys.alive_anchor(a), True, t0 - 1))
                  for a in sorted(anchors)]
@@ -158,7 +180,10 @@ def schedule(path: Path, startup_s: float = 2.0) -> dict:
     inbox.q, inbox.release = _ScheduledQueue(items, clock), lambda size: None
     lat: list[tuple[int, int]] = []  # (input publish, estimate publish) [ns]
 
-    def put(e) -> None:
+    from diffpos_services.wire import messages as M
+
+    def put(e) -> None:  # what the service's publisher does before the bus: encode
+        M.encode(e)
         if e.t_input_wall_ns > 0:
             lat.append((e.t_input_wall_ns, e.t_pub_wall_ns))
 
@@ -202,9 +227,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recording", type=Path, help="replay this recording instead of making one")
     ap.add_argument("--schedule", type=Path, metavar="REC",
                     help="the live loop on this real-time recording's input, virtual clock")
+    ap.add_argument("--seconds", type=float, help="--schedule: only the first S s of input")
+    ap.add_argument("--fusion-args", metavar="ARGS",
+                    help="--schedule: the settings of 'diffpos fusion ARGS' (one string) "
+                    "instead of the recorded ones")
     args = ap.parse_args(argv)
     if args.schedule is not None:
-        r = schedule(args.schedule)
+        r = schedule(args.schedule, seconds=args.seconds,
+                     fusion_argv=None if args.fusion_args is None else args.fusion_args.split())
         print(f"bench_fusion_cost --schedule {args.schedule}: machine {platform.machine()} "
               f"{os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f} (virtual clock: CPU "
               f"time of this process)")
