@@ -458,9 +458,9 @@ class FusionCore:
 
         With ``limit``, solve at most that many and keep the rest for the next call (the live
         service ingests in between after a stall, see :attr:`backlog`), and do at most
-        :func:`~diffpos_services.fusion.tracked.heavy_budget` track initialisations and
-        snapshot fixes per batch (mnls + tracking: the rest follow in later steps); without,
-        all.
+        :func:`~diffpos_services.fusion.tracked.heavy_budget` (of the epochs solved) track
+        initialisations and snapshot fixes per batch (mnls + tracking: the rest follow in
+        later steps); without, all.
         """
         live = self.live_anchors
         released = self.book.ready(live, now_wall_ns)
@@ -476,7 +476,7 @@ class FusionCore:
         while todo > 0:
             n = min(todo, self.config.max_fixes_per_step)
             out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns,
-                               heavy_budget(limit))
+                               None if limit is None else heavy_budget(n))
             todo -= n
         return out
 

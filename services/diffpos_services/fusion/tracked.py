@@ -29,8 +29,8 @@ fix (~3.5 ms) each cost several epochs' updates (~0.6 ms per node-epoch plus ~2.
 measured on the ``large`` scenario's recorded batches). Without a bound, the first epoch of 50
 new nodes cost ~0.45 s in one step, and the snapshots of 50 unconfirmed tracks ~0.2 s per epoch
 after it, so every node's estimate waited (real-time ``large``: end-to-end p99 1.75 s). A
-budgeted step does at most ``heavy`` of them (:func:`heavy_budget`: a fraction of the work of
-its epochs' updates): initialisations first, in row order; a node whose initialisation does not fit
+budgeted step (one with a ``limit``) does at most ``heavy`` of them (:func:`heavy_budget`: a
+fraction of the work of the epochs it solves): initialisations first, in row order; a node whose initialisation does not fit
 is passed to the tracker without ranges this epoch (it stays UNINITIALISED or LOST, published
 without a position on time) and is initialised by a later step; then the due snapshots, the
 stalest first; one that does not fit stays due. The budget only moves *when* a track starts and
@@ -82,19 +82,21 @@ CONFIDENT_NIS = 4.0
 #: Snapshot period of a confident track [s] (measurement time); any other confirmed track
 #: gets ``FusionConfig.snapshot_period_s``.
 CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
-#: Epochs of a step's limit per track initialisation or mnls snapshot fix it may do. With 8
+#: Epochs solved per track initialisation or mnls snapshot fix a budgeted step may do. With 8
 #: anchors an initialisation costs ~5 ms and a snapshot ~3.5 ms, an epoch ~1-1.2 ms all in
 #: (tracker update, batch assembly, messages; the live ``large`` run's steps replayed): the
-#: heavy work of a full step is then at most about a third of its regular work, so a burst
-#: of new tracks slows the steps by a third instead of stalling them (50 new nodes are
-#: initialised within ~1 s at 10 Hz; each step does at least one).
-HEAVY_WORK_EPOCHS = 16
+#: heavy work of a step is then at most about half its regular work, so a burst of new tracks
+#: slows the steps by up to a half instead of stalling them (50 new nodes at 10 Hz are
+#: initialised within ~1 s, bench_fusion_cost.py --schedule); each step does at least one.
+HEAVY_WORK_EPOCHS = 10
 
 
-def heavy_budget(limit: int | None) -> int | None:
-    """Track initialisations + snapshot fixes a step of at most ``limit`` epochs may do
-    (``None``: unbounded; at least 1, so a step always makes progress)."""
-    return None if limit is None else max(1, int(limit) // HEAVY_WORK_EPOCHS)
+def heavy_budget(n_epochs: int | None) -> int | None:
+    """Track initialisations + snapshot fixes a budgeted step that solves ``n_epochs`` epochs
+    may do (``None``: an unbudgeted step, unbounded; at least 1, so a step always makes
+    progress). Proportional to the epochs it solves, not to its limit: a large limit (a
+    fusion behind its input) does not license more heavy work per epoch."""
+    return None if n_epochs is None else max(1, int(n_epochs) // HEAVY_WORK_EPOCHS)
 
 
 class TrackBank:
