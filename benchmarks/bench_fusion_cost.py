@@ -41,6 +41,35 @@ publish -> estimate handed to the bus) overall and over the first 2 s (start-up)
 sizes and the CPU per node-epoch (the estimates are encoded as the publisher does; the bus
 itself is not simulated). Run with another checkout's ``services`` on ``PYTHONPATH``
 it measures that code on the same input (before vs after).
+
+Measured 2026-11-27 08:56-09:00 UTC (2-core VM shared with other jobs, load average 3.3-6.0;
+the virtual clock makes the latency independent of that load, but CPU time itself varies by
+~+-25 % between runs on this machine, so each row was run twice, interleaved). Input: a
+real-time ``diffpos emulate scenarios/large.toml --duration 20 --record`` (8 x 50, 10,000
+node-epochs); before = the fusion of commit 94ee8c5 (``services`` of that commit on
+``PYTHONPATH``), after = this branch::
+
+    python benchmarks/bench_fusion_cost.py --schedule rt.mcap
+                         before (94ee8c5)         after
+    CPU per node-epoch   1.14 / 1.47 ms           0.99 / 1.02 ms
+    end-to-end p50       35.7 / 47.9 ms           44.5 / 45.2 ms
+    end-to-end p99       1,196 / 1,349 ms         80.1 / 79.0 ms      (target <= 50 ms: missed)
+    first 2 s, p99       1,273 / 1,398 ms         151 / 126 ms
+    after 2 s, p99       475 / 793 ms             67.1 / 70.8 ms
+    solve steps          641 / 797                399 / 399
+
+Before, the first epoch of 50 new tracks was solved in one step (50 initialisations and 50
+snapshot fixes, ~0.5 s) and every step after it took 8-20 epochs (sized by the mean cost per
+epoch, which charged each epoch the tracker's per-call cost); after, a step does at most
+``heavy_budget`` initialisations/snapshots (fusion/tracked.py) and steps are sized by a fitted
+fixed + per-epoch cost (``StepCost``), larger while the fusion is behind. What remains above
+50 ms is the tracker's own CPU: a release of 50 node-epochs costs ~50 ms.
+
+The same on bench_soak's 16 x 200 input (``bench_soak.py --load 16x200 --method mnls
+--log-dir D``, first 10 s; ``--fusion-args "--site soak16x200 --scenario D/soak16x200.toml
+--method mnls"``): before 3.29-3.68 ms CPU per node-epoch (steps of 8-9 epochs), 7,117-7,281
+of 20,000 node-epochs published; after 1.66-1.99 ms (steps of 43-49), 8,854-9,845. Keeping
+up needs <= 0.5 ms per node-epoch on a whole core: not met (the tracker's update).
 """
 
 from __future__ import annotations
