@@ -194,3 +194,28 @@ def test_step_cost_separates_the_fixed_and_the_per_epoch_cost():
     _, per = noisy.model()
     total_n, total_t = 100, 51e6
     assert per == pytest.approx(StepCost.MIN_SHARE * total_t / total_n, rel=0.05)
+
+
+def test_the_loop_sizes_steps_by_the_fitted_cost_and_takes_more_when_behind():
+    """ServiceLoop.step_limit: MIN_STEP_EPOCHS before any step was measured; then the epochs
+    that fit SOLVE_BUDGET_S by the fitted fixed + per-epoch cost; BEHIND_BUDGET_S while the
+    previous step left ready epochs (core.backlog > 0)."""
+    import threading
+
+    from diffpos_services.fusion import service as S
+    from fusion_scene import fusion_config
+
+    core = FusionCore(fusion_config(), logger=quiet_logger())
+    loop = S.ServiceLoop(core, S._Inbox(core.config, threading.Event()), lambda e: None,
+                         lambda d: None, quiet_logger())
+    assert loop.step_limit() == S.MIN_STEP_EPOCHS
+    for n in (8, 50, 12, 30, 20):
+        loop.cost.add(n, 3e6 + 0.65e6 * n)
+    assert loop.step_limit() == int((S.SOLVE_BUDGET_S * 1e9 - 3e6) / 0.65e6)
+    core._ready.append(None)  # a ready epoch left over by the previous step: behind
+    assert loop.step_limit() == int((S.BEHIND_BUDGET_S * 1e9 - 3e6) / 0.65e6)
+    core._ready.clear()
+    for _ in range(200):  # a fixed part above the budget: still the minimum step
+        loop.cost.add(8, 40e6 + 1e6 * 8)
+        loop.cost.add(16, 40e6 + 1e6 * 16)
+    assert loop.step_limit() == S.MIN_MEASURED_STEP_EPOCHS
