@@ -30,6 +30,12 @@ replay took 3.4 ms per node-epoch (``diffpos replay``: 17.2 s for 5,000, same ma
 The snapshot fix alone costs more (3.1-3.8 ms with 8 anchors, benchmarks/
 bench_estimator_cost.py): live it runs for a fraction of the node-epochs only.
 
+The livefuse branch (bounded heavy work per step, steps sized by a fitted fixed + per-epoch
+cost), 2026-11-27 09:05 UTC, load 4-5.3, a 20 s lockstep ``large`` recording made by each
+code and replayed by it twice (``replay(path)`` CPU, the live steps re-issued): before 1.33 /
+1.39 ms per node-epoch (859 solve steps), after 1.01 / 1.16 ms (326 steps); replay identical
+to live in both (9,751 / 9,751 positions after).
+
 ``--schedule REC`` (issue 16, live latency on a shared machine): the live service loop
 (:class:`~diffpos_services.fusion.service.ServiceLoop`, the real code: bounded ingest, step
 sizing, publishing) fed the fusion inputs of a **real-time** recording at their recorded
