@@ -29,19 +29,70 @@ this round's compiled SNR prediction, M-NLS LM steps and tracker kernels, the sa
 replay took 3.4 ms per node-epoch (``diffpos replay``: 17.2 s for 5,000, same machine, load 2).
 The snapshot fix alone costs more (3.1-3.8 ms with 8 anchors, benchmarks/
 bench_estimator_cost.py): live it runs for a fraction of the node-epochs only.
+
+The livefuse branch (bounded heavy work per step, steps sized by a fitted fixed + per-epoch
+cost), 2026-11-27 09:05 UTC, load 4-5.3, a 20 s lockstep ``large`` recording made by each
+code and replayed by it twice (``replay(path)`` CPU, the live steps re-issued): before 1.33 /
+1.39 ms per node-epoch (859 solve steps), after 1.01 / 1.16 ms (326 steps); replay identical
+to live in both (9,751 / 9,751 positions after).
+
+``--schedule REC`` (issue 16, live latency on a shared machine): the live service loop
+(:class:`~diffpos_services.fusion.service.ServiceLoop`, the real code: bounded ingest, step
+sizing, publishing) fed the fusion inputs of a **real-time** recording at their recorded
+receive times, on a virtual wall clock that advances by the CPU time the loop uses
+(``time.process_time_ns``) and jumps over idle waits. It measures the latency the loop would
+have on one core of its own, whatever else loads the machine (other processes' load changes
+the wall figures of ``diffpos emulate``, not these), and prints end-to-end latency (input
+publish -> estimate handed to the bus) overall and over the first 2 s (start-up), the steps'
+sizes and the CPU per node-epoch (the estimates are encoded as the publisher does; the bus
+itself is not simulated). Run with another checkout's ``services`` on ``PYTHONPATH``
+it measures that code on the same input (before vs after).
+
+Measured 2026-11-27 08:56-09:00 UTC (2-core VM shared with other jobs, load average 3.3-6.0;
+the virtual clock makes the latency independent of that load, but CPU time itself varies by
+~+-25 % between runs on this machine, so each row was run twice, interleaved). Input: a
+real-time ``diffpos emulate scenarios/large.toml --duration 20 --record`` (8 x 50, 10,000
+node-epochs); before = the fusion of commit 94ee8c5 (``services`` of that commit on
+``PYTHONPATH``), after = this branch::
+
+    python benchmarks/bench_fusion_cost.py --schedule rt.mcap
+                         before (94ee8c5)         after
+    CPU per node-epoch   1.14 / 1.47 ms           0.99 / 1.02 ms
+    end-to-end p50       35.7 / 47.9 ms           44.5 / 45.2 ms
+    end-to-end p99       1,196 / 1,349 ms         80.1 / 79.0 ms      (target <= 50 ms: missed)
+    first 2 s, p99       1,273 / 1,398 ms         151 / 126 ms
+    after 2 s, p99       475 / 793 ms             67.1 / 70.8 ms
+    solve steps          641 / 797                399 / 399
+
+Before, the first epoch of 50 new tracks was solved in one step (50 initialisations and 50
+snapshot fixes, ~0.5 s) and every step after it took 8-20 epochs (sized by the mean cost per
+epoch, which charged each epoch the tracker's per-call cost); after, a step does at most
+``heavy_budget`` initialisations/snapshots (fusion/tracked.py) and steps are sized by a fitted
+fixed + per-epoch cost (``StepCost``), larger while the fusion is behind. What remains above
+50 ms is the tracker's own CPU: a release of 50 node-epochs costs ~50 ms.
+
+The same on bench_soak's 16 x 200 input (``bench_soak.py --load 16x200 --method mnls
+--log-dir D``, first 10 s; ``--fusion-args "--site soak16x200 --scenario D/soak16x200.toml
+--method mnls"``): before 3.29-3.68 ms CPU per node-epoch (steps of 8-9 epochs), 7,117-7,281
+of 20,000 node-epochs published; after 1.66-1.99 ms (steps of 43-49), 8,854-9,845. Keeping
+up needs <= 0.5 ms per node-epoch on a whole core: not met (the tracker's update).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import os
 import platform
+import queue
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import msgspec
+import numpy as np
 from diffpos_services.recording.replay import replay
 
 TARGET_MS = 2.0
@@ -63,13 +114,168 @@ def cost(path: Path, method: str) -> tuple[float, int, dict]:
     return cpu, int(r.report["fixes"]["total"]), r.report
 
 
+class _VirtualClock:
+    """Wall clock of the schedule: the first input's receive time, then + the CPU time this
+    process used, + the idle time skipped while waiting for the next input."""
+
+    def __init__(self, t0_ns: int) -> None:
+        self.base = t0_ns
+        self.cpu0 = time.process_time_ns()
+
+    def time_ns(self) -> int:
+        return self.base + time.process_time_ns() - self.cpu0
+
+    monotonic_ns = time_ns
+
+    def skip_to(self, t_ns: int) -> None:
+        self.base += max(t_ns - self.time_ns(), 0)
+
+
+class _ScheduledQueue:
+    """The loop's input queue: each item becomes available at its recorded receive time."""
+
+    def __init__(self, items: list, clock: _VirtualClock) -> None:
+        self.items = collections.deque(items)  # (rx_ns, queue item), by rx
+        self.clock = clock
+
+    def get_nowait(self):
+        if self.items and self.items[0][0] <= self.clock.time_ns():
+            return self.items.popleft()[1]
+        raise queue.Empty
+
+    def get(self, timeout: float | None = None):
+        if not self.items:
+            raise queue.Empty
+        nxt, now = self.items[0][0], self.clock.time_ns()
+        if nxt > now and timeout is not None and nxt > now + timeout * 1e9:
+            self.clock.skip_to(now + round(timeout * 1e9))
+            raise queue.Empty
+        self.clock.skip_to(nxt)
+        return self.items.popleft()[1]
+
+    def qsize(self) -> int:
+        now = self.clock.time_ns()
+        return sum(1 for rx, _ in self.items if rx <= now)
+
+
+def _fusion_config(path: Path, fusion_argv: list[str] | None):
+    """The recorded live fusion settings, or those of ``diffpos fusion FUSION_ARGV`` (a
+    recording without settings, e.g. bench_soak's recorder)."""
+    from diffpos_services.fusion.config import FusionConfig
+    from diffpos_services.recording.reader import side_records
+    from diffpos_services.recording.summary import live_fusion_settings
+
+    if fusion_argv is not None:
+        from diffpos_services.cli import fusion as cli
+        from diffpos_services.scenario_io import load_scenario_option
+
+        ap = argparse.ArgumentParser()
+        cli.add_arguments(ap)
+        args = ap.parse_args(fusion_argv)
+        return cli.config_from_args(args, load_scenario_option(args.scenario))
+    settings, _ = live_fusion_settings(side_records(path))
+    known = set(FusionConfig.__struct_fields__)
+    return msgspec.convert({k: v for k, v in settings.items() if k in known}, FusionConfig)
+
+
+def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None,
+             fusion_argv: list[str] | None = None) -> dict:
+    """The live loop on the recorded real-time input, on a virtual clock (module docstring):
+    the first ``seconds`` of input (None: all), the recorded fusion settings or those of
+    ``fusion_argv``."""
+    import logging
+
+    from diffpos_services.fusion import service
+    from diffpos_services.fusion.core import FusionCore
+    from diffpos_services.recording.reader import McapScanner
+    from diffpos_services.recording.synthetic import FUSION_INPUT_KINDS
+    from diffpos_services.recording.topics import parse_topic
+
+    cfg = _fusion_config(path, fusion_argv)
+    items, anchors = [], set()
+    for m in McapScanner(path).messages():
+        kind, fields = parse_topic(m.topic)
+        if kind in FUSION_INPUT_KINDS:
+            anchors.add(fields["anchor"])
+            items.append((m.log_ns, (service._DATA, m.topic, m.data, m.log_ns)))
+    items.sort(key=lambda x: x[0])
+    t0 = items[0][0]
+    if seconds is not None:
+        items = [x for x in items if x[0] < t0 + round(seconds * 1e9)]
+    keys = service.Keys(cfg.site)
+    items[:0] = [(t0 - 1, (service._ALIVE, keys.alive_anchor(a), True, t0 - 1))
+                 for a in sorted(anchors)]
+    log = logging.getLogger("bench.schedule")
+    log.addHandler(logging.NullHandler())
+    log.propagate = False
+    core = FusionCore(cfg, logger=log, record_decisions=False)
+    core.warm_up()
+    clock = _VirtualClock(t0 - 1)
+    inbox = type("Inbox", (), {})()
+    inbox.q, inbox.release = _ScheduledQueue(items, clock), lambda size: None
+    lat: list[tuple[int, int]] = []  # (input publish, estimate publish) [ns]
+
+    from diffpos_services.wire import messages as M
+
+    def put(e) -> None:  # what the service's publisher does before the bus: encode
+        M.encode(e)
+        if e.t_input_wall_ns > 0:
+            lat.append((e.t_input_wall_ns, e.t_pub_wall_ns))
+
+    real_time = service.time
+    service.time = clock  # the loop's clock (time_ns, monotonic_ns) is the virtual one
+    try:
+        loop = service.ServiceLoop(core, inbox, put, lambda d: None, log)
+        sizes = []
+        cpu = time.process_time()
+        while inbox.q.items or core.backlog:
+            turn = loop.turn()
+            if turn.published:
+                sizes.append(turn.published)
+        cpu = time.process_time() - cpu
+    finally:
+        service.time = real_time
+    a = np.array(lat, np.int64)
+    e2e_ms = (a[:, 1] - a[:, 0]) * 1e-6
+    start = a[:, 0] < t0 + round(startup_s * 1e9)
+
+    def pct(v):
+        return [round(float(np.percentile(v, q)), 1) for q in (50, 99)] + [
+            round(float(v.max()), 1)] if v.size else [None] * 3
+
+    return {"estimates": int(a.shape[0]), "cpu_s": cpu, "ms_per_node_epoch":
+            1e3 * cpu / max(a.shape[0], 1), "e2e_ms_p50_p99_max": pct(e2e_ms),
+            "startup_e2e_ms_p50_p99_max": pct(e2e_ms[start]),
+            "after_startup_e2e_ms_p50_p99_max": pct(e2e_ms[~start]),
+            "over_50ms": int((e2e_ms > 50).sum()), "steps": len(sizes),
+            "epochs_per_step_p50_p90_max": [int(np.percentile(sizes, 50)),
+                                            int(np.percentile(sizes, 90)), int(max(sizes))],
+            "overloaded": int(core.rejected.get("overloaded", 0)),
+            "uninitialised": int(core.by_status.get("UNINITIALISED", 0))}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="large", help="scenario name or file (default large)")
     ap.add_argument("--duration", type=float, default=10.0, help="emulated seconds (default 10)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--recording", type=Path, help="replay this recording instead of making one")
+    ap.add_argument("--schedule", type=Path, metavar="REC",
+                    help="the live loop on this real-time recording's input, virtual clock")
+    ap.add_argument("--seconds", type=float, help="--schedule: only the first S s of input")
+    ap.add_argument("--fusion-args", metavar="ARGS",
+                    help="--schedule: the settings of 'diffpos fusion ARGS' (one string) "
+                    "instead of the recorded ones")
     args = ap.parse_args(argv)
+    if args.schedule is not None:
+        r = schedule(args.schedule, seconds=args.seconds,
+                     fusion_argv=None if args.fusion_args is None else args.fusion_args.split())
+        print(f"bench_fusion_cost --schedule {args.schedule}: machine {platform.machine()} "
+              f"{os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f} (virtual clock: CPU "
+              f"time of this process)")
+        for k, v in r.items():
+            print(f"  {k:<34} {v if not isinstance(v, float) else round(v, 3)}")
+        return 0
     with tempfile.TemporaryDirectory(prefix="bench-fusion-cost-") as tmp:
         rec = args.recording or Path(tmp) / "run.mcap"
         if args.recording is None:

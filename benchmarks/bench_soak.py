@@ -114,7 +114,12 @@ def run_soak(
     method : str
         The fusion's ``--method``. Default ``dnls``: this soak measures the transport, the
         recorder and the fusion's ingest at a load (16 x 200 x 10 Hz) where the default
-        ``mnls`` + tracker does not keep up on 2 cores yet (README, live load).
+        ``mnls`` + tracker does not keep up on 2 cores yet (README, live load). Measured
+        2026-11-27 (``--load 16x200 --duration 120 --method mnls``, machine shared, load
+        4.8-7.8): 15,145 / 240,000 estimates before the bounded, batched steps of the
+        livefuse branch, 24,013 after; every range delivered, the rest dropped as
+        ``overloaded`` (the tracker needs ~1.7-2 ms CPU per node-epoch with 16 anchors:
+        3-4 cores for 2,000 node-epochs per second).
     """
     site = site or f"soak{n_anchors}x{n_nodes}"
     keys = Keys(site)

@@ -140,7 +140,9 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     epoch); a *confident* track (floor probability >= 0.99, averaged NIS <= 4) every
     ``tracked.CONFIDENT_SNAPSHOT_PERIOD_S`` (10 s). The snapshot is published beside the
     tracked estimate and never feeds the tracker; it costs several times the tracker's
-    update (3-4 ms vs ~1 ms CPU with 8 anchors)."""
+    update (3-4 ms vs ~1 ms CPU with 8 anchors). The live service's steps do at most a few
+    snapshots and track initialisations each (``tracked.heavy_budget``): a due snapshot that
+    does not fit stays due for the node's next epoch."""
     building: dict[str, Any] | None = None
     """The scenario's ``[building]`` table (:func:`building_of`); ``None``: the paper's
     building with this config's window height, edge ends and floors."""

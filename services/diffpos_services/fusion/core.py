@@ -29,11 +29,8 @@ from typing import Any
 
 import numpy as np
 
-import diffpos.estimators as est  # module attribute lookup: tests count est.dnls calls
 from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
-from diffpos.channel import pair_snr_db
 from diffpos.estimators import GatingConfig
-from diffpos.geometry import window_edge_path
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.decisions import DecisionLog
 from diffpos_services.fusion.estimates_v1 import v1_estimates
@@ -55,7 +52,8 @@ from diffpos_services.fusion.solve import (
     prepare,
     solve_batch,
 )
-from diffpos_services.fusion.tracked import TrackBank, estimates_v2, solve_mnls
+from diffpos_services.fusion.tracked import TrackBank, estimates_v2, heavy_budget, solve_mnls
+from diffpos_services.fusion.warm import warm_up
 from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
@@ -440,22 +438,9 @@ class FusionCore:
         self.changed = True
 
     def warm_up(self) -> None:
-        """Run one tiny D-NLS problem so imports and first-call costs are paid before the
-        service declares itself ready (the first real epoch is then not late)."""
-        anchors = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
-                            [15.0, -20.0, 1.0]])
-        node = np.array([1.0, 5.0, self.config.first_floor_z_m + 1.5])
-        r = window_edge_path(anchors, node, window_height_m=self.config.window_height_m).length_m
-        est.dnls(anchors[None], r[None], np.full((1, 4), 0.1),
-             window_height_m=self.config.window_height_m, gating=self.gating)
-        if self.building is not None:  # a throw-away tracker: the core's state is untouched
-            est.mnls(anchors[None], r[None], np.full((1, 4), 0.1), building=self.building)
-            if self.model[1] is not None:  # the compiled SNR prediction (loaded from cache)
-                pair_snr_db(anchors[None], node[None], building=self.building,
-                            radio=self.model[1])
-            TrackBank(self.building).update(["warm-up"], anchors[None], r[None],
-                                            np.full((1, 4), 0.1), np.ones((1, 4), bool),
-                                            np.zeros(1, np.int64))
+        """Pay imports and first-call costs before the service declares itself ready (the
+        first real epoch is then not late): :func:`~diffpos_services.fusion.warm.warm_up`."""
+        warm_up(self)
 
     @property
     def node_ids(self) -> set[str]:
@@ -472,7 +457,10 @@ class FusionCore:
         epochs each, bounded working memory) and return the estimates, oldest first.
 
         With ``limit``, solve at most that many and keep the rest for the next call (the live
-        service ingests in between after a stall, see :attr:`backlog`); without, all.
+        service ingests in between after a stall, see :attr:`backlog`), and do at most
+        :func:`~diffpos_services.fusion.tracked.heavy_budget` (of the epochs solved) track
+        initialisations and snapshot fixes per batch (mnls + tracking: the rest follow in
+        later steps); without, all.
         """
         live = self.live_anchors
         released = self.book.ready(live, now_wall_ns)
@@ -487,7 +475,8 @@ class FusionCore:
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
         while todo > 0:
             n = min(todo, self.config.max_fixes_per_step)
-            out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns)
+            out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns,
+                               None if limit is None else heavy_budget(n))
             todo -= n
         return out
 
@@ -525,10 +514,12 @@ class FusionCore:
             out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns)
         return out
 
-    def _solve(self, epochs: list[PendingEpoch], now_wall_ns: int) -> list[M.PositionEstimate]:
+    def _solve(self, epochs: list[PendingEpoch], now_wall_ns: int,
+               heavy: int | None = None) -> list[M.PositionEstimate]:
         """Solve ``epochs`` in one batch; ``now_wall_ns`` [ns] is the caller's wall clock
-        (``t_pub_wall_ns`` and latency of the estimates): the result depends only on the
-        core's state and the arguments, never on the machine's clock.
+        (``t_pub_wall_ns`` and latency of the estimates), ``heavy`` the work budget of mnls +
+        tracking: the result depends only on the core's state and the arguments, never on
+        the machine's clock.
 
         The steps are in :mod:`diffpos_services.fusion.solve`: gather arrays -> prepare the
         batch -> warm/cold/retry solve -> messages (built here: counters and tracks)."""
@@ -541,7 +532,7 @@ class FusionCore:
         prep = prepare(batch, epochs, self.tracks, self.config)
         self.solved += len(epochs)
         if self.building is not None:
-            solved = solve_mnls(batch, prep, epochs, self.config, self.model, self.bank)
+            solved = solve_mnls(batch, prep, epochs, self.config, self.model, self.bank, heavy)
             return self._count(batch, solved.res, estimates_v2(
                 epochs, batch, solved, {x.id for x in self.anchors.values() if not x.alive},
                 seq0=self.seq, now=int(now_wall_ns), method=self.method_name))

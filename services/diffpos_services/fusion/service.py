@@ -9,11 +9,17 @@ step, publish, diagnostics) until ``stop`` -> flush what is pending and undeclar
 
 Timing (issue 16 item 2): each turn ingests for at most :data:`INGEST_BUDGET_S`, or
 :data:`INGEST_SHARE` times the previous solve step if longer (a backlog of any size never delays
-a solve step by more, and ingest keeps up with the input however slow the solve), solves a number of epochs that adapts to the
-measured solve cost (about :data:`SOLVE_BUDGET_S` per step, so ingesting and solving
-alternate every few ms instead of long ingests followed by huge solves), and stamps each
-estimate's ``t_pub_wall_ns`` just before it is handed to the bus, after its solve: the
-published and diagnosed latency is anchor publish -> fusion publish, solve included.
+a solve step by more, and ingest keeps up with the input however slow the solve), solves a
+number of epochs that adapts to the measured solve cost (:class:`StepCost`: a fixed cost per
+step plus a cost per epoch, so a step takes about :data:`SOLVE_BUDGET_S`, or
+:data:`BEHIND_BUDGET_S` while ready epochs are left over: fewer, larger steps amortise the
+per-call cost of the tracker when the fusion is behind; ingesting and solving alternate every
+few ms instead of long ingests followed by huge solves), and stamps each estimate's
+``t_pub_wall_ns`` just before it is handed to the bus, after its solve: the published and
+diagnosed latency is anchor publish -> fusion publish, solve included. The step's epoch limit
+also bounds its track initialisations and snapshot fixes (mnls + tracking,
+:func:`diffpos_services.fusion.tracked.heavy_budget`), and the decision record keeps it, so a
+replay re-issues the same steps.
 """
 
 from __future__ import annotations
@@ -36,14 +42,18 @@ from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
-__all__ = ["ServiceLoop", "Turn", "fusion_subscription", "ingest_rest", "run_fusion",
-           "stamp_published"]
+__all__ = ["ServiceLoop", "StepCost", "Turn", "fusion_subscription", "ingest_rest",
+           "run_fusion", "stamp_published"]
 
 _ACCOUNTED_BYTES = 2048  # samples above this size count against max_queued_bytes
 #: longest ingest between two solve steps [s]: a backlog never delays a solve by more
 INGEST_BUDGET_S = 0.005
 #: target duration of one solve step [s] (its epoch limit adapts to the measured cost)
 SOLVE_BUDGET_S = 0.02
+#: target duration of a solve step while the previous one left ready epochs [s]: the fusion
+#: is behind, its latency already large; larger steps pay the per-call costs (the tracker's
+#: ~2.6 ms, batch assembly) over more epochs (kept below INGEST_MAX_S)
+BEHIND_BUDGET_S = 0.08
 #: epochs the first solve step may take (before any cost is measured)
 MIN_STEP_EPOCHS = 64
 #: epochs a solve step may always take once the cost is measured (a slow estimator, e.g. mnls
@@ -282,6 +292,52 @@ def ingest_rest(core: FusionCore, inbox: _Inbox, unsubscribe: Callable[[], Any],
         n += 1
 
 
+class StepCost:
+    """Duration of a solve step as ``fixed + per_epoch * n`` [ns], fitted by least squares
+    over the recent steps (exponential forgetting ``memory``).
+
+    A step's cost has a part per call (the tracker's vectorised update ~2.6 ms with 8 anchors,
+    batch assembly) and a part per epoch (~0.6-1 ms): sizing steps by the mean cost per epoch
+    (as before) charged the per-call part to every epoch, so steps stayed at the minimum size
+    and the per-call part was paid every few epochs. The fit's per-epoch cost is kept within
+    [``MIN_SHARE``, 1] of the mean cost per epoch (noise of a loaded machine; equal step sizes
+    leave the split unknown: then the mean, i.e. no fixed part).
+    """
+
+    MIN_SHARE = 0.2
+
+    def __init__(self, memory: float = 0.95) -> None:
+        self.memory = memory
+        self._w = self._n = self._t = self._nn = self._nt = 0.0
+
+    def add(self, n: int, t_ns: float) -> None:
+        """One solve step of ``n`` > 0 epochs that took ``t_ns``."""
+        k = self.memory
+        self._w = k * self._w + 1.0
+        self._n = k * self._n + n
+        self._t = k * self._t + t_ns
+        self._nn = k * self._nn + n * n
+        self._nt = k * self._nt + n * t_ns
+
+    @property
+    def measured(self) -> bool:
+        return self._w > 0
+
+    def model(self) -> tuple[float, float]:
+        """``(fixed_ns, per_epoch_ns)``."""
+        w, n, t = self._w, self._n, self._t
+        mean = t / max(n, 1e-9)  # mean cost per epoch
+        var = w * self._nn - n * n
+        per = (w * self._nt - n * t) / var if var > 1e-6 * max(w * self._nn, 1.0) else mean
+        per = min(max(per, self.MIN_SHARE * mean), mean)
+        return max((t - per * n) / w, 0.0), max(per, 1.0)
+
+    def epochs_within(self, budget_ns: float) -> int:
+        """Epochs a step of about ``budget_ns`` takes (0 if even the fixed part exceeds it)."""
+        fixed, per = self.model()
+        return max(int((budget_ns - fixed) / per), 0)
+
+
 @dataclass
 class Turn:
     """What one turn of the service loop did (wall and monotonic times [ns])."""
@@ -308,8 +364,10 @@ class ServiceLoop:
     ingest_budget_s : float [s]
         Longest ingest between two solve steps.
     solve_budget_s : float [s]
-        Target duration of one solve step: the step's epoch limit is this over the measured
-        cost per epoch (at least :data:`MIN_STEP_EPOCHS`, at most ``max_fixes_per_step``).
+        Target duration of one solve step (:data:`BEHIND_BUDGET_S` while the previous step
+        left ready epochs): the step's epoch limit is what fits in it by the measured
+        :class:`StepCost` (at least :data:`MIN_MEASURED_STEP_EPOCHS`, at most
+        ``max_fixes_per_step``; :data:`MIN_STEP_EPOCHS` before any step was measured).
     declare_nodes : callable, optional
         ``declare_nodes(node_ids, limit) -> done``: called after a turn while accepted nodes
         may lack an estimate publisher (the service declares :data:`DECLARES_PER_TURN` per
@@ -328,15 +386,17 @@ class ServiceLoop:
         self.solve_budget_ns = round(solve_budget_s * 1e9)
         self.period_ns = round(core.config.diagnostics_period_s * 1e9)
         self.next_diag = time.time_ns() + self.period_ns
-        self.cost_ns: float | None = None  # solve cost per epoch (moving average) [ns]
+        self.cost = StepCost()  # measured duration of a solve step
         self.last_step_ns = 0  # duration of the previous solve step [ns]
 
     def step_limit(self) -> int:
         """Epochs the next solve step may take (adaptive, see the class docstring)."""
         top = self.core.config.max_fixes_per_step
-        if self.cost_ns is None:
+        if not self.cost.measured:
             return min(MIN_STEP_EPOCHS, top)
-        return max(min(int(self.solve_budget_ns / max(self.cost_ns, 1.0)), top),
+        budget = (max(self.solve_budget_ns, round(BEHIND_BUDGET_S * 1e9)) if self.core.backlog
+                  else self.solve_budget_ns)
+        return max(min(self.cost.epochs_within(budget), top),
                    min(MIN_MEASURED_STEP_EPOCHS, top))
 
     def ingest_budget(self) -> int:
@@ -359,8 +419,7 @@ class ServiceLoop:
         t_done = time.time_ns()
         self.last_step_ns = t_done - t_solve
         if out:
-            per = (t_done - t_solve) / len(out)
-            self.cost_ns = per if self.cost_ns is None else 0.8 * self.cost_ns + 0.2 * per
+            self.cost.add(len(out), t_done - t_solve)
         stamp_published(core, out, self.put_estimate)
         if self.declare_nodes is not None and (
                 not self._declared or len(core.node_ids) != self._n_nodes):

@@ -23,11 +23,27 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
   oldest first, so a backlog of several epochs of one node is applied in time order). A node
   whose epoch has no usable range is predicted only (COASTING, the covariance grows).
 
+**Bounded work per step** (``heavy``, the live service's steps; issue 16): a track
+initialisation (the tracker's grid snapshot, ~5 ms per node with 8 anchors) and an mnls snapshot
+fix (~3.5 ms) each cost several epochs' updates (~0.6 ms per node-epoch plus ~2.6 ms per call;
+measured on the ``large`` scenario's recorded batches). Without a bound, the first epoch of 50
+new nodes cost ~0.45 s in one step, and the snapshots of 50 unconfirmed tracks ~0.2 s per epoch
+after it, so every node's estimate waited (real-time ``large``: end-to-end p99 1.75 s). A
+budgeted step (one with a ``limit``) does at most ``heavy`` of them (:func:`heavy_budget`: a
+fraction of the work of the epochs it solves): initialisations first, in row order; a node whose initialisation does not fit
+is passed to the tracker without ranges this epoch (it stays UNINITIALISED or LOST, published
+without a position on time) and is initialised by a later step; then the due snapshots, the
+stalest first; one that does not fit stays due. The budget only moves *when* a track starts and
+*which* epochs carry a snapshot; ``heavy=None`` (replay of steps without a limit, flush, tests)
+is unbounded.
+
 :class:`TrackBank` holds the tracker state of every node the core has seen (rows of one
 :class:`~diffpos.tracking.TrackerState`); it is part of the network-free core, so a replay
-re-runs it. Everything is a function of the inputs: no clock, no randomness; a node's result
-depends only on its own epochs (rows are independent in every vectorised step), so the
-batching of the live service and of a replay gives the same numbers bit for bit.
+re-runs it. Everything is a function of the inputs: no clock, no randomness. Without a budget a
+node's result depends only on its own epochs (rows are independent in every vectorised step),
+so any batching gives the same numbers bit for bit; with one, also on the steps' ``limit``
+(which the decision record keeps, so a replay by the record re-issues the same steps and gets
+the same numbers bit for bit).
 
 :func:`estimates_v2` turns a solved batch into :class:`~diffpos_services.wire.messages.
 PositionEstimateV2` messages.
@@ -35,7 +51,8 @@ PositionEstimateV2` messages.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -49,7 +66,8 @@ from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
 from diffpos_services.wire import messages as M
 
-__all__ = ["Solved", "TrackBank", "estimates_v2", "solve_mnls"]
+__all__ = ["HEAVY_WORK_EPOCHS", "Solved", "TrackBank", "estimates_v2", "heavy_budget",
+           "solve_mnls"]
 
 _FIX_NAMES = {int(s): s.name for s in FixStatus}
 _TRACK_NAMES = {int(s): s.name for s in TrackStatus}
@@ -64,6 +82,21 @@ CONFIDENT_NIS = 4.0
 #: Snapshot period of a confident track [s] (measurement time); any other confirmed track
 #: gets ``FusionConfig.snapshot_period_s``.
 CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
+#: Epochs solved per track initialisation or mnls snapshot fix a budgeted step may do. With 8
+#: anchors an initialisation costs ~5 ms and a snapshot ~3.5 ms, an epoch ~1-1.2 ms all in
+#: (tracker update, batch assembly, messages; the live ``large`` run's steps replayed): the
+#: heavy work of a step is then at most about half its regular work, so a burst of new tracks
+#: slows the steps by up to a half instead of stalling them (50 new nodes at 10 Hz are
+#: initialised within ~1 s, bench_fusion_cost.py --schedule); each step does at least one.
+HEAVY_WORK_EPOCHS = 10
+
+
+def heavy_budget(n_epochs: int | None) -> int | None:
+    """Track initialisations + snapshot fixes a budgeted step that solves ``n_epochs`` epochs
+    may do (``None``: an unbudgeted step, unbounded; at least 1, so a step always makes
+    progress). Proportional to the epochs it solves, not to its limit: a large limit (a
+    fusion behind its input) does not license more heavy work per epoch."""
+    return None if n_epochs is None else max(1, int(n_epochs) // HEAVY_WORK_EPOCHS)
 
 
 class TrackBank:
@@ -86,6 +119,7 @@ class TrackBank:
         self.index: dict[str, int] = {}
         self.state: TrackerState = init_state(0, building)
         self.snapshot_ns: dict[str, int] = {}  # measurement time of each node's last snapshot
+        self.deferred = 0  # initialisations deferred by a step's work budget (solve_mnls)
 
     def rows_of(self, node_ids: list[str]) -> np.ndarray:
         """State rows of ``node_ids`` (new nodes get new, uninitialised rows)."""
@@ -102,6 +136,14 @@ class TrackBank:
         """Current track status of ``node_ids`` (UNINITIALISED for unknown nodes)."""
         return np.array([self.state.status[self.index[n]] if n in self.index
                          else int(TrackStatus.UNINITIALISED) for n in node_ids], dtype=np.int8)
+
+    def needs_init(self, rows: np.ndarray, n_ranges: np.ndarray) -> np.ndarray:
+        """Whether the tracker would initialise each of ``rows`` (state rows) given its number
+        of usable ranges: UNINITIALISED or LOST with at least ``min_ranges_init`` ranges (a
+        re-initialisation after divergence is decided inside the update and not counted)."""
+        st = self.state.status[rows]
+        return (((st == int(TrackStatus.UNINITIALISED)) | (st == int(TrackStatus.LOST)))
+                & (n_ranges >= self.config.min_ranges_init))
 
     def confident_of(self, node_ids: list[str]) -> np.ndarray:
         """Whether each node's track is confident (:data:`CONFIDENT_FLOOR_PROBABILITY`,
@@ -130,10 +172,8 @@ class TrackBank:
         sub = TrackerState(*(getattr(self.state, f)[rows] for f in fields))
         new, out = update(sub, anchors, ranges, sigmas, mask, t_ns, self.building, self.config,
                           snr_db=snr_db, radio=self.radio if radio is None else radio)
-        full = {f: getattr(self.state, f).copy() for f in fields}
-        for f in fields:
-            full[f][rows] = getattr(new, f)
-        self.state = replace(self.state, **full)
+        for f in fields:  # the rows in place (the bank's arrays are its own: rows_of copies)
+            getattr(self.state, f)[rows] = getattr(new, f)
         return out
 
 
@@ -183,28 +223,37 @@ def _rounds(epochs: list[PendingEpoch]) -> list[list[int]]:
 
 
 def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray,
-                  cfg: FusionConfig) -> np.ndarray:
-    """Rows that get an mnls snapshot while tracking (module docstring)."""
+                  cfg: FusionConfig, limit: float = math.inf) -> np.ndarray:
+    """Rows that get an mnls snapshot while tracking (module docstring): at most ``limit``
+    of the due ones, those with the oldest snapshot first (never: first of all), the rest
+    stay due."""
     ids = [pe.node_id for pe in epochs]
     confirmed = bank.status_of(ids) == int(TrackStatus.TRACKING)
     confident = bank.confident_of(ids)
     period = round(cfg.snapshot_period_s * 1e9)
     long_period = max(period, round(CONFIDENT_SNAPSHOT_PERIOD_S * 1e9))
     due = np.ones(len(epochs), bool)
-    for i, (nid, ok, sure) in enumerate(zip(ids, confirmed.tolist(), confident.tolist(),
-                                            strict=True)):
-        last = bank.snapshot_ns.get(nid)
+    lasts = [bank.snapshot_ns.get(nid) for nid in ids]
+    for i, (last, ok, sure) in enumerate(zip(lasts, confirmed.tolist(), confident.tolist(),
+                                             strict=True)):
         if ok and last is not None and 0 <= t_ref[i] - last < (long_period if sure else period):
             due[i] = False
-    for i in np.flatnonzero(due):
+    todo = np.flatnonzero(due)
+    if todo.size > limit:
+        never = -(2**63)
+        order = sorted(todo.tolist(), key=lambda i: never if lasts[i] is None else lasts[i])
+        due[order[int(limit):]] = False
+        todo = np.flatnonzero(due)
+    for i in todo:
         bank.snapshot_ns[ids[i]] = int(t_ref[i])
     return due
 
 
 def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: FusionConfig,
-               model: tuple, bank: TrackBank | None) -> Solved:
+               model: tuple, bank: TrackBank | None, heavy: int | None = None) -> Solved:
     """The mnls snapshot fixes and, with ``bank``, the tracked estimates of ``batch``
-    (``model``: the building and the radio or None)."""
+    (``model``: the building and the radio or None; ``heavy``: at most this many track
+    initialisations + snapshot fixes, see the module docstring; None: unbounded)."""
     b, m = len(epochs), len(batch.names)
     nf = model[0].n_floors
     use = batch.use
@@ -220,15 +269,27 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
     status = [""] * b
     prob = np.full((b, nf), np.nan)
     mech = np.full((b, m), -1)
+    left = math.inf if heavy is None else int(heavy)
     for rows_l in _rounds(epochs):
         rows = np.array(rows_l)
+        ids = [epochs[i].node_id for i in rows_l]
+        use_r = use[rows]
+        if heavy is not None:  # initialisations first: they give positions
+            new = np.flatnonzero(bank.needs_init(bank.rows_of(ids), use_r.sum(axis=1)))
+            later = new[int(min(left, new.size)):]
+            left -= new.size - later.size
+            if later.size:  # no ranges this epoch: no initialisation, published on time
+                use_r = use_r.copy()
+                use_r[later] = False
+                bank.deferred += int(later.size)
         # the snapshot decision of a round sees the tracks as the previous round left them
         # (a node's epochs in one batch are decided as if they came one call at a time)
-        due[rows] = _snapshot_due(bank, [epochs[i] for i in rows_l], batch.t_ref[rows], cfg)
+        due[rows] = _snapshot_due(bank, [epochs[i] for i in rows_l], batch.t_ref[rows], cfg,
+                                  left)
+        left -= int(due[rows].sum())
         _mnls_rows(snap, rows[due[rows]], prep, batch, model, s_floor, s_prob, s_mech)
-        out = bank.update([epochs[i].node_id for i in rows_l], prep.safe_apos[rows],
-                          prep.rng_in[rows], prep.sig_eff[rows], use[rows], batch.t_ref[rows],
-                          snr_db=batch.snr[rows], radio=model[1])
+        out = bank.update(ids, prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
+                          use_r, batch.t_ref[rows], snr_db=batch.snr[rows], radio=model[1])
         res.pos[rows], res.cov[rows] = out.position_m, out.covariance_m2
         mech[rows] = np.where(use[rows], out.mechanism, -1)
         res.resid[rows] = np.where(mech[rows] >= 0, out.residual_m, np.nan)
@@ -245,66 +306,79 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
 
 
 # ----------------------------------------------------------------------------- messages
-def _cov_tuple(c: list[list[float]]) -> Any:
-    return tuple(map(tuple, c)) if all(np.isfinite(v) for row in c for v in row) else None
-
-
-def _probs(row: list[float]) -> list[float]:
+def _probs(row: list[float], finite: bool) -> list[float]:
     """Floor probabilities for the wire (empty when unknown; clipped into [0, 1])."""
-    if not row or not all(np.isfinite(row)):
+    if not row or not finite:
         return []
     return [min(max(p, 0.0), 1.0) for p in row]
 
 
-def _snapshot_msg(s: Solved, i: int, pos_l, cov_l, prob_l) -> M.SnapshotFix | None:
+def _finite_rows(a: np.ndarray) -> list[bool]:
+    """Whether every value of each row of ``a`` (B, ...) is finite (no NaN rows: non-empty)."""
+    return np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1).tolist()
+
+
+def _snapshot_msg(s: Solved, i: int, pos_l, cov_l, prob_l, fin) -> M.SnapshotFix | None:
     if not s.tracking or not s.snap_rows[i]:
         return None
     st = _FIX_NAMES[int(s.snap.status[i])]
-    ok = st in M.GOOD_STATUSES and all(np.isfinite(pos_l[i]))
+    pos_ok, cov_ok, prob_ok = fin
+    ok = st in M.GOOD_STATUSES and pos_ok[i]
     return M.SnapshotFix(
         method="mnls", status=st, position_m=tuple(pos_l[i]) if ok else None,
-        covariance_m2=_cov_tuple(cov_l[i]) if ok else None,
+        covariance_m2=tuple(map(tuple, cov_l[i])) if ok and cov_ok[i] else None,
         floor_index=int(s.snap_floor[i]) if ok and s.snap_floor[i] >= 0 else None,
-        floor_probabilities=_probs(prob_l[i]))
+        floor_probabilities=_probs(prob_l[i], prob_ok[i]))
 
 
 def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[str], *,
                  seq0: int, now: int, method: str) -> list[M.PositionEstimateV2]:
     """One :class:`PositionEstimateV2` per row of a batch solved by :func:`solve_mnls`
-    (sequence numbers ``seq0 + 1 ...``, ``t_pub_wall_ns = now``)."""
+    (sequence numbers ``seq0 + 1 ...``, ``t_pub_wall_ns = now``). The finiteness tests are
+    made per batch on the arrays, the per-row work is list indexing."""
     res, names = s.res, batch.names
     group_l, shared = exclusion_groups(batch, res, lost)
     pos_l, cov_l = res.pos.tolist(), res.cov.tolist()
+    pos_ok, cov_ok, prob_ok = (_finite_rows(a) for a in (res.pos, res.cov, s.floor_prob))
     peb_l, zb_l = res.peb.tolist(), res.zb.tolist()
     prob_l, mech_l = s.floor_prob.tolist(), s.mechanism.tolist()
-    resid_l = res.resid.tolist()
+    best_l = np.argmax(np.where(np.isnan(s.floor_prob), -np.inf,
+                                np.clip(s.floor_prob, 0.0, 1.0)), axis=1).tolist()
+    resid = res.resid
+    resid_l = resid.tolist()
+    resid_wire_l = np.where(np.isfinite(resid), resid, 0.0).tolist()
     use_l = batch.use.tolist()
     t_ref_l = batch.t_ref.tolist()
     in_wall_l = np.where(batch.reported, batch.pub_wall, 0).max(axis=1).tolist()
-    snap_pos = s.snap.pos.tolist() if s.tracking else []
-    snap_cov = s.snap.cov.tolist() if s.tracking else []
-    snap_prob = s.snap_prob.tolist() if s.tracking else []
+    if s.tracking:
+        snap_pos, snap_cov, snap_prob = (s.snap.pos.tolist(), s.snap.cov.tolist(),
+                                         s.snap_prob.tolist())
+        snap_fin = tuple(_finite_rows(a) for a in (s.snap.pos, s.snap.cov, s.snap_prob))
+    else:
+        snap_pos = snap_cov = snap_prob = snap_fin = None
+    mech_names = MECHANISMS
+    finite_or_none = M.finite_or_none
     out = []
     for i, (pe, gi) in enumerate(zip(epochs, group_l, strict=True)):
         st = s.status[i]
         used_idx, used_ids, excluded, _ = shared[gi]
-        has = st in M.GOOD_STATUSES and all(np.isfinite(pos_l[i]))
-        probs = _probs(prob_l[i]) if has else []
-        fl = int(np.argmax(probs)) if probs else None
-        links = [M.AnchorLink(names[j], MECHANISMS[mech_l[i][j]] if mech_l[i][j] >= 0 else None,
-                              M.finite_or_none(resid_l[i][j]))
-                 for j in range(len(names)) if use_l[i][j]]
+        has = st in M.GOOD_STATUSES and pos_ok[i]
+        probs = _probs(prob_l[i], prob_ok[i]) if has else []
+        mech_i, resid_i = mech_l[i], resid_l[i]
+        links = [M.AnchorLink(names[j], mech_names[mech_i[j]] if mech_i[j] >= 0 else None,
+                              finite_or_none(resid_i[j]))
+                 for j, u in enumerate(use_l[i]) if u]
         out.append(M.PositionEstimateV2(
             node_id=pe.node_id, t_ns=t_ref_l[i], epoch=pe.epoch, seq=seq0 + i + 1,
             method=method, status=st,
             position_m=tuple(pos_l[i]) if has else None,
-            covariance_m2=_cov_tuple(cov_l[i]) if has else None,
-            peb_m=M.finite_or_none(peb_l[i]) if has else None,
-            z_bound_m=M.finite_or_none(zb_l[i]) if has else None,
-            floor_index=fl, floor_probabilities=probs,
-            snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob),
+            covariance_m2=tuple(map(tuple, cov_l[i])) if has and cov_ok[i] else None,
+            peb_m=finite_or_none(peb_l[i]) if has else None,
+            z_bound_m=finite_or_none(zb_l[i]) if has else None,
+            floor_index=best_l[i] if probs else None, floor_probabilities=probs,
+            snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob, snap_fin),
             links=links, used_anchors=list(used_ids),
-            residuals_m=[resid_l[i][j] if np.isfinite(resid_l[i][j]) else 0.0 for j in used_idx],
+            residuals_m=[resid_wire_l[i][j] for j in used_idx],
             excluded=list(excluded), message=res.msg[i] if not s.tracking else "",
             t_input_wall_ns=max(in_wall_l[i], 0), t_pub_wall_ns=now))
     return out

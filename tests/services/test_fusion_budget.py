@@ -1,0 +1,221 @@
+"""Bounded work per live solve step (fusion/tracked.py ``heavy_budget``, fusion/service.py
+``StepCost``): a burst of new tracks is initialised over several steps instead of stalling one,
+every node-epoch is still published on time, and a replay by the decision record re-issues the
+same steps and gets the same estimates bit for bit.
+
+Input made independently of the fusion: the channel emulator ranges from five static UAVs to
+eight static nodes on three floors of the default building (first arrivals, seeded), packed
+as the AnchorState + RangeBatch messages an anchor publishes. No processes, no bus.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import msgspec
+import numpy as np
+import pytest
+from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.core import FusionCore
+from diffpos_services.fusion.service import StepCost
+from diffpos_services.fusion.tracked import HEAVY_WORK_EPOCHS, heavy_budget
+from diffpos_services.recording.replay import replay
+from diffpos_services.recording.synthetic import quiet_logger
+from diffpos_services.recording.writer import McapSink
+from diffpos_services.wire import messages as M
+from diffpos_services.wire.keys import Keys
+
+from diffpos.channel import emulate_channel, first_arrival
+from diffpos.scenario import default_scenario
+
+SC = default_scenario()
+B = SC.building
+KEYS = Keys("b")
+PERIOD = 100_000_000
+T0 = 1_800_000_000_000_000_000
+ANCHORS = {"uav1": [-15.0, -20.0, 1.0], "uav2": [0.0, -15.0, 0.0], "uav3": [0.0, -7.0, 4.0],
+           "uav4": [15.0, -20.0, 1.0], "uav5": [-25.0, -12.0, 3.0]}
+H = B.nominal_node_height_m
+F0, FH = B.first_floor_z_m, B.floor_height_m
+NODES = {f"n{i}": [x, y, F0 + f * FH + H] for i, (x, y, f) in enumerate(
+    [(-10.0, 3.0, 0), (-4.0, 6.0, 0), (2.0, 4.0, 1), (8.0, 7.0, 1), (12.0, 3.0, 1),
+     (-8.0, 5.0, 2), (0.0, 8.0, 2), (6.0, 3.0, 0)])}
+EPOCHS = 16
+
+
+@functools.cache
+def _samples(epochs: int = EPOCHS, seed: int = 3) -> tuple:
+    """Per epoch, ``(rx_ns, key, payload)`` of every anchor's state and range batch."""
+    rng = np.random.default_rng(seed)
+    anchors = np.array(list(ANCHORS.values()))
+    nodes = np.array(list(NODES.values()))
+    ids = list(NODES)
+    out = []
+    for k in range(epochs):
+        fa = first_arrival(emulate_channel(anchors, nodes, building=B, radio=SC.radio),
+                           radio=SC.radio, rng=rng)
+        t = T0 + k * PERIOD + 20_000_000
+        items = []
+        for j, a in enumerate(ANCHORS):
+            rx = t + 1_000_000 + 100_000 * j
+            det = fa.detected[:, j]
+            col = lambda v: [float(v[i, j]) if det[i] else None for i in range(len(ids))]  # noqa: E731,B023
+            st = M.AnchorState(anchor_id=a, t_ns=t, seq=k, position_m=M.vec3(anchors[j]),
+                               velocity_m_s=(0.0, 0.0, 0.0), position_sigma_m=(0.02, 0.02, 0.03),
+                               velocity_sigma_m_s=0.05, range_rate_hz=10.0, t_pub_wall_ns=rx)
+            batch = M.RangeBatch(anchor_id=a, t_ns=t, seq=k, node_ids=ids,
+                                 range_m=col(fa.range_m), sigma_m=col(fa.sigma_m),
+                                 snr_db=col(fa.snr_db), t_pub_wall_ns=rx)
+            items += [(rx, KEYS.anchor_state(a), M.encode(st)),
+                      (rx + 10, KEYS.anchor_range_batch(a), M.encode(batch))]
+        out.append(tuple(items))
+    return tuple(out)
+
+
+def _config() -> FusionConfig:
+    return FusionConfig.from_scenario(SC, site="b", epoch_period_s=0.1, method="mnls")
+
+
+def _run(limit: int | None, sink: McapSink | None = None):
+    """The fusion stepped once after every epoch's messages with ``limit``; returns the core
+    and the estimates of each step (the last step: the flush)."""
+    core = FusionCore(_config(), logger=quiet_logger())
+    t_alive = T0 - PERIOD
+    for a in ANCHORS:
+        core.on_liveliness(a, True, t_alive)
+        if sink is not None:
+            sink.write_liveliness("b", KEYS.alive_anchor(a), True, t_alive)
+    steps = []
+    rx = t_alive
+    for items in _samples():
+        for rx, key, payload in items:
+            core.on_sample(key, payload, rx)
+            if sink is not None:
+                sink.write(key, payload, rx)
+        # after the epoch's last batch: every anchor reported, the epoch is complete
+        steps.append(core.step(rx + 1000, limit=limit))
+    steps.append(core.flush(rx + 2000))
+    if sink is not None:
+        for i, ests in enumerate(steps):
+            for e in ests:
+                sink.write(KEYS.node_estimate(e.node_id), M.encode(e), e.t_pub_wall_ns + i + 1)
+        sink.write(KEYS.fusion_diagnostics(), M.encode(core.diagnostics(rx + 3000)), rx + 3000)
+    return core, steps
+
+
+def test_heavy_budget_is_a_fraction_of_the_epochs_solved():
+    assert heavy_budget(None) is None  # replay of unlimited steps, flush: unbounded
+    assert heavy_budget(1) == 1  # a step always makes progress
+    assert heavy_budget(HEAVY_WORK_EPOCHS - 1) == 1
+    assert heavy_budget(3 * HEAVY_WORK_EPOCHS) == 3
+    assert heavy_budget(3 * HEAVY_WORK_EPOCHS + HEAVY_WORK_EPOCHS - 1) == 3
+
+
+def _positioned(ests) -> set[str]:
+    return {e.node_id for e in ests if e.position_m is not None}
+
+
+def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
+    """Eight new nodes at once. Unbudgeted (limit None) the first step initialises all of
+    them and snapshots every one; budgeted (8 epochs per step: one heavy operation), each step
+    initialises exactly one more node and does nothing else heavy until all are initialised.
+    Every node-epoch is still published in the step that released it (no position while the
+    node waits: UNINITIALISED), and the budgeted tracks end as close to the truth as the
+    unbudgeted ones."""
+    n = len(NODES)
+    _, free = _run(None)
+    assert _positioned(free[0]) == set(NODES)
+    assert sum(e.snapshot is not None for e in free[0]) == n
+    limit = 4 * HEAVY_WORK_EPOCHS  # every ready epoch; the 8 solved allow one heavy operation
+    assert heavy_budget(n) == 1
+    core, steps = _run(limit)
+    assert core.bank.deferred == sum(range(n))  # 7 + 6 + ... + 0 node-epochs waited
+    seen: set[str] = set()
+    for k, ests in enumerate(steps[:-1]):
+        # published on time: every node's epoch k in step k
+        assert sorted(e.node_id for e in ests) == sorted(NODES)
+        assert {e.epoch for e in ests} == {T0 // PERIOD + k}
+        new = _positioned(ests) - seen
+        heavy = len(new) + sum(e.snapshot is not None for e in ests)
+        assert heavy <= 1, (k, new)
+        if k < n:
+            assert len(new) == 1, (k, new)  # initialisations come first
+        waiting = [e for e in ests if e.node_id not in seen | new]
+        assert all(e.status == "UNINITIALISED" and e.position_m is None for e in waiting)
+        seen |= new
+    assert seen == set(NODES)
+    # accuracy at the last epoch against the truth (static nodes), budgeted vs unbudgeted
+    for run in (free, steps):
+        last = {e.node_id: e for e in run[-2]}
+        err = [np.linalg.norm(np.subtract(last[i].position_m, p)) for i, p in NODES.items()
+               if last[i].position_m is not None]
+        assert len(err) >= n - 1 and np.median(err) < 1.0, err
+
+
+@pytest.mark.parametrize("limit", [4 * HEAVY_WORK_EPOCHS, 5])
+def test_replay_by_the_decision_record_reproduces_budgeted_steps(tmp_path, limit):
+    """The steps' limits are in the decision record, so the replay makes the same budgeted
+    decisions: every estimate bit for bit (a replay that solved without the limits would
+    initialise every node in the first step). Limit 5 < the 8 nodes: a backlog is carried
+    from step to step too."""
+    path = tmp_path / "budget.mcap"
+    with McapSink(path, library="test") as sink:
+        core, _ = _run(limit, sink)
+        sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
+    r = replay(path)
+    assert r.report["decisions"]["steps"] == EPOCHS
+    c = r.report["compare"]
+    assert c["only_live"] == c["only_replayed"] == 0 and c["status_agree"] == 1.0
+    assert c["identical_positions"] == c["with_positions"] > 0
+    bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
+    assert sorted(map(bare, r.live_estimates)) == sorted(map(bare, r.estimates))
+
+
+def test_step_cost_separates_the_fixed_and_the_per_epoch_cost():
+    """Steps of varying size that cost exactly 3 ms + 0.7 ms per epoch: the fit finds both,
+    and the epochs within a 20 ms budget are (20 - 3) / 0.7; the mean cost per epoch (the
+    former rule) would allow only 20 / (3 / n + 0.7) for the usual n."""
+    cost = StepCost()
+    assert not cost.measured
+    for n in [8, 50, 12, 8, 30, 50, 9, 17] * 3:
+        cost.add(n, 3e6 + 0.7e6 * n)
+    fixed, per = cost.model()
+    assert fixed == pytest.approx(3e6, rel=1e-6) and per == pytest.approx(0.7e6, rel=1e-6)
+    assert cost.epochs_within(20e6) == int(17 / 0.7)
+    # equal sizes leave the split unknown: the mean per epoch, no fixed part (the old rule)
+    same = StepCost()
+    for _ in range(10):
+        same.add(8, 8e6)
+    assert same.model() == pytest.approx((0.0, 1e6))
+    # noise that would make the per-epoch cost negative is clamped to MIN_SHARE of the mean
+    noisy = StepCost()
+    for n, t in [(10, 20e6), (40, 5e6), (10, 22e6), (40, 4e6)]:
+        noisy.add(n, t)
+    _, per = noisy.model()
+    total_n, total_t = 100, 51e6
+    assert per == pytest.approx(StepCost.MIN_SHARE * total_t / total_n, rel=0.05)
+
+
+def test_the_loop_sizes_steps_by_the_fitted_cost_and_takes_more_when_behind():
+    """ServiceLoop.step_limit: MIN_STEP_EPOCHS before any step was measured; then the epochs
+    that fit SOLVE_BUDGET_S by the fitted fixed + per-epoch cost; BEHIND_BUDGET_S while the
+    previous step left ready epochs (core.backlog > 0)."""
+    import threading
+
+    from diffpos_services.fusion import service as S
+    from fusion_scene import fusion_config
+
+    core = FusionCore(fusion_config(), logger=quiet_logger())
+    loop = S.ServiceLoop(core, S._Inbox(core.config, threading.Event()), lambda e: None,
+                         lambda d: None, quiet_logger())
+    assert loop.step_limit() == S.MIN_STEP_EPOCHS
+    for n in (8, 50, 12, 30, 20):
+        loop.cost.add(n, 3e6 + 0.65e6 * n)
+    assert loop.step_limit() == int((S.SOLVE_BUDGET_S * 1e9 - 3e6) / 0.65e6)
+    core._ready.append(None)  # a ready epoch left over by the previous step: behind
+    assert loop.step_limit() == int((S.BEHIND_BUDGET_S * 1e9 - 3e6) / 0.65e6)
+    core._ready.clear()
+    for _ in range(200):  # a fixed part above the budget: still the minimum step
+        loop.cost.add(8, 40e6 + 1e6 * 8)
+        loop.cost.add(16, 40e6 + 1e6 * 16)
+    assert loop.step_limit() == S.MIN_MEASURED_STEP_EPOCHS
