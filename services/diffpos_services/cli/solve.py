@@ -86,6 +86,7 @@ the result dicts; diffpos.estimators.dnls / lls / ippa / mnls work on numpy arra
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 from typing import BinaryIO, TextIO
 
@@ -192,6 +193,18 @@ def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: 
 def run(args: argparse.Namespace) -> int:
     limits = _limits(args)
     scenario = _scenario(args)
+    # Everything alive now (modules, numba's compiled kernels: hundreds of thousands of
+    # objects) outlives the solving: moved out of the cyclic collector's generations, so the
+    # collections that the per-line records trigger no longer walk it (measured: 100k lines
+    # ~2 s less CPU; results unchanged). Undone at the end for callers in the same process.
+    gc.freeze()
+    try:
+        return _run_frozen(args, limits, scenario)
+    finally:
+        gc.unfreeze()
+
+
+def _run_frozen(args: argparse.Namespace, limits: Limits, scenario: Scenario | None) -> int:
     from_file = bool(args.input and args.input != "-")
     if from_file:
         try:
