@@ -167,25 +167,23 @@ def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: 
     out = getattr(sys.stdout, "buffer", None)
     if out is None:  # a text-only stdout (tests replacing sys.stdout)
         out = sys.stdout
-        enc = lambda rec: _ENCODER.encode(rec).decode() + "\n"  # noqa: E731
-        sep: str | bytes = ""
+        enc = lambda recs: _ENCODER.encode_lines(recs).decode()  # noqa: E731
     else:
         sys.stdout.flush()  # anything printed before goes first
-        enc = lambda rec: _ENCODER.encode(rec) + b"\n"  # noqa: E731
-        sep = b""
+        enc = _ENCODER.encode_lines  # one JSON line per record, each ending in "\n"
     pending: list = []
     for rec in solve_lines(read_lines(stream, max_bytes=limits.max_line_bytes),
                            batch=args.batch, default_method=args.method, limits=limits,
                            scenario=scenario):
         if rec["status"] == "invalid_input":
             invalid += 1
-        pending.append(enc(rec))
+        pending.append(rec)
         if len(pending) >= args.batch:  # one write per solved batch (--batch 1: every line)
-            out.write(sep.join(pending))
+            out.write(enc(pending))
             out.flush()
             pending.clear()
     if pending:
-        out.write(sep.join(pending))
+        out.write(enc(pending))
     out.flush()
     return invalid
 
