@@ -522,9 +522,14 @@ class EpochBook:
 
     def add(self, anchor_id: str, node_id: str, entry: RangeEntry) -> bool:
         """Add a range; False (and ``late`` += 1) if its epoch was already solved."""
-        e = int(entry.t_ns // self.config.epoch_period_ns)
-        self.note_anchor_time(anchor_id, entry.t_ns)
-        self._note_rx(entry.rx_wall_ns)
+        t, rx = entry.t_ns, entry.rx_wall_ns
+        e = int(t // self.config.epoch_period_ns)
+        prev = self.latest_t_ns.get(anchor_id)
+        if prev is None or t > prev:  # (note_anchor_time does nothing otherwise)
+            self.note_anchor_time(anchor_id, t)
+        last_rx = self.last_rx_wall_ns
+        if last_rx is None or rx > last_rx:
+            self.last_rx_wall_ns = int(rx)
         if e <= self.solved_upto.get(node_id, _NEVER) or e <= self.closed_upto:
             self.late += 1
             self.late_by_anchor[anchor_id] += 1
@@ -532,10 +537,11 @@ class EpochBook:
         key = (node_id, e)
         pe = self.pending.get(key)
         if pe is None:
-            pe = self.pending[key] = PendingEpoch(node_id, e, entry.rx_wall_ns)
-        if anchor_id in pe.ranges:
+            pe = self.pending[key] = PendingEpoch(node_id, e, rx)
+        ranges = pe.ranges
+        if anchor_id in ranges:
             self.replaced += 1
-        pe.ranges[anchor_id] = entry
+        ranges[anchor_id] = entry
         self._adds += 1
         return True
 
