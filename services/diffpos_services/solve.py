@@ -6,12 +6,17 @@ the vectorised estimators of :mod:`diffpos.estimators` and returned in input ord
 that breaks its batch is re-solved alone, so one bad line never costs the others their fixes.
 
 Bounded work: every line is decoded (one typed msgspec decode of the whole line; the generic
-checked path only for unusual lines, see :mod:`diffpos_services.wire.solve_line`) and
-validated as soon as it is read (only the compact
-validated problem is kept for its batch, never the line's text or decoded JSON), the
-per-problem limits of :class:`~diffpos_services.wire.solve_io.Limits` bound each problem's
-arrays, and a group is solved in chunks of at most :data:`CHUNK_ELEMENTS` solver elements
-(anchors^2 x starts per problem), so a batch of large problems cannot add up to gigabytes.
+checked path only for unusual lines, see :mod:`diffpos_services.wire.solve_line`) as soon as
+it is read. A *plain* D-NLS line (every option at its default but a scalar sigma, the window
+height and delta; at most ``--max-anchors`` anchors and
+:data:`~diffpos_services.wire.solve_line.PLAIN_MAX_CHARS` characters) is kept decoded, with
+its text, until its batch is checked and solved from stacked arrays (a row that fails a check
+is re-read on the one-line path, so its message is the checked path's); any other line is
+validated at once and only the compact validated problem is kept, never its text or decoded
+JSON. The per-problem limits of :class:`~diffpos_services.wire.solve_io.Limits` bound each
+problem's arrays, and a group is solved in chunks of at most :data:`CHUNK_ELEMENTS` solver
+elements (anchors^2 x starts per problem), so a batch of large problems cannot add up to
+gigabytes.
 
 Only a status with a trustworthy position (``ok``, ``ok_unverified``) publishes one: every
 other status has ``position_m``, ``covariance_m2``, ``peb_m`` and ``z_bound_m`` null (an
@@ -243,8 +248,8 @@ def solve_lines(lines: Iterable[str | ProblemError], *, batch: int = 256,
     results keep the input's line numbers. Items may be :class:`ProblemError` instances for
     lines that could not be read (too long, not UTF-8, see
     :func:`~diffpos_services.wire.solve_io.read_lines`): they are answered with
-    ``invalid_input``. Each line is decoded and validated as soon as it is read; a batch
-    holds only validated problems (bounded by ``limits``), never the lines' text.
+    ``invalid_input``. Each line is decoded as soon as it is read; a batch holds validated
+    problems (bounded by ``limits``) and plain lines (bounded: see the module docstring).
     ``scenario``: as :func:`solve_records`.
     """
     numbered = ((n, ln) for n, ln in enumerate(lines, start=1)
