@@ -20,6 +20,7 @@ Usage::
     python benchmarks/bench_replay.py --realistic r.mcap       # reuse a recording
     python benchmarks/bench_replay.py --emulate-s 600 --minutes 10 60 --profile
     python benchmarks/bench_replay.py --realistic r600.mcap --synthetic s10.mcap s60.mcap
+    python benchmarks/bench_replay.py --realistic r.mcap --minutes --methods default dnls
 
 A split recording (``r.mcap``, ``r_0001.mcap``, ...: the recorder splits long runs) is given
 by its first part and replayed whole.
@@ -55,12 +56,17 @@ def _env() -> dict[str, str]:
     return dict(os.environ, PYTHONPATH=path)
 
 
-def child_replay(path: str, mode: str) -> dict:
-    """One replay in this (fresh) process; the figures as a dict."""
-    t0 = time.perf_counter()
+def child_replay(path: str, mode: str, method: str = "default") -> dict:
+    """One replay in this (fresh) process; the figures as a dict. ``method``: the fusion's
+    estimator (``default``: the recorded one, the only one that can be identical to live).
+    ``cpu_s`` is the whole process's CPU (imports included), ``fusion_cpu_s`` the replay
+    call's own (``time.process_time`` around it)."""
     new = mode == "now"
-    r = replay(path, keep_estimates=not new, use_decisions=new)
+    c0, t0 = time.process_time(), time.perf_counter()
+    r = replay(path, keep_estimates=not new, use_decisions=new,
+               method=None if method == "default" else method)
     wall = time.perf_counter() - t0
+    fusion_cpu = time.process_time() - c0
     rep = r.report
     c = rep["compare"] or {}
     out = {
@@ -70,6 +76,8 @@ def child_replay(path: str, mode: str) -> dict:
         "recording_s": rep["truth_s"] or rep["recording_s"],
         "wall_s": wall,
         "cpu_s": time.process_time(),
+        "fusion_cpu_s": fusion_cpu,
+        "method": method,
         "speed_x": (rep["truth_s"] or rep["recording_s"]) / wall if wall > 0 else None,
         "fixes": rep["fixes"]["total"],
         "live": c.get("live"),
@@ -139,8 +147,10 @@ def _row(name: str, r: dict) -> str:
     ident = (f"{r['identical_positions']}/{r['with_positions']}"
              if r.get("with_positions") is not None else "-")
     cpu_x = r["recording_s"] / r["cpu_s"] if r.get("cpu_s") else None
+    own_x = r["recording_s"] / r["fusion_cpu_s"] if r.get("fusion_cpu_s") else None
     return (f"{name:<34} {r['recording_s']:>8.1f} {r['wall_s']:>8.1f} "
-            f"{_fmt(r['speed_x'], '.2f'):>8} {_fmt(cpu_x, '.2f'):>8} {r['fixes']:>8} {_fmt(r['status_agree'], '.4f'):>7} "
+            f"{_fmt(r['speed_x'], '.2f'):>8} {_fmt(cpu_x, '.2f'):>8} {_fmt(own_x, '.2f'):>8} "
+            f"{r['fixes']:>8} {_fmt(r['status_agree'], '.4f'):>7} "
             f"{ident:>15} {_fmt(r['max_diff_m'], '.3g'):>9} {r['peak_rss_mb']:>8.0f} "
             f"{r.get('parts', 1):>5} {r.get('load', 0):>5.1f}")
 
@@ -157,6 +167,9 @@ def main() -> None:
                          "making --minutes ones)")
     ap.add_argument("--before", action="store_true",
                     help="also replay the realistic recording as before (every estimate kept)")
+    ap.add_argument("--methods", nargs="+", default=["default"], metavar="METHOD",
+                    help="replay the realistic recording with each fusion method (default: "
+                         "the recorded one; e.g. --methods default dnls)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="print the top N functions of a profiled realistic replay")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
@@ -165,7 +178,7 @@ def main() -> None:
         if args.child[0] == "profile":
             child_profile(args.child[1], int(args.child[2]))
         else:
-            print(json.dumps(child_replay(args.child[0], args.child[1])))
+            print(json.dumps(child_replay(*args.child)))
         return
     tmp = Path(tempfile.mkdtemp(prefix="bench_replay_"))
     rows: list[tuple[str, dict]] = []
@@ -175,7 +188,10 @@ def main() -> None:
         wall = _emulate(real, args.emulate_s)
         notes.append(f"made {real.name}: diffpos emulate scenarios/large.toml --speed 0 "
                      f"--duration {args.emulate_s:g} --record ... ({wall:.0f} s wall)")
-    rows.append(("realistic, now (decision record)", _run_child(str(real), "now")))
+    for method in args.methods:
+        label = "" if method == "default" else f", {method}"
+        rows.append((f"realistic, now{label} (decision record)",
+                     _run_child(str(real), "now", method)))
     if args.before:
         rows.append(("realistic, before (recorder order)", _run_child(str(real), "before")))
     if args.synthetic is not None:
@@ -192,7 +208,9 @@ def main() -> None:
           f"{platform.python_version()} (shared with other jobs: absolute times vary)")
     for n in notes:
         print("  " + n)
-    print(f"\n{'replay':<34} {'rec [s]':>8} {'wall [s]':>8} {'x real':>8} {'x cpu':>8} "
+    print("\nx cpu: recording length / CPU of the whole replay process (imports included); "
+          "x own: / CPU of the replay call alone")
+    print(f"\n{'replay':<34} {'rec [s]':>8} {'wall [s]':>8} {'x real':>8} {'x cpu':>8} {'x own':>8} "
           f"{'fixes':>8} {'status=':>7} {'identical pos':>15} {'max d [m]':>9} {'RSS [MB]':>8} "
           f"{'parts':>5} {'load':>5}")
     for name, r in rows:

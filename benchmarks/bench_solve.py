@@ -19,7 +19,8 @@ Prints three markdown tables:
 The kernel's first compile happens before the tables (its cost is printed): the rows time
 the compiled code loaded from the cache, as a second start of any service does.
 
-Run:  python benchmarks/bench_solve.py [--quick] [--seed N]
+Run:  python benchmarks/bench_solve.py [--quick] [--seed N] [--only-solve --runs 3]
+      [--keep-io DIR]   (two versions' DIR/fixes.jsonl must be equal byte for byte)
 """
 
 from __future__ import annotations
@@ -118,11 +119,12 @@ def _write_lines(path: Path, a: np.ndarray, r: np.ndarray) -> None:
                                 "sigmas_m": SIGMA_M, "window_height_m": W_M}) + "\n")
 
 
-def _run_solve(inp: Path) -> tuple[float, float, int]:
-    """CPU (user + sys) and wall seconds of a whole ``diffpos solve`` process; result lines."""
+def _run_solve(inp: Path, keep: Path | None = None) -> tuple[float, float, int]:
+    """CPU (user + sys) and wall seconds of a whole ``diffpos solve`` process; result lines
+    (written to ``keep`` if given, else to a temporary file)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    with inp.open("rb") as fin, tempfile.TemporaryFile() as fout:
+    with inp.open("rb") as fin, (keep.open("w+b") if keep else tempfile.TemporaryFile()) as fout:
         subprocess.run([sys.executable, "-m", "diffpos_services.cli.main", "solve"], stdin=fin,
                        stdout=fout, check=True)
         wall = time.perf_counter() - t0
@@ -133,7 +135,8 @@ def _run_solve(inp: Path) -> tuple[float, float, int]:
     return cpu, wall, n_out
 
 
-def solve_table(rng: np.random.Generator, n: int, subset: int, runs: int = 3) -> list[str]:
+def solve_table(rng: np.random.Generator, n: int, subset: int, runs: int = 3,
+                keep_io: Path | None = None) -> list[str]:
     a, _, r = _problems(rng, n, 8, False)
     zs = np.asarray(DEFAULT_Z_STARTS_M)
     sub = slice(0, subset)
@@ -146,9 +149,10 @@ def solve_table(rng: np.random.Generator, n: int, subset: int, runs: int = 3) ->
     sp_cpu = (time.process_time() - c0) / subset * n
     sp_wall = (time.perf_counter() - t0) / subset * n
     with tempfile.TemporaryDirectory() as tmp:
-        inp = Path(tmp) / "problems.jsonl"
+        inp = (keep_io or Path(tmp)) / "problems.jsonl"
         _write_lines(inp, a, r)
-        meas = [_run_solve(inp) for _ in range(runs)]
+        meas = [_run_solve(inp, keep_io / "fixes.jsonl" if keep_io and k == 0 else None)
+                for k in range(runs)]
     assert all(k[2] == n for k in meas), f"diffpos solve wrote {[k[2] for k in meas]} for {n}"
     cpu, wall = float(np.median([k[0] for k in meas])), float(np.median([k[1] for k in meas]))
     each = ", ".join(f"{k[0]:.1f}/{k[1]:.1f}" for k in meas)
@@ -174,6 +178,9 @@ def main() -> None:
     ap.add_argument("--scipy-subset", type=int, default=200)
     ap.add_argument("--runs", type=int, default=3, help="diffpos solve runs (median reported)")
     ap.add_argument("--only-solve", action="store_true", help="only the diffpos solve table")
+    ap.add_argument("--keep-io", type=Path, metavar="DIR",
+                    help="keep diffpos solve's input (DIR/problems.jsonl) and the first run's "
+                         "output (DIR/fixes.jsonl), e.g. to compare two versions byte for byte")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     warm_dnls()  # compiled (or loaded from numba's cache) when dnls_nb was imported
@@ -182,7 +189,8 @@ def main() -> None:
           "the first compile on a machine costs ~45-52 s CPU, a cached load ~0.7 s CPU)\n")
     n_single = 100 if args.quick else 500
     if args.only_solve:
-        print("\n".join(solve_table(rng, args.fixes, args.scipy_subset, args.runs)))
+        print("\n".join(solve_table(rng, args.fixes, args.scipy_subset, args.runs,
+                                    args.keep_io)))
         return
     print("## Single fix\n")
     print("\n".join(single_table(rng, n_single)))
@@ -190,7 +198,8 @@ def main() -> None:
     print("\n".join(batch_table(rng, 2000 if args.quick else args.batch)))
     print("\n## diffpos solve vs a scipy least_squares loop\n")
     print("\n".join(solve_table(rng, 10_000 if args.quick else args.fixes,
-                                50 if args.quick else args.scipy_subset, args.runs)))
+                                50 if args.quick else args.scipy_subset, args.runs,
+                                args.keep_io)))
 
 
 if __name__ == "__main__":

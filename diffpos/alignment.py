@@ -326,6 +326,24 @@ class StateHistory:
             pos[:] = p1
             sig[:] = s1
             return pos.reshape(*shape, 3), sig.reshape(*shape, 3), np.full(shape, ok1)
+        if tq.size and self._hi > self._lo:
+            times = np.unique(tq)
+            if times.size <= _FEW_TIMES:
+                # a few query times (a solve step of a few epochs): the scalar path once per
+                # distinct time, scattered back (identical values, see _at_one)
+                pos = np.empty((times.size, 3))
+                sig = np.empty((times.size, 3))
+                ok = np.empty(times.size, bool)
+                for k, tk in enumerate(times.tolist()):
+                    pos[k], sig[k], ok[k] = self._at_one(tk)
+                idx = np.searchsorted(times, tq)
+                return (pos[idx].reshape(*shape, 3), sig[idx].reshape(*shape, 3),
+                        ok[idx].reshape(shape))
+        return self._at_array(tq, shape)
+
+    def _at_array(self, tq: NDArray[np.int64], shape: tuple[int, ...]
+                  ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """:meth:`at` on arrays: the query times ``tq`` (flat), reshaped to ``shape``."""
         t_hist = self._t[self._lo:self._hi]
         rows = self._rows[self._lo:self._hi]
         pos_hist, vel_hist, sig_hist, vsig_hist = rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], rows[:, 9]
@@ -459,6 +477,9 @@ class PendingEpoch:
     ranges: dict[str, RangeEntry] = field(default_factory=dict)
 
 
+#: :meth:`StateHistory.at` evaluates up to this many distinct query times one by one on
+#: Python floats (each ~5 us) instead of on arrays (~30 small array operations).
+_FEW_TIMES = 4
 #: "Before any time" for the latest-time and solved-epoch maps [ns or epoch index].
 _NEVER = -(2**62)
 #: Lag samples kept per anchor, and how many new ones trigger a new allowance.
@@ -501,9 +522,14 @@ class EpochBook:
 
     def add(self, anchor_id: str, node_id: str, entry: RangeEntry) -> bool:
         """Add a range; False (and ``late`` += 1) if its epoch was already solved."""
-        e = int(entry.t_ns // self.config.epoch_period_ns)
-        self.note_anchor_time(anchor_id, entry.t_ns)
-        self._note_rx(entry.rx_wall_ns)
+        t, rx = entry.t_ns, entry.rx_wall_ns
+        e = int(t // self.config.epoch_period_ns)
+        prev = self.latest_t_ns.get(anchor_id)
+        if prev is None or t > prev:  # (note_anchor_time does nothing otherwise)
+            self.note_anchor_time(anchor_id, t)
+        last_rx = self.last_rx_wall_ns
+        if last_rx is None or rx > last_rx:
+            self.last_rx_wall_ns = int(rx)
         if e <= self.solved_upto.get(node_id, _NEVER) or e <= self.closed_upto:
             self.late += 1
             self.late_by_anchor[anchor_id] += 1
@@ -511,10 +537,11 @@ class EpochBook:
         key = (node_id, e)
         pe = self.pending.get(key)
         if pe is None:
-            pe = self.pending[key] = PendingEpoch(node_id, e, entry.rx_wall_ns)
-        if anchor_id in pe.ranges:
+            pe = self.pending[key] = PendingEpoch(node_id, e, rx)
+        ranges = pe.ranges
+        if anchor_id in ranges:
             self.replaced += 1
-        pe.ranges[anchor_id] = entry
+        ranges[anchor_id] = entry
         self._adds += 1
         return True
 

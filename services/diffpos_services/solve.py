@@ -6,12 +6,17 @@ the vectorised estimators of :mod:`diffpos.estimators` and returned in input ord
 that breaks its batch is re-solved alone, so one bad line never costs the others their fixes.
 
 Bounded work: every line is decoded (one typed msgspec decode of the whole line; the generic
-checked path only for unusual lines, see :mod:`diffpos_services.wire.solve_line`) and
-validated as soon as it is read (only the compact
-validated problem is kept for its batch, never the line's text or decoded JSON), the
-per-problem limits of :class:`~diffpos_services.wire.solve_io.Limits` bound each problem's
-arrays, and a group is solved in chunks of at most :data:`CHUNK_ELEMENTS` solver elements
-(anchors^2 x starts per problem), so a batch of large problems cannot add up to gigabytes.
+checked path only for unusual lines, see :mod:`diffpos_services.wire.solve_line`) as soon as
+it is read. A *plain* D-NLS line (every option at its default but a scalar sigma, the window
+height and delta; at most ``--max-anchors`` anchors and
+:data:`~diffpos_services.wire.solve_line.PLAIN_MAX_CHARS` characters) is kept decoded, with
+its text, until its batch is checked and solved from stacked arrays (a row that fails a check
+is re-read on the one-line path, so its message is the checked path's); any other line is
+validated at once and only the compact validated problem is kept, never its text or decoded
+JSON. The per-problem limits of :class:`~diffpos_services.wire.solve_io.Limits` bound each
+problem's arrays, and a group is solved in chunks of at most :data:`CHUNK_ELEMENTS` solver
+elements (anchors^2 x starts per problem), so a batch of large problems cannot add up to
+gigabytes.
 
 Only a status with a trustworthy position (``ok``, ``ok_unverified``) publishes one: every
 other status has ``position_m``, ``covariance_m2``, ``peb_m`` and ``z_bound_m`` null (an
@@ -39,7 +44,12 @@ from diffpos_services.wire.solve_io import (
     invalid_record,
     parse_problem,
 )
-from diffpos_services.wire.solve_line import parse_line
+from diffpos_services.wire.solve_line import (
+    decode_plain,
+    parse_line,
+    plain_arrays,
+    plain_group_key,
+)
 
 __all__ = ["CHUNK_ELEMENTS", "POSITION_STATUSES", "solve_lines", "solve_records"]
 
@@ -58,6 +68,21 @@ CHUNK_ELEMENTS = 1 << 18
 
 # (line number or index, id, validated problem or the record of an invalid line)
 _Prepared = tuple[int, Any, Problem | dict[str, Any]]
+#: result keys that a :meth:`FixResult.to_records` record holds, in the result's order
+_FIX_KEYS = RESULT_KEYS[2:17]
+_NO_FLOOR = {"floor": None, "floor_probability": None}
+_DEFAULT_GATING = GatingConfig()
+
+
+class _Plain:
+    """A plain line (:func:`~diffpos_services.wire.solve_line.decode_plain`) waiting for its
+    batch: checked and stacked with the batch's other plain lines, solved without a
+    :class:`Problem` per line."""
+
+    __slots__ = ("decoded", "ident", "line", "text")
+
+    def __init__(self, line: int, ident: Any, decoded: Any, text: str) -> None:
+        self.line, self.ident, self.decoded, self.text = line, ident, decoded, text
 
 
 def _solve_group(problems: list[Problem]) -> list[dict[str, Any]]:
@@ -133,6 +158,17 @@ def _prepare(line: int, obj: Any, default_method: str, limits: Limits, scenario:
         return line, ident, invalid_record(str(exc))
 
 
+def _read_line(line: int, text: str | ProblemError, default_method: str, limits: Limits,
+               scenario: Any = None) -> _Prepared | _Plain:
+    """One input line as it is read: a plain D-NLS line kept for its batch (:class:`_Plain`),
+    or prepared alone (:func:`_prepare_line`)."""
+    if not isinstance(text, ProblemError):
+        plain = decode_plain(text, default_method=default_method, limits=limits)
+        if plain is not None:
+            return _Plain(line, plain[0], plain[1], text)
+    return _prepare_line(line, text, default_method, limits, scenario)
+
+
 def _prepare_line(line: int, text: str | ProblemError, default_method: str, limits: Limits,
                   scenario: Any = None) -> _Prepared:
     """One input line: the typed fast decode (:func:`~diffpos_services.wire.solve_line.
@@ -151,6 +187,12 @@ def _chunk_size(prob: Problem) -> int:
         floors = prob.scenario.building.n_floors
         return max(1, CHUNK_ELEMENTS // (m * floors * _MNLS_CELLS * _MNLS_SLOTS))
     starts = 1 if prob.x0_m is not None else len(prob.z_starts_m or DEFAULT_Z_STARTS_M)
+    return _chunk_size_of(m, starts)
+
+
+def _chunk_size_of(m: int, starts: int = len(DEFAULT_Z_STARTS_M)) -> int:
+    """How many D-NLS problems of ``m`` anchors and ``starts`` start heights are solved in
+    one estimator call (:data:`CHUNK_ELEMENTS`)."""
     return max(1, CHUNK_ELEMENTS // (m * m * (starts + 2)))
 
 
@@ -206,15 +248,83 @@ def solve_lines(lines: Iterable[str | ProblemError], *, batch: int = 256,
     results keep the input's line numbers. Items may be :class:`ProblemError` instances for
     lines that could not be read (too long, not UTF-8, see
     :func:`~diffpos_services.wire.solve_io.read_lines`): they are answered with
-    ``invalid_input``. Each line is decoded and validated as soon as it is read; a batch
-    holds only validated problems (bounded by ``limits``), never the lines' text.
+    ``invalid_input``. Each line is decoded as soon as it is read; a batch holds validated
+    problems (bounded by ``limits``) and plain lines (bounded: see the module docstring).
     ``scenario``: as :func:`solve_records`.
     """
     numbered = ((n, ln) for n, ln in enumerate(lines, start=1)
                 if isinstance(ln, ProblemError) or ln.strip())
-    prepared = (_prepare_line(n, ln, default_method, limits, scenario) for n, ln in numbered)
+    prepared = (_read_line(n, ln, default_method, limits, scenario) for n, ln in numbered)
     while True:
         chunk = list(itertools.islice(prepared, max(batch, 1)))
         if not chunk:
             return
-        yield from _solve_prepared(chunk)
+        yield from _solve_chunk(chunk, default_method, limits, scenario)
+
+
+def _solve_chunk(chunk: list[_Prepared | _Plain], default_method: str, limits: Limits,
+                 scenario: Any) -> list[dict[str, Any]]:
+    """Result records of one batch of read lines, in order: the plain lines solved from
+    stacked arrays (:func:`_solve_plain`), the others by :func:`_solve_prepared`."""
+    plain: dict[tuple, list[int]] = {}
+    for k, item in enumerate(chunk):
+        if isinstance(item, _Plain):
+            plain.setdefault(plain_group_key(item.decoded), []).append(k)
+    if not plain:
+        return _solve_prepared(chunk)  # type: ignore[arg-type]
+    out: list[Any] = [None] * len(chunk)
+    building = None if scenario is None else scenario.building
+    for rows in plain.values():
+        for lo in range(0, len(rows), _chunk_size_of(len(chunk[rows[0]].decoded.anchors_m))):
+            part = rows[lo:lo + _chunk_size_of(len(chunk[rows[0]].decoded.anchors_m))]
+            for k, rec in _solve_plain([chunk[k] for k in part], part, building):
+                if rec is None:  # fails a check (or broke the batch): the one-line path
+                    it = chunk[k]
+                    chunk[k] = _prepare_line(it.line, it.text, default_method, limits, scenario)
+                else:
+                    out[k] = rec
+    rest = [k for k, rec in enumerate(out) if rec is None]
+    for k, rec in zip(rest, _solve_prepared([chunk[k] for k in rest]), strict=True):
+        out[k] = rec
+    return out
+
+
+def _solve_plain(items: list[_Plain], rows: list[int], building: Any
+                 ) -> list[tuple[int, dict[str, Any] | None]]:
+    """Plain lines of one group solved in one D-NLS call from stacked arrays: ``(row,
+    record)`` per line, the record ``None`` where the line must take the one-line path (it
+    fails a check of :func:`~diffpos_services.wire.solve_line.problem_of`, or the call
+    failed). The call's arguments are those :func:`_solve_group` builds from the same
+    lines' problems, so the records are the same."""
+    ok, *arrays = plain_arrays([it.decoded for it in items], building)
+    good = np.flatnonzero(ok).tolist()
+    if not good:
+        return [(k, None) for k in rows]
+    a, r, mask, sig, wh, delta = (None if v is None else v[good] if len(good) < len(items)
+                                  else v for v in arrays)
+    try:
+        fix = dnls(a, r, sig, mask=mask, window_height_m=wh, delta_m=delta,
+                   edge_x_m=None if building is None else tuple(
+                       float(v) for v in building.edge_x_m),
+                   gating=_DEFAULT_GATING, loss="linear", x0_m=None, z_starts_m=None)
+    except Exception:  # the one-line path isolates the line that broke the batch
+        return [(k, None) for k in rows]
+    out: list[tuple[int, dict[str, Any] | None]] = [(k, None) for k in rows]
+    for i, rec in zip(good, fix.to_records(), strict=True):
+        it = items[i]
+        out[i] = (rows[i], _final(it.line, it.ident, rec))
+    return out
+
+
+def _final(line: int, ident: Any, rec: dict[str, Any]) -> dict[str, Any]:
+    """The result record of a solved line in :data:`RESULT_KEYS` order (as the end of
+    :func:`_solve_prepared` builds it, without a lookup per key when ``rec`` is a
+    :meth:`FixResult.to_records` record)."""
+    if tuple(rec) != _FIX_KEYS:
+        rec = {key: rec.get(key) for key in RESULT_KEYS}
+        rec["line"], rec["id"] = line, ident
+    else:
+        rec = {"line": line, "id": ident, **rec, **_NO_FLOOR}
+    if rec["status"] not in POSITION_STATUSES:
+        rec.update(dict.fromkeys(_POSITION_KEYS))  # no trustworthy position: publish none
+    return rec

@@ -118,13 +118,22 @@ def test_state_history_single_time_path_is_bitwise_the_array_path():
     t0, t1 = int(h.t_ns[0]), int(h.t_ns[-1])
     queries = [*rng.integers(t0 - 600_000_000, t1 + 600_000_000, 400).tolist(),
                *h.t_ns.tolist(), t0 - 300_000_000, t1 + 300_000_000, t1 + 300_000_001]
-    other = t0 + 12_345  # a second time forces the array path
+    others = [t0 + 12_345 + k * 77_777_777 for k in range(5)]  # 6 times: the array path
     for tq in queries:
         p1, s1, ok1 = h.at(np.array([tq, tq, tq]))
-        p2, s2, ok2 = h.at(np.array([tq, other]))
+        p2, s2, ok2 = h.at(np.array([tq, *others]))
         np.testing.assert_array_equal(p1, np.repeat(p2[:1], 3, axis=0))
         np.testing.assert_array_equal(s1, np.repeat(s2[:1], 3, axis=0))
         assert ok1.tolist() == [bool(ok2[0])] * 3
+    # a few distinct times (scalar path per time, scattered back) == the array path
+    for _ in range(200):
+        tq = rng.choice(queries, size=int(rng.integers(2, 5)), replace=False)
+        tq = tq[rng.integers(0, tq.size, 9)].reshape(3, 3)
+        p1, s1, ok1 = h.at(tq)
+        p2, s2, ok2 = h._at_array(tq.reshape(-1), tq.shape)
+        np.testing.assert_array_equal(p1, p2)
+        np.testing.assert_array_equal(s1, s2)
+        assert ok1.shape == ok2.shape == (3, 3) and (ok1 == ok2).all()
     p0, _, ok0 = h.at(np.int64(t1 + 1))  # a scalar query keeps its shape
     assert p0.shape == (3,) and ok0.shape == () and bool(ok0)
 

@@ -33,6 +33,7 @@ import msgspec
 from msgspec import Meta
 
 from diffpos_services.kit import DiffposError
+from diffpos_services.wire.ids import id_checker
 
 __all__ = [
     "DECISION_OPS",
@@ -510,7 +511,9 @@ def _upgrade(kind: type[msgspec.Struct], msg: msgspec.Struct) -> Any:
 
 def _checked_decode(dec: msgspec.json.Decoder, accepted: tuple[type, ...]):
     """``bytes -> message`` through ``dec``, every failure a :class:`DecodeError`, and a
-    message of another type than ``accepted`` (the never-sent sentinel) rejected."""
+    message of another type than ``accepted`` (the never-sent sentinel) rejected, and so is
+    one with an invalid id (:func:`~diffpos_services.wire.ids.id_checker`)."""
+    ids = {kind: id_checker(kind) for kind in accepted}
 
     def decode(payload: bytes | bytearray | memoryview) -> Any:
         try:
@@ -525,6 +528,12 @@ def _checked_decode(dec: msgspec.json.Decoder, accepted: tuple[type, ...]):
         if type(msg) not in accepted:
             raise DecodeError("schema", f"Invalid value {_Untagged.__struct_config__.tag!r} - "
                               "at `$.schema`")
+        check = ids.get(type(msg))
+        if check is not None:
+            try:
+                check(msg)
+            except ValueError as exc:
+                raise DecodeError("schema", str(exc)) from None
         return msg
 
     return decode

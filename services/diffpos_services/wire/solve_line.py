@@ -30,7 +30,8 @@ from diffpos_services.wire.solve_io import (
     check_id,
 )
 
-__all__ = ["parse_line"]
+__all__ = ["PLAIN_MAX_CHARS", "decode_plain", "parse_line", "plain_arrays", "plain_group_key",
+           "problem_of"]
 
 
 class _Line(msgspec.Struct, forbid_unknown_fields=True):
@@ -193,13 +194,22 @@ def parse_line(line: str, *, default_method: str, limits: Limits, scenario: Any 
     :func:`~diffpos_services.wire.solve_io.parse_problem`), which reports what is wrong."""
     try:
         p = _DECODER.decode(line)
+    except msgspec.DecodeError:
+        return None
+    return problem_of(p, default_method=default_method, limits=limits, scenario=scenario)
+
+
+def problem_of(p: _Line, *, default_method: str, limits: Limits, scenario: Any = None
+               ) -> tuple[Any, Problem] | None:
+    """:func:`parse_line` of an already decoded line."""
+    try:
         method = default_method if p.method is msgspec.UNSET else p.method
         if method not in METHODS or method == "mnls":
             return None
         raw_id = bytes(p.id)
-        ident = None if raw_id == b"null" else _loads(raw_id)
-        if not (type(ident) is int and len(raw_id) <= MAX_ID_CHARS):  # an int is plain JSON
-            ident = None if ident is None else check_id(ident)
+        ident = _plain_id(raw_id)
+        if ident is _NOT_PLAIN:
+            ident = check_id(_loads(raw_id))
         a, r, mask, sig = _arrays(p, limits)
         wh, delta, edge = _model(p, method, None if scenario is None else scenario.building)
         gating = _parse_gating(p.gating)
@@ -209,3 +219,90 @@ def parse_line(line: str, *, default_method: str, limits: Limits, scenario: Any 
     return ident, Problem(anchors_m=a, ranges_m=r, mask=mask, sigmas_m=sig, method=method,
                           window_height_m=wh, delta_m=delta, edge_x_m=edge, gating=gating,
                           scenario=scenario, **opt)
+
+
+# ----------------------------------------------------------------------------- plain lines
+#: A decoded line is "plain" when it is a D-NLS problem with every optional field at its
+#: default except a scalar ``sigmas_m``, ``window_height_m`` and ``delta_m`` (the lines a
+#: positioning pipeline writes). Plain lines of a batch are checked and stacked as arrays in
+#: a few numpy operations (:func:`plain_arrays`) instead of ~15 per line; every other line
+#: takes :func:`problem_of` one at a time. A plain line's text is kept (at most
+#: :data:`PLAIN_MAX_CHARS`) so that a row failing the batch checks is re-read on the checked
+#: path with exactly the message it always got.
+PLAIN_MAX_CHARS = 4096
+_NOT_PLAIN = object()
+
+
+def _plain_id(raw_id: bytes) -> Any:
+    """The id of a raw JSON ``null`` or integer literal (plain JSON by construction, as the
+    decoder has read the whole line), else :data:`_NOT_PLAIN` (the caller decodes and checks
+    it). ``int(b"-12")`` equals ``json.loads`` of the same literal."""
+    if raw_id == b"null":
+        return None
+    digits = raw_id[1:] if raw_id[:1] == b"-" else raw_id
+    if digits.isdigit() and len(raw_id) <= MAX_ID_CHARS:  # bytes.isdigit: ASCII 0-9 only
+        return int(raw_id)
+    return _NOT_PLAIN
+
+
+def decode_plain(line: str, *, default_method: str, limits: Limits) -> tuple[Any, _Line] | None:
+    """``(id, decoded line)`` of a plain line (see :data:`PLAIN_MAX_CHARS`), else ``None``
+    (the caller takes :func:`parse_line`). The values are not checked here: that is
+    :func:`plain_arrays`' job, for a whole batch at once."""
+    if len(line) > PLAIN_MAX_CHARS:
+        return None
+    try:
+        p = _DECODER.decode(line)
+    except msgspec.DecodeError:
+        return None
+    if not ((default_method == "dnls" if p.method is msgspec.UNSET else p.method == "dnls")
+            and p.gating is True and p.loss == "linear" and p.edge_x_m is None
+            and p.x0_m is None and p.z_starts_m is None and p.snr_db is None
+            and type(p.nlos) is bool and type(p.nlos_bias_m) is float and p.nlos_bias_m == 0.0
+            and not isinstance(p.sigmas_m, list)
+            and 3 <= len(p.anchors_m) <= limits.max_anchors
+            and len(p.ranges_m) == len(p.anchors_m) and None not in p.ranges_m
+            and all(len(xyz) == 3 for xyz in p.anchors_m)):
+        return None
+    ident = _plain_id(bytes(p.id))
+    return None if ident is _NOT_PLAIN else (ident, p)
+
+
+def plain_group_key(p: _Line) -> tuple[int, bool, bool]:
+    """Plain lines with equal keys are stacked together: anchor count, sigmas given, window
+    height given."""
+    return len(p.anchors_m), p.sigmas_m is not None, p.window_height_m is not None
+
+
+def plain_arrays(lines: list[_Line], building: Any = None) -> tuple[np.ndarray, ...]:
+    """Plain lines of one :func:`plain_group_key` as the arrays :func:`problem_of` would build
+    and stack: ``ok`` (B,) (False: the row fails a check of :func:`problem_of`; the caller
+    re-reads it on the one-line path), anchors (B, M, 3), ranges (B, M), mask (B, M),
+    sigmas (B, M) or None, window height (B,), delta (B,) [m]. The checks are
+    :func:`_arrays`' and :func:`_model`'s for these lines, row by row.
+    """
+    b = len(lines)
+    m, has_sig, has_wh = plain_group_key(lines[0])
+    try:
+        a = np.array([p.anchors_m for p in lines], dtype=np.float64)
+    except ValueError:  # not reached (decode_plain checks the lengths): every row re-read alone
+        a = np.zeros((b, 0))
+    if a.shape != (b, m, 3):
+        return (np.zeros(b, bool),)
+    r = np.array([p.ranges_m for p in lines], dtype=np.float64)
+    delta = np.array([p.delta_m for p in lines], dtype=np.float64)
+    ok = ((np.abs(a) <= MAX_ABS_M).all(axis=(1, 2)) & (a[:, :, 1].max(axis=1) < 0)
+          & (r >= 0).all(axis=1) & (r <= MAX_ABS_M).all(axis=1) & (np.abs(delta) <= MAX_ABS_M))
+    sig = None
+    if has_sig:
+        s = np.array([p.sigmas_m for p in lines], dtype=np.float64)
+        ok &= (s > 0) & (s <= MAX_ABS_M)
+        sig = np.repeat(s[:, None], m, axis=1)
+    if has_wh:
+        wh = np.array([p.window_height_m for p in lines], dtype=np.float64)
+        ok &= (wh > 0) & (wh <= MAX_ABS_M)
+    elif building is not None:
+        wh = np.full(b, float(building.window_height_m))
+    else:  # dnls needs the window height: the one-line path says so
+        return (np.zeros(b, bool),)
+    return ok, a, r, np.ones((b, m), bool), sig, wh, delta
