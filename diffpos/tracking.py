@@ -215,6 +215,11 @@ class TrackerConfig:
         A dormant hypothesis gets a real update at least this often (measurement time;
         hypothesis ``h`` on its own phase ``h / H`` of the period, so the refreshes of one
         node are spread over the period).
+    dormant_epochs : int
+        Consecutive real updates below the threshold before a hypothesis becomes dormant
+        (one unlucky epoch is no decision); the real update that refreshes or wakes a
+        dormant hypothesis does not count (its state is up to ``dormant_refresh_s`` stale,
+        so its broad prior costs it an Occam factor of several nats in that epoch alone).
     """
 
     q_h_m2_s3: float = 1.5
@@ -248,6 +253,7 @@ class TrackerConfig:
     dormant: bool = True
     dormant_margin_nats: float = 3.0
     dormant_refresh_s: float = 1.0
+    dormant_epochs: int = 1
 
 
 @dataclass(frozen=True)
@@ -283,6 +289,9 @@ class TrackerState:
     updated_ns : ndarray of int64, shape (N, H) [ns]
         Time of each hypothesis' last real measurement update (the refresh schedule of the
         dormant ones).
+    below_epochs : ndarray of int, shape (N, H)
+        Consecutive real updates with the hypothesis below the dormant threshold (dormant
+        from ``dormant_epochs`` on).
     """
 
     mean: FloatArray
@@ -297,6 +306,7 @@ class TrackerState:
     floor_bad: NDArray[np.int_]
     dormant_llr: FloatArray
     updated_ns: NDArray[np.int64]
+    below_epochs: NDArray[np.int_]
 
 
 @dataclass(frozen=True)
@@ -532,7 +542,7 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         last_fix_ns=np.full(n_nodes, t_ns, np.int64), nis=np.ones(n_nodes),
         good=np.zeros(n_nodes, int), bad=np.zeros(n_nodes, int),
         floor_bad=np.zeros((n_nodes, h), int), dormant_llr=np.full((n_nodes, h), np.nan),
-        updated_ns=np.full((n_nodes, h), t_ns, np.int64))
+        updated_ns=np.full((n_nodes, h), t_ns, np.int64), below_epochs=np.zeros((n_nodes, h), int))
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
@@ -719,8 +729,14 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
     nis_f, n_in_f = _epoch_nis(nis_h)
     bad_f = (2 * n_in_f < n_meas[:, None]) | (nis_f > config.nis_limit)
-    new = {"mean": x, "cov": p, "log_prob": lp, "nis": nis,
-           "dormant_llr": np.where(run, np.where(lp < log_thr, llr, np.nan), llr0),
+    # consecutive real updates below the threshold; the update of a dormant hypothesis
+    # (refresh or wake-up) re-converges its stale state and does not count
+    below = np.where(run, np.where(np.isfinite(llr0), 0,
+                                   np.where(lp < log_thr, state.below_epochs[idx] + 1, 0)),
+                     state.below_epochs[idx])
+    asleep = below >= max(config.dormant_epochs, 1)
+    new = {"mean": x, "cov": p, "log_prob": lp, "nis": nis, "below_epochs": below,
+           "dormant_llr": np.where(asleep, np.where(run, llr, llr0), np.nan),
            "updated_ns": np.where(run, t_ns[idx, None], state.updated_ns[idx])}
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
 
@@ -786,7 +802,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     mean, cov, lp = st.mean.copy(), st.cov.copy(), st.log_prob.copy()
     status, nis, good, bad = st.status.copy(), st.nis.copy(), st.good.copy(), st.bad.copy()
     floor_bad = st.floor_bad.copy()
-    llr, upd = st.dormant_llr.copy(), st.updated_ns.copy()
+    llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
@@ -797,7 +813,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             st, links, idx, t, inflow, dt_s, building, config)
         mean[idx], cov[idx], lp[idx], nis[idx] = new["mean"], new["cov"], new["log_prob"], \
             new["nis"]
-        llr[idx], upd[idx] = new["dormant_llr"], new["updated_ns"]
+        llr[idx], upd[idx], below[idx] = new["dormant_llr"], new["updated_ns"], \
+            new["below_epochs"]
         floor_bad[idx] = np.where(ran, np.where(bad_f, floor_bad[idx] + 1, 0), floor_bad[idx])
         bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
         good[idx] = np.where(bad_epoch, 0, good[idx] + 1)
@@ -821,10 +838,11 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         mech[jdx], resid[jdx] = sel.slot[r, best], res[r, best]
         status[jdx] = TrackStatus.INITIALISING
         nis[jdx], good[jdx], bad[jdx], last[jdx] = 1.0, 0, 0, t[jdx]
-        floor_bad[jdx], llr[jdx], upd[jdx] = 0, np.nan, t[jdx, None]
+        floor_bad[jdx], llr[jdx], upd[jdx], below[jdx] = 0, np.nan, t[jdx, None], 0
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
-                       floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd)
+                       floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
+                       below_epochs=below)
     return new, _publish(new, mech, resid)
