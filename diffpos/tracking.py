@@ -89,6 +89,31 @@ Design
   ``lost_after_s`` without ranges it is LOST (no position published). Divergence: an
   exponentially averaged normalised innovation (NIS per used range) above ``nis_limit`` or a
   majority of outlier links for ``diverge_epochs`` epochs re-initialises the node.
+* **Dormant hypotheses** (``dormant``; the cost: every hypothesis' update is the paths of every
+  mechanism, the predicted SNR, the selection and the IEKF). Once the data has decided
+  against a hypothesis its measurement update is skipped: it stays alive by the prediction
+  and the IMM's mixing (its state is predicted, its probability mixed as every other's),
+  and its evidence is stood in for by its log-likelihood ratio to the node's best at its last
+  real update. The threshold (:func:`_dormant_log_p`): the floor jump gives every floor at
+  least ``jump_rate_hz dt / (F - 1)`` of predicted probability each epoch (2.5e-5 at 10 Hz,
+  5 floors), so a hypothesis the data does not decide against never falls below it; dormant
+  is ``dormant_margin_nats`` (3 nats, 20:1) below it in posterior (1.2e-6 there), a share
+  of any floor marginal or of the published covariance that changes nothing. A dormant
+  hypothesis gets a real update again (1) every ``dormant_refresh_s`` (1 s; hypothesis ``h``
+  at phase ``h / H`` of the period, so a node's refreshes spread over it; measurement time,
+  so a replay refreshes at the same epochs), (2) when the mixing brings it more than the
+  threshold from the other hypotheses through a physical transition (a walker on the stairs
+  reaching the next floor's band; the jump's mass does not count), (3) in the same epoch
+  when the node's best hypothesis fits badly (epoch NIS above ``nis_limit``, most ranges
+  outliers), (4) while the node is not TRACKING or not confident (most probable floor below
+  ``dormant_floor_p``). Floors thus stay alive until the data decides (a wrong-floor lock can
+  still be left, ``jump_rate_hz``). Every rule is a function of the node's own inputs, so the
+  outputs stay deterministic and independent of the batching. Measured (28 lockstep runs of
+  20 s: default and other-building, seeds 0-13, benchmarks/bench_tracking.py's emulation):
+  floor 91.4 % with dormant hypotheses against 91.3 % without (per run within -5..+7
+  points: a wrong-floor lock is left a little earlier or later), 3D p90 2.1 vs 2.8 m, 95 %
+  coverage 83.2 vs 83.8 %; about 3 of the 10 hypotheses of a 5-floor building are updated
+  per node-epoch.
 """
 
 from __future__ import annotations
@@ -217,9 +242,16 @@ class TrackerConfig:
         node are spread over the period).
     dormant_epochs : int
         Consecutive real updates below the threshold before a hypothesis becomes dormant
-        (one unlucky epoch is no decision); the real update that refreshes or wakes a
-        dormant hypothesis does not count (its state is up to ``dormant_refresh_s`` stale,
-        so its broad prior costs it an Occam factor of several nats in that epoch alone).
+        The real update that refreshes or wakes a dormant hypothesis does not count: its
+        state is up to ``dormant_refresh_s`` stale, so its broad prior and unconverged fit
+        cost it several nats in that epoch alone (measured: judged on that update, a
+        wrong-floor lock of other-building never recovered; judged on it without the excess
+        Occam factor, floor 89.2 % against 91.3 % for the full run over 28 runs), so it is
+        awake for at least one more update.
+    dormant_floor_p : float [-]
+        A node whose most probable floor (predicted, marginal over the modes) is below this
+        probability is not confident: every hypothesis of it is updated (the fusion's
+        ``CONFIDENT_FLOOR_PROBABILITY``).
     """
 
     q_h_m2_s3: float = 1.5
@@ -254,6 +286,7 @@ class TrackerConfig:
     dormant_margin_nats: float = 3.0
     dormant_refresh_s: float = 1.0
     dormant_epochs: int = 1
+    dormant_floor_p: float = 0.99
 
 
 @dataclass(frozen=True)
@@ -701,7 +734,9 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     ev, slot = np.full((n, h), np.nan), np.full((n, h, m), -1)
     nis_h, res = np.full((n, h, m), np.nan), np.full((n, h, m), np.nan)
     log_thr = _dormant_log_p(dt_s[idx], nf, config)[:, None]
-    run = ~np.isfinite(llr0) | (state.status[idx] != TrackStatus.TRACKING)[:, None]
+    doubt = ((state.status[idx] != TrackStatus.TRACKING)
+             | (floor_probabilities(lp0).max(axis=1) < config.dormant_floor_p))
+    run = ~np.isfinite(llr0) | doubt[:, None]
     if config.dormant:
         run |= _refresh_due(state.updated_ns[idx], t_ns[idx], config.dormant_refresh_s)
         run |= inflow[idx] > np.exp(log_thr)
