@@ -208,12 +208,16 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="*", default=None)
     ap.add_argument("--no-cost", action="store_true")
     ap.add_argument("--no-snr", action="store_true", help="ranges only (no SNR scoring)")
-    ap.add_argument("--dormant", choices=("on", "off", "both"), default="both",
+    ap.add_argument("--dormant", choices=("on", "off", "both", "default"), default="both",
                     help="dormant hypotheses (TrackerConfig.dormant); both: side by side on "
-                         "the same emulated epochs")
+                         "the same emulated epochs; default: TrackerConfig() unlabelled (also "
+                         "runs against a tree from before the option, for a before/after)")
     args = ap.parse_args(argv)
-    modes = ("off", "on") if args.dormant == "both" else (args.dormant,)
-    configs = {m: TrackerConfig(dormant=m == "on") for m in modes}
+    if args.dormant == "default":
+        configs = {"-": TrackerConfig()}
+    else:
+        modes = ("off", "on") if args.dormant == "both" else (args.dormant,)
+        configs = {m: TrackerConfig(dormant=m == "on") for m in modes}
     hdr = (f"{'scenario':22s} {'dormant':>7s} {'N':>3s} {'M':>2s} {'avail':>6s} {'floor':>6s} "
            f"{'3D p50':>7s} {'3D p90':>7s} {'z p50':>6s} {'z p90':>6s} {'cov95':>6s} "
            f"{'ms/ep':>6s} {'ms/ne':>6s} {'mean':>6s}")
