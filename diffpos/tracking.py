@@ -100,8 +100,9 @@ Design
   is ``dormant_margin_nats`` (3 nats, 20:1) below it in posterior (1.2e-6 there), a share
   of any floor marginal or of the published covariance that changes nothing. A dormant
   hypothesis gets a real update again (1) every ``dormant_refresh_s`` (1 s; hypothesis ``h``
-  at phase ``h / H`` of the period, so a node's refreshes spread over it; measurement time,
-  so a replay refreshes at the same epochs), (2) when the mixing brings it more than the
+  at phase ``h / H`` of the period, so a node's refreshes spread over it; measurement time
+  since the node's initialisation, so a replay refreshes at the same epochs and a constant
+  shift of the input times changes nothing), (2) when the mixing brings it more than the
   threshold from the other hypotheses through a physical transition (a walker on the stairs
   reaching the next floor's band; the jump's mass does not count), (3) in the same epoch
   when the node's best hypothesis fits badly (epoch NIS above ``nis_limit``, most ranges
@@ -329,6 +330,10 @@ class TrackerState:
     below_epochs : ndarray of int, shape (N, H)
         Consecutive real updates with the hypothesis below the dormant threshold (dormant
         from ``dormant_epochs`` on).
+    refresh_origin_ns : ndarray of int64, shape (N,) [ns]
+        Origin of the node's refresh schedule (its snapshot initialisation): the schedule
+        depends on time differences only, so shifting every input time by a constant
+        changes no output.
     """
 
     mean: FloatArray
@@ -344,6 +349,7 @@ class TrackerState:
     dormant_llr: FloatArray
     updated_ns: NDArray[np.int64]
     below_epochs: NDArray[np.int_]
+    refresh_origin_ns: NDArray[np.int64]
 
 
 @dataclass(frozen=True)
@@ -579,7 +585,8 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         last_fix_ns=np.full(n_nodes, t_ns, np.int64), nis=np.ones(n_nodes),
         good=np.zeros(n_nodes, int), bad=np.zeros(n_nodes, int),
         floor_bad=np.zeros((n_nodes, h), int), dormant_llr=np.full((n_nodes, h), np.nan),
-        updated_ns=np.full((n_nodes, h), t_ns, np.int64), below_epochs=np.zeros((n_nodes, h), int))
+        updated_ns=np.full((n_nodes, h), t_ns, np.int64), below_epochs=np.zeros((n_nodes, h), int),
+        refresh_origin_ns=np.full(n_nodes, t_ns, np.int64))
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
@@ -679,15 +686,17 @@ def _dormant_log_p(dt_s: FloatArray, n_floors: int, config: TrackerConfig) -> Fl
         return np.log(jump) - config.dormant_margin_nats
 
 
-def _refresh_due(updated_ns: NDArray[np.int64], t_ns: NDArray[np.int64], period_s: float
-                 ) -> NDArray[np.bool_]:
+def _refresh_due(updated_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
+                 origin_ns: NDArray[np.int64], period_s: float) -> NDArray[np.bool_]:
     """Hypotheses (N, H) whose refresh period boundary passed since their last real update:
-    hypothesis ``h``'s boundaries are at ``k T - h T / H`` (measurement time ``t_ns``, so a
-    replay refreshes at the same epochs as the live run)."""
+    hypothesis ``h``'s boundaries are at ``origin + k T - h T / H`` (measurement time
+    relative to the node's ``origin_ns``, so a replay refreshes at the same epochs as the
+    live run, and a constant shift of every time changes nothing)."""
     period = max(round(period_s * 1e9), 1)
     h = updated_ns.shape[1]
     phase = (np.arange(h, dtype=np.int64) * period) // h
-    return (t_ns[:, None] + phase) // period > (updated_ns + phase) // period
+    o = origin_ns[:, None]
+    return (t_ns[:, None] - o + phase) // period > (updated_ns - o + phase) // period
 
 
 def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
@@ -755,7 +764,8 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
              | (floor_probabilities(lp0).max(axis=1) < config.dormant_floor_p))
     run = ~np.isfinite(llr0) | doubt[:, None]
     if config.dormant:
-        run |= _refresh_due(state.updated_ns[idx], t_ns[idx], config.dormant_refresh_s)
+        run |= _refresh_due(state.updated_ns[idx], t_ns[idx], state.refresh_origin_ns[idx],
+                            config.dormant_refresh_s)
         run |= inflow[idx] > np.exp(log_thr)
     else:
         run[:] = True
@@ -855,6 +865,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     status, nis, good, bad = st.status.copy(), st.nis.copy(), st.good.copy(), st.bad.copy()
     floor_bad = st.floor_bad.copy()
     llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
+    origin = st.refresh_origin_ns.copy()
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
@@ -891,10 +902,11 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         status[jdx] = TrackStatus.INITIALISING
         nis[jdx], good[jdx], bad[jdx], last[jdx] = 1.0, 0, 0, t[jdx]
         floor_bad[jdx], llr[jdx], upd[jdx], below[jdx] = 0, np.nan, t[jdx, None], 0
+        origin[jdx] = t[jdx]
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
-                       below_epochs=below)
+                       below_epochs=below, refresh_origin_ns=origin)
     return new, _publish(new, mech, resid)

@@ -110,7 +110,8 @@ def test_dormant_run_matches_the_full_run_and_is_row_independent():
     dormant after the tracks are confirmed: >= 50 % of the hypotheses in the last second) the
     published floor equals the full run's in every node-epoch, the position within 1 cm for
     95 % of node-epochs and 5 cm for all; a node tracked alone gives bit-identical outputs to
-    its row of the 3-node run (what replay == live relies on); :func:`floor_probabilities`
+    its row of the 3-node run (what replay == live relies on), and so does the run with every
+    time shifted by a constant (a live run's times are wall-clock); :func:`floor_probabilities`
     of the state is the published floor marginal (bit for bit, rows sum to 1 within 1e-12)."""
     inputs = _walk_inputs()
     s_on, o_on = _track(inputs, ON)
@@ -129,6 +130,12 @@ def test_dormant_run_matches_the_full_run_and_is_row_independent():
     assert np.array_equal(p, o_on[-1].floor_probabilities)
     np.testing.assert_allclose(p.sum(axis=1), 1.0, atol=1e-12)
     _, alone = _track(inputs, ON, rows=[1])
+    # every input time shifted by a wall-clock-like constant: bit-identical outputs
+    shift = 1_795_770_043_376_313_643
+    _, shifted = _track([(t + shift, *rest) for t, *rest in inputs], ON)
+    for o, os_ in zip(o_on, shifted, strict=True):
+        for f in ("position_m", "covariance_m2", "floor_probabilities", "nis"):
+            assert np.array_equal(getattr(o, f), getattr(os_, f), equal_nan=True), f
     for o, oa in zip(o_on, alone, strict=True):
         for f in ("position_m", "covariance_m2", "floor_probabilities", "residual_m", "nis"):
             assert np.array_equal(getattr(o, f)[1:2], getattr(oa, f), equal_nan=True), f
@@ -171,11 +178,12 @@ def test_refresh_schedule_once_per_period_spread_over_the_period():
     (the closed form: at ``k T - h T / H``), and no epoch refreshes more than ``ceil(H / 10)``
     hypotheses (10 epochs per period)."""
     h, period = 10, 1.0
-    upd = np.zeros((1, h), np.int64)
+    origin = 1_795_770_043_376_313_643  # a wall-clock time in ns: the schedule is relative
+    upd = np.full((1, h), origin, np.int64)
     times = [[] for _ in range(h)]
     for k in range(1, 51):
-        t = np.array([k * 10**8], np.int64)
-        due = _refresh_due(upd, t, period)[0]
+        t = np.array([origin + k * 10**8], np.int64)
+        due = _refresh_due(upd, t, np.array([origin]), period)[0]
         assert due.sum() <= 1
         for j in np.flatnonzero(due):
             times[j].append(k * 10**8)
@@ -183,7 +191,7 @@ def test_refresh_schedule_once_per_period_spread_over_the_period():
     for j in range(h):
         gaps = np.diff(times[j])
         assert gaps.size >= 3 and np.all(gaps == 10**9), (j, times[j])
-        # first refresh at the first epoch on or after T - h T / H
+        # first refresh at the first epoch on or after T - h T / H (after the origin)
         assert times[j][0] == max(10**8, 10**9 - j * 10**8)
 
 
