@@ -111,11 +111,14 @@ Design
   still be left, ``jump_rate_hz``). Every rule is a function of the node's own inputs, so the
   outputs stay deterministic and independent of the batching. Measured (28 lockstep runs of
   20 s: default and other-building, seeds 0-13, benchmarks/bench_tracking.py's emulation):
-  floor 91.6 % with dormant hypotheses against 91.3 % without (per run -5.4..+6.7 points:
-  a wrong-floor lock is left earlier or later; default -0.7 +- 0.6, other-building +1.2 +-
-  1.0 points on average), mean 3D p90 2.0 vs 2.8 m, 95 % coverage 83.5 vs 83.8 %; about 3.7
+  floor 91.5 % with dormant hypotheses against 91.3 % without (per run -5.4..+6.7 points:
+  a wrong-floor lock is left earlier or later; default -0.7 +- 0.6, other-building +1.0 +-
+  1.0 points on average), mean 3D p90 2.0 vs 2.8 m, 95 % coverage 83.4 vs 83.8 %; about 3.7
   of the 10 hypotheses of a 5-floor building are updated per node-epoch (2 awake, the rest
-  the refreshes).
+  the refreshes). Cheaper refresh rules lost floor accuracy on other-building (28 runs, -1.7
+  to -2.1 +- 0.7 points): refreshing every 2 s, the vertical modes every 2 s (a floor's
+  vertical mode is woken through the mode switch once its level mode recovers), keeping a
+  refreshed hypothesis dormant when it is 15 nats below the threshold.
 """
 
 from __future__ import annotations
