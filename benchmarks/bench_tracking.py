@@ -88,20 +88,23 @@ anchors-beyond-ends  94.0 -> 94.0  0.21 -> 0.21  92.5 -> 92.5  1.31 -> 1.00
 Seed 0 is one realisation: a wrong-floor lock is left a little earlier or later (other-
 building's r06 here). Over 28 runs (default and other-building, seeds 0-13, same emulation)
 the floor is 91.5 % with and 91.3 % without (module docstring of :mod:`diffpos.tracking`).
-Cost rows (CPU per node-epoch, median epoch / mean after the first second), before (94ee8c5)
-| dormant off | dormant on, same run:
+Cost rows (CPU per node-epoch [ms], the median epoch of each of two rounds; the means after
+the first second are within 0.03 of them), re-measured 09:15-09:16 UTC at load average
+2.0-2.5: ``--only none --dormant default`` on the tree before (94ee8c5), then ``--only
+none`` on this one (off and on interleaved), twice:
 
-==========================  ===============  ===============  ===============
-row                         before           off              on
-==========================  ===============  ===============  ===============
-50 x 8, SNR                 0.694 / 0.702    0.687 / 0.675    0.325 / 0.319
-50 x 16, ranges only        0.788 / 0.814    0.723 / 0.782    0.429 / 0.394
-200 x 16, ranges only       0.678 / 0.688    0.652 / 0.715    0.329 / 0.304
-==========================  ===============  ===============  ===============
+=====================  ============  ============  ============  ===========
+row                    before        off           on            before / on
+=====================  ============  ============  ============  ===========
+50 x 8, SNR            0.710, 0.665  0.661, 0.660  0.290, 0.290  2.3-2.4 x
+50 x 16, ranges only   0.761, 0.756  0.672, 0.567  0.303, 0.269  2.5-2.8 x
+200 x 16, ranges only  0.721, 0.633  0.602, 0.606  0.250, 0.247  2.6-2.9 x
+=====================  ============  ============  ============  ===========
 
-About 3.7 of the 10 hypotheses (5 floors) are updated per node-epoch: the best floor's two
-modes and the refreshes (every dormant hypothesis once a second, judged on the update after
-it). The 6-node scenarios gain less (fixed per-call cost).
+(The same rows at load 4.8-6.2 in the run of the table above: before 0.694 / 0.788 / 0.678,
+on 0.325 / 0.429 / 0.329.) About 3.7 of the 10 hypotheses (5 floors) are updated per
+node-epoch: the best floor's two modes and the refreshes (every dormant hypothesis once a
+second, judged on the update after it). The 6-node scenarios gain less (fixed per-call cost).
 """
 
 from __future__ import annotations
