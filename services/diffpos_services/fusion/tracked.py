@@ -61,7 +61,14 @@ import diffpos.estimators as est
 from diffpos.alignment import PendingEpoch
 from diffpos.estimators import ExclusionReason, FixStatus
 from diffpos.paths import MECHANISMS
-from diffpos.tracking import TrackerConfig, TrackerState, TrackStatus, init_state, update
+from diffpos.tracking import (
+    TrackerConfig,
+    TrackerState,
+    TrackStatus,
+    floor_probabilities,
+    init_state,
+    update,
+)
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
 from diffpos_services.wire import messages as M
@@ -154,9 +161,7 @@ class TrackBank:
         if not known:
             return out
         at, rows = (np.array(v) for v in zip(*known, strict=True))
-        p = np.exp(self.state.log_prob[rows])
-        nf = p.shape[1] // 2
-        floor_p = (p[:, :nf] + p[:, nf:]).max(axis=1)
+        floor_p = floor_probabilities(self.state.log_prob[rows]).max(axis=1)
         out[at] = (floor_p >= CONFIDENT_FLOOR_PROBABILITY) & (self.state.nis[rows]
                                                                <= CONFIDENT_NIS)
         return out
