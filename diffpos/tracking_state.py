@@ -1,0 +1,296 @@
+"""Types of the per-responder tracker (:mod:`diffpos.tracking`) and its hypothesis layout.
+
+:class:`TrackerConfig` (constants), :class:`TrackerState` (filter bank of every node),
+:class:`TrackOutput` (published estimate), :class:`TrackStatus`; the layout of the hypotheses
+``h = mode * F + floor`` (mode 0 level, 1 vertical: :func:`hypothesis_floor`,
+:func:`hypothesis_vertical`, :func:`n_floors_of`) and the floor marginal
+(:func:`floor_probabilities`). Imports nothing from the other tracking modules, so that each of
+them can use it; :mod:`diffpos.tracking` re-exports every name (import them from there).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "FloatArray",
+    "TrackOutput",
+    "TrackStatus",
+    "TrackerConfig",
+    "TrackerState",
+    "floor_probabilities",
+    "hypothesis_floor",
+    "hypothesis_vertical",
+    "n_floors_of",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+class TrackStatus(enum.IntEnum):
+    """Status of one node's track (stored as int8 in :attr:`TrackerState.status`)."""
+
+    UNINITIALISED = 0
+    """No snapshot yet (too few ranges so far): no position."""
+    INITIALISING = 1
+    """Initialised from a snapshot, not yet confirmed by ``confirm_epochs`` updates."""
+    TRACKING = 2
+    COASTING = 3
+    """No usable ranges this epoch: predicted only, the covariance grows."""
+    LOST = 4
+    """No usable ranges for ``lost_after_s``: no position published until re-initialised."""
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Tracker constants (the docstrings of :mod:`diffpos.tracking`,
+    :mod:`diffpos.tracking_imm` and :mod:`diffpos.tracking_dormant` give the physical
+    source of each).
+
+    Attributes
+    ----------
+    q_h_m2_s3, q_v_m2_s3 : float [m^2/s^3]
+        White-acceleration spectral densities, horizontal and vertical (both modes; measured:
+        a stiffer level mode, 0.01 m^2/s^3, pinned early wrong-floor locks for longer).
+    v_level_sigma_m_s : float [m/s]
+        Vertical speed standard deviation given to a state entering the level mode (the end of
+        a flight: the carry's bobbing, ~0.1 m/s).
+    v_stairs_m_s : float [m/s]
+        Vertical speed on stairs; sets the adjacent-floor transition probability.
+    jump_rate_hz : float [1/s]
+        Rate of a jump to any floor (re-acquisition after a wrong lock).
+    z_mix_sigma_m : float [m]
+        Height standard deviation added when a state is mixed into another floor.
+    z_margin_m : float [m]
+        A floor hypothesis' position is kept ``margin`` inside its floor's box (walls, floor,
+        ceiling).
+    box_sigma_m : float [m]
+        Standard deviation of the box pseudo-measurement applied outside the box.
+    exist_margin_m : float [m]
+        A specular path whose entry point is within this distance of the window band's
+        boundary may or may not exist (the entry point's uncertainty while tracking).
+    height_sigma_m, stairs_weight : float [m], [-]
+        Device height above the floor in the level mode: the building's nominal node height
+        (hand/chest carry, +- ``height_sigma_m``), a pseudo-measurement of every epoch (the
+        ranges alone observe the height weakly: with 4 anchors a track drifted 1.5 m in z along
+        a family of mechanism combinations with small residuals); in the vertical mode
+        anywhere between floor and ceiling. ``stairs_weight``: the long-run fraction of time in
+        the vertical mode (sets the rate of entering it, see :mod:`diffpos.tracking_imm`; also the
+        mode prior at initialisation).
+    sigma_model_m : float [m]
+        Model error added to every range sigma (anchor navigation error).
+    outlier_weight : float [-]
+        Prior probability that a range is none of the modelled mechanisms.
+    outlier_span_m : float [m]
+        Width of the one-sided outlier density.
+    mixing : {"select", "imm"}
+        How a floor's prior is formed from the previous floors: ``"select"`` continues every
+        floor from its most probable predecessor (its own state unless a neighbour moving in
+        is more probable than staying: a floor that the data has not yet decided keeps its own
+        position instead of being dragged towards a different position on another floor);
+        ``"imm"`` moment-matches all predecessors (the classic IMM interaction).
+    gn_iterations : int
+    select_passes : int
+        Mechanism selections per update: the first at the prior mean, each further one at the
+        previous pass' fit (then the IEKF restarts from the prior).
+    init_grid_m : float [m]
+        Grid step of the snapshot initialisation.
+    init_starts : int
+        Best grid cells per floor refined by the IEKF at initialisation.
+    init_sigma_v_m_s : float [m/s]
+        Initial velocity standard deviation (walking speed).
+    min_ranges_init : int
+    confirm_epochs : int
+    lost_after_s : float [s]
+    nis_limit : float [-]
+        Limit of the averaged NIS per used range (divergence).
+    nis_alpha : float [-]
+        Weight of the newest epoch in the NIS average.
+    diverge_epochs : int
+    reseed_epochs : int
+        Consecutive bad epochs after which a floor hypothesis is re-seeded from a snapshot of
+        its floor (so every floor keeps the best explanation of the data on that floor).
+    reseed_max : int
+        At most this many floor hypotheses are re-seeded per call (bounded cost). Default 0
+        (off): measured on the default and large scenarios it changed no floor decision
+        (46.0 % / 88.5 % with and without) and a snapshot costs ~0.1-0.3 s per node-floor.
+    dormant : bool
+        Skip the measurement update of hypotheses the data has decided against (*dormant*,
+        see :mod:`diffpos.tracking_dormant`); False: every hypothesis of every
+        node is updated every epoch.
+    dormant_margin_nats : float [nats]
+        A hypothesis becomes dormant when its posterior probability is below the mass the
+        floor jump alone gives it every epoch (``jump_rate_hz dt / (F - 1)``) by this margin
+        (3 nats: a 20:1 likelihood ratio against it in the epoch).
+    dormant_refresh_s : float [s]
+        A dormant hypothesis gets a real update at least this often (measurement time;
+        hypothesis ``h`` on its own phase ``h / H`` of the period, so the refreshes of one
+        node are spread over the period).
+    dormant_epochs : int
+        Consecutive real updates below the threshold before a hypothesis becomes dormant
+        The real update that refreshes or wakes a dormant hypothesis does not count: its
+        state is up to ``dormant_refresh_s`` stale, so its broad prior and unconverged fit
+        cost it several nats in that epoch alone (measured: judged on that update, a
+        wrong-floor lock of other-building never recovered; judged on it without the excess
+        Occam factor, floor 89.2 % against 91.3 % for the full run over 28 runs), so it is
+        awake for at least one more update.
+    dormant_floor_p : float [-]
+        A node whose most probable floor (predicted, marginal over the modes) is below this
+        probability is not confident: every hypothesis of it is updated. Default 0 (off):
+        measured with 0.99 (the fusion's ``CONFIDENT_FLOOR_PROBABILITY``), 28 runs of
+        default and other-building: floor 91.4 % against 91.6 % without it and 91.3 % with
+        no dormant hypotheses; but ranges only (the soak), most nodes are not that sure of
+        their floor and the 200 x 16 tracker cost rose from ~0.27 to 0.36 ms per node-epoch.
+    """
+
+    q_h_m2_s3: float = 1.5
+    q_v_m2_s3: float = 0.36
+    v_level_sigma_m_s: float = 0.1
+    v_stairs_m_s: float = 0.6
+    jump_rate_hz: float = 1e-3
+    z_mix_sigma_m: float = 0.5
+    z_margin_m: float = 0.05
+    box_sigma_m: float = 0.02
+    exist_margin_m: float = 0.2
+    height_sigma_m: float = 0.3
+    stairs_weight: float = 0.1
+    sigma_model_m: float = 0.03
+    outlier_weight: float = 0.02
+    outlier_span_m: float = 30.0
+    mixing: str = "select"
+    gn_iterations: int = 3
+    select_passes: int = 2
+    init_grid_m: float = 2.0
+    init_starts: int = 3
+    init_sigma_v_m_s: float = 1.0
+    min_ranges_init: int = 3
+    confirm_epochs: int = 5
+    lost_after_s: float = 5.0
+    nis_limit: float = 9.0
+    nis_alpha: float = 0.2
+    diverge_epochs: int = 10
+    reseed_epochs: int = 3
+    reseed_max: int = 0
+    dormant: bool = True
+    dormant_margin_nats: float = 3.0
+    dormant_refresh_s: float = 1.0
+    dormant_epochs: int = 1
+    dormant_floor_p: float = 0.0
+
+
+@dataclass(frozen=True)
+class TrackerState:
+    """Filter bank of every node (arrays over N nodes and H = 2F hypotheses: hypothesis
+    ``h = mode * F + floor``, mode 0 level, 1 vertical; :func:`hypothesis_floor`,
+    :func:`hypothesis_vertical`).
+
+    Attributes
+    ----------
+    mean : ndarray, shape (N, H, 6) [m, m/s]
+    cov : ndarray, shape (N, H, 6, 6)
+    log_prob : ndarray, shape (N, H)
+        Normalised joint log-probability of every (floor, mode) hypothesis.
+    status : ndarray of int8, shape (N,)
+        :class:`TrackStatus`.
+    t_ns : ndarray of int64, shape (N,) [ns]
+        Time the state refers to.
+    last_fix_ns : ndarray of int64, shape (N,) [ns]
+        Last epoch with usable ranges.
+    nis : ndarray, shape (N,)
+        Averaged NIS per used range.
+    good, bad : ndarray of int, shape (N,)
+        Consecutive consistent / inconsistent epochs.
+    floor_bad : ndarray of int, shape (N, H)
+        Consecutive epochs in which a hypothesis explained fewer than half of the ranges
+        or had an NIS above ``nis_limit`` (at ``reseed_epochs`` it is re-seeded from a
+        snapshot of that floor).
+    dormant_llr : ndarray, shape (N, H)
+        NaN for a hypothesis that is updated every epoch; for a *dormant* one its log
+        likelihood ratio to the node's best hypothesis at its last real update (<= 0), which
+        stands in for its evidence until the next real update.
+    updated_ns : ndarray of int64, shape (N, H) [ns]
+        Time of each hypothesis' last real measurement update (the refresh schedule of the
+        dormant ones).
+    below_epochs : ndarray of int, shape (N, H)
+        Consecutive real updates with the hypothesis below the dormant threshold (dormant
+        from ``dormant_epochs`` on).
+    refresh_origin_ns : ndarray of int64, shape (N,) [ns]
+        Origin of the node's refresh schedule (its snapshot initialisation): the schedule
+        depends on time differences only, so shifting every input time by a constant
+        changes no output.
+    """
+
+    mean: FloatArray
+    cov: FloatArray
+    log_prob: FloatArray
+    status: NDArray[np.int8]
+    t_ns: NDArray[np.int64]
+    last_fix_ns: NDArray[np.int64]
+    nis: FloatArray
+    good: NDArray[np.int_]
+    bad: NDArray[np.int_]
+    floor_bad: NDArray[np.int_]
+    dormant_llr: FloatArray
+    updated_ns: NDArray[np.int64]
+    below_epochs: NDArray[np.int_]
+    refresh_origin_ns: NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class TrackOutput:
+    """Published estimate of every node.
+
+    Attributes
+    ----------
+    position_m : ndarray, shape (N, 3) [m]
+        NaN where no position is published (UNINITIALISED, LOST).
+    covariance_m2 : ndarray, shape (N, 3, 3) [m^2]
+    floor_index : ndarray of int, shape (N,)
+        Most probable floor (-1 without a position).
+    floor_probabilities : ndarray, shape (N, F)
+    status : ndarray of int8, shape (N,)
+    mechanism : ndarray of int, shape (N, M)
+        Slot of :data:`diffpos.paths.MECHANISMS` used per anchor on the chosen floor (-1:
+        missing or treated as an outlier).
+    residual_m : ndarray, shape (N, M) [m]
+        Range minus the chosen mechanism's length at the estimate (NaN where -1).
+    nis : ndarray, shape (N,)
+        Averaged normalised innovation per used range.
+    """
+
+    position_m: FloatArray
+    covariance_m2: FloatArray
+    floor_index: NDArray[np.int_]
+    floor_probabilities: FloatArray
+    status: NDArray[np.int8]
+    mechanism: NDArray[np.int_]
+    residual_m: FloatArray
+    nis: FloatArray
+
+
+def n_floors_of(state: TrackerState) -> int:
+    """Number of floors of a state (its hypotheses are floors x 2 vertical modes)."""
+    return state.log_prob.shape[1] // 2
+
+
+def hypothesis_floor(n_floors: int) -> NDArray[np.int_]:
+    """Floor of every hypothesis ``h = mode * F + floor``, shape (2F,)."""
+    return np.tile(np.arange(n_floors), 2)
+
+
+def hypothesis_vertical(n_floors: int) -> NDArray[np.bool_]:
+    """Vertical mode (stairs) of every hypothesis, shape (2F,) (the first F are level)."""
+    return np.repeat([False, True], n_floors)
+
+
+def floor_probabilities(log_prob: ArrayLike, prob: FloatArray | None = None) -> FloatArray:
+    """Floor marginals (N, F) of the hypotheses' log-probabilities (N, H = 2F) (e.g.
+    :attr:`TrackerState.log_prob`): the sum of every floor's two vertical modes
+    (``prob``: ``exp(log_prob)`` if the caller has it)."""
+    p = np.exp(np.asarray(log_prob, dtype=np.float64)) if prob is None else prob
+    nf = p.shape[-1] // 2
+    return p[..., :nf] + p[..., nf:]
