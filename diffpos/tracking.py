@@ -75,7 +75,10 @@ Design
   the data has decided against a hypothesis its measurement update is skipped (it is
   predicted and mixed as every other, its evidence stood in for by its last likelihood
   ratio to the node's best) until a refresh (every ``dormant_refresh_s``), the mixing, a
-  poor fit of the node's best hypothesis or a node that is not TRACKING wakes it.
+  poor fit of the node's best hypothesis or a node that is not TRACKING wakes it. Measured
+  (28 lockstep runs of 20 s, default and other-building): floor 91.5 % with dormant
+  hypotheses against 91.3 % without, about 3.7 of a 5-floor building's 10 hypotheses updated
+  per node-epoch (the rules and the measurements: :mod:`diffpos.tracking_dormant`).
 
 Modules: :mod:`diffpos.tracking_state` (config, state, output types, hypothesis layout),
 :mod:`diffpos.tracking_imm` (motion, transitions, mixing, prediction of the Gaussians),
@@ -173,7 +176,6 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
 # --------------------------------------------------------------------------------------------
 # update and published estimate
 # --------------------------------------------------------------------------------------------
-
 
 
 def _publish(state: TrackerState, mech: NDArray, resid: FloatArray) -> TrackOutput:
