@@ -285,8 +285,9 @@ def main(argv: list[str] | None = None) -> int:
         for method in ("mnls", "dnls"):
             cpu, n, rep = cost(rec, method)
             rows.append((method, cpu, n, rep))
-    print(f"bench_fusion_cost: {args.scenario}, {args.duration:g} s lockstep recording, seed "
-          f"{args.seed}; machine {platform.machine()} {os.cpu_count()} cores, Python "
+    what = (f"recording {args.recording}" if args.recording is not None else
+            f"{args.scenario}, {args.duration:g} s lockstep recording, seed {args.seed}")
+    print(f"bench_fusion_cost: {what}; machine {platform.machine()} {os.cpu_count()} cores, Python "
           f"{platform.python_version()}, load avg {os.getloadavg()[0]:.1f}")
     print(f"{'method':<8} {'node-epochs':>11} {'CPU s':>7} {'ms/node-epoch':>14} "
           f"{'floor':>6}  (floor: all node-epochs after 2 s)  target <= {TARGET_MS} ms (8 anchors)")
