@@ -275,8 +275,10 @@ def _solve_chunk(chunk: list[_Prepared | _Plain], default_method: str, limits: L
     out: list[Any] = [None] * len(chunk)
     building = None if scenario is None else scenario.building
     for rows in plain.values():
-        for lo in range(0, len(rows), _chunk_size_of(len(chunk[rows[0]].decoded.anchors_m))):
-            part = rows[lo:lo + _chunk_size_of(len(chunk[rows[0]].decoded.anchors_m))]
+        # fixed before the loop: a failing row is replaced in ``chunk`` by its prepared tuple
+        step = _chunk_size_of(len(chunk[rows[0]].decoded.anchors_m))
+        for lo in range(0, len(rows), step):
+            part = rows[lo:lo + step]
             for k, rec in _solve_plain([chunk[k] for k in part], part, building):
                 if rec is None:  # fails a check (or broke the batch): the one-line path
                     it = chunk[k]

@@ -137,3 +137,27 @@ def test_lines_that_are_not_plain():
     recs = list(solve_lines([json.dumps(good), ProblemError("line is not UTF-8 text"),
                              json.dumps(good)], batch=8))
     assert [r["status"] for r in recs] == ["ok", "invalid_input", "ok"]
+
+
+def test_a_bad_first_line_of_a_group_larger_than_a_solve_chunk(monkeypatch):
+    """A group of plain lines solved in several chunks whose first line fails a check: the
+    line is re-read on the one-line path (it was replaced in the batch while the chunk size
+    was still read from it: AttributeError) and every record equals the checked path's."""
+    import diffpos_services.solve as solve_mod
+
+    m = 4
+    monkeypatch.setattr(solve_mod, "CHUNK_ELEMENTS", 2 * m * m * 13)  # 2 problems per chunk
+    assert solve_mod._chunk_size_of(m) == 2
+    rng = np.random.default_rng(11)
+    probs = []
+    for k in range(7):
+        a = np.column_stack([rng.uniform(-20, 20, m), rng.uniform(-25, -5, m),
+                             rng.uniform(0, 15, m)])
+        r = window_edge_path(a, np.array([1.0, 4.0, 4.5]), window_height_m=1.2).length_m
+        probs.append({"anchors_m": a.tolist(), "ranges_m": r.tolist(), "window_height_m": 1.2,
+                      "sigmas_m": 0.05, "id": k})
+    probs[0]["ranges_m"][1] = -1.0  # plain-looking, fails the range check
+    probs[3]["anchors_m"][2][1] = 2.0  # a bad line in a later chunk too
+    fast = list(solve_lines([json.dumps(p) for p in probs], batch=len(probs)))
+    assert fast == solve_records(probs)
+    assert [r["status"] == "invalid_input" for r in fast] == [k in (0, 3) for k in range(7)]
