@@ -31,13 +31,15 @@ Design
   (the emulator's amplitude model, :func:`diffpos.channel.pair_snr_db`, as M-NLS) against the
   measured one, Gaussian with a factor 2 in field (6 dB), plus the detector's rule (a first
   arrival is not far below the strongest path's threshold); a slot with no power at the
-  hypothesis is no candidate, except within ``exist_margin_m`` of its existence boundary.
+  hypothesis is no candidate, except within the hypothesis' existence margin of its
+  existence boundary (:func:`diffpos.tracking_model.existence_margin`: at least
+  ``exist_margin_m``, wider with the hypothesis' own height uncertainty).
   Part of the mechanism choice and of the floor evidence: with 4 anchors the ranges alone
   leave another floor's mirror solution as good as the true one; with the SNR the floor is
   right for 85-100 % of node-epochs (bench_tracking.py).
   Near an existence boundary the prediction is smoothed over the entry point's
-  uncertainty: a slot that exists within ``exist_margin_m`` but has no power at the point is
-  scored at the nearest height (+- ``exist_margin_m``) where it does, and the detector's
+  uncertainty: a slot that exists within the existence margin but has no power at the point
+  is scored at the nearest height (+- the margin) where it does, and the detector's
   threshold comes only from paths that surely exist. Measured on the recorded inputs of the
   lockstep default run (a top-floor walker at the nominal height sits a few cm below the
   band edge of the ceiling-floor double bounce): each epoch whose prior was a few cm too high

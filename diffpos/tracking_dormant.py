@@ -135,10 +135,10 @@ def _epoch_nis(nis_links: FloatArray) -> tuple[FloatArray, NDArray[np.int_]]:
 def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray,
                   inflow: FloatArray, dt_s: FloatArray, building, config: TrackerConfig):
     """Measurement update of the nodes ``idx`` (their rows of the predicted ``state``, ``t_ns``,
-    ``inflow`` (:func:`_mix`), ``dt_s``): the hypotheses that are awake, due for a refresh,
-    woken by the mixing, or of a node that is not TRACKING; then, for a node whose best
-    hypothesis fits badly this epoch (NIS above ``nis_limit``, most ranges outliers), its
-    dormant ones too. Returns the nodes' new arrays (a dict of state fields), the updated
+    ``inflow`` (:func:`diffpos.tracking_imm._mix`), ``dt_s``): the hypotheses that are awake,
+    due for a refresh, woken by the mixing, or of a node that is not TRACKING; then, for a
+    node whose best hypothesis fits badly this epoch (NIS above ``nis_limit``, most ranges
+    outliers), its dormant ones too. Returns the nodes' new arrays (a dict of state fields), the updated
     hypotheses (n, H), every hypothesis' bad flag, and the best's mechanism/residual."""
     nf = n_floors_of(state)
     h = 2 * nf

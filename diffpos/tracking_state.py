@@ -72,7 +72,9 @@ class TrackerConfig:
         Standard deviation of the box pseudo-measurement applied outside the box.
     exist_margin_m : float [m]
         A specular path whose entry point is within this distance of the window band's
-        boundary may or may not exist (the entry point's uncertainty while tracking).
+        boundary may or may not exist (the entry point's uncertainty): the smallest margin;
+        while tracking, a hypothesis' margin also grows with its own height uncertainty
+        (:func:`diffpos.tracking_model.existence_margin`).
     height_sigma_m, stairs_weight : float [m], [-]
         Device height above the floor in the level mode: the building's nominal node height
         (hand/chest carry, +- ``height_sigma_m``), a pseudo-measurement of every epoch (the
