@@ -13,8 +13,8 @@ availability, floor accuracy, 3D and |z| error p50/p90 (on the epochs with a pos
 inside the reported 95 % ellipsoid, and the tracker's wall time per epoch.
 
 Scenarios: ``default`` (the paper's building and 4 UAVs with the six walking responders of
-``diffpos emulate``: ``diffpos_services.anchor.responders``, replicated here with the core's
-trajectory API), ``large`` (scenarios/large.toml, 8 UAVs, 50 nodes) and held-out variants
+``diffpos emulate``: :func:`diffpos.emulation.responders`, the same function ``emulate``
+uses), ``large`` (scenarios/large.toml, 8 UAVs, 50 nodes) and held-out variants
 (another building: 3.6 m floors, 2 m windows, 7 floors; UAVs above the window height; anchors
 beyond the facade ends).
 
