@@ -15,10 +15,11 @@ import functools
 import msgspec
 import numpy as np
 import pytest
+from diffpos_services.fusion import tracked
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.service import StepCost
-from diffpos_services.fusion.tracked import HEAVY_WORK_EPOCHS, heavy_budget
+from diffpos_services.fusion.tracked import HEAVY_WORK_EPOCHS, SNAPSHOT_WORK_EPOCHS, heavy_budget
 from diffpos_services.recording.replay import replay
 from diffpos_services.recording.synthetic import quiet_logger
 from diffpos_services.recording.writer import McapSink
@@ -150,6 +151,30 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
         err = [np.linalg.norm(np.subtract(last[i].position_m, p)) for i, p in NODES.items()
                if last[i].position_m is not None]
         assert len(err) >= n - 1 and np.median(err) < 1.0, err
+
+
+def test_snapshots_have_a_credit_of_their_own_and_move_no_tracked_estimate(monkeypatch):
+    """Budgeted steps of 8 epochs: after any step, the snapshots so far are at most one per
+    SNAPSHOT_WORK_EPOCHS epochs solved (the credit), and they do happen (unconfirmed tracks
+    are due every epoch). A snapshot never feeds the tracker: with a credit of one per epoch
+    the snapshots differ, every tracked estimate (status, position, covariance) is identical
+    bit for bit."""
+    limit = 4 * HEAVY_WORK_EPOCHS
+    _, steps = _run(limit)
+    done = solved = 0
+    for ests in steps[:-1]:
+        solved += len(ests)
+        done += sum(e.snapshot is not None for e in ests)
+        assert done <= solved // SNAPSHOT_WORK_EPOCHS, (done, solved)
+    assert done >= 1
+    monkeypatch.setattr(tracked, "SNAPSHOT_WORK_EPOCHS", 1)
+    _, many = _run(limit)
+    assert sum(e.snapshot is not None for s in many for e in s) > done
+
+    def tracked_only(run):
+        return [M.encode(msgspec.structs.replace(e, snapshot=None, t_pub_wall_ns=0))
+                for s in run for e in s]
+    assert tracked_only(many) == tracked_only(steps)
 
 
 @pytest.mark.parametrize("limit", [4 * HEAVY_WORK_EPOCHS, 5])

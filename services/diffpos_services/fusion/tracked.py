@@ -34,7 +34,9 @@ fraction of the work of the epochs it solves): initialisations first, in row ord
 is passed to the tracker without ranges this epoch (it stays UNINITIALISED or LOST, published
 without a position on time) and is initialised by a later step; then the due snapshots, the
 stalest first; one that does not fit stays due. The budget only moves *when* a track starts and
-*which* epochs carry a snapshot; ``heavy=None`` (replay of steps without a limit, flush, tests)
+*which* epochs carry a snapshot. Snapshots have a budget of their own besides
+(:data:`SNAPSHOT_WORK_EPOCHS`: one per 50 epochs solved on average, a credit the bank carries
+from step to step). ``heavy=None`` (replay of steps without a limit, flush, tests)
 is unbounded.
 
 :class:`TrackBank` holds the tracker state of every node the core has seen (rows of one
@@ -73,7 +75,7 @@ from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
 from diffpos_services.wire import messages as M
 
-__all__ = ["HEAVY_WORK_EPOCHS", "Solved", "TrackBank", "estimates_v2", "heavy_budget",
+__all__ = ["HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved", "TrackBank", "estimates_v2", "heavy_budget",
            "solve_mnls"]
 
 _FIX_NAMES = {int(s): s.name for s in FixStatus}
@@ -96,6 +98,19 @@ CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
 #: slows the steps by up to a half instead of stalling them (50 new nodes at 10 Hz are
 #: initialised within ~1 s, bench_fusion_cost.py --schedule); each step does at least one.
 HEAVY_WORK_EPOCHS = 10
+#: Epochs solved per mnls snapshot fix budgeted steps may do, on average (a credit carried
+#: from step to step in the :class:`TrackBank`, at most :data:`SNAPSHOT_BURST` banked), within
+#: the step's ``heavy`` budget. A snapshot never feeds the tracker (it is a check published
+#: alongside), so its rate only moves CPU: at ~3.5 ms it costs ~6 epochs' updates, and one per
+#: 50 epochs adds ~10 % to the regular work of a step instead of up to ~60 % (5 snapshots in a
+#: step of 50 epochs with ``heavy_budget``; measured on the real-time ``large`` input,
+#: bench_fusion_cost.py --schedule: steps of 42 epochs with 4 snapshots took 50 ms, 35 epochs
+#: without 21-23 ms). With N nodes at 10 Hz the credit gives N/5 snapshots per s: twenty
+#: times what confident tracks need (N/100); doubtful and unconfirmed tracks (due every 1 s,
+#: resp. every epoch) get theirs as the credit allows, the stalest first.
+SNAPSHOT_WORK_EPOCHS = 50
+#: Snapshot credit a bank may hold [snapshots] (a burst after quiet steps stays small).
+SNAPSHOT_BURST = 2
 
 
 def heavy_budget(n_epochs: int | None) -> int | None:
@@ -127,6 +142,19 @@ class TrackBank:
         self.state: TrackerState = init_state(0, building)
         self.snapshot_ns: dict[str, int] = {}  # measurement time of each node's last snapshot
         self.deferred = 0  # initialisations deferred by a step's work budget (solve_mnls)
+        self.snapshot_epochs = 0  # snapshot credit of the budgeted steps [epochs solved]
+
+    def snapshot_allowance(self, n_epochs: int) -> int:
+        """Snapshot fixes a budgeted step solving ``n_epochs`` epochs may do: the credit of
+        the epochs solved so far (one snapshot per :data:`SNAPSHOT_WORK_EPOCHS`, at most
+        :data:`SNAPSHOT_BURST` banked), this step's epochs included."""
+        self.snapshot_epochs = min(self.snapshot_epochs + int(n_epochs),
+                                   SNAPSHOT_BURST * SNAPSHOT_WORK_EPOCHS)
+        return self.snapshot_epochs // SNAPSHOT_WORK_EPOCHS
+
+    def spend_snapshots(self, n: int) -> None:
+        """``n`` snapshot fixes were done by a budgeted step (:meth:`snapshot_allowance`)."""
+        self.snapshot_epochs -= n * SNAPSHOT_WORK_EPOCHS
 
     def rows_of(self, node_ids: list[str]) -> np.ndarray:
         """State rows of ``node_ids`` (new nodes get new, uninitialised rows)."""
@@ -275,6 +303,7 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
     prob = np.full((b, nf), np.nan)
     mech = np.full((b, m), -1)
     left = math.inf if heavy is None else int(heavy)
+    snaps = math.inf if heavy is None else bank.snapshot_allowance(b)
     for rows_l in _rounds(epochs):
         rows = np.array(rows_l)
         ids = [epochs[i].node_id for i in rows_l]
@@ -290,8 +319,9 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
         # the snapshot decision of a round sees the tracks as the previous round left them
         # (a node's epochs in one batch are decided as if they came one call at a time)
         due[rows] = _snapshot_due(bank, [epochs[i] for i in rows_l], batch.t_ref[rows], cfg,
-                                  left)
+                                  min(left, snaps))
         left -= int(due[rows].sum())
+        snaps -= int(due[rows].sum())
         _mnls_rows(snap, rows[due[rows]], prep, batch, model, s_floor, s_prob, s_mech)
         out = bank.update(ids, prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
                           use_r, batch.t_ref[rows], snr_db=batch.snr[rows], radio=model[1])
@@ -307,6 +337,8 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
     with np.errstate(invalid="ignore"):
         res.peb = np.sqrt(np.trace(res.cov, axis1=1, axis2=2))
         res.zb = np.sqrt(res.cov[:, 2, 2])
+    if heavy is not None:
+        bank.spend_snapshots(int(due.sum()))
     return Solved(res, status, prob, mech, snap, due, s_floor, s_prob, True)
 
 
