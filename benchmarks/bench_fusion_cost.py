@@ -210,6 +210,8 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     log.propagate = False
     core = FusionCore(cfg, logger=log, record_decisions=False)
     core.warm_up()
+    if hasattr(service, "freeze_heap"):  # as run_fusion does after its warm-up
+        service.freeze_heap()
     clock = _VirtualClock(t0 - 1)
     inbox = type("Inbox", (), {})()
     inbox.q, inbox.release = _ScheduledQueue(items, clock), lambda size: None

@@ -77,9 +77,9 @@ def _config() -> FusionConfig:
     return FusionConfig.from_scenario(SC, site="b", epoch_period_s=0.1, method="mnls")
 
 
-def _run(limit: int | None, sink: McapSink | None = None):
-    """The fusion stepped once after every epoch's messages with ``limit``; returns the core
-    and the estimates of each step (the last step: the flush)."""
+def _run(limit: int | None, sink: McapSink | None = None, emit=None):
+    """The fusion stepped once after every epoch's messages with ``limit`` (and ``emit``);
+    returns the core and the estimates of each step (the last step: the flush)."""
     core = FusionCore(_config(), logger=quiet_logger())
     t_alive = T0 - PERIOD
     for a in ANCHORS:
@@ -94,7 +94,7 @@ def _run(limit: int | None, sink: McapSink | None = None):
             if sink is not None:
                 sink.write(key, payload, rx)
         # after the epoch's last batch: every anchor reported, the epoch is complete
-        steps.append(core.step(rx + 1000, limit=limit))
+        steps.append(core.step(rx + 1000, limit=limit, emit=emit))
     steps.append(core.flush(rx + 2000))
     if sink is not None:
         for i, ests in enumerate(steps):
@@ -151,6 +151,29 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
         err = [np.linalg.norm(np.subtract(last[i].position_m, p)) for i, p in NODES.items()
                if last[i].position_m is not None]
         assert len(err) >= n - 1 and np.median(err) < 1.0, err
+
+
+def test_initialisations_come_after_the_other_estimates_of_their_step():
+    """Budgeted steps of 8 epochs (one initialisation each): with ``emit``, each step first
+    emits the estimates of the nodes it does not initialise, then returns the one it
+    initialises (with a position); the estimates are bit for bit those of the same steps
+    without ``emit``."""
+    limit = 4 * HEAVY_WORK_EPOCHS
+    _, plain = _run(limit)
+    emitted: list[list] = []
+    _, late = _run(limit, emit=lambda ests: emitted.append(list(ests)))
+    n = len(NODES)
+    assert len(emitted) == n  # the steps with an initialisation
+    seen: set[str] = set()
+    for k in range(n):
+        assert len(emitted[k]) == n - 1 and len(late[k]) == 1
+        assert late[k][0].position_m is not None and late[k][0].node_id not in seen
+        assert late[k][0].node_id not in {e.node_id for e in emitted[k]}
+        seen.add(late[k][0].node_id)
+    assert all(len(s) == n for s in late[n:-1])
+    bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
+    both = [sorted(map(bare, (emitted[k] if k < n else []) + late[k])) for k in range(len(late))]
+    assert both == [sorted(map(bare, s)) for s in plain]
 
 
 def test_snapshots_have_a_credit_of_their_own_and_move_no_tracked_estimate(monkeypatch):

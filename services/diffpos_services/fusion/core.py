@@ -4,9 +4,8 @@ Feed it raw ``(key, payload)`` samples and liveliness events, call :meth:`Fusion
 and get estimates back: :class:`~diffpos_services.wire.messages.PositionEstimateV2` for the
 method ``mnls`` (with the per-responder tracker of :mod:`diffpos_services.fusion.tracked`
 when ``tracking``), :class:`~diffpos_services.wire.messages.PositionEstimate` (v1, as before)
-for ``dnls``/``lls``/``ippa``. The unit
-tests drive it in memory, ``diffpos replay`` re-runs it offline, and
-:func:`diffpos_services.fusion.service.run_fusion` wires it to Zenoh.
+for ``dnls``/``lls``/``ippa``. The unit tests drive it in memory, ``diffpos replay`` re-runs it
+offline, and :func:`diffpos_services.fusion.service.run_fusion` wires it to Zenoh.
 
 What the fusion assumes about time is documented in :mod:`diffpos.alignment`.
 
@@ -452,7 +451,8 @@ class FusionCore:
         return frozenset(a.id for a in self.anchors.values() if a.alive)
 
     # ------------------------------------------------------------------ solving
-    def step(self, now_wall_ns: int, *, limit: int | None = None) -> list[M.PositionEstimate]:
+    def step(self, now_wall_ns: int, *, limit: int | None = None,
+             emit: Any = None) -> list[M.PositionEstimate]:
         """Solve the ready epochs (batched D-NLS calls of at most ``max_fixes_per_step``
         epochs each, bounded working memory) and return the estimates, oldest first.
 
@@ -460,7 +460,9 @@ class FusionCore:
         service ingests in between after a stall, see :attr:`backlog`), and do at most
         :func:`~diffpos_services.fusion.tracked.heavy_budget` (of the epochs solved) track
         initialisations and snapshot fixes per batch (mnls + tracking: the rest follow in
-        later steps); without, all.
+        later steps), after the batch's other epochs (``TrackBank.hold_inits``), whose estimates
+        go to ``emit(estimates)`` first if given (the service publishes them before the
+        initialisations) and are not returned. Without ``limit``, all.
         """
         live = self.live_anchors
         released = self.book.ready(live, now_wall_ns)
@@ -475,8 +477,16 @@ class FusionCore:
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
         while todo > 0:
             n = min(todo, self.config.max_fixes_per_step)
-            out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns,
-                               None if limit is None else heavy_budget(n))
+            now, held = [self._ready.popleft() for _ in range(n)], []
+            if limit is not None and self.bank is not None:
+                now, held = self.bank.hold_inits(now, heavy_budget(n))
+            out += self._solve(now, now_wall_ns,
+                               None if limit is None else 0 if held else heavy_budget(n))
+            if held:  # the initialisations after the other estimates are out
+                if emit is not None:
+                    emit(out)
+                    out = []
+                out += self._solve(held, now_wall_ns, len(held))
             todo -= n
         return out
 
@@ -488,7 +498,6 @@ class FusionCore:
             n = len(self._ready)
             self._ready = collections.deque(pe for pe in self._ready if pe.epoch >= keep_from)
             self.rejected["overloaded"] += n - len(self._ready)
-
 
     @property
     def backlog(self) -> int:

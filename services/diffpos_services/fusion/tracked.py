@@ -180,6 +180,27 @@ class TrackBank:
         return (((st == int(TrackStatus.UNINITIALISED)) | (st == int(TrackStatus.LOST)))
                 & (n_ranges >= self.config.min_ranges_init))
 
+    def hold_inits(self, epochs: list[PendingEpoch], budget: int
+                   ) -> tuple[list[PendingEpoch], list[PendingEpoch]]:
+        """``(now, later)``: the epochs of a budgeted step split so that its initialisations do
+        not delay the other estimates (module docstring). ``later`` holds the first ``budget``
+        epochs (in the order :func:`solve_mnls` initialises them: rounds, row order) whose node
+        the tracker would initialise (UNINITIALISED or LOST, at least ``min_ranges_init``
+        ranges) and every later epoch of their nodes; ``now`` the rest, in their order. Nothing
+        is held when that would leave ``now`` empty. Only the bank's state is read (and new nodes get their rows)."""
+        held: set[str] = set()
+        for rows_l in _rounds(epochs):
+            if len(held) >= budget:
+                break
+            ids = [epochs[i].node_id for i in rows_l]
+            n = np.array([len(epochs[i].ranges) for i in rows_l])
+            for i in np.flatnonzero(self.needs_init(self.rows_of(ids), n))[:budget - len(held)]:
+                held.add(ids[i])
+        now = [pe for pe in epochs if pe.node_id not in held]
+        if not now:
+            return epochs, []
+        return now, [pe for pe in epochs if pe.node_id in held]
+
     def confident_of(self, node_ids: list[str]) -> np.ndarray:
         """Whether each node's track is confident (:data:`CONFIDENT_FLOOR_PROBABILITY`,
         :data:`CONFIDENT_NIS`; False for unknown nodes): its snapshot period is then
