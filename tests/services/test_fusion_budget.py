@@ -18,7 +18,7 @@ import pytest
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.service import StepCost
-from diffpos_services.fusion.tracked import HEAVY_WORK_EPOCHS, heavy_budget
+from diffpos_services.fusion.tracked import HEAVY_MIN_OPERATIONS, HEAVY_WORK_EPOCHS, heavy_budget
 from diffpos_services.recording.replay import replay
 from diffpos_services.recording.synthetic import quiet_logger
 from diffpos_services.recording.writer import McapSink
@@ -105,10 +105,12 @@ def _run(limit: int | None, sink: McapSink | None = None):
 
 def test_heavy_budget_is_a_fraction_of_the_epochs_solved():
     assert heavy_budget(None) is None  # replay of unlimited steps, flush: unbounded
-    assert heavy_budget(1) == 1  # a step always makes progress
-    assert heavy_budget(HEAVY_WORK_EPOCHS - 1) == 1
-    assert heavy_budget(3 * HEAVY_WORK_EPOCHS) == 3
-    assert heavy_budget(3 * HEAVY_WORK_EPOCHS + HEAVY_WORK_EPOCHS - 1) == 3
+    assert HEAVY_MIN_OPERATIONS >= 1
+    assert heavy_budget(1) == HEAVY_MIN_OPERATIONS  # a step always makes progress
+    assert heavy_budget(HEAVY_WORK_EPOCHS - 1) == HEAVY_MIN_OPERATIONS
+    k = HEAVY_MIN_OPERATIONS + 1
+    assert heavy_budget(k * HEAVY_WORK_EPOCHS) == k
+    assert heavy_budget(k * HEAVY_WORK_EPOCHS + HEAVY_WORK_EPOCHS - 1) == k
 
 
 def _positioned(ests) -> set[str]:
@@ -117,8 +119,9 @@ def _positioned(ests) -> set[str]:
 
 def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
     """Eight new nodes at once. Unbudgeted (limit None) the first step initialises all of
-    them and snapshots every one; budgeted (8 epochs per step: one heavy operation), each step
-    initialises exactly one more node and does nothing else heavy until all are initialised.
+    them and snapshots every one; budgeted (8 epochs per step: ``b`` = HEAVY_MIN_OPERATIONS
+    heavy operations), each step initialises exactly ``b`` more nodes (the rest at the end)
+    and does nothing else heavy until all are initialised.
     Every node-epoch is still published in the step that released it (no position while the
     node waits: UNINITIALISED), and the budgeted tracks end as close to the truth as the
     unbudgeted ones."""
@@ -126,10 +129,12 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
     _, free = _run(None)
     assert _positioned(free[0]) == set(NODES)
     assert sum(e.snapshot is not None for e in free[0]) == n
-    limit = 4 * HEAVY_WORK_EPOCHS  # every ready epoch; the 8 solved allow one heavy operation
-    assert heavy_budget(n) == 1
+    limit = 4 * HEAVY_WORK_EPOCHS  # every ready epoch; the 8 solved allow b heavy operations
+    b = heavy_budget(n)
+    assert b == HEAVY_MIN_OPERATIONS < n
     core, steps = _run(limit)
-    assert core.bank.deferred == sum(range(n))  # 7 + 6 + ... + 0 node-epochs waited
+    # node-epochs that waited: n - b after the first step, n - 2 b after the second, ...
+    assert core.bank.deferred == sum(max(0, n - b * (k + 1)) for k in range(n))
     seen: set[str] = set()
     for k, ests in enumerate(steps[:-1]):
         # published on time: every node's epoch k in step k
@@ -137,9 +142,9 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
         assert {e.epoch for e in ests} == {T0 // PERIOD + k}
         new = _positioned(ests) - seen
         heavy = len(new) + sum(e.snapshot is not None for e in ests)
-        assert heavy <= 1, (k, new)
-        if k < n:
-            assert len(new) == 1, (k, new)  # initialisations come first
+        assert heavy <= b, (k, new)
+        if k * b < n:
+            assert len(new) == min(b, n - k * b), (k, new)  # initialisations come first
         waiting = [e for e in ests if e.node_id not in seen | new]
         assert all(e.status == "UNINITIALISED" and e.position_m is None for e in waiting)
         seen |= new
