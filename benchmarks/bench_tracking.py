@@ -149,6 +149,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import sys
 import time
 import tomllib
@@ -274,7 +275,59 @@ def score(rows, building) -> dict:
     return {"availability": float(has.mean()), "floor": float(np.mean(has & (fl == tf))),
             "p50_3d": pct(e3, 50), "p90_3d": pct(e3, 90), "p50_z": pct(ez, 50),
             "p90_z": pct(ez, 90), "coverage95": float(np.mean(nees <= CHI2_3_95))
-            if nees.size else float("nan"), "node_epochs": int(has.size)}
+            if nees.size else float("nan"), "node_epochs": int(has.size),
+            # raw per node-epoch arrays for :func:`reliability` (rows: epochs, columns: nodes)
+            "floor_probabilities": np.stack([o.floor_probabilities for o, _ in rows]),
+            "floor_index": fl, "true_floor": tf, "has": has,
+            "nis": np.stack([o.nis for o, _ in rows])}
+
+
+RELIABILITY_BINS = (0.0, 0.5, 0.7, 0.9, 0.99, 0.999, 1.0 + 1e-12)
+LOG_LOSS_FLOOR = 1e-6  # the probability of the true floor is clipped here in the log loss
+
+
+def reliability(results: list[dict]) -> dict:
+    """Calibration of the published per-floor probabilities over the node-epochs with a
+    position of several :func:`run` results: per bin of the published probability of the
+    chosen floor (:data:`RELIABILITY_BINS`) the count, the mean published probability and the
+    observed frequency of the chosen floor being the true one; the Brier score (sum over the
+    floors of ``(p_f - [f true])^2``, mean over node-epochs), the log loss (``-ln p_true``,
+    ``p_true`` clipped at :data:`LOG_LOSS_FLOOR`), the floor accuracy, and the fraction of
+    node-epochs the fusion would call confident (chosen floor >= 0.99 and NIS <= 4) with the
+    accuracy among them."""
+    p = np.concatenate([r["floor_probabilities"][r["has"]] for r in results])
+    est = np.concatenate([r["floor_index"][r["has"]] for r in results])
+    tru = np.concatenate([r["true_floor"][r["has"]] for r in results])
+    nis = np.concatenate([r["nis"][r["has"]] for r in results])
+    nf = p.shape[1]
+    tru_c = np.clip(tru, 0, nf - 1)  # a truth outside the building is scored on its nearest
+    rows = np.arange(p.shape[0])
+    p_est = p[rows, est]
+    right = est == tru
+    bins = []
+    for lo, hi in itertools.pairwise(RELIABILITY_BINS):
+        sel = (p_est >= lo) & (p_est < hi)
+        bins.append((lo, min(hi, 1.0), int(sel.sum()),
+                     float(p_est[sel].mean()) if sel.any() else float("nan"),
+                     float(right[sel].mean()) if sel.any() else float("nan")))
+    onehot = np.eye(nf)[tru_c]
+    conf = (p_est >= 0.99) & (nis <= 4.0)
+    return {"bins": bins, "n": int(p.shape[0]),
+            "brier": float(np.mean(np.sum((p - onehot) ** 2, axis=1))),
+            "log_loss": float(np.mean(-np.log(np.maximum(p[rows, tru_c], LOG_LOSS_FLOOR)))),
+            "floor": float(right.mean()), "confident": float(conf.mean()),
+            "confident_right": float(right[conf].mean()) if conf.any() else float("nan")}
+
+
+def print_reliability(label: str, rel: dict) -> None:
+    """One reliability table (:func:`reliability`)."""
+    print(f"reliability [{label}]: {rel['n']} node-epochs, floor {100 * rel['floor']:.1f} %, "
+          f"Brier {rel['brier']:.4f}, log loss {rel['log_loss']:.4f} nats, confident (p >= "
+          f"0.99, NIS <= 4) {100 * rel['confident']:.1f} % of node-epochs, right floor among "
+          f"them {100 * rel['confident_right']:.2f} %")
+    print(f"  {'published p of chosen floor':28s} {'n':>7s} {'mean p':>8s} {'observed':>9s}")
+    for lo, hi, k, mp, fr in rel["bins"]:
+        print(f"  [{lo:.3f}, {hi:.3f}){'':13s} {k:7d} {mp:8.4f} {fr:9.4f}")
 
 
 def main(argv=None) -> int:
@@ -288,6 +341,12 @@ def main(argv=None) -> int:
                     help="dormant hypotheses (TrackerConfig.dormant); both: side by side on "
                          "the same emulated epochs; default: TrackerConfig() unlabelled (also "
                          "runs against a tree from before the option, for a before/after)")
+    ap.add_argument("--reliability", action="store_true",
+                    help="calibration of the published floor probabilities over the scenarios "
+                         "x --seeds (default: the four 6-7 node scenarios x seeds 0-3), per "
+                         "config; prints the accuracy rows too")
+    ap.add_argument("--seeds", type=int, nargs="*", default=None,
+                    help="seeds of --reliability (default 0 1 2 3)")
     args = ap.parse_args(argv)
     if args.dormant == "default":
         configs = {"-": TrackerConfig()}
@@ -298,6 +357,8 @@ def main(argv=None) -> int:
            f"{'3D p50':>7s} {'3D p90':>7s} {'z p50':>6s} {'z p90':>6s} {'cov95':>6s} "
            f"{'ms/ep':>6s} {'ms/ne':>6s} {'mean':>6s}")
     print(hdr)
+    if args.reliability:
+        return reliability_main(args, configs, hdr)
     for name, sc in scenarios().items():
         if args.only and name not in args.only:
             continue
@@ -311,6 +372,40 @@ def main(argv=None) -> int:
                   f"{r['ms_per_node_epoch']:6.3f} {r['mean_ms_per_node_epoch']:6.3f}", flush=True)
     if not args.no_cost:
         cost(configs=configs)
+    return 0
+
+
+def _row(name: str, mode: str, r: dict) -> str:
+    return (f"{name:22s} {mode:>7s} {r['nodes']:3d} {r['anchors']:2d} "
+            f"{100 * r['availability']:5.1f}% {100 * r['floor']:5.1f}% "
+            f"{r['p50_3d']:7.2f} {r['p90_3d']:7.2f} {r['p50_z']:6.2f} {r['p90_z']:6.2f} "
+            f"{100 * r['coverage95']:5.1f}% {r['ms_per_epoch']:6.1f} "
+            f"{r['ms_per_node_epoch']:6.3f} {r['mean_ms_per_node_epoch']:6.3f}")
+
+
+def reliability_main(args, configs: dict[str, TrackerConfig], hdr: str) -> int:
+    """``--reliability``: every scenario x seed, every config on the same emulated epochs; the
+    accuracy rows, then per config the pooled accuracy (floor, 3D p90, cov95 over all
+    node-epochs) and the reliability table."""
+    names = args.only or ["default", "other-building", "uavs-above-windows",
+                          "anchors-beyond-ends"]
+    seeds = args.seeds if args.seeds is not None else [0, 1, 2, 3]
+    every = {k: [] for k in configs}
+    for name in names:
+        sc = scenarios()[name]
+        for seed in seeds:
+            res = run(sc, duration_s=args.duration, seed=seed, use_snr=not args.no_snr,
+                      configs=configs)
+            for mode, r in res.items():
+                every[mode].append(r)
+                print(_row(f"{name} s{seed}", mode, r), flush=True)
+    for mode, rs in every.items():
+        floor = np.mean(np.concatenate([(r["floor_index"] == r["true_floor"]) & r["has"]
+                                        for r in rs], axis=None))
+        print(f"pooled [{mode}]: floor {100 * floor:.1f} %, mean over runs: 3D p90 "
+              f"{np.mean([r['p90_3d'] for r in rs]):.3f} m, cov95 "
+              f"{100 * np.mean([r['coverage95'] for r in rs]):.1f} %")
+        print_reliability(mode, reliability(rs))
     return 0
 
 
