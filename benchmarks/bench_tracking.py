@@ -1,7 +1,7 @@
 """Tracker accuracy and cost: lockstep 10 Hz emulation, every node-epoch scored.
 
 Usage: ``python benchmarks/bench_tracking.py [--duration 20] [--seed 0] [--only NAME ...]
-[--dormant on|off|both]``
+[--dormant on|off|both] [--reliability [--seeds 0 1 2 3]]``
 
 For every scenario the emulator (:func:`diffpos.channel.emulate_channel` + the paper's
 first-arrival detector :func:`diffpos.channel.first_arrival` with the channel's own noise)
@@ -143,6 +143,37 @@ row                    before        off           on            before / on
 on 0.325 / 0.429 / 0.329.) About 3.7 of the 10 hypotheses (5 floors) are updated per
 node-epoch: the best floor's two modes and the refreshes (every dormant hypothesis once a
 second, judged on the update after it). The 6-node scenarios gain less (fixed per-call cost).
+Calibration of the published floor probabilities (``--reliability``: per bin of the published
+probability of the chosen floor, how often that floor is right; Brier score and log loss of
+the per-floor probabilities; the fraction the fusion would call confident, p >= 0.99 and NIS
+<= 4). ``python benchmarks/bench_tracking.py --reliability`` (default, other-building,
+uavs-above-windows, anchors-beyond-ends x seeds 0-3, 20 s, scored after 2 s: 18,000
+node-epochs), 2026-11-27 09:41-09:43 UTC, shared 2-core machine, load average 1.3-2.1; raw
+(the tracker before, ``floor_evidence_lag1_corr=0``) -> tempered (``TrackerConfig()``, the
+evidence correlation: :func:`diffpos.tracking_state.published_floor_probabilities`), on the
+same epochs. Floor 93.4 %, mean 3D p90 1.461 m and cov95 88.3 % are identical (the tempering
+is of the published marginal only):
+
+======================  ======================  ======================
+published p of chosen   raw: n, observed right  tempered: n, observed
+======================  ======================  ======================
+[0.5, 0.7)              84, 31.0 %              453, 25.4 %
+[0.7, 0.9)              180, 21.1 %             1329, 59.7 %
+[0.9, 0.99)             329, 28.9 %             4396, 94.4 %
+[0.99, 0.999)           334, 63.5 %             6415, 99.7 %
+[0.999, 1]              17073, 96.3 %           5336, 100 %
+Brier / log loss        0.1245 / 0.602 nats     0.1006 / 0.237 nats
+fusion-confident        96.7 %, right 95.69 %   65.3 %, right 99.86 %
+======================  ======================  ======================
+
+Per scenario, right floor among the estimates published at >= 0.99, raw -> tempered: default
+96.0 -> 99.4 %, other-building 95.8 -> 99.7 %, uavs-above-windows 100 -> 100 %,
+anchors-beyond-ends 90.6 -> 100 %; log loss 0.494 -> 0.213, 0.969 -> 0.424, 0.000 -> 0.005,
+0.886 -> 0.274. Left: below 0.9 the tempered probabilities are still overconfident (0.61 /
+0.83 published, 25 / 60 % right: long wrong-floor locks, whose evidence is not a sum of
+independent-ish epochs at all), and where the floor is never wrong the tempering costs a
+little (uavs-above-windows: 85 % instead of 100 % of node-epochs at >= 0.99; log loss 0.000
+-> 0.005).
 """
 
 from __future__ import annotations
