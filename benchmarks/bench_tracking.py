@@ -143,6 +143,7 @@ row                    before        off           on            before / on
 on 0.325 / 0.429 / 0.329.) About 3.7 of the 10 hypotheses (5 floors) are updated per
 node-epoch: the best floor's two modes and the refreshes (every dormant hypothesis once a
 second, judged on the update after it). The 6-node scenarios gain less (fixed per-call cost).
+
 Calibration of the published floor probabilities (``--reliability``: per bin of the published
 probability of the chosen floor, how often that floor is right; Brier score and log loss of
 the per-floor probabilities; the fraction the fusion would call confident, p >= 0.99 and NIS
