@@ -63,8 +63,10 @@ Design
   weighted mean of its two modes; its covariance is the mode-mixture covariance of that floor
   plus the spread of every hypothesis' mean about the point (the mean-square error of the
   reported point under the mixture, so model/floor/mode uncertainty is in it); per-floor
-  probabilities; per anchor the mechanism slot (-1: outlier/missing) and the residual of the
-  most probable hypothesis.
+  probabilities (tempered for the correlation of the evidence from epoch to epoch:
+  :func:`diffpos.tracking_state.published_floor_probabilities`; the choice of the floor and
+  the covariance use the untempered ones); per anchor the mechanism slot (-1:
+  outlier/missing) and the residual of the most probable hypothesis.
 * **Lifecycle:** nodes start UNINITIALISED; with >= ``min_ranges_init`` ranges a snapshot
   initialisation (grid over every floor's (x, y) at the nominal height with the path model,
   then the IEKF from the best cells with a broad prior) gives every floor a state and a
@@ -114,6 +116,7 @@ from .tracking_state import (
     floor_probabilities,
     hypothesis_floor,
     hypothesis_vertical,
+    published_floor_probabilities,
 )
 from .tracking_state import n_floors_of as n_floors_of
 
@@ -128,6 +131,7 @@ __all__ = [
     "init_state",
     "predict",
     "process_noise",
+    "published_floor_probabilities",
     "update",
 ]
 
@@ -180,7 +184,9 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
 # --------------------------------------------------------------------------------------------
 
 
-def _publish(state: TrackerState, mech: NDArray, resid: FloatArray) -> TrackOutput:
+def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
+             config: TrackerConfig | None = None) -> TrackOutput:
+    config = TrackerConfig() if config is None else config
     n, h = state.log_prob.shape
     nf = h // 2
     rows = np.arange(n)
@@ -207,7 +213,8 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray) -> TrackOutp
     return TrackOutput(
         position_m=np.where(has[:, None], pos, np.nan),
         covariance_m2=np.where(has[:, None, None], cov, np.nan),
-        floor_index=np.where(has, best, -1), floor_probabilities=prob,
+        floor_index=np.where(has, best, -1),
+        floor_probabilities=published_floor_probabilities(state.log_prob, config, prob_h),
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
 
@@ -318,4 +325,4 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin)
-    return new, _publish(new, mech, resid)
+    return new, _publish(new, mech, resid, config)

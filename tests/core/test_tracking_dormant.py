@@ -24,11 +24,11 @@ from diffpos.tracking import (
     _mix,
     _refresh_due,
     _update_pairs,
-    floor_probabilities,
     hypothesis_floor,
     hypothesis_vertical,
     init_state,
     predict,
+    published_floor_probabilities,
     update,
 )
 from diffpos.tracking_model import Links, measurement_update
@@ -111,8 +111,9 @@ def test_dormant_run_matches_the_full_run_and_is_row_independent():
     published floor equals the full run's in every node-epoch, the position within 1 cm for
     95 % of node-epochs and 5 cm for all; a node tracked alone gives bit-identical outputs to
     its row of the 3-node run (what replay == live relies on), and so does the run with every
-    time shifted by a constant (a live run's times are wall-clock); :func:`floor_probabilities`
-    of the state is the published floor marginal (bit for bit, rows sum to 1 within 1e-12)."""
+    time shifted by a constant (a live run's times are wall-clock);
+    :func:`published_floor_probabilities` of the state is the published floor marginal (bit
+    for bit, rows sum to 1 within 1e-12)."""
     inputs = _walk_inputs()
     s_on, o_on = _track(inputs, ON)
     _, o_off = _track(inputs, OFF)
@@ -125,8 +126,8 @@ def test_dormant_run_matches_the_full_run_and_is_row_independent():
     d = np.linalg.norm(np.array([o.position_m for o in o_on])
                        - np.array([o.position_m for o in o_off]), axis=-1)
     assert np.percentile(d, 95) < 0.01 and d.max() < 0.05, (np.percentile(d, 95), d.max())
-    # floor_probabilities(): the published floor marginal, bit for bit
-    p = floor_probabilities(s_on[-1].log_prob)
+    # published_floor_probabilities(): the published floor marginal, bit for bit
+    p = published_floor_probabilities(s_on[-1].log_prob, ON)
     assert np.array_equal(p, o_on[-1].floor_probabilities)
     np.testing.assert_allclose(p.sum(axis=1), 1.0, atol=1e-12)
     _, alone = _track(inputs, ON, rows=[1])

@@ -19,7 +19,12 @@ from diffpos_services.fusion import tracked
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.service import StepCost
-from diffpos_services.fusion.tracked import HEAVY_WORK_EPOCHS, SNAPSHOT_WORK_EPOCHS, heavy_budget
+from diffpos_services.fusion.tracked import (
+    HEAVY_MIN_OPERATIONS,
+    HEAVY_WORK_EPOCHS,
+    SNAPSHOT_WORK_EPOCHS,
+    heavy_budget,
+)
 from diffpos_services.recording.replay import replay
 from diffpos_services.recording.synthetic import quiet_logger
 from diffpos_services.recording.writer import McapSink
@@ -106,10 +111,12 @@ def _run(limit: int | None, sink: McapSink | None = None, emit=None):
 
 def test_heavy_budget_is_a_fraction_of_the_epochs_solved():
     assert heavy_budget(None) is None  # replay of unlimited steps, flush: unbounded
-    assert heavy_budget(1) == 1  # a step always makes progress
-    assert heavy_budget(HEAVY_WORK_EPOCHS - 1) == 1
-    assert heavy_budget(3 * HEAVY_WORK_EPOCHS) == 3
-    assert heavy_budget(3 * HEAVY_WORK_EPOCHS + HEAVY_WORK_EPOCHS - 1) == 3
+    assert HEAVY_MIN_OPERATIONS >= 1
+    assert heavy_budget(1) == HEAVY_MIN_OPERATIONS  # a step always makes progress
+    assert heavy_budget(HEAVY_WORK_EPOCHS - 1) == HEAVY_MIN_OPERATIONS
+    k = HEAVY_MIN_OPERATIONS + 1
+    assert heavy_budget(k * HEAVY_WORK_EPOCHS) == k
+    assert heavy_budget(k * HEAVY_WORK_EPOCHS + HEAVY_WORK_EPOCHS - 1) == k
 
 
 def _positioned(ests) -> set[str]:
@@ -118,8 +125,9 @@ def _positioned(ests) -> set[str]:
 
 def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
     """Eight new nodes at once. Unbudgeted (limit None) the first step initialises all of
-    them and snapshots every one; budgeted (8 epochs per step: one heavy operation), each step
-    initialises exactly one more node and does nothing else heavy until all are initialised.
+    them and snapshots every one; budgeted (8 epochs per step: ``b`` = HEAVY_MIN_OPERATIONS
+    heavy operations), each step initialises exactly ``b`` more nodes (the rest at the end)
+    and does nothing else heavy until all are initialised.
     Every node-epoch is still published in the step that released it (no position while the
     node waits: UNINITIALISED), and the budgeted tracks end as close to the truth as the
     unbudgeted ones."""
@@ -127,10 +135,12 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
     _, free = _run(None)
     assert _positioned(free[0]) == set(NODES)
     assert sum(e.snapshot is not None for e in free[0]) == n
-    limit = 4 * HEAVY_WORK_EPOCHS  # every ready epoch; the 8 solved allow one heavy operation
-    assert heavy_budget(n) == 1
+    limit = 4 * HEAVY_WORK_EPOCHS  # every ready epoch; the 8 solved allow b heavy operations
+    b = heavy_budget(n)
+    assert b == HEAVY_MIN_OPERATIONS < n
     core, steps = _run(limit)
-    assert core.bank.deferred == sum(range(n))  # 7 + 6 + ... + 0 node-epochs waited
+    # node-epochs that waited: n - b after the first step, n - 2 b after the second, ...
+    assert core.bank.deferred == sum(max(0, n - b * (k + 1)) for k in range(n))
     seen: set[str] = set()
     for k, ests in enumerate(steps[:-1]):
         # published on time: every node's epoch k in step k
@@ -138,9 +148,9 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
         assert {e.epoch for e in ests} == {T0 // PERIOD + k}
         new = _positioned(ests) - seen
         heavy = len(new) + sum(e.snapshot is not None for e in ests)
-        assert heavy <= 1, (k, new)
-        if k < n:
-            assert len(new) == 1, (k, new)  # initialisations come first
+        assert heavy <= b, (k, new)
+        if k * b < n:
+            assert len(new) == min(b, n - k * b), (k, new)  # initialisations come first
         waiting = [e for e in ests if e.node_id not in seen | new]
         assert all(e.status == "UNINITIALISED" and e.position_m is None for e in waiting)
         seen |= new
@@ -154,25 +164,29 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
 
 
 def test_initialisations_come_after_the_other_estimates_of_their_step():
-    """Budgeted steps of 8 epochs (one initialisation each): with ``emit``, each step first
-    emits the estimates of the nodes it does not initialise, then returns the one it
+    """Budgeted steps of 8 epochs (``b`` initialisations each): with ``emit``, each step
+    first emits the estimates of the nodes it does not initialise, then returns the ones it
     initialises (with a position); the estimates are bit for bit those of the same steps
     without ``emit``."""
     limit = 4 * HEAVY_WORK_EPOCHS
+    n, b = len(NODES), heavy_budget(len(NODES))
     _, plain = _run(limit)
     emitted: list[list] = []
     _, late = _run(limit, emit=lambda ests: emitted.append(list(ests)))
-    n = len(NODES)
-    assert len(emitted) == n  # the steps with an initialisation
+    k_init = -(-n // b)  # the steps with an initialisation
+    assert len(emitted) == k_init
     seen: set[str] = set()
-    for k in range(n):
-        assert len(emitted[k]) == n - 1 and len(late[k]) == 1
-        assert late[k][0].position_m is not None and late[k][0].node_id not in seen
-        assert late[k][0].node_id not in {e.node_id for e in emitted[k]}
-        seen.add(late[k][0].node_id)
-    assert all(len(s) == n for s in late[n:-1])
+    for k in range(k_init):
+        m = min(b, n - k * b)
+        assert len(emitted[k]) == n - m and len(late[k]) == m
+        new = {e.node_id for e in late[k]}
+        assert all(e.position_m is not None for e in late[k]) and not new & seen
+        assert not new & {e.node_id for e in emitted[k]}
+        seen |= new
+    assert seen == set(NODES) and all(len(s) == n for s in late[k_init:-1])
     bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
-    both = [sorted(map(bare, (emitted[k] if k < n else []) + late[k])) for k in range(len(late))]
+    both = [sorted(map(bare, (emitted[k] if k < k_init else []) + late[k]))
+            for k in range(len(late))]
     assert both == [sorted(map(bare, s)) for s in plain]
 
 

@@ -60,16 +60,20 @@ def test_recorder_splits_into_complete_parts_holding_every_message(bus, tmp_path
         for p in pubs.values():
             assert wait_matching(p, timeout_s=TIMEOUT_S)
         seq = Counter()
-        for e in range(1500):
-            for (a, n), pub in pubs.items():
-                seq[a] += 1
-                t = 10**18 + e * 10**8
-                pub.put(M.encode(M.RangeMeasurement(
-                    anchor_id=a, node_id=n, t_ns=t, seq=seq[a], range_m=20.0 + e * 1e-3,
-                    sigma_m=0.2, snr_db=15.0, t_pub_wall_ns=t)))
-                sent[(keys[(a, n)], seq[a])] += 1
-        total = sum(sent.values())
-        rec.wait_event(lambda ev: ev["event"] == "flush" and ev["flushed_written"] >= total)
+        # in rounds, each flushed before the next is sent: the parts then do not depend on how
+        # many messages one flush happens to catch (one flush of everything made 2 parts)
+        for first in range(0, 1500, 250):
+            for e in range(first, first + 250):
+                for (a, n), pub in pubs.items():
+                    seq[a] += 1
+                    t = 10**18 + e * 10**8
+                    pub.put(M.encode(M.RangeMeasurement(
+                        anchor_id=a, node_id=n, t_ns=t, seq=seq[a], range_m=20.0 + e * 1e-3,
+                        sigma_m=0.2, snr_db=15.0, t_pub_wall_ns=t)))
+                    sent[(keys[(a, n)], seq[a])] += 1
+            total = sum(sent.values())
+            rec.wait_event(lambda ev, n=total: ev["event"] == "flush"
+                           and ev["flushed_written"] >= n)
     rec.p.send_signal(signal.SIGTERM)
     closed = rec.wait_event(lambda ev: ev["event"] == "closed")
     assert rec.p.wait(timeout=TIMEOUT_S) == 0

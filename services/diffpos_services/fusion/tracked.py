@@ -75,7 +75,8 @@ from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
 from diffpos_services.wire import messages as M
 
-__all__ = ["HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved", "TrackBank", "estimates_v2", "heavy_budget",
+__all__ = ["HEAVY_MIN_OPERATIONS", "HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved",
+           "TrackBank", "estimates_v2", "heavy_budget",
            "solve_mnls"]
 
 _FIX_NAMES = {int(s): s.name for s in FixStatus}
@@ -98,6 +99,11 @@ CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
 #: slows the steps by up to a half instead of stalling them (50 new nodes at 10 Hz are
 #: initialised within ~1 s, bench_fusion_cost.py --schedule); each step does at least one.
 HEAVY_WORK_EPOCHS = 10
+#: Heavy operations any budgeted step may do, however few epochs it solves: ~10 ms with 8
+#: anchors, well inside the 50 ms end-to-end goal. With one, a small fleet's tracks started one
+#: per step (6 responders: 15 of the first 120 estimates had no position, where the
+#: unbudgeted fusion initialised all six in the first step).
+HEAVY_MIN_OPERATIONS = 2
 #: Epochs solved per mnls snapshot fix budgeted steps may do, on average (a credit carried
 #: from step to step in the :class:`TrackBank`, at most :data:`SNAPSHOT_BURST` banked), within
 #: the step's ``heavy`` budget. A snapshot never feeds the tracker (it is a check published
@@ -115,10 +121,12 @@ SNAPSHOT_BURST = 2
 
 def heavy_budget(n_epochs: int | None) -> int | None:
     """Track initialisations + snapshot fixes a budgeted step that solves ``n_epochs`` epochs
-    may do (``None``: an unbudgeted step, unbounded; at least 1, so a step always makes
-    progress). Proportional to the epochs it solves, not to its limit: a large limit (a
-    fusion behind its input) does not license more heavy work per epoch."""
-    return None if n_epochs is None else max(1, int(n_epochs) // HEAVY_WORK_EPOCHS)
+    may do (``None``: an unbudgeted step, unbounded; at least :data:`HEAVY_MIN_OPERATIONS`, so a
+    step always makes progress). Proportional to the epochs it solves, not to its limit: a
+    large limit (a fusion behind its input) does not license more heavy work per epoch."""
+    if n_epochs is None:
+        return None
+    return max(HEAVY_MIN_OPERATIONS, int(n_epochs) // HEAVY_WORK_EPOCHS)
 
 
 class TrackBank:
