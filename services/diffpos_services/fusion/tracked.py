@@ -34,7 +34,9 @@ fraction of the work of the epochs it solves): initialisations first, in row ord
 is passed to the tracker without ranges this epoch (it stays UNINITIALISED or LOST, published
 without a position on time) and is initialised by a later step; then the due snapshots, the
 stalest first; one that does not fit stays due. The budget only moves *when* a track starts and
-*which* epochs carry a snapshot. Snapshots have a budget of their own besides
+*which* epochs carry a snapshot. The epochs of a budgeted step's initialisations are solved
+after its other epochs (:meth:`TrackBank.hold_inits`), and the live service publishes those
+first: an initialisation delays only its own node's estimate. Snapshots have a budget of their own besides
 (:data:`SNAPSHOT_WORK_EPOCHS`: one per 50 epochs solved on average, a credit the bank carries
 from step to step). ``heavy=None`` (replay of steps without a limit, flush, tests)
 is unbounded.
