@@ -100,7 +100,8 @@ def test_a_backlog_never_delays_the_first_solve_beyond_the_ingest_budget():
     base_ns = round(INGEST_BUDGET_S * 1e9)
     assert max(t.ingested for t in turns if t.budget_ns == base_ns) < n / 4
     assert sum(1 for t in turns if t.ingested) >= 4, turns
-    assert max(t.ingest_ns - t.budget_ns for t in turns) < 50e6
+    # (that each ingest stops at its budget plus one item is checked on a fake clock below:
+    # a wall-clock bound here failed once on a loaded machine, a descheduled item)
     # the budget is the configured one, or INGEST_SHARE x the previous solve step (at most
     # INGEST_MAX_S) if longer
     for prev, t in itertools.pairwise(turns):
@@ -193,3 +194,24 @@ def test_a_fusion_slower_than_its_input_drops_old_epochs_and_counts_them():
         while batch := c.step(time.time_ns(), limit=limit):
             got += batch
         assert len(got) == core.rejected["overloaded"] + len(out) and not c.rejected["overloaded"]
+
+
+def test_an_ingest_stops_at_its_budget_plus_one_item(monkeypatch):
+    """``_drain`` reads the monotonic clock after every item and stops once the budget is
+    spent: with items that take 1 ms each (a fake clock), a 10 ms budget ingests exactly 10 of
+    100 queued items and leaves 90 queued (independent of the machine's speed)."""
+    from diffpos_services.fusion import service
+
+    core = FusionCore(fusion_config())
+    inbox = _Inbox(core.config, threading.Event())
+    for i in range(100):
+        inbox.q.put(("item", i))
+    ingested: list = []
+    monkeypatch.setattr(service, "_ingest", lambda core, inbox, item, log: ingested.append(item))
+    t = itertools.count(1_000_000, 1_000_000)  # the turn started at 0; each item takes 1 ms
+    monkeypatch.setattr(service.time, "monotonic_ns", lambda: next(t))
+    n = service._drain(core, inbox, inbox.q.get_nowait(), 0.0, logging.getLogger("t"),
+                       until_ns=10_000_000)
+    assert n == len(ingested) == 10
+    assert ingested == [("item", i) for i in range(10)]
+    assert inbox.q.qsize() == 90
