@@ -99,7 +99,8 @@ CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
 #: (tracker update, batch assembly, messages; the live ``large`` run's steps replayed): the
 #: heavy work of a step is then at most about half its regular work, so a burst of new tracks
 #: slows the steps by up to a half instead of stalling them (50 new nodes at 10 Hz are
-#: initialised within ~1 s, bench_fusion_cost.py --schedule); each step does at least one.
+#: initialised within ~1 s, bench_fusion_cost.py --schedule); each step may do at least
+#: :data:`HEAVY_MIN_OPERATIONS`.
 HEAVY_WORK_EPOCHS = 10
 #: Heavy operations any budgeted step may do, however few epochs it solves: ~10 ms with 8
 #: anchors, well inside the 50 ms end-to-end goal. With one, a small fleet's tracks started one

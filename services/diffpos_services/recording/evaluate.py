@@ -79,14 +79,10 @@ def evaluate(
         j = np.searchsorted(tt, te)
         left, right = np.clip(j - 1, 0, n - 1), np.clip(j, 0, n - 1)
         dl, dr = np.abs(te - tt[left]), np.abs(te - tt[right])
-        closer = np.where(dl <= dr, left, right)
         inside = np.minimum(dl, dr) <= max_truth_gap_ns
         no_truth += int((~inside).sum())
-        te, pe, peb, fe, closer = te[inside], pe[inside], peb[inside], fe[inside], closer[inside]
-        tq = (te - tt[0]).astype(float)
-        tgrid = (tt - tt[0]).astype(float)
-        truth_pos = np.stack([np.interp(tq, tgrid, tp[:, k]) for k in range(3)], axis=-1)
-        truth_floor = tf[closer]
+        te, pe, peb, fe = te[inside], pe[inside], peb[inside], fe[inside]
+        truth_pos, truth_floor = truth_at(te, tt, tp, tf)
         d = pe - truth_pos
         e3 = np.linalg.norm(d, axis=-1)
         ez = np.abs(d[:, 2])
