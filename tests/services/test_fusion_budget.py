@@ -192,8 +192,8 @@ def test_initialisations_come_after_the_other_estimates_of_their_step():
 
 def test_snapshots_have_a_credit_of_their_own_and_move_no_tracked_estimate(monkeypatch):
     """Budgeted steps of 8 epochs: after any step, the snapshots so far are at most one per
-    SNAPSHOT_WORK_EPOCHS epochs solved (the credit), and they do happen (unconfirmed tracks
-    are due every epoch). A snapshot never feeds the tracker: with a credit of one per epoch
+    SNAPSHOT_WORK_EPOCHS epochs solved (the credit), and they do happen (a new node is due at
+    once). A snapshot never feeds the tracker: with a credit of one per epoch
     the snapshots differ, every tracked estimate (status, position, covariance) is identical
     bit for bit."""
     limit = 4 * HEAVY_WORK_EPOCHS

@@ -43,7 +43,7 @@ WALKERS = {
     "w2": [[5.0, 8.0, 7.0 + H], [5.0, 3.0, 7.0 + H], [12.0, 3.0, 7.0 + H]],
     "w3": [[2.0, 4.0, 10.0 + H], [6.0, 4.0, 11.5 + H], [8.0, 4.0, 13.0 + H]],  # up the stairs
 }
-EPOCHS = 20  # 2 s: initialisation (snapshot every epoch), confirmation, steady tracking
+EPOCHS = 20  # 2 s: initialisation (a snapshot per second), confirmation, steady tracking
 
 
 def _config(**kw) -> FusionConfig:
@@ -144,7 +144,7 @@ def test_every_node_epoch_gets_a_v2_estimate(live):
         assert set(e.used_anchors) == set(used)
         assert all(lk.mechanism in MECHANISMS for lk in used.values())
         assert e.residuals_m == pytest.approx([used[a].residual_m for a in e.used_anchors])
-    # the snapshot rides along while a track is not confirmed, then once per second
+    # the snapshot rides along with a node's first epoch, then at most once per second
     first = min(e.epoch for e in ests)
     assert all(e.snapshot is not None for e in ests if e.epoch == first)
     assert 0 < sum(e.snapshot is not None for e in ests) < len(ests)

@@ -5,14 +5,21 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
 :mod:`diffpos_services.fusion.solve`) get
 
 - the snapshot fix :func:`diffpos.estimators.mnls` on the scenario's building (every row
-  without tracking; with tracking only the rows whose node has no confirmed track, or whose
-  last snapshot is ``snapshot_period_s`` of measurement time old; for a *confident* track,
-  its floor at >= :data:`CONFIDENT_FLOOR_PROBABILITY` and its averaged NIS <=
-  :data:`CONFIDENT_NIS`, :data:`CONFIDENT_SNAPSHOT_PERIOD_S` old). The snapshot is published
-  alongside (``PositionEstimateV2.snapshot``, an independent check of the track) and never
-  feeds the tracker, so this policy changes no tracked estimate, only the CPU: an mnls fix
-  costs ~7 ms with 8 anchors, i.e. 0.7 ms per node-epoch at 10 Hz with a 1 s period, more
-  than the tracker's update. Measured (``bench_tracking``'s lockstep emulation, seed 0, 20 s;
+  without tracking; with tracking only the rows whose node never had one, whose node the
+  tracker does not place (UNINITIALISED, LOST: the snapshot is then the only fix of it), or
+  whose last snapshot is ``snapshot_period_s`` of measurement time old; for a *confident*
+  confirmed track, its floor at >= :data:`CONFIDENT_FLOOR_PROBABILITY` and its averaged NIS
+  <= :data:`CONFIDENT_NIS`, :data:`CONFIDENT_SNAPSHOT_PERIOD_S` old). The snapshot is
+  published alongside (``PositionEstimateV2.snapshot``, an independent check of the track) and
+  never feeds the tracker, nor anything else of the fusion (no divergence test or
+  re-initialisation reads it: the tracker's own initialisation is its grid snapshot,
+  :func:`diffpos.tracking_model.snapshot_init`), so this policy changes no tracked estimate,
+  only the CPU: an mnls fix costs ~7 ms with 8 anchors, i.e. 0.7 ms per node-epoch at 10 Hz
+  with a 1 s period, more than the tracker's update. An unconfirmed (INITIALISING) track got
+  one every epoch until 2026-11-27: 5 snapshots per new node, 1,002 of the 1,654 snapshots of
+  the 30 s 16 x 200 soak replay (250 of 352 in the 20 s ``large`` one); with the period, the
+  tracked estimates are bit for bit the same and the soak replay's CPU went 47.8 -> 41.7 s
+  (the ``snap`` branch's report). Measured (``bench_tracking``'s lockstep emulation, seed 0, 20 s;
   the trkcost branch's report): a confirmed track was confident in 93.0 / 99.6 / 92.2 % of
   the node-epochs of ``default`` / ``large`` / ``other-building``, its floor then right in
   96.6 / 99.9 / 95.3 % of them (44.7 / 64.7 / 8.6 % when not confident): the confident
@@ -115,8 +122,9 @@ HEAVY_MIN_OPERATIONS = 2
 #: step of 50 epochs with ``heavy_budget``; measured on the real-time ``large`` input,
 #: bench_fusion_cost.py --schedule: steps of 42 epochs with 4 snapshots took 50 ms, 35 epochs
 #: without 21-23 ms). With N nodes at 10 Hz the credit gives N/5 snapshots per s: twenty
-#: times what confident tracks need (N/100); doubtful and unconfirmed tracks (due every 1 s,
-#: resp. every epoch) get theirs as the credit allows, the stalest first.
+#: times what confident tracks need (N/100); doubtful and unconfirmed tracks (due every 1 s)
+#: and nodes without a tracked position (every epoch) get theirs as the credit allows, the
+#: stalest first.
 SNAPSHOT_WORK_EPOCHS = 50
 #: Snapshot credit a bank may hold [snapshots] (a burst after quiet steps stays small).
 SNAPSHOT_BURST = 2
@@ -293,15 +301,17 @@ def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray
     of the due ones, those with the oldest snapshot first (never: first of all), the rest
     stay due."""
     ids = [pe.node_id for pe in epochs]
-    confirmed = bank.status_of(ids) == int(TrackStatus.TRACKING)
-    confident = bank.confident_of(ids)
+    status = bank.status_of(ids)
+    placed = np.isin(status, _NO_POSITION, invert=True)  # the tracker publishes a position
+    sure = (status == int(TrackStatus.TRACKING)) & bank.confident_of(ids)
     period = round(cfg.snapshot_period_s * 1e9)
     long_period = max(period, round(CONFIDENT_SNAPSHOT_PERIOD_S * 1e9))
     due = np.ones(len(epochs), bool)
     lasts = [bank.snapshot_ns.get(nid) for nid in ids]
-    for i, (last, ok, sure) in enumerate(zip(lasts, confirmed.tolist(), confident.tolist(),
-                                             strict=True)):
-        if ok and last is not None and 0 <= t_ref[i] - last < (long_period if sure else period):
+    for i, (last, ok, sure_i) in enumerate(zip(lasts, placed.tolist(), sure.tolist(),
+                                               strict=True)):
+        if ok and last is not None and 0 <= t_ref[i] - last < (long_period if sure_i
+                                                                else period):
             due[i] = False
     todo = np.flatnonzero(due)
     if todo.size > limit:
@@ -400,6 +410,25 @@ def _snapshot_msg(s: Solved, i: int, pos_l, cov_l, prob_l, fin) -> M.SnapshotFix
         floor_probabilities=_probs(prob_l[i], prob_ok[i]))
 
 
+_MECH_OR_NONE = np.array([*MECHANISMS, None], dtype=object)  # index -1: no mechanism
+
+
+def _links(use: np.ndarray, mech: np.ndarray, resid: np.ndarray, names: list[str]
+           ) -> tuple[list[M.AnchorLink], list[int]]:
+    """The :class:`AnchorLink` of every used (row, anchor) of a batch, row by row in anchor
+    order, and each row's start in that list (``offs[i]:offs[i + 1]``): built by columns
+    (mechanism labels and wire residuals, NaN -> None, for the whole batch at once)."""
+    ii, jj = np.nonzero(use)
+    offs = np.concatenate([[0], np.cumsum(np.count_nonzero(use, axis=1))]).tolist()
+    r = resid[ii, jj]
+    r_wire = r.astype(object)
+    r_wire[~np.isfinite(r)] = None
+    ids = np.array(names, dtype=object)[jj] if names else np.zeros(0, object)
+    links = list(map(M.AnchorLink, ids.tolist(), _MECH_OR_NONE[mech[ii, jj]].tolist(),
+                     r_wire.tolist()))
+    return links, offs
+
+
 def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[str], *,
                  seq0: int, now: int, method: str) -> list[M.PositionEstimateV2]:
     """One :class:`PositionEstimateV2` per row of a batch solved by :func:`solve_mnls`
@@ -410,13 +439,13 @@ def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[
     pos_l, cov_l = res.pos.tolist(), res.cov.tolist()
     pos_ok, cov_ok, prob_ok = (_finite_rows(a) for a in (res.pos, res.cov, s.floor_prob))
     peb_l, zb_l = res.peb.tolist(), res.zb.tolist()
-    prob_l, mech_l = s.floor_prob.tolist(), s.mechanism.tolist()
+    prob_l = s.floor_prob.tolist()
     best_l = np.argmax(np.where(np.isnan(s.floor_prob), -np.inf,
                                 np.clip(s.floor_prob, 0.0, 1.0)), axis=1).tolist()
     resid = res.resid
-    resid_l = resid.tolist()
-    resid_wire_l = np.where(np.isfinite(resid), resid, 0.0).tolist()
-    use_l = batch.use.tolist()
+    used = res.used  # the columns of each row's group's used_idx, row-major
+    resid_used_l = np.where(np.isfinite(resid), resid, 0.0)[used].tolist()
+    r_offs = np.concatenate([[0], np.cumsum(np.count_nonzero(used, axis=1))]).tolist()
     t_ref_l = batch.t_ref.tolist()
     in_wall_l = np.where(batch.reported, batch.pub_wall, 0).max(axis=1).tolist()
     if s.tracking:
@@ -425,18 +454,15 @@ def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[
         snap_fin = tuple(_finite_rows(a) for a in (s.snap.pos, s.snap.cov, s.snap_prob))
     else:
         snap_pos = snap_cov = snap_prob = snap_fin = None
-    mech_names = MECHANISMS
+    links_l, offs = _links(batch.use, s.mechanism, resid, names)
     finite_or_none = M.finite_or_none
     out = []
     for i, (pe, gi) in enumerate(zip(epochs, group_l, strict=True)):
         st = s.status[i]
-        used_idx, used_ids, excluded, _ = shared[gi]
+        _, used_ids, excluded, _ = shared[gi]
         has = st in M.GOOD_STATUSES and pos_ok[i]
         probs = _probs(prob_l[i], prob_ok[i]) if has else []
-        mech_i, resid_i = mech_l[i], resid_l[i]
-        links = [M.AnchorLink(names[j], mech_names[mech_i[j]] if mech_i[j] >= 0 else None,
-                              finite_or_none(resid_i[j]))
-                 for j, u in enumerate(use_l[i]) if u]
+        links = links_l[offs[i]:offs[i + 1]]
         out.append(M.PositionEstimateV2(
             node_id=pe.node_id, t_ns=t_ref_l[i], epoch=pe.epoch, seq=seq0 + i + 1,
             method=method, status=st,
@@ -447,7 +473,7 @@ def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[
             floor_index=best_l[i] if probs else None, floor_probabilities=probs,
             snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob, snap_fin),
             links=links, used_anchors=list(used_ids),
-            residuals_m=[resid_wire_l[i][j] for j in used_idx],
+            residuals_m=resid_used_l[r_offs[i]:r_offs[i + 1]],
             excluded=list(excluded), message=res.msg[i] if not s.tracking else "",
             t_input_wall_ns=max(in_wall_l[i], 0), t_pub_wall_ns=now))
     return out
