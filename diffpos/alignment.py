@@ -43,6 +43,8 @@ Model and assumptions
 from __future__ import annotations
 
 import collections
+import math
+import operator
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -215,6 +217,9 @@ class PendingEpoch:
 
 #: "Before any time" for the latest-time and solved-epoch maps [ns or epoch index].
 _NEVER = -(2**62)
+_NEVER_EPOCH = -(2**63)  # below every epoch index (no epoch is closed)
+_EPOCH_NODE = operator.itemgetter(1, 0)  # pending key (node, epoch) -> (epoch, node)
+_FIRST_RX = operator.attrgetter("first_rx_wall_ns")
 #: Lag samples kept per anchor, and how many new ones trigger a new allowance.
 _LAG_SAMPLES = 256
 _LAG_REFRESH = 32
@@ -286,17 +291,25 @@ class EpochBook:
         late = 0
         pending = self.pending
         solved = self.solved_upto
-        closed = e <= self.closed_upto
-        for node_id, entry in entries:
-            if closed or e <= solved.get(node_id, _NEVER):
-                late += 1
-                continue
-            pe = pending.get((node_id, e))
-            if pe is None:
-                pe = pending[(node_id, e)] = PendingEpoch(node_id, e, entry.rx_wall_ns)
-            elif anchor_id in pe.ranges:
-                self.replaced += 1
-            pe.ranges[anchor_id] = entry
+        if e <= self.closed_upto:
+            late = len(entries)
+        else:
+            # a pending (node, e) is never at or below the node's solved epoch (a node's epochs
+            # are released in order and solved_upto moves only on a release), so only a node
+            # without a pending epoch e needs the solved test
+            for node_id, entry in entries:
+                pe = pending.get((node_id, e))
+                if pe is None:
+                    if e <= solved.get(node_id, _NEVER):
+                        late += 1
+                        continue
+                    pe = pending[(node_id, e)] = PendingEpoch(node_id, e, entry.rx_wall_ns)
+                    pe.ranges[anchor_id] = entry
+                    continue
+                ranges = pe.ranges
+                if anchor_id in ranges:
+                    self.replaced += 1
+                ranges[anchor_id] = entry
         if entries:
             self._adds += 1
             self._note_rx(entries[-1][1].rx_wall_ns)
@@ -377,19 +390,20 @@ class EpochBook:
         ts = sorted(self.latest_t_ns[a] for a in live_anchors if a in self.latest_t_ns)
         return ts[(len(ts) - 1) // 2] if len(ts) >= 3 else None
 
-    def _timed_out(self, now_wall_ns: int):
-        """``f(pe) -> bool``: the epoch is released without waiting for missing anchors
-        (measurement watermark past its end + allowance, or a wall-clock fallback)."""
+    def _timeout_rule(self, now_wall_ns: int) -> tuple[bool, int, int]:
+        """When an epoch is released without waiting for missing anchors (measurement
+        watermark past its end + allowance, or a wall-clock fallback), as numbers
+        ``(everything, last, cutoff)``: ``pe`` is timed out when ``everything`` (the bus was
+        quiet for ``max_lag_ns``: every epoch), ``pe.epoch <= last`` (closed by the watermark)
+        or ``pe.first_rx_wall_ns <= cutoff`` (waited ``max_lag_ns`` of wall time; with
+        ``release="wall"``: ``deadline_ns``, and nothing is closed)."""
         cfg = self.config
         if cfg.release == "wall":
-            return lambda pe: now_wall_ns - pe.first_rx_wall_ns >= cfg.deadline_ns
+            # now - first >= deadline <=> first <= now - ceil(deadline) (integer times)
+            return False, _NEVER_EPOCH, now_wall_ns - math.ceil(cfg.deadline_ns)
         quiet = (self.last_rx_wall_ns is not None
                  and now_wall_ns - self.last_rx_wall_ns >= self.max_lag_ns)
-        if quiet:
-            return lambda pe: True
-        # epochs e with (e + 1) T + tolerance + allowance <= watermark (closed on arrival)
-        last, hard = self.closed_upto, self.max_lag_ns
-        return lambda pe: pe.epoch <= last or now_wall_ns - pe.first_rx_wall_ns >= hard
+        return quiet, self.closed_upto, now_wall_ns - self.max_lag_ns
 
     def ready(self, live_anchors: set[str] | frozenset[str], now_wall_ns: int) -> list[PendingEpoch]:
         """Remove and return the epochs that are ready, oldest first.
@@ -409,37 +423,43 @@ class EpochBook:
         if idle is not None and idle[0] == state and now_wall_ns < idle[2] and (
                 idle[1] is live_anchors or idle[1] == live_anchors):
             return out  # nothing changed and nothing can have timed out since (cheap no-op)
-        timed_out = self._timed_out(now_wall_ns)
+        everything, last, cutoff = self._timeout_rule(now_wall_ns)
         t_c = self.consensus_t_ns(live_anchors)
         horizon = None if t_c is None else (t_c + cfg.max_future_ns) // cfg.epoch_period_ns
         # per epoch index: the live anchors whose latest time has not passed its end (an
         # epoch is complete when each of them reported for it)
         waiting_for: dict[int, frozenset[str]] = {}
         latest = self.latest_t_ns
-        for key in sorted(self.pending, key=lambda k: (k[1], k[0])):
-            pe = self.pending[key]
-            if pe.node_id in blocked:
+        pending, solved = self.pending, self.solved_upto
+        min_reports = cfg.min_reports
+        keys = sorted(pending, key=_EPOCH_NODE)
+        newest = keys[-1][1]  # a node not done in the newest epoch blocks nothing later
+        for key in keys:
+            node_id, epoch = key
+            if node_id in blocked:
                 continue
-            done = timed_out(pe)
-            if not done and len(pe.ranges) >= cfg.min_reports:
-                waiting = waiting_for.get(pe.epoch)
+            pe = pending[key]
+            if everything or epoch <= last or pe.first_rx_wall_ns <= cutoff:
+                done = True  # timed out
+            elif len(pe.ranges) >= min_reports:
+                waiting = waiting_for.get(epoch)
                 if waiting is None:
-                    end_ns = (pe.epoch + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
-                    waiting = waiting_for[pe.epoch] = frozenset(
+                    end_ns = (epoch + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
+                    waiting = waiting_for[epoch] = frozenset(
                         a for a in live_anchors if latest.get(a, _NEVER) < end_ns
                     )
                 done = waiting <= pe.ranges.keys()
+            else:
+                done = False
             if done:
                 out.append(pe)
-                del self.pending[key]
-                if horizon is not None and pe.epoch > horizon:
+                del pending[key]
+                if horizon is not None and epoch > horizon:
                     self.strays += 1
                     continue
-                self.solved_upto[pe.node_id] = max(
-                    pe.epoch, self.solved_upto.get(pe.node_id, _NEVER)
-                )
-            else:
-                blocked.add(pe.node_id)
+                solved[node_id] = max(epoch, solved.get(node_id, _NEVER))
+            elif epoch != newest:
+                blocked.add(node_id)
         self._idle = None if out else (state, live_anchors, self._wake_wall_ns())
         return out
 
@@ -450,8 +470,8 @@ class EpochBook:
                 tuple(self.latest_t_ns.items()))
 
     def _wake_wall_ns(self) -> int:
-        """The earliest wall time at which a pending epoch can time out (see _timed_out)."""
-        first = min(pe.first_rx_wall_ns for pe in self.pending.values())
+        """The earliest wall time at which a pending epoch can time out (see _timeout_rule)."""
+        first = min(map(_FIRST_RX, self.pending.values()))
         if self.config.release == "wall":
             return first + self.config.deadline_ns
         wake = first + self.max_lag_ns

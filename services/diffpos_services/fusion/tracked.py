@@ -392,6 +392,13 @@ def _probs(row: list[float], finite: bool) -> list[float]:
     return [min(max(p, 0.0), 1.0) for p in row]
 
 
+def _finite_or_none(a: np.ndarray) -> list[float | None]:
+    """:func:`~diffpos_services.wire.fields.finite_or_none` of every value of ``a`` (B,)."""
+    o = a.astype(object)
+    o[~np.isfinite(a)] = None
+    return o.tolist()
+
+
 def _finite_rows(a: np.ndarray) -> list[bool]:
     """Whether every value of each row of ``a`` (B, ...) is finite (no NaN rows: non-empty)."""
     return np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1).tolist()
@@ -420,12 +427,9 @@ def _links(use: np.ndarray, mech: np.ndarray, resid: np.ndarray, names: list[str
     (mechanism labels and wire residuals, NaN -> None, for the whole batch at once)."""
     ii, jj = np.nonzero(use)
     offs = np.concatenate([[0], np.cumsum(np.count_nonzero(use, axis=1))]).tolist()
-    r = resid[ii, jj]
-    r_wire = r.astype(object)
-    r_wire[~np.isfinite(r)] = None
     ids = np.array(names, dtype=object)[jj] if names else np.zeros(0, object)
     links = list(map(M.AnchorLink, ids.tolist(), _MECH_OR_NONE[mech[ii, jj]].tolist(),
-                     r_wire.tolist()))
+                     _finite_or_none(resid[ii, jj])))
     return links, offs
 
 
@@ -438,8 +442,9 @@ def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[
     group_l, shared = exclusion_groups(batch, res, lost)
     pos_l, cov_l = res.pos.tolist(), res.cov.tolist()
     pos_ok, cov_ok, prob_ok = (_finite_rows(a) for a in (res.pos, res.cov, s.floor_prob))
-    peb_l, zb_l = res.peb.tolist(), res.zb.tolist()
-    prob_l = s.floor_prob.tolist()
+    peb_l, zb_l = _finite_or_none(res.peb), _finite_or_none(res.zb)
+    # the wire's floor probabilities (_probs) of every row, clipped by columns
+    prob_l = np.clip(s.floor_prob, 0.0, 1.0).tolist() if s.floor_prob.shape[1] else None
     best_l = np.argmax(np.where(np.isnan(s.floor_prob), -np.inf,
                                 np.clip(s.floor_prob, 0.0, 1.0)), axis=1).tolist()
     resid = res.resid
@@ -455,21 +460,20 @@ def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[
     else:
         snap_pos = snap_cov = snap_prob = snap_fin = None
     links_l, offs = _links(batch.use, s.mechanism, resid, names)
-    finite_or_none = M.finite_or_none
     out = []
     for i, (pe, gi) in enumerate(zip(epochs, group_l, strict=True)):
         st = s.status[i]
         _, used_ids, excluded, _ = shared[gi]
         has = st in M.GOOD_STATUSES and pos_ok[i]
-        probs = _probs(prob_l[i], prob_ok[i]) if has else []
+        probs = prob_l[i] if has and prob_ok[i] and prob_l is not None else []
         links = links_l[offs[i]:offs[i + 1]]
         out.append(M.PositionEstimateV2(
             node_id=pe.node_id, t_ns=t_ref_l[i], epoch=pe.epoch, seq=seq0 + i + 1,
             method=method, status=st,
             position_m=tuple(pos_l[i]) if has else None,
             covariance_m2=tuple(map(tuple, cov_l[i])) if has and cov_ok[i] else None,
-            peb_m=finite_or_none(peb_l[i]) if has else None,
-            z_bound_m=finite_or_none(zb_l[i]) if has else None,
+            peb_m=peb_l[i] if has else None,
+            z_bound_m=zb_l[i] if has else None,
             floor_index=best_l[i] if probs else None, floor_probabilities=probs,
             snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob, snap_fin),
             links=links, used_anchors=list(used_ids),
