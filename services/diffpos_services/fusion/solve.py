@@ -338,14 +338,16 @@ def exclusion_groups(batch: Batch, res: Results, lost: set[str]
     code[reported & ~detected] = 1
     why = np.where(code == 3, 16 + res_reason, code) * ~res_used
     pattern = np.concatenate([res_used.astype(np.int64), why], axis=1)
-    first: dict[bytes, int] = {}  # pattern -> group id
-    reps: list[int] = []  # group id -> its first row
-    group_l: list[int] = []
-    for i, row in enumerate(pattern):
-        g = first.setdefault(row.tobytes(), len(first))
-        if g == len(reps):
-            reps.append(i)
-        group_l.append(g)
+    # group ids in order of first appearance, each group's first row its representative
+    if pattern.shape[0]:
+        _, first, inverse = np.unique(pattern, axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(order.size)
+        group_l = rank[inverse.reshape(-1)].tolist()
+        reps = first[order]
+    else:
+        group_l, reps = [], np.zeros(0, np.intp)
     shared = []
     for row in pattern[reps].tolist():
         used_idx = [j for j in range(m) if row[j]]
