@@ -149,7 +149,7 @@ def gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, Any]) 
         det = np.fromiter(map(_is_not_none, e_r), bool, len(e_r))
         di, dj = ri_a[det], rj_a[det]
         detected[di, dj] = True
-        rng[di, dj] = np.array(e_r, dtype=object)[det].astype(np.float64)
+        rng[di, dj] = np.array(e_r, dtype=np.float64)[det]  # (None -> NaN: not taken)
         sig[di, dj] = np.array(e_s, dtype=np.float64)[det]
         snr[di, dj] = np.array(e_snr, dtype=np.float64)[det]
     apos, asig, have_state = _anchor_positions(col, anchors, t, detected)
