@@ -17,9 +17,13 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
   only the CPU: an mnls fix costs ~7 ms with 8 anchors, i.e. 0.7 ms per node-epoch at 10 Hz
   with a 1 s period, more than the tracker's update. An unconfirmed (INITIALISING) track got
   one every epoch until 2026-11-27: 5 snapshots per new node, 1,002 of the 1,654 snapshots of
-  the 30 s 16 x 200 soak replay (250 of 352 in the 20 s ``large`` one); with the period, the
-  tracked estimates are bit for bit the same and the soak replay's CPU went 47.8 -> 41.7 s
-  (the ``snap`` branch's report). Measured (``bench_tracking``'s lockstep emulation, seed 0, 20 s;
+  the 30 s 16 x 200 soak replay (250 of 352 in the 20 s ``large`` one). With the period (661
+  resp. 102 snapshots) the tracked estimates of both replays are bit for bit the same, and the
+  soak replay's CPU went 58.0 / 56.2 -> 49.9 / 46.3 s (process time, all epochs solved
+  unbudgeted, with the batch-assembly changes of the same branch; 2 interleaved runs, 2-core VM
+  shared, load 4-6). Live, the snapshot credit (:data:`SNAPSHOT_WORK_EPOCHS`) already rations
+  them: the decision replay of the live ``large`` recording made the same 101 snapshots with
+  either policy. Measured (``bench_tracking``'s lockstep emulation, seed 0, 20 s;
   the trkcost branch's report): a confirmed track was confident in 93.0 / 99.6 / 92.2 % of
   the node-epochs of ``default`` / ``large`` / ``other-building``, its floor then right in
   96.6 / 99.9 / 95.3 % of them (44.7 / 64.7 / 8.6 % when not confident): the confident
