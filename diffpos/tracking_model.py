@@ -8,9 +8,13 @@ path evaluation are in :mod:`diffpos.tracking_paths`, the initialisation's grid 
 (every slot's paths, the IEKF's link model, the selection's candidates and variances, the
 initialisation's grid search) run in the compiled kernels of
 :mod:`diffpos._kernels.tracking_nb`, each bit-identical to the numpy reference kept next to
-it (``_all_paths_numpy``, ``_model_numpy``, ``_select_prep_numpy``, ``_grid_starts_numpy``;
-tests/core/test_tracking_kernel.py); the transcendental functions and the 6 x 6 algebra stay
-in numpy (numba's libm exp/log and numpy's SIMD ones differ in the last bit).
+it (``_all_paths_numpy``, ``_model_numpy``, ``_select_numpy``, ``_grid_starts_numpy``;
+tests/core/test_tracking_kernel.py); the selection's log/exp stay numpy's (on the packed
+candidates between its kernels: numba's libm exp/log and numpy's SIMD ones differ in the last
+bit). The IEKF runs its whole Gauss-Newton loop and evidence in one kernel per hypothesis
+(``iekf_kernel``): its 6 x 6 solve/inverse/log-determinant is LU with partial pivoting, not
+LAPACK's operation order, so it is held to its numpy reference (``_iekf_numpy``) within a
+tolerance (1e-9 m, 1e-8 nats), not bit for bit; live and replay run the same code.
 
 Existence near a window-band edge is graded with every hypothesis' own margin
 (:func:`existence_margin`: ``max(exist_margin_m, 2 sigma_z)`` of the covariance at the point
@@ -42,7 +46,9 @@ from ._kernels.tracking_nb import (
     iekf_terms_kernel,
     model_kernel,
     prior_info_kernel,
-    select_kernel,
+    select_best_kernel,
+    select_mix_kernel,
+    select_pack_kernel,
     select_prep_kernel,
 )
 from .channel import pair_snr_db
@@ -221,34 +227,43 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     SNR log-likelihood is added (the outlier's SNR is uniform over ``SNR_SPAN_DB``), and it
     is part of the link's log-weight (so of the floor evidence).
 
-    One compiled pass per link (:func:`diffpos._kernels.tracking_nb.select_kernel`): the
-    numpy reference :func:`_select_numpy` with libm's exp/log in place of numpy's (last-bit
-    differences: held to 1e-12 relative and equal slots by tests/core/test_tracking_kernel.py);
-    live and replay run this same code.
+    Three compiled passes over the links (:mod:`diffpos._kernels.tracking_nb`'s
+    ``select_pack_kernel``, ``select_best_kernel``, ``select_mix_kernel``: no (N, H, M, K)
+    temporaries but the candidate mask) with numpy's log and exp on the packed candidates in
+    between (numba's libm exp/log differ from numpy's SIMD ones in the last bit): bit-identical
+    to the numpy reference :func:`_select_numpy` (tests/core/test_tracking_kernel.py).
     """
     shape = pe.length.shape
     n, h, m = shape[:3]
     use_snr = snr_c is not None
     snr = _c(links.snr[:, 0]) if use_snr else np.zeros((n, m))
     sc = _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1))
+    length, rho, mask = _c(pe.length), _c(links.rho[:, 0]), _c(links.mask[:, 0])
+    valid = np.empty(shape, dtype=np.bool_)
+    sv, sl = np.empty(valid.size), np.empty(valid.size)
+    cnt = select_pack_kernel(
+        length, _c(pe.jac), _c(pe.sure), _c(pe.loose), _IS_DIFF,
+        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))), _c(links.var[:, 0]), snr, sc, use_snr,
+        np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
+        valid, sv, sl)
     eps = config.outlier_weight
     consts = np.array([_LOG2PI, np.log1p(-eps), np.log(eps / config.outlier_span_m),
                        -np.log(SNR_SPAN_DB)])
-    slot = np.empty((n, h, m), dtype=np.int64)
-    log_w, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
-    select_kernel(
-        _c(pe.length), _c(pe.jac), _c(pe.sure), _c(pe.loose), _IS_DIFF,
-        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))), _c(links.var[:, 0]), _c(links.rho[:, 0]),
-        _c(links.mask[:, 0]), snr, sc, use_snr,
-        np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)), consts,
-        _LOG_N, slot, log_w, nis, extra)
+    slot, best = np.empty((n, h, m), dtype=np.int64), np.empty((n, h, m), dtype=np.int64)
+    base, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
+    ex = np.empty(cnt)
+    select_best_kernel(length, valid, rho, mask, snr, use_snr, sv, sl, np.log(sv[:cnt]),
+                       consts, _LOG_N, ex, best, base, slot, nis)
+    np.exp(ex, out=ex)
+    mix = np.empty((n, h, m))
+    select_mix_kernel(length, valid, slot, best, ex, extra, mix)
+    log_w = np.where(slot >= 0, base + np.log(mix), base)
     return Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
 
 
 def _select_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, config,
                   snr_c: FloatArray | None = None) -> Selection:
-    """The numpy reference of :func:`select` (numpy's exp/log; every other operation the
-    kernel's, in the same order).
+    """The numpy reference of :func:`select`.
 
     Most likely mechanism per link given the predicted position Gaussian.
 
