@@ -41,7 +41,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from .tracking_model import Links, clamp_to_floor, measurement_update
+from .tracking_model import Links, measurement_update
 from .tracking_state import (
     FloatArray,
     TrackerConfig,
@@ -92,21 +92,9 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
     fl = hypothesis_floor(n_floors)[cc][:, None]
     level = ~hypothesis_vertical(n_floors)[cc][:, None]
     x0, p0 = mean[rr, cc][:, None], cov[rr, cc][:, None]
-    # the pairs whose prior is inside their floor's box and the others in separate calls:
-    # measurement_update evaluates the paths at the prior once more for the whole batch
-    # when any prior is outside (the same numbers either way)
-    inside = np.all(clamp_to_floor(x0[:, 0, :3], fl[:, 0], building, config.z_margin_m)
-                    == x0[:, 0, :3], axis=-1)
-    groups = [g for g in (np.flatnonzero(inside), np.flatnonzero(~inside)) if g.size]
-    out = [np.empty((rr.size, *shape), dtype) for shape, dtype in (
-        ((6,), float), ((6, 6), float), ((), float), ((links.rho.shape[-1],), int),
-        ((links.rho.shape[-1],), float), ((links.rho.shape[-1],), float))]
-    for g in groups:
-        x, p, ev, sel, res = measurement_update(x0[g], p0[g], links.take(rr[g]), fl[g], building,
-                                                config, level=level[g])
-        for o, v in zip(out, (x, p, ev, sel.slot, sel.nis, res), strict=True):
-            o[g] = v[:, 0]
-    return tuple(out)
+    x, p, ev, sel, res = measurement_update(x0, p0, links.take(rr), fl, building, config,
+                                            level=level)
+    return x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0]
 
 
 def _normalise(lp: FloatArray) -> FloatArray:

@@ -8,9 +8,13 @@ path evaluation are in :mod:`diffpos.tracking_paths`, the initialisation's grid 
 (every slot's paths, the IEKF's link model, the selection's candidates and variances, the
 initialisation's grid search) run in the compiled kernels of
 :mod:`diffpos._kernels.tracking_nb`, each bit-identical to the numpy reference kept next to
-it (``_all_paths_numpy``, ``_model_numpy``, ``_select_prep_numpy``, ``_grid_starts_numpy``;
-tests/core/test_tracking_kernel.py); the transcendental functions and the 6 x 6 algebra stay
-in numpy (numba's libm exp/log and numpy's SIMD ones differ in the last bit).
+it (``_all_paths_numpy``, ``_model_numpy``, ``_select_numpy``, ``_grid_starts_numpy``;
+tests/core/test_tracking_kernel.py); the selection's log/exp stay numpy's (on the packed
+candidates between its kernels: numba's libm exp/log and numpy's SIMD ones differ in the last
+bit). The IEKF runs its whole Gauss-Newton loop and evidence in one kernel per hypothesis
+(``iekf_kernel``): its 6 x 6 solve/inverse/log-determinant is LU with partial pivoting, not
+LAPACK's operation order, so it is held to its numpy reference (``_iekf_numpy``) within a
+tolerance (1e-9 m, 1e-8 nats), not bit for bit; live and replay run the same code.
 
 Existence near a window-band edge is graded with every hypothesis' own margin
 (:func:`existence_margin`: ``max(exist_margin_m, 2 sigma_z)`` of the covariance at the point
@@ -37,7 +41,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.paths_nb import building_planes
-from ._kernels.tracking_nb import iekf_terms_kernel, model_kernel, select_prep_kernel
+from ._kernels.tracking_nb import (
+    iekf_kernel,
+    iekf_terms_kernel,
+    model_kernel,
+    prior_info_kernel,
+    select_best_kernel,
+    select_mix_kernel,
+    select_pack_kernel,
+    select_prep_kernel,
+)
 from .channel import pair_snr_db
 from .tracking_init import _grid_starts_numpy, grid_starts
 from .tracking_paths import (
@@ -59,6 +72,9 @@ FloatArray = NDArray[np.float64]
 #: Moved to tracking_paths / tracking_init, still importable from here (tests).
 _MOVED = (_all_paths_numpy, eval_paths, _grid_starts_numpy)
 _LOG2PI = float(np.log(2.0 * np.pi))
+#: ``log(n)`` of the number of candidates of a link, n = 0..K (numpy's; index 0 unused).
+with np.errstate(divide="ignore"):
+    _LOG_N = np.log(np.arange(K_SLOTS + 1, dtype=np.float64))
 #: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
 #: field (antenna patterns, materials, wedge vs. UTD), the value M-NLS uses.
 SNR_SIGMA_DB = 20 * np.log10(2.0)
@@ -210,13 +226,59 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     ``log(eps / span)`` for the outlier; with ``snr_c`` (:func:`snr_cost`) every candidate's
     SNR log-likelihood is added (the outlier's SNR is uniform over ``SNR_SPAN_DB``), and it
     is part of the link's log-weight (so of the floor evidence).
+
+    Three compiled passes over the links (:mod:`diffpos._kernels.tracking_nb`'s
+    ``select_pack_kernel``, ``select_best_kernel``, ``select_mix_kernel``: no (N, H, M, K)
+    temporaries but the candidate mask) with numpy's log and exp on the packed candidates in
+    between (numba's libm exp/log differ from numpy's SIMD ones in the last bit): bit-identical
+    to the numpy reference :func:`_select_numpy` (tests/core/test_tracking_kernel.py).
+    """
+    shape = pe.length.shape
+    n, h, m = shape[:3]
+    use_snr = snr_c is not None
+    snr = _c(links.snr[:, 0]) if use_snr else np.zeros((n, m))
+    sc = _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1))
+    length, rho, mask = _c(pe.length), _c(links.rho[:, 0]), _c(links.mask[:, 0])
+    valid = np.empty(shape, dtype=np.bool_)
+    sv, sl = np.empty(valid.size), np.empty(valid.size)
+    cnt = select_pack_kernel(
+        length, _c(pe.jac), _c(pe.sure), _c(pe.loose), _IS_DIFF,
+        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))), _c(links.var[:, 0]), snr, sc, use_snr,
+        np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
+        valid, sv, sl)
+    eps = config.outlier_weight
+    consts = np.array([_LOG2PI, np.log1p(-eps), np.log(eps / config.outlier_span_m),
+                       -np.log(SNR_SPAN_DB)])
+    slot, best = np.empty((n, h, m), dtype=np.int64), np.empty((n, h, m), dtype=np.int64)
+    base, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
+    ex = np.empty(cnt)
+    select_best_kernel(length, valid, rho, mask, snr, use_snr, sv, sl, np.log(sv[:cnt]),
+                       consts, _LOG_N, ex, best, base, slot, nis)
+    np.exp(ex, out=ex)
+    mix = np.empty((n, h, m))
+    select_mix_kernel(length, valid, slot, best, ex, extra, mix)
+    log_w = np.where(slot >= 0, base + np.log(mix), base)
+    return Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
+
+
+def _select_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, config,
+                  snr_c: FloatArray | None = None) -> Selection:
+    """The numpy reference of :func:`select`.
+
+    Most likely mechanism per link given the predicted position Gaussian.
+
+    ``pos_cov``: (N, H, 3, 3). Component log-likelihoods: ``log((1 - eps) / n_cand) + log
+    N(rho; L_k, J_k P J_k^T + R)`` for every candidate slot (:func:`candidates`),
+    ``log(eps / span)`` for the outlier; with ``snr_c`` (:func:`snr_cost`) every candidate's
+    SNR log-likelihood is added (the outlier's SNR is uniform over ``SNR_SPAN_DB``), and it
+    is part of the link's log-weight (so of the floor evidence).
     """
     # the candidates (a slot without power at the hypothesis is no candidate, unless the
     # hypothesis is within the entry point's uncertainty of the slot's existence boundary: the
     # prediction flips from a strong path to none over a few cm there, so its SNR is then
     # uninformative, uniform over SNR_SPAN_DB), every candidate's SNR log-likelihood and
-    # innovation variance: one compiled pass, bit-identical to _select_prep_numpy
-    valid, s_ll, s_var = _select_prep(pos_cov, links, pe, snr_c)
+    # innovation variance (the kernel's per-link body is _select_prep's, bit-identical)
+    valid, s_ll, s_var = _select_prep_numpy(pos_cov, links, pe, snr_c)
     if snr_c is not None:
         s_out = np.where(np.isfinite(links.snr), -np.log(SNR_SPAN_DB), 0.0)
     else:
@@ -296,7 +358,17 @@ def _box(x: FloatArray, floor, building, margin_m: float) -> tuple[FloatArray, F
 
 
 def prior_information(p_prior: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Information matrix of the prior and its log-determinant (N, H, 6, 6), (N, H)."""
+    """Information matrix of the prior and its log-determinant (N, H, 6, 6), (N, H): one
+    compiled pass (:func:`diffpos._kernels.tracking_nb.prior_info_kernel`, LU with partial
+    pivoting; :func:`_prior_information_numpy` within 1e-12 relative, tested)."""
+    shape = p_prior.shape[:-2]
+    y, logdet_y = np.empty((*shape, 6, 6)), np.empty(shape)
+    prior_info_kernel(_c(p_prior, dtype=np.float64), y, logdet_y)
+    return y, logdet_y
+
+
+def _prior_information_numpy(p_prior: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The numpy reference of :func:`prior_information`."""
     y = np.linalg.inv(p_prior)
     return y, np.linalg.slogdet(y)[1]
 
@@ -333,6 +405,28 @@ def _iekf_terms_numpy(y, x, lo, hi, z_nom, rho, model, jm, w, wb: float, wh):
     return a, e, eb, eh, np.einsum("nhmi,nhm->nhi", jm, w * e) + wb * eb
 
 
+def _height_prior(x: FloatArray, floor, building, config, level):
+    """The height prior of every hypothesis (:func:`iekf`'s ``level``): nominal height,
+    weight and the mode's log-normaliser, C-contiguous float64 (N, H)."""
+    z_nom = building.floor_z_m(np.broadcast_to(np.asarray(floor), x.shape[:2])) + \
+        building.nominal_node_height_m
+    sh = config.height_sigma_m
+    ll_gauss = -np.log(sh) - 0.5 * _LOG2PI
+    ll_any = -np.log(building.floor_height_m)
+    if level is None:
+        # device height above the floor: on the level (Gaussian about the nominal height) or
+        # anywhere on the floor (stairs, crouching: uniform), chosen at the prior
+        w_lvl, w_any = np.log1p(-config.stairs_weight), np.log(config.stairs_weight)
+        level = (w_lvl + ll_gauss - 0.5 * ((x[..., 2] - z_nom) / sh) ** 2) > w_any + ll_any
+    else:
+        w_lvl = w_any = 0.0
+    level = np.broadcast_to(level, x.shape[:2])
+    wh = np.where(level, 1.0 / sh**2, 0.0)
+    h_const = np.where(level, w_lvl + ll_gauss, w_any + ll_any)
+    return tuple(_c(np.broadcast_to(v, x.shape[:2]), dtype=np.float64)
+                 for v in (z_nom, wh, h_const))
+
+
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
          building, config, level=None, prior_info=None):
     """Iterated EKF (Gauss-Newton on the MAP cost) of every hypothesis with fixed mechanisms.
@@ -351,28 +445,45 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     selection passes of one update share the prior).
     Returns ``(x, P, log_evidence, residual)``: posterior means (N, H, 6), covariances
     (N, H, 6, 6), the Laplace log marginal likelihood (N, H) and the residuals (N, H, M).
+
+    One compiled pass per hypothesis (:func:`diffpos._kernels.tracking_nb.iekf_kernel`: the
+    link model and the iteration's terms are the bit-identical kernels' bodies, the 6 x 6
+    solve/inverse/log-determinant LU with partial pivoting); :func:`_iekf_numpy` (numpy's
+    LAPACK) is the reference, held to a tolerance by tests/core/test_tracking_kernel.py.
     """
     y, logdet_y = prior_information(p_prior) if prior_info is None else prior_info
+    n, h = x_prior.shape[:2]
+    m = sel.slot.shape[-1]
+    lo, hi = _box(x_prior, floor, building, config.z_margin_m)
+    z_nom, wh, h_const = _height_prior(x_prior, floor, building, config, level)
+    fl = np.empty((n, h))
+    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
+    x, p = np.empty((n, h, 6)), np.empty((n, h, 6, 6))
+    log_ev, residual = np.empty((n, h)), np.empty((n, h, m))
+    f8 = np.float64
+    iekf_kernel(_c(x_prior, dtype=f8), _c(np.broadcast_to(y, (n, h, 6, 6)), dtype=f8),
+                _c(np.broadcast_to(logdet_y, (n, h)), dtype=f8),
+                _c(np.broadcast_to(lo, (n, h, 3)), dtype=f8),
+                _c(np.broadcast_to(hi, (n, h, 3)), dtype=f8), z_nom, wh, h_const,
+                _c(links.anchors[:, 0], dtype=f8), fl, _c(sel.slot, dtype=np.int64),
+                _c(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=f8),
+                _c(np.broadcast_to(sel.log_weight, (n, h, m)), dtype=f8),
+                _c(links.rho[:, 0], dtype=f8), _c(links.var[:, 0], dtype=f8),
+                _c(links.mask[:, 0]), int(config.gn_iterations),
+                float(1.0 / config.box_sigma_m**2), _LOG2PI, *building_planes(building),
+                x, p, log_ev, residual)
+    return x, p, log_ev, residual
+
+
+def _iekf_numpy(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor,
+                sel: Selection, building, config, level=None, prior_info=None):
+    """The numpy reference of :func:`iekf` (the link model and the terms by their
+    bit-identical kernels, the 6 x 6 algebra by numpy's LAPACK)."""
+    y, logdet_y = _prior_information_numpy(p_prior) if prior_info is None else prior_info
     x = x_prior.copy()
     lo, hi = _box(x, floor, building, config.z_margin_m)
     wb = 1.0 / config.box_sigma_m**2
-    z_nom = building.floor_z_m(np.broadcast_to(np.asarray(floor), x.shape[:2])) + \
-        building.nominal_node_height_m
-    sh = config.height_sigma_m
-    ll_gauss = -np.log(sh) - 0.5 * _LOG2PI
-    ll_any = -np.log(building.floor_height_m)
-    if level is None:
-        # device height above the floor: on the level (Gaussian about the nominal height) or
-        # anywhere on the floor (stairs, crouching: uniform), chosen at the prior
-        w_lvl, w_any = np.log1p(-config.stairs_weight), np.log(config.stairs_weight)
-        level = (w_lvl + ll_gauss - 0.5 * ((x[..., 2] - z_nom) / sh) ** 2) > w_any + ll_any
-    else:
-        w_lvl = w_any = 0.0
-    level = np.broadcast_to(level, x.shape[:2])
-    wh = np.where(level, 1.0 / sh**2, 0.0)
-    h_const = np.where(level, w_lvl + ll_gauss, w_any + ll_any)
-    z_nom, wh = (_c(np.broadcast_to(v, x.shape[:2]), dtype=np.float64)
-                 for v in (z_nom, wh))
+    z_nom, wh, h_const = _height_prior(x, floor, building, config, level)
     for it in range(config.gn_iterations + 1):
         model, jm, w = _model(x[..., :3], links, floor, sel, building)
         # information matrix, residuals (links, box: 0 inside it, height) and the position
@@ -427,6 +538,25 @@ def existence_margin(cov: FloatArray, config) -> FloatArray:
     return np.maximum(config.exist_margin_m, ENTRY_SIGMAS * sz)
 
 
+def _paths_at(pe0: PathEval, nodes, pos: FloatArray, links: Links, floor, building,
+              relax_m) -> PathEval:
+    """``pe0`` (the paths of every hypothesis at another position) with the rows of the nodes
+    ``nodes`` evaluated at ``pos``: equal to ``all_paths(pos, ...)`` when the other nodes'
+    positions are ``pos`` (every row is computed on its own), at the cost of those nodes."""
+    if nodes.size == 0:
+        return pe0
+    shape = pos.shape[:2]
+    sub = all_paths(pos[nodes], links.take(nodes),
+                    np.broadcast_to(np.asarray(floor), shape)[nodes], building,
+                    _relax(relax_m, shape)[nodes])
+    fields = {}
+    for f in ("length", "jac", "strict", "loose", "sure"):
+        v = getattr(pe0, f).copy()
+        v[nodes] = getattr(sub, f)
+        fields[f] = v
+    return PathEval(**fields)
+
+
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config, level=None):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual.
 
@@ -436,7 +566,8 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     # the paths at the prior serve the SNR term and the first selection (the same point
     # unless the prediction left its floor's box)
     xc = clamp_to_floor(x[..., :3], floor, building, config.z_margin_m)
-    same = np.array_equal(xc, x[..., :3])
+    # the nodes with a hypothesis whose prior is outside its floor's box (or not finite)
+    moved = np.flatnonzero(np.any(xc != x[..., :3], axis=(-2, -1)))
     # the existence margin follows every hypothesis' own height uncertainty (a track on the
     # stairs with a loose height does not call a mechanism impossible that exists a few
     # decimetres away); at initialisation (``level`` None) the prior is the grid search's box,
@@ -450,7 +581,10 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         if k > 0:  # at the fit: the margin of the fit's own uncertainty
             relax = existence_margin(p, config)
-        pe = pe0 if k == 0 and same else all_paths(x[..., :3], links, floor, building, relax)
+        if k == 0:  # the prior's paths: only the moved nodes' evaluated once more
+            pe = _paths_at(pe0, moved, x[..., :3], links, floor, building, relax)
+        else:
+            pe = all_paths(x[..., :3], links, floor, building, relax)
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
                                  level, info)

@@ -9,6 +9,15 @@ distinct slot and Gauss-Newton iteration (~10 numpy/kernel calls per iteration, 
 its broadcasting and slot tables) and the straight line by ``einsum``. The numpy version
 stays as the reference (``tracking_model._model_numpy``); tests/core/test_tracking_kernel.py
 holds them to bit equality.
+
+The selection (``select_pack_kernel``, ``select_best_kernel``, ``select_mix_kernel``) runs
+per link over the slots without the numpy version's (N, H, M, K) temporaries and leaves its
+log/exp to numpy between the passes (on the packed candidates), so it stays bit-identical to
+``tracking_model._select_numpy``. :func:`iekf_kernel` runs the IEKF's Gauss-Newton loop and
+Laplace evidence per hypothesis with :func:`model_kernel`'s and :func:`iekf_terms_kernel`'s
+bodies (:func:`_model_row`, :func:`_terms_row`) and a 6 x 6 LU with partial pivoting in
+place of numpy's batched LAPACK calls: held to ``tracking_model._iekf_numpy`` within a
+tolerance.
 """
 
 from __future__ import annotations
@@ -22,8 +31,9 @@ from numba import njit
 from .npsum_nb import pairwise_sum as _pairwise_sum
 from .paths_nb import edge_axis, row_planes, slot_path
 
-__all__ = ["all_paths_kernel", "grid_cost_kernel", "iekf_terms_kernel", "model_kernel",
-           "select_prep_kernel", "warm_tracking"]
+__all__ = ["all_paths_kernel", "grid_cost_kernel", "iekf_kernel", "iekf_terms_kernel",
+           "model_kernel", "prior_info_kernel", "select_best_kernel", "select_mix_kernel",
+           "select_pack_kernel", "select_prep_kernel", "warm_tracking"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 
@@ -41,48 +51,58 @@ def model_kernel(pos, anchors, floor, slot, extra_var, rho, var, mask, first_z, 
     straight line with weight ``1 / var``; any other link models its own range, weight 0.
     """
     edge = edge_axis(x0, x1)
-    n_n, n_h, n_m = slot.shape
+    n_n, n_h, _ = slot.shape
     for n in range(n_n):
         for h in range(n_h):
-            p0, p1, p2 = pos[n, h, 0], pos[n, h, 1], pos[n, h, 2]
-            zf, zc, lo, hi = row_planes(floor[n, h], first_z, floor_h, sill, win_h)
-            for m in range(n_m):
-                a0, a1, a2 = anchors[n, m, 0], anchors[n, m, 1], anchors[n, m, 2]
-                s = slot[n, h, m]
-                use = False
-                ln = np.nan
-                j0 = j1 = j2 = 0.0
-                if s >= 0:
-                    ln, _, j0, j1, j2, _, _, _ = slot_path(s, a0, a1, a2, p0, p1, p2, zf, zc,
-                                                          lo, hi, x0, x1, depth, edge, True,
-                                                          True)
-                    use = (math.isfinite(ln) and math.isfinite(j0) and math.isfinite(j1)
-                           and math.isfinite(j2))
-                if use:
-                    model[n, h, m] = ln
-                    jm[n, h, m, 0] = j0
-                    jm[n, h, m, 1] = j1
-                    jm[n, h, m, 2] = j2
-                    w[n, h, m] = 1.0 / (var[n, m] + extra_var[n, h, m])
-                    continue
-                # the straight line, as tracking_model._los: sqrt(d . d), d / max(|d|, 1e-12);
-                # numpy's einsum sums a 3-vector as (d0^2 + d2^2) + d1^2 (two SIMD lanes, the
-                # odd element into the first), so the same order here (the test checks it)
-                d0, d1, d2 = p0 - a0, p1 - a1, p2 - a2
-                los = math.sqrt((d0 * d0 + d2 * d2) + d1 * d1)
-                if mask[n, m] and rho[n, m] < los:
-                    den = max(los, 1e-12)
-                    model[n, h, m] = los
-                    jm[n, h, m, 0] = d0 / den
-                    jm[n, h, m, 1] = d1 / den
-                    jm[n, h, m, 2] = d2 / den
-                    w[n, h, m] = 1.0 / var[n, m]
-                else:
-                    model[n, h, m] = rho[n, m]
-                    jm[n, h, m, 0] = 0.0
-                    jm[n, h, m, 1] = 0.0
-                    jm[n, h, m, 2] = 0.0
-                    w[n, h, m] = 0.0
+            _model_row(pos[n, h, 0], pos[n, h, 1], pos[n, h, 2], anchors[n], floor[n, h],
+                       slot[n, h], extra_var[n, h], rho[n], var[n], mask[n], first_z, floor_h,
+                       sill, win_h, x0, x1, depth, edge, model[n, h], jm[n, h], w[n, h])
+
+
+@njit(**_OPTS)
+def _model_row(p0, p1, p2, anchors, fl, slot, extra_var, rho, var, mask, first_z, floor_h,
+               sill, win_h, x0, x1, depth, edge, model, jm, w):
+    """:func:`model_kernel` of one hypothesis at (``p0``, ``p1``, ``p2``): ``anchors`` (M, 3),
+    ``slot``, ``extra_var``, ``rho``, ``var``, ``mask`` (M,); writes ``model``, ``w`` (M,),
+    ``jm`` (M, 3)."""
+    zf, zc, lo, hi = row_planes(fl, first_z, floor_h, sill, win_h)
+    for m in range(slot.shape[0]):
+        a0, a1, a2 = anchors[m, 0], anchors[m, 1], anchors[m, 2]
+        s = slot[m]
+        use = False
+        ln = np.nan
+        j0 = j1 = j2 = 0.0
+        if s >= 0:
+            ln, _, j0, j1, j2, _, _, _ = slot_path(s, a0, a1, a2, p0, p1, p2, zf, zc,
+                                                  lo, hi, x0, x1, depth, edge, True,
+                                                  True)
+            use = (math.isfinite(ln) and math.isfinite(j0) and math.isfinite(j1)
+                   and math.isfinite(j2))
+        if use:
+            model[m] = ln
+            jm[m, 0] = j0
+            jm[m, 1] = j1
+            jm[m, 2] = j2
+            w[m] = 1.0 / (var[m] + extra_var[m])
+            continue
+        # the straight line, as tracking_model._los: sqrt(d . d), d / max(|d|, 1e-12);
+        # numpy's einsum sums a 3-vector as (d0^2 + d2^2) + d1^2 (two SIMD lanes, the
+        # odd element into the first), so the same order here (the test checks it)
+        d0, d1, d2 = p0 - a0, p1 - a1, p2 - a2
+        los = math.sqrt((d0 * d0 + d2 * d2) + d1 * d1)
+        if mask[m] and rho[m] < los:
+            den = max(los, 1e-12)
+            model[m] = los
+            jm[m, 0] = d0 / den
+            jm[m, 1] = d1 / den
+            jm[m, 2] = d2 / den
+            w[m] = 1.0 / var[m]
+        else:
+            model[m] = rho[m]
+            jm[m, 0] = 0.0
+            jm[m, 1] = 0.0
+            jm[m, 2] = 0.0
+            w[m] = 0.0
 
 
 @njit(**_OPTS)
@@ -98,44 +118,205 @@ def select_prep_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr
     ``is_diff`` (K,) bool, ``pos_cov`` (N, H, 3, 3), ``var`` (N, M), ``snr`` (N, M) and
     ``snr_c`` (N, H, M, K) (ignored unless ``use_snr``), ``g_const``: ``log(sigma_snr) +
     log(2 pi) / 2`` is subtracted as ``(-c - log(sigma)) - log(2 pi) / 2``: given as the two
-    terms ``g_const[0]``, ``g_const[1]``; ``span_ll = -log(SNR_SPAN_DB)``.
+    terms ``g_const[0]``, ``g_const[1]``; ``span_ll = -log(SNR_SPAN_DB)``. The per-link body
+    (:func:`_prep_link`) is the one :func:`select_pack_kernel` runs.
     """
-    n_n, n_h, n_m, n_k = length.shape
+    n_n, n_h, n_m, _ = length.shape
     for n in range(n_n):
         for h in range(n_h):
             for m in range(n_m):
-                e_spec = np.inf  # earliest sure specular path (NaN propagates as in min)
+                _prep_link(length[n, h, m], jac[n, h, m], sure[n, h, m], loose[n, h, m],
+                           is_diff, pos_cov[n, h], var[n, m], snr[n, m],
+                           snr_c[n, h, m] if use_snr else snr_c[0, 0, 0], use_snr, g_const,
+                           span_ll, valid[n, h, m], s_ll[n, h, m], s_var[n, h, m])
+
+
+@njit(**_OPTS)
+def _prep_link(length, jac, sure, loose, is_diff, cov, var, snr, snr_c, use_snr, g_const,
+               span_ll, valid, s_ll, s_var):
+    """:func:`select_prep_kernel` of one link: ``length``, ``sure``, ``loose``, ``snr_c``
+    (K,), ``jac`` (K, 3), ``cov`` (3, 3), scalars ``var``, ``snr``; writes ``valid``,
+    ``s_ll``, ``s_var`` (K,)."""
+    n_k = length.shape[0]
+    e_spec = np.inf  # earliest sure specular path (NaN propagates as in min)
+    for k in range(n_k):
+        if sure[k] and not is_diff[k]:
+            ln = length[k]
+            if math.isnan(ln):
+                e_spec = np.nan
+                break
+            if ln < e_spec:
+                e_spec = ln
+    has_snr = use_snr and math.isfinite(snr)
+    cov_finite = True
+    for i in range(3):
+        for j in range(3):
+            cov_finite = cov_finite and math.isfinite(cov[i, j])
+    for k in range(n_k):
+        ln = length[k]
+        ok = loose[k] and ((ln < e_spec) if is_diff[k] else (ln <= e_spec))
+        sl = 0.0
+        if use_snr:
+            c = snr_c[k]
+            powered = math.isfinite(c)
+            ok = ok and (powered or not sure[k])
+            if has_snr:
+                sl = ((-c - g_const[0]) - g_const[1]) if powered else span_ll
+        valid[k] = ok
+        s_ll[k] = sl
+        acc = 0.0
+        if ok:
+            for i in range(3):
+                for j in range(3):
+                    acc += jac[k, i] * cov[i, j] * jac[k, j]
+        elif not cov_finite:  # the reference's einsum over a zeroed Jacobian: +0 (the
+            for i in range(3):  # sum of +-0 from +0), or NaN when the covariance holds
+                for j in range(3):  # inf/NaN
+                    acc += 0.0 * cov[i, j] * 0.0
+        s_var[k] = acc + var
+
+
+@njit(**_OPTS)
+def select_pack_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr_c, use_snr,
+                       g_const, span_ll, valid, sv_pack, sl_pack):
+    """First pass of ``tracking_model.select`` (:func:`_prep_link` per link): writes the
+    candidates ``valid`` (N, H, M, K) and packs every candidate's innovation variance and SNR
+    term, in (node, hypothesis, anchor, slot) order, into ``sv_pack`` / ``sl_pack`` (1-D, at
+    least N H M K long); returns how many. The caller takes numpy's log of the packed
+    variances (numpy's SIMD log, so the result is the numpy reference's bit for bit).
+    Arguments as :func:`select_prep_kernel`."""
+    n_n, n_h, n_m, n_k = length.shape
+    sl = np.empty(n_k)
+    sv = np.empty(n_k)
+    c = 0
+    for n in range(n_n):
+        for h in range(n_h):
+            for m in range(n_m):
+                ok = valid[n, h, m]
+                _prep_link(length[n, h, m], jac[n, h, m], sure[n, h, m], loose[n, h, m],
+                           is_diff, pos_cov[n, h], var[n, m], snr[n, m],
+                           snr_c[n, h, m] if use_snr else snr_c[0, 0, 0], use_snr, g_const,
+                           span_ll, ok, sl, sv)
                 for k in range(n_k):
-                    if sure[n, h, m, k] and not is_diff[k]:
-                        ln = length[n, h, m, k]
-                        if math.isnan(ln):
-                            e_spec = np.nan
+                    if ok[k]:
+                        sv_pack[c] = sv[k]
+                        sl_pack[c] = sl[k]
+                        c += 1
+    return c
+
+
+@njit(**_OPTS)
+def select_best_kernel(length, valid, rho, mask, snr, use_snr, sv_pack, sl_pack, log_sv,
+                       consts, log_n, ex_pack, best, base, slot, nis):
+    """Second pass of ``tracking_model.select``: per link the candidates' log-likelihoods
+    ``-(e^2 / S + log S + log 2 pi) / 2 + snr term`` (``log_sv``: numpy's log of the packed
+    variances of :func:`select_pack_kernel`), the most likely one (``np.argmax``: the first
+    maximum or the first NaN; written to ``best``), the inlier test against the outlier and
+    ``slot`` (-1 outlier), ``nis`` (NaN unless inlier), ``base`` (N, H, M): the log-weight
+    without the mixture term (``log(1 - eps) - log n + snr term`` of an inlier, the outlier's
+    ``log(eps / span) + snr term`` of a present link, else 0); packs every candidate's
+    ``ll_k - ll_best`` into ``ex_pack`` for numpy's exp. ``consts``: ``log(2 pi)``,
+    ``log1p(-eps)``, ``log(eps / span)``, ``-log(SNR_SPAN_DB)``; ``log_n`` (K + 1,):
+    ``log(n)``. The numpy reference's operations in its order."""
+    n_n, n_h, n_m, n_k = length.shape
+    log2pi, w_in0, w_out0, s_out_snr = consts[0], consts[1], consts[2], consts[3]
+    ll = np.empty(n_k)
+    sl = np.empty(n_k)
+    sv = np.empty(n_k)
+    c = 0
+    for n in range(n_n):
+        for h in range(n_h):
+            for m in range(n_m):
+                w_out = w_out0 + (s_out_snr if use_snr and math.isfinite(snr[n, m]) else 0.0)
+                r = rho[n, m]
+                lk = length[n, h, m]
+                ok = valid[n, h, m]
+                c0 = c
+                n_ok = 0
+                for k in range(n_k):
+                    if ok[k]:
+                        n_ok += 1
+                        e = r - lk[k]
+                        v = sv_pack[c]
+                        sv[k] = v
+                        sl[k] = sl_pack[c]
+                        ll[k] = -0.5 * (e * e / v + log_sv[c] + log2pi) + sl_pack[c]
+                        c += 1
+                    else:
+                        ll[k] = -np.inf
+                        sl[k] = 0.0
+                        sv[k] = np.nan
+                b = 0
+                bv = ll[0]
+                if not math.isnan(bv):
+                    for k in range(1, n_k):
+                        if math.isnan(ll[k]):
+                            b = k
                             break
-                        if ln < e_spec:
-                            e_spec = ln
-                has_snr = use_snr and math.isfinite(snr[n, m])
+                        if ll[k] > bv:
+                            bv = ll[k]
+                            b = k
+                best[n, h, m] = b
+                ll_best = ll[b]
+                w_in = w_in0 - log_n[n_ok if n_ok > 1 else 1]
+                inlier = mask[n, m] and math.isfinite(ll_best) and (ll_best + w_in > w_out)
+                if inlier:
+                    e_b = r - lk[b]
+                    slot[n, h, m] = b
+                    nis[n, h, m] = e_b * e_b / sv[b]
+                    base[n, h, m] = w_in + sl[b]
+                else:
+                    slot[n, h, m] = -1
+                    nis[n, h, m] = np.nan
+                    base[n, h, m] = w_out if mask[n, m] else 0.0
+                ref = ll_best if math.isfinite(ll_best) else 0.0
                 for k in range(n_k):
-                    ln = length[n, h, m, k]
-                    ok = loose[n, h, m, k] and ((ln < e_spec) if is_diff[k] else (ln <= e_spec))
-                    sl = 0.0
-                    if use_snr:
-                        c = snr_c[n, h, m, k]
-                        powered = math.isfinite(c)
-                        ok = ok and (powered or not sure[n, h, m, k])
-                        if has_snr:
-                            sl = ((-c - g_const[0]) - g_const[1]) if powered else span_ll
-                    valid[n, h, m, k] = ok
-                    s_ll[n, h, m, k] = sl
-                    acc = 0.0
-                    if ok:
-                        for i in range(3):
-                            for j in range(3):
-                                acc += jac[n, h, m, k, i] * pos_cov[n, h, i, j] * jac[n, h, m, k, j]
-                    else:  # the reference's einsum over a zeroed Jacobian: 0, or NaN
-                        for i in range(3):  # when the covariance holds inf/NaN
-                            for j in range(3):
-                                acc += 0.0 * pos_cov[n, h, i, j] * 0.0
-                    s_var[n, h, m, k] = acc + var[n, m]
+                    if ok[k]:
+                        ex_pack[c0] = ll[k] - ref
+                        c0 += 1
+
+
+@njit(**_OPTS)
+def select_mix_kernel(length, valid, slot, best, ex_pack, extra, mix_arg):
+    """Third pass of ``tracking_model.select``: per link the candidates' posterior weights
+    ``p_k`` from ``ex_pack`` (numpy's exp of :func:`select_best_kernel`'s packed relative
+    log-likelihoods; 0 for a non-candidate), normalised by their sum (at least 1e-300), the
+    mechanism-ambiguity variance ``extra`` = ``sum_k p_k (L_k - L_best)^2`` (0 unless an
+    inlier with a finite value) and ``mix_arg`` = ``max(sum, 1)`` of an inlier, 1 otherwise
+    (the caller adds numpy's log of it to the log-weight). Sums in numpy's pairwise order."""
+    n_n, n_h, n_m, n_k = length.shape
+    pk = np.empty(n_k)
+    c = 0
+    for n in range(n_n):
+        for h in range(n_h):
+            for m in range(n_m):
+                lk = length[n, h, m]
+                ok = valid[n, h, m]
+                c0 = c
+                for k in range(n_k):
+                    if ok[k]:
+                        pk[k] = ex_pack[c]
+                        c += 1
+                    else:
+                        pk[k] = 0.0
+                mass = _pairwise_sum(pk, n_k)
+                den = mass if (mass > 1e-300 or math.isnan(mass)) else 1e-300
+                l_best = lk[best[n, h, m]]
+                c = c0
+                for k in range(n_k):
+                    if ok[k]:
+                        d = lk[k] - l_best
+                        pk[k] = ex_pack[c] / den * (d * d)
+                        c += 1
+                    else:
+                        pk[k] = 0.0
+                ex = _pairwise_sum(pk, n_k)
+                if slot[n, h, m] >= 0:
+                    extra[n, h, m] = ex if math.isfinite(ex) else 0.0
+                    mix_arg[n, h, m] = mass if (mass > 1.0 or math.isnan(mass)) else 1.0
+                else:
+                    extra[n, h, m] = 0.0
+                    mix_arg[n, h, m] = 1.0
 
 
 @njit(**_OPTS)
@@ -266,36 +447,264 @@ def iekf_terms_kernel(y, x, lo, hi, z_nom, rho, model, jm, w, wb, wh, a, e, eb, 
     (``einsum`` sums over the links in sequence): writes the information matrix ``a`` (N, H,
     6, 6) = Y + J^T W J + the box and height pseudo-measurements, the residuals ``e`` (N, H,
     M), the box residuals ``eb`` (N, H, 3), the height residual ``eh`` (N, H) and the
-    position gradient ``gpart`` (N, H, 3) = J^T W e + wb eb.
+    position gradient ``gpart`` (N, H, 3) = J^T W e + wb eb. The per-hypothesis body
+    (:func:`_terms_row`) is the one :func:`iekf_kernel` runs.
     """
-    n_n, n_h, n_m = model.shape
+    n_n, n_h, _ = model.shape
     for n in range(n_n):
         for h in range(n_h):
+            eh[n, h] = _terms_row(y[n, h], x[n, h], lo[n, h], hi[n, h], z_nom[n, h], rho[n],
+                                  model[n, h], jm[n, h], w[n, h], wb, wh[n, h], a[n, h],
+                                  e[n, h], eb[n, h], gpart[n, h])
+
+
+@njit(**_OPTS)
+def _terms_row(y, x, lo, hi, z_nom, rho, model, jm, w, wb, wh, a, e, eb, gpart):
+    """:func:`iekf_terms_kernel` of one hypothesis (``y``, ``a`` (6, 6), ``x`` (6,), ``lo``,
+    ``hi``, ``eb``, ``gpart`` (3,), ``rho``, ``model``, ``w``, ``e`` (M,), ``jm`` (M, 3));
+    returns the height residual."""
+    n_m = model.shape[0]
+    for m in range(n_m):
+        e[m] = rho[m] - model[m]
+    for i in range(6):
+        for j in range(6):
+            a[i, j] = y[i, j]
+    for i in range(3):
+        p = x[i]
+        c = p if p > lo[i] else lo[i]  # np.clip: min(max(p, lo), hi)
+        c = c if c < hi[i] else hi[i]
+        eb[i] = c - p
+    eh = z_nom - x[2]
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
             for m in range(n_m):
-                e[n, h, m] = rho[n, m] - model[n, h, m]
+                acc += jm[m, i] * w[m] * jm[m, j]
+            a[i, j] = a[i, j] + acc
+    for i in range(3):
+        a[i, i] = a[i, i] + (wb if eb[i] != 0 else 0.0)
+    a[2, 2] = a[2, 2] + wh
+    for i in range(3):
+        acc = 0.0
+        for m in range(n_m):
+            acc += jm[m, i] * (w[m] * e[m])
+        gpart[i] = acc + wb * eb[i]
+    return eh
+
+
+#: The IEKF's state dimension (a compile-time constant: the 6 x 6 loops unroll).
+_D = 6
+
+
+@njit(**_OPTS)
+def _lu(a, lu, piv):
+    """LU factorisation with partial pivoting (as LAPACK's getrf) of the 6 x 6 ``a`` into
+    ``lu`` (unit lower and upper triangle), row swaps in ``piv``."""
+    d = _D
+    for i in range(d):
+        for j in range(d):
+            lu[i, j] = a[i, j]
+    for k in range(d):
+        p = k
+        big = abs(lu[k, k])
+        for i in range(k + 1, d):
+            v = abs(lu[i, k])
+            if v > big:
+                big = v
+                p = i
+        piv[k] = p
+        if p != k:
+            for j in range(d):
+                t = lu[k, j]
+                lu[k, j] = lu[p, j]
+                lu[p, j] = t
+        u = lu[k, k]
+        if u == 0.0:
+            continue
+        for i in range(k + 1, d):
+            f = lu[i, k] / u
+            lu[i, k] = f
+            for j in range(k + 1, d):
+                lu[i, j] -= f * lu[k, j]
+
+
+@njit(**_OPTS)
+def _lu_logdet(lu):
+    """``log |det|`` of :func:`_lu`'s factors (-inf if singular, as
+    ``numpy.linalg.slogdet``): the log of the pivots' product (one log) unless it leaves
+    the normal range, then the sum of their logs."""
+    pr = 1.0
+    for k in range(_D):
+        pr *= abs(lu[k, k])
+    if pr > 1e-290 and pr < 1e290:
+        return math.log(pr)
+    out = 0.0
+    for k in range(_D):
+        u = abs(lu[k, k])
+        out += math.log(u) if u > 0.0 else -np.inf
+    return out
+
+
+@njit(**_OPTS)
+def _lu_solve(lu, piv, b):
+    """Solve ``a x = b`` in place in ``b`` (6,) from :func:`_lu`'s factors."""
+    d = _D
+    for k in range(d):
+        p = piv[k]
+        if p != k:
+            t = b[k]
+            b[k] = b[p]
+            b[p] = t
+    for i in range(d):
+        acc = b[i]
+        for j in range(i):
+            acc -= lu[i, j] * b[j]
+        b[i] = acc
+    for i in range(d - 1, -1, -1):
+        acc = b[i]
+        for j in range(i + 1, d):
+            acc -= lu[i, j] * b[j]
+        b[i] = acc / lu[i, i]
+
+
+@njit(**_OPTS)
+def _lu_inv(lu, piv, out, col):
+    """``out`` = the inverse of the factorised matrix (column by column; ``col`` (6,) work)."""
+    d = _D
+    for c in range(d):
+        for i in range(d):
+            col[i] = 1.0 if i == c else 0.0
+        _lu_solve(lu, piv, col)
+        for i in range(d):
+            out[i, c] = col[i]
+
+
+@njit(**_OPTS)
+def prior_info_kernel(p, y, logdet_y):
+    """``tracking_model.prior_information`` per hypothesis: ``y`` (N, H, 6, 6) the inverse of
+    ``p`` (LU with partial pivoting) and ``logdet_y`` (N, H) its log-determinant (of ``y``'s
+    own LU factors, as the numpy reference's ``slogdet(inv(p))``). Not bit-identical to
+    LAPACK (other operation order): the test holds it to numpy's within 1e-12."""
+    n_n, n_h = p.shape[:2]
+    lu = np.empty((_D, _D))
+    piv = np.empty(_D, dtype=np.int64)
+    col = np.empty(_D)
+    for n in range(n_n):
+        for h in range(n_h):
+            _lu(p[n, h], lu, piv)
+            _lu_inv(lu, piv, y[n, h], col)
+            _lu(y[n, h], lu, piv)
+            logdet_y[n, h] = _lu_logdet(lu)
+
+
+@njit(**_OPTS)
+def iekf_kernel(x_prior, y, logdet_y, lo, hi, z_nom, wh, h_const, anchors, floor, slot,
+                extra_var, log_weight, rho, var, mask, n_iter, wb, log2pi, first_z, floor_h,
+                sill, win_h, x0, x1, depth, x_out, p_out, log_ev, residual):
+    """``tracking_model.iekf``'s Gauss-Newton loop and Laplace evidence, one pass per
+    hypothesis without temporaries.
+
+    ``x_prior`` (N, H, 6), ``y``/``logdet_y`` its prior information and log-determinant
+    (:func:`prior_info_kernel`), ``lo``/``hi`` (N, H, 3) the floor box, ``z_nom``, ``wh``,
+    ``h_const`` (N, H) the height prior (nominal height, weight, log-normaliser of the mode),
+    ``anchors`` (N, M, 3), ``floor`` (N, H) float64, ``slot``/``extra_var``/``log_weight``
+    (N, H, M) the selection, ``rho``/``var``/``mask`` (N, M), ``n_iter`` Gauss-Newton
+    iterations, ``wb`` the box weight; writes the posterior ``x_out`` (N, H, 6), ``p_out``
+    (N, H, 6, 6), ``log_ev`` (N, H) and ``residual`` (N, H, M) (NaN where no slot).
+
+    The link model and the iteration's terms are :func:`model_kernel`'s and
+    :func:`iekf_terms_kernel`'s bodies (bit-identical to the numpy reference); the 6 x 6
+    solve, inverse and log-determinant are LU with partial pivoting here, LAPACK's there, and
+    the small sums are in another order: the test holds the result to numpy's
+    (``tracking_model._iekf_numpy``) within a stated tolerance.
+    """
+    edge = edge_axis(x0, x1)
+    n_n, n_h, n_m = slot.shape
+    model = np.empty(n_m)
+    jm = np.empty((n_m, 3))
+    w = np.empty(n_m)
+    e = np.empty(n_m)
+    tmp = np.empty(n_m)
+    a = np.empty((6, 6))
+    lu = np.empty((6, 6))
+    piv = np.empty(6, dtype=np.int64)
+    col = np.empty(6)
+    eb = np.empty(3)
+    gpart = np.empty(3)
+    xl = np.empty(6)
+    g = np.empty(6)
+    d = np.empty(6)
+    for n in range(n_n):
+        for h in range(n_h):
+            xp = x_prior[n, h]
+            yy = y[n, h]
             for i in range(6):
-                for j in range(6):
-                    a[n, h, i, j] = y[n, h, i, j]
-            for i in range(3):
-                p = x[n, h, i]
-                c = p if p > lo[n, h, i] else lo[n, h, i]  # np.clip: min(max(p, lo), hi)
-                c = c if c < hi[n, h, i] else hi[n, h, i]
-                eb[n, h, i] = c - p
-            eh[n, h] = z_nom[n, h] - x[n, h, 2]
-            for i in range(3):
-                for j in range(3):
+                xl[i] = xp[i]
+            eh = 0.0
+            for it in range(n_iter + 1):
+                _model_row(xl[0], xl[1], xl[2], anchors[n], floor[n, h], slot[n, h],
+                           extra_var[n, h], rho[n], var[n], mask[n], first_z, floor_h, sill,
+                           win_h, x0, x1, depth, edge, model, jm, w)
+                eh = _terms_row(yy, xl, lo[n, h], hi[n, h], z_nom[n, h], rho[n], model, jm,
+                                w, wb, wh[n, h], a, e, eb, gpart)
+                if it == n_iter:
+                    break
+                for i in range(6):
+                    d[i] = xl[i] - xp[i]
+                for i in range(6):
                     acc = 0.0
-                    for m in range(n_m):
-                        acc += jm[n, h, m, i] * w[n, h, m] * jm[n, h, m, j]
-                    a[n, h, i, j] = a[n, h, i, j] + acc
-            for i in range(3):
-                a[n, h, i, i] = a[n, h, i, i] + (wb if eb[n, h, i] != 0 else 0.0)
-            a[n, h, 2, 2] = a[n, h, 2, 2] + wh[n, h]
-            for i in range(3):
+                    for j in range(6):
+                        acc += yy[i, j] * d[j]
+                    g[i] = -acc
+                for i in range(3):
+                    g[i] += gpart[i]
+                g[2] += wh[n, h] * eh
+                _lu(a, lu, piv)
+                _lu_solve(lu, piv, g)
+                for i in range(6):
+                    xl[i] = xl[i] + g[i]
+            _lu(a, lu, piv)
+            logdet_a = _lu_logdet(lu)
+            po = p_out[n, h]
+            _lu_inv(lu, piv, po, col)
+            for i in range(6):
+                for j in range(i + 1, 6):
+                    s = 0.5 * (po[i, j] + po[j, i])
+                    po[i, j] = s
+                    po[j, i] = s
+            for i in range(6):
+                d[i] = xl[i] - xp[i]
+                x_out[n, h, i] = xl[i]
+            quad = 0.0
+            for i in range(6):
                 acc = 0.0
+                for j in range(6):
+                    acc += yy[i, j] * d[j]
+                quad += d[i] * acc
+            for m in range(n_m):
+                tmp[m] = w[m] * e[m] * e[m]
+            quad += _pairwise_sum(tmp, n_m)
+            quad += wb * ((eb[0] * eb[0] + eb[1] * eb[1]) + eb[2] * eb[2])
+            quad += wh[n, h] * eh * eh
+            # sum of 0.5 (log w - log 2 pi) over the used links: one log of the weights'
+            # product while it stays in the normal range, else one log per link
+            pr = 1.0
+            n_used = 0
+            for m in range(n_m):
+                if w[m] > 0:
+                    pr *= w[m]
+                    n_used += 1
+            if pr > 1e-290 and pr < 1e290:
+                norm = 0.5 * (math.log(pr) - n_used * log2pi)
+            else:
                 for m in range(n_m):
-                    acc += jm[n, h, m, i] * (w[n, h, m] * e[n, h, m])
-                gpart[n, h, i] = acc + wb * eb[n, h, i]
+                    tmp[m] = 0.5 * (math.log(w[m]) - log2pi) if w[m] > 0 else 0.0
+                norm = _pairwise_sum(tmp, n_m)
+            logdet = logdet_a - logdet_y[n, h]
+            lw = _pairwise_sum(log_weight[n, h], n_m)
+            log_ev[n, h] = norm + h_const[n, h] - 0.5 * quad - 0.5 * logdet + lw
+            for m in range(n_m):
+                residual[n, h, m] = e[m] if slot[n, h, m] >= 0 else np.nan
 
 
 def warm_tracking() -> float:
@@ -325,7 +734,25 @@ def warm_tracking() -> float:
     b4 = np.empty((1, 1, 1, k), np.bool_)
     all_paths_kernel(pos, anc, np.zeros((1, 1)), np.full((1, 1), 0.2), flags, *planes,
                      np.empty((1, 1, 1, k)), np.empty((1, 1, 1, k, 3)), b4, b4.copy(), b4.copy())
+    b4k = np.ones((1, 1, 1, k), np.bool_)
+    sv, sl = np.ones(k), np.ones(k)
+    cnt = select_pack_kernel(np.ones((1, 1, 1, k)), np.zeros((1, 1, 1, k, 3)), b4k, b4k.copy(),
+                             flags, np.ones((1, 1, 3, 3)), one, one, np.ones((1, 1, 1, k)),
+                             True, np.zeros(2), f8(0.0), np.empty((1, 1, 1, k), np.bool_), sv,
+                             sl)
+    i3 = np.zeros((1, 1, 1), np.int64)
+    ex = np.zeros(cnt)
+    select_best_kernel(np.ones((1, 1, 1, k)), b4k, one, mask, one, True, sv, sl, np.log(sv[:cnt]),
+                       np.zeros(4), np.zeros(k + 1), ex, i3, np.empty((1, 1, 1)), i3.copy(),
+                       np.empty((1, 1, 1)))
+    select_mix_kernel(np.ones((1, 1, 1, k)), b4k, i3, i3.copy(), ex, np.empty((1, 1, 1)),
+                      np.empty((1, 1, 1)))
+    y6 = np.empty((1, 1, 6, 6))
+    prior_info_kernel(np.broadcast_to(np.eye(6), (1, 1, 6, 6)).copy(), y6, np.empty((1, 1)))
     x6, p3 = np.ones((1, 1, 6)), np.ones((1, 1, 3))
+    iekf_kernel(x6, y6, one, p3, p3, one, one, one, anc, np.zeros((1, 1)), i3, onef, onef, one,
+                one, mask, 3, 2500.0, 1.8, *planes, np.empty((1, 1, 6)), np.empty((1, 1, 6, 6)),
+                np.empty((1, 1)), np.empty((1, 1, 1)))
     iekf_terms_kernel(np.ones((1, 1, 6, 6)), x6, p3, p3, one, one, onef, np.ones((1, 1, 1, 3)),
                       onef, 1.0, one, np.empty((1, 1, 6, 6)), np.empty((1, 1, 1)),
                       np.empty((1, 1, 3)), np.empty((1, 1)), np.empty((1, 1, 3)))

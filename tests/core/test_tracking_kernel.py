@@ -12,6 +12,14 @@ the straight line of a hinge link may differ in the last bit, and only there a 2
 tolerance applies. Inputs are random (fixed seeds) on buildings other than the shipped ones: other
 floor heights and window sizes, anchors above the windows and beyond the facade ends, every
 slot including -1 (outlier), missing links and hinge links (range shorter than the line).
+
+The selection's kernels leave log and exp to numpy (on the packed candidates), so it is bit-
+identical to ``_select_numpy`` too. The fused IEKF cannot be: its 6 x 6 solve/inverse/
+log-determinant is LU with partial pivoting in the kernel, LAPACK's (another operation order)
+in numpy, and libm's log differs from numpy's in the last bit; it and the prior's information
+are held to their references (``_iekf_numpy``, ``_prior_information_numpy``) within stated
+tolerances. The measurement update is held bit for bit to itself node by node (no result
+depends on the batch it is computed in).
 """
 
 from __future__ import annotations
@@ -30,15 +38,23 @@ from diffpos.tracking_model import (
     _all_paths_numpy,
     _box,
     _grid_starts_numpy,
+    _iekf_numpy,
     _iekf_terms,
     _iekf_terms_numpy,
     _model,
     _model_numpy,
+    _paths_at,
+    _prior_information_numpy,
+    _select_numpy,
     _select_prep,
     _select_prep_numpy,
     all_paths,
     clamp_to_floor,
     grid_starts,
+    iekf,
+    measurement_update,
+    prior_information,
+    select,
     snr_cost_near,
 )
 
@@ -202,3 +218,141 @@ def test_iekf_terms_kernel_bit_identical_to_numpy():
             np.testing.assert_array_equal(g, r)
         eb = ref[2]
         assert np.any(eb != 0) and np.any(eb == 0) and np.any(w == 0)
+
+
+def _snr_links(links, seed):
+    rng = np.random.default_rng(seed)
+    n, m = links.rho.shape[0], links.rho.shape[-1]
+    snr = np.where(rng.random((n, m)) < 0.2, np.nan, rng.uniform(-5, 40, (n, m)))
+    return Links(links.rho, links.var, links.mask, links.anchors, snr[:, None],
+                 default_scenario().radio)
+
+
+def _spd(rng, shape, d, scale):
+    a = rng.normal(size=(*shape, d, d)) * scale
+    return a @ np.swapaxes(a, -1, -2) + 0.01 * scale**2 * np.eye(d)
+
+
+@pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
+def test_select_kernels_bit_identical_to_numpy(bi):
+    """The compiled selection (three passes, numpy's log/exp on the packed candidates in
+    between) gives the numpy reference's slots, log-weights, NIS and mechanism-ambiguity
+    variances bit for bit, with and without SNR, with unknown SNRs, missing links, links
+    ranged longer/shorter than every mechanism and non-finite raw path values."""
+    b = _BUILDINGS[bi]
+    cfg = TrackerConfig()
+    for seed in range(3):
+        pos, links, floor, _ = _case(b, 500 + 100 * bi + seed)
+        ls = _snr_links(links, seed)
+        rng = np.random.default_rng(seed)
+        pos = clamp_to_floor(pos, floor, b, 0.05)
+        pe = all_paths(pos, ls, floor, b, 0.2)
+        cov = _spd(rng, pos.shape[:2], 3, 0.5)
+        for snr_c in (snr_cost_near(pos, ls, floor, b, 0.2, pe), None):
+            got = select(cov, ls, pe, cfg, snr_c)
+            ref = _select_numpy(cov, ls, pe, cfg, snr_c)
+            for f in ("slot", "log_weight", "nis", "extra_var"):
+                g, r = getattr(got, f), getattr(ref, f)
+                assert g.shape == r.shape
+                np.testing.assert_array_equal(g, r, err_msg=f)
+            # the cases hold inliers, outliers, missing links and ambiguous mechanisms
+            assert np.any(ref.slot >= 0) and np.any((ref.slot < 0) & ls.mask)
+            assert np.any(~ls.mask) and np.any(ref.extra_var > 0)
+
+
+def test_prior_information_kernel_matches_numpy():
+    """The LU inverse and log-determinant of the prior covariance against numpy's LAPACK:
+    within 1e-12 of the matrix' largest element / 1e-12 absolute on the log-determinant, over
+    covariances of condition numbers up to ~1e6 (a velocity block much looser than the
+    position), and exactly Y P = I to 1e-9."""
+    rng = np.random.default_rng(3)
+    p = _spd(rng, (5, 4), 6, 1.0)
+    p[..., 3:, :] *= 30.0
+    p[..., :, 3:] *= 30.0
+    y, ld = prior_information(p)
+    y_ref, ld_ref = _prior_information_numpy(p)
+    scale = np.abs(y_ref).max(axis=(-2, -1), keepdims=True)
+    assert np.all(np.abs(y - y_ref) <= 1e-12 * scale)
+    np.testing.assert_allclose(ld, ld_ref, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(y @ p, np.broadcast_to(np.eye(6), p.shape), atol=1e-9)
+
+
+@pytest.mark.parametrize("level", [None, "mixed"])
+def test_iekf_kernel_matches_numpy(level):
+    """The fused IEKF (one pass per hypothesis, LU solve/inverse) gives numpy's posterior mean,
+    covariance, log-evidence and residuals within stated tolerances: mean 1e-9 m, covariance
+    1e-9 of its largest element, log-evidence 1e-8 nats, residuals 1e-9 m; hypotheses inside
+    and outside their box, level, vertical and the max-mixture of both (``level`` None),
+    unused and hinge links; two buildings."""
+    cfg = TrackerConfig()
+    for bi in (0, 1):
+        b = _BUILDINGS[bi]
+        for seed in range(2):
+            pos, links, floor, sel = _case(b, 600 + 10 * bi + seed)
+            rng = np.random.default_rng(seed)
+            n, h = pos.shape[:2]
+            x0 = np.concatenate([pos, rng.normal(size=(n, h, 3))], axis=-1)
+            p0 = _spd(rng, (n, h), 6, 0.3)
+            sel = Selection(sel.slot, rng.normal(size=sel.slot.shape), sel.nis, sel.extra_var)
+            lv = None if level is None else rng.random((n, h)) < 0.5
+            got = iekf(x0, p0, links, floor, sel, b, cfg, lv)
+            ref = _iekf_numpy(x0, p0, links, floor, sel, b, cfg, lv)
+            np.testing.assert_allclose(got[0], ref[0], rtol=0.0, atol=1e-9)
+            scale = np.abs(ref[1]).max(axis=(-2, -1), keepdims=True)
+            assert np.all(np.abs(got[1] - ref[1]) <= 1e-9 * scale)
+            np.testing.assert_array_equal(got[1], np.swapaxes(got[1], -1, -2))
+            np.testing.assert_allclose(got[2], ref[2], rtol=0.0, atol=1e-8)
+            np.testing.assert_allclose(got[3], ref[3], rtol=0.0, atol=1e-9)
+            # the case leaves the box (pseudo-measurements active) for some hypotheses
+            lo, hi = _box(x0, floor, b, cfg.z_margin_m)
+            assert np.any((x0[..., :3] < lo) | (x0[..., :3] > hi))
+
+
+def test_measurement_update_independent_of_batch():
+    """A node's update is the same bit for bit whether computed alone or in a batch in which
+    other nodes' priors lie outside their floor's box (then only those nodes' paths are
+    evaluated once more at the prior): per-node references, other building, with SNR."""
+    b = _BUILDINGS[1]
+    cfg = TrackerConfig()
+    pos, links, _, _ = _case(b, 700, n=6, h=1)
+    ls = _snr_links(links, 7)
+    rng = np.random.default_rng(7)
+    floor = np.floor((pos[..., 2] - b.first_floor_z_m) / b.floor_height_m).clip(
+        0, b.n_floors - 1).astype(int)
+    x0 = np.concatenate([pos, rng.normal(size=pos.shape) * 0.5], axis=-1)
+    x0[:3, :, :3] = clamp_to_floor(x0[:3, :, :3], floor[:3], b, cfg.z_margin_m)
+    x0[4, 0, 2] = b.floor_z_m(floor[4, 0]) - 0.2  # below its floor
+    x0[5, 0, 0] = b.edge_x_m[1] + 1.0  # beyond the facade's end
+    p0 = _spd(rng, pos.shape[:2], 6, 0.2)
+    lv = rng.random(pos.shape[:2]) < 0.5
+    inside = np.all(clamp_to_floor(x0[..., :3], floor, b, cfg.z_margin_m) == x0[..., :3],
+                    axis=(-2, -1))
+    assert np.any(inside) and not np.all(inside)
+    got = measurement_update(x0, p0, ls, floor, b, cfg, level=lv)
+    for i in range(pos.shape[0]):
+        one = measurement_update(x0[i:i + 1], p0[i:i + 1], ls.take([i]), floor[i:i + 1], b,
+                                 cfg, level=lv[i:i + 1])
+        for g, r in zip((got[0], got[1], got[2], got[3].slot, got[3].log_weight, got[4]),
+                        (one[0], one[1], one[2], one[3].slot, one[3].log_weight, one[4]),
+                        strict=True):
+            np.testing.assert_array_equal(g[i:i + 1], r)
+
+
+def test_paths_at_equals_all_paths():
+    """The prior's paths re-evaluated only for the nodes whose prior left its box equal
+    :func:`all_paths` at the unclamped priors bit for bit (several hypotheses per node, one
+    band widening per hypothesis), and the clamped ones' paths where nothing moved."""
+    b = _BUILDINGS[2]
+    cfg = TrackerConfig()
+    pos, links, floor, _ = _case(b, 800, n=6, h=4)
+    xc = clamp_to_floor(pos, floor, b, cfg.z_margin_m)
+    pos[:3] = xc[:3]  # nodes 0-2 inside, 3-5 with at least one hypothesis outside
+    pos[3:, 0, 2] = b.floor_z_m(floor[3:, 0]) - 0.3
+    assert np.all(xc[:3] == pos[:3]) and np.all(np.any(xc[3:] != pos[3:], axis=(-2, -1)))
+    relax = np.random.default_rng(8).uniform(0.0, 0.5, floor.shape)
+    pe0 = all_paths(xc, links, floor, b, relax)
+    got = _paths_at(pe0, np.arange(3, 6), pos, links, floor, b, relax)
+    ref = all_paths(pos, links, floor, b, relax)
+    for f in ("length", "jac", "strict", "loose", "sure"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(ref, f), err_msg=f)
+    assert _paths_at(pe0, np.arange(0), pos, links, floor, b, relax) is pe0
