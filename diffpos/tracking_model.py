@@ -81,25 +81,32 @@ def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = No
     threshold ``P_max - fap_threshold_db`` (as in M-NLS). This is what separates floors that
     the ranges alone cannot: a ceiling reflection and the floor above's lower-edge
     diffraction have nearly the same length but 20-40 dB different strength.
+
+    A link whose SNR is unknown costs 0 in every slot whatever the prediction, so its slots
+    are not predicted at all.
     """
     if links.snr is None:
         return None
     n, h = pos.shape[:2]
     m = links.rho.shape[-1]
+    out = np.zeros((n, h, m, K_SLOTS))
     if n * h == 0:
-        return np.zeros((n, h, m, K_SLOTS))
-    anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(-1, 3)
-    p = np.broadcast_to(pos[:, :, None, :], (n, h, m, 3)).reshape(-1, 3)
-    meas = np.broadcast_to(links.snr, (n, h, m)).reshape(-1)
-    tr = None if trust is None else np.broadcast_to(trust, (n, h, m, K_SLOTS)).reshape(-1, K_SLOTS)
-    return _pair_snr_cost(anc, p, meas, building, links.radio, tr).reshape(n, h, m, K_SLOTS)
+        return out
+    known = np.broadcast_to(np.isfinite(links.snr), (n, h, m))
+    n_i, h_i, m_i = np.nonzero(known)
+    if n_i.size == 0:
+        return out
+    anc = np.broadcast_to(links.anchors, (n, h, m, 3))[n_i, h_i, m_i]
+    meas = np.broadcast_to(links.snr, (n, h, m))[n_i, h_i, m_i]
+    tr = None if trust is None else np.broadcast_to(trust, (n, h, m, K_SLOTS))[n_i, h_i, m_i]
+    out[n_i, h_i, m_i] = _pair_snr_cost(anc, pos[n_i, h_i], meas, building, links.radio, tr)
+    return out
 
 
-def _pair_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building, radio,
-                   trust: NDArray | None = None) -> FloatArray:
-    """:func:`snr_cost` of P (anchor, node) pairs: (P, K); ``trust`` (P, K): the slots whose
-    power sets the detector's threshold (default all)."""
-    pred = pair_snr_db(anc[:, None, :], pos, building=building, radio=radio)[:, 0]
+def _snr_cost_of(pred: FloatArray, meas: FloatArray, radio, trust: NDArray | None = None
+                 ) -> FloatArray:
+    """:func:`_pair_snr_cost` of the predicted SNRs ``pred`` (P, K) [dB] and the measured
+    ``meas`` (P,) [dB]."""
     meas = meas[:, None]
     strong = pred if trust is None else np.where(trust, pred, -np.inf)
     with np.errstate(invalid="ignore"):
@@ -112,6 +119,39 @@ def _pair_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building,
     return np.where(np.isfinite(meas), c, 0.0)
 
 
+def _pair_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building, radio,
+                   trust: NDArray | None = None) -> FloatArray:
+    """:func:`snr_cost` of P (anchor, node) pairs: (P, K); ``trust`` (P, K): the slots whose
+    power sets the detector's threshold (default all)."""
+    pred = pair_snr_db(anc[:, None, :], pos, building=building, radio=radio)[:, 0]
+    return _snr_cost_of(pred, meas, radio, trust)
+
+
+def _hole_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building, radio,
+                   hole: NDArray, trust: NDArray) -> FloatArray:
+    """:func:`_pair_snr_cost` of the ``hole`` slots (P, K) of P pairs with a known SNR
+    ``meas``, the same values bit for bit; the other slots' costs are not computed (+inf or
+    any value: not to be used).
+
+    A hole slot's cost needs its own prediction and, where that is finite, the detector's
+    threshold, i.e. the predictions of the ``trust`` slots. So the hole slots are predicted
+    first (mostly specular slots near a window-band edge: cheap) and the trusted ones (the
+    ~7 diffraction slots, ~80 % of a pair's cost) only for the pairs where a hole slot
+    carries power; elsewhere every hole slot costs +inf whatever the threshold."""
+    pred = pair_snr_db(anc[:, None, :], pos, building=building, radio=radio,
+                       need=hole[:, None, :])[:, 0]
+    rows = np.flatnonzero(np.any(hole & np.isfinite(pred), axis=-1))
+    more = trust[rows] & ~hole[rows]
+    if rows.size:
+        pred_t = pair_snr_db(anc[rows, None, :], pos[rows], building=building, radio=radio,
+                             need=more[:, None, :])[:, 0]
+        pred[rows] = np.where(more, pred_t, pred[rows])
+    # the threshold from the trusted slots that were predicted (all of them on ``rows``)
+    done = hole.copy()
+    done[rows] |= more
+    return _snr_cost_of(np.where(done, pred, -np.inf), meas, radio, trust & done)
+
+
 def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
                   pe: PathEval | None = None) -> FloatArray | None:
     """:func:`snr_cost` where a slot that exists within ``relax_m`` of the hypothesis (its
@@ -120,7 +160,11 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     at the nearest height (``pos`` +- ``relax_m`` in z) where it does: the best-matching prediction over the position's uncertainty. At the point alone a
     node at the nominal height just below a band edge lost 1.4 nats per such link and epoch
     (the slot's SNR counted as unknown) whenever its prior was a few cm too high, which
-    accumulated into a wrong floor lock (default run, top-floor walker)."""
+    accumulated into a wrong floor lock (default run, top-floor walker).
+
+    At the shifted heights only the hole slots' costs are used: :func:`_hole_snr_cost`
+    predicts those and, where one carries power, the threshold's slots (same values as
+    predicting all 18 slots)."""
     if links.snr is None:
         return None
     if pe is None:  # the paths at ``pos`` with ``relax_m`` (a caller may pass them)
@@ -139,13 +183,14 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     fl = np.broadcast_to(np.asarray(floor), pos.shape[:2])[n_i, h_i]
     zf = building.floor_z_m(fl)
     best = np.full((len(pairs), K_SLOTS), np.inf)
+    hole_p = hole[n_i, h_i, m_i]
     for sign in (-1.0, 1.0):
         p = pos[n_i, h_i].copy()
         p[:, 2] = np.clip(p[:, 2] + sign * dz, zf + 0.01, zf + building.floor_height_m - 0.01)
-        best = np.minimum(best, _pair_snr_cost(anc, p, meas, building, links.radio,
+        best = np.minimum(best, _hole_snr_cost(anc, p, meas, building, links.radio, hole_p,
                                                pe.sure[n_i, h_i, m_i]))
     sub = c[n_i, h_i, m_i]
-    c[n_i, h_i, m_i] = np.where(hole[n_i, h_i, m_i], best, sub)
+    c[n_i, h_i, m_i] = np.where(hole_p, best, sub)
     return c
 
 

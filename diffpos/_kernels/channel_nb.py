@@ -48,6 +48,12 @@ loss dB)``, the radio (wavenumber, wavelength, patterns, link-budget constants, 
 and the two complex permittivities (ground, interior). One compiled signature
 (:data:`SIGNATURE`), ``cache=True``; :func:`warm_channel` compiles it or loads numba's on-disk
 cache (call it at service start).
+
+:func:`channel_snr_masked_kernel` is the same loop over a per-pair slot mask ``need``
+(:data:`MASKED_SIGNATURE`): the slots needed are evaluated by the same function
+(:func:`_slot_snr`), so they are bit-identical to the unmasked kernel's; the others are not
+evaluated and hold NaN (the tracker re-scores a few slots of a pair at a shifted height and
+needs neither the 7 diffraction slots nor the other specular ones there).
 """
 
 from __future__ import annotations
@@ -86,8 +92,9 @@ from .transition_nb import (
     weideman_coefficients,
 )
 
-__all__ = ["ASYMPTOTIC_MIN_ABS", "SIGNATURE", "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N",
-           "channel_params", "channel_snr_kernel", "eval_snr_kernel", "faddeeva",
+__all__ = ["ASYMPTOTIC_MIN_ABS", "MASKED_SIGNATURE", "SIGNATURE", "TRANSITION_ASYMPTOTIC_MIN",
+           "WEIDEMAN_N", "channel_params", "channel_snr_kernel", "channel_snr_masked_kernel",
+           "eval_snr_kernel", "faddeeva",
            "faddeeva_kernel", "transition", "transition_asymptotic", "warm_channel",
            "weideman_coefficients"]
 
@@ -486,6 +493,34 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
 
 
 @njit(**_OPTS)
+def _slot_snr(s, a0, a1, a2, n0, n1, n2, k_node, zf, zc, lo, hi, prm, parts, eta_g, eta_in,
+              edge):
+    """SNR of slot ``s`` of the anchor ``a`` and the node ``n`` [dB] (``-inf``: not valid);
+    ``k_node`` and the planes ``zf, zc, lo, hi`` of the node's floor (``row_planes``)."""
+    kind = _KIND[s]
+    if kind == 0:
+        g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo, hi, prm,
+                                             parts)
+        ok = math.isfinite(length)
+    elif kind == 1:
+        g, att, v0, v1, v2, length, ok = _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi,
+                                                   prm, parts, eta_g, eta_in)
+    else:
+        g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo,
+                                                     hi, prm, parts, eta_in, edge)
+    if not ok:
+        return -np.inf
+    rx_db = 0.0
+    rx_hpbw = prm[_P_RX_HPBW]
+    if not math.isnan(rx_hpbw):
+        rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, prm[_P_RX_PEAK])
+    if g == 0.0:
+        return -np.inf
+    power = prm[_P_POWER0] + rx_db + (20 * math.log10(g) - att)
+    return power + prm[_P_PGAIN] - prm[_P_N0]
+
+
+@njit(**_OPTS)
 def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
     """SNR of every slot: ``anchors`` (N, M, 3), ``nodes`` (N, 3) -> ``out`` (N, M, 18) [dB],
     ``-inf`` where the slot is not valid (``diffpos.channel.pair_snr_db``).
@@ -496,9 +531,6 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
     eta_g, eta_in = eta[0], eta[1]
-    c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
-    rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
-    ninf = -np.inf
     for i in range(nodes.shape[0]):
         n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
         k_node = _floor_index(n2, first_z, floor_h, prm[_P_N_FLOORS])
@@ -506,45 +538,52 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
         for j in range(anchors.shape[1]):
             a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
             for s in range(N_SLOTS):
-                kind = _KIND[s]
-                if kind == 0:
-                    g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo,
-                                                         hi, prm, parts)
-                    ok = math.isfinite(length)
-                elif kind == 1:
-                    g, att, v0, v1, v2, length, ok = _specular(s, a0, a1, a2, n0, n1, n2, zf, zc,
-                                                          lo, hi, prm, parts, eta_g, eta_in)
+                out[i, j, s] = _slot_snr(s, a0, a1, a2, n0, n1, n2, k_node, zf, zc, lo, hi,
+                                         prm, parts, eta_g, eta_in, edge)
+
+
+@njit(**_OPTS)
+def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
+    """:func:`channel_snr_kernel` of the needed slots only: ``need`` (N, M, 18) bool; a slot
+    not needed is not evaluated and its ``out`` is NaN (a value no caller uses: every needed
+    slot is the unmasked kernel's value, bit for bit, ``-inf`` where not valid)."""
+    first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
+    edge = edge_axis(prm[_P_X0], prm[_P_X1])
+    eta_g, eta_in = eta[0], eta[1]
+    for i in range(nodes.shape[0]):
+        n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
+        k_node = _floor_index(n2, first_z, floor_h, prm[_P_N_FLOORS])
+        zf, zc, lo, hi = row_planes(k_node, first_z, floor_h, sill, win_h)
+        for j in range(anchors.shape[1]):
+            a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
+            for s in range(N_SLOTS):
+                if need[i, j, s]:
+                    out[i, j, s] = _slot_snr(s, a0, a1, a2, n0, n1, n2, k_node, zf, zc, lo,
+                                             hi, prm, parts, eta_g, eta_in, edge)
                 else:
-                    g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
-                                                            zc, lo, hi, prm, parts, eta_in,
-                                                            edge)
-                if not ok:
-                    out[i, j, s] = ninf
-                    continue
-                rx_db = 0.0
-                if not math.isnan(rx_hpbw):
-                    rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, rx_peak)
-                if g == 0.0:
-                    out[i, j, s] = ninf
-                    continue
-                power = c0 + rx_db + (20 * math.log10(g) - att)
-                out[i, j, s] = power + pgain - n0_dbm
+                    out[i, j, s] = np.nan
 
 
 _c16_1d = types.complex128[::1]
 #: The one compiled signature of :func:`channel_snr_kernel`.
 SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1], types.float64[::1],
                        types.float64[:, ::1], _c16_1d, types.float64[:, :, ::1])
+#: The compiled signature of :func:`channel_snr_masked_kernel` (``need`` before ``out``).
+MASKED_SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1],
+                              types.float64[::1], types.float64[:, ::1], _c16_1d,
+                              types.boolean[:, :, ::1], types.float64[:, :, ::1])
 _state: dict[str, object] = {}
 
 
 def warm_channel() -> float:
-    """Compile :func:`channel_snr_kernel` for :data:`SIGNATURE`, or load it from numba's
+    """Compile :func:`channel_snr_kernel` for :data:`SIGNATURE` and
+    :func:`channel_snr_masked_kernel` for :data:`MASKED_SIGNATURE`, or load them from numba's
     cache. Idempotent; returns the seconds it took (0 once warm). Call it at service start."""
     if "entry" in _state:
         return 0.0
     t0 = time.perf_counter()
     channel_snr_kernel.compile(SIGNATURE.args)
+    channel_snr_masked_kernel.compile(MASKED_SIGNATURE.args)
     _state["entry"] = channel_snr_kernel
     return time.perf_counter() - t0
 
@@ -580,10 +619,15 @@ def channel_params(building, radio, materials) -> tuple[np.ndarray, np.ndarray, 
 
 
 def eval_snr_kernel(anchors: np.ndarray, nodes: np.ndarray,
-                    params: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+                    params: tuple[np.ndarray, np.ndarray, np.ndarray],
+                    need: np.ndarray | None = None) -> np.ndarray:
     """Run the kernel: ``anchors`` (N, M, 3), ``nodes`` (N, 3) C-contiguous float64,
-    ``params`` from :func:`channel_params`; returns (N, M, 18) [dB]."""
+    ``params`` from :func:`channel_params`; returns (N, M, 18) [dB]. ``need`` (N, M, 18)
+    C-contiguous bool: only those slots (:func:`channel_snr_masked_kernel`, NaN elsewhere)."""
     warm_channel()
     out = np.empty((nodes.shape[0], anchors.shape[1], N_SLOTS))
-    channel_snr_kernel(anchors, nodes, *params, out)
+    if need is None:
+        channel_snr_kernel(anchors, nodes, *params, out)
+    else:
+        channel_snr_masked_kernel(anchors, nodes, *params, need, out)
     return out
