@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ._kernels.channel_nb import snr_cost_kernel
 from ._kernels.paths_nb import building_planes
 from ._kernels.tracking_nb import iekf_terms_kernel, model_kernel, select_prep_kernel
 from .channel import pair_snr_db
@@ -106,7 +107,19 @@ def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = No
 def _snr_cost_of(pred: FloatArray, meas: FloatArray, radio, trust: NDArray | None = None
                  ) -> FloatArray:
     """:func:`_pair_snr_cost` of the predicted SNRs ``pred`` (P, K) [dB] and the measured
-    ``meas`` (P,) [dB]."""
+    ``meas`` (P,) [dB]: one compiled pass (:func:`diffpos._kernels.channel_nb.snr_cost_kernel`),
+    bit-identical to :func:`_snr_cost_of_numpy`."""
+    out = np.empty(pred.shape)
+    tr = np.ones(pred.shape, dtype=np.bool_) if trust is None else trust
+    snr_cost_kernel(_c(pred, dtype=np.float64), _c(meas, dtype=np.float64),
+                    _c(tr, dtype=np.bool_), float(SNR_SIGMA_DB),
+                    float(radio.fap_threshold_db), float(radio.detection_snr_db), out)
+    return out
+
+
+def _snr_cost_of_numpy(pred: FloatArray, meas: FloatArray, radio,
+                       trust: NDArray | None = None) -> FloatArray:
+    """The numpy reference of :func:`_snr_cost_of`."""
     meas = meas[:, None]
     strong = pred if trust is None else np.where(trust, pred, -np.inf)
     with np.errstate(invalid="ignore"):

@@ -92,10 +92,10 @@ from .transition_nb import (
     weideman_coefficients,
 )
 
-__all__ = ["ASYMPTOTIC_MIN_ABS", "MASKED_SIGNATURE", "SIGNATURE", "TRANSITION_ASYMPTOTIC_MIN",
-           "WEIDEMAN_N", "channel_params", "channel_snr_kernel", "channel_snr_masked_kernel",
-           "eval_snr_kernel", "faddeeva",
-           "faddeeva_kernel", "transition", "transition_asymptotic", "warm_channel",
+__all__ = ["ASYMPTOTIC_MIN_ABS", "COST_SIGNATURE", "MASKED_SIGNATURE", "SIGNATURE",
+           "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N", "channel_params", "channel_snr_kernel",
+           "channel_snr_masked_kernel", "eval_snr_kernel", "faddeeva", "faddeeva_kernel",
+           "snr_cost_kernel", "transition", "transition_asymptotic", "warm_channel",
            "weideman_coefficients"]
 
 _RAD2DEG = 180.0 / math.pi
@@ -564,6 +564,48 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
                     out[i, j, s] = np.nan
 
 
+@njit(**_OPTS)
+def snr_cost_kernel(pred, meas, trust, sigma_db, fap_db, det_db, out):
+    """The tracker's SNR cost of every slot (``diffpos.tracking_model._snr_cost_of``, its
+    numpy reference: the same operations in the same order, NaN propagated as numpy's ``max``
+    does, so bit-identical): ``pred`` (P, K) predicted SNRs [dB], ``meas`` (P,) measured
+    [dB], ``trust`` (P, K) bool (the slots whose maximum sets the detector's threshold) ->
+    ``out`` (P, K): ``((meas - pred) / sigma)^2 / 2`` plus the same of the shortfall below
+    ``max(max_trust pred - fap_db, det_db) - sigma``; +inf where ``pred`` is not finite, 0
+    where ``meas`` is not."""
+    n_k = pred.shape[1]
+    for i in range(pred.shape[0]):
+        mi = meas[i]
+        if not math.isfinite(mi):
+            for k in range(n_k):
+                out[i, k] = 0.0
+            continue
+        top = -np.inf
+        for k in range(n_k):
+            if trust[i, k]:
+                v = pred[i, k]
+                if math.isnan(v):
+                    top = np.nan
+                    break
+                if v > top:
+                    top = v
+        thr = top - fap_db
+        if not thr >= det_db:  # np.maximum: NaN propagates
+            thr = det_db if not math.isnan(thr) else thr
+        short = (thr - sigma_db) - mi
+        if not short >= 0.0:
+            short = 0.0 if not math.isnan(short) else short
+        q = short / sigma_db
+        extra = 0.5 * (q * q)
+        for k in range(n_k):
+            v = pred[i, k]
+            if not math.isfinite(v):
+                out[i, k] = np.inf
+                continue
+            r = (mi - v) / sigma_db
+            out[i, k] = 0.5 * (r * r) + extra
+
+
 _c16_1d = types.complex128[::1]
 #: The one compiled signature of :func:`channel_snr_kernel`.
 SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1], types.float64[::1],
@@ -572,18 +614,22 @@ SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1], types.fl
 MASKED_SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1],
                               types.float64[::1], types.float64[:, ::1], _c16_1d,
                               types.boolean[:, :, ::1], types.float64[:, :, ::1])
+#: The compiled signature of :func:`snr_cost_kernel`.
+COST_SIGNATURE = types.void(types.float64[:, ::1], types.float64[::1], types.boolean[:, ::1],
+                            types.float64, types.float64, types.float64, types.float64[:, ::1])
 _state: dict[str, object] = {}
 
 
 def warm_channel() -> float:
-    """Compile :func:`channel_snr_kernel` for :data:`SIGNATURE` and
-    :func:`channel_snr_masked_kernel` for :data:`MASKED_SIGNATURE`, or load them from numba's
-    cache. Idempotent; returns the seconds it took (0 once warm). Call it at service start."""
+    """Compile :func:`channel_snr_kernel` for :data:`SIGNATURE`,
+    :func:`channel_snr_masked_kernel` for :data:`MASKED_SIGNATURE` and :func:`snr_cost_kernel`
+    for :data:`COST_SIGNATURE`, or load them from numba's cache. Idempotent; returns the seconds it took (0 once warm). Call it at service start."""
     if "entry" in _state:
         return 0.0
     t0 = time.perf_counter()
     channel_snr_kernel.compile(SIGNATURE.args)
     channel_snr_masked_kernel.compile(MASKED_SIGNATURE.args)
+    snr_cost_kernel.compile(COST_SIGNATURE.args)
     _state["entry"] = channel_snr_kernel
     return time.perf_counter() - t0
 
