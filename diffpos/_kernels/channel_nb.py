@@ -565,34 +565,41 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
 
 
 @njit(**_OPTS)
-def snr_cost_kernel(pred, meas, trust, sigma_db, fap_db, det_db, out):
+def snr_cost_kernel(pred, meas, trust, sigma_db, fap_db, det_db, given_thr, thr, out):
     """The tracker's SNR cost of every slot (``diffpos.tracking_model._snr_cost_of``, its
     numpy reference: the same operations in the same order, NaN propagated as numpy's ``max``
     does, so bit-identical): ``pred`` (P, K) predicted SNRs [dB], ``meas`` (P,) measured
     [dB], ``trust`` (P, K) bool (the slots whose maximum sets the detector's threshold) ->
     ``out`` (P, K): ``((meas - pred) / sigma)^2 / 2`` plus the same of the shortfall below
-    ``max(max_trust pred - fap_db, det_db) - sigma``; +inf where ``pred`` is not finite, 0
-    where ``meas`` is not."""
+    ``thr - sigma``, ``thr = max(max_trust pred - fap_db, det_db)`` the detector's threshold;
+    +inf where ``pred`` is not finite, 0 where ``meas`` is not. ``thr`` (P,): written (NaN
+    where ``meas`` is not finite), or with ``given_thr`` read (``trust`` unused)."""
     n_k = pred.shape[1]
     for i in range(pred.shape[0]):
         mi = meas[i]
         if not math.isfinite(mi):
             for k in range(n_k):
                 out[i, k] = 0.0
+            if not given_thr:
+                thr[i] = np.nan
             continue
-        top = -np.inf
-        for k in range(n_k):
-            if trust[i, k]:
-                v = pred[i, k]
-                if math.isnan(v):
-                    top = np.nan
-                    break
-                if v > top:
-                    top = v
-        thr = top - fap_db
-        if not thr >= det_db:  # np.maximum: NaN propagates
-            thr = det_db if not math.isnan(thr) else thr
-        short = (thr - sigma_db) - mi
+        if given_thr:
+            th = thr[i]
+        else:
+            top = -np.inf
+            for k in range(n_k):
+                if trust[i, k]:
+                    v = pred[i, k]
+                    if math.isnan(v):
+                        top = np.nan
+                        break
+                    if v > top:
+                        top = v
+            th = top - fap_db
+            if not th >= det_db:  # np.maximum: NaN propagates
+                th = det_db if not math.isnan(th) else th
+            thr[i] = th
+        short = (th - sigma_db) - mi
         if not short >= 0.0:
             short = 0.0 if not math.isnan(short) else short
         q = short / sigma_db
@@ -616,7 +623,8 @@ MASKED_SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1],
                               types.boolean[:, :, ::1], types.float64[:, :, ::1])
 #: The compiled signature of :func:`snr_cost_kernel`.
 COST_SIGNATURE = types.void(types.float64[:, ::1], types.float64[::1], types.boolean[:, ::1],
-                            types.float64, types.float64, types.float64, types.float64[:, ::1])
+                            types.float64, types.float64, types.float64, types.boolean,
+                            types.float64[::1], types.float64[:, ::1])
 _state: dict[str, object] = {}
 
 
