@@ -71,8 +71,16 @@ ENTRY_SIGMAS = 2.0
 #: :func:`snr_cost_near`: a slot scored at a shifted height (a "hole": it exists within the
 #: existence margin but carries no power at the hypothesis) is compared with the detector's
 #: threshold of the hypothesis itself (True) or of the shifted point (False; needs the ~7
-#: diffraction slots predicted again there, ~80 % of a full prediction).
-HOLE_THRESHOLD_AT_PRIOR = False
+#: diffraction slots predicted again there, ~80 % of a full prediction). The shift stands for
+#: the hypothesis' own height uncertainty; the threshold is that of its strongest sure path,
+#: which changes little over it. Measured (``benchmarks/bench_accuracy.py --only default large
+#: tall-floors anchors-beyond-ends``, two runs each, 2026-11-27): floor, 3D p90 and cov95
+#: within the run-to-run spread of the shifted point's threshold (default and tall-floors
+#: identical; large floor 99.72-99.78 -> 99.73-99.91 %, p90 0.299-0.313 -> 0.300 m, cov95
+#: 91.20-91.29 -> 91.28-91.30 %; anchors-beyond-ends floor 98.52-98.61 -> 98.43-98.61 %,
+#: p90 0.222-0.224 -> 0.224 m, cov95 94.63-95.00 -> 94.63-94.91 %); 0.08 % of the slot costs
+#: of the soak replay change.
+HOLE_THRESHOLD_AT_PRIOR = True
 
 
 def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None

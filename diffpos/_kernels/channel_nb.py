@@ -52,8 +52,12 @@ cache (call it at service start).
 :func:`channel_snr_masked_kernel` is the same loop over a per-pair slot mask ``need``
 (:data:`MASKED_SIGNATURE`): the slots needed are evaluated by the same function
 (:func:`_slot_snr`), so they are bit-identical to the unmasked kernel's; the others are not
-evaluated and hold NaN (the tracker re-scores a few slots of a pair at a shifted height and
-needs neither the 7 diffraction slots nor the other specular ones there).
+evaluated and hold NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
+``diffpos.tracking_model.snr_cost_near``: mostly specular slots near a window-band edge, and
+not the 7 diffraction slots that are ~80 % of a full prediction).
+
+:func:`snr_cost_kernel` is the tracker's SNR cost of the predicted slots (Gaussian about the
+prediction plus the detector's threshold), the numpy reference's operations in one pass.
 """
 
 from __future__ import annotations
