@@ -79,7 +79,7 @@ from ._channel_slots import (  # noqa: F401 (re-exported; the numpy reference's 
     itu_permittivity,
     slab_loss_db,
 )
-from ._kernels.channel_nb import channel_params, eval_snr_kernel
+from ._kernels.channel_nb import channel_params, eval_snr_kernel, eval_snr_masked_kernel
 from .linkbudget import db_to_linear, ranging_crlb_m
 from .paths import MECHANISMS, first_arrival_paths
 from .scenario import Building, Radio, Scenario
@@ -240,8 +240,11 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
         params = _kernel_params(building, radio)
     except TypeError:  # an unhashable field (e.g. partitions given as a list)
         params = channel_params(building, radio, _materials(building, radio.frequency_hz))
-    return eval_snr_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes), params,
-                           need)
+    if need is None:
+        return eval_snr_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes),
+                               params)
+    return eval_snr_masked_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes),
+                                  params, need)
 
 
 def _pair_snr_db_numpy(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,

@@ -98,7 +98,7 @@ from .transition_nb import (
 
 __all__ = ["ASYMPTOTIC_MIN_ABS", "COST_SIGNATURE", "MASKED_SIGNATURE", "SIGNATURE",
            "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N", "channel_params", "channel_snr_kernel",
-           "channel_snr_masked_kernel", "eval_snr_kernel", "faddeeva", "faddeeva_kernel",
+           "channel_snr_masked_kernel", "eval_snr_kernel", "eval_snr_masked_kernel", "faddeeva", "faddeeva_kernel",
            "snr_cost_kernel", "transition", "transition_asymptotic", "warm_channel",
            "weideman_coefficients"]
 
@@ -677,15 +677,21 @@ def channel_params(building, radio, materials) -> tuple[np.ndarray, np.ndarray, 
 
 
 def eval_snr_kernel(anchors: np.ndarray, nodes: np.ndarray,
-                    params: tuple[np.ndarray, np.ndarray, np.ndarray],
-                    need: np.ndarray | None = None) -> np.ndarray:
+                    params: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
     """Run the kernel: ``anchors`` (N, M, 3), ``nodes`` (N, 3) C-contiguous float64,
-    ``params`` from :func:`channel_params`; returns (N, M, 18) [dB]. ``need`` (N, M, 18)
-    C-contiguous bool: only those slots (:func:`channel_snr_masked_kernel`, NaN elsewhere)."""
+    ``params`` from :func:`channel_params`; returns (N, M, 18) [dB]."""
     warm_channel()
     out = np.empty((nodes.shape[0], anchors.shape[1], N_SLOTS))
-    if need is None:
-        channel_snr_kernel(anchors, nodes, *params, out)
-    else:
-        channel_snr_masked_kernel(anchors, nodes, *params, need, out)
+    channel_snr_kernel(anchors, nodes, *params, out)
+    return out
+
+
+def eval_snr_masked_kernel(anchors: np.ndarray, nodes: np.ndarray,
+                           params: tuple[np.ndarray, np.ndarray, np.ndarray],
+                           need: np.ndarray) -> np.ndarray:
+    """:func:`eval_snr_kernel` of the slots ``need`` (N, M, 18) C-contiguous bool only
+    (:func:`channel_snr_masked_kernel`: NaN elsewhere)."""
+    warm_channel()
+    out = np.empty((nodes.shape[0], anchors.shape[1], N_SLOTS))
+    channel_snr_masked_kernel(anchors, nodes, *params, need, out)
     return out
