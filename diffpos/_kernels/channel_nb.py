@@ -50,9 +50,8 @@ and the two complex permittivities (ground, interior). One compiled signature
 cache (call it at service start).
 
 :func:`channel_snr_masked_kernel` is the same loop over a per-pair slot mask ``need``
-(:data:`MASKED_SIGNATURE`): the slots needed are evaluated by the same function
-(:func:`_slot_snr`), so they are bit-identical to the unmasked kernel's; the others are not
-evaluated and hold NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
+(:data:`MASKED_SIGNATURE`): the slots needed are evaluated by the same statements, so they
+are bit-identical to the unmasked kernel's; the others are not evaluated and hold NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
 ``diffpos.tracking_model.snr_cost_near``: mostly specular slots near a window-band edge, and
 not the 7 diffraction slots that are ~80 % of a full prediction).
 
@@ -497,34 +496,6 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
 
 
 @njit(**_OPTS)
-def _slot_snr(s, a0, a1, a2, n0, n1, n2, k_node, zf, zc, lo, hi, prm, parts, eta_g, eta_in,
-              edge):
-    """SNR of slot ``s`` of the anchor ``a`` and the node ``n`` [dB] (``-inf``: not valid);
-    ``k_node`` and the planes ``zf, zc, lo, hi`` of the node's floor (``row_planes``)."""
-    kind = _KIND[s]
-    if kind == 0:
-        g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo, hi, prm,
-                                             parts)
-        ok = math.isfinite(length)
-    elif kind == 1:
-        g, att, v0, v1, v2, length, ok = _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi,
-                                                   prm, parts, eta_g, eta_in)
-    else:
-        g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo,
-                                                     hi, prm, parts, eta_in, edge)
-    if not ok:
-        return -np.inf
-    rx_db = 0.0
-    rx_hpbw = prm[_P_RX_HPBW]
-    if not math.isnan(rx_hpbw):
-        rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, prm[_P_RX_PEAK])
-    if g == 0.0:
-        return -np.inf
-    power = prm[_P_POWER0] + rx_db + (20 * math.log10(g) - att)
-    return power + prm[_P_PGAIN] - prm[_P_N0]
-
-
-@njit(**_OPTS)
 def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
     """SNR of every slot: ``anchors`` (N, M, 3), ``nodes`` (N, 3) -> ``out`` (N, M, 18) [dB],
     ``-inf`` where the slot is not valid (``diffpos.channel.pair_snr_db``).
@@ -535,6 +506,9 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
     eta_g, eta_in = eta[0], eta[1]
+    c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
+    rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
+    ninf = -np.inf
     for i in range(nodes.shape[0]):
         n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
         k_node = _floor_index(n2, first_z, floor_h, prm[_P_N_FLOORS])
@@ -542,18 +516,44 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
         for j in range(anchors.shape[1]):
             a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
             for s in range(N_SLOTS):
-                out[i, j, s] = _slot_snr(s, a0, a1, a2, n0, n1, n2, k_node, zf, zc, lo, hi,
-                                         prm, parts, eta_g, eta_in, edge)
+                kind = _KIND[s]
+                if kind == 0:
+                    g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo,
+                                                         hi, prm, parts)
+                    ok = math.isfinite(length)
+                elif kind == 1:
+                    g, att, v0, v1, v2, length, ok = _specular(s, a0, a1, a2, n0, n1, n2, zf, zc,
+                                                          lo, hi, prm, parts, eta_g, eta_in)
+                else:
+                    g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
+                                                            zc, lo, hi, prm, parts, eta_in,
+                                                            edge)
+                if not ok:
+                    out[i, j, s] = ninf
+                    continue
+                rx_db = 0.0
+                if not math.isnan(rx_hpbw):
+                    rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, rx_peak)
+                if g == 0.0:
+                    out[i, j, s] = ninf
+                    continue
+                power = c0 + rx_db + (20 * math.log10(g) - att)
+                out[i, j, s] = power + pgain - n0_dbm
 
 
 @njit(**_OPTS)
 def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
     """:func:`channel_snr_kernel` of the needed slots only: ``need`` (N, M, 18) bool; a slot
-    not needed is not evaluated and its ``out`` is NaN (a value no caller uses: every needed
-    slot is the unmasked kernel's value, bit for bit, ``-inf`` where not valid)."""
+    not needed is not evaluated and its ``out`` is NaN (a value no caller uses). The loop body
+    is :func:`channel_snr_kernel`'s, statement for statement (a shared per-slot function cost
+    the unmasked kernel 20 % CPU: kept apart), so every needed slot is its value bit for bit
+    (-inf where not valid)."""
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
     eta_g, eta_in = eta[0], eta[1]
+    c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
+    rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
+    ninf = -np.inf
     for i in range(nodes.shape[0]):
         n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
         k_node = _floor_index(n2, first_z, floor_h, prm[_P_N_FLOORS])
@@ -561,11 +561,32 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
         for j in range(anchors.shape[1]):
             a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
             for s in range(N_SLOTS):
-                if need[i, j, s]:
-                    out[i, j, s] = _slot_snr(s, a0, a1, a2, n0, n1, n2, k_node, zf, zc, lo,
-                                             hi, prm, parts, eta_g, eta_in, edge)
-                else:
+                if not need[i, j, s]:
                     out[i, j, s] = np.nan
+                    continue
+                kind = _KIND[s]
+                if kind == 0:
+                    g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo,
+                                                         hi, prm, parts)
+                    ok = math.isfinite(length)
+                elif kind == 1:
+                    g, att, v0, v1, v2, length, ok = _specular(s, a0, a1, a2, n0, n1, n2, zf, zc,
+                                                          lo, hi, prm, parts, eta_g, eta_in)
+                else:
+                    g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
+                                                            zc, lo, hi, prm, parts, eta_in,
+                                                            edge)
+                if not ok:
+                    out[i, j, s] = ninf
+                    continue
+                rx_db = 0.0
+                if not math.isnan(rx_hpbw):
+                    rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, rx_peak)
+                if g == 0.0:
+                    out[i, j, s] = ninf
+                    continue
+                power = c0 + rx_db + (20 * math.log10(g) - att)
+                out[i, j, s] = power + pgain - n0_dbm
 
 
 @njit(**_OPTS)
