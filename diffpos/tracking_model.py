@@ -111,11 +111,20 @@ def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None
         return None
     n, h = pos.shape[:2]
     m = links.rho.shape[-1]
+    if n * h == 0:
+        return np.zeros((n, h, m, K_SLOTS)), np.full((n, h, m), np.nan)
+    known = np.broadcast_to(np.isfinite(links.snr), (n, h, m))
+    if known.all():  # every link: no gather
+        anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(-1, 3)
+        p = np.broadcast_to(pos[:, :, None, :], (n, h, m, 3)).reshape(-1, 3)
+        meas = np.broadcast_to(links.snr, (n, h, m)).reshape(-1)
+        tr = None if trust is None else \
+            np.broadcast_to(trust, (n, h, m, K_SLOTS)).reshape(-1, K_SLOTS)
+        pred = pair_snr_db(anc[:, None, :], p, building=building, radio=links.radio)[:, 0]
+        c, t = _snr_cost_of(pred, meas, links.radio, tr)
+        return c.reshape(n, h, m, K_SLOTS), t.reshape(n, h, m)
     out = np.zeros((n, h, m, K_SLOTS))
     thr = np.full((n, h, m), np.nan)
-    if n * h == 0:
-        return out, thr
-    known = np.broadcast_to(np.isfinite(links.snr), (n, h, m))
     n_i, h_i, m_i = np.nonzero(known)
     if n_i.size == 0:
         return out, thr

@@ -41,9 +41,10 @@ BUILDINGS = [
 RADIO = Radio()
 
 
-def _case(b: Building, seed: int, n: int = 12, h: int = 3, m: int = 6):
+def _case(b: Building, seed: int, n: int = 12, h: int = 3, m: int = 6, unknown: float = 0.2):
     """Hypotheses (N, H, 3) on random floors (a third near a window-band edge), per-node
-    anchors in front of, above and beyond the facade, measured SNRs (a fifth unknown)."""
+    anchors in front of, above and beyond the facade, measured SNRs (a fraction ``unknown``
+    of them unknown)."""
     rng = np.random.default_rng(seed)
     x0, x1 = b.edge_x_m
     w = x1 - x0
@@ -59,7 +60,7 @@ def _case(b: Building, seed: int, n: int = 12, h: int = 3, m: int = 6):
     az = rng.uniform(0.3, b.top_z_m + 15.0, (n, m))
     anchors = np.stack([ax, ay, az], axis=-1)
     rho = np.linalg.norm(pos[:, :1, None, :] - anchors[:, None], axis=-1)[:, 0] + 1.0
-    snr = np.where(rng.random((n, m)) < 0.2, np.nan, rng.uniform(-10.0, 45.0, (n, m)))
+    snr = np.where(rng.random((n, m)) < unknown, np.nan, rng.uniform(-10.0, 45.0, (n, m)))
     links = Links.from_arrays(anchors, rho, np.full((n, m), 0.1), np.ones((n, m), bool), 0.1,
                               snr_db=snr, radio=RADIO)
     relax = rng.uniform(0.2, 0.6, (n, h))  # one existence margin per hypothesis
@@ -159,11 +160,14 @@ def test_snr_cost_kernel_bit_identical_to_numpy():
 def test_snr_cost_near_equals_brute_force(bi, monkeypatch):
     """snr_cost_near with the masks equals predicting every slot everywhere: bit for bit with
     the shifted point's threshold; with the prior's threshold the hole slots equal the brute
-    force given that threshold and every other slot is the exact value."""
+    force given that threshold and every other slot is the exact value. With and without
+    unknown SNRs."""
     b = BUILDINGS[bi]
     n_hole = n_powered = 0
     for seed in range(3):
-        pos, links, floor, relax = _case(b, 1000 + 100 * bi + seed)
+        # seed 0: every SNR known (snr_cost's path without a gather)
+        pos, links, floor, relax = _case(b, 1000 + 100 * bi + seed,
+                                         unknown=0.0 if seed == 0 else 0.2)
         pe = all_paths(pos, links, floor, b, relax)
         monkeypatch.setattr(tm, "HOLE_THRESHOLD_AT_PRIOR", False)
         got = tm.snr_cost_near(pos, links, floor, b, relax, pe)
