@@ -8,14 +8,16 @@ Usage::
 
 Replays the recording in this process once (:func:`diffpos_services.recording.replay.replay`,
 all epochs solved, no recorded decisions) and keeps the inputs of every ``--every``-th
-``snr_cost_near`` call; then times (``time.process_time``, the best of ``--reps`` passes, the
-variants interleaved) one pass over the kept calls with
+``snr_cost_near`` call; then times (``time.process_time``, the best of ``--reps`` passes) one
+pass over the kept calls with
 
 * ``all slots``: the brute force, every slot of every link predicted at the hypothesis and
   at both shifted heights (``pair_snr_db`` unmasked, the numpy cost);
 * ``masked, exact``: ``HOLE_THRESHOLD_AT_PRIOR = False``; its outputs must equal the brute
   force's bit for bit (checked, printed);
 * ``masked, prior thr``: the default; the number of slot costs that differ is printed.
+
+The variants run interleaved call by call, so a change of the machine's load hits all three.
 
 The table names the machine and the load average (the VM is shared: the ratio of the variants
 within one run is the figure to read, not the absolute seconds).
@@ -114,12 +116,16 @@ def main() -> None:
     size = sum(r.size for r in ref)
     pairs = sum(r.shape[0] * r.shape[1] * r.shape[2] for r in ref)
     cpu = {k: [] for k in variants}
-    for _ in range(args.reps):
-        for k, f in variants.items():
-            t0 = time.process_time()
-            for c in calls:
-                f(*c)
-            cpu[k].append(time.process_time() - t0)
+    names = list(variants)
+    for _ in range(args.reps):  # the variants interleaved call by call (the load drifts)
+        acc = dict.fromkeys(names, 0.0)
+        for i, c in enumerate(calls):
+            for k in names[i % 3:] + names[:i % 3]:
+                t0 = time.process_time()
+                variants[k](*c)
+                acc[k] += time.process_time() - t0
+        for k in names:
+            cpu[k].append(acc[k])
     base = min(cpu["all slots"])
     print(f"bench_snr_cost: {args.recording}, {len(calls)} snr_cost_near calls "
           f"(every {args.every}), {pairs} links x hypotheses; best of {args.reps}")
