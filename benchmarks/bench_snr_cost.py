@@ -21,6 +21,19 @@ The variants run interleaved call by call, so a change of the machine's load hit
 
 The table names the machine and the load average (the VM is shared: the ratio of the variants
 within one run is the figure to read, not the absolute seconds).
+
+Measured 2026-11-27 11:48-11:51 UTC (2-core x86_64 VM shared with other jobs, load 2.4-3.2),
+commit fd0434f::
+
+    recording                       calls  links x hyp.  all slots  masked, exact  prior thr
+    /tmp/s8/soak/soak16x200.mcap   205/617     1269648     5.585 s  3.882 s 1.44x  3.255 s 1.72x
+    /tmp/s8/large.mcap             399/399      321808     1.594 s  1.188 s 1.34x  0.965 s 1.65x
+
+(``--every 3 --reps 3`` and ``--reps 3``.) Exact: outputs equal to the brute force in every
+call; prior threshold: 0.08 % (soak) / 0.12 % (large) of the slot costs differ. What is left is
+the prediction at the hypotheses themselves (~80 % of the masked time: all 18 slots of every
+link with a known SNR; the 7 diffraction slots are needed there, as candidates and for the
+detector's threshold).
 """
 
 from __future__ import annotations
