@@ -79,8 +79,9 @@ ENTRY_SIGMAS = 2.0
 #: identical; large floor 99.72-99.78 -> 99.73-99.91 %, p90 0.299-0.313 -> 0.300 m, cov95
 #: 91.20-91.29 -> 91.28-91.30 %; anchors-beyond-ends floor 98.52-98.61 -> 98.43-98.61 %,
 #: p90 0.222-0.224 -> 0.224 m, cov95 94.63-95.00 -> 94.63-94.91 %). Replays (all epochs
-#: solved): /tmp/s8/large.mcap the same floor in 10,000 of 10,000 estimates, positions within
-#: 4e-5 m; the 16 x 200 soak 59,921 of 60,000 (no truth recorded there). The SNR part's CPU:
+#: solved) against the shifted point's threshold: a 20 s lockstep ``large`` recording the same
+#: floor in 10,000 of 10,000 estimates, positions within 4e-5 m; a 30 s 16 x 200 soak the same
+#: floor in 59,921 of 60,000 (no truth recorded there). The SNR part's CPU:
 #: 1.34-1.44x less with the exact threshold, 1.65-1.72x with this one
 #: (``benchmarks/bench_snr_cost.py``).
 HOLE_THRESHOLD_AT_PRIOR = True
