@@ -79,7 +79,7 @@ from ._channel_slots import (  # noqa: F401 (re-exported; the numpy reference's 
     itu_permittivity,
     slab_loss_db,
 )
-from ._kernels.channel_nb import channel_params, eval_snr_kernel
+from ._kernels.channel_nb import channel_params, eval_snr_kernel, eval_snr_masked_kernel
 from .linkbudget import db_to_linear, ranging_crlb_m
 from .paths import MECHANISMS, first_arrival_paths
 from .scenario import Building, Radio, Scenario
@@ -203,7 +203,7 @@ def _kernel_params(building: Building, radio: Radio) -> tuple[np.ndarray, ...]:
 
 
 def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
-                radio: Radio) -> FloatArray:
+                radio: Radio, need: ArrayLike | None = None) -> FloatArray:
     """SNR of every slot for per-node anchor sets: anchors ``(N, M, 3)``, nodes ``(N, 3)``.
 
     The same amplitudes as :func:`emulate_channel` (which pairs every node with every anchor),
@@ -218,6 +218,10 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     with a non-finite coordinate go to the reference. Anchors ``(M, 3)`` are shared by all
     nodes.
 
+    ``need`` (bool, broadcastable to ``(N, M, K)``): compute only these slots
+    (:func:`diffpos._kernels.channel_nb.channel_snr_masked_kernel`); every needed slot has
+    the unmasked value, bit for bit, the others are NaN (not evaluated).
+
     Returns
     -------
     ndarray, shape (N, M, K) [dB]
@@ -226,13 +230,21 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     nodes = np.asarray(nodes_m, dtype=np.float64)
     if anchors.ndim == 2:
         anchors = np.broadcast_to(anchors[None], (nodes.shape[0], *anchors.shape))
+    if need is not None:
+        need = np.ascontiguousarray(np.broadcast_to(
+            np.asarray(need, dtype=np.bool_), (*anchors.shape[:2], len(MECHANISMS))))
     if not (np.isfinite(anchors).all() and np.isfinite(nodes).all()):
-        return _pair_snr_db_numpy(anchors, nodes, building=building, radio=radio)
+        out = _pair_snr_db_numpy(anchors, nodes, building=building, radio=radio)
+        return out if need is None else np.where(need, out, np.nan)
     try:
         params = _kernel_params(building, radio)
     except TypeError:  # an unhashable field (e.g. partitions given as a list)
         params = channel_params(building, radio, _materials(building, radio.frequency_hz))
-    return eval_snr_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes), params)
+    if need is None:
+        return eval_snr_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes),
+                               params)
+    return eval_snr_masked_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes),
+                                  params, need)
 
 
 def _pair_snr_db_numpy(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,

@@ -48,6 +48,15 @@ loss dB)``, the radio (wavenumber, wavelength, patterns, link-budget constants, 
 and the two complex permittivities (ground, interior). One compiled signature
 (:data:`SIGNATURE`), ``cache=True``; :func:`warm_channel` compiles it or loads numba's on-disk
 cache (call it at service start).
+
+:func:`channel_snr_masked_kernel` is the same loop over a per-pair slot mask ``need``
+(:data:`MASKED_SIGNATURE`): the slots needed are evaluated by the same statements, so they
+are bit-identical to the unmasked kernel's; the others are not evaluated and hold NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
+``diffpos.tracking_model.snr_cost_near``: mostly specular slots near a window-band edge, and
+not the 7 diffraction slots that are ~80 % of a full prediction).
+
+:func:`snr_cost_kernel` is the tracker's SNR cost of the predicted slots (Gaussian about the
+prediction plus the detector's threshold), the numpy reference's operations in one pass.
 """
 
 from __future__ import annotations
@@ -86,9 +95,10 @@ from .transition_nb import (
     weideman_coefficients,
 )
 
-__all__ = ["ASYMPTOTIC_MIN_ABS", "SIGNATURE", "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N",
-           "channel_params", "channel_snr_kernel", "eval_snr_kernel", "faddeeva",
-           "faddeeva_kernel", "transition", "transition_asymptotic", "warm_channel",
+__all__ = ["ASYMPTOTIC_MIN_ABS", "COST_SIGNATURE", "MASKED_SIGNATURE", "SIGNATURE",
+           "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N", "channel_params", "channel_snr_kernel",
+           "channel_snr_masked_kernel", "eval_snr_kernel", "eval_snr_masked_kernel", "faddeeva", "faddeeva_kernel",
+           "snr_cost_kernel", "transition", "transition_asymptotic", "warm_channel",
            "weideman_coefficients"]
 
 _RAD2DEG = 180.0 / math.pi
@@ -531,20 +541,128 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
                 out[i, j, s] = power + pgain - n0_dbm
 
 
+@njit(**_OPTS)
+def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
+    """:func:`channel_snr_kernel` of the needed slots only: ``need`` (N, M, 18) bool; a slot
+    not needed is not evaluated and its ``out`` is NaN (a value no caller uses). The loop body
+    is :func:`channel_snr_kernel`'s, statement for statement (a shared per-slot function cost
+    the unmasked kernel 20 % CPU: kept apart), so every needed slot is its value bit for bit
+    (-inf where not valid)."""
+    first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
+    edge = edge_axis(prm[_P_X0], prm[_P_X1])
+    eta_g, eta_in = eta[0], eta[1]
+    c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
+    rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
+    ninf = -np.inf
+    for i in range(nodes.shape[0]):
+        n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
+        k_node = _floor_index(n2, first_z, floor_h, prm[_P_N_FLOORS])
+        zf, zc, lo, hi = row_planes(k_node, first_z, floor_h, sill, win_h)
+        for j in range(anchors.shape[1]):
+            a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
+            for s in range(N_SLOTS):
+                if not need[i, j, s]:
+                    out[i, j, s] = np.nan
+                    continue
+                kind = _KIND[s]
+                if kind == 0:
+                    g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo,
+                                                         hi, prm, parts)
+                    ok = math.isfinite(length)
+                elif kind == 1:
+                    g, att, v0, v1, v2, length, ok = _specular(s, a0, a1, a2, n0, n1, n2, zf, zc,
+                                                          lo, hi, prm, parts, eta_g, eta_in)
+                else:
+                    g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
+                                                            zc, lo, hi, prm, parts, eta_in,
+                                                            edge)
+                if not ok:
+                    out[i, j, s] = ninf
+                    continue
+                rx_db = 0.0
+                if not math.isnan(rx_hpbw):
+                    rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, rx_peak)
+                if g == 0.0:
+                    out[i, j, s] = ninf
+                    continue
+                power = c0 + rx_db + (20 * math.log10(g) - att)
+                out[i, j, s] = power + pgain - n0_dbm
+
+
+@njit(**_OPTS)
+def snr_cost_kernel(pred, meas, trust, sigma_db, fap_db, det_db, given_thr, thr, out):
+    """The tracker's SNR cost of every slot (``diffpos.tracking_model._snr_cost_of``, its
+    numpy reference: the same operations in the same order, NaN propagated as numpy's ``max``
+    does, so bit-identical): ``pred`` (P, K) predicted SNRs [dB], ``meas`` (P,) measured
+    [dB], ``trust`` (P, K) bool (the slots whose maximum sets the detector's threshold) ->
+    ``out`` (P, K): ``((meas - pred) / sigma)^2 / 2`` plus the same of the shortfall below
+    ``thr - sigma``, ``thr = max(max_trust pred - fap_db, det_db)`` the detector's threshold;
+    +inf where ``pred`` is not finite, 0 where ``meas`` is not. ``thr`` (P,): written (NaN
+    where ``meas`` is not finite), or with ``given_thr`` read (``trust`` unused)."""
+    n_k = pred.shape[1]
+    for i in range(pred.shape[0]):
+        mi = meas[i]
+        if not math.isfinite(mi):
+            for k in range(n_k):
+                out[i, k] = 0.0
+            if not given_thr:
+                thr[i] = np.nan
+            continue
+        if given_thr:
+            th = thr[i]
+        else:
+            top = -np.inf
+            for k in range(n_k):
+                if trust[i, k]:
+                    v = pred[i, k]
+                    if math.isnan(v):
+                        top = np.nan
+                        break
+                    if v > top:
+                        top = v
+            th = top - fap_db
+            if not th >= det_db:  # np.maximum: NaN propagates
+                th = det_db if not math.isnan(th) else th
+            thr[i] = th
+        short = (th - sigma_db) - mi
+        if not short >= 0.0:
+            short = 0.0 if not math.isnan(short) else short
+        q = short / sigma_db
+        extra = 0.5 * (q * q)
+        for k in range(n_k):
+            v = pred[i, k]
+            if not math.isfinite(v):
+                out[i, k] = np.inf
+                continue
+            r = (mi - v) / sigma_db
+            out[i, k] = 0.5 * (r * r) + extra
+
+
 _c16_1d = types.complex128[::1]
 #: The one compiled signature of :func:`channel_snr_kernel`.
 SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1], types.float64[::1],
                        types.float64[:, ::1], _c16_1d, types.float64[:, :, ::1])
+#: The compiled signature of :func:`channel_snr_masked_kernel` (``need`` before ``out``).
+MASKED_SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1],
+                              types.float64[::1], types.float64[:, ::1], _c16_1d,
+                              types.boolean[:, :, ::1], types.float64[:, :, ::1])
+#: The compiled signature of :func:`snr_cost_kernel`.
+COST_SIGNATURE = types.void(types.float64[:, ::1], types.float64[::1], types.boolean[:, ::1],
+                            types.float64, types.float64, types.float64, types.boolean,
+                            types.float64[::1], types.float64[:, ::1])
 _state: dict[str, object] = {}
 
 
 def warm_channel() -> float:
-    """Compile :func:`channel_snr_kernel` for :data:`SIGNATURE`, or load it from numba's
-    cache. Idempotent; returns the seconds it took (0 once warm). Call it at service start."""
+    """Compile :func:`channel_snr_kernel` for :data:`SIGNATURE`,
+    :func:`channel_snr_masked_kernel` for :data:`MASKED_SIGNATURE` and :func:`snr_cost_kernel`
+    for :data:`COST_SIGNATURE`, or load them from numba's cache. Idempotent; returns the seconds it took (0 once warm). Call it at service start."""
     if "entry" in _state:
         return 0.0
     t0 = time.perf_counter()
     channel_snr_kernel.compile(SIGNATURE.args)
+    channel_snr_masked_kernel.compile(MASKED_SIGNATURE.args)
+    snr_cost_kernel.compile(COST_SIGNATURE.args)
     _state["entry"] = channel_snr_kernel
     return time.perf_counter() - t0
 
@@ -586,4 +704,15 @@ def eval_snr_kernel(anchors: np.ndarray, nodes: np.ndarray,
     warm_channel()
     out = np.empty((nodes.shape[0], anchors.shape[1], N_SLOTS))
     channel_snr_kernel(anchors, nodes, *params, out)
+    return out
+
+
+def eval_snr_masked_kernel(anchors: np.ndarray, nodes: np.ndarray,
+                           params: tuple[np.ndarray, np.ndarray, np.ndarray],
+                           need: np.ndarray) -> np.ndarray:
+    """:func:`eval_snr_kernel` of the slots ``need`` (N, M, 18) C-contiguous bool only
+    (:func:`channel_snr_masked_kernel`: NaN elsewhere)."""
+    warm_channel()
+    out = np.empty((nodes.shape[0], anchors.shape[1], N_SLOTS))
+    channel_snr_masked_kernel(anchors, nodes, *params, need, out)
     return out
