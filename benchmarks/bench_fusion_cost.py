@@ -112,6 +112,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import hashlib
 import os
 import platform
 import queue
@@ -124,6 +125,9 @@ from pathlib import Path
 import msgspec
 import numpy as np
 from diffpos_services.recording.replay import replay
+from diffpos_services.wire import messages as M
+
+from diffpos._kernels import pool as kernel_pool
 
 TARGET_MS = 2.0
 
@@ -134,6 +138,48 @@ def record(scenario: str, duration_s: float, seed: int, out: Path) -> None:
     cmd = [str(exe), "emulate", scenario, "--speed", "0", "--duration", str(duration_s),
            "--seed", str(seed), "--dashboard", "off", "--no-progress", "--record", str(out)]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def thread_costs(path: Path, threads: list[int], repeat: int) -> list[dict]:
+    """CPU and wall seconds of an M-NLS replay of ``path`` (every epoch solved, no recorded
+    decisions) with each kernel thread count, ``repeat`` rounds alternating the counts, and
+    a digest of the replayed estimates (their wire bytes: equal digests = bit-identical)."""
+    rows = []
+    for _ in range(repeat):
+        for n in threads:
+            w, t = time.perf_counter(), time.process_time()
+            r = replay(path, method="mnls", overrides={"kernel_threads": n},
+                       use_decisions=False, keep_estimates=True)
+            cpu, wall = time.process_time() - t, time.perf_counter() - w
+            h = hashlib.sha256()
+            for e in r.estimates:
+                h.update(M.encode(e))
+            rows.append({"threads": n, "cpu_s": cpu, "wall_s": wall, "estimates": len(r.estimates),
+                         "digest": h.hexdigest()[:12], "load": os.getloadavg()[0]})
+            del r
+    return rows
+
+
+def _print_threads(path: Path, rows: list[dict]) -> None:
+    print(f"bench_fusion_cost --threads: recording {path}; machine {platform.machine()} "
+          f"{os.cpu_count()} cores, Python {platform.python_version()}")
+    print(f"{'threads':>7} {'node-epochs':>11} {'CPU s':>7} {'wall s':>7} {'CPU ms/ne':>9} "
+          f"{'wall ms/ne':>10} {'load1':>5}  estimates digest")
+    for r in rows:
+        n = max(r["estimates"], 1)
+        print(f"{r['threads']:>7} {r['estimates']:>11} {r['cpu_s']:>7.2f} {r['wall_s']:>7.2f} "
+              f"{1e3 * r['cpu_s'] / n:>9.3f} {1e3 * r['wall_s'] / n:>10.3f} {r['load']:>5.1f}  "
+              f"{r['digest']}")
+    by = collections.defaultdict(list)
+    for r in rows:
+        by[r["threads"]].append(r)
+    base = by[min(by)]
+    for k in sorted(by):
+        cpu = sum(r["cpu_s"] for r in by[k]) / sum(r["cpu_s"] for r in base)
+        wall = sum(r["wall_s"] for r in by[k]) / sum(r["wall_s"] for r in base)
+        print(f"  {k} threads vs {min(by)}: CPU x{cpu:.3f}, wall x{wall:.3f}")
+    print("  estimates bit-identical across thread counts:",
+          len({r["digest"] for r in rows}) == 1)
 
 
 def cost(path: Path, method: str) -> tuple[float, int, dict]:
@@ -238,6 +284,7 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     log = logging.getLogger("bench.schedule")
     log.addHandler(logging.NullHandler())
     log.propagate = False
+    kernel_pool.set_threads(cfg.kernel_threads)  # as run_fusion (its CPU is on the clock)
     core = FusionCore(cfg, logger=log, record_decisions=False)
     core.warm_up()
     if hasattr(service, "freeze_heap"):  # as run_fusion does after its warm-up
@@ -246,8 +293,6 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     inbox = type("Inbox", (), {})()
     inbox.q, inbox.release = _ScheduledQueue(items, clock), lambda size: None
     lat: list[tuple[int, int]] = []  # (input publish, estimate publish) [ns]
-
-    from diffpos_services.wire import messages as M
 
     def put(e) -> None:  # what the service's publisher does before the bus: encode
         M.encode(e)
@@ -298,7 +343,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fusion-args", metavar="ARGS",
                     help="--schedule: the settings of 'diffpos fusion ARGS' (one string) "
                     "instead of the recorded ones")
+    ap.add_argument("--threads", metavar="N,N,...",
+                    help="with --recording: M-NLS replays (all epochs, no recorded decisions) "
+                    "with these kernel_threads, CPU and wall per node-epoch, alternating")
+    ap.add_argument("--repeat", type=int, default=2, help="--threads: rounds (default 2)")
     args = ap.parse_args(argv)
+    if args.threads is not None and args.recording is not None:
+        counts = [int(v) for v in args.threads.split(",")]
+        _print_threads(args.recording, thread_costs(args.recording, counts, args.repeat))
+        return 0
     if args.schedule is not None:
         r = schedule(args.schedule, seconds=args.seconds,
                      fusion_argv=None if args.fusion_args is None else args.fusion_args.split())

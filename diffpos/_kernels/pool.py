@@ -151,13 +151,17 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
     return cpu[0]
 
 
-# ---- the wrappers' thresholds: a chunk of at least ~0.3 ms of kernel work (measured by
-# benchmarks/bench_kernel_threads.py; a call below twice this stays on the calling thread)
-#: ``channel_nb.eval_snr_kernel``: node-anchor pairs (18 slots each, ~2 us per pair).
+# ---- the wrappers' thresholds: a chunk of at least ~0.3-0.5 ms of kernel work (one thread's
+# cost per unit from benchmarks/bench_kernel_threads.py, 2026-11-27, 16 anchors; a split call
+# costs ~10 us wall more than a direct one with the pool's threads up). A call below twice
+# the threshold stays on the calling thread.
+#: ``channel_nb.eval_snr_kernel``: node-anchor pairs (18 slots each, ~2-4 us per pair).
 SNR_MIN_PAIRS = 128
-#: ``mnls._lm_compiled``: rows (starts) of ``mnls_nb.lm_kernel`` per chunk.
-LM_MIN_ROWS = 16
-#: ``tracking_paths.all_paths``: (hypothesis, anchor) links of ``all_paths_kernel`` (18 slots).
-PATHS_MIN_LINKS = 256
-#: ``tracking_init.grid_starts``: (floor, cell, anchor) evaluations of ``grid_cost_kernel``.
-GRID_MIN_CELL_LINKS = 4096
+#: ``mnls._lm_compiled``: rows (starts) of ``mnls_nb.lm_kernel`` per chunk (~20-60 us each).
+LM_MIN_ROWS = 8
+#: ``tracking_paths.all_paths``: (hypothesis, anchor) links of ``all_paths_kernel`` (18 slots,
+#: ~0.5-1 us per link).
+PATHS_MIN_LINKS = 512
+#: ``tracking_init.grid_starts``: (floor, cell, anchor) evaluations of ``grid_cost_kernel``
+#: (~30 ns each; one node on one floor is ~3,600 cells x its anchors).
+GRID_MIN_CELL_LINKS = 16384
