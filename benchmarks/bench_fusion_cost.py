@@ -147,14 +147,20 @@ def thread_costs(path: Path, threads: list[int], repeat: int) -> list[dict]:
     rows = []
     for _ in range(repeat):
         for n in threads:
+            kernel_pool.reset_stats()
             w, t = time.perf_counter(), time.process_time()
             r = replay(path, method="mnls", overrides={"kernel_threads": n},
                        use_decisions=False, keep_estimates=True)
             cpu, wall = time.process_time() - t, time.perf_counter() - w
+            st = kernel_pool.stats()
+            # with a free core per thread: the process CPU with each kernel call's chunks
+            # replaced by its busiest thread's share (diffpos._kernels.pool.stats)
+            free = cpu - st["chunk_cpu_s"] + st["critical_cpu_s"]
             h = hashlib.sha256()
             for e in r.estimates:
                 h.update(M.encode(e))
-            rows.append({"threads": n, "cpu_s": cpu, "wall_s": wall, "estimates": len(r.estimates),
+            rows.append({"threads": n, "cpu_s": cpu, "wall_s": wall, "free_s": free,
+                         "kernel_share": st["chunk_cpu_s"] / cpu, "estimates": len(r.estimates),
                          "digest": h.hexdigest()[:12], "load": os.getloadavg()[0]})
             del r
     return rows
@@ -163,13 +169,17 @@ def thread_costs(path: Path, threads: list[int], repeat: int) -> list[dict]:
 def _print_threads(path: Path, rows: list[dict]) -> None:
     print(f"bench_fusion_cost --threads: recording {path}; machine {platform.machine()} "
           f"{os.cpu_count()} cores, Python {platform.python_version()}")
+    print("  (free-core wall: the process CPU with each split kernel call counted at its busiest "
+          "thread's CPU, the wall time with a free core per thread; kernels: their share of "
+          "the CPU)")
     print(f"{'threads':>7} {'node-epochs':>11} {'CPU s':>7} {'wall s':>7} {'CPU ms/ne':>9} "
-          f"{'wall ms/ne':>10} {'load1':>5}  estimates digest")
+          f"{'wall ms/ne':>10} {'free-core wall ms/ne':>20} {'kernels':>7} {'load1':>5}  digest")
     for r in rows:
         n = max(r["estimates"], 1)
         print(f"{r['threads']:>7} {r['estimates']:>11} {r['cpu_s']:>7.2f} {r['wall_s']:>7.2f} "
-              f"{1e3 * r['cpu_s'] / n:>9.3f} {1e3 * r['wall_s'] / n:>10.3f} {r['load']:>5.1f}  "
-              f"{r['digest']}")
+              f"{1e3 * r['cpu_s'] / n:>9.3f} {1e3 * r['wall_s'] / n:>10.3f} "
+              f"{1e3 * r['free_s'] / n:>20.3f} {100 * r['kernel_share']:>6.0f}% "
+              f"{r['load']:>5.1f}  {r['digest']}")
     by = collections.defaultdict(list)
     for r in rows:
         by[r["threads"]].append(r)
@@ -177,7 +187,9 @@ def _print_threads(path: Path, rows: list[dict]) -> None:
     for k in sorted(by):
         cpu = sum(r["cpu_s"] for r in by[k]) / sum(r["cpu_s"] for r in base)
         wall = sum(r["wall_s"] for r in by[k]) / sum(r["wall_s"] for r in base)
-        print(f"  {k} threads vs {min(by)}: CPU x{cpu:.3f}, wall x{wall:.3f}")
+        free = sum(r["free_s"] for r in by[k]) / sum(r["free_s"] for r in base)
+        print(f"  {k} threads vs {min(by)}: CPU x{cpu:.3f}, wall x{wall:.3f}, free-core wall "
+              f"x{free:.3f}")
     print("  estimates bit-identical across thread counts:",
           len({r["digest"] for r in rows}) == 1)
 

@@ -33,7 +33,8 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 __all__ = ["CHUNKS_PER_THREAD", "GRID_MIN_CELL_LINKS", "LM_MIN_ROWS", "PATHS_MIN_LINKS",
-           "SNR_MIN_PAIRS", "run_rows", "set_threads", "shutdown", "threads"]
+           "SNR_MIN_PAIRS", "reset_stats", "run_rows", "set_threads", "shutdown", "stats",
+           "threads"]
 
 #: Chunks per thread of a call that is split (more than one: a chunk of slow rows, e.g. the
 #: M-NLS starts still iterating, does not hold up the call while the other thread idles).
@@ -41,6 +42,8 @@ CHUNKS_PER_THREAD = 4
 
 _lock = threading.Lock()
 _state: dict[str, object] = {"threads": 1, "executor": None}
+_STAT_KEYS = ("calls", "split_calls", "chunk_cpu_s", "critical_cpu_s")
+_stats: dict[str, float] = dict.fromkeys(_STAT_KEYS, 0.0)
 
 
 def set_threads(n: int) -> None:
@@ -72,6 +75,28 @@ def shutdown() -> None:
 
 
 atexit.register(shutdown)
+
+
+def stats() -> dict[str, float]:
+    """Counters since :func:`reset_stats`: ``calls`` of :func:`run_rows`, ``split_calls``,
+    ``chunk_cpu_s`` (the CPU of every chunk on every thread) and ``critical_cpu_s`` (per call,
+    the CPU of the busiest thread's chunks: with a free core per thread, the call's wall time
+    is about this; a whole run's wall is then its process CPU - ``chunk_cpu_s`` +
+    ``critical_cpu_s``, the figure bench_fusion_cost ``--threads`` prints as "2-core wall")."""
+    return dict(_stats)
+
+
+def reset_stats() -> None:
+    """Zero the :func:`stats` counters."""
+    _stats.update(dict.fromkeys(_STAT_KEYS, 0.0))
+
+
+def _count(total_s: float, critical_s: float, split: bool) -> None:
+    with _lock:
+        _stats["calls"] += 1
+        _stats["split_calls"] += split
+        _stats["chunk_cpu_s"] += total_s
+        _stats["critical_cpu_s"] += critical_s
 
 
 def _executor(n_workers: int) -> ThreadPoolExecutor:
@@ -108,12 +133,14 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
     if n_thr <= 1 or n_rows < 2 * min_rows:
         c0 = time.thread_time()
         fn(0, n_rows)
-        return time.thread_time() - c0
+        dt = time.thread_time() - c0
+        _count(dt, dt, False)
+        return dt
     n_chunks = min(CHUNKS_PER_THREAD * n_thr, n_rows // min_rows)
     chunks = _bounds(n_rows, n_chunks)
     take = threading.Lock()
     nxt = [0]
-    cpu = [0.0]
+    cpu: list[float] = []  # per thread
 
     def drain() -> None:
         c0 = time.thread_time()
@@ -128,7 +155,7 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
         finally:
             dt = time.thread_time() - c0
             with take:
-                cpu[0] += dt
+                cpu.append(dt)
 
     ex = _executor(n_thr - 1)
     helpers = [ex.submit(drain) for _ in range(min(n_thr - 1, n_chunks - 1))]
@@ -148,7 +175,8 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
             error = error or exc
     if error is not None:
         raise error
-    return cpu[0]
+    _count(sum(cpu), max(cpu), True)
+    return sum(cpu)
 
 
 # ---- the wrappers' thresholds: a chunk of at least ~0.3-0.5 ms of kernel work (one thread's

@@ -135,6 +135,30 @@ def test_run_rows_covers_every_row_once(n_thr, restore_threads):
                 assert all(hi - lo >= min_rows for lo, hi, _ in calls)
 
 
+def test_run_rows_stats_count_calls_and_cpu(restore_threads):
+    """stats(): every call counted, the split ones apart; the busiest thread's CPU is at most
+    the chunks' total (equal for a direct call)."""
+    pool.set_threads(2)
+    pool.reset_stats()
+    work = np.random.default_rng(0).normal(size=(64, 64))
+
+    def fn(lo, hi):
+        for _ in range(hi - lo):
+            np.linalg.inv(work)
+
+    for n_rows, min_rows in ((40, 1), (40, 100), (3, 1)):
+        pool.run_rows(fn, n_rows, min_rows=min_rows)
+    st = pool.stats()
+    assert st["calls"] == 3 and st["split_calls"] == 2
+    assert 0 < st["critical_cpu_s"] <= st["chunk_cpu_s"]
+    pool.reset_stats()
+    pool.set_threads(1)
+    pool.run_rows(fn, 10)
+    st = pool.stats()
+    assert st["calls"] == 1 and st["split_calls"] == 0
+    assert st["critical_cpu_s"] == st["chunk_cpu_s"] > 0
+
+
 def test_run_rows_uses_two_threads(restore_threads):
     """With 2 threads two chunks run at the same time (a barrier both must reach)."""
     pool.set_threads(2)
