@@ -296,7 +296,9 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     log = logging.getLogger("bench.schedule")
     log.addHandler(logging.NullHandler())
     log.propagate = False
-    kernel_pool.set_threads(cfg.kernel_threads)  # as run_fusion (its CPU is on the clock)
+    # the virtual clock is one core of its own (process CPU): one kernel thread, whatever
+    # the recorded kernel_threads (on 2 threads it would charge both threads' CPU)
+    kernel_pool.set_threads(1)
     core = FusionCore(cfg, logger=log, record_decisions=False)
     core.warm_up()
     if hasattr(service, "freeze_heap"):  # as run_fusion does after its warm-up
