@@ -106,6 +106,25 @@ The same on bench_soak's 16 x 200 input (``bench_soak.py --load 16x200 --method 
 --method mnls"``): before 3.29-3.68 ms CPU per node-epoch (steps of 8-9 epochs), 7,117-7,281
 of 20,000 node-epochs published; after 1.66-1.99 ms (steps of 43-49), 8,854-9,845. Keeping
 up needs <= 0.5 ms per node-epoch on a whole core: not met (the tracker's update).
+
+``--recording REC --threads 1,2`` (the threads branch): M-NLS replays of REC (every epoch
+solved, no recorded decisions) with ``kernel_threads`` 1 and 2, alternating, CPU and wall per
+node-epoch, the "free-core wall" (the process CPU with each split kernel call counted at its
+busiest thread's CPU: the wall time with a free core per thread, ``diffpos._kernels.pool
+.stats``) and a digest of the replayed estimates' bytes. 2026-11-27 11:27-11:36 UTC, 2-core
+VM shared with four other jobs (load average 4.9-7.2: there was no free core, so the wall
+column mostly measures the other jobs)::
+
+    python benchmarks/bench_fusion_cost.py --recording /tmp/s8/soak/soak16x200.mcap --threads 1,2
+    threads  CPU ms/ne       wall ms/ne      free-core wall ms/ne   digest (60,000 estimates)
+    1        0.873 / 0.897   2.241 / 1.554   0.873 / 0.897          500966d8ef81 (all four)
+    2        0.916 / 0.835   2.226 / 1.239   0.692 / 0.630
+    2 vs 1:  CPU x0.99, wall x0.91, free-core wall x0.75 (kernels: 59 % of the CPU)
+
+    ... --recording /tmp/s8/large.mcap --threads 1,2          (8 x 50, 10,000 estimates)
+    1        0.757 / 0.736   4.583 / 2.413   0.757 / 0.736          531888983ccb (all four)
+    2        0.739 / 0.763   2.798 / 1.943   0.655 / 0.675
+    2 vs 1:  CPU x1.01, wall x0.68, free-core wall x0.89 (kernels: 40 % of the CPU)
 """
 
 from __future__ import annotations
