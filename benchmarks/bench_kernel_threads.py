@@ -12,6 +12,13 @@ and their ratio; first the pool's own cost (a call of 2 empty chunks vs a direct
 wrappers' thresholds (``diffpos._kernels.pool``: ``SNR_MIN_PAIRS`` ...) are set where the
 ratio stays above ~1.2 with some margin: a call below twice the threshold stays on the
 calling thread. Wall times on a shared machine: run it twice and read the load average.
+
+2026-11-27 10:56 UTC, 2-core VM shared with four other jobs (load average 3.5): a split call
+of 2 empty chunks 9.6 us wall (direct 0.14 us). With no free core the 2-thread ratios were
+0.55-1.65 (noise around 1: the second thread had nowhere to run), so the thresholds are set
+from the one-thread cost per unit of this run instead (~0.3-0.5 ms of work per chunk):
+pair_snr_db 2.2-3.8 us per node-anchor pair, all_paths 0.5-0.9 us per (hypothesis, anchor)
+link, grid_starts ~3 ms per node (2 floors, 16 anchors).
 """
 
 from __future__ import annotations
