@@ -15,10 +15,10 @@ and then every call runs on the calling thread as before. With ``n`` threads a c
 least ``2 * min_rows`` rows is cut into up to ``CHUNKS_PER_THREAD * n`` chunks of at least
 ``min_rows`` rows; the calling thread and ``n - 1`` pool threads take chunks in turn until none
 is left (so one slow chunk does not leave the other thread idle), and the caller then cancels
-the helpers that have not started. Smaller calls stay on the calling thread: a split call of two empty
-chunks costs ~10 us wall on the 2-core VM (benchmarks/bench_kernel_threads.py), a waking
-thread more, and on a loaded machine a helper thread may wait for a core, so each wrapper's
-``min_rows`` is about 0.3-0.5 ms of its kernel's work.
+the helpers that have not started. Smaller calls stay on the calling thread: a split call of
+two empty chunks costs ~10 us wall on the 2-core VM (benchmarks/bench_kernel_threads.py), a
+waking thread more, and on a loaded machine a helper thread may wait for a core, so each
+wrapper's ``min_rows`` is about 0.3-0.5 ms of its kernel's work.
 
 The pool (a :class:`concurrent.futures.ThreadPoolExecutor`) is created lazily on the first
 call that splits, and shut down by :func:`shutdown` (the fusion service at its end) or at
