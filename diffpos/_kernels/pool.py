@@ -83,7 +83,7 @@ def stats() -> dict[str, float]:
     ``chunk_cpu_s`` (the CPU of every chunk on every thread) and ``critical_cpu_s`` (per call,
     the CPU of the busiest thread's chunks: with a free core per thread, the call's wall time
     is about this; a whole run's wall is then its process CPU - ``chunk_cpu_s`` +
-    ``critical_cpu_s``, the figure bench_fusion_cost ``--threads`` prints as "2-core wall")."""
+    ``critical_cpu_s``, the "free-core wall" of bench_fusion_cost ``--threads``)."""
     return dict(_stats)
 
 
