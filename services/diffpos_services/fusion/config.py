@@ -30,8 +30,8 @@ from diffpos.scenario import Building, Radio, Scenario, ScenarioError, first_arr
 from diffpos_services.kit import build_config
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig", "building_of", "channel_edge",
-           "model_edge"]
+__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig",
+           "building_of", "channel_edge", "model_edge"]
 
 #: The estimators of the solve step (``--method``).
 METHODS = ("mnls", "dnls", "lls", "ippa")

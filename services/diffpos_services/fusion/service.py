@@ -487,7 +487,8 @@ def run_fusion(
     retries until ``stop``) or a ``zenoh.Config``. Returns the core (its counters).
     """
     log = logger or logging.getLogger("diffpos.fusion")
-    kernel_pool.set_threads(config.kernel_threads)  # threads only, made before zenoh.open
+    # the kernels' row pool: threads only (nothing forks); they start on the first split call
+    kernel_pool.set_threads(config.kernel_threads)
     try:
         core = FusionCore(config, logger=log)
         inbox = _Inbox(config, stop)
