@@ -43,7 +43,14 @@ CHUNKS_PER_THREAD = 4
 
 _lock = threading.Lock()
 _state: dict[str, object] = {"threads": 1, "executor": None}
-_STAT_KEYS = ("calls", "split_calls", "chunk_cpu_s", "critical_cpu_s")
+_STAT_KEYS = ("calls", "split_calls", "chunk_cpu_s", "critical_cpu_s", "backoffs")
+#: Back-off: when the caller of a split call waited for the helpers more than this share of
+#: the call's wall time (averaged over the recent split calls), the next
+#: :data:`BACKOFF_CALLS` calls run on the calling thread: the helpers had no free core
+#: (a loaded machine), where splitting only adds hand-offs. Outputs are the same either way.
+BACKOFF_WAIT_SHARE = 0.25
+BACKOFF_CALLS = 200
+_guard = {"wait_share": 0.0, "skip": 0}
 _stats: dict[str, float] = dict.fromkeys(_STAT_KEYS, 0.0)
 
 
@@ -54,6 +61,7 @@ def set_threads(n: int) -> None:
     if n < 1:
         raise ValueError(f"kernel threads must be >= 1; got {n}")
     with _lock:
+        _guard.update(wait_share=0.0, skip=0)
         if n == _state["threads"]:
             return
         old, _state["executor"] = _state["executor"], None
@@ -131,7 +139,10 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
     """
     n_thr = threads()
     min_rows = max(int(min_rows), 1)
-    if n_thr <= 1 or n_rows < 2 * min_rows:
+    backing_off = _guard["skip"] > 0
+    if n_thr <= 1 or n_rows < 2 * min_rows or backing_off:
+        if backing_off and n_thr > 1 and n_rows >= 2 * min_rows:
+            _guard["skip"] -= 1
         c0 = time.thread_time()
         fn(0, n_rows)
         dt = time.thread_time() - c0
@@ -159,6 +170,7 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
                 cpu.append(dt)
 
     ex = _executor(n_thr - 1)
+    t0 = time.perf_counter()
     helpers = [ex.submit(drain) for _ in range(min(n_thr - 1, n_chunks - 1))]
     error: BaseException | None = None
     try:
@@ -167,6 +179,7 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
         error = exc
         with take:
             nxt[0] = n_chunks  # the helpers take no further chunk
+    t1 = time.perf_counter()
     for f in helpers:
         if f.cancel():  # not started: the caller did its chunks
             continue
@@ -177,7 +190,18 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
     if error is not None:
         raise error
     _count(sum(cpu), max(cpu), True)
+    _watch(time.perf_counter() - t1, time.perf_counter() - t0)
     return sum(cpu)
+
+
+def _watch(wait_s: float, call_s: float) -> None:
+    """The back-off rule (:data:`BACKOFF_WAIT_SHARE`): the caller's wait for its helpers
+    after its own chunks, as a share of the split call's wall time, averaged over ~10 calls."""
+    share = _guard["wait_share"] = 0.9 * _guard["wait_share"] + 0.1 * (
+        wait_s / call_s if call_s > 0 else 0.0)
+    if share > BACKOFF_WAIT_SHARE:
+        _guard["skip"], _guard["wait_share"] = BACKOFF_CALLS, 0.0
+        _stats["backoffs"] += 1
 
 
 # ---- the wrappers' thresholds: a chunk of at least ~0.3-0.5 ms of kernel work (one thread's

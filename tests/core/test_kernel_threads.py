@@ -40,7 +40,10 @@ _BUILDINGS = [
 
 
 @pytest.fixture
-def restore_threads():
+def restore_threads(monkeypatch):
+    """Back to 1 thread afterwards; the back-off rule off (a loaded test machine would turn
+    splitting off for a while: the outputs are the same, but the split is what is tested)."""
+    monkeypatch.setattr(pool, "BACKOFF_WAIT_SHARE", float("inf"))
     yield
     pool.set_threads(1)
     pool.shutdown()
@@ -157,6 +160,28 @@ def test_run_rows_stats_count_calls_and_cpu(restore_threads):
     st = pool.stats()
     assert st["calls"] == 1 and st["split_calls"] == 0
     assert st["critical_cpu_s"] == st["chunk_cpu_s"] > 0
+
+
+def test_run_rows_backs_off_when_the_caller_waits(restore_threads, monkeypatch):
+    """After split calls whose caller mostly waited for its helpers, the next BACKOFF_CALLS
+    splittable calls run on the calling thread (one call each), then splitting resumes."""
+    monkeypatch.setattr(pool, "BACKOFF_WAIT_SHARE", 0.25)
+    monkeypatch.setattr(pool, "BACKOFF_CALLS", 3)
+    pool.set_threads(2)
+    for _ in range(3):  # the average wait share: 0.1, 0.19, then 0.271 > 0.25
+        pool._watch(1.0, 1.0)
+    calls = []
+
+    def fn(lo, hi):
+        calls.append((lo, hi))
+
+    for _ in range(3):
+        calls.clear()
+        pool.run_rows(fn, 40, min_rows=1)
+        assert calls == [(0, 40)]
+    calls.clear()
+    pool.run_rows(fn, 40, min_rows=1)
+    assert len(calls) >= 2
 
 
 def test_run_rows_uses_two_threads(restore_threads):
