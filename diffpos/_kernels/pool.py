@@ -18,7 +18,11 @@ is left (so one slow chunk does not leave the other thread idle), and the caller
 the helpers that have not started. Smaller calls stay on the calling thread: a split call of
 two empty chunks costs ~10 us wall on the 2-core VM (benchmarks/bench_kernel_threads.py), a
 waking thread more, and on a loaded machine a helper thread may wait for a core, so each
-wrapper's ``min_rows`` is about 0.3-0.5 ms of its kernel's work.
+wrapper's ``min_rows`` is about 0.3-0.5 ms of its kernel's work. When the helpers have no
+free core (a loaded machine: the caller finishes its chunks and then waits for a helper's),
+splitting only adds hand-offs: after split calls whose caller waited more than
+:data:`BACKOFF_WAIT_SHARE` of their wall time, the next :data:`BACKOFF_CALLS` calls stay on the
+calling thread (:func:`_watch`; the outputs are the same either way).
 
 The pool (a :class:`concurrent.futures.ThreadPoolExecutor`) is created lazily on the first
 call that splits, and shut down by :func:`shutdown` (the fusion service at its end) or at
