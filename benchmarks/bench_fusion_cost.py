@@ -148,8 +148,18 @@ behaviour; the split pays where a core is free (free-core wall above). After the
 pool got its back-off rule (``diffpos._kernels.pool.BACKOFF_WAIT_SHARE``); two more rounds,
 11:48-11:51 UTC, load 1.6-2.9: fusion latency p50/p99 before 30.0/67.6, 29.5/60.3 ms, after
 27.2/54.2, 36.3/86.6 ms; end-to-end p99 before 194.0/217.7 ms, after 484.0/231.4 ms (no
-clear difference either way). The replay at load 1.8-1.9 (11:52 UTC), large: CPU x1.00,
-wall x0.935, free-core wall x0.886, estimates bit-identical.
+clear difference either way). The replays once the machine had a free core:
+
+    ... --recording /tmp/s8/soak/soak16x200.mcap --threads 1,2    11:53-11:57 UTC, load 1.1-1.3
+    threads  CPU ms/ne       wall ms/ne      free-core wall ms/ne   digest
+    1        0.877 / 0.815   0.878 / 0.815   0.877 / 0.815          500966d8ef81 (all four)
+    2        0.867 / 0.852   0.615 / 0.604   0.616 / 0.606
+    2 vs 1:  CPU x1.016, wall x0.720, free-core wall x0.722 (kernels: 60-63 % of the CPU)
+    ... --recording /tmp/s8/large.mcap (11:52 UTC, load 1.8-1.9): CPU x1.00, wall x0.935,
+    free-core wall x0.886, estimates bit-identical.
+
+(the measured wall with a free core equals the free-core projection of the loaded runs:
+x0.72 vs x0.75 on the soak).
 """
 
 from __future__ import annotations
