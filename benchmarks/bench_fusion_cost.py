@@ -148,7 +148,7 @@ behaviour; the split pays where a core is free (free-core wall above). After the
 pool got its back-off rule (``diffpos._kernels.pool.BACKOFF_WAIT_SHARE``); two more rounds,
 11:48-11:51 UTC, load 1.6-2.9: fusion latency p50/p99 before 30.0/67.6, 29.5/60.3 ms, after
 27.2/54.2, 36.3/86.6 ms; end-to-end p99 before 194.0/217.7 ms, after 484.0/231.4 ms (no
-clear difference either way). The replays once the machine had a free core:
+clear difference either way). The replays once the machine had a free core::
 
     ... --recording /tmp/s8/soak/soak16x200.mcap --threads 1,2    11:53-11:57 UTC, load 1.1-1.3
     threads  CPU ms/ne       wall ms/ne      free-core wall ms/ne   digest
