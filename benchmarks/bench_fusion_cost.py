@@ -160,6 +160,15 @@ clear difference either way). The replays once the machine had a free core::
 
 (the measured wall with a free core equals the free-core projection of the loaded runs:
 x0.72 vs x0.75 on the soak).
+
+Live once the other jobs had stopped (11:57-12:05 UTC, load 0.2-2.9: the run's own
+processes), alternating, the back-off rule in: ``bench_soak.py --load 16x200 --duration 60
+--method mnls`` published before 56,757 / 61,363, after 53,911 / 39,410 of 120,000 (fusion
+latency p99 2.9 / 3.6 s vs 4.4 / 4.8 s); ``diffpos emulate scenarios/large.toml --duration 20
+--dashboard off --record off`` end-to-end p50/p99 before 30.2/77.3, 28.8/59.3 ms, after
+41.6/77.3, 33.4/64.2 ms (fusion latency p50 23.8, 22.5 vs 38.3, 29.7 ms). Live, the run's
+own anchors, router and recorder (or emulate) use the second core: 2 kernel threads are
+worse there; ``--kernel-threads 1`` is the better setting for these runs on 2 cores.
 """
 
 from __future__ import annotations
