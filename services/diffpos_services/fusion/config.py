@@ -190,7 +190,9 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """Threads running the row chunks of the compiled kernels (:mod:`diffpos._kernels.pool`:
     the tracker's SNR prediction and paths, the initialisation's grid search, M-NLS's LM
     steps), the fusion's own thread included; the estimates are bit-identical for any count.
-    Applied by the service at its start and by replay (one pool per process)."""
+    Applied by the service at its start and by replay (one pool per process). It pays only
+    where a core is free: replaying the 16 x 200 soak, wall x0.72 with 2; live on 2 cores
+    shared with the run's anchors and router, 2 was worse (benchmarks/bench_fusion_cost.py)."""
     # ---- what is accepted (docs/bad_input.md)
     anchors: tuple[str, ...] | None = None
     """Allow-list of anchor ids (``None``: any anchor with a valid id)."""
