@@ -106,12 +106,76 @@ The same on bench_soak's 16 x 200 input (``bench_soak.py --load 16x200 --method 
 --method mnls"``): before 3.29-3.68 ms CPU per node-epoch (steps of 8-9 epochs), 7,117-7,281
 of 20,000 node-epochs published; after 1.66-1.99 ms (steps of 43-49), 8,854-9,845. Keeping
 up needs <= 0.5 ms per node-epoch on a whole core: not met (the tracker's update).
+
+``--recording REC --threads 1,2`` (the threads branch): M-NLS replays of REC (every epoch
+solved, no recorded decisions) with ``kernel_threads`` 1 and 2, alternating, CPU and wall per
+node-epoch, the "free-core wall" (the process CPU with each split kernel call counted at its
+busiest thread's CPU: the wall time with a free core per thread, ``diffpos._kernels.pool
+.stats``) and a digest of the replayed estimates' bytes. 2026-11-27 11:27-11:36 UTC, 2-core
+VM shared with four other jobs (load average 4.9-7.2: there was no free core, so the wall
+column mostly measures the other jobs)::
+
+    python benchmarks/bench_fusion_cost.py --recording /tmp/s8/soak/soak16x200.mcap --threads 1,2
+    threads  CPU ms/ne       wall ms/ne      free-core wall ms/ne   digest (60,000 estimates)
+    1        0.873 / 0.897   2.241 / 1.554   0.873 / 0.897          500966d8ef81 (all four)
+    2        0.916 / 0.835   2.226 / 1.239   0.692 / 0.630
+    2 vs 1:  CPU x0.99, wall x0.91, free-core wall x0.75 (kernels: 59 % of the CPU)
+
+    ... --recording /tmp/s8/large.mcap --threads 1,2          (8 x 50, 10,000 estimates)
+    1        0.757 / 0.736   4.583 / 2.413   0.757 / 0.736          531888983ccb (all four)
+    2        0.739 / 0.763   2.798 / 1.943   0.655 / 0.675
+    2 vs 1:  CPU x1.01, wall x0.68, free-core wall x0.89 (kernels: 40 % of the CPU)
+
+Live, before (main at 5e10a2d, one thread) vs after (this branch, ``kernel_threads`` 2, the
+default), alternating, 11:10-11:19 UTC (load 5.5-11) and 11:40-11:48 UTC (load 3.2-4.5)::
+
+    python benchmarks/bench_soak.py --load 16x200 --duration 60 --method mnls
+    published of 120,000     before 14,714 / 20,235 / 33,789 / 36,804
+                             after   9,313 / 27,206 / 33,237 / 37,154
+    fusion latency p99       before 18.5 / 9.6 / 5.3 / 4.9 s;  after 23.3 / 15.8 / 6.1 / 5.9 s
+    diffpos emulate scenarios/large.toml --duration 20 --dashboard off --record off
+    end-to-end p50 / p99     before 63.5/532, 684.9/2229, 37.8/169.1, 41.6/239.5 ms
+                             after  128.5/2084, 120.2/562.3, 50.9/549.0, 56.4/238.1 ms
+    fusion latency p50 / p99 (last two rounds) before 29.0/72.8, 36.4/73.6 ms;
+                             after 41.1/83.2, 56.7/82.2 ms
+
+Not met, and not helped on this machine: live, the second core is taken (16 anchors, router
+and recorder, or 8 anchors and emulate, plus the other jobs), so the soak publishes as many
+estimates as before and the fusion's latency is 5-20 ms worse at p50 (a helper thread that
+waits for a core holds its chunk, and every hand-off of the GIL to a thread without a core
+waits for the scheduler). ``diffpos fusion --kernel-threads 1`` restores the one-thread
+behaviour; the split pays where a core is free (free-core wall above). After these runs the
+pool got its back-off rule (``diffpos._kernels.pool.BACKOFF_WAIT_SHARE``); two more rounds,
+11:48-11:51 UTC, load 1.6-2.9: fusion latency p50/p99 before 30.0/67.6, 29.5/60.3 ms, after
+27.2/54.2, 36.3/86.6 ms; end-to-end p99 before 194.0/217.7 ms, after 484.0/231.4 ms (no
+clear difference either way). The replays once the machine had a free core::
+
+    ... --recording /tmp/s8/soak/soak16x200.mcap --threads 1,2    11:53-11:57 UTC, load 1.1-1.3
+    threads  CPU ms/ne       wall ms/ne      free-core wall ms/ne   digest
+    1        0.877 / 0.815   0.878 / 0.815   0.877 / 0.815          500966d8ef81 (all four)
+    2        0.867 / 0.852   0.615 / 0.604   0.616 / 0.606
+    2 vs 1:  CPU x1.016, wall x0.720, free-core wall x0.722 (kernels: 60-63 % of the CPU)
+    ... --recording /tmp/s8/large.mcap (11:52 UTC, load 1.8-1.9): CPU x1.00, wall x0.935,
+    free-core wall x0.886, estimates bit-identical.
+
+(the measured wall with a free core equals the free-core projection of the loaded runs:
+x0.72 vs x0.75 on the soak).
+
+Live once the other jobs had stopped (11:57-12:05 UTC, load 0.2-2.9: the run's own
+processes), alternating, the back-off rule in: ``bench_soak.py --load 16x200 --duration 60
+--method mnls`` published before 56,757 / 61,363, after 53,911 / 39,410 of 120,000 (fusion
+latency p99 2.9 / 3.6 s vs 4.4 / 4.8 s); ``diffpos emulate scenarios/large.toml --duration 20
+--dashboard off --record off`` end-to-end p50/p99 before 30.2/77.3, 28.8/59.3 ms, after
+41.6/77.3, 33.4/64.2 ms (fusion latency p50 23.8, 22.5 vs 38.3, 29.7 ms). Live, the run's
+own anchors, router and recorder (or emulate) use the second core: 2 kernel threads are
+worse there; ``--kernel-threads 1`` is the better setting for these runs on 2 cores.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import hashlib
 import os
 import platform
 import queue
@@ -124,6 +188,9 @@ from pathlib import Path
 import msgspec
 import numpy as np
 from diffpos_services.recording.replay import replay
+from diffpos_services.wire import messages as M
+
+from diffpos._kernels import pool as kernel_pool
 
 TARGET_MS = 2.0
 
@@ -134,6 +201,60 @@ def record(scenario: str, duration_s: float, seed: int, out: Path) -> None:
     cmd = [str(exe), "emulate", scenario, "--speed", "0", "--duration", str(duration_s),
            "--seed", str(seed), "--dashboard", "off", "--no-progress", "--record", str(out)]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def thread_costs(path: Path, threads: list[int], repeat: int) -> list[dict]:
+    """CPU and wall seconds of an M-NLS replay of ``path`` (every epoch solved, no recorded
+    decisions) with each kernel thread count, ``repeat`` rounds alternating the counts, and
+    a digest of the replayed estimates (their wire bytes: equal digests = bit-identical)."""
+    rows = []
+    for _ in range(repeat):
+        for n in threads:
+            kernel_pool.reset_stats()
+            w, t = time.perf_counter(), time.process_time()
+            r = replay(path, method="mnls", overrides={"kernel_threads": n},
+                       use_decisions=False, keep_estimates=True)
+            cpu, wall = time.process_time() - t, time.perf_counter() - w
+            st = kernel_pool.stats()
+            # with a free core per thread: the process CPU with each kernel call's chunks
+            # replaced by its busiest thread's share (diffpos._kernels.pool.stats)
+            free = cpu - st["chunk_cpu_s"] + st["critical_cpu_s"]
+            h = hashlib.sha256()
+            for e in r.estimates:
+                h.update(M.encode(e))
+            rows.append({"threads": n, "cpu_s": cpu, "wall_s": wall, "free_s": free,
+                         "kernel_share": st["chunk_cpu_s"] / cpu, "estimates": len(r.estimates),
+                         "digest": h.hexdigest()[:12], "load": os.getloadavg()[0]})
+            del r
+    return rows
+
+
+def _print_threads(path: Path, rows: list[dict]) -> None:
+    print(f"bench_fusion_cost --threads: recording {path}; machine {platform.machine()} "
+          f"{os.cpu_count()} cores, Python {platform.python_version()}")
+    print("  (free-core wall: the process CPU with each split kernel call counted at its busiest "
+          "thread's CPU, the wall time with a free core per thread; kernels: their share of "
+          "the CPU)")
+    print(f"{'threads':>7} {'node-epochs':>11} {'CPU s':>7} {'wall s':>7} {'CPU ms/ne':>9} "
+          f"{'wall ms/ne':>10} {'free-core wall ms/ne':>20} {'kernels':>7} {'load1':>5}  digest")
+    for r in rows:
+        n = max(r["estimates"], 1)
+        print(f"{r['threads']:>7} {r['estimates']:>11} {r['cpu_s']:>7.2f} {r['wall_s']:>7.2f} "
+              f"{1e3 * r['cpu_s'] / n:>9.3f} {1e3 * r['wall_s'] / n:>10.3f} "
+              f"{1e3 * r['free_s'] / n:>20.3f} {100 * r['kernel_share']:>6.0f}% "
+              f"{r['load']:>5.1f}  {r['digest']}")
+    by = collections.defaultdict(list)
+    for r in rows:
+        by[r["threads"]].append(r)
+    base = by[min(by)]
+    for k in sorted(by):
+        cpu = sum(r["cpu_s"] for r in by[k]) / sum(r["cpu_s"] for r in base)
+        wall = sum(r["wall_s"] for r in by[k]) / sum(r["wall_s"] for r in base)
+        free = sum(r["free_s"] for r in by[k]) / sum(r["free_s"] for r in base)
+        print(f"  {k} threads vs {min(by)}: CPU x{cpu:.3f}, wall x{wall:.3f}, free-core wall "
+              f"x{free:.3f}")
+    print("  estimates bit-identical across thread counts:",
+          len({r["digest"] for r in rows}) == 1)
 
 
 def cost(path: Path, method: str) -> tuple[float, int, dict]:
@@ -238,6 +359,9 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     log = logging.getLogger("bench.schedule")
     log.addHandler(logging.NullHandler())
     log.propagate = False
+    # the virtual clock is one core of its own (process CPU): one kernel thread, whatever
+    # the recorded kernel_threads (on 2 threads it would charge both threads' CPU)
+    kernel_pool.set_threads(1)
     core = FusionCore(cfg, logger=log, record_decisions=False)
     core.warm_up()
     if hasattr(service, "freeze_heap"):  # as run_fusion does after its warm-up
@@ -246,8 +370,6 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     inbox = type("Inbox", (), {})()
     inbox.q, inbox.release = _ScheduledQueue(items, clock), lambda size: None
     lat: list[tuple[int, int]] = []  # (input publish, estimate publish) [ns]
-
-    from diffpos_services.wire import messages as M
 
     def put(e) -> None:  # what the service's publisher does before the bus: encode
         M.encode(e)
@@ -298,7 +420,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fusion-args", metavar="ARGS",
                     help="--schedule: the settings of 'diffpos fusion ARGS' (one string) "
                     "instead of the recorded ones")
+    ap.add_argument("--threads", metavar="N,N,...",
+                    help="with --recording: M-NLS replays (all epochs, no recorded decisions) "
+                    "with these kernel_threads, CPU and wall per node-epoch, alternating")
+    ap.add_argument("--repeat", type=int, default=2, help="--threads: rounds (default 2)")
     args = ap.parse_args(argv)
+    if args.threads is not None and args.recording is not None:
+        counts = [int(v) for v in args.threads.split(",")]
+        _print_threads(args.recording, thread_costs(args.recording, counts, args.repeat))
+        return 0
     if args.schedule is not None:
         r = schedule(args.schedule, seconds=args.seconds,
                      fusion_argv=None if args.fusion_args is None else args.fusion_args.split())

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.paths_nb import building_planes
+from ._kernels.pool import GRID_MIN_CELL_LINKS, run_rows
 from ._kernels.tracking_nb import grid_cost_kernel
 from .tracking_paths import _IS_BAND, _IS_DIFF, Links, _c, _los, all_paths, candidates
 
@@ -49,11 +50,16 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
     total = np.empty((n, nf, c))
     fl = np.empty((n, nf))
     fl[...] = floors
-    grid_cost_kernel(_c(cells), _c(z, dtype=np.float64), fl,
-                     _c(links.anchors[:, 0]),
-                     _c(links.rho[:, 0]), _c(var[:, 0]),
-                     _c(links.mask[:, 0]), _IS_BAND, _IS_DIFF,
-                     0.5 * config.init_grid_m, float(w_out), *building_planes(building), total)
+    cc, zc, anc = _c(cells), _c(z, dtype=np.float64), _c(links.anchors[:, 0])
+    rho, vr, mask = _c(links.rho[:, 0]), _c(var[:, 0]), _c(links.mask[:, 0])
+    planes = building_planes(building)
+
+    def rows(lo: int, hi: int) -> None:  # the node rows [lo, hi) (diffpos._kernels.pool)
+        grid_cost_kernel(cc, zc[lo:hi], fl[lo:hi], anc[lo:hi], rho[lo:hi], vr[lo:hi],
+                         mask[lo:hi], _IS_BAND, _IS_DIFF, 0.5 * config.init_grid_m,
+                         float(w_out), *planes, total[lo:hi])
+
+    run_rows(rows, n, min_rows=-(-GRID_MIN_CELL_LINKS // max(nf * c * m, 1)))
     order = np.argsort(total, axis=2, kind="stable")[..., :ns]  # (N, Fs, S)
     pos = np.concatenate([np.broadcast_to(cells[None, None], (n, nf, c, 2)),
                           np.broadcast_to(z[:, :, None, None], (n, nf, c, 1))], axis=-1)

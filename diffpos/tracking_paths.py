@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.paths_nb import building_planes
+from ._kernels.pool import PATHS_MIN_LINKS, run_rows
 from ._kernels.tracking_nb import all_paths_kernel
 from .paths import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, graded_paths
 
@@ -131,8 +132,13 @@ def all_paths(pos: FloatArray, links: Links, floor, building, relax_m) -> PathEv
     strict, loose, sure = (np.empty(shape, dtype=np.bool_) for _ in range(3))
     anc = np.empty((n, m, 3))
     anc[...] = links.anchors[:, 0]
-    all_paths_kernel(_c(pos, dtype=np.float64), anc, fl, r,
-                     _IS_BAND, *building_planes(building), length, jac, strict, loose, sure)
+    pc, planes = _c(pos, dtype=np.float64), building_planes(building)
+
+    def rows(lo: int, hi: int) -> None:  # the node rows [lo, hi) (diffpos._kernels.pool)
+        all_paths_kernel(pc[lo:hi], anc[lo:hi], fl[lo:hi], r[lo:hi], _IS_BAND, *planes,
+                         length[lo:hi], jac[lo:hi], strict[lo:hi], loose[lo:hi], sure[lo:hi])
+
+    run_rows(rows, n, min_rows=-(-PATHS_MIN_LINKS // max(h * m, 1)))
     return PathEval(length=length, jac=jac, strict=strict, loose=loose, sure=sure)
 
 

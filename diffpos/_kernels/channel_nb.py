@@ -83,6 +83,7 @@ from .paths_nb import (
     edge_axis,
     row_planes,
 )
+from .pool import SNR_MIN_PAIRS, run_rows
 from .transition_nb import (
     ASYMPTOTIC_MIN_ABS,
     TRANSITION_ASYMPTOTIC_MIN,
@@ -703,7 +704,12 @@ def eval_snr_kernel(anchors: np.ndarray, nodes: np.ndarray,
     ``params`` from :func:`channel_params`; returns (N, M, 18) [dB]."""
     warm_channel()
     out = np.empty((nodes.shape[0], anchors.shape[1], N_SLOTS))
-    channel_snr_kernel(anchors, nodes, *params, out)
+    prm, parts, eta = params
+
+    def rows(lo: int, hi: int) -> None:  # the node rows [lo, hi): slices keep the signature
+        channel_snr_kernel(anchors[lo:hi], nodes[lo:hi], prm, parts, eta, out[lo:hi])
+
+    run_rows(rows, nodes.shape[0], min_rows=-(-SNR_MIN_PAIRS // max(anchors.shape[1], 1)))
     return out
 
 

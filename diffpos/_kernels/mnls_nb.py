@@ -49,7 +49,7 @@ _b1_2d = types.boolean[:, ::1]
 _b1_3d = types.boolean[:, :, ::1]
 _i8_1d = types.int64[::1]
 _i8_2d = types.int64[:, ::1]
-_OPTS = {"cache": True, "error_model": "numpy"}
+_OPTS = {"cache": True, "error_model": "numpy", "nogil": True}  # nogil: pool.run_rows
 
 #: The one compiled signature of :func:`link_terms_kernel`.
 SIGNATURE = types.void(

@@ -71,12 +71,14 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+from functools import partial
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._kernels.mnls_nb import link_terms_kernel, lm_kernel
 from .._kernels.paths_nb import building_planes
+from .._kernels.pool import LM_MIN_ROWS, run_rows
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..paths import DIFFRACTION_SLOTS, SPECULAR_SLOTS, first_arrival_paths
 from ._mnls_posterior import _information, _posterior
@@ -395,12 +397,11 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
         c_seg = np.empty(n)
         evals = np.empty(n, dtype=np.int64)
         live_after = live.copy()
-        c0 = time.thread_time()
-        lm_kernel(*args, e3 if p.snr_cost is None else _c(p.snr_cost),
-                  e3.astype(bool) if p.strong is None else _c(p.strong, bool), allowed,
-                  _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, int(seg), float(CONVERGED_M), x,
-                  damp, live_after, c_seg, evals)
-        _count("kernel_cpu_s", time.thread_time() - c0)
+        snr = (e3 if p.snr_cost is None else _c(p.snr_cost),
+               e3.astype(bool) if p.strong is None else _c(p.strong, bool), allowed)
+        kernel_cpu = run_rows(partial(_lm_rows, args, snr, int(seg), x, damp, live_after, c_seg,
+                                      evals), n, min_rows=LM_MIN_ROWS)
+        _count("kernel_cpu_s", kernel_cpu)
         _count("paths", int(evals.sum()))
         cost = np.where(live, c_seg, cost)  # rows live at the call: their cost now
         live = live_after
@@ -408,6 +409,19 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
     if not want_terms:
         return x, {"cost": cost}
     return x, _link_terms(p, x, building)
+
+
+def _lm_rows(args: list, snr: tuple, iters: int, x: FloatArray, damp: FloatArray,
+             live: NDArray[np.bool_], cost: FloatArray, evals: NDArray[np.int64], lo: int,
+             hi: int) -> None:
+    """:func:`diffpos._kernels.mnls_nb.lm_kernel` on the rows ``[lo, hi)``
+    (:func:`diffpos._kernels.pool.run_rows`): the row slices of every per-row array (an empty
+    SNR array, (0, 0, 0), stays whole), the same compiled signature."""
+    rows = slice(lo, hi)
+    a = [v[rows] if i < 10 else v for i, v in enumerate(args)]  # 0-9 per row, then scalars
+    s = [v if v.shape[0] == 0 else v[rows] for v in snr]
+    lm_kernel(*a, *s, _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, iters, float(CONVERGED_M),
+              x[rows], damp[rows], live[rows], cost[rows], evals[rows])
 
 
 def _rescore(p: _Problem, x: FloatArray, t, c0: FloatArray, keep: int, building

@@ -45,6 +45,7 @@ import logging
 from diffpos_services.anchor.service import emulation_nodes
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.fusion.config import (
+    DEFAULT_KERNEL_THREADS,
     DEFAULT_METHOD,
     EDGES,
     LIVE_MAX_BACKLOG_S,
@@ -82,12 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--epoch-period-s", type=float, default=0.1, help="epoch length [s] (default 0.1)"
     )
-    parser.add_argument(
-        "--deadline-s",
-        type=float,
-        default=0.3,
-        help="solve an epoch this long (wall time) after its first range [s] (default 0.3)",
-    )
+    parser.add_argument("--deadline-s", type=float, default=0.3, help="solve an epoch this "
+                        "long (wall time) after its first range [s] (default 0.3)")
     parser.add_argument(
         "--clock-tolerance-ms",
         type=float,
@@ -140,8 +137,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=1.0,
         help="diagnostics publish period [s] (default 1)",
     )
+    _add_cpu_arguments(parser)
     add_zenoh_arguments(parser)
     add_logging_arguments(parser)
+
+
+def _add_cpu_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--kernel-threads", type=int, default=DEFAULT_KERNEL_THREADS, metavar="N",
+        help="threads for the compiled kernels' rows (tracker SNR and paths, M-NLS steps; "
+        "estimates identical for any N) (default: 2 with >= 2 cores, else 1; here "
+        f"{DEFAULT_KERNEL_THREADS})",
+    )
 
 
 def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
@@ -159,6 +166,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         diagnostics_period_s=args.diagnostics_period_s,
         # FusionConfig.max_backlog_s: None never drops; --max-backlog-s 0 means the same
         max_backlog_s=args.max_backlog_s or None,
+        kernel_threads=args.kernel_threads,
     )
     if args.window_height_m is not None:
         values["window_height_m"] = args.window_height_m

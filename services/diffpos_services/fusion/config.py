@@ -18,6 +18,7 @@ which were all made by the D-NLS fusion) keeps ``dnls``.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
@@ -29,8 +30,8 @@ from diffpos.scenario import Building, Radio, Scenario, ScenarioError, first_arr
 from diffpos_services.kit import build_config
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig", "building_of", "channel_edge",
-           "model_edge"]
+__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig",
+           "building_of", "channel_edge", "model_edge"]
 
 #: The estimators of the solve step (``--method``).
 METHODS = ("mnls", "dnls", "lls", "ippa")
@@ -117,6 +118,10 @@ def channel_edge(edge: str, channel: str) -> str:
 LIVE_MAX_BACKLOG_S = 2.0
 
 
+#: ``kernel_threads`` when not given: both cores of a 2-core machine, 1 on a single core.
+DEFAULT_KERNEL_THREADS = 2 if (os.cpu_count() or 1) >= 2 else 1
+
+
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
 
@@ -181,6 +186,13 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     ``None`` (the struct's default: replay, tests): never drop. ``diffpos fusion`` and
     ``diffpos emulate`` use :data:`LIVE_MAX_BACKLOG_S`."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
+    kernel_threads: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_KERNEL_THREADS
+    """Threads running the row chunks of the compiled kernels (:mod:`diffpos._kernels.pool`:
+    the tracker's SNR prediction and paths, the initialisation's grid search, M-NLS's LM
+    steps), the fusion's own thread included; the estimates are bit-identical for any count.
+    Applied by the service at its start and by replay (one pool per process). It pays only
+    where a core is free: replaying the 16 x 200 soak, wall x0.72 with 2; live on 2 cores
+    shared with the run's anchors and router, 2 was worse (benchmarks/bench_fusion_cost.py)."""
     # ---- what is accepted (docs/bad_input.md)
     anchors: tuple[str, ...] | None = None
     """Allow-list of anchor ids (``None``: any anchor with a valid id)."""

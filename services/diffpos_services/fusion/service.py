@@ -36,6 +36,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from diffpos._kernels import pool as kernel_pool
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
@@ -486,19 +487,25 @@ def run_fusion(
     retries until ``stop``) or a ``zenoh.Config``. Returns the core (its counters).
     """
     log = logger or logging.getLogger("diffpos.fusion")
-    core = FusionCore(config, logger=log)
-    inbox = _Inbox(config, stop)
-    core.warm_up()
-    freeze_heap()
-    session = open_session(zenoh_config, stop, logger=log) if isinstance(
-        zenoh_config, ZenohSettings) else zenoh.open(zenoh_config)
-    if session is None:
+    # the kernels' row pool: threads only (nothing forks); they start on the first split call
+    kernel_pool.set_threads(config.kernel_threads)
+    try:
+        core = FusionCore(config, logger=log)
+        inbox = _Inbox(config, stop)
+        core.warm_up()
+        freeze_heap()
+        session = open_session(zenoh_config, stop, logger=log) if isinstance(
+            zenoh_config, ZenohSettings) else zenoh.open(zenoh_config)
+        if session is None:
+            return core
+        with session:
+            ends = _declare(session, core.keys, inbox)
+            log_event(log, logging.INFO, "fusion ready", site=config.site,
+                      subscriptions=[fusion_subscription(core.keys)],
+                      kernel_threads=config.kernel_threads)
+            if on_ready is not None:
+                on_ready()
+            _serve(core, inbox, ends, stop, log)
         return core
-    with session:
-        ends = _declare(session, core.keys, inbox)
-        log_event(log, logging.INFO, "fusion ready", site=config.site,
-                  subscriptions=[fusion_subscription(core.keys)])
-        if on_ready is not None:
-            on_ready()
-        _serve(core, inbox, ends, stop, log)
-    return core
+    finally:
+        kernel_pool.shutdown()

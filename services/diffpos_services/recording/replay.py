@@ -32,6 +32,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from diffpos._kernels import pool as kernel_pool
 from diffpos_services.fusion.config import METHODS, FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.kit import ConfigError, build_config
@@ -551,6 +552,7 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
          progress, logger, t_wall0, decided) -> ReplayResult:
     """Steps 2-4 of :func:`replay` (``tmp``: where the output MCAP goes until complete)."""
     config = settings.config
+    kernel_pool.set_threads(config.kernel_threads)  # the process's kernel pool (threads)
     core = FusionCore(config, logger=quiet_logger() if logger is None else logger,
                       record_decisions=False)
     outputs = _Outputs(tmp, copy_input=copy_input, site=config.site, side=side, rec=rec, header={
