@@ -12,7 +12,8 @@ core as the live service, fed the recorded ranges in the recorded order) and div
 replay's CPU time (``time.process_time``, imports and the first-call costs excluded: one warm-up
 replay of the first seconds precedes the timed ones) by the node-epochs it solved. The figure
 covers everything the live fusion does per node-epoch: ingest, alignment, the M-NLS snapshots
-(every epoch until a track is confirmed, then every 1 s, every 10 s for a confident track), the
+(every 1 s per node, every 10 s for a confident track, every epoch for a node the tracker
+does not place), the
 tracker's update, estimate building and the report. Side by side in one run: ``mnls`` (the
 default: M-NLS + tracker) and ``dnls``.
 

@@ -5,7 +5,6 @@ threads; the kernels' own 1-vs-2 equality is tests/core/test_kernel_threads.py).
 from __future__ import annotations
 
 import argparse
-import os
 
 import pytest
 from diffpos_services.cli import fusion as cmd_fusion
@@ -26,9 +25,9 @@ def _config(*argv: str) -> FusionConfig:
 
 
 def test_cli_kernel_threads_default_and_value():
-    """Default: 2 on a machine with >= 2 cores, else 1; ``--kernel-threads N`` sets it; the
-    option is in ``diffpos fusion --help``; 0 is rejected naming the field."""
-    assert DEFAULT_KERNEL_THREADS == (2 if (os.cpu_count() or 1) >= 2 else 1)
+    """Default: 1 (live on a shared 2-core machine a second thread was worse); ``--kernel-threads
+    N`` sets it; the option is in ``diffpos fusion --help``; 0 is rejected naming the field."""
+    assert DEFAULT_KERNEL_THREADS == 1
     assert _config().kernel_threads == DEFAULT_KERNEL_THREADS
     assert FusionConfig().kernel_threads == DEFAULT_KERNEL_THREADS
     assert _config("--kernel-threads", "1").kernel_threads == 1

@@ -146,8 +146,8 @@ def _add_cpu_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--kernel-threads", type=int, default=DEFAULT_KERNEL_THREADS, metavar="N",
         help="threads for the compiled kernels' rows (tracker SNR and paths, M-NLS steps; "
-        "estimates identical for any N) (default: 2 with >= 2 cores, else 1; here "
-        f"{DEFAULT_KERNEL_THREADS})",
+        "estimates identical for any N; 2 pays only where a core is free, e.g. a replay on an "
+        f"idle machine) (default: {DEFAULT_KERNEL_THREADS})",
     )
 
 

@@ -18,7 +18,6 @@ which were all made by the D-NLS fusion) keeps ``dnls``.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
@@ -118,8 +117,11 @@ def channel_edge(edge: str, channel: str) -> str:
 LIVE_MAX_BACKLOG_S = 2.0
 
 
-#: ``kernel_threads`` when not given: both cores of a 2-core machine, 1 on a single core.
-DEFAULT_KERNEL_THREADS = 2 if (os.cpu_count() or 1) >= 2 else 1
+#: ``kernel_threads`` when not given: 1. Live on a 2-core machine shared with the run's anchors,
+#: router and recorder, 2 threads published fewer soak estimates and raised the large run's
+#: latency (no core is free for the second thread: benchmarks/bench_fusion_cost.py); give
+#: ``--kernel-threads 2`` where a core is free (a replay on an idle machine: wall x0.72).
+DEFAULT_KERNEL_THREADS = 1
 
 
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
@@ -141,8 +143,9 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     its filtered estimate (the mnls snapshot fix rides along); ignored by the other methods."""
     snapshot_period_s: Annotated[float, Meta(ge=0)] = 1.0
     """Tracking: a node whose track is confirmed (TRACKING) gets an mnls snapshot fix at most
-    once per this much measurement time (every epoch while it is not confirmed; 0: every
-    epoch); a *confident* track (floor probability >= 0.99, averaged NIS <= 4) every
+    once per this much measurement time, so does a track not yet confirmed (a node the
+    tracker gives no position, UNINITIALISED or LOST, and a node's first epoch: every epoch;
+    0: every epoch); a *confident* track (floor probability >= 0.99, averaged NIS <= 4) every
     ``tracked.CONFIDENT_SNAPSHOT_PERIOD_S`` (10 s). The snapshot is published beside the
     tracked estimate and never feeds the tracker; it costs several times the tracker's
     update (3-4 ms vs ~1 ms CPU with 8 anchors). The live service's steps do at most a few
