@@ -96,6 +96,7 @@ def run_soak(
     site: str | None = None,
     max_backlog_s: float | None = None,
     method: str = "dnls",
+    kernel_threads: int | None = None,
 ) -> dict:
     """Run the load and return the measurements (see the module docstring).
 
@@ -120,6 +121,8 @@ def run_soak(
         livefuse branch, 24,013 after; every range delivered, the rest dropped as
         ``overloaded`` (the tracker needs ~1.7-2 ms CPU per node-epoch with 16 anchors:
         3-4 cores for 2,000 node-epochs per second).
+    kernel_threads : int, optional
+        The fusion's ``--kernel-threads`` (None: its default).
     """
     site = site or f"soak{n_anchors}x{n_nodes}"
     keys = Keys(site)
@@ -184,7 +187,8 @@ def run_soak(
                 need.add(keys.alive_recorder())
             start("fusion", "fusion", "--site", site, "--connect", endpoint,
                   "--scenario", str(scen), "--diagnostics-period-s", "1.0", "--method", method,
-                  *([] if max_backlog_s is None else ["--max-backlog-s", str(max_backlog_s)]))
+                  *([] if max_backlog_s is None else ["--max-backlog-s", str(max_backlog_s)]),
+                  *([] if kernel_threads is None else ["--kernel-threads", str(kernel_threads)]))
             for j in range(n_anchors):
                 start(f"uav{j + 1}", "anchor", "--id", f"uav{j + 1}", "--site", site,
                       "--connect", endpoint, "--scenario", str(scen), "--wait-start",
@@ -420,6 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--method", default="dnls", choices=["dnls", "mnls", "lls", "ippa"],
                     help="the fusion's estimator (default dnls: the default mnls + tracker "
                     "does not keep up with 16 x 200 on 2 cores yet)")
+    ap.add_argument("--kernel-threads", type=int, metavar="N",
+                    help="the fusion's --kernel-threads (default: the fusion's, 1)")
     ap.add_argument("--json", metavar="FILE", help="write the result as JSON")
     ap.add_argument("--log-dir", metavar="DIR", help="keep logs and the recording here")
     args = ap.parse_args(argv)
@@ -429,7 +435,7 @@ def main(argv: list[str] | None = None) -> int:
         load_before = os.getloadavg()
         r = run_soak(m, n, args.duration, log_dir, recorder=not args.no_recorder,
                      warmup_s=args.warmup, rss_period_s=5.0, max_backlog_s=args.max_backlog_s,
-                     method=args.method)
+                     method=args.method, kernel_threads=args.kernel_threads)
         r["loadavg_before"] = load_before
         r["loadavg_after"] = os.getloadavg()
         r["cpus"] = os.cpu_count()
