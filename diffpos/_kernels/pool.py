@@ -26,7 +26,10 @@ calling thread (:func:`_watch`; the outputs are the same either way).
 
 The pool (a :class:`concurrent.futures.ThreadPoolExecutor`) is created lazily on the first
 call that splits, and shut down by :func:`shutdown` (the fusion service at its end) or at
-interpreter exit. Threads only: nothing here forks.
+interpreter exit. A split call that finds the pool shut down (another thread's
+:func:`shutdown` or :func:`set_threads` between its look-up and its hand-off, or a call during
+interpreter exit) runs its chunks on the calling thread (counted in :func:`stats`). Threads
+only: nothing here forks.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ CHUNKS_PER_THREAD = 4
 
 _lock = threading.Lock()
 _state: dict[str, object] = {"threads": 1, "executor": None}
-_STAT_KEYS = ("calls", "split_calls", "chunk_cpu_s", "critical_cpu_s", "backoffs")
+_STAT_KEYS = ("calls", "split_calls", "chunk_cpu_s", "critical_cpu_s", "backoffs", "refused")
 #: Back-off: when the caller of a split call waited for the helpers more than this share of
 #: the call's wall time (averaged over the recent split calls), the next
 #: :data:`BACKOFF_CALLS` calls run on the calling thread: the helpers had no free core
@@ -95,7 +98,9 @@ def stats() -> dict[str, float]:
     ``chunk_cpu_s`` (the CPU of every chunk on every thread) and ``critical_cpu_s`` (per call,
     the CPU of the busiest thread's chunks: with a free core per thread, the call's wall time
     is about this; a whole run's wall is then its process CPU - ``chunk_cpu_s`` +
-    ``critical_cpu_s``, the "free-core wall" of bench_fusion_cost ``--threads``)."""
+    ``critical_cpu_s``, the "free-core wall" of bench_fusion_cost ``--threads``), ``backoffs``
+    (:func:`_watch`) and ``refused`` (split calls whose helpers the pool refused, shut down
+    meanwhile: their chunks ran on the calling thread)."""
     return dict(_stats)
 
 
@@ -139,7 +144,8 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
     range (the kernels' rows are independent). On one thread, or when ``n_rows < 2 *
     min_rows``, this is ``fn(0, n_rows)`` on the calling thread. Returns the CPU seconds the
     chunks took on their threads (``time.thread_time``), for the callers' cost counters. The
-    first exception of a chunk is raised once every started chunk has ended.
+    first exception of a chunk is raised once every started chunk has ended. A pool shut
+    down meanwhile takes no chunk: the calling thread runs them all.
     """
     n_thr = threads()
     min_rows = max(int(min_rows), 1)
@@ -173,9 +179,15 @@ def run_rows(fn: Callable[[int, int], None], n_rows: int, *, min_rows: int = 1) 
             with take:
                 cpu.append(dt)
 
-    ex = _executor(n_thr - 1)
     t0 = time.perf_counter()
-    helpers = [ex.submit(drain) for _ in range(min(n_thr - 1, n_chunks - 1))]
+    helpers = []
+    try:
+        ex = _executor(n_thr - 1)
+        for _ in range(min(n_thr - 1, n_chunks - 1)):
+            helpers.append(ex.submit(drain))
+    except RuntimeError:  # the pool was shut down meanwhile (another thread's shutdown or
+        with _lock:  # set_threads, or the interpreter exiting): the caller drains every
+            _stats["refused"] += 1  # chunk left itself (the same outputs)
     error: BaseException | None = None
     try:
         drain()

@@ -309,3 +309,26 @@ def test_tracker_run_bit_identical(monkeypatch, restore_threads):
         _assert_same(a, c)
     _assert_same(st1, st2)
     assert np.isfinite(o1[-1].position_m).any() and len(chunks) > 10
+
+
+def test_run_rows_with_a_pool_shut_down_meanwhile(restore_threads):
+    """A split call whose pool was shut down after its look-up (another thread's shutdown or
+    set_threads, or interpreter exit: ThreadPoolExecutor.submit raises RuntimeError) runs
+    every chunk on the calling thread, each row once, and counts it."""
+    pool.set_threads(2)
+    pool._executor(1).shutdown(wait=True)  # the pool the call will find, already shut down
+    pool.reset_stats()
+    me = threading.get_ident()
+    seen = np.zeros(40, np.int64)
+    idents = set()
+
+    def fn(lo, hi):
+        seen[lo:hi] += 1
+        idents.add(threading.get_ident())
+
+    pool.run_rows(fn, 40, min_rows=1)
+    assert np.all(seen == 1) and idents == {me}
+    assert pool.stats()["refused"] == 1 and pool.stats()["split_calls"] == 1
+    pool.shutdown()  # a fresh pool afterwards splits again
+    pool.run_rows(fn, 40, min_rows=1)
+    assert np.all(seen == 2) and pool.stats()["refused"] == 1
