@@ -598,6 +598,56 @@ def prior_info_kernel(p, y, logdet_y):
 
 
 @njit(**_OPTS)
+def _lu_inv_sym(lu, piv, out, col):
+    """:func:`_lu_inv` made symmetric (each off-diagonal pair replaced by its mean), as the
+    numpy reference's ``0.5 * (P + P^T)``."""
+    _lu_inv(lu, piv, out, col)
+    for i in range(_D):
+        for j in range(i + 1, _D):
+            s = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = s
+            out[j, i] = s
+
+
+@njit(**_OPTS)
+def _laplace_log_ev(yy, d, w, e, eb, eh, wh, wb, log2pi, logdet, h_const, log_weight, tmp):
+    """:func:`iekf_kernel`'s Laplace log-evidence of one hypothesis at its posterior:
+    ``d`` (6,) the posterior minus the prior mean, ``yy`` (6, 6) the prior information,
+    ``w``, ``e``, ``log_weight`` (M,) the links' weights, residuals and log-weights, ``eb``
+    (3,) / ``eh`` the box and height residuals with weights ``wb`` / ``wh``, ``logdet`` the
+    log-determinant of the posterior information minus the prior's, ``h_const`` the height
+    mode's log-normaliser; ``tmp`` (M,) work."""
+    n_m = w.shape[0]
+    quad = 0.0
+    for i in range(6):
+        acc = 0.0
+        for j in range(6):
+            acc += yy[i, j] * d[j]
+        quad += d[i] * acc
+    for m in range(n_m):
+        tmp[m] = w[m] * e[m] * e[m]
+    quad += _pairwise_sum(tmp, n_m)
+    quad += wb * ((eb[0] * eb[0] + eb[1] * eb[1]) + eb[2] * eb[2])
+    quad += wh * eh * eh
+    # sum of 0.5 (log w - log 2 pi) over the used links: one log of the weights' product
+    # while it stays in the normal range, else one log per link
+    pr = 1.0
+    n_used = 0
+    for m in range(n_m):
+        if w[m] > 0:
+            pr *= w[m]
+            n_used += 1
+    if pr > 1e-290 and pr < 1e290:
+        norm = 0.5 * (math.log(pr) - n_used * log2pi)
+    else:
+        for m in range(n_m):
+            tmp[m] = 0.5 * (math.log(w[m]) - log2pi) if w[m] > 0 else 0.0
+        norm = _pairwise_sum(tmp, n_m)
+    lw = _pairwise_sum(log_weight, n_m)
+    return norm + h_const - 0.5 * quad - 0.5 * logdet + lw
+
+
+@njit(**_OPTS)
 def iekf_kernel(x_prior, y, logdet_y, lo, hi, z_nom, wh, h_const, anchors, floor, slot,
                 extra_var, log_weight, rho, var, mask, n_iter, wb, log2pi, first_z, floor_h,
                 sill, win_h, x0, x1, depth, x_out, p_out, log_ev, residual):
@@ -665,44 +715,13 @@ def iekf_kernel(x_prior, y, logdet_y, lo, hi, z_nom, wh, h_const, anchors, floor
                     xl[i] = xl[i] + g[i]
             _lu(a, lu, piv)
             logdet_a = _lu_logdet(lu)
-            po = p_out[n, h]
-            _lu_inv(lu, piv, po, col)
-            for i in range(6):
-                for j in range(i + 1, 6):
-                    s = 0.5 * (po[i, j] + po[j, i])
-                    po[i, j] = s
-                    po[j, i] = s
+            _lu_inv_sym(lu, piv, p_out[n, h], col)
             for i in range(6):
                 d[i] = xl[i] - xp[i]
                 x_out[n, h, i] = xl[i]
-            quad = 0.0
-            for i in range(6):
-                acc = 0.0
-                for j in range(6):
-                    acc += yy[i, j] * d[j]
-                quad += d[i] * acc
-            for m in range(n_m):
-                tmp[m] = w[m] * e[m] * e[m]
-            quad += _pairwise_sum(tmp, n_m)
-            quad += wb * ((eb[0] * eb[0] + eb[1] * eb[1]) + eb[2] * eb[2])
-            quad += wh[n, h] * eh * eh
-            # sum of 0.5 (log w - log 2 pi) over the used links: one log of the weights'
-            # product while it stays in the normal range, else one log per link
-            pr = 1.0
-            n_used = 0
-            for m in range(n_m):
-                if w[m] > 0:
-                    pr *= w[m]
-                    n_used += 1
-            if pr > 1e-290 and pr < 1e290:
-                norm = 0.5 * (math.log(pr) - n_used * log2pi)
-            else:
-                for m in range(n_m):
-                    tmp[m] = 0.5 * (math.log(w[m]) - log2pi) if w[m] > 0 else 0.0
-                norm = _pairwise_sum(tmp, n_m)
-            logdet = logdet_a - logdet_y[n, h]
-            lw = _pairwise_sum(log_weight[n, h], n_m)
-            log_ev[n, h] = norm + h_const[n, h] - 0.5 * quad - 0.5 * logdet + lw
+            log_ev[n, h] = _laplace_log_ev(yy, d, w, e, eb, eh, wh[n, h], wb, log2pi,
+                                           logdet_a - logdet_y[n, h], h_const[n, h],
+                                           log_weight[n, h], tmp)
             for m in range(n_m):
                 residual[n, h, m] = e[m] if slot[n, h, m] >= 0 else np.nan
 
