@@ -20,13 +20,15 @@ CORE = Path(__file__).resolve().parents[1] / "diffpos"  # tests/ is one level be
 FORBIDDEN_MODULES = {
     "zenoh", "mcap", "rerun", "matplotlib", "rich", "msgspec", "pyarrow",
     "tomllib", "pathlib", "io", "os", "shutil", "subprocess", "socket", "threading",
-    "asyncio", "logging", "pickle", "csv", "sqlite3", "urllib", "http",
+    "asyncio", "logging", "pickle", "csv", "sqlite3", "urllib", "http", "concurrent",
+    "multiprocessing",
 }
 FORBIDDEN_CALLS = {"open", "print", "input"}
 #: Chosen exceptions, each with its reason. diffpos/_kernels/pool.py runs the compiled kernels'
-#: row chunks on a small thread pool (threads only: no I/O, no process; 1 thread until a
-#: service or replay sets FusionConfig.kernel_threads).
-ALLOWED_IMPORTS = {"_kernels/pool.py": {"threading"}}
+#: row chunks on a small thread pool (threading and concurrent.futures' ThreadPoolExecutor:
+#: threads only, no I/O, no process; 1 thread until a service or replay sets
+#: FusionConfig.kernel_threads).
+ALLOWED_IMPORTS = {"_kernels/pool.py": {"threading", "concurrent"}}
 
 
 def _core_files() -> list[Path]:

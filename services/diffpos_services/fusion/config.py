@@ -142,11 +142,12 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     {level, vertical} hypotheses, one iterated EKF each) on every epoch's ranges and publish
     its filtered estimate (the mnls snapshot fix rides along); ignored by the other methods."""
     snapshot_period_s: Annotated[float, Meta(ge=0)] = 1.0
-    """Tracking: a node whose track is confirmed (TRACKING) gets an mnls snapshot fix at most
-    once per this much measurement time, so does a track not yet confirmed (a node the
-    tracker gives no position, UNINITIALISED or LOST, and a node's first epoch: every epoch;
-    0: every epoch); a *confident* track (floor probability >= 0.99, averaged NIS <= 4) every
-    ``tracked.CONFIDENT_SNAPSHOT_PERIOD_S`` (10 s). The snapshot is published beside the
+    """Tracking: a node the tracker places (INITIALISING, TRACKING, COASTING) gets an mnls
+    snapshot fix at most once per this much measurement time (0: every epoch); a node it
+    does not place (UNINITIALISED, LOST: the snapshot is then its only fix) and a node's
+    first epoch get one every epoch; a *confident* confirmed track (TRACKING, floor
+    probability >= 0.99, averaged NIS <= 4) every ``tracked.CONFIDENT_SNAPSHOT_PERIOD_S``
+    (10 s). The snapshot is published beside the
     tracked estimate and never feeds the tracker; it costs several times the tracker's
     update (3-4 ms vs ~1 ms CPU with 8 anchors). The live service's steps do at most a few
     snapshots and track initialisations each (``tracked.heavy_budget``): a due snapshot that

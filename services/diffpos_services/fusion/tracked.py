@@ -102,8 +102,9 @@ CONFIDENT_FLOOR_PROBABILITY = 0.99
 #: ... and its averaged NIS per used range (the tracker's ``nis``) is at most this (the
 #: residuals fit their sigmas: rms within 2 sigma).
 CONFIDENT_NIS = 4.0
-#: Snapshot period of a confident track [s] (measurement time); any other confirmed track
-#: gets ``FusionConfig.snapshot_period_s``.
+#: Snapshot period of a confident track [s] (measurement time); any other track the tracker
+#: places (INITIALISING, COASTING, a TRACKING one not confident) gets
+#: ``FusionConfig.snapshot_period_s``.
 CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
 #: Epochs solved per track initialisation or mnls snapshot fix a budgeted step may do. With 8
 #: anchors an initialisation costs ~5 ms and a snapshot ~3.5 ms, an epoch ~1-1.2 ms all in
