@@ -127,8 +127,8 @@ column mostly measures the other jobs)::
     2        0.739 / 0.763   2.798 / 1.943   0.655 / 0.675
     2 vs 1:  CPU x1.01, wall x0.68, free-core wall x0.89 (kernels: 40 % of the CPU)
 
-Live, before (main at 5e10a2d, one thread) vs after (this branch, ``kernel_threads`` 2, the
-default), alternating, 11:10-11:19 UTC (load 5.5-11) and 11:40-11:48 UTC (load 3.2-4.5)::
+Live, before (main at 5e10a2d, one thread) vs after (the threads branch, ``kernel_threads``
+2, its default then; the default is 1 since, ``FusionConfig.kernel_threads``), alternating, 11:10-11:19 UTC (load 5.5-11) and 11:40-11:48 UTC (load 3.2-4.5)::
 
     python benchmarks/bench_soak.py --load 16x200 --duration 60 --method mnls
     published of 120,000     before 14,714 / 20,235 / 33,789 / 36,804
