@@ -231,8 +231,8 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     if anchors.ndim == 2:
         anchors = np.broadcast_to(anchors[None], (nodes.shape[0], *anchors.shape))
     if need is not None:
-        need = np.ascontiguousarray(np.broadcast_to(
-            np.asarray(need, dtype=np.bool_), (*anchors.shape[:2], len(MECHANISMS))))
+        need = _c_w(np.broadcast_to(np.asarray(need, dtype=np.bool_),
+                                    (*anchors.shape[:2], len(MECHANISMS))))
     if not (np.isfinite(anchors).all() and np.isfinite(nodes).all()):
         out = _pair_snr_db_numpy(anchors, nodes, building=building, radio=radio)
         return out if need is None else np.where(need, out, np.nan)
@@ -241,10 +241,15 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     except TypeError:  # an unhashable field (e.g. partitions given as a list)
         params = channel_params(building, radio, _materials(building, radio.frequency_hz))
     if need is None:
-        return eval_snr_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes),
-                               params)
-    return eval_snr_masked_kernel(np.ascontiguousarray(anchors), np.ascontiguousarray(nodes),
-                                  params, need)
+        return eval_snr_kernel(_c_w(anchors), _c_w(nodes), params)
+    return eval_snr_masked_kernel(_c_w(anchors), _c_w(nodes), params, need)
+
+
+def _c_w(a: np.ndarray) -> np.ndarray:
+    """``a`` C-contiguous and writeable (a copy if not): numba types a read-only array (a
+    ``broadcast_to`` view that happens to be contiguous) apart, so it would compile a second
+    specialisation of the kernel at its first use, after ``warm_channel``."""
+    return np.require(a, requirements=("C", "W"))
 
 
 def _pair_snr_db_numpy(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,

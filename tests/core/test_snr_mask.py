@@ -188,3 +188,40 @@ def test_snr_cost_near_equals_brute_force(bi, monkeypatch):
     # the cases hold holes, and holes that carry power at a shifted height (the threshold's
     # slots predicted there)
     assert n_hole > 0 and n_powered > 0
+
+
+def test_kernels_get_writeable_contiguous_arrays(monkeypatch):
+    """numba types a read-only array apart from a writeable one: a contiguous read-only view
+    (``broadcast_to`` to its own shape, as snr_cost and snr_cost_near build their inputs)
+    would compile a second specialisation of the SNR kernels at its first use, after
+    ``warm_channel`` (the live service's first epochs). Every array the tracker's SNR cost
+    hands to the kernels is writeable and C-contiguous, and the values are those of plain
+    copies."""
+    from diffpos._kernels import channel_nb
+
+    channel_nb.warm_channel()
+    seen = []
+
+    def spy(kernel):
+        def call(*args):
+            seen.extend(a.flags.writeable and a.flags.c_contiguous
+                        for a in args if isinstance(a, np.ndarray))
+            return kernel(*args)
+        return call
+
+    for name in ("channel_snr_kernel", "channel_snr_masked_kernel"):
+        monkeypatch.setattr(channel_nb, name, spy(getattr(channel_nb, name)))
+    b = BUILDINGS[1]
+    pos, links, floor, relax = _case(b, 77, unknown=0.0)
+    pe = all_paths(pos, links, floor, b, relax)
+    tm.snr_cost_near(pos, links, floor, b, relax, pe)  # the known-SNR path and the holes
+    n, m = links.rho.shape[0], links.rho.shape[-1]
+    anc0 = np.ascontiguousarray(np.broadcast_to(links.anchors, (n, 1, m, 3))[:, 0])
+    nodes0, need0 = np.ascontiguousarray(pos[:, 0]), np.ascontiguousarray(pe.loose[:, 0])
+    anc, nodes, need = (np.broadcast_to(a, a.shape) for a in (anc0, nodes0, need0))
+    assert not (anc.flags.writeable or nodes.flags.writeable or need.flags.writeable)
+    assert anc.flags.c_contiguous and nodes.flags.c_contiguous and need.flags.c_contiguous
+    got = pair_snr_db(anc, nodes, building=b, radio=RADIO, need=need)
+    ref = pair_snr_db(anc0, nodes0, building=b, radio=RADIO, need=need0)
+    np.testing.assert_array_equal(got, ref)
+    assert len(seen) > 6 and all(seen)
