@@ -4,9 +4,9 @@
   against the unmasked kernel: every needed slot bit for bit (the same per-slot function), NaN
   elsewhere.
 * :func:`diffpos._kernels.channel_nb.snr_cost_kernel` against its numpy reference
-  (``tracking_model._snr_cost_of_numpy``): bit for bit (no transcendental function), with
+  (``tracking_snr._snr_cost_of_numpy``): bit for bit (no transcendental function), with
   unknown SNRs, slots without power, NaN predictions and a given threshold.
-* :func:`diffpos.tracking_model.snr_cost_near` against a brute-force reference that predicts
+* :func:`diffpos.tracking_snr.snr_cost_near` against a brute-force reference that predicts
   all 18 slots of every link at the hypothesis and at both shifted heights (the algorithm
   before the masks): bit for bit with the shifted point's threshold; with the prior's
   threshold (``HOLE_THRESHOLD_AT_PRIOR``) the hole slots equal the brute force given that
@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import diffpos.tracking_model as tm
+import diffpos.tracking_snr as tm
 from diffpos.channel import pair_snr_db
 from diffpos.scenario import Building, Radio
 from diffpos.tracking_paths import K_SLOTS, Links, _relax, all_paths

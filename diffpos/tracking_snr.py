@@ -1,0 +1,215 @@
+"""SNR term of the tracker's measurement model: the SNR negative log-likelihood of every slot
+at position hypotheses (:func:`snr_cost`), and near a window-band edge at the nearest height
+within the hypothesis' existence margin where the slot carries power (:func:`snr_cost_near`).
+
+Moved verbatim from :mod:`diffpos.tracking_model` (which re-exports every public name here);
+the predicted SNRs are those of the emulator's amplitude model
+(:func:`diffpos.channel.pair_snr_db`, compiled in :mod:`diffpos._kernels.channel_nb`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ._kernels.channel_nb import snr_cost_kernel
+from .channel import pair_snr_db
+from .tracking_paths import K_SLOTS, Links, PathEval, _c, _relax, all_paths
+
+__all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "snr_cost", "snr_cost_near"]
+
+FloatArray = NDArray[np.float64]
+#: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
+#: field (antenna patterns, materials, wedge vs. UTD), the value M-NLS uses.
+SNR_SIGMA_DB = 20 * np.log10(2.0)
+#: Width of the SNR density of a range that is none of the modelled mechanisms [dB].
+SNR_SPAN_DB = 60.0
+#: :func:`snr_cost_near`: a slot scored at a shifted height (a "hole": it exists within the
+#: existence margin but carries no power at the hypothesis) is compared with the detector's
+#: threshold of the hypothesis itself (True) or of the shifted point (False; needs the ~7
+#: diffraction slots predicted again there, ~80 % of a full prediction). The shift stands for
+#: the hypothesis' own height uncertainty; the threshold is that of its strongest sure path,
+#: which changes little over it. Measured (``benchmarks/bench_accuracy.py --only default large
+#: tall-floors anchors-beyond-ends``, two runs each, 2026-11-27): floor, 3D p90 and cov95
+#: within the run-to-run spread of the shifted point's threshold (default and tall-floors
+#: identical; large floor 99.72-99.78 -> 99.73-99.91 %, p90 0.299-0.313 -> 0.300 m, cov95
+#: 91.20-91.29 -> 91.28-91.30 %; anchors-beyond-ends floor 98.52-98.61 -> 98.43-98.61 %,
+#: p90 0.222-0.224 -> 0.224 m, cov95 94.63-95.00 -> 94.63-94.91 %). Replays (all epochs
+#: solved) against the shifted point's threshold: a 20 s lockstep ``large`` recording the same
+#: floor in 10,000 of 10,000 estimates, positions within 4e-5 m; a 30 s 16 x 200 soak the same
+#: floor in 59,921 of 60,000 (no truth recorded there). The SNR part's CPU:
+#: 1.34-1.44x less with the exact threshold, 1.65-1.72x with this one
+#: (``benchmarks/bench_snr_cost.py``).
+HOLE_THRESHOLD_AT_PRIOR = True
+
+
+def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
+             ) -> FloatArray | None:
+    """SNR negative log-likelihood of every slot at the hypotheses ``pos`` (N, H, 3):
+    (N, H, M, K), +inf where the slot carries no power, 0 where the SNR is unknown; None
+    without SNR.
+
+    The measured SNR against the slot's SNR predicted by the emulator's amplitude model
+    (:func:`diffpos.channel.pair_snr_db`), Gaussian with :data:`SNR_SIGMA_DB`, plus the
+    detector's rule: a first arrival is not far below the predicted strongest path's
+    threshold ``P_max - fap_threshold_db`` (as in M-NLS). This is what separates floors that
+    the ranges alone cannot: a ceiling reflection and the floor above's lower-edge
+    diffraction have nearly the same length but 20-40 dB different strength.
+
+    A link whose SNR is unknown costs 0 in every slot whatever the prediction, so its slots
+    are not predicted at all.
+    """
+    out = _snr_cost_thr(pos, links, building, trust)
+    return None if out is None else out[0]
+
+
+def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None = None
+                  ) -> tuple[FloatArray, FloatArray] | None:
+    """:func:`snr_cost` and the detector's threshold of every link (N, H, M) [dB] (NaN where
+    the SNR is unknown)."""
+    if links.snr is None:
+        return None
+    n, h = pos.shape[:2]
+    m = links.rho.shape[-1]
+    if n * h == 0:
+        return np.zeros((n, h, m, K_SLOTS)), np.full((n, h, m), np.nan)
+    known = np.broadcast_to(np.isfinite(links.snr), (n, h, m))
+    if known.all():  # every link: no gather
+        anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(-1, 3)
+        p = np.broadcast_to(pos[:, :, None, :], (n, h, m, 3)).reshape(-1, 3)
+        meas = np.broadcast_to(links.snr, (n, h, m)).reshape(-1)
+        tr = None if trust is None else \
+            np.broadcast_to(trust, (n, h, m, K_SLOTS)).reshape(-1, K_SLOTS)
+        pred = pair_snr_db(anc[:, None, :], p, building=building, radio=links.radio)[:, 0]
+        c, t = _snr_cost_of(pred, meas, links.radio, tr)
+        return c.reshape(n, h, m, K_SLOTS), t.reshape(n, h, m)
+    out = np.zeros((n, h, m, K_SLOTS))
+    thr = np.full((n, h, m), np.nan)
+    n_i, h_i, m_i = np.nonzero(known)
+    if n_i.size == 0:
+        return out, thr
+    anc = np.broadcast_to(links.anchors, (n, h, m, 3))[n_i, h_i, m_i]
+    meas = np.broadcast_to(links.snr, (n, h, m))[n_i, h_i, m_i]
+    tr = None if trust is None else np.broadcast_to(trust, (n, h, m, K_SLOTS))[n_i, h_i, m_i]
+    pred = pair_snr_db(anc[:, None, :], pos[n_i, h_i], building=building,
+                       radio=links.radio)[:, 0]
+    out[n_i, h_i, m_i], thr[n_i, h_i, m_i] = _snr_cost_of(pred, meas, links.radio, tr)
+    return out, thr
+
+
+def _snr_cost_of(pred: FloatArray, meas: FloatArray, radio, trust: NDArray | None = None,
+                 thr: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
+    """:func:`_pair_snr_cost` of the predicted SNRs ``pred`` (P, K) [dB] and the measured
+    ``meas`` (P,) [dB], and the detector's threshold (P,) [dB] (NaN where ``meas`` is not
+    finite), or with ``thr`` given that threshold (``trust`` unused): one compiled pass
+    (:func:`diffpos._kernels.channel_nb.snr_cost_kernel`), bit-identical to
+    :func:`_snr_cost_of_numpy`."""
+    out = np.empty(pred.shape)
+    tr = np.ones(pred.shape, dtype=np.bool_) if trust is None or thr is not None else trust
+    th = np.empty(pred.shape[0]) if thr is None else thr
+    snr_cost_kernel(_c(pred, dtype=np.float64), _c(meas, dtype=np.float64),
+                    _c(tr, dtype=np.bool_), float(SNR_SIGMA_DB),
+                    float(radio.fap_threshold_db), float(radio.detection_snr_db),
+                    thr is not None, _c(th, dtype=np.float64), out)
+    return out, th
+
+
+def _snr_cost_of_numpy(pred: FloatArray, meas: FloatArray, radio,
+                       trust: NDArray | None = None, thr: FloatArray | None = None
+                       ) -> tuple[FloatArray, FloatArray]:
+    """The numpy reference of :func:`_snr_cost_of`."""
+    meas = meas[:, None]
+    strong = pred if trust is None else np.where(trust, pred, -np.inf)
+    with np.errstate(invalid="ignore"):
+        c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
+        if thr is None:
+            thr = np.maximum(np.max(strong, axis=-1) - radio.fap_threshold_db,
+                             radio.detection_snr_db)
+            thr = np.where(np.isfinite(meas[:, 0]), thr, np.nan)
+        short = np.maximum(thr[:, None] - SNR_SIGMA_DB - meas, 0.0)
+        c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
+    c = np.where(np.isfinite(pred), c, np.inf)
+    return np.where(np.isfinite(meas), c, 0.0), thr
+
+
+def _pair_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building, radio,
+                   trust: NDArray | None = None) -> FloatArray:
+    """:func:`snr_cost` of P (anchor, node) pairs: (P, K); ``trust`` (P, K): the slots whose
+    power sets the detector's threshold (default all)."""
+    pred = pair_snr_db(anc[:, None, :], pos, building=building, radio=radio)[:, 0]
+    return _snr_cost_of(pred, meas, radio, trust)[0]
+
+
+def _hole_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building, radio,
+                   hole: NDArray, trust: NDArray, thr: FloatArray | None = None
+                   ) -> FloatArray:
+    """The costs of the ``hole`` slots (P, K) of P pairs with a known SNR ``meas`` at the
+    points ``pos``; the other slots' costs are not computed (+inf or any value: not to be
+    used).
+
+    ``thr`` (P,) [dB]: the detector's threshold to use (the prior point's, model of
+    :func:`snr_cost_near`): only the hole slots are predicted. ``thr`` None: the threshold of
+    the points themselves, :func:`_pair_snr_cost`'s values bit for bit: a hole slot's cost
+    then needs the predictions of the ``trust`` slots where the hole slot's is finite; the
+    hole slots are predicted first (mostly specular slots near a window-band edge: cheap),
+    the trusted ones (the ~7 diffraction slots, ~80 % of a pair's cost) only for the pairs
+    where a hole slot carries power; elsewhere every hole slot costs +inf whatever the
+    threshold."""
+    pred = pair_snr_db(anc[:, None, :], pos, building=building, radio=radio,
+                       need=hole[:, None, :])[:, 0]
+    if thr is not None:
+        return _snr_cost_of(np.where(hole, pred, -np.inf), meas, radio, thr=thr)[0]
+    rows = np.flatnonzero(np.any(hole & np.isfinite(pred), axis=-1))
+    more = trust[rows] & ~hole[rows]
+    if rows.size:
+        pred_t = pair_snr_db(anc[rows, None, :], pos[rows], building=building, radio=radio,
+                             need=more[:, None, :])[:, 0]
+        pred[rows] = np.where(more, pred_t, pred[rows])
+    # the threshold from the trusted slots that were predicted (all of them on ``rows``)
+    done = hole.copy()
+    done[rows] |= more
+    return _snr_cost_of(np.where(done, pred, -np.inf), meas, radio, trust & done)[0]
+
+
+def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
+                  pe: PathEval | None = None) -> FloatArray | None:
+    """:func:`snr_cost` where a slot that exists within ``relax_m`` of the hypothesis (its
+    window entry point within the entry's uncertainty of the band; a scalar or one margin per
+    hypothesis, broadcastable to (N, H)) but carries no power at the point itself is scored
+    at the nearest height (``pos`` +- ``relax_m`` in z) where it does: the best-matching prediction over the position's uncertainty. At the point alone a
+    node at the nominal height just below a band edge lost 1.4 nats per such link and epoch
+    (the slot's SNR counted as unknown) whenever its prior was a few cm too high, which
+    accumulated into a wrong floor lock (default run, top-floor walker).
+
+    At the shifted heights only the hole slots are predicted (:func:`_hole_snr_cost`); with
+    :data:`HOLE_THRESHOLD_AT_PRIOR` their detector threshold is the hypothesis' own (at
+    ``pos``), else the shifted point's (the trusted slots predicted there too where a hole
+    slot carries power: the values of predicting all 18 slots, bit for bit)."""
+    if links.snr is None:
+        return None
+    if pe is None:  # the paths at ``pos`` with ``relax_m`` (a caller may pass them)
+        pe = all_paths(pos, links, floor, building, relax_m)
+    # the detector's threshold is set by the strongest path that surely exists (a path that
+    # exists only on one side of a band edge a few cm away is no evidence of a strong path)
+    c, thr = _snr_cost_thr(pos, links, building, trust=pe.sure)
+    hole = ~np.isfinite(c) & pe.loose
+    pairs = np.argwhere(np.any(hole, axis=-1))  # (P, 3): n, h, m
+    if pairs.size == 0:
+        return c
+    n_i, h_i, m_i = pairs.T
+    dz = _relax(relax_m, c.shape[:2])[n_i, h_i]
+    anc = np.broadcast_to(links.anchors, (*c.shape[:3], 3))[n_i, h_i, m_i]
+    meas = np.broadcast_to(links.snr, c.shape[:3])[n_i, h_i, m_i]
+    fl = np.broadcast_to(np.asarray(floor), pos.shape[:2])[n_i, h_i]
+    zf = building.floor_z_m(fl)
+    best = np.full((len(pairs), K_SLOTS), np.inf)
+    hole_p = hole[n_i, h_i, m_i]
+    thr_p = thr[n_i, h_i, m_i] if HOLE_THRESHOLD_AT_PRIOR else None
+    for sign in (-1.0, 1.0):
+        p = pos[n_i, h_i].copy()
+        p[:, 2] = np.clip(p[:, 2] + sign * dz, zf + 0.01, zf + building.floor_height_m - 0.01)
+        best = np.minimum(best, _hole_snr_cost(anc, p, meas, building, links.radio, hole_p,
+                                               pe.sure[n_i, h_i, m_i], thr_p))
+    sub = c[n_i, h_i, m_i]
+    c[n_i, h_i, m_i] = np.where(hole_p, best, sub)
+    return c
