@@ -41,12 +41,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ._kernels.iekf_nb import iekf_kernel, prior_info_kernel
 from ._kernels.paths_nb import building_planes
 from ._kernels.tracking_nb import (
-    iekf_kernel,
     iekf_terms_kernel,
     model_kernel,
-    prior_info_kernel,
     select_best_kernel,
     select_mix_kernel,
     select_pack_kernel,
@@ -285,7 +284,7 @@ def _box(x: FloatArray, floor, building, margin_m: float) -> tuple[FloatArray, F
 
 def prior_information(p_prior: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Information matrix of the prior and its log-determinant (N, H, 6, 6), (N, H): one
-    compiled pass (:func:`diffpos._kernels.tracking_nb.prior_info_kernel`, LU with partial
+    compiled pass (:func:`diffpos._kernels.iekf_nb.prior_info_kernel`, LU with partial
     pivoting; :func:`_prior_information_numpy` within 1e-12 relative, tested)."""
     shape = p_prior.shape[:-2]
     y, logdet_y = np.empty((*shape, 6, 6)), np.empty(shape)
@@ -372,7 +371,7 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     Returns ``(x, P, log_evidence, residual)``: posterior means (N, H, 6), covariances
     (N, H, 6, 6), the Laplace log marginal likelihood (N, H) and the residuals (N, H, M).
 
-    One compiled pass per hypothesis (:func:`diffpos._kernels.tracking_nb.iekf_kernel`: the
+    One compiled pass per hypothesis (:func:`diffpos._kernels.iekf_nb.iekf_kernel`: the
     link model and the iteration's terms are the bit-identical kernels' bodies, the 6 x 6
     solve/inverse/log-determinant LU with partial pivoting); :func:`_iekf_numpy` (numpy's
     LAPACK) is the reference, held to a tolerance by tests/core/test_tracking_kernel.py.
