@@ -379,10 +379,11 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
     live = np.ones(n, dtype=bool)
     cost = np.full(n, np.nan)
     e3 = np.zeros((0, 0, 0))
-    args = [_c(p.anchors), _c(p.r), _c(p.sig), _c(p.mask, bool),
-            _c(np.broadcast_to(p.tail_a, p.r.shape)), _c(p.excess_db), _c(p.floor), _c(p.lo),
-            _c(p.hi), _c(p.z_mid), float(p.prior_var), float(p.lam), float(p.wavelength_m),
-            float(SNR_MARGIN_DB), np.array(building_planes(building))]
+    per_row = (_c(p.anchors), _c(p.r), _c(p.sig), _c(p.mask, bool),
+               _c(np.broadcast_to(p.tail_a, p.r.shape)), _c(p.excess_db), _c(p.floor),
+               _c(p.lo), _c(p.hi), _c(p.z_mid))
+    consts = (float(p.prior_var), float(p.lam), float(p.wavelength_m), float(SNR_MARGIN_DB),
+              np.array(building_planes(building)))
     allowed = e3.astype(bool) if p.allowed is None else _c(p.allowed, bool)
     done = 0
     while done < iters and live.any():
@@ -399,7 +400,7 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
         live_after = live.copy()
         snr = (e3 if p.snr_cost is None else _c(p.snr_cost),
                e3.astype(bool) if p.strong is None else _c(p.strong, bool), allowed)
-        kernel_cpu = run_rows(partial(_lm_rows, args, snr, int(seg), x, damp, live_after, c_seg,
+        kernel_cpu = run_rows(partial(_lm_rows, per_row, consts, snr, int(seg), x, damp, live_after, c_seg,
                                       evals), n, min_rows=LM_MIN_ROWS)
         _count("kernel_cpu_s", kernel_cpu)
         _count("paths", int(evals.sum()))
@@ -411,16 +412,15 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
     return x, _link_terms(p, x, building)
 
 
-def _lm_rows(args: list, snr: tuple, iters: int, x: FloatArray, damp: FloatArray,
-             live: NDArray[np.bool_], cost: FloatArray, evals: NDArray[np.int64], lo: int,
-             hi: int) -> None:
+def _lm_rows(per_row: tuple, consts: tuple, snr: tuple, iters: int, x: FloatArray,
+             damp: FloatArray, live: NDArray[np.bool_], cost: FloatArray,
+             evals: NDArray[np.int64], lo: int, hi: int) -> None:
     """:func:`diffpos._kernels.mnls_nb.lm_kernel` on the rows ``[lo, hi)``
     (:func:`diffpos._kernels.pool.run_rows`): the row slices of every per-row array (an empty
-    SNR array, (0, 0, 0), stays whole), the same compiled signature."""
+    SNR array, (0, 0, 0), stays whole), ``consts`` whole, the same compiled signature."""
     rows = slice(lo, hi)
-    a = [v[rows] if i < 10 else v for i, v in enumerate(args)]  # 0-9 per row, then scalars
     s = [v if v.shape[0] == 0 else v[rows] for v in snr]
-    lm_kernel(*a, *s, _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, iters, float(CONVERGED_M),
+    lm_kernel(*(v[rows] for v in per_row), *consts, *s, _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, iters, float(CONVERGED_M),
               x[rows], damp[rows], live[rows], cost[rows], evals[rows])
 
 
