@@ -36,7 +36,12 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
     max-mixture cost over the links with the range variance widened by the grid's own
     resolution (``(step / 2)^2``). Every cell of every node in one compiled pass
     (:func:`diffpos._kernels.tracking_nb.grid_cost_kernel`: lengths without Jacobians, no
-    temporaries), bit-identical to :func:`_grid_starts_numpy`.
+    temporaries), bit-identical to :func:`_grid_starts_numpy`. The kernel abandons a cell as
+    soon as its links so far cost more than the ``init_starts``-th best cell finished before it
+    (exact: the same cells, totals and order; the grid was ~20 % of the fusion's CPU over the
+    first 2 s of a real-time ``large`` run, 3.9 ms per node with 8 anchors, 1.4 ms with the
+    pruning: cProfile of ``benchmarks/bench_fusion_cost.py --schedule`` on a 20 s real-time
+    ``large`` recording).
     """
     cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
     n, nf = floors.shape
@@ -57,7 +62,7 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
     def rows(lo: int, hi: int) -> None:  # the node rows [lo, hi) (diffpos._kernels.pool)
         grid_cost_kernel(cc, zc[lo:hi], fl[lo:hi], anc[lo:hi], rho[lo:hi], vr[lo:hi],
                          mask[lo:hi], _IS_BAND, _IS_DIFF, 0.5 * config.init_grid_m,
-                         float(w_out), *planes, total[lo:hi])
+                         float(w_out), int(ns), *planes, total[lo:hi])
 
     run_rows(rows, n, min_rows=-(-GRID_MIN_CELL_LINKS // max(nf * c * m, 1)))
     order = np.argsort(total, axis=2, kind="stable")[..., :ns]  # (N, Fs, S)

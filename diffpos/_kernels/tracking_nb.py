@@ -321,7 +321,7 @@ def select_mix_kernel(length, valid, slot, best, ex_pack, extra, mix_arg):
 
 @njit(**_OPTS)
 def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff, relax, w_out,
-                     first_z, floor_h, sill, win_h, x0, x1, depth, total):
+                     keep, first_z, floor_h, sill, win_h, x0, x1, depth, total):
     """Robust max-mixture cost of every grid cell of the snapshot initialisation
     (``tracking_model.grid_starts``): writes ``total`` (N, Fs, C).
 
@@ -334,9 +334,20 @@ def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff,
     without Jacobians; existence graded as ``graded_paths``, candidates as
     ``tracking_model.candidates``), capped by the outlier's cost plus the hinge; summed over
     the present links in numpy's order.
+
+    ``keep`` > 0: only the ``keep`` cheapest cells per (node, floor) are needed (the caller
+    ranks ``total``): a cell is abandoned (``total`` +inf) as soon as the plain sum of its
+    links so far exceeds the ``keep``-th smallest total of the cells finished before it by a
+    relative margin of 1e-9 (every link's cost is >= 0 when ``w_out`` >= 0, and numpy's
+    pairwise sum of non-negative terms differs from their plain sum by far less, so such a
+    cell's total would be larger than that ``keep``-th total: it is not among the ``keep``
+    cheapest, and the ``keep`` cheapest cells, their totals and their order are those of the
+    full evaluation, bit for bit). ``keep`` <= 0 or ``w_out`` < 0: every cell in full.
     """
     edge = edge_axis(x0, x1)
     n_n, n_f = z.shape
+    prune = keep > 0 and w_out >= 0.0
+    best = np.empty(max(keep, 1))  # the ``keep`` smallest totals so far, ascending
     n_c = cells.shape[0]
     n_m = anchors.shape[1]
     n_k = is_band.shape[0]
@@ -348,9 +359,14 @@ def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff,
         for f in range(n_f):
             zf, zc, lo, hi = row_planes(floor[n, f], first_z, floor_h, sill, win_h)
             p2 = z[n, f]
+            n_best = 0
             for c in range(n_c):
                 p0, p1 = cells[c, 0], cells[c, 1]
+                partial = 0.0
+                gone = False
                 for m in range(n_m):
+                    if gone:
+                        break
                     if not mask[n, m]:
                         link[m] = 0.0
                         continue
@@ -397,7 +413,24 @@ def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff,
                     elif out < cost:
                         cost = out
                     link[m] = cost
-                total[n, f, c] = _pairwise_sum(link, n_m)
+                    if prune and n_best == keep:
+                        partial += cost
+                        gone = partial * (1.0 - 1e-9) > best[keep - 1]
+                if gone:
+                    total[n, f, c] = np.inf
+                    continue
+                t = _pairwise_sum(link, n_m)
+                total[n, f, c] = t
+                if prune and t < np.inf:  # finite (not NaN, not +inf): insert, ascending
+                    i = n_best if n_best < keep else keep - 1
+                    if n_best == keep and not t < best[i]:
+                        continue
+                    while i > 0 and best[i - 1] > t:
+                        best[i] = best[i - 1]
+                        i -= 1
+                    best[i] = t
+                    if n_best < keep:
+                        n_best += 1
 
 
 @njit(**_OPTS)
@@ -515,7 +548,7 @@ def warm_tracking() -> float:
                        np.zeros(2), f8(0.0), np.empty((1, 1, 1, k), np.bool_),
                        np.empty((1, 1, 1, k)), np.empty((1, 1, 1, k)))
     grid_cost_kernel(np.ones((1, 2)), np.array([[4.5]]), np.zeros((1, 1)), anc, one, one, mask,
-                     flags, flags, 1.0, 7.0, *planes, np.empty((1, 1, 1)))
+                     flags, flags, 1.0, 7.0, 3, *planes, np.empty((1, 1, 1)))
     b4 = np.empty((1, 1, 1, k), np.bool_)
     all_paths_kernel(pos, anc, np.zeros((1, 1)), np.full((1, 1), 0.2), flags, *planes,
                      np.empty((1, 1, 1, k)), np.empty((1, 1, 1, k, 3)), b4, b4.copy(), b4.copy())

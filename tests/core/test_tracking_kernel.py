@@ -29,9 +29,12 @@ import dataclasses
 import numpy as np
 import pytest
 
+from diffpos._kernels.paths_nb import building_planes
+from diffpos._kernels.tracking_nb import grid_cost_kernel
 from diffpos.paths import MECHANISMS
 from diffpos.scenario import Building, default_scenario
 from diffpos.tracking import TrackerConfig
+from diffpos.tracking_init import _grid_cells
 from diffpos.tracking_model import (
     Links,
     Selection,
@@ -57,6 +60,7 @@ from diffpos.tracking_model import (
     select,
     snr_cost_near,
 )
+from diffpos.tracking_paths import _IS_BAND, _IS_DIFF, candidates
 
 _BUILDINGS = [
     Building(),
@@ -173,6 +177,66 @@ def test_grid_starts_kernel_bit_identical_to_numpy(bi):
         got = grid_starts(links, floors, b, cfg)
         ref = _grid_starts_numpy(links, floors, b, cfg)
         np.testing.assert_array_equal(got, ref)
+
+
+def _grid_totals(links, floors, b, cfg, keep, w_out):
+    """Every cell's total of :func:`grid_cost_kernel` as ``grid_starts`` calls it."""
+    cells = _grid_cells(b, cfg.init_grid_m)
+    n, nf = floors.shape
+    z = np.ascontiguousarray(b.floor_z_m(floors) + b.nominal_node_height_m, dtype=np.float64)
+    var = np.ascontiguousarray((links.var + (0.5 * cfg.init_grid_m) ** 2)[:, 0])
+    total = np.empty((n, nf, cells.shape[0]))
+    grid_cost_kernel(np.ascontiguousarray(cells), z, np.ascontiguousarray(floors, np.float64),
+                     np.ascontiguousarray(links.anchors[:, 0]),
+                     np.ascontiguousarray(links.rho[:, 0]), var,
+                     np.ascontiguousarray(links.mask[:, 0]), _IS_BAND, _IS_DIFF,
+                     0.5 * cfg.init_grid_m, float(w_out), keep, *building_planes(b), total)
+    return total
+
+
+@pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
+def test_grid_cost_kernel_pruning_keeps_the_best_cells_exactly(bi):
+    """With ``keep`` the kernel abandons cells that cannot be among the ``keep`` cheapest of
+    their (node, floor): against the full evaluation (``keep`` 0) the ``keep`` cheapest cells
+    are the same cells, in the same (stable) order, with the same totals bit for bit, and
+    every abandoned cell's full total is larger than the ``keep``-th. Ranges are first
+    arrivals of a true point (the earliest candidate path, plus noise), so cheap cells exist
+    and the pruning does abandon cells (checked); with a negative outlier cost (link costs
+    may be negative) nothing is abandoned."""
+    b = _BUILDINGS[bi]
+    cfg = TrackerConfig()
+    rng = np.random.default_rng(40 + bi)
+    n, m = 5, 8
+    _, links, _, _ = _case(b, 900 + bi, n=n, h=1, m=m)
+    x0, x1 = b.edge_x_m
+    fl_true = rng.integers(0, b.n_floors, (n, 1))
+    truth = np.stack([rng.uniform(x0 + 1, x1 - 1, (n, 1)), rng.uniform(1, b.depth_m - 1, (n, 1)),
+                      b.floor_z_m(fl_true) + b.nominal_node_height_m], axis=-1)
+    pe = all_paths(truth, links, fl_true, b, 0.0)
+    first = np.where(candidates(pe), pe.length, np.inf).min(axis=-1)[:, 0]  # (n, m)
+    rho = np.where(np.isfinite(first), first + rng.normal(0, 0.05, (n, m)), 40.0)
+    links = Links.from_arrays(links.anchors[:, 0], rho, np.full((n, m), 0.05), links.mask[:, 0],
+                              0.03)
+    floors = np.broadcast_to(np.arange(b.n_floors), (n, b.n_floors))
+    w_out = np.log(cfg.outlier_span_m / cfg.outlier_weight)
+    full = _grid_totals(links, floors, b, cfg, 0, w_out)
+    abandoned = 0
+    for keep in (1, 3, 7):
+        got = _grid_totals(links, floors, b, cfg, keep, w_out)
+        o_full = np.argsort(full, axis=2, kind="stable")[..., :keep]
+        o_got = np.argsort(got, axis=2, kind="stable")[..., :keep]
+        np.testing.assert_array_equal(o_got, o_full)
+        np.testing.assert_array_equal(np.take_along_axis(got, o_got, 2),
+                                      np.take_along_axis(full, o_full, 2))
+        gone = np.isinf(got) & np.isfinite(full)
+        kth = np.take_along_axis(full, o_full[..., -1:], 2)
+        assert np.all(full[gone] > np.broadcast_to(kth, full.shape)[gone])
+        kept = ~gone
+        np.testing.assert_array_equal(got[kept], full[kept])
+        abandoned += int(gone.sum())
+    assert abandoned > full.size  # the pruning is not vacuous (over the three keeps)
+    neg = _grid_totals(links, floors, b, cfg, 3, -1.0)
+    np.testing.assert_array_equal(neg, _grid_totals(links, floors, b, cfg, 0, -1.0))
 
 
 @pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
