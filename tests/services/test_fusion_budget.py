@@ -78,14 +78,17 @@ def _samples(epochs: int = EPOCHS, seed: int = 3) -> tuple:
     return tuple(out)
 
 
-def _config() -> FusionConfig:
-    return FusionConfig.from_scenario(SC, site="b", epoch_period_s=0.1, method="mnls")
+def _config(**overrides) -> FusionConfig:
+    return FusionConfig.from_scenario(SC, site="b", epoch_period_s=0.1, method="mnls",
+                                      **overrides)
 
 
-def _run(limit: int | None, sink: McapSink | None = None, emit=None):
-    """The fusion stepped once after every epoch's messages with ``limit`` (and ``emit``);
-    returns the core and the estimates of each step (the last step: the flush)."""
-    core = FusionCore(_config(), logger=quiet_logger())
+def _run(limit: int | None, sink: McapSink | None = None, emit=None, *, every: int = 1,
+         **overrides):
+    """The fusion stepped once after every ``every`` epochs' messages (and after the last) with
+    ``limit`` (and ``emit``); returns the core and the estimates of each step (the last step:
+    the flush). ``overrides``: FusionConfig fields."""
+    core = FusionCore(_config(**overrides), logger=quiet_logger())
     t_alive = T0 - PERIOD
     for a in ANCHORS:
         core.on_liveliness(a, True, t_alive)
@@ -93,13 +96,14 @@ def _run(limit: int | None, sink: McapSink | None = None, emit=None):
             sink.write_liveliness("b", KEYS.alive_anchor(a), True, t_alive)
     steps = []
     rx = t_alive
-    for items in _samples():
+    for k, items in enumerate(_samples()):
         for rx, key, payload in items:
             core.on_sample(key, payload, rx)
             if sink is not None:
                 sink.write(key, payload, rx)
         # after the epoch's last batch: every anchor reported, the epoch is complete
-        steps.append(core.step(rx + 1000, limit=limit, emit=emit))
+        if (k + 1) % every == 0 or k == EPOCHS - 1:
+            steps.append(core.step(rx + 1000, limit=limit, emit=emit))
     steps.append(core.flush(rx + 2000))
     if sink is not None:
         for i, ests in enumerate(steps):

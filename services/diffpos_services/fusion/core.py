@@ -23,6 +23,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import operator
 from itertools import repeat
 from typing import Any
 
@@ -62,6 +63,17 @@ __all__ = ["FusionConfig", "FusionCore"]
 _new_tuple = tuple.__new__
 #: why an epoch was released (FusionDiagnostics.releases)
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
+#: ready epochs kept per node when a live step is behind (FusionCore._supersede): its newest
+#: two. Measured on the 16 x 200 soak input, the live loop on a virtual clock (benchmarks/
+#: bench_fusion_cost.py --schedule, the first 15 s): keeping 1 (pure newest-only) makes every
+#: node's next update follow a gap of >= 2 epochs as soon as any burst puts the fusion one epoch
+#: behind, and the tracker's update costs about 0.31 ms + 0.26 ms per epoch of gap (its
+#: dormant-hypothesis refreshes and snapshots are per measurement time), so the fusion stays
+#: behind at gap ~2: 17,261 estimates, latency p50 116 ms; keeping 2 absorbs a one-epoch lag
+#: at gap 1: 24,355 estimates, p50 174 ms; 3: 24,922, p50 216 ms (the backlog limit alone:
+#: 29,562, p50 2,052 ms)
+BEHIND_KEEP_EPOCHS = 2
+_FIRST = operator.itemgetter(0)
 
 
 class FusionCore:
@@ -463,6 +475,13 @@ class FusionCore:
         later steps), after the batch's other epochs (``TrackBank.hold_inits``), whose estimates
         go to ``emit(estimates)`` first if given (the service publishes them before the
         initialisations) and are not returned. Without ``limit``, all.
+
+        With ``max_backlog_s`` set (the live fusion), a step with more ready epochs than its
+        ``limit`` first keeps only each node's :data:`BEHIND_KEEP_EPOCHS` newest ready epochs
+        (:meth:`_supersede`, the others counted as ``superseded``) and then drops what is
+        more than ``max_backlog_s`` behind the newest (:meth:`_shed`, ``overloaded``). A fusion
+        that keeps up (never more ready than the limit) is not affected, nor is a backlog
+        that holds at most that many epochs of each node.
         """
         live = self.live_anchors
         released = self.book.ready(live, now_wall_ns)
@@ -472,6 +491,7 @@ class FusionCore:
             count_releases(self.book, released, live, self.releases)
         self._ready.extend(released)
         if limit is not None and len(self._ready) > limit and self._max_backlog_epochs:
+            self._supersede()
             self._shed()
         out: list[M.PositionEstimate] = []
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
@@ -490,9 +510,41 @@ class FusionCore:
             todo -= n
         return out
 
+    def _supersede(self) -> None:
+        """Per-node coalescing of a backlog (the live fusion is slower than its input: see
+        FusionConfig.max_backlog_s): of each node's ready epochs only the newest
+        :data:`BEHIND_KEEP_EPOCHS` are kept, in the queue positions of the node's oldest ones
+        (in order); the older ones are dropped unsolved and counted in
+        ``rejected["superseded"]``.
+
+        So a behind fusion holds at most that many ready epochs per node and solves them in
+        rounds, in the order the nodes' oldest waiting epochs were released (no node starved:
+        a node's place does not move back when newer data replaces its epochs), each with its
+        newest ranges; its work per round is bounded by the number of nodes and the latency
+        is about one round instead of the backlog limit. A node's epochs are released in time order, so its last ones in
+        the queue are its newest. A function of the queue alone (the released epochs and the
+        step's ``limit``, both in the decision record): replay makes the same choice."""
+        ready = list(self._ready)
+        slots: dict[str, list[int]] = {}
+        for i, pe in enumerate(ready):
+            slots.setdefault(pe.node_id, []).append(i)
+        n = len(ready)
+        if n - sum(min(len(v), BEHIND_KEEP_EPOCHS) for v in slots.values()) == 0:
+            return
+        placed: list[tuple[int, PendingEpoch]] = []
+        for idx in slots.values():
+            keep = idx[-BEHIND_KEEP_EPOCHS:]  # the newest, into the oldest places
+            placed += zip(idx[:len(keep)], [ready[i] for i in keep], strict=True)
+        placed.sort(key=_FIRST)
+        self._ready = collections.deque(pe for _, pe in placed)
+        self.rejected["superseded"] += n - len(placed)
+
     def _shed(self) -> None:
         """Drop the ready epochs older than ``max_backlog_s`` before the newest ready one
-        (the live fusion is slower than its input: see FusionConfig.max_backlog_s)."""
+        (the live fusion is slower than its input: see FusionConfig.max_backlog_s). After
+        :meth:`_supersede` each node has at most :data:`BEHIND_KEEP_EPOCHS` ready epochs, its
+        newest: this drops only when one round of all nodes takes longer than
+        ``max_backlog_s``, or a node's newest ready epoch is that old (its ranges stopped)."""
         keep_from = max(pe.epoch for pe in self._ready) - self._max_backlog_epochs
         if min(pe.epoch for pe in self._ready) < keep_from:
             n = len(self._ready)
