@@ -273,6 +273,7 @@ def run_soak(
         estimates_outside_run=out_of_run,
         missing_by_epoch=_missing_summary(seen),
         statuses=statuses,
+        per_node=_per_node_summary(seen, duration_s),
     )
     if diag is not None:
         result["fusion"] = {
@@ -356,6 +357,26 @@ def _missing_summary(seen: np.ndarray) -> dict:
             "last": [[int(k), int(miss[k])] for k in idx[-5:]]}
 
 
+def _per_node_summary(seen: np.ndarray, duration_s: float) -> dict:
+    """How evenly the nodes were served: estimates per node per second (min / median / max
+    over the nodes) and the gaps between a node's consecutive estimates [epochs] (median and
+    max over all nodes' gaps; the longest gap of the worst node), over the run's epochs."""
+    got = seen > 0
+    rate = got.sum(axis=1) / max(duration_s, 1e-9)
+    gaps = []
+    for row in got:
+        k = np.flatnonzero(row)
+        if k.size > 1:
+            gaps.append(np.diff(k))
+    g = np.concatenate(gaps) if gaps else np.zeros(0, np.int64)
+    return {"rate_hz_min_p50_max": [round(float(v), 2) for v in
+                                    (rate.min(), np.median(rate), rate.max())] if rate.size
+            else None,
+            "gap_epochs_p50_p99_max": [int(np.percentile(g, 50)), int(np.percentile(g, 99)),
+                                       int(g.max())] if g.size else None,
+            "nodes_without_estimate": int((~got.any(axis=1)).sum())}
+
+
 def _recorder_summary(log_path: Path) -> dict:
     """The recorder's final JSON status line ("closed": received, written, gaps...)."""
     out: dict = {}
@@ -392,6 +413,16 @@ def format_report(r: dict) -> str:
         f"fusion latency p50 {fmt(lat['p50'])} ms, p99 {fmt(lat['p99'])} ms, "
         f"max {fmt(lat['max'])} ms",
     ]
+    pn = r.get("per_node") or {}
+    if pn:
+        lines.append(f"per node: estimates/s min/median/max {pn.get('rate_hz_min_p50_max')}, "
+                     f"gap between a node's estimates [epochs] p50/p99/max "
+                     f"{pn.get('gap_epochs_p50_p99_max')}, nodes without any "
+                     f"{pn.get('nodes_without_estimate')}")
+    rej = fu.get("rejected") or {}
+    lines.append(f"node-epochs not solved by an overloaded fusion: superseded "
+                 f"{rej.get('superseded', 0)} (a newer epoch of the node was solved instead), "
+                 f"overloaded {rej.get('overloaded', 0)} (more than max_backlog_s behind)")
     for m in r["latency_per_minute_ms"]:
         lines.append(f"  minute {m['minute']}: p50 {fmt(m['p50'])} p99 {fmt(m['p99'])} "
                      f"max {fmt(m['max'])} ms")
