@@ -405,6 +405,7 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
             "over_50ms": int((e2e_ms > 50).sum()), "steps": len(sizes),
             "epochs_per_step_p50_p90_max": [int(np.percentile(sizes, 50)),
                                             int(np.percentile(sizes, 90)), int(max(sizes))],
+            "superseded": int(core.rejected.get("superseded", 0)),
             "overloaded": int(core.rejected.get("overloaded", 0)),
             "uninitialised": int(core.by_status.get("UNINITIALISED", 0))}
 
