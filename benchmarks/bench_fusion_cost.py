@@ -170,6 +170,35 @@ latency p99 2.9 / 3.6 s vs 4.4 / 4.8 s); ``diffpos emulate scenarios/large.toml 
 41.6/77.3, 33.4/64.2 ms (fusion latency p50 23.8, 22.5 vs 38.3, 29.7 ms). Live, the run's
 own anchors, router and recorder (or emulate) use the second core: 2 kernel threads are
 worse there; ``--kernel-threads 1`` is the better setting for these runs on 2 cores.
+
+The shed branch (issues 14/16: the live overload policy, ``FusionCore._supersede``),
+2026-11-27 13:23-13:32 UTC, load average 1.3-2.1; the soak input on the virtual clock, the
+first 15 s (``--schedule /tmp/s8/soak/soak16x200.mcap --seconds 15 --fusion-args "--site
+soak16x200 --method mnls --scenario .../soak16x200.toml"``, 3,000 node-epochs per 1.5 s)::
+
+    policy when behind                  estimates  CPU ms/ne  e2e p50 / p99 ms   overloaded
+    max_backlog_s drop (main, 1ab98ea)  28,023     0.611      2,088 / 2,367      1,977
+    keep each node's newest 1 (*)       17,261     0.873      116 / 198          0
+    keep each node's newest 2 (this)    23,404     0.637      193 / 275          0
+    keep each node's newest 3 (*)       24,922     0.608      216 / 476          0
+
+(*: trial variants of the same code, not kept, run through :func:`schedule` with a per-step
+trace around ``FusionCore.step``, whose CPU the virtual clock includes; main under the same
+trace: 29,562 estimates, 0.578 ms, p50 2,052 ms: the runs differ by ~5 %.) Where it
+falls behind (a per-step trace of the loop on this input, main): the start-up. The first
+~3 s cost 1.1-1.5 ms CPU per node-epoch (200 track initialisations, ~25 per step, and
+INITIALISING nodes update every hypothesis) against the input's 0.5 ms per node-epoch
+budget on one core, so the backlog reaches the 2 s limit by t = 3.5 s; after that a step of
+150-190 epochs costs 0.38-0.52 ms per node-epoch, about the input rate, so the 2 s debt is
+never paid back (latency p50 2.1 s for the rest of the run; steps of 165 epochs, p90 180).
+How the tracker's update cost grows with the gap since a node's previous update (steps
+after 4 s, least squares over the steps' mean gap): ``0.31 + 0.26 ms x gap [epochs]`` (gap
+1: 0.55, 1.8: 0.81, 2.1: 0.86, 2.8: 0.97 ms): the dormant hypotheses' refreshes (diffpos/
+tracking_dormant.py, one per hypothesis per second of measurement time) and the snapshots
+are per time, not per update, so skipping a node's epochs saves only the 0.31 ms part. That
+is why keeping only the newest epoch (any one-epoch lag turns into a gap of 2 for every
+node, and the fusion then stays there) does worse than keeping the newest two (a one-epoch
+lag is worked off at gap 1).
 """
 
 from __future__ import annotations
