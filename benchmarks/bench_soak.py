@@ -7,6 +7,10 @@ BLOCK everywhere, runs in real time for ``--duration`` seconds and reports
 - loss (must be 0 with BLOCK): ranges received by the fusion vs sent, estimates received by
   this subscriber vs expected (every node, every epoch), recorder received vs written and its
   sequence gaps;
+- how an overloaded fusion served the nodes: estimates per node per second (min / median /
+  max over the nodes), the gaps between a node's consecutive estimates, and the node-epochs
+  it did not solve (``superseded``: a newer epoch of the node was solved instead;
+  ``overloaded``: more than ``max_backlog_s`` behind; FusionConfig.max_backlog_s);
 - fusion latency (estimate publish - newest input publish) p50/p99/max overall and per
   minute; ranges that arrived after their epoch was solved (``late``, not a transport loss);
 - RSS of every process (router, recorder, fusion, each anchor, this subscriber) after the
@@ -111,7 +115,8 @@ def run_soak(
     warmup_s : float [s]
         RSS "start" is the first sample after this much of the run.
     max_backlog_s : float [s], optional
-        The fusion's ``--max-backlog-s`` (None: the live default; 0: never drop epochs).
+        The fusion's ``--max-backlog-s`` (None: the live default, the overload policy on;
+        0: never drop epochs, a fusion that falls behind only lags).
     method : str
         The fusion's ``--method``. Default ``dnls``: this soak measures the transport, the
         recorder and the fusion's ingest at a load (16 x 200 x 10 Hz) where the default
