@@ -297,14 +297,16 @@ def cost(path: Path, method: str) -> tuple[float, int, dict]:
 
 class _VirtualClock:
     """Wall clock of the schedule: the first input's receive time, then + the CPU time this
-    process used, + the idle time skipped while waiting for the next input."""
+    process used (times ``cpu_scale``: 2 = a core half as fast, or half a core), + the idle
+    time skipped while waiting for the next input."""
 
-    def __init__(self, t0_ns: int) -> None:
+    def __init__(self, t0_ns: int, cpu_scale: float = 1.0) -> None:
         self.base = t0_ns
         self.cpu0 = time.process_time_ns()
+        self.scale = float(cpu_scale)
 
     def time_ns(self) -> int:
-        return self.base + time.process_time_ns() - self.cpu0
+        return self.base + round(self.scale * (time.process_time_ns() - self.cpu0))
 
     monotonic_ns = time_ns
 
@@ -360,10 +362,11 @@ def _fusion_config(path: Path, fusion_argv: list[str] | None):
 
 
 def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None,
-             fusion_argv: list[str] | None = None) -> dict:
+             fusion_argv: list[str] | None = None, cpu_scale: float = 1.0) -> dict:
     """The live loop on the recorded real-time input, on a virtual clock (module docstring):
     the first ``seconds`` of input (None: all), the recorded fusion settings or those of
-    ``fusion_argv``."""
+    ``fusion_argv``; ``cpu_scale`` > 1 charges each CPU second that many wall seconds (a
+    fusion with only 1 / cpu_scale of a core: the overload of a loaded machine, reproducibly)."""
     import logging
 
     from diffpos_services.fusion import service
@@ -396,7 +399,7 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     core.warm_up()
     if hasattr(service, "freeze_heap"):  # as run_fusion does after its warm-up
         service.freeze_heap()
-    clock = _VirtualClock(t0 - 1)
+    clock = _VirtualClock(t0 - 1, cpu_scale)
     inbox = type("Inbox", (), {})()
     inbox.q, inbox.release = _ScheduledQueue(items, clock), lambda size: None
     lat: list[tuple[int, int]] = []  # (input publish, estimate publish) [ns]
@@ -448,6 +451,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--schedule", type=Path, metavar="REC",
                     help="the live loop on this real-time recording's input, virtual clock")
     ap.add_argument("--seconds", type=float, help="--schedule: only the first S s of input")
+    ap.add_argument("--cpu-scale", type=float, default=1.0, metavar="X",
+                    help="--schedule: charge each CPU second X wall seconds (default 1; 2: the "
+                    "fusion has half a core)")
     ap.add_argument("--fusion-args", metavar="ARGS",
                     help="--schedule: the settings of 'diffpos fusion ARGS' (one string) "
                     "instead of the recorded ones")
@@ -461,11 +467,11 @@ def main(argv: list[str] | None = None) -> int:
         _print_threads(args.recording, thread_costs(args.recording, counts, args.repeat))
         return 0
     if args.schedule is not None:
-        r = schedule(args.schedule, seconds=args.seconds,
+        r = schedule(args.schedule, seconds=args.seconds, cpu_scale=args.cpu_scale,
                      fusion_argv=None if args.fusion_args is None else args.fusion_args.split())
         print(f"bench_fusion_cost --schedule {args.schedule}: machine {platform.machine()} "
               f"{os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f} (virtual clock: CPU "
-              f"time of this process)")
+              f"time of this process x {args.cpu_scale:g})")
         for k, v in r.items():
             print(f"  {k:<34} {v if not isinstance(v, float) else round(v, 3)}")
         return 0
