@@ -49,7 +49,7 @@ from diffpos_services.kit import free_tcp_port, stop_process_groups
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
-__all__ = ["LatencyHistogram", "run_soak"]
+__all__ = ["AgeOfInformation", "LatencyHistogram", "run_soak"]
 
 
 class LatencyHistogram:
@@ -77,6 +77,36 @@ class LatencyHistogram:
             return None
         k = int(np.searchsorted(np.cumsum(self.counts), q / 100.0 * n))
         return float(self.edges[min(k, self.edges.size - 1)])
+
+
+class AgeOfInformation:
+    """How old each node's picture is on average: from a node's first estimate to the end of
+    the run, the time average of (now - input publish time of the node's newest estimate)
+    [ms]. Counts latency and the gaps between a node's updates together (a fusion 2 s behind
+    has an age >= 2 s however many estimates it publishes); O(1) per estimate."""
+
+    def __init__(self) -> None:
+        self.state: dict[str, list[float]] = {}  # node -> [first pub, last pub, newest input, area]
+
+    def add(self, node_id: str, t_input_ns: int, t_pub_ns: int) -> None:
+        st = self.state.get(node_id)
+        if st is None:
+            self.state[node_id] = [t_pub_ns, t_pub_ns, t_input_ns, 0.0]
+            return
+        dt = t_pub_ns - st[1]
+        if dt > 0:
+            st[3] += dt * ((st[1] - st[2]) + 0.5 * dt)
+            st[1] = t_pub_ns
+        st[2] = max(st[2], t_input_ns)
+
+    def summary(self, t_end_ns: int) -> list | None:
+        """``[mean over the nodes, worst node]`` [ms] up to ``t_end_ns``."""
+        ages = []
+        for first, last, newest, area in self.state.values():
+            if t_end_ns > first:
+                dt = max(t_end_ns - last, 0)
+                ages.append((area + dt * ((last - newest) + 0.5 * dt)) / (t_end_ns - first) * 1e-6)
+        return [round(float(np.mean(ages)), 1), round(float(np.max(ages)), 1)] if ages else None
 
 
 def _slope_mb_per_min(samples: list[tuple[float, float]]) -> float | None:
@@ -170,6 +200,7 @@ def run_soak(
     statuses: dict[str, int] = {}
     rss: dict[str, list[tuple[float, float]]] = {}
     out_of_run = 0
+    aoi = AgeOfInformation()
     diag = None
     result: dict = {"anchors": n_anchors, "nodes": n_nodes, "rate_hz": 10,
                     "duration_s": duration_s, "range_batch": True, "recorder": recorder}
@@ -257,6 +288,7 @@ def run_soak(
                     statuses[e.status] = statuses.get(e.status, 0) + 1
                     if e.t_input_wall_ns > 0:
                         lat_chunk.append((e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6)
+                        aoi.add(e.node_id, e.t_input_wall_ns, e.t_pub_wall_ns)
                 else:
                     diag = dec_d(val)
                     if (diag.watermark_ns is not None and diag.watermark_ns >= end_ns - PERIOD_NS
@@ -280,6 +312,8 @@ def run_soak(
         statuses=statuses,
         per_node=_per_node_summary(seen, duration_s),
     )
+    result["per_node"]["age_of_information_ms_mean_worst"] = aoi.summary(t0 + round(
+        duration_s * 1e9)) if t0 else None
     if diag is not None:
         result["fusion"] = {
             "ranges_received": diag.received.get("range", 0),
@@ -424,6 +458,9 @@ def format_report(r: dict) -> str:
                      f"gap between a node's estimates [epochs] p50/p99/max "
                      f"{pn.get('gap_epochs_p50_p99_max')}, nodes without any "
                      f"{pn.get('nodes_without_estimate')}")
+        lines.append(f"age of each node's picture (time average of now - input time of its "
+                     f"newest estimate) [ms] mean/worst node "
+                     f"{pn.get('age_of_information_ms_mean_worst')}")
     rej = fu.get("rejected") or {}
     lines.append(f"node-epochs not solved by an overloaded fusion: superseded "
                  f"{rej.get('superseded', 0)} (a newer epoch of the node was solved instead), "
