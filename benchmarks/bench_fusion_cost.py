@@ -172,33 +172,40 @@ own anchors, router and recorder (or emulate) use the second core: 2 kernel thre
 worse there; ``--kernel-threads 1`` is the better setting for these runs on 2 cores.
 
 The shed branch (issues 14/16: the live overload policy, ``FusionCore._supersede``),
-2026-11-27 13:23-13:32 UTC, load average 1.3-2.1; the soak input on the virtual clock, the
-first 15 s (``--schedule /tmp/s8/soak/soak16x200.mcap --seconds 15 --fusion-args "--site
-soak16x200 --method mnls --scenario .../soak16x200.toml"``, 3,000 node-epochs per 1.5 s)::
+2026-11-27 13:31-13:51 UTC, load average 1.4-2.8 (the virtual clock charges this process'
+CPU only); the soak input, the first 15 s (``--schedule /tmp/s8/soak/soak16x200.mcap
+--seconds 15 --fusion-args "--site soak16x200 --method mnls --scenario .../soak16x200.toml"``,
+30,000 node-epochs; ``--cpu-scale 2``: the fusion has half a core). Age: the mean over the
+nodes of the time-averaged age of a node's newest published input (what a coordinator sees)::
 
-    policy when behind                  estimates  CPU ms/ne  e2e p50 / p99 ms   overloaded
-    max_backlog_s drop (main, 1ab98ea)  28,023     0.611      2,088 / 2,367      1,977
-    keep each node's newest 1 (*)       17,261     0.873      116 / 198          0
-    keep each node's newest 2 (this)    23,404     0.637      193 / 275          0
-    keep each node's newest 3 (*)       24,922     0.608      216 / 476          0
+    policy when behind                  CPU  estimates       e2e p50 ms    age mean / worst ms
+    max_backlog_s drop (main, 1ab98ea)  x1   25,727-28,023   2,088-2,121   1,991 / 2,131
+    keep each node's newest 1 (this)    x1   21,920-24,493   100-101       167-189 / 189-212
+    keep the newest 2 (*)               x1   22,944-25,598   167-197       236-279 / 268-308
+    keep the newest 4 (*)               x1   22,010          391           459 / 480
+    max_backlog_s drop (main)           x1.5 16,477          2,136         -
+    keep the newest 1 / 2               x1.5 10,824 / 10,451 116 / 213     272 / 379
+    max_backlog_s drop (main)           x2   12,294-12,482   2,146-2,147   4,300 / 7,443
+    keep the newest 1 / 2 / 4           x2   5,812 / 5,941 / 6,037  110 / 210 / 417
+                                                                           381 / 488 / 711
 
-(*: trial variants of the same code, not kept, run through :func:`schedule` with a per-step
-trace around ``FusionCore.step``, whose CPU the virtual clock includes; main under the same
-trace: 29,562 estimates, 0.578 ms, p50 2,052 ms: the runs differ by ~5 %.) Where it
-falls behind (a per-step trace of the loop on this input, main): the start-up. The first
-~3 s cost 1.1-1.5 ms CPU per node-epoch (200 track initialisations, ~25 per step, and
-INITIALISING nodes update every hypothesis) against the input's 0.5 ms per node-epoch
-budget on one core, so the backlog reaches the 2 s limit by t = 3.5 s; after that a step of
-150-190 epochs costs 0.38-0.52 ms per node-epoch, about the input rate, so the 2 s debt is
-never paid back (latency p50 2.1 s for the rest of the run; steps of 165 epochs, p90 180).
-How the tracker's update cost grows with the gap since a node's previous update (steps
-after 4 s, least squares over the steps' mean gap): ``0.31 + 0.26 ms x gap [epochs]`` (gap
-1: 0.55, 1.8: 0.81, 2.1: 0.86, 2.8: 0.97 ms): the dormant hypotheses' refreshes (diffpos/
-tracking_dormant.py, one per hypothesis per second of measurement time) and the snapshots
-are per time, not per update, so skipping a node's epochs saves only the 0.31 ms part. That
-is why keeping only the newest epoch (any one-epoch lag turns into a gap of 2 for every
-node, and the fusion then stays there) does worse than keeping the newest two (a one-epoch
-lag is worked off at gap 1).
+(*: trial variants of the constant ``core.BEHIND_KEEP_EPOCHS``, not kept; ranges: repeated
+runs.) Where it falls behind (a per-step trace of the loop on this input, main): the
+start-up. The first ~3 s cost 1.1-1.5 ms CPU per node-epoch (200 track initialisations, ~25
+per step, and INITIALISING nodes update every hypothesis) against the input's 0.5 ms per
+node-epoch budget on one core, so the backlog reaches the 2 s limit by t = 3.5 s; after that
+a step of 150-190 epochs costs 0.38-0.52 ms per node-epoch, about the input rate, so the 2 s
+debt is never paid back (latency p50 2.1 s for the rest of the run; steps of 165 epochs, p90
+180). How the tracker's update cost grows with the gap since a node's previous update (steps
+after 4 s of a run of the first implementation, least squares over the steps' mean gap):
+``0.31 + 0.26 ms x gap [epochs]`` (gap 1: 0.55, 1.8: 0.81, 2.1: 0.86, 2.8: 0.97 ms): the
+dormant hypotheses' refreshes (diffpos/tracking_dormant.py, one per hypothesis per second of
+measurement time) and the snapshots are per time, not per update, so skipping a node's
+epochs saves only the 0.31 ms part. That is why the new policy publishes fewer estimates
+than the old one when the fusion has much less CPU than it needs (x2: about half): the old
+one solves whole epochs at a gap of 1 and drops the rest in blocks (uneven: live 0.4-8 node
+updates per second, gaps up to 57 s), the new one updates every node about equally often at
+longer gaps. Its pictures are 5-11 times fresher either way.
 """
 
 from __future__ import annotations

@@ -187,7 +187,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """The overload policy of steps with a ``limit`` (the live service), applied when more
     epochs are ready than the step takes (the fusion is slower than its input; a fusion that
     keeps up is not affected): (1) of each node's ready epochs only the newest
-    ``core.BEHIND_KEEP_EPOCHS`` (2) are kept, in the queue places of the node's oldest, the
+    ``core.BEHIND_KEEP_EPOCHS`` (1) are kept, in the queue places of the node's oldest, the
     others dropped unsolved and counted in ``rejected["superseded"]`` (every node is served in
     rounds with its newest data, the latency is about one round, the work per round bounded
     by the number of nodes); (2) a ready epoch still more than this much measurement time

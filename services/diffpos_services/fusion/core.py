@@ -23,7 +23,6 @@ from __future__ import annotations
 import collections
 import logging
 import math
-import operator
 from itertools import repeat
 from typing import Any
 
@@ -64,16 +63,13 @@ _new_tuple = tuple.__new__
 #: why an epoch was released (FusionDiagnostics.releases)
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
 #: ready epochs kept per node when a live step is behind (FusionCore._supersede): its newest
-#: two. Measured on the 16 x 200 soak input, the live loop on a virtual clock (benchmarks/
-#: bench_fusion_cost.py --schedule, the first 15 s): keeping 1 (pure newest-only) makes every
-#: node's next update follow a gap of >= 2 epochs as soon as any burst puts the fusion one epoch
-#: behind, and the tracker's update costs about 0.31 ms + 0.26 ms per epoch of gap (its
-#: dormant-hypothesis refreshes and snapshots are per measurement time), so the fusion stays
-#: behind at gap ~2: 17,261 estimates, latency p50 116 ms; keeping 2 absorbs a one-epoch lag
-#: at gap 1: 24,355 estimates, p50 174 ms; 3: 24,922, p50 216 ms (the backlog limit alone:
-#: 29,562, p50 2,052 ms)
-BEHIND_KEEP_EPOCHS = 2
-_FIRST = operator.itemgetter(0)
+#: one. Measured on the 16 x 200 soak input, the live loop on a virtual clock (benchmarks/
+#: bench_fusion_cost.py --schedule, the first 15 s, CPU x1 / x1.5 / x2), keeping the newest 1,
+#: 2 or 4: about as many estimates either way (x1: 21,920-24,493 vs 22,944-25,598 vs 22,010;
+#: x2: 5,812 / 5,941 / 6,037: the tracker's update costs more after a longer gap, so skipped
+#: epochs save less than their share), but each further kept epoch adds about a round of
+#: latency: mean age of a node's picture x1 167-189 / 236-279 / 459 ms, x2 381 / 488 / 711 ms
+BEHIND_KEEP_EPOCHS = 1
 
 
 class FusionCore:
@@ -126,6 +122,10 @@ class FusionCore:
         self._dec_batch = M.decoder(M.RangeBatch)
         self.changed = False  # liveliness changed since the last diagnostics
         self._ready: collections.deque[PendingEpoch] = collections.deque()
+        # when each node's epoch was last taken by a step (a count of epochs taken): the
+        # order of the rounds of a step that is behind (_supersede)
+        self._served: dict[str, int] = {}
+        self._taken = 0
         self._max_backlog_epochs = (None if config.max_backlog_s is None else
                                     math.ceil(config.max_backlog_s / config.epoch_period_s))
         # mnls: the building of the path model; with tracking, every node's tracker state
@@ -498,6 +498,10 @@ class FusionCore:
         while todo > 0:
             n = min(todo, self.config.max_fixes_per_step)
             now, held = [self._ready.popleft() for _ in range(n)], []
+            if limit is not None:
+                self._served.update(zip([pe.node_id for pe in now],
+                                        range(self._taken, self._taken + n), strict=True))
+                self._taken += n
             if limit is not None and self.bank is not None:
                 now, held = self.bank.hold_inits(now, heavy_budget(n))
             out += self._solve(now, now_wall_ns,
@@ -513,31 +517,29 @@ class FusionCore:
     def _supersede(self) -> None:
         """Per-node coalescing of a backlog (the live fusion is slower than its input: see
         FusionConfig.max_backlog_s): of each node's ready epochs only the newest
-        :data:`BEHIND_KEEP_EPOCHS` are kept, in the queue positions of the node's oldest ones
-        (in order); the older ones are dropped unsolved and counted in
-        ``rejected["superseded"]``.
+        :data:`BEHIND_KEEP_EPOCHS` are kept, the older ones dropped unsolved and counted in
+        ``rejected["superseded"]``, and the nodes are queued least recently served first (by
+        a budgeted step; never served: first; ties in queue order). A queue with no more than
+        that many epochs of any node is left as it is.
 
         So a behind fusion holds at most that many ready epochs per node and solves them in
-        rounds, in the order the nodes' oldest waiting epochs were released (no node starved:
-        a node's place does not move back when newer data replaces its epochs), each with its
-        newest ranges; its work per round is bounded by the number of nodes and the latency
-        is about one round instead of the backlog limit. A node's epochs are released in time order, so its last ones in
-        the queue are its newest. A function of the queue alone (the released epochs and the
-        step's ``limit``, both in the decision record): replay makes the same choice."""
+        rounds: no node is solved again before every other node with a ready epoch was (no
+        node starved, whatever its id or place in a release), each with its newest ranges;
+        the work per round is bounded by the number of nodes and the latency is about one
+        round instead of the backlog limit. A node's epochs are released in time order, so
+        its last ones in the queue are its newest. A function of the core's state and the
+        step's ``limit`` (in the decision record): replay makes the same choice."""
         ready = list(self._ready)
         slots: dict[str, list[int]] = {}
         for i, pe in enumerate(ready):
             slots.setdefault(pe.node_id, []).append(i)
-        n = len(ready)
-        if n - sum(min(len(v), BEHIND_KEEP_EPOCHS) for v in slots.values()) == 0:
-            return
-        placed: list[tuple[int, PendingEpoch]] = []
-        for idx in slots.values():
-            keep = idx[-BEHIND_KEEP_EPOCHS:]  # the newest, into the oldest places
-            placed += zip(idx[:len(keep)], [ready[i] for i in keep], strict=True)
-        placed.sort(key=_FIRST)
-        self._ready = collections.deque(pe for _, pe in placed)
-        self.rejected["superseded"] += n - len(placed)
+        if all(len(v) <= BEHIND_KEEP_EPOCHS for v in slots.values()):
+            return  # less than a round behind: nothing changes (the order neither)
+        served = self._served
+        order = sorted(slots, key=lambda nid: (served.get(nid, -1), slots[nid][0]))
+        self._ready = collections.deque(
+            ready[i] for nid in order for i in slots[nid][-BEHIND_KEEP_EPOCHS:])
+        self.rejected["superseded"] += len(ready) - len(self._ready)
 
     def _shed(self) -> None:
         """Drop the ready epochs older than ``max_backlog_s`` before the newest ready one
