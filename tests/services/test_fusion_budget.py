@@ -298,7 +298,8 @@ def test_a_fusion_behind_its_input_keeps_each_nodes_newest_epochs_in_rounds(tmp_
     - every released node-epoch is published or counted as superseded (none overloaded);
     - rounds: no node is solved twice before every other node with data was solved (between
       two steps that solve a node, the steps in between and those two solve all nodes), and
-      per node the counts differ by at most one;
+      per node the counts differ by at most one (queueing the released epochs in their
+      release order, i.e. by node id, solved n0 and n1 twice as often);
     - a replay by the decision record gives the same estimates bit for bit.
     The same input stepped once per epoch with a limit of all nodes (a fusion that keeps up)
     supersedes nothing and gives the estimates of a fusion without the setting, bit for bit.
