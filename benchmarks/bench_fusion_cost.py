@@ -179,18 +179,21 @@ CPU only); the soak input, the first 15 s (``--schedule /tmp/s8/soak/soak16x200.
 nodes of the time-averaged age of a node's newest published input (what a coordinator sees)::
 
     policy when behind                  CPU  estimates       e2e p50 ms    age mean / worst ms
-    max_backlog_s drop (main, 1ab98ea)  x1   25,727-28,023   2,088-2,121   1,991 / 2,131
-    keep each node's newest 1 (this)    x1   21,920-24,493   100-101       167-189 / 189-212
+    max_backlog_s drop (main, 1ab98ea)  x1   25,727-29,042   2,053-2,121   1,905-1,991 / 2,131
+    this branch (newest 1, round-robin) x1   25,483          93            155 / 168
+    keep the newest 1 (*)               x1   21,920-24,493   100-101       167-189 / 189-212
     keep the newest 2 (*)               x1   22,944-25,598   167-197       236-279 / 268-308
     keep the newest 4 (*)               x1   22,010          391           459 / 480
     max_backlog_s drop (main)           x1.5 16,477          2,136         -
-    keep the newest 1 / 2               x1.5 10,824 / 10,451 116 / 213     272 / 379
-    max_backlog_s drop (main)           x2   12,294-12,482   2,146-2,147   4,300 / 7,443
-    keep the newest 1 / 2 / 4           x2   5,812 / 5,941 / 6,037  110 / 210 / 417
+    keep the newest 1 / 2 (*)           x1.5 10,824 / 10,451 116 / 213     272 / 379
+    max_backlog_s drop (main)           x2   12,294-12,732   2,146-2,147   4,110-4,300 / 7,443
+    this branch                         x2   5,339           110           411 / 421
+    keep the newest 1 / 2 / 4 (*)       x2   5,812 / 5,941 / 6,037  110 / 210 / 417
                                                                            381 / 488 / 711
 
-(*: trial variants of the constant ``core.BEHIND_KEEP_EPOCHS``, not kept; ranges: repeated
-runs.) Where it falls behind (a per-step trace of the loop on this input, main): the
+(*: trial variants, not kept: the constant ``core.BEHIND_KEEP_EPOCHS`` 1, 2 or 4 with the
+nodes queued by the place of their oldest ready epoch instead of least recently served
+first; ranges: repeated runs.) Where it falls behind (a per-step trace of the loop on this input, main): the
 start-up. The first ~3 s cost 1.1-1.5 ms CPU per node-epoch (200 track initialisations, ~25
 per step, and INITIALISING nodes update every hypothesis) against the input's 0.5 ms per
 node-epoch budget on one core, so the backlog reaches the 2 s limit by t = 3.5 s; after that
