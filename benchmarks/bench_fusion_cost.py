@@ -172,7 +172,7 @@ own anchors, router and recorder (or emulate) use the second core: 2 kernel thre
 worse there; ``--kernel-threads 1`` is the better setting for these runs on 2 cores.
 
 The shed branch (issues 14/16: the live overload policy, ``FusionCore._supersede``),
-2026-11-27 13:31-13:51 UTC, load average 1.4-2.8 (the virtual clock charges this process'
+2026-11-27 13:31-13:53 UTC, load average 1.4-2.8 (the virtual clock charges this process'
 CPU only); the soak input, the first 15 s (``--schedule /tmp/s8/soak/soak16x200.mcap
 --seconds 15 --fusion-args "--site soak16x200 --method mnls --scenario .../soak16x200.toml"``,
 30,000 node-epochs; ``--cpu-scale 2``: the fusion has half a core). Age: the mean over the
@@ -208,7 +208,7 @@ epochs saves only the 0.31 ms part. That is why the new policy publishes fewer e
 than the old one when the fusion has much less CPU than it needs (x2: about half): the old
 one solves whole epochs at a gap of 1 and drops the rest in blocks (uneven: live 0.4-8 node
 updates per second, gaps up to 57 s), the new one updates every node about equally often at
-longer gaps. Its pictures are 5-11 times fresher either way.
+longer gaps. Its pictures are 10-13 times fresher either way (age above).
 """
 
 from __future__ import annotations
