@@ -64,8 +64,8 @@ _new_tuple = tuple.__new__
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
 #: ready epochs kept per node when a live step is behind (FusionCore._supersede): its newest
 #: one. Measured on the 16 x 200 soak input, the live loop on a virtual clock (benchmarks/
-#: bench_fusion_cost.py --schedule, the first 15 s, CPU x1 / x1.5 / x2), keeping the newest 1,
-#: 2 or 4: about as many estimates either way (x1: 21,920-24,493 vs 22,944-25,598 vs 22,010;
+#: bench_fusion_cost.py --schedule, the first 15 s, CPU x1 / x1.5 / x2; a trial version that
+#: queued the nodes by place), keeping the newest 1, 2 or 4: about as many estimates either way (x1: 21,920-24,493 vs 22,944-25,598 vs 22,010;
 #: x2: 5,812 / 5,941 / 6,037: the tracker's update costs more after a longer gap, so skipped
 #: epochs save less than their share), but each further kept epoch adds about a round of
 #: latency: mean age of a node's picture x1 167-189 / 236-279 / 459 ms, x2 381 / 488 / 711 ms
