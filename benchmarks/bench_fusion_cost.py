@@ -170,6 +170,45 @@ latency p99 2.9 / 3.6 s vs 4.4 / 4.8 s); ``diffpos emulate scenarios/large.toml 
 41.6/77.3, 33.4/64.2 ms (fusion latency p50 23.8, 22.5 vs 38.3, 29.7 ms). Live, the run's
 own anchors, router and recorder (or emulate) use the second core: 2 kernel threads are
 worse there; ``--kernel-threads 1`` is the better setting for these runs on 2 cores.
+
+The shed branch (issues 14/16: the live overload policy, ``FusionCore._supersede``),
+2026-11-27 13:31-13:53 UTC, load average 1.4-2.8 (the virtual clock charges this process'
+CPU only); the soak input, the first 15 s (``--schedule /tmp/s8/soak/soak16x200.mcap
+--seconds 15 --fusion-args "--site soak16x200 --method mnls --scenario .../soak16x200.toml"``,
+30,000 node-epochs; ``--cpu-scale 2``: the fusion has half a core). Age: the mean over the
+nodes of the time-averaged age of a node's newest published input (what a coordinator sees)::
+
+    policy when behind                  CPU  estimates       e2e p50 ms    age mean / worst ms
+    max_backlog_s drop (main, 1ab98ea)  x1   25,727-29,042   2,053-2,121   1,905-1,991 / 2,131
+    this branch (newest 1, round-robin) x1   25,483          93            155 / 168
+    keep the newest 1 (*)               x1   21,920-24,493   100-101       167-189 / 189-212
+    keep the newest 2 (*)               x1   22,944-25,598   167-197       236-279 / 268-308
+    keep the newest 4 (*)               x1   22,010          391           459 / 480
+    max_backlog_s drop (main)           x1.5 16,477          2,136         -
+    keep the newest 1 / 2 (*)           x1.5 10,824 / 10,451 116 / 213     272 / 379
+    max_backlog_s drop (main)           x2   12,294-12,732   2,146-2,147   4,110-4,300 / 7,443
+    this branch                         x2   5,339           110           411 / 421
+    keep the newest 1 / 2 / 4 (*)       x2   5,812 / 5,941 / 6,037  110 / 210 / 417
+                                                                           381 / 488 / 711
+
+(*: trial variants, not kept: the constant ``core.BEHIND_KEEP_EPOCHS`` 1, 2 or 4 with the
+nodes queued by the place of their oldest ready epoch instead of least recently served
+first; ranges: repeated runs.) Where it falls behind (a per-step trace of the loop on this input, main): the
+start-up. The first ~3 s cost 1.1-1.5 ms CPU per node-epoch (200 track initialisations, ~25
+per step, and INITIALISING nodes update every hypothesis) against the input's 0.5 ms per
+node-epoch budget on one core, so the backlog reaches the 2 s limit by t = 3.5 s; after that
+a step of 150-190 epochs costs 0.38-0.52 ms per node-epoch, about the input rate, so the 2 s
+debt is never paid back (latency p50 2.1 s for the rest of the run; steps of 165 epochs, p90
+180). How the tracker's update cost grows with the gap since a node's previous update (steps
+after 4 s of a run of the first implementation, least squares over the steps' mean gap):
+``0.31 + 0.26 ms x gap [epochs]`` (gap 1: 0.55, 1.8: 0.81, 2.1: 0.86, 2.8: 0.97 ms): the
+dormant hypotheses' refreshes (diffpos/tracking_dormant.py, one per hypothesis per second of
+measurement time) and the snapshots are per time, not per update, so skipping a node's
+epochs saves only the 0.31 ms part. That is why the new policy publishes fewer estimates
+than the old one when the fusion has much less CPU than it needs (x2: about half): the old
+one solves whole epochs at a gap of 1 and drops the rest in blocks (uneven: live 0.4-8 node
+updates per second, gaps up to 57 s), the new one updates every node about equally often at
+longer gaps. Its pictures are 10-13 times fresher either way (age above).
 """
 
 from __future__ import annotations
@@ -268,14 +307,16 @@ def cost(path: Path, method: str) -> tuple[float, int, dict]:
 
 class _VirtualClock:
     """Wall clock of the schedule: the first input's receive time, then + the CPU time this
-    process used, + the idle time skipped while waiting for the next input."""
+    process used (times ``cpu_scale``: 2 = a core half as fast, or half a core), + the idle
+    time skipped while waiting for the next input."""
 
-    def __init__(self, t0_ns: int) -> None:
+    def __init__(self, t0_ns: int, cpu_scale: float = 1.0) -> None:
         self.base = t0_ns
         self.cpu0 = time.process_time_ns()
+        self.scale = float(cpu_scale)
 
     def time_ns(self) -> int:
-        return self.base + time.process_time_ns() - self.cpu0
+        return self.base + round(self.scale * (time.process_time_ns() - self.cpu0))
 
     monotonic_ns = time_ns
 
@@ -331,10 +372,11 @@ def _fusion_config(path: Path, fusion_argv: list[str] | None):
 
 
 def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None,
-             fusion_argv: list[str] | None = None) -> dict:
+             fusion_argv: list[str] | None = None, cpu_scale: float = 1.0) -> dict:
     """The live loop on the recorded real-time input, on a virtual clock (module docstring):
     the first ``seconds`` of input (None: all), the recorded fusion settings or those of
-    ``fusion_argv``."""
+    ``fusion_argv``; ``cpu_scale`` > 1 charges each CPU second that many wall seconds (a
+    fusion with only 1 / cpu_scale of a core: the overload of a loaded machine, reproducibly)."""
     import logging
 
     from diffpos_services.fusion import service
@@ -367,15 +409,17 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     core.warm_up()
     if hasattr(service, "freeze_heap"):  # as run_fusion does after its warm-up
         service.freeze_heap()
-    clock = _VirtualClock(t0 - 1)
+    clock = _VirtualClock(t0 - 1, cpu_scale)
     inbox = type("Inbox", (), {})()
     inbox.q, inbox.release = _ScheduledQueue(items, clock), lambda size: None
     lat: list[tuple[int, int]] = []  # (input publish, estimate publish) [ns]
+    by_node: dict[str, list[tuple[int, int]]] = collections.defaultdict(list)
 
     def put(e) -> None:  # what the service's publisher does before the bus: encode
         M.encode(e)
         if e.t_input_wall_ns > 0:
             lat.append((e.t_input_wall_ns, e.t_pub_wall_ns))
+            by_node[e.node_id].append((e.t_input_wall_ns, e.t_pub_wall_ns))
 
     real_time = service.time
     service.time = clock  # the loop's clock (time_ns, monotonic_ns) is the virtual one
@@ -405,8 +449,29 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
             "over_50ms": int((e2e_ms > 50).sum()), "steps": len(sizes),
             "epochs_per_step_p50_p90_max": [int(np.percentile(sizes, 50)),
                                             int(np.percentile(sizes, 90)), int(max(sizes))],
+            "superseded": int(core.rejected.get("superseded", 0)),
             "overloaded": int(core.rejected.get("overloaded", 0)),
-            "uninitialised": int(core.by_status.get("UNINITIALISED", 0))}
+            "uninitialised": int(core.by_status.get("UNINITIALISED", 0)),
+            "age_of_information_ms_mean_worst": age_of_information(by_node, items[-1][0])}
+
+
+def age_of_information(by_node: dict[str, list[tuple[int, int]]], t_end_ns: int) -> list:
+    """How old each node's picture is on average (the age of information): from a node's
+    first published estimate to ``t_end_ns``, the time average of (now - input publish time
+    of the node's newest published estimate), per node [ms]; returns the mean over the nodes
+    and the worst node's. Counts both latency and the gaps between a node's updates: a
+    fusion 2 s behind has an age >= 2 s however many estimates it publishes."""
+    ages = []
+    for rows in by_node.values():
+        rows = sorted((r for r in rows if r[1] <= t_end_ns), key=lambda r: r[1])
+        if not rows or rows[0][1] >= t_end_ns:
+            continue
+        area, newest = 0.0, rows[0][0]
+        for (t_in, p0), (_, p1) in zip(rows, [*rows[1:], (0, t_end_ns)], strict=True):
+            newest = max(newest, t_in)
+            area += (p1 - p0) * ((p0 - newest) + 0.5 * (p1 - p0))
+        ages.append(area / (t_end_ns - rows[0][1]) * 1e-6)
+    return [round(float(np.mean(ages)), 1), round(float(np.max(ages)), 1)] if ages else [None] * 2
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -418,6 +483,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--schedule", type=Path, metavar="REC",
                     help="the live loop on this real-time recording's input, virtual clock")
     ap.add_argument("--seconds", type=float, help="--schedule: only the first S s of input")
+    ap.add_argument("--cpu-scale", type=float, default=1.0, metavar="X",
+                    help="--schedule: charge each CPU second X wall seconds (default 1; 2: the "
+                    "fusion has half a core)")
     ap.add_argument("--fusion-args", metavar="ARGS",
                     help="--schedule: the settings of 'diffpos fusion ARGS' (one string) "
                     "instead of the recorded ones")
@@ -431,11 +499,11 @@ def main(argv: list[str] | None = None) -> int:
         _print_threads(args.recording, thread_costs(args.recording, counts, args.repeat))
         return 0
     if args.schedule is not None:
-        r = schedule(args.schedule, seconds=args.seconds,
+        r = schedule(args.schedule, seconds=args.seconds, cpu_scale=args.cpu_scale,
                      fusion_argv=None if args.fusion_args is None else args.fusion_args.split())
         print(f"bench_fusion_cost --schedule {args.schedule}: machine {platform.machine()} "
               f"{os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f} (virtual clock: CPU "
-              f"time of this process)")
+              f"time of this process x {args.cpu_scale:g})")
         for k, v in r.items():
             print(f"  {k:<34} {v if not isinstance(v, float) else round(v, 3)}")
         return 0

@@ -7,6 +7,10 @@ BLOCK everywhere, runs in real time for ``--duration`` seconds and reports
 - loss (must be 0 with BLOCK): ranges received by the fusion vs sent, estimates received by
   this subscriber vs expected (every node, every epoch), recorder received vs written and its
   sequence gaps;
+- how an overloaded fusion served the nodes: estimates per node per second (min / median /
+  max over the nodes), the gaps between a node's consecutive estimates, and the node-epochs
+  it did not solve (``superseded``: a newer epoch of the node was solved instead;
+  ``overloaded``: more than ``max_backlog_s`` behind; FusionConfig.max_backlog_s);
 - fusion latency (estimate publish - newest input publish) p50/p99/max overall and per
   minute; ranges that arrived after their epoch was solved (``late``, not a transport loss);
 - RSS of every process (router, recorder, fusion, each anchor, this subscriber) after the
@@ -20,6 +24,32 @@ more processes watched)::
     python benchmarks/bench_soak.py --load 16x50 --duration 60          # the CI size
 
 ``tests/system/test_soak.py`` runs :func:`run_soak` for 60 s and asserts zero loss and bounded RSS.
+
+The live overload policy (shed branch, issues 14/16; FusionConfig.max_backlog_s), 2026-11-27,
+2-core VM shared with other jobs, ``python benchmarks/bench_soak.py --load 16x200 --duration 60
+--warmup 10 --method mnls``, before = main at 1ab98ea (its ``services`` on PYTHONPATH), after =
+this branch, run back to back (13:53-13:56 UTC, load average 1.4-4.1)::
+
+                                          before (1ab98ea)         after
+    estimates of 120,000                  59,832                   55,190
+    fusion latency p50 / p99 / max        2,122 / 2,803 / 2,894 ms 130 / 199 / 241 ms
+    estimates per node per second         0.78 / 3.53 / 8.53       4.52 / 4.62 / 4.70
+      (min / median / max over nodes)
+    gap between a node's estimates        1 / 10 / 130 epochs      2 / 4 / 5 epochs
+      (p50 / p99 / max)
+    age of a node's picture mean / worst  2,719 / 6,739 ms         247 / 249 ms
+    not solved: overloaded / superseded   60,168 / -               0 / 64,810
+    ranges delivered, recorded            1,920,000 of 1,920,000, recorder received =
+                                          written, no sequence holes (both)
+
+Earlier rounds with a first version (each node's newest two epochs kept, places by queue
+position), interleaved with main: load 0.9-3.0: main 45,820 estimates, p50 2,143 ms, 0.45-8.12
+estimates per node per second, longest gap 354 epochs; that version 60,084, 222 ms, 4.37-5.70,
+8 epochs. Load 4-7.7 (other jobs): main 47,256 / 31,538 estimates, that version 29,360 /
+25,635 (p50 2,143 vs 224-229 ms; 0.43-8.2 vs 1.97-2.67 per node per second): with much less
+CPU than it needs the new policy publishes fewer estimates (the tracker's update costs more
+after a longer gap: bench_fusion_cost.py, where ``--schedule --cpu-scale 2`` shows the same
+reproducibly: 12,732 vs 5,339 of 30,000, age 4.1 s vs 0.41 s).
 """
 
 from __future__ import annotations
@@ -45,7 +75,7 @@ from diffpos_services.kit import free_tcp_port, stop_process_groups
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
-__all__ = ["LatencyHistogram", "run_soak"]
+__all__ = ["AgeOfInformation", "LatencyHistogram", "run_soak"]
 
 
 class LatencyHistogram:
@@ -73,6 +103,36 @@ class LatencyHistogram:
             return None
         k = int(np.searchsorted(np.cumsum(self.counts), q / 100.0 * n))
         return float(self.edges[min(k, self.edges.size - 1)])
+
+
+class AgeOfInformation:
+    """How old each node's picture is on average: from a node's first estimate to the end of
+    the run, the time average of (now - input publish time of the node's newest estimate)
+    [ms]. Counts latency and the gaps between a node's updates together (a fusion 2 s behind
+    has an age >= 2 s however many estimates it publishes); O(1) per estimate."""
+
+    def __init__(self) -> None:
+        self.state: dict[str, list[float]] = {}  # node -> [first pub, last pub, newest input, area]
+
+    def add(self, node_id: str, t_input_ns: int, t_pub_ns: int) -> None:
+        st = self.state.get(node_id)
+        if st is None:
+            self.state[node_id] = [t_pub_ns, t_pub_ns, t_input_ns, 0.0]
+            return
+        dt = t_pub_ns - st[1]
+        if dt > 0:
+            st[3] += dt * ((st[1] - st[2]) + 0.5 * dt)
+            st[1] = t_pub_ns
+        st[2] = max(st[2], t_input_ns)
+
+    def summary(self, t_end_ns: int) -> list | None:
+        """``[mean over the nodes, worst node]`` [ms] up to ``t_end_ns``."""
+        ages = []
+        for first, last, newest, area in self.state.values():
+            if t_end_ns > first:
+                dt = max(t_end_ns - last, 0)
+                ages.append((area + dt * ((last - newest) + 0.5 * dt)) / (t_end_ns - first) * 1e-6)
+        return [round(float(np.mean(ages)), 1), round(float(np.max(ages)), 1)] if ages else None
 
 
 def _slope_mb_per_min(samples: list[tuple[float, float]]) -> float | None:
@@ -111,7 +171,8 @@ def run_soak(
     warmup_s : float [s]
         RSS "start" is the first sample after this much of the run.
     max_backlog_s : float [s], optional
-        The fusion's ``--max-backlog-s`` (None: the live default; 0: never drop epochs).
+        The fusion's ``--max-backlog-s`` (None: the live default, the overload policy on;
+        0: never drop epochs, a fusion that falls behind only lags).
     method : str
         The fusion's ``--method``. Default ``dnls``: this soak measures the transport, the
         recorder and the fusion's ingest at a load (16 x 200 x 10 Hz) where the default
@@ -165,6 +226,7 @@ def run_soak(
     statuses: dict[str, int] = {}
     rss: dict[str, list[tuple[float, float]]] = {}
     out_of_run = 0
+    aoi = AgeOfInformation()
     diag = None
     result: dict = {"anchors": n_anchors, "nodes": n_nodes, "rate_hz": 10,
                     "duration_s": duration_s, "range_batch": True, "recorder": recorder}
@@ -252,6 +314,7 @@ def run_soak(
                     statuses[e.status] = statuses.get(e.status, 0) + 1
                     if e.t_input_wall_ns > 0:
                         lat_chunk.append((e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6)
+                        aoi.add(e.node_id, e.t_input_wall_ns, e.t_pub_wall_ns)
                 else:
                     diag = dec_d(val)
                     if (diag.watermark_ns is not None and diag.watermark_ns >= end_ns - PERIOD_NS
@@ -273,7 +336,10 @@ def run_soak(
         estimates_outside_run=out_of_run,
         missing_by_epoch=_missing_summary(seen),
         statuses=statuses,
+        per_node=_per_node_summary(seen, duration_s),
     )
+    result["per_node"]["age_of_information_ms_mean_worst"] = aoi.summary(t0 + round(
+        duration_s * 1e9)) if t0 else None
     if diag is not None:
         result["fusion"] = {
             "ranges_received": diag.received.get("range", 0),
@@ -356,6 +422,26 @@ def _missing_summary(seen: np.ndarray) -> dict:
             "last": [[int(k), int(miss[k])] for k in idx[-5:]]}
 
 
+def _per_node_summary(seen: np.ndarray, duration_s: float) -> dict:
+    """How evenly the nodes were served: estimates per node per second (min / median / max
+    over the nodes) and the gaps between a node's consecutive estimates [epochs] (median and
+    max over all nodes' gaps; the longest gap of the worst node), over the run's epochs."""
+    got = seen > 0
+    rate = got.sum(axis=1) / max(duration_s, 1e-9)
+    gaps = []
+    for row in got:
+        k = np.flatnonzero(row)
+        if k.size > 1:
+            gaps.append(np.diff(k))
+    g = np.concatenate(gaps) if gaps else np.zeros(0, np.int64)
+    return {"rate_hz_min_p50_max": [round(float(v), 2) for v in
+                                    (rate.min(), np.median(rate), rate.max())] if rate.size
+            else None,
+            "gap_epochs_p50_p99_max": [int(np.percentile(g, 50)), int(np.percentile(g, 99)),
+                                       int(g.max())] if g.size else None,
+            "nodes_without_estimate": int((~got.any(axis=1)).sum())}
+
+
 def _recorder_summary(log_path: Path) -> dict:
     """The recorder's final JSON status line ("closed": received, written, gaps...)."""
     out: dict = {}
@@ -392,6 +478,19 @@ def format_report(r: dict) -> str:
         f"fusion latency p50 {fmt(lat['p50'])} ms, p99 {fmt(lat['p99'])} ms, "
         f"max {fmt(lat['max'])} ms",
     ]
+    pn = r.get("per_node") or {}
+    if pn:
+        lines.append(f"per node: estimates/s min/median/max {pn.get('rate_hz_min_p50_max')}, "
+                     f"gap between a node's estimates [epochs] p50/p99/max "
+                     f"{pn.get('gap_epochs_p50_p99_max')}, nodes without any "
+                     f"{pn.get('nodes_without_estimate')}")
+        lines.append(f"age of each node's picture (time average of now - input time of its "
+                     f"newest estimate) [ms] mean/worst node "
+                     f"{pn.get('age_of_information_ms_mean_worst')}")
+    rej = fu.get("rejected") or {}
+    lines.append(f"node-epochs not solved by an overloaded fusion: superseded "
+                 f"{rej.get('superseded', 0)} (a newer epoch of the node was solved instead), "
+                 f"overloaded {rej.get('overloaded', 0)} (more than max_backlog_s behind)")
     for m in r["latency_per_minute_ms"]:
         lines.append(f"  minute {m['minute']}: p50 {fmt(m['p50'])} p99 {fmt(m['p99'])} "
                      f"max {fmt(m['max'])} ms")

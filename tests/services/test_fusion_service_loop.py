@@ -14,7 +14,7 @@ import threading
 import time
 
 import numpy as np
-from diffpos_services.fusion.core import FusionCore
+from diffpos_services.fusion.core import BEHIND_KEEP_EPOCHS, FusionCore
 from diffpos_services.fusion.service import (
     _ALIVE,
     _DATA,
@@ -171,29 +171,46 @@ def _fed_core(n_epochs: int, **overrides) -> FusionCore:
     return core
 
 
-def test_a_fusion_slower_than_its_input_drops_old_epochs_and_counts_them():
-    """With max_backlog_s (the live fusion's setting), ready epochs more than that much older
-    than the newest ready one are dropped unsolved when a step cannot take them all, and
-    counted as rejected 'overloaded': bounded latency and memory, every node-epoch either
-    published or counted. Without the setting, or for a step without a limit (replay,
-    flush), nothing is dropped."""
+def test_a_fusion_slower_than_its_input_supersedes_old_epochs_and_counts_them():
+    """With max_backlog_s (the live fusion's setting), a step that cannot take all ready
+    epochs keeps each node's BEHIND_KEEP_EPOCHS newest and counts the others as rejected
+    'superseded' (none is older than max_backlog_s then: nothing 'overloaded'): bounded
+    latency and memory, every node-epoch either published or counted. Without the setting,
+    or for a step without a limit (replay, flush), nothing is dropped."""
     n_epochs, nodes = 60, len(NODES)
     core = _fed_core(n_epochs, max_backlog_s=1.0)  # 10 epochs at 10 Hz
+    newest = max(epoch for _, epoch in core.book.pending)  # the newest epoch fed
     out = []
     while batch := core.step(time.time_ns(), limit=5):
         out += batch
-    epochs = sorted({e.epoch for e in out})
-    assert len(epochs) == 11 and epochs[-1] - epochs[0] == 10
-    assert len(out) == 11 * nodes
-    assert core.rejected["overloaded"] + len(out) == n_epochs * nodes  # all released
-    assert core.backlog == 0
+    assert sorted(e.epoch for e in out) == sorted(
+        newest - k for k in range(BEHIND_KEEP_EPOCHS) for _ in range(nodes))
+    assert core.rejected["superseded"] + len(out) == n_epochs * nodes  # all released
+    assert not core.rejected["overloaded"] and core.backlog == 0
     # the same input without the setting, and with it but no step limit: every epoch solved
     for overrides, limit in (({}, 5), ({"max_backlog_s": 1.0}, None)):
         c = _fed_core(n_epochs, **overrides)
         got = []
         while batch := c.step(time.time_ns(), limit=limit):
             got += batch
-        assert len(got) == core.rejected["overloaded"] + len(out) and not c.rejected["overloaded"]
+        assert len(got) == n_epochs * nodes and not c.rejected["superseded"]
+
+
+def test_a_node_whose_ranges_stopped_is_still_dropped_after_max_backlog_s():
+    """The max_backlog_s drop after the per-node one: a node whose newest ready epoch is more
+    than max_backlog_s older than the newest ready one (its ranges stopped) is dropped as
+    'overloaded' by a step that is behind; the others keep their newest epochs."""
+    core = _fed_core(60, max_backlog_s=1.0)
+    gone = sorted(NODES)[0]
+    # the released epochs, less the node's after its 20th (as if its ranges had stopped)
+    ready = core.book.ready(core.live_anchors, time.time_ns())
+    core._ready.extend(pe for pe in ready if pe.node_id != gone or pe.epoch < ready[0].epoch + 20)
+    out = []
+    while batch := core.step(time.time_ns(), limit=2):
+        out += batch
+    assert gone not in {e.node_id for e in out}
+    assert core.rejected["overloaded"] == BEHIND_KEEP_EPOCHS  # its newest, > 10 epochs old
+    assert len(out) == BEHIND_KEEP_EPOCHS * (len(NODES) - 1)
 
 
 def test_an_ingest_stops_at_its_budget_plus_one_item(monkeypatch):

@@ -111,9 +111,10 @@ def channel_edge(edge: str, channel: str) -> str:
     return "upper" if edge == "auto" and channel == "ideal" else edge
 
 
-#: ``max_backlog_s`` of the live fusion (``diffpos fusion``, ``diffpos emulate``) [s]: a
-#: stall shorter than this is worked off without loss; a fusion persistently slower than its
-#: input publishes epochs at most this old and counts the rest as ``overloaded``.
+#: ``max_backlog_s`` of the live fusion (``diffpos fusion``, ``diffpos emulate``) [s]: turns the
+#: overload policy on (``FusionConfig.max_backlog_s``): a fusion slower than its input solves
+#: each node's newest epochs in rounds (the older ones counted as ``superseded``) and never
+#: publishes an epoch more than this much older than the newest (``overloaded``).
 LIVE_MAX_BACKLOG_S = 2.0
 
 
@@ -183,11 +184,19 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     state_history_s: Annotated[float, Meta(gt=0, le=3600)] = 60.0
     max_fixes_per_step: Annotated[int, Meta(ge=1)] = 4096
     max_backlog_s: Annotated[float, Meta(gt=0)] | None = None
-    """Steps with a ``limit`` (the live service): a ready epoch more than this much
-    measurement time older than the newest ready one is dropped unsolved (counted in
-    ``rejected["overloaded"]``), so a fusion slower than its input degrades to solving the
-    recent epochs with bounded latency and memory instead of an ever-growing backlog.
-    ``None`` (the struct's default: replay, tests): never drop. ``diffpos fusion`` and
+    """The overload policy of steps with a ``limit`` (the live service), applied when more
+    epochs are ready than the step takes (the fusion is slower than its input; a fusion that
+    keeps up is not affected): (1) of each node's ready epochs only the newest
+    ``core.BEHIND_KEEP_EPOCHS`` (1) are kept, in the queue places of the node's oldest, the
+    others dropped unsolved and counted in ``rejected["superseded"]`` (every node is served in
+    rounds with its newest data, the latency is about one round, the work per round bounded
+    by the number of nodes); (2) a ready epoch still more than this much measurement time
+    older than the newest ready one is dropped unsolved (``rejected["overloaded"]``: a round
+    of all nodes takes longer, or a node's ranges stopped). So a fusion slower than its input
+    degrades to a lower update rate per node at low latency and bounded memory instead of an
+    ever-growing backlog. Both decisions depend only on the released epochs and the step's
+    ``limit`` (in the decision record: a replay by it drops the same). ``None`` (the struct's
+    default: replay without decisions, tests): never drop anything. ``diffpos fusion`` and
     ``diffpos emulate`` use :data:`LIVE_MAX_BACKLOG_S`."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     kernel_threads: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_KERNEL_THREADS

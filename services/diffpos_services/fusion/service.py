@@ -64,8 +64,8 @@ MIN_MEASURED_STEP_EPOCHS = 8
 #: ingest budget of a turn as a multiple of the previous solve step's duration (at least
 #: INGEST_BUDGET_S; a turn's ingest stops earlier when the queue is empty, as it usually is):
 #: ingest (cheaper per epoch than the solve) keeps up with the input however long the steps
-#: get, so an overloaded fusion sees the newest epochs and drops the old ones
-#: (max_backlog_s) instead of letting the input queue up unseen (measured: 16 x 200 on a
+#: get, so an overloaded fusion sees the newest epochs and supersedes the old ones
+#: (FusionConfig.max_backlog_s) instead of letting the input queue up unseen (measured: 16 x 200 on a
 #: machine at load 12, share 0.5: shed 7,306 node-epochs and still 6-8 s behind)
 INGEST_SHARE = 2.0
 #: longest ingest of a turn whatever the previous step took [s] (a descheduled step must not
