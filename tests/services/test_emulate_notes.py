@@ -96,6 +96,11 @@ def test_fusion_notes_late_ranges_lost_anchors_rejections():
                               rejected={"overloaded": 40, "unknown_anchor": 7}))
     assert over[0].startswith("fusion: overloaded: 40 node-epochs dropped unsolved")
     assert over[1] == "fusion rejected messages: unknown_anchor 7 (docs/bad_input.md)"
+    # ... and so are those a fusion behind its input superseded by a node's newer epoch
+    behind = fusion_notes(_diag(late_ranges=0, anchors=[],
+                                rejected={"superseded": 12, "unknown_anchor": 7}))
+    assert behind[0].startswith("fusion: behind its input: 12 node-epochs superseded")
+    assert behind[1] == "fusion rejected messages: unknown_anchor 7 (docs/bad_input.md)"
 
 
 def _recording(path, n, split=None):

@@ -127,8 +127,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=LIVE_MAX_BACKLOG_S,
         metavar="S",
-        help="when the fusion is slower than its input, drop ready epochs more than S "
-        "seconds older than the newest (counted as rejected 'overloaded'); 0: never drop "
+        help="when the fusion is slower than its input, solve each node's newest ready "
+        "epoch only (its older ones counted as rejected 'superseded', nodes served "
+        "round-robin) and drop ready epochs more than S seconds older than the newest "
+        "('overloaded'); 0: neither, a slow fusion only lags "
         f"(default {LIVE_MAX_BACKLOG_S:g})",
     )
     parser.add_argument(

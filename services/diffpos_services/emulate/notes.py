@@ -135,6 +135,10 @@ def fusion_notes(diag: M.FusionDiagnostics | None, t0_wall_ns: int | None = None
         notes.append(f"fusion: overloaded: {rejected.pop('overloaded')} node-epochs dropped "
                      "unsolved (the fusion was slower than its input and kept only the last "
                      "max_backlog_s of ready epochs; diffpos fusion --max-backlog-s)")
+    if rejected.get("superseded"):
+        notes.append(f"fusion: behind its input: {rejected.pop('superseded')} node-epochs "
+                     "superseded by the same node's newer epoch (dropped unsolved: each node "
+                     "was updated with its newest ranges, round-robin; docs/bad_input.md)")
     if rejected:
         notes.append(f"fusion rejected messages: {_top(rejected, 8)} (docs/bad_input.md)")
     return notes
