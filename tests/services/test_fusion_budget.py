@@ -309,7 +309,7 @@ def test_a_fusion_behind_its_input_keeps_each_nodes_newest_epochs_in_rounds(tmp_
     every, limit, n_nodes = 3, 5, len(NODES)
     path = tmp_path / "behind.mcap"
     with McapSink(path, library="test") as sink:
-        core, steps = _run(limit, sink, every=every, max_backlog_s=2.0)
+        core, steps = _run(limit, sink, every=every, max_backlog_s=2.0, supersede_after_s=0.0)
         sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
     live, flushed = steps[:-1], steps[-1]
     e0 = (T0 + 20_000_000) // PERIOD  # the first epoch fed (_samples)
@@ -335,6 +335,15 @@ def test_a_fusion_behind_its_input_keeps_each_nodes_newest_epochs_in_rounds(tmp_
     assert r.report["decisions"]["steps"] == len(live)
     bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
     assert sorted(map(bare, r.live_estimates)) == sorted(map(bare, r.estimates))
+    # a backlog within supersede_after_s (the default 0.5 s): four epochs between steps that
+    # take one node-epoch less than that, so the ready epochs span 0.3-0.4 s: worked off
+    # without loss; with supersede_after_s 0 the same steps supersede
+    lim = 4 * n_nodes - 1
+    lossless, steps_l = _run(lim, every=4, max_backlog_s=2.0)
+    assert not lossless.rejected.get("superseded") and not lossless.rejected.get("overloaded")
+    assert sum(map(len, steps_l)) == EPOCHS * n_nodes
+    eager, _ = _run(lim, every=4, max_backlog_s=2.0, supersede_after_s=0.0)
+    assert eager.rejected.get("superseded")
     # keeping up: the setting changes nothing
     kept, plain = _run(n_nodes, max_backlog_s=2.0), _run(n_nodes)
     assert not kept[0].rejected.get("superseded") and not kept[0].rejected.get("overloaded")

@@ -47,6 +47,7 @@ from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.fusion.config import (
     DEFAULT_KERNEL_THREADS,
     DEFAULT_METHOD,
+    DEFAULT_SUPERSEDE_AFTER_S,
     EDGES,
     LIVE_MAX_BACKLOG_S,
     METHODS,
@@ -134,6 +135,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"(default {LIVE_MAX_BACKLOG_S:g})",
     )
     parser.add_argument(
+        "--supersede-after-s",
+        type=float,
+        default=DEFAULT_SUPERSEDE_AFTER_S,
+        metavar="S",
+        help="with --max-backlog-s: solve only each node's newest ready epoch once the ready "
+        "epochs span more than S seconds of measurement time (a shorter backlog is worked off "
+        "without loss; 0: as soon as a step cannot take them all) "
+        f"(default {DEFAULT_SUPERSEDE_AFTER_S:g})",
+    )
+    parser.add_argument(
         "--diagnostics-period-s",
         type=float,
         default=1.0,
@@ -168,6 +179,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         diagnostics_period_s=args.diagnostics_period_s,
         # FusionConfig.max_backlog_s: None never drops; --max-backlog-s 0 means the same
         max_backlog_s=args.max_backlog_s or None,
+        supersede_after_s=args.supersede_after_s,
         kernel_threads=args.kernel_threads,
     )
     if args.window_height_m is not None:

@@ -119,6 +119,8 @@ class Emulation:
             self.fusion_args += ["--scenario", options.scenario]
         if options.method is not None:
             self.fusion_args += ["--method", options.method]
+        if options.speed == 0:  # lockstep: the input waits for the fusion, never behind
+            self.fusion_args += ["--max-backlog-s", "0"]
         self.fusion_config, self.edge, self.edge_reason = self._fusion_config(edge)
         self.profile = None
         if options.security_profile is not None:
@@ -286,7 +288,8 @@ class Emulation:
                                          anchors=list(self.anchor_ids),
                                          delta_m=self.o.delta_m,
                                          epoch_period_s=1.0 / self.o.rate_hz,
-                                         max_backlog_s=LIVE_MAX_BACKLOG_S,
+                                         max_backlog_s=(None if self.o.speed == 0
+                                                        else LIVE_MAX_BACKLOG_S),
                                          **({} if self.o.method is None
                                             else {"method": self.o.method}))
         edge, why = model_edge(edge, self.scenario)

@@ -118,6 +118,11 @@ def channel_edge(edge: str, channel: str) -> str:
 LIVE_MAX_BACKLOG_S = 2.0
 
 
+#: ``supersede_after_s`` when not given [s]: five epochs at 10 Hz; a stall or a start-up burst
+#: shorter than this costs no estimate, a fusion persistently behind lags about this much.
+DEFAULT_SUPERSEDE_AFTER_S = 0.5
+
+
 #: ``kernel_threads`` when not given: 1. Live on a 2-core machine shared with the run's anchors,
 #: router and recorder, 2 threads published fewer soak estimates and raised the large run's
 #: latency (no core is free for the second thread: benchmarks/bench_fusion_cost.py); give
@@ -197,7 +202,16 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     ever-growing backlog. Both decisions depend only on the released epochs and the step's
     ``limit`` (in the decision record: a replay by it drops the same). ``None`` (the struct's
     default: replay without decisions, tests): never drop anything. ``diffpos fusion`` and
-    ``diffpos emulate`` use :data:`LIVE_MAX_BACKLOG_S`."""
+    ``diffpos emulate`` use :data:`LIVE_MAX_BACKLOG_S` (a lockstep ``emulate --speed 0``
+    none: its input is paced by the fusion's own estimates, it cannot fall behind real time).
+    Step (1) waits for :attr:`supersede_after_s`."""
+    supersede_after_s: Annotated[float, Meta(ge=0)] = DEFAULT_SUPERSEDE_AFTER_S
+    """With :attr:`max_backlog_s`: the per-node coalescing (``rejected["superseded"]``) acts
+    only once the ready epochs span more than this much measurement time (newest - oldest);
+    a shorter backlog (a stall, a burst of new tracks at start-up) is worked off without
+    loss, as before the policy. A fusion persistently slower than its input then runs at most
+    about this much behind plus one round of all nodes. 0: coalesce as soon as a step cannot
+    take every ready epoch."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     kernel_threads: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_KERNEL_THREADS
     """Threads running the row chunks of the compiled kernels (:mod:`diffpos._kernels.pool`:

@@ -128,6 +128,9 @@ class FusionCore:
         self._taken = 0
         self._max_backlog_epochs = (None if config.max_backlog_s is None else
                                     math.ceil(config.max_backlog_s / config.epoch_period_s))
+        # the ready span (epochs) beyond which a behind step coalesces per node
+        self._supersede_span = math.floor(config.supersede_after_s / config.epoch_period_s
+                                          + 1e-9)
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
         self.model = (self.building, config.radio_model())
@@ -477,7 +480,8 @@ class FusionCore:
         initialisations) and are not returned. Without ``limit``, all.
 
         With ``max_backlog_s`` set (the live fusion), a step with more ready epochs than its
-        ``limit`` first keeps only each node's :data:`BEHIND_KEEP_EPOCHS` newest ready epochs
+        ``limit``, once they span more than ``supersede_after_s``, first keeps only each
+        node's :data:`BEHIND_KEEP_EPOCHS` newest ready epochs
         (:meth:`_supersede`, the others counted as ``superseded``) and then drops what is
         more than ``max_backlog_s`` behind the newest (:meth:`_shed`, ``overloaded``). A fusion
         that keeps up (never more ready than the limit) is not affected, nor is a backlog
@@ -491,7 +495,8 @@ class FusionCore:
             count_releases(self.book, released, live, self.releases)
         self._ready.extend(released)
         if limit is not None and len(self._ready) > limit and self._max_backlog_epochs:
-            self._supersede()
+            if self._ready_span() > self._supersede_span:
+                self._supersede()
             self._shed()
         out: list[M.PositionEstimate] = []
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
@@ -513,6 +518,11 @@ class FusionCore:
                 out += self._solve(held, now_wall_ns, len(held))
             todo -= n
         return out
+
+    def _ready_span(self) -> int:
+        """Newest minus oldest ready epoch [epochs] (0 when at most one epoch is ready)."""
+        epochs = [pe.epoch for pe in self._ready]
+        return max(epochs) - min(epochs) if epochs else 0
 
     def _supersede(self) -> None:
         """Per-node coalescing of a backlog (the live fusion is slower than its input: see
