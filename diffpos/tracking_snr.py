@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from ._kernels.channel_nb import snr_cost_kernel
 from .channel import pair_snr_db
-from .tracking_paths import K_SLOTS, Links, PathEval, _c, _relax, all_paths
+from .tracking_paths import _IS_BAND, K_SLOTS, Links, PathEval, _c, _relax, all_paths
 
 __all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "snr_cost", "snr_cost_near"]
 
@@ -41,6 +41,14 @@ SNR_SPAN_DB = 60.0
 #: 1.34-1.44x less with the exact threshold, 1.65-1.72x with this one
 #: (``benchmarks/bench_snr_cost.py``).
 HOLE_THRESHOLD_AT_PRIOR = True
+#: The slots :func:`snr_cost_near` predicts at a hypothesis whatever their existence there:
+#: the diffraction slots (their existence is the emulator's, with no margin: a disagreement
+#: would be a rounding one at an edge end) and the direct slot (the emulator keeps the
+#: through-wall ray, which the path model does not: it carries power where slot 0 is not
+#: loose). A window-band slot (1-6, 14-17) that is not ``loose`` has no power there: its
+#: entry point is outside the band widened by ``relax_m`` (>= 0, the emulator needs it
+#: strictly inside the band) or its path fails the same geometric test as the emulator's.
+ALWAYS_PREDICTED = ~_IS_BAND | (np.arange(K_SLOTS) == 0)
 
 
 def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
@@ -63,10 +71,12 @@ def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = No
     return None if out is None else out[0]
 
 
-def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None = None
-                  ) -> tuple[FloatArray, FloatArray] | None:
+def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None = None,
+                  need: NDArray | None = None) -> tuple[FloatArray, FloatArray] | None:
     """:func:`snr_cost` and the detector's threshold of every link (N, H, M) [dB] (NaN where
-    the SNR is unknown)."""
+    the SNR is unknown). ``need`` (bool, broadcastable to (N, H, M, K)): predict only these
+    slots (``channel_snr_masked_kernel``: the needed ones bit for bit), every other slot
+    counted as without power (+inf cost); it must hold every ``trust`` slot."""
     if links.snr is None:
         return None
     n, h = pos.shape[:2]
@@ -80,7 +90,9 @@ def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None
         meas = np.broadcast_to(links.snr, (n, h, m)).reshape(-1)
         tr = None if trust is None else \
             np.broadcast_to(trust, (n, h, m, K_SLOTS)).reshape(-1, K_SLOTS)
-        pred = pair_snr_db(anc[:, None, :], p, building=building, radio=links.radio)[:, 0]
+        nd = None if need is None else \
+            np.broadcast_to(need, (n, h, m, K_SLOTS)).reshape(-1, K_SLOTS)
+        pred = _predict(anc, p, building, links.radio, nd)
         c, t = _snr_cost_of(pred, meas, links.radio, tr)
         return c.reshape(n, h, m, K_SLOTS), t.reshape(n, h, m)
     out = np.zeros((n, h, m, K_SLOTS))
@@ -91,10 +103,21 @@ def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None
     anc = np.broadcast_to(links.anchors, (n, h, m, 3))[n_i, h_i, m_i]
     meas = np.broadcast_to(links.snr, (n, h, m))[n_i, h_i, m_i]
     tr = None if trust is None else np.broadcast_to(trust, (n, h, m, K_SLOTS))[n_i, h_i, m_i]
-    pred = pair_snr_db(anc[:, None, :], pos[n_i, h_i], building=building,
-                       radio=links.radio)[:, 0]
+    nd = None if need is None else np.broadcast_to(need, (n, h, m, K_SLOTS))[n_i, h_i, m_i]
+    pred = _predict(anc, pos[n_i, h_i], building, links.radio, nd)
     out[n_i, h_i, m_i], thr[n_i, h_i, m_i] = _snr_cost_of(pred, meas, links.radio, tr)
     return out, thr
+
+
+def _predict(anc: FloatArray, pos: FloatArray, building, radio, need: NDArray | None
+             ) -> FloatArray:
+    """Predicted SNR of every slot of P (anchor, node) pairs (P, K) [dB]; with ``need`` (P, K)
+    only those slots (bit for bit), -inf elsewhere (counted as without power)."""
+    if need is None:
+        return pair_snr_db(anc[:, None, :], pos, building=building, radio=radio)[:, 0]
+    pred = pair_snr_db(anc[:, None, :], pos, building=building, radio=radio,
+                       need=need[:, None, :])[:, 0]
+    return np.where(need, pred, -np.inf)
 
 
 def _snr_cost_of(pred: FloatArray, meas: FloatArray, radio, trust: NDArray | None = None,
@@ -191,7 +214,10 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
         pe = all_paths(pos, links, floor, building, relax_m)
     # the detector's threshold is set by the strongest path that surely exists (a path that
     # exists only on one side of a band edge a few cm away is no evidence of a strong path)
-    c, thr = _snr_cost_thr(pos, links, building, trust=pe.sure)
+    # a window-band slot that is not even loose has no power at ``pos`` (not predicted,
+    # :data:`ALWAYS_PREDICTED`): its cost is +inf as predicted, bit for bit
+    c, thr = _snr_cost_thr(pos, links, building, trust=pe.sure,
+                           need=pe.loose | ALWAYS_PREDICTED)
     hole = ~np.isfinite(c) & pe.loose
     pairs = np.argwhere(np.any(hole, axis=-1))  # (P, 3): n, h, m
     if pairs.size == 0:
