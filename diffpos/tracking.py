@@ -98,6 +98,8 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .paths import MECHANISMS
+
 # the pieces in the role modules; the ``x as x`` names are re-exported for the tests and any
 # caller that imported them from here before the split
 from .tracking_dormant import _dormant_log_p as _dormant_log_p
@@ -108,6 +110,7 @@ from .tracking_imm import _mix, _propagate, process_noise
 from .tracking_imm import _transition_matrix as _transition_matrix
 from .tracking_model import Links, snapshot, snapshot_init
 from .tracking_state import (
+    SNR_CACHE_LINKS,
     FloatArray,
     TrackerConfig,
     TrackerState,
@@ -147,7 +150,10 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         good=np.zeros(n_nodes, int), bad=np.zeros(n_nodes, int),
         floor_bad=np.zeros((n_nodes, h), int), dormant_llr=np.full((n_nodes, h), np.nan),
         updated_ns=np.full((n_nodes, h), t_ns, np.int64), below_epochs=np.zeros((n_nodes, h), int),
-        refresh_origin_ns=np.full(n_nodes, t_ns, np.int64))
+        refresh_origin_ns=np.full(n_nodes, t_ns, np.int64),
+        snr_node=np.full((n_nodes, h, 3), np.nan),
+        snr_anchor=np.full((n_nodes, h, SNR_CACHE_LINKS, 3), np.nan),
+        snr_pred=np.full((n_nodes, h, SNR_CACHE_LINKS, len(MECHANISMS)), np.nan))
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
@@ -282,6 +288,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     floor_bad = st.floor_bad.copy()
     llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
     origin = st.refresh_origin_ns.copy()
+    snr_cache = (st.snr_node.copy(), st.snr_anchor.copy(), st.snr_pred.copy())
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
@@ -290,6 +297,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     if idx.size:
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
             st, links, idx, t, inflow, dt_s, building, config)
+        for arr, key in zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"), strict=True):
+            arr[idx] = new[key]
         mean[idx], cov[idx], lp[idx], nis[idx] = new["mean"], new["cov"], new["log_prob"], \
             new["nis"]
         llr[idx], upd[idx], below[idx] = new["dormant_llr"], new["updated_ns"], \
@@ -324,5 +333,6 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
-                       below_epochs=below, refresh_origin_ns=origin)
+                       below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
+                       snr_anchor=snr_cache[1], snr_pred=snr_cache[2])
     return new, _publish(new, mech, resid, config)

@@ -9,14 +9,17 @@ the predicted SNRs are those of the emulator's amplitude model
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.channel_nb import snr_cost_kernel
 from .channel import pair_snr_db
-from .tracking_paths import _IS_BAND, K_SLOTS, Links, PathEval, _c, _relax, all_paths
+from .tracking_paths import _IS_BAND, _IS_DIFF, K_SLOTS, Links, PathEval, _c, _relax, all_paths
 
-__all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "snr_cost", "snr_cost_near"]
+__all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "SnrCache", "snr_cost",
+           "snr_cost_near"]
 
 FloatArray = NDArray[np.float64]
 #: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
@@ -49,6 +52,21 @@ HOLE_THRESHOLD_AT_PRIOR = True
 #: entry point is outside the band widened by ``relax_m`` (>= 0, the emulator needs it
 #: strictly inside the band) or its path fails the same geometric test as the emulator's.
 ALWAYS_PREDICTED = ~_IS_BAND | (np.arange(K_SLOTS) == 0)
+
+
+@dataclass
+class SnrCache:
+    """Predicted SNRs of hypotheses kept from one update to the next (the tracker's state
+    fields ``snr_node``, ``snr_anchor``, ``snr_pred``; :func:`snr_cost_near` reads and
+    updates the arrays in place).
+
+    ``node`` (N, H, 3) [m]: where the predictions were made (NaN: none); ``anchor``
+    (N, H, C, 3) [m]: the anchor of every cached link (the first C link columns; NaN: none);
+    ``pred`` (N, H, C, K) [dB]: every slot's predicted SNR at ``node`` (-inf: no power)."""
+
+    node: FloatArray
+    anchor: FloatArray
+    pred: FloatArray
 
 
 def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
@@ -163,6 +181,56 @@ def _pair_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building,
     return _snr_cost_of(pred, meas, radio, trust)[0]
 
 
+def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, need: NDArray,
+                     strict: NDArray, cache: SnrCache, reuse_m: tuple[float, float]
+                     ) -> tuple[FloatArray, FloatArray]:
+    """:func:`_snr_cost_thr` (with ``need``) with the predictions of ``cache`` reused.
+
+    A hypothesis whose point ``pos`` is within ``reuse_m[0]`` of ``cache.node`` has every
+    link predicted at ``cache.node``: a cached link whose anchor is within ``reuse_m[1]`` of
+    its cached one keeps its values, the others are predicted there and cached. A hypothesis
+    further away, or with a cached link whose diffraction slots' existence (exact, no margin)
+    differs from the one at ``pos`` (``strict``), is predicted afresh at ``pos`` and its
+    cache restarted there. Reused or not, every row's cost and threshold are
+    :func:`_snr_cost_of`'s of its predictions (the same values as :func:`_snr_cost_thr` for
+    the same predictions); with both margins 0 a prediction is reused only at the very same
+    points, so the result is :func:`_snr_cost_thr`'s bit for bit."""
+    n, h = pos.shape[:2]
+    m = links.rho.shape[-1]
+    mc = min(m, cache.pred.shape[2])
+    known = np.broadcast_to(np.isfinite(links.snr), (n, h, m))
+    anc = np.broadcast_to(links.anchors, (n, h, m, 3))
+    old = cache.pred[:, :, :mc]
+    with np.errstate(invalid="ignore"):  # NaN (nothing cached): no reuse
+        near = np.sqrt(np.sum((pos - cache.node) ** 2, axis=-1)) <= reuse_m[0]
+        kept = np.sqrt(np.sum((anc[:, :, :mc] - cache.anchor[:, :, :mc]) ** 2,
+                              axis=-1)) <= reuse_m[1]
+    flip = kept & np.any((np.isfinite(old) != strict[:, :, :mc]) & _IS_DIFF, axis=-1)
+    near &= ~np.any(flip, axis=-1)
+    hit = kept & near[..., None] & known[:, :, :mc]
+    at = np.where(near[..., None], cache.node, pos)
+    todo = known.copy()
+    todo[:, :, :mc] &= ~hit
+    pred = np.full((n, h, m, K_SLOTS), -np.inf)
+    n_i, h_i, m_i = np.nonzero(todo)
+    if n_i.size:
+        pred[n_i, h_i, m_i] = _predict(anc[n_i, h_i, m_i], at[n_i, h_i], building,
+                                       links.radio, need[n_i, h_i, m_i])
+    pred[:, :, :mc][hit] = np.where(need[:, :, :mc][hit], old[hit], -np.inf)
+    c, thr = np.zeros((n, h, m, K_SLOTS)), np.full((n, h, m), np.nan)
+    k_i = np.nonzero(known)
+    if k_i[0].size:
+        meas = np.broadcast_to(links.snr, (n, h, m))[k_i]
+        c[k_i], thr[k_i] = _snr_cost_of(pred[k_i], meas, links.radio, trust[k_i])
+    # the cache: a hypothesis that moved starts afresh at ``pos``; new predictions stored
+    cache.anchor[~near], cache.pred[~near] = np.nan, np.nan
+    cache.node[...] = at
+    fresh = todo[:, :, :mc]
+    cache.anchor[:, :, :mc][fresh] = anc[:, :, :mc][fresh]
+    cache.pred[:, :, :mc][fresh] = pred[:, :, :mc][fresh]
+    return c, thr
+
+
 def _hole_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building, radio,
                    hole: NDArray, trust: NDArray, thr: FloatArray | None = None
                    ) -> FloatArray:
@@ -195,7 +263,8 @@ def _hole_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building,
 
 
 def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
-                  pe: PathEval | None = None) -> FloatArray | None:
+                  pe: PathEval | None = None, cache: SnrCache | None = None,
+                  reuse_m: tuple[float, float] = (0.0, 0.0)) -> FloatArray | None:
     """:func:`snr_cost` where a slot that exists within ``relax_m`` of the hypothesis (its
     window entry point within the entry's uncertainty of the band; a scalar or one margin per
     hypothesis, broadcastable to (N, H)) but carries no power at the point itself is scored
@@ -207,7 +276,11 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     At the shifted heights only the hole slots are predicted (:func:`_hole_snr_cost`); with
     :data:`HOLE_THRESHOLD_AT_PRIOR` their detector threshold is the hypothesis' own (at
     ``pos``), else the shifted point's (the trusted slots predicted there too where a hole
-    slot carries power: the values of predicting all 18 slots, bit for bit)."""
+    slot carries power: the values of predicting all 18 slots, bit for bit).
+
+    ``cache`` (:class:`SnrCache` of the hypotheses, updated in place): the predictions at the
+    hypotheses reused within ``reuse_m`` = (node, anchor) margins [m]
+    (:func:`_snr_cost_cached`); the shifted heights are always predicted."""
     if links.snr is None:
         return None
     if pe is None:  # the paths at ``pos`` with ``relax_m`` (a caller may pass them)
@@ -216,8 +289,12 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     # exists only on one side of a band edge a few cm away is no evidence of a strong path)
     # a window-band slot that is not even loose has no power at ``pos`` (not predicted,
     # :data:`ALWAYS_PREDICTED`): its cost is +inf as predicted, bit for bit
-    c, thr = _snr_cost_thr(pos, links, building, trust=pe.sure,
-                           need=pe.loose | ALWAYS_PREDICTED)
+    need = pe.loose | ALWAYS_PREDICTED
+    if cache is None:
+        c, thr = _snr_cost_thr(pos, links, building, trust=pe.sure, need=need)
+    else:
+        c, thr = _snr_cost_cached(pos, links, building, pe.sure, need, pe.strict, cache,
+                                  reuse_m)
     hole = ~np.isfinite(c) & pe.loose
     pairs = np.argwhere(np.any(hole, axis=-1))  # (P, 3): n, h, m
     if pairs.size == 0:

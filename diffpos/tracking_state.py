@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
+    "SNR_CACHE_LINKS",
     "FloatArray",
     "TrackOutput",
     "TrackStatus",
@@ -30,6 +31,9 @@ __all__ = [
 ]
 
 FloatArray = NDArray[np.float64]
+#: Links per hypothesis whose SNR predictions the state keeps (:class:`TrackerState`): the
+#: first this many anchor columns of an update (the others are predicted every time).
+SNR_CACHE_LINKS = 16
 
 
 class TrackStatus(enum.IntEnum):
@@ -153,6 +157,13 @@ class TrackerConfig:
         floor probabilities are tempered by ``kappa = (1 + rho) / (1 - rho)``
         (:func:`published_floor_probabilities`; 0: untempered). The filter itself, the chosen
         floor, the position and its covariance do not use it.
+    snr_reuse_m, snr_reuse_anchor_m : float [m]
+        A hypothesis' predicted SNRs (every slot of every link at its prior,
+        :func:`diffpos.tracking_snr.snr_cost_near`; ~30 % of the tracker's CPU) are reused
+        from its last real update while its prior is within ``snr_reuse_m`` of the point
+        they were predicted at, and a link's while its anchor is within
+        ``snr_reuse_anchor_m`` of where it was (:class:`TrackerState`'s ``snr_*`` fields).
+        0: predicted afresh unless the points are identical (the values bit for bit).
     """
 
     q_h_m2_s3: float = 1.5
@@ -189,6 +200,8 @@ class TrackerConfig:
     dormant_epochs: int = 1
     dormant_floor_p: float = 0.0
     floor_evidence_lag1_corr: float = 0.59
+    snr_reuse_m: float = 0.05
+    snr_reuse_anchor_m: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -231,6 +244,12 @@ class TrackerState:
         Origin of the node's refresh schedule (its snapshot initialisation): the schedule
         depends on time differences only, so shifting every input time by a constant
         changes no output.
+    snr_node : ndarray, shape (N, H, 3) [m]
+        Where every hypothesis' SNR predictions ``snr_pred`` were made (NaN: none).
+    snr_anchor : ndarray, shape (N, H, SNR_CACHE_LINKS, 3) [m]
+        The anchor of every cached link (column of the update's links; NaN: none).
+    snr_pred : ndarray, shape (N, H, SNR_CACHE_LINKS, K) [dB]
+        Predicted SNR of every slot of the cached links at ``snr_node`` (-inf: no power).
     """
 
     mean: FloatArray
@@ -247,6 +266,9 @@ class TrackerState:
     updated_ns: NDArray[np.int64]
     below_epochs: NDArray[np.int_]
     refresh_origin_ns: NDArray[np.int64]
+    snr_node: FloatArray
+    snr_anchor: FloatArray
+    snr_pred: FloatArray
 
 
 @dataclass(frozen=True)
