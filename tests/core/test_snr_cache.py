@@ -150,7 +150,7 @@ def test_margins_reuse_as_the_rule_says(bi):
         if step:
             pos = pos + _moves(rng, n, reuse[0])[:, None]
             anchors = anchors + _moves(rng, n * m, reuse[1]).reshape(n, m, 3)
-        links = _links(anchors, pos, rng)
+        links = _links(anchors, pos, rng, unknown=0.0 if step == 1 else 0.2)  # both paths
         pe = all_paths(pos, links, floor, b, 0.3)
         cache0 = ts.SnrCache(cache.node.copy(), cache.anchor.copy(), cache.pred.copy())
         ref = _reference(pos, links, b, pe, cache0, reuse)
