@@ -98,8 +98,6 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .paths import MECHANISMS
-
 # the pieces in the role modules; the ``x as x`` names are re-exported for the tests and any
 # caller that imported them from here before the split
 from .tracking_dormant import _dormant_log_p as _dormant_log_p
@@ -111,6 +109,7 @@ from .tracking_imm import _transition_matrix as _transition_matrix
 from .tracking_model import Links, snapshot, snapshot_init
 from .tracking_state import (
     SNR_CACHE_LINKS,
+    SNR_CACHE_SLOTS,
     FloatArray,
     TrackerConfig,
     TrackerState,
@@ -152,8 +151,9 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         updated_ns=np.full((n_nodes, h), t_ns, np.int64), below_epochs=np.zeros((n_nodes, h), int),
         refresh_origin_ns=np.full(n_nodes, t_ns, np.int64),
         snr_node=np.full((n_nodes, h, 3), np.nan),
-        snr_anchor=np.full((n_nodes, h, SNR_CACHE_LINKS, 3), np.nan),
-        snr_pred=np.full((n_nodes, h, SNR_CACHE_LINKS, len(MECHANISMS)), np.nan))
+        snr_anchor=np.full((n_nodes, h, SNR_CACHE_LINKS, 3), np.nan, np.float32),
+        snr_pred=np.full((n_nodes, h, SNR_CACHE_LINKS, len(SNR_CACHE_SLOTS)), np.nan,
+                         np.float32))
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig

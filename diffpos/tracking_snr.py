@@ -31,7 +31,8 @@ from numpy.typing import NDArray
 
 from ._kernels.channel_nb import snr_cost_kernel
 from .channel import pair_snr_db
-from .tracking_paths import _IS_BAND, _IS_DIFF, K_SLOTS, Links, PathEval, _c, _relax, all_paths
+from .tracking_paths import _IS_BAND, K_SLOTS, Links, PathEval, _c, _relax, all_paths
+from .tracking_state import SNR_CACHE_SLOTS
 
 __all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "SnrCache", "snr_cost",
            "snr_cost_near"]
@@ -67,6 +68,8 @@ HOLE_THRESHOLD_AT_PRIOR = True
 #: entry point is outside the band widened by ``relax_m`` (>= 0, the emulator needs it
 #: strictly inside the band) or its path fails the same geometric test as the emulator's.
 ALWAYS_PREDICTED = ~_IS_BAND | (np.arange(K_SLOTS) == 0)
+_CACHED = np.array(SNR_CACHE_SLOTS)  # the slots an SnrCache keeps: direct, then diffraction
+_IS_CACHED = np.isin(np.arange(K_SLOTS), _CACHED)
 
 
 @dataclass
@@ -76,8 +79,9 @@ class SnrCache:
     updates the arrays in place).
 
     ``node`` (N, H, 3) [m]: where the predictions were made (NaN: none); ``anchor``
-    (N, H, C, 3) [m]: the anchor of every cached link (the first C link columns; NaN: none);
-    ``pred`` (N, H, C, K) [dB]: every slot's predicted SNR at ``node`` (-inf: no power)."""
+    (N, H, C, 3) float32 [m]: the anchor of every cached link (the first C link columns; NaN:
+    none); ``pred`` (N, H, C, len(SNR_CACHE_SLOTS)) float32 [dB]: the predicted SNR of the
+    slots :data:`~diffpos.tracking_state.SNR_CACHE_SLOTS` at ``node`` (-inf: no power)."""
 
     node: FloatArray
     anchor: FloatArray
@@ -203,13 +207,13 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
 
     A hypothesis whose point ``pos`` is within ``reuse_m[0]`` of ``cache.node`` has every
     link predicted at ``cache.node``: a cached link whose anchor is within ``reuse_m[1]`` of
-    its cached one keeps its values, the others are predicted there and cached. A hypothesis
-    further away, or with a cached link whose diffraction slots' existence (exact, no margin)
-    differs from the one at ``pos`` (``strict``), is predicted afresh at ``pos`` and its
-    cache restarted there. Reused or not, every row's cost and threshold are
-    :func:`_snr_cost_of`'s of its predictions (the same values as :func:`_snr_cost_thr` for
-    the same predictions); with both margins 0 a prediction is reused only at the very same
-    points, so the result is :func:`_snr_cost_thr`'s bit for bit."""
+    its cached one keeps its cached slots (:data:`~diffpos.tracking_state.SNR_CACHE_SLOTS`:
+    the direct and diffraction slots, ~85 % of a link's prediction; its window-band slots are
+    predicted there again), the others are predicted there and cached. A hypothesis further
+    away, or with a cached link whose diffraction slots' existence (exact, no margin) differs
+    from the one at ``pos`` (``strict``), is predicted afresh at ``pos`` and its cache
+    restarted there. Reused or not, every row's cost and threshold are :func:`_snr_cost_of`'s
+    of its predictions. The cache holds float32 (a reused SNR is rounded by < 1e-5 dB)."""
     n, h = pos.shape[:2]
     m = links.rho.shape[-1]
     mc = min(m, cache.pred.shape[2])
@@ -220,18 +224,21 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
         near = np.sqrt(np.sum((pos - cache.node) ** 2, axis=-1)) <= reuse_m[0]
         kept = np.sqrt(np.sum((anc[:, :, :mc] - cache.anchor[:, :, :mc]) ** 2,
                               axis=-1)) <= reuse_m[1]
-    flip = kept & np.any((np.isfinite(old) != strict[:, :, :mc]) & _IS_DIFF, axis=-1)
+    flip = kept & np.any(np.isfinite(old[..., 1:]) != strict[:, :, :mc, _CACHED[1:]], axis=-1)
     near &= ~np.any(flip, axis=-1)
-    hit = kept & near[..., None] & known[:, :, :mc]
+    hit = np.zeros((n, h, m), dtype=np.bool_)
+    hit[:, :, :mc] = kept & near[..., None] & known[:, :, :mc]
     at = np.where(near[..., None], cache.node, pos)
-    todo = known.copy()
-    todo[:, :, :mc] &= ~hit
     pred = np.full((n, h, m, K_SLOTS), -np.inf)
-    n_i, h_i, m_i = np.nonzero(todo)
-    if n_i.size:
+    n_i, h_i, m_i = np.nonzero(known)
+    if n_i.size:  # a reused link: its other slots only
+        mask = need[n_i, h_i, m_i] & ~(hit[n_i, h_i, m_i, None] & _IS_CACHED)
         pred[n_i, h_i, m_i] = _predict(anc[n_i, h_i, m_i], at[n_i, h_i], building,
-                                       links.radio, need[n_i, h_i, m_i])
-    pred[:, :, :mc][hit] = np.where(need[:, :, :mc][hit], old[hit], -np.inf)
+                                       links.radio, mask)
+    r_n, r_h, r_m = np.nonzero(hit)
+    if r_n.size:
+        pred[r_n, r_h, r_m, _CACHED[:, None]] = np.where(
+            need[r_n, r_h, r_m][:, _CACHED], old[r_n, r_h, r_m], -np.inf).T
     if known.all():  # every link (row by row the same values as the gather below)
         c, thr = _snr_cost_of(pred.reshape(-1, K_SLOTS),
                               np.broadcast_to(links.snr, (n, h, m)).reshape(-1), links.radio,
@@ -239,16 +246,17 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
         c, thr = c.reshape(pred.shape), thr.reshape(n, h, m)
     else:
         c, thr = np.zeros((n, h, m, K_SLOTS)), np.full((n, h, m), np.nan)
-        k_i = np.nonzero(known)
-        if k_i[0].size:
-            meas = np.broadcast_to(links.snr, (n, h, m))[k_i]
-            c[k_i], thr[k_i] = _snr_cost_of(pred[k_i], meas, links.radio, trust[k_i])
+        if n_i.size:
+            meas = np.broadcast_to(links.snr, (n, h, m))[n_i, h_i, m_i]
+            c[n_i, h_i, m_i], thr[n_i, h_i, m_i] = _snr_cost_of(
+                pred[n_i, h_i, m_i], meas, links.radio, trust[n_i, h_i, m_i])
     # the cache: a hypothesis that moved starts afresh at ``pos``; new predictions stored
     cache.anchor[~near], cache.pred[~near] = np.nan, np.nan
     cache.node[...] = at
-    fresh = todo[:, :, :mc]
-    cache.anchor[:, :, :mc][fresh] = anc[:, :, :mc][fresh]
-    cache.pred[:, :, :mc][fresh] = pred[:, :, :mc][fresh]
+    fresh = known[:, :, :mc] & ~hit[:, :, :mc]
+    f_n, f_h, f_m = np.nonzero(fresh)
+    cache.anchor[f_n, f_h, f_m] = anc[f_n, f_h, f_m]
+    cache.pred[f_n, f_h, f_m] = pred[f_n, f_h, f_m][:, _CACHED]
     return c, thr
 
 

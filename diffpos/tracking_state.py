@@ -16,8 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .paths import DIFFRACTION_SLOTS
+
 __all__ = [
     "SNR_CACHE_LINKS",
+    "SNR_CACHE_SLOTS",
     "FloatArray",
     "TrackOutput",
     "TrackStatus",
@@ -34,6 +37,10 @@ FloatArray = NDArray[np.float64]
 #: Links per hypothesis whose SNR predictions the state keeps (:class:`TrackerState`): the
 #: first this many anchor columns of an update (the others are predicted every time).
 SNR_CACHE_LINKS = 16
+#: The slots whose predicted SNR the state keeps: the direct slot, then the diffraction ones
+#: (:data:`diffpos.paths.DIFFRACTION_SLOTS`), ~85 % of a link's prediction; the window-band
+#: slots are cheap and near a band edge: predicted every update.
+SNR_CACHE_SLOTS = (0, *DIFFRACTION_SLOTS)
 
 
 class TrackStatus(enum.IntEnum):
@@ -246,10 +253,12 @@ class TrackerState:
         changes no output.
     snr_node : ndarray, shape (N, H, 3) [m]
         Where every hypothesis' SNR predictions ``snr_pred`` were made (NaN: none).
-    snr_anchor : ndarray, shape (N, H, SNR_CACHE_LINKS, 3) [m]
+    snr_anchor : ndarray of float32, shape (N, H, SNR_CACHE_LINKS, 3) [m]
         The anchor of every cached link (column of the update's links; NaN: none).
-    snr_pred : ndarray, shape (N, H, SNR_CACHE_LINKS, K) [dB]
-        Predicted SNR of every slot of the cached links at ``snr_node`` (-inf: no power).
+    snr_pred : ndarray of float32, shape (N, H, SNR_CACHE_LINKS, len(SNR_CACHE_SLOTS)) [dB]
+        Predicted SNR of the slots ``SNR_CACHE_SLOTS`` of the cached links at ``snr_node``
+        (-inf: no power). float32: the state is copied every update (row selection, write
+        back), so its size is CPU; a reused SNR is rounded by < 1e-5 dB.
     """
 
     mean: FloatArray

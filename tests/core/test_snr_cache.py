@@ -3,13 +3,15 @@
 
 * With both margins 0, :func:`diffpos.tracking_snr.snr_cost_near` with a cache equals it
   without one, bit for bit, over a sequence of updates where some hypotheses keep their point
-  and anchors exactly and the others move (the cache then only ever reuses identical inputs).
+  and anchors exactly and the others move (a float32 cached anchor is not the float64 one:
+  nothing is reused, the cached path's scoring is the plain one's).
 * With margins, :func:`diffpos.tracking_snr._snr_cost_cached` against a reference written
   pair by pair: each link's SNRs predicted by ``pair_snr_db`` at the node and anchor the rule
-  says (the cached point and anchor when both are within the margins, the cached point and the
-  new anchor when only the point is, the new point otherwise; a hypothesis whose cached
-  diffraction existence differs from the one at its point afresh), the cost by the numpy
-  reference ``_snr_cost_of_numpy``; and the cache's contents after the call.
+  says (the cached point and anchor when both are within the margins: the cached direct and
+  diffraction slots, the window-band slots predicted at the cached point; the cached point
+  and the new anchor when only the point is; the new point otherwise; a hypothesis whose
+  cached diffraction existence differs from the one at its point afresh), the cost by the
+  numpy reference ``_snr_cost_of_numpy``; and the cache's contents after the call.
 
 Geometries: the default building and a variant with tall floors, short windows and a high
 sill (not in scenarios/), UAVs in front of, above and beyond the facade, a fifth of the SNRs
@@ -24,7 +26,10 @@ import pytest
 import diffpos.tracking_snr as ts
 from diffpos.channel import pair_snr_db
 from diffpos.scenario import Building, Radio
-from diffpos.tracking_paths import _IS_DIFF, K_SLOTS, Links, all_paths
+from diffpos.tracking_paths import K_SLOTS, Links, all_paths
+from diffpos.tracking_state import SNR_CACHE_SLOTS
+
+CACHED = np.array(SNR_CACHE_SLOTS)
 
 BUILDINGS = [
     Building(),
@@ -57,8 +62,8 @@ def _links(anchors, pos, rng, unknown=0.2):
 
 
 def _empty_cache(n: int, c: int) -> ts.SnrCache:
-    return ts.SnrCache(np.full((n, 1, 3), np.nan), np.full((n, 1, c, 3), np.nan),
-                       np.full((n, 1, c, K_SLOTS), np.nan))
+    return ts.SnrCache(np.full((n, 1, 3), np.nan), np.full((n, 1, c, 3), np.nan, np.float32),
+                       np.full((n, 1, c, len(CACHED)), np.nan, np.float32))
 
 
 def _moves(rng, n, scale):
@@ -108,8 +113,8 @@ def _reference(pos, links, b, pe, cache0, reuse_m):
         kept = [j < c_n and np.linalg.norm(links.anchors[i, 0, j] - cache0.anchor[i, 0, j])
                 <= reuse_m[1] for j in range(m)]
         for j in range(min(m, c_n)):
-            if kept[j] and np.any(np.isfinite(cache0.pred[i, 0, j, _IS_DIFF])
-                                  != pe.strict[i, 0, j, _IS_DIFF]):
+            if kept[j] and np.any(np.isfinite(cache0.pred[i, 0, j, 1:])
+                                  != pe.strict[i, 0, j, CACHED[1:]]):
                 near = False  # the cached diffraction existence is not the point's
         at = cache0.node[i, 0] if near else p
         if not near:
@@ -119,14 +124,14 @@ def _reference(pos, links, b, pe, cache0, reuse_m):
             meas = links.snr[i, 0, j]
             if not np.isfinite(meas):
                 continue
+            full = pair_snr_db(links.anchors[i, :, j][:, None, :], at[None], building=b,
+                               radio=RADIO)[0, 0]
+            pred = np.where(need[i, 0, j], full, -np.inf)
             if near and kept[j]:
-                pred = np.where(need[i, 0, j], cache0.pred[i, 0, j], -np.inf)
-            else:
-                full = pair_snr_db(links.anchors[i, :, j][:, None, :], at[None], building=b,
-                                   radio=RADIO)[0, 0]
-                pred = np.where(need[i, 0, j], full, -np.inf)
-                if j < c_n:
-                    anc_c[i, 0, j], pred_c[i, 0, j] = links.anchors[i, 0, j], pred
+                pred[CACHED] = np.where(need[i, 0, j, CACHED],
+                                        cache0.pred[i, 0, j].astype(np.float64), -np.inf)
+            elif j < c_n:
+                anc_c[i, 0, j], pred_c[i, 0, j] = links.anchors[i, 0, j], pred[CACHED]
             c, t = ts._snr_cost_of_numpy(pred[None], np.array([meas]), RADIO,
                                          pe.sure[i, 0, j][None])
             cost[i, 0, j], thr[i, 0, j] = c[0], t[0]
@@ -180,11 +185,10 @@ def test_cached_diffraction_existence_must_match():
     cache = _empty_cache(6, anchors.shape[1])
     first = ts._snr_cost_cached(pos, links, b, pe.sure, need, pe.strict, cache, (0.05, 0.1))
     fresh = cache.pred.copy()
-    diff = np.flatnonzero(_IS_DIFF)
-    assert pe.strict[0, 0, 0, diff].any()
+    assert pe.strict[0, 0, 0, CACHED[1:]].any()
     cache.node[0] += 0.01  # within the margin: reused, but for the existence
-    cache.pred[0, 0, 0, diff] = np.where(np.isfinite(fresh[0, 0, 0, diff]), -np.inf, 20.0)
-    cache.pred[1, 0, 0, diff[0]] = cache.pred[1, 0, 0, diff[0]] + 1.0  # existence unchanged
+    cache.pred[0, 0, 0, 1:] = np.where(np.isfinite(fresh[0, 0, 0, 1:]), -np.inf, 20.0)
+    cache.pred[1, 0, 0, 1] = cache.pred[1, 0, 0, 1] + 1.0  # existence unchanged
     again = ts._snr_cost_cached(pos, links, b, pe.sure, need, pe.strict, cache, (0.05, 0.1))
     np.testing.assert_array_equal(again[0][0], first[0][0])  # afresh at the point itself
     np.testing.assert_array_equal(cache.node[0], pos[0])
