@@ -251,6 +251,17 @@ def _init_hypotheses(x, p, lp_floor, config: TrackerConfig):
     return np.concatenate([x, xv], axis=1), np.concatenate([p, pv], axis=1), lp
 
 
+def _with_rows(a: NDArray, idx: NDArray, v: NDArray) -> NDArray:
+    """A new array: ``a`` with the rows ``idx`` (sorted, distinct) replaced by ``v`` (a new
+    array itself); ``v`` when ``idx`` is every row (the SNR cache, ~7 KB per node: no copy
+    of what is replaced anyway)."""
+    if idx.size == a.shape[0]:
+        return v
+    out = a.copy()
+    out[idx] = v
+    return out
+
+
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
            mask: ArrayLike, t_ns: ArrayLike, building, config: TrackerConfig, *,
            snr_db: ArrayLike | None = None, radio=None) -> tuple[TrackerState, TrackOutput]:
@@ -288,7 +299,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     floor_bad = st.floor_bad.copy()
     llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
     origin = st.refresh_origin_ns.copy()
-    snr_cache = (st.snr_node.copy(), st.snr_anchor.copy(), st.snr_pred.copy())
+    snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
@@ -297,8 +308,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     if idx.size:
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
             st, links, idx, t, inflow, dt_s, building, config)
-        for arr, key in zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"), strict=True):
-            arr[idx] = new[key]
+        snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
+                          zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"), strict=True))
         mean[idx], cov[idx], lp[idx], nis[idx] = new["mean"], new["cov"], new["log_prob"], \
             new["nis"]
         llr[idx], upd[idx], below[idx] = new["dormant_llr"], new["updated_ns"], \
@@ -330,6 +341,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         origin[jdx] = t[jdx]
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
+    if not idx.size:
+        snr_cache = tuple(a.copy() for a in snr_cache)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,

@@ -229,12 +229,18 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
     hit = np.zeros((n, h, m), dtype=np.bool_)
     hit[:, :, :mc] = kept & near[..., None] & known[:, :, :mc]
     at = np.where(near[..., None], cache.node, pos)
-    pred = np.full((n, h, m, K_SLOTS), -np.inf)
-    n_i, h_i, m_i = np.nonzero(known)
-    if n_i.size:  # a reused link: its other slots only
-        mask = need[n_i, h_i, m_i] & ~(hit[n_i, h_i, m_i, None] & _IS_CACHED)
-        pred[n_i, h_i, m_i] = _predict(anc[n_i, h_i, m_i], at[n_i, h_i], building,
-                                       links.radio, mask)
+    mask = need & ~(hit[..., None] & _IS_CACHED)  # a reused link: its other slots only
+    if known.all():  # every link: no gather
+        n_i = None
+        pred = _predict(anc.reshape(-1, 3),
+                        np.broadcast_to(at[:, :, None, :], (n, h, m, 3)).reshape(-1, 3),
+                        building, links.radio, mask.reshape(-1, K_SLOTS)).reshape(n, h, m, -1)
+    else:
+        pred = np.full((n, h, m, K_SLOTS), -np.inf)
+        n_i, h_i, m_i = np.nonzero(known)
+        if n_i.size:
+            pred[n_i, h_i, m_i] = _predict(anc[n_i, h_i, m_i], at[n_i, h_i], building,
+                                           links.radio, mask[n_i, h_i, m_i])
     r_n, r_h, r_m = np.nonzero(hit)
     if r_n.size:
         pred[r_n, r_h, r_m, _CACHED[:, None]] = np.where(
@@ -246,7 +252,7 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
         c, thr = c.reshape(pred.shape), thr.reshape(n, h, m)
     else:
         c, thr = np.zeros((n, h, m, K_SLOTS)), np.full((n, h, m), np.nan)
-        if n_i.size:
+        if n_i is not None and n_i.size:
             meas = np.broadcast_to(links.snr, (n, h, m))[n_i, h_i, m_i]
             c[n_i, h_i, m_i], thr[n_i, h_i, m_i] = _snr_cost_of(
                 pred[n_i, h_i, m_i], meas, links.radio, trust[n_i, h_i, m_i])
