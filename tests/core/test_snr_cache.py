@@ -3,8 +3,9 @@
 
 * With both margins 0, :func:`diffpos.tracking_snr.snr_cost_near` with a cache equals it
   without one, bit for bit, over a sequence of updates where some hypotheses keep their point
-  and anchors exactly and the others move (a float32 cached anchor is not the float64 one:
-  nothing is reused, the cached path's scoring is the plain one's).
+  and anchors exactly and the others move (random anchor coordinates are not float32 values,
+  so the float32 cached anchor is never the same: nothing is reused, and the cached path's
+  scoring is the plain one's).
 * With margins, :func:`diffpos.tracking_snr._snr_cost_cached` against a reference written
   pair by pair: each link's SNRs predicted by ``pair_snr_db`` at the node and anchor the rule
   says (the cached point and anchor when both are within the margins: the cached direct and
