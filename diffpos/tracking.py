@@ -108,6 +108,8 @@ from .tracking_imm import _mix, _propagate, process_noise
 from .tracking_imm import _transition_matrix as _transition_matrix
 from .tracking_model import Links, snapshot, snapshot_init
 from .tracking_state import (
+    SNR_CACHE_LINKS,
+    SNR_CACHE_SLOTS,
     FloatArray,
     TrackerConfig,
     TrackerState,
@@ -147,7 +149,11 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         good=np.zeros(n_nodes, int), bad=np.zeros(n_nodes, int),
         floor_bad=np.zeros((n_nodes, h), int), dormant_llr=np.full((n_nodes, h), np.nan),
         updated_ns=np.full((n_nodes, h), t_ns, np.int64), below_epochs=np.zeros((n_nodes, h), int),
-        refresh_origin_ns=np.full(n_nodes, t_ns, np.int64))
+        refresh_origin_ns=np.full(n_nodes, t_ns, np.int64),
+        snr_node=np.full((n_nodes, h, 3), np.nan),
+        snr_anchor=np.full((n_nodes, h, SNR_CACHE_LINKS, 3), np.nan, np.float32),
+        snr_pred=np.full((n_nodes, h, SNR_CACHE_LINKS, len(SNR_CACHE_SLOTS)), np.nan,
+                         np.float32))
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
@@ -245,6 +251,17 @@ def _init_hypotheses(x, p, lp_floor, config: TrackerConfig):
     return np.concatenate([x, xv], axis=1), np.concatenate([p, pv], axis=1), lp
 
 
+def _with_rows(a: NDArray, idx: NDArray, v: NDArray) -> NDArray:
+    """A new array: ``a`` with the rows ``idx`` (sorted, distinct) replaced by ``v`` (a new
+    array itself); ``v`` when ``idx`` is every row (the SNR cache, ~7 KB per node: no copy
+    of what is replaced anyway)."""
+    if idx.size == a.shape[0]:
+        return v
+    out = a.copy()
+    out[idx] = v
+    return out
+
+
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
            mask: ArrayLike, t_ns: ArrayLike, building, config: TrackerConfig, *,
            snr_db: ArrayLike | None = None, radio=None) -> tuple[TrackerState, TrackOutput]:
@@ -282,6 +299,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     floor_bad = st.floor_bad.copy()
     llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
     origin = st.refresh_origin_ns.copy()
+    snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
@@ -290,6 +308,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     if idx.size:
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
             st, links, idx, t, inflow, dt_s, building, config)
+        snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
+                          zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"), strict=True))
         mean[idx], cov[idx], lp[idx], nis[idx] = new["mean"], new["cov"], new["log_prob"], \
             new["nis"]
         llr[idx], upd[idx], below[idx] = new["dormant_llr"], new["updated_ns"], \
@@ -321,8 +341,11 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         origin[jdx] = t[jdx]
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
+    if not idx.size:
+        snr_cache = tuple(a.copy() for a in snr_cache)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
-                       below_epochs=below, refresh_origin_ns=origin)
+                       below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
+                       snr_anchor=snr_cache[1], snr_pred=snr_cache[2])
     return new, _publish(new, mech, resid, config)

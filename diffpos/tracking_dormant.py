@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .tracking_model import Links, measurement_update
+from .tracking_snr import SnrCache
 from .tracking_state import (
     FloatArray,
     TrackerConfig,
@@ -85,15 +86,24 @@ def _refresh_due(updated_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
 
 
 def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
-                  config: TrackerConfig):
+                  config: TrackerConfig, snr_cache: tuple | None = None):
     """Measurement update of the hypotheses ``(rr[i], cc[i])`` (node row, hypothesis) of
     ``mean`` (n, H, 6), ``cov``, ``links`` (n nodes): each pair as a node with one
-    hypothesis; per pair x, P, log-evidence, slot, NIS and residual of every link."""
+    hypothesis; per pair x, P, log-evidence, slot, NIS and residual of every link.
+    ``snr_cache``: the nodes' ``(snr_node, snr_anchor, snr_pred)`` arrays (n, H, ...)
+    (:class:`~diffpos.tracking_state.TrackerState`), the pairs' rows read and updated in
+    place (:class:`diffpos.tracking_snr.SnrCache`)."""
     fl = hypothesis_floor(n_floors)[cc][:, None]
     level = ~hypothesis_vertical(n_floors)[cc][:, None]
     x0, p0 = mean[rr, cc][:, None], cov[rr, cc][:, None]
+    sc = None
+    if snr_cache is not None:
+        sc = SnrCache(*(a[rr, cc][:, None] for a in snr_cache))
     x, p, ev, sel, res = measurement_update(x0, p0, links.take(rr), fl, building, config,
-                                            level=level)
+                                            level=level, snr_cache=sc)
+    if sc is not None:
+        for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
+            a[rr, cc] = v[:, 0]
     return x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0]
 
 
@@ -135,6 +145,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     m0, c0, lp0, llr0 = state.mean[idx], state.cov[idx], state.log_prob[idx], \
         state.dormant_llr[idx]
     x, p = m0.copy(), c0.copy()
+    snr_cache = (state.snr_node[idx], state.snr_anchor[idx], state.snr_pred[idx])  # copies
     ev, slot = np.full((n, h), np.nan), np.full((n, h, m), -1)
     nis_h, res = np.full((n, h, m), np.nan), np.full((n, h, m), np.nan)
     log_thr = _dormant_log_p(dt_s[idx], nf, config)[:, None]
@@ -154,7 +165,8 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         rr, cc = np.nonzero(todo)
         if rr.size:
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
-             res[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config)
+             res[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
+                                          snr_cache)
         run = run | todo
         lp, llr = _posterior(lp0, ev, run, llr0)
         best = np.argmax(lp, axis=1)
@@ -177,5 +189,6 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     asleep = below >= max(config.dormant_epochs, 1)
     new = {"mean": x, "cov": p, "log_prob": lp, "nis": nis, "below_epochs": below,
            "dormant_llr": np.where(asleep, np.where(run, llr, llr0), np.nan),
-           "updated_ns": np.where(run, t_ns[idx, None], state.updated_ns[idx])}
+           "updated_ns": np.where(run, t_ns[idx, None], state.updated_ns[idx]),
+           "snr_node": snr_cache[0], "snr_anchor": snr_cache[1], "snr_pred": snr_cache[2]}
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]

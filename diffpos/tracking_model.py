@@ -482,10 +482,14 @@ def _paths_at(pe0: PathEval, nodes, pos: FloatArray, links: Links, floor, buildi
     return PathEval(**fields)
 
 
-def measurement_update(x_prior, p_prior, links: Links, floor, building, config, level=None):
+def measurement_update(x_prior, p_prior, links: Links, floor, building, config, level=None,
+                       snr_cache=None):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual.
 
-    ``level``: the hypotheses' vertical modes (see :func:`iekf`)."""
+    ``level``: the hypotheses' vertical modes (see :func:`iekf`). ``snr_cache``: the
+    hypotheses' :class:`~diffpos.tracking_snr.SnrCache` (read and updated in place; reuse
+    within ``config.snr_reuse_m`` / ``snr_reuse_anchor_m``; both 0: not used, left as it
+    is), or None (every SNR predicted)."""
     x = x_prior
     # the SNR of every slot at the prior (a path's strength changes little over the fit);
     # the paths at the prior serve the SNR term and the first selection (the same point
@@ -500,7 +504,9 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     relax = (config.exist_margin_m if level is None
              else existence_margin(p_prior, config))
     pe0 = all_paths(xc, links, floor, building, relax)
-    snr_c = snr_cost_near(xc, links, floor, building, relax, pe0)
+    reuse = (config.snr_reuse_m, config.snr_reuse_anchor_m)
+    snr_c = snr_cost_near(xc, links, floor, building, relax, pe0,
+                          cache=snr_cache if max(reuse) > 0 else None, reuse_m=reuse)
     info = prior_information(p_prior)  # shared by the passes
     p = p_prior
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit

@@ -5,18 +5,42 @@ within the hypothesis' existence margin where the slot carries power (:func:`snr
 Moved verbatim from :mod:`diffpos.tracking_model` (which re-exports every public name here);
 the predicted SNRs are those of the emulator's amplitude model
 (:func:`diffpos.channel.pair_snr_db`, compiled in :mod:`diffpos._kernels.channel_nb`).
+
+At a hypothesis only the slots that can carry power are predicted (:data:`ALWAYS_PREDICTED`
+and the ``loose`` window-band slots; the others cost +inf as their prediction would: bit for
+bit), and the tracker keeps every hypothesis' direct and diffraction predictions (~85 % of a
+link's cost) from one real update to the next (:class:`SnrCache`, the state's ``snr_*``
+fields): they are reused while the hypothesis' prior stays within
+``TrackerConfig.snr_reuse_m`` of where they were made and a link's anchor within
+``snr_reuse_anchor_m`` (:func:`_snr_cost_cached`). The measured SNR, the window-band slots,
+the detector's threshold and the relax holes are scored afresh every update. Why a margin:
+the predictions are made at the prior and serve the fit, which moves further (the prior's own
+uncertainty), and an anchor's reported position is uncertain by its navigation error (a few
+cm); a static responder's prior moves by cm per epoch, so with exact points nothing would be
+reused. Measured on replays (all epochs solved): the 30 s 16 x 200 soak (static responders,
+static UAVs) reuses 49 % of its links' predictions, the 20 s ``large`` run (walkers) 6.5 %;
+half of the soak's updated hypotheses' priors move more than 5 cm between their real updates
+(the unlikely floors and the refreshed dormant ones most), a quarter more than 0.26 m.
+Margins 0: a prediction is reused only at the same point and anchor, compared with the
+float32 cached anchor (so only where float32 holds the anchor's coordinates exactly, e.g.
+whole metres without navigation noise; the reused values are then rounded, < 1e-5 dB); the
+large and soak replays' estimates are those of the exact predictions, bit for bit.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.channel_nb import snr_cost_kernel
 from .channel import pair_snr_db
-from .tracking_paths import K_SLOTS, Links, PathEval, _c, _relax, all_paths
+from .tracking_paths import _IS_BAND, K_SLOTS, Links, PathEval, _c, _relax, all_paths
+from .tracking_state import SNR_CACHE_SLOTS
 
-__all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "snr_cost", "snr_cost_near"]
+__all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "SnrCache", "snr_cost",
+           "snr_cost_near"]
 
 FloatArray = NDArray[np.float64]
 #: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
@@ -41,6 +65,32 @@ SNR_SPAN_DB = 60.0
 #: 1.34-1.44x less with the exact threshold, 1.65-1.72x with this one
 #: (``benchmarks/bench_snr_cost.py``).
 HOLE_THRESHOLD_AT_PRIOR = True
+#: The slots :func:`snr_cost_near` predicts at a hypothesis whatever their existence there:
+#: the diffraction slots (their existence is the emulator's, with no margin: a disagreement
+#: would be a rounding one at an edge end) and the direct slot (the emulator keeps the
+#: through-wall ray, which the path model does not: it carries power where slot 0 is not
+#: loose). A window-band slot (1-6, 14-17) that is not ``loose`` has no power there: its
+#: entry point is outside the band widened by ``relax_m`` (>= 0, the emulator needs it
+#: strictly inside the band) or its path fails the same geometric test as the emulator's.
+ALWAYS_PREDICTED = ~_IS_BAND | (np.arange(K_SLOTS) == 0)
+_CACHED = np.array(SNR_CACHE_SLOTS)  # the slots an SnrCache keeps: direct, then diffraction
+_IS_CACHED = np.isin(np.arange(K_SLOTS), _CACHED)
+
+
+@dataclass
+class SnrCache:
+    """Predicted SNRs of hypotheses kept from one update to the next (the tracker's state
+    fields ``snr_node``, ``snr_anchor``, ``snr_pred``; :func:`snr_cost_near` reads and
+    updates the arrays in place).
+
+    ``node`` (N, H, 3) [m]: where the predictions were made (NaN: none); ``anchor``
+    (N, H, C, 3) float32 [m]: the anchor of every cached link (the first C link columns; NaN:
+    none); ``pred`` (N, H, C, len(SNR_CACHE_SLOTS)) float32 [dB]: the predicted SNR of the
+    slots :data:`~diffpos.tracking_state.SNR_CACHE_SLOTS` at ``node`` (-inf: no power)."""
+
+    node: FloatArray
+    anchor: FloatArray
+    pred: FloatArray
 
 
 def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
@@ -63,10 +113,12 @@ def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = No
     return None if out is None else out[0]
 
 
-def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None = None
-                  ) -> tuple[FloatArray, FloatArray] | None:
+def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None = None,
+                  need: NDArray | None = None) -> tuple[FloatArray, FloatArray] | None:
     """:func:`snr_cost` and the detector's threshold of every link (N, H, M) [dB] (NaN where
-    the SNR is unknown)."""
+    the SNR is unknown). ``need`` (bool, broadcastable to (N, H, M, K)): predict only these
+    slots (``channel_snr_masked_kernel``: the needed ones bit for bit), every other slot
+    counted as without power (+inf cost); it must hold every ``trust`` slot."""
     if links.snr is None:
         return None
     n, h = pos.shape[:2]
@@ -80,7 +132,9 @@ def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None
         meas = np.broadcast_to(links.snr, (n, h, m)).reshape(-1)
         tr = None if trust is None else \
             np.broadcast_to(trust, (n, h, m, K_SLOTS)).reshape(-1, K_SLOTS)
-        pred = pair_snr_db(anc[:, None, :], p, building=building, radio=links.radio)[:, 0]
+        nd = None if need is None else \
+            np.broadcast_to(need, (n, h, m, K_SLOTS)).reshape(-1, K_SLOTS)
+        pred = _predict(anc, p, building, links.radio, nd)
         c, t = _snr_cost_of(pred, meas, links.radio, tr)
         return c.reshape(n, h, m, K_SLOTS), t.reshape(n, h, m)
     out = np.zeros((n, h, m, K_SLOTS))
@@ -91,10 +145,21 @@ def _snr_cost_thr(pos: FloatArray, links: Links, building, trust: NDArray | None
     anc = np.broadcast_to(links.anchors, (n, h, m, 3))[n_i, h_i, m_i]
     meas = np.broadcast_to(links.snr, (n, h, m))[n_i, h_i, m_i]
     tr = None if trust is None else np.broadcast_to(trust, (n, h, m, K_SLOTS))[n_i, h_i, m_i]
-    pred = pair_snr_db(anc[:, None, :], pos[n_i, h_i], building=building,
-                       radio=links.radio)[:, 0]
+    nd = None if need is None else np.broadcast_to(need, (n, h, m, K_SLOTS))[n_i, h_i, m_i]
+    pred = _predict(anc, pos[n_i, h_i], building, links.radio, nd)
     out[n_i, h_i, m_i], thr[n_i, h_i, m_i] = _snr_cost_of(pred, meas, links.radio, tr)
     return out, thr
+
+
+def _predict(anc: FloatArray, pos: FloatArray, building, radio, need: NDArray | None
+             ) -> FloatArray:
+    """Predicted SNR of every slot of P (anchor, node) pairs (P, K) [dB]; with ``need`` (P, K)
+    only those slots (bit for bit), -inf elsewhere (counted as without power)."""
+    if need is None:
+        return pair_snr_db(anc[:, None, :], pos, building=building, radio=radio)[:, 0]
+    pred = pair_snr_db(anc[:, None, :], pos, building=building, radio=radio,
+                       need=need[:, None, :])[:, 0]
+    return np.where(need, pred, -np.inf)
 
 
 def _snr_cost_of(pred: FloatArray, meas: FloatArray, radio, trust: NDArray | None = None,
@@ -140,6 +205,72 @@ def _pair_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building,
     return _snr_cost_of(pred, meas, radio, trust)[0]
 
 
+def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, need: NDArray,
+                     strict: NDArray, cache: SnrCache, reuse_m: tuple[float, float]
+                     ) -> tuple[FloatArray, FloatArray]:
+    """:func:`_snr_cost_thr` (with ``need``) with the predictions of ``cache`` reused.
+
+    A hypothesis whose point ``pos`` is within ``reuse_m[0]`` of ``cache.node`` has every
+    link predicted at ``cache.node``: a cached link whose anchor is within ``reuse_m[1]`` of
+    its cached one keeps its cached slots (:data:`~diffpos.tracking_state.SNR_CACHE_SLOTS`:
+    the direct and diffraction slots, ~85 % of a link's prediction; its window-band slots are
+    predicted there again), the others are predicted there and cached. A hypothesis further
+    away, or with a cached link whose diffraction slots' existence (exact, no margin) differs
+    from the one at ``pos`` (``strict``), is predicted afresh at ``pos`` and its cache
+    restarted there. Reused or not, every row's cost and threshold are :func:`_snr_cost_of`'s
+    of its predictions. The cache holds float32 (a reused SNR is rounded by < 1e-5 dB)."""
+    n, h = pos.shape[:2]
+    m = links.rho.shape[-1]
+    mc = min(m, cache.pred.shape[2])
+    known = np.broadcast_to(np.isfinite(links.snr), (n, h, m))
+    anc = np.broadcast_to(links.anchors, (n, h, m, 3))
+    old = cache.pred[:, :, :mc]
+    with np.errstate(invalid="ignore"):  # NaN (nothing cached): no reuse
+        near = np.sqrt(np.sum((pos - cache.node) ** 2, axis=-1)) <= reuse_m[0]
+        kept = np.sqrt(np.sum((anc[:, :, :mc] - cache.anchor[:, :, :mc]) ** 2,
+                              axis=-1)) <= reuse_m[1]
+    flip = kept & np.any(np.isfinite(old[..., 1:]) != strict[:, :, :mc, _CACHED[1:]], axis=-1)
+    near &= ~np.any(flip, axis=-1)
+    hit = np.zeros((n, h, m), dtype=np.bool_)
+    hit[:, :, :mc] = kept & near[..., None] & known[:, :, :mc]
+    at = np.where(near[..., None], cache.node, pos)
+    mask = need & ~(hit[..., None] & _IS_CACHED)  # a reused link: its other slots only
+    if known.all():  # every link: no gather
+        n_i = None
+        pred = _predict(anc.reshape(-1, 3),
+                        np.broadcast_to(at[:, :, None, :], (n, h, m, 3)).reshape(-1, 3),
+                        building, links.radio, mask.reshape(-1, K_SLOTS)).reshape(n, h, m, -1)
+    else:
+        pred = np.full((n, h, m, K_SLOTS), -np.inf)
+        n_i, h_i, m_i = np.nonzero(known)
+        if n_i.size:
+            pred[n_i, h_i, m_i] = _predict(anc[n_i, h_i, m_i], at[n_i, h_i], building,
+                                           links.radio, mask[n_i, h_i, m_i])
+    r_n, r_h, r_m = np.nonzero(hit)
+    if r_n.size:
+        pred[r_n, r_h, r_m, _CACHED[:, None]] = np.where(
+            need[r_n, r_h, r_m][:, _CACHED], old[r_n, r_h, r_m], -np.inf).T
+    if known.all():  # every link (row by row the same values as the gather below)
+        c, thr = _snr_cost_of(pred.reshape(-1, K_SLOTS),
+                              np.broadcast_to(links.snr, (n, h, m)).reshape(-1), links.radio,
+                              np.broadcast_to(trust, pred.shape).reshape(-1, K_SLOTS))
+        c, thr = c.reshape(pred.shape), thr.reshape(n, h, m)
+    else:
+        c, thr = np.zeros((n, h, m, K_SLOTS)), np.full((n, h, m), np.nan)
+        if n_i is not None and n_i.size:
+            meas = np.broadcast_to(links.snr, (n, h, m))[n_i, h_i, m_i]
+            c[n_i, h_i, m_i], thr[n_i, h_i, m_i] = _snr_cost_of(
+                pred[n_i, h_i, m_i], meas, links.radio, trust[n_i, h_i, m_i])
+    # the cache: a hypothesis that moved starts afresh at ``pos``; new predictions stored
+    cache.anchor[~near], cache.pred[~near] = np.nan, np.nan
+    cache.node[...] = at
+    fresh = known[:, :, :mc] & ~hit[:, :, :mc]
+    f_n, f_h, f_m = np.nonzero(fresh)
+    cache.anchor[f_n, f_h, f_m] = anc[f_n, f_h, f_m]
+    cache.pred[f_n, f_h, f_m] = pred[f_n, f_h, f_m][:, _CACHED]
+    return c, thr
+
+
 def _hole_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building, radio,
                    hole: NDArray, trust: NDArray, thr: FloatArray | None = None
                    ) -> FloatArray:
@@ -172,7 +303,8 @@ def _hole_snr_cost(anc: FloatArray, pos: FloatArray, meas: FloatArray, building,
 
 
 def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
-                  pe: PathEval | None = None) -> FloatArray | None:
+                  pe: PathEval | None = None, cache: SnrCache | None = None,
+                  reuse_m: tuple[float, float] = (0.0, 0.0)) -> FloatArray | None:
     """:func:`snr_cost` where a slot that exists within ``relax_m`` of the hypothesis (its
     window entry point within the entry's uncertainty of the band; a scalar or one margin per
     hypothesis, broadcastable to (N, H)) but carries no power at the point itself is scored
@@ -184,14 +316,25 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     At the shifted heights only the hole slots are predicted (:func:`_hole_snr_cost`); with
     :data:`HOLE_THRESHOLD_AT_PRIOR` their detector threshold is the hypothesis' own (at
     ``pos``), else the shifted point's (the trusted slots predicted there too where a hole
-    slot carries power: the values of predicting all 18 slots, bit for bit)."""
+    slot carries power: the values of predicting all 18 slots, bit for bit).
+
+    ``cache`` (:class:`SnrCache` of the hypotheses, updated in place): the predictions at the
+    hypotheses reused within ``reuse_m`` = (node, anchor) margins [m]
+    (:func:`_snr_cost_cached`); the shifted heights are always predicted."""
     if links.snr is None:
         return None
     if pe is None:  # the paths at ``pos`` with ``relax_m`` (a caller may pass them)
         pe = all_paths(pos, links, floor, building, relax_m)
     # the detector's threshold is set by the strongest path that surely exists (a path that
     # exists only on one side of a band edge a few cm away is no evidence of a strong path)
-    c, thr = _snr_cost_thr(pos, links, building, trust=pe.sure)
+    # a window-band slot that is not even loose has no power at ``pos`` (not predicted,
+    # :data:`ALWAYS_PREDICTED`): its cost is +inf as predicted, bit for bit
+    need = pe.loose | ALWAYS_PREDICTED
+    if cache is None:
+        c, thr = _snr_cost_thr(pos, links, building, trust=pe.sure, need=need)
+    else:
+        c, thr = _snr_cost_cached(pos, links, building, pe.sure, need, pe.strict, cache,
+                                  reuse_m)
     hole = ~np.isfinite(c) & pe.loose
     pairs = np.argwhere(np.any(hole, axis=-1))  # (P, 3): n, h, m
     if pairs.size == 0:
