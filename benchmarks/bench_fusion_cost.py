@@ -171,7 +171,7 @@ latency p99 2.9 / 3.6 s vs 4.4 / 4.8 s); ``diffpos emulate scenarios/large.toml 
 own anchors, router and recorder (or emulate) use the second core: 2 kernel threads are
 worse there; ``--kernel-threads 1`` is the better setting for these runs on 2 cores.
 
-The shed branch (issues 14/16: the live overload policy, ``FusionCore._supersede``),
+The shed branch (issues 14/16: the live overload policy, ``fusion.overload``),
 2026-11-27 13:31-13:53 UTC, load average 1.4-2.8 (the virtual clock charges this process'
 CPU only); the soak input, the first 15 s (``--schedule /tmp/s8/soak/soak16x200.mcap
 --seconds 15 --fusion-args "--site soak16x200 --method mnls --scenario .../soak16x200.toml"``,

@@ -290,7 +290,7 @@ def test_the_loop_sizes_steps_by_the_fitted_cost_and_takes_more_when_behind():
 
 
 def test_a_fusion_behind_its_input_keeps_each_nodes_newest_epochs_in_rounds(tmp_path):
-    """The live overload policy (max_backlog_s set; FusionCore._supersede) on a real core fed
+    """The live overload policy (max_backlog_s set; fusion.overload) on a real core fed
     a backlog: three epochs of eight nodes arrive between two steps of at most 5 epochs.
 
     - each step solves only the nodes' newest released epochs (the last BEHIND_KEEP_EPOCHS

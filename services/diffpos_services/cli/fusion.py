@@ -123,6 +123,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="only inflate sigmas for node motion within an epoch",
     )
+    _add_overload_arguments(parser)
+    parser.add_argument(
+        "--diagnostics-period-s",
+        type=float,
+        default=1.0,
+        help="diagnostics publish period [s] (default 1)",
+    )
+    _add_cpu_arguments(parser)
+    add_zenoh_arguments(parser)
+    add_logging_arguments(parser)
+
+
+
+def _add_overload_arguments(parser: argparse.ArgumentParser) -> None:
+    """The overload policy's options (FusionConfig.max_backlog_s, supersede_after_s)."""
     parser.add_argument(
         "--max-backlog-s",
         type=float,
@@ -144,15 +159,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "without loss; 0: as soon as a step cannot take them all) "
         f"(default {DEFAULT_SUPERSEDE_AFTER_S:g})",
     )
-    parser.add_argument(
-        "--diagnostics-period-s",
-        type=float,
-        default=1.0,
-        help="diagnostics publish period [s] (default 1)",
-    )
-    _add_cpu_arguments(parser)
-    add_zenoh_arguments(parser)
-    add_logging_arguments(parser)
 
 
 def _add_cpu_arguments(parser: argparse.ArgumentParser) -> None:

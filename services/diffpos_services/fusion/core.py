@@ -43,6 +43,7 @@ from diffpos_services.fusion.ingest import (
     batch_all_good,
     count_releases,
 )
+from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.fusion.solve import (
     Batch,
     Results,
@@ -57,19 +58,11 @@ from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
 
-__all__ = ["FusionConfig", "FusionCore"]
+__all__ = ["BEHIND_KEEP_EPOCHS", "FusionConfig", "FusionCore"]
 
 _new_tuple = tuple.__new__
 #: why an epoch was released (FusionDiagnostics.releases)
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
-#: ready epochs kept per node when a live step is behind (FusionCore._supersede): its newest
-#: one. Measured on the 16 x 200 soak input, the live loop on a virtual clock (benchmarks/
-#: bench_fusion_cost.py --schedule, the first 15 s, CPU x1 / x1.5 / x2; a trial version that
-#: queued the nodes by place), keeping the newest 1, 2 or 4: about as many estimates either way (x1: 21,920-24,493 vs 22,944-25,598 vs 22,010;
-#: x2: 5,812 / 5,941 / 6,037: the tracker's update costs more after a longer gap, so skipped
-#: epochs save less than their share), but each further kept epoch adds about a round of
-#: latency: mean age of a node's picture x1 167-189 / 236-279 / 459 ms, x2 381 / 488 / 711 ms
-BEHIND_KEEP_EPOCHS = 1
 
 
 class FusionCore:
@@ -122,15 +115,7 @@ class FusionCore:
         self._dec_batch = M.decoder(M.RangeBatch)
         self.changed = False  # liveliness changed since the last diagnostics
         self._ready: collections.deque[PendingEpoch] = collections.deque()
-        # when each node's epoch was last taken by a step (a count of epochs taken): the
-        # order of the rounds of a step that is behind (_supersede)
-        self._served: dict[str, int] = {}
-        self._taken = 0
-        self._max_backlog_epochs = (None if config.max_backlog_s is None else
-                                    math.ceil(config.max_backlog_s / config.epoch_period_s))
-        # the ready span (epochs) beyond which a behind step coalesces per node
-        self._supersede_span = math.floor(config.supersede_after_s / config.epoch_period_s
-                                          + 1e-9)
+        self.overload = OverloadPolicy(config)  # what a live step that is behind drops
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
         self.model = (self.building, config.radio_model())
@@ -482,8 +467,8 @@ class FusionCore:
         With ``max_backlog_s`` set (the live fusion), a step with more ready epochs than its
         ``limit``, once they span more than ``supersede_after_s``, first keeps only each
         node's :data:`BEHIND_KEEP_EPOCHS` newest ready epochs
-        (:meth:`_supersede`, the others counted as ``superseded``) and then drops what is
-        more than ``max_backlog_s`` behind the newest (:meth:`_shed`, ``overloaded``). A fusion
+        (``superseded``) and then drops what is more than ``max_backlog_s`` behind the
+        newest (``overloaded``; :class:`~diffpos_services.fusion.overload.OverloadPolicy`). A fusion
         that keeps up (never more ready than the limit) is not affected, nor is a backlog
         that holds at most that many epochs of each node.
         """
@@ -494,19 +479,14 @@ class FusionCore:
         if released:
             count_releases(self.book, released, live, self.releases)
         self._ready.extend(released)
-        if limit is not None and len(self._ready) > limit and self._max_backlog_epochs:
-            if self._ready_span() > self._supersede_span:
-                self._supersede()
-            self._shed()
+        self._ready = self.overload.apply(self._ready, limit, self.rejected)
         out: list[M.PositionEstimate] = []
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
         while todo > 0:
             n = min(todo, self.config.max_fixes_per_step)
             now, held = [self._ready.popleft() for _ in range(n)], []
             if limit is not None:
-                self._served.update(zip([pe.node_id for pe in now],
-                                        range(self._taken, self._taken + n), strict=True))
-                self._taken += n
+                self.overload.taken(now)
             if limit is not None and self.bank is not None:
                 now, held = self.bank.hold_inits(now, heavy_budget(n))
             out += self._solve(now, now_wall_ns,
@@ -518,50 +498,6 @@ class FusionCore:
                 out += self._solve(held, now_wall_ns, len(held))
             todo -= n
         return out
-
-    def _ready_span(self) -> int:
-        """Newest minus oldest ready epoch [epochs] (0 when at most one epoch is ready)."""
-        epochs = [pe.epoch for pe in self._ready]
-        return max(epochs) - min(epochs) if epochs else 0
-
-    def _supersede(self) -> None:
-        """Per-node coalescing of a backlog (the live fusion is slower than its input: see
-        FusionConfig.max_backlog_s): of each node's ready epochs only the newest
-        :data:`BEHIND_KEEP_EPOCHS` are kept, the older ones dropped unsolved and counted in
-        ``rejected["superseded"]``, and the nodes are queued least recently served first (by
-        a budgeted step; never served: first; ties in queue order). A queue with no more than
-        that many epochs of any node is left as it is.
-
-        So a behind fusion holds at most that many ready epochs per node and solves them in
-        rounds: no node is solved again before every other node with a ready epoch was (no
-        node starved, whatever its id or place in a release), each with its newest ranges;
-        the work per round is bounded by the number of nodes and the latency is about one
-        round instead of the backlog limit. A node's epochs are released in time order, so
-        its last ones in the queue are its newest. A function of the core's state and the
-        step's ``limit`` (in the decision record): replay makes the same choice."""
-        ready = list(self._ready)
-        slots: dict[str, list[int]] = {}
-        for i, pe in enumerate(ready):
-            slots.setdefault(pe.node_id, []).append(i)
-        if all(len(v) <= BEHIND_KEEP_EPOCHS for v in slots.values()):
-            return  # less than a round behind: nothing changes (the order neither)
-        served = self._served
-        order = sorted(slots, key=lambda nid: (served.get(nid, -1), slots[nid][0]))
-        self._ready = collections.deque(
-            ready[i] for nid in order for i in slots[nid][-BEHIND_KEEP_EPOCHS:])
-        self.rejected["superseded"] += len(ready) - len(self._ready)
-
-    def _shed(self) -> None:
-        """Drop the ready epochs older than ``max_backlog_s`` before the newest ready one
-        (the live fusion is slower than its input: see FusionConfig.max_backlog_s). After
-        :meth:`_supersede` each node has at most :data:`BEHIND_KEEP_EPOCHS` ready epochs, its
-        newest: this drops only when one round of all nodes takes longer than
-        ``max_backlog_s``, or a node's newest ready epoch is that old (its ranges stopped)."""
-        keep_from = max(pe.epoch for pe in self._ready) - self._max_backlog_epochs
-        if min(pe.epoch for pe in self._ready) < keep_from:
-            n = len(self._ready)
-            self._ready = collections.deque(pe for pe in self._ready if pe.epoch >= keep_from)
-            self.rejected["overloaded"] += n - len(self._ready)
 
     @property
     def backlog(self) -> int:
