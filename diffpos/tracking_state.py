@@ -165,18 +165,24 @@ class TrackerConfig:
         (:func:`published_floor_probabilities`; 0: untempered). The filter itself, the chosen
         floor, the position and its covariance do not use it.
     snr_reuse_m, snr_reuse_anchor_m : float [m]
-        A hypothesis' predicted SNRs (every slot of every link at its prior,
-        :func:`diffpos.tracking_snr.snr_cost_near`; ~30 % of the tracker's CPU) are reused
-        from its last real update while its prior is within ``snr_reuse_m`` of the point
-        they were predicted at, and a link's while its anchor is within
-        ``snr_reuse_anchor_m`` of where it was (:class:`TrackerState`'s ``snr_*`` fields).
-        Both 0: never reused, the cache not even read (the exact predictions, bit for bit;
-        measured: the soak and large replays' estimates identical to the code before).
+        Default 0.05 / 0.1 m: the reuse is on (an approximation). A hypothesis' predicted
+        SNRs of the slots :data:`SNR_CACHE_SLOTS` (direct and diffraction) of its first
+        :data:`SNR_CACHE_LINKS` links (:func:`diffpos.tracking_snr.snr_cost_near`; the SNR
+        prediction was ~30 % of the tracker's CPU) are reused while its prior is within
+        ``snr_reuse_m`` of the point they were predicted at (that point stays until the
+        prior leaves the margin) and a link's while its anchor is within
+        ``snr_reuse_anchor_m`` of the anchor they were predicted for (matched by position,
+        whatever the link's column); the window-band slots are predicted every update
+        (:class:`TrackerState`'s ``snr_*`` fields). Both 0: never reused, the cache not even
+        read (the exact predictions, bit for bit; measured: the soak and large replays'
+        estimates identical to the code before).
         Measured (2026-11-27, 2-core VM, load 1-4.5), 0.05 / 0.1 m against exact:
         ``bench_accuracy.py --only default large tall-floors wide-windows uavs-above-windows
         anchors-beyond-ends`` within the run-to-run spread but anchors-beyond-ends' 3D p90,
         0.224 m in 3 exact runs, 0.229 m in 4 (its floor 98.61-98.89 % and cov95 94.3-95.1 %
-        vs 98.61 % and 94.63 %); 0.02 / 0.05 m kept 0.224 m but saved nothing on the soak.
+        vs 98.61 % and 94.63 %), outside that scenario's run-to-run spread (the commit that
+        added these figures, 030d875, says 'off' but left the defaults at 0.05 / 0.1);
+        0.02 / 0.05 m kept 0.224 m but saved nothing on the soak.
         CPU (replay of the 30 s 16 x 200 soak, all epochs, no recorded decisions): 0.49 ->
         0.44-0.45 ms per node-epoch; the predictions reused are 49 % of the soak's links,
         6.5 % of the walkers' (``large``).
