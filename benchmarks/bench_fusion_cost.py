@@ -176,7 +176,10 @@ The shed branch (issues 14/16: the live overload policy, ``fusion.overload``),
 CPU only); the soak input, the first 15 s (``--schedule /tmp/s8/soak/soak16x200.mcap
 --seconds 15 --fusion-args "--site soak16x200 --method mnls --scenario .../soak16x200.toml"``,
 30,000 node-epochs; ``--cpu-scale 2``: the fusion has half a core). Age: the mean over the
-nodes of the time-averaged age of a node's newest published input (what a coordinator sees)::
+nodes of the time-averaged age of a node's newest published input (what a coordinator sees;
+"this branch" and the trial variants coalesce as soon as a step is behind: they predate
+``FusionConfig.supersede_after_s``, i.e. ``--fusion-args "... --supersede-after-s 0"`` today;
+the default 0.5 s is not in this table)::
 
     policy when behind                  CPU  estimates       e2e p50 ms    age mean / worst ms
     max_backlog_s drop (main, 1ab98ea)  x1   25,727-29,042   2,053-2,121   1,905-1,991 / 2,131

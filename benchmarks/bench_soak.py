@@ -28,7 +28,9 @@ more processes watched)::
 The live overload policy (shed branch, issues 14/16; FusionConfig.max_backlog_s), 2026-11-27,
 2-core VM shared with other jobs, ``python benchmarks/bench_soak.py --load 16x200 --duration 60
 --warmup 10 --method mnls``, before = main at 1ab98ea (its ``services`` on PYTHONPATH), after =
-this branch, run back to back (13:53-13:56 UTC, load average 1.4-4.1)::
+this branch, run back to back (13:53-13:56 UTC, load average 1.4-4.1; "after" is the shed
+branch before ``FusionConfig.supersede_after_s`` existed, i.e. coalescing as soon as a step
+is behind, today's ``--supersede-after-s 0``; with the default 0.5 s not measured here)::
 
                                           before (1ab98ea)         after
     estimates of 120,000                  59,832                   55,190
