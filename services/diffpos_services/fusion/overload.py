@@ -28,6 +28,12 @@ __all__ = ["BEHIND_KEEP_EPOCHS", "OverloadPolicy", "ready_span", "shed", "supers
 BEHIND_KEEP_EPOCHS = 1
 
 
+def _epochs(x: float, to_int) -> float:
+    """``to_int(x)`` [epochs]; +inf stays +inf (an infinite setting means never: the
+    FusionConfig accepts it, and ``math.floor``/``ceil`` of inf would raise)."""
+    return to_int(x) if math.isfinite(x) else math.inf
+
+
 def ready_span(ready: Iterable) -> int:
     """Newest minus oldest ready epoch [epochs] (0 when at most one epoch is ready)."""
     epochs = [pe.epoch for pe in ready]
@@ -77,11 +83,11 @@ class OverloadPolicy:
     the served record (:func:`supersede`'s ``served``)."""
 
     def __init__(self, config: Any) -> None:
+        period = config.epoch_period_s
         self.max_backlog_epochs = (None if config.max_backlog_s is None else
-                                   math.ceil(config.max_backlog_s / config.epoch_period_s))
+                                   _epochs(config.max_backlog_s / period, math.ceil))
         # the ready span (epochs) beyond which a behind step coalesces per node
-        self.supersede_span = math.floor(config.supersede_after_s / config.epoch_period_s
-                                         + 1e-9)
+        self.supersede_span = _epochs(config.supersede_after_s / period + 1e-9, math.floor)
         self.served: dict[str, int] = {}
         self._count = 0  # node-epochs taken by budgeted steps so far
 

@@ -1,0 +1,99 @@
+"""The live overload policy on its own (:class:`diffpos_services.fusion.overload.OverloadPolicy`):
+ready queues of synthetic epochs, no solver. The policy on a real core fed a backlog, with a
+replay by the decision record, is in tests/services/test_fusion_budget.py.
+
+References are written from the rule, not from the code: a node's newest epoch kept, counts,
+the order of the rounds; infinite settings mean "never" and must not crash the fusion.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+
+import pytest
+from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.core import FusionCore
+from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
+
+from diffpos.alignment import PendingEpoch
+
+
+def _queue(spec):
+    """A ready queue, oldest first: ``spec`` lists (node, epoch)."""
+    return collections.deque(PendingEpoch(n, e, 0) for n, e in spec)
+
+
+class _Policy:
+    """An OverloadPolicy with its own counters: ``apply(q, limit)``, ``took(node ids)``."""
+
+    def __init__(self, cfg: FusionConfig, counts: collections.Counter[str]) -> None:
+        self.policy, self.counts = OverloadPolicy(cfg), counts
+
+    def apply(self, q, limit):
+        return self.policy.apply(q, limit, self.counts)
+
+    def took(self, node_ids):
+        self.policy.taken([PendingEpoch(n, 0, 0) for n in node_ids])
+
+
+def _policy(**overrides):
+    cfg = FusionConfig(site="t", method="dnls", epoch_period_s=0.1, **overrides)
+    counts: collections.Counter[str] = collections.Counter()
+    return _Policy(cfg, counts), counts
+
+
+def _backlog(nodes, epochs):
+    return _queue((n, e) for e in epochs for n in nodes)
+
+
+def test_a_behind_step_keeps_each_nodes_newest_and_counts_the_rest():
+    """Span 0.9 s > 0.5 s: every node keeps its newest epoch; released = kept + superseded."""
+    nodes = ["a", "b", "c"]
+    pol, counts = _policy(max_backlog_s=2.0)
+    q = _backlog(nodes, range(10, 20))
+    out = pol.apply(q, limit=5)
+    assert sorted((pe.node_id, pe.epoch) for pe in out) == [(n, 19) for n in nodes]
+    assert counts["superseded"] + len(out) == len(q) and not counts["overloaded"]
+    assert BEHIND_KEEP_EPOCHS == 1  # the reference above keeps one
+
+
+def test_rounds_serve_the_least_recently_served_node_first():
+    """After a step took b then c, a never-served node comes first, then b, then c."""
+    pol, _ = _policy(max_backlog_s=2.0, supersede_after_s=0.0)
+    pol.took(["b", "c"])
+    out = pol.apply(_backlog(["b", "c", "a"], range(3)), limit=1)
+    assert [pe.node_id for pe in out] == ["a", "b", "c"]
+
+
+@pytest.mark.parametrize("spec", [[], [("a", 5)], [("a", 5), ("a", 6)]])
+def test_nothing_happens_when_the_step_takes_every_ready_epoch(spec):
+    pol, counts = _policy(max_backlog_s=2.0, supersede_after_s=0.0)
+    q = _queue(spec)
+    assert pol.apply(q, limit=len(q)) is q and pol.apply(q, limit=None) is q
+    assert not counts
+
+
+def test_one_node_alone_keeps_its_newest_epoch():
+    pol, counts = _policy(max_backlog_s=2.0)
+    out = pol.apply(_queue(("a", e) for e in range(30)), limit=3)
+    assert [(pe.node_id, pe.epoch) for pe in out] == [("a", 29)]
+    assert counts == {"superseded": 29}
+
+
+def test_infinite_settings_mean_never_and_do_not_crash_the_core():
+    """``--supersede-after-s inf`` / ``--max-backlog-s inf`` (FusionConfig accepts both: ``ge=0``,
+    ``gt=0``): the core starts (it raised OverflowError converting inf to epochs) and the
+    policy never coalesces, resp. never drops for age."""
+    for over in ({"supersede_after_s": math.inf}, {"max_backlog_s": math.inf}):
+        FusionCore(FusionConfig(site="t", method="dnls", epoch_period_s=0.1,
+                                **{"max_backlog_s": 2.0, **over}))
+    q = _backlog(["a", "b"], range(100))  # a 9.9 s span
+    pol, counts = _policy(max_backlog_s=2.0, supersede_after_s=math.inf)
+    out = pol.apply(q, limit=4)
+    assert not counts["superseded"] and counts["overloaded"] == len(q) - len(out)
+    assert {pe.epoch for pe in out} == set(range(79, 100))  # the last 2 s: 20 epochs + 1
+    pol, counts = _policy(max_backlog_s=math.inf, supersede_after_s=0.0)
+    out = pol.apply(q, limit=4)
+    assert [(pe.node_id, pe.epoch) for pe in out] == [("a", 99), ("b", 99)]
+    assert counts == {"superseded": len(q) - 2}
