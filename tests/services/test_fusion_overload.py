@@ -9,12 +9,17 @@ the order of the rounds; infinite settings mean "never" and must not crash the f
 from __future__ import annotations
 
 import collections
+import json
 import math
+from types import SimpleNamespace
 
+import msgspec
 import pytest
-from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.config import DEFAULT_SUPERSEDE_AFTER_S, FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
+from diffpos_services.recording.reader import SideRecords
+from diffpos_services.recording.replay import replay_settings
 
 from diffpos.alignment import PendingEpoch
 
@@ -97,3 +102,31 @@ def test_infinite_settings_mean_never_and_do_not_crash_the_core():
     out = pol.apply(q, limit=4)
     assert [(pe.node_id, pe.epoch) for pe in out] == [("a", 99), ("b", 99)]
     assert counts == {"superseded": len(q) - 2}
+
+
+def _settings_of(recorded: dict, **kw):
+    """replay_settings of a recording whose only record is metadata ``fusion_config``."""
+    md = SimpleNamespace(name="fusion_config",
+                         metadata={k: json.dumps(v) for k, v in recorded.items()})
+    return replay_settings(SimpleNamespace(channels={}), side=SideRecords(metadata=[md]),
+                           first_state=None, **kw).config
+
+
+def test_a_replay_of_a_recording_from_before_the_coalescing_does_not_coalesce():
+    """A live fusion recorded before ``supersede_after_s`` existed (its ``fusion_config`` has
+    ``max_backlog_s`` but no ``supersede_after_s``) only shed by age: a replay by its decision
+    record must not coalesce per node (the default 0.5 s would: not the live run's fixes).
+    A recording that names the setting, an override, or a fusion without the policy keep
+    theirs."""
+    old = msgspec.to_builtins(FusionConfig(site="t", method="dnls", max_backlog_s=2.0))
+    del old["supersede_after_s"]
+    cfg = _settings_of(old)
+    assert cfg.max_backlog_s == 2.0
+    pol = _Policy(cfg, collections.Counter())
+    q = _backlog(["a", "b"], range(10))  # 0.9 s of epochs, a step of 4: the old code shed none
+    assert pol.apply(q, limit=4) is q
+    new = {**old, "supersede_after_s": 0.3}
+    assert _settings_of(new).supersede_after_s == 0.3
+    assert _settings_of(old, overrides={"supersede_after_s": 0.2}).supersede_after_s == 0.2
+    off = {**old, "max_backlog_s": None}
+    assert _settings_of(off).supersede_after_s == DEFAULT_SUPERSEDE_AFTER_S

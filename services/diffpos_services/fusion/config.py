@@ -121,6 +121,11 @@ LIVE_MAX_BACKLOG_S = 2.0
 #: ``supersede_after_s`` when not given [s]: five epochs at 10 Hz; a stall or a start-up burst
 #: shorter than this costs no estimate, a fusion persistently behind lags about this much.
 DEFAULT_SUPERSEDE_AFTER_S = 0.5
+#: ``supersede_after_s`` of a replay of a live fusion recorded before the setting existed
+#: (2026-11-27: its ``fusion_config`` has ``max_backlog_s`` but no ``supersede_after_s``) [s]:
+#: that fusion did not coalesce per node (only the ``max_backlog_s`` drop), nor does the replay.
+#: Finite (a JSON number in the replay's settings); 1e9 s: no backlog spans it.
+LEGACY_SUPERSEDE_AFTER_S = 1e9
 
 
 #: ``kernel_threads`` when not given: 1. Live on a 2-core machine shared with the run's anchors,
