@@ -195,3 +195,42 @@ def test_cached_diffraction_existence_must_match():
     np.testing.assert_array_equal(cache.node[0], pos[0])
     np.testing.assert_array_equal(cache.pred[0], fresh[0])
     assert np.any(again[0][1, 0, 0] != first[0][1, 0, 0])  # pair 1 reused its cached values
+
+
+def test_anchor_columns_may_change_between_updates():
+    """The cache is matched by anchor position, not by column: between two updates the
+    anchors are permuted across the columns, one disappears and a new one (far from every
+    cached anchor) takes a column; the hypotheses move by less than the margin. Every link is
+    then scored as if predicted at the cached point (where the cache says it kept it) with
+    its own anchor: the float64 prediction there, equal up to the float32 rounding of the
+    reused values. A cache that matched columns would score links with another anchor's SNRs
+    (tens of dB apart)."""
+    b = BUILDINGS[1]
+    rng = np.random.default_rng(41)
+    pos, floor, anchors = _case(b, rng, n=8, m=6)
+    n, m = anchors.shape[:2]
+    reuse = (0.05, 0.1)
+    cache = _empty_cache(n, m)
+    links = _links(anchors, pos, rng, unknown=0.0)
+    pe = all_paths(pos, links, floor, b, 0.3)
+    ts._snr_cost_cached(pos, links, b, pe.sure, pe.loose | ts.ALWAYS_PREDICTED, pe.strict,
+                        cache, reuse)
+    old_node = cache.node.copy()
+    perm = np.array([3, 0, 5, 1, 2])  # column 4 disappears, the rest move
+    moved = anchors[:, perm].copy()
+    moved[:, 2] = [b.edge_x_m[1] + 30.0, -60.0, 40.0]  # a new anchor where anchor 5 was
+    pos2 = pos + 0.02 * rng.normal(size=pos.shape) / np.sqrt(3)
+    links2 = _links(moved, pos2, rng, unknown=0.0)
+    pe2 = all_paths(pos2, links2, floor, b, 0.3)
+    need = pe2.loose | ts.ALWAYS_PREDICTED
+    got = ts._snr_cost_cached(pos2, links2, b, pe2.sure, need, pe2.strict, cache, reuse)
+    kept = np.all(cache.node == old_node, axis=-1)[:, 0]
+    assert kept.sum() >= n // 2  # most hypotheses reused their point (non-vacuous)
+    for i in range(n):
+        one = links2.take(np.array([i]))
+        ref = ts._snr_cost_thr(cache.node[i:i + 1], one, b, trust=pe2.sure[i:i + 1],
+                               need=need[i:i + 1])
+        for g, r in zip((got[0][i], got[1][i]), (ref[0][0], ref[1][0]), strict=True):
+            np.testing.assert_array_equal(np.isfinite(g), np.isfinite(r))
+            np.testing.assert_allclose(g[np.isfinite(g)], r[np.isfinite(r)], rtol=1e-5,
+                                       atol=1e-5)
