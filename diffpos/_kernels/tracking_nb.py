@@ -320,6 +320,21 @@ def select_mix_kernel(length, valid, slot, best, ex_pack, extra, mix_arg):
 
 
 @njit(**_OPTS)
+def _keep_smallest(best, n_best, keep, t):
+    """Insert ``t`` into ``best[:n_best]`` (ascending) keeping the ``keep`` smallest values
+    (``t`` dropped when there are ``keep`` already and it is not smaller than the largest);
+    returns the new count."""
+    i = n_best if n_best < keep else keep - 1
+    if n_best == keep and not t < best[i]:
+        return n_best
+    while i > 0 and best[i - 1] > t:
+        best[i] = best[i - 1]
+        i -= 1
+    best[i] = t
+    return n_best + 1 if n_best < keep else n_best
+
+
+@njit(**_OPTS)
 def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff, relax, w_out,
                      keep, first_z, floor_h, sill, win_h, x0, x1, depth, total):
     """Robust max-mixture cost of every grid cell of the snapshot initialisation
@@ -365,8 +380,6 @@ def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff,
                 partial = 0.0
                 gone = False
                 for m in range(n_m):
-                    if gone:
-                        break
                     if not mask[n, m]:
                         link[m] = 0.0
                         continue
@@ -416,21 +429,15 @@ def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff,
                     if prune and n_best == keep:
                         partial += cost
                         gone = partial * (1.0 - 1e-9) > best[keep - 1]
+                        if gone:
+                            break
                 if gone:
                     total[n, f, c] = np.inf
                     continue
                 t = _pairwise_sum(link, n_m)
                 total[n, f, c] = t
-                if prune and t < np.inf:  # finite (not NaN, not +inf): insert, ascending
-                    i = n_best if n_best < keep else keep - 1
-                    if n_best == keep and not t < best[i]:
-                        continue
-                    while i > 0 and best[i - 1] > t:
-                        best[i] = best[i - 1]
-                        i -= 1
-                    best[i] = t
-                    if n_best < keep:
-                        n_best += 1
+                if prune and t < np.inf:  # finite (not NaN, not +inf)
+                    n_best = _keep_smallest(best, n_best, keep, t)
 
 
 @njit(**_OPTS)
