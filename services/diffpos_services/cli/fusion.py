@@ -144,9 +144,10 @@ def _add_overload_arguments(parser: argparse.ArgumentParser) -> None:
         default=LIVE_MAX_BACKLOG_S,
         metavar="S",
         help="when the fusion is slower than its input, solve each node's newest ready "
-        "epoch only (its older ones counted as rejected 'superseded', nodes served "
-        "round-robin) and drop ready epochs more than S seconds older than the newest "
-        "('overloaded'); 0: neither, a slow fusion only lags "
+        "epoch only once the backlog spans more than --supersede-after-s (its older ones "
+        "counted as rejected 'superseded', nodes served round-robin) and drop ready epochs "
+        "more than S seconds older than the newest ('overloaded'); 0: neither, a slow "
+        "fusion only lags "
         f"(default {LIVE_MAX_BACKLOG_S:g})",
     )
     parser.add_argument(

@@ -196,20 +196,22 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     max_backlog_s: Annotated[float, Meta(gt=0)] | None = None
     """The overload policy of steps with a ``limit`` (the live service), applied when more
     epochs are ready than the step takes (the fusion is slower than its input; a fusion that
-    keeps up is not affected): (1) of each node's ready epochs only the newest
-    ``core.BEHIND_KEEP_EPOCHS`` (1) are kept, in the queue places of the node's oldest, the
-    others dropped unsolved and counted in ``rejected["superseded"]`` (every node is served in
-    rounds with its newest data, the latency is about one round, the work per round bounded
-    by the number of nodes); (2) a ready epoch still more than this much measurement time
-    older than the newest ready one is dropped unsolved (``rejected["overloaded"]``: a round
-    of all nodes takes longer, or a node's ranges stopped). So a fusion slower than its input
-    degrades to a lower update rate per node at low latency and bounded memory instead of an
-    ever-growing backlog. Both decisions depend only on the released epochs and the step's
-    ``limit`` (in the decision record: a replay by it drops the same). ``None`` (the struct's
-    default: replay without decisions, tests): never drop anything. ``diffpos fusion`` and
-    ``diffpos emulate`` use :data:`LIVE_MAX_BACKLOG_S` (a lockstep ``emulate --speed 0``
-    none: its input is paced by the fusion's own estimates, it cannot fall behind real time).
-    Step (1) waits for :attr:`supersede_after_s`."""
+    keeps up is not affected): (1) once the ready epochs span more than
+    :attr:`supersede_after_s`, of each node's ready epochs only the newest
+    ``overload.BEHIND_KEEP_EPOCHS`` (1) are kept, the nodes queued least recently served
+    first, the others dropped unsolved and counted in ``rejected["superseded"]`` (every node
+    is served in rounds with its newest data, the latency is about one round, the work per
+    round bounded by the number of nodes); (2) a ready epoch still more than this much
+    measurement time older than the newest ready one is dropped unsolved
+    (``rejected["overloaded"]``: a round of all nodes takes longer, or a node's ranges
+    stopped). So a fusion slower than its input degrades to a lower update rate per node at
+    low latency and bounded memory instead of an ever-growing backlog. Both decisions depend
+    only on the released epochs, the earlier steps and the step's ``limit`` (in the decision
+    record: a replay by it drops the same; :mod:`diffpos_services.fusion.overload`).
+    ``None`` (the struct's default: replay without decisions, tests): never drop anything.
+    ``diffpos fusion`` and ``diffpos emulate`` use :data:`LIVE_MAX_BACKLOG_S` (a lockstep
+    ``emulate --speed 0`` none: its input is paced by the fusion's own estimates, it cannot
+    fall behind real time)."""
     supersede_after_s: Annotated[float, Meta(ge=0)] = DEFAULT_SUPERSEDE_AFTER_S
     """With :attr:`max_backlog_s`: the per-node coalescing (``rejected["superseded"]``) acts
     only once the ready epochs span more than this much measurement time (newest - oldest);

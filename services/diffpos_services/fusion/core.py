@@ -454,7 +454,7 @@ class FusionCore:
     def step(self, now_wall_ns: int, *, limit: int | None = None,
              emit: Any = None) -> list[M.PositionEstimate]:
         """Solve the ready epochs (batched D-NLS calls of at most ``max_fixes_per_step``
-        epochs each, bounded working memory) and return the estimates, oldest first.
+        epochs each, bounded working memory) and return the estimates in queue order.
 
         With ``limit``, solve at most that many and keep the rest for the next call (the live
         service ingests in between after a stall, see :attr:`backlog`), and do at most
@@ -466,11 +466,11 @@ class FusionCore:
 
         With ``max_backlog_s`` set (the live fusion), a step with more ready epochs than its
         ``limit``, once they span more than ``supersede_after_s``, first keeps only each
-        node's :data:`BEHIND_KEEP_EPOCHS` newest ready epochs
-        (``superseded``) and then drops what is more than ``max_backlog_s`` behind the
-        newest (``overloaded``; :class:`~diffpos_services.fusion.overload.OverloadPolicy`). A fusion
-        that keeps up (never more ready than the limit) is not affected, nor is a backlog
-        that holds at most that many epochs of each node.
+        node's :data:`BEHIND_KEEP_EPOCHS` newest ready epochs, nodes least recently served
+        first (``superseded``), and then drops what is more than ``max_backlog_s`` behind the
+        newest (``overloaded``; :class:`~diffpos_services.fusion.overload.OverloadPolicy`).
+        The queue is oldest first unless the policy reordered it. A fusion that keeps up
+        (never more ready than the limit) is not affected.
         """
         live = self.live_anchors
         released = self.book.ready(live, now_wall_ns)
