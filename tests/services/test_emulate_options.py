@@ -14,6 +14,7 @@ import threading
 import pytest
 from diffpos_services.anchor.service import load_scenario_file
 from diffpos_services.bus.commands import recorder_args
+from diffpos_services.cli import fusion as cli_fusion
 from diffpos_services.cli import main as cli
 from diffpos_services.cli import recorder as cli_recorder
 from diffpos_services.emulate import Emulation, EmulationOptions
@@ -67,6 +68,26 @@ def test_fusion_started_by_emulate_accepts_only_the_scenarios_anchors():
     i = emu.fusion_args.index("--anchors")
     assert emu.fusion_args[i + 1].split(",") == emu.anchor_ids == ["uav1", "uav2", "uav3", "uav4"]
     assert list(emu.fusion_config.anchors) == emu.anchor_ids
+
+
+
+@pytest.mark.parametrize(("speed", "method"), [(1.0, None), (0.0, None), (0.0, "mnls"),
+                                               (5.0, "dnls")])
+def test_the_recorded_fusion_config_is_the_one_the_fusion_parses(speed, method):
+    """The run configuration emulate records for replay (``Emulation.fusion_config``) equals
+    the config the fusion process builds from emulate's ``fusion_args`` with the real
+    ``diffpos fusion`` CLI, lockstep (``--speed 0``: no overload policy) or not: a replay by
+    the decision record uses the recorded one, so any difference (e.g. max_backlog_s,
+    supersede_after_s) would make it drop other epochs than the live fusion."""
+    emu = Emulation(EmulationOptions(record="off", dashboard=["off"], speed=speed,
+                                     method=method),
+                    logging.getLogger("test"), threading.Event())
+    ap = argparse.ArgumentParser()
+    cli_fusion.add_arguments(ap)
+    args = ap.parse_args(emu.fusion_args)
+    parsed = cli_fusion.config_from_args(args, load_scenario_option(args.scenario))
+    assert parsed == emu.fusion_config
+    assert (emu.fusion_config.max_backlog_s is None) == (speed == 0)
 
 
 # ------------------------------------------------------------------ one recorder command line
