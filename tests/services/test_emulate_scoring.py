@@ -107,3 +107,17 @@ def test_summary_without_notes_has_no_notes_row():
     s = _full_summary()
     del s["notes"]
     assert "notes" not in format_summary(s, width=80)
+
+
+def test_summary_says_node_epochs_the_overload_policy_dropped_apart_from_ranges():
+    """``superseded`` / ``overloaded`` count node-epochs a fusion behind its input did not
+    solve, not ranges: the gating row lists them apart from the rejected ranges."""
+    s = _full_summary()
+    s["fusion"]["rejected"] = {"late": 2, "superseded": 40, "overloaded": 3}
+    flat = " ".join(x.strip() for x in format_summary(s, width=100).splitlines())
+    assert "ranges rejected: late 2;" in flat
+    assert "node-epochs not solved (the fusion was behind its input): superseded 40, " \
+           "overloaded 3" in flat
+    s["fusion"]["rejected"] = {"superseded": 5}
+    flat = " ".join(x.strip() for x in format_summary(s, width=100).splitlines())
+    assert "ranges rejected: 0;" in flat and "superseded 5" in flat

@@ -181,6 +181,10 @@ def _wrap_rows(rows: list[tuple[str, str]], width: int) -> str:
     return "\n".join(out)
 
 
+#: ``rejected`` reasons that count node-epochs the live overload policy did not solve
+#: (``fusion.overload``), not ranges
+_NODE_EPOCH_REASONS = ("superseded", "overloaded")
+
 def _gating_rows(s: dict[str, Any], f) -> list[tuple[str, str]]:
     """The fusion's counters, worded so they cannot be mistaken for the status counts: a fix
     that failed the consistency test is a GATING_FAILED estimate (the ``status`` row); the
@@ -191,12 +195,18 @@ def _gating_rows(s: dict[str, Any], f) -> list[tuple[str, str]]:
     lat = fu["latency_ms"]
     failed = s.get("status", {}).get("GATING_FAILED", 0)
     rej = fu["rejected"] or 0
-    if isinstance(rej, dict):  # per reason
-        rej = ", ".join(f"{k} {v}" for k, v in sorted(rej.items())) or "0"
+    behind = ""
+    if isinstance(rej, dict):  # per reason; the overload policy's counts are node-epochs
+        shed = {k: rej[k] for k in _NODE_EPOCH_REASONS if rej.get(k)}
+        rej = ", ".join(f"{k} {v}" for k, v in sorted(rej.items())
+                        if k not in _NODE_EPOCH_REASONS) or "0"
+        if shed:
+            behind = ("; node-epochs not solved (the fusion was behind its input): "
+                      + ", ".join(f"{k} {v}" for k, v in shed.items()))
     return [
         ("gating", f"{failed} estimates GATING_FAILED (whole fix rejected); "
                    f"{fu['gated']} single measurements excluded from fixes; ranges "
-                   f"rejected: {rej}; late ranges {fu['late_ranges']}"),
+                   f"rejected: {rej}; late ranges {fu['late_ranges']}{behind}"),
         ("fusion latency", f"p50 {f(lat['p50'], ' ms')}  p99 {f(lat['p99'], ' ms')}"),
     ]
 
