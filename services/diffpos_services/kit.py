@@ -366,6 +366,11 @@ class LogOnce:
 
 
 # ----------------------------------------------------------------------------- shutdown
+#: The longest a :meth:`Shutdown.wait` blocks before it lets Python run pending signal
+#: handlers [s].
+SIGNAL_POLL_S = 0.25
+
+
 class Shutdown:
     """SIGINT/SIGTERM/SIGHUP -> ``event``; the main loop waits on it and exits its ``with``
     blocks (a closed terminal stops a service cleanly instead of killing it mid-write).
@@ -401,7 +406,20 @@ class Shutdown:
         return self.event.is_set()
 
     def wait(self, timeout: float | None = None) -> bool:
-        return self.event.wait(timeout)
+        """Wait for the event (``timeout`` [s], None: until set), waking at least every
+        :data:`SIGNAL_POLL_S`: a process-directed signal may be delivered to any thread (a
+        Zenoh thread), and Python runs its handler only when the main thread next runs
+        bytecode; a main thread blocked without a timeout then never wakes (a router child
+        of a SIGKILLed ``diffpos emulate`` was left running this way under load)."""
+        if timeout is None:
+            while not self.event.wait(SIGNAL_POLL_S):
+                pass
+            return True
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            if self.event.wait(min(left, SIGNAL_POLL_S)):
+                return True
+        return self.event.is_set()
 
     def set(self) -> None:
         self.event.set()
