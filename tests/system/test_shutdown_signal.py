@@ -10,13 +10,18 @@ import sys
 import textwrap
 
 _CHILD = textwrap.dedent("""
-    import signal, sys, threading, time
+    import signal, sys, threading
     from diffpos_services.kit import Shutdown
     stop = Shutdown()
     ready = threading.Event()
-    def poke():  # SIGTERM to this thread, not the main one, while main waits
+    def blocked(tid):  # the main thread sleeps in the kernel (state S in /proc)
+        with open(f"/proc/self/task/{tid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "S"
+    def poke():  # SIGTERM to this thread, not the main one, once main waits
         ready.wait()
-        time.sleep(0.3)
+        tid = threading.main_thread().native_id
+        while not blocked(tid):
+            pass
         signal.pthread_kill(threading.get_ident(), signal.SIGTERM)
     threading.Thread(target=poke, daemon=True).start()
     ready.set()
