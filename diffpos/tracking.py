@@ -308,8 +308,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     if idx.size:
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
             st, links, idx, t, inflow, dt_s, building, config)
-        snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
-                          zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"), strict=True))
+        if "snr_node" in new:  # the SNR cache carried along (tracking_snr.snr_reuse_on)
+            snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
+                              zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"),
+                                  strict=True))
         mean[idx], cov[idx], lp[idx], nis[idx] = new["mean"], new["cov"], new["log_prob"], \
             new["nis"]
         llr[idx], upd[idx], below[idx] = new["dormant_llr"], new["updated_ns"], \
@@ -341,7 +343,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         origin[jdx] = t[jdx]
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
-    if not idx.size:
+    if snr_cache[0] is st.snr_node:  # not updated: the new state owns its arrays
         snr_cache = tuple(a.copy() for a in snr_cache)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,

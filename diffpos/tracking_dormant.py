@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .tracking_model import Links, measurement_update
-from .tracking_snr import SnrCache
+from .tracking_snr import SnrCache, snr_reuse_on
 from .tracking_state import (
     FloatArray,
     TrackerConfig,
@@ -145,7 +145,8 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     m0, c0, lp0, llr0 = state.mean[idx], state.cov[idx], state.log_prob[idx], \
         state.dormant_llr[idx]
     x, p = m0.copy(), c0.copy()
-    snr_cache = (state.snr_node[idx], state.snr_anchor[idx], state.snr_pred[idx])  # copies
+    snr_cache = ((state.snr_node[idx], state.snr_anchor[idx], state.snr_pred[idx])  # copies
+                 if snr_reuse_on(config) else None)
     ev, slot = np.full((n, h), np.nan), np.full((n, h, m), -1)
     nis_h, res = np.full((n, h, m), np.nan), np.full((n, h, m), np.nan)
     log_thr = _dormant_log_p(dt_s[idx], nf, config)[:, None]
@@ -189,6 +190,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     asleep = below >= max(config.dormant_epochs, 1)
     new = {"mean": x, "cov": p, "log_prob": lp, "nis": nis, "below_epochs": below,
            "dormant_llr": np.where(asleep, np.where(run, llr, llr0), np.nan),
-           "updated_ns": np.where(run, t_ns[idx, None], state.updated_ns[idx]),
-           "snr_node": snr_cache[0], "snr_anchor": snr_cache[1], "snr_pred": snr_cache[2]}
+           "updated_ns": np.where(run, t_ns[idx, None], state.updated_ns[idx])}
+    if snr_cache is not None:  # the SNR cache's rows (reuse off: the state's stay as they are)
+        new.update(zip(("snr_node", "snr_anchor", "snr_pred"), snr_cache, strict=True))
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]

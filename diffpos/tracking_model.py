@@ -77,6 +77,7 @@ from .tracking_snr import (  # noqa: F401  (moved there, still importable from h
     _snr_cost_thr,
     snr_cost,
     snr_cost_near,
+    snr_reuse_on,
 )
 
 FloatArray = NDArray[np.float64]
@@ -504,9 +505,9 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     relax = (config.exist_margin_m if level is None
              else existence_margin(p_prior, config))
     pe0 = all_paths(xc, links, floor, building, relax)
-    reuse = (config.snr_reuse_m, config.snr_reuse_anchor_m)
     snr_c = snr_cost_near(xc, links, floor, building, relax, pe0,
-                          cache=snr_cache if max(reuse) > 0 else None, reuse_m=reuse)
+                          cache=snr_cache if snr_reuse_on(config) else None,
+                          reuse_m=(config.snr_reuse_m, config.snr_reuse_anchor_m))
     info = prior_information(p_prior)  # shared by the passes
     p = p_prior
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit

@@ -44,7 +44,7 @@ from .tracking_paths import _IS_BAND, K_SLOTS, Links, PathEval, _c, _relax, all_
 from .tracking_state import SNR_CACHE_SLOTS
 
 __all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "SnrCache", "snr_cost",
-           "snr_cost_near"]
+           "snr_cost_near", "snr_reuse_on"]
 
 FloatArray = NDArray[np.float64]
 #: Standard deviation of a slot's predicted SNR against the measured one [dB]: a factor 2 in
@@ -95,6 +95,12 @@ class SnrCache:
     node: FloatArray
     anchor: FloatArray
     pred: FloatArray
+
+
+def snr_reuse_on(config) -> bool:
+    """Whether the tracker reuses cached SNR predictions (``TrackerConfig.snr_reuse_m`` /
+    ``snr_reuse_anchor_m``, both 0: off, the cache is neither read nor carried along)."""
+    return max(config.snr_reuse_m, config.snr_reuse_anchor_m) > 0
 
 
 def snr_cost(pos: FloatArray, links: Links, building, trust: NDArray | None = None
