@@ -71,7 +71,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_latency import PERIOD_NS, rss_mb, scenario_toml
+from bench_latency import PERIOD_NS, cpu_s, rss_mb, scenario_toml
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.kit import free_tcp_port, stop_process_groups
 from diffpos_services.wire import messages as M
@@ -227,6 +227,7 @@ def run_soak(
     per_minute: list[LatencyHistogram] = []
     statuses: dict[str, int] = {}
     rss: dict[str, list[tuple[float, float]]] = {}
+    cpu: dict[str, list[tuple[float, float]]] = {}
     out_of_run = 0
     aoi = AgeOfInformation()
     diag = None
@@ -285,9 +286,11 @@ def run_soak(
                 if now >= next_rss:
                     t_rel = (time.time_ns() - t0) * 1e-9
                     for name, pid in pids.items():
-                        v = rss_mb(pid)
+                        v, c = rss_mb(pid), cpu_s(pid)
                         if v is not None:
                             rss.setdefault(name, []).append((t_rel, v))
+                        if c is not None:
+                            cpu.setdefault(name, []).append((t_rel, c))
                     next_rss += rss_period_s
                     hist.add(lat_chunk)
                     minute = max(int(t_rel // 60), 0)
@@ -367,6 +370,7 @@ def run_soak(
                      "slope_mb_per_min": _slope_mb_per_min(after),
                      "samples": [[round(t, 1), round(v, 1)] for t, v in samples]}
     result["rss"] = mem
+    result["cpu_cores"] = _cpu_cores(cpu)
     # ---- recorder
     if recorder:
         result["recorder"] = _recorder_summary(log_dir / f"{site}-recorder.log")
@@ -444,6 +448,19 @@ def _per_node_summary(seen: np.ndarray, duration_s: float) -> dict:
             "nodes_without_estimate": int((~got.any(axis=1)).sum())}
 
 
+def _cpu_cores(cpu: dict[str, list[tuple[float, float]]]) -> dict[str, float]:
+    """Mean CPU use of every role over the run (cores: CPU seconds per wall second between
+    the first sample at or after the run's start and the last one; the anchors summed)."""
+    out: dict[str, float] = {}
+    for name, samples in cpu.items():
+        run = [s for s in samples if s[0] >= 0.0]
+        if len(run) < 2 or run[-1][0] <= run[0][0]:
+            continue
+        role = "anchors" if name.startswith("uav") else name
+        out[role] = out.get(role, 0.0) + (run[-1][1] - run[0][1]) / (run[-1][0] - run[0][0])
+    return {k: round(v, 3) for k, v in out.items()}
+
+
 def _recorder_summary(log_path: Path) -> dict:
     """The recorder's final JSON status line ("closed": received, written, gaps...)."""
     out: dict = {}
@@ -503,6 +520,10 @@ def format_report(r: dict) -> str:
         rg = r["recording"]
         lines.append(f"recording: {rg['messages_by_kind']}, anchor sequence holes "
                      f"{rg['anchor_seq_holes'] or 'none'}")
+    if r.get("cpu_cores"):
+        lines.append("CPU over the run [cores]: " + ", ".join(
+            f"{k} {v:.2f}" for k, v in r["cpu_cores"].items())
+            + f" (total {sum(r['cpu_cores'].values()):.2f} of {os.cpu_count()})")
     lines.append(f"{'process':>10} {'RSS start':>10} {'end':>8} {'max':>8} {'growth':>8} "
                  f"{'MB/min':>8}")
     for name, m in r["rss"].items():
