@@ -86,6 +86,7 @@ from diffpos.tracking import (
 )
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
+from diffpos_services.fusion.workers import INIT_COST, MNLS_COST, RowPool
 from diffpos_services.wire import messages as M
 
 __all__ = ["HEAVY_MIN_OPERATIONS", "HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved",
@@ -167,6 +168,9 @@ class TrackBank:
         self.snapshot_ns: dict[str, int] = {}  # measurement time of each node's last snapshot
         self.deferred = 0  # initialisations deferred by a step's work budget (solve_mnls)
         self.snapshot_epochs = 0  # snapshot credit of the budgeted steps [epochs solved]
+        #: the row-parallel worker pool (FusionConfig.workers > 1; set by the service or
+        #: replay): the update's and the snapshot fixes' rows split over processes, same numbers
+        self.pool: RowPool | None = None
 
     def snapshot_allowance(self, n_epochs: int) -> int:
         """Snapshot fixes a budgeted step solving ``n_epochs`` epochs may do: the credit of
@@ -248,11 +252,25 @@ class TrackBank:
         rows = self.rows_of(node_ids)
         fields = TrackerState.__dataclass_fields__
         sub = TrackerState(*(getattr(self.state, f)[rows] for f in fields))
-        new, out = update(sub, anchors, ranges, sigmas, mask, t_ns, self.building, self.config,
-                          snr_db=snr_db, radio=self.radio if radio is None else radio)
+        radio = self.radio if radio is None else radio
+        args = (sub, anchors, ranges, sigmas, mask, t_ns, snr_db)
+        if self.pool is None or self.pool.building is not self.building:
+            new, out = _update_rows(self.building, *args, self.config, radio)
+        else:  # an initialisation costs ~INIT_COST updates: the shares balanced by it
+            cost = np.where(self.needs_init(rows, np.count_nonzero(mask, axis=1)), INIT_COST,
+                            1.0)
+            new, out = self.pool.map_rows("update", args, cost,
+                                          lambda *a: _update_rows(self.building, *a),
+                                          shared=(self.config, radio))
         for f in fields:  # the rows in place (the bank's arrays are its own: rows_of copies)
             getattr(self.state, f)[rows] = getattr(new, f)
         return out
+
+
+def _update_rows(building, sub, anchors, ranges, sigmas, mask, t_ns, snr_db, config, radio):
+    """:func:`diffpos.tracking.update` of ``sub``'s rows (what a worker runs for its share)."""
+    return update(sub, anchors, ranges, sigmas, mask, t_ns, building, config, snr_db=snr_db,
+                  radio=radio)
 
 
 @dataclass
@@ -271,15 +289,23 @@ class Solved:
 
 
 def _mnls_rows(res: Results, rows: np.ndarray, prep: Prepared, batch: Batch, model,
-               floor: np.ndarray, prob: np.ndarray, mech: np.ndarray) -> None:
+               floor: np.ndarray, prob: np.ndarray, mech: np.ndarray,
+               pool: RowPool | None = None) -> None:
     """The mnls fixes of ``rows`` into ``res`` and the floor/mechanism arrays (``model``:
-    (building, radio or None))."""
+    (building, radio or None); ``pool``: the rows split over its workers, same numbers)."""
     if rows.size == 0:
         return
     building, radio = model
-    fix = est.mnls(prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
-                   building=building, mask=batch.use[rows],
-                   snr_db=None if radio is None else batch.snr[rows], radio=radio)
+    args = (prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows], batch.use[rows],
+            None if radio is None else batch.snr[rows])
+
+    def here(apos, rng, sig, mask, snr, radio_):
+        return est.mnls(apos, rng, sig, building=building, mask=mask, snr_db=snr, radio=radio_)
+
+    if pool is None or pool.building is not building:
+        fix = here(*args, radio)
+    else:
+        fix = pool.map_rows("mnls", args, np.full(rows.size, MNLS_COST), here, shared=(radio,))
     res.put(rows, fix)
     floor[rows] = fix.floor
     prob[rows] = fix.floor_probability
@@ -369,7 +395,8 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
                                   min(left, snaps))
         left -= int(due[rows].sum())
         snaps -= int(due[rows].sum())
-        _mnls_rows(snap, rows[due[rows]], prep, batch, model, s_floor, s_prob, s_mech)
+        _mnls_rows(snap, rows[due[rows]], prep, batch, model, s_floor, s_prob, s_mech,
+                   bank.pool)
         out = bank.update(ids, prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
                           use_r, batch.t_ref[rows], snr_db=batch.snr[rows], radio=model[1])
         res.pos[rows], res.cov[rows] = out.position_m, out.covariance_m2

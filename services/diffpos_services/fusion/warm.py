@@ -3,7 +3,9 @@
 :func:`warm_up` runs one tiny problem through every solver the core will call (D-NLS; with the
 method ``mnls`` also M-NLS, the compiled SNR prediction and a throw-away tracker), so imports,
 numba cache loads and first calls happen before the first real epoch, which is then not late.
-The core's own state (tracks, tracker bank, counters) is left untouched.
+The core's own state (tracks, tracker bank, counters) is left untouched. :func:`warm_model`
+is the mnls + tracker part, also run by each worker process of
+:mod:`diffpos_services.fusion.workers` before it says ready.
 """
 
 from __future__ import annotations
@@ -15,25 +17,44 @@ import numpy as np
 import diffpos.estimators as est
 from diffpos.channel import pair_snr_db
 from diffpos.geometry import window_edge_path
-from diffpos_services.fusion.tracked import TrackBank
+from diffpos.tracking import TrackerConfig, init_state, update
 
-__all__ = ["warm_up"]
+__all__ = ["warm_model", "warm_up"]
+
+_ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
+                     [15.0, -20.0, 1.0]])
+
+
+def _problem(window_height_m: float, first_floor_z_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A node on the first floor and its four window-edge ranges [m]."""
+    node = np.array([1.0, 5.0, first_floor_z_m + 1.5])
+    return node, window_edge_path(_ANCHORS, node, window_height_m=window_height_m).length_m
+
+
+def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_m: float
+               ) -> None:
+    """M-NLS, the SNR prediction (with ``radio``) and a throw-away tracker's update on one
+    tiny problem in ``building``."""
+    node, r = _problem(window_height_m, first_floor_z_m)
+    sig, mask = np.full((1, 4), 0.1), np.ones((1, 4), bool)
+    est.mnls(_ANCHORS[None], r[None], sig, building=building)
+    snr = None
+    if radio is not None:  # the compiled SNR prediction (loaded from cache)
+        snr = pair_snr_db(_ANCHORS[None], node[None], building=building, radio=radio)
+        snr = np.broadcast_to(np.asarray(snr, dtype=np.float64), (1, 4)).copy()
+    update(init_state(1, building), _ANCHORS[None], r[None], sig, mask,
+           np.zeros(1, np.int64), building, TrackerConfig())
+    if snr is not None:
+        update(init_state(1, building), _ANCHORS[None], r[None], sig, mask,
+               np.zeros(1, np.int64), building, TrackerConfig(), snr_db=snr, radio=radio)
 
 
 def warm_up(core: Any) -> None:
     """Solve one 4-anchor problem with ``core``'s solvers (a :class:`FusionCore
     <diffpos_services.fusion.core.FusionCore>`), changing none of its state."""
     cfg = core.config
-    anchors = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
-                        [15.0, -20.0, 1.0]])
-    node = np.array([1.0, 5.0, cfg.first_floor_z_m + 1.5])
-    r = window_edge_path(anchors, node, window_height_m=cfg.window_height_m).length_m
-    est.dnls(anchors[None], r[None], np.full((1, 4), 0.1), window_height_m=cfg.window_height_m,
+    _, r = _problem(cfg.window_height_m, cfg.first_floor_z_m)
+    est.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1), window_height_m=cfg.window_height_m,
              gating=core.gating)
     if core.building is not None:  # a throw-away tracker: the core's state is untouched
-        est.mnls(anchors[None], r[None], np.full((1, 4), 0.1), building=core.building)
-        if core.model[1] is not None:  # the compiled SNR prediction (loaded from cache)
-            pair_snr_db(anchors[None], node[None], building=core.building, radio=core.model[1])
-        TrackBank(core.building).update(["warm-up"], anchors[None], r[None],
-                                        np.full((1, 4), 0.1), np.ones((1, 4), bool),
-                                        np.zeros(1, np.int64))
+        warm_model(core.building, core.model[1], cfg.window_height_m, cfg.first_floor_z_m)

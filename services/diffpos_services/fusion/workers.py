@@ -1,0 +1,347 @@
+"""Row-parallel process pool for the fusion's heavy per-node work (``FusionConfig.workers``).
+
+Why: live, the fusion of the ``16 anchors x 200 nodes x 10 Hz`` soak is one saturated core
+(2026-11-27: fusion 0.95 of a core, ~0.6 of the machine's second core idle) and ~79 % of its
+CPU is per-node work whose rows are independent bit for bit: the tracker update
+(:func:`diffpos.tracking.update`, 64 %) and the M-NLS snapshot fixes
+(:func:`diffpos.estimators.mnls`, 15 %). :class:`RowPool` splits such a call's rows into
+contiguous shares balanced by an estimated cost, sends ``workers - 1`` shares to worker
+processes (pickled numpy over a :func:`multiprocessing.Pipe`), computes the first share in the
+calling process meanwhile (no idle main) and concatenates the results in row order: the numbers
+are those of one call, whatever the number of workers (tests/services/test_fusion_workers.py).
+
+- Processes are started with the ``spawn`` context (fork + exec: nothing of the parent's
+  Zenoh session or threads is copied; safe after ``zenoh.open()``); each imports the core,
+  warms the numba kernels (:func:`diffpos_services.fusion.warm.warm_model`) and only then says
+  ``ready``; :meth:`RowPool.wait_ready` is called before the service declares itself ready.
+- A worker dies with the fusion: it asks the kernel for SIGKILL when its parent dies
+  (``prctl(PR_SET_PDEATHSIG)``, as :func:`diffpos_services.kit.die_with_parent`) and a closed
+  pipe (EOF) ends it too.
+- A worker that dies, times out or raises loses nothing: its share is computed in the calling
+  process, the failure is logged and counted (:attr:`RowPool.failures`); a dead one is restarted
+  (at most :data:`MAX_RESTARTS` times each, then the pool runs with fewer workers). A restarted
+  worker is used again once it said ``ready`` (polled, never waited for on the hot path).
+- Calls cheaper than :data:`MIN_PARALLEL_COST` stay in the calling process (the IPC and the
+  per-call cost of the tracker would exceed the gain).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import ctypes
+import ctypes.util
+import dataclasses
+import itertools
+import logging
+import multiprocessing as mp
+import os
+import signal
+import sys
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+import diffpos.estimators as est
+from diffpos.tracking import update
+from diffpos_services.fusion.warm import warm_model
+from diffpos_services.kit import log_event
+
+__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "RowPool", "concat_rows", "share_bounds",
+           "take_rows"]
+
+#: Cost of a row the tracker initialises (UNINITIALISED or LOST with enough ranges: the grid
+#: snapshot of :func:`diffpos.tracking_model.snapshot_init`) in units of one row's update: an
+#: initialisation costs ~5 ms with 8 anchors, an update ~0.6 ms (tracked.py's measurements):
+#: a share of new nodes is balanced against ~8 updates each.
+INIT_COST = 8.0
+#: Smallest call (in cost units: one per updated row, :data:`INIT_COST` per initialisation,
+#: one per M-NLS fix times :data:`MNLS_COST`) split across the workers. Below it a call stays
+#: local: ~24 rows of update is ~14 ms of CPU, against ~1 ms of pickling and pipe transfer
+#: both ways and the tracker's fixed per-call cost (~2.6 ms) paid once more per share.
+MIN_PARALLEL_COST = 24.0
+#: Cost of one M-NLS snapshot fix in update units (~3.5 ms vs ~0.6 ms with 8 anchors).
+MNLS_COST = 6.0
+#: Restarts of one worker slot after it died; after that the pool runs without it.
+MAX_RESTARTS = 3
+#: Seconds a share may take before its worker is presumed hung (killed, share done locally):
+#: a fixed part plus a part per cost unit (an initialisation ~5 ms; 0.1 s per unit is ~20x
+#: that, for a loaded machine).
+TIMEOUT_BASE_S = 30.0
+TIMEOUT_PER_COST_S = 0.1
+_PR_SET_PDEATHSIG = 1
+
+
+# ------------------------------------------------------------------------ row slicing
+def take_rows(x: Any, sl: slice) -> Any:
+    """Rows ``sl`` of ``x``: an array (axis 0), a dataclass of arrays (every array field),
+    a tuple of those, or None/scalars (unchanged)."""
+    if isinstance(x, np.ndarray):
+        return x[sl] if x.ndim else x
+    if isinstance(x, tuple):
+        return tuple(take_rows(v, sl) for v in x)
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return dataclasses.replace(x, **{f.name: take_rows(getattr(x, f.name), sl)
+                                         for f in dataclasses.fields(x) if f.init})
+    return x
+
+
+def concat_rows(parts: list[Any]) -> Any:
+    """The inverse of :func:`take_rows` over consecutive shares: arrays concatenated on axis
+    0, dataclasses and tuples field by field, anything else taken from the first part."""
+    first = parts[0]
+    if len(parts) == 1:
+        return first
+    if isinstance(first, np.ndarray):
+        return np.concatenate(parts) if first.ndim else first
+    if isinstance(first, tuple):
+        return tuple(concat_rows([p[i] for p in parts]) for i in range(len(first)))
+    if dataclasses.is_dataclass(first) and not isinstance(first, type):
+        return dataclasses.replace(first, **{
+            f.name: concat_rows([getattr(p, f.name) for p in parts])
+            for f in dataclasses.fields(first) if f.init})
+    return first
+
+
+def share_bounds(cost: np.ndarray, n: int) -> list[slice]:
+    """At most ``n`` non-empty contiguous slices of ``range(len(cost))`` with about equal
+    total cost (each row's ``cost`` > 0), in row order."""
+    c = np.cumsum(np.asarray(cost, dtype=np.float64))
+    if c.size == 0:
+        return []
+    # the k-th cut after the first row whose cumulative cost reaches k/n of the total
+    cuts = np.searchsorted(c, c[-1] * np.arange(1, n) / n, side="left") + 1
+    edges = np.unique(np.concatenate([[0], np.minimum(cuts, c.size), [c.size]]))
+    return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges.tolist()) if b > a]
+
+
+# ------------------------------------------------------------------------ the worker
+def _task_update(model: tuple, sub, anchors, ranges, sigmas, mask, t_ns, snr_db, config,
+                 radio):
+    return update(sub, anchors, ranges, sigmas, mask, t_ns, model[0], config,
+                  snr_db=snr_db, radio=radio)
+
+
+def _task_mnls(model: tuple, apos, rng, sig, mask, snr_db, radio):
+    return est.mnls(apos, rng, sig, building=model[0], mask=mask, snr_db=snr_db, radio=radio)
+
+
+def _task_fail(model: tuple, *args):
+    """Fault injection for the tests: the worker raises, the caller computes locally."""
+    raise RuntimeError("injected worker failure")
+
+
+#: what a worker computes (the calling process runs the same functions for its own share)
+TASKS: dict[str, Callable[..., Any]] = {"update": _task_update, "mnls": _task_mnls,
+                                        "fail": _task_fail}
+
+
+def _die_with(parent_pid: int) -> None:
+    """SIGKILL when the parent dies (Linux), and exit at once if it is gone already."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    if os.getppid() != parent_pid:
+        os._exit(0)
+
+
+def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
+    """A worker process: warm up on ``model`` = (building, radio or None, window height,
+    first floor z), say ``ready``, then answer ``(kind, args)`` requests with ``("ok",
+    result)`` or ``("err", traceback)`` until ``stop`` or EOF (the parent is gone)."""
+    _die_with(parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the fusion stops us (or EOF)
+    warm_model(*model)
+    conn.send(("ready", os.getpid()))
+    while True:
+        try:
+            kind, args = conn.recv()
+        except (EOFError, OSError):
+            return
+        if kind == "stop":
+            return
+        try:
+            reply = ("ok", TASKS[kind](model, *args))
+        except Exception:  # reported to the caller, which computes the share locally
+            reply = ("err", traceback.format_exc(limit=8))
+        try:
+            conn.send(reply)
+        except (OSError, ValueError):
+            return
+
+
+# ------------------------------------------------------------------------ the pool
+@dataclasses.dataclass
+class _Slot:
+    proc: Any = None
+    conn: Any = None
+    ready: bool = False
+    restarts: int = 0
+    pid: int | None = None
+
+
+class RowPool:
+    """``workers - 1`` worker processes plus the calling process (see the module docstring).
+
+    Parameters
+    ----------
+    workers : int
+        Processes sharing a call's rows, the calling one included (1: no process started,
+        every call local).
+    model : tuple
+        (building, radio or None, window_height_m, first_floor_z_m): what the workers warm
+        up on; ``building`` is the one every task uses.
+    logger : logging.Logger, optional
+    """
+
+    def __init__(self, workers: int, model: tuple, *, logger: logging.Logger | None = None
+                 ) -> None:
+        self.n = max(1, int(workers))
+        self.model = model
+        self.building = model[0]
+        self.log = logger or logging.getLogger("diffpos.fusion")
+        self.failures: collections.Counter[str] = collections.Counter()
+        self.calls = collections.Counter()  # "local" / "split" calls
+        self._ctx = mp.get_context("spawn")
+        self._slots = [_Slot() for _ in range(self.n - 1)]
+        for s in self._slots:
+            self._start(s)
+
+    # ---------------------------------------------------------------- processes
+    def _start(self, s: _Slot) -> None:
+        parent, child = self._ctx.Pipe(duplex=True)
+        proc = self._ctx.Process(target=worker_main, args=(child, os.getpid(), self.model),
+                                 name="diffpos-fusion-worker", daemon=True)
+        proc.start()
+        child.close()
+        s.proc, s.conn, s.ready, s.pid = proc, parent, False, proc.pid
+
+    def _poll_ready(self, s: _Slot, timeout_s: float = 0.0) -> None:
+        if s.ready or s.conn is None:
+            return
+        try:
+            if s.conn.poll(timeout_s):
+                msg = s.conn.recv()
+                s.ready = msg[0] == "ready"
+        except (EOFError, OSError):
+            self._failed(s, "died")
+
+    def wait_ready(self, timeout_s: float = 300.0) -> int:
+        """Wait until every worker warmed up (at most ``timeout_s`` [s] in all; a worker
+        still starting is used once ready). Returns the number of ready workers."""
+        deadline = time.monotonic() + timeout_s
+        for s in self._slots:
+            self._poll_ready(s, max(deadline - time.monotonic(), 0.0))
+        return sum(s.ready for s in self._slots)
+
+    @property
+    def pids(self) -> list[int]:
+        """Process ids of the live worker processes."""
+        return [s.pid for s in self._slots if s.conn is not None and s.pid is not None]
+
+    def _failed(self, s: _Slot, why: str, detail: str = "") -> None:
+        """Count and log a failure; a dead or hung worker is killed and restarted (or
+        dropped after :data:`MAX_RESTARTS`); one that raised stays."""
+        self.failures[why] += 1
+        log_event(self.log, logging.WARNING, "fusion worker failed: its share computed locally",
+                  why=why, pid=s.pid, detail=detail[-2000:])
+        if why == "error":
+            return
+        self._kill(s)
+        if s.restarts < MAX_RESTARTS:
+            s.restarts += 1
+            self._start(s)
+        else:
+            log_event(self.log, logging.WARNING, "fusion worker dropped after restarts",
+                      restarts=s.restarts, workers_left=1 + len(self.pids))
+
+    def _kill(self, s: _Slot) -> None:
+        if s.proc is not None:
+            with contextlib.suppress(Exception):
+                s.proc.kill()
+                s.proc.join(5.0)
+        if s.conn is not None:
+            with contextlib.suppress(Exception):
+                s.conn.close()
+        s.proc = s.conn = s.pid = None
+        s.ready = False
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Stop the workers: ``stop``, join with one shared ``timeout_s`` [s], then kill."""
+        for s in self._slots:
+            if s.conn is not None:
+                with contextlib.suppress(Exception):
+                    s.conn.send(("stop", ()))
+        deadline = time.monotonic() + timeout_s
+        for s in self._slots:
+            if s.proc is not None:
+                s.proc.join(max(deadline - time.monotonic(), 0.05))
+            self._kill(s)
+
+    def __enter__(self) -> RowPool:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ---------------------------------------------------------------- calls
+    def map_rows(self, kind: str, args: tuple, cost: np.ndarray,
+                 local: Callable[..., Any] | None = None, *, shared: tuple = ()) -> Any:
+        """``TASKS[kind](model, *rows of args, *shared)`` split over the ready workers by
+        ``cost`` (one value per row): ``args`` are arrays / dataclasses of arrays with the rows
+        on axis 0 (:func:`take_rows`), ``shared`` is passed whole; ``local(*args, *shared)``
+        computes a share here (default: the task itself). Returns the result of one call on
+        all rows (the shares' results concatenated in row order)."""
+        task = TASKS[kind]
+
+        def run_here(*a: Any) -> Any:
+            return local(*a, *shared) if local is not None else task(self.model, *a, *shared)
+
+        for s in self._slots:
+            self._poll_ready(s)
+        ready = [s for s in self._slots if s.ready]
+        cost = np.asarray(cost, dtype=np.float64)
+        if not ready or float(cost.sum()) < MIN_PARALLEL_COST:
+            self.calls["local"] += 1
+            return run_here(*args)
+        self.calls["split"] += 1
+        shares = share_bounds(cost, len(ready) + 1)
+        sent = []
+        for s, sl in zip(ready, shares[1:], strict=False):
+            try:
+                s.conn.send((kind, (*take_rows(args, sl), *shared)))
+                sent.append((s, sl))
+            except (OSError, ValueError) as exc:
+                self._failed(s, "died", repr(exc))
+                sent.append((None, sl))
+        parts: list[Any] = [None] * (len(sent) + 1)
+        try:
+            parts[0] = run_here(*take_rows(args, shares[0]))
+        finally:  # even if the local share raises: no reply is left in a pipe
+            for k, (s, sl) in enumerate(sent, start=1):
+                parts[k] = self._receive(s, sl, float(cost[sl].sum()))
+        for k, (_, sl) in enumerate(sent, start=1):
+            if parts[k] is None:  # the worker failed: its share here, same numbers
+                parts[k] = run_here(*take_rows(args, sl))
+        return concat_rows(parts)
+
+    def _receive(self, s: _Slot | None, sl: slice, cost: float) -> Any:
+        """The result of the share ``sl`` sent to ``s``, or None if the worker failed."""
+        if s is None:
+            return None
+        try:
+            if not s.conn.poll(TIMEOUT_BASE_S + TIMEOUT_PER_COST_S * cost):
+                self._failed(s, "timeout", f"rows {sl.start}:{sl.stop}")
+                return None
+            tag, value = s.conn.recv()
+        except (EOFError, OSError) as exc:
+            self._failed(s, "died", repr(exc))
+            return None
+        if tag != "ok":
+            self._failed(s, "error", str(value))
+            return None
+        return value
