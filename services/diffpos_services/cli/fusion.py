@@ -48,6 +48,7 @@ from diffpos_services.fusion.config import (
     DEFAULT_KERNEL_THREADS,
     DEFAULT_METHOD,
     DEFAULT_SUPERSEDE_AFTER_S,
+    DEFAULT_WORKERS,
     EDGES,
     LIVE_MAX_BACKLOG_S,
     METHODS,
@@ -169,6 +170,12 @@ def _add_cpu_arguments(parser: argparse.ArgumentParser) -> None:
         "estimates identical for any N; 2 pays only where a core is free, e.g. a replay on an "
         f"idle machine) (default: {DEFAULT_KERNEL_THREADS})",
     )
+    parser.add_argument(
+        "--workers", type=int, default=DEFAULT_WORKERS, metavar="N",
+        help="processes sharing the per-node work of mnls + tracking (tracker update, snapshot "
+        "fixes), this one included: N - 1 worker processes are started and warmed up before "
+        f"the fusion is ready; estimates identical for any N (default: {DEFAULT_WORKERS})",
+    )
 
 
 def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
@@ -188,6 +195,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         max_backlog_s=args.max_backlog_s or None,
         supersede_after_s=args.supersede_after_s,
         kernel_threads=args.kernel_threads,
+        workers=args.workers,
     )
     if args.window_height_m is not None:
         values["window_height_m"] = args.window_height_m

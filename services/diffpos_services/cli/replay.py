@@ -53,6 +53,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-gating", action="store_true", help="turn outlier gating (RAIM FDE) off")
     g.add_argument("--pfa", type=float, metavar="P",
                    help="gating false-alarm probability (e.g. 1e-4)")
+    g.add_argument("--workers", type=int, metavar="N",
+                   help="processes sharing the tracker's and the snapshot fixes' rows, this one "
+                        "included (mnls + tracking; same estimates for any N; default: the "
+                        "recorded setting, else 1)")
     g.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="any fusion setting, VALUE as JSON (repeatable), e.g. deadline_s=0.5")
     g.add_argument("--config", metavar="FILE.json", help="fusion settings from a JSON object")
@@ -100,6 +104,8 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
         out["gating"] = False
     if args.pfa is not None:
         out["false_alarm_probability"] = args.pfa
+    if args.workers is not None:
+        out["workers"] = args.workers
     return out
 
 

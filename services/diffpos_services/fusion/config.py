@@ -29,7 +29,7 @@ from diffpos.scenario import Building, Radio, Scenario, ScenarioError, first_arr
 from diffpos_services.kit import build_config
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "EDGES", "METHODS", "FusionConfig",
+__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "METHODS", "FusionConfig",
            "building_of", "channel_edge", "model_edge"]
 
 #: The estimators of the solve step (``--method``).
@@ -135,6 +135,10 @@ LEGACY_SUPERSEDE_AFTER_S = 1e9
 DEFAULT_KERNEL_THREADS = 1
 
 
+#: ``workers`` when not given: 1 (no worker process).
+DEFAULT_WORKERS = 1
+
+
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
 
@@ -227,6 +231,13 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     Applied by the service at its start and by replay (one pool per process). It pays only
     where a core is free: replaying the 16 x 200 soak, wall x0.72 with 2; live on 2 cores
     shared with the run's anchors and router, 2 was worse (benchmarks/bench_fusion_cost.py)."""
+    workers: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_WORKERS
+    """Processes sharing the per-node work of mnls + tracking (the tracker update and the
+    snapshot fixes: ~79 % of the soak's fusion CPU), the fusion's own included: ``N - 1``
+    worker processes are started (:mod:`diffpos_services.fusion.workers`, ``spawn``, warmed
+    up before the service is ready) and a call's rows are split between them and the fusion's
+    process; the estimates are bit-identical for any count (a recording made with any value
+    replays to the same estimates). Applied by the service and by replay; 1: no process."""
     # ---- what is accepted (docs/bad_input.md)
     anchors: tuple[str, ...] | None = None
     """Allow-list of anchor ids (``None``: any anchor with a valid id)."""

@@ -40,6 +40,7 @@ from diffpos._kernels import pool as kernel_pool
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
+from diffpos_services.fusion.workers import start_workers
 from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
@@ -489,10 +490,15 @@ def run_fusion(
     log = logger or logging.getLogger("diffpos.fusion")
     # the kernels' row pool: threads only (nothing forks); they start on the first split call
     kernel_pool.set_threads(config.kernel_threads)
+    rows = None
     try:
         core = FusionCore(config, logger=log)
+        rows = start_workers(core, log)  # spawned (fork + exec) before zenoh.open()
         inbox = _Inbox(config, stop)
-        core.warm_up()
+        core.warm_up()  # while the workers warm up on their own
+        if rows is not None:
+            log_event(log, logging.INFO, "fusion workers ready", ready=rows.wait_ready(),
+                      pids=rows.pids)
         freeze_heap()
         session = open_session(zenoh_config, stop, logger=log) if isinstance(
             zenoh_config, ZenohSettings) else zenoh.open(zenoh_config)
@@ -502,10 +508,14 @@ def run_fusion(
             ends = _declare(session, core.keys, inbox)
             log_event(log, logging.INFO, "fusion ready", site=config.site,
                       subscriptions=[fusion_subscription(core.keys)],
-                      kernel_threads=config.kernel_threads)
+                      kernel_threads=config.kernel_threads, workers=config.workers)
             if on_ready is not None:
                 on_ready()
             _serve(core, inbox, ends, stop, log)
         return core
     finally:
+        if rows is not None:
+            rows.close()
+            log_event(log, logging.INFO, "fusion workers stopped",
+                      failures=dict(rows.failures), calls=dict(rows.calls))
         kernel_pool.shutdown()

@@ -86,7 +86,7 @@ from diffpos.tracking import (
 )
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
-from diffpos_services.fusion.workers import INIT_COST, MNLS_COST, RowPool
+from diffpos_services.fusion.workers import INIT_COST, MNLS_COST, RowPool, run_update, slim_state
 from diffpos_services.wire import messages as M
 
 __all__ = ["HEAVY_MIN_OPERATIONS", "HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved",
@@ -253,17 +253,19 @@ class TrackBank:
         fields = TrackerState.__dataclass_fields__
         sub = TrackerState(*(getattr(self.state, f)[rows] for f in fields))
         radio = self.radio if radio is None else radio
-        args = (sub, anchors, ranges, sigmas, mask, t_ns, snr_db)
         if self.pool is None or self.pool.building is not self.building:
-            new, out = _update_rows(self.building, *args, self.config, radio)
+            new, out = _update_rows(self.building, sub, anchors, ranges, sigmas, mask, t_ns,
+                                    snr_db, self.config, radio)
         else:  # an initialisation costs ~INIT_COST updates: the shares balanced by it
             cost = np.where(self.needs_init(rows, np.count_nonzero(mask, axis=1)), INIT_COST,
                             1.0)
+            args = (slim_state(sub, self.config), anchors, ranges, sigmas, mask, t_ns, snr_db)
             new, out = self.pool.map_rows("update", args, cost,
-                                          lambda *a: _update_rows(self.building, *a),
+                                          lambda *a: run_update(self.building, *a),
                                           shared=(self.config, radio))
         for f in fields:  # the rows in place (the bank's arrays are its own: rows_of copies)
-            getattr(self.state, f)[rows] = getattr(new, f)
+            if (v := getattr(new, f)) is not None:  # None: a slimmed SNR cache, unchanged
+                getattr(self.state, f)[rows] = v
         return out
 
 

@@ -41,7 +41,7 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
     snr = None
     if radio is not None:  # the compiled SNR prediction (loaded from cache)
         snr = pair_snr_db(_ANCHORS[None], node[None], building=building, radio=radio)
-        snr = np.broadcast_to(np.asarray(snr, dtype=np.float64), (1, 4)).copy()
+        snr = snr.max(axis=-1)  # (1, 4): the strongest mechanism as the "measured" SNR
     update(init_state(1, building), _ANCHORS[None], r[None], sig, mask,
            np.zeros(1, np.int64), building, TrackerConfig())
     if snr is not None:

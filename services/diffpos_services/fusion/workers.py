@@ -46,12 +46,14 @@ from typing import Any
 import numpy as np
 
 import diffpos.estimators as est
-from diffpos.tracking import update
+from diffpos.tracking import TrackerState, update
+from diffpos.tracking_snr import snr_reuse_on
+from diffpos.tracking_state import SNR_CACHE_LINKS, SNR_CACHE_SLOTS
 from diffpos_services.fusion.warm import warm_model
 from diffpos_services.kit import log_event
 
-__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "RowPool", "concat_rows", "share_bounds",
-           "take_rows"]
+__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "RowPool", "concat_rows", "run_update",
+           "share_bounds", "slim_state", "start_workers", "take_rows"]
 
 #: Cost of a row the tracker initialises (UNINITIALISED or LOST with enough ranges: the grid
 #: snapshot of :func:`diffpos.tracking_model.snapshot_init`) in units of one row's update: an
@@ -119,10 +121,39 @@ def share_bounds(cost: np.ndarray, n: int) -> list[slice]:
 
 
 # ------------------------------------------------------------------------ the worker
-def _task_update(model: tuple, sub, anchors, ranges, sigmas, mask, t_ns, snr_db, config,
-                 radio):
-    return update(sub, anchors, ranges, sigmas, mask, t_ns, model[0], config,
-                  snr_db=snr_db, radio=radio)
+_SNR_CACHE = ("snr_node", "snr_anchor", "snr_pred")
+
+
+def slim_state(sub: TrackerState, config: Any) -> TrackerState:
+    """``sub`` without its SNR cache fields (None) when the tracker neither reads nor carries
+    them (:func:`diffpos.tracking_snr.snr_reuse_on` false, the default since 73c3e34): they
+    are 7.2 of the ~11 KB per row that would cross the pipe both ways for nothing."""
+    if snr_reuse_on(config):
+        return sub
+    return dataclasses.replace(sub, **dict.fromkeys(_SNR_CACHE))
+
+
+def run_update(building: Any, sub: TrackerState, anchors, ranges, sigmas, mask, t_ns, snr_db,
+               config, radio) -> tuple[TrackerState, Any]:
+    """:func:`diffpos.tracking.update` of a share of rows, ``sub`` possibly slimmed by
+    :func:`slim_state`: the missing cache fields are given as read-only NaN views (never read
+    nor written with reuse off: a write would raise, and the share be redone by the caller)
+    and returned as None (the caller keeps its own, unchanged rows)."""
+    slim = sub.snr_node is None
+    if slim:
+        n, h = sub.mean.shape[:2]
+        shapes = {"snr_node": ((n, h, 3), np.float64),
+                  "snr_anchor": ((n, h, SNR_CACHE_LINKS, 3), np.float32),
+                  "snr_pred": ((n, h, SNR_CACHE_LINKS, len(SNR_CACHE_SLOTS)), np.float32)}
+        sub = dataclasses.replace(sub, **{k: np.broadcast_to(np.array(np.nan, dt), shape)
+                                          for k, (shape, dt) in shapes.items()})
+    new, out = update(sub, anchors, ranges, sigmas, mask, t_ns, building, config,
+                      snr_db=snr_db, radio=radio)
+    return (slim_state(new, config) if slim else new), out
+
+
+def _task_update(model: tuple, *args):
+    return run_update(model[0], *args)
 
 
 def _task_mnls(model: tuple, apos, rng, sig, mask, snr_db, radio):
@@ -205,7 +236,9 @@ class RowPool:
         self.building = model[0]
         self.log = logger or logging.getLogger("diffpos.fusion")
         self.failures: collections.Counter[str] = collections.Counter()
-        self.calls = collections.Counter()  # "local" / "split" calls
+        #: calls kept local / split; rows sent to workers; seconds (perf_counter) the caller
+        #: spent on its own share and then waiting for the workers' (where the time goes)
+        self.calls: collections.Counter[str] = collections.Counter()
         self._ctx = mp.get_context("spawn")
         self._slots = [_Slot() for _ in range(self.n - 1)]
         for s in self._slots:
@@ -319,11 +352,16 @@ class RowPool:
                 self._failed(s, "died", repr(exc))
                 sent.append((None, sl))
         parts: list[Any] = [None] * (len(sent) + 1)
+        t0 = time.perf_counter()
         try:
             parts[0] = run_here(*take_rows(args, shares[0]))
         finally:  # even if the local share raises: no reply is left in a pipe
+            t1 = time.perf_counter()
             for k, (s, sl) in enumerate(sent, start=1):
                 parts[k] = self._receive(s, sl, float(cost[sl].sum()))
+            self.calls["own_share_s"] += t1 - t0
+            self.calls["wait_s"] += time.perf_counter() - t1
+            self.calls["rows_sent"] += sum(sl.stop - sl.start for _, sl in sent)
         for k, (_, sl) in enumerate(sent, start=1):
             if parts[k] is None:  # the worker failed: its share here, same numbers
                 parts[k] = run_here(*take_rows(args, sl))
@@ -345,3 +383,16 @@ class RowPool:
             self._failed(s, "error", str(value))
             return None
         return value
+
+
+def start_workers(core: Any, log: logging.Logger | None = None) -> RowPool | None:
+    """The pool of ``core.config.workers`` (> 1; mnls + tracking) for a :class:`FusionCore
+    <diffpos_services.fusion.core.FusionCore>`, attached to its tracker bank (not waited
+    for: :meth:`RowPool.wait_ready`), or None (1 worker, or no tracker)."""
+    if core.config.workers <= 1 or core.bank is None:
+        return None
+    cfg = core.config
+    rows = RowPool(cfg.workers, (core.building, core.model[1], cfg.window_height_m,
+                                 cfg.first_floor_z_m), logger=log or core.log)
+    core.bank.pool = rows
+    return rows

@@ -35,6 +35,7 @@ import numpy as np
 from diffpos._kernels import pool as kernel_pool
 from diffpos_services.fusion.config import LEGACY_SUPERSEDE_AFTER_S, METHODS, FusionConfig
 from diffpos_services.fusion.core import FusionCore
+from diffpos_services.fusion.workers import start_workers
 from diffpos_services.kit import ConfigError, build_config
 from diffpos_services.recording.decided import DecisionReplayer
 from diffpos_services.recording.errors import RecordingError
@@ -571,14 +572,21 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
 
     if decided:
         rec.decided = DecisionReplayer(core, outputs.emit)
-    _feed(core, _consume(ahead, rest), outputs, rec,
-          step_ns=max(0, round(step_ms * 1e6)), after_batch=after_batch)
-    if rec.fusion_inputs == 0:
-        outputs.close()
-        raise RecordingError(
-            f"{path} has no anchor states or ranges under diffpos/<site>/anchor/...: "
-            "nothing to replay (is it a diffpos recording? see diffpos inspect)"
-        )
-    _drain(core, outputs, rec.t_last or 0)
+    rows = start_workers(core)  # FusionConfig.workers: same estimates, rows over processes
+    try:
+        if rows is not None:
+            rows.wait_ready()
+        _feed(core, _consume(ahead, rest), outputs, rec,
+              step_ns=max(0, round(step_ms * 1e6)), after_batch=after_batch)
+        if rec.fusion_inputs == 0:
+            outputs.close()
+            raise RecordingError(
+                f"{path} has no anchor states or ranges under diffpos/<site>/anchor/...: "
+                "nothing to replay (is it a diffpos recording? see diffpos inspect)"
+            )
+        _drain(core, outputs, rec.t_last or 0)
+    finally:
+        if rows is not None:
+            rows.close()
     outputs.close(final_metadata={"replayed_estimates": outputs.count})
     return _report(path, scanner, settings, core, rec, step_ms=step_ms, t_wall0=t_wall0)
