@@ -159,6 +159,7 @@ def run_soak(
     max_backlog_s: float | None = None,
     method: str = "dnls",
     kernel_threads: int | None = None,
+    workers: int | None = None,
 ) -> dict:
     """Run the load and return the measurements (see the module docstring).
 
@@ -186,6 +187,10 @@ def run_soak(
         3-4 cores for 2,000 node-epochs per second).
     kernel_threads : int, optional
         The fusion's ``--kernel-threads`` (None: its default).
+    workers : int, optional
+        The fusion's ``--workers`` (None: its default, 1). Its worker processes (children of
+        the fusion, found once it is ready) are sampled as ``fworker<i>`` (CPU role
+        ``fusion-workers``; multiprocessing's resource tracker, also a child, included).
     """
     site = site or f"soak{n_anchors}x{n_nodes}"
     keys = Keys(site)
@@ -253,7 +258,8 @@ def run_soak(
             start("fusion", "fusion", "--site", site, "--connect", endpoint,
                   "--scenario", str(scen), "--diagnostics-period-s", "1.0", "--method", method,
                   *([] if max_backlog_s is None else ["--max-backlog-s", str(max_backlog_s)]),
-                  *([] if kernel_threads is None else ["--kernel-threads", str(kernel_threads)]))
+                  *([] if kernel_threads is None else ["--kernel-threads", str(kernel_threads)]),
+                  *([] if workers is None else ["--workers", str(workers)]))
             for j in range(n_anchors):
                 start(f"uav{j + 1}", "anchor", "--id", f"uav{j + 1}", "--site", site,
                       "--connect", endpoint, "--scenario", str(scen), "--wait-start",
@@ -269,6 +275,8 @@ def run_soak(
                     cv.wait(0.2)
             pids = {name: p.pid for name, p in procs.items()}
             pids["bench"] = os.getpid()
+            for i, pid in enumerate(_children(procs["fusion"].pid)):
+                pids[f"fworker{i + 1}"] = pid
             t0 = -(-(time.time_ns() + 1_000_000_000) // PERIOD_NS) * PERIOD_NS
             rc = M.RunControl(run_id=site, t0_ns=t0, wall_t0_ns=t0, speed=1.0,
                               duration_ns=round(duration_s * 1e9), seed=0)
@@ -448,6 +456,17 @@ def _per_node_summary(seen: np.ndarray, duration_s: float) -> dict:
             "nodes_without_estimate": int((~got.any(axis=1)).sum())}
 
 
+def _children(pid: int) -> list[int]:
+    """Child process ids of ``pid`` (Linux /proc; empty if unknown)."""
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            continue
+    return sorted(out)
+
+
 def _cpu_cores(cpu: dict[str, list[tuple[float, float]]]) -> dict[str, float]:
     """Mean CPU use of every role over the run (cores: CPU seconds per wall second between
     the first sample at or after the run's start and the last one; the anchors summed)."""
@@ -456,7 +475,8 @@ def _cpu_cores(cpu: dict[str, list[tuple[float, float]]]) -> dict[str, float]:
         run = [s for s in samples if s[0] >= 0.0]
         if len(run) < 2 or run[-1][0] <= run[0][0]:
             continue
-        role = "anchors" if name.startswith("uav") else name
+        role = ("anchors" if name.startswith("uav") else
+                "fusion-workers" if name.startswith("fworker") else name)
         out[role] = out.get(role, 0.0) + (run[-1][1] - run[0][1]) / (run[-1][0] - run[0][0])
     return {k: round(v, 3) for k, v in out.items()}
 
@@ -548,6 +568,8 @@ def main(argv: list[str] | None = None) -> int:
                     "does not keep up with 16 x 200 on 2 cores yet)")
     ap.add_argument("--kernel-threads", type=int, metavar="N",
                     help="the fusion's --kernel-threads (default: the fusion's, 1)")
+    ap.add_argument("--workers", type=int, metavar="N",
+                    help="the fusion's --workers (default: the fusion's, 1)")
     ap.add_argument("--json", metavar="FILE", help="write the result as JSON")
     ap.add_argument("--log-dir", metavar="DIR", help="keep logs and the recording here")
     args = ap.parse_args(argv)
@@ -557,7 +579,8 @@ def main(argv: list[str] | None = None) -> int:
         load_before = os.getloadavg()
         r = run_soak(m, n, args.duration, log_dir, recorder=not args.no_recorder,
                      warmup_s=args.warmup, rss_period_s=5.0, max_backlog_s=args.max_backlog_s,
-                     method=args.method, kernel_threads=args.kernel_threads)
+                     method=args.method, kernel_threads=args.kernel_threads,
+                     workers=args.workers)
         r["loadavg_before"] = load_before
         r["loadavg_after"] = os.getloadavg()
         r["cpus"] = os.cpu_count()

@@ -1,0 +1,92 @@
+"""Row independence of :func:`diffpos.tracking.update`, bit for bit: the fusion's worker pool
+(services/diffpos_services/fusion/workers.py) splits a batch's rows over processes and
+relies on it. A batch with UNINITIALISED (new), INITIALISING, TRACKING and COASTING rows is
+updated in one call, in two halves, interleaved (even/odd rows) and in three uneven chunks;
+every output and every field of the new state must be the same bytes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from diffpos.channel import emulate_channel, first_arrival
+from diffpos.scenario import default_scenario
+from diffpos.tracking import TrackerConfig, TrackerState, TrackStatus, init_state, update
+
+SC = default_scenario()
+B = SC.building
+RADIO = SC.radio
+CFG = TrackerConfig()
+ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
+                    [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
+                    [8.0, -25.0, 0.5]])
+# static nodes on several floors, x along the facade, y inside
+NODES = np.array([[-4.0, 3.0, 4.5], [2.0, 6.0, 7.5], [6.0, 2.5, 10.5], [-1.0, 8.0, 13.5],
+                  [3.5, 4.0, 4.2], [-6.0, 5.0, 7.8], [0.5, 3.0, 10.2], [5.0, 7.0, 4.6],
+                  [-2.5, 2.0, 7.4], [1.5, 9.0, 13.2]])
+N_EPOCHS = 8  # 0.0 ... 0.7 s; the batch under test is the last one
+
+
+def _inputs(seed: int = 7):
+    """Per epoch: (t_ns, anchors, range, sigma, mask, snr) for every node, the mask shaped by
+    each row's role: rows 0-3 ranged every epoch (TRACKING by the last), rows 4-5 from epoch
+    4 (INITIALISING), rows 6-7 until epoch 5 then none (COASTING), rows 8-9 only in the last
+    epoch (new nodes, UNINITIALISED before it)."""
+    rng = np.random.default_rng(seed)
+    n = len(NODES)
+    for k in range(N_EPOCHS):
+        fa = first_arrival(emulate_channel(ANCHORS, NODES, building=B, radio=RADIO),
+                           radio=RADIO, rng=rng)
+        on = np.ones(n, bool)
+        on[4:6] = k >= 4
+        on[6:8] = k <= 5
+        on[8:10] = k == N_EPOCHS - 1
+        mask = fa.detected & on[:, None]
+        a = np.broadcast_to(ANCHORS, (n, *ANCHORS.shape))
+        yield round(k * 0.1e9) + np.zeros(n, np.int64), a, fa.range_m, fa.sigma_m, mask, \
+            fa.snr_db
+
+
+def _rows(x, idx):
+    return dataclasses.replace(x, **{f.name: getattr(x, f.name)[idx]
+                                     for f in dataclasses.fields(x)})
+
+
+def _assert_same(a, b) -> None:
+    for f in dataclasses.fields(a):
+        va, vb = getattr(a, f.name), getattr(b, f.name)
+        assert va.dtype == vb.dtype and va.shape == vb.shape, f.name
+        assert va.tobytes() == vb.tobytes(), f.name  # bytes: NaN payloads and -0.0 too
+
+
+def test_update_rows_are_independent_bit_for_bit():
+    epochs = list(_inputs())
+    state = init_state(len(NODES), B)
+    for t, a, r, s, m, snr in epochs[:-1]:
+        state, _ = update(state, a, r, s, m, t, B, CFG, snr_db=snr, radio=RADIO)
+    t, a, r, s, m, snr = epochs[-1]
+    before = set(state.status.tolist())
+    assert {int(TrackStatus.UNINITIALISED), int(TrackStatus.INITIALISING),
+            int(TrackStatus.TRACKING), int(TrackStatus.COASTING)} <= before, before
+    assert not m[6:8].any() and m[8:10].any()  # coasting rows without, new rows with ranges
+    whole_state, whole_out = update(state, a, r, s, m, t, B, CFG, snr_db=snr, radio=RADIO)
+    n = len(NODES)
+    splits = {"halves": [np.arange(0, 5), np.arange(5, n)],
+              "interleaved": [np.arange(0, n, 2), np.arange(1, n, 2)],
+              "uneven": [np.array([9, 0, 6]), np.array([3, 8]), np.array([1, 2, 4, 5, 7])]}
+    for name, parts in splits.items():
+        new_state = dataclasses.replace(whole_state, **{
+            f: np.empty_like(getattr(whole_state, f)) for f in TrackerState.__dataclass_fields__})
+        outs = {}
+        for idx in parts:
+            ns, out = update(_rows(state, idx), a[idx], r[idx], s[idx], m[idx], t[idx], B, CFG,
+                             snr_db=snr[idx], radio=RADIO)
+            for f in TrackerState.__dataclass_fields__:
+                getattr(new_state, f)[idx] = getattr(ns, f)
+            for f in dataclasses.fields(out):
+                v = getattr(out, f.name)
+                dst = outs.setdefault(f.name, np.empty((n, *v.shape[1:]), v.dtype))
+                dst[idx] = v
+        _assert_same(whole_state, new_state)
+        _assert_same(whole_out, dataclasses.replace(whole_out, **outs))

@@ -1,0 +1,132 @@
+"""The fusion's row-parallel pool (services/diffpos_services/fusion/workers.py) without
+processes: the shares (contiguous, cover every row, balanced), the row slicing and its
+inverse, and a whole replay (mnls + tracker, synthetic recording) with an in-process stand-in
+for the worker pipes (every message pickled both ways, as over a real pipe) that must give
+the same estimates, bit for bit, as the plain fusion; a worker that dies or raises loses
+nothing (its share is computed locally, the failure counted). The real processes are
+tests/system/test_fusion_workers_process.py."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+
+import msgspec
+import numpy as np
+import pytest
+from diffpos_services.fusion import workers as W
+from diffpos_services.recording import replay as replay_mod
+from diffpos_services.recording.replay import replay
+from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.wire import messages as M
+
+from diffpos.scenario import default_scenario
+from diffpos.tracking import TrackerState, init_state
+
+
+def test_share_bounds_cover_contiguous_and_balanced():
+    """Brute-force properties over random costs: the slices are non-empty, contiguous, in
+    order and cover every row; no share costs more than total/n + the largest row cost."""
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        b = int(rng.integers(1, 40))
+        cost = np.where(rng.random(b) < 0.2, W.INIT_COST, 1.0)
+        n = int(rng.integers(1, 5))
+        sl = W.share_bounds(cost, n)
+        assert 1 <= len(sl) <= n
+        assert sl[0].start == 0 and sl[-1].stop == b
+        assert all(s.stop > s.start for s in sl)
+        assert all(a.stop == c.start for a, c in zip(sl[:-1], sl[1:], strict=True))
+        assert max(cost[s].sum() for s in sl) <= cost.sum() / n + cost.max() + 1e-9
+
+
+def test_take_and_concat_rows_are_inverse():
+    st = init_state(7, default_scenario().building)
+    st = dataclasses.replace(st, mean=np.random.default_rng(1).normal(size=st.mean.shape))
+    args = (st, np.arange(7.0), None, 3.5)
+    parts = [W.take_rows(args, s) for s in W.share_bounds(np.ones(7), 3)]
+    back = W.concat_rows(parts)
+    assert back[2] is None and back[3] == 3.5
+    assert np.array_equal(back[1], args[1])
+    for f in TrackerState.__dataclass_fields__:
+        assert getattr(back[0], f).tobytes() == getattr(st, f).tobytes(), f
+
+
+class _Pipe:
+    """A worker's pipe, in process: the request is pickled, run by the worker's task table
+    and the reply pickled back; ``fail``: "died" (EOF on receive) or "error" (an error
+    reply, as the worker sends when its task raises)."""
+
+    def __init__(self, model, fail: str | None = None, after: int = 0) -> None:
+        self.model, self.fail, self.after, self.n, self.reply = model, fail, after, 0, None
+
+    def send(self, msg) -> None:
+        kind, args = pickle.loads(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
+        self.n += 1
+        if self.fail == "error" and self.n > self.after:
+            self.reply = ("err", "Traceback: injected")
+        else:
+            self.reply = ("ok", W.TASKS[kind](self.model, *args))
+        self.reply = pickle.dumps(self.reply, protocol=pickle.HIGHEST_PROTOCOL)
+
+    def poll(self, timeout=None) -> bool:
+        return True
+
+    def recv(self):
+        if self.fail == "died" and self.n > self.after:
+            raise EOFError
+        return pickle.loads(self.reply)
+
+    def close(self) -> None:
+        pass
+
+
+def _replay(path, monkeypatch, fail=None, after=0):
+    """Replay with a 2-way pool whose worker is a :class:`_Pipe` (None: the plain fusion);
+    every call is split (MIN_PARALLEL_COST 0). Returns (estimates as bytes, pool)."""
+    pools = []
+
+    def fake_start(core, log=None):
+        if fail == "none":
+            return None
+        pool = W.RowPool(1, (core.building, core.model[1], core.config.window_height_m,
+                             core.config.first_floor_z_m))
+        pool._slots = [W._Slot(conn=_Pipe(pool.model, fail, after), ready=True, pid=-1)]
+        pool._start = lambda s: setattr(s, "conn", None)  # "restart": the slot stays empty
+        core.bank.pool = pool
+        pools.append(pool)
+        return pool
+
+    monkeypatch.setattr(replay_mod, "start_workers", fake_start)
+    monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    r = replay(path, method="mnls", use_decisions=False)
+    return [M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0)) for e in r.estimates], \
+        (pools[0] if pools else None)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("workers") / "syn.mcap"
+    write_synthetic_recording(path, n_anchors=6, n_nodes=6, duration_s=1.5, seed=11)
+    return path
+
+
+def test_split_replay_equals_plain_bit_for_bit(recording, monkeypatch):
+    plain, _ = _replay(recording, monkeypatch, fail="none")
+    split, pool = _replay(recording, monkeypatch)
+    assert len(plain) == 6 * 15
+    assert split == plain
+    assert pool.calls["split"] > 0 and pool.calls["rows_sent"] > 0 and not pool.failures
+
+
+@pytest.mark.parametrize("fail", ["died", "error"])
+def test_failed_worker_loses_no_estimate(recording, monkeypatch, fail):
+    """The worker fails from its 4th request on: the shares are computed locally, the
+    estimates are those of the plain fusion, the failure is counted (a dead worker once:
+    its slot is restarted, here left empty; one that raised stays and fails again)."""
+    plain, _ = _replay(recording, monkeypatch, fail="none")
+    split, pool = _replay(recording, monkeypatch, fail=fail, after=3)
+    assert split == plain
+    assert pool.failures[fail] >= 1
+    if fail == "died":
+        assert pool.failures[fail] == 1 and pool._slots[0].restarts == 1
