@@ -75,7 +75,7 @@ def test_update_rows_are_independent_bit_for_bit():
     splits = {"halves": [np.arange(0, 5), np.arange(5, n)],
               "interleaved": [np.arange(0, n, 2), np.arange(1, n, 2)],
               "uneven": [np.array([9, 0, 6]), np.array([3, 8]), np.array([1, 2, 4, 5, 7])]}
-    for name, parts in splits.items():
+    for parts in splits.values():
         new_state = dataclasses.replace(whole_state, **{
             f: np.empty_like(getattr(whole_state, f)) for f in TrackerState.__dataclass_fields__})
         outs = {}

@@ -9,6 +9,7 @@ tests/system/test_fusion_workers_process.py."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import pickle
 
 import msgspec
@@ -36,7 +37,7 @@ def test_share_bounds_cover_contiguous_and_balanced():
         assert 1 <= len(sl) <= n
         assert sl[0].start == 0 and sl[-1].stop == b
         assert all(s.stop > s.start for s in sl)
-        assert all(a.stop == c.start for a, c in zip(sl[:-1], sl[1:], strict=True))
+        assert all(a.stop == c.start for a, c in itertools.pairwise(sl))
         assert max(cost[s].sum() for s in sl) <= cost.sum() / n + cost.max() + 1e-9
 
 

@@ -189,11 +189,15 @@ def test_sigkill_then_recover_keeps_every_flushed_message(bus, tmp_path):
     assert seqs == list(range(n))
 
 
-def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_path):
+@pytest.mark.parametrize("workers,n_nodes", [(1, 4), (2, 30)])
+def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_path, workers,
+                                                                     n_nodes):
     """Real fusion process + recorder; the test plays 5 anchors (synthetic ranges over the
     window edge, paced at 10 Hz wall time) and the truth. Replaying the recording with the
     recorded settings must give the live fixes (same (node, epoch) set, statuses and
-    positions; see the comment below for why not bit for bit)."""
+    positions; see the comment below for why not bit for bit). With ``--workers 2`` (30
+    nodes: the tracker's calls are large enough to be split) the live fusion split its rows
+    over a worker process and the replay (its recorded settings: 2 workers too) matches."""
     import argparse
 
     import msgspec
@@ -207,8 +211,8 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
     keys = Keys(site)
     ns = argparse.ArgumentParser()
     cmd_fusion.add_arguments(ns)
-    fusion_cfg = cmd_fusion.config_from_args(ns.parse_args(["--site", site]),
-                                             load_scenario_file(None))
+    fusion_cfg = cmd_fusion.config_from_args(
+        ns.parse_args(["--site", site, "--workers", str(workers)]), load_scenario_file(None))
     run_cfg = tmp_path / "run.json"
     run_cfg.write_text(json.dumps({"fusion": msgspec.to_builtins(fusion_cfg)}))
     out = tmp_path / "live.mcap"
@@ -216,10 +220,10 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
                               flush_interval_s=0.05))
     procs.append(rec)
     fusion = _Proc([sys.executable, "-m", "diffpos_services.cli.main", "fusion", "--site", site,
-                    "--connect", ep])
+                    "--connect", ep, "--workers", str(workers)])
     procs.append(fusion)
     rec.wait_event(lambda e: e["event"] == "ready")
-    run = synthetic_run(n_anchors=5, n_nodes=4, duration_s=3.0, seed=5, site=site)
+    run = synthetic_run(n_anchors=5, n_nodes=n_nodes, duration_s=3.0, seed=5, site=site)
     n_epochs = 30
     sent: Counter[str] = Counter()
     with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
@@ -233,6 +237,9 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
         diag_sub = s.declare_subscriber(keys.fusion_diagnostics(), on_diag)
         tokens = [s.liveliness().declare_token(keys.alive_anchor(a)) for a in run.anchor_ids]
         assert diag_ok.wait(TIMEOUT_S), "fusion never saw the anchors' liveliness tokens"
+        kids = [int(c) for t in os.listdir(f"/proc/{fusion.p.pid}/task")
+                for c in open(f"/proc/{fusion.p.pid}/task/{t}/children").read().split()]
+        assert len(kids) >= workers - 1, kids  # the worker (+ multiprocessing's tracker)
         block = zenoh.CongestionControl.BLOCK
         pubs: dict[str, zenoh.Publisher] = {}
         pace = threading.Event()  # never set: wait() paces the anchors at 10 Hz wall time
@@ -261,6 +268,8 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
         diag_sub.undeclare()
     rec.p.send_signal(signal.SIGTERM)
     rec.wait_event(lambda e: e["event"] == "closed")
+    if workers > 1:  # no worker failed (its share would have been computed locally)
+        assert "fusion worker failed" not in "".join(fusion.stderr)
 
     r = replay(out)
     c = r.report["compare"]
