@@ -39,6 +39,15 @@ def test_share_bounds_cover_contiguous_and_balanced():
         assert all(s.stop > s.start for s in sl)
         assert all(a.stop == c.start for a, c in itertools.pairwise(sl))
         assert max(cost[s].sum() for s in sl) <= cost.sum() / n + cost.max() + 1e-9
+        w = rng.uniform(0.25, 4.0, n)  # speeds: share k's cost ~ total * w_k / sum(w)
+        sl = W.share_bounds(cost, n, w)
+        assert sl[0].start == 0 and sl[-1].stop == b
+        assert all(a.stop == c.start for a, c in itertools.pairwise(sl))
+        ends = np.cumsum(cost)[[s.stop - 1 for s in sl[:-1]]]
+        targets = cost.sum() * np.cumsum(w)[:-1] / w.sum()
+        # every cut is the first row reaching its target: within one row's cost after it
+        assert all(np.any((targets <= e + 1e-9) & (e < targets + cost.max() + 1e-9))
+                   for e in ends)
 
 
 def test_take_and_concat_rows_are_inverse():
@@ -65,9 +74,9 @@ class _Pipe:
         kind, args = pickle.loads(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
         self.n += 1
         if self.fail == "error" and self.n > self.after:
-            self.reply = ("err", "Traceback: injected")
+            self.reply = ("err", "Traceback: injected", 0.0)
         else:
-            self.reply = ("ok", W.TASKS[kind](self.model, *args))
+            self.reply = ("ok", W.TASKS[kind](self.model, *args), 0.001)
         self.reply = pickle.dumps(self.reply, protocol=pickle.HIGHEST_PROTOCOL)
 
     def poll(self, timeout=None) -> bool:

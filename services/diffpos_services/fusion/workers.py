@@ -34,6 +34,7 @@ import ctypes.util
 import dataclasses
 import itertools
 import logging
+import math
 import multiprocessing as mp
 import os
 import signal
@@ -74,6 +75,8 @@ MAX_RESTARTS = 3
 #: that, for a loaded machine).
 TIMEOUT_BASE_S = 30.0
 TIMEOUT_PER_COST_S = 0.1
+#: Memory of the measured worker speed (:attr:`RowPool.speed`): weight of the previous value.
+SPEED_MEMORY = 0.8
 _PR_SET_PDEATHSIG = 1
 
 
@@ -108,14 +111,16 @@ def concat_rows(parts: list[Any]) -> Any:
     return first
 
 
-def share_bounds(cost: np.ndarray, n: int) -> list[slice]:
-    """At most ``n`` non-empty contiguous slices of ``range(len(cost))`` with about equal
-    total cost (each row's ``cost`` > 0), in row order."""
+def share_bounds(cost: np.ndarray, n: int, weights: Any = None) -> list[slice]:
+    """At most ``n`` non-empty contiguous slices of ``range(len(cost))``, in row order, whose
+    total costs (each row's ``cost`` > 0) are about proportional to ``weights`` (n values > 0,
+    the sharers' speeds; default equal)."""
     c = np.cumsum(np.asarray(cost, dtype=np.float64))
     if c.size == 0:
         return []
-    # the k-th cut after the first row whose cumulative cost reaches k/n of the total
-    cuts = np.searchsorted(c, c[-1] * np.arange(1, n) / n, side="left") + 1
+    w = np.cumsum(np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64))
+    # the k-th cut after the first row whose cumulative cost reaches the k-th weight fraction
+    cuts = np.searchsorted(c, c[-1] * w[:-1] / w[-1], side="left") + 1
     edges = np.unique(np.concatenate([[0], np.minimum(cuts, c.size), [c.size]]))
     return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges.tolist()) if b > a]
 
@@ -183,7 +188,8 @@ def _die_with(parent_pid: int) -> None:
 def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
     """A worker process: warm up on ``model`` = (building, radio or None, window height,
     first floor z), say ``ready``, then answer ``(kind, args)`` requests with ``("ok",
-    result)`` or ``("err", traceback)`` until ``stop`` or EOF (the parent is gone)."""
+    result, busy_s)`` or ``("err", traceback, 0.0)`` until ``stop`` or EOF (the parent is
+    gone); ``busy_s`` [s] is the task's wall time (the caller balances the shares by it)."""
     _die_with(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the fusion stops us (or EOF)
     warm_model(*model)
@@ -195,10 +201,11 @@ def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
             return
         if kind == "stop":
             return
+        t0 = time.perf_counter()
         try:
-            reply = ("ok", TASKS[kind](model, *args))
+            reply = ("ok", TASKS[kind](model, *args), time.perf_counter() - t0)
         except Exception:  # reported to the caller, which computes the share locally
-            reply = ("err", traceback.format_exc(limit=8))
+            reply = ("err", traceback.format_exc(limit=8), 0.0)
         try:
             conn.send(reply)
         except (OSError, ValueError):
@@ -236,9 +243,17 @@ class RowPool:
         self.building = model[0]
         self.log = logger or logging.getLogger("diffpos.fusion")
         self.failures: collections.Counter[str] = collections.Counter()
-        #: calls kept local / split; rows sent to workers; seconds (perf_counter) the caller
-        #: spent on its own share and then waiting for the workers' (where the time goes)
+        #: calls kept local / split; rows sent to workers; where the time goes [s]: the
+        #: caller's own share (wall, and its thread's CPU), the caller's thread CPU in split
+        #: calls in all (the rest is slicing, pickling, pipes, concatenation), the wait for
+        #: the workers after the own share (wall), the workers' task time (wall)
         self.calls: collections.Counter[str] = collections.Counter()
+        #: a worker's speed relative to the calling process (share weights), measured: each
+        #: split call's (own wall per cost) / (worker task wall per cost), averaged in log
+        #: (EWMA :data:`SPEED_MEMORY`), within [1/4, 4]. The caller also ingests, decodes and
+        #: publishes, and on a loaded machine its share ran ~1.5x slower than the worker's
+        #: (soak, 2026-11-27): equal shares left the worker waiting.
+        self.speed = 1.0
         self._ctx = mp.get_context("spawn")
         self._slots = [_Slot() for _ in range(self.n - 1)]
         for s in self._slots:
@@ -342,7 +357,8 @@ class RowPool:
             self.calls["local"] += 1
             return run_here(*args)
         self.calls["split"] += 1
-        shares = share_bounds(cost, len(ready) + 1)
+        c0 = time.thread_time()
+        shares = share_bounds(cost, len(ready) + 1, [1.0] + [self.speed] * len(ready))
         sent = []
         for s, sl in zip(ready, shares[1:], strict=False):
             try:
@@ -352,37 +368,60 @@ class RowPool:
                 self._failed(s, "died", repr(exc))
                 sent.append((None, sl))
         parts: list[Any] = [None] * (len(sent) + 1)
-        t0 = time.perf_counter()
+        busy = [0.0] * len(sent)
+        t0, c1 = time.perf_counter(), time.thread_time()
         try:
             parts[0] = run_here(*take_rows(args, shares[0]))
         finally:  # even if the local share raises: no reply is left in a pipe
-            t1 = time.perf_counter()
+            t1, c2 = time.perf_counter(), time.thread_time()
             for k, (s, sl) in enumerate(sent, start=1):
-                parts[k] = self._receive(s, sl, float(cost[sl].sum()))
-            self.calls["own_share_s"] += t1 - t0
-            self.calls["wait_s"] += time.perf_counter() - t1
+                parts[k], busy[k - 1] = self._receive(s, sl, float(cost[sl].sum()))
+            self._account(t1 - t0, c2 - c1, time.perf_counter() - t1, busy)
             self.calls["rows_sent"] += sum(sl.stop - sl.start for _, sl in sent)
+        self._learn(t1 - t0, float(cost[shares[0]].sum()), busy,
+                    [float(cost[sl].sum()) for _, sl in sent])
         for k, (_, sl) in enumerate(sent, start=1):
             if parts[k] is None:  # the worker failed: its share here, same numbers
                 parts[k] = run_here(*take_rows(args, sl))
-        return concat_rows(parts)
+        out = concat_rows(parts)
+        self.calls["caller_cpu_s"] += time.thread_time() - c0
+        return out
 
-    def _receive(self, s: _Slot | None, sl: slice, cost: float) -> Any:
-        """The result of the share ``sl`` sent to ``s``, or None if the worker failed."""
+    def _account(self, own_s: float, own_cpu_s: float, wait_s: float, busy: list[float]
+                 ) -> None:
+        self.calls["own_share_s"] += own_s
+        self.calls["own_cpu_s"] += own_cpu_s
+        self.calls["wait_s"] += wait_s
+        self.calls["worker_busy_s"] += sum(busy)
+
+    def _learn(self, own_s: float, own_cost: float, busy: list[float], costs: list[float]
+               ) -> None:
+        """Update :attr:`speed` from one split call (workers that failed: skipped)."""
+        rates = [c / b for b, c in zip(busy, costs, strict=True) if b > 0 and c > 0]
+        if not rates or own_s <= 0 or own_cost <= 0:
+            return
+        ratio = float(np.mean(rates)) / (own_cost / own_s)
+        log_speed = (SPEED_MEMORY * math.log(self.speed)
+                     + (1 - SPEED_MEMORY) * math.log(min(max(ratio, 0.25), 4.0)))
+        self.speed = math.exp(log_speed)
+
+    def _receive(self, s: _Slot | None, sl: slice, cost: float) -> tuple[Any, float]:
+        """The result of the share ``sl`` sent to ``s`` and the worker's task time [s], or
+        (None, 0.0) if the worker failed."""
         if s is None:
-            return None
+            return None, 0.0
         try:
             if not s.conn.poll(TIMEOUT_BASE_S + TIMEOUT_PER_COST_S * cost):
                 self._failed(s, "timeout", f"rows {sl.start}:{sl.stop}")
-                return None
-            tag, value = s.conn.recv()
+                return None, 0.0
+            tag, value, busy_s = s.conn.recv()
         except (EOFError, OSError) as exc:
             self._failed(s, "died", repr(exc))
-            return None
+            return None, 0.0
         if tag != "ok":
             self._failed(s, "error", str(value))
-            return None
-        return value
+            return None, 0.0
+        return value, busy_s
 
 
 def start_workers(core: Any, log: logging.Logger | None = None) -> RowPool | None:
