@@ -192,6 +192,13 @@ def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
     gone); ``busy_s`` [s] is the task's wall time (the caller balances the shares by it)."""
     _die_with(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the fusion stops us (or EOF)
+    with contextlib.suppress(OSError):
+        # a session of its own: Linux's autogroup scheduling (on by default) shares the CPU
+        # fairly between sessions, so in the fusion's session the worker would only split
+        # the fusion's one share on a busy machine (every anchor and the other jobs run in
+        # sessions of their own); the fusion stops it, SIGKILL of the fusion kills it
+        # (PDEATHSIG above, EOF on the pipe), not a signal to the fusion's process group
+        os.setsid()
     warm_model(*model)
     conn.send(("ready", os.getpid()))
     while True:
