@@ -2,7 +2,8 @@
 (services/diffpos_services/fusion/workers.py) splits a batch's rows over processes and
 relies on it. A batch with UNINITIALISED (new), INITIALISING, TRACKING and COASTING rows is
 updated in one call, in two halves, interleaved (even/odd rows) and in three uneven chunks;
-every output and every field of the new state must be the same bytes."""
+every output and every field of the new state must be the same bytes. The same for the M-NLS
+snapshot fixes (:func:`diffpos.estimators.mnls`), which the pool splits too."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import dataclasses
 
 import numpy as np
 
+import diffpos.estimators as est
 from diffpos.channel import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
 from diffpos.tracking import TrackerConfig, TrackerState, TrackStatus, init_state, update
@@ -90,3 +92,29 @@ def test_update_rows_are_independent_bit_for_bit():
                 dst[idx] = v
         _assert_same(whole_state, new_state)
         _assert_same(whole_out, dataclasses.replace(whole_out, **outs))
+
+
+def test_mnls_rows_are_independent_bit_for_bit():
+    """:func:`diffpos.estimators.mnls` (the fusion's snapshot fixes, also split by the worker
+    pool): one call on 10 nodes' epochs with the measured SNR equals the same rows in halves,
+    interleaved and in uneven chunks, every field to the byte (messages too)."""
+    _, a, r, s, m, snr = list(_inputs(seed=3))[-1]
+    m = m.copy()
+    m[6:8] = True  # every row with ranges here
+    m[8, :3] = False  # a row with fewer anchors
+    whole = est.mnls(a, r, s, building=B, mask=m, snr_db=snr, radio=RADIO)
+    n = len(NODES)
+    for parts in ([np.arange(0, 5), np.arange(5, n)], [np.arange(0, n, 2), np.arange(1, n, 2)],
+                  [np.array([9, 0, 6]), np.array([3, 8]), np.array([1, 2, 4, 5, 7])]):
+        fixes = [est.mnls(a[i], r[i], s[i], building=B, mask=m[i], snr_db=snr[i], radio=RADIO)
+                 for i in parts]
+        order = np.argsort(np.concatenate(parts))
+        for f in dataclasses.fields(whole):
+            v = getattr(whole, f.name)
+            if isinstance(v, np.ndarray):
+                got = np.concatenate([getattr(x, f.name) for x in fixes])[order]
+                assert v.dtype == got.dtype and v.tobytes() == got.tobytes(), f.name
+            else:
+                assert all(getattr(x, f.name) == v for x in fixes), f.name
+        msgs = [text for x in fixes for text in x.messages()]
+        assert [msgs[i] for i in order] == whole.messages()

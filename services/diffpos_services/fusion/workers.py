@@ -303,7 +303,7 @@ class RowPool:
         dropped after :data:`MAX_RESTARTS`); one that raised stays."""
         self.failures[why] += 1
         log_event(self.log, logging.WARNING, "fusion worker failed: its share computed locally",
-                  why=why, pid=s.pid, detail=detail[-2000:])
+                  why=why, pid=s.pid, failures=dict(self.failures), detail=detail[-2000:])
         if why == "error":
             return
         self._kill(s)
