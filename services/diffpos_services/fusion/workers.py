@@ -23,6 +23,30 @@ are those of one call, whatever the number of workers (tests/services/test_fusio
   worker is used again once it said ``ready`` (polled, never waited for on the hot path).
 - Calls cheaper than :data:`MIN_PARALLEL_COST` stay in the calling process (the IPC and the
   per-call cost of the tracker would exceed the gain).
+- Each worker runs in a session of its own (``setsid``): Linux's autogroup scheduling shares
+  the CPU per session, so in the fusion's session the worker only split the fusion's one
+  share on a busy machine (soak, 2026-11-27, before: 36-40k estimates with 2 workers vs
+  58-60k with 1; after: on a par, below).
+
+Measured 2026-11-27 on the 2-core VM, shared with another helper's benchmarks (one
+CPU-bound process most of the time: the machine 1.8-1.96 cores busy during the soaks):
+
+- ``python benchmarks/bench_workers.py`` (8 anchors, a quiet moment, load 1.6): 256 rows
+  40.2 ms local -> 30.7 ms split (caller 28.6 + worker 29.0 ms CPU: +44 % CPU, each process
+  runs ~25 % slower per row while the other one runs, plus ~2 ms of slicing and pickling for
+  1.4 MB each way); 32 rows 6.9 -> 5.7 ms.
+- ``bench_soak.py --load 16x200 --duration 60 --warmup 10 --method mnls --workers N``,
+  alternating, 16:15-16:27: 2 workers 33.8k / 55.4k / 50.4k / 61.8k estimates of 120,000,
+  1 worker 38.8k / 44.6k / 58.4k / 48.4k (the rest ``superseded``; latency p50 ~390-470 ms
+  both). One run while the other job paused (16:10): 2 workers 99,956, p50 213 ms, p99
+  637 ms (fusion 0.77 + worker 0.35 cores). Where the time goes with 2 (16:19 run): the
+  fusion's thread 40 s CPU in 60 s = its own shares 20.2 s + IPC 0.9 s + the rest (ingest,
+  batches, messages, calls kept local) ~19 s; the worker ~15 s CPU; the own shares took
+  31 s of wall (the thread ran ~2/3 of the time: the machine was full).
+- Replay of the 30 s soak recording (all epochs, in process): wall 28.1 s (1) vs 27.4 s (2),
+  the fusion's CPU 27.9 s vs 17.4 s + the worker's 11.2 s (+2.5 % CPU on 200-row calls);
+  the 20 s ``large`` one (50-row calls): 4.2-4.5 s vs 5.6-5.8 s (+35 % CPU), estimates of
+  both bit for bit those of main.
 """
 
 from __future__ import annotations
