@@ -8,6 +8,7 @@ tests/system/test_fusion_workers_process.py."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import itertools
 import pickle
@@ -15,7 +16,11 @@ import pickle
 import msgspec
 import numpy as np
 import pytest
+from diffpos_services.cli import fusion as cmd_fusion
+from diffpos_services.cli import replay as cmd_replay
 from diffpos_services.fusion import workers as W
+from diffpos_services.fusion.config import DEFAULT_WORKERS, FusionConfig
+from diffpos_services.kit import ConfigError
 from diffpos_services.recording import replay as replay_mod
 from diffpos_services.recording.replay import replay
 from diffpos_services.recording.synthetic import write_synthetic_recording
@@ -23,6 +28,23 @@ from diffpos_services.wire import messages as M
 
 from diffpos.scenario import default_scenario
 from diffpos.tracking import TrackerState, init_state
+
+
+def test_cli_workers_default_value_and_validation():
+    """``diffpos fusion --workers N`` (default 1, in the help, 0 rejected naming the field)
+    and ``diffpos replay --workers N`` (an override; default: the recorded setting)."""
+    p = argparse.ArgumentParser()
+    cmd_fusion.add_arguments(p)
+    cfg = lambda *a: cmd_fusion.config_from_args(p.parse_args(list(a)), default_scenario())  # noqa: E731
+    assert DEFAULT_WORKERS == 1 == FusionConfig().workers == cfg().workers
+    assert cfg("--workers", "2").workers == 2
+    assert "--workers" in p.format_help()
+    with pytest.raises(ConfigError, match="workers"):
+        cfg("--workers", "0")
+    r = argparse.ArgumentParser()
+    cmd_replay.add_arguments(r)
+    assert cmd_replay._overrides(r.parse_args(["x.mcap", "--workers", "3"]))["workers"] == 3
+    assert "workers" not in cmd_replay._overrides(r.parse_args(["x.mcap"]))
 
 
 def test_share_bounds_cover_contiguous_and_balanced():

@@ -174,7 +174,8 @@ def _add_cpu_arguments(parser: argparse.ArgumentParser) -> None:
         "--workers", type=int, default=DEFAULT_WORKERS, metavar="N",
         help="processes sharing the per-node work of mnls + tracking (tracker update, snapshot "
         "fixes), this one included: N - 1 worker processes are started and warmed up before "
-        f"the fusion is ready; estimates identical for any N (default: {DEFAULT_WORKERS})",
+        "the fusion is ready; estimates identical for any N; 2 pays only where a core is free "
+        f"(default: {DEFAULT_WORKERS})",
     )
 
 
