@@ -163,3 +163,19 @@ def test_sigkill_of_the_owner_leaves_no_worker(tmp_path):
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait(10)
+
+
+def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
+    """A worker that does not answer within the timeout (here 0.5 s; live 30 s + 0.1 s per
+    cost unit) is killed, its share computed by the caller, a new worker started."""
+    monkeypatch.setattr(W, "TIMEOUT_BASE_S", 0.5)
+    monkeypatch.setattr(W, "TIMEOUT_PER_COST_S", 0.0)
+    with W.RowPool(2, MODEL) as pool:
+        assert pool.wait_ready(120) == 1
+        old = pool.pids[0]
+        x = np.full(40, 60.0)  # the worker's share would sleep a minute
+        got = pool.map_rows("sleep", (x,), np.ones(40), local=lambda a: a + 1)
+        assert np.array_equal(got, x + 1)
+        assert pool.failures["timeout"] == 1
+        assert _gone([old], 10) == []  # killed
+        assert pool.wait_ready(120) == 1 and pool.pids[0] != old

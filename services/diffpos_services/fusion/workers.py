@@ -194,9 +194,15 @@ def _task_fail(model: tuple, *args):
     raise RuntimeError("injected worker failure")
 
 
+def _task_sleep(model: tuple, seconds: np.ndarray):
+    """Fault injection for the tests: a worker that hangs (``seconds[0]``) then answers."""
+    time.sleep(float(seconds[0]))
+    return seconds
+
+
 #: what a worker computes (the calling process runs the same functions for its own share)
 TASKS: dict[str, Callable[..., Any]] = {"update": _task_update, "mnls": _task_mnls,
-                                        "fail": _task_fail}
+                                        "fail": _task_fail, "sleep": _task_sleep}
 
 
 def _die_with(parent_pid: int) -> None:
