@@ -36,9 +36,9 @@ CPU-bound process most of the time: the machine 1.8-1.96 cores busy during the s
   runs ~25 % slower per row while the other one runs, plus ~2 ms of slicing and pickling for
   1.4 MB each way); 32 rows 6.9 -> 5.7 ms.
 - ``bench_soak.py --load 16x200 --duration 60 --warmup 10 --method mnls --workers N``,
-  alternating, 16:15-16:27: 2 workers 33.8k / 55.4k / 50.4k / 61.8k estimates of 120,000,
-  1 worker 38.8k / 44.6k / 58.4k / 48.4k (the rest ``superseded``; latency p50 ~390-470 ms
-  both). One run while the other job paused (16:10): 2 workers 99,956, p50 213 ms, p99
+  alternating, 16:15-16:41: 2 workers 33.8k / 55.4k / 50.4k / 61.8k / 51.0k estimates of
+  120,000, 1 worker 38.8k / 44.6k / 58.4k / 48.4k / 50.2k (the rest ``superseded``; latency
+  p50 ~390-470 ms both; RSS: fusion ~575 MB, a worker ~195 MB). One run while the other job paused (16:10): 2 workers 99,956, p50 213 ms, p99
   637 ms (fusion 0.77 + worker 0.35 cores). Where the time goes with 2 (16:19 run): the
   fusion's thread 40 s CPU in 60 s = its own shares 20.2 s + IPC 0.9 s + the rest (ingest,
   batches, messages, calls kept local) ~19 s; the worker ~15 s CPU; the own shares took
