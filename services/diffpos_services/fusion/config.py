@@ -239,10 +239,10 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     process; the estimates are bit-identical for any count (a recording made with any value
     replays to the same estimates). Applied by the service and by replay; 1: no process.
     Default 1: 2 pays only where the second core is free (the soak: ~100k of 120,000
-    estimates with 2 in a run while the machine was otherwise idle; 34-62k vs 39-58k with 1,
-    5 alternating pairs,
-    while another job used ~0.7 core; the split costs +2.5 % CPU on the soak's 200-row
-    calls, +35-45 % on 50-row ones: diffpos_services/fusion/workers.py)."""
+    estimates with 2 in a run while the machine was otherwise idle; in 5 alternating pairs
+    while another job used ~0.7 core, 34-62k with 2 vs 39-58k with 1; the split costs
+    +2.5 % CPU on the soak's 200-row calls, +35-45 % on 50-row ones:
+    diffpos_services/fusion/workers.py)."""
     # ---- what is accepted (docs/bad_input.md)
     anchors: tuple[str, ...] | None = None
     """Allow-list of anchor ids (``None``: any anchor with a valid id)."""
