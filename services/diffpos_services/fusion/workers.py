@@ -155,8 +155,10 @@ _SNR_CACHE = ("snr_node", "snr_anchor", "snr_pred")
 
 def slim_state(sub: TrackerState, config: Any) -> TrackerState:
     """``sub`` without its SNR cache fields (None) when the tracker neither reads nor carries
-    them (:func:`diffpos.tracking_snr.snr_reuse_on` false, the default since 73c3e34): they
-    are 7.2 of the ~11 KB per row that would cross the pipe both ways for nothing."""
+    them (:func:`diffpos.tracking_snr.snr_reuse_on` false: both reuse margins 0): they are
+    7.2 of the ~11 KB per row that would cross the pipe both ways for nothing. With the
+    default margins (0.05 / 0.1 m) reuse is on and the whole state crosses (1.4 MB each way
+    for a 128-row share: ~2 ms of the caller's CPU, bench_workers.py)."""
     if snr_reuse_on(config):
         return sub
     return dataclasses.replace(sub, **dict.fromkeys(_SNR_CACHE))
