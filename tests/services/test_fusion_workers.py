@@ -91,10 +91,13 @@ class _Pipe:
 
     def __init__(self, model, fail: str | None = None, after: int = 0) -> None:
         self.model, self.fail, self.after, self.n, self.reply = model, fail, after, 0, None
+        self.slim = 0
 
     def send(self, msg) -> None:
         kind, args = pickle.loads(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
         self.n += 1
+        if kind == "update":  # how many shares crossed without their SNR cache fields
+            self.slim += args[0].snr_node is None
         if self.fail == "error" and self.n > self.after:
             self.reply = ("err", "Traceback: injected", 0.0)
         else:
@@ -113,12 +116,16 @@ class _Pipe:
         pass
 
 
-def _replay(path, monkeypatch, fail=None, after=0):
-    """Replay with a 2-way pool whose worker is a :class:`_Pipe` (None: the plain fusion);
-    every call is split (MIN_PARALLEL_COST 0). Returns (estimates as bytes, pool)."""
+def _replay(path, monkeypatch, fail=None, after=0, reuse_off=False):
+    """Replay with a 2-way pool whose worker is a :class:`_Pipe` (``fail="none"``: the plain
+    fusion); every call is split (MIN_PARALLEL_COST 0); ``reuse_off``: the tracker's SNR
+    reuse margins 0 (the slim state crosses the pipe). Returns (estimates as bytes, pool)."""
     pools = []
 
     def fake_start(core, log=None):
+        if reuse_off:
+            core.bank.config = dataclasses.replace(core.bank.config, snr_reuse_m=0.0,
+                                                   snr_reuse_anchor_m=0.0)
         if fail == "none":
             return None
         pool = W.RowPool(1, (core.building, core.model[1], core.config.window_height_m,
@@ -143,12 +150,16 @@ def recording(tmp_path_factory):
     return path
 
 
-def test_split_replay_equals_plain_bit_for_bit(recording, monkeypatch):
-    plain, _ = _replay(recording, monkeypatch, fail="none")
-    split, pool = _replay(recording, monkeypatch)
+@pytest.mark.parametrize("reuse_off", [False, True])
+def test_split_replay_equals_plain_bit_for_bit(recording, monkeypatch, reuse_off):
+    """Split (every call) = plain, with the default SNR reuse (the whole state crosses) and
+    with reuse off (the slim state: the SNR cache fields stay with the caller)."""
+    plain, _ = _replay(recording, monkeypatch, fail="none", reuse_off=reuse_off)
+    split, pool = _replay(recording, monkeypatch, reuse_off=reuse_off)
     assert len(plain) == 6 * 15
     assert split == plain
     assert pool.calls["split"] > 0 and pool.calls["rows_sent"] > 0 and not pool.failures
+    assert (pool._slots[0].conn.slim > 0) == reuse_off
 
 
 @pytest.mark.parametrize("fail", ["died", "error"])
