@@ -130,7 +130,8 @@ def _replay(path, monkeypatch, fail=None, after=0, reuse_off=False):
             return None
         pool = W.RowPool(1, (core.building, core.model[1], core.config.window_height_m,
                              core.config.first_floor_z_m))
-        pool._slots = [W._Slot(conn=_Pipe(pool.model, fail, after), ready=True, pid=-1)]
+        pool.pipe = _Pipe(pool.model, fail, after)  # kept: close() forgets the slot's
+        pool._slots = [W._Slot(conn=pool.pipe, ready=True, pid=-1)]
         pool._start = lambda s: setattr(s, "conn", None)  # "restart": the slot stays empty
         core.bank.pool = pool
         pools.append(pool)
@@ -159,7 +160,7 @@ def test_split_replay_equals_plain_bit_for_bit(recording, monkeypatch, reuse_off
     assert len(plain) == 6 * 15
     assert split == plain
     assert pool.calls["split"] > 0 and pool.calls["rows_sent"] > 0 and not pool.failures
-    assert (pool._slots[0].conn.slim > 0) == reuse_off
+    assert (pool.pipe.slim > 0) == reuse_off
 
 
 @pytest.mark.parametrize("fail", ["died", "error"])
