@@ -71,16 +71,17 @@ def test_fusion_started_by_emulate_accepts_only_the_scenarios_anchors():
 
 
 
-@pytest.mark.parametrize(("speed", "method"), [(1.0, None), (0.0, None), (0.0, "mnls"),
-                                               (5.0, "dnls")])
-def test_the_recorded_fusion_config_is_the_one_the_fusion_parses(speed, method):
+@pytest.mark.parametrize(("speed", "method", "workers"), [(1.0, None, 1), (0.0, None, 1),
+                                                          (0.0, "mnls", 2), (5.0, "dnls", 1),
+                                                          (1.0, None, 3)])
+def test_the_recorded_fusion_config_is_the_one_the_fusion_parses(speed, method, workers):
     """The run configuration emulate records for replay (``Emulation.fusion_config``) equals
     the config the fusion process builds from emulate's ``fusion_args`` with the real
     ``diffpos fusion`` CLI, lockstep (``--speed 0``: no overload policy) or not: a replay by
     the decision record uses the recorded one, so any difference (e.g. max_backlog_s,
     supersede_after_s) would make it drop other epochs than the live fusion."""
     emu = Emulation(EmulationOptions(record="off", dashboard=["off"], speed=speed,
-                                     method=method),
+                                     method=method, fusion_workers=workers),
                     logging.getLogger("test"), threading.Event())
     ap = argparse.ArgumentParser()
     cli_fusion.add_arguments(ap)
@@ -88,6 +89,14 @@ def test_the_recorded_fusion_config_is_the_one_the_fusion_parses(speed, method):
     parsed = cli_fusion.config_from_args(args, load_scenario_option(args.scenario))
     assert parsed == emu.fusion_config
     assert (emu.fusion_config.max_backlog_s is None) == (speed == 0)
+    assert emu.fusion_config.workers == workers
+
+
+@pytest.mark.parametrize("workers", [0, -1, 65])
+def test_fusion_workers_out_of_range_is_a_config_error(workers):
+    """``--fusion-workers`` outside [1, MAX_WORKERS] is refused before anything starts."""
+    with pytest.raises(ConfigError, match="--fusion-workers"):
+        EmulationOptions(fusion_workers=workers).check()
 
 
 # ------------------------------------------------------------------ one recorder command line

@@ -93,6 +93,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "per responder (keeps up in real time on the paper's geometry; for large "
                         "scenarios on 2 cores use lockstep, --speed 0); dnls = the paper's window-edge D-NLS "
                         "with gating; lls, ippa = the baselines")
+    parser.add_argument("--fusion-workers", type=int, default=1, metavar="N",
+                        help="the fusion's worker processes (diffpos fusion --workers; default "
+                        "1: none). N > 1 splits the tracker's rows over N processes, the "
+                        "same estimates bit for bit; pays only where a core is free")
     parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes (default 0 = all)")
     parser.add_argument("--endpoint", metavar="ENDPOINT",
                         help="router endpoint (default tcp/127.0.0.1:<free port>; with "
@@ -126,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress, ready_timeout_s=args.ready_timeout,
             log_level=args.log_level,
             delta_m=args.delta_m, edge=args.edge, method=args.method,
-            security_profile=args.security_profile,
+            fusion_workers=args.fusion_workers, security_profile=args.security_profile,
         )
         opts.check()  # every option before anything starts (the dashboard hint needs them)
         stop = Shutdown(log)

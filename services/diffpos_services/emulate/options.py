@@ -9,7 +9,7 @@ from pathlib import Path
 
 from diffpos_services.bus.commands import recorder_args
 from diffpos_services.bus.session import check_endpoint
-from diffpos_services.fusion.config import EDGES, METHODS
+from diffpos_services.fusion.config import EDGES, MAX_WORKERS, METHODS
 from diffpos_services.kit import ConfigError
 from diffpos_services.wire.keys import Keys
 
@@ -40,6 +40,7 @@ class EmulationOptions:
     delta_m: float = 0.0
     edge: str = "auto"
     method: str | None = None
+    fusion_workers: int = 1
     security_profile: str | None = None
 
     def check(self) -> None:
@@ -53,6 +54,9 @@ class EmulationOptions:
             raise ConfigError(f"--channel must be emulator or ideal, got {self.channel!r}")
         if self.method is not None and self.method not in METHODS:
             raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if not 1 <= self.fusion_workers <= MAX_WORKERS:
+            raise ConfigError(f"--fusion-workers must be in [1, {MAX_WORKERS}], got "
+                              f"{self.fusion_workers}")
         if self.edge not in EDGES:
             raise ConfigError(f"--edge must be auto, upper or lower, got {self.edge!r}")
         if self.endpoint is not None:

@@ -121,6 +121,8 @@ class Emulation:
             self.fusion_args += ["--method", options.method]
         if options.speed == 0:  # lockstep: the input waits for the fusion, never behind
             self.fusion_args += ["--max-backlog-s", "0"]
+        if options.fusion_workers != 1:
+            self.fusion_args += ["--workers", str(options.fusion_workers)]
         self.fusion_config, self.edge, self.edge_reason = self._fusion_config(edge)
         self.profile = None
         if options.security_profile is not None:
@@ -290,6 +292,7 @@ class Emulation:
                                          epoch_period_s=1.0 / self.o.rate_hz,
                                          max_backlog_s=(None if self.o.speed == 0
                                                         else LIVE_MAX_BACKLOG_S),
+                                         workers=self.o.fusion_workers,
                                          **({} if self.o.method is None
                                             else {"method": self.o.method}))
         edge, why = model_edge(edge, self.scenario)

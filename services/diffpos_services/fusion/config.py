@@ -137,6 +137,8 @@ DEFAULT_KERNEL_THREADS = 1
 
 #: ``workers`` when not given: 1 (no worker process; see ``FusionConfig.workers``).
 DEFAULT_WORKERS = 1
+#: Largest ``workers`` accepted.
+MAX_WORKERS = 64
 
 
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
@@ -231,7 +233,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     Applied by the service at its start and by replay (one pool per process). It pays only
     where a core is free: replaying the 16 x 200 soak, wall x0.72 with 2; live on 2 cores
     shared with the run's anchors and router, 2 was worse (benchmarks/bench_fusion_cost.py)."""
-    workers: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_WORKERS
+    workers: Annotated[int, Meta(ge=1, le=MAX_WORKERS)] = DEFAULT_WORKERS
     """Processes sharing the per-node work of mnls + tracking (the tracker update and the
     snapshot fixes: ~79 % of the soak's fusion CPU), the fusion's own included: ``N - 1``
     worker processes are started (:mod:`diffpos_services.fusion.workers`, ``spawn``, warmed
