@@ -29,7 +29,14 @@ import numpy as np
 from numba import njit
 
 from .paths_nb import _EDGE, _GROUND, _PLANE0, _PLANE1, _in_box, _mirror, _plane
-from .transition_nb import _utd_term
+from .transition_nb import (
+    _EXP_J_3PI4,
+    _EXP_J_PI4,
+    _SQRT_PI,
+    TRANSITION_ASYMPTOTIC_MIN,
+    faddeeva,
+    transition_asymptotic,
+)
 
 _RAD2DEG = 180.0 / math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -124,9 +131,10 @@ def _unit(v0, v1, v2):
 
 
 @njit(**_OPTS)
-def _reflect(f0, f1, f2, k0, k1, k2, axis, eta):
-    """channel._reflect_field: the complex field (f0, f1, f2) of a ray along the unit vector
-    k reflected off the plane normal to ``axis`` (Fresnel TE/TM split)."""
+def _reflect(r0, i0, r1, i1, r2, i2, k0, k1, k2, axis, eta):
+    """channel._reflect_field: the complex field ``(r0 + j i0, r1 + j i1, r2 + j i2)`` of a
+    ray along the unit vector k reflected off the plane normal to ``axis`` (Fresnel TE/TM
+    split), as six floats in the same order."""
     m0 = 1.0 if axis == 0 else 0.0
     m1 = 1.0 if axis == 1 else 0.0
     m2 = 1.0 if axis == 2 else 0.0
@@ -149,17 +157,25 @@ def _reflect(f0, f1, f2, k0, k1, k2, axis, eta):
     root = cmath.sqrt(eta - (1.0 - c * c) + 0j)
     gs = (c - root) / (c + root)
     gp = (eta * c - root) / (eta * c + root)
-    es = f0 * s0 + f1 * s1 + f2 * s2
-    ep = f0 * pi0 + f1 * pi1 + f2 * pi2
-    a = gs * es
-    b = gp * ep
-    return a * s0 + b * po0, a * s1 + b * po1, a * s2 + b * po2
+    esr, esi = (r0 * s0 + r1 * s1) + r2 * s2, (i0 * s0 + i1 * s1) + i2 * s2
+    epr, epi = (r0 * pi0 + r1 * pi1) + r2 * pi2, (i0 * pi0 + i1 * pi1) + i2 * pi2
+    ar, ai = _cmul(gs.real, gs.imag, esr, esi)
+    br, bi = _cmul(gp.real, gp.imag, epr, epi)
+    return (ar * s0 + br * po0, ai * s0 + bi * po0, ar * s1 + br * po1, ai * s1 + bi * po1,
+            ar * s2 + br * po2, ai * s2 + bi * po2)
 
 
 @njit(**_OPTS)
-def _norm_c(f0, f1, f2):
-    """channel._field_norm of a complex 3-vector."""
-    return math.sqrt((f0 * f0.conjugate() + f1 * f1.conjugate() + f2 * f2.conjugate()).real)
+def _cmul(a, b, c, d):
+    """``(a + j b) (c + j d)`` with numba's (CPython's) operations: ``(ac - bd, ad + bc)``."""
+    return a * c - b * d, a * d + b * c
+
+
+@njit(**_OPTS)
+def _norm_c(r0, i0, r1, i1, r2, i2):
+    """channel._field_norm of a complex 3-vector given as six floats (the real part of
+    ``sum f conj(f)``: ``r r - i (-i)`` is ``r r + i i`` exactly)."""
+    return math.sqrt(((r0 * r0 + i0 * i0) + (r1 * r1 + i1 * i1)) + (r2 * r2 + i2 * i2))
 
 
 @njit(**_OPTS)
@@ -255,10 +271,10 @@ def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_
     else:
         u0, u1, u2, _ = _unit(en0 - a0, en1 - a1, en2 - a2)
     f0, f1, f2, g_db = _tx_field(u0, u1, u2, prm)
-    e0, e1, e2 = f0 + 0j, f1 + 0j, f2 + 0j
+    e0, e1, e2, e3, e4, e5 = f0, 0.0, f1, 0.0, f2, 0.0  # (re, im) of every component
     loss = prm[_P_GLASS_DB]
     if ground:
-        e0, e1, e2 = _reflect(e0, e1, e2, u0, u1, u2, 2, eta_g)
+        e0, e1, e2, e3, e4, e5 = _reflect(e0, e1, e2, e3, e4, e5, u0, u1, u2, 2, eta_g)
         k0, k1, k2, _ = _unit(en0 - g0, en1 - g1, en2 - g2)
     else:
         k0, k1, k2 = u0, u1, u2
@@ -266,7 +282,7 @@ def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_
     p0, p1, p2 = en0, en1, en2  # pts[j]
     for j in range(n_pl):
         ax, _c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
-        e0, e1, e2 = _reflect(e0, e1, e2, k0, k1, k2, ax, eta_in)
+        e0, e1, e2, e3, e4, e5 = _reflect(e0, e1, e2, e3, e4, e5, k0, k1, k2, ax, eta_in)
         if j == 0:
             q0, q1, q2 = r10, r11, r12
         else:
@@ -279,7 +295,7 @@ def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_
         k0, k1, k2, _ = _unit(nx0 - q0, nx1 - q1, nx2 - q2)
         p0, p1, p2 = q0, q1, q2
     loss = loss + _partition_loss(p0, p1, p2, n0, n1, n2, parts)
-    amp = _norm_c(e0, e1, e2)
+    amp = _norm_c(e0, e1, e2, e3, e4, e5)
     if not math.isfinite(amp):
         return 0.0, 0.0, nan, nan, nan, length, False
     return (_ray_gain(amp, length, prm[_P_LAM]), loss - g_db, p0 - n0, p1 - n1, p2 - n2,
@@ -302,9 +318,27 @@ def _half_angle(x, y):
 
 
 @njit(**_OPTS)
+def _utd_term_ri(c, kl):
+    """:func:`diffpos._kernels.transition_nb._utd_term` as ``(re, im)``: in the asymptotic
+    branch ``sgn F / |c|`` part by part (numba's complex product with ``sgn`` and division by
+    ``|c|`` give these values: their extra terms are ``x * 0``), else the complex
+    expression itself."""
+    sgn = 1.0 if c >= 0.0 else -1.0
+    root = math.sqrt(2.0 * kl)
+    t = root * abs(c)
+    if t * t >= TRANSITION_ASYMPTOTIC_MIN:
+        f = transition_asymptotic(t * t)
+        ac = abs(c)
+        return (sgn * f.real) / ac, (sgn * f.imag) / ac
+    w = sgn * _SQRT_PI * root * _EXP_J_PI4 * faddeeva(_EXP_J_3PI4 * root * abs(c))
+    return w.real, w.imag
+
+
+@njit(**_OPTS)
 def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
     """gtd.diffracted_field (UTD, spherical spreading) of the window edge at Q for the
-    source at the anchor and the observer O, without its common phase factors."""
+    source at the anchor and the observer O, without its common phase factors, as six floats
+    (re, im of x, y, z)."""
     if upper:  # e = +x, t0 = +z
         e0, e1, e2, t0, t1, t2 = 1.0, 0.0, 0.0, 0.0, 0.0, 1.0
     else:  # e = -x, t0 = -z
@@ -340,17 +374,18 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
     big_l = s_out_m * s_in_m * sin_g ** 2 / (s_out_m + s_in_m)
     pre = 1.0 / (2.0 * math.sqrt(2.0 * math.pi * k) * sin_gamma0)  # |prefactor|
     kl = k * big_l
-    t_minus = _utd_term(hc * hc_in + hs * hs_in, kl)  # cos((psi - psi') / 2)
-    t_plus = _utd_term(hc * hc_in - hs * hs_in, kl)  # cos((psi + psi') / 2)
-    d_s = pre * (t_minus - t_plus)
-    d_h = pre * (t_minus + t_plus)
+    mr, mi = _utd_term_ri(hc * hc_in + hs * hs_in, kl)  # cos((psi - psi') / 2)
+    pr, pi_ = _utd_term_ri(hc * hc_in - hs * hs_in, kl)  # cos((psi + psi') / 2)
+    dsr, dsi = pre * (mr - pr), pre * (mi - pi_)
+    dhr, dhi = pre * (mr + pr), pre * (mi + pi_)
     ex, ey, ez = prm[_P_E0], prm[_P_E0 + 1], prm[_P_E0 + 2]
     ei_beta = (ex * bi0 + ey * bi1 + ez * bi2) / s_in_m
     ei_phi = (ex * pi0 + ey * pi1 + ez * pi2) / s_in_m
     amp = math.sqrt(s_in_m / (s_out_m * (s_out_m + s_in_m)))
-    cb = -d_s * ei_beta * amp
-    cp = -d_h * ei_phi * amp
-    return cb * bo0 + cp * po0, cb * bo1 + cp * po1, cb * bo2 + cp * po2
+    cbr, cbi = -dsr * ei_beta * amp, -dsi * ei_beta * amp
+    cpr, cpi = -dhr * ei_phi * amp, -dhi * ei_phi * amp
+    return (cbr * bo0 + cpr * po0, cbi * bo0 + cpi * po0, cbr * bo1 + cpr * po1,
+            cbi * bo1 + cpi * po1, cbr * bo2 + cpr * po2, cbi * bo2 + cpi * po2)
 
 
 @njit(**_OPTS)
@@ -404,7 +439,7 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
     ok = ok and math.isfinite(length)
     if not ok:
         return 0.0, 0.0, nan, nan, nan, length, False
-    f0, f1, f2 = _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm)
+    f0, f1, f2, f3, f4, f5 = _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm)
     g_db = 0.0  # the pattern on departure, applied in dB (every later step is linear)
     if not math.isnan(prm[_P_TX_HPBW]):
         g_db = _pattern_db(_zenith_deg(q0 - a0, q1 - a1, q2 - a2), prm[_P_TX_HPBW],
@@ -414,12 +449,12 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
         l0, l1, l2 = q0, q1, q2
     else:
         k0, k1, k2, _ = _unit(u0, u1, u2)
-        f0, f1, f2 = _reflect(f0, f1, f2, k0, k1, k2, ax, eta_in)
+        f0, f1, f2, f3, f4, f5 = _reflect(f0, f1, f2, f3, f4, f5, k0, k1, k2, ax, eta_in)
         loss = (0.0 + _partition_loss(q0, q1, q2, rp0, rp1, rp2, parts)
                 + _partition_loss(rp0, rp1, rp2, n0, n1, n2, parts))
         l0, l1, l2 = rp0, rp1, rp2
     c1 = prm[_P_LAM] / (4 * math.pi)
-    amp = _norm_c(f0 * c1, f1 * c1, f2 * c1)
+    amp = _norm_c(f0 * c1, f1 * c1, f2 * c1, f3 * c1, f4 * c1, f5 * c1)
     if not math.isfinite(amp):
         return 0.0, 0.0, nan, nan, nan, length, False
     return amp, loss - g_db, l0 - n0, l1 - n1, l2 - n2, length, True
