@@ -74,6 +74,7 @@ from .channel_rays_nb import (
     _P_E0,
     _P_FIRST_Z,
     _P_FLOOR_H,
+    _P_K,
     _P_N0,
     _P_N_FLOORS,
     _P_PGAIN,
@@ -125,6 +126,7 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
     eta_g, eta_in = eta[0], eta[1]
     c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
     rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
+    sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])  # the UTD prefactor's, once
     ninf = -np.inf
     for i in range(nodes.shape[0]):
         n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
@@ -144,7 +146,7 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
                 else:
                     g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
                                                             zc, lo, hi, prm, parts, eta_in,
-                                                            edge)
+                                                            edge, sq2pik)
                 if not ok:
                     out[i, j, s] = ninf
                     continue
@@ -170,6 +172,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
     eta_g, eta_in = eta[0], eta[1]
     c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
     rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
+    sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])  # the UTD prefactor's, once
     ninf = -np.inf
     for i in range(nodes.shape[0]):
         n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
@@ -192,7 +195,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
                 else:
                     g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
                                                             zc, lo, hi, prm, parts, eta_in,
-                                                            edge)
+                                                            edge, sq2pik)
                 if not ok:
                     out[i, j, s] = ninf
                     continue

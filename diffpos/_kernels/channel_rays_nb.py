@@ -335,10 +335,11 @@ def _utd_term_ri(c, kl):
 
 
 @njit(**_OPTS)
-def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
+def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, sq2pik):
     """gtd.diffracted_field (UTD, spherical spreading) of the window edge at Q for the
     source at the anchor and the observer O, without its common phase factors, as six floats
-    (re, im of x, y, z)."""
+    (re, im of x, y, z). ``s_in_m`` = ``|Q - A|``, ``s_out_m`` = ``|O - Q|`` and ``sq2pik`` =
+    ``sqrt(2 pi k)`` are the caller's (the same operations: computed once)."""
     if upper:  # e = +x, t0 = +z
         e0, e1, e2, t0, t1, t2 = 1.0, 0.0, 0.0, 0.0, 0.0, 1.0
     else:  # e = -x, t0 = -z
@@ -346,8 +347,10 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
     nn0, nn1, nn2 = _cross(e0, e1, e2, t0, t1, t2)
     di0, di1, di2 = q0 - a0, q1 - a1, q2 - a2
     do0, do1, do2 = o0 - q0, o1 - q1, o2 - q2
-    si0, si1, si2, s_in_m = _unit(di0, di1, di2)
-    so0, so1, so2, s_out_m = _unit(do0, do1, do2)
+    inv = 1.0 / s_in_m  # _unit's operations
+    si0, si1, si2 = di0 * inv, di1 * inv, di2 * inv
+    inv = 1.0 / s_out_m
+    so0, so1, so2 = do0 * inv, do1 * inv, do2 * inv
     if ((a0 - q0) * nn0 + (a1 - q1) * nn1 + (a2 - q2) * nn2) < 0.0:  # n0 faces the source
         nn0, nn1, nn2, e0, e1, e2 = -nn0, -nn1, -nn2, -e0, -e1, -e2
     ci0, ci1, ci2 = _cross(e0, e1, e2, si0, si1, si2)
@@ -372,7 +375,7 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
     k = prm[_P_K]
     # utd_coefficients with L = s s' sin^2 gamma0 / (s + s') (distance_parameter_m)
     big_l = s_out_m * s_in_m * sin_g ** 2 / (s_out_m + s_in_m)
-    pre = 1.0 / (2.0 * math.sqrt(2.0 * math.pi * k) * sin_gamma0)  # |prefactor|
+    pre = 1.0 / (2.0 * sq2pik * sin_gamma0)  # |prefactor|
     kl = k * big_l
     mr, mi = _utd_term_ri(hc * hc_in + hs * hs_in, kl)  # cos((psi - psi') / 2)
     pr, pi_ = _utd_term_ri(hc * hc_in - hs * hs_in, kl)  # cos((psi + psi') / 2)
@@ -389,9 +392,10 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
 
 
 @njit(**_OPTS)
-def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, edge):
+def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, edge, sq2pik):
     """channel._diffracted for slot ``s`` (geometry: paths.diffracted_path):
-    (|gain|, arrival vector, length, valid)."""
+    (|gain|, arrival vector, length, valid). ``sq2pik``: ``math.sqrt(2.0 * math.pi * k)``
+    (the kernel's, once per call)."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     nan = np.nan
     upper = _EDGE[s] == 0
@@ -424,7 +428,9 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
     q0, q1, q2 = x0 + t * ee0, 0.0 + t * ee1, z_e + t * ee2
     v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
     u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
-    length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) + math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    s_in_m = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)  # = |Q - A| bit for bit (squares)
+    s_out_m = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    length = s_in_m + s_out_m
     rp0 = rp1 = rp2 = nan
     if then >= 0:  # reflection point between the edge and the node, on the inside surface
         if ax == 0:
@@ -439,7 +445,8 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
     ok = ok and math.isfinite(length)
     if not ok:
         return 0.0, 0.0, nan, nan, nan, length, False
-    f0, f1, f2, f3, f4, f5 = _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm)
+    f0, f1, f2, f3, f4, f5 = _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m,
+                                        upper, prm, sq2pik)
     g_db = 0.0  # the pattern on departure, applied in dB (every later step is linear)
     if not math.isnan(prm[_P_TX_HPBW]):
         g_db = _pattern_db(_zenith_deg(q0 - a0, q1 - a1, q2 - a2), prm[_P_TX_HPBW],
