@@ -355,14 +355,19 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     meas = np.broadcast_to(links.snr, c.shape[:3])[n_i, h_i, m_i]
     fl = np.broadcast_to(np.asarray(floor), pos.shape[:2])[n_i, h_i]
     zf = building.floor_z_m(fl)
-    best = np.full((len(pairs), K_SLOTS), np.inf)
     hole_p = hole[n_i, h_i, m_i]
     thr_p = thr[n_i, h_i, m_i] if HOLE_THRESHOLD_AT_PRIOR else None
-    for sign in (-1.0, 1.0):
-        p = pos[n_i, h_i].copy()
-        p[:, 2] = np.clip(p[:, 2] + sign * dz, zf + 0.01, zf + building.floor_height_m - 0.01)
-        best = np.minimum(best, _hole_snr_cost(anc, p, meas, building, links.radio, hole_p,
-                                               pe.sure[n_i, h_i, m_i], thr_p))
+    # both shifted heights in one call (every row is scored on its own: the same values as
+    # one call per height), then the better of the two per slot
+    p = np.concatenate([pos[n_i, h_i]] * 2)
+    shift = np.concatenate([-dz, dz])
+    p[:, 2] = np.clip(p[:, 2] + shift, np.concatenate([zf] * 2) + 0.01,
+                      np.concatenate([zf] * 2) + building.floor_height_m - 0.01)
+    two = _hole_snr_cost(np.concatenate([anc] * 2), p, np.concatenate([meas] * 2), building,
+                         links.radio, np.concatenate([hole_p] * 2),
+                         np.concatenate([pe.sure[n_i, h_i, m_i]] * 2),
+                         None if thr_p is None else np.concatenate([thr_p] * 2))
+    best = np.minimum(two[:len(pairs)], two[len(pairs):])
     sub = c[n_i, h_i, m_i]
     c[n_i, h_i, m_i] = np.where(hole_p, best, sub)
     return c
