@@ -22,9 +22,17 @@ and run ``time`` alternately with each tree on ``PYTHONPATH`` (numba's cache of 
 used; delete ``diffpos/_kernels/__pycache__`` after editing a kernel's callees, see
 DEVELOPING.md). Equal digests: the kernels' outputs are bit-identical on these inputs.
 
-Measured 2026-11-27 16:3x UTC (2-core x86_64 VM shared with another job, load 3-5; CPU per
-pass varies by ~+-5 % between passes there): see the cost10 branch's report; the digests of
-main 73c3e34 and the branch are equal for all three kernels on 300 soak calls each.
+Measured 2026-11-27 16:25-16:27 UTC (2-core x86_64 VM shared with another job, load 2.8-4.7),
+300 calls of each kernel from ``/tmp/s8/soak/soak16x200.mcap`` (16 anchors x 200 nodes, calls
+101-400), best of 5 passes, main 73c3e34 (before) and the cost10 branch (after) alternating::
+
+    kernel   CPU s before     CPU s after      ns/element before -> after   output sha256
+    paths    1.117 / 1.102    1.105 / 1.092    23.7 / 23.4 -> 23.4 / 23.2  b6fd9fd156132501 (all)
+    masked   1.343 / 1.300    1.228 / 1.221    35.2 / 34.0 -> 32.1 / 32.0  72eff9bf032401bf (all)
+    full     0.777 / 0.767    0.703 / 0.721    121.1 / 119.6 -> 109.6 / 112.5  a2f8834c6ec1511c
+
+(``masked``: the tracker's SNR prediction, -6 to -9 %; ``full``: every slot, the M-NLS
+snapshots' SNR, -6 to -9 %; ``paths``: within the noise.) Equal digests: bit-identical outputs.
 """
 
 from __future__ import annotations

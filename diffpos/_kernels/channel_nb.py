@@ -39,8 +39,12 @@ the floor's inside surface within 1e-9 m), the through-wall direct ray always va
 slot dropped where its length or field is not finite. The per-row pieces of
 :mod:`diffpos._kernels.paths_nb` are reused (plane codes and slot recipes, ``row_planes``,
 ``edge_axis``, ``_plane``, ``_mirror``, ``_in_box``); the path functions themselves are
-re-stated here because the amplitudes need their interaction points (entry, ground and
-reflection points, the diffraction point), which ``slot_path`` does not return.
+re-stated in :mod:`.channel_rays_nb` (the per-slot rays: direct, specular, UTD diffraction,
+with the complex fields carried as ``(re, im)`` pairs where they meet a real factor, the
+complex arithmetic's values) because the amplitudes need their interaction points (entry,
+ground and reflection points, the diffraction point), which ``slot_path`` does not return.
+numba keys this file's cache on this file only: after editing :mod:`.channel_rays_nb` or
+:mod:`.transition_nb` delete ``diffpos/_kernels/__pycache__/`` (DEVELOPING.md).
 
 Inputs are plain arrays prepared once in Python (:func:`channel_params`): the building's
 planes and losses, the partitions as a ``(P, 5)`` array ``(axis, position, span lo, span hi,
