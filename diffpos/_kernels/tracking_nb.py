@@ -577,8 +577,10 @@ def warm_tracking() -> float:
     select_mix_kernel(np.ones((1, 1, 1, k)), b4k, i3, i3.copy(), ex, np.empty((1, 1, 1)),
                       np.empty((1, 1, 1)))
     from .iekf_nb import warm_iekf  # it imports this module: not at the top
+    from .snr_cache_nb import warm_snr_cache
 
     warm_iekf(planes, anc)
+    warm_snr_cache()
     x6, p3 = np.ones((1, 1, 6)), np.ones((1, 1, 3))
     iekf_terms_kernel(np.ones((1, 1, 6, 6)), x6, p3, p3, one, one, onef, np.ones((1, 1, 1, 3)),
                       onef, 1.0, one, np.empty((1, 1, 6, 6)), np.empty((1, 1, 1)),
