@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._kernels.channel_nb import snr_cost_kernel
+from ._kernels.snr_cache_nb import cache_plan_kernel, cache_store_kernel
 from .channel import pair_snr_db
 from .tracking_paths import _IS_BAND, K_SLOTS, Links, PathEval, _c, _relax, all_paths
 from .tracking_state import SNR_CACHE_SLOTS
@@ -77,7 +78,7 @@ HOLE_THRESHOLD_AT_PRIOR = True
 #: entry point is outside the band widened by ``relax_m`` (>= 0, the emulator needs it
 #: strictly inside the band) or its path fails the same geometric test as the emulator's.
 ALWAYS_PREDICTED = ~_IS_BAND | (np.arange(K_SLOTS) == 0)
-_CACHED = np.array(SNR_CACHE_SLOTS)  # the slots an SnrCache keeps: direct, then diffraction
+_CACHED = np.array(SNR_CACHE_SLOTS, dtype=np.int64)  # the slots an SnrCache keeps: direct, then diffraction
 _IS_CACHED = np.isin(np.arange(K_SLOTS), _CACHED)
 
 
@@ -234,17 +235,21 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
     mc = min(m, cache.pred.shape[2])
     known = np.broadcast_to(np.isfinite(links.snr), (n, h, m))
     anc = np.broadcast_to(links.anchors, (n, h, m, 3))
-    old = cache.pred[:, :, :mc]
     with np.errstate(invalid="ignore"):  # NaN (nothing cached): no reuse
         near = np.sqrt(np.sum((pos - cache.node) ** 2, axis=-1)) <= reuse_m[0]
         kept = np.sqrt(np.sum((anc[:, :, :mc] - cache.anchor[:, :, :mc]) ** 2,
                               axis=-1)) <= reuse_m[1]
-    flip = kept & np.any(np.isfinite(old[..., 1:]) != strict[:, :, :mc, _CACHED[1:]], axis=-1)
-    near &= ~np.any(flip, axis=-1)
-    hit = np.zeros((n, h, m), dtype=np.bool_)
-    hit[:, :, :mc] = kept & near[..., None] & known[:, :, :mc]
+    # a cached link whose diffraction slots' existence flipped restarts its hypothesis; the
+    # reused links (hit) and the slots to predict (a reused link: its other slots only):
+    # compiled (diffpos._kernels.snr_cache_nb), the numpy operations' values
+    near = _c(near, dtype=np.bool_)
+    known_nm = _c(np.isfinite(links.snr[:, 0]))
+    hit = np.empty((n, h, m), dtype=np.bool_)
+    mask = np.empty((n, h, m, K_SLOTS), dtype=np.bool_)
+    cache_plan_kernel(near, _c(np.broadcast_to(kept, (n, h, mc))), known_nm, cache.pred,
+                      _c(strict, dtype=np.bool_), _c(np.broadcast_to(need, mask.shape)),
+                      _CACHED, _IS_CACHED, hit, mask)
     at = np.where(near[..., None], cache.node, pos)
-    mask = need & ~(hit[..., None] & _IS_CACHED)  # a reused link: its other slots only
     if known.all():  # every link: no gather
         n_i = None
         pred = _predict(anc.reshape(-1, 3),
@@ -256,10 +261,12 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
         if n_i.size:
             pred[n_i, h_i, m_i] = _predict(anc[n_i, h_i, m_i], at[n_i, h_i], building,
                                            links.radio, mask[n_i, h_i, m_i])
-    r_n, r_h, r_m = np.nonzero(hit)
-    if r_n.size:
-        pred[r_n, r_h, r_m, _CACHED[:, None]] = np.where(
-            need[r_n, r_h, r_m][:, _CACHED], old[r_n, r_h, r_m], -np.inf).T
+    # the reused links' cached slots; then the cache: a hypothesis that moved starts afresh
+    # at ``pos``, the fresh links' predictions stored (in place; float32)
+    cache_store_kernel(near, hit, known_nm, _c(np.broadcast_to(need, mask.shape)), _CACHED,
+                       _c(links.anchors[:, 0], dtype=np.float64), pred, cache.anchor,
+                       cache.pred)
+    cache.node[...] = at
     if known.all():  # every link (row by row the same values as the gather below)
         c, thr = _snr_cost_of(pred.reshape(-1, K_SLOTS),
                               np.broadcast_to(links.snr, (n, h, m)).reshape(-1), links.radio,
@@ -271,13 +278,6 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
             meas = np.broadcast_to(links.snr, (n, h, m))[n_i, h_i, m_i]
             c[n_i, h_i, m_i], thr[n_i, h_i, m_i] = _snr_cost_of(
                 pred[n_i, h_i, m_i], meas, links.radio, trust[n_i, h_i, m_i])
-    # the cache: a hypothesis that moved starts afresh at ``pos``; new predictions stored
-    cache.anchor[~near], cache.pred[~near] = np.nan, np.nan
-    cache.node[...] = at
-    fresh = known[:, :, :mc] & ~hit[:, :, :mc]
-    f_n, f_h, f_m = np.nonzero(fresh)
-    cache.anchor[f_n, f_h, f_m] = anc[f_n, f_h, f_m]
-    cache.pred[f_n, f_h, f_m] = pred[f_n, f_h, f_m][:, _CACHED]
     return c, thr
 
 
@@ -355,14 +355,19 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     meas = np.broadcast_to(links.snr, c.shape[:3])[n_i, h_i, m_i]
     fl = np.broadcast_to(np.asarray(floor), pos.shape[:2])[n_i, h_i]
     zf = building.floor_z_m(fl)
-    best = np.full((len(pairs), K_SLOTS), np.inf)
     hole_p = hole[n_i, h_i, m_i]
     thr_p = thr[n_i, h_i, m_i] if HOLE_THRESHOLD_AT_PRIOR else None
-    for sign in (-1.0, 1.0):
-        p = pos[n_i, h_i].copy()
-        p[:, 2] = np.clip(p[:, 2] + sign * dz, zf + 0.01, zf + building.floor_height_m - 0.01)
-        best = np.minimum(best, _hole_snr_cost(anc, p, meas, building, links.radio, hole_p,
-                                               pe.sure[n_i, h_i, m_i], thr_p))
+    # both shifted heights in one call (every row is scored on its own: the same values as
+    # one call per height), then the better of the two per slot
+    p = np.concatenate([pos[n_i, h_i]] * 2)
+    shift = np.concatenate([-dz, dz])
+    p[:, 2] = np.clip(p[:, 2] + shift, np.concatenate([zf] * 2) + 0.01,
+                      np.concatenate([zf] * 2) + building.floor_height_m - 0.01)
+    two = _hole_snr_cost(np.concatenate([anc] * 2), p, np.concatenate([meas] * 2), building,
+                         links.radio, np.concatenate([hole_p] * 2),
+                         np.concatenate([pe.sure[n_i, h_i, m_i]] * 2),
+                         None if thr_p is None else np.concatenate([thr_p] * 2))
+    best = np.minimum(two[:len(pairs)], two[len(pairs):])
     sub = c[n_i, h_i, m_i]
     c[n_i, h_i, m_i] = np.where(hole_p, best, sub)
     return c

@@ -39,8 +39,12 @@ the floor's inside surface within 1e-9 m), the through-wall direct ray always va
 slot dropped where its length or field is not finite. The per-row pieces of
 :mod:`diffpos._kernels.paths_nb` are reused (plane codes and slot recipes, ``row_planes``,
 ``edge_axis``, ``_plane``, ``_mirror``, ``_in_box``); the path functions themselves are
-re-stated here because the amplitudes need their interaction points (entry, ground and
-reflection points, the diffraction point), which ``slot_path`` does not return.
+re-stated in :mod:`.channel_rays_nb` (the per-slot rays: direct, specular, UTD diffraction,
+with the complex fields carried as ``(re, im)`` pairs where they meet a real factor, the
+complex arithmetic's values) because the amplitudes need their interaction points (entry,
+ground and reflection points, the diffraction point), which ``slot_path`` does not return.
+numba keys this file's cache on this file only: after editing :mod:`.channel_rays_nb` or
+:mod:`.transition_nb` delete ``diffpos/_kernels/__pycache__/`` (DEVELOPING.md).
 
 Inputs are plain arrays prepared once in Python (:func:`channel_params`): the building's
 planes and losses, the partitions as a ``(P, 5)`` array ``(axis, position, span lo, span hi,
@@ -61,7 +65,6 @@ prediction plus the detector's threshold), the numpy reference's operations in o
 
 from __future__ import annotations
 
-import cmath
 import math
 import time
 
@@ -70,25 +73,36 @@ from numba import njit, types
 
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..linkbudget import noise_floor_dbm
-from .paths_nb import (
-    _EDGE,
-    _GROUND,
-    _KIND,
-    _PLANE0,
-    _PLANE1,
-    N_SLOTS,
-    _in_box,
-    _mirror,
-    _plane,
-    edge_axis,
-    row_planes,
+from .channel_rays_nb import (
+    _OPTS,
+    _P_E0,
+    _P_FIRST_Z,
+    _P_FLOOR_H,
+    _P_K,
+    _P_N0,
+    _P_N_FLOORS,
+    _P_PGAIN,
+    _P_POWER0,
+    _P_RX_HPBW,
+    _P_RX_PEAK,
+    _P_SILL,
+    _P_WIN_H,
+    _P_X0,
+    _P_X1,
+    N_PARAMS,
+    _diffracted,
+    _direct,
+    _floor_index,
+    _pattern_db,
+    _specular,
+    _zenith_deg,
 )
+from .paths_nb import _KIND, N_SLOTS, edge_axis, row_planes
 from .pool import SNR_MIN_PAIRS, run_rows
 from .transition_nb import (
     ASYMPTOTIC_MIN_ABS,
     TRANSITION_ASYMPTOTIC_MIN,
     WEIDEMAN_N,
-    _utd_term,
     faddeeva,
     faddeeva_kernel,
     transition,
@@ -98,402 +112,9 @@ from .transition_nb import (
 
 __all__ = ["ASYMPTOTIC_MIN_ABS", "COST_SIGNATURE", "MASKED_SIGNATURE", "SIGNATURE",
            "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N", "channel_params", "channel_snr_kernel",
-           "channel_snr_masked_kernel", "eval_snr_kernel", "eval_snr_masked_kernel", "faddeeva", "faddeeva_kernel",
-           "snr_cost_kernel", "transition", "transition_asymptotic", "warm_channel",
-           "weideman_coefficients"]
-
-_RAD2DEG = 180.0 / math.pi
-_OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
-
-# params (float64 vector) layout, filled by channel_params
-_P_FIRST_Z, _P_FLOOR_H, _P_SILL, _P_WIN_H, _P_X0, _P_X1, _P_DEPTH, _P_N_FLOORS = range(8)
-_P_WALL_DB, _P_SLAB_DB, _P_GLASS_DB = 8, 9, 10
-_P_K, _P_LAM, _P_TX_HPBW, _P_TX_PEAK, _P_RX_HPBW, _P_RX_PEAK = 11, 12, 13, 14, 15, 16
-_P_POWER0, _P_PGAIN, _P_N0 = 17, 18, 19
-_P_E0 = 20  # three entries
-N_PARAMS = 23
-
-
-@njit(**_OPTS)
-def _zenith_deg(d0, d1, d2):
-    """channel._zenith_deg: zenith angle of a (not necessarily unit) vector [deg]."""
-    n = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    u2 = d2 / n
-    if u2 < -1.0:
-        u2 = -1.0
-    elif u2 > 1.0:
-        u2 = 1.0
-    return math.acos(u2) * _RAD2DEG
-
-
-@njit(**_OPTS)
-def _pattern_db(zen, hpbw, peak):
-    """channel._pattern_db; ``hpbw`` NaN = isotropic (0 dB)."""
-    if math.isnan(hpbw):
-        return 0.0
-    r = (zen - peak) / hpbw
-    return -min(12.0 * (r * r), 30.0)
-
-
-@njit(**_OPTS)
-def _floor_index(z, first_z, floor_h, n_floors):
-    """Building.floor_index as a float (NaN for a NaN height)."""
-    k = np.floor((z - first_z) / floor_h)
-    if k < -1.0:
-        k = -1.0
-    elif k > n_floors:
-        k = n_floors
-    return k
-
-
-@njit(**_OPTS)
-def _partition_loss(p0, p1, p2, q0, q1, q2, parts):
-    """channel._Ctx.partition_loss_db of the segment p -> q [dB]."""
-    loss = 0.0
-    for i in range(parts.shape[0]):
-        axis = int(parts[i, 0])
-        pos = parts[i, 1]
-        if axis == 0:
-            a, bq, po, qo = p0 - pos, q0 - pos, p1, q1
-        else:
-            a, bq, po, qo = p1 - pos, q1 - pos, p0, q0
-        db = 0.0
-        if a * bq < 0:
-            t = a / (a - bq)
-            o = po + t * (qo - po)
-            if o > parts[i, 2] and o < parts[i, 3]:
-                db = parts[i, 4]
-        loss = loss + db
-    return loss
-
-
-@njit(**_OPTS)
-def _tx_field(u0, u1, u2, prm):
-    """channel._Ctx.tx_field: the dipole's transverse field (real: the polarisation vector
-    is real) and the pattern gain [dB] (applied in dB by the caller: every later step is
-    linear in the field)."""
-    g_db = 0.0
-    if not math.isnan(prm[_P_TX_HPBW]):
-        g_db = _pattern_db(_zenith_deg(u0, u1, u2), prm[_P_TX_HPBW], prm[_P_TX_PEAK])
-    e0, e1, e2 = prm[_P_E0], prm[_P_E0 + 1], prm[_P_E0 + 2]
-    ed = e0 * u0 + e1 * u1 + e2 * u2
-    return e0 - ed * u0, e1 - ed * u1, e2 - ed * u2, g_db
-
-
-@njit(**_OPTS)
-def _cross(a0, a1, a2, b0, b1, b2):
-    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-
-
-@njit(**_OPTS)
-def _unit(v0, v1, v2):
-    """Unit vector and norm (one division: the field's directions, never an existence
-    test, so the 1-ulp difference to numpy's three divisions is immaterial)."""
-    n = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-    inv = 1.0 / n
-    return v0 * inv, v1 * inv, v2 * inv, n
-
-
-@njit(**_OPTS)
-def _reflect(f0, f1, f2, k0, k1, k2, axis, eta):
-    """channel._reflect_field: the complex field (f0, f1, f2) of a ray along the unit vector
-    k reflected off the plane normal to ``axis`` (Fresnel TE/TM split)."""
-    m0 = 1.0 if axis == 0 else 0.0
-    m1 = 1.0 if axis == 1 else 0.0
-    m2 = 1.0 if axis == 2 else 0.0
-    if axis == 0:
-        cos_t, o0, o1, o2 = abs(k0), -k0, k1, k2
-    elif axis == 1:
-        cos_t, o0, o1, o2 = abs(k1), k0, -k1, k2
-    else:
-        cos_t, o0, o1, o2 = abs(k2), k0, k1, -k2
-    c0, c1, c2 = _cross(k0, k1, k2, m0, m1, m2)
-    s0, s1, s2, sn = _unit(c0, c1, c2)
-    if not sn > 1e-12:  # normal incidence: any transverse direction works as s
-        s0 = 1.0 if (axis + 1) % 3 == 0 else 0.0
-        s1 = 1.0 if (axis + 1) % 3 == 1 else 0.0
-        s2 = 1.0 if (axis + 1) % 3 == 2 else 0.0
-    pi0, pi1, pi2 = _cross(s0, s1, s2, k0, k1, k2)
-    po0, po1, po2 = _cross(s0, s1, s2, o0, o1, o2)
-    # fresnel_coefficients
-    c = min(max(cos_t, 0.0), 1.0)
-    root = cmath.sqrt(eta - (1.0 - c * c) + 0j)
-    gs = (c - root) / (c + root)
-    gp = (eta * c - root) / (eta * c + root)
-    es = f0 * s0 + f1 * s1 + f2 * s2
-    ep = f0 * pi0 + f1 * pi1 + f2 * pi2
-    a = gs * es
-    b = gp * ep
-    return a * s0 + b * po0, a * s1 + b * po1, a * s2 + b * po2
-
-
-@njit(**_OPTS)
-def _norm_c(f0, f1, f2):
-    """channel._field_norm of a complex 3-vector."""
-    return math.sqrt((f0 * f0.conjugate() + f1 * f1.conjugate() + f2 * f2.conjugate()).real)
-
-
-@njit(**_OPTS)
-def _ray_gain(amp, length, lam):
-    """|channel._Ctx.ray_gain| without its loss factor (applied in dB by the caller) and
-    phase: ``amp lambda / (4 pi d)``."""
-    return amp * (lam / (4 * math.pi * length))
-
-
-@njit(**_OPTS)
-def _direct(a0, a1, a2, n0, n1, n2, k_node, lo, hi, prm, parts):
-    """channel._direct: |gain| and arrival direction of the straight ray (through the window
-    opening, another floor's window band, or the wall and slabs, with their losses)."""
-    d0, d1, d2 = n0 - a0, n1 - a1, n2 - a2
-    u0, u1, u2, length = _unit(d0, d1, d2)
-    t = -a1 / d1
-    zc = a2 + t * d2
-    xc = a0 + t * d0
-    x0, x1 = prm[_P_X0], prm[_P_X1]
-    through = (zc > lo) and (zc < hi) and (xc > x0) and (xc < x1)
-    k_cross = _floor_index(zc, prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_N_FLOORS])
-    n_slabs = abs(k_node - k_cross)
-    zlo_c = (prm[_P_FIRST_Z] + k_cross * prm[_P_FLOOR_H]) + prm[_P_SILL]
-    zhi_c = zlo_c + prm[_P_WIN_H]
-    other = ((k_cross >= 0) and (k_cross < prm[_P_N_FLOORS]) and (zc > zlo_c) and (zc < zhi_c)
-             and (xc > x0) and (xc < x1))
-    loss = (prm[_P_GLASS_DB] if (through or other) else prm[_P_WALL_DB]) + n_slabs * prm[_P_SLAB_DB]
-    loss = loss + _partition_loss(a0 + t * d0, a1 + t * d1, a2 + t * d2, n0, n1, n2, parts)
-    e0, e1, e2, g_db = _tx_field(u0, u1, u2, prm)
-    amp = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-    return _ray_gain(amp, length, prm[_P_LAM]), loss - g_db, -u0, -u1, -u2, length
-
-
-@njit(**_OPTS)
-def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in):
-    """channel._reflections for slot ``s`` (geometry: paths.specular_path, <= 2 planes):
-    (|gain|, arrival vector, length, valid)."""
-    x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
-    ground = _GROUND[s] == 1
-    pl0, pl1 = _PLANE0[s], _PLANE1[s]
-    n_pl = 0 if pl0 < 0 else (1 if pl1 < 0 else 2)
-    src0, src1, src2 = a0, a1, a2
-    if ground:
-        src2 = 2.0 * 0.0 - a2
-    i0, i1, i2 = n0, n1, n2
-    for j in range(n_pl - 1, -1, -1):  # image: last plane first
-        ax, c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
-        i0, i1, i2 = _mirror(i0, i1, i2, ax, c)
-    d0, d1, d2 = i0 - src0, i1 - src1, i2 - src2
-    length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    nan = np.nan
-    t_f = (0.0 - src1) / d1
-    ok = True
-    t_prev = 0.0
-    g0 = g1 = g2 = nan
-    if ground:
-        t_g = (0.0 - src2) / d2
-        ok = (t_g > 0) and (t_g < t_f)
-        t_prev = t_g
-        g0, g1, g2 = src0 + t_g * d0, src1 + t_g * d1, src2 + t_g * d2
-    ok = ok and (t_f > t_prev) and (t_f < 1)
-    en0, en1, en2 = src0 + t_f * d0, src1 + t_f * d1, src2 + t_f * d2
-    ok = ok and (en2 > lo) and (en2 < hi) and (en0 > x0) and (en0 < x1)
-    r10 = r11 = r12 = r20 = r21 = r22 = nan
-    c0, c1, c2 = src0, src1, src2
-    m0, m1, m2 = i0, i1, i2
-    t_last = t_f
-    for j in range(n_pl):
-        ax, c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
-        dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
-        if ax == 0:
-            t = (c - c0) / dd0
-        elif ax == 1:
-            t = (c - c1) / dd1
-        else:
-            t = (c - c2) / dd2
-        ok = ok and (t > t_last) and (t < 1)
-        q0, q1, q2 = c0 + t * dd0, c1 + t * dd1, c2 + t * dd2
-        ok = ok and _in_box(q0, q1, q2, zf, zc, x0, x1, depth)
-        if j == 0:
-            r10, r11, r12 = q0, q1, q2
-        else:
-            r20, r21, r22 = q0, q1, q2
-        m0, m1, m2 = _mirror(m0, m1, m2, ax, c)
-        c0, c1, c2 = _mirror(c0, c1, c2, ax, c)
-        t_last = t
-    ok = ok and math.isfinite(length)
-    if not ok:
-        return 0.0, 0.0, nan, nan, nan, length, False
-    # field: departure, ground bounce, then inside bounces (channel._reflections)
-    if ground:
-        u0, u1, u2, _ = _unit(g0 - a0, g1 - a1, g2 - a2)
-    else:
-        u0, u1, u2, _ = _unit(en0 - a0, en1 - a1, en2 - a2)
-    f0, f1, f2, g_db = _tx_field(u0, u1, u2, prm)
-    e0, e1, e2 = f0 + 0j, f1 + 0j, f2 + 0j
-    loss = prm[_P_GLASS_DB]
-    if ground:
-        e0, e1, e2 = _reflect(e0, e1, e2, u0, u1, u2, 2, eta_g)
-        k0, k1, k2, _ = _unit(en0 - g0, en1 - g1, en2 - g2)
-    else:
-        k0, k1, k2 = u0, u1, u2
-    # points in path order: entry, r1, (r2), node
-    p0, p1, p2 = en0, en1, en2  # pts[j]
-    for j in range(n_pl):
-        ax, _c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
-        e0, e1, e2 = _reflect(e0, e1, e2, k0, k1, k2, ax, eta_in)
-        if j == 0:
-            q0, q1, q2 = r10, r11, r12
-        else:
-            q0, q1, q2 = r20, r21, r22
-        loss = loss + _partition_loss(p0, p1, p2, q0, q1, q2, parts)
-        if j + 1 < n_pl:
-            nx0, nx1, nx2 = r20, r21, r22
-        else:
-            nx0, nx1, nx2 = n0, n1, n2
-        k0, k1, k2, _ = _unit(nx0 - q0, nx1 - q1, nx2 - q2)
-        p0, p1, p2 = q0, q1, q2
-    loss = loss + _partition_loss(p0, p1, p2, n0, n1, n2, parts)
-    amp = _norm_c(e0, e1, e2)
-    if not math.isfinite(amp):
-        return 0.0, 0.0, nan, nan, nan, length, False
-    return (_ray_gain(amp, length, prm[_P_LAM]), loss - g_db, p0 - n0, p1 - n1, p2 - n2,
-            length, True)
-
-
-@njit(**_OPTS)
-def _half_angle(x, y):
-    """``(cos(a/2), sin(a/2))`` of ``a = atan2(y, x) mod 2 pi`` in ``[0, 2 pi)`` for a unit
-    vector ``(x, y)`` (so ``a/2`` in ``[0, pi)``, ``sin(a/2) >= 0``): the component that is
-    >= 1/sqrt(2) from ``sqrt((1 +- x) / 2)``, the other from ``sin a = 2 sin(a/2) cos(a/2)``,
-    each to a few ulp (no cancellation). ``y = -0.0`` counts as ``a = 0`` (numpy's mod)."""
-    if x >= 0.0:
-        c = math.sqrt(0.5 * (1.0 + x))
-        if y < 0.0:
-            c = -c
-        return c, y / (2.0 * c)
-    s = math.sqrt(0.5 * (1.0 - x))
-    return y / (2.0 * s), s
-
-
-@njit(**_OPTS)
-def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm):
-    """gtd.diffracted_field (UTD, spherical spreading) of the window edge at Q for the
-    source at the anchor and the observer O, without its common phase factors."""
-    if upper:  # e = +x, t0 = +z
-        e0, e1, e2, t0, t1, t2 = 1.0, 0.0, 0.0, 0.0, 0.0, 1.0
-    else:  # e = -x, t0 = -z
-        e0, e1, e2, t0, t1, t2 = -1.0, 0.0, 0.0, 0.0, 0.0, -1.0
-    nn0, nn1, nn2 = _cross(e0, e1, e2, t0, t1, t2)
-    di0, di1, di2 = q0 - a0, q1 - a1, q2 - a2
-    do0, do1, do2 = o0 - q0, o1 - q1, o2 - q2
-    si0, si1, si2, s_in_m = _unit(di0, di1, di2)
-    so0, so1, so2, s_out_m = _unit(do0, do1, do2)
-    if ((a0 - q0) * nn0 + (a1 - q1) * nn1 + (a2 - q2) * nn2) < 0.0:  # n0 faces the source
-        nn0, nn1, nn2, e0, e1, e2 = -nn0, -nn1, -nn2, -e0, -e1, -e2
-    ci0, ci1, ci2 = _cross(e0, e1, e2, si0, si1, si2)
-    co0, co1, co2 = _cross(e0, e1, e2, so0, so1, so2)
-    pi0, pi1, pi2, sin_g = _unit(ci0, ci1, ci2)
-    pi0, pi1, pi2 = -pi0, -pi1, -pi2
-    bi0, bi1, bi2 = _cross(pi0, pi1, pi2, si0, si1, si2)
-    po0, po1, po2, _ = _unit(co0, co1, co2)
-    bo0, bo1, bo2 = _cross(po0, po1, po2, so0, so1, so2)
-    de = si0 * e0 + si1 * e1 + si2 * e2
-    st0, st1, st2, _ = _unit(si0 - de * e0, si1 - de * e1, si2 - de * e2)
-    # psi' = atan2(y', x') mod 2 pi and psi = atan2(y, x) mod 2 pi (EdgeFrame) enter only as
-    # cos((psi -/+ psi') / 2): from their half-angle vectors, without atan2 and cos
-    hc_in, hs_in = _half_angle(-(st0 * t0 + st1 * t1 + st2 * t2),
-                               -(st0 * nn0 + st1 * nn1 + st2 * nn2))
-    de = so0 * e0 + so1 * e1 + so2 * e2
-    st0, st1, st2, _ = _unit(so0 - de * e0, so1 - de * e1, so2 - de * e2)
-    hc, hs = _half_angle(st0 * t0 + st1 * t1 + st2 * t2, st0 * nn0 + st1 * nn1 + st2 * nn2)
-    # sin(gamma0) with gamma0 = atan2(sin_g, |s' . e|) (EdgeFrame), without atan2 and sin
-    cos_g = abs(si0 * e0 + si1 * e1 + si2 * e2)
-    sin_gamma0 = sin_g / math.sqrt(sin_g * sin_g + cos_g * cos_g)
-    k = prm[_P_K]
-    # utd_coefficients with L = s s' sin^2 gamma0 / (s + s') (distance_parameter_m)
-    big_l = s_out_m * s_in_m * sin_g ** 2 / (s_out_m + s_in_m)
-    pre = 1.0 / (2.0 * math.sqrt(2.0 * math.pi * k) * sin_gamma0)  # |prefactor|
-    kl = k * big_l
-    t_minus = _utd_term(hc * hc_in + hs * hs_in, kl)  # cos((psi - psi') / 2)
-    t_plus = _utd_term(hc * hc_in - hs * hs_in, kl)  # cos((psi + psi') / 2)
-    d_s = pre * (t_minus - t_plus)
-    d_h = pre * (t_minus + t_plus)
-    ex, ey, ez = prm[_P_E0], prm[_P_E0 + 1], prm[_P_E0 + 2]
-    ei_beta = (ex * bi0 + ey * bi1 + ez * bi2) / s_in_m
-    ei_phi = (ex * pi0 + ey * pi1 + ez * pi2) / s_in_m
-    amp = math.sqrt(s_in_m / (s_out_m * (s_out_m + s_in_m)))
-    cb = -d_s * ei_beta * amp
-    cp = -d_h * ei_phi * amp
-    return cb * bo0 + cp * po0, cb * bo1 + cp * po1, cb * bo2 + cp * po2
-
-
-@njit(**_OPTS)
-def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, edge):
-    """channel._diffracted for slot ``s`` (geometry: paths.diffracted_path):
-    (|gain|, arrival vector, length, valid)."""
-    x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
-    nan = np.nan
-    upper = _EDGE[s] == 0
-    z_e = hi if upper else lo
-    then = _PLANE0[s]
-    o0, o1, o2 = n0, n1, n2
-    ax = 0
-    c = 0.0
-    if then >= 0:
-        ax, c = _plane(then, zf, zc, x0, x1, depth)
-        o0, o1, o2 = _mirror(n0, n1, n2, ax, c)
-    # geometry.diffraction_point with p0 = (x0, 0, z_e), p1 = (x1, 0, z_e)
-    edge_len, ee0, ee1, ee2 = edge
-    ds0, ds1, ds2 = a0 - x0, a1 - 0.0, a2 - z_e
-    dq0, dq1, dq2 = o0 - x0, o1 - 0.0, o2 - z_e
-    s_t = ds0 * ee0 + ds1 * ee1 + ds2 * ee2
-    o_t = dq0 * ee0 + dq1 * ee1 + dq2 * ee2
-    w0, w1, w2 = ds0 - s_t * ee0, ds1 - s_t * ee1, ds2 - s_t * ee2
-    r_s = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    w0, w1, w2 = dq0 - o_t * ee0, dq1 - o_t * ee1, dq2 - o_t * ee2
-    r_o = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    denom = r_s + r_o
-    scale = abs(s_t) + abs(o_t) + r_s + r_o + edge_len
-    if denom <= 1e-12 * scale:
-        t_star = 0.5 * (s_t + o_t)
-    else:
-        t_star = (s_t * r_o + o_t * r_s) / denom
-    t = min(max(t_star, 0.0), edge_len)
-    ok = (t_star > 0.0) and (t_star < edge_len)
-    q0, q1, q2 = x0 + t * ee0, 0.0 + t * ee1, z_e + t * ee2
-    v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
-    u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
-    length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) + math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
-    rp0 = rp1 = rp2 = nan
-    if then >= 0:  # reflection point between the edge and the node, on the inside surface
-        if ax == 0:
-            tr = (c - q0) / u0
-        elif ax == 1:
-            tr = (c - q1) / u1
-        else:
-            tr = (c - q2) / u2
-        ok = ok and (tr > 0) and (tr < 1)
-        rp0, rp1, rp2 = q0 + tr * u0, q1 + tr * u1, q2 + tr * u2
-        ok = ok and _in_box(rp0, rp1, rp2, zf, zc, x0, x1, depth)
-    ok = ok and math.isfinite(length)
-    if not ok:
-        return 0.0, 0.0, nan, nan, nan, length, False
-    f0, f1, f2 = _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, upper, prm)
-    g_db = 0.0  # the pattern on departure, applied in dB (every later step is linear)
-    if not math.isnan(prm[_P_TX_HPBW]):
-        g_db = _pattern_db(_zenith_deg(q0 - a0, q1 - a1, q2 - a2), prm[_P_TX_HPBW],
-                           prm[_P_TX_PEAK])
-    if then < 0:
-        loss = 0.0 + _partition_loss(q0, q1, q2, n0, n1, n2, parts)
-        l0, l1, l2 = q0, q1, q2
-    else:
-        k0, k1, k2, _ = _unit(u0, u1, u2)
-        f0, f1, f2 = _reflect(f0, f1, f2, k0, k1, k2, ax, eta_in)
-        loss = (0.0 + _partition_loss(q0, q1, q2, rp0, rp1, rp2, parts)
-                + _partition_loss(rp0, rp1, rp2, n0, n1, n2, parts))
-        l0, l1, l2 = rp0, rp1, rp2
-    c1 = prm[_P_LAM] / (4 * math.pi)
-    amp = _norm_c(f0 * c1, f1 * c1, f2 * c1)
-    if not math.isfinite(amp):
-        return 0.0, 0.0, nan, nan, nan, length, False
-    return amp, loss - g_db, l0 - n0, l1 - n1, l2 - n2, length, True
+           "channel_snr_masked_kernel", "eval_snr_kernel", "eval_snr_masked_kernel", "faddeeva",
+           "faddeeva_kernel", "snr_cost_kernel", "transition", "transition_asymptotic",
+           "warm_channel", "weideman_coefficients"]
 
 
 @njit(**_OPTS)
@@ -509,6 +130,7 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
     eta_g, eta_in = eta[0], eta[1]
     c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
     rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
+    sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])  # the UTD prefactor's, once
     ninf = -np.inf
     for i in range(nodes.shape[0]):
         n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
@@ -528,7 +150,7 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
                 else:
                     g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
                                                             zc, lo, hi, prm, parts, eta_in,
-                                                            edge)
+                                                            edge, sq2pik)
                 if not ok:
                     out[i, j, s] = ninf
                     continue
@@ -554,6 +176,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
     eta_g, eta_in = eta[0], eta[1]
     c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
     rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
+    sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])  # the UTD prefactor's, once
     ninf = -np.inf
     for i in range(nodes.shape[0]):
         n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
@@ -576,7 +199,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
                 else:
                     g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
                                                             zc, lo, hi, prm, parts, eta_in,
-                                                            edge)
+                                                            edge, sq2pik)
                 if not ok:
                     out[i, j, s] = ninf
                     continue

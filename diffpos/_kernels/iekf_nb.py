@@ -21,6 +21,11 @@ from .tracking_nb import _OPTS, _model_row, _terms_row
 
 __all__ = ["iekf_kernel", "prior_info_kernel", "warm_iekf"]
 
+#: numba's on-disk cache of this file's kernels is keyed on the contents of THIS file only, not
+#: on the ``tracking_nb`` / ``paths_nb`` functions they compile in: bump this after editing
+#: either (a stale kernel would be loaded from __pycache__). 2: paths_nb's diffraction path.
+PATHS_NB_REVISION = 2
+
 
 #: The IEKF's state dimension (a compile-time constant: the 6 x 6 loops unroll).
 _D = 6

@@ -216,15 +216,15 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth, edge):
     q0, q1, q2 = x0 + t * e0, 0.0 + t * e1, z_e + t * e2
     v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
     u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
-    length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) + math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    d_in = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)  # = |Q - A| below, bit for bit (squares)
+    nu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    length = d_in + nu
     if then >= 0:  # reflection point between the edge and the node, on the inside surface
         tr = (c - _get(q0, q1, q2, ax)) / _get(u0, u1, u2, ax)
         ok = ok and (tr > 0) and (tr < 1)
         ok = ok and _in_box(q0 + tr * u0, q1 + tr * u1, q2 + tr * u2, zf, zc, x0, x1, depth)
-    nu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
     u0, u1, u2 = u0 / nu, u1 / nu, u2 / nu
     v0, v1, v2 = q0 - a0, q1 - a1, q2 - a2
-    d_in = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
     v0, v1, v2 = v0 / d_in, v1 / d_in, v2 / d_in
     ok = ok and math.isfinite(length)
     dev = v0 * u0 + v1 * u1 + v2 * u2

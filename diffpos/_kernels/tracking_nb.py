@@ -36,6 +36,10 @@ __all__ = ["all_paths_kernel", "grid_cost_kernel", "iekf_terms_kernel", "model_k
            "warm_tracking"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
+#: numba's on-disk cache of this file's kernels is keyed on the contents of THIS file only, not
+#: on the ``paths_nb`` functions they compile in: bump this after editing paths_nb.py (a stale
+#: kernel would be loaded from __pycache__). 2: the diffraction path's |Q - A| computed once.
+PATHS_NB_REVISION = 2
 
 
 @njit(**_OPTS)
@@ -573,8 +577,10 @@ def warm_tracking() -> float:
     select_mix_kernel(np.ones((1, 1, 1, k)), b4k, i3, i3.copy(), ex, np.empty((1, 1, 1)),
                       np.empty((1, 1, 1)))
     from .iekf_nb import warm_iekf  # it imports this module: not at the top
+    from .snr_cache_nb import warm_snr_cache
 
     warm_iekf(planes, anc)
+    warm_snr_cache()
     x6, p3 = np.ones((1, 1, 6)), np.ones((1, 1, 3))
     iekf_terms_kernel(np.ones((1, 1, 6, 6)), x6, p3, p3, one, one, onef, np.ones((1, 1, 1, 3)),
                       onef, 1.0, one, np.empty((1, 1, 6, 6)), np.empty((1, 1, 1)),

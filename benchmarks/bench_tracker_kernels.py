@@ -1,0 +1,156 @@
+"""CPU of the tracker's hot compiled kernels on the inputs of a real replay, with a digest of
+their outputs: a before/after comparison of kernel code that must stay bit-identical.
+
+Usage::
+
+    python benchmarks/bench_tracker_kernels.py capture RECORDING INPUTS.pkl [--skip 100]
+        [--calls 300]
+    python benchmarks/bench_tracker_kernels.py time INPUTS.pkl [--reps 5]
+
+``capture`` replays the recording in this process (:func:`diffpos_services.recording.replay
+.replay`, M-NLS + tracker, all epochs solved, no recorded decisions) and keeps the inputs
+(copies; the outputs' shapes only) of ``--calls`` calls of each kernel after the first
+``--skip``: ``tracking_nb.all_paths_kernel`` (the tracker's path model, ~3 calls per update),
+``channel_nb.channel_snr_masked_kernel`` (the tracker's SNR prediction: the hypotheses' slots
+and the relax holes) and ``channel_nb.channel_snr_kernel`` (every slot: the M-NLS snapshots).
+``time`` runs each kernel over the kept calls ``--reps`` times (``time.process_time``, the
+best pass; the first call before, so compile or cache load is not counted) and prints the
+CPU, ns per output element and a sha256 of every output byte (NaN patterns included).
+
+To compare two trees, capture once (the inputs are the same in both while the estimates are)
+and run ``time`` alternately with each tree on ``PYTHONPATH`` (numba's cache of the tree is
+used; delete ``diffpos/_kernels/__pycache__`` after editing a kernel's callees, see
+DEVELOPING.md). Equal digests: the kernels' outputs are bit-identical on these inputs.
+
+Measured 2026-11-27 16:25-16:27 UTC (2-core x86_64 VM shared with another job, load 2.8-4.7),
+300 calls of each kernel from ``/tmp/s8/soak/soak16x200.mcap`` (16 anchors x 200 nodes, calls
+101-400), best of 5 passes, main 73c3e34 (before) and the cost10 branch (after) alternating::
+
+    kernel   CPU s before     CPU s after      ns/element before -> after   output sha256
+    paths    1.117 / 1.102    1.105 / 1.092    23.7 / 23.4 -> 23.4 / 23.2  b6fd9fd156132501 (all)
+    masked   1.343 / 1.300    1.228 / 1.221    35.2 / 34.0 -> 32.1 / 32.0  72eff9bf032401bf (all)
+    full     0.777 / 0.767    0.703 / 0.721    121.1 / 119.6 -> 109.6 / 112.5  a2f8834c6ec1511c
+
+(``masked``: the tracker's SNR prediction, -6 to -9 %; ``full``: every slot, the M-NLS
+snapshots' SNR, -6 to -9 %; ``paths``: within the noise.) Equal digests: bit-identical outputs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import pickle
+import platform
+import sys
+import time
+
+import numpy as np
+
+_N_OUT = {"paths": 5, "masked": 1, "full": 1}  # trailing output arguments of each kernel
+
+
+class _Enough(Exception):
+    """Every kernel has its calls: stop the replay."""
+
+
+def capture(recording: str, out: str, skip: int, n_calls: int) -> dict[str, int]:
+    from diffpos_services.recording.replay import replay
+
+    import diffpos._kernels.channel_nb as cn
+    import diffpos.tracking_paths as tp
+
+    cn.warm_channel()  # before the kernels are wrapped (it compiles them by name)
+    kept: dict[str, list] = {k: [] for k in _N_OUT}
+    seen = dict.fromkeys(_N_OUT, 0)
+    orig = {"paths": tp.all_paths_kernel, "masked": cn.channel_snr_masked_kernel,
+            "full": cn.channel_snr_kernel}
+
+    def wrap(key):
+        f = orig[key]
+
+        def g(*args):
+            seen[key] += 1
+            if seen[key] > skip and len(kept[key]) < n_calls:
+                ins, outs = args[:-_N_OUT[key]], args[-_N_OUT[key]:]
+                kept[key].append((tuple(np.array(a) if isinstance(a, np.ndarray) else a
+                                        for a in ins), [(o.shape, o.dtype) for o in outs]))
+            if all(len(v) >= n_calls for v in kept.values()):
+                raise _Enough
+            return f(*args)
+        return g
+
+    tp.all_paths_kernel = wrap("paths")
+    cn.channel_snr_masked_kernel = wrap("masked")
+    cn.channel_snr_kernel = wrap("full")
+    try:
+        replay(recording, use_decisions=False, method="mnls", out_mcap=None,
+               keep_estimates=False)
+    except _Enough:
+        pass
+    finally:
+        tp.all_paths_kernel = orig["paths"]
+        cn.channel_snr_masked_kernel = orig["masked"]
+        cn.channel_snr_kernel = orig["full"]
+    with open(out, "wb") as fh:
+        pickle.dump(kept, fh)
+    return {k: len(v) for k, v in kept.items()}
+
+
+def time_kernels(inputs: str, reps: int) -> list[tuple]:
+    import diffpos._kernels.channel_nb as cn
+    import diffpos._kernels.tracking_nb as tn
+
+    with open(inputs, "rb") as fh:
+        kept = pickle.load(fh)
+    cn.warm_channel()
+    fn = {"paths": tn.all_paths_kernel, "masked": cn.channel_snr_masked_kernel,
+          "full": cn.channel_snr_kernel}
+    rows = []
+    for key, calls in kept.items():
+        if not calls:
+            continue
+        outs = [[np.empty(s, d) for s, d in o] for _, o in calls]
+        fn[key](*calls[0][0], *outs[0])
+        best = np.inf
+        for _ in range(reps):
+            t0 = time.process_time()
+            for (ins, _), out in zip(calls, outs, strict=True):
+                fn[key](*ins, *out)
+            best = min(best, time.process_time() - t0)
+        h = hashlib.sha256()
+        for out in outs:
+            for o in out:
+                h.update(np.ascontiguousarray(o).tobytes())
+        n_items = sum(o[0].size for o in outs)
+        rows.append((key, len(calls), best, 1e9 * best / n_items, h.hexdigest()[:16]))
+    return rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("capture")
+    c.add_argument("recording")
+    c.add_argument("inputs")
+    c.add_argument("--skip", type=int, default=100, help="calls of each kernel skipped first")
+    c.add_argument("--calls", type=int, default=300, help="calls of each kernel kept")
+    t = sub.add_parser("time")
+    t.add_argument("inputs")
+    t.add_argument("--reps", type=int, default=5)
+    args = ap.parse_args()
+    if args.cmd == "capture":
+        print(capture(args.recording, args.inputs, args.skip, args.calls))
+        return 0
+    import diffpos
+
+    print(f"bench_tracker_kernels: {os.path.dirname(diffpos.__file__)}; machine "
+          f"{platform.machine()} {os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f}")
+    print(f"{'kernel':<8} {'calls':>5} {'CPU s (best)':>12} {'ns/element':>10}  output sha256")
+    for key, n, cpu, per, dig in time_kernels(args.inputs, args.reps):
+        print(f"{key:<8} {n:>5} {cpu:>12.3f} {per:>10.1f}  {dig}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
