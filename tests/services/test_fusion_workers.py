@@ -9,6 +9,7 @@ tests/system/test_fusion_workers_process.py."""
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import itertools
 import pickle
@@ -90,19 +91,22 @@ class _Pipe:
     reply, as the worker sends when its task raises)."""
 
     def __init__(self, model, fail: str | None = None, after: int = 0) -> None:
-        self.model, self.fail, self.after, self.n, self.reply = model, fail, after, 0, None
+        self.model, self.fail, self.after, self.n = model, fail, after, 0
+        self.replies: collections.deque = collections.deque()  # answered in order
         self.slim = 0
+        self.kinds: list[str] = []
 
     def send(self, msg) -> None:
         kind, args = pickle.loads(pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL))
         self.n += 1
+        self.kinds.append(kind)
         if kind == "update":  # how many shares crossed without their SNR cache fields
             self.slim += args[0].snr_node is None
         if self.fail == "error" and self.n > self.after:
-            self.reply = ("err", "Traceback: injected", 0.0)
+            reply = ("err", "Traceback: injected", 0.0)
         else:
-            self.reply = ("ok", W.TASKS[kind](self.model, *args), 0.001)
-        self.reply = pickle.dumps(self.reply, protocol=pickle.HIGHEST_PROTOCOL)
+            reply = ("ok", W.TASKS[kind](self.model, *args), 0.001)
+        self.replies.append(pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL))
 
     def poll(self, timeout=None) -> bool:
         return True
@@ -110,7 +114,7 @@ class _Pipe:
     def recv(self):
         if self.fail == "died" and self.n > self.after:
             raise EOFError
-        return pickle.loads(self.reply)
+        return pickle.loads(self.replies.popleft())
 
     def close(self) -> None:
         pass
@@ -161,6 +165,52 @@ def test_split_replay_equals_plain_bit_for_bit(recording, monkeypatch, reuse_off
     assert split == plain
     assert pool.calls["split"] > 0 and pool.calls["rows_sent"] > 0 and not pool.failures
     assert (pool.pipe.slim > 0) == reuse_off
+    # the snapshot fixes went to the worker, not waited for before the tracker's round
+    assert pool.calls["submitted"] > 0 and "mnls" in pool.pipe.kinds
+    assert not pool._slots[0].pending  # every reply consumed
+
+
+def test_preloaded_bounds_count_the_work_a_worker_already_has():
+    """Brute-force properties over random costs and preloads: exactly one slice per sharer,
+    contiguous, in order, covering every row; no sharer's share exceeds its weight's part of
+    the total less its preload by more than one row's cost, one whose preload is above its
+    part gets no rows; no preload = :func:`share_bounds`' cuts."""
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        b = int(rng.integers(1, 40))
+        cost = np.where(rng.random(b) < 0.2, W.INIT_COST, 1.0)
+        n = int(rng.integers(1, 4))
+        w = [1.0, *rng.uniform(0.5, 2.0, n - 1)]
+        pre = [0.0, *rng.choice([0.0, 5.0, 30.0, 500.0], n - 1)]
+        sl = W.preloaded_bounds(cost, w, pre)
+        assert len(sl) == n and sl[0].start == 0 and sl[-1].stop == b
+        assert all(a.stop == c.start for a, c in itertools.pairwise(sl))
+        part = (cost.sum() + sum(pre)) * np.asarray(w) / sum(w)
+        for k, s_ in enumerate(sl):  # nobody given more than one row above its part
+            assert cost[s_].sum() <= max(part[k] - pre[k], 0.0) + cost.max() + 1e-9
+            if pre[k] >= part[k]:
+                assert s_.stop == s_.start
+        nonempty = [s_ for s_ in W.preloaded_bounds(cost, w, [0.0] * n) if s_.stop > s_.start]
+        assert nonempty == W.share_bounds(cost, n, w)
+
+
+def test_a_submitted_request_and_a_later_share_are_answered_in_order(monkeypatch):
+    """A request submitted and not collected, then a split call on the same worker: the
+    worker answers in order, each reply lands in its own request (the split call first
+    reads the earlier reply), and the worker's pending snapshot work shrinks its share."""
+    model = (default_scenario().building, None, 1.0, 0.0)
+    pool = W.RowPool(1, model)
+    pool._slots = [W._Slot(conn=_Pipe(model), ready=True, pid=-1)]
+    monkeypatch.setitem(W.TASKS, "echo", lambda m, x: x * 2)
+    monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    p = pool.submit("echo", (np.arange(3.0),), 3.0)
+    assert not p.done and p.cost == 3.0 and pool._slots[0].pending[0] is p
+    out = pool.map_rows("echo", (np.arange(10.0),), np.ones(10))
+    assert np.array_equal(out, np.arange(10.0) * 2)
+    assert p.done and np.array_equal(pool.result(p), np.arange(3.0) * 2)
+    # parts (10 + 3) / 2 = 6.5 each: the caller's cut after the row reaching 6.5 (7 rows),
+    # the worker 3 rows on top of its 3 of preload (without the preload: 5)
+    assert pool.calls["rows_sent"] == 3 and not pool._slots[0].pending
 
 
 @pytest.mark.parametrize("fail", ["died", "error"])

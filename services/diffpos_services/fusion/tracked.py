@@ -86,7 +86,7 @@ from diffpos.tracking import (
 )
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
-from diffpos_services.fusion.workers import INIT_COST, MNLS_COST, RowPool, run_update, slim_state
+from diffpos_services.fusion.workers import INIT_COST, RowPool, run_update, slim_state
 from diffpos_services.wire import messages as M
 
 __all__ = ["HEAVY_MIN_OPERATIONS", "HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved",
@@ -294,9 +294,19 @@ def _mnls_rows(res: Results, rows: np.ndarray, prep: Prepared, batch: Batch, mod
                floor: np.ndarray, prob: np.ndarray, mech: np.ndarray,
                pool: RowPool | None = None) -> None:
     """The mnls fixes of ``rows`` into ``res`` and the floor/mechanism arrays (``model``:
-    (building, radio or None); ``pool``: the rows split over its workers, same numbers)."""
+    (building, radio or None); ``pool``: computed by a worker, same numbers)."""
+    _mnls_finish(_mnls_start(rows, prep, batch, model, pool), res, floor, prob, mech)
+
+
+def _mnls_start(rows: np.ndarray, prep: Prepared, batch: Batch, model,
+                pool: RowPool | None = None) -> tuple | None:
+    """Start the mnls fixes of ``rows``: with ``pool``, sent whole to its least loaded
+    worker and not waited for (the snapshot never feeds the tracker: the tracker update of
+    the round runs meanwhile, its shares counting the worker's snapshot work; a snapshot fix
+    with 16 anchors costs ~15 updates, and one or two per step kept in the fusion's process
+    were ~40 % of its serial work in the soak); :func:`_mnls_finish` collects them."""
     if rows.size == 0:
-        return
+        return None
     building, radio = model
     args = (prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows], batch.use[rows],
             None if radio is None else batch.snr[rows])
@@ -305,9 +315,19 @@ def _mnls_rows(res: Results, rows: np.ndarray, prep: Prepared, batch: Batch, mod
         return est.mnls(apos, rng, sig, building=building, mask=mask, snr_db=snr, radio=radio_)
 
     if pool is None or pool.building is not building:
-        fix = here(*args, radio)
-    else:
-        fix = pool.map_rows("mnls", args, np.full(rows.size, MNLS_COST), here, shared=(radio,))
+        return rows, here(*args, radio), None
+    return rows, pool.submit("mnls", args, rows.size, here, shared=(radio,)), \
+        lambda p: pool.result(p, here, shared=(radio,))
+
+
+def _mnls_finish(started: tuple | None, res: Results, floor: np.ndarray, prob: np.ndarray,
+                 mech: np.ndarray) -> None:
+    """The fixes of :func:`_mnls_start` into ``res`` and the floor/mechanism arrays."""
+    if started is None:
+        return
+    rows, fix, collect = started
+    if collect is not None:
+        fix = collect(fix)
     res.put(rows, fix)
     floor[rows] = fix.floor
     prob[rows] = fix.floor_probability
@@ -397,10 +417,11 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
                                   min(left, snaps))
         left -= int(due[rows].sum())
         snaps -= int(due[rows].sum())
-        _mnls_rows(snap, rows[due[rows]], prep, batch, model, s_floor, s_prob, s_mech,
-                   bank.pool)
+        # the snapshots (a worker's, with a pool) while the tracker updates the round
+        started = _mnls_start(rows[due[rows]], prep, batch, model, bank.pool)
         out = bank.update(ids, prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
                           use_r, batch.t_ref[rows], snr_db=batch.snr[rows], radio=model[1])
+        _mnls_finish(started, snap, s_floor, s_prob, s_mech)
         res.pos[rows], res.cov[rows] = out.position_m, out.covariance_m2
         mech[rows] = np.where(use[rows], out.mechanism, -1)
         res.resid[rows] = np.where(mech[rows] >= 0, out.residual_m, np.nan)

@@ -77,8 +77,9 @@ from diffpos.tracking_state import SNR_CACHE_LINKS, SNR_CACHE_SLOTS
 from diffpos_services.fusion.warm import warm_model
 from diffpos_services.kit import log_event
 
-__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "RowPool", "concat_rows", "run_update",
-           "share_bounds", "slim_state", "start_workers", "take_rows"]
+__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "Pending", "RowPool", "concat_rows",
+           "preloaded_bounds", "run_update", "share_bounds", "slim_state", "start_workers",
+           "take_rows"]
 
 #: Cost of a row the tracker initialises (UNINITIALISED or LOST with enough ranges: the grid
 #: snapshot of :func:`diffpos.tracking_model.snapshot_init`) in units of one row's update: an
@@ -259,6 +260,24 @@ class _Slot:
     ready: bool = False
     restarts: int = 0
     pid: int | None = None
+    #: requests sent and not answered yet, oldest first (a worker answers in order)
+    pending: collections.deque = dataclasses.field(default_factory=collections.deque)
+
+
+@dataclasses.dataclass
+class Pending:
+    """A request sent to a worker (or computed here at once: ``slot`` None, ``done``):
+    :meth:`RowPool.result` returns its value, computing it here if the worker failed."""
+
+    kind: str
+    args: tuple
+    cost: float  # in update units (the share balancing of later calls counts it)
+    units: float = 0.0  # rows of ``kind`` (cost / the kind's unit cost when sent)
+    slot: _Slot | None = None
+    done: bool = False
+    ok: bool = False
+    value: Any = None
+    busy_s: float = 0.0
 
 
 class RowPool:
@@ -293,6 +312,8 @@ class RowPool:
         #: publishes, and on a loaded machine its share ran ~1.5x slower than the worker's
         #: (soak, 2026-11-27): equal shares left the worker waiting.
         self.speed = 1.0
+        #: a worker's seconds per row of each kind (EWMA; :meth:`unit_cost`)
+        self._unit_s: dict[str, float] = {}
         self._ctx = mp.get_context("spawn")
         self._slots = [_Slot() for _ in range(self.n - 1)]
         for s in self._slots:
@@ -347,6 +368,8 @@ class RowPool:
                       restarts=s.restarts, workers_left=1 + len(self.pids))
 
     def _kill(self, s: _Slot) -> None:
+        while s.pending:  # their shares are computed by the caller
+            s.pending.popleft().done = True
         if s.proc is not None:
             with contextlib.suppress(Exception):
                 s.proc.kill()
@@ -376,52 +399,104 @@ class RowPool:
         self.close()
 
     # ---------------------------------------------------------------- calls
+    def _run_here(self, kind: str, local: Callable[..., Any] | None, args: tuple,
+                  shared: tuple) -> Any:
+        return (local(*args, *shared) if local is not None
+                else TASKS[kind](self.model, *args, *shared))
+
+    def _send(self, s: _Slot, kind: str, args: tuple, cost: float, units: float) -> Pending:
+        """Send ``(kind, args)`` to ``s``; a send that fails gives a failed (done) request."""
+        p = Pending(kind, args, cost, units, slot=s)
+        try:
+            s.conn.send((kind, args))
+            s.pending.append(p)
+        except (OSError, ValueError) as exc:
+            self._failed(s, "died", repr(exc))
+            p.done = True
+        return p
+
+    def unit_cost(self, kind: str) -> float:
+        """Cost of one row of ``kind`` in update units: ``update`` 1, ``mnls`` measured
+        (the workers' task time per M-NLS row over that per update unit; :data:`MNLS_COST`
+        until both were seen: with 16 anchors a snapshot fix costs ~15 updates, with 8 ~6)."""
+        if kind != "mnls":
+            return 1.0
+        u, m = self._unit_s.get("update"), self._unit_s.get("mnls")
+        return MNLS_COST if u is None or m is None or u <= 0 else min(max(m / u, 1.0), 100.0)
+
+    def submit(self, kind: str, args: tuple, n_units: float,
+               local: Callable[..., Any] | None = None, *, shared: tuple = ()) -> Pending:
+        """``TASKS[kind](model, *args, *shared)`` on the least loaded ready worker, not waited
+        for (:meth:`result`), or here at once without a ready worker; ``n_units``: its size
+        in rows of ``kind`` (the later calls' shares count its cost)."""
+        for s in self._slots:
+            self._poll_ready(s)
+        ready = [s for s in self._slots if s.ready]
+        if not ready:
+            self.calls["local"] += 1
+            return Pending(kind, args, 0.0, done=True, ok=True,
+                           value=self._run_here(kind, local, args, shared))
+        self.calls["submitted"] += 1
+        s = min(ready, key=lambda x: sum(q.cost for q in x.pending))
+        return self._send(s, kind, (*args, *shared), n_units * self.unit_cost(kind), n_units)
+
+    def result(self, p: Pending, local: Callable[..., Any] | None = None, *,
+               shared: tuple = ()) -> Any:
+        """The value of a :meth:`submit`; computed here (same numbers) if its worker
+        failed."""
+        self._wait(p)
+        if p.ok:
+            return p.value
+        args = p.args[:len(p.args) - len(shared)] if shared else p.args
+        return self._run_here(p.kind, local, args, shared)
+
     def map_rows(self, kind: str, args: tuple, cost: np.ndarray,
                  local: Callable[..., Any] | None = None, *, shared: tuple = ()) -> Any:
         """``TASKS[kind](model, *rows of args, *shared)`` split over the ready workers by
-        ``cost`` (one value per row): ``args`` are arrays / dataclasses of arrays with the rows
-        on axis 0 (:func:`take_rows`), ``shared`` is passed whole; ``local(*args, *shared)``
-        computes a share here (default: the task itself). Returns the result of one call on
-        all rows (the shares' results concatenated in row order)."""
-        task = TASKS[kind]
-
-        def run_here(*a: Any) -> Any:
-            return local(*a, *shared) if local is not None else task(self.model, *a, *shared)
-
+        ``cost`` (one value per row; a worker's requests still pending count as cost it
+        already has): ``args`` are arrays / dataclasses of arrays with the rows on axis 0
+        (:func:`take_rows`), ``shared`` is passed whole; ``local(*args, *shared)`` computes a
+        share here (default: the task itself). Returns the result of one call on all rows
+        (the shares' results concatenated in row order)."""
         for s in self._slots:
             self._poll_ready(s)
         ready = [s for s in self._slots if s.ready]
         cost = np.asarray(cost, dtype=np.float64)
         if not ready or float(cost.sum()) < MIN_PARALLEL_COST:
             self.calls["local"] += 1
-            return run_here(*args)
+            return self._run_here(kind, local, args, shared)
         self.calls["split"] += 1
         c0 = time.thread_time()
-        shares = share_bounds(cost, len(ready) + 1, [1.0] + [self.speed] * len(ready))
-        sent = []
-        for s, sl in zip(ready, shares[1:], strict=False):
-            try:
-                s.conn.send((kind, (*take_rows(args, sl), *shared)))
-                sent.append((s, sl))
-            except (OSError, ValueError) as exc:
-                self._failed(s, "died", repr(exc))
-                sent.append((None, sl))
-        parts: list[Any] = [None] * (len(sent) + 1)
-        busy = [0.0] * len(sent)
+        preload = [sum(q.cost for q in s.pending) for s in ready]
+        shares = preloaded_bounds(cost, [1.0] + [self.speed] * len(ready), [0.0, *preload])
+        unit = self.unit_cost(kind)
+        sent = [(self._send(s, kind, (*take_rows(args, sl), *shared), float(cost[sl].sum()),
+                            float(cost[sl].sum()) / unit)
+                 if sl.stop > sl.start else None, sl)
+                for s, sl in zip(ready, shares[1:], strict=True)]
+        parts: list[Any] = []
         t0, c1 = time.perf_counter(), time.thread_time()
         try:
-            parts[0] = run_here(*take_rows(args, shares[0]))
+            if shares[0].stop > shares[0].start:
+                parts.append(self._run_here(kind, local, take_rows(args, shares[0]), shared))
         finally:  # even if the local share raises: no reply is left in a pipe
             t1, c2 = time.perf_counter(), time.thread_time()
-            for k, (s, sl) in enumerate(sent, start=1):
-                parts[k], busy[k - 1] = self._receive(s, sl, float(cost[sl].sum()))
+            for p, _ in sent:
+                if p is not None:
+                    self._wait(p)
+            busy = [p.busy_s for p, _ in sent if p is not None and p.ok]
             self._account(t1 - t0, c2 - c1, time.perf_counter() - t1, busy)
-            self.calls["rows_sent"] += sum(sl.stop - sl.start for _, sl in sent)
-        self._learn(t1 - t0, float(cost[shares[0]].sum()), busy,
-                    [float(cost[sl].sum()) for _, sl in sent])
-        for k, (_, sl) in enumerate(sent, start=1):
-            if parts[k] is None:  # the worker failed: its share here, same numbers
-                parts[k] = run_here(*take_rows(args, sl))
+            self.calls["rows_sent"] += sum(sl.stop - sl.start for p, sl in sent if p)
+        if shares[0].stop > shares[0].start:
+            self._learn(t1 - t0, float(cost[shares[0]].sum()),
+                        [p.busy_s for p, _ in sent if p is not None and p.ok],
+                        [p.cost for p, _ in sent if p is not None and p.ok])
+        for p, sl in sent:
+            if p is None:
+                continue
+            # the worker failed: its share here, same numbers
+            parts.append(p.value if p.ok else self._run_here(kind, local,
+                                                             take_rows(args, sl), shared))
         out = concat_rows(parts)
         self.calls["caller_cpu_s"] += time.thread_time() - c0
         return out
@@ -444,23 +519,53 @@ class RowPool:
                      + (1 - SPEED_MEMORY) * math.log(min(max(ratio, 0.25), 4.0)))
         self.speed = math.exp(log_speed)
 
-    def _receive(self, s: _Slot | None, sl: slice, cost: float) -> tuple[Any, float]:
-        """The result of the share ``sl`` sent to ``s`` and the worker's task time [s], or
-        (None, 0.0) if the worker failed."""
-        if s is None:
-            return None, 0.0
-        try:
-            if not s.conn.poll(TIMEOUT_BASE_S + TIMEOUT_PER_COST_S * cost):
-                self._failed(s, "timeout", f"rows {sl.start}:{sl.stop}")
-                return None, 0.0
-            tag, value, busy_s = s.conn.recv()
-        except (EOFError, OSError) as exc:
-            self._failed(s, "died", repr(exc))
-            return None, 0.0
-        if tag != "ok":
-            self._failed(s, "error", str(value))
-            return None, 0.0
-        return value, busy_s
+    def _wait(self, p: Pending) -> None:
+        """Receive the replies of ``p``'s worker in order until ``p``'s (each one stored in
+        its request); a worker that dies or times out fails every request it holds."""
+        s = p.slot
+        while not p.done:
+            head = s.pending[0]
+            try:
+                if not s.conn.poll(TIMEOUT_BASE_S + TIMEOUT_PER_COST_S * head.cost):
+                    self._failed(s, "timeout", f"{head.kind}, cost {head.cost:.0f}")
+                    continue
+                tag, value, busy_s = s.conn.recv()
+            except (EOFError, OSError) as exc:
+                self._failed(s, "died", repr(exc))
+                continue
+            s.pending.popleft()
+            head.done, head.ok, head.busy_s = True, tag == "ok", busy_s
+            if head.ok:
+                head.value = value
+                if busy_s > 0 and head.units > 0:  # the worker's seconds per row of the kind
+                    old = self._unit_s.get(head.kind)
+                    new = busy_s / head.units
+                    self._unit_s[head.kind] = new if old is None else (
+                        SPEED_MEMORY * old + (1 - SPEED_MEMORY) * new)
+            else:
+                self._failed(s, "error", str(value))
+
+
+def preloaded_bounds(cost: np.ndarray, weights: list[float], preload: list[float]
+                     ) -> list[slice]:
+    """Exactly ``len(weights)`` contiguous slices of ``range(len(cost))`` in row order (some
+    possibly empty) such that each sharer's ``preload`` (work it already has) plus its
+    rows' cost is about proportional to its weight: a sharer whose preload exceeds its
+    part gets no rows."""
+    cost = np.asarray(cost, dtype=np.float64)
+    c = np.cumsum(cost)
+    n = len(weights)
+    if c.size == 0:
+        return [slice(0, 0)] * n
+    w = np.asarray(weights, dtype=np.float64)
+    total = c[-1] + float(np.sum(preload))
+    target = np.maximum(total * w / w.sum() - np.asarray(preload, dtype=np.float64), 0.0)
+    target *= c[-1] / max(float(target.sum()), 1e-300)
+    # the k-th cut after the first row whose cumulative cost reaches the k-th target sum
+    ends = np.cumsum(target)[:-1]
+    cuts = np.where(ends > 0, np.searchsorted(c, ends - 1e-9 * c[-1], side="left") + 1, 0)
+    edges = np.concatenate([[0], np.minimum(np.maximum.accumulate(cuts), c.size), [c.size]])
+    return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges.tolist())]
 
 
 def start_workers(core: Any, log: logging.Logger | None = None) -> RowPool | None:
