@@ -195,19 +195,22 @@ def test_preloaded_bounds_count_the_work_a_worker_already_has():
 
 
 def test_a_submitted_request_and_a_later_share_are_answered_in_order(monkeypatch):
-    """A request submitted and not collected, then a split call on the same worker: the
-    worker answers in order, each reply lands in its own request (the split call first
-    reads the earlier reply), and the worker's pending snapshot work shrinks its share."""
+    """A request submitted (deferred), then a split call: the request goes to the worker
+    after the call's share, counted as work the worker already has (its share shrinks);
+    the replies land in their own requests, in order."""
     model = (default_scenario().building, None, 1.0, 0.0)
     pool = W.RowPool(1, model)
     pool._slots = [W._Slot(conn=_Pipe(model), ready=True, pid=-1)]
     monkeypatch.setitem(W.TASKS, "echo", lambda m, x: x * 2)
     monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
     p = pool.submit("echo", (np.arange(3.0),), 3.0)
-    assert not p.done and p.cost == 3.0 and pool._slots[0].pending[0] is p
+    assert not p.done and not p.sent and p.cost == 3.0 and not pool._slots[0].pending
     out = pool.map_rows("echo", (np.arange(10.0),), np.ones(10))
     assert np.array_equal(out, np.arange(10.0) * 2)
-    assert p.done and np.array_equal(pool.result(p), np.arange(3.0) * 2)
+    # sent after the share (a big share to a busy worker would block the sender)
+    assert p.sent and pool._slots[0].pending[0] is p and pool._slots[0].conn.kinds == [
+        "echo", "echo"]
+    assert np.array_equal(pool.result(p), np.arange(3.0) * 2) and p.done
     # parts (10 + 3) / 2 = 6.5 each: the caller's cut after the row reaching 6.5 (7 rows),
     # the worker 3 rows on top of its 3 of preload (without the preload: 5)
     assert pool.calls["rows_sent"] == 3 and not pool._slots[0].pending

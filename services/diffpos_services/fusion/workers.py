@@ -28,25 +28,9 @@ are those of one call, whatever the number of workers (tests/services/test_fusio
   share on a busy machine (soak, 2026-11-27, before: 36-40k estimates with 2 workers vs
   58-60k with 1; after: on a par, below).
 
-Measured 2026-11-27 on the 2-core VM, shared with another helper's benchmarks (one
-CPU-bound process most of the time: the machine 1.8-1.96 cores busy during the soaks):
-
-- ``python benchmarks/bench_workers.py`` (8 anchors, a quiet moment, load 1.6): 256 rows
-  40.2 ms local -> 30.7 ms split (caller 28.6 + worker 29.0 ms CPU: +44 % CPU, each process
-  runs ~25 % slower per row while the other one runs, plus ~2 ms of slicing and pickling for
-  1.4 MB each way); 32 rows 6.9 -> 5.7 ms.
-- ``bench_soak.py --load 16x200 --duration 60 --warmup 10 --method mnls --workers N``,
-  alternating, 16:15-16:41: 2 workers 33.8k / 55.4k / 50.4k / 61.8k / 51.0k estimates of
-  120,000, 1 worker 38.8k / 44.6k / 58.4k / 48.4k / 50.2k (the rest ``superseded``; latency
-  p50 ~390-470 ms both; RSS: fusion ~575 MB, a worker ~195 MB). One run while the other job paused (16:10): 2 workers 99,956, p50 213 ms, p99
-  637 ms (fusion 0.77 + worker 0.35 cores). Where the time goes with 2 (16:19 run): the
-  fusion's thread 40 s CPU in 60 s = its own shares 20.2 s + IPC 0.9 s + the rest (ingest,
-  batches, messages, calls kept local) ~19 s; the worker ~15 s CPU; the own shares took
-  31 s of wall (the thread ran ~2/3 of the time: the machine was full).
-- Replay of the 30 s soak recording (all epochs, in process): wall 28.1 s (1) vs 27.4 s (2),
-  the fusion's CPU 27.9 s vs 17.4 s + the worker's 11.2 s (+2.5 % CPU on 200-row calls);
-  the 20 s ``large`` one (50-row calls): 4.2-4.5 s vs 5.6-5.8 s (+35 % CPU), estimates of
-  both bit for bit those of main.
+Measured (2026-11-27, 2-core VM; commands and figures in README.md's performance section):
+the split costs ~+2.5 % CPU on the soak's 200-row calls, +35-45 % on 50-row ones
+(``benchmarks/bench_workers.py``); the soak with 2 workers vs 1 is in ``bench_soak.py``.
 """
 
 from __future__ import annotations
@@ -274,6 +258,7 @@ class Pending:
     cost: float  # in update units (the share balancing of later calls counts it)
     units: float = 0.0  # rows of ``kind`` (cost / the kind's unit cost when sent)
     slot: _Slot | None = None
+    sent: bool = True  # False: deferred (:meth:`RowPool.submit`), sent with the next call
     done: bool = False
     ok: bool = False
     value: Any = None
@@ -314,6 +299,8 @@ class RowPool:
         self.speed = 1.0
         #: a worker's seconds per row of each kind (EWMA; :meth:`unit_cost`)
         self._unit_s: dict[str, float] = {}
+        #: requests submitted and not sent yet (:meth:`submit`)
+        self._deferred: list[Pending] = []
         self._ctx = mp.get_context("spawn")
         self._slots = [_Slot() for _ in range(self.n - 1)]
         for s in self._slots:
@@ -406,9 +393,12 @@ class RowPool:
 
     def _send(self, s: _Slot, kind: str, args: tuple, cost: float, units: float) -> Pending:
         """Send ``(kind, args)`` to ``s``; a send that fails gives a failed (done) request."""
-        p = Pending(kind, args, cost, units, slot=s)
+        return self._dispatch(s, Pending(kind, args, cost, units))
+
+    def _dispatch(self, s: _Slot, p: Pending) -> Pending:
+        p.slot, p.sent = s, True
         try:
-            s.conn.send((kind, args))
+            s.conn.send((p.kind, p.args))
             s.pending.append(p)
         except (OSError, ValueError) as exc:
             self._failed(s, "died", repr(exc))
@@ -426,9 +416,10 @@ class RowPool:
 
     def submit(self, kind: str, args: tuple, n_units: float,
                local: Callable[..., Any] | None = None, *, shared: tuple = ()) -> Pending:
-        """``TASKS[kind](model, *args, *shared)`` on the least loaded ready worker, not waited
-        for (:meth:`result`), or here at once without a ready worker; ``n_units``: its size
-        in rows of ``kind`` (the later calls' shares count its cost)."""
+        """``TASKS[kind](model, *args, *shared)`` on a worker, not waited for
+        (:meth:`result`), or here at once without a ready worker; ``n_units``: its size in
+        rows of ``kind``. Deferred: sent by the next :meth:`map_rows` after its shares, to
+        the least loaded worker, whose share it shrinks (or by :meth:`result`)."""
         for s in self._slots:
             self._poll_ready(s)
         ready = [s for s in self._slots if s.ready]
@@ -437,13 +428,32 @@ class RowPool:
             return Pending(kind, args, 0.0, done=True, ok=True,
                            value=self._run_here(kind, local, args, shared))
         self.calls["submitted"] += 1
+        p = Pending(kind, (*args, *shared), n_units * self.unit_cost(kind), n_units, sent=False)
+        self._deferred.append(p)
+        return p
+
+    def _flush(self, ready: list[_Slot]) -> None:
+        """Send the deferred requests to the least loaded of ``ready`` (none ready: they
+        fail, computed by the caller when collected)."""
+        todo, self._deferred = self._deferred, []
+        if not todo:
+            return
+        if not ready:
+            for p in todo:
+                p.done = True
+            return
         s = min(ready, key=lambda x: sum(q.cost for q in x.pending))
-        return self._send(s, kind, (*args, *shared), n_units * self.unit_cost(kind), n_units)
+        for p in todo:
+            self._dispatch(s, p)
 
     def result(self, p: Pending, local: Callable[..., Any] | None = None, *,
                shared: tuple = ()) -> Any:
         """The value of a :meth:`submit`; computed here (same numbers) if its worker
         failed."""
+        if not p.sent:
+            for s in self._slots:
+                self._poll_ready(s)
+            self._flush([s for s in self._slots if s.ready])
         self._wait(p)
         if p.ok:
             return p.value
@@ -463,17 +473,26 @@ class RowPool:
         ready = [s for s in self._slots if s.ready]
         cost = np.asarray(cost, dtype=np.float64)
         if not ready or float(cost.sum()) < MIN_PARALLEL_COST:
+            self._flush(ready)  # an idle worker: small requests, sent without blocking
             self.calls["local"] += 1
             return self._run_here(kind, local, args, shared)
         self.calls["split"] += 1
         c0 = time.thread_time()
         preload = [sum(q.cost for q in s.pending) for s in ready]
+        if self._deferred:  # they go after the shares to the least loaded worker
+            k = int(np.argmin(preload))
+            preload[k] += sum(p.cost for p in self._deferred)
+            ready = [ready[k], *ready[:k], *ready[k + 1:]]
+            preload = [preload[k], *preload[:k], *preload[k + 1:]]
         shares = preloaded_bounds(cost, [1.0] + [self.speed] * len(ready), [0.0, *preload])
         unit = self.unit_cost(kind)
+        # the shares first: a big message to a worker busy with an earlier request would
+        # block this process in send() until the worker reads it
         sent = [(self._send(s, kind, (*take_rows(args, sl), *shared), float(cost[sl].sum()),
                             float(cost[sl].sum()) / unit)
                  if sl.stop > sl.start else None, sl)
                 for s, sl in zip(ready, shares[1:], strict=True)]
+        self._flush(ready[:1])
         parts: list[Any] = []
         t0, c1 = time.perf_counter(), time.thread_time()
         try:
