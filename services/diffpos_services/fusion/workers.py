@@ -66,6 +66,7 @@ import sys
 import time
 import traceback
 from collections.abc import Callable
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 import numpy as np
@@ -238,17 +239,29 @@ def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
             kind, args = conn.recv()
         except (EOFError, OSError):
             return
+        except Exception:  # the request was read but not decoded: the caller awaits a reply
+            kind, args = "", traceback.format_exc(limit=8)
         if kind == "stop":
             return
         t0 = time.perf_counter()
         try:
+            if not kind:
+                raise RuntimeError(f"request not decoded: {args}")
             reply = ("ok", TASKS[kind](model, *args), time.perf_counter() - t0)
+            payload = _dumps(reply)
         except Exception:  # reported to the caller, which computes the share locally
-            reply = ("err", traceback.format_exc(limit=8), 0.0)
+            payload = _dumps(("err", traceback.format_exc(limit=8), 0.0))
         try:
-            conn.send(reply)
+            conn.send_bytes(payload)
         except (OSError, ValueError):
             return
+
+
+def _dumps(msg: Any) -> memoryview:
+    """``msg`` pickled as :meth:`multiprocessing.connection.Connection.send` does: pickled
+    whole before any byte is written, so a message that cannot be pickled leaves the pipe
+    as it was (the other end reads it with ``recv``)."""
+    return ForkingPickler.dumps(msg)
 
 
 # ------------------------------------------------------------------------ the pool
@@ -400,8 +413,14 @@ class RowPool:
         shares = share_bounds(cost, len(ready) + 1, [1.0] + [self.speed] * len(ready))
         sent = []
         for s, sl in zip(ready, shares[1:], strict=False):
+            try:  # an argument that cannot be pickled: nothing sent, the worker stays
+                payload = _dumps((kind, (*take_rows(args, sl), *shared)))
+            except Exception as exc:
+                self._failed(s, "error", f"request not pickled: {exc!r}")
+                sent.append((None, sl))
+                continue
             try:
-                s.conn.send((kind, (*take_rows(args, sl), *shared)))
+                s.conn.send_bytes(payload)
                 sent.append((s, sl))
             except (OSError, ValueError) as exc:
                 self._failed(s, "died", repr(exc))
@@ -456,6 +475,9 @@ class RowPool:
             tag, value, busy_s = s.conn.recv()
         except (EOFError, OSError) as exc:
             self._failed(s, "died", repr(exc))
+            return None, 0.0
+        except Exception as exc:  # the reply was read but not decoded: the pipe is in step
+            self._failed(s, "error", f"reply not unpickled: {exc!r}")
             return None, 0.0
         if tag != "ok":
             self._failed(s, "error", str(value))
