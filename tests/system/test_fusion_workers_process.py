@@ -117,11 +117,13 @@ def test_dead_worker_restarted_and_raising_worker_kept():
     with W.RowPool(2, MODEL) as pool:
         assert pool.wait_ready(120) == 1
         old = pool.pids[0]
+        fds = sorted(os.listdir("/proc/self/fd"))
         os.kill(old, signal.SIGKILL)
         assert _gone([old], 10) == []
         got = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
         assert pool.failures["died"] == 1
         assert pool.wait_ready(120) == 1 and pool.pids[0] != old  # restarted, warmed up
+        assert len(os.listdir("/proc/self/fd")) == len(fds)  # no descriptor leaked
         again = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
         assert pool.calls["split"] == 2 and pool.failures["died"] == 1
         for out in (got, again):

@@ -364,6 +364,7 @@ class RowPool:
             with contextlib.suppress(Exception):
                 s.proc.kill()
                 s.proc.join(5.0)
+                s.proc.close()  # its sentinel descriptor now, not when collected
         if s.conn is not None:
             with contextlib.suppress(Exception):
                 s.conn.close()
