@@ -13,6 +13,9 @@ which no later step sees), so the SNR kernels' outputs are unchanged by the pair
 
 from __future__ import annotations
 
+import itertools
+import math
+
 import numpy as np
 
 from diffpos._kernels.channel_rays_nb import _cmul, _norm_c, _utd_term_ri
@@ -50,3 +53,24 @@ def test_cmul_and_norm_pairs():
         f = rng.normal(size=6)
         ref = np.linalg.norm(f[0::2] + 1j * f[1::2])
         assert abs(_norm_c(*f) - ref) <= 1e-15 * ref
+
+
+def _same(a: float, b: float) -> bool:
+    return a == b or (math.isnan(a) and math.isnan(b))
+
+
+def test_pairs_equal_complex_on_zero_inf_nan():
+    """Zeros of both signs, infinities, NaN and extremes: the pairs give numba's complex
+    values (NaN where it gives NaN), so a non-finite field is classified the same way (the
+    ray dropped by the kernels' ``isfinite`` test)."""
+    special = [0.0, -0.0, 1e-300, -1e-300, 0.3, -1.0, 1e300, math.inf, -math.inf, math.nan]
+    for cv, kv in itertools.product(special, [0.0, 1e-300, 1.0, 1e4, 1e300, math.inf,
+                                              math.nan]):
+        ref = _utd_term(cv, kv)
+        re, im = _utd_term_ri(cv, kv)
+        assert _same(re, ref.real) and _same(im, ref.imag), (cv, kv, (re, im), ref)
+    for a, b, c, d in itertools.product([0.0, -0.0, 1.0, -2.5, 1e308, math.inf, -math.inf,
+                                         math.nan], repeat=4):
+        z = complex(a, b) * complex(c, d)
+        re, im = _cmul(a, b, c, d)
+        assert _same(re, z.real) and _same(im, z.imag), (a, b, c, d)
