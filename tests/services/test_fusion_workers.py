@@ -233,3 +233,17 @@ def test_unpicklable_share_or_reply_leaves_no_stale_reply(monkeypatch):
     x3 = np.arange(200.0, 230.0)
     assert np.array_equal(call(x3), x3)
     assert pool.failures["error"] == 2 and pool.calls["split"] == 3
+
+
+def test_call_without_rows_stays_local(monkeypatch):
+    """No rows (even with every call split: MIN_PARALLEL_COST 0): computed here, nothing
+    sent (there is no share to give; before, the empty share list raised IndexError)."""
+    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    pool = W.RowPool(1, (None, None, 3.0, 0.0))
+    pipe = _QueuedPipe(pool.model)
+    pool._slots = [W._Slot(conn=pipe, ready=True, pid=-1)]
+    out = pool.map_rows("echo", (np.empty((0, 3)),), np.empty(0), local=lambda a: a + 1.0)
+    assert out.shape == (0, 3) and pool.calls["local"] == 1 and not pipe.replies
+    two = pool.map_rows("echo", (np.ones((2, 3)),), np.ones(2), local=lambda a: a + 1.0)
+    assert np.array_equal(two, np.array([[2.0] * 3, [1.0] * 3]))  # split: row 1 echoed

@@ -406,7 +406,7 @@ class RowPool:
             self._poll_ready(s)
         ready = [s for s in self._slots if s.ready]
         cost = np.asarray(cost, dtype=np.float64)
-        if not ready or float(cost.sum()) < MIN_PARALLEL_COST:
+        if not ready or cost.size == 0 or float(cost.sum()) < MIN_PARALLEL_COST:
             self.calls["local"] += 1
             return run_here(*args)
         self.calls["split"] += 1
