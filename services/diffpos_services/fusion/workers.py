@@ -16,7 +16,10 @@ are those of one call, whatever the number of workers (tests/services/test_fusio
   ``ready``; :meth:`RowPool.wait_ready` is called before the service declares itself ready.
 - A worker dies with the fusion: it asks the kernel for SIGKILL when its parent dies
   (``prctl(PR_SET_PDEATHSIG)``, as :func:`diffpos_services.kit.die_with_parent`) and a closed
-  pipe (EOF) ends it too.
+  pipe (EOF) ends it too. Linux sends that signal when the *thread* that started the worker
+  ends: a pool is started and used by one thread that outlives it (the service's
+  ``run_fusion`` thread, replay's caller), a worker restarted by :meth:`RowPool.map_rows`
+  belongs to the calling thread.
 - A worker that dies, times out or raises loses nothing: its share is computed in the calling
   process, the failure is logged and counted (:attr:`RowPool.failures`); a dead one is restarted
   (at most :data:`MAX_RESTARTS` times each, then the pool runs with fewer workers). A restarted
