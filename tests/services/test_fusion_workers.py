@@ -247,3 +247,33 @@ def test_call_without_rows_stays_local(monkeypatch):
     assert out.shape == (0, 3) and pool.calls["local"] == 1 and not pipe.replies
     two = pool.map_rows("echo", (np.ones((2, 3)),), np.ones(2), local=lambda a: a + 1.0)
     assert np.array_equal(two, np.array([[2.0] * 3, [1.0] * 3]))  # split: row 1 echoed
+
+
+def test_a_failed_start_stops_the_workers_already_started(monkeypatch):
+    """RowPool(3): the second worker cannot be started (e.g. no file descriptor left): the
+    first one is stopped before the error reaches the caller (who has no pool to close)."""
+    started = []
+
+    class Proc:
+        def __init__(self):
+            self.killed = False
+
+        def kill(self):
+            self.killed = True
+
+        def join(self, timeout=None):
+            pass
+
+        def close(self):
+            pass
+
+    def start(self, s):
+        if started:
+            raise OSError(24, "Too many open files")
+        started.append(Proc())
+        s.proc, s.conn, s.pid = started[-1], _QueuedPipe(None), -1
+
+    monkeypatch.setattr(W.RowPool, "_start", start)
+    with pytest.raises(OSError, match="Too many"):
+        W.RowPool(3, (None, None, 3.0, 0.0))
+    assert len(started) == 1 and started[0].killed

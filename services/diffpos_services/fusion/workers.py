@@ -311,8 +311,12 @@ class RowPool:
         self.speed = 1.0
         self._ctx = mp.get_context("spawn")
         self._slots = [_Slot() for _ in range(self.n - 1)]
-        for s in self._slots:
-            self._start(s)
+        try:
+            for s in self._slots:
+                self._start(s)
+        except BaseException:  # no pool to close: the ones started would outlive the call
+            self.close(0.0)
+            raise
 
     # ---------------------------------------------------------------- processes
     def _start(self, s: _Slot) -> None:
