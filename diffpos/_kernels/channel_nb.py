@@ -43,8 +43,9 @@ re-stated in :mod:`.channel_rays_nb` (the per-slot rays: direct, specular, UTD d
 with the complex fields carried as ``(re, im)`` pairs where they meet a real factor, the
 complex arithmetic's values) because the amplitudes need their interaction points (entry,
 ground and reflection points, the diffraction point), which ``slot_path`` does not return.
-numba keys this file's cache on this file only: after editing :mod:`.channel_rays_nb` or
-:mod:`.transition_nb` delete ``diffpos/_kernels/__pycache__/`` (DEVELOPING.md).
+numba keys this file's cache on this file only: after editing :mod:`.channel_rays_nb`,
+:mod:`.paths_nb` or :mod:`.transition_nb` update ``CALLEES_SHA256`` below (the value
+tests/core/test_kernel_stamps.py names; DEVELOPING.md).
 
 Inputs are plain arrays prepared once in Python (:func:`channel_params`): the building's
 planes and losses, the partitions as a ``(P, 5)`` array ``(axis, position, span lo, span hi,
@@ -109,6 +110,11 @@ from .transition_nb import (
     transition_asymptotic,
     weideman_coefficients,
 )
+
+#: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
+#: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
+#: value after a callee's edit; writing it here is what invalidates a warm cache).
+CALLEES_SHA256 = "6a369bb13cd61ebb"
 
 __all__ = ["ASYMPTOTIC_MIN_ABS", "COST_SIGNATURE", "MASKED_SIGNATURE", "SIGNATURE",
            "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N", "channel_params", "channel_snr_kernel",

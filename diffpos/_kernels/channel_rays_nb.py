@@ -38,6 +38,11 @@ from .transition_nb import (
     transition_asymptotic,
 )
 
+#: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
+#: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
+#: value after a callee's edit; writing it here is what invalidates a warm cache).
+CALLEES_SHA256 = "6651f3ae233ce062"
+
 _RAD2DEG = 180.0 / math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 

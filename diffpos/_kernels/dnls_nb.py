@@ -39,10 +39,10 @@ _REFIT_XTOL = 1e-10  # the reference's refits use the LM default, not the caller
 _MAX_LLS_CONDITION = 1e8
 
 _JIT = {"cache": True, "error_model": "numpy"}
-#: numba's on-disk cache of :func:`dnls_batch` is keyed on the contents of THIS file only, not
-#: on the callees it compiled in (lm_nb.py): bump this after editing lm_nb.py, or a stale
-#: kernel is loaded from __pycache__.
-LM_NB_REVISION = 2
+#: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
+#: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
+#: value after a callee's edit; writing it here is what invalidates a warm cache).
+CALLEES_SHA256 = "87fc36e5290e08ec"
 
 
 @njit(**_JIT)

@@ -21,10 +21,10 @@ from .tracking_nb import _OPTS, _model_row, _terms_row
 
 __all__ = ["iekf_kernel", "prior_info_kernel", "warm_iekf"]
 
-#: numba's on-disk cache of this file's kernels is keyed on the contents of THIS file only, not
-#: on the ``tracking_nb`` / ``paths_nb`` functions they compile in: bump this after editing
-#: either (a stale kernel would be loaded from __pycache__). 2: paths_nb's diffraction path.
-PATHS_NB_REVISION = 2
+#: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
+#: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
+#: value after a callee's edit; writing it here is what invalidates a warm cache).
+CALLEES_SHA256 = "749d0bbfd6497eb9"
 
 
 #: The IEKF's state dimension (a compile-time constant: the 6 x 6 loops unroll).

@@ -50,10 +50,10 @@ _b1_3d = types.boolean[:, :, ::1]
 _i8_1d = types.int64[::1]
 _i8_2d = types.int64[:, ::1]
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}  # nogil: pool.run_rows
-#: numba's on-disk cache of this file's kernels is keyed on the contents of THIS file only, not
-#: on the ``paths_nb`` functions they compile in: bump this after editing paths_nb.py (a stale
-#: kernel would be loaded from __pycache__). 2: the diffraction path's |Q - A| computed once.
-PATHS_NB_REVISION = 2
+#: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
+#: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
+#: value after a callee's edit; writing it here is what invalidates a warm cache).
+CALLEES_SHA256 = "5acd7c746c84e10e"
 
 #: The one compiled signature of :func:`link_terms_kernel`.
 SIGNATURE = types.void(

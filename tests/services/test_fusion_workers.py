@@ -108,6 +108,9 @@ class _Pipe:
             reply = ("ok", W.TASKS[kind](self.model, *args), 0.001)
         self.replies.append(pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL))
 
+    def send_bytes(self, payload) -> None:  # what RowPool writes: the pickled request
+        self.send(pickle.loads(payload))
+
     def poll(self, timeout=None) -> bool:
         return True
 
@@ -227,3 +230,103 @@ def test_failed_worker_loses_no_estimate(recording, monkeypatch, fail):
     assert pool.failures[fail] >= 1
     if fail == "died":
         assert pool.failures[fail] == 1 and pool._slots[0].restarts == 1
+
+
+class _QueuedPipe:
+    """A worker's pipe that keeps every unread reply in order, as a real pipe does (a reply
+    not received by one call is what the next call reads); ``recv`` raises once on
+    ``bad_reply`` (the reply read but not decoded)."""
+
+    def __init__(self, model) -> None:
+        self.model, self.replies, self.bad_reply = model, [], False
+
+    def send(self, msg) -> None:  # as Connection.send: pickled whole, then written
+        self.send_bytes(pickle.dumps(msg))
+
+    def send_bytes(self, payload) -> None:
+        kind, args = pickle.loads(payload)
+        self.replies.append(pickle.dumps(("ok", W.TASKS[kind](self.model, *args), 0.001)))
+
+    def poll(self, timeout=None) -> bool:
+        return bool(self.replies)
+
+    def recv(self):
+        reply = self.replies.pop(0)
+        if self.bad_reply:
+            self.bad_reply = False
+            raise pickle.UnpicklingError("injected")
+        return pickle.loads(reply)
+
+    def close(self) -> None:
+        pass
+
+
+def test_unpicklable_share_or_reply_leaves_no_stale_reply(monkeypatch):
+    """Three sharers; call 1's last share cannot be pickled (a lambda in an object array),
+    call 2's first worker reply cannot be decoded: each such share is computed locally and
+    every later call gets its own rows back (before the fix, call 1 raised after the first
+    worker had its request, and call 2 read call 1's reply from that worker's pipe)."""
+    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    pool = W.RowPool(1, (None, None, 3.0, 0.0))
+    pipes = [_QueuedPipe(pool.model), _QueuedPipe(pool.model)]
+    pool._slots = [W._Slot(conn=p, ready=True, pid=-1) for p in pipes]
+
+    def call(x):
+        return pool.map_rows("echo", (x,), np.ones(len(x)), local=lambda a: a.copy())
+
+    x1 = np.arange(30.0).astype(object)
+    x1[-1] = lambda: None  # the last share (the second worker's) cannot be pickled
+    out = call(x1)
+    assert list(out[:-1]) == list(range(29)) and out[-1] is x1[-1]
+    assert pool.failures["error"] == 1 and not any(p.replies for p in pipes)
+    pipes[0].bad_reply = True
+    x2 = np.arange(100.0, 130.0)
+    assert np.array_equal(call(x2), x2)
+    assert pool.failures["error"] == 2 and not any(p.replies for p in pipes)
+    x3 = np.arange(200.0, 230.0)
+    assert np.array_equal(call(x3), x3)
+    assert pool.failures["error"] == 2 and pool.calls["split"] == 3
+
+
+def test_call_without_rows_stays_local(monkeypatch):
+    """No rows (even with every call split: MIN_PARALLEL_COST 0): computed here, nothing
+    sent (there is no share to give; before, the empty share list raised IndexError)."""
+    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    pool = W.RowPool(1, (None, None, 3.0, 0.0))
+    pipe = _QueuedPipe(pool.model)
+    pool._slots = [W._Slot(conn=pipe, ready=True, pid=-1)]
+    out = pool.map_rows("echo", (np.empty((0, 3)),), np.empty(0), local=lambda a: a + 1.0)
+    assert out.shape == (0, 3) and pool.calls["local"] == 1 and not pipe.replies
+    two = pool.map_rows("echo", (np.ones((2, 3)),), np.ones(2), local=lambda a: a + 1.0)
+    assert np.array_equal(two, np.array([[2.0] * 3, [1.0] * 3]))  # split: row 1 echoed
+
+
+def test_a_failed_start_stops_the_workers_already_started(monkeypatch):
+    """RowPool(3): the second worker cannot be started (e.g. no file descriptor left): the
+    first one is stopped before the error reaches the caller (who has no pool to close)."""
+    started = []
+
+    class Proc:
+        def __init__(self):
+            self.killed = False
+
+        def kill(self):
+            self.killed = True
+
+        def join(self, timeout=None):
+            pass
+
+        def close(self):
+            pass
+
+    def start(self, s):
+        if started:
+            raise OSError(24, "Too many open files")
+        started.append(Proc())
+        s.proc, s.conn, s.pid = started[-1], _QueuedPipe(None), -1
+
+    monkeypatch.setattr(W.RowPool, "_start", start)
+    with pytest.raises(OSError, match="Too many"):
+        W.RowPool(3, (None, None, 3.0, 0.0))
+    assert len(started) == 1 and started[0].killed

@@ -117,11 +117,13 @@ def test_dead_worker_restarted_and_raising_worker_kept():
     with W.RowPool(2, MODEL) as pool:
         assert pool.wait_ready(120) == 1
         old = pool.pids[0]
+        fds = sorted(os.listdir("/proc/self/fd"))
         os.kill(old, signal.SIGKILL)
         assert _gone([old], 10) == []
         got = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
         assert pool.failures["died"] == 1
         assert pool.wait_ready(120) == 1 and pool.pids[0] != old  # restarted, warmed up
+        assert len(os.listdir("/proc/self/fd")) == len(fds)  # no descriptor leaked
         again = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
         assert pool.calls["split"] == 2 and pool.failures["died"] == 1
         for out in (got, again):
@@ -179,3 +181,49 @@ def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
         assert pool.failures["timeout"] == 1
         assert _gone([old], 10) == []  # killed
         assert pool.wait_ready(120) == 1 and pool.pids[0] != old
+
+
+_WARM_CHECK = """
+import json, sys
+import numpy as np
+from numba.core.registry import CPUDispatcher
+import diffpos.estimators as est
+from diffpos.channel import emulate_channel, first_arrival
+from diffpos.scenario import default_scenario
+from diffpos.tracking import TrackerConfig, init_state, update
+from diffpos_services.fusion.warm import warm_model
+
+def loaded():
+    return {f"{n}.{k}": len(v.signatures) for n, m in list(sys.modules.items())
+            if n.startswith("diffpos._kernels.") for k, v in vars(m).items()
+            if isinstance(v, CPUDispatcher)}
+
+sc = default_scenario()
+b = sc.building
+warm_model(b, sc.radio, b.window_height_m, b.first_floor_z_m)
+before = loaded()
+anchors = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
+                    [15.0, -20.0, 1.0], [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0]])
+nodes = np.array([[-4.0, 3.0, 4.5], [2.0, 6.0, 7.5], [6.0, 2.5, 10.5]])
+rng = np.random.default_rng(1)
+st = init_state(3, b)
+a = np.broadcast_to(anchors, (3, *anchors.shape))
+for k in range(4):
+    fa = first_arrival(emulate_channel(anchors, nodes, building=b, radio=sc.radio),
+                       radio=sc.radio, rng=rng)
+    st, _ = update(st, a, fa.range_m, fa.sigma_m, fa.detected, np.full(3, k * 100_000_000), b,
+                   TrackerConfig(), snr_db=fa.snr_db, radio=sc.radio)
+    est.mnls(a, fa.range_m, fa.sigma_m, building=b, mask=fa.detected, snr_db=fa.snr_db,
+             radio=sc.radio)
+print(json.dumps({k: [before.get(k, 0), v] for k, v in loaded().items()
+                  if v != before.get(k, 0)}))
+"""
+
+
+def test_warm_model_loads_every_kernel_the_real_calls_use():
+    """A worker says ready after :func:`warm_model`: in a fresh process, tracked updates (with
+    the SNR) and M-NLS fixes afterwards load or compile no further kernel (before, the SNR
+    cache's two kernels were loaded by the first real tracked update, in the hot path)."""
+    out = subprocess.run([sys.executable, "-c", _WARM_CHECK], capture_output=True, text=True,
+                         timeout=600, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == {}

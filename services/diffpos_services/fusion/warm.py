@@ -33,8 +33,9 @@ def _problem(window_height_m: float, first_floor_z_m: float) -> tuple[np.ndarray
 
 def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_m: float
                ) -> None:
-    """M-NLS, the SNR prediction (with ``radio``) and a throw-away tracker's update on one
-    tiny problem in ``building``."""
+    """M-NLS, the SNR prediction (with ``radio``) and a throw-away tracker (an initialisation
+    and a tracked update, without and with the SNR) on one tiny problem in ``building``:
+    every compiled kernel these calls use is loaded (tests/system/test_fusion_workers_process.py)."""
     node, r = _problem(window_height_m, first_floor_z_m)
     sig, mask = np.full((1, 4), 0.1), np.ones((1, 4), bool)
     est.mnls(_ANCHORS[None], r[None], sig, building=building)
@@ -42,11 +43,14 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
     if radio is not None:  # the compiled SNR prediction (loaded from cache)
         snr = pair_snr_db(_ANCHORS[None], node[None], building=building, radio=radio)
         snr = snr.max(axis=-1)  # (1, 4): the strongest mechanism as the "measured" SNR
-    update(init_state(1, building), _ANCHORS[None], r[None], sig, mask,
-           np.zeros(1, np.int64), building, TrackerConfig())
-    if snr is not None:
-        update(init_state(1, building), _ANCHORS[None], r[None], sig, mask,
-               np.zeros(1, np.int64), building, TrackerConfig(), snr_db=snr, radio=radio)
+    for snr_db in (None,) if snr is None else (None, snr):
+        # an initialisation, then a tracked update of it (the IEKF from a prior and, with the
+        # SNR, the prediction cache's kernels: loaded now, not in the first real call)
+        st = init_state(1, building)
+        for k in range(2):
+            st, _ = update(st, _ANCHORS[None], r[None], sig, mask, np.full(1, k * 100_000_000),
+                           building, TrackerConfig(), snr_db=snr_db,
+                           radio=None if snr_db is None else radio)
 
 
 def warm_up(core: Any) -> None:

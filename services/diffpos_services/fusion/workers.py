@@ -16,7 +16,10 @@ are those of one call, whatever the number of workers (tests/services/test_fusio
   ``ready``; :meth:`RowPool.wait_ready` is called before the service declares itself ready.
 - A worker dies with the fusion: it asks the kernel for SIGKILL when its parent dies
   (``prctl(PR_SET_PDEATHSIG)``, as :func:`diffpos_services.kit.die_with_parent`) and a closed
-  pipe (EOF) ends it too.
+  pipe (EOF) ends it too. Linux sends that signal when the *thread* that started the worker
+  ends: a pool is started and used by one thread that outlives it (the service's
+  ``run_fusion`` thread, replay's caller), a worker restarted by :meth:`RowPool.map_rows`
+  belongs to the calling thread.
 - A worker that dies, times out or raises loses nothing: its share is computed in the calling
   process, the failure is logged and counted (:attr:`RowPool.failures`); a dead one is restarted
   (at most :data:`MAX_RESTARTS` times each, then the pool runs with fewer workers). A restarted
@@ -40,7 +43,6 @@ import contextlib
 import ctypes
 import ctypes.util
 import dataclasses
-import itertools
 import logging
 import math
 import multiprocessing as mp
@@ -50,6 +52,7 @@ import sys
 import time
 import traceback
 from collections.abc import Callable
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 import numpy as np
@@ -58,6 +61,7 @@ import diffpos.estimators as est
 from diffpos.tracking import TrackerState, update
 from diffpos.tracking_snr import snr_reuse_on
 from diffpos.tracking_state import SNR_CACHE_LINKS, SNR_CACHE_SLOTS
+from diffpos_services.fusion.rows import concat_rows, preloaded_bounds, share_bounds, take_rows
 from diffpos_services.fusion.warm import warm_model
 from diffpos_services.kit import log_event
 
@@ -87,51 +91,6 @@ TIMEOUT_PER_COST_S = 0.1
 #: Memory of the measured worker speed (:attr:`RowPool.speed`): weight of the previous value.
 SPEED_MEMORY = 0.8
 _PR_SET_PDEATHSIG = 1
-
-
-# ------------------------------------------------------------------------ row slicing
-def take_rows(x: Any, sl: slice) -> Any:
-    """Rows ``sl`` of ``x``: an array (axis 0), a dataclass of arrays (every array field),
-    a tuple of those, or None/scalars (unchanged)."""
-    if isinstance(x, np.ndarray):
-        return x[sl] if x.ndim else x
-    if isinstance(x, tuple):
-        return tuple(take_rows(v, sl) for v in x)
-    if dataclasses.is_dataclass(x) and not isinstance(x, type):
-        return dataclasses.replace(x, **{f.name: take_rows(getattr(x, f.name), sl)
-                                         for f in dataclasses.fields(x) if f.init})
-    return x
-
-
-def concat_rows(parts: list[Any]) -> Any:
-    """The inverse of :func:`take_rows` over consecutive shares: arrays concatenated on axis
-    0, dataclasses and tuples field by field, anything else taken from the first part."""
-    first = parts[0]
-    if len(parts) == 1:
-        return first
-    if isinstance(first, np.ndarray):
-        return np.concatenate(parts) if first.ndim else first
-    if isinstance(first, tuple):
-        return tuple(concat_rows([p[i] for p in parts]) for i in range(len(first)))
-    if dataclasses.is_dataclass(first) and not isinstance(first, type):
-        return dataclasses.replace(first, **{
-            f.name: concat_rows([getattr(p, f.name) for p in parts])
-            for f in dataclasses.fields(first) if f.init})
-    return first
-
-
-def share_bounds(cost: np.ndarray, n: int, weights: Any = None) -> list[slice]:
-    """At most ``n`` non-empty contiguous slices of ``range(len(cost))``, in row order, whose
-    total costs (each row's ``cost`` > 0) are about proportional to ``weights`` (n values > 0,
-    the sharers' speeds; default equal)."""
-    c = np.cumsum(np.asarray(cost, dtype=np.float64))
-    if c.size == 0:
-        return []
-    w = np.cumsum(np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64))
-    # the k-th cut after the first row whose cumulative cost reaches the k-th weight fraction
-    cuts = np.searchsorted(c, c[-1] * w[:-1] / w[-1], side="left") + 1
-    edges = np.unique(np.concatenate([[0], np.minimum(cuts, c.size), [c.size]]))
-    return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges.tolist()) if b > a]
 
 
 # ------------------------------------------------------------------------ the worker
@@ -223,17 +182,29 @@ def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
             kind, args = conn.recv()
         except (EOFError, OSError):
             return
+        except Exception:  # the request was read but not decoded: the caller awaits a reply
+            kind, args = "", traceback.format_exc(limit=8)
         if kind == "stop":
             return
         t0 = time.perf_counter()
         try:
+            if not kind:
+                raise RuntimeError(f"request not decoded: {args}")
             reply = ("ok", TASKS[kind](model, *args), time.perf_counter() - t0)
+            payload = _dumps(reply)
         except Exception:  # reported to the caller, which computes the share locally
-            reply = ("err", traceback.format_exc(limit=8), 0.0)
+            payload = _dumps(("err", traceback.format_exc(limit=8), 0.0))
         try:
-            conn.send(reply)
+            conn.send_bytes(payload)
         except (OSError, ValueError):
             return
+
+
+def _dumps(msg: Any) -> memoryview:
+    """``msg`` pickled as :meth:`multiprocessing.connection.Connection.send` does: pickled
+    whole before any byte is written, so a message that cannot be pickled leaves the pipe
+    as it was (the other end reads it with ``recv``)."""
+    return ForkingPickler.dumps(msg)
 
 
 # ------------------------------------------------------------------------ the pool
@@ -303,8 +274,12 @@ class RowPool:
         self._deferred: list[Pending] = []
         self._ctx = mp.get_context("spawn")
         self._slots = [_Slot() for _ in range(self.n - 1)]
-        for s in self._slots:
-            self._start(s)
+        try:
+            for s in self._slots:
+                self._start(s)
+        except BaseException:  # no pool to close: the ones started would outlive the call
+            self.close(0.0)
+            raise
 
     # ---------------------------------------------------------------- processes
     def _start(self, s: _Slot) -> None:
@@ -361,6 +336,7 @@ class RowPool:
             with contextlib.suppress(Exception):
                 s.proc.kill()
                 s.proc.join(5.0)
+                s.proc.close()  # its sentinel descriptor now, not when collected
         if s.conn is not None:
             with contextlib.suppress(Exception):
                 s.conn.close()
@@ -397,8 +373,14 @@ class RowPool:
 
     def _dispatch(self, s: _Slot, p: Pending) -> Pending:
         p.slot, p.sent = s, True
+        try:  # an argument that cannot be pickled: nothing sent, the worker stays
+            payload = _dumps((p.kind, p.args))
+        except Exception as exc:
+            self._failed(s, "error", f"request not pickled: {exc!r}")
+            p.done = True
+            return p
         try:
-            s.conn.send((p.kind, p.args))
+            s.conn.send_bytes(payload)
             s.pending.append(p)
         except (OSError, ValueError) as exc:
             self._failed(s, "died", repr(exc))
@@ -472,7 +454,7 @@ class RowPool:
             self._poll_ready(s)
         ready = [s for s in self._slots if s.ready]
         cost = np.asarray(cost, dtype=np.float64)
-        if not ready or float(cost.sum()) < MIN_PARALLEL_COST:
+        if not ready or cost.size == 0 or float(cost.sum()) < MIN_PARALLEL_COST:
             self._flush(ready)  # an idle worker: small requests, sent without blocking
             self.calls["local"] += 1
             return self._run_here(kind, local, args, shared)
@@ -552,6 +534,10 @@ class RowPool:
             except (EOFError, OSError) as exc:
                 self._failed(s, "died", repr(exc))
                 continue
+            except Exception as exc:  # read but not decoded: the pipe is still in step
+                s.pending.popleft().done = True
+                self._failed(s, "error", f"reply not unpickled: {exc!r}")
+                continue
             s.pending.popleft()
             head.done, head.ok, head.busy_s = True, tag == "ok", busy_s
             if head.ok:
@@ -563,28 +549,6 @@ class RowPool:
                         SPEED_MEMORY * old + (1 - SPEED_MEMORY) * new)
             else:
                 self._failed(s, "error", str(value))
-
-
-def preloaded_bounds(cost: np.ndarray, weights: list[float], preload: list[float]
-                     ) -> list[slice]:
-    """Exactly ``len(weights)`` contiguous slices of ``range(len(cost))`` in row order (some
-    possibly empty) such that each sharer's ``preload`` (work it already has) plus its
-    rows' cost is about proportional to its weight: a sharer whose preload exceeds its
-    part gets no rows."""
-    cost = np.asarray(cost, dtype=np.float64)
-    c = np.cumsum(cost)
-    n = len(weights)
-    if c.size == 0:
-        return [slice(0, 0)] * n
-    w = np.asarray(weights, dtype=np.float64)
-    total = c[-1] + float(np.sum(preload))
-    target = np.maximum(total * w / w.sum() - np.asarray(preload, dtype=np.float64), 0.0)
-    target *= c[-1] / max(float(target.sum()), 1e-300)
-    # the k-th cut after the first row whose cumulative cost reaches the k-th target sum
-    ends = np.cumsum(target)[:-1]
-    cuts = np.where(ends > 0, np.searchsorted(c, ends - 1e-9 * c[-1], side="left") + 1, 0)
-    edges = np.concatenate([[0], np.minimum(np.maximum.accumulate(cuts), c.size), [c.size]])
-    return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges.tolist())]
 
 
 def start_workers(core: Any, log: logging.Logger | None = None) -> RowPool | None:

@@ -1,0 +1,94 @@
+"""numba keys a kernel's on-disk cache (``diffpos/_kernels/__pycache__``) on the stamp (mtime,
+size) of the kernel's OWN source file, not on the files of the functions it compiles in: after
+an edit of ``paths_nb.py`` a developer's warm cache would keep serving ``tracking_nb``'s,
+``mnls_nb``'s, ``iekf_nb``'s and ``channel_nb``'s kernels with the old path code (a fresh clone
+cannot be stale). So every kernel module that imports another ``*_nb`` module at its top
+carries ``CALLEES_SHA256``: a digest of the code (the AST, comments and the stamp line itself
+left out) of every ``*_nb`` module it compiles in, transitively. This test recomputes them
+and names the value to write: editing a callee fails it until each dependant's stamp is
+updated, and that edit of the dependant is what invalidates its cache."""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+from pathlib import Path
+
+import diffpos._kernels as kernels
+
+DIR = Path(kernels.__file__).parent
+STAMP = "CALLEES_SHA256"
+
+
+def _tree(name: str) -> ast.Module:
+    return ast.parse((DIR / f"{name}.py").read_text(), filename=f"{name}.py")
+
+
+def _callees(name: str) -> set[str]:
+    """The ``*_nb`` modules ``name`` imports at module level (``from .x_nb import ...``; an
+    import inside a function is a Python call, not compiled in)."""
+    return {n.module for n in _tree(name).body
+            if isinstance(n, ast.ImportFrom) and n.level == 1 and n.module
+            and n.module.endswith("_nb")}
+
+
+def _closure(name: str) -> list[str]:
+    seen: set[str] = set()
+    todo = list(_callees(name))
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo.extend(_callees(m))
+    return sorted(seen - {name})
+
+
+def _code(name: str) -> str:
+    """The module's AST without its stamp assignment (comments are not in the AST)."""
+    tree = _tree(name)
+    tree.body = [n for n in tree.body if not (
+        isinstance(n, ast.Assign) and any(getattr(t, "id", None) == STAMP for t in n.targets))]
+    return ast.dump(tree)
+
+
+def digest(name: str) -> str:
+    h = hashlib.sha256()
+    for m in _closure(name):
+        h.update(m.encode() + b"\0" + _code(m).encode() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _stamp(name: str) -> str | None:
+    for n in _tree(name).body:
+        if isinstance(n, ast.Assign) and any(getattr(t, "id", None) == STAMP for t in n.targets):
+            return ast.literal_eval(n.value)
+    return None
+
+
+def test_every_kernel_module_stamps_the_code_it_compiles_in():
+    dependants = sorted(p.stem for p in DIR.glob("*_nb.py") if _callees(p.stem))
+    assert {"channel_nb", "iekf_nb", "mnls_nb", "tracking_nb"} <= set(dependants)
+    wrong = {m: digest(m) for m in dependants if _stamp(m) != digest(m)}
+    assert not wrong, ("a callee changed (or a stamp is missing): set these in "
+                       f"diffpos/_kernels/<module>.py ({STAMP} = \"...\"): {wrong}")
+
+
+def test_the_digest_follows_a_callee_edit_only(monkeypatch):
+    """A code edit of paths_nb changes the digest of its dependants (tracking_nb directly,
+    iekf_nb through tracking_nb too), a comment does not, an unrelated module is unchanged."""
+    before = {m: digest(m) for m in ("tracking_nb", "iekf_nb", "dnls_nb")}
+    src = (DIR / "paths_nb.py").read_text()
+
+    def patched(text):
+        def tree(name):
+            s = text if name == "paths_nb" else (DIR / f"{name}.py").read_text()
+            return ast.parse(s)
+        return tree
+
+    monkeypatch.setitem(globals(), "_tree", patched(src + "\n# a comment\n"))
+    assert {m: digest(m) for m in before} == before
+    monkeypatch.setitem(globals(), "_tree", patched(src + "\n_X = 1\n"))
+    after = {m: digest(m) for m in before}
+    assert after["tracking_nb"] != before["tracking_nb"]
+    assert after["iekf_nb"] != before["iekf_nb"]
+    assert after["dnls_nb"] == before["dnls_nb"]
