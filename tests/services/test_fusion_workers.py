@@ -12,6 +12,7 @@ import argparse
 import collections
 import dataclasses
 import itertools
+import os
 import pickle
 
 import msgspec
@@ -129,7 +130,7 @@ def _replay(path, monkeypatch, fail=None, after=0, reuse_off=False):
     reuse margins 0 (the slim state crosses the pipe). Returns (estimates as bytes, pool)."""
     pools = []
 
-    def fake_start(core, log=None):
+    def fake_start(core, log=None, **_):
         if reuse_off:
             core.bank.config = dataclasses.replace(core.bank.config, snr_reuse_m=0.0,
                                                    snr_reuse_anchor_m=0.0)
@@ -330,3 +331,26 @@ def test_a_failed_start_stops_the_workers_already_started(monkeypatch):
     with pytest.raises(OSError, match="Too many"):
         W.RowPool(3, (None, None, 3.0, 0.0))
     assert len(started) == 1 and started[0].killed
+
+
+def test_replay_never_starts_more_processes_than_the_machine_has_cores(recording, monkeypatch):
+    """A recording made with 64 workers replays with at most ``os.cpu_count()`` processes
+    (the estimates are the same for any count); the pool is closed after the replay."""
+    made, closed = [], []
+
+    class _Pool:
+        building = None  # not the core's: every call computed locally
+
+        def __init__(self, n, model, logger=None) -> None:
+            made.append(n)
+
+        def wait_ready(self, timeout_s=300.0) -> int:
+            return 0
+
+        def close(self, timeout_s=5.0) -> None:
+            closed.append(True)
+
+    monkeypatch.setattr(W, "RowPool", _Pool)
+    monkeypatch.setattr(os, "cpu_count", lambda: 3)
+    r = replay(recording, method="mnls", use_decisions=False, overrides={"workers": 64})
+    assert made == [3] and closed == [True] and len(r.estimates) == 6 * 15

@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--workers", type=int, metavar="N",
                    help="processes sharing the tracker's and the snapshot fixes' rows, this one "
                         "included (mnls + tracking; same estimates for any N; default: the "
-                        "recorded setting, else 1)")
+                        "recorded setting, else 1; at most this machine's cores)")
     g.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="any fusion setting, VALUE as JSON (repeatable), e.g. deadline_s=0.5")
     g.add_argument("--config", metavar="FILE.json", help="fusion settings from a JSON object")

@@ -551,14 +551,19 @@ class RowPool:
                 self._failed(s, "error", str(value))
 
 
-def start_workers(core: Any, log: logging.Logger | None = None) -> RowPool | None:
-    """The pool of ``core.config.workers`` (> 1; mnls + tracking) for a :class:`FusionCore
+def start_workers(core: Any, log: logging.Logger | None = None, *,
+                  max_processes: int | None = None) -> RowPool | None:
+    """The pool of ``core.config.workers`` (> 1; mnls + tracking; at most ``max_processes``,
+    e.g. a replay on a machine with fewer cores than the recording's: the estimates are the
+    same for any count) for a :class:`FusionCore
     <diffpos_services.fusion.core.FusionCore>`, attached to its tracker bank (not waited
     for: :meth:`RowPool.wait_ready`), or None (1 worker, or no tracker)."""
-    if core.config.workers <= 1 or core.bank is None:
+    n = core.config.workers if max_processes is None else min(core.config.workers,
+                                                               max(int(max_processes), 1))
+    if n <= 1 or core.bank is None:
         return None
     cfg = core.config
-    rows = RowPool(cfg.workers, (core.building, core.model[1], cfg.window_height_m,
+    rows = RowPool(n, (core.building, core.model[1], cfg.window_height_m,
                                  cfg.first_floor_z_m), logger=log or core.log)
     core.bank.pool = rows
     return rows

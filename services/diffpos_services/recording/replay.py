@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import os
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator
@@ -572,7 +573,9 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
 
     if decided:
         rec.decided = DecisionReplayer(core, outputs.emit)
-    rows = start_workers(core)  # FusionConfig.workers: same estimates, rows over processes
+    # FusionConfig.workers: the same estimates for any count, so never more processes than
+    # this machine has cores (a recording made on a bigger machine)
+    rows = start_workers(core, max_processes=os.cpu_count() or 1)
     try:
         if rows is not None:
             rows.wait_ready()
