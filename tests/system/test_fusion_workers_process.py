@@ -61,8 +61,8 @@ def _estimates(path, workers, monkeypatch=None, on_split=None):
     if monkeypatch is not None:
         real = replay_mod.start_workers
 
-        def start(core, log=None):
-            pool = real(core, log)
+        def start(core, log=None, **kw):
+            pool = real(core, log, **kw)
             pools.append(pool)
             if on_split is not None and pool is not None:
                 orig = pool.map_rows
