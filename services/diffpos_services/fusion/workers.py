@@ -31,7 +31,7 @@ are those of one call, whatever the number of workers (tests/services/test_fusio
   share on a busy machine (soak, 2026-11-27, before: 36-40k estimates with 2 workers vs
   58-60k with 1; after: on a par, below).
 
-Measured (2026-11-27, 2-core VM; commands and figures in README.md's performance section):
+Measured (2026-11-27, 2-core VM; the soak's commands and figures in README.md, "What is still short"):
 the split costs ~+2.5 % CPU on the soak's 200-row calls, +35-45 % on 50-row ones
 (``benchmarks/bench_workers.py``); the soak with 2 workers vs 1 is in ``bench_soak.py``.
 """
@@ -485,13 +485,12 @@ class RowPool:
             for p, _ in sent:
                 if p is not None:
                     self._wait(p)
-            busy = [p.busy_s for p, _ in sent if p is not None and p.ok]
-            self._account(t1 - t0, c2 - c1, time.perf_counter() - t1, busy)
+            done = [p for p, _ in sent if p is not None and p.ok]
+            self._account(t1 - t0, c2 - c1, time.perf_counter() - t1, [p.busy_s for p in done])
             self.calls["rows_sent"] += sum(sl.stop - sl.start for p, sl in sent if p)
         if shares[0].stop > shares[0].start:
-            self._learn(t1 - t0, float(cost[shares[0]].sum()),
-                        [p.busy_s for p, _ in sent if p is not None and p.ok],
-                        [p.cost for p, _ in sent if p is not None and p.ok])
+            self._learn(t1 - t0, float(cost[shares[0]].sum()), [p.busy_s for p in done],
+                        [p.cost for p in done])
         for p, sl in sent:
             if p is None:
                 continue
