@@ -155,6 +155,13 @@ def test_end_to_end_latency_from_the_estimates_input_stamps():
         "end-to-end latency (anchor publish -> estimate received by emulate, solve included): "
         f"p50 7.0 ms, p99 {s['p99']:.1f} ms, max 40.0 ms over 5 estimates"]
     assert latency_notes(EndToEnd().stats_ms()) == []
+    # inputs published since a time (the scorer's skip): by rx - latency, not by rx
+    settled = e2e.stats_ms(inputs_since_wall_ns=10**18 + 3)  # inputs 3 and 4: 40 and 9 ms
+    assert settled["count"] == 2 and settled["max"] == 40.0 and settled["p50"] == 24.5
+    assert latency_notes(s, settled, 2.0)[1] == (
+        f"after the first 2 s: p50 24.5 ms, p99 {settled['p99']:.1f} ms, max 40.0 ms over "
+        "2 estimates")
+    assert len(latency_notes(s, EndToEnd().stats_ms(), 2.0)) == 1
 
 
 def test_fusion_notes_say_why_ranges_were_late():

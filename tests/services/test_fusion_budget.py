@@ -283,9 +283,10 @@ def test_the_loop_sizes_steps_by_the_fitted_cost_and_takes_more_when_behind():
     core._ready.append(None)  # a ready epoch left over by the previous step: behind
     assert loop.step_limit() == int((S.BEHIND_BUDGET_S * 1e9 - 3e6) / 0.65e6)
     core._ready.clear()
+    fixed = S.SOLVE_BUDGET_S * 1e9 * 1.2
     for _ in range(200):  # a fixed part above the budget: still the minimum step
-        loop.cost.add(8, 40e6 + 1e6 * 8)
-        loop.cost.add(16, 40e6 + 1e6 * 16)
+        loop.cost.add(8, fixed + 1e6 * 8)
+        loop.cost.add(16, fixed + 1e6 * 16)
     assert loop.step_limit() == S.MIN_MEASURED_STEP_EPOCHS
 
 

@@ -210,11 +210,15 @@ class EndToEnd:
             with self._lock:
                 self._lat.append((rx_wall_ns, rx_wall_ns - t_in))
 
-    def stats_ms(self, since_wall_ns: int | None = None) -> dict[str, float | int | None]:
+    def stats_ms(self, since_wall_ns: int | None = None,
+                 inputs_since_wall_ns: int | None = None) -> dict[str, float | int | None]:
         """``count``, ``p50``, ``p99``, ``max`` [ms] (of the estimates received since
-        ``since_wall_ns``; all kept ones by default)."""
+        ``since_wall_ns`` and whose newest input was published since
+        ``inputs_since_wall_ns``; all kept ones by default)."""
+        lo_rx = -(2**63) if since_wall_ns is None else since_wall_ns
+        lo_in = -(2**63) if inputs_since_wall_ns is None else inputs_since_wall_ns
         with self._lock:
-            lat = [d for rx, d in self._lat if since_wall_ns is None or rx >= since_wall_ns]
+            lat = [d for rx, d in self._lat if rx >= lo_rx and rx - d >= lo_in]
         if not lat:
             return {"count": 0, "p50": None, "p99": None, "max": None}
         a = np.asarray(lat, np.float64) * 1e-6
@@ -222,10 +226,18 @@ class EndToEnd:
                 "p99": float(np.percentile(a, 99)), "max": float(a.max())}
 
 
-def latency_notes(stats: Mapping[str, Any]) -> list[str]:
-    """The end-to-end latency line of the summary (nothing without estimates)."""
+def latency_notes(stats: Mapping[str, Any], settled: Mapping[str, Any] | None = None,
+                  skip_s: float = 0.0) -> list[str]:
+    """The end-to-end latency line of the summary (nothing without estimates), and with
+    ``settled`` the same over the estimates whose inputs came after the first ``skip_s``
+    (the part of the run the accuracy is scored on)."""
     if not stats.get("count"):
         return []
-    return [f"end-to-end latency (anchor publish -> estimate received by emulate, solve "
-            f"included): p50 {stats['p50']:.1f} ms, p99 {stats['p99']:.1f} ms, max "
-            f"{stats['max']:.1f} ms over {stats['count']} estimates"]
+    out = [f"end-to-end latency (anchor publish -> estimate received by emulate, solve "
+           f"included): p50 {stats['p50']:.1f} ms, p99 {stats['p99']:.1f} ms, max "
+           f"{stats['max']:.1f} ms over {stats['count']} estimates"]
+    if settled and settled.get("count"):
+        out.append(f"after the first {skip_s:g} s: p50 {settled['p50']:.1f} ms, p99 "
+                   f"{settled['p99']:.1f} ms, max {settled['max']:.1f} ms over "
+                   f"{settled['count']} estimates")
+    return out

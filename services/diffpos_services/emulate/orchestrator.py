@@ -535,11 +535,18 @@ class Emulation:
             foreign={"count": sum(foreign.values()), "keys": foreign},
         )
         out["latency_e2e_ms"] = self.e2e.stats_ms()
+        # the same estimates without the scorer's first skip_s (in wall time: not lockstep)
+        skip_ns = round(scorer.k_skip * scorer.period_ns)
+        out["latency_e2e_settled_ms"] = (
+            None if self.t0_wall_ns is None or not o.speed else self.e2e.stats_ms(
+                inputs_since_wall_ns=self.t0_wall_ns + round(skip_ns / o.speed)))
         # when and why fixes were lost, every file written, foreign messages: plain lines
         out["notes"] = [*loss_notes(scorer), *fusion_notes(self.diag, self.t0_wall_ns),
                         *recording_notes(self.recordings,
                                          [foreign_path(r) for r in self.recordings]),
-                        *foreign_notes(foreign), *latency_notes(out["latency_e2e_ms"])]
+                        *foreign_notes(foreign),
+                        *latency_notes(out["latency_e2e_ms"], out["latency_e2e_settled_ms"],
+                                       skip_ns * 1e-9)]
         if self.diag is not None:
             d = self.diag
             out["fusion"] = {"received": d.received, "rejected": d.rejected, "gated": d.gated,
