@@ -169,31 +169,44 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
         assert len(err) >= n - 1 and np.median(err) < 1.0, err
 
 
-def test_initialisations_come_after_the_other_estimates_of_their_step():
+def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_their_step():
     """Budgeted steps of 8 epochs (``b`` initialisations each): with ``emit``, each step
-    first emits the estimates of the nodes it does not initialise, then returns the ones it
-    initialises (with a position); the estimates are bit for bit those of the same steps
-    without ``emit``."""
+    publishes (emits) the estimates of the nodes it does not initialise before it initialises
+    any, and the estimates with a snapshot fix after every one without; the estimates are bit
+    for bit those of the same steps without ``emit``, in the same order (the same sequence
+    numbers: a replay numbers them as the live fusion did)."""
     limit = 4 * HEAVY_WORK_EPOCHS
     n, b = len(NODES), heavy_budget(len(NODES))
     _, plain = _run(limit)
-    emitted: list[list] = []
-    _, late = _run(limit, emit=lambda ests: emitted.append(list(ests)))
+    emitted: list = []
+    _, late = _run(limit, emit=lambda ests: emitted.extend(ests))
     k_init = -(-n // b)  # the steps with an initialisation
-    assert len(emitted) == k_init
+    pub: dict[int, list] = collections.defaultdict(list)  # epoch: (estimate, emitted)
+    for e in emitted:
+        pub[e.epoch].append((e, True))
+    for e in (e for s in late[:-1] for e in s):
+        pub[e.epoch].append((e, False))
     seen: set[str] = set()
-    for k in range(k_init):
-        m = min(b, n - k * b)
-        assert len(emitted[k]) == n - m and len(late[k]) == m
-        new = {e.node_id for e in late[k]}
-        assert all(e.position_m is not None for e in late[k]) and not new & seen
-        assert not new & {e.node_id for e in emitted[k]}
+    snapshots = 0
+    for k, epoch in enumerate(sorted(pub)):
+        order = [e for e, _ in pub[epoch]]
+        assert len(order) == n
+        new = {e.node_id for e in order if e.position_m is not None} - seen
+        if k < k_init:  # the initialisations: returned, after every emitted estimate
+            assert len(new) == min(b, n - k * b)
+            assert all(not was for e, was in pub[epoch] if e.node_id in new)
+            assert all(was for e, was in pub[epoch] if e.node_id not in new)
+        else:
+            assert not new
+        snap = [i for i, e in enumerate(order) if e.snapshot is not None]
+        assert snap == list(range(n - len(snap), n)), (k, snap)  # last
+        assert all(not pub[epoch][i][1] for i in snap)  # not emitted: after the fixes
+        snapshots += len(snap)
         seen |= new
-    assert seen == set(NODES) and all(len(s) == n for s in late[k_init:-1])
+    assert seen == set(NODES) and snapshots >= 1 and emitted
     bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
-    both = [sorted(map(bare, (emitted[k] if k < k_init else []) + late[k]))
-            for k in range(len(late))]
-    assert both == [sorted(map(bare, s)) for s in plain]
+    in_order = [e for epoch in sorted(pub) for e, _ in pub[epoch]] + late[-1]
+    assert list(map(bare, in_order)) == [bare(e) for s in plain for e in s]
 
 
 def test_snapshots_have_a_credit_of_their_own_and_move_no_tracked_estimate(monkeypatch):
@@ -214,9 +227,9 @@ def test_snapshots_have_a_credit_of_their_own_and_move_no_tracked_estimate(monke
     _, many = _run(limit)
     assert sum(e.snapshot is not None for s in many for e in s) > done
 
-    def tracked_only(run):
-        return [M.encode(msgspec.structs.replace(e, snapshot=None, t_pub_wall_ns=0))
-                for s in run for e in s]
+    def tracked_only(run):  # (in publishing order: the rows with a snapshot fix last)
+        return sorted(M.encode(msgspec.structs.replace(e, snapshot=None, t_pub_wall_ns=0,
+                                                       seq=0)) for s in run for e in s)
     assert tracked_only(many) == tracked_only(steps)
 
 

@@ -44,15 +44,14 @@ from diffpos_services.fusion.ingest import (
     count_releases,
 )
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
-from diffpos_services.fusion.solve import (
-    Batch,
-    Results,
-    gated_count,
-    gather,
-    prepare,
-    solve_batch,
+from diffpos_services.fusion.solve import gated_count, gather, prepare, solve_batch
+from diffpos_services.fusion.tracked import (
+    TrackBank,
+    estimates_v2,
+    heavy_budget,
+    in_publish_order,
+    solve_mnls,
 )
-from diffpos_services.fusion.tracked import TrackBank, estimates_v2, heavy_budget, solve_mnls
 from diffpos_services.fusion.warm import warm_up
 from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
@@ -453,16 +452,17 @@ class FusionCore:
     # ------------------------------------------------------------------ solving
     def step(self, now_wall_ns: int, *, limit: int | None = None,
              emit: Any = None) -> list[M.PositionEstimate]:
-        """Solve the ready epochs (batched D-NLS calls of at most ``max_fixes_per_step``
-        epochs each, bounded working memory) and return the estimates in queue order.
+        """Solve the ready epochs (batches of at most ``max_fixes_per_step`` epochs,
+        bounded working memory) and return the estimates in queue order; with ``emit``, the
+        estimates ready before a batch's track initialisations or snapshot fixes go to
+        ``emit(estimates)`` first (published before that work) and are not returned.
 
         With ``limit``, solve at most that many and keep the rest for the next call (the live
         service ingests in between after a stall, see :attr:`backlog`), and do at most
         :func:`~diffpos_services.fusion.tracked.heavy_budget` (of the epochs solved) track
         initialisations and snapshot fixes per batch (mnls + tracking: the rest follow in
-        later steps), after the batch's other epochs (``TrackBank.hold_inits``), whose estimates
-        go to ``emit(estimates)`` first if given (the service publishes them before the
-        initialisations) and are not returned. Without ``limit``, all.
+        later steps), after the batch's other epochs (``TrackBank.hold_inits``). Without
+        ``limit``, all.
 
         With ``max_backlog_s`` set (the live fusion), a step with more ready epochs than its
         ``limit``, once they span more than ``supersede_after_s``, first keeps only each
@@ -489,13 +489,16 @@ class FusionCore:
                 self.overload.taken(now)
             if limit is not None and self.bank is not None:
                 now, held = self.bank.hold_inits(now, heavy_budget(n))
+            if out and emit is not None:  # (a previous batch of this step)
+                emit(out)
+                out = []
             out += self._solve(now, now_wall_ns,
-                               None if limit is None else 0 if held else heavy_budget(n))
+                               None if limit is None else 0 if held else heavy_budget(n), emit)
             if held:  # the initialisations after the other estimates are out
                 if emit is not None:
                     emit(out)
                     out = []
-                out += self._solve(held, now_wall_ns, len(held))
+                out += self._solve(held, now_wall_ns, len(held), emit)
             todo -= n
         return out
 
@@ -505,13 +508,8 @@ class FusionCore:
         return len(self._ready)
 
     def flush(self, now_wall_ns: int) -> list[M.PositionEstimate]:
-        """Solve everything ready or pending (at shutdown: nothing received is lost).
-
-        Parameters
-        ----------
-        now_wall_ns : int [ns]
-            Wall clock of the call (the estimates' ``t_pub_wall_ns``).
-        """
+        """Solve everything ready or pending (at shutdown: nothing received is lost);
+        ``now_wall_ns`` [ns]: wall clock of the call (the estimates' ``t_pub_wall_ns``)."""
         if self.decisions is not None:
             self.decisions.flush(now_wall_ns)
         self.releases["flush"] += len(self.book.pending)
@@ -523,35 +521,36 @@ class FusionCore:
             out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns)
         return out
 
-    def _solve(self, epochs: list[PendingEpoch], now_wall_ns: int,
-               heavy: int | None = None) -> list[M.PositionEstimate]:
+    def _solve(self, epochs: list[PendingEpoch], now_wall_ns: int, heavy: int | None = None,
+               emit: Any = None) -> list[M.PositionEstimate]:
         """Solve ``epochs`` in one batch; ``now_wall_ns`` [ns] is the caller's wall clock
         (``t_pub_wall_ns`` and latency of the estimates), ``heavy`` the work budget of mnls +
         tracking: the result depends only on the core's state and the arguments, never on
-        the machine's clock.
+        the machine's clock. With tracking, the estimates of rows without a snapshot fix come
+        first (to ``emit`` if given) and those with one after the fixes are collected
+        (:func:`~diffpos_services.fusion.tracked.in_publish_order`).
 
         The steps are in :mod:`diffpos_services.fusion.solve`: gather arrays -> prepare the
         batch -> warm/cold/retry solve -> messages (built here: counters and tracks)."""
-        ids = sorted(
-            {a for pe in epochs for a in pe.ranges}
-            | set(self.live_anchors)
-            | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None}
-        )
+        ids = sorted({a for pe in epochs for a in pe.ranges} | set(self.live_anchors)
+                     | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None})
         batch = gather(epochs, ids, self.anchors)
         prep = prepare(batch, epochs, self.tracks, self.config)
         self.solved += len(epochs)
         if self.building is not None:
-            solved = solve_mnls(batch, prep, epochs, self.config, self.model, self.bank, heavy)
-            return self._count(batch, solved.res, estimates_v2(
-                epochs, batch, solved, {x.id for x in self.anchors.values() if not x.alive},
-                seq0=self.seq, now=int(now_wall_ns), method=self.method_name))
+            s = solve_mnls(batch, prep, epochs, self.config, self.model, self.bank, heavy,
+                           defer=True)
+            self.gated += gated_count(batch, s.res)
+            lost = {x.id for x in self.anchors.values() if not x.alive}
+            return in_publish_order(s, emit, lambda rows: self._count(estimates_v2(
+                epochs, batch, s, lost, seq0=self.seq, now=int(now_wall_ns),
+                method=self.method_name, rows=rows)))
         res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
         return v1_estimates(self, epochs, batch, res, int(now_wall_ns))
 
-    def _count(self, batch: Batch, res: Results, out: list) -> list:
-        """Counters and latencies of the v2 estimates ``out`` of a batch (``v1_estimates``
-        does the same for v1)."""
-        self.gated += gated_count(batch, res)
+    def _count(self, out: list) -> list:
+        """Counters and latencies of the v2 estimates ``out`` (``v1_estimates`` does the
+        same for v1)."""
         self.seq += len(out)
         self.by_status.update(e.status for e in out)
         self.latencies_ns.extend(e.t_pub_wall_ns - e.t_input_wall_ns for e in out
