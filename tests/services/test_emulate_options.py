@@ -59,15 +59,21 @@ def test_emulate_bad_endpoint_is_one_line_exit_2_in_process(capsys):
     assert "starting" not in err
 
 
-def test_fusion_started_by_emulate_accepts_only_the_scenarios_anchors():
+def test_fusion_started_by_emulate_accepts_only_the_scenarios_anchors_and_emulated_nodes():
     """A foreign anchor (``uav9``) on the emulate bus is rejected by the fusion as an unknown
     anchor: emulate passes the scenario's anchors as its allow-list (and the recorded run
-    configuration says so, for replay)."""
+    configuration says so, for replay); likewise the nodes it emulates (``--max-nodes``
+    included), whose estimate publishers the fusion then declares before the run."""
     emu = Emulation(EmulationOptions(record="off", dashboard=["off"]),
                     logging.getLogger("test"), threading.Event())
     i = emu.fusion_args.index("--anchors")
     assert emu.fusion_args[i + 1].split(",") == emu.anchor_ids == ["uav1", "uav2", "uav3", "uav4"]
     assert list(emu.fusion_config.anchors) == emu.anchor_ids
+    ids = [nid for nid, _ in emu.nodes]
+    assert len(ids) == 6 and list(emu.fusion_config.nodes) == ids
+    few = Emulation(EmulationOptions(record="off", dashboard=["off"], max_nodes=2),
+                    logging.getLogger("test"), threading.Event())
+    assert list(few.fusion_config.nodes) == ids[:2]
 
 
 
