@@ -26,7 +26,9 @@ class ServiceProc:
         self.lines: queue.Queue = queue.Queue()
         self.stderr: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
-        threading.Thread(target=lambda: self.stderr.extend(self.p.stderr), daemon=True).start()
+        self._err = threading.Thread(target=lambda: self.stderr.extend(self.p.stderr),
+                                     daemon=True)
+        self._err.start()
 
     def _read(self) -> None:
         for line in self.p.stdout:
@@ -50,6 +52,20 @@ class ServiceProc:
             if pred(ev):
                 return ev
             last = ev
+
+    def stderr_events(self) -> list[dict]:
+        """The JSON log lines of stderr once the process closed it (call after it exited;
+        fails if it did not close stderr within the timeout)."""
+        self._err.join(self.timeout_s)
+        if self._err.is_alive():
+            pytest.fail("stderr still open after the process exited")
+        out = []
+        for line in self.stderr:
+            try:
+                out.append(json.loads(line))
+            except ValueError:
+                continue
+        return out
 
     def kill(self) -> None:
         if self.p.poll() is None:

@@ -220,7 +220,7 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
                               flush_interval_s=0.05))
     procs.append(rec)
     fusion = _Proc([sys.executable, "-m", "diffpos_services.cli.main", "fusion", "--site", site,
-                    "--connect", ep, "--workers", str(workers)])
+                    "--connect", ep, "--workers", str(workers), "--log-level", "info"])
     procs.append(fusion)
     rec.wait_event(lambda e: e["event"] == "ready")
     run = synthetic_run(n_anchors=5, n_nodes=n_nodes, duration_s=3.0, seed=5, site=site)
@@ -268,8 +268,13 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
         diag_sub.undeclare()
     rec.p.send_signal(signal.SIGTERM)
     rec.wait_event(lambda e: e["event"] == "closed")
-    if workers > 1:  # no worker failed (its share would have been computed locally)
+    if workers > 1:  # no worker failed (its share would have been computed locally) ...
         assert "fusion worker failed" not in "".join(fusion.stderr)
+        # ... and the worker did take rows (the pool's counters, logged at stop)
+        stopped = [e for e in fusion.stderr_events() if e.get("msg") == "fusion workers stopped"]
+        assert len(stopped) == 1, fusion.stderr[-20:]
+        calls = stopped[0]["calls"]
+        assert calls.get("split", 0) >= 1 and calls.get("rows_sent", 0) >= 1, calls
 
     r = replay(out)
     c = r.report["compare"]
