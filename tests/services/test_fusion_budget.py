@@ -209,6 +209,27 @@ def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_th
     assert list(map(bare, in_order)) == [bare(e) for s in plain for e in s]
 
 
+@pytest.mark.parametrize("limit", [None, 4 * HEAVY_WORK_EPOCHS])
+def test_a_nodes_estimates_stay_oldest_first_when_one_waits_for_its_snapshot(limit):
+    """A step every 4 epochs (4 epochs of each node in one batch, as after a stall): a node's
+    first epoch gets a snapshot fix (it never had one) and is published after the fixes; its
+    later epochs of the step wait with it, so in publishing order (the sequence numbers: one
+    per estimate, 1, 2, ...; emitted ones in increasing order) every node's estimates are
+    oldest first, as the epochs came."""
+    emitted: list = []
+    _, steps = _run(limit, emit=emitted.extend, every=4)
+    seqs = [e.seq for e in emitted]
+    assert seqs == sorted(seqs) and (emitted or limit is None)  # budgeted: inits held
+    ests = sorted(emitted + [e for s in steps for e in s], key=lambda e: e.seq)
+    assert [e.seq for e in ests] == list(range(1, len(NODES) * EPOCHS + 1))
+    # the case at hand: a snapshot on a node-epoch with a later epoch of the node in its step
+    e0 = min(e.epoch for e in ests)  # steps after epochs e0 + 3, e0 + 7, ...
+    assert any(e.snapshot is not None and (e.epoch - e0) % 4 != 3 for e in ests)
+    for nid in NODES:
+        epochs = [e.epoch for e in ests if e.node_id == nid]
+        assert epochs == sorted(set(epochs)) and len(epochs) == EPOCHS, (nid, epochs)
+
+
 def test_snapshots_have_a_credit_of_their_own_and_move_no_tracked_estimate(monkeypatch):
     """Budgeted steps of 8 epochs: after any step, the snapshots so far are at most one per
     SNAPSHOT_WORK_EPOCHS epochs solved (the credit), and they do happen (a new node is due at

@@ -542,7 +542,7 @@ class FusionCore:
                            defer=True)
             self.gated += gated_count(batch, s.res)
             lost = {x.id for x in self.anchors.values() if not x.alive}
-            return in_publish_order(s, emit, lambda rows: self._count(estimates_v2(
+            return in_publish_order(s, epochs, emit, lambda rows: self._count(estimates_v2(
                 epochs, batch, s, lost, seq0=self.seq, now=int(now_wall_ns),
                 method=self.method_name, rows=rows)))
         res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
