@@ -230,6 +230,38 @@ def test_a_nodes_estimates_stay_oldest_first_when_one_waits_for_its_snapshot(lim
         assert epochs == sorted(set(epochs)) and len(epochs) == EPOCHS, (nid, epochs)
 
 
+def test_the_latency_record_matches_what_was_published_when_steps_emit_early():
+    """The live service's publishing (``stamp_published`` for what a step emits and for what
+    it returns, as ``ServiceLoop.turn``) with steps that emit early in every way (several
+    epochs per node, batches split by ``max_fixes_per_step``, held initialisations, pending
+    snapshot fixes): the core's latency record is exactly the published estimates' latencies,
+    in publishing order (each entry replaced once, none left from before the stamping)."""
+    from diffpos_services.fusion.service import stamp_published
+
+    core = FusionCore(_config(max_fixes_per_step=12), logger=quiet_logger())
+    for a in ANCHORS:
+        core.on_liveliness(a, True, T0 - PERIOD)
+    published: list = []
+    emits = 0
+
+    def emit(ests):
+        nonlocal emits
+        emits += 1
+        stamp_published(core, ests, published.append)
+
+    for k, items in enumerate(_samples()):
+        for rx, key, payload in items:
+            core.on_sample(key, payload, rx)
+        if k % 4 == 3:
+            stamp_published(core, core.step(rx + 1000, limit=4 * HEAVY_WORK_EPOCHS, emit=emit),
+                            published.append)
+    stamp_published(core, core.flush(rx + 2000), published.append)
+    assert len(published) == len(NODES) * EPOCHS and emits >= 4
+    assert [e.seq for e in published] == list(range(1, len(published) + 1))
+    assert list(core.latencies_ns) == [e.t_pub_wall_ns - e.t_input_wall_ns for e in published
+                                       if e.t_input_wall_ns > 0]
+
+
 def test_snapshots_have_a_credit_of_their_own_and_move_no_tracked_estimate(monkeypatch):
     """Budgeted steps of 8 epochs: after any step, the snapshots so far are at most one per
     SNAPSHOT_WORK_EPOCHS epochs solved (the credit), and they do happen (a new node is due at
