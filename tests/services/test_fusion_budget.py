@@ -169,17 +169,28 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
         assert len(err) >= n - 1 and np.median(err) < 1.0, err
 
 
-def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_their_step():
+def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_their_step(
+        monkeypatch):
     """Budgeted steps of 8 epochs (``b`` initialisations each): with ``emit``, each step
     publishes (emits) the estimates of the nodes it does not initialise before it initialises
-    any, and the estimates with a snapshot fix after every one without; the estimates are bit
-    for bit those of the same steps without ``emit``, in the same order (the same sequence
-    numbers: a replay numbers them as the live fusion did)."""
+    any, and the estimates without a snapshot fix before the step computes its fixes (the
+    calls of the M-NLS estimator), those with one after; the estimates are bit for bit those
+    of the same steps without ``emit``, in the same order (the same sequence numbers: a
+    replay numbers them as the live fusion did)."""
     limit = 4 * HEAVY_WORK_EPOCHS
     n, b = len(NODES), heavy_budget(len(NODES))
     _, plain = _run(limit)
     emitted: list = []
-    _, late = _run(limit, emit=lambda ests: emitted.extend(ests))
+    events: list = []  # per step: "step", then "emit" and "fix" as they happen
+    mnls, step = tracked.est.mnls, FusionCore.step
+    monkeypatch.setattr(tracked.est, "mnls", lambda *a, **k: events.append("fix") or mnls(*a, **k))
+    monkeypatch.setattr(FusionCore, "step",
+                        lambda *a, **k: events.append("step") or step(*a, **k))
+    _, late = _run(limit, emit=lambda ests: events.append("emit") or emitted.extend(ests))
+    segments = " ".join(events).split("step")[1:]  # the last step's: its flush
+    for k, seg in enumerate(segments):  # a step's fixes after its last emission
+        if any(e.snapshot is not None for e in late[k]):
+            assert seg.rstrip().endswith("fix") and "emit" in seg, (k, seg)
     k_init = -(-n // b)  # the steps with an initialisation
     pub: dict[int, list] = collections.defaultdict(list)  # epoch: (estimate, emitted)
     for e in emitted:
@@ -201,6 +212,8 @@ def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_th
         snap = [i for i, e in enumerate(order) if e.snapshot is not None]
         assert snap == list(range(n - len(snap), n)), (k, snap)  # last
         assert all(not pub[epoch][i][1] for i in snap)  # not emitted: after the fixes
+        if snap:  # the others: emitted, before the fixes
+            assert all(pub[epoch][i][1] for i in range(n - len(snap)))
         snapshots += len(snap)
         seen |= new
     assert seen == set(NODES) and snapshots >= 1 and emitted
