@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
+from pathlib import Path
 
 import pytest
 from diffpos_services.anchor.service import load_scenario_file
@@ -75,6 +76,39 @@ def test_fusion_started_by_emulate_accepts_only_the_scenarios_anchors_and_emulat
                     logging.getLogger("test"), threading.Event())
     assert list(few.fusion_config.nodes) == ids[:2]
 
+
+
+REPO = Path(__file__).resolve().parents[2]
+#: Linux's limit on one argument of a process started (MAX_ARG_STRLEN, with its NUL) [bytes]
+_MAX_ARG_BYTES = 32 * 4096
+
+
+@pytest.mark.parametrize("max_nodes", [0, 2000, 3])
+def test_a_node_list_too_long_for_a_command_line_is_not_written_on_it(tmp_path, max_nodes):
+    """2,100 nodes with 64-character ids (136,500 characters as a list): a process with that
+    argument cannot be started (E2BIG), so emulate's fusion gets ``--nodes scenario`` (all
+    of the scenario's nodes emulated), or no allow-list (2,000 of them: still too long), or
+    the short list (3); the config the real fusion CLI parses is the one emulate records,
+    and its allow-list is exactly the emulated nodes (or none)."""
+    text = (REPO / "scenarios" / "large.toml").read_text()
+    ids = [f"node-{i:04d}-" + "x" * 54 for i in range(2100)]
+    assert {len(i) for i in ids} == {64}
+    body = "".join(f'\n[[nodes.list]]\nid = "{nid}"\nposition_m = [{-15 + 0.01 * k:.2f}, 5.0, '
+                   f'5.5]\n' for k, nid in enumerate(ids))
+    path = tmp_path / "many.toml"
+    path.write_text(text[:text.index("[[nodes.list]]")] + body)
+    emu = Emulation(EmulationOptions(record="off", dashboard=["off"], scenario=str(path),
+                                     max_nodes=max_nodes), logging.getLogger("test"),
+                    threading.Event())
+    assert all(len(a.encode()) < _MAX_ARG_BYTES for a in emu.fusion_args)
+    ap = argparse.ArgumentParser()
+    cli_fusion.add_arguments(ap)
+    args = ap.parse_args(emu.fusion_args)
+    assert cli_fusion.config_from_args(args, load_scenario_option(args.scenario)) == \
+        emu.fusion_config
+    want = {0: ids, 2000: None, 3: ids[:3]}[max_nodes]
+    got = emu.fusion_config.nodes
+    assert (None if got is None else list(got)) == want
 
 
 @pytest.mark.parametrize(("speed", "method", "workers"), [(1.0, None, 1), (0.0, None, 1),

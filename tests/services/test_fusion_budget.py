@@ -169,17 +169,28 @@ def test_a_burst_of_new_tracks_is_initialised_over_several_steps():
         assert len(err) >= n - 1 and np.median(err) < 1.0, err
 
 
-def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_their_step():
+def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_their_step(
+        monkeypatch):
     """Budgeted steps of 8 epochs (``b`` initialisations each): with ``emit``, each step
     publishes (emits) the estimates of the nodes it does not initialise before it initialises
-    any, and the estimates with a snapshot fix after every one without; the estimates are bit
-    for bit those of the same steps without ``emit``, in the same order (the same sequence
-    numbers: a replay numbers them as the live fusion did)."""
+    any, and the estimates without a snapshot fix before the step computes its fixes (the
+    calls of the M-NLS estimator), those with one after; the estimates are bit for bit those
+    of the same steps without ``emit``, in the same order (the same sequence numbers: a
+    replay numbers them as the live fusion did)."""
     limit = 4 * HEAVY_WORK_EPOCHS
     n, b = len(NODES), heavy_budget(len(NODES))
     _, plain = _run(limit)
     emitted: list = []
-    _, late = _run(limit, emit=lambda ests: emitted.extend(ests))
+    events: list = []  # per step: "step", then "emit" and "fix" as they happen
+    mnls, step = tracked.est.mnls, FusionCore.step
+    monkeypatch.setattr(tracked.est, "mnls", lambda *a, **k: events.append("fix") or mnls(*a, **k))
+    monkeypatch.setattr(FusionCore, "step",
+                        lambda *a, **k: events.append("step") or step(*a, **k))
+    _, late = _run(limit, emit=lambda ests: events.append("emit") or emitted.extend(ests))
+    segments = " ".join(events).split("step")[1:]  # the last step's: its flush
+    for k, seg in enumerate(segments):  # a step's fixes after its last emission
+        if any(e.snapshot is not None for e in late[k]):
+            assert seg.rstrip().endswith("fix") and "emit" in seg, (k, seg)
     k_init = -(-n // b)  # the steps with an initialisation
     pub: dict[int, list] = collections.defaultdict(list)  # epoch: (estimate, emitted)
     for e in emitted:
@@ -201,12 +212,67 @@ def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_th
         snap = [i for i, e in enumerate(order) if e.snapshot is not None]
         assert snap == list(range(n - len(snap), n)), (k, snap)  # last
         assert all(not pub[epoch][i][1] for i in snap)  # not emitted: after the fixes
+        if snap:  # the others: emitted, before the fixes
+            assert all(pub[epoch][i][1] for i in range(n - len(snap)))
         snapshots += len(snap)
         seen |= new
     assert seen == set(NODES) and snapshots >= 1 and emitted
     bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
     in_order = [e for epoch in sorted(pub) for e, _ in pub[epoch]] + late[-1]
     assert list(map(bare, in_order)) == [bare(e) for s in plain for e in s]
+
+
+@pytest.mark.parametrize("limit", [None, 4 * HEAVY_WORK_EPOCHS])
+def test_a_nodes_estimates_stay_oldest_first_when_one_waits_for_its_snapshot(limit):
+    """A step every 4 epochs (4 epochs of each node in one batch, as after a stall): a node's
+    first epoch gets a snapshot fix (it never had one) and is published after the fixes; its
+    later epochs of the step wait with it, so in publishing order (the sequence numbers: one
+    per estimate, 1, 2, ...; emitted ones in increasing order) every node's estimates are
+    oldest first, as the epochs came."""
+    emitted: list = []
+    _, steps = _run(limit, emit=emitted.extend, every=4)
+    seqs = [e.seq for e in emitted]
+    assert seqs == sorted(seqs) and (emitted or limit is None)  # budgeted: inits held
+    ests = sorted(emitted + [e for s in steps for e in s], key=lambda e: e.seq)
+    assert [e.seq for e in ests] == list(range(1, len(NODES) * EPOCHS + 1))
+    # the case at hand: a snapshot on a node-epoch with a later epoch of the node in its step
+    e0 = min(e.epoch for e in ests)  # steps after epochs e0 + 3, e0 + 7, ...
+    assert any(e.snapshot is not None and (e.epoch - e0) % 4 != 3 for e in ests)
+    for nid in NODES:
+        epochs = [e.epoch for e in ests if e.node_id == nid]
+        assert epochs == sorted(set(epochs)) and len(epochs) == EPOCHS, (nid, epochs)
+
+
+def test_the_latency_record_matches_what_was_published_when_steps_emit_early():
+    """The live service's publishing (``stamp_published`` for what a step emits and for what
+    it returns, as ``ServiceLoop.turn``) with steps that emit early in every way (several
+    epochs per node, batches split by ``max_fixes_per_step``, held initialisations, pending
+    snapshot fixes): the core's latency record is exactly the published estimates' latencies,
+    in publishing order (each entry replaced once, none left from before the stamping)."""
+    from diffpos_services.fusion.service import stamp_published
+
+    core = FusionCore(_config(max_fixes_per_step=12), logger=quiet_logger())
+    for a in ANCHORS:
+        core.on_liveliness(a, True, T0 - PERIOD)
+    published: list = []
+    emits = 0
+
+    def emit(ests):
+        nonlocal emits
+        emits += 1
+        stamp_published(core, ests, published.append)
+
+    for k, items in enumerate(_samples()):
+        for rx, key, payload in items:
+            core.on_sample(key, payload, rx)
+        if k % 4 == 3:
+            stamp_published(core, core.step(rx + 1000, limit=4 * HEAVY_WORK_EPOCHS, emit=emit),
+                            published.append)
+    stamp_published(core, core.flush(rx + 2000), published.append)
+    assert len(published) == len(NODES) * EPOCHS and emits >= 4
+    assert [e.seq for e in published] == list(range(1, len(published) + 1))
+    assert list(core.latencies_ns) == [e.t_pub_wall_ns - e.t_input_wall_ns for e in published
+                                       if e.t_input_wall_ns > 0]
 
 
 def test_snapshots_have_a_credit_of_their_own_and_move_no_tracked_estimate(monkeypatch):

@@ -220,6 +220,27 @@ def test_a_submitted_request_and_a_later_share_are_answered_in_order(monkeypatch
     assert pool.calls["rows_sent"] == 3 and not pool._slots[0].pending
 
 
+def test_a_request_never_collected_leaves_no_stale_reply(monkeypatch):
+    """A submitted request whose result is never asked for (the fusion's step raised after a
+    snapshot fix was sent and before it was collected, e.g. a publish of the estimates
+    emitted meanwhile failed): later calls still get their own replies; the abandoned reply
+    lands in its own request."""
+    model = (default_scenario().building, None, 1.0, 0.0)
+    pool = W.RowPool(1, model)
+    pool._slots = [W._Slot(conn=_Pipe(model), ready=True, pid=-1)]
+    monkeypatch.setitem(W.TASKS, "echo", lambda m, x: x * 2)
+    monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    lost = pool.submit("echo", (np.arange(3.0),), 3.0)
+    pool.map_rows("echo", (np.arange(10.0),), np.ones(10))  # sends it after the share
+    assert lost.sent and not lost.done
+    p = pool.submit("echo", (np.full(2, 5.0),), 2.0)
+    out = pool.map_rows("echo", (np.arange(8.0) + 100,), np.ones(8))
+    assert np.array_equal(out, (np.arange(8.0) + 100) * 2)
+    assert np.array_equal(pool.result(p), np.full(2, 10.0))
+    assert lost.done and np.array_equal(lost.value, np.arange(3.0) * 2)
+    assert not pool._slots[0].pending and pool.calls["rows_sent"] > 0
+
+
 @pytest.mark.parametrize("fail", ["died", "error"])
 def test_failed_worker_loses_no_estimate(recording, monkeypatch, fail):
     """The worker fails from its 4th request on: the shares are computed locally, the

@@ -70,7 +70,28 @@ from diffpos_services.scenario_io import load_scenario_option, resolve_scenario
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
-__all__ = ["Emulation"]
+__all__ = ["MAX_NODE_LIST_CHARS", "Emulation", "fusion_node_list"]
+
+#: Longest node allow-list emulate writes on the fusion's command line [characters]: Linux
+#: refuses to start a process with one argument over 128 KiB (E2BIG), e.g. 20,000 ids of 6
+#: characters or 2,000 of 64.
+MAX_NODE_LIST_CHARS = 100_000
+
+
+def fusion_node_list(nodes: list[tuple[str, Any]], scenario: Any, scenario_file: str | None
+                     ) -> tuple[list[str], list[str] | None]:
+    """``(argv, ids)``: the fusion's ``--nodes`` for the emulated ``nodes`` and the allow-list
+    it parses from them: their ids; ``scenario`` (the fusion reads the same file) when the
+    list would be too long (:data:`MAX_NODE_LIST_CHARS`) and is the scenario's own
+    (:func:`~diffpos.emulation.emulation_nodes`); else none (any node: the fusion declares
+    the estimate publishers as the nodes appear)."""
+    ids = [nid for nid, _ in nodes]
+    text = ",".join(ids)
+    if len(text) <= MAX_NODE_LIST_CHARS:
+        return ["--nodes", text], ids
+    if scenario_file and ids == [nid for nid, _ in emulation_nodes(scenario)]:
+        return ["--nodes", "scenario"], ids
+    return [], None
 
 
 # ----------------------------------------------------------------------------- processes
@@ -116,8 +137,10 @@ class Emulation:
         # run starts (declared on first sight, 50 nodes took ~1 ms each in the first steps)
         self.fusion_args = ["--epoch-period-s", str(1.0 / options.rate_hz),
                             "--delta-m", str(options.delta_m), "--edge", edge,
-                            "--anchors", ",".join(self.anchor_ids),
-                            "--nodes", ",".join(nid for nid, _ in self.nodes)]
+                            "--anchors", ",".join(self.anchor_ids)]
+        nodes_argv, self.fusion_nodes = fusion_node_list(self.nodes, self.scenario,
+                                                         options.scenario)
+        self.fusion_args += nodes_argv
         if options.scenario:
             self.fusion_args += ["--scenario", options.scenario]
         if options.method is not None:
@@ -291,7 +314,7 @@ class Emulation:
         """The fusion's config exactly as ``diffpos fusion`` builds it from ``fusion_args``."""
         cfg = FusionConfig.from_scenario(self.scenario, edge=edge, site=self.o.site,
                                          anchors=list(self.anchor_ids),
-                                         nodes=[nid for nid, _ in self.nodes],
+                                         nodes=self.fusion_nodes,
                                          delta_m=self.o.delta_m,
                                          epoch_period_s=1.0 / self.o.rate_hz,
                                          max_backlog_s=(None if self.o.speed == 0

@@ -452,10 +452,11 @@ class FusionCore:
     # ------------------------------------------------------------------ solving
     def step(self, now_wall_ns: int, *, limit: int | None = None,
              emit: Any = None) -> list[M.PositionEstimate]:
-        """Solve the ready epochs (batches of at most ``max_fixes_per_step`` epochs,
-        bounded working memory) and return the estimates in queue order; with ``emit``, the
-        estimates ready before a batch's track initialisations or snapshot fixes go to
-        ``emit(estimates)`` first (published before that work) and are not returned.
+        """Solve the ready epochs (batches of at most ``max_fixes_per_step`` epochs, bounded
+        working memory) and return the estimates in queue order but for a batch's rows that
+        wait for a snapshot fix (last: :func:`~diffpos_services.fusion.tracked.in_publish_order`);
+        with ``emit``, a previous batch's and those ready before a batch's initialisations or
+        fixes go to ``emit(estimates)`` (published before that work) and are not returned.
 
         With ``limit``, solve at most that many and keep the rest for the next call (the live
         service ingests in between after a stall, see :attr:`backlog`), and do at most
@@ -542,7 +543,7 @@ class FusionCore:
                            defer=True)
             self.gated += gated_count(batch, s.res)
             lost = {x.id for x in self.anchors.values() if not x.alive}
-            return in_publish_order(s, emit, lambda rows: self._count(estimates_v2(
+            return in_publish_order(s, epochs, emit, lambda rows: self._count(estimates_v2(
                 epochs, batch, s, lost, seq0=self.seq, now=int(now_wall_ns),
                 method=self.method_name, rows=rows)))
         res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)

@@ -438,7 +438,7 @@ class ServiceLoop:
         n_in = _drain(core, self.inbox, item, core.config.linger_s, self.log, t_in + budget)
         ingest_ns = time.monotonic_ns() - t_in
         t_solve = time.time_ns()
-        early: list = []  # published before the step's track initialisations (core.step)
+        early: list = []  # published during the step (core.step's emit)
 
         def emit(ests: list) -> None:
             stamp_published(core, ests, self.put_estimate)

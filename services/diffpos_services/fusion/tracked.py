@@ -301,15 +301,24 @@ def finish_snapshots(s: Solved) -> None:
         s.pending.pop(0)()
 
 
-def in_publish_order(s: Solved, emit: Callable[[list], Any] | None,
+def in_publish_order(s: Solved, epochs: list[PendingEpoch],
+                     emit: Callable[[list], Any] | None,
                      build: Callable[[np.ndarray], list]) -> list:
     """The estimates ``build(rows)`` of a batch solved with ``defer``: first the rows without
     a pending snapshot fix, handed to ``emit`` (when given) before the fixes are collected,
     then those with one (one or two per step: an mnls fix with 8 anchors costs ~6 ms, a
-    third of a 50-node step of ``large``; the others no longer wait for it). Returns what
-    was not emitted. The order (and so the sequence numbers) is the same with or without
-    ``emit``: a replay numbers its estimates as the live fusion did."""
+    third of a 50-node step of ``large``; the others no longer wait for it), each part in
+    row order. A node's rows after one with a pending fix wait with it: a node's estimates
+    keep their row order (several epochs of a node in one batch: backlog, start-up). Returns
+    what was not emitted. The order (and so the sequence numbers) is the same with or
+    without ``emit``: a replay numbers its estimates as the live fusion did."""
     late = s.snap_rows & bool(s.pending)
+    if late.any():  # and every later row of the same nodes
+        waiting: set[str] = set()
+        for i, pe in enumerate(epochs):
+            if late[i] or pe.node_id in waiting:
+                late[i] = True
+                waiting.add(pe.node_id)
     out = build(np.flatnonzero(~late))
     if late.any():
         if emit is not None and out:
