@@ -198,15 +198,22 @@ def test_preloaded_bounds_count_the_work_a_worker_already_has():
         assert nonempty == W.share_bounds(cost, n, w)
 
 
-def test_a_submitted_request_and_a_later_share_are_answered_in_order(monkeypatch):
-    """A request submitted (deferred), then a split call: the request goes to the worker
-    after the call's share, counted as work the worker already has (its share shrinks);
-    the replies land in their own requests, in order."""
+def _echo_pool(monkeypatch) -> W.RowPool:
+    """A pool of one in-process worker (a pipe answering in order) whose task ``echo``
+    doubles its rows; every call is split (no minimum cost)."""
     model = (default_scenario().building, None, 1.0, 0.0)
     pool = W.RowPool(1, model)
     pool._slots = [W._Slot(conn=_Pipe(model), ready=True, pid=-1)]
     monkeypatch.setitem(W.TASKS, "echo", lambda m, x: x * 2)
     monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    return pool
+
+
+def test_a_submitted_request_and_a_later_share_are_answered_in_order(monkeypatch):
+    """A request submitted (deferred), then a split call: the request goes to the worker
+    after the call's share, counted as work the worker already has (its share shrinks);
+    the replies land in their own requests, in order."""
+    pool = _echo_pool(monkeypatch)
     p = pool.submit("echo", (np.arange(3.0),), 3.0)
     assert not p.done and not p.sent and p.cost == 3.0 and not pool._slots[0].pending
     out = pool.map_rows("echo", (np.arange(10.0),), np.ones(10))
@@ -225,11 +232,7 @@ def test_a_request_never_collected_leaves_no_stale_reply(monkeypatch):
     snapshot fix was sent and before it was collected, e.g. a publish of the estimates
     emitted meanwhile failed): later calls still get their own replies; the abandoned reply
     lands in its own request."""
-    model = (default_scenario().building, None, 1.0, 0.0)
-    pool = W.RowPool(1, model)
-    pool._slots = [W._Slot(conn=_Pipe(model), ready=True, pid=-1)]
-    monkeypatch.setitem(W.TASKS, "echo", lambda m, x: x * 2)
-    monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    pool = _echo_pool(monkeypatch)
     lost = pool.submit("echo", (np.arange(3.0),), 3.0)
     pool.map_rows("echo", (np.arange(10.0),), np.ones(10))  # sends it after the share
     assert lost.sent and not lost.done
