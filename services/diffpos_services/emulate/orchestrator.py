@@ -134,7 +134,7 @@ class Emulation:
         edge = channel_edge(options.edge, options.channel)
         # only the scenario's anchors: a foreign publisher's anchor is never used in a fix;
         # only the emulated nodes, whose estimate publishers the fusion declares before the
-        # run starts (declared on first sight, 50 nodes took ~1 ms each in the first steps)
+        # run starts (else 8 per loop turn as the nodes appear; ~1 ms each)
         self.fusion_args = ["--epoch-period-s", str(1.0 / options.rate_hz),
                             "--delta-m", str(options.delta_m), "--edge", edge,
                             "--anchors", ",".join(self.anchor_ids)]
