@@ -232,3 +232,43 @@ def test_an_ingest_stops_at_its_budget_plus_one_item(monkeypatch):
     assert n == len(ingested) == 10
     assert ingested == [("item", i) for i in range(10)]
     assert inbox.q.qsize() == 90
+
+
+def test_the_allow_lists_publishers_are_declared_before_the_liveliness_token():
+    """``_declare`` with an allow-list of nodes declares every node's estimate publisher
+    before the fusion's liveliness token (a run started on the token does not wait for ~1 ms
+    per publisher in its first epochs); without one, none up front."""
+    import threading as _threading
+
+    from diffpos_services.fusion import service as S
+    from diffpos_services.wire.keys import Keys
+
+    class _Session:
+        def __init__(self) -> None:
+            self.log: list[tuple[str, str]] = []
+
+        def declare_publisher(self, key, **kw):
+            self.log.append(("pub", str(key)))
+            return object()
+
+        def declare_subscriber(self, key, cb, **kw):
+            self.log.append(("sub", str(key)))
+            return object()
+
+        def liveliness(self):
+            return self
+
+        def declare_token(self, key):
+            self.log.append(("token", str(key)))
+            return object()
+
+    keys = Keys("s")
+    inbox = S._Inbox(fusion_config(), _threading.Event())
+    sess = _Session()
+    ends = S._declare(sess, keys, inbox, ("n1", "n2", "n3"))
+    token_at = sess.log.index(("token", keys.alive_fusion()))
+    nodes_at = [sess.log.index(("pub", keys.node_estimate(n))) for n in ("n1", "n2", "n3")]
+    assert max(nodes_at) < token_at and sorted(ends.est_pubs) == ["n1", "n2", "n3"]
+    bare = _Session()
+    assert not S._declare(bare, keys, inbox).est_pubs
+    assert bare.log[-1] == ("token", keys.alive_fusion())
