@@ -437,6 +437,12 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
         cpu = time.process_time() - cpu
     finally:
         service.time = real_time
+    if not lat:
+        raise SystemExit(
+            f"bench_fusion_cost --schedule {path}: the fusion published no estimate from the "
+            f"recording's input with site {cfg.site!r} (a recording without fusion settings, "
+            "e.g. bench_soak's: give them, e.g. --fusion-args '--site soak16x200 --method mnls "
+            "--scenario DIR/soak16x200.toml')")
     a = np.array(lat, np.int64)
     e2e_ms = (a[:, 1] - a[:, 0]) * 1e-6
     start = a[:, 0] < t0 + round(startup_s * 1e9)
