@@ -483,6 +483,7 @@ class FusionCore:
         self._ready = self.overload.apply(self._ready, limit, self.rejected)
         out: list[M.PositionEstimate] = []
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
+        behind = todo < len(self._ready)  # no snapshot fix of a placed node (solve_mnls)
         while todo > 0:
             n = min(todo, self.config.max_fixes_per_step)
             now, held = [self._ready.popleft() for _ in range(n)], []
@@ -494,7 +495,8 @@ class FusionCore:
                 emit(out)
                 out = []
             out += self._solve(now, now_wall_ns,
-                               None if limit is None else 0 if held else heavy_budget(n), emit)
+                               None if limit is None else 0 if held else heavy_budget(n), emit,
+                               behind)
             if held:  # the initialisations after the other estimates are out
                 if emit is not None:
                     emit(out)
@@ -523,15 +525,13 @@ class FusionCore:
         return out
 
     def _solve(self, epochs: list[PendingEpoch], now_wall_ns: int, heavy: int | None = None,
-               emit: Any = None) -> list[M.PositionEstimate]:
+               emit: Any = None, behind: bool = False) -> list[M.PositionEstimate]:
         """Solve ``epochs`` in one batch; ``now_wall_ns`` [ns] is the caller's wall clock
         (``t_pub_wall_ns`` and latency of the estimates), ``heavy`` the work budget of mnls +
         tracking: the result depends only on the core's state and the arguments, never on
-        the machine's clock. With tracking, the estimates of rows without a snapshot fix come
-        first (to ``emit`` if given) and those with one after the fixes are collected
-        (:func:`~diffpos_services.fusion.tracked.in_publish_order`).
-
-        The steps are in :mod:`diffpos_services.fusion.solve`: gather arrays -> prepare the
+        the machine's clock. With tracking, the rows without a snapshot fix first (to ``emit``
+        if given), see :func:`~diffpos_services.fusion.tracked.in_publish_order`; ``behind``:
+        see ``solve_mnls``. The steps are in :mod:`diffpos_services.fusion.solve`: gather arrays -> prepare the
         batch -> warm/cold/retry solve -> messages (built here: counters and tracks)."""
         ids = sorted({a for pe in epochs for a in pe.ranges} | set(self.live_anchors)
                      | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None})
@@ -540,7 +540,7 @@ class FusionCore:
         self.solved += len(epochs)
         if self.building is not None:
             s = solve_mnls(batch, prep, epochs, self.config, self.model, self.bank, heavy,
-                           defer=True)
+                           defer=True, behind=behind)
             self.gated += gated_count(batch, s.res)
             lost = {x.id for x in self.anchors.values() if not x.alive}
             return in_publish_order(s, epochs, emit, lambda rows: self._count(estimates_v2(
@@ -550,8 +550,7 @@ class FusionCore:
         return v1_estimates(self, epochs, batch, res, int(now_wall_ns))
 
     def _count(self, out: list) -> list:
-        """Counters and latencies of the v2 estimates ``out`` (``v1_estimates`` does the
-        same for v1)."""
+        """Counters and latencies of the v2 estimates ``out`` (v1: ``v1_estimates``)."""
         self.seq += len(out)
         self.by_status.update(e.status for e in out)
         self.latencies_ns.extend(e.t_pub_wall_ns - e.t_input_wall_ns for e in out
