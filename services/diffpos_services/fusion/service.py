@@ -57,7 +57,7 @@ INGEST_BUDGET_S = 0.005
 #: for both plus a second per-call cost, in one step none waits for another step. A step that
 #: cannot take them all within the budget (a burst of new tracks) publishes what fits on time
 #: and leaves the rest to the next step instead of making every estimate of the epoch late.
-#: Measured on `large` live (8 x 50 on 2 cores shared with the anchors, 2 runs each): 0.02 s
+#: Measured on `large` live (8 x 50 on 2 cores shared with the anchors, 2-3 runs each): 0.02 s
 #: (25 epochs per step): 78-130 of the 8,950 estimates after the first 2 s over 50 ms,
 #: 67-106 of the 1,050 before; 0.05 s: 3-11 and 86-130; 0.05 s taking all ready epochs
 #: when they exceed the limit by <= 25 %: 0-143 and 190-214 (whole start-up epochs late).
