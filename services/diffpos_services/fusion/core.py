@@ -47,10 +47,10 @@ from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.fusion.solve import gated_count, gather, prepare, solve_batch
 from diffpos_services.fusion.tracked import (
     TrackBank,
-    estimates_v2,
     heavy_budget,
     in_publish_order,
     solve_mnls,
+    v2_builder,
 )
 from diffpos_services.fusion.warm import warm_up
 from diffpos_services.kit import log_event
@@ -543,9 +543,9 @@ class FusionCore:
                            defer=True, behind=behind)
             self.gated += gated_count(batch, s.res)
             lost = {x.id for x in self.anchors.values() if not x.alive}
-            return in_publish_order(s, epochs, emit, lambda rows: self._count(estimates_v2(
-                epochs, batch, s, lost, seq0=self.seq, now=int(now_wall_ns),
-                method=self.method_name, rows=rows)))
+            build = v2_builder(epochs, batch, s, lost)  # the batch's columns once
+            return in_publish_order(s, epochs, emit, lambda rows: self._count(build(
+                rows, seq0=self.seq, now=int(now_wall_ns), method=self.method_name)))
         res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
         return v1_estimates(self, epochs, batch, res, int(now_wall_ns))
 

@@ -50,9 +50,8 @@ after its other epochs (:meth:`TrackBank.hold_inits`), and the live service publ
 first: an initialisation delays only its own node's estimate. Snapshots have a budget of their own besides
 (:data:`SNAPSHOT_WORK_EPOCHS`: one per 50 epochs solved on average, a credit the bank carries
 from step to step), and a step that leaves ready epochs (the fusion is behind its input)
-gives none to a node the tracker places: on the 30 s 16 x 200 soak's input on a core of its
-own (`bench_fusion_cost.py --schedule`), the fixes had been ~18 % of the CPU and the fusion
-published 36,833 / 39,760 of 60,000 estimates, 49,564 / 50,509 without them.
+gives none to a node the tracker places (they were ~18 % of the CPU on the 16 x 200 soak's
+input, `bench_fusion_cost.py --schedule`: 36,833 / 39,760 -> 49,564 / 50,509 of 60,000).
 ``heavy=None`` (replay of steps without a limit, flush, tests) is unbounded.
 
 :class:`TrackBank` holds the tracker state of every node the core has seen (rows of one
@@ -95,8 +94,8 @@ from diffpos_services.fusion.workers import INIT_COST, RowPool, run_update, slim
 from diffpos_services.wire import messages as M
 
 __all__ = ["HEAVY_MIN_OPERATIONS", "HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved",
-           "TrackBank", "estimates_v2", "heavy_budget",
-           "solve_mnls"]
+           "TrackBank", "estimates_v2", "heavy_budget", "in_publish_order", "solve_mnls",
+           "v2_builder"]
 
 _FIX_NAMES = {int(s): s.name for s in FixStatus}
 _TRACK_NAMES = {int(s): s.name for s in TrackStatus}
@@ -298,8 +297,7 @@ class Solved:
     pending: list = field(default_factory=list)
 
 
-def finish_snapshots(s: Solved) -> None:
-    """Collect the snapshot fixes :func:`solve_mnls` left pending into ``s``."""
+def finish_snapshots(s: Solved) -> None:  # the fixes solve_mnls(defer=True) left pending
     while s.pending:
         s.pending.pop(0)()
 
@@ -309,12 +307,10 @@ def in_publish_order(s: Solved, epochs: list[PendingEpoch],
                      build: Callable[[np.ndarray], list]) -> list:
     """The estimates ``build(rows)`` of a batch solved with ``defer``: first the rows without
     a pending snapshot fix, handed to ``emit`` (when given) before the fixes are collected,
-    then those with one (one or two per step: an mnls fix with 8 anchors costs ~6 ms, a
-    third of a 50-node step of ``large``; the others no longer wait for it), each part in
-    row order. A node's rows after one with a pending fix wait with it: a node's estimates
-    keep their row order (several epochs of a node in one batch: backlog, start-up). Returns
-    what was not emitted. The order (and so the sequence numbers) is the same with or
-    without ``emit``: a replay numbers its estimates as the live fusion did."""
+    then those with one (an mnls fix costs ~6 ms with 8 anchors, a third of a 50-node step of
+    ``large``) and a node's later rows (its estimates keep their order: backlog, start-up),
+    each part in row order. Returns what was not emitted. The order (so the sequence
+    numbers) is the same with or without ``emit``: a replay numbers them as live did."""
     late = s.snap_rows & bool(s.pending)
     if late.any():  # and every later row of the same nodes
         waiting: set[str] = set()
@@ -471,11 +467,11 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
         out = bank.update(ids, prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
                           use_r, batch.t_ref[rows], snr_db=batch.snr[rows], radio=model[1])
         if started is not None:
-            pending.append(functools.partial(_mnls_finish, started, snap, s_floor, s_prob,
-                                             s_mech))
-        if not defer:
-            while pending:
-                pending.pop(0)()
+            finish = functools.partial(_mnls_finish, started, snap, s_floor, s_prob, s_mech)
+            if defer:
+                pending.append(finish)
+            else:
+                finish()
         res.pos[rows], res.cov[rows] = out.position_m, out.covariance_m2
         mech[rows] = np.where(use[rows], out.mechanism, -1)
         res.resid[rows] = np.where(mech[rows] >= 0, out.residual_m, np.nan)
@@ -545,10 +541,17 @@ def _links(use: np.ndarray, mech: np.ndarray, resid: np.ndarray, names: list[str
 def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[str], *,
                  seq0: int, now: int, method: str,
                  rows: np.ndarray | None = None) -> list[M.PositionEstimateV2]:
-    """One :class:`PositionEstimateV2` per row of a batch solved by :func:`solve_mnls`
-    (only ``rows``, in their order, if given; sequence numbers ``seq0 + 1 ...``,
-    ``t_pub_wall_ns = now``). The finiteness tests are made per batch on the arrays, the
-    per-row work is list indexing."""
+    """One :class:`PositionEstimateV2` per row (only ``rows``, in their order, if given) of a
+    batch solved by :func:`solve_mnls`, numbered ``seq0 + 1 ...``: :func:`v2_builder`."""
+    return v2_builder(epochs, batch, s, lost)(rows, seq0=seq0, now=now, method=method)
+
+
+def v2_builder(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[str]
+               ) -> Callable[..., list[M.PositionEstimateV2]]:
+    """``build(rows, *, seq0, now, method)``: the :func:`estimates_v2` of ``rows`` (None:
+    all). The batch's columns are made once here (finiteness tests per batch on the arrays;
+    the per-row work is list indexing), the snapshot columns when ``build`` is called, so one
+    builder serves both parts of :func:`in_publish_order` (the second after the fixes)."""
     res, names = s.res, batch.names
     group_l, shared = exclusion_groups(batch, res, lost)
     pos_l, cov_l = res.pos.tolist(), res.cov.tolist()
@@ -564,31 +567,34 @@ def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[
     r_offs = np.concatenate([[0], np.cumsum(np.count_nonzero(used, axis=1))]).tolist()
     t_ref_l = batch.t_ref.tolist()
     in_wall_l = np.where(batch.reported, batch.pub_wall, 0).max(axis=1).tolist()
-    if s.tracking:
-        snap_pos, snap_cov, snap_prob = (s.snap.pos.tolist(), s.snap.cov.tolist(),
-                                         s.snap_prob.tolist())
-        snap_fin = tuple(_finite_rows(a) for a in (s.snap.pos, s.snap.cov, s.snap_prob))
-    else:
-        snap_pos = snap_cov = snap_prob = snap_fin = None
     links_l, offs = _links(batch.use, s.mechanism, resid, names)
-    out = []
-    for k, i in enumerate(range(len(epochs)) if rows is None else rows.tolist()):
-        pe, gi, st = epochs[i], group_l[i], s.status[i]
-        _, used_ids, excluded, _ = shared[gi]
-        has = st in M.GOOD_STATUSES and pos_ok[i]
-        probs = prob_l[i] if has and prob_ok[i] and prob_l is not None else []
-        links = links_l[offs[i]:offs[i + 1]]
-        out.append(M.PositionEstimateV2(
-            node_id=pe.node_id, t_ns=t_ref_l[i], epoch=pe.epoch, seq=seq0 + k + 1,
-            method=method, status=st,
-            position_m=tuple(pos_l[i]) if has else None,
-            covariance_m2=tuple(map(tuple, cov_l[i])) if has and cov_ok[i] else None,
-            peb_m=peb_l[i] if has else None,
-            z_bound_m=zb_l[i] if has else None,
-            floor_index=best_l[i] if probs else None, floor_probabilities=probs,
-            snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob, snap_fin),
-            links=links, used_anchors=list(used_ids),
-            residuals_m=resid_used_l[r_offs[i]:r_offs[i + 1]],
-            excluded=list(excluded), message=res.msg[i] if not s.tracking else "",
-            t_input_wall_ns=max(in_wall_l[i], 0), t_pub_wall_ns=now))
-    return out
+
+    def build(rows: np.ndarray | None, *, seq0: int, now: int,
+              method: str) -> list[M.PositionEstimateV2]:
+        if s.tracking:
+            snap_pos, snap_cov, snap_prob = (s.snap.pos.tolist(), s.snap.cov.tolist(),
+                                             s.snap_prob.tolist())
+            snap_fin = tuple(_finite_rows(a) for a in (s.snap.pos, s.snap.cov, s.snap_prob))
+        else:
+            snap_pos = snap_cov = snap_prob = snap_fin = None
+        out = []
+        for k, i in enumerate(range(len(epochs)) if rows is None else rows.tolist()):
+            pe, gi, st = epochs[i], group_l[i], s.status[i]
+            _, used_ids, excluded, _ = shared[gi]
+            has = st in M.GOOD_STATUSES and pos_ok[i]
+            probs = prob_l[i] if has and prob_ok[i] and prob_l is not None else []
+            out.append(M.PositionEstimateV2(
+                node_id=pe.node_id, t_ns=t_ref_l[i], epoch=pe.epoch, seq=seq0 + k + 1,
+                method=method, status=st,
+                position_m=tuple(pos_l[i]) if has else None,
+                covariance_m2=tuple(map(tuple, cov_l[i])) if has and cov_ok[i] else None,
+                peb_m=peb_l[i] if has else None,
+                z_bound_m=zb_l[i] if has else None,
+                floor_index=best_l[i] if probs else None, floor_probabilities=probs,
+                snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob, snap_fin),
+                links=links_l[offs[i]:offs[i + 1]], used_anchors=list(used_ids),
+                residuals_m=resid_used_l[r_offs[i]:r_offs[i + 1]],
+                excluded=list(excluded), message=res.msg[i] if not s.tracking else "",
+                t_input_wall_ns=max(in_wall_l[i], 0), t_pub_wall_ns=now))
+        return out
+    return build
