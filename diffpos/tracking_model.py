@@ -59,6 +59,7 @@ from .tracking_paths import (
     PathEval,
     _all_paths_numpy,
     _c,
+    _cb,
     _los,
     _relax,
     all_paths,
@@ -118,7 +119,7 @@ def _select_prep(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
     select_prep_kernel(
         _c(pe.length), _c(pe.jac),
         _c(pe.sure), _c(pe.loose), _IS_DIFF,
-        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))),
+        _cb(pos_cov, (n, h, 3, 3)),
         _c(links.var[:, 0]), snr, sc, use_snr,
         np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
         valid, s_ll, s_var)
@@ -169,7 +170,7 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     sv, sl = np.empty(valid.size), np.empty(valid.size)
     cnt = select_pack_kernel(
         length, _c(pe.jac), _c(pe.sure), _c(pe.loose), _IS_DIFF,
-        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))), _c(links.var[:, 0]), snr, sc, use_snr,
+        _cb(pos_cov, (n, h, 3, 3)), _c(links.var[:, 0]), snr, sc, use_snr,
         np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
         valid, sv, sl)
     eps = config.outlier_weight
@@ -252,7 +253,7 @@ def _model(pos, links: Links, floor, sel: Selection, building):
     model_kernel(_c(pos, dtype=np.float64),
                  _c(links.anchors[:, 0]), fl,
                  _c(sel.slot, dtype=np.int64),
-                 _c(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=np.float64),
+                 _cb(sel.extra_var, (n, h, m), dtype=np.float64),
                  _c(links.rho[:, 0]), _c(links.var[:, 0]),
                  _c(links.mask[:, 0]), *building_planes(building),
                  model, jm, w)
@@ -349,7 +350,7 @@ def _height_prior(x: FloatArray, floor, building, config, level):
     level = np.broadcast_to(level, x.shape[:2])
     wh = np.where(level, 1.0 / sh**2, 0.0)
     h_const = np.where(level, w_lvl + ll_gauss, w_any + ll_any)
-    return tuple(_c(np.broadcast_to(v, x.shape[:2]), dtype=np.float64)
+    return tuple(_cb(v, x.shape[:2], dtype=np.float64)
                  for v in (z_nom, wh, h_const))
 
 
@@ -387,13 +388,13 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     x, p = np.empty((n, h, 6)), np.empty((n, h, 6, 6))
     log_ev, residual = np.empty((n, h)), np.empty((n, h, m))
     f8 = np.float64
-    iekf_kernel(_c(x_prior, dtype=f8), _c(np.broadcast_to(y, (n, h, 6, 6)), dtype=f8),
-                _c(np.broadcast_to(logdet_y, (n, h)), dtype=f8),
-                _c(np.broadcast_to(lo, (n, h, 3)), dtype=f8),
-                _c(np.broadcast_to(hi, (n, h, 3)), dtype=f8), z_nom, wh, h_const,
+    iekf_kernel(_c(x_prior, dtype=f8), _cb(y, (n, h, 6, 6), dtype=f8),
+                _cb(logdet_y, (n, h), dtype=f8),
+                _cb(lo, (n, h, 3), dtype=f8),
+                _cb(hi, (n, h, 3), dtype=f8), z_nom, wh, h_const,
                 _c(links.anchors[:, 0], dtype=f8), fl, _c(sel.slot, dtype=np.int64),
-                _c(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=f8),
-                _c(np.broadcast_to(sel.log_weight, (n, h, m)), dtype=f8),
+                _cb(sel.extra_var, (n, h, m), dtype=f8),
+                _cb(sel.log_weight, (n, h, m), dtype=f8),
                 _c(links.rho[:, 0], dtype=f8), _c(links.var[:, 0], dtype=f8),
                 _c(links.mask[:, 0]), int(config.gn_iterations),
                 float(1.0 / config.box_sigma_m**2), _LOG2PI, *building_planes(building),
