@@ -12,11 +12,15 @@ operations on the same values; the large and soak replays' estimate hashes are u
 Measured (2-core shared VM; ``tracking.update`` on four batches of 58-91 nodes captured from
 the 16 x 200 soak's schedule, 20 repetitions each, the best): default 103-106 ms CPU, system
 time 0.41-0.51 s, 185,000 minor faults; with the heap kept 85-93 ms, 0.10-0.12 s, 25,000
-(the environment's ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` give the same);
-the whole in-process fusion on the soak schedule: see the README / the lead's report. The
-cost: the process keeps its peak heap (plus fragmentation) instead of returning it; a
-process that calls this should call it once at start, before its working set is built
-(``mallopt`` applies to later allocations).
+(the environment's ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` give the same).
+The whole in-process fusion on the soak's schedule (``benchmarks/bench_fusion_cost.py
+--schedule soak16x200.mcap``, load 1.5-3, three runs each, alternated): 0.434-0.455 ms CPU
+per node-epoch without, 0.390-0.402 with (the code before this session's tracker changes:
+0.472-0.505); system time 3.60 -> 0.69 s, minor faults 1,356,000 -> 65,000, peak RSS 343.5
+-> 346.2 MB (user time 27.8 -> 27.3 s: the saving is the kernel's page faults). The cost: the
+process keeps its peak heap (plus fragmentation) instead of returning it; a process should
+call this once at start, before its working set is built (``mallopt`` applies to later
+allocations).
 
 Process-wide and not part of any computation: the services' processes (the fusion and its
 workers) call it at start; the pure functions of the core never do. Not glibc (musl, macOS):
