@@ -75,8 +75,8 @@ def _c(a, dtype=None) -> NDArray:
 def _cb(a, shape: tuple, dtype=None) -> NDArray:
     """``_c(np.broadcast_to(a, shape), dtype)``: the same values and array type, without the
     broadcast's read-only view (and so its copy) when ``a`` already has the shape: ``a`` itself
-    if it is C-contiguous, writable and of the dtype (e.g. the prior information or the floor
-    box of every hypothesis, ~0.1 ms of copies per 400-pair update otherwise)."""
+    if it is C-contiguous, writable and of the dtype (e.g. the prior information, the floor
+    box and the selection of every hypothesis, copied for every kernel call before)."""
     if isinstance(a, np.ndarray) and a.shape == shape:
         return _c(a, dtype)
     return _c(np.broadcast_to(a, shape), dtype)
