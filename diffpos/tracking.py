@@ -303,7 +303,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
-    live = np.isin(status, (TrackStatus.INITIALISING, TrackStatus.TRACKING, TrackStatus.COASTING))
+    live = ((status == TrackStatus.INITIALISING) | (status == TrackStatus.TRACKING)
+            | (status == TrackStatus.COASTING))  # np.isin's values (np.isin: 1.5 % of a 1-node call)
     idx = np.flatnonzero(live & (n_meas > 0))
     if idx.size:
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(

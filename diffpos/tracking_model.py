@@ -59,6 +59,7 @@ from .tracking_paths import (
     PathEval,
     _all_paths_numpy,
     _c,
+    _cb,
     _los,
     _relax,
     all_paths,
@@ -118,7 +119,7 @@ def _select_prep(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
     select_prep_kernel(
         _c(pe.length), _c(pe.jac),
         _c(pe.sure), _c(pe.loose), _IS_DIFF,
-        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))),
+        _cb(pos_cov, (n, h, 3, 3)),
         _c(links.var[:, 0]), snr, sc, use_snr,
         np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
         valid, s_ll, s_var)
@@ -143,8 +144,23 @@ def _select_prep_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
     return valid, s_ll, s_var
 
 
+def _select_fixed(pos_cov: FloatArray, links: Links, config, snr_c, n: int, h: int) -> tuple:
+    """:func:`select`'s kernel inputs that do not depend on the paths (the selection passes of
+    one update share them): the covariance, the links' columns and the constants."""
+    m = links.rho.shape[-1]
+    use_snr = snr_c is not None
+    eps = config.outlier_weight
+    return (_cb(pos_cov, (n, h, 3, 3)), _c(links.var[:, 0]),
+            _c(links.snr[:, 0]) if use_snr else np.zeros((n, m)),
+            _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1)), use_snr,
+            np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
+            _c(links.rho[:, 0]), _c(links.mask[:, 0]),
+            np.array([_LOG2PI, np.log1p(-eps), np.log(eps / config.outlier_span_m),
+                      -np.log(SNR_SPAN_DB)]))
+
+
 def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
-           snr_c: FloatArray | None = None) -> Selection:
+           snr_c: FloatArray | None = None, fixed: tuple | None = None) -> Selection:
     """Most likely mechanism per link given the predicted position Gaussian.
 
     ``pos_cov``: (N, H, 3, 3). Component log-likelihoods: ``log((1 - eps) / n_cand) + log
@@ -158,23 +174,19 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     temporaries but the candidate mask) with numpy's log and exp on the packed candidates in
     between (numba's libm exp/log differ from numpy's SIMD ones in the last bit): bit-identical
     to the numpy reference :func:`_select_numpy` (tests/core/test_tracking_kernel.py).
+    ``fixed``: :func:`_select_fixed` of the same ``pos_cov``, ``links``, ``config``,
+    ``snr_c`` if the caller has it.
     """
     shape = pe.length.shape
     n, h, m = shape[:3]
-    use_snr = snr_c is not None
-    snr = _c(links.snr[:, 0]) if use_snr else np.zeros((n, m))
-    sc = _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1))
-    length, rho, mask = _c(pe.length), _c(links.rho[:, 0]), _c(links.mask[:, 0])
+    if fixed is None:
+        fixed = _select_fixed(pos_cov, links, config, snr_c, n, h)
+    cov, var, snr, sc, use_snr, c_pack, c_span, rho, mask, consts = fixed
+    length = _c(pe.length)
     valid = np.empty(shape, dtype=np.bool_)
     sv, sl = np.empty(valid.size), np.empty(valid.size)
-    cnt = select_pack_kernel(
-        length, _c(pe.jac), _c(pe.sure), _c(pe.loose), _IS_DIFF,
-        _c(np.broadcast_to(pos_cov, (n, h, 3, 3))), _c(links.var[:, 0]), snr, sc, use_snr,
-        np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
-        valid, sv, sl)
-    eps = config.outlier_weight
-    consts = np.array([_LOG2PI, np.log1p(-eps), np.log(eps / config.outlier_span_m),
-                       -np.log(SNR_SPAN_DB)])
+    cnt = select_pack_kernel(length, _c(pe.jac), _c(pe.sure), _c(pe.loose), _IS_DIFF, cov, var,
+                             snr, sc, use_snr, c_pack, c_span, valid, sv, sl)
     slot, best = np.empty((n, h, m), dtype=np.int64), np.empty((n, h, m), dtype=np.int64)
     base, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
     ex = np.empty(cnt)
@@ -252,7 +264,7 @@ def _model(pos, links: Links, floor, sel: Selection, building):
     model_kernel(_c(pos, dtype=np.float64),
                  _c(links.anchors[:, 0]), fl,
                  _c(sel.slot, dtype=np.int64),
-                 _c(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=np.float64),
+                 _cb(sel.extra_var, (n, h, m), dtype=np.float64),
                  _c(links.rho[:, 0]), _c(links.var[:, 0]),
                  _c(links.mask[:, 0]), *building_planes(building),
                  model, jm, w)
@@ -349,12 +361,33 @@ def _height_prior(x: FloatArray, floor, building, config, level):
     level = np.broadcast_to(level, x.shape[:2])
     wh = np.where(level, 1.0 / sh**2, 0.0)
     h_const = np.where(level, w_lvl + ll_gauss, w_any + ll_any)
-    return tuple(_c(np.broadcast_to(v, x.shape[:2]), dtype=np.float64)
+    return tuple(_cb(v, x.shape[:2], dtype=np.float64)
                  for v in (z_nom, wh, h_const))
 
 
+def _iekf_fixed(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, building,
+                config, level=None, prior_info=None) -> tuple[tuple, tuple]:
+    """:func:`iekf`'s kernel arguments that do not depend on the selection (the selection
+    passes of one update share them): those before and those after the selection's three."""
+    y, logdet_y = prior_information(p_prior) if prior_info is None else prior_info
+    n, h = x_prior.shape[:2]
+    lo, hi = _box(x_prior, floor, building, config.z_margin_m)
+    z_nom, wh, h_const = _height_prior(x_prior, floor, building, config, level)
+    fl = np.empty((n, h))
+    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
+    f8 = np.float64
+    head = (_c(x_prior, dtype=f8), _cb(y, (n, h, 6, 6), dtype=f8),
+            _cb(logdet_y, (n, h), dtype=f8), _cb(lo, (n, h, 3), dtype=f8),
+            _cb(hi, (n, h, 3), dtype=f8), z_nom, wh, h_const,
+            _c(links.anchors[:, 0], dtype=f8), fl)
+    tail = (_c(links.rho[:, 0], dtype=f8), _c(links.var[:, 0], dtype=f8),
+            _c(links.mask[:, 0]), int(config.gn_iterations),
+            float(1.0 / config.box_sigma_m**2), _LOG2PI, *building_planes(building))
+    return head, tail
+
+
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
-         building, config, level=None, prior_info=None):
+         building, config, level=None, prior_info=None, fixed: tuple | None = None):
     """Iterated EKF (Gauss-Newton on the MAP cost) of every hypothesis with fixed mechanisms.
 
     The hypothesis' floor box is a hard-ish constraint: a coordinate outside it gets a
@@ -376,28 +409,20 @@ def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Sel
     link model and the iteration's terms are the bit-identical kernels' bodies, the 6 x 6
     solve/inverse/log-determinant LU with partial pivoting); :func:`_iekf_numpy` (numpy's
     LAPACK) is the reference, held to a tolerance by tests/core/test_tracking_kernel.py.
+    ``fixed``: :func:`_iekf_fixed` of the same arguments if the caller has it (the kernel
+    reads its inputs only).
     """
-    y, logdet_y = prior_information(p_prior) if prior_info is None else prior_info
+    if fixed is None:
+        fixed = _iekf_fixed(x_prior, p_prior, links, floor, building, config, level,
+                            prior_info)
+    head, tail = fixed
     n, h = x_prior.shape[:2]
     m = sel.slot.shape[-1]
-    lo, hi = _box(x_prior, floor, building, config.z_margin_m)
-    z_nom, wh, h_const = _height_prior(x_prior, floor, building, config, level)
-    fl = np.empty((n, h))
-    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
     x, p = np.empty((n, h, 6)), np.empty((n, h, 6, 6))
     log_ev, residual = np.empty((n, h)), np.empty((n, h, m))
     f8 = np.float64
-    iekf_kernel(_c(x_prior, dtype=f8), _c(np.broadcast_to(y, (n, h, 6, 6)), dtype=f8),
-                _c(np.broadcast_to(logdet_y, (n, h)), dtype=f8),
-                _c(np.broadcast_to(lo, (n, h, 3)), dtype=f8),
-                _c(np.broadcast_to(hi, (n, h, 3)), dtype=f8), z_nom, wh, h_const,
-                _c(links.anchors[:, 0], dtype=f8), fl, _c(sel.slot, dtype=np.int64),
-                _c(np.broadcast_to(sel.extra_var, (n, h, m)), dtype=f8),
-                _c(np.broadcast_to(sel.log_weight, (n, h, m)), dtype=f8),
-                _c(links.rho[:, 0], dtype=f8), _c(links.var[:, 0], dtype=f8),
-                _c(links.mask[:, 0]), int(config.gn_iterations),
-                float(1.0 / config.box_sigma_m**2), _LOG2PI, *building_planes(building),
-                x, p, log_ev, residual)
+    iekf_kernel(*head, _c(sel.slot, dtype=np.int64), _cb(sel.extra_var, (n, h, m), dtype=f8),
+                _cb(sel.log_weight, (n, h, m), dtype=f8), *tail, x, p, log_ev, residual)
     return x, p, log_ev, residual
 
 
@@ -489,7 +514,16 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     ``level``: the hypotheses' vertical modes (see :func:`iekf`). ``snr_cache``: the
     hypotheses' :class:`~diffpos.tracking_snr.SnrCache` (read and updated in place; reuse
     within ``config.snr_reuse_m`` / ``snr_reuse_anchor_m``; both 0: not used, left as it
-    is), or None (every SNR predicted)."""
+    is), or None (every SNR predicted).
+
+    The IEKF reads the selection only through ``slot``, ``extra_var`` and ``log_weight``, so a
+    later pass could keep the previous pass' IEKF output for the hypotheses whose three are
+    the same bit for bit. Measured (2026-11-27, ``select_passes`` 2): they almost never are
+    (the fit moves every path length, so the mixture's spread and log-weights): on 250 calls
+    captured from the 16 x 200 soak's schedule 4,313 of 115,215 pairs (3.7 %; the same slots
+    43.5 %), on the ``large`` replay 1,929 of 38,820 (5.0 %; slots 61.6 %): not done. The
+    inputs of the IEKF and of the selection that depend on neither the paths nor the
+    selection are made once for all passes (:func:`_iekf_fixed`, :func:`_select_fixed`)."""
     x = x_prior
     # the SNR of every slot at the prior (a path's strength changes little over the fit);
     # the paths at the prior serve the SNR term and the first selection (the same point
@@ -508,6 +542,9 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
                           cache=snr_cache if snr_reuse_on(config) else None,
                           reuse_m=(config.snr_reuse_m, config.snr_reuse_anchor_m))
     info = prior_information(p_prior)  # shared by the passes
+    # and so are the kernels' inputs that do not depend on the paths or the selection
+    fix_i = _iekf_fixed(x_prior, p_prior, links, floor, building, config, level, info)
+    fix_s = _select_fixed(p_prior[..., :3, :3], links, config, snr_c, *x_prior.shape[:2])
     p = p_prior
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         if k > 0:  # at the fit: the margin of the fit's own uncertainty
@@ -516,9 +553,9 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
             pe = _paths_at(pe0, moved, x[..., :3], links, floor, building, relax)
         else:
             pe = all_paths(x[..., :3], links, floor, building, relax)
-        sel = select(p_prior[..., :3, :3], links, pe, config, snr_c)
+        sel = select(p_prior[..., :3, :3], links, pe, config, snr_c, fix_s)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
-                                 level, info)
+                                 level, info, fix_i)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
 
 

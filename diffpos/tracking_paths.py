@@ -72,6 +72,16 @@ def _c(a, dtype=None) -> NDArray:
     return out if out.flags.writeable else out.copy()
 
 
+def _cb(a, shape: tuple, dtype=None) -> NDArray:
+    """``_c(np.broadcast_to(a, shape), dtype)``: the same values and array type, without the
+    broadcast's read-only view (and so its copy) when ``a`` already has the shape: ``a`` itself
+    if it is C-contiguous, writable and of the dtype (e.g. the prior information, the floor
+    box and the selection of every hypothesis, copied for every kernel call before)."""
+    if isinstance(a, np.ndarray) and a.shape == shape:
+        return _c(a, dtype)
+    return _c(np.broadcast_to(a, shape), dtype)
+
+
 def _los(pos: FloatArray, anchors: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Straight-line length and its Jacobian d/d node, shapes (N, H, M) and (N, H, M, 3)."""
     d = pos[:, :, None, :] - anchors

@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from ._kernels.channel_nb import snr_cost_kernel
 from ._kernels.snr_cache_nb import cache_plan_kernel, cache_store_kernel
 from .channel import pair_snr_db
-from .tracking_paths import _IS_BAND, K_SLOTS, Links, PathEval, _c, _relax, all_paths
+from .tracking_paths import _IS_BAND, K_SLOTS, Links, PathEval, _c, _cb, _relax, all_paths
 from .tracking_state import SNR_CACHE_SLOTS
 
 __all__ = ["HOLE_THRESHOLD_AT_PRIOR", "SNR_SIGMA_DB", "SNR_SPAN_DB", "SnrCache", "snr_cost",
@@ -246,8 +246,8 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
     known_nm = _c(np.isfinite(links.snr[:, 0]))
     hit = np.empty((n, h, m), dtype=np.bool_)
     mask = np.empty((n, h, m, K_SLOTS), dtype=np.bool_)
-    cache_plan_kernel(near, _c(np.broadcast_to(kept, (n, h, mc))), known_nm, cache.pred,
-                      _c(strict, dtype=np.bool_), _c(np.broadcast_to(need, mask.shape)),
+    cache_plan_kernel(near, _cb(kept, (n, h, mc)), known_nm, cache.pred,
+                      _c(strict, dtype=np.bool_), _cb(need, mask.shape),
                       _CACHED, _IS_CACHED, hit, mask)
     at = np.where(near[..., None], cache.node, pos)
     if known.all():  # every link: no gather
@@ -263,7 +263,7 @@ def _snr_cost_cached(pos: FloatArray, links: Links, building, trust: NDArray, ne
                                            links.radio, mask[n_i, h_i, m_i])
     # the reused links' cached slots; then the cache: a hypothesis that moved starts afresh
     # at ``pos``, the fresh links' predictions stored (in place; float32)
-    cache_store_kernel(near, hit, known_nm, _c(np.broadcast_to(need, mask.shape)), _CACHED,
+    cache_store_kernel(near, hit, known_nm, _cb(need, mask.shape), _CACHED,
                        _c(links.anchors[:, 0], dtype=np.float64), pred, cache.anchor,
                        cache.pred)
     cache.node[...] = at
