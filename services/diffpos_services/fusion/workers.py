@@ -90,6 +90,7 @@ TIMEOUT_BASE_S = 30.0
 TIMEOUT_PER_COST_S = 0.1
 #: Memory of the measured worker speed (:attr:`RowPool.speed`): weight of the previous value.
 SPEED_MEMORY = 0.8
+LATENCY_MAX_S = 0.05  #: cap of :attr:`RowPool.latency_s` [s] (beyond +-1 s: clock not shared)
 _PR_SET_PDEATHSIG = 1
 
 
@@ -164,8 +165,10 @@ def _die_with(parent_pid: int) -> None:
 def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
     """A worker process: warm up on ``model`` = (building, radio or None, window height,
     first floor z), say ``ready``, then answer ``(kind, args)`` requests with ``("ok",
-    result, busy_s)`` or ``("err", traceback, 0.0)`` until ``stop`` or EOF (the parent is
-    gone); ``busy_s`` [s] is the task's wall time (the caller balances the shares by it)."""
+    result, busy_s, t_done_s)`` or ``("err", traceback, 0.0)`` until ``stop`` or EOF (the parent is
+    gone); ``busy_s`` [s] is the task's wall time (the caller balances the shares by it),
+    ``t_done_s`` the :func:`time.perf_counter` at its end (CLOCK_MONOTONIC on Linux, the
+    caller's clock too: it learns the per-request latency from it, :attr:`RowPool.latency_s`)."""
     _die_with(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the fusion stops us (or EOF)
     with contextlib.suppress(OSError):
@@ -190,8 +193,9 @@ def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
         try:
             if not kind:
                 raise RuntimeError(f"request not decoded: {args}")
-            reply = ("ok", TASKS[kind](model, *args), time.perf_counter() - t0)
-            payload = _dumps(reply)
+            value = TASKS[kind](model, *args)
+            t1 = time.perf_counter()
+            payload = _dumps(("ok", value, t1 - t0, t1))
         except Exception:  # reported to the caller, which computes the share locally
             payload = _dumps(("err", traceback.format_exc(limit=8), 0.0))
         try:
@@ -221,8 +225,7 @@ class _Slot:
 
 @dataclasses.dataclass
 class Pending:
-    """A request sent to a worker (or computed here at once: ``slot`` None, ``done``):
-    :meth:`RowPool.result` returns its value, computing it here if the worker failed."""
+    """A request to a worker (or done here: ``slot`` None): see :meth:`RowPool.result`."""
 
     kind: str
     args: tuple
@@ -234,6 +237,8 @@ class Pending:
     ok: bool = False
     value: Any = None
     busy_s: float = 0.0
+    alone: bool = False  # the worker had nothing else pending when this was sent
+    t_done_s: float | None = None  # the worker's perf_counter at the task's end (None: unknown)
 
 
 class RowPool:
@@ -268,6 +273,10 @@ class RowPool:
         #: publishes, and on a loaded machine its share ran ~1.5x slower than the worker's
         #: (soak, 2026-11-27): equal shares left the worker waiting.
         self.speed = 1.0
+        #: a worker's latency [s] beyond its task time (request transfer, wake-up, reply
+        #: pickling; EWMA, :meth:`_learn_latency`): the shares are balanced as if each worker
+        #: had that much work already (live soak: the caller waited ~5 ms per split call)
+        self.latency_s = 0.0
         #: a worker's seconds per row of each kind (EWMA; :meth:`unit_cost`)
         self._unit_s: dict[str, float] = {}
         #: requests submitted and not sent yet (:meth:`submit`)
@@ -373,6 +382,7 @@ class RowPool:
 
     def _dispatch(self, s: _Slot, p: Pending) -> Pending:
         p.slot, p.sent = s, True
+        p.alone = not s.pending
         try:  # an argument that cannot be pickled: nothing sent, the worker stays
             payload = _dumps((p.kind, p.args))
         except Exception as exc:
@@ -466,7 +476,9 @@ class RowPool:
             preload[k] += sum(p.cost for p in self._deferred)
             ready = [ready[k], *ready[:k], *ready[k + 1:]]
             preload = [preload[k], *preload[:k], *preload[k + 1:]]
-        shares = preloaded_bounds(cost, [1.0] + [self.speed] * len(ready), [0.0, *preload])
+        lat = self.latency_cost()
+        shares = preloaded_bounds(cost, [1.0] + [self.speed] * len(ready),
+                                  [0.0, *(x + lat for x in preload)])
         unit = self.unit_cost(kind)
         # the shares first: a big message to a worker busy with an earlier request would
         # block this process in send() until the worker reads it
@@ -487,6 +499,7 @@ class RowPool:
                     self._wait(p)
             done = [p for p, _ in sent if p is not None and p.ok]
             self._account(t1 - t0, c2 - c1, time.perf_counter() - t1, [p.busy_s for p in done])
+            self._learn_latency(t0, done)
             self.calls["rows_sent"] += sum(sl.stop - sl.start for p, sl in sent if p)
         if shares[0].stop > shares[0].start:
             self._learn(t1 - t0, float(cost[shares[0]].sum()), [p.busy_s for p in done],
@@ -501,8 +514,7 @@ class RowPool:
         self.calls["caller_cpu_s"] += time.thread_time() - c0
         return out
 
-    def _account(self, own_s: float, own_cpu_s: float, wait_s: float, busy: list[float]
-                 ) -> None:
+    def _account(self, own_s: float, own_cpu_s: float, wait_s: float, busy: list[float]) -> None:
         self.calls["own_share_s"] += own_s
         self.calls["own_cpu_s"] += own_cpu_s
         self.calls["wait_s"] += wait_s
@@ -519,6 +531,25 @@ class RowPool:
                      + (1 - SPEED_MEMORY) * math.log(min(max(ratio, 0.25), 4.0)))
         self.speed = math.exp(log_speed)
 
+    def latency_cost(self) -> float:  # latency_s in update rows of a worker (0: unknown)
+        u = self._unit_s.get("update")
+        return self.latency_s / u if u is not None and u > 0 else 0.0
+
+    def _learn_latency(self, t0: float, done: list[Pending]) -> None:
+        """:attr:`latency_s` (EWMA :data:`SPEED_MEMORY`) from the shares of a split call
+        whose worker had nothing else to do first: the task's end (the worker's clock) -
+        ``t0`` (the caller's own share's start) - its time, within [0, LATENCY_MAX_S]."""
+        for p in done:
+            if not p.alone or p.t_done_s is None:
+                continue
+            lat = p.t_done_s - t0 - p.busy_s
+            if abs(lat) > 1.0:
+                continue
+            lat = min(max(lat, 0.0), LATENCY_MAX_S)
+            self.latency_s = SPEED_MEMORY * self.latency_s + (1 - SPEED_MEMORY) * lat
+            self.calls["latency_n"] += 1
+            self.calls["latency_s"] += lat
+
     def _wait(self, p: Pending) -> None:
         """Receive the replies of ``p``'s worker in order until ``p``'s (each one stored in
         its request); a worker that dies or times out fails every request it holds."""
@@ -529,7 +560,7 @@ class RowPool:
                 if not s.conn.poll(TIMEOUT_BASE_S + TIMEOUT_PER_COST_S * head.cost):
                     self._failed(s, "timeout", f"{head.kind}, cost {head.cost:.0f}")
                     continue
-                tag, value, busy_s = s.conn.recv()
+                tag, value, busy_s, *stamp = s.conn.recv()
             except (EOFError, OSError) as exc:
                 self._failed(s, "died", repr(exc))
                 continue
@@ -539,6 +570,7 @@ class RowPool:
                 continue
             s.pending.popleft()
             head.done, head.ok, head.busy_s = True, tag == "ok", busy_s
+            head.t_done_s = stamp[0] if stamp else None
             if head.ok:
                 head.value = value
                 if busy_s > 0 and head.units > 0:  # the worker's seconds per row of the kind
