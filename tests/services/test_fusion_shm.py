@@ -77,3 +77,18 @@ def test_a_message_larger_than_the_region_is_refused(regions):
     fits = np.arange(len(mine.request) // 8 - 64, dtype=np.float64)
     ref = shm.pack(mine.request, (fits,))
     assert ref is not None and np.array_equal(shm.unpack(mine.request, ref)[0], fits)
+
+
+def test_a_full_tmpfs_leaves_no_file(tmp_path, monkeypatch):
+    """No room for the regions (posix_fallocate fails as on a full /dev/shm): the file is
+    removed and the error raised (the pool then uses its pipes), nothing is mapped."""
+    import errno
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full, raising=False)
+    path = str(tmp_path / "regions")
+    with pytest.raises(OSError):
+        shm.Regions(path, create=True)
+    assert not os.path.exists(path)

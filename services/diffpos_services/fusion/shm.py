@@ -39,9 +39,11 @@ from typing import Any
 
 __all__ = ["REGION_BYTES", "SHM_DIR", "Regions", "ShmRef", "pack", "shm_path", "unpack"]
 
-#: Bytes of each region (request, reply): a 200-row share is ~2.2 MB; the file is sparse
-#: (tmpfs pages exist once written).
-REGION_BYTES = 16 << 20
+#: Bytes of each region (request, reply): a 200-row share is ~2.2 MB, a larger message than
+#: this (~700 rows) crosses the pipe. The file's pages are reserved when it is made (a
+#: write to a sparse page of a full tmpfs would kill the process with SIGBUS; a full one
+#: makes the pool use its pipes).
+REGION_BYTES = 8 << 20
 #: Where the files are made (Linux tmpfs); without it the pool uses its pipes only.
 SHM_DIR = "/dev/shm"
 _ALIGN = 64
@@ -69,12 +71,19 @@ class Regions:
         try:
             if create:
                 os.ftruncate(fd, 2 * REGION_BYTES)
-            self._mm = mmap.mmap(fd, 2 * REGION_BYTES)
+                if hasattr(os, "posix_fallocate"):
+                    os.posix_fallocate(fd, 0, 2 * REGION_BYTES)
+            size = os.fstat(fd).st_size  # (the worker: the caller's size)
+            self._mm = mmap.mmap(fd, size)
+        except BaseException:
+            if create:
+                self.unlink()
+            raise
         finally:
             os.close(fd)
         self._buf = memoryview(self._mm)
-        self.request = self._buf[:REGION_BYTES]
-        self.reply = self._buf[REGION_BYTES:]
+        self.request = self._buf[:size // 2]
+        self.reply = self._buf[size // 2:]
 
     def unlink(self) -> None:
         """Remove the file's name (the mappings stay valid)."""
