@@ -14,6 +14,7 @@ import dataclasses
 import itertools
 import os
 import pickle
+import time
 
 import msgspec
 import numpy as np
@@ -378,3 +379,47 @@ def test_replay_never_starts_more_processes_than_the_machine_has_cores(recording
     monkeypatch.setattr(os, "cpu_count", lambda: 3)
     r = replay(recording, method="mnls", use_decisions=False, overrides={"workers": 64})
     assert made == [3] and closed == [True] and len(r.estimates) == 6 * 15
+
+
+class _LatePipe(_QueuedPipe):
+    """A worker's pipe whose replies carry the worker's clock at the task's end as a real
+    worker's do: ``late_s`` after the request was written (a worker that needs that long
+    beyond its task: transfer, wake-up), task time ``busy_s``."""
+
+    def __init__(self, model, late_s: float, busy_s: float) -> None:
+        super().__init__(model)
+        self.late_s, self.busy_s, self.rows = late_s, busy_s, []
+
+    def send_bytes(self, payload) -> None:
+        kind, args = pickle.loads(payload)
+        self.rows.append(len(args[0]))
+        done = time.perf_counter() + self.late_s + self.busy_s
+        self.replies.append(pickle.dumps(("ok", W.TASKS[kind](self.model, *args), self.busy_s,
+                                          done)))
+
+
+def test_worker_latency_is_learned_and_moves_rows_to_the_caller(monkeypatch):
+    """A worker whose shares end 20 ms after the caller's own share starts, beyond a 1 ms
+    task: the learned latency converges to ~19 ms (EWMA from 0: within 1 ms after 30 calls),
+    each share is the one :func:`preloaded_bounds` gives with that latency as the worker's
+    preload (in its update rows: 1 ms each), and the rows come back in order; replies without
+    the clock (older workers) leave the latency at 0 and the split as before."""
+    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    monkeypatch.setattr(W.RowPool, "_learn", lambda self, *a: None)  # speed stays 1
+    pool = W.RowPool(1, (None, None, 3.0, 0.0))
+    pipe = _LatePipe(pool.model, 0.020, 0.001)
+    pool._slots = [W._Slot(conn=pipe, ready=True, pid=-1)]
+    pool._unit_s["update"] = 0.001
+    x = np.arange(200.0)
+    for _ in range(30):
+        expect = W.preloaded_bounds(np.ones(x.size), [1.0, 1.0], [0.0, pool.latency_cost()])
+        assert np.array_equal(pool.map_rows("echo", (x,), np.ones(x.size),
+                                            local=lambda a: a.copy()), x)
+        assert pipe.rows[-1] == expect[1].stop - expect[1].start
+    assert pool.latency_s == pytest.approx(0.019, abs=0.001)
+    assert pipe.rows[0] == 100 and pipe.rows[-1] == pytest.approx((200 - 19) / 2, abs=1.5)
+    assert pool.calls["latency_n"] == 30
+    plain = _echo_pool(monkeypatch)  # 3-field replies: no clock, no latency
+    plain.map_rows("echo", (x,), np.ones(x.size))
+    assert plain.latency_s == 0.0 and plain.calls["rows_sent"] == 100

@@ -1,6 +1,6 @@
 """Row shares of the fusion's worker pool (:mod:`diffpos_services.fusion.workers`): slicing
-a call's arguments by rows and joining the results, and the contiguous shares balanced by
-cost, speed and the work a worker already has."""
+a call's arguments by rows and joining the results, the contiguous shares balanced by
+cost, speed and the work a worker already has, and the tracker state a share carries."""
 
 from __future__ import annotations
 
@@ -10,7 +10,12 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["concat_rows", "preloaded_bounds", "share_bounds", "take_rows"]
+from diffpos.tracking import TrackerState, update
+from diffpos.tracking_snr import snr_reuse_on
+from diffpos.tracking_state import SNR_CACHE_LINKS, SNR_CACHE_SLOTS
+
+__all__ = ["concat_rows", "preloaded_bounds", "run_update", "share_bounds", "slim_state",
+           "take_rows"]
 
 
 def take_rows(x: Any, sl: slice) -> Any:
@@ -77,3 +82,36 @@ def preloaded_bounds(cost: np.ndarray, weights: list[float], preload: list[float
     cuts = np.where(ends > 0, np.searchsorted(c, ends - 1e-9 * c[-1], side="left") + 1, 0)
     edges = np.concatenate([[0], np.minimum(np.maximum.accumulate(cuts), c.size), [c.size]])
     return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges.tolist())]
+
+
+_SNR_CACHE = ("snr_node", "snr_anchor", "snr_pred")
+
+
+def slim_state(sub: TrackerState, config: Any) -> TrackerState:
+    """``sub`` without its SNR cache fields (None) when the tracker neither reads nor carries
+    them (:func:`diffpos.tracking_snr.snr_reuse_on` false: both reuse margins 0): they are
+    7.2 of the ~11 KB per row that would cross the pipe both ways for nothing. With the
+    default margins (0.05 / 0.1 m) reuse is on and the whole state crosses (1.4 MB each way
+    for a 128-row share: ~2 ms of the caller's CPU, bench_workers.py)."""
+    if snr_reuse_on(config):
+        return sub
+    return dataclasses.replace(sub, **dict.fromkeys(_SNR_CACHE))
+
+
+def run_update(building: Any, sub: TrackerState, anchors, ranges, sigmas, mask, t_ns, snr_db,
+               config, radio) -> tuple[TrackerState, Any]:
+    """:func:`diffpos.tracking.update` of a share of rows, ``sub`` possibly slimmed by
+    :func:`slim_state`: the missing cache fields are given as read-only NaN views (never read
+    nor written with reuse off: a write would raise, and the share be redone by the caller)
+    and returned as None (the caller keeps its own, unchanged rows)."""
+    slim = sub.snr_node is None
+    if slim:
+        n, h = sub.mean.shape[:2]
+        shapes = {"snr_node": ((n, h, 3), np.float64),
+                  "snr_anchor": ((n, h, SNR_CACHE_LINKS, 3), np.float32),
+                  "snr_pred": ((n, h, SNR_CACHE_LINKS, len(SNR_CACHE_SLOTS)), np.float32)}
+        sub = dataclasses.replace(sub, **{k: np.broadcast_to(np.array(np.nan, dt), shape)
+                                          for k, (shape, dt) in shapes.items()})
+    new, out = update(sub, anchors, ranges, sigmas, mask, t_ns, building, config,
+                      snr_db=snr_db, radio=radio)
+    return (slim_state(new, config) if slim else new), out

@@ -314,6 +314,14 @@ def gated_count(batch: Batch, res: Results) -> int:
     return int(gated.sum())
 
 
+def _row_bytes(a: np.ndarray) -> list[bytes]:
+    """Each row of the 2-D array ``a`` as bytes (equal rows, equal bytes)."""
+    if a.shape[1] == 0:
+        return [b""] * a.shape[0]
+    a = np.ascontiguousarray(a)
+    return a.view(np.dtype((np.void, a.dtype.itemsize * a.shape[1]))).ravel().tolist()
+
+
 def exclusion_groups(batch: Batch, res: Results, lost: set[str]
                      ) -> tuple[list[int], list[tuple[list[int], list[str], list[M.Exclusion], bool]]]:
     """Each row's group of identical (used anchors, exclusion reasons), and per group
@@ -339,15 +347,17 @@ def exclusion_groups(batch: Batch, res: Results, lost: set[str]
     why = np.where(code == 3, 16 + res_reason, code) * ~res_used
     pattern = np.concatenate([res_used.astype(np.int64), why], axis=1)
     # group ids in order of first appearance, each group's first row its representative
-    if pattern.shape[0]:
-        _, first, inverse = np.unique(pattern, axis=0, return_index=True, return_inverse=True)
-        order = np.argsort(first, kind="stable")
-        rank = np.empty_like(order)
-        rank[order] = np.arange(order.size)
-        group_l = rank[inverse.reshape(-1)].tolist()
-        reps = first[order]
-    else:
-        group_l, reps = [], np.zeros(0, np.intp)
+    # (each row's bytes as a dict key: no sort)
+    seen: dict[bytes, int] = {}
+    first: list[int] = []
+    group_l = []
+    for i, r in enumerate(_row_bytes(pattern)):
+        g = seen.get(r)
+        if g is None:
+            g = seen[r] = len(first)
+            first.append(i)
+        group_l.append(g)
+    reps = np.array(first, np.intp)
     shared = []
     for row in pattern[reps].tolist():
         used_idx = [j for j in range(m) if row[j]]

@@ -6,7 +6,9 @@ CPU is per-node work whose rows are independent bit for bit: the tracker update
 (:func:`diffpos.tracking.update`, 64 %) and the M-NLS snapshot fixes
 (:func:`diffpos.estimators.mnls`, 15 %). :class:`RowPool` splits such a call's rows into
 contiguous shares balanced by an estimated cost, sends ``workers - 1`` shares to worker
-processes (pickled numpy over a :func:`multiprocessing.Pipe`), computes the first share in the
+processes (pickled numpy over a :func:`multiprocessing.Pipe`, the arrays of a worker's first
+request in flight through a mapped file: :mod:`diffpos_services.fusion.shm`; the process
+side is :mod:`diffpos_services.fusion.worker_proc`), computes the first share in the
 calling process meanwhile (no idle main) and concatenates the results in row order: the numbers
 are those of one call, whatever the number of workers (tests/services/test_fusion_workers.py).
 
@@ -40,34 +42,33 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import ctypes
-import ctypes.util
 import dataclasses
+import itertools
 import logging
 import math
 import multiprocessing as mp
 import os
-import signal
-import sys
 import time
-import traceback
 from collections.abc import Callable
-from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 import numpy as np
 
-import diffpos.estimators as est
-from diffpos.tracking import TrackerState, update
-from diffpos.tracking_snr import snr_reuse_on
-from diffpos.tracking_state import SNR_CACHE_LINKS, SNR_CACHE_SLOTS
-from diffpos_services.fusion.rows import concat_rows, preloaded_bounds, share_bounds, take_rows
-from diffpos_services.fusion.warm import warm_model
+from diffpos_services.fusion import shm
+from diffpos_services.fusion.rows import (
+    concat_rows,
+    preloaded_bounds,
+    run_update,
+    share_bounds,
+    slim_state,
+    take_rows,
+)
+from diffpos_services.fusion.worker_proc import TASKS, _dumps, worker_main
 from diffpos_services.kit import log_event
 
-__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "Pending", "RowPool", "concat_rows",
+__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "TASKS", "Pending", "RowPool", "concat_rows",
            "preloaded_bounds", "run_update", "share_bounds", "slim_state", "start_workers",
-           "take_rows"]
+           "take_rows", "worker_main"]
 
 #: Cost of a row the tracker initialises (UNINITIALISED or LOST with enough ranges: the grid
 #: snapshot of :func:`diffpos.tracking_model.snapshot_init`) in units of one row's update: an
@@ -90,121 +91,8 @@ TIMEOUT_BASE_S = 30.0
 TIMEOUT_PER_COST_S = 0.1
 #: Memory of the measured worker speed (:attr:`RowPool.speed`): weight of the previous value.
 SPEED_MEMORY = 0.8
-_PR_SET_PDEATHSIG = 1
-
-
-# ------------------------------------------------------------------------ the worker
-_SNR_CACHE = ("snr_node", "snr_anchor", "snr_pred")
-
-
-def slim_state(sub: TrackerState, config: Any) -> TrackerState:
-    """``sub`` without its SNR cache fields (None) when the tracker neither reads nor carries
-    them (:func:`diffpos.tracking_snr.snr_reuse_on` false: both reuse margins 0): they are
-    7.2 of the ~11 KB per row that would cross the pipe both ways for nothing. With the
-    default margins (0.05 / 0.1 m) reuse is on and the whole state crosses (1.4 MB each way
-    for a 128-row share: ~2 ms of the caller's CPU, bench_workers.py)."""
-    if snr_reuse_on(config):
-        return sub
-    return dataclasses.replace(sub, **dict.fromkeys(_SNR_CACHE))
-
-
-def run_update(building: Any, sub: TrackerState, anchors, ranges, sigmas, mask, t_ns, snr_db,
-               config, radio) -> tuple[TrackerState, Any]:
-    """:func:`diffpos.tracking.update` of a share of rows, ``sub`` possibly slimmed by
-    :func:`slim_state`: the missing cache fields are given as read-only NaN views (never read
-    nor written with reuse off: a write would raise, and the share be redone by the caller)
-    and returned as None (the caller keeps its own, unchanged rows)."""
-    slim = sub.snr_node is None
-    if slim:
-        n, h = sub.mean.shape[:2]
-        shapes = {"snr_node": ((n, h, 3), np.float64),
-                  "snr_anchor": ((n, h, SNR_CACHE_LINKS, 3), np.float32),
-                  "snr_pred": ((n, h, SNR_CACHE_LINKS, len(SNR_CACHE_SLOTS)), np.float32)}
-        sub = dataclasses.replace(sub, **{k: np.broadcast_to(np.array(np.nan, dt), shape)
-                                          for k, (shape, dt) in shapes.items()})
-    new, out = update(sub, anchors, ranges, sigmas, mask, t_ns, building, config,
-                      snr_db=snr_db, radio=radio)
-    return (slim_state(new, config) if slim else new), out
-
-
-def _task_update(model: tuple, *args):
-    return run_update(model[0], *args)
-
-
-def _task_mnls(model: tuple, apos, rng, sig, mask, snr_db, radio):
-    return est.mnls(apos, rng, sig, building=model[0], mask=mask, snr_db=snr_db, radio=radio)
-
-
-def _task_fail(model: tuple, *args):
-    """Fault injection for the tests: the worker raises, the caller computes locally."""
-    raise RuntimeError("injected worker failure")
-
-
-def _task_sleep(model: tuple, seconds: np.ndarray):
-    """Fault injection for the tests: a worker that hangs (``seconds[0]``) then answers."""
-    time.sleep(float(seconds[0]))
-    return seconds
-
-
-#: what a worker computes (the calling process runs the same functions for its own share)
-TASKS: dict[str, Callable[..., Any]] = {"update": _task_update, "mnls": _task_mnls,
-                                        "fail": _task_fail, "sleep": _task_sleep}
-
-
-def _die_with(parent_pid: int) -> None:
-    """SIGKILL when the parent dies (Linux), and exit at once if it is gone already."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-            libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
-    if os.getppid() != parent_pid:
-        os._exit(0)
-
-
-def worker_main(conn: Any, parent_pid: int, model: tuple) -> None:
-    """A worker process: warm up on ``model`` = (building, radio or None, window height,
-    first floor z), say ``ready``, then answer ``(kind, args)`` requests with ``("ok",
-    result, busy_s)`` or ``("err", traceback, 0.0)`` until ``stop`` or EOF (the parent is
-    gone); ``busy_s`` [s] is the task's wall time (the caller balances the shares by it)."""
-    _die_with(parent_pid)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the fusion stops us (or EOF)
-    with contextlib.suppress(OSError):
-        # a session of its own: Linux's autogroup scheduling (on by default) shares the CPU
-        # fairly between sessions, so in the fusion's session the worker would only split
-        # the fusion's one share on a busy machine (every anchor and the other jobs run in
-        # sessions of their own); the fusion stops it, SIGKILL of the fusion kills it
-        # (PDEATHSIG above, EOF on the pipe), not a signal to the fusion's process group
-        os.setsid()
-    warm_model(*model)
-    conn.send(("ready", os.getpid()))
-    while True:
-        try:
-            kind, args = conn.recv()
-        except (EOFError, OSError):
-            return
-        except Exception:  # the request was read but not decoded: the caller awaits a reply
-            kind, args = "", traceback.format_exc(limit=8)
-        if kind == "stop":
-            return
-        t0 = time.perf_counter()
-        try:
-            if not kind:
-                raise RuntimeError(f"request not decoded: {args}")
-            reply = ("ok", TASKS[kind](model, *args), time.perf_counter() - t0)
-            payload = _dumps(reply)
-        except Exception:  # reported to the caller, which computes the share locally
-            payload = _dumps(("err", traceback.format_exc(limit=8), 0.0))
-        try:
-            conn.send_bytes(payload)
-        except (OSError, ValueError):
-            return
-
-
-def _dumps(msg: Any) -> memoryview:
-    """``msg`` pickled as :meth:`multiprocessing.connection.Connection.send` does: pickled
-    whole before any byte is written, so a message that cannot be pickled leaves the pipe
-    as it was (the other end reads it with ``recv``)."""
-    return ForkingPickler.dumps(msg)
+LATENCY_MAX_S = 0.05  #: cap of :attr:`RowPool.latency_s` [s] (beyond +-1 s: clock not shared)
+_SHM_SEQ = itertools.count()  # names of the shared-memory files of this process
 
 
 # ------------------------------------------------------------------------ the pool
@@ -215,14 +103,14 @@ class _Slot:
     ready: bool = False
     restarts: int = 0
     pid: int | None = None
+    shm: Any = None  # the worker's :class:`.shm.Regions` (None: everything through the pipe)
     #: requests sent and not answered yet, oldest first (a worker answers in order)
     pending: collections.deque = dataclasses.field(default_factory=collections.deque)
 
 
 @dataclasses.dataclass
 class Pending:
-    """A request sent to a worker (or computed here at once: ``slot`` None, ``done``):
-    :meth:`RowPool.result` returns its value, computing it here if the worker failed."""
+    """A request to a worker (or done here: ``slot`` None): see :meth:`RowPool.result`."""
 
     kind: str
     args: tuple
@@ -234,6 +122,8 @@ class Pending:
     ok: bool = False
     value: Any = None
     busy_s: float = 0.0
+    alone: bool = False  # the worker had nothing else pending when this was sent
+    t_done_s: float | None = None  # the worker's perf_counter at the task's end (None: unknown)
 
 
 class RowPool:
@@ -268,6 +158,10 @@ class RowPool:
         #: publishes, and on a loaded machine its share ran ~1.5x slower than the worker's
         #: (soak, 2026-11-27): equal shares left the worker waiting.
         self.speed = 1.0
+        #: a worker's latency [s] beyond its task time (request transfer, wake-up, reply
+        #: pickling; EWMA, :meth:`_learn_latency`): the shares are balanced as if each worker
+        #: had that much work already (live soak: the caller waited ~5 ms per split call)
+        self.latency_s = 0.0
         #: a worker's seconds per row of each kind (EWMA; :meth:`unit_cost`)
         self._unit_s: dict[str, float] = {}
         #: requests submitted and not sent yet (:meth:`submit`)
@@ -283,12 +177,30 @@ class RowPool:
 
     # ---------------------------------------------------------------- processes
     def _start(self, s: _Slot) -> None:
+        path = shm.shm_path(os.getpid(), next(_SHM_SEQ))
+        if path is not None:
+            with contextlib.suppress(OSError, ValueError):
+                s.shm = shm.Regions(path, create=True)
         parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(target=worker_main, args=(child, os.getpid(), self.model),
-                                 name="diffpos-fusion-worker", daemon=True)
-        proc.start()
+        try:
+            proc = self._ctx.Process(
+                target=worker_main, args=(child, os.getpid(), self.model,
+                                          None if s.shm is None else s.shm.path),
+                name="diffpos-fusion-worker", daemon=True)
+            proc.start()
+        except BaseException:
+            self._drop_shm(s)
+            raise
         child.close()
         s.proc, s.conn, s.ready, s.pid = proc, parent, False, proc.pid
+
+    @staticmethod
+    def _drop_shm(s: _Slot) -> None:
+        if s.shm is not None:
+            s.shm.unlink()
+            with contextlib.suppress(Exception):
+                s.shm.close()
+            s.shm = None
 
     def _poll_ready(self, s: _Slot, timeout_s: float = 0.0) -> None:
         if s.ready or s.conn is None:
@@ -297,6 +209,10 @@ class RowPool:
             if s.conn.poll(timeout_s):
                 msg = s.conn.recv()
                 s.ready = msg[0] == "ready"
+                if s.shm is not None:
+                    s.shm.unlink()  # (the worker did, or failed to map it)
+                    if not (s.ready and len(msg) > 2 and msg[2]):
+                        self._drop_shm(s)
         except (EOFError, OSError):
             self._failed(s, "died")
 
@@ -342,6 +258,7 @@ class RowPool:
                 s.conn.close()
         s.proc = s.conn = s.pid = None
         s.ready = False
+        self._drop_shm(s)
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the workers: ``stop``, join with one shared ``timeout_s`` [s], then kill."""
@@ -373,8 +290,14 @@ class RowPool:
 
     def _dispatch(self, s: _Slot, p: Pending) -> Pending:
         p.slot, p.sent = s, True
+        p.alone = not s.pending
         try:  # an argument that cannot be pickled: nothing sent, the worker stays
-            payload = _dumps((p.kind, p.args))
+            # through the worker's request region when it is free (nothing pending), with
+            # the reply in its reply region (:mod:`.shm`); else through the pipe
+            ref = (shm.pack(s.shm.request, p.args, reply=True)
+                   if s.shm is not None and p.alone else None)
+            payload = _dumps((p.kind, p.args if ref is None else ref))
+            self.calls["via_shm"] += ref is not None
         except Exception as exc:
             self._failed(s, "error", f"request not pickled: {exc!r}")
             p.done = True
@@ -466,7 +389,9 @@ class RowPool:
             preload[k] += sum(p.cost for p in self._deferred)
             ready = [ready[k], *ready[:k], *ready[k + 1:]]
             preload = [preload[k], *preload[:k], *preload[k + 1:]]
-        shares = preloaded_bounds(cost, [1.0] + [self.speed] * len(ready), [0.0, *preload])
+        lat = self.latency_cost()
+        shares = preloaded_bounds(cost, [1.0] + [self.speed] * len(ready),
+                                  [0.0, *(x + lat for x in preload)])
         unit = self.unit_cost(kind)
         # the shares first: a big message to a worker busy with an earlier request would
         # block this process in send() until the worker reads it
@@ -487,6 +412,7 @@ class RowPool:
                     self._wait(p)
             done = [p for p, _ in sent if p is not None and p.ok]
             self._account(t1 - t0, c2 - c1, time.perf_counter() - t1, [p.busy_s for p in done])
+            self._learn_latency(t0, done)
             self.calls["rows_sent"] += sum(sl.stop - sl.start for p, sl in sent if p)
         if shares[0].stop > shares[0].start:
             self._learn(t1 - t0, float(cost[shares[0]].sum()), [p.busy_s for p in done],
@@ -501,8 +427,7 @@ class RowPool:
         self.calls["caller_cpu_s"] += time.thread_time() - c0
         return out
 
-    def _account(self, own_s: float, own_cpu_s: float, wait_s: float, busy: list[float]
-                 ) -> None:
+    def _account(self, own_s: float, own_cpu_s: float, wait_s: float, busy: list[float]) -> None:
         self.calls["own_share_s"] += own_s
         self.calls["own_cpu_s"] += own_cpu_s
         self.calls["wait_s"] += wait_s
@@ -519,6 +444,25 @@ class RowPool:
                      + (1 - SPEED_MEMORY) * math.log(min(max(ratio, 0.25), 4.0)))
         self.speed = math.exp(log_speed)
 
+    def latency_cost(self) -> float:  # latency_s in update rows of a worker (0: unknown)
+        u = self._unit_s.get("update")
+        return self.latency_s / u if u is not None and u > 0 else 0.0
+
+    def _learn_latency(self, t0: float, done: list[Pending]) -> None:
+        """:attr:`latency_s` (EWMA :data:`SPEED_MEMORY`) from the shares of a split call
+        whose worker had nothing else to do first: the task's end (the worker's clock) -
+        ``t0`` (the caller's own share's start) - its time, within [0, LATENCY_MAX_S]."""
+        for p in done:
+            if not p.alone or p.t_done_s is None:
+                continue
+            lat = p.t_done_s - t0 - p.busy_s
+            if abs(lat) > 1.0:
+                continue
+            lat = min(max(lat, 0.0), LATENCY_MAX_S)
+            self.latency_s = SPEED_MEMORY * self.latency_s + (1 - SPEED_MEMORY) * lat
+            self.calls["latency_n"] += 1
+            self.calls["latency_s"] += lat
+
     def _wait(self, p: Pending) -> None:
         """Receive the replies of ``p``'s worker in order until ``p``'s (each one stored in
         its request); a worker that dies or times out fails every request it holds."""
@@ -529,7 +473,9 @@ class RowPool:
                 if not s.conn.poll(TIMEOUT_BASE_S + TIMEOUT_PER_COST_S * head.cost):
                     self._failed(s, "timeout", f"{head.kind}, cost {head.cost:.0f}")
                     continue
-                tag, value, busy_s = s.conn.recv()
+                tag, value, busy_s, *stamp = s.conn.recv()
+                if isinstance(value, shm.ShmRef):
+                    value = shm.unpack(s.shm.reply, value)
             except (EOFError, OSError) as exc:
                 self._failed(s, "died", repr(exc))
                 continue
@@ -539,6 +485,7 @@ class RowPool:
                 continue
             s.pending.popleft()
             head.done, head.ok, head.busy_s = True, tag == "ok", busy_s
+            head.t_done_s = stamp[0] if stamp else None
             if head.ok:
                 head.value = value
                 if busy_s > 0 and head.units > 0:  # the worker's seconds per row of the kind
