@@ -230,6 +230,7 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
+from diffpos_services.heap import keep_heap
 from diffpos_services.recording.replay import replay
 from diffpos_services.wire import messages as M
 
@@ -484,6 +485,7 @@ def age_of_information(by_node: dict[str, list[tuple[int, int]]], t_end_ns: int)
 
 
 def main(argv: list[str] | None = None) -> int:
+    keep_heap()  # the allocator settings of the live fusion process (diffpos_services.heap)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="large", help="scenario name or file (default large)")
     ap.add_argument("--duration", type=float, default=10.0, help="emulated seconds (default 10)")

@@ -45,6 +45,7 @@ import time
 from pathlib import Path
 
 import msgspec
+from diffpos_services.heap import keep_heap
 from diffpos_services.recording.replay import replay
 from diffpos_services.wire import messages as M
 
@@ -62,6 +63,7 @@ def child_replay(path: str, mode: str, method: str = "default") -> dict:
     ``cpu_s`` is the whole process's CPU (imports included), ``fusion_cpu_s`` the replay
     call's own (``time.process_time`` around it)."""
     new = mode == "now"
+    keep_heap()  # as `diffpos replay` (diffpos_services.heap)
     c0, t0 = time.process_time(), time.perf_counter()
     r = replay(path, keep_estimates=not new, use_decisions=new,
                method=None if method == "default" else method)

@@ -36,6 +36,7 @@ from typing import Any
 
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+from diffpos_services.heap import keep_heap
 from diffpos_services.kit import ConfigError, load_json_option
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
@@ -223,6 +224,7 @@ def _write_report_files(result: Any, out_dir: Path) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     src = Path(args.file)
     out_dir = check_outputs(args)
+    keep_heap()  # as the live fusion's process (diffpos_services.heap)
     try:
         overrides = _overrides(args)
         progress = None

@@ -41,6 +41,7 @@ from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.workers import start_workers
+from diffpos_services.heap import keep_heap
 from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
@@ -502,6 +503,7 @@ def run_fusion(
     retries until ``stop``) or a ``zenoh.Config``. Returns the core (its counters).
     """
     log = logger or logging.getLogger("diffpos.fusion")
+    keep_heap()  # the tracker's temporaries reuse their pages (diffpos_services.heap)
     # the kernels' row pool: threads only (nothing forks); they start on the first split call
     kernel_pool.set_threads(config.kernel_threads)
     rows = None

@@ -21,6 +21,7 @@ import diffpos.estimators as est
 from diffpos_services.fusion import shm
 from diffpos_services.fusion.rows import run_update
 from diffpos_services.fusion.warm import warm_model
+from diffpos_services.heap import keep_heap
 
 __all__ = ["TASKS", "worker_main"]
 
@@ -84,6 +85,7 @@ def worker_main(conn: Any, parent_pid: int, model: tuple, shm_path: str | None =
         with contextlib.suppress(OSError, ValueError):
             regions = shm.Regions(shm_path, create=False)
             regions.unlink()  # mapped by both processes: the name is no longer needed
+    keep_heap()  # as the fusion's process (diffpos_services.heap)
     warm_model(*model)
     conn.send(("ready", os.getpid(), regions is not None))
     while True:

@@ -22,9 +22,11 @@ process keeps its peak heap (plus fragmentation) instead of returning it; a proc
 call this once at start, before its working set is built (``mallopt`` applies to later
 allocations).
 
-Process-wide and not part of any computation: the services' processes (the fusion and its
-workers) call it at start; the pure functions of the core never do. Not glibc (musl, macOS):
-nothing is changed and False is returned.
+Process-wide and not part of any computation, so it lives in the services, not the pure
+core: the fusion's process (``fusion.service.run_fusion``), its worker processes
+(``fusion.worker_proc.worker_main``), ``diffpos replay`` and the benchmarks that stand for
+them (``bench_fusion_cost.py``, ``bench_replay.py``) call it at start. Not glibc (musl,
+macOS): nothing is changed and False is returned.
 """
 
 from __future__ import annotations

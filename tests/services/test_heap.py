@@ -1,4 +1,4 @@
-"""diffpos._kernels.heap.keep_heap: glibc's thresholds set (True) or nothing changed (False
+"""diffpos_services.heap.keep_heap: glibc's thresholds set (True) or nothing changed (False
 elsewhere), bad values refused, and the tracker's numbers unchanged by it (an update of the
 same inputs before and after, bit for bit)."""
 
@@ -8,8 +8,8 @@ import platform
 
 import numpy as np
 import pytest
+from diffpos_services.heap import keep_heap
 
-from diffpos._kernels.heap import keep_heap
 from diffpos.scenario import Building
 from diffpos.tracking import TrackerConfig
 from diffpos.tracking_model import Links, measurement_update
