@@ -173,6 +173,45 @@ def test_sigkill_of_the_owner_leaves_no_worker(tmp_path):
             p.wait(10)
 
 
+def _shm_names() -> set[str]:
+    return set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
+
+
+def test_sigkill_of_the_owner_before_its_workers_started_leaves_no_shared_memory(tmp_path):
+    """The owner SIGKILLed right after making its pool (its workers still importing, their
+    regions not mapped yet): nothing of it is left in /dev/shm (a named file there would
+    hold its 2 x 8 MB of RAM until reboot) and its workers are gone."""
+    script = tmp_path / "owner.py"
+    script.write_text(textwrap.dedent("""
+        import json, os, signal
+        from diffpos.scenario import default_scenario
+        from diffpos_services.fusion.workers import RowPool
+
+        if __name__ == "__main__":
+            sc = default_scenario()
+            b = sc.building
+            pool = RowPool(3, (b, sc.radio, b.window_height_m, b.first_floor_z_m))
+            print(json.dumps({"pids": pool.pids, "shm": [s.shm is not None
+                                                        for s in pool._slots]}), flush=True)
+            os.kill(os.getpid(), signal.SIGKILL)
+    """))
+    before = _shm_names()
+    p = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    try:
+        info = json.loads(p.stdout.readline())
+        p.wait(30)
+        assert p.returncode == -signal.SIGKILL
+        assert _gone(info["pids"], 10) == []
+        assert info["shm"] == [True, True] or not sys.platform.startswith("linux")
+        left = sorted(n for n in _shm_names() - before if "diffpos" in n)
+        assert left == [], f"left in /dev/shm: {left}"
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(10)
+
+
 def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
     """A worker that does not answer within the timeout (here 0.5 s; live 30 s + 0.1 s per
     cost unit) is killed, its share computed by the caller, a new worker started."""
