@@ -156,9 +156,11 @@ class RowPool:
         #: publishes, and on a loaded machine its share ran ~1.5x slower than the worker's
         #: (soak, 2026-11-27): equal shares left the worker waiting.
         self.speed = 1.0
-        #: a worker's latency [s] beyond its task time (request transfer, wake-up, reply
-        #: pickling; EWMA, :meth:`_learn_latency`): the shares are balanced as if each worker
-        #: had that much work already (live soak: the caller waited ~5 ms per split call)
+        #: a worker's latency [s] beyond its task time (how late its task ends after the
+        #: caller's own share started, less the task: request transfer, unpickling, wake-up;
+        #: not the reply's pickling and transfer; EWMA, :meth:`_learn_latency`): the shares
+        #: are balanced as if each worker had that much work already (live soak: the caller
+        #: waited ~5 ms per split call)
         self.latency_s = 0.0
         #: a worker's seconds per row of each kind (EWMA; :meth:`unit_cost`)
         self._unit_s: dict[str, float] = {}
