@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import select
 import signal
 import subprocess
@@ -18,6 +19,7 @@ import time
 import msgspec
 import numpy as np
 import pytest
+from diffpos_services.fusion import shm
 from diffpos_services.fusion import workers as W
 from diffpos_services.recording import replay as replay_mod
 from diffpos_services.recording.replay import replay
@@ -206,6 +208,44 @@ def test_sigkill_of_the_owner_before_its_workers_started_leaves_no_shared_memory
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait(10)
+
+
+def _region_bytes(obj) -> int:
+    """Bytes a region needs for ``obj`` (its protocol-5 buffers, each 64-byte aligned)."""
+    bufs = []
+    pickle.dumps(obj, protocol=5, buffer_callback=bufs.append)
+    return sum(-(-b.raw().nbytes // 64) * 64 for b in bufs)
+
+
+def _fields_bytes(x) -> list:
+    return [None if getattr(x, f) is None else np.asarray(getattr(x, f)).tobytes()
+            for f in x.__dataclass_fields__]
+
+
+def test_messages_larger_than_a_region_cross_the_pipe_with_the_same_numbers(monkeypatch):
+    """A 40-row update sent whole to a worker (submit / result) with regions that hold the
+    request and the reply, the request only, or neither: the request goes through the region
+    only when it fits, the reply too (read from the region by the caller) else through the
+    pipe, and the numbers are those computed here, bit for bit, with no failure."""
+    cfg = TrackerConfig()
+    args = _update_args(40)
+    ref = W.run_update(SC.building, *args, cfg, None)
+    req, rep = _region_bytes((*args, cfg, None)), _region_bytes(ref)
+    assert rep - 64 > req  # (the reply carries the estimates besides the state)
+    read = []
+    unpack = shm.unpack
+    monkeypatch.setattr(shm, "unpack", lambda region, ref: read.append(1) or unpack(region, ref))
+    for region_bytes, via_shm, reply_read in ((rep + 64, 1, 1), (req, 1, 0), (req - 4096, 0, 0)):
+        monkeypatch.setattr(shm, "REGION_BYTES", region_bytes)
+        read.clear()
+        with W.RowPool(2, MODEL) as pool:
+            assert pool.wait_ready(120) == 1 and pool._slots[0].shm is not None
+            p = pool.submit("update", args, 40.0, shared=(cfg, None))
+            out = pool.result(p, shared=(cfg, None))
+            assert p.ok and not pool.failures, region_bytes
+            assert (pool.calls["via_shm"], len(read)) == (via_shm, reply_read), region_bytes
+        assert _fields_bytes(out[0]) == _fields_bytes(ref[0])
+        assert _fields_bytes(out[1]) == _fields_bytes(ref[1])
 
 
 def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
