@@ -250,7 +250,7 @@ def test_messages_larger_than_a_region_cross_the_pipe_with_the_same_numbers(monk
 
 def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
     """A worker that does not answer within the timeout (here 0.5 s; live 30 s + 0.1 s per
-    cost unit) is killed, its share computed by the caller, a new worker started."""
+    cost unit) is killed, its share computed by the caller, a new worker started and used."""
     monkeypatch.setattr(W, "TIMEOUT_BASE_S", 0.5)
     monkeypatch.setattr(W, "TIMEOUT_PER_COST_S", 0.0)
     with W.RowPool(2, MODEL) as pool:
@@ -262,6 +262,15 @@ def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
         assert pool.failures["timeout"] == 1
         assert _gone([old], 10) == []  # killed
         assert pool.wait_ready(120) == 1 and pool.pids[0] != old
+        # the new worker (its request region had the hung request: it has new regions)
+        # answers through its regions with the numbers computed here
+        cfg, args = TrackerConfig(), _update_args(40)
+        ref = W.run_update(SC.building, *args, cfg, None)
+        sent = pool.calls["via_shm"]
+        again = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
+        assert pool.calls["via_shm"] == sent + 1 and pool.failures["timeout"] == 1
+        assert _fields_bytes(again[0]) == _fields_bytes(ref[0])
+        assert _fields_bytes(again[1]) == _fields_bytes(ref[1])
 
 
 _WARM_CHECK = """
