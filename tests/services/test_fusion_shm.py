@@ -1,8 +1,9 @@
 """The worker pool's shared-memory transport (services/diffpos_services/fusion/shm.py)
 without processes: a tracker share packed into a mapped region and unpacked from a second
-mapping of the same file is equal to the original bit for bit (also non-contiguous arrays,
-which travel in the pickle), owns its memory (a rewrite of the region changes nothing
-unpacked before), and a message larger than the region is refused (None: the pipe)."""
+mapping of the same (anonymous) file is equal to the original bit for bit (also
+non-contiguous arrays, which travel in the pickle), owns its memory (a rewrite of the region
+changes nothing unpacked before), and a message larger than the region is refused (None:
+the pipe)."""
 
 from __future__ import annotations
 
@@ -33,20 +34,23 @@ def _same(a, b) -> bool:
     return pickle.dumps(a) == pickle.dumps(b)
 
 
+needs_memfd = pytest.mark.skipif(not hasattr(os, "memfd_create"), reason="no memfd_create")
+
+
 @pytest.fixture
-def regions(tmp_path, monkeypatch):
+def regions(monkeypatch):
     monkeypatch.setattr(shm, "REGION_BYTES", 1 << 20)
-    path = shm.shm_path(os.getpid(), 10**6) if os.path.isdir(shm.SHM_DIR) else None
-    path = path or str(tmp_path / "regions")
-    mine = shm.Regions(path, create=True)
-    theirs = shm.Regions(path, create=False)
-    mine.unlink()
-    assert not os.path.exists(path)  # mapped by both, named by none
+    mine = shm.Regions.create()
+    theirs = shm.Regions.attach(os.dup(mine.fd))  # as the worker does with its copy
+    # anonymous: named in no directory (a SIGKILLed owner leaves nothing behind)
+    assert os.readlink(f"/proc/self/fd/{mine.fd}").startswith("/memfd:")
+    mine.close_fd()
     yield mine, theirs
     theirs.close()
     mine.close()
 
 
+@needs_memfd
 def test_a_tracker_share_crosses_the_region_bit_for_bit(regions):
     mine, theirs = regions
     rng = np.random.default_rng(3)
@@ -70,6 +74,7 @@ def test_a_tracker_share_crosses_the_region_bit_for_bit(regions):
     assert _same(shm.unpack(mine.reply, back), share)
 
 
+@needs_memfd
 def test_a_message_larger_than_the_region_is_refused(regions):
     mine, _ = regions
     big = np.zeros(len(mine.request) // 8 + 1)
@@ -79,16 +84,21 @@ def test_a_message_larger_than_the_region_is_refused(regions):
     assert ref is not None and np.array_equal(shm.unpack(mine.request, ref)[0], fits)
 
 
-def test_a_full_tmpfs_leaves_no_file(tmp_path, monkeypatch):
-    """No room for the regions (posix_fallocate fails as on a full /dev/shm): the file is
-    removed and the error raised (the pool then uses its pipes), nothing is mapped."""
+@needs_memfd
+def test_no_memory_for_the_regions_leaves_no_descriptor(monkeypatch):
+    """No memory for the regions (posix_fallocate fails as without room for shared memory):
+    the error is raised (the pool then uses its pipes), the file's descriptor closed."""
     import errno
 
     def full(fd, offset, length):
         raise OSError(errno.ENOSPC, "No space left on device")
 
+    made = []
+    memfd_create = os.memfd_create
+    monkeypatch.setattr(os, "memfd_create", lambda *a: made.append(memfd_create(*a)) or made[-1])
     monkeypatch.setattr(os, "posix_fallocate", full, raising=False)
-    path = str(tmp_path / "regions")
     with pytest.raises(OSError):
-        shm.Regions(path, create=True)
-    assert not os.path.exists(path)
+        shm.Regions.create()
+    assert len(made) == 1
+    with pytest.raises(OSError):
+        os.fstat(made[0])

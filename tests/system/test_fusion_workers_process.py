@@ -6,9 +6,9 @@ worker behind. Process exits are awaited on pidfds, never slept for."""
 
 from __future__ import annotations
 
-import glob
 import json
 import os
+import pickle
 import select
 import signal
 import subprocess
@@ -90,9 +90,8 @@ def test_replay_two_workers_equals_one_and_a_killed_worker_loses_nothing(tmp_pat
     two, pool = _estimates(path, 2, monkeypatch)
     assert len(one) == 40 * 15 and two == one
     assert pool.calls["split"] > 0 and not pool.failures
-    # the shares crossed through the worker's mapped file (Linux: /dev/shm), none is left
-    assert pool.calls["via_shm"] >= pool.calls["split"] or not os.path.isdir(shm.SHM_DIR)
-    assert not glob.glob(os.path.join(shm.SHM_DIR, f"diffpos-fusion-{os.getpid()}-*"))
+    # the shares crossed through the worker's mapped file (Linux: memfd_create)
+    assert pool.calls["via_shm"] >= pool.calls["split"] or not hasattr(os, "memfd_create")
     calls = []
 
     def kill_on_third(p):  # SIGKILL the worker before the 3rd call (its pipe then breaks)
@@ -103,7 +102,6 @@ def test_replay_two_workers_equals_one_and_a_killed_worker_loses_nothing(tmp_pat
     killed, pool = _estimates(path, 2, monkeypatch, kill_on_third)
     assert killed == one
     assert pool.failures["died"] == 1 and pool._slots[0].restarts == 1
-    assert not glob.glob(os.path.join(shm.SHM_DIR, f"diffpos-fusion-{os.getpid()}-*"))
 
 
 def _update_args(n):
@@ -173,9 +171,86 @@ def test_sigkill_of_the_owner_leaves_no_worker(tmp_path):
             p.wait(10)
 
 
+def _shm_names() -> set[str]:
+    return set(os.listdir("/dev/shm")) if os.path.isdir("/dev/shm") else set()
+
+
+def test_sigkill_of_the_owner_before_its_workers_started_leaves_no_shared_memory(tmp_path):
+    """The owner SIGKILLed right after making its pool (its workers still importing, their
+    regions not mapped yet): nothing of it is left in /dev/shm (a named file there would
+    hold its 2 x 8 MB of RAM until reboot) and its workers are gone."""
+    script = tmp_path / "owner.py"
+    script.write_text(textwrap.dedent("""
+        import json, os, signal
+        from diffpos.scenario import default_scenario
+        from diffpos_services.fusion.workers import RowPool
+
+        if __name__ == "__main__":
+            sc = default_scenario()
+            b = sc.building
+            pool = RowPool(3, (b, sc.radio, b.window_height_m, b.first_floor_z_m))
+            print(json.dumps({"pids": pool.pids, "shm": [s.shm is not None
+                                                        for s in pool._slots]}), flush=True)
+            os.kill(os.getpid(), signal.SIGKILL)
+    """))
+    before = _shm_names()
+    p = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    try:
+        info = json.loads(p.stdout.readline())
+        p.wait(30)
+        assert p.returncode == -signal.SIGKILL
+        assert _gone(info["pids"], 10) == []
+        assert info["shm"] == [True, True] or not sys.platform.startswith("linux")
+        left = sorted(n for n in _shm_names() - before if "diffpos" in n)
+        assert left == [], f"left in /dev/shm: {left}"
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(10)
+
+
+def _region_bytes(obj) -> int:
+    """Bytes a region needs for ``obj`` (its protocol-5 buffers, each 64-byte aligned)."""
+    bufs = []
+    pickle.dumps(obj, protocol=5, buffer_callback=bufs.append)
+    return sum(-(-b.raw().nbytes // 64) * 64 for b in bufs)
+
+
+def _fields_bytes(x) -> list:
+    return [None if getattr(x, f) is None else np.asarray(getattr(x, f)).tobytes()
+            for f in x.__dataclass_fields__]
+
+
+def test_messages_larger_than_a_region_cross_the_pipe_with_the_same_numbers(monkeypatch):
+    """A 40-row update sent whole to a worker (submit / result) with regions that hold the
+    request and the reply, the request only, or neither: the request goes through the region
+    only when it fits, the reply too (read from the region by the caller) else through the
+    pipe, and the numbers are those computed here, bit for bit, with no failure."""
+    cfg = TrackerConfig()
+    args = _update_args(40)
+    ref = W.run_update(SC.building, *args, cfg, None)
+    req, rep = _region_bytes((*args, cfg, None)), _region_bytes(ref)
+    assert rep - 64 > req  # (the reply carries the estimates besides the state)
+    read = []
+    unpack = shm.unpack
+    monkeypatch.setattr(shm, "unpack", lambda region, ref: read.append(1) or unpack(region, ref))
+    for region_bytes, via_shm, reply_read in ((rep + 64, 1, 1), (req, 1, 0), (req - 4096, 0, 0)):
+        monkeypatch.setattr(shm, "REGION_BYTES", region_bytes)
+        read.clear()
+        with W.RowPool(2, MODEL) as pool:
+            assert pool.wait_ready(120) == 1 and pool._slots[0].shm is not None
+            p = pool.submit("update", args, 40.0, shared=(cfg, None))
+            out = pool.result(p, shared=(cfg, None))
+            assert p.ok and not pool.failures, region_bytes
+            assert (pool.calls["via_shm"], len(read)) == (via_shm, reply_read), region_bytes
+        assert _fields_bytes(out[0]) == _fields_bytes(ref[0])
+        assert _fields_bytes(out[1]) == _fields_bytes(ref[1])
+
+
 def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
     """A worker that does not answer within the timeout (here 0.5 s; live 30 s + 0.1 s per
-    cost unit) is killed, its share computed by the caller, a new worker started."""
+    cost unit) is killed, its share computed by the caller, a new worker started and used."""
     monkeypatch.setattr(W, "TIMEOUT_BASE_S", 0.5)
     monkeypatch.setattr(W, "TIMEOUT_PER_COST_S", 0.0)
     with W.RowPool(2, MODEL) as pool:
@@ -187,6 +262,15 @@ def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
         assert pool.failures["timeout"] == 1
         assert _gone([old], 10) == []  # killed
         assert pool.wait_ready(120) == 1 and pool.pids[0] != old
+        # the new worker (its request region had the hung request: it has new regions)
+        # answers through its regions with the numbers computed here
+        cfg, args = TrackerConfig(), _update_args(40)
+        ref = W.run_update(SC.building, *args, cfg, None)
+        sent = pool.calls["via_shm"]
+        again = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
+        assert pool.calls["via_shm"] == sent + 1 and pool.failures["timeout"] == 1
+        assert _fields_bytes(again[0]) == _fields_bytes(ref[0])
+        assert _fields_bytes(again[1]) == _fields_bytes(ref[1])
 
 
 _WARM_CHECK = """

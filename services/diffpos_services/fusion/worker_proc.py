@@ -62,10 +62,9 @@ def _die_with(parent_pid: int) -> None:
         os._exit(0)
 
 
-def worker_main(conn: Any, parent_pid: int, model: tuple, shm_path: str | None = None
-                ) -> None:
-    """A worker process: map the caller's regions (``shm_path``, :mod:`.shm`), warm up on
-    ``model`` = (building, radio or None, window height, first floor z), say ``("ready",
+def worker_main(conn: Any, parent_pid: int, model: tuple, shm_fd: int | None = None) -> None:
+    """A worker process: map the caller's regions (descriptor ``shm_fd``, :mod:`.shm`),
+    warm up on ``model`` = (building, radio or None, window height, first floor z), say ``("ready",
     pid, regions mapped)``, then answer ``(kind, args)`` requests with ``("ok",
     result, busy_s, t_done_s)`` or ``("err", traceback, 0.0)`` until ``stop`` or EOF (the parent is
     gone); ``busy_s`` [s] is the task's wall time (the caller balances the shares by it),
@@ -81,10 +80,9 @@ def worker_main(conn: Any, parent_pid: int, model: tuple, shm_path: str | None =
         # (PDEATHSIG above, EOF on the pipe), not a signal to the fusion's process group
         os.setsid()
     regions = None
-    if shm_path is not None:
+    if shm_fd is not None:
         with contextlib.suppress(OSError, ValueError):
-            regions = shm.Regions(shm_path, create=False)
-            regions.unlink()  # mapped by both processes: the name is no longer needed
+            regions = shm.Regions.attach(shm_fd)
     keep_heap()  # as the fusion's process (diffpos_services.heap)
     warm_model(*model)
     conn.send(("ready", os.getpid(), regions is not None))

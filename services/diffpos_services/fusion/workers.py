@@ -43,7 +43,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
-import itertools
 import logging
 import math
 import multiprocessing as mp
@@ -92,7 +91,6 @@ TIMEOUT_PER_COST_S = 0.1
 #: Memory of the measured worker speed (:attr:`RowPool.speed`): weight of the previous value.
 SPEED_MEMORY = 0.8
 LATENCY_MAX_S = 0.05  #: cap of :attr:`RowPool.latency_s` [s] (beyond +-1 s: clock not shared)
-_SHM_SEQ = itertools.count()  # names of the shared-memory files of this process
 
 
 # ------------------------------------------------------------------------ the pool
@@ -158,9 +156,11 @@ class RowPool:
         #: publishes, and on a loaded machine its share ran ~1.5x slower than the worker's
         #: (soak, 2026-11-27): equal shares left the worker waiting.
         self.speed = 1.0
-        #: a worker's latency [s] beyond its task time (request transfer, wake-up, reply
-        #: pickling; EWMA, :meth:`_learn_latency`): the shares are balanced as if each worker
-        #: had that much work already (live soak: the caller waited ~5 ms per split call)
+        #: a worker's latency [s] beyond its task time (how late its task ends after the
+        #: caller's own share started, less the task: request transfer, unpickling, wake-up;
+        #: not the reply's pickling and transfer; EWMA, :meth:`_learn_latency`): the shares
+        #: are balanced as if each worker had that much work already (live soak: the caller
+        #: waited ~5 ms per split call)
         self.latency_s = 0.0
         #: a worker's seconds per row of each kind (EWMA; :meth:`unit_cost`)
         self._unit_s: dict[str, float] = {}
@@ -177,27 +177,26 @@ class RowPool:
 
     # ---------------------------------------------------------------- processes
     def _start(self, s: _Slot) -> None:
-        path = shm.shm_path(os.getpid(), next(_SHM_SEQ))
-        if path is not None:
-            with contextlib.suppress(OSError, ValueError):
-                s.shm = shm.Regions(path, create=True)
+        with contextlib.suppress(OSError, ValueError):
+            s.shm = shm.Regions.create()
         parent, child = self._ctx.Pipe(duplex=True)
         try:
             proc = self._ctx.Process(
                 target=worker_main, args=(child, os.getpid(), self.model,
-                                          None if s.shm is None else s.shm.path),
+                                          None if s.shm is None else shm.PassFd(s.shm.fd)),
                 name="diffpos-fusion-worker", daemon=True)
             proc.start()
         except BaseException:
             self._drop_shm(s)
             raise
+        if s.shm is not None:
+            s.shm.close_fd()  # the worker has its copy (passed at its start)
         child.close()
         s.proc, s.conn, s.ready, s.pid = proc, parent, False, proc.pid
 
     @staticmethod
     def _drop_shm(s: _Slot) -> None:
         if s.shm is not None:
-            s.shm.unlink()
             with contextlib.suppress(Exception):
                 s.shm.close()
             s.shm = None
@@ -209,10 +208,8 @@ class RowPool:
             if s.conn.poll(timeout_s):
                 msg = s.conn.recv()
                 s.ready = msg[0] == "ready"
-                if s.shm is not None:
-                    s.shm.unlink()  # (the worker did, or failed to map it)
-                    if not (s.ready and len(msg) > 2 and msg[2]):
-                        self._drop_shm(s)
+                if s.shm is not None and not (s.ready and len(msg) > 2 and msg[2]):
+                    self._drop_shm(s)  # the worker did not map it: its pipe only
         except (EOFError, OSError):
             self._failed(s, "died")
 
