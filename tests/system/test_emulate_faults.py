@@ -104,9 +104,23 @@ def test_sigkill_of_emulate_stops_every_child(services, tmp_path):
     """emulate SIGKILLed: its children get the parent-death signal and stop."""
     p, kids = _start_emulate(services, tmp_path, "--duration", "120", "--dashboard", "off",
                              "--record", str(tmp_path / "run.mcap"))
+    cmds = {pid: _cmdline(pid) for pid in kids}
     os.kill(p.pid, signal.SIGKILL)
     p.wait(timeout=10)
-    assert wait_gone(kids, 30.0) == []
+    left = wait_gone(kids, 30.0)
+    assert left == [], ([cmds[pid] for pid in left], _log_tails(tmp_path / "logs"))
+
+
+def _cmdline(pid: int) -> str:
+    with contextlib.suppress(OSError):
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+    return "?"
+
+
+def _log_tails(log_dir: Path, n_chars: int = 600) -> dict[str, str]:
+    """The end of every child's log (what a survivor was doing when its parent died)."""
+    return {f.name: f.read_text(errors="replace")[-n_chars:] for f in sorted(log_dir.glob("*"))
+            if f.is_file()}
 
 
 def _pid_of(tmp_path: Path, kids: list[int], service: str) -> int:
