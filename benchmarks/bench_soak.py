@@ -427,22 +427,18 @@ def msgspec_seq():
     return d.decode
 
 
-#: :func:`_missing_summary`: the start-up span [s] whose missing estimates are counted apart
-#: (every node appears at once: its track initialisations are a burst of work).
-STARTUP_S = 5.0
+STARTUP_S = 5.0  # every node appears at once: its track initialisations are a burst of work
 
 
 def _missing_summary(seen: np.ndarray, rate_hz: float = 10.0) -> dict:
-    """Where estimates are missing: per epoch index (first/last few) and count; how many in
-    the first :data:`STARTUP_S` seconds and after, and the time of the last epoch with one
-    [s from the run's start] (None: none missing)."""
+    """Where estimates are missing: per epoch index (first/last few) and count, in the first
+    :data:`STARTUP_S` seconds and after, the last epoch with one [s] (None: none missing)."""
     miss = (seen == 0).sum(axis=0)
     idx = np.flatnonzero(miss)
     k0 = round(STARTUP_S * rate_hz)
-    return {"epochs_with_missing": int(idx.size),
-            "first": [[int(k), int(miss[k])] for k in idx[:5]],
-            "last": [[int(k), int(miss[k])] for k in idx[-5:]],
-            "missing_startup": int(miss[:k0].sum()), "missing_after_startup": int(miss[k0:].sum()),
+    return {"epochs_with_missing": int(idx.size), "first": [[int(k), int(miss[k])] for k in idx[:5]],
+            "last": [[int(k), int(miss[k])] for k in idx[-5:]], "missing_startup":
+            int(miss[:k0].sum()), "missing_after_startup": int(miss[k0:].sum()),
             "last_missing_s": float(idx[-1] / rate_hz) if idx.size else None}
 
 
@@ -527,11 +523,10 @@ def format_report(r: dict) -> str:
         f"fusion latency p50 {fmt(lat['p50'])} ms, p99 {fmt(lat['p99'])} ms, "
         f"max {fmt(lat['max'])} ms",
     ]
-    mb = r.get("missing_by_epoch") or {}
-    if "missing_startup" in mb:
-        lines.append(f"missing estimates: {mb['missing_startup']} in the first {STARTUP_S:.0f} s "
-                     f"(every node starts at once), {mb['missing_after_startup']} after; the "
-                     f"last epoch with one at t = {mb['last_missing_s']} s")
+    mb = r["missing_by_epoch"]
+    lines.append(f"missing estimates: {mb['missing_startup']} in the first {STARTUP_S:.0f} s "
+                 f"(every node starts at once), {mb['missing_after_startup']} after; the last "
+                 f"epoch with one at t = {mb['last_missing_s']} s")
     pn = r.get("per_node") or {}
     if pn:
         lines.append(f"per node: estimates/s min/median/max {pn.get('rate_hz_min_p50_max')}, "
