@@ -110,20 +110,22 @@ def _select_prep(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
     """Candidates, SNR log-likelihood term and innovation variance of every slot, (N, H, M, K)
     (:func:`diffpos._kernels.tracking_nb.select_prep_kernel`)."""
     shape = pe.length.shape
-    n, h, m = shape[:3]
     valid = np.empty(shape, dtype=np.bool_)
     s_ll, s_var = np.empty(shape), np.empty(shape)
-    use_snr = snr_c is not None
-    snr = _c(links.snr[:, 0]) if use_snr else np.zeros((n, m))
-    sc = _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1))
-    select_prep_kernel(
-        _c(pe.length), _c(pe.jac),
-        _c(pe.sure), _c(pe.loose), _IS_DIFF,
-        _cb(pos_cov, (n, h, 3, 3)),
-        _c(links.var[:, 0]), snr, sc, use_snr,
-        np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
-        valid, s_ll, s_var)
+    select_prep_kernel(_c(pe.length), _c(pe.jac), _c(pe.sure), _c(pe.loose), _IS_DIFF,
+                       *_prep_inputs(pos_cov, links, snr_c, *shape[:2]), valid, s_ll, s_var)
     return valid, s_ll, s_var
+
+
+def _prep_inputs(pos_cov: FloatArray, links: Links, snr_c, n: int, h: int) -> tuple:
+    """The per-link inputs of ``select_prep_kernel`` / ``select_pack_kernel`` after the paths:
+    the covariance, the range variances, the SNRs and their costs, the constants."""
+    m = links.rho.shape[-1]
+    use_snr = snr_c is not None
+    return (_cb(pos_cov, (n, h, 3, 3)), _c(links.var[:, 0]),
+            _c(links.snr[:, 0]) if use_snr else np.zeros((n, m)),
+            _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1)), use_snr,
+            np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)))
 
 
 def _select_prep_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
@@ -147,14 +149,9 @@ def _select_prep_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
 def _select_fixed(pos_cov: FloatArray, links: Links, config, snr_c, n: int, h: int) -> tuple:
     """:func:`select`'s kernel inputs that do not depend on the paths (the selection passes of
     one update share them): the covariance, the links' columns and the constants."""
-    m = links.rho.shape[-1]
-    use_snr = snr_c is not None
     eps = config.outlier_weight
-    return (_cb(pos_cov, (n, h, 3, 3)), _c(links.var[:, 0]),
-            _c(links.snr[:, 0]) if use_snr else np.zeros((n, m)),
-            _c(snr_c) if use_snr else np.zeros((1, 1, 1, 1)), use_snr,
-            np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
-            _c(links.rho[:, 0]), _c(links.mask[:, 0]),
+    return (*_prep_inputs(pos_cov, links, snr_c, n, h), _c(links.rho[:, 0]),
+            _c(links.mask[:, 0]),
             np.array([_LOG2PI, np.log1p(-eps), np.log(eps / config.outlier_span_m),
                       -np.log(SNR_SPAN_DB)]))
 
