@@ -12,10 +12,14 @@ Usage::
 (copies; the outputs' shapes only) of ``--calls`` calls of each kernel after the first
 ``--skip``: ``tracking_nb.all_paths_kernel`` (the tracker's path model, ~3 calls per update),
 ``channel_nb.channel_snr_masked_kernel`` (the tracker's SNR prediction: the hypotheses' slots
-and the relax holes) and ``channel_nb.channel_snr_kernel`` (every slot: the M-NLS snapshots).
+and the relax holes), ``channel_nb.channel_snr_kernel`` (every slot: the M-NLS snapshots) and
+``tracking_nb.grid_cost_kernel`` (the grid search of a track's initialisation; its calls from
+the first on, as many as come before the others have theirs).
 ``time`` runs each kernel over the kept calls ``--reps`` times (``time.process_time``, the
 best pass; the first call before, so compile or cache load is not counted) and prints the
-CPU, ns per output element and a sha256 of every output byte (NaN patterns included).
+CPU, ns per output element and a sha256 of every output byte (NaN patterns included; for
+``grid`` of what its caller uses: the ``keep`` cheapest cells per node and floor, in order, and
+their totals, since which other cells it abandons (+inf) depends on its pruning).
 
 To compare two trees, capture once (the inputs are the same in both while the estimates are)
 and run ``time`` alternately with each tree on ``PYTHONPATH`` (numba's cache of the tree is
@@ -33,6 +37,14 @@ Measured 2026-11-27 16:25-16:27 UTC (2-core x86_64 VM shared with another job, l
 
 (``masked``: the tracker's SNR prediction, -6 to -9 %; ``full``: every slot, the M-NLS
 snapshots' SNR, -6 to -9 %; ``paths``: within the noise.) Equal digests: bit-identical outputs.
+
+The grid search visiting its cells by a lower bound (``grid_cost_kernel``), 2026-11-28
+00:00 UTC (same VM, load 6.7-8.2: other jobs), main 7f546cd (before) and after alternating,
+best of 5, one call each (every node's initialisation of the replay)::
+
+    capture                          CPU s before     CPU s after      ranked output sha256
+    soak16x200.mcap (200 nodes x 16) 0.446 / 0.442    0.185 / 0.184    f590bd5e8c5d5e72 (both)
+    large (50 nodes x 8 anchors)     0.066 / 0.065    0.024 / 0.024    05074f345cb61916 (both)
 """
 
 from __future__ import annotations
@@ -47,7 +59,8 @@ import time
 
 import numpy as np
 
-_N_OUT = {"paths": 5, "masked": 1, "full": 1}  # trailing output arguments of each kernel
+_N_OUT = {"paths": 5, "masked": 1, "full": 1, "grid": 1}  # trailing output arguments
+_SKIPPED = {"grid"}  # kernels kept from their first call (a replay initialises early)
 
 
 class _Enough(Exception):
@@ -58,24 +71,25 @@ def capture(recording: str, out: str, skip: int, n_calls: int) -> dict[str, int]
     from diffpos_services.recording.replay import replay
 
     import diffpos._kernels.channel_nb as cn
+    import diffpos.tracking_init as ti
     import diffpos.tracking_paths as tp
 
     cn.warm_channel()  # before the kernels are wrapped (it compiles them by name)
     kept: dict[str, list] = {k: [] for k in _N_OUT}
     seen = dict.fromkeys(_N_OUT, 0)
     orig = {"paths": tp.all_paths_kernel, "masked": cn.channel_snr_masked_kernel,
-            "full": cn.channel_snr_kernel}
+            "full": cn.channel_snr_kernel, "grid": ti.grid_cost_kernel}
 
     def wrap(key):
         f = orig[key]
 
         def g(*args):
             seen[key] += 1
-            if seen[key] > skip and len(kept[key]) < n_calls:
+            if seen[key] > (0 if key in _SKIPPED else skip) and len(kept[key]) < n_calls:
                 ins, outs = args[:-_N_OUT[key]], args[-_N_OUT[key]:]
                 kept[key].append((tuple(np.array(a) if isinstance(a, np.ndarray) else a
                                         for a in ins), [(o.shape, o.dtype) for o in outs]))
-            if all(len(v) >= n_calls for v in kept.values()):
+            if all(len(v) >= n_calls for k, v in kept.items() if k not in _SKIPPED):
                 raise _Enough
             return f(*args)
         return g
@@ -83,6 +97,7 @@ def capture(recording: str, out: str, skip: int, n_calls: int) -> dict[str, int]
     tp.all_paths_kernel = wrap("paths")
     cn.channel_snr_masked_kernel = wrap("masked")
     cn.channel_snr_kernel = wrap("full")
+    ti.grid_cost_kernel = wrap("grid")
     try:
         replay(recording, use_decisions=False, method="mnls", out_mcap=None,
                keep_estimates=False)
@@ -92,6 +107,7 @@ def capture(recording: str, out: str, skip: int, n_calls: int) -> dict[str, int]
         tp.all_paths_kernel = orig["paths"]
         cn.channel_snr_masked_kernel = orig["masked"]
         cn.channel_snr_kernel = orig["full"]
+        ti.grid_cost_kernel = orig["grid"]
     with open(out, "wb") as fh:
         pickle.dump(kept, fh)
     return {k: len(v) for k, v in kept.items()}
@@ -105,7 +121,7 @@ def time_kernels(inputs: str, reps: int) -> list[tuple]:
         kept = pickle.load(fh)
     cn.warm_channel()
     fn = {"paths": tn.all_paths_kernel, "masked": cn.channel_snr_masked_kernel,
-          "full": cn.channel_snr_kernel}
+          "full": cn.channel_snr_kernel, "grid": tn.grid_cost_kernel}
     rows = []
     for key, calls in kept.items():
         if not calls:
@@ -119,12 +135,19 @@ def time_kernels(inputs: str, reps: int) -> list[tuple]:
                 fn[key](*ins, *out)
             best = min(best, time.process_time() - t0)
         h = hashlib.sha256()
-        for out in outs:
-            for o in out:
+        for (ins, _), out in zip(calls, outs, strict=True):
+            for o in (_ranked(out[0], ins[11]) if key == "grid" else out):
                 h.update(np.ascontiguousarray(o).tobytes())
         n_items = sum(o[0].size for o in outs)
         rows.append((key, len(calls), best, 1e9 * best / n_items, h.hexdigest()[:16]))
     return rows
+
+
+def _ranked(total: np.ndarray, keep: int) -> tuple[np.ndarray, np.ndarray]:
+    """What ``grid_starts`` uses of a ``grid_cost_kernel`` output: the ``keep`` cheapest cells
+    per (node, floor) in stable order and their totals."""
+    order = np.argsort(total, axis=2, kind="stable")[..., :max(int(keep), 1)]
+    return order, np.take_along_axis(total, order, 2)
 
 
 def main() -> int:

@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from diffpos._kernels.paths_nb import building_planes
-from diffpos._kernels.tracking_nb import grid_cost_kernel
+from diffpos._kernels.tracking_nb import GRID_BOUND_SLACK_M, grid_cost_kernel
 from diffpos.paths import MECHANISMS
 from diffpos.scenario import Building, default_scenario
 from diffpos.tracking import TrackerConfig
@@ -237,6 +237,25 @@ def test_grid_cost_kernel_pruning_keeps_the_best_cells_exactly(bi):
     assert abandoned > full.size  # the pruning is not vacuous (over the three keeps)
     neg = _grid_totals(links, floors, b, cfg, 3, -1.0)
     np.testing.assert_array_equal(neg, _grid_totals(links, floors, b, cfg, 0, -1.0))
+
+
+@pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
+def test_no_mechanism_is_shorter_than_the_straight_line(bi):
+    """The premise of the grid search's lower bound (``grid_cost_kernel``): every slot's
+    computed length, wherever it exists (loose), is at least the straight line from the
+    anchor to the point minus ``GRID_BOUND_SLACK_M``; points anywhere on and between the
+    floors (window heights, the facade plane, beyond the facade ends), anchors in front,
+    above the windows and beyond the facade ends, the band widened. Over the same points the
+    smallest excess over the straight line is close to 0 (paths through the opening exist
+    and are almost straight), so the test would see a path cut short."""
+    b = _BUILDINGS[bi]
+    pos, links, floor, _ = _case(b, 700 + bi, n=40, h=25, m=12)
+    pe = all_paths(pos, links, floor, b, 0.3)
+    los = np.linalg.norm(pos[:, :, None, :] - links.anchors, axis=-1)  # (N, H, M)
+    excess = np.where(pe.loose, pe.length - los[..., None], np.inf)
+    assert np.all(np.nan_to_num(excess, nan=np.inf) >= -GRID_BOUND_SLACK_M)
+    assert np.isfinite(excess).sum() > 10_000
+    assert np.nanmin(excess) < 0.05
 
 
 @pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
