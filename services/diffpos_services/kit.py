@@ -12,7 +12,9 @@ Standard library and msgspec only (no zenoh: the bus health check is
   problem once per (key, reason); :data:`STATUS` is the one live status line of a terminal
   (log records print above it: the handler clears and redraws it).
 - :class:`Shutdown` turns SIGINT/SIGTERM into an event the main loop waits on, so sessions
-  are closed by their ``with`` blocks and buffers are flushed before exit; :func:`run_main`
+  are closed by their ``with`` blocks and buffers are flushed before exit; a main thread
+  waits and joins only in slices (:meth:`Shutdown.wait`, :func:`wait_event`,
+  :func:`join_thread`: a signal taken by another thread runs its handler); :func:`run_main`
   runs a service body; :func:`stop_process_groups` and :func:`free_tcp_port` help the
   commands that start processes (``diffpos emulate``, tests, benchmarks).
 """

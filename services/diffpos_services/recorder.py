@@ -12,7 +12,12 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
   SIGKILL at most the last interval is lost (``diffpos recover`` rewrites the rest into a
   valid file);
 * the recorder's own liveliness token (:meth:`Keys.alive_recorder`) is declared once both
-  subscribers exist, so whoever waits for it knows recording has started.
+  subscribers exist, so whoever waits for it knows recording has started;
+* the stop is bounded: the main thread waits for ``stop`` and joins in signal-poll slices
+  (:func:`diffpos_services.kit.wait_event`: a SIGTERM taken by another thread is acted on),
+  and after the session closed the drain thread is waited for until its channel is drained
+  (:meth:`_Drain.finish`: bounded even if the channel stayed open). Everything received
+  before the stop is written and the file is finished.
 
 Foreign messages (issue 15 item 9). When the recording carries a run configuration naming
 the run's fusion (``emulate.fusion_id_prefix``: every sample of the fusion ``diffpos
