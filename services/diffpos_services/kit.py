@@ -408,6 +408,20 @@ def join_thread(thread: threading.Thread, timeout: float | None = None) -> bool:
     return True
 
 
+class _SignalSafeEvent(threading.Event):
+    """A ``threading.Event`` a signal handler may set: its condition's lock is re-entrant.
+
+    Python runs a handler in the main thread between two bytecodes, possibly while that
+    thread is inside ``Event.wait`` holding the event's lock (it takes it on every entry:
+    with waits in slices, four times a second); ``set()`` on a plain Event would then wait
+    forever for a lock its own thread holds.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._cond = threading.Condition(threading.RLock())
+
+
 class Shutdown:
     """SIGINT/SIGTERM/SIGHUP -> ``event``; the main loop waits on it and exits its ``with``
     blocks (a closed terminal stops a service cleanly instead of killing it mid-write).
@@ -422,7 +436,7 @@ class Shutdown:
     """
 
     def __init__(self, logger: logging.Logger | None = None) -> None:
-        self.event = threading.Event()
+        self.event: threading.Event = _SignalSafeEvent()
         self.signal_name: str | None = None
         self._logger = logger
         self._parent = os.environ.get(PARENT_PID_ENV) or None

@@ -144,3 +144,27 @@ def test_repeated_sigterm_after_the_parent_died_does_not_interrupt_the_stop(pare
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(pid, signal.SIGKILL)
         p.wait(timeout=TIMEOUT_S)
+
+
+# The handler runs in the main thread between two bytecodes, possibly inside Event.wait while
+# that thread holds the event's lock (every slice of Shutdown.wait takes it); setting the
+# event must not wait for that lock. raise_signal runs the handler at once, here with the lock
+# held as Event.wait holds it.
+_LOCKED = textwrap.dedent("""
+    import signal
+    from diffpos_services.kit import Shutdown
+    stop = Shutdown()
+    with stop.event._cond:  # what Event.wait holds between its bytecodes
+        signal.raise_signal(signal.SIGTERM)  # the handler runs in this thread, now
+    print("set", stop.is_set(), flush=True)
+""")
+
+
+def test_handler_sets_the_event_while_the_main_thread_holds_its_lock():
+    try:
+        done = subprocess.run([sys.executable, "-c", _LOCKED], capture_output=True, text=True,
+                              timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:  # a plain threading.Event deadlocks here
+        pytest.fail("the signal handler waited for the lock its own thread held")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "set True"
