@@ -426,20 +426,21 @@ class Shutdown:
     """SIGINT/SIGTERM/SIGHUP -> ``event``; the main loop waits on it and exits its ``with``
     blocks (a closed terminal stops a service cleanly instead of killing it mid-write).
 
-    A second signal while shutting down raises ``KeyboardInterrupt`` (escape hatch), except
-    the repeats of a parent's death: a child of a diffpos process (:func:`child_env`) gets
-    SIGTERM when its parent dies (:func:`die_with_parent`), and the kernel sends it again
-    each time the orphan is handed to another thread of the dying parent (measured: 1-8
-    SIGTERMs per child of a SIGKILLed 9-thread parent); those must not interrupt the
-    child's own orderly stop (closing its session, finishing its file) at a random point.
-    A child whose parent is already gone stops at once. Must be created in the main thread.
+    A second SIGINT while shutting down raises ``KeyboardInterrupt`` (the escape hatch of a
+    person pressing Ctrl-C twice). A repeated SIGTERM or SIGHUP is ignored: the stop is
+    under way, and a supervisor escalates with SIGKILL. Why: a child of a diffpos process
+    (:func:`child_env`) gets SIGTERM when its parent dies (:func:`die_with_parent`), and the
+    kernel sends it again each time the orphan is handed to another thread of the dying
+    parent (measured: 1-8 SIGTERMs per child of a SIGKILLed 9-thread parent; ``getppid()``
+    is the parent's pid until the last); those interrupted the child's own orderly stop
+    (closing its session, finishing its file) at a random point. A child whose parent is
+    already gone stops at once. Must be created in the main thread.
     """
 
     def __init__(self, logger: logging.Logger | None = None) -> None:
         self.event: threading.Event = _SignalSafeEvent()
         self.signal_name: str | None = None
         self._logger = logger
-        self._parent = os.environ.get(PARENT_PID_ENV) or None
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, self._handle)
         if not die_with_parent(signal.SIGTERM):
@@ -451,9 +452,9 @@ class Shutdown:
     def _handle(self, signum: int, _frame: Any) -> None:
         name = signal.Signals(signum).name
         if self.event.is_set():
-            if self._parent is not None and str(os.getppid()) != self._parent:
-                return  # the parent's death again (see the class docstring): keep stopping
-            raise KeyboardInterrupt(name)
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt(name)
+            return  # SIGTERM/SIGHUP again (e.g. the parent's death, repeated): keep stopping
         self.signal_name = name
         if self._logger is not None:
             log_event(self._logger, logging.INFO, "shutdown requested", signal=name)
