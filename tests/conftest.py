@@ -41,6 +41,28 @@ def endpoint() -> str:
 TEST_RUN_ENV = "DIFFPOS_TEST_RUN"
 
 
+def thread_states(pid: int) -> str:
+    """Each thread of ``pid``: its state, the system call it sleeps in (/proc ``syscall``:
+    number and arguments, 202 = futex on x86_64; "running" if none) and its signal masks
+    (pending, shared pending, blocked): what a process that did not stop on a signal was
+    doing, for a failure message."""
+    lines = []
+    with contextlib.suppress(OSError):
+        for tid in sorted(os.listdir(f"/proc/{pid}/task"), key=int):
+            task = Path(f"/proc/{pid}/task/{tid}")
+            with contextlib.suppress(OSError):
+                status = dict(ln.split(":\t", 1) for ln in
+                              (task / "status").read_text().splitlines() if ":\t" in ln)
+                call = ""
+                with contextlib.suppress(OSError):
+                    call = (task / "syscall").read_text().split()[0]
+                lines.append(f"  tid {tid}{' (main)' if tid == str(pid) else ''} "
+                             f"{status.get('State', '?')} syscall {call or '?'} "
+                             f"SigPnd {status.get('SigPnd', '?')} ShdPnd "
+                             f"{status.get('ShdPnd', '?')} SigBlk {status.get('SigBlk', '?')}")
+    return f"threads of {pid}:\n" + "\n".join(lines)
+
+
 class ServiceProcesses:
     """Start and reap ``diffpos`` service processes for one test."""
 
@@ -93,8 +115,17 @@ class ServiceProcesses:
     def stop(self, names: list[str] | None = None, timeout_s: float = 10.0) -> dict[str, int]:
         """SIGTERM the groups (in the given order), SIGKILL stragglers; return exit codes."""
         names = list(self.procs) if names is None else names
-        return {name: stop_process_groups([self.procs[name]], timeout_s=timeout_s)[0]
+        return {name: stop_process_groups([self.procs[name]], timeout_s=timeout_s,
+                                          on_kill=self._note_straggler(name))[0]
                 for name in names}
+
+    def _note_straggler(self, name: str):
+        """``on_kill`` callback: append the straggler's :func:`thread_states` to its log (a
+        failure message that shows the log's tail then says where it was stuck)."""
+        def note(p: subprocess.Popen) -> None:
+            with contextlib.suppress(OSError), open(self.log_dir / f"{name}.log", "a") as f:
+                f.write(f"\n[test] no exit after SIGTERM, killing; {thread_states(p.pid)}\n")
+        return note
 
     def reap_all(self) -> None:
         """Stop in reverse start order (the router, started first, goes last), each group

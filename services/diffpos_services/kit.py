@@ -12,7 +12,9 @@ Standard library and msgspec only (no zenoh: the bus health check is
   problem once per (key, reason); :data:`STATUS` is the one live status line of a terminal
   (log records print above it: the handler clears and redraws it).
 - :class:`Shutdown` turns SIGINT/SIGTERM into an event the main loop waits on, so sessions
-  are closed by their ``with`` blocks and buffers are flushed before exit; :func:`run_main`
+  are closed by their ``with`` blocks and buffers are flushed before exit; a main thread
+  waits and joins only in slices (:meth:`Shutdown.wait`, :func:`wait_event`,
+  :func:`join_thread`: a signal taken by another thread runs its handler); :func:`run_main`
   runs a service body; :func:`stop_process_groups` and :func:`free_tcp_port` help the
   commands that start processes (``diffpos emulate``, tests, benchmarks).
 """
@@ -50,11 +52,13 @@ __all__ = [
     "child_env",
     "die_with_parent",
     "free_tcp_port",
+    "join_thread",
     "load_json_option",
     "log_event",
     "run_main",
     "setup_logging",
     "stop_process_groups",
+    "wait_event",
 ]
 
 #: environment variable naming the parent process a service must not outlive
@@ -366,23 +370,75 @@ class LogOnce:
 
 
 # ----------------------------------------------------------------------------- shutdown
-#: The longest a :meth:`Shutdown.wait` blocks before it lets Python run pending signal
-#: handlers [s].
+#: The longest a :meth:`Shutdown.wait` (and :func:`wait_event`, :func:`join_thread`) blocks
+#: before it lets Python run pending signal handlers [s].
 SIGNAL_POLL_S = 0.25
+
+
+def wait_event(event: threading.Event, timeout: float | None = None) -> bool:
+    """``event.wait(timeout)`` ([s], None: until set) in slices of :data:`SIGNAL_POLL_S`.
+
+    A service's main thread must never block in one unbounded wait: a process-directed
+    signal may be delivered to any thread (a Zenoh thread), and Python runs its handler only
+    when the main thread next runs bytecode; a main thread blocked without a timeout then
+    never wakes (a router child of a SIGKILLed ``diffpos emulate`` was left running this
+    way under load, and a recorder whose main thread waited on ``Shutdown.event`` did not
+    stop on SIGTERM). Returns whether the event is set.
+    """
+    if timeout is None:
+        while not event.wait(SIGNAL_POLL_S):
+            pass
+        return True
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        if event.wait(min(left, SIGNAL_POLL_S)):
+            return True
+    return event.is_set()
+
+
+def join_thread(thread: threading.Thread, timeout: float | None = None) -> bool:
+    """``thread.join(timeout)`` ([s], None: until it ends) in slices of :data:`SIGNAL_POLL_S`
+    (see :func:`wait_event`); returns whether the thread has ended."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while thread.is_alive():
+        left = SIGNAL_POLL_S if deadline is None else deadline - time.monotonic()
+        if left <= 0:
+            return False
+        thread.join(min(left, SIGNAL_POLL_S))
+    return True
+
+
+class _SignalSafeEvent(threading.Event):
+    """A ``threading.Event`` a signal handler may set: its condition's lock is re-entrant.
+
+    Python runs a handler in the main thread between two bytecodes, possibly while that
+    thread is inside ``Event.wait`` holding the event's lock (it takes it on every entry:
+    with waits in slices, four times a second); ``set()`` on a plain Event would then wait
+    forever for a lock its own thread holds.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._cond = threading.Condition(threading.RLock())
 
 
 class Shutdown:
     """SIGINT/SIGTERM/SIGHUP -> ``event``; the main loop waits on it and exits its ``with``
     blocks (a closed terminal stops a service cleanly instead of killing it mid-write).
 
-    A second signal while shutting down raises ``KeyboardInterrupt`` (escape hatch).
-    Must be created in the main thread. A child of a diffpos process (:func:`child_env`)
-    also gets SIGTERM when its parent dies (:func:`die_with_parent`), and stops at once
-    if the parent is already gone.
+    A second SIGINT while shutting down raises ``KeyboardInterrupt`` (the escape hatch of a
+    person pressing Ctrl-C twice). A repeated SIGTERM or SIGHUP is ignored: the stop is
+    under way, and a supervisor escalates with SIGKILL. Why: a child of a diffpos process
+    (:func:`child_env`) gets SIGTERM when its parent dies (:func:`die_with_parent`), and the
+    kernel sends it again each time the orphan is handed to another thread of the dying
+    parent (measured: 1-8 SIGTERMs per child of a SIGKILLed 9-thread parent; ``getppid()``
+    is the parent's pid until the last); those interrupted the child's own orderly stop
+    (closing its session, finishing its file) at a random point. A child whose parent is
+    already gone stops at once. Must be created in the main thread.
     """
 
     def __init__(self, logger: logging.Logger | None = None) -> None:
-        self.event = threading.Event()
+        self.event: threading.Event = _SignalSafeEvent()
         self.signal_name: str | None = None
         self._logger = logger
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -396,7 +452,9 @@ class Shutdown:
     def _handle(self, signum: int, _frame: Any) -> None:
         name = signal.Signals(signum).name
         if self.event.is_set():
-            raise KeyboardInterrupt(name)
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt(name)
+            return  # SIGTERM/SIGHUP again (e.g. the parent's death, repeated): keep stopping
         self.signal_name = name
         if self._logger is not None:
             log_event(self._logger, logging.INFO, "shutdown requested", signal=name)
@@ -407,19 +465,9 @@ class Shutdown:
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for the event (``timeout`` [s], None: until set), waking at least every
-        :data:`SIGNAL_POLL_S`: a process-directed signal may be delivered to any thread (a
-        Zenoh thread), and Python runs its handler only when the main thread next runs
-        bytecode; a main thread blocked without a timeout then never wakes (a router child
-        of a SIGKILLed ``diffpos emulate`` was left running this way under load)."""
-        if timeout is None:
-            while not self.event.wait(SIGNAL_POLL_S):
-                pass
-            return True
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            if self.event.wait(min(left, SIGNAL_POLL_S)):
-                return True
-        return self.event.is_set()
+        :data:`SIGNAL_POLL_S` (:func:`wait_event`: why). A loop given ``event`` itself
+        must wait on it the same way."""
+        return wait_event(self.event, timeout)
 
     def set(self) -> None:
         self.event.set()

@@ -12,7 +12,12 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
   SIGKILL at most the last interval is lost (``diffpos recover`` rewrites the rest into a
   valid file);
 * the recorder's own liveliness token (:meth:`Keys.alive_recorder`) is declared once both
-  subscribers exist, so whoever waits for it knows recording has started.
+  subscribers exist, so whoever waits for it knows recording has started;
+* the stop is bounded: the main thread waits for ``stop`` and joins in signal-poll slices
+  (:func:`diffpos_services.kit.wait_event`: a SIGTERM taken by another thread is acted on),
+  and after the session closed the drain thread is waited for until its channel is drained
+  (:meth:`_Drain.finish`: bounded even if the channel stayed open). Everything received
+  before the stop is written and the file is finished.
 
 Foreign messages (issue 15 item 9). When the recording carries a run configuration naming
 the run's fusion (``emulate.fusion_id_prefix``: every sample of the fusion ``diffpos
@@ -46,6 +51,7 @@ from zenoh import handlers
 
 from diffpos_services.bus.commands import foreign_path, recorder_args
 from diffpos_services.bus.session import ZenohSettings, open_session
+from diffpos_services.kit import SIGNAL_POLL_S, join_thread, wait_event
 from diffpos_services.recording.writer import McapSink, SinkStats
 from diffpos_services.wire.keys import Keys, parse_key
 
@@ -59,6 +65,11 @@ __all__ = [
 ]
 
 log = logging.getLogger("diffpos.recorder")
+
+#: after the session closed, how long the drain thread may wait in ``recv()`` with nothing
+#: taken before the recorder stops waiting for it [s]: its channel is then empty, so every
+#: sample received before the stop is written (see :meth:`_Drain.finish`)
+DRAIN_IDLE_S = 1.0
 
 
 def default_output_path(
@@ -275,17 +286,19 @@ def record(
         token = session.liveliness().declare_token(keys.alive_recorder())
         emit("ready", {"key": keys.everything(), "path": str(sink.path or "")})
         try:
-            if t_end is None:
-                stop.wait()
-            else:
-                stop.wait(max(0.0, t_end - time.monotonic()))
+            # never one unbounded wait in the main thread (kit.wait_event: a SIGTERM
+            # delivered to another thread would not run the handler that sets ``stop``)
+            wait_event(stop, None if t_end is None else max(0.0, t_end - time.monotonic()))
         finally:
             stop.set()
-            flush_thread.join()
+            join_thread(flush_thread)  # ends after the flush in progress
             live_sub.undeclare()  # first: our own token's DELETE is not an event
             token.undeclare()
     # leaving the with block closed the session: recv() drains what is queued, then raises
-    drainer.join()
+    # (or, should the channel stay open, waits with nothing queued: finish() stops there)
+    if not drainer.finish(DRAIN_IDLE_S):
+        log.warning("the subscriber's channel stayed open %.1f s after the session closed, "
+                    "with nothing queued: stopped waiting for it", DRAIN_IDLE_S)
     foreign_info = foreign.close(sink)
     flushed = sink.flush()
     st = sink.stats
@@ -298,6 +311,7 @@ def record(
             "written": st.written,
             "gaps": st.gaps,
             "deletes_ignored": drainer.deletes,
+            "after_stop_dropped": drainer.late,
             "foreign": foreign_info,
         },
     )
@@ -307,7 +321,8 @@ def record(
 class _Drain(threading.Thread):
     """The thread moving samples from the Zenoh FIFO into the sink (DELETEs are counted, not
     recorded; foreign messages go to ``foreign``, see :class:`Provenance`). Ends when the
-    session is closed and every queued sample is written."""
+    session is closed and every queued sample is written; :meth:`finish` waits for that,
+    bounded."""
 
     def __init__(self, sub: Any, sink: McapSink, stop: threading.Event,
                  provenance: Provenance | None, foreign: _ForeignSink) -> None:
@@ -315,27 +330,58 @@ class _Drain(threading.Thread):
         self.sub, self.sink, self.stop = sub, sink, stop
         self.provenance, self.foreign = provenance, foreign
         self.deletes = 0
+        self.taken = 0         # samples taken from the channel
+        self.waiting = False   # in recv() (blocks there only while the channel is empty)
+        self.late = 0          # samples taken after finish() gave up (not written)
+        self._given_up = False
+        self._lock = threading.Lock()  # a write vs finish() giving up
 
     def run(self) -> None:
         write, prov = self.sink.write, self.provenance
         put = zenoh.SampleKind.PUT
         now = time.time_ns
+        recv, lock = self.sub.recv, self._lock
         try:
             while True:
-                sample = self.sub.recv()
+                self.waiting = True
+                sample = recv()
+                self.waiting = False
+                self.taken += 1
                 if sample.kind != put:
                     self.deletes += 1
                     continue
                 key = str(sample.key_expr)
-                if prov is not None and prov.foreign(key, sample):
-                    self.foreign.write(key, sample.payload.to_bytes(), now())
-                    continue
-                write(key, sample.payload.to_bytes(), now())
+                with lock:
+                    if self._given_up:  # the sink is being closed: after the stop
+                        self.late += 1
+                    elif prov is not None and prov.foreign(key, sample):
+                        self.foreign.write(key, sample.payload.to_bytes(), now())
+                    else:
+                        write(key, sample.payload.to_bytes(), now())
         except zenoh.ZError:
             return  # channel closed: session closed and every queued sample drained
         except Exception:  # pragma: no cover - never let the drain thread die silently
             log.exception("recorder drain thread failed")
             self.stop.set()
+
+    def finish(self, idle_s: float) -> bool:
+        """Wait (bounded, in signal-poll slices) until the thread has ended, i.e. recv()
+        raised after the session closed, every queued sample written. Should the channel
+        stay open (a sender kept alive: zenoh-c #1240 / zenoh-pico #1120 describe session
+        drops that do not close at once), stop waiting once the thread has sat in recv()
+        with nothing taken for ``idle_s`` [s]: recv() blocks only on an empty channel, so
+        nothing received before the stop is left; a sample taken later is counted in
+        ``late``, not written. Returns True if the thread ended."""
+        last, since = self.taken, time.monotonic()
+        while not join_thread(self, SIGNAL_POLL_S):
+            if self.taken != last or not self.waiting:
+                last, since = self.taken, time.monotonic()
+            elif time.monotonic() - since >= idle_s:
+                with self._lock:
+                    if self.taken == last:
+                        self._given_up = True
+                        return False
+        return True
 
 
 def _liveliness_writer(sink: McapSink, site: str) -> Callable[[Any], None]:

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import zenoh
+from conftest import thread_states
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.kit import free_tcp_port
 from diffpos_services.recording.reader import McapScanner
@@ -108,7 +109,8 @@ def test_sigkill_of_emulate_stops_every_child(services, tmp_path):
     os.kill(p.pid, signal.SIGKILL)
     p.wait(timeout=10)
     left = wait_gone(kids, 30.0)
-    assert left == [], ([cmds[pid] for pid in left], _log_tails(tmp_path / "logs"))
+    assert left == [], ([cmds[pid] for pid in left], [thread_states(pid) for pid in left],
+                        _log_tails(tmp_path / "logs"))
 
 
 def _cmdline(pid: int) -> str:

@@ -5,9 +5,20 @@ runs the handler. Before, a router child of a SIGKILLed ``diffpos emulate`` stay
 
 from __future__ import annotations
 
+import contextlib
+import os
+import queue
+import signal
 import subprocess
 import sys
 import textwrap
+import threading
+from pathlib import Path
+
+import pytest
+
+#: readiness waits fail after this long [s] (a hang guard, not a speed target)
+TIMEOUT_S = 30.0
 
 _CHILD = textwrap.dedent("""
     import signal, sys, threading
@@ -42,3 +53,122 @@ def test_shutdown_wait_wakes_on_a_signal_delivered_to_another_thread():
     done = _run("shutdown")  # _run("event") (the old plain Event.wait) times out
     assert done is not None and done.returncode == 0, done
     assert done.stdout.strip() == "stopped SIGTERM"
+
+
+# A child (kit.child_env) whose parent dies gets SIGTERM once per thread of the dying parent
+# that it is handed to on the way (kernel: the orphan is re-parented thread by thread, each
+# time with its parent-death signal; 1-8 per child of a SIGKILLed 9-thread parent, measured;
+# getppid() names the dying parent until the last). The repeats must not interrupt the
+# child's orderly stop: a repeated SIGTERM is ignored, only a second SIGINT (Ctrl-C twice)
+# raises KeyboardInterrupt. The test sends the repeats itself, so the case does not depend on
+# how many the kernel sends.
+_ORPHAN = textwrap.dedent("""
+    import sys
+    from diffpos_services.kit import Shutdown
+    stop = Shutdown()
+    print("ready", flush=True)
+    stop.wait()
+    print("stopping", stop.signal_name, flush=True)
+    sys.stdin.readline()  # the orderly stop: until the test says "go"
+    print("stopped cleanly", flush=True)
+""")
+_PARENT = textwrap.dedent("""
+    import subprocess, sys, time
+    from diffpos_services.kit import child_env
+    subprocess.Popen([sys.executable, "-c", sys.argv[1]], env=child_env())
+    while True:
+        time.sleep(60)  # until killed by the test
+""")
+
+
+def _lines(stream) -> queue.Queue:
+    q: queue.Queue = queue.Queue()
+
+    def read() -> None:
+        for line in stream:
+            q.put(line.strip())
+        q.put(None)
+
+    threading.Thread(target=read, daemon=True).start()
+    return q
+
+
+def _expect(q: queue.Queue, what: str) -> None:
+    seen = []
+    while True:
+        line = q.get(timeout=TIMEOUT_S)
+        assert line is not None, f"no {what!r}; output: {seen}"
+        if line.startswith(what):
+            return
+        seen.append(line)
+
+
+def _orphan_pid(parent: int) -> int:
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                stat = Path(f"/proc/{entry}/stat").read_text()
+                if int(stat.rsplit(")", 1)[1].split()[1]) == parent:
+                    return int(entry)
+    raise AssertionError(f"no child of {parent}")
+
+
+@pytest.mark.parametrize("case", ["parent dies, SIGTERM repeated", "SIGTERM repeated",
+                                  "SIGINT twice"])
+def test_repeated_sigterm_does_not_interrupt_the_stop_a_second_sigint_does(case):
+    """Repeated SIGTERM (the parent dead, or dying: the kernel's repeats come while
+    getppid() still names it): the child's stop runs to its end. SIGINT twice:
+    KeyboardInterrupt (escape hatch)."""
+    p = subprocess.Popen([sys.executable, "-c", _PARENT, _ORPHAN], stdin=subprocess.PIPE,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    child = None
+    sig = signal.SIGINT if case == "SIGINT twice" else signal.SIGTERM
+    try:
+        out, err = _lines(p.stdout), _lines(p.stderr)
+        _expect(out, "ready")
+        child = _orphan_pid(p.pid)
+        if case.startswith("parent dies"):
+            os.kill(p.pid, signal.SIGKILL)  # the kernel sends the parent-death SIGTERM
+            p.wait(timeout=TIMEOUT_S)
+        else:
+            os.kill(child, sig)
+        _expect(out, f"stopping {sig.name}")
+        for _ in range(3):  # the repeats (SIGINT: a person's second Ctrl-C)
+            os.kill(child, sig)
+        p.stdin.write("go\n")
+        p.stdin.flush()
+        if sig == signal.SIGTERM:
+            _expect(out, "stopped cleanly")
+        else:
+            _expect(err, "KeyboardInterrupt")
+    finally:
+        for pid in (p.pid, child):
+            if pid is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+        p.wait(timeout=TIMEOUT_S)
+
+
+# The handler runs in the main thread between two bytecodes, possibly inside Event.wait while
+# that thread holds the event's lock (every slice of Shutdown.wait takes it); setting the
+# event must not wait for that lock. raise_signal runs the handler at once, here with the lock
+# held as Event.wait holds it.
+_LOCKED = textwrap.dedent("""
+    import signal
+    from diffpos_services.kit import Shutdown
+    stop = Shutdown()
+    with stop.event._cond:  # what Event.wait holds between its bytecodes
+        signal.raise_signal(signal.SIGTERM)  # the handler runs in this thread, now
+    print("set", stop.is_set(), flush=True)
+""")
+
+
+def test_handler_sets_the_event_while_the_main_thread_holds_its_lock():
+    try:
+        done = subprocess.run([sys.executable, "-c", _LOCKED], capture_output=True, text=True,
+                              timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:  # a plain threading.Event deadlocks here
+        pytest.fail("the signal handler waited for the lock its own thread held")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "set True"

@@ -38,7 +38,7 @@ from diffpos.emulation import (
 )
 from diffpos.trajectory import Static
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import ConfigError, log_event
+from diffpos_services.kit import ConfigError, log_event, wait_event
 from diffpos_services.scenario_io import load_scenario_option
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, check_id
@@ -401,7 +401,7 @@ class _Flight:
                 # does not look like a lost anchor
                 log_event(self.log, logging.INFO, "run complete", anchor=emu.config.anchor_id,
                           epochs=self.epochs)
-                self.stop.wait()
+                wait_event(self.stop)  # in slices: a signal must reach its handler
                 break
             if not self.wait_for(t_true):
                 break

@@ -1,0 +1,120 @@
+"""The recorder's drain thread at stop (``recorder._Drain``), in-process with a stand-in channel.
+
+After the session closes, the drain thread normally sees ``recv()`` raise once the queued
+samples are taken. If the channel stayed open (a sender kept alive: zenoh-c #1240 /
+zenoh-pico #1120 describe session drops that do not close at once) ``recv()`` would block
+forever and the recorder with it (it joined the thread without a timeout). ``finish`` now
+stops waiting once the thread has sat in ``recv()`` with nothing taken for ``idle_s``: the
+channel is empty then, so every sample queued before is written and the file is complete;
+a sample taken afterwards is counted, not written into the closed file.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from dataclasses import dataclass
+
+import zenoh
+from diffpos_services.recorder import _Drain, _ForeignSink
+from diffpos_services.recording.reader import McapScanner
+from diffpos_services.recording.writer import McapSink
+from diffpos_services.wire import messages as M
+from diffpos_services.wire.keys import Keys
+
+KEY = Keys("drain").anchor_range("a1", "n1")
+#: a generous bound on a stop that must not hang (not a speed target) [s]
+HANG_S = 20.0
+
+
+@dataclass
+class _Payload:
+    data: bytes
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+@dataclass
+class _Sample:
+    key_expr: str
+    payload: _Payload
+    kind: zenoh.SampleKind
+    timestamp: None = None
+
+
+class _Channel:
+    """A subscriber stand-in: ``recv()`` returns the queued samples, blocks while none is
+    queued, and raises ``zenoh.ZError`` (a closed channel) when it takes ``CLOSED``."""
+
+    CLOSED = object()
+
+    def __init__(self) -> None:
+        self.q: queue.Queue = queue.Queue()
+
+    def recv(self):
+        item = self.q.get()
+        if item is self.CLOSED:
+            raise zenoh.ZError("channel closed")
+        return item
+
+
+def _sample(seq: int) -> _Sample:
+    msg = M.RangeMeasurement(anchor_id="a1", node_id="n1", t_ns=1_000 + seq, seq=seq,
+                             range_m=20.0, sigma_m=0.2, snr_db=15.0, t_pub_wall_ns=1_000 + seq)
+    return _Sample(KEY, _Payload(M.encode(msg)), zenoh.SampleKind.PUT)
+
+
+def _start(tmp_path, n: int) -> tuple[_Drain, _Channel, McapSink]:
+    sink = McapSink(tmp_path / "drain.mcap")
+    chan = _Channel()
+    for i in range(n):
+        chan.q.put(_sample(i))
+    drain = _Drain(chan, sink, threading.Event(), None, _ForeignSink(None))
+    drain.start()
+    return drain, chan, sink
+
+
+def _finish(drain: _Drain, idle_s: float) -> bool:
+    """``drain.finish(idle_s)`` on a helper thread, so a regression fails instead of
+    hanging the test run."""
+    out: list[bool] = []
+    t = threading.Thread(target=lambda: out.append(drain.finish(idle_s)), daemon=True)
+    t.start()
+    t.join(HANG_S)
+    assert not t.is_alive(), "finish() did not return: the stop is unbounded"
+    return out[0]
+
+
+def _recorded_seqs(path) -> list[int]:
+    scanner = McapScanner(path)
+    seqs = [m.sequence for batch in scanner.iter_batches() for m in batch if m.topic == KEY]
+    assert scanner.complete  # footer and index: the file was finalised
+    return seqs
+
+
+def test_channel_left_open_stop_is_bounded_and_keeps_every_queued_sample(tmp_path):
+    n = 300
+    drain, chan, sink = _start(tmp_path, n)
+    assert _finish(drain, idle_s=0.2) is False  # gave up on the open channel
+    assert drain.is_alive()  # still blocked in recv()
+    stats = sink.close()
+    assert stats.received == stats.written == n
+    assert _recorded_seqs(sink.path) == list(range(n))
+    # a sample the channel hands out after the stop is counted, never written
+    chan.q.put(_sample(n))
+    chan.q.put(_Channel.CLOSED)
+    drain.join(HANG_S)
+    assert not drain.is_alive()
+    assert drain.late == 1 and drain.taken == n + 1
+    assert sink.stats.received == n
+
+
+def test_channel_closed_after_the_queue_every_sample_written(tmp_path):
+    n = 300
+    drain, chan, sink = _start(tmp_path, n)
+    chan.q.put(_Channel.CLOSED)  # the session closed: recv() raises after the queue
+    assert _finish(drain, idle_s=60.0) is True
+    assert drain.late == 0
+    sink.close()
+    assert _recorded_seqs(sink.path) == list(range(n))
