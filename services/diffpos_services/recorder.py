@@ -16,8 +16,11 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
 * the stop is bounded: the main thread waits for ``stop`` and joins in signal-poll slices
   (:func:`diffpos_services.kit.wait_event`: a SIGTERM taken by another thread is acted on),
   and after the session closed the drain thread is waited for until its channel is drained
-  (:meth:`_Drain.finish`: bounded even if the channel stayed open). Everything received
-  before the stop is written and the file is finished.
+  (:meth:`_Drain.finish`: bounded even if the channel stayed open; before it gives up it
+  writes what the channel still holds). Everything received before the stop is written and
+  the file is finished; the one exception is a sample the drain thread holds while it has
+  been stalled for all of ``DRAIN_IDLE_S`` with the channel left open (counted in
+  ``after_stop_dropped``).
 
 Foreign messages (issue 15 item 9). When the recording carries a run configuration naming
 the run's fusion (``emulate.fusion_id_prefix``: every sample of the fusion ``diffpos
