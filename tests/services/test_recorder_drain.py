@@ -192,7 +192,9 @@ def test_a_freeze_seen_on_one_look_is_not_idleness(tmp_path, monkeypatch):
     assert real() - t0 < HANG_S
     assert drain.late == 0
     sink.close()
-    assert _recorded_seqs(sink.path) == list(range(n))
+    # every sample once (in order unless the release came more than 4 slices late, when
+    # finish wrote the queue itself before the held sample: still nothing lost)
+    assert sorted(_recorded_seqs(sink.path)) == list(range(n))
 
 
 class _Clock:
