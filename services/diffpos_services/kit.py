@@ -427,7 +427,8 @@ class Shutdown:
     blocks (a closed terminal stops a service cleanly instead of killing it mid-write).
 
     A second SIGINT while shutting down raises ``KeyboardInterrupt`` (the escape hatch of a
-    person pressing Ctrl-C twice). A repeated SIGTERM or SIGHUP is ignored: the stop is
+    person pressing Ctrl-C twice; when the program set the event itself, e.g. a recorder's
+    duration ran out, the first Ctrl-C after that is the one that waits for the stop). A repeated SIGTERM or SIGHUP is ignored: the stop is
     under way, and a supervisor escalates with SIGKILL. Why: a child of a diffpos process
     (:func:`child_env`) gets SIGTERM when its parent dies (:func:`die_with_parent`), and the
     kernel sends it again each time the orphan is handed to another thread of the dying
@@ -441,6 +442,7 @@ class Shutdown:
         self.event: threading.Event = _SignalSafeEvent()
         self.signal_name: str | None = None
         self._logger = logger
+        self._sigint_waited = False  # a SIGINT came after the program stopped on its own
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, self._handle)
         if not die_with_parent(signal.SIGTERM):
@@ -453,7 +455,11 @@ class Shutdown:
         name = signal.Signals(signum).name
         if self.event.is_set():
             if signum == signal.SIGINT:
-                raise KeyboardInterrupt(name)
+                if self.signal_name is not None or self._sigint_waited:
+                    raise KeyboardInterrupt(name)
+                # the program set the event itself (a recorder's --duration ran out) and is
+                # finishing: a first Ctrl-C waits for that, a second one escapes
+                self._sigint_waited = True
             return  # SIGTERM/SIGHUP again (e.g. the parent's death, repeated): keep stopping
         self.signal_name = name
         if self._logger is not None:

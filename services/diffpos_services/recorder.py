@@ -16,8 +16,11 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
 * the stop is bounded: the main thread waits for ``stop`` and joins in signal-poll slices
   (:func:`diffpos_services.kit.wait_event`: a SIGTERM taken by another thread is acted on),
   and after the session closed the drain thread is waited for until its channel is drained
-  (:meth:`_Drain.finish`: bounded even if the channel stayed open). Everything received
-  before the stop is written and the file is finished.
+  (:meth:`_Drain.finish`: bounded even if the channel stayed open; before it gives up it
+  writes what the channel still holds). Everything received before the stop is written and
+  the file is finished; the one exception is a sample the drain thread holds while it has
+  been stalled for all of ``DRAIN_IDLE_S`` with the channel left open (counted in
+  ``after_stop_dropped``).
 
 Foreign messages (issue 15 item 9). When the recording carries a run configuration naming
 the run's fusion (``emulate.fusion_id_prefix``: every sample of the fusion ``diffpos
@@ -36,6 +39,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import platform
 import sys
@@ -337,9 +341,6 @@ class _Drain(threading.Thread):
         self._lock = threading.Lock()  # a write vs finish() giving up
 
     def run(self) -> None:
-        write, prov = self.sink.write, self.provenance
-        put = zenoh.SampleKind.PUT
-        now = time.time_ns
         recv, lock = self.sub.recv, self._lock
         try:
             while True:
@@ -347,40 +348,73 @@ class _Drain(threading.Thread):
                 sample = recv()
                 self.waiting = False
                 self.taken += 1
-                if sample.kind != put:
-                    self.deletes += 1
-                    continue
-                key = str(sample.key_expr)
                 with lock:
                     if self._given_up:  # the sink is being closed: after the stop
                         self.late += 1
-                    elif prov is not None and prov.foreign(key, sample):
-                        self.foreign.write(key, sample.payload.to_bytes(), now())
                     else:
-                        write(key, sample.payload.to_bytes(), now())
+                        self._put(sample)
         except zenoh.ZError:
             return  # channel closed: session closed and every queued sample drained
         except Exception:  # pragma: no cover - never let the drain thread die silently
             log.exception("recorder drain thread failed")
             self.stop.set()
 
+    def _put(self, sample: Any) -> None:
+        """One sample into the sink (a DELETE counted, a foreign message to ``foreign``);
+        under ``_lock``."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            self.deletes += 1
+            return
+        key = str(sample.key_expr)
+        if self.provenance is not None and self.provenance.foreign(key, sample):
+            self.foreign.write(key, sample.payload.to_bytes(), time.time_ns())
+        else:
+            self.sink.write(key, sample.payload.to_bytes(), time.time_ns())
+
+    def _take_queued(self) -> int:
+        """Under ``_lock``: write what the channel still holds (``try_recv``, never blocks);
+        returns how many samples there were."""
+        n = 0
+        try:
+            while (sample := self.sub.try_recv()) is not None:
+                n += 1
+                self._put(sample)
+        except zenoh.ZError:
+            pass  # closed meanwhile: the thread ends on its own
+        return n
+
     def finish(self, idle_s: float) -> bool:
         """Wait (bounded, in signal-poll slices) until the thread has ended, i.e. recv()
         raised after the session closed, every queued sample written. Should the channel
         stay open (a sender kept alive: zenoh-c #1240 / zenoh-pico #1120 describe session
-        drops that do not close at once), stop waiting once the thread has sat in recv()
-        with nothing taken for ``idle_s`` [s]: recv() blocks only on an empty channel, so
-        nothing received before the stop is left; a sample taken later is counted in
-        ``late``, not written. Returns True if the thread ended."""
-        last, since = self.taken, time.monotonic()
+        drops that do not close at once), stop waiting once the thread has looked idle in
+        recv() (nothing taken) for ``idle_s`` [s] *and* over at least
+        ``max(2, idle_s / SIGNAL_POLL_S)`` consecutive slices of this thread's own waiting:
+        a process that was frozen (stopped, descheduled, a paused VM) for longer than
+        ``idle_s`` does not count as idle on its first look after, when the drain thread
+        has not run yet. Before giving up, whatever the channel still holds is taken and
+        written here (a drain thread stalled right after a ``recv()`` would otherwise leave
+        the queue behind it unwritten); if there was any, the thread was not idle and the
+        wait goes on. What remains unavoidable: a sample the thread holds between its
+        ``recv()`` and its next step while it has been stalled over all those slices is
+        counted in ``late``, not written, as is any sample taken after this gives up.
+        Returns True if the thread ended."""
+        slices = max(2, math.ceil(idle_s / SIGNAL_POLL_S))
+        last, since, idle = self.taken, time.monotonic(), 0
         while not join_thread(self, SIGNAL_POLL_S):
             if self.taken != last or not self.waiting:
-                last, since = self.taken, time.monotonic()
-            elif time.monotonic() - since >= idle_s:
+                last, since, idle = self.taken, time.monotonic(), 0
+                continue
+            idle += 1
+            if idle >= slices and time.monotonic() - since >= idle_s:
                 with self._lock:
-                    if self.taken == last:
-                        self._given_up = True
-                        return False
+                    if self.taken != last:
+                        continue
+                    if self._take_queued():
+                        last, since, idle = self.taken, time.monotonic(), 0
+                        continue
+                    self._given_up = True
+                    return False
         return True
 
 

@@ -439,3 +439,78 @@ def test_paths_at_equals_all_paths():
     for f in ("length", "jac", "strict", "loose", "sure"):
         np.testing.assert_array_equal(getattr(got, f), getattr(ref, f), err_msg=f)
     assert _paths_at(pe0, np.arange(0), pos, links, floor, b, relax) is pe0
+
+
+#: A building unlike the shipped one and ``_BUILDINGS``: two tall floors, windows almost as
+#: tall as the floor, a narrow deep plan (anchors beyond its facade ends are common).
+_TALL = dataclasses.replace(Building(), n_floors=2, floor_height_m=5.0, first_floor_z_m=0.0,
+                            sill_height_m=0.3, window_height_m=4.2, width_m=8.0, depth_m=25.0,
+                            partitions=())
+
+
+@pytest.mark.parametrize("case", ["nan", "var 0 and inf", "masked node", "ties",
+                                  "infinite ranges", "few finite cells"])
+def test_grid_cost_kernel_pruning_exact_on_degenerate_inputs(case):
+    """The pruned grid search (visiting cells by their straight-line bound) keeps the same
+    ``keep`` cheapest cells, order and totals as the full evaluation where its inputs are
+    degenerate: NaN ranges, anchors and variances (a NaN link adds nothing to the bound and
+    makes the total NaN), variances 0 and inf, a node with every link masked (all totals 0:
+    ties), ranges rounded to 0.5 m and duplicated anchors (tied totals at the ``keep``-th),
+    +-inf ranges, and fewer finite cells than ``keep``. Anchors in front, above the windows
+    and beyond the facade ends of ``_TALL`` (and the shipped building)."""
+    cfg = TrackerConfig()
+    w_out = float(np.log(cfg.outlier_span_m / cfg.outlier_weight))
+    seen = dict.fromkeys(("abandoned", "nan", "finite<keep"), 0)
+    for bi, b in enumerate((_TALL, Building())):
+        rng = np.random.default_rng(77 + bi)
+        n, m = 3, 9
+        x0, x1 = b.edge_x_m
+        top = b.floor_z_m(b.n_floors - 1) + b.floor_height_m
+        anc = np.stack([rng.uniform(x0 - 25, x1 + 25, (n, m)), rng.uniform(-35, -1, (n, m)),
+                        rng.uniform(0, top + 12, (n, m))], axis=-1)
+        fl_t = rng.integers(0, b.n_floors, (n, 1))
+        truth = np.stack([rng.uniform(x0, x1, (n, 1)), rng.uniform(0.5, b.depth_m, (n, 1)),
+                          b.floor_z_m(fl_t) + b.nominal_node_height_m], axis=-1)
+        probe = Links.from_arrays(anc, np.full((n, m), 30.0), np.full((n, m), 0.05),
+                                  np.ones((n, m), bool), 0.03)
+        pe = all_paths(truth, probe, fl_t, b, 0.0)
+        first = np.where(candidates(pe), pe.length, np.inf).min(axis=-1)[:, 0]
+        rho = np.where(np.isfinite(first), first + rng.normal(0, 0.05, (n, m)), 35.0)
+        var = np.full((n, m), 0.05)
+        mask = rng.random((n, m)) > 0.1
+        if case == "nan":
+            rho[0, 1], anc[1, 2], var[2, 3] = np.nan, np.nan, np.nan
+        elif case == "var 0 and inf":
+            var[:, 0], var[:, 4] = -0.25 * cfg.init_grid_m**2, np.inf  # 0 once widened
+        elif case == "masked node":
+            mask[1] = False
+        elif case == "ties":
+            rho = np.round(rho * 2.0) / 2.0
+            anc[:, 5:] = anc[:, :1]
+            rho[:, 5:] = rho[:, :1]
+        elif case == "infinite ranges":
+            rho[0, :3], rho[1, 2] = np.inf, -np.inf
+        else:  # every link of node 0 NaN but one: no finite cell there
+            rho[0, :] = np.nan
+        # raw arrays (Links.from_arrays would mask the non-finite links): the kernel's own claim
+        links = Links(rho=rho[:, None], var=var[:, None], mask=mask[:, None],
+                      anchors=anc[:, None])
+        floors = np.broadcast_to(np.arange(b.n_floors), (n, b.n_floors))
+        full = _grid_totals(links, floors, b, cfg, 0, w_out)
+        for keep in (1, 4, 25):
+            got = _grid_totals(links, floors, b, cfg, keep, w_out)
+            o_full = np.argsort(full, axis=2, kind="stable")[..., :keep]
+            o_got = np.argsort(got, axis=2, kind="stable")[..., :keep]
+            np.testing.assert_array_equal(o_got, o_full)
+            np.testing.assert_array_equal(np.take_along_axis(got, o_got, 2),
+                                          np.take_along_axis(full, o_full, 2))
+            differ = ~((got == full) | (np.isnan(got) & np.isnan(full)))
+            assert np.all(np.isinf(got[differ]))  # only abandoned cells differ
+            seen["abandoned"] += int(differ.sum())
+            seen["nan"] += int(np.isnan(full).sum())
+            seen["finite<keep"] += int((np.isfinite(full).sum(axis=2) < keep).sum())
+    assert seen["abandoned"] > 0  # the pruning ran
+    if case in ("nan", "few finite cells"):
+        assert seen["nan"] > 0
+    if case == "few finite cells":
+        assert seen["finite<keep"] > 0

@@ -172,3 +172,32 @@ def test_handler_sets_the_event_while_the_main_thread_holds_its_lock():
         pytest.fail("the signal handler waited for the lock its own thread held")
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "set True"
+
+
+# The program may set the event itself (a recorder whose --duration ran out: record() sets
+# its stop event, then finishes the file). A person's first Ctrl-C then must not interrupt
+# that finish (before: any signal with the event set raised KeyboardInterrupt, leaving the
+# file without its footer); the second Ctrl-C still escapes. raise_signal runs the handler
+# at once in the main thread.
+_SELF_STOPPED = textwrap.dedent("""
+    import signal
+    from diffpos_services.kit import Shutdown
+    stop = Shutdown()
+    stop.set()  # the program's own stop (duration over)
+    signal.raise_signal(signal.SIGINT)
+    print("first Ctrl-C waits", stop.signal_name, flush=True)
+    try:
+        signal.raise_signal(signal.SIGINT)
+    except KeyboardInterrupt:
+        print("second Ctrl-C escapes", flush=True)
+""")
+
+
+def test_first_sigint_after_the_program_stopped_itself_does_not_interrupt_its_finish():
+    try:
+        done = subprocess.run([sys.executable, "-c", _SELF_STOPPED], capture_output=True,
+                              text=True, timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the child did not end")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ["first Ctrl-C waits None", "second Ctrl-C escapes"]
