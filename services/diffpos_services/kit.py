@@ -422,6 +422,35 @@ class _SignalSafeEvent(threading.Event):
         self._cond = threading.Condition(threading.RLock())
 
 
+#: How long a child of a diffpos process (:data:`PARENT_PID_ENV` set) may take to stop once
+#: asked while its parent is gone [s]; then it exits at once (``os._exit(1)``, said on stderr).
+#: A repeated SIGTERM no longer interrupts a stop (:class:`Shutdown`) and an orphan has no
+#: supervisor left to escalate with SIGKILL, so an orphan whose stop hung would stay forever.
+#: Measured stops take 0.1-0.4 s (the recorder beside busy loops, load ~5; its drain waits
+#: at most ~1 s idle): 15 s is far beyond them and below the 30 s in which
+#: tests/system/test_emulate_faults.py wants every child of a SIGKILLed emulate gone.
+ORPHAN_STOP_S = 15.0
+
+
+def _orphan_watch(event: threading.Event, parent_pid: str, stop_s: float) -> None:
+    """The daemon thread of a supervised child's :class:`Shutdown`: once ``event`` is set and
+    ``stop_s`` [s] have passed, exit the process as soon as the parent is gone (while the
+    parent lives, stopping its child is the parent's job: it escalates itself)."""
+    event.wait()
+    deadline = time.monotonic() + stop_s
+    while (left := deadline - time.monotonic()) > 0:
+        time.sleep(min(left, 1.0))
+    told = False
+    while str(os.getppid()) == parent_pid:
+        if not told:  # os.write: no lock the stuck main thread may hold (logging's)
+            os.write(2, b"diffpos: still stopping; the parent process is alive: its call\n")
+            told = True
+        time.sleep(min(stop_s, 1.0))
+    os.write(2, f"diffpos: still stopping {stop_s:g} s after the stop was asked and the parent "
+                f"process is gone: exiting now\n".encode())
+    os._exit(1)
+
+
 class Shutdown:
     """SIGINT/SIGTERM/SIGHUP -> ``event``; the main loop waits on it and exits its ``with``
     blocks (a closed terminal stops a service cleanly instead of killing it mid-write).
@@ -435,16 +464,23 @@ class Shutdown:
     parent (measured: 1-8 SIGTERMs per child of a SIGKILLed 9-thread parent; ``getppid()``
     is the parent's pid until the last); those interrupted the child's own orderly stop
     (closing its session, finishing its file) at a random point. A child whose parent is
-    already gone stops at once. Must be created in the main thread.
+    already gone stops at once; one whose parent is gone exits ``orphan_stop_s`` [s] after
+    its stop was asked if it has not stopped by then (:data:`ORPHAN_STOP_S`: no supervisor
+    is left to SIGKILL a hung stop). Must be created in the main thread.
     """
 
-    def __init__(self, logger: logging.Logger | None = None) -> None:
+    def __init__(self, logger: logging.Logger | None = None,
+                 orphan_stop_s: float = ORPHAN_STOP_S) -> None:
         self.event: threading.Event = _SignalSafeEvent()
         self.signal_name: str | None = None
         self._logger = logger
         self._sigint_waited = False  # a SIGINT came after the program stopped on its own
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, self._handle)
+        parent = os.environ.get(PARENT_PID_ENV)
+        if parent:  # started here, not in the handler (no thread start between bytecodes)
+            threading.Thread(target=_orphan_watch, args=(self.event, parent, orphan_stop_s),
+                             name="orphan-watch", daemon=True).start()
         if not die_with_parent(signal.SIGTERM):
             if logger is not None:
                 log_event(logger, logging.WARNING, "parent process gone: stopping")

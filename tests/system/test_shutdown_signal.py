@@ -201,3 +201,51 @@ def test_first_sigint_after_the_program_stopped_itself_does_not_interrupt_its_fi
         pytest.fail("the child did not end")
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines() == ["first Ctrl-C waits None", "second Ctrl-C escapes"]
+
+
+# Repeated SIGTERMs no longer interrupt a stop, so an orphan whose stop hangs has nobody left
+# to end it: a supervised child (kit.child_env) exits by itself ``orphan_stop_s`` after its
+# stop was asked once its parent is gone (kit.ORPHAN_STOP_S), and leaves a living parent to
+# escalate itself. The child's stop here never ends (a wait on an event nobody sets).
+_HUNG = textwrap.dedent("""
+    import sys, threading
+    from diffpos_services.kit import Shutdown
+    stop = Shutdown(orphan_stop_s=0.3)
+    print("ready", flush=True)
+    stop.wait()
+    print("stopping", stop.signal_name, flush=True)
+    threading.Event().wait()  # a stop that hangs
+""")
+
+
+@pytest.mark.parametrize("parent", ["dies", "lives"])
+def test_an_orphan_whose_stop_hangs_exits_by_itself_a_living_parent_decides(parent):
+    p = subprocess.Popen([sys.executable, "-c", _PARENT, _HUNG], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    child = None
+    try:
+        out, err = _lines(p.stdout), _lines(p.stderr)
+        _expect(out, "ready")
+        child = _orphan_pid(p.pid)
+        if parent == "dies":
+            os.kill(p.pid, signal.SIGKILL)  # the kernel sends the parent-death SIGTERM
+            p.wait(timeout=TIMEOUT_S)
+        else:
+            os.kill(child, signal.SIGTERM)
+        _expect(out, "stopping SIGTERM")
+        if parent == "dies":
+            _expect(err, "diffpos: still stopping 0.3 s after the stop was asked and the "
+                         "parent process is gone: exiting now")
+            assert out.get(timeout=TIMEOUT_S) is None  # its end of the pipe closed: it exited
+        else:
+            _expect(err, "diffpos: still stopping; the parent process is alive: its call")
+            assert Path(f"/proc/{child}").exists()  # still there: the parent's decision
+            os.kill(p.pid, signal.SIGKILL)  # the parent goes: now the orphan exits
+            p.wait(timeout=TIMEOUT_S)
+            _expect(err, "diffpos: still stopping 0.3 s after")
+    finally:
+        for pid in (p.pid, child):
+            if pid is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+        p.wait(timeout=TIMEOUT_S)
