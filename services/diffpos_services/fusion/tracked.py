@@ -35,9 +35,9 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
   whose epoch has no usable range is predicted only (COASTING, the covariance grows).
 
 **Bounded work per step** (``heavy``, the live service's steps; issue 16): a track
-initialisation (the grid snapshot, ~5 ms per node with 8 anchors; 3.2-3.3 ms with 16 since
-the grid's lower bound, 2026-11-28) and an mnls snapshot fix (~3.5 ms) each cost several
-epochs' updates (~0.6 ms per node-epoch plus ~2.6 ms per call; measured on the ``large`` scenario's recorded batches). Without a bound, the first epoch of 50
+initialisation (the grid snapshot: ~5 ms per node with 8 anchors; 3.3 ms with 16 since
+2026-11-28) and an mnls snapshot fix (~3.5 ms) each cost several epochs' updates (~0.6 ms per
+node-epoch + ~2.6 ms per call, ``large``'s batches). Without a bound, the first epoch of 50
 new nodes cost ~0.45 s in one step, and the snapshots of 50 unconfirmed tracks ~0.2 s per epoch
 after it, so every node's estimate waited (real-time ``large``: end-to-end p99 1.75 s). A
 budgeted step (one with a ``limit``) does at most ``heavy`` of them (:func:`heavy_budget`: a
