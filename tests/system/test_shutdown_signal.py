@@ -134,7 +134,9 @@ def test_repeated_sigterm_does_not_interrupt_the_stop_a_second_sigint_does(case)
         else:
             os.kill(child, sig)
         _expect(out, f"stopping {sig.name}")
-        for _ in range(3):  # the repeats (SIGINT: a person's second Ctrl-C)
+        # the repeats; SIGINT: a person's second Ctrl-C, one only (a third one can land while
+        # the second's traceback is printed: Python then reports "lost sys.stderr" instead)
+        for _ in range(3 if sig == signal.SIGTERM else 1):
             os.kill(child, sig)
         p.stdin.write("go\n")
         p.stdin.flush()
