@@ -194,6 +194,18 @@ def _grid_totals(links, floors, b, cfg, keep, w_out):
     return total
 
 
+def _assert_same_kept(got, full, keep):
+    """The ``keep`` cheapest cells per (node, floor) of the pruned totals ``got`` are those of
+    the full evaluation ``full``: same cells, same stable order, same totals bit for bit;
+    returns their indices."""
+    o_full = np.argsort(full, axis=2, kind="stable")[..., :keep]
+    o_got = np.argsort(got, axis=2, kind="stable")[..., :keep]
+    np.testing.assert_array_equal(o_got, o_full)
+    np.testing.assert_array_equal(np.take_along_axis(got, o_got, 2),
+                                  np.take_along_axis(full, o_full, 2))
+    return o_full
+
+
 @pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
 def test_grid_cost_kernel_pruning_keeps_the_best_cells_exactly(bi):
     """With ``keep`` the kernel abandons cells that cannot be among the ``keep`` cheapest of
@@ -223,11 +235,7 @@ def test_grid_cost_kernel_pruning_keeps_the_best_cells_exactly(bi):
     abandoned = 0
     for keep in (1, 3, 7):
         got = _grid_totals(links, floors, b, cfg, keep, w_out)
-        o_full = np.argsort(full, axis=2, kind="stable")[..., :keep]
-        o_got = np.argsort(got, axis=2, kind="stable")[..., :keep]
-        np.testing.assert_array_equal(o_got, o_full)
-        np.testing.assert_array_equal(np.take_along_axis(got, o_got, 2),
-                                      np.take_along_axis(full, o_full, 2))
+        o_full = _assert_same_kept(got, full, keep)
         gone = np.isinf(got) & np.isfinite(full)
         kth = np.take_along_axis(full, o_full[..., -1:], 2)
         assert np.all(full[gone] > np.broadcast_to(kth, full.shape)[gone])
@@ -499,11 +507,7 @@ def test_grid_cost_kernel_pruning_exact_on_degenerate_inputs(case):
         full = _grid_totals(links, floors, b, cfg, 0, w_out)
         for keep in (1, 4, 25):
             got = _grid_totals(links, floors, b, cfg, keep, w_out)
-            o_full = np.argsort(full, axis=2, kind="stable")[..., :keep]
-            o_got = np.argsort(got, axis=2, kind="stable")[..., :keep]
-            np.testing.assert_array_equal(o_got, o_full)
-            np.testing.assert_array_equal(np.take_along_axis(got, o_got, 2),
-                                          np.take_along_axis(full, o_full, 2))
+            _assert_same_kept(got, full, keep)
             differ = ~((got == full) | (np.isnan(got) & np.isnan(full)))
             assert np.all(np.isinf(got[differ]))  # only abandoned cells differ
             seen["abandoned"] += int(differ.sum())

@@ -103,6 +103,15 @@ def _expect(q: queue.Queue, what: str) -> None:
         seen.append(line)
 
 
+def _kill(p: subprocess.Popen, child: int | None) -> None:
+    """SIGKILL the test's parent process and its child (if found); reap the parent."""
+    for pid in (p.pid, child):
+        if pid is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    p.wait(timeout=TIMEOUT_S)
+
+
 def _orphan_pid(parent: int) -> int:
     for entry in os.listdir("/proc"):
         if entry.isdigit():
@@ -145,11 +154,7 @@ def test_repeated_sigterm_does_not_interrupt_the_stop_a_second_sigint_does(case)
         else:
             _expect(err, "KeyboardInterrupt")
     finally:
-        for pid in (p.pid, child):
-            if pid is not None:
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, signal.SIGKILL)
-        p.wait(timeout=TIMEOUT_S)
+        _kill(p, child)
 
 
 # The handler runs in the main thread between two bytecodes, possibly inside Event.wait while
@@ -246,8 +251,4 @@ def test_an_orphan_whose_stop_hangs_exits_by_itself_a_living_parent_decides(pare
             p.wait(timeout=TIMEOUT_S)
             _expect(err, "diffpos: still stopping 0.3 s after")
     finally:
-        for pid in (p.pid, child):
-            if pid is not None:
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(pid, signal.SIGKILL)
-        p.wait(timeout=TIMEOUT_S)
+        _kill(p, child)
