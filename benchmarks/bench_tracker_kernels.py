@@ -13,7 +13,7 @@ Usage::
 ``--skip``: ``tracking_nb.all_paths_kernel`` (the tracker's path model, ~3 calls per update),
 ``channel_nb.channel_snr_masked_kernel`` (the tracker's SNR prediction: the hypotheses' slots
 and the relax holes), ``channel_nb.channel_snr_kernel`` (every slot: the M-NLS snapshots) and
-``tracking_nb.grid_cost_kernel`` (the grid search of a track's initialisation; its calls from
+``grid_nb.grid_cost_kernel`` (the grid search of a track's initialisation; its calls from
 the first on, as many as come before the others have theirs).
 ``time`` runs each kernel over the kept calls ``--reps`` times (``time.process_time``, the
 best pass; the first call before, so compile or cache load is not counted) and prints the

@@ -2,7 +2,7 @@
 
 :func:`grid_starts` ranks a grid of cells at the nominal node height on every listed floor
 by the robust max-mixture range cost (the range variance widened by the grid's resolution)
-in one compiled pass (:func:`diffpos._kernels.tracking_nb.grid_cost_kernel`), bit-identical
+in one compiled pass (:func:`diffpos._kernels.grid_nb.grid_cost_kernel`), bit-identical
 to the numpy reference :func:`_grid_starts_numpy`; the snapshot fit from the best cells
 (:func:`diffpos.tracking_model.snapshot`, :func:`~diffpos.tracking_model.snapshot_init`)
 runs the measurement update and stays beside it.
@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from ._kernels.grid_nb import grid_cost_kernel
 from ._kernels.paths_nb import building_planes
 from ._kernels.pool import GRID_MIN_CELL_LINKS, run_rows
-from ._kernels.tracking_nb import grid_cost_kernel
 from .tracking_paths import _IS_BAND, _IS_DIFF, Links, _c, _los, all_paths, candidates
 
 FloatArray = NDArray[np.float64]
@@ -35,7 +35,7 @@ def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
     ``floors`` (N, Fs): the floors to search for every node. The cost of a cell is the robust
     max-mixture cost over the links with the range variance widened by the grid's own
     resolution (``(step / 2)^2``). Every cell of every node in one compiled pass
-    (:func:`diffpos._kernels.tracking_nb.grid_cost_kernel`: lengths without Jacobians, no
+    (:func:`diffpos._kernels.grid_nb.grid_cost_kernel`: lengths without Jacobians, no
     temporaries), bit-identical to :func:`_grid_starts_numpy`. The kernel abandons a cell as
     soon as its links so far cost more than the ``init_starts``-th best cell finished before it
     (exact: the same cells, totals and order; the grid was ~20 % of the fusion's CPU over the

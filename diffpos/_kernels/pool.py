@@ -1,7 +1,7 @@
 """Row chunks of the compiled kernels on a small shared thread pool.
 
 The heavy numba kernels (``channel_nb.channel_snr_kernel``, ``mnls_nb.lm_kernel``,
-``tracking_nb.all_paths_kernel``, ``tracking_nb.grid_cost_kernel``) loop over independent
+``tracking_nb.all_paths_kernel``, ``grid_nb.grid_cost_kernel``) loop over independent
 rows (nodes, hypotheses, starts) and are compiled with ``nogil=True``: their Python wrappers
 call :func:`run_rows` with a function that runs the kernel on the rows ``[lo, hi)`` (slices of
 the row axis of every per-row input and output, C-contiguous like the whole arrays, so the

@@ -29,8 +29,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+from diffpos._kernels.grid_nb import GRID_BOUND_SLACK_M, grid_cost_kernel
 from diffpos._kernels.paths_nb import building_planes
-from diffpos._kernels.tracking_nb import GRID_BOUND_SLACK_M, grid_cost_kernel
 from diffpos.paths import MECHANISMS
 from diffpos.scenario import Building, default_scenario
 from diffpos.tracking import TrackerConfig
