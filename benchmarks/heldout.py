@@ -81,7 +81,7 @@ def random_building(rng: np.random.Generator) -> dict[str, Any]:
     fh, z0, sill = _u(rng, "floor_height_m"), _u(rng, "first_floor_z_m"), _u(rng, "sill_height_m")
     w_hi = min(RANGES["window_height_m"][1], fh - sill - LINTEL_M)
     w = float(rng.uniform(RANGES["window_height_m"][0], w_hi))
-    width, depth = _u(rng, "width_m"), _u(rng, "depth_m")
+    width, depth = round(_u(rng, "width_m"), 1), round(_u(rng, "depth_m"), 1)
     parts: list[dict[str, Any]] = []
     if rng.random() >= 1 / 3:
         for x in np.sort(rng.uniform(-width / 2 + 2.0, width / 2 - 2.0, int(rng.integers(1, 5)))):
@@ -93,7 +93,7 @@ def random_building(rng: np.random.Generator) -> dict[str, Any]:
                           "thickness_m": 0.025})
     return {"n_floors": nf, "floor_height_m": round(fh, 2), "first_floor_z_m": round(z0, 2),
             "sill_height_m": round(sill, 2), "window_height_m": round(w, 2),
-            "width_m": round(width, 1), "depth_m": round(depth, 1), "partitions": parts}
+            "width_m": width, "depth_m": depth, "partitions": parts}
 
 
 def random_uavs(rng: np.random.Generator, building: dict[str, Any]) -> list[dict[str, Any]]:
