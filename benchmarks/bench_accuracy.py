@@ -31,7 +31,9 @@ not contain) and variants written here as TOML (not in scenarios/, not tuned for
 ``--random N --random-seed S`` runs ``N`` seeded random held-out geometries ``rand-S-0`` ...
 (``benchmarks/heldout.py``: buildings and UAV layouts varied one family at a time for half
 the samples, both for the rest; its docstring lists the sampled ranges), alone unless
-``--only`` names other runs too; their key parameters are printed below the table.
+``--only`` names other runs too; their key parameters are printed below the table. Seeds 0
+and 1 (40 each, 2026-11-28) and the diagnosis of their misses: docs/heldout_geo14.md
+(``benchmarks/heldout_diag.py`` reads the recordings kept with ``--keep``).
 
 The table (and ``--json``) names the command and the machine; the README's accuracy table is
 regenerated from it.
