@@ -5,6 +5,7 @@ Usage::
     python benchmarks/bench_accuracy.py            # every run, 20 s each
     python benchmarks/bench_accuracy.py --quick    # a short check (6 s, default + 2 variants)
     python benchmarks/bench_accuracy.py --only default large --duration 30 --json out.json
+    python benchmarks/bench_accuracy.py --random 8 --random-seed 0 --keep /tmp/rand
 
 Every run is the real system: ``diffpos emulate --speed 0 --record FILE`` (router, anchors,
 fusion with its default method, recorder as processes; lockstep: emulated time advances as
@@ -26,6 +27,13 @@ not contain) and variants written here as TOML (not in scenarios/, not tuned for
 - ``uavs-above-windows``: the default building with the UAVs at 6.5-13 m (at and above the
   windows of the lower floors);
 - ``anchors-beyond-ends``: two UAVs beyond the facade ends (x = -27, +26 m) and three in front.
+
+``--random N --random-seed S`` runs ``N`` seeded random held-out geometries ``rand-S-0`` ...
+(``benchmarks/heldout.py``: buildings and UAV layouts varied one family at a time for half
+the samples, both for the rest; its docstring lists the sampled ranges), alone unless
+``--only`` names other runs too; their key parameters are printed below the table. Seeds 0
+and 1 (40 each, 2026-11-28) and the diagnosis of their misses: docs/heldout_geo14.md
+(``benchmarks/heldout_diag.py`` reads the recordings kept with ``--keep``).
 
 The table (and ``--json``) names the command and the machine; the README's accuracy table is
 regenerated from it.
@@ -79,6 +87,7 @@ from diffpos_services.recording.reader import McapScanner
 from diffpos_services.recording.topics import parse_topic
 from diffpos_services.recording.writer import part_path
 from diffpos_services.wire import messages as M
+from heldout import family, random_scenarios, summary
 
 from diffpos.metrics import percentiles, score, truth_at
 from diffpos.scenario import default_scenario
@@ -274,14 +283,18 @@ def emulate_cmd(scenario: str | None, *, out: Path, duration_s: float, seed: int
             "--record", str(out)]
 
 
-def runs(tmp: Path, names: list[str] | None) -> dict[str, tuple[str | None, str]]:
-    """name -> (scenario argument, channel)."""
+def runs(tmp: Path, names: list[str] | None,
+         random: dict[str, dict[str, Any]] | None = None) -> dict[str, tuple[str | None, str]]:
+    """name -> (scenario argument, channel); ``random``: extra scenario dicts by name (run
+    whatever ``names`` says)."""
     out: dict[str, tuple[str | None, str]] = {
         "default": (None, "emulator"),
         "large": (str(ROOT / "scenarios" / "large.toml"), "emulator"),
         "ideal": (None, "ideal"),
     }
-    for name, d in variants().items():
+    random = random or {}
+    names = None if names is None else [*names, *random]
+    for name, d in (variants() | random).items():
         path = tmp / f"{name}.toml"
         path.write_text(to_toml(d), encoding="utf-8")
         out[name] = (str(path), "emulator")
@@ -327,6 +340,11 @@ def main(argv: list[str] | None = None) -> int:
                     + ", ".join(variants()) + ")")
     ap.add_argument("--quick", action="store_true",
                     help="6 s runs of default, tall-floors and anchors-beyond-ends")
+    ap.add_argument("--random", type=int, default=0, metavar="N",
+                    help="also N random held-out geometries rand-S-i (benchmarks/heldout.py); "
+                    "alone unless --only names other runs")
+    ap.add_argument("--random-seed", type=int, default=0, metavar="S",
+                    help="seed of the random geometries (default 0)")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     ap.add_argument("--keep", metavar="DIR", help="keep the recordings in DIR")
     ap.add_argument("--method", choices=["dnls", "mnls", "lls", "ippa"], default=None,
@@ -334,12 +352,15 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     duration = 6.0 if args.quick else args.duration
     only = args.only or (["default", "tall-floors", "anchors-beyond-ends"] if args.quick else None)
+    rand = random_scenarios(args.random, args.random_seed) if args.random > 0 else {}
+    if rand and only is None:
+        only = []
     results: dict[str, dict[str, Any]] = {}
     commands: dict[str, str] = {}
     with tempfile.TemporaryDirectory(prefix="bench-accuracy-") as tmp_s:
         tmp = Path(args.keep) if args.keep else Path(tmp_s)
         tmp.mkdir(parents=True, exist_ok=True)
-        for name, (scenario, channel) in runs(Path(tmp_s), only).items():
+        for name, (scenario, channel) in runs(Path(tmp_s), only, rand).items():
             out = tmp / f"{name}.mcap"
             out.unlink(missing_ok=True)
             cmd = emulate_cmd(scenario, out=out, duration_s=duration, seed=args.seed,
@@ -361,9 +382,14 @@ def main(argv: list[str] | None = None) -> int:
     method = next((r["method"] for r in results.values() if "method" in r), "-")
     print(f"fusion: {method}\n")
     print(table(results))
+    if rand:
+        print("\nrandom geometries (family: building, uavs or both varied):")
+        for i, (name, d) in enumerate(rand.items()):
+            print(f"{name:12s} {family(i):8s} {summary(d)}")
     if args.json:
         Path(args.json).write_text(json.dumps({"duration_s": duration, "seed": args.seed,
                                                "machine": machine(), "commands": commands,
+                                               "random": rand,
                                                "results": results}, indent=2))
     return 0 if all("error" not in r for r in results.values()) else 1
 

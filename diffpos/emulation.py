@@ -49,19 +49,34 @@ def responders(building, *, count: int = 6, seed: int = 0,
     climbs (or descends) one floor on a 6 m stair run near a side wall and walks back, in a
     loop, at ``speed_m_s``. On the level parts it is at the window's mid-height (the paper's
     Assumption 1); on the stairs it is not (a realistic model mismatch). Ids ``r01``...
+    The whole loop stays inside the floors of any building wider than 11 m and deeper than 4 m
+    (else ``ValueError``); the layout of buildings at least 20 m wide and 13 m deep is the
+    one it always was.
     """
     rng = np.random.default_rng(seed)
     b = building
     x_lo, x_hi = b.edge_x_m
+    if b.width_m <= 11.0 or b.depth_m <= 4.0:
+        raise ValueError(f"responders need a building wider than 11 m (a 6 m stair run 4 m "
+                         f"from the side wall) and deeper than 4 m, got {b.width_m:g} x "
+                         f"{b.depth_m:g} m")
     h = b.nominal_node_height_m
+    # the walk is at depth y and, after the stairs, y + 2 m: both at least 1 m from the back
+    # wall; it starts between 8 m from the west wall and 12 m from the east one (the stairs
+    # end 10 m from it), nearer the west wall in buildings narrower than 20 m
+    y_hi = min(b.depth_m - 3.0, 10.0)
+    y_lo = min(1.5, 0.5 * y_hi)
+    xa_lo, xa_hi = x_lo + 8.0, x_hi - 12.0
+    if xa_hi < xa_lo:
+        xa_lo, xa_hi = x_lo + 0.5, max(x_hi - 12.0, x_lo + 0.5)
     out = []
     for i in range(count):
         f0 = i % b.n_floors
         f1 = f0 + 1 if f0 + 1 < b.n_floors else f0 - 1
         z0 = float(b.floor_z_m(f0)) + h
         z1 = float(b.floor_z_m(f1)) + h
-        y = float(rng.uniform(1.5, min(b.depth_m - 1.0, 10.0)))
-        xa = float(rng.uniform(x_lo + 8.0, x_hi - 12.0))
+        y = float(rng.uniform(y_lo, y_hi))
+        xa = float(rng.uniform(xa_lo, xa_hi))
         xs = x_hi - 4.0  # stairs start
         pts = [[xa, y, z0], [xs, y, z0], [xs, y + 2.0, z0], [xs - 6.0, y + 2.0, z1],
                [xa, y + 2.0, z1]]

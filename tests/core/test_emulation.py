@@ -116,3 +116,25 @@ def test_emulation_nodes_of_a_grid_scenario_are_six_responders_capped_by_max_nod
         assert p[1] > 0 and b.edge_x_m[0] < p[0] < b.edge_x_m[1]
         floor = i % b.n_floors
         assert p[2] == pytest.approx(float(b.floor_z_m(floor)) + b.nominal_node_height_m)
+
+
+def test_responders_walk_inside_narrow_and_shallow_buildings_and_keep_the_paper_layout(paper):
+    """A 15 m wide building (the start range ``[x_lo + 8, x_hi - 12]`` used to be empty: a
+    numpy error) and a 9 m deep one (the walk back at ``y + 2`` m, ``y`` up to ``depth - 1``,
+    went through the back wall): every responder stays inside the floors over a whole loop.
+    Buildings at least 20 m wide and 13 m deep keep the layout they always had (the same
+    draws: ``y ~ U(1.5, 10)``, ``x ~ U(x_lo + 8, x_hi - 12)``)."""
+    import dataclasses
+
+    t_s = np.linspace(0.0, 200.0, 2001)
+    for width_m, depth_m in ((15.0, 22.5), (40.0, 9.0), (12.0, 5.0), (25.0, 12.5)):
+        b = dataclasses.replace(paper.building, width_m=width_m, depth_m=depth_m, n_floors=3)
+        for rid, traj in responders(b, count=6, seed=0):
+            assert np.all(b.inside(traj.position_m(t_s))), (width_m, depth_m, rid)
+    with pytest.raises(ValueError, match="wider than 11 m"):
+        responders(dataclasses.replace(paper.building, width_m=10.0), count=1)
+    rng = np.random.default_rng(0)
+    x_lo, x_hi = paper.building.edge_x_m
+    for _, traj in responders(paper.building, count=6, seed=0):
+        y, xa = rng.uniform(1.5, 10.0), rng.uniform(x_lo + 8.0, x_hi - 12.0)
+        assert traj.points[0][:2] == pytest.approx((xa, y), abs=1e-12)

@@ -1,0 +1,124 @@
+"""benchmarks/heldout.py: the seeded random held-out geometries of ``bench_accuracy.py
+--random``: valid (the scenario loader accepts their TOML), distinct, a pure function of
+(seed, index), within the ranges its docstring documents, with the emulator's responders
+walking inside the building."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diffpos_services.scenario_io import load_scenario
+
+from diffpos.emulation import emulation_nodes
+from diffpos.scenario import Scenario, default_scenario
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import bench_accuracy
+import heldout
+
+N = 24  # samples of seed 0 checked in detail (6 of each family slot)
+
+
+@pytest.fixture(scope="module")
+def samples():
+    return heldout.random_scenarios(N, 0)
+
+
+def _centres(d):
+    return np.array([a["position_m"] if "position_m" in a else a["trajectory"]["center_m"]
+                     for a in d["anchors"]])
+
+
+def test_samples_are_seeded_named_and_distinct(samples):
+    assert list(samples) == [f"rand-0-{i}" for i in range(N)]
+    # a pure function of (seed, index): the same alone, in another batch, twice
+    assert heldout.random_scenario(0, 7) == samples["rand-0-7"]
+    assert heldout.random_scenarios(3, 0) == {k: samples[k] for k in list(samples)[:3]}
+    other = heldout.random_scenarios(N, 1)
+    keys = [repr((d["building"], d["anchors"])) for d in [*samples.values(), *other.values()]]
+    assert len(set(keys)) == 2 * N  # no two samples (of either seed) the same geometry
+
+
+def test_samples_load_through_the_toml_loader(samples, tmp_path):
+    for name, d in samples.items():
+        path = tmp_path / f"{name}.toml"
+        path.write_text(bench_accuracy.to_toml(d), encoding="utf-8")
+        s = load_scenario(path)
+        assert s == Scenario.from_dict(d)
+        assert s.name == name and not s.warnings  # >= 3 anchors
+
+
+def test_samples_stay_in_the_documented_ranges(samples):
+    R, paper = heldout.RANGES, default_scenario().to_dict()
+
+    def within(v, key, slack=1e-9):
+        lo, hi = R[key]
+        return lo - slack <= v <= hi + slack
+
+    for i, d in enumerate(samples.values()):
+        fam, b = heldout.family(i), d["building"]
+        if fam == "uavs":
+            assert b == paper["building"]
+        else:
+            assert within(b["n_floors"], "n_floors") and isinstance(b["n_floors"], int)
+            for k in ("floor_height_m", "first_floor_z_m", "sill_height_m", "window_height_m",
+                      "width_m", "depth_m"):
+                assert within(b[k], k, slack=0.051), (d["name"], k, b[k])
+            # the window fits in its floor below the slab (rounding: 1 cm)
+            assert b["sill_height_m"] + b["window_height_m"] <= (
+                b["floor_height_m"] - heldout.LINTEL_M + 0.011)
+            for p in b["partitions"]:
+                assert p["material"] == "plasterboard"
+                if p["axis"] == "x":
+                    assert abs(p["position_m"]) <= b["width_m"] / 2 - 2.0 + 0.01
+        c = _centres(d)
+        if fam == "building":
+            assert d["anchors"] == [{"id": a["id"], "position_m": a["position_m"]} for a in [
+                {"id": x.id, "position_m": [float(v) for v in x.position_m]}
+                for x in default_scenario().anchors]]
+            continue
+        top = b["first_floor_z_m"] + b["n_floors"] * b["floor_height_m"]
+        assert within(len(c), "n_uavs")
+        assert np.all((-c[:, 1] >= 5.0 - 0.01) & (-c[:, 1] <= 40.0 + 0.01))
+        assert np.all((c[:, 2] >= 0.5 - 0.01) & (c[:, 2] <= top + 3.0 + 0.01))
+        excess = np.abs(c[:, 0]) - b["width_m"] / 2
+        assert np.all(excess <= 15.0 + 0.01)
+        assert np.all((excess <= 0) | (excess >= 1.0 - 0.01))  # beyond: by 1-15 m
+        if len(c) >= 5:
+            assert np.any(excess > 0)
+        gaps = np.linalg.norm(c[:, None] - c[None], axis=-1) + np.eye(len(c)) * 1e9
+        assert gaps.min() >= heldout.MIN_UAV_SPACING_M - 0.02
+        for a in d["anchors"]:
+            t = a["trajectory"]
+            assert t["kind"] == "hover" and within(t["wander_m"], "wander_m", 0.006)
+            assert within(t["period_s"], "period_s", 0.06)
+
+
+def test_the_samples_reach_the_ends_of_their_ranges(samples):
+    """Over the samples, UAVs below the lowest window and above the roof, beyond the facade
+    ends, ground-floor buildings and tall ones all occur (the ranges are really sampled)."""
+    below = above = beyond = 0
+    for d in samples.values():
+        b, c = d["building"], _centres(d)
+        below += int(np.sum(c[:, 2] < b["first_floor_z_m"] + b["sill_height_m"]))
+        above += int(np.sum(c[:, 2] > b["first_floor_z_m"] + b["n_floors"] * b["floor_height_m"]))
+        beyond += int(np.sum(np.abs(c[:, 0]) > b["width_m"] / 2))
+    assert below > 0 and above > 0 and beyond > 0
+    rand_b = [d["building"] for i, d in enumerate(samples.values()) if heldout.family(i) != "uavs"]
+    assert min(b["first_floor_z_m"] for b in rand_b) < 1.5
+    assert max(b["n_floors"] for b in rand_b) >= 7
+    assert min(b["depth_m"] for b in rand_b) < 15.0
+
+
+def test_the_responders_walk_inside_every_sample(samples):
+    """Sampled along a whole loop in time (not only the path's vertices)."""
+    t_s = np.linspace(0.0, 200.0, 801)
+    for d in samples.values():
+        s = Scenario.from_dict(d)
+        nodes = emulation_nodes(s)
+        assert len(nodes) == 6
+        for _, traj in nodes:
+            assert np.all(s.building.inside(traj.position_m(t_s))), d["name"]
