@@ -47,7 +47,7 @@ def responders(building, *, count: int = 6, seed: int = 0,
 
     Responder ``i`` starts on floor ``i mod n_floors``, walks along the facade at a fixed depth,
     climbs (or descends) one floor on a 6 m stair run near a side wall and walks back, in a
-    loop, at ``speed_m_s``. On the level parts it is at the window's mid-height (the paper's
+    loop, at ``speed_m_s`` (in a one-floor building that leg stays on the level). On the level parts it is at the window's mid-height (the paper's
     Assumption 1); on the stairs it is not (a realistic model mismatch). Ids ``r01``...
     The whole loop stays inside the floors of any building wider than 11 m and deeper than 4 m
     (else ``ValueError``); the layout of buildings at least 20 m wide and 13 m deep is the
@@ -72,7 +72,8 @@ def responders(building, *, count: int = 6, seed: int = 0,
     out = []
     for i in range(count):
         f0 = i % b.n_floors
-        f1 = f0 + 1 if f0 + 1 < b.n_floors else f0 - 1
+        # the next floor up (from the top floor: down); one floor: the stair leg stays level
+        f1 = f0 + 1 if f0 + 1 < b.n_floors else max(f0 - 1, 0)
         z0 = float(b.floor_z_m(f0)) + h
         z1 = float(b.floor_z_m(f1)) + h
         y = float(rng.uniform(y_lo, y_hi))

@@ -131,6 +131,12 @@ def test_responders_walk_inside_narrow_and_shallow_buildings_and_keep_the_paper_
         b = dataclasses.replace(paper.building, width_m=width_m, depth_m=depth_m, n_floors=3)
         for rid, traj in responders(b, count=6, seed=0):
             assert np.all(b.inside(traj.position_m(t_s))), (width_m, depth_m, rid)
+    # one floor: no stairs to take, the loop stays on the level (it used to walk to floor -1)
+    one = dataclasses.replace(paper.building, n_floors=1)
+    for rid, traj in responders(one, count=3, seed=0):
+        p = traj.position_m(t_s)
+        assert np.all(one.inside(p)), rid
+        assert np.all(p[:, 2] == float(one.floor_z_m(0)) + one.nominal_node_height_m), rid
     with pytest.raises(ValueError, match="wider than 11 m"):
         responders(dataclasses.replace(paper.building, width_m=10.0), count=1)
     rng = np.random.default_rng(0)
