@@ -13,6 +13,7 @@ from diffpos_services.emulate.notes import (
     fusion_notes,
     latency_notes,
     loss_notes,
+    model_notes,
     recording_notes,
 )
 from diffpos_services.emulate.scoring import Scorer
@@ -134,6 +135,16 @@ def test_foreign_notes():
     assert note == ["foreign: 4 messages not from this run's fusion were ignored (not counted "
                     "or scored; another process publishes on this bus): "
                     "diffpos/s/node/n1/estimate 3, diffpos/s/fusion/diagnostics 1"]
+
+
+def test_model_notes_only_when_the_fusion_does_not_model_the_channel():
+    """The ideal channel (the paper's one-path model) with the default first-arrival fusion
+    gets a note naming the method that models it; every other pair none."""
+    (note,) = model_notes("ideal", "mnls")
+    assert "--method dnls" in note
+    for channel, method in (("emulator", "mnls"), ("ideal", "dnls"), ("emulator", "dnls"),
+                            ("ideal", "lls")):
+        assert model_notes(channel, method) == []
 
 
 def test_end_to_end_latency_from_the_estimates_input_stamps():

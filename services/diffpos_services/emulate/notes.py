@@ -25,7 +25,7 @@ from diffpos_services.recording.summary import summarize
 from diffpos_services.recording.writer import existing_parts
 from diffpos_services.wire import messages as M
 
-__all__ = ["foreign_notes", "fusion_notes", "loss_notes", "recording_notes"]
+__all__ = ["foreign_notes", "fusion_notes", "loss_notes", "model_notes", "recording_notes"]
 
 #: a stretch of the run counts as "fixes lost" when at least this share of its node-epochs
 #: has no position (per-second bins, adjacent ones merged)
@@ -170,6 +170,17 @@ def recording_notes(recordings: Iterable[str | os.PathLike[str]],
         notes.append(f"recorder: {n}foreign messages (not from this run's fusion, or from an "
                      f"anchor outside the scenario) kept apart in {p}, not in the recording")
     return notes
+
+
+def model_notes(channel: str, method: str) -> list[str]:
+    """A channel the fusion's method does not model: ``--channel ideal`` is the paper's
+    one-path model (diffraction over an edge that moves with the node, CRLB noise), which the
+    first-arrival model of ``mnls`` (the default) does not contain; ``dnls`` is its own."""
+    if channel == "ideal" and method == "mnls":
+        return ["model: --channel ideal is the paper's one-path channel, which the default "
+                "fusion (mnls: the building's first-arrival mechanisms) does not model; "
+                "--method dnls is that channel's own model (README, What to expect)"]
+    return []
 
 
 def foreign_notes(foreign: Mapping[str, int]) -> list[str]:

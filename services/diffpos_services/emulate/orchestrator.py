@@ -47,6 +47,7 @@ from diffpos_services.emulate.notes import (
     fusion_notes,
     latency_notes,
     loss_notes,
+    model_notes,
     recording_notes,
 )
 from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
@@ -568,7 +569,8 @@ class Emulation:
             None if self.t0_wall_ns is None or not o.speed else self.e2e.stats_ms(
                 inputs_since_wall_ns=self.t0_wall_ns + round(skip_ns / o.speed)))
         # when and why fixes were lost, every file written, foreign messages: plain lines
-        out["notes"] = [*loss_notes(scorer), *fusion_notes(self.diag, self.t0_wall_ns),
+        out["notes"] = [*model_notes(self.o.channel, self.fusion_config.method),
+                        *loss_notes(scorer), *fusion_notes(self.diag, self.t0_wall_ns),
                         *recording_notes(self.recordings,
                                          [foreign_path(r) for r in self.recordings]),
                         *foreign_notes(foreign),
