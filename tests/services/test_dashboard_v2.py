@@ -112,6 +112,7 @@ def test_v2_estimates_draw_the_mechanism_path_and_the_floor_probability(tmp_path
     log_estimates(rec, est, anchors=anchors, building=OUTLINE, path_period_s=10.0,
                   floor_period_s=10.0)
     rec.flush()
+    rec.disconnect()  # the file is finished (footer written) before it is read back
     rows = rrd_rows(path)
     strips = rows["/world/paths/r01"][0][1]["LineStrips3D:strips"]
     want = mechanism_strips(a_pos[:1], np.array([pos]), np.array([1]), np.array([label]),
