@@ -20,6 +20,7 @@ that exists and is shorter than that range by more than ``tol`` costs
   an earlier slot precedes the explaining one under the estimate's covariance, times its
   detection probability);
 - ``softcons``: the least ``soft`` over the same three heights as ``cons``;
+- ``softcons@truth``: ``softcons`` at the truth (its floor, the estimate's covariance);
 - ``|dz| sz``: the |z error| and the reported sigma_z (medians).
 
 Columns per penalty: the mean over the node-epochs [nats] and the share of node-epochs with
@@ -91,11 +92,18 @@ def soft_penalty(run: Run, p_m: np.ndarray, anchors_m: np.ndarray, meas_m: np.nd
     return cost
 
 
+def _heights(run: Run, z_m: float, dz_m: float, floor: int) -> np.ndarray:
+    """``z_m`` and ``z_m +- dz_m``, kept 1 cm inside the floor ``floor``."""
+    zf = run.sc.building.floor_z_m(floor)
+    return np.clip(z_m + np.array([-dz_m, 0.0, dz_m]), zf + 0.01,
+                   zf + run.sc.building.floor_height_m - 0.01)
+
+
 def main(argv: list[str]) -> int:
     root, names = Path(argv[0]), argv[1:]
     margin = TrackerConfig().exist_margin_m
     print("run        class           n  proto      | cons       | soft       | softcons   |"
-          " |dz| sz (p50)")
+          " softcons@truth | |dz| sz (p50)")
     for name in names:
         run = Run(root / f"{name}.mcap", scenario_of(name))
         acc: dict[str, list] = {}
@@ -110,22 +118,23 @@ def main(argv: list[str]) -> int:
             p = np.asarray(e.position_m, float)
             sz = float(np.sqrt(np.asarray(e.covariance_m2)[2, 2])) if e.covariance_m2 else 0.0
             dz = max(margin, ENTRY_SIGMAS * sz)
-            zf = run.sc.building.floor_z_m(e.floor_index)
-            zs = np.clip(p[2] + np.array([-dz, 0.0, dz]), zf + 0.01,
-                         zf + run.sc.building.floor_height_m - 0.01)
+            zs = _heights(run, p[2], dz, e.floor_index)
             cons = min(penalty(run, np.array([p[0], p[1], z]), anchors, meas, 0.15) for z in zs)
             cov = np.asarray(e.covariance_m2, float) if e.covariance_m2 else np.eye(3) * 1e-4
             soft = soft_penalty(run, p, anchors, meas, cov, e.floor_index)
             softc = min(soft_penalty(run, np.array([p[0], p[1], z]), anchors, meas, cov,
                                      e.floor_index) for z in zs)
+            at_truth = min(soft_penalty(run, np.array([x[6][0], x[6][1], z]), anchors, meas,
+                                        cov, x[2]) for z in _heights(run, x[6][2], dz, x[2]))
             acc.setdefault(key, []).append((penalty(run, p, anchors, meas, 0.15), cons, soft, softc,
+                                            at_truth,
                                             abs(p[2] - x[6][2]), sz))
         for key, v in sorted(acc.items()):
             a = np.array(v)
             cols = " | ".join(f"{a[:, c].mean():6.2f} {np.mean(a[:, c] > 1):4.0%}"
-                              for c in range(4))
-            print(f"{name:10s} {key:12s} {len(a):4d}  {cols} | {np.median(a[:, 4]):5.2f}"
-                  f" {np.median(a[:, 5]):5.2f}", flush=True)
+                              for c in range(5))
+            print(f"{name:10s} {key:12s} {len(a):4d}  {cols} | {np.median(a[:, 5]):5.2f}"
+                  f" {np.median(a[:, 6]):5.2f}", flush=True)
     return 0
 
 
