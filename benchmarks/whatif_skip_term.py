@@ -40,6 +40,19 @@ from diffpos.tracking_snr import SNR_SIGMA_DB
 _orig = tm.snr_cost_near
 
 
+def _detectable(pos, links, building, pe):
+    """Predicted SNR of every slot (N, H, M, K), the detector's threshold at the hypothesis
+    (N, H, M) and which slots are existing diffraction paths with a prediction."""
+    n, h, m, k = pe.length.shape
+    anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(n * h, m, 3)
+    pred = pair_snr_db(np.ascontiguousarray(anc), pos.reshape(n * h, 3),
+                       building=building, radio=links.radio).reshape(n, h, m, k)
+    r = links.radio
+    top = np.max(np.where(pe.sure, pred, -np.inf), axis=-1)
+    thr = np.maximum(top - r.fap_threshold_db, r.detection_snr_db)
+    return pred, thr, _IS_DIFF & pe.strict & np.isfinite(pred)
+
+
 def _with_skip_term(tol_m: float):
     def cost(pos, links, floor, building, relax_m, pe=None, cache=None, reuse_m=(0.0, 0.0)):
         c = _orig(pos, links, floor, building, relax_m, pe, cache, reuse_m)
@@ -47,14 +60,8 @@ def _with_skip_term(tol_m: float):
             return c
         if pe is None:
             pe = tm.all_paths(pos, links, floor, building, relax_m)
-        n, h, m, k = c.shape
-        anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(n * h, m, 3)
-        pred = pair_snr_db(np.ascontiguousarray(anc), pos.reshape(n * h, 3),
-                           building=building, radio=links.radio).reshape(n, h, m, k)
-        r = links.radio
-        top = np.max(np.where(pe.sure, pred, -np.inf), axis=-1)
-        thr = np.maximum(top - r.fap_threshold_db, r.detection_snr_db)
-        det = _IS_DIFF & pe.strict & np.isfinite(pred)
+        n, h, m = c.shape[:3]
+        pred, thr, det = _detectable(pos, links, building, pe)
         with np.errstate(invalid="ignore"):
             lc = np.where(det, -log_ndtr((thr[..., None] - pred) / SNR_SIGMA_DB), 0.0)
         ln = pe.length
@@ -79,14 +86,8 @@ def _soft_pen(pos, links, floor, building, relax_m, pe, cov):
     """(N, H, M, K) penalty of every slot k: ``-sum_j log(1 - Phi((L_k - L_j) / s_kj)
     Phi((pred_j - thr) / SNR_SIGMA_DB))`` over the existing diffraction slots j != k,
     ``s_kj^2 = (J_k - J_j) P (J_k - J_j)^T`` with the hypothesis' prior covariance P."""
-    n, h, m, k = pe.length.shape
-    anc = np.broadcast_to(links.anchors, (n, h, m, 3)).reshape(n * h, m, 3)
-    pred = pair_snr_db(np.ascontiguousarray(anc), pos.reshape(n * h, 3),
-                       building=building, radio=links.radio).reshape(n, h, m, k)
-    r = links.radio
-    top = np.max(np.where(pe.sure, pred, -np.inf), axis=-1)
-    thr = np.maximum(top - r.fap_threshold_db, r.detection_snr_db)
-    det = _IS_DIFF & pe.strict & np.isfinite(pred)
+    k = pe.length.shape[-1]
+    pred, thr, det = _detectable(pos, links, building, pe)
     d = pe.jac[..., :, None, :] - pe.jac[..., None, :, :]  # [k, j]
     s2 = np.einsum("nhmkji,nhil,nhmkjl->nhmkj", d, cov, d)
     s = np.sqrt(np.maximum(s2, 1e-6))
