@@ -5,6 +5,7 @@ Usage::
     python benchmarks/heldout_diag.py levels DIR rand-0-0 rand-0-1 ...   # level vs stairs
     python benchmarks/heldout_diag.py links DIR rand-0-36                # bad epochs' links
     python benchmarks/heldout_diag.py skip DIR rand-0-36 rand-0-20       # skipped paths
+    python benchmarks/heldout_diag.py flight DIR rand-0-25 rand-0-26 ...  # along the stairs
 
 The scenario of ``rand-S-i`` is regenerated from its name (:mod:`heldout`).
 
@@ -21,6 +22,9 @@ The scenario of ``rand-S-i`` is regenerated from its name (:mod:`heldout`).
   above the detector's threshold there: ``max(P_max - fap_threshold_db, detection_snr_db)``)
   and ``-log P(all of them below the threshold)`` with the tracker's SNR standard deviation
   (:data:`diffpos.tracking_snr.SNR_SIGMA_DB`); the same at the truth.
+- ``flight``: the right-floor stairs node-epochs of all the runs named, pooled by the truth's
+  height along the flight (fifths of a floor height above a floor's nominal height): truth
+  inside the 95 % ellipsoid, ``|z error| / sigma_z`` and the mean z error.
 """
 
 from __future__ import annotations
@@ -217,12 +221,38 @@ def skip(run: Run, name: str, every: int = 3, max_right: int = 60) -> str:
     return "\n".join(out)
 
 
+def flight(runs: list[Run]) -> str:
+    """Stairs node-epochs on the right floor by the truth's height along the flight."""
+    bins: dict[int, list] = collections.defaultdict(list)
+    for run in runs:
+        b = run.sc.building
+        for r in run.rows:
+            if r[8] != "stairs" or r[3] is None or r[2] != r[3]:
+                continue
+            frac = (r[6][2] - b.first_floor_z_m - b.nominal_node_height_m) / b.floor_height_m
+            err = np.asarray(r[7].position_m) - r[6]
+            sz = float(np.sqrt(np.asarray(r[7].covariance_m2)[2, 2]))
+            bins[min(int((frac - np.floor(frac)) * 5), 4)].append((r[5], abs(err[2]) / sz,
+                                                                   err[2]))
+    out = []
+    for k in sorted(bins):
+        v = np.array(bins[k], float)
+        out.append(f"height along the flight {20 * k:3d}-{20 * k + 20:3d} %: n {len(v):5d} "
+                   f"covered {100 * v[:, 0].mean():5.1f} %  |z err|/sigma_z p50 "
+                   f"{np.median(v[:, 1]):.2f} p90 {np.percentile(v[:, 1], 90):.2f}  "
+                   f"mean z err {v[:, 2].mean():+.3f} m")
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=["levels", "links", "skip"])
+    ap.add_argument("what", choices=["levels", "links", "skip", "flight"])
     ap.add_argument("dir", type=Path, help="bench_accuracy --keep directory")
     ap.add_argument("names", nargs="+", help="rand-S-i runs")
     args = ap.parse_args(argv)
+    if args.what == "flight":
+        print(flight([Run(args.dir / f"{n}.mcap", scenario_of(n)) for n in args.names]))
+        return 0
     for name in args.names:
         run = Run(args.dir / f"{name}.mcap", scenario_of(name))
         if args.what == "levels":
