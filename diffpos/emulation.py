@@ -47,7 +47,9 @@ def responders(building, *, count: int = 6, seed: int = 0,
 
     Responder ``i`` starts on floor ``i mod n_floors``, walks along the facade at a fixed depth,
     climbs (or descends) one floor on a 6 m stair run near a side wall and walks back, in a
-    loop, at ``speed_m_s`` (in a one-floor building that leg stays on the level). On the level parts it is at the window's mid-height (the paper's
+    loop, at ``speed_m_s`` (in a one-floor building that leg stays on the level); the loop
+    closes from the end of the walk back to its start, 2 m nearer the facade and one floor
+    down (or up). On the level parts it is at the window's mid-height (the paper's
     Assumption 1); on the stairs it is not (a realistic model mismatch). Ids ``r01``...
     The whole loop stays inside the floors of any building wider than 11 m and deeper than 4 m
     (else ``ValueError``); the layout of buildings at least 20 m wide and 13 m deep is the

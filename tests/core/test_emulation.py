@@ -144,3 +144,48 @@ def test_responders_walk_inside_narrow_and_shallow_buildings_and_keep_the_paper_
     for _, traj in responders(paper.building, count=6, seed=0):
         y, xa = rng.uniform(1.5, 10.0), rng.uniform(x_lo + 8.0, x_hi - 12.0)
         assert traj.points[0][:2] == pytest.approx((xa, y), abs=1e-12)
+
+
+def _old_responder_points(b, count, seed):
+    """The waypoints of ``responders`` as it was before the narrow/shallow-building fix
+    (commit 0acebf2, verbatim draws): the reference for the layouts that must not change."""
+    rng = np.random.default_rng(seed)
+    x_lo, x_hi = b.edge_x_m
+    h = b.nominal_node_height_m
+    out = []
+    for i in range(count):
+        f0 = i % b.n_floors
+        f1 = f0 + 1 if f0 + 1 < b.n_floors else f0 - 1
+        z0 = float(b.floor_z_m(f0)) + h
+        z1 = float(b.floor_z_m(f1)) + h
+        y = float(rng.uniform(1.5, min(b.depth_m - 1.0, 10.0)))
+        xa = float(rng.uniform(x_lo + 8.0, x_hi - 12.0))
+        xs = x_hi - 4.0
+        out.append([[xa, y, z0], [xs, y, z0], [xs, y + 2.0, z0], [xs - 6.0, y + 2.0, z1],
+                    [xa, y + 2.0, z1]])
+    return out
+
+
+def test_responders_keep_the_old_layout_in_buildings_at_least_20_m_wide_and_13_m_deep(paper):
+    """The docstring's claim, checked against the old code on buildings other than the
+    paper's: the bounds themselves (20 m wide, 13 m deep), off the origin, 2-7 floors, other
+    seeds and counts; every waypoint identical. Just outside the bounds the layout does change
+    (12.5 m deep) or the old code had none (19.5 m wide): the claim is not vacuous."""
+    import dataclasses
+
+    cases = [(20.0, 13.0, 2, 0.0), (20.0, 30.0, 7, -35.0), (60.0, 13.0, 3, 12.5),
+             (33.3, 18.7, 4, 0.0), (40.0, 22.5, 5, 0.0)]
+    for width_m, depth_m, n_floors, cx_m in cases:
+        b = dataclasses.replace(paper.building, width_m=width_m, depth_m=depth_m,
+                                n_floors=n_floors, center_x_m=cx_m)
+        for seed, count in ((0, 6), (3, 9)):
+            got = [traj.points for _, traj in responders(b, count=count, seed=seed)]
+            want = _old_responder_points(b, count, seed)
+            assert np.array_equal(np.asarray(got), np.asarray(want)), (width_m, depth_m, seed)
+    shallow = dataclasses.replace(paper.building, depth_m=12.5)
+    got = [traj.points for _, traj in responders(shallow, count=6, seed=0)]
+    assert not np.array_equal(np.asarray(got), np.asarray(_old_responder_points(shallow, 6, 0)))
+    narrow = dataclasses.replace(paper.building, width_m=19.5)
+    with pytest.raises(ValueError):  # numpy's "low > high": the old code had no layout here
+        _old_responder_points(narrow, 6, 0)
+    assert len(responders(narrow, count=6, seed=0)) == 6
