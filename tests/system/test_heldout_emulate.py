@@ -9,8 +9,9 @@ facade end), a one-floor building and a building off the origin with UAVs beyond
 ends. Lockstep runs are seeded, but the start-up's order of events can move one by a point or
 two (README, What to expect). Measured (2026-11-28 02:52 and 03:21 UTC, the same both times):
 availability 100 % in all four, floor 100 % in three and 84.2 % in rand-2-0 (the cause-1
-geometry of docs/heldout_geo14.md: 15 node-epochs of 360 above the bar), so a failure there
-may be a start-up order, not a change; check its log before blaming the change."""
+geometry of docs/heldout_geo14.md: 15 node-epochs of 360 above the bar); rand-2-0 alone 16
+more times, 10 of them two at once beside two busy loops: 83.3-84.2 %. A failure there may
+still be a start-up order rather than a change: check its log before blaming the change."""
 
 from __future__ import annotations
 
@@ -67,7 +68,7 @@ def test_default_fusion_on_a_held_out_geometry(services, tmp_path, name):
     p = services.start("emulate", "emulate", str(scenario), "--duration", "8", "--speed", "0",
                        "--record", "off", "--dashboard", "off", "--json", str(summary_path),
                        "--no-progress", "--log-dir", str(tmp_path / "logs"))
-    rc = p.wait(timeout=600)
+    rc = p.wait(timeout=240)  # inside the suite's 300 s per-test timeout
     assert rc == 0, services.log("emulate")[-3000:]
     s = json.loads(summary_path.read_text())
     assert s["node_epochs"] == s["nodes"] * 60  # 8 s at 10 Hz, the first 2 s skipped
