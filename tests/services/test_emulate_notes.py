@@ -138,12 +138,16 @@ def test_foreign_notes():
 
 
 def test_model_notes_only_when_the_fusion_does_not_model_the_channel():
-    """The ideal channel (the paper's one-path model) with the default first-arrival fusion
-    gets a note naming the method that models it; every other pair none."""
+    """The ideal channel (the paper's one-path model) with any method but D-NLS (the default
+    first-arrival fusion, the LLS and IPPA baselines) gets a note naming the method that
+    models it; the emulated channel, or D-NLS on the ideal one, none."""
     (note,) = model_notes("ideal", "mnls")
-    assert "--method dnls" in note
+    assert "--method dnls" in note and "default fusion" in note
+    for method in ("lls", "ippa"):  # baselines that do not model it either
+        (note,) = model_notes("ideal", method)
+        assert f"--method {method} does not model" in note
     for channel, method in (("emulator", "mnls"), ("ideal", "dnls"), ("emulator", "dnls"),
-                            ("ideal", "lls")):
+                            ("emulator", "lls")):
         assert model_notes(channel, method) == []
 
 

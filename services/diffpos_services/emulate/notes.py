@@ -175,12 +175,14 @@ def recording_notes(recordings: Iterable[str | os.PathLike[str]],
 def model_notes(channel: str, method: str) -> list[str]:
     """A channel the fusion's method does not model: ``--channel ideal`` is the paper's
     one-path model (diffraction over an edge that moves with the node, CRLB noise), which the
-    first-arrival model of ``mnls`` (the default) does not contain; ``dnls`` is its own."""
-    if channel == "ideal" and method == "mnls":
-        return ["model: --channel ideal is the paper's one-path channel, which the default "
-                "fusion (mnls: the building's first-arrival mechanisms) does not model; "
-                "--method dnls is that channel's own model (README, What to expect)"]
-    return []
+    first-arrival model of ``mnls`` (the default) does not contain, nor the baselines ``lls``
+    (line of sight) and ``ippa``; ``dnls`` is its own."""
+    if channel != "ideal" or method == "dnls":
+        return []
+    what = ("the default fusion (mnls: the building's first-arrival mechanisms)"
+            if method == "mnls" else f"--method {method}")
+    return [f"model: --channel ideal is the paper's one-path channel, which {what} does not "
+            "model; --method dnls is that channel's own model (README, What to expect)"]
 
 
 def foreign_notes(foreign: Mapping[str, int]) -> list[str]:
