@@ -10,7 +10,8 @@ Every ``rand-S-i.mcap`` of every ``DIR`` is replayed in its own process
 report's ``node_epochs`` block (:func:`diffpos.metrics.score`, every node-epoch after 2 s:
 the scorer of ``bench_accuracy.py``) gives availability, floor %, 3D p90 and cov95 per run,
 and :class:`heldout_diag.Run` on the written replay the pooled level / stairs split. The
-reports are kept as ``OUT_DIR/MODE_NAME.json``.
+reports are kept as ``OUT_DIR/MODE_NAME.json`` and reused by name when the sweep is run
+again (to resume): after a change to the code, use a fresh ``OUT_DIR``.
 """
 
 from __future__ import annotations
