@@ -178,6 +178,13 @@ def links(run: Run, name: str, show: int = 4) -> None:
             print(f"      {link}")
 
 
+def detector_threshold(exists: np.ndarray, snr_db: np.ndarray, radio) -> float:
+    """The emulator's first-arrival threshold of one link [dB]: ``max(P_max -
+    fap_threshold_db, detection_snr_db)`` over its existing paths."""
+    return max(np.max(np.where(exists, snr_db, -np.inf)) - radio.fap_threshold_db,
+               radio.detection_snr_db)
+
+
 def _skipped(run: Run, p_m: np.ndarray, anchors_m: np.ndarray, meas: np.ndarray):
     b, r = run.sc.building, run.sc.radio
     ch = emulate_channel(anchors_m, p_m[None], building=b, radio=r)
@@ -186,7 +193,7 @@ def _skipped(run: Run, p_m: np.ndarray, anchors_m: np.ndarray, meas: np.ndarray)
         if not np.isfinite(meas[j]):
             continue
         ex, snr, ln = ch.exists[0, j], ch.snr_db[0, j], ch.length_m[0, j]
-        thr = max(np.max(np.where(ex, snr, -np.inf)) - r.fap_threshold_db, r.detection_snr_db)
+        thr = detector_threshold(ex, snr, r)
         earlier = ex & (ln < meas[j] - 0.15) & (snr >= thr)
         n_det += int(earlier.sum())
         cost -= float(np.sum(log_ndtr((thr - snr[earlier]) / SNR_SIGMA_DB)))

@@ -33,7 +33,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from heldout_diag import Run, scenario_of
+from heldout_diag import Run, detector_threshold, scenario_of
 from scipy.special import log_ndtr, ndtr
 
 from diffpos.channel import emulate_channel
@@ -54,7 +54,7 @@ def penalty(run: Run, p_m: np.ndarray, anchors_m: np.ndarray, meas_m: np.ndarray
         if not np.isfinite(meas_m[j]):
             continue
         ex, snr, ln = ch.exists[0, j], ch.snr_db[0, j], ch.length_m[0, j]
-        thr = max(np.max(np.where(ex, snr, -np.inf)) - r.fap_threshold_db, r.detection_snr_db)
+        thr = detector_threshold(ex, snr, r)
         earlier = ex & _IS_DIFF & (ln < meas_m[j] - tol_m) & np.isfinite(snr)
         cost -= float(np.sum(log_ndtr((thr - snr[earlier]) / SNR_SIGMA_DB)))
     return cost
@@ -80,7 +80,7 @@ def soft_penalty(run: Run, p_m: np.ndarray, anchors_m: np.ndarray, meas_m: np.nd
         jac = g.jacobian[0, j]
         if not ex.any():
             continue
-        thr = max(np.max(np.where(ex, snr, -np.inf)) - r.fap_threshold_db, r.detection_snr_db)
+        thr = detector_threshold(ex, snr, r)
         k = int(np.argmin(np.where(ex, np.abs(ln - meas_m[j]), np.inf)))
         for i in np.flatnonzero(ex & _IS_DIFF & np.isfinite(snr)):
             if i == k or not np.all(np.isfinite(jac[i])):
