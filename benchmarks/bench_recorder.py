@@ -32,6 +32,14 @@ Rows
    sampled at 0, 30, 60, 120 simulated minutes (and every ``--soak-every`` minutes);
    finished parts are deleted as they close (disk only, no effect on memory). docs/soak.md
    has the table.
+7. ``live`` (``--live-minutes M``, alone): the recorder *process* over a long live run: a
+   Python Zenoh router, the real recorder (``diffpos record``'s command line, its default
+   split policy) and one publisher process publishing row 6's workload paced at real time
+   (one 100-ms epoch per 100 ms, congestion control BLOCK). Every ``--soak-every`` minutes
+   the recorder's VmRSS / VmHWM (from /proc) and its own counters are sampled; each part is
+   read back with :class:`McapScanner` once the recorder has closed it (its messages
+   counted: every part indexed and readable) and then deleted (disk only). At the end the
+   messages in all parts must equal those published: ``lost`` is the difference.
 
 Usage::
 
@@ -39,6 +47,7 @@ Usage::
     python benchmarks/bench_recorder.py --skip-bus --skip-scan --replay-seconds 30
     python benchmarks/bench_recorder.py --soak-minutes 120              # 2 h, split parts
     python benchmarks/bench_recorder.py --soak-minutes 30 --no-split    # one growing file
+    python benchmarks/bench_recorder.py --live-minutes 120              # the process, 2 h
 """
 
 from __future__ import annotations
@@ -63,7 +72,7 @@ from diffpos_services.recording.reader import McapScanner
 from diffpos_services.recording.replay import replay
 from diffpos_services.recording.synthetic import write_synthetic_recording
 from diffpos_services.recording.topics import SeqTracker, parse_topic
-from diffpos_services.recording.writer import McapSink, SplitPolicy
+from diffpos_services.recording.writer import McapSink, SplitPolicy, part_path
 from diffpos_services.wire import messages as M
 
 import diffpos.estimators as est
@@ -344,6 +353,136 @@ def bench_soak(minutes: float, tmp: Path, *, split: bool, every_min: float) -> d
             {"max_bytes": policy.max_bytes, "max_duration_s": policy.max_duration_s}}
 
 
+_LIVE_PUBLISHER = r"""
+import sys, time, zenoh
+from diffpos_services.bus.session import ZenohSettings, wait_matching
+sys.path.insert(0, {bench_dir!r})
+from bench_recorder import _soak_epoch
+ep, epochs = sys.argv[1], int(sys.argv[2])
+seqs = {{f"uav{{a}}": 0 for a in range(8)}}
+with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
+    pubs = {{key: s.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+             for key, _ in _soak_epoch(0, 0, dict(seqs))}}
+    for p in pubs.values():
+        if not wait_matching(p, timeout_s=120.0):
+            sys.exit(f"no recorder subscriber matched {{p.key_expr}} within 120 s")
+    t0, wall0, n, late = time.monotonic_ns(), time.time_ns(), 0, 0
+    print("start", wall0, flush=True)
+    for e in range(epochs):
+        wait_ns = t0 + e * 100_000_000 - time.monotonic_ns()
+        if wait_ns > 0:
+            time.sleep(wait_ns / 1e9)   # pacing at real time
+        elif wait_ns < -100_000_000:
+            late += 1                   # more than one epoch behind the schedule
+        for key, payload in _soak_epoch(e, wall0 + e * 100_000_000, seqs):
+            pubs[key].put(payload)
+            n += 1
+    print("sent", time.time_ns(), n, late, flush=True)
+    sys.stdin.readline()   # keep the session open until the recorder has everything
+"""
+
+
+def _proc_mem_mb(pid: int) -> tuple[float, float]:
+    """(VmRSS, VmHWM) of process ``pid`` [MB]."""
+    out = {}
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith(("VmRSS:", "VmHWM:")):
+                out[line[:5]] = int(line.split()[1]) / 1024
+    return out.get("VmRSS", float("nan")), out.get("VmHWM", float("nan"))
+
+
+_LIVE_TOPICS = ("diffpos/soak/anchor/", "diffpos/soak/truth/")
+
+
+def _read_parts(out: Path, done: int, upto: int) -> int:
+    """Published messages (anchor and truth topics; not the liveliness the recorder also
+    keeps) in parts ``done`` .. ``upto - 1`` of the recording ``out``, each read back whole
+    with the scanner (indexed and readable) and deleted after reading."""
+    n = 0
+    for k in range(done, upto):
+        path = part_path(out, k)
+        for batch in McapScanner(path).iter_batches():
+            n += sum(m.topic.startswith(_LIVE_TOPICS) for m in batch)
+        path.unlink()
+    return n
+
+
+def bench_live(minutes: float, tmp: Path, *, every_min: float,
+               split_s: float | None = None) -> dict:
+    """The recorder process's memory over ``minutes`` of live workload (see row 7)."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    env = dict(os.environ, DIFFPOS_LOG_LEVEL="warning")
+    procs, samples, last = [], [], {}
+    out = tmp / "live.mcap"
+
+    def start(argv, **kw):
+        p = subprocess.Popen(argv, start_new_session=True, env=env, text=True, **kw)
+        procs.append(p)
+        return p
+
+    try:
+        start([sys.executable, "-m", "diffpos_services.cli.main", "router", "--listen", ep],
+              stderr=subprocess.DEVNULL)
+        rec = start(build_command(site="soak", out=out, connect=[ep], flush_interval_s=0.2,
+                                  split_duration_s=split_s),
+                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=lambda: [lines.put(json.loads(x)) for x in rec.stdout],
+                         daemon=True).start()
+        while lines.get(timeout=60)["event"] != "ready":
+            pass
+        code = _LIVE_PUBLISHER.format(bench_dir=str(Path(__file__).parent))
+        pub = start([sys.executable, "-c", code, ep, str(round(minutes * 600))],
+                    stdout=subprocess.PIPE, stdin=subprocess.PIPE)
+        first = pub.stdout.readline()
+        if not first.startswith("start"):
+            raise RuntimeError(f"publisher failed (exit {pub.wait(timeout=60)}); see above")
+        sent: queue.Queue = queue.Queue()
+        threading.Thread(target=lambda: sent.put(pub.stdout.readline()), daemon=True).start()
+        wall0, read, done = time.monotonic(), 0, 0
+        while True:
+            try:
+                line = sent.get(timeout=max(0.0, wall0 + 60 * every_min * (len(samples) + 1)
+                                            - time.monotonic()))
+            except queue.Empty:
+                line = None
+            while not lines.empty():
+                last = lines.get()
+            parts_now = len(list(tmp.glob("live*.mcap")))
+            closed = done + max(parts_now - 1, 0)  # every part but the newest is closed
+            read += _read_parts(out, done, closed)
+            done = closed
+            rss, hwm = _proc_mem_mb(rec.pid)
+            samples.append({"wall_min": round((time.monotonic() - wall0) / 60, 2),
+                            "rss_mb": round(rss, 1), "hwm_mb": round(hwm, 1),
+                            "written": last.get("flushed_written", 0),
+                            "parts": closed + 1, "gaps": last.get("gaps", 0)})
+            print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
+            if line is not None:
+                break
+        _, _t_sent, n_sent, late = line.split()
+        pub.stdin.write("\n")
+        pub.stdin.flush()
+        pub.wait(timeout=60)
+        rec.send_signal(signal.SIGTERM)
+        while (ev := lines.get(timeout=120))["event"] != "closed":
+            pass
+        rec.wait(timeout=120)
+        left = len(list(tmp.glob("live*.mcap")))
+        read += _read_parts(out, done, done + left)
+        done += left
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+    return {"row": "live", "minutes": minutes, "samples": samples, "sent": int(n_sent),
+            "late_epochs": int(late), "received": ev["received"], "written": ev["written"],
+            "gaps": ev["gaps"], "read_back": read, "lost": int(n_sent) - read,
+            "parts": done}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--messages", type=int, default=200_000, help="messages for sink/bus rows")
@@ -359,10 +498,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--soak-minutes", type=float, metavar="M",
                     help="only the soak row: M simulated minutes through the recorder's sink")
     ap.add_argument("--soak-every", type=float, default=10.0, metavar="M",
-                    help="soak: also sample RSS every M simulated minutes (default 10)")
+                    help="soak: also sample RSS every M simulated minutes; live: every M wall-clock "
+                         "minutes (default 10)")
     ap.add_argument("--no-split", action="store_true", help="soak: one file, no split policy")
+    ap.add_argument("--live-minutes", type=float, metavar="M",
+                    help="only the live row: the recorder process for M wall-clock minutes of "
+                         "the workload at real time (RSS sampled every --soak-every minutes)")
+    ap.add_argument("--split-duration", type=float, metavar="S",
+                    help=f"live: the recorder's --split-duration [s] (default its own, "
+                         f"{DEFAULT_SPLIT_S:g})")
     args = ap.parse_args(argv)
     rows = []
+    if args.live_minutes:
+        with tempfile.TemporaryDirectory() as d:
+            r = bench_live(args.live_minutes, Path(d), every_min=args.soak_every,
+                           split_s=args.split_duration)
+        if args.json:
+            print(json.dumps(r))
+            return 0
+        print(f"live: the recorder process, {r['minutes']:g} min of 8 x 50 x 10 Hz at real time"
+              f" ({r['late_epochs']} epochs published > 100 ms late); sent {r['sent']:,}, "
+              f"recorder received {r['received']:,} / wrote {r['written']:,}, gaps "
+              f"{r['gaps']}, read back from {r['parts']} parts {r['read_back']:,}: lost "
+              f"{r['lost']}")
+        print(f"{'wall min':>9}{'written':>14}{'parts':>7}{'RSS MB':>9}{'HWM MB':>9}")
+        for smp in r["samples"]:
+            print(f"{smp['wall_min']:>9g}{smp['written']:>14,}{smp['parts']:>7}"
+                  f"{smp['rss_mb']:>9.1f}{smp['hwm_mb']:>9.1f}")
+        return 0 if r["lost"] == 0 else 1
     if args.soak_minutes:
         with tempfile.TemporaryDirectory() as d:
             r = bench_soak(args.soak_minutes, Path(d), split=not args.no_split,
