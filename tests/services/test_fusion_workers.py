@@ -423,3 +423,39 @@ def test_worker_latency_is_learned_and_moves_rows_to_the_caller(monkeypatch):
     plain = _echo_pool(monkeypatch)  # 3-field replies: no clock, no latency
     plain.map_rows("echo", (x,), np.ones(x.size))
     assert plain.latency_s == 0.0 and plain.calls["rows_sent"] == 100
+
+
+def test_a_worker_left_out_by_a_bad_sample_is_measured_again(monkeypatch):
+    """A pool that learned in a bad moment (latency at its cap, speed 1/4) and now gets
+    40-row calls: by those estimates the idle worker's share is empty (40 x 1/4 < 50 rows of
+    latency), and the estimates came only from shares, so before ``_forget`` it got no row
+    again for the rest of the run. Now each such call moves both one EWMA step towards the
+    priors: a fast worker (no latency) gets rows again within a few calls and the learned
+    latency converges back to ~0; a worker that really is 30 ms late keeps a latency of that
+    order (its samples pull it back up) and gets only the small shares that balance it."""
+    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
+    monkeypatch.setattr(W.RowPool, "_learn", lambda self, *a: None)  # speed: only _forget
+    x = np.arange(40.0)
+    for late_s in (0.0, 0.030):
+        pool = W.RowPool(1, (None, None, 3.0, 0.0))
+        pipe = _LatePipe(pool.model, late_s, 0.001)
+        pool._slots = [W._Slot(conn=pipe, ready=True, pid=-1)]
+        pool._unit_s["update"] = 0.001
+        pool.latency_s, pool.speed = W.LATENCY_MAX_S, 0.25
+        assert W.preloaded_bounds(np.ones(x.size), [1.0, 0.25], [0.0, 50.0])[1] == slice(40, 40)
+        sent = []
+        for _ in range(60):
+            expect = W.preloaded_bounds(np.ones(x.size), [1.0, pool.speed],
+                                        [0.0, pool.latency_cost()])[1]
+            assert np.array_equal(pool.map_rows("echo", (x,), np.ones(x.size),
+                                                local=lambda a: a.copy()), x)
+            sent.append(pool.calls["rows_sent"])
+            assert sent[-1] - (sent[-2] if len(sent) > 1 else 0) == expect.stop - expect.start
+        if late_s == 0.0:  # (speed is learned from shares; _learn is off here)
+            assert sent.index(next(v for v in sent if v > 0)) <= 10
+            assert pool.latency_s < 0.002 and pipe.rows[-1] >= 10
+        else:
+            assert 0.005 < pool.latency_s <= W.LATENCY_MAX_S
+            assert pipe.rows and max(pipe.rows) <= 10  # balanced against ~30 rows of delay
+        assert pool.calls["forgot"] > 0

@@ -533,5 +533,6 @@ def run_fusion(
         if rows is not None:
             rows.close()
             log_event(log, logging.INFO, "fusion workers stopped",
-                      failures=dict(rows.failures), calls=dict(rows.calls))
+                      failures=dict(rows.failures), calls=dict(rows.calls),
+                      speed=round(rows.speed, 3), latency_ms=round(1e3 * rows.latency_s, 2))
         kernel_pool.shutdown()
