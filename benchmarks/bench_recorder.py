@@ -53,6 +53,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import queue
@@ -128,7 +129,12 @@ with zenoh.open(ZenohSettings(connect=(ep,)).to_config()) as s:
 """
 
 
-def bench_bus(n: int, tmp: Path) -> dict:
+@contextlib.contextmanager
+def _recorder_behind_router(site: str, out: Path, split_s: float | None = None):
+    """A Python Zenoh router and the real recorder process writing ``out`` (its status lines
+    on a queue, ``ready`` already seen), each in a process group of its own, killed on exit.
+    Yields ``(endpoint, recorder Popen, status queue, start)``; ``start(argv, **popen)``
+    starts another process that is killed with them."""
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     env = dict(os.environ, DIFFPOS_LOG_LEVEL="warning")
     procs = []
@@ -141,14 +147,24 @@ def bench_bus(n: int, tmp: Path) -> dict:
     try:
         start([sys.executable, "-m", "diffpos_services.cli.main", "router", "--listen", ep],
               stderr=subprocess.DEVNULL)
-        out = tmp / "bus.mcap"
-        rec = start(build_command(site="b", out=out, connect=[ep], flush_interval_s=0.2),
+        rec = start(build_command(site=site, out=out, connect=[ep], flush_interval_s=0.2,
+                                  split_duration_s=split_s),
                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         lines: queue.Queue = queue.Queue()
         threading.Thread(target=lambda: [lines.put(json.loads(x)) for x in rec.stdout],
                          daemon=True).start()
         while lines.get(timeout=60)["event"] != "ready":
             pass
+        yield ep, rec, lines, start
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+
+
+def bench_bus(n: int, tmp: Path) -> dict:
+    with _recorder_behind_router("b", tmp / "bus.mcap") as (ep, rec, lines, start):
         code = _PUBLISHER.format(bench_dir=str(Path(__file__).parent))
         pub = start([sys.executable, "-c", code, ep, str(n)], stdout=subprocess.PIPE,
                     stdin=subprocess.PIPE)
@@ -171,11 +187,6 @@ def bench_bus(n: int, tmp: Path) -> dict:
             if ev["event"] == "closed":
                 break
         rec.wait(timeout=60)
-    finally:
-        for p in reversed(procs):
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
     dt = (t_done - t_start) / 1e9
     return {"row": "bus", "messages": n, "seconds": dt, "rate_msg_s": n / dt,
             "publish_rate_msg_s": n / ((t_sent - t_start) / 1e9), "received": ev["received"],
@@ -411,27 +422,9 @@ def _read_parts(out: Path, done: int, upto: int) -> int:
 def bench_live(minutes: float, tmp: Path, *, every_min: float,
                split_s: float | None = None) -> dict:
     """The recorder process's memory over ``minutes`` of live workload (see row 7)."""
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    env = dict(os.environ, DIFFPOS_LOG_LEVEL="warning")
-    procs, samples, last = [], [], {}
+    samples, last = [], {}
     out = tmp / "live.mcap"
-
-    def start(argv, **kw):
-        p = subprocess.Popen(argv, start_new_session=True, env=env, text=True, **kw)
-        procs.append(p)
-        return p
-
-    try:
-        start([sys.executable, "-m", "diffpos_services.cli.main", "router", "--listen", ep],
-              stderr=subprocess.DEVNULL)
-        rec = start(build_command(site="soak", out=out, connect=[ep], flush_interval_s=0.2,
-                                  split_duration_s=split_s),
-                    stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=lambda: [lines.put(json.loads(x)) for x in rec.stdout],
-                         daemon=True).start()
-        while lines.get(timeout=60)["event"] != "ready":
-            pass
+    with _recorder_behind_router("soak", out, split_s) as (ep, rec, lines, start):
         code = _LIVE_PUBLISHER.format(bench_dir=str(Path(__file__).parent))
         pub = start([sys.executable, "-c", code, ep, str(round(minutes * 600))],
                     stdout=subprocess.PIPE, stdin=subprocess.PIPE)
@@ -472,11 +465,6 @@ def bench_live(minutes: float, tmp: Path, *, every_min: float,
         left = len(list(tmp.glob("live*.mcap")))
         read += _read_parts(out, done, done + left)
         done += left
-    finally:
-        for p in reversed(procs):
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
     return {"row": "live", "minutes": minutes, "samples": samples, "sent": int(n_sent),
             "late_epochs": int(late), "received": ev["received"], "written": ev["written"],
             "gaps": ev["gaps"], "read_back": read, "lost": int(n_sent) - read,
