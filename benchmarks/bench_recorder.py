@@ -471,6 +471,40 @@ def bench_live(minutes: float, tmp: Path, *, every_min: float,
             "parts": done}
 
 
+def _alone(run, as_json: bool, show) -> int:
+    """A row run alone in a temporary directory: its result as JSON or ``show(result)``."""
+    with tempfile.TemporaryDirectory() as d:
+        r = run(Path(d))
+    if as_json:
+        print(json.dumps(r))
+        return 0
+    return show(r)
+
+
+def _print_live(r: dict) -> int:
+    print(f"live: the recorder process, {r['minutes']:g} min of 8 x 50 x 10 Hz at real time"
+          f" ({r['late_epochs']} epochs published > 100 ms late); sent {r['sent']:,}, "
+          f"recorder received {r['received']:,} / wrote {r['written']:,}, gaps "
+          f"{r['gaps']}, read back from {r['parts']} parts {r['read_back']:,}: lost "
+          f"{r['lost']}")
+    print(f"{'wall min':>9}{'written':>14}{'parts':>7}{'RSS MB':>9}{'HWM MB':>9}")
+    for smp in r["samples"]:
+        print(f"{smp['wall_min']:>9g}{smp['written']:>14,}{smp['parts']:>7}"
+              f"{smp['rss_mb']:>9.1f}{smp['hwm_mb']:>9.1f}")
+    return 0 if r["lost"] == 0 else 1
+
+
+def _print_soak(r: dict) -> int:
+    print(f"soak: {r['minutes']:g} simulated minutes, {r['messages']:,} messages, "
+          f"{'split ' + json.dumps(r['policy']) if r['split'] else 'one file'}, "
+          f"{r['parts']} parts, {r['wall_s']:.0f} s wall")
+    print(f"{'simulated min':>14}{'messages':>14}{'parts':>7}{'RSS MB':>9}")
+    for smp in r["samples"]:
+        print(f"{smp['sim_min']:>14g}{smp['messages']:>14,}{smp['parts']:>7}"
+              f"{smp['rss_mb']:>9.1f}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--messages", type=int, default=200_000, help="messages for sink/bus rows")
@@ -498,37 +532,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = []
     if args.live_minutes:
-        with tempfile.TemporaryDirectory() as d:
-            r = bench_live(args.live_minutes, Path(d), every_min=args.soak_every,
-                           split_s=args.split_duration)
-        if args.json:
-            print(json.dumps(r))
-            return 0
-        print(f"live: the recorder process, {r['minutes']:g} min of 8 x 50 x 10 Hz at real time"
-              f" ({r['late_epochs']} epochs published > 100 ms late); sent {r['sent']:,}, "
-              f"recorder received {r['received']:,} / wrote {r['written']:,}, gaps "
-              f"{r['gaps']}, read back from {r['parts']} parts {r['read_back']:,}: lost "
-              f"{r['lost']}")
-        print(f"{'wall min':>9}{'written':>14}{'parts':>7}{'RSS MB':>9}{'HWM MB':>9}")
-        for smp in r["samples"]:
-            print(f"{smp['wall_min']:>9g}{smp['written']:>14,}{smp['parts']:>7}"
-                  f"{smp['rss_mb']:>9.1f}{smp['hwm_mb']:>9.1f}")
-        return 0 if r["lost"] == 0 else 1
+        return _alone(lambda tmp: bench_live(args.live_minutes, tmp, every_min=args.soak_every,
+                                             split_s=args.split_duration),
+                      args.json, _print_live)
     if args.soak_minutes:
-        with tempfile.TemporaryDirectory() as d:
-            r = bench_soak(args.soak_minutes, Path(d), split=not args.no_split,
-                           every_min=args.soak_every)
-        if args.json:
-            print(json.dumps(r))
-            return 0
-        print(f"soak: {r['minutes']:g} simulated minutes, {r['messages']:,} messages, "
-              f"{'split ' + json.dumps(r['policy']) if r['split'] else 'one file'}, "
-              f"{r['parts']} parts, {r['wall_s']:.0f} s wall")
-        print(f"{'simulated min':>14}{'messages':>14}{'parts':>7}{'RSS MB':>9}")
-        for smp in r["samples"]:
-            print(f"{smp['sim_min']:>14g}{smp['messages']:>14,}{smp['parts']:>7}"
-                  f"{smp['rss_mb']:>9.1f}")
-        return 0
+        return _alone(lambda tmp: bench_soak(args.soak_minutes, tmp, split=not args.no_split,
+                                             every_min=args.soak_every),
+                      args.json, _print_soak)
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         rows.append(bench_sink(args.messages, tmp))
