@@ -6,6 +6,7 @@ Usage::
     python benchmarks/heldout_diag.py links DIR rand-0-36                # bad epochs' links
     python benchmarks/heldout_diag.py skip DIR rand-0-36 rand-0-20       # skipped paths
     python benchmarks/heldout_diag.py flight DIR rand-0-25 rand-0-26 ...  # along the stairs
+    python benchmarks/heldout_diag.py changes DIR rand-0-0 rand-0-1 ...  # floor changes
 
 The scenario of ``rand-S-i`` is regenerated from its name (:mod:`heldout`).
 
@@ -25,6 +26,11 @@ The scenario of ``rand-S-i`` is regenerated from its name (:mod:`heldout`).
 - ``flight``: the right-floor stairs node-epochs of all the runs named, pooled by the truth's
   height along the flight (fifths of a floor height above a floor's nominal height): truth
   inside the 95 % ellipsoid, ``|z error| / sigma_z`` and the mean z error.
+- ``changes``: every floor change of a responder's truth (after the first 2 s, the truth on
+  the new floor for at least :data:`HOLD_S`) in all the runs named: how long until the
+  published floor settles on the new one (the first epoch from which it equals the new
+  floor for :data:`HOLD_S` or until the truth changes again; the tracking issue's bar: within
+  2 s), pooled over the runs; up and down apart, and the slowest.
 """
 
 from __future__ import annotations
@@ -48,6 +54,9 @@ from diffpos.tracking_snr import SNR_SIGMA_DB
 
 CHI2_3_95 = 7.814727903251178  # 95 % quantile of chi-square with 3 degrees of freedom
 SKIP_S = 2.0
+#: a floor change counts when the truth then stays on the new floor this long; the estimate
+#: has settled when it then shows the new floor this long (or until the truth changes) [s]
+HOLD_S = 1.0
 
 
 def scenario_of(name: str) -> Scenario:
@@ -251,14 +260,63 @@ def flight(runs: list[Run]) -> str:
     return "\n".join(out)
 
 
+def _settle_delays(run: Run, name: str) -> list[tuple[float, int, str, str, float]]:
+    """(delay [s] or inf, +1 up / -1 down, run, node, t of the change [s]) per floor change."""
+    out = []
+    for n, (tt, _pp, ff) in run.tracks.items():
+        ts = (tt - run.t0) * 1e-9
+        est = np.full(tt.size, -99.0)  # -99: no estimate with a position
+        for j, t in enumerate(tt):
+            e = run.est.get((n, t // run.period))
+            if e is not None and e.status in M.GOOD_STATUSES and e.floor_index is not None:
+                est[j] = e.floor_index
+        changes = np.flatnonzero(np.diff(ff) != 0) + 1
+        ends = np.append(changes[1:], ff.size)[:changes.size]
+        for k, end in zip(changes, ends, strict=True):
+            if ts[k] < SKIP_S or ts[end - 1] - ts[k] < HOLD_S:
+                continue  # in the skipped start, or the truth did not stay there
+            hold = max(round(HOLD_S / (run.period * 1e-9)), 1)
+            delay = np.inf
+            for j in range(k, end):
+                window = est[j:min(j + hold, end)]
+                if window.size and np.all(window == ff[k]):
+                    delay = ts[j] - ts[k]
+                    break
+            out.append((delay, int(np.sign(ff[k] - ff[k - 1])), name, n, float(ts[k])))
+    return out
+
+
+def changes(runs: list[tuple[str, Run]]) -> str:
+    """Floor changes of the truth and how long the published floor took to follow."""
+    rows = [d for name, run in runs for d in _settle_delays(run, name)]
+    out = []
+    for label, sel in (("all", rows), ("up", [r for r in rows if r[1] > 0]),
+                       ("down", [r for r in rows if r[1] < 0])):
+        if not sel:
+            continue
+        d = np.array([r[0] for r in sel])
+        fin = d[np.isfinite(d)]
+        out.append(f"{label:>5}: {d.size} floor changes, within 2 s {100 * np.mean(d <= 2.0):.1f} %"
+                   f", delay p50 {np.median(d):.1f} s p90 {np.percentile(d, 90):.1f} s, "
+                   f"never settled {int(np.sum(~np.isfinite(d)))}"
+                   + (f", slowest settled {fin.max():.1f} s" if fin.size else ""))
+    slow = sorted((r for r in rows if r[0] > 2.0), key=lambda r: -r[0])[:8]
+    out += [f"  over 2 s: {r[2]} {r[3]} at t = {r[4]:.1f} s ({'up' if r[1] > 0 else 'down'}): "
+            f"{r[0]:.1f} s" for r in slow]
+    return "\n".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=["levels", "links", "skip", "flight"])
+    ap.add_argument("what", choices=["levels", "links", "skip", "flight", "changes"])
     ap.add_argument("dir", type=Path, help="bench_accuracy --keep directory")
     ap.add_argument("names", nargs="+", help="rand-S-i runs")
     args = ap.parse_args(argv)
     if args.what == "flight":
         print(flight([Run(args.dir / f"{n}.mcap", scenario_of(n)) for n in args.names]))
+        return 0
+    if args.what == "changes":
+        print(changes([(n, Run(args.dir / f"{n}.mcap", scenario_of(n))) for n in args.names]))
         return 0
     for name in args.names:
         run = Run(args.dir / f"{name}.mcap", scenario_of(name))

@@ -122,3 +122,34 @@ def test_the_responders_walk_inside_every_sample(samples):
         assert len(nodes) == 6
         for _, traj in nodes:
             assert np.all(s.building.inside(traj.position_m(t_s))), d["name"]
+
+
+def test_floor_change_delay_counts_the_settling_epoch():
+    """heldout_diag's ``changes``: a truth that climbs from floor 1 to 2 at t = 5 s and comes
+    back down at 12 s; the published floor follows 1.5 s late up but flickers back once at
+    6.8 s (settled from the epoch after it), and never down (a lock): delays 1.9 s and inf; a
+    change within the first 2 s or whose new floor lasts < 1 s is not counted."""
+    import heldout_diag as H
+
+    class _Est:
+        def __init__(self, f):
+            self.floor_index, self.status = f, "TRACKING"
+
+    class _Run:
+        pass
+
+    period = 100_000_000
+    t = np.arange(0, 200) * period  # 0-19.9 s
+    ts = t * 1e-9
+    truth = np.where((ts >= 5.0) & (ts < 12.0), 2, 1)
+    truth[(ts >= 1.0) & (ts < 1.5)] = 3  # in the skipped start
+    truth[ts >= 19.5] = 0  # the last 0.5 s: not a change that lasts
+    est = np.where(ts >= 6.5, 2, 1)
+    est[68] = 1  # t = 6.8 s flickers back: settled from 6.9 s
+    run = _Run()
+    run.t0, run.period = 0, period
+    run.tracks = {"n1": (t, np.zeros((t.size, 3)), truth)}
+    run.est = {("n1", int(k)): _Est(int(f)) for k, f in enumerate(est)}
+    rows = H._settle_delays(run, "x")
+    assert [(r[1], round(r[4], 1)) for r in rows] == [(1, 5.0), (-1, 12.0)]
+    assert rows[0][0] == pytest.approx(1.9) and rows[1][0] == np.inf
