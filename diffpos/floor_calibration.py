@@ -117,7 +117,8 @@ class FloorCalibration:
         ef = np.asarray(estimate_floor, np.int64).reshape(-1)
         tf = np.asarray(truth_floor, np.int64).reshape(-1)
         n = ef.size
-        p = np.asarray(floor_probabilities, float).reshape(n, -1)
+        p = np.asarray(floor_probabilities, float)
+        p = p.reshape(n, p.shape[-1] if p.ndim == 2 else -1) if n else p.reshape(0, 0)
         has = (np.ones(n, bool) if has_position is None
                else np.asarray(has_position, bool).reshape(-1))
         if tf.size != n or has.size != n:
