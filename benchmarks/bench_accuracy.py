@@ -200,7 +200,8 @@ def _truth_tracks(truth: list) -> dict[str, tuple[np.ndarray, np.ndarray, np.nda
                 np.array([g.floor_index for g in v])) for k, v in by.items()}
 
 
-def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, Any]:
+def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
+                    rows_out: list | None = None) -> dict[str, Any]:
     """Every node-epoch of a recording (all its parts) after ``skip_s`` against its recorded
     truth.
 
@@ -209,6 +210,8 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, An
     and epoch (v1 or v2) with a usable position (status in ``GOOD_STATUSES``), else a miss.
     An estimate is compared with the truth at its own ``t_ns``
     (:func:`diffpos.metrics.truth_at`), as ``emulate``'s summary and ``replay``'s report do.
+    ``rows_out``: a list that receives one ``(node, t_ns, true floor, published floor or -1,
+    its probability or NaN, true z [m])`` per node-epoch (bench_floor_calibration.py).
     """
     dec_est, dec_truth = M.estimate_decoder(), M.decoder(M.GroundTruth)
     dec_rc = M.decoder(M.RunControl)
@@ -260,6 +263,12 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, An
             probs[i] = fp
     s = score(pos, tru, estimate_floor=e_floor, truth_floor=t_floor, covariance_m2=cov,
               floor_probabilities=probs if n_floors else None, q=(50, 90))
+    if rows_out is not None:
+        ok = (e_floor >= 0) & (e_floor < n_floors)
+        p_pub = np.where(ok, probs[np.arange(n), np.where(ok, e_floor, 0)] if n_floors
+                         else np.nan, np.nan)
+        rows_out += [(g.id, g.t_ns, int(t_floor[i]), int(e_floor[i]), float(p_pub[i]),
+                      float(tru[i, 2])) for i, g in enumerate(rows)]
     lat = [(e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6 for e in est.values()
            if e.t_input_wall_ns > 0]
     return {"node_epochs": s.node_epochs, "availability": s.availability,
