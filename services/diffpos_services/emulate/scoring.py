@@ -258,7 +258,7 @@ def format_summary(s: dict[str, Any], *, width: int | None = None) -> str:
         rows.append((name, "  ".join(f"p{q} {f(p.get(f'p{q}'))}" for q in SUMMARY_PERCENTILES)))
     rows.append(("95 % ellipsoid", f"{_pct(s.get('ellipsoid_coverage_95'))} of the fixes hold "
                                    "the truth"))
-    rows.append(("floor probability", _calibration_row(s)))
+    rows.append(("floor calib.", _calibration_row(s)))
     rows += _gating_rows(s, f)
     if s.get("lost"):
         rows.append(("lost", ", ".join(s["lost"])))
