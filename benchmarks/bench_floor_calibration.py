@@ -19,7 +19,8 @@ node-epochs), the reliability table pooled over all recordings (counts and sums 
 the pooled figures are those of one scorer over every node-epoch), and the ``--top``
 recordings with the most confidently wrong node-epochs: their geometry (``rand-S-i`` names are
 re-made by ``heldout.random_scenario``) and their confidently wrong episodes (a node's
-consecutive node-epochs on one wrong floor at p >= 0.95).
+consecutive node-epochs on one wrong floor at p >= 0.95; ``t+a-b s`` counts from the first
+scored node-epoch, 2 s into the run).
 """
 
 from __future__ import annotations
@@ -145,8 +146,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n{name}: {c['confidently_wrong_count']} confidently wrong node-epochs "
               f"({100 * c['confidently_wrong']:.2f} %), floor {100 * results[name]['floor']:.1f} "
               f"%\n  {_geometry(name)}")
-        for e in eps[name][:6]:
-            print(f"  {e['node']}: t {e['t_s'][0]}-{e['t_s'][1]} s, true floor "
+        for e in eps[name][:6]:  # t: after the first scored node-epoch (2 s into the run)
+            print(f"  {e['node']}: t+{e['t_s'][0]}-{e['t_s'][1]} s, true floor "
                   f"{e['true_floor']} (z {e['true_z_m'][0]}-{e['true_z_m'][1]} m), published "
                   f"{e['published_floor']} at p {e['p_min']:.3f}-{e['p_max']:.4f}, "
                   f"{e['node_epochs']} node-epochs")
