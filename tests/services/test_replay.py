@@ -176,6 +176,9 @@ def test_cli_writes_report_plot_and_replayed_mcap(rec, tmp_path, capsys):
     assert "recorded live vs replayed" in text and "ALL" in text
     rep = json.loads((out / "report.json").read_text())
     assert rep["fixes"]["total"] == 90
+    # estimate v1 (no floor probabilities): the calibration is absent, and the report says so
+    assert rep["node_epochs"]["node_epochs"] > 0 and rep["node_epochs"]["floor_calibration"] is None
+    assert "calibration not measured" in text
     assert (out / "cdf.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with open(new, "rb") as f:
         reader = make_reader(f)
@@ -229,6 +232,8 @@ def test_committed_sample_recording(tmp_path):
     assert all(live[(e.node_id, e.epoch)] == e.used_anchors for e in r.estimates)
     acc = r.report["accuracy"]["overall"]
     assert acc["error_3d_m"]["p50"] < 0.3 and acc["floor_accuracy"] > 0.95
+    ne = r.report["node_epochs"]  # estimate v1: scored, without a floor calibration
+    assert ne["node_epochs"] > 0 and ne["floor_calibration"] is None
 
 
 def test_replay_rrd_holds_the_replayed_estimates(rec, base, tmp_path, capsys):
