@@ -89,6 +89,26 @@ def episodes(rows: list[tuple], *, confident: float = CONFIDENT) -> list[dict[st
     return sorted(out, key=lambda e: -e["node_epochs"])
 
 
+def where(rows: list[tuple], *, confident: float = CONFIDENT,
+          near_s: float = 1.0) -> dict[str, int]:
+    """Confidently wrong node-epochs: how many at a floor change (the node's true floor differs
+    within +-``near_s``: the stairs), how many published below the true floor."""
+    out = {"confidently_wrong": 0, "at_floor_change": 0, "below_truth": 0}
+    by: dict[str, list[tuple]] = {}
+    for r in rows:
+        by.setdefault(r[0], []).append(r)
+    for rs in by.values():
+        t = np.array([r[1] for r in rs], np.int64)
+        tf = np.array([r[2] for r in rs])
+        for r in rs:
+            if r[3] >= 0 and r[3] != r[2] and r[4] >= confident:
+                near = tf[np.abs(t - r[1]) <= round(near_s * 1e9)]
+                out["confidently_wrong"] += 1
+                out["at_floor_change"] += int(near.min() != near.max())
+                out["below_truth"] += int(r[3] < r[2])
+    return out
+
+
 def _geometry(name: str) -> str:
     m = re.fullmatch(r"rand-(\d+)-(\d+)", name)
     if not m:
@@ -117,12 +137,15 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     results: dict[str, dict[str, Any]] = {}
     eps: dict[str, list] = {}
+    spots = {"confidently_wrong": 0, "at_floor_change": 0, "below_truth": 0}
     cpu = time.process_time()
     for path in args.recordings:
         name = Path(path).stem
         rows: list = []
         results[name] = score_recording(path, rows_out=rows)
         eps[name] = episodes(rows)
+        for k, v in where(rows).items():
+            spots[k] += v
     cpu = time.process_time() - cpu
     print("bench_floor_calibration: the recorded live estimates of each recording, every "
           "node-epoch after the first 2 s (diffpos.floor_calibration; confidently wrong = "
@@ -137,6 +160,9 @@ def main(argv: list[str] | None = None) -> int:
     pooled = pool([r["floor_calibration"] for r in results.values()])
     print(f"\npooled over {len(results)} recordings:")
     print("\n".join(format_calibration(pooled)))
+    print(f"  of the {spots['confidently_wrong']} confidently wrong: {spots['at_floor_change']} "
+          f"at a floor change (the node's true floor differs within +-1 s: the stairs), "
+          f"{spots['below_truth']} published below the true floor")
     worst = sorted(results, key=lambda k: -((results[k]["floor_calibration"] or {})
                                              .get("confidently_wrong_count", 0)))
     worst = [k for k in worst[:args.top]
