@@ -211,7 +211,8 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
     An estimate is compared with the truth at its own ``t_ns``
     (:func:`diffpos.metrics.truth_at`), as ``emulate``'s summary and ``replay``'s report do.
     ``rows_out``: a list that receives one ``(node, t_ns, true floor, published floor or -1,
-    its probability or NaN, true z [m])`` per node-epoch (bench_floor_calibration.py).
+    its probability or NaN, true z [m], the true floor's probability or NaN)`` per node-epoch
+    (bench_floor_calibration.py).
     """
     dec_est, dec_truth = M.estimate_decoder(), M.decoder(M.GroundTruth)
     dec_rc = M.decoder(M.RunControl)
@@ -265,10 +266,12 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
               floor_probabilities=probs if n_floors else None, q=(50, 90))
     if rows_out is not None:
         ok = (e_floor >= 0) & (e_floor < n_floors)
-        p_pub = np.where(ok, probs[np.arange(n), np.where(ok, e_floor, 0)] if n_floors
-                         else np.nan, np.nan)
+        okt = ok & (t_floor >= 0) & (t_floor < n_floors)
+        p_pub, p_true = (np.where(k, probs[np.arange(n), np.where(k, f, 0)] if n_floors
+                                  else np.nan, np.nan)
+                         for k, f in ((ok, e_floor), (okt, t_floor)))
         rows_out += [(g.id, g.t_ns, int(t_floor[i]), int(e_floor[i]), float(p_pub[i]),
-                      float(tru[i, 2])) for i, g in enumerate(rows)]
+                      float(tru[i, 2]), float(p_true[i])) for i, g in enumerate(rows)]
     lat = [(e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6 for e in est.values()
            if e.t_input_wall_ns > 0]
     return {"node_epochs": s.node_epochs, "availability": s.availability,

@@ -4,6 +4,7 @@ Usage::
 
     python benchmarks/bench_floor_calibration.py /tmp/geo14/rec40/*.mcap /tmp/geo14/rec40s1/*.mcap
     python benchmarks/bench_floor_calibration.py --top 5 --json out.json REC.mcap ...
+    python benchmarks/bench_floor_calibration.py --trace r02 REC.mcap   # one node, every 1 s
 
 Every recording is scored as ``bench_accuracy.py`` scores it (:func:`bench_accuracy.
 score_recording`: every node-epoch after the first 2 s, the recorded live estimate of each,
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 import time
@@ -109,6 +111,20 @@ def where(rows: list[tuple], *, confident: float = CONFIDENT,
     return out
 
 
+def trace(rows: list[tuple], node: str, *, every: int = 10) -> list[str]:
+    """One node's published floor over time (every ``every``-th node-epoch): its probability
+    and the log-odds of the published floor against the true one, ``ln(p_pub / p_true)``
+    (0 when right; how sure the wrong floor is when not)."""
+    rs = sorted((r for r in rows if r[0] == node), key=lambda r: r[1])
+    t0 = rs[0][1] if rs else 0
+    out = []
+    for r in rs[::every]:
+        lo = math.log(r[4] / max(r[6], 1e-300)) if r[3] >= 0 and r[6] == r[6] else math.nan
+        out.append(f"t+{(r[1] - t0) * 1e-9:4.1f} s  true {r[2]}  published {r[3]:2d}  "
+                   f"p {r[4]:.4f}  ln(p_pub/p_true) {lo:+.1f}")
+    return out
+
+
 def _geometry(name: str) -> str:
     m = re.fullmatch(r"rand-(\d+)-(\d+)", name)
     if not m:
@@ -134,6 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("recordings", nargs="+", help="MCAP recordings of diffpos emulate")
     ap.add_argument("--top", type=int, default=5, help="recordings shown in detail")
     ap.add_argument("--json", metavar="FILE", help="also write every result as JSON")
+    ap.add_argument("--trace", metavar="NODE",
+                    help="also print this node's published floor every 1 s, per recording")
     args = ap.parse_args(argv)
     results: dict[str, dict[str, Any]] = {}
     eps: dict[str, list] = {}
@@ -144,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
         rows: list = []
         results[name] = score_recording(path, rows_out=rows)
         eps[name] = episodes(rows)
+        if args.trace:
+            print(f"{name} {args.trace}:\n  " + "\n  ".join(trace(rows, args.trace)) + "\n")
         for k, v in where(rows).items():
             spots[k] += v
     cpu = time.process_time() - cpu
