@@ -14,8 +14,11 @@ The recording is then scored against the ground truth it holds with :func:`diffp
 score` over EVERY node-epoch after the first 2 s (every truth sample of every node: a
 node-epoch without an estimate, or whose estimate has no position, is a miss):
 availability, floor accuracy over all node-epochs, 3D and |z| error p50/p90 over the fixes,
-truth inside the reported 95 % ellipsoid, and the fusion latency (estimate publish time minus
-the newest input's publish time) p50/p99 of the recorded estimates.
+truth inside the reported 95 % ellipsoid, the fusion latency (estimate publish time minus
+the newest input's publish time) p50/p99 of the recorded estimates, and the calibration of the
+reported floor probabilities (:mod:`diffpos.floor_calibration`: ECE of the published floor's
+probability, and "confidently wrong", a wrong floor published at p >= 0.95, as a share of all
+node-epochs; ``--json`` has the reliability table; docs/floor_calibration.md).
 
 Runs: ``default`` (the paper's building, 4 UAVs, 6 walking responders), ``large``
 (scenarios/large.toml: 8 UAVs, 50 nodes), ``ideal`` (the default with ``--channel ideal``:
@@ -197,7 +200,8 @@ def _truth_tracks(truth: list) -> dict[str, tuple[np.ndarray, np.ndarray, np.nda
                 np.array([g.floor_index for g in v])) for k, v in by.items()}
 
 
-def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, Any]:
+def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
+                    rows_out: list | None = None) -> dict[str, Any]:
     """Every node-epoch of a recording (all its parts) after ``skip_s`` against its recorded
     truth.
 
@@ -206,6 +210,9 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, An
     and epoch (v1 or v2) with a usable position (status in ``GOOD_STATUSES``), else a miss.
     An estimate is compared with the truth at its own ``t_ns``
     (:func:`diffpos.metrics.truth_at`), as ``emulate``'s summary and ``replay``'s report do.
+    ``rows_out``: a list that receives one ``(node, t_ns, true floor, published floor or -1,
+    its probability or NaN, true z [m], the true floor's probability or NaN)`` per node-epoch
+    (bench_floor_calibration.py).
     """
     dec_est, dec_truth = M.estimate_decoder(), M.decoder(M.GroundTruth)
     dec_rc = M.decoder(M.RunControl)
@@ -232,6 +239,9 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, An
     n = len(rows)
     pos, cov = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
     e_floor, t_floor = np.full(n, -1), np.array([g.floor_index for g in rows])
+    n_floors = max((len(getattr(e, "floor_probabilities", ())) for e in est.values()),
+                   default=0)
+    probs = np.full((n, n_floors), np.nan)  # estimate v1: none (n_floors 0)
     tru = np.array([g.position_m for g in rows], float)
     tracks = _truth_tracks(truth)
     status: dict[str, int] = {}
@@ -249,15 +259,26 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S) -> dict[str, An
         if e.covariance_m2 is not None:
             cov[i] = e.covariance_m2
         e_floor[i] = -1 if e.floor_index is None else e.floor_index
+        fp = getattr(e, "floor_probabilities", ())
+        if len(fp) == n_floors:
+            probs[i] = fp
     s = score(pos, tru, estimate_floor=e_floor, truth_floor=t_floor, covariance_m2=cov,
-              q=(50, 90))
+              floor_probabilities=probs if n_floors else None, q=(50, 90))
+    if rows_out is not None:
+        ok = (e_floor >= 0) & (e_floor < n_floors)
+        okt = ok & (t_floor >= 0) & (t_floor < n_floors)
+        p_pub, p_true = (np.where(k, probs[np.arange(n), np.where(k, f, 0)] if n_floors
+                                  else np.nan, np.nan)
+                         for k, f in ((ok, e_floor), (okt, t_floor)))
+        rows_out += [(g.id, g.t_ns, int(t_floor[i]), int(e_floor[i]), float(p_pub[i]),
+                      float(tru[i, 2]), float(p_true[i])) for i, g in enumerate(rows)]
     lat = [(e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6 for e in est.values()
            if e.t_input_wall_ns > 0]
     return {"node_epochs": s.node_epochs, "availability": s.availability,
             "floor": s.floor_accuracy_all, "floor_fixes": s.floor_accuracy_fixes,
             "p50_3d": s.error_3d_m["p50"], "p90_3d": s.error_3d_m["p90"],
             "p50_z": s.error_z_m["p50"], "p90_z": s.error_z_m["p90"],
-            "coverage95": s.ellipsoid_coverage,
+            "coverage95": s.ellipsoid_coverage, "floor_calibration": s.floor_calibration,
             "latency_ms": percentiles(lat, (50, 99), max_mean=False),
             "status": dict(sorted(status.items())),
             "nodes": len({g.id for g in truth}), "method": _method(est.values()),
@@ -312,9 +333,18 @@ def _f(v: float | None, scale: float = 1.0, fmt: str = "6.2f") -> str:
     return "     -" if v is None else format(v * scale, fmt)
 
 
+def _calib_cols(c: dict[str, Any] | None) -> str:
+    """ECE and the confidently wrong share (of all node-epochs) of the floor probabilities;
+    dashes when the estimates report none (estimate v1)."""
+    if c is None:
+        return f"{'-':>6s} {'-':>7s}"
+    return f"{c['ece']:6.4f} {100 * c['confidently_wrong']:6.2f}%"
+
+
 def table(results: dict[str, dict[str, Any]]) -> str:
     head = (f"{'run':20s} {'N':>3s} {'avail':>6s} {'floor':>6s} {'3D p50':>7s} {'3D p90':>7s} "
-            f"{'z p50':>6s} {'z p90':>6s} {'cov95':>6s} {'lat p50':>8s} {'lat p99':>8s}")
+            f"{'z p50':>6s} {'z p90':>6s} {'cov95':>6s} {'lat p50':>8s} {'lat p99':>8s} "
+            f"{'ECE':>6s} {'confwr':>7s}")
     lines = [head, "-" * len(head)]
     for name, r in results.items():
         if "error" in r:
@@ -326,7 +356,7 @@ def table(results: dict[str, dict[str, Any]]) -> str:
             f"{_f(r['floor'], 100, '5.1f')}% {_f(r['p50_3d'], 1, '7.2f')} "
             f"{_f(r['p90_3d'], 1, '7.2f')} {_f(r['p50_z'])} {_f(r['p90_z'])} "
             f"{_f(r['coverage95'], 100, '5.1f')}% {_f(lat['p50'], 1, '8.1f')} "
-            f"{_f(lat['p99'], 1, '8.1f')}"
+            f"{_f(lat['p99'], 1, '8.1f')} {_calib_cols(r.get('floor_calibration'))}"
             + (f"  ({r['recording_parts']} recording parts)"
                if r.get("recording_parts", 1) > 1 else ""))
     return "\n".join(lines)
@@ -376,7 +406,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"bench_accuracy: lockstep diffpos emulate --speed 0, {duration:g} s per run, seed "
           f"{args.seed}, every node-epoch after the first {SKIP_S:g} s (a missing position is a "
           f"miss); floor over all node-epochs; 3D/z in m over the fixes; cov95 = truth inside "
-          f"the reported 95 % ellipsoid; latency in ms (estimate publish - newest input)")
+          f"the reported 95 % ellipsoid; latency in ms (estimate publish - newest input); ECE = "
+          f"expected calibration error of the published floor's probability, confwr = wrong "
+          f"floor published at p >= 0.95, % of all node-epochs (diffpos.floor_calibration)")
     print(f"command: python benchmarks/bench_accuracy.py {' '.join(argv or sys.argv[1:])}")
     print(f"machine: {machine()}")
     method = next((r["method"] for r in results.values() if "method" in r), "-")

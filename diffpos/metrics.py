@@ -10,7 +10,8 @@ left out of the error percentiles.
 * :func:`error_stats` - the per-group summary of ``diffpos replay``'s report.
 * :func:`availability`, :func:`floor_accuracy`, :func:`ellipsoid_coverage` - the single
   quantities.
-* :func:`score` - all of them at once from estimates, truth, floors and covariances.
+* :func:`score` - all of them at once from estimates, truth, floors and covariances, and
+  the calibration of the reported floor probabilities (:mod:`diffpos.floor_calibration`).
 * :class:`QuantileSketch`, :class:`StreamingErrorStats`, :class:`StreamingScore` - the same
   summaries over a stream in bounded memory (replay of recordings of any length): exact
   (identical to the functions above) up to ``exact_limit`` values per distribution, then a
@@ -36,6 +37,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.stats import chi2
+
+from diffpos.floor_calibration import FloorCalibration, floor_calibration
 
 __all__ = [
     "PERCENTILES",
@@ -237,6 +240,9 @@ class Score:
         See :func:`floor_accuracy` (``None`` without floors).
     ellipsoid_coverage : float or None
         See :func:`ellipsoid_coverage` (``None`` without covariances).
+    floor_calibration : dict or None
+        :func:`diffpos.floor_calibration.floor_calibration` (``None`` without floor
+        probabilities, e.g. estimate v1).
     """
 
     node_epochs: int
@@ -249,6 +255,7 @@ class Score:
     floor_accuracy_all: float | None
     floor_accuracy_fixes: float | None
     ellipsoid_coverage: float | None
+    floor_calibration: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (field order)."""
@@ -288,6 +295,7 @@ def score(
     estimate_floor: ArrayLike | None = None,
     truth_floor: ArrayLike | None = None,
     covariance_m2: ArrayLike | None = None,
+    floor_probabilities: ArrayLike | None = None,
     q: Sequence[float] = PERCENTILES,
     probability: float = 0.95,
 ) -> Score:
@@ -303,6 +311,9 @@ def score(
         Floor indices (both needed for the floor accuracies).
     covariance_m2 : array_like, shape (N, 3, 3) [m^2], optional
         Reported covariances (NaN where absent), for the ellipsoid coverage.
+    floor_probabilities : array_like, shape (N, F), optional
+        Reported probability of every floor (NaN rows where absent), for the calibration
+        (with both floors; :mod:`diffpos.floor_calibration`).
     q : sequence of float
         Percentiles of the error summaries.
     probability : float
@@ -326,6 +337,10 @@ def score(
     if covariance_m2 is not None:
         cov = np.asarray(covariance_m2, dtype=float).reshape(-1, 3, 3)
         cover = ellipsoid_coverage(d, cov[has], probability=probability)
+    calib = None
+    if floor_probabilities is not None and fl_all is not None:
+        calib = floor_calibration(estimate_floor, truth_floor, floor_probabilities,
+                                  has_position=has)
     return Score(
         node_epochs=int(has.size),
         fixes=int(has.sum()),
@@ -337,6 +352,7 @@ def score(
         floor_accuracy_all=fl_all,
         floor_accuracy_fixes=fl_fix,
         ellipsoid_coverage=cover,
+        floor_calibration=calib,
     )
 
 
@@ -513,7 +529,8 @@ class StreamingErrorStats:
 class StreamingScore:
     """:func:`score` over batches of node-epochs (without covariances: the coverage is a
     count, see :func:`ellipsoid_coverage`), in bounded memory: identical to :func:`score`
-    while the error distributions are exact (:class:`QuantileSketch`)."""
+    while the error distributions are exact (:class:`QuantileSketch`); the floor calibration
+    up to rounding (its sums per bin)."""
 
     def __init__(self, *, exact_limit: int = EXACT_LIMIT) -> None:
         kw = {"exact_limit": exact_limit}
@@ -522,11 +539,26 @@ class StreamingScore:
         self._right = 0
         self._floors = True
         self._sumsq = 0.0
+        self._calib = FloorCalibration()
 
     def add(self, error_m: ArrayLike, *, estimate_floor: ArrayLike | None = None,
-            truth_floor: ArrayLike | None = None) -> None:
-        """A batch of node-epochs: ``error_m`` (N, 3) = estimate - truth, a NaN row a miss."""
+            truth_floor: ArrayLike | None = None,
+            floor_probabilities: ArrayLike | None = None) -> None:
+        """A batch of node-epochs: ``error_m`` (N, 3) = estimate - truth, a NaN row a miss;
+        ``floor_probabilities`` (N, F) as :func:`score`'s (a batch without: none reported)."""
         d = np.asarray(error_m, float).reshape(-1, 3)
+        self._add(d)
+        if estimate_floor is None or truth_floor is None:
+            self._floors = False
+        elif self._floors:
+            ef = np.asarray(estimate_floor).reshape(-1)
+            tf = np.asarray(truth_floor).reshape(-1)
+            has = np.isfinite(d).all(axis=1)
+            self._right += int(((ef == tf) & has).sum())
+            p = np.empty((d.shape[0], 0)) if floor_probabilities is None else floor_probabilities
+            self._calib.add(ef, tf, p, has_position=has)
+
+    def _add(self, d: np.ndarray) -> None:
         has = np.isfinite(d).all(axis=1)
         dh = d[has]
         e3 = np.linalg.norm(dh, axis=1)
@@ -536,12 +568,6 @@ class StreamingScore:
         self.node_epochs += int(has.size)
         self.fixes += int(has.sum())
         self._sumsq += float(np.dot(e3, e3))
-        if estimate_floor is None or truth_floor is None:
-            self._floors = False
-        elif self._floors:
-            ef = np.asarray(estimate_floor).reshape(-1)
-            tf = np.asarray(truth_floor).reshape(-1)
-            self._right += int(((ef == tf) & has).sum())
 
     def result(self, q: Sequence[float] = PERCENTILES, *,
                ellipsoid_coverage: float | None = None) -> Score:
@@ -563,4 +589,5 @@ class StreamingScore:
             floor_accuracy_all=fl[0],
             floor_accuracy_fixes=fl[1],
             ellipsoid_coverage=ellipsoid_coverage,
+            floor_calibration=self._calib.result() if self._floors else None,
         )

@@ -10,6 +10,7 @@ import pytest
 from diffpos_services.emulate.scoring import Scorer, format_summary
 from diffpos_services.wire import messages as M
 
+from diffpos.floor_calibration import floor_calibration
 from diffpos.scenario import default_scenario
 from diffpos.trajectory import Static
 
@@ -19,12 +20,12 @@ T0 = 1_800_000_000_000_000_000
 TRUTH = {"a": (1.0, 5.0, 5.5), "b": (-3.0, 8.0, 8.5)}  # floors 0 and 1
 
 
-def _est(node, k, pos, floor, status="TRACKING"):
+def _est(node, k, pos, floor, status="TRACKING", probs=()):
     cov = ((0.01, 0.0, 0.0), (0.0, 0.01, 0.0), (0.0, 0.0, 0.01))
     return M.PositionEstimateV2(
         node_id=node, t_ns=T0 + k * P, epoch=T0 // P + k, seq=k, method="mnls+tracking",
         status=status, position_m=pos, covariance_m2=cov if pos else None, peb_m=None,
-        z_bound_m=None, floor_index=floor, floor_probabilities=[], snapshot=None, links=[],
+        z_bound_m=None, floor_index=floor, floor_probabilities=list(probs), snapshot=None, links=[],
         used_anchors=[], residuals_m=[], excluded=[], message="", t_input_wall_ns=0,
         t_pub_wall_ns=0)
 
@@ -58,6 +59,8 @@ def test_every_node_epoch_after_2_s_counts():
     text = format_summary(s)
     assert "availability    85.0 % of the node-epochs" in text and "80.0 % of all node-epochs" in text
     assert "mnls+tracking" in text
+    # no floor probabilities reported: the calibration is absent, and said so
+    assert s["floor_calibration"] is None and "calibration not measured" in text
 
 
 def _full_summary() -> dict:
@@ -121,3 +124,32 @@ def test_summary_says_node_epochs_the_overload_policy_dropped_apart_from_ranges(
     s["fusion"]["rejected"] = {"superseded": 5}
     flat = " ".join(x.strip() for x in format_summary(s, width=100).splitlines())
     assert "ranges rejected: 0;" in flat and "superseded 5" in flat
+
+
+def test_summary_has_the_calibration_of_the_floor_probabilities():
+    """Node-epochs with floor probabilities (v2): the summary's calibration is the core's
+    over the same node-epochs (a miss in the denominator of "confidently wrong", not in it)."""
+    nf = B.n_floors
+    sc = Scorer([(n, Static(p)) for n, p in TRUTH.items()], B, T0, period_ns=P,
+                end_ns=T0 + 3 * 10**9)
+    ef, tf, probs, has = [], [], [], []
+    for k in range(20, 30):
+        for node, true_floor in (("a", 0), ("b", 1)):
+            if node == "a" and k == 21:  # a miss: no estimate
+                ef.append(-1), tf.append(true_floor), probs.append([np.nan] * nf)
+                has.append(False)
+                continue
+            pub = true_floor if k % 4 else 1 - true_floor  # every 4th on the other floor
+            p = np.full(nf, 0.01 / (nf - 1))
+            p[pub] = 0.99 if k % 3 else 0.7
+            sc.add(_est(node, k, TRUTH[node], pub, probs=p.tolist()))
+            ef.append(pub), tf.append(true_floor), probs.append(p), has.append(True)
+    s = sc.summary()
+    ref = floor_calibration(ef, tf, np.array(probs), has_position=has)
+    c = s["floor_calibration"]
+    assert c["node_epochs"] == 20 and c["with_probabilities"] == 19
+    assert c["confidently_wrong_count"] == ref["confidently_wrong_count"] > 0
+    assert c["confidently_wrong"] == pytest.approx(c["confidently_wrong_count"] / 20)
+    assert c["ece"] == pytest.approx(ref["ece"], rel=1e-12)
+    flat = " ".join(x.strip() for x in format_summary(s, width=100).splitlines())
+    assert f"{c['confidently_wrong_count']} = {100 * c['confidently_wrong']:.2f} % of all" in flat

@@ -176,6 +176,9 @@ def test_cli_writes_report_plot_and_replayed_mcap(rec, tmp_path, capsys):
     assert "recorded live vs replayed" in text and "ALL" in text
     rep = json.loads((out / "report.json").read_text())
     assert rep["fixes"]["total"] == 90
+    # estimate v1 (no floor probabilities): the calibration is absent, and the report says so
+    assert rep["node_epochs"]["node_epochs"] > 0 and rep["node_epochs"]["floor_calibration"] is None
+    assert "calibration not measured" in text
     assert (out / "cdf.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with open(new, "rb") as f:
         reader = make_reader(f)
@@ -229,6 +232,8 @@ def test_committed_sample_recording(tmp_path):
     assert all(live[(e.node_id, e.epoch)] == e.used_anchors for e in r.estimates)
     acc = r.report["accuracy"]["overall"]
     assert acc["error_3d_m"]["p50"] < 0.3 and acc["floor_accuracy"] > 0.95
+    ne = r.report["node_epochs"]  # estimate v1: scored, without a floor calibration
+    assert ne["node_epochs"] > 0 and ne["floor_calibration"] is None
 
 
 def test_replay_rrd_holds_the_replayed_estimates(rec, base, tmp_path, capsys):
@@ -401,3 +406,53 @@ def test_streamed_report_stays_bounded_and_within_its_stated_error():
     assert all(not q for q in fs._pending.values()) and len(fs._err.e3) == 0
     assert len(tb.t["n1"]) <= 2 * 300 + 1
     assert arrays["e3"].size == 2 * n  # for plots, made on access
+
+
+def test_streamed_report_has_the_floor_calibration_of_the_node_epochs():
+    """Replay's report (FixStream) over v2 fixes with floor probabilities: the calibration of
+    its node-epochs is the core's over the same node-epochs (misses and a NaN vector
+    included), whatever the batching; over v1 fixes (no probabilities) it is absent."""
+    from diffpos_services.recording.report_stream import FixStream, SlimEstimate, TruthBook
+
+    from diffpos.floor_calibration import floor_calibration
+
+    rng = np.random.default_rng(8)
+    period, n, nf = 100_000_000, 300, 3
+    results = []
+    for schema in ("diffpos.estimate.v2", "diffpos.estimate.v1"):
+        tb = TruthBook(window_ns=5_000_000_000)
+        fs = FixStream(tb, max_truth_gap_ns=500_000_000, window_ns=5_000_000_000)
+        ef, tf, probs, has = [], [], [], []
+        for k in range(n):
+            t = (k + 1) * period
+            for j, node in enumerate(("n1", "n2")):
+                floor = (k // 50 + j) % nf
+                tb.add(node, t, (1.0, 2.0, 1.5 + 3.0 * floor), floor)
+                p = rng.dirichlet(np.ones(nf) * 0.4)
+                pub = int(np.argmax(p))
+                if k == 77:
+                    p[1] = np.nan  # counted as without probabilities
+                miss = rng.random() < 0.05
+                if not miss:
+                    fs.add(SlimEstimate(schema, node, t, k, "TRACKING",
+                                        position_m=(1.0, 2.0, 1.5 + 3.0 * floor),
+                                        floor_index=pub,
+                                        floor_probabilities=p.tolist() if "v2" in schema
+                                        else []))
+                if k >= 20:  # the report skips the first 2 s
+                    ef.append(-1 if miss else pub), tf.append(floor), probs.append(p)
+                    has.append(not miss)
+            if k % 9 == 8:  # the replay advances every few epochs of recording time
+                fs.advance(t)
+        fs.advance(n * period, final=True)
+        results.append((fs.node_epochs(), floor_calibration(ef, tf, np.array(probs),
+                                                           has_position=has)))
+    (ne, ref), (ne1, _) = results
+    c = ne["floor_calibration"]
+    assert ne["node_epochs"] == c["node_epochs"] == ref["node_epochs"] == 2 * (n - 20)
+    assert c["without_probabilities"] == ref["without_probabilities"] >= 1
+    assert c["confidently_wrong_count"] == ref["confidently_wrong_count"] > 0
+    assert [r["count"] for r in c["reliability"]] == [r["count"] for r in ref["reliability"]]
+    for key in ("ece", "log_score", "brier", "confidently_wrong"):
+        assert c[key] == pytest.approx(ref[key], rel=1e-12)
+    assert ne1["floor_calibration"] is None and ne1["node_epochs"] == 2 * (n - 20)

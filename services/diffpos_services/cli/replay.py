@@ -10,7 +10,9 @@ options change them to answer "what if" questions on the same data.
 The report (stdout, and report.json + cdf.png in --out, default out/replay/<name>/) has,
 per node and overall: 3D, horizontal and z error percentiles (50/67/90/95/99 %, max) against
 the truth interpolated at each fix time, floor accuracy, PEB percentiles and the share of
-fixes within 2 PEB, fix status counts; gating decisions per anchor (used / excluded and why);
+fixes within 2 PEB, fix status counts; the calibration of the reported floor probabilities over
+every node-epoch (diffpos.floor_calibration: reliability table, ECE, log and Brier scores,
+confidently wrong = a wrong floor published at p >= 0.95; absent for estimate v1); gating decisions per anchor (used / excluded and why);
 message counts and gaps in sequence numbers. --compare puts the recorded live estimates next to the replayed
 ones (matched per node and epoch).
 
@@ -36,6 +38,7 @@ from typing import Any
 
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+from diffpos.floor_calibration import format_calibration
 from diffpos_services.heap import keep_heap
 from diffpos_services.kit import ConfigError, load_json_option
 from diffpos_services.recording.errors import RecordingError
@@ -151,6 +154,10 @@ def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
     p(row("ALL", acc["overall"]))
     if acc["overall"]["without_truth"]:
         p(f"  ({acc['overall']['without_truth']} fixes had no truth sample nearby: not evaluated)")
+    ne = rep.get("node_epochs") or {}
+    if ne:  # the replayed node-epochs (every truth sample after the first 2 s)
+        for line in format_calibration(ne.get("floor_calibration")):
+            p(line)
     p("gating per anchor (used / excluded by reason):")
     for a, g in rep["gating"].items():
         ex = ", ".join(f"{r} {n}" for r, n in g["excluded"].items()) or "-"

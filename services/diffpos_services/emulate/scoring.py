@@ -60,7 +60,8 @@ class Scorer:
         self.status: collections.Counter[str] = collections.Counter()
         self.methods: collections.Counter[str] = collections.Counter()
         self.epochs: dict[str, set[int]] = collections.defaultdict(set)
-        # (node, epoch) -> (t_ns, position or None, covariance or None, floor or None, peb)
+        # (node, epoch) -> (t_ns, position or None, covariance or None, floor or None, peb,
+        #                   floor probabilities (() for v1 or without a position))
         self.rows: dict[tuple[str, int], tuple] = {}
         self.scored = 0  # estimates in the scored window
         self.scored_with_position = 0
@@ -80,7 +81,8 @@ class Scorer:
         self.rows[(est.node_id, est.epoch)] = (
             est.t_ns, est.position_m if usable else None,
             est.covariance_m2 if usable else None, est.floor_index if usable else None,
-            est.peb_m if usable else None)
+            est.peb_m if usable else None,
+            getattr(est, "floor_probabilities", ()) if usable else ())
         if tr is None or not usable:
             return None
         truth = np.asarray(tr.position_m((est.t_ns - self.t0_ns) * 1e-9), float)
@@ -100,10 +102,12 @@ class Scorer:
         return [(nid, self.e0 + k) for nid in self.traj for k in range(self.k_skip, k_end)]
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """Estimate, truth, floors, covariance and PEB of every scored node-epoch (NaN / -1
-        where there is no position)."""
+        """Estimate, truth, floors, covariance, PEB and floor probabilities (N, F; F = 0 when
+        no estimate has any) of every scored node-epoch (NaN / -1 where there is none)."""
         grid = self._grid()
         n = len(grid)
+        n_floors = max((len(self.rows[g][5]) for g in grid if g in self.rows), default=0)
+        probs = np.full((n, n_floors), np.nan)
         est = np.full((n, 3), np.nan)
         cov = np.full((n, 3, 3), np.nan)
         truth = np.zeros((n, 3))
@@ -120,16 +124,19 @@ class Scorer:
                 cov[i] = row[2]
             e_floor[i] = -1 if row[3] is None else row[3]
             peb[i] = np.nan if row[4] is None else row[4]
+            if n_floors and len(row[5]) == n_floors:
+                probs[i] = row[5]
         t_floor = np.asarray(self.building.floor_index(truth[:, 2]), np.int64)
         return {"estimate": est, "truth": truth, "estimate_floor": e_floor,
-                "truth_floor": t_floor, "covariance": cov, "peb": peb,
+                "truth_floor": t_floor, "covariance": cov, "peb": peb, "floor_probabilities": probs,
                 "missing": np.array([(g not in self.rows) for g in grid], bool)}
 
     def summary(self) -> dict[str, Any]:
         a = self.arrays()
         s = score(a["estimate"], a["truth"], estimate_floor=a["estimate_floor"],
                   truth_floor=a["truth_floor"], covariance_m2=a["covariance"],
-                  q=SUMMARY_PERCENTILES)
+                  floor_probabilities=a["floor_probabilities"] if a["floor_probabilities"].size
+                  else None, q=SUMMARY_PERCENTILES)
         strip = lambda d: {k: v for k, v in d.items() if k.startswith("p")}  # noqa: E731
         peb = a["peb"][np.isfinite(a["peb"])]
         return {
@@ -148,6 +155,8 @@ class Scorer:
             "floor_accuracy": s.floor_accuracy_all,
             "floor_accuracy_fixes": s.floor_accuracy_fixes,
             "ellipsoid_coverage_95": s.ellipsoid_coverage,
+            # diffpos.floor_calibration (None: no floor probabilities, e.g. estimate v1)
+            "floor_calibration": s.floor_calibration,
         }
 
 
@@ -211,6 +220,19 @@ def _gating_rows(s: dict[str, Any], f) -> list[tuple[str, str]]:
     ]
 
 
+def _calibration_row(s: dict[str, Any]) -> str:
+    """How far the published floor's probability can be trusted (diffpos.floor_calibration)."""
+    c = s.get("floor_calibration")
+    if c is None:
+        return "none reported (estimate v1 or a method without them): calibration not measured"
+    hi = c["reliability"][-1]
+    right = "-" if hi["fraction_right"] is None else _pct(hi["fraction_right"])
+    return (f"confidently wrong (wrong floor at p >= {c['confident']:g}) "
+            f"{c['confidently_wrong_count']} = {100 * c['confidently_wrong']:.2f} % of all "
+            f"node-epochs; published at p >= {hi['bin'][0]:g}: {hi['count']}, {right} right; "
+            f"ECE {c['ece']:.3f}, log score {c['log_score']:.3f} nats")
+
+
 def format_summary(s: dict[str, Any], *, width: int | None = None) -> str:
     """The summary as a plain-text table that fits ``width`` columns (default
     :func:`summary_width`): values wrap under themselves. An optional ``notes`` entry (list
@@ -236,6 +258,7 @@ def format_summary(s: dict[str, Any], *, width: int | None = None) -> str:
         rows.append((name, "  ".join(f"p{q} {f(p.get(f'p{q}'))}" for q in SUMMARY_PERCENTILES)))
     rows.append(("95 % ellipsoid", f"{_pct(s.get('ellipsoid_coverage_95'))} of the fixes hold "
                                    "the truth"))
+    rows.append(("floor calib.", _calibration_row(s)))
     rows += _gating_rows(s, f)
     if s.get("lost"):
         rows.append(("lost", ", ".join(s["lost"])))

@@ -66,6 +66,7 @@ class SlimEstimate(msgspec.Struct, frozen=True, gc=False):
                          tuple[float, float, float]] | None = None
     peb_m: float | None = None
     floor_index: int | None = None
+    floor_probabilities: list[float] = []  # v1: none
     used_anchors: list[str] = []
     excluded: list[SlimExclusion] = []
 
@@ -179,6 +180,19 @@ class TruthBook:
         return pos, self.f[node][near]
 
 
+def _prob_rows(rows: list) -> np.ndarray | None:
+    """The node-epochs' floor probabilities as (N, F), F the longest vector; NaN rows where
+    a vector is empty or shorter (estimate v1, no position); None when none has any."""
+    nf = max(map(len, rows), default=0)
+    if nf == 0:
+        return None
+    out = np.full((len(rows), nf), np.nan)
+    for i, r in enumerate(rows):
+        if len(r) == nf:
+            out[i] = r
+    return out
+
+
 @dataclasses.dataclass
 class _Errors:
     """The scored fixes of one batch (flushed into the per-node summaries)."""
@@ -240,6 +254,7 @@ class FixStream:
         self._ne_d = array.array("d")
         self._ne_ef = array.array("h")
         self._ne_tf = array.array("h")
+        self._ne_p: list = []  # the node-epochs' floor probabilities (() where none)
         self._stats: dict[int, StreamingErrorStats] = {}  # per node index
         self._overall = StreamingErrorStats()
         self._ne_stats = StreamingScore()
@@ -256,13 +271,14 @@ class FixStream:
         for x in e.excluded:
             self.excluded[x.anchor_id][x.reason] += 1
         if e.position_m is not None and e.status in M.GOOD_STATUSES:
-            fix = (e.t_ns, tuple(e.position_m), e.peb_m, e.floor_index, e.covariance_m2)
+            fix = (e.t_ns, tuple(e.position_m), e.peb_m, e.floor_index, e.covariance_m2,
+                   getattr(e, "floor_probabilities", ()))
             self._pending[e.node_id].append(fix)
             self._ne_add(e.node_id, fix)
 
     # -- per fix against the truth (evaluate) ----------------------------------------------
     def _score_fix(self, node: str, fix: tuple) -> None:
-        t, pos, peb, floor, _ = fix
+        t, pos, peb, floor = fix[:4]
         at = self.truth.at(node, t, self.gap)
         if at is None:
             self.no_truth += 1
@@ -329,12 +345,14 @@ class FixStream:
             if fix is None:
                 self._ne_d.extend(_NAN3)
                 self._ne_ef.append(-1)
+                self._ne_p.append(())
             else:  # the truth at the fix's own time (diffpos.metrics.truth_at)
                 p, f = tb.at(node, fix[0], period) or (p, f)
                 fp = fix[1]
                 d = (fp[0] - p[0], fp[1] - p[1], fp[2] - p[2])
                 self._ne_d.extend(d)
                 self._ne_ef.append(-1 if fix[3] is None else fix[3])
+                self._ne_p.append(fix[5])
                 if fix[4] is not None:
                     self._cov_d.append(d)
                     self._cov_c.append(fix[4])
@@ -351,8 +369,10 @@ class FixStream:
             return
         self._ne_stats.add(np.frombuffer(self._ne_d, np.float64).reshape(-1, 3),
                            estimate_floor=np.frombuffer(self._ne_ef, np.int16),
-                           truth_floor=np.frombuffer(self._ne_tf, np.int16))
+                           truth_floor=np.frombuffer(self._ne_tf, np.int16),
+                           floor_probabilities=_prob_rows(self._ne_p))
         self._ne_d, self._ne_ef, self._ne_tf = array.array("d"), array.array("h"), array.array("h")
+        self._ne_p = []
 
     def _coverage(self) -> None:
         if not self._cov_d:
