@@ -187,7 +187,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import itertools
 import sys
 import time
 import tomllib
@@ -197,6 +196,7 @@ import numpy as np
 
 from diffpos.channel import emulate_channel, first_arrival
 from diffpos.emulation import responders
+from diffpos.floor_calibration import FloorCalibration
 from diffpos.scenario import AnchorSpec, Building, NodeSpec, Scenario, default_scenario
 from diffpos.tracking import TrackerConfig, floor_probabilities, init_state, predict, update
 from diffpos.trajectory import Static
@@ -320,41 +320,34 @@ def score(rows, building) -> dict:
             "nis": np.stack([o.nis for o, _ in rows])}
 
 
-RELIABILITY_BINS = (0.0, 0.5, 0.7, 0.9, 0.99, 0.999, 1.0 + 1e-12)
-LOG_LOSS_FLOOR = 1e-6  # the probability of the true floor is clipped here in the log loss
+RELIABILITY_BINS = (0.0, 0.5, 0.7, 0.9, 0.99, 0.999, 1.0)  # the last bin closed
 
 
 def reliability(results: list[dict]) -> dict:
     """Calibration of the published per-floor probabilities over the node-epochs with a
-    position of several :func:`run` results: per bin of the published probability of the
-    chosen floor (:data:`RELIABILITY_BINS`) the count, the mean published probability and the
-    observed frequency of the chosen floor being the true one; the Brier score (sum over the
-    floors of ``(p_f - [f true])^2``, mean over node-epochs), the log loss (``-ln p_true``,
-    ``p_true`` clipped at :data:`LOG_LOSS_FLOOR`), the floor accuracy, and the fraction of
-    node-epochs the fusion would call confident (chosen floor >= 0.99 and NIS <= 4) with the
-    accuracy among them."""
-    nf = max(r["floor_probabilities"].shape[-1] for r in results)  # buildings differ
-    p = np.concatenate([np.pad(r["floor_probabilities"][r["has"]],
-                               ((0, 0), (0, nf - r["floor_probabilities"].shape[-1])))
-                        for r in results])
+    position of several :func:`run` results, by the core's scorer
+    (:class:`diffpos.floor_calibration.FloorCalibration`, bins :data:`RELIABILITY_BINS`):
+    per bin of the published probability of the chosen floor the count, the mean published
+    probability and the observed frequency of the chosen floor being the true one; the Brier
+    score, the log score (``-ln p_true`` clipped at 1e-6), and here also the floor accuracy and
+    the fraction of node-epochs the fusion would call confident (chosen floor >= 0.99 and NIS
+    <= 4) with the accuracy among them."""
+    cal = FloorCalibration(bin_edges=RELIABILITY_BINS)
+    for r in results:  # one batch per run: its building's floors
+        has = r["has"]
+        cal.add(r["floor_index"][has], r["true_floor"][has], r["floor_probabilities"][has])
+    c = cal.result()
     est = np.concatenate([r["floor_index"][r["has"]] for r in results])
     tru = np.concatenate([r["true_floor"][r["has"]] for r in results])
     nis = np.concatenate([r["nis"][r["has"]] for r in results])
-    tru_c = np.clip(tru, 0, nf - 1)  # a truth outside the building is scored on its nearest
-    rows = np.arange(p.shape[0])
-    p_est = p[rows, est]
+    p_est = np.concatenate([np.take_along_axis(r["floor_probabilities"][r["has"]],
+                                               r["floor_index"][r["has"]][:, None], 1)[:, 0]
+                            for r in results])
     right = est == tru
-    bins = []
-    for lo, hi in itertools.pairwise(RELIABILITY_BINS):
-        sel = (p_est >= lo) & (p_est < hi)
-        bins.append((lo, min(hi, 1.0), int(sel.sum()),
-                     float(p_est[sel].mean()) if sel.any() else float("nan"),
-                     float(right[sel].mean()) if sel.any() else float("nan")))
-    onehot = np.eye(nf)[tru_c]
     conf = (p_est >= 0.99) & (nis <= 4.0)
-    return {"bins": bins, "n": int(p.shape[0]),
-            "brier": float(np.mean(np.sum((p - onehot) ** 2, axis=1))),
-            "log_loss": float(np.mean(-np.log(np.maximum(p[rows, tru_c], LOG_LOSS_FLOOR)))),
+    return {"bins": [(b["bin"][0], b["bin"][1], b["count"], b["mean_probability"],
+                      b["fraction_right"]) for b in c["reliability"]],
+            "n": c["with_probabilities"], "brier": c["brier"], "log_loss": c["log_score"],
             "floor": float(right.mean()), "confident": float(conf.mean()),
             "confident_right": float(right[conf].mean()) if conf.any() else float("nan")}
 
@@ -367,6 +360,7 @@ def print_reliability(label: str, rel: dict) -> None:
           f"them {100 * rel['confident_right']:.2f} %")
     print(f"  {'published p of chosen floor':28s} {'n':>7s} {'mean p':>8s} {'observed':>9s}")
     for lo, hi, k, mp, fr in rel["bins"]:
+        mp, fr = (float("nan") if v is None else v for v in (mp, fr))
         print(f"  [{lo:.3f}, {hi:.3f}){'':13s} {k:7d} {mp:8.4f} {fr:9.4f}")
 
 
