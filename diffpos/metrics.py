@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.stats import chi2
 
+from diffpos.chi_square import chi2_3_quantile
 from diffpos.floor_calibration import FloorCalibration, floor_calibration
 
 __all__ = [
@@ -170,7 +170,7 @@ def ellipsoid_coverage(
         return None
     d, c = d[ok], c[ok]
     m2 = np.einsum("ki,kij,kj->k", d, np.linalg.pinv(c, hermitian=True), d)
-    return float(np.mean(m2 <= chi2.ppf(probability, 3)))
+    return float(np.mean(m2 <= chi2_3_quantile(probability)))
 
 
 def error_stats(

@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .bounds import position_error_bound
+from .chi_square import chi2_3_quantile
 from .estimators import dnls, ippa, lls, mnls
 from .linkbudget import db_to_linear, ranging_crlb_m
 
@@ -265,7 +266,6 @@ class PositioningStudy:
         covariance and ``d`` the error; over the fixes with an estimate and a finite
         covariance (NaN if none or the method reports no covariance).
         """
-        from scipy.stats import chi2
 
         cov = self.extra.get("covariance_m2", {}).get(method)
         if cov is None:
@@ -276,7 +276,7 @@ class PositioningStudy:
             return float("nan")
         with np.errstate(invalid="ignore"):
             m2 = np.einsum("ni,ni->n", d[ok], np.linalg.solve(cov[ok], d[ok][..., None])[..., 0])
-        return float(np.mean(m2 <= chi2.ppf(probability, 3)))
+        return float(np.mean(m2 <= chi2_3_quantile(probability)))
 
 
 def method_label(method: str, delta_case2_m: float = 1.5) -> str:
