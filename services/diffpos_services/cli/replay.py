@@ -44,7 +44,6 @@ from diffpos_services.kit import ConfigError, load_json_option
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.replay import replay
-from diffpos_services.reports.replay import plot_cdf
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -223,6 +222,8 @@ def _write_report_files(result: Any, out_dir: Path) -> list[str]:
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_dir / "report.json") as tmp:
         tmp.write_text(json.dumps(result.report, indent=2) + "\n", encoding="utf-8")
+    from diffpos_services.reports.replay import plot_cdf  # matplotlib: only when plotting
+
     with atomic_path(out_dir / "cdf.png") as tmp:
         plot_cdf(result, tmp)
     return [str(out_dir / "report.json"), str(out_dir / "cdf.png")]
