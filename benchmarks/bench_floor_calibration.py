@@ -12,7 +12,8 @@ a missing position is a miss) and its floor probabilities as :mod:`diffpos.floor
 measures them. The recorded live estimates are used: ``diffpos replay`` of the same file gives
 the same estimates bit for bit (its report shows the same calibration; checked on the worst
 geometry in docs/floor_calibration.md), without re-running the fusion (~0.1 s CPU per 20 s
-recording instead of ~10 s).
+recording instead of ~3 s: the replay of rand-0-38 took 2.7 s user CPU, the 80 replays ~3.8 s
+wall each, docs/floor_calibration.md).
 
 Prints: one row per recording (node-epochs, floor accuracy over all node-epochs, ECE, log
 score, Brier, confidently wrong = a wrong floor published at p >= 0.95, count and share of all
