@@ -4,7 +4,7 @@ The squared Mahalanobis distance ``d^T C^-1 d`` of a 3D Gaussian error is chi-sq
 degrees of freedom, so the ``probability`` error ellipsoid of a reported covariance is
 ``d^T C^-1 d <= chi2_3_quantile(probability)`` (:func:`diffpos.metrics.ellipsoid_coverage`).
 Its CDF is elementary, ``F(x) = erf(sqrt(x / 2)) - sqrt(2 x / pi) exp(-x / 2)``, and the
-quantile is found by bisection to the last bit (~60 halvings, microseconds): the scorer does
+quantile is found by bisection to the last bit (~60 halvings, 20-40 us): the scorer does
 not import ``scipy.stats`` for it (~0.4 s of every ``diffpos replay`` / ``emulate`` start,
 measured with ``python -X importtime``).
 
