@@ -12,7 +12,8 @@ a missing position is a miss) and its floor probabilities as :mod:`diffpos.floor
 measures them. The recorded live estimates are used: ``diffpos replay`` of the same file gives
 the same estimates bit for bit (its report shows the same calibration; checked on the worst
 geometry in docs/floor_calibration.md), without re-running the fusion (~0.1 s CPU per 20 s
-recording instead of ~10 s).
+recording instead of ~3 s: the replay of rand-0-38 took 2.7 s user CPU, the 80 replays ~3.8 s
+wall each, docs/floor_calibration.md).
 
 Prints: one row per recording (node-epochs, floor accuracy over all node-epochs, ECE, log
 score, Brier, confidently wrong = a wrong floor published at p >= 0.95, count and share of all
@@ -42,10 +43,18 @@ from heldout import family, random_scenario, summary
 from diffpos.floor_calibration import CONFIDENT, FloorCalibration, format_calibration
 
 
-def pool(calibs: list[dict[str, Any]]) -> dict[str, Any] | None:
+def pool(calibs: list[dict[str, Any] | None], *,
+         uncalibrated: list[tuple[int, int]] = ()) -> dict[str, Any] | None:
     """The calibration of the union of the node-epochs of ``calibs`` (each a
-    :func:`diffpos.floor_calibration.floor_calibration` result with the default bins)."""
+    :func:`diffpos.floor_calibration.floor_calibration` result with the default bins, or None)
+    and of ``uncalibrated``: ``(node_epochs, fixes)`` of each recording whose estimates report
+    no floor probabilities (estimate v1, whose calibration is None): its node-epochs count in
+    the denominator of "confidently wrong" (ALL node-epochs) and its fixes as without
+    probabilities, as one scorer over the union counts them."""
     acc = FloorCalibration()
+    for n, fixes in uncalibrated:
+        acc.node_epochs += n
+        acc.without += fixes
     for c in calibs:
         if c is None:
             continue
@@ -177,7 +186,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{'confwr':>6s} {'%':>7s} {'>=.99':>6s} {'right':>7s}")
     for name, r in results.items():
         print(_row(name, r))
-    pooled = pool([r["floor_calibration"] for r in results.values()])
+    pooled = pool([r["floor_calibration"] for r in results.values()],
+                  uncalibrated=[(r["node_epochs"], round(r["availability"] * r["node_epochs"]))
+                                for r in results.values() if r["floor_calibration"] is None])
     print(f"\npooled over {len(results)} recordings:")
     print("\n".join(format_calibration(pooled)))
     print(f"  of the {spots['confidently_wrong']} confidently wrong: {spots['at_floor_change']} "

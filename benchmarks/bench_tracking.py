@@ -361,7 +361,8 @@ def print_reliability(label: str, rel: dict) -> None:
     print(f"  {'published p of chosen floor':28s} {'n':>7s} {'mean p':>8s} {'observed':>9s}")
     for lo, hi, k, mp, fr in rel["bins"]:
         mp, fr = (float("nan") if v is None else v for v in (mp, fr))
-        print(f"  [{lo:.3f}, {hi:.3f}){'':13s} {k:7d} {mp:8.4f} {fr:9.4f}")
+        close = "]" if hi == 1.0 else ")"  # the last bin is closed (p = 1 is in it)
+        print(f"  [{lo:.3f}, {hi:.3f}{close}{'':13s} {k:7d} {mp:8.4f} {fr:9.4f}")
 
 
 def main(argv=None) -> int:

@@ -125,10 +125,11 @@ class _Pipe:
         pass
 
 
-def _replay(path, monkeypatch, fail=None, after=0, reuse_off=False):
+def _replay(path, monkeypatch, fail=None, after=0, reuse_off=False, prime=None):
     """Replay with a 2-way pool whose worker is a :class:`_Pipe` (``fail="none"``: the plain
     fusion); every call is split (MIN_PARALLEL_COST 0); ``reuse_off``: the tracker's SNR
-    reuse margins 0 (the slim state crosses the pipe). Returns (estimates as bytes, pool)."""
+    reuse margins 0 (the slim state crosses the pipe); ``prime(pool)`` sets what the pool has
+    learned before the first call. Returns (estimates as bytes, pool)."""
     pools = []
 
     def fake_start(core, log=None, **_):
@@ -142,6 +143,8 @@ def _replay(path, monkeypatch, fail=None, after=0, reuse_off=False):
         pool.pipe = _Pipe(pool.model, fail, after)  # kept: close() forgets the slot's
         pool._slots = [W._Slot(conn=pool.pipe, ready=True, pid=-1)]
         pool._start = lambda s: setattr(s, "conn", None)  # "restart": the slot stays empty
+        if prime is not None:
+            prime(pool)
         core.bank.pool = pool
         pools.append(pool)
         return pool
@@ -173,6 +176,24 @@ def test_split_replay_equals_plain_bit_for_bit(recording, monkeypatch, reuse_off
     # the snapshot fixes went to the worker, not waited for before the tracker's round
     assert pool.calls["submitted"] > 0 and "mnls" in pool.pipe.kinds
     assert not pool._slots[0].pending  # every reply consumed
+
+
+def test_split_replay_equals_plain_while_a_left_out_worker_is_measured_again(recording,
+                                                                             monkeypatch):
+    """A pool that starts with a bad sample learned (latency at its cap, speed 1/4: the worker's
+    share of every call of the 6-node replay is empty) regresses towards its priors
+    (``RowPool._forget``) until the worker gets rows again; whichever split each call had,
+    the estimates are those of the plain fusion, bit for bit."""
+    def bad_sample(pool):
+        pool.latency_s, pool.speed = W.LATENCY_MAX_S, 0.25
+        pool._unit_s["update"] = 0.001  # 50 update rows of latency: more than a call has
+
+    plain, _ = _replay(recording, monkeypatch, fail="none")
+    split, pool = _replay(recording, monkeypatch, prime=bad_sample)
+    assert split == plain
+    assert pool.calls["forgot"] > 0 and pool.calls["rows_sent"] > 0 and not pool.failures
+    # the worker got update shares again, and the regression stopped once it did
+    assert "update" in pool.pipe.kinds and pool.calls["forgot"] < pool.calls["split"]
 
 
 def test_preloaded_bounds_count_the_work_a_worker_already_has():

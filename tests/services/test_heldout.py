@@ -153,3 +153,40 @@ def test_floor_change_delay_counts_the_settling_epoch():
     rows = H._settle_delays(run, "x")
     assert [(r[1], round(r[4], 1)) for r in rows] == [(1, 5.0), (-1, 12.0)]
     assert rows[0][0] == pytest.approx(1.9) and rows[1][0] == np.inf
+
+
+def test_floor_change_hold_and_delay_count_whole_epochs():
+    """heldout_diag's ``changes``: the truth's stay on a new floor is counted in epochs like
+    the estimate's (HOLD_S = 1 s = 10 epochs at 10 Hz: a stay of exactly 10 epochs counts, 9
+    do not), and a delay of exactly 20 epochs is 2 s to the bit (within the 2 s bar) wherever
+    the change falls: the differences of float seconds were an ulp over 2.0 for some."""
+    import heldout_diag as H
+
+    class _Est:
+        def __init__(self, f):
+            self.floor_index, self.status = f, "TRACKING"
+
+    class _Run:
+        pass
+
+    period = 100_000_000
+    t0 = 1_764_300_000_000_000_000  # a wall-clock t0, as the recordings have
+    for start in range(30, 60):  # 3.0-5.9 s: where the float differences differ
+        k = np.arange(0, start + 80)
+        truth = np.ones(k.size, int)
+        truth[start:start + 10] = 2  # 10 epochs up: counts
+        truth[start + 10:start + 19] = 3  # 9 epochs: does not count
+        truth[start + 19:] = 4  # stays to the end
+        est = np.ones(k.size, int)
+        est[start + 20:] = 2  # floor 2 reached late: never settled (truth left it)
+        est[start + 19 + 20:] = 4  # floor 4 reached 20 epochs (2.0 s) after the truth
+        run = _Run()
+        run.t0, run.period = t0, period
+        tt = t0 + k * period
+        run.tracks = {"n1": (tt, np.zeros((k.size, 3)), truth)}
+        run.est = {("n1", int(t // period)): _Est(int(f)) for t, f in zip(tt, est, strict=True)}
+        rows = H._settle_delays(run, "x")
+        assert [(r[1], round(r[4], 1)) for r in rows] == [(1, start / 10), (1, (start + 19) / 10)]
+        assert rows[0][0] == np.inf and rows[1][0] == 2.0
+        report = H.changes([("x", run)])  # one never (inf) and one 2.0 s: no NaN quantile
+        assert "within 2 s 50.0 %, delay p50 2.0 s p90 inf s, never settled 1" in report
