@@ -454,6 +454,9 @@ def bench_live(minutes: float, tmp: Path, *, every_min: float,
             print(json.dumps(samples[-1]), file=sys.stderr, flush=True)
             if line is not None:
                 break
+        if not line.startswith("sent"):  # EOF: the publisher died before it finished
+            raise RuntimeError(f"the publisher exited ({pub.wait(timeout=60)}) before it had "
+                               f"published every epoch; see its error above")
         _, _t_sent, n_sent, late = line.split()
         pub.stdin.write("\n")
         pub.stdin.flush()

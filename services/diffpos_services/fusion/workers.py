@@ -447,9 +447,11 @@ class RowPool:
         """Move :attr:`speed` and :attr:`latency_s` one EWMA step (:data:`SPEED_MEMORY`)
         towards their priors (1 and 0 s). Called by a split call that gave idle workers (no
         request pending or deferred) no rows: both are learned only from shares, so without
-        this one bad sample kept a worker out for good (2026-11-28, a 60 s soak with 2
-        workers: one 30 ms latency sample at the start, then 29 rows sent to the worker in
-        1,111 split calls, the fusion's process alone at 0.72 of a core). A worker that is
+        this one bad sample kept a worker out for good (2026-11-28 04:18 UTC, ``python
+        benchmarks/bench_soak.py --load 16x200 --duration 60 --warmup 10 --method mnls
+        --workers 2 --log-dir D``, the fusion log's ``fusion workers stopped`` counters: one 30
+        ms latency sample at the start, then 29 rows sent to the worker in 1,111 split calls,
+        the fusion's process alone at 0.72 of a core). A worker that is
         really slow or late is measured so again by the share it then gets: a share every
         few calls, sized by the regressed estimates."""
         self.latency_s *= SPEED_MEMORY
