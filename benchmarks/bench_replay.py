@@ -21,6 +21,7 @@ Usage::
     python benchmarks/bench_replay.py --emulate-s 600 --minutes 10 60 --profile
     python benchmarks/bench_replay.py --realistic r600.mcap --synthetic s10.mcap s60.mcap
     python benchmarks/bench_replay.py --realistic r.mcap --minutes --methods default dnls
+    python benchmarks/bench_replay.py --realistic r.mcap --synthetic s10.mcap s60.mcap --methods mnls
 
 A split recording (``r.mcap``, ``r_0001.mcap``, ...: the recorder splits long runs) is given
 by its first part and replayed whole.
@@ -170,8 +171,9 @@ def main() -> None:
     ap.add_argument("--before", action="store_true",
                     help="also replay the realistic recording as before (every estimate kept)")
     ap.add_argument("--methods", nargs="+", default=["default"], metavar="METHOD",
-                    help="replay the realistic recording with each fusion method (default: "
-                         "the recorded one; e.g. --methods default dnls)")
+                    help="replay the realistic and the synthetic recordings with each fusion "
+                         "method (default: the recorded one, mnls in emulate's recordings, "
+                         "dnls in the synthetic ones; e.g. --methods default mnls)")
     ap.add_argument("--profile", type=int, default=0, metavar="N",
                     help="print the top N functions of a profiled realistic replay")
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
@@ -196,16 +198,17 @@ def main() -> None:
                      _run_child(str(real), "now", method)))
     if args.before:
         rows.append(("realistic, before (recorder order)", _run_child(str(real), "before")))
-    if args.synthetic is not None:
-        for p in args.synthetic:
-            rows.append((f"synthetic {Path(p).name}, now", _run_child(p, "now")))
-    else:
-        for minutes in args.minutes:
-            p = tmp / f"synthetic_{minutes:g}min.mcap"
-            t0 = time.perf_counter()
-            _synthetic(p, minutes)
-            notes.append(f"made {p.name} ({time.perf_counter() - t0:.0f} s wall)")
-            rows.append((f"synthetic {minutes:g} min, now", _run_child(str(p), "now")))
+    synthetic = [] if args.synthetic is None else [(p, Path(p).name) for p in args.synthetic]
+    for minutes in [] if args.synthetic is not None else args.minutes:
+        p = tmp / f"synthetic_{minutes:g}min.mcap"
+        t0 = time.perf_counter()
+        _synthetic(p, minutes)
+        notes.append(f"made {p.name} ({time.perf_counter() - t0:.0f} s wall)")
+        synthetic.append((str(p), f"{minutes:g} min"))
+    for p, name in synthetic:  # each method on each length (default: the recorded D-NLS)
+        for method in args.methods:
+            label = "" if method == "default" else f", {method}"
+            rows.append((f"synthetic {name}, now{label}", _run_child(p, "now", method)))
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python "
           f"{platform.python_version()} (shared with other jobs: absolute times vary)")
     for n in notes:
