@@ -279,7 +279,10 @@ def _settle_delays(run: Run, name: str) -> list[tuple[float, int, str, str, floa
             if ts[k] < SKIP_S or end - k < hold:
                 continue  # in the skipped start, or the truth did not stay there
             delay = np.inf
-            for j in range(k, end):
+            # the estimate's hold may end early only where the truth changes again, not
+            # where the recording ends (a flicker in its last second is not a settling)
+            last = end if end < ff.size else end - hold + 1
+            for j in range(k, last):
                 window = est[j:min(j + hold, end)]
                 if window.size and np.all(window == ff[k]):
                     # from the integer ns: (ts[j] - ts[k]) is off by an ulp often enough to

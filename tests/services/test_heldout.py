@@ -153,6 +153,14 @@ def test_floor_change_delay_counts_the_settling_epoch():
     rows = H._settle_delays(run, "x")
     assert [(r[1], round(r[4], 1)) for r in rows] == [(1, 5.0), (-1, 12.0)]
     assert rows[0][0] == pytest.approx(1.9) and rows[1][0] == np.inf
+    # the last change lasts to the end of the recording: a published floor that reaches it
+    # only in the last 0.5 s has not held it for 1 s: never settled (the window is not cut
+    # short by the recording's end), while one that reaches it 1 s before the end has
+    truth[ts >= 19.5] = 1  # no excursion: floor 1 from 12 s to the end
+    for last_s, settled in ((19.5, False), (19.0, True)):
+        run.est = {("n1", int(k)): _Est(int(f)) for k, f in enumerate(
+            np.where(ts >= last_s, 1, est))}
+        assert np.isfinite(H._settle_delays(run, "x")[1][0]) == settled
 
 
 def test_floor_change_hold_and_delay_count_whole_epochs():
