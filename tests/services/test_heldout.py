@@ -124,19 +124,33 @@ def test_the_responders_walk_inside_every_sample(samples):
             assert np.all(s.building.inside(traj.position_m(t_s))), d["name"]
 
 
+class _Est:
+    """The fields heldout_diag's ``changes`` reads of an estimate."""
+
+    def __init__(self, f):
+        self.floor_index, self.status = f, "TRACKING"
+
+
+class _Run:
+    """A stand-in of heldout_diag.Run for one node "n1": its truth floors and the published
+    floors at the sample times ``tt`` [ns]."""
+
+    def __init__(self, tt, truth, est, *, t0=0, period=100_000_000):
+        self.t0, self.period = t0, period
+        self.tracks = {"n1": (tt, np.zeros((len(tt), 3)), truth)}
+        self.set_estimates(tt, est)
+
+    def set_estimates(self, tt, est):
+        self.est = {("n1", int(t // self.period)): _Est(int(f))
+                    for t, f in zip(tt, est, strict=True)}
+
+
 def test_floor_change_delay_counts_the_settling_epoch():
     """heldout_diag's ``changes``: a truth that climbs from floor 1 to 2 at t = 5 s and comes
     back down at 12 s; the published floor follows 1.5 s late up but flickers back once at
     6.8 s (settled from the epoch after it), and never down (a lock): delays 1.9 s and inf; a
     change within the first 2 s or whose new floor lasts < 1 s is not counted."""
     import heldout_diag as H
-
-    class _Est:
-        def __init__(self, f):
-            self.floor_index, self.status = f, "TRACKING"
-
-    class _Run:
-        pass
 
     period = 100_000_000
     t = np.arange(0, 200) * period  # 0-19.9 s
@@ -146,10 +160,7 @@ def test_floor_change_delay_counts_the_settling_epoch():
     truth[ts >= 19.5] = 0  # the last 0.5 s: not a change that lasts
     est = np.where(ts >= 6.5, 2, 1)
     est[68] = 1  # t = 6.8 s flickers back: settled from 6.9 s
-    run = _Run()
-    run.t0, run.period = 0, period
-    run.tracks = {"n1": (t, np.zeros((t.size, 3)), truth)}
-    run.est = {("n1", int(k)): _Est(int(f)) for k, f in enumerate(est)}
+    run = _Run(t, truth, est)
     rows = H._settle_delays(run, "x")
     assert [(r[1], round(r[4], 1)) for r in rows] == [(1, 5.0), (-1, 12.0)]
     assert rows[0][0] == pytest.approx(1.9) and rows[1][0] == np.inf
@@ -158,8 +169,7 @@ def test_floor_change_delay_counts_the_settling_epoch():
     # short by the recording's end), while one that reaches it 1 s before the end has
     truth[ts >= 19.5] = 1  # no excursion: floor 1 from 12 s to the end
     for last_s, settled in ((19.5, False), (19.0, True)):
-        run.est = {("n1", int(k)): _Est(int(f)) for k, f in enumerate(
-            np.where(ts >= last_s, 1, est))}
+        run.set_estimates(t, np.where(ts >= last_s, 1, est))
         assert np.isfinite(H._settle_delays(run, "x")[1][0]) == settled
 
 
@@ -169,13 +179,6 @@ def test_floor_change_hold_and_delay_count_whole_epochs():
     do not), and a delay of exactly 20 epochs is 2 s to the bit (within the 2 s bar) wherever
     the change falls: the differences of float seconds were an ulp over 2.0 for some."""
     import heldout_diag as H
-
-    class _Est:
-        def __init__(self, f):
-            self.floor_index, self.status = f, "TRACKING"
-
-    class _Run:
-        pass
 
     period = 100_000_000
     t0 = 1_764_300_000_000_000_000  # a wall-clock t0, as the recordings have
@@ -188,11 +191,8 @@ def test_floor_change_hold_and_delay_count_whole_epochs():
         est = np.ones(k.size, int)
         est[start + 20:] = 2  # floor 2 reached late: never settled (truth left it)
         est[start + 19 + 20:] = 4  # floor 4 reached 20 epochs (2.0 s) after the truth
-        run = _Run()
-        run.t0, run.period = t0, period
         tt = t0 + k * period
-        run.tracks = {"n1": (tt, np.zeros((k.size, 3)), truth)}
-        run.est = {("n1", int(t // period)): _Est(int(f)) for t, f in zip(tt, est, strict=True)}
+        run = _Run(tt, truth, est, t0=t0, period=period)
         rows = H._settle_delays(run, "x")
         assert [(r[1], round(r[4], 1)) for r in rows] == [(1, start / 10), (1, (start + 19) / 10)]
         assert rows[0][0] == np.inf and rows[1][0] == 2.0
