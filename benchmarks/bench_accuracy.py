@@ -92,6 +92,7 @@ from diffpos_services.recording.writer import part_path
 from diffpos_services.wire import messages as M
 from heldout import family, random_scenarios, summary
 
+from diffpos.floor_calibration import probability_rows
 from diffpos.metrics import percentiles, score, truth_at
 from diffpos.scenario import default_scenario
 
@@ -239,9 +240,7 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
     n = len(rows)
     pos, cov = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
     e_floor, t_floor = np.full(n, -1), np.array([g.floor_index for g in rows])
-    n_floors = max((len(getattr(e, "floor_probabilities", ())) for e in est.values()),
-                   default=0)
-    probs = np.full((n, n_floors), np.nan)  # estimate v1: none (n_floors 0)
+    vectors = [()] * n  # the reported floor probabilities of each node-epoch's estimate
     tru = np.array([g.position_m for g in rows], float)
     tracks = _truth_tracks(truth)
     status: dict[str, int] = {}
@@ -259,9 +258,10 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
         if e.covariance_m2 is not None:
             cov[i] = e.covariance_m2
         e_floor[i] = -1 if e.floor_index is None else e.floor_index
-        fp = getattr(e, "floor_probabilities", ())
-        if len(fp) == n_floors:
-            probs[i] = fp
+        vectors[i] = getattr(e, "floor_probabilities", ())
+    probs = probability_rows(vectors)  # None: estimate v1
+    n_floors = 0 if probs is None else probs.shape[1]
+    probs = np.full((n, 0), np.nan) if probs is None else probs
     s = score(pos, tru, estimate_floor=e_floor, truth_floor=t_floor, covariance_m2=cov,
               floor_probabilities=probs if n_floors else None, q=(50, 90))
     if rows_out is not None:

@@ -52,13 +52,14 @@ Examples
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 __all__ = ["BIN_EDGES", "CONFIDENT", "P_FLOOR", "FloorCalibration", "floor_calibration",
-           "format_calibration"]
+           "format_calibration", "probability_rows"]
 
 #: bin edges of the reliability table over the published floor's probability (last bin closed)
 BIN_EDGES: tuple[float, ...] = (0.0, 0.5, 0.8, 0.95, 0.99, 1.0)
@@ -186,6 +187,20 @@ def floor_calibration(estimate_floor: ArrayLike, truth_floor: ArrayLike,
     acc = FloorCalibration(**kw)
     acc.add(estimate_floor, truth_floor, floor_probabilities, has_position=has_position)
     return acc.result()
+
+
+def probability_rows(vectors: Sequence[Sequence[float]]) -> np.ndarray | None:
+    """The node-epochs' reported floor probabilities as one (N, F) array, F the longest
+    vector: NaN rows where a vector is empty or shorter (estimate v1, no position); ``None``
+    when none has any (what :func:`floor_calibration` and the scorer take)."""
+    nf = max(map(len, vectors), default=0)
+    if nf == 0:
+        return None
+    out = np.full((len(vectors), nf), np.nan)
+    for i, v in enumerate(vectors):
+        if len(v) == nf:
+            out[i] = v
+    return out
 
 
 def format_calibration(c: dict[str, Any] | None) -> list[str]:

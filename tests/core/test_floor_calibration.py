@@ -201,3 +201,15 @@ def test_edge_cases():
     assert c["brier"] == 2.0 and c["ece"] == 1.0
     assert "not measured" in format_calibration(None)[0]
     assert any("confidently wrong" in line for line in format_calibration(c))
+
+
+def test_probability_rows_pads_missing_vectors_with_nan():
+    """probability_rows: the longest vector sets F; empty or shorter vectors become NaN rows;
+    no vector at all gives None (estimate v1)."""
+    from diffpos.floor_calibration import probability_rows
+
+    p = probability_rows([(0.9, 0.1, 0.0), (), (0.5, 0.5), (0.2, 0.3, 0.5)])
+    assert p.shape == (4, 3)
+    assert np.array_equal(p[[0, 3]], [[0.9, 0.1, 0.0], [0.2, 0.3, 0.5]])
+    assert np.isnan(p[[1, 2]]).all()
+    assert probability_rows([(), ()]) is None and probability_rows([]) is None

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from diffpos.floor_calibration import probability_rows
 from diffpos.metrics import percentiles, score
 from diffpos_services.wire import messages as M
 
@@ -106,8 +107,7 @@ class Scorer:
         no estimate has any) of every scored node-epoch (NaN / -1 where there is none)."""
         grid = self._grid()
         n = len(grid)
-        n_floors = max((len(self.rows[g][5]) for g in grid if g in self.rows), default=0)
-        probs = np.full((n, n_floors), np.nan)
+        vectors = [()] * n
         est = np.full((n, 3), np.nan)
         cov = np.full((n, 3, 3), np.nan)
         truth = np.zeros((n, 3))
@@ -124,8 +124,9 @@ class Scorer:
                 cov[i] = row[2]
             e_floor[i] = -1 if row[3] is None else row[3]
             peb[i] = np.nan if row[4] is None else row[4]
-            if n_floors and len(row[5]) == n_floors:
-                probs[i] = row[5]
+            vectors[i] = row[5]
+        probs = probability_rows(vectors)
+        probs = np.full((n, 0), np.nan) if probs is None else probs
         t_floor = np.asarray(self.building.floor_index(truth[:, 2]), np.int64)
         return {"estimate": est, "truth": truth, "estimate_floor": e_floor,
                 "truth_floor": t_floor, "covariance": cov, "peb": peb, "floor_probabilities": probs,

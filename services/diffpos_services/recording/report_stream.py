@@ -33,6 +33,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from diffpos.floor_calibration import probability_rows
 from diffpos.metrics import QuantileSketch, StreamingErrorStats, StreamingScore, ellipsoid_coverage
 from diffpos_services.recording.decided import DecisionReplayer
 from diffpos_services.recording.reader import RawMessage
@@ -178,19 +179,6 @@ class TruthBook:
             a, b = ps[j - 1], ps[j]
             pos = (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * (b[2] - a[2]))
         return pos, self.f[node][near]
-
-
-def _prob_rows(rows: list) -> np.ndarray | None:
-    """The node-epochs' floor probabilities as (N, F), F the longest vector; NaN rows where
-    a vector is empty or shorter (estimate v1, no position); None when none has any."""
-    nf = max(map(len, rows), default=0)
-    if nf == 0:
-        return None
-    out = np.full((len(rows), nf), np.nan)
-    for i, r in enumerate(rows):
-        if len(r) == nf:
-            out[i] = r
-    return out
 
 
 @dataclasses.dataclass
@@ -370,7 +358,7 @@ class FixStream:
         self._ne_stats.add(np.frombuffer(self._ne_d, np.float64).reshape(-1, 3),
                            estimate_floor=np.frombuffer(self._ne_ef, np.int16),
                            truth_floor=np.frombuffer(self._ne_tf, np.int16),
-                           floor_probabilities=_prob_rows(self._ne_p))
+                           floor_probabilities=probability_rows(self._ne_p))
         self._ne_d, self._ne_ef, self._ne_tf = array.array("d"), array.array("h"), array.array("h")
         self._ne_p = []
 
