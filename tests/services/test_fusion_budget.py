@@ -451,3 +451,37 @@ def test_a_step_behind_its_input_gives_no_snapshot_fix_to_a_placed_node(monkeypa
         return sorted(M.encode(msgspec.structs.replace(e, snapshot=None, t_pub_wall_ns=0,
                                                        seq=0)) for s in run for e in s)
     assert tracked_only(steps) == tracked_only(ref)
+
+
+@pytest.mark.parametrize("admit_lag_s", [0.25, 1e9])
+def test_a_lagging_step_starts_only_the_minimum_of_new_tracks(tmp_path, admit_lag_s):
+    """Eight epochs of the eight new nodes arrive between two steps of at most 30 epochs
+    (``heavy_budget(30)`` = 3 > HEAVY_MIN_OPERATIONS): each step leaves 0.4 s or more of ready
+    epochs. With ``admit_lag_s`` 0.25 s (the default) the step is lagging and initialises
+    exactly HEAVY_MIN_OPERATIONS tracks, each from its node's newest epoch in the step (its
+    older ones published without a position); with admission off (1e9 s) its share of the
+    epochs, 3, each from the node's oldest epoch in the step (positions from then on). Either
+    way every node-epoch is published (no policy drops here) and a replay by the decision
+    record gives the same estimates bit for bit."""
+    every, limit = 8, 30
+    assert heavy_budget(limit) == 3 > HEAVY_MIN_OPERATIONS
+    path = tmp_path / "admit.mcap"
+    with McapSink(path, library="test") as sink:
+        core, steps = _run(limit, sink, every=every, admit_lag_s=admit_lag_s)
+        sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
+    live = steps[:-1]  # (the last: the unbudgeted flush)
+    assert [len(s) for s in live] == [limit] * (EPOCHS // every)
+    expect = HEAVY_MIN_OPERATIONS if admit_lag_s < 1 else heavy_budget(limit)
+    seen: set[str] = set()
+    for k, ests in enumerate(live):
+        new = _positioned(ests) - seen
+        assert len(new) == expect, (k, new)
+        for node in new:
+            mine = sorted((e.epoch, e.position_m is not None) for e in ests if e.node_id == node)
+            assert len(mine) > 1 and [p for _, p in mine] == (
+                [False] * (len(mine) - 1) + [True] if admit_lag_s < 1 else [True] * len(mine))
+        seen |= new
+    assert sum(map(len, steps)) == EPOCHS * len(NODES)
+    r = replay(path)
+    bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
+    assert sorted(map(bare, r.live_estimates)) == sorted(map(bare, r.estimates))

@@ -15,7 +15,12 @@ from types import SimpleNamespace
 
 import msgspec
 import pytest
-from diffpos_services.fusion.config import DEFAULT_SUPERSEDE_AFTER_S, FusionConfig
+from diffpos_services.fusion.config import (
+    DEFAULT_ADMIT_LAG_S,
+    DEFAULT_SUPERSEDE_AFTER_S,
+    LEGACY_ADMIT_LAG_S,
+    FusionConfig,
+)
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.recording.reader import SideRecords
@@ -130,3 +135,33 @@ def test_a_replay_of_a_recording_from_before_the_coalescing_does_not_coalesce():
     assert _settings_of(old, overrides={"supersede_after_s": 0.2}).supersede_after_s == 0.2
     off = {**old, "max_backlog_s": None}
     assert _settings_of(off).supersede_after_s == DEFAULT_SUPERSEDE_AFTER_S
+
+
+def test_a_step_that_leaves_more_than_admit_lag_s_is_lagging():
+    """``lagging(ready, todo)``: what the step leaves (``ready[todo:]``) spans more than
+    ``admit_lag_s`` of measurement time. Two nodes, epochs 10-19 (oldest first), 10 Hz:
+    with 0.25 s, leaving epochs 17-19 (0.2 s) is not lagging, 16-19 (0.3 s) is; a step that
+    takes everything, or leaves one epoch number, never is; 0 s: any span; the legacy
+    setting of a replay (and inf) never."""
+    q = _backlog(["a", "b"], range(10, 20))
+    lagging = lambda todo, **kw: OverloadPolicy(  # noqa: E731
+        FusionConfig(site="t", method="dnls", epoch_period_s=0.1, **kw)).lagging(q, todo)
+    assert DEFAULT_ADMIT_LAG_S == 0.25  # the reference below
+    assert not lagging(14) and lagging(12)  # q[14:]: epochs 17-19; q[12:]: 16-19
+    assert not lagging(len(q)) and not lagging(len(q) + 3) and not lagging(18)
+    assert lagging(16, admit_lag_s=0.0) and not lagging(18, admit_lag_s=0.0)
+    for never in (LEGACY_ADMIT_LAG_S, math.inf):
+        assert not lagging(0, admit_lag_s=never)
+
+
+def test_a_replay_of_a_recording_from_before_admission_admits_as_it_did():
+    """A live fusion recorded before ``admit_lag_s`` existed initialised new tracks by the
+    epochs a step solved, however far behind: its replay gets the legacy setting (never
+    lagging), a recording that names it or an override keeps its own, and settings that
+    were not recorded (the defaults of a recording without any) get the default."""
+    old = msgspec.to_builtins(FusionConfig(site="t", method="dnls", max_backlog_s=2.0))
+    del old["admit_lag_s"]
+    assert _settings_of(old).admit_lag_s == LEGACY_ADMIT_LAG_S
+    assert _settings_of({**old, "admit_lag_s": 0.4}).admit_lag_s == 0.4
+    assert _settings_of(old, overrides={"admit_lag_s": 0.1}).admit_lag_s == 0.1
+    assert _settings_of({}).admit_lag_s == DEFAULT_ADMIT_LAG_S

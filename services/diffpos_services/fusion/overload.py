@@ -12,6 +12,7 @@ steps' limits are in the decision record), so a replay by that record drops the 
 from __future__ import annotations
 
 import collections
+import itertools
 import math
 from collections.abc import Iterable
 from typing import Any
@@ -88,6 +89,8 @@ class OverloadPolicy:
                                    _epochs(config.max_backlog_s / period, math.ceil))
         # the ready span (epochs) beyond which a behind step coalesces per node
         self.supersede_span = _epochs(config.supersede_after_s / period + 1e-9, math.floor)
+        # the span (epochs) of what a step leaves beyond which it admits no new-track work
+        self.admit_span = _epochs(config.admit_lag_s / period + 1e-9, math.floor)
         self.served: dict[str, int] = {}
         self._count = 0  # node-epochs taken by budgeted steps so far
 
@@ -105,6 +108,15 @@ class OverloadPolicy:
             if len(ready) < n:  # a reason is counted once something was dropped for it
                 rejected[reason] += n - len(ready)
         return ready
+
+    def lagging(self, ready: collections.deque, todo: int) -> bool:
+        """Whether a step that takes the first ``todo`` of ``ready`` leaves epochs spanning
+        more than ``admit_lag_s`` (newest - oldest left): the fusion is that far behind its
+        input and admits no more new-track work than the minimum (``tracked.heavy_budget``).
+        A function of the queue alone (the decision record replays it)."""
+        if todo >= len(ready):
+            return False
+        return ready_span(itertools.islice(ready, todo, None)) > self.admit_span
 
     def _supersede(self, ready: collections.deque) -> collections.deque:
         if ready_span(ready) <= self.supersede_span:
