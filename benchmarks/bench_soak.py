@@ -11,6 +11,9 @@ BLOCK everywhere, runs in real time for ``--duration`` seconds and reports
   max over the nodes), the gaps between a node's consecutive estimates, and the node-epochs
   it did not solve (``superseded``: a newer epoch of the node was solved instead;
   ``overloaded``: more than ``max_backlog_s`` behind; FusionConfig.max_backlog_s);
+- how long the responders, all switched on at the run's start, waited for their first
+  estimate with a position (p50 / p90 / max over the nodes): what a fusion that admits new
+  tracks only with headroom (FusionConfig.admit_lag_s) trades for losing nothing;
 - fusion latency (estimate publish - newest input publish) p50/p99/max overall and per
   minute; ranges that arrived after their epoch was solved (``late``, not a transport loss);
 - RSS of every process (router, recorder, fusion, each anchor, this subscriber) after the

@@ -383,13 +383,16 @@ def test_a_fusion_behind_its_input_keeps_each_nodes_newest_epochs_in_rounds(tmp_
     - a replay by the decision record gives the same estimates bit for bit.
     The same input stepped once per epoch with a limit of all nodes (a fusion that keeps up)
     supersedes nothing and gives the estimates of a fusion without the setting, bit for bit.
+    Admission off (``admit_lag_s`` 1e9): this is the policy for placed nodes; nodes the
+    tracker does not place keep every epoch with it on (the test after this one).
     """
     from diffpos_services.fusion.core import BEHIND_KEEP_EPOCHS
 
     every, limit, n_nodes = 3, 5, len(NODES)
     path = tmp_path / "behind.mcap"
     with McapSink(path, library="test") as sink:
-        core, steps = _run(limit, sink, every=every, max_backlog_s=2.0, supersede_after_s=0.0)
+        core, steps = _run(limit, sink, every=every, max_backlog_s=2.0, supersede_after_s=0.0,
+                           admit_lag_s=1e9)
         sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
     live, flushed = steps[:-1], steps[-1]
     e0 = (T0 + 20_000_000) // PERIOD  # the first epoch fed (_samples)
@@ -419,10 +422,10 @@ def test_a_fusion_behind_its_input_keeps_each_nodes_newest_epochs_in_rounds(tmp_
     # take one node-epoch less than that, so the ready epochs span 0.3-0.4 s: worked off
     # without loss; with supersede_after_s 0 the same steps supersede
     lim = 4 * n_nodes - 1
-    lossless, steps_l = _run(lim, every=4, max_backlog_s=2.0)
+    lossless, steps_l = _run(lim, every=4, max_backlog_s=2.0, admit_lag_s=1e9)
     assert not lossless.rejected.get("superseded") and not lossless.rejected.get("overloaded")
     assert sum(map(len, steps_l)) == EPOCHS * n_nodes
-    eager, _ = _run(lim, every=4, max_backlog_s=2.0, supersede_after_s=0.0)
+    eager, _ = _run(lim, every=4, max_backlog_s=2.0, supersede_after_s=0.0, admit_lag_s=1e9)
     assert eager.rejected.get("superseded")
     # keeping up: the setting changes nothing
     kept, plain = _run(n_nodes, max_backlog_s=2.0), _run(n_nodes)
@@ -482,6 +485,32 @@ def test_a_lagging_step_starts_only_the_minimum_of_new_tracks(tmp_path, admit_la
                 [False] * (len(mine) - 1) + [True] if admit_lag_s < 1 else [True] * len(mine))
         seen |= new
     assert sum(map(len, steps)) == EPOCHS * len(NODES)
+    r = replay(path)
+    bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
+    assert sorted(map(bare, r.live_estimates)) == sorted(map(bare, r.estimates))
+
+
+def test_a_behind_fusion_supersedes_no_epoch_of_a_node_it_does_not_place(tmp_path):
+    """Admission on (the default ``admit_lag_s``), the backlog of the test before (three
+    epochs of the eight new nodes between steps of at most 5, ``supersede_after_s`` 0): a
+    node's epochs up to its first position are all published (it has no track: they cost no
+    update, published without a position), and only placed nodes' older epochs are
+    superseded; every released node-epoch is published or superseded; a replay by the
+    decision record gives the same estimates bit for bit."""
+    every, limit = 3, 5
+    path = tmp_path / "unplaced.mcap"
+    with McapSink(path, library="test") as sink:
+        core, steps = _run(limit, sink, every=every, max_backlog_s=2.0, supersede_after_s=0.0)
+        sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
+    e0 = (T0 + 20_000_000) // PERIOD
+    by_node = collections.defaultdict(list)
+    for e in (e for s in steps for e in s):
+        by_node[e.node_id].append((e.epoch - e0, e.position_m is not None))
+    for node, got in by_node.items():
+        first = min((k for k, placed in got if placed), default=EPOCHS)
+        assert {k for k, _ in got if k <= first} == set(range(min(first, EPOCHS - 1) + 1)), node
+    assert core.rejected["superseded"] > 0 and not core.rejected.get("overloaded")
+    assert sum(map(len, steps)) + core.rejected["superseded"] == EPOCHS * len(NODES)
     r = replay(path)
     bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
     assert sorted(map(bare, r.live_estimates)) == sorted(map(bare, r.estimates))

@@ -165,3 +165,24 @@ def test_a_replay_of_a_recording_from_before_admission_admits_as_it_did():
     assert _settings_of({**old, "admit_lag_s": 0.4}).admit_lag_s == 0.4
     assert _settings_of(old, overrides={"admit_lag_s": 0.1}).admit_lag_s == 0.1
     assert _settings_of({}).admit_lag_s == DEFAULT_ADMIT_LAG_S
+
+
+def test_a_node_the_tracker_does_not_place_keeps_every_ready_epoch():
+    """With a tracker's status (admission on): an UNINITIALISED or LOST node keeps all its
+    ready epochs, oldest first (they cost no update and are published without a position);
+    a placed node keeps its newest; only the placed node's are counted. Admission off (the
+    legacy setting of a replay of an older recording): every node is coalesced, as before."""
+    import numpy as np
+
+    from diffpos.tracking_state import TrackStatus
+    status = {"u": TrackStatus.UNINITIALISED, "l": TrackStatus.LOST, "t": TrackStatus.TRACKING}
+    q = _backlog(["u", "l", "t"], range(10, 20))
+    for admit, kept in ((DEFAULT_ADMIT_LAG_S, 21), (LEGACY_ADMIT_LAG_S, 3)):
+        pol, counts = _policy(max_backlog_s=2.0, admit_lag_s=admit)
+        pol.policy.status_of = lambda ids: np.array([int(status[n]) for n in ids], np.int8)
+        out = pol.apply(q, limit=5)
+        assert len(out) == kept and counts["superseded"] == len(q) - kept
+        assert [pe.epoch for pe in out if pe.node_id == "t"] == [19]
+        for n in "ul":
+            mine = [pe.epoch for pe in out if pe.node_id == n]
+            assert mine == (list(range(10, 20)) if kept == 21 else [19]), (admit, n)

@@ -131,9 +131,12 @@ LEGACY_SUPERSEDE_AFTER_S = 1e9
 #: ``admit_lag_s`` when not given [s]: half of :data:`DEFAULT_SUPERSEDE_AFTER_S`, so a fusion
 #: taking on new tracks stops doing so well before its backlog would cost anybody's epoch, and
 #: still places new tracks while a little behind. Measured on the 16 x 200 soak (200
-#: responders switched on at once, 2-core VM, README): without admission the start-up's
-#: initialisations (~3 ms each) and unconfirmed tracks (every hypothesis updated) put the
-#: fusion ~1.7 s behind and the overload policy superseded 1,000-3,000 node-epochs.
+#: responders switched on at once; 2-core VM; docs/measurements.md, 2026-11-28 session 16):
+#: without admission the start-up's initialisations (~10 ms of a step for two, with their
+#: rounds) and unconfirmed tracks (every hypothesis updated) put the fusion up to ~1.7 s
+#: behind, and the overload policy superseded 1,002-2,964 node-epochs in 7 of 10 runs of 60
+#: s; with it (and the newest-epoch initialisation of ``TrackBank.hold_inits``) 0 in every
+#: run, the responders' first position p90 1.2-2.8 s against 0.8-2.2 s.
 DEFAULT_ADMIT_LAG_S = 0.25
 #: ``admit_lag_s`` of a replay of a live fusion recorded before the setting existed
 #: (2026-11-28: its ``fusion_config`` has no ``admit_lag_s``) [s]: that fusion admitted new
@@ -259,8 +262,10 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     new responders then waits for headroom: each of their epochs is published on time
     without a position (UNINITIALISED) until the track starts, where the extra work would
     have pushed the backlog past :attr:`supersede_after_s` and cost estimates of every node.
-    A function of the ready queue (the decision record replays it). Large (e.g. 1e9): the
-    share of the epochs solved whatever the backlog, as before the setting."""
+    With it on, the overload policy never supersedes an epoch of a node the tracker does not
+    place (UNINITIALISED, LOST: it costs no update and is published without a position). A
+    function of the ready queue and the tracks (the decision record replays it). 1e9 or more
+    (:data:`LEGACY_ADMIT_LAG_S`): off, as before the setting."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     kernel_threads: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_KERNEL_THREADS
     """Threads running the row chunks of the compiled kernels (:mod:`diffpos._kernels.pool`:

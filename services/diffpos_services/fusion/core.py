@@ -121,6 +121,7 @@ class FusionCore:
         self.bank = (TrackBank(self.building) if self.building is not None and config.tracking
                      else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")
+        self.overload.status_of = None if self.bank is None else self.bank.status_of
 
     # ------------------------------------------------------------------ ingestion
     def _reject(self, key: str, reason: str, detail: str = "", *, source: str = "bus",
