@@ -186,3 +186,12 @@ def test_a_node_the_tracker_does_not_place_keeps_every_ready_epoch():
         for n in "ul":
             mine = [pe.epoch for pe in out if pe.node_id == n]
             assert mine == (list(range(10, 20)) if kept == 21 else [19]), (admit, n)
+    # the unplaced node's old epochs do not make the placed one's backlog stale: its ready
+    # epochs span 0.1 s < supersede_after_s, nothing is dropped (admission off: all but the
+    # newest of each)
+    q2 = _queue([("u", e) for e in range(10, 18)] + [("u", 18), ("t", 18), ("u", 19), ("t", 19)])
+    for admit, dropped in ((DEFAULT_ADMIT_LAG_S, 0), (LEGACY_ADMIT_LAG_S, 9 + 1)):
+        pol, counts = _policy(max_backlog_s=2.0, admit_lag_s=admit)
+        pol.policy.status_of = lambda ids: np.array([int(status[n]) for n in ids], np.int8)
+        out = pol.apply(q2, limit=3)
+        assert counts["superseded"] == dropped and len(out) == len(q2) - dropped

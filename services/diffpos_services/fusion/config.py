@@ -263,7 +263,8 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     without a position (UNINITIALISED) until the track starts, where the extra work would
     have pushed the backlog past :attr:`supersede_after_s` and cost estimates of every node.
     With it on, the overload policy never supersedes an epoch of a node the tracker does not
-    place (UNINITIALISED, LOST: it costs no update and is published without a position). A
+    place (UNINITIALISED, LOST: it costs no update and is published without a position), and
+    such epochs do not count in the span that :attr:`supersede_after_s` bounds. A
     function of the ready queue and the tracks (the decision record replays it). 1e9 or more
     (:data:`LEGACY_ADMIT_LAG_S`): off, as before the setting."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003

@@ -138,7 +138,11 @@ class OverloadPolicy:
     def _supersede(self, ready: collections.deque) -> collections.deque:
         if ready_span(ready) <= self.supersede_span:
             return ready
-        return supersede(ready, self.served, self._unplaced(ready))
+        keep = self._unplaced(ready)  # their epochs never make a placed node's stale
+        if keep and ready_span(pe for pe in ready if pe.node_id not in keep
+                               ) <= self.supersede_span:
+            return ready
+        return supersede(ready, self.served, keep)
 
     def _unplaced(self, ready: collections.deque) -> frozenset[str]:
         """The ready nodes the tracker does not place (UNINITIALISED, LOST; none without)."""
