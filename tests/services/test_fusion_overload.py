@@ -167,25 +167,27 @@ def test_a_replay_of_a_recording_from_before_admission_admits_as_it_did():
     assert _settings_of({}).admit_lag_s == DEFAULT_ADMIT_LAG_S
 
 
-def test_a_node_the_tracker_does_not_place_keeps_every_ready_epoch():
-    """With a tracker's status (admission on): an UNINITIALISED or LOST node keeps all its
-    ready epochs, oldest first (they cost no update and are published without a position);
-    a placed node keeps its newest; only the placed node's are counted. Admission off (the
+def test_a_node_without_a_confirmed_track_keeps_every_ready_epoch():
+    """With a tracker's status (admission on): an UNINITIALISED, LOST or INITIALISING node
+    keeps all its ready epochs, oldest first (no track: they cost no update and are
+    published without a position; a new track: admission bounds them); a confirmed
+    (TRACKING) node keeps its newest; only its are counted. Admission off (the
     legacy setting of a replay of an older recording): every node is coalesced, as before."""
     import numpy as np
 
     from diffpos.tracking_state import TrackStatus
-    status = {"u": TrackStatus.UNINITIALISED, "l": TrackStatus.LOST, "t": TrackStatus.TRACKING}
-    q = _backlog(["u", "l", "t"], range(10, 20))
-    for admit, kept in ((DEFAULT_ADMIT_LAG_S, 21), (LEGACY_ADMIT_LAG_S, 3)):
+    status = {"u": TrackStatus.UNINITIALISED, "l": TrackStatus.LOST,
+              "i": TrackStatus.INITIALISING, "t": TrackStatus.TRACKING}
+    q = _backlog(["u", "l", "i", "t"], range(10, 20))
+    for admit, kept in ((DEFAULT_ADMIT_LAG_S, 31), (LEGACY_ADMIT_LAG_S, 4)):
         pol, counts = _policy(max_backlog_s=2.0, admit_lag_s=admit)
         pol.policy.status_of = lambda ids: np.array([int(status[n]) for n in ids], np.int8)
         out = pol.apply(q, limit=5)
         assert len(out) == kept and counts["superseded"] == len(q) - kept
         assert [pe.epoch for pe in out if pe.node_id == "t"] == [19]
-        for n in "ul":
+        for n in "uli":
             mine = [pe.epoch for pe in out if pe.node_id == n]
-            assert mine == (list(range(10, 20)) if kept == 21 else [19]), (admit, n)
+            assert mine == (list(range(10, 20)) if kept == 31 else [19]), (admit, n)
     # the unplaced node's old epochs do not make the placed one's backlog stale: its ready
     # epochs span 0.1 s < supersede_after_s, nothing is dropped (admission off: all but the
     # newest of each)

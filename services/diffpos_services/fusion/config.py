@@ -262,9 +262,10 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     new responders then waits for headroom: each of their epochs is published on time
     without a position (UNINITIALISED) until the track starts, where the extra work would
     have pushed the backlog past :attr:`supersede_after_s` and cost estimates of every node.
-    With it on, the overload policy never supersedes an epoch of a node the tracker does not
-    place (UNINITIALISED, LOST: it costs no update and is published without a position), and
-    such epochs do not count in the span that :attr:`supersede_after_s` bounds. A
+    With it on, the overload policy never supersedes an epoch of a node without a confirmed
+    track (UNINITIALISED, LOST: it costs no update and is published without a position;
+    INITIALISING: admission bounds how many), and such epochs do not count in the span that
+    :attr:`supersede_after_s` bounds. A
     function of the ready queue and the tracks (the decision record replays it). 1e9 or more
     (:data:`LEGACY_ADMIT_LAG_S`): off, as before the setting."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003

@@ -3,7 +3,7 @@
 A fusion slower than its input (``FusionConfig.max_backlog_s`` set: the live service) first
 coalesces per node once the ready epochs span more than ``supersede_after_s``
 (:func:`supersede`: each node's newest ready epoch, nodes least recently served first; with
-admission on, every epoch of a node the tracker does not place), then drops what is still more
+admission on, every epoch of a node without a confirmed track), then drops what is still more
 than ``max_backlog_s`` behind the newest ready epoch (:func:`shed`). A step that leaves more
 than ``admit_lag_s`` of ready epochs is :meth:`OverloadPolicy.lagging` (it starts only the
 minimum of new tracks). All are functions of the ready queue, the served record and the tracks
@@ -33,8 +33,10 @@ __all__ = ["BEHIND_KEEP_EPOCHS", "OverloadPolicy", "ready_span", "shed", "supers
 #: epochs save less than their share), but each further kept epoch adds about a round of
 #: latency: mean age of a node's picture x1 167-189 / 236-279 / 459 ms, x2 381 / 488 / 711 ms
 BEHIND_KEEP_EPOCHS = 1
-# track statuses without a position: such a node's ready epochs are never superseded
-_UNPLACED = frozenset({int(TrackStatus.UNINITIALISED), int(TrackStatus.LOST)})
+# track statuses of a node whose ready epochs are never superseded (admission on): no track
+# (its epochs cost no update) or one not confirmed yet (admission bounds how many start)
+_UNCONFIRMED = frozenset({int(TrackStatus.UNINITIALISED), int(TrackStatus.LOST),
+                          int(TrackStatus.INITIALISING)})
 
 
 def _epochs(x: float, to_int) -> float:
@@ -57,8 +59,9 @@ def supersede(ready: collections.deque, served: dict[str, int],
     least recently served first (``served``: node -> the running count of node-epochs taken by
     budgeted steps when it was last taken; never served: first; ties in queue order). A queue
     with no more than that many epochs of any node is returned as it is. A node in
-    ``keep_all`` (one the tracker does not place: its epochs cost no update, they are
-    published without a position) keeps every ready epoch, oldest first.
+    ``keep_all`` (one without a confirmed track: no track, its epochs cost no update and are
+    published without a position, or a new one, of which admission starts few) keeps every
+    ready epoch, oldest first.
 
     So a behind fusion holds at most that many ready epochs per node and solves them in
     rounds: no node is solved again before every other node with a ready epoch was (no node
@@ -107,7 +110,7 @@ class OverloadPolicy:
         self._count = 0  # node-epochs taken by budgeted steps so far
         #: the tracker's status of node ids (``TrackBank.status_of``; set by a core that
         #: tracks): with admission on (``admit_lag_s`` below the legacy setting of a replay of
-        #: an older recording), a node it does not place keeps every ready epoch (keep_all)
+        #: an older recording), a node without a confirmed track keeps every ready epoch
         self.status_of: Callable[[list[str]], Any] | None = None
         self._keep_unplaced = config.admit_lag_s < LEGACY_ADMIT_LAG_S
 
@@ -145,12 +148,13 @@ class OverloadPolicy:
         return supersede(ready, self.served, keep)
 
     def _unplaced(self, ready: collections.deque) -> frozenset[str]:
-        """The ready nodes the tracker does not place (UNINITIALISED, LOST; none without)."""
+        """The ready nodes without a confirmed track (UNINITIALISED, LOST, INITIALISING;
+        none without a tracker or with admission off)."""
         if self.status_of is None or not self._keep_unplaced:
             return frozenset()
         ids = list(dict.fromkeys(pe.node_id for pe in ready))
         return frozenset(n for n, s in zip(ids, self.status_of(ids).tolist(), strict=True)
-                         if s in _UNPLACED)
+                         if s in _UNCONFIRMED)
 
     def _shed(self, ready: collections.deque) -> collections.deque:
         return shed(ready, self.max_backlog_epochs)
