@@ -516,3 +516,23 @@ def test_a_behind_fusion_supersedes_no_epoch_of_a_node_without_a_confirmed_track
     r = replay(path)
     bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
     assert sorted(map(bare, r.live_estimates)) == sorted(map(bare, r.estimates))
+
+
+def test_a_lagging_step_holds_the_newest_epoch_it_can_initialise_from():
+    """``hold_inits(newest=True)`` chooses the nodes to start by the epoch the track will
+    start from (the newest): node a, first in row order, has enough ranges only in its older
+    epoch, so b (enough in its newest) is held instead; without ``newest`` a is held with
+    both its epochs. (The ranges' values are not read: only how many there are.)"""
+    from diffpos.alignment import PendingEpoch
+    from diffpos.tracking import TrackerConfig
+    bank = tracked.TrackBank(B)
+    k = TrackerConfig().min_ranges_init
+
+    def pe(node, epoch, n):
+        return PendingEpoch(node, epoch, 0, {f"uav{j}": None for j in range(n)})
+    epochs = [pe("a", 10, k), pe("b", 10, k), pe("a", 11, k - 1), pe("b", 11, k)]
+    now, later = bank.hold_inits(epochs, 1, newest=True)
+    assert [(e.node_id, e.epoch) for e in later] == [("b", 11)]
+    assert [(e.node_id, e.epoch) for e in now] == [("a", 10), ("b", 10), ("a", 11)]
+    now, later = bank.hold_inits(epochs, 1)
+    assert [(e.node_id, e.epoch) for e in later] == [("a", 10), ("a", 11)]

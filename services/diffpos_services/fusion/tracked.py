@@ -216,18 +216,18 @@ class TrackBank:
         the tracker would initialise (UNINITIALISED or LOST, at least ``min_ranges_init``
         ranges) and every later epoch of their nodes; ``now`` the rest, in their order. Nothing
         is held when that would leave ``now`` empty. ``newest`` (a lagging step): only a held
-        node's newest epoch is held (the track starts from the freshest ranges; its older ones
-        are published without a position, not each an update of every hypothesis). Only the
-        bank's state is read (and new nodes get their rows)."""
+        node's newest epoch is held (its track starts from the freshest ranges, the older ones
+        go out without a position). Only the bank's state is read (new nodes get rows)."""
         held: set[str] = set()
+        last = {pe.node_id: i for i, pe in enumerate(epochs)}
         for rows_l in _rounds(epochs):
             if len(held) >= budget:
                 break
             ids = [epochs[i].node_id for i in rows_l]
-            n = np.array([len(epochs[i].ranges) for i in rows_l])
+            n = np.array([len(epochs[last[nid] if newest else i].ranges)  # the one initialised
+                          for i, nid in zip(rows_l, ids, strict=True)])
             for i in np.flatnonzero(self.needs_init(self.rows_of(ids), n))[:budget - len(held)]:
                 held.add(ids[i])
-        last = {pe.node_id: i for i, pe in enumerate(epochs)}
         hold = [pe.node_id in held and (not newest or last[pe.node_id] == i)
                 for i, pe in enumerate(epochs)]
         now = [pe for pe, h in zip(epochs, hold, strict=True) if not h]
