@@ -132,11 +132,12 @@ LEGACY_SUPERSEDE_AFTER_S = 1e9
 #: taking on new tracks stops doing so well before its backlog would cost anybody's epoch, and
 #: still places new tracks while a little behind. Measured on the 16 x 200 soak (200
 #: responders switched on at once; 2-core VM; docs/measurements.md, 2026-11-28 session 16):
-#: without admission the start-up's initialisations (~10 ms of a step for two, with their
-#: rounds) and unconfirmed tracks (every hypothesis updated) put the fusion up to ~1.7 s
-#: behind, and the overload policy superseded 1,002-2,964 node-epochs in 7 of 10 runs of 60
-#: s; with it (and the newest-epoch initialisation of ``TrackBank.hold_inits``) 0 in every
-#: run, the responders' first position p90 1.2-2.8 s against 0.8-2.2 s.
+#: without admission the start-up's initialisations (11-19 ms CPU of a step for two, with
+#: their rounds) and unconfirmed tracks (every hypothesis updated) put the fusion up to ~1.7 s
+#: behind, and the overload policy superseded 1,002-4,655 node-epochs in 10 of 16 runs of 60
+#: s; with it (the newest-epoch initialisation of ``TrackBank.hold_inits``, unconfirmed tracks
+#: never superseded) 0 in each of six quiet runs, the responders' first position p90 1.0-1.8
+#: s (0.8-0.9 s when the old policy lost nothing).
 DEFAULT_ADMIT_LAG_S = 0.25
 #: ``admit_lag_s`` of a replay of a live fusion recorded before the setting existed
 #: (2026-11-28: its ``fusion_config`` has no ``admit_lag_s``) [s]: that fusion admitted new
