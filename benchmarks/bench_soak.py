@@ -11,6 +11,9 @@ BLOCK everywhere, runs in real time for ``--duration`` seconds and reports
   max over the nodes), the gaps between a node's consecutive estimates, and the node-epochs
   it did not solve (``superseded``: a newer epoch of the node was solved instead;
   ``overloaded``: more than ``max_backlog_s`` behind; FusionConfig.max_backlog_s);
+- how long the responders, all switched on at the run's start, waited for their first
+  estimate with a position (p50 / p90 / max over the nodes): what a fusion that admits new
+  tracks only with headroom (FusionConfig.admit_lag_s) trades for losing nothing;
 - fusion latency (estimate publish - newest input publish) p50/p99/max overall and per
   minute; ranges that arrived after their epoch was solved (``late``, not a transport loss);
 - RSS of every process (router, recorder, fusion, each anchor, this subscriber) after the
@@ -228,6 +231,7 @@ def run_soak(
     node_index = {n: i for i, n in enumerate(node_ids)}
     n_epochs = round(duration_s * 10)
     seen = np.zeros((n_nodes, n_epochs), np.uint8)
+    first_fix = np.full(n_nodes, n_epochs, np.int64)  # each node's first epoch with a position
     hist = LatencyHistogram()
     per_minute: list[LatencyHistogram] = []
     settled = LatencyHistogram()  # latencies after the first STARTUP_S (whole sample chunks)
@@ -327,6 +331,8 @@ def run_soak(
                         out_of_run += 1
                     else:
                         seen[i, k] = min(int(seen[i, k]) + 1, 255)
+                        if e.position_m is not None:
+                            first_fix[i] = min(first_fix[i], k)
                     statuses[e.status] = statuses.get(e.status, 0) + 1
                     if e.t_input_wall_ns > 0:
                         lat_chunk.append((e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6)
@@ -353,6 +359,7 @@ def run_soak(
         missing_by_epoch=_missing_summary(seen),
         statuses=statuses,
         per_node=_per_node_summary(seen, duration_s),
+        first_position_s=_first_position_summary(first_fix, n_epochs),
     )
     result["per_node"]["age_of_information_ms_mean_worst"] = aoi.summary(t0 + round(
         duration_s * 1e9)) if t0 else None
@@ -468,6 +475,17 @@ def _per_node_summary(seen: np.ndarray, duration_s: float) -> dict:
             "nodes_without_estimate": int((~got.any(axis=1)).sum())}
 
 
+def _first_position_summary(first_fix: np.ndarray, n_epochs: int) -> dict:
+    """How long the responders, all switched on at the run's start, waited for their first
+    estimate with a position [s] (p50 / p90 / max over the nodes, from the run's first epoch)
+    and how many never got one."""
+    placed = first_fix < n_epochs
+    t = first_fix[placed] * (PERIOD_NS * 1e-9)
+    return {"p50_p90_max": [round(float(np.percentile(t, q)), 1) for q in (50, 90)]
+            + [round(float(t.max()), 1)] if t.size else None,
+            "never": int((~placed).sum())}
+
+
 def _children(pid: int) -> list[int]:
     """Child process ids of ``pid`` (Linux /proc; empty if unknown)."""
     out: list[int] = []
@@ -531,6 +549,10 @@ def format_report(r: dict) -> str:
         f"{fmt(r['latency_after_startup_ms']['p50'])} ms, p99 "
         f"{fmt(r['latency_after_startup_ms']['p99'])} ms",
     ]
+    fp = r.get("first_position_s") or {}
+    if fp:
+        lines.append(f"time to each node's first position [s] p50/p90/max {fp['p50_p90_max']}, "
+                     f"nodes never placed {fp['never']}")
     mb = r["missing_by_epoch"]
     lines.append(f"missing estimates: {mb['missing_startup']} in the first {STARTUP_S:.0f} s "
                  f"(every node starts at once), {mb['missing_after_startup']} after; the last "

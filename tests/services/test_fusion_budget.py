@@ -383,13 +383,16 @@ def test_a_fusion_behind_its_input_keeps_each_nodes_newest_epochs_in_rounds(tmp_
     - a replay by the decision record gives the same estimates bit for bit.
     The same input stepped once per epoch with a limit of all nodes (a fusion that keeps up)
     supersedes nothing and gives the estimates of a fusion without the setting, bit for bit.
+    Admission off (``admit_lag_s`` 1e9): this is the policy for placed nodes; nodes the
+    tracker does not place keep every epoch with it on (the test after this one).
     """
     from diffpos_services.fusion.core import BEHIND_KEEP_EPOCHS
 
     every, limit, n_nodes = 3, 5, len(NODES)
     path = tmp_path / "behind.mcap"
     with McapSink(path, library="test") as sink:
-        core, steps = _run(limit, sink, every=every, max_backlog_s=2.0, supersede_after_s=0.0)
+        core, steps = _run(limit, sink, every=every, max_backlog_s=2.0, supersede_after_s=0.0,
+                           admit_lag_s=1e9)
         sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
     live, flushed = steps[:-1], steps[-1]
     e0 = (T0 + 20_000_000) // PERIOD  # the first epoch fed (_samples)
@@ -419,10 +422,10 @@ def test_a_fusion_behind_its_input_keeps_each_nodes_newest_epochs_in_rounds(tmp_
     # take one node-epoch less than that, so the ready epochs span 0.3-0.4 s: worked off
     # without loss; with supersede_after_s 0 the same steps supersede
     lim = 4 * n_nodes - 1
-    lossless, steps_l = _run(lim, every=4, max_backlog_s=2.0)
+    lossless, steps_l = _run(lim, every=4, max_backlog_s=2.0, admit_lag_s=1e9)
     assert not lossless.rejected.get("superseded") and not lossless.rejected.get("overloaded")
     assert sum(map(len, steps_l)) == EPOCHS * n_nodes
-    eager, _ = _run(lim, every=4, max_backlog_s=2.0, supersede_after_s=0.0)
+    eager, _ = _run(lim, every=4, max_backlog_s=2.0, supersede_after_s=0.0, admit_lag_s=1e9)
     assert eager.rejected.get("superseded")
     # keeping up: the setting changes nothing
     kept, plain = _run(n_nodes, max_backlog_s=2.0), _run(n_nodes)
@@ -451,3 +454,85 @@ def test_a_step_behind_its_input_gives_no_snapshot_fix_to_a_placed_node(monkeypa
         return sorted(M.encode(msgspec.structs.replace(e, snapshot=None, t_pub_wall_ns=0,
                                                        seq=0)) for s in run for e in s)
     assert tracked_only(steps) == tracked_only(ref)
+
+
+@pytest.mark.parametrize("admit_lag_s", [0.25, 1e9])
+def test_a_lagging_step_starts_only_the_minimum_of_new_tracks(tmp_path, admit_lag_s):
+    """Eight epochs of the eight new nodes arrive between two steps of at most 30 epochs
+    (``heavy_budget(30)`` = 3 > HEAVY_MIN_OPERATIONS): each step leaves 0.4 s or more of ready
+    epochs. With ``admit_lag_s`` 0.25 s (the default) the step is lagging and initialises
+    exactly HEAVY_MIN_OPERATIONS tracks, each from its node's newest epoch in the step (its
+    older ones published without a position); with admission off (1e9 s) its share of the
+    epochs, 3, each from the node's oldest epoch in the step (positions from then on). Either
+    way every node-epoch is published (no policy drops here) and a replay by the decision
+    record gives the same estimates bit for bit."""
+    every, limit = 8, 30
+    assert heavy_budget(limit) == 3 > HEAVY_MIN_OPERATIONS
+    path = tmp_path / "admit.mcap"
+    with McapSink(path, library="test") as sink:
+        core, steps = _run(limit, sink, every=every, admit_lag_s=admit_lag_s)
+        sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
+    live = steps[:-1]  # (the last: the unbudgeted flush)
+    assert [len(s) for s in live] == [limit] * (EPOCHS // every)
+    expect = HEAVY_MIN_OPERATIONS if admit_lag_s < 1 else heavy_budget(limit)
+    seen: set[str] = set()
+    for k, ests in enumerate(live):
+        new = _positioned(ests) - seen
+        assert len(new) == expect, (k, new)
+        for node in new:
+            mine = sorted((e.epoch, e.position_m is not None) for e in ests if e.node_id == node)
+            assert len(mine) > 1 and [p for _, p in mine] == (
+                [False] * (len(mine) - 1) + [True] if admit_lag_s < 1 else [True] * len(mine))
+        seen |= new
+    assert sum(map(len, steps)) == EPOCHS * len(NODES)
+    r = replay(path)
+    bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
+    assert sorted(map(bare, r.live_estimates)) == sorted(map(bare, r.estimates))
+
+
+def test_a_behind_fusion_supersedes_no_epoch_of_a_node_without_a_confirmed_track(tmp_path):
+    """Admission on (the default ``admit_lag_s``), the backlog of the test before (three
+    epochs of the eight new nodes between steps of at most 5, ``supersede_after_s`` 0): a
+    node's epochs up to its track's confirmation (first TRACKING) are all published (no
+    track: they cost no update, published without a position; a new track: admission
+    bounds them), and only confirmed tracks' older epochs are superseded; every released
+    node-epoch is published or superseded; a replay by the decision record gives the same
+    estimates bit for bit."""
+    every, limit = 3, 5
+    path = tmp_path / "unplaced.mcap"
+    with McapSink(path, library="test") as sink:
+        core, steps = _run(limit, sink, every=every, max_backlog_s=2.0, supersede_after_s=0.0)
+        sink.add_metadata("fusion_config", msgspec.to_builtins(core.config))
+    e0 = (T0 + 20_000_000) // PERIOD
+    by_node = collections.defaultdict(list)
+    for e in (e for s in steps for e in s):
+        by_node[e.node_id].append((e.epoch - e0, e.status == "TRACKING"))
+    for node, got in by_node.items():
+        first = min((k for k, confirmed in got if confirmed), default=EPOCHS)
+        assert {k for k, _ in got if k <= first} == set(range(min(first, EPOCHS - 1) + 1)), node
+    assert not core.rejected.get("overloaded")  # (the confirmed tracks': the rule's tests)
+    assert sum(map(len, steps)) + core.rejected.get("superseded", 0) == EPOCHS * len(NODES)
+    assert any(c for got in by_node.values() for _, c in got)  # some tracks were confirmed
+    r = replay(path)
+    bare = lambda e: M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0))  # noqa: E731
+    assert sorted(map(bare, r.live_estimates)) == sorted(map(bare, r.estimates))
+
+
+def test_a_lagging_step_holds_the_newest_epoch_it_can_initialise_from():
+    """``hold_inits(newest=True)`` chooses the nodes to start by the epoch the track will
+    start from (the newest): node a, first in row order, has enough ranges only in its older
+    epoch, so b (enough in its newest) is held instead; without ``newest`` a is held with
+    both its epochs. (The ranges' values are not read: only how many there are.)"""
+    from diffpos.alignment import PendingEpoch
+    from diffpos.tracking import TrackerConfig
+    bank = tracked.TrackBank(B)
+    k = TrackerConfig().min_ranges_init
+
+    def pe(node, epoch, n):
+        return PendingEpoch(node, epoch, 0, {f"uav{j}": None for j in range(n)})
+    epochs = [pe("a", 10, k), pe("b", 10, k), pe("a", 11, k - 1), pe("b", 11, k)]
+    now, later = bank.hold_inits(epochs, 1, newest=True)
+    assert [(e.node_id, e.epoch) for e in later] == [("b", 11)]
+    assert [(e.node_id, e.epoch) for e in now] == [("a", 10), ("b", 10), ("a", 11)]
+    now, later = bank.hold_inits(epochs, 1)
+    assert [(e.node_id, e.epoch) for e in later] == [("a", 10), ("a", 11)]

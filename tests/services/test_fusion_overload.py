@@ -15,7 +15,12 @@ from types import SimpleNamespace
 
 import msgspec
 import pytest
-from diffpos_services.fusion.config import DEFAULT_SUPERSEDE_AFTER_S, FusionConfig
+from diffpos_services.fusion.config import (
+    DEFAULT_ADMIT_LAG_S,
+    DEFAULT_SUPERSEDE_AFTER_S,
+    LEGACY_ADMIT_LAG_S,
+    FusionConfig,
+)
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.recording.reader import SideRecords
@@ -130,3 +135,65 @@ def test_a_replay_of_a_recording_from_before_the_coalescing_does_not_coalesce():
     assert _settings_of(old, overrides={"supersede_after_s": 0.2}).supersede_after_s == 0.2
     off = {**old, "max_backlog_s": None}
     assert _settings_of(off).supersede_after_s == DEFAULT_SUPERSEDE_AFTER_S
+
+
+def test_a_step_that_leaves_more_than_admit_lag_s_is_lagging():
+    """``lagging(ready, todo)``: what the step leaves (``ready[todo:]``) spans more than
+    ``admit_lag_s`` of measurement time. Two nodes, epochs 10-19 (oldest first), 10 Hz:
+    with 0.25 s, leaving epochs 17-19 (0.2 s) is not lagging, 16-19 (0.3 s) is; a step that
+    takes everything, or leaves one epoch number, never is; 0 s: any span; the legacy
+    setting of a replay (and inf) never."""
+    q = _backlog(["a", "b"], range(10, 20))
+    lagging = lambda todo, **kw: OverloadPolicy(  # noqa: E731
+        FusionConfig(site="t", method="dnls", epoch_period_s=0.1, **kw)).lagging(q, todo)
+    assert DEFAULT_ADMIT_LAG_S == 0.25  # the reference below
+    assert not lagging(14) and lagging(12)  # q[14:]: epochs 17-19; q[12:]: 16-19
+    assert not lagging(len(q)) and not lagging(len(q) + 3) and not lagging(18)
+    assert lagging(16, admit_lag_s=0.0) and not lagging(18, admit_lag_s=0.0)
+    for never in (LEGACY_ADMIT_LAG_S, math.inf):
+        assert not lagging(0, admit_lag_s=never)
+
+
+def test_a_replay_of_a_recording_from_before_admission_admits_as_it_did():
+    """A live fusion recorded before ``admit_lag_s`` existed initialised new tracks by the
+    epochs a step solved, however far behind: its replay gets the legacy setting (never
+    lagging), a recording that names it or an override keeps its own, and settings that
+    were not recorded (the defaults of a recording without any) get the default."""
+    old = msgspec.to_builtins(FusionConfig(site="t", method="dnls", max_backlog_s=2.0))
+    del old["admit_lag_s"]
+    assert _settings_of(old).admit_lag_s == LEGACY_ADMIT_LAG_S
+    assert _settings_of({**old, "admit_lag_s": 0.4}).admit_lag_s == 0.4
+    assert _settings_of(old, overrides={"admit_lag_s": 0.1}).admit_lag_s == 0.1
+    assert _settings_of({}).admit_lag_s == DEFAULT_ADMIT_LAG_S
+
+
+def test_a_node_without_a_confirmed_track_keeps_every_ready_epoch():
+    """With a tracker's status (admission on): an UNINITIALISED, LOST or INITIALISING node
+    keeps all its ready epochs, oldest first (no track: they cost no update and are
+    published without a position; a new track: admission bounds them); a confirmed
+    (TRACKING) node keeps its newest; only its are counted. Admission off (the
+    legacy setting of a replay of an older recording): every node is coalesced, as before."""
+    import numpy as np
+
+    from diffpos.tracking_state import TrackStatus
+    status = {"u": TrackStatus.UNINITIALISED, "l": TrackStatus.LOST,
+              "i": TrackStatus.INITIALISING, "t": TrackStatus.TRACKING}
+    q = _backlog(["u", "l", "i", "t"], range(10, 20))
+    for admit, kept in ((DEFAULT_ADMIT_LAG_S, 31), (LEGACY_ADMIT_LAG_S, 4)):
+        pol, counts = _policy(max_backlog_s=2.0, admit_lag_s=admit)
+        pol.policy.status_of = lambda ids: np.array([int(status[n]) for n in ids], np.int8)
+        out = pol.apply(q, limit=5)
+        assert len(out) == kept and counts["superseded"] == len(q) - kept
+        assert [pe.epoch for pe in out if pe.node_id == "t"] == [19]
+        for n in "uli":
+            mine = [pe.epoch for pe in out if pe.node_id == n]
+            assert mine == (list(range(10, 20)) if kept == 31 else [19]), (admit, n)
+    # the unplaced node's old epochs do not make the placed one's backlog stale: its ready
+    # epochs span 0.1 s < supersede_after_s, nothing is dropped (admission off: all but the
+    # newest of each)
+    q2 = _queue([("u", e) for e in range(10, 18)] + [("u", 18), ("t", 18), ("u", 19), ("t", 19)])
+    for admit, dropped in ((DEFAULT_ADMIT_LAG_S, 0), (LEGACY_ADMIT_LAG_S, 9 + 1)):
+        pol, counts = _policy(max_backlog_s=2.0, admit_lag_s=admit)
+        pol.policy.status_of = lambda ids: np.array([int(status[n]) for n in ids], np.int8)
+        out = pol.apply(q2, limit=3)
+        assert counts["superseded"] == dropped and len(out) == len(q2) - dropped

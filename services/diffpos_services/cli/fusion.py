@@ -45,6 +45,7 @@ import logging
 from diffpos_services.anchor.service import emulation_nodes
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.fusion.config import (
+    DEFAULT_ADMIT_LAG_S,
     DEFAULT_KERNEL_THREADS,
     DEFAULT_METHOD,
     DEFAULT_SUPERSEDE_AFTER_S,
@@ -138,7 +139,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_overload_arguments(parser: argparse.ArgumentParser) -> None:
-    """The overload policy's options (FusionConfig.max_backlog_s, supersede_after_s)."""
+    """The overload policy's options (FusionConfig.max_backlog_s, supersede_after_s,
+    admit_lag_s)."""
     parser.add_argument(
         "--max-backlog-s",
         type=float,
@@ -160,6 +162,16 @@ def _add_overload_arguments(parser: argparse.ArgumentParser) -> None:
         "epochs span more than S seconds of measurement time (a shorter backlog is worked off "
         "without loss; 0: as soon as a step cannot take them all) "
         f"(default {DEFAULT_SUPERSEDE_AFTER_S:g})",
+    )
+    parser.add_argument(
+        "--admit-lag-s",
+        type=float,
+        default=DEFAULT_ADMIT_LAG_S,
+        metavar="S",
+        help="a solve step that leaves ready epochs spanning more than S seconds (the fusion "
+        "is behind) starts only the minimum of new tracks; the other new responders are "
+        "published on time without a position until there is headroom to place them "
+        f"(default {DEFAULT_ADMIT_LAG_S:g})",
     )
 
 
@@ -195,6 +207,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         # FusionConfig.max_backlog_s: None never drops; --max-backlog-s 0 means the same
         max_backlog_s=args.max_backlog_s or None,
         supersede_after_s=args.supersede_after_s,
+        admit_lag_s=args.admit_lag_s,
         kernel_threads=args.kernel_threads,
         workers=args.workers,
     )

@@ -128,6 +128,36 @@ DEFAULT_SUPERSEDE_AFTER_S = 0.5
 LEGACY_SUPERSEDE_AFTER_S = 1e9
 
 
+#: ``admit_lag_s`` when not given [s]: half of :data:`DEFAULT_SUPERSEDE_AFTER_S`, so a fusion
+#: taking on new tracks stops doing so well before its backlog would cost anybody's epoch, and
+#: still places new tracks while a little behind. Measured on the 16 x 200 soak (200
+#: responders switched on at once; 2-core VM; docs/measurements.md, 2026-11-28 session 16):
+#: without admission the start-up's initialisations (11-19 ms CPU of a step for two, with
+#: their rounds) and unconfirmed tracks (every hypothesis updated) put the fusion up to ~1.7 s
+#: behind, and the overload policy superseded 1,002-4,655 node-epochs in 10 of 16 runs of 60
+#: s; with it (the newest-epoch initialisation of ``TrackBank.hold_inits``, unconfirmed tracks
+#: never superseded) 0 in each of six quiet runs, the responders' first position p90 1.0-1.8
+#: s (0.8-0.9 s when the old policy lost nothing).
+DEFAULT_ADMIT_LAG_S = 0.25
+#: ``admit_lag_s`` of a replay of a live fusion recorded before the setting existed
+#: (2026-11-28: its ``fusion_config`` has no ``admit_lag_s``) [s]: that fusion admitted new
+#: tracks by the epochs a step solved alone, nor does the replay (1e9 s: no backlog spans it).
+LEGACY_ADMIT_LAG_S = 1e9
+
+
+def with_legacy_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
+    """Recorded fusion settings (a recording's ``fusion_config``; empty: none) with the
+    settings that did not exist when it was made set to what that fusion did
+    (:data:`LEGACY_SUPERSEDE_AFTER_S`, :data:`LEGACY_ADMIT_LAG_S`), so a replay by its
+    decision record drops and initialises what the live fusion did."""
+    out = dict(recorded)
+    if out.get("max_backlog_s") and "supersede_after_s" not in out:
+        out["supersede_after_s"] = LEGACY_SUPERSEDE_AFTER_S
+    if out and "admit_lag_s" not in out:
+        out["admit_lag_s"] = LEGACY_ADMIT_LAG_S
+    return out
+
+
 #: ``kernel_threads`` when not given: 1. Live on a 2-core machine shared with the run's anchors,
 #: router and recorder, 2 threads published fewer soak estimates and raised the large run's
 #: latency (no core is free for the second thread: benchmarks/bench_fusion_cost.py); give
@@ -225,6 +255,20 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     loss, as before the policy. A fusion persistently slower than its input then runs at most
     about this much behind plus one round of all nodes. 0: coalesce as soon as a step cannot
     take every ready epoch."""
+    admit_lag_s: Annotated[float, Meta(ge=0)] = DEFAULT_ADMIT_LAG_S
+    """Admission of new-track work by a budgeted step (the live service's): a step that leaves
+    ready epochs spanning more than this much measurement time (the fusion is behind its
+    input) does at most ``tracked.HEAVY_MIN_OPERATIONS`` track initialisations and snapshot
+    fixes instead of its share of the epochs it solves (``tracked.heavy_budget``). A burst of
+    new responders then waits for headroom: each of their epochs is published on time
+    without a position (UNINITIALISED) until the track starts, where the extra work would
+    have pushed the backlog past :attr:`supersede_after_s` and cost estimates of every node.
+    With it on, the overload policy never supersedes an epoch of a node without a confirmed
+    track (UNINITIALISED, LOST: it costs no update and is published without a position;
+    INITIALISING: admission bounds how many), and such epochs do not count in the span that
+    :attr:`supersede_after_s` bounds. A
+    function of the ready queue and the tracks (the decision record replays it). 1e9 or more
+    (:data:`LEGACY_ADMIT_LAG_S`): off, as before the setting."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     kernel_threads: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_KERNEL_THREADS
     """Threads running the row chunks of the compiled kernels (:mod:`diffpos._kernels.pool`:

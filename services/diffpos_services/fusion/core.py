@@ -121,6 +121,7 @@ class FusionCore:
         self.bank = (TrackBank(self.building) if self.building is not None and config.tracking
                      else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")
+        self.overload.status_of = None if self.bank is None else self.bank.status_of
 
     # ------------------------------------------------------------------ ingestion
     def _reject(self, key: str, reason: str, detail: str = "", *, source: str = "bus",
@@ -484,19 +485,19 @@ class FusionCore:
         out: list[M.PositionEstimate] = []
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
         behind = todo < len(self._ready)  # no snapshot fix of a placed node (solve_mnls)
+        lagging = limit is not None and self.overload.lagging(self._ready, todo)  # admit_lag_s
         while todo > 0:
             n = min(todo, self.config.max_fixes_per_step)
             now, held = [self._ready.popleft() for _ in range(n)], []
             if limit is not None:
                 self.overload.taken(now)
             if limit is not None and self.bank is not None:
-                now, held = self.bank.hold_inits(now, heavy_budget(n))
+                now, held = self.bank.hold_inits(now, heavy_budget(n, lagging), lagging)
             if out and emit is not None:  # (a previous batch of this step)
                 emit(out)
                 out = []
-            out += self._solve(now, now_wall_ns,
-                               None if limit is None else 0 if held else heavy_budget(n), emit,
-                               behind)
+            heavy = None if limit is None else 0 if held else heavy_budget(n, lagging)
+            out += self._solve(now, now_wall_ns, heavy, emit, behind)
             if held:  # the initialisations after the other estimates are out
                 if emit is not None:
                     emit(out)

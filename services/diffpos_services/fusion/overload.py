@@ -2,19 +2,26 @@
 
 A fusion slower than its input (``FusionConfig.max_backlog_s`` set: the live service) first
 coalesces per node once the ready epochs span more than ``supersede_after_s``
-(:func:`supersede`: each node's newest ready epoch, nodes least recently served first), then
-drops what is still more than ``max_backlog_s`` behind the newest ready epoch (:func:`shed`).
-Both are functions of the ready queue and the served record alone (the released epochs and the
-steps' limits are in the decision record), so a replay by that record drops the same.
+(:func:`supersede`: each node's newest ready epoch, nodes least recently served first; with
+admission on, every epoch of a node without a confirmed track), then drops what is still more
+than ``max_backlog_s`` behind the newest ready epoch (:func:`shed`). A step that leaves more
+than ``admit_lag_s`` of ready epochs is :meth:`OverloadPolicy.lagging` (it starts only the
+minimum of new tracks). All are functions of the ready queue, the served record and the tracks
+(the released epochs and the steps' limits are in the decision record), so a replay by that
+record drops the same.
 :class:`~diffpos_services.fusion.core.FusionCore` counts what they drop (``rejected``).
 """
 
 from __future__ import annotations
 
 import collections
+import itertools
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
+
+from diffpos.tracking_state import TrackStatus
+from diffpos_services.fusion.config import LEGACY_ADMIT_LAG_S
 
 __all__ = ["BEHIND_KEEP_EPOCHS", "OverloadPolicy", "ready_span", "shed", "supersede"]
 
@@ -26,6 +33,10 @@ __all__ = ["BEHIND_KEEP_EPOCHS", "OverloadPolicy", "ready_span", "shed", "supers
 #: epochs save less than their share), but each further kept epoch adds about a round of
 #: latency: mean age of a node's picture x1 167-189 / 236-279 / 459 ms, x2 381 / 488 / 711 ms
 BEHIND_KEEP_EPOCHS = 1
+# track statuses of a node whose ready epochs are never superseded (admission on): no track
+# (its epochs cost no update) or one not confirmed yet (admission bounds how many start)
+_UNCONFIRMED = frozenset({int(TrackStatus.UNINITIALISED), int(TrackStatus.LOST),
+                          int(TrackStatus.INITIALISING)})
 
 
 def _epochs(x: float, to_int) -> float:
@@ -40,13 +51,17 @@ def ready_span(ready: Iterable) -> int:
     return max(epochs) - min(epochs) if epochs else 0
 
 
-def supersede(ready: collections.deque, served: dict[str, int]) -> collections.deque:
+def supersede(ready: collections.deque, served: dict[str, int],
+              keep_all: frozenset[str] = frozenset()) -> collections.deque:
     """Per-node coalescing of a backlog (the live fusion is slower than its input): of each
     node's ready epochs only the newest :data:`BEHIND_KEEP_EPOCHS` are kept (the older ones
     are dropped unsolved: the caller counts them as ``superseded``), and the nodes are queued
     least recently served first (``served``: node -> the running count of node-epochs taken by
     budgeted steps when it was last taken; never served: first; ties in queue order). A queue
-    with no more than that many epochs of any node is returned as it is.
+    with no more than that many epochs of any node is returned as it is. A node in
+    ``keep_all`` (one without a confirmed track: no track, its epochs cost no update and are
+    published without a position, or a new one, of which admission starts few) keeps every
+    ready epoch, oldest first.
 
     So a behind fusion holds at most that many ready epochs per node and solves them in
     rounds: no node is solved again before every other node with a ready epoch was (no node
@@ -58,10 +73,11 @@ def supersede(ready: collections.deque, served: dict[str, int]) -> collections.d
     slots: dict[str, list[int]] = {}
     for i, pe in enumerate(items):
         slots.setdefault(pe.node_id, []).append(i)
-    if all(len(v) <= BEHIND_KEEP_EPOCHS for v in slots.values()):
+    if all(len(v) <= BEHIND_KEEP_EPOCHS or n in keep_all for n, v in slots.items()):
         return ready  # less than a round behind: nothing changes (the order neither)
     order = sorted(slots, key=lambda nid: (served.get(nid, -1), slots[nid][0]))
-    return collections.deque(items[i] for nid in order for i in slots[nid][-BEHIND_KEEP_EPOCHS:])
+    return collections.deque(items[i] for nid in order for i in (
+        slots[nid] if nid in keep_all else slots[nid][-BEHIND_KEEP_EPOCHS:]))
 
 
 def shed(ready: collections.deque, max_backlog_epochs: int) -> collections.deque:
@@ -88,8 +104,15 @@ class OverloadPolicy:
                                    _epochs(config.max_backlog_s / period, math.ceil))
         # the ready span (epochs) beyond which a behind step coalesces per node
         self.supersede_span = _epochs(config.supersede_after_s / period + 1e-9, math.floor)
+        # the span (epochs) of what a step leaves beyond which it admits no new-track work
+        self.admit_span = _epochs(config.admit_lag_s / period + 1e-9, math.floor)
         self.served: dict[str, int] = {}
         self._count = 0  # node-epochs taken by budgeted steps so far
+        #: the tracker's status of node ids (``TrackBank.status_of``; set by a core that
+        #: tracks): with admission on (``admit_lag_s`` below the legacy setting of a replay of
+        #: an older recording), a node without a confirmed track keeps every ready epoch
+        self.status_of: Callable[[list[str]], Any] | None = None
+        self._keep_unplaced = config.admit_lag_s < LEGACY_ADMIT_LAG_S
 
     def apply(self, ready: collections.deque, limit: int | None,
               rejected: collections.Counter) -> collections.deque:
@@ -106,10 +129,32 @@ class OverloadPolicy:
                 rejected[reason] += n - len(ready)
         return ready
 
+    def lagging(self, ready: collections.deque, todo: int) -> bool:
+        """Whether a step that takes the first ``todo`` of ``ready`` leaves epochs spanning
+        more than ``admit_lag_s`` (newest - oldest left): the fusion is that far behind its
+        input and admits no more new-track work than the minimum (``tracked.heavy_budget``).
+        A function of the queue alone (the decision record replays it)."""
+        if todo >= len(ready):
+            return False
+        return ready_span(itertools.islice(ready, todo, None)) > self.admit_span
+
     def _supersede(self, ready: collections.deque) -> collections.deque:
         if ready_span(ready) <= self.supersede_span:
             return ready
-        return supersede(ready, self.served)
+        keep = self._unplaced(ready)  # their epochs never make a placed node's stale
+        if keep and ready_span(pe for pe in ready if pe.node_id not in keep
+                               ) <= self.supersede_span:
+            return ready
+        return supersede(ready, self.served, keep)
+
+    def _unplaced(self, ready: collections.deque) -> frozenset[str]:
+        """The ready nodes without a confirmed track (UNINITIALISED, LOST, INITIALISING;
+        none without a tracker or with admission off)."""
+        if self.status_of is None or not self._keep_unplaced:
+            return frozenset()
+        ids = list(dict.fromkeys(pe.node_id for pe in ready))
+        return frozenset(n for n, s in zip(ids, self.status_of(ids).tolist(), strict=True)
+                         if s in _UNCONFIRMED)
 
     def _shed(self, ready: collections.deque) -> collections.deque:
         return shed(ready, self.max_backlog_epochs)

@@ -15,15 +15,10 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
   re-initialisation reads it: the tracker's own initialisation is its grid snapshot,
   :func:`diffpos.tracking_model.snapshot_init`), so this policy changes no tracked estimate,
   only the CPU: an mnls fix costs ~7 ms with 8 anchors, i.e. 0.7 ms per node-epoch at 10 Hz
-  with a 1 s period, more than the tracker's update. An unconfirmed (INITIALISING) track got
-  one every epoch until 2026-11-27: 5 snapshots per new node, 1,002 of the 1,654 snapshots of
-  the 30 s 16 x 200 soak replay (250 of 352 in the 20 s ``large`` one). With the period (661
-  resp. 102 snapshots) the tracked estimates of both replays are bit for bit the same, and the
-  soak replay's CPU went 58.0 / 56.2 -> 49.9 / 46.3 s (process time, all epochs solved
-  unbudgeted, with the batch-assembly changes of the same branch; 2 interleaved runs, 2-core VM
-  shared, load 4-6). Live, the snapshot credit (:data:`SNAPSHOT_WORK_EPOCHS`) already rations
-  them: the decision replay of the live ``large`` recording made the same 101 snapshots with
-  either policy. Measured (``bench_tracking``'s lockstep emulation, seed 0, 20 s;
+  with a 1 s period, more than the tracker's update. (Until 2026-11-27 an unconfirmed track
+  got one every epoch: 1,654 instead of 661 snapshots in the 30 s soak replay, the tracked
+  estimates bit for bit the same, CPU 58.0 / 56.2 -> 49.9 / 46.3 s: docs/measurements.md.)
+  Measured (``bench_tracking``'s lockstep emulation, seed 0, 20 s;
   the trkcost branch's report): a confirmed track was confident in 93.0 / 99.6 / 92.2 % of
   the node-epochs of ``default`` / ``large`` / ``other-building``, its floor then right in
   96.6 / 99.9 / 95.3 % of them (44.7 / 64.7 / 8.6 % when not confident): the confident
@@ -69,6 +64,7 @@ PositionEstimateV2` messages.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -140,14 +136,14 @@ SNAPSHOT_WORK_EPOCHS = 50
 SNAPSHOT_BURST = 2
 
 
-def heavy_budget(n_epochs: int | None) -> int | None:
+def heavy_budget(n_epochs: int | None, lagging: bool = False) -> int | None:
     """Track initialisations + snapshot fixes a budgeted step that solves ``n_epochs`` epochs
     may do (``None``: an unbudgeted step, unbounded; at least :data:`HEAVY_MIN_OPERATIONS`, so a
-    step always makes progress). Proportional to the epochs it solves, not to its limit: a
-    large limit (a fusion behind its input) does not license more heavy work per epoch."""
+    step always makes progress). Proportional to the epochs it solves, not to its limit (a
+    fusion behind its input gets no more per epoch); ``lagging``: the minimum (admit_lag_s)."""
     if n_epochs is None:
         return None
-    return max(HEAVY_MIN_OPERATIONS, int(n_epochs) // HEAVY_WORK_EPOCHS)
+    return max(HEAVY_MIN_OPERATIONS, 0 if lagging else int(n_epochs) // HEAVY_WORK_EPOCHS)
 
 
 class TrackBank:
@@ -212,26 +208,30 @@ class TrackBank:
         return (((st == int(TrackStatus.UNINITIALISED)) | (st == int(TrackStatus.LOST)))
                 & (n_ranges >= self.config.min_ranges_init))
 
-    def hold_inits(self, epochs: list[PendingEpoch], budget: int
+    def hold_inits(self, epochs: list[PendingEpoch], budget: int, newest: bool = False
                    ) -> tuple[list[PendingEpoch], list[PendingEpoch]]:
         """``(now, later)``: the epochs of a budgeted step split so that its initialisations do
         not delay the other estimates (module docstring). ``later`` holds the first ``budget``
         epochs (in the order :func:`solve_mnls` initialises them: rounds, row order) whose node
         the tracker would initialise (UNINITIALISED or LOST, at least ``min_ranges_init``
         ranges) and every later epoch of their nodes; ``now`` the rest, in their order. Nothing
-        is held when that would leave ``now`` empty. Only the bank's state is read (and new nodes get their rows)."""
+        is held when that would leave ``now`` empty. ``newest`` (a lagging step): only a held
+        node's newest epoch is held (its track starts from the freshest ranges, the older ones
+        go out without a position). Only the bank's state is read (new nodes get rows)."""
         held: set[str] = set()
+        last = {pe.node_id: i for i, pe in enumerate(epochs)}
         for rows_l in _rounds(epochs):
             if len(held) >= budget:
                 break
             ids = [epochs[i].node_id for i in rows_l]
-            n = np.array([len(epochs[i].ranges) for i in rows_l])
+            n = np.array([len(epochs[last[nid] if newest else i].ranges)  # the one initialised
+                          for i, nid in zip(rows_l, ids, strict=True)])
             for i in np.flatnonzero(self.needs_init(self.rows_of(ids), n))[:budget - len(held)]:
                 held.add(ids[i])
-        now = [pe for pe in epochs if pe.node_id not in held]
-        if not now:
-            return epochs, []
-        return now, [pe for pe in epochs if pe.node_id in held]
+        hold = [pe.node_id in held and (not newest or last[pe.node_id] == i)
+                for i, pe in enumerate(epochs)]
+        now = [pe for pe, h in zip(epochs, hold, strict=True) if not h]
+        return (epochs, []) if not now else (now, list(itertools.compress(epochs, hold)))
 
     def confident_of(self, node_ids: list[str]) -> np.ndarray:
         """Whether each node's track is confident (:data:`CONFIDENT_FLOOR_PROBABILITY`,

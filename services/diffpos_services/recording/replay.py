@@ -34,7 +34,7 @@ import msgspec
 import numpy as np
 
 from diffpos._kernels import pool as kernel_pool
-from diffpos_services.fusion.config import LEGACY_SUPERSEDE_AFTER_S, METHODS, FusionConfig
+from diffpos_services.fusion.config import METHODS, FusionConfig, with_legacy_defaults
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.workers import start_workers
 from diffpos_services.kit import ConfigError, build_config
@@ -215,8 +215,7 @@ def replay_settings(
                 side, site=site, first_state=None if first_state is None else first_state.data)
             warning += f" ({source})"
     base: dict[str, Any] = dict(recorded) if use_recorded_settings else {}
-    if base.get("max_backlog_s") and "supersede_after_s" not in base:  # recorded before it
-        base["supersede_after_s"] = LEGACY_SUPERSEDE_AFTER_S
+    base = with_legacy_defaults(base)  # settings recorded before a newer setting existed
     if not use_recorded_settings:
         source = "defaults (--ignore-recorded-settings)"
     known = _fusion_fields()
