@@ -266,9 +266,8 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     With it on, the overload policy never supersedes an epoch of a node without a confirmed
     track (UNINITIALISED, LOST: it costs no update and is published without a position;
     INITIALISING: admission bounds how many), and such epochs do not count in the span that
-    :attr:`supersede_after_s` bounds. A
-    function of the ready queue and the tracks (the decision record replays it). 1e9 or more
-    (:data:`LEGACY_ADMIT_LAG_S`): off, as before the setting."""
+    :attr:`supersede_after_s` bounds. A function of the ready queue and the tracks (the
+    decision record replays it). 1e9 or more (:data:`LEGACY_ADMIT_LAG_S`): off, as before."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     kernel_threads: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_KERNEL_THREADS
     """Threads running the row chunks of the compiled kernels (:mod:`diffpos._kernels.pool`:

@@ -112,7 +112,7 @@ class OverloadPolicy:
         #: tracks): with admission on (``admit_lag_s`` below the legacy setting of a replay of
         #: an older recording), a node without a confirmed track keeps every ready epoch
         self.status_of: Callable[[list[str]], Any] | None = None
-        self._keep_unplaced = config.admit_lag_s < LEGACY_ADMIT_LAG_S
+        self._keep_unconfirmed = config.admit_lag_s < LEGACY_ADMIT_LAG_S
 
     def apply(self, ready: collections.deque, limit: int | None,
               rejected: collections.Counter) -> collections.deque:
@@ -141,16 +141,16 @@ class OverloadPolicy:
     def _supersede(self, ready: collections.deque) -> collections.deque:
         if ready_span(ready) <= self.supersede_span:
             return ready
-        keep = self._unplaced(ready)  # their epochs never make a placed node's stale
+        keep = self._unconfirmed(ready)  # their epochs never make a confirmed track stale
         if keep and ready_span(pe for pe in ready if pe.node_id not in keep
                                ) <= self.supersede_span:
             return ready
         return supersede(ready, self.served, keep)
 
-    def _unplaced(self, ready: collections.deque) -> frozenset[str]:
+    def _unconfirmed(self, ready: collections.deque) -> frozenset[str]:
         """The ready nodes without a confirmed track (UNINITIALISED, LOST, INITIALISING;
         none without a tracker or with admission off)."""
-        if self.status_of is None or not self._keep_unplaced:
+        if self.status_of is None or not self._keep_unconfirmed:
             return frozenset()
         ids = list(dict.fromkeys(pe.node_id for pe in ready))
         return frozenset(n for n, s in zip(ids, self.status_of(ids).tolist(), strict=True)
