@@ -73,11 +73,11 @@ _ORPHAN = textwrap.dedent("""
     print("stopped cleanly", flush=True)
 """)
 _PARENT = textwrap.dedent("""
-    import subprocess, sys, time
+    import signal, subprocess, sys
     from diffpos_services.kit import child_env
     subprocess.Popen([sys.executable, "-c", sys.argv[1]], env=child_env())
     while True:
-        time.sleep(60)  # until killed by the test
+        signal.pause()  # idle until the test kills it
 """)
 
 
