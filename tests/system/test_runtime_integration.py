@@ -88,9 +88,13 @@ def _run_system(services, endpoint, *, scenario, anchors, duration_s, speed, sit
     with session:
         bus = Bus(session, keys)
         # the ideal channel is D-NLS's path model: this pipeline test runs D-NLS (at 4x real
-        # time; the default mnls + tracker is covered by tests/system/test_tracking_emulate.py)
+        # time; the default mnls + tracker is covered by tests/system/test_tracking_emulate.py).
+        # Every node-epoch must arrive: the live overload policy is off (--max-backlog-s 0:
+        # a fusion behind only lags). At 4x, 0.5 s of measurement time is 125 ms of wall time,
+        # so a stall of the CI machine made it supersede a block of epochs (2026-11-28: 37-49
+        # of several nodes); the policy has its own tests (test_fusion_overload/_budget.py).
         services.start("fusion", "fusion", "--site", site, "--connect", endpoint,
-                       "--scenario", scenario, "--method", "dnls")
+                       "--scenario", scenario, "--method", "dnls", "--max-backlog-s", "0")
         for a in anchors:
             services.start(f"anchor-{a}", "anchor", "--id", a, "--site", site, "--connect", endpoint,
                            "--scenario", scenario, "--wait-start", "--channel", "ideal",
