@@ -157,7 +157,9 @@ def test_four_anchors_fusion_every_node_every_epoch(services, endpoint):
     n_epochs = int(duration_s * 1e9) // PERIOD_NS
     got = collections.Counter((est.node_id, est.epoch - e0) for _, est in estimates)
     want = {(n, k) for n in nodes for k in range(n_epochs)}
-    assert set(got) == want, (sorted(want - set(got))[:10], sorted(set(got) - want)[:10])
+    rejected = diags[-1][1].rejected if diags else None  # why, if any is missing
+    assert set(got) == want, (sorted(want - set(got))[:10], sorted(set(got) - want)[:10],
+                              rejected)
     assert max(got.values()) == 1  # exactly one estimate per node and epoch
 
     ok = [est for _, est in estimates if est.position_m is not None]
