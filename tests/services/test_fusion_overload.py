@@ -144,8 +144,11 @@ def test_a_step_that_leaves_more_than_admit_lag_s_is_lagging():
     takes everything, or leaves one epoch number, never is; 0 s: any span; the legacy
     setting of a replay (and inf) never."""
     q = _backlog(["a", "b"], range(10, 20))
-    lagging = lambda todo, **kw: OverloadPolicy(  # noqa: E731
-        FusionConfig(site="t", method="dnls", epoch_period_s=0.1, **kw)).lagging(q, todo)
+
+    def lagging(todo, **kw):  # a policy of a core with a tracker (status_of set)
+        pol = OverloadPolicy(FusionConfig(site="t", method="dnls", epoch_period_s=0.1, **kw))
+        pol.status_of = lambda ids: [0] * len(ids)
+        return pol.lagging(q, todo)
     assert DEFAULT_ADMIT_LAG_S == 0.25  # the reference below
     assert not lagging(14) and lagging(12)  # q[14:]: epochs 17-19; q[12:]: 16-19
     assert not lagging(len(q)) and not lagging(len(q) + 3) and not lagging(18)

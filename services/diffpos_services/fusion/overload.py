@@ -133,8 +133,9 @@ class OverloadPolicy:
         """Whether a step that takes the first ``todo`` of ``ready`` leaves epochs spanning
         more than ``admit_lag_s`` (newest - oldest left): the fusion is that far behind its
         input and admits no more new-track work than the minimum (``tracked.heavy_budget``).
-        A function of the queue alone (the decision record replays it)."""
-        if todo >= len(ready):
+        A function of the queue alone (the decision record replays it); False without a
+        tracker (:attr:`status_of` unset: nothing reads it, the backlog is not scanned)."""
+        if self.status_of is None or todo >= len(ready):
             return False
         return ready_span(itertools.islice(ready, todo, None)) > self.admit_span
 
