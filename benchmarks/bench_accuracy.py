@@ -45,7 +45,7 @@ Measured 2026-11-27 08:27-08:50 UTC (``--only default``, ``--only tall-floors wi
 uavs-above-windows anchors-beyond-ends``, ``--only large``; 20 s, seed 0; 2-core VM shared with
 four other jobs, load average 4-8), commit 94ee8c5 (fixed 0.2 m existence margin) -> the
 tracker's margin of every hypothesis' own height uncertainty
-(:func:`diffpos.tracking_model.existence_margin`):
+(:func:`diffpos.tracking.model.existence_margin`):
 
 ===================  =============  ============  ============  ============
 run                  floor %        3D p50 [m]    3D p90 [m]    cov95 %

@@ -11,13 +11,13 @@ Prints a table of wall-clock times (median of the repeats) on the paper's scenar
 - the positioning study per estimator (LLS, IPPA, D-NLS Case-1, D-NLS Case-2) and the PEB;
 - the total, i.e. what ``diffpos reproduce`` spends computing (without figures);
 - ``pair_snr_db``: the per-slot SNR prediction of the estimators (M-NLS, tracker) on the same
-  links, numpy reference (``diffpos.channel._pair_snr_db_numpy``, the emulator's own code) vs
-  the compiled kernel (``diffpos._kernels.channel_nb``), by this thread's CPU time per link
+  links, numpy reference (``diffpos.channel.emulator._pair_snr_db_numpy``, the emulator's own code) vs
+  the compiled kernel (``diffpos.channel.snr_nb``), by this thread's CPU time per link
   (median of the repeats; the figure to compare on a shared machine), after a warm-up call;
   plus the kernel's first call in a fresh process (compile, or load numba's on-disk cache).
   ``--snr-only`` runs just this part, with one more row: what an anchor process computes
   per epoch (:func:`diffpos.emulation.first_arrivals`, one anchor to 50 nodes), the numpy
-  emulator vs the compiled per-pair detector (:func:`diffpos.channel.pair_first_arrival`).
+  emulator vs the compiled per-pair detector (:func:`diffpos.channel.emulator.pair_first_arrival`).
 
 Measured 2026-11-27 05:40 UTC (``--snr-only``, 70,400 links, 3 repeats; shared 2-core x86_64
 VM, Python 3.11.7, load average 8-10 from other jobs), thread CPU per link:
@@ -45,7 +45,7 @@ import time
 
 import numpy as np
 
-from diffpos.channel import _pair_snr_db_numpy, emulate_channel, first_arrival, pair_snr_db
+from diffpos.channel.emulator import _pair_snr_db_numpy, emulate_channel, first_arrival, pair_snr_db
 from diffpos.scenario import default_scenario
 from diffpos.study import DEFAULT_METHODS, FirstArrivalData, method_label, positioning_study
 
@@ -55,7 +55,7 @@ EXTRA_ANCHORS_M = np.array([[-25.0, -12.0, 8.5], [10.0, -10.0, 14.0], [28.0, -18
 _FIRST_CALL = """
 import time
 t = time.process_time()
-from diffpos._kernels.channel_nb import warm_channel
+from diffpos.channel.snr_nb import warm_channel
 t1 = time.process_time()
 warm_channel()
 print(t1 - t, time.process_time() - t1)

@@ -3,7 +3,7 @@
 One markdown table, ratios side by side. Target (issue 13): M-NLS <= 2 ms per node-epoch on
 average with 8 anchors.
 
-Input: first arrivals of the O2I emulator (diffpos.channel) on the paper's building, nodes
+Input: first arrivals of the O2I emulator (diffpos.channel.emulator) on the paper's building, nodes
 uniform over the floor plans of all floors at a random height 0.3-2.7 m above their floor
 (not only the window mid-height). 4 anchors: the paper's. 8 anchors: the paper's plus one at
 a window band's height, one above the windows, one beyond a facade end and one high and far.
@@ -41,7 +41,7 @@ the compiled starts and LM (``kernel=True``). M-NLS ms CPU per fix, two runs eac
 at load 0.2, 06:19 UTC, before: 8 anchors batched 4.18, single 9.19 ms.) The fixes are
 bitwise the same before and after. Where the M-NLS CPU goes now (``bench_path_model.py
 --profile-mnls 64``, 8 anchors): the compiled LM (path model + link terms + steps) 52 %, the
-SNR prediction ``diffpos.channel.pair_snr_db`` 26 %, the rest 22 %.
+SNR prediction ``diffpos.channel.emulator.pair_snr_db`` 26 %, the rest 22 %.
 """
 
 from __future__ import annotations
@@ -51,8 +51,9 @@ import time
 
 import numpy as np
 
-from diffpos.channel import emulate_channel, first_arrival
-from diffpos.estimators import dnls, mnls
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import Scenario, default_scenario
 
 TARGET_MS = 2.0

@@ -28,8 +28,11 @@ import time
 import numpy as np
 from scipy.optimize import least_squares
 
-from diffpos.estimators import DEFAULT_Z_STARTS_M, ExclusionReason, dnls, ippa, lls
-from diffpos.estimators.dnls import _lls_starts, grid_starts
+from diffpos.estimators.dnls.fit import _lls_starts, grid_starts
+from diffpos.estimators.dnls.solver import DEFAULT_Z_STARTS_M, dnls
+from diffpos.estimators.ippa import ippa
+from diffpos.estimators.lls import lls
+from diffpos.estimators.result import ExclusionReason
 from diffpos.geometry import window_edge_path
 
 W_M = 1.2

@@ -205,7 +205,7 @@ debt is never paid back (latency p50 2.1 s for the rest of the run; steps of 165
 180). How the tracker's update cost grows with the gap since a node's previous update (steps
 after 4 s of a run of the first implementation, least squares over the steps' mean gap):
 ``0.31 + 0.26 ms x gap [epochs]`` (gap 1: 0.55, 1.8: 0.81, 2.1: 0.86, 2.8: 0.97 ms): the
-dormant hypotheses' refreshes (diffpos/tracking_dormant.py, one per hypothesis per second of
+dormant hypotheses' refreshes (diffpos/tracking/dormant.py, one per hypothesis per second of
 measurement time) and the snapshots are per time, not per update, so skipping a node's
 epochs saves only the 0.31 ms part. That is why the new policy publishes fewer estimates
 than the old one when the fusion has much less CPU than it needs (x2: about half): the old

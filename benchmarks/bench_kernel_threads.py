@@ -33,16 +33,18 @@ import time
 
 import numpy as np
 
-import diffpos.tracking_init as tracking_init
-import diffpos.tracking_paths as tracking_paths
-from diffpos._kernels import channel_nb, pool
-from diffpos.channel import pair_snr_db
-from diffpos.estimators import mnls
+import diffpos.tracking.initialisation as tracking_init
+import diffpos.tracking.links as tracking_paths
+from diffpos._kernels import pool
+from diffpos.channel import snr_nb as channel_nb
+from diffpos.channel.emulator import pair_snr_db
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import default_scenario
-from diffpos.tracking import TrackerConfig
-from diffpos.tracking_model import Links, all_paths, grid_starts
+from diffpos.tracking.initialisation import grid_starts
+from diffpos.tracking.links import Links, all_paths
+from diffpos.tracking.state import TrackerConfig
 
-mnls_mod = importlib.import_module("diffpos.estimators.mnls")
+mnls_mod = importlib.import_module("diffpos.estimators.mnls.solver")
 SC = default_scenario()
 B, RADIO = SC.building, SC.radio
 

@@ -9,8 +9,8 @@ node-epoch on average with 8 anchors, batched.
 ``--stages``: the inputs of ``bench_estimator_cost.py`` (its 8-anchor layout, nodes uniform
 over the floor plans at random heights, seed 0), M-NLS batched with its live arguments, and
 per stage of the search (``starts``, ``screen``, ``rescore``, ``refine``, ``final``; see
-:data:`diffpos.estimators.mnls.STAGE_STATS`) the node-anchor pairs through the path model and
-through ``diffpos.channel.pair_snr_db`` and the CPU time (of the stage, and of those two calls
+:data:`diffpos.estimators.mnls.solver.STAGE_STATS`) the node-anchor pairs through the path model and
+through ``diffpos.channel.emulator.pair_snr_db`` and the CPU time (of the stage, and of those two calls
 in it), per fix; then the accuracy of the same fixes (median / p80 3D error, right floor,
 95 % ellipsoid coverage). ``--save FILE.npz`` keeps the fixes (position, floor, covariance,
 truth) for a paired before/after comparison (``--compare A.npz B.npz``).
@@ -63,11 +63,12 @@ import time
 
 import numpy as np
 
-from diffpos.channel import emulate_channel, first_arrival
-from diffpos.estimators import dnls, mnls
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import default_scenario
 
-_mn = sys.modules["diffpos.estimators.mnls"]
+_mn = sys.modules["diffpos.estimators.mnls.solver"]
 EIGHT = np.array([[-15.0, -20.0, 1.5], [0.0, -15.0, 1.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.5],
                   [-25.0, -11.0, 3.0], [25.0, -19.0, 3.0], [-20.0, -10.0, 2.0],
                   [-10.0, -25.0, 0.5]])

@@ -8,14 +8,14 @@ One thread (OMP/OPENBLAS/MKL_NUM_THREADS=1, set below); every time is the median
 by wall clock and by this thread's CPU time (the figure to compare when other processes share
 the cores); inputs are made outside the timed region.
 
-**First-arrival path model** (:func:`diffpos.paths.first_arrival_paths`, all 18 slots with
+**First-arrival path model** (:func:`diffpos.paths.model.first_arrival_paths`, all 18 slots with
 existence, Jacobians, deviation cosines; the inner loop of M-NLS and of the tracker), per
 *row* = one (node, anchor, floor hypothesis) evaluation, on the default building, 8 anchors
 (the paper's 4 and 4 more: at a window band, above the windows, beyond a facade end, high):
 
 - *batched*: ``--fa-nodes`` nodes x 5 floor hypotheses x 8 anchors in one call;
 - *single*: one node x 8 anchors x its floor per call (a live one-fix call);
-- reference = the numpy implementation kept as ``diffpos.paths._first_arrival_paths_numpy``;
+- reference = the numpy implementation kept as ``diffpos.paths.model._first_arrival_paths_numpy``;
   kernel = ``first_arrival_paths`` (row preparation + numba kernel); kernel alone = the
   compiled loop on prepared rows (what a caller holding flat rows pays); lengths only =
   ``want_jac=False``;
@@ -29,8 +29,8 @@ The kernel is checked against the reference (1e-12 relative, existence exactly) 
 N emulated first arrivals, 8 anchors, with the measured SNR and the radio as live; shares of
 the total thread CPU, cumulative; then the top functions by own CPU; ``--numpy-paths`` runs
 the estimator on the numpy path model, ``--numpy-snr`` its SNR cost on the numpy emulator
-instead of the compiled ``diffpos._kernels.channel_nb``): the path model, the channel's
-per-slot SNR prediction (``diffpos.channel.pair_snr_db``, the M-NLS SNR cost) and the rest.
+instead of the compiled ``diffpos.channel.snr_nb``): the path model, the channel's
+per-slot SNR prediction (``diffpos.channel.emulator.pair_snr_db``, the M-NLS SNR cost) and the rest.
 History: 2026-11-23 (load ~10), 64 fixes: numpy path model 4.4 s, first_arrival_paths 37 % /
 pair_snr_db 50 % / rest 13 %; compiled path model 3.0 s, 8 % / 63 % / 28 %.
 Measured 2026-11-27 05:39 UTC (shared 2-core VM, load 6-8), 64 fixes, thread CPU under
@@ -45,7 +45,7 @@ With the compiled SNR the own-CPU ranking is: ``paths_kernel`` 33 %, ``channel_s
 estimator's Python/numpy (``_lm``, a dict comprehension in ``_lm``, einsum, ``solve``, the
 edge starts) ~20 %. The 2 ms per node-epoch target of M-NLS is therefore no longer a matter
 of the SNR prediction: the path model's evaluations and the number of hypotheses the search
-evaluates (diffpos/estimators/mnls.py) dominate.
+evaluates (diffpos/estimators/mnls/solver.py) dominate.
 Since the compiled starts and LM (``mnls(kernel=True)``; ``--reference``: the numpy steps),
 2026-11-27 06:35 UTC, load ~4.9, 64 fixes: 0.22 s thread CPU under cProfile (3.5 ms per
 fix): ``mnls_nb.lm_kernel`` (path model + link terms + LM steps) 52 %, ``pair_snr_db`` 26 %
@@ -83,12 +83,12 @@ import time
 import numba
 import numpy as np
 
-from diffpos._kernels import paths_nb
 from diffpos.bounds import bounds_from_fim, fisher_information, position_error_bound
-from diffpos.channel import _pair_snr_db_numpy, emulate_channel, first_arrival
-from diffpos.estimators import mnls
+from diffpos.channel.emulator import _pair_snr_db_numpy, emulate_channel, first_arrival
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.geometry import diffraction_point, window_edge_path
-from diffpos.paths import _first_arrival_paths_numpy, _kernel_rows, first_arrival_paths
+from diffpos.paths import model_nb as paths_nb
+from diffpos.paths.model import _first_arrival_paths_numpy, _kernel_rows, first_arrival_paths
 from diffpos.scenario import default_scenario
 
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0]])
@@ -260,8 +260,8 @@ ANCHORS_8 = np.concatenate([default_scenario().anchor_positions_m(), np.array(
     [[-25.0, -12.0, 8.5], [10.0, -10.0, 14.0], [28.0, -18.0, 5.5], [-30.0, -25.0, 19.0]])])
 N_FLOORS_FA = 5
 #: The estimator's module (the package exports the function under the same name).
-mnls_module = importlib.import_module("diffpos.estimators.mnls")
-channel_module = importlib.import_module("diffpos.channel")
+mnls_module = importlib.import_module("diffpos.estimators.mnls.solver")
+channel_module = importlib.import_module("diffpos.channel.emulator")
 
 _COMPILE_PROBE = """
 import json, time
@@ -297,7 +297,7 @@ def compile_costs() -> list[tuple[str, float, float]]:
             r = json.loads(subprocess.run([sys.executable, "-c", _COMPILE_PROBE], env=env,
                                           check=True, capture_output=True, text=True).stdout)
             out.append((f"warm_paths(), {label}", *r["warm"]))
-            out.append((f"  import diffpos._kernels.paths_nb (numba), {label}", *r["import"]))
+            out.append((f"  import diffpos.paths.model_nb (numba), {label}", *r["import"]))
     return out
 
 

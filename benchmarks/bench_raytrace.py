@@ -25,7 +25,7 @@ import time
 import numpy as np
 from diffpos_services import raytrace as rt
 
-from diffpos.channel import emulate_channel
+from diffpos.channel.emulator import emulate_channel
 from diffpos.scenario import Scenario, default_scenario
 
 

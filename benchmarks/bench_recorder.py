@@ -76,7 +76,7 @@ from diffpos_services.recording.topics import SeqTracker, parse_topic
 from diffpos_services.recording.writer import McapSink, SplitPolicy, part_path
 from diffpos_services.wire import messages as M
 
-import diffpos.estimators as est
+from diffpos.estimators.dnls import solver as est
 
 
 def _payload_200(i: int) -> bytes:

@@ -1,4 +1,4 @@
-"""CPU of the tracker's SNR prediction (``diffpos.tracking_snr.snr_cost_near``) on the calls of
+"""CPU of the tracker's SNR prediction (``diffpos.tracking.snr.snr_cost_near``) on the calls of
 a real replay: every slot predicted everywhere (the algorithm before the slot masks) against
 the current code, with the shifted point's and with the prior's threshold for the relax holes.
 
@@ -45,9 +45,9 @@ import time
 
 import numpy as np
 
-import diffpos.tracking_snr as tm
-from diffpos.channel import pair_snr_db
-from diffpos.tracking_paths import K_SLOTS, PathEval, _relax
+import diffpos.tracking.snr as tm
+from diffpos.channel.emulator import pair_snr_db
+from diffpos.tracking.links import K_SLOTS, PathEval, _relax
 
 
 def _brute_force(pos, links, floor, building, relax_m, pe):

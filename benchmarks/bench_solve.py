@@ -40,9 +40,9 @@ from pathlib import Path
 import numpy as np
 from bench_estimators import W_M, scene, scipy_fix
 
-from diffpos._kernels.dnls_nb import warm_dnls
-from diffpos.estimators import DEFAULT_Z_STARTS_M, dnls
-from diffpos.estimators.dnls import _lls_starts, grid_starts
+from diffpos.estimators.dnls.fit import _lls_starts, grid_starts
+from diffpos.estimators.dnls.fit_nb import warm_dnls
+from diffpos.estimators.dnls.solver import DEFAULT_Z_STARTS_M, dnls
 
 SIGMA_M = 0.05
 

@@ -2,7 +2,7 @@
 
 One anchor misbehaves: it adds a constant or growing bias to its ranges, or it reports a wrong
 own position (an offset or a slow drift). Every epoch (10 Hz for 30 s by default) every node
-of a scenario is positioned with :func:`diffpos.estimators.dnls` and its RAIM-style gating
+of a scenario is positioned with :func:`diffpos.estimators.dnls.solver` and its RAIM-style gating
 (chi-square residual test at ``P_fa``, leave-one-out exclusion, physical pre-gate), all fixes
 of all epochs in one batch. Pure core only (no zenoh): the nodes, anchors and trajectories of
 ``scenarios/large.toml`` (8 UAVs, 50 responders) and, to show the limits, the paper's 4 static
@@ -59,11 +59,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import binomtest, ncx2
 
-from diffpos.channel import MECHANISMS, emulate_channel, first_arrival
-from diffpos.estimators import ExclusionReason, FixResult, FixStatus, GatingConfig, dnls
-from diffpos.estimators.gating import chi2_threshold
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.gating import GatingConfig, chi2_threshold
+from diffpos.estimators.result import ExclusionReason, FixResult, FixStatus
 from diffpos.geometry import window_edge_path
-from diffpos.linkbudget import db_to_linear, ranging_crlb_m
+from diffpos.paths.model import MECHANISMS
 from diffpos.scenario import Scenario
 
 FloatArray = NDArray[np.float64]

@@ -70,9 +70,9 @@ class _Enough(Exception):
 def capture(recording: str, out: str, skip: int, n_calls: int) -> dict[str, int]:
     from diffpos_services.recording.replay import replay
 
-    import diffpos._kernels.channel_nb as cn
-    import diffpos.tracking_init as ti
-    import diffpos.tracking_paths as tp
+    import diffpos.channel.snr_nb as cn
+    import diffpos.tracking.initialisation as ti
+    import diffpos.tracking.links as tp
 
     cn.warm_channel()  # before the kernels are wrapped (it compiles them by name)
     kept: dict[str, list] = {k: [] for k in _N_OUT}
@@ -114,8 +114,8 @@ def capture(recording: str, out: str, skip: int, n_calls: int) -> dict[str, int]
 
 
 def time_kernels(inputs: str, reps: int) -> list[tuple]:
-    import diffpos._kernels.channel_nb as cn
-    import diffpos._kernels.tracking_nb as tn
+    import diffpos.channel.snr_nb as cn
+    import diffpos.tracking.model_nb as tn
 
     with open(inputs, "rb") as fh:
         kept = pickle.load(fh)

@@ -3,11 +3,11 @@
 Usage: ``python benchmarks/bench_tracking.py [--duration 20] [--seed 0] [--only NAME ...]
 [--dormant on|off|both] [--reliability | --evidence-corr] [--seeds ...]``
 
-For every scenario the emulator (:func:`diffpos.channel.emulate_channel` + the paper's
-first-arrival detector :func:`diffpos.channel.first_arrival` with the channel's own noise)
+For every scenario the emulator (:func:`diffpos.channel.emulator.emulate_channel` + the paper's
+first-arrival detector :func:`diffpos.channel.emulator.first_arrival` with the channel's own noise)
 produces ranges of every anchor to every node at every 100 ms epoch (all anchors at the same
 instant: lockstep), anchor positions are reported with a GNSS error (per-anchor bias plus white
-noise, 2 cm horizontal / 3 cm vertical in all), and :func:`diffpos.tracking.update` runs over
+noise, 2 cm horizontal / 3 cm vertical in all), and :func:`diffpos.tracking.tracker.update` runs over
 them. Scored over ALL node-epochs after the first 2 s (a missing position is a miss):
 availability, floor accuracy, 3D and |z| error p50/p90 (on the epochs with a position), truth
 inside the reported 95 % ellipsoid, and the tracker's wall time per epoch.
@@ -38,11 +38,11 @@ the mirror floor below wins for a few seconds). The other-building miss is r06 (
 a level walker whose snapshot initialisation locked onto a mirror floor for ~12 s, no stairs
 involved. Cost (tracker CPU per epoch, ``time.process_time``, 50 nodes x 16 anchors with the
 SNR): 2.6 -> 4.5 ms per node-epoch (twice the hypotheses; most of it is
-:func:`diffpos.channel.pair_snr_db`); for the 6 nodes of ``default`` the per-call overhead
+:func:`diffpos.channel.emulator.pair_snr_db`); for the 6 nodes of ``default`` the per-call overhead
 dominates: 7.7 -> 7.5 ms per node-epoch (an empty re-seed snapshot is no longer computed).
 
 Existence margin of every hypothesis' own height uncertainty
-(:func:`diffpos.tracking_model.existence_margin`, ``max(exist_margin_m, 2 sigma_z)`` instead
+(:func:`diffpos.tracking.model.existence_margin`, ``max(exist_margin_m, 2 sigma_z)`` instead
 of the fixed 0.2 m while tracking). Cause, from the recorded per-node results of ``default``:
 r05 at the foot of its descent, its floor's vertical-mode track 0.4-0.6 m high and 0.9 m off
 in x (sigma_z 0.3-0.4 m), two of its four links were ceiling-floor double bounces whose entry
@@ -79,7 +79,7 @@ truth is 0.3-0.8 m below: a lower-edge diffraction's length is exactly symmetric
 edge's height, so the ranges cannot tell, and the level mode gains ~1.4 nats per epoch from its
 height density).
 
-Cost since the compiled measurement model (``diffpos._kernels.tracking_nb``: the paths of
+Cost since the compiled measurement model (``diffpos.tracking.model_nb``: the paths of
 every slot with graded existence, the IEKF's link model, the selection's candidates and
 variances, the initialisation's grid search; outputs bit-identical: tests/core/
 test_tracking_kernel.py, and the table above is unchanged). The ``ms/ep`` column is now the
@@ -100,13 +100,13 @@ cost, 200 x 16, ranges only  269-386 -> 139-160       1.35-1.93 -> 0.69-0.80
 Initialisation (50 x 8 / 200 x 16, ranges only): 635-657 / 4967-5387 ms -> 233-235 / 1962 ms.
 The held-out table above: 14-24 -> 4.7-5.9 ms per epoch. What is left of a large epoch (50
 nodes x 10 hypotheses x 8 anchors): the predicted SNR of every slot
-(:func:`diffpos.channel.pair_snr_db`, ~13-17 ms: 4,000 pairs plus ~1,200 re-scored near an
+(:func:`diffpos.channel.emulator.pair_snr_db`, ~13-17 ms: 4,000 pairs plus ~1,200 re-scored near an
 existence boundary), the path model at the prior and at the first fit, the IEKF's batched
 6 x 6 algebra (numpy/LAPACK) and the selection's exp/log (numpy's SIMD exp/log differ from
 libm in the last bit, so they stay in numpy to keep the outputs); per call ~4 ms of numpy
 overhead (the 6-node default).
 
-Dormant hypotheses (``TrackerConfig.dormant``, see :mod:`diffpos.tracking`): ``--dormant
+Dormant hypotheses (``TrackerConfig.dormant``, see :mod:`diffpos.tracking.tracker`): ``--dormant
 both`` (the default) runs the tracker without and with them on the same emulated epochs and
 prints both rows; without them the outputs are bit-identical to the tracker before (commit
 94ee8c5). Measured 2026-11-27 09:05-09:08 UTC (commit 57dde73; the shared 2-core VM, load
@@ -125,7 +125,7 @@ anchors-beyond-ends  94.0 -> 94.0  0.21 -> 0.21  92.5 -> 92.5  1.31 -> 1.00
 
 Seed 0 is one realisation: a wrong-floor lock is left a little earlier or later (other-
 building's r06 here). Over 28 runs (default and other-building, seeds 0-13, same emulation)
-the floor is 91.5 % with and 91.3 % without (module docstring of :mod:`diffpos.tracking`).
+the floor is 91.5 % with and 91.3 % without (module docstring of :mod:`diffpos.tracking.tracker`).
 Cost rows (CPU per node-epoch [ms], the median epoch of each of two rounds; the means after
 the first second are within 0.03 of them), re-measured 09:15-09:16 UTC at load average
 2.0-2.5: ``--only none --dormant default`` on the tree before (94ee8c5), then ``--only
@@ -151,7 +151,7 @@ the per-floor probabilities; the fraction the fusion would call confident, p >= 
 uavs-above-windows, anchors-beyond-ends x seeds 0-3, 20 s, scored after 2 s: 18,000
 node-epochs), 2026-11-27 09:41-09:43 UTC, shared 2-core machine, load average 1.3-2.1; raw
 (the tracker before, ``floor_evidence_lag1_corr=0``) -> tempered (``TrackerConfig()``, the
-evidence correlation: :func:`diffpos.tracking_state.published_floor_probabilities`), on the
+evidence correlation: :func:`diffpos.tracking.state.published_floor_probabilities`), on the
 same epochs. Floor 93.4 %, mean 3D p90 1.461 m and cov95 88.3 % are identical (the tempering
 is of the published marginal only):
 
@@ -180,7 +180,7 @@ and with UAVs at 5-16 m; 4 floors of 3.2 m with UAVs beyond the facade ends; see
 the estimates published at >= 0.99 97.5 -> 99.8 %, in [0.9, 0.99) 29 % (48) -> 94 % (2837),
 Brier 0.056 -> 0.048, log loss 0.296 -> 0.102 nats, fusion-confident 99.4 % (right 97.5 %)
 -> 75.2 % (right 99.8 %). Evidence correlation that sets the tempering: ``--evidence-corr``
-(:func:`diffpos.tracking_state.published_floor_probabilities`).
+(:func:`diffpos.tracking.state.published_floor_probabilities`).
 """
 
 from __future__ import annotations
@@ -194,11 +194,12 @@ from pathlib import Path
 
 import numpy as np
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.emulation import responders
 from diffpos.floor_calibration import FloorCalibration
 from diffpos.scenario import AnchorSpec, Building, NodeSpec, Scenario, default_scenario
-from diffpos.tracking import TrackerConfig, floor_probabilities, init_state, predict, update
+from diffpos.tracking.state import TrackerConfig, floor_probabilities
+from diffpos.tracking.tracker import init_state, predict, update
 from diffpos.trajectory import Static
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -3,7 +3,7 @@
     python benchmarks/bench_workers.py [--rows 8,16,32,64,128,256] [--repeat 20]
 
 Static nodes in the default scenario's building, 8 anchors, the emulated channel; each node's
-track is run for 8 epochs (TRACKING), then the next epoch's :func:`diffpos.tracking.update` is
+track is run for 8 epochs (TRACKING), then the next epoch's :func:`diffpos.tracking.tracker.update` is
 timed on ``rows`` nodes (ms per call): locally in one call (CPU and wall), and through a 2-way :class:`RowPool` (one worker
 process; the calling process computes the first share). Per call: wall, the caller's CPU, the
 worker's CPU (its /proc stat), the bytes pickled both ways, and the caller's CPU spent outside
@@ -28,9 +28,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_latency import cpu_s
 from diffpos_services.fusion import workers as W
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking import TrackerConfig, init_state, update
+from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import init_state, update
 
 SC = default_scenario()
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],

@@ -7,7 +7,7 @@ Usage::
 For node-epochs after the first 2 s of a ``bench_accuracy --keep`` recording (every 3rd),
 split into right / wrong floor and level / stairs (:mod:`heldout_diag`), the penalty a
 missed-detection term would charge at the published estimate, from the emulator's own
-channel (:func:`diffpos.channel.emulate_channel`) and the noise-free first arrival at the
+channel (:func:`diffpos.channel.emulator.emulate_channel`) and the noise-free first arrival at the
 truth (the measured range without noise): per link with a detection, every diffraction path
 that exists and is shorter than that range by more than ``tol`` costs
 ``-log Phi((thr - snr_j) / SNR_SIGMA_DB)`` (``thr`` the detector's threshold at the point).
@@ -36,12 +36,12 @@ import numpy as np
 from heldout_diag import Run, detector_threshold, scenario_of
 from scipy.special import log_ndtr, ndtr
 
-from diffpos.channel import emulate_channel
-from diffpos.paths import graded_paths
-from diffpos.tracking_model import ENTRY_SIGMAS
-from diffpos.tracking_paths import _IS_DIFF
-from diffpos.tracking_snr import SNR_SIGMA_DB
-from diffpos.tracking_state import TrackerConfig
+from diffpos.channel.emulator import emulate_channel
+from diffpos.paths.model import graded_paths
+from diffpos.tracking.links import _IS_DIFF
+from diffpos.tracking.model import ENTRY_SIGMAS
+from diffpos.tracking.snr import SNR_SIGMA_DB
+from diffpos.tracking.state import TrackerConfig
 
 
 def penalty(run: Run, p_m: np.ndarray, anchors_m: np.ndarray, meas_m: np.ndarray,

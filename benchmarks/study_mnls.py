@@ -38,7 +38,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
 from diffpos.study import (
     FirstArrivalData,

@@ -7,7 +7,7 @@ Usage::
     python benchmarks/whatif_skip_term.py 0.15 REC.mcap    # the term, tolerance 0.15 m
     python benchmarks/whatif_skip_term.py soft REC.mcap    # the "soft" term (below)
 
-The tracker's first-arrival rule (:func:`diffpos.tracking_paths.candidates`) lets a
+The tracker's first-arrival rule (:func:`diffpos.tracking.links.candidates`) lets a
 diffraction path earlier than the chosen mechanism be skipped at no cost ("it may be too
 weak"), while the emulator's detector reports the earliest path above its threshold. The
 prototype adds to every slot ``k`` of the tracker's SNR cost, per link with a measured SNR,
@@ -21,7 +21,7 @@ the probability that ``j`` precedes ``k`` at the true position (``s_kj^2 = (J_k 
 (J_k - J_j)^T``, ``P`` the hypothesis' prior covariance) and is above the threshold; the least
 such charge over the hypothesis' height and +- its existence margin (``2 sigma_z``, what
 must have been detected wherever the node may be). Numpy, three path evaluations and
-predictions more per update: several times the tracker's CPU. It wraps :func:`diffpos.tracking_model.snr_cost_near` and runs
+predictions more per update: several times the tracker's CPU. It wraps :func:`diffpos.tracking.model.snr_cost_near` and runs
 ``diffpos replay FILE --workers 1 ...`` in this process.
 """
 
@@ -32,10 +32,10 @@ import sys
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
-import diffpos.tracking_model as tm
-from diffpos.channel import pair_snr_db
-from diffpos.tracking_paths import _IS_DIFF
-from diffpos.tracking_snr import SNR_SIGMA_DB
+import diffpos.tracking.model as tm
+from diffpos.channel.emulator import pair_snr_db
+from diffpos.tracking.links import _IS_DIFF
+from diffpos.tracking.snr import SNR_SIGMA_DB
 
 _orig = tm.snr_cost_near
 
@@ -127,7 +127,7 @@ def main(argv: list[str]) -> int:
         return 2
     if argv[0] == "soft":
         tm.snr_cost_near = _with_soft_term()
-        import diffpos.tracking_dormant as td
+        import diffpos.tracking.dormant as td
 
         tm.measurement_update = _stash_prior(tm.measurement_update)
         td.measurement_update = tm.measurement_update

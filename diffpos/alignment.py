@@ -51,7 +51,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .anchor_history import StateHistory, hermite_interpolate
+from diffpos.anchor_history import StateHistory, hermite_interpolate
 
 __all__ = [
     "AlignmentConfig",

@@ -28,10 +28,10 @@ from diffpos.bounds import (
     path_jacobian,
     position_error_bound,
 )
+from diffpos.channel.gtd import window_edge_fields
+from diffpos.channel.linkbudget import db_to_linear, free_space_path_gain_db, ranging_crlb_m, snr_db
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.geometry import window_edge_path
-from diffpos.gtd import window_edge_fields
-from diffpos.linkbudget import db_to_linear, free_space_path_gain_db, ranging_crlb_m, snr_db
 from diffpos.scenario import Building, Scenario
 
 __all__ = [
@@ -59,7 +59,7 @@ class BoundMapSettings:
     diffraction : {"fixed", "utd"}
         How the diffracted power is obtained: Friis over the path length minus
         ``diffraction_loss_db``, or the UTD field of the upper window edge for x-polarised
-        isotropic anchors (:func:`diffpos.gtd.window_edge_fields`).
+        isotropic anchors (:func:`diffpos.channel.gtd.window_edge_fields`).
     diffraction_loss_db : float [dB]
         Fixed extra loss of the diffracted path relative to free space (``"fixed"``).
     model : {"diffraction", "los"}

@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .geometry import los_path, window_edge_path
+from diffpos.geometry import los_path, window_edge_path
 
 __all__ = [
     "DEFAULT_MAX_CONDITION",
@@ -447,7 +447,7 @@ def position_error_bound(
         Node positions; broadcast against the leading dimensions of ``anchors_m``. E.g.
         anchors ``(M, 3)`` and nodes ``(N, 3)`` give bounds of shape ``(N,)``.
     sigmas_m : array_like, shape (..., M) [m]
-        Ranging standard deviations (e.g. :func:`diffpos.linkbudget.ranging_crlb_m` at each
+        Ranging standard deviations (e.g. :func:`diffpos.channel.linkbudget.ranging_crlb_m` at each
         link's SNR); ``(M,)`` or ``(N, M)``. ``inf`` drops a link.
     window_height_m : float [m]
         Window height ``w``.

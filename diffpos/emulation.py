@@ -11,7 +11,7 @@ time and random generators passed in (``numpy.random.Generator``; never global):
   Gauss-Markov bias plus white noise) and velocity noise;
 - :func:`clock_time_ns`: a true time stamped with the anchor's clock (offset + jitter);
 - :func:`first_arrivals`: range, sigma, SNR and detection of the first-arriving path to each
-  node (the O2I channel emulator of :mod:`diffpos.channel`, or the ideal upper-edge path with
+  node (the O2I channel emulator of :mod:`diffpos.channel.emulator`, or the ideal upper-edge path with
   noise at the ranging CRLB).
 """
 
@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.channel import emulate_channel, first_arrival, pair_first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival, pair_first_arrival
+from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
 from diffpos.geometry import window_edge_path
-from diffpos.linkbudget import db_to_linear, ranging_crlb_m
 from diffpos.scenario import Scenario
 from diffpos.trajectory import trajectory_from_dict
 
@@ -218,10 +218,10 @@ def first_arrivals(anchor_m: np.ndarray, nodes_m: np.ndarray, scenario: Scenario
     rng : numpy.random.Generator
         Measurement noise.
     kernel : bool
-        ``emulator``: the compiled per-pair detector (:func:`diffpos.channel.
+        ``emulator``: the compiled per-pair detector (:func:`diffpos.channel.emulator.
         pair_first_arrival`, ~100x less CPU per epoch; the same draws, equal to rounding);
-        ``False``: the numpy emulator (:func:`~diffpos.channel.emulate_channel` +
-        :func:`~diffpos.channel.first_arrival`), the reference.
+        ``False``: the numpy emulator (:func:`~diffpos.channel.emulator.emulate_channel` +
+        :func:`~diffpos.channel.emulator.first_arrival`), the reference.
 
     Returns
     -------

@@ -17,7 +17,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from diffpos.channel import Channel, emulate_channel, first_arrival, mpc_statistics
+from diffpos.channel.emulator import Channel, emulate_channel, first_arrival, mpc_statistics
 from diffpos.scenario import Scenario
 from diffpos.study import (
     METHOD_LABELS,

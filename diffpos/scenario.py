@@ -36,7 +36,7 @@ numbers chosen for :func:`default_scenario` and why:
   floor) is the node's nominal height, i.e. mid-floor, which is the paper's Assumption 1.
 - Width 40 m (window edges span ``x`` in [-20, 20]), depth 22.5 m.
 - Exterior walls, floor slabs and ground of ITU-R P.2040 "concrete" (0.2 m walls, 0.3 m
-  slabs: about 90 dB and 135 dB of loss at 28 GHz, see ``diffpos.channel.slab_loss_db``); the
+  slabs: about 90 dB and 135 dB of loss at 28 GHz, see ``diffpos.channel.emulator.slab_loss_db``); the
   windows are plain glass with negligible loss (paper, citing Honcharenko et al.).
 - Interior partitions of ITU-R P.2040 "plasterboard", 2 x 12.5 mm (about 6 dB at 28 GHz):
   three walls perpendicular to the facade at ``x = -10, 0, 10`` m and a corridor wall
@@ -62,8 +62,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .constants import SPEED_OF_LIGHT_M_S
-from .trajectory import Hover, Static, Trajectory, Waypoints, trajectory_from_dict
+from diffpos.constants import SPEED_OF_LIGHT_M_S
+from diffpos.trajectory import Hover, Static, Trajectory, Waypoints, trajectory_from_dict
 
 __all__ = [
     "ITU_MATERIALS",

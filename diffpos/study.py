@@ -3,7 +3,7 @@
 Nothing here knows where the first arrivals came from: :class:`FirstArrivalData` holds, per
 node x anchor link, the measured range, its SNR and ranging sigma, the MPC group of the
 first-arriving path and its arrival angle. :meth:`FirstArrivalData.from_channel` builds it
-from the emulator (:mod:`diffpos.channel`); a ray-traced dataset (e.g. Sionna RT) only has to
+from the emulator (:mod:`diffpos.channel.emulator`); a ray-traced dataset (e.g. Sionna RT) only has to
 fill the same arrays to replace the emulator.
 
 :func:`positioning_study` runs the estimators of the paper's Fig. "positioning results" on
@@ -20,7 +20,7 @@ key                method
 ``dnls_case2``     D-NLS with the model offset ``Delta`` (default 1.5 m, half a floor)
 ``dnls_lower``     (extra) D-NLS modelling the *lower* window edge (``Delta = w``)
 ``mnls``           M-NLS: mechanism-aware NLS on the first-arrival path model
-                   (:func:`diffpos.estimators.mnls`; needs the ``building``, uses the SNR
+                   (:func:`diffpos.estimators.mnls.solver`; needs the ``building``, uses the SNR
                    with the ``radio``)
 =================  ==========================================================================
 
@@ -47,10 +47,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .bounds import position_error_bound
-from .chi_square import chi2_3_quantile
-from .estimators import dnls, ippa, lls, mnls
-from .linkbudget import db_to_linear, ranging_crlb_m
+from diffpos.bounds import position_error_bound
+from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
+from diffpos.chi_square import chi2_3_quantile
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.ippa import ippa
+from diffpos.estimators.lls import lls
+from diffpos.estimators.mnls.solver import mnls
 
 __all__ = [
     "DEFAULT_METHODS",
@@ -133,7 +136,7 @@ class FirstArrivalData:
 
     @classmethod
     def from_channel(cls, fap: Any, anchors_m: ArrayLike, nodes_m: ArrayLike) -> FirstArrivalData:
-        """From a :class:`diffpos.channel.FirstArrival` and the positions it was computed at."""
+        """From a :class:`diffpos.channel.emulator.FirstArrival` and the positions it was computed at."""
         return cls(
             anchors_m=np.asarray(anchors_m, dtype=np.float64),
             nodes_m=np.asarray(nodes_m, dtype=np.float64),
@@ -167,7 +170,7 @@ class FirstArrivalData:
 
         ``anchors_m, nodes_m, range_m, snr_db, detected`` are required. ``sigma_m`` may be
         omitted if ``bandwidth_hz`` is given (then it is ``sqrt(CRLB^2 + floor^2)``, the ranging
-        CRLB at ``snr_db`` and ``range_error_floor_m``, as :func:`diffpos.channel.first_arrival`);
+        CRLB at ``snr_db`` and ``range_error_floor_m``, as :func:`diffpos.channel.emulator.first_arrival`);
         ``mpc_class`` defaults to 0 (unknown) and ``aoa_deg`` to NaN.
         """
         missing = [k for k in ("anchors_m", "nodes_m", "range_m", "snr_db", "detected")

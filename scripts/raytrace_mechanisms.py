@@ -5,7 +5,7 @@
     python scripts/raytrace_mechanisms.py --positioning out/rep-emu-paper out/rep-rt-paper
 
 For a dataset written by ``diffpos raytrace`` (with ``path_vertices_m``) prints, as markdown:
-every traced path classified into the 18 mechanisms of diffpos.paths and its length vs the
+every traced path classified into the 18 mechanisms of diffpos.paths.model and its length vs the
 model's closed form (:func:`diffpos_services.raytrace.mechanisms.mechanism_length_check`); the
 first-arrival share per mechanism, emulator vs ray tracer, the per-link agreement and the
 cause of every difference (:func:`diffpos_services.raytrace.mechanism_mix.compare_mechanisms`).
@@ -25,7 +25,7 @@ from diffpos_services import raytrace as rt
 from diffpos_services.raytrace import mechanism_mix as mx
 from diffpos_services.raytrace import mechanisms as mm
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.reproduction import study_rngs
 
 

@@ -43,7 +43,7 @@ exclusion needs ``|S| >= 5``; otherwise a failed test gives ``GATING_FAILED``.
 
 3. **Plausible height (``z_range_m``).** A fix that passes the test (status ``OK``) but lies
    outside the plausible node heights (default: below ground) is reported ``GATING_FAILED``
-   (applied in :func:`~diffpos.estimators.dnls`; :meth:`FixResult.message` explains it).
+   (applied in :func:`~diffpos.estimators.dnls.solver`; :meth:`FixResult.message` explains it).
 """
 
 from __future__ import annotations
@@ -56,9 +56,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import chdtri  # chi-square inverse survival function (chi2.isf)
 
-from ..geometry import los_path
-from ._core import LMResult, PathModel, cost_of, levenberg_marquardt
-from .result import ExclusionReason
+from diffpos.estimators.lm import LMResult, PathModel, cost_of, levenberg_marquardt
+from diffpos.estimators.result import ExclusionReason
+from diffpos.geometry import los_path
 
 __all__ = ["GatingConfig", "chi2_threshold", "wall_pregate"]
 

@@ -37,8 +37,15 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .dnls import _check_z_starts, grid_starts
-from .result import ExclusionReason, FixResult, FixStatus, PreparedBatch, prepare_batch
+from diffpos.estimators.dnls.fit import grid_starts
+from diffpos.estimators.dnls.solver import _check_z_starts
+from diffpos.estimators.result import (
+    ExclusionReason,
+    FixResult,
+    FixStatus,
+    PreparedBatch,
+    prepare_batch,
+)
 
 __all__ = ["ippa"]
 

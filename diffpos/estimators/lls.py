@@ -21,9 +21,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..bounds import bounds_from_fim, fisher_information
-from ..geometry import los_path
-from .result import ExclusionReason, FixResult, FixStatus, prepare_batch
+from diffpos.bounds import bounds_from_fim, fisher_information
+from diffpos.estimators.result import ExclusionReason, FixResult, FixStatus, prepare_batch
+from diffpos.geometry import los_path
 
 __all__ = ["lls", "lls_positions"]
 

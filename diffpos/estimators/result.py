@@ -1,6 +1,6 @@
 """Result type shared by the batched estimators, status codes and input preparation.
 
-Every estimator (:func:`~diffpos.estimators.dnls`, :func:`~diffpos.estimators.lls`,
+Every estimator (:func:`~diffpos.estimators.dnls.solver`, :func:`~diffpos.estimators.lls`,
 :func:`~diffpos.estimators.ippa`) returns one :class:`FixResult` holding batched arrays: row
 ``i`` is the fix of problem ``i``. Per-fix human-readable messages are built lazily by
 :meth:`FixResult.message` so that a batch of 100,000 fixes costs no string formatting.

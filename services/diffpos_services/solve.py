@@ -31,8 +31,11 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.estimators import GatingConfig, dnls, ippa, lls, mnls
-from diffpos.estimators.dnls import DEFAULT_Z_STARTS_M
+from diffpos.estimators.dnls.solver import DEFAULT_Z_STARTS_M, dnls
+from diffpos.estimators.gating import GatingConfig
+from diffpos.estimators.ippa import ippa
+from diffpos.estimators.lls import lls
+from diffpos.estimators.mnls.solver import mnls
 from diffpos_services.wire.solve_io import (
     DEFAULT_LIMITS,
     RESULT_KEYS,

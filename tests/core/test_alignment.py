@@ -9,12 +9,11 @@ from diffpos.alignment import (
     AlignmentConfig,
     EpochBook,
     RangeEntry,
-    StateHistory,
     compensate_node_motion,
     effective_sigma_m,
     epoch_of,
-    hermite_interpolate,
 )
+from diffpos.anchor_history import StateHistory, hermite_interpolate
 from diffpos.geometry import window_edge_path
 
 

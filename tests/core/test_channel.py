@@ -8,17 +8,10 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize, minimize_scalar
 
-from diffpos.channel import (
-    MECHANISMS,
-    MPC_CLASS,
-    emulate_channel,
-    first_arrival,
-    fresnel_coefficients,
-    itu_permittivity,
-    mpc_statistics,
-    slab_loss_db,
-)
+from diffpos.channel.emulator import MPC_CLASS, emulate_channel, first_arrival, mpc_statistics
+from diffpos.channel.slots import fresnel_coefficients, itu_permittivity, slab_loss_db
 from diffpos.constants import SPEED_OF_LIGHT_M_S as C
+from diffpos.paths.model import MECHANISMS
 from diffpos.scenario import Building, Partition, Radio, default_scenario
 
 SLOT = {m: i for i, m in enumerate(MECHANISMS)}
@@ -208,10 +201,10 @@ def test_deep_node_far_above_x_polarised_anchor_sees_upper_edge_first():
 
 @pytest.mark.parametrize("y_n", [3.0, 8.0, 15.0])
 def test_upper_lower_power_ratio_is_the_core_field_model(y_n):
-    """The emulator's upper/lower diffraction powers are those of diffpos.gtd's window-edge
+    """The emulator's upper/lower diffraction powers are those of diffpos.channel.gtd's window-edge
     fields (no partitions): x polarisation favours the upper edge (Theorem 3), vertical (z)
     polarisation the lower edge."""
-    from diffpos.gtd import power_ratio_exact
+    from diffpos.channel.gtd import power_ratio_exact
 
     b = Building(partitions=())
     zc = float(b.floor_z_m(3)) + b.nominal_node_height_m

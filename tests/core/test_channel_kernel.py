@@ -1,8 +1,8 @@
-"""The compiled SNR prediction (diffpos._kernels.channel_nb) against the numpy emulator.
+"""The compiled SNR prediction (diffpos.channel.snr_nb) against the numpy emulator.
 
-:func:`diffpos.channel.pair_snr_db` runs the numba kernel; the reference is the emulator's own
-numpy computation (:func:`diffpos.channel._pair_snr_db_numpy` = ``_slots`` of
-:func:`diffpos.channel.emulate_channel`). The kernel repeats the reference's geometry with the
+:func:`diffpos.channel.emulator.pair_snr_db` runs the numba kernel; the reference is the emulator's own
+numpy computation (:func:`diffpos.channel.emulator._pair_snr_db_numpy` = ``_slots`` of
+:func:`diffpos.channel.emulator.emulate_channel`). The kernel repeats the reference's geometry with the
 same floating-point operations (so existence, i.e. the ``-inf`` pattern, must agree exactly,
 also for nodes next to the window band's edges), leaves out phase factors common to all field
 components (they cancel in ``|gain|``) and evaluates the Faddeeva function itself.
@@ -11,7 +11,7 @@ Tolerances:
 
 * Faddeeva ``w(z)`` vs ``scipy.special.wofz``: 5e-14 relative (measured max 2.3e-14 on the
   sampled upper half-plane, 1.4e-14 on the UTD ray; scipy's own accuracy is ~1e-15 to 1e-14);
-  the UTD transition function vs :func:`diffpos.gtd.transition_function`: 5e-14 relative.
+  the UTD transition function vs :func:`diffpos.channel.gtd.transition_function`: 5e-14 relative.
 * SNR: 1e-9 dB. An SNR is ``20 log10 |g|`` + constants, so a relative error ``d`` of ``|g|``
   is ``8.7 d`` dB: the kernel's sources of error are rounding (~1e-16 relative per operation,
   a few hundred operations) and the 5e-14 of ``w``, amplified where the soft/hard coefficient
@@ -36,11 +36,11 @@ import numpy as np
 import pytest
 from scipy.special import wofz
 
-from diffpos import channel
-from diffpos._kernels import channel_nb
-from diffpos.channel import _pair_snr_db_numpy, emulate_channel, first_arrival, pair_snr_db
-from diffpos.estimators import mnls
-from diffpos.gtd import transition_function
+from diffpos.channel import emulator as channel
+from diffpos.channel import snr_nb as channel_nb
+from diffpos.channel.emulator import _pair_snr_db_numpy, emulate_channel, first_arrival, pair_snr_db
+from diffpos.channel.gtd_halfplane import transition_function
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import Building, Partition, Radio
 
 RTOL_W = 5e-14
@@ -136,7 +136,7 @@ def test_faddeeva_over_the_upper_half_plane_matches_scipy() -> None:
 
 
 def test_transition_function_matches_gtd() -> None:
-    """``F(X)`` of the kernel vs :func:`diffpos.gtd.transition_function` (scipy's wofz) from
+    """``F(X)`` of the kernel vs :func:`diffpos.channel.gtd.transition_function` (scipy's wofz) from
     X = 0 to 1e12, densely around the switch to the asymptotic series; the limits F(0) = 0,
     F ~ sqrt(pi X) exp(j pi/4) (X -> 0) and F -> 1 + j / (2X) (X -> inf) follow."""
     xmin = channel_nb.TRANSITION_ASYMPTOTIC_MIN
@@ -270,7 +270,7 @@ def test_mnls_fixes_unchanged_with_the_kernel(monkeypatch: pytest.MonkeyPatch) -
                     radio=r, bandwidth_hz=r.bandwidth_hz, error_floor_m=r.range_error_floor_m)
 
     with_kernel = fix()
-    monkeypatch.setattr(sys.modules["diffpos.channel"], "pair_snr_db", _pair_snr_db_numpy)
+    monkeypatch.setattr(sys.modules["diffpos.channel.emulator"], "pair_snr_db", _pair_snr_db_numpy)
     with_numpy = fix()
     np.testing.assert_array_equal(with_kernel.floor, with_numpy.floor)
     np.testing.assert_array_equal(with_kernel.mechanism, with_numpy.mechanism)
@@ -285,7 +285,7 @@ def test_mnls_fixes_unchanged_with_the_kernel(monkeypatch: pytest.MonkeyPatch) -
 
 @pytest.mark.parametrize("bname", ["default", "tall_glass_parts", "slit_open"])
 def test_pair_first_arrival_equals_the_numpy_emulator(bname: str) -> None:
-    """:func:`diffpos.channel.pair_first_arrival` (compiled SNR + compiled path lengths) vs
+    """:func:`diffpos.channel.emulator.pair_first_arrival` (compiled SNR + compiled path lengths) vs
     :func:`emulate_channel` + :func:`first_arrival` on the same pairs with the same noise
     draws: the same detections and first-arrival choice (true path equal to 1e-9 m: lengths
     agree to rounding, so a different slot would differ by centimetres at least), SNR within

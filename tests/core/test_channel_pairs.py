@@ -1,4 +1,4 @@
-"""The SNR kernel's complex fields carried as (re, im) pairs (diffpos._kernels.channel_rays_nb)
+"""The SNR kernel's complex fields carried as (re, im) pairs (diffpos.channel.rays_nb)
 against numba's complex arithmetic: equal values (``==``: at most the sign of a zero differs,
 which no later step sees), so the SNR kernels' outputs are unchanged by the pairs.
 
@@ -20,8 +20,8 @@ import math
 import numpy as np
 from numba import njit
 
-from diffpos._kernels.channel_rays_nb import _cmul, _cross, _norm_c, _reflect, _unit, _utd_term_ri
-from diffpos._kernels.transition_nb import TRANSITION_ASYMPTOTIC_MIN, _utd_term
+from diffpos.channel.rays_nb import _cmul, _cross, _norm_c, _reflect, _unit, _utd_term_ri
+from diffpos.channel.transition_nb import TRANSITION_ASYMPTOTIC_MIN, _utd_term
 
 
 def _cases():

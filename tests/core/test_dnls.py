@@ -11,7 +11,9 @@ from scipy.optimize import least_squares
 
 from diffpos.bounds import position_error_bound
 from diffpos.constants import SPEED_OF_LIGHT_M_S
-from diffpos.estimators import ExclusionReason, FixStatus, GatingConfig, dnls
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.gating import GatingConfig
+from diffpos.estimators.result import ExclusionReason, FixStatus
 from diffpos.geometry import window_edge_path
 
 PAPER_ANCHORS_M = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
@@ -256,7 +258,7 @@ def test_bad_shapes_name_the_field():
 @pytest.mark.parametrize("edge_x_m", [None, (-5.0, 8.0)])
 def test_fused_solver_model_equals_window_edge_path(edge_x_m):
     """The solver's fused path model is the geometry module's window_edge_path."""
-    from diffpos.estimators._core import PathModel
+    from diffpos.estimators.lm import PathModel
 
     rng = np.random.default_rng(18)
     anchors, nodes = _random_scene(rng, 200, 5)

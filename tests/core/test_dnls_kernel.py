@@ -20,9 +20,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from diffpos._kernels.dnls_nb import warm_dnls
-from diffpos.channel import emulate_channel, first_arrival
-from diffpos.estimators import FixStatus, GatingConfig, dnls
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.estimators.dnls.fit_nb import warm_dnls
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.gating import GatingConfig
+from diffpos.estimators.result import FixStatus
 from diffpos.geometry import window_edge_path
 from diffpos.scenario import default_scenario
 

@@ -7,6 +7,7 @@ import types
 import numpy as np
 import pytest
 
+from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
 from diffpos.emulation import (
     NavigationError,
     TimeBase,
@@ -16,7 +17,6 @@ from diffpos.emulation import (
     responders,
 )
 from diffpos.geometry import window_edge_path
-from diffpos.linkbudget import db_to_linear, ranging_crlb_m
 from diffpos.scenario import default_scenario
 
 

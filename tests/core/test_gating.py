@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from diffpos.estimators import ExclusionReason, FixStatus, GatingConfig, chi2_threshold, dnls
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.gating import GatingConfig, chi2_threshold
+from diffpos.estimators.result import ExclusionReason, FixStatus
 from diffpos.geometry import los_path, window_edge_path
 
 SIX_ANCHORS_M = np.array([[-20.0, -20.0, 2.0], [-5.0, -12.0, 0.0], [0.0, -7.0, 6.0],

@@ -1,4 +1,4 @@
-"""GTD/UTD half-plane diffraction (diffpos.gtd) against independent references.
+"""GTD/UTD half-plane diffraction (diffpos.channel.gtd) against independent references.
 
 References used: direct quadrature of the transition-function integral, the Fresnel-integral
 form, its asymptotic series, Sommerfeld's exact half-plane solution (written with Fresnel
@@ -13,7 +13,7 @@ import pytest
 from scipy.integrate import quad
 from scipy.special import fresnel
 
-from diffpos import gtd
+from diffpos.channel import gtd
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.geometry import diffraction_point
 

@@ -1,7 +1,7 @@
-"""numba keys a kernel's on-disk cache (``diffpos/_kernels/__pycache__``) on the stamp (mtime,
+"""numba keys a kernel's on-disk cache (the ``__pycache__`` beside it) on the stamp (mtime,
 size) of the kernel's OWN source file, not on the files of the functions it compiles in: after
-an edit of ``paths_nb.py`` a developer's warm cache would keep serving ``tracking_nb``'s,
-``mnls_nb``'s, ``iekf_nb``'s and ``channel_nb``'s kernels with the old path code (a fresh clone
+an edit of ``paths/model_nb.py`` a developer's warm cache would keep serving the tracker's,
+M-NLS's and the SNR prediction's kernels with the old path code (a fresh clone
 cannot be stale). So every kernel module that imports another ``*_nb`` module at its top
 carries ``CALLEES_SHA256``: a digest of the code (the AST, comments and the stamp line itself
 left out) of every ``*_nb`` module it compiles in, transitively. This test recomputes them
@@ -14,22 +14,24 @@ import ast
 import hashlib
 from pathlib import Path
 
-import diffpos._kernels as kernels
+import diffpos
 
-DIR = Path(kernels.__file__).parent
+CORE = Path(diffpos.__file__).parent
 STAMP = "CALLEES_SHA256"
+#: Every compiled kernel module of the core, by dotted name (they live beside their references).
+KERNELS = {".".join(("diffpos", *p.relative_to(CORE).with_suffix("").parts)): p
+           for p in sorted(CORE.rglob("*_nb.py"))}
 
 
 def _tree(name: str) -> ast.Module:
-    return ast.parse((DIR / f"{name}.py").read_text(), filename=f"{name}.py")
+    return ast.parse(KERNELS[name].read_text(), filename=str(KERNELS[name]))
 
 
 def _callees(name: str) -> set[str]:
-    """The ``*_nb`` modules ``name`` imports at module level (``from .x_nb import ...``; an
-    import inside a function is a Python call, not compiled in)."""
+    """The ``*_nb`` modules ``name`` imports at module level (an import inside a function is
+    a Python call, not compiled in)."""
     return {n.module for n in _tree(name).body
-            if isinstance(n, ast.ImportFrom) and n.level == 1 and n.module
-            and n.module.endswith("_nb")}
+            if isinstance(n, ast.ImportFrom) and n.level == 0 and n.module in KERNELS}
 
 
 def _closure(name: str) -> list[str]:
@@ -65,23 +67,29 @@ def _stamp(name: str) -> str | None:
     return None
 
 
+PATHS, TRACKER, IEKF, DNLS = ("diffpos.paths.model_nb", "diffpos.tracking.model_nb",
+                              "diffpos.tracking.iekf_nb", "diffpos.estimators.dnls.fit_nb")
+
+
 def test_every_kernel_module_stamps_the_code_it_compiles_in():
-    dependants = sorted(p.stem for p in DIR.glob("*_nb.py") if _callees(p.stem))
-    assert {"channel_nb", "iekf_nb", "mnls_nb", "tracking_nb"} <= set(dependants)
+    dependants = sorted(m for m in KERNELS if _callees(m))
+    assert {"diffpos.channel.snr_nb", IEKF, "diffpos.estimators.mnls.solver_nb",
+            TRACKER} <= set(dependants)
     wrong = {m: digest(m) for m in dependants if _stamp(m) != digest(m)}
-    assert not wrong, ("a callee changed (or a stamp is missing): set these in "
-                       f"diffpos/_kernels/<module>.py ({STAMP} = \"...\"): {wrong}")
+    assert not wrong, ("a callee changed (or a stamp is missing): set these in the module "
+                       f"({STAMP} = \"...\"): {wrong}")
 
 
 def test_the_digest_follows_a_callee_edit_only(monkeypatch):
-    """A code edit of paths_nb changes the digest of its dependants (tracking_nb directly,
-    iekf_nb through tracking_nb too), a comment does not, an unrelated module is unchanged."""
-    before = {m: digest(m) for m in ("tracking_nb", "iekf_nb", "dnls_nb")}
-    src = (DIR / "paths_nb.py").read_text()
+    """A code edit of the path kernel changes the digest of its dependants (the tracker's
+    model kernel directly, the IEKF through it too), a comment does not, an unrelated module
+    is unchanged."""
+    before = {m: digest(m) for m in (TRACKER, IEKF, DNLS)}
+    src = KERNELS[PATHS].read_text()
 
     def patched(text):
         def tree(name):
-            s = text if name == "paths_nb" else (DIR / f"{name}.py").read_text()
+            s = text if name == PATHS else KERNELS[name].read_text()
             return ast.parse(s)
         return tree
 
@@ -89,6 +97,6 @@ def test_the_digest_follows_a_callee_edit_only(monkeypatch):
     assert {m: digest(m) for m in before} == before
     monkeypatch.setitem(globals(), "_tree", patched(src + "\n_X = 1\n"))
     after = {m: digest(m) for m in before}
-    assert after["tracking_nb"] != before["tracking_nb"]
-    assert after["iekf_nb"] != before["iekf_nb"]
-    assert after["dnls_nb"] == before["dnls_nb"]
+    assert after[TRACKER] != before[TRACKER]
+    assert after[IEKF] != before[IEKF]
+    assert after[DNLS] == before[DNLS]

@@ -20,16 +20,19 @@ import threading
 import numpy as np
 import pytest
 
-import diffpos.tracking_init as tracking_init
-import diffpos.tracking_paths as tracking_paths
-from diffpos._kernels import channel_nb, pool
-from diffpos.channel import emulate_channel, first_arrival, pair_snr_db
-from diffpos.estimators import mnls
+import diffpos.tracking.initialisation as tracking_init
+import diffpos.tracking.links as tracking_paths
+from diffpos._kernels import pool
+from diffpos.channel import snr_nb as channel_nb
+from diffpos.channel.emulator import emulate_channel, first_arrival, pair_snr_db
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import Building, default_scenario
-from diffpos.tracking import TrackerConfig, init_state, update
-from diffpos.tracking_model import Links, all_paths, grid_starts
+from diffpos.tracking.initialisation import grid_starts
+from diffpos.tracking.links import Links, all_paths
+from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import init_state, update
 
-mnls_mod = importlib.import_module("diffpos.estimators.mnls")  # the package exports mnls()
+mnls_mod = importlib.import_module("diffpos.estimators.mnls.solver")  # the package exports mnls()
 _RADIO = default_scenario().radio
 _BUILDINGS = [
     dataclasses.replace(Building(), n_floors=7, floor_height_m=3.6, first_floor_z_m=3.0,

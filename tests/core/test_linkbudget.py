@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from diffpos.linkbudget import (
+from diffpos.channel.linkbudget import (
     db_to_linear,
     dbm_to_watt,
     free_space_path_gain_db,

@@ -5,7 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from diffpos.estimators import FixStatus, dnls, ippa, lls
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.ippa import ippa
+from diffpos.estimators.lls import lls
+from diffpos.estimators.result import FixStatus
 from diffpos.geometry import los_path, window_edge_path
 
 ANCHORS_M = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from diffpos.estimators._core import PathModel, levenberg_marquardt
+from diffpos.estimators.lm import PathModel, levenberg_marquardt
 from diffpos.geometry import window_edge_path
 
 #: 8 UAVs on an arc in front of the facade (the geometry of the fusion's synthetic replay).

@@ -8,12 +8,14 @@ import sys
 import numpy as np
 import pytest
 
-from diffpos.channel import emulate_channel, first_arrival
-from diffpos.estimators import FixStatus, MnlsResult, mnls
-from diffpos.paths import first_arrival_paths
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.estimators.mnls.result import MnlsResult
+from diffpos.estimators.mnls.solver import mnls
+from diffpos.estimators.result import FixStatus
+from diffpos.paths.model import first_arrival_paths
 from diffpos.scenario import Building, Radio, default_scenario
 
-_mn = sys.modules["diffpos.estimators.mnls"]
+_mn = sys.modules["diffpos.estimators.mnls.solver"]
 
 
 def _variant() -> Building:

@@ -11,7 +11,7 @@ import itertools
 import numpy as np
 import pytest
 
-from diffpos.estimators._mnls_starts import _grid
+from diffpos.estimators.mnls.starts import _grid
 from diffpos.scenario import Building
 
 

@@ -1,4 +1,4 @@
-"""First-arrival path model (diffpos.paths) against an independent brute-force reference.
+"""First-arrival path model (diffpos.paths.model) against an independent brute-force reference.
 
 The reference does not unfold anything: for every mechanism it minimises the total length of
 the polyline anchor -> P_1 -> ... -> P_k -> node over the free coordinates of the interaction
@@ -18,9 +18,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from diffpos.channel import MECHANISMS as CHANNEL_MECHANISMS
-from diffpos.channel import emulate_channel
-from diffpos.paths import MECHANISMS, first_arrival_paths
+from diffpos.channel.emulator import emulate_channel
+from diffpos.paths.model import MECHANISMS, first_arrival_paths
+from diffpos.paths.model import MECHANISMS as CHANNEL_MECHANISMS
 from diffpos.scenario import Building, Radio
 
 # (kind, name) of the interaction points of every slot, in path order

@@ -1,7 +1,7 @@
-"""The compiled path model (diffpos._kernels.paths_nb) against the numpy reference.
+"""The compiled path model (diffpos.paths.model_nb) against the numpy reference.
 
-:func:`diffpos.paths.first_arrival_paths` runs the numba kernel; the reference is the numpy
-implementation kept beside it (:func:`diffpos.paths._first_arrival_paths_numpy`, itself tested
+:func:`diffpos.paths.model.first_arrival_paths` runs the numba kernel; the reference is the numpy
+implementation kept beside it (:func:`diffpos.paths.model._first_arrival_paths_numpy`, itself tested
 against a brute-force optimiser and the channel emulator in tests/core/test_paths.py). The
 kernel performs the reference's floating-point operations in the same order, so:
 
@@ -22,8 +22,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diffpos._kernels import paths_nb
-from diffpos.paths import (
+from diffpos.paths import model_nb as paths_nb
+from diffpos.paths.model import (
     _RECIPES,
     MECHANISMS,
     FloorFrame,

@@ -10,8 +10,8 @@ import pytest
 from diffpos_services.cli import main as cli
 from diffpos_services.reports.power_ratio import CSV_COLUMNS
 
-from diffpos import gtd
-from diffpos.power_ratio_sweep import first_crossing_deg
+from diffpos.channel import gtd
+from diffpos.channel.power_ratio import first_crossing_deg
 
 F_HZ = 28e9
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from diffpos_services.reports import study as report
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.reproduction import (
     REPRODUCE_METHODS,
     Arrivals,

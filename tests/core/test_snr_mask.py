@@ -1,12 +1,12 @@
 """The tracker's SNR cost with partial predictions (only the slots that are used).
 
-* :func:`diffpos._kernels.channel_nb.channel_snr_masked_kernel` (``pair_snr_db(need=...)``)
+* :func:`diffpos.channel.snr_nb.channel_snr_masked_kernel` (``pair_snr_db(need=...)``)
   against the unmasked kernel: every needed slot bit for bit (the same per-slot function), NaN
   elsewhere.
-* :func:`diffpos._kernels.channel_nb.snr_cost_kernel` against its numpy reference
+* :func:`diffpos.channel.snr_nb.snr_cost_kernel` against its numpy reference
   (``tracking_snr._snr_cost_of_numpy``): bit for bit (no transcendental function), with
   unknown SNRs, slots without power, NaN predictions and a given threshold.
-* :func:`diffpos.tracking_snr.snr_cost_near` against a brute-force reference that predicts
+* :func:`diffpos.tracking.snr.snr_cost_near` against a brute-force reference that predicts
   all 18 slots of every link at the hypothesis and at both shifted heights (the algorithm
   before the masks): bit for bit with the shifted point's threshold; with the prior's
   threshold (``HOLE_THRESHOLD_AT_PRIOR``) the hole slots equal the brute force given that
@@ -24,10 +24,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import diffpos.tracking_snr as tm
-from diffpos.channel import pair_snr_db
+import diffpos.tracking.snr as tm
+from diffpos.channel.emulator import pair_snr_db
 from diffpos.scenario import Building, Radio
-from diffpos.tracking_paths import K_SLOTS, Links, _relax, all_paths
+from diffpos.tracking.links import K_SLOTS, Links, _relax, all_paths
 
 BUILDINGS = [
     Building(),
@@ -197,7 +197,7 @@ def test_kernels_get_writeable_contiguous_arrays(monkeypatch):
     ``warm_channel`` (the live service's first epochs). Every array the tracker's SNR cost
     hands to the kernels is writeable and C-contiguous, and the values are those of plain
     copies."""
-    from diffpos._kernels import channel_nb
+    from diffpos.channel import snr_nb as channel_nb
 
     channel_nb.warm_channel()
     seen = []

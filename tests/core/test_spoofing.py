@@ -18,7 +18,9 @@ import pytest
 from diffpos_services.scenario_io import load_scenario
 from scipy.stats import binomtest
 
-from diffpos.estimators import FixStatus, GatingConfig, dnls
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.gating import GatingConfig
+from diffpos.estimators.result import FixStatus
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "bench_spoofing.py"
 

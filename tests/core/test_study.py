@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.geometry import window_edge_path
 from diffpos.study import (
     FirstArrivalData,
@@ -145,7 +145,7 @@ def test_reproduce_accepts_a_raytrace_dataset(tmp_path, paper):
     raytrace = pytest.importorskip("diffpos_services.raytrace")
     from diffpos_services.cli.main import main
 
-    from diffpos.channel import MPC_CLASS, mpc_statistics
+    from diffpos.channel.emulator import MPC_CLASS, mpc_statistics
 
     nodes = paper.node_positions_m()[::200]
     anchors = paper.anchor_positions_m()

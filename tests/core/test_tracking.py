@@ -1,4 +1,4 @@
-"""Tracker (diffpos.tracking): motion model, measurement update, lifecycle, determinism.
+"""Tracker (diffpos.tracking.tracker): motion model, measurement update, lifecycle, determinism.
 
 Every reference is independent of the code under test: Van Loan's matrix-exponential
 discretisation for the process noise, a brute-force grid posterior for the update, the
@@ -10,21 +10,19 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking import (
+from diffpos.tracking.imm import _transition_matrix, process_noise
+from diffpos.tracking.links import Links, eval_paths
+from diffpos.tracking.model import Selection, iekf
+from diffpos.tracking.state import (
     TrackerConfig,
     TrackerState,
     TrackStatus,
-    _publish,
-    _transition_matrix,
     hypothesis_floor,
     hypothesis_vertical,
-    init_state,
-    process_noise,
-    update,
 )
-from diffpos.tracking_model import Links, Selection, eval_paths, iekf
+from diffpos.tracking.tracker import _publish, init_state, update
 from diffpos.trajectory import trajectory_from_dict
 
 SC = default_scenario()

@@ -1,5 +1,5 @@
 """Calibration of the tracker's published floor probabilities
-(:func:`diffpos.tracking_state.published_floor_probabilities`).
+(:func:`diffpos.tracking.state.published_floor_probabilities`).
 
 Geometry of this test only (not a shipped scenario): 6 floors of 3.4 m from 0.5 m, 1.0 m sills,
 1.5 m windows, a 26 x 14 m building, 4 UAVs 0.8-3 m high in front of the facade, six walking
@@ -16,17 +16,16 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.emulation import responders
 from diffpos.scenario import AnchorSpec, NodeSpec, default_scenario
-from diffpos.tracking import (
+from diffpos.tracking.state import (
     TrackerConfig,
+    evidence_temper,
     floor_probabilities,
-    init_state,
     published_floor_probabilities,
-    update,
 )
-from diffpos.tracking_state import evidence_temper
+from diffpos.tracking.tracker import init_state, update
 from diffpos.trajectory import Static
 
 _RUN = None

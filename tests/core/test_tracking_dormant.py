@@ -1,9 +1,9 @@
-"""Dormant hypotheses of the tracker (diffpos.tracking, ``TrackerConfig.dormant``).
+"""Dormant hypotheses of the tracker (diffpos.tracking.tracker, ``TrackerConfig.dormant``).
 
 A hypothesis the data has decided against skips its measurement update until a refresh, an
 inflow of probability through a physical transition, or a poorly fitting best hypothesis
 wakes it. References: the full run (every hypothesis updated every epoch, ``dormant=False``),
-the (N, H) measurement update of :func:`diffpos.tracking_model.measurement_update`, closed-form
+the (N, H) measurement update of :func:`diffpos.tracking.model.measurement_update`, closed-form
 refresh times, the IMM's own predicted probabilities. Ranges and SNR from the emulator's
 channel (fixed seeds); tolerances stated per test.
 """
@@ -15,23 +15,20 @@ import functools
 
 import numpy as np
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking import (
+from diffpos.tracking.dormant import _dormant_log_p, _refresh_due, _update_pairs
+from diffpos.tracking.imm import _mix
+from diffpos.tracking.links import Links
+from diffpos.tracking.model import measurement_update
+from diffpos.tracking.state import (
     TrackerConfig,
     TrackStatus,
-    _dormant_log_p,
-    _mix,
-    _refresh_due,
-    _update_pairs,
     hypothesis_floor,
     hypothesis_vertical,
-    init_state,
-    predict,
     published_floor_probabilities,
-    update,
 )
-from diffpos.tracking_model import Links, measurement_update
+from diffpos.tracking.tracker import init_state, predict, update
 from diffpos.trajectory import trajectory_from_dict
 
 SC = default_scenario()

@@ -1,7 +1,7 @@
-"""The measurement update's shared kernel inputs (diffpos.tracking_model._iekf_fixed,
-_select_fixed) and the broadcast without a copy (diffpos.tracking_paths._cb).
+"""The measurement update's shared kernel inputs (diffpos.tracking.model._iekf_fixed,
+_select_fixed) and the broadcast without a copy (diffpos.tracking.links._cb).
 
-:func:`diffpos.tracking_model.measurement_update` makes the inputs of the IEKF and of the
+:func:`diffpos.tracking.model.measurement_update` makes the inputs of the IEKF and of the
 selection that depend on neither the paths nor the selection once per update and hands them
 to every selection pass. The reference here is the update as it was before: every pass'
 ``select`` and ``iekf`` computing their own inputs (written out below from the public pieces);
@@ -18,33 +18,29 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diffpos._kernels.iekf_nb import iekf_kernel
-from diffpos._kernels.paths_nb import building_planes
-from diffpos._kernels.tracking_nb import select_best_kernel, select_mix_kernel, select_pack_kernel
+from diffpos.paths.model_nb import building_planes
 from diffpos.scenario import Building, default_scenario
-from diffpos.tracking import TrackerConfig
-from diffpos.tracking_model import (
+from diffpos.tracking.iekf_nb import iekf_kernel
+from diffpos.tracking.links import _IS_DIFF, Links, _c, _cb, all_paths
+from diffpos.tracking.model import (
     _LOG2PI,
     _LOG_N,
-    SNR_SIGMA_DB,
-    SNR_SPAN_DB,
-    Links,
     Selection,
     _box,
     _height_prior,
     _iekf_fixed,
     _paths_at,
     _select_fixed,
-    all_paths,
     clamp_to_floor,
     existence_margin,
     iekf,
     measurement_update,
     prior_information,
     select,
-    snr_cost_near,
 )
-from diffpos.tracking_paths import _IS_DIFF, _c, _cb
+from diffpos.tracking.model_nb import select_best_kernel, select_mix_kernel, select_pack_kernel
+from diffpos.tracking.snr import SNR_SIGMA_DB, SNR_SPAN_DB, snr_cost_near
+from diffpos.tracking.state import TrackerConfig
 
 _BUILDINGS = [
     dataclasses.replace(Building(), n_floors=6, floor_height_m=3.6, first_floor_z_m=2.0,

@@ -1,7 +1,7 @@
 """The tracker's compiled measurement model against its numpy reference.
 
-:func:`diffpos.tracking_model._model` (one compiled pass, ``diffpos._kernels.tracking_nb``)
-must give the same numbers bit for bit as :func:`diffpos.tracking_model._model_numpy` (the
+:func:`diffpos.tracking.model._model` (one compiled pass, ``diffpos.tracking.model_nb``)
+must give the same numbers bit for bit as :func:`diffpos.tracking.model._model_numpy` (the
 path model once per distinct slot + the straight line by ``einsum``): the kernel calls the
 same per-row path function the path kernel runs for ``graded_paths`` and computes the
 straight line with the same operations in the same order, so equality is exact, not a
@@ -29,18 +29,22 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diffpos._kernels.grid_nb import GRID_BOUND_SLACK_M, grid_cost_kernel
-from diffpos._kernels.paths_nb import building_planes
-from diffpos.paths import MECHANISMS
+from diffpos.paths.model import MECHANISMS
+from diffpos.paths.model_nb import building_planes
 from diffpos.scenario import Building, default_scenario
-from diffpos.tracking import TrackerConfig
-from diffpos.tracking_init import _grid_cells
-from diffpos.tracking_model import (
+from diffpos.tracking.initialisation import _grid_cells, _grid_starts_numpy, grid_starts
+from diffpos.tracking.initialisation_nb import GRID_BOUND_SLACK_M, grid_cost_kernel
+from diffpos.tracking.links import (
+    _IS_BAND,
+    _IS_DIFF,
     Links,
-    Selection,
     _all_paths_numpy,
+    all_paths,
+    candidates,
+)
+from diffpos.tracking.model import (
+    Selection,
     _box,
-    _grid_starts_numpy,
     _iekf_numpy,
     _iekf_terms,
     _iekf_terms_numpy,
@@ -51,16 +55,14 @@ from diffpos.tracking_model import (
     _select_numpy,
     _select_prep,
     _select_prep_numpy,
-    all_paths,
     clamp_to_floor,
-    grid_starts,
     iekf,
     measurement_update,
     prior_information,
     select,
-    snr_cost_near,
 )
-from diffpos.tracking_paths import _IS_BAND, _IS_DIFF, candidates
+from diffpos.tracking.snr import snr_cost_near
+from diffpos.tracking.state import TrackerConfig
 
 _BUILDINGS = [
     Building(),
@@ -269,7 +271,7 @@ def test_no_mechanism_is_shorter_than_the_straight_line(bi):
 @pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
 def test_all_paths_kernel_bit_identical_to_graded_paths(bi):
     """Every slot's raw length, Jacobian and existence grades of the compiled pass equal
-    :func:`diffpos.paths.graded_paths` (the tracker's previous route), for hypotheses inside
+    :func:`diffpos.paths.model.graded_paths` (the tracker's previous route), for hypotheses inside
     and outside their floor's box and several band widenings (0 included)."""
     b = _BUILDINGS[bi]
     for seed, relax in ((0, 0.0), (1, 0.2), (2, 1.0)):

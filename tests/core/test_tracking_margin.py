@@ -1,6 +1,6 @@
 """The tracker's existence margin follows every hypothesis' own height uncertainty.
 
-:func:`diffpos.tracking_model.existence_margin`: a specular mechanism enters through the
+:func:`diffpos.tracking.model.existence_margin`: a specular mechanism enters through the
 window band at the height where the unfolded ray from the anchor to the (mirrored) node
 crosses the facade; moving the node by ``dz`` in height moves that entry point by ``t dz``,
 ``0 < t < 1`` (the fraction of the unfolded ray outside the building). So a hypothesis whose
@@ -9,7 +9,7 @@ height is uncertain by ``sigma_z`` may have every specular mechanism whose entry
 loose height called the links of such a mechanism impossible and scored them as outliers, and
 a mirror floor that explained every link won (the default scenario's top-floor descent).
 
-Reference: the emulator's own first arrivals (:func:`diffpos.channel.first_arrival`, its
+Reference: the emulator's own first arrivals (:func:`diffpos.channel.emulator.first_arrival`, its
 detected mechanism per link) at the true position, on a building and UAV layout that is not in
 scenarios/ (3.3 m floors, 0.8 m sill, 1.3 m windows, 30 x 16 m, one UAV beyond a facade end).
 """
@@ -20,18 +20,13 @@ import dataclasses
 
 import numpy as np
 
-from diffpos.channel import emulate_channel, first_arrival
-from diffpos.paths import SPECULAR_SLOTS
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.paths.model import SPECULAR_SLOTS
 from diffpos.scenario import default_scenario
-from diffpos.tracking import TrackerConfig
-from diffpos.tracking_model import (
-    ENTRY_SIGMAS,
-    Links,
-    _all_paths_numpy,
-    all_paths,
-    existence_margin,
-    snr_cost_near,
-)
+from diffpos.tracking.links import Links, _all_paths_numpy, all_paths
+from diffpos.tracking.model import ENTRY_SIGMAS, existence_margin
+from diffpos.tracking.snr import snr_cost_near
+from diffpos.tracking.state import TrackerConfig
 
 _SC = default_scenario()
 _B = dataclasses.replace(_SC.building, n_floors=4, floor_height_m=3.3, first_floor_z_m=1.0,

@@ -1,9 +1,9 @@
-"""Row independence of :func:`diffpos.tracking.update`, bit for bit: the fusion's worker pool
+"""Row independence of :func:`diffpos.tracking.tracker.update`, bit for bit: the fusion's worker pool
 (services/diffpos_services/fusion/workers.py) splits a batch's rows over processes and
 relies on it. A batch with UNINITIALISED (new), INITIALISING, TRACKING and COASTING rows is
 updated in one call, in two halves, interleaved (even/odd rows) and in three uneven chunks;
 every output and every field of the new state must be the same bytes. The same for the M-NLS
-snapshot fixes (:func:`diffpos.estimators.mnls`), which the pool splits too."""
+snapshot fixes (:func:`diffpos.estimators.mnls.solver`), which the pool splits too."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ import dataclasses
 
 import numpy as np
 
-import diffpos.estimators as est
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.estimators.mnls import solver as est
 from diffpos.scenario import default_scenario
-from diffpos.tracking import TrackerConfig, TrackerState, TrackStatus, init_state, update
+from diffpos.tracking.state import TrackerConfig, TrackerState, TrackStatus
+from diffpos.tracking.tracker import init_state, update
 
 SC = default_scenario()
 B = SC.building
@@ -95,7 +96,7 @@ def test_update_rows_are_independent_bit_for_bit():
 
 
 def test_mnls_rows_are_independent_bit_for_bit():
-    """:func:`diffpos.estimators.mnls` (the fusion's snapshot fixes, also split by the worker
+    """:func:`diffpos.estimators.mnls.solver` (the fusion's snapshot fixes, also split by the worker
     pool): one call on 10 nodes' epochs with the measured SNR equals the same rows in halves,
     interleaved and in uneven chunks, every field to the byte (messages too)."""
     _, a, r, s, m, snr = list(_inputs(seed=3))[-1]

@@ -1,11 +1,11 @@
-"""The tracker's SNR term near a path's existence boundary (diffpos.tracking_model).
+"""The tracker's SNR term near a path's existence boundary (diffpos.tracking.model).
 
 Measured on the recorded default run (top-floor walker at the nominal height, 17.5 m): the
 ceiling-floor double bounce through the window exists at 17.5 m but not 5-10 cm higher, so a
 prior a few cm too high scored that link's strong measured SNR as "no such path" and the
 detector threshold against a path that exists only on the far side of a band edge; every
 such epoch cost the true floor 1.4-4 nats and the track locked onto the mirror floor below.
-The reference here is the emulator's amplitude model itself (diffpos.channel.pair_snr_db) at
+The reference here is the emulator's amplitude model itself (diffpos.channel.emulator.pair_snr_db) at
 heights where the path surely exists / does not exist.
 """
 
@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from diffpos.channel import pair_snr_db
+from diffpos.channel.emulator import pair_snr_db
 from diffpos.scenario import default_scenario
-from diffpos.tracking import TrackerConfig
-from diffpos.tracking_model import Links, snr_cost, snr_cost_near
+from diffpos.tracking.links import Links
+from diffpos.tracking.snr import snr_cost, snr_cost_near
+from diffpos.tracking.state import TrackerConfig
 
 SC = default_scenario()
 B, RADIO = SC.building, SC.radio

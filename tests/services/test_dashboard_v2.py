@@ -1,6 +1,6 @@
 """Dashboard and estimate v2: mechanism paths, floor probabilities, decoding both versions.
 
-References: the path model's own lengths (:func:`diffpos.paths.first_arrival_paths`, image
+References: the path model's own lengths (:func:`diffpos.paths.model.first_arrival_paths`, image
 method / Fermat point) against the length of the drawn polyline; the message fields against
 the logged rows read back with Rerun's reader.
 """
@@ -19,7 +19,7 @@ from diffpos_services.dashboard.geometry import Tracks
 from diffpos_services.dashboard.mechanisms import building_of_outline, mechanism_strips, recipe
 from diffpos_services.wire import messages as M
 
-from diffpos.paths import MECHANISMS, first_arrival_paths
+from diffpos.paths.model import MECHANISMS, first_arrival_paths
 from diffpos.scenario import default_scenario
 
 B = default_scenario().building

@@ -33,7 +33,7 @@ from diffpos_services.recording.writer import McapSink
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
 
 SC = default_scenario()
@@ -182,8 +182,8 @@ def test_initialisations_and_snapshot_fixes_come_after_the_other_estimates_of_th
     _, plain = _run(limit)
     emitted: list = []
     events: list = []  # per step: "step", then "emit" and "fix" as they happen
-    mnls, step = tracked.est.mnls, FusionCore.step
-    monkeypatch.setattr(tracked.est, "mnls", lambda *a, **k: events.append("fix") or mnls(*a, **k))
+    mnls, step = tracked.mnls_solver.mnls, FusionCore.step
+    monkeypatch.setattr(tracked.mnls_solver, "mnls", lambda *a, **k: events.append("fix") or mnls(*a, **k))
     monkeypatch.setattr(FusionCore, "step",
                         lambda *a, **k: events.append("step") or step(*a, **k))
     _, late = _run(limit, emit=lambda ests: events.append("emit") or emitted.extend(ests))
@@ -524,7 +524,7 @@ def test_a_lagging_step_holds_the_newest_epoch_it_can_initialise_from():
     epoch, so b (enough in its newest) is held instead; without ``newest`` a is held with
     both its epochs. (The ranges' values are not read: only how many there are.)"""
     from diffpos.alignment import PendingEpoch
-    from diffpos.tracking import TrackerConfig
+    from diffpos.tracking.state import TrackerConfig
     bank = tracked.TrackBank(B)
     k = TrackerConfig().min_ranges_init
 

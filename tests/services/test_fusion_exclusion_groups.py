@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from diffpos_services.fusion.solve import exclusion_groups
 
-from diffpos.estimators import ExclusionReason
+from diffpos.estimators.result import ExclusionReason
 
 REASONS = [0, *(int(r) for r in ExclusionReason)]
 

@@ -384,7 +384,7 @@ def test_persistently_failing_node_is_not_cold_solved_every_epoch(monkeypatch):
     """A node whose fixes keep failing (4 anchors, one biased: detectable, not removable) gets a
     multi-start (cold) solve at most once per cold_retry_period_s of measurement time; in
     between it is warm-started from the last attempt. A healthy node stays warm throughout."""
-    import diffpos.estimators as est
+    from diffpos.estimators.dnls import solver as est
 
     calls = []
     real = est.dnls

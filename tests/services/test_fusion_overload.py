@@ -178,7 +178,7 @@ def test_a_node_without_a_confirmed_track_keeps_every_ready_epoch():
     legacy setting of a replay of an older recording): every node is coalesced, as before."""
     import numpy as np
 
-    from diffpos.tracking_state import TrackStatus
+    from diffpos.tracking.state import TrackStatus
     status = {"u": TrackStatus.UNINITIALISED, "l": TrackStatus.LOST,
               "i": TrackStatus.INITIALISING, "t": TrackStatus.TRACKING}
     q = _backlog(["u", "l", "i", "t"], range(10, 20))

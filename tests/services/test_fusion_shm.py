@@ -17,7 +17,7 @@ from diffpos_services.fusion import shm
 from diffpos_services.fusion.rows import take_rows
 
 from diffpos.scenario import default_scenario
-from diffpos.tracking import init_state
+from diffpos.tracking.tracker import init_state
 
 
 def _same(a, b) -> bool:

@@ -2,7 +2,7 @@
 replay equivalence, coasting; the old v1 sample still replays.
 
 The fusion's input is made independently of the fusion: the channel emulator
-(:func:`diffpos.channel.emulate_channel` + the first-arrival detector) ranges from five static
+(:func:`diffpos.channel.emulator.emulate_channel` + the first-arrival detector) ranges from five static
 UAVs to three walkers of the default building (one takes the stairs), packed into the wire
 messages an anchor publishes (AnchorState + RangeBatch per anchor and epoch). No processes, no
 bus; fixed seeds.
@@ -25,8 +25,8 @@ from diffpos_services.recording.writer import McapSink
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 
-from diffpos.channel import emulate_channel, first_arrival
-from diffpos.paths import MECHANISMS
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.paths.model import MECHANISMS
 from diffpos.scenario import default_scenario
 from diffpos.trajectory import trajectory_from_dict
 

@@ -30,7 +30,8 @@ from diffpos_services.recording.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 
 from diffpos.scenario import default_scenario
-from diffpos.tracking import TrackerState, init_state
+from diffpos.tracking.state import TrackerState
+from diffpos.tracking.tracker import init_state
 
 
 def test_cli_workers_default_value_and_validation():

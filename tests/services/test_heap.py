@@ -11,8 +11,9 @@ import pytest
 from diffpos_services.heap import keep_heap
 
 from diffpos.scenario import Building
-from diffpos.tracking import TrackerConfig
-from diffpos.tracking_model import Links, measurement_update
+from diffpos.tracking.links import Links
+from diffpos.tracking.model import measurement_update
+from diffpos.tracking.state import TrackerConfig
 
 
 def _update():

@@ -139,7 +139,7 @@ def test_receivers_outside_the_building_are_refused() -> None:
 
 def test_traced_mechanisms_have_the_model_length_on_another_building() -> None:
     """A building unlike the paper's (3.4 m floors, 1.1 m windows at 1.0 m, 31 m wide, one
-    partition): every traced path classified into one of diffpos.paths' 18 mechanisms has the
+    partition): every traced path classified into one of diffpos.paths.model' 18 mechanisms has the
     model's closed-form length on the receiver's floor to 0.1 mm (Sionna's float32 leaves
     ~10 um), and the model says the mechanism exists for almost all of them."""
     sc = default_scenario()

@@ -16,7 +16,7 @@ import pytest
 from diffpos_services import raytrace as rt
 from scipy.optimize import minimize_scalar
 
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.geometry import diffraction_point
 from diffpos.scenario import default_scenario
 

@@ -1,7 +1,7 @@
-"""Ray-traced paths -> the 18 mechanisms of diffpos.paths (no Sionna needed).
+"""Ray-traced paths -> the 18 mechanisms of diffpos.paths.model (no Sionna needed).
 
 Two references: (1) synthetic "traced" paths built from the model's own interaction points
-(:func:`diffpos.paths.specular_path` / :func:`diffracted_path`) on a building that is not the
+(:func:`diffpos.paths.model.specular_path` / :func:`diffracted_path`) on a building that is not the
 paper's (other floor height, window band, width, a partition), which the classifier must map
 back to their slot; (2) the committed Sionna RT dataset ``tests/data/raytrace_mech_small.npz``
 (60 receivers x 4 anchors of the paper scenario, 1e5 samples, seed 1: a subset of
@@ -21,7 +21,7 @@ from diffpos_services import raytrace as rt
 from diffpos_services.raytrace import mechanism_mix as mx
 from diffpos_services.raytrace import mechanisms as mm
 
-from diffpos.paths import _RECIPES, MECHANISMS, FloorFrame, diffracted_path, specular_path
+from diffpos.paths.model import _RECIPES, MECHANISMS, FloorFrame, diffracted_path, specular_path
 from diffpos.scenario import Partition, default_scenario
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "raytrace_mech_small.npz"

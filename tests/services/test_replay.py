@@ -268,7 +268,7 @@ def test_replay_method_lls_gives_the_lls_fix_of_each_epoch(rec, no_motion_comp):
     """``--method lls`` goes through FusionConfig.method: every fix equals diffpos.estimators.lls
     called directly on that epoch's recorded anchor positions and ranges (static anchors, no
     motion compensation, so the fusion's inputs are exactly the recorded values)."""
-    from diffpos.estimators import lls
+    from diffpos.estimators.lls import lls
 
     r = replay(rec, method="lls", overrides={"motion_compensation": False})
     assert r.report["method"] == r.report["settings"]["method"] == "lls"

@@ -10,7 +10,7 @@ import numpy as np
 from diffpos_services.reports import power_ratio
 from diffpos_services.reports.replay import _denominator
 
-from diffpos.power_ratio_sweep import PowerRatioSweep, compute_sweep
+from diffpos.channel.power_ratio import PowerRatioSweep, compute_sweep
 
 
 def _legend_vs_artists(fig):

@@ -20,9 +20,9 @@ from diffpos_services.solve import solve_records
 from diffpos_services.wire.solve_io import DEFAULT_LIMITS, decode_line, parse_problem
 from diffpos_services.wire.solve_line import parse_line
 
-from diffpos.estimators import mnls
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.geometry import los_path, window_edge_path
-from diffpos.paths import first_arrival_paths
+from diffpos.paths.model import first_arrival_paths
 
 ROOT = Path(__file__).resolve().parents[2]
 PROBLEM_SCHEMA = json.loads((ROOT / "schemas" / "solve_problem.v1.json").read_text())

@@ -16,7 +16,7 @@ from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.tracked import TrackBank, _snapshot_due
 
 from diffpos.scenario import Building
-from diffpos.tracking import TrackStatus
+from diffpos.tracking.state import TrackStatus
 
 
 def _bank():

@@ -27,7 +27,8 @@ from diffpos_services.recording.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 
 from diffpos.scenario import default_scenario
-from diffpos.tracking import TrackerConfig, init_state
+from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import init_state
 
 pytestmark = pytest.mark.system
 
@@ -277,10 +278,10 @@ _WARM_CHECK = """
 import json, sys
 import numpy as np
 from numba.core.registry import CPUDispatcher
-import diffpos.estimators as est
-from diffpos.channel import emulate_channel, first_arrival
+from diffpos.estimators.mnls import solver as est
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking import TrackerConfig, init_state, update
+from diffpos.tracking.tracker import TrackerConfig, init_state, update
 from diffpos_services.fusion.warm import warm_model
 
 def loaded():

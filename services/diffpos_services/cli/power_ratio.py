@@ -47,7 +47,7 @@ import math
 import sys
 from pathlib import Path
 
-from diffpos.power_ratio_sweep import PowerRatioSweep, compute_sweep
+from diffpos.channel.power_ratio import PowerRatioSweep, compute_sweep
 from diffpos_services.reports import power_ratio as report
 
 

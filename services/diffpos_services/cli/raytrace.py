@@ -145,7 +145,7 @@ def _report(ds: rtm.RaytraceDataset, console: Console) -> None:
 
 
 def _report_mechanisms(ds: rtm.RaytraceDataset, console: Console) -> None:
-    """First-arrival share per mechanism of diffpos.paths (emulator | ray tracer)."""
+    """First-arrival share per mechanism of diffpos.paths.model (emulator | ray tracer)."""
     mix = rtm.compare_mechanisms(ds)
     t = Table(title=f"first-arrival mechanism over {mix['links']} links [%] (same mechanism on "
               f"{mix['agreement']:.1f} % of links)")

@@ -7,7 +7,7 @@ floor (17,600 receivers).
 
 What it does, in order:
 
-1. Channels. For every receiver x anchor link the O2I emulator (diffpos.channel) lists the
+1. Channels. For every receiver x anchor link the O2I emulator (diffpos.channel.emulator) lists the
    multipath components: MPC-1 direct (through the window, or through concrete), MPC-2 single
    reflections (ground, floor, ceiling, walls), MPC-3 diffraction over the upper/lower window
    edge of the receiver's floor (UTD, plus drywall partitions crossed), MPC-4 higher order

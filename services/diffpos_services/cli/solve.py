@@ -36,7 +36,7 @@ Problem fields (JSON Schema: schemas/solve_problem.v1.json):
                                       diffracted is not modelled as a diffraction)
   id               any JSON value     echoed back unchanged
 
-M-NLS (method mnls) is the mechanism-aware estimator (diffpos.estimators.mnls): every floor of
+M-NLS (method mnls) is the mechanism-aware estimator (diffpos.estimators.mnls.solver): every floor of
 the building a hypothesis, the first-arrival mechanism of each link (window, reflections,
 diffraction over the physical edges, double bounces) a latent choice, a one-sided robust
 likelihood, a floor posterior and a covariance that includes the model ambiguity. It needs
@@ -80,7 +80,7 @@ examples:
   diffpos solve --method mnls --scenario scenarios/paper.toml < problems.jsonl
 
 From Python: diffpos_services.solve.solve_records(list_of_problem_dicts, scenario=...) returns
-the result dicts; diffpos.estimators.dnls / lls / ippa / mnls work on numpy arrays directly.
+the result dicts; diffpos.estimators.dnls.solver / lls / ippa / mnls work on numpy arrays directly.
 """
 
 from __future__ import annotations

@@ -407,14 +407,12 @@ class Emulation:
         # imported here, after the message: importing dnls_nb compiles it (explicit signatures)
         # (dnls_nb, mnls_nb, mnls_starts_nb and lm_nb compile on import; every service imports
         # them)
-        from diffpos._kernels import (  # noqa: F401
-            channel_nb,
-            dnls_nb,
-            mnls_nb,
-            mnls_starts_nb,
-            paths_nb,
-            tracking_nb,
-        )
+        import diffpos.channel.snr_nb as channel_nb
+        import diffpos.estimators.dnls.fit_nb as dnls_nb
+        import diffpos.estimators.mnls.solver_nb
+        import diffpos.estimators.mnls.starts_nb  # noqa: F401 (compiles on import)
+        import diffpos.paths.model_nb as paths_nb
+        import diffpos.tracking.model_nb as tracking_nb
         paths_nb.warm_paths()
         dnls_nb.warm_dnls()
         channel_nb.warm_channel()  # the SNR prediction of mnls and the tracker

@@ -36,7 +36,7 @@ __all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES
 METHODS = ("mnls", "dnls", "lls", "ippa")
 #: What ``diffpos fusion``, :meth:`FusionConfig.from_scenario` and ``diffpos emulate`` run:
 #: the first-arrival model with the per-responder tracker. With the compiled SNR prediction
-#: (diffpos/_kernels/channel_nb.py) a real-time ``diffpos emulate`` of the paper's geometry
+#: (diffpos/channel/snr_nb.py) a real-time ``diffpos emulate`` of the paper's geometry
 #: keeps up on 2 cores (2026-11-27, load 3: 100 % availability, 86.3 % right floor, end-to-end
 #: latency p50 34 / p99 249 ms); ``scenarios/large.toml`` (8 x 50) does not yet at real time.
 DEFAULT_METHOD = "mnls"
@@ -185,7 +185,7 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     starts are D-NLS-only; ``lls``/``ippa`` get the same (motion-compensated) ranges,
     effective sigmas and masks."""
     tracking: bool = True
-    """With ``mnls``: run the per-responder tracker (:mod:`diffpos.tracking`: floor x
+    """With ``mnls``: run the per-responder tracker (:mod:`diffpos.tracking.tracker`: floor x
     {level, vertical} hypotheses, one iterated EKF each) on every epoch's ranges and publish
     its filtered estimate (the mnls snapshot fix rides along); ignored by the other methods."""
     snapshot_period_s: Annotated[float, Meta(ge=0)] = 1.0

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
-from diffpos.estimators import GatingConfig
+from diffpos.estimators.gating import GatingConfig
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.decisions import DecisionLog
 from diffpos_services.fusion.estimates_v1 import v1_estimates

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from diffpos.alignment import PendingEpoch
-from diffpos.estimators import FixStatus
+from diffpos.estimators.result import FixStatus
 from diffpos_services.fusion.solve import GOOD_STATUS, Batch, Results, exclusion_groups, gated_count
 from diffpos_services.wire import messages as M
 

@@ -18,7 +18,8 @@ import math
 
 import numpy as np
 
-from diffpos.alignment import EpochBook, PendingEpoch, StateHistory
+from diffpos.alignment import EpochBook, PendingEpoch
+from diffpos.anchor_history import StateHistory
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.kit import log_event
 from diffpos_services.wire import messages as M

@@ -20,7 +20,7 @@ import math
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from diffpos.tracking_state import TrackStatus
+from diffpos.tracking.state import TrackStatus
 from diffpos_services.fusion.config import LEGACY_ADMIT_LAG_S
 
 __all__ = ["BEHIND_KEEP_EPOCHS", "OverloadPolicy", "ready_span", "shed", "supersede"]

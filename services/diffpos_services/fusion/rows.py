@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.tracking import TrackerState, update
-from diffpos.tracking_snr import snr_reuse_on
-from diffpos.tracking_state import SNR_CACHE_LINKS, SNR_CACHE_SLOTS
+from diffpos.tracking.snr import snr_reuse_on
+from diffpos.tracking.state import SNR_CACHE_LINKS, SNR_CACHE_SLOTS, TrackerState
+from diffpos.tracking.tracker import update
 
 __all__ = ["concat_rows", "preloaded_bounds", "run_update", "share_bounds", "slim_state",
            "take_rows"]
@@ -89,7 +89,7 @@ _SNR_CACHE = ("snr_node", "snr_anchor", "snr_pred")
 
 def slim_state(sub: TrackerState, config: Any) -> TrackerState:
     """``sub`` without its SNR cache fields (None) when the tracker neither reads nor carries
-    them (:func:`diffpos.tracking_snr.snr_reuse_on` false: both reuse margins 0): they are
+    them (:func:`diffpos.tracking.snr.snr_reuse_on` false: both reuse margins 0): they are
     7.2 of the ~11 KB per row that would cross the pipe both ways for nothing. With the
     default margins (0.05 / 0.1 m) reuse is on and the whole state crosses (1.4 MB each way
     for a 128-row share: ~2 ms of the caller's CPU, bench_workers.py)."""
@@ -100,7 +100,7 @@ def slim_state(sub: TrackerState, config: Any) -> TrackerState:
 
 def run_update(building: Any, sub: TrackerState, anchors, ranges, sigmas, mask, t_ns, snr_db,
                config, radio) -> tuple[TrackerState, Any]:
-    """:func:`diffpos.tracking.update` of a share of rows, ``sub`` possibly slimmed by
+    """:func:`diffpos.tracking.tracker.update` of a share of rows, ``sub`` possibly slimmed by
     :func:`slim_state`: the missing cache fields are given as read-only NaN views (never read
     nor written with reuse off: a write would raise, and the share be redone by the caller)
     and returned as None (the caller keeps its own, unchanged rows)."""

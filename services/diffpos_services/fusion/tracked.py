@@ -4,7 +4,7 @@ Used by :meth:`FusionCore._solve <diffpos_services.fusion.core.FusionCore._solve
 method is ``mnls``: the epochs of a batch (gathered and prepared by
 :mod:`diffpos_services.fusion.solve`) get
 
-- the snapshot fix :func:`diffpos.estimators.mnls` on the scenario's building (every row
+- the snapshot fix :func:`diffpos.estimators.mnls.solver` on the scenario's building (every row
   without tracking; with tracking only the rows whose node never had one, whose node the
   tracker does not place (UNINITIALISED, LOST: the snapshot is then the only fix of it), or
   whose last snapshot is ``snapshot_period_s`` of measurement time old; for a *confident*
@@ -13,7 +13,7 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
   published alongside (``PositionEstimateV2.snapshot``, an independent check of the track) and
   never feeds the tracker, nor anything else of the fusion (no divergence test or
   re-initialisation reads it: the tracker's own initialisation is its grid snapshot,
-  :func:`diffpos.tracking_model.snapshot_init`), so this policy changes no tracked estimate,
+  :func:`diffpos.tracking.model.snapshot_init`), so this policy changes no tracked estimate,
   only the CPU: an mnls fix costs ~7 ms with 8 anchors, i.e. 0.7 ms per node-epoch at 10 Hz
   with a 1 s period, more than the tracker's update. (Until 2026-11-27 an unconfirmed track
   got one every epoch: 1,654 instead of 661 snapshots in the 30 s soak replay, the tracked
@@ -23,7 +23,7 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
   the node-epochs of ``default`` / ``large`` / ``other-building``, its floor then right in
   96.6 / 99.9 / 95.3 % of them (44.7 / 64.7 / 8.6 % when not confident): the confident
   tracks get a snapshot every 10 s, the doubtful ones every second;
-- with tracking, the update of :mod:`diffpos.tracking` (per node: floor x {level, vertical}
+- with tracking, the update of :mod:`diffpos.tracking.tracker` (per node: floor x {level, vertical}
   hypotheses, one iterated EKF each, mixed between epochs): all the
   batch's nodes in one vectorised call per *round* (a round holds at most one epoch per node,
   oldest first, so a backlog of several epochs of one node is applied in time order). A node
@@ -50,7 +50,7 @@ input, `bench_fusion_cost.py --schedule`: 36,833 / 39,760 -> 49,564 / 50,509 of 
 ``heavy=None`` (replay of steps without a limit, flush, tests) is unbounded.
 
 :class:`TrackBank` holds the tracker state of every node the core has seen (rows of one
-:class:`~diffpos.tracking.TrackerState`); it is part of the network-free core, so a replay
+:class:`~diffpos.tracking.tracker.TrackerState`); it is part of the network-free core, so a replay
 re-runs it. Everything is a function of the inputs: no clock, no randomness. Without a budget a
 node's result depends only on its own epochs (rows are independent in every vectorised step),
 so any batching gives the same numbers bit for bit; with one, also on the steps' ``limit``
@@ -72,18 +72,12 @@ from typing import Any
 
 import numpy as np
 
-import diffpos.estimators as est
 from diffpos.alignment import PendingEpoch
-from diffpos.estimators import ExclusionReason, FixStatus
-from diffpos.paths import MECHANISMS
-from diffpos.tracking import (
-    TrackerConfig,
-    TrackerState,
-    TrackStatus,
-    floor_probabilities,
-    init_state,
-    update,
-)
+from diffpos.estimators.mnls import solver as mnls_solver
+from diffpos.estimators.result import ExclusionReason, FixStatus
+from diffpos.paths.model import MECHANISMS
+from diffpos.tracking.state import TrackerConfig, TrackerState, TrackStatus, floor_probabilities
+from diffpos.tracking.tracker import init_state, update
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
 from diffpos_services.fusion.workers import INIT_COST, RowPool, run_update, slim_state
@@ -251,8 +245,8 @@ class TrackBank:
                sigmas: np.ndarray, mask: np.ndarray, t_ns: np.ndarray,
                snr_db: np.ndarray | None = None, radio: Any = None):
         """One epoch of ranges (and their SNR, NaN: unknown) for distinct ``node_ids``:
-        :func:`diffpos.tracking.update` on their rows (``radio`` overrides the bank's);
-        returns the :class:`~diffpos.tracking.TrackOutput`."""
+        :func:`diffpos.tracking.tracker.update` on their rows (``radio`` overrides the bank's);
+        returns the :class:`~diffpos.tracking.tracker.TrackOutput`."""
         rows = self.rows_of(node_ids)
         fields = TrackerState.__dataclass_fields__
         sub = TrackerState(*(getattr(self.state, f)[rows] for f in fields))
@@ -274,7 +268,7 @@ class TrackBank:
 
 
 def _update_rows(building, sub, anchors, ranges, sigmas, mask, t_ns, snr_db, config, radio):
-    """:func:`diffpos.tracking.update` of ``sub``'s rows (what a worker runs for its share)."""
+    """:func:`diffpos.tracking.tracker.update` of ``sub``'s rows (what a worker runs for its share)."""
     return update(sub, anchors, ranges, sigmas, mask, t_ns, building, config, snr_db=snr_db,
                   radio=radio)
 
@@ -350,7 +344,7 @@ def _mnls_start(rows: np.ndarray, prep: Prepared, batch: Batch, model,
             None if radio is None else batch.snr[rows])
 
     def here(apos, rng, sig, mask, snr, radio_):
-        return est.mnls(apos, rng, sig, building=building, mask=mask, snr_db=snr, radio=radio_)
+        return mnls_solver.mnls(apos, rng, sig, building=building, mask=mask, snr_db=snr, radio=radio_)
 
     if pool is None or pool.building is not building:  # computed when collected
         return rows, None, lambda _: here(*args, radio)

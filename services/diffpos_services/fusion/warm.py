@@ -14,10 +14,12 @@ from typing import Any
 
 import numpy as np
 
-import diffpos.estimators as est
-from diffpos.channel import pair_snr_db
+from diffpos.channel.emulator import pair_snr_db
+from diffpos.estimators.dnls import solver as dnls_solver
+from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.geometry import window_edge_path
-from diffpos.tracking import TrackerConfig, init_state, update
+from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import init_state, update
 
 __all__ = ["warm_model", "warm_up"]
 
@@ -38,7 +40,7 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
     every compiled kernel these calls use is loaded (tests/system/test_fusion_workers_process.py)."""
     node, r = _problem(window_height_m, first_floor_z_m)
     sig, mask = np.full((1, 4), 0.1), np.ones((1, 4), bool)
-    est.mnls(_ANCHORS[None], r[None], sig, building=building)
+    mnls_solver.mnls(_ANCHORS[None], r[None], sig, building=building)
     snr = None
     if radio is not None:  # the compiled SNR prediction (loaded from cache)
         snr = pair_snr_db(_ANCHORS[None], node[None], building=building, radio=radio)
@@ -58,7 +60,7 @@ def warm_up(core: Any) -> None:
     <diffpos_services.fusion.core.FusionCore>`), changing none of its state."""
     cfg = core.config
     _, r = _problem(cfg.window_height_m, cfg.first_floor_z_m)
-    est.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1), window_height_m=cfg.window_height_m,
+    dnls_solver.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1), window_height_m=cfg.window_height_m,
              gating=core.gating)
     if core.building is not None:  # a throw-away tracker: the core's state is untouched
         warm_model(core.building, core.model[1], cfg.window_height_m, cfg.first_floor_z_m)

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-import diffpos.estimators as est
+from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos_services.fusion import shm
 from diffpos_services.fusion.rows import run_update
 from diffpos_services.fusion.warm import warm_model
@@ -33,7 +33,7 @@ def _task_update(model: tuple, *args):
 
 
 def _task_mnls(model: tuple, apos, rng, sig, mask, snr_db, radio):
-    return est.mnls(apos, rng, sig, building=model[0], mask=mask, snr_db=snr_db, radio=radio)
+    return mnls_solver.mnls(apos, rng, sig, building=model[0], mask=mask, snr_db=snr_db, radio=radio)
 
 
 def _task_fail(model: tuple, *args):

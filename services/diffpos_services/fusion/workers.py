@@ -3,8 +3,8 @@
 Why: live, the fusion of the ``16 anchors x 200 nodes x 10 Hz`` soak is one saturated core
 (2026-11-27: fusion 0.95 of a core, ~0.6 of the machine's second core idle) and ~79 % of its
 CPU is per-node work whose rows are independent bit for bit: the tracker update
-(:func:`diffpos.tracking.update`, 64 %) and the M-NLS snapshot fixes
-(:func:`diffpos.estimators.mnls`, 15 %). :class:`RowPool` splits such a call's rows into
+(:func:`diffpos.tracking.tracker.update`, 64 %) and the M-NLS snapshot fixes
+(:func:`diffpos.estimators.mnls.solver`, 15 %). :class:`RowPool` splits such a call's rows into
 contiguous shares balanced by an estimated cost, sends ``workers - 1`` shares to worker
 processes (pickled numpy over a :func:`multiprocessing.Pipe`, the arrays of a worker's first
 request in flight through a mapped file: :mod:`diffpos_services.fusion.shm`; the process
@@ -70,7 +70,7 @@ __all__ = ["INIT_COST", "MIN_PARALLEL_COST", "TASKS", "Pending", "RowPool", "con
            "take_rows", "worker_main"]
 
 #: Cost of a row the tracker initialises (UNINITIALISED or LOST with enough ranges: the grid
-#: snapshot of :func:`diffpos.tracking_model.snapshot_init`) in units of one row's update: an
+#: snapshot of :func:`diffpos.tracking.model.snapshot_init`) in units of one row's update: an
 #: initialisation costs ~5 ms with 8 anchors, an update ~0.6 ms (tracked.py's measurements):
 #: a share of new nodes is balanced against ~8 updates each.
 INIT_COST = 8.0

@@ -5,7 +5,7 @@ Modules by role: :mod:`.backend` (importing Sionna lazily, :class:`RaytraceUnava
 MPC groups), :mod:`.tracing` (:func:`trace`), :mod:`.dataset` (the ``.npz`` file) and
 :mod:`.evaluate` (SNR, first arrival, statistics, comparison with the emulator),
 :mod:`.mechanisms` (every traced path -> one of the 18 first-arrival mechanisms of
-:mod:`diffpos.paths`, or "other" by name, and its length vs the model's closed form) and
+:mod:`diffpos.paths.model`, or "other" by name, and its length vs the model's closed form) and
 :mod:`.mechanism_mix` (the first-arrival mechanism mix, emulator vs ray tracer, with the cause
 of every difference). Importing this package does not import Sionna.
 
@@ -45,7 +45,7 @@ group  chains                                       rule
 4      everything else                              ``Tx-R-R-..``, ``Tx-D-R-..``, ``Tx-T-D-..``
 =====  ===========================================  ======================================
 
-First arrival (paper's definition, identical to :func:`diffpos.channel.first_arrival`): the
+First arrival (paper's definition, identical to :func:`diffpos.channel.emulator.first_arrival`): the
 path with the smallest delay among those with ``SNR >= max(P_max - fap_threshold_db,
 detection_snr_db)``, SNR = received power + processing gain - kTB.
 

@@ -10,17 +10,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.channel import (
-    MECHANISMS,
+from diffpos.channel.emulator import (
     Channel,
     FirstArrival,
     emulate_channel,
     first_arrival,
     mpc_statistics,
 )
+from diffpos.channel.linkbudget import noise_floor_dbm
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.geometry import diffraction_point
-from diffpos.linkbudget import noise_floor_dbm
+from diffpos.paths.model import MECHANISMS
 from diffpos.reproduction import Arrivals
 from diffpos.scenario import Radio, Scenario
 from diffpos.study import FirstArrivalData
@@ -54,7 +54,7 @@ def path_snr_db(ds: RaytraceDataset, radio: Radio) -> NDArray[np.float64]:
 
 
 def dataset_channel(ds: RaytraceDataset, radio: Radio) -> Channel:
-    """The ray-traced paths as a :class:`diffpos.channel.Channel` (K = paths per link).
+    """The ray-traced paths as a :class:`diffpos.channel.emulator.Channel` (K = paths per link).
 
     ``mpc_class`` of the returned channel is a placeholder (the group varies per link); use
     ``ds.path_class`` or :func:`dataset_first_arrival`. Phases are not stored (gain is real).
@@ -83,7 +83,7 @@ def dataset_first_arrival(
 ) -> FirstArrival:
     """First-arriving path and measured range per link, from the ray-traced paths.
 
-    Uses :func:`diffpos.channel.first_arrival` (same detector, same noise model and random
+    Uses :func:`diffpos.channel.emulator.first_arrival` (same detector, same noise model and random
     stream as the emulator) on :func:`dataset_channel`; ``mpc_class`` is the ray-traced group
     of the selected path and ``slot`` its index in the link's path list.
 
@@ -97,7 +97,7 @@ def dataset_first_arrival(
 
     Returns
     -------
-    diffpos.channel.FirstArrival
+    diffpos.channel.emulator.FirstArrival
         Arrays of shape (N, M) that the positioning study consumes like the emulator's.
     """
     radio = radio or ds.scenario.radio
@@ -110,7 +110,7 @@ def dataset_first_arrival(
 def dataset_mpc_statistics(ds: RaytraceDataset, fap: FirstArrival, *,
                            radio: Radio | None = None) -> dict[str, dict[str, float]]:
     """The paper's ``P_e`` / ``P_fap`` table from the ray trace (same keys as
-    :func:`diffpos.channel.mpc_statistics`) [%]."""
+    :func:`diffpos.channel.emulator.mpc_statistics`) [%]."""
     radio = radio or ds.scenario.radio
     exists = ds.path_valid & (path_snr_db(ds, radio) >= radio.detection_snr_db)
     pairs = exists.shape[0] * exists.shape[1]
@@ -171,7 +171,7 @@ def edge_fermat_check(ds: RaytraceDataset, *, tol_m: float = 0.02) -> dict[str, 
 def compare_with_emulator(ds: RaytraceDataset, *, radio: Radio | None = None) -> dict[str, Any]:
     """First-arrival agreement of the emulator and the ray tracer on the same receivers.
 
-    Runs :func:`diffpos.channel.emulate_channel` for the dataset's receivers and anchors and
+    Runs :func:`diffpos.channel.emulator.emulate_channel` for the dataset's receivers and anchors and
     compares the noise-free first arrivals.
 
     Returns

@@ -1,8 +1,8 @@
 """First-arrival mechanism mix: the channel emulator vs the ray tracer on the same links.
 
-The emulator's first arrival (:func:`diffpos.channel.first_arrival` on
-:func:`diffpos.channel.emulate_channel`, noise-free) is one of the 18 slots of
-:data:`diffpos.paths.MECHANISMS`; the ray tracer's (:func:`.evaluate.dataset_first_arrival`) is
+The emulator's first arrival (:func:`diffpos.channel.emulator.first_arrival` on
+:func:`diffpos.channel.emulator.emulate_channel`, noise-free) is one of the 18 slots of
+:data:`diffpos.paths.model.MECHANISMS`; the ray tracer's (:func:`.evaluate.dataset_first_arrival`) is
 classified by :func:`.mechanisms.classify_mechanisms` (a slot, or "other" with its label). Every
 link whose mechanisms differ gets exactly one cause, tested in this order:
 
@@ -38,8 +38,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.channel import emulate_channel, first_arrival
-from diffpos.paths import MECHANISMS
+from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.paths.model import MECHANISMS
 from diffpos_services.raytrace.dataset import RaytraceDataset
 from diffpos_services.raytrace.evaluate import dataset_first_arrival, path_snr_db
 from diffpos_services.raytrace.mechanisms import NO_PATH, OTHER, classify_mechanisms

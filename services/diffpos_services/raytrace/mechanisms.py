@@ -1,4 +1,4 @@
-"""Ray-traced paths -> the 18 first-arrival mechanisms of :mod:`diffpos.paths` (pure numpy).
+"""Ray-traced paths -> the 18 first-arrival mechanisms of :mod:`diffpos.paths.model` (pure numpy).
 
 Every interaction of a traced path (its flag from ``path_chain`` and its point from
 ``path_vertices_m``) is named by the surface or edge it lies on, with the scene's geometry
@@ -20,7 +20,7 @@ anything else      e.g. ``D(edge floor+1)`` (a window edge of another floor), ``
 =================  ==========================================================================
 
 The tokens joined (``Tx-D(lower)-R(ceiling)-Rx``) are the mechanism's label; a label in
-:data:`diffpos.paths.MECHANISMS` gives its slot, every other label is "other" and is reported
+:data:`diffpos.paths.model.MECHANISMS` gives its slot, every other label is "other" and is reported
 by name (e.g. the triple bounce ``Tx-R(ceiling)-R(floor)-R(ceiling)-Rx``, which the model
 leaves out). :func:`mechanism_length_check` then compares every classified path's traced
 length with the model's closed-form length for that mechanism on the receiver's floor.
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.paths import MECHANISMS, first_arrival_paths, graded_paths
+from diffpos.paths.model import MECHANISMS, first_arrival_paths, graded_paths
 from diffpos.scenario import Building
 from diffpos_services.raytrace.dataset import RaytraceDataset
 from diffpos_services.raytrace.paths import DIFFRACTION, DIFFUSE, REFRACTION, SPECULAR
@@ -56,7 +56,7 @@ class Mechanisms:
     Attributes
     ----------
     code : ndarray of int, shape (N, M, K)
-        Slot of :data:`diffpos.paths.MECHANISMS`, :data:`OTHER` or :data:`NO_PATH`.
+        Slot of :data:`diffpos.paths.model.MECHANISMS`, :data:`OTHER` or :data:`NO_PATH`.
     label : ndarray of object (str), shape (N, M, K)
         The token label of every path (``""`` for padding).
     """
@@ -161,7 +161,7 @@ def classify_mechanisms(ds: RaytraceDataset) -> Mechanisms:
 def model_lengths(ds: RaytraceDataset) -> tuple[NDArray, NDArray[np.bool_], NDArray[np.bool_]]:
     """The model's length (also where it does not exist) and existence of every slot per link
     ``(N, M, 18)`` on the node's floor, and the existence with the window band widened by :data:`BAND_TIE_M`
-    (:func:`diffpos.paths.graded_paths` ``loose``: rays entering on a band limit).
+    (:func:`diffpos.paths.model.graded_paths` ``loose``: rays entering on a band limit).
 
     The ground slots (``R(ground)``) are evaluated in the scene's frame, whose ground lies
     :func:`ground_z_m` (1 cm below the paper's anchor at ``z = 0``): the whole geometry is

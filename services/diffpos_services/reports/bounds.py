@@ -14,7 +14,7 @@ from rich.console import Console
 from rich.table import Table
 
 from diffpos.bound_maps import BoundMapSettings, FloorResult
-from diffpos.linkbudget import noise_floor_dbm
+from diffpos.channel.linkbudget import noise_floor_dbm
 from diffpos.scenario import Scenario
 
 __all__ = ["plot_floor", "print_summary", "write_csv"]

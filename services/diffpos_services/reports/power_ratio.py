@@ -11,7 +11,7 @@ from matplotlib.figure import Figure
 from rich.console import Console
 from rich.table import Table
 
-from diffpos.power_ratio_sweep import PowerRatioSweep, Sweep, first_crossing_deg
+from diffpos.channel.power_ratio import PowerRatioSweep, Sweep, first_crossing_deg
 
 __all__ = ["CSV_COLUMNS", "CSV_NAME", "PNG_NAME", "print_report", "write_csv", "write_png"]
 
@@ -159,7 +159,7 @@ def print_report(sweep: Sweep, threshold_db: float, csv_path: Path, png_path: Pa
     console.print(
         f"closed form: (1+cos)/(1-cos) = {thr:g} dB at cos theta = {cos_star:.5f}; the paper's "
         f"'at least 5 dB for theta < 60 deg' holds for the approximation below 58.70 deg. The "
-        f"exact curves approach it only for w << y_n and w << |y_a| (see diffpos.gtd). "
+        f"exact curves approach it only for w << y_n and w << |y_a| (see diffpos.channel.gtd). "
         f"'LoS from': the node sees the anchor directly through the window (the dip is the "
         f"lower edge's shadow boundary)."
     )

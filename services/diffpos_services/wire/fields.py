@@ -68,7 +68,7 @@ FixStatusName = Annotated[
     ),
 ]
 
-#: statuses of a track (``diffpos.tracking.TrackStatus`` names) in estimate v2
+#: statuses of a track (``diffpos.tracking.tracker.TrackStatus`` names) in estimate v2
 TRACK_STATUSES = ("UNINITIALISED", "INITIALISING", "TRACKING", "COASTING", "LOST")
 #: statuses of an estimate whose position can be used: a good snapshot fix (``FixResult.ok``
 #: of the core, by name) or a track that publishes a position

@@ -1,0 +1,1 @@
+"""M-NLS: mechanism-aware non-linear least squares on the first-arrival path model."""

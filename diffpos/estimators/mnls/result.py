@@ -1,0 +1,74 @@
+"""The result of M-NLS (:mod:`diffpos.estimators.mnls.solver`): :class:`MnlsResult` and its
+assembly from the per-fix answers (:func:`_result`: the a posteriori variance factor on the
+covariance, the residual test, statuses and exclusion reasons).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from diffpos.estimators.gating import chi2_threshold
+from diffpos.estimators.result import ExclusionReason, FixResult, FixStatus
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MnlsResult(FixResult):
+    """:class:`FixResult` plus the mechanism-aware fields.
+
+    Attributes
+    ----------
+    floor : ndarray of int, shape (B,)
+        Most probable floor (-1 where no fix).
+    floor_probability : ndarray, shape (B, F) [-]
+        Posterior probability of every floor of the building.
+    mechanism : ndarray of int, shape (B, M)
+        Slot of :data:`diffpos.paths.model.MECHANISMS` explaining each link at the answer (-1
+        where unused or missing).
+    """
+
+    floor: NDArray[np.int_] = field(default_factory=lambda: np.zeros(0, dtype=int))
+    floor_probability: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    mechanism: NDArray[np.int_] = field(default_factory=lambda: np.zeros((0, 0), dtype=int))
+
+
+
+def _result(out, bi, pfa: float) -> MnlsResult:
+    bsz, m = bi.ranges_m.shape
+    used = out["used"]
+    n_used = used.sum(axis=-1)
+    dof = n_used - 3
+    thr = np.where(dof >= 1, chi2_threshold(np.maximum(dof, 1), pfa), np.nan)
+    has = np.isfinite(out["position_m"][:, 0])
+    # a posteriori variance factor: residuals larger than the model's sigmas (chi-square
+    # statistic above its degrees of freedom) widen the covariance, never narrow it
+    with np.errstate(invalid="ignore", divide="ignore"):
+        vf = np.where(dof >= 1, np.maximum(out["stat"] / np.maximum(dof, 1), 1.0), 1.0)
+    cov = out["covariance_m2"] * np.where(np.isfinite(vf), vf, 1.0)[:, None, None]
+    finite_cov = np.all(np.isfinite(cov.reshape(bsz, -1)), axis=-1)
+    status = np.full(bsz, int(FixStatus.OK))
+    status[has & (dof < 1)] = FixStatus.OK_UNVERIFIED
+    status[has & (dof >= 1) & ~(out["stat"] <= thr)] = FixStatus.GATING_FAILED
+    status[has & ~finite_cov] = FixStatus.NOT_IDENTIFIABLE
+    status[~has | (n_used < 3)] = FixStatus.TOO_FEW_ANCHORS
+    status[bi.input_error != 0] = FixStatus.INVALID_INPUT
+    reason = np.zeros((bsz, m), dtype=np.int_)
+    reason[out["tail"]] = ExclusionReason.RAIM
+    reason[~bi.present] = ExclusionReason.MISSING
+    with np.errstate(invalid="ignore"):
+        peb = np.sqrt(np.trace(cov, axis1=-2, axis2=-1))
+    return MnlsResult(
+        position_m=out["position_m"], covariance_m2=cov, peb_m=peb,
+        z_bound_m=np.sqrt(cov[:, 2, 2]), iterations=np.zeros(bsz, dtype=np.int_),
+        converged=has.copy(), status=status, residuals_m=out["residuals_m"], used=used,
+        excluded=out["tail"].copy(), exclusion_reason=reason, test_statistic=out["stat"],
+        test_threshold=thr, dof=np.maximum(dof, 0), cost=out["cost"],
+        input_error=bi.input_error, method="mnls",
+        covariance_model="first-arrival model, floor mixture", sigmas_given=bi.sigmas_given,
+        floor=out["floor"], floor_probability=out["floor_probability"],
+        mechanism=out["mechanism"],
+    )

@@ -1,0 +1,131 @@
+"""Physical candidate rules of M-NLS (:mod:`diffpos.estimators.mnls.solver`), from the path model.
+
+* Same-edge dominance: a diffraction + reflection path that deviates at least as much as the
+  plain diffraction over the same edge never arrives first.
+* Knife-edge SNR bound: a diffracted first arrival is not much stronger than the ITU-R P.526
+  knife-edge prediction at its geometry.
+
+And :func:`_link_terms_numpy`, the numpy reference of M-NLS's per-link terms that apply them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from diffpos.channel.linkbudget import snr_db as _snr_db
+from diffpos.paths.model import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, first_arrival_paths
+
+FloatArray = NDArray[np.float64]
+
+#: A diffracted first arrival cannot be much stronger than the knife-edge prediction J(nu):
+#: the window edge is a right-angled wedge whose UTD coefficient differs from the half-plane's
+#: by up to about a factor 2 in field (6 dB); measured excess - J(nu) >= -4.8 dB over all
+#: 58,000 diffracted first arrivals of the default study, and below -6 dB for 0.1 % of 6,289
+#: on 40 random buildings (worst -7.2 dB): such a link falls to another mechanism or the tail.
+SNR_MARGIN_DB = 20 * np.log10(2.0)
+#: Standard deviation of a predicted path SNR against the measured one [dB]: the same factor
+#: 2 in field (modelling error of the amplitudes: antenna patterns, materials, wedge vs.
+#: UTD), applied when the floor modes are re-scored with the SNR.
+SNR_SIGMA_DB = 20 * np.log10(2.0)
+_DIFF_MASK = np.zeros(len(MECHANISMS), dtype=bool)
+_DIFF_MASK[list(DIFFRACTION_SLOTS)] = True
+#: (diffraction + reflection slot, plain diffraction slot over the same edge)
+_SAME_EDGE = ((9, 7), (10, 7), (13, 7), (11, 8), (12, 8))
+
+
+def _dominated(ps) -> NDArray[np.bool_]:
+    """Diffraction + reflection paths that cannot arrive first (module docstring).
+
+    A ``D(edge)-R(plane)`` path is longer than the plain ``D(edge)`` path (triangle
+    inequality) and has an extra reflection loss; where its diffracted ray also deviates at
+    least as much from the incident one (deeper in the shadow: a weaker diffraction
+    coefficient), it is weaker too, so it is detected only if the plain path is, which
+    arrives earlier. Measured: 0 of 70,000 first arrivals violate this.
+    """
+    dom = np.zeros(ps.valid.shape, dtype=bool)
+    c = ps.deviation_cos
+    for b_slot, a_slot in _SAME_EDGE:
+        with np.errstate(invalid="ignore"):
+            dom[..., b_slot] = ps.valid[..., a_slot] & (c[..., a_slot] >= c[..., b_slot])
+    return dom
+
+
+def _excess_loss_db(r, snr, radio, shape) -> FloatArray:
+    """Free-space SNR at the measured range minus the measured SNR [dB] (NaN without SNR)."""
+    if snr is None or radio is None:
+        return np.full(shape, np.nan)
+    snr = np.broadcast_to(np.asarray(snr, dtype=np.float64), shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p_fs = (radio.tx_power_dbm + radio.tx_gain_dbi + radio.rx_gain_dbi
+                - 20 * np.log10(4 * np.pi * np.maximum(r, 1e-3) / radio.wavelength_m))
+    snr_fs = _snr_db(p_fs, bandwidth_hz=radio.bandwidth_hz,
+                     processing_gain_db=radio.processing_gain_db,
+                     temperature_k=radio.noise_temperature_k,
+                     noise_figure_db=radio.noise_figure_db)
+    return np.where(np.isfinite(snr), snr_fs - snr, np.nan)
+
+
+def _knife_edge_loss_db(ps, wavelength_m: float) -> FloatArray:
+    """ITU-R P.526 single knife-edge loss ``J(nu)`` of every diffraction slot [dB] (NaN else).
+
+    ``nu = theta sqrt(2 d1 d2 / (lambda (d1 + d2)))`` with ``theta`` the angle between the
+    incident and the diffracted ray, ``d1``/``d2`` the lengths before/after the edge;
+    ``J = 6.9 + 20 log10(sqrt((nu - 0.1)^2 + 1) + nu - 0.1)`` for ``nu > -0.78``, else 0.
+    """
+    length = ps.length_m
+    d1 = ps.outside_m
+    d2 = length - d1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        theta = np.arccos(np.clip(ps.deviation_cos, -1.0, 1.0))
+        nu = theta * np.sqrt(2 * d1 * d2 / (wavelength_m * length))
+        j = 6.9 + 20 * np.log10(np.sqrt((nu - 0.1) ** 2 + 1) + nu - 0.1)
+    return np.where(nu > -0.78, j, 0.0)
+
+
+def _link_terms_numpy(p, x: FloatArray, building) -> dict:
+    """Numpy reference of :func:`diffpos.estimators.mnls.solver._link_terms` (the compiled kernel
+    does the same operations): paths at ``x``, candidates by the rules above, max-mixture
+    cost, chosen slot and its residual, Jacobian and IRLS weight of every link."""
+    ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
+    length = ps.length_m
+    valid = ps.valid
+    spec = np.zeros(length.shape[-1], dtype=bool)
+    spec[list(SPECULAR_SLOTS)] = True
+    l_spec = np.min(np.where(valid & spec, length, np.inf), axis=-1)
+    if p.strong is not None:  # nothing surely detected arrives before the first arrival
+        l_spec = np.minimum(l_spec, np.min(np.where(valid & p.strong, length, np.inf), axis=-1))
+    cand = valid & (length <= l_spec[..., None]) & ~_dominated(ps)
+    with np.errstate(invalid="ignore"):
+        too_strong = p.excess_db[..., None] < _knife_edge_loss_db(ps, p.wavelength_m) - SNR_MARGIN_DB
+    cand &= ~(too_strong & _DIFF_MASK)
+    if p.allowed is not None:
+        cand &= p.allowed
+    e = p.r[..., None] - length  # (N, M, K)
+    z = e / p.sig[..., None]
+    gauss = 0.5 * z * z
+    tail = np.where(e > 0, p.tail_a[..., None] + e / p.lam, np.inf)
+    cost_k = np.minimum(gauss, tail)
+    if p.snr_cost is not None:
+        cost_k = cost_k + p.snr_cost
+    cost_k = np.where(cand, cost_k, np.inf)
+    slot = np.argmin(cost_k, axis=-1)
+    take = lambda a: np.take_along_axis(a, slot[..., None], axis=-1)[..., 0]  # noqa: E731
+    cost = take(cost_k)
+    none = ~np.isfinite(cost)
+    is_tail = take(tail) < take(gauss)
+    res = np.where(none, 0.0, take(e))
+    jac = np.take_along_axis(ps.jacobian, slot[..., None, None], axis=-2)[..., 0, :]
+    jac = np.where(none[..., None], 0.0, jac)
+    # IRLS weight: the tail's gradient is 1/lambda, i.e. weight sigma^2 / (lambda e)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(is_tail, p.sig**2 / (p.lam * np.maximum(res, 1e-9)), 1.0)
+    # a link with no candidate (all paths clamped) costs like a far outlier
+    cost = np.where(none, p.tail_a + 10.0, cost)
+    m = p.mask
+    w = np.where(m & ~none, w, 0.0)
+    cost = np.where(m, cost, 0.0)
+    prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
+    return {"cost": cost.sum(axis=-1) + prior, "res": res, "jac": jac, "w": w, "slot": slot,
+            "tail": is_tail & m, "none": none & m, "length": length, "cand": cand,
+            "jac_all": ps.jacobian}

@@ -1,0 +1,374 @@
+"""Compiled first-arrival path model: :func:`diffpos.paths.model.first_arrival_paths` in one loop.
+
+The kernel evaluates, for ``P`` rows (node, anchor, floor planes) and ``S`` slots of
+:data:`diffpos.paths.model.MECHANISMS`, exactly the floating-point operations of the numpy reference
+(:func:`diffpos.paths.model._first_arrival_paths_numpy`, built on :func:`diffpos.paths.model.specular_path`
+and :func:`diffpos.paths.model.diffracted_path`) in the same order, so lengths and Jacobians agree to
+rounding (tests/core/test_paths_kernel.py: <= 1e-12 relative) and existence agrees exactly,
+also on the window-band boundaries and the edge ends. ``error_model="numpy"``: a division by
+zero gives inf/NaN as in numpy (and the same existence verdicts), never an exception.
+
+One compiled signature (:data:`SIGNATURE`, C-contiguous float64 inputs, writable outputs);
+:func:`warm_paths` compiles it, or loads it from numba's on-disk cache (``cache=True``).
+Callers run it at service start so the first fix does not pay the compile.
+
+Two modes (arguments of the same signature):
+
+* ``raw=False``: the :class:`~diffpos.paths.model.PathSet` values (length NaN and Jacobian 0 where
+  the mechanism does not exist).
+* ``raw=True``: lengths and Jacobians also where the mechanism does not exist, and ``valid``
+  *without* the window-band height test of the entry point (returned separately as
+  ``entry_z``), so a caller can grade existence with a widened / narrowed band (the tracker's
+  ``loose`` / ``sure``).
+
+``want_jac=False`` skips the Jacobian, deviation and outside-length outputs (left untouched).
+
+Other compiled kernels (a compiled estimator or tracker step) call the per-row pieces directly
+from numba code: :func:`row_planes` (a floor's planes), :func:`edge_axis` (once per building)
+and :func:`slot_path` (one slot of one row, scalars in and out, no allocation).
+
+The helpers stay separate compiled functions (calls from the loop): inlining them at numba IR
+level (``inline="always"``) measured ~20 % less CPU per row but about twice the first compile
+(4.7 vs 2.5 s CPU, shared 2-core machine), a bad trade while the path model is < 10 % of an
+M-NLS fix.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from numba import njit, types
+
+__all__ = ["N_SLOTS", "SIGNATURE", "building_planes", "edge_axis", "eval_paths_kernel",
+           "paths_kernel", "row_planes", "slot_path", "warm_paths"]
+
+#: Slot recipes, the compiled twin of ``diffpos.paths.model._RECIPES`` (a test checks they agree).
+#: kind: 0 direct, 1 specular, 2 diffraction. Plane codes: 0 floor, 1 ceiling, 2 back,
+#: 3 side x1, 4 side x2, -1 none. Edge: 0 upper, 1 lower.
+_KIND = np.array([0, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 2, 1, 1, 1, 1], dtype=np.int64)
+_GROUND = np.array([0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0], dtype=np.int64)
+_PLANE0 = np.array([-1, -1, 0, 1, 2, 3, 4, -1, -1, 0, 1, 0, 1, 2, 1, 1, 0, 1], dtype=np.int64)
+_PLANE1 = np.array([-1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 0, 1, 2],
+                   dtype=np.int64)
+_EDGE = np.array([-1, -1, -1, -1, -1, -1, -1, 0, 1, 0, 0, 1, 1, 0, -1, -1, -1, -1],
+                 dtype=np.int64)
+N_SLOTS = 18
+_TOL = 1e-9  # in_floor_box tolerance [m] (FloorFrame.in_floor_box)
+
+_f8_2d = types.float64[:, ::1]
+_f8_1d = types.float64[::1]
+#: The one compiled signature of :func:`paths_kernel`.
+SIGNATURE = types.void(
+    _f8_2d, _f8_2d,  # nodes (P, 3), anchors (P, 3)
+    _f8_1d,  # floor index of every row (P,), as float64
+    types.float64, types.float64, types.float64, types.float64,  # first floor z, H, sill, w
+    types.float64, types.float64, types.float64,  # x0, x1, depth
+    types.int64[::1],  # slots (S,)
+    types.boolean, types.boolean,  # raw, want_jac
+    _f8_2d, types.boolean[:, ::1], types.float64[:, :, ::1],  # length, valid, jac
+    _f8_2d, _f8_2d, _f8_2d,  # deviation_cos, outside_m, entry_z
+)
+_OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
+
+
+@njit(**_OPTS)
+def _plane(code, zf, zc, x0, x1, depth):
+    """(axis, coordinate) of an inside plane (FloorFrame.plane)."""
+    if code == 0:
+        return 2, zf
+    if code == 1:
+        return 2, zc
+    if code == 2:
+        return 1, depth
+    if code == 3:
+        return 0, x0
+    return 0, x1
+
+
+@njit(**_OPTS)
+def _in_box(r0, r1, r2, zf, zc, x0, x1, depth):
+    """FloorFrame.in_floor_box with its 1e-9 m tolerance."""
+    return ((r0 >= x0 - _TOL) and (r0 <= x1 + _TOL) and (r1 >= -_TOL)
+            and (r1 <= depth + _TOL) and (r2 >= zf - _TOL) and (r2 <= zc + _TOL))
+
+
+@njit(**_OPTS)
+def _get(v0, v1, v2, axis):
+    if axis == 0:
+        return v0
+    if axis == 1:
+        return v1
+    return v2
+
+
+@njit(**_OPTS)
+def _mirror(v0, v1, v2, axis, c):
+    """Mirror (v0, v1, v2) in the plane ``v[axis] = c`` (paths._mirror)."""
+    if axis == 0:
+        return 2.0 * c - v0, v1, v2
+    if axis == 1:
+        return v0, 2.0 * c - v1, v2
+    return v0, v1, 2.0 * c - v2
+
+
+@njit(**_OPTS)
+def _direct(a0, a1, a2, n0, n1, n2, x0, x1):
+    """Slot 0: length, Jacobian, facade crossing (paths.direct_opening): x test in ``ok``."""
+    d0, d1, d2 = n0 - a0, n1 - a1, n2 - a2
+    length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    t = -a1 / d1
+    zc = a2 + t * d2
+    xc = a0 + t * d0
+    ok = (xc > x0) and (xc < x1)
+    return length, ok, zc, d0, d1, d2, 1.0, 1.0, 1.0
+
+
+@njit(**_OPTS)
+def _specular(a0, a1, a2, n0, n1, n2, ground, pl0, pl1, zf, zc, x0, x1, depth):
+    """paths.specular_path for <= 2 planes: length, ok (without the entry's band test),
+    entry z, unfolded ray ``d`` and the mirror signs (Jacobian ``d / length * sign``)."""
+    s0, s1, s2 = a0, a1, a2
+    if ground:
+        s2 = 2.0 * 0.0 - a2
+    i0, i1, i2 = n0, n1, n2
+    g0 = g1 = g2 = 1.0
+    n_pl = 0 if pl0 < 0 else (1 if pl1 < 0 else 2)
+    for j in range(n_pl - 1, -1, -1):  # image: last plane first
+        ax, c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+        i0, i1, i2 = _mirror(i0, i1, i2, ax, c)
+        if ax == 0:
+            g0 = -g0
+        elif ax == 1:
+            g1 = -g1
+        else:
+            g2 = -g2
+    d0, d1, d2 = i0 - s0, i1 - s1, i2 - s2
+    length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    t_f = (0.0 - s1) / d1
+    t_prev = 0.0
+    ok = True
+    if ground:
+        t_g = (0.0 - s2) / d2
+        ok = (t_g > 0) and (t_g < t_f)
+        t_prev = t_g
+    ok = ok and (t_f > t_prev) and (t_f < 1)
+    e0 = s0 + t_f * d0
+    ez = s2 + t_f * d2
+    ok = ok and (e0 > x0) and (e0 < x1)
+    c0, c1, c2 = s0, s1, s2
+    m0, m1, m2 = i0, i1, i2
+    t_last = t_f
+    for j in range(n_pl):
+        ax, c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+        dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
+        t = (c - _get(c0, c1, c2, ax)) / _get(dd0, dd1, dd2, ax)
+        ok = ok and (t > t_last) and (t < 1)
+        ok = ok and _in_box(c0 + t * dd0, c1 + t * dd1, c2 + t * dd2, zf, zc, x0, x1, depth)
+        m0, m1, m2 = _mirror(m0, m1, m2, ax, c)
+        c0, c1, c2 = _mirror(c0, c1, c2, ax, c)
+        t_last = t
+    ok = ok and math.isfinite(length)
+    return length, ok, ez, d0, d1, d2, g0, g1, g2
+
+
+@njit(**_OPTS)
+def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth, edge):
+    """paths.diffracted_path (geometry.diffraction_point on the edge ``y = 0, z = z_e``):
+    length, ok, Jacobian, deviation cosine, anchor -> diffraction point length. ``edge``:
+    :func:`edge_axis` (length and unit vector of the edge, the same for every row)."""
+    o0, o1, o2 = n0, n1, n2
+    g0 = g1 = g2 = 1.0
+    ax = 0
+    c = 0.0
+    if then >= 0:
+        ax, c = _plane(then, zf, zc, x0, x1, depth)
+        o0, o1, o2 = _mirror(n0, n1, n2, ax, c)
+        if ax == 0:
+            g0 = -1.0
+        elif ax == 1:
+            g1 = -1.0
+        else:
+            g2 = -1.0
+    # geometry.diffraction_point with p0 = (x0, 0, z_e), p1 = (x1, 0, z_e)
+    edge_len, e0, e1, e2 = edge
+    ds0, ds1, ds2 = a0 - x0, a1 - 0.0, a2 - z_e
+    do0, do1, do2 = o0 - x0, o1 - 0.0, o2 - z_e
+    s_t = ds0 * e0 + ds1 * e1 + ds2 * e2
+    o_t = do0 * e0 + do1 * e1 + do2 * e2
+    p0, p1, p2 = ds0 - s_t * e0, ds1 - s_t * e1, ds2 - s_t * e2
+    r_s = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    p0, p1, p2 = do0 - o_t * e0, do1 - o_t * e1, do2 - o_t * e2
+    r_o = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    denom = r_s + r_o
+    scale = abs(s_t) + abs(o_t) + r_s + r_o + edge_len
+    if denom <= 1e-12 * scale:
+        t_star = 0.5 * (s_t + o_t)
+    else:
+        t_star = (s_t * r_o + o_t * r_s) / denom
+    t = t_star
+    if t < 0.0:
+        t = 0.0
+    elif t > edge_len:
+        t = edge_len
+    ok = (t_star > 0.0) and (t_star < edge_len)
+    q0, q1, q2 = x0 + t * e0, 0.0 + t * e1, z_e + t * e2
+    v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
+    u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
+    d_in = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)  # = |Q - A| below, bit for bit (squares)
+    nu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    length = d_in + nu
+    if then >= 0:  # reflection point between the edge and the node, on the inside surface
+        tr = (c - _get(q0, q1, q2, ax)) / _get(u0, u1, u2, ax)
+        ok = ok and (tr > 0) and (tr < 1)
+        ok = ok and _in_box(q0 + tr * u0, q1 + tr * u1, q2 + tr * u2, zf, zc, x0, x1, depth)
+    u0, u1, u2 = u0 / nu, u1 / nu, u2 / nu
+    v0, v1, v2 = q0 - a0, q1 - a1, q2 - a2
+    v0, v1, v2 = v0 / d_in, v1 / d_in, v2 / d_in
+    ok = ok and math.isfinite(length)
+    dev = v0 * u0 + v1 * u1 + v2 * u2
+    return length, ok, u0 * g0, u1 * g1, u2 * g2, dev, d_in
+
+
+@njit(**_OPTS)
+def edge_axis(x0, x1):
+    """Length and unit vector of the edge ``(x0, 0, z) -> (x1, 0, z)`` as
+    geometry.diffraction_point computes them (``z - z = 0`` for every finite z)."""
+    w0, w1, w2 = x1 - x0, 0.0 - 0.0, 0.0
+    edge_len = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    return edge_len, w0 / edge_len, w1 / edge_len, w2 / edge_len
+
+
+@njit(**_OPTS, inline="always")
+def row_planes(floor, first_z, floor_h, sill, win_h):
+    """``(z_floor, z_ceil, win_lo, win_hi)`` of floor index ``floor`` (float), with the
+    operations of ``Building.floor_z_m`` / ``window_z_m``."""
+    zf = first_z + floor * floor_h
+    lo = zf + sill
+    return zf, zf + floor_h, lo, lo + win_h
+
+
+@njit(**_OPTS, inline="always")
+def slot_path(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, raw, want_jac):
+    """One slot ``s`` of one (anchor, node, floor) row, for other compiled kernels.
+
+    ``zf, zc, lo, hi``: :func:`row_planes`; ``edge``: :func:`edge_axis`. Returns ``(length,
+    valid, j0, j1, j2, deviation_cos, outside_m, entry_z)`` with the conventions of
+    :func:`paths_kernel` (``raw``: unmasked, ``valid`` without the entry's band test; the
+    Jacobian is 0 where masked or ``want_jac`` is False; NaN deviation / outside / entry where
+    they do not apply).
+    """
+    nan = np.nan
+    kind = _KIND[s]
+    dv = nan
+    om = nan
+    if kind == 2:
+        z_e = hi if _EDGE[s] == 0 else lo
+        ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, z_e, _PLANE0[s], zf,
+                                                 zc, x0, x1, depth, edge)
+        ez = nan
+    else:
+        if kind == 0:
+            ln, ok, ez, d0, d1, d2, g0, g1, g2 = _direct(a0, a1, a2, n0, n1, n2, x0, x1)
+        else:
+            ln, ok, ez, d0, d1, d2, g0, g1, g2 = _specular(
+                a0, a1, a2, n0, n1, n2, _GROUND[s] == 1, _PLANE0[s], _PLANE1[s], zf, zc, x0,
+                x1, depth)
+        if not raw:
+            ok = ok and (ez > lo) and (ez < hi)
+        j0 = j1 = j2 = 0.0
+        if want_jac and (ok or raw):  # the reference's d / length * sign
+            j0, j1, j2 = d0 / ln * g0, d1 / ln * g1, d2 / ln * g2
+    if not (ok or raw):
+        ln = nan
+        j0 = j1 = j2 = 0.0
+    return ln, ok, j0, j1, j2, dv, om, ez
+
+
+@njit(**_OPTS)
+def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, depth, slots,
+                 raw, want_jac, length, valid, jac, dev, outm, entry_z):
+    """Every requested slot for every row (module docstring); writes the output arrays.
+
+    The planes of row ``p`` are those of ``Building.floor_z_m`` / ``window_z_m`` with the same
+    operations (:func:`row_planes`); each slot is :func:`slot_path`.
+    """
+    edge = edge_axis(x0, x1)
+    for p in range(nodes.shape[0]):
+        a0, a1, a2 = anchors[p, 0], anchors[p, 1], anchors[p, 2]
+        n0, n1, n2 = nodes[p, 0], nodes[p, 1], nodes[p, 2]
+        zf, zc, lo, hi = row_planes(floor[p], first_z, floor_h, sill, win_h)
+        for j in range(slots.shape[0]):
+            ln, ok, j0, j1, j2, dv, om, ez = slot_path(slots[j], a0, a1, a2, n0, n1, n2, zf,
+                                                       zc, lo, hi, x0, x1, depth, edge, raw,
+                                                       want_jac)
+            entry_z[p, j] = ez
+            valid[p, j] = ok
+            length[p, j] = ln
+            if want_jac:
+                jac[p, j, 0] = j0
+                jac[p, j, 1] = j1
+                jac[p, j, 2] = j2
+                dev[p, j] = dv
+                outm[p, j] = om
+
+
+@njit(**_OPTS)
+def _fill_recipes(kind, ground, plane0, plane1, edge):
+    """Copies of the compiled slot tables (for the test against ``paths._RECIPES``)."""
+    for s in range(N_SLOTS):
+        kind[s] = _KIND[s]
+        ground[s] = _GROUND[s]
+        plane0[s] = _PLANE0[s]
+        plane1[s] = _PLANE1[s]
+        edge[s] = _EDGE[s]
+
+
+_state: dict[str, object] = {}
+
+
+def warm_paths() -> float:
+    """Compile :func:`paths_kernel` for :data:`SIGNATURE`, or load it from numba's cache.
+
+    Idempotent; returns the seconds it took (0 once warm). Call it at service start.
+    """
+    if "entry" in _state:
+        return 0.0
+    t0 = time.perf_counter()
+    paths_kernel.compile(SIGNATURE.args)
+    _state["entry"] = paths_kernel
+    return time.perf_counter() - t0
+
+
+def eval_paths_kernel(nodes: np.ndarray, anchors: np.ndarray, floor: np.ndarray,
+                      building_planes: tuple[float, ...], slots: np.ndarray, *,
+                      raw: bool = False, want_jac: bool = True) -> tuple[np.ndarray, ...]:
+    """Allocate the outputs and run the kernel on flat rows.
+
+    ``nodes``, ``anchors``: C-contiguous writable float64 ``(P, 3)``; ``floor``: float64
+    ``(P,)`` floor index per row; ``building_planes``: :func:`building_planes` of the building;
+    ``slots`` int64 ``(S,)`` with values in ``[0, 18)``. Returns
+    ``(length (P, S), valid (P, S), jac (P, S, 3), deviation_cos, outside_m, entry_z)``; with
+    ``want_jac=False`` the last three float outputs except ``entry_z`` are uninitialised.
+    """
+    warm_paths()
+    p, s = nodes.shape[0], slots.shape[0]
+    length = np.empty((p, s))
+    valid = np.empty((p, s), dtype=np.bool_)
+    jac = np.empty((p, s, 3) if want_jac else (0, 0, 3))
+    dev = np.empty((p, s) if want_jac else (0, 0))
+    outm = np.empty((p, s) if want_jac else (0, 0))
+    entry_z = np.empty((p, s))
+    paths_kernel(nodes, anchors, floor, *building_planes, slots, bool(raw), bool(want_jac),
+                 length, valid, jac, dev, outm, entry_z)
+    return length, valid, jac, dev, outm, entry_z
+
+
+def building_planes(building) -> tuple[float, ...]:
+    """The building's scalars the kernel needs, in argument order: first floor z, floor
+    height, sill height, window height, edge x0, x1, depth [m]."""
+    x0, x1 = building.edge_x_m
+    return (float(building.first_floor_z_m), float(building.floor_height_m),
+            float(building.sill_height_m), float(building.window_height_m), float(x0),
+            float(x1), float(building.depth_m))

@@ -1,0 +1,218 @@
+"""Motion model and IMM interaction of the tracker (:mod:`diffpos.tracking.tracker`).
+
+Transition probabilities between the hypotheses (floor x vertical mode), the mixing of the
+hypotheses' Gaussians into each other's priors and their NCV prediction; all vectorised over
+nodes, deterministic.
+
+* **Mode transitions** (Markov, per floor; the vertical modes are described in
+  :mod:`diffpos.tracking.tracker`): vertical -> level at ``r_out = v_stairs / H`` (a flight
+  spans one floor height), level -> vertical at ``r_in = r_out w / (1 - w)`` so that the
+  long-run fraction of time on stairs is ``w = stairs_weight``. Entering the vertical mode
+  moves probability but never the level track's state (the vertical track accumulates the
+  evidence of a climb; restarted from the level track every epoch it never could); entering
+  the level mode (the end of a flight) takes the vertical track's state with zero vertical
+  speed (+- ``v_level_sigma_m_s``). The stairs' location is not assumed anywhere.
+* **Motion:** nearly-constant velocity (white acceleration), per axis
+  ``Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]``. Horizontal ``q_h = 1.5 m^2/s^3``: a walker changes
+  its velocity by about its walking speed (1.2 m/s: start, stop, a 90 degree turn) within ~1 s,
+  ``q_h ~ (1.2 m/s)^2 / 1 s``. Vertical ``q_v = 0.36 m^2/s^3``: on stairs the vertical speed
+  (0.3-0.6 m/s, 17 cm risers at ~2 steps/s, fast ascent) is reached within ~1 s.
+* **Floor transitions (IMM mixing), only where physically possible:** a walker moving
+  vertically at the stair speed ``v_stairs = 0.6 m/s`` crosses one floor height ``H`` in
+  ``H / v_stairs`` seconds, so the probability of moving to an adjacent floor within ``dt`` is
+  ``dt v_stairs / H`` (0.02 for 10 Hz, 3 m floors) times ``exp(-d^2 / 2 P_zz)``, ``d`` the
+  height gap from the hypothesis to that floor's band beyond the reach ``dt v_stairs`` (a
+  level walker 1.5 m below the next band never moves; one at the top of the stairs does);
+  a hypothesis keeps its mode when it changes floor. Any floor keeps ``jump_rate_hz * dt`` of probability (recovery from a wrong lock) but a jump
+  never moves a state: every floor hypothesis keeps its own track until the data decides
+  (measured: with the old selection a leading wrong floor overwrote the true floor's state
+  with its mirror image, and the true floor never recovered). Mixed into floor ``g`` a state
+  from floor ``f`` keeps x, y and the velocity, its height is moved into floor g's band and
+  its height variance inflated (``z_mix_sigma_m``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from diffpos.tracking.state import (
+    FloatArray,
+    TrackerConfig,
+    TrackerState,
+    hypothesis_floor,
+    hypothesis_vertical,
+)
+
+__all__ = ["process_noise"]
+
+
+def process_noise(dt_s: ArrayLike, config: TrackerConfig) -> FloatArray:
+    """White-acceleration process noise ``Q(dt)``, shape ``(..., 6, 6)`` (state x,y,z,vx,vy,vz)."""
+    dt = np.asarray(dt_s, dtype=np.float64)[..., None]
+    q = np.array([config.q_h_m2_s3, config.q_h_m2_s3, config.q_v_m2_s3])
+    out = np.zeros((*dt.shape[:-1], 6, 6))
+    i = np.arange(3)
+    out[..., i, i] = q * dt**3 / 3.0
+    out[..., i, i + 3] = q * dt**2 / 2.0
+    out[..., i + 3, i] = q * dt**2 / 2.0
+    out[..., i + 3, i + 3] = q * dt
+    return out
+
+
+def _mode_rates(building, config: TrackerConfig) -> tuple[float, float]:
+    """Rates [1/s] of entering and leaving the vertical mode.
+
+    Leaving: a flight of stairs spans one floor height at ``v_stairs``, so the walker is on it
+    for ``H / v_stairs`` s. Entering: chosen so that the long-run fraction of time in the
+    vertical mode is ``stairs_weight``: ``r_in = r_out * w / (1 - w)``.
+    """
+    r_out = config.v_stairs_m_s / building.floor_height_m
+    w = config.stairs_weight
+    return r_out * w / (1.0 - w), r_out
+
+
+def _transition_matrix(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
+                       config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
+    """``(pi, pi_move)`` of :func:`_transitions`."""
+    pi, pi_move, _ = _transitions(mean, cov, dt_s, building, config)
+    return pi, pi_move
+
+
+def _transitions(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
+                 config: TrackerConfig) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Transition probabilities between the hypotheses (floor x vertical mode) over ``dt_s``
+    (shape (N,)): ``(pi, pi_move)``, both (N, H, H), rows = from, columns = to.
+
+    Floors: a walker leaves floor ``f`` for an adjacent floor ``g`` only where it can get
+    there, i.e. at most ``dt v_stairs`` vertical travel from hypothesis f's height to g's band
+    (stairs or any vertical move): with the height gap ``d`` beyond that reach,
+    ``dt v_stairs / H * exp(-d^2 / (2 P_zz))`` (a level walker 1.5 m below the next floor's
+    band never moves; one at the top of the stairs does); it keeps its mode. ``pi`` adds the
+    jump to any floor (``jump_rate_hz``: a floor the data has not decided is never given up, so
+    a wrong lock can be left), which moves probability but never a state (it is not in
+    ``pi_move``). Modes (same floor): level -> vertical at ``r_in dt``, vertical -> level at
+    ``r_out dt`` (:func:`_mode_rates`). The third array is the jump's part of ``pi``.
+    """
+    h = mean.shape[1]
+    nf = h // 2
+    fl, vert = hypothesis_floor(nf), hypothesis_vertical(nf)
+    g = np.arange(nf)
+    adj = (np.abs(fl[:, None] - g[None, :]) == 1).astype(np.float64)  # (H, F)
+    other = (fl[:, None] != g[None, :]).astype(np.float64)
+    dt = np.maximum(dt_s, 0.0)[:, None, None]
+    lo, hi = _floor_band(building, nf, config)
+    z = mean[:, :, None, 2]  # (N, H, 1)
+    gap = np.maximum(np.maximum(lo[None, None, :] - z, z - hi[None, None, :]), 0.0)
+    reach = gap - dt * config.v_stairs_m_s
+    var_z = np.maximum(cov[:, :, None, 2, 2], 1e-6)
+    near = np.exp(-0.5 * np.maximum(reach, 0.0) ** 2 / var_z)
+    p_adj = np.minimum(dt * config.v_stairs_m_s / building.floor_height_m, 0.45)
+    p_jump = np.minimum(dt * config.jump_rate_hz, 0.05) / max(nf - 1, 1)
+    move = adj * p_adj * near  # (N, H, F): to floor g in the same mode
+    jump = other * p_jump
+    stay = 1.0 - (move + jump).sum(axis=-1)  # (N, H): stays on its floor
+    r_in, r_out = _mode_rates(building, config)
+    dt1 = dt[:, :, 0]
+    p_switch = np.where(vert[None, :], np.minimum(r_out * dt1, 0.5),
+                        np.minimum(r_in * dt1, 0.5))  # (N, H)
+    same_mode = (vert[:, None] == vert[None, :]).astype(np.float64)  # (H, H)
+    to_floor = (fl[None, :] == g[:, None]).astype(np.float64)  # (F, H): floor g -> hyp h
+    cross_f = np.einsum("nhf,fk->nhk", move, to_floor) * same_mode
+    cross_j = np.einsum("nhf,fk->nhk", jump, to_floor) * same_mode
+    same_floor = (fl[:, None] == fl[None, :]).astype(np.float64)
+    own = same_floor * np.where(same_mode > 0, 1.0 - p_switch[..., None], p_switch[..., None])
+    own = own * stay[..., None]
+    # entering the vertical mode moves probability but not the level track's state: the
+    # vertical hypothesis keeps its own track (free height), which is what accumulates the
+    # evidence of a climb (restarted from the level track every epoch it could not: measured
+    # on other-building, a descending walker's level track stayed pinned at the nominal height
+    # and the track was lost to a mirror floor)
+    start = (~vert[:, None] & vert[None, :]).astype(np.float64)
+    return own + cross_f + cross_j, own * (1.0 - start) + cross_f, cross_j
+
+
+def _floor_band(building, n_floors: int, config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
+    zf = building.floor_z_m(np.arange(n_floors))
+    return zf + config.z_margin_m, zf + building.floor_height_m - config.z_margin_m
+
+
+def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
+         ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """IMM interaction: mixed means/covariances and predicted log-probabilities (N, H), and
+    the predicted probability each hypothesis receives from the *other* hypotheses through
+    physical transitions (adjacent-floor moves, mode switches; not the floor jump), (N, H):
+    what wakes a dormant hypothesis."""
+    h = state.log_prob.shape[1]
+    nf = h // 2
+    fl, vert = hypothesis_floor(nf), hypothesis_vertical(nf)
+    pi, pi_move, pi_jump = _transitions(state.mean, state.cov, dt_s, building, config)
+    lw = state.log_prob
+    mx = lw.max(axis=1, keepdims=True)
+    w = np.exp(lw - mx)  # (N, H)
+    joint = w[:, :, None] * pi  # (N, H, H)
+    c = joint.sum(axis=1)  # (N, H)
+    lo, hi = _floor_band(building, nf, config)
+    start = (~vert[:, None] & vert[None, :])  # (H, H): level f -> vertical g
+    stop = (vert[:, None] & ~vert[None, :])
+    if config.mixing == "imm":
+        mu = joint / np.maximum(c[:, None, :], 1e-300)  # mu[f | g]
+        # state of hypothesis f moved into hypothesis g: (N, H, H, 6)
+        xs = np.broadcast_to(state.mean[:, :, None, :], (*joint.shape, 6)).copy()
+        ps = np.broadcast_to(state.cov[:, :, None], (*joint.shape, 6, 6)).copy()
+        _move_into(xs, ps, state.mean[:, :, None, 2], lo[fl][None, None, :],
+                   hi[fl][None, None, :], start[None], stop[None], config)
+        x0 = np.einsum("nfg,nfgi->ngi", mu, xs)
+        d = xs - x0[:, None]
+        p0 = np.einsum("nfg,nfgij->ngij", mu, ps + d[..., :, None] * d[..., None, :])
+    else:  # "select": every hypothesis continues from its most probable predecessor
+        src = np.argmax(w[:, :, None] * pi_move, axis=1)  # (N, H)
+        rows = np.arange(joint.shape[0])[:, None]
+        # only the chosen predecessor's state is moved (the same operations as on all
+        # H x H pairs, so the same numbers)
+        x0, p0 = state.mean[rows, src], state.cov[rows, src]
+        cols = np.arange(h)[None, :]
+        _move_into(x0, p0, x0[..., 2].copy(), lo[fl][None, :], hi[fl][None, :],
+                   start[src, cols], stop[src, cols], config)
+    log_pred = np.log(np.maximum(c, 1e-300)) + mx
+    log_pred = log_pred - _logsumexp(log_pred)[:, None]
+    inflow = np.einsum("nf,nfg->ng", w, (pi - pi_jump) * (1.0 - np.eye(h)))
+    return x0, p0, log_pred, inflow / c.sum(axis=1, keepdims=True)
+
+
+def _move_into(xs: FloatArray, ps: FloatArray, z_from: FloatArray, lo: FloatArray,
+               hi: FloatArray, start, stop, config: TrackerConfig) -> None:
+    """Move states (``xs`` (..., 6), ``ps`` (..., 6, 6), in place) from their hypothesis
+    into another: the height into the target floor's band ``[lo, hi]`` (its variance
+    inflated when moved), the vertical speed spread of a walker entering the vertical mode
+    (``start``) or none beyond the carry's when entering the level mode (``stop``)."""
+    xs[..., 2] = np.clip(xs[..., 2], lo, hi)
+    moved = xs[..., 2] != z_from
+    ps[..., 2, 2] += np.where(moved, config.z_mix_sigma_m**2, 0.0)
+    ps[..., 5, 5] += np.where(moved, (config.v_stairs_m_s / 2) ** 2, 0.0)
+    # entering the vertical mode: the walker may start up or down the stairs at v_stairs
+    ps[..., 5, 5] += np.where(start, (config.v_stairs_m_s / 2) ** 2, 0.0)
+    # entering the level mode: no vertical speed beyond the carry's (v_level_sigma)
+    xs[..., 5] = np.where(stop, 0.0, xs[..., 5])
+    ps[..., 5, :] = np.where(stop[..., None], 0.0, ps[..., 5, :])
+    ps[..., :, 5] = np.where(stop[..., None], 0.0, ps[..., :, 5])
+    ps[..., 5, 5] = np.where(stop, config.v_level_sigma_m_s**2, ps[..., 5, 5])
+
+
+def _logsumexp(a: FloatArray) -> FloatArray:
+    m = a.max(axis=-1)
+    return m + np.log(np.exp(a - m[..., None]).sum(axis=-1))
+
+
+def _propagate(x: FloatArray, p: FloatArray, dt_s: FloatArray, config: TrackerConfig
+               ) -> tuple[FloatArray, FloatArray]:
+    """NCV prediction of every hypothesis' Gaussian over ``dt_s`` (shape (N,))."""
+    dt = dt_s[:, None]
+    xn = x.copy()
+    xn[..., :3] = x[..., :3] + dt[..., None] * x[..., 3:]
+    phi = np.broadcast_to(np.eye(6), (dt_s.shape[0], 6, 6)).copy()
+    i = np.arange(3)
+    phi[:, i, i + 3] = dt_s[:, None]
+    q = process_noise(dt_s, config)[:, None]
+    pn = phi[:, None] @ p @ np.swapaxes(phi, -1, -2)[:, None] + q
+    return xn, 0.5 * (pn + np.swapaxes(pn, -1, -2))

@@ -1,0 +1,99 @@
+"""The grid search of the tracker's snapshot initialisation (:mod:`diffpos.tracking.model`).
+
+:func:`grid_starts` ranks a grid of cells at the nominal node height on every listed floor
+by the robust max-mixture range cost (the range variance widened by the grid's resolution)
+in one compiled pass (:func:`diffpos.tracking.initialisation_nb.grid_cost_kernel`), bit-identical
+to the numpy reference :func:`_grid_starts_numpy`; the snapshot fit from the best cells
+(:func:`diffpos.tracking.model.snapshot`, :func:`~diffpos.tracking.model.snapshot_init`)
+runs the measurement update and stays beside it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from diffpos._kernels.pool import GRID_MIN_CELL_LINKS, run_rows
+from diffpos.paths.model_nb import building_planes
+from diffpos.tracking.initialisation_nb import grid_cost_kernel
+from diffpos.tracking.links import _IS_BAND, _IS_DIFF, Links, _c, _los, all_paths, candidates
+
+FloatArray = NDArray[np.float64]
+
+
+def _grid_cells(building, step_m: float) -> FloatArray:
+    x0, x1 = building.edge_x_m
+    xs = np.arange(x0 + step_m / 2, x1, step_m)
+    ys = np.arange(step_m / 2, building.depth_m, step_m)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    return np.stack([gx.ravel(), gy.ravel()], axis=-1)
+
+
+def grid_starts(links: Links, floors: NDArray, building, config) -> FloatArray:
+    """Best ``init_starts`` grid cells on each listed floor per node: (N, Fs * S, 3).
+
+    ``floors`` (N, Fs): the floors to search for every node. The cost of a cell is the robust
+    max-mixture cost over the links with the range variance widened by the grid's own
+    resolution (``(step / 2)^2``). Every cell of every node in one compiled pass
+    (:func:`diffpos.tracking.initialisation_nb.grid_cost_kernel`: lengths without Jacobians, no
+    temporaries), bit-identical to :func:`_grid_starts_numpy`. The kernel abandons a cell as
+    soon as its links so far cost more than the ``init_starts``-th best cell finished before it
+    (exact: the same cells, totals and order; the grid was ~20 % of the fusion's CPU over the
+    first 2 s of a real-time ``large`` run, 3.9 ms per node with 8 anchors, 1.4 ms with the
+    pruning: cProfile of ``benchmarks/bench_fusion_cost.py --schedule`` on a 20 s real-time
+    ``large`` recording).
+    """
+    cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
+    n, nf = floors.shape
+    m = links.rho.shape[-1]
+    if m > 128:  # the kernel's summation order is numpy's up to 128 links
+        return _grid_starts_numpy(links, floors, building, config)
+    c, ns = cells.shape[0], config.init_starts
+    z = building.floor_z_m(floors) + building.nominal_node_height_m  # (N, Fs)
+    var = links.var + (0.5 * config.init_grid_m) ** 2
+    w_out = np.log(config.outlier_span_m / config.outlier_weight)
+    total = np.empty((n, nf, c))
+    fl = np.empty((n, nf))
+    fl[...] = floors
+    cc, zc, anc = _c(cells), _c(z, dtype=np.float64), _c(links.anchors[:, 0])
+    rho, vr, mask = _c(links.rho[:, 0]), _c(var[:, 0]), _c(links.mask[:, 0])
+    planes = building_planes(building)
+
+    def rows(lo: int, hi: int) -> None:  # the node rows [lo, hi) (diffpos._kernels.pool)
+        grid_cost_kernel(cc, zc[lo:hi], fl[lo:hi], anc[lo:hi], rho[lo:hi], vr[lo:hi],
+                         mask[lo:hi], _IS_BAND, _IS_DIFF, 0.5 * config.init_grid_m,
+                         float(w_out), int(ns), *planes, total[lo:hi])
+
+    run_rows(rows, n, min_rows=-(-GRID_MIN_CELL_LINKS // max(nf * c * m, 1)))
+    order = np.argsort(total, axis=2, kind="stable")[..., :ns]  # (N, Fs, S)
+    pos = np.concatenate([np.broadcast_to(cells[None, None], (n, nf, c, 2)),
+                          np.broadcast_to(z[:, :, None, None], (n, nf, c, 1))], axis=-1)
+    return np.take_along_axis(pos, order[..., None], axis=2).reshape(n, nf * ns, 3)
+
+
+def _grid_starts_numpy(links: Links, floors: NDArray, building, config) -> FloatArray:
+    """The numpy reference of :func:`grid_starts` (one node at a time)."""
+    cells = _grid_cells(building, config.init_grid_m)  # (C, 2)
+    n, nf = floors.shape
+    c, ns = cells.shape[0], config.init_starts
+    z = building.floor_z_m(floors) + building.nominal_node_height_m  # (N, Fs)
+    var = links.var + (0.5 * config.init_grid_m) ** 2
+    w_out = np.log(config.outlier_span_m / config.outlier_weight)
+    starts = np.zeros((n, nf * ns, 3))
+    for i in range(n):  # one node at a time keeps the arrays small (K x Fs x C x M)
+        pos = np.concatenate([np.broadcast_to(cells[None], (nf, c, 2)),
+                              np.broadcast_to(z[i][:, None, None], (nf, c, 1))], axis=-1)
+        pos = pos.reshape(1, nf * c, 3)
+        li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1],
+                   links.anchors[i:i + 1])
+        pe = all_paths(pos, li, np.repeat(floors[i], c)[None], building,
+                       0.5 * config.init_grid_m)
+        e = li.rho[..., None] - pe.length
+        cost = np.where(candidates(pe), 0.5 * e * e / li.var[..., None], np.inf).min(axis=-1)
+        los, _ = _los(pos, li.anchors)
+        short = np.minimum(li.rho - los, 0.0)
+        cost = np.minimum(cost, w_out + 0.5 * short**2 / li.var)
+        total = np.where(li.mask, cost, 0.0).sum(axis=-1)[0].reshape(nf, c)
+        order = np.argsort(total, axis=1, kind="stable")[:, :ns]
+        starts[i] = pos[0].reshape(nf, c, 3)[np.arange(nf)[:, None], order].reshape(-1, 3)
+    return starts
