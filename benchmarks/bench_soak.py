@@ -72,9 +72,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_latency import PERIOD_NS, cpu_s, rss_mb, scenario_toml
+from common import PERIOD_NS, cpu_s, rss_mb, scenario_toml
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.kit import free_tcp_port, stop_process_groups
 from diffpos_services.wire import messages as M
