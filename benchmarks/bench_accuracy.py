@@ -38,8 +38,8 @@ the samples, both for the rest; its docstring lists the sampled ranges), alone u
 and 1 (40 each, 2026-11-28) and the diagnosis of their misses: docs/heldout_geo14.md
 (``benchmarks/heldout_diag.py`` reads the recordings kept with ``--keep``).
 
-The table (and ``--json``) names the command and the machine; the README's accuracy table is
-regenerated from it.
+The table (and ``--json``) names the command and the machine; docs/accuracy.md's table (and the
+README's summary rows) is regenerated from it.
 
 Measured 2026-11-27 08:27-08:50 UTC (``--only default``, ``--only tall-floors wide-windows
 uavs-above-windows anchors-beyond-ends``, ``--only large``; 20 s, seed 0; 2-core VM shared with
