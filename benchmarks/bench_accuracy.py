@@ -38,8 +38,8 @@ the samples, both for the rest; its docstring lists the sampled ranges), alone u
 and 1 (40 each, 2026-11-28) and the diagnosis of their misses: docs/heldout_geo14.md
 (``benchmarks/heldout_diag.py`` reads the recordings kept with ``--keep``).
 
-The table (and ``--json``) names the command and the machine; the README's accuracy table is
-regenerated from it.
+The table (and ``--json``) names the command and the machine; docs/accuracy.md's table (and the
+README's summary rows) is regenerated from it.
 
 Measured 2026-11-27 08:27-08:50 UTC (``--only default``, ``--only tall-floors wide-windows
 uavs-above-windows anchors-beyond-ends``, ``--only large``; 20 s, seed 0; 2-core VM shared with
@@ -74,8 +74,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shlex
 import subprocess
 import sys
@@ -85,19 +83,12 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from diffpos_services.recording.reader import McapScanner
-from diffpos_services.recording.topics import parse_topic
-from diffpos_services.recording.writer import part_path
-from diffpos_services.wire import messages as M
+from common import SKIP_S, machine, score_recording
 from heldout import family, random_scenarios, summary
 
-from diffpos.floor_calibration import probability_rows
-from diffpos.metrics import percentiles, score, truth_at
 from diffpos.scenario import default_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
-SKIP_S = 2.0
 
 
 # ----------------------------------------------------------------------------- scenarios
@@ -183,114 +174,6 @@ def variants() -> dict[str, dict[str, Any]]:
 
 
 # ----------------------------------------------------------------------------- scoring
-def recording_parts(path: str | Path) -> list[Path]:
-    """``path`` and the parts the recorder split the run into (``<stem>_0001.mcap``, ...:
-    :func:`diffpos_services.recording.writer.part_path`), in order."""
-    parts = [Path(path)]
-    while part_path(path, len(parts)).exists():
-        parts.append(part_path(path, len(parts)))
-    return parts
-
-
-def _truth_tracks(truth: list) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per node its truth samples' times, positions and floors, in time order."""
-    by: dict[str, list] = {}
-    for g in sorted(truth, key=lambda g: (g.id, g.t_ns)):
-        by.setdefault(g.id, []).append(g)
-    return {k: (np.array([g.t_ns for g in v], np.int64), np.array([g.position_m for g in v]),
-                np.array([g.floor_index for g in v])) for k, v in by.items()}
-
-
-def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
-                    rows_out: list | None = None) -> dict[str, Any]:
-    """Every node-epoch of a recording (all its parts) after ``skip_s`` against its recorded
-    truth.
-
-    The node-epochs are the recorded truth samples of the nodes (one per node and fusion
-    epoch of the run); the estimate of a node-epoch is the recorded live estimate of that node
-    and epoch (v1 or v2) with a usable position (status in ``GOOD_STATUSES``), else a miss.
-    An estimate is compared with the truth at its own ``t_ns``
-    (:func:`diffpos.metrics.truth_at`), as ``emulate``'s summary and ``replay``'s report do.
-    ``rows_out``: a list that receives one ``(node, t_ns, true floor, published floor or -1,
-    its probability or NaN, true z [m], the true floor's probability or NaN)`` per node-epoch
-    (bench_floor_calibration.py).
-    """
-    dec_est, dec_truth = M.estimate_decoder(), M.decoder(M.GroundTruth)
-    dec_rc = M.decoder(M.RunControl)
-    truth_d, est, t0, period = {}, {}, None, None
-    parts = recording_parts(path)
-    for part in parts:
-        for batch in McapScanner(part).iter_batches():
-            for m in batch:
-                kind = parse_topic(m.topic)[0]
-                if kind == "truth_node":
-                    g = dec_truth(m.data)
-                    truth_d[(g.id, g.t_ns)] = g
-                elif kind == "estimate":
-                    e = dec_est(m.data)
-                    est[(e.node_id, e.epoch)] = e
-                elif kind == "run_control" and t0 is None:
-                    t0 = dec_rc(m.data).t0_ns
-    truth = list(truth_d.values())
-    if t0 is None or not truth:
-        raise RuntimeError(f"{path}: no run control or no truth recorded")
-    ts = np.unique([g.t_ns for g in truth])
-    period = int(np.min(np.diff(ts))) if ts.size > 1 else 100_000_000
-    rows = [g for g in truth if g.t_ns >= t0 + round(skip_s * 1e9)]
-    n = len(rows)
-    pos, cov = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
-    e_floor, t_floor = np.full(n, -1), np.array([g.floor_index for g in rows])
-    vectors = [()] * n  # the reported floor probabilities of each node-epoch's estimate
-    tru = np.array([g.position_m for g in rows], float)
-    tracks = _truth_tracks(truth)
-    status: dict[str, int] = {}
-    for i, g in enumerate(rows):
-        e = est.get((g.id, g.t_ns // period))
-        if e is None:
-            status["(none)"] = status.get("(none)", 0) + 1
-            continue
-        status[e.status] = status.get(e.status, 0) + 1
-        if e.position_m is None or e.status not in M.GOOD_STATUSES:
-            continue
-        p, f = truth_at([e.t_ns], *tracks[g.id])  # the truth at the estimate's own time
-        tru[i], t_floor[i] = p[0], f[0]
-        pos[i] = e.position_m
-        if e.covariance_m2 is not None:
-            cov[i] = e.covariance_m2
-        e_floor[i] = -1 if e.floor_index is None else e.floor_index
-        vectors[i] = getattr(e, "floor_probabilities", ())
-    probs = probability_rows(vectors)  # None: estimate v1
-    n_floors = 0 if probs is None else probs.shape[1]
-    probs = np.full((n, 0), np.nan) if probs is None else probs
-    s = score(pos, tru, estimate_floor=e_floor, truth_floor=t_floor, covariance_m2=cov,
-              floor_probabilities=probs if n_floors else None, q=(50, 90))
-    if rows_out is not None:
-        ok = (e_floor >= 0) & (e_floor < n_floors)
-        okt = ok & (t_floor >= 0) & (t_floor < n_floors)
-        p_pub, p_true = (np.where(k, probs[np.arange(n), np.where(k, f, 0)] if n_floors
-                                  else np.nan, np.nan)
-                         for k, f in ((ok, e_floor), (okt, t_floor)))
-        rows_out += [(g.id, g.t_ns, int(t_floor[i]), int(e_floor[i]), float(p_pub[i]),
-                      float(tru[i, 2]), float(p_true[i])) for i, g in enumerate(rows)]
-    lat = [(e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6 for e in est.values()
-           if e.t_input_wall_ns > 0]
-    return {"node_epochs": s.node_epochs, "availability": s.availability,
-            "floor": s.floor_accuracy_all, "floor_fixes": s.floor_accuracy_fixes,
-            "p50_3d": s.error_3d_m["p50"], "p90_3d": s.error_3d_m["p90"],
-            "p50_z": s.error_z_m["p50"], "p90_z": s.error_z_m["p90"],
-            "coverage95": s.ellipsoid_coverage, "floor_calibration": s.floor_calibration,
-            "latency_ms": percentiles(lat, (50, 99), max_mean=False),
-            "status": dict(sorted(status.items())),
-            "nodes": len({g.id for g in truth}), "method": _method(est.values()),
-            "recording_parts": len(parts)}
-
-
-def _method(ests: Iterable[Any]) -> str:
-    for e in ests:
-        return getattr(e, "method", "dnls (estimate v1)")
-    return "-"
-
-
 # ----------------------------------------------------------------------------- runs
 def emulate_cmd(scenario: str | None, *, out: Path, duration_s: float, seed: int,
                 channel: str = "emulator", methods: list[str] | None = None) -> list[str]:
@@ -320,13 +203,6 @@ def runs(tmp: Path, names: list[str] | None,
         path.write_text(to_toml(d), encoding="utf-8")
         out[name] = (str(path), "emulator")
     return {k: v for k, v in out.items() if names is None or k in names}
-
-
-def machine() -> str:
-    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
-    return (f"{platform.node()} {platform.machine()} {os.cpu_count()} cores, "
-            f"{platform.processor() or platform.system()}, Python {platform.python_version()}, "
-            f"load avg {load[0]:.1f}")
 
 
 def _f(v: float | None, scale: float = 1.0, fmt: str = "6.2f") -> str:

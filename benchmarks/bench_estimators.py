@@ -26,7 +26,7 @@ import argparse
 import time
 
 import numpy as np
-from scipy.optimize import least_squares
+from common import SIGMA_M, W_M, scene, scipy_fix
 
 from diffpos.estimators.dnls.fit import _lls_starts, grid_starts
 from diffpos.estimators.dnls.solver import DEFAULT_Z_STARTS_M, dnls
@@ -34,38 +34,6 @@ from diffpos.estimators.ippa import ippa
 from diffpos.estimators.lls import lls
 from diffpos.estimators.result import ExclusionReason
 from diffpos.geometry import window_edge_path
-
-W_M = 1.2
-SIGMA_M = 0.05
-
-
-def scene(rng: np.random.Generator, n: int, m: int, *, delta_m: float = 0.0):
-    """Random anchors outside (y in [-40, -5] m, z in [0, 40] m), nodes on 9 floors."""
-    anchors = np.stack([rng.uniform(-30, 30, (n, m)), rng.uniform(-40, -5, (n, m)),
-                        rng.uniform(0, 40, (n, m))], axis=-1)
-    nodes = np.stack([rng.uniform(-15, 15, n), rng.uniform(1, 15, n),
-                      1.5 + 3.0 * rng.integers(0, 9, n)], axis=-1)
-    p = window_edge_path(anchors, nodes[:, None, :], window_height_m=W_M, delta_m=delta_m)
-    return anchors, nodes, p.length_m
-
-
-def scipy_fix(anchors: np.ndarray, ranges: np.ndarray, sigma: float, starts: np.ndarray):
-    """One fix with scipy: MINPACK LM from every start, keep the lowest cost."""
-
-    def fun(x):
-        return (ranges - window_edge_path(anchors, x, window_height_m=W_M).length_m) / sigma
-
-    def jac(x):
-        return -window_edge_path(anchors, x, window_height_m=W_M).jacobian / sigma
-
-    best = None
-    for x0 in starts:
-        sol = least_squares(fun, x0, jac=jac, method="lm")
-        if best is None or sol.cost < best.cost:
-            best = sol
-    x = best.x.copy()
-    x[1] = abs(x[1])
-    return x
 
 
 def rate(anchors: np.ndarray, ranges: np.ndarray, *, repeat: int = 1) -> tuple[float, float]:

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_accuracy import machine, score_recording
+from common import machine, score_recording
 from heldout import family, random_scenario, summary
 
 from diffpos.floor_calibration import CONFIDENT, FloorCalibration, format_calibration

@@ -35,59 +35,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import PERIOD_NS, cpu_s, rss_mb, scenario_toml
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.kit import free_tcp_port, stop_process_groups
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
-
-PERIOD_NS = 100_000_000
-
-
-def scenario_toml(n_anchors: int, n_nodes: int, seed: int = 0) -> str:
-    """A scenario with the paper's building, n hovering anchors and n static nodes."""
-    rng = np.random.default_rng(seed)
-    lines = [
-        'name = "bench"',
-        f'description = "benchmark: {n_anchors} UAVs, {n_nodes} static nodes"',
-        "[building]",
-        "first_floor_z_m = 4.0",
-        "floor_height_m = 3.0",
-        "n_floors = 5",
-        "sill_height_m = 0.75",
-        "window_height_m = 1.5",
-    ]
-    for j in range(n_anchors):
-        x = -18.0 + 36.0 * j / max(n_anchors - 1, 1)
-        y = -8.0 - 12.0 * ((j * 7) % n_anchors) / max(n_anchors, 1)
-        z = float(rng.uniform(0.0, 4.0))
-        lines += ["[[anchors]]", f'id = "uav{j + 1}"',
-                  f"position_m = [{x:.2f}, {y:.2f}, {z:.2f}]"]
-    for i in range(n_nodes):
-        floor = i % 5
-        x = float(rng.uniform(-17, 17))
-        y = float(rng.uniform(1.0, 15.0))
-        z = 4.0 + 3.0 * floor + 0.75 + 0.75
-        lines += ["[[nodes.list]]", f'id = "n{i + 1:03d}"', f"position_m = [{x:.2f}, {y:.2f}, {z:.2f}]"]
-    return "\n".join(lines) + "\n"
-
-
-def rss_mb(pid: int) -> float | None:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        return None
-    return None
-
-
-def cpu_s(pid: int) -> float | None:
-    """User + system CPU time of a process so far [s] (None if it is gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def cpu_by_role(procs: list[subprocess.Popen]) -> dict[str, float]:

@@ -78,6 +78,10 @@ from diffpos_services.wire import messages as M
 
 from diffpos.estimators.dnls import solver as est
 
+# The publisher children (``python -c``) run with this folder as their working directory, so
+# they import this module's payload helpers as a script run here would (no sys.path edit).
+BENCH_DIR = Path(__file__).resolve().parent
+
 
 def _payload_200(i: int) -> bytes:
     msg = M.RangeMeasurement(anchor_id="uav3", node_id=f"n{i % 50:02d}", t_ns=1_700_000_000_000_000_000 + i,
@@ -110,7 +114,6 @@ def bench_sink(n: int, tmp: Path) -> dict:
 _PUBLISHER = r"""
 import sys, time, zenoh
 from diffpos_services.bus.session import ZenohSettings, wait_matching
-sys.path.insert(0, {bench_dir!r})
 from bench_recorder import _payload_200
 ep, n = sys.argv[1], int(sys.argv[2])
 payloads = [_payload_200(i) for i in range(n)]
@@ -165,9 +168,9 @@ def _recorder_behind_router(site: str, out: Path, split_s: float | None = None):
 
 def bench_bus(n: int, tmp: Path) -> dict:
     with _recorder_behind_router("b", tmp / "bus.mcap") as (ep, rec, lines, start):
-        code = _PUBLISHER.format(bench_dir=str(Path(__file__).parent))
+        code = _PUBLISHER.format()
         pub = start([sys.executable, "-c", code, ep, str(n)], stdout=subprocess.PIPE,
-                    stdin=subprocess.PIPE)
+                    stdin=subprocess.PIPE, cwd=BENCH_DIR)
         first = pub.stdout.readline()
         if not first.startswith("start"):  # it exited (no match within its bound): say so
             raise RuntimeError(f"publisher failed (exit {pub.wait(timeout=60)}); see above")
@@ -367,7 +370,6 @@ def bench_soak(minutes: float, tmp: Path, *, split: bool, every_min: float) -> d
 _LIVE_PUBLISHER = r"""
 import sys, time, zenoh
 from diffpos_services.bus.session import ZenohSettings, wait_matching
-sys.path.insert(0, {bench_dir!r})
 from bench_recorder import _soak_epoch
 ep, epochs = sys.argv[1], int(sys.argv[2])
 seqs = {{f"uav{{a}}": 0 for a in range(8)}}
@@ -425,9 +427,9 @@ def bench_live(minutes: float, tmp: Path, *, every_min: float,
     samples, last = [], {}
     out = tmp / "live.mcap"
     with _recorder_behind_router("soak", out, split_s) as (ep, rec, lines, start):
-        code = _LIVE_PUBLISHER.format(bench_dir=str(Path(__file__).parent))
+        code = _LIVE_PUBLISHER.format()
         pub = start([sys.executable, "-c", code, ep, str(round(minutes * 600))],
-                    stdout=subprocess.PIPE, stdin=subprocess.PIPE)
+                    stdout=subprocess.PIPE, stdin=subprocess.PIPE, cwd=BENCH_DIR)
         first = pub.stdout.readline()
         if not first.startswith("start"):
             raise RuntimeError(f"publisher failed (exit {pub.wait(timeout=60)}); see above")

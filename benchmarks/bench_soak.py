@@ -72,9 +72,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_latency import PERIOD_NS, cpu_s, rss_mb, scenario_toml
+from common import PERIOD_NS, cpu_s, rss_mb, scenario_toml
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.kit import free_tcp_port, stop_process_groups
 from diffpos_services.wire import messages as M
@@ -182,7 +180,7 @@ def run_soak(
     method : str
         The fusion's ``--method``. Default ``dnls``: this soak measures the transport, the
         recorder and the fusion's ingest at a load (16 x 200 x 10 Hz) where the default
-        ``mnls`` + tracker does not keep up on 2 cores yet (README, live load). Measured
+        ``mnls`` + tracker does not keep up on 2 cores yet (docs/performance.md, live). Measured
         2026-11-27 (``--load 16x200 --duration 120 --method mnls``, machine shared, load
         4.8-7.8): 15,145 / 240,000 estimates before the bounded, batched steps of the
         livefuse branch, 24,013 after; every range delivered, the rest dropped as

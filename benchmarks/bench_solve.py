@@ -38,13 +38,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_estimators import W_M, scene, scipy_fix
+from common import SIGMA_M, W_M, scene, scipy_fix
 
 from diffpos.estimators.dnls.fit import _lls_starts, grid_starts
 from diffpos.estimators.dnls.fit_nb import warm_dnls
 from diffpos.estimators.dnls.solver import DEFAULT_Z_STARTS_M, dnls
-
-SIGMA_M = 0.05
 
 
 def _per_call(fn, n: int) -> tuple[float, float]:

@@ -17,15 +17,10 @@ from __future__ import annotations
 import argparse
 import os
 import pickle
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from bench_latency import cpu_s
+from common import cpu_s
 from diffpos_services.fusion import workers as W
 
 from diffpos.channel.emulator import emulate_channel, first_arrival

@@ -41,6 +41,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from common import SKIP_S
 from diffpos_services.recording.reader import McapScanner
 from diffpos_services.recording.topics import parse_topic
 from diffpos_services.wire import messages as M
@@ -54,7 +55,6 @@ from diffpos.scenario import Scenario
 from diffpos.tracking.snr import SNR_SIGMA_DB
 
 CHI2_3_95 = 7.814727903251178  # 95 % quantile of chi-square with 3 degrees of freedom
-SKIP_S = 2.0
 #: a floor change counts when the truth then stays on the new floor this long; the estimate
 #: has settled when it then shows the new floor this long (or until the truth changes) [s]
 HOLD_S = 1.0
