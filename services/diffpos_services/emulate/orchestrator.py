@@ -53,7 +53,12 @@ from diffpos_services.emulate.notes import (
 )
 from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
 from diffpos_services.emulate.scoring import Scorer
-from diffpos_services.emulate.supervise import Supervisor, recover_in_place
+from diffpos_services.emulate.supervise import (
+    NotRestarted,
+    Supervisor,
+    disk_full,
+    recover_in_place,
+)
 from diffpos_services.fusion.config import (
     LIVE_MAX_BACKLOG_S,
     FusionConfig,
@@ -63,11 +68,14 @@ from diffpos_services.fusion.config import (
 from diffpos_services.kit import (
     STATUS,
     ConfigError,
+    DiffposError,
     child_env,
     free_tcp_port,
     log_event,
     stop_process_groups,
 )
+from diffpos_services.recording.summary import set_losses
+from diffpos_services.recording.writer import recording_set, restart_path
 from diffpos_services.scenario_io import load_scenario_option, resolve_scenario
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
@@ -320,8 +328,12 @@ class Emulation:
         elif name == "recorder":
             i = argv.index("--out")
             dead = argv[i + 1]
-            first = Path(self.recordings[0])
-            new = first.with_name(f"{first.stem}-restart{n}{first.suffix}")
+            full = disk_full(dead)
+            if full is not None:  # no restart onto a full disk: it would write 0-byte files
+                note = f"{full}; {recover_in_place(dead)}"
+                self.recording_notes.append(f"recorder: {note}")
+                raise NotRestarted(note)
+            new = restart_path(self.recordings[0], n)
             argv[i + 1] = str(new)
             self.recordings.append(str(new))
         self._spawn(name, argv)
@@ -511,10 +523,27 @@ class Emulation:
                 for s in subs:
                     s.undeclare()
                 live.undeclare()
-                return self._summary(monitor.scorer, monitor.lost_events)
+                summary = self._summary(monitor.scorer, monitor.lost_events)
         finally:
             self.shutdown()
             tmp.cleanup()
+        return self._with_recording_losses(summary)
+
+    def _with_recording_losses(self, summary: dict[str, Any]) -> dict[str, Any]:
+        """The messages missing by sequence number across every file the recorder(s) wrote
+        (read once the recorder has finished its file): ``recording_losses`` and a note."""
+        if not self.recordings or not recording_set(self.recordings[0]):
+            return summary
+        try:
+            losses = set_losses(self.recordings[0])
+        except DiffposError as exc:
+            summary["notes"].append(f"recording: losses not counted ({exc})")
+            return summary
+        summary["recording_losses"] = {"missing": losses.missing, "by_stream": losses.by_stream,
+                                       "files": losses.files,
+                                       "holes": [list(h) for h in losses.holes[:50]]}
+        summary["notes"].append(losses.line())
+        return summary
 
     def _start_router(self, tmp: tempfile.TemporaryDirectory | None) -> ZenohSettings:
         """Start the router (secured: render the profile into ``tmp`` first); the
