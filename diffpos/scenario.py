@@ -15,8 +15,17 @@ names the field and the limit):
   thicknesses) and the total height ``n_floors * floor_height_m`` at most 10 km
   (:data:`MAX_BUILDING_SIZE_M`; ``sill_height_m + window_height_m`` must fit in a floor);
 - ``n_floors`` in [1, 200] (:data:`MAX_FLOORS`);
+- at most 256 anchors (:data:`MAX_ANCHORS`, the fusion's ``max_anchors``), 100,000 listed
+  nodes (:data:`MAX_NODES`, the fusion's ``max_nodes``), 10^7 positions of ``[nodes.grid]``
+  (:data:`MAX_GRID_POSITIONS`: 240 MB as an array), 1,024 partitions (:data:`MAX_PARTITIONS`) and 10,000 waypoints per
+  trajectory (:data:`MAX_WAYPOINTS`); a count beyond a limit is refused before any entry is
+  parsed, naming the limit;
 - two anchors whose positions stay within 1 cm of each other (:data:`MIN_ANCHOR_SEPARATION_M`)
-  over the first hour are co-located: rejected, naming both ids (they add no geometry).
+  over the first hour are co-located: rejected, naming both ids (they add no geometry). The
+  check costs O(n log n) in the anchor count (sorting 1 cm cells of the positions at t = 0
+  finds the pairs within 1 cm then; only those are compared over the hour).
+
+(The file-level limits, size and nesting depth, are ``diffpos_services.scenario_io``'s.)
 
 Fewer than 3 anchors is valid (e.g. to study a link) but no 3D fix is ever possible: it is
 reported in :attr:`Scenario.warnings` (the core prints nothing; the loader surfaces them).
@@ -53,6 +62,7 @@ numbers chosen for :func:`default_scenario` and why:
 
 from __future__ import annotations
 
+import bisect
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -67,9 +77,14 @@ from diffpos.trajectory import Hover, Static, Trajectory, Waypoints, trajectory_
 
 __all__ = [
     "ITU_MATERIALS",
+    "MAX_ANCHORS",
     "MAX_BUILDING_SIZE_M",
     "MAX_COORDINATE_M",
     "MAX_FLOORS",
+    "MAX_GRID_POSITIONS",
+    "MAX_NODES",
+    "MAX_PARTITIONS",
+    "MAX_WAYPOINTS",
     "MIN_ANCHOR_SEPARATION_M",
     "AnchorSpec",
     "Building",
@@ -89,6 +104,16 @@ MAX_COORDINATE_M = 100_000.0
 MAX_BUILDING_SIZE_M = 10_000.0
 #: Largest accepted number of floors.
 MAX_FLOORS = 200
+#: Largest accepted number of anchors (the fusion's ``FusionConfig.max_anchors`` default).
+MAX_ANCHORS = 256
+#: Largest accepted number of listed nodes (the fusion's ``FusionConfig.max_nodes`` default).
+MAX_NODES = 100_000
+#: Largest accepted number of ``[nodes.grid]`` positions (computed before the grid is built).
+MAX_GRID_POSITIONS = 10_000_000
+#: Largest accepted number of interior partitions.
+MAX_PARTITIONS = 1024
+#: Largest accepted number of waypoints of one trajectory.
+MAX_WAYPOINTS = 10_000
 #: Anchors closer than this over the whole checked horizon are co-located (rejected) [m].
 MIN_ANCHOR_SEPARATION_M = 0.01
 #: Horizon over which anchor trajectories are compared for co-location [s].
@@ -586,6 +611,7 @@ def _parse_building(d: Mapping[str, Any]) -> Building:
     raw_parts = d.get("partitions", [])
     if not isinstance(raw_parts, list):
         raise _fail(f"{path}.partitions", "expected an array of tables")
+    _check_count(raw_parts, MAX_PARTITIONS, f"{path}.partitions", "partitions", "MAX_PARTITIONS")
     for i, pd in enumerate(raw_parts):
         pp = f"{path}.partitions[{i}]"
         _check_keys(pd, ("axis", "position_m", "span_m", "material", "thickness_m", "loss_db"), pp)
@@ -698,8 +724,14 @@ def _trajectory(d: Mapping[str, Any], path: str) -> tuple[Trajectory, str]:
             raise _fail(key, f"expected [x, y, z] in metres, got {d['position_m']!r}")
         return Static((float(vec[0]), float(vec[1]), float(vec[2]))), key
     key = f"{path}.trajectory"
+    raw = d["trajectory"]
+    if isinstance(raw, Mapping):
+        for name in ("points_m", "times_s"):
+            if isinstance(raw.get(name), list):
+                _check_count(raw[name], MAX_WAYPOINTS, f"{key}.{name}", "waypoints",
+                             "MAX_WAYPOINTS")
     try:
-        return trajectory_from_dict(d["trajectory"]), key
+        return trajectory_from_dict(raw), key
     except ValueError as exc:
         msg = str(exc)
         sep = ": " if msg.startswith("expected") else "."
@@ -774,7 +806,30 @@ def _parse_grid(d: Mapping[str, Any], b: Building) -> NodeGrid:
              allow_none=True)
     if h is not None and h >= b.floor_height_m:
         raise _fail(f"{path}.height_above_floor_m", f"{h:g} must be < floor_height_m")
-    return NodeGrid(spacing, xm, y0, y1, floors, h)
+    grid = NodeGrid(spacing, xm, y0, y1, floors, h)
+    _check_grid_size(grid, b)
+    return grid
+
+
+def _check_grid_size(g: NodeGrid, b: Building) -> None:
+    """The grid's position count (computed, not built) within :data:`MAX_GRID_POSITIONS`."""
+    x0, x1 = b.edge_x_m
+    cols = max(0, math.floor((x1 - x0 - 2 * g.x_margin_m + 1e-9) / g.spacing_m) + 1)
+    rows = max(0, math.floor((g.y_max_m - g.y_min_m + 1e-9) / g.spacing_m) + 1)
+    n = cols * rows * (b.n_floors if g.floors is None else len(g.floors))
+    if n > MAX_GRID_POSITIONS:
+        raise _fail("nodes.grid.spacing_m",
+                    f"the grid has {n:,} positions ({cols:,} columns x {rows:,} rows x floors); "
+                    f"at most {MAX_GRID_POSITIONS:,} are allowed "
+                    "(diffpos.scenario.MAX_GRID_POSITIONS): use a "
+                    "coarser spacing_m or fewer floors")
+
+
+def _check_count(items: Sequence[Any], limit: int, path: str, what: str, name: str) -> None:
+    """Refuse a list longer than ``limit`` before any of its entries is parsed."""
+    if len(items) > limit:
+        raise _fail(path, f"{len(items):,} {what}; at most {limit:,} are allowed "
+                    f"(diffpos.scenario.{name})")
 
 
 def _parse_scenario(d: Mapping[str, Any]) -> Scenario:
@@ -788,6 +843,7 @@ def _parse_scenario(d: Mapping[str, Any]) -> Scenario:
     raw_anchors = d.get("anchors")
     if not isinstance(raw_anchors, list) or len(raw_anchors) == 0:
         raise _fail("anchors", "need at least one [[anchors]] table (3 or more to fix a 3D position)")
+    _check_count(raw_anchors, MAX_ANCHORS, "anchors", "anchors", "MAX_ANCHORS")
     seen: set[str] = set()
     anchors = []
     for i, ad in enumerate(raw_anchors):
@@ -807,6 +863,7 @@ def _parse_scenario(d: Mapping[str, Any]) -> Scenario:
     raw_list = raw_nodes.get("list", [])
     if not isinstance(raw_list, list):
         raise _fail("nodes.list", "expected an array of tables [[nodes.list]]")
+    _check_count(raw_list, MAX_NODES, "nodes.list", "nodes", "MAX_NODES")
     for i, nd in enumerate(raw_list):
         p = f"nodes.list[{i}]"
         _check_keys(nd, ("id", "position_m", "trajectory"), p)
@@ -821,20 +878,57 @@ def _parse_scenario(d: Mapping[str, Any]) -> Scenario:
 
 
 def _check_colocated(anchors: list[AnchorSpec]) -> None:
-    """Reject two anchors that stay within ``MIN_ANCHOR_SEPARATION_M`` of each other."""
+    """Reject two anchors that stay within ``MIN_ANCHOR_SEPARATION_M`` of each other.
+
+    O(n log n) in the anchor count: a pair co-located over the horizon is within the
+    separation at t = 0, so the pairs within it then (:func:`_close_pairs`) are the only
+    candidates compared along the whole horizon.
+    """
     if len(anchors) < 2:
         return
+    p0 = np.stack([a.trajectory.position_m(np.zeros(1))[0] for a in anchors])
+    pairs = _close_pairs(p0, MIN_ANCHOR_SEPARATION_M)
+    if not pairs:
+        return
     t = np.linspace(0.0, _COLOCATION_HORIZON_S, 3601)
-    pos = np.stack([a.trajectory.position_m(t) for a in anchors])  # (M, T, 3)
-    for i in range(len(anchors)):
-        far = np.max(np.linalg.norm(pos[i + 1:] - pos[i], axis=-1), axis=-1)
-        close = np.flatnonzero(far < MIN_ANCHOR_SEPARATION_M)
-        if close.size:
-            j = i + 1 + int(close[0])
+    cache: dict[int, FloatArray] = {}
+
+    def track(k: int) -> FloatArray:
+        if k not in cache:
+            cache[k] = anchors[k].trajectory.position_m(t)
+        return cache[k]
+
+    for i, j in pairs:  # sorted: the first anchor, then its first partner, as before
+        if np.max(np.linalg.norm(track(j) - track(i), axis=-1)) < MIN_ANCHOR_SEPARATION_M:
             raise _fail(f"anchors[{j}]", f"anchor {anchors[j].id!r} is co-located with anchor "
                         f"{anchors[i].id!r} (anchors[{i}]): within {MIN_ANCHOR_SEPARATION_M:g} m "
                         f"of it over the first {_COLOCATION_HORIZON_S:g} s; a second anchor at "
                         "the same place adds no geometry (move or remove one)")
+
+
+def _close_pairs(p: FloatArray, r: float) -> list[tuple[int, int]]:
+    """Index pairs ``i < j`` with ``|p_i - p_j| < r``, sorted: O(n log n + pairs).
+
+    Each point falls in a cube of side ``r``; a close pair lies in the same or a neighbouring
+    cube, so the cubes are sorted once and each point looks up the 27 around it by binary
+    search (no pairwise distance matrix: 10^6 anchors took 23.7 GB that way).
+    """
+    cell = np.floor(p / r).astype(np.int64)
+    order = np.lexsort(cell.T[::-1])
+    keys = [tuple(c) for c in cell[order]]
+    out: list[tuple[int, int]] = []
+    for i in range(len(p)):
+        for off in _NEIGHBOURS:
+            key = tuple(cell[i] + off)
+            lo = bisect.bisect_left(keys, key)
+            hi = bisect.bisect_right(keys, key, lo)
+            for j in order[lo:hi].tolist():
+                if j > i and float(np.linalg.norm(p[j] - p[i])) < r:
+                    out.append((i, j))
+    return sorted(out)
+
+
+_NEIGHBOURS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
 
 
 def _anchor_warnings(anchors: list[AnchorSpec]) -> tuple[str, ...]:

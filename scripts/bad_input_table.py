@@ -31,6 +31,7 @@ import importlib.util
 import json
 import os
 import shutil
+import struct
 import subprocess
 import sys
 import tempfile
@@ -117,6 +118,99 @@ def _corpus_cases() -> list[Case]:
             for name, _needle, what, _data in corpus.SOLVE]
 
 
+# ----------------------------------------------------------------------------- issue 36 item 5
+SCEN = "tests/services/test_scenario_file_limits.py::"
+DAMAGE = "tests/services/test_recording_damage.py::"
+SAMPLE = ROOT / "recordings" / "sample.mcap"
+_ANCHOR = '[[anchors]]\nid = "u{i}"\nposition_m = [{x}.0, {y}.0, 1.0]\n'
+
+
+def _scenario_with_anchors(tmp: Path, n: int, name: str) -> None:
+    paper = (ROOT / "scenarios" / "paper.toml").read_text()
+    head, tail = paper[: paper.index("[[anchors]]")], paper[paper.index("[nodes"):]
+    body = "".join(_ANCHOR.format(i=i, x=i % 1000, y=-20 - i // 1000) for i in range(n))
+    (tmp / name).write_text(head + body + tail)
+
+
+def _chunk_offsets(data: bytes) -> list[tuple[int, int]]:
+    out, off = [], 8
+    while off + 9 <= len(data):
+        op, ln = struct.unpack_from("<BQ", data, off)
+        if op == 0x06:
+            out.append((off, ln))
+        if op == 0x02:
+            break
+        off += 9 + ln
+    return out
+
+
+def _damaged_sample(tmp: Path, how: str) -> None:
+    data = bytearray(SAMPLE.read_bytes())
+    off, ln = _chunk_offsets(bytes(data))[len(_chunk_offsets(bytes(data))) // 4]
+    if how == "length":
+        struct.pack_into("<Q", data, off + 1, ln + 12345)
+    elif how == "opcode":
+        data[off] = 0x33
+    elif how == "crc":
+        at = off + 9 + 24
+        struct.pack_into("<I", data, at, struct.unpack_from("<I", data, at)[0] ^ 1)
+    (tmp / f"{how}.mcap").write_bytes(bytes(data))
+
+
+def _foreign_mcap(tmp: Path) -> None:
+    from mcap.writer import Writer  # the script's only use of mcap
+
+    with open(tmp / "foreign.mcap", "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("foo.AnchorState", "protobuf", b"\x00")
+        cid = w.register_channel("diffpos/demo/anchor/uav1/state", "protobuf", sid)
+        for i in range(100):
+            w.add_message(cid, log_time=i, data=b"\x08\x01", publish_time=i)
+        w.finish()
+
+
+ITEM5_CASES: list[Case] = [
+    Case("36.5", "`emulate`: a scenario with 5,000 anchors (was > 120 s CPU, SIGTERM ignored)",
+         ("emulate", "{tmp}/many.toml", "--duration", "1"),
+         SCEN + "test_five_thousand_anchor_file_names_the_anchor_limit",
+         setup=lambda tmp: _scenario_with_anchors(tmp, 5000, "many.toml")),
+    Case("36.5", "`emulate`: a scenario with 10^6 anchors, 50 MB (was 23.7 GB, killed by the "
+         "kernel)", ("emulate", "{tmp}/million.toml", "--duration", "1"),
+         SCEN + "test_oversized_file_is_refused_without_reading_it_all",
+         setup=lambda tmp: _scenario_with_anchors(tmp, 1_000_000, "million.toml")),
+    Case("36.5", "`emulate`: a scenario nested 100,000 deep (was a RecursionError traceback)",
+         ("emulate", "{tmp}/deep.toml", "--duration", "1"),
+         SCEN + "test_deep_nesting_is_refused_naming_the_limit",
+         setup=lambda tmp: (tmp / "deep.toml").write_text("a = " + "[" * 100_000
+                                                          + "]" * 100_000)),
+    Case("36.5", "`recover`: one chunk length field of `recordings/sample.mcap` corrupted "
+         "(was: the remaining 73 % dropped)", ("recover", "{tmp}/length.mcap", "--out",
+                                                "{tmp}/fixed.mcap"),
+         DAMAGE + "test_recover_reads_a_chunk_by_its_contents_when_its_length_field_is_corrupt",
+         setup=lambda tmp: _damaged_sample(tmp, "length")),
+    Case("36.5", "`recover`: one record opcode corrupted", ("recover", "{tmp}/opcode.mcap",
+                                                            "--out", "{tmp}/fixed.mcap"),
+         DAMAGE + "test_recover_resyncs_past_an_unreadable_record",
+         setup=lambda tmp: _damaged_sample(tmp, "opcode")),
+    Case("36.5", "`to-rerun`: a chunk failing its CRC", ("to-rerun", "{tmp}/crc.mcap", "-o",
+                                                         "{tmp}/x.rrd"),
+         DAMAGE + "test_every_reader_logs_a_crc_failure_naming_file_and_byte",
+         setup=lambda tmp: _damaged_sample(tmp, "crc")),
+    Case("36.5", "`inspect`: a chunk failing its CRC", ("inspect", "{tmp}/crc.mcap"),
+         DAMAGE + "test_every_reader_logs_a_crc_failure_naming_file_and_byte",
+         setup=lambda tmp: _damaged_sample(tmp, "crc")),
+    Case("36.5", "`to-rerun`: a protobuf MCAP on a diffpos-looking topic (was an .rrd, exit 0)",
+         ("to-rerun", "{tmp}/foreign.mcap", "-o", "{tmp}/x.rrd"),
+         DAMAGE + "test_foreign_mcap_with_diffpos_looking_topics_is_refused",
+         setup=_foreign_mcap),
+    Case("36.5", "`replay`: the same foreign MCAP (was `fixes: 0`, exit 0)",
+         ("replay", "{tmp}/foreign.mcap", "--no-files"),
+         DAMAGE + "test_foreign_mcap_with_diffpos_looking_topics_is_refused",
+         setup=_foreign_mcap),
+]
+
+
 #: Every case, in table order. One entry per case.
 CASES: list[Case] = [
     # issue 15, item 10: bounded work per line
@@ -162,6 +256,7 @@ CASES: list[Case] = [
          stdin=lambda: _line(GOOD) + b"\n   \n\t\n" + _line(GOOD)),
     # the committed corpus of nasty solve lines
     *_corpus_cases(),
+    *ITEM5_CASES,
 ]
 
 

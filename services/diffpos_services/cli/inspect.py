@@ -1,7 +1,9 @@
 """Channels, schemas, counts, time span, anchors and nodes of an MCAP recording
 
 Like `mcap info`, in diffpos terms: which anchors and nodes the recording holds, how many
-messages of each kind, the time span, gaps in the publishers' sequence numbers, the liveliness
+messages of each kind, the time span, gaps in the publishers' sequence numbers (in this file,
+and across every file of the recording when it has split parts or restart files: a hole
+between two files is counted there), the liveliness
 events (anchors joining and leaving), the run metadata and attachments. Works on truncated
 recordings too (it says so and suggests `diffpos recover`). With --validate every message is
 checked against diffpos' own JSON Schema (schemas/) named by its "schema" tag, not against
@@ -24,7 +26,8 @@ import time
 from collections import Counter
 
 from diffpos_services.recording.errors import RecordingError
-from diffpos_services.recording.summary import summarize, validate_file
+from diffpos_services.recording.summary import set_losses, summarize, validate_file
+from diffpos_services.recording.writer import recording_set
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,6 +53,13 @@ def _print_validation(validation: dict) -> None:
               f"{mm['channels']} channels (e.g. {mm['example']})")
 
 
+def _print_across(across) -> None:
+    if across is not None:
+        detail = ", ".join(f"{k}: {n}" for k, n in across.by_stream.items())
+        print(f"           across the recording's {len(across.files)} files (split parts, "
+              f"restarts): {across.missing} missing" + (f" ({detail[:300]})" if detail else ""))
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         s = summarize(args.file)
@@ -59,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"diffpos inspect: {args.file}: {exc.strerror}", file=sys.stderr)
         return 2
+    across = set_losses(args.file) if len(recording_set(args.file)) > 1 else None
     validation = None
     if args.validate:
         try:
@@ -70,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
         d = s.as_dict()
         if validation is not None:
             d["validation"] = validation
+        if across is not None:
+            d["set_losses"] = across.__dict__
         print(json.dumps(d, indent=2, default=str))
         return 0 if s.damage.ok and not (validation and validation["invalid"]) else 1
 
@@ -97,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
     detail = ", ".join(f"{k}: {n}" for k, n in s.gaps.items())
     print(f"gaps:      {gaps} messages missing by sequence number"
           + (f" ({detail[:300]})" if gaps else ""))
+    _print_across(across)
     if s.out_of_order:
         print(f"repeats:   {sum(s.out_of_order.values())} sequence numbers went backwards "
               "(publisher restarted?)")

@@ -4,7 +4,8 @@ A recording whose writer died (SIGKILL, power cut, full disk) has no footer and 
 and the mcap reader refuses it. This command scans the file record by record and copies
 every complete chunk (the recorder flushes one every 0.2 s by default), loose message,
 metadata and attachment into a new, indexed MCAP file; an incomplete last record is dropped,
-and chunks that fail their CRC are skipped and counted. A "recovery" metadata record notes
+chunks that fail their CRC are skipped and counted, and after a corrupt record length the
+copy resyncs at the next readable chunk (only the bytes in between are lost). A "recovery" metadata record notes
 what happened. The input is never modified.
 
 examples:
@@ -52,12 +53,13 @@ def run(args: argparse.Namespace) -> int:
         "channels": rep.channels, "metadata": rep.metadata, "attachments": rep.attachments,
         "input_was_complete": rep.was_complete, "truncated": d.truncated,
         "bad_chunks": d.bad_chunks, "bad_records": d.bad_records,
-        "unread_bytes": d.unread_bytes, "notes": d.notes,
+        "unread_bytes": d.unread_bytes, "skipped_bytes": d.skipped_bytes, "notes": d.notes,
     }
     if args.json:
         print(json.dumps(report, indent=2))
     else:
-        state = "was already complete" if rep.was_complete else "was truncated"
+        state = ("was already complete" if rep.was_complete and d.ok else
+                 "was complete but damaged" if rep.was_complete else "was truncated")
         print(f"{src} {state}: wrote {out}")
         print(f"  {rep.messages} messages on {rep.channels} channels, "
               f"{rep.metadata} metadata, {rep.attachments} attachments")
@@ -65,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  dropped the incomplete last {d.unread_bytes} bytes")
         if d.bad_chunks or d.bad_records:
             print(f"  skipped {d.bad_chunks} corrupt chunks, {d.bad_records} bad records")
+        if d.skipped_bytes:
+            print(f"  resynced past {d.skipped_bytes} corrupt bytes")
         for note in d.notes[:10]:
             print(f"  note: {note}")
     return 0

@@ -15,6 +15,7 @@ import logging
 import os
 import queue
 import secrets
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -52,7 +53,12 @@ from diffpos_services.emulate.notes import (
 )
 from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
 from diffpos_services.emulate.scoring import Scorer
-from diffpos_services.emulate.supervise import Supervisor, recover_in_place
+from diffpos_services.emulate.supervise import (
+    NotRestarted,
+    Supervisor,
+    disk_full,
+    recover_in_place,
+)
 from diffpos_services.fusion.config import (
     LIVE_MAX_BACKLOG_S,
     FusionConfig,
@@ -62,16 +68,20 @@ from diffpos_services.fusion.config import (
 from diffpos_services.kit import (
     STATUS,
     ConfigError,
+    DiffposError,
     child_env,
     free_tcp_port,
     log_event,
     stop_process_groups,
 )
+from diffpos_services.recording.summary import set_losses
+from diffpos_services.recording.writer import recording_set, restart_path
 from diffpos_services.scenario_io import load_scenario_option, resolve_scenario
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
-__all__ = ["MAX_NODE_LIST_CHARS", "Emulation", "fusion_node_list"]
+__all__ = ["MAX_NODE_LIST_CHARS", "RUN_DIR_PREFIXES", "Emulation", "claim_run_dir", "fusion_node_list",
+           "reap_run_dirs"]
 
 #: Longest node allow-list emulate writes on the fusion's command line [characters]: Linux
 #: refuses to start a process with one argument over 128 KiB (E2BIG), e.g. 20,000 ids of 6
@@ -102,6 +112,55 @@ class _Proc:
     popen: subprocess.Popen
     log_path: Path | None
     argv: list[str]
+
+
+#: prefixes of a run's folders in the temporary directory: ``diffpos-run-*`` (the recorder's
+#: run configuration), ``diffpos-zenoh-*`` (the secured run's secrets, the bus configuration)
+RUN_DIR_PREFIXES = ("diffpos-run-", "diffpos-zenoh-")
+_OWNER_FILE = "owner.json"
+
+
+def _start_ticks(pid: int) -> int | None:
+    """A process's start time [clock ticks since boot] (``/proc/<pid>/stat`` field 22), or
+    None when no such process exists: with the pid it names one process, never a reused pid."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return int(stat[stat.rindex(")") + 2:].split()[19])
+
+
+def claim_run_dir(path: Path) -> None:
+    """Write the owner (this process's pid and start time) into a run folder."""
+    (path / _OWNER_FILE).write_text(json.dumps({"pid": os.getpid(),
+                                                "start_ticks": _start_ticks(os.getpid())}))
+
+
+def reap_run_dirs(tmp: str | os.PathLike[str] | None = None) -> list[Path]:
+    """Remove the run folders (:data:`RUN_DIR_PREFIXES`, ours by uid) whose owner is gone:
+    a SIGKILLed ``emulate`` cannot clean up after itself, so the next run does. A folder
+    without an owner file, another user's, or one whose owner lives is left alone.
+
+    Returns
+    -------
+    list of Path
+        The folders removed.
+    """
+    out = []
+    root = Path(tmp or tempfile.gettempdir())
+    for d in (d for prefix in RUN_DIR_PREFIXES for d in root.glob(prefix + "*")):
+        try:
+            if not d.is_dir() or d.is_symlink() or d.stat().st_uid != os.getuid():
+                continue
+            owner = json.loads((d / _OWNER_FILE).read_text())
+            pid, ticks = int(owner["pid"]), owner.get("start_ticks")
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if _start_ticks(pid) is not None and _start_ticks(pid) == ticks:
+            continue  # its run is still going
+        shutil.rmtree(d, ignore_errors=True)
+        out.append(d)
+    return out
 
 
 class Emulation:
@@ -269,8 +328,12 @@ class Emulation:
         elif name == "recorder":
             i = argv.index("--out")
             dead = argv[i + 1]
-            first = Path(self.recordings[0])
-            new = first.with_name(f"{first.stem}-restart{n}{first.suffix}")
+            full = disk_full(dead)
+            if full is not None:  # no restart onto a full disk: it would write 0-byte files
+                note = f"{full}; {recover_in_place(dead)}"
+                self.recording_notes.append(f"recorder: {note}")
+                raise NotRestarted(note)
+            new = restart_path(self.recordings[0], n)
             argv[i + 1] = str(new)
             self.recordings.append(str(new))
         self._spawn(name, argv)
@@ -327,8 +390,10 @@ class Emulation:
         return cfg, edge, why
 
     def _write_run_config(self) -> str:
-        """A JSON run configuration for the recorder (``{"fusion": ..., "emulate": ...}``)."""
-        self._run_dir = tempfile.TemporaryDirectory(prefix="diffpos-run-")
+        """A JSON run configuration for the recorder (``{"fusion": ..., "emulate": ...}``), in
+        this run's folder ``diffpos-run-*`` (with its owner, for :func:`reap_run_dirs`)."""
+        self._run_dir = tempfile.TemporaryDirectory(prefix=RUN_DIR_PREFIXES[0])
+        claim_run_dir(Path(self._run_dir.name))
         path = Path(self._run_dir.name) / "run_config.json"
         doc = {"fusion": msgspec.to_builtins(self.fusion_config),
                "emulate": {"run_id": self.run_id, "channel": self.o.channel, "seed": self.o.seed,
@@ -427,7 +492,12 @@ class Emulation:
         """Run the emulation; returns the summary dictionary (empty if stopped before the
         run started)."""
         # private (0700): the run's secrets and the fusion's bus configuration
-        self.tmp = tmp = tempfile.TemporaryDirectory(prefix="diffpos-zenoh-")
+        reaped = reap_run_dirs()  # a SIGKILLed run's folders (secrets among them)
+        if reaped:
+            log_event(self.log, logging.INFO, "removed the folders of killed runs",
+                      folders=[p.name for p in reaped])
+        self.tmp = tmp = tempfile.TemporaryDirectory(prefix=RUN_DIR_PREFIXES[1])
+        claim_run_dir(Path(tmp.name))
         try:
             self._prepare_kernels()
             session = open_session(self._start_router(tmp if self.profile else None), self.stop,
@@ -453,10 +523,27 @@ class Emulation:
                 for s in subs:
                     s.undeclare()
                 live.undeclare()
-                return self._summary(monitor.scorer, monitor.lost_events)
+                summary = self._summary(monitor.scorer, monitor.lost_events)
         finally:
             self.shutdown()
             tmp.cleanup()
+        return self._with_recording_losses(summary)
+
+    def _with_recording_losses(self, summary: dict[str, Any]) -> dict[str, Any]:
+        """The messages missing by sequence number across every file the recorder(s) wrote
+        (read once the recorder has finished its file): ``recording_losses`` and a note."""
+        if not self.recordings or not recording_set(self.recordings[0]):
+            return summary
+        try:
+            losses = set_losses(self.recordings[0])
+        except DiffposError as exc:
+            summary["notes"].append(f"recording: losses not counted ({exc})")
+            return summary
+        summary["recording_losses"] = {"missing": losses.missing, "by_stream": losses.by_stream,
+                                       "files": losses.files,
+                                       "holes": [list(h) for h in losses.holes[:50]]}
+        summary["notes"].append(losses.line())
+        return summary
 
     def _start_router(self, tmp: tempfile.TemporaryDirectory | None) -> ZenohSettings:
         """Start the router (secured: render the profile into ``tmp`` first); the

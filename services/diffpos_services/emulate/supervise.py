@@ -7,7 +7,10 @@ died, when, its exit code); the fusion is started again on the same command line
 resumes from the bus: it needs nothing but the anchors' messages) and the recorder with a
 new file (``<stem>-restart<k>.mcap``) while the dead recorder's truncated file is recovered
 in place (:func:`diffpos_services.recording.repair.recover`: every complete chunk, indexed).
-An anchor that ends the run on its own (exit code 0) is not a fault.
+An anchor that ends the run on its own (exit code 0) is not a fault. A recorder is not
+restarted onto a full disk (less than :data:`MIN_FREE_BYTES` free where it writes: the fault
+says "disk full"), and a recovery that fails (e.g. no room for the rewritten file) says so
+in the fault's note, keeping the file as it is.
 
 The thread outlives every child it started (it waits for :meth:`Supervisor.close` after the
 children are stopped): a child's parent-death signal (:func:`diffpos_services.kit.
@@ -16,8 +19,10 @@ die_with_parent`) comes when the thread that started it ends.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -29,12 +34,35 @@ from diffpos_services.kit import DiffposError, log_event
 from diffpos_services.recording.repair import recover
 from diffpos_services.recording.writer import existing_parts
 
-__all__ = ["MAX_RESTARTS", "Fault", "Supervisor", "format_faults", "recover_in_place"]
+__all__ = ["MAX_RESTARTS", "MIN_FREE_BYTES", "Fault", "NotRestarted", "Supervisor", "disk_full",
+           "format_faults", "recover_in_place"]
 
 #: restarts per service and run (a service that keeps dying is not restarted forever)
 MAX_RESTARTS = 3
 #: restarted when they die
 RESTARTABLE = ("fusion", "recorder")
+#: a recorder is not restarted where less than this is free [bytes] (a full disk)
+MIN_FREE_BYTES = 16 << 20
+
+
+class NotRestarted(DiffposError):
+    """Raised by a restart callback that declines (its message is the fault's note)."""
+
+    exit_code = 3  # never reaches the CLI: the supervisor catches it
+
+
+def disk_full(path: str | os.PathLike[str]) -> str | None:
+    """``"disk full: N bytes free on DIR"`` when the file system holding ``path`` has less
+    than :data:`MIN_FREE_BYTES` free (a recorder restarted there would write 0-byte files),
+    else None."""
+    d = Path(path).resolve().parent
+    try:
+        free = shutil.disk_usage(d).free
+    except OSError:
+        return None
+    if free >= MIN_FREE_BYTES:
+        return None
+    return f"disk full: {free} bytes free on {d} (No space left on device)"
 
 
 @dataclass
@@ -76,9 +104,13 @@ def recover_in_place(path: str | os.PathLike[str]) -> str:
     tmp = last.with_name(last.stem + ".recovering.mcap")
     try:
         rep = recover(last, tmp)
-    except DiffposError as exc:
-        return f"{last}: could not be recovered ({exc}); kept as it is"
-    os.replace(tmp, last)
+        os.replace(tmp, last)
+    except (DiffposError, OSError) as exc:
+        tmp.unlink(missing_ok=True)
+        why = (os.strerror(exc.errno) if isinstance(exc, OSError) and exc.errno else str(exc))
+        full = " (disk full)" if getattr(exc, "errno", None) == errno.ENOSPC else ""
+        return (f"{last}: RECOVERY FAILED{full}: {why}; kept as it is, truncated (run diffpos "
+                f"recover {last} --out <a file on a disk with room>)")
     d = rep.damage
     return (f"{last}: recovered in place ({rep.messages} messages kept; dropped "
             f"{d.unread_bytes} bytes of an incomplete record, {d.bad_chunks} bad chunks)")
@@ -156,8 +188,14 @@ class Supervisor:
         if n >= MAX_RESTARTS:
             fault.note = f"not restarted (already restarted {n} times)"
             return
+        try:
+            fault.note = self.restart(name, n + 1)
+        except NotRestarted as exc:
+            fault.note = f"not restarted: {exc}"
+            log_event(self.log, logging.ERROR, "service not restarted", service=name,
+                      why=str(exc))
+            return
         self.restarts[name] = n + 1
-        fault.note = self.restart(name, n + 1)
         fault.restarted_s = round(time.monotonic() - self.t0, 3)
         log_event(self.log, logging.WARNING, "service restarted", service=name,
                   at_s=fault.restarted_s, note=fault.note)

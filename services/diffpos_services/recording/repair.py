@@ -53,7 +53,10 @@ def recover(
 
     Every complete chunk (with its schemas and channels), loose message, metadata and
     attachment record is copied in file order; an incomplete last record and chunks failing
-    their CRC are dropped and counted.
+    their CRC are dropped and counted; after a record whose length or opcode is corrupt the
+    copy resyncs at the next chunk that reads (only the bytes in between are lost: one
+    corrupted chunk length used to drop the rest of the file). Any MCAP is copied, also one
+    whose channels are not diffpos channels.
 
     Parameters
     ----------
@@ -72,7 +75,7 @@ def recover(
     """
     src, dst = Path(src), Path(dst)
     check_output(dst, option="--out", inputs=[src])
-    scanner = McapScanner(src)
+    scanner = McapScanner(src, accept_foreign=True)
     comp = COMPRESSION[compression]
     with atomic_path(dst) as tmp, open(tmp, "wb") as f:  # renamed to dst once complete
         copy = _Copy(scanner, Writer(f, compression=comp))
@@ -156,7 +159,7 @@ class _Copy:
         self.start()
         self.side_records()
         sc = self.scanner
-        if not sc.complete and not any(m.name == "recovery" for m in sc.metadata):
+        if not sc.damage.ok and not any(m.name == "recovery" for m in sc.metadata):
             self.w.add_metadata(
                 "recovery",
                 {
@@ -164,6 +167,8 @@ class _Copy:
                     "truncated": json.dumps(sc.damage.truncated),
                     "bad_chunks": str(sc.damage.bad_chunks),
                     "unread_bytes": str(sc.damage.unread_bytes),
+                    "skipped_bytes": str(sc.damage.skipped_bytes),
+                    "bad_records": str(sc.damage.bad_records),
                     "messages": str(self.n_msgs),
                 },
             )

@@ -17,13 +17,16 @@ from typing import Any
 from diffpos.scenario import Scenario, ScenarioError, default_scenario
 from diffpos_services.recording.reader import Damage, McapScanner, SideRecords
 from diffpos_services.recording.schemas import SchemaRegistry
-from diffpos_services.recording.topics import SeqTracker, natural_key, parse_topic
+from diffpos_services.recording.topics import SEQUENCED_KINDS, SeqTracker, natural_key, parse_topic
+from diffpos_services.recording.writer import recording_set
 
 __all__ = [
     "ChannelSummary",
     "RecordingSummary",
+    "SetLosses",
     "attached_scenario",
     "live_fusion_settings",
+    "set_losses",
     "summarize",
     "validate_file",
 ]
@@ -186,6 +189,79 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
         gaps=dict(sorted(seq.gaps.items())),
         out_of_order=dict(sorted(seq.out_of_order.items())),
     )
+
+
+@dataclass(frozen=True)
+class SetLosses:
+    """Messages missing by sequence number across every file of a recording (split parts and
+    restarts, :func:`~diffpos_services.recording.writer.recording_set`): a part that starts
+    after a hole (the recorder was dead, hung or restarting) counts it, where each file alone
+    says ``gaps: 0``.
+
+    Attributes
+    ----------
+    files : list of str
+    missing : int
+        Messages missing in all.
+    by_stream : dict[str, int]
+        Sequence stream (one publisher's counter) -> messages missing.
+    holes : list of (stream, first, last)
+        The missing sequence numbers (first 1000 holes).
+    restarted_streams : dict[str, int]
+        Streams whose numbers went backwards (a publisher restarted): the messages it sent
+        before it restarted and after the last recorded one cannot be counted.
+    damage : list of str
+        Every file's damage notes.
+    """
+
+    files: list[str]
+    missing: int
+    by_stream: dict[str, int]
+    holes: list[tuple[str, int, int]]
+    restarted_streams: dict[str, int]
+    damage: list[str]
+
+    def line(self) -> str:
+        """One line for a summary."""
+        if not self.missing:
+            return (f"recording: 0 messages missing by sequence number across its "
+                    f"{len(self.files)} file(s)")
+        top = sorted(self.by_stream.items(), key=lambda kv: -kv[1])[:4]
+        detail = ", ".join(f"{st.split('/', 2)[-1]}: {n}" for st, n in top)
+        return (f"recording: {self.missing} messages missing by sequence number across its "
+                f"{len(self.files)} file(s) ({detail}{', ...' if len(self.by_stream) > 4 else ''})")
+
+
+class _SequencedTopics(set):
+    """A topic filter for :meth:`McapScanner.iter_batches` holding every sequenced topic
+    (decided once per topic)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: dict[object, bool] = {}
+
+    def __contains__(self, topic: object) -> bool:
+        ok = self.seen.get(topic)
+        if ok is None:
+            ok = self.seen[topic] = parse_topic(str(topic))[0] in SEQUENCED_KINDS
+        return ok
+
+
+def set_losses(first: str | os.PathLike[str]) -> SetLosses:
+    """Count the messages missing by sequence number across a recording's files, in order
+    (see :class:`SetLosses`); only the sequenced topics are read."""
+    files = recording_set(first)
+    seq = SeqTracker()
+    damage: list[str] = []
+    for path in files:
+        sc = McapScanner(path)
+        for batch in sc.iter_batches(_SequencedTopics()):
+            for m in batch:
+                seq.add(m.topic, m.sequence)
+        damage += [f"{path.name}: {n}" for n in sc.damage.notes]
+    return SetLosses(files=[str(p) for p in files], missing=seq.total_gaps,
+                     by_stream=dict(sorted(seq.gaps.items())), holes=list(seq.gap_list),
+                     restarted_streams=dict(sorted(seq.out_of_order.items())), damage=damage)
 
 
 def validate_file(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -31,7 +31,8 @@ from diffpos_services.recording.schemas import (
 from diffpos_services.recording.topics import SeqTracker
 from diffpos_services.wire.keys import Keys
 
-__all__ = ["COMPRESSION", "McapSink", "SinkStats", "SplitPolicy", "existing_parts", "part_path"]
+__all__ = ["COMPRESSION", "McapSink", "SinkStats", "SplitPolicy", "existing_parts", "part_path",
+           "recording_set", "restart_path"]
 
 #: ``compression`` option -> MCAP chunk compression
 COMPRESSION = {
@@ -88,6 +89,25 @@ def existing_parts(first: str | os.PathLike[str]) -> list[Path]:
     while (p := part_path(first, len(parts))).exists():
         parts.append(p)
     return parts
+
+
+def restart_path(first: str | os.PathLike[str], k: int) -> Path:
+    """The file of a recording's ``k``-th restart (``diffpos emulate`` restarts a dead
+    recorder onto ``<stem>-restart<k>.mcap`` next to the first file)."""
+    first = Path(first)
+    return first.with_name(f"{first.stem}-restart{k}{first.suffix}")
+
+
+def recording_set(first: str | os.PathLike[str]) -> list[Path]:
+    """Every file of one run's recording, in order: the first file's split parts, then each
+    restart's (:func:`restart_path` 1, 2, ... up to the first missing one) with its parts.
+    Sequence numbers run on across them, so a loss is counted across the set."""
+    out = list(existing_parts(first))
+    k = 1
+    while (parts := existing_parts(restart_path(first, k))):
+        out += parts
+        k += 1
+    return out
 
 
 class _Stamp(msgspec.Struct):
