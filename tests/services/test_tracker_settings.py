@@ -175,7 +175,15 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
                      "--set", "deadline_s=0.3"]) == 0
     settings = json.loads((out / "report.json").read_text())["settings"]
     assert settings["tracker"] == {**DEFAULTS, "sigma_model_m": 0.3, "dormant": False}
-    capsys.readouterr()
+    assert "changed: tracker.sigma_model_m=0.3, tracker.dormant=False, deadline_s=0.3" in \
+        capsys.readouterr().out
+    # --config FILE.json: a "tracker" object merged into the recorded settings, --set on top
+    conf = tmp_path / "what_if.json"
+    conf.write_text(json.dumps({"tracker": {"nis_limit": 12, "sigma_model_m": 0.1}}))
+    assert cli.main(["replay", str(path), "--no-progress", "--out", str(out), "--config",
+                     str(conf), "--set", "tracker.sigma_model_m=0.3"]) == 0
+    settings = json.loads((out / "report.json").read_text())["settings"]
+    assert settings["tracker"] == {**DEFAULTS, "sigma_model_m": 0.3, "nis_limit": 12.0}
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [

@@ -133,12 +133,21 @@ def _fmt(v: float | None, nd: int = 2) -> str:
     return "-" if v is None else f"{v:.{nd}f}"
 
 
+def _changed(overrides: dict[str, Any]) -> str:
+    """The what-ifs as ``FIELD=VALUE, ...`` (tracker settings as ``tracker.KEY=VALUE``)."""
+    items: list[str] = []
+    for k, v in overrides.items():
+        items += ([f"{k}.{kk}={vv}" for kk, vv in v.items()] if isinstance(v, dict)
+                  else [f"{k}={v}"])
+    return ", ".join(items) or "none"
+
+
 def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
     p = print
     acc = rep["accuracy"]
     p(f"replay of {rep['file']}" + ("" if rep["complete"] else "  (TRUNCATED recording: "
                                      "replayed up to its last complete chunk)"))
-    changed = ", ".join(f"{k}={v}" for k, v in rep["overrides"].items()) or "none"
+    changed = _changed(rep["overrides"])
     p(f"  settings from {rep['settings_source']}; method {rep['method']}; changed: {changed}")
     if rep.get("settings_warning"):
         p(f"  WARNING: {rep['settings_warning']}")

@@ -361,7 +361,8 @@ def legacy_tracker_settings(recorded: Mapping[str, Any], made_ns: int | None
     """
     today = {k: _TRACKER_DEFAULTS[k] for k in TRACKER_KEYS}
     since, commit, _ = _TRACKER_DEFAULT_CHANGES[0]
-    since_text = f"{since[:10]} {since[11:16]} UTC ({commit})"
+    since_when = f"{since[:10]} {since[11:16]} UTC"
+    since_text = f"{since_when}, commit {commit}"
     if recorded.get("method", "dnls") != "mnls" or not recorded.get("tracking", True):
         return today, (f"not recorded; no tracker ran live (method {recorded.get('method', 'dnls')}"
                        f"{'' if recorded.get('tracking', True) else ', no tracking'}): "
@@ -381,7 +382,7 @@ def legacy_tracker_settings(recorded: Mapping[str, Any], made_ns: int | None
     changed = ", ".join(f"{k}={_text(v)}" for k, v in then.items() if v != today[k])
     return {**today, **then}, (
         f"not recorded (recording of {made_text}): the defaults of then ({changed or 'as today'}"
-        f"), today's for the rest; the tracker's code before {since_text} differed too, so "
+        f"), today's for the rest; the tracker's code before {since_when} differed too, so "
         "this replay can differ from live")
 
 
