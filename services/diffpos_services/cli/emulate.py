@@ -27,6 +27,7 @@ examples:
   diffpos emulate --speed 0 --duration 60          lockstep: as fast as the fusion keeps up
   diffpos emulate --dashboard serve --record run.mcap
   diffpos emulate --log-dir logs/ --json out.json  per-service logs and the summary as JSON
+  diffpos emulate --tracker nis_limit=12           a tracker setting of the fusion
   diffpos emulate --security-profile security/profile.dev.toml
                                                    the secured bus: TLS + a user/password per
                                                    service + access control (security/README.md)
@@ -53,7 +54,12 @@ import sys
 
 from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
 from diffpos_services.emulate.supervise import format_faults
-from diffpos_services.fusion.config import DEFAULT_METHOD, METHODS
+from diffpos_services.fusion.config import (
+    DEFAULT_METHOD,
+    METHODS,
+    parse_tracker_items,
+    tracker_help,
+)
 from diffpos_services.kit import (
     ConfigError,
     Shutdown,
@@ -97,6 +103,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the fusion's worker processes (diffpos fusion --workers; default "
                         "1: none). N > 1 splits the tracker's rows over N processes, the "
                         "same estimates bit for bit; pays only where a core is free")
+    parser.add_argument("--tracker", action="append", default=[], metavar="KEY=VALUE",
+                        help="a setting of the fusion's per-responder tracker (diffpos fusion "
+                        "--tracker; repeatable; recorded with the fusion settings; meaning of "
+                        "each: diffpos.tracking.state.TrackerConfig). Keys, with default [unit]: "
+                        + tracker_help().replace("%", "%%"))
     parser.add_argument("--max-nodes", type=int, default=0, help="emulate only the first N nodes (default 0 = all)")
     parser.add_argument("--endpoint", metavar="ENDPOINT",
                         help="router endpoint (default tcp/127.0.0.1:<free port>; with "
@@ -131,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
             log_level=args.log_level,
             delta_m=args.delta_m, edge=args.edge, method=args.method,
             fusion_workers=args.fusion_workers, security_profile=args.security_profile,
+            tracker=parse_tracker_items(args.tracker),
         )
         opts.check()  # every option before anything starts (the dashboard hint needs them)
         stop = Shutdown(log)

@@ -33,6 +33,7 @@ examples:
                                         accept only the scenario's anchors and nodes
   diffpos fusion --anchors uav1,uav2,uav3,uav4 --method lls   allow-list; LoS baseline solver
   diffpos fusion --scenario scenarios/large.toml --no-tracking    mnls snapshot fixes only
+  diffpos fusion --tracker nis_limit=12 --tracker dormant=false    tracker settings
 
 Stop with Ctrl-C or SIGTERM: pending epochs are solved and published before the session closes.
 """
@@ -55,6 +56,8 @@ from diffpos_services.fusion.config import (
     METHODS,
     FusionConfig,
     model_edge,
+    parse_tracker_items,
+    tracker_help,
 )
 from diffpos_services.fusion.service import run_fusion
 from diffpos_services.kit import (
@@ -119,6 +122,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="accept only ranges to these nodes (default: any valid id; 'scenario' = the nodes "
         "the scenario is emulated with); others are rejected as unknown_node",
     )
+    add_tracker_argument(parser)
     parser.add_argument("--no-gating", action="store_true", help="disable outlier gating")
     parser.add_argument(
         "--no-motion-compensation",
@@ -136,6 +140,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser)
     add_logging_arguments(parser)
 
+
+
+def add_tracker_argument(parser: argparse.ArgumentParser) -> None:
+    """``--tracker KEY=VALUE`` (repeatable): a setting of the per-responder tracker
+    (FusionConfig.tracker); also ``diffpos emulate``'s."""
+    parser.add_argument(
+        "--tracker", action="append", default=[], metavar="KEY=VALUE",
+        help="mnls + tracking: set one of the per-responder tracker's settings (repeatable; "
+        "recorded with the fusion settings, so a replay runs the same tracker; meaning of "
+        "each: diffpos.tracking.state.TrackerConfig). Keys, with default [unit]: "
+        + tracker_help().replace("%", "%%"),
+    )
 
 
 def _add_overload_arguments(parser: argparse.ArgumentParser) -> None:
@@ -210,6 +226,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         admit_lag_s=args.admit_lag_s,
         kernel_threads=args.kernel_threads,
         workers=args.workers,
+        tracker=parse_tracker_items(args.tracker),
     )
     if args.window_height_m is not None:
         values["window_height_m"] = args.window_height_m

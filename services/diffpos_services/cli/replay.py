@@ -23,6 +23,7 @@ examples:
   diffpos replay recordings/sample.mcap --pfa 1e-4          # stricter false-alarm rate
   diffpos replay recordings/sample.mcap --method lls        # LoS least squares instead
   diffpos replay recordings/sample.mcap --set deadline_s=0.5 --set motion_compensation=false
+  diffpos replay run.mcap --set tracker.nis_limit=12         # what if: one tracker setting
   diffpos replay run.mcap --write-mcap run.replayed.mcap    # replayed estimates on
                                                             #  diffpos/<site>/replay/node/<id>/estimate
   diffpos replay run.mcap --rrd run.replayed.rrd            # Rerun dashboard of the replay
@@ -39,6 +40,7 @@ from typing import Any
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from diffpos.floor_calibration import format_calibration
+from diffpos_services.fusion.config import tracker_help
 from diffpos_services.heap import keep_heap
 from diffpos_services.kit import ConfigError, load_json_option
 from diffpos_services.recording.errors import RecordingError
@@ -61,8 +63,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "included (mnls + tracking; same estimates for any N; default: the "
                         "recorded setting, else 1; at most this machine's cores)")
     g.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help="any fusion setting, VALUE as JSON (repeatable), e.g. deadline_s=0.5")
-    g.add_argument("--config", metavar="FILE.json", help="fusion settings from a JSON object")
+                   help="any fusion setting, VALUE as JSON (repeatable), e.g. deadline_s=0.5; "
+                        "a tracker setting as tracker.KEY=VALUE (changes only that one of the "
+                        "recorded tracker settings), e.g. tracker.nis_limit=12. Tracker keys, "
+                        "with default [unit]: " + tracker_help().replace("%", "%%"))
+    g.add_argument("--config", metavar="FILE.json",
+                   help="fusion settings from a JSON object (tracker settings as an object "
+                        "under \"tracker\", merged into the recorded ones)")
     g.add_argument("--ignore-recorded-settings", action="store_true",
                    help="start from the defaults instead of the settings in the recording")
     g.add_argument("--step-ms", type=float, default=5.0, metavar="MS",
@@ -100,9 +107,19 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
         if not sep or not field:
             raise ConfigError(f"--set {item!r}: expected FIELD=VALUE, e.g. deadline_s=0.5")
         try:
-            out[field.strip()] = json.loads(value)
+            parsed = json.loads(value)
         except ValueError:
-            out[field.strip()] = value
+            parsed = value
+        name = field.strip()
+        if name.startswith("tracker."):  # one tracker setting: merged into the recorded ones
+            tracker = out.setdefault("tracker", {})
+            if not isinstance(tracker, dict):
+                raise ConfigError(f"--set {item!r}: tracker is not a JSON object of settings")
+            tracker[name.removeprefix("tracker.")] = parsed
+        elif name == "tracker" and isinstance(parsed, dict):
+            out.setdefault("tracker", {}).update(parsed)
+        else:
+            out[name] = parsed
     if args.no_gating:
         out["gating"] = False
     if args.pfa is not None:
@@ -116,15 +133,26 @@ def _fmt(v: float | None, nd: int = 2) -> str:
     return "-" if v is None else f"{v:.{nd}f}"
 
 
+def _changed(overrides: dict[str, Any]) -> str:
+    """The what-ifs as ``FIELD=VALUE, ...`` (tracker settings as ``tracker.KEY=VALUE``)."""
+    items: list[str] = []
+    for k, v in overrides.items():
+        items += ([f"{k}.{kk}={vv}" for kk, vv in v.items()] if isinstance(v, dict)
+                  else [f"{k}={v}"])
+    return ", ".join(items) or "none"
+
+
 def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
     p = print
     acc = rep["accuracy"]
     p(f"replay of {rep['file']}" + ("" if rep["complete"] else "  (TRUNCATED recording: "
                                      "replayed up to its last complete chunk)"))
-    changed = ", ".join(f"{k}={v}" for k, v in rep["overrides"].items()) or "none"
+    changed = _changed(rep["overrides"])
     p(f"  settings from {rep['settings_source']}; method {rep['method']}; changed: {changed}")
     if rep.get("settings_warning"):
         p(f"  WARNING: {rep['settings_warning']}")
+    if rep.get("tracker_settings"):
+        p(f"  tracker settings: {rep['tracker_settings']}")
     msgs = rep["messages"]
     kinds = ", ".join(f"{k} {n}" for k, n in msgs["by_kind"].items())
     p(f"  {msgs['total']} messages ({kinds}); gaps {msgs['gaps']}; "

@@ -6,10 +6,11 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from diffpos_services.bus.commands import recorder_args
 from diffpos_services.bus.session import check_endpoint
-from diffpos_services.fusion.config import EDGES, MAX_WORKERS, METHODS
+from diffpos_services.fusion.config import EDGES, MAX_WORKERS, METHODS, tracker_value
 from diffpos_services.kit import ConfigError
 from diffpos_services.wire.keys import Keys
 
@@ -42,6 +43,8 @@ class EmulationOptions:
     method: str | None = None
     fusion_workers: int = 1
     security_profile: str | None = None
+    tracker: dict[str, Any] = field(default_factory=dict)
+    """The fusion's tracker settings (``--tracker KEY=VALUE``; FusionConfig.tracker)."""
 
     def check(self) -> None:
         if not self.duration_s > 0:
@@ -57,6 +60,8 @@ class EmulationOptions:
         if not 1 <= self.fusion_workers <= MAX_WORKERS:
             raise ConfigError(f"--fusion-workers must be in [1, {MAX_WORKERS}], got "
                               f"{self.fusion_workers}")
+        for key, value in self.tracker.items():
+            self.tracker[key] = tracker_value(key, value, where=f"--tracker {key}={value}")
         if self.edge not in EDGES:
             raise ConfigError(f"--edge must be auto, upper or lower, got {self.edge!r}")
         if self.endpoint is not None:

@@ -64,6 +64,7 @@ from diffpos_services.fusion.config import (
     FusionConfig,
     channel_edge,
     model_edge,
+    tracker_argv,
 )
 from diffpos_services.kit import (
     STATUS,
@@ -209,6 +210,7 @@ class Emulation:
             self.fusion_args += ["--max-backlog-s", "0"]
         if options.fusion_workers != 1:
             self.fusion_args += ["--workers", str(options.fusion_workers)]
+        self.fusion_args += tracker_argv(options.tracker)  # --tracker KEY=VALUE, each
         self.fusion_config, self.edge, self.edge_reason = self._fusion_config(edge)
         self.profile = None
         if options.security_profile is not None:
@@ -384,6 +386,7 @@ class Emulation:
                                          max_backlog_s=(None if self.o.speed == 0
                                                         else LIVE_MAX_BACKLOG_S),
                                          workers=self.o.fusion_workers,
+                                         tracker=dict(self.o.tracker),
                                          **({} if self.o.method is None
                                             else {"method": self.o.method}))
         edge, why = model_edge(edge, self.scenario)

@@ -18,6 +18,10 @@ which were all made by the D-NLS fusion) keeps ``dnls``.
 
 from __future__ import annotations
 
+import dataclasses
+import datetime
+import json
+import typing
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
@@ -26,11 +30,14 @@ from msgspec import Meta
 
 from diffpos.alignment import AlignmentConfig
 from diffpos.scenario import Building, Radio, Scenario, ScenarioError, first_arrival_edge
-from diffpos_services.kit import build_config
+from diffpos.tracking.state import TrackerConfig
+from diffpos_services.kit import ConfigError, build_config
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "METHODS", "FusionConfig",
-           "building_of", "channel_edge", "model_edge"]
+__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "METHODS",
+           "TRACKER_KEYS", "FusionConfig", "TrackerSettings", "building_of", "channel_edge",
+           "legacy_tracker_settings", "merge_tracker", "model_edge", "parse_tracker_items",
+           "tracker_argv", "tracker_help"]
 
 #: The estimators of the solve step (``--method``).
 METHODS = ("mnls", "dnls", "lls", "ippa")
@@ -171,6 +178,214 @@ DEFAULT_WORKERS = 1
 MAX_WORKERS = 64
 
 
+# ------------------------------------------------------------------------- tracker settings
+# FusionConfig.tracker: every field of diffpos.tracking.state.TrackerConfig (the one source of
+# the fields, their types, defaults and meaning), with the range each one accepts.
+
+#: The range a tracker setting accepts (msgspec ``Meta`` keywords); a number not listed: >= 0.
+_TRACKER_RANGES: dict[str, dict[str, float]] = {
+    "stairs_weight": {"gt": 0, "lt": 1},  # log(w), log(1 - w)
+    "outlier_weight": {"gt": 0, "lt": 1},  # log(w)
+    "outlier_span_m": {"gt": 0},
+    "box_sigma_m": {"gt": 0},  # 1 / sigma^2
+    "height_sigma_m": {"gt": 0},
+    "init_grid_m": {"gt": 0},
+    "nis_limit": {"gt": 0},
+    "nis_alpha": {"ge": 0, "le": 1},
+    "dormant_refresh_s": {"gt": 0},
+    "dormant_floor_p": {"ge": 0, "le": 1},
+    "floor_evidence_lag1_corr": {"ge": 0, "lt": 1},
+    "gn_iterations": {"ge": 1},
+    "select_passes": {"ge": 1},
+    "init_starts": {"ge": 1},
+    "min_ranges_init": {"ge": 1},
+    "diverge_epochs": {"ge": 1},
+    "reseed_epochs": {"ge": 1},
+}
+#: ``TrackerConfig.mixing``'s choices.
+_MIXING = ("select", "imm")
+#: Unit of a tracker setting by the end of its name (the house naming rule); else ``-``
+#: (dimensionless) or ``count`` (integers).
+_UNIT_SUFFIXES = (("_m2_s3", "m^2/s^3"), ("_m_s", "m/s"), ("_hz", "1/s"), ("_nats", "nats"),
+                  ("_m", "m"), ("_s", "s"))
+_TRACKER_TYPES = typing.get_type_hints(TrackerConfig)
+_TRACKER_DEFAULTS = {f.name: f.default for f in dataclasses.fields(TrackerConfig)}
+#: Every tracker setting (``FusionConfig.tracker``), in :class:`TrackerConfig`'s order.
+TRACKER_KEYS = tuple(_TRACKER_DEFAULTS)
+
+
+def _tracker_type(key: str) -> Any:
+    tp = _TRACKER_TYPES[key]
+    if key == "mixing":
+        return Literal[_MIXING]
+    if tp is bool:
+        return bool
+    return Annotated[tp, Meta(**_TRACKER_RANGES.get(key, {"ge": 0}))]
+
+
+def _tracker_unit(key: str) -> str:
+    for suffix, unit in _UNIT_SUFFIXES:
+        if key.endswith(suffix):
+            return unit
+    return "count" if _TRACKER_TYPES[key] is int else "-"
+
+
+def _text(value: Any) -> str:
+    """A tracker value as ``--tracker`` takes it (JSON for booleans, shortest exact float)."""
+    return json.dumps(value) if isinstance(value, bool) else str(value)
+
+
+TrackerSettings = msgspec.defstruct(
+    "TrackerSettings", [(k, _tracker_type(k), _TRACKER_DEFAULTS[k]) for k in TRACKER_KEYS],
+    kw_only=True, frozen=True, forbid_unknown_fields=True, module=__name__)
+TrackerSettings.__doc__ = """The per-responder tracker's settings (``FusionConfig.tracker``): a
+field per field of :class:`diffpos.tracking.state.TrackerConfig`, its default and meaning
+(see its docstring), with the range each accepts; :meth:`FusionConfig.tracker_config` is the
+TrackerConfig the fusion runs."""
+
+
+def tracker_help() -> str:
+    """Every tracker setting with its default and unit, for ``--help``."""
+    def one(key: str) -> str:
+        d = _text(_TRACKER_DEFAULTS[key])
+        if key == "mixing":
+            return f"{key}={d} ({'|'.join(_MIXING)})"
+        if _TRACKER_TYPES[key] is bool:
+            return f"{key}={d} (true|false)"
+        return f"{key}={d} [{_tracker_unit(key)}]"
+
+    return ", ".join(one(k) for k in TRACKER_KEYS)
+
+
+def _takes(key: str) -> str:
+    """What ``key`` accepts, e.g. ``a number >= 0 [m^2/s^3], default 1.5``."""
+    if key == "mixing":
+        what = " or ".join(_MIXING)
+    elif _TRACKER_TYPES[key] is bool:
+        what = "true or false"
+    else:
+        ops = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}
+        bounds = " and ".join(f"{ops[k]} {v:g}"
+                              for k, v in _TRACKER_RANGES.get(key, {"ge": 0}).items())
+        kind = "an integer" if _TRACKER_TYPES[key] is int else "a number"
+        what = f"{kind} {bounds} [{_tracker_unit(key)}]"
+    return f"{what}, default {_text(_TRACKER_DEFAULTS[key])}"
+
+
+def tracker_value(key: str, value: Any, *, where: str) -> Any:
+    """``value`` (text from the command line, or a JSON value) as tracker setting ``key``.
+
+    Raises
+    ------
+    ConfigError
+        One line starting with ``where``: an unknown key (naming every valid key) or a value
+        the key does not take (naming what it takes, its unit and default).
+    """
+    if key not in _TRACKER_DEFAULTS:
+        raise ConfigError(f"{where}: {key!r} is not a tracker setting; valid keys: "
+                          f"{', '.join(TRACKER_KEYS)}")
+    try:
+        return msgspec.convert(value, _tracker_type(key), strict=False)
+    except msgspec.ValidationError:
+        raise ConfigError(f"{where}: {key} takes {_takes(key)}") from None
+
+
+def parse_tracker_items(items: list[str] | None, *, option: str = "--tracker") -> dict[str, Any]:
+    """The tracker settings of repeated ``option KEY=VALUE`` (checked, converted).
+
+    Raises
+    ------
+    ConfigError
+        A malformed item, an unknown key or a bad value (:func:`tracker_value`).
+    """
+    out: dict[str, Any] = {}
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"{option} {item!r}: expected KEY=VALUE, e.g. {option} nis_limit=12;"
+                              f" valid keys: {', '.join(TRACKER_KEYS)}")
+        out[key.strip()] = tracker_value(key.strip(), value.strip(), where=f"{option} {item}")
+    return out
+
+
+def tracker_argv(tracker: Mapping[str, Any], *, option: str = "--tracker") -> list[str]:
+    """``option KEY=VALUE`` for every setting of ``tracker`` (:func:`parse_tracker_items` gives
+    the same values back, floats exactly)."""
+    return [a for k, v in tracker.items() for a in (option, f"{k}={_text(v)}")]
+
+
+def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any]:
+    """Tracker settings ``base`` (e.g. recorded) with ``changes`` (a mapping of keys to values,
+    each checked by :func:`tracker_value`; errors start with ``tracker.KEY=VALUE``)."""
+    if not isinstance(changes, Mapping):
+        raise ConfigError(f"tracker={changes!r}: give tracker settings one by one "
+                          f"(tracker.KEY=VALUE) or as a JSON object; valid keys: "
+                          f"{', '.join(TRACKER_KEYS)}")
+    out = dict(base or {})
+    for k, v in changes.items():
+        out[k] = tracker_value(k, v, where=f"tracker.{k}={_text(v)}")
+    return out
+
+
+#: When the tracker's defaults changed since the tracker entered the fusion (ca1ad09,
+#: 2026-11-23 16:53 UTC; found with ``git log -p`` of diffpos/tracking.py,
+#: diffpos/tracking_state.py and diffpos/tracking/state.py): (commit time [UTC], commit, the
+#: values before it), newest first. A setting added with a default that changed what the
+#: tracker did is listed with the value that does what the tracker did before it (SNR reuse
+#: margins 0: no reuse; lag-1 correlation 0: untempered; dormant off: every hypothesis
+#: updated). Since the newest entry no default changed: a recording made after it without
+#: tracker settings ran with today's defaults.
+_TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-11-27T13:36:18Z", "30c1dda", {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0}),
+    ("2026-11-27T09:41:59Z", "73459d9", {"floor_evidence_lag1_corr": 0.0}),
+    ("2026-11-27T08:55:33Z", "02e873d", {"dormant_floor_p": 0.99}),
+    ("2026-11-27T08:50:30Z", "9c5836f", {"dormant_floor_p": 0.0}),
+    ("2026-11-27T08:17:26Z", "2f23e13", {"dormant": False}),
+    ("2026-11-23T19:57:53Z", "06f1b49", {"init_grid_m": 1.0, "init_starts": 2}),
+)
+
+
+def _utc(text: str) -> datetime.datetime:
+    return datetime.datetime.fromisoformat(text.replace("Z", "+00:00"))
+
+
+def legacy_tracker_settings(recorded: Mapping[str, Any], made_ns: int | None
+                            ) -> tuple[dict[str, Any], str]:
+    """The tracker settings a recording without them (recorded fusion settings ``recorded``
+    without ``tracker``, made at ``made_ns``, ``None``: unknown) ran with, and one line for
+    the replay report that says which.
+
+    Made after the last change of a default (:data:`_TRACKER_DEFAULT_CHANGES`), or unknown:
+    today's defaults; earlier: the defaults of that time, today's for the settings that did
+    not change (the tracker's code differed then too: said in the line).
+    """
+    today = {k: _TRACKER_DEFAULTS[k] for k in TRACKER_KEYS}
+    since, commit, _ = _TRACKER_DEFAULT_CHANGES[0]
+    since_when = f"{since[:10]} {since[11:16]} UTC"
+    since_text = f"{since_when}, commit {commit}"
+    if recorded.get("method", "dnls") != "mnls" or not recorded.get("tracking", True):
+        return today, (f"not recorded; no tracker ran live (method {recorded.get('method', 'dnls')}"
+                       f"{'' if recorded.get('tracking', True) else ', no tracking'}): "
+                       "today's defaults")
+    if made_ns is None:
+        return today, ("not recorded, recording time unknown: today's defaults (unchanged "
+                       f"since {since_text}; a recording made before ran other defaults)")
+    made = datetime.datetime.fromtimestamp(made_ns / 1e9, tz=datetime.UTC)
+    made_text = made.strftime("%Y-%m-%d %H:%M UTC")
+    older = [values for when, _, values in _TRACKER_DEFAULT_CHANGES if _utc(when) > made]
+    if not older:
+        return today, (f"not recorded (recording of {made_text}): today's defaults, which it "
+                       f"ran with (unchanged since {since_text})")
+    then: dict[str, Any] = {}
+    for values in older:  # newest first: an older change overwrites a newer one
+        then.update(values)
+    changed = ", ".join(f"{k}={_text(v)}" for k, v in then.items() if v != today[k])
+    return {**today, **then}, (
+        f"not recorded (recording of {made_text}): the defaults of then ({changed or 'as today'}"
+        f"), today's for the rest; the tracker's code before {since_when} differed too, so "
+        "this replay can differ from live")
+
+
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
 
@@ -199,6 +414,12 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     update (3-4 ms vs ~1 ms CPU with 8 anchors). The live service's steps do at most a few
     snapshots and track initialisations each (``tracked.heavy_budget``): a due snapshot that
     does not fit stays due for the node's next epoch."""
+    tracker: TrackerSettings = msgspec.field(default_factory=TrackerSettings)
+    """With mnls + tracking: the per-responder tracker's settings, every field of
+    :class:`diffpos.tracking.state.TrackerConfig` (:class:`TrackerSettings`; ``diffpos fusion
+    --tracker KEY=VALUE``, ``diffpos replay --set tracker.KEY=VALUE``); recorded with the
+    other settings (key ``tracker``), so a replay runs the tracker that ran live. A recording
+    without them replays with the defaults it ran with (:func:`legacy_tracker_settings`)."""
     building: dict[str, Any] | None = None
     """The scenario's ``[building]`` table (:func:`building_of`); ``None``: the paper's
     building with this config's window height, edge ends and floors."""
@@ -342,6 +563,10 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
         # the default sill must leave room for the window in the floor
         table["sill_height_m"] = min(0.75, max(self.floor_height_m - self.window_height_m, 0.0))
         return building_of(table)
+
+    def tracker_config(self) -> TrackerConfig:
+        """The :class:`~diffpos.tracking.state.TrackerConfig` of :attr:`tracker`."""
+        return TrackerConfig(**msgspec.structs.asdict(self.tracker))
 
     def alignment(self) -> AlignmentConfig:
         return AlignmentConfig(

@@ -118,8 +118,8 @@ class FusionCore:
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
         self.model = (self.building, config.radio_model())
-        self.bank = (TrackBank(self.building) if self.building is not None and config.tracking
-                     else None)
+        self.bank = (TrackBank(self.building, config.tracker_config())
+                     if self.building is not None and config.tracking else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")
         self.overload.status_of = None if self.bank is None else self.bank.status_of
 

@@ -34,7 +34,14 @@ import msgspec
 import numpy as np
 
 from diffpos._kernels import pool as kernel_pool
-from diffpos_services.fusion.config import METHODS, FusionConfig, with_legacy_defaults
+from diffpos_services.fusion.config import (
+    METHODS,
+    TRACKER_KEYS,
+    FusionConfig,
+    legacy_tracker_settings,
+    merge_tracker,
+    with_legacy_defaults,
+)
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.workers import start_workers
 from diffpos_services.kit import ConfigError, build_config
@@ -125,6 +132,9 @@ class ReplaySettings:
         The what-ifs applied on top.
     warning : str or None
         Set when the recording holds no fusion settings and defaults were used.
+    tracker_note : str or None
+        Set when the recorded settings hold no ``tracker``: which tracker settings the replay
+        runs (:func:`~diffpos_services.fusion.config.legacy_tracker_settings`).
     """
 
     config: FusionConfig
@@ -132,6 +142,7 @@ class ReplaySettings:
     ignored_recorded_fields: list[str]
     overrides: dict[str, Any]
     warning: str | None = None
+    tracker_note: str | None = None
 
 
 def read_ahead(
@@ -218,16 +229,26 @@ def replay_settings(
     base = with_legacy_defaults(base)  # settings recorded before a newer setting existed
     if not use_recorded_settings:
         source = "defaults (--ignore-recorded-settings)"
+    tracker_note = None
+    if use_recorded_settings and "tracker" not in base:  # recorded before it was recorded
+        base["tracker"], tracker_note = legacy_tracker_settings(
+            base, _made_ns(side))
     known = _fusion_fields()
     ignored = sorted(set(base) - known)
     for f in ignored:
         base.pop(f)
+    if isinstance(base.get("tracker"), dict):  # a newer recording's tracker settings
+        gone = sorted(set(base["tracker"]) - set(TRACKER_KEYS))
+        ignored += [f"tracker.{k}" for k in gone]
+        base["tracker"] = {k: v for k, v in base["tracker"].items() if k not in gone}
     bad = sorted(set(overrides or {}) - known)
     if bad:
         raise ConfigError(
             f"{', '.join(bad)}: not a fusion setting; known settings: {', '.join(sorted(known))}"
         )
-    base.update(overrides or {})
+    base.update({k: v for k, v in (overrides or {}).items() if k != "tracker"})
+    if "tracker" in (overrides or {}):  # what-ifs change single recorded tracker settings
+        base["tracker"] = merge_tracker(base.get("tracker"), overrides["tracker"])
     if method is not None:
         if method not in METHODS:
             raise ConfigError(f"--method {method!r}: choose {', '.join(METHODS)}")
@@ -235,7 +256,17 @@ def replay_settings(
     if "site" not in base and site is not None:
         base["site"] = site
     config = build_config(FusionConfig, base)
-    return ReplaySettings(config, source, ignored, dict(overrides or {}), warning)
+    return ReplaySettings(config, source, ignored, dict(overrides or {}), warning, tracker_note)
+
+
+def _made_ns(side: SideRecords) -> int | None:
+    """When the recording was made [ns]: the ``started_ns`` of its ``run`` metadata (written
+    by the recorder since before the tracker existed; ``None``: none)."""
+    for md in side.metadata:
+        if md.name == "run":
+            with contextlib.suppress(KeyError, TypeError, ValueError):
+                return int(md.metadata["started_ns"])
+    return None
 
 
 # ----------------------------------------------------------------------------------------
@@ -434,6 +465,7 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, co
         "settings": msgspec.to_builtins(config),
         "settings_source": settings.source,
         "settings_warning": settings.warning,
+        "tracker_settings": settings.tracker_note,
         "ignored_recorded_fields": settings.ignored_recorded_fields,
         "overrides": settings.overrides,
         "method": config.method,

@@ -1,0 +1,310 @@
+"""Tracker settings are fusion settings (issue 33, item 3).
+
+``FusionConfig.tracker`` carries every field of :class:`diffpos.tracking.state.TrackerConfig`;
+``diffpos fusion`` / ``diffpos emulate`` take ``--tracker KEY=VALUE``, ``diffpos replay`` takes
+``--set tracker.KEY=VALUE``; the recorded fusion settings hold them under ``tracker``, so a
+replay runs the tracker that ran live, and a recording made before they were recorded
+replays with the defaults it ran with, which the report says.
+
+The live runs here are in-process: the seeded synthetic inputs of
+:func:`~diffpos_services.recording.synthetic.synthetic_run` (5 hovering anchors, 3 walkers,
+3 s) through a :class:`FusionCore` with mnls + tracking, written like the recorder does (run
+metadata with ``started_ns``, ``fusion_config``, liveliness, inputs). The same with real
+processes (``diffpos emulate --tracker``): tests/system/test_tracker_settings_emulate.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import logging
+import threading
+
+import msgspec
+import pytest
+from diffpos_services.cli import emulate as cli_emulate
+from diffpos_services.cli import fusion as cli_fusion
+from diffpos_services.cli import main as cli
+from diffpos_services.cli import replay as cli_replay
+from diffpos_services.emulate.options import EmulationOptions
+from diffpos_services.emulate.orchestrator import Emulation
+from diffpos_services.fusion.config import (
+    TRACKER_KEYS,
+    FusionConfig,
+    legacy_tracker_settings,
+    parse_tracker_items,
+)
+from diffpos_services.fusion.core import FusionCore
+from diffpos_services.kit import ConfigError, build_config
+from diffpos_services.recording.reader import side_records
+from diffpos_services.recording.replay import replay
+from diffpos_services.recording.synthetic import (
+    FUSION_INPUT_KINDS,
+    quiet_logger,
+    synthetic_run,
+    write_synthetic_recording,
+)
+from diffpos_services.recording.topics import parse_topic
+from diffpos_services.recording.writer import McapSink
+from diffpos_services.scenario_io import load_scenario_option
+from diffpos_services.wire import messages as M
+from diffpos_services.wire.keys import Keys
+
+from diffpos.tracking.state import TrackerConfig
+
+DEFAULTS = dataclasses.asdict(TrackerConfig())
+UTC = datetime.UTC
+#: recording times after the tracker's last change of a default (30c1dda, 2026-11-27 13:36
+#: UTC) and before it (and after 73459d9 / 2f23e13: SNR reuse, tempering, dormant added)
+AFTER_NS = int(datetime.datetime(2026, 12, 1, tzinfo=UTC).timestamp()) * 10**9
+BEFORE_NS = int(datetime.datetime(2026, 11, 25, tzinfo=UTC).timestamp()) * 10**9
+#: the tracker defaults before 2026-11-27 08:17 UTC that a setting of today reproduces
+THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr": 0.0,
+        "dormant": False}
+#: a key that must change the estimates: the model error added to every range sigma [m]
+WHAT_IF = {"sigma_model_m": 0.3}
+
+
+def _live(path, *, tracker=None, started_ns: int | None = AFTER_NS, record_tracker=True):
+    """Run the live fusion (mnls + tracking, ``tracker`` settings) over the synthetic inputs,
+    write them as the recorder would; returns the live estimates by (node, epoch)."""
+    run = synthetic_run(n_anchors=5, n_nodes=3, duration_s=3.0, seed=7)
+    cfg = build_config(FusionConfig, {**msgspec.to_builtins(run.config), "method": "mnls",
+                                      "tracking": True, "tracker": tracker or {}})
+    settings = msgspec.to_builtins(cfg)
+    if not record_tracker:  # as every recording made before the settings were recorded
+        del settings["tracker"]
+    core, keys, out = FusionCore(cfg, logger=quiet_logger()), Keys(cfg.site), []
+    with McapSink(path, library="test") as sink:
+        sink.add_metadata("run", {"site": cfg.site} if started_ns is None
+                          else {"site": cfg.site, "started_ns": started_ns})
+        sink.add_metadata("fusion_config", settings)
+        for a in run.anchor_ids:
+            sink.write_liveliness(cfg.site, keys.alive_anchor(a), True, run.t0_ns - 10**7)
+            core.on_liveliness(a, True, run.t0_ns - 10**7)
+        last = run.t0_ns
+        for items in run.epochs:
+            for rx, key, payload in items:
+                sink.write(key, payload, rx)
+                if parse_topic(key)[0] in FUSION_INPUT_KINDS:
+                    core.on_sample(key, payload, rx)
+                    out += core.step(rx)
+                last = rx
+    out += core.step(last + 10**12) + core.flush(last)
+    return _by_key(out)
+
+
+def _by_key(ests) -> dict:
+    """(node, epoch) -> encoded estimate without the publish-order fields."""
+    return {(e.node_id, e.epoch): M.encode(msgspec.structs.replace(e, seq=0, t_pub_wall_ns=0))
+            for e in ests}
+
+
+def _positions(by_key: dict) -> dict:
+    dec = M.estimate_decoder()
+    return {k: dec(v).position_m for k, v in by_key.items()}
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """A live run with the default tracker settings, recorded with them."""
+    path = tmp_path_factory.mktemp("trk") / "default.mcap"
+    return path, _live(path)
+
+
+# ------------------------------------------------------------------ config and recording
+def test_fusion_config_carries_every_tracker_field_with_its_default():
+    cfg = FusionConfig()
+    assert TRACKER_KEYS == tuple(f.name for f in dataclasses.fields(TrackerConfig))
+    assert msgspec.to_builtins(cfg)["tracker"] == DEFAULTS
+    assert cfg.tracker_config() == TrackerConfig()
+    changed = build_config(FusionConfig, {"tracker": {"nis_limit": 12, "mixing": "imm"}})
+    assert changed.tracker_config() == TrackerConfig(nis_limit=12.0, mixing="imm")
+    assert msgspec.to_builtins(changed)["tracker"] == {**DEFAULTS, "nis_limit": 12.0,
+                                                      "mixing": "imm"}
+
+
+def test_the_synthetic_recording_helper_records_every_tracker_setting(tmp_path):
+    """The repo's recording helper stores the fusion settings as the recorder does: metadata
+    ``fusion_config`` (one JSON value per setting) holds ``tracker`` with every key."""
+    path = tmp_path / "synth.mcap"
+    write_synthetic_recording(path, n_anchors=4, n_nodes=2, duration_s=0.5, seed=1)
+    md = {m.name: m.metadata for m in side_records(path).metadata}
+    assert json.loads(md["fusion_config"]["tracker"]) == DEFAULTS
+
+
+def test_the_live_fusion_runs_the_configured_tracker(tmp_path, default_run):
+    """FusionCore runs ``FusionConfig.tracker``: a changed setting changes the live estimates
+    (the check that WHAT_IF is a key that must change them)."""
+    _, live = default_run
+    other = _live(tmp_path / "other.mcap", tracker=WHAT_IF)
+    assert other.keys() == live.keys()
+    pos, pos_other = _positions(live), _positions(other)
+    assert sum(p is not None for p in pos.values()) >= 0.8 * len(pos)
+    assert sum(pos[k] != pos_other[k] for k in pos) >= 0.5 * len(pos)
+
+
+# ------------------------------------------------------------------ replay
+def test_replay_runs_the_recorded_tracker_and_a_what_if_changes_it(tmp_path, default_run):
+    """A recording made with non-default tracker settings replays to its live estimates bit
+    for bit (the recorded settings, not today's defaults); ``--set tracker.KEY=VALUE`` back
+    to the default gives the default live run's estimates; the default recording replays
+    unchanged and its what-if changes the estimates."""
+    path, live = default_run
+    changed_path = tmp_path / "changed.mcap"
+    changed_live = _live(changed_path, tracker=WHAT_IF)
+    r = replay(changed_path)
+    assert r.report["settings"]["tracker"] == {**DEFAULTS, **WHAT_IF}
+    assert r.report["tracker_settings"] is None  # recorded: nothing to say
+    assert _by_key(r.estimates) == changed_live
+    back = replay(changed_path, overrides={"tracker": {"sigma_model_m": DEFAULTS["sigma_model_m"]}})
+    assert _by_key(back.estimates) == live
+    assert _by_key(replay(path).estimates) == live
+    what_if = replay(path, overrides={"tracker": dict(WHAT_IF)})
+    assert what_if.report["settings"]["tracker"] == {**DEFAULTS, **WHAT_IF}
+    assert _by_key(what_if.estimates) == changed_live != live
+
+
+def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, capsys):
+    path, _ = default_run
+    out = tmp_path / "out"
+    assert cli.main(["replay", str(path), "--no-progress", "--out", str(out),
+                     "--set", "tracker.sigma_model_m=0.3", "--set", "tracker.dormant=false",
+                     "--set", "deadline_s=0.3"]) == 0
+    settings = json.loads((out / "report.json").read_text())["settings"]
+    assert settings["tracker"] == {**DEFAULTS, "sigma_model_m": 0.3, "dormant": False}
+    assert "changed: tracker.sigma_model_m=0.3, tracker.dormant=False, deadline_s=0.3" in \
+        capsys.readouterr().out
+    # --config FILE.json: a "tracker" object merged into the recorded settings, --set on top
+    conf = tmp_path / "what_if.json"
+    conf.write_text(json.dumps({"tracker": {"nis_limit": 12, "sigma_model_m": 0.1}}))
+    assert cli.main(["replay", str(path), "--no-progress", "--out", str(out), "--config",
+                     str(conf), "--set", "tracker.sigma_model_m=0.3"]) == 0
+    settings = json.loads((out / "report.json").read_text())["settings"]
+    assert settings["tracker"] == {**DEFAULTS, "sigma_model_m": 0.3, "nis_limit": 12.0}
+
+
+@pytest.mark.parametrize(("started_ns", "want", "line"), [
+    (AFTER_NS, {}, "today's defaults, which it ran with (unchanged since 2026-11-27 13:36 UTC"),
+    (BEFORE_NS, THEN, "the defaults of then (snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, "
+                      "floor_evidence_lag1_corr=0.0, dormant=false)"),
+    (None, {}, "recording time unknown: today's defaults"),
+])
+def test_an_older_recording_replays_with_the_defaults_it_ran_with(tmp_path, capsys, started_ns,
+                                                                  want, line):
+    """A recording whose fusion settings have no ``tracker`` (made before they were
+    recorded) replays with the tracker defaults of when it was made (its ``run`` metadata's
+    ``started_ns``), reproducing a live run with those settings bit for bit, and the report
+    (JSON and printed) says which defaults it used."""
+    path = tmp_path / "old.mcap"
+    live = _live(path, tracker=want, started_ns=started_ns, record_tracker=False)
+    r = replay(path)
+    assert r.report["settings"]["tracker"] == {**DEFAULTS, **want}
+    assert line in r.report["tracker_settings"]
+    assert _by_key(r.estimates) == live
+    assert cli.main(["replay", str(path), "--no-files", "--no-progress"]) == 0
+    printed = [s for s in capsys.readouterr().out.splitlines() if "tracker settings:" in s]
+    assert len(printed) == 1 and line in printed[0]
+
+
+def test_legacy_tracker_settings_follow_the_history_of_the_defaults():
+    """The defaults of a time (git log -p of diffpos/tracking.py, tracking_state.py,
+    tracking/state.py): each change applies to recordings made before it."""
+    at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
+    mnls = {"method": "mnls", "tracking": True}
+    assert legacy_tracker_settings(mnls, at(2026, 11, 27, 14))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 11, 27, 12))[0] == {
+        **DEFAULTS, "snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0}
+    assert legacy_tracker_settings(mnls, at(2026, 11, 27, 8, 52))[0] == {
+        **DEFAULTS, "snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0,
+        "floor_evidence_lag1_corr": 0.0, "dormant_floor_p": 0.99}
+    assert legacy_tracker_settings(mnls, at(2026, 11, 23, 18))[0] == {
+        **DEFAULTS, **THEN, "init_grid_m": 1.0, "init_starts": 2}
+    settings, line = legacy_tracker_settings({"method": "dnls"}, at(2026, 11, 23, 18))
+    assert settings == DEFAULTS and "no tracker ran live (method dnls)" in line
+
+
+# ------------------------------------------------------------------ bad keys and values
+def _one_line_error(capsys, argv, *needles):
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.count("\n") == 1, err
+    for n in needles:
+        assert n in err, err
+    return err
+
+
+def test_a_bad_key_is_one_clear_line_naming_the_valid_keys(capsys, default_run):
+    keys = ", ".join(TRACKER_KEYS)
+    _one_line_error(capsys, ["fusion", "--tracker", "nis_limt=12"],
+                    "--tracker nis_limt=12: 'nis_limt' is not a tracker setting; valid keys: "
+                    + keys)
+    _one_line_error(capsys, ["emulate", "--no-progress", "--tracker", "nis_limt=12"],
+                    "'nis_limt' is not a tracker setting; valid keys: " + keys)
+    path, _ = default_run
+    _one_line_error(capsys, ["replay", str(path), "--no-files", "--no-progress",
+                             "--set", "tracker.nis_limt=12"],
+                    "tracker.nis_limt=12: 'nis_limt' is not a tracker setting; valid keys: "
+                    + keys)
+
+
+@pytest.mark.parametrize(("item", "needle"), [
+    ("nis_limit=-1", "nis_limit takes a number > 0 [-], default 9.0"),
+    ("mixing=fast", "mixing takes select or imm, default select"),
+    ("gn_iterations=2.5", "gn_iterations takes an integer >= 1 [count], default 3"),
+    ("dormant=maybe", "dormant takes true or false, default true"),
+    ("q_h_m2_s3=abc", "q_h_m2_s3 takes a number >= 0 [m^2/s^3], default 1.5"),
+    ("nis_limit", "expected KEY=VALUE"),
+])
+def test_a_bad_value_is_one_clear_line(capsys, default_run, item, needle):
+    _one_line_error(capsys, ["fusion", "--tracker", item], needle)
+    path, _ = default_run
+    if "=" in item:
+        _one_line_error(capsys, ["replay", str(path), "--no-files", "--no-progress",
+                                 "--set", f"tracker.{item}"], needle)
+
+
+# ------------------------------------------------------------------ the verbs
+def _help(module) -> str:
+    p = argparse.ArgumentParser()
+    module.add_arguments(p)
+    return " ".join(p.format_help().split())
+
+
+@pytest.mark.parametrize("module", [cli_fusion, cli_emulate, cli_replay])
+def test_help_shows_every_tracker_key_with_default_and_unit(module):
+    text = _help(module)
+    assert "q_h_m2_s3=1.5 [m^2/s^3]" in text and "jump_rate_hz=0.001 [1/s]" in text
+    assert "lost_after_s=5.0 [s]" in text and "mixing=select (select|imm)" in text
+    assert "dormant=true (true|false)" in text and "gn_iterations=3 [count]" in text
+    assert all(f"{k}=" in text for k in TRACKER_KEYS)
+
+
+def test_fusion_cli_builds_the_tracker_settings():
+    p = argparse.ArgumentParser()
+    cli_fusion.add_arguments(p)
+    args = p.parse_args(["--tracker", "nis_limit=12", "--tracker", "dormant=false",
+                         "--tracker", "mixing=imm"])
+    cfg = cli_fusion.config_from_args(args, load_scenario_option(None))
+    assert cfg.tracker_config() == TrackerConfig(nis_limit=12.0, dormant=False, mixing="imm")
+
+
+def test_emulate_passes_the_tracker_settings_to_its_fusion_and_records_them():
+    """``diffpos emulate --tracker``: the fusion process gets ``--tracker KEY=VALUE`` (floats
+    exactly), and the config the real fusion CLI parses from it is the one emulate records
+    for replay."""
+    tracker = parse_tracker_items(["nis_limit=12", "dormant=false",
+                                   f"sigma_model_m={0.1 + 0.2!r}"])
+    emu = Emulation(EmulationOptions(record="off", dashboard=["off"], tracker=tracker),
+                    logging.getLogger("test"), threading.Event())
+    ap = argparse.ArgumentParser()
+    cli_fusion.add_arguments(ap)
+    args = ap.parse_args(emu.fusion_args)
+    assert cli_fusion.config_from_args(args, load_scenario_option(args.scenario)) == \
+        emu.fusion_config
+    assert msgspec.to_builtins(emu.fusion_config)["tracker"] == {
+        **DEFAULTS, "nis_limit": 12.0, "dormant": False, "sigma_model_m": 0.1 + 0.2}
+    with pytest.raises(ConfigError, match="nis_limit takes a number > 0"):
+        EmulationOptions(tracker={"nis_limit": -1}).check()
