@@ -21,12 +21,11 @@ PKG = Path(diffpos_services.__file__).resolve().parent
 CORE = PKG.parents[1] / "diffpos"
 
 #: Service modules (one role each) -> service name. They may import the shared layers (kit,
-#: wire, bus, resources, scenario_io, reports, and recording's file-format modules: reader,
-#: writer, repair, ...), and each other only where listed in ALLOWED_SERVICE_IMPORTS.
+#: wire, bus, resources, scenario_io, reports, recording: the MCAP file format), and each other
+#: only where listed in ALLOWED_SERVICE_IMPORTS.
 SERVICES = {
     "anchor": "anchor", "fusion": "fusion", "recorder": "recorder", "dashboard": "dashboard",
-    "emulate": "emulate", "raytrace": "raytrace",
-    "recording.replay": "replay", "recording.evaluate": "replay", "recording.synthetic": "replay",
+    "emulate": "emulate", "raytrace": "raytrace", "replay": "replay",
 }
 ALLOWED_SERVICE_IMPORTS = {
     ("replay", "fusion"),  # replay re-runs the fusion core offline

@@ -262,7 +262,7 @@ def _run_stream(core, *, wall0):
 def test_output_depends_only_on_inputs_never_on_the_machine_clock(monkeypatch):
     import diffpos_services.fusion.core as fusion_mod
     import diffpos_services.fusion.ingest as ingest_mod
-    import diffpos_services.fusion.solve as solve_mod
+    import diffpos_services.fusion.step as step_mod
 
     def no_clock():
         raise AssertionError("FusionCore read the machine clock")
@@ -271,7 +271,7 @@ def test_output_depends_only_on_inputs_never_on_the_machine_clock(monkeypatch):
     # `time` is replaced by a clock that fails (logging keeps the real one)
     clock = types.SimpleNamespace(time_ns=no_clock, time=no_clock, monotonic_ns=no_clock,
                                   monotonic=no_clock, perf_counter=no_clock)
-    for mod in (fusion_mod, ingest_mod, solve_mod):  # the core's modules (none imports time)
+    for mod in (fusion_mod, ingest_mod, step_mod):  # the core's modules (none imports time)
         monkeypatch.setattr(mod, "time", clock, raising=False)
     a = _run_stream(FusionCore(_cfg()), wall0=10**15)
     b = _run_stream(FusionCore(_cfg()), wall0=10**15)

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from diffpos_services.fusion import shm
 from diffpos_services.fusion import workers as W
-from diffpos_services.recording import replay as replay_mod
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.replay import run as replay_mod
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 
 from diffpos.scenario import default_scenario

@@ -203,8 +203,8 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
     import msgspec
     from diffpos_services.anchor.service import load_scenario_file
     from diffpos_services.cli import fusion as cmd_fusion
-    from diffpos_services.recording.replay import replay
-    from diffpos_services.recording.synthetic import synthetic_run
+    from diffpos_services.replay.run import replay
+    from diffpos_services.replay.synthetic import synthetic_run
 
     ep, procs = bus
     site = "e2e"

@@ -46,7 +46,7 @@ from diffpos_services.kit import (
     run_main,
     setup_logging,
 )
-from diffpos_services.recording.synthetic import display_run
+from diffpos_services.replay.synthetic import display_run
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -43,7 +43,7 @@ from diffpos_services.heap import keep_heap
 from diffpos_services.kit import ConfigError, load_json_option
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
-from diffpos_services.recording.replay import replay
+from diffpos_services.replay.run import replay
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
