@@ -35,7 +35,7 @@ import zenoh
 from diffpos_services.bus.session import ZenohSettings, wait_matching
 from diffpos_services.dashboard import views as d
 from diffpos_services.dashboard.service import DashboardService, RerunTarget, open_rerun
-from diffpos_services.kit import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.recording.writer import McapSink
 from diffpos_services.replay.synthetic import display_run
 from diffpos_services.wire import messages as m

@@ -67,7 +67,7 @@ from pathlib import Path
 
 from diffpos_services.cli.recorder import DEFAULT_SPLIT_MB, DEFAULT_SPLIT_S
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.kit import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.recorder import build_command
 from diffpos_services.recording.reader import McapScanner
 from diffpos_services.recording.topics import SeqTracker, parse_topic

@@ -15,14 +15,14 @@ from pathlib import Path
 
 import diffpos_services
 import pytest
-from diffpos_services.kit import DiffposError
+from diffpos_services.errors import DiffposError
 
 PKG = Path(diffpos_services.__file__).resolve().parent
 CORE = PKG.parents[1] / "diffpos"
 
-#: Service modules (one role each) -> service name. They may import the shared layers (kit,
-#: wire, bus, resources, scenario_io, reports, recording: the MCAP file format), and each other
-#: only where listed in ALLOWED_SERVICE_IMPORTS.
+#: Service modules (one role each) -> service name. They may import the shared layers (errors,
+#: config, logs, shutdown, processes, wire, bus, resources, scenario_io, reports, and recording:
+#: the MCAP file format), and each other only where listed in ALLOWED_SERVICE_IMPORTS.
 SERVICES = {
     "anchor": "anchor", "fusion": "fusion", "recorder": "recorder", "dashboard": "dashboard",
     "emulate": "emulate", "raytrace": "raytrace", "replay": "replay",
@@ -221,7 +221,7 @@ def test_every_error_class_derives_from_the_one_base() -> None:
             if (cls.__module__ == module.__name__ and issubclass(cls, Exception)
                     and not issubclass(cls, DiffposError)):
                 bad.append(f"{info.name}.{cls.__name__}")
-    assert not bad, "error classes not derived from kit.DiffposError: " + ", ".join(bad)
+    assert not bad, "error classes not derived from errors.DiffposError: " + ", ".join(bad)
 
 
 @pytest.mark.parametrize("rule", [rule_no_imports_inside_functions, rule_services_stay_apart],

@@ -55,8 +55,8 @@ from zenoh import handlers
 
 from diffpos_services.bus.commands import foreign_path, recorder_args
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import SIGNAL_POLL_S, join_thread, wait_event
 from diffpos_services.recording.writer import McapSink, SinkStats
+from diffpos_services.shutdown import SIGNAL_POLL_S, join_thread, wait_event
 from diffpos_services.wire.keys import Keys, parse_key
 
 __all__ = [

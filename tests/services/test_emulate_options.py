@@ -20,7 +20,7 @@ from diffpos_services.cli import main as cli
 from diffpos_services.cli import recorder as cli_recorder
 from diffpos_services.emulate import Emulation, EmulationOptions
 from diffpos_services.emulate.options import recorder_argv
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.recorder import build_command
 from diffpos_services.scenario_io import load_scenario_option
 

@@ -7,8 +7,8 @@ import types
 import msgspec
 import numpy as np
 import pytest
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.kit import ConfigError
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 from fusion_scene import ANCHORS, EDGE, KEYS, NODES, PERIOD_NS, W

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from diffpos_services.cli import fusion as cmd_fusion
 from diffpos_services.cli import replay as cmd_replay
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion import workers as W
 from diffpos_services.fusion.config import DEFAULT_WORKERS, FusionConfig
-from diffpos_services.kit import ConfigError
 from diffpos_services.replay import run as replay_mod
 from diffpos_services.replay.run import replay
 from diffpos_services.replay.synthetic import write_synthetic_recording

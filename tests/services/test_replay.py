@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from diffpos_services.cli.main import main as cli_main
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.reader import McapScanner
 from diffpos_services.recording.writer import McapSink

@@ -28,7 +28,7 @@ import msgspec
 import pytest
 import zenoh
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
@@ -512,7 +512,7 @@ def test_zenoh_config_option_file_env_override_and_errors(tmp_path, monkeypatch,
 
     from diffpos_services.bus.session import add_zenoh_arguments, service_settings
     from diffpos_services.cli.main import main as health_main
-    from diffpos_services.kit import ConfigError
+    from diffpos_services.errors import ConfigError
 
     f = tmp_path / "client.json5"
     f.write_text('// a comment\n{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"],'

@@ -38,8 +38,10 @@ from diffpos.emulation import (
 )
 from diffpos.trajectory import Static
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import ConfigError, log_event, wait_event
+from diffpos_services.errors import ConfigError
+from diffpos_services.logs import log_event
 from diffpos_services.scenario_io import load_scenario_option
+from diffpos_services.shutdown import wait_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, check_id
 

@@ -13,7 +13,7 @@ import zenoh
 
 from diffpos_services.bus.security import SecurityError, session_config
 from diffpos_services.bus.session import ZenohSettings
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 
 __all__ = ["health_check"]
 

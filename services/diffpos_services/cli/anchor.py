@@ -34,13 +34,9 @@ import argparse
 
 from diffpos_services.anchor.service import AnchorConfig, load_scenario_file, run_anchor
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
-from diffpos_services.kit import (
-    Shutdown,
-    add_logging_arguments,
-    build_config,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.config import build_config
+from diffpos_services.logs import add_logging_arguments, setup_logging
+from diffpos_services.shutdown import Shutdown, run_main
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -53,7 +53,7 @@ from diffpos import bound_maps
 from diffpos.bound_maps import BoundMapSettings
 from diffpos.scenario import AnchorSpec, Scenario, default_scenario
 from diffpos.trajectory import Static
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.reports import bounds as report
 
 

@@ -38,15 +38,10 @@ import threading
 from diffpos_services.bus.session import add_zenoh_arguments, open_session, service_settings
 from diffpos_services.dashboard.building import BuildingOutline
 from diffpos_services.dashboard.scenario import building_for_option
-from diffpos_services.kit import (
-    ConfigError,
-    Shutdown,
-    add_logging_arguments,
-    log_event,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.errors import ConfigError
+from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
 from diffpos_services.replay.synthetic import display_run
+from diffpos_services.shutdown import Shutdown, run_main
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

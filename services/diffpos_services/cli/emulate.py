@@ -53,15 +53,10 @@ import sys
 
 from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
 from diffpos_services.emulate.supervise import format_faults
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import DEFAULT_METHOD, METHODS
-from diffpos_services.kit import (
-    ConfigError,
-    Shutdown,
-    add_logging_arguments,
-    log_event,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
+from diffpos_services.shutdown import Shutdown, run_main
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

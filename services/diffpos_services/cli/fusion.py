@@ -44,6 +44,7 @@ import logging
 
 from diffpos_services.anchor.service import emulation_nodes
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     DEFAULT_ADMIT_LAG_S,
     DEFAULT_KERNEL_THREADS,
@@ -57,15 +58,9 @@ from diffpos_services.fusion.config import (
     model_edge,
 )
 from diffpos_services.fusion.service import run_fusion
-from diffpos_services.kit import (
-    ConfigError,
-    Shutdown,
-    add_logging_arguments,
-    log_event,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
 from diffpos_services.scenario_io import load_scenario_option
+from diffpos_services.shutdown import Shutdown, run_main
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -5,7 +5,7 @@ docstring (first line = one-line help), ``add_arguments(parser)`` and ``run(args
 Modules are imported only when their subcommand runs, so ``diffpos --help`` stays fast and a
 numeric command never pays for importing Zenoh or Rerun.
 
-Errors are mapped to exit codes here and nowhere else: a :class:`~diffpos_services.kit.DiffposError`
+Errors are mapped to exit codes here and nowhere else: a :class:`~diffpos_services.errors.DiffposError`
 prints one line ``diffpos <verb>: error: <message>`` and returns its ``exit_code``;
 Ctrl-C returns 130.
 """
@@ -23,7 +23,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from diffpos_services.kit import DiffposError
+from diffpos_services.errors import DiffposError
 
 #: subcommand -> module of ``diffpos_services.cli``. The order is the order shown by ``--help``;
 #: the one-line help is the first line of the module's docstring (read without importing it).
@@ -112,7 +112,7 @@ def build_parser(name: str) -> argparse.ArgumentParser:
 @contextmanager
 def _root_logging_restored() -> Iterator[None]:
     """Give the root logger back its handlers and level when a verb returns: a service verb
-    configures logging for its process (``kit.setup_logging``), and a caller running
+    configures logging for its process (``logs.setup_logging``), and a caller running
     :func:`main` in-process (tests, scripts) must not inherit that level or a handler bound to
     a stream that is gone."""
     root = logging.getLogger()

@@ -39,8 +39,9 @@ from typing import Any
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from diffpos.floor_calibration import format_calibration
+from diffpos_services.config import load_json_option
+from diffpos_services.errors import ConfigError
 from diffpos_services.heap import keep_heap
-from diffpos_services.kit import ConfigError, load_json_option
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.replay.run import replay

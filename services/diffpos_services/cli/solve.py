@@ -93,7 +93,7 @@ from typing import BinaryIO, TextIO
 import msgspec
 
 from diffpos.scenario import Scenario, ScenarioError
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.scenario_io import load_scenario
 from diffpos_services.solve import solve_lines
 from diffpos_services.wire.solve_io import (

@@ -32,7 +32,7 @@ from diffpos_services.emulate.options import (
 )
 from diffpos_services.emulate.orchestrator import Emulation
 from diffpos_services.emulate.scoring import Scorer, format_summary
-from diffpos_services.kit import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 
 __all__ = ["EXTRA_SERVICES", "Emulation", "EmulationOptions", "Scorer", "dashboard_argv",
            "format_summary", "free_tcp_port", "recorder_argv", "recording_path"]

@@ -21,7 +21,7 @@ import zenoh
 
 from diffpos.emulation import TimeBase
 from diffpos_services.emulate.scoring import Scorer
-from diffpos_services.kit import STATUS, log_event
+from diffpos_services.logs import STATUS, log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 from diffpos_services.bus.commands import recorder_args
 from diffpos_services.bus.session import check_endpoint
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import EDGES, MAX_WORKERS, METHODS
-from diffpos_services.kit import ConfigError
 from diffpos_services.wire.keys import Keys
 
 __all__ = ["EXTRA_SERVICES", "EmulationOptions", "dashboard_argv", "recorder_argv",

@@ -53,20 +53,15 @@ from diffpos_services.emulate.notes import (
 from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
 from diffpos_services.emulate.scoring import Scorer
 from diffpos_services.emulate.supervise import Supervisor, recover_in_place
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     LIVE_MAX_BACKLOG_S,
     FusionConfig,
     channel_edge,
     model_edge,
 )
-from diffpos_services.kit import (
-    STATUS,
-    ConfigError,
-    child_env,
-    free_tcp_port,
-    log_event,
-    stop_process_groups,
-)
+from diffpos_services.logs import STATUS, log_event
+from diffpos_services.processes import child_env, free_tcp_port, stop_process_groups
 from diffpos_services.scenario_io import load_scenario_option, resolve_scenario
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key

@@ -25,7 +25,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from diffpos_services.kit import DiffposError, log_event
+from diffpos_services.errors import DiffposError
+from diffpos_services.logs import log_event
 from diffpos_services.recording.repair import recover
 from diffpos_services.recording.writer import existing_parts
 

@@ -26,7 +26,7 @@ from msgspec import Meta
 
 from diffpos.alignment import AlignmentConfig
 from diffpos.scenario import Building, Radio, Scenario, ScenarioError, first_arrival_edge
-from diffpos_services.kit import build_config
+from diffpos_services.config import build_config
 from diffpos_services.wire.keys import check_id
 
 __all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "METHODS", "FusionConfig",

@@ -53,7 +53,7 @@ from diffpos_services.fusion.tracked import (
     v2_builder,
 )
 from diffpos_services.fusion.warm import warm_up
-from diffpos_services.kit import log_event
+from diffpos_services.logs import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
 

@@ -3,7 +3,7 @@
 Split by role like the ``mcap`` package:
 
 ========== =====================================================================
-errors     ``RecordingError`` (a ``kit.DiffposError``, exit code 2), ``ForeignRecordingError``
+errors     ``RecordingError`` (an ``errors.DiffposError``, exit code 2), ``ForeignRecordingError``
 topics     ``parse_topic`` (kind and ids of a topic), ``SeqTracker`` (sequence gaps)
 schemas    ``SchemaRegistry``: the JSON Schema of each channel
 writer     ``McapSink``: what the recorder service writes with (``SplitPolicy``: parts)

@@ -34,10 +34,11 @@ import msgspec
 import numpy as np
 
 from diffpos._kernels import pool as kernel_pool
+from diffpos_services.config import build_config
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import METHODS, FusionConfig, with_legacy_defaults
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.workers import start_workers
-from diffpos_services.kit import ConfigError, build_config
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.reader import (

@@ -32,7 +32,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
-from diffpos_services.kit import DiffposError
+from diffpos_services.errors import DiffposError
 from diffpos_services.wire.ids import id_checker
 
 __all__ = [
