@@ -45,10 +45,7 @@ PRESENTATION_ALLOWED = ("reports", "cli")
 #: replay's plot (matplotlib, ~0.35 s that `diffpos replay --no-files` must not pay).
 LAZY_ALLOWED = ("sionna", "drjit", "mitsuba", "cryptography", "jsonschema", "rerun", "pyarrow",
                 "diffpos_services.dashboard", "diffpos_services.reports.replay")
-MAX_FILE_LINES = 600
 MAX_FUNCTION_LINES = 80
-#: Chosen exceptions to the size rules, each with its reason (DEVELOPING.md repeats them).
-SIZE_EXCEPTIONS: dict[str, str] = {}
 
 
 @dataclass(frozen=True)
@@ -169,12 +166,8 @@ def rule_key_strings_in_keys(m: Module):
                 yield node.lineno, f"key string {s!r} outside wire/keys.py"
 
 
-def rule_sizes(m: Module):
-    rel = str(m.path.relative_to(PKG))
-    if rel in SIZE_EXCEPTIONS:
-        return
-    if len(m.lines) > MAX_FILE_LINES:
-        yield 1, f"{len(m.lines)} lines (> {MAX_FILE_LINES})"
+def rule_short_functions(m: Module):
+    """No function over MAX_FUNCTION_LINES lines of code (a file holds one role, no line limit)."""
     for node in ast.walk(m.tree):
         if not isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
             continue
@@ -192,7 +185,7 @@ def rule_sizes(m: Module):
 
 RULES = [rule_nothing_imports_cli, rule_services_stay_apart, rule_zenoh_only_in_bus_and_entry_points,
          rule_presentation_only_in_reports_and_cli, rule_no_imports_inside_functions,
-         rule_key_strings_in_keys, rule_sizes]
+         rule_key_strings_in_keys, rule_short_functions]
 
 
 @pytest.mark.parametrize("rule", RULES, ids=lambda r: r.__name__.removeprefix("rule_"))

@@ -413,9 +413,9 @@ def test_persistently_failing_node_is_not_cold_solved_every_epoch(monkeypatch):
 
 
 def test_cli_edge_lower_is_the_upper_edge_model_one_window_lower():
-    from diffpos_services.anchor.service import load_scenario_file
+    from diffpos_services.scenario_io import load_scenario_option
 
-    sc = load_scenario_file(None)  # the paper's geometry: every UAV below the windows
+    sc = load_scenario_option(None)  # the paper's geometry: every UAV below the windows
     w = sc.building.window_height_m
     deltas = {}
     for edge in ("upper", "lower", "auto"):

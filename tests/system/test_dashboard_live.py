@@ -31,7 +31,7 @@ from diffpos_services.dashboard.service import (
     display_available,
     open_rerun,
 )
-from diffpos_services.emulate import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.replay.synthetic import display_run
 from diffpos_services.wire import messages as m
 from diffpos_services.wire.keys import Keys

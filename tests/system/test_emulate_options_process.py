@@ -15,7 +15,7 @@ import threading
 
 import pytest
 import zenoh
-from diffpos_services.emulate import EXTRA_SERVICES
+from diffpos_services.emulate.options import EXTRA_SERVICES
 from diffpos_services.processes import free_tcp_port
 from diffpos_services.wire.keys import Keys
 

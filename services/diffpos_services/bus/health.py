@@ -11,7 +11,8 @@ import json
 
 import zenoh
 
-from diffpos_services.bus.security import SecurityError, session_config
+from diffpos_services.bus.security.configs import session_config
+from diffpos_services.bus.security.profile import SecurityError
 from diffpos_services.bus.session import ZenohSettings
 from diffpos_services.errors import ConfigError
 

@@ -27,7 +27,8 @@ from typing import Any, Literal
 
 import zenoh
 
-from diffpos_services.bus.security import SecurityError, session_config
+from diffpos_services.bus.security.configs import session_config
+from diffpos_services.bus.security.profile import SecurityError
 from diffpos_services.errors import ConfigError
 from diffpos_services.logs import log_event
 

@@ -32,10 +32,11 @@ from __future__ import annotations
 
 import argparse
 
-from diffpos_services.anchor.service import AnchorConfig, load_scenario_file, run_anchor
+from diffpos_services.anchor.service import AnchorConfig, run_anchor
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.config import build_config
 from diffpos_services.logs import add_logging_arguments, setup_logging
+from diffpos_services.scenario_io import load_scenario_option
 from diffpos_services.shutdown import Shutdown, run_main
 
 
@@ -125,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     def body() -> int:
         cfg = config_from_args(args)
         zs = service_settings(args, log)
-        scenario = load_scenario_file(cfg.scenario)
+        scenario = load_scenario_option(cfg.scenario)
         stop = Shutdown(log)
         run_anchor(cfg, zs, stop.event, scenario=scenario, logger=log)
         return 0

@@ -51,7 +51,9 @@ import json
 import logging
 import sys
 
-from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
+from diffpos_services.emulate.options import EmulationOptions
+from diffpos_services.emulate.orchestrator import Emulation
+from diffpos_services.emulate.scoring import format_summary
 from diffpos_services.emulate.supervise import format_faults
 from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import DEFAULT_METHOD, METHODS

@@ -42,7 +42,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from diffpos_services.anchor.service import emulation_nodes
+from diffpos.emulation import emulation_nodes
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
@@ -219,7 +219,7 @@ def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
     """Parse ``--anchors`` / ``--nodes``: ``None`` (accept any), ``"scenario"`` or ``ID,ID,...``.
 
     ``"scenario"`` means the scenario's anchors, or for nodes the nodes the scenario is
-    emulated with (:func:`diffpos_services.anchor.service.emulation_nodes`: its explicit nodes, or the
+    emulated with (:func:`diffpos.emulation.emulation_nodes`: its explicit nodes, or the
     generated responders ``r01``... of a scenario with only a study grid). Ids are checked
     by :class:`FusionConfig` (the error names ``anchors[i]`` / ``nodes[i]``).
 

@@ -268,7 +268,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"diffpos replay: WARNING: {rep['settings_warning']}", file=sys.stderr)
     if args.rrd:
         # rerun is a heavy import that `diffpos replay --help` and plain replays must not pay
-        from diffpos_services.dashboard.views import mcap_to_rrd
+        from diffpos_services.dashboard.convert import mcap_to_rrd
 
         with atomic_path(args.rrd) as tmp:
             mcap_to_rrd(src, tmp, estimates=result.estimates,

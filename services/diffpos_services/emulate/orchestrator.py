@@ -32,13 +32,9 @@ import zenoh
 
 from diffpos.emulation import TimeBase, emulation_nodes
 from diffpos_services.bus.commands import foreign_path
-from diffpos_services.bus.security import (
-    SecurityError,
-    anchor_user,
-    load_profile,
-    per_run_profile,
-    render_profile,
-)
+from diffpos_services.bus.security.per_run import per_run_profile
+from diffpos_services.bus.security.profile import SecurityError, anchor_user, load_profile
+from diffpos_services.bus.security.render import render_profile
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
 from diffpos_services.emulate.monitor import Monitor
 from diffpos_services.emulate.notes import (

@@ -54,20 +54,11 @@ from typing import Any
 import numpy as np
 
 from diffpos_services.fusion import shm
-from diffpos_services.fusion.rows import (
-    concat_rows,
-    preloaded_bounds,
-    run_update,
-    share_bounds,
-    slim_state,
-    take_rows,
-)
+from diffpos_services.fusion.rows import concat_rows, preloaded_bounds, take_rows
 from diffpos_services.fusion.worker_proc import TASKS, _dumps, worker_main
 from diffpos_services.logs import log_event
 
-__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "TASKS", "Pending", "RowPool", "concat_rows",
-           "preloaded_bounds", "run_update", "share_bounds", "slim_state", "start_workers",
-           "take_rows", "worker_main"]
+__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "Pending", "RowPool", "start_workers"]
 
 #: Cost of a row the tracker initialises (UNINITIALISED or LOST with enough ranges: the grid
 #: snapshot of :func:`diffpos.tracking.model.snapshot_init`) in units of one row's update: an
