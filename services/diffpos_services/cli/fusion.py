@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import logging
 
-from diffpos.emulation import emulation_nodes
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
@@ -57,7 +56,6 @@ from diffpos_services.fusion.config import (
     FusionConfig,
     model_edge,
 )
-from diffpos_services.fusion.service import run_fusion
 from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
 from diffpos_services.scenario_io import load_scenario_option
 from diffpos_services.shutdown import Shutdown, run_main
@@ -235,6 +233,8 @@ def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
             raise ConfigError(f"--{name} scenario: no scenario given (use --scenario TOML)")
         if name == "anchors":
             return [a.id for a in scenario.anchors]
+        from diffpos.emulation import emulation_nodes  # the channel's kernels: not for --help
+
         return [nid for nid, _ in emulation_nodes(scenario)]
     ids = [v.strip() for v in text.split(",") if v.strip()]
     if not ids:
@@ -245,6 +245,8 @@ def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from diffpos_services.fusion.service import run_fusion  # kernels: not for --help
+
     log = setup_logging("fusion", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:

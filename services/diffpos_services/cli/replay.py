@@ -44,7 +44,6 @@ from diffpos_services.errors import ConfigError
 from diffpos_services.heap import keep_heap
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
-from diffpos_services.replay.run import replay
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -231,6 +230,8 @@ def _write_report_files(result: Any, out_dir: Path) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from diffpos_services.replay.run import replay  # the fusion core: its kernels, not for --help
+
     src = Path(args.file)
     out_dir = check_outputs(args)
     keep_heap()  # as the live fusion's process (diffpos_services.heap)

@@ -3,7 +3,7 @@
 Split by role like the ``mcap`` package:
 
 ========== =====================================================================
-errors     ``RecordingError`` (an ``errors.DiffposError``, exit code 2), ``ForeignRecordingError``
+errors     ``RecordingError`` (a ``DiffposError``, exit code 2), ``ForeignRecordingError``
 topics     ``parse_topic`` (kind and ids of a topic), ``SeqTracker`` (sequence gaps)
 schemas    ``SchemaRegistry``: the JSON Schema of each channel
 writer     ``McapSink``: what the recorder service writes with (``SplitPolicy``: parts)
@@ -15,5 +15,6 @@ summary    ``summarize``, ``validate_file`` (against ``schemas/``): ``diffpos in
 ========== =====================================================================
 
 A shared layer (the recorder writes, the dashboard and replay read); the offline re-run of a
-recording is the replay service, :mod:`diffpos_services.replay`. Key expressions and MCAP topics are spelled in :mod:`diffpos_services.wire.keys` only.
+recording is the replay service, :mod:`diffpos_services.replay`. Key expressions and MCAP
+topics are spelled in :mod:`diffpos_services.wire.keys` only.
 """
