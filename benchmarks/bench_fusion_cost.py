@@ -7,7 +7,7 @@ Usage::
 
 Records a lockstep run of the real system (``diffpos emulate SCENARIO --speed 0 --record``,
 realistic emulated channel, the fusion's default method), then replays the recording in this
-process with each method (:func:`diffpos_services.recording.replay.replay`: the same fusion
+process with each method (:func:`diffpos_services.replay.run.replay`: the same fusion
 core as the live service, fed the recorded ranges in the recorded order) and divides the
 replay's CPU time (``time.process_time``, imports and the first-call costs excluded: one warm-up
 replay of the first seconds precedes the timed ones) by the node-epochs it solved. The figure
@@ -231,7 +231,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 from diffpos_services.heap import keep_heap
-from diffpos_services.recording.replay import replay
+from diffpos_services.replay.run import replay
 from diffpos_services.wire import messages as M
 
 from diffpos._kernels import pool as kernel_pool
@@ -386,8 +386,8 @@ def schedule(path: Path, startup_s: float = 2.0, *, seconds: float | None = None
     from diffpos_services.fusion import service
     from diffpos_services.fusion.core import FusionCore
     from diffpos_services.recording.reader import McapScanner
-    from diffpos_services.recording.synthetic import FUSION_INPUT_KINDS
     from diffpos_services.recording.topics import parse_topic
+    from diffpos_services.replay.synthetic import FUSION_INPUT_KINDS
 
     cfg = _fusion_config(path, fusion_argv)
     items, anchors = [], set()

@@ -1,7 +1,7 @@
 """CPU per range of the fusion's ingest path (issue 16: decode + checks + alignment), per-range
 messages and RangeBatch side by side.
 
-A seeded synthetic run (``recording/synthetic.py``: 8 anchors x 50 nodes x 10 Hz by default,
+A seeded synthetic run (``replay/synthetic.py``: 8 anchors x 50 nodes x 10 Hz by default,
 5 % NLoS outliers) is generated in memory; its fusion inputs are fed to a
 :class:`~diffpos_services.fusion.core.FusionCore` in receive order, the core stepped every
 100 ms of receive time as the live service does. Only the ingest is timed
@@ -21,7 +21,7 @@ import statistics
 import time
 
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.recording.synthetic import (
+from diffpos_services.replay.synthetic import (
     FUSION_INPUT_KINDS,
     quiet_logger,
     synthetic_run,

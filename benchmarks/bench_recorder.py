@@ -67,13 +67,13 @@ from pathlib import Path
 
 from diffpos_services.cli.recorder import DEFAULT_SPLIT_MB, DEFAULT_SPLIT_S
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.kit import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.recorder import build_command
 from diffpos_services.recording.reader import McapScanner
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import write_synthetic_recording
 from diffpos_services.recording.topics import SeqTracker, parse_topic
 from diffpos_services.recording.writer import McapSink, SplitPolicy, part_path
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 
 from diffpos.estimators.dnls import solver as est

@@ -9,7 +9,7 @@ RSS, ``ru_maxrss``):
   as before (recorder order, every estimate kept): speed vs real time, bit-identity with the
   live fixes (statuses, positions), peak RSS.
 * flat memory: synthetic RangeBatch recordings (8 x 50 x 10 Hz, a live fusion's estimates
-  recorded; ``recording/synthetic.py``, ideal channel: the cheap way to get an hour) of two
+  recorded; ``replay/synthetic.py``, ideal channel: the cheap way to get an hour) of two
   lengths, replayed now: peak RSS must not follow the length.
 * ``--profile``: where a replay of the realistic recording spends its time (cProfile, top
   functions by own time).
@@ -47,7 +47,7 @@ from pathlib import Path
 
 import msgspec
 from diffpos_services.heap import keep_heap
-from diffpos_services.recording.replay import replay
+from diffpos_services.replay.run import replay
 from diffpos_services.wire import messages as M
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -133,7 +133,7 @@ def _emulate(path: Path, seconds: float) -> float:
 
 
 def _synthetic(path: Path, minutes: float) -> None:
-    code = ("import sys; from diffpos_services.recording.synthetic import "
+    code = ("import sys; from diffpos_services.replay.synthetic import "
             "write_synthetic_recording as w; "
             f"w(sys.argv[1], n_anchors=8, n_nodes=50, duration_s={minutes * 60}, "
             "rate_hz=10.0, range_batch=True, outlier_probability=0.05, seed=3)")

@@ -30,7 +30,7 @@ import time
 import msgspec
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.service import _ALIVE, _DATA, ServiceLoop, _Inbox
-from diffpos_services.recording.synthetic import synthetic_run
+from diffpos_services.replay.synthetic import synthetic_run
 from diffpos_services.wire.keys import Keys, parse_key
 
 

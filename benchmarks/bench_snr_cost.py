@@ -6,7 +6,7 @@ Usage::
 
     python benchmarks/bench_snr_cost.py RECORDING [--every 1] [--reps 3] [--method mnls]
 
-Replays the recording in this process once (:func:`diffpos_services.recording.replay.replay`,
+Replays the recording in this process once (:func:`diffpos_services.replay.run.replay`,
 all epochs solved, no recorded decisions) and keeps the inputs of every ``--every``-th
 ``snr_cost_near`` call; then times (``time.process_time``, the best of ``--reps`` passes) one
 pass over the kept calls with
@@ -92,7 +92,7 @@ def _masked(exact: bool):
 
 def capture(path: str, every: int, method: str) -> list[tuple]:
     """The inputs of every ``every``-th snr_cost_near call of a replay of ``path``."""
-    from diffpos_services.recording.replay import replay
+    from diffpos_services.replay.run import replay
 
     calls, count = [], [0]
     orig = tm.snr_cost_near

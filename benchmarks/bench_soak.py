@@ -74,7 +74,7 @@ from pathlib import Path
 import numpy as np
 from common import PERIOD_NS, cpu_s, rss_mb, scenario_toml
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import free_tcp_port, stop_process_groups
+from diffpos_services.processes import free_tcp_port, stop_process_groups
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 

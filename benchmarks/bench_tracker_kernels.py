@@ -7,7 +7,7 @@ Usage::
         [--calls 300]
     python benchmarks/bench_tracker_kernels.py time INPUTS.pkl [--reps 5]
 
-``capture`` replays the recording in this process (:func:`diffpos_services.recording.replay
+``capture`` replays the recording in this process (:func:`diffpos_services.replay.run
 .replay`, M-NLS + tracker, all epochs solved, no recorded decisions) and keeps the inputs
 (copies; the outputs' shapes only) of ``--calls`` calls of each kernel after the first
 ``--skip``: ``tracking_nb.all_paths_kernel`` (the tracker's path model, ~3 calls per update),
@@ -68,7 +68,7 @@ class _Enough(Exception):
 
 
 def capture(recording: str, out: str, skip: int, n_calls: int) -> dict[str, int]:
-    from diffpos_services.recording.replay import replay
+    from diffpos_services.replay.run import replay
 
     import diffpos.channel.snr_nb as cn
     import diffpos.tracking.initialisation as ti

@@ -21,6 +21,7 @@ import time
 
 import numpy as np
 from common import cpu_s
+from diffpos_services.fusion import rows as R
 from diffpos_services.fusion import workers as W
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
@@ -69,10 +70,10 @@ def main(argv: list[str] | None = None) -> int:
         wpid = pool.pids[0]
         for n in (int(v) for v in args.rows.split(",")):
             state, (a, r, s, m, t, snr) = _batch(n)
-            rows = (W.slim_state(state, cfg), a, r, s, m, t, snr)
+            rows = (R.slim_state(state, cfg), a, r, s, m, t, snr)
 
             def local(rows=rows):
-                return W.run_update(b, *rows, cfg, SC.radio)
+                return R.run_update(b, *rows, cfg, SC.radio)
 
             ref = local()
             w0, c0 = time.perf_counter(), time.process_time()
@@ -90,9 +91,9 @@ def main(argv: list[str] | None = None) -> int:
             caller = pool.calls["caller_cpu_s"] / args.repeat  # the caller's thread CPU
             worker = (cpu_s(wpid) - k0) / args.repeat
             own = pool.calls["own_cpu_s"] / args.repeat  # the caller's thread CPU in its share
-            sl = W.share_bounds(np.ones(n), 2)
-            kb_out = len(pickle.dumps(W.take_rows(rows, sl[-1]), protocol=5)) / 1024
-            kb_in = len(pickle.dumps(W.take_rows(ref, sl[-1]), protocol=5)) / 1024
+            sl = R.share_bounds(np.ones(n), 2)
+            kb_out = len(pickle.dumps(R.take_rows(rows, sl[-1]), protocol=5)) / 1024
+            kb_in = len(pickle.dumps(R.take_rows(ref, sl[-1]), protocol=5)) / 1024
             same = all(getattr(got[1], f).tobytes() == getattr(ref[1], f).tobytes()
                        for f in ref[1].__dataclass_fields__)
             print(f"{n:>5} {t_local * 1e3:>9.2f} {w_local * 1e3:>10.2f} {wall * 1e3:>10.2f} "

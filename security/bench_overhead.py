@@ -31,7 +31,11 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
-from diffpos_services.bus import security as zs
+from diffpos_services.bus.security.certs import make_dev_certs
+from diffpos_services.bus.security.configs import client_config, to_zenoh
+from diffpos_services.bus.security.credentials import write_credentials
+from diffpos_services.bus.security.profile import load_profile
+from diffpos_services.bus.security.render import render_profile
 from diffpos_services.wire.keys import Keys
 
 ROUTER = """
@@ -68,7 +72,7 @@ def _stop(p: subprocess.Popen) -> None:
 def _measure(cfg_emulator: dict, cfg_anchor: dict, rounds: int, messages: int) -> tuple[float, float, float]:
     k = Keys("bench")
     bc = zenoh.CongestionControl.BLOCK
-    with zenoh.open(zs.to_zenoh(cfg_emulator)) as emu, zenoh.open(zs.to_zenoh(cfg_anchor)) as anc:
+    with zenoh.open(to_zenoh(cfg_emulator)) as emu, zenoh.open(to_zenoh(cfg_anchor)) as anc:
         back = threading.Event()
         count = [0]
         done = threading.Event()
@@ -132,16 +136,16 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             _stop(r)
         # secured
-        zs.make_dev_certs(root / "certs", hosts=("localhost",), days=1)
-        zs.write_credentials(root / "cred.txt", {"anchor-uav1": "a-secret", "emulator": "e-secret"})
+        make_dev_certs(root / "certs", hosts=("localhost",), days=1)
+        write_credentials(root / "cred.txt", {"anchor-uav1": "a-secret", "emulator": "e-secret"})
         (root / "p.toml").write_text('anchors = ["uav1"]\ndictionary_file = "cred.txt"\n[users]\nemulator = "emulator"\n')
-        prof = zs.load_profile(root / "p.toml")
+        prof = load_profile(root / "p.toml")
         port = _port()
-        zs.render_profile(prof, root / "zenoh", listen=[f"tls/127.0.0.1:{port}"], connect=[f"tls/localhost:{port}"])
+        render_profile(prof, root / "zenoh", listen=[f"tls/127.0.0.1:{port}"], connect=[f"tls/localhost:{port}"])
         r = _start(root / "zenoh" / "router.json5")
         try:
-            emu = zs.client_config(prof, "emulator", connect=[f"tls/localhost:{port}"])
-            anc = zs.client_config(prof, "anchor-uav1", connect=[f"tls/localhost:{port}"])
+            emu = client_config(prof, "emulator", connect=[f"tls/localhost:{port}"])
+            anc = client_config(prof, "anchor-uav1", connect=[f"tls/localhost:{port}"])
             rows.append(("TLS + user/password + ACL", *_measure(emu, anc, args.rounds, args.messages)))
         finally:
             _stop(r)

@@ -30,7 +30,10 @@ import secrets
 import sys
 from pathlib import Path
 
-from diffpos_services.bus import security as zs
+from diffpos_services.bus.security.certs import make_dev_certs
+from diffpos_services.bus.security.credentials import write_credentials
+from diffpos_services.bus.security.profile import SecurityError, load_profile
+from diffpos_services.bus.security.render import render_profile
 
 HERE = Path(__file__).resolve().parent
 
@@ -49,17 +52,17 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         hosts = args.host or ["localhost", "router", "127.0.0.1"]
-        paths = zs.make_dev_certs(args.out, hosts=hosts, clients=args.client, days=args.days, backend=args.backend)
+        paths = make_dev_certs(args.out, hosts=hosts, clients=args.client, days=args.days, backend=args.backend)
         for name, p in paths.items():
             print(f"wrote {name:22s} {p}")
         if args.new_passwords:
-            profile = zs.load_profile(args.profile)
+            profile = load_profile(args.profile)
             creds = {u: f"dev-{secrets.token_urlsafe(12)}" for u in profile.identities()}
-            p = zs.write_credentials(profile.path(profile.dictionary_file), creds)
+            p = write_credentials(profile.path(profile.dictionary_file), creds)
             print(f"wrote {len(creds)} passwords to {p}")
-            for p in zs.render_profile(profile, args.profile.parent / "zenoh", base_dir="/security"):
+            for p in render_profile(profile, args.profile.parent / "zenoh", base_dir="/security"):
                 print(f"rendered {p}")
-    except zs.SecurityError as exc:
+    except SecurityError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print("DEV ONLY: never deploy these keys or passwords.")

@@ -17,8 +17,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import pytest
-from diffpos_services.emulate import free_tcp_port
-from diffpos_services.kit import stop_process_groups
+from diffpos_services.processes import free_tcp_port, stop_process_groups
 
 from diffpos.scenario import Scenario, default_scenario
 

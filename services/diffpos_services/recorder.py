@@ -14,7 +14,7 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
 * the recorder's own liveliness token (:meth:`Keys.alive_recorder`) is declared once both
   subscribers exist, so whoever waits for it knows recording has started;
 * the stop is bounded: the main thread waits for ``stop`` and joins in signal-poll slices
-  (:func:`diffpos_services.kit.wait_event`: a SIGTERM taken by another thread is acted on),
+  (:func:`diffpos_services.shutdown.wait_event`: a SIGTERM taken by another thread is acted on),
   and after the session closed the drain thread is waited for until its channel is drained
   (:meth:`_Drain.finish`: bounded even if the channel stayed open; before it gives up it
   writes what the channel still holds). Everything received before the stop is written and
@@ -55,8 +55,8 @@ from zenoh import handlers
 
 from diffpos_services.bus.commands import foreign_path, recorder_args
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import SIGNAL_POLL_S, join_thread, wait_event
 from diffpos_services.recording.writer import McapSink, SinkStats
+from diffpos_services.shutdown import SIGNAL_POLL_S, join_thread, wait_event
 from diffpos_services.wire.keys import Keys, parse_key
 
 __all__ = [

@@ -9,7 +9,7 @@ print it as one line.
 - :func:`resolve_scenario`: the file such an argument refers to;
 - :func:`scenario_or_default`: :func:`load_scenario`, or the built-in paper scenario for None;
 - :func:`load_scenario_option`: the same for a command-line option, failures as
-  :class:`~diffpos_services.kit.ConfigError` (exit code 2) saying what to fix;
+  :class:`~diffpos_services.errors.ConfigError` (exit code 2) saying what to fix;
 - :func:`scenario_from_toml`: TOML text from elsewhere (a recording's attachment).
 
 Bounded input: a scenario file is at most :data:`MAX_SCENARIO_BYTES` (512 KiB; the shipped ones
@@ -29,7 +29,7 @@ import tomllib
 from pathlib import Path
 
 from diffpos.scenario import Scenario, ScenarioError, default_scenario
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.resources import scenario_dir
 
 __all__ = [

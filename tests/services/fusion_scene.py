@@ -8,8 +8,8 @@ epochs of 0.1 s. tests/data/nasty/README.md describes the corpus against this sc
 from __future__ import annotations
 
 import numpy as np
+from diffpos_services.config import build_config
 from diffpos_services.fusion.config import FusionConfig
-from diffpos_services.kit import build_config
 from diffpos_services.wire.keys import Keys
 
 W = 1.5  # window height [m]

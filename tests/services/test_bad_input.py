@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from diffpos_services.cli import main as cli
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.kit import ConfigError
 from diffpos_services.wire import messages as M
 from fusion_scene import ANCHORS, EDGE, KEYS, NODES, PERIOD_NS, W
 from fusion_scene import fusion_config as _cfg

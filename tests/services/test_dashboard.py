@@ -19,13 +19,13 @@ import rerun.chunk as rc
 from diffpos_services.dashboard import views as d
 from diffpos_services.dashboard.common import _EXCLUDED_COLOR
 from diffpos_services.dashboard.convert import _kind_scanner
-from diffpos_services.recording.synthetic import display_run
+from diffpos_services.replay.synthetic import display_run
 from diffpos_services.wire import messages as m
 from diffpos_services.wire.keys import Keys
 
 
 def synthetic_run(**kw):
-    """The dashboard's synthetic run (``recording.synthetic.display_run``), its building as
+    """The dashboard's synthetic run (``replay.synthetic.display_run``), its building as
     the outline the dashboard draws."""
     building, msgs = display_run(**kw)
     return d.BuildingOutline.from_object(building), msgs

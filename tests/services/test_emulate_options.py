@@ -13,14 +13,13 @@ import threading
 from pathlib import Path
 
 import pytest
-from diffpos_services.anchor.service import load_scenario_file
 from diffpos_services.bus.commands import recorder_args
 from diffpos_services.cli import fusion as cli_fusion
 from diffpos_services.cli import main as cli
 from diffpos_services.cli import recorder as cli_recorder
-from diffpos_services.emulate import Emulation, EmulationOptions
-from diffpos_services.emulate.options import recorder_argv
-from diffpos_services.kit import ConfigError
+from diffpos_services.emulate.options import EmulationOptions, recorder_argv
+from diffpos_services.emulate.orchestrator import Emulation
+from diffpos_services.errors import ConfigError
 from diffpos_services.recorder import build_command
 from diffpos_services.scenario_io import load_scenario_option
 
@@ -180,7 +179,6 @@ def test_scenario_option_errors_are_one_config_error_naming_option_and_file(tmp_
     msg = str(exc.value)
     assert msg.startswith("--scenario") and str(path) in msg and says in msg, msg
     assert "\n" not in msg and exc.value.exit_code == 2
-    assert load_scenario_file is load_scenario_option
     with pytest.raises(ConfigError, match=str(path)):
         Emulation(EmulationOptions(scenario=str(path), record="off", dashboard=["off"]),
                   logging.getLogger("t"), threading.Event())

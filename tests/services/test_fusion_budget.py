@@ -27,9 +27,9 @@ from diffpos_services.fusion.tracked import (
     SNAPSHOT_WORK_EPOCHS,
     heavy_budget,
 )
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import quiet_logger
 from diffpos_services.recording.writer import McapSink
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import quiet_logger
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 

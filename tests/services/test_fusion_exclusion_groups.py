@@ -1,4 +1,4 @@
-"""The fusion's per-row anchor lists (services/diffpos_services/fusion/solve.py,
+"""The fusion's per-row anchor lists (services/diffpos_services/fusion/step.py,
 ``exclusion_groups``): rows grouped by identical (used anchors, exclusion reasons) must give
 every row exactly the lists it gets when it is alone in a batch (brute force, row by row),
 groups numbered in order of first appearance with their first row as representative, and
@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from diffpos_services.fusion.solve import exclusion_groups
+from diffpos_services.fusion.step import exclusion_groups
 
 from diffpos.estimators.result import ExclusionReason
 

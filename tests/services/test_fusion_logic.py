@@ -7,8 +7,8 @@ import types
 import msgspec
 import numpy as np
 import pytest
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.kit import ConfigError
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 from fusion_scene import ANCHORS, EDGE, KEYS, NODES, PERIOD_NS, W
@@ -262,7 +262,7 @@ def _run_stream(core, *, wall0):
 def test_output_depends_only_on_inputs_never_on_the_machine_clock(monkeypatch):
     import diffpos_services.fusion.core as fusion_mod
     import diffpos_services.fusion.ingest as ingest_mod
-    import diffpos_services.fusion.solve as solve_mod
+    import diffpos_services.fusion.step as step_mod
 
     def no_clock():
         raise AssertionError("FusionCore read the machine clock")
@@ -271,7 +271,7 @@ def test_output_depends_only_on_inputs_never_on_the_machine_clock(monkeypatch):
     # `time` is replaced by a clock that fails (logging keeps the real one)
     clock = types.SimpleNamespace(time_ns=no_clock, time=no_clock, monotonic_ns=no_clock,
                                   monotonic=no_clock, perf_counter=no_clock)
-    for mod in (fusion_mod, ingest_mod, solve_mod):  # the core's modules (none imports time)
+    for mod in (fusion_mod, ingest_mod, step_mod):  # the core's modules (none imports time)
         monkeypatch.setattr(mod, "time", clock, raising=False)
     a = _run_stream(FusionCore(_cfg()), wall0=10**15)
     b = _run_stream(FusionCore(_cfg()), wall0=10**15)
@@ -413,9 +413,9 @@ def test_persistently_failing_node_is_not_cold_solved_every_epoch(monkeypatch):
 
 
 def test_cli_edge_lower_is_the_upper_edge_model_one_window_lower():
-    from diffpos_services.anchor.service import load_scenario_file
+    from diffpos_services.scenario_io import load_scenario_option
 
-    sc = load_scenario_file(None)  # the paper's geometry: every UAV below the windows
+    sc = load_scenario_option(None)  # the paper's geometry: every UAV below the windows
     w = sc.building.window_height_m
     deltas = {}
     for edge in ("upper", "lower", "auto"):

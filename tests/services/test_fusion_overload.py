@@ -24,7 +24,7 @@ from diffpos_services.fusion.config import (
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.recording.reader import SideRecords
-from diffpos_services.recording.replay import replay_settings
+from diffpos_services.replay.run import replay_settings
 
 from diffpos.alignment import PendingEpoch
 

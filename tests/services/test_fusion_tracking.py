@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import quiet_logger
 from diffpos_services.recording.writer import McapSink
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import quiet_logger
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 

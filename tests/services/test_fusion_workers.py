@@ -21,12 +21,14 @@ import numpy as np
 import pytest
 from diffpos_services.cli import fusion as cmd_fusion
 from diffpos_services.cli import replay as cmd_replay
+from diffpos_services.errors import ConfigError
+from diffpos_services.fusion import rows as R
+from diffpos_services.fusion import worker_proc
 from diffpos_services.fusion import workers as W
 from diffpos_services.fusion.config import DEFAULT_WORKERS, FusionConfig
-from diffpos_services.kit import ConfigError
-from diffpos_services.recording import replay as replay_mod
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.replay import run as replay_mod
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 
 from diffpos.scenario import default_scenario
@@ -59,14 +61,14 @@ def test_share_bounds_cover_contiguous_and_balanced():
         b = int(rng.integers(1, 40))
         cost = np.where(rng.random(b) < 0.2, W.INIT_COST, 1.0)
         n = int(rng.integers(1, 5))
-        sl = W.share_bounds(cost, n)
+        sl = R.share_bounds(cost, n)
         assert 1 <= len(sl) <= n
         assert sl[0].start == 0 and sl[-1].stop == b
         assert all(s.stop > s.start for s in sl)
         assert all(a.stop == c.start for a, c in itertools.pairwise(sl))
         assert max(cost[s].sum() for s in sl) <= cost.sum() / n + cost.max() + 1e-9
         w = rng.uniform(0.25, 4.0, n)  # speeds: share k's cost ~ total * w_k / sum(w)
-        sl = W.share_bounds(cost, n, w)
+        sl = R.share_bounds(cost, n, w)
         assert sl[0].start == 0 and sl[-1].stop == b
         assert all(a.stop == c.start for a, c in itertools.pairwise(sl))
         ends = np.cumsum(cost)[[s.stop - 1 for s in sl[:-1]]]
@@ -80,8 +82,8 @@ def test_take_and_concat_rows_are_inverse():
     st = init_state(7, default_scenario().building)
     st = dataclasses.replace(st, mean=np.random.default_rng(1).normal(size=st.mean.shape))
     args = (st, np.arange(7.0), None, 3.5)
-    parts = [W.take_rows(args, s) for s in W.share_bounds(np.ones(7), 3)]
-    back = W.concat_rows(parts)
+    parts = [R.take_rows(args, s) for s in R.share_bounds(np.ones(7), 3)]
+    back = R.concat_rows(parts)
     assert back[2] is None and back[3] == 3.5
     assert np.array_equal(back[1], args[1])
     for f in TrackerState.__dataclass_fields__:
@@ -108,7 +110,7 @@ class _Pipe:
         if self.fail == "error" and self.n > self.after:
             reply = ("err", "Traceback: injected", 0.0)
         else:
-            reply = ("ok", W.TASKS[kind](self.model, *args), 0.001)
+            reply = ("ok", worker_proc.TASKS[kind](self.model, *args), 0.001)
         self.replies.append(pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL))
 
     def send_bytes(self, payload) -> None:  # what RowPool writes: the pickled request
@@ -209,7 +211,7 @@ def test_preloaded_bounds_count_the_work_a_worker_already_has():
         n = int(rng.integers(1, 4))
         w = [1.0, *rng.uniform(0.5, 2.0, n - 1)]
         pre = [0.0, *rng.choice([0.0, 5.0, 30.0, 500.0], n - 1)]
-        sl = W.preloaded_bounds(cost, w, pre)
+        sl = R.preloaded_bounds(cost, w, pre)
         assert len(sl) == n and sl[0].start == 0 and sl[-1].stop == b
         assert all(a.stop == c.start for a, c in itertools.pairwise(sl))
         part = (cost.sum() + sum(pre)) * np.asarray(w) / sum(w)
@@ -217,8 +219,8 @@ def test_preloaded_bounds_count_the_work_a_worker_already_has():
             assert cost[s_].sum() <= max(part[k] - pre[k], 0.0) + cost.max() + 1e-9
             if pre[k] >= part[k]:
                 assert s_.stop == s_.start
-        nonempty = [s_ for s_ in W.preloaded_bounds(cost, w, [0.0] * n) if s_.stop > s_.start]
-        assert nonempty == W.share_bounds(cost, n, w)
+        nonempty = [s_ for s_ in R.preloaded_bounds(cost, w, [0.0] * n) if s_.stop > s_.start]
+        assert nonempty == R.share_bounds(cost, n, w)
 
 
 def _echo_pool(monkeypatch) -> W.RowPool:
@@ -227,7 +229,7 @@ def _echo_pool(monkeypatch) -> W.RowPool:
     model = (default_scenario().building, None, 1.0, 0.0)
     pool = W.RowPool(1, model)
     pool._slots = [W._Slot(conn=_Pipe(model), ready=True, pid=-1)]
-    monkeypatch.setitem(W.TASKS, "echo", lambda m, x: x * 2)
+    monkeypatch.setitem(worker_proc.TASKS, "echo", lambda m, x: x * 2)
     monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
     return pool
 
@@ -293,7 +295,7 @@ class _QueuedPipe:
 
     def send_bytes(self, payload) -> None:
         kind, args = pickle.loads(payload)
-        self.replies.append(pickle.dumps(("ok", W.TASKS[kind](self.model, *args), 0.001)))
+        self.replies.append(pickle.dumps(("ok", worker_proc.TASKS[kind](self.model, *args), 0.001)))
 
     def poll(self, timeout=None) -> bool:
         return bool(self.replies)
@@ -314,7 +316,7 @@ def test_unpicklable_share_or_reply_leaves_no_stale_reply(monkeypatch):
     call 2's first worker reply cannot be decoded: each such share is computed locally and
     every later call gets its own rows back (before the fix, call 1 raised after the first
     worker had its request, and call 2 read call 1's reply from that worker's pipe)."""
-    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    monkeypatch.setitem(worker_proc.TASKS, "echo", lambda model, x: x)
     pool = W.RowPool(1, (None, None, 3.0, 0.0))
     pipes = [_QueuedPipe(pool.model), _QueuedPipe(pool.model)]
     pool._slots = [W._Slot(conn=p, ready=True, pid=-1) for p in pipes]
@@ -339,7 +341,7 @@ def test_unpicklable_share_or_reply_leaves_no_stale_reply(monkeypatch):
 def test_call_without_rows_stays_local(monkeypatch):
     """No rows (even with every call split: MIN_PARALLEL_COST 0): computed here, nothing
     sent (there is no share to give; before, the empty share list raised IndexError)."""
-    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    monkeypatch.setitem(worker_proc.TASKS, "echo", lambda model, x: x)
     monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
     pool = W.RowPool(1, (None, None, 3.0, 0.0))
     pipe = _QueuedPipe(pool.model)
@@ -416,7 +418,7 @@ class _LatePipe(_QueuedPipe):
         kind, args = pickle.loads(payload)
         self.rows.append(len(args[0]))
         done = time.perf_counter() + self.late_s + self.busy_s
-        self.replies.append(pickle.dumps(("ok", W.TASKS[kind](self.model, *args), self.busy_s,
+        self.replies.append(pickle.dumps(("ok", worker_proc.TASKS[kind](self.model, *args), self.busy_s,
                                           done)))
 
 
@@ -426,7 +428,7 @@ def test_worker_latency_is_learned_and_moves_rows_to_the_caller(monkeypatch):
     each share is the one :func:`preloaded_bounds` gives with that latency as the worker's
     preload (in its update rows: 1 ms each), and the rows come back in order; replies without
     the clock (older workers) leave the latency at 0 and the split as before."""
-    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    monkeypatch.setitem(worker_proc.TASKS, "echo", lambda model, x: x)
     monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
     monkeypatch.setattr(W.RowPool, "_learn", lambda self, *a: None)  # speed stays 1
     pool = W.RowPool(1, (None, None, 3.0, 0.0))
@@ -435,7 +437,7 @@ def test_worker_latency_is_learned_and_moves_rows_to_the_caller(monkeypatch):
     pool._unit_s["update"] = 0.001
     x = np.arange(200.0)
     for _ in range(30):
-        expect = W.preloaded_bounds(np.ones(x.size), [1.0, 1.0], [0.0, pool.latency_cost()])
+        expect = R.preloaded_bounds(np.ones(x.size), [1.0, 1.0], [0.0, pool.latency_cost()])
         assert np.array_equal(pool.map_rows("echo", (x,), np.ones(x.size),
                                             local=lambda a: a.copy()), x)
         assert pipe.rows[-1] == expect[1].stop - expect[1].start
@@ -455,7 +457,7 @@ def test_a_worker_left_out_by_a_bad_sample_is_measured_again(monkeypatch):
     priors: a fast worker (no latency) gets rows again within a few calls and the learned
     latency converges back to ~0; a worker that really is 30 ms late keeps a latency of that
     order (its samples pull it back up) and gets only the small shares that balance it."""
-    monkeypatch.setitem(W.TASKS, "echo", lambda model, x: x)
+    monkeypatch.setitem(worker_proc.TASKS, "echo", lambda model, x: x)
     monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
     monkeypatch.setattr(W.RowPool, "_learn", lambda self, *a: None)  # speed: only _forget
     x = np.arange(40.0)
@@ -465,10 +467,10 @@ def test_a_worker_left_out_by_a_bad_sample_is_measured_again(monkeypatch):
         pool._slots = [W._Slot(conn=pipe, ready=True, pid=-1)]
         pool._unit_s["update"] = 0.001
         pool.latency_s, pool.speed = W.LATENCY_MAX_S, 0.25
-        assert W.preloaded_bounds(np.ones(x.size), [1.0, 0.25], [0.0, 50.0])[1] == slice(40, 40)
+        assert R.preloaded_bounds(np.ones(x.size), [1.0, 0.25], [0.0, 50.0])[1] == slice(40, 40)
         sent = []
         for _ in range(60):
-            expect = W.preloaded_bounds(np.ones(x.size), [1.0, pool.speed],
+            expect = R.preloaded_bounds(np.ones(x.size), [1.0, pool.speed],
                                         [0.0, pool.latency_cost()])[1]
             assert np.array_equal(pool.map_rows("echo", (x,), np.ones(x.size),
                                                 local=lambda a: a.copy()), x)

@@ -13,8 +13,8 @@ import math
 from pathlib import Path
 
 import jsonschema
+from diffpos_services.config import build_config
 from diffpos_services.fusion.core import FusionConfig, FusionCore
-from diffpos_services.kit import build_config
 from diffpos_services.solve import solve_lines, solve_records
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys

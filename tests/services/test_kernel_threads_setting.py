@@ -8,10 +8,10 @@ import argparse
 
 import pytest
 from diffpos_services.cli import fusion as cmd_fusion
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import DEFAULT_KERNEL_THREADS, FusionConfig
-from diffpos_services.kit import ConfigError
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 
 from diffpos._kernels import pool

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from diffpos_services.cli.main import main as cli_main
 from diffpos_services.recording.reader import McapScanner
-from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from mcap.writer import Writer
 
 

@@ -328,11 +328,12 @@ def test_settings_validation() -> None:
 
 def test_cli_without_sionna_explains_how_to_install(monkeypatch, capsys) -> None:
     from diffpos_services.cli import main as cli
+    from diffpos_services.raytrace import backend
 
     def missing() -> dict[str, str]:
         raise rt.RaytraceUnavailable(f"sionna-rt is not installed (test): {rt.INSTALL_HINT}")
 
-    monkeypatch.setattr(rt, "check_sionna", missing)
+    monkeypatch.setattr(backend, "check_sionna", missing)  # the CLI imports it from there
     assert cli.main(["raytrace", "paper", "--quick"]) == 3
     err = capsys.readouterr().err
     assert "pip install -e '.[raytrace]'" in err and "apt-get install libllvm19" in err

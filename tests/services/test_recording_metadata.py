@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 from diffpos_services.cli.main import main as cli_main
 from diffpos_services.recording.reader import McapScanner, side_records
-from diffpos_services.recording.replay import replay
 from diffpos_services.recording.schemas import SchemaRegistry
-from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 from mcap.reader import make_reader
 from mcap.writer import IndexType, Writer

@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from diffpos_services.cli.main import main as cli_main
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.reader import McapScanner
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import write_synthetic_recording
 from diffpos_services.recording.writer import McapSink
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 from mcap.reader import make_reader
 from mcap.writer import Writer
@@ -369,7 +369,7 @@ def test_streamed_report_stays_bounded_and_within_its_stated_error():
     (the truth at the fix times, errors from a seeded generator) through the replay's
     FixStream: every fix evaluated, the percentiles within 0.5 % of numpy's over all errors
     (the sketches left their exact mode), counts exact, and nothing kept per fix."""
-    from diffpos_services.recording.report_stream import FixStream, SlimEstimate, TruthBook
+    from diffpos_services.replay.report_stream import FixStream, SlimEstimate, TruthBook
 
     rng = np.random.default_rng(5)
     period, n = 100_000_000, 6_000
@@ -412,7 +412,7 @@ def test_streamed_report_has_the_floor_calibration_of_the_node_epochs():
     """Replay's report (FixStream) over v2 fixes with floor probabilities: the calibration of
     its node-epochs is the core's over the same node-epochs (misses and a NaN vector
     included), whatever the batching; over v1 fixes (no probabilities) it is absent."""
-    from diffpos_services.recording.report_stream import FixStream, SlimEstimate, TruthBook
+    from diffpos_services.replay.report_stream import FixStream, SlimEstimate, TruthBook
 
     from diffpos.floor_calibration import floor_calibration
 

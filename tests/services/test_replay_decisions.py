@@ -12,8 +12,8 @@ from __future__ import annotations
 import msgspec
 import pytest
 from diffpos_services.recording.reader import McapScanner
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import write_late_recording
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_late_recording
 from diffpos_services.wire import messages as M
 
 

@@ -5,7 +5,7 @@ parts long took 75 s in tomllib, 10^6 anchors reached 23.7 GB)."""
 from __future__ import annotations
 
 import pytest
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.scenario_io import (
     MAX_NESTING,
     MAX_SCENARIO_BYTES,

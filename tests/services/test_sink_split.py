@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from diffpos_services.cli.main import main as cli_main
 from diffpos_services.recording.reader import McapScanner
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import write_synthetic_recording
 from diffpos_services.recording.writer import McapSink, SplitPolicy, part_path
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from mcap.reader import make_reader
 
 KEYS = [f"diffpos/sp/anchor/uav{a}/range/n{n:02d}" for a in range(3) for n in range(10)]

@@ -9,7 +9,7 @@ import io
 import logging
 
 import pytest
-from diffpos_services import kit
+from diffpos_services import logs
 
 
 class _Tty(io.StringIO):
@@ -39,11 +39,11 @@ def _render(raw: str) -> list[str]:
 
 def test_log_records_print_above_the_status_line(monkeypatch):
     tty = _Tty()
-    status = kit.StatusLine(tty)
-    monkeypatch.setattr(kit, "STATUS", status)
+    status = logs.StatusLine(tty)
+    monkeypatch.setattr(logs, "STATUS", status)
     monkeypatch.setenv("COLUMNS", "80")
-    handler = kit._StatusAwareHandler(tty)
-    handler.setFormatter(kit._TextFormatter("emulate"))
+    handler = logs._StatusAwareHandler(tty)
+    handler.setFormatter(logs._TextFormatter("emulate"))
     log = logging.getLogger("test.status")
     log.handlers[:] = [handler]
     log.propagate = False
@@ -61,7 +61,7 @@ def test_log_records_print_above_the_status_line(monkeypatch):
 @pytest.mark.parametrize("columns", [40, 80])
 def test_status_line_is_cut_to_the_terminal_width(monkeypatch, columns):
     tty = _Tty()
-    status = kit.StatusLine(tty)
+    status = logs.StatusLine(tty)
     monkeypatch.setenv("COLUMNS", str(columns))
     status.show("x" * 300)
     shown = _render(tty.getvalue())[-1]
@@ -70,7 +70,7 @@ def test_status_line_is_cut_to_the_terminal_width(monkeypatch, columns):
 
 def test_nothing_is_drawn_on_a_pipe():
     pipe = io.StringIO()
-    status = kit.StatusLine(pipe)
+    status = logs.StatusLine(pipe)
     status.show("t 1.0/20 s")
     with status.above():
         pipe.write("record\n")

@@ -1,10 +1,10 @@
-"""recording.synthetic: both synthetic runs are seeded, and keyed() gives their bus keys."""
+"""replay.synthetic: both synthetic runs are seeded, and keyed() gives their bus keys."""
 
 from __future__ import annotations
 
 import msgspec
-from diffpos_services.recording.synthetic import display_run, keyed, synthetic_run
 from diffpos_services.recording.topics import parse_topic
+from diffpos_services.replay.synthetic import display_run, keyed, synthetic_run
 from diffpos_services.wire import messages as M
 
 

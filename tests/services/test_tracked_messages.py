@@ -10,7 +10,7 @@ import msgspec
 import numpy as np
 from diffpos_services.fusion.tracked import _finite_or_none, _links
 from diffpos_services.wire import messages as M
-from diffpos_services.wire.fields import finite_or_none
+from diffpos_services.wire.messages import finite_or_none
 
 from diffpos.paths.model import MECHANISMS
 

@@ -7,7 +7,7 @@ replay runs the tracker that ran live, and a recording made before they were rec
 replays with the defaults it ran with, which the report says.
 
 The live runs here are in-process: the seeded synthetic inputs of
-:func:`~diffpos_services.recording.synthetic.synthetic_run` (5 hovering anchors, 3 walkers,
+:func:`~diffpos_services.replay.synthetic.synthetic_run` (5 hovering anchors, 3 walkers,
 3 s) through a :class:`FusionCore` with mnls + tracking, written like the recorder does (run
 metadata with ``started_ns``, ``fusion_config``, liveliness, inputs). The same with real
 processes (``diffpos emulate --tracker``): tests/system/test_tracker_settings_emulate.py.
@@ -28,8 +28,10 @@ from diffpos_services.cli import emulate as cli_emulate
 from diffpos_services.cli import fusion as cli_fusion
 from diffpos_services.cli import main as cli
 from diffpos_services.cli import replay as cli_replay
+from diffpos_services.config import build_config
 from diffpos_services.emulate.options import EmulationOptions
 from diffpos_services.emulate.orchestrator import Emulation
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     TRACKER_KEYS,
     FusionConfig,
@@ -37,17 +39,16 @@ from diffpos_services.fusion.config import (
     parse_tracker_items,
 )
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.kit import ConfigError, build_config
 from diffpos_services.recording.reader import side_records
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import (
+from diffpos_services.recording.topics import parse_topic
+from diffpos_services.recording.writer import McapSink
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import (
     FUSION_INPUT_KINDS,
     quiet_logger,
     synthetic_run,
     write_synthetic_recording,
 )
-from diffpos_services.recording.topics import parse_topic
-from diffpos_services.recording.writer import McapSink
 from diffpos_services.scenario_io import load_scenario_option
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys

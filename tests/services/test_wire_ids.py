@@ -18,7 +18,7 @@ import msgspec
 import pytest
 from diffpos_services.wire import ids as wire_ids
 from diffpos_services.wire import messages as M
-from diffpos_services.wire.fields import ID_PATTERN
+from diffpos_services.wire.ids import ID_PATTERN
 from test_wire_contract import _examples
 
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas"

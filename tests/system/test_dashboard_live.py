@@ -31,14 +31,14 @@ from diffpos_services.dashboard.service import (
     display_available,
     open_rerun,
 )
-from diffpos_services.emulate import free_tcp_port
-from diffpos_services.recording.synthetic import display_run
+from diffpos_services.processes import free_tcp_port
+from diffpos_services.replay.synthetic import display_run
 from diffpos_services.wire import messages as m
 from diffpos_services.wire.keys import Keys
 
 
 def synthetic_run(**kw):
-    """The dashboard's synthetic run (``recording.synthetic.display_run``), its building as
+    """The dashboard's synthetic run (``replay.synthetic.display_run``), its building as
     the outline the dashboard draws."""
     building, msgs = display_run(**kw)
     return d.BuildingOutline.from_object(building), msgs

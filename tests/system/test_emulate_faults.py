@@ -16,7 +16,7 @@ from pathlib import Path
 import zenoh
 from conftest import thread_states
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.recording.reader import McapScanner
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key

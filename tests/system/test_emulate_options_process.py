@@ -15,8 +15,8 @@ import threading
 
 import pytest
 import zenoh
-from diffpos_services.emulate import EXTRA_SERVICES
-from diffpos_services.kit import free_tcp_port
+from diffpos_services.emulate.options import EXTRA_SERVICES
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.wire.keys import Keys
 
 pytestmark = pytest.mark.system

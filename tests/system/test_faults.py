@@ -28,7 +28,7 @@ import msgspec
 import pytest
 import zenoh
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
@@ -512,7 +512,7 @@ def test_zenoh_config_option_file_env_override_and_errors(tmp_path, monkeypatch,
 
     from diffpos_services.bus.session import add_zenoh_arguments, service_settings
     from diffpos_services.cli.main import main as health_main
-    from diffpos_services.kit import ConfigError
+    from diffpos_services.errors import ConfigError
 
     f = tmp_path / "client.json5"
     f.write_text('// a comment\n{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"],'
@@ -576,17 +576,18 @@ def test_security_profile_lease_sets_every_client_link_lease(tmp_path):
     """``lease_ms`` in a security profile (hang detection on the secured bus) goes into every
     client file as transport/link/tx/lease; absent, the files are unchanged; bad values are
     refused naming the field."""
-    from diffpos_services.bus import security as zs
+    from diffpos_services.bus.security.configs import client_config, to_zenoh
+    from diffpos_services.bus.security.profile import SecurityError, profile_from_dict
 
     (tmp_path / "creds.txt").write_text("anchor-uav1:a\nfusion:f\n")
     base = {"anchors": ["uav1"], "users": {"fusion": "fusion"}, "dictionary_file": "creds.txt"}
-    prof = zs.profile_from_dict({**base, "lease_ms": 2000}, root=tmp_path)
+    prof = profile_from_dict({**base, "lease_ms": 2000}, root=tmp_path)
     for user in ("anchor-uav1", "fusion"):
-        cfg = zs.client_config(prof, user)
+        cfg = client_config(prof, user)
         assert cfg["transport"]["link"]["tx"] == {"lease": 2000}
-        assert zs.to_zenoh(cfg).get_json("transport/link/tx/lease") == "2000"  # zenoh takes it
-    plain = zs.client_config(zs.profile_from_dict(base, root=tmp_path), "fusion")
+        assert to_zenoh(cfg).get_json("transport/link/tx/lease") == "2000"  # zenoh takes it
+    plain = client_config(profile_from_dict(base, root=tmp_path), "fusion")
     assert "tx" not in plain["transport"]["link"]
     for bad in (0, 50, "1000", True, 1.5):
-        with pytest.raises(zs.SecurityError, match="lease_ms"):
-            zs.profile_from_dict({**base, "lease_ms": bad}, root=tmp_path)
+        with pytest.raises(SecurityError, match="lease_ms"):
+            profile_from_dict({**base, "lease_ms": bad}, root=tmp_path)

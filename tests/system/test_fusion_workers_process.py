@@ -19,11 +19,12 @@ import time
 import msgspec
 import numpy as np
 import pytest
+from diffpos_services.fusion import rows as R
 from diffpos_services.fusion import shm
 from diffpos_services.fusion import workers as W
-from diffpos_services.recording import replay as replay_mod
-from diffpos_services.recording.replay import replay
-from diffpos_services.recording.synthetic import write_synthetic_recording
+from diffpos_services.replay import run as replay_mod
+from diffpos_services.replay.run import replay
+from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
 
 from diffpos.scenario import default_scenario
@@ -118,7 +119,7 @@ def _update_args(n):
 def test_dead_worker_restarted_and_raising_worker_kept():
     cfg = TrackerConfig()
     args = _update_args(40)
-    ref = W.run_update(SC.building, *args, cfg, None)
+    ref = R.run_update(SC.building, *args, cfg, None)
     with W.RowPool(2, MODEL) as pool:
         assert pool.wait_ready(120) == 1
         old = pool.pids[0]
@@ -230,7 +231,7 @@ def test_messages_larger_than_a_region_cross_the_pipe_with_the_same_numbers(monk
     pipe, and the numbers are those computed here, bit for bit, with no failure."""
     cfg = TrackerConfig()
     args = _update_args(40)
-    ref = W.run_update(SC.building, *args, cfg, None)
+    ref = R.run_update(SC.building, *args, cfg, None)
     req, rep = _region_bytes((*args, cfg, None)), _region_bytes(ref)
     assert rep - 64 > req  # (the reply carries the estimates besides the state)
     read = []
@@ -266,7 +267,7 @@ def test_hung_worker_times_out_is_killed_and_restarted(monkeypatch):
         # the new worker (its request region had the hung request: it has new regions)
         # answers through its regions with the numbers computed here
         cfg, args = TrackerConfig(), _update_args(40)
-        ref = W.run_update(SC.building, *args, cfg, None)
+        ref = R.run_update(SC.building, *args, cfg, None)
         sent = pool.calls["via_shm"]
         again = pool.map_rows("update", args, np.ones(40), shared=(cfg, None))
         assert pool.calls["via_shm"] == sent + 1 and pool.failures["timeout"] == 1

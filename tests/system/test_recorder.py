@@ -201,10 +201,10 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
     import argparse
 
     import msgspec
-    from diffpos_services.anchor.service import load_scenario_file
     from diffpos_services.cli import fusion as cmd_fusion
-    from diffpos_services.recording.replay import replay
-    from diffpos_services.recording.synthetic import synthetic_run
+    from diffpos_services.replay.run import replay
+    from diffpos_services.replay.synthetic import synthetic_run
+    from diffpos_services.scenario_io import load_scenario_option
 
     ep, procs = bus
     site = "e2e"
@@ -212,7 +212,7 @@ def test_live_fusion_recorded_then_replayed_reproduces_its_estimates(bus, tmp_pa
     ns = argparse.ArgumentParser()
     cmd_fusion.add_arguments(ns)
     fusion_cfg = cmd_fusion.config_from_args(
-        ns.parse_args(["--site", site, "--workers", str(workers)]), load_scenario_file(None))
+        ns.parse_args(["--site", site, "--workers", str(workers)]), load_scenario_option(None))
     run_cfg = tmp_path / "run.json"
     run_cfg.write_text(json.dumps({"fusion": msgspec.to_builtins(fusion_cfg)}))
     out = tmp_path / "live.mcap"

@@ -21,7 +21,7 @@ import sys
 
 import msgspec
 import pytest
-from diffpos_services.recording.replay import replay
+from diffpos_services.replay.run import replay
 from diffpos_services.wire import messages as M
 
 pytestmark = pytest.mark.slow

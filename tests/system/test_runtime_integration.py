@@ -14,8 +14,8 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from diffpos_services.anchor.service import load_scenario_file
 from diffpos_services.bus.session import ZenohSettings
+from diffpos_services.scenario_io import load_scenario_option
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
@@ -151,7 +151,7 @@ def test_four_anchors_fusion_every_node_every_epoch(services, endpoint):
     assert all(c == 0 for c in codes.values()), codes
     assert truth_matched is False
 
-    sc = load_scenario_file(scenario)
+    sc = load_scenario_option(scenario)
     nodes = dict(emulation_nodes(sc))
     e0 = rc.t0_ns // PERIOD_NS
     n_epochs = int(duration_s * 1e9) // PERIOD_NS

@@ -22,9 +22,27 @@ from pathlib import Path
 from typing import get_args
 
 import pytest
-from diffpos_services.bus import security as zs
+from diffpos_services.bus.security.acl import acl_config
+from diffpos_services.bus.security.certs import make_dev_certs
+from diffpos_services.bus.security.configs import (
+    client_config,
+    insecure_transport_warning,
+    router_config,
+    session_config,
+    to_zenoh,
+)
+from diffpos_services.bus.security.credentials import read_credentials, write_credentials
+from diffpos_services.bus.security.per_run import per_run_profile
+from diffpos_services.bus.security.profile import (
+    SecurityError,
+    SecurityProfile,
+    anchor_user,
+    load_profile,
+    profile_from_dict,
+)
+from diffpos_services.bus.security.render import check_profile, render_profile
 from diffpos_services.bus.session import wait_matching
-from diffpos_services.emulate import free_tcp_port
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.wire.keys import KeyKind, Keys, parse_key
 
 zenoh = pytest.importorskip("zenoh")
@@ -44,10 +62,10 @@ with zenoh.open(cfg) as s:
 
 
 # ----------------------------------------------------------------------------- fixtures
-def _write_profile(root: Path, *, mtls: bool = False) -> zs.SecurityProfile:
+def _write_profile(root: Path, *, mtls: bool = False) -> SecurityProfile:
     clients = ["anchor-uav1", "anchor-uav2", "fusion", "recorder", "dashboard", "emulator"] if mtls else []
-    zs.make_dev_certs(root / "certs", hosts=("localhost", "127.0.0.1"), clients=clients, days=2)
-    zs.write_credentials(root / "credentials.txt", {
+    make_dev_certs(root / "certs", hosts=("localhost", "127.0.0.1"), clients=clients, days=2)
+    write_credentials(root / "credentials.txt", {
         "anchor-uav1": "pw-uav1-secret", "anchor-uav2": "pw-uav2-secret", "fusion": "pw-fusion-secret",
         "recorder": "pw-recorder-secret", "dashboard": "pw-dash-secret", "emulator": "pw-emu-secret",
     })
@@ -58,8 +76,8 @@ def _write_profile(root: Path, *, mtls: bool = False) -> zs.SecurityProfile:
         '[users]\nfusion = "fusion"\nrecorder = "recorder"\ndashboard = "dashboard"\nemulator = "emulator"\n'
     )
     (root / "profile.toml").write_text(text)
-    profile = zs.load_profile(root / "profile.toml")
-    assert zs.check_profile(profile) == []
+    profile = load_profile(root / "profile.toml")
+    assert check_profile(profile) == []
     return profile
 
 
@@ -70,7 +88,7 @@ class Bus:
         self.profile = _write_profile(root, mtls=mtls)
         self.port = free_tcp_port()
         # the router runs from the rendered json5 file, exactly as zenohd -c / docker-compose would
-        zs.render_profile(self.profile, root / "zenoh", listen=[f"tls/127.0.0.1:{self.port}"],
+        render_profile(self.profile, root / "zenoh", listen=[f"tls/127.0.0.1:{self.port}"],
                           connect=[f"tls/localhost:{self.port}"])
         path = root / "zenoh" / "router.json5"
         self.proc = subprocess.Popen(
@@ -84,11 +102,11 @@ class Bus:
             raise RuntimeError(f"router did not start: {line!r} {self.proc.stderr.read()[-2000:]}")
 
     def config(self, user: str, *, timeout_ms: int = 5000, **overrides) -> dict:
-        return zs.client_config(self.profile, user, connect=[f"tls/localhost:{self.port}"],
+        return client_config(self.profile, user, connect=[f"tls/localhost:{self.port}"],
                                 connect_timeout_ms=timeout_ms, **overrides)
 
     def open(self, user: str, **kw):
-        return zenoh.open(zs.to_zenoh(self.config(user, **kw)))
+        return zenoh.open(to_zenoh(self.config(user, **kw)))
 
     def close(self) -> None:
         try:
@@ -138,7 +156,7 @@ def _wait_matching(pub) -> None:
 
 def _refused(cfg: dict) -> bool:
     try:
-        with zenoh.open(zs.to_zenoh(cfg)):
+        with zenoh.open(to_zenoh(cfg)):
             return False
     except zenoh.ZError:
         return True
@@ -197,7 +215,7 @@ def test_wrong_password_and_unknown_user_are_refused(bus):
 
 
 def test_client_rejects_router_certificate_from_another_ca(bus, tmp_path):
-    other = zs.make_dev_certs(tmp_path / "other", hosts=("localhost",), days=1)
+    other = make_dev_certs(tmp_path / "other", hosts=("localhost",), days=1)
     cfg = bus.config("recorder", timeout_ms=500)
     cfg["transport"]["link"]["tls"]["root_ca_certificate"] = str(other["ca"])
     assert _refused(cfg)
@@ -334,10 +352,10 @@ def _acl_allows(acl: dict, user: str, message: str, flow: str, key: str) -> bool
 
 def test_acl_publish_matrix_matches_key_table(tmp_path):
     """Who may put each key, from the ACL, equals the publisher column of keys.py's table."""
-    profile = zs.profile_from_dict({"site": "*", "anchors": ["uav1", "uav2"], "users": {
+    profile = profile_from_dict({"site": "*", "anchors": ["uav1", "uav2"], "users": {
         "fusion": "fusion", "recorder": "recorder", "dashboard": "dashboard", "emulator": "emulator"}},
         root=tmp_path)
-    acl = zs.acl_config(profile)
+    acl = acl_config(profile)
     assert acl["default_permission"] == "deny" and acl["enabled"] is True
     users = sorted(profile.identities())
     for site in ("demo", "paper"):
@@ -354,9 +372,9 @@ def test_acl_publish_matrix_matches_key_table(tmp_path):
         for key in keys:
             pk = parse_key(key)
             expected = {
-                "anchor_state": {zs.anchor_user(pk.anchor_id or "")},
-                "range": {zs.anchor_user(pk.anchor_id or "")},
-                "range_batch": {zs.anchor_user(pk.anchor_id or "")},
+                "anchor_state": {anchor_user(pk.anchor_id or "")},
+                "range": {anchor_user(pk.anchor_id or "")},
+                "range_batch": {anchor_user(pk.anchor_id or "")},
                 "estimate": {"fusion"}, "diagnostics": {"fusion"},
                 "truth_node": {"emulator"}, "truth_anchor": {"emulator"}, "run_control": {"emulator"},
                 "run_clock": {"emulator"},
@@ -368,8 +386,8 @@ def test_acl_publish_matrix_matches_key_table(tmp_path):
         # anchors receive the run's start gate and lockstep clock
         for a in ("uav1", "uav2"):
             for key in (k.run_control(), k.run_clock()):
-                assert _acl_allows(acl, zs.anchor_user(a), "declare_subscriber", "ingress", key)
-                assert _acl_allows(acl, zs.anchor_user(a), "put", "egress", key)
+                assert _acl_allows(acl, anchor_user(a), "declare_subscriber", "ingress", key)
+                assert _acl_allows(acl, anchor_user(a), "put", "egress", key)
         # fusion reads anchors, never truth; readers read everything
         assert _acl_allows(acl, "fusion", "put", "egress", k.anchor_range("uav2", "n1"))
         assert not _acl_allows(acl, "fusion", "put", "egress", k.truth_node("n1"))
@@ -385,34 +403,34 @@ def test_acl_publish_matrix_matches_key_table(tmp_path):
 # ----------------------------------------------------------------------------- files, validation
 def test_committed_configs_match_dev_profile(tmp_path):
     """security/zenoh/*.json5 are exactly what the dev profile renders (no hand edits)."""
-    profile = zs.load_profile(REPO / "security" / "profile.dev.toml")
-    written = zs.render_profile(profile, tmp_path, base_dir="/security")
+    profile = load_profile(REPO / "security" / "profile.dev.toml")
+    written = render_profile(profile, tmp_path, base_dir="/security")
     committed = REPO / "security" / "zenoh"
     assert sorted(p.name for p in written) == sorted(p.name for p in committed.glob("*.json5"))
     for p in written:
         assert p.read_text() == (committed / p.name).read_text(), p.name
         zenoh.Config.from_file(str(committed / p.name))  # zenoh parses it
-    assert zs.check_profile(profile) == []
+    assert check_profile(profile) == []
 
 
 def test_insecure_transport_warning():
     plain = {"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:7447"]}}
-    msg = zs.insecure_transport_warning(plain)
+    msg = insecure_transport_warning(plain)
     assert msg is not None and "UNAUTHENTICATED" in msg and "tcp/127.0.0.1:7447" in msg
     assert not msg.startswith("NOT loopback")
     wide = {"mode": "router", "listen": {"endpoints": ["tcp/0.0.0.0:7447"]}}
-    assert zs.insecure_transport_warning(wide).startswith("NOT loopback")
+    assert insecure_transport_warning(wide).startswith("NOT loopback")
     # zenoh's per-mode default: a router without explicit listen endpoints opens tcp/[::]:7447
     default_router = {"mode": "router", "listen": {"endpoints": {"router": ["tcp/[::]:7447"], "peer": []}}}
-    assert zs.insecure_transport_warning(default_router).startswith("NOT loopback")
+    assert insecure_transport_warning(default_router).startswith("NOT loopback")
     client_listen = {"mode": "client", "connect": {"endpoints": ["tcp/[::1]:7447"]},
                      "listen": {"endpoints": {"router": ["tcp/[::]:7447"]}}}  # ignored by clients
-    assert not zs.insecure_transport_warning(client_listen).startswith("NOT loopback")
+    assert not insecure_transport_warning(client_listen).startswith("NOT loopback")
     tls_only = {"connect": {"endpoints": ["tls/router:7447"]}}
-    assert zs.insecure_transport_warning(tls_only) is not None  # encrypted but anyone can log in
-    profile = zs.load_profile(REPO / "security" / "profile.dev.toml")
-    assert zs.insecure_transport_warning(zs.client_config(profile, "fusion")) is None
-    assert zs.insecure_transport_warning(zs.router_config(profile)) is None
+    assert insecure_transport_warning(tls_only) is not None  # encrypted but anyone can log in
+    profile = load_profile(REPO / "security" / "profile.dev.toml")
+    assert insecure_transport_warning(client_config(profile, "fusion")) is None
+    assert insecure_transport_warning(router_config(profile)) is None
 
 
 @pytest.mark.parametrize(("raw", "field"), [
@@ -428,8 +446,8 @@ def test_insecure_transport_warning():
     ({"passwords": {}}, "unknown field"),
 ])
 def test_profile_errors_name_the_field(tmp_path, raw, field):
-    with pytest.raises(zs.SecurityError, match=field):
-        zs.profile_from_dict(raw, root=tmp_path)
+    with pytest.raises(SecurityError, match=field):
+        profile_from_dict(raw, root=tmp_path)
 
 
 @pytest.mark.parametrize(("text", "what"), [
@@ -442,19 +460,19 @@ def test_profile_errors_name_the_field(tmp_path, raw, field):
 def test_credentials_file_validation(tmp_path, text, what):
     p = tmp_path / "c.txt"
     p.write_text(text)
-    with pytest.raises(zs.SecurityError, match=what):
-        zs.read_credentials(p)
+    with pytest.raises(SecurityError, match=what):
+        read_credentials(p)
 
 
 def test_credentials_round_trip_keeps_colons(tmp_path):
     creds = {"fusion": "a:b:c", "anchor-uav1": "x"}
-    p = zs.write_credentials(tmp_path / "c.txt", creds)
-    assert zs.read_credentials(p) == creds
+    p = write_credentials(tmp_path / "c.txt", creds)
+    assert read_credentials(p) == creds
     assert (p.stat().st_mode & 0o777) == 0o600
 
 
 def test_dev_certs_have_router_names(tmp_path):
-    paths = zs.make_dev_certs(tmp_path, hosts=("router", "127.0.0.1"), clients=("fusion",), days=3,
+    paths = make_dev_certs(tmp_path, hosts=("router", "127.0.0.1"), clients=("fusion",), days=3,
                               backend="openssl")
     out = subprocess.run(["openssl", "x509", "-in", str(paths["router"]), "-noout", "-text"],
                          capture_output=True, text=True, check=True).stdout
@@ -470,14 +488,14 @@ def test_dev_certs_have_router_names(tmp_path):
 def test_session_config_fallback_warns_and_file_does_not(bus, tmp_path):
     """What a service does with and without --zenoh-config, end to end through the router."""
     plain = {"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:7447"]}}
-    _, warning = zs.session_config(None, fallback=plain)
+    _, warning = session_config(None, fallback=plain)
     assert warning is not None and "UNAUTHENTICATED" in warning
     # a rendered client file (absolute paths of this machine, the bus's port) opens a session
-    written = zs.render_profile(bus.profile, tmp_path / "zenoh", connect=[f"tls/localhost:{bus.port}"],
+    written = render_profile(bus.profile, tmp_path / "zenoh", connect=[f"tls/localhost:{bus.port}"],
                                 listen=[f"tls/127.0.0.1:{bus.port}"], connect_timeout_ms=5000)
     assert {p.name for p in written} == {"router.json5", "anchor-uav1.json5", "anchor-uav2.json5",
                                          "fusion.json5", "recorder.json5", "dashboard.json5", "emulator.json5"}
-    cfg, warning = zs.session_config(tmp_path / "zenoh" / "fusion.json5")
+    cfg, warning = session_config(tmp_path / "zenoh" / "fusion.json5")
     assert warning is None
     got = Collector(K.node_estimate("n05"))
     with bus.open("recorder") as rec, zenoh.open(cfg) as fus:
@@ -487,26 +505,26 @@ def test_session_config_fallback_warns_and_file_does_not(bus, tmp_path):
         pub.put(b"{}")
         assert got.done.wait(WAIT_S)
     # an explicit --connect replaces the file's endpoints
-    cfg, _ = zs.session_config(tmp_path / "zenoh" / "fusion.json5", connect=["tls/other:7447"])
+    cfg, _ = session_config(tmp_path / "zenoh" / "fusion.json5", connect=["tls/other:7447"])
     assert json.loads(cfg.get_json("connect/endpoints")) == ["tls/other:7447"]
 
 
 def test_session_config_errors_name_the_file(tmp_path):
-    with pytest.raises(zs.SecurityError, match="file not found"):
-        zs.session_config(tmp_path / "missing.json5")
+    with pytest.raises(SecurityError, match="file not found"):
+        session_config(tmp_path / "missing.json5")
     bad = tmp_path / "bad.json5"
     bad.write_text('{ mode: "client", transport: { link: { tls: { nonsense_key: 1 } } } }')
-    with pytest.raises(zs.SecurityError, match=r"bad\.json5"):
-        zs.session_config(bad)
+    with pytest.raises(SecurityError, match=r"bad\.json5"):
+        session_config(bad)
     # the committed docker files point at /security/...: outside a container that is reported
     if not Path("/security/certs/ca.pem").exists():
-        with pytest.raises(zs.SecurityError, match="root_ca_certificate"):
-            zs.session_config(REPO / "security" / "zenoh" / "fusion.json5")
+        with pytest.raises(SecurityError, match="root_ca_certificate"):
+            session_config(REPO / "security" / "zenoh" / "fusion.json5")
 
 
 def test_ca_bundle_allows_overlapping_rotation(bus, tmp_path):
     """A root_ca_certificate file holding the next CA and the current one still connects."""
-    nxt = zs.make_dev_certs(tmp_path / "next", hosts=("localhost",), days=1)
+    nxt = make_dev_certs(tmp_path / "next", hosts=("localhost",), days=1)
     bundle = tmp_path / "bundle.pem"
     bundle.write_text(Path(nxt["ca"]).read_text() + Path(bus.profile.path(bus.profile.ca_certificate)).read_text())
     cfg = bus.config("recorder", timeout_ms=5000)
@@ -518,21 +536,21 @@ def test_per_run_profile_fresh_secrets_in_a_private_folder(tmp_path):
     """What `diffpos emulate --security-profile` runs with: the profile's identities with
     fresh passwords and certificates (client certificates with mTLS), the CA key deleted;
     another run gets other secrets; a folder other users may enter is refused."""
-    dev = zs.load_profile(REPO / "security" / "profile.dev.toml")
-    dev_pw = zs.read_credentials(dev.path(dev.dictionary_file))
+    dev = load_profile(REPO / "security" / "profile.dev.toml")
+    dev_pw = read_credentials(dev.path(dev.dictionary_file))
     runs = []
     for name, mtls in (("run1", True), ("run2", False)):
         out = tmp_path / name
         out.mkdir()
         os.chmod(out, 0o700)
-        run = zs.per_run_profile(dataclasses.replace(dev, mtls=mtls), out,
+        run = per_run_profile(dataclasses.replace(dev, mtls=mtls), out,
                                  hosts=["localhost", "127.0.0.1", "localhost"])
         assert run.root == out and run.identities() == dev.identities() and run.mtls == mtls
-        assert zs.check_profile(run) == []  # every file it names exists (mTLS: client certs)
+        assert check_profile(run) == []  # every file it names exists (mTLS: client certs)
         assert not (out / "certs" / "ca.key").exists()
         assert Path(run.path(run.ca_certificate)).read_bytes() != \
             Path(dev.path(dev.ca_certificate)).read_bytes()
-        pw = zs.read_credentials(run.path(run.dictionary_file))
+        pw = read_credentials(run.path(run.dictionary_file))
         assert set(pw) == set(dev_pw) and all(len(p) >= 32 for p in pw.values())
         assert not set(pw.values()) & set(dev_pw.values())
         assert Path(run.path(run.dictionary_file)).stat().st_mode & 0o077 == 0
@@ -541,8 +559,8 @@ def test_per_run_profile_fresh_secrets_in_a_private_folder(tmp_path):
     shared = tmp_path / "shared"
     shared.mkdir()
     os.chmod(shared, 0o755)
-    with pytest.raises(zs.SecurityError, match="0700"):
-        zs.per_run_profile(dev, shared, hosts=["localhost"])
+    with pytest.raises(SecurityError, match="0700"):
+        per_run_profile(dev, shared, hosts=["localhost"])
     assert list(shared.iterdir()) == []  # nothing written there
 
 
@@ -551,7 +569,7 @@ def test_make_dev_certs_script_and_password_rotation(tmp_path):
 
     for name in ("profile.dev.toml", "credentials.dev.txt"):
         shutil.copy(REPO / "security" / name, tmp_path / name)
-    old = zs.read_credentials(tmp_path / "credentials.dev.txt")
+    old = read_credentials(tmp_path / "credentials.dev.txt")
     r = subprocess.run([sys.executable, str(REPO / "security" / "make_dev_certs.py"), "--out",
                         str(tmp_path / "certs"), "--days", "1", "--client", "fusion", "--new-passwords",
                         "--profile", str(tmp_path / "profile.dev.toml")], capture_output=True, text=True)
@@ -559,18 +577,18 @@ def test_make_dev_certs_script_and_password_rotation(tmp_path):
     assert "DEV ONLY" in r.stdout
     for f in ("ca.pem", "ca.key", "router.pem", "router.key", "clients/fusion.pem", "clients/fusion.key"):
         assert (tmp_path / "certs" / f).is_file(), f
-    new = zs.read_credentials(tmp_path / "credentials.dev.txt")
+    new = read_credentials(tmp_path / "credentials.dev.txt")
     assert new.keys() == old.keys() and all(new[u] != old[u] for u in new)
     fusion = (tmp_path / "zenoh" / "fusion.json5").read_text()
     assert new["fusion"] in fusion and "/security/certs/ca.pem" in fusion
 
 
 def test_plain_endpoint_overrides_are_refused(tmp_path):
-    profile = zs.profile_from_dict({"anchors": ["uav1"]}, root=tmp_path)
-    with pytest.raises(zs.SecurityError, match=r"listen.*not encrypted"):
-        zs.router_config(profile, listen=["tcp/0.0.0.0:7447"])
-    with pytest.raises(zs.SecurityError, match=r"connect.*not encrypted"):
-        zs.client_config(profile, "anchor-uav1", password="x", connect=["tcp/router:7447"])
+    profile = profile_from_dict({"anchors": ["uav1"]}, root=tmp_path)
+    with pytest.raises(SecurityError, match=r"listen.*not encrypted"):
+        router_config(profile, listen=["tcp/0.0.0.0:7447"])
+    with pytest.raises(SecurityError, match=r"connect.*not encrypted"):
+        client_config(profile, "anchor-uav1", password="x", connect=["tcp/router:7447"])
 
 
 def _alive(session, key: str) -> bool:
@@ -637,7 +655,7 @@ def test_secure_compose_override_matches_base_and_profile():
         pytest.skip("no docker-compose.yml yet")
     base = _load_yaml(base_path)["services"]
     over = _load_yaml(REPO / "security" / "docker-compose.secure.yml")["services"]
-    profile = zs.load_profile(REPO / "security" / "profile.dev.toml")
+    profile = load_profile(REPO / "security" / "profile.dev.toml")
     ids = profile.identities()
     assert set(over) == set(base)
     # router: the rendered router file from the mounted security folder

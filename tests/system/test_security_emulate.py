@@ -19,7 +19,9 @@ import time
 from pathlib import Path
 
 import pytest
-from diffpos_services.bus import security as zs
+from diffpos_services.bus.security.configs import client_config, to_zenoh
+from diffpos_services.bus.security.credentials import read_credentials
+from diffpos_services.bus.security.profile import load_profile
 from diffpos_services.recording.reader import JsonDecoderFactory
 from diffpos_services.wire.keys import Keys, parse_key, parse_recording_topic
 from mcap.reader import make_reader
@@ -139,16 +141,16 @@ def test_secured_emulate_uses_fresh_per_run_secrets(services, tmp_path):
     secret_dir = Path(_wait_for(log, r"fresh passwords and certificates.* dir=(\S+)",
                                 "per-run secrets", p).group(1))
     endpoint = _wait_for(log, r"all services ready .*endpoint=(\S+)", "ready", p).group(1)
-    dev = zs.load_profile(PROFILE)
-    dev_pw = zs.read_credentials(dev.path(dev.dictionary_file))
+    dev = load_profile(PROFILE)
+    dev_pw = read_credentials(dev.path(dev.dictionary_file))
     fusion_file = secret_dir / "zenoh" / "fusion.json5"
     # the committed fusion password is refused, trusting the run's CA (only the password
     # differs from a file that logs in, below) or the committed CA (the dev identity as a whole)
     assert _refused(_config(fusion_file, timeout_ms=3000, password=dev_pw["fusion"])), \
         "the run's router accepts the committed fusion password"
-    committed = zs.client_config(dev, "fusion", connect=[endpoint], connect_timeout_ms=3000)
-    assert _refused(zs.to_zenoh(committed)), "the run's router accepts the committed identity"
-    run_pw = zs.read_credentials(secret_dir / "credentials.txt")
+    committed = client_config(dev, "fusion", connect=[endpoint], connect_timeout_ms=3000)
+    assert _refused(to_zenoh(committed)), "the run's router accepts the committed identity"
+    run_pw = read_credentials(secret_dir / "credentials.txt")
     assert set(run_pw) == set(dev_pw)
     reused = sorted(u for u, pw in run_pw.items() if pw in dev_pw.values())
     assert not reused, f"committed passwords reused for {reused}"

@@ -1,5 +1,5 @@
 """A service's main thread waiting for its stop signal wakes even when the kernel delivers the
-signal to another thread (a Zenoh thread): ``kit.Shutdown.wait`` blocks in slices, so Python
+signal to another thread (a Zenoh thread): ``shutdown.Shutdown.wait`` blocks in slices, so Python
 runs the handler. Before, a router child of a SIGKILLed ``diffpos emulate`` stayed blocked in
 ``Event.wait()`` under load (tests/system/test_emulate_faults.py, 1 run in 3-4 under load)."""
 
@@ -22,7 +22,7 @@ TIMEOUT_S = 30.0
 
 _CHILD = textwrap.dedent("""
     import signal, sys, threading
-    from diffpos_services.kit import Shutdown
+    from diffpos_services.shutdown import Shutdown
     stop = Shutdown()
     ready = threading.Event()
     def blocked(tid):  # the main thread sleeps in the kernel (state S in /proc)
@@ -55,7 +55,7 @@ def test_shutdown_wait_wakes_on_a_signal_delivered_to_another_thread():
     assert done.stdout.strip() == "stopped SIGTERM"
 
 
-# A child (kit.child_env) whose parent dies gets SIGTERM once per thread of the dying parent
+# A child (processes.child_env) whose parent dies gets SIGTERM once per thread of the dying parent
 # that it is handed to on the way (kernel: the orphan is re-parented thread by thread, each
 # time with its parent-death signal; 1-8 per child of a SIGKILLed 9-thread parent, measured;
 # getppid() names the dying parent until the last). The repeats must not interrupt the
@@ -64,7 +64,7 @@ def test_shutdown_wait_wakes_on_a_signal_delivered_to_another_thread():
 # how many the kernel sends.
 _ORPHAN = textwrap.dedent("""
     import sys
-    from diffpos_services.kit import Shutdown
+    from diffpos_services.shutdown import Shutdown
     stop = Shutdown()
     print("ready", flush=True)
     stop.wait()
@@ -74,7 +74,7 @@ _ORPHAN = textwrap.dedent("""
 """)
 _PARENT = textwrap.dedent("""
     import signal, subprocess, sys
-    from diffpos_services.kit import child_env
+    from diffpos_services.processes import child_env
     subprocess.Popen([sys.executable, "-c", sys.argv[1]], env=child_env())
     while True:
         signal.pause()  # idle until the test kills it
@@ -163,7 +163,7 @@ def test_repeated_sigterm_does_not_interrupt_the_stop_a_second_sigint_does(case)
 # held as Event.wait holds it.
 _LOCKED = textwrap.dedent("""
     import signal
-    from diffpos_services.kit import Shutdown
+    from diffpos_services.shutdown import Shutdown
     stop = Shutdown()
     with stop.event._cond:  # what Event.wait holds between its bytecodes
         signal.raise_signal(signal.SIGTERM)  # the handler runs in this thread, now
@@ -188,7 +188,7 @@ def test_handler_sets_the_event_while_the_main_thread_holds_its_lock():
 # at once in the main thread.
 _SELF_STOPPED = textwrap.dedent("""
     import signal
-    from diffpos_services.kit import Shutdown
+    from diffpos_services.shutdown import Shutdown
     stop = Shutdown()
     stop.set()  # the program's own stop (duration over)
     signal.raise_signal(signal.SIGINT)
@@ -211,12 +211,12 @@ def test_first_sigint_after_the_program_stopped_itself_does_not_interrupt_its_fi
 
 
 # Repeated SIGTERMs no longer interrupt a stop, so an orphan whose stop hangs has nobody left
-# to end it: a supervised child (kit.child_env) exits by itself ``orphan_stop_s`` after its
-# stop was asked once its parent is gone (kit.ORPHAN_STOP_S), and leaves a living parent to
+# to end it: a supervised child (processes.child_env) exits by itself ``orphan_stop_s`` after its
+# stop was asked once its parent is gone (shutdown.ORPHAN_STOP_S), and leaves a living parent to
 # escalate itself. The child's stop here never ends (a wait on an event nobody sets).
 _HUNG = textwrap.dedent("""
     import sys, threading
-    from diffpos_services.kit import Shutdown
+    from diffpos_services.shutdown import Shutdown
     stop = Shutdown(orphan_stop_s=0.3)
     print("ready", flush=True)
     stop.wait()

@@ -63,9 +63,9 @@ def test_backlog_of_epochs_keeps_its_anchor_states():
     """An overloaded fusion solves epochs long after their states arrived: the anchor state
     history is kept for ``state_history_s`` (not a fixed count), so 20 s of unsolved epochs
     are all solved with their anchors (before, 64 states = 6.4 s: NO_ANCHOR_STATE)."""
+    from diffpos_services.config import build_config
     from diffpos_services.fusion.config import FusionConfig
     from diffpos_services.fusion.core import FusionCore
-    from diffpos_services.kit import build_config
     from test_bad_input import good_stream, run_stream
 
     core = FusionCore(build_config(FusionConfig, dict(site="t", window_height_m=1.5,
@@ -88,9 +88,9 @@ def test_backlog_is_solved_in_bounded_chunks_with_the_same_fixes():
     working memory, ingestion in between), oldest first, every one of them, each within its
     PEB of the truth like one big solve (the fixes differ by mm-cm: later chunks warm-start
     from the node tracks updated by earlier ones, one big batch cannot)."""
+    from diffpos_services.config import build_config
     from diffpos_services.fusion.config import FusionConfig
     from diffpos_services.fusion.core import FusionCore
-    from diffpos_services.kit import build_config
     from test_bad_input import NODES, good_stream, run_stream
 
     base = dict(site="t", window_height_m=1.5, edge_x_m=(-20.0, 20.0))

@@ -12,7 +12,7 @@ import json
 
 import pytest
 from diffpos_services.recording.reader import side_records
-from diffpos_services.recording.replay import replay
+from diffpos_services.replay.run import replay
 
 from diffpos.tracking.state import TrackerConfig
 

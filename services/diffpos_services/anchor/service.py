@@ -38,18 +38,14 @@ from diffpos.emulation import (
 )
 from diffpos.trajectory import Static
 from diffpos_services.bus.session import ZenohSettings, open_session
-from diffpos_services.kit import ConfigError, log_event, wait_event
+from diffpos_services.errors import ConfigError
+from diffpos_services.logs import log_event
 from diffpos_services.scenario_io import load_scenario_option
+from diffpos_services.shutdown import wait_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, check_id
 
-__all__ = ["BATCH_MIN_NODES", "AnchorConfig", "AnchorEmulator", "load_scenario_file", "run_anchor"]
-
-
-# ----------------------------------------------------------------------------- scenario
-#: Kept for the callers that still import it from here (``cli/anchor.py``, ``cli/fusion.py``,
-#: tests): the one loader is :func:`diffpos_services.scenario_io.load_scenario_option`.
-load_scenario_file = load_scenario_option
+__all__ = ["BATCH_MIN_NODES", "AnchorConfig", "AnchorEmulator", "run_anchor"]
 
 
 # ----------------------------------------------------------------------------- config
@@ -433,7 +429,7 @@ def run_anchor(
     Returns the number of epochs published.
     """
     log = logger or logging.getLogger("diffpos.anchor")
-    scenario = scenario if scenario is not None else load_scenario_file(config.scenario)
+    scenario = scenario if scenario is not None else load_scenario_option(config.scenario)
     emu = AnchorEmulator(scenario, config)
     keys = Keys(config.site)
     signals = _RunSignals(log)

@@ -11,9 +11,10 @@ import json
 
 import zenoh
 
-from diffpos_services.bus.security import SecurityError, session_config
+from diffpos_services.bus.security.configs import session_config
+from diffpos_services.bus.security.profile import SecurityError
 from diffpos_services.bus.session import ZenohSettings
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 
 __all__ = ["health_check"]
 

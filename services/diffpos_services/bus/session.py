@@ -27,8 +27,10 @@ from typing import Any, Literal
 
 import zenoh
 
-from diffpos_services.bus.security import SecurityError, session_config
-from diffpos_services.kit import ConfigError, log_event
+from diffpos_services.bus.security.configs import session_config
+from diffpos_services.bus.security.profile import SecurityError
+from diffpos_services.errors import ConfigError
+from diffpos_services.logs import log_event
 
 __all__ = [
     "DEFAULT_CONNECT",
@@ -195,7 +197,7 @@ def service_settings(args: argparse.Namespace, logger: logging.Logger | None = N
 
     Raises
     ------
-    diffpos_services.kit.ConfigError
+    diffpos_services.errors.ConfigError
         Bad endpoint, or the file is missing / rejected by zenoh / names a missing
         certificate (the message names the file).
     """

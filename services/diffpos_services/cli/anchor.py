@@ -31,16 +31,16 @@ Stop with Ctrl-C or SIGTERM: the liveliness token is withdrawn and the session c
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from diffpos_services.anchor.service import AnchorConfig, load_scenario_file, run_anchor
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
-from diffpos_services.kit import (
-    Shutdown,
-    add_logging_arguments,
-    build_config,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.config import build_config
+from diffpos_services.logs import add_logging_arguments, setup_logging
+from diffpos_services.scenario_io import load_scenario_option
+from diffpos_services.shutdown import Shutdown, run_main
+
+if TYPE_CHECKING:
+    from diffpos_services.anchor.service import AnchorConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -101,6 +101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> AnchorConfig:
+    from diffpos_services.anchor.service import AnchorConfig  # the channel's kernels
+
     return build_config(
         AnchorConfig,
         dict(
@@ -124,12 +126,14 @@ def config_from_args(args: argparse.Namespace) -> AnchorConfig:
 
 
 def run(args: argparse.Namespace) -> int:
+    from diffpos_services.anchor.service import run_anchor  # the channel's kernels
+
     log = setup_logging(f"anchor.{args.anchor_id}", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:
         cfg = config_from_args(args)
         zs = service_settings(args, log)
-        scenario = load_scenario_file(cfg.scenario)
+        scenario = load_scenario_option(cfg.scenario)
         stop = Shutdown(log)
         run_anchor(cfg, zs, stop.event, scenario=scenario, logger=log)
         return 0

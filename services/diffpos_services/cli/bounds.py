@@ -53,8 +53,7 @@ from diffpos import bound_maps
 from diffpos.bound_maps import BoundMapSettings
 from diffpos.scenario import AnchorSpec, Scenario, default_scenario
 from diffpos.trajectory import Static
-from diffpos_services.kit import ConfigError
-from diffpos_services.reports import bounds as report
+from diffpos_services.errors import ConfigError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -225,6 +224,8 @@ def config_from_args(args: argparse.Namespace) -> tuple[Scenario, BoundMapSettin
 
 
 def _write(out: Path, results, scenario: Scenario, settings, *, plots: bool) -> list[Path]:
+    from diffpos_services.reports import bounds as report  # matplotlib: not for --help
+
     csv_path = out / "bounds.csv"
     report.write_csv(csv_path, results, len(scenario.anchors))
     written = [csv_path]
@@ -239,6 +240,8 @@ def _write(out: Path, results, scenario: Scenario, settings, *, plots: bool) -> 
 def run(args: argparse.Namespace) -> int:
     """Options -> bound maps -> tables, CSV and heat maps; a bad option or an unwritable
     --out is a :class:`ConfigError` (exit 2, printed by :func:`diffpos_services.cli.main.main`)."""
+    from diffpos_services.reports import bounds as report  # matplotlib: not for --help
+
     scenario, settings = config_from_args(args)
     out: Path = args.out
     try:

@@ -38,15 +38,9 @@ import threading
 from diffpos_services.bus.session import add_zenoh_arguments, open_session, service_settings
 from diffpos_services.dashboard.building import BuildingOutline
 from diffpos_services.dashboard.scenario import building_for_option
-from diffpos_services.kit import (
-    ConfigError,
-    Shutdown,
-    add_logging_arguments,
-    log_event,
-    run_main,
-    setup_logging,
-)
-from diffpos_services.recording.synthetic import display_run
+from diffpos_services.errors import ConfigError
+from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
+from diffpos_services.shutdown import Shutdown, run_main
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -188,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _demo(rec, building, target) -> int:
     from diffpos_services.dashboard.stream import Dashboard  # deferred: imports rerun
+    from diffpos_services.replay.synthetic import display_run  # the fusion core's kernels
 
     b, msgs = display_run(n_anchors=8, n_nodes=20, duration_s=60.0, seed=1)
     dash = Dashboard(rec, building=building or BuildingOutline.from_object(b))

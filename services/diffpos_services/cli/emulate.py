@@ -51,23 +51,20 @@ import argparse
 import json
 import logging
 import sys
+from typing import TYPE_CHECKING
 
-from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
-from diffpos_services.emulate.supervise import format_faults
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     DEFAULT_METHOD,
     METHODS,
     parse_tracker_items,
     tracker_help,
 )
-from diffpos_services.kit import (
-    ConfigError,
-    Shutdown,
-    add_logging_arguments,
-    log_event,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
+from diffpos_services.shutdown import Shutdown, run_main
+
+if TYPE_CHECKING:
+    from diffpos_services.emulate.options import EmulationOptions
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -129,6 +126,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # the services it starts and scores (zenoh, the channel's kernels): not for --help
+    from diffpos_services.emulate.options import EmulationOptions
+    from diffpos_services.emulate.orchestrator import Emulation
+    from diffpos_services.emulate.scoring import format_summary
+    from diffpos_services.emulate.supervise import format_faults
+
     fmt = args.log_format if args.log_format != "json" or not _tty() else "text"
     log = setup_logging("emulate", level=args.log_level, fmt=fmt)
 

@@ -43,8 +43,8 @@ from __future__ import annotations
 import argparse
 import logging
 
-from diffpos_services.anchor.service import emulation_nodes
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     DEFAULT_ADMIT_LAG_S,
     DEFAULT_KERNEL_THREADS,
@@ -59,16 +59,9 @@ from diffpos_services.fusion.config import (
     parse_tracker_items,
     tracker_help,
 )
-from diffpos_services.fusion.service import run_fusion
-from diffpos_services.kit import (
-    ConfigError,
-    Shutdown,
-    add_logging_arguments,
-    log_event,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
 from diffpos_services.scenario_io import load_scenario_option
+from diffpos_services.shutdown import Shutdown, run_main
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -241,7 +234,7 @@ def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
     """Parse ``--anchors`` / ``--nodes``: ``None`` (accept any), ``"scenario"`` or ``ID,ID,...``.
 
     ``"scenario"`` means the scenario's anchors, or for nodes the nodes the scenario is
-    emulated with (:func:`diffpos_services.anchor.service.emulation_nodes`: its explicit nodes, or the
+    emulated with (:func:`diffpos.emulation.emulation_nodes`: its explicit nodes, or the
     generated responders ``r01``... of a scenario with only a study grid). Ids are checked
     by :class:`FusionConfig` (the error names ``anchors[i]`` / ``nodes[i]``).
 
@@ -257,6 +250,8 @@ def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
             raise ConfigError(f"--{name} scenario: no scenario given (use --scenario TOML)")
         if name == "anchors":
             return [a.id for a in scenario.anchors]
+        from diffpos.emulation import emulation_nodes  # the channel's kernels: not for --help
+
         return [nid for nid, _ in emulation_nodes(scenario)]
     ids = [v.strip() for v in text.split(",") if v.strip()]
     if not ids:
@@ -267,6 +262,8 @@ def allow_list(text: str | None, name: str, scenario=None) -> list[str] | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from diffpos_services.fusion.service import run_fusion  # kernels: not for --help
+
     log = setup_logging("fusion", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:

@@ -2,10 +2,13 @@
 
 Each subcommand lives in its own module ``diffpos_services.cli.<name>`` with a module
 docstring (first line = one-line help), ``add_arguments(parser)`` and ``run(args) -> int``.
-Modules are imported only when their subcommand runs, so ``diffpos --help`` stays fast and a
-numeric command never pays for importing Zenoh or Rerun.
+``diffpos --help`` imports no verb (:data:`COMMANDS` holds each verb's module and one-line
+help; ``tests/services/test_cli_lazy.py`` checks them against the docstrings), and
+``diffpos VERB --help`` imports that verb's module only: its ``add_arguments`` needs argparse
+and constants, and the verb imports its service inside ``run`` (so no help ever imports, or
+compiles, a numba kernel).
 
-Errors are mapped to exit codes here and nowhere else: a :class:`~diffpos_services.kit.DiffposError`
+Errors are mapped to exit codes here and nowhere else: a :class:`~diffpos_services.errors.DiffposError`
 prints one line ``diffpos <verb>: error: <message>`` and returns its ``exit_code``;
 Ctrl-C returns 130.
 """
@@ -13,39 +16,49 @@ Ctrl-C returns 130.
 from __future__ import annotations
 
 import argparse
-import ast
 import importlib
 import importlib.metadata
-import importlib.util
 import logging
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from pathlib import Path
 
-from diffpos_services.kit import DiffposError
+from diffpos_services.errors import DiffposError
 
-#: subcommand -> module of ``diffpos_services.cli``. The order is the order shown by ``--help``;
-#: the one-line help is the first line of the module's docstring (read without importing it).
-COMMANDS: dict[str, str] = {
-    "emulate": "emulate",
-    "solve": "solve",
-    "reproduce": "reproduce",
-    "bounds": "bounds",
-    "power-ratio": "power_ratio",
-    "router": "router",
-    "anchor": "anchor",
-    "fusion": "fusion",
-    "recorder": "recorder",
-    "replay": "replay",
-    "inspect": "inspect",
-    "recover": "recover",
-    "dashboard": "dashboard",
-    "to-rerun": "to_rerun",
-    "raytrace": "raytrace",
-    "health": "health",
-    "security": "security",
-    "schemas": "schemas",
+#: subcommand -> (module of ``diffpos_services.cli``, one-line help = the first line of the
+#: module's docstring). The order is the order shown by ``--help``; a static table, so that
+#: ``diffpos --help`` reads no verb module.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "emulate": ("emulate", "Run the whole system on this machine: router, anchors, fusion, "
+                           "recorder, dashboard"),
+    "solve": ("solve", "Position fixes from JSON Lines problems on stdin (D-NLS, LLS, IPPA, M-NLS)"),
+    "reproduce": ("reproduce", "Regenerate the paper's study: MPC table, first-arrival stats, "
+                               "error CDFs"),
+    "bounds": ("bounds", "PEB and z-axis bound over a grid of indoor nodes, heat maps per floor"),
+    "power-ratio": ("power_ratio", "Upper/lower edge diffraction power ratio (Theorem 3): PNG + CSV"),
+    "router": ("router", "Zenoh router in this Python process (no zenohd binary needed)"),
+    "anchor": ("anchor", "One UAV anchor: flies its trajectory, ranges to nodes, publishes over "
+                         "Zenoh"),
+    "fusion": ("fusion", "Fusion service: aligns ranges in time, D-NLS with gating or mnls + "
+                         "tracking, publishes estimates"),
+    "recorder": ("recorder", "Record every message on the bus to MCAP (with liveliness events "
+                             "and config)"),
+    "replay": ("replay", "Re-run fusion offline from an MCAP recording; error report, CDF plot, "
+                         "what-ifs"),
+    "inspect": ("inspect", "Channels, schemas, counts, time span, anchors and nodes of an MCAP "
+                           "recording"),
+    "recover": ("recover", "Rewrite a truncated MCAP recording (e.g. after SIGKILL) into a valid one"),
+    "dashboard": ("dashboard", "Live Rerun dashboard of a running system (viewer, web viewer or "
+                               ".rrd)"),
+    "to-rerun": ("to_rerun", "Convert an MCAP recording into a Rerun .rrd dashboard"),
+    "raytrace": ("raytrace", "Ray-trace the scenario with Sionna RT (optional extra) for an "
+                             "independent check"),
+    "health": ("health", "Exit 0 if a liveliness token is alive on the bus (container health "
+                         "checks)"),
+    "security": ("security", "Bus security: DEV certificates, zenoh json5 files from a profile, "
+                             "profile check"),
+    "schemas": ("schemas", "Write the JSON Schemas of the bus messages into a folder (the "
+                           "checked-in schemas/)"),
 }
 
 EPILOG = """\
@@ -59,13 +72,6 @@ Coordinates: the facade with the windows is the plane y = 0, the inside is y > 0
 """
 
 
-def summary(name: str) -> str:
-    """The one-line help of subcommand ``name``: its module docstring's first line."""
-    spec = importlib.util.find_spec(f"diffpos_services.cli.{COMMANDS[name]}")
-    tree = ast.parse(Path(spec.origin).read_text(encoding="utf-8"))
-    return (ast.get_docstring(tree) or "").strip().splitlines()[0]
-
-
 def version() -> str:
     """The installed version of the ``diffpos`` distribution."""
     try:
@@ -76,7 +82,7 @@ def version() -> str:
 
 def _top_parser() -> argparse.ArgumentParser:
     width = max(len(name) for name in COMMANDS) + 2
-    listing = "\n".join(f"  {name:<{width}}{summary(name)}" for name in COMMANDS)
+    listing = "\n".join(f"  {name:<{width}}{help_}" for name, (_, help_) in COMMANDS.items())
     parser = argparse.ArgumentParser(
         prog="diffpos",
         description=(
@@ -92,7 +98,7 @@ def _top_parser() -> argparse.ArgumentParser:
 
 
 def _load(name: str):
-    return importlib.import_module(f"diffpos_services.cli.{COMMANDS[name]}")
+    return importlib.import_module(f"diffpos_services.cli.{COMMANDS[name][0]}")
 
 
 def build_parser(name: str) -> argparse.ArgumentParser:
@@ -112,7 +118,7 @@ def build_parser(name: str) -> argparse.ArgumentParser:
 @contextmanager
 def _root_logging_restored() -> Iterator[None]:
     """Give the root logger back its handlers and level when a verb returns: a service verb
-    configures logging for its process (``kit.setup_logging``), and a caller running
+    configures logging for its process (``logs.setup_logging``), and a caller running
     :func:`main` in-process (tests, scripts) must not inherit that level or a handler bound to
     a stream that is gone."""
     root = logging.getLogger()

@@ -46,9 +46,10 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from diffpos.channel.power_ratio import PowerRatioSweep, compute_sweep
-from diffpos_services.reports import power_ratio as report
+if TYPE_CHECKING:
+    from diffpos.channel.power_ratio import PowerRatioSweep
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -146,6 +147,8 @@ def _validate(args: argparse.Namespace) -> str | None:
 
 def config_from_args(args: argparse.Namespace) -> PowerRatioSweep:
     """The sweep the options describe."""
+    from diffpos.channel.power_ratio import PowerRatioSweep  # scipy: not for --help
+
     return PowerRatioSweep(
         depths_m=tuple(args.depths_m),
         window_height_m=args.window_height_m,
@@ -163,6 +166,10 @@ def config_from_args(args: argparse.Namespace) -> PowerRatioSweep:
 
 
 def run(args: argparse.Namespace) -> int:
+    # scipy and matplotlib (~1 s of imports): not for --help
+    from diffpos.channel.power_ratio import compute_sweep
+    from diffpos_services.reports import power_ratio as report
+
     problem = _validate(args)
     if problem:
         print(f"diffpos power-ratio: {problem}", file=sys.stderr)

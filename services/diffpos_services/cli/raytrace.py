@@ -41,6 +41,7 @@ import argparse
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from rich.console import Console
@@ -55,8 +56,11 @@ from rich.progress import (
 from rich.table import Table
 
 from diffpos.scenario import Scenario, ScenarioError
-from diffpos_services import raytrace as rtm
 from diffpos_services.scenario_io import load_scenario, resolve_scenario, scenario_or_default
+
+if TYPE_CHECKING:
+    from diffpos_services.raytrace.dataset import RaytraceDataset
+    from diffpos_services.raytrace.tracing import RaytraceSettings
 
 QUICK_RECEIVERS = 200
 
@@ -107,9 +111,11 @@ def _pick_receivers(nodes: np.ndarray, n: int | None) -> np.ndarray:
     return np.unique(np.linspace(0, len(nodes) - 1, n).round().astype(int))
 
 
-def _report(ds: rtm.RaytraceDataset, console: Console) -> None:
+def _report(ds: RaytraceDataset, console: Console) -> None:
     """The emulator comparison of a dataset: MPC table, confusion matrix, Fermat check."""
-    cmp = rtm.compare_with_emulator(ds)
+    from diffpos_services.raytrace.evaluate import compare_with_emulator  # kernels
+
+    cmp = compare_with_emulator(ds)
     t = Table(title=f"MPC groups over {cmp['links']} links (emulator | ray tracer) [%]")
     t.add_column("group")
     for c in ("P_e emu", "P_e RT", "P_fap emu", "P_fap RT"):
@@ -144,9 +150,12 @@ def _report(ds: rtm.RaytraceDataset, console: Console) -> None:
         _report_mechanisms(ds, console)
 
 
-def _report_mechanisms(ds: rtm.RaytraceDataset, console: Console) -> None:
+def _report_mechanisms(ds: RaytraceDataset, console: Console) -> None:
     """First-arrival share per mechanism of diffpos.paths.model (emulator | ray tracer)."""
-    mix = rtm.compare_mechanisms(ds)
+    from diffpos_services.raytrace.mechanism_mix import compare_mechanisms  # kernels
+    from diffpos_services.raytrace.mechanisms import mechanism_length_check
+
+    mix = compare_mechanisms(ds)
     t = Table(title=f"first-arrival mechanism over {mix['links']} links [%] (same mechanism on "
               f"{mix['agreement']:.1f} % of links)")
     for c, j in (("mechanism", "left"), ("emulator", "right"), ("ray tracer", "right")):
@@ -157,7 +166,7 @@ def _report_mechanisms(ds: rtm.RaytraceDataset, console: Console) -> None:
     console.print(t)
     console.print("where they differ [% of links]: " + ", ".join(
         f"{k} {v:.1f}" for k, v in mix["causes"].items()))
-    worst = max((r["max_abs_m"] for r in rtm.mechanism_length_check(ds).values()),
+    worst = max((r["max_abs_m"] for r in mechanism_length_check(ds).values()),
                 default=float("nan"))
     console.print(f"traced paths vs the model's closed-form length per mechanism: max "
                   f"|traced - model| = {worst * 1e6:.1f} um")
@@ -165,8 +174,10 @@ def _report_mechanisms(ds: rtm.RaytraceDataset, console: Console) -> None:
 
 def _compare_only(args: argparse.Namespace, console: Console, err: Callable[[str], None]) -> int:
     """--compare FILE: the emulator comparison of an existing dataset (no Sionna needed)."""
+    from diffpos_services.raytrace.dataset import load_dataset
+
     try:
-        ds = rtm.load_dataset(args.compare)
+        ds = load_dataset(args.compare)
     except ValueError as exc:
         err(str(exc))
         return 2
@@ -177,19 +188,23 @@ def _compare_only(args: argparse.Namespace, console: Console, err: Callable[[str
     return 0
 
 
-def _settings(args: argparse.Namespace) -> tuple[Scenario, rtm.RaytraceSettings]:
+def _settings(args: argparse.Namespace) -> tuple[Scenario, RaytraceSettings]:
     """The scenario and the solver settings of the options (ValueError names the option)."""
+    from diffpos_services.raytrace.tracing import RaytraceSettings
+
     scenario = _load_scenario(args.scenario)
-    settings = rtm.RaytraceSettings(max_depth=args.max_depth,
-                                    samples_per_src=int(args.samples), seed=args.seed,
-                                    batch_size=args.batch, deterministic=args.deterministic)
+    settings = RaytraceSettings(max_depth=args.max_depth,
+                                samples_per_src=int(args.samples), seed=args.seed,
+                                batch_size=args.batch, deterministic=args.deterministic)
     if args.receivers is not None and args.receivers < 1:
         raise ValueError(f"--receivers: must be >= 1, got {args.receivers}")
     return scenario, settings
 
 
-def _trace_with_progress(scenario: Scenario, nodes: np.ndarray, settings: rtm.RaytraceSettings,
-                         console: Console) -> rtm.RaytraceDataset:
+def _trace_with_progress(scenario: Scenario, nodes: np.ndarray, settings: RaytraceSettings,
+                         console: Console) -> RaytraceDataset:
+    from diffpos_services.raytrace.tracing import trace
+
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("links"), TimeElapsedColumn(), TimeRemainingColumn(),
                   console=console, transient=False) as bar:
@@ -198,10 +213,13 @@ def _trace_with_progress(scenario: Scenario, nodes: np.ndarray, settings: rtm.Ra
         def progress(done: int, total: int, label: str) -> None:
             bar.update(task, completed=done, description=f"tracing {label}")
 
-        return rtm.trace(scenario, nodes, settings=settings, progress=progress)
+        return trace(scenario, nodes, settings=settings, progress=progress)
 
 
 def run(args: argparse.Namespace) -> int:
+    from diffpos_services.raytrace.backend import RaytraceUnavailable, check_sionna
+    from diffpos_services.raytrace.dataset import save_dataset
+
     console = Console(stderr=True)
     err = lambda msg: console.print(f"diffpos raytrace: {msg}", style="red",  # noqa: E731
                                     markup=False, highlight=False, soft_wrap=True)
@@ -216,8 +234,8 @@ def run(args: argparse.Namespace) -> int:
         err(str(exc))
         return 2
     try:
-        versions = rtm.check_sionna()
-    except rtm.RaytraceUnavailable as exc:
+        versions = check_sionna()
+    except RaytraceUnavailable as exc:
         err(str(exc))
         return exc.exit_code
     nodes = scenario.node_positions_m()
@@ -237,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         err(str(exc))
         return 2
-    path = rtm.save_dataset(out, ds)
+    path = save_dataset(out, ds)
     console.print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB, "
                   f"{ds.path_valid.shape[-1]} paths max per link) in "
                   f"{time.perf_counter() - t0:.1f} s; "

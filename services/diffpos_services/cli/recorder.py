@@ -41,15 +41,9 @@ import logging
 from pathlib import Path
 
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
-from diffpos_services.kit import (
-    ConfigError,
-    Shutdown,
-    add_logging_arguments,
-    load_json_option,
-    log_event,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.config import load_json_option
+from diffpos_services.errors import ConfigError
+from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
 from diffpos_services.recorder import (
     RecorderOptions,
     default_output_path,
@@ -59,6 +53,7 @@ from diffpos_services.recorder import (
 )
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.writer import McapSink, SplitPolicy, part_path
+from diffpos_services.shutdown import Shutdown, run_main
 
 #: default part length [s] and size [MB]: ~50 MB of writer index at the issue's load
 DEFAULT_SPLIT_S = 300.0

@@ -40,12 +40,12 @@ from typing import Any
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from diffpos.floor_calibration import format_calibration
+from diffpos_services.config import load_json_option
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import tracker_help
 from diffpos_services.heap import keep_heap
-from diffpos_services.kit import ConfigError, load_json_option
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
-from diffpos_services.recording.replay import replay
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -258,6 +258,8 @@ def _write_report_files(result: Any, out_dir: Path) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from diffpos_services.replay.run import replay  # the fusion core: its kernels, not for --help
+
     src = Path(args.file)
     out_dir = check_outputs(args)
     keep_heap()  # as the live fusion's process (diffpos_services.heap)
@@ -295,7 +297,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"diffpos replay: WARNING: {rep['settings_warning']}", file=sys.stderr)
     if args.rrd:
         # rerun is a heavy import that `diffpos replay --help` and plain replays must not pay
-        from diffpos_services.dashboard.views import mcap_to_rrd
+        from diffpos_services.dashboard.convert import mcap_to_rrd
 
         with atomic_path(args.rrd) as tmp:
             mcap_to_rrd(src, tmp, estimates=result.estimates,

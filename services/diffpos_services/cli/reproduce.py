@@ -55,20 +55,16 @@ from pathlib import Path
 
 import numpy as np
 
-from diffpos.reproduction import (
-    ALL_METHODS,
-    DEFAULT_QUICK_NODES,
-    REPRODUCE_METHODS,
-    Arrivals,
-    ReproduceConfig,
-    build_summary,
-    reproduce,
-)
 from diffpos.scenario import Scenario, ScenarioError
-from diffpos.study import FirstArrivalData
-from diffpos_services import raytrace
-from diffpos_services.reports import study as report
 from diffpos_services.scenario_io import scenario_or_default
+
+#: :data:`diffpos.reproduction.ALL_METHODS`, :data:`~diffpos.reproduction.REPRODUCE_METHODS`
+#: and :data:`~diffpos.reproduction.DEFAULT_QUICK_NODES` as the options show them, spelled
+#: here: importing diffpos.reproduction imports the estimators' kernels, which ``--help``
+#: must not (tests/services/test_cli_lazy.py checks the two spellings are equal)
+ALL_METHODS = ["lls", "ippa", "dnls_case1", "dnls_case2", "dnls_lower", "mnls"]
+REPRODUCE_METHODS = ("lls", "ippa", "dnls_case1", "dnls_case2", "mnls")
+DEFAULT_QUICK_NODES = 1500
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -112,6 +108,10 @@ def _channel_source(spec: str) -> tuple[str, Path | None]:
 
 def _loader(kind: str, path: Path | None, scenario: Scenario):
     """How to read the first arrivals of a non-emulator source (None for the emulator)."""
+    from diffpos.reproduction import Arrivals
+    from diffpos.study import FirstArrivalData
+    from diffpos_services.raytrace.evaluate import dataset_arrivals
+
     if kind == "arrivals":
         def load_arrivals(noise_rng: np.random.Generator) -> Arrivals:
             with np.load(path) as z:
@@ -119,7 +119,7 @@ def _loader(kind: str, path: Path | None, scenario: Scenario):
                     dict(z), bandwidth_hz=scenario.radio.bandwidth_hz))
         return load_arrivals
     if kind == "raytrace":
-        return lambda noise_rng: raytrace.dataset_arrivals(path, scenario, rng=noise_rng)
+        return lambda noise_rng: dataset_arrivals(path, scenario, rng=noise_rng)
     return None
 
 
@@ -138,6 +138,10 @@ def _fail(message: str, code: int = 2) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    # the study and its estimators (numba kernels), the plots (matplotlib): not for --help
+    from diffpos.reproduction import ReproduceConfig, build_summary, reproduce
+    from diffpos_services.reports import study as report
+
     if args.quick_nodes < 10:
         return _fail("--quick-nodes must be >= 10")
     try:

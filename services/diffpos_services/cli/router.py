@@ -28,14 +28,9 @@ import logging
 import zenoh
 
 from diffpos_services.bus.session import add_zenoh_arguments, open_session, service_settings
-from diffpos_services.kit import (
-    ConfigError,
-    Shutdown,
-    add_logging_arguments,
-    log_event,
-    run_main,
-    setup_logging,
-)
+from diffpos_services.errors import ConfigError
+from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
+from diffpos_services.shutdown import Shutdown, run_main
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

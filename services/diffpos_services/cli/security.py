@@ -18,12 +18,9 @@ from __future__ import annotations
 
 import argparse
 
-from diffpos_services.bus.security import (
-    check_profile,
-    load_profile,
-    make_dev_certs,
-    render_profile,
-)
+from diffpos_services.bus.security.certs import make_dev_certs
+from diffpos_services.bus.security.profile import load_profile
+from diffpos_services.bus.security.render import check_profile, render_profile
 
 DEFAULT_HOSTS = ("localhost", "router", "127.0.0.1")
 

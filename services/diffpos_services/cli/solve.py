@@ -88,14 +88,14 @@ from __future__ import annotations
 import argparse
 import gc
 import sys
+from collections.abc import Callable, Iterator
 from typing import BinaryIO, TextIO
 
 import msgspec
 
 from diffpos.scenario import Scenario, ScenarioError
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.scenario_io import load_scenario
-from diffpos_services.solve import solve_lines
 from diffpos_services.wire.solve_io import (
     DEFAULT_MAX_ANCHORS,
     DEFAULT_MAX_STARTS,
@@ -161,8 +161,9 @@ def _scenario(args: argparse.Namespace) -> Scenario | None:
 
 
 def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: Limits,
-                   scenario: Scenario | None) -> int:
-    """Solve the stream's lines to stdout; the number of invalid lines."""
+                   scenario: Scenario | None, solve_lines: Callable[..., Iterator[dict]]) -> int:
+    """Solve the stream's lines to stdout with ``solve_lines``
+    (:func:`diffpos_services.solve.solve_lines`); the number of invalid lines."""
     invalid = 0
     out = getattr(sys.stdout, "buffer", None)
     if out is None:  # a text-only stdout (tests replacing sys.stdout)
@@ -189,6 +190,9 @@ def _write_results(stream: BinaryIO | TextIO, args: argparse.Namespace, limits: 
 
 
 def run(args: argparse.Namespace) -> int:
+    # the estimators (numba kernels): not for --help; imported before gc.freeze() below
+    from diffpos_services.solve import solve_lines
+
     limits = _limits(args)
     scenario = _scenario(args)
     # Everything alive now (modules, numba's compiled kernels: hundreds of thousands of
@@ -197,12 +201,13 @@ def run(args: argparse.Namespace) -> int:
     # ~2 s less CPU; results unchanged). Undone at the end for callers in the same process.
     gc.freeze()
     try:
-        return _run_frozen(args, limits, scenario)
+        return _run_frozen(args, limits, scenario, solve_lines)
     finally:
         gc.unfreeze()
 
 
-def _run_frozen(args: argparse.Namespace, limits: Limits, scenario: Scenario | None) -> int:
+def _run_frozen(args: argparse.Namespace, limits: Limits, scenario: Scenario | None,
+                solve_lines: Callable[..., Iterator[dict]]) -> int:
     from_file = bool(args.input and args.input != "-")
     if from_file:
         try:
@@ -215,7 +220,7 @@ def _run_frozen(args: argparse.Namespace, limits: Limits, scenario: Scenario | N
         # bytes, so that a non-UTF-8 line is one invalid line, not the end of the input
         stream = getattr(sys.stdin, "buffer", sys.stdin)
     try:
-        invalid = _write_results(stream, args, limits, scenario)
+        invalid = _write_results(stream, args, limits, scenario, solve_lines)
     except OSError as exc:
         if isinstance(exc, BrokenPipeError):
             return 0

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from diffpos_services.dashboard.scenario import building_for_option
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
 

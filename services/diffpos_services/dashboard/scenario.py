@@ -17,7 +17,7 @@ from typing import Any
 
 from diffpos.scenario import Scenario, first_arrival_edge
 from diffpos_services.dashboard.building import BuildingOutline
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 from diffpos_services.scenario_io import scenario_or_default
 
 __all__ = [

@@ -40,7 +40,8 @@ from diffpos_services.dashboard.columns import EventColumns
 from diffpos_services.dashboard.common import APP_ID
 from diffpos_services.dashboard.decode import VIEW_DECODERS
 from diffpos_services.dashboard.stream import Dashboard
-from diffpos_services.kit import free_tcp_port, log_event
+from diffpos_services.logs import log_event
+from diffpos_services.processes import free_tcp_port
 from diffpos_services.wire.keys import Keys, parse_key
 
 __all__ = [

@@ -21,7 +21,7 @@ import zenoh
 
 from diffpos.emulation import TimeBase
 from diffpos_services.emulate.scoring import Scorer
-from diffpos_services.kit import STATUS, log_event
+from diffpos_services.logs import STATUS, log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
@@ -217,7 +217,7 @@ class Monitor:
         return f"t {el:.1f}/{o.duration_s:.0f} s  avail {avail}  estimates {sc.count}: {st}"
 
     def progress(self) -> None:
-        """The status line every 0.5 s (:data:`~diffpos_services.kit.STATUS`: log records
+        """The status line every 0.5 s (:data:`~diffpos_services.logs.STATUS`: log records
         print above it, cut to the terminal's width): :meth:`status_line`, then fixes/s and
         the median error and the end-to-end latency (anchor publish -> estimate received here,
         solve included) over the last 2 s. Not a terminal: logged at INFO every 0.5 s."""

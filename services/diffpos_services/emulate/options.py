@@ -10,8 +10,8 @@ from typing import Any
 
 from diffpos_services.bus.commands import recorder_args
 from diffpos_services.bus.session import check_endpoint
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import EDGES, MAX_WORKERS, METHODS, tracker_value
-from diffpos_services.kit import ConfigError
 from diffpos_services.wire.keys import Keys
 
 __all__ = ["EXTRA_SERVICES", "EmulationOptions", "dashboard_argv", "recorder_argv",

@@ -33,13 +33,9 @@ import zenoh
 
 from diffpos.emulation import TimeBase, emulation_nodes
 from diffpos_services.bus.commands import foreign_path
-from diffpos_services.bus.security import (
-    SecurityError,
-    anchor_user,
-    load_profile,
-    per_run_profile,
-    render_profile,
-)
+from diffpos_services.bus.security.per_run import per_run_profile
+from diffpos_services.bus.security.profile import SecurityError, anchor_user, load_profile
+from diffpos_services.bus.security.render import render_profile
 from diffpos_services.bus.session import ZenohSettings, open_session, with_zenoh_config
 from diffpos_services.emulate.monitor import Monitor
 from diffpos_services.emulate.notes import (
@@ -59,6 +55,7 @@ from diffpos_services.emulate.supervise import (
     disk_full,
     recover_in_place,
 )
+from diffpos_services.errors import ConfigError, DiffposError
 from diffpos_services.fusion.config import (
     LIVE_MAX_BACKLOG_S,
     FusionConfig,
@@ -66,15 +63,8 @@ from diffpos_services.fusion.config import (
     model_edge,
     tracker_argv,
 )
-from diffpos_services.kit import (
-    STATUS,
-    ConfigError,
-    DiffposError,
-    child_env,
-    free_tcp_port,
-    log_event,
-    stop_process_groups,
-)
+from diffpos_services.logs import STATUS, log_event
+from diffpos_services.processes import child_env, free_tcp_port, stop_process_groups
 from diffpos_services.recording.summary import set_losses
 from diffpos_services.recording.writer import recording_set, restart_path
 from diffpos_services.scenario_io import load_scenario_option, resolve_scenario

@@ -13,7 +13,7 @@ says "disk full"), and a recovery that fails (e.g. no room for the rewritten fil
 in the fault's note, keeping the file as it is.
 
 The thread outlives every child it started (it waits for :meth:`Supervisor.close` after the
-children are stopped): a child's parent-death signal (:func:`diffpos_services.kit.
+children are stopped): a child's parent-death signal (:func:`diffpos_services.processes.
 die_with_parent`) comes when the thread that started it ends.
 """
 
@@ -30,7 +30,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from diffpos_services.kit import DiffposError, log_event
+from diffpos_services.errors import DiffposError
+from diffpos_services.logs import log_event
 from diffpos_services.recording.repair import recover
 from diffpos_services.recording.writer import existing_parts
 

@@ -31,7 +31,8 @@ from msgspec import Meta
 from diffpos.alignment import AlignmentConfig
 from diffpos.scenario import Building, Radio, Scenario, ScenarioError, first_arrival_edge
 from diffpos.tracking.state import TrackerConfig
-from diffpos_services.kit import ConfigError, build_config
+from diffpos_services.config import build_config
+from diffpos_services.errors import ConfigError
 from diffpos_services.wire.keys import check_id
 
 __all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "METHODS",

@@ -44,7 +44,7 @@ from diffpos_services.fusion.ingest import (
     count_releases,
 )
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
-from diffpos_services.fusion.solve import gated_count, gather, prepare, solve_batch
+from diffpos_services.fusion.step import gated_count, gather, prepare, solve_batch
 from diffpos_services.fusion.tracked import (
     TrackBank,
     heavy_budget,
@@ -53,7 +53,7 @@ from diffpos_services.fusion.tracked import (
     v2_builder,
 )
 from diffpos_services.fusion.warm import warm_up
-from diffpos_services.kit import log_event
+from diffpos_services.logs import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
 
@@ -532,7 +532,7 @@ class FusionCore:
         tracking: the result depends only on the core's state and the arguments, never on
         the machine's clock. With tracking, the rows without a snapshot fix first (to ``emit``
         if given), see :func:`~diffpos_services.fusion.tracked.in_publish_order`; ``behind``:
-        see ``solve_mnls``. The steps are in :mod:`diffpos_services.fusion.solve`: gather arrays -> prepare the
+        see ``solve_mnls``. The steps are in :mod:`diffpos_services.fusion.step`: gather arrays -> prepare the
         batch -> warm/cold/retry solve -> messages (built here: counters and tracks)."""
         ids = sorted({a for pe in epochs for a in pe.ranges} | set(self.live_anchors)
                      | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None})

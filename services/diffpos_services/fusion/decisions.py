@@ -9,7 +9,7 @@ receive wall time it was given - its liveliness events and the wall times of the
 solved something; :meth:`FusionCore.diagnostics` hands the record out in chunks
 (``FusionDiagnostics.decisions``, published and recorded with the diagnostics), and
 ``diffpos replay`` re-issues exactly these calls (:class:`DecisionReplayer` in
-:mod:`diffpos_services.recording.decided`). Same calls, same arguments, same core: the same
+:mod:`diffpos_services.replay.decided`). Same calls, same arguments, same core: the same
 fixes, bit for bit. Steps that released nothing are not written (they change nothing).
 
 The record costs one tuple append per call (measured in benchmarks/bench_replay.py) and a

@@ -12,7 +12,7 @@ import numpy as np
 
 from diffpos.alignment import PendingEpoch
 from diffpos.estimators.result import FixStatus
-from diffpos_services.fusion.solve import GOOD_STATUS, Batch, Results, exclusion_groups, gated_count
+from diffpos_services.fusion.step import GOOD_STATUS, Batch, Results, exclusion_groups, gated_count
 from diffpos_services.wire import messages as M
 
 __all__ = ["v1_estimates"]

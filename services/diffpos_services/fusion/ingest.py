@@ -21,7 +21,7 @@ import numpy as np
 from diffpos.alignment import EpochBook, PendingEpoch
 from diffpos.anchor_history import StateHistory
 from diffpos_services.fusion.config import FusionConfig
-from diffpos_services.kit import log_event
+from diffpos_services.logs import log_event
 from diffpos_services.wire import messages as M
 
 __all__ = ["AnchorStream", "RejectLog", "Track", "bad_batch", "bad_state", "bad_value",

@@ -42,7 +42,7 @@ from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.workers import start_workers
 from diffpos_services.heap import keep_heap
-from diffpos_services.kit import log_event
+from diffpos_services.logs import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 

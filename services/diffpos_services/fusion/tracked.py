@@ -2,7 +2,7 @@
 
 Used by :meth:`FusionCore._solve <diffpos_services.fusion.core.FusionCore._solve>` when the
 method is ``mnls``: the epochs of a batch (gathered and prepared by
-:mod:`diffpos_services.fusion.solve`) get
+:mod:`diffpos_services.fusion.step`) get
 
 - the snapshot fix :func:`diffpos.estimators.mnls.solver` on the scenario's building (every row
   without tracking; with tracking only the rows whose node never had one, whose node the
@@ -79,8 +79,9 @@ from diffpos.paths.model import MECHANISMS
 from diffpos.tracking.state import TrackerConfig, TrackerState, TrackStatus, floor_probabilities
 from diffpos.tracking.tracker import init_state, update
 from diffpos_services.fusion.config import FusionConfig
-from diffpos_services.fusion.solve import Batch, Prepared, Results, exclusion_groups
-from diffpos_services.fusion.workers import INIT_COST, RowPool, run_update, slim_state
+from diffpos_services.fusion.rows import run_update, slim_state
+from diffpos_services.fusion.step import Batch, Prepared, Results, exclusion_groups
+from diffpos_services.fusion.workers import INIT_COST, RowPool
 from diffpos_services.wire import messages as M
 
 __all__ = ["HEAVY_MIN_OPERATIONS", "HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved",
@@ -492,7 +493,7 @@ def _probs(row: list[float], finite: bool) -> list[float]:
 
 
 def _finite_or_none(a: np.ndarray) -> list[float | None]:
-    """:func:`~diffpos_services.wire.fields.finite_or_none` of every value of ``a`` (B,)."""
+    """:func:`~diffpos_services.wire.messages.finite_or_none` of every value of ``a`` (B,)."""
     o = a.astype(object)
     o[~np.isfinite(a)] = None
     return o.tolist()

@@ -17,7 +17,7 @@ are those of one call, whatever the number of workers (tests/services/test_fusio
   warms the numba kernels (:func:`diffpos_services.fusion.warm.warm_model`) and only then says
   ``ready``; :meth:`RowPool.wait_ready` is called before the service declares itself ready.
 - A worker dies with the fusion: it asks the kernel for SIGKILL when its parent dies
-  (``prctl(PR_SET_PDEATHSIG)``, as :func:`diffpos_services.kit.die_with_parent`) and a closed
+  (``prctl(PR_SET_PDEATHSIG)``, as :func:`diffpos_services.processes.die_with_parent`) and a closed
   pipe (EOF) ends it too. Linux sends that signal when the *thread* that started the worker
   ends: a pool is started and used by one thread that outlives it (the service's
   ``run_fusion`` thread, replay's caller), a worker restarted by :meth:`RowPool.map_rows`
@@ -54,20 +54,11 @@ from typing import Any
 import numpy as np
 
 from diffpos_services.fusion import shm
-from diffpos_services.fusion.rows import (
-    concat_rows,
-    preloaded_bounds,
-    run_update,
-    share_bounds,
-    slim_state,
-    take_rows,
-)
+from diffpos_services.fusion.rows import concat_rows, preloaded_bounds, take_rows
 from diffpos_services.fusion.worker_proc import TASKS, _dumps, worker_main
-from diffpos_services.kit import log_event
+from diffpos_services.logs import log_event
 
-__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "TASKS", "Pending", "RowPool", "concat_rows",
-           "preloaded_bounds", "run_update", "share_bounds", "slim_state", "start_workers",
-           "take_rows", "worker_main"]
+__all__ = ["INIT_COST", "MIN_PARALLEL_COST", "Pending", "RowPool", "start_workers"]
 
 #: Cost of a row the tracker initialises (UNINITIALISED or LOST with enough ranges: the grid
 #: snapshot of :func:`diffpos.tracking.model.snapshot_init`) in units of one row's update: an

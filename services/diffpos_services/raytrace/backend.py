@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from diffpos_services.kit import DiffposError
+from diffpos_services.errors import DiffposError
 
 DEFAULT_LLVM_PATH = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 SIONNA_REQUIREMENT = "sionna-rt==2.2.0"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from diffpos_services.kit import DiffposError
+from diffpos_services.errors import DiffposError
 
 __all__ = ["ForeignRecordingError", "RecordingError"]
 

@@ -18,7 +18,7 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from diffpos_services.kit import ConfigError
+from diffpos_services.errors import ConfigError
 
 __all__ = ["atomic_path", "check_output", "same_file"]
 

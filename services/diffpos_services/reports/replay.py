@@ -9,7 +9,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 if TYPE_CHECKING:  # reports draw results; they do not depend on the services that make them
-    from diffpos_services.recording.replay import ReplayResult
+    from diffpos_services.replay.run import ReplayResult
 
 __all__ = ["plot_cdf"]
 

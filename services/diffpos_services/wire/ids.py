@@ -1,6 +1,6 @@
 """Identifier checks of decoded messages (the ``Id`` fields of :mod:`~diffpos_services.wire.messages`).
 
-An ``Id`` carries its pattern (:data:`~diffpos_services.wire.fields.ID_PATTERN`) in the JSON
+An ``Id`` carries its pattern (:data:`ID_PATTERN`) in the JSON
 Schema only, so msgspec does not run the regex on every id of every message; the decoders of
 :func:`~diffpos_services.wire.messages.decoder` call :func:`id_checker`'s function after the
 decode instead. It compares a message's ids with the set of ids already found valid (a few C
@@ -24,9 +24,11 @@ from typing import Any
 import msgspec
 from msgspec import inspect as mi
 
-from diffpos_services.wire.fields import ID_PATTERN
+__all__ = ["ID_PATTERN", "MAX_KNOWN_IDS", "id_checker", "valid_id"]
 
-__all__ = ["MAX_KNOWN_IDS", "id_checker", "valid_id"]
+#: What an identifier is on the wire ("(?!\n)": Python's "$", as msgspec's and jsonschema's,
+#: also matches before a final newline).
+ID_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_\-]{0,63}$(?!\n)"
 
 #: At most this many distinct valid ids are remembered (a fusion sees a few hundred).
 MAX_KNOWN_IDS = 1 << 16

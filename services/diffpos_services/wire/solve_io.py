@@ -27,7 +27,7 @@ from typing import Any, BinaryIO, TextIO
 
 import numpy as np
 
-from diffpos_services.kit import ConfigError, DiffposError
+from diffpos_services.errors import ConfigError, DiffposError
 
 __all__ = [
     "DEFAULT_LIMITS",

@@ -4,18 +4,19 @@ A *security profile* (a small TOML file, see ``security/profile.dev.toml``) name
 certificate files, the credentials dictionary, the site(s) it protects and the anchors that
 exist. From it this package renders
 
-- the router's Zenoh configuration (:func:`router_config`): a TLS listener, a
+- the router's Zenoh configuration (:func:`.configs.router_config`): a TLS listener, a
   ``transport/auth/usrpwd`` dictionary and an ``access_control`` block whose rules say that
   only anchor ``<id>`` (user ``anchor-<id>``) may put ``diffpos/<site>/anchor/<id>/state``
   and ``.../anchor/<id>/range/*``, only the fusion user may put estimates and diagnostics,
   only the emulator may put truth and the run-control gate, and recorder/dashboard only read;
-- one client configuration per identity (:func:`client_config`): TLS trust in the dev CA
+- one client configuration per identity (:func:`.configs.client_config`): TLS trust in the dev CA
   (the client checks the router's name), its own user/password and the router endpoint.
 
 The rules follow the key expressions of :mod:`diffpos_services.wire.keys`; the access control is
 enforced by the router (every service is a client of it), default ``deny``.
 
-Modules by role: :mod:`.profile` (the profile and its validation, :class:`SecurityError`),
+Modules by role (import each name from its module; this package re-exports nothing):
+:mod:`.profile` (the profile and its validation, :class:`.profile.SecurityError`),
 :mod:`.credentials` (the password dictionary), :mod:`.acl` (the access rules as a table per
 role), :mod:`.configs` (router/client configurations, the configuration a service opens and
 its plain-transport warning), :mod:`.render` (json5 files from a profile),
@@ -40,47 +41,3 @@ Command line (also used to regenerate the committed files)::
         [--connect tls/localhost:7447 --listen tls/127.0.0.1:7447]
     diffpos security check  PROFILE
 """
-
-from diffpos_services.bus.security.acl import acl_config
-from diffpos_services.bus.security.certs import make_dev_certs
-from diffpos_services.bus.security.configs import (
-    PLAIN_TRANSPORT_WARNING,
-    client_config,
-    insecure_transport_warning,
-    router_config,
-    session_config,
-    to_zenoh,
-)
-from diffpos_services.bus.security.credentials import read_credentials, write_credentials
-from diffpos_services.bus.security.per_run import per_run_profile
-from diffpos_services.bus.security.profile import (
-    ROLES,
-    SecurityError,
-    SecurityProfile,
-    anchor_user,
-    load_profile,
-    profile_from_dict,
-)
-from diffpos_services.bus.security.render import check_profile, render_profile
-
-__all__ = [
-    "PLAIN_TRANSPORT_WARNING",
-    "ROLES",
-    "SecurityError",
-    "SecurityProfile",
-    "acl_config",
-    "anchor_user",
-    "check_profile",
-    "client_config",
-    "insecure_transport_warning",
-    "load_profile",
-    "make_dev_certs",
-    "per_run_profile",
-    "profile_from_dict",
-    "read_credentials",
-    "render_profile",
-    "router_config",
-    "session_config",
-    "to_zenoh",
-    "write_credentials",
-]

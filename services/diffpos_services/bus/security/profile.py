@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from diffpos_services.kit import DiffposError
+from diffpos_services.errors import DiffposError
 
 __all__ = [
     "ROLES",

@@ -26,9 +26,9 @@ import msgspec
 import numpy as np
 
 from diffpos.geometry import window_edge_path
+from diffpos_services.config import build_config
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.kit import build_config
 from diffpos_services.recording.topics import parse_topic
 from diffpos_services.recording.writer import McapSink
 from diffpos_services.wire import messages as M

@@ -14,7 +14,7 @@ settings plus the what-ifs) -> :func:`_feed` (the recording into the fusion core
 3D / horizontal / z error percentiles per node and overall against the recorded truth, floor
 accuracy, PEB, fix status counts, gating decisions per anchor, message counts and sequence
 gaps; optionally recorded-live vs replayed estimates side by side; see
-:mod:`diffpos_services.recording.evaluate` and :mod:`diffpos.metrics`).
+:mod:`diffpos_services.replay.evaluate` and :mod:`diffpos.metrics`).
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ import msgspec
 import numpy as np
 
 from diffpos._kernels import pool as kernel_pool
+from diffpos_services.config import build_config
+from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     METHODS,
     TRACKER_KEYS,
@@ -44,8 +46,6 @@ from diffpos_services.fusion.config import (
 )
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.workers import start_workers
-from diffpos_services.kit import ConfigError, build_config
-from diffpos_services.recording.decided import DecisionReplayer
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.reader import (
@@ -55,11 +55,12 @@ from diffpos_services.recording.reader import (
     SideRecords,
     side_records,
 )
-from diffpos_services.recording.report_stream import Recorded
 from diffpos_services.recording.summary import attached_scenario, live_fusion_settings
-from diffpos_services.recording.synthetic import FUSION_INPUT_KINDS, quiet_logger
 from diffpos_services.recording.topics import natural_key, parse_topic
 from diffpos_services.recording.writer import McapSink
+from diffpos_services.replay.decided import DecisionReplayer
+from diffpos_services.replay.report_stream import Recorded
+from diffpos_services.replay.synthetic import FUSION_INPUT_KINDS, quiet_logger
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 

@@ -35,9 +35,9 @@ import numpy as np
 
 from diffpos.floor_calibration import probability_rows
 from diffpos.metrics import QuantileSketch, StreamingErrorStats, StreamingScore, ellipsoid_coverage
-from diffpos_services.recording.decided import DecisionReplayer
 from diffpos_services.recording.reader import RawMessage
 from diffpos_services.recording.topics import SeqTracker, natural_key
+from diffpos_services.replay.decided import DecisionReplayer
 from diffpos_services.wire import messages as M
 
 __all__ = ["Comparison", "FixStream", "Recorded", "SlimEstimate", "SlimTruth", "TruthBook",
