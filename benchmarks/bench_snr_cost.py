@@ -45,7 +45,7 @@ import time
 
 import numpy as np
 
-import diffpos.tracking.snr as tm
+import diffpos.tracking.model as tm
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.tracking.links import K_SLOTS, PathEval, _relax
 

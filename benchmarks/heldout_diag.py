@@ -51,7 +51,7 @@ from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.metrics import truth_at
 from diffpos.paths.model import MECHANISMS
 from diffpos.scenario import Scenario
-from diffpos.tracking.snr import SNR_SIGMA_DB
+from diffpos.tracking.model import SNR_SIGMA_DB
 
 CHI2_3_95 = 7.814727903251178  # 95 % quantile of chi-square with 3 degrees of freedom
 SKIP_S = 2.0

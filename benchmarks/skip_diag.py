@@ -39,8 +39,7 @@ from scipy.special import log_ndtr, ndtr
 from diffpos.channel.emulator import emulate_channel
 from diffpos.paths.model import graded_paths
 from diffpos.tracking.links import _IS_DIFF
-from diffpos.tracking.model import ENTRY_SIGMAS
-from diffpos.tracking.snr import SNR_SIGMA_DB
+from diffpos.tracking.model import ENTRY_SIGMAS, SNR_SIGMA_DB
 from diffpos.tracking.state import TrackerConfig
 
 

@@ -35,7 +35,7 @@ from scipy.special import log_ndtr, ndtr
 import diffpos.tracking.model as tm
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.tracking.links import _IS_DIFF
-from diffpos.tracking.snr import SNR_SIGMA_DB
+from diffpos.tracking.model import SNR_SIGMA_DB
 
 _orig = tm.snr_cost_near
 
@@ -127,7 +127,7 @@ def main(argv: list[str]) -> int:
         return 2
     if argv[0] == "soft":
         tm.snr_cost_near = _with_soft_term()
-        import diffpos.tracking.dormant as td
+        import diffpos.tracking.tracker as td
 
         tm.measurement_update = _stash_prior(tm.measurement_update)
         td.measurement_update = tm.measurement_update

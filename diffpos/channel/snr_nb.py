@@ -57,7 +57,7 @@ cache (call it at service start).
 :func:`channel_snr_masked_kernel` is the same loop over a per-pair slot mask ``need``
 (:data:`MASKED_SIGNATURE`): the slots needed are evaluated by the same statements, so they
 are bit-identical to the unmasked kernel's; the others are not evaluated and hold NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
-``diffpos.tracking.snr.snr_cost_near``: mostly specular slots near a window-band edge, and
+``diffpos.tracking.model.snr_cost_near``: mostly specular slots near a window-band edge, and
 not the 7 diffraction slots that are ~80 % of a full prediction).
 
 :func:`snr_cost_kernel` is the tracker's SNR cost of the predicted slots (Gaussian about the
@@ -221,7 +221,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
 
 @njit(**_OPTS)
 def snr_cost_kernel(pred, meas, trust, sigma_db, fap_db, det_db, given_thr, thr, out):
-    """The tracker's SNR cost of every slot (``diffpos.tracking.snr._snr_cost_of``, its
+    """The tracker's SNR cost of every slot (``diffpos.tracking.model._snr_cost_of``, its
     numpy reference: the same operations in the same order, NaN propagated as numpy's ``max``
     does, so bit-identical): ``pred`` (P, K) predicted SNRs [dB], ``meas`` (P,) measured
     [dB], ``trust`` (P, K) bool (the slots whose maximum sets the detector's threshold) ->

@@ -263,7 +263,7 @@ def iekf_kernel(x_prior, y, logdet_y, lo, hi, z_nom, wh, h_const, anchors, floor
 
 def warm_iekf(planes: tuple, anc: np.ndarray) -> None:
     """Compile (or load from numba's cache) :func:`prior_info_kernel` and :func:`iekf_kernel`
-    on tiny inputs (called by ``tracking_nb.warm_tracking``)."""
+    on tiny inputs (called by :func:`diffpos.tracking.tracker.warm_tracking`)."""
     one, onef = np.ones((1, 1)), np.ones((1, 1, 1))
     mask = np.ones((1, 1), np.bool_)
     i3 = np.zeros((1, 1, 1), np.int64)

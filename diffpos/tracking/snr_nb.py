@@ -87,7 +87,7 @@ def cache_store_kernel(near, hit, known, need, cached, anc, pred, c_anchor, c_pr
 
 def warm_snr_cache() -> None:
     """Compile (or load from numba's cache) both kernels on tiny inputs of the tracker's
-    types (called by ``tracking_nb.warm_tracking``)."""
+    types (called by :func:`diffpos.tracking.tracker.warm_tracking`)."""
     k, s = 18, 8
     b2, b3, b4 = (np.ones((1, 1), np.bool_), np.ones((1, 1, 1), np.bool_),
                   np.ones((1, 1, 1, k), np.bool_))
