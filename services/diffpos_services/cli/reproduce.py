@@ -55,17 +55,17 @@ from pathlib import Path
 
 import numpy as np
 
-from diffpos.reproduction import (
+from diffpos.scenario import Scenario, ScenarioError
+from diffpos.study import (
     ALL_METHODS,
     DEFAULT_QUICK_NODES,
     REPRODUCE_METHODS,
     Arrivals,
+    FirstArrivalData,
     ReproduceConfig,
     build_summary,
     reproduce,
 )
-from diffpos.scenario import Scenario, ScenarioError
-from diffpos.study import FirstArrivalData
 from diffpos_services import raytrace
 from diffpos_services.reports import study as report
 from diffpos_services.scenario_io import scenario_or_default
