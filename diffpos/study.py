@@ -365,6 +365,16 @@ def floor_starts_m(building: Any) -> FloatArray:
     return np.asarray(building.floor_z_m(k) + building.nominal_node_height_m, dtype=np.float64)
 
 
+def _check_methods(methods: Sequence[str], building: Any) -> None:
+    """Every method is known (:data:`METHOD_LABELS` but ``"peb"``) and ``mnls`` has its building."""
+    unknown = [m for m in methods if m not in METHOD_LABELS or m == "peb"]
+    if unknown:
+        raise ValueError(f"unknown method(s) {unknown}; choose from "
+                         f"{[k for k in METHOD_LABELS if k != 'peb']}")
+    if "mnls" in methods and building is None:
+        raise ValueError("method 'mnls' needs the building (positioning_study(building=...))")
+
+
 def positioning_study(
     data: FirstArrivalData,
     *,
@@ -412,12 +422,7 @@ def positioning_study(
     -------
     PositioningStudy
     """
-    unknown = [m for m in methods if m not in METHOD_LABELS or m == "peb"]
-    if unknown:
-        raise ValueError(f"unknown method(s) {unknown}; choose from "
-                         f"{[k for k in METHOD_LABELS if k != 'peb']}")
-    if "mnls" in methods and building is None:
-        raise ValueError("method 'mnls' needs the building (positioning_study(building=...))")
+    _check_methods(methods, building)
     anchors = np.asarray(data.anchors_m, dtype=np.float64)
     truth = np.asarray(data.nodes_m, dtype=np.float64)
     n = truth.shape[0]
