@@ -98,16 +98,6 @@ from diffpos.channel.rays_nb import (
     _specular,
     _zenith_deg,
 )
-from diffpos.channel.transition_nb import (
-    ASYMPTOTIC_MIN_ABS,
-    TRANSITION_ASYMPTOTIC_MIN,
-    WEIDEMAN_N,
-    faddeeva,
-    faddeeva_kernel,
-    transition,
-    transition_asymptotic,
-    weideman_coefficients,
-)
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 
@@ -116,11 +106,18 @@ from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
 CALLEES_SHA256 = "b1b06ccc43bf68f8"
 
-__all__ = ["ASYMPTOTIC_MIN_ABS", "COST_SIGNATURE", "MASKED_SIGNATURE", "SIGNATURE",
-           "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N", "channel_params", "channel_snr_kernel",
-           "channel_snr_masked_kernel", "eval_snr_kernel", "eval_snr_masked_kernel", "faddeeva",
-           "faddeeva_kernel", "snr_cost_kernel", "transition", "transition_asymptotic",
-           "warm_channel", "weideman_coefficients"]
+__all__ = [
+    "COST_SIGNATURE",
+    "MASKED_SIGNATURE",
+    "SIGNATURE",
+    "channel_params",
+    "channel_snr_kernel",
+    "channel_snr_masked_kernel",
+    "eval_snr_kernel",
+    "eval_snr_masked_kernel",
+    "snr_cost_kernel",
+    "warm_channel",
+]
 
 
 @njit(**_OPTS)

@@ -38,6 +38,7 @@ from scipy.special import wofz
 
 from diffpos.channel import emulator as channel
 from diffpos.channel import snr_nb as channel_nb
+from diffpos.channel import transition_nb
 from diffpos.channel.emulator import _pair_snr_db_numpy, emulate_channel, first_arrival, pair_snr_db
 from diffpos.channel.gtd_halfplane import transition_function
 from diffpos.estimators.mnls.solver import mnls
@@ -101,7 +102,7 @@ def _geometries(b: Building, rng: np.random.Generator, n: int, m: int
 def _w(z: np.ndarray) -> np.ndarray:
     z = np.ascontiguousarray(z, dtype=np.complex128).ravel()
     out = np.empty_like(z)
-    channel_nb.faddeeva_kernel(z, out)
+    transition_nb.faddeeva_kernel(z, out)
     return out
 
 
@@ -142,7 +143,7 @@ def test_transition_function_matches_gtd() -> None:
     xmin = channel_nb.TRANSITION_ASYMPTOTIC_MIN
     x = np.concatenate([[0.0], np.logspace(-12, 12, 2000), np.linspace(0, 200, 4001),
                         xmin * (1 + np.array([-2e-16, 0.0, 2e-16]))])
-    f = np.array([channel_nb.transition(float(v)) for v in x])
+    f = np.array([transition_nb.transition(float(v)) for v in x])
     ref = transition_function(x)
     zero = x == 0
     assert np.all(f[zero] == 0)
