@@ -1,7 +1,8 @@
 """The paper's window-edge diffraction: both window edges of the building model, their power
 ratio (Theorem 3) and the Lemma 3 coefficients; the half-plane GTD (Keller) and UTD
 (Kouyoumjian-Pathak) they are built on (ray-fixed frames, coefficients, transition function,
-diffracted field, conventions) are in :mod:`diffpos.channel.gtd_halfplane` and re-exported here.
+diffracted field, conventions) are in :mod:`diffpos.channel.gtd_halfplane` (import them from
+there).
 
 Building model and Theorem 3
 ----------------------------

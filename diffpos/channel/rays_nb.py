@@ -16,8 +16,8 @@ pairs.
 
 numba keys the cache of the kernels in :mod:`diffpos.channel.snr_nb` on that file: they
 compile these functions into themselves, so after editing this file (or
-:mod:`.transition_nb`) delete ``diffpos/_kernels/__pycache__/``
-(tests/core/test_channel_kernel.py catches a stale cache).
+:mod:`diffpos.channel.transition_nb`) update its ``CALLEES_SHA256`` stamp (the value
+tests/core/test_kernel_stamps.py names), which invalidates the stale cache.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "c510a2f3f31a5fa7"
+CALLEES_SHA256 = "1882c341f7527ffb"
 
 _RAD2DEG = 180.0 / math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}

@@ -3,9 +3,9 @@ evidence per hypothesis) and the prior's information matrix (:func:`prior_info_k
 the 6 x 6 LU (partial pivoting) they share; moved verbatim from
 :mod:`diffpos.tracking.model_nb`, whose per-row bodies of the link model and the normal
 equations (``_model_row``, ``_terms_row``) they compile in. Held to
-``tracking_model._iekf_numpy`` / ``_prior_information_numpy`` within a tolerance
-(tests/core/test_tracking_kernel.py). numba keys a kernel's cache on its own file: after
-editing ``tracking_nb.py`` delete ``diffpos/_kernels/__pycache__/`` (DEVELOPING.md).
+``diffpos.tracking.model._iekf_numpy`` / ``_prior_information_numpy`` within a tolerance
+(tests/core/test_tracking_kernel.py). numba keys a kernel's cache on its own file: the
+``CALLEES_SHA256`` stamp below changes with the code it compiles in.
 """
 
 from __future__ import annotations

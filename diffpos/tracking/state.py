@@ -5,7 +5,7 @@
 ``h = mode * F + floor`` (mode 0 level, 1 vertical: :func:`hypothesis_floor`,
 :func:`hypothesis_vertical`, :func:`n_floors_of`) and the floor marginal
 (:func:`floor_probabilities`). Imports nothing from the other tracking modules, so that each of
-them can use it; :mod:`diffpos.tracking.tracker` re-exports every name (import them from there).
+them can use it.
 """
 
 from __future__ import annotations

@@ -22,9 +22,9 @@ path in :mod:`diffpos.estimators.mnls.solver` (``mnls(..., kernel=False)``; test
 
 Fixed compiled signatures (:data:`SIGNATURE`, :data:`LM_SIGNATURE`, C-contiguous inputs);
 ``cache=True``. numba's cache is keyed by this file only: :func:`lm_kernel` compiles
-``paths_nb.slot_path`` into itself, so after a change of ``paths_nb.py`` a stale cache of this
-module keeps the old path model (delete ``__pycache__/mnls_nb*``); the kernel-vs-reference
-test (tests/core/test_mnls.py, the reference runs the fresh ``paths_kernel``) fails then.
+:func:`diffpos.paths.model_nb.slot_path` into itself, so a change of ``paths/model_nb.py``
+changes the ``CALLEES_SHA256`` stamp below (tests/core/test_kernel_stamps.py), which
+invalidates the stale cache.
 Compile from an empty cache: ~12 s CPU (2-core VM, 2026-11-27).
 """
 
