@@ -28,11 +28,12 @@ import time
 import numpy as np
 from common import SIGMA_M, W_M, scene, scipy_fix
 
-from diffpos.estimators.dnls.fit import _lls_starts, grid_starts
-from diffpos.estimators.dnls.solver import DEFAULT_Z_STARTS_M, dnls
+from diffpos.estimators.dnls.fit import _lls_starts
+from diffpos.estimators.dnls.solver import dnls
 from diffpos.estimators.ippa import ippa
 from diffpos.estimators.lls import lls
 from diffpos.estimators.result import ExclusionReason
+from diffpos.estimators.starts import DEFAULT_Z_STARTS_M, grid_starts
 from diffpos.geometry import window_edge_path
 
 

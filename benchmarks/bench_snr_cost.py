@@ -1,4 +1,4 @@
-"""CPU of the tracker's SNR prediction (``diffpos.tracking.snr.snr_cost_near``) on the calls of
+"""CPU of the tracker's SNR prediction (``diffpos.tracking.model.snr_cost_near``) on the calls of
 a real replay: every slot predicted everywhere (the algorithm before the slot masks) against
 the current code, with the shifted point's and with the prior's threshold for the relax holes.
 
@@ -45,7 +45,7 @@ import time
 
 import numpy as np
 
-import diffpos.tracking.snr as tm
+import diffpos.tracking.model as tm
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.tracking.links import K_SLOTS, PathEval, _relax
 

@@ -40,9 +40,10 @@ from pathlib import Path
 import numpy as np
 from common import SIGMA_M, W_M, scene, scipy_fix
 
-from diffpos.estimators.dnls.fit import _lls_starts, grid_starts
+from diffpos.estimators.dnls.fit import _lls_starts
 from diffpos.estimators.dnls.fit_nb import warm_dnls
-from diffpos.estimators.dnls.solver import DEFAULT_Z_STARTS_M, dnls
+from diffpos.estimators.dnls.solver import dnls
+from diffpos.estimators.starts import DEFAULT_Z_STARTS_M, grid_starts
 
 
 def _per_call(fn, n: int) -> tuple[float, float]:

@@ -22,7 +22,7 @@ The scenario of ``rand-S-i`` is regenerated from its name (:mod:`heldout`).
   been at the estimate (existing, > 0.15 m shorter than the noise-free measured range, SNR
   above the detector's threshold there: ``max(P_max - fap_threshold_db, detection_snr_db)``)
   and ``-log P(all of them below the threshold)`` with the tracker's SNR standard deviation
-  (:data:`diffpos.tracking.snr.SNR_SIGMA_DB`); the same at the truth.
+  (:data:`diffpos.tracking.model.SNR_SIGMA_DB`); the same at the truth.
 - ``flight``: the right-floor stairs node-epochs of all the runs named, pooled by the truth's
   height along the flight (fifths of a floor height above a floor's nominal height): truth
   inside the 95 % ellipsoid, ``|z error| / sigma_z`` and the mean z error.
@@ -52,7 +52,7 @@ from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.metrics import truth_at
 from diffpos.paths.model import MECHANISMS
 from diffpos.scenario import Scenario
-from diffpos.tracking.snr import SNR_SIGMA_DB
+from diffpos.tracking.model import SNR_SIGMA_DB
 
 CHI2_3_95 = 7.814727903251178  # 95 % quantile of chi-square with 3 degrees of freedom
 #: a floor change counts when the truth then stays on the new floor this long; the estimate

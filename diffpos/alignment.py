@@ -51,18 +51,14 @@ from typing import Literal, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from diffpos.anchor_history import StateHistory, hermite_interpolate
-
 __all__ = [
     "AlignmentConfig",
     "EpochBook",
     "PendingEpoch",
     "RangeEntry",
-    "StateHistory",
     "compensate_node_motion",
     "effective_sigma_m",
     "epoch_of",
-    "hermite_interpolate",
 ]
 
 FloatArray = NDArray[np.float64]

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from diffpos.geometry import los_path, window_edge_path
+from diffpos.sym3 import sym3_adjugate
 
 __all__ = [
     "DEFAULT_MAX_CONDITION",
@@ -343,35 +344,6 @@ class Bounds:
         return np.sqrt(np.diagonal(self.crlb_m2, axis1=-2, axis2=-1))
 
 
-def sym3_cofactors(
-    a: FloatArray, b: FloatArray, c: FloatArray, d: FloatArray, e: FloatArray, g: FloatArray
-) -> tuple[FloatArray, ...]:
-    """Cofactors and determinant of symmetric 3x3 matrices ``[[a, b, c], [b, d, e], [c, e, g]]``.
-
-    Returns ``(c00, c01, c02, c11, c12, c22, det)`` (the adjugate is symmetric too); shared by
-    :func:`bounds_from_fim` and the estimators' batched 3x3 solve.
-    """
-    c00 = d * g - e * e
-    c01 = c * e - b * g
-    c02 = b * e - c * d
-    c11 = a * g - c * c
-    c12 = b * c - a * e
-    c22 = a * d - b * b
-    return c00, c01, c02, c11, c12, c22, a * c00 + b * c01 + c * c02
-
-
-def _sym3_adjugate(f: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Adjugate, determinant and Frobenius norm of symmetric 3x3 matrices (closed form)."""
-    a, d, g = f[..., 0, 0], f[..., 1, 1], f[..., 2, 2]
-    b = 0.5 * (f[..., 0, 1] + f[..., 1, 0])
-    c = 0.5 * (f[..., 0, 2] + f[..., 2, 0])
-    e = 0.5 * (f[..., 1, 2] + f[..., 2, 1])
-    c00, c01, c02, c11, c12, c22, det = sym3_cofactors(a, b, c, d, e, g)
-    adj = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1)
-    fro = np.sqrt(a * a + d * d + g * g + 2.0 * (b * b + c * c + e * e))
-    return adj.reshape(*adj.shape[:-1], 3, 3), det, fro
-
-
 def bounds_from_fim(fim: ArrayLike, *, max_condition: float = DEFAULT_MAX_CONDITION) -> Bounds:
     """PEB, z bound and CRLB matrix from FIMs of shape ``(..., 3, 3)``.
 
@@ -403,7 +375,7 @@ def bounds_from_fim(fim: ArrayLike, *, max_condition: float = DEFAULT_MAX_CONDIT
         raise ValueError(f"fim must have shape (..., 3, 3), got {f.shape}")
     batch = f.shape[:-2]
     flat = f.reshape(-1, 3, 3)
-    adj, det, fro = _sym3_adjugate(flat)
+    adj, det, fro = sym3_adjugate(flat)
     tau = max(float(max_condition) ** -2, 1e-6)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         ok = det > tau * fro**3

@@ -26,7 +26,7 @@ from diffpos_services.raytrace import mechanism_mix as mx
 from diffpos_services.raytrace import mechanisms as mm
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
-from diffpos.reproduction import study_rngs
+from diffpos.study import study_rngs
 
 
 def length_table(ds: rt.RaytraceDataset, mech: mm.Mechanisms) -> list[str]:

@@ -60,44 +60,21 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
-from diffpos.channel.slots import (  # noqa: F401 (re-exported; the numpy reference's parts)
-    _C,
-    _cross,
-    _Ctx,
-    _diffracted,
-    _direct,
-    _field_norm,
-    _materials,
-    _mirror,
-    _pattern_db,
-    _reflect_field,
-    _reflections,
-    _slots,
-    _transverse,
-    _unit,
-    _zenith_deg,
-    fresnel_coefficients,
-    itu_permittivity,
-    slab_loss_db,
-)
+from diffpos.channel.slots import _C, _Ctx, _materials, _slots
 from diffpos.channel.snr_nb import channel_params, eval_snr_kernel, eval_snr_masked_kernel
 from diffpos.paths.model import MECHANISMS, first_arrival_paths
 from diffpos.scenario import Building, Radio, Scenario
 
 __all__ = [
-    "MECHANISMS",
     "MPC_CLASS",
     "Channel",
     "FirstArrival",
     "emulate_channel",
     "first_arrival",
-    "fresnel_coefficients",
-    "itu_permittivity",
     "mpc_statistics",
     "pair_first_arrival",
     "pair_snr_db",
     "scenario_channel",
-    "slab_loss_db",
 ]
 
 FloatArray = NDArray[np.float64]

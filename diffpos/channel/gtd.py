@@ -1,7 +1,8 @@
 """The paper's window-edge diffraction: both window edges of the building model, their power
 ratio (Theorem 3) and the Lemma 3 coefficients; the half-plane GTD (Keller) and UTD
 (Kouyoumjian-Pathak) they are built on (ray-fixed frames, coefficients, transition function,
-diffracted field, conventions) are in :mod:`diffpos.channel.gtd_halfplane` and re-exported here.
+diffracted field, conventions) are in :mod:`diffpos.channel.gtd_halfplane` (import them from
+there).
 
 Building model and Theorem 3
 ----------------------------
@@ -47,35 +48,19 @@ from diffpos.channel.gtd_halfplane import (
     FloatArray,
     Spreading,
     _prefactor,
-    diffracted_field,
-    distance_parameter_m,
     edge_frame,
     field_from_frame,
-    keller_coefficients,
-    spreading_factor,
-    transition_function,
-    utd_coefficients,
     wavenumber_rad_m,
 )
 from diffpos.geometry import window_edge_path
 
 __all__ = [
-    "EdgeFrame",
     "Lemma3Coefficients",
-    "diffracted_field",
-    "distance_parameter_m",
-    "edge_frame",
     "elevation_angle_rad",
     "elevation_sweep_positions",
-    "field_from_frame",
-    "keller_coefficients",
     "lemma3_coefficients",
     "power_ratio_approx",
     "power_ratio_exact",
-    "spreading_factor",
-    "transition_function",
-    "utd_coefficients",
-    "wavenumber_rad_m",
     "window_edge_fields",
     "window_edge_frame",
 ]

@@ -71,7 +71,7 @@ The power ratio of Theorem 3 is barely affected (the upper and lower paths have 
 same ``s, s'``).
 
 The paper's window edges, their power ratio (Theorem 3) and Lemma 3 are in
-:mod:`diffpos.channel.gtd`, which re-exports everything here.
+:mod:`diffpos.channel.gtd`, built on this module.
 """
 
 from __future__ import annotations

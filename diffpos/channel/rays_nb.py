@@ -16,8 +16,8 @@ pairs.
 
 numba keys the cache of the kernels in :mod:`diffpos.channel.snr_nb` on that file: they
 compile these functions into themselves, so after editing this file (or
-:mod:`.transition_nb`) delete ``diffpos/_kernels/__pycache__/``
-(tests/core/test_channel_kernel.py catches a stale cache).
+:mod:`diffpos.channel.transition_nb`) update its ``CALLEES_SHA256`` stamp (the value
+tests/core/test_kernel_stamps.py names), which invalidates the stale cache.
 """
 
 from __future__ import annotations
@@ -36,12 +36,20 @@ from diffpos.channel.transition_nb import (
     faddeeva,
     transition_asymptotic,
 )
-from diffpos.paths.model_nb import _EDGE, _GROUND, _PLANE0, _PLANE1, _in_box, _mirror, _plane
+from diffpos.paths.model_nb import (
+    SLOT_EDGE,
+    SLOT_GROUND,
+    SLOT_PLANE0,
+    SLOT_PLANE1,
+    in_floor_box,
+    inside_plane,
+    mirror,
+)
 
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "10d6dd4a42f3aeac"
+CALLEES_SHA256 = "1882c341f7527ffb"
 
 _RAD2DEG = 180.0 / math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -215,20 +223,20 @@ def _direct(a0, a1, a2, n0, n1, n2, k_node, lo, hi, prm, parts):
 
 
 @njit(**_OPTS)
-def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in):
-    """channel._reflections for slot ``s`` (geometry: paths.specular_path, <= 2 planes):
-    (|gain|, arrival vector, length, valid)."""
-    x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
-    ground = _GROUND[s] == 1
-    pl0, pl1 = _PLANE0[s], _PLANE1[s]
+def _specular_points(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth):
+    """The geometry of :func:`_specular` (paths.specular_path, <= 2 planes): (valid, length,
+    the ground bounce point, the window entry point, the inside bounce points r1, r2; NaN
+    where the slot has none)."""
+    ground = SLOT_GROUND[s] == 1
+    pl0, pl1 = SLOT_PLANE0[s], SLOT_PLANE1[s]
     n_pl = 0 if pl0 < 0 else (1 if pl1 < 0 else 2)
     src0, src1, src2 = a0, a1, a2
     if ground:
         src2 = 2.0 * 0.0 - a2
     i0, i1, i2 = n0, n1, n2
     for j in range(n_pl - 1, -1, -1):  # image: last plane first
-        ax, c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
-        i0, i1, i2 = _mirror(i0, i1, i2, ax, c)
+        ax, c = inside_plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+        i0, i1, i2 = mirror(i0, i1, i2, ax, c)
     d0, d1, d2 = i0 - src0, i1 - src1, i2 - src2
     length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     nan = np.nan
@@ -249,7 +257,7 @@ def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_
     m0, m1, m2 = i0, i1, i2
     t_last = t_f
     for j in range(n_pl):
-        ax, c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+        ax, c = inside_plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
         dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
         if ax == 0:
             t = (c - c0) / dd0
@@ -259,17 +267,31 @@ def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_
             t = (c - c2) / dd2
         ok = ok and (t > t_last) and (t < 1)
         q0, q1, q2 = c0 + t * dd0, c1 + t * dd1, c2 + t * dd2
-        ok = ok and _in_box(q0, q1, q2, zf, zc, x0, x1, depth)
+        ok = ok and in_floor_box(q0, q1, q2, zf, zc, x0, x1, depth)
         if j == 0:
             r10, r11, r12 = q0, q1, q2
         else:
             r20, r21, r22 = q0, q1, q2
-        m0, m1, m2 = _mirror(m0, m1, m2, ax, c)
-        c0, c1, c2 = _mirror(c0, c1, c2, ax, c)
+        m0, m1, m2 = mirror(m0, m1, m2, ax, c)
+        c0, c1, c2 = mirror(c0, c1, c2, ax, c)
         t_last = t
     ok = ok and math.isfinite(length)
+    return ok, length, g0, g1, g2, en0, en1, en2, r10, r11, r12, r20, r21, r22
+
+
+@njit(**_OPTS)
+def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in):
+    """channel._reflections for slot ``s`` (geometry: :func:`_specular_points`):
+    (|gain|, arrival vector, length, valid)."""
+    x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
+    ok, length, g0, g1, g2, en0, en1, en2, r10, r11, r12, r20, r21, r22 = _specular_points(
+        s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth)
+    nan = np.nan
     if not ok:
         return 0.0, 0.0, nan, nan, nan, length, False
+    ground = SLOT_GROUND[s] == 1
+    pl0, pl1 = SLOT_PLANE0[s], SLOT_PLANE1[s]
+    n_pl = 0 if pl0 < 0 else (1 if pl1 < 0 else 2)
     # field: departure, ground bounce, then inside bounces (channel._reflections)
     if ground:
         u0, u1, u2, _ = _unit(g0 - a0, g1 - a1, g2 - a2)
@@ -286,7 +308,7 @@ def _specular(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_
     # points in path order: entry, r1, (r2), node
     p0, p1, p2 = en0, en1, en2  # pts[j]
     for j in range(n_pl):
-        ax, _c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+        ax, _c = inside_plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
         e0, e1, e2, e3, e4, e5 = _reflect(e0, e1, e2, e3, e4, e5, k0, k1, k2, ax, eta_in)
         if j == 0:
             q0, q1, q2 = r10, r11, r12
@@ -403,15 +425,15 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
     (the kernel's, once per call)."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     nan = np.nan
-    upper = _EDGE[s] == 0
+    upper = SLOT_EDGE[s] == 0
     z_e = hi if upper else lo
-    then = _PLANE0[s]
+    then = SLOT_PLANE0[s]
     o0, o1, o2 = n0, n1, n2
     ax = 0
     c = 0.0
     if then >= 0:
-        ax, c = _plane(then, zf, zc, x0, x1, depth)
-        o0, o1, o2 = _mirror(n0, n1, n2, ax, c)
+        ax, c = inside_plane(then, zf, zc, x0, x1, depth)
+        o0, o1, o2 = mirror(n0, n1, n2, ax, c)
     # geometry.diffraction_point with p0 = (x0, 0, z_e), p1 = (x1, 0, z_e)
     edge_len, ee0, ee1, ee2 = edge
     ds0, ds1, ds2 = a0 - x0, a1 - 0.0, a2 - z_e
@@ -446,7 +468,7 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
             tr = (c - q2) / u2
         ok = ok and (tr > 0) and (tr < 1)
         rp0, rp1, rp2 = q0 + tr * u0, q1 + tr * u1, q2 + tr * u2
-        ok = ok and _in_box(rp0, rp1, rp2, zf, zc, x0, x1, depth)
+        ok = ok and in_floor_box(rp0, rp1, rp2, zf, zc, x0, x1, depth)
     ok = ok and math.isfinite(length)
     if not ok:
         return 0.0, 0.0, nan, nan, nan, length, False

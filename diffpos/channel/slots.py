@@ -2,10 +2,8 @@
 builders of :func:`diffpos.channel.emulator.emulate_channel` (direct, reflections, UTD diffraction,
 their combinations) -- the reference the compiled kernels are tested against.
 
-Split out of :mod:`diffpos.channel.emulator`, which re-exports the public names
-(:func:`itu_permittivity`, :func:`slab_loss_db`, :func:`fresnel_coefficients`) and keeps the
-result types, the detector and the public API. The model is described in that module's
-docstring.
+:mod:`diffpos.channel.emulator` keeps the result types, the detector and the public API; the
+model is described in that module's docstring.
 """
 
 from __future__ import annotations

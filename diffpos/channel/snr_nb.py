@@ -38,7 +38,7 @@ entering through the window band, Fermat point strictly inside the edge, reflect
 the floor's inside surface within 1e-9 m), the through-wall direct ray always valid, and the
 slot dropped where its length or field is not finite. The per-row pieces of
 :mod:`diffpos.paths.model_nb` are reused (plane codes and slot recipes, ``row_planes``,
-``edge_axis``, ``_plane``, ``_mirror``, ``_in_box``); the path functions themselves are
+``edge_axis``, ``inside_plane``, ``mirror``, ``in_floor_box``); the path functions themselves are
 re-stated in :mod:`.channel_rays_nb` (the per-slot rays: direct, specular, UTD diffraction,
 with the complex fields carried as ``(re, im)`` pairs where they meet a real factor, the
 complex arithmetic's values) because the amplitudes need their interaction points (entry,
@@ -57,7 +57,7 @@ cache (call it at service start).
 :func:`channel_snr_masked_kernel` is the same loop over a per-pair slot mask ``need``
 (:data:`MASKED_SIGNATURE`): the slots needed are evaluated by the same statements, so they
 are bit-identical to the unmasked kernel's; the others are not evaluated and hold NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
-``diffpos.tracking.snr.snr_cost_near``: mostly specular slots near a window-band edge, and
+``diffpos.tracking.model.snr_cost_near``: mostly specular slots near a window-band edge, and
 not the 7 diffraction slots that are ~80 % of a full prediction).
 
 :func:`snr_cost_kernel` is the tracker's SNR cost of the predicted slots (Gaussian about the
@@ -98,29 +98,26 @@ from diffpos.channel.rays_nb import (
     _specular,
     _zenith_deg,
 )
-from diffpos.channel.transition_nb import (
-    ASYMPTOTIC_MIN_ABS,
-    TRANSITION_ASYMPTOTIC_MIN,
-    WEIDEMAN_N,
-    faddeeva,
-    faddeeva_kernel,
-    transition,
-    transition_asymptotic,
-    weideman_coefficients,
-)
 from diffpos.constants import SPEED_OF_LIGHT_M_S
-from diffpos.paths.model_nb import _KIND, N_SLOTS, edge_axis, row_planes
+from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "8a640b8143020009"
+CALLEES_SHA256 = "40c6d401c9981c52"
 
-__all__ = ["ASYMPTOTIC_MIN_ABS", "COST_SIGNATURE", "MASKED_SIGNATURE", "SIGNATURE",
-           "TRANSITION_ASYMPTOTIC_MIN", "WEIDEMAN_N", "channel_params", "channel_snr_kernel",
-           "channel_snr_masked_kernel", "eval_snr_kernel", "eval_snr_masked_kernel", "faddeeva",
-           "faddeeva_kernel", "snr_cost_kernel", "transition", "transition_asymptotic",
-           "warm_channel", "weideman_coefficients"]
+__all__ = [
+    "COST_SIGNATURE",
+    "MASKED_SIGNATURE",
+    "SIGNATURE",
+    "channel_params",
+    "channel_snr_kernel",
+    "channel_snr_masked_kernel",
+    "eval_snr_kernel",
+    "eval_snr_masked_kernel",
+    "snr_cost_kernel",
+    "warm_channel",
+]
 
 
 @njit(**_OPTS)
@@ -145,7 +142,7 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
         for j in range(anchors.shape[1]):
             a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
             for s in range(N_SLOTS):
-                kind = _KIND[s]
+                kind = SLOT_KIND[s]
                 if kind == 0:
                     g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo,
                                                          hi, prm, parts)
@@ -194,7 +191,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
                 if not need[i, j, s]:
                     out[i, j, s] = np.nan
                     continue
-                kind = _KIND[s]
+                kind = SLOT_KIND[s]
                 if kind == 0:
                     g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo,
                                                          hi, prm, parts)
@@ -221,7 +218,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
 
 @njit(**_OPTS)
 def snr_cost_kernel(pred, meas, trust, sigma_db, fap_db, det_db, given_thr, thr, out):
-    """The tracker's SNR cost of every slot (``diffpos.tracking.snr._snr_cost_of``, its
+    """The tracker's SNR cost of every slot (``diffpos.tracking.model._snr_cost_of``, its
     numpy reference: the same operations in the same order, NaN propagated as numpy's ``max``
     does, so bit-identical): ``pred`` (P, K) predicted SNRs [dB], ``meas`` (P,) measured
     [dB], ``trust`` (P, K) bool (the slots whose maximum sets the detector's threshold) ->

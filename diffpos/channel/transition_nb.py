@@ -1,6 +1,6 @@
 """Compiled UTD transition function: the Faddeeva function ``w``, ``F(X)`` and the UTD term
 ``F(k L a(b)) / cos(b/2)`` (:func:`_utd_term`), scalars only, used by the SNR kernel of
-:mod:`diffpos.channel.snr_nb` (which re-exports every public name here).
+:mod:`diffpos.channel.snr_nb` (through :mod:`diffpos.channel.rays_nb`).
 
 ``F(X) = sqrt(pi X) exp(j pi/4) w(exp(j 3 pi/4) sqrt X)``
 (``diffpos.channel.gtd.transition_function``) needs the Faddeeva function ``w`` on the ray
@@ -18,8 +18,8 @@ region to 1e9 (the large-argument regime, ``w ~ j / (sqrt(pi) z)``), 1.5e-14 ove
 ``gtd.transition_function`` 1.3e-14 for ``X`` from 1e-12 to 1e12.
 
 numba keys the cache of :func:`diffpos.channel.snr_nb.channel_snr_kernel` on its own
-file: it compiles these functions into itself, so after editing this file delete
-``diffpos/_kernels/__pycache__/`` (tests/core/test_channel_kernel.py catches a stale cache).
+file: it compiles these functions into itself, so after editing this file update the
+dependants' ``CALLEES_SHA256`` stamps (tests/core/test_kernel_stamps.py names the values).
 """
 
 from __future__ import annotations

@@ -13,4 +13,8 @@ All estimators take ``(B, M, 3)`` anchors, ``(B, M)`` ranges, optional ``(B, M)`
   floor posterior and a model-aware covariance (:class:`MnlsResult`).
 * :func:`ippa.ippa` - iterative parallel projection (Jia & Buehrer 2010) as used by the paper's
   authors, with NLoS ranges projected only when the estimate lies outside their ball.
+
+Shared by them: :mod:`result` (``FixResult``, input preparation), :mod:`starts` (the
+floor-height multi-start of D-NLS and IPPA), :mod:`lm` / :mod:`lm_nb` (the numpy
+Levenberg-Marquardt of D-NLS and its gating, and its compiled twin), :mod:`gating` (RAIM).
 """

@@ -37,8 +37,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from diffpos.estimators.dnls.fit import grid_starts
-from diffpos.estimators.dnls.solver import _check_z_starts
 from diffpos.estimators.result import (
     ExclusionReason,
     FixResult,
@@ -46,6 +44,7 @@ from diffpos.estimators.result import (
     PreparedBatch,
     prepare_batch,
 )
+from diffpos.estimators.starts import check_z_starts, grid_starts
 
 __all__ = ["ippa"]
 
@@ -132,11 +131,12 @@ def _starts(
     z_starts_m: ArrayLike | None,
     y_start_m: float,
 ) -> FloatArray:
-    """Starts ``(B, S, 3)``: the given one per fix, or the D-NLS floor grid."""
+    """Starts ``(B, S, 3)``: the given one per fix, or the floor grid of
+    :func:`diffpos.estimators.starts.grid_starts` (D-NLS's)."""
     if x0_m is not None:
         x0 = np.asarray(x0_m, dtype=np.float64)
         return np.broadcast_to(x0.reshape(-1, 3) if x0.ndim == 1 else x0, (a.shape[0], 3))[:, None]
-    return grid_starts(a, use, _check_z_starts(z_starts_m), y_start_m)
+    return grid_starts(a, use, check_z_starts(z_starts_m), y_start_m)
 
 
 def _project_iterations(

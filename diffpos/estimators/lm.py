@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.bounds import sym3_cofactors
+from diffpos.sym3 import solve3
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -156,31 +156,6 @@ def cost_of(residual_m: FloatArray, sw: FloatArray, loss: str, scale: float) -> 
     z = (u / scale) ** 2
     rho, _ = robust_rho(z, loss)
     return 0.5 * scale * scale * rho.sum(axis=-1)
-
-
-def solve3(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Batched solve of symmetric 3x3 systems ``a x = b`` (LAPACK or cofactors).
-
-    Parameters
-    ----------
-    a : ndarray, shape (N, 3, 3)
-    b : ndarray, shape (N, 3)
-    """
-    if a.shape[0] <= 128:  # LAPACK is cheaper for a few systems, cofactors for many
-        try:
-            return np.linalg.solve(a, b[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            pass  # a singular system: the cofactor form gives inf/nan for that row only
-    c00, c01, c02, c11, c12, c22, det = sym3_cofactors(
-        a[:, 0, 0], a[:, 0, 1], a[:, 0, 2], a[:, 1, 1], a[:, 1, 2], a[:, 2, 2]
-    )
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_det = 1.0 / det
-        x0 = (c00 * b0 + c01 * b1 + c02 * b2) * inv_det
-        x1 = (c01 * b0 + c11 * b1 + c12 * b2) * inv_det
-        x2 = (c02 * b0 + c12 * b1 + c22 * b2) * inv_det
-    return np.stack([x0, x1, x2], axis=-1)
 
 
 @dataclass(frozen=True)

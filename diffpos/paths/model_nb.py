@@ -41,18 +41,21 @@ import time
 import numpy as np
 from numba import njit, types
 
-__all__ = ["N_SLOTS", "SIGNATURE", "building_planes", "edge_axis", "eval_paths_kernel",
-           "paths_kernel", "row_planes", "slot_path", "warm_paths"]
+__all__ = ["N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLOT_PLANE0",
+           "SLOT_PLANE1", "building_planes", "edge_axis", "eval_paths_kernel", "in_floor_box",
+           "inside_plane", "mirror", "paths_kernel", "row_planes", "slot_path", "warm_paths"]
 
 #: Slot recipes, the compiled twin of ``diffpos.paths.model._RECIPES`` (a test checks they agree).
 #: kind: 0 direct, 1 specular, 2 diffraction. Plane codes: 0 floor, 1 ceiling, 2 back,
-#: 3 side x1, 4 side x2, -1 none. Edge: 0 upper, 1 lower.
-_KIND = np.array([0, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 2, 1, 1, 1, 1], dtype=np.int64)
-_GROUND = np.array([0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0], dtype=np.int64)
-_PLANE0 = np.array([-1, -1, 0, 1, 2, 3, 4, -1, -1, 0, 1, 0, 1, 2, 1, 1, 0, 1], dtype=np.int64)
-_PLANE1 = np.array([-1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 0, 1, 2],
+#: 3 side x1, 4 side x2, -1 none. Edge: 0 upper, 1 lower. Shared with the compiled channel
+#: (:mod:`diffpos.channel.rays_nb`, :mod:`diffpos.channel.snr_nb`), as are
+#: :func:`inside_plane`, :func:`in_floor_box` and :func:`mirror`.
+SLOT_KIND = np.array([0, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 2, 1, 1, 1, 1], dtype=np.int64)
+SLOT_GROUND = np.array([0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0], dtype=np.int64)
+SLOT_PLANE0 = np.array([-1, -1, 0, 1, 2, 3, 4, -1, -1, 0, 1, 0, 1, 2, 1, 1, 0, 1], dtype=np.int64)
+SLOT_PLANE1 = np.array([-1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 0, 1, 2],
                    dtype=np.int64)
-_EDGE = np.array([-1, -1, -1, -1, -1, -1, -1, 0, 1, 0, 0, 1, 1, 0, -1, -1, -1, -1],
+SLOT_EDGE = np.array([-1, -1, -1, -1, -1, -1, -1, 0, 1, 0, 0, 1, 1, 0, -1, -1, -1, -1],
                  dtype=np.int64)
 N_SLOTS = 18
 _TOL = 1e-9  # in_floor_box tolerance [m] (FloorFrame.in_floor_box)
@@ -74,7 +77,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 
 
 @njit(**_OPTS)
-def _plane(code, zf, zc, x0, x1, depth):
+def inside_plane(code, zf, zc, x0, x1, depth):
     """(axis, coordinate) of an inside plane (FloorFrame.plane)."""
     if code == 0:
         return 2, zf
@@ -88,7 +91,7 @@ def _plane(code, zf, zc, x0, x1, depth):
 
 
 @njit(**_OPTS)
-def _in_box(r0, r1, r2, zf, zc, x0, x1, depth):
+def in_floor_box(r0, r1, r2, zf, zc, x0, x1, depth):
     """FloorFrame.in_floor_box with its 1e-9 m tolerance."""
     return ((r0 >= x0 - _TOL) and (r0 <= x1 + _TOL) and (r1 >= -_TOL)
             and (r1 <= depth + _TOL) and (r2 >= zf - _TOL) and (r2 <= zc + _TOL))
@@ -104,7 +107,7 @@ def _get(v0, v1, v2, axis):
 
 
 @njit(**_OPTS)
-def _mirror(v0, v1, v2, axis, c):
+def mirror(v0, v1, v2, axis, c):
     """Mirror (v0, v1, v2) in the plane ``v[axis] = c`` (paths._mirror)."""
     if axis == 0:
         return 2.0 * c - v0, v1, v2
@@ -136,8 +139,8 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, pl0, pl1, zf, zc, x0, x1, depth):
     g0 = g1 = g2 = 1.0
     n_pl = 0 if pl0 < 0 else (1 if pl1 < 0 else 2)
     for j in range(n_pl - 1, -1, -1):  # image: last plane first
-        ax, c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
-        i0, i1, i2 = _mirror(i0, i1, i2, ax, c)
+        ax, c = inside_plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+        i0, i1, i2 = mirror(i0, i1, i2, ax, c)
         if ax == 0:
             g0 = -g0
         elif ax == 1:
@@ -161,13 +164,13 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, pl0, pl1, zf, zc, x0, x1, depth):
     m0, m1, m2 = i0, i1, i2
     t_last = t_f
     for j in range(n_pl):
-        ax, c = _plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+        ax, c = inside_plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
         dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
         t = (c - _get(c0, c1, c2, ax)) / _get(dd0, dd1, dd2, ax)
         ok = ok and (t > t_last) and (t < 1)
-        ok = ok and _in_box(c0 + t * dd0, c1 + t * dd1, c2 + t * dd2, zf, zc, x0, x1, depth)
-        m0, m1, m2 = _mirror(m0, m1, m2, ax, c)
-        c0, c1, c2 = _mirror(c0, c1, c2, ax, c)
+        ok = ok and in_floor_box(c0 + t * dd0, c1 + t * dd1, c2 + t * dd2, zf, zc, x0, x1, depth)
+        m0, m1, m2 = mirror(m0, m1, m2, ax, c)
+        c0, c1, c2 = mirror(c0, c1, c2, ax, c)
         t_last = t
     ok = ok and math.isfinite(length)
     return length, ok, ez, d0, d1, d2, g0, g1, g2
@@ -183,8 +186,8 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth, edge):
     ax = 0
     c = 0.0
     if then >= 0:
-        ax, c = _plane(then, zf, zc, x0, x1, depth)
-        o0, o1, o2 = _mirror(n0, n1, n2, ax, c)
+        ax, c = inside_plane(then, zf, zc, x0, x1, depth)
+        o0, o1, o2 = mirror(n0, n1, n2, ax, c)
         if ax == 0:
             g0 = -1.0
         elif ax == 1:
@@ -222,7 +225,7 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth, edge):
     if then >= 0:  # reflection point between the edge and the node, on the inside surface
         tr = (c - _get(q0, q1, q2, ax)) / _get(u0, u1, u2, ax)
         ok = ok and (tr > 0) and (tr < 1)
-        ok = ok and _in_box(q0 + tr * u0, q1 + tr * u1, q2 + tr * u2, zf, zc, x0, x1, depth)
+        ok = ok and in_floor_box(q0 + tr * u0, q1 + tr * u1, q2 + tr * u2, zf, zc, x0, x1, depth)
     u0, u1, u2 = u0 / nu, u1 / nu, u2 / nu
     v0, v1, v2 = q0 - a0, q1 - a1, q2 - a2
     v0, v1, v2 = v0 / d_in, v1 / d_in, v2 / d_in
@@ -260,12 +263,12 @@ def slot_path(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, ra
     they do not apply).
     """
     nan = np.nan
-    kind = _KIND[s]
+    kind = SLOT_KIND[s]
     dv = nan
     om = nan
     if kind == 2:
-        z_e = hi if _EDGE[s] == 0 else lo
-        ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, z_e, _PLANE0[s], zf,
+        z_e = hi if SLOT_EDGE[s] == 0 else lo
+        ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, z_e, SLOT_PLANE0[s], zf,
                                                  zc, x0, x1, depth, edge)
         ez = nan
     else:
@@ -273,7 +276,7 @@ def slot_path(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, ra
             ln, ok, ez, d0, d1, d2, g0, g1, g2 = _direct(a0, a1, a2, n0, n1, n2, x0, x1)
         else:
             ln, ok, ez, d0, d1, d2, g0, g1, g2 = _specular(
-                a0, a1, a2, n0, n1, n2, _GROUND[s] == 1, _PLANE0[s], _PLANE1[s], zf, zc, x0,
+                a0, a1, a2, n0, n1, n2, SLOT_GROUND[s] == 1, SLOT_PLANE0[s], SLOT_PLANE1[s], zf, zc, x0,
                 x1, depth)
         if not raw:
             ok = ok and (ez > lo) and (ez < hi)
@@ -318,11 +321,11 @@ def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, d
 def _fill_recipes(kind, ground, plane0, plane1, edge):
     """Copies of the compiled slot tables (for the test against ``paths._RECIPES``)."""
     for s in range(N_SLOTS):
-        kind[s] = _KIND[s]
-        ground[s] = _GROUND[s]
-        plane0[s] = _PLANE0[s]
-        plane1[s] = _PLANE1[s]
-        edge[s] = _EDGE[s]
+        kind[s] = SLOT_KIND[s]
+        ground[s] = SLOT_GROUND[s]
+        plane0[s] = SLOT_PLANE0[s]
+        plane1[s] = SLOT_PLANE1[s]
+        edge[s] = SLOT_EDGE[s]
 
 
 _state: dict[str, object] = {}

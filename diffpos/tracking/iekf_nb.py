@@ -3,9 +3,9 @@ evidence per hypothesis) and the prior's information matrix (:func:`prior_info_k
 the 6 x 6 LU (partial pivoting) they share; moved verbatim from
 :mod:`diffpos.tracking.model_nb`, whose per-row bodies of the link model and the normal
 equations (``_model_row``, ``_terms_row``) they compile in. Held to
-``tracking_model._iekf_numpy`` / ``_prior_information_numpy`` within a tolerance
-(tests/core/test_tracking_kernel.py). numba keys a kernel's cache on its own file: after
-editing ``tracking_nb.py`` delete ``diffpos/_kernels/__pycache__/`` (DEVELOPING.md).
+``diffpos.tracking.model._iekf_numpy`` / ``_prior_information_numpy`` within a tolerance
+(tests/core/test_tracking_kernel.py). numba keys a kernel's cache on its own file: the
+``CALLEES_SHA256`` stamp below changes with the code it compiles in.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ __all__ = ["iekf_kernel", "prior_info_kernel", "warm_iekf"]
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "aa1a03455698a0e4"
+CALLEES_SHA256 = "bf765d6a37272364"
 
 
 #: The IEKF's state dimension (a compile-time constant: the 6 x 6 loops unroll).
@@ -263,7 +263,7 @@ def iekf_kernel(x_prior, y, logdet_y, lo, hi, z_nom, wh, h_const, anchors, floor
 
 def warm_iekf(planes: tuple, anc: np.ndarray) -> None:
     """Compile (or load from numba's cache) :func:`prior_info_kernel` and :func:`iekf_kernel`
-    on tiny inputs (called by ``tracking_nb.warm_tracking``)."""
+    on tiny inputs (called by :func:`diffpos.tracking.tracker.warm_tracking`)."""
     one, onef = np.ones((1, 1)), np.ones((1, 1, 1))
     mask = np.ones((1, 1), np.bool_)
     i3 = np.zeros((1, 1, 1), np.int64)

@@ -14,13 +14,13 @@ from numba import njit
 from diffpos._kernels.npsum_nb import pairwise_sum as _pairwise_sum
 from diffpos.paths.model_nb import edge_axis, row_planes, slot_path
 
-__all__ = ["GRID_BOUND_SLACK_M", "grid_cost_kernel"]
+__all__ = ["GRID_BOUND_SLACK_M", "grid_cost_kernel", "warm_grid"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "35799719a1acc554"
+CALLEES_SHA256 = "983a98e6336befc7"
 
 
 @njit(**_OPTS)
@@ -198,3 +198,12 @@ def grid_cost_kernel(cells, z, floor, anchors, rho, var, mask, is_band, is_diff,
                 total[n, f, c] = t
                 if prune and t < np.inf:  # finite (not NaN, not +inf)
                     n_best = _keep_smallest(best, n_best, keep, t)
+
+
+def warm_grid(planes: tuple, anc: np.ndarray) -> None:
+    """Compile (or load from numba's cache) :func:`grid_cost_kernel` on tiny inputs (called by
+    :func:`diffpos.tracking.tracker.warm_tracking`). ``planes``: the building's planes
+    (:func:`diffpos.paths.model_nb.building_planes`), ``anc`` (1, 1, 3)."""
+    one, mask, flags = np.ones((1, 1)), np.ones((1, 1), np.bool_), np.zeros(18, np.bool_)
+    grid_cost_kernel(np.ones((1, 2)), np.array([[4.5]]), np.zeros((1, 1)), anc, one, one, mask,
+                     flags, flags, 1.0, 7.0, 3, *planes, np.empty((1, 1, 1)))

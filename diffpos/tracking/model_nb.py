@@ -23,24 +23,21 @@ tolerance.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 from numba import njit
 
 from diffpos._kernels.npsum_nb import pairwise_sum as _pairwise_sum
 from diffpos.paths.model_nb import edge_axis, row_planes, slot_path
-from diffpos.tracking.initialisation_nb import grid_cost_kernel
 
-__all__ = ["all_paths_kernel", "grid_cost_kernel", "iekf_terms_kernel", "model_kernel",
-           "select_best_kernel", "select_mix_kernel", "select_pack_kernel", "select_prep_kernel",
-           "warm_tracking"]
+__all__ = ["all_paths_kernel", "iekf_terms_kernel", "model_kernel", "select_best_kernel",
+           "select_mix_kernel", "select_pack_kernel", "select_prep_kernel", "warm_model"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "ea1559bba3bf0c21"
+CALLEES_SHA256 = "983a98e6336befc7"
 
 
 @njit(**_OPTS)
@@ -416,16 +413,13 @@ def _terms_row(y, x, lo, hi, z_nom, rho, model, jm, w, wb, wh, a, e, eb, gpart):
     return eh
 
 
-def warm_tracking() -> float:
-    """Compile the tracker's kernels (or load them from numba's on-disk cache) on tiny inputs:
-    ~4-6 s the first time on a machine, then ~0.2-0.3 s (the callers in
-    ``tracking_model`` pass C-contiguous writable arrays, so one signature per kernel).
-    Returns the seconds it took. (The fusion's warm-up runs a throw-away tracker update,
-    which does the same.)"""
-    t0 = time.perf_counter()
+def warm_model(planes: tuple, anc: np.ndarray) -> None:
+    """Compile (or load from numba's cache) this module's kernels on tiny inputs (the callers
+    in :mod:`diffpos.tracking.model` pass C-contiguous writable arrays, so one signature per
+    kernel; called by :func:`diffpos.tracking.tracker.warm_tracking`). ``planes``: the
+    building's planes (:func:`diffpos.paths.model_nb.building_planes`), ``anc`` (1, 1, 3)."""
     f8 = np.float64
-    planes = (3.0, 3.0, 0.9, 1.5, -20.0, 20.0, 22.0)
-    pos, anc = np.array([[[1.0, 5.0, 4.5]]]), np.array([[[0.0, -15.0, 1.0]]])
+    pos = np.array([[[1.0, 5.0, 4.5]]])
     one, onef = np.ones((1, 1)), np.ones((1, 1, 1))
     mask = np.ones((1, 1), np.bool_)
     model_kernel(pos, anc, np.zeros((1, 1)), np.zeros((1, 1, 1), np.int64), onef, one, one,
@@ -438,8 +432,6 @@ def warm_tracking() -> float:
                        np.ones((1, 1, 3, 3)), one, one, np.ones((1, 1, 1, k)), True,
                        np.zeros(2), f8(0.0), np.empty((1, 1, 1, k), np.bool_),
                        np.empty((1, 1, 1, k)), np.empty((1, 1, 1, k)))
-    grid_cost_kernel(np.ones((1, 2)), np.array([[4.5]]), np.zeros((1, 1)), anc, one, one, mask,
-                     flags, flags, 1.0, 7.0, 3, *planes, np.empty((1, 1, 1)))
     b4 = np.empty((1, 1, 1, k), np.bool_)
     all_paths_kernel(pos, anc, np.zeros((1, 1)), np.full((1, 1), 0.2), flags, *planes,
                      np.empty((1, 1, 1, k)), np.empty((1, 1, 1, k, 3)), b4, b4.copy(), b4.copy())
@@ -456,13 +448,7 @@ def warm_tracking() -> float:
                        np.empty((1, 1, 1)))
     select_mix_kernel(np.ones((1, 1, 1, k)), b4k, i3, i3.copy(), ex, np.empty((1, 1, 1)),
                       np.empty((1, 1, 1)))
-    from diffpos.tracking.iekf_nb import warm_iekf  # it imports this module: not at the top
-    from diffpos.tracking.snr_nb import warm_snr_cache
-
-    warm_iekf(planes, anc)
-    warm_snr_cache()
     x6, p3 = np.ones((1, 1, 6)), np.ones((1, 1, 3))
     iekf_terms_kernel(np.ones((1, 1, 6, 6)), x6, p3, p3, one, one, onef, np.ones((1, 1, 1, 3)),
                       onef, 1.0, one, np.empty((1, 1, 6, 6)), np.empty((1, 1, 1)),
                       np.empty((1, 1, 3)), np.empty((1, 1)), np.empty((1, 1, 3)))
-    return time.perf_counter() - t0

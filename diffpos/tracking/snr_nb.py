@@ -1,4 +1,4 @@
-"""Compiled bookkeeping of the tracker's SNR cache (:func:`diffpos.tracking.snr._snr_cost_cached`):
+"""Compiled bookkeeping of the tracker's SNR cache (:func:`diffpos.tracking.model._snr_cost_cached`):
 which cached links are reused, which slots are predicted, and the cache's update. Pure data
 movement and comparisons (no arithmetic on the values but the float32 rounding numpy's
 assignment does), so the results are numpy's bit for bit; replaced the numpy version's
@@ -87,7 +87,7 @@ def cache_store_kernel(near, hit, known, need, cached, anc, pred, c_anchor, c_pr
 
 def warm_snr_cache() -> None:
     """Compile (or load from numba's cache) both kernels on tiny inputs of the tracker's
-    types (called by ``tracking_nb.warm_tracking``)."""
+    types (called by :func:`diffpos.tracking.tracker.warm_tracking`)."""
     k, s = 18, 8
     b2, b3, b4 = (np.ones((1, 1), np.bool_), np.ones((1, 1, 1), np.bool_),
                   np.ones((1, 1, 1, k), np.bool_))

@@ -5,7 +5,7 @@
 ``h = mode * F + floor`` (mode 0 level, 1 vertical: :func:`hypothesis_floor`,
 :func:`hypothesis_vertical`, :func:`n_floors_of`) and the floor marginal
 (:func:`floor_probabilities`). Imports nothing from the other tracking modules, so that each of
-them can use it; :mod:`diffpos.tracking.tracker` re-exports every name (import them from there).
+them can use it.
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ class TrackStatus(enum.IntEnum):
 @dataclass(frozen=True)
 class TrackerConfig:
     """Tracker constants (the docstrings of :mod:`diffpos.tracking.tracker`,
-    :mod:`diffpos.tracking.imm` and :mod:`diffpos.tracking.dormant` give the physical
+    :mod:`diffpos.tracking.imm` and :mod:`diffpos.tracking.tracker` give the physical
     source of each).
 
     Attributes
@@ -134,7 +134,7 @@ class TrackerConfig:
         (46.0 % / 88.5 % with and without) and a snapshot costs ~0.1-0.3 s per node-floor.
     dormant : bool
         Skip the measurement update of hypotheses the data has decided against (*dormant*,
-        see :mod:`diffpos.tracking.dormant`); False: every hypothesis of every
+        see :mod:`diffpos.tracking.tracker`); False: every hypothesis of every
         node is updated every epoch.
     dormant_margin_nats : float [nats]
         A hypothesis becomes dormant when its posterior probability is below the mass the
@@ -167,7 +167,7 @@ class TrackerConfig:
     snr_reuse_m, snr_reuse_anchor_m : float [m]
         Default 0.05 / 0.1 m: the reuse is on (an approximation). A hypothesis' predicted
         SNRs of the slots :data:`SNR_CACHE_SLOTS` (direct and diffraction) of its first
-        :data:`SNR_CACHE_LINKS` links (:func:`diffpos.tracking.snr.snr_cost_near`; the SNR
+        :data:`SNR_CACHE_LINKS` links (:func:`diffpos.tracking.model.snr_cost_near`; the SNR
         prediction was ~30 % of the tracker's CPU) are reused while its prior is within
         ``snr_reuse_m`` of the point they were predicted at (that point stays until the
         prior leaves the margin) and a link's while its anchor is within

@@ -31,11 +31,12 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.estimators.dnls.solver import DEFAULT_Z_STARTS_M, dnls
+from diffpos.estimators.dnls.solver import dnls
 from diffpos.estimators.gating import GatingConfig
 from diffpos.estimators.ippa import ippa
 from diffpos.estimators.lls import lls
 from diffpos.estimators.mnls.solver import mnls
+from diffpos.estimators.starts import DEFAULT_Z_STARTS_M
 from diffpos_services.wire.solve_io import (
     DEFAULT_LIMITS,
     RESULT_KEYS,

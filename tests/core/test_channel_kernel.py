@@ -11,7 +11,7 @@ Tolerances:
 
 * Faddeeva ``w(z)`` vs ``scipy.special.wofz``: 5e-14 relative (measured max 2.3e-14 on the
   sampled upper half-plane, 1.4e-14 on the UTD ray; scipy's own accuracy is ~1e-15 to 1e-14);
-  the UTD transition function vs :func:`diffpos.channel.gtd.transition_function`: 5e-14 relative.
+  the UTD transition function vs :func:`diffpos.channel.gtd_halfplane.transition_function`: 5e-14 relative.
 * SNR: 1e-9 dB. An SNR is ``20 log10 |g|`` + constants, so a relative error ``d`` of ``|g|``
   is ``8.7 d`` dB: the kernel's sources of error are rounding (~1e-16 relative per operation,
   a few hundred operations) and the 5e-14 of ``w``, amplified where the soft/hard coefficient
@@ -37,7 +37,7 @@ import pytest
 from scipy.special import wofz
 
 from diffpos.channel import emulator as channel
-from diffpos.channel import snr_nb as channel_nb
+from diffpos.channel import transition_nb
 from diffpos.channel.emulator import _pair_snr_db_numpy, emulate_channel, first_arrival, pair_snr_db
 from diffpos.channel.gtd_halfplane import transition_function
 from diffpos.estimators.mnls.solver import mnls
@@ -101,7 +101,7 @@ def _geometries(b: Building, rng: np.random.Generator, n: int, m: int
 def _w(z: np.ndarray) -> np.ndarray:
     z = np.ascontiguousarray(z, dtype=np.complex128).ravel()
     out = np.empty_like(z)
-    channel_nb.faddeeva_kernel(z, out)
+    transition_nb.faddeeva_kernel(z, out)
     return out
 
 
@@ -114,7 +114,7 @@ def test_faddeeva_on_the_utd_ray_matches_scipy() -> None:
     the small-argument and transition regimes (dense to t = 12, both sides of the switch to the
     asymptotic series at |z| = 8) and the large-argument regime up to t = 1e9."""
     t = np.concatenate([[0.0, 1e-300, 1e-12], np.logspace(-10, -1, 200), np.linspace(0, 12, 6001),
-                        channel_nb.ASYMPTOTIC_MIN_ABS * (1 + np.array([-1e-15, 0, 1e-15])),
+                        transition_nb.ASYMPTOTIC_MIN_ABS * (1 + np.array([-1e-15, 0, 1e-15])),
                         np.logspace(1, 9, 800)])
     z = np.exp(0.75j * np.pi) * t
     w = _w(z)
@@ -136,13 +136,13 @@ def test_faddeeva_over_the_upper_half_plane_matches_scipy() -> None:
 
 
 def test_transition_function_matches_gtd() -> None:
-    """``F(X)`` of the kernel vs :func:`diffpos.channel.gtd.transition_function` (scipy's wofz) from
+    """``F(X)`` of the kernel vs :func:`diffpos.channel.gtd_halfplane.transition_function` (scipy's wofz) from
     X = 0 to 1e12, densely around the switch to the asymptotic series; the limits F(0) = 0,
     F ~ sqrt(pi X) exp(j pi/4) (X -> 0) and F -> 1 + j / (2X) (X -> inf) follow."""
-    xmin = channel_nb.TRANSITION_ASYMPTOTIC_MIN
+    xmin = transition_nb.TRANSITION_ASYMPTOTIC_MIN
     x = np.concatenate([[0.0], np.logspace(-12, 12, 2000), np.linspace(0, 200, 4001),
                         xmin * (1 + np.array([-2e-16, 0.0, 2e-16]))])
-    f = np.array([channel_nb.transition(float(v)) for v in x])
+    f = np.array([transition_nb.transition(float(v)) for v in x])
     ref = transition_function(x)
     zero = x == 0
     assert np.all(f[zero] == 0)

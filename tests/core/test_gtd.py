@@ -13,7 +13,7 @@ import pytest
 from scipy.integrate import quad
 from scipy.special import fresnel
 
-from diffpos.channel import gtd
+from diffpos.channel import gtd, gtd_halfplane
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.geometry import diffraction_point
 
@@ -51,14 +51,14 @@ def _f_fresnel(x):
 
 @pytest.mark.parametrize("x", [1e-3, 0.05, 0.3, 1.0, 2.5, 7.0, 20.0, 60.0])
 def test_transition_function_matches_quadrature(x):
-    got = gtd.transition_function(x)
+    got = gtd_halfplane.transition_function(x)
     ref = _f_quad(x)
     assert abs(got - ref) < 1e-7 * max(1.0, abs(ref))
 
 
 def test_transition_function_matches_fresnel_form():
     x = np.logspace(-4, 3, 57)
-    got = gtd.transition_function(x)
+    got = gtd_halfplane.transition_function(x)
     ref = _f_fresnel(x)
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12)
 
@@ -67,9 +67,9 @@ def test_transition_function_small_argument():
     # F(X) = sqrt(pi X) e^{j pi/4} (1 + O(sqrt X)); F(0) = 0.
     x = np.array([1e-12, 1e-9, 1e-6, 1e-4])
     lead = np.sqrt(np.pi * x) * np.exp(0.25j * np.pi)
-    rel = np.abs(gtd.transition_function(x) / lead - 1)
+    rel = np.abs(gtd_halfplane.transition_function(x) / lead - 1)
     assert np.all(rel < 3 * np.sqrt(x))
-    assert gtd.transition_function(0.0) == 0
+    assert gtd_halfplane.transition_function(0.0) == 0
 
 
 def test_transition_function_large_argument():
@@ -78,14 +78,14 @@ def test_transition_function_large_argument():
     x = np.array([10.0, 30.0, 1e2, 1e4, 1e8, 1e12, 1e16])
     series = 1 + 1j / (2 * x) - 3 / (4 * x**2) - 15j / (8 * x**3) + 105 / (16 * x**4)
     next_term = 945 / (32 * x**5)
-    err = np.abs(gtd.transition_function(x) - series)
+    err = np.abs(gtd_halfplane.transition_function(x) - series)
     assert np.all(err < 2 * next_term + 1e-14)
-    assert abs(gtd.transition_function(1e16) - 1) < 1e-14
+    assert abs(gtd_halfplane.transition_function(1e16) - 1) < 1e-14
 
 
 def test_transition_function_rejects_negative():
     with pytest.raises(ValueError, match="X must be >= 0"):
-        gtd.transition_function([1.0, -0.1])
+        gtd_halfplane.transition_function([1.0, -0.1])
 
 
 # ----------------------------------------------------------------------------------------
@@ -108,7 +108,7 @@ def _random_edge_geometry(rng, n):
 def test_frame_orthonormal_and_law_of_diffraction():
     rng = np.random.default_rng(1)
     src, obs, q, e, t = _random_edge_geometry(rng, 500)
-    f = gtd.edge_frame(src, obs, q, e, t)
+    f = gtd_halfplane.edge_frame(src, obs, q, e, t)
     eye = np.eye(3)
     for triple in (
         (f.s_in, f.beta0_in, f.phi_in),
@@ -137,7 +137,7 @@ def test_frame_orthonormal_and_law_of_diffraction():
 def test_psi_matches_paper_sgn_arccos_rule():
     rng = np.random.default_rng(2)
     src, obs, q, e, t = _random_edge_geometry(rng, 500)
-    f = gtd.edge_frame(src, obs, q, e, t)
+    f = gtd_halfplane.edge_frame(src, obs, q, e, t)
     # the paper's rule, literally, with the frame's n0/t0
     st_in = _unit(f.s_in - _dot(f.s_in, f.edge)[:, None] * f.edge)
     st_out = _unit(f.s_out - _dot(f.s_out, f.edge)[:, None] * f.edge)
@@ -159,12 +159,12 @@ def test_field_independent_of_edge_sense_and_linear_in_e0():
     e1 = rng.normal(size=(200, 3)) + 1j * rng.normal(size=(200, 3))
     e2 = rng.normal(size=(200, 3))
     kw = {"frequency_hz": F_HZ}
-    f_a = gtd.diffracted_field(src, obs, q, e, t, e1, **kw)
-    f_b = gtd.diffracted_field(src, obs, q, -e, t, e1, **kw)
+    f_a = gtd_halfplane.diffracted_field(src, obs, q, e, t, e1, **kw)
+    f_b = gtd_halfplane.diffracted_field(src, obs, q, -e, t, e1, **kw)
     np.testing.assert_allclose(f_a, f_b, rtol=1e-12, atol=0)
     a, b = 0.3 - 1.2j, 2.0
-    lin = gtd.diffracted_field(src, obs, q, e, t, a * e1 + b * e2, **kw)
-    ref = a * f_a + b * gtd.diffracted_field(src, obs, q, e, t, e2, **kw)
+    lin = gtd_halfplane.diffracted_field(src, obs, q, e, t, a * e1 + b * e2, **kw)
+    ref = a * f_a + b * gtd_halfplane.diffracted_field(src, obs, q, e, t, e2, **kw)
     np.testing.assert_allclose(lin, ref, rtol=1e-10, atol=1e-14 * np.abs(ref).max())
     # transverse to the diffracted ray
     s_hat = _unit(obs - q)
@@ -215,11 +215,11 @@ def test_utd_plane_wave_reproduces_sommerfeld_exact(k_rho, psi_in_deg):
     kw = {"frequency_hz": F_HZ, "coefficients": "utd", "spreading": "paper"}
     norm = far * np.exp(1j * K * far)  # divide out the incident field at Q
     # soft: E parallel to the edge; u = E . e
-    ed = gtd.diffracted_field(src, obs, q, e, t0, e, **kw)
+    ed = gtd_halfplane.diffracted_field(src, obs, q, e, t0, e, **kw)
     u_d_soft = _dot(ed, e) * norm
     # hard: E along phi' (H along the edge); u = H_e / H^i_e(Q) = -E^d_phi / E^i_phi'(Q)
-    frame = gtd.edge_frame(src, obs, q, e, t0)
-    ed_h = gtd.diffracted_field(src, obs, q, e, t0, frame.phi_in, **kw)
+    frame = gtd_halfplane.edge_frame(src, obs, q, e, t0)
+    ed_h = gtd_halfplane.diffracted_field(src, obs, q, e, t0, frame.phi_in, **kw)
     u_d_hard = -_dot(ed_h, frame.phi_out) * norm
     lit_i = psi < np.pi + psi_in
     lit_r = psi < np.pi - psi_in
@@ -247,7 +247,7 @@ def test_keller_vs_exact_away_from_boundaries():
     rho = np.full_like(psi, k_rho / K)
     e, t0, src, obs, far = _plane_wave_setup(np.full_like(psi, psi_in), psi, rho)
     norm = far * np.exp(1j * K * far)
-    ek = gtd.diffracted_field(
+    ek = gtd_halfplane.diffracted_field(
         src, obs, np.zeros(3), e, t0, e, frequency_hz=F_HZ, coefficients="keller", spreading="paper"
     )
     u_k = _dot(ek, e) * norm
@@ -267,8 +267,8 @@ def test_utd_tends_to_keller_away_from_boundaries():
     psi = rng.uniform(0, 2 * np.pi, n)
     gamma0 = rng.uniform(0.2, np.pi / 2, n)
     big_l = rng.uniform(0.01, 20.0, n)
-    ds_u, dh_u = gtd.utd_coefficients(psi, psi_in, gamma0, big_l, frequency_hz=F_HZ)
-    ds_k, dh_k = gtd.keller_coefficients(psi, psi_in, gamma0, frequency_hz=F_HZ)
+    ds_u, dh_u = gtd_halfplane.utd_coefficients(psi, psi_in, gamma0, big_l, frequency_hz=F_HZ)
+    ds_k, dh_k = gtd_halfplane.keller_coefficients(psi, psi_in, gamma0, frequency_hz=F_HZ)
     a_m = 2 * np.cos((psi - psi_in) / 2) ** 2
     a_p = 2 * np.cos((psi + psi_in) / 2) ** 2
     x_min = K * big_l * np.minimum(a_m, a_p)
@@ -304,7 +304,7 @@ def _isb_scan(delta, e0, *, coefficients="utd", gamma_deg=70.0):
     psi = np.pi + psi_in + np.asarray(delta)
     dir_obs = np.cos(g) * e + np.sin(g) * (np.cos(psi)[:, None] * t0 + np.sin(psi)[:, None] * n0)
     obs = q + s * dir_obs
-    ed = gtd.diffracted_field(src, obs, q, e, t0, e0, frequency_hz=F_HZ, coefficients=coefficients)
+    ed = gtd_halfplane.diffracted_field(src, obs, q, e, t0, e0, frequency_hz=F_HZ, coefficients=coefficients)
     r_vec = obs - src
     r = np.linalg.norm(r_vec, axis=-1)
     r_hat = r_vec / r[:, None]
@@ -361,7 +361,7 @@ def test_utd_soft_continuous_across_reflection_boundary():
     delta = np.array([-1e-4, 1e-4, -1e-3, 1e-3])
     psi = np.pi - psi_in + delta
     obs = 2.5 * (np.cos(psi)[:, None] * t0 + np.sin(psi)[:, None] * n0)
-    ed = gtd.diffracted_field(src, obs, np.zeros(3), e, t0, e, frequency_hz=F_HZ)
+    ed = gtd_halfplane.diffracted_field(src, obs, np.zeros(3), e, t0, e, frequency_hz=F_HZ)
     u_d = _dot(ed, e)
     r_img = np.linalg.norm(obs - img, axis=-1)
     # the direct GO field is continuous here; only the reflected GO field switches off
@@ -378,18 +378,18 @@ def test_spreading_paper_vs_spherical_ratio():
     src, obs, q, e, t = _random_edge_geometry(rng, 100)
     e0 = np.array([0.4, -0.2, 1.0])
     kw = {"frequency_hz": F_HZ, "coefficients": "keller"}
-    sph = gtd.diffracted_field(src, obs, q, e, t, e0, spreading="spherical", **kw)
-    pap = gtd.diffracted_field(src, obs, q, e, t, e0, spreading="paper", **kw)
+    sph = gtd_halfplane.diffracted_field(src, obs, q, e, t, e0, spreading="spherical", **kw)
+    pap = gtd_halfplane.diffracted_field(src, obs, q, e, t, e0, spreading="paper", **kw)
     sp = np.linalg.norm(q - src, axis=-1)
     so = np.linalg.norm(obs - q, axis=-1)
     np.testing.assert_allclose(pap, sph * np.sqrt((sp + so) / sp)[:, None], rtol=1e-10)
     # distance parameters
-    fr = gtd.edge_frame(src, obs, q, e, t)
+    fr = gtd_halfplane.edge_frame(src, obs, q, e, t)
     np.testing.assert_allclose(
-        gtd.distance_parameter_m(sp, so, fr.sin_gamma0), so * sp * fr.sin_gamma0**2 / (so + sp)
+        gtd_halfplane.distance_parameter_m(sp, so, fr.sin_gamma0), so * sp * fr.sin_gamma0**2 / (so + sp)
     )
     np.testing.assert_allclose(
-        gtd.distance_parameter_m(sp, so, fr.sin_gamma0, spreading="paper"), so * fr.sin_gamma0**2
+        gtd_halfplane.distance_parameter_m(sp, so, fr.sin_gamma0, spreading="paper"), so * fr.sin_gamma0**2
     )
 
 
@@ -469,7 +469,7 @@ def test_window_edge_fields_match_corollary2_with_paper_spreading():
     )
     for edge, got in (("upper", eu), ("lower", el)):
         f = gtd.window_edge_frame(a, nd, window_height_m=w, edge=edge)
-        ds, _ = gtd.keller_coefficients(f.psi_rad, f.psi_in_rad, f.gamma0_rad, frequency_hz=F_HZ)
+        ds, _ = gtd_halfplane.keller_coefficients(f.psi_rad, f.psi_in_rad, f.gamma0_rad, frequency_hz=F_HZ)
         phase = np.exp(-1j * K * (f.s_in_m + f.s_out_m)) / (f.s_in_m * np.sqrt(f.s_out_m))
         ref = -(f.beta0_in[:, 0] * ds * phase)[:, None] * f.beta0_out
         np.testing.assert_allclose(got, ref, rtol=1e-9)
@@ -487,8 +487,8 @@ def test_bad_inputs_raise_clear_errors():
     with pytest.raises(ValueError, match="spreading"):
         gtd.window_edge_fields(a, n, window_height_m=1.5, spreading="cylindrical")
     with pytest.raises(ValueError, match="face_dir"):
-        gtd.edge_frame(a, n, np.zeros(3), [1, 0, 0], [2, 0, 0])
+        gtd_halfplane.edge_frame(a, n, np.zeros(3), [1, 0, 0], [2, 0, 0])
     with pytest.raises(ValueError, match="frequency_hz"):
-        gtd.keller_coefficients(1.0, 0.5, 1.0, frequency_hz=-1.0)
+        gtd_halfplane.keller_coefficients(1.0, 0.5, 1.0, frequency_hz=-1.0)
     with pytest.raises(ValueError, match="edge"):
         gtd.window_edge_frame(a, n, window_height_m=1.5, edge="middle")

@@ -16,6 +16,10 @@ from diffpos.paths.model import first_arrival_paths
 from diffpos.scenario import Building, Radio, default_scenario
 
 _mn = sys.modules["diffpos.estimators.mnls.solver"]
+_rules = sys.modules["diffpos.estimators.mnls.rules"]
+_starts = sys.modules["diffpos.estimators.mnls.starts"]
+_prob = sys.modules["diffpos.estimators.mnls.problem"]
+_pm = sys.modules["diffpos.paths.model"]
 
 
 def _variant() -> Building:
@@ -150,16 +154,16 @@ def test_physical_rules_hold_on_the_emulator():
         det = fa.detected
         s = np.where(det, fa.slot, 0)
         length = np.take_along_axis(ch.length_m, s[..., None], -1)[..., 0]
-        spec = list(_mn.SPECULAR_SLOTS)
+        spec = list(_pm.SPECULAR_SLOTS)
         l_spec = np.min(np.where(ps.valid[..., spec], ps.length_m[..., spec], np.inf), -1)
         assert np.all(length[det] <= l_spec[det] + 1e-9)
-        dom = _mn._dominated(ps)
+        dom = _rules._dominated(ps)
         assert not np.any(np.take_along_axis(dom, s[..., None], -1)[..., 0][det])
-        exc = _mn._excess_loss_db(length, fa.snr_db, radio, length.shape)
-        j = np.take_along_axis(_mn._knife_edge_loss_db(ps, radio.wavelength_m), s[..., None],
+        exc = _rules._excess_loss_db(length, fa.snr_db, radio, length.shape)
+        j = np.take_along_axis(_rules._knife_edge_loss_db(ps, radio.wavelength_m), s[..., None],
                                -1)[..., 0]
-        diff = det & np.isin(s, list(_mn.DIFFRACTION_SLOTS))
-        margin = exc[diff] - (j[diff] - _mn.SNR_MARGIN_DB)
+        diff = det & np.isin(s, list(_pm.DIFFRACTION_SLOTS))
+        margin = exc[diff] - (j[diff] - _rules.SNR_MARGIN_DB)
         n_viol += int(np.sum(margin < 0))
         n_links += int(det.sum())
         n_diff += int(diff.sum())
@@ -268,10 +272,10 @@ def test_edge_start_is_exact_for_pure_edge_diffraction():
     assert use.sum() >= 4
     r = ps.length_m[use, lower]
     a = anchors[use]
-    p = _mn._problem(a[None], r[None], np.full((1, len(r)), 0.05), np.ones((1, len(r)), bool),
+    p = _prob._problem(a[None], r[None], np.full((1, len(r)), 0.05), np.ones((1, len(r)), bool),
                      np.array([1]), b, 0.75, np.full((1, len(r)), np.nan), 0.01)
     z_edge = b.floor_z_m(1) + b.sill_height_m
-    x = _mn._edge_start(p, np.array([0]), np.array([z_edge]), iters=30)[0]
+    x = _starts._edge_start(p, np.array([0]), np.array([z_edge]), iters=30)[0]
     assert abs(x[0] - node[0]) < 1e-6
     np.testing.assert_allclose(np.hypot(x[1], x[2] - z_edge), np.hypot(node[1], node[2] - z_edge),
                                atol=1e-6)
@@ -313,14 +317,14 @@ def test_link_terms_kernel_matches_numpy_reference(with_snr):
     mask = rng.random(r.shape) > 0.1
     a = np.broadcast_to(anchors, (n, *anchors.shape))
     snr = rng.uniform(-5, 45, r.shape)
-    p = _mn._problem(a, r, np.full(r.shape, 0.05), mask, floors, b, 0.75,
-                     _mn._excess_loss_db(r, snr, radio, r.shape), radio.wavelength_m)
+    p = _prob._problem(a, r, np.full(r.shape, 0.05), mask, floors, b, 0.75,
+                     _rules._excess_loss_db(r, snr, radio, r.shape), radio.wavelength_m)
     if with_snr:
         p.snr_meas, p.radio = snr, radio
         p.snr_cost = _mn._snr_cost(p, nodes, b)
         p.allowed = rng.random((*r.shape, 18)) > 0.2
     got = _mn._link_terms(p, nodes, b)
-    ref = _mn._link_terms_numpy(p, nodes, b)
+    ref = _rules._link_terms_numpy(p, nodes, b)
     for k in ("slot", "tail", "none", "cand"):
         np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
     for k in ("cost", "res", "w", "jac"):
@@ -346,8 +350,8 @@ def test_snr_cost_of_linked_pairs_equals_the_full_prediction():
     a = np.broadcast_to(anchors, (n, *anchors.shape))
 
     def problem(m):
-        p = _mn._problem(a, r, np.full(r.shape, 0.05), m, floors, b, 0.75,
-                         _mn._excess_loss_db(r, snr, radio, r.shape), radio.wavelength_m)
+        p = _prob._problem(a, r, np.full(r.shape, 0.05), m, floors, b, 0.75,
+                         _rules._excess_loss_db(r, snr, radio, r.shape), radio.wavelength_m)
         p.snr_meas, p.radio = snr, radio
         return p
 
@@ -495,17 +499,17 @@ def test_compiled_starts_equal_numpy_starts():
     r = rng.uniform(5.0, 40.0, (n, len(anchors)))
     mask = rng.random(r.shape) > 0.25
     mask[0, 2:] = False
-    p = _mn._problem(np.broadcast_to(anchors, (n, *anchors.shape)).copy(), r,
+    p = _prob._problem(np.broadcast_to(anchors, (n, *anchors.shape)).copy(), r,
                      np.full(r.shape, 0.05), mask, floors, b, 0.75, np.full(r.shape, np.nan),
                      0.01)
     rows = np.arange(n)
     for free_z in (False, True):
-        np.testing.assert_allclose(_mn._los_start(p, rows, b, free_z=free_z, kernel=True),
-                                   _mn._los_start(p, rows, b, free_z=free_z), rtol=0,
+        np.testing.assert_allclose(_starts._los_start(p, rows, b, free_z=free_z, kernel=True),
+                                   _starts._los_start(p, rows, b, free_z=free_z), rtol=0,
                                    atol=1e-12)
     z_edge = p.lo[:, 2] - 1e-3 + b.sill_height_m + b.window_height_m
     z_ceil = p.lo[:, 2] - 1e-3 + b.floor_height_m
     for zm in (None, z_ceil):
-        np.testing.assert_allclose(_mn._edge_start(p, rows, z_edge, z_mirror=zm, kernel=True),
-                                   _mn._edge_start(p, rows, z_edge, z_mirror=zm), rtol=0,
+        np.testing.assert_allclose(_starts._edge_start(p, rows, z_edge, z_mirror=zm, kernel=True),
+                                   _starts._edge_start(p, rows, z_edge, z_mirror=zm), rtol=0,
                                    atol=1e-12)

@@ -10,7 +10,7 @@ import pytest
 from diffpos_services.cli import main as cli
 from diffpos_services.reports.power_ratio import CSV_COLUMNS
 
-from diffpos.channel import gtd
+from diffpos.channel import gtd, gtd_halfplane
 from diffpos.channel.power_ratio import first_crossing_deg
 
 F_HZ = 28e9
@@ -49,8 +49,8 @@ def test_lemma3_table_against_keller_and_theorem3():
     l3 = gtd.lemma3_coefficients(th, frequency_hz=F_HZ)
     g = np.full_like(th, np.pi / 2)
     psi = np.full_like(th, 1.5 * np.pi)
-    ds_l, dh_l = gtd.keller_coefficients(psi, th, g, frequency_hz=F_HZ)
-    ds_u, dh_u = gtd.keller_coefficients(psi, np.pi - th, g, frequency_hz=F_HZ)
+    ds_l, dh_l = gtd_halfplane.keller_coefficients(psi, th, g, frequency_hz=F_HZ)
+    ds_u, dh_u = gtd_halfplane.keller_coefficients(psi, np.pi - th, g, frequency_hz=F_HZ)
     np.testing.assert_allclose(l3.soft_lower, ds_l, rtol=1e-10)
     np.testing.assert_allclose(l3.soft_upper, ds_u, rtol=1e-10)
     np.testing.assert_allclose(l3.hard_lower, dh_l, rtol=1e-10)

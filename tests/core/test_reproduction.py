@@ -16,15 +16,15 @@ import pytest
 from diffpos_services.reports import study as report
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
-from diffpos.reproduction import (
+from diffpos.scenario import Scenario
+from diffpos.study import (
     REPRODUCE_METHODS,
     Arrivals,
+    FirstArrivalData,
     ReproduceConfig,
     build_summary,
     reproduce,
 )
-from diffpos.scenario import Scenario
-from diffpos.study import FirstArrivalData
 
 #: chi-square quantile, 3 degrees of freedom, p = 0.95 (tables: 7.8147).
 CHI2_3_95 = 7.814727903251178

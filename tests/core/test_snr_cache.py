@@ -1,12 +1,12 @@
-"""The tracker's reuse of predicted SNRs between updates (:class:`diffpos.tracking.snr.SnrCache`,
+"""The tracker's reuse of predicted SNRs between updates (:class:`diffpos.tracking.model.SnrCache`,
 ``TrackerConfig.snr_reuse_m`` / ``snr_reuse_anchor_m``).
 
-* With both margins 0, :func:`diffpos.tracking.snr.snr_cost_near` with a cache equals it
+* With both margins 0, :func:`diffpos.tracking.model.snr_cost_near` with a cache equals it
   without one, bit for bit, over a sequence of updates where some hypotheses keep their point
   and anchors exactly and the others move (random anchor coordinates are not float32 values,
   so the float32 cached anchor is never the same: nothing is reused, and the cached path's
   scoring is the plain one's).
-* With margins, :func:`diffpos.tracking.snr._snr_cost_cached` against a reference written
+* With margins, :func:`diffpos.tracking.model._snr_cost_cached` against a reference written
   pair by pair: each link's SNRs predicted by ``pair_snr_db`` at the node and anchor the rule
   says (the cached point and anchor when both are within the margins: the cached direct and
   diffraction slots, the window-band slots predicted at the cached point; the cached point
@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import diffpos.tracking.snr as ts
+import diffpos.tracking.model as ts
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.scenario import Building, Radio
 from diffpos.tracking.links import K_SLOTS, Links, all_paths

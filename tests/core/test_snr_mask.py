@@ -6,7 +6,7 @@
 * :func:`diffpos.channel.snr_nb.snr_cost_kernel` against its numpy reference
   (``tracking_snr._snr_cost_of_numpy``): bit for bit (no transcendental function), with
   unknown SNRs, slots without power, NaN predictions and a given threshold.
-* :func:`diffpos.tracking.snr.snr_cost_near` against a brute-force reference that predicts
+* :func:`diffpos.tracking.model.snr_cost_near` against a brute-force reference that predicts
   all 18 slots of every link at the hypothesis and at both shifted heights (the algorithm
   before the masks): bit for bit with the shifted point's threshold; with the prior's
   threshold (``HOLE_THRESHOLD_AT_PRIOR``) the hole slots equal the brute force given that
@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import diffpos.tracking.snr as tm
+import diffpos.tracking.model as tm
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.scenario import Building, Radio
 from diffpos.tracking.links import K_SLOTS, Links, _relax, all_paths

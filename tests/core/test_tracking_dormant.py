@@ -17,7 +17,6 @@ import numpy as np
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking.dormant import _dormant_log_p, _refresh_due, _update_pairs
 from diffpos.tracking.imm import _mix
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import measurement_update
@@ -28,7 +27,14 @@ from diffpos.tracking.state import (
     hypothesis_vertical,
     published_floor_probabilities,
 )
-from diffpos.tracking.tracker import init_state, predict, update
+from diffpos.tracking.tracker import (
+    _dormant_log_p,
+    _refresh_due,
+    _update_pairs,
+    init_state,
+    predict,
+    update,
+)
 from diffpos.trajectory import trajectory_from_dict
 
 SC = default_scenario()

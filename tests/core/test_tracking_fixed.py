@@ -25,6 +25,8 @@ from diffpos.tracking.links import _IS_DIFF, Links, _c, _cb, all_paths
 from diffpos.tracking.model import (
     _LOG2PI,
     _LOG_N,
+    SNR_SIGMA_DB,
+    SNR_SPAN_DB,
     Selection,
     _box,
     _height_prior,
@@ -37,9 +39,9 @@ from diffpos.tracking.model import (
     measurement_update,
     prior_information,
     select,
+    snr_cost_near,
 )
 from diffpos.tracking.model_nb import select_best_kernel, select_mix_kernel, select_pack_kernel
-from diffpos.tracking.snr import SNR_SIGMA_DB, SNR_SPAN_DB, snr_cost_near
 from diffpos.tracking.state import TrackerConfig
 
 _BUILDINGS = [

@@ -60,8 +60,8 @@ from diffpos.tracking.model import (
     measurement_update,
     prior_information,
     select,
+    snr_cost_near,
 )
-from diffpos.tracking.snr import snr_cost_near
 from diffpos.tracking.state import TrackerConfig
 
 _BUILDINGS = [

@@ -16,7 +16,7 @@ import numpy as np
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.scenario import default_scenario
 from diffpos.tracking.links import Links
-from diffpos.tracking.snr import snr_cost, snr_cost_near
+from diffpos.tracking.model import snr_cost, snr_cost_near
 from diffpos.tracking.state import TrackerConfig
 
 SC = default_scenario()

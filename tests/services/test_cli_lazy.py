@@ -68,11 +68,11 @@ def test_verb_help_imports_its_parser_only_and_no_kernel(name: str) -> None:
 
 
 def test_reproduce_spells_the_method_names_of_the_core() -> None:
-    """cli/reproduce.py spells diffpos.reproduction's method lists and quick default (its help
+    """cli/reproduce.py spells diffpos.study's method lists and quick default (its help
     must not import the estimators): both spellings are the same."""
     from diffpos_services.cli import reproduce
 
-    from diffpos import reproduction
+    from diffpos import study as reproduction
 
     assert reproduce.ALL_METHODS == reproduction.ALL_METHODS
     assert reproduce.REPRODUCE_METHODS == reproduction.REPRODUCE_METHODS

@@ -13,14 +13,17 @@ pytestmark = pytest.mark.system
 
 _PROBE = """
 import json
-from diffpos._kernels import channel_nb, mnls_nb, tracking_nb
+from diffpos.channel import snr_nb as channel_nb
+from diffpos.estimators.mnls import solver_nb as mnls_nb
+from diffpos.tracking import initialisation_nb, model_nb as tracking_nb
+from diffpos.tracking.tracker import warm_tracking
 channel_nb.warm_channel()
-tracking_nb.warm_tracking()
+warm_tracking()
 out = {}
 for name, k in (("channel_snr_kernel", channel_nb.channel_snr_kernel),
                 ("lm_kernel", mnls_nb.lm_kernel),
                 ("all_paths_kernel", tracking_nb.all_paths_kernel),
-                ("grid_cost_kernel", tracking_nb.grid_cost_kernel)):
+                ("grid_cost_kernel", initialisation_nb.grid_cost_kernel)):
     out[name] = [bool(k.targetoptions.get("nogil")), sum(k.stats.cache_hits.values()),
                  sum(k.stats.cache_misses.values())]
 print(json.dumps(out))

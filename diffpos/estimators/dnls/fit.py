@@ -26,6 +26,7 @@ from diffpos.estimators.gating import (
 from diffpos.estimators.lls import lls_positions
 from diffpos.estimators.lm import PathModel, cost_of, levenberg_marquardt
 from diffpos.estimators.result import ExclusionReason, FixStatus
+from diffpos.estimators.starts import grid_starts
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -68,20 +69,6 @@ def _lls_starts(
     x = np.where(ok[:, None], x, fallback)
     x[:, 1] = np.maximum(np.abs(x[:, 1]), 0.5)
     return x[:, None, :]
-
-
-def grid_starts(
-    anchors_m: FloatArray, mask: NDArray[np.bool_], z_starts: FloatArray, y_start: float
-) -> FloatArray:
-    """Multi-start points ``(B, S, 3)``: x = mean anchor x, y = ``y_start``, z from the grid."""
-    cnt = np.maximum(mask.sum(axis=-1), 1)
-    xm = np.where(mask, anchors_m[..., 0], 0.0).sum(axis=-1) / cnt
-    b, s = xm.shape[0], z_starts.size
-    st = np.empty((b, s, 3))
-    st[..., 0] = xm[:, None]
-    st[..., 1] = y_start
-    st[..., 2] = z_starts[None, :]
-    return st
 
 
 def _starts_for(

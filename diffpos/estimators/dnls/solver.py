@@ -47,8 +47,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from diffpos.estimators.dnls import fit_nb as dnls_nb
 from diffpos.estimators.dnls.fit import RECHECK_PROBABILITY, FitSettings, solve_chunk
-from diffpos.estimators.dnls.fit import _lls_starts as _lls_starts  # re-exported (benchmarks)
-from diffpos.estimators.dnls.fit import grid_starts as grid_starts  # re-exported (ippa, benchmarks)
 from diffpos.estimators.gating import GatingConfig, chi2_threshold
 from diffpos.estimators.lm import LOSSES, PathModel
 from diffpos.estimators.lm_nb import LOSS_CODES
@@ -59,13 +57,11 @@ from diffpos.estimators.result import (
     PreparedBatch,
     prepare_batch,
 )
+from diffpos.estimators.starts import DEFAULT_Z_STARTS_M, check_z_starts
 
-__all__ = ["DEFAULT_Z_STARTS_M", "dnls"]
+__all__ = ["dnls"]
 
 FloatArray = NDArray[np.float64]
-
-#: Default start heights [m]: one per 3 m floor from the ground to 30 m.
-DEFAULT_Z_STARTS_M = tuple(float(z) for z in np.arange(0.0, 30.0 + 1e-9, 3.0))
 
 _DEFAULT_GATING = GatingConfig()
 _DEFAULT_ZS = np.asarray(DEFAULT_Z_STARTS_M, np.float64)
@@ -100,14 +96,6 @@ def check_edge_x(edge_x_m: ArrayLike | None) -> tuple[float, float] | None:
     if e.shape != (2,) or not np.all(np.isfinite(e)) or e[0] == e[1]:
         raise ValueError(f"edge_x_m must be two different finite numbers [x1, x2], got {edge_x_m}")
     return (float(min(e)), float(max(e)))
-
-
-def _check_z_starts(z_starts_m: ArrayLike | None) -> FloatArray:
-    """The start heights (default :data:`DEFAULT_Z_STARTS_M`), validated, shape (S,) [m]."""
-    zs = np.asarray(DEFAULT_Z_STARTS_M if z_starts_m is None else z_starts_m, float)
-    if zs.ndim != 1 or zs.size == 0 or not np.all(np.isfinite(zs)):
-        raise ValueError("z_starts_m must be a non-empty 1-D array of finite heights [m]")
-    return zs
 
 
 def dnls(
@@ -162,7 +150,7 @@ def dnls(
     x0_m : array_like, shape (B, 3) or (3,), optional [m]
         One start per fix instead of the multi-start grid.
     z_starts_m : array_like, shape (S,), optional [m]
-        Start heights (default :data:`DEFAULT_Z_STARTS_M`).
+        Start heights (default :data:`diffpos.estimators.starts.DEFAULT_Z_STARTS_M`).
     y_start_m : float [m]
         Start depth inside the wall for the grid starts.
     max_iter : int
@@ -351,7 +339,7 @@ def _start_option(
         return x0, None
     if z_starts_m is None:
         return None, _DEFAULT_ZS  # validated once; the solvers only read it
-    return None, _check_z_starts(z_starts_m)
+    return None, check_z_starts(z_starts_m)
 
 
 def _fix_result(out: dict[str, np.ndarray], batch_in: PreparedBatch) -> FixResult:

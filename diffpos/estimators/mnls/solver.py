@@ -14,8 +14,8 @@ stated otherwise):
   node is confined to its floor's box.
 * **Search**, its measured **cost** and the **compiled steps** (``kernel=True``, the
   default: the same answers as the numpy reference steps, bitwise on the tested sets):
-  :mod:`._mnls_search`.
-* **Same-edge dominance** (:mod:`._mnls_rules`): ``D(edge)-R(plane)`` deviating at least as much
+  :mod:`diffpos.estimators.mnls.starts`.
+* **Same-edge dominance** (:mod:`diffpos.estimators.mnls.rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
   the measured SNR is within the ITU-R P.526 knife-edge loss ``J(nu)`` - 6 dB of free space;
@@ -78,9 +78,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from diffpos._kernels.pool import LM_MIN_ROWS, run_rows
 from diffpos.constants import SPEED_OF_LIGHT_M_S
-from diffpos.estimators.mnls.posterior import _information, _posterior
 from diffpos.estimators.mnls.problem import (
-    OUTLIER_PRIOR,
     _c,
     _Problem,
     _problem,
@@ -88,27 +86,28 @@ from diffpos.estimators.mnls.problem import (
     _sub,
     _take,
 )
-from diffpos.estimators.mnls.result import MnlsResult, _result
+from diffpos.estimators.mnls.result import MnlsResult, _information, _posterior, _result
 from diffpos.estimators.mnls.rules import (
     _DIFF_MASK,
     _SAME_EDGE,
     SNR_MARGIN_DB,
     SNR_SIGMA_DB,
-    _dominated,
     _excess_loss_db,
-    _knife_edge_loss_db,
-    _link_terms_numpy,
 )
-from diffpos.estimators.mnls.search import _kept, _link_terms_rows, _start_points
 from diffpos.estimators.mnls.solver_nb import link_terms_kernel, lm_kernel
-from diffpos.estimators.mnls.starts import _edge_start, _grid, _los_start
+from diffpos.estimators.mnls.starts import (
+    _grid,
+    _kept,
+    _link_terms_rows,
+    _start_points,
+)
 from diffpos.estimators.result import prepare_batch
-from diffpos.paths.model import DIFFRACTION_SLOTS, SPECULAR_SLOTS, first_arrival_paths
+from diffpos.paths.model import SPECULAR_SLOTS, first_arrival_paths
 from diffpos.paths.model_nb import building_planes
 
-__all__ = ["MnlsResult", "mnls"]
-_RULES = (DIFFRACTION_SLOTS, _knife_edge_loss_db, _dominated, _link_terms_numpy)  # for tests
-_MOVED = (OUTLIER_PRIOR, _edge_start, _los_start)  # still importable from here (tests)
+__all__ = [
+    "mnls",
+]
 
 FloatArray = NDArray[np.float64]
 _SPEC_MASK = np.zeros(len(_DIFF_MASK), dtype=bool)

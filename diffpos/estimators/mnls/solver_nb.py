@@ -22,9 +22,9 @@ path in :mod:`diffpos.estimators.mnls.solver` (``mnls(..., kernel=False)``; test
 
 Fixed compiled signatures (:data:`SIGNATURE`, :data:`LM_SIGNATURE`, C-contiguous inputs);
 ``cache=True``. numba's cache is keyed by this file only: :func:`lm_kernel` compiles
-``paths_nb.slot_path`` into itself, so after a change of ``paths_nb.py`` a stale cache of this
-module keeps the old path model (delete ``__pycache__/mnls_nb*``); the kernel-vs-reference
-test (tests/core/test_mnls.py, the reference runs the fresh ``paths_kernel``) fails then.
+:func:`diffpos.paths.model_nb.slot_path` into itself, so a change of ``paths/model_nb.py``
+changes the ``CALLEES_SHA256`` stamp below (tests/core/test_kernel_stamps.py), which
+invalidates the stale cache.
 Compile from an empty cache: ~12 s CPU (2-core VM, 2026-11-27).
 """
 
@@ -53,7 +53,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}  # nogil: pool.ru
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "35799719a1acc554"
+CALLEES_SHA256 = "983a98e6336befc7"
 
 #: The one compiled signature of :func:`link_terms_kernel`.
 SIGNATURE = types.void(
@@ -228,6 +228,41 @@ def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mi
     return _pairwise_sum(link_cost, m) + prior, n_eval
 
 
+@njit(**_OPTS)
+def _trial_point(i, xo0, xo1, xo2, h, g, dmp, z_mid, prior_var, lo, hi, eye, hd, rhs, step, xn):
+    """One damped step of :func:`lm_kernel` from ``(xo0, xo1, xo2)`` (row ``i``): the normal
+    equations ``h``, ``g`` with the floor prior, damped by ``dmp`` as numpy evaluates
+    ``h + lam * eye * (diag + 1e-9)``, solved by LAPACK (NaN where not finite) and clamped to
+    the row's box; writes the trial point into ``xn`` (``hd``, ``rhs``, ``step``: work)."""
+    for u in range(3):
+        rhs[u] = g[u]
+        for v in range(3):
+            hd[u, v] = h[u, v]
+    hd[2, 2] += 1.0 / prior_var
+    rhs[2] -= (xo2 - z_mid[i]) / prior_var
+    d0, d1, d2 = hd[0, 0], hd[1, 1], hd[2, 2]
+    for u in range(3):  # h + lam * eye * (diag + 1e-9), as numpy evaluates it
+        hd[u, 0] = hd[u, 0] + dmp * eye[u, 0] * (d0 + 1e-9)
+        hd[u, 1] = hd[u, 1] + dmp * eye[u, 1] * (d1 + 1e-9)
+        hd[u, 2] = hd[u, 2] + dmp * eye[u, 2] * (d2 + 1e-9)
+    finite = True
+    for u in range(3):
+        finite = finite and math.isfinite(rhs[u])
+        for v in range(3):
+            finite = finite and math.isfinite(hd[u, v])
+    if finite:
+        step[:] = np.linalg.solve(hd, rhs)
+    else:
+        step[:] = np.nan
+    for u in range(3):
+        v = (xo0 if u == 0 else (xo1 if u == 1 else xo2)) + step[u]
+        if v < lo[i, u]:  # np.clip: max then min, NaN stays NaN
+            v = lo[i, u]
+        if v > hi[i, u]:
+            v = hi[i, u]
+        xn[u] = v
+
+
 @njit(LM_SIGNATURE, **_OPTS)
 def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior_var, lam,
               wavelength, margin_db, planes, snr_cost, strong, allowed, spec, diff, same_edge,
@@ -276,34 +311,9 @@ def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior
         evals = ne
         dmp = damp[i]
         for _ in range(iters):
-            for u in range(3):
-                rhs[u] = g[u]
-                for v in range(3):
-                    hd[u, v] = h[u, v]
-            hd[2, 2] += 1.0 / prior_var
-            rhs[2] -= (xc2 - z_mid[i]) / prior_var
-            d0, d1, d2 = hd[0, 0], hd[1, 1], hd[2, 2]
-            for u in range(3):  # h + lam * eye * (diag + 1e-9), as numpy evaluates it
-                hd[u, 0] = hd[u, 0] + dmp * eye[u, 0] * (d0 + 1e-9)
-                hd[u, 1] = hd[u, 1] + dmp * eye[u, 1] * (d1 + 1e-9)
-                hd[u, 2] = hd[u, 2] + dmp * eye[u, 2] * (d2 + 1e-9)
-            finite = True
-            for u in range(3):
-                finite = finite and math.isfinite(rhs[u])
-                for v in range(3):
-                    finite = finite and math.isfinite(hd[u, v])
-            if finite:
-                step[:] = np.linalg.solve(hd, rhs)
-            else:
-                step[:] = np.nan
             xo0, xo1, xo2 = xc0, xc1, xc2
-            for u in range(3):
-                v = (xo0 if u == 0 else (xo1 if u == 1 else xo2)) + step[u]
-                if v < lo[i, u]:  # np.clip: max then min, NaN stays NaN
-                    v = lo[i, u]
-                if v > hi[i, u]:
-                    v = hi[i, u]
-                xn[u] = v
+            _trial_point(i, xo0, xo1, xo2, h, g, dmp, z_mid, prior_var, lo, hi, eye, hd, rhs,
+                         step, xn)
             c_new, ne = _row_terms(i, xn[0], xn[1], xn[2], anchors, r, sig, mask, tail_a,
                                    excess, floor, z_mid, prior_var, lam, wavelength,
                                    margin_db, planes, edge, snr_cost, has_snr, strong,

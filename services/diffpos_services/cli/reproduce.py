@@ -58,9 +58,9 @@ import numpy as np
 from diffpos.scenario import Scenario, ScenarioError
 from diffpos_services.scenario_io import scenario_or_default
 
-#: :data:`diffpos.reproduction.ALL_METHODS`, :data:`~diffpos.reproduction.REPRODUCE_METHODS`
-#: and :data:`~diffpos.reproduction.DEFAULT_QUICK_NODES` as the options show them, spelled
-#: here: importing diffpos.reproduction imports the estimators' kernels, which ``--help``
+#: :data:`diffpos.study.ALL_METHODS`, :data:`~diffpos.study.REPRODUCE_METHODS`
+#: and :data:`~diffpos.study.DEFAULT_QUICK_NODES` as the options show them, spelled
+#: here: importing diffpos.study imports the estimators' kernels, which ``--help``
 #: must not (tests/services/test_cli_lazy.py checks the two spellings are equal)
 ALL_METHODS = ["lls", "ippa", "dnls_case1", "dnls_case2", "dnls_lower", "mnls"]
 REPRODUCE_METHODS = ("lls", "ippa", "dnls_case1", "dnls_case2", "mnls")
@@ -108,8 +108,7 @@ def _channel_source(spec: str) -> tuple[str, Path | None]:
 
 def _loader(kind: str, path: Path | None, scenario: Scenario):
     """How to read the first arrivals of a non-emulator source (None for the emulator)."""
-    from diffpos.reproduction import Arrivals
-    from diffpos.study import FirstArrivalData
+    from diffpos.study import Arrivals, FirstArrivalData
     from diffpos_services.raytrace.evaluate import dataset_arrivals
 
     if kind == "arrivals":
@@ -139,7 +138,7 @@ def _fail(message: str, code: int = 2) -> int:
 
 def run(args: argparse.Namespace) -> int:
     # the study and its estimators (numba kernels), the plots (matplotlib): not for --help
-    from diffpos.reproduction import ReproduceConfig, build_summary, reproduce
+    from diffpos.study import ReproduceConfig, build_summary, reproduce
     from diffpos_services.reports import study as report
 
     if args.quick_nodes < 10:

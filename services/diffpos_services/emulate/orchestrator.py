@@ -470,11 +470,11 @@ class Emulation:
         import diffpos.estimators.mnls.solver_nb
         import diffpos.estimators.mnls.starts_nb  # noqa: F401 (compiles on import)
         import diffpos.paths.model_nb as paths_nb
-        import diffpos.tracking.model_nb as tracking_nb
+        import diffpos.tracking.tracker as tracker
         paths_nb.warm_paths()
         dnls_nb.warm_dnls()
         channel_nb.warm_channel()  # the SNR prediction of mnls and the tracker
-        tracking_nb.warm_tracking()  # the tracker's measurement model
+        tracker.warm_tracking()  # the tracker's measurement model
         took = time.monotonic() - t0
         STATUS.show("")
         if took > 5.0:

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.tracking.snr import snr_reuse_on
+from diffpos.tracking.model import snr_reuse_on
 from diffpos.tracking.state import SNR_CACHE_LINKS, SNR_CACHE_SLOTS, TrackerState
 from diffpos.tracking.tracker import update
 
@@ -89,7 +89,7 @@ _SNR_CACHE = ("snr_node", "snr_anchor", "snr_pred")
 
 def slim_state(sub: TrackerState, config: Any) -> TrackerState:
     """``sub`` without its SNR cache fields (None) when the tracker neither reads nor carries
-    them (:func:`diffpos.tracking.snr.snr_reuse_on` false: both reuse margins 0): they are
+    them (:func:`diffpos.tracking.model.snr_reuse_on` false: both reuse margins 0): they are
     7.2 of the ~11 KB per row that would cross the pipe both ways for nothing. With the
     default margins (0.05 / 0.1 m) reuse is on and the whole state crosses (1.4 MB each way
     for a 128-row share: ~2 ms of the caller's CPU, bench_workers.py)."""

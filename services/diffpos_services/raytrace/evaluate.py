@@ -21,9 +21,8 @@ from diffpos.channel.linkbudget import noise_floor_dbm
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.geometry import diffraction_point
 from diffpos.paths.model import MECHANISMS
-from diffpos.reproduction import Arrivals
 from diffpos.scenario import Radio, Scenario
-from diffpos.study import FirstArrivalData
+from diffpos.study import Arrivals, FirstArrivalData
 from diffpos_services.raytrace.dataset import RaytraceDataset, load_dataset
 
 _C = SPEED_OF_LIGHT_M_S

@@ -14,8 +14,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from diffpos.reproduction import PAPER_TABLE, Reproduction
-from diffpos.study import empirical_cdf, method_label
+from diffpos.study import PAPER_TABLE, Reproduction, empirical_cdf, method_label
 
 __all__ = ["ProgressBars", "print_report", "write_figures", "write_markdown", "write_outputs"]
 
