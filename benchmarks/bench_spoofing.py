@@ -65,7 +65,7 @@ from diffpos.estimators.dnls.solver import dnls
 from diffpos.estimators.gating import GatingConfig, chi2_threshold
 from diffpos.estimators.result import ExclusionReason, FixResult, FixStatus
 from diffpos.geometry import window_edge_path
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.scenario import Scenario
 
 FloatArray = NDArray[np.float64]

@@ -50,7 +50,7 @@ from scipy.special import log_ndtr
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.metrics import truth_at
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.scenario import Scenario
 from diffpos.tracking.model import SNR_SIGMA_DB
 

@@ -62,7 +62,8 @@ from numpy.typing import ArrayLike, NDArray
 from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
 from diffpos.channel.slots import _C, _Ctx, _materials, _slots
 from diffpos.channel.snr_nb import channel_params, eval_snr_kernel, eval_snr_masked_kernel
-from diffpos.paths.model import MECHANISMS, first_arrival_paths
+from diffpos.paths.mechanisms import MECHANISMS
+from diffpos.paths.model import first_arrival_paths
 from diffpos.scenario import Building, Radio, Scenario
 
 __all__ = [

@@ -1,7 +1,7 @@
 """Compiled first-arrival path model: :func:`diffpos.paths.model.first_arrival_paths` in one loop.
 
 The kernel evaluates, for ``P`` rows (node, anchor, floor planes) and ``S`` slots of
-:data:`diffpos.paths.model.MECHANISMS`, exactly the floating-point operations of the numpy reference
+:data:`diffpos.paths.mechanisms.MECHANISMS`, exactly the floating-point operations of the numpy reference
 (:func:`diffpos.paths.model._first_arrival_paths_numpy`, built on :func:`diffpos.paths.model.specular_path`
 and :func:`diffpos.paths.model.diffracted_path`) in the same order, so lengths and Jacobians agree to
 rounding (tests/core/test_paths_kernel.py: <= 1e-12 relative) and existence agrees exactly,
@@ -45,7 +45,7 @@ __all__ = ["N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLO
            "SLOT_PLANE1", "building_planes", "edge_axis", "eval_paths_kernel", "in_floor_box",
            "inside_plane", "mirror", "paths_kernel", "row_planes", "slot_path", "warm_paths"]
 
-#: Slot recipes, the compiled twin of ``diffpos.paths.model._RECIPES`` (a test checks they agree).
+#: Slot recipes, the compiled twin of ``diffpos.paths.mechanisms._RECIPES`` (a test checks they agree).
 #: kind: 0 direct, 1 specular, 2 diffraction. Plane codes: 0 floor, 1 ceiling, 2 back,
 #: 3 side x1, 4 side x2, -1 none. Edge: 0 upper, 1 lower. Shared with the compiled channel
 #: (:mod:`diffpos.channel.rays_nb`, :mod:`diffpos.channel.snr_nb`), as are

@@ -18,7 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from diffpos._kernels.pool import PATHS_MIN_LINKS, run_rows
-from diffpos.paths.model import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, graded_paths
+from diffpos.paths.mechanisms import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS
+from diffpos.paths.model import graded_paths
 from diffpos.paths.model_nb import building_planes
 from diffpos.tracking.model_nb import all_paths_kernel
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from diffpos.paths.model import DIFFRACTION_SLOTS
+from diffpos.paths.mechanisms import DIFFRACTION_SLOTS
 
 __all__ = [
     "SNR_CACHE_LINKS",
@@ -38,7 +38,7 @@ FloatArray = NDArray[np.float64]
 #: first this many anchor columns of an update (the others are predicted every time).
 SNR_CACHE_LINKS = 16
 #: The slots whose predicted SNR the state keeps: the direct slot, then the diffraction ones
-#: (:data:`diffpos.paths.model.DIFFRACTION_SLOTS`), ~85 % of a link's prediction; the window-band
+#: (:data:`diffpos.paths.mechanisms.DIFFRACTION_SLOTS`), ~85 % of a link's prediction; the window-band
 #: slots are cheap and near a band edge: predicted every update.
 SNR_CACHE_SLOTS = (0, *DIFFRACTION_SLOTS)
 
@@ -309,7 +309,7 @@ class TrackOutput:
     floor_probabilities : ndarray, shape (N, F)
     status : ndarray of int8, shape (N,)
     mechanism : ndarray of int, shape (N, M)
-        Slot of :data:`diffpos.paths.model.MECHANISMS` used per anchor on the chosen floor (-1:
+        Slot of :data:`diffpos.paths.mechanisms.MECHANISMS` used per anchor on the chosen floor (-1:
         missing or treated as an outlier).
     residual_m : ndarray, shape (N, M) [m]
         Range minus the chosen mechanism's length at the estimate (NaN where -1).

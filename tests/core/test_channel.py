@@ -11,7 +11,7 @@ from scipy.optimize import minimize, minimize_scalar
 from diffpos.channel.emulator import MPC_CLASS, emulate_channel, first_arrival, mpc_statistics
 from diffpos.channel.slots import fresnel_coefficients, itu_permittivity, slab_loss_db
 from diffpos.constants import SPEED_OF_LIGHT_M_S as C
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.scenario import Building, Partition, Radio, default_scenario
 
 SLOT = {m: i for i, m in enumerate(MECHANISMS)}

@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 
 from diffpos.channel.emulator import emulate_channel
-from diffpos.paths.model import MECHANISMS, first_arrival_paths
-from diffpos.paths.model import MECHANISMS as CHANNEL_MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS as CHANNEL_MECHANISMS
+from diffpos.paths.model import first_arrival_paths
 from diffpos.scenario import Building, Radio
 
 # (kind, name) of the interaction points of every slot, in path order

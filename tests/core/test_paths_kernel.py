@@ -23,9 +23,8 @@ import numpy as np
 import pytest
 
 from diffpos.paths import model_nb as paths_nb
+from diffpos.paths.mechanisms import _RECIPES, MECHANISMS
 from diffpos.paths.model import (
-    _RECIPES,
-    MECHANISMS,
     FloorFrame,
     _first_arrival_paths_numpy,
     diffracted_path,

@@ -29,7 +29,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.paths.model_nb import building_planes
 from diffpos.scenario import Building, default_scenario
 from diffpos.tracking.initialisation import _grid_cells, _grid_starts_numpy, grid_starts

@@ -21,7 +21,7 @@ import dataclasses
 import numpy as np
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
-from diffpos.paths.model import SPECULAR_SLOTS
+from diffpos.paths.mechanisms import SPECULAR_SLOTS
 from diffpos.scenario import default_scenario
 from diffpos.tracking.links import Links, _all_paths_numpy, all_paths
 from diffpos.tracking.model import ENTRY_SIGMAS, existence_margin, snr_cost_near

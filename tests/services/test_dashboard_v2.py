@@ -19,7 +19,8 @@ from diffpos_services.dashboard.geometry import Tracks
 from diffpos_services.dashboard.mechanisms import building_of_outline, mechanism_strips, recipe
 from diffpos_services.wire import messages as M
 
-from diffpos.paths.model import MECHANISMS, first_arrival_paths
+from diffpos.paths.mechanisms import MECHANISMS
+from diffpos.paths.model import first_arrival_paths
 from diffpos.scenario import default_scenario
 
 B = default_scenario().building

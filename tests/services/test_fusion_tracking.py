@@ -26,7 +26,7 @@ from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.scenario import default_scenario
 from diffpos.trajectory import trajectory_from_dict
 

@@ -21,7 +21,8 @@ from diffpos_services import raytrace as rt
 from diffpos_services.raytrace import mechanism_mix as mx
 from diffpos_services.raytrace import mechanisms as mm
 
-from diffpos.paths.model import _RECIPES, MECHANISMS, FloorFrame, diffracted_path, specular_path
+from diffpos.paths.mechanisms import _RECIPES, MECHANISMS
+from diffpos.paths.model import FloorFrame, diffracted_path, specular_path
 from diffpos.scenario import Partition, default_scenario
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "raytrace_mech_small.npz"

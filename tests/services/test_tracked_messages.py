@@ -12,7 +12,7 @@ from diffpos_services.fusion.tracked import _finite_or_none, _links
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.messages import finite_or_none
 
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 
 
 def _random_batch(rng, b, m):

@@ -11,7 +11,7 @@ import pytest
 from diffpos_services.wire import keys as K
 from diffpos_services.wire import messages as M
 
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas"
 

@@ -64,7 +64,7 @@ class MnlsResult(FixResult):
     floor_probability : ndarray, shape (B, F) [-]
         Posterior probability of every floor of the building.
     mechanism : ndarray of int, shape (B, M)
-        Slot of :data:`diffpos.paths.model.MECHANISMS` explaining each link at the answer (-1
+        Slot of :data:`diffpos.paths.mechanisms.MECHANISMS` explaining each link at the answer (-1
         where unused or missing).
     """
 

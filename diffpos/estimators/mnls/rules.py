@@ -14,7 +14,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from diffpos.channel.linkbudget import snr_db as _snr_db
-from diffpos.paths.model import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS, first_arrival_paths
+from diffpos.paths.mechanisms import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS
+from diffpos.paths.model import first_arrival_paths
 
 FloatArray = NDArray[np.float64]
 

@@ -102,7 +102,8 @@ from diffpos.estimators.mnls.starts import (
     _start_points,
 )
 from diffpos.estimators.result import prepare_batch
-from diffpos.paths.model import SPECULAR_SLOTS, first_arrival_paths
+from diffpos.paths.mechanisms import SPECULAR_SLOTS
+from diffpos.paths.model import first_arrival_paths
 from diffpos.paths.model_nb import building_planes
 
 __all__ = [

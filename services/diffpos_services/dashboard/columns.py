@@ -115,7 +115,7 @@ class EstimateColumns:
         Exclusion reason, ``""`` for used links.
     link_mechanism : ndarray of str, shape (L,)
         Estimate v2: the first-arrival mechanism the fusion explained the link's range by (a
-        label of :data:`diffpos.paths.model.MECHANISMS`); ``""`` where unknown (v1, excluded).
+        label of :data:`diffpos.paths.mechanisms.MECHANISMS`); ``""`` where unknown (v1, excluded).
         Default: all ``""``.
     floor_probability : ndarray, shape (K,)
         Estimate v2: the probability of the estimated floor; NaN where unknown (v1).

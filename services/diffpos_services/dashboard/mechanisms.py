@@ -1,7 +1,7 @@
 """The path of the mechanism the fusion used for a link, as a drawable line strip.
 
 Estimate v2 names, per anchor, the first-arrival mechanism its range was explained by (a
-label of :data:`diffpos.paths.model.MECHANISMS`, e.g. ``Tx-D(lower)-R(ceiling)-Rx``). The
+label of :data:`diffpos.paths.mechanisms.MECHANISMS`, e.g. ``Tx-D(lower)-R(ceiling)-Rx``). The
 interaction points come from the same geometry functions the fusion's path model uses
 (:func:`diffpos.paths.model.specular_path`, :func:`diffpos.paths.model.diffracted_path`) for the
 estimated position on the estimated floor, so the drawn path is the one the fusion fitted.
@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.paths.model import MECHANISMS, FloorFrame, diffracted_path, specular_path
+from diffpos.paths.mechanisms import MECHANISMS
+from diffpos.paths.model import FloorFrame, diffracted_path, specular_path
 from diffpos.scenario import Building
 from diffpos_services.dashboard.building import BuildingOutline, FloatArray
 
@@ -30,7 +31,7 @@ def recipe(label: str) -> tuple:
     Raises
     ------
     ValueError
-        Not a label of :data:`diffpos.paths.model.MECHANISMS`.
+        Not a label of :data:`diffpos.paths.mechanisms.MECHANISMS`.
     """
     if label not in MECHANISMS:
         raise ValueError(f"unknown mechanism {label!r}")

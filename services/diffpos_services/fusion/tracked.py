@@ -75,7 +75,7 @@ import numpy as np
 from diffpos.alignment import PendingEpoch
 from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.estimators.result import ExclusionReason, FixStatus
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.tracking.state import TrackerConfig, TrackerState, TrackStatus, floor_probabilities
 from diffpos.tracking.tracker import init_state, update
 from diffpos_services.fusion.config import FusionConfig

@@ -20,7 +20,7 @@ from diffpos.channel.emulator import (
 from diffpos.channel.linkbudget import noise_floor_dbm
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.geometry import diffraction_point
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.scenario import Radio, Scenario
 from diffpos.study import Arrivals, FirstArrivalData
 from diffpos_services.raytrace.dataset import RaytraceDataset, load_dataset

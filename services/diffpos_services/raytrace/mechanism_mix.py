@@ -2,7 +2,7 @@
 
 The emulator's first arrival (:func:`diffpos.channel.emulator.first_arrival` on
 :func:`diffpos.channel.emulator.emulate_channel`, noise-free) is one of the 18 slots of
-:data:`diffpos.paths.model.MECHANISMS`; the ray tracer's (:func:`.evaluate.dataset_first_arrival`) is
+:data:`diffpos.paths.mechanisms.MECHANISMS`; the ray tracer's (:func:`.evaluate.dataset_first_arrival`) is
 classified by :func:`.mechanisms.classify_mechanisms` (a slot, or "other" with its label). Every
 link whose mechanisms differ gets exactly one cause, tested in this order:
 
@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
-from diffpos.paths.model import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos_services.raytrace.dataset import RaytraceDataset
 from diffpos_services.raytrace.evaluate import dataset_first_arrival, path_snr_db
 from diffpos_services.raytrace.mechanisms import NO_PATH, OTHER, classify_mechanisms

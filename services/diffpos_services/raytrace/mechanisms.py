@@ -20,7 +20,7 @@ anything else      e.g. ``D(edge floor+1)`` (a window edge of another floor), ``
 =================  ==========================================================================
 
 The tokens joined (``Tx-D(lower)-R(ceiling)-Rx``) are the mechanism's label; a label in
-:data:`diffpos.paths.model.MECHANISMS` gives its slot, every other label is "other" and is reported
+:data:`diffpos.paths.mechanisms.MECHANISMS` gives its slot, every other label is "other" and is reported
 by name (e.g. the triple bounce ``Tx-R(ceiling)-R(floor)-R(ceiling)-Rx``, which the model
 leaves out). :func:`mechanism_length_check` then compares every classified path's traced
 length with the model's closed-form length for that mechanism on the receiver's floor.
@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.paths.model import MECHANISMS, first_arrival_paths, graded_paths
+from diffpos.paths.mechanisms import MECHANISMS
+from diffpos.paths.model import first_arrival_paths, graded_paths
 from diffpos.scenario import Building
 from diffpos_services.raytrace.dataset import RaytraceDataset
 from diffpos_services.raytrace.paths import DIFFRACTION, DIFFUSE, REFRACTION, SPECULAR
@@ -56,7 +57,7 @@ class Mechanisms:
     Attributes
     ----------
     code : ndarray of int, shape (N, M, K)
-        Slot of :data:`diffpos.paths.model.MECHANISMS`, :data:`OTHER` or :data:`NO_PATH`.
+        Slot of :data:`diffpos.paths.mechanisms.MECHANISMS`, :data:`OTHER` or :data:`NO_PATH`.
     label : ndarray of object (str), shape (N, M, K)
         The token label of every path (``""`` for padding).
     """

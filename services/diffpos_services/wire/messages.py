@@ -269,7 +269,7 @@ class AnchorLink(msgspec.Struct, frozen=True, gc=False):
 
     anchor_id: Id
     mechanism: Annotated[str, Meta(description=(
-        "Label of the first-arrival mechanism used for this range (diffpos.paths.model.MECHANISMS, "
+        "Label of the first-arrival mechanism used for this range (diffpos.paths.mechanisms.MECHANISMS, "
         "e.g. 'Tx-D(lower)-Rx'); null where the range was not explained by one (an outlier, "
         "or a method without mechanisms)."))] | None
     residual_m: Annotated[float, Meta(description=(
