@@ -282,12 +282,13 @@ from numba.core.registry import CPUDispatcher
 from diffpos.estimators.mnls import solver as est
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking.tracker import TrackerConfig, init_state, update
+from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import init_state, update
 from diffpos_services.fusion.warm import warm_model
 
 def loaded():
     return {f"{n}.{k}": len(v.signatures) for n, m in list(sys.modules.items())
-            if n.startswith("diffpos._kernels.") for k, v in vars(m).items()
+            if n.startswith("diffpos.") and n.endswith("_nb") for k, v in vars(m).items()
             if isinstance(v, CPUDispatcher)}
 
 sc = default_scenario()
