@@ -22,6 +22,10 @@ examples:
   diffpos anchor --id uav1 --scenario scenarios/paper.toml
   diffpos anchor --id uav2 --scenario scenarios/paper.toml --clock-offset-ms 1.5
   diffpos anchor --id uav1 --channel ideal     upper-edge diffraction path only (benchmarks)
+  diffpos anchor --id uav1 --channel raytrace --wait-start --raytrace-duration-s 20
+                                               paths ray traced (Sionna RT) along the run's
+                                               trajectories before it starts (cached; as
+                                               diffpos emulate --channel raytrace)
   diffpos anchor --id uav1 --zenoh-config security/zenoh/anchor-uav1.json5
                                                TLS + its own user/password (security/README.md)
 
@@ -76,11 +80,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--channel",
-        choices=["emulator", "ideal"],
+        choices=["emulator", "ideal", "raytrace"],
         default="emulator",
         help="emulator: O2I multipath + first arrival (default); ideal: the "
-        "D-NLS model's path with CRLB noise at --ideal-snr-db",
+        "D-NLS model's path with CRLB noise at --ideal-snr-db; raytrace: paths ray traced "
+        "with Sionna RT (optional extra) before the run, the emulator's detection and noise "
+        "(needs --wait-start)",
     )
+    add_raytrace_arguments(parser)
+    parser.add_argument(
+        "--raytrace-duration-s", type=float, default=20.0, metavar="S",
+        help="--channel raytrace: the run's length the paths are traced for [s] (default 20)")
     parser.add_argument(
         "--ideal-snr-db", type=float, default=20.0, help="SNR of --channel ideal [dB] (default 20)"
     )
@@ -100,6 +110,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_logging_arguments(parser)
 
 
+def add_raytrace_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--raytrace-samples``, ``--raytrace-depth``, ``--raytrace-step-s`` (also of ``diffpos
+    emulate``; defaults in :mod:`diffpos_services.raytrace.live`, stated in the help and
+    checked by tests/services/test_raytrace_live.py)."""
+    parser.add_argument(
+        "--raytrace-samples", type=float, default=None, metavar="N",
+        help="--channel raytrace: rays shot per source (anchor) per traced time (default "
+        "3e5; one trace of 6 nodes at depth 4 takes about 1.5 s here, linear in N)")
+    parser.add_argument(
+        "--raytrace-depth", type=int, default=None, metavar="D",
+        help="--channel raytrace: maximum interactions per path (default 4; each partition "
+        "crossing counts, so depth 3 hides third-order paths behind a partition)")
+    parser.add_argument(
+        "--raytrace-step-s", type=float, default=None, metavar="S",
+        help="--channel raytrace: traced every S seconds of the run [s] (default 0.5); "
+        "epochs in between interpolate each path whose interaction chain is unchanged")
+
+
 def config_from_args(args: argparse.Namespace) -> AnchorConfig:
     return build_config(
         AnchorConfig,
@@ -116,6 +144,11 @@ def config_from_args(args: argparse.Namespace) -> AnchorConfig:
             gnss_sigma_v_m=args.gnss_sigma_v_m,
             max_nodes=args.max_nodes,
             channel=args.channel,
+            raytrace_duration_s=args.raytrace_duration_s,
+            raytrace_samples=(None if args.raytrace_samples is None
+                              else round(args.raytrace_samples)),
+            raytrace_depth=args.raytrace_depth,
+            raytrace_step_s=args.raytrace_step_s,
             ideal_snr_db=args.ideal_snr_db,
             wait_start=args.wait_start,
             range_batch=args.range_batch,

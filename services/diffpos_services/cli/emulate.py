@@ -24,6 +24,10 @@ examples:
   diffpos emulate                                  the paper's geometry, 20 s, real time
   diffpos emulate scenarios/large.toml --duration 30 --speed 2
   diffpos emulate --channel ideal --speed 5        model-matched ranges, 5x real time
+  diffpos emulate --channel raytrace --speed 0     paths ray traced with Sionna RT (optional
+                                                   extra) along the run's trajectories first:
+                                                   about 5 minutes for the paper's 20 s, then
+                                                   cached (docs/raytrace.md)
   diffpos emulate --speed 0 --duration 60          lockstep: as fast as the fusion keeps up
   diffpos emulate --dashboard serve --record run.mcap
   diffpos emulate --log-dir logs/ --json out.json  per-service logs and the summary as JSON
@@ -51,6 +55,7 @@ import json
 import logging
 import sys
 
+from diffpos_services.cli.anchor import add_raytrace_arguments
 from diffpos_services.emulate import Emulation, EmulationOptions, format_summary
 from diffpos_services.emulate.supervise import format_faults
 from diffpos_services.fusion.config import DEFAULT_METHOD, METHODS
@@ -76,9 +81,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--site", default="demo", help="site name on the bus (default demo)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--rate-hz", type=float, default=10.0, help="anchor ranging rate [Hz] (default 10)")
-    parser.add_argument("--channel", choices=["emulator", "ideal"], default="emulator",
+    parser.add_argument("--channel", choices=["emulator", "ideal", "raytrace"],
+                        default="emulator",
                         help="emulator: O2I multipath + first arrival (default); ideal: the "
-                        "D-NLS model's diffraction path with CRLB noise")
+                        "D-NLS model's diffraction path with CRLB noise; raytrace: every "
+                        "anchor-node path ray traced with Sionna RT (pip install -e "
+                        "'.[raytrace]') along the run's trajectories before it starts, cached, "
+                        "then the emulator's detection and noise")
+    add_raytrace_arguments(parser)
     parser.add_argument("--delta-m", type=float, default=0.0, metavar="M",
                         help="the fusion's model offset Delta [m] (default 0: Case-1)")
     parser.add_argument("--edge", choices=["auto", "upper", "lower"], default="auto",
@@ -131,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
             log_level=args.log_level,
             delta_m=args.delta_m, edge=args.edge, method=args.method,
             fusion_workers=args.fusion_workers, security_profile=args.security_profile,
+            raytrace_samples=args.raytrace_samples, raytrace_depth=args.raytrace_depth,
+            raytrace_step_s=args.raytrace_step_s,
         )
         opts.check()  # every option before anything starts (the dashboard hint needs them)
         stop = Shutdown(log)

@@ -13,8 +13,8 @@ from diffpos_services.fusion.config import EDGES, MAX_WORKERS, METHODS
 from diffpos_services.kit import ConfigError
 from diffpos_services.wire.keys import Keys
 
-__all__ = ["EXTRA_SERVICES", "EmulationOptions", "dashboard_argv", "recorder_argv",
-           "recording_path"]
+__all__ = ["CHANNELS", "EXTRA_SERVICES", "EmulationOptions", "channel_argv", "dashboard_argv",
+           "recorder_argv", "recording_path"]
 
 
 @dataclass
@@ -42,6 +42,11 @@ class EmulationOptions:
     method: str | None = None
     fusion_workers: int = 1
     security_profile: str | None = None
+    #: ``--channel raytrace``: trace settings (``None``: the defaults of
+    #: :mod:`diffpos_services.raytrace.live`)
+    raytrace_samples: float | None = None
+    raytrace_depth: int | None = None
+    raytrace_step_s: float | None = None
 
     def check(self) -> None:
         if not self.duration_s > 0:
@@ -50,8 +55,10 @@ class EmulationOptions:
             raise ConfigError(f"--speed must be in [0, 1000] (0 = lockstep), got {self.speed}")
         if not self.rate_hz > 0:
             raise ConfigError(f"--rate-hz must be > 0, got {self.rate_hz}")
-        if self.channel not in ("emulator", "ideal"):
-            raise ConfigError(f"--channel must be emulator or ideal, got {self.channel!r}")
+        if self.channel not in CHANNELS:
+            raise ConfigError(f"--channel must be emulator, ideal or raytrace, got "
+                              f"{self.channel!r}")
+        self._check_raytrace()
         if self.method is not None and self.method not in METHODS:
             raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if not 1 <= self.fusion_workers <= MAX_WORKERS:
@@ -73,6 +80,18 @@ class EmulationOptions:
                     "whose host is in the router certificate, e.g. tls/localhost:7447")
 
 
+    def _check_raytrace(self) -> None:
+        """The ``--raytrace-*`` options: only with ``--channel raytrace``, in range."""
+        given = [f"--{n.replace('_', '-')}" for n in ("raytrace_samples", "raytrace_depth",
+                                                      "raytrace_step_s")
+                 if getattr(self, n) is not None]
+        if given and self.channel != "raytrace":
+            raise ConfigError(f"{', '.join(given)}: only with --channel raytrace")
+        if self.channel == "raytrace":
+            # the ray tracer's module (not Sionna) for its one range check
+            from diffpos_services.raytrace.live import live_settings
+            live_settings(self.raytrace_samples, self.raytrace_depth, self.raytrace_step_s)
+
     def _check_dashboard(self) -> None:
         """``--dashboard``: one mode; ``save`` with exactly one writable .rrd path."""
         d = self.dashboard
@@ -93,6 +112,22 @@ class EmulationOptions:
     def _check_record(self) -> None:
         if self.record not in (None, "off", "", "auto"):
             _check_writable("--record", self.record)
+
+
+#: what ``--channel`` accepts
+CHANNELS = ("emulator", "ideal", "raytrace")
+
+
+def channel_argv(o: EmulationOptions) -> list[str]:
+    """An anchor's ``--channel`` (with ``raytrace``: the run's length and trace settings, so
+    it finds the links :func:`diffpos_services.raytrace.live.prepare_for_run` cached)."""
+    argv = ["--channel", o.channel]
+    if o.channel == "raytrace":
+        argv += ["--raytrace-duration-s", repr(float(o.duration_s))]
+        for name in ("raytrace_samples", "raytrace_depth", "raytrace_step_s"):
+            if getattr(o, name) is not None:
+                argv += [f"--{name.replace('_', '-')}", repr(getattr(o, name))]
+    return argv
 
 
 #: what ``--dashboard`` accepts

@@ -50,7 +50,7 @@ from diffpos_services.emulate.notes import (
     model_notes,
     recording_notes,
 )
-from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
+from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions, channel_argv
 from diffpos_services.emulate.scoring import Scorer
 from diffpos_services.emulate.supervise import Supervisor, recover_in_place
 from diffpos_services.fusion.config import (
@@ -185,6 +185,7 @@ class Emulation:
         # anchor publish -> estimate received here, per estimate (the live status may show
         # e2e.stats_ms(since) of the last seconds)
         self.e2e = EndToEnd()
+        self.raytrace: dict[str, Any] | None = None  # --channel raytrace: what was traced
 
     # -------------------------------------------------------------- security
     def _load_profile(self, path: str):
@@ -333,6 +334,7 @@ class Emulation:
         doc = {"fusion": msgspec.to_builtins(self.fusion_config),
                "emulate": {"run_id": self.run_id, "channel": self.o.channel, "seed": self.o.seed,
                            "edge": self.edge, "edge_reason": self.edge_reason,
+                           "raytrace": self.raytrace,
                            # the recorder keeps other publishers' estimates apart (recorder.py)
                            "fusion_id_prefix": self.fusion_id_prefix}}
         path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
@@ -429,6 +431,10 @@ class Emulation:
         # private (0700): the run's secrets and the fusion's bus configuration
         self.tmp = tmp = tempfile.TemporaryDirectory(prefix="diffpos-zenoh-")
         try:
+            if self.o.channel == "raytrace":  # trace the run's paths (or load them) first
+                from diffpos_services.raytrace.live import prepare_for_run
+                self.raytrace = prepare_for_run(self.scenario, self.nodes, self.o, self.log,
+                                                self.stop)
             self._prepare_kernels()
             session = open_session(self._start_router(tmp if self.profile else None), self.stop,
                                    logger=self.log)
@@ -483,7 +489,7 @@ class Emulation:
             self._spawn(f"anchor-{aid}", [
                 "anchor", "--id", aid, "--site", o.site, *self._zargs("anchor", aid),
                 "--seed", str(o.seed), "--rate-hz", str(o.rate_hz), "--wait-start",
-                "--clock-offset-ms", f"{off:.4f}", "--channel", o.channel,
+                "--clock-offset-ms", f"{off:.4f}", *channel_argv(o),
                 "--max-nodes", str(o.max_nodes), *scen])
         need = {self.keys.alive_anchor(a) for a in self.anchor_ids} | {self.keys.alive_fusion()}
         for name, (module, build, ready_key) in EXTRA_SERVICES.items():
