@@ -228,6 +228,8 @@ def test_anchor_emulator_serves_the_traced_links() -> None:
     np.testing.assert_array_equal(det[0], ref.detected[0])
     with pytest.raises(ConfigError, match="--wait-start"):
         AnchorConfig(anchor_id="uav1", channel="raytrace").check()
+    with pytest.raises(ConfigError, match="needs its traced paths"):
+        AnchorEmulator(SCENARIO, cfg)
 
 
 # ----------------------------------------------------------------------------- cache, options
@@ -289,9 +291,14 @@ def test_options_and_anchor_argv() -> None:
     with pytest.raises(ConfigError, match="only with --channel raytrace"):
         EmulationOptions(raytrace_depth=4).check()
     with pytest.raises(ConfigError, match="--raytrace-depth"):
-        EmulationOptions(channel="raytrace", raytrace_depth=0).check()
+        live.live_settings(depth=0)
     with pytest.raises(ConfigError, match="--raytrace-step-s"):
-        EmulationOptions(channel="raytrace", raytrace_step_s=-1.0).check()
+        live.live_settings(step_s=-1.0)
+    with pytest.raises(ConfigError, match="--raytrace-samples"):
+        live.live_settings(samples=10)
+    assert live.live_settings() == live.LiveTraceSettings()
+    from diffpos_services.cli.main import main
+    assert main(["emulate", "--channel", "raytrace", "--raytrace-depth", "0"]) == 2
 
 
 def test_help_states_the_defaults() -> None:

@@ -109,8 +109,8 @@ class AnchorEmulator:
     nodes : list of (str, Trajectory), optional
         Default :func:`~diffpos.emulation.emulation_nodes`.
     traced : diffpos.channel.traced.TracedLinks, optional
-        ``channel == "raytrace"``: this anchor's traced paths to ``nodes``; default from the
-        ray tracer's cache (:func:`diffpos_services.raytrace.live.anchor_links`).
+        ``channel == "raytrace"`` (required then): this anchor's traced paths to ``nodes``
+        (``diffpos anchor`` loads them: :func:`diffpos_services.raytrace.live.anchor_links`).
     """
 
     def __init__(self, scenario, config: AnchorConfig, nodes: list | None = None, *,
@@ -153,14 +153,10 @@ class AnchorEmulator:
             bias_fraction=config.gnss_bias_fraction, tau_s=config.gnss_tau_s,
             velocity_sigma_m_s=config.velocity_sigma_m_s, rng=np.random.default_rng(s_nav))
         self.seq = 0
-        self.traced = traced
         if config.channel == "raytrace" and traced is None:
-            # the optional ray tracer's module, imported only for its channel
-            from diffpos_services.raytrace.live import anchor_links
-            self.traced = anchor_links(
-                scenario, config.anchor_id, self.nodes, duration_s=config.raytrace_duration_s,
-                samples=config.raytrace_samples, depth=config.raytrace_depth,
-                step_s=config.raytrace_step_s, log=logging.getLogger("diffpos.anchor"))
+            raise ConfigError("--channel raytrace: the anchor needs its traced paths "
+                              "(diffpos anchor loads them from the ray tracer's cache)")
+        self.traced = traced
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -447,16 +443,18 @@ def run_anchor(
     logger: logging.Logger | None = None,
     timebase: TimeBase | None = None,
     on_epoch: Callable[[int], None] | None = None,
+    traced=None,
 ) -> int:
     """Fly and publish until ``stop`` is set or the run's duration is over.
 
     With ``config.wait_start`` the time base comes from the first ``RunControl`` message on
     ``diffpos/<site>/run/control``; otherwise real time (:meth:`TimeBase.free_running`).
-    Returns the number of epochs published.
+    Returns the number of epochs published. ``traced``: the ``raytrace`` channel's paths
+    (:class:`AnchorEmulator`).
     """
     log = logger or logging.getLogger("diffpos.anchor")
     scenario = scenario if scenario is not None else load_scenario_file(config.scenario)
-    emu = AnchorEmulator(scenario, config)
+    emu = AnchorEmulator(scenario, config, traced=traced)
     keys = Keys(config.site)
     signals = _RunSignals(log)
     session = open_session(zenoh_config, stop, logger=log) if isinstance(

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 
+from diffpos.emulation import emulation_nodes
 from diffpos_services.anchor.service import AnchorConfig, load_scenario_file, run_anchor
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.kit import (
@@ -45,6 +46,7 @@ from diffpos_services.kit import (
     run_main,
     setup_logging,
 )
+from diffpos_services.raytrace.live import anchor_links
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -163,8 +165,14 @@ def run(args: argparse.Namespace) -> int:
         cfg = config_from_args(args)
         zs = service_settings(args, log)
         scenario = load_scenario_file(cfg.scenario)
+        traced = None
+        if cfg.channel == "raytrace":  # from the cache (diffpos emulate traced it), or now
+            traced = anchor_links(
+                scenario, cfg.anchor_id, emulation_nodes(scenario, max_nodes=cfg.max_nodes),
+                duration_s=cfg.raytrace_duration_s, samples=cfg.raytrace_samples,
+                depth=cfg.raytrace_depth, step_s=cfg.raytrace_step_s, log=log)
         stop = Shutdown(log)
-        run_anchor(cfg, zs, stop.event, scenario=scenario, logger=log)
+        run_anchor(cfg, zs, stop.event, scenario=scenario, logger=log, traced=traced)
         return 0
 
     return run_main(body, log)

@@ -67,6 +67,7 @@ from diffpos_services.kit import (
     run_main,
     setup_logging,
 )
+from diffpos_services.raytrace.live import live_settings, prepare_for_run
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -145,8 +146,14 @@ def run(args: argparse.Namespace) -> int:
             raytrace_step_s=args.raytrace_step_s,
         )
         opts.check()  # every option before anything starts (the dashboard hint needs them)
+        if opts.channel == "raytrace":
+            live_settings(opts.raytrace_samples, opts.raytrace_depth, opts.raytrace_step_s)
         stop = Shutdown(log)
         emu = Emulation(opts, log, stop.event, dashboard_hint=dashboard_hint(opts))
+        if opts.channel == "raytrace":  # trace the run's paths (or load them) first
+            emu.raytrace = prepare_for_run(emu.scenario, emu.nodes, opts, log, stop.event)
+            if emu.raytrace is None:
+                return 130
         log_event(log, logging.INFO, "starting", scenario=args.scenario or "paper (default)",
                   anchors=len(emu.anchor_ids), nodes=len(emu.nodes), endpoint=emu.endpoint)
         summary = emu.run()

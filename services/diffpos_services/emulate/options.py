@@ -81,16 +81,13 @@ class EmulationOptions:
 
 
     def _check_raytrace(self) -> None:
-        """The ``--raytrace-*`` options: only with ``--channel raytrace``, in range."""
+        """The ``--raytrace-*`` options only with ``--channel raytrace`` (their ranges:
+        ``diffpos_services.raytrace.live.live_settings``, checked by ``diffpos emulate``)."""
         given = [f"--{n.replace('_', '-')}" for n in ("raytrace_samples", "raytrace_depth",
                                                       "raytrace_step_s")
                  if getattr(self, n) is not None]
         if given and self.channel != "raytrace":
             raise ConfigError(f"{', '.join(given)}: only with --channel raytrace")
-        if self.channel == "raytrace":
-            # the ray tracer's module (not Sionna) for its one range check
-            from diffpos_services.raytrace.live import live_settings
-            live_settings(self.raytrace_samples, self.raytrace_depth, self.raytrace_step_s)
 
     def _check_dashboard(self) -> None:
         """``--dashboard``: one mode; ``save`` with exactly one writable .rrd path."""

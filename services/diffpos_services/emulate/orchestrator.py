@@ -185,7 +185,9 @@ class Emulation:
         # anchor publish -> estimate received here, per estimate (the live status may show
         # e2e.stats_ms(since) of the last seconds)
         self.e2e = EndToEnd()
-        self.raytrace: dict[str, Any] | None = None  # --channel raytrace: what was traced
+        # --channel raytrace: what was traced before the run (diffpos emulate sets it:
+        # diffpos_services.raytrace.live.prepare_for_run), kept in the run configuration
+        self.raytrace: dict[str, Any] | None = None
 
     # -------------------------------------------------------------- security
     def _load_profile(self, path: str):
@@ -431,10 +433,6 @@ class Emulation:
         # private (0700): the run's secrets and the fusion's bus configuration
         self.tmp = tmp = tempfile.TemporaryDirectory(prefix="diffpos-zenoh-")
         try:
-            if self.o.channel == "raytrace":  # trace the run's paths (or load them) first
-                from diffpos_services.raytrace.live import prepare_for_run
-                self.raytrace = prepare_for_run(self.scenario, self.nodes, self.o, self.log,
-                                                self.stop)
             self._prepare_kernels()
             session = open_session(self._start_router(tmp if self.profile else None), self.stop,
                                    logger=self.log)

@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from diffpos.channel.traced import TracedLinks
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.scenario import Scenario
-from diffpos_services.kit import STATUS, ConfigError, log_event
+from diffpos_services.kit import STATUS, ConfigError, DiffposError, log_event
 from diffpos_services.raytrace.backend import SIONNA_REQUIREMENT, check_sionna
 from diffpos_services.raytrace.paths import DIFFRACTION, DIFFUSE, SPECULAR
 from diffpos_services.raytrace.scene import build_scene, building_surfaces
@@ -455,8 +455,10 @@ def live_settings(samples: float | None = None, depth: int | None = None,
         raise ConfigError(str(exc)) from None
 
 
-class _Stopped(Exception):
-    """The run was stopped (Ctrl-C) while tracing."""
+class _Stopped(DiffposError):
+    """The run was stopped (Ctrl-C) while tracing (caught by :func:`prepare_for_run`)."""
+
+    exit_code = 130
 
 
 class _Progress:
