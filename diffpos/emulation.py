@@ -11,8 +11,8 @@ time and random generators passed in (``numpy.random.Generator``; never global):
   Gauss-Markov bias plus white noise) and velocity noise;
 - :func:`clock_time_ns`: a true time stamped with the anchor's clock (offset + jitter);
 - :func:`first_arrivals`: range, sigma, SNR and detection of the first-arriving path to each
-  node (the O2I channel emulator of :mod:`diffpos.channel.emulator`, or the ideal upper-edge path with
-  noise at the ranging CRLB).
+  node (the O2I channel emulator of :mod:`diffpos.channel.emulator`, the ideal upper-edge path with
+  noise at the ranging CRLB, or paths ray traced before the run: :mod:`diffpos.channel.traced`).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 
 from diffpos.channel.emulator import emulate_channel, first_arrival, pair_first_arrival
 from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
+from diffpos.channel.traced import TracedLinks, traced_first_arrivals
 from diffpos.geometry import window_edge_path
 from diffpos.scenario import Scenario
 from diffpos.trajectory import trajectory_from_dict
@@ -200,7 +201,8 @@ def clock_time_ns(t_true_ns: int, *, offset_ns: int, jitter_ns: int,
 # ----------------------------------------------------------------------------- ranges
 def first_arrivals(anchor_m: np.ndarray, nodes_m: np.ndarray, scenario: Scenario, *,
                    channel: str = "emulator", ideal_snr_db: float = 20.0,
-                   rng: np.random.Generator | None, kernel: bool = True
+                   rng: np.random.Generator | None, kernel: bool = True,
+                   traced: TracedLinks | None = None, t_s: np.ndarray | None = None
                    ) -> tuple[np.ndarray, ...]:
     """First-arriving path from one anchor to every node at ``B`` epochs.
 
@@ -212,9 +214,11 @@ def first_arrivals(anchor_m: np.ndarray, nodes_m: np.ndarray, scenario: Scenario
         The nodes' true positions at each epoch.
     scenario : Scenario
         Building and radio.
-    channel : {"emulator", "ideal"}
+    channel : {"emulator", "ideal", "raytrace"}
         ``emulator``: the O2I multipath emulator and first-arrival detection; ``ideal``: the
-        upper-edge diffracted path with noise at the ranging CRLB of ``ideal_snr_db``.
+        upper-edge diffracted path with noise at the ranging CRLB of ``ideal_snr_db``;
+        ``raytrace``: the paths of ``traced`` at times ``t_s`` with the emulator's detector
+        and noise (:func:`diffpos.channel.traced.traced_first_arrivals`).
     rng : numpy.random.Generator
         Measurement noise.
     kernel : bool
@@ -222,6 +226,10 @@ def first_arrivals(anchor_m: np.ndarray, nodes_m: np.ndarray, scenario: Scenario
         pair_first_arrival`, ~100x less CPU per epoch; the same draws, equal to rounding);
         ``False``: the numpy emulator (:func:`~diffpos.channel.emulator.emulate_channel` +
         :func:`~diffpos.channel.emulator.first_arrival`), the reference.
+    traced : TracedLinks, optional
+        ``raytrace``: this anchor's traced paths to the same N nodes.
+    t_s : ndarray, shape (B,) [s], optional
+        ``raytrace``: the epochs' times since the start of the run.
 
     Returns
     -------
@@ -229,6 +237,13 @@ def first_arrivals(anchor_m: np.ndarray, nodes_m: np.ndarray, scenario: Scenario
     detected : ndarray of bool, shape (B, N)
     """
     b, n = nodes_m.shape[:2]
+    if channel == "raytrace":
+        if traced is None or t_s is None:
+            raise ValueError("channel 'raytrace' needs the traced paths (traced) and the "
+                             "epochs' times (t_s)")
+        fa = traced_first_arrivals(traced, t_s, anchor_m, nodes_m, radio=scenario.radio,
+                                   rng=rng)
+        return fa.range_m, fa.sigma_m, fa.snr_db, fa.detected
     if channel == "ideal":
         w = scenario.building.window_height_m
         path = window_edge_path(
@@ -274,7 +289,10 @@ def first_arrivals(anchor_m: np.ndarray, nodes_m: np.ndarray, scenario: Scenario
 def warm_up_channel(anchor_m: np.ndarray, node_m: np.ndarray, scenario: Scenario, *,
                     channel: str = "emulator") -> None:
     """Exercise the channel code once without random draws (first-call costs paid before a
-    real epoch). ``anchor_m``, ``node_m``: shape (1, 3) [m]."""
+    real epoch). ``anchor_m``, ``node_m``: shape (1, 3) [m]. ``raytrace``: nothing to warm
+    (numpy on the paths traced before the run)."""
+    if channel == "raytrace":
+        return
     if channel == "ideal":
         window_edge_path(anchor_m, node_m, window_height_m=scenario.building.window_height_m)
     else:

@@ -31,7 +31,7 @@ print(json.dumps({
     "numba": [m for m in mods if m == "numba" or m.startswith("numba.")][:3],
     "kernels": [m for m in mods if m.startswith("diffpos.") and m.rsplit(".", 1)[-1].endswith("_nb")],
     "verbs": [m for m in mods if m.startswith("diffpos_services.cli.")
-              and m not in ("diffpos_services.cli.main",)],
+              and m not in ("diffpos_services.cli.main", "diffpos_services.cli.raytrace_options")],
 }))
 """
 

@@ -74,7 +74,13 @@ class AnchorConfig(msgspec.Struct, kw_only=True, frozen=True):
     clock_jitter_ns: Annotated[int, Meta(ge=0)] = 20_000
     max_nodes: Annotated[int, Meta(ge=0)] = 0
     wait_start: bool = False
-    channel: Literal["emulator", "ideal"] = "emulator"
+    channel: Literal["emulator", "ideal", "raytrace"] = "emulator"
+    #: ``raytrace``: the run's length the links are traced for [s] and the trace settings
+    #: (``None``: the defaults of :mod:`diffpos_services.raytrace.live`)
+    raytrace_duration_s: Annotated[float, Meta(gt=0)] = 20.0
+    raytrace_samples: Annotated[int, Meta(ge=1)] | None = None
+    raytrace_depth: Annotated[int, Meta(ge=1)] | None = None
+    raytrace_step_s: Annotated[float, Meta(gt=0)] | None = None
     #: one RangeBatch per epoch instead of one message per node; None: when the anchor
     #: ranges more than :data:`BATCH_MIN_NODES` nodes
     range_batch: bool | None = None
@@ -83,6 +89,9 @@ class AnchorConfig(msgspec.Struct, kw_only=True, frozen=True):
     def check(self) -> None:
         check_id(self.site, field="site")
         check_id(self.anchor_id, field="anchor_id")
+        if self.channel == "raytrace" and not self.wait_start:
+            raise ConfigError("--channel raytrace serves the epochs of a run traced from its "
+                              "start: use --wait-start (diffpos emulate starts the run)")
 
 
 # ----------------------------------------------------------------------------- emulator
@@ -95,9 +104,13 @@ class AnchorEmulator:
     config : AnchorConfig
     nodes : list of (str, Trajectory), optional
         Default :func:`~diffpos.emulation.emulation_nodes`.
+    traced : diffpos.channel.traced.TracedLinks, optional
+        ``channel == "raytrace"`` (required then): this anchor's traced paths to ``nodes``
+        (``diffpos anchor`` loads them: :func:`diffpos_services.raytrace.live.anchor_links`).
     """
 
-    def __init__(self, scenario, config: AnchorConfig, nodes: list | None = None) -> None:
+    def __init__(self, scenario, config: AnchorConfig, nodes: list | None = None, *,
+                 traced=None) -> None:
         ids = [a.id for a in scenario.anchors]
         if config.anchor_id not in ids:
             raise ConfigError(
@@ -136,6 +149,10 @@ class AnchorEmulator:
             bias_fraction=config.gnss_bias_fraction, tau_s=config.gnss_tau_s,
             velocity_sigma_m_s=config.velocity_sigma_m_s, rng=np.random.default_rng(s_nav))
         self.seq = 0
+        if config.channel == "raytrace" and traced is None:
+            raise ConfigError("--channel raytrace: the anchor needs its traced paths "
+                              "(diffpos anchor loads them from the ray tracer's cache)")
+        self.traced = traced
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -163,7 +180,8 @@ class AnchorEmulator:
         for i in self._moving:  # (static nodes: their fixed position, not one call each)
             nodes_m[:, i] = np.asarray(self.nodes[i][1].position_m(t_s), float).reshape(b, 3)
         return first_arrivals(p_true, nodes_m, self.scenario, channel=self.config.channel,
-                              ideal_snr_db=self.config.ideal_snr_db, rng=self.rng_range)
+                              ideal_snr_db=self.config.ideal_snr_db, rng=self.rng_range,
+                              traced=self.traced, t_s=t_s)
 
     def measure_block(self, k0: int, count: int, tb: TimeBase):
         """True-time channel results of epochs ``k0 .. k0 + count - 1`` (no messages yet)."""
@@ -421,16 +439,18 @@ def run_anchor(
     logger: logging.Logger | None = None,
     timebase: TimeBase | None = None,
     on_epoch: Callable[[int], None] | None = None,
+    traced=None,
 ) -> int:
     """Fly and publish until ``stop`` is set or the run's duration is over.
 
     With ``config.wait_start`` the time base comes from the first ``RunControl`` message on
     ``diffpos/<site>/run/control``; otherwise real time (:meth:`TimeBase.free_running`).
-    Returns the number of epochs published.
+    Returns the number of epochs published. ``traced``: the ``raytrace`` channel's paths
+    (:class:`AnchorEmulator`).
     """
     log = logger or logging.getLogger("diffpos.anchor")
     scenario = scenario if scenario is not None else load_scenario_option(config.scenario)
-    emu = AnchorEmulator(scenario, config)
+    emu = AnchorEmulator(scenario, config, traced=traced)
     keys = Keys(config.site)
     signals = _RunSignals(log)
     session = open_session(zenoh_config, stop, logger=log) if isinstance(

@@ -22,6 +22,10 @@ examples:
   diffpos anchor --id uav1 --scenario scenarios/paper.toml
   diffpos anchor --id uav2 --scenario scenarios/paper.toml --clock-offset-ms 1.5
   diffpos anchor --id uav1 --channel ideal     upper-edge diffraction path only (benchmarks)
+  diffpos anchor --id uav1 --channel raytrace --wait-start --raytrace-duration-s 20
+                                               paths ray traced (Sionna RT) along the run's
+                                               trajectories before it starts (cached; as
+                                               diffpos emulate --channel raytrace)
   diffpos anchor --id uav1 --zenoh-config security/zenoh/anchor-uav1.json5
                                                TLS + its own user/password (security/README.md)
 
@@ -34,6 +38,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 from diffpos_services.bus.session import add_zenoh_arguments, service_settings
+from diffpos_services.cli.raytrace_options import add_raytrace_arguments
 from diffpos_services.config import build_config
 from diffpos_services.logs import add_logging_arguments, setup_logging
 from diffpos_services.scenario_io import load_scenario_option
@@ -76,11 +81,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--channel",
-        choices=["emulator", "ideal"],
+        choices=["emulator", "ideal", "raytrace"],
         default="emulator",
         help="emulator: O2I multipath + first arrival (default); ideal: the "
-        "D-NLS model's path with CRLB noise at --ideal-snr-db",
+        "D-NLS model's path with CRLB noise at --ideal-snr-db; raytrace: paths ray traced "
+        "with Sionna RT (optional extra) before the run, the emulator's detection and noise "
+        "(needs --wait-start)",
     )
+    add_raytrace_arguments(parser)
+    parser.add_argument(
+        "--raytrace-duration-s", type=float, default=20.0, metavar="S",
+        help="--channel raytrace: the run's length the paths are traced for [s] (default 20)")
     parser.add_argument(
         "--ideal-snr-db", type=float, default=20.0, help="SNR of --channel ideal [dB] (default 20)"
     )
@@ -118,6 +129,11 @@ def config_from_args(args: argparse.Namespace) -> AnchorConfig:
             gnss_sigma_v_m=args.gnss_sigma_v_m,
             max_nodes=args.max_nodes,
             channel=args.channel,
+            raytrace_duration_s=args.raytrace_duration_s,
+            raytrace_samples=(None if args.raytrace_samples is None
+                              else round(args.raytrace_samples)),
+            raytrace_depth=args.raytrace_depth,
+            raytrace_step_s=args.raytrace_step_s,
             ideal_snr_db=args.ideal_snr_db,
             wait_start=args.wait_start,
             range_batch=args.range_batch,
@@ -134,8 +150,17 @@ def run(args: argparse.Namespace) -> int:
         cfg = config_from_args(args)
         zs = service_settings(args, log)
         scenario = load_scenario_option(cfg.scenario)
+        traced = None
+        if cfg.channel == "raytrace":  # from the cache (diffpos emulate traced it), or now
+            from diffpos.emulation import emulation_nodes
+            from diffpos_services.raytrace.live import anchor_links
+
+            traced = anchor_links(
+                scenario, cfg.anchor_id, emulation_nodes(scenario, max_nodes=cfg.max_nodes),
+                duration_s=cfg.raytrace_duration_s, samples=cfg.raytrace_samples,
+                depth=cfg.raytrace_depth, step_s=cfg.raytrace_step_s, log=log)
         stop = Shutdown(log)
-        run_anchor(cfg, zs, stop.event, scenario=scenario, logger=log)
+        run_anchor(cfg, zs, stop.event, scenario=scenario, logger=log, traced=traced)
         return 0
 
     return run_main(body, log)

@@ -24,6 +24,10 @@ examples:
   diffpos emulate                                  the paper's geometry, 20 s, real time
   diffpos emulate scenarios/large.toml --duration 30 --speed 2
   diffpos emulate --channel ideal --speed 5        model-matched ranges, 5x real time
+  diffpos emulate --channel raytrace --speed 0     paths ray traced with Sionna RT (optional
+                                                   extra) along the run's trajectories first:
+                                                   about 5 minutes for the paper's 20 s, then
+                                                   cached (docs/raytrace.md)
   diffpos emulate --speed 0 --duration 60          lockstep: as fast as the fusion keeps up
   diffpos emulate --dashboard serve --record run.mcap
   diffpos emulate --log-dir logs/ --json out.json  per-service logs and the summary as JSON
@@ -53,6 +57,7 @@ import logging
 import sys
 from typing import TYPE_CHECKING
 
+from diffpos_services.cli.raytrace_options import add_raytrace_arguments
 from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     DEFAULT_METHOD,
@@ -79,9 +84,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--site", default="demo", help="site name on the bus (default demo)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--rate-hz", type=float, default=10.0, help="anchor ranging rate [Hz] (default 10)")
-    parser.add_argument("--channel", choices=["emulator", "ideal"], default="emulator",
+    parser.add_argument("--channel", choices=["emulator", "ideal", "raytrace"],
+                        default="emulator",
                         help="emulator: O2I multipath + first arrival (default); ideal: the "
-                        "D-NLS model's diffraction path with CRLB noise")
+                        "D-NLS model's diffraction path with CRLB noise; raytrace: every "
+                        "anchor-node path ray traced with Sionna RT (pip install -e "
+                        "'.[raytrace]') along the run's trajectories before it starts, cached, "
+                        "then the emulator's detection and noise")
+    add_raytrace_arguments(parser)
     parser.add_argument("--delta-m", type=float, default=0.0, metavar="M",
                         help="the fusion's model offset Delta [m] (default 0: Case-1)")
     parser.add_argument("--edge", choices=["auto", "upper", "lower"], default="auto",
@@ -131,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
     from diffpos_services.emulate.orchestrator import Emulation
     from diffpos_services.emulate.scoring import format_summary
     from diffpos_services.emulate.supervise import format_faults
+    from diffpos_services.raytrace.live import live_settings, prepare_for_run
 
     fmt = args.log_format if args.log_format != "json" or not _tty() else "text"
     log = setup_logging("emulate", level=args.log_level, fmt=fmt)
@@ -146,10 +157,18 @@ def run(args: argparse.Namespace) -> int:
             delta_m=args.delta_m, edge=args.edge, method=args.method,
             fusion_workers=args.fusion_workers, security_profile=args.security_profile,
             tracker=parse_tracker_items(args.tracker),
+            raytrace_samples=args.raytrace_samples, raytrace_depth=args.raytrace_depth,
+            raytrace_step_s=args.raytrace_step_s,
         )
         opts.check()  # every option before anything starts (the dashboard hint needs them)
+        if opts.channel == "raytrace":
+            live_settings(opts.raytrace_samples, opts.raytrace_depth, opts.raytrace_step_s)
         stop = Shutdown(log)
         emu = Emulation(opts, log, stop.event, dashboard_hint=dashboard_hint(opts))
+        if opts.channel == "raytrace":  # trace the run's paths (or load them) first
+            emu.raytrace = prepare_for_run(emu.scenario, emu.nodes, opts, log, stop.event)
+            if emu.raytrace is None:
+                return 130
         log_event(log, logging.INFO, "starting", scenario=args.scenario or "paper (default)",
                   anchors=len(emu.anchor_ids), nodes=len(emu.nodes), endpoint=emu.endpoint)
         summary = emu.run()

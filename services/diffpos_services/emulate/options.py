@@ -14,8 +14,8 @@ from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import EDGES, MAX_WORKERS, METHODS, tracker_value
 from diffpos_services.wire.keys import Keys
 
-__all__ = ["EXTRA_SERVICES", "EmulationOptions", "dashboard_argv", "recorder_argv",
-           "recording_path"]
+__all__ = ["CHANNELS", "EXTRA_SERVICES", "EmulationOptions", "channel_argv", "dashboard_argv",
+           "recorder_argv", "recording_path"]
 
 
 @dataclass
@@ -45,6 +45,11 @@ class EmulationOptions:
     security_profile: str | None = None
     tracker: dict[str, Any] = field(default_factory=dict)
     """The fusion's tracker settings (``--tracker KEY=VALUE``; FusionConfig.tracker)."""
+    #: ``--channel raytrace``: trace settings (``None``: the defaults of
+    #: :mod:`diffpos_services.raytrace.live`)
+    raytrace_samples: float | None = None
+    raytrace_depth: int | None = None
+    raytrace_step_s: float | None = None
 
     def check(self) -> None:
         if not self.duration_s > 0:
@@ -53,8 +58,10 @@ class EmulationOptions:
             raise ConfigError(f"--speed must be in [0, 1000] (0 = lockstep), got {self.speed}")
         if not self.rate_hz > 0:
             raise ConfigError(f"--rate-hz must be > 0, got {self.rate_hz}")
-        if self.channel not in ("emulator", "ideal"):
-            raise ConfigError(f"--channel must be emulator or ideal, got {self.channel!r}")
+        if self.channel not in CHANNELS:
+            raise ConfigError(f"--channel must be emulator, ideal or raytrace, got "
+                              f"{self.channel!r}")
+        self._check_raytrace()
         if self.method is not None and self.method not in METHODS:
             raise ConfigError(f"--method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if not 1 <= self.fusion_workers <= MAX_WORKERS:
@@ -78,6 +85,15 @@ class EmulationOptions:
                     "whose host is in the router certificate, e.g. tls/localhost:7447")
 
 
+    def _check_raytrace(self) -> None:
+        """The ``--raytrace-*`` options only with ``--channel raytrace`` (their ranges:
+        ``diffpos_services.raytrace.live.live_settings``, checked by ``diffpos emulate``)."""
+        given = [f"--{n.replace('_', '-')}" for n in ("raytrace_samples", "raytrace_depth",
+                                                      "raytrace_step_s")
+                 if getattr(self, n) is not None]
+        if given and self.channel != "raytrace":
+            raise ConfigError(f"{', '.join(given)}: only with --channel raytrace")
+
     def _check_dashboard(self) -> None:
         """``--dashboard``: one mode; ``save`` with exactly one writable .rrd path."""
         d = self.dashboard
@@ -98,6 +114,22 @@ class EmulationOptions:
     def _check_record(self) -> None:
         if self.record not in (None, "off", "", "auto"):
             _check_writable("--record", self.record)
+
+
+#: what ``--channel`` accepts
+CHANNELS = ("emulator", "ideal", "raytrace")
+
+
+def channel_argv(o: EmulationOptions) -> list[str]:
+    """An anchor's ``--channel`` (with ``raytrace``: the run's length and trace settings, so
+    it finds the links :func:`diffpos_services.raytrace.live.prepare_for_run` cached)."""
+    argv = ["--channel", o.channel]
+    if o.channel == "raytrace":
+        argv += ["--raytrace-duration-s", repr(float(o.duration_s))]
+        for name in ("raytrace_samples", "raytrace_depth", "raytrace_step_s"):
+            if getattr(o, name) is not None:
+                argv += [f"--{name.replace('_', '-')}", repr(getattr(o, name))]
+    return argv
 
 
 #: what ``--dashboard`` accepts

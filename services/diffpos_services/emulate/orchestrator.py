@@ -47,7 +47,7 @@ from diffpos_services.emulate.notes import (
     model_notes,
     recording_notes,
 )
-from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions
+from diffpos_services.emulate.options import EXTRA_SERVICES, EmulationOptions, channel_argv
 from diffpos_services.emulate.scoring import Scorer
 from diffpos_services.emulate.supervise import (
     NotRestarted,
@@ -236,6 +236,9 @@ class Emulation:
         # anchor publish -> estimate received here, per estimate (the live status may show
         # e2e.stats_ms(since) of the last seconds)
         self.e2e = EndToEnd()
+        # --channel raytrace: what was traced before the run (diffpos emulate sets it:
+        # diffpos_services.raytrace.live.prepare_for_run), kept in the run configuration
+        self.raytrace: dict[str, Any] | None = None
 
     # -------------------------------------------------------------- security
     def _load_profile(self, path: str):
@@ -391,6 +394,7 @@ class Emulation:
         doc = {"fusion": msgspec.to_builtins(self.fusion_config),
                "emulate": {"run_id": self.run_id, "channel": self.o.channel, "seed": self.o.seed,
                            "edge": self.edge, "edge_reason": self.edge_reason,
+                           "raytrace": self.raytrace,
                            # the recorder keeps other publishers' estimates apart (recorder.py)
                            "fusion_id_prefix": self.fusion_id_prefix}}
         path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
@@ -563,7 +567,7 @@ class Emulation:
             self._spawn(f"anchor-{aid}", [
                 "anchor", "--id", aid, "--site", o.site, *self._zargs("anchor", aid),
                 "--seed", str(o.seed), "--rate-hz", str(o.rate_hz), "--wait-start",
-                "--clock-offset-ms", f"{off:.4f}", "--channel", o.channel,
+                "--clock-offset-ms", f"{off:.4f}", *channel_argv(o),
                 "--max-nodes", str(o.max_nodes), *scen])
         need = {self.keys.alive_anchor(a) for a in self.anchor_ids} | {self.keys.alive_fusion()}
         for name, (module, build, ready_key) in EXTRA_SERVICES.items():
