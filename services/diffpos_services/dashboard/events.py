@@ -107,11 +107,37 @@ def liveliness_events(
     # measurement time = wall time + offset of the nearest earlier message
     k = np.clip(np.searchsorted(w, t_wall, side="right") - 1, 0, w.size - 1)
     t_meas = t_wall + (mt[k] - w[k])
-    text = [
-        f"{r.get('role')} {r.get('id') or ''} {'joined' if r.get('alive') else 'left'}".replace(
-            "  ", " "
-        )
-        for r in recs
-    ]
-    level = ["INFO" if r.get("alive") else "WARN" for r in recs]
-    return EventColumns(t_meas, text, level)
+    who = [f"{r.get('role')} {r.get('id') or ''}".strip() for r in recs]
+    alive = [bool(r.get("alive")) for r in recs]
+    joined = [i for i, a in enumerate(alive) if a]
+    left = [i for i, a in enumerate(alive) if not a]
+    out = [EventColumns(t_meas[joined], [f"{who[i]} joined" for i in joined], ["INFO"] * len(joined))]
+    normal = [i for i in left if is_normal_end(int(t_wall[i]), int(w[-1]))]
+    lost = [i for i in left if i not in normal]
+    out.append(EventColumns(t_meas[lost], [lost_text(who[i]) for i in lost], ["WARN"] * len(lost)))
+    if normal:
+        out.append(EventColumns([int(t_meas[normal].max())], [end_text([who[i] for i in normal])],
+                                ["INFO"]))
+    return EventColumns.concat(out)
+
+
+#: a service that leaves at most this long before the last message of the run [ns] stopped
+#: with the others at the end of the run (a normal end), not during it (a fault)
+END_GRACE_NS = 2_000_000_000
+
+
+def is_normal_end(left_wall_ns: int, last_data_wall_ns: int) -> bool:
+    """Whether a service that left at ``left_wall_ns`` stopped at the end of the run: no
+    data was published more than :data:`END_GRACE_NS` after it left (else the run went on
+    without it: lost)."""
+    return last_data_wall_ns <= left_wall_ns + END_GRACE_NS
+
+
+def end_text(who: Sequence[str]) -> str:
+    """The one event of a normal end: who stopped."""
+    return f"run ended: {', '.join(who)} stopped with the data (normal end, not a fault)"
+
+
+def lost_text(who: str) -> str:
+    """The event of a service lost while the run went on."""
+    return f"{who} left while the others went on publishing (lost: a fault)"
