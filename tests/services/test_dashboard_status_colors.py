@@ -11,11 +11,12 @@ back to the grey of a stale marker, and so did ``COASTING``, ``LOST``, ``UNINITI
 from __future__ import annotations
 
 import numpy as np
-from diffpos.estimators.result import FixStatus
-from diffpos.tracking.state import TrackStatus
 from diffpos_services.dashboard.columns import EstimateColumns
 from diffpos_services.dashboard.convert import rrd_rows
 from diffpos_services.dashboard.stream import write_rrd
+
+from diffpos.estimators.result import FixStatus
+from diffpos.tracking.state import TrackStatus
 
 PUBLISHED = [s.name for s in TrackStatus] + [s.name for s in FixStatus]
 T0 = 1_800_000_000_000_000_000

@@ -38,7 +38,9 @@ def log_events(rec: rr.RecordingStream, events: EventColumns) -> None:
 def log_diagnostics(
     rec: rr.RecordingStream, diags: Sequence[Any], *, state: dict | None = None
 ) -> dict:
-    """Fusion counters and anchor joined/left events from ``FusionDiagnostics`` messages.
+    """Fusion counters and anchor joined/left events from ``FusionDiagnostics`` messages
+    (an anchor the fusion no longer sees is DEBUG: whether it was lost or the run ended is
+    told by the liveliness events, :func:`liveliness_events` and the live service).
 
     Rows are placed at ``watermark_ns`` (newest measurement time seen by the fusion); messages
     without a watermark are skipped. Returns the live-anchor set to pass back when streaming.
@@ -64,10 +66,10 @@ def log_diagnostics(
                 ev_t.append(ti)
                 ev_txt.append(f"anchor {a} joined")
                 ev_lvl.append("INFO")
-            for a in sorted(live - now):
+            for a in sorted(live - now):  # the liveliness events say whether it was lost
                 ev_t.append(ti)
-                ev_txt.append(f"anchor {a} left")
-                ev_lvl.append("WARN")
+                ev_txt.append(f"fusion no longer sees anchor {a}")
+                ev_lvl.append("DEBUG")
         else:
             ev_t.append(ti)
             ev_txt.append("fusion sees anchors: " + (", ".join(sorted(now)) or "none"))

@@ -35,7 +35,7 @@ from diffpos_services.dashboard.common import (
 #: chi-square 95 % quantile for 2 degrees of freedom: the horizontal ellipse of the plans
 CHI2_2DOF_95 = 5.991464547107979
 #: responder marker on the plans [ui points]
-PLAN_MARKER_UI = 6.0
+PLAN_MARKER_UI = 7.0
 #: a fix older than this is marked stale on the plans (``07?``) [s]
 STALE_S = 2.0
 #: labels of the plans are laid out for this many label heights across the plan's long side
@@ -43,9 +43,9 @@ STALE_S = 2.0
 LABEL_ROWS = 36.0
 #: the plot lines of the legend: (entity name, colour, meaning)
 FLEET_LINES = (
-    ("median", (235, 235, 235, 255), "median over responders"),
-    ("p95", (250, 165, 40, 255), "95th percentile"),
-    ("worst", (230, 35, 60, 255), "worst responder"),
+    ("median", (31, 119, 180, 255), "median error"),
+    ("p95", (250, 165, 40, 255), "p95 error"),
+    ("worst", (230, 35, 60, 255), "worst error"),
 )
 
 
@@ -65,7 +65,8 @@ def floor_view_name(building: BuildingOutline, k: int) -> str:
 def log_plans_building(rec: rr.RecordingStream, building: BuildingOutline) -> None:
     """Static plan of every floor: ``plan/F<k>/walls`` (outer and interior walls),
     ``plan/F<k>/windows`` (the window band on the facade ``y = 0``), ``plan/F<k>/stairs``
-    (every flight of stairs that reaches the floor, with its treads)."""
+    (every flight of stairs that reaches the floor, hatched with its treads; which floors
+    it joins shows on hover: no label on the plan, where it would meet responders')."""
     b = building
     x0, x1, d = b.x_min_m, b.x_max_m, b.depth_m
     outer = [plan_xy(np.array([[x0, 0], [x0, d], [x1, d], [x1, 0]], float))]
@@ -83,22 +84,18 @@ def log_plans_building(rec: rr.RecordingStream, building: BuildingOutline) -> No
         flights = [s for s in b.stairs if s[4] <= k <= s[5]]
         if not flights:
             continue
-        boxes, treads, labels, label_xy = [], [], [], []
+        boxes, treads, labels = [], [], []
         for sx0, sx1, sy0, sy1, lo, hi in flights:
             boxes.append((sx0, -sy1, sx1 - sx0, sy1 - sy0))
-            other = hi if k == lo else lo
-            labels.append(f"stairs to F{other}")
-            label_xy.append(((sx0 + sx1) / 2, -sy1 - 0.06 * max(x1 - x0, d)))
+            labels.append(f"stairs F{lo}-F{hi}")
             along_x = (sx1 - sx0) >= (sy1 - sy0)
             for u in np.arange(sx0 if along_x else sy0, (sx1 if along_x else sy1), 0.3):
                 seg = [[u, sy0], [u, sy1]] if along_x else [[sx0, u], [sx1, u]]
                 treads.append(plan_xy(np.array(seg, float)))
         rec.log(f"{base}/stairs", rr.Boxes2D(
             mins=[bx[:2] for bx in boxes], sizes=[bx[2:] for bx in boxes],
-            colors=[(150, 140, 110, 255)], radii=[-1.0], draw_order=1.5), static=True)
-        rec.log(f"{base}/stairs/label", rr.Points2D(
-            label_xy, radii=[0.0], labels=labels, show_labels=True,
-            colors=[(190, 180, 140, 255)], draw_order=1.6), static=True)
+            colors=[(150, 140, 110, 255)], radii=[-1.0], labels=labels, show_labels=False,
+            draw_order=1.5), static=True)
         rec.log(f"{base}/stairs/treads", rr.LineStrips2D(
             treads, colors=[(110, 105, 85, 255)], radii=[-0.5], draw_order=1.4), static=True)
 
@@ -121,13 +118,15 @@ def log_legend(rec: rr.RecordingStream, plot_nodes: dict[str, tuple[int, int, in
     left = [(c, f"{name} {what}") for name, (c, what) in STATUS_STYLE.items()]
     dim = tuple(int(v) for v in confidence_colors([STATUS_STYLE["TRACKING"][0]], [0.5])[0])
     left.append((dim, f"dimmed: floor p < {100 * SURE_FLOOR_P:.0f} %"))
-    right = [(c, f"plot: {what}") for _, c, what in FLEET_LINES]
+    right = [((150, 140, 110, 255), "hatched box: stairs"), ((90, 170, 255, 255),
+                                                             "blue: windows (facade)")]
+    right += [(c, f"plot: {what}") for _, c, what in FLEET_LINES]
     right += [(c, f"plot: {nid}") for nid, c in (plot_nodes or {}).items()]
     xs = [0.0] * len(left) + [LEGEND_COLUMN_X] * len(right)
     ys = [float(i) for i in range(len(left))] + [float(i) for i in range(len(right))]
     rows = left + right
     sw = np.array([xs, ys], float).T
-    text_x = [x + 0.45 + 0.5 * LEGEND_CHAR_W * len(t) for x, (_, t) in zip(xs, rows, strict=True)]
+    text_x = [x + 0.7 + 0.5 * LEGEND_CHAR_W * len(t) for x, (_, t) in zip(xs, rows, strict=True)]
     rec.log("legend/swatches", rr.Points2D(sw, colors=_rgba([c for c, _ in rows]),
                                            radii=[-6.0]), static=True)
     rec.log("legend/text", rr.Points2D(
@@ -208,7 +207,7 @@ def _ellipse(center: FloatArray, cov_xy: FloatArray, n: int = 24) -> FloatArray 
 
 def declutter(xy: FloatArray, names: list[str], height_m: float) -> list[tuple[FloatArray, str]]:
     """Labels that do not overlap: each label is a box ``height_m`` high and 0.62 of that
-    per character wide, centred 1.7 ``height_m`` above its first responder's marker; a
+    per character wide, centred 2 ``height_m`` above its first responder's marker; a
     responder whose label box would overlap an existing one joins that label (``07 12``;
     beyond three names ``07 12 31 +2``). Returns ``(anchor xy, text)`` per label."""
     order = np.lexsort((xy[:, 0], xy[:, 1])) if len(xy) else np.zeros(0, int)
@@ -226,7 +225,7 @@ def declutter(xy: FloatArray, names: list[str], height_m: float) -> list[tuple[F
         return a[0] < c[1] and c[0] < a[1] and a[2] < c[3] and c[2] < a[3]
 
     for i in order:
-        anchor = xy[i] + np.array([0.0, -1.7 * height_m])
+        anchor = xy[i] + np.array([0.0, -2.0 * height_m])
         mine = box(anchor, names[i])
         for lab in labels:
             if hit(mine, box(lab[0], text_of(lab[1]))):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import logging
 import queue
+import shutil
 import sys
 import time
 from typing import Any
@@ -202,13 +203,14 @@ class Monitor:
             log_event(self.emu.log, logging.WARNING, "bad message", key=key, error=str(exc)[:200])
 
     # ------------------------------------------------------------------ status line
-    def status_line(self, latency_ms: float | None = None) -> str:
+    def status_line(self, latency_ms: float | None = None, width: int = 100) -> str:
         """What matters first, within 80 columns for 50 responders on 5 floors: emulated time,
         the responders placed now (newest estimate with a usable position) of all, how many
         on each floor, the least sure of them (lowest probability of its published floor),
         the end-to-end latency, then the median error of the placed responders, e.g.
         ``t 7.3/10s placed 48/50 F0:10 F1:9 F2:11 F3:10 F4:8 unsure n17 62% lat 25ms
-        err 0.08m``. Lockstep runs show no speed."""
+        err 0.08m``; the parts that would pass ``width`` columns are left out, last first
+        (the status line is then never cut). Lockstep runs show no speed."""
         o, sc = self.o, self.scorer
         el = max(min(self.emu_now(time.time_ns()), self.end_ns) - self.tb.t0_ns, 0) * 1e-9
         placed = sc.placed()
@@ -226,6 +228,8 @@ class Monitor:
         errs = [e for _, _, e in placed.values() if e == e]
         if errs:
             parts.append(f"err {np.median(errs):.2f}m")
+        while len(parts) > 2 and len(" ".join(parts)) > width - 1:
+            parts.pop()
         return " ".join(parts)
 
     def progress(self) -> None:
@@ -241,7 +245,8 @@ class Monitor:
         while recent and recent[0][0] < t_now - 2.0:
             recent.popleft()
         lat = self.emu.e2e.stats_ms(time.time_ns() - 2_000_000_000)
-        line = self.status_line(lat["p50"] if lat["count"] else None)
+        line = self.status_line(lat["p50"] if lat["count"] else None,
+                                width=shutil.get_terminal_size((100, 24)).columns)
         if self.tty:
             STATUS.show(line)
         else:

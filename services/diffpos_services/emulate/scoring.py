@@ -307,11 +307,11 @@ def format_responders(rows: list[dict[str, Any]], width: int = 100) -> str:
         err = "-" if r["error_m"] is None else f"{r['error_m']:.2f}"
         tf = r["true_floor"]
         true = "" if tf is None else ("" if r["floor"] == tf else f"F{tf}!")
-        return (f"{r['node']:<{w_id}} {r['status'] or '-':<{w_st}} {fl:>3} {p:>4} {age:>6} "
-                f"{err:>6} {true:<4}")
+        return (f"{r['node']:<{w_id}} {r['status'] or '-':<{w_st}} {fl:>3} {p:>4} {age:>5} "
+                f"{err:>5} {true:<3}")
 
-    head = (f"{'node':<{w_id}} {'status':<{w_st}} {'flr':>3} {'p':>4} {'age':>6} "
-            f"{'err m':>6} {'true':<4}")
+    head = (f"{'node':<{w_id}} {'status':<{w_st}} {'flr':>3} {'p':>4} {'age':>5} "
+            f"{'err':>5} {'tru':<3}")
     cells = [cell(r) for r in rows]
     n_cols = 2 if 2 * len(head) + 3 <= width and len(rows) > 12 else 1
     per = -(-len(cells) // n_cols)
@@ -361,6 +361,6 @@ def format_summary(s: dict[str, Any], *, width: int | None = None) -> str:
     table = format_responders(s.get("responders") or [], width)
     if not table:
         return _wrap_rows(rows, width)
-    legend = ("responders at the end (flr/p: floor of the last fix and its probability; age: "
-              "of that fix; err: its 3D error; true: the true floor when it differs, !)")
+    legend = ("responders at the end (flr, p: floor of the last fix and its probability; age: "
+              "of that fix; err: its 3D error [m]; tru: the true floor when it differs, !)")
     return "\n".join([_wrap_rows(rows, width), *textwrap.wrap(legend, width), table])
