@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike
 
 from diffpos_services.dashboard.columns import EventColumns
 from diffpos_services.dashboard.common import UNIDENTIFIABLE_STATUSES, _time_column
-from diffpos_services.wire.messages import GOOD_STATUSES
+from diffpos_services.wire.fields import GOOD_STATUSES
 
 
 def _status_level(before: str | None, status: str) -> str:
@@ -125,7 +125,7 @@ def liveliness_events(
 
 #: a service that leaves at most this long before the last message of the run [ns] stopped
 #: with the others at the end of the run (a normal end), not during it (a fault)
-END_GRACE_NS = 2_000_000_000
+END_GRACE_NS = 1_000_000_000
 
 
 def is_normal_end(left_wall_ns: int, last_data_wall_ns: int) -> bool:
