@@ -28,8 +28,8 @@ def test_plan_labels_never_overlap_and_name_every_responder(n):
     rng = np.random.default_rng(n)
     xy = np.column_stack([rng.uniform(-20, 20, n), -rng.uniform(0, 22.5, n)])
     names = [f"{i:02d}" for i in range(n)]
-    labels = declutter(xy, names, height_m=40 / 36)
-    boxes = [_box(a, t, 40 / 36) for a, t in labels]
+    labels = declutter(xy, names, height_m=40 / 24)
+    boxes = [_box(a, t, 40 / 24) for a, t in labels]
     for a, c in itertools.combinations(boxes, 2):
         assert not (a[0] < c[1] and c[0] < a[1] and a[2] < c[3] and c[2] < a[3])
     shown, hidden = [], 0

@@ -39,8 +39,9 @@ PLAN_MARKER_UI = 7.0
 #: a fix older than this is marked stale on the plans (``07?``) [s]
 STALE_S = 2.0
 #: labels of the plans are laid out for this many label heights across the plan's long side
-#: (the text height at the default zoom of a plan view about 500 points wide)
-LABEL_ROWS = 36.0
+#: (the label box height, text and padding, at the default zoom of a plan view about 380
+#: points wide: measured on the web viewer's screenshots)
+LABEL_ROWS = 24.0
 #: the plot lines of the legend: (entity name, colour, meaning)
 FLEET_LINES = (
     ("median", (31, 119, 180, 255), "median error"),
@@ -207,7 +208,7 @@ def _ellipse(center: FloatArray, cov_xy: FloatArray, n: int = 24) -> FloatArray 
 
 def declutter(xy: FloatArray, names: list[str], height_m: float) -> list[tuple[FloatArray, str]]:
     """Labels that do not overlap: each label is a box ``height_m`` high and 0.62 of that
-    per character wide, centred 2 ``height_m`` above its first responder's marker; a
+    per character wide, centred 1.4 ``height_m`` above its first responder's marker; a
     responder whose label box would overlap an existing one joins that label (``07 12``;
     beyond three names ``07 12 31 +2``). Returns ``(anchor xy, text)`` per label."""
     order = np.lexsort((xy[:, 0], xy[:, 1])) if len(xy) else np.zeros(0, int)
@@ -225,7 +226,7 @@ def declutter(xy: FloatArray, names: list[str], height_m: float) -> list[tuple[F
         return a[0] < c[1] and c[0] < a[1] and a[2] < c[3] and c[2] < a[3]
 
     for i in order:
-        anchor = xy[i] + np.array([0.0, -2.0 * height_m])
+        anchor = xy[i] + np.array([0.0, -1.4 * height_m])
         mine = box(anchor, names[i])
         for lab in labels:
             if hit(mine, box(lab[0], text_of(lab[1]))):
