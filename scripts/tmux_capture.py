@@ -4,7 +4,7 @@ of that size and save the screen plus scrollback (``tmux capture-pane``) as text
 Needs tmux (``apt-get install -y tmux``) and ``diffpos`` next to this Python (the venv).
 
 usage:
-  python scripts/tmux_capture.py                         -> docs/emulate_tmux.txt
+  python scripts/tmux_capture.py                         -> docs/img/terminal.txt
   python scripts/tmux_capture.py --out /tmp/x.txt -- --duration 5 --channel ideal
 """
 
@@ -30,7 +30,7 @@ def tmux(*args: str, check: bool = True) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default=str(ROOT / "docs" / "emulate_tmux.txt"))
+    ap.add_argument("--out", default=str(ROOT / "docs" / "img" / "terminal.txt"))
     ap.add_argument("--timeout-s", type=float, default=600.0,
                     help="give up after this long [s] (default 600)")
     ap.add_argument("emulate_args", nargs="*", help="arguments of diffpos emulate "

@@ -101,8 +101,15 @@ def test_blueprint_views_camera_and_hidden_paths(converted):
     assert views[bp.BUILDING_VIEW][:2] == ("3D", "world")
     assert views[bp.FLOOR_VIEW][:2] == ("TextDocument", "floors")
     assert views[bp.EVENTS_VIEW][:2] == ("TextLog", "events")
-    for origin in ("metrics/error_3d_m", "metrics/error_z_m", "metrics/peb_m"):
-        assert any(v[1] == origin for v in views.values())
+    # the fleet's error as three lines; the floor plans, top floor first, and the legend
+    assert any(v[1] == "metrics/fleet/error_3d_m" for v in views.values())
+    plans = [v[1] for v in views.values() if v[0] == "2D" and v[1].startswith("plan/")]
+    assert sorted(plans) == [f"plan/F{k}" for k in range(building.n_floors)]
+    assert any(v[:2] == ("2D", "legend") for v in views.values())
+    # the plotted responders: one floor-probability tab each, and their error plots
+    chosen = [v[1].rsplit("/", 1)[1] for v in views.values()
+              if v[1].startswith("metrics/floor_probability/")]
+    assert 1 <= len(chosen) <= 4
     view3d = views[bp.BUILDING_VIEW][2]
     # paths: hidden in the building view until shown per responder
     hidden = [p for p, v in blueprint.items() if p.startswith(view3d) and
@@ -138,6 +145,13 @@ def test_every_responder_has_a_marker_at_the_cursor_time(converted):
     table = [r for t, r in rows["/floors"] if t <= t_cursor][-1]["TextDocument:text"][0]
     for nid in fixed:
         assert nid in table
+    # and every responder is on exactly one floor plan, its full id in its marker's label
+    on_plans = []
+    for path, rr_ in rows.items():
+        if path.startswith("/plan/F") and path.endswith("/responders"):
+            latest = [r for t, r in rr_ if t is not None and t <= t_cursor][-1]
+            on_plans += [label.split()[0] for label in latest["Points2D:labels"] or []]
+    assert sorted(on_plans) == sorted(fixed)
     assert "no fix yet" not in table
 
 

@@ -40,6 +40,15 @@ class BuildingOutline:
         (:func:`diffpos_services.dashboard.scenario.building_of_scenario` applies the fusion's
         ``--edge auto`` rule). Not part of equality: it is a property of the run's model, not
         of the building's geometry.
+    walls : tuple of (axis, position_m, (lo_m, hi_m))
+        Interior walls on every floor (the scenario's partitions): ``axis`` ``"x"`` is the
+        plane ``x = position_m`` spanning ``y`` in ``(lo, hi)``, ``"y"`` the plane ``y =
+        position_m`` spanning ``x``. Drawn on the floor plans; not part of equality.
+    stairs : tuple of (x0_m, x1_m, y0_m, y1_m, floor_lo, floor_hi)
+        Stair footprints between floors ``floor_lo`` and ``floor_hi`` (the scenario has no
+        stairs of its own: :func:`diffpos_services.dashboard.scenario.building_of_scenario`
+        takes them from the legs of its responders' trajectories that change floor). Not
+        part of equality.
     """
 
     x_min_m: float
@@ -51,6 +60,9 @@ class BuildingOutline:
     window_height_m: float
     first_floor_z_m: float = 0.0
     edge: Literal["upper", "lower"] = field(default="upper", compare=False)
+    walls: tuple[tuple[str, float, tuple[float, float]], ...] = field(default=(), compare=False)
+    stairs: tuple[tuple[float, float, float, float, int, int], ...] = field(
+        default=(), compare=False)
 
     def __post_init__(self) -> None:
         if not self.x_max_m > self.x_min_m:
@@ -102,7 +114,9 @@ class BuildingOutline:
             x0, x1 = center - 0.5 * width, center + 0.5 * width
         floors = get("n_floors", "floors", "num_floors")
         n_floors = len(floors) if isinstance(floors, Sequence) else int(floors)
+        parts = get("partitions", "walls", default=())
         return cls(
+            walls=tuple(_wall(w) for w in parts),
             x_min_m=x0,
             x_max_m=x1,
             depth_m=float(get("depth_m")),
@@ -112,6 +126,11 @@ class BuildingOutline:
             window_height_m=float(get("window_height_m")),
             first_floor_z_m=float(get("first_floor_z_m", default=0.0)),
         )
+
+    @property
+    def top_z_m(self) -> float:
+        """Ceiling of the highest modelled floor [m]."""
+        return self.first_floor_z_m + self.n_floors * self.floor_height_m
 
     def floor_of(self, z_m: ArrayLike) -> NDArray[np.int64]:
         """Floor index of heights ``z_m`` [m] (clipped to the building; -1 where z is NaN)."""
@@ -143,3 +162,10 @@ class BuildingOutline:
         if self.edge == "lower":
             return self.lower_edge_z_m(floor_index)
         return self.upper_edge_z_m(floor_index)
+
+
+def _wall(w: Any) -> tuple[str, float, tuple[float, float]]:
+    """``(axis, position_m, (lo, hi))`` of a scenario partition (dataclass or mapping)."""
+    get = (lambda k: w[k]) if isinstance(w, Mapping) else (lambda k: getattr(w, k))
+    lo, hi = (float(v) for v in get("span_m"))
+    return str(get("axis")), float(get("position_m")), (min(lo, hi), max(lo, hi))

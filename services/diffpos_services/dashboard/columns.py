@@ -120,6 +120,9 @@ class EstimateColumns:
     floor_probability : ndarray, shape (K,)
         Estimate v2: the probability of the estimated floor; NaN where unknown (v1).
         Default: all NaN.
+    floor_probabilities : ndarray, shape (K, F)
+        Estimate v2: the probability of every floor (NaN padded to the most floors of the
+        batch); shape (K, 0) where none is known (v1). Default: (K, 0).
     """
 
     t_ns: NDArray[np.int64]
@@ -136,6 +139,7 @@ class EstimateColumns:
     link_reason: NDArray[np.str_] = field(default_factory=lambda: np.zeros(0, "<U1"))
     link_mechanism: NDArray[np.str_] | None = None
     floor_probability: FloatArray | None = None
+    floor_probabilities: FloatArray | None = None
 
     def __post_init__(self) -> None:
         s = object.__setattr__
@@ -157,6 +161,8 @@ class EstimateColumns:
           else _str_array(self.link_mechanism))
         s(self, "floor_probability", np.full(n, np.nan) if self.floor_probability is None
           else np.asarray(self.floor_probability, np.float64).reshape(-1))
+        s(self, "floor_probabilities", np.zeros((n, 0)) if self.floor_probabilities is None
+          else np.asarray(self.floor_probabilities, np.float64).reshape(n, -1))
         for name in ("node_id", "status", "peb_m", "floor_index", "floor_probability"):
             _check_len(f"EstimateColumns.{name}", getattr(self, name), n)
         for name in ("link_anchor_id", "link_used", "link_residual_m", "link_reason",

@@ -107,7 +107,8 @@ def estimate_extras(msgs: Sequence[Any]) -> dict[str, Any]:
     dict
         ``link_mechanism`` (ndarray of str, shape (L,): the mechanism label of each used link,
         ``""`` where unknown: v1, excluded) and ``floor_probability`` (ndarray, shape (K,):
-        the probability of the estimated floor, NaN where unknown).
+        the probability of the estimated floor, NaN where unknown) and
+        ``floor_probabilities`` (ndarray, shape (K, F): every floor's, NaN padded).
     """
     used = []
     for m in msgs:
@@ -115,9 +116,11 @@ def estimate_extras(msgs: Sequence[Any]) -> dict[str, Any]:
         used += [mech.get(a, "") for a in m.used_anchors]
     n_ex = sum(len(m.excluded) for m in msgs)
     prob = np.full(len(msgs), np.nan)
-    for i, m in enumerate(msgs):
-        p = getattr(m, "floor_probabilities", None)
+    vectors = [getattr(m, "floor_probabilities", None) or () for m in msgs]
+    probs = np.full((len(msgs), max((len(v) for v in vectors), default=0)), np.nan)
+    for i, (m, p) in enumerate(zip(msgs, vectors, strict=True)):
+        probs[i, :len(p)] = p
         if p and m.floor_index is not None and 0 <= m.floor_index < len(p):
             prob[i] = p[m.floor_index]
     return {"link_mechanism": np.array(used + [""] * n_ex, dtype=str),
-            "floor_probability": prob}
+            "floor_probability": prob, "floor_probabilities": probs}

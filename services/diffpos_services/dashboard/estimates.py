@@ -13,8 +13,6 @@ from diffpos_services.dashboard.building import BuildingOutline, FloatArray
 from diffpos_services.dashboard.columns import EstimateColumns, EventColumns
 from diffpos_services.dashboard.common import (
     _EXCLUDED_COLOR,
-    _OTHER_STATUS_COLOR,
-    _STATUS_COLORS,
     BOOKKEEPING_REASONS,
     CHI2_3DOF_95,
     UNIDENTIFIABLE_STATUSES,
@@ -23,12 +21,16 @@ from diffpos_services.dashboard.common import (
     _sorted_by_time,
     _time_column,
     anchor_color,
+    confidence_colors,
+    node_color,
+    status_color,
 )
 from diffpos_services.dashboard.events import _status_level, log_events
 from diffpos_services.dashboard.floors import _log_floor_table
 from diffpos_services.dashboard.geometry import Tracks, ellipsoid_axes, path_strips
 from diffpos_services.dashboard.mechanisms import MAX_VERTICES, mechanism_strips
-from diffpos_services.wire.messages import GOOD_STATUSES
+from diffpos_services.dashboard.plans import FLEET_LINES, PlanState, log_plan_markers
+from diffpos_services.wire.fields import GOOD_STATUSES
 
 
 def _scalar_series(
@@ -60,6 +62,9 @@ class _EstimateState:
     #: node -> (time [ns], position [m], floor) of its latest fix with a position (markers)
     last_fix: dict[str, tuple[int, FloatArray, int]] = field(default_factory=dict)
     residual_styled: set[str] = field(default_factory=set)
+    node_styled: set[str] = field(default_factory=set)
+    fleet_styled: bool = False
+    plan: PlanState = field(default_factory=PlanState)
     dropped_bad_time: int = 0
 
 
@@ -82,6 +87,7 @@ def _select_fixes(est: EstimateColumns, keep: NDArray[np.bool_]) -> EstimateColu
         link_reason=est.link_reason[lk],
         link_mechanism=est.link_mechanism[lk],
         floor_probability=est.floor_probability[keep],
+        floor_probabilities=est.floor_probabilities[keep],
     )
 
 
@@ -178,7 +184,8 @@ def log_estimates(
         _log_estimate_points(rec, nid, rows, b, st)
         if paths is not None:
             _log_paths(rec, nid, rows, b, paths, path_period_ns, st)
-        _log_errors(rec, nid, rows, b)
+        _log_errors(rec, nid, rows, b, st)
+        _log_floor_probabilities(rec, nid, rows, b)
         events.append(_status_events(nid, rows, b, st))
         fixed = rows[b.has_pos[rows]]
         if fixed.size:  # the latest fix with a position, for the floor table
@@ -189,7 +196,9 @@ def log_estimates(
         events.append(_exclusion_events(b, st))
         _log_residuals(rec, b, st)
         _log_gating(rec, b)
+    _log_fleet_errors(rec, b, st)
     _log_floor_table(rec, b, floor_period_s, st)
+    log_plan_markers(rec, b, building, path_period_s, st.plan)
     log_events(rec, EventColumns.concat(events))
     return st
 
@@ -240,9 +249,7 @@ def _batch(
         est_floor = np.where((est_floor < 0) & has_pos, building.floor_of(pos[:, 2]), est_floor)
     half, quat, cov_ok = ellipsoid_axes(est.covariance_m2, scale=confidence_scale)
     statuses = np.unique(est.status)
-    status_colors = np.array(
-        [_STATUS_COLORS.get(s, _OTHER_STATUS_COLOR) for s in statuses], np.uint8
-    )
+    status_colors = np.array([status_color(s) for s in statuses], np.uint8).reshape(-1, 4)
     anc_u, anc_c = np.unique(est.link_anchor_id, return_inverse=True)
     return _Batch(
         est=est,
@@ -251,7 +258,8 @@ def _batch(
         true_floor=true_floor,
         err_3d=np.linalg.norm(pos - true_pos, axis=1),
         err_z=pos[:, 2] - true_pos[:, 2],
-        colors=status_colors[np.searchsorted(statuses, est.status)],
+        colors=confidence_colors(status_colors[np.searchsorted(statuses, est.status)],
+                                 est.floor_probability),
         half_m=half,
         quat_xyzw=quat,
         cov_ok=cov_ok & has_pos,
@@ -293,8 +301,6 @@ def _diffraction_paths(
 MARKER_RADIUS_UI = 7.0
 #: outline of the 95 % ellipsoid [ui points]
 ELLIPSOID_LINE_UI = 1.5
-#: marker of a responder whose latest estimate has no position: its last fix, in grey
-_STALE_COLOR = (150, 150, 150, 255)
 
 
 def _last_fix_rows(
@@ -325,10 +331,12 @@ def _log_estimate_points(
     rec: rr.RecordingStream, nid: str, rows: NDArray[np.int64], b: _Batch, st: _EstimateState
 ) -> None:
     """``world/nodes/<node>/estimate``: one marker per responder (size in ui points: visible
-    at any zoom) labelled ``<node> F<floor>``, and the 95 % ellipsoid of the fix (outline in
-    ui points). A fix without a position keeps the marker on the node's last fix, grey,
-    labelled ``<node>?`` (its age is in the floor table), without ellipsoid; before the node's
-    first fix there is no marker. One entity: one chunk per node and batch."""
+    at any zoom) in the colour of its newest status dimmed by floor confidence, and the 95 %
+    ellipsoid of the fix (outline in ui points). Labels (``<node> F<floor>``, ``<node>?`` on
+    the last fix when the newest estimate has no position) are hidden in 3D, where 50 would
+    overlap: they show on hover and selection; the floor plans carry readable ones. A fix
+    without a position keeps the marker on the node's last fix, without ellipsoid; before
+    the node's first fix there is no marker. One entity: one chunk per node and batch."""
     pos, t_fix, floor = _last_fix_rows(nid, rows, b, st)
     hp = b.has_pos[rows]
     shown = t_fix >= 0
@@ -337,7 +345,7 @@ def _log_estimate_points(
         f"{nid} F{fl(f)}" if fresh else f"{nid}?"
         for f, fresh in zip(floor.tolist(), hp.tolist(), strict=True)
     ]
-    colors = np.where(hp[:, None], b.colors[rows], np.asarray(_STALE_COLOR, np.uint8))
+    colors = b.colors[rows]
     ok = b.cov_ok[rows]
     sel_c = rows[ok]
     n_shown, n_c = int(shown.sum()), int(sel_c.size)
@@ -350,6 +358,7 @@ def _log_estimate_points(
                 colors=colors[shown],
                 radii=np.full(n_shown, -MARKER_RADIUS_UI, np.float32),
                 labels=np.asarray(label)[shown],
+                show_labels=np.zeros(n_shown, bool),
             ).partition(shown.astype(np.int64)),
             *rr.Ellipsoids3D.columns(
                 centers=b.est.position_m[sel_c],
@@ -402,12 +411,72 @@ def _log_paths(
     )
 
 
-def _log_errors(rec: rr.RecordingStream, nid: str, rows: NDArray[np.int64], b: _Batch) -> None:
-    """``metrics/error_3d_m/<node>``, ``metrics/error_z_m/<node>``, ``metrics/peb_m/<node>``."""
+def _log_errors(rec: rr.RecordingStream, nid: str, rows: NDArray[np.int64], b: _Batch,
+                st: _EstimateState) -> None:
+    """``metrics/error_3d_m/<node>``, ``metrics/error_z_m/<node>``, ``metrics/peb_m/<node>``
+    (each node's line in its own colour and named by its id, styled once)."""
     tr = b.t[rows]
+    if nid not in st.node_styled:
+        st.node_styled.add(nid)
+        for what in ("error_3d_m", "error_z_m", "peb_m"):
+            rec.log(f"metrics/{what}/{nid}", rr.SeriesLines(colors=[node_color(nid)],
+                                                             names=[nid]), static=True)
     _scalar_series(rec, f"metrics/error_3d_m/{nid}", tr, b.err_3d[rows])
     _scalar_series(rec, f"metrics/error_z_m/{nid}", tr, b.err_z[rows])
     _scalar_series(rec, f"metrics/peb_m/{nid}", tr, b.est.peb_m[rows])
+
+
+#: the fleet lines are computed over the fixes of each fusion epoch of this length [ns]
+FLEET_EPOCH_NS = 100_000_000
+
+
+def _log_fleet_errors(rec: rr.RecordingStream, b: _Batch, st: _EstimateState) -> None:
+    """``metrics/fleet/error_3d_m/{median,p95,worst}``: over the responders with a fix and
+    truth in each fusion epoch (:data:`FLEET_EPOCH_NS`), at the epoch's newest fix time:
+    three lines instead of one per responder."""
+    ok = np.isfinite(b.err_3d)
+    if not ok.any():
+        return
+    if not st.fleet_styled:
+        st.fleet_styled = True
+        for name, color, what in FLEET_LINES:
+            rec.log(f"metrics/fleet/error_3d_m/{name}",
+                    rr.SeriesLines(colors=[color], names=[what]), static=True)
+    t, err = b.t[ok], b.err_3d[ok]
+    ep, inv = np.unique(t // FLEET_EPOCH_NS, return_inverse=True)
+    order = np.argsort(inv, kind="stable")
+    starts = np.searchsorted(inv[order], np.arange(ep.size))
+    groups = np.split(err[order], starts[1:])
+    t_ep = np.maximum.reduceat(t[order], starts)
+    stats = {"median": [np.median(g) for g in groups],
+             "p95": [np.percentile(g, 95) for g in groups],
+             "worst": [g.max() for g in groups]}
+    for name, vals in stats.items():
+        rec.send_columns(f"metrics/fleet/error_3d_m/{name}", indexes=[_time_column(t_ep)],
+                         columns=rr.Scalars.columns(scalars=np.asarray(vals, float)))
+
+
+#: colour of each floor's line in the floor-probability plots (F0, F1, ...; cycled)
+FLOOR_LINE_COLORS = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40),
+                     (148, 103, 189), (140, 86, 75), (227, 119, 194), (188, 189, 34))
+
+
+def _log_floor_probabilities(rec: rr.RecordingStream, nid: str, rows: NDArray[np.int64],
+                             b: _Batch) -> None:
+    """``metrics/floor_probability/<node>``: the probability of every floor at each fix
+    that has them (estimate v2), one line per floor (``F0``, ``F1``, ...)."""
+    probs = b.est.floor_probabilities[rows]
+    if not probs.shape[1]:
+        return
+    have = np.isfinite(probs).any(axis=1)
+    if not have.any():
+        return
+    n_f = probs.shape[1]
+    rec.log(f"metrics/floor_probability/{nid}", rr.SeriesLines(
+        colors=[(*FLOOR_LINE_COLORS[f % len(FLOOR_LINE_COLORS)], 255) for f in range(n_f)],
+        names=[f"F{f}" for f in range(n_f)]), static=True)
+    rec.send_columns(f"metrics/floor_probability/{nid}", indexes=[_time_column(b.t[rows][have])],
+                     columns=rr.Scalars.columns(scalars=probs[have]))
 
 
 def _status_events(

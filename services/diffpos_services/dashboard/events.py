@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike
 
 from diffpos_services.dashboard.columns import EventColumns
 from diffpos_services.dashboard.common import UNIDENTIFIABLE_STATUSES, _time_column
-from diffpos_services.wire.messages import GOOD_STATUSES
+from diffpos_services.wire.fields import GOOD_STATUSES
 
 
 def _status_level(before: str | None, status: str) -> str:
@@ -38,7 +38,9 @@ def log_events(rec: rr.RecordingStream, events: EventColumns) -> None:
 def log_diagnostics(
     rec: rr.RecordingStream, diags: Sequence[Any], *, state: dict | None = None
 ) -> dict:
-    """Fusion counters and anchor joined/left events from ``FusionDiagnostics`` messages.
+    """Fusion counters and anchor joined/left events from ``FusionDiagnostics`` messages
+    (an anchor the fusion no longer sees is DEBUG: whether it was lost or the run ended is
+    told by the liveliness events, :func:`liveliness_events` and the live service).
 
     Rows are placed at ``watermark_ns`` (newest measurement time seen by the fusion); messages
     without a watermark are skipped. Returns the live-anchor set to pass back when streaming.
@@ -64,10 +66,10 @@ def log_diagnostics(
                 ev_t.append(ti)
                 ev_txt.append(f"anchor {a} joined")
                 ev_lvl.append("INFO")
-            for a in sorted(live - now):
+            for a in sorted(live - now):  # the liveliness events say whether it was lost
                 ev_t.append(ti)
-                ev_txt.append(f"anchor {a} left")
-                ev_lvl.append("WARN")
+                ev_txt.append(f"fusion no longer sees anchor {a}")
+                ev_lvl.append("DEBUG")
         else:
             ev_t.append(ti)
             ev_txt.append("fusion sees anchors: " + (", ".join(sorted(now)) or "none"))
@@ -107,11 +109,37 @@ def liveliness_events(
     # measurement time = wall time + offset of the nearest earlier message
     k = np.clip(np.searchsorted(w, t_wall, side="right") - 1, 0, w.size - 1)
     t_meas = t_wall + (mt[k] - w[k])
-    text = [
-        f"{r.get('role')} {r.get('id') or ''} {'joined' if r.get('alive') else 'left'}".replace(
-            "  ", " "
-        )
-        for r in recs
-    ]
-    level = ["INFO" if r.get("alive") else "WARN" for r in recs]
-    return EventColumns(t_meas, text, level)
+    who = [f"{r.get('role')} {r.get('id') or ''}".strip() for r in recs]
+    alive = [bool(r.get("alive")) for r in recs]
+    joined = [i for i, a in enumerate(alive) if a]
+    left = [i for i, a in enumerate(alive) if not a]
+    out = [EventColumns(t_meas[joined], [f"{who[i]} joined" for i in joined], ["INFO"] * len(joined))]
+    normal = [i for i in left if is_normal_end(int(t_wall[i]), int(w[-1]))]
+    lost = [i for i in left if i not in normal]
+    out.append(EventColumns(t_meas[lost], [lost_text(who[i]) for i in lost], ["WARN"] * len(lost)))
+    if normal:
+        out.append(EventColumns([int(t_meas[normal].max())], [end_text([who[i] for i in normal])],
+                                ["INFO"]))
+    return EventColumns.concat(out)
+
+
+#: a service that leaves at most this long before the last message of the run [ns] stopped
+#: with the others at the end of the run (a normal end), not during it (a fault)
+END_GRACE_NS = 1_000_000_000
+
+
+def is_normal_end(left_wall_ns: int, last_data_wall_ns: int) -> bool:
+    """Whether a service that left at ``left_wall_ns`` stopped at the end of the run: no
+    data was published more than :data:`END_GRACE_NS` after it left (else the run went on
+    without it: lost)."""
+    return last_data_wall_ns <= left_wall_ns + END_GRACE_NS
+
+
+def end_text(who: Sequence[str]) -> str:
+    """The one event of a normal end: who stopped."""
+    return f"run ended: {', '.join(who)} stopped with the data (normal end, not a fault)"
+
+
+def lost_text(who: str) -> str:
+    """The event of a service lost while the run went on."""
+    return f"{who} left while the others went on publishing (lost: a fault)"

@@ -19,7 +19,8 @@ from diffpos_services.dashboard.common import (
 
 # ============================================================================ logging functions
 def log_building(rec: rr.RecordingStream, building: BuildingOutline) -> None:
-    """Static wireframe: floor outlines and the window band of each floor on the facade.
+    """Static wireframe: floor outlines, the window band of each floor on the facade and
+    one label per floor (``F<k>``, beside the west wall).
 
     Also sets ``world`` to a right-handed z-up frame (the building frame).
     """
@@ -39,15 +40,25 @@ def log_building(rec: rr.RecordingStream, building: BuildingOutline) -> None:
         rr.LineStrips3D(floors, colors=[(160, 160, 170, 255)], radii=0.03),
         static=True,
     )
-    windows, labels = [], []
+    windows = []
     for k in range(b.n_floors):
         z_lo = z0 + k * b.floor_height_m + b.sill_height_m
         z_hi = z_lo + b.window_height_m
         windows.append([[x0, 0, z_lo], [x1, 0, z_lo], [x1, 0, z_hi], [x0, 0, z_hi], [x0, 0, z_lo]])
-        labels.append(f"F{k} window")
     rec.log(
         "world/building/windows",
-        rr.LineStrips3D(windows, colors=[(90, 170, 255, 255)], radii=0.05, labels=labels),
+        rr.LineStrips3D(windows, colors=[(90, 170, 255, 255)], radii=0.05),
+        static=True,
+    )
+    # one label per floor, outside the west wall at mid-floor height: never level with a
+    # responder of another floor in perspective, never on top of the markers
+    mid = z0 + (np.arange(b.n_floors) + 0.5) * b.floor_height_m
+    rec.log(
+        "world/building/floor_labels",
+        rr.Points3D(np.stack([np.full(b.n_floors, x0 - 0.04 * (x1 - x0)),
+                              np.zeros(b.n_floors), mid], axis=1),
+                    radii=[0.0], labels=[f"F{k}" for k in range(b.n_floors)],
+                    show_labels=True, colors=[(200, 200, 210, 255)]),
         static=True,
     )
 

@@ -39,6 +39,7 @@ from diffpos_services.dashboard.building import BuildingOutline
 from diffpos_services.dashboard.columns import EventColumns
 from diffpos_services.dashboard.common import APP_ID
 from diffpos_services.dashboard.decode import VIEW_DECODERS
+from diffpos_services.dashboard.events import end_text, is_normal_end, lost_text
 from diffpos_services.dashboard.stream import Dashboard
 from diffpos_services.logs import log_event
 from diffpos_services.processes import free_tcp_port
@@ -284,6 +285,8 @@ class DashboardService:
         self._truth_t_ns: int | None = None
         self._clock_offset_ns: int | None = None  # measurement time - wall time
         self._pending_live: list[tuple[int, str, bool]] = []
+        self._leaves: list[tuple[int, str]] = []  # left, not yet known whether lost
+        self._last_data_wall: int | None = None
         self._lock = threading.Lock()
         self._received_cv = threading.Condition()
         self._want_received: int | None = None  # set while wait_received() waits
@@ -400,7 +403,8 @@ class DashboardService:
             self._deferred = [e for e in new if e.t_ns > self._truth_t_ns]
         else:
             estimates += new
-        events = self._liveliness_events()
+        walls = [m.t_pub_wall_ns for m in (*anchors, *new) if m.t_pub_wall_ns]
+        events = self._liveliness_events(max(walls) if walls else None, final=final)
         t0 = time.perf_counter()
         self.dashboard.add(
             anchor_states=anchors,
@@ -419,20 +423,38 @@ class DashboardService:
             self.stats.drawn += n - bad
         return n
 
-    def _liveliness_events(self) -> EventColumns | None:
+    def _liveliness_events(self, data_wall_ns: int | None, *, final: bool = False
+                           ) -> EventColumns | None:
+        """Joined events now; a service that left is held until it is known whether the run
+        went on without it (data published :data:`~.events.END_GRACE_NS` after it left: a
+        WARN, lost) or ended with it (no data since, or the dashboard stopping: one INFO
+        "run ended" event for all of them). ``data_wall_ns``: newest publish wall time of
+        this batch's data."""
         with self._lock:
             pending, self._pending_live = self._pending_live, []
-        if not pending or self._clock_offset_ns is None:
-            if pending and self._clock_offset_ns is None:
+        if self._clock_offset_ns is None:
+            if pending:
                 with self._lock:  # keep until the clock offset is known
                     self._pending_live = pending + self._pending_live
             return None
+        if data_wall_ns is not None:
+            self._last_data_wall = max(self._last_data_wall or 0, data_wall_ns)
         off = self._clock_offset_ns
-        return EventColumns(
-            [w + off for w, _, _ in pending],
-            [f"{who} {'joined' if alive else 'left'}" for _, who, alive in pending],
-            ["INFO" if alive else "WARN" for _, _, alive in pending],
-        )
+        parts = [EventColumns([w + off for w, _, a in pending if a],
+                              [f"{who} joined" for _, who, a in pending if a],
+                              ["INFO" for _, _, a in pending if a])]
+        self._leaves += [(w, who) for w, who, a in pending if not a]
+        last = self._last_data_wall or 0
+        lost = [(w, who) for w, who in self._leaves if not is_normal_end(w, last)]
+        self._leaves = [x for x in self._leaves if x not in lost]
+        parts.append(EventColumns([w + off for w, _ in lost], [lost_text(who) for _, who in lost],
+                                  ["WARN"] * len(lost)))
+        if final and self._leaves:
+            parts.append(EventColumns([max(w for w, _ in self._leaves) + off],
+                                      [end_text([who for _, who in self._leaves])], ["INFO"]))
+            self._leaves = []
+        events = EventColumns.concat(parts)
+        return events if events.t_ns.size else None
 
     def run(self, stop: threading.Event | Any, *, report_every_s: float = 10.0) -> ServiceStats:
         """Drain periodically until ``stop`` is set; then close. Returns the final stats."""

@@ -21,10 +21,11 @@ from diffpos_services.dashboard.columns import (
     estimate_columns_from_messages,
     truth_columns_from_messages,
 )
-from diffpos_services.dashboard.common import APP_ID
+from diffpos_services.dashboard.common import APP_ID, node_color
 from diffpos_services.dashboard.estimates import _EstimateState, log_estimates
 from diffpos_services.dashboard.events import log_diagnostics, log_events
 from diffpos_services.dashboard.geometry import Tracks
+from diffpos_services.dashboard.plans import log_legend, log_plans_building
 from diffpos_services.dashboard.scene import log_anchors, log_building, log_truth
 
 
@@ -70,8 +71,16 @@ class Dashboard:
             "diagnostics": 0,
             "events": 0,
         }
+        #: the responders the plots show: chosen once :data:`PICK_AFTER_S` of estimates are
+        #: in (:func:`plot_nodes_of` over them), then the blueprint is sent again with them
+        self.plot_nodes: list[str] | None = None
+        self._seen: list[EstimateColumns] = []
         if building is not None and rec.is_enabled():
             log_building(rec, building)
+            log_plans_building(rec, building)
+        if rec.is_enabled():
+            log_legend(rec)
+            rec.send_blueprint(default_blueprint(building=building))
 
     def _trim(self, cols, t_now: int):
         keep = cols.t_ns >= t_now - self.history_ns
@@ -139,12 +148,42 @@ class Dashboard:
                 state=self._est_state,
             )
             self.counts["estimates"] += len(est)
+            self._pick_plot_nodes(est)
         if diagnostics:
             self._diag_state = log_diagnostics(self.rec, diagnostics, state=self._diag_state)
             self.counts["diagnostics"] += len(diagnostics)
         if events is not None and events.t_ns.size:
             log_events(self.rec, events)
             self.counts["events"] += int(events.t_ns.size)
+
+
+    def _pick_plot_nodes(self, est: EstimateColumns) -> None:
+        """Once the estimates span :data:`PICK_AFTER_S`: choose the plotted responders, name
+        them in the legend and send the blueprint with their plots (once, early: a viewer
+        whose layout the user changed since keeps the user's layout only if it was saved)."""
+        if self.plot_nodes is not None or not len(est):
+            return
+        self._seen.append(est)
+        t = np.concatenate([e.t_ns for e in self._seen])
+        if t.max() - t.min() < PICK_AFTER_S * 1e9:
+            return
+        seen = EstimateColumns(
+            t_ns=t, node_id=np.concatenate([e.node_id for e in self._seen]),
+            status=np.concatenate([e.status for e in self._seen]),
+            position_m=np.concatenate([e.position_m for e in self._seen]),
+            covariance_m2=np.concatenate([e.covariance_m2 for e in self._seen]),
+            peb_m=np.concatenate([e.peb_m for e in self._seen]),
+            floor_index=np.concatenate([e.floor_index for e in self._seen]),
+            floor_probability=np.concatenate([e.floor_probability for e in self._seen]))
+        self._seen = []
+        self.plot_nodes = plot_nodes_of(seen)
+        log_legend(self.rec, {n: node_color(n) for n in self.plot_nodes})
+        self.rec.send_blueprint(default_blueprint(building=self.building,
+                                                  plot_nodes=self.plot_nodes))
+
+
+#: live: the plotted responders are chosen over the first this many seconds of estimates
+PICK_AFTER_S = 5.0
 
 
 def write_rrd(
@@ -166,11 +205,14 @@ def write_rrd(
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+    chosen = plot_nodes_of(estimates) if estimates is not None else []
     rec.save(str(out), default_blueprint=default_blueprint(
-        view_points_m=_view_points(building, anchors)))
+        view_points_m=_view_points(building, anchors), building=building, plot_nodes=chosen))
     try:
+        log_legend(rec, {n: node_color(n) for n in chosen})
         if building is not None:
             log_building(rec, building)
+            log_plans_building(rec, building)
         if anchors is not None and len(anchors):
             log_anchors(rec, anchors)
         if truth is not None and len(truth):
@@ -196,6 +238,33 @@ def write_rrd(
         rec.flush()
         rec.disconnect()
     return out
+
+
+#: how many responders the plots of a converted recording show
+PLOT_NODES = 4
+
+
+def plot_nodes_of(est: EstimateColumns, k: int = PLOT_NODES) -> list[str]:
+    """The ``k`` responders a converted recording plots: those the fusion was least sure
+    of, by the mean over their estimates of the probability of the published floor (an
+    estimate without a position or without probabilities counts 0 and 1: estimate v1 ranks
+    by the share of estimates without a position), ties by id; distinct plot colours
+    first (:func:`~diffpos_services.dashboard.common.node_color`)."""
+    if not len(est):
+        return []
+    has_pos = np.all(np.isfinite(est.position_m), axis=1)
+    p = np.where(has_pos, np.where(np.isfinite(est.floor_probability), est.floor_probability,
+                                   1.0), 0.0)
+    ids, inv = np.unique(est.node_id, return_inverse=True)
+    mean = np.bincount(inv, weights=p) / np.bincount(inv)
+    order = sorted(range(ids.size), key=lambda i: (mean[i], ids[i]))
+    out: list[str] = []
+    for i in order:  # a colour already taken waits for a second pass
+        if node_color(str(ids[i])) not in {node_color(n) for n in out}:
+            out.append(str(ids[i]))
+        if len(out) == k:
+            return out
+    return (out + [str(ids[i]) for i in order if str(ids[i]) not in out])[:k]
 
 
 def _view_points(building: BuildingOutline | None, anchors: AnchorColumns | None) -> np.ndarray:

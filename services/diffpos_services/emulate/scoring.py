@@ -21,7 +21,8 @@ from diffpos.floor_calibration import probability_rows
 from diffpos.metrics import percentiles, score
 from diffpos_services.wire import messages as M
 
-__all__ = ["SKIP_S", "SUMMARY_PERCENTILES", "Scorer", "format_summary", "summary_width"]
+__all__ = ["SKIP_S", "SUMMARY_PERCENTILES", "Scorer", "format_responders", "format_summary",
+           "summary_width"]
 
 #: percentiles of the emulate summary
 SUMMARY_PERCENTILES = (50, 67, 90, 95)
@@ -66,6 +67,11 @@ class Scorer:
         self.rows: dict[tuple[str, int], tuple] = {}
         self.scored = 0  # estimates in the scored window
         self.scored_with_position = 0
+        #: node -> its newest estimate: (epoch, t_ns, status)
+        self.newest: dict[str, tuple[int, int, str]] = {}
+        #: node -> its newest usable fix: (epoch, t_ns, floor or -1, probability of that
+        #: floor (NaN: none published), 3D error [m] (NaN: unknown node), true floor or -1)
+        self.last_fix: dict[str, tuple[int, int, int, float, float, int]] = {}
 
     def add(self, est: Any) -> float | None:
         """Count ``est`` (v1 or v2); its 3D error [m] if it has a usable position and a known
@@ -84,10 +90,53 @@ class Scorer:
             est.covariance_m2 if usable else None, est.floor_index if usable else None,
             est.peb_m if usable else None,
             getattr(est, "floor_probabilities", ()) if usable else ())
-        if tr is None or not usable:
+        if est.node_id not in self.newest or self.newest[est.node_id][0] <= est.epoch:
+            self.newest[est.node_id] = (est.epoch, est.t_ns, est.status)
+        if not usable:
             return None
-        truth = np.asarray(tr.position_m((est.t_ns - self.t0_ns) * 1e-9), float)
-        return float(np.linalg.norm(np.asarray(est.position_m) - truth))
+        err, true_floor = float("nan"), -1
+        if tr is not None:
+            truth = np.asarray(tr.position_m((est.t_ns - self.t0_ns) * 1e-9), float)
+            err = float(np.linalg.norm(np.asarray(est.position_m) - truth))
+            true_floor = int(self.building.floor_index(truth[2]))
+        if est.node_id not in self.last_fix or self.last_fix[est.node_id][0] <= est.epoch:
+            floor = -1 if est.floor_index is None else int(est.floor_index)
+            probs = getattr(est, "floor_probabilities", ()) or ()
+            p = float(probs[floor]) if 0 <= floor < len(probs) else float("nan")
+            self.last_fix[est.node_id] = (est.epoch, est.t_ns, floor, p, err, true_floor)
+        return None if tr is None else err
+
+    def placed(self) -> dict[str, tuple[int, float, float]]:
+        """Responders whose newest estimate has a usable position: node -> (floor, floor
+        probability (NaN: none), 3D error [m] (NaN: unknown))."""
+        out = {}
+        for nid, (epoch, _t, _st) in self.newest.items():
+            fix = self.last_fix.get(nid)
+            if fix is not None and fix[0] == epoch:
+                out[nid] = (fix[2], fix[3], fix[4])
+        return out
+
+    def responders(self) -> list[dict[str, Any]]:
+        """Every emulated responder at the end: its newest status, the floor of its last
+        usable fix and that floor's probability, the age of that fix (at the newest estimate
+        of the run) [s], its 3D error [m] and the true floor then (None where unknown)."""
+        ref = max((t for _, t, _ in self.newest.values()), default=None)
+        rows = []
+        for nid in sorted(set(self.traj) | set(self.newest)):
+            new = self.newest.get(nid)
+            fix = self.last_fix.get(nid)
+            row: dict[str, Any] = {"node": nid, "status": new[2] if new else None,
+                                   "floor": None, "probability": None, "age_s": None,
+                                   "error_m": None, "true_floor": None}
+            if fix is not None:
+                _e, t, floor, p, err, true_floor = fix
+                row.update(floor=floor if floor >= 0 else None,
+                           probability=p if np.isfinite(p) else None,
+                           age_s=(ref - t) * 1e-9 if ref is not None else None,
+                           error_m=err if np.isfinite(err) else None,
+                           true_floor=true_floor if true_floor >= 0 else None)
+            rows.append(row)
+        return rows
 
     def live_counts(self) -> tuple[int, int]:
         """Estimates so far in the scored window, and those with a position (the status line;
@@ -158,6 +207,7 @@ class Scorer:
             "ellipsoid_coverage_95": s.ellipsoid_coverage,
             # diffpos.floor_calibration (None: no floor probabilities, e.g. estimate v1)
             "floor_calibration": s.floor_calibration,
+            "responders": self.responders(),
         }
 
 
@@ -234,6 +284,44 @@ def _calibration_row(s: dict[str, Any]) -> str:
             f"ECE {c['ece']:.3f}, log score {c['log_score']:.3f} nats")
 
 
+def _pace(speed: float | None) -> str:
+    """How emulated time ran: ``lockstep`` (speed 0: as fast as the fusion) or ``at x2``."""
+    if speed is None:
+        return ""
+    return "in lockstep (as fast as the fusion)" if speed == 0 else f"at x{speed:g}"
+
+
+def format_responders(rows: list[dict[str, Any]], width: int = 100) -> str:
+    """The end-of-run table: one line per responder (id, newest status, floor of the last
+    fix and its probability, age of that fix, its 3D error, the true floor then, marked
+    when wrong); two tables side by side when ``width`` holds them."""
+    if not rows:
+        return ""
+    w_id = max(4, *(len(r["node"]) for r in rows))
+    w_st = max(6, *(len(r["status"] or "-") for r in rows))
+
+    def cell(r: dict[str, Any]) -> str:
+        fl = "-" if r["floor"] is None else f"F{r['floor']}"
+        p = "-" if r["probability"] is None else f"{100 * r['probability']:.0f}%"
+        age = "-" if r["age_s"] is None else f"{r['age_s']:.1f}s"
+        err = "-" if r["error_m"] is None else f"{r['error_m']:.2f}"
+        tf = r["true_floor"]
+        true = "" if tf is None else ("" if r["floor"] == tf else f"F{tf}!")
+        return (f"{r['node']:<{w_id}} {r['status'] or '-':<{w_st}} {fl:>3} {p:>4} {age:>5} "
+                f"{err:>5} {true:<3}")
+
+    head = (f"{'node':<{w_id}} {'status':<{w_st}} {'flr':>3} {'p':>4} {'age':>5} "
+            f"{'err':>5} {'tru':<3}")
+    cells = [cell(r) for r in rows]
+    n_cols = 2 if 2 * len(head) + 3 <= width and len(rows) > 12 else 1
+    per = -(-len(cells) // n_cols)
+    lines = [" | ".join([head] * n_cols).rstrip()]
+    for i in range(per):
+        lines.append(" | ".join(cells[i + c * per] for c in range(n_cols)
+                                if i + c * per < len(cells)).rstrip())
+    return "\n".join(lines)
+
+
 def format_summary(s: dict[str, Any], *, width: int | None = None) -> str:
     """The summary as a plain-text table that fits ``width`` columns (default
     :func:`summary_width`): values wrap under themselves. An optional ``notes`` entry (list
@@ -244,7 +332,7 @@ def format_summary(s: dict[str, Any], *, width: int | None = None) -> str:
     width = summary_width() if width is None else width
     rows = [
         ("run", f"{s.get('run_id', '-')}  ({s.get('anchors')} anchors x {s.get('nodes')} nodes, "
-                f"{s.get('duration_s')} s at x{s.get('speed')}, channel {s.get('channel')})"),
+                f"{s.get('duration_s')} s {_pace(s.get('speed'))}, channel {s.get('channel')})"),
         ("model", _model(s)),
         ("estimates", f"{s.get('estimates', 0)} ({s.get('with_position', 0)} with a position)"),
         ("status", ", ".join(f"{k} {v}" for k, v in sorted(s.get("status", {}).items())) or "-"),
@@ -265,6 +353,14 @@ def format_summary(s: dict[str, Any], *, width: int | None = None) -> str:
         rows.append(("lost", ", ".join(s["lost"])))
     if s.get("recording"):
         rows.append(("recording", f"{s['recording']}  (diffpos replay / inspect / to-rerun FILE)"))
-    for i, note in enumerate(s.get("notes") or ()):
+    # the recording row names the one-part recording: its note would say it a second time
+    notes = [n for n in s.get("notes") or () if not s.get("recording")
+             or str(n) != f"recording: {s['recording']}"]
+    for i, note in enumerate(notes):
         rows.append(("notes" if i == 0 else "", str(note)))
-    return _wrap_rows(rows, width)
+    table = format_responders(s.get("responders") or [], width)
+    if not table:
+        return _wrap_rows(rows, width)
+    legend = ("responders at the end (flr, p: floor of the last fix and its probability; age: "
+              "of that fix; err: its 3D error [m]; tru: the true floor when it differs, !)")
+    return "\n".join([_wrap_rows(rows, width), *textwrap.wrap(legend, width), table])
