@@ -30,7 +30,7 @@ from diffpos_services.dashboard.floors import _log_floor_table
 from diffpos_services.dashboard.geometry import Tracks, ellipsoid_axes, path_strips
 from diffpos_services.dashboard.mechanisms import MAX_VERTICES, mechanism_strips
 from diffpos_services.dashboard.plans import FLEET_LINES, PlanState, log_plan_markers
-from diffpos_services.wire.fields import GOOD_STATUSES
+from diffpos_services.wire.messages import GOOD_STATUSES
 
 
 def _scalar_series(

@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike
 
 from diffpos_services.dashboard.columns import EventColumns
 from diffpos_services.dashboard.common import UNIDENTIFIABLE_STATUSES, _time_column
-from diffpos_services.wire.fields import GOOD_STATUSES
+from diffpos_services.wire.messages import GOOD_STATUSES
 
 
 def _status_level(before: str | None, status: str) -> str:
