@@ -5,7 +5,7 @@ For each run (default: ``diffpos emulate`` and ``diffpos emulate large``, record
 converts the recording twice with ``diffpos to-rerun``: the whole run (the viewer opens at
 its end: the default cursor) and the run up to its middle (``--end``: the cursor at a
 mid-run moment), and takes one screenshot of each with each viewer:
-``docs/dashboard_<run>_<moment>_<viewer>.png`` (halved, metadata stripped).
+``docs/img/dashboard_<run>_<moment>_<viewer>.png`` (halved, metadata stripped).
 
 Needs (Debian 12): ``apt-get install -y xvfb chromium mesa-vulkan-drivers libgl1-mesa-dri
 imagemagick``; the ``rerun`` executable of rerun-sdk next to this Python; Pillow (comes
@@ -67,8 +67,11 @@ def emulate(name: str, out_dir: Path) -> Path:
     return mcap
 
 
-def convert(mcap: Path, out: Path, *, end_s: float | None = None) -> Path:
+def convert(mcap: Path, out: Path, *, end_s: float | None = None, scenario: str | None = None
+            ) -> Path:
     cmd = [*DIFFPOS, "to-rerun", str(mcap), "-o", str(out), "--json"]
+    if scenario is not None:  # walls and stairs (a default-scenario recording has only the box)
+        cmd += ["--scenario", scenario]
     if end_s is not None:
         cmd += ["--end", f"{end_s:g}"]
     res = subprocess.run(cmd, check=True, capture_output=True, text=True)
@@ -231,11 +234,12 @@ def main() -> int:
                     help="use this recording instead of running the emulation NAME")
     ap.add_argument("--runs", nargs="+", default=list(RUNS), help="default: default large")
     ap.add_argument("--viewers", nargs="+", default=["native", "web"])
-    ap.add_argument("--moments", nargs="+", default=["cursor", "midrun"])
+    ap.add_argument("--moments", nargs="+", default=["end", "midrun"])
     ap.add_argument("--mid-s", type=float, default=10.0, metavar="S",
                     help="the mid-run moment [s after the first anchor state] (default 10: "
                          "the middle of the 20 s runs)")
-    ap.add_argument("--out", default=str(ROOT / "docs"), help="folder (default docs/)")
+    ap.add_argument("--out", default=str(ROOT / "docs" / "img"),
+                    help="folder (default docs/img/)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -247,7 +251,7 @@ def main() -> int:
         for name in args.runs:
             mcap = Path(given[name]) if name in given else emulate(name, work)
             mid = args.mid_s
-            rrds = {m: convert(mcap, work / f"{name}_{m}.rrd",
+            rrds = {m: convert(mcap, work / f"{name}_{m}.rrd", scenario=name,
                                end_s=mid if m == "midrun" else None) for m in args.moments}
             for moment, rrd in rrds.items():
                 for viewer in args.viewers:

@@ -36,8 +36,6 @@ import logging
 import threading
 
 from diffpos_services.bus.session import add_zenoh_arguments, open_session, service_settings
-from diffpos_services.dashboard.building import BuildingOutline
-from diffpos_services.dashboard.scenario import building_for_option
 from diffpos_services.errors import ConfigError
 from diffpos_services.logs import add_logging_arguments, log_event, setup_logging
 from diffpos_services.shutdown import Shutdown, run_main
@@ -136,6 +134,10 @@ def run(args: argparse.Namespace) -> int:
     log = setup_logging("dashboard", level=args.log_level, fmt=args.log_format)
 
     def body() -> int:
+        # deferred: the scenario's stairs come from its trajectories (diffpos.emulation, whose
+        # channel kernels `--help` must not load)
+        from diffpos_services.dashboard.scenario import building_for_option
+
         target = _target(args)
         building = building_for_option(args.scenario)
         if args.ring_size < 1 or args.drain_period <= 0 or args.report_every <= 0:
@@ -181,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _demo(rec, building, target) -> int:
+    from diffpos_services.dashboard.building import BuildingOutline
     from diffpos_services.dashboard.stream import Dashboard  # deferred: imports rerun
     from diffpos_services.replay.synthetic import display_run  # the fusion core's kernels
 

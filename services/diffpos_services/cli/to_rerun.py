@@ -30,7 +30,6 @@ import sys
 import time
 from pathlib import Path
 
-from diffpos_services.dashboard.scenario import building_for_option
 from diffpos_services.errors import ConfigError
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
@@ -98,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     # deferred: the converter imports rerun and the MCAP reader (~1 s), which `--help` and the
     # argument checks above must not pay for
     from diffpos_services.dashboard.convert import mcap_to_rrd
+    from diffpos_services.dashboard.scenario import building_for_option
 
     try:
         building = building_for_option(args.scenario)
