@@ -19,7 +19,9 @@ import argparse
 import importlib
 import importlib.metadata
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
@@ -147,16 +149,41 @@ def main(argv: Sequence[str] | None = None) -> int:
         hint = f" (did you mean {', '.join(close)}?)" if close else ""
         print(f"diffpos: unknown subcommand {name!r}{hint}; see 'diffpos --help'", file=sys.stderr)
         return 2
-    parser = build_parser(name)
-    args = parser.parse_args(rest)
     try:
-        with _root_logging_restored():
+        with _stop_signals_interrupt(), _root_logging_restored():
+            parser = build_parser(name)
+            args = parser.parse_args(rest)
             return int(args._run(args) or 0)
     except DiffposError as exc:
         print(f"diffpos {name}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         return 130
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+@contextmanager
+def _stop_signals_interrupt() -> Iterator[None]:
+    """SIGTERM and SIGHUP act like Ctrl-C from the first moment of a verb: while its modules
+    import (seconds) and until the verb installs its own handlers (``shutdown.Shutdown``), a
+    stop by any of these signals exits 130, never 143 / 129 (docs/faults.md, signals). Only
+    a handler still at the default is replaced, and the previous ones come back afterwards
+    (``main`` runs in-process in tests)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {}
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(sig) == signal.SIG_DFL:
+            previous[sig] = signal.signal(sig, _interrupt)
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 if __name__ == "__main__":
