@@ -53,22 +53,30 @@ def _supervisor(procs, restarted):
     return sup
 
 
+OTHER = 777_777  # another service whose heartbeats keep coming (the bus works)
+
+
+def _check(sup, now):
+    sup.on_heartbeat(OTHER, int(now * 10), 0, now=now)
+    sup.check(now=now)
+
+
 def test_silent_fusion_is_hung_killed_and_restarted(pause_proc):
     procs = [("fusion", pause_proc)]
     restarted: list = []
     sup = _supervisor(procs, restarted)
     sup.on_heartbeat(pause_proc.pid, 10, 0, now=100.0)
     sup.on_heartbeat(pause_proc.pid, 12, 0, now=100.5)  # progress at 100.5, then silence
-    sup.check(now=105.0)
+    _check(sup, 105.0)
     assert sup.faults == [] and pause_proc.poll() is None  # 4.5 s: not yet
-    sup.check(now=105.6)
+    _check(sup, 105.6)
     (f,) = sup.faults
     assert (f.service, f.kind) == ("fusion", "hung")
     assert f.detected_after_s == pytest.approx(5.1)
     assert pause_proc.wait(timeout=10) == -9 and f.exit_code == -9  # killed
     assert restarted == [("fusion", 1)]
     assert "no progress for 5.1 s" in f.note and "restart 1" in f.note
-    sup.check(now=120.0)  # its exit is not a second fault
+    _check(sup, 120.0)  # its exit is not a second fault
     assert len(sup.faults) == 1
     assert "hung, found at" in format_faults([f.as_dict()])
 
@@ -87,17 +95,37 @@ def test_stuck_with_work_pending_is_hung_but_idle_is_not(pause_proc):
     assert f.kind == "hung" and "3 items pending" in f.note
 
 
+def test_no_one_is_hung_while_the_bus_is_silent():
+    """The router died (or no heartbeat arrives from anyone): silence is the bus's fault,
+    not each process's (before: every service was called hung, fusion and recorder killed)."""
+    a, f, router = _Proc(11), _Proc(12), _Proc(13)
+    sup = _supervisor([("router", router), ("anchor-uav1", a), ("fusion", f)], [])
+    sup.on_heartbeat(a.pid, 1, 0, now=0.0)
+    sup.on_heartbeat(f.pid, 1, 0, now=0.0)
+    sup.check(now=6.0)  # everyone silent at once
+    assert sup.faults == []
+    sup.on_heartbeat(f.pid, 2, 0, now=6.5)  # the fusion talks, the anchor does not
+    sup.check(now=6.6)
+    assert [x.service for x in sup.faults] == ["anchor-uav1"]
+    router.returncode = -9
+    sup2 = _supervisor([("router", router), ("fusion", f)], [])
+    sup2.on_heartbeat(f.pid, 1, 0, now=0.0)
+    sup2.on_heartbeat(12_345, 1, 0, now=5.9)
+    sup2.check(now=6.0)
+    assert [x.service for x in sup2.faults] == ["router"]  # the router's death, only
+
+
 def test_hung_anchor_reported_left_running_and_resumes():
     anchor = _Proc(999_999)
     sup = _supervisor([("anchor-uav2", anchor)], [])
     sup.on_heartbeat(anchor.pid, 30, 0, now=0.0)
-    sup.check(now=6.0)
+    _check(sup, 6.0)
     (f,) = sup.faults
     assert f.kind == "hung" and f.exit_code is None and "left running" in f.note
-    sup.check(now=7.0)
+    _check(sup, 7.0)
     assert len(sup.faults) == 1  # one fault per hang
     sup.on_heartbeat(anchor.pid, 31, 0, now=12.0)  # SIGCONT: progress again
-    sup.check(now=12.1)
+    _check(sup, 12.1)
     assert "resumed at 12.1 s" in f.note and len(sup.faults) == 1
 
 

@@ -21,7 +21,8 @@ process, when its progress last advanced. A process whose progress has not advan
 or recorder is killed (SIGKILL to its process group) and restarted as if it had died, a hung
 anchor is reported (anchors are not restarted; one that resumes is taken back, the fault says
 when). A process is judged only from its first heartbeat on (start-up is the readiness
-timeout's business).
+timeout's business), and nobody is judged while the bus itself is silent (the router died,
+or no heartbeat from anyone arrives: the router's fault, reported as such).
 
 A fusion that cannot be restarted (it died more than :data:`MAX_RESTARTS` times) ends the
 run: :attr:`Supervisor.fatal` says why, the monitor stops, the summary says it and the exit
@@ -238,7 +239,18 @@ class Supervisor:
             return quiet
         return None
 
+    def _bus_silent(self, now: float) -> bool:
+        """No heartbeat from anyone for :attr:`stall_s`, or the router is gone: the silence
+        is the bus's (a dead or hung router), not each process's."""
+        if any(name == "router" and popen.poll() is not None for name, popen in self.procs()):
+            return True
+        with self._lock:
+            latest = max((b[2] for b in self._beats.values()), default=None)
+        return latest is not None and now - latest > self.stall_s
+
     def _check_stalled(self, now: float) -> None:
+        if self._bus_silent(now):
+            return
         for name, popen in self.procs():
             if popen.poll() is not None or id(popen) in self._seen:
                 continue
