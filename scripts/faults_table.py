@@ -139,6 +139,19 @@ class Emulate:
         self.log: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
         self.t_run = 0.0
+        self.stopped: list[int] = []  # children SIGSTOPped by the case (SIGCONT at the end)
+
+    def stop_child(self, pid: int) -> float:
+        """SIGSTOP a child (resumed by :meth:`kill` if the case does not); monotonic time."""
+        os.kill(pid, signal.SIGSTOP)
+        self.stopped.append(pid)
+        return time.monotonic()
+
+    def wait_msg(self, msg: str, service: str | None = None) -> float:
+        """Block until emulate logs ``msg`` (for ``service``); its monotonic receive time."""
+        self.wait(lambda r: r.get("msg") == msg and (service is None
+                                                     or r.get("service") == service))
+        return time.monotonic()
 
     def _read(self) -> None:
         for line in self.p.stderr:
@@ -178,7 +191,7 @@ class Emulate:
     def child(self, service: str, arg: str | None = None) -> int:
         """pid of emulate's child running ``diffpos <service>`` (with ``arg`` in argv)."""
         for pid in children(self.p.pid):
-            with contextlib.suppress(OSError):
+            with contextlib.suppress(OSError, ValueError, IndexError):  # (exiting, or exec'ing)
                 cmd = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
                 if (cmd[cmd.index("diffpos_services.cli.main") + 1] == service
                         and (arg is None or arg in cmd)):
@@ -194,6 +207,9 @@ class Emulate:
         return rc, summary
 
     def kill(self) -> None:
+        for pid in self.stopped:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
         if self.p.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(self.p.pid, signal.SIGKILL)
@@ -210,12 +226,14 @@ class Watch:
         self.session = open_session(ZenohSettings(connect=(endpoint,)), self.stop)
         self.dec = M.estimate_decoder()
         self.estimates: list[tuple[int, object]] = []
+        self.prefix = ""
         self.lock = threading.Lock()
         self.subs = [self.session.declare_subscriber(self.keys.estimates(), self._on_est)]
 
     def _on_est(self, sample) -> None:
         if sample.timestamp is None:  # our own publication delivered locally
             return
+        self.prefix = self.prefix or str(sample.timestamp.get_id())
         est = self.dec(sample.payload.to_bytes())
         with self.lock:
             self.estimates.append((time.time_ns(), est))
@@ -235,6 +253,38 @@ def _faults(summary: dict) -> str:
         out.append(f"fault reported: {f['service']} died at {f['died_s']:.1f} s "
                    f"(exit code {f['exit_code']}){again}")
     return "; ".join(out)
+
+
+def _hung_faults(summary: dict) -> str:
+    out = []
+    for f in summary.get("faults", []):
+        if f.get("kind") == "hung":
+            out.append(f"fault reported: {f['service']} hung ({f['detected_after_s']:.1f} s "
+                       "without progress)" + ("; restarted" if f.get("restarted_s") is not None
+                                              else "; " + f["note"].split("; ")[-1]))
+        elif f.get("kind") == "duplicate publisher":
+            out.append(f"fault reported: {f['service']} duplicate publisher")
+        else:
+            out.append(f"fault reported: {f['service']} died (exit code {f['exit_code']})"
+                       + (", restarted" if f.get("restarted_s") is not None
+                          else ", not restarted"))
+    return "; ".join(out) or "no fault reported"
+
+
+def _lost(summary: dict) -> str:
+    """Estimates and messages lost, as the summary counts them."""
+    n, miss = summary.get("node_epochs"), summary.get("node_epochs_without_estimate")
+    out = [] if n is None else [f"{miss} of {n} scored node-epochs without an estimate"]
+    rl = summary.get("recording_losses")
+    if rl is not None:
+        out.append(f"recording: {rl['missing']} messages missing by sequence number across "
+                   f"{len(rl['files'])} file(s)")
+    return "; ".join(out)
+
+
+def _detected(t_inject: float, t_seen: float | None, what: str = "detected") -> str:
+    return (f"{what} {t_seen - t_inject:.1f} s after the fault" if t_seen is not None
+            else "**not detected**")
 
 
 def _avail(summary: dict) -> str:
@@ -292,7 +342,8 @@ def killed(service: str) -> Callable[[Ctx], str]:
             watch = Watch(emu.endpoint)
             emu.at(3.0)
             os.kill(emu.child(service), signal.SIGKILL)
-            t_kill = time.time_ns()
+            t_kill, t0 = time.time_ns(), time.monotonic()
+            seen = emu.wait_msg("service died", service)
             rc, summary = emu.finish()
         finally:
             emu.kill()
@@ -309,7 +360,8 @@ def killed(service: str) -> Callable[[Ctx], str]:
         if service == "recorder":
             rec = (f"recordings {files}; " + " ".join(summary.get("recording_notes", []))
                    .replace(str(ctx.tmp) + "/", ""))
-        return _cell(f"exit {rc}", _faults(summary), resumed, rec, _avail(summary))
+        return _cell(f"exit {rc}", _detected(t0, seen), _faults(summary), resumed, rec,
+                     _lost(summary), _avail(summary))
     return run
 
 
@@ -409,6 +461,179 @@ def foreign(ctx: Ctx) -> str:
         rec_note)
 
 
+def stopped(service: str, arg: str | None = None, *, resume_s: float | None = None,
+            duration: str = "20", name: str | None = None) -> Callable[[Ctx], str]:
+    """SIGSTOP ``diffpos <service>`` at t = 3 s (its token lives on: 10 s lease); with
+    ``resume_s`` SIGCONT it that much later."""
+    def run(ctx: Ctx) -> str:
+        out = ctx.tmp / "run.mcap"
+        emu = Emulate(ctx, "--channel", "ideal", "--duration", duration, "--dashboard", "off",
+                      "--record", str(out))
+        seen = None
+        try:
+            emu.ready()
+            emu.at(3.0)
+            t_stop = emu.stop_child(emu.child(service, arg))
+            if resume_s is not None:
+                emu.at(3.0 + resume_s)
+                for pid in emu.stopped:
+                    os.kill(pid, signal.SIGCONT)
+            else:
+                seen = emu.wait_msg("service hung", name or service)
+            rc, summary = emu.finish()
+        finally:
+            emu.kill()
+        det = _detected(t_stop, seen, "hang detected") if resume_s is None else ""
+        return _cell(f"exit {rc}", det, _hung_faults(summary), _lost(summary), _avail(summary))
+    return run
+
+
+def stopped2(ctx: Ctx) -> str:
+    """SIGSTOP two of the four anchors at t = 3 s, never resumed."""
+    emu = Emulate(ctx, "--channel", "ideal", "--duration", "20", "--dashboard", "off",
+                  "--record", "off")
+    try:
+        emu.ready()
+        emu.at(3.0)
+        t_stop = emu.stop_child(emu.child("anchor", "uav1"))
+        emu.stop_child(emu.child("anchor", "uav2"))
+        seen = emu.wait_msg("service hung")
+        rc, summary = emu.finish()
+    finally:
+        emu.kill()
+    return _cell(f"exit {rc}", _detected(t_stop, seen, "first hang detected"),
+                 _hung_faults(summary), _lost(summary), _avail(summary))
+
+
+def killed_again(ctx: Ctx) -> str:
+    """The fusion SIGKILLed once more than it is restarted."""
+    emu = Emulate(ctx, "--channel", "ideal", "--duration", "300", "--dashboard", "off",
+                  "--record", "off")
+    try:
+        emu.ready()
+        for k in range(4):
+            os.kill(emu.child("fusion"), signal.SIGKILL)
+            t_kill = emu.wait_msg("service died", "fusion")
+            if k < 3:
+                emu.wait(lambda r, k=k: r.get("msg") == "service restarted"
+                         and r.get("restart") == k + 1)
+        t_end = None
+        rc, summary = emu.finish()
+        t_end = time.monotonic()
+    finally:
+        emu.kill()
+    return _cell(f"exit {rc}", f"run ended {t_end - t_kill:.1f} s after the 4th kill "
+                 f"(of 300 s): {summary.get('ended_early', '**not ended**')}",
+                 f"{sum(f['service'] == 'fusion' for f in summary.get('faults', []))} fusion "
+                 "faults reported")
+
+
+def killed_other(service: str, arg: str | None = None) -> Callable[[Ctx], str]:
+    """SIGKILL a service emulate does not restart (an anchor, the router) at t = 3 s."""
+    def run(ctx: Ctx) -> str:
+        emu = Emulate(ctx, "--channel", "ideal", "--duration", "10", "--dashboard", "off",
+                      "--record", str(ctx.tmp / "run.mcap"))
+        try:
+            emu.ready()
+            emu.at(3.0)
+            name = f"anchor-{arg}" if service == "anchor" else service
+            os.kill(emu.child(service, arg), signal.SIGKILL)
+            t_kill = time.monotonic()
+            seen = emu.wait_msg("service died", name)
+            rc, summary = emu.finish()
+        finally:
+            emu.kill()
+        return _cell(f"exit {rc}", _detected(t_kill, seen), _hung_faults(summary),
+                     _lost(summary), _avail(summary))
+    return run
+
+
+def duplicate_anchor(ctx: Ctx) -> str:
+    """A second process publishes under uav1's keys: copies of its messages moved 5 m."""
+    emu = Emulate(ctx, "--channel", "ideal", "--speed", "0", "--duration", "3", "--dashboard",
+                  "off", "--record", "off")
+    watch = None
+    try:
+        emu.ready()
+        watch = Watch(emu.endpoint)
+        s, keys, sent = watch.session, watch.keys, [0, None]
+
+        def fake(sample) -> None:
+            if sample.attachment is None:  # our own copies come back
+                return
+            doc = json.loads(sample.payload.to_bytes())
+            if "position_m" in doc:
+                doc["position_m"] = [v + 5.0 for v in doc["position_m"]]
+            s.put(str(sample.key_expr), json.dumps(doc).encode(),
+                  congestion_control=watch.zenoh.CongestionControl.BLOCK)
+            sent[0] += 1
+            sent[1] = sent[1] or time.time_ns()
+
+        watch.subs.append(s.declare_subscriber(f"{keys.root}/anchor/uav1/**", fake))
+        rc, summary = emu.finish()
+    finally:
+        emu.kill()
+        if watch is not None:
+            watch.close()
+    after = [e for rx, e in watch.estimates if sent[1] and rx > sent[1]]
+    used = sum("uav1" in e.used_anchors for e in after)
+    return _cell(f"exit {rc}", f"{sent[0]} copies sent under uav1's keys",
+                 _hung_faults(summary), f"after the first copy {used} of {len(after)} "
+                 "estimates used uav1", _avail(summary))
+
+
+def forged_estimates(ctx: Ctx) -> str:
+    """A forger reads the fusion's zenoh id prefix from an estimate, opens a session whose
+    id has that prefix and publishes stamped estimates moved by 5 m."""
+    out = ctx.tmp / "run.mcap"
+    emu = Emulate(ctx, "--channel", "ideal", "--speed", "0", "--duration", "3", "--dashboard",
+                  "off", "--record", str(out))
+    watch = forger = None
+    sent = [0]
+    try:
+        emu.ready()
+        watch = Watch(emu.endpoint)
+        while not watch.estimates:
+            emu.wait(lambda r: True)  # a log line (progress) or more: then look again
+        zid = watch.prefix
+        cfg = ZenohSettings(connect=(emu.endpoint,)).to_config()
+        cfg.insert_json5("id", json.dumps(zid[:16] + "0123456789abcdef"))
+        cfg.insert_json5("timestamping/enabled", "true")
+        forger = zenoh.open(cfg)
+
+        def forge(sample) -> None:
+            ts = sample.timestamp
+            if ts is not None and not str(ts.get_id()).endswith("0123456789abcdef"):
+                doc = json.loads(sample.payload.to_bytes())
+                if doc.get("position_m"):
+                    doc["position_m"] = [v + 5.0 for v in doc["position_m"]]
+                doc["seq"] += 1_000_000
+                forger.put(str(sample.key_expr), json.dumps(doc).encode(),
+                           congestion_control=zenoh.CongestionControl.BLOCK)
+                sent[0] += 1
+
+        sub = forger.declare_subscriber(watch.keys.estimates(), forge)
+        rc, summary = emu.finish()
+        sub.undeclare()
+    finally:
+        emu.kill()
+        if forger is not None:
+            forger.close()
+        if watch is not None:
+            watch.close()
+    recorded = forged = 0
+    if out.exists():
+        for batch in McapScanner(out).iter_batches():
+            for m in batch:
+                if m.topic.endswith("/estimate") and "/replay/" not in m.topic:
+                    recorded += 1
+                    forged += json.loads(m.data)["seq"] >= 1_000_000
+    return _cell(f"exit {rc}", f"{sent[0]} forged estimates sent under an id with the "
+                 "fusion's prefix", f"summary: {summary.get('foreign', {}).get('count')} "
+                 f"foreign, {summary.get('estimates')} estimates scored",
+                 f"recording: {recorded} estimates, {forged} forged")
+
+
 CASES: list[Case] = [
     Case("15.2", "anchor `uav2` hung: SIGSTOP for 12 s (its 10 s lease expires), then SIGCONT "
          "(`--channel ideal --duration 24`)", hung_anchor,
@@ -438,6 +663,49 @@ CASES: list[Case] = [
          "tests/system/test_emulate_faults.py::test_foreign_estimates_and_anchor_not_used_but"
          "_reported + tests/system/test_recorder_foreign.py::test_foreign_estimates_and_anchors"
          "_kept_apart_and_counted"),
+    Case("36.1", "fusion hung: SIGSTOP at t = 3 s, never resumed (its token lives 10 s; "
+         "`--duration 20 --record run.mcap`)", stopped("fusion"),
+         "tests/system/test_emulate_progress.py::test_sigstopped_fusion_and_recorder_are_hung_faults_killed_and_restarted + "
+         "tests/services/test_progress_integrity.py::test_silent_fusion_is_hung_killed_and_restarted"),
+    Case("36.1", "recorder hung: SIGSTOP at t = 3 s, never resumed", stopped("recorder"),
+         "tests/system/test_emulate_progress.py::test_sigstopped_fusion_and_recorder_are_hung_faults_killed_and_restarted"),
+    Case("36.1", "anchor `uav2` hung: SIGSTOP at t = 3 s, never resumed",
+         stopped("anchor", "uav2", name="anchor-uav2"),
+         "tests/services/test_progress_integrity.py::test_hung_anchor_reported_left_running_and_resumes"),
+    Case("36.1", "two of four anchors hung (`uav1`, `uav2`: SIGSTOP at t = 3 s)",
+         stopped2, "tests/services/test_progress_integrity.py::test_hung_anchor_reported_left_running_and_resumes"),
+    Case("36.1", "fusion stalled 2 s (SIGSTOP, SIGCONT 2 s later: shorter than the 5 s "
+         "stall limit)", stopped("fusion", resume_s=2.0),
+         "tests/services/test_progress_integrity.py::test_stuck_with_work_pending_is_hung_but_idle_is_not"),
+    Case("36.1", "recorder stalled 2 s (SIGSTOP, SIGCONT 2 s later)",
+         stopped("recorder", resume_s=2.0),
+         "tests/services/test_progress_integrity.py::test_stuck_with_work_pending_is_hung_but_idle_is_not"),
+    Case("36.1", "fusion SIGKILLed 4 times (restarted at most 3 times; `--duration 300`)",
+         killed_again, "tests/system/test_emulate_progress.py::test_fusion_killed_beyond_its_restarts_ends_the_run + "
+         "tests/services/test_progress_integrity.py::test_fusion_that_cannot_be_restarted_ends_the_run"),
+    Case("36.1", "anchor `uav2` SIGKILLed at t = 3 s (anchors are not restarted)",
+         killed_other("anchor", "uav2"),
+         "tests/system/test_faults.py::test_anchor_killed_and_hung_fusion_continues_and_takes_"
+         "it_back"),
+    Case("36.1", "router SIGKILLed at t = 3 s (the bus of every service)",
+         killed_other("router"),
+         "tests/system/test_faults.py::test_router_killed_and_restarted_clients_reconnect_nothing_"
+         "lost_after"),
+    Case("36.4", "second publisher under anchor `uav1`'s keys: copies of its messages moved "
+         "5 m (`--speed 0 --duration 3`)", duplicate_anchor,
+         "tests/system/test_emulate_progress.py::test_duplicate_anchor_publisher_is_reported_and_not_trusted + "
+         "tests/services/test_progress_integrity.py::test_guard_two_nonces_contested_until_one_remains"),
+    Case("36.4", "forged estimates (moved 5 m) from a session whose zenoh id has the run's "
+         "fusion id prefix, timestamped (`--speed 0 --duration 3 --record run.mcap`)",
+         forged_estimates,
+         "tests/system/test_emulate_progress.py::test_forged_estimates_under_the_fusion_id_prefix_are_not_ours + "
+         "tests/services/test_progress_integrity.py::test_recorder_needs_the_mac_not_the_prefix"),
+    Case("36.6", "SIGINT to `emulate` (Ctrl-C) at t = 1 s of a 120 s run",
+         signal_emulate(signal.SIGINT),
+         "tests/system/test_emulate_faults.py::test_sighup_stops_every_child"),
+    Case("36.6", "SIGTERM to `emulate` at t = 1 s of a 120 s run",
+         signal_emulate(signal.SIGTERM),
+         "tests/system/test_emulate_faults.py::test_sighup_stops_every_child"),
 ]
 
 

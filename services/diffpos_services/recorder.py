@@ -22,11 +22,15 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
   been stalled for all of ``DRAIN_IDLE_S`` with the channel left open (counted in
   ``after_stop_dropped``).
 
-Foreign messages (issue 15 item 9). When the recording carries a run configuration naming
-the run's fusion (``emulate.fusion_id_prefix``: every sample of the fusion ``diffpos
-emulate`` started carries a zenoh id with that prefix) or its anchors (``fusion.anchors``),
-a message on an estimate or diagnostics key from another publisher, or on the key of an
-anchor outside that list, is *foreign*: it is not written to the recording (which replay,
+Foreign messages (issue 15 item 9, issue 36 item 4). When the recorder has the run's secret
+token (:data:`diffpos_services.bus.integrity.RUN_TOKEN_ENV`, handed by ``diffpos emulate``
+in the environment, never written anywhere), a message on an estimate or diagnostics key is
+the run's own only if it carries a valid MAC under that token bound to the full zenoh id
+stamped on it (:class:`~diffpos_services.bus.integrity.Verifier`): a copy or a forgery is
+foreign. Without a token, a run configuration naming the run's fusion by a zenoh id prefix
+(``emulate.fusion_id_prefix``, older runs) is used as before; with a list of the run's anchors
+(``fusion.anchors``), a message on the key of an anchor outside that list is foreign too.
+A *foreign* message it is not written to the recording (which replay,
 ``to-rerun`` and the dashboard read as the run) but kept apart, unchanged, in
 ``<stem>.foreign.mcap`` next to it (evidence of who else published), counted per key, and the
 counts are written into the recording as metadata ``foreign``. Why: a user replaying or
@@ -54,6 +58,8 @@ import zenoh
 from zenoh import handlers
 
 from diffpos_services.bus.commands import foreign_path, recorder_args
+from diffpos_services.bus.heartbeat import HeartbeatThread, Progress
+from diffpos_services.bus.integrity import Verifier, run_token
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.recording.writer import McapSink, SinkStats
 from diffpos_services.shutdown import SIGNAL_POLL_S, join_thread, wait_event
@@ -141,34 +147,42 @@ class Provenance:
     Attributes
     ----------
     fusion_id_prefix : str or None
-        Zenoh id prefix of the run's fusion (``None``: any publisher's estimates belong).
+        Zenoh id prefix of the run's fusion (``None``: any publisher's estimates belong);
+        only used without a ``verifier``.
     anchors : frozenset of str or None
         The run's anchors (``None``: any anchor belongs).
+    verifier : Verifier or None
+        The run token's verifier: the fusion's messages must carry its MAC.
     """
 
     fusion_id_prefix: str | None = None
     anchors: frozenset[str] | None = None
+    verifier: Verifier | None = None
 
     @classmethod
-    def from_run_config(cls, run_config: dict[str, Any] | None) -> Provenance | None:
+    def from_run_config(cls, run_config: dict[str, Any] | None,
+                        token: bytes | None = None) -> Provenance | None:
         """From a run configuration (``{"fusion": {...}, "emulate": {...}}``, values possibly
-        JSON text as in MCAP metadata); ``None`` if it names neither."""
+        JSON text as in MCAP metadata) and the run's token; ``None`` if they name nothing."""
+        verifier = Verifier(token) if token else None
         if not run_config:
-            return None
+            return cls(verifier=verifier) if verifier else None
         fusion, emu = (run_config.get(k) or {} for k in ("fusion", "emulate"))
         fusion, emu = (json.loads(v) if isinstance(v, str) else v for v in (fusion, emu))
         prefix = emu.get("fusion_id_prefix") if isinstance(emu, dict) else None
         anchors = fusion.get("anchors") if isinstance(fusion, dict) else None
-        if not prefix and not anchors:
+        if not prefix and not anchors and verifier is None:
             return None
         return cls(str(prefix) if prefix else None,
-                   frozenset(map(str, anchors)) if anchors else None)
+                   frozenset(map(str, anchors)) if anchors else None, verifier)
 
     def foreign(self, key: str, sample: Any) -> bool:
         """True if the message on ``key`` (a zenoh sample) is not the run's own."""
         pk = parse_key(key)
         if pk is None:
             return False
+        if pk.kind in _FUSION_KINDS and self.verifier is not None:
+            return not self.verifier.ours(sample)
         if pk.kind in _FUSION_KINDS and self.fusion_id_prefix is not None:
             ts = sample.timestamp
             return ts is None or not str(ts.get_id()).startswith(self.fusion_id_prefix)
@@ -268,7 +282,7 @@ def record(
     """
     keys = Keys(options.site)
     emit = on_status or (lambda _e, _f: None)
-    provenance = Provenance.from_run_config(_run_config_of(sink))
+    provenance = Provenance.from_run_config(_run_config_of(sink), run_token())
     foreign = _ForeignSink(sink.path)
     t_end = None if options.duration_s is None else time.monotonic() + options.duration_s
     session = open_session(settings, stop, logger=log)
@@ -288,6 +302,10 @@ def record(
                                         name="recorder-flush", daemon=True)
         flush_thread.start()
         token = session.liveliness().declare_token(keys.alive_recorder())
+        beat = HeartbeatThread(session, keys.heartbeat("recorder"), "recorder",
+                               lambda: Progress(progress=drainer.taken,
+                                                published=sink.stats.written),
+                               logger=log).start()
         emit("ready", {"key": keys.everything(), "path": str(sink.path or "")})
         try:
             # never one unbounded wait in the main thread (kit.wait_event: a SIGTERM
@@ -295,6 +313,7 @@ def record(
             wait_event(stop, None if t_end is None else max(0.0, t_end - time.monotonic()))
         finally:
             stop.set()
+            beat.stop()
             join_thread(flush_thread)  # ends after the flush in progress
             live_sub.undeclare()  # first: our own token's DELETE is not an event
             token.undeclare()
@@ -334,6 +353,7 @@ class _Drain(threading.Thread):
         self.sub, self.sink, self.stop = sub, sink, stop
         self.provenance, self.foreign = provenance, foreign
         self.deletes = 0
+        self.heartbeats = 0    # services' heartbeats: not recorded (liveness, not data)
         self.taken = 0         # samples taken from the channel
         self.waiting = False   # in recv() (blocks there only while the channel is empty)
         self.late = 0          # samples taken after finish() gave up (not written)
@@ -366,6 +386,10 @@ class _Drain(threading.Thread):
             self.deletes += 1
             return
         key = str(sample.key_expr)
+        pk = parse_key(key)
+        if pk is not None and pk.kind == "heartbeat":
+            self.heartbeats += 1
+            return
         if self.provenance is not None and self.provenance.foreign(key, sample):
             self.foreign.write(key, sample.payload.to_bytes(), time.time_ns())
         else:

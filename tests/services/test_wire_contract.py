@@ -156,6 +156,14 @@ def _examples() -> dict[type, list[msgspec.Struct]]:
                          lockstep=True),
         ],
         M.RunClock: [M.RunClock(run_id="r2", t_ns=299_999_999)],
+        M.Heartbeat: [
+            M.Heartbeat(service="fusion", instance="0f1e2d3c4b5a6978", pid=4242, seq=7,
+                        t_wall_ns=1_700_000_000_000_000_000, period_ns=500_000_000,
+                        progress=1234, pending=3, last_epoch=17_000_000_000, published=600),
+            M.Heartbeat(service="anchor", instance="00", pid=1, seq=0, t_wall_ns=0,
+                        period_ns=1, progress=0, pending=0, last_epoch=None, published=0,
+                        anchor_id="uav1"),
+        ],
     }
 
 
@@ -222,7 +230,8 @@ _DIAG_V2_GOLDEN = (
     b'"late_by_anchor":{"uav1":1},"deadline_ns":300000000,"max_lag_ns":3000000000,'
     b'"lag_by_anchor":{"uav1":5},"releases":{"complete":1,"flush":0},"decisions":{"chunk":0,'
     b'"keys":["diffpos/s/anchor/uav1/ranges",""],"ops":[0,4],"refs":[0,1],"values":[123,-1],'
-    b'"wall_delta_ns":[10,5],"dropped":0}}'
+    b'"wall_delta_ns":[10,5],"dropped":0},"instance":"","duplicate_publishers":{},'
+    b'"contested_anchors":[]}'
 )
 
 

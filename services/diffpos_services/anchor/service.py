@@ -11,7 +11,10 @@ Layers:
   measurement model is in :mod:`diffpos.emulation` (pure, seeded); this module wires it.
 - :func:`run_anchor` paces the emulator on a :class:`~diffpos.emulation.TimeBase` and
   publishes over Zenoh with congestion control BLOCK (nothing dropped), declaring a
-  liveliness token.
+  liveliness token. Every message carries the process nonce as its attachment (two processes
+  publishing under one anchor key are told apart by the fusion:
+  :class:`diffpos_services.bus.integrity.PublisherGuard`), and a heartbeat thread says how
+  many epochs were published (:mod:`diffpos_services.bus.heartbeat`).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from diffpos.emulation import (
     warm_up_channel,
 )
 from diffpos.trajectory import Static
+from diffpos_services.bus.heartbeat import HeartbeatThread, Progress, process_nonce
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.errors import ConfigError
 from diffpos_services.logs import log_event
@@ -300,11 +304,15 @@ class _Outputs:
     batch_pub: Any
     range_pubs: dict[str, Any]
     token: Any
+    nonce: bytes = b""
+    sent: int = 0
 
     def publish(self, emu: AnchorEmulator, state: M.AnchorState,
                 ranges: list[tuple[str, M.RangeMeasurement]]) -> None:
-        """The epoch's state, then its ranges (one batch, or one message per node)."""
-        self.state_pub.put(M.encode(state))
+        """The epoch's state, then its ranges (one batch, or one message per node), each
+        with the process nonce attached."""
+        att = self.nonce
+        self.state_pub.put(M.encode(state), attachment=att)
         if self.batch_pub is not None:
             # one sequence per anchor over states and batches: state n, batch n + 1
             emu.seq = state.seq + 1
@@ -314,10 +322,12 @@ class _Outputs:
                 range_m=[m.range_m for _, m in ranges],
                 sigma_m=[m.sigma_m for _, m in ranges],
                 snr_db=[m.snr_db for _, m in ranges],
-                t_pub_wall_ns=state.t_pub_wall_ns)))
+                t_pub_wall_ns=state.t_pub_wall_ns)), attachment=att)
+            self.sent += 2
         else:
             for nid, msg in ranges:
-                self.range_pubs[nid].put(M.encode(msg))
+                self.range_pubs[nid].put(M.encode(msg), attachment=att)
+            self.sent += 1 + len(ranges)
 
     def undeclare(self) -> None:
         self.token.undeclare()
@@ -348,7 +358,8 @@ def _declare(session: Any, keys: Keys, config: AnchorConfig, emu: AnchorEmulator
             for nid, _ in emu.nodes
         }
     token = session.liveliness().declare_token(keys.alive_anchor(config.anchor_id))
-    return _Outputs(subs, state_pub, batch_pub, range_pubs, token)
+    return _Outputs(subs, state_pub, batch_pub, range_pubs, token,
+                    bytes.fromhex(process_nonce()))
 
 
 def _time_base(config: AnchorConfig, timebase: TimeBase | None, signals: _RunSignals,
@@ -383,6 +394,7 @@ class _Flight:
     on_epoch: Callable[[int], None] | None
     epochs: int = 0
     late: int = 0
+    last_k: int | None = None
 
     def first_epoch(self) -> int:
         """The first epoch not in the past (lockstep: the first epoch of the run)."""
@@ -425,6 +437,7 @@ class _Flight:
             state, ranges = emu.messages(t_true, tb, block.pop(k))
             self.out.publish(emu, state, ranges)
             self.epochs += 1
+            self.last_k = k
             if self.on_epoch is not None:
                 self.on_epoch(k)
             k += 1
@@ -460,6 +473,14 @@ def run_anchor(
     flight = None
     with session:
         out = _declare(session, keys, config, emu, signals)
+
+        def progress() -> Progress:
+            f = flight
+            return Progress(progress=f.epochs if f else 0, last_epoch=f.last_k if f else None,
+                            published=out.sent)
+
+        beat = HeartbeatThread(session, keys.heartbeat("anchor", config.anchor_id), "anchor",
+                               progress, anchor_id=config.anchor_id, logger=log).start()
         log_event(log, logging.INFO, "anchor ready", anchor=config.anchor_id,
                   nodes=len(emu.nodes), rate_hz=config.rate_hz, phase_ns=emu.phase_ns,
                   wait_start=config.wait_start, range_batch=emu.batched)
@@ -471,6 +492,7 @@ def run_anchor(
             flight = _Flight(emu, tb, lockstep, out, signals, stop, log, on_epoch)
             flight.fly()
         finally:
+            beat.stop()
             out.undeclare()
             log_event(log, logging.INFO, "anchor stopped", anchor=config.anchor_id,
                       epochs=flight.epochs if flight else 0,

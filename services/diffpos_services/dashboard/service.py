@@ -34,6 +34,7 @@ from typing import Any, ClassVar, Literal
 import rerun as rr
 import zenoh  # this module is the dashboard process's service (liveliness sample kinds)
 
+from diffpos_services.bus.integrity import Verifier, run_token
 from diffpos_services.dashboard.blueprint import default_blueprint
 from diffpos_services.dashboard.building import BuildingOutline
 from diffpos_services.dashboard.columns import EventColumns
@@ -243,7 +244,10 @@ class DashboardService:
     estimates_from : str, optional
         Draw only estimates and diagnostics whose sample timestamp names a zenoh id starting
         with this (``diffpos emulate`` gives its fusion such an id); others are counted as
-        ``foreign``. ``None``: draw every publisher's.
+        ``foreign``. ``None``: draw every publisher's. With the run's secret token in the
+        environment (:data:`~diffpos_services.bus.integrity.RUN_TOKEN_ENV`, as ``diffpos
+        emulate`` starts it) the prefix is not trusted: only publications with a valid MAC
+        under the token (bound to the full zenoh id stamped on them) are drawn.
     logger : logging.Logger, optional
     """
 
@@ -276,6 +280,8 @@ class DashboardService:
         self.ring: collections.deque[tuple[str, bytes, int]] = collections.deque(maxlen=ring_size)
         self.ring_size = ring_size
         self.estimates_from = estimates_from
+        token = run_token() if estimates_from is not None else None
+        self.verifier = Verifier(token) if token else None
         self.drain_period_s = drain_period_s
         self.stats = ServiceStats()
         self.log = logger or logging.getLogger("diffpos.dashboard")
@@ -303,7 +309,8 @@ class DashboardService:
             return
         if self.estimates_from is not None and kind in ("estimate", "diagnostics"):
             ts = sample.timestamp
-            if ts is None or not str(ts.get_id()).startswith(self.estimates_from):
+            if (not self.verifier.ours(sample) if self.verifier is not None else
+                    ts is None or not str(ts.get_id()).startswith(self.estimates_from)):
                 self.stats.foreign += 1
                 return
         ring = self.ring

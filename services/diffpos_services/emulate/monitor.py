@@ -263,8 +263,8 @@ class Monitor:
         while True:
             now_wall = time.time_ns()
             self.publish_truth(now_wall)
-            if self.emu.stop.is_set():
-                break
+            if self.emu.stop.is_set() or self.emu.supervisor.fatal is not None:
+                break  # stopped, or the run cannot go on (the summary says why)
             if self.lockstep:
                 self.advance_clock()
             if self.finished(now_wall):

@@ -33,6 +33,7 @@ import zenoh
 
 from diffpos.emulation import TimeBase, emulation_nodes
 from diffpos_services.bus.commands import foreign_path
+from diffpos_services.bus.integrity import RUN_TOKEN_ENV, Verifier, new_run_token
 from diffpos_services.bus.security.per_run import per_run_profile
 from diffpos_services.bus.security.profile import SecurityError, anchor_user, load_profile
 from diffpos_services.bus.security.render import render_profile
@@ -227,6 +228,11 @@ class Emulation:
         # every fusion start's id begins with the run's prefix (the dashboard checks that)
         self.fusion_id_prefix = f"{secrets.randbits(60) | (1 << 60):x}"
         self.foreign: collections.Counter[str] = collections.Counter()
+        # the run's secret token: handed to the services in their environment; the fusion
+        # signs what it publishes with it, and "ours" is its MAC bound to the full zenoh id
+        self.run_token = new_run_token()
+        self.verifier = Verifier(bytes.fromhex(self.run_token))
+        self.dec_heartbeat = M.decoder(M.Heartbeat)
         self.tmp: tempfile.TemporaryDirectory | None = None
         self.supervisor = Supervisor(lambda: [(p.name, p.popen) for p in self.procs],
                                      self._restart, logger)
@@ -353,6 +359,8 @@ class Emulation:
         # each child gets its bus explicitly (--connect or its own --zenoh-config): an
         # inherited default file would replace the run's router configuration
         env.pop("DIFFPOS_ZENOH_CONFIG", None)
+        if name != "router":  # never on a command line (ps shows those to every user)
+            env[RUN_TOKEN_ENV] = self.run_token
         p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
                              start_new_session=True, env=env)
         if err is not subprocess.DEVNULL:
@@ -430,10 +438,24 @@ class Emulation:
             self.alive_event.notify_all()
         self.q.put(("alive", key, sample.kind == zenoh.SampleKind.PUT))
 
+    def _on_heartbeat(self, sample) -> None:
+        """A service's heartbeat (signed with the run token) to the supervisor."""
+        if not self.verifier.ours(sample, stamped=False):
+            self.foreign[str(sample.key_expr)] += 1
+            return
+        try:
+            hb = self.dec_heartbeat(sample.payload.to_bytes())
+        except M.DecodeError:
+            return
+        self.supervisor.on_heartbeat(hb.pid, hb.progress, hb.pending)
+
     def _on_data(self, sample) -> None:
         key = str(sample.key_expr)
         ts = sample.timestamp
-        if ts is None or str(ts.get_id()) not in self.fusion_ids:
+        # the run's own: stamped with the full id of a fusion this run started, and signed
+        # with the run's token (a copy, or a session posing under that id, is not)
+        if ts is None or str(ts.get_id()) not in self.fusion_ids \
+                or not self.verifier.ours(sample):
             # not from the fusion this run started: reported, never counted or scored
             self.foreign[key] += 1
             return
@@ -506,6 +528,8 @@ class Emulation:
                                                                self._on_alive, history=True)
                 subs = [session.declare_subscriber(k, self._on_data)
                         for k in (self.keys.estimates(), self.keys.fusion_diagnostics())]
+                subs.append(session.declare_subscriber(self.keys.heartbeats(),
+                                                       self._on_heartbeat))
                 need = self._start_services()
                 t_ready = time.monotonic()
                 self._wait_ready(need)
@@ -623,6 +647,19 @@ class Emulation:
         self.t0_wall_ns = wall_t0
         return TimeBase.from_control(rc)
 
+    def _integrity_faults(self) -> list[dict[str, Any]]:
+        """Anchors under whose key two processes published (the fusion's diagnostics):
+        a fault each (the fusion did not use the anchor meanwhile)."""
+        d = self.diag
+        dup = getattr(d, "duplicate_publishers", None) or {}
+        return [{"service": f"anchor-{a}", "died_s": None, "exit_code": None,
+                 "restarted_s": None, "kind": "duplicate publisher", "detected_after_s": None,
+                 "note": (f"two processes published under its key ({n} time(s)); the fusion "
+                          "did not use it while both did"
+                          + (" (still contested at the end)" if a in d.contested_anchors
+                             else ""))}
+                for a, n in sorted(dup.items())]
+
     def _summary(self, scorer: Scorer, lost: list[str]) -> dict[str, Any]:
         """The run's summary: the scorer's statistics, the run and the fusion's counters."""
         o = self.o
@@ -641,9 +678,11 @@ class Emulation:
             model=f"{self.edge} window edge, Delta {o.delta_m:g} m ({self.edge_reason})",
             recording=self.recordings[0] if self.recordings else None,
             recordings=list(self.recordings), recording_notes=list(self.recording_notes),
-            faults=[f.as_dict() for f in self.supervisor.faults],
+            faults=[f.as_dict() for f in self.supervisor.faults] + self._integrity_faults(),
             foreign={"count": sum(foreign.values()), "keys": foreign},
         )
+        if self.supervisor.fatal is not None:
+            out["ended_early"] = self.supervisor.fatal
         out["latency_e2e_ms"] = self.e2e.stats_ms()
         # the same estimates without the scorer's first skip_s (in wall time: not lockstep)
         skip_ns = round(scorer.k_skip * scorer.period_ns)
@@ -656,6 +695,7 @@ class Emulation:
                         *recording_notes(self.recordings,
                                          [foreign_path(r) for r in self.recordings]),
                         *foreign_notes(foreign),
+                        *([self.supervisor.fatal] if self.supervisor.fatal else []),
                         *latency_notes(out["latency_e2e_ms"], out["latency_e2e_settled_ms"],
                                        skip_ns * 1e-9)]
         if self.diag is not None:

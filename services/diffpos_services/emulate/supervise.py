@@ -12,6 +12,22 @@ restarted onto a full disk (less than :data:`MIN_FREE_BYTES` free where it write
 says "disk full"), and a recovery that fails (e.g. no room for the rewritten file) says so
 in the fault's note, keeping the file as it is.
 
+Progress, not only liveliness (issue 36 item 1): every service publishes a heartbeat with its
+progress (:mod:`diffpos_services.bus.heartbeat`); :meth:`Supervisor.on_heartbeat` keeps, per
+process, when its progress last advanced. A process whose progress has not advanced for
+:data:`STALL_S` although it has work pending, or that has sent no heartbeat for that long
+(a SIGSTOPped process keeps its liveliness token for the whole lease, 10 s by default), is
+**hung**: a fault like a crash, reported with how long it had made no progress; a hung fusion
+or recorder is killed (SIGKILL to its process group) and restarted as if it had died, a hung
+anchor is reported (anchors are not restarted; one that resumes is taken back, the fault says
+when). A process is judged only from its first heartbeat on (start-up is the readiness
+timeout's business), and nobody is judged while the bus itself is silent (the router died,
+or no heartbeat from anyone arrives: the router's fault, reported as such).
+
+A fusion that cannot be restarted (it died more than :data:`MAX_RESTARTS` times) ends the
+run: :attr:`Supervisor.fatal` says why, the monitor stops, the summary says it and the exit
+code is that of lost data (3); before, the run went on without a fusion, silently.
+
 The thread outlives every child it started (it waits for :meth:`Supervisor.close` after the
 children are stopped): a child's parent-death signal (:func:`diffpos_services.processes.
 die_with_parent`) comes when the thread that started it ends.
@@ -19,10 +35,12 @@ die_with_parent`) comes when the thread that started it ends.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
 import shutil
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -35,7 +53,7 @@ from diffpos_services.logs import log_event
 from diffpos_services.recording.repair import recover
 from diffpos_services.recording.writer import existing_parts
 
-__all__ = ["MAX_RESTARTS", "MIN_FREE_BYTES", "Fault", "NotRestarted", "Supervisor", "disk_full",
+__all__ = ["MAX_RESTARTS", "MIN_FREE_BYTES", "STALL_S", "Fault", "NotRestarted", "Supervisor", "disk_full",
            "format_faults", "recover_in_place"]
 
 #: restarts per service and run (a service that keeps dying is not restarted forever)
@@ -44,6 +62,11 @@ MAX_RESTARTS = 3
 RESTARTABLE = ("fusion", "recorder")
 #: a recorder is not restarted where less than this is free [bytes] (a full disk)
 MIN_FREE_BYTES = 16 << 20
+#: a process whose progress has not advanced for this long (with work pending, or without
+#: any heartbeat) is hung [s]: 10 heartbeat periods, half the default 10 s lease
+STALL_S = 5.0
+#: the service that the run cannot go on without
+ESSENTIAL = ("fusion",)
 
 
 class NotRestarted(DiffposError):
@@ -75,20 +98,29 @@ class Fault:
     service : str
         ``fusion``, ``recorder``, ``anchor-<id>``, ``router``, ``dashboard``.
     died_s : float [s]
-        When, since the run started (negative: before the run control).
-    exit_code : int
-        Its exit code (negative: killed by that signal).
+        When it died or was found hung, since the run started (negative: before the run
+        control).
+    exit_code : int or None
+        Its exit code (negative: killed by that signal; ``None``: a hung anchor, left
+        running).
     restarted_s : float or None [s]
         When it was started again (``None``: not restarted).
     note : str
         What happened to its data (the recorder's recovered file, the new file).
+    kind : str
+        ``died`` (it exited), ``hung`` (no progress while alive), ``duplicate publisher``
+        (two processes under one anchor key, reported by the fusion).
+    detected_after_s : float or None [s]
+        A hang: how long it had made no progress when it was found.
     """
 
     service: str
     died_s: float
-    exit_code: int
+    exit_code: int | None
     restarted_s: float | None = None
     note: str = ""
+    kind: str = "died"
+    detected_after_s: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -133,10 +165,15 @@ class Supervisor:
 
     def __init__(self, procs: Callable[[], list[tuple[str, Any]]],
                  restart: Callable[[str, int], str], logger: logging.Logger, *,
-                 period_s: float = 0.1) -> None:
+                 period_s: float = 0.1, stall_s: float = STALL_S) -> None:
         self.procs, self.restart, self.log = procs, restart, logger
-        self.period_s = period_s
+        self.period_s, self.stall_s = period_s, stall_s
         self.faults: list[Fault] = []
+        #: why the run cannot go on (a fusion that cannot be restarted), else None
+        self.fatal: str | None = None
+        # pid -> [progress, pending, last heartbeat, last advance] (monotonic [s])
+        self._beats: dict[int, list] = {}
+        self._hung_anchors: dict[int, Fault] = {}  # hung anchors left running, by pid
         self.t0 = time.monotonic()
         self.restarts: dict[str, int] = {}
         self._seen: set[int] = set()
@@ -163,8 +200,22 @@ class Supervisor:
         if self._thread.is_alive():
             self._thread.join(timeout=5.0)
 
-    def check(self) -> None:
-        """One poll: every child that exited since the last poll becomes a fault."""
+    def on_heartbeat(self, pid: int, progress: int, pending: int,
+                     now: float | None = None) -> None:
+        """A heartbeat of process ``pid`` (any thread): when its progress last advanced."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            b = self._beats.get(pid)
+            if b is None:
+                self._beats[pid] = [progress, pending, now, now]
+                return
+            if progress != b[0]:
+                b[0], b[3] = progress, now
+            b[1], b[2] = pending, now
+
+    def check(self, now: float | None = None) -> None:
+        """One poll: every child that exited since the last poll becomes a fault, and so
+        does every child found hung (:meth:`_check_stalled`)."""
         for name, popen in self.procs():
             rc = popen.poll()
             if rc is None or id(popen) in self._seen:
@@ -176,30 +227,107 @@ class Supervisor:
                 if name.startswith("anchor-") and rc == 0:
                     continue  # an anchor ends the run on its own
                 self._fault(name, rc)
+        self._check_stalled(time.monotonic() if now is None else now)
 
-    def _fault(self, name: str, rc: int) -> None:
-        fault = Fault(service=name, died_s=round(time.monotonic() - self.t0, 3), exit_code=rc)
+    def _stalled_for(self, pid: int, now: float) -> float | None:
+        """How long process ``pid`` has made no progress, if that makes it hung: no advance
+        for :attr:`stall_s` with work pending or without any heartbeat since; else None."""
+        b = self._beats.get(pid)
+        if b is None:
+            return None
+        quiet, silent = now - b[3], now - b[2]
+        if quiet > self.stall_s and (b[1] > 0 or silent > self.stall_s):
+            return quiet
+        return None
+
+    def _bus_silent(self, now: float) -> bool:
+        """No heartbeat from anyone for :attr:`stall_s`, or the router is gone: the silence
+        is the bus's (a dead or hung router), not each process's."""
+        if any(name == "router" and popen.poll() is not None for name, popen in self.procs()):
+            return True
+        with self._lock:
+            latest = max((b[2] for b in self._beats.values()), default=None)
+        return latest is not None and now - latest > self.stall_s
+
+    def _check_stalled(self, now: float) -> None:
+        if self._bus_silent(now):
+            return
+        for name, popen in self.procs():
+            if popen.poll() is not None or id(popen) in self._seen:
+                continue
+            with self._lock:
+                if self._stopping.is_set():
+                    return
+                quiet = self._stalled_for(popen.pid, now)
+                hung = self._hung_anchors.get(popen.pid)
+                if hung is not None and quiet is None:  # a hung anchor resumed
+                    del self._hung_anchors[popen.pid]
+                    hung.note += f"; resumed at {now - self.t0:.1f} s (used again)"
+                    log_event(self.log, logging.WARNING, "service resumed", service=name)
+                if quiet is None or hung is not None:
+                    continue
+                self._hung(name, popen, quiet, now)
+
+    def _hung(self, name: str, popen: Any, quiet: float, now: float) -> None:
+        """Report a hung child; kill and restart it (an anchor: report only)."""
+        b = self._beats[popen.pid]
+        what = (f"no progress for {quiet:.1f} s while alive (last heartbeat "
+                f"{now - b[2]:.1f} s ago, {b[1]} items pending)")
+        log_event(self.log, logging.ERROR, "service hung", service=name, pid=popen.pid,
+                  no_progress_s=round(quiet, 1), last_heartbeat_s=round(now - b[2], 1))
+        if name.startswith("anchor-"):
+            fault = Fault(service=name, died_s=round(now - self.t0, 3), exit_code=None,
+                          note=f"hung: {what}; not restarted (anchors are not), left running",
+                          kind="hung", detected_after_s=round(quiet, 2))
+            self.faults.append(fault)
+            self._hung_anchors[popen.pid] = fault
+            return
+        self._seen.add(id(popen))
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(popen.pid, signal.SIGKILL)
+        with contextlib.suppress(Exception):
+            popen.wait(timeout=10.0)
+        self._fault(name, popen.returncode, kind="hung", detected_after_s=round(quiet, 2),
+                    what=f"hung: {what}; killed")
+
+    def _fault(self, name: str, rc: int | None, *, kind: str = "died",
+               detected_after_s: float | None = None, what: str = "") -> None:
+        fault = Fault(service=name, died_s=round(time.monotonic() - self.t0, 3), exit_code=rc,
+                      kind=kind, detected_after_s=detected_after_s)
         self.faults.append(fault)
-        log_event(self.log, logging.ERROR, "service died", service=name, exit_code=rc,
-                  at_s=fault.died_s)
+        if kind == "died":
+            log_event(self.log, logging.ERROR, "service died", service=name, exit_code=rc,
+                      at_s=fault.died_s)
+        pre = f"{what}; " if what else ""
         n = self.restarts.get(name, 0)
         if name not in RESTARTABLE:
-            fault.note = "not restarted"
+            fault.note = f"{pre}not restarted"
             return
         if n >= MAX_RESTARTS:
-            fault.note = f"not restarted (already restarted {n} times)"
+            fault.note = f"{pre}not restarted (already restarted {n} times)"
+            self._end_run(name, fault, f"it died {n + 1} times, restarted {n} times "
+                          f"(at most {MAX_RESTARTS})")
             return
         try:
-            fault.note = self.restart(name, n + 1)
+            fault.note = pre + self.restart(name, n + 1)
         except NotRestarted as exc:
-            fault.note = f"not restarted: {exc}"
+            fault.note = f"{pre}not restarted: {exc}"
             log_event(self.log, logging.ERROR, "service not restarted", service=name,
                       why=str(exc))
+            self._end_run(name, fault, str(exc))
             return
         self.restarts[name] = n + 1
         fault.restarted_s = round(time.monotonic() - self.t0, 3)
         log_event(self.log, logging.WARNING, "service restarted", service=name,
-                  at_s=fault.restarted_s, note=fault.note)
+                  restart=n + 1, at_s=fault.restarted_s, note=fault.note)
+
+    def _end_run(self, name: str, fault: Fault, why: str) -> None:
+        """An essential service that is not restarted ends the run (:attr:`fatal`)."""
+        if name not in ESSENTIAL or self.fatal is not None:
+            return
+        self.fatal = f"the run ended early: the {name} is gone ({why}); no estimates without it"
+        fault.note += f"; {self.fatal}"
+        log_event(self.log, logging.ERROR, "run cannot go on", service=name, why=why)
 
     def _loop(self) -> None:
         while not self._done.wait(self.period_s):
@@ -216,7 +344,15 @@ def format_faults(faults: list[dict[str, Any]]) -> str:
         return ""
     lines = [f"faults: {len(faults)} (the run lost data)"]
     for f in faults:
-        when = f"died at {f['died_s']:.1f} s (exit code {f['exit_code']})"
+        kind = f.get("kind", "died")
+        if kind == "died":
+            when = f"died at {f['died_s']:.1f} s (exit code {f['exit_code']})"
+        elif kind == "hung":
+            when = (f"hung, found at {f['died_s']:.1f} s after {f['detected_after_s']:.1f} s "
+                    f"without progress" + ("" if f["exit_code"] is None
+                                           else f" (killed: exit code {f['exit_code']})"))
+        else:
+            when = kind
         again = (f", restarted at {f['restarted_s']:.1f} s" if f.get("restarted_s") is not None
                  else "")
         note = f"; {f['note']}" if f.get("note") else ""

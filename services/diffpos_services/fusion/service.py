@@ -20,6 +20,17 @@ diagnosed latency is anchor publish -> fusion publish, solve included. The step'
 also bounds its track initialisations and snapshot fixes (mnls + tracking,
 :func:`diffpos_services.fusion.tracked.heavy_budget`), and the decision record keeps it, so a
 replay re-issues the same steps.
+
+Heartbeat and integrity (issue 36): a thread publishes the fusion's heartbeat (progress =
+samples ingested + epochs solved, pending = queued samples + epochs waiting; the newest epoch
+solved and the estimates published). With a run token (``diffpos emulate`` hands one in the
+environment, :func:`diffpos_services.bus.integrity.run_token`) every estimate, diagnostics and
+heartbeat carries the fusion's zenoh id and a MAC (:class:`~diffpos_services.bus.integrity.
+Signer`): the recorder, the dashboard and emulate tell the run's fusion from a forger by it.
+Every anchor message passes :class:`~diffpos_services.bus.integrity.PublisherGuard` on
+Zenoh's thread: while two processes publish under one anchor key the anchor's messages are
+dropped (counted) and the core is told the anchor is lost, until one publisher remains; the
+diagnostics name the contested anchors and count the detections.
 """
 
 from __future__ import annotations
@@ -37,6 +48,8 @@ import msgspec
 import zenoh
 
 from diffpos._kernels import pool as kernel_pool
+from diffpos_services.bus.heartbeat import HeartbeatThread, Progress, process_nonce
+from diffpos_services.bus.integrity import PublisherGuard, Signer
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
@@ -88,6 +101,22 @@ DECLARES_PER_TURN = 8
 _DATA, _ALIVE, _OVERSIZED = 0, 1, 2
 
 
+class _SeqOnly(msgspec.Struct):
+    """The sequence number of an anchor message (the guard's copy check)."""
+
+    seq: int | None = None
+
+
+_SEQ_DECODER = msgspec.json.Decoder(_SeqOnly)
+
+
+def _seq_of(payload: bytes) -> int | None:
+    try:
+        return _SEQ_DECODER.decode(payload).seq
+    except (msgspec.DecodeError, msgspec.ValidationError):
+        return None
+
+
 def fusion_subscription(keys: Keys) -> str:
     """The one key expression the fusion subscribes to (:meth:`Keys.fusion_inputs`).
 
@@ -117,14 +146,49 @@ class _Inbox:
         self.max_queued = config.max_queued_bytes
         self.queued = 0
         self.room = threading.Condition()
+        self.log = logging.getLogger("diffpos.fusion")
+        self.guard = PublisherGuard()
+        self.contested_dropped = 0  # anchor messages dropped while two publishers shared a key
+        self.token_alive: dict[str, bool] = {}
+        self.keys: Keys | None = None
 
     def release(self, size: int) -> None:
         with self.room:
             self.queued -= size
             self.room.notify_all()
 
+    def _guarded(self, sample: zenoh.Sample, key: str) -> bool:
+        """False if the sample is an anchor message to drop: its anchor is contested (two
+        publishers under its key, :class:`PublisherGuard`); a change of that state is queued
+        for the core as the anchor lost / alive again, and logged."""
+        pk = parse_key(key)
+        if pk is None or pk.anchor_id is None:
+            return True
+        att = sample.attachment
+        nonce = att.to_bytes() if att is not None else None
+        now = time.time_ns()
+        use, event = self.guard.check(pk.anchor_id, nonce,
+                                      _seq_of(sample.payload.to_bytes()), now)
+        if event is not None and self.keys is not None:
+            alive_key = self.keys.alive_anchor(pk.anchor_id)
+            if event == "contested":
+                log_event(self.log, logging.ERROR, "two publishers under one anchor key: not "
+                          "using the anchor until one remains", anchor=pk.anchor_id,
+                          publishers=self.guard.publishers(pk.anchor_id))
+                self.q.put((_ALIVE, alive_key, False, now))
+            else:
+                log_event(self.log, logging.WARNING, "one publisher left under the anchor's "
+                          "key: using it again", anchor=pk.anchor_id)
+                if self.token_alive.get(pk.anchor_id, True):
+                    self.q.put((_ALIVE, alive_key, True, now))
+        if not use:
+            self.contested_dropped += 1
+        return use
+
     def on_data(self, sample: zenoh.Sample) -> None:
         size = len(sample.payload)
+        if not self._guarded(sample, str(sample.key_expr)):
+            return
         if size > self.max_bytes:
             self.q.put((_OVERSIZED, str(sample.key_expr), size, time.time_ns()))
             return
@@ -137,8 +201,15 @@ class _Inbox:
         self.q.put((_DATA, str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
 
     def on_alive(self, sample: zenoh.Sample) -> None:
-        self.q.put((_ALIVE, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT,
-                    time.time_ns()))
+        key, alive = str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+        pk = parse_key(key)
+        if pk is not None and pk.anchor_id is not None:
+            self.token_alive[pk.anchor_id] = alive
+            if not alive:
+                self.guard.forget(pk.anchor_id)  # a restarted anchor is not a second one
+            elif pk.anchor_id in self.guard.contested():
+                return  # not trusted while contested (told when one publisher remains)
+        self.q.put((_ALIVE, key, alive, time.time_ns()))
 
 
 @dataclass
@@ -152,6 +223,19 @@ class _Endpoints:
     token: Any
     keys: Keys
     est_pubs: dict[str, Any]
+    signer: Signer | None = None
+
+    def _att(self, key: str, data: bytes) -> bytes | None:
+        return None if self.signer is None else self.signer.attachment(key, data)
+
+    def put_diagnostics(self, diag: Any, inbox: _Inbox) -> None:
+        """Publish the core's diagnostics with the process instance and the integrity
+        state (contested anchors, detections), signed."""
+        diag = msgspec.structs.replace(
+            diag, instance=process_nonce(), duplicate_publishers=inbox.guard.detections(),
+            contested_anchors=inbox.guard.contested())
+        data = M.encode(diag)
+        self.diag_pub.put(data, attachment=self._att(self.keys.fusion_diagnostics(), data))
 
     def _publisher(self, node_id: str) -> Any:
         pub = self.est_pubs[node_id] = self.session.declare_publisher(
@@ -174,12 +258,14 @@ class _Endpoints:
         """Publish one estimate on its node's publisher (a session put while the publisher
         is not declared yet: same key, encoding and congestion control)."""
         pub = self.est_pubs.get(est.node_id)
+        key = self.keys.node_estimate(est.node_id)
+        data = M.encode(est)
         if pub is None:
-            self.session.put(self.keys.node_estimate(est.node_id), M.encode(est),
-                             encoding=zenoh.Encoding.APPLICATION_JSON,
-                             congestion_control=zenoh.CongestionControl.BLOCK)
+            self.session.put(key, data, encoding=zenoh.Encoding.APPLICATION_JSON,
+                             congestion_control=zenoh.CongestionControl.BLOCK,
+                             attachment=self._att(key, data))
         else:
-            pub.put(M.encode(est))
+            pub.put(data, attachment=self._att(key, data))
 
 
 def _declare(session: Any, keys: Keys, inbox: _Inbox,
@@ -187,6 +273,7 @@ def _declare(session: Any, keys: Keys, inbox: _Inbox,
     """The fusion's publishers, subscribers and, last, its liveliness token: with an
     allow-list of ``nodes`` every node's estimate publisher is declared before it (~1 ms
     each; a run started on the token must not wait for them in its first epochs)."""
+    inbox.keys = keys
     diag_pub = session.declare_publisher(
         keys.fusion_diagnostics(),
         encoding=zenoh.Encoding.APPLICATION_JSON,
@@ -197,7 +284,8 @@ def _declare(session: Any, keys: Keys, inbox: _Inbox,
     live_sub = session.liveliness().declare_subscriber(
         keys.alive_anchors(), inbox.on_alive, history=True
     )
-    ends = _Endpoints(session, diag_pub, subs, live_sub, None, keys, {})
+    ends = _Endpoints(session, diag_pub, subs, live_sub, None, keys, {},
+                      Signer.for_session(session))
     if nodes is not None:
         ends.declare_nodes(nodes)
     ends.token = session.liveliness().declare_token(keys.alive_fusion())
@@ -419,6 +507,14 @@ class ServiceLoop:
         self.next_diag = time.time_ns() + self.period_ns
         self.cost = StepCost()  # measured duration of a solve step
         self.last_step_ns = 0  # duration of the previous solve step [ns]
+        self.done = 0  # samples ingested + estimates solved (the heartbeat's progress)
+        self.last_epoch: int | None = None  # newest epoch solved
+
+    def progress(self) -> Progress:
+        """The heartbeat's figures (read from the heartbeat thread)."""
+        core = self.core
+        return Progress(progress=self.done, pending=self.inbox.q.qsize() + core.backlog,
+                        last_epoch=self.last_epoch, published=core.published)
 
     def step_limit(self) -> int:
         """Epochs the next solve step may take (adaptive, see the class docstring)."""
@@ -458,6 +554,10 @@ class ServiceLoop:
         if out or early:
             self.cost.add(len(out) + len(early), t_done - t_solve)
         stamp_published(core, out, self.put_estimate)
+        self.done += n_in + len(out) + len(early)
+        for est in (*early[-1:], *out[-1:]):
+            if self.last_epoch is None or est.epoch > self.last_epoch:
+                self.last_epoch = est.epoch
         if self.declare_nodes is not None and (
                 not self._declared or len(core.node_ids) != self._n_nodes):
             self._n_nodes = len(core.node_ids)
@@ -473,20 +573,25 @@ def _serve(core: FusionCore, inbox: _Inbox, ends: _Endpoints, stop: threading.Ev
     """Turns of :class:`ServiceLoop` until ``stop``; then flush what is pending (nothing
     already received is lost) and undeclare."""
     loop = ServiceLoop(core, inbox, ends.put_estimate,
-                       lambda d: ends.diag_pub.put(M.encode(d)), log,
+                       lambda d: ends.put_diagnostics(d, inbox), log,
                        declare_nodes=ends.declare_nodes)
+    beat = HeartbeatThread(ends.session, ends.keys.heartbeat("fusion"), "fusion", loop.progress,
+                           logger=log).start()
     try:
         while not stop.is_set():
             loop.turn()
     finally:
+        beat.stop()
         left = ingest_rest(core, inbox, lambda: [s.undeclare() for s in ends.subs], log)
         stamp_published(core, core.flush(time.time_ns()), ends.put_estimate)
-        ends.diag_pub.put(M.encode(core.diagnostics(time.time_ns())))
+        ends.put_diagnostics(core.diagnostics(time.time_ns()), inbox)
         ends.token.undeclare()
         ends.live_sub.undeclare()
         log_event(log, logging.INFO, "ingested the queue at stop", items=left)
         log_event(log, logging.INFO, "fusion stopped", solved=core.solved,
-                  published=core.published, rejected=dict(core.rejected))
+                  published=core.published, rejected=dict(core.rejected),
+                  contested_dropped=inbox.contested_dropped,
+                  duplicate_publishers=inbox.guard.detections())
 
 
 def run_fusion(

@@ -19,6 +19,8 @@ key expression                              message (schemas/)     publisher -> 
 ``diffpos/<site>/alive/anchor/<anchor>``    liveliness token       anchor -> fusion, emulate
 ``diffpos/<site>/alive/fusion``             liveliness token       fusion -> emulate
 ``diffpos/<site>/alive/recorder``           liveliness token       recorder -> emulate
+``diffpos/<site>/heartbeat/<service>``       ``heartbeat.v1``       fusion, recorder, dashboard -> emulate
+``diffpos/<site>/heartbeat/anchor/<anchor>`` ``heartbeat.v1``       anchor -> emulate
 ========================================== ===================== ===============================
 
 Two more topics exist only in MCAP recordings (never on the bus):
@@ -40,6 +42,7 @@ from typing import Any, Literal
 from diffpos.scenario import ID_PATTERN
 
 __all__ = [
+    "HEARTBEAT_SERVICES",
     "PREFIX",
     "SEQUENCE_STREAMS",
     "KeyKind",
@@ -79,7 +82,12 @@ KeyKind = Literal[
     "alive_fusion",
     "alive_recorder",
     "alive_dashboard",
+    "heartbeat",
 ]
+
+#: services that publish a heartbeat under ``heartbeat/<service>`` (anchors: under
+#: ``heartbeat/anchor/<anchor>``)
+HEARTBEAT_SERVICES = ("fusion", "recorder", "dashboard")
 
 
 def check_id(value: str, *, field: str = "id") -> str:
@@ -106,12 +114,15 @@ class ParsedKey:
     site : str
     anchor_id, node_id : str or None
         The identifiers present in the key.
+    service : str or None
+        A heartbeat's service (``fusion``, ``recorder``, ``dashboard``, ``anchor``).
     """
 
     kind: str
     site: str
     anchor_id: str | None = None
     node_id: str | None = None
+    service: str | None = None
 
 
 @dataclass(frozen=True)
@@ -180,6 +191,14 @@ class Keys:
         Rerun sink is open: ``diffpos emulate`` waits for it, so a saved .rrd misses nothing)."""
         return f"{self.root}/alive/dashboard"
 
+    def heartbeat(self, service: str, anchor_id: str | None = None) -> str:
+        """Heartbeat key of a service (:data:`HEARTBEAT_SERVICES`) or of one anchor."""
+        if anchor_id is not None:
+            return f"{self.root}/heartbeat/anchor/{anchor_id}"
+        if service not in HEARTBEAT_SERVICES:
+            raise ValueError(f"no heartbeat key for service {service!r}")
+        return f"{self.root}/heartbeat/{service}"
+
     def of(self, msg: Any) -> str:
         """The key a message struct of :mod:`diffpos_services.wire.messages` is published on
         (by its type and ids; for writing synthetic runs to MCAP or the bus)."""
@@ -200,6 +219,8 @@ class Keys:
             return self.run_control()
         if name == "RunClock":
             return self.run_clock()
+        if name == "Heartbeat":
+            return self.heartbeat(msg.service, msg.anchor_id)
         raise ValueError(f"no bus key for message type {name}")
 
     # -- recording-only topics (MCAP channels, never published) ----------------------------
@@ -230,6 +251,10 @@ class Keys:
 
     def truth_all(self) -> str:
         return f"{self.root}/truth/**"
+
+    def heartbeats(self) -> str:
+        """Every heartbeat of the site."""
+        return f"{self.root}/heartbeat/**"
 
     def alive_anchors(self) -> str:
         """Liveliness pattern matching every anchor token."""
@@ -289,6 +314,10 @@ def _parse_key(key: str) -> ParsedKey | None:
             return ParsedKey("alive_recorder", site)
         case ["alive", "dashboard"]:
             return ParsedKey("alive_dashboard", site)
+        case ["heartbeat", "anchor", a]:
+            return ParsedKey("heartbeat", site, anchor_id=a, service="anchor")
+        case ["heartbeat", svc] if svc in HEARTBEAT_SERVICES:
+            return ParsedKey("heartbeat", site, service=svc)
     return None
 
 

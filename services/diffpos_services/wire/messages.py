@@ -52,6 +52,7 @@ __all__ = [
     "FusionDiagnostics",
     "FusionDiagnosticsV1",
     "GroundTruth",
+    "Heartbeat",
     "LatencyStats",
     "PositionEstimate",
     "PositionEstimateV2",
@@ -436,6 +437,42 @@ class FusionDiagnostics(_Msg, tag="diffpos.fusion_diagnostics.v2"):
         "Epochs released per reason: complete (every live anchor reported), watermark "
         "(closed by measurement time), wall_fallback (a wall-clock timeout), flush."))] = {}
     decisions: DecisionChunk | None = None
+    instance: Annotated[str, Meta(description=(
+        "The fusion process that sent this (a random nonce per process start, as in its "
+        "heartbeat): a restarted fusion starts a new decision record under a new instance."
+        ))] = ""
+    duplicate_publishers: Annotated[dict[str, int], Meta(description=(
+        "Per anchor: how often a second publisher appeared under its key (another process "
+        "nonce, or a sequence number that did not advance); the anchor is not used while "
+        "two publish at once."))] = {}
+    contested_anchors: Annotated[list[Id], Meta(description=(
+        "Anchors not used now because two publishers share their key."))] = []
+
+
+class Heartbeat(_Msg, tag="diffpos.heartbeat.v1"):
+    """A service's progress, published every ``period_ns`` by a thread of its own (the
+    supervisor of ``diffpos emulate`` treats a process whose progress stops while its
+    liveliness token lives as hung: a SIGSTOPped process sends nothing, a stuck one repeats
+    the same ``progress`` with work ``pending``).
+
+    ``progress`` is a counter of work done that only grows: the fusion's samples ingested plus
+    epochs solved, the recorder's samples taken from the bus, an anchor's epochs published.
+    """
+
+    service: Annotated[str, Meta(description="fusion, recorder, anchor or dashboard.")]
+    instance: Annotated[str, Meta(description="Random nonce of this process start.")]
+    pid: Annotated[int, Meta(ge=0)]
+    seq: Seq
+    t_wall_ns: WallNs
+    period_ns: Annotated[int, Meta(gt=0, description="Heartbeat period [ns].")]
+    progress: Annotated[int, Meta(ge=0, description="Work done so far (only grows).")]
+    pending: Annotated[int, Meta(ge=0, description=(
+        "Work waiting (queued samples, epochs to solve); 0 = idle, no progress expected."))]
+    last_epoch: Annotated[int, Meta(description=(
+        "Fusion: newest epoch solved; anchor: last epoch published."))] | None
+    published: Annotated[int, Meta(ge=0, description=(
+        "Fusion: estimates published; recorder: messages written; anchor: messages sent."))]
+    anchor_id: Id | None = None
 
 
 class GroundTruth(_Msg, tag="diffpos.truth.v1"):
@@ -491,6 +528,7 @@ MESSAGE_TYPES: dict[type[msgspec.Struct], str] = {
     GroundTruth: "truth.v1",
     RunControl: "run_control.v1",
     RunClock: "run_clock.v1",
+    Heartbeat: "heartbeat.v1",
 }
 
 #: older versions :func:`decoder` still reads (and returns as the newest): recordings
