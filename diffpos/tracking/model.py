@@ -461,6 +461,22 @@ class Selection:
     extra_var: FloatArray
 
 
+def cap_snr_cost(snr_c: FloatArray | None, config) -> FloatArray | None:
+    """The SNR costs (N, H, M, K) [nats] with every finite one capped at
+    ``config.snr_cost_cap_nats``: a robust SNR likelihood,
+    the Gaussian of :data:`SNR_SIGMA_DB` about the predicted SNR mixed with a flat tail, so a
+    slot whose measured SNR misses its prediction (or the detector's threshold) by more than
+    ``sqrt(2 cap)`` standard deviations loses no more than ``cap`` nats (``cap <= 0``: no cap,
+    the array itself): the amplitude model
+    is the emulator's, and another channel's powers (a ray tracer's materials and
+    diffraction coefficients) miss it by tens of dB on whole links. A slot without power
+    (``inf``) stays no candidate."""
+    cap = float(config.snr_cost_cap_nats)
+    if snr_c is None or not cap > 0:
+        return snr_c
+    return np.where(snr_c > cap, np.where(np.isfinite(snr_c), cap, snr_c), snr_c)
+
+
 def _select_prep(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
     """Candidates, SNR log-likelihood term and innovation variance of every slot, (N, H, M, K)
     (:func:`diffpos.tracking.model_nb.select_prep_kernel`)."""
@@ -501,14 +517,32 @@ def _select_prep_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, snr_c):
     return valid, s_ll, s_var
 
 
-def _select_fixed(pos_cov: FloatArray, links: Links, config, snr_c, n: int, h: int) -> tuple:
-    """:func:`select`'s kernel inputs that do not depend on the paths (the selection passes of
-    one update share them): the covariance, the links' columns and the constants."""
+def link_weights(links: Links, config, use_snr: bool, n: int, h: int) -> FloatArray:
+    """Every link's fixed mixture weights (N, H, M, 2), C-contiguous: the inlier weight
+    ``log(1 - eps)`` and the outlier component's log-density ``log(eps / span)`` (plus the
+    uniform SNR density ``-log(SNR_SPAN_DB)`` where the link's SNR is known), ``eps =
+    outlier_weight``: the weights of a link nothing was learned about
+    (:mod:`diffpos.tracking.evidence` gives the learned ones)."""
+    m = links.rho.shape[-1]
     eps = config.outlier_weight
+    w = np.empty((n, h, m, 2))
+    w[..., 0] = np.log1p(-eps)
+    s_out = (np.where(np.isfinite(links.snr[:, 0]), -np.log(SNR_SPAN_DB), 0.0) if use_snr
+             else np.zeros((links.rho.shape[0], m)))
+    w[..., 1] = (np.log(eps / config.outlier_span_m) + s_out)[:, None, :]
+    return w
+
+
+def _select_fixed(pos_cov: FloatArray, links: Links, config, snr_c, n: int, h: int,
+                  link_w: FloatArray | None = None) -> tuple:
+    """:func:`select`'s kernel inputs that do not depend on the paths (the selection passes of
+    one update share them): the covariance, the links' columns, the constants and every
+    link's mixture weights (``link_w`` (N, H, M, 2), default :func:`link_weights`)."""
+    if link_w is None:
+        link_w = link_weights(links, config, snr_c is not None, n, h)
     return (*_prep_inputs(pos_cov, links, snr_c, n, h), _c(links.rho[:, 0]),
-            _c(links.mask[:, 0]),
-            np.array([_LOG2PI, np.log1p(-eps), np.log(eps / config.outlier_span_m),
-                      -np.log(SNR_SPAN_DB)]))
+            _c(links.mask[:, 0]), np.array([_LOG2PI]),
+            _cb(link_w, (n, h, links.rho.shape[-1], 2), dtype=np.float64))
 
 
 def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
@@ -533,7 +567,7 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     n, h, m = shape[:3]
     if fixed is None:
         fixed = _select_fixed(pos_cov, links, config, snr_c, n, h)
-    cov, var, snr, sc, use_snr, c_pack, c_span, rho, mask, consts = fixed
+    cov, var, snr, sc, use_snr, c_pack, c_span, rho, mask, consts, w_link = fixed
     length = _c(pe.length)
     valid = np.empty(shape, dtype=np.bool_)
     sv, sl = np.empty(valid.size), np.empty(valid.size)
@@ -543,7 +577,7 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     base, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
     ex = np.empty(cnt)
     select_best_kernel(length, valid, rho, mask, snr, use_snr, sv, sl, np.log(sv[:cnt]),
-                       consts, _LOG_N, ex, best, base, slot, nis)
+                       consts, w_link, _LOG_N, ex, best, base, slot, nis)
     np.exp(ex, out=ex)
     mix = np.empty((n, h, m))
     select_mix_kernel(length, valid, slot, best, ex, extra, mix)
@@ -552,7 +586,8 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
 
 
 def _select_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, config,
-                  snr_c: FloatArray | None = None) -> Selection:
+                  snr_c: FloatArray | None = None, link_w: FloatArray | None = None
+                  ) -> Selection:
     """The numpy reference of :func:`select`.
 
     Most likely mechanism per link given the predicted position Gaussian.
@@ -569,10 +604,8 @@ def _select_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     # uninformative, uniform over SNR_SPAN_DB), every candidate's SNR log-likelihood and
     # innovation variance (the kernel's per-link body is _select_prep's, bit-identical)
     valid, s_ll, s_var = _select_prep_numpy(pos_cov, links, pe, snr_c)
-    if snr_c is not None:
-        s_out = np.where(np.isfinite(links.snr), -np.log(SNR_SPAN_DB), 0.0)
-    else:
-        s_out = 0.0
+    if link_w is None:
+        link_w = link_weights(links, config, snr_c is not None, *pe.length.shape[:2])
     lengths = pe.length
     e = links.rho[..., None] - lengths
     n_ok = np.maximum(valid.sum(axis=-1), 1)
@@ -582,8 +615,8 @@ def _select_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     best = np.argmax(ll, axis=-1)
     ll_best = np.take_along_axis(ll, best[..., None], axis=-1)[..., 0]
     s_best = np.take_along_axis(np.broadcast_to(s_ll, ll.shape), best[..., None], -1)[..., 0]
-    w_in = np.log1p(-config.outlier_weight) - np.log(n_ok)
-    w_out = np.log(config.outlier_weight / config.outlier_span_m) + s_out
+    w_in = link_w[..., 0] - np.log(n_ok)
+    w_out = link_w[..., 1]
     inlier = links.mask & np.isfinite(ll_best) & (ll_best + w_in > w_out)
     slot = np.where(inlier, best, -1)
     nis = np.where(inlier, np.take_along_axis(e * e / s_var, best[..., None], -1)[..., 0], np.nan)
@@ -860,13 +893,15 @@ def _paths_at(pe0: PathEval, nodes, pos: FloatArray, links: Links, floor, buildi
 
 
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config, level=None,
-                       snr_cache=None):
+                       snr_cache=None, link_w=None):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual.
 
     ``level``: the hypotheses' vertical modes (see :func:`iekf`). ``snr_cache``: the
     hypotheses' :class:`~diffpos.tracking.model.SnrCache` (read and updated in place; reuse
     within ``config.snr_reuse_m`` / ``snr_reuse_anchor_m``; both 0: not used, left as it
-    is), or None (every SNR predicted).
+    is), or None (every SNR predicted). ``link_w``: every link's mixture weights (N, H, M, 2)
+    (:func:`link_weights`, the default; the learned ones: :mod:`diffpos.tracking.evidence`).
+    A slot's SNR cost is capped at ``config.snr_cost_cap_nats`` (:func:`cap_snr_cost`).
 
     The IEKF reads the selection only through ``slot``, ``extra_var`` and ``log_weight``, so a
     later pass could keep the previous pass' IEKF output for the hypotheses whose three are
@@ -893,10 +928,12 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     snr_c = snr_cost_near(xc, links, floor, building, relax, pe0,
                           cache=snr_cache if snr_reuse_on(config) else None,
                           reuse_m=(config.snr_reuse_m, config.snr_reuse_anchor_m))
+    snr_c = cap_snr_cost(snr_c, config)
     info = prior_information(p_prior)  # shared by the passes
     # and so are the kernels' inputs that do not depend on the paths or the selection
     fix_i = _iekf_fixed(x_prior, p_prior, links, floor, building, config, level, info)
-    fix_s = _select_fixed(p_prior[..., :3, :3], links, config, snr_c, *x_prior.shape[:2])
+    fix_s = _select_fixed(p_prior[..., :3, :3], links, config, snr_c, *x_prior.shape[:2],
+                          link_w)
     p = p_prior
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         if k > 0:  # at the fit: the margin of the fit's own uncertainty

@@ -209,7 +209,7 @@ def select_pack_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr
 
 @njit(**_OPTS)
 def select_best_kernel(length, valid, rho, mask, snr, use_snr, sv_pack, sl_pack, log_sv,
-                       consts, log_n, ex_pack, best, base, slot, nis):
+                       consts, w_link, log_n, ex_pack, best, base, slot, nis):
     """Second pass of ``tracking_model.select``: per link the candidates' log-likelihoods
     ``-(e^2 / S + log S + log 2 pi) / 2 + snr term`` (``log_sv``: numpy's log of the packed
     variances of :func:`select_pack_kernel`), the most likely one (``np.argmax``: the first
@@ -217,11 +217,12 @@ def select_best_kernel(length, valid, rho, mask, snr, use_snr, sv_pack, sl_pack,
     ``slot`` (-1 outlier), ``nis`` (NaN unless inlier), ``base`` (N, H, M): the log-weight
     without the mixture term (``log(1 - eps) - log n + snr term`` of an inlier, the outlier's
     ``log(eps / span) + snr term`` of a present link, else 0); packs every candidate's
-    ``ll_k - ll_best`` into ``ex_pack`` for numpy's exp. ``consts``: ``log(2 pi)``,
-    ``log1p(-eps)``, ``log(eps / span)``, ``-log(SNR_SPAN_DB)``; ``log_n`` (K + 1,):
-    ``log(n)``. The numpy reference's operations in its order."""
+    ``ll_k - ll_best`` into ``ex_pack`` for numpy's exp. ``consts``: ``log(2 pi)``;
+    ``w_link`` (N, H, M, 2): every link's inlier weight ``log(1 - eps)`` and its outlier
+    component's log-density (with its SNR part; ``diffpos.tracking.model.link_weights``);
+    ``log_n`` (K + 1,): ``log(n)``. The numpy reference's operations in its order."""
     n_n, n_h, n_m, n_k = length.shape
-    log2pi, w_in0, w_out0, s_out_snr = consts[0], consts[1], consts[2], consts[3]
+    log2pi = consts[0]
     ll = np.empty(n_k)
     sl = np.empty(n_k)
     sv = np.empty(n_k)
@@ -229,7 +230,8 @@ def select_best_kernel(length, valid, rho, mask, snr, use_snr, sv_pack, sl_pack,
     for n in range(n_n):
         for h in range(n_h):
             for m in range(n_m):
-                w_out = w_out0 + (s_out_snr if use_snr and math.isfinite(snr[n, m]) else 0.0)
+                w_in0 = w_link[n, h, m, 0]
+                w_out = w_link[n, h, m, 1]
                 r = rho[n, m]
                 lk = length[n, h, m]
                 ok = valid[n, h, m]
@@ -444,8 +446,8 @@ def warm_model(planes: tuple, anc: np.ndarray) -> None:
     i3 = np.zeros((1, 1, 1), np.int64)
     ex = np.zeros(cnt)
     select_best_kernel(np.ones((1, 1, 1, k)), b4k, one, mask, one, True, sv, sl, np.log(sv[:cnt]),
-                       np.zeros(4), np.zeros(k + 1), ex, i3, np.empty((1, 1, 1)), i3.copy(),
-                       np.empty((1, 1, 1)))
+                       np.zeros(1), np.zeros((1, 1, 1, 2)), np.zeros(k + 1), ex, i3,
+                       np.empty((1, 1, 1)), i3.copy(), np.empty((1, 1, 1)))
     select_mix_kernel(np.ones((1, 1, 1, k)), b4k, i3, i3.copy(), ex, np.empty((1, 1, 1)),
                       np.empty((1, 1, 1)))
     x6, p3 = np.ones((1, 1, 6)), np.ones((1, 1, 3))

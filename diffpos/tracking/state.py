@@ -186,6 +186,28 @@ class TrackerConfig:
         CPU (replay of the 30 s 16 x 200 soak, all epochs, no recorded decisions): 0.49 ->
         0.44-0.45 ms per node-epoch; the predictions reused are 49 % of the soak's links,
         6.5 % of the walkers' (``large``).
+    snr_cost_cap_nats : float [nats]
+        Cap of one slot's SNR cost (:func:`diffpos.tracking.model.cap_snr_cost`: a robust SNR
+        likelihood, the amplitude model being the emulator's); 0: no cap (before).
+    link_learn : bool
+        Learn every hypothesis' unmodelled-path component per link
+        (:mod:`diffpos.tracking.evidence`: its weight and excess delay); False: the fixed
+        outlier component of ``outlier_weight`` / ``outlier_span_m`` (before).
+    link_forget : float [-]
+        Forgetting factor of the learned outlier counts per real update.
+    link_prior_updates : float [updates]
+        Strength of the outlier weight's Beta prior (mean ``outlier_weight``).
+    link_outlier_max : float [-]
+        Upper bound of a learned outlier weight.
+    link_bias_learn : bool
+        The outlier component includes the learned excess delay (False: the learned weight
+        only, with the fixed uniform density).
+    link_bias_q_m2_s : float [m^2/s]
+        Random walk of a learned excess delay.
+    link_snr_gain : float [-]
+        Gain of the learned outlier SNR's running mean.
+    link_match_m : float [m]
+        An anchor within this distance of a learned link's last anchor position is that link.
     """
 
     q_h_m2_s3: float = 1.5
@@ -224,6 +246,15 @@ class TrackerConfig:
     floor_evidence_lag1_corr: float = 0.59
     snr_reuse_m: float = 0.05
     snr_reuse_anchor_m: float = 0.1
+    snr_cost_cap_nats: float = 4.5
+    link_learn: bool = True
+    link_forget: float = 0.95
+    link_prior_updates: float = 10.0
+    link_outlier_max: float = 0.5
+    link_bias_learn: bool = False
+    link_bias_q_m2_s: float = 0.1
+    link_snr_gain: float = 0.3
+    link_match_m: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -274,6 +305,18 @@ class TrackerState:
         Predicted SNR of the slots ``SNR_CACHE_SLOTS`` of the cached links at ``snr_node``
         (-inf: no power). float32: the state is copied every update (row selection, write
         back), so its size is CPU; a reused SNR is rounded by < 1e-5 dB.
+    link_anchor : ndarray, shape (N, L, 3) [m]
+        The anchor position of every learned link (:mod:`diffpos.tracking.evidence`; NaN:
+        free), ``link_seen_ns`` (N, L) when it was last present.
+    link_out, link_all : ndarray, shape (N, H, L)
+        Forgotten counts of a hypothesis' real updates in which the link was an outlier /
+        present.
+    link_bias, link_bias_var : ndarray, shape (N, H, L) [m], [m^2]
+        Learned excess delay of the link over the straight line while an outlier (NaN: none).
+    link_snr : ndarray, shape (N, H, L) [dB]
+        Learned mean SNR of the link while an outlier (NaN: none).
+    link_t_ns : ndarray of int64, shape (N, H, L) [ns]
+        When the excess delay was last updated.
     """
 
     mean: FloatArray
@@ -293,6 +336,14 @@ class TrackerState:
     snr_node: FloatArray
     snr_anchor: FloatArray
     snr_pred: FloatArray
+    link_anchor: FloatArray
+    link_seen_ns: NDArray[np.int64]
+    link_out: FloatArray
+    link_all: FloatArray
+    link_bias: FloatArray
+    link_bias_var: FloatArray
+    link_snr: FloatArray
+    link_t_ns: NDArray[np.int64]
 
 
 @dataclass(frozen=True)

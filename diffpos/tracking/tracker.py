@@ -138,11 +138,21 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from diffpos.tracking.evidence import (
+    LINK_FIELDS,
+    LINK_SLOTS,
+    learn,
+    learned_weights,
+    match_links,
+    reset_links,
+)
 from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
 from diffpos.tracking.initialisation_nb import warm_grid
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import (
+    SNR_SIGMA_DB,
+    SNR_SPAN_DB,
     SnrCache,
     measurement_update,
     snapshot,
@@ -184,7 +194,18 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         snr_node=np.full((n_nodes, h, 3), np.nan),
         snr_anchor=np.full((n_nodes, h, SNR_CACHE_LINKS, 3), np.nan, np.float32),
         snr_pred=np.full((n_nodes, h, SNR_CACHE_LINKS, len(SNR_CACHE_SLOTS)), np.nan,
-                         np.float32))
+                         np.float32),
+        link_anchor=np.full((n_nodes, LINK_SLOTS, 3), np.nan),
+        link_seen_ns=np.full((n_nodes, LINK_SLOTS), t_ns, np.int64),
+        **_empty_links(n_nodes, h, t_ns))
+
+
+def _empty_links(n: int, h: int, t_ns: int = 0) -> dict:
+    """The learned per-link arrays of ``n`` nodes with nothing learned."""
+    shape = (n, h, LINK_SLOTS)
+    return {"link_out": np.zeros(shape), "link_all": np.zeros(shape),
+            "link_bias": np.full(shape, np.nan), "link_bias_var": np.full(shape, np.nan),
+            "link_snr": np.full(shape, np.nan), "link_t_ns": np.full(shape, t_ns, np.int64)}
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
@@ -331,6 +352,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
     origin = st.refresh_origin_ns.copy()
     snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
+    lk = {k: getattr(st, k).copy() for k in (*LINK_FIELDS, "link_anchor", "link_seen_ns")}
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
@@ -348,6 +370,9 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             new["nis"]
         llr[idx], upd[idx], below[idx] = new["dormant_llr"], new["updated_ns"], \
             new["below_epochs"]
+        for k in lk:
+            if k in new:
+                lk[k][idx] = new[k]
         floor_bad[idx] = np.where(ran, np.where(bad_f, floor_bad[idx] + 1, 0), floor_bad[idx])
         bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
         good[idx] = np.where(bad_epoch, 0, good[idx] + 1)
@@ -373,6 +398,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         nis[jdx], good[jdx], bad[jdx], last[jdx] = 1.0, 0, 0, t[jdx]
         floor_bad[jdx], llr[jdx], upd[jdx], below[jdx] = 0, np.nan, t[jdx, None], 0
         origin[jdx] = t[jdx]
+        reset_links({k: lk[k] for k in LINK_FIELDS}, jdx)
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
     if snr_cache[0] is st.snr_node:  # not updated: the new state owns its arrays
@@ -381,7 +407,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
-                       snr_anchor=snr_cache[1], snr_pred=snr_cache[2])
+                       snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk)
     return new, _publish(new, mech, resid, config)
 
 
@@ -421,13 +447,15 @@ def _refresh_due(updated_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
 
 
 def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
-                  config: TrackerConfig, snr_cache: tuple | None = None):
+                  config: TrackerConfig, snr_cache: tuple | None = None,
+                  link_w: FloatArray | None = None):
     """Measurement update of the hypotheses ``(rr[i], cc[i])`` (node row, hypothesis) of
     ``mean`` (n, H, 6), ``cov``, ``links`` (n nodes): each pair as a node with one
     hypothesis; per pair x, P, log-evidence, slot, NIS and residual of every link.
     ``snr_cache``: the nodes' ``(snr_node, snr_anchor, snr_pred)`` arrays (n, H, ...)
     (:class:`~diffpos.tracking.state.TrackerState`), the pairs' rows read and updated in
-    place (:class:`diffpos.tracking.model.SnrCache`)."""
+    place (:class:`diffpos.tracking.model.SnrCache`). ``link_w``: the nodes' learned link
+    weights (n, H, M, 2) (:func:`diffpos.tracking.evidence.learned_weights`), or None."""
     fl = hypothesis_floor(n_floors)[cc][:, None]
     level = ~hypothesis_vertical(n_floors)[cc][:, None]
     x0, p0 = mean[rr, cc][:, None], cov[rr, cc][:, None]
@@ -435,7 +463,9 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
     if snr_cache is not None:
         sc = SnrCache(*(a[rr, cc][:, None] for a in snr_cache))
     x, p, ev, sel, res = measurement_update(x0, p0, links.take(rr), fl, building, config,
-                                            level=level, snr_cache=sc)
+                                            level=level, snr_cache=sc,
+                                            link_w=None if link_w is None
+                                            else link_w[rr, cc][:, None])
     if sc is not None:
         for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
             a[rr, cc] = v[:, 0]
@@ -496,13 +526,22 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         run[:] = True
     r = np.arange(n)
     n_meas = np.sum(sub.mask[:, 0], axis=1)
+    lk = col = link_w = None
+    if config.link_learn:  # the learned unmodelled-path component (diffpos.tracking.evidence)
+        col, tab, seen, fresh = match_links(state.link_anchor[idx], state.link_seen_ns[idx],
+                                            sub.anchors[:, 0], sub.mask[:, 0], t_ns[idx],
+                                            config.link_match_m)
+        lk = {k: getattr(state, k)[idx] for k in LINK_FIELDS}  # copies
+        reset_links(lk, np.arange(n), fresh)
+        link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
+                                 SNR_SPAN_DB)
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
         if rr.size:
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
              res[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
-                                          snr_cache)
+                                          snr_cache, link_w)
         run = run | todo
         lp, llr = _posterior(lp0, ev, run, llr0)
         best = np.argmax(lp, axis=1)
@@ -528,6 +567,9 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
            "updated_ns": np.where(run, t_ns[idx, None], state.updated_ns[idx])}
     if snr_cache is not None:  # the SNR cache's rows (reuse off: the state's stay as they are)
         new.update(zip(("snr_node", "snr_anchor", "snr_pred"), snr_cache, strict=True))
+    if lk is not None:
+        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config),
+                   link_anchor=tab, link_seen_ns=seen)
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
 
 

@@ -36,6 +36,7 @@ from diffpos.tracking.model import (
     clamp_to_floor,
     existence_margin,
     iekf,
+    link_weights,
     measurement_update,
     prior_information,
     select,
@@ -94,14 +95,13 @@ def _select_before(pos_cov, links, pe, config, snr_c):
         _c(np.broadcast_to(pos_cov, (n, h, 3, 3))), _c(links.var[:, 0]), snr, sc, use_snr,
         np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
         valid, sv, sl)
-    eps = config.outlier_weight
-    consts = np.array([_LOG2PI, np.log1p(-eps), np.log(eps / config.outlier_span_m),
-                       -np.log(SNR_SPAN_DB)])
+    consts = np.array([_LOG2PI])
+    w_link = link_weights(links, config, use_snr, n, h)
     slot, best = np.empty((n, h, m), dtype=np.int64), np.empty((n, h, m), dtype=np.int64)
     base, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
     ex = np.empty(cnt)
     select_best_kernel(length, valid, rho, mask, snr, use_snr, sv, sl, np.log(sv[:cnt]),
-                       consts, _LOG_N, ex, best, base, slot, nis)
+                       consts, w_link, _LOG_N, ex, best, base, slot, nis)
     np.exp(ex, out=ex)
     mix = np.empty((n, h, m))
     select_mix_kernel(length, valid, slot, best, ex, extra, mix)
@@ -172,7 +172,8 @@ def test_measurement_update_with_shared_inputs_is_the_per_pass_one(bi, h):
     several hypotheses per node and one, on two other buildings; the cases have priors
     outside their box (their paths evaluated again at the prior) and inliers/outliers."""
     b = _BUILDINGS[bi]
-    cfg = TrackerConfig(snr_reuse_m=0.0, snr_reuse_anchor_m=0.0)
+    # the reference applies no SNR cap (cap_snr_cost is tested on its own)
+    cfg = TrackerConfig(snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, snr_cost_cap_nats=0.0)
     for seed, snr in ((10 * bi + h, True), (10 * bi + h + 5, False)):
         x, p, links, floor, level = _case(b, seed, h=h, snr=snr)
         xc = clamp_to_floor(x[..., :3], floor, b, cfg.z_margin_m)

@@ -1,0 +1,226 @@
+"""Learned per-link evidence of the tracker: an unmodelled-path component whose weight and
+excess delay every hypothesis learns per link (``TrackerConfig.link_learn``).
+
+Why. The link likelihood of :func:`diffpos.tracking.model.select` is a max-mixture over the
+path model's mechanisms and a fixed outlier component (``outlier_weight`` 0.02, uniform over
+``outlier_span_m`` 30 m and over ``SNR_SPAN_DB`` 60 dB: -11.4 nats). On a channel the path
+model does not cover (Sionna RT, the paper building, depth 4: a ceiling-floor-ceiling triple
+bounce or a lower-edge diffraction with two slab bounces as a link's first arrival) the true
+floor pays that price on the link every epoch, while a floor one to three below explains the
+same range by one of its own mechanisms for 5-6 nats: a static responder loses ~6 nats per
+epoch and the wrong floor wins for good (measured: of the 176 receivers with three anchors or
+more, 95 % right with every first arrival in the model, 55 % with one out-of-model link, 10 %
+with two; ``benchmarks/bench_tracker_raytrace.py``). The multipath-positioning literature
+tracks per-link excess-delay (NLOS bias) states; this is that idea in the tracker's
+hypothesis bank.
+
+What. For every hypothesis ``h`` of a node and every link ``l`` (an anchor, recognised from
+epoch to epoch by its reported position: :func:`match_links`, so the anchor columns of an
+update may change), the hypothesis keeps
+* exponentially forgotten counts of its real updates in which the link was present
+  (``link_all``) and in which its selection called it an outlier (``link_out``), forgetting
+  factor ``link_forget`` per update. The outlier weight is the Beta-Bernoulli posterior mean
+  ``eps = (e0 S + out) / (S + all)`` (prior mean ``e0 = outlier_weight``, prior strength
+  ``S = link_prior_updates``), bounded to ``[outlier_weight, link_outlier_max]``: the link's
+  inlier weight is ``log(1 - eps)`` and its outlier component's is ``log eps``.
+* the link's excess delay over the straight line while it is an outlier: a scalar Kalman
+  filter (``link_bias``, ``link_bias_var``; a random walk of ``link_bias_q_m2_s``: the
+  excess of a bounced path changes as the node walks) and the outlier's mean SNR
+  (``link_snr``). The outlier component is then a mixture of the fresh outlier (uniform as
+  before) and the learned one: ``N(rho - |a - x|; b, v_b + q dt + R + j P j^T)`` times
+  ``N(snr; s, SNR_SIGMA_DB^2)``, weighted ``c = out / (out + 1)`` (how established the bias
+  is). A link that stays out of the model for a hypothesis thus costs it the outlier price
+  once; after that its predictive density is as sharp as an inlier's, so an out-of-model
+  link on the true floor no longer hands the floor to a mirror that explains it, and the
+  floor is decided by the links that the model explains.
+
+The learned outlier carries no position information (the IEKF does not use an outlier link:
+the position is not pulled by a bias it estimated itself). Every rule is a function of the
+node's own inputs and state, deterministic, independent of the batching. A node's learned
+state restarts with its snapshot initialisation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from diffpos.tracking.state import FloatArray
+
+__all__ = ["LINK_FIELDS", "LINK_SLOTS", "learn", "learned_weights", "match_links", "reset_links"]
+
+# per node whose learned evidence the state keeps (an anchor beyond it is not learned).
+LINK_SLOTS = 16
+_LOG2PI = float(np.log(2.0 * np.pi))
+#: The state's per-hypothesis learned arrays (n, H, L) (:class:`~diffpos.tracking.state.TrackerState`).
+LINK_FIELDS = ("link_out", "link_all", "link_bias", "link_bias_var", "link_snr", "link_t_ns")
+
+
+def match_links(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArray,
+                mask: NDArray[np.bool_], t_ns: NDArray[np.int64], tol_m: float
+                ) -> tuple[NDArray[np.int_], FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
+    """The learned link of every present anchor column.
+
+    ``table`` (n, L, 3): every learned link's anchor position (NaN: free), ``seen_ns`` (n, L)
+    when it was last seen; ``anchors`` (n, M, 3), ``mask`` (n, M) this update's. A column takes
+    the nearest link within ``tol_m`` of its anchor not taken by an earlier column; else a
+    free link, else the least recently seen one not taken (restarted). Returns the link of
+    every column (n, M) (-1: none), the new table and times and which links restarted (n, L).
+    """
+    n, m = mask.shape
+    nl = table.shape[1]
+    tab, seen = table.copy(), seen_ns.copy()
+    col = np.full((n, m), -1)
+    taken = np.zeros((n, nl), bool)
+    reset = np.zeros((n, nl), bool)
+    rows = np.arange(n)
+    for j in range(m):
+        a = anchors[:, j]
+        with np.errstate(invalid="ignore"):
+            d = np.sqrt(np.sum((tab - a[:, None]) ** 2, axis=-1))
+        d = np.where(np.isfinite(d) & ~taken, d, np.inf)
+        near = np.argmin(d, axis=1)
+        hit = mask[:, j] & (d[rows, near] <= tol_m)
+        free = np.isnan(tab[..., 0]) & ~taken
+        age = np.where(taken, np.iinfo(np.int64).max, seen)
+        alloc = np.where(free.any(axis=1), np.argmax(free, axis=1), np.argmin(age, axis=1))
+        new = mask[:, j] & ~hit & ~taken[rows, alloc]
+        li = np.where(hit, near, alloc)
+        use = hit | new
+        col[use, j] = li[use]
+        reset[rows[new], li[new]] = True
+        taken[rows[use], li[use]] = True
+        tab[rows[use], li[use]] = a[use]
+        seen[rows[use], li[use]] = t_ns[use]
+    return col, tab, seen, reset
+
+
+def _gather(a: FloatArray, col: NDArray[np.int_]) -> FloatArray:
+    """``a`` (n, H, L) at every column's link (n, H, M); NaN where a column has none."""
+    idx = np.broadcast_to(np.maximum(col, 0)[:, None, :], (a.shape[0], a.shape[1], col.shape[1]))
+    return np.where(col[:, None, :] >= 0, np.take_along_axis(a, idx, axis=2), np.nan)
+
+
+def _los(x: FloatArray, p: FloatArray, links) -> tuple[FloatArray, FloatArray]:
+    """Straight-line length (n, H, M) from every hypothesis' position to every anchor and its
+    variance ``j P j^T`` from the position covariance."""
+    d = x[:, :, None, :3] - links.anchors[:, 0][:, None, :, :]
+    los = np.sqrt(np.sum(d * d, axis=-1))
+    j = d / np.maximum(los, 1e-12)[..., None]
+    var = np.einsum("nhmi,nhij,nhmj->nhm", j, p[..., :3, :3], j)
+    return los, np.maximum(var, 0.0)
+
+
+def _eps(out: FloatArray, n_all: FloatArray, config) -> FloatArray:
+    e0, s = config.outlier_weight, config.link_prior_updates
+    eps = (e0 * s + np.nan_to_num(out)) / (s + np.nan_to_num(n_all))
+    return np.clip(eps, e0, max(config.link_outlier_max, e0))
+
+
+def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArray,
+                    links, t_ns: NDArray[np.int64], config, snr_sigma_db: float,
+                    snr_span_db: float) -> FloatArray:
+    """Every link's mixture weights (n, H, M, 2) (inlier ``log(1 - eps)``, outlier
+    log-density; :func:`diffpos.tracking.model.link_weights` without learning) at the
+    hypotheses' priors ``x`` (n, H, 6), ``p`` (n, H, 6, 6): module docstring. ``lk``: the
+    nodes' learned arrays (``link_out``, ``link_all``, ``link_bias``, ``link_bias_var``,
+    ``link_snr``, ``link_t_ns``: (n, H, L)); ``col``: :func:`match_links`'s links; ``links``:
+    the epoch's :class:`diffpos.tracking.links.Links`; the SNR's spread and span [dB]
+    (:data:`diffpos.tracking.model.SNR_SIGMA_DB`, ``SNR_SPAN_DB``)."""
+    out, n_all = _gather(lk["link_out"], col), _gather(lk["link_all"], col)
+    eps = _eps(out, n_all, config)
+    w = np.empty((*col.shape[:1], x.shape[1], col.shape[1], 2))
+    w[..., 0] = np.log1p(-eps)
+    if not config.link_bias_learn:  # the learned weight, the fixed uniform density
+        s_out = (np.where(np.isfinite(links.snr[:, 0]), -np.log(snr_span_db), 0.0)
+                 if links.snr is not None else np.zeros(col.shape))
+        w[..., 1] = np.log(eps) + (-np.log(config.outlier_span_m) + s_out)[:, None, :]
+        return w
+    snr = links.snr[:, 0][:, None, :] if links.snr is not None else None
+    known = np.zeros(col.shape, bool)[:, None, :] if snr is None else np.isfinite(snr)
+    fresh = -np.log(config.outlier_span_m) + np.where(known, -np.log(snr_span_db), 0.0)
+    bias, bvar = _gather(lk["link_bias"], col), _gather(lk["link_bias_var"], col)
+    dt = np.maximum((t_ns[:, None, None] - _gather(lk["link_t_ns"].astype(float), col)) * 1e-9,
+                    0.0)
+    los, lvar = _los(x, p, links)
+    s = bvar + config.link_bias_q_m2_s * dt + links.var[:, 0][:, None, :] + lvar
+    e = links.rho[:, 0][:, None, :] - los
+    with np.errstate(invalid="ignore"):
+        ll = -0.5 * ((e - bias) ** 2 / s + np.log(s) + _LOG2PI)
+        if snr is not None:
+            s_mean = _gather(lk["link_snr"], col)
+            ll_s = np.where(np.isfinite(s_mean),
+                            -0.5 * (((snr - s_mean) / snr_sigma_db) ** 2 + _LOG2PI)
+                            - np.log(snr_sigma_db), -np.log(snr_span_db))
+            ll = ll + np.where(known, ll_s, 0.0)
+    o = np.nan_to_num(out)
+    c = o / (o + 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        learned = np.where(np.isfinite(ll) & (c > 0) & config.link_bias_learn,
+                           np.log(c) + ll, -np.inf)
+        w[..., 1] = np.log(eps) + np.logaddexp(np.log1p(-c) + fresh, learned)
+    return w
+
+
+def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray,
+          p: FloatArray, slot: NDArray[np.int_], links, t_ns: NDArray[np.int64],
+          config) -> dict:
+    """The learned arrays after one update (new arrays): the hypotheses ``run`` (n, H) that had
+    a real update, at their posteriors ``x``, ``p``, with their selections ``slot``
+    (n, H, M; -1 outlier or absent); module docstring."""
+    n, h = run.shape
+    m = col.shape[1]
+    new = {k: v.copy() for k, v in lk.items()}
+    present = links.mask[:, 0][:, None, :] & run[:, :, None] & (col[:, None, :] >= 0)
+    is_out = present & (slot < 0)
+    f = config.link_forget
+    if not config.link_bias_learn:  # the counts only (a node's columns: distinct links)
+        r, c, j = np.nonzero(present)
+        li = col[r, j]
+        new["link_out"][r, c, li] = f * new["link_out"][r, c, li] + is_out[r, c, j]
+        new["link_all"][r, c, li] = f * new["link_all"][r, c, li] + 1.0
+        return new
+    los, lvar = _los(x, p, links)
+    var = links.var[:, 0][:, None, :] + lvar
+    e = np.maximum(links.rho[:, 0][:, None, :] - los, 0.0)
+    snr = None if links.snr is None else np.broadcast_to(links.snr[:, 0][:, None, :], (n, h, m))
+    nn, hh = np.meshgrid(np.arange(n), np.arange(h), indexing="ij")
+    for j in range(m):  # a node's columns hold distinct links (match_links)
+        pj = present[:, :, j]
+        if not pj.any():
+            continue
+        r, c = nn[pj], hh[pj]
+        li = np.broadcast_to(col[:, None, j], (n, h))[pj]
+        oj = is_out[:, :, j][pj]
+        new["link_out"][r, c, li] = f * new["link_out"][r, c, li] + oj
+        new["link_all"][r, c, li] = f * new["link_all"][r, c, li] + 1.0
+        ro, co, lo = r[oj], c[oj], li[oj]
+        if ro.size == 0:
+            continue
+        ej, vj = e[ro, co, j], var[ro, co, j]
+        b0, v0 = new["link_bias"][ro, co, lo], new["link_bias_var"][ro, co, lo]
+        dt = np.maximum((t_ns[ro] - new["link_t_ns"][ro, co, lo]) * 1e-9, 0.0)
+        had = np.isfinite(v0) & np.isfinite(b0)
+        vp = np.where(had, v0, 0.0) + config.link_bias_q_m2_s * dt
+        k = vp / (vp + vj)
+        b0 = np.where(had, b0, 0.0)
+        new["link_bias"][ro, co, lo] = np.where(had, b0 + k * (ej - b0), ej)
+        new["link_bias_var"][ro, co, lo] = np.where(had, (1.0 - k) * vp, vj)
+        new["link_t_ns"][ro, co, lo] = t_ns[ro]
+        if snr is not None:
+            sj, s0 = snr[ro, co, j], new["link_snr"][ro, co, lo]
+            upd = np.where(np.isfinite(s0), s0 + config.link_snr_gain * (sj - s0), sj)
+            new["link_snr"][ro, co, lo] = np.where(np.isfinite(sj), upd, s0)
+    return new
+
+
+def reset_links(lk: dict, rows: NDArray, links_reset: NDArray[np.bool_] | None = None) -> None:
+    """Forget (in place) what the nodes ``rows`` learned: every link of theirs, or with
+    ``links_reset`` (len(rows), L) the links marked there (a new anchor took the link)."""
+    sel = (np.ones((rows.size, lk["link_out"].shape[2]), bool) if links_reset is None
+           else links_reset)
+    for k, v in lk.items():
+        fill = 0 if k in ("link_out", "link_all", "link_t_ns") else np.nan
+        sub = v[rows]
+        sub[np.broadcast_to(sel[:, None, :], sub.shape)] = fill
+        v[rows] = sub
