@@ -35,6 +35,7 @@ from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     TRACKER_KEYS,
     FusionConfig,
+    complete_tracker,
     legacy_tracker_settings,
     parse_tracker_items,
 )
@@ -64,6 +65,10 @@ BEFORE_NS = int(datetime.datetime(2026, 11, 25, tzinfo=UTC).timestamp()) * 10**9
 #: the tracker defaults before 2026-11-27 08:17 UTC that a setting of today reproduces
 THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr": 0.0,
         "dormant": False}
+#: the tracker's evidence settings before ab8d4d9 (2026-12-06 07:51 UTC: learned link weights)
+LINK_OFF = {"link_learn": False, "snr_cost_cap_nats": 0.0}
+#: a recording made after every change of a default
+NOW_NS = int(datetime.datetime(2026, 12, 6, 9, tzinfo=UTC).timestamp()) * 10**9
 #: a key that must change the estimates: the model error added to every range sigma [m]
 WHAT_IF = {"sigma_model_m": 0.3}
 
@@ -188,9 +193,10 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [
-    (AFTER_NS, {}, "today's defaults, which it ran with (unchanged since 2026-11-27 13:36 UTC"),
-    (BEFORE_NS, THEN, "the defaults of then (snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, "
-                      "floor_evidence_lag1_corr=0.0, dormant=false)"),
+    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-06 07:51 UTC"),
+    (AFTER_NS, LINK_OFF, "the defaults of then (link_learn=false, snr_cost_cap_nats=0.0)"),
+    (BEFORE_NS, {**THEN, **LINK_OFF}, "snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, "
+                                      "floor_evidence_lag1_corr=0.0, dormant=false)"),
     (None, {}, "recording time unknown: today's defaults"),
 ])
 def test_an_older_recording_replays_with_the_defaults_it_ran_with(tmp_path, capsys, started_ns,
@@ -215,14 +221,27 @@ def test_legacy_tracker_settings_follow_the_history_of_the_defaults():
     tracking/state.py): each change applies to recordings made before it."""
     at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
     mnls = {"method": "mnls", "tracking": True}
-    assert legacy_tracker_settings(mnls, at(2026, 11, 27, 14))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 6, 9))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 11, 27, 14))[0] == {**DEFAULTS, **LINK_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 11, 27, 12))[0] == {
-        **DEFAULTS, "snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0}
+        **DEFAULTS, **LINK_OFF, "snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0}
     assert legacy_tracker_settings(mnls, at(2026, 11, 27, 8, 52))[0] == {
-        **DEFAULTS, "snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0,
+        **DEFAULTS, **LINK_OFF, "snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0,
         "floor_evidence_lag1_corr": 0.0, "dormant_floor_p": 0.99}
     assert legacy_tracker_settings(mnls, at(2026, 11, 23, 18))[0] == {
-        **DEFAULTS, **THEN, "init_grid_m": 1.0, "init_starts": 2}
+        **DEFAULTS, **THEN, **LINK_OFF, "init_grid_m": 1.0, "init_starts": 2}
+
+
+def test_recorded_tracker_settings_without_newer_keys_get_the_values_of_their_time():
+    """A recording whose tracker table predates a newer setting (made between the recording
+    of the table and ab8d4d9) replays that setting at its old value, and the report says so."""
+    at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
+    table = {k: v for k, v in DEFAULTS.items() if k not in LINK_OFF}
+    rec = {"method": "mnls", "tracking": True, "tracker": table}
+    got, line = complete_tracker(rec, at(2026, 12, 6, 7))
+    assert got == {**DEFAULTS, **LINK_OFF}
+    assert "link_learn=false" in line and "snr_cost_cap_nats=0.0" in line
+    assert complete_tracker({**rec, "tracker": DEFAULTS}, at(2026, 12, 6, 7)) == (DEFAULTS, None)
     settings, line = legacy_tracker_settings({"method": "dnls"}, at(2026, 11, 23, 18))
     assert settings == DEFAULTS and "no tracker ran live (method dnls)" in line
 

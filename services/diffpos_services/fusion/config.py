@@ -388,6 +388,23 @@ def legacy_tracker_settings(recorded: Mapping[str, Any], made_ns: int | None
         "this replay can differ from live")
 
 
+def complete_tracker(recorded: Mapping[str, Any], made_ns: int | None
+                     ) -> tuple[dict[str, Any], str | None]:
+    """Recorded tracker settings (``recorded["tracker"]``) completed with the keys they lack
+    (settings added after the recording was made) at the values of the recording's time
+    (:func:`legacy_tracker_settings`), and a line for the report naming them (None: nothing
+    was missing)."""
+    have = dict(recorded["tracker"])
+    missing = [k for k in TRACKER_KEYS if k not in have]
+    if not missing:
+        return have, None
+    then, _ = legacy_tracker_settings(recorded, made_ns)
+    filled = {k: then[k] for k in missing}
+    text = ", ".join(f"{k}={_text(v)}" for k, v in filled.items())
+    return {**filled, **have}, (f"recorded without {len(missing)} newer setting(s): the values "
+                                f"of the recording's time ({text})")
+
+
 class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """Typed, validated configuration of the fusion service (see ``diffpos fusion --help``)."""
 

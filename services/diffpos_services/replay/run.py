@@ -40,6 +40,7 @@ from diffpos_services.fusion.config import (
     METHODS,
     TRACKER_KEYS,
     FusionConfig,
+    complete_tracker,
     legacy_tracker_settings,
     merge_tracker,
     with_legacy_defaults,
@@ -234,6 +235,8 @@ def replay_settings(
     if use_recorded_settings and "tracker" not in base:  # recorded before it was recorded
         base["tracker"], tracker_note = legacy_tracker_settings(
             base, _made_ns(side))
+    elif use_recorded_settings and isinstance(base["tracker"], dict):  # before newer keys
+        base["tracker"], tracker_note = complete_tracker(base, _made_ns(side))
     known = _fusion_fields()
     ignored = sorted(set(base) - known)
     for f in ignored:
