@@ -8,6 +8,9 @@ checks the tables agree).
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
 #: Slot labels, in slot order (shared with :data:`diffpos.channel.emulator.MECHANISMS`).
 MECHANISMS: tuple[str, ...] = (
     "Tx-Rx",
@@ -30,29 +33,161 @@ MECHANISMS: tuple[str, ...] = (
     "Tx-R(ceiling)-R(back)-Rx",
 )
 
-#: The recipe of every slot: ("direct",), ("spec", planes, ground) or ("diff", edge, plane).
-_RECIPES: tuple[tuple, ...] = (
-    ("direct",),
-    ("spec", (), True),
-    ("spec", ("floor",), False),
-    ("spec", ("ceiling",), False),
-    ("spec", ("back",), False),
-    ("spec", ("side x1",), False),
-    ("spec", ("side x2",), False),
-    ("diff", "upper", None),
-    ("diff", "lower", None),
-    ("diff", "upper", "floor"),
-    ("diff", "upper", "ceiling"),
-    ("diff", "lower", "floor"),
-    ("diff", "lower", "ceiling"),
-    ("diff", "upper", "back"),
-    ("spec", ("ceiling",), True),
-    ("spec", ("ceiling", "floor"), False),
-    ("spec", ("floor", "ceiling"), False),
-    ("spec", ("ceiling", "back"), False),
+class Recipe(NamedTuple):
+    """How a mechanism's path runs: ``kind`` ``"direct"``, ``"spec"`` (specular reflections
+    entering through the window) or ``"diff"`` (diffraction on a window edge); ``ground``: a
+    ground bounce outside first; ``edge``: ``"upper"`` / ``"lower"`` window edge (``"diff"``
+    only, else None); ``planes``: the inside reflections in path order (``"floor"``,
+    ``"ceiling"``, ``"back"``, ``"side x1"``, ``"side x2"``)."""
+
+    kind: str
+    ground: bool = False
+    edge: str | None = None
+    planes: tuple[str, ...] = ()
+
+    @property
+    def order(self) -> int:
+        """Interactions of the path: the ground bounce, the diffraction, the reflections."""
+        return int(self.ground) + int(self.kind == "diff") + len(self.planes)
+
+    @property
+    def label(self) -> str:
+        """The mechanism's label (``Tx-R(ground)-D(lower)-R(ceiling)-Rx``)."""
+        toks = ["R(ground)"] if self.ground else []
+        if self.kind == "diff":
+            toks.append(f"D({self.edge})")
+        toks += [f"R({p})" for p in self.planes]
+        return "-".join(["Tx", *toks, "Rx"])
+
+
+#: The recipe of every slot of :data:`MECHANISMS`.
+RECIPES: tuple[Recipe, ...] = (
+    Recipe("direct"),
+    Recipe("spec", True),
+    Recipe("spec", planes=("floor",)),
+    Recipe("spec", planes=("ceiling",)),
+    Recipe("spec", planes=("back",)),
+    Recipe("spec", planes=("side x1",)),
+    Recipe("spec", planes=("side x2",)),
+    Recipe("diff", edge="upper"),
+    Recipe("diff", edge="lower"),
+    Recipe("diff", edge="upper", planes=("floor",)),
+    Recipe("diff", edge="upper", planes=("ceiling",)),
+    Recipe("diff", edge="lower", planes=("floor",)),
+    Recipe("diff", edge="lower", planes=("ceiling",)),
+    Recipe("diff", edge="upper", planes=("back",)),
+    Recipe("spec", True, planes=("ceiling",)),
+    Recipe("spec", planes=("ceiling", "floor")),
+    Recipe("spec", planes=("floor", "ceiling")),
+    Recipe("spec", planes=("ceiling", "back")),
 )
 #: Slots whose last leg is a specular ray entering through the opening (incl. the direct one).
 SPECULAR_SLOTS: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6, 14, 15, 16, 17)
 #: Slots with a window-edge diffraction.
 DIFFRACTION_SLOTS: tuple[int, ...] = (7, 8, 9, 10, 11, 12, 13)
 _AXIS = {"floor": 2, "ceiling": 2, "back": 1, "side x1": 0, "side x2": 0, "ground": 2}
+#: The order of :data:`MECHANISMS` (every mechanism has at most 2 interactions); the default
+#: of :func:`mechanism_set`.
+DEFAULT_ORDER = 2
+#: Walls that reflect once (at the end of a path) in the families of :func:`mechanism_set`.
+WALLS: tuple[str, ...] = ("back", "side x1", "side x2")
+#: A wall reflection ends a family only after at most this many slab reflections (each wall
+#: triples the families; Sionna's first arrivals with a wall had <= 1 slab reflection before
+#: it, docs/raytrace.md).
+WALL_AFTER_SLABS = 1
+
+
+@dataclass(frozen=True)
+class MechanismSet:
+    """A list of mechanisms: the 18 of :data:`MECHANISMS` first (same slots, labels and
+    recipes), then the families :func:`mechanism_set` adds up to ``max_order``.
+
+    Attributes
+    ----------
+    max_order : int
+        Most interactions per path (:attr:`Recipe.order`) of the added families.
+    recipes, labels : tuple
+        Per slot.
+    specular, diffraction : tuple of int
+        Slots of kind direct / spec, and diff.
+    same_edge : tuple of (int, int)
+        (diffraction + reflections slot, the plain diffraction slot over the same edge with the
+        same ground bounce): the first is longer and has more losses (M-NLS's same-edge
+        dominance, :mod:`diffpos.estimators.mnls.rules`).
+    """
+
+    max_order: int
+    recipes: tuple[Recipe, ...]
+    labels: tuple[str, ...] = field(init=False)
+    specular: tuple[int, ...] = field(init=False)
+    diffraction: tuple[int, ...] = field(init=False)
+    same_edge: tuple[tuple[int, int], ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        rec = self.recipes
+        object.__setattr__(self, "labels", tuple(r.label for r in rec))
+        object.__setattr__(self, "specular",
+                           tuple(i for i, r in enumerate(rec) if r.kind != "diff"))
+        object.__setattr__(self, "diffraction",
+                           tuple(i for i, r in enumerate(rec) if r.kind == "diff"))
+        plain = {(r.ground, r.edge): i for i, r in enumerate(rec)
+                 if r.kind == "diff" and not r.planes}
+        object.__setattr__(self, "same_edge", tuple(
+            (i, plain[(r.ground, r.edge)]) for i, r in enumerate(rec)
+            if r.kind == "diff" and r.planes and (r.ground, r.edge) in plain))
+
+    def __len__(self) -> int:
+        return len(self.recipes)
+
+    @property
+    def max_planes(self) -> int:
+        """Most inside reflections of a slot."""
+        return max(len(r.planes) for r in self.recipes)
+
+
+def _slab_series(n: int, first: str) -> tuple[str, ...]:
+    """``n`` alternating floor / ceiling reflections starting with ``first``."""
+    other = {"floor": "ceiling", "ceiling": "floor"}
+    out: list[str] = []
+    cur = first
+    for _ in range(n):
+        out.append(cur)
+        cur = other[cur]
+    return tuple(out)
+
+
+def _families(max_order: int) -> list[Recipe]:
+    """Every family with at most ``max_order`` interactions: an entry (straight, ground
+    bounce, window-edge diffraction, ground bounce then diffraction), an image series between
+    the floor and ceiling slabs (alternating; after a ground bounce straight through the window
+    the ray rises, so the series starts at the ceiling), then at most one wall reflection
+    (after at most :data:`WALL_AFTER_SLABS` slab reflections)."""
+    out: list[Recipe] = []
+    entries = [Recipe("spec"), Recipe("spec", True)]
+    entries += [Recipe("diff", g, e) for g in (False, True) for e in ("upper", "lower")]
+    for ent in entries:
+        firsts = ("ceiling",) if (ent.kind == "spec" and ent.ground) else ("floor", "ceiling")
+        for n in range(max_order - ent.order + 1):
+            series = {_slab_series(n, f) for f in firsts} if n else {()}
+            for sl in sorted(series, key=lambda t: t[:1] != ("floor",)):
+                out.append(ent._replace(planes=sl))
+                if ent.order + n + 1 <= max_order and n <= WALL_AFTER_SLABS:
+                    out += [ent._replace(planes=(*sl, w)) for w in WALLS]
+    return [r for r in out if r.order > 0]
+
+
+def mechanism_set(max_order: int = DEFAULT_ORDER) -> MechanismSet:
+    """The 18 mechanisms of :data:`MECHANISMS`, then (``max_order`` > 2) every family of at
+    most ``max_order`` interactions they leave out (:func:`_families`), in a fixed order.
+
+    ``max_order`` <= :data:`DEFAULT_ORDER` gives the 18 (a selection of the order-2
+    mechanisms); 3 adds e.g. the ceiling-floor-ceiling triple bounce, the ground bounce before
+    a window-edge diffraction, diffraction then two slab reflections; 4 the next terms.
+    """
+    if int(max_order) != max_order or max_order < 1:
+        raise ValueError(f"max_order must be an integer >= 1; got {max_order!r}")
+    if max_order <= DEFAULT_ORDER:
+        return MechanismSet(max_order=DEFAULT_ORDER, recipes=RECIPES)
+    known = set(RECIPES)
+    extra = [r for r in _families(int(max_order)) if r not in known]
+    return MechanismSet(max_order=int(max_order), recipes=(*RECIPES, *extra))

@@ -70,8 +70,19 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from diffpos.geometry import diffraction_point
-from diffpos.paths.mechanisms import _RECIPES, DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS
-from diffpos.paths.model_nb import building_planes, eval_paths_kernel
+from diffpos.paths.mechanisms import (
+    DIFFRACTION_SLOTS,
+    MECHANISMS,
+    SPECULAR_SLOTS,
+    MechanismSet,
+    mechanism_set,
+)
+from diffpos.paths.model_nb import (
+    DEFAULT_TABLE,
+    building_planes,
+    eval_paths_kernel,
+    mechanism_table,
+)
 
 __all__ = [
     "DIFFRACTION_SLOTS",
@@ -222,48 +233,67 @@ def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
 
 
 def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edge: str,
-                    then: str | None = None) -> _Geom:
-    """Anchor -> Fermat point on the upper/lower window edge [-> one inside plane] -> node.
+                    then: str | tuple[str, ...] | list[str] | None = None, *,
+                    ground: bool = False) -> _Geom:
+    """Anchor [-> ground] -> Fermat point on the upper/lower window edge [-> inside planes...]
+    -> node.
 
     The edge is the physical one, ``z = win_hi`` or ``win_lo`` of the floor, from ``x0`` to
     ``x1``; the path is valid only where the Fermat point lies strictly inside the edge (corner
-    diffraction dropped: module docstring) and, with ``then``, the reflection point lies on the
-    floor's inside surface between the edge and the node. ``points`` are the diffraction point,
-    then the reflection point (if any), then the node.
+    diffraction dropped: module docstring). ``then``: one inside plane or a sequence of them in
+    path order; the node is imaged across them (last plane first), the Fermat point is that of
+    the image, and every reflection point of the unfolded ray from the edge must lie on the
+    floor's inside surface, in order. ``ground``: the anchor is imaged in ``z = 0`` first and the
+    ground point must lie between the anchor and the edge. ``points`` are the diffraction point,
+    then the reflection points, then the node (``ground_point`` apart); ``outside_m`` is the
+    length anchor [-> ground] -> diffraction point.
     """
     shape = np.broadcast_shapes(anchor.shape, node.shape)[:-1]
     a = np.broadcast_to(anchor, (*shape, 3))
     n = np.broadcast_to(node, (*shape, 3))
+    planes = () if then is None else ((then,) if isinstance(then, str) else tuple(then))
+    src = _mirror(np.array(a), 2, 0.0) if ground else a
     z_e = np.broadcast_to(frame.win_hi if edge == "upper" else frame.win_lo, shape)
     p0 = np.stack([np.full(shape, frame.x0), np.zeros(shape), z_e], axis=-1)
     p1 = np.stack([np.full(shape, frame.x1), np.zeros(shape), z_e], axis=-1)
     obs = n
     sign = np.ones(3)
-    if then is not None:
-        axis, coord = frame.plane(then)
-        obs = _mirror(np.array(n), axis, np.broadcast_to(coord, shape))
-        sign[axis] = -1.0
-    dp = diffraction_point(a, obs, p0, p1)
+    axes_coords = [frame.plane(p) for p in planes]
+    for axis, coord in reversed(axes_coords):
+        obs = _mirror(np.array(obs), axis, np.broadcast_to(coord, shape))
+        sign[axis] = -sign[axis]
+    dp = diffraction_point(src, obs, p0, p1)
     q = dp.point_m
     valid = dp.on_edge.copy()
     pts = [q]
     d = obs - q
+    g_pt = None
     with np.errstate(invalid="ignore", divide="ignore"):
-        if then is not None:
-            t = (coord - q[..., axis]) / d[..., axis]
-            valid &= (t > 0) & (t < 1)
-            rp = q + t[..., None] * d
+        if ground:
+            t_g = (0.0 - src[..., 2]) / (q[..., 2] - src[..., 2])
+            valid &= (t_g > 0) & (t_g < 1)
+            g_pt = src + t_g[..., None] * (q - src)
+            g_pt[..., 2] = 0.0
+        cur_src, cur_img, t_last = q, obs, 0.0
+        for axis, coord in axes_coords:
+            dd = cur_img - cur_src
+            t = (coord - cur_src[..., axis]) / dd[..., axis]
+            valid &= (t > t_last) & (t < 1)
+            rp = cur_src + t[..., None] * dd
             valid &= frame.in_floor_box(rp)
             pts.append(rp)
+            cur_img = _mirror(cur_img, axis, np.broadcast_to(coord, shape))
+            cur_src = _mirror(cur_src, axis, np.broadcast_to(coord, shape))
+            t_last = t
         u_out = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
-        u_in = q - a
+        u_in = q - src
         d_in = np.sqrt(np.einsum("...i,...i->...", u_in, u_in))
         u_in = u_in / d_in[..., None]
         jac = u_out * sign
     pts.append(n)
     return _Geom(length_m=dp.length_m, valid=valid & np.isfinite(dp.length_m), jacobian=jac,
-                 points=pts, deviation_cos=np.einsum("...i,...i->...", u_in, u_out),
-                 outside_m=d_in)
+                 points=pts, ground_point=g_pt,
+                 deviation_cos=np.einsum("...i,...i->...", u_in, u_out), outside_m=d_in)
 
 
 def direct_opening(anchor: FloatArray, node: FloatArray, frame: FloorFrame
@@ -319,8 +349,8 @@ class PathSet:
 
 
 def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
-                        floor: ArrayLike | None = None, slots: ArrayLike | None = None
-                        ) -> PathSet:
+                        floor: ArrayLike | None = None, slots: ArrayLike | None = None,
+                        mechanisms: MechanismSet | None = None) -> PathSet:
     """Lengths, existence and Jacobians of the first-arrival mechanisms (module docstring).
 
     Computed by the compiled kernel :func:`diffpos.paths.model_nb.paths_kernel` (one loop
@@ -341,13 +371,16 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
     slots : array_like of int, optional
         Subset of slots to compute (default all, in :data:`MECHANISMS` order); the output's
         last axes follow this order.
+    mechanisms : diffpos.paths.mechanisms.MechanismSet, optional
+        The mechanisms the slots index (default the 18 of :data:`MECHANISMS`;
+        :func:`diffpos.paths.mechanisms.mechanism_set` adds higher-order families after them).
 
     Returns
     -------
     PathSet
     """
-    rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots)
-    length, valid, jac, dev, outm, _ = eval_paths_kernel(*rows.args)
+    rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots, mechanisms)
+    length, valid, jac, dev, outm, _ = eval_paths_kernel(*rows.args, table=rows.table)
     sh = (*rows.shape, rows.slots.shape[0])
     return PathSet(length_m=length.reshape(sh), valid=valid.reshape(sh),
                    jacobian=jac.reshape((*sh, 3)), floor=rows.floor,
@@ -384,8 +417,8 @@ class GradedPaths:
 
 
 def graded_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *, relax_m: float,
-                 floor: ArrayLike | None = None, slots: ArrayLike | None = None
-                 ) -> GradedPaths:
+                 floor: ArrayLike | None = None, slots: ArrayLike | None = None,
+                 mechanisms: MechanismSet | None = None) -> GradedPaths:
     """:func:`first_arrival_paths` without the masking, with existence graded by ``relax_m``.
 
     Same arguments as :func:`first_arrival_paths` plus ``relax_m`` [m] (>= 0), the uncertainty
@@ -397,10 +430,11 @@ def graded_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *, relax_m:
     """
     if not relax_m >= 0.0:
         raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
-    rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots)
-    length, ok, jac, _, _, z_in = eval_paths_kernel(*rows.args, raw=True)
+    rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots, mechanisms)
+    length, ok, jac, _, _, z_in = eval_paths_kernel(*rows.args, raw=True, table=rows.table)
     lo, hi = (v[:, None] for v in building.window_z_m(rows.args[2]))
-    band = np.isin(rows.slots, SPECULAR_SLOTS)
+    spec = SPECULAR_SLOTS if mechanisms is None else mechanisms.specular
+    band = np.isin(rows.slots, spec)
     with np.errstate(invalid="ignore"):
         margin = np.minimum(z_in - lo, hi - z_in)
         loose = ok & np.where(band, (z_in > lo - relax_m) & (z_in < hi + relax_m), True)
@@ -420,22 +454,38 @@ class _Rows:
     floor: NDArray[np.int_]
     slots: NDArray[np.int64]
     args: tuple
+    table: NDArray[np.int64]
 
 
-def _slot_array(slots: ArrayLike | None) -> NDArray[np.int64]:
-    k = len(MECHANISMS)
+#: Compiled tables of the mechanism sets in use.
+_TABLES: dict[MechanismSet, NDArray[np.int64]] = {}
+
+
+def _table(mechanisms: MechanismSet | None) -> NDArray[np.int64]:
+    if mechanisms is None:
+        return DEFAULT_TABLE
+    tab = _TABLES.get(mechanisms)
+    if tab is None:
+        tab = _TABLES[mechanisms] = mechanism_table(mechanisms.recipes)
+    return tab
+
+
+def _slot_array(slots: ArrayLike | None, k: int = len(MECHANISMS)) -> NDArray[np.int64]:
     if slots is None:
         return np.arange(k, dtype=np.int64)
     sel = np.array([int(s) for s in np.ravel(slots)], dtype=np.int64)
     if np.any((sel < -k) | (sel >= k)):
-        raise IndexError(f"slots must lie in [0, {k}) (MECHANISMS); got {sel.tolist()}")
+        raise IndexError(f"slots must lie in [0, {k}) (the mechanisms); got {sel.tolist()}")
     return sel % k
 
 
 def _kernel_rows(nodes_m: ArrayLike, anchors_m: ArrayLike, building,
-                 floor: ArrayLike | None, slots: ArrayLike | None) -> _Rows:
+                 floor: ArrayLike | None, slots: ArrayLike | None,
+                 mechanisms: MechanismSet | None = None) -> _Rows:
     """Broadcast nodes, anchors and floors to flat C-contiguous rows for the kernel."""
-    sel = _slot_array(slots)
+    table = _table(mechanisms)
+    sel = _slot_array(slots, table.shape[0])
+    diff = DIFFRACTION_SLOTS if mechanisms is None else mechanisms.diffraction
     n = np.asarray(nodes_m, dtype=np.float64)
     a = np.asarray(anchors_m, dtype=np.float64)
     shape = np.broadcast_shapes(n.shape, a.shape)[:-1]
@@ -448,15 +498,16 @@ def _kernel_rows(nodes_m: ArrayLike, anchors_m: ArrayLike, building,
     k_f = np.empty(shape)
     k_f[...] = k
     planes = building_planes(building)
-    if planes[4] == planes[5] and np.any(np.isin(sel, DIFFRACTION_SLOTS)):
+    if planes[4] == planes[5] and np.any(np.isin(sel, diff)):
         raise ValueError("the window edge has zero length (edge_x_m equal)")
     args = (rows_n.reshape(-1, 3), rows_a.reshape(-1, 3), k_f.reshape(-1), planes, sel)
-    return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args)
+    return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args, table=table)
 
 
 def _first_arrival_paths_numpy(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
                                floor: ArrayLike | None = None,
-                               slots: ArrayLike | None = None) -> PathSet:
+                               slots: ArrayLike | None = None,
+                               mechanisms: MechanismSet | None = None) -> PathSet:
     """The numpy reference of :func:`first_arrival_paths` (same arguments and results), built on
     :func:`specular_path` and :func:`diffracted_path`; the tests hold the kernel to it.
     """
@@ -468,23 +519,24 @@ def _first_arrival_paths_numpy(nodes_m: ArrayLike, anchors_m: ArrayLike, buildin
     k = building.floor_index(n[..., 2]) if floor is None else np.asarray(floor)
     k = np.broadcast_to(k, shape)
     frame = FloorFrame.from_building(building, k)
-    sel = range(len(MECHANISMS)) if slots is None else [int(s) for s in np.ravel(slots)]
+    recipes = (mechanisms or mechanism_set()).recipes
+    sel = range(len(recipes)) if slots is None else [int(s) for s in np.ravel(slots)]
     lens, vals, jacs, devs, outs = [], [], [], [], []
     for s in sel:
-        rec = _RECIPES[s]
+        rec = recipes[s]
         dev = np.full(shape, np.nan)
         out = np.full(shape, np.nan)
-        if rec[0] == "direct":
+        if rec.kind == "direct":
             d = n - a
             length = np.sqrt(np.einsum("...i,...i->...", d, d))
             valid = direct_opening(a, n, frame)[2]
             with np.errstate(invalid="ignore", divide="ignore"):
                 jac = d / length[..., None]
-        elif rec[0] == "spec":
-            g = specular_path(a, n, frame, rec[1], ground=rec[2])
+        elif rec.kind == "spec":
+            g = specular_path(a, n, frame, rec.planes, ground=rec.ground)
             length, valid, jac = g.length_m, g.valid, g.jacobian
         else:
-            g = diffracted_path(a, n, frame, rec[1], rec[2])
+            g = diffracted_path(a, n, frame, rec.edge, rec.planes, ground=rec.ground)
             length, valid, jac, dev = g.length_m, g.valid, g.jacobian, g.deviation_cos
             out = g.outside_m
         devs.append(dev)

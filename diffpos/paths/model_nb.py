@@ -41,23 +41,40 @@ import time
 import numpy as np
 from numba import njit, types
 
-__all__ = ["N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLOT_PLANE0",
-           "SLOT_PLANE1", "building_planes", "edge_axis", "eval_paths_kernel", "in_floor_box",
-           "inside_plane", "mirror", "paths_kernel", "row_planes", "slot_path", "warm_paths"]
+__all__ = ["COL_EDGE", "COL_GROUND", "COL_KIND", "COL_NPLANES", "COL_PLANES", "DEFAULT_TABLE",
+           "N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLOT_PLANE0",
+           "SLOT_PLANE1", "building_planes", "edge_axis", "eval_paths_kernel", "family_path",
+           "in_floor_box", "inside_plane", "mechanism_table", "mirror", "paths_kernel",
+           "row_planes", "slot_path", "warm_paths"]
 
-#: Slot recipes, the compiled twin of ``diffpos.paths.mechanisms._RECIPES`` (a test checks they agree).
-#: kind: 0 direct, 1 specular, 2 diffraction. Plane codes: 0 floor, 1 ceiling, 2 back,
-#: 3 side x1, 4 side x2, -1 none. Edge: 0 upper, 1 lower. Shared with the compiled channel
-#: (:mod:`diffpos.channel.rays_nb`, :mod:`diffpos.channel.snr_nb`), as are
-#: :func:`inside_plane`, :func:`in_floor_box` and :func:`mirror`.
-SLOT_KIND = np.array([0, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 2, 1, 1, 1, 1], dtype=np.int64)
-SLOT_GROUND = np.array([0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0], dtype=np.int64)
-SLOT_PLANE0 = np.array([-1, -1, 0, 1, 2, 3, 4, -1, -1, 0, 1, 0, 1, 2, 1, 1, 0, 1], dtype=np.int64)
-SLOT_PLANE1 = np.array([-1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 0, 1, 2],
-                   dtype=np.int64)
-SLOT_EDGE = np.array([-1, -1, -1, -1, -1, -1, -1, 0, 1, 0, 0, 1, 1, 0, -1, -1, -1, -1],
-                 dtype=np.int64)
+#: Mechanism tables: one row per slot, columns :data:`COL_KIND` (0 direct, 1 specular, 2
+#: diffraction), :data:`COL_GROUND` (1: a ground bounce outside first), :data:`COL_EDGE` (0
+#: upper, 1 lower window edge, -1 none), :data:`COL_NPLANES` and from :data:`COL_PLANES` on the
+#: inside planes in path order (0 floor, 1 ceiling, 2 back, 3 side x1, 4 side x2, -1 padding).
+#: :func:`mechanism_table` builds one from ``diffpos.paths.mechanisms`` recipes;
+#: :data:`DEFAULT_TABLE` is the compiled twin of ``diffpos.paths.mechanisms.RECIPES`` (a literal:
+#: numba freezes a global array into the code it compiles, so it must change with this file;
+#: a test checks it equals ``mechanism_table(RECIPES)``).
+COL_KIND, COL_GROUND, COL_EDGE, COL_NPLANES, COL_PLANES = 0, 1, 2, 3, 4
+DEFAULT_TABLE = np.array([
+    [0, 0, -1, 0, -1, -1], [1, 1, -1, 0, -1, -1], [1, 0, -1, 1, 0, -1], [1, 0, -1, 1, 1, -1],
+    [1, 0, -1, 1, 2, -1], [1, 0, -1, 1, 3, -1], [1, 0, -1, 1, 4, -1], [2, 0, 0, 0, -1, -1],
+    [2, 0, 1, 0, -1, -1], [2, 0, 0, 1, 0, -1], [2, 0, 0, 1, 1, -1], [2, 0, 1, 1, 0, -1],
+    [2, 0, 1, 1, 1, -1], [2, 0, 0, 1, 2, -1], [1, 1, -1, 1, 1, -1], [1, 0, -1, 2, 1, 0],
+    [1, 0, -1, 2, 0, 1], [1, 0, -1, 2, 1, 2]], dtype=np.int64)
+#: The default table's columns as the channel's compiled code reads them
+#: (:mod:`diffpos.channel.rays_nb`, :mod:`diffpos.channel.snr_nb`), as are :func:`inside_plane`,
+#: :func:`in_floor_box` and :func:`mirror`; ``SLOT_PLANE0`` / ``SLOT_PLANE1``: the first two
+#: planes (every default slot has at most two).
+SLOT_KIND = np.ascontiguousarray(DEFAULT_TABLE[:, COL_KIND])
+SLOT_GROUND = np.ascontiguousarray(DEFAULT_TABLE[:, COL_GROUND])
+SLOT_PLANE0 = np.ascontiguousarray(DEFAULT_TABLE[:, COL_PLANES])
+SLOT_PLANE1 = np.ascontiguousarray(DEFAULT_TABLE[:, COL_PLANES + 1])
+SLOT_EDGE = np.ascontiguousarray(DEFAULT_TABLE[:, COL_EDGE])
 N_SLOTS = 18
+_PLANE_CODE = {"floor": 0, "ceiling": 1, "back": 2, "side x1": 3, "side x2": 4}
+_EDGE_CODE = {"upper": 0, "lower": 1}
+_KIND_CODE = {"direct": 0, "spec": 1, "diff": 2}
 _TOL = 1e-9  # in_floor_box tolerance [m] (FloorFrame.in_floor_box)
 
 _f8_2d = types.float64[:, ::1]
@@ -68,7 +85,7 @@ SIGNATURE = types.void(
     _f8_1d,  # floor index of every row (P,), as float64
     types.float64, types.float64, types.float64, types.float64,  # first floor z, H, sill, w
     types.float64, types.float64, types.float64,  # x0, x1, depth
-    types.int64[::1],  # slots (S,)
+    types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,) (rows of it)
     types.boolean, types.boolean,  # raw, want_jac
     _f8_2d, types.boolean[:, ::1], types.float64[:, :, ::1],  # length, valid, jac
     _f8_2d, _f8_2d, _f8_2d,  # deviation_cos, outside_m, entry_z
@@ -129,17 +146,18 @@ def _direct(a0, a1, a2, n0, n1, n2, x0, x1):
 
 
 @njit(**_OPTS)
-def _specular(a0, a1, a2, n0, n1, n2, ground, pl0, pl1, zf, zc, x0, x1, depth):
-    """paths.specular_path for <= 2 planes: length, ok (without the entry's band test),
-    entry z, unfolded ray ``d`` and the mirror signs (Jacobian ``d / length * sign``)."""
+def _specular(a0, a1, a2, n0, n1, n2, ground, table, s, zf, zc, x0, x1, depth):
+    """paths.specular_path for the planes of row ``s`` of ``table``: length, ok (without the
+    entry's band test), entry z, unfolded ray ``d`` and the mirror signs (Jacobian
+    ``d / length * sign``)."""
     s0, s1, s2 = a0, a1, a2
     if ground:
         s2 = 2.0 * 0.0 - a2
     i0, i1, i2 = n0, n1, n2
     g0 = g1 = g2 = 1.0
-    n_pl = 0 if pl0 < 0 else (1 if pl1 < 0 else 2)
+    n_pl = table[s, COL_NPLANES]
     for j in range(n_pl - 1, -1, -1):  # image: last plane first
-        ax, c = inside_plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
         i0, i1, i2 = mirror(i0, i1, i2, ax, c)
         if ax == 0:
             g0 = -g0
@@ -160,11 +178,18 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, pl0, pl1, zf, zc, x0, x1, depth):
     e0 = s0 + t_f * d0
     ez = s2 + t_f * d2
     ok = ok and (e0 > x0) and (e0 < x1)
-    c0, c1, c2 = s0, s1, s2
-    m0, m1, m2 = i0, i1, i2
-    t_last = t_f
-    for j in range(n_pl):
-        ax, c = inside_plane(pl0 if j == 0 else pl1, zf, zc, x0, x1, depth)
+    ok = ok and _reflections_ok(s0, s1, s2, i0, i1, i2, t_f, table, s, zf, zc, x0, x1, depth)
+    ok = ok and math.isfinite(length)
+    return length, ok, ez, d0, d1, d2, g0, g1, g2
+
+
+@njit(**_OPTS)
+def _reflections_ok(c0, c1, c2, m0, m1, m2, t_last, table, s, zf, zc, x0, x1, depth):
+    """The reflection points of the unfolded ray ``c -> m`` (source, image through every plane
+    of row ``s``) lie on the floor's inside surface, in path order after ``t_last``."""
+    ok = True
+    for j in range(table[s, COL_NPLANES]):
+        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
         dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
         t = (c - _get(c0, c1, c2, ax)) / _get(dd0, dd1, dd2, ax)
         ok = ok and (t > t_last) and (t < 1)
@@ -172,28 +197,29 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, pl0, pl1, zf, zc, x0, x1, depth):
         m0, m1, m2 = mirror(m0, m1, m2, ax, c)
         c0, c1, c2 = mirror(c0, c1, c2, ax, c)
         t_last = t
-    ok = ok and math.isfinite(length)
-    return length, ok, ez, d0, d1, d2, g0, g1, g2
+    return ok
 
 
 @njit(**_OPTS)
-def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth, edge):
-    """paths.diffracted_path (geometry.diffraction_point on the edge ``y = 0, z = z_e``):
-    length, ok, Jacobian, deviation cosine, anchor -> diffraction point length. ``edge``:
-    :func:`edge_axis` (length and unit vector of the edge, the same for every row)."""
+def _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc, x0, x1, depth, edge):
+    """paths.diffracted_path (geometry.diffraction_point on the edge ``y = 0, z = z_e``) with
+    the ground bounce and the planes of row ``s`` of ``table``: length, ok, Jacobian, deviation
+    cosine, anchor (ground image) -> diffraction point length. ``edge``: :func:`edge_axis`
+    (length and unit vector of the edge, the same for every row)."""
+    ground = table[s, COL_GROUND] == 1
+    if ground:
+        a2 = 2.0 * 0.0 - a2
     o0, o1, o2 = n0, n1, n2
     g0 = g1 = g2 = 1.0
-    ax = 0
-    c = 0.0
-    if then >= 0:
-        ax, c = inside_plane(then, zf, zc, x0, x1, depth)
-        o0, o1, o2 = mirror(n0, n1, n2, ax, c)
+    for j in range(table[s, COL_NPLANES] - 1, -1, -1):  # image: last plane first
+        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        o0, o1, o2 = mirror(o0, o1, o2, ax, c)
         if ax == 0:
-            g0 = -1.0
+            g0 = -g0
         elif ax == 1:
-            g1 = -1.0
+            g1 = -g1
         else:
-            g2 = -1.0
+            g2 = -g2
     # geometry.diffraction_point with p0 = (x0, 0, z_e), p1 = (x1, 0, z_e)
     edge_len, e0, e1, e2 = edge
     ds0, ds1, ds2 = a0 - x0, a1 - 0.0, a2 - z_e
@@ -222,10 +248,11 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, then, zf, zc, x0, x1, depth, edge):
     d_in = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)  # = |Q - A| below, bit for bit (squares)
     nu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
     length = d_in + nu
-    if then >= 0:  # reflection point between the edge and the node, on the inside surface
-        tr = (c - _get(q0, q1, q2, ax)) / _get(u0, u1, u2, ax)
-        ok = ok and (tr > 0) and (tr < 1)
-        ok = ok and in_floor_box(q0 + tr * u0, q1 + tr * u1, q2 + tr * u2, zf, zc, x0, x1, depth)
+    if ground:  # the ground point between the anchor's image and the edge (outside, y < 0)
+        t_g = (0.0 - a2) / (q2 - a2)
+        ok = ok and (t_g > 0) and (t_g < 1)
+    # reflection points between the edge and the node, on the inside surface
+    ok = ok and _reflections_ok(q0, q1, q2, o0, o1, o2, 0.0, table, s, zf, zc, x0, x1, depth)
     u0, u1, u2 = u0 / nu, u1 / nu, u2 / nu
     v0, v1, v2 = q0 - a0, q1 - a1, q2 - a2
     v0, v1, v2 = v0 / d_in, v1 / d_in, v2 / d_in
@@ -253,8 +280,10 @@ def row_planes(floor, first_z, floor_h, sill, win_h):
 
 
 @njit(**_OPTS, inline="always")
-def slot_path(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, raw, want_jac):
-    """One slot ``s`` of one (anchor, node, floor) row, for other compiled kernels.
+def family_path(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, raw,
+                want_jac):
+    """Row ``s`` of the mechanism ``table`` (module docstring) for one (anchor, node, floor)
+    row, for other compiled kernels.
 
     ``zf, zc, lo, hi``: :func:`row_planes`; ``edge``: :func:`edge_axis`. Returns ``(length,
     valid, j0, j1, j2, deviation_cos, outside_m, entry_z)`` with the conventions of
@@ -263,21 +292,21 @@ def slot_path(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, ra
     they do not apply).
     """
     nan = np.nan
-    kind = SLOT_KIND[s]
+    kind = table[s, COL_KIND]
     dv = nan
     om = nan
     if kind == 2:
-        z_e = hi if SLOT_EDGE[s] == 0 else lo
-        ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, z_e, SLOT_PLANE0[s], zf,
-                                                 zc, x0, x1, depth, edge)
+        z_e = hi if table[s, COL_EDGE] == 0 else lo
+        ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc,
+                                                 x0, x1, depth, edge)
         ez = nan
     else:
         if kind == 0:
             ln, ok, ez, d0, d1, d2, g0, g1, g2 = _direct(a0, a1, a2, n0, n1, n2, x0, x1)
         else:
             ln, ok, ez, d0, d1, d2, g0, g1, g2 = _specular(
-                a0, a1, a2, n0, n1, n2, SLOT_GROUND[s] == 1, SLOT_PLANE0[s], SLOT_PLANE1[s], zf, zc, x0,
-                x1, depth)
+                a0, a1, a2, n0, n1, n2, table[s, COL_GROUND] == 1, table, s, zf, zc, x0, x1,
+                depth)
         if not raw:
             ok = ok and (ez > lo) and (ez < hi)
         j0 = j1 = j2 = 0.0
@@ -289,13 +318,21 @@ def slot_path(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, ra
     return ln, ok, j0, j1, j2, dv, om, ez
 
 
+@njit(**_OPTS, inline="always")
+def slot_path(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, raw, want_jac):
+    """Slot ``s`` of :data:`DEFAULT_TABLE` (the 18 mechanisms): :func:`family_path`."""
+    return family_path(DEFAULT_TABLE, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth,
+                       edge, raw, want_jac)
+
+
 @njit(**_OPTS)
-def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, depth, slots,
-                 raw, want_jac, length, valid, jac, dev, outm, entry_z):
-    """Every requested slot for every row (module docstring); writes the output arrays.
+def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, depth, table,
+                 slots, raw, want_jac, length, valid, jac, dev, outm, entry_z):
+    """Every requested slot (row of the mechanism ``table``) for every row (module
+    docstring); writes the output arrays.
 
     The planes of row ``p`` are those of ``Building.floor_z_m`` / ``window_z_m`` with the same
-    operations (:func:`row_planes`); each slot is :func:`slot_path`.
+    operations (:func:`row_planes`); each slot is :func:`family_path`.
     """
     edge = edge_axis(x0, x1)
     for p in range(nodes.shape[0]):
@@ -303,9 +340,9 @@ def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, d
         n0, n1, n2 = nodes[p, 0], nodes[p, 1], nodes[p, 2]
         zf, zc, lo, hi = row_planes(floor[p], first_z, floor_h, sill, win_h)
         for j in range(slots.shape[0]):
-            ln, ok, j0, j1, j2, dv, om, ez = slot_path(slots[j], a0, a1, a2, n0, n1, n2, zf,
-                                                       zc, lo, hi, x0, x1, depth, edge, raw,
-                                                       want_jac)
+            ln, ok, j0, j1, j2, dv, om, ez = family_path(table, slots[j], a0, a1, a2, n0, n1,
+                                                         n2, zf, zc, lo, hi, x0, x1, depth,
+                                                         edge, raw, want_jac)
             entry_z[p, j] = ez
             valid[p, j] = ok
             length[p, j] = ln
@@ -315,17 +352,6 @@ def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, d
                 jac[p, j, 2] = j2
                 dev[p, j] = dv
                 outm[p, j] = om
-
-
-@njit(**_OPTS)
-def _fill_recipes(kind, ground, plane0, plane1, edge):
-    """Copies of the compiled slot tables (for the test against ``paths._RECIPES``)."""
-    for s in range(N_SLOTS):
-        kind[s] = SLOT_KIND[s]
-        ground[s] = SLOT_GROUND[s]
-        plane0[s] = SLOT_PLANE0[s]
-        plane1[s] = SLOT_PLANE1[s]
-        edge[s] = SLOT_EDGE[s]
 
 
 _state: dict[str, object] = {}
@@ -346,12 +372,14 @@ def warm_paths() -> float:
 
 def eval_paths_kernel(nodes: np.ndarray, anchors: np.ndarray, floor: np.ndarray,
                       building_planes: tuple[float, ...], slots: np.ndarray, *,
-                      raw: bool = False, want_jac: bool = True) -> tuple[np.ndarray, ...]:
+                      raw: bool = False, want_jac: bool = True,
+                      table: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Allocate the outputs and run the kernel on flat rows.
 
     ``nodes``, ``anchors``: C-contiguous writable float64 ``(P, 3)``; ``floor``: float64
     ``(P,)`` floor index per row; ``building_planes``: :func:`building_planes` of the building;
-    ``slots`` int64 ``(S,)`` with values in ``[0, 18)``. Returns
+    ``slots`` int64 ``(S,)``: rows of ``table`` (a C-contiguous int64 mechanism table,
+    :func:`mechanism_table`; default :data:`DEFAULT_TABLE`, the 18 mechanisms). Returns
     ``(length (P, S), valid (P, S), jac (P, S, 3), deviation_cos, outside_m, entry_z)``; with
     ``want_jac=False`` the last three float outputs except ``entry_z`` are uninitialised.
     """
@@ -363,8 +391,9 @@ def eval_paths_kernel(nodes: np.ndarray, anchors: np.ndarray, floor: np.ndarray,
     dev = np.empty((p, s) if want_jac else (0, 0))
     outm = np.empty((p, s) if want_jac else (0, 0))
     entry_z = np.empty((p, s))
-    paths_kernel(nodes, anchors, floor, *building_planes, slots, bool(raw), bool(want_jac),
-                 length, valid, jac, dev, outm, entry_z)
+    tab = DEFAULT_TABLE if table is None else table
+    paths_kernel(nodes, anchors, floor, *building_planes, tab, slots, bool(raw),
+                 bool(want_jac), length, valid, jac, dev, outm, entry_z)
     return length, valid, jac, dev, outm, entry_z
 
 
@@ -375,3 +404,18 @@ def building_planes(building) -> tuple[float, ...]:
     return (float(building.first_floor_z_m), float(building.floor_height_m),
             float(building.sill_height_m), float(building.window_height_m), float(x0),
             float(x1), float(building.depth_m))
+
+
+def mechanism_table(recipes) -> np.ndarray:
+    """The compiled mechanism table (module docstring) of ``diffpos.paths.mechanisms`` recipes
+    (``MechanismSet.recipes``): int64 ``(K, COL_PLANES + max planes)``, at least 2 plane
+    columns."""
+    width = max(2, *(len(r.planes) for r in recipes))
+    tab = np.full((len(recipes), COL_PLANES + width), -1, dtype=np.int64)
+    for i, r in enumerate(recipes):
+        tab[i, COL_KIND] = _KIND_CODE[r.kind]
+        tab[i, COL_GROUND] = int(r.ground)
+        tab[i, COL_EDGE] = -1 if r.edge is None else _EDGE_CODE[r.edge]
+        tab[i, COL_NPLANES] = len(r.planes)
+        tab[i, COL_PLANES:COL_PLANES + len(r.planes)] = [_PLANE_CODE[p] for p in r.planes]
+    return tab

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from diffpos.paths.mechanisms import MechanismSet
+
 FloatArray = NDArray[np.float64]
 
 #: Prior share of links whose first arrival is outside the path model (module docstring).
@@ -39,6 +41,7 @@ class _Problem:
     snr_meas: FloatArray | None = None  # (N, M) measured SNR (with radio: SNR-aware search)
     radio: object = None
     strong: NDArray[np.bool_] | None = None  # (N, M, K) predicted surely detected
+    mech: MechanismSet | None = None  # the mechanisms (None: the 18 of MECHANISMS)
 
 
 def _c(a, dtype=np.float64):
@@ -50,7 +53,7 @@ def _c(a, dtype=np.float64):
 
 def _take(p: _Problem, rows) -> _Problem:
     """The hypotheses ``rows`` of a problem."""
-    kw = {f: getattr(p, f) for f in ("prior_var", "lam", "wavelength_m")}
+    kw = {f: getattr(p, f) for f in ("prior_var", "lam", "wavelength_m", "mech")}
     for f in ("anchors", "r", "sig", "mask", "floor", "lo", "hi", "z_mid", "tail_a",
               "excess_db"):
         kw[f] = getattr(p, f)[rows]
@@ -89,11 +92,12 @@ def _floor_boxes(building, floors: NDArray[np.int_], margin: float = 1e-3):
 
 
 
-def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength) -> _Problem:
+def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength,
+             mech: MechanismSet | None = None) -> _Problem:
     lo, hi, zmid = _floor_boxes(building, floors)
     # tail offset: -log(eps / lambda) + log((1 - eps) / (sigma sqrt(2 pi)))
     tail_a = np.log((1 - OUTLIER_PRIOR) / OUTLIER_PRIOR * lam / (sig * np.sqrt(2 * np.pi)))
     return _Problem(anchors=a, r=r, sig=sig, mask=mask, floor=floors, lo=lo, hi=hi,
                     z_mid=zmid, prior_var=building.floor_height_m**2 / 12.0,
-                    tail_a=tail_a, lam=lam, excess_db=excess, wavelength_m=wavelength)
+                    tail_a=tail_a, lam=lam, excess_db=excess, wavelength_m=wavelength, mech=mech)
 

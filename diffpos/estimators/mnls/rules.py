@@ -14,7 +14,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from diffpos.channel.linkbudget import snr_db as _snr_db
-from diffpos.paths.mechanisms import DIFFRACTION_SLOTS, MECHANISMS, SPECULAR_SLOTS
+from diffpos.paths.mechanisms import (
+    DIFFRACTION_SLOTS,
+    MECHANISMS,
+    SPECULAR_SLOTS,
+    MechanismSet,
+)
 from diffpos.paths.model import first_arrival_paths
 
 FloatArray = NDArray[np.float64]
@@ -33,9 +38,30 @@ _DIFF_MASK = np.zeros(len(MECHANISMS), dtype=bool)
 _DIFF_MASK[list(DIFFRACTION_SLOTS)] = True
 #: (diffraction + reflection slot, plain diffraction slot over the same edge)
 _SAME_EDGE = ((9, 7), (10, 7), (13, 7), (11, 8), (12, 8))
+_SPEC_MASK = np.zeros(len(MECHANISMS), dtype=bool)
+_SPEC_MASK[list(SPECULAR_SLOTS)] = True
+_MASKS: dict[MechanismSet, tuple] = {}
 
 
-def _dominated(ps) -> NDArray[np.bool_]:
+def _masks(mech: MechanismSet | None) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray]:
+    """``(specular, diffraction, same_edge)`` of a mechanism set: the slots bounding the first
+    arrival (a specular path entering through the window: the 18's and the added specular
+    families), the diffraction slots, and the same-edge pairs ``(P, 2)`` (default: the 18's)."""
+    if mech is None:
+        return _SPEC_MASK, _DIFF_MASK, np.array(_SAME_EDGE, dtype=np.int64)
+    out = _MASKS.get(mech)
+    if out is None:
+        k = len(mech)
+        spec = np.zeros(k, dtype=bool)
+        spec[list(mech.specular)] = True
+        diff = np.zeros(k, dtype=bool)
+        diff[list(mech.diffraction)] = True
+        out = _MASKS[mech] = (spec, diff,
+                              np.array(mech.same_edge, dtype=np.int64).reshape(-1, 2))
+    return out
+
+
+def _dominated(ps, same_edge=_SAME_EDGE) -> NDArray[np.bool_]:
     """Diffraction + reflection paths that cannot arrive first (module docstring).
 
     A ``D(edge)-R(plane)`` path is longer than the plain ``D(edge)`` path (triangle
@@ -46,7 +72,7 @@ def _dominated(ps) -> NDArray[np.bool_]:
     """
     dom = np.zeros(ps.valid.shape, dtype=bool)
     c = ps.deviation_cos
-    for b_slot, a_slot in _SAME_EDGE:
+    for b_slot, a_slot in same_edge:
         with np.errstate(invalid="ignore"):
             dom[..., b_slot] = ps.valid[..., a_slot] & (c[..., a_slot] >= c[..., b_slot])
     return dom
@@ -88,18 +114,18 @@ def _link_terms_numpy(p, x: FloatArray, building) -> dict:
     """Numpy reference of :func:`diffpos.estimators.mnls.solver._link_terms` (the compiled kernel
     does the same operations): paths at ``x``, candidates by the rules above, max-mixture
     cost, chosen slot and its residual, Jacobian and IRLS weight of every link."""
-    ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
+    ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None],
+                             mechanisms=p.mech)
     length = ps.length_m
     valid = ps.valid
-    spec = np.zeros(length.shape[-1], dtype=bool)
-    spec[list(SPECULAR_SLOTS)] = True
+    spec, diff_mask, same_edge = _masks(p.mech)
     l_spec = np.min(np.where(valid & spec, length, np.inf), axis=-1)
     if p.strong is not None:  # nothing surely detected arrives before the first arrival
         l_spec = np.minimum(l_spec, np.min(np.where(valid & p.strong, length, np.inf), axis=-1))
-    cand = valid & (length <= l_spec[..., None]) & ~_dominated(ps)
+    cand = valid & (length <= l_spec[..., None]) & ~_dominated(ps, same_edge.tolist())
     with np.errstate(invalid="ignore"):
         too_strong = p.excess_db[..., None] < _knife_edge_loss_db(ps, p.wavelength_m) - SNR_MARGIN_DB
-    cand &= ~(too_strong & _DIFF_MASK)
+    cand &= ~(too_strong & diff_mask)
     if p.allowed is not None:
         cand &= p.allowed
     e = p.r[..., None] - length  # (N, M, K)

@@ -88,11 +88,10 @@ from diffpos.estimators.mnls.problem import (
 )
 from diffpos.estimators.mnls.result import MnlsResult, _information, _posterior, _result
 from diffpos.estimators.mnls.rules import (
-    _DIFF_MASK,
-    _SAME_EDGE,
     SNR_MARGIN_DB,
     SNR_SIGMA_DB,
     _excess_loss_db,
+    _masks,
 )
 from diffpos.estimators.mnls.solver_nb import link_terms_kernel, lm_kernel
 from diffpos.estimators.mnls.starts import (
@@ -102,18 +101,25 @@ from diffpos.estimators.mnls.starts import (
     _start_points,
 )
 from diffpos.estimators.result import prepare_batch
-from diffpos.paths.mechanisms import SPECULAR_SLOTS
+from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, mechanism_set
 from diffpos.paths.model import first_arrival_paths
-from diffpos.paths.model_nb import building_planes
+from diffpos.paths.model_nb import DEFAULT_TABLE, building_planes, mechanism_table
 
 __all__ = [
     "mnls",
 ]
 
 FloatArray = NDArray[np.float64]
-_SPEC_MASK = np.zeros(len(_DIFF_MASK), dtype=bool)
-_SPEC_MASK[list(SPECULAR_SLOTS)] = True
-_SAME_EDGE_PAIRS = np.array(_SAME_EDGE, dtype=np.int64)
+_TABLES: dict = {}
+
+
+def _table(mech) -> NDArray[np.int64]:
+    """The compiled mechanism table of ``mech`` (None: the 18)."""
+    if mech is None:
+        return DEFAULT_TABLE
+    if mech not in _TABLES:
+        _TABLES[mech] = mechanism_table(mech.recipes)
+    return _TABLES[mech]
 
 #: Levenberg-Marquardt iterations of the refinement with the SNR-chosen mechanisms held.
 REFINE_ITER = 6
@@ -172,8 +178,10 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     compiled kernel (:func:`diffpos.estimators.mnls.solver_nb.link_terms_kernel`) on the path model's
     output, the same operations as :func:`_link_terms_numpy` (the reference)."""
     c0 = time.thread_time()
-    ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None])
+    ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None],
+                             mechanisms=p.mech)
     n, m, k = ps.length_m.shape
+    spec, diff, same_edge = _masks(p.mech)
     _count("paths_cpu_s", time.thread_time() - c0)
     _count("paths", n * m)
     b1 = lambda a: np.zeros((0, 0, 0), bool) if a is None else _c(a, bool)  # noqa: E731
@@ -187,7 +195,7 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
         _c(np.broadcast_to(p.tail_a, (n, m))), _c(p.excess_db), float(p.lam),
         float(p.wavelength_m), float(SNR_MARGIN_DB),
         np.zeros((0, 0, 0)) if p.snr_cost is None else _c(p.snr_cost), b1(p.strong),
-        b1(p.allowed), _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, out["cost"], out["res"],
+        b1(p.allowed), spec, diff, same_edge, out["cost"], out["res"],
         out["w"], out["slot"], out["tail"], out["none"], out["cand"], out["jac"])
     prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
     out["cost"] = out["cost"].sum(axis=-1) + prior
@@ -212,6 +220,8 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
         pm = pair_snr_db(p.anchors[m][:, None, :], xm, building=building, radio=p.radio)
         pred = np.full((*m.shape, pm.shape[-1]), -np.inf)
         pred[m] = pm[:, 0]
+    if p.mech is not None and len(p.mech) > len(MECHANISMS):
+        pred = np.concatenate([pred, _family_snr(p, x, building)], axis=-1)
     _count("snr_cpu_s", time.thread_time() - c0)
     _count("snr", np.count_nonzero(m))
     meas = p.snr_meas[..., None]
@@ -226,6 +236,24 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     c = np.where(np.isfinite(pred), c, np.inf)  # a slot that does not exist is not received
     p.strong = pred >= thr + SNR_SIGMA_DB  # surely detected at this hypothesis
     return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
+
+
+def _family_snr(p: _Problem, x: FloatArray, building) -> FloatArray:
+    """Closed-form SNR (:func:`diffpos.estimators.mnls.power.family_snr_db`) of the families
+    beyond the emulator's 18 slots at ``x``, ``-inf`` off the mask."""
+    from diffpos.estimators.mnls.power import family_snr_db
+
+    extra = np.arange(len(MECHANISMS), len(p.mech))
+    m = p.mask
+    out = np.full((*m.shape, extra.size), -np.inf)
+    rows, links = np.nonzero(m)
+    a = p.anchors[rows, links]
+    xm = x[rows]
+    fl = p.floor[rows]
+    ps = first_arrival_paths(xm, a, building, floor=fl, slots=extra, mechanisms=p.mech)
+    lo, hi = building.window_z_m(fl)
+    out[rows, links] = family_snr_db(ps, p.mech, extra, a, xm, building, p.radio, (hi, lo))
+    return out
 
 
 def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = None,
@@ -280,7 +308,7 @@ def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = 
 
 
 def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, wavelength,
-                 snr=None, radio=None, x0=None, kernel=False):
+                 snr=None, radio=None, x0=None, kernel=False, mech=None):
     """All floors x starts of B fixes; returns per-fix-per-floor modes and terms."""
     b = r.shape[0]
     nf = building.n_floors
@@ -290,7 +318,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     with _stage("starts"):
         p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
                       np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
-                      building, lam, np.repeat(excess, rep, axis=0), wavelength)
+                      building, lam, np.repeat(excess, rep, axis=0), wavelength, mech)
         x, closed = _start_points(p0, grid, building, b, x0, kernel=kernel)
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
@@ -310,7 +338,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g
                 + best).ravel()
         p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
-                     building, lam, p0.excess_db[rows], wavelength)
+                     building, lam, p0.excess_db[rows], wavelength, mech)
         x = x[rows]
         if "res" in t0:
             t = {k: v[rows] for k, v in t0.items()}
@@ -391,7 +419,7 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
                _c(np.broadcast_to(p.tail_a, p.r.shape)), _c(p.excess_db), _c(p.floor),
                _c(p.lo), _c(p.hi), _c(p.z_mid))
     consts = (float(p.prior_var), float(p.lam), float(p.wavelength_m), float(SNR_MARGIN_DB),
-              np.array(building_planes(building)))
+              np.array(building_planes(building)), _table(p.mech))
     allowed = e3.astype(bool) if p.allowed is None else _c(p.allowed, bool)
     done = 0
     while done < iters and live.any():
@@ -408,8 +436,9 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
         live_after = live.copy()
         snr = (e3 if p.snr_cost is None else _c(p.snr_cost),
                e3.astype(bool) if p.strong is None else _c(p.strong, bool), allowed)
-        kernel_cpu = run_rows(partial(_lm_rows, per_row, consts, snr, int(seg), x, damp, live_after, c_seg,
-                                      evals), n, min_rows=LM_MIN_ROWS)
+        kernel_cpu = run_rows(partial(_lm_rows, per_row, consts, snr, _masks(p.mech), int(seg),
+                                      x, damp, live_after, c_seg, evals), n,
+                              min_rows=LM_MIN_ROWS)
         _count("kernel_cpu_s", kernel_cpu)
         _count("paths", int(evals.sum()))
         cost = np.where(live, c_seg, cost)  # rows live at the call: their cost now
@@ -420,15 +449,15 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
     return x, _link_terms(p, x, building)
 
 
-def _lm_rows(per_row: tuple, consts: tuple, snr: tuple, iters: int, x: FloatArray,
-             damp: FloatArray, live: NDArray[np.bool_], cost: FloatArray,
+def _lm_rows(per_row: tuple, consts: tuple, snr: tuple, masks: tuple, iters: int,
+             x: FloatArray, damp: FloatArray, live: NDArray[np.bool_], cost: FloatArray,
              evals: NDArray[np.int64], lo: int, hi: int) -> None:
     """:func:`diffpos.estimators.mnls.solver_nb.lm_kernel` on the rows ``[lo, hi)``
     (:func:`diffpos._kernels.pool.run_rows`): the row slices of every per-row array (an empty
     SNR array, (0, 0, 0), stays whole), ``consts`` whole, the same compiled signature."""
     rows = slice(lo, hi)
     s = [v if v.shape[0] == 0 else v[rows] for v in snr]
-    lm_kernel(*(v[rows] for v in per_row), *consts, *s, _SPEC_MASK, _DIFF_MASK, _SAME_EDGE_PAIRS, iters, float(CONVERGED_M),
+    lm_kernel(*(v[rows] for v in per_row), *consts, *s, *masks, iters, float(CONVERGED_M),
               x[rows], damp[rows], live[rows], cost[rows], evals[rows])
 
 
@@ -479,6 +508,7 @@ def mnls(
     chunk_size: int = 256,
     x0_m: ArrayLike | None = None,
     kernel: bool = True,
+    max_order: int = DEFAULT_ORDER,
 ) -> MnlsResult:
     """Batched mechanism-aware position fixes (module docstring).
 
@@ -522,6 +552,12 @@ def mnls(
         Levenberg-Marquardt steps (screen, refinement) in the compiled kernel
         (:func:`diffpos.estimators.mnls.solver_nb.lm_kernel`, the default) or in the numpy/numba
         reference steps (``False``); the same answers (tests/core/test_mnls.py).
+    max_order : int
+        The path model's mechanisms (:func:`diffpos.paths.mechanisms.mechanism_set`): 2 (the
+        default) the 18 of :data:`diffpos.paths.mechanisms.MECHANISMS`; 3 or 4 adds the
+        higher-order families (slab image series, ground bounce before the diffraction, wall
+        reflections), whose SNR term is :mod:`diffpos.estimators.mnls.power`'s estimate.
+        ``MnlsResult.mechanism`` then indexes ``mechanism_set(max_order).labels``.
 
     Returns
     -------
@@ -541,6 +577,7 @@ def mnls(
     snr_all = None if snr_db is None else np.broadcast_to(
         np.asarray(snr_db, dtype=np.float64), (bsz, m))
     wavelength = SPEED_OF_LIGHT_M_S / (28e9 if radio is None else radio.frequency_hz)
+    mech = None if max_order <= DEFAULT_ORDER else mechanism_set(max_order)
     out = {
         "position_m": np.full((bsz, 3), np.nan), "covariance_m2": np.full((bsz, 3, 3), np.nan),
         "residuals_m": np.full((bsz, m), np.nan), "used": np.zeros((bsz, m), dtype=bool),
@@ -558,7 +595,7 @@ def mnls(
                              excess[idx], building, grid=grid, keep=keep_starts,
                              wavelength=wavelength, iters=max_iter, lam=lam, radio=radio,
                              snr=None if snr_all is None else snr_all[idx],
-                             x0=None if x0 is None else x0[idx], kernel=kernel)
+                             x0=None if x0 is None else x0[idx], kernel=kernel, mech=mech)
         with _stage("final"):
             _finish(out, idx, *modes, nf=nf, snr_meas=None if snr_db is None else snr_all[idx],
                     building=building, radio=radio, kernel=kernel)

@@ -1,4 +1,4 @@
-"""Ray-traced paths -> the 18 first-arrival mechanisms of :mod:`diffpos.paths.model` (pure numpy).
+"""Ray-traced paths -> the first-arrival mechanisms of :mod:`diffpos.paths.model` (pure numpy).
 
 Every interaction of a traced path (its flag from ``path_chain`` and its point from
 ``path_vertices_m``) is named by the surface or edge it lies on, with the scene's geometry
@@ -19,11 +19,13 @@ anything else      e.g. ``D(edge floor+1)`` (a window edge of another floor), ``
                    ``R(facade)`` (outside of the facade), ``R(partition)``, ``S`` (diffuse)
 =================  ==========================================================================
 
-The tokens joined (``Tx-D(lower)-R(ceiling)-Rx``) are the mechanism's label; a label in
-:data:`diffpos.paths.mechanisms.MECHANISMS` gives its slot, every other label is "other" and is reported
-by name (e.g. the triple bounce ``Tx-R(ceiling)-R(floor)-R(ceiling)-Rx``, which the model
-leaves out). :func:`mechanism_length_check` then compares every classified path's traced
-length with the model's closed-form length for that mechanism on the receiver's floor.
+The tokens joined (``Tx-D(lower)-R(ceiling)-Rx``) are the mechanism's label; a label of the
+mechanism set (``mechanisms=``, a :class:`diffpos.paths.mechanisms.MechanismSet`; default the
+18 of :data:`diffpos.paths.mechanisms.MECHANISMS`) gives its slot, every other label is "other"
+and is reported by name (e.g. the triple bounce ``Tx-R(ceiling)-R(floor)-R(ceiling)-Rx``, which
+the 18 leave out and ``mechanism_set(3)`` has). :func:`mechanism_length_check` then compares
+every classified path's traced length with the model's closed-form length for that mechanism
+on the receiver's floor.
 """
 
 from __future__ import annotations
@@ -34,13 +36,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.paths.mechanisms import MECHANISMS
+from diffpos.paths.mechanisms import MechanismSet, mechanism_set
 from diffpos.paths.model import first_arrival_paths, graded_paths
 from diffpos.scenario import Building
 from diffpos_services.raytrace.dataset import RaytraceDataset
 from diffpos_services.raytrace.paths import DIFFRACTION, DIFFUSE, REFRACTION, SPECULAR
 
-#: Code of a path that is none of the 18 mechanisms (its label says what it is).
+#: Code of a path that is none of the mechanisms (its label says what it is).
 OTHER = -1
 #: Code of padding (no path).
 NO_PATH = -2
@@ -57,7 +59,8 @@ class Mechanisms:
     Attributes
     ----------
     code : ndarray of int, shape (N, M, K)
-        Slot of :data:`diffpos.paths.mechanisms.MECHANISMS`, :data:`OTHER` or :data:`NO_PATH`.
+        Slot of the mechanism set (default :data:`diffpos.paths.mechanisms.MECHANISMS`),
+        :data:`OTHER` or :data:`NO_PATH`.
     label : ndarray of object (str), shape (N, M, K)
         The token label of every path (``""`` for padding).
     """
@@ -123,8 +126,10 @@ def _transmission_token(p: NDArray, parts: list[tuple[int, float]]) -> NDArray[n
     return tok
 
 
-def classify_mechanisms(ds: RaytraceDataset) -> Mechanisms:
+def classify_mechanisms(ds: RaytraceDataset, mechanisms: MechanismSet | None = None
+                        ) -> Mechanisms:
     """The mechanism of every traced path (module docstring); needs ``ds.path_vertices_m``.
+    ``mechanisms``: the slots the labels map to (default the 18).
 
     Raises
     ------
@@ -153,15 +158,17 @@ def classify_mechanisms(ds: RaytraceDataset) -> Mechanisms:
         keep = (tok != "") & (tok != "T(partition)")
         labels = np.where(keep, labels + "-" + tok, labels)
     labels = np.where(ds.path_valid, labels + "-Rx", "")
-    slot_of = {name: i for i, name in enumerate(MECHANISMS)}
+    slot_of = {name: i for i, name in enumerate((mechanisms or mechanism_set()).labels)}
     uniq, inv = np.unique(labels.astype(str), return_inverse=True)
     codes = np.array([slot_of.get(u, OTHER) if u else NO_PATH for u in uniq])
     return Mechanisms(code=codes[inv.reshape(labels.shape)], label=labels)
 
 
-def model_lengths(ds: RaytraceDataset) -> tuple[NDArray, NDArray[np.bool_], NDArray[np.bool_]]:
-    """The model's length (also where it does not exist) and existence of every slot per link
-    ``(N, M, 18)`` on the node's floor, and the existence with the window band widened by :data:`BAND_TIE_M`
+def model_lengths(ds: RaytraceDataset, mechanisms: MechanismSet | None = None
+                  ) -> tuple[NDArray, NDArray[np.bool_], NDArray[np.bool_]]:
+    """The model's length (also where it does not exist) and existence of every slot of
+    ``mechanisms`` (default the 18) per link ``(N, M, K)`` on the node's floor, and the
+    existence with the window band widened by :data:`BAND_TIE_M`
     (:func:`diffpos.paths.model.graded_paths` ``loose``: rays entering on a band limit).
 
     The ground slots (``R(ground)``) are evaluated in the scene's frame, whose ground lies
@@ -172,26 +179,32 @@ def model_lengths(ds: RaytraceDataset) -> tuple[NDArray, NDArray[np.bool_], NDAr
     nodes = ds.nodes_m[:, None, :]
     anchors = ds.anchors_m[None, :, :]
     floor = b.floor_index(ds.nodes_m[:, 2])[:, None]
-    ps = first_arrival_paths(nodes, anchors, b, floor=floor)
-    gp = graded_paths(nodes, anchors, b, relax_m=BAND_TIE_M, floor=floor)
+    mech = mechanisms or mechanism_set()
+    ps = first_arrival_paths(nodes, anchors, b, floor=floor, mechanisms=mech)
+    gp = graded_paths(nodes, anchors, b, relax_m=BAND_TIE_M, floor=floor, mechanisms=mech)
     length, valid, loose = gp.length_m.copy(), ps.valid.copy(), gp.loose.copy()
     zg = ground_z_m(ds)
     if zg != 0.0:
         up = np.array([0.0, 0.0, -zg])
         b_up = dataclasses.replace(b, first_floor_z_m=b.first_floor_z_m - zg)
-        ground = [i for i, s in enumerate(MECHANISMS) if "R(ground)" in s]
-        pg = first_arrival_paths(nodes + up, anchors + up, b_up, floor=floor, slots=ground)
+        ground = [i for i, r in enumerate(mech.recipes) if r.ground]
+        pg = first_arrival_paths(nodes + up, anchors + up, b_up, floor=floor, slots=ground,
+                                 mechanisms=mech)
         gg = graded_paths(nodes + up, anchors + up, b_up, relax_m=BAND_TIE_M, floor=floor,
-                          slots=ground)
+                          slots=ground, mechanisms=mech)
         length[..., ground] = gg.length_m
         valid[..., ground] = pg.valid
         loose[..., ground] = gg.loose
     return length, valid, loose
 
 
-def mechanism_length_check(ds: RaytraceDataset, mech: Mechanisms | None = None
+def mechanism_length_check(ds: RaytraceDataset, mech: Mechanisms | None = None,
+                           mechanisms: MechanismSet | None = None
                            ) -> dict[str, dict[str, float]]:
     """Per mechanism: traced length vs the model's closed-form length on the node's floor.
+
+    ``mechanisms``: the set the paths are classified into (default the 18); ``mech``, if
+    given, must have been classified with it.
 
     Returns
     -------
@@ -202,10 +215,11 @@ def mechanism_length_check(ds: RaytraceDataset, mech: Mechanisms | None = None
         slot with at least one traced path; the errors are over the paths the model has
         (``exists_on_band``; the length is computed there too).
     """
-    mech = mech or classify_mechanisms(ds)
-    length, valid, loose = model_lengths(ds)
+    mset = mechanisms or mechanism_set()
+    mech = mech or classify_mechanisms(ds, mset)
+    length, valid, loose = model_lengths(ds, mset)
     out: dict[str, dict[str, float]] = {}
-    for s, name in enumerate(MECHANISMS):
+    for s, name in enumerate(mset.labels):
         idx = np.argwhere(mech.code == s)
         if len(idx) == 0:
             continue
