@@ -388,6 +388,7 @@ def positioning_study(
     progress: Callable[[str, int, int], None] | None = None,
     building: Any = None,
     radio: Any = None,
+    mnls_max_order: int = 2,
 ) -> PositioningStudy:
     """Position every receiver with each method and compute the bounds.
 
@@ -417,6 +418,9 @@ def positioning_study(
         Required by ``mnls``; enables the per-method floor accuracy.
     radio : diffpos.scenario.Radio, optional
         Link budget for ``mnls``'s SNR test and its error floor / bandwidth.
+    mnls_max_order : int
+        ``mnls``'s mechanism families (:func:`diffpos.paths.mechanisms.mechanism_set`; 2: the
+        18 mechanisms of the emulator).
 
     Returns
     -------
@@ -449,7 +453,7 @@ def positioning_study(
                                             "error_floor_m": radio.range_error_floor_m}
             return mnls(a, ranges[sl], np.where(mask[sl], data.sigma_m[sl], 1.0),
                         mask=mask[sl], building=building, snr_db=data.snr_db[sl], radio=radio,
-                        **rkw)
+                        max_order=mnls_max_order, **rkw)
         return dnls(a, ranges[sl], None, mask=mask[sl], window_height_m=window_height_m,
                     delta_m=dnls_delta[method], edge_x_m=edge_x_m, gating=None,
                     z_starts_m=z_starts_m)
@@ -595,6 +599,9 @@ class ReproduceConfig:
         :data:`REPRODUCE_METHODS`).
     delta_m : float [m]
         D-NLS Case-2 model offset.
+    mnls_max_order : int
+        M-NLS's mechanism families (2: the emulator's 18 mechanisms; 3, 4: higher-order
+        reflections between the slabs, ground bounce before the edge).
     """
 
     seed: int = 0
@@ -602,6 +609,7 @@ class ReproduceConfig:
     quick_nodes: int = DEFAULT_QUICK_NODES
     methods: tuple[str, ...] = REPRODUCE_METHODS
     delta_m: float = 1.5
+    mnls_max_order: int = 2
 
 
 class Progress(Protocol):
@@ -738,7 +746,7 @@ def reproduce(
         methods=tuple(cfg.methods), progress=clock.update,
         z_starts_m=floor_starts_m(scenario.building),
         start_y_m=0.5 * scenario.building.depth_m,
-        building=scenario.building, radio=scenario.radio,
+        building=scenario.building, radio=scenario.radio, mnls_max_order=cfg.mnls_max_order,
     )
     timing["positioning_s"] = time.perf_counter() - t0
     timing["method_s"] = clock.durations()
@@ -761,6 +769,7 @@ def build_summary(cfg: ReproduceConfig, scenario: Scenario, res: Reproduction) -
         "n_anchors": int(np.shape(data.anchors_m)[0]),
         "anchors_m": np.asarray(data.anchors_m).tolist(),
         "delta_case2_m": cfg.delta_m,
+        "mnls_max_order": cfg.mnls_max_order,
         "window_height_m": scenario.building.window_height_m,
         "mpc_table_pct": res.table,
         "first_arrival_mechanism_pct": res.fap_by_mechanism,

@@ -172,3 +172,18 @@ def test_reproduce_accepts_a_raytrace_dataset(tmp_path, paper):
     for g in ("MPC-1", "MPC-2", "MPC-3", "MPC-4"):
         for k in ("P_e", "P_fap"):
             assert s["mpc_table_pct"][g][k] == pytest.approx(want[g][k], abs=0.5)
+
+
+def test_the_mnls_mechanism_families_reach_the_estimator(paper, monkeypatch):
+    """``mnls_max_order`` (``diffpos reproduce --mnls-max-order``) is the order M-NLS runs
+    with: 2 (the emulator's 18 mechanisms) by default, the higher-order families when asked."""
+    import diffpos.study as study
+
+    seen = []
+    real = study.mnls
+    monkeypatch.setattr(study, "mnls", lambda *a, **k: seen.append(k["max_order"]) or real(*a, **k))
+    d = _emulated(paper, 12, 3)
+    kw = dict(window_height_m=1.5, methods=("mnls",), building=paper.building, radio=paper.radio)
+    positioning_study(d, **kw)
+    positioning_study(d, mnls_max_order=3, **kw)
+    assert seen == [2, 3]

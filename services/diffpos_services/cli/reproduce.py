@@ -89,6 +89,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "window edge; mnls uses the scenario's building and radio)")
     parser.add_argument("--delta-m", type=float, default=1.5,
                         help="D-NLS Case-2 model offset Delta [m] (default: 1.5, the paper's)")
+    parser.add_argument("--mnls-max-order", type=int, default=2, choices=(2, 3, 4),
+                        help="mnls's mechanism families: 2 = the 18 mechanisms of the emulator "
+                             "(default); 3, 4 = also triple / quadruple bounces between the "
+                             "slabs, edge diffraction then two or three bounces, a ground "
+                             "bounce before the edge (what Sionna RT finds first indoors)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -151,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         return _fail(problem)
     cfg = ReproduceConfig(seed=args.seed, quick=args.quick, quick_nodes=args.quick_nodes,
-                          methods=tuple(args.methods), delta_m=args.delta_m)
+                          methods=tuple(args.methods), delta_m=args.delta_m,
+                          mnls_max_order=args.mnls_max_order)
     try:
         kind, path = _channel_source(args.channel)
         with report.ProgressBars(not args.no_progress) as prog:
