@@ -36,7 +36,7 @@ from diffpos_services.config import build_config
 from diffpos_services.errors import ConfigError
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "METHODS",
+__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "MAX_SHARDS", "METHODS",
            "TRACKER_KEYS", "FusionConfig", "TrackerSettings", "building_of", "channel_edge",
            "legacy_tracker_settings", "merge_tracker", "model_edge", "parse_shard",
            "parse_tracker_items", "shard_of", "tracker_argv", "tracker_help"]
