@@ -85,3 +85,33 @@ def test_shard_of_is_a_stable_hash_and_parse_shard_checks():
     with pytest.raises(ValueError, match="shard=2 must be < shards=2"):
         FusionConfig(shard=2, shards=2).check()
     assert FusionConfig(shard=1, shards=2).owns("n0") == (zlib.crc32(b"n0") % 2 == 1)
+
+
+def test_emulate_merges_the_shards_diagnostics_and_supervises_each_shard_as_the_fusion():
+    from diffpos_services.emulate.orchestrator import merged_diagnostics
+    from diffpos_services.emulate.supervise import ESSENTIAL, RESTARTABLE, fusion_name, service_role
+    from diffpos_services.wire import messages as M
+
+    def diag(t, wm, pending, solved, p99, rejected):
+        return M.FusionDiagnostics(
+            t_wall_ns=t, watermark_ns=wm, received={"range": 10, "other_shard": 5},
+            rejected=rejected, gated=1, solved=solved, published=solved,
+            fixes_by_status={"TRACKING": solved}, late_ranges=2, pending_epochs=pending,
+            live_anchors=["a"], anchors=[], latency=M.LatencyStats(3, 1.0, p99, p99),
+            late_by_anchor={"a": 2}, deadline_ns=1, max_lag_ns=1, lag_by_anchor={},
+            releases={"complete": solved})
+
+    m = merged_diagnostics([diag(5, 300, 0, 7, 9.0, {"late": 1}),
+                            diag(6, 200, 3, 4, 2.0, {"late": 2, "schema": 1})])
+    assert (m.t_wall_ns, m.watermark_ns, m.pending_epochs, m.solved, m.published) == (
+        6, 200, 3, 11, 11)
+    assert m.received == {"range": 20, "other_shard": 10}
+    assert m.rejected == {"late": 3, "schema": 1} and m.late_by_anchor == {"a": 4}
+    assert m.latency.p99_ms == 9.0 and m.releases == {"complete": 11}
+    assert merged_diagnostics([diag(5, None, 0, 1, 1.0, {}),
+                               diag(6, 200, 0, 1, 1.0, {})]).watermark_ns is None
+    assert [fusion_name(k, 2) for k in range(2)] == ["fusion-0", "fusion-1"]
+    assert fusion_name(0, 1) == "fusion"
+    assert {service_role(fusion_name(k, 3)) for k in range(3)} == {"fusion"}
+    assert "fusion" in RESTARTABLE and "fusion" in ESSENTIAL
+    assert service_role("anchor-uav1") == "anchor-uav1"
