@@ -110,6 +110,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the fusion's worker processes (diffpos fusion --workers; default "
                         "1: none). N > 1 splits the tracker's rows over N processes, the "
                         "same estimates bit for bit; pays only where a core is free")
+    parser.add_argument("--fusion-shards", type=int, default=1, metavar="N",
+                        help="fusion processes sharing the responders (diffpos fusion --shard "
+                        "K/N, K = 0 .. N-1; default 1): together they publish what one fusion "
+                        "publishes, each solving the responders whose id's CRC-32 modulo N is K")
     parser.add_argument("--tracker", action="append", default=[], metavar="KEY=VALUE",
                         help="a setting of the fusion's per-responder tracker (diffpos fusion "
                         "--tracker; repeatable; recorded with the fusion settings; meaning of "
@@ -155,7 +159,8 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress, ready_timeout_s=args.ready_timeout,
             log_level=args.log_level,
             delta_m=args.delta_m, edge=args.edge, method=args.method,
-            fusion_workers=args.fusion_workers, security_profile=args.security_profile,
+            fusion_workers=args.fusion_workers, fusion_shards=args.fusion_shards,
+            security_profile=args.security_profile,
             tracker=parse_tracker_items(args.tracker),
             raytrace_samples=args.raytrace_samples, raytrace_depth=args.raytrace_depth,
             raytrace_step_s=args.raytrace_step_s,

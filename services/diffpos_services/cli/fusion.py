@@ -56,6 +56,7 @@ from diffpos_services.fusion.config import (
     METHODS,
     FusionConfig,
     model_edge,
+    parse_shard,
     parse_tracker_items,
     tracker_help,
 )
@@ -198,6 +199,13 @@ def _add_cpu_arguments(parser: argparse.ArgumentParser) -> None:
         "the fusion is ready; estimates identical for any N; 2 pays only where a core is free "
         f"(default: {DEFAULT_WORKERS})",
     )
+    parser.add_argument(
+        "--shard", metavar="K/N", default=None,
+        help="own a share of the responders: those whose id's CRC-32 modulo N is K (0 <= K < N). "
+        "N fusions started with 0/N .. N-1/N, on one or many machines, together publish what "
+        "one fusion publishes (each ingests every anchor, solves only its responders); "
+        "recorded in the fusion settings (default: all responders)",
+    )
 
 
 def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
@@ -221,6 +229,8 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         workers=args.workers,
         tracker=parse_tracker_items(args.tracker),
     )
+    if getattr(args, "shard", None) is not None:
+        values["shard"], values["shards"] = parse_shard(args.shard)
     if args.window_height_m is not None:
         values["window_height_m"] = args.window_height_m
     for name in ("anchors", "nodes"):

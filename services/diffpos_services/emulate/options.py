@@ -11,7 +11,7 @@ from typing import Any
 from diffpos_services.bus.commands import recorder_args
 from diffpos_services.bus.session import check_endpoint
 from diffpos_services.errors import ConfigError
-from diffpos_services.fusion.config import EDGES, MAX_WORKERS, METHODS, tracker_value
+from diffpos_services.fusion.config import EDGES, MAX_SHARDS, MAX_WORKERS, METHODS, tracker_value
 from diffpos_services.wire.keys import Keys
 
 __all__ = ["CHANNELS", "EXTRA_SERVICES", "EmulationOptions", "channel_argv", "dashboard_argv",
@@ -42,6 +42,9 @@ class EmulationOptions:
     edge: str = "auto"
     method: str | None = None
     fusion_workers: int = 1
+    fusion_shards: int = 1
+    """Fusion processes sharing the responders (``--fusion-shards``; ``diffpos fusion --shard
+    K/N`` each): together they publish what one fusion publishes."""
     security_profile: str | None = None
     tracker: dict[str, Any] = field(default_factory=dict)
     """The fusion's tracker settings (``--tracker KEY=VALUE``; FusionConfig.tracker)."""
@@ -67,6 +70,9 @@ class EmulationOptions:
         if not 1 <= self.fusion_workers <= MAX_WORKERS:
             raise ConfigError(f"--fusion-workers must be in [1, {MAX_WORKERS}], got "
                               f"{self.fusion_workers}")
+        if not 1 <= self.fusion_shards <= MAX_SHARDS:
+            raise ConfigError(f"--fusion-shards must be in [1, {MAX_SHARDS}], got "
+                              f"{self.fusion_shards}")
         for key, value in self.tracker.items():
             self.tracker[key] = tracker_value(key, value, where=f"--tracker {key}={value}")
         if self.edge not in EDGES:

@@ -54,7 +54,9 @@ from diffpos_services.emulate.supervise import (
     NotRestarted,
     Supervisor,
     disk_full,
+    fusion_name,
     recover_in_place,
+    service_role,
 )
 from diffpos_services.errors import ConfigError, DiffposError
 from diffpos_services.fusion.config import (
@@ -73,12 +75,39 @@ from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
 
 __all__ = ["MAX_NODE_LIST_CHARS", "RUN_DIR_PREFIXES", "Emulation", "claim_run_dir", "fusion_node_list",
+           "merged_diagnostics",
            "reap_run_dirs"]
 
 #: Longest node allow-list emulate writes on the fusion's command line [characters]: Linux
 #: refuses to start a process with one argument over 128 KiB (E2BIG), e.g. 20,000 ids of 6
 #: characters or 2,000 of 64.
 MAX_NODE_LIST_CHARS = 100_000
+
+
+def merged_diagnostics(diags: list[M.FusionDiagnostics]) -> M.FusionDiagnostics:
+    """What one fusion would report for the fusion shards' diagnostics ``diags`` (each
+    shard's newest): counters summed, the lowest watermark (the run's progress is its
+    slowest shard's), the latency of the shard with the highest p99, the newest shard's
+    anchor health and release rule; no decision record."""
+    newest = max(diags, key=lambda d: d.t_wall_ns)
+
+    def total(name: str) -> Any:
+        vals = [getattr(d, name) for d in diags]
+        if isinstance(vals[0], dict):
+            out: collections.Counter = collections.Counter()
+            for v in vals:
+                out.update(v)
+            return dict(out)
+        return sum(vals)
+
+    wms = [d.watermark_ns for d in diags]
+    return msgspec.structs.replace(
+        newest, watermark_ns=None if None in wms else min(wms),
+        **{k: total(k) for k in ("received", "rejected", "gated", "solved", "published",
+                                 "fixes_by_status", "late_ranges", "pending_epochs",
+                                 "late_by_anchor", "releases")},
+        latency=max((d.latency for d in diags), key=lambda s: s.p99_ms or -1.0),
+        decisions=None)
 
 
 def fusion_node_list(nodes: list[tuple[str, Any]], scenario: Any, scenario_file: str | None
@@ -221,7 +250,12 @@ class Emulation:
         self.alive: set[str] = set()
         self.alive_event = threading.Condition()
         self.q: queue.Queue = queue.Queue()
-        self.diag: M.FusionDiagnostics | None = None
+        self._diag: M.FusionDiagnostics | None = None
+        # with fusion shards: each shard's newest diagnostics (by shard: a restarted shard's
+        # new zenoh id replaces the old one's), merged by the property ``diag``
+        self._zid_shard: dict[str, int] = {}
+        self._shard_diags: dict[int, M.FusionDiagnostics] = {}
+        self._dec_diag = M.decoder(M.FusionDiagnostics)
         # estimates count only from the fusion this run started: its zenoh ids (one per
         # start), seen in the timestamps its session puts on every sample
         self.fusion_ids: set[str] = set()
@@ -295,7 +329,20 @@ class Emulation:
             return None
         return ["--zenoh-config", self.zenoh_files[user]]
 
-    def _fusion_zargs(self) -> list[str]:
+    @property
+    def diag(self) -> M.FusionDiagnostics | None:
+        """The fusion's newest diagnostics (the monitor sets them); with fusion shards, every
+        shard's newest merged (:func:`merged_diagnostics`; ``None`` until each reported)."""
+        if self.o.fusion_shards == 1:
+            return self._diag
+        diags = list(self._shard_diags.values())
+        return merged_diagnostics(diags) if len(diags) == self.o.fusion_shards else None
+
+    @diag.setter
+    def diag(self, value: M.FusionDiagnostics | None) -> None:
+        self._diag = value
+
+    def _fusion_zargs(self, shard: int = 0) -> list[str]:
         """``--zenoh-config <file>`` of a fusion start: its bus settings (plain, or its
         identity file of the secured bus) with a fresh zenoh id and timestamping on, so every
         sample it publishes carries that id (:meth:`_on_data` counts only those)."""
@@ -314,6 +361,7 @@ class Emulation:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(str(cfg))
         self.fusion_ids.add(zid)
+        self._zid_shard[zid] = shard
         return ["--zenoh-config", str(path)]
 
     def _restart(self, name: str, n: int) -> str:
@@ -322,9 +370,11 @@ class Emulation:
         old = next(p for p in reversed(self.procs) if p.name == name)
         argv = list(old.argv)
         note = ""
-        if name == "fusion":
+        if service_role(name) == "fusion":
             i = argv.index("--zenoh-config")
-            argv[i:i + 2] = self._fusion_zargs()
+            k = argv.index("--shard") if "--shard" in argv else None
+            argv[i:i + 2] = self._fusion_zargs(0 if k is None else
+                                               int(argv[k + 1].partition("/")[0]))
             note = "resumed from the bus (epochs while it was down have no estimate)"
         elif name == "recorder":
             i = argv.index("--out")
@@ -404,7 +454,10 @@ class Emulation:
                            "edge": self.edge, "edge_reason": self.edge_reason,
                            "raytrace": self.raytrace,
                            # the recorder keeps other publishers' estimates apart (recorder.py)
-                           "fusion_id_prefix": self.fusion_id_prefix}}
+                           "fusion_id_prefix": self.fusion_id_prefix,
+                           # "fusion" is the whole run's: one fusion publishes what the
+                           # shards (diffpos fusion --shard K/N) published together
+                           "fusion_shards": self.o.fusion_shards}}
         path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
         return str(path)
 
@@ -413,7 +466,7 @@ class Emulation:
         on; the supervisor's thread ends after the children it started)."""
         self.supervisor.stopping()
         self._stop_procs(lambda n: n.startswith("anchor-"))
-        self._stop_procs(lambda n: n == "fusion")
+        self._stop_procs(lambda n: service_role(n) == "fusion")
         self._stop_procs(lambda n: n in EXTRA_SERVICES)
         self._stop_procs(lambda n: True)
         self.supervisor.close()
@@ -448,6 +501,9 @@ class Emulation:
         except M.DecodeError:
             return
         self.supervisor.on_heartbeat(hb.pid, hb.progress, hb.pending)
+        if self.o.fusion_shards > 1:
+            with self.alive_event:  # (readiness waits for every shard's first heartbeat)
+                self.alive_event.notify_all()
 
     def _on_data(self, sample) -> None:
         key = str(sample.key_expr)
@@ -465,19 +521,35 @@ class Emulation:
         pk = parse_key(key)
         if pk is not None and pk.kind == "estimate":
             self.e2e.add(payload, rx)
+        elif pk is not None and pk.kind == "diagnostics" and self.o.fusion_shards > 1:
+            try:  # (about once a second per shard)
+                self._shard_diags[self._zid_shard[str(ts.get_id())]] = self._dec_diag(payload)
+            except M.DecodeError:
+                pass  # (the monitor reports it)
         self.q.put(("data", key, payload, rx))
 
     def _wait_ready(self, need: set[str]) -> None:
         deadline = time.monotonic() + self.o.ready_timeout_s
         with self.alive_event:
-            while not need <= self.alive:
+            while not (need <= self.alive and self._fusions_heard()):
                 if self.stop.is_set():
                     return
                 self._check_children()
                 if time.monotonic() > deadline:
-                    missing = sorted(need - self.alive)
+                    missing = sorted(need - self.alive) or [
+                        f"{p.name} (no heartbeat)" for p in self.procs
+                        if service_role(p.name) == "fusion"
+                        and not self.supervisor.heard([p.popen.pid])]
                     raise ConfigError(f"services not ready after {self.o.ready_timeout_s:.0f} s: {missing}")
                 self.alive_event.wait(0.2)
+
+    def _fusions_heard(self) -> bool:
+        """With fusion shards: every fusion process sent a heartbeat (they share the one
+        ``alive/fusion`` token key, whose first token says nothing of the others)."""
+        if self.o.fusion_shards == 1:
+            return True
+        return self.supervisor.heard([p.popen.pid for p in self.procs
+                                      if service_role(p.name) == "fusion"])
 
     def _prepare_kernels(self) -> None:
         """Compile the numba kernels (or load them from numba's on-disk cache) in this process
@@ -585,8 +657,11 @@ class Emulation:
         rng = np.random.default_rng(o.seed)
         offsets = rng.uniform(-o.clock_offset_max_ms, o.clock_offset_max_ms, len(self.anchor_ids))
         scen = ["--scenario", o.scenario] if o.scenario else []
-        self._spawn("fusion", ["fusion", "--site", o.site, *self._fusion_zargs(),
-                               *self.fusion_args])
+        n = o.fusion_shards
+        for k in range(n):  # each shard owns the responders whose id's CRC-32 mod n is k
+            shard = ["--shard", f"{k}/{n}"] if n > 1 else []
+            self._spawn(fusion_name(k, n), ["fusion", "--site", o.site, *self._fusion_zargs(k),
+                                            *self.fusion_args, *shard])
         for aid, off in zip(self.anchor_ids, offsets, strict=True):
             self._spawn(f"anchor-{aid}", [
                 "anchor", "--id", aid, "--site", o.site, *self._zargs("anchor", aid),

@@ -54,7 +54,7 @@ from diffpos_services.recording.repair import recover
 from diffpos_services.recording.writer import existing_parts
 
 __all__ = ["MAX_RESTARTS", "MIN_FREE_BYTES", "STALL_S", "Fault", "NotRestarted", "Supervisor", "disk_full",
-           "format_faults", "recover_in_place"]
+           "format_faults", "fusion_name", "recover_in_place", "service_role"]
 
 #: restarts per service and run (a service that keeps dying is not restarted forever)
 MAX_RESTARTS = 3
@@ -67,6 +67,18 @@ MIN_FREE_BYTES = 16 << 20
 STALL_S = 5.0
 #: the service that the run cannot go on without
 ESSENTIAL = ("fusion",)
+
+
+def fusion_name(shard: int, shards: int) -> str:
+    """The process name of fusion shard ``shard`` of ``shards`` (``fusion`` without shards,
+    ``fusion-K`` with)."""
+    return "fusion" if shards == 1 else f"fusion-{shard}"
+
+
+def service_role(name: str) -> str:
+    """The role of process ``name``: ``fusion`` for every fusion shard (``fusion-K``), else
+    the name (what :data:`RESTARTABLE` and :data:`ESSENTIAL` list)."""
+    return "fusion" if name.startswith("fusion-") else name
 
 
 class NotRestarted(DiffposError):
@@ -213,6 +225,13 @@ class Supervisor:
                 b[0], b[3] = progress, now
             b[1], b[2] = pending, now
 
+    def heard(self, pids: list[int]) -> bool:
+        """True once every process of ``pids`` sent a heartbeat (a fusion's first one follows
+        its liveliness token: with several fusion shards on the one ``alive/fusion`` key, the
+        run waits for each shard's heartbeat)."""
+        with self._lock:
+            return all(p in self._beats for p in pids)
+
     def check(self, now: float | None = None) -> None:
         """One poll: every child that exited since the last poll becomes a fault, and so
         does every child found hung (:meth:`_check_stalled`)."""
@@ -300,7 +319,7 @@ class Supervisor:
                       at_s=fault.died_s)
         pre = f"{what}; " if what else ""
         n = self.restarts.get(name, 0)
-        if name not in RESTARTABLE:
+        if service_role(name) not in RESTARTABLE:
             fault.note = f"{pre}not restarted"
             return
         if n >= MAX_RESTARTS:
@@ -323,7 +342,7 @@ class Supervisor:
 
     def _end_run(self, name: str, fault: Fault, why: str) -> None:
         """An essential service that is not restarted ends the run (:attr:`fatal`)."""
-        if name not in ESSENTIAL or self.fatal is not None:
+        if service_role(name) not in ESSENTIAL or self.fatal is not None:
             return
         self.fatal = f"the run ended early: the {name} is gone ({why}); no estimates without it"
         fault.note += f"; {self.fatal}"

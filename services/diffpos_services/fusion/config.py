@@ -22,6 +22,7 @@ import dataclasses
 import datetime
 import json
 import typing
+import zlib
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
@@ -35,10 +36,10 @@ from diffpos_services.config import build_config
 from diffpos_services.errors import ConfigError
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "METHODS",
+__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "MAX_SHARDS", "METHODS",
            "TRACKER_KEYS", "FusionConfig", "TrackerSettings", "building_of", "channel_edge",
-           "legacy_tracker_settings", "merge_tracker", "model_edge", "parse_tracker_items",
-           "tracker_argv", "tracker_help"]
+           "legacy_tracker_settings", "merge_tracker", "model_edge", "parse_shard",
+           "parse_tracker_items", "shard_of", "tracker_argv", "tracker_help"]
 
 #: The estimators of the solve step (``--method``).
 METHODS = ("mnls", "dnls", "lls", "ippa")
@@ -177,6 +178,35 @@ DEFAULT_KERNEL_THREADS = 1
 DEFAULT_WORKERS = 1
 #: Largest ``workers`` accepted.
 MAX_WORKERS = 64
+#: Largest ``shards`` accepted.
+MAX_SHARDS = 1024
+
+
+def shard_of(node_id: str, shards: int) -> int:
+    """The shard (``0 .. shards - 1``) that owns responder ``node_id``: CRC-32 of its id's
+    UTF-8 bytes modulo ``shards``, the same in every process, on every machine and in every
+    Python (unlike ``hash()``, salted per process)."""
+    return zlib.crc32(node_id.encode("utf-8")) % shards if shards > 1 else 0
+
+
+def parse_shard(text: str, *, option: str = "--shard") -> tuple[int, int]:
+    """``(K, N)`` of ``K/N`` (``0 <= K < N <= MAX_SHARDS``).
+
+    Raises
+    ------
+    ConfigError
+        Not of that form, naming what is expected.
+    """
+    k, sep, n = text.partition("/")
+    try:
+        kk, nn = int(k), int(n)
+    except ValueError:
+        kk = nn = -1
+    if not sep or not (0 <= kk < nn <= MAX_SHARDS):
+        raise ConfigError(f"{option} {text!r}: expected K/N with 0 <= K < N <= {MAX_SHARDS}, "
+                          f"e.g. {option} 0/2 (this process owns the responders whose id's "
+                          "CRC-32 modulo N is K)")
+    return kk, nn
 
 
 # ------------------------------------------------------------------------- tracker settings
@@ -528,6 +558,16 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     while another job used ~0.7 core, 34-62k with 2 vs 39-58k with 1; the split costs
     +2.5 % CPU on the soak's 200-row calls, +35-45 % on 50-row ones:
     diffpos_services/fusion/workers.py)."""
+    shard: Annotated[int, Meta(ge=0)] = 0
+    """With :attr:`shards` > 1: the share of the responders this fusion owns (``diffpos fusion
+    --shard K/N``): the nodes with :func:`shard_of` ``(id, shards) == shard``; it ingests
+    every anchor state and liveliness but only its nodes' ranges, and solves and publishes
+    only their estimates. The responders' estimates are independent of each other, so N
+    fusions with shards ``0 .. N - 1`` together publish what one fusion publishes (tested:
+    tests/services/test_fusion_shards.py). Recorded with the other settings: a replay of one
+    shard's recording runs that shard."""
+    shards: Annotated[int, Meta(ge=1, le=MAX_SHARDS)] = 1
+    """How many fusions share the responders (1: this one owns them all)."""
     # ---- what is accepted (docs/bad_input.md)
     anchors: tuple[str, ...] | None = None
     """Allow-list of anchor ids (``None``: any anchor with a valid id)."""
@@ -547,6 +587,8 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
 
     def check(self) -> None:
         check_id(self.site, field="site")
+        if self.shard >= self.shards:
+            raise ValueError(f"shard={self.shard} must be < shards={self.shards}")
         if self.edge_x_m is not None and self.edge_x_m[0] == self.edge_x_m[1]:
             raise ValueError("edge_x_m: the two x limits must differ")
         for name in ("anchors", "nodes"):
@@ -557,6 +599,10 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
                              f"{self.max_sigma_m} [m]")
         self.building_model()
         self.radio_model()
+
+    def owns(self, node_id: str) -> bool:
+        """True if this fusion's shard owns responder ``node_id`` (always without shards)."""
+        return self.shards == 1 or shard_of(node_id, self.shards) == self.shard
 
     def radio_model(self) -> Radio | None:
         """The :class:`~diffpos.scenario.Radio` of :attr:`radio` (``None`` without one)."""

@@ -26,6 +26,7 @@ import math
 from itertools import repeat
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
@@ -89,6 +90,8 @@ class FusionCore:
         self._allowed_anchors = None if config.anchors is None else frozenset(config.anchors)
         self._allowed_nodes = None if config.nodes is None else frozenset(config.nodes)
         self._nodes: set[str] = set()
+        # with shards: responder id -> owned by this shard (config.owns, memoised)
+        self._owned: dict[str, bool] | None = {} if config.shards > 1 else None
         self._max_future_ns = round(config.max_future_s * 1e9)
         self._max_past_ns = round(config.max_past_s * 1e9)
         self._tref: int | None = None
@@ -145,6 +148,31 @@ class FusionCore:
         if anchor_id not in self.anchors and len(self.anchors) >= self.config.max_anchors:
             return "too_many_anchors"
         return None
+
+    def _owns(self, node_id: str) -> bool:
+        """True if this fusion's shard owns ``node_id`` (always without shards)."""
+        owned = self._owned
+        if owned is None:
+            return True
+        mine = owned.get(node_id)
+        if mine is None:
+            if len(owned) >= self.config.max_nodes:
+                owned.clear()  # (bounded: ids never seen again are forgotten)
+            mine = owned[node_id] = self.config.owns(node_id)
+        return mine
+
+    def _other_shard(self, anchor_id: str, t_ns: int, rx_wall_ns: int, n: int) -> None:
+        """``n`` ranges of ``anchor_id`` at ``t_ns`` for responders of other shards: counted
+        (``received["other_shard"]``) and not kept, but the epoch book learns the anchor's
+        time and the newest receive time exactly as one fusion of every responder does, so
+        each shard releases its responders' epochs when that fusion would."""
+        self.received["other_shard"] += n
+        book = self.book
+        prev = book.latest_t_ns.get(anchor_id)
+        if prev is None or t_ns > prev:
+            book.note_anchor_time(anchor_id, t_ns)
+        if book.last_rx_wall_ns is None or rx_wall_ns > book.last_rx_wall_ns:
+            book.last_rx_wall_ns = int(rx_wall_ns)
 
     def _node_refused(self, node_id: str) -> str | None:
         if self._allowed_nodes is not None and node_id not in self._allowed_nodes:
@@ -310,7 +338,7 @@ class FusionCore:
             bad = bad_state(cfg, msg)
         elif pk.kind == "range":
             bad = bad_value(cfg, msg.range_m, msg.sigma_m, msg.snr_db)
-            if bad is None:
+            if bad is None and self._owns(msg.node_id):
                 why = self._node_refused(msg.node_id)
                 if why is not None:
                     self._reject(key, why, f"node {msg.node_id!r}", source=src)
@@ -350,6 +378,8 @@ class FusionCore:
                                msg.position_sigma_m, msg.velocity_sigma_m_s)
             anchor.states += 1
             self.book.note_anchor_time(anchor.id, msg.t_ns)
+        elif pk.kind == "range" and not self._owns(msg.node_id):
+            self._other_shard(anchor.id, msg.t_ns, rx_wall_ns, 1)
         elif pk.kind == "range":
             self._add_range(anchor, msg.node_id, msg.t_ns, msg.range_m, msg.sigma_m,
                             msg.snr_db, msg.t_pub_wall_ns, rx_wall_ns)
@@ -360,6 +390,8 @@ class FusionCore:
                    rx_wall_ns: int) -> None:
         self.received["range"] += len(msg.node_ids)
         t, pw = msg.t_ns, msg.t_pub_wall_ns
+        if self._owned is not None:
+            msg = self._shard_batch(anchor.id, msg, rx_wall_ns)
         if batch_all_good(self.config, msg, self._nodes, self._allowed_nodes):
             # the usual batch: every entry valid and every node known, so the per-entry checks
             # would accept them all and no value is None (what _entry then does, by columns)
@@ -389,6 +421,17 @@ class FusionCore:
         late = self.book.add_many(anchor.id, t, entries)
         if late:
             self.rejected["late"] += late
+
+    def _shard_batch(self, anchor_id: str, msg: M.RangeBatch, rx_wall_ns: int) -> M.RangeBatch:
+        """``msg`` with only this shard's responders (the others: :meth:`_other_shard`)."""
+        mine = [i for i, nid in enumerate(msg.node_ids) if self._owns(nid)]
+        n_other = len(msg.node_ids) - len(mine)
+        if not n_other:
+            return msg
+        self._other_shard(anchor_id, msg.t_ns, rx_wall_ns, n_other)
+        pick = lambda col: [col[i] for i in mine]  # noqa: E731
+        return msgspec.structs.replace(msg, node_ids=pick(msg.node_ids), range_m=pick(msg.range_m),
+                                       sigma_m=pick(msg.sigma_m), snr_db=pick(msg.snr_db))
 
     def _entry(self, t_ns: int, r: float | None, sigma_m: float | None, snr_db: float | None,
                pub_wall: int, rx_wall: int) -> RangeEntry:

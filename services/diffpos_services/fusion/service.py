@@ -626,8 +626,11 @@ def run_fusion(
         if session is None:
             return core
         with session:
-            ends = _declare(session, core.keys, inbox, config.nodes)
+            # a shard publishes only its own responders' estimates
+            mine = None if config.nodes is None else tuple(filter(config.owns, config.nodes))
+            ends = _declare(session, core.keys, inbox, mine)
             log_event(log, logging.INFO, "fusion ready", site=config.site,
+                      shard=f"{config.shard}/{config.shards}",
                       subscriptions=[fusion_subscription(core.keys)],
                       kernel_threads=config.kernel_threads, workers=config.workers)
             if on_ready is not None:
