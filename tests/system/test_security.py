@@ -363,7 +363,9 @@ def test_acl_publish_matrix_matches_key_table(tmp_path):
         keys = [k.anchor_state("uav1"), k.anchor_state("uav2"), k.anchor_range("uav1", "n1"),
                 k.anchor_range("uav2", "n7"), k.node_estimate("n1"), k.fusion_diagnostics(),
                 k.anchor_range_batch("uav1"), k.anchor_range_batch("uav2"),
-                k.truth_node("n1"), k.truth_anchor("uav1"), k.run_control(), k.run_clock()]
+                k.truth_node("n1"), k.truth_anchor("uav1"), k.run_control(), k.run_clock(),
+                k.heartbeat("fusion"), k.heartbeat("recorder"), k.heartbeat("dashboard"),
+                k.heartbeat("anchor", "uav1"), k.heartbeat("anchor", "uav2")]
         alive = [(k.alive_anchor("uav1"), "anchor-uav1"), (k.alive_anchor("uav2"), "anchor-uav2"),
                  (k.alive_fusion(), "fusion"), (k.alive_recorder(), "recorder"),
                  (k.alive_dashboard(), "dashboard")]
@@ -371,7 +373,10 @@ def test_acl_publish_matrix_matches_key_table(tmp_path):
         assert {parse_key(x).kind for x in [*keys, *(t for t, _ in alive)]} == set(get_args(KeyKind))
         for key in keys:
             pk = parse_key(key)
+            beat = ({anchor_user(pk.anchor_id or "")} if pk.service == "anchor"
+                    else {pk.service or ""})
             expected = {
+                "heartbeat": beat,
                 "anchor_state": {anchor_user(pk.anchor_id or "")},
                 "range": {anchor_user(pk.anchor_id or "")},
                 "range_batch": {anchor_user(pk.anchor_id or "")},

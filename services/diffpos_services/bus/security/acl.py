@@ -14,21 +14,25 @@ rule                        what                                         subject
 ``learn-subscribers``       declare_subscriber egress on ``diffpos/**``  everybody
 ``anchor-<id>``             put ingress ``S/anchor/<id>/state``,         that anchor only
                             ``S/anchor/<id>/range/*``,
-                            ``S/anchor/<id>/ranges`` (range batches);
+                            ``S/anchor/<id>/ranges`` (range batches),
+                            ``S/heartbeat/anchor/<id>``;
                             liveliness token ``L/anchor/<id>`` (declare,
                             and query it: the container health check)
 ``run-control-read``        subscribe ``S/run/control`` (start gate),    anchors
                             ``S/run/clock`` (lockstep clock)
-``fusion-publish``          put ingress estimates, diagnostics;          fusion
+``fusion-publish``          put ingress estimates, diagnostics,          fusion
+                            its heartbeat ``S/heartbeat/fusion``;
                             liveliness token ``L/fusion``
 ``fusion-read``             subscribe ``S/anchor/**`` (states, ranges,   fusion
                             range batches; never truth)
 ``emulator-publish``        put ingress ``S/truth/**``,                  emulator
                             ``S/run/control``, ``S/run/clock``
 ``recorder-alive``          liveliness token ``L/recorder`` (declared    recorder
-                            once it records: emulate waits for it)
+                            once it records: emulate waits for it), its
+                            heartbeat ``S/heartbeat/recorder``
 ``dashboard-alive``         liveliness token ``L/dashboard`` (declared   dashboard
-                            once it draws: emulate waits for it)
+                            once it draws: emulate waits for it), its
+                            heartbeat ``S/heartbeat/dashboard``
 ``read-all``                subscribe ``S/**``                           recorder, dashboard,
                                                                          emulator
 ``watch-alive``             liveliness subscriber/query on               fusion, recorder,
@@ -92,14 +96,17 @@ RULES: tuple[Rule, ...] = (
     Rule("learn-subscribers", _SUBSCRIBE, "egress", lambda k: (_SiteKeys("**").root,)),
     Rule("run-control-read", _SUBSCRIBE, "ingress", lambda k: (k.run_control(), k.run_clock())),
     Rule("run-control-deliver", _DELIVER, "egress", lambda k: (k.run_control(), k.run_clock())),
-    Rule("fusion-publish", _PUT, "ingress", lambda k: (k.estimates(), k.fusion_diagnostics())),
+    Rule("fusion-publish", _PUT, "ingress",
+         lambda k: (k.estimates(), k.fusion_diagnostics(), k.heartbeat("fusion"))),
     Rule("fusion-alive", _TOKEN, "ingress", lambda k: (k.alive_fusion(),)),
     Rule("fusion-read-subscribe", _SUBSCRIBE, "ingress", lambda k: k.fusion_inputs()),
     Rule("fusion-read-deliver", _DELIVER, "egress", lambda k: k.fusion_inputs()),
     Rule("emulator-publish", _PUT, "ingress",
          lambda k: (k.truth_all(), k.run_control(), k.run_clock())),
     Rule("recorder-alive", _TOKEN, "ingress", lambda k: (k.alive_recorder(),)),
+    Rule("recorder-heartbeat", _PUT, "ingress", lambda k: (k.heartbeat("recorder"),)),
     Rule("dashboard-alive", _TOKEN, "ingress", lambda k: (k.alive_dashboard(),)),
+    Rule("dashboard-heartbeat", _PUT, "ingress", lambda k: (k.heartbeat("dashboard"),)),
     Rule("read-all-subscribe", _SUBSCRIBE, "ingress", lambda k: (k.everything(),)),
     Rule("read-all-deliver", _DELIVER, "egress", lambda k: (k.everything(),)),
     Rule("watch-alive-ask", _WATCH, "ingress", lambda k: (k.alive_all(),)),
@@ -109,7 +116,8 @@ RULES: tuple[Rule, ...] = (
 #: The rules of anchor ``a`` (rule ids ``anchor-<a>-<id>``): its own keys only.
 ANCHOR_RULES: tuple[Rule, ...] = (
     Rule("publish", _PUT, "ingress",
-         lambda k, a: (k.anchor_state(a), k.anchor_range(a, "*"), k.anchor_range_batch(a))),
+         lambda k, a: (k.anchor_state(a), k.anchor_range(a, "*"), k.anchor_range_batch(a),
+                       k.heartbeat("anchor", a))),
     Rule("alive", _TOKEN, "ingress", lambda k, a: (k.alive_anchor(a),)),
     # the container health check: a liveliness query for its own token only
     Rule("health-ask", ("liveliness_query",), "ingress", lambda k, a: (k.alive_anchor(a),)),
@@ -125,8 +133,8 @@ ROLE_RULES: dict[str, tuple[str, ...]] = {
     "anchors": ("run-control-read", "run-control-deliver"),
     "fusion": ("fusion-publish", "fusion-alive", "fusion-read-subscribe", "fusion-read-deliver",
                *_WATCH_ALIVE),
-    "recorder": ("recorder-alive", *_READ_ALL, *_WATCH_ALIVE),
-    "dashboard": ("dashboard-alive", *_READ_ALL, *_WATCH_ALIVE),
+    "recorder": ("recorder-alive", "recorder-heartbeat", *_READ_ALL, *_WATCH_ALIVE),
+    "dashboard": ("dashboard-alive", "dashboard-heartbeat", *_READ_ALL, *_WATCH_ALIVE),
     "emulator": ("emulator-publish", *_READ_ALL, *_WATCH_ALIVE),
 }
 
