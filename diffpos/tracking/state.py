@@ -208,6 +208,23 @@ class TrackerConfig:
         Gain of the learned outlier SNR's running mean.
     link_match_m : float [m]
         An anchor within this distance of a learned link's last anchor position is that link.
+    lost_on_gap : bool
+        A node whose last update with ranges is more than ``lost_after_s`` before this
+        epoch is LOST before the update (re-initialised from a snapshot with every floor
+        alive when it has ``min_ranges_init`` ranges, INITIALISING until ``confirm_epochs``;
+        else no position), however long ago the tracker was last called for it: after a
+        stall (the fusion stopped, no epochs at all) its state is stale. False (before): the
+        first epoch after the gap updated the stale track (predicted over the whole gap, the
+        floor probabilities those of before the gap) and published it TRACKING.
+    min_anchors_tracking : int
+        A node updated with fewer ranges than this in an epoch is published COASTING, not
+        TRACKING, and its published floor probabilities are capped
+        (``few_anchors_floor_p_max``): two ranges do not fix a 3D position, its floor comes
+        from the prediction. The filter itself is unchanged (publication only). 0: off.
+    few_anchors_floor_p_max : float [-]
+        Cap of the published most probable floor's probability with fewer than
+        ``min_anchors_tracking`` ranges (the probabilities mixed towards uniform until the
+        cap holds; the most probable floor is unchanged).
     """
 
     q_h_m2_s3: float = 1.5
@@ -255,6 +272,9 @@ class TrackerConfig:
     link_bias_q_m2_s: float = 0.1
     link_snr_gain: float = 0.3
     link_match_m: float = 1.0
+    lost_on_gap: bool = True
+    min_anchors_tracking: int = 3
+    few_anchors_floor_p_max: float = 0.75
 
 
 @dataclass(frozen=True)

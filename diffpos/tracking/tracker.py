@@ -277,6 +277,24 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
 
 
+def _few_anchors(out: TrackOutput, n_meas: NDArray, config: TrackerConfig) -> TrackOutput:
+    """Publication of the nodes updated with fewer than ``min_anchors_tracking`` ranges:
+    COASTING instead of TRACKING, the most probable floor's probability capped at
+    ``few_anchors_floor_p_max`` (mixed towards uniform; the order of the floors kept)."""
+    few = (n_meas > 0) & (n_meas < config.min_anchors_tracking)
+    if not np.any(few):
+        return out
+    status = np.where(few & (out.status == TrackStatus.TRACKING),
+                      np.int8(TrackStatus.COASTING), out.status).astype(np.int8)
+    p = out.floor_probabilities
+    nf = p.shape[1]
+    top = p.max(axis=1, keepdims=True)
+    cap = max(float(config.few_anchors_floor_p_max), 1.0 / nf)
+    w = np.where(few[:, None] & (top > cap), (top - cap) / np.maximum(top - 1.0 / nf, 1e-12),
+                 0.0)
+    return replace(out, status=status, floor_probabilities=(1 - w) * p + w / nf)
+
+
 def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: TrackerConfig):
     """Re-seed the worst hypotheses (at most ``reseed_max`` per epoch) from snapshots of their
     floors."""
@@ -356,6 +374,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
+    if config.lost_on_gap:  # stale after a stall: re-initialised below, not updated
+        placed = (status != TrackStatus.UNINITIALISED) & (status != TrackStatus.LOST)
+        status[placed & (n_meas > 0) & ((t - last) * 1e-9 > config.lost_after_s)] = (
+            TrackStatus.LOST)
     live = ((status == TrackStatus.INITIALISING) | (status == TrackStatus.TRACKING)
             | (status == TrackStatus.COASTING))  # np.isin's values (np.isin: 1.5 % of a 1-node call)
     idx = np.flatnonzero(live & (n_meas > 0))
@@ -408,7 +430,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
                        snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk)
-    return new, _publish(new, mech, resid, config)
+    return new, _few_anchors(_publish(new, mech, resid, config), n_meas, config)
 
 
 # --------------------------------------------------------------------------------------------

@@ -66,7 +66,10 @@ BEFORE_NS = int(datetime.datetime(2026, 11, 25, tzinfo=UTC).timestamp()) * 10**9
 THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr": 0.0,
         "dormant": False}
 #: the tracker's evidence settings before ab8d4d9 (2026-12-06 07:51 UTC: learned link weights)
-LINK_OFF = {"link_learn": False, "snr_cost_cap_nats": 0.0}
+#: and its re-entry rules before d3f1e35 (2026-12-06 08:09 UTC: a stale track re-initialised,
+#: fewer than 3 ranges not TRACKING)
+LINK_OFF = {"link_learn": False, "snr_cost_cap_nats": 0.0, "lost_on_gap": False,
+            "min_anchors_tracking": 0}
 #: a recording made after every change of a default
 NOW_NS = int(datetime.datetime(2026, 12, 6, 9, tzinfo=UTC).timestamp()) * 10**9
 #: a key that must change the estimates: the model error added to every range sigma [m]
@@ -193,8 +196,9 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [
-    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-06 07:51 UTC"),
-    (AFTER_NS, LINK_OFF, "the defaults of then (link_learn=false, snr_cost_cap_nats=0.0)"),
+    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-06 08:09 UTC"),
+    (AFTER_NS, LINK_OFF, "the defaults of then (lost_on_gap=false, min_anchors_tracking=0, "
+                         "link_learn=false, snr_cost_cap_nats=0.0)"),
     (BEFORE_NS, {**THEN, **LINK_OFF}, "snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, "
                                       "floor_evidence_lag1_corr=0.0, dormant=false)"),
     (None, {}, "recording time unknown: today's defaults"),

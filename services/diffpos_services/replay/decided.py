@@ -98,6 +98,18 @@ class DecisionReplayer:
             ev.append((op, keys[ref], val, wall, log_ns))
         self._run(log_ns)
 
+    def restart(self, core: Any, now_log_ns: int) -> None:
+        """The live fusion restarted (a new instance, whose record begins at chunk 0): the old
+        instance's remaining calls are issued now (a sample it names that is not here by now
+        was never recorded before it died: skipped, counted in ``samples_missing``), then
+        ``core`` (a fresh one, as the restarted fusion starts afresh) takes the new record.
+        Inputs not ingested yet stay in the pool: the new instance may name them."""
+        self._run(now_log_ns, wait=False)
+        self.core = core
+        self._next_chunk = 0
+        self._blocked = None
+        self.counts["restarts"] += 1
+
     def finish(self) -> None:
         """End of the recording: what the record names and never came is skipped."""
         self._run(_FOREVER)
@@ -106,9 +118,10 @@ class DecisionReplayer:
         self._arrivals.clear()
 
     # ------------------------------------------------------------------ the calls
-    def _run(self, now_log_ns: int) -> None:
+    def _run(self, now_log_ns: int, *, wait: bool = True) -> None:
         """Issue the recorded calls whose samples are here (in order: a missing one blocks
-        the rest until it comes or its wait expires), then forget stale inputs."""
+        the rest until it comes or its wait expires; ``wait=False``: skipped at once), then
+        forget stale inputs."""
         ev, pool, core, c = self._events, self._pool, self.core, self.counts
         self._blocked = None
         while ev:
@@ -116,7 +129,7 @@ class DecisionReplayer:
             if op == OP_SAMPLE:
                 q = pool.get((key, val))
                 if not q:
-                    if now_log_ns - named_ns <= self.window_ns:
+                    if wait and now_log_ns - named_ns <= self.window_ns:
                         self._blocked, self._blocked_named_ns = (key, val), named_ns
                         break
                     c["samples_missing"] += 1
@@ -151,7 +164,8 @@ class DecisionReplayer:
     def report(self) -> dict[str, int]:
         """Counts: chunks, samples, steps, chunks_missing, samples_missing,
         inputs_not_ingested, events_not_recorded (all 0 but the first three: bit-identical
-        to the live run)."""
+        to the live run), restarts (live fusion instances after the first, each replayed
+        on a fresh core)."""
         keys = ("chunks", "samples", "steps", "chunks_missing", "chunks_repeated",
-                "samples_missing", "inputs_not_ingested", "events_not_recorded")
+                "samples_missing", "inputs_not_ingested", "events_not_recorded", "restarts")
         return {k: int(self.counts.get(k, 0)) for k in keys}

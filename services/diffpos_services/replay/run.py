@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import json
 import logging
 import os
 import time
-from collections import Counter
+from array import array
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -325,8 +327,137 @@ class _Outputs:
             self.sink.close(final_metadata=final_metadata)
 
 
+class _Fusion:
+    """The replayed fusion: a fresh core per live fusion instance.
+
+    The live fusion's diagnostics name its process (``instance``, a nonce per start); a
+    restarted fusion starts from nothing (no tracks, no anchors' state, a decision record from
+    chunk 0 again). So where ``instance`` changes the replay starts a fresh core too: by the
+    new instance's decision record when it begins in the file (chunk 0: every live estimate
+    of that instance is reproduced), else in the recording's order. Live estimates of an
+    instance the replay cannot reproduce (its record does not begin in the file: it started
+    before the recording, or while the recorder was down) are counted with the reason
+    (:meth:`not_reproducible`). Anchors alive when a core is replaced are made alive on the
+    new one when replaying in recorded order (the restarted fusion sees the live tokens).
+    """
+
+    def __init__(self, make_core: Callable[[], FusionCore], emit: Callable[[list, int], None],
+                 rec: Recorded, *, use_decisions: bool, decided: bool,
+                 attach: Callable[[FusionCore], None]) -> None:
+        self.make_core, self.emit, self.rec = make_core, emit, rec
+        self.use_decisions, self.attach = use_decisions, attach
+        self.core = make_core()
+        self.cores = [self.core]
+        self.decided: DecisionReplayer | None = None
+        self.instance: str | None = None
+        #: per live instance, in recording order: its start [ns] (its record's first call,
+        #: else its first diagnostics), last diagnostics, how replayed, why not by record
+        self.instances: list[dict[str, Any]] = []
+        self.live_log_ns = array("q")  # receive times of the live estimates (attribution)
+        self._recent: deque[tuple[int, str, bytes]] = deque()  # inputs, to seed a record
+        self._alive: dict[str, bool] = {}
+        self._dec_diag = M.decoder(M.FusionDiagnostics)
+        if decided:  # the file starts with the first instance's record
+            self.decided = rec.decided = DecisionReplayer(self.core, emit, window_ns=_WINDOW_NS)
+
+    def on_input(self, topic: str, data: bytes, log_ns: int) -> bool:
+        """A fusion input; ``True`` when the core took it directly (recorded order)."""
+        if self.rec.decided is not None:
+            self.rec.decided.add_input(topic, data, log_ns)
+            return False
+        self.core.on_sample(topic, data, log_ns)
+        if self.use_decisions:  # a later instance's record may name it (bounded: 30 s)
+            recent = self._recent
+            recent.append((log_ns, topic, data))
+            while recent[0][0] < log_ns - _WINDOW_NS:
+                recent.popleft()
+        return True
+
+    def on_liveliness(self, m: RawMessage) -> None:
+        with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
+            ev = json.loads(m.data)
+            if ev.get("role") == "anchor" and ev.get("id"):
+                self._alive[str(ev["id"])] = bool(ev["alive"])
+
+    def on_diagnostics(self, m: RawMessage) -> None:
+        try:
+            d = self._dec_diag(m.data)
+        except (msgspec.DecodeError, ValueError):
+            self.rec.bad_payloads["diagnostics"] += 1
+            return
+        if d.instance != self.instance or self.instance is None:
+            self._start(d, m.log_ns)
+        self.instances[-1]["last_diagnostics_ns"] = m.log_ns
+        if self.rec.decided is not None and d.decisions is not None:
+            self.rec.decided.add_chunk(d.decisions, m.log_ns)
+
+    def _start(self, d: M.FusionDiagnostics, log_ns: int) -> None:
+        """The first diagnostics of a live fusion instance: a fresh core, unless it is the
+        first instance and the replay started in its mode (by its record from the file's
+        start, or in recorded order)."""
+        first = self.instance is None
+        self.instance = d.instance
+        by_record = self.use_decisions and d.decisions is not None and d.decisions.chunk == 0
+        reason = None if by_record else (
+            "use_decisions off" if not self.use_decisions
+            else "no decision record (a fusion older than the record)" if d.decisions is None
+            else f"its decision record begins at chunk {d.decisions.chunk}, not 0: the "
+                 "instance started before the recording or while the recorder was down")
+        start = log_ns
+        if d.decisions is not None and d.decisions.wall_delta_ns:  # its first call seen
+            start = min(log_ns, d.decisions.wall_delta_ns[0])
+        self.instances.append({"instance": d.instance, "start_ns": start,
+                               "replayed_by": "decisions" if by_record else "recorded order",
+                               "reason": reason})
+        if first and by_record == (self.rec.decided is not None):
+            return
+        old = self.core
+        if self.rec.decided is None:  # recorded order: solve what the old core has pending
+            self.emit(old.step(log_ns), log_ns)
+        self.core = self.make_core()
+        self.cores.append(self.core)
+        self.attach(self.core)
+        if self.decided is not None:  # the old record's calls go to the old core, then ends
+            self.decided.restart(self.core, log_ns)
+        if not by_record:
+            self.rec.decided = None
+            for a, alive in self._alive.items():
+                if alive:
+                    self.core.on_liveliness(a, True, log_ns)
+            return
+        if self.decided is None:
+            self.decided = DecisionReplayer(self.core, self.emit, window_ns=_WINDOW_NS)
+        self.rec.decided = self.decided
+        while self._recent:  # inputs fed in recorded order: the new record may name them
+            t, topic, data = self._recent.popleft()
+            self.decided.add_input(topic, data, t)
+
+    def not_reproducible(self) -> dict[str, Any]:
+        """Live estimates the replay cannot reproduce, by reason: those of instances replayed
+        without their record, and those an instance followed by another (it died) published
+        after its last diagnostics (the record of their calls died with it). An estimate
+        belongs to the instance that started last before it was received."""
+        by_reason: Counter[str] = Counter()
+        inst = self.instances
+        if inst and self.use_decisions:
+            t = np.frombuffer(self.live_log_ns, np.int64)
+            starts = np.asarray([i["start_ns"] for i in inst], np.int64)
+            idx = np.maximum(np.searchsorted(starts, t, side="right") - 1, 0)
+            for k, i in enumerate(inst):
+                mine = t[idx == k]
+                if i["reason"] is not None:
+                    by_reason[i["reason"]] += mine.size
+                elif k + 1 < len(inst):  # it was followed by another: it died
+                    by_reason["published after the instance's last diagnostics (killed: the "
+                              "record of their calls died with it)"] += int(
+                                  np.count_nonzero(mine > i["last_diagnostics_ns"]))
+        by_reason = +by_reason
+        return {"estimates": int(sum(by_reason.values())), "by_reason": dict(by_reason),
+                "instances": inst}
+
+
 def _feed(
-    core: FusionCore,
+    fusion: _Fusion,
     batches: Iterable[list[RawMessage]],
     outputs: _Outputs,
     rec: Recorded,
@@ -336,12 +467,13 @@ def _feed(
 ) -> Recorded:
     """Every recorded message in file order into the core (fusion inputs; through the
     decision record when there is one) or the collector, stepping the core each ``step_ns``
-    of receive time (without a decision record); then solve what is pending."""
+    of receive time (without a decision record); a fresh core where the live fusion
+    restarted (:class:`_Fusion`); then solve what is pending."""
     routes: dict[str, tuple] = {}  # topic -> (kind, node, sequence stream, is input)
     per_topic: Counter[str] = Counter()
-    seq, decided = rec.seq, rec.decided
-    add_input = None if decided is None else decided.add_input
+    seq = rec.seq
     copy = outputs.copy if outputs.copy_input else None
+    live_log_ns = fusion.live_log_ns
     next_step = next_advance = None
     for batch in batches:
         if rec.t_first is None and batch:
@@ -360,14 +492,18 @@ def _feed(
             if copy is not None:
                 copy(m)
             if route[3]:
-                if add_input is not None:
-                    add_input(topic, m.data, now)
+                if not fusion.on_input(topic, m.data, now):
                     continue
-                core.on_sample(topic, m.data, now)
+            elif route[0] == "diagnostics":
+                fusion.on_diagnostics(m)
             else:
-                rec.take(route[0], m, core, route[1])
-            if decided is None and (next_step is None or now >= next_step):
-                outputs.emit(core.step(now), now)
+                if route[0] == "liveliness":
+                    fusion.on_liveliness(m)
+                elif route[0] == "estimate":
+                    live_log_ns.append(now)
+                rec.take(route[0], m, fusion.core, route[1])
+            if rec.decided is None and (next_step is None or now >= next_step):
+                outputs.emit(fusion.core.step(now), now)
                 next_step = now + step_ns
         if rec.t_last is not None and (next_advance is None or rec.t_last >= next_advance):
             rec.advance(rec.t_last)  # score what the truth covers (bounded memory)
@@ -375,8 +511,8 @@ def _feed(
         after_batch()
     for topic, n in per_topic.items():
         rec.counts[routes[topic][0]] += n
-    if decided is not None:
-        decided.finish()
+    if rec.decided is not None:
+        rec.decided.finish()
     return rec
 
 
@@ -435,7 +571,12 @@ def _fewer_gc_passes() -> Iterator[None]:
         gc.set_threshold(*old)
 
 
-def _messages_section(rec: Recorded, core: FusionCore) -> dict[str, Any]:
+def _messages_section(rec: Recorded, cores: list[FusionCore]) -> dict[str, Any]:
+    received: Counter[str] = Counter()
+    rejected: Counter[str] = Counter()
+    for core in cores:  # one per live fusion instance
+        received.update(core.received)
+        rejected.update(core.rejected)
     return {
         "by_kind": dict(sorted(rec.counts.items())),
         "total": sum(rec.counts.values()),
@@ -444,13 +585,13 @@ def _messages_section(rec: Recorded, core: FusionCore) -> dict[str, Any]:
         "gaps": rec.seq.total_gaps,
         "gaps_by_stream": dict(sorted(rec.seq.gaps.items())[:200]),
         "out_of_order": rec.seq.total_out_of_order,
-        "fusion_received": dict(core.received),
-        "fusion_rejected": dict(core.rejected),
-        "late_ranges": core.book.late,
+        "fusion_received": dict(received),
+        "fusion_rejected": dict(rejected),
+        "late_ranges": sum(core.book.late for core in cores),
     }
 
 
-def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, core: FusionCore,
+def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fusion: _Fusion,
             rec: Recorded, *, step_ms: float, t_wall0: float) -> ReplayResult:
     """Accuracy of the replayed (and recorded live) fixes, and the JSON report."""
     rec.advance(rec.t_last or 0, final=True)
@@ -474,14 +615,15 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, co
         "overrides": settings.overrides,
         "method": config.method,
         "step_ms": step_ms,
-        "decisions": None if rec.decided is None else rec.decided.report,
+        "decisions": None if fusion.decided is None else fusion.decided.report,
+        "fusion_instances": (instances := fusion.not_reproducible()),
         "recording_s": duration_s,
         "truth_s": (None if rec.truth.first_t is None
                     else (rec.truth.last_t - rec.truth.first_t) / 1e9),
-        "messages": _messages_section(rec, core),
+        "messages": _messages_section(rec, fusion.cores),
         "fixes": {"total": out.total, "by_status": dict(sorted(out.by_status.items()))},
         "nodes": sorted(nodes, key=natural_key),
-        "anchors": sorted(core.anchors, key=natural_key),
+        "anchors": sorted(set().union(*(c.anchors for c in fusion.cores)), key=natural_key),
         "accuracy": accuracy,
         "node_epochs": out.node_epochs(),
         "gating": out.gating(),
@@ -492,7 +634,10 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, co
             "node_epochs": live.node_epochs(),
             "gating": live.gating(),
         },
-        "compare": rec.compare.result() if live.total else None,
+        "compare": None if not live.total else {
+            **rec.compare.result(),
+            "live_not_reproducible": instances["estimates"],
+            "live_not_reproducible_by_reason": instances["by_reason"]},
         "timing": {
             "wall_s": wall,
             "speedup_x": (duration_s / wall) if wall > 0 and duration_s > 0 else None,
@@ -584,16 +729,14 @@ def replay(
                        keep_estimates=keep_estimates, window_ns=_WINDOW_NS)
         return _run(path, scanner, settings, ahead, rest, tmp, rec, side=side,
                     copy_input=copy_input, step_ms=step_ms, progress=progress, logger=logger,
-                    t_wall0=t_wall0, decided=decided)
+                    t_wall0=t_wall0, decided=decided, use_decisions=use_decisions)
 
 
 def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, step_ms,
-         progress, logger, t_wall0, decided) -> ReplayResult:
+         progress, logger, t_wall0, decided, use_decisions) -> ReplayResult:
     """Steps 2-4 of :func:`replay` (``tmp``: where the output MCAP goes until complete)."""
     config = settings.config
     kernel_pool.set_threads(config.kernel_threads)  # the process's kernel pool (threads)
-    core = FusionCore(config, logger=quiet_logger() if logger is None else logger,
-                      record_decisions=False)
     outputs = _Outputs(tmp, copy_input=copy_input, site=config.site, side=side, rec=rec, header={
         "source": str(path),
         "method": config.method,
@@ -606,15 +749,26 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
         if progress is not None:
             progress(scanner.offset, scanner.size_bytes)
 
-    if decided:
-        rec.decided = DecisionReplayer(core, outputs.emit)
+    def make_core() -> FusionCore:
+        return FusionCore(config, logger=quiet_logger() if logger is None else logger,
+                          record_decisions=False)
+
+    pool: list[Any] = []
+
+    def attach(core: FusionCore) -> None:  # a fresh core shares the worker processes
+        if pool and core.bank is not None:
+            core.bank.pool = pool[0]
+
+    fusion = _Fusion(make_core, outputs.emit, rec, use_decisions=use_decisions,
+                     decided=decided, attach=attach)
     # FusionConfig.workers: the same estimates for any count, so never more processes than
     # this machine has cores (a recording made on a bigger machine)
-    rows = start_workers(core, max_processes=os.cpu_count() or 1)
+    rows = start_workers(fusion.core, max_processes=os.cpu_count() or 1)
     try:
         if rows is not None:
+            pool.append(rows)
             rows.wait_ready()
-        _feed(core, _consume(ahead, rest), outputs, rec,
+        _feed(fusion, _consume(ahead, rest), outputs, rec,
               step_ns=max(0, round(step_ms * 1e6)), after_batch=after_batch)
         if rec.fusion_inputs == 0:
             outputs.close()
@@ -622,9 +776,9 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
                 f"{path} has no anchor states or ranges under diffpos/<site>/anchor/...: "
                 "nothing to replay (is it a diffpos recording? see diffpos inspect)"
             )
-        _drain(core, outputs, rec.t_last or 0)
+        _drain(fusion.core, outputs, rec.t_last or 0)
     finally:
         if rows is not None:
             rows.close()
     outputs.close(final_metadata={"replayed_estimates": outputs.count})
-    return _report(path, scanner, settings, core, rec, step_ms=step_ms, t_wall0=t_wall0)
+    return _report(path, scanner, settings, fusion, rec, step_ms=step_ms, t_wall0=t_wall0)

@@ -320,6 +320,7 @@ def write_synthetic_recording(
 
 def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
                          late_ns: int = 500_000_000, step_ms: float = 5.0, seed: int = 0,
+                         restart_at_s: float | None = None, restart_gap_s: float = 1.0,
                          **run_kw: Any) -> dict[str, int]:
     """Like :func:`write_synthetic_recording`, but the live fusion receives in ITS order: a
     seeded ``late_fraction`` of the anchors' epochs reaches it ``late_ns`` late (a loaded
@@ -327,6 +328,11 @@ def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
     message on time. The fusion publishes diagnostics (with its decision record) every second
     of its time and flushes at the end, like the live service; so replay only reproduces the
     live fixes by the record, not by the recorder's order.
+
+    ``restart_at_s`` (from the first epoch): the live fusion dies there (what is in its inbox
+    and its pending epochs are lost, nothing flushed) and a new one (a fresh core, another
+    ``instance`` in its diagnostics, a decision record from chunk 0) starts ``restart_gap_s``
+    later, seeing the anchors' tokens alive; the recorder records throughout.
     """
     run = synthetic_run(seed=seed, **run_kw)
     keys, site = Keys(run.config.site), run.config.site
@@ -343,10 +349,29 @@ def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
     queue: list[tuple[int, int, str, bytes]] = []  # the fusion's inbox: (rx, n, key, payload)
     last_rx: dict[str, int] = {}
     late: dict[tuple[str, int], bool] = {}
-    state = {"next_step": 0, "next_diag": run.t0_ns + 1_000_000_000, "n": 0}
+    state = {"next_step": 0, "next_diag": run.t0_ns + 1_000_000_000, "n": 0, "instance": 0}
     period_ns = round(run.config.epoch_period_s * 1e9)
+    die_ns = None if restart_at_s is None else run.t0_ns + round(restart_at_s * 1e9)
+    back_ns = None if die_ns is None else die_ns + round(restart_gap_s * 1e9)
+
+    def diagnostics(t: int) -> bytes:
+        return M.encode(msgspec.structs.replace(
+            core.diagnostics(t), instance=f"synthetic-{state['instance']}"))
+
+    def restart(t: int) -> None:
+        nonlocal core
+        queue.clear()
+        core = FusionCore(run.config, logger=quiet_logger())
+        for a in run.anchor_ids:
+            core.on_liveliness(a, True, t)
+        state.update(next_step=0, next_diag=t + 1_000_000_000, instance=state["instance"] + 1)
 
     def fusion_until(t: int) -> None:
+        nonlocal die_ns
+        if die_ns is not None and t >= die_ns:
+            fusion_until(die_ns - 1)
+            queue.clear()
+            die_ns = None
         queue.sort()
         while queue and queue[0][0] <= t:
             rx, _, k, payload = queue.pop(0)
@@ -355,7 +380,7 @@ def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
                 publish(core.step(rx), rx)
                 state["next_step"] = rx + round(step_ms * 1e6)
             if rx >= state["next_diag"]:
-                sink.write(keys.fusion_diagnostics(), M.encode(core.diagnostics(rx)), rx + 1)
+                sink.write(keys.fusion_diagnostics(), diagnostics(rx), rx + 1)
                 state["next_diag"] = rx + 1_000_000_000
 
     def publish(ests: list, now: int) -> None:
@@ -368,7 +393,11 @@ def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
             sink.write(k, payload, rx)
             kind, fields = parse_topic(k)
             counts[kind] += 1
-            if kind in FUSION_INPUT_KINDS:
+            if back_ns is not None and rx >= back_ns:
+                restart(back_ns)
+                back_ns = None
+            if kind in FUSION_INPUT_KINDS and (
+                    back_ns is None or (die_ns is not None and rx < die_ns)):
                 a = fields["anchor"]
                 slot = (a, rx // period_ns)
                 if slot not in late:
@@ -381,7 +410,7 @@ def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
     end = max([q[0] for q in queue], default=0) + late_ns
     fusion_until(end)
     publish(core.flush(end), end)
-    sink.write(keys.fusion_diagnostics(), M.encode(core.diagnostics(end)), end + 1)
+    sink.write(keys.fusion_diagnostics(), diagnostics(end), end + 1)
     sink.close()
     return dict(counts)
 
