@@ -23,10 +23,39 @@ def _denominator(node_epochs: dict | None, n_fixes: int) -> tuple[int, str]:
     return n_fixes, "fixes"
 
 
+#: The x axis ends at the worst error unless that is more than this many times the 99th
+#: percentile (one far outlier would squeeze the curves): then it ends at the percentile and
+#: the plot says where it cut and what the worst error is.
+CUT_FACTOR = 3.0
+
+
+def x_limit(arrays: list[np.ndarray]) -> tuple[float, float, int]:
+    """``(x_max, worst, beyond)``: the axis end, the worst error and the errors beyond the
+    axis end (0: the axis shows every error) over the non-empty ``arrays`` [m]."""
+    vals = [np.abs(a) for a in arrays if a is not None and a.size]
+    if not vals:
+        return 1.0, 0.0, 0
+    allv = np.concatenate(vals)
+    worst, p99 = float(allv.max()), float(np.percentile(allv, 99))
+    if worst <= CUT_FACTOR * p99 or p99 <= 0:
+        return (worst * 1.05 if worst > 0 else 1.0), worst, 0
+    x_max = p99 * 1.2
+    return x_max, worst, int((allv > x_max).sum())
+
+
+def _fixes(accuracy: dict | None) -> tuple[int, int]:
+    """``(scored, without a position)`` fixes of a stream's overall accuracy."""
+    o = (accuracy or {}).get("overall") or {}
+    return int(o.get("evaluated") or 0), int(o.get("without_position") or 0)
+
+
 def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None) -> Path:
     """Empirical CDFs of the 3D and z errors (replayed, and recorded-live when present) over
-    every node-epoch of the run: a node-epoch without a fix counts as an infinite error, so a
-    curve ends at the share of node-epochs that got a fix (said on the plot, with n).
+    every fix, a fix without a position (no track yet, lost, failed) counting as an infinite
+    error, or over every node-epoch when there are more of those (a node-epoch without a fix
+    counts likewise): a curve ends at the share that had a position (said on the plot, with
+    n). The title names the recording, the method and the what-if; the x axis shows the worst
+    error, or says where it cut it (:func:`x_limit`).
 
     Parameters
     ----------
@@ -38,42 +67,49 @@ def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None
     """
     fig = Figure(figsize=(6.4, 4.4), dpi=120)  # no pyplot: no global backend or figure state
     ax = fig.subplots()
-    method = result.report.get("method", "dnls").upper().replace("DNLS", "D-NLS")
-    live_ne = (result.report.get("live") or {}).get("node_epochs")
+    rep = result.report
+    method = rep.get("method", "dnls").upper().replace("DNLS", "D-NLS")
+    live = rep.get("live") or {}
     curves = [
         (result.errors.get("e3"), f"3D, replay ({method})", "C0", "-",
-         result.report.get("node_epochs")),
+         rep.get("node_epochs"), _fixes(rep.get("accuracy"))),
         (result.errors.get("ez"), f"|z|, replay ({method})", "C1", "-",
-         result.report.get("node_epochs")),
+         rep.get("node_epochs"), _fixes(rep.get("accuracy"))),
     ]
-    if (result.report.get("live") or {}).get("fixes"):
+    if live.get("fixes"):
         curves += [
-            (result.live_errors.get("e3"), "3D, recorded live", "C0", "--", live_ne),
-            (result.live_errors.get("ez"), "|z|, recorded live", "C1", "--", live_ne),
+            (result.live_errors.get("e3"), "3D, recorded live", "C0", "--",
+             live.get("node_epochs"), _fixes(live.get("accuracy"))),
+            (result.live_errors.get("ez"), "|z|, recorded live", "C1", "--",
+             live.get("node_epochs"), _fixes(live.get("accuracy"))),
         ]
-    xmax, unit = 0.0, "fixes"
-    for arr, label, color, ls, ne in curves:
+    drawn, unit = [], "fixes"
+    for arr, label, color, ls, ne, (scored, no_pos) in curves:
         if arr is None or arr.size == 0:
             continue
         x = np.sort(np.abs(arr))
-        n, unit = _denominator(ne, x.size)
+        n, unit = _denominator(ne, max(scored, x.size) + no_pos)
         y = np.arange(1, x.size + 1) / n
         ax.step(x, y, where="post", color=color, linestyle=ls,
-                label=f"{label}: {x.size} fixes / {n} {unit}")
-        xmax = max(xmax, float(np.percentile(x, 99)))
-    ax.set_xlim(0, xmax * 1.05 if xmax > 0 else 1.0)
+                label=f"{label}: {x.size} with a position / {n} {unit}")
+        drawn.append(x)
+    x_max, worst, beyond = x_limit(drawn)
+    ax.set_xlim(0, x_max)
     ax.set_ylim(0, 1)
-    ax.set_xlabel("error [m]")
+    ax.set_xlabel("error [m]" + (f"  (axis cut at {x_max:.2f} m: worst error {worst:.2f} m, "
+                                 f"{beyond} errors beyond)" if beyond else
+                                 f"  (worst error {worst:.2f} m)" if drawn else ""))
     ax.set_ylabel(f"share of {unit}")
     ax.grid(True, alpha=0.3)
-    name = Path(result.report["file"]).name
+    name = Path(rep["file"]).name
     name = name if len(name) <= 40 else name[:18] + "..." + name[-19:]
-    ax.set_title(title or f"Error CDF - {name}", fontsize=10)
-    if unit == "node-epochs":
-        ax.text(0.01, 0.99, "over every node-epoch after the first 2 s; a node-epoch without "
-                "a fix\ncounts as an infinite error (the curve ends at the availability)",
-                transform=ax.transAxes, va="top", fontsize=7, color="0.3")
-    if xmax > 0:
+    what_if = rep.get("what_if") or "none (the recorded settings)"
+    ax.set_title(title or f"Error CDF - {name}\nwhat-if: {what_if}", fontsize=9)
+    note = ("over every node-epoch after the first 2 s; a node-epoch without a fix"
+            if unit == "node-epochs" else "over every fix; a fix without a position")
+    ax.text(0.01, 0.99, f"{note}\ncounts as an infinite error (the curve ends at the share "
+            "with a position)", transform=ax.transAxes, va="top", fontsize=7, color="0.3")
+    if drawn:
         ax.legend(loc="lower right", fontsize=7)
     else:
         ax.text(
