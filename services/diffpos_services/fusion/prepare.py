@@ -24,6 +24,8 @@ Nothing here imports numba or a kernel module: the workers do.
 
 from __future__ import annotations
 
+import importlib
+import json
 import os
 import subprocess
 import sys
@@ -37,7 +39,7 @@ from typing import TextIO
 from diffpos_services.errors import DiffposError
 from diffpos_services.logs import STATUS
 
-__all__ = ["GROUPS", "GROUP_METHODS", "IMPORTED", "KernelError", "Progress", "bins",
+__all__ = ["GROUPS", "GROUP_METHODS", "IMPORTED", "Group", "KernelError", "Progress", "bins",
            "compile_groups", "groups_for", "prepare_kernels", "progress_display"]
 
 
@@ -85,13 +87,12 @@ def groups_for(method: str, *, tracking: bool = True, channel: bool = False) -> 
     return sorted(need, key=lambda g: -GROUPS[g].cpu_s)
 
 
-def compile_groups(*names: str) -> None:
-    """Compile (or load from numba's cache) the kernels of the groups ``names`` in turn,
-    printing ``done NAME`` after each: a worker's job."""
-    import importlib
-
-    for name in names:
-        for call in GROUPS[name].calls:
+def compile_groups(spec: str) -> None:
+    """Compile (or load from numba's cache) the kernels of the groups in ``spec`` (JSON:
+    ``[[name, [call, ...]], ...]``, the calls of :class:`Group`) in turn, printing
+    ``done NAME`` after each: a worker's job."""
+    for name, calls in json.loads(spec):
+        for call in calls:
             module, _, func = call.partition(":")
             mod = importlib.import_module(module)
             if func:
@@ -157,8 +158,9 @@ class _Worker:
         self.cpu_s = 0.0
         self.err = tempfile.TemporaryFile()  # a file, not a pipe: numba's warnings never block
         code = ("import sys; from diffpos_services.fusion.prepare import compile_groups; "
-                "compile_groups(*sys.argv[1:])")
-        self.proc = subprocess.Popen([sys.executable, "-c", code, *groups],
+                "compile_groups(sys.argv[1])")
+        spec = json.dumps([[g, GROUPS[g].calls] for g in groups])
+        self.proc = subprocess.Popen([sys.executable, "-c", code, spec],
                                      stdout=subprocess.PIPE, stderr=self.err, text=True)
         self.reader = threading.Thread(target=self._read, daemon=True)
         self.reader.start()

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from diffpos.channel.emulator import pair_snr_db
+from diffpos.estimators.dnls import solver as dnls_solver
 from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.geometry import window_edge_path
 from diffpos.tracking.state import TrackerConfig
@@ -57,12 +58,10 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
 def warm_up(core: Any) -> None:
     """Solve one 4-anchor problem with ``core``'s solvers (a :class:`FusionCore
     <diffpos_services.fusion.core.FusionCore>`), changing none of its state: D-NLS for the
-    method ``dnls`` only (imported here: the other methods need not load its kernel)."""
+    method ``dnls`` only (the other methods do not call it)."""
     cfg = core.config
     _, r = _problem(cfg.window_height_m, cfg.first_floor_z_m)
     if cfg.method == "dnls":
-        from diffpos.estimators.dnls import solver as dnls_solver
-
         dnls_solver.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1),
                          window_height_m=cfg.window_height_m, gating=core.gating)
     if core.building is not None:  # a throw-away tracker: the core's state is untouched

@@ -345,6 +345,8 @@ def _windowed(batches: Iterable[list[RawMessage]], rec: Recorded, start_s: float
                     yield keep
                 return
             if lo is None or t >= lo:
+                if lo is not None and (rec.t_first is None or rec.t_first < rec.t_origin + lo):
+                    rec.t_first = m.log_ns  # the window's first message: its span from here
                 keep.append(m)
             else:
                 is_live = live.get(m.topic)

@@ -11,7 +11,7 @@ from matplotlib.figure import Figure
 if TYPE_CHECKING:  # reports draw results; they do not depend on the services that make them
     from diffpos_services.replay.run import ReplayResult
 
-__all__ = ["plot_cdf"]
+__all__ = ["CUT_FACTOR", "cdf_figure", "plot_cdf", "x_limit"]
 
 
 def _denominator(node_epochs: dict | None, n_fixes: int) -> tuple[int, str]:
@@ -49,48 +49,51 @@ def _fixes(accuracy: dict | None) -> tuple[int, int]:
     return int(o.get("evaluated") or 0), int(o.get("without_position") or 0)
 
 
-def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None) -> Path:
+def _curves(result: ReplayResult) -> list[tuple]:
+    """``(errors, label, colour, line style, node-epochs, (scored, without a position))`` of
+    every curve: 3D and |z|, replayed and (when recorded) live."""
+    rep = result.report
+    method = rep.get("method", "dnls").upper().replace("DNLS", "D-NLS")
+    live = rep.get("live") or {}
+    mine = (rep.get("node_epochs"), _fixes(rep.get("accuracy")))
+    curves = [(result.errors.get("e3"), f"3D, replay ({method})", "C0", "-", *mine),
+              (result.errors.get("ez"), f"|z|, replay ({method})", "C1", "-", *mine)]
+    if live.get("fixes"):
+        theirs = (live.get("node_epochs"), _fixes(live.get("accuracy")))
+        curves += [(result.live_errors.get("e3"), "3D, recorded live", "C0", "--", *theirs),
+                   (result.live_errors.get("ez"), "|z|, recorded live", "C1", "--", *theirs)]
+    return curves
+
+
+def _title(rep: dict, title: str | None) -> str:
+    if title:
+        return title
+    name = Path(rep["file"]).name
+    name = name if len(name) <= 40 else name[:18] + "..." + name[-19:]
+    what_if = rep.get("what_if") or "none (the recorded settings)"
+    what_if = what_if if len(what_if) <= 70 else what_if[:67] + "..."
+    win = rep.get("window")
+    span = "" if not win else (f"; {0 if win['start_s'] is None else win['start_s']:g}-"
+                               f"{'end' if win['end_s'] is None else format(win['end_s'], 'g')} s")
+    return f"Error CDF - {name}{span}\nwhat-if: {what_if}"
+
+
+def cdf_figure(result: ReplayResult, *, title: str | None = None) -> Figure:
     """Empirical CDFs of the 3D and z errors (replayed, and recorded-live when present) over
     every fix, a fix without a position (no track yet, lost, failed) counting as an infinite
     error, or over every node-epoch when there are more of those (a node-epoch without a fix
     counts likewise): a curve ends at the share that had a position (said on the plot, with
-    n). The title names the recording, the method and the what-if; the x axis shows the worst
-    error, or says where it cut it (:func:`x_limit`).
-
-    Parameters
-    ----------
-    result : ReplayResult
-    path : path
-        PNG to write.
-    title : str, optional
-        Default: ``Error CDF - <recording file name>`` (cut to fit).
-    """
+    n). The title names the recording, the time window and the what-if (``title``: instead);
+    the x axis shows the worst error, or says where it cut it (:func:`x_limit`)."""
     fig = Figure(figsize=(6.4, 4.4), dpi=120)  # no pyplot: no global backend or figure state
     ax = fig.subplots()
-    rep = result.report
-    method = rep.get("method", "dnls").upper().replace("DNLS", "D-NLS")
-    live = rep.get("live") or {}
-    curves = [
-        (result.errors.get("e3"), f"3D, replay ({method})", "C0", "-",
-         rep.get("node_epochs"), _fixes(rep.get("accuracy"))),
-        (result.errors.get("ez"), f"|z|, replay ({method})", "C1", "-",
-         rep.get("node_epochs"), _fixes(rep.get("accuracy"))),
-    ]
-    if live.get("fixes"):
-        curves += [
-            (result.live_errors.get("e3"), "3D, recorded live", "C0", "--",
-             live.get("node_epochs"), _fixes(live.get("accuracy"))),
-            (result.live_errors.get("ez"), "|z|, recorded live", "C1", "--",
-             live.get("node_epochs"), _fixes(live.get("accuracy"))),
-        ]
     drawn, unit = [], "fixes"
-    for arr, label, color, ls, ne, (scored, no_pos) in curves:
+    for arr, label, color, ls, ne, (scored, no_pos) in _curves(result):
         if arr is None or arr.size == 0:
             continue
         x = np.sort(np.abs(arr))
         n, unit = _denominator(ne, max(scored, x.size) + no_pos)
-        y = np.arange(1, x.size + 1) / n
-        ax.step(x, y, where="post", color=color, linestyle=ls,
+        ax.step(x, np.arange(1, x.size + 1) / n, where="post", color=color, linestyle=ls,
                 label=f"{label}: {x.size} with a position / {n} {unit}")
         drawn.append(x)
     x_max, worst, beyond = x_limit(drawn)
@@ -101,10 +104,7 @@ def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None
                                  f"  (worst error {worst:.2f} m)" if drawn else ""))
     ax.set_ylabel(f"share of {unit}")
     ax.grid(True, alpha=0.3)
-    name = Path(rep["file"]).name
-    name = name if len(name) <= 40 else name[:18] + "..." + name[-19:]
-    what_if = rep.get("what_if") or "none (the recorded settings)"
-    ax.set_title(title or f"Error CDF - {name}\nwhat-if: {what_if}", fontsize=9)
+    ax.set_title(_title(result.report, title), fontsize=9)
     note = ("over every node-epoch after the first 2 s; a node-epoch without a fix"
             if unit == "node-epochs" else "over every fix; a fix without a position")
     ax.text(0.01, 0.99, f"{note}\ncounts as an infinite error (the curve ends at the share "
@@ -112,11 +112,15 @@ def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None
     if drawn:
         ax.legend(loc="lower right", fontsize=7)
     else:
-        ax.text(
-            0.5, 0.5, "no fixes with ground truth to evaluate", ha="center", transform=ax.transAxes
-        )
+        ax.text(0.5, 0.5, "no fixes with ground truth to evaluate", ha="center",
+                transform=ax.transAxes)
     fig.tight_layout()
+    return fig
+
+
+def plot_cdf(result: ReplayResult, path: str | Path, *, title: str | None = None) -> Path:
+    """Write :func:`cdf_figure` of ``result`` to the PNG ``path``."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
+    cdf_figure(result, title=title).savefig(out)
     return out
