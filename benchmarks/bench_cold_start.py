@@ -16,7 +16,8 @@ is a new interpreter running ``python -m diffpos_services.cli.main ...`` (what t
 Columns: wall seconds; CPU seconds of the command and every process it started (user + sys);
 the kernels' share (emulate: the "compiled the solver kernels" seconds it logs, when it
 compiled; replay: ``timing.kernels_s`` + ``timing.warm_up_s`` of its report, with the replay's
-own ``wall_s`` and speed apart); the 1-minute load average before the row (other processes
+own ``wall_s`` and speed apart), with the CPU seconds of each compiling worker (on an idle
+machine with a core per worker, the compile's wall seconds are about the largest of them); the 1-minute load average before the row (other processes
 on the machine: on a busy machine wall seconds grow, CPU seconds much less). Target (issue
 35): the fresh emulate row under 45 s wall on an idle 2-core machine.
 
@@ -64,12 +65,18 @@ def _run(argv: list[str], cache: str) -> tuple[float, float, str, str]:
 
 def _note(name: str, stdout: str, stderr: str) -> str:
     if name == "emulate":
-        m = re.search(r"compiled the solver kernels.*?seconds=([\d.]+)", stderr)
-        return f"kernels {float(m.group(1)):.1f} s" if m else "kernels cached"
+        m = re.search(r"compiled the solver kernels.*?seconds=([\d.]+).*?worker_cpu_s=\[([^]]*)\]",
+                      stderr)
+        if not m:
+            return "kernels cached (< 5 s)"
+        cpu = " + ".join(f"{float(x):.1f}" for x in m.group(2).split(","))
+        return f"kernels {float(m.group(1)):.1f} s (workers' CPU {cpu} s)"
     if name == "replay":
         t = json.loads(stdout[stdout.index("{"):])["timing"]
-        return (f"kernels {t['kernels_s']:.1f} s + warm-up {t['warm_up_s']:.1f} s; replay "
-                f"{t['wall_s']:.1f} s ({t['speedup_x']:.1f}x real time)")
+        cpu = " + ".join(f"{x:.1f}" for x in t["kernel_worker_cpu_s"])
+        return (f"kernels {t['kernels_s']:.1f} s (workers' CPU {cpu} s) + warm-up "
+                f"{t['warm_up_s']:.1f} s; replay {t['wall_s']:.1f} s ({t['speedup_x']:.1f}x "
+                "real time)")
     return ""
 
 

@@ -10,11 +10,18 @@ options change them to answer "what if" questions on the same data.
 The report (stdout, and report.json + cdf.png in --out, default out/replay/<name>/) has,
 per node and overall: 3D, horizontal and z error percentiles (50/67/90/95/99 %, max) against
 the truth interpolated at each fix time, floor accuracy, PEB percentiles and the share of
-fixes within 2 PEB, fix status counts; the calibration of the reported floor probabilities over
-every node-epoch (diffpos.floor_calibration: reliability table, ECE, log and Brier scores,
-confidently wrong = a wrong floor published at p >= 0.95; absent for estimate v1); gating decisions per anchor (used / excluded and why);
-message counts and gaps in sequence numbers. --compare puts the recorded live estimates next to the replayed
-ones (matched per node and epoch).
+fixes within 2 PEB, fix status counts (units under every column, the names explained above the
+table); the calibration of the reported floor probabilities over every node-epoch
+(diffpos.floor_calibration: reliability table, ECE, log and Brier scores, confidently wrong = a
+wrong floor published at p >= 0.95; absent for estimate v1); gating decisions per anchor (used;
+"no track": measured while the node had no track yet, not an exclusion; excluded and why);
+message counts and gaps in sequence numbers. --compare puts the recorded live estimates next to
+the replayed ones (matched per node and epoch; differences named by their time into the
+recording). A WARNING block (top, bottom and stderr) names every anchor or node the replayed
+fixes lost (used by <= 10 % as many fixes as live), e.g. by a what-if limit. The kernels are
+prepared first (compiled in parallel on a machine's first run, with a progress line; cached
+after) and their time is reported apart from the replay's speed. --start/--end replay a time
+window (seconds into the recording, as `diffpos inspect` counts them).
 
 examples:
   diffpos replay recordings/sample.mcap                     # report + out files
@@ -27,6 +34,7 @@ examples:
   diffpos replay run.mcap --write-mcap run.replayed.mcap    # replayed estimates on
                                                             #  diffpos/<site>/replay/node/<id>/estimate
   diffpos replay run.mcap --rrd run.replayed.rrd            # Rerun dashboard of the replay
+  diffpos replay run.mcap --start 60 --end 90               # seconds 60-90 of the recording
 """
 
 from __future__ import annotations
@@ -395,8 +403,8 @@ def run(args: argparse.Namespace) -> int:
         # line; loaded from numba's cache after), then the fusion's import loads them: both
         # before the replay, so its speed does not count them
         t0 = time.perf_counter()
-        prepare_kernels(kernel_groups(args, overrides),
-                        progress=None if args.no_progress else progress_display())
+        prepared = prepare_kernels(kernel_groups(args, overrides),
+                                   progress=None if args.no_progress else progress_display())
         from diffpos_services.replay.run import replay  # the fusion core: not for --help
 
         kernels_s = time.perf_counter() - t0
@@ -429,7 +437,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"diffpos replay: {exc.filename or src}: {exc.strerror}", file=sys.stderr)
         return 2
     rep = result.report
-    rep["timing"]["kernels_s"] = kernels_s
+    rep["timing"]["kernels_s"] = kernels_s  # the workers' compile (or cache load) + imports
+    rep["timing"]["kernel_worker_cpu_s"] = list(prepared.worker_cpu_s)
     if rep.get("settings_warning"):
         print(f"diffpos replay: WARNING: {rep['settings_warning']}", file=sys.stderr)
     for line in dropped_lines(rep):  # also where a script's log keeps it

@@ -466,9 +466,10 @@ class Emulation:
         groups = groups_for(cfg.method, tracking=cfg.tracking,
                             channel=self.o.channel == "emulator")
         took = prepare_kernels(groups, progress=progress_display(say_done=False), stop=self.stop)
-        if took > 5.0:
+        if took.wall_s > 5.0:
             log_event(self.log, logging.INFO, "compiled the solver kernels (cached for later runs)",
-                      seconds=round(took, 1), groups=groups)
+                      seconds=round(took.wall_s, 1), groups=groups,
+                      worker_cpu_s=list(took.worker_cpu_s))
 
     def run(self) -> dict[str, Any]:
         """Run the emulation; returns the summary dictionary (empty if stopped before the

@@ -39,7 +39,7 @@ from typing import TextIO
 from diffpos_services.errors import DiffposError
 from diffpos_services.logs import STATUS
 
-__all__ = ["GROUPS", "GROUP_METHODS", "IMPORTED", "Group", "KernelError", "Progress", "bins",
+__all__ = ["GROUPS", "GROUP_METHODS", "IMPORTED", "Group", "KernelError", "Prepared", "Progress", "bins",
            "compile_groups", "groups_for", "prepare_kernels", "progress_display"]
 
 
@@ -216,12 +216,23 @@ def _progress(workers: list[_Worker], total: int, t0: float) -> Progress:
                     left if elapsed > 2.0 else None, running)
 
 
+@dataclass(frozen=True)
+class Prepared:
+    """What :func:`prepare_kernels` took: ``wall_s``, and each worker's CPU seconds (as last
+    read while it ran; on an idle machine with a core per worker the wall seconds are about
+    the largest of them)."""
+
+    wall_s: float
+    worker_cpu_s: tuple[float, ...]
+
+
 def prepare_kernels(groups: list[str], *, workers: int | None = None,
                     progress: Callable[[Progress], None] | None = None,
-                    interval_s: float = 0.5, stop: threading.Event | None = None) -> float:
+                    interval_s: float = 0.5, stop: threading.Event | None = None) -> Prepared:
     """Compile (or load from numba's cache) the kernels of ``groups`` in worker processes
     (:func:`bins`; default: one per core); ``progress`` is called every ``interval_s`` and
-    once at the end. Returns the wall seconds it took (``stop`` set: the workers are ended).
+    once at the end. Returns what it took (``stop`` set: the workers are ended, and it
+    returns at once).
 
     Raises
     ------
@@ -246,14 +257,14 @@ def prepare_kernels(groups: list[str], *, workers: int | None = None,
             if progress is not None:
                 progress(_progress(running, len(groups), t0))
             if wake.wait(interval_s) and stop is not None:
-                return time.monotonic() - t0
+                return Prepared(time.monotonic() - t0, tuple(w.cpu_s for w in running))
     finally:
         for w in running:
             w.stop()
     took = time.monotonic() - t0
     if progress is not None:
         progress(Progress(len(groups), len(groups), took, 0.0, (), finished=True))
-    return took
+    return Prepared(took, tuple(round(w.cpu_s, 1) for w in running))
 
 
 def progress_display(stream: TextIO | None = None, *, quiet_s: float = 2.0,
