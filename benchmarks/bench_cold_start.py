@@ -65,12 +65,12 @@ def _run(argv: list[str], cache: str) -> tuple[float, float, str, str]:
 
 def _note(name: str, stdout: str, stderr: str) -> str:
     if name == "emulate":
-        m = re.search(r"compiled the solver kernels.*?seconds=([\d.]+).*?worker_cpu_s=\[([^]]*)\]",
-                      stderr)
+        m = re.search(r"compiled the solver kernels.*?seconds=([\d.]+)"
+                      r"(?:.*?worker_cpu_s=\[([^]]*)\])?", stderr)
         if not m:
             return "kernels cached (< 5 s)"
-        cpu = " + ".join(f"{float(x):.1f}" for x in m.group(2).split(","))
-        return f"kernels {float(m.group(1)):.1f} s (workers' CPU {cpu} s)"
+        cpu = " + ".join(f"{float(x):.1f}" for x in (m.group(2) or "").split(",") if x)
+        return f"kernels {float(m.group(1)):.1f} s" + (f" (workers' CPU {cpu} s)" if cpu else "")
     if name == "replay":
         t = json.loads(stdout[stdout.index("{"):])["timing"]
         cpu = " + ".join(f"{x:.1f}" for x in t["kernel_worker_cpu_s"])
