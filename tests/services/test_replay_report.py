@@ -148,8 +148,10 @@ def test_cdf_names_the_what_if_and_counts_fixes_without_a_position():
     assert ys == pytest.approx([10 / 15, 10 / 15])  # 5 fixes without a position: misses
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert all("10 with a position / 15 fixes" in lab for lab in labels)
-    fig = cdf_figure(_result(e, e, evaluated=10, without_position=0, what_if=""))
-    assert "what-if: none" in fig.axes[0].get_title()
+    res = _result(e, e, evaluated=10, without_position=0, what_if="")
+    assert "what-if: none" in cdf_figure(res).axes[0].get_title()
+    res.report["dropped"] = {"anchors": {"uav8": {}}, "nodes": {}}
+    assert "LOST anchor uav8" in cdf_figure(res).axes[0].get_title()
 
 
 def test_cdf_axis_shows_the_worst_error_or_says_it_cut_it():

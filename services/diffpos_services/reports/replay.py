@@ -29,18 +29,28 @@ def _denominator(node_epochs: dict | None, n_fixes: int) -> tuple[int, str]:
 CUT_FACTOR = 3.0
 
 
-def x_limit(arrays: list[np.ndarray]) -> tuple[float, float, int]:
+def x_limit(arrays: list[np.ndarray], worst: float | None = None) -> tuple[float, float, int]:
     """``(x_max, worst, beyond)``: the axis end, the worst error and the errors beyond the
-    axis end (0: the axis shows every error) over the non-empty ``arrays`` [m]."""
+    axis end (0: the axis shows every error) over the non-empty ``arrays`` [m]; ``worst``: the
+    exact worst error when the arrays are a summary's (bucket centres, within 0.5 %)."""
     vals = [np.abs(a) for a in arrays if a is not None and a.size]
     if not vals:
         return 1.0, 0.0, 0
     allv = np.concatenate(vals)
-    worst, p99 = float(allv.max()), float(np.percentile(allv, 99))
+    worst = max(float(allv.max()), worst or 0.0)
+    p99 = float(np.percentile(allv, 99))
     if worst <= CUT_FACTOR * p99 or p99 <= 0:
         return (worst * 1.05 if worst > 0 else 1.0), worst, 0
     x_max = p99 * 1.2
     return x_max, worst, int((allv > x_max).sum())
+
+
+def _worst(rep: dict) -> float | None:
+    """The exact worst 3D and z error of the report's streams (``None``: none)."""
+    vals = [v for acc in (rep.get("accuracy"), (rep.get("live") or {}).get("accuracy")) if acc
+            for k in ("error_3d_m", "error_z_m")
+            if (v := (acc.get("overall", {}).get(k) or {}).get("max")) is not None]
+    return max(vals) if vals else None
 
 
 def _fixes(accuracy: dict | None) -> tuple[int, int]:
@@ -75,7 +85,12 @@ def _title(rep: dict, title: str | None) -> str:
     win = rep.get("window")
     span = "" if not win else (f"; {0 if win['start_s'] is None else win['start_s']:g}-"
                                f"{'end' if win['end_s'] is None else format(win['end_s'], 'g')} s")
-    return f"Error CDF - {name}{span}\nwhat-if: {what_if}"
+    d = rep.get("dropped") or {}
+    lost = [f"anchor {a}" for a in d.get("anchors") or {}] + [f"node {n}" for n in
+                                                              d.get("nodes") or {}]
+    lost_s = "" if not lost else ("; LOST " + ", ".join(lost[:4])
+                                  + (f" +{len(lost) - 4}" if len(lost) > 4 else ""))
+    return f"Error CDF - {name}{span}\nwhat-if: {what_if}{lost_s}"
 
 
 def cdf_figure(result: ReplayResult, *, title: str | None = None) -> Figure:
@@ -96,7 +111,7 @@ def cdf_figure(result: ReplayResult, *, title: str | None = None) -> Figure:
         ax.step(x, np.arange(1, x.size + 1) / n, where="post", color=color, linestyle=ls,
                 label=f"{label}: {x.size} with a position / {n} {unit}")
         drawn.append(x)
-    x_max, worst, beyond = x_limit(drawn)
+    x_max, worst, beyond = x_limit(drawn, _worst(result.report))
     ax.set_xlim(0, x_max)
     ax.set_ylim(0, 1)
     ax.set_xlabel("error [m]" + (f"  (axis cut at {x_max:.2f} m: worst error {worst:.2f} m, "
@@ -107,8 +122,9 @@ def cdf_figure(result: ReplayResult, *, title: str | None = None) -> Figure:
     ax.set_title(_title(result.report, title), fontsize=9)
     note = ("over every node-epoch after the first 2 s; a node-epoch without a fix"
             if unit == "node-epochs" else "over every fix; a fix without a position")
-    ax.text(0.01, 0.99, f"{note}\ncounts as an infinite error (the curve ends at the share "
-            "with a position)", transform=ax.transAxes, va="top", fontsize=7, color="0.3")
+    ax.text(0.98, 0.3, f"{note}\ncounts as an infinite error (the curve ends at the share "
+            "with a position)", transform=ax.transAxes, ha="right", va="bottom", fontsize=7,
+            color="0.3")
     if drawn:
         ax.legend(loc="lower right", fontsize=7)
     else:
