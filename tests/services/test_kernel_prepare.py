@@ -14,6 +14,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -156,3 +157,12 @@ def test_the_display_is_quiet_when_cached_and_says_the_end_otherwise():
     assert len(lines) == 2  # one line when it started taking long, one at the end
     assert "first run on this machine" in lines[0] and "about 20 s left" in lines[0]
     assert lines[1] == "compiled the solver kernels in 30 s (cached for later runs)"
+
+
+def test_a_stop_ends_the_workers_without_calling_it_a_failure(fake_groups):
+    """Ctrl-C reaches the workers too (they die with KeyboardInterrupt): with the run's stop
+    event set, that is not reported as a compile failure."""
+    stop = threading.Event()
+    stop.set()
+    got = prepare_kernels(["bad", "a"], workers=2, stop=stop, interval_s=0.05)
+    assert got.wall_s >= 0 and len(got.worker_cpu_s) == 2

@@ -248,6 +248,8 @@ def prepare_kernels(groups: list[str], *, workers: int | None = None,
     try:
         while True:
             alive = [w.poll() for w in running]
+            if stop is not None and stop.is_set():  # e.g. Ctrl-C, which also ends the workers
+                return Prepared(time.monotonic() - t0, tuple(w.cpu_s for w in running))
             for w, up in zip(running, alive, strict=True):
                 why = None if up else w.failure()
                 if why is not None:  # at once: the other workers are ended below
@@ -256,8 +258,7 @@ def prepare_kernels(groups: list[str], *, workers: int | None = None,
                 break
             if progress is not None:
                 progress(_progress(running, len(groups), t0))
-            if wake.wait(interval_s) and stop is not None:
-                return Prepared(time.monotonic() - t0, tuple(w.cpu_s for w in running))
+            wake.wait(interval_s)
     finally:
         for w in running:
             w.stop()
