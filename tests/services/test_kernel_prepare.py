@@ -134,7 +134,8 @@ def test_the_estimate_follows_the_machine(monkeypatch):
     assert p.left_s == pytest.approx(30.0) and p.done == 1 and p.running == ("dnls", "paths")
     t["now"] = 120.0  # 20 s wall for the same 10 s CPU: a busy machine
     assert prepare._progress(workers, 3, 100.0).left_s == pytest.approx(60.0)
-    assert "1/3 parts done" in p.line() and "about 30 s left" in p.line()
+    assert p.line() == ("compiling solver kernels (first run; cached after): 10 s, about 30 s "
+                        "left, 1/3 parts [D-NLS solver, path model]")
 
 
 class _Stream(io.StringIO):
@@ -155,7 +156,7 @@ def test_the_display_is_quiet_when_cached_and_says_the_end_otherwise():
     show(Progress(5, 5, 30.0, 0.0, (), finished=True))
     lines = out.getvalue().splitlines()
     assert len(lines) == 2  # one line when it started taking long, one at the end
-    assert "first run on this machine" in lines[0] and "about 20 s left" in lines[0]
+    assert "(first run; cached after): 3 s, about 20 s left" in lines[0]
     assert lines[1] == "compiled the solver kernels in 30 s (cached for later runs)"
 
 

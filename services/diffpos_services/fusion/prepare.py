@@ -128,14 +128,13 @@ class Progress:
     finished: bool = False  # the last call: every worker has ended
 
     def line(self) -> str:
-        """``compiling the solver kernels (first run on this machine; cached after): 2/5 parts
-        [tracker, M-NLS solver], 14 s, about 20 s left``."""
+        """``compiling solver kernels (first run; cached after): 14 s, about 20 s left,
+        2/5 parts [tracker, M-NLS solver]``: what moves first (a terminal line is cut at its
+        width)."""
         what = ", ".join(GROUPS[g].label for g in self.running)
-        left = ("" if self.left_s is None
-                else f", about {max(1, round(self.left_s))} s left")
-        return (f"compiling the solver kernels (first run on this machine; cached after): "
-                f"{self.done}/{self.total} parts done{f' [{what}]' if what else ''}, "
-                f"{self.elapsed_s:.0f} s{left}")
+        left = "" if self.left_s is None else f", about {max(1, round(self.left_s))} s left"
+        return (f"compiling solver kernels (first run; cached after): {self.elapsed_s:.0f} s"
+                f"{left}, {self.done}/{self.total} parts{f' [{what}]' if what else ''}")
 
 
 def _cpu_s(pid: int) -> float | None:
