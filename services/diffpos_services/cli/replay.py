@@ -10,11 +10,18 @@ options change them to answer "what if" questions on the same data.
 The report (stdout, and report.json + cdf.png in --out, default out/replay/<name>/) has,
 per node and overall: 3D, horizontal and z error percentiles (50/67/90/95/99 %, max) against
 the truth interpolated at each fix time, floor accuracy, PEB percentiles and the share of
-fixes within 2 PEB, fix status counts; the calibration of the reported floor probabilities over
-every node-epoch (diffpos.floor_calibration: reliability table, ECE, log and Brier scores,
-confidently wrong = a wrong floor published at p >= 0.95; absent for estimate v1); gating decisions per anchor (used / excluded and why);
-message counts and gaps in sequence numbers. --compare puts the recorded live estimates next to the replayed
-ones (matched per node and epoch).
+fixes within 2 PEB, fix status counts (units under every column, the names explained above the
+table); the calibration of the reported floor probabilities over every node-epoch
+(diffpos.floor_calibration: reliability table, ECE, log and Brier scores, confidently wrong = a
+wrong floor published at p >= 0.95; absent for estimate v1); gating decisions per anchor (used;
+"no track": measured while the node had no track yet, not an exclusion; excluded and why);
+message counts and gaps in sequence numbers. --compare puts the recorded live estimates next to
+the replayed ones (matched per node and epoch; differences named by their time into the
+recording). A WARNING block (top, bottom and stderr) names every anchor or node the replayed
+fixes lost (used by <= 10 % as many fixes as live), e.g. by a what-if limit. The kernels are
+prepared first (compiled in parallel on a machine's first run, with a progress line; cached
+after) and their time is reported apart from the replay's speed. --start/--end replay a time
+window (seconds into the recording, as `diffpos inspect` counts them).
 
 examples:
   diffpos replay recordings/sample.mcap                     # report + out files
@@ -27,6 +34,7 @@ examples:
   diffpos replay run.mcap --write-mcap run.replayed.mcap    # replayed estimates on
                                                             #  diffpos/<site>/replay/node/<id>/estimate
   diffpos replay run.mcap --rrd run.replayed.rrd            # Rerun dashboard of the replay
+  diffpos replay run.mcap --start 60 --end 90               # seconds 60-90 of the recording
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -43,9 +52,18 @@ from diffpos.floor_calibration import format_calibration
 from diffpos_services.config import load_json_option
 from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import tracker_help
+from diffpos_services.fusion.prepare import (
+    GROUP_METHODS,
+    KernelError,
+    groups_for,
+    prepare_kernels,
+    progress_display,
+)
 from diffpos_services.heap import keep_heap
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
+from diffpos_services.recording.reader import side_records
+from diffpos_services.recording.summary import live_fusion_settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,6 +111,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     o.add_argument("--max-truth-gap", type=float, default=0.5, metavar="S",
                    help="only evaluate fixes within S seconds of a truth sample (default 0.5)")
     o.add_argument("--no-progress", action="store_true", help="no progress bar")
+    w = parser.add_argument_group("time window")
+    w.add_argument("--start", type=float, metavar="S",
+                   help="replay from S seconds into the recording (after its first message; "
+                        "as `diffpos inspect` counts); the anchors' liveliness before it too")
+    w.add_argument("--end", type=float, metavar="S",
+                   help="replay up to S seconds into the recording")
 
 
 def _overrides(args: argparse.Namespace) -> dict[str, Any]:
@@ -129,26 +153,79 @@ def _overrides(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+#: What the per-node table's columns mean (printed above it).
+COLUMNS = (
+    "fixes: estimates published; scored: fixes with a position and a truth sample within",
+    "  --max-truth-gap; 3D, z: error percentiles of the scored fixes against the truth [m];",
+    "  floor: scored fixes on the true floor [%]; PEB: position error bound, the fix's own",
+    "  1-sigma 3D accuracy [m]; in 2 PEB: scored fixes with a 3D error <= 2 x PEB [%]",
+)
+#: What the exclusion reasons mean (printed under the gating table, those that occur).
+REASONS = {
+    "RAIM": "the fault test (RAIM) removed it from the fix",
+    "NOT_DETECTED": "the anchor reported no range to the node",
+    "NO_ANCHOR_STATE": "no usable anchor state (position) at the fix time",
+    "NOT_USED": "not needed by the fix",
+    "ANCHOR_LOST": "the anchor had left (liveliness)",
+    "NOT_REPORTED": "the anchor's ranges did not arrive in time",
+    "PREGATE_SHORTER_THAN_LOS": "range shorter than the line of sight: impossible",
+}
+
+
 def _fmt(v: float | None, nd: int = 2) -> str:
     return "-" if v is None else f"{v:.{nd}f}"
 
 
-def _changed(overrides: dict[str, Any]) -> str:
-    """The what-ifs as ``FIELD=VALUE, ...`` (tracker settings as ``tracker.KEY=VALUE``)."""
-    items: list[str] = []
-    for k, v in overrides.items():
-        items += ([f"{k}.{kk}={vv}" for kk, vv in v.items()] if isinstance(v, dict)
-                  else [f"{k}={v}"])
-    return ", ".join(items) or "none"
+def _pct(share: float | None, nd: int = 1) -> str:
+    """A share as a percentage number (the unit is in the header or follows as `` %``)."""
+    return "-" if share is None else f"{100 * share:.{nd}f}"
 
 
-def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
-    p = print
-    acc = rep["accuracy"]
+def _at(rep: dict[str, Any], t_ns: int | None) -> str:
+    """``12.3 s`` into the recording (receive time after its first message)."""
+    if t_ns is None or rep.get("origin_ns") is None:
+        return "?"
+    return f"{(t_ns - rep['origin_ns']) / 1e9:.1f} s"
+
+
+def dropped_lines(rep: dict[str, Any]) -> list[str]:
+    """The loud warning when the replay's fixes lost an anchor or a node (empty: none)."""
+    d = rep.get("dropped") or {}
+    anchors, nodes = d.get("anchors") or {}, d.get("nodes") or {}
+    if not anchors and not nodes:
+        return []
+    what_if = rep.get("what_if") or "none"
+    out = ["!" * 78, f"WARNING: the replayed fixes lost {len(anchors)} anchor(s) and "
+           f"{len(nodes)} node(s) the recording has (what-if: {what_if})"]
+    for a, x in anchors.items():
+        live = "" if x["live_used"] is None else f" (recorded live: {x['live_used']})"
+        why = ", ".join(f"{r} {n}" for r, n in x["excluded"].items()) or "no exclusion listed"
+        out.append(f"  anchor {a}: used by {x['replayed_used']} replayed fixes{live}; "
+                   f"excluded: {why}")
+    for n, x in nodes.items():
+        live = "" if x["live_positioned"] is None else f" (recorded live: {x['live_positioned']})"
+        out.append(f"  node {n}: {x['replayed_positioned']} of {x['replayed_fixes']} replayed "
+                   f"fixes have a position{live}")
+    rej = d.get("fusion_rejected") or {}
+    if rej:
+        out.append("  the fusion rejected input messages: "
+                   + ", ".join(f"{r} {n}" for r, n in rej.items())
+                   + " (a limit of the what-if? see the fusion settings)")
+    out.append("!" * 78)
+    return out
+
+
+def _header(rep: dict[str, Any], p: Any) -> None:
     p(f"replay of {rep['file']}" + ("" if rep["complete"] else "  (TRUNCATED recording: "
                                      "replayed up to its last complete chunk)"))
-    changed = _changed(rep["overrides"])
-    p(f"  settings from {rep['settings_source']}; method {rep['method']}; changed: {changed}")
+    p(f"  settings from {rep['settings_source']}; method {rep['method']}")
+    p(f"  WHAT-IF: {rep['what_if']}" if rep.get("what_if")
+      else "  what-if: none (the recorded settings)")
+    win = rep.get("window")
+    if win:
+        lo = "its start" if win["start_s"] is None else f"{win['start_s']:g} s"
+        hi = "its end" if win["end_s"] is None else f"{win['end_s']:g} s"
+        p(f"  time window: {lo} to {hi} into the recording (decision record not used)")
     if rep.get("settings_warning"):
         p(f"  WARNING: {rep['settings_warning']}")
     if rep.get("tracker_settings"):
@@ -160,68 +237,112 @@ def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
     if msgs["skipped_unknown"]:
         p(f"  skipped {msgs['skipped_unknown']} messages on channels that are not diffpos keys")
     t = rep["timing"]
-    sp = f", {t['speedup_x']:.1f}x real time" if t.get("speedup_x") else ""
-    p(f"  {rep['recording_s']:.1f} s of recording replayed in {t['wall_s']:.2f} s{sp}")
+    sp = f": {t['speedup_x']:.1f}x real time" if t.get("speedup_x") else ""
+    kern = t.get("kernels_s")
+    before = ("" if kern is None else f"; before that the solver kernels took {kern:.1f} s "
+              f"({'compiled: first run on this machine, cached after' if kern > 5 else 'cached'})")
+    p(f"  {rep['recording_s']:.1f} s of recording replayed in {t['wall_s']:.2f} s{sp} "
+      f"(fusion warm-up {t.get('warm_up_s', 0.0):.1f} s{before})")
+
+
+def _accuracy_table(rep: dict[str, Any], p: Any) -> None:
+    acc = rep["accuracy"]
     fx = rep["fixes"]
-    p(f"fixes: {fx['total']}  " + "  ".join(f"{k} {n}" for k, n in fx["by_status"].items()))
-    hdr = (f"{'node':<10}{'fixes':>7}{'eval':>7}{'3D p50':>8}{'p67':>7}{'p90':>7}{'p95':>7}"
-           f"{'max':>8}{'z p50':>7}{'z p90':>7}{'floor%':>8}{'PEB p50':>8}{'<=2PEB':>8}")
-    p(hdr)
+    no_pos = acc["overall"].get("without_position", 0)
+    p(f"fixes: {fx['total']} published (" + ", ".join(f"{k} {n}" for k, n in
+                                                     fx["by_status"].items())
+      + f"); {no_pos} without a position")
+    for line in COLUMNS:
+        p(f"  {line}")
+    p(f"{'node':<10}{'fixes':>7}{'scored':>7}{'3D p50':>8}{'p67':>7}{'p90':>7}{'p95':>7}"
+      f"{'max':>8}{'z p50':>7}{'z p90':>7}{'floor':>7}{'PEB p50':>8}{'in 2 PEB':>9}")
+    p(f"{'':<10}{'[n]':>7}{'[n]':>7}{'[m]':>8}{'[m]':>7}{'[m]':>7}{'[m]':>7}"
+      f"{'[m]':>8}{'[m]':>7}{'[m]':>7}{'[%]':>7}{'[m]':>8}{'[%]':>9}")
 
     def row(name: str, st: dict[str, Any]) -> str:
         e3, ez, pb = st["error_3d_m"], st["error_z_m"], st["peb_m"]
-        fl = "-" if st["floor_accuracy"] is None else f"{100 * st['floor_accuracy']:.1f}"
-        w2 = "-" if st["within_2peb"] is None else f"{100 * st['within_2peb']:.0f}%"
         return (f"{name:<10}{st['fixes']:>7}{st['evaluated']:>7}{_fmt(e3['p50']):>8}"
                 f"{_fmt(e3['p67']):>7}{_fmt(e3['p90']):>7}{_fmt(e3['p95']):>7}{_fmt(e3['max']):>8}"
-                f"{_fmt(ez['p50']):>7}{_fmt(ez['p90']):>7}{fl:>8}{_fmt(pb['p50']):>8}{w2:>8}")
+                f"{_fmt(ez['p50']):>7}{_fmt(ez['p90']):>7}{_pct(st['floor_accuracy']):>7}"
+                f"{_fmt(pb['p50']):>8}{_pct(st['within_2peb']):>9}")
 
     for node, st in acc["per_node"].items():
         p(row(node, st))
     p(row("ALL", acc["overall"]))
     if acc["overall"]["without_truth"]:
-        p(f"  ({acc['overall']['without_truth']} fixes had no truth sample nearby: not evaluated)")
+        p(f"  ({acc['overall']['without_truth']} fixes had no truth sample nearby: not scored)")
+
+
+def _gating_table(rep: dict[str, Any], p: Any) -> None:
+    p("gating per anchor [fixes]: used = fixes that used the anchor; no track = fixes of a")
+    p("  node without a track yet (UNINITIALISED) or any more (LOST): measured, not an")
+    p("  exclusion; excluded = left out of a fix, by reason")
+    p(f"  {'anchor':<10}{'used':>8}{'no track':>10}   excluded")
+    seen: set[str] = set()
+    for a, g in rep["gating"].items():
+        seen |= set(g["excluded"])
+        ex = ", ".join(f"{r} {n}" for r, n in g["excluded"].items()) or "-"
+        p(f"  {a:<10}{g['used']:>8}{g.get('no_track', 0):>10}   {ex}")
+    for r in sorted(seen):
+        p(f"    {r}: {REASONS.get(r, 'see docs/wire.md')}")
+
+
+def _compare_table(rep: dict[str, Any], p: Any) -> None:
+    live, acc = rep.get("live"), rep["accuracy"]
+    if live is None:
+        p("compare: the recording holds no live estimates (node/<id>/estimate)")
+        return
+    c = rep["compare"]
+    lo, ro = live["accuracy"]["overall"], acc["overall"]
+    p("recorded live vs replayed:")
+    p(f"  {'':<26}{'live':>12}{'replayed':>12}")
+    rows: list[tuple[str, Any, Any, Any]] = [
+        ("fixes [n]", lo["fixes"], ro["fixes"], str),
+        ("scored [n]", lo["evaluated"], ro["evaluated"], str),
+        ("without a position [n]", lo.get("without_position"), ro.get("without_position"), str),
+    ]
+    for label, key, q in (("3D error", "error_3d_m", "p50"), ("3D error", "error_3d_m", "p90"),
+                          ("3D error", "error_3d_m", "p95"), ("3D error", "error_3d_m", "max"),
+                          ("z error", "error_z_m", "p50"), ("z error", "error_z_m", "p90"),
+                          ("PEB", "peb_m", "p50")):
+        rows.append((f"{label} {q} [m]", lo[key][q], ro[key][q], lambda v: _fmt(v, 3)))
+    rows.append(("on the true floor [%]", lo["floor_accuracy"], ro["floor_accuracy"], _pct))
+    for label, lv, rv, fmt in rows:
+        p(f"  {label:<26}{fmt(lv):>12}{fmt(rv):>12}")
+    p(f"  matched {c['matched']} (node, epoch) pairs; only live {c['only_live']}, only "
+      f"replayed {c['only_replayed']}; same status {_pct(c['status_agree'] or 0)} %")
+    d = c["position_diff_m"]
+    p50 = "-" if d["p50"] is None else f"{d['p50']:.3g}"
+    pmax = "-" if d["max"] is None else f"{d['max']:.3g}"
+    p(f"  position difference over {c['with_positions']} pairs: identical "
+      f"{c['identical_positions']}, p50 {p50} m, max {pmax} m")
+    if c.get("live_not_reproducible"):  # a fusion restart the record cannot follow
+        p(f"  not reproducible: {c['live_not_reproducible']} live estimates: " + "; ".join(
+            f"{n} {why}" for why, n in c["live_not_reproducible_by_reason"].items()))
+    if any(ex["diff_m"] > 0 for ex in c["examples"]):
+        p("  largest differences (time = received, s into the recording):")
+    for ex in c["examples"]:
+        if ex["diff_m"] > 0:
+            p(f"    {ex['node']} at {_at(rep, ex.get('received_ns'))}: {ex['diff_m']:.3g} m "
+              f"(status live {ex['live_status']} / replayed {ex['replayed_status']})")
+
+
+def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
+    p = print
+    _header(rep, p)
+    warn = dropped_lines(rep)
+    for line in warn:
+        p(line)
+    _accuracy_table(rep, p)
     ne = rep.get("node_epochs") or {}
     if ne:  # the replayed node-epochs (every truth sample after the first 2 s)
         for line in format_calibration(ne.get("floor_calibration")):
             p(line)
-    p("gating per anchor (used / excluded by reason):")
-    for a, g in rep["gating"].items():
-        ex = ", ".join(f"{r} {n}" for r, n in g["excluded"].items()) or "-"
-        p(f"  {a:<10} used {g['used']:>7}   excluded: {ex}")
-    live = rep.get("live")
+    _gating_table(rep, p)
     if compare:
-        if live is None:
-            p("compare: the recording holds no live estimates (node/<id>/estimate)")
-            return
-        c = rep["compare"]
-        lo, ro = live["accuracy"]["overall"], acc["overall"]
-        p("recorded live vs replayed:")
-        p(f"  {'':<22}{'live':>12}{'replayed':>12}")
-        for label, lv, rv in (
-            ("fixes", lo["fixes"], ro["fixes"]),
-            ("evaluated", lo["evaluated"], ro["evaluated"]),
-            ("3D error p50 [m]", lo["error_3d_m"]["p50"], ro["error_3d_m"]["p50"]),
-            ("3D error p90 [m]", lo["error_3d_m"]["p90"], ro["error_3d_m"]["p90"]),
-            ("3D error p95 [m]", lo["error_3d_m"]["p95"], ro["error_3d_m"]["p95"]),
-            ("z error p50 [m]", lo["error_z_m"]["p50"], ro["error_z_m"]["p50"]),
-            ("z error p90 [m]", lo["error_z_m"]["p90"], ro["error_z_m"]["p90"]),
-            ("floor accuracy", lo["floor_accuracy"], ro["floor_accuracy"]),
-            ("PEB p50 [m]", lo["peb_m"]["p50"], ro["peb_m"]["p50"]),
-        ):
-            fmt = (lambda v: str(v)) if isinstance(lv, int) else (lambda v: _fmt(v, 3))
-            p(f"  {label:<22}{fmt(lv):>12}{fmt(rv):>12}")
-        p(f"  matched {c['matched']} (node, epoch) pairs; only live {c['only_live']}, only "
-          f"replayed {c['only_replayed']}; same status {_fmt(100 * (c['status_agree'] or 0), 1)}%")
-        d = c["position_diff_m"]
-        p50 = "-" if d["p50"] is None else f"{d['p50']:.3g}"
-        pmax = "-" if d["max"] is None else f"{d['max']:.3g}"
-        p(f"  position difference over {c['with_positions']} pairs: identical "
-          f"{c['identical_positions']}, p50 {p50} m, max {pmax} m")
-        for ex in c["examples"]:
-            if ex["diff_m"] > 0:
-                p(f"    {ex['node']} epoch {ex['epoch']}: {ex['diff_m']:.3g} m "
-                  f"({ex['live_status']} / {ex['replayed_status']})")
+        _compare_table(rep, p)
+    for line in warn:  # again at the end, where the eye lands
+        p(line)
 
 
 def check_outputs(args: argparse.Namespace) -> Path | None:
@@ -257,14 +378,40 @@ def _write_report_files(result: Any, out_dir: Path) -> list[str]:
     return [str(out_dir / "report.json"), str(out_dir / "cdf.png")]
 
 
-def run(args: argparse.Namespace) -> int:
-    from diffpos_services.replay.run import replay  # the fusion core: its kernels, not for --help
+def kernel_groups(args: argparse.Namespace, overrides: dict[str, Any]) -> list[str]:
+    """The kernel groups (:func:`~diffpos_services.fusion.prepare.groups_for`) of the method
+    the replay will run, read cheaply before the fusion is imported (which compiles): --method,
+    else a ``method`` what-if, else the recorded one (``dnls`` when none is recorded or with
+    --ignore-recorded-settings, as :func:`~diffpos_services.replay.run.replay_settings`)."""
+    recorded: dict[str, Any] = {}
+    if not args.ignore_recorded_settings:
+        try:
+            recorded, _ = live_fusion_settings(side_records(args.file))
+        except (RecordingError, OSError):
+            recorded = {}  # the replay itself says what is wrong with the file
+    settings = {**recorded, **overrides}
+    method = args.method or settings.get("method") or "dnls"
+    if method not in GROUP_METHODS:
+        method = "mnls"  # an unknown method fails later, in the settings; prepare the most
+    return groups_for(method, tracking=bool(settings.get("tracking", True)))
 
+
+def run(args: argparse.Namespace) -> int:
     src = Path(args.file)
     out_dir = check_outputs(args)
     keep_heap()  # as the live fusion's process (diffpos_services.heap)
     try:
         overrides = _overrides(args)
+        # the kernels first (compiled in parallel on a fresh machine, with a moving progress
+        # line; loaded from numba's cache after), then the fusion's import loads them: both
+        # before the replay, so its speed does not count them
+        t0 = time.perf_counter()
+        prepared = prepare_kernels(kernel_groups(args, overrides),
+                                   progress=None if args.no_progress else progress_display())
+        from diffpos_services.replay.run import replay  # the fusion core: not for --help
+
+        kernels_s = time.perf_counter() - t0
+
         progress = None
         bar = None
         if not args.no_progress and sys.stderr.isatty():
@@ -280,21 +427,25 @@ def run(args: argparse.Namespace) -> int:
             result = replay(src, overrides=overrides, method=args.method, step_ms=args.step_ms,
                             use_recorded_settings=not args.ignore_recorded_settings,
                             out_mcap=args.write_mcap, max_truth_gap_s=args.max_truth_gap,
-                            progress=progress,
+                            progress=progress, start_s=args.start, end_s=args.end,
                             # the estimate lists only for the .rrd (bounded memory otherwise)
                             keep_estimates=bool(args.rrd))
         finally:
             if bar is not None:
                 bar.stop()
-    except (RecordingError, ConfigError) as exc:
+    except (RecordingError, ConfigError, KernelError) as exc:
         print(f"diffpos replay: {exc}", file=sys.stderr)
         return exc.exit_code  # 1: not a diffpos recording; 2: broken input or options
     except OSError as exc:
         print(f"diffpos replay: {exc.filename or src}: {exc.strerror}", file=sys.stderr)
         return 2
     rep = result.report
+    rep["timing"]["kernels_s"] = kernels_s  # the workers' compile (or cache load) + imports
+    rep["timing"]["kernel_worker_cpu_s"] = list(prepared.worker_cpu_s)
     if rep.get("settings_warning"):
         print(f"diffpos replay: WARNING: {rep['settings_warning']}", file=sys.stderr)
+    for line in dropped_lines(rep):  # also where a script's log keeps it
+        print(f"diffpos replay: {line}", file=sys.stderr)
     if args.rrd:
         # rerun is a heavy import that `diffpos replay --help` and plain replays must not pay
         from diffpos_services.dashboard.convert import mcap_to_rrd

@@ -66,7 +66,8 @@ from diffpos_services.fusion.config import (
     model_edge,
     tracker_argv,
 )
-from diffpos_services.logs import STATUS, log_event
+from diffpos_services.fusion.prepare import groups_for, prepare_kernels, progress_display
+from diffpos_services.logs import log_event
 from diffpos_services.processes import child_env, free_tcp_port, stop_process_groups
 from diffpos_services.recording.summary import set_losses
 from diffpos_services.recording.writer import recording_set, restart_path
@@ -552,32 +553,21 @@ class Emulation:
                                       if service_role(p.name) == "fusion"])
 
     def _prepare_kernels(self) -> None:
-        """Compile the numba kernels (or load them from numba's on-disk cache) in this process
-        before any service starts, so the fusion and the anchors load them in about a second
-        instead of each compiling them for about a minute of CPU on a fresh machine (which
-        would also run past the services' readiness timeout). Said on the status line first,
-        logged with its duration when it took long (the first run on a machine)."""
-        STATUS.show("preparing the compiled solver kernels (the first run on a machine "
-                    "compiles them: about a minute) ...")
-        t0 = time.monotonic()
-        # imported here, after the message: importing dnls_nb compiles it (explicit signatures)
-        # (dnls_nb, mnls_nb, mnls_starts_nb and lm_nb compile on import; every service imports
-        # them)
-        import diffpos.channel.snr_nb as channel_nb
-        import diffpos.estimators.dnls.fit_nb as dnls_nb
-        import diffpos.estimators.mnls.solver_nb
-        import diffpos.estimators.mnls.starts_nb  # noqa: F401 (compiles on import)
-        import diffpos.paths.model_nb as paths_nb
-        import diffpos.tracking.tracker as tracker
-        paths_nb.warm_paths()
-        dnls_nb.warm_dnls()
-        channel_nb.warm_channel()  # the SNR prediction of mnls and the tracker
-        tracker.warm_tracking()  # the tracker's measurement model
-        took = time.monotonic() - t0
-        STATUS.show("")
-        if took > 5.0:
+        """Compile the numba kernels this run needs (or load them from numba's on-disk cache)
+        before any service starts, in parallel worker processes (:mod:`diffpos_services.fusion.
+        prepare`: the groups of the fusion's method, and the SNR kernels of the emulated
+        channel), so the fusion and the anchors load them in about a second instead of each
+        compiling them (over a minute of CPU on a fresh machine, which would also run past the
+        services' readiness timeout). A moving status line with an estimate says so when it
+        takes long (the first run on a machine), and the log records how long it took."""
+        cfg = self.fusion_config
+        groups = groups_for(cfg.method, tracking=cfg.tracking,
+                            channel=self.o.channel == "emulator")
+        took = prepare_kernels(groups, progress=progress_display(say_done=False), stop=self.stop)
+        if took.wall_s > 5.0:
             log_event(self.log, logging.INFO, "compiled the solver kernels (cached for later runs)",
-                      seconds=round(took, 1))
+                      seconds=round(took.wall_s, 1), groups=groups,
+                      worker_cpu_s=list(took.worker_cpu_s))
 
     def run(self) -> dict[str, Any]:
         """Run the emulation; returns the summary dictionary (empty if stopped before the

@@ -1,7 +1,7 @@
 """The fusion's warm-up: first-call costs paid before the service declares itself ready.
 
-:func:`warm_up` runs one tiny problem through every solver the core will call (D-NLS; with the
-method ``mnls`` also M-NLS, the compiled SNR prediction and a throw-away tracker), so imports,
+:func:`warm_up` runs one tiny problem through every solver the core will call (D-NLS with the
+method ``dnls``; with ``mnls`` M-NLS, the compiled SNR prediction and a throw-away tracker), so imports,
 numba cache loads and first calls happen before the first real epoch, which is then not late.
 The core's own state (tracks, tracker bank, counters) is left untouched. :func:`warm_model`
 is the mnls + tracker part, also run by each worker process of
@@ -57,10 +57,12 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
 
 def warm_up(core: Any) -> None:
     """Solve one 4-anchor problem with ``core``'s solvers (a :class:`FusionCore
-    <diffpos_services.fusion.core.FusionCore>`), changing none of its state."""
+    <diffpos_services.fusion.core.FusionCore>`), changing none of its state: D-NLS for the
+    method ``dnls`` only (the other methods do not call it)."""
     cfg = core.config
     _, r = _problem(cfg.window_height_m, cfg.first_floor_z_m)
-    dnls_solver.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1), window_height_m=cfg.window_height_m,
-             gating=core.gating)
+    if cfg.method == "dnls":
+        dnls_solver.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1),
+                         window_height_m=cfg.window_height_m, gating=core.gating)
     if core.building is not None:  # a throw-away tracker: the core's state is untouched
         warm_model(core.building, core.model[1], cfg.window_height_m, cfg.first_floor_z_m)

@@ -14,6 +14,7 @@ import numpy as np
 
 from diffpos.metrics import error_stats, percentiles, score, truth_at
 from diffpos_services.recording.topics import natural_key
+from diffpos_services.replay.report_stream import NO_TRACK_STATUSES
 from diffpos_services.wire import messages as M
 
 __all__ = ["TruthTracks", "compare_estimates", "evaluate", "gating_counts",
@@ -103,16 +104,25 @@ def evaluate(
 
 
 def gating_counts(estimates: list[M.PositionEstimate]) -> dict[str, Any]:
-    """Per anchor: fixes that used it, and exclusions by reason."""
+    """Per anchor: fixes that used it, fixes that measured it while the node had no track
+    (``no_track``: the "RAIM" of a fix in :data:`NO_TRACK_STATUSES
+    <diffpos_services.replay.report_stream.NO_TRACK_STATUSES>`, not an exclusion), and
+    exclusions by reason (as :meth:`FixStream.gating
+    <diffpos_services.replay.report_stream.FixStream.gating>`)."""
     used: Counter[str] = Counter()
+    no_track: Counter[str] = Counter()
     excluded: dict[str, Counter[str]] = defaultdict(Counter)
     for e in estimates:
         used.update(e.used_anchors)
         for x in e.excluded:
-            excluded[x.anchor_id][x.reason] += 1
-    anchors = sorted(set(used) | set(excluded), key=natural_key)
+            if x.reason == "RAIM" and e.status in NO_TRACK_STATUSES:
+                no_track[x.anchor_id] += 1
+            else:
+                excluded[x.anchor_id][x.reason] += 1
+    anchors = sorted(set(used) | set(excluded) | set(no_track), key=natural_key)
     return {
-        a: {"used": used.get(a, 0), "excluded": dict(sorted(excluded[a].items()))} for a in anchors
+        a: {"used": used.get(a, 0), "no_track": no_track.get(a, 0),
+            "excluded": dict(sorted(excluded[a].items()))} for a in anchors
     }
 
 

@@ -40,10 +40,14 @@ from diffpos_services.recording.topics import SeqTracker, natural_key
 from diffpos_services.replay.decided import DecisionReplayer
 from diffpos_services.wire import messages as M
 
-__all__ = ["Comparison", "FixStream", "Recorded", "SlimEstimate", "SlimTruth", "TruthBook",
-           "slim_decoders"]
+__all__ = ["NO_TRACK_STATUSES", "Comparison", "FixStream", "Recorded", "SlimEstimate",
+           "SlimTruth", "TruthBook", "slim_decoders"]
 
 _NAN3 = (math.nan, math.nan, math.nan)
+#: Statuses of a fix without a track (the tracker's): its anchors were measured but no track
+#: existed to use them (before the first initialisation, or after the track was lost), so the
+#: "RAIM" the fusion lists for them is not an exclusion (counted as "no track" instead).
+NO_TRACK_STATUSES = frozenset({"UNINITIALISED", "LOST"})
 _COV_BATCH = 4096
 #: scored fixes / node-epochs buffered before they go into the summaries
 _BATCH = 8192
@@ -231,6 +235,8 @@ class FixStream:
         self.fixes_by_node: Counter[str] = Counter()
         self.used: Counter[str] = Counter()
         self.excluded: dict[str, Counter[str]] = defaultdict(Counter)
+        self.no_track: Counter[str] = Counter()  # per anchor: measured, no track to use it
+        self.positioned: Counter[str] = Counter()  # per node: fixes with a usable position
         self.no_truth = 0
         self._nodes: dict[str, int] = {}
         self._err = _Errors()
@@ -256,9 +262,14 @@ class FixStream:
         self.by_status[e.status] += 1
         self.fixes_by_node[e.node_id] += 1
         self.used.update(e.used_anchors)
+        no_track = e.status in NO_TRACK_STATUSES
         for x in e.excluded:
-            self.excluded[x.anchor_id][x.reason] += 1
+            if no_track and x.reason == "RAIM":
+                self.no_track[x.anchor_id] += 1
+            else:
+                self.excluded[x.anchor_id][x.reason] += 1
         if e.position_m is not None and e.status in M.GOOD_STATUSES:
+            self.positioned[e.node_id] += 1
             fix = (e.t_ns, tuple(e.position_m), e.peb_m, e.floor_index, e.covariance_m2,
                    getattr(e, "floor_probabilities", ()))
             self._pending[e.node_id].append(fix)
@@ -416,8 +427,11 @@ class FixStream:
             i = self._nodes.get(name)
             st = self._stats.get(i, empty) if i is not None else empty
             per_node[name] = st.result(fixes=self.fixes_by_node[name])
+        for name, st in per_node.items():
+            st["without_position"] = self.fixes_by_node[name] - self.positioned[name]
         overall = self._overall.result(fixes=self.total)
         overall["without_truth"] = self.no_truth
+        overall["without_position"] = self.total - sum(self.positioned.values())
         return {"overall": overall, "per_node": per_node}, ErrorArrays(self._overall)
 
     def node_epochs(self) -> dict[str, Any]:
@@ -430,8 +444,11 @@ class FixStream:
         return s.as_dict() | {"skip_s": self.skip_s}
 
     def gating(self) -> dict[str, Any]:
-        anchors = sorted(set(self.used) | set(self.excluded), key=natural_key)
-        return {a: {"used": self.used.get(a, 0),
+        """Per anchor: fixes that ``used`` it, fixes that measured it while the node had
+        ``no_track`` (:data:`NO_TRACK_STATUSES`: not exclusions) and ``excluded`` by reason."""
+        anchors = sorted(set(self.used) | set(self.excluded) | set(self.no_track),
+                         key=natural_key)
+        return {a: {"used": self.used.get(a, 0), "no_track": self.no_track.get(a, 0),
                     "excluded": dict(sorted(self.excluded[a].items()))} for a in anchors}
 
 
@@ -455,7 +472,7 @@ class Comparison:
         self.counts["live" if side == 0 else "replayed"] += 1
         key = (e.node_id, e.epoch)
         other = self.sides[1 - side].pop(key, None)
-        item = (e.status, e.position_m, e.peb_m, now_ns)
+        item = (e.status, e.position_m, e.peb_m, now_ns)  # now_ns: recorded receive time
         if other is None:
             if self.sides[side].pop(key, None) is not None:  # a repeat: the last one counts
                 self.counts["only_live" if side == 0 else "only_replayed"] += 1
@@ -477,7 +494,7 @@ class Comparison:
                     self._diff_sketch.add(np.frombuffer(self.diffs, np.float64))
                     self.diffs = array.array("d")
                 self._n += 1
-                ex = (dist, -self._n, (key[0], key[1], a[0], b[0]))
+                ex = (dist, -self._n, (key[0], key[1], a[0], b[0], a[3]))
                 (heapq.heappush if len(self.top) < 5 else heapq.heappushpop)(self.top, ex)
             if a[2] is not None and b[2] is not None:
                 dp = abs(a[2] - b[2])
@@ -507,7 +524,7 @@ class Comparison:
             "position_diff_m": diffs.summary(),
             "peb_diff_m": self.peb_max,
             "examples": [{"node": k[0], "epoch": k[1], "diff_m": dist, "live_status": k[2],
-                          "replayed_status": k[3]}
+                          "replayed_status": k[3], "received_ns": k[4]}
                          for dist, _, k in sorted(self.top, reverse=True)],
         }
 
@@ -528,6 +545,7 @@ class Recorded:
         self.counts: Counter[str] = Counter()
         self.bad_payloads: Counter[str] = Counter()
         self.seq = SeqTracker()
+        self.t_origin: int | None = None  # the recording's first message (receive time)
         self.t_first: int | None = None
         self.t_last: int | None = None
         self.decided: DecisionReplayer | None = None

@@ -74,6 +74,7 @@ __all__ = [
     "live_fusion_settings",
     "replay",
     "replay_settings",
+    "what_if_text",
 ]
 
 #: chunks read ahead for the settings (until the first anchor state and diagnostics)
@@ -456,6 +457,41 @@ class _Fusion:
                 "instances": inst}
 
 
+def _windowed(batches: Iterable[list[RawMessage]], rec: Recorded, start_s: float | None,
+              end_s: float | None) -> Iterator[list[RawMessage]]:
+    """The messages received from ``start_s`` to ``end_s`` seconds into the recording (after
+    its first message, ``rec.t_origin``; ``None``: its start / end), plus the anchor liveliness
+    events before the window (which anchors are up when it opens); reading stops past it."""
+    lo = None if start_s is None else round(start_s * 1e9)
+    hi = None if end_s is None else round(end_s * 1e9)
+    live: dict[str, bool] = {}
+    for batch in batches:
+        if rec.t_origin is None and batch:
+            rec.t_origin = batch[0].log_ns
+        if lo is None and hi is None:
+            yield batch
+            continue
+        keep = []
+        for m in batch:
+            t = m.log_ns - rec.t_origin
+            if hi is not None and t > hi:
+                if keep:
+                    yield keep
+                return
+            if lo is None or t >= lo:
+                if lo is not None and (rec.t_first is None or rec.t_first < rec.t_origin + lo):
+                    rec.t_first = m.log_ns  # the window's first message: its span from here
+                keep.append(m)
+            else:
+                is_live = live.get(m.topic)
+                if is_live is None:
+                    is_live = live[m.topic] = parse_topic(m.topic)[0] == "liveliness"
+                if is_live:
+                    keep.append(m)
+        if keep:
+            yield keep
+
+
 def _feed(
     fusion: _Fusion,
     batches: Iterable[list[RawMessage]],
@@ -591,8 +627,54 @@ def _messages_section(rec: Recorded, cores: list[FusionCore]) -> dict[str, Any]:
     }
 
 
+def what_if_text(overrides: dict[str, Any]) -> str:
+    """The what-ifs as ``FIELD=VALUE, ...`` (tracker settings as ``tracker.KEY=VALUE``;
+    ``""``: none)."""
+    items: list[str] = []
+    for k, v in overrides.items():
+        items += ([f"{k}.{kk}={vv}" for kk, vv in v.items()] if isinstance(v, dict)
+                  else [f"{k}={v}"])
+    return ", ".join(items)
+
+
+#: An anchor or node counts as dropped by the replay when its replayed fixes (that use the
+#: anchor; with a position, for a node) are fewer than this share of the recorded live ones.
+DROPPED_SHARE = 0.1
+
+
+def _dropped(rec: Recorded, cores: list[FusionCore]) -> dict[str, Any]:
+    """Anchors and nodes the replayed fixes (nearly) lost: :data:`DROPPED_SHARE` of the live
+    fixes or fewer; without live fixes, an anchor that sent data and no fix used, a node with
+    truth and no positioned fix. Each with the numbers and the fusion's reasons."""
+    out, live = rec.replayed, rec.live
+    has_live = live.total > 0
+    seen = set().union(*(c.anchors for c in cores))  # one core per live fusion instance
+    rejected: Counter[str] = Counter()
+    for c in cores:
+        rejected.update(c.rejected)
+    anchors: dict[str, Any] = {}
+    for a in sorted(seen | set(out.used) | set(live.used), key=natural_key):
+        r, lv = out.used.get(a, 0), live.used.get(a, 0)
+        if (r <= DROPPED_SHARE * lv) if has_live else r == 0:
+            if has_live and lv == 0:
+                continue  # the live fusion did not use it either
+            why = out.excluded.get(a) or {}
+            anchors[a] = {"replayed_used": r, "live_used": lv if has_live else None,
+                          "excluded": dict(why.most_common(3)) if why else {}}
+    nodes: dict[str, Any] = {}
+    for n in sorted(set(out.fixes_by_node) | set(live.fixes_by_node) | set(rec.truth.t),
+                    key=natural_key):
+        r, lv = out.positioned.get(n, 0), live.positioned.get(n, 0)
+        if (lv > 0 and r <= DROPPED_SHARE * lv) if has_live else (r == 0 and n in rec.truth.t):
+            nodes[n] = {"replayed_positioned": r, "live_positioned": lv if has_live else None,
+                        "replayed_fixes": out.fixes_by_node.get(n, 0)}
+    return {"anchors": anchors, "nodes": nodes,
+            "fusion_rejected": dict(sorted(rejected.items()))}
+
+
 def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fusion: _Fusion,
-            rec: Recorded, *, step_ms: float, t_wall0: float) -> ReplayResult:
+            rec: Recorded, *, step_ms: float, t_wall0: float, warm_up_s: float,
+            window: tuple[float | None, float | None]) -> ReplayResult:
     """Accuracy of the replayed (and recorded live) fixes, and the JSON report."""
     rec.advance(rec.t_last or 0, final=True)
     out, live = rec.replayed, rec.live
@@ -613,6 +695,7 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fu
         "tracker_settings": settings.tracker_note,
         "ignored_recorded_fields": settings.ignored_recorded_fields,
         "overrides": settings.overrides,
+        "what_if": what_if_text(settings.overrides),
         "method": config.method,
         "step_ms": step_ms,
         "decisions": None if fusion.decided is None else fusion.decided.report,
@@ -638,7 +721,13 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fu
             **rec.compare.result(),
             "live_not_reproducible": instances["estimates"],
             "live_not_reproducible_by_reason": instances["by_reason"]},
+        "origin_ns": rec.t_origin,
+        "window": None if window == (None, None) else {"start_s": window[0], "end_s": window[1]},
+        "dropped": _dropped(rec, fusion.cores),
         "timing": {
+            # the kernels: imports, cache loads (a compile on a fresh machine) and the
+            # fusion's warm-up, before the replay's clock starts
+            "warm_up_s": warm_up_s,
             "wall_s": wall,
             "speedup_x": (duration_s / wall) if wall > 0 and duration_s > 0 else None,
         },
@@ -668,6 +757,8 @@ def replay(
     logger: logging.Logger | None = None,
     keep_estimates: bool = True,
     use_decisions: bool = True,
+    start_s: float | None = None,
+    end_s: float | None = None,
 ) -> ReplayResult:
     """Re-run the fusion on a recording.
 
@@ -703,6 +794,10 @@ def replay(
         first diagnostics on): the live run's ingest order, liveliness and step times, so the
         fixes are the live ones bit for bit (``report["decisions"]`` counts what matched).
         Without (or without a record) the recording's order and ``step_ms`` are used.
+    start_s, end_s : float, optional [s]
+        Replay only the messages received this long after the recording's first message
+        (the anchors' liveliness events before ``start_s`` too); the decision record is then
+        not used (it covers the whole run). ``report["window"]`` says so.
 
     Raises
     ------
@@ -711,7 +806,10 @@ def replay(
     ConfigError
         Invalid settings (names the field).
     """
-    t_wall0 = time.perf_counter()
+    if start_s is not None and end_s is not None and end_s <= start_s:
+        raise ConfigError(f"the window ends ({end_s:g} s) before it starts ({start_s:g} s)")
+    if start_s is not None and start_s < 0:
+        raise ConfigError(f"start {start_s:g} s: must be >= 0 (seconds into the recording)")
     if out_mcap is not None:
         check_output(out_mcap, option="out_mcap", inputs=[path])
     scanner = PartsScanner(path)  # a split recording's parts in turn
@@ -723,20 +821,22 @@ def replay(
         (logger or logging.getLogger("diffpos.replay")).warning("%s", settings.warning)
     with contextlib.ExitStack() as stack:
         tmp = None if out_mcap is None else stack.enter_context(atomic_path(out_mcap))
-        decided = (use_decisions and first_diag is not None
+        decided = (use_decisions and first_diag is not None and start_s is None
+                   and end_s is None
                    and first_diag.decisions is not None and first_diag.decisions.chunk == 0)
         rec = Recorded(FUSION_INPUT_KINDS, max_truth_gap_ns=round(max_truth_gap_s * 1e9),
                        keep_estimates=keep_estimates, window_ns=_WINDOW_NS)
         return _run(path, scanner, settings, ahead, rest, tmp, rec, side=side,
                     copy_input=copy_input, step_ms=step_ms, progress=progress, logger=logger,
-                    t_wall0=t_wall0, decided=decided, use_decisions=use_decisions)
+                    decided=decided, use_decisions=use_decisions, window=(start_s, end_s))
 
 
 def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, step_ms,
-         progress, logger, t_wall0, decided, use_decisions) -> ReplayResult:
+         progress, logger, decided, use_decisions, window) -> ReplayResult:
     """Steps 2-4 of :func:`replay` (``tmp``: where the output MCAP goes until complete)."""
     config = settings.config
     kernel_pool.set_threads(config.kernel_threads)  # the process's kernel pool (threads)
+    t_warm = time.perf_counter()
     outputs = _Outputs(tmp, copy_input=copy_input, site=config.site, side=side, rec=rec, header={
         "source": str(path),
         "method": config.method,
@@ -761,6 +861,7 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
 
     fusion = _Fusion(make_core, outputs.emit, rec, use_decisions=use_decisions,
                      decided=decided, attach=attach)
+    fusion.core.warm_up()  # the kernels loaded (or compiled) now: not counted as replay time
     # FusionConfig.workers: the same estimates for any count, so never more processes than
     # this machine has cores (a recording made on a bigger machine)
     rows = start_workers(fusion.core, max_processes=os.cpu_count() or 1)
@@ -768,7 +869,8 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
         if rows is not None:
             pool.append(rows)
             rows.wait_ready()
-        _feed(fusion, _consume(ahead, rest), outputs, rec,
+        t_wall0 = time.perf_counter()  # the replay's clock: from here to the report
+        _feed(fusion, _windowed(_consume(ahead, rest), rec, *window), outputs, rec,
               step_ns=max(0, round(step_ms * 1e6)), after_batch=after_batch)
         if rec.fusion_inputs == 0:
             outputs.close()
@@ -781,4 +883,5 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
         if rows is not None:
             rows.close()
     outputs.close(final_metadata={"replayed_estimates": outputs.count})
-    return _report(path, scanner, settings, fusion, rec, step_ms=step_ms, t_wall0=t_wall0)
+    return _report(path, scanner, settings, fusion, rec, step_ms=step_ms, t_wall0=t_wall0,
+                   warm_up_s=t_wall0 - t_warm, window=window)
