@@ -219,7 +219,7 @@ def _header(rep: dict[str, Any], p: Any) -> None:
     p(f"replay of {rep['file']}" + ("" if rep["complete"] else "  (TRUNCATED recording: "
                                      "replayed up to its last complete chunk)"))
     p(f"  settings from {rep['settings_source']}; method {rep['method']}")
-    p(f"  WHAT-IF: {rep['what_if']}" if rep.get("what_if")
+    p(f"  WHAT-IF, settings changed: {rep['what_if']}" if rep.get("what_if")
       else "  what-if: none (the recorded settings)")
     win = rep.get("window")
     if win:
