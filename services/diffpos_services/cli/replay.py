@@ -219,7 +219,7 @@ def _header(rep: dict[str, Any], p: Any) -> None:
     p(f"replay of {rep['file']}" + ("" if rep["complete"] else "  (TRUNCATED recording: "
                                      "replayed up to its last complete chunk)"))
     p(f"  settings from {rep['settings_source']}; method {rep['method']}")
-    p(f"  WHAT-IF: {rep['what_if']}" if rep.get("what_if")
+    p(f"  WHAT-IF, settings changed: {rep['what_if']}" if rep.get("what_if")
       else "  what-if: none (the recorded settings)")
     win = rep.get("window")
     if win:
@@ -239,8 +239,11 @@ def _header(rep: dict[str, Any], p: Any) -> None:
     t = rep["timing"]
     sp = f": {t['speedup_x']:.1f}x real time" if t.get("speedup_x") else ""
     kern = t.get("kernels_s")
+    # compiled: a worker spent CPU seconds on it (a cache load takes about one, whatever the
+    # wall seconds on a busy machine)
+    compiled = max(t.get("kernel_worker_cpu_s") or [0.0]) > 5.0
     before = ("" if kern is None else f"; before that the solver kernels took {kern:.1f} s "
-              f"({'compiled: first run on this machine, cached after' if kern > 5 else 'cached'})")
+              f"({'compiled: first run on this machine, cached after' if compiled else 'loaded from the cache'})")
     p(f"  {rep['recording_s']:.1f} s of recording replayed in {t['wall_s']:.2f} s{sp} "
       f"(fusion warm-up {t.get('warm_up_s', 0.0):.1f} s{before})")
 

@@ -69,8 +69,9 @@ GROUPS: dict[str, Group] = {
 #: (``fusion/step.py``: D-NLS; ``fusion/tracked.py``: M-NLS).
 IMPORTED = ("dnls", "mnls")
 
-#: What each method solves with (besides :data:`IMPORTED`).
-_METHOD_GROUPS = {"mnls": ("paths", "channel", "tracking"), "dnls": (), "lls": (), "ippa": ()}
+#: What each method solves with (:func:`groups_for` adds :data:`IMPORTED`, compiled anyway).
+_METHOD_GROUPS = {"mnls": ("mnls", "paths", "channel", "tracking"), "dnls": ("dnls",),
+                  "lls": (), "ippa": ()}
 #: The methods :func:`groups_for` knows.
 GROUP_METHODS = tuple(_METHOD_GROUPS)
 
