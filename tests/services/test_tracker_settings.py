@@ -184,7 +184,7 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
                      "--set", "deadline_s=0.3"]) == 0
     settings = json.loads((out / "report.json").read_text())["settings"]
     assert settings["tracker"] == {**DEFAULTS, "sigma_model_m": 0.3, "dormant": False}
-    assert "WHAT-IF: tracker.sigma_model_m=0.3, tracker.dormant=False, deadline_s=0.3" in \
+    assert "changed: tracker.sigma_model_m=0.3, tracker.dormant=False, deadline_s=0.3" in \
         capsys.readouterr().out
     # --config FILE.json: a "tracker" object merged into the recorded settings, --set on top
     conf = tmp_path / "what_if.json"

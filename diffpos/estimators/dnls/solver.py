@@ -45,7 +45,6 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from diffpos.estimators.dnls import fit_nb as dnls_nb
 from diffpos.estimators.dnls.fit import RECHECK_PROBABILITY, FitSettings, solve_chunk
 from diffpos.estimators.gating import GatingConfig, chi2_threshold
 from diffpos.estimators.lm import LOSSES, PathModel
@@ -259,6 +258,10 @@ def _solve_compiled(batch_in: PreparedBatch, model: PathModel, x0: FloatArray | 
     zs = np.zeros(1) if starts is None else np.ascontiguousarray(starts, np.float64)
     pfa = gating.false_alarm_probability if gating is not None else 0.5
     out = _kernel_outputs(bsz, m)
+    # imported here: importing fit_nb compiles D-NLS (explicit signatures, ~44 s of CPU on a
+    # fresh machine), which a fusion running M-NLS must not pay for
+    from diffpos.estimators.dnls import fit_nb as dnls_nb
+
     dnls_nb.dnls_batch(batch_in.anchors_m, batch_in.ranges_m, batch_in.sigmas_m, batch_in.mask,
                        h, x0_c, has_x0, zs, ipar, fpar, _thresholds(m, pfa),
                        _thresholds(m, RECHECK_PROBABILITY), *out)
@@ -279,6 +282,8 @@ def _kernel_options(loss: int, loss_scale: float, max_iter: int, xtol: float,
                     gating: GatingConfig | None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`diffpos.estimators.dnls.fit_nb.options`, once per distinct option set (the kernel only
     reads ``ipar``/``fpar``; shared arrays, never written)."""
+    from diffpos.estimators.dnls import fit_nb as dnls_nb  # compiles on import: when used
+
     return dnls_nb.options(loss=loss, loss_scale=loss_scale, max_iter=max_iter, xtol=xtol,
                            keep_starts=keep_starts, screen_iter=screen_iter, lls_start=lls_start,
                            sigmas_given=sigmas_given, y_start=y_start, edge_x_m=edge_x_m,

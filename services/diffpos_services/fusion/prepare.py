@@ -66,8 +66,8 @@ GROUPS: dict[str, Group] = {
 
 #: Groups compiled whenever the fusion is imported, whatever its method: their modules
 #: compile on import (explicit signatures) and the fusion imports them at module level
-#: (``fusion/step.py``: D-NLS; ``fusion/tracked.py``: M-NLS).
-IMPORTED = ("dnls", "mnls")
+#: (``fusion/tracked.py``: M-NLS; the D-NLS solver imports its kernel when it first solves).
+IMPORTED = ("mnls",)
 
 #: What each method solves with (:func:`groups_for` adds :data:`IMPORTED`, compiled anyway).
 _METHOD_GROUPS = {"mnls": ("mnls", "paths", "channel", "tracking"), "dnls": ("dnls",),
