@@ -545,10 +545,10 @@ class Emulation:
                 self.alive_event.wait(0.2)
 
     def _fusions_heard(self) -> bool:
-        """With fusion shards: every fusion process sent a heartbeat (they share the one
-        ``alive/fusion`` token key, whose first token says nothing of the others)."""
-        if self.o.fusion_shards == 1:
-            return True
+        """Every fusion process sent a heartbeat: the supervisor judges a process from its
+        first heartbeat on, so a fusion that stops before it would never be found hung; and
+        fusion shards share the one ``alive/fusion`` token key, whose first token says nothing
+        of the others."""
         return self.supervisor.heard([p.popen.pid for p in self.procs
                                       if service_role(p.name) == "fusion"])
 
