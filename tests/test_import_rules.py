@@ -46,8 +46,7 @@ PRESENTATION_ALLOWED = ("reports", "cli")
 #: module (cli/<verb>.py) imports its service inside its functions, never in add_arguments
 #: or what it calls (:func:`_verb_lazy_lines`): `diffpos VERB --help` imports the parser only.
 LAZY_ALLOWED = ("sionna", "drjit", "mitsuba", "cryptography", "jsonschema", "rerun", "pyarrow",
-                "diffpos_services.dashboard", "diffpos_services.reports.replay",
-                "diffpos.tracking.tracker")  # warm_tracking: the tracker kernels' compile
+                "diffpos_services.dashboard", "diffpos_services.reports.replay")
 MAX_FUNCTION_LINES = 80
 
 
