@@ -52,7 +52,7 @@ def test_sigstopped_fusion_and_recorder_are_hung_faults_killed_and_restarted(ser
     assert set(faults) == {"fusion", "recorder"}, faults
     for f in faults.values():
         assert f["kind"] == "hung" and f["exit_code"] == -signal.SIGKILL
-        assert STALL_S < f["detected_after_s"] < STALL_S + 2.0, f
+        assert STALL_S <= f["detected_after_s"] < STALL_S + 2.0, f
         assert f["restarted_s"] is not None
     assert "fusion: hung, found at" in log and "recorder: hung, found at" in log
     # the recorder's file was recovered after the kill, the new one has the rest
