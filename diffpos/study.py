@@ -66,14 +66,11 @@ from diffpos.estimators.ippa import ippa
 from diffpos.estimators.lls import lls
 from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import Scenario
+from diffpos.study_methods import DEFAULT_QUICK_NODES, METHOD_LABELS, REPRODUCE_METHODS
 
 __all__ = [
-    "ALL_METHODS",
     "DEFAULT_METHODS",
-    "DEFAULT_QUICK_NODES",
-    "METHOD_LABELS",
     "PAPER_TABLE",
-    "REPRODUCE_METHODS",
     "Arrivals",
     "FirstArrivalData",
     "PositioningStudy",
@@ -94,15 +91,6 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-METHOD_LABELS: dict[str, str] = {
-    "lls": "LLS",
-    "ippa": "IPPA",
-    "dnls_case1": "D-NLS (Case-1)",
-    "dnls_case2": "D-NLS (Case-2)",
-    "dnls_lower": "D-NLS (lower edge)",
-    "mnls": "M-NLS (first-arrival model)",
-    "peb": "PEB",
-}
 DEFAULT_METHODS: tuple[str, ...] = ("lls", "ippa", "dnls_case1", "dnls_case2")
 PERCENTILES: tuple[tuple[str, float], ...] = (("median", 50.0), ("p80", 80.0), ("p95", 95.0))
 
@@ -366,7 +354,7 @@ def floor_starts_m(building: Any) -> FloatArray:
 
 
 def _check_methods(methods: Sequence[str], building: Any) -> None:
-    """Every method is known (:data:`METHOD_LABELS` but ``"peb"``) and ``mnls`` has its building."""
+    """Every method is known (:data:`~diffpos.study_methods.METHOD_LABELS` but ``"peb"``) and ``mnls`` has its building."""
     unknown = [m for m in methods if m not in METHOD_LABELS or m == "peb"]
     if unknown:
         raise ValueError(f"unknown method(s) {unknown}; choose from "
@@ -410,7 +398,7 @@ def positioning_study(
         barely moves in x-y when all anchors are on one side, so its x-y error is mostly the
         distance from this start. Default: the estimator's default (3 m).
     methods : sequence of str
-        Keys of :data:`METHOD_LABELS` (except ``"peb"``, always computed).
+        Keys of :data:`~diffpos.study_methods.METHOD_LABELS` (except ``"peb"``, always computed).
     chunk_size : int
         Receivers per estimator call; ``progress`` is called after each chunk.
     progress : callable(method, done, total), optional
@@ -577,10 +565,6 @@ PAPER_TABLE: dict[str, dict[str, float]] = {
     "MPC-3": {"P_e": 91.52, "P_fap": 84.79},
     "MPC-4": {"P_e": 100.0, "P_fap": 10.12},
 }
-ALL_METHODS = [k for k in METHOD_LABELS if k != "peb"]
-#: ``diffpos reproduce``'s default estimators: the paper's four and M-NLS.
-REPRODUCE_METHODS: tuple[str, ...] = ("lls", "ippa", "dnls_case1", "dnls_case2", "mnls")
-DEFAULT_QUICK_NODES = 1500
 
 
 @dataclass(frozen=True)
@@ -595,8 +579,8 @@ class ReproduceConfig:
         Keep a random subsample of ``quick_nodes`` receivers.
     quick_nodes : int
     methods : tuple of str
-        Estimators (keys of :data:`METHOD_LABELS` but ``"peb"``; default
-        :data:`REPRODUCE_METHODS`).
+        Estimators (keys of :data:`~diffpos.study_methods.METHOD_LABELS` but ``"peb"``; default
+        :data:`~diffpos.study_methods.REPRODUCE_METHODS`).
     delta_m : float [m]
         D-NLS Case-2 model offset.
     mnls_max_order : int

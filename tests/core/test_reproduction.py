@@ -18,13 +18,13 @@ from diffpos_services.reports import study as report
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import Scenario
 from diffpos.study import (
-    REPRODUCE_METHODS,
     Arrivals,
     FirstArrivalData,
     ReproduceConfig,
     build_summary,
     reproduce,
 )
+from diffpos.study_methods import REPRODUCE_METHODS
 
 #: chi-square quantile, 3 degrees of freedom, p = 0.95 (tables: 7.8147).
 CHI2_3_95 = 7.814727903251178

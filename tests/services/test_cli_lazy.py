@@ -66,14 +66,3 @@ def test_verb_help_imports_its_parser_only_and_no_kernel(name: str) -> None:
         f"diffpos {name} --help imports numba / kernels: {got}")
     assert got["verbs"] == [f"diffpos_services.cli.{cli.COMMANDS[name][0]}"], got["verbs"]
 
-
-def test_reproduce_spells_the_method_names_of_the_core() -> None:
-    """cli/reproduce.py spells diffpos.study's method lists and quick default (its help
-    must not import the estimators): both spellings are the same."""
-    from diffpos_services.cli import reproduce
-
-    from diffpos import study as reproduction
-
-    assert reproduce.ALL_METHODS == reproduction.ALL_METHODS
-    assert reproduce.REPRODUCE_METHODS == reproduction.REPRODUCE_METHODS
-    assert reproduce.DEFAULT_QUICK_NODES == reproduction.DEFAULT_QUICK_NODES

@@ -56,15 +56,8 @@ from pathlib import Path
 import numpy as np
 
 from diffpos.scenario import Scenario, ScenarioError
+from diffpos.study_methods import ALL_METHODS, DEFAULT_QUICK_NODES, REPRODUCE_METHODS
 from diffpos_services.scenario_io import scenario_or_default
-
-#: :data:`diffpos.study.ALL_METHODS`, :data:`~diffpos.study.REPRODUCE_METHODS`
-#: and :data:`~diffpos.study.DEFAULT_QUICK_NODES` as the options show them, spelled
-#: here: importing diffpos.study imports the estimators' kernels, which ``--help``
-#: must not (tests/services/test_cli_lazy.py checks the two spellings are equal)
-ALL_METHODS = ["lls", "ippa", "dnls_case1", "dnls_case2", "dnls_lower", "mnls"]
-REPRODUCE_METHODS = ("lls", "ippa", "dnls_case1", "dnls_case2", "mnls")
-DEFAULT_QUICK_NODES = 1500
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
