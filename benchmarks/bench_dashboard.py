@@ -33,8 +33,12 @@ import numpy as np
 import rerun as rr
 import zenoh
 from diffpos_services.bus.session import ZenohSettings, wait_matching
-from diffpos_services.dashboard import views as d
+from diffpos_services.dashboard.blueprint import default_blueprint
+from diffpos_services.dashboard.building import BuildingOutline
+from diffpos_services.dashboard.common import APP_ID
+from diffpos_services.dashboard.convert import mcap_to_rrd
 from diffpos_services.dashboard.service import DashboardService, RerunTarget, open_rerun
+from diffpos_services.dashboard.stream import Dashboard
 from diffpos_services.processes import free_tcp_port
 from diffpos_services.recording.writer import McapSink
 from diffpos_services.replay.synthetic import display_run
@@ -46,7 +50,7 @@ def synthetic_run(**kw):
     """The dashboard's synthetic run (``replay.synthetic.display_run``), its building as
     the outline the dashboard draws."""
     building, msgs = display_run(**kw)
-    return d.BuildingOutline.from_object(building), msgs
+    return BuildingOutline.from_object(building), msgs
 
 
 def _batches(msgs, period_ns):
@@ -79,9 +83,9 @@ def bench_live(args, tmp: Path) -> dict:
         seed=1,
     )
     batches = list(_batches(msgs, int(args.batch_s * 1e9)))
-    rec = rr.RecordingStream(d.APP_ID, recording_id="bench-live")
-    rec.save(str(tmp / "live.rrd"), default_blueprint=d.default_blueprint())
-    dash = d.Dashboard(rec, building=building)
+    rec = rr.RecordingStream(APP_ID, recording_id="bench-live")
+    rec.save(str(tmp / "live.rrd"), default_blueprint=default_blueprint())
+    dash = Dashboard(rec, building=building)
     worst = 0.0
     c0 = time.process_time()
     w0 = time.perf_counter()
@@ -218,7 +222,7 @@ def bench_offline(args, tmp: Path) -> dict:
     )
     out = tmp / "bench.rrd"
     t = time.perf_counter()
-    counts = d.mcap_to_rrd(mcap, out)
+    counts = mcap_to_rrd(mcap, out)
     dt = time.perf_counter() - t
     return {
         "mcap_messages": n,

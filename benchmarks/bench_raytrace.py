@@ -23,7 +23,9 @@ import argparse
 import time
 
 import numpy as np
-from diffpos_services import raytrace as rt
+from diffpos_services.raytrace.backend import check_sionna
+from diffpos_services.raytrace.evaluate import edge_fermat_check
+from diffpos_services.raytrace.tracing import RaytraceSettings, trace
 
 from diffpos.channel.emulator import emulate_channel
 from diffpos.scenario import Scenario, default_scenario
@@ -36,7 +38,7 @@ def main() -> None:
     ap.add_argument("--anchors", type=int, default=1)
     ap.add_argument("--batch", type=int, default=250)
     args = ap.parse_args()
-    versions = rt.check_sionna()
+    versions = check_sionna()
     sc0 = default_scenario()
     d = sc0.to_dict()
     d["anchors"] = d["anchors"][: args.anchors]
@@ -50,7 +52,7 @@ def main() -> None:
           f"{'max Fermat err mm':>18}")
     for s in args.samples:
         t0 = time.perf_counter()
-        ds = rt.trace(sc, nodes, settings=rt.RaytraceSettings(samples_per_src=int(s),
+        ds = trace(sc, nodes, settings=RaytraceSettings(samples_per_src=int(s),
                                                               batch_size=args.batch))
         total = time.perf_counter() - t0
         found = []
@@ -60,7 +62,7 @@ def main() -> None:
                             np.inf).min(axis=-1)
             found.append((dmin < 1e-3)[ch.valid[..., slot]])
         frac = float(np.concatenate(found).mean())
-        fc = rt.edge_fermat_check(ds)
+        fc = edge_fermat_check(ds)
         err = float(np.abs(fc["error_m"]).max()) * 1e3 if len(fc["error_m"]) else float("nan")
         per = ds.metadata["s_per_1000_links"]
         print(f"{s:>9.0e} {total:>12.1f} {per:>13.2f} {100 * frac:>16.1f}% {err:>18.4f}")

@@ -21,15 +21,15 @@ import json
 from pathlib import Path
 
 import numpy as np
-from diffpos_services import raytrace as rt
 from diffpos_services.raytrace import mechanism_mix as mx
 from diffpos_services.raytrace import mechanisms as mm
+from diffpos_services.raytrace.dataset import RaytraceDataset, load_dataset
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.study import study_rngs
 
 
-def length_table(ds: rt.RaytraceDataset, mech: mm.Mechanisms) -> list[str]:
+def length_table(ds: RaytraceDataset, mech: mm.Mechanisms) -> list[str]:
     res = mm.mechanism_length_check(ds, mech)
     n_valid = int(ds.path_valid.sum())
     n_other = int((mech.code == mm.OTHER).sum())
@@ -83,7 +83,7 @@ def cause_details(cmp: dict) -> list[str]:
     return rows
 
 
-def write_emulator_arrivals(ds: rt.RaytraceDataset, path: Path, seed: int) -> None:
+def write_emulator_arrivals(ds: RaytraceDataset, path: Path, seed: int) -> None:
     sc = ds.scenario
     ch = emulate_channel(ds.anchors_m, ds.nodes_m, building=sc.building, radio=sc.radio)
     fa = first_arrival(ch, radio=sc.radio, rng=study_rngs(seed)[1])
@@ -130,7 +130,7 @@ def main() -> None:
         return
     if args.dataset is None:
         ap.error("give a DATASET or --positioning DIR...")
-    ds = rt.load_dataset(args.dataset)
+    ds = load_dataset(args.dataset)
     st = ds.metadata["settings"]
     print(f"{args.dataset}: {len(ds.nodes_m)} receivers x {len(ds.anchors_m)} anchors, "
           f"scenario {ds.metadata['scenario']['name']!r}, {st['samples_per_src']:.0e} samples, "

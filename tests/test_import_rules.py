@@ -242,7 +242,7 @@ def test_every_error_class_derives_from_the_one_base() -> None:
                          ids=["lazy_import", "service_import"])
 def test_rules_catch_a_violation(rule, tmp_path) -> None:
     """The checker itself fails on a planted violation (so a silent checker cannot pass)."""
-    src = ("from diffpos_services.dashboard import views\n"
+    src = ("from diffpos_services.dashboard import stream\n"
            "def f():\n    import json\n    return json\n")
     planted = Module("fusion.core", tmp_path / "x.py", ast.parse(src), src.splitlines())
     assert list(rule(planted)), f"{rule.__name__} missed a planted violation"

@@ -70,7 +70,6 @@ __all__ = [
     "RecorderOptions",
     "build_command",
     "default_output_path",
-    "foreign_path",
     "record",
 ]
 

@@ -16,9 +16,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rerun.chunk as rc
-from diffpos_services.dashboard import views as d
-from diffpos_services.dashboard.common import _EXCLUDED_COLOR
-from diffpos_services.dashboard.convert import _kind_scanner
+from diffpos_services.dashboard.blueprint import default_blueprint
+from diffpos_services.dashboard.building import BuildingOutline
+from diffpos_services.dashboard.common import (
+    _EXCLUDED_COLOR,
+    APP_ID,
+    BOOKKEEPING_REASONS,
+    CHI2_3DOF_95,
+    anchor_color,
+)
+from diffpos_services.dashboard.convert import _kind_scanner, mcap_to_rrd, rrd_rows
+from diffpos_services.dashboard.geometry import ellipsoid_axes
+from diffpos_services.dashboard.scenario import building_for_option, building_from_scenario_file
+from diffpos_services.dashboard.stream import Dashboard, write_rrd_from_messages
 from diffpos_services.replay.synthetic import display_run
 from diffpos_services.wire import messages as m
 from diffpos_services.wire.keys import Keys
@@ -28,14 +38,14 @@ def synthetic_run(**kw):
     """The dashboard's synthetic run (``replay.synthetic.display_run``), its building as
     the outline the dashboard draws."""
     building, msgs = display_run(**kw)
-    return d.BuildingOutline.from_object(building), msgs
+    return BuildingOutline.from_object(building), msgs
 
 
 RERUN_CLI = Path(sys.executable).with_name("rerun")
 
 
 # ------------------------------------------------------------------------------- helpers
-read_rrd = d.rrd_rows
+read_rrd = rrd_rows
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +58,7 @@ def run():
 def bulk(run, tmp_path_factory):
     building, msgs = run
     path = tmp_path_factory.mktemp("rrd") / "bulk.rrd"
-    counts = d.write_rrd_from_messages(msgs, path, building=building, recording_id="bulk")
+    counts = write_rrd_from_messages(msgs, path, building=building, recording_id="bulk")
     return path, counts, read_rrd(path)
 
 
@@ -62,7 +72,7 @@ def test_ellipsoid_axes_rebuild_the_covariance():
     a = rng.normal(size=(50, 3, 3))
     cov = a @ np.swapaxes(a, 1, 2) + 0.05 * np.eye(3)
     cov[3] = np.nan
-    half, quat, valid = d.ellipsoid_axes(cov, scale=2.0)
+    half, quat, valid = ellipsoid_axes(cov, scale=2.0)
     from scipy.spatial.transform import Rotation
 
     assert not valid[3] and valid.sum() == 49
@@ -76,14 +86,14 @@ def test_ellipsoid_axes_rebuild_the_covariance():
 def test_default_scale_is_the_95_percent_region():
     from scipy.stats import chi2
 
-    assert d.CHI2_3DOF_95 == pytest.approx(chi2.ppf(0.95, 3), rel=1e-12)
+    assert CHI2_3DOF_95 == pytest.approx(chi2.ppf(0.95, 3), rel=1e-12)
 
 
 def test_building_outline_from_scenario_building():
     from diffpos.scenario import default_scenario
 
     b = default_scenario().building
-    o = d.BuildingOutline.from_object(b)
+    o = BuildingOutline.from_object(b)
     assert (o.x_min_m, o.x_max_m) == b.edge_x_m
     assert o.first_floor_z_m == b.first_floor_z_m and o.n_floors == b.n_floors
     z = np.linspace(b.first_floor_z_m + 0.01, b.top_z_m - 0.01, 97)
@@ -95,7 +105,7 @@ def test_building_outline_from_scenario_building():
 
 def test_bad_building_names_the_field():
     with pytest.raises(ValueError, match="depth_m"):
-        d.BuildingOutline.from_object(
+        BuildingOutline.from_object(
             {
                 "x_extent_m": (0, 1),
                 "n_floors": 2,
@@ -105,7 +115,7 @@ def test_bad_building_names_the_field():
             }
         )
     with pytest.raises(ValueError, match="x_max_m"):
-        d.BuildingOutline(1.0, 0.0, 5.0, 2, 3.0, 1.0, 1.0)
+        BuildingOutline(1.0, 0.0, 5.0, 2, 3.0, 1.0, 1.0)
 
 
 # ------------------------------------------------------------------------------- bulk .rrd
@@ -205,7 +215,7 @@ def test_uncertainty_ellipsoid_matches_the_covariance(bulk, run):
         x for x in of(msgs, "PositionEstimate") if x.covariance_m2 is not None and x.epoch == 17
     )
     row = dict(rows[f"/world/nodes/{e.node_id}/estimate"])[e.t_ns]
-    half = np.array(row["Ellipsoids3D:half_sizes"][0]) / np.sqrt(d.CHI2_3DOF_95)
+    half = np.array(row["Ellipsoids3D:half_sizes"][0]) / np.sqrt(CHI2_3DOF_95)
     rot = Rotation.from_quat(row["Ellipsoids3D:quaternions"][0]).as_matrix()
     np.testing.assert_allclose(rot @ np.diag(half**2) @ rot.T, np.array(e.covariance_m2), atol=1e-5)
     np.testing.assert_allclose(row["Ellipsoids3D:centers"][0], e.position_m, atol=1e-4)
@@ -222,7 +232,7 @@ def test_diffraction_paths_cross_the_window_edge_at_the_shortest_point(bulk, run
         if row is None or e.position_m is None:
             continue
         strips = row["LineStrips3D:strips"]
-        gated = [x for x in e.excluded if x.reason not in d.BOOKKEEPING_REASONS]
+        gated = [x for x in e.excluded if x.reason not in BOOKKEEPING_REASONS]
         assert len(strips) == len(e.used_anchors) + len(gated)
         z_edge = building.upper_edge_z_m(e.floor_index)
         xs = np.linspace(building.x_min_m, building.x_max_m, 20001)
@@ -250,15 +260,15 @@ def test_paths_are_drawn_over_the_edge_the_fusion_models(run, tmp_path):
     from diffpos.scenario import default_scenario, first_arrival_edge
 
     assert first_arrival_edge(default_scenario())[0] == "lower"
-    assert d.building_from_scenario_file("default").edge == "lower"
-    assert d.building_for_option("paper").edge == first_arrival_edge(default_scenario())[0]
-    assert d.BuildingOutline.from_object(default_scenario().building).edge == "upper"
+    assert building_from_scenario_file("default").edge == "lower"
+    assert building_for_option("paper").edge == first_arrival_edge(default_scenario())[0]
+    assert BuildingOutline.from_object(default_scenario().building).edge == "upper"
     building, msgs = run
     for edge in ("upper", "lower"):
         b = dataclasses.replace(building, edge=edge)
         assert b == building  # the edge is the model's, not the building's geometry
-        out = d.write_rrd_from_messages(msgs, tmp_path / f"{edge}.rrd", building=b)
-        rows = d.rrd_rows(tmp_path / f"{edge}.rrd")
+        out = write_rrd_from_messages(msgs, tmp_path / f"{edge}.rrd", building=b)
+        rows = rrd_rows(tmp_path / f"{edge}.rrd")
         assert out["estimate"]
         n_strips = 0
         for e in of(msgs, "PositionEstimate"):
@@ -290,12 +300,12 @@ def test_excluded_paths_are_red_and_used_ones_in_anchor_colour(bulk, run):
     def rgba(c):
         return [(c >> 24) & 255, (c >> 16) & 255, (c >> 8) & 255, c & 255]
 
-    gated = [x.anchor_id for x in e.excluded if x.reason not in d.BOOKKEEPING_REASONS]
+    gated = [x.anchor_id for x in e.excluded if x.reason not in BOOKKEEPING_REASONS]
     assert gated, "pick a fix with a gated anchor"
     order = sorted([(a, True) for a in e.used_anchors] + [(a, False) for a in gated])
     got = sorted(tuple(rgba(c)) for c in colors)
     want = sorted(
-        tuple(d.anchor_color(a)) if used else tuple(_EXCLUDED_COLOR) for a, used in order
+        tuple(anchor_color(a)) if used else tuple(_EXCLUDED_COLOR) for a, used in order
     )
     assert got == want
 
@@ -356,7 +366,7 @@ def test_estimates_with_negative_time_are_dropped_with_an_error_event(run, tmp_p
     ests = [e for e in of(msgs, "PositionEstimate") if e.node_id == "n02"][:30]
     broken = [msgspec.structs.replace(e, t_ns=-1279199486163474944) for e in ests[:4]]
     path = tmp_path / "neg.rrd"
-    d.write_rrd_from_messages([*ests[4:], *broken], path, building=building)
+    write_rrd_from_messages([*ests[4:], *broken], path, building=building)
     rows = read_rrd(path)
     times = [t for t, _ in rows["/world/nodes/n02/estimate"]]
     assert times == [e.t_ns for e in ests[4:]]
@@ -406,9 +416,9 @@ def test_streaming_in_small_batches_gives_the_same_dashboard(run, bulk, tmp_path
 
     building, msgs = run
     path = tmp_path / "stream.rrd"
-    rec = rr.RecordingStream(d.APP_ID, recording_id="stream")
-    rec.save(str(path), default_blueprint=d.default_blueprint())
-    dash = d.Dashboard(rec, building=building)
+    rec = rr.RecordingStream(APP_ID, recording_id="stream")
+    rec.save(str(path), default_blueprint=default_blueprint())
+    dash = Dashboard(rec, building=building)
     batch: dict[str, list] = defaultdict(list)
     key = {
         "AnchorState": "anchor_states",
@@ -476,7 +486,7 @@ def test_mcap_to_rrd_skips_ranges_and_maps_liveliness_to_measurement_time(run, t
     mcap = tmp_path / "run.mcap"
     _write_mcap(mcap, msgs, extra=ranges)
     out = tmp_path / "run.rrd"
-    counts = d.mcap_to_rrd(mcap, out, building=building)
+    counts = mcap_to_rrd(mcap, out, building=building)
     assert counts["estimate"] == len(of(msgs, "PositionEstimate"))
     assert counts["anchor_state"] == len(of(msgs, "AnchorState"))
     assert counts["liveliness"] == 1 and counts["undecodable"] == 0 and counts["complete"]
@@ -507,7 +517,7 @@ def test_mcap_to_rrd_replaces_estimates_for_replay(run, tmp_path):
     mcap = tmp_path / "run.mcap"
     _write_mcap(mcap, msgs)
     ests = [e for e in of(msgs, "PositionEstimate") if e.node_id == "n01"][:10]
-    counts = d.mcap_to_rrd(mcap, tmp_path / "r.rrd", building=building, estimates=ests)
+    counts = mcap_to_rrd(mcap, tmp_path / "r.rrd", building=building, estimates=ests)
     assert counts["estimate"] == 10
     rows = read_rrd(tmp_path / "r.rrd")
     assert len(rows["/world/nodes/n01/estimate"]) == 10 and "/world/nodes/n00/estimate" not in rows
@@ -550,15 +560,15 @@ def test_building_from_scenario_names_files_and_default(tmp_path, capsys):
 
     from diffpos.scenario import default_scenario
 
-    assert d.building_from_scenario_file("default") == d.BuildingOutline.from_object(
+    assert building_from_scenario_file("default") == BuildingOutline.from_object(
         default_scenario().building
     )
-    large = d.building_from_scenario_file("large")
-    assert large == d.BuildingOutline.from_object(load_scenario("large").building)
+    large = building_from_scenario_file("large")
+    assert large == BuildingOutline.from_object(load_scenario("large").building)
     bad = tmp_path / "bad.toml"
     bad.write_text("[building]\nn_floors = -1\n")
     with pytest.raises(ValueError, match=r"bad\.toml"):
-        d.building_from_scenario_file(bad)
+        building_from_scenario_file(bad)
     mcap = tmp_path / "x.mcap"
     mcap.write_bytes(b"")
     assert cli.main(["to-rerun", str(mcap), "--scenario", str(tmp_path / "nope.toml")]) == 2

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import rerun.chunk as rc
 from diffpos_services.dashboard import blueprint as bp
-from diffpos_services.dashboard import views as d
+from diffpos_services.dashboard.convert import mcap_to_rrd, rrd_rows
 from mcap.writer import Writer
 from test_dashboard import _write_mcap, of, synthetic_run
 
@@ -40,7 +40,7 @@ def converted(tmp_path_factory):
     run_config = {"fusion": {"building": table}, "emulate": {"edge": "upper"}}
     _append_attachment(mcap, "run_config.json", json.dumps(run_config).encode())
     out = tmp / "run.rrd"
-    counts = d.mcap_to_rrd(mcap, out)
+    counts = mcap_to_rrd(mcap, out)
     return building, msgs, counts, out
 
 
@@ -133,7 +133,7 @@ def test_blueprint_views_camera_and_hidden_paths(converted):
 
 def test_every_responder_has_a_marker_at_the_cursor_time(converted):
     _, msgs, _, out = converted
-    rows = d.rrd_rows(out)
+    rows = rrd_rows(out)
     t_cursor = max(t for r in rows.values() for t, _ in r if t is not None)
     fixed = {e.node_id for e in of(msgs, "PositionEstimate") if e.position_m is not None}
     assert len(fixed) == 7
@@ -158,7 +158,7 @@ def test_every_responder_has_a_marker_at_the_cursor_time(converted):
 def test_building_from_the_run_configuration(converted):
     building, _, counts, out = converted
     assert counts["building"]
-    rows = d.rrd_rows(out)
+    rows = rrd_rows(out)
     strips = rows["/world/building/floors"][0][1]["LineStrips3D:strips"]
     xs = np.concatenate([np.asarray(s)[:, 0] for s in strips])
     assert xs.min() == pytest.approx(building.x_min_m) and xs.max() == pytest.approx(

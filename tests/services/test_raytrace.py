@@ -10,15 +10,18 @@ import dataclasses
 
 import numpy as np
 import pytest
-from diffpos_services import raytrace as rt
 from diffpos_services.raytrace import mechanisms as mm
+from diffpos_services.raytrace.backend import VARIANT, RaytraceUnavailable, check_sionna
+from diffpos_services.raytrace.dataset import DATASET_FORMAT, RaytraceDataset
+from diffpos_services.raytrace.evaluate import dataset_first_arrival, edge_fermat_check
+from diffpos_services.raytrace.tracing import RaytraceSettings, trace
 
 from diffpos.geometry import diffraction_point
 from diffpos.scenario import Partition, default_scenario
 
 try:
-    VERSIONS = rt.check_sionna()
-except rt.RaytraceUnavailable as exc:  # pragma: no cover - depends on the environment
+    VERSIONS = check_sionna()
+except RaytraceUnavailable as exc:  # pragma: no cover - depends on the environment
     pytest.skip(f"Sionna RT unavailable, ray-tracer tests skipped: {exc}", allow_module_level=True)
 
 pytestmark = pytest.mark.slow
@@ -36,26 +39,26 @@ def _receivers() -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def traced() -> rt.RaytraceDataset:
+def traced() -> RaytraceDataset:
     sc = default_scenario()
-    return rt.trace(sc, _receivers(), settings=rt.RaytraceSettings(samples_per_src=100_000,
+    return trace(sc, _receivers(), settings=RaytraceSettings(samples_per_src=100_000,
                                                                      seed=5))
 
 
-def test_versions_and_metadata(traced: rt.RaytraceDataset) -> None:
-    assert VERSIONS["sionna-rt"] == "2.2.0" and VERSIONS["variant"] == rt.VARIANT
+def test_versions_and_metadata(traced: RaytraceDataset) -> None:
+    assert VERSIONS["sionna-rt"] == "2.2.0" and VERSIONS["variant"] == VARIANT
     md = traced.metadata
-    assert md["format"] == rt.DATASET_FORMAT and md["settings"]["seed"] == 5
+    assert md["format"] == DATASET_FORMAT and md["settings"]["seed"] == 5
     assert md["s_per_1000_links"] > 0
     assert traced.path_valid.shape[:2] == (24, 4)
 
 
 def test_diffraction_paths_match_the_fermat_length_to_a_millimetre(traced) -> None:
-    fc = rt.edge_fermat_check(traced)
+    fc = edge_fermat_check(traced)
     assert len(fc["error_m"]) >= 40
     assert np.max(np.abs(fc["error_m"])) < 1e-3
     # the first arrivals that are window-edge diffraction, checked one by one
-    fa = rt.dataset_first_arrival(traced)
+    fa = dataset_first_arrival(traced)
     b = traced.scenario.building
     lo, hi = b.window_z_m(np.arange(b.n_floors))
     edges = np.concatenate([lo, hi])
@@ -123,9 +126,9 @@ def test_dipole_transmitter_normalisation(traced) -> None:
 def test_same_seed_same_paths() -> None:
     sc = default_scenario()
     nodes = _receivers()[::6]
-    s = rt.RaytraceSettings(samples_per_src=20_000, seed=11, deterministic=True)
-    a = rt.trace(sc, nodes, settings=s)
-    b = rt.trace(sc, nodes, settings=s)
+    s = RaytraceSettings(samples_per_src=20_000, seed=11, deterministic=True)
+    a = trace(sc, nodes, settings=s)
+    b = trace(sc, nodes, settings=s)
     np.testing.assert_array_equal(a.path_valid, b.path_valid)
     np.testing.assert_array_equal(a.path_chain, b.path_chain)
     np.testing.assert_allclose(a.path_length_m[a.path_valid], b.path_length_m[b.path_valid],
@@ -134,7 +137,7 @@ def test_same_seed_same_paths() -> None:
 
 def test_receivers_outside_the_building_are_refused() -> None:
     with pytest.raises(ValueError, match="outside the building"):
-        rt.trace(default_scenario(), [[0.0, -1.0, 5.0]])
+        trace(default_scenario(), [[0.0, -1.0, 5.0]])
 
 
 def test_traced_mechanisms_have_the_model_length_on_another_building() -> None:
@@ -150,7 +153,7 @@ def test_traced_mechanisms_have_the_model_length_on_another_building() -> None:
     sc = dataclasses.replace(sc, building=b)
     nodes = [(x, y, float(b.floor_z_m(k)) + h) for k, h in ((0, 1.2), (2, 2.6))
              for x, y in ((-9.0, 2.5), (0.5, 7.0), (11.0, 4.0), (14.0, 13.0))]
-    ds = rt.trace(sc, np.asarray(nodes), settings=rt.RaytraceSettings(seed=3))
+    ds = trace(sc, np.asarray(nodes), settings=RaytraceSettings(seed=3))
     res = mm.mechanism_length_check(ds)
     assert len(res) >= 8, sorted(res)
     for name, r in res.items():

@@ -13,7 +13,31 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from diffpos_services import raytrace as rt
+from diffpos_services.raytrace.backend import INSTALL_HINT, RaytraceUnavailable
+from diffpos_services.raytrace.dataset import (
+    DATASET_FORMAT,
+    RaytraceDataset,
+    load_dataset,
+    save_dataset,
+)
+from diffpos_services.raytrace.evaluate import (
+    compare_with_emulator,
+    dataset_first_arrival,
+    dataset_mpc_statistics,
+    edge_fermat_check,
+    path_snr_db,
+)
+from diffpos_services.raytrace.paths import (
+    DIFFRACTION,
+    DIFFUSE,
+    REFRACTION,
+    SPECULAR,
+    chain_label,
+    classify_chains,
+    encode_chains,
+)
+from diffpos_services.raytrace.scene import building_surfaces
+from diffpos_services.raytrace.tracing import RaytraceSettings
 from scipy.optimize import minimize_scalar
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
@@ -24,12 +48,12 @@ DATA = Path(__file__).resolve().parents[1] / "data" / "raytrace_small.npz"
 
 
 @pytest.fixture(scope="module")
-def ds() -> rt.RaytraceDataset:
-    return rt.load_dataset(DATA)
+def ds() -> RaytraceDataset:
+    return load_dataset(DATA)
 
 
 @pytest.fixture(scope="module")
-def emu(ds: rt.RaytraceDataset):
+def emu(ds: RaytraceDataset):
     sc = ds.scenario
     ch = emulate_channel(ds.anchors_m, ds.nodes_m, building=sc.building, radio=sc.radio)
     return ch, first_arrival(ch, radio=sc.radio)
@@ -38,16 +62,16 @@ def emu(ds: rt.RaytraceDataset):
 # ------------------------------------------------------------------ format
 
 
-def test_dataset_format_and_invariants(ds: rt.RaytraceDataset) -> None:
+def test_dataset_format_and_invariants(ds: RaytraceDataset) -> None:
     n, m, k = ds.path_valid.shape
     assert (n, m) == (160, 4) and k >= 10
-    assert ds.metadata["format"] == rt.DATASET_FORMAT
+    assert ds.metadata["format"] == DATASET_FORMAT
     assert ds.metadata["settings"]["samples_per_src"] == 100_000
     assert ds.anchor_ids == ("uav1", "uav2", "uav3", "uav4")
     assert ds.path_vertex_m.shape == (n, m, k, 3)
     v = ds.path_valid
     # classes are the documented function of the chains; padding is class 0 / NaN
-    np.testing.assert_array_equal(ds.path_class[v], rt.classify_chains(ds.path_chain[v]))
+    np.testing.assert_array_equal(ds.path_class[v], classify_chains(ds.path_chain[v]))
     assert np.all(ds.path_class[~v] == 0) and np.all(np.isnan(ds.path_length_m[~v]))
     # valid paths first, sorted by delay
     assert not np.any(~v[..., :-1] & v[..., 1:])
@@ -58,30 +82,30 @@ def test_dataset_format_and_invariants(ds: rt.RaytraceDataset) -> None:
     assert np.all(ds.path_length_m[v] >= np.broadcast_to(d[..., None], v.shape)[v] - 1e-4)
 
 
-def test_scenario_round_trip_matches_the_shipped_scenario(ds: rt.RaytraceDataset) -> None:
+def test_scenario_round_trip_matches_the_shipped_scenario(ds: RaytraceDataset) -> None:
     assert ds.scenario.building == default_scenario().building
-    rt.load_dataset(DATA, scenario=default_scenario())  # no mismatch error
+    load_dataset(DATA, scenario=default_scenario())  # no mismatch error
 
 
-def test_load_errors_name_the_problem(tmp_path: Path, ds: rt.RaytraceDataset) -> None:
+def test_load_errors_name_the_problem(tmp_path: Path, ds: RaytraceDataset) -> None:
     with pytest.raises(ValueError, match="no such ray-trace dataset"):
-        rt.load_dataset(tmp_path / "missing.npz")
+        load_dataset(tmp_path / "missing.npz")
     bad = tmp_path / "other.npz"
     np.savez(bad, x=np.zeros(3))
     with pytest.raises(ValueError, match="missing"):
-        rt.load_dataset(bad)
+        load_dataset(bad)
     d = default_scenario().to_dict()
     d["anchors"][0]["trajectory"] = {"kind": "static", "position_m": [-14.0, -20.0, 1.0]}
     from diffpos.scenario import Scenario
 
     with pytest.raises(ValueError, match="re-run 'diffpos raytrace'"):
-        rt.load_dataset(DATA, scenario=Scenario.from_dict(d))
+        load_dataset(DATA, scenario=Scenario.from_dict(d))
 
 
-def test_save_load_round_trip(tmp_path: Path, ds: rt.RaytraceDataset) -> None:
+def test_save_load_round_trip(tmp_path: Path, ds: RaytraceDataset) -> None:
     sub = ds.subset(np.arange(0, 160, 7))
-    p = rt.save_dataset(tmp_path / "sub.npz", sub)
-    back = rt.load_dataset(p)
+    p = save_dataset(tmp_path / "sub.npz", sub)
+    back = load_dataset(p)
     for name in ("nodes_m", "path_valid", "path_length_m", "path_chain", "path_vertex_m"):
         np.testing.assert_array_equal(getattr(back, name), getattr(sub, name))
     assert back.metadata == json.loads(json.dumps(sub.metadata))
@@ -90,11 +114,11 @@ def test_save_load_round_trip(tmp_path: Path, ds: rt.RaytraceDataset) -> None:
 # ------------------------------------------------------------------ geometry of the traced paths
 
 
-def test_window_edge_diffraction_matches_fermat_length_brute_force(ds: rt.RaytraceDataset
+def test_window_edge_diffraction_matches_fermat_length_brute_force(ds: RaytraceDataset
                                                                    ) -> None:
     """Every traced Tx-D[-T..]-Rx path over a horizontal window edge has the minimal length
     over that edge, found here by a bounded scalar minimisation (not diffpos.geometry)."""
-    fc = rt.edge_fermat_check(ds)
+    fc = edge_fermat_check(ds)
     assert len(fc["error_m"]) > 300
     b = ds.scenario.building
     x0, x1 = b.edge_x_m
@@ -117,7 +141,7 @@ def test_window_edge_diffraction_matches_fermat_length_brute_force(ds: rt.Raytra
     assert np.all(fc["on_edge"])
 
 
-def _partition_crossed(ds: rt.RaytraceDataset, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+def _partition_crossed(ds: RaytraceDataset, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """True where segment p -> q crosses a partition rectangle (from the metadata)."""
     out = np.zeros(np.broadcast_shapes(p.shape, q.shape)[:-1], dtype=bool)
     for s in ds.metadata["surfaces"]:
@@ -134,7 +158,7 @@ def _partition_crossed(ds: rt.RaytraceDataset, p: np.ndarray, q: np.ndarray) -> 
     return out
 
 
-def test_line_of_sight_paths_exactly_where_the_window_is_open(ds: rt.RaytraceDataset) -> None:
+def test_line_of_sight_paths_exactly_where_the_window_is_open(ds: RaytraceDataset) -> None:
     """Tx-Rx exists iff the straight segment enters through the receiver's own window band
     without crossing a partition; its length is the Euclidean distance."""
     b = ds.scenario.building
@@ -155,11 +179,11 @@ def test_line_of_sight_paths_exactly_where_the_window_is_open(ds: rt.RaytraceDat
     np.testing.assert_allclose(los_len.min(axis=-1)[expect], d[expect], atol=1e-3)
 
 
-def test_single_reflections_match_the_image_method(ds: rt.RaytraceDataset) -> None:
+def test_single_reflections_match_the_image_method(ds: RaytraceDataset) -> None:
     """Tx-R-Rx: length = distance from the anchor's mirror image (in the plane holding the
     reflection point) to the receiver."""
     planes = [(ax, c) for s in ds.metadata["surfaces"] for ax, c, _, _ in s["rects"]]
-    sel = ds.path_valid & (ds.path_chain == rt.SPECULAR)
+    sel = ds.path_valid & (ds.path_chain == SPECULAR)
     idx = np.argwhere(sel)
     assert len(idx) >= 50
     for n, m, k in idx:
@@ -175,11 +199,11 @@ def test_single_reflections_match_the_image_method(ds: rt.RaytraceDataset) -> No
 # ------------------------------------------------------------------ first arrival
 
 
-def test_first_arrival_matches_a_per_link_loop(ds: rt.RaytraceDataset) -> None:
+def test_first_arrival_matches_a_per_link_loop(ds: RaytraceDataset) -> None:
     """The paper's definition, evaluated link by link in plain Python."""
     radio = ds.scenario.radio
-    fa = rt.dataset_first_arrival(ds, radio=radio)
-    snr = rt.path_snr_db(ds, radio)
+    fa = dataset_first_arrival(ds, radio=radio)
+    snr = path_snr_db(ds, radio)
     for n in range(0, 160, 3):
         for m in range(4):
             ok = [k for k in range(snr.shape[-1])
@@ -197,20 +221,20 @@ def test_first_arrival_matches_a_per_link_loop(ds: rt.RaytraceDataset) -> None:
             assert fa.range_m[n, m] == fa.true_path_m[n, m]  # no rng: noise-free
 
 
-def test_noisy_ranges_follow_the_crlb(ds: rt.RaytraceDataset) -> None:
+def test_noisy_ranges_follow_the_crlb(ds: RaytraceDataset) -> None:
     radio = ds.scenario.radio
-    fa = rt.dataset_first_arrival(ds, radio=radio, rng=np.random.default_rng(7))
+    fa = dataset_first_arrival(ds, radio=radio, rng=np.random.default_rng(7))
     z = ((fa.range_m - fa.true_path_m) / fa.sigma_m)[fa.detected]
     assert z.size > 300
     assert abs(z.mean()) < 4 / np.sqrt(z.size) and 0.85 < z.std() < 1.15
 
 
-def test_snr_recomputed_from_radio(ds: rt.RaytraceDataset) -> None:
+def test_snr_recomputed_from_radio(ds: RaytraceDataset) -> None:
     import dataclasses
 
     r = ds.scenario.radio
-    s0 = rt.path_snr_db(ds, r)
-    s1 = rt.path_snr_db(ds, dataclasses.replace(r, tx_power_dbm=r.tx_power_dbm + 7.0))
+    s0 = path_snr_db(ds, r)
+    s1 = path_snr_db(ds, dataclasses.replace(r, tx_power_dbm=r.tx_power_dbm + 7.0))
     v = ds.path_valid
     np.testing.assert_allclose(s1[v] - s0[v], 7.0, atol=1e-9)
     assert np.all(np.isneginf(s0[~v]))
@@ -221,14 +245,14 @@ def test_snr_recomputed_from_radio(ds: rt.RaytraceDataset) -> None:
 
 def test_emulator_and_ray_tracer_agree_on_los_and_single_reflections(ds, emu) -> None:
     _, fe = emu
-    fr = rt.dataset_first_arrival(ds)
+    fr = dataset_first_arrival(ds)
     for g in (1, 2):
         both = (fe.mpc_class == g) & (fr.mpc_class == g)
         # every emulator first arrival of group g is group g in the ray trace too (LoS: all)
         frac = both.sum() / max((fe.mpc_class == g).sum(), 1)
         assert frac == 1.0 if g == 1 else frac > 0.9
         np.testing.assert_allclose(fr.true_path_m[both], fe.true_path_m[both], atol=1e-3)
-    st_e = rt.dataset_mpc_statistics(ds, fr)
+    st_e = dataset_mpc_statistics(ds, fr)
     assert st_e["MPC-1"]["P_fap"] == pytest.approx(100 * np.mean(fe.mpc_class == 1))
 
 
@@ -237,7 +261,7 @@ def test_emulator_diffraction_paths_are_found_by_the_ray_tracer(ds, emu) -> None
     finds a path of the same length (to 1 mm) on almost every link, with a UTD power within
     a few dB; crossing partitions (Tx-D-T-Rx) is found less often at 1e5 samples."""
     ch, _ = emu
-    snr_rt = rt.path_snr_db(ds, ds.scenario.radio)
+    snr_rt = path_snr_db(ds, ds.scenario.radio)
     for slot in (7, 8):  # Tx-D(upper)-Rx, Tx-D(lower)-Rx
         assert ch.mechanism[slot].startswith("Tx-D(")
         L = ch.length_m[..., slot]
@@ -266,7 +290,7 @@ def test_emulator_diffraction_paths_are_found_by_the_ray_tracer(ds, emu) -> None
 
 def test_first_arrival_lengths_agree_where_both_pick_diffraction(ds, emu) -> None:
     _, fe = emu
-    fr = rt.dataset_first_arrival(ds)
+    fr = dataset_first_arrival(ds)
     both = (fe.mpc_class == 3) & (fr.mpc_class == 3)
     d = np.abs(fr.true_path_m - fe.true_path_m)[both]
     assert both.sum() > 100
@@ -278,7 +302,7 @@ def test_first_arrival_lengths_agree_where_both_pick_diffraction(ds, emu) -> Non
 
 
 def test_classify_chains_hand_cases() -> None:
-    R, S, T, D = rt.SPECULAR, rt.DIFFUSE, rt.REFRACTION, rt.DIFFRACTION
+    R, S, T, D = SPECULAR, DIFFUSE, REFRACTION, DIFFRACTION
     cases = {
         (): 1, (T,): 1, (T, T): 1,
         (R,): 2, (T, R): 2, (R, T): 2, (S,): 2,
@@ -288,18 +312,18 @@ def test_classify_chains_hand_cases() -> None:
     inter = np.zeros((3, len(cases)), dtype=np.uint32)
     for j, chain in enumerate(cases):
         inter[: len(chain), j] = chain
-    codes = rt.encode_chains(inter)
-    np.testing.assert_array_equal(rt.classify_chains(codes), list(cases.values()))
-    assert rt.chain_label(codes[list(cases).index((D, T, T))]) == "Tx-D-T-T-Rx"
-    assert rt.chain_label(0) == "Tx-Rx"
+    codes = encode_chains(inter)
+    np.testing.assert_array_equal(classify_chains(codes), list(cases.values()))
+    assert chain_label(codes[list(cases).index((D, T, T))]) == "Tx-D-T-T-Rx"
+    assert chain_label(0) == "Tx-Rx"
     with pytest.raises(ValueError, match="at most 4"):
-        rt.encode_chains(np.zeros((5, 2), dtype=np.uint32))
+        encode_chains(np.zeros((5, 2), dtype=np.uint32))
 
 
 def test_building_surfaces_open_exactly_the_window_bands() -> None:
     sc = default_scenario()
     b = sc.building
-    surf = {s.name: s for s in rt.building_surfaces(b, sc.anchor_positions_m(), overlap_m=0.05)}
+    surf = {s.name: s for s in building_surfaces(b, sc.anchor_positions_m(), overlap_m=0.05)}
     facade = surf["facade"].rects
     assert all(ax == 1 and c == 0.0 for ax, c, _, _ in facade)
     x0, x1 = b.edge_x_m
@@ -321,9 +345,9 @@ def test_building_surfaces_open_exactly_the_window_bands() -> None:
 
 def test_settings_validation() -> None:
     with pytest.raises(ValueError, match="max_depth"):
-        rt.RaytraceSettings(max_depth=0)
+        RaytraceSettings(max_depth=0)
     with pytest.raises(ValueError, match="samples_per_src"):
-        rt.RaytraceSettings(samples_per_src=10)
+        RaytraceSettings(samples_per_src=10)
 
 
 def test_cli_without_sionna_explains_how_to_install(monkeypatch, capsys) -> None:
@@ -331,7 +355,7 @@ def test_cli_without_sionna_explains_how_to_install(monkeypatch, capsys) -> None
     from diffpos_services.raytrace import backend
 
     def missing() -> dict[str, str]:
-        raise rt.RaytraceUnavailable(f"sionna-rt is not installed (test): {rt.INSTALL_HINT}")
+        raise RaytraceUnavailable(f"sionna-rt is not installed (test): {INSTALL_HINT}")
 
     monkeypatch.setattr(backend, "check_sionna", missing)  # the CLI imports it from there
     assert cli.main(["raytrace", "paper", "--quick"]) == 3
@@ -354,6 +378,6 @@ def test_cli_compare_prints_the_comparison(capsys) -> None:
     assert cli.main(["raytrace", "--compare", str(DATA)]) == 0
     err = capsys.readouterr().err
     assert "Fermat check" in err and "first-arrival group agreement" in err
-    c = rt.compare_with_emulator(rt.load_dataset(DATA))
+    c = compare_with_emulator(load_dataset(DATA))
     assert c["confusion"].sum() == c["links"] == 640
     assert 0.5 < c["found_emulator_fap"] <= 1 and c["class_agreement_found"] > c["class_agreement"]

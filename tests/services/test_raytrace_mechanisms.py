@@ -17,16 +17,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from diffpos_services import raytrace as rt
 from diffpos_services.raytrace import mechanism_mix as mx
 from diffpos_services.raytrace import mechanisms as mm
+from diffpos_services.raytrace.dataset import RaytraceDataset, load_dataset
+from diffpos_services.raytrace.paths import DIFFRACTION, REFRACTION, SPECULAR
 
 from diffpos.paths.mechanisms import MECHANISMS, RECIPES, mechanism_set
 from diffpos.paths.model import FloorFrame, diffracted_path, specular_path
 from diffpos.scenario import Partition, default_scenario
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "raytrace_mech_small.npz"
-R, D, T = rt.SPECULAR, rt.DIFFRACTION, rt.REFRACTION
+R, D, T = SPECULAR, DIFFRACTION, REFRACTION
 
 
 def _variant():
@@ -80,7 +81,7 @@ def _synthetic(seed: int, n: int = 300, recipes=RECIPES):
             chain[..., s] |= np.uint16(f << (4 * d))
             verts[..., s, d, :] = p
     nan = np.full(valid.shape, np.nan, np.float32)
-    ds = rt.RaytraceDataset(
+    ds = RaytraceDataset(
         nodes_m=nodes, anchors_m=anchors, anchor_ids=tuple("abcd"), path_valid=valid,
         path_length_m=np.where(valid, length, np.nan), path_gain_db=nan, path_aod_deg=nan,
         path_aoa_deg=nan, path_chain=chain, path_class=np.zeros(valid.shape, np.int8),
@@ -165,8 +166,8 @@ def test_classification_needs_the_vertices() -> None:
 
 
 @pytest.fixture(scope="module")
-def traced() -> rt.RaytraceDataset:
-    return rt.load_dataset(DATA)
+def traced() -> RaytraceDataset:
+    return load_dataset(DATA)
 
 
 def test_traced_paths_have_the_model_length_of_their_mechanism(traced) -> None:

@@ -238,7 +238,7 @@ def test_committed_sample_recording(tmp_path):
 
 def test_replay_rrd_holds_the_replayed_estimates(rec, base, tmp_path, capsys):
     """`diffpos replay --rrd` writes the dashboard of the *replayed* fixes (read back by Rerun)."""
-    from diffpos_services.dashboard.views import rrd_rows
+    from diffpos_services.dashboard.convert import rrd_rows
 
     out = tmp_path / "replay.rrd"
     assert cli_main(["replay", str(rec), "--no-files", "--no-progress", "--rrd", str(out)]) == 0

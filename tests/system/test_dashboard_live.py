@@ -23,7 +23,8 @@ import pytest
 import rerun as rr
 import zenoh
 from diffpos_services.bus.session import ZenohSettings, wait_matching
-from diffpos_services.dashboard import views as d
+from diffpos_services.dashboard.building import BuildingOutline
+from diffpos_services.dashboard.convert import rrd_rows
 from diffpos_services.dashboard.service import (
     DashboardService,
     RerunTarget,
@@ -41,7 +42,7 @@ def synthetic_run(**kw):
     """The dashboard's synthetic run (``replay.synthetic.display_run``), its building as
     the outline the dashboard draws."""
     building, msgs = display_run(**kw)
-    return d.BuildingOutline.from_object(building), msgs
+    return BuildingOutline.from_object(building), msgs
 
 
 TIMEOUT_S = 60.0  # generous under CPU load, but bounded
@@ -126,7 +127,7 @@ def test_live_service_draws_what_fusion_published(sessions, tmp_path):
     assert svc.stats.dropped == 0 and svc.stats.undecodable == 1
     assert svc.stats.drawn == len(msgs)
 
-    rows = d.rrd_rows(path)
+    rows = rrd_rows(path)
     ests = [x for x in msgs if isinstance(x, m.PositionEstimate)]
     for e in ests:
         row = dict(rows[f"/world/nodes/{e.node_id}/estimate"])[e.t_ns]
@@ -168,7 +169,7 @@ def test_ring_buffer_drops_the_oldest_and_never_blocks_the_publisher(sessions, t
     assert svc.stats.received == 200 and svc.stats.dropped == 180 and len(svc.ring) == 20
     svc.close()
     rec.disconnect()
-    rows = d.rrd_rows(path)
+    rows = rrd_rows(path)
     assert [t for t, _ in rows["/world/nodes/n00/estimate"]] == [e.t_ns for e in ests[-20:]]
 
 
@@ -248,7 +249,7 @@ def test_dashboard_cli_process_end_to_end(tmp_path, endpoint):
         assert "saved to" in stdout
         final = [json.loads(line) for line in stderr.splitlines() if '"dashboard stopped"' in line]
         assert final and final[-1]["dropped"] == 0
-        rows = d.rrd_rows(out)  # footer written: the file is complete
+        rows = rrd_rows(out)  # footer written: the file is complete
         drawn = {(p.split("/")[3], t): r for p in rows if p.endswith("/estimate")
                  for t, r in rows[p]}  # fmt: skip
         assert len(drawn) >= 1

@@ -18,8 +18,9 @@ from collections import Counter
 
 import pytest
 import zenoh
+from diffpos_services.bus.commands import foreign_path
 from diffpos_services.bus.session import ZenohSettings, wait_matching
-from diffpos_services.recorder import build_command, foreign_path
+from diffpos_services.recorder import build_command
 from diffpos_services.recording.reader import JsonDecoderFactory
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys

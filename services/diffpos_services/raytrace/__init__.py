@@ -7,13 +7,14 @@ MPC groups), :mod:`.tracing` (:func:`trace`), :mod:`.dataset` (the ``.npz`` file
 :mod:`.mechanisms` (every traced path -> one of the 18 first-arrival mechanisms of
 :mod:`diffpos.paths.model`, or "other" by name, and its length vs the model's closed form) and
 :mod:`.mechanism_mix` (the first-arrival mechanism mix, emulator vs ray tracer, with the cause
-of every difference). Importing this package does not import Sionna.
+of every difference). Importing this package does not import Sionna; each name is imported
+from the module that defines it (this package re-exports nothing).
 
 The scenario's building is rebuilt as a Sionna RT scene, every anchor x receiver link is
 ray traced (line of sight, specular reflection, refraction and first-order edge/wedge
 diffraction), each path is classified into the paper's MPC groups 1..4 and the result is
 written to a dataset file that ``diffpos reproduce --channel raytrace:FILE`` consumes instead
-of the emulator (see :func:`load_dataset`, :func:`dataset_first_arrival`).
+of the emulator (see :func:`.dataset.load_dataset`, :func:`.evaluate.dataset_first_arrival`).
 
 Scene (all surfaces are *thin* single-sided meshes carrying an ITU-R P.2040 radio material
 with the scenario's thickness; Sionna models a wall as one surface, not as a slab):
@@ -73,7 +74,7 @@ array                  shape, dtype    meaning
 ``path_aoa_deg``       (N, M, K) f4    arrival zenith angle (towards the last interaction)
                                        [deg]; 90 = horizontal
 ``path_chain``         (N, M, K) u2    interaction flags, 4 bits per depth (depth 0 in bits
-                                       0-3), see :func:`chain_label`
+                                       0-3), see :func:`.paths.chain_label`
 ``path_class``         (N, M, K) i1    MPC group 1..4 (0 = padding)
 ``path_vertex_m``      (N, M, K, 3) f4 first interaction point (NaN for ``Tx-Rx``) [m]
 ``path_vertices_m``    (N, M, K, D, 3) every interaction point in order, D = max depth (NaN
@@ -83,85 +84,6 @@ array                  shape, dtype    meaning
 =====================  ==============  ======================================================
 
 Powers are *not* stored: SNRs are recomputed from ``path_gain_db`` with the scenario's radio
-(:func:`path_snr_db`), so a dataset can be re-evaluated for another transmit power or
+(:func:`.evaluate.path_snr_db`), so a dataset can be re-evaluated for another transmit power or
 threshold without re-tracing.
 """
-
-from __future__ import annotations
-
-from diffpos_services.raytrace.backend import (
-    DEFAULT_LLVM_PATH,
-    INSTALL_HINT,
-    SIONNA_REQUIREMENT,
-    VARIANT,
-    RaytraceUnavailable,
-    check_sionna,
-)
-from diffpos_services.raytrace.dataset import (
-    DATASET_FORMAT,
-    RaytraceDataset,
-    load_dataset,
-    save_dataset,
-)
-from diffpos_services.raytrace.evaluate import (
-    compare_with_emulator,
-    dataset_arrivals,
-    dataset_channel,
-    dataset_first_arrival,
-    dataset_mpc_statistics,
-    edge_fermat_check,
-    path_snr_db,
-)
-from diffpos_services.raytrace.mechanism_mix import compare_mechanisms
-from diffpos_services.raytrace.mechanisms import (
-    Mechanisms,
-    classify_mechanisms,
-    mechanism_length_check,
-)
-from diffpos_services.raytrace.paths import (
-    DIFFRACTION,
-    DIFFUSE,
-    REFRACTION,
-    SPECULAR,
-    chain_label,
-    classify_chains,
-    encode_chains,
-)
-from diffpos_services.raytrace.scene import Surface, build_scene, building_surfaces
-from diffpos_services.raytrace.tracing import RaytraceSettings, trace
-
-__all__ = [
-    "DATASET_FORMAT",
-    "DEFAULT_LLVM_PATH",
-    "DIFFRACTION",
-    "DIFFUSE",
-    "INSTALL_HINT",
-    "REFRACTION",
-    "SIONNA_REQUIREMENT",
-    "SPECULAR",
-    "VARIANT",
-    "Mechanisms",
-    "RaytraceDataset",
-    "RaytraceSettings",
-    "RaytraceUnavailable",
-    "Surface",
-    "build_scene",
-    "building_surfaces",
-    "chain_label",
-    "check_sionna",
-    "classify_chains",
-    "classify_mechanisms",
-    "compare_mechanisms",
-    "compare_with_emulator",
-    "dataset_arrivals",
-    "dataset_channel",
-    "dataset_first_arrival",
-    "dataset_mpc_statistics",
-    "edge_fermat_check",
-    "encode_chains",
-    "load_dataset",
-    "mechanism_length_check",
-    "path_snr_db",
-    "save_dataset",
-    "trace",
-]

@@ -13,7 +13,7 @@ import re
 
 from diffpos_services.wire.keys import PREFIX, SEQUENCE_STREAMS, parse_recording_topic
 
-__all__ = ["SEQUENCED_KINDS", "SEQUENCE_STREAMS", "SeqTracker", "natural_key", "parse_topic"]
+__all__ = ["SEQUENCED_KINDS", "SeqTracker", "natural_key", "parse_topic"]
 
 
 def parse_topic(topic: str) -> tuple[str, dict[str, str]]:
