@@ -13,6 +13,10 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
   valid file);
 * the recorder's own liveliness token (:meth:`Keys.alive_recorder`) is declared once both
   subscribers exist, so whoever waits for it knows recording has started;
+* the services' heartbeats (:mod:`diffpos_services.bus.heartbeat`, the recorder's own
+  included) are recorded like data, on ``heartbeat/<service>`` and ``heartbeat/anchor/<id>``
+  channels (schema ``heartbeat.v1``): a recording shows which process stalled and when
+  (``diffpos inspect`` summarises them); replay and ``to-rerun`` do not read them;
 * the stop is bounded: the main thread waits for ``stop`` and joins in signal-poll slices
   (:func:`diffpos_services.shutdown.wait_event`: a SIGTERM taken by another thread is acted on),
   and after the session closed the drain thread is waited for until its channel is drained
@@ -27,7 +31,8 @@ token (:data:`diffpos_services.bus.integrity.RUN_TOKEN_ENV`, handed by ``diffpos
 in the environment, never written anywhere), a message on an estimate or diagnostics key is
 the run's own only if it carries a valid MAC under that token bound to the full zenoh id
 stamped on it (:class:`~diffpos_services.bus.integrity.Verifier`): a copy or a forgery is
-foreign. Without a token, a run configuration naming the run's fusion by a zenoh id prefix
+foreign. A heartbeat is the run's own only with a valid MAC too (heartbeats are signed, not
+stamped). Without a token, a run configuration naming the run's fusion by a zenoh id prefix
 (``emulate.fusion_id_prefix``, older runs) is used as before; with a list of the run's anchors
 (``fusion.anchors``), a message on the key of an anchor outside that list is foreign too.
 A *foreign* message it is not written to the recording (which replay,
@@ -185,6 +190,11 @@ class Provenance:
         if pk.kind in _FUSION_KINDS and self.fusion_id_prefix is not None:
             ts = sample.timestamp
             return ts is None or not str(ts.get_id()).startswith(self.fusion_id_prefix)
+        if pk.kind == "heartbeat":
+            if self.verifier is not None:  # signed like the fusion's, but not stamped
+                return not self.verifier.ours(sample, stamped=False)
+            return (pk.anchor_id is not None and self.anchors is not None
+                    and pk.anchor_id not in self.anchors)
         if pk.kind in _ANCHOR_KINDS and self.anchors is not None:
             return pk.anchor_id not in self.anchors
         return False
@@ -341,8 +351,8 @@ def record(
 
 
 class _Drain(threading.Thread):
-    """The thread moving samples from the Zenoh FIFO into the sink (DELETEs are counted, not
-    recorded; foreign messages go to ``foreign``, see :class:`Provenance`). Ends when the
+    """The thread moving samples from the Zenoh FIFO into the sink (heartbeats too; DELETEs
+    are counted, not recorded; foreign messages go to ``foreign``, see :class:`Provenance`). Ends when the
     session is closed and every queued sample is written; :meth:`finish` waits for that,
     bounded."""
 
@@ -352,7 +362,6 @@ class _Drain(threading.Thread):
         self.sub, self.sink, self.stop = sub, sink, stop
         self.provenance, self.foreign = provenance, foreign
         self.deletes = 0
-        self.heartbeats = 0    # services' heartbeats: not recorded (liveness, not data)
         self.taken = 0         # samples taken from the channel
         self.waiting = False   # in recv() (blocks there only while the channel is empty)
         self.late = 0          # samples taken after finish() gave up (not written)
@@ -385,10 +394,6 @@ class _Drain(threading.Thread):
             self.deletes += 1
             return
         key = str(sample.key_expr)
-        pk = parse_key(key)
-        if pk is not None and pk.kind == "heartbeat":
-            self.heartbeats += 1
-            return
         if self.provenance is not None and self.provenance.foreign(key, sample):
             self.foreign.write(key, sample.payload.to_bytes(), time.time_ns())
         else:

@@ -4,7 +4,8 @@ Like `mcap info`, in diffpos terms: which anchors and nodes the recording holds,
 messages of each kind, the time span, gaps in the publishers' sequence numbers (in this file,
 and across every file of the recording when it has split parts or restart files: a hole
 between two files is counted there), the liveliness
-events (anchors joining and leaving), the run metadata and attachments. Works on truncated
+events (anchors joining and leaving), the services' heartbeats (per process: how far its
+progress went, its longest silence and stall, and when), the run metadata and attachments. Works on truncated
 recordings too (it says so and suggests `diffpos recover`). With --validate every message is
 checked against diffpos' own JSON Schema (schemas/) named by its "schema" tag, not against
 the schema embedded in the file, and channels whose embedded schema differs from ours are
@@ -58,6 +59,28 @@ def _print_across(across) -> None:
         detail = ", ".join(f"{k}: {n}" for k, n in across.by_stream.items())
         print(f"           across the recording's {len(across.files)} files (split parts, "
               f"restarts): {across.missing} missing" + (f" ({detail[:300]})" if detail else ""))
+
+
+def _print_heartbeats(beats: list[dict], t0: int) -> None:
+    """Per process start: its heartbeats, progress, longest silence and stall (and when)."""
+    if not beats:
+        return
+    print("heartbeats: per process start (silence: no heartbeat; stall: no progress with work "
+          "pending)")
+
+    def at(ns: int) -> str:
+        return f"{(ns - t0) / 1e9:+.1f} s"
+
+    for b in beats[:40]:
+        stall = (f"stall {b['longest_stall_s']:.1f} s from {at(b['stall_from_ns'])}"
+                 if b["longest_stall_s"] > 0 else "no stall")
+        back = f", {b['regressions']} times backwards" if b["regressions"] else ""
+        print(f"  {b['who']:<12} pid {b['pid']:<7} {b['beats']:>5} beats "
+              f"{at(b['first_ns'])} .. {at(b['last_ns'])}, progress {b['first_progress']} -> "
+              f"{b['last_progress']}{back}; longest silence {b['longest_silence_s']:.1f} s from "
+              f"{at(b['silence_from_ns'] or b['first_ns'])}; {stall}")
+    if len(beats) > 40:
+        print(f"  ... {len(beats) - 40} more")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -127,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {dt:+9.3f} s  {ev.get('role', '?'):<9} {ev.get('id', '') or '-':<10} {what}")
         if len(s.liveliness) > 30:
             print(f"  ... {len(s.liveliness) - 30} more")
+    _print_heartbeats(s.heartbeats, s.start_ns)
     for name, md in s.metadata.items():
         keys = ", ".join(f"{k}={v if len(v) < 40 else v[:37] + '...'}" for k, v in list(md.items())[:8])
         print(f"metadata:  {name}: {keys}")

@@ -12,6 +12,13 @@ The service is deliberately *outside* the fusion hot path:
   ``send_columns`` through :class:`diffpos_services.dashboard.stream.Dashboard` (one call per entity
   per batch, not per message).
 
+Like every service it publishes a heartbeat (:mod:`diffpos_services.bus.heartbeat`) on
+:meth:`Keys.heartbeat` ``("dashboard")``: its progress is the number of messages taken out of
+the ring buffer by the drain loop, its pending work the messages waiting in it. ``diffpos
+emulate``'s supervisor judges it from them: a dashboard stopped (no heartbeat) or stuck (the
+drain loop not taking what waits, e.g. blocked in the Rerun SDK) for its stall time is a
+hung fault.
+
 Rerun output (``RerunTarget``): ``spawn`` a native viewer (needs a display), ``serve`` a gRPC
 server plus the web viewer over HTTP, ``save`` an .rrd file, ``off`` (count only; for tests
 and benchmarks). ``auto`` picks spawn when a display is available, otherwise serve.
@@ -34,6 +41,7 @@ from typing import Any, ClassVar, Literal
 import rerun as rr
 import zenoh  # this module is the dashboard process's service (liveliness sample kinds)
 
+from diffpos_services.bus.heartbeat import HeartbeatThread, Progress
 from diffpos_services.bus.integrity import Verifier, run_token
 from diffpos_services.dashboard.blueprint import default_blueprint
 from diffpos_services.dashboard.building import BuildingOutline
@@ -296,6 +304,8 @@ class DashboardService:
         self._lock = threading.Lock()
         self._received_cv = threading.Condition()
         self._want_received: int | None = None  # set while wait_received() waits
+        self._taken = 0  # messages the drain loop took out of the ring (heartbeat progress)
+        self._beat: HeartbeatThread | None = None
 
     # -- zenoh side (never blocks) -------------------------------------------------------
     def _on_sample(self, sample: Any) -> None:
@@ -363,9 +373,20 @@ class DashboardService:
             )
         )
         self._subs.append(self.session.liveliness().declare_token(k.alive_dashboard()))
+        self._beat = HeartbeatThread(self.session, k.heartbeat("dashboard"), "dashboard",
+                                     self.progress, logger=self.log).start()
+
+    def progress(self) -> Progress:
+        """The heartbeat's figures: messages taken from the ring buffer (only grows), messages
+        waiting in it, messages drawn (read from the heartbeat thread)."""
+        return Progress(progress=self._taken, pending=len(self.ring), published=self.stats.drawn)
 
     def close(self) -> None:
-        """Undeclare the subscribers, draw what is left, flush the recording."""
+        """Stop the heartbeat, undeclare the subscribers, draw what is left, flush the
+        recording."""
+        if self._beat is not None:
+            self._beat.stop()
+            self._beat = None
         for sub in self._subs:
             try:
                 sub.undeclare()
@@ -382,6 +403,7 @@ class DashboardService:
         ring = self.ring
         n = len(ring)
         items = [ring.popleft() for _ in range(n)]
+        self._taken += n
         by_kind: dict[str, list[Any]] = {k: [] for k in self._DECODERS}
         bad = 0
         for kind, payload, _ in items:

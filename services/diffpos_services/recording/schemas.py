@@ -87,6 +87,7 @@ DEFAULT_KIND_TO_STEMS: dict[str, tuple[str, ...]] = {
     "run_clock": ("run_clock",),
     "range_batch": ("range_batch",),
     "replay_estimate": ("estimate",),
+    "heartbeat": ("heartbeat",),
 }
 
 

@@ -1,5 +1,5 @@
 """What is in a recording: :func:`summarize` (channels, schemas, counts, time span, anchors,
-nodes, liveliness events; ``diffpos inspect``) and :func:`validate_file` (every message
+nodes, liveliness events, heartbeats; ``diffpos inspect``) and :func:`validate_file` (every message
 against diffpos' own JSON Schema of its kind; ``diffpos inspect --validate``). Works on
 truncated files too. Also the run settings a recording stores (:func:`live_fusion_settings`,
 :func:`attached_scenario`)."""
@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from diffpos.scenario import Scenario, ScenarioError, default_scenario
+from diffpos_services.recording.heartbeats import HeartbeatLog
 from diffpos_services.recording.reader import Damage, McapScanner, SideRecords
 from diffpos_services.recording.schemas import SchemaRegistry
 from diffpos_services.recording.topics import SEQUENCED_KINDS, SeqTracker, natural_key, parse_topic
@@ -72,6 +73,10 @@ class RecordingSummary:
         Sequence stream (see :class:`SeqTracker`) -> messages missing by sequence number.
     out_of_order : dict[str, int]
         Sequence stream -> sequence numbers that went backwards or repeated.
+    heartbeats : list of dict
+        Per publisher and process start, its heartbeats
+        (:class:`~diffpos_services.recording.heartbeats.ProcessBeats` as a dict): beats,
+        progress, the longest silence and stall and when they began.
     """
 
     path: str
@@ -90,6 +95,7 @@ class RecordingSummary:
     damage: Damage
     gaps: dict[str, int] = field(default_factory=dict)
     out_of_order: dict[str, int] = field(default_factory=dict)
+    heartbeats: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def duration_s(self) -> float:
@@ -115,6 +121,7 @@ class RecordingSummary:
             "damage": {**self.damage.__dict__, "ok": self.damage.ok},
             "gaps": self.gaps,
             "out_of_order": self.out_of_order,
+            "heartbeats": self.heartbeats,
         }
 
 
@@ -127,6 +134,7 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
     seq = SeqTracker()
     live: list[dict[str, Any]] = []
     kinds: dict[int, str] = {}
+    beats = HeartbeatLog()
     for batch in sc.iter_batches():
         for m in batch:
             cid = m.channel_id
@@ -140,7 +148,9 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
                 first[cid] = min(first[cid], m.log_ns)
                 last[cid] = max(last[cid], m.log_ns)
             seq.add(m.topic, m.sequence)
-            if kinds.get(cid) == "liveliness" and len(live) < 10000:
+            if kinds.get(cid) == "heartbeat":
+                beats.add(m.data, m.log_ns)
+            elif kinds.get(cid) == "liveliness" and len(live) < 10000:
                 try:
                     live.append(json.loads(m.data))
                 except ValueError:
@@ -188,6 +198,7 @@ def summarize(path: str | os.PathLike[str]) -> RecordingSummary:
         damage=sc.damage,
         gaps=dict(sorted(seq.gaps.items())),
         out_of_order=dict(sorted(seq.out_of_order.items())),
+        heartbeats=[p.as_dict() for p in beats.processes()],
     )
 
 
