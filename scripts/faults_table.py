@@ -326,7 +326,7 @@ def hung_anchor(ctx: Ctx) -> str:
                  f"{100 * len(back) / max(len(after), 1):.0f} % of the fixes"
                  if back else "**uav2 never used again**")
     few = sum(e.status == "TOO_FEW_ANCHORS" for _, e in after)
-    return _cell(f"exit {rc}", f"during the hang {len(hang)} estimates, "
+    return _cell(f"exit {rc}", _hung_faults(summary), f"during the hang {len(hang)} estimates, "
                  f"{100 * with_pos / max(len(hang), 1):.0f} % with a position (3 anchors)",
                  used_back, f"{few} TOO_FEW_ANCHORS after it", _avail(summary))
 
@@ -462,13 +462,14 @@ def foreign(ctx: Ctx) -> str:
 
 
 def stopped(service: str, arg: str | None = None, *, resume_s: float | None = None,
-            duration: str = "20", name: str | None = None) -> Callable[[Ctx], str]:
+            duration: str = "20", name: str | None = None,
+            dashboard: tuple[str, ...] = ("off",)) -> Callable[[Ctx], str]:
     """SIGSTOP ``diffpos <service>`` at t = 3 s (its token lives on: 10 s lease); with
     ``resume_s`` SIGCONT it that much later."""
     def run(ctx: Ctx) -> str:
         out = ctx.tmp / "run.mcap"
-        emu = Emulate(ctx, "--channel", "ideal", "--duration", duration, "--dashboard", "off",
-                      "--record", str(out))
+        emu = Emulate(ctx, "--channel", "ideal", "--duration", duration, "--dashboard",
+                      *dashboard, "--record", str(out))
         seen = None
         try:
             emu.ready()
@@ -672,6 +673,11 @@ CASES: list[Case] = [
     Case("36.1", "anchor `uav2` hung: SIGSTOP at t = 3 s, never resumed",
          stopped("anchor", "uav2", name="anchor-uav2"),
          "tests/services/test_progress_integrity.py::test_hung_anchor_reported_left_running_and_resumes"),
+    Case("36.1", "dashboard hung: SIGSTOP at t = 3 s, never resumed (`--dashboard save "
+         "run.rrd`)", stopped("dashboard", dashboard=("save", "run.rrd")),
+         "tests/system/test_heartbeats_recorded.py::test_a_stopped_dashboard_is_a_hung_fault_"
+         "killed_not_restarted + tests/services/test_heartbeats_recorded_units.py::"
+         "test_dashboard_heartbeat_counts_what_the_drain_loop_takes"),
     Case("36.1", "two of four anchors hung (`uav1`, `uav2`: SIGSTOP at t = 3 s)",
          stopped2, "tests/services/test_progress_integrity.py::test_hung_anchor_reported_left_running_and_resumes"),
     Case("36.1", "fusion stalled 2 s (SIGSTOP, SIGCONT 2 s later: shorter than the 5 s "

@@ -148,7 +148,7 @@ def test_a_recorded_run_holds_every_services_heartbeats_and_replay_ignores_them(
 def test_a_stopped_dashboard_is_a_hung_fault_killed_not_restarted(services, tmp_path):
     """The dashboard publishes heartbeats like the other services, so a SIGSTOPped one (its
     liveliness token lives on for the 10 s lease) is found hung within STALL_S + 2 s: killed
-    (a stopped subscriber can hold the bus back), not restarted (a viewer), exit 3."""
+    like every hung service but the anchors, not restarted (a viewer), exit 3."""
     p, kids = _start_emulate(services, tmp_path, "--duration", "30", "--record", "off",
                              "--dashboard", "save", str(tmp_path / "run.rrd"))
     dash = _pid_of(tmp_path, kids, "dashboard")
