@@ -13,10 +13,13 @@ A thin Zenoh wrapper around :class:`diffpos_services.recording.writer.McapSink`:
   valid file);
 * the recorder's own liveliness token (:meth:`Keys.alive_recorder`) is declared once both
   subscribers exist, so whoever waits for it knows recording has started;
-* the services' heartbeats (:mod:`diffpos_services.bus.heartbeat`, the recorder's own
-  included) are recorded like data, on ``heartbeat/<service>`` and ``heartbeat/anchor/<id>``
-  channels (schema ``heartbeat.v1``): a recording shows which process stalled and when
-  (``diffpos inspect`` summarises them); replay and ``to-rerun`` do not read them;
+* the services' heartbeats (:mod:`diffpos_services.bus.heartbeat`) are recorded like data,
+  on ``heartbeat/<service>`` and ``heartbeat/anchor/<id>`` channels (schema
+  ``heartbeat.v1``): a recording shows which process stalled and when (``diffpos inspect``
+  summarises them); replay and ``to-rerun`` do not read them. The recorder's own heartbeat
+  is not written into its own file (counted in ``own_heartbeats``): whatever it writes shows
+  it was not stalled then, so it could never show its own stall, and its counters are in
+  the ``recorder_stats`` metadata; another recorder's heartbeats are recorded;
 * the stop is bounded: the main thread waits for ``stop`` and joins in signal-poll slices
   (:func:`diffpos_services.shutdown.wait_event`: a SIGTERM taken by another thread is acted on),
   and after the session closed the drain thread is waited for until its channel is drained
@@ -63,7 +66,7 @@ import zenoh
 from zenoh import handlers
 
 from diffpos_services.bus.commands import foreign_path, recorder_args
-from diffpos_services.bus.heartbeat import HeartbeatThread, Progress
+from diffpos_services.bus.heartbeat import HeartbeatThread, Progress, process_nonce
 from diffpos_services.bus.integrity import Verifier, run_token
 from diffpos_services.bus.session import ZenohSettings, open_session
 from diffpos_services.recording.writer import McapSink, SinkStats
@@ -304,7 +307,8 @@ def record(
         live_sub = session.liveliness().declare_subscriber(
             keys.alive_all(), _liveliness_writer(sink, options.site), history=True
         )
-        drainer = _Drain(sub, sink, stop, provenance, foreign)
+        drainer = _Drain(sub, sink, stop, provenance, foreign,
+                         own_heartbeat=(keys.heartbeat("recorder"), process_nonce()))
         drainer.start()
         flush_thread = threading.Thread(target=_flush_loop,
                                         args=(sink, options, stop, emit, foreign),
@@ -351,16 +355,21 @@ def record(
 
 
 class _Drain(threading.Thread):
-    """The thread moving samples from the Zenoh FIFO into the sink (heartbeats too; DELETEs
-    are counted, not recorded; foreign messages go to ``foreign``, see :class:`Provenance`). Ends when the
+    """The thread moving samples from the Zenoh FIFO into the sink (heartbeats too, but its
+    own; DELETEs are counted, not recorded; foreign messages go to ``foreign``, see :class:`Provenance`). Ends when the
     session is closed and every queued sample is written; :meth:`finish` waits for that,
     bounded."""
 
     def __init__(self, sub: Any, sink: McapSink, stop: threading.Event,
-                 provenance: Provenance | None, foreign: _ForeignSink) -> None:
+                 provenance: Provenance | None, foreign: _ForeignSink, *,
+                 own_heartbeat: tuple[str, str] | None = None) -> None:
         super().__init__(name="recorder-drain", daemon=True)
         self.sub, self.sink, self.stop = sub, sink, stop
         self.provenance, self.foreign = provenance, foreign
+        # (key, process nonce) of this recorder's heartbeat: not written (module docstring)
+        self.own_key, self.own_tag = (None, b"") if own_heartbeat is None else (
+            own_heartbeat[0], f'"instance":"{own_heartbeat[1]}"'.encode())
+        self.own_heartbeats = 0
         self.deletes = 0
         self.taken = 0         # samples taken from the channel
         self.waiting = False   # in recv() (blocks there only while the channel is empty)
@@ -394,10 +403,14 @@ class _Drain(threading.Thread):
             self.deletes += 1
             return
         key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
+        if key == self.own_key and self.own_tag in payload:
+            self.own_heartbeats += 1
+            return
         if self.provenance is not None and self.provenance.foreign(key, sample):
-            self.foreign.write(key, sample.payload.to_bytes(), time.time_ns())
+            self.foreign.write(key, payload, time.time_ns())
         else:
-            self.sink.write(key, sample.payload.to_bytes(), time.time_ns())
+            self.sink.write(key, payload, time.time_ns())
 
     def _take_queued(self) -> int:
         """Under ``_lock``: write what the channel still holds (``try_recv``, never blocks);

@@ -6,10 +6,13 @@ drain loop takes with what waits in its ring as pending work."""
 
 from __future__ import annotations
 
+import threading
+
 import rerun as rr
+import zenoh
 from diffpos_services.bus.integrity import Signer
 from diffpos_services.dashboard.service import DashboardService
-from diffpos_services.recorder import Provenance
+from diffpos_services.recorder import Provenance, _Drain, _ForeignSink
 from diffpos_services.recording.heartbeats import HeartbeatLog
 from diffpos_services.recording.schemas import SchemaRegistry
 from diffpos_services.wire import messages as M
@@ -35,6 +38,15 @@ class _Sample:
         self.key_expr, self.payload = key, _Bytes(payload)
         self.attachment = None if attachment is None else _Bytes(attachment)
         self.timestamp = None
+        self.kind = zenoh.SampleKind.PUT
+
+
+class _Sink:
+    def __init__(self) -> None:
+        self.written: list[str] = []
+
+    def write(self, key: str, payload: bytes, rx_ns: int) -> None:
+        self.written.append(key)
 
 
 class _Session:
@@ -106,3 +118,18 @@ def test_dashboard_heartbeat_counts_what_the_drain_loop_takes():
     assert (svc.progress().progress, svc.progress().pending) == (0, 5)  # stuck so far
     assert svc.drain() == 5
     assert (svc.progress().progress, svc.progress().pending) == (5, 0)
+
+
+def test_recorder_writes_other_heartbeats_but_not_its_own():
+    """Its own heartbeat in its own file could never show its own stall (whatever it writes
+    proves it was working): left out; every other heartbeat, another recorder's too, kept."""
+    sink = _Sink()
+    drain = _Drain(None, sink, threading.Event(), None, _ForeignSink(None),
+                   own_heartbeat=(K.heartbeat("recorder"), "me00"))
+    mine = _hb(3, service="recorder", instance="me00")
+    other = _hb(3, service="recorder", instance="b2b2")
+    drain._put(_Sample(K.heartbeat("recorder"), mine, None))
+    drain._put(_Sample(K.heartbeat("recorder"), other, None))
+    drain._put(_Sample(K.heartbeat("fusion"), _hb(1, instance="me00"), None))
+    assert sink.written == [K.heartbeat("recorder"), K.heartbeat("fusion")]
+    assert drain.own_heartbeats == 1
