@@ -142,7 +142,7 @@ def test_dnls_beats_lls_and_ippa_on_the_default_scenario(paper):
 def test_reproduce_accepts_a_raytrace_dataset(tmp_path, paper):
     """The ray-tracer hook: a dataset in the 'diffpos raytrace' format (here filled with the
     emulator's own paths) gives the same MPC table as the emulator."""
-    raytrace = pytest.importorskip("diffpos_services.raytrace")
+    raytrace = pytest.importorskip("diffpos_services.raytrace.dataset")
     from diffpos_services.cli.main import main
 
     from diffpos.channel.emulator import MPC_CLASS, mpc_statistics
