@@ -80,3 +80,17 @@ def test_an_unreadable_stamp_is_no_stamp(fake_core):
     assert cached_groups() == set()
     prepare_kernels(["a"], workers=1, interval_s=0.05)
     assert json.loads((cache / prepare.STAMP_NAME).read_text())["groups"].keys() == {"a"}
+
+
+def test_a_source_edited_while_the_workers_ran_is_not_stamped(fake_core, monkeypatch):
+    core, _ = fake_core
+    real = prepare._Worker
+
+    class EditsMeanwhile(real):
+        def __init__(self, groups):
+            super().__init__(groups)
+            (core / "sub" / "k_nb.py").write_text("x = 333\n")
+
+    monkeypatch.setattr(prepare, "_Worker", EditsMeanwhile)
+    prepare_kernels(["a"], workers=1, interval_s=0.05)
+    assert cached_groups() == set()

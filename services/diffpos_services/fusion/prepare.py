@@ -295,14 +295,16 @@ def cached_groups() -> set[str]:
         return set()
 
 
-def cache_stamp(groups: list[str]) -> None:
+def cache_stamp(groups: list[str], since: str | None = None) -> None:
     """Record that the workers prepared ``groups`` (numba's cache holds them now): the
     fingerprint of the sources and the cache files present, kept with the groups stamped
-    before under the same fingerprint. Best effort: an unwritable place writes nothing."""
+    before under the same fingerprint. ``since``: the fingerprint when the workers started
+    (a source edited meanwhile: nothing is stamped). Best effort: an unwritable place writes
+    nothing."""
     path = _stamp_path()
     fp = _fingerprint()
     files = _cache_files()
-    if not files:
+    if not files or (since is not None and since != fp):
         return
     try:
         old = json.loads(path.read_text(encoding="utf-8"))
@@ -342,6 +344,7 @@ def prepare_kernels(groups: list[str], *, workers: int | None = None,
     t0 = time.monotonic()
     if skip_cached and set(groups) <= cached_groups():
         return Prepared(time.monotonic() - t0, (), cached=True)
+    since = _fingerprint()
     wake = stop or threading.Event()
     running = [_Worker(b) for b in bins(groups, workers or os.cpu_count() or 1)]
     try:
@@ -361,7 +364,7 @@ def prepare_kernels(groups: list[str], *, workers: int | None = None,
     finally:
         for w in running:
             w.stop()
-    cache_stamp(groups)
+    cache_stamp(groups, since)
     took = time.monotonic() - t0
     if progress is not None:
         progress(Progress(len(groups), len(groups), took, 0.0, (), finished=True))
