@@ -1,6 +1,7 @@
 """The live snapshot policy of the tracked fusion (fusion/tracked.py): a confident confirmed
 track (floor probability >= CONFIDENT_FLOOR_PROBABILITY, averaged NIS <= CONFIDENT_NIS) gets
-its mnls snapshot every CONFIDENT_SNAPSHOT_PERIOD_S of measurement time, any other confirmed
+its mnls snapshot every ``confident_snapshot_period_s`` of measurement time (here the legacy
+10 s; the default None is in test_snapshot_doubt_policy.py), any other confirmed
 track every ``snapshot_period_s`` and so does an unconfirmed track that has a position
 (INITIALISING, COASTING); a node without a tracked position (UNINITIALISED, LOST) every epoch
 (its snapshot is the only fix of it)."""
@@ -11,8 +12,7 @@ from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
-from diffpos_services.fusion import tracked
-from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.config import LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S, FusionConfig
 from diffpos_services.fusion.tracked import TrackBank, _snapshot_due
 
 from diffpos.scenario import Building
@@ -48,11 +48,11 @@ def test_confident_of():
 
 def test_snapshot_periods():
     bank, ids = _bank()
-    cfg = FusionConfig()
+    cfg = FusionConfig(confident_snapshot_period_s=LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S)
     eps = [SimpleNamespace(node_id=n) for n in ids]
     n_ids = len(ids)
     period_ns = round(cfg.snapshot_period_s * 1e9)
-    long_ns = round(tracked.CONFIDENT_SNAPSHOT_PERIOD_S * 1e9)
+    long_ns = round(cfg.confident_snapshot_period_s * 1e9)
     assert long_ns > period_ns
     due = {}
     for t in range(0, long_ns + 1, period_ns // 2):

@@ -36,7 +36,8 @@ from diffpos_services.config import build_config
 from diffpos_services.errors import ConfigError
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES", "MAX_SHARDS", "METHODS",
+__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES",
+           "LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S", "MAX_SHARDS", "METHODS",
            "TRACKER_KEYS", "FusionConfig", "TrackerSettings", "building_of", "channel_edge",
            "legacy_tracker_settings", "merge_tracker", "model_edge", "parse_shard",
            "parse_tracker_items", "shard_of", "tracker_argv", "tracker_help"]
@@ -154,16 +155,25 @@ DEFAULT_ADMIT_LAG_S = 0.25
 LEGACY_ADMIT_LAG_S = 1e9
 
 
+#: ``confident_snapshot_period_s`` of a replay of a live fusion recorded before the setting
+#: existed (2026-12-06: its ``fusion_config`` has no ``confident_snapshot_period_s``) [s]: that
+#: fusion gave a confident track an mnls snapshot every 10 s of measurement time.
+LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
+
+
 def with_legacy_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
     """Recorded fusion settings (a recording's ``fusion_config``; empty: none) with the
     settings that did not exist when it was made set to what that fusion did
-    (:data:`LEGACY_SUPERSEDE_AFTER_S`, :data:`LEGACY_ADMIT_LAG_S`), so a replay by its
-    decision record drops and initialises what the live fusion did."""
+    (:data:`LEGACY_SUPERSEDE_AFTER_S`, :data:`LEGACY_ADMIT_LAG_S`,
+    :data:`LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S`), so a replay by its decision record drops,
+    initialises and checks what the live fusion did."""
     out = dict(recorded)
     if out.get("max_backlog_s") and "supersede_after_s" not in out:
         out["supersede_after_s"] = LEGACY_SUPERSEDE_AFTER_S
     if out and "admit_lag_s" not in out:
         out["admit_lag_s"] = LEGACY_ADMIT_LAG_S
+    if out and "confident_snapshot_period_s" not in out:
+        out["confident_snapshot_period_s"] = LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S
     return out
 
 
@@ -458,12 +468,26 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     snapshot fix at most once per this much measurement time (0: every epoch); a node it
     does not place (UNINITIALISED, LOST: the snapshot is then its only fix) and a node's
     first epoch get one every epoch; a *confident* confirmed track (TRACKING, floor
-    probability >= 0.99, averaged NIS <= 4) every ``tracked.CONFIDENT_SNAPSHOT_PERIOD_S``
-    (10 s). The snapshot is published beside the
+    probability >= 0.99, averaged NIS <= 4) every :attr:`confident_snapshot_period_s`
+    (default: never after its first). The snapshot is published beside the
     tracked estimate and never feeds the tracker; it costs several times the tracker's
     update (3-4 ms vs ~1 ms CPU with 8 anchors). The live service's steps do at most a few
     snapshots and track initialisations each (``tracked.heavy_budget``): a due snapshot that
     does not fit stays due for the node's next epoch."""
+    confident_snapshot_period_s: Annotated[float, Meta(ge=0)] | None = None
+    """Tracking: the mnls snapshot period of a *confident* confirmed track (TRACKING, floor
+    probability >= ``tracked.CONFIDENT_FLOOR_PROBABILITY``, averaged NIS <=
+    ``tracked.CONFIDENT_NIS``) [s of measurement time]; the longer of this and
+    :attr:`snapshot_period_s`. ``None`` (the default since 2026-12-06): none after its first,
+    snapshots run only where they decide something: where the tracker gives no position
+    (the snapshot is the only fix), where its floor is in doubt or its residuals misfit, and
+    for unconfirmed tracks. The snapshot never feeds the tracker and nothing in the project
+    reads a published one, so the tracked estimates do not depend on this, except through
+    the budgeted live steps (``tracked.heavy_budget``: a snapshot not done leaves room for a
+    track initialisation) and the decision record replays those steps. Replay of
+    the 30 s lockstep ``large`` recording: 140 of its 156 snapshots were of confident tracks,
+    ~1.2 s of ~9.6 s of the replay's CPU (docs/performance.md). Recordings made before the
+    setting replay with 10 s (:data:`LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S`)."""
     tracker: TrackerSettings = msgspec.field(default_factory=TrackerSettings)
     """With mnls + tracking: the per-responder tracker's settings, every field of
     :class:`diffpos.tracking.state.TrackerConfig` (:class:`TrackerSettings`; ``diffpos fusion

@@ -7,7 +7,10 @@ worker processes (``python -c``: a worker imports only its groups' kernel module
 them and writes numba's cache), one per core, the groups shared out longest first
 (:func:`bins`); the caller and the services it starts then load the kernels from the cache.
 When every group is cached already this takes about a second (each worker loads its groups
-and exits).
+and exits); with ``skip_cached`` (``diffpos replay``) not even that: a stamp written after the
+workers succeeded (:func:`cache_stamp`) says which groups numba's cache holds for these
+sources, and a run that finds its groups there starts no worker (the caller's own import
+loads the kernels, as it would after the workers).
 
 Which groups a run needs: :func:`groups_for` (the method's solvers; the fusion's imports
 compile D-NLS and M-NLS whatever its method, see :data:`IMPORTED`; the anchors' emulated
@@ -24,9 +27,12 @@ Nothing here imports numba or a kernel module: the workers do.
 
 from __future__ import annotations
 
+import hashlib
 import importlib
+import importlib.metadata
 import json
 import os
+import platform
 import subprocess
 import sys
 import tempfile
@@ -34,13 +40,15 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TextIO
 
 from diffpos_services.errors import DiffposError
 from diffpos_services.logs import STATUS
 
 __all__ = ["GROUPS", "GROUP_METHODS", "IMPORTED", "Group", "KernelError", "Prepared", "Progress", "bins",
-           "compile_groups", "groups_for", "prepare_kernels", "progress_display"]
+           "cache_stamp", "cached_groups", "compile_groups", "groups_for", "prepare_kernels",
+           "progress_display"]
 
 
 @dataclass(frozen=True)
@@ -224,15 +232,106 @@ class Prepared:
 
     wall_s: float
     worker_cpu_s: tuple[float, ...]
+    #: every group was in the cache stamp: no worker was started (``skip_cached``)
+    cached: bool = False
+
+
+#: The core package whose kernels numba caches (its sources and their ``__pycache__``).
+_CORE = Path(__file__).resolve().parents[3] / "diffpos"
+#: The stamp's file name (in numba's cache folder of the core package).
+STAMP_NAME = "diffpos-kernels-prepared.json"
+
+
+def _stamp_path() -> Path:
+    """Where the stamp lives: ``$NUMBA_CACHE_DIR`` when set (numba's cache is there), else the
+    core package's ``__pycache__`` (numba's default place for its kernels' cache)."""
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    return Path(env) / STAMP_NAME if env else _CORE / "__pycache__" / STAMP_NAME
+
+
+def _cache_files() -> list[str]:
+    """numba's index and data files of the core package's kernels (sorted names)."""
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    root = Path(env) if env else _CORE
+    if not root.is_dir():
+        return []
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*.nb[ic]")
+                  if env or p.parent.name == "__pycache__")
+
+
+def _fingerprint() -> str:
+    """What numba's cache of the kernels depends on: every core source file (path, mtime,
+    size: a kernel's callees live in other files, so all of them), the Python and numba
+    versions, the ``NUMBA_*`` settings, the machine and its CPU flags."""
+    h = hashlib.sha256()
+    try:
+        numba_version = importlib.metadata.version("numba")
+    except importlib.metadata.PackageNotFoundError:
+        numba_version = "none"
+    h.update(repr((sys.version, numba_version, platform.machine(), str(_CORE),
+                   sorted((k, v) for k, v in os.environ.items() if k.startswith("NUMBA_")))
+                  ).encode())
+    try:
+        with open("/proc/cpuinfo", "rb") as fh:
+            h.update(next((ln for ln in fh if ln.startswith(b"flags")), b""))
+    except OSError:
+        pass
+    for p in sorted(_CORE.rglob("*.py")):
+        st = p.stat()
+        h.update(f"{p.relative_to(_CORE)}:{st.st_mtime_ns}:{st.st_size};".encode())
+    return h.hexdigest()
+
+
+def cached_groups() -> set[str]:
+    """The groups the stamp says numba's cache holds for the current sources (empty: no
+    stamp, another fingerprint, or a cache file it named is gone)."""
+    try:
+        stamp = json.loads(_stamp_path().read_text(encoding="utf-8"))
+        if stamp.get("fingerprint") != _fingerprint():
+            return set()
+        have = set(_cache_files())
+        return {g for g, files in stamp.get("groups", {}).items() if set(files) <= have}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return set()
+
+
+def cache_stamp(groups: list[str], since: str | None = None) -> None:
+    """Record that the workers prepared ``groups`` (numba's cache holds them now): the
+    fingerprint of the sources and the cache files present, kept with the groups stamped
+    before under the same fingerprint. ``since``: the fingerprint when the workers started
+    (a source edited meanwhile: nothing is stamped). Best effort: an unwritable place writes
+    nothing."""
+    path = _stamp_path()
+    fp = _fingerprint()
+    files = _cache_files()
+    if not files or (since is not None and since != fp):
+        return
+    try:
+        old = json.loads(path.read_text(encoding="utf-8"))
+        known = old.get("groups", {}) if old.get("fingerprint") == fp else {}
+    except (OSError, ValueError, AttributeError):
+        known = {}
+    known = {g: f for g, f in known.items() if isinstance(f, list)}
+    known.update({g: files for g in groups})
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps({"fingerprint": fp, "groups": known}), encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError:
+        pass
 
 
 def prepare_kernels(groups: list[str], *, workers: int | None = None,
                     progress: Callable[[Progress], None] | None = None,
-                    interval_s: float = 0.5, stop: threading.Event | None = None) -> Prepared:
+                    interval_s: float = 0.5, stop: threading.Event | None = None,
+                    skip_cached: bool = False) -> Prepared:
     """Compile (or load from numba's cache) the kernels of ``groups`` in worker processes
     (:func:`bins`; default: one per core); ``progress`` is called every ``interval_s`` and
     once at the end. Returns what it took (``stop`` set: the workers are ended, and it
-    returns at once).
+    returns at once). ``skip_cached``: no worker when the stamp (:func:`cached_groups`) holds
+    every group (the caller then loads the kernels itself, from the cache). A successful
+    preparation stamps its groups (:func:`cache_stamp`).
 
     Raises
     ------
@@ -243,6 +342,9 @@ def prepare_kernels(groups: list[str], *, workers: int | None = None,
     if unknown:
         raise ValueError(f"unknown kernel groups {unknown}; known: {sorted(GROUPS)}")
     t0 = time.monotonic()
+    if skip_cached and set(groups) <= cached_groups():
+        return Prepared(time.monotonic() - t0, (), cached=True)
+    since = _fingerprint()
     wake = stop or threading.Event()
     running = [_Worker(b) for b in bins(groups, workers or os.cpu_count() or 1)]
     try:
@@ -262,6 +364,7 @@ def prepare_kernels(groups: list[str], *, workers: int | None = None,
     finally:
         for w in running:
             w.stop()
+    cache_stamp(groups, since)
     took = time.monotonic() - t0
     if progress is not None:
         progress(Progress(len(groups), len(groups), took, 0.0, (), finished=True))

@@ -9,7 +9,8 @@ method is ``mnls``: the epochs of a batch (gathered and prepared by
   tracker does not place (UNINITIALISED, LOST: the snapshot is then the only fix of it), or
   whose last snapshot is ``snapshot_period_s`` of measurement time old; for a *confident*
   confirmed track, its floor at >= :data:`CONFIDENT_FLOOR_PROBABILITY` and its averaged NIS
-  <= :data:`CONFIDENT_NIS`, :data:`CONFIDENT_SNAPSHOT_PERIOD_S` old). The snapshot is
+  <= :data:`CONFIDENT_NIS`, ``FusionConfig.confident_snapshot_period_s`` old: by default
+  never after its first, a confident track's snapshot decides nothing). The snapshot is
   published alongside (``PositionEstimateV2.snapshot``, an independent check of the track) and
   never feeds the tracker, nor anything else of the fusion (no divergence test or
   re-initialisation reads it: the tracker's own initialisation is its grid snapshot,
@@ -98,10 +99,6 @@ CONFIDENT_FLOOR_PROBABILITY = 0.99
 #: ... and its averaged NIS per used range (the tracker's ``nis``) is at most this (the
 #: residuals fit their sigmas: rms within 2 sigma).
 CONFIDENT_NIS = 4.0
-#: Snapshot period of a confident track [s] (measurement time); any other track the tracker
-#: places (INITIALISING, COASTING, a TRACKING one not confident) gets
-#: ``FusionConfig.snapshot_period_s``.
-CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
 #: Epochs solved per track initialisation or mnls snapshot fix a budgeted step may do. With 8
 #: anchors an initialisation costs ~5 ms and a snapshot ~3.5 ms, an epoch ~1-1.2 ms all in
 #: (tracker update, batch assembly, messages; the live ``large`` run's steps replayed): the
@@ -231,7 +228,7 @@ class TrackBank:
     def confident_of(self, node_ids: list[str]) -> np.ndarray:
         """Whether each node's track is confident (:data:`CONFIDENT_FLOOR_PROBABILITY`,
         :data:`CONFIDENT_NIS`; False for unknown nodes): its snapshot period is then
-        :data:`CONFIDENT_SNAPSHOT_PERIOD_S`."""
+        ``FusionConfig.confident_snapshot_period_s``."""
         out = np.zeros(len(node_ids), bool)
         known = [(i, self.index[n]) for i, n in enumerate(node_ids) if n in self.index]
         if not known:
@@ -392,7 +389,8 @@ def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray
     placed = np.isin(status, _NO_POSITION, invert=True)  # the tracker publishes a position
     sure = (status == int(TrackStatus.TRACKING)) & bank.confident_of(ids)
     period = round(cfg.snapshot_period_s * 1e9)
-    long_period = max(period, round(CONFIDENT_SNAPSHOT_PERIOD_S * 1e9))
+    long_period = (math.inf if cfg.confident_snapshot_period_s is None
+                   else max(period, round(cfg.confident_snapshot_period_s * 1e9)))
     due = np.ones(len(epochs), bool)
     lasts = [bank.snapshot_ns.get(nid) for nid in ids]
     for i, (last, ok, sure_i) in enumerate(zip(lasts, placed.tolist(), sure.tolist(),

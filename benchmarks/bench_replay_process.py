@@ -1,0 +1,156 @@
+"""Whole-process `diffpos replay` before/after a change, side by side in one run (issue 37).
+
+Each replay is the command a user types, in a fresh process:
+``python -m diffpos_services.cli.main replay REC --no-files --json --compare --no-progress
+[--method M]``, once with a *before* tree (``--before-commit``: that commit of this
+repository, extracted by ``git archive`` into a temporary folder; or ``--before-tree DIR``)
+and once with this tree, alternating, ``--rounds`` times. Each tree first replays once
+untimed, so its numba cache is warm (a separate tree has its own cache: the first run there
+compiles for minutes).
+
+Per replay: wall seconds of the whole process (interpreter start, imports, kernels, replay,
+report), its CPU (user + system, child processes included: ``os.wait4``), peak RSS
+(``ru_maxrss``), and from the JSON report the replay's own timing and the comparison with the
+recorded live estimates (positions identical / with positions). "x real" is the run's
+emulated length (the truth's span: a lockstep recording's receive times span a different
+time than the run) over the wall seconds; "x cpu" over the CPU seconds, the better guide on a
+shared machine. "us/ne": CPU microseconds per node-epoch (published estimate).
+
+Usage::
+
+    python benchmarks/bench_replay_process.py --recording /work/rec/large30.mcap \\
+        --before-commit c52d72c --methods default dnls --rounds 3
+
+The machine, Python and load (1-minute average, before each replay) are printed with the
+table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def extract_commit(commit: str, dest: Path) -> Path:
+    """``commit`` of this repository's history as a plain folder (``git archive``)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryFile() as fh:
+        subprocess.run(["git", "-C", str(ROOT), "archive", commit], stdout=fh, check=True)
+        fh.seek(0)
+        with tarfile.open(fileobj=fh) as tar:
+            tar.extractall(dest, filter="data")
+    return dest
+
+
+def run_replay(tree: Path, recording: str, method: str) -> dict:
+    """One whole-process replay with ``tree``'s code; its figures."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), str(tree / "services")]))
+    cmd = [sys.executable, "-m", "diffpos_services.cli.main", "replay", recording, "--no-files",
+           "--json", "--compare", "--no-progress"]
+    if method != "default":
+        cmd += ["--method", method]
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=err, cwd=tree)
+        _, status, ru = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode != 0:
+            err.seek(0)
+            raise RuntimeError(f"{' '.join(cmd)} (in {tree}) failed with {proc.returncode}:\n"
+                               + err.read().decode(errors="replace")[-3000:])
+        out.seek(0)
+        rep = json.loads(out.read())
+    c = rep.get("compare") or {}
+    run_s = rep["truth_s"] or rep["recording_s"]
+    cpu = ru.ru_utime + ru.ru_stime
+    fixes = rep["fixes"]["total"]
+    return {"wall_s": wall, "cpu_s": cpu, "rss_mb": ru.ru_maxrss / 1024, "run_s": run_s,
+            "fixes": fixes, "x_real": run_s / wall, "x_cpu": run_s / cpu,
+            "us_per_ne": 1e6 * cpu / max(fixes, 1), "load": load,
+            "replay_wall_s": rep["timing"]["wall_s"], "kernels_s": rep["timing"].get("kernels_s"),
+            "identical": c.get("identical_positions"), "with_positions": c.get("with_positions"),
+            "status_agree": c.get("status_agree")}
+
+
+def _median(rows: list[dict], key: str) -> float:
+    return statistics.median(r[key] for r in rows)
+
+
+def _line(label: str, rows: list[dict]) -> str:
+    ident = {f"{r['identical']}/{r['with_positions']}" for r in rows}
+    return (f"{label:<22} {_median(rows, 'wall_s'):>7.2f} {_median(rows, 'x_real'):>7.2f} "
+            f"{_median(rows, 'cpu_s'):>7.2f} {_median(rows, 'x_cpu'):>7.2f} "
+            f"{_median(rows, 'us_per_ne'):>7.0f} {max(r['rss_mb'] for r in rows):>7.0f} "
+            f"{_median(rows, 'kernels_s'):>8.2f} {_median(rows, 'replay_wall_s'):>8.2f} "
+            f"{','.join(sorted(ident)):>13} "
+            f"{min(r['load'] for r in rows):>4.1f}-{max(r['load'] for r in rows):<4.1f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--recording", required=True, help="an emulate recording (lockstep large)")
+    g = ap.add_mutually_exclusive_group(required=True)
+    g.add_argument("--before-commit", help="the commit to compare with (git archive)")
+    g.add_argument("--before-tree", help="a checkout to compare with")
+    ap.add_argument("--methods", nargs="+", default=["default", "dnls"],
+                    help="default (the recorded method) and/or a --method of replay")
+    ap.add_argument("--rounds", type=int, default=3, help="timed replays per tree and method")
+    args = ap.parse_args()
+    tmp = None
+    if args.before_commit:
+        tmp = tempfile.TemporaryDirectory(prefix="bench_before_")
+        before = extract_commit(args.before_commit, Path(tmp.name) / "before")
+        before_name = f"before ({args.before_commit})"
+    else:
+        before, before_name = Path(args.before_tree), f"before ({args.before_tree})"
+    trees = [(before_name, before), ("after (this tree)", ROOT)]
+    rows: dict[tuple[str, str], list[dict]] = {}
+    for method in args.methods:  # untimed: each tree's numba cache warm
+        for _, tree in trees:
+            run_replay(tree, args.recording, method)
+    for _ in range(args.rounds):
+        for method in args.methods:
+            for name, tree in trees:
+                rows.setdefault((method, name), []).append(
+                    run_replay(tree, args.recording, method))
+    print(f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC; machine: "
+          f"{platform.machine()}, {os.cpu_count()} cores, {platform.processor() or '?'}, "
+          f"Python {platform.python_version()}; shared with other jobs: the load column is "
+          "the 1-minute load average before each replay")
+    first = next(iter(rows.values()))[0]
+    print(f"recording {args.recording}: {first['run_s']:.1f} s emulated, {first['fixes']} "
+          f"estimates; medians of {args.rounds} whole-process replays each, alternating")
+    print("command: python -m diffpos_services.cli.main replay REC --no-files --json "
+          "--compare --no-progress [--method M]")
+    print(f"\n{'method / tree':<22} {'wall s':>7} {'x real':>7} {'CPU s':>7} {'x cpu':>7} "
+          f"{'us/ne':>7} {'RSS MB':>7} {'kernels':>8} {'replay':>8} {'identical':>13} load")
+    for method in args.methods:
+        for name, _ in trees:
+            print(_line(f"{method}: {name.split(' ')[0]}", rows[(method, name)]))
+        b, a = rows[(method, trees[0][0])], rows[(method, trees[1][0])]
+        print(f"{method}: after/before      x real {_median(a, 'x_real') / _median(b, 'x_real'):.2f}, "
+              f"CPU {_median(a, 'cpu_s') / _median(b, 'cpu_s'):.2f}, "
+              f"RSS {max(r['rss_mb'] for r in a) / max(r['rss_mb'] for r in b):.2f}")
+    print("\nkernels: the report's kernels_s (kernel preparation + the fusion's import, wall); "
+          "replay: the report's wall_s (feed + report); identical: live positions reproduced "
+          "bit for bit / with positions (--compare)")
+    if tmp is not None:
+        tmp.cleanup()
+
+
+if __name__ == "__main__":
+    main()
