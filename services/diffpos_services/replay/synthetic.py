@@ -348,9 +348,8 @@ def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
                for k in range(shards)]
     if shards > 1:
         sink.add_metadata("run_config", {
-            "fusion": msgspec.json.encode(run.config).decode(),
-            "emulate": msgspec.json.encode({"fusion_shards": shards}).decode(),
-            "fusion_by_shard": msgspec.json.encode(configs).decode()})
+            "fusion": msgspec.to_builtins(run.config), "emulate": {"fusion_shards": shards},
+            "fusion_by_shard": msgspec.to_builtins(configs)})
     counts: Counter[str] = Counter()
     t_alive = run.t0_ns - 10_000_000
     for a in run.anchor_ids:
