@@ -25,6 +25,10 @@ more processes watched)::
 
     python benchmarks/bench_soak.py --load 16x200 --duration 600 --json soak.json
     python benchmarks/bench_soak.py --load 16x50 --duration 60          # the CI size
+    python benchmarks/bench_soak.py --load 16x200 --duration 60 --shards 2   # 2 fusion shards
+
+With ``--shards N`` it runs N fusion processes (``diffpos fusion --shard K/N``) and prints each
+one's CPU per node-epoch (after the start-up and over the run; docs/soak.md, "Fusion shards").
 
 ``tests/system/test_soak.py`` runs :func:`run_soak` for 60 s and asserts zero loss and bounded RSS.
 
