@@ -25,6 +25,10 @@ more processes watched)::
 
     python benchmarks/bench_soak.py --load 16x200 --duration 600 --json soak.json
     python benchmarks/bench_soak.py --load 16x50 --duration 60          # the CI size
+    python benchmarks/bench_soak.py --load 16x200 --duration 60 --shards 2   # 2 fusion shards
+
+With ``--shards N`` it runs N fusion processes (``diffpos fusion --shard K/N``) and prints each
+one's CPU per node-epoch (after the start-up and over the run; docs/soak.md, "Fusion shards").
 
 ``tests/system/test_soak.py`` runs :func:`run_soak` for 60 s and asserts zero loss and bounded RSS.
 
@@ -74,6 +78,7 @@ from pathlib import Path
 import numpy as np
 from common import PERIOD_NS, cpu_s, rss_mb, scenario_toml
 from diffpos_services.bus.session import ZenohSettings, open_session
+from diffpos_services.fusion.config import shard_of
 from diffpos_services.processes import free_tcp_port, stop_process_groups
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, parse_key
@@ -161,6 +166,7 @@ def run_soak(
     method: str = "dnls",
     kernel_threads: int | None = None,
     workers: int | None = None,
+    shards: int = 1,
 ) -> dict:
     """Run the load and return the measurements (see the module docstring).
 
@@ -192,6 +198,12 @@ def run_soak(
         The fusion's ``--workers`` (None: its default, 1). Its worker processes (children of
         the fusion, found once it is ready) are sampled as ``fworker<i>`` (CPU role
         ``fusion-workers``; multiprocessing's resource tracker, also a child, included).
+    shards : int
+        Fusion processes sharing the responders (``diffpos fusion --shard K/N``, named
+        ``fusion-K``; 1: one ``fusion``). The run waits for each one's heartbeat, ends when
+        every shard's diagnostics say it is done, and reports each one's CPU per node-epoch
+        (``cpu_per_node_epoch``: its CPU seconds over its estimates received here, after the
+        start-up and over the whole run).
     """
     site = site or f"soak{n_anchors}x{n_nodes}"
     keys = Keys(site)
@@ -225,6 +237,19 @@ def run_soak(
     def on_data(s) -> None:
         q.put((str(s.key_expr), s.payload.to_bytes(), time.time_ns()))
 
+    beating: set[int] = set()  # pids of the fusion processes that sent a heartbeat
+    dec_hb = M.decoder(M.Heartbeat)
+
+    def on_heartbeat(s) -> None:
+        with contextlib.suppress(M.DecodeError), cv:
+            beating.add(dec_hb(s.payload.to_bytes()).pid)
+            cv.notify_all()
+
+    fusions = ["fusion"] if shards == 1 else [f"fusion-{k}" for k in range(shards)]
+    by_shard = np.zeros(shards, np.int64)  # estimates received per shard (the node's owner)
+    owner: dict[str, int] = {}
+    shard_counts: dict[float, list[int]] = {}  # by_shard at each CPU sample time
+
     node_ids = [f"n{i + 1:03d}" for i in range(n_nodes)]
     node_index = {n: i for i, n in enumerate(node_ids)}
     n_epochs = round(duration_s * 10)
@@ -238,8 +263,8 @@ def run_soak(
     cpu: dict[str, list[tuple[float, float]]] = {}
     out_of_run = 0
     aoi = AgeOfInformation()
-    diag = None
-    result: dict = {"anchors": n_anchors, "nodes": n_nodes, "rate_hz": 10,
+    diags: dict[int, M.FusionDiagnostics] = {}
+    result: dict = {"anchors": n_anchors, "nodes": n_nodes, "rate_hz": 10, "method": method,
                     "duration_s": duration_s, "range_batch": True, "recorder": recorder}
     t0 = 0
     try:
@@ -251,18 +276,23 @@ def run_soak(
             subs = [session.liveliness().declare_subscriber(keys.alive_all(), on_alive,
                                                             history=True),
                     session.declare_subscriber(keys.estimates(), on_data),
-                    session.declare_subscriber(keys.fusion_diagnostics(), on_data)]
+                    session.declare_subscriber(keys.fusion_diagnostics(), on_data),
+                    session.declare_subscriber(keys.heartbeat("fusion"), on_heartbeat)]
             need = {keys.alive_fusion()} | {keys.alive_anchor(f"uav{j + 1}")
                                             for j in range(n_anchors)}
             if recorder:
                 start("recorder", "recorder", "--site", site, "--out", str(mcap), "--connect",
                       endpoint, "--scenario", str(scen), "--status")
                 need.add(keys.alive_recorder())
-            start("fusion", "fusion", "--site", site, "--connect", endpoint,
-                  "--scenario", str(scen), "--diagnostics-period-s", "1.0", "--method", method,
-                  *([] if max_backlog_s is None else ["--max-backlog-s", str(max_backlog_s)]),
-                  *([] if kernel_threads is None else ["--kernel-threads", str(kernel_threads)]),
-                  *([] if workers is None else ["--workers", str(workers)]))
+            for k, name in enumerate(fusions):
+                start(name, "fusion", "--site", site, "--connect", endpoint,
+                      "--scenario", str(scen), "--diagnostics-period-s", "1.0", "--method",
+                      method,
+                      *([] if max_backlog_s is None else ["--max-backlog-s", str(max_backlog_s)]),
+                      *([] if kernel_threads is None else ["--kernel-threads",
+                                                           str(kernel_threads)]),
+                      *([] if workers is None else ["--workers", str(workers)]),
+                      *([] if shards == 1 else ["--shard", f"{k}/{shards}"]))
             for j in range(n_anchors):
                 start(f"uav{j + 1}", "anchor", "--id", f"uav{j + 1}", "--site", site,
                       "--connect", endpoint, "--scenario", str(scen), "--wait-start",
@@ -270,7 +300,8 @@ def run_soak(
                       "--range-batch")
             deadline = time.monotonic() + ready_timeout_s
             with cv:
-                while not need <= alive:
+                # every fusion process's heartbeat: the shards share one liveliness key
+                while not (need <= alive and {procs[f].pid for f in fusions} <= beating):
                     dead = [n for n, p in procs.items() if p.poll() is not None]
                     if time.monotonic() > deadline or dead:
                         raise RuntimeError(f"not ready: missing {sorted(need - alive)}, "
@@ -278,8 +309,9 @@ def run_soak(
                     cv.wait(0.2)
             pids = {name: p.pid for name, p in procs.items()}
             pids["bench"] = os.getpid()
-            for i, pid in enumerate(_children(procs["fusion"].pid)):
-                pids[f"fworker{i + 1}"] = pid
+            for f in fusions:
+                for i, pid in enumerate(_children(procs[f].pid)):
+                    pids[f"fworker{f[len('fusion'):]}{i + 1}"] = pid
             t0 = -(-(time.time_ns() + 1_000_000_000) // PERIOD_NS) * PERIOD_NS
             rc = M.RunControl(run_id=site, t0_ns=t0, wall_t0_ns=t0, speed=1.0,
                               duration_ns=round(duration_s * 1e9), seed=0)
@@ -302,6 +334,7 @@ def run_soak(
                             rss.setdefault(name, []).append((t_rel, v))
                         if c is not None:
                             cpu.setdefault(name, []).append((t_rel, c))
+                    shard_counts[t_rel] = by_shard.tolist()
                     next_rss += rss_period_s
                     hist.add(lat_chunk)
                     minute = max(int(t_rel // 60), 0)
@@ -332,13 +365,20 @@ def run_soak(
                         if e.position_m is not None:
                             first_fix[i] = min(first_fix[i], k)
                     statuses[e.status] = statuses.get(e.status, 0) + 1
+                    k_own = owner.get(e.node_id)
+                    if k_own is None:
+                        k_own = owner[e.node_id] = shard_of(e.node_id, shards)
+                    by_shard[k_own] += 1
                     if e.t_input_wall_ns > 0:
                         lat_chunk.append((e.t_pub_wall_ns - e.t_input_wall_ns) * 1e-6)
                         aoi.add(e.node_id, e.t_input_wall_ns, e.t_pub_wall_ns)
                 else:
                     diag = dec_d(val)
-                    if (diag.watermark_ns is not None and diag.watermark_ns >= end_ns - PERIOD_NS
-                            and diag.pending_epochs == 0 and received_est >= diag.published):
+                    diags[diag.shard] = diag
+                    if len(diags) == shards and all(
+                            d.watermark_ns is not None and d.watermark_ns >= end_ns - PERIOD_NS
+                            and d.pending_epochs == 0 for d in diags.values()) \
+                            and received_est >= sum(d.published for d in diags.values()):
                         break
             hist.add(lat_chunk)
             for s in subs:
@@ -361,14 +401,10 @@ def run_soak(
     )
     result["per_node"]["age_of_information_ms_mean_worst"] = aoi.summary(t0 + round(
         duration_s * 1e9)) if t0 else None
-    if diag is not None:
-        result["fusion"] = {
-            "ranges_received": diag.received.get("range", 0),
-            "ranges_sent": n_anchors * n_nodes * n_epochs,
-            "states_received": diag.received.get("anchor_state", 0),
-            "rejected": diag.rejected, "late_ranges": diag.late_ranges,
-            "published": diag.published, "solved": diag.solved,
-        }
+    if diags:
+        result["fusion"] = _fusion_summary(diags, n_anchors * n_nodes * n_epochs)
+    result["shards"] = shards
+    result["cpu_per_node_epoch"] = _cpu_per_node_epoch(cpu, shard_counts, fusions)
     # ---- latency
     result["latency_fusion_ms"] = {"p50": hist.percentile(50), "p99": hist.percentile(99),
                                    "max": hist.max_ms, "count": hist.count}
@@ -484,6 +520,47 @@ def _first_position_summary(first_fix: np.ndarray, n_epochs: int) -> dict:
             "never": int((~placed).sum())}
 
 
+def _fusion_summary(diags: dict[int, M.FusionDiagnostics], ranges_sent: int) -> dict:
+    """The fusion's counters (each shard's last diagnostics: every shard receives every
+    range and state, so those are each shard's minimum; rejections, published and solved
+    are summed) and each shard's own."""
+    ds = [diags[k] for k in sorted(diags)]
+    rejected: dict[str, int] = {}
+    for d in ds:
+        for k, v in d.rejected.items():
+            rejected[k] = rejected.get(k, 0) + v
+    out = {"ranges_received": min(d.received.get("range", 0) for d in ds),
+           "ranges_sent": ranges_sent,
+           "states_received": min(d.received.get("anchor_state", 0) for d in ds),
+           "rejected": rejected, "late_ranges": sum(d.late_ranges for d in ds),
+           "published": sum(d.published for d in ds), "solved": sum(d.solved for d in ds)}
+    if len(ds) > 1:
+        out["by_shard"] = [{"shard": f"{d.shard}/{d.shards}", "published": d.published,
+                            "solved": d.solved, "rejected": d.rejected,
+                            "ranges_received": d.received.get("range", 0)} for d in ds]
+    return out
+
+
+def _cpu_per_node_epoch(cpu: dict[str, list[tuple[float, float]]],
+                        counts: dict[float, list[int]], fusions: list[str]) -> list:
+    """Each fusion process's CPU per node-epoch [ms]: its CPU seconds over the estimates of
+    its responders received here, after the first :data:`STARTUP_S` (from the first sample
+    at or after it to the last) and over the whole run (from the run's start)."""
+    out = []
+    for k, name in enumerate(fusions):
+        samples = [(t, c, counts[t][k]) for t, c in cpu.get(name, []) if t >= 0.0 and t in counts]
+        row: dict = {"process": name}
+        for label, lo in (("after_startup", STARTUP_S), ("run", 0.0)):
+            run = [s for s in samples if s[0] >= lo]
+            if len(run) >= 2 and run[-1][2] > run[0][2]:
+                cpu_s_, n = run[-1][1] - run[0][1], run[-1][2] - run[0][2]
+                row[label] = {"cpu_s": round(cpu_s_, 2), "node_epochs": int(n),
+                              "ms_per_node_epoch": round(1e3 * cpu_s_ / n, 3),
+                              "cores": round(cpu_s_ / (run[-1][0] - run[0][0]), 3)}
+        out.append(row)
+    return out
+
+
 def _children(pid: int) -> list[int]:
     """Child process ids of ``pid`` (Linux /proc; empty if unknown)."""
     out: list[int] = []
@@ -526,7 +603,8 @@ def _recorder_summary(log_path: Path) -> dict:
 def _stop_all(procs: dict[str, subprocess.Popen]) -> dict[str, int]:
     """SIGTERM anchors first, then fusion, recorder and router last; SIGKILL stragglers."""
     order = [n for n in procs if n.startswith("uav")] + [
-        n for n in ("fusion", "recorder", "router") if n in procs]
+        n for n in procs if n.startswith("fusion")] + [
+        n for n in ("recorder", "router") if n in procs]
     return {name: stop_process_groups([procs[name]], timeout_s=30)[0] for name in order}
 
 
@@ -536,7 +614,8 @@ def format_report(r: dict) -> str:
     fu, lat, rec = r.get("fusion", {}), r["latency_fusion_ms"], r.get("recorder", {})
     lines = [
         f"load {r['anchors']} anchors x {r['nodes']} nodes x 10 Hz, {r['duration_s']:.0f} s "
-        f"(range batches, recorder {'on' if r['recorder'] else 'off'})",
+        f"(range batches, recorder {'on' if r['recorder'] else 'off'}, fusion "
+        f"{r.get('method', '?')}, {r.get('shards', 1)} fusion process(es))",
         f"ranges rx/sent {fu.get('ranges_received')}/{fu.get('ranges_sent')}, late "
         f"{fu.get('late_ranges')}, rejected {fu.get('rejected')}",
         f"estimates {r['estimates_received']}/{r['estimates_expected']} (missing "
@@ -578,6 +657,11 @@ def format_report(r: dict) -> str:
         rg = r["recording"]
         lines.append(f"recording: {rg['messages_by_kind']}, anchor sequence holes "
                      f"{rg['anchor_seq_holes'] or 'none'}")
+    for row in r.get("cpu_per_node_epoch") or []:
+        parts = [f"{label} {v['ms_per_node_epoch']:.3f} ms ({v['cpu_s']:.1f} CPU s / "
+                 f"{v['node_epochs']:,} node-epochs, {v['cores']:.2f} cores)"
+                 for label, v in row.items() if label != "process"]
+        lines.append(f"CPU per node-epoch of {row['process']}: " + "; ".join(parts))
     if r.get("cpu_cores"):
         lines.append("CPU over the run [cores]: " + ", ".join(
             f"{k} {v:.2f}" for k, v in r["cpu_cores"].items())
@@ -608,6 +692,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="the fusion's --kernel-threads (default: the fusion's, 1)")
     ap.add_argument("--workers", type=int, metavar="N",
                     help="the fusion's --workers (default: the fusion's, 1)")
+    ap.add_argument("--shards", type=int, default=1, metavar="N",
+                    help="fusion processes sharing the responders (diffpos fusion --shard "
+                    "K/N; default 1)")
     ap.add_argument("--json", metavar="FILE", help="write the result as JSON")
     ap.add_argument("--log-dir", metavar="DIR", help="keep logs and the recording here")
     args = ap.parse_args(argv)
@@ -618,7 +705,7 @@ def main(argv: list[str] | None = None) -> int:
         r = run_soak(m, n, args.duration, log_dir, recorder=not args.no_recorder,
                      warmup_s=args.warmup, rss_period_s=5.0, max_backlog_s=args.max_backlog_s,
                      method=args.method, kernel_threads=args.kernel_threads,
-                     workers=args.workers)
+                     workers=args.workers, shards=args.shards)
         r["loadavg_before"] = load_before
         r["loadavg_after"] = os.getloadavg()
         r["cpus"] = os.cpu_count()

@@ -231,7 +231,7 @@ _DIAG_V2_GOLDEN = (
     b'"lag_by_anchor":{"uav1":5},"releases":{"complete":1,"flush":0},"decisions":{"chunk":0,'
     b'"keys":["diffpos/s/anchor/uav1/ranges",""],"ops":[0,4],"refs":[0,1],"values":[123,-1],'
     b'"wall_delta_ns":[10,5],"dropped":0},"instance":"","duplicate_publishers":{},'
-    b'"contested_anchors":[]}'
+    b'"contested_anchors":[],"shard":0,"shards":1}'
 )
 
 

@@ -459,6 +459,10 @@ class Emulation:
                            # "fusion" is the whole run's: one fusion publishes what the
                            # shards (diffpos fusion --shard K/N) published together
                            "fusion_shards": self.o.fusion_shards}}
+        n = self.o.fusion_shards
+        if n > 1:  # what each shard ran (diffpos fusion --shard K/N): replay runs each
+            doc["fusion_by_shard"] = [msgspec.to_builtins(msgspec.structs.replace(
+                self.fusion_config, shard=k, shards=n)) for k in range(n)]
         path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
         return str(path)
 

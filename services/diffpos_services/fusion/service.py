@@ -224,16 +224,19 @@ class _Endpoints:
     keys: Keys
     est_pubs: dict[str, Any]
     signer: Signer | None = None
+    #: (K, N) of ``diffpos fusion --shard K/N`` ((0, 1): one fusion), in every diagnostics
+    shard: tuple[int, int] = (0, 1)
 
     def _att(self, key: str, data: bytes) -> bytes | None:
         return None if self.signer is None else self.signer.attachment(key, data)
 
     def put_diagnostics(self, diag: Any, inbox: _Inbox) -> None:
-        """Publish the core's diagnostics with the process instance and the integrity
-        state (contested anchors, detections), signed."""
+        """Publish the core's diagnostics with the process instance, its shard and the
+        integrity state (contested anchors, detections), signed."""
         diag = msgspec.structs.replace(
             diag, instance=process_nonce(), duplicate_publishers=inbox.guard.detections(),
-            contested_anchors=inbox.guard.contested())
+            contested_anchors=inbox.guard.contested(), shard=self.shard[0],
+            shards=self.shard[1])
         data = M.encode(diag)
         self.diag_pub.put(data, attachment=self._att(self.keys.fusion_diagnostics(), data))
 
@@ -629,6 +632,7 @@ def run_fusion(
             # a shard publishes only its own responders' estimates
             mine = None if config.nodes is None else tuple(filter(config.owns, config.nodes))
             ends = _declare(session, core.keys, inbox, mine)
+            ends.shard = (config.shard, config.shards)  # replay runs each shard's record
             log_event(log, logging.INFO, "fusion ready", site=config.site,
                       shard=f"{config.shard}/{config.shards}",
                       subscriptions=[fusion_subscription(core.keys)],

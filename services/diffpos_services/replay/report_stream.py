@@ -24,7 +24,6 @@ import copy
 import dataclasses
 import heapq
 import itertools
-import json
 import math
 from collections import Counter, defaultdict
 from collections.abc import Mapping
@@ -37,7 +36,6 @@ from diffpos.floor_calibration import probability_rows
 from diffpos.metrics import QuantileSketch, StreamingErrorStats, StreamingScore, ellipsoid_coverage
 from diffpos_services.recording.reader import RawMessage
 from diffpos_services.recording.topics import SeqTracker, natural_key
-from diffpos_services.replay.decided import DecisionReplayer
 from diffpos_services.wire import messages as M
 
 __all__ = ["NO_TRACK_STATUSES", "Comparison", "FixStream", "Recorded", "SlimEstimate",
@@ -530,9 +528,9 @@ class Comparison:
 
 
 class Recorded:
-    """What replay's feed collects besides the fusion's input (``input_kinds``): truth, live
-    and replayed fixes (reduced as they come), their comparison, counts, the decision
-    replayer when there is a record; with ``keep_estimates`` also the estimates."""
+    """What replay's feed collects besides the fusion's input (``input_kinds``), its
+    diagnostics and the anchors' liveliness: truth, live and replayed fixes (reduced as they
+    come), their comparison, counts; with ``keep_estimates`` also the estimates."""
 
     def __init__(self, input_kinds: tuple[str, ...], *, max_truth_gap_ns: int,
                  keep_estimates: bool, window_ns: int) -> None:
@@ -548,10 +546,8 @@ class Recorded:
         self.t_origin: int | None = None  # the recording's first message (receive time)
         self.t_first: int | None = None
         self.t_last: int | None = None
-        self.decided: DecisionReplayer | None = None
         self._dec_est, self._dec_truth = slim_decoders()
         self._dec_full = M.estimate_decoder()
-        self._dec_diag = M.decoder(M.FusionDiagnostics)
 
     @property
     def fusion_inputs(self) -> int:
@@ -562,16 +558,11 @@ class Recorded:
         self.replayed.advance(now_ns, final=final)
         self.compare.expire(now_ns, final=final)
 
-    def take(self, kind: str, m: RawMessage, core: Any, node: str | None) -> None:
-        """A recorded message that is not a fusion input: anchor liveliness (to the core,
-        unless replaying by the decision record), node truth, live estimates, decisions."""
+    def take(self, kind: str, m: RawMessage, node: str | None) -> None:
+        """A recorded message that is not a fusion input, diagnostics or liveliness: node
+        truth and live estimates (other kinds are only counted)."""
         try:
-            if kind == "liveliness":
-                if self.decided is None:
-                    ev = json.loads(m.data)
-                    if ev.get("role") == "anchor" and ev.get("id"):
-                        core.on_liveliness(str(ev["id"]), bool(ev["alive"]), m.log_ns)
-            elif kind == "truth_node":
+            if kind == "truth_node":
                 g = self._dec_truth(m.data)
                 if g.id != node:
                     raise ValueError("id differs from the topic's")
@@ -585,9 +576,5 @@ class Recorded:
                     self.keep[0].append(self._dec_full(m.data))
                 self.live.add(e)
                 self.compare.add(0, e, m.log_ns)
-            elif kind == "diagnostics" and self.decided is not None:
-                d = self._dec_diag(m.data)
-                if d.decisions is not None:
-                    self.decided.add_chunk(d.decisions, m.log_ns)
         except (ValueError, KeyError, TypeError, AttributeError, msgspec.DecodeError):
             self.bad_payloads[kind] += 1

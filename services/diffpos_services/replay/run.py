@@ -20,6 +20,7 @@ gaps; optionally recorded-live vs replayed estimates side by side; see
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 import json
 import logging
@@ -39,12 +40,14 @@ from diffpos._kernels import pool as kernel_pool
 from diffpos_services.config import build_config
 from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
+    MAX_SHARDS,
     METHODS,
     TRACKER_KEYS,
     FusionConfig,
     complete_tracker,
     legacy_tracker_settings,
     merge_tracker,
+    shard_of,
     with_legacy_defaults,
 )
 from diffpos_services.fusion.core import FusionCore
@@ -70,10 +73,13 @@ from diffpos_services.wire.keys import Keys
 __all__ = [
     "ReplayResult",
     "ReplaySettings",
+    "ShardPlan",
     "derived_fusion_settings",
     "live_fusion_settings",
+    "recorded_shards",
     "replay",
     "replay_settings",
+    "shard_plan",
     "what_if_text",
 ]
 
@@ -140,6 +146,12 @@ class ReplaySettings:
     tracker_note : str or None
         Set when the recorded settings hold no ``tracker``: which tracker settings the replay
         runs (:func:`~diffpos_services.fusion.config.legacy_tracker_settings`).
+    recorded_shards : int
+        Fusion shards of the live run as its run configuration says (1: one fusion, or not
+        said).
+    by_shard : tuple of FusionConfig
+        Each live shard's recorded settings with the what-ifs (empty: not recorded; a shard
+        then runs :attr:`config` with its ``shard`` / ``shards``).
     """
 
     config: FusionConfig
@@ -148,21 +160,26 @@ class ReplaySettings:
     overrides: dict[str, Any]
     warning: str | None = None
     tracker_note: str | None = None
+    recorded_shards: int = 1
+    by_shard: tuple[FusionConfig, ...] = ()
 
 
 def read_ahead(
     scanner: McapScanner,
 ) -> tuple[list[list[RawMessage]], Iterator[list[RawMessage]], RawMessage | None,
-           M.FusionDiagnostics | None]:
-    """Read chunks until the first anchor state and the first fusion diagnostics (at most 64
-    chunks, and at most 10 s of recording time past the first anchor state when no
-    diagnostics come: a recording without a live fusion is not held in memory): when the
-    recording holds no fusion settings, derived ones need the anchors' ranging rate; the
-    diagnostics say whether the live fusion recorded its decisions.
-    Returns the chunks read, the rest, the first anchor state and the first diagnostics."""
+           dict[int, M.FusionDiagnostics]]:
+    """Read chunks until the first anchor state and the first fusion diagnostics of every
+    live fusion shard (one without shards; at most 64 chunks, and at most 10 s of recording
+    time past the first anchor state when they do not all come: a recording without a live
+    fusion is not held in memory): when the recording holds no fusion settings, derived ones
+    need the anchors' ranging rate; the diagnostics say whether each live fusion recorded its
+    decisions. Returns the chunks read, the rest, the first anchor state and each shard's
+    first diagnostics (by shard)."""
     batches = scanner.iter_batches()
     ahead: list[list[RawMessage]] = []
-    first_state = first_diag = None
+    first_state = None
+    first_diag: dict[int, M.FusionDiagnostics] = {}
+    layout = 0  # shards of the first diagnostics (0: none seen yet)
     dec = M.decoder(M.FusionDiagnostics)
     kinds: dict[str, str] = {}
     for batch in batches:
@@ -173,10 +190,13 @@ def read_ahead(
                 kind = kinds[m.topic] = parse_topic(m.topic)[0]
             if kind == "anchor_state" and first_state is None:
                 first_state = m
-            elif kind == "diagnostics" and first_diag is None:
+            elif kind == "diagnostics":
                 with contextlib.suppress(M.DecodeError):
-                    first_diag = dec(m.data)
-        if (first_state is not None and first_diag is not None) or \
+                    d = dec(m.data)
+                    layout = layout or d.shards
+                    if d.shards == layout:
+                        first_diag.setdefault(d.shard, d)
+        if (first_state is not None and layout and len(first_diag) >= layout) or \
                 len(ahead) >= _READ_AHEAD_BATCHES or (
                     first_state is not None and batch
                     and batch[-1].log_ns - first_state.log_ns > _READ_AHEAD_NS):
@@ -212,7 +232,9 @@ def replay_settings(
     method: str | None = None,
     use_recorded_settings: bool = True,
 ) -> ReplaySettings:
-    """Recorded settings (else derived, see :func:`derived_fusion_settings`) + what-ifs.
+    """Recorded settings (else derived, see :func:`derived_fusion_settings`) + what-ifs; and,
+    for a run of fusion shards (``diffpos emulate --fusion-shards N``), each shard's recorded
+    settings with the same what-ifs (:func:`recorded_shards`).
 
     Raises
     ------
@@ -230,40 +252,86 @@ def replay_settings(
             recorded, source = derived_fusion_settings(
                 side, site=site, first_state=None if first_state is None else first_state.data)
             warning += f" ({source})"
-    base: dict[str, Any] = dict(recorded) if use_recorded_settings else {}
-    base = with_legacy_defaults(base)  # settings recorded before a newer setting existed
     if not use_recorded_settings:
         source = "defaults (--ignore-recorded-settings)"
-    tracker_note = None
-    if use_recorded_settings and "tracker" not in base:  # recorded before it was recorded
-        base["tracker"], tracker_note = legacy_tracker_settings(
-            base, _made_ns(side))
-    elif use_recorded_settings and isinstance(base["tracker"], dict):  # before newer keys
-        base["tracker"], tracker_note = complete_tracker(base, _made_ns(side))
-    known = _fusion_fields()
-    ignored = sorted(set(base) - known)
-    for f in ignored:
-        base.pop(f)
-    if isinstance(base.get("tracker"), dict):  # a newer recording's tracker settings
-        gone = sorted(set(base["tracker"]) - set(TRACKER_KEYS))
-        ignored += [f"tracker.{k}" for k in gone]
-        base["tracker"] = {k: v for k, v in base["tracker"].items() if k not in gone}
-    bad = sorted(set(overrides or {}) - known)
-    if bad:
-        raise ConfigError(
-            f"{', '.join(bad)}: not a fusion setting; known settings: {', '.join(sorted(known))}"
-        )
-    base.update({k: v for k, v in (overrides or {}).items() if k != "tracker"})
-    if "tracker" in (overrides or {}):  # what-ifs change single recorded tracker settings
-        base["tracker"] = merge_tracker(base.get("tracker"), overrides["tracker"])
-    if method is not None:
-        if method not in METHODS:
-            raise ConfigError(f"--method {method!r}: choose {', '.join(METHODS)}")
-        base["method"] = method
-    if "site" not in base and site is not None:
-        base["site"] = site
-    config = build_config(FusionConfig, base)
-    return ReplaySettings(config, source, ignored, dict(overrides or {}), warning, tracker_note)
+    build = _SettingsBuilder(side, overrides, method, site, use_recorded_settings)
+    config, ignored, tracker_note = build(recorded)
+    n, per_shard = recorded_shards(side)
+    by_shard: tuple[FusionConfig, ...] = ()
+    if use_recorded_settings and per_shard is not None:
+        by_shard = tuple(build(dict(d))[0] for d in per_shard)
+    return ReplaySettings(config, source, ignored, dict(overrides or {}), warning, tracker_note,
+                          recorded_shards=n, by_shard=by_shard)
+
+
+@dataclass(frozen=True)
+class _SettingsBuilder:
+    """Recorded settings (a dict) -> the replay's :class:`FusionConfig`: the recorded values
+    (completed for settings newer than the recording) with the what-ifs on top."""
+
+    side: SideRecords
+    overrides: dict[str, Any] | None
+    method: str | None
+    site: str | None
+    use_recorded: bool
+
+    def __call__(self, recorded: dict[str, Any]) -> tuple[FusionConfig, list[str], str | None]:
+        overrides, side = self.overrides or {}, self.side
+        base: dict[str, Any] = dict(recorded) if self.use_recorded else {}
+        base = with_legacy_defaults(base)  # settings recorded before a newer setting existed
+        tracker_note = None
+        if self.use_recorded and "tracker" not in base:  # recorded before it was recorded
+            base["tracker"], tracker_note = legacy_tracker_settings(base, _made_ns(side))
+        elif self.use_recorded and isinstance(base["tracker"], dict):  # before newer keys
+            base["tracker"], tracker_note = complete_tracker(base, _made_ns(side))
+        known = _fusion_fields()
+        ignored = sorted(set(base) - known)
+        for f in ignored:
+            base.pop(f)
+        if isinstance(base.get("tracker"), dict):  # a newer recording's tracker settings
+            gone = sorted(set(base["tracker"]) - set(TRACKER_KEYS))
+            ignored += [f"tracker.{k}" for k in gone]
+            base["tracker"] = {k: v for k, v in base["tracker"].items() if k not in gone}
+        bad = sorted(set(overrides) - known)
+        if bad:
+            raise ConfigError(f"{', '.join(bad)}: not a fusion setting; known settings: "
+                              f"{', '.join(sorted(known))}")
+        base.update({k: v for k, v in overrides.items() if k != "tracker"})
+        if "tracker" in overrides:  # what-ifs change single recorded tracker settings
+            base["tracker"] = merge_tracker(base.get("tracker"), overrides["tracker"])
+        if self.method is not None:
+            if self.method not in METHODS:
+                raise ConfigError(f"--method {self.method!r}: choose {', '.join(METHODS)}")
+            base["method"] = self.method
+        if "site" not in base and self.site is not None:
+            base["site"] = self.site
+        return build_config(FusionConfig, base), ignored, tracker_note
+
+
+def recorded_shards(side: SideRecords) -> tuple[int, list[dict[str, Any]] | None]:
+    """How many fusion shards the run had as its ``run_config`` says (``emulate`` ->
+    ``fusion_shards``; 1 when it says nothing) and each shard's settings (``fusion_by_shard``,
+    recorded since the shards' diagnostics say which shard sent them; ``None``: not
+    recorded), from the metadata, else the ``run_config.json`` attachment."""
+    doc: dict[str, Any] = {}
+    for md in side.metadata:
+        if md.name == "run_config":
+            for k in ("emulate", "fusion_by_shard"):
+                with contextlib.suppress(KeyError, TypeError, ValueError):
+                    doc[k] = json.loads(md.metadata[k])
+            break
+    else:
+        for att in side.attachments:
+            if att.name == "run_config.json":
+                with contextlib.suppress(ValueError, AttributeError):
+                    doc = json.loads(att.data)
+                break
+    emu = doc.get("emulate") if isinstance(doc, dict) else None
+    n = emu.get("fusion_shards", 1) if isinstance(emu, dict) else 1
+    n = n if isinstance(n, int) and n >= 1 else 1
+    per = doc.get("fusion_by_shard") if isinstance(doc, dict) else None
+    ok = isinstance(per, list) and len(per) == n and all(isinstance(d, dict) for d in per)
+    return n, per if ok else None
 
 
 def _made_ns(side: SideRecords) -> int | None:
@@ -328,8 +396,38 @@ class _Outputs:
             self.sink.close(final_metadata=final_metadata)
 
 
+class _CoreSet:
+    """Replay cores that take the same calls (one live shard's decision record replayed as
+    the shards of another layout, ``diffpos replay --shards M``): the estimates of the
+    responders ``keep`` accepts (those the live shard owned), in core order."""
+
+    def __init__(self, cores: list[FusionCore], keep: Callable[[str], bool]) -> None:
+        self.cores, self.keep = cores, keep
+
+    def on_sample(self, key: str, data: bytes, wall_ns: int) -> None:
+        for c in self.cores:
+            c.on_sample(key, data, wall_ns)
+
+    def on_liveliness(self, anchor_id: str, alive: bool, wall_ns: int) -> None:
+        for c in self.cores:
+            c.on_liveliness(anchor_id, alive, wall_ns)
+
+    def on_oversized(self, key: str, size: int) -> None:
+        for c in self.cores:
+            c.on_oversized(key, size)
+
+    def step(self, wall_ns: int, *, limit: int | None = None) -> list:
+        keep = self.keep
+        return [e for c in self.cores for e in c.step(wall_ns, limit=limit) if keep(e.node_id)]
+
+    def flush(self, wall_ns: int) -> list:
+        keep = self.keep
+        return [e for c in self.cores for e in c.flush(wall_ns) if keep(e.node_id)]
+
+
 class _Fusion:
-    """The replayed fusion: a fresh core per live fusion instance.
+    """The replay of one live fusion (or of one live fusion shard): a fresh core per live
+    fusion instance.
 
     The live fusion's diagnostics name its process (``instance``, a nonce per start); a
     restarted fusion starts from nothing (no tracks, no anchors' state, a decision record from
@@ -340,16 +438,19 @@ class _Fusion:
     before the recording, or while the recorder was down) are counted with the reason
     (:meth:`not_reproducible`). Anchors alive when a core is replaced are made alive on the
     new one when replaying in recorded order (the restarted fusion sees the live tokens).
+
+    ``make_core()`` returns the driver (a core, or a :class:`_CoreSet`) and its cores;
+    ``active`` is the decision replayer in use (``None``: recorded order).
     """
 
-    def __init__(self, make_core: Callable[[], FusionCore], emit: Callable[[list, int], None],
-                 rec: Recorded, *, use_decisions: bool, decided: bool,
-                 attach: Callable[[FusionCore], None]) -> None:
-        self.make_core, self.emit, self.rec = make_core, emit, rec
+    def __init__(self, make_core: Callable[[], tuple[Any, list[FusionCore]]],
+                 emit: Callable[[list, int], None], *, use_decisions: bool, decided: bool,
+                 attach: Callable[[FusionCore], None], shard: int = 0) -> None:
+        self.make_core, self.emit, self.shard = make_core, emit, shard
         self.use_decisions, self.attach = use_decisions, attach
-        self.core = make_core()
-        self.cores = [self.core]
+        self.core, self.cores = make_core()
         self.decided: DecisionReplayer | None = None
+        self.active: DecisionReplayer | None = None
         self.instance: str | None = None
         #: per live instance, in recording order: its start [ns] (its record's first call,
         #: else its first diagnostics), last diagnostics, how replayed, why not by record
@@ -357,40 +458,40 @@ class _Fusion:
         self.live_log_ns = array("q")  # receive times of the live estimates (attribution)
         self._recent: deque[tuple[int, str, bytes]] = deque()  # inputs, to seed a record
         self._alive: dict[str, bool] = {}
-        self._dec_diag = M.decoder(M.FusionDiagnostics)
         if decided:  # the file starts with the first instance's record
-            self.decided = rec.decided = DecisionReplayer(self.core, emit, window_ns=_WINDOW_NS)
+            self.decided = self.active = DecisionReplayer(self.core, emit, window_ns=_WINDOW_NS)
 
-    def on_input(self, topic: str, data: bytes, log_ns: int) -> bool:
-        """A fusion input; ``True`` when the core took it directly (recorded order)."""
-        if self.rec.decided is not None:
-            self.rec.decided.add_input(topic, data, log_ns)
-            return False
+    def on_input(self, topic: str, data: bytes, log_ns: int) -> None:
+        """A fusion input: to the decision replayer, else to the core (recorded order)."""
+        if self.active is not None:
+            self.active.add_input(topic, data, log_ns)
+            return
         self.core.on_sample(topic, data, log_ns)
         if self.use_decisions:  # a later instance's record may name it (bounded: 30 s)
             recent = self._recent
             recent.append((log_ns, topic, data))
             while recent[0][0] < log_ns - _WINDOW_NS:
                 recent.popleft()
+
+    def on_liveliness(self, anchor_id: str, alive: bool, log_ns: int) -> None:
+        """An anchor's recorded liveliness event (to the core unless replaying by record)."""
+        self._alive[anchor_id] = alive
+        if self.active is None:
+            self.core.on_liveliness(anchor_id, alive, log_ns)
+
+    def step_recorded(self, now_ns: int) -> bool:
+        """Step the core when replaying in recorded order; ``True`` if it was."""
+        if self.active is not None:
+            return False
+        self.emit(self.core.step(now_ns), now_ns)
         return True
 
-    def on_liveliness(self, m: RawMessage) -> None:
-        with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
-            ev = json.loads(m.data)
-            if ev.get("role") == "anchor" and ev.get("id"):
-                self._alive[str(ev["id"])] = bool(ev["alive"])
-
-    def on_diagnostics(self, m: RawMessage) -> None:
-        try:
-            d = self._dec_diag(m.data)
-        except (msgspec.DecodeError, ValueError):
-            self.rec.bad_payloads["diagnostics"] += 1
-            return
+    def on_diagnostics(self, d: M.FusionDiagnostics, log_ns: int) -> None:
         if d.instance != self.instance or self.instance is None:
-            self._start(d, m.log_ns)
-        self.instances[-1]["last_diagnostics_ns"] = m.log_ns
-        if self.rec.decided is not None and d.decisions is not None:
-            self.rec.decided.add_chunk(d.decisions, m.log_ns)
+            self._start(d, log_ns)
+        self.instances[-1]["last_diagnostics_ns"] = log_ns
+        if self.active is not None and d.decisions is not None:
+            self.active.add_chunk(d.decisions, log_ns)
 
     def _start(self, d: M.FusionDiagnostics, log_ns: int) -> None:
         """The first diagnostics of a live fusion instance: a fresh core, unless it is the
@@ -407,33 +508,33 @@ class _Fusion:
         start = log_ns
         if d.decisions is not None and d.decisions.wall_delta_ns:  # its first call seen
             start = min(log_ns, d.decisions.wall_delta_ns[0])
-        self.instances.append({"instance": d.instance, "start_ns": start,
+        self.instances.append({"instance": d.instance, "shard": self.shard, "start_ns": start,
                                "replayed_by": "decisions" if by_record else "recorded order",
                                "reason": reason})
-        if first and by_record == (self.rec.decided is not None):
+        if first and by_record == (self.active is not None):
             return
-        old = self.core
-        if self.rec.decided is None:  # recorded order: solve what the old core has pending
-            self.emit(old.step(log_ns), log_ns)
-        self.core = self.make_core()
-        self.cores.append(self.core)
-        self.attach(self.core)
+        if self.active is None:  # recorded order: solve what the old core has pending
+            self.emit(self.core.step(log_ns), log_ns)
+        self.core, cores = self.make_core()
+        self.cores += cores
+        for c in cores:
+            self.attach(c)
         if self.decided is not None:  # the old record's calls go to the old core, then ends
             self.decided.restart(self.core, log_ns)
         if not by_record:
-            self.rec.decided = None
+            self.active = None
             for a, alive in self._alive.items():
                 if alive:
                     self.core.on_liveliness(a, True, log_ns)
             return
         if self.decided is None:
             self.decided = DecisionReplayer(self.core, self.emit, window_ns=_WINDOW_NS)
-        self.rec.decided = self.decided
+        self.active = self.decided
         while self._recent:  # inputs fed in recorded order: the new record may name them
             t, topic, data = self._recent.popleft()
             self.decided.add_input(topic, data, t)
 
-    def not_reproducible(self) -> dict[str, Any]:
+    def not_reproducible(self) -> Counter[str]:
         """Live estimates the replay cannot reproduce, by reason: those of instances replayed
         without their record, and those an instance followed by another (it died) published
         after its last diagnostics (the record of their calls died with it). An estimate
@@ -452,9 +553,119 @@ class _Fusion:
                     by_reason["published after the instance's last diagnostics (killed: the "
                               "record of their calls died with it)"] += int(
                                   np.count_nonzero(mine > i["last_diagnostics_ns"]))
+        return by_reason
+
+
+class _Shards:
+    """One :class:`_Fusion` per live fusion shard (one without shards): every input and
+    liveliness event goes to each, a diagnostics message to the shard it names (so each
+    shard's decision record drives its own replay core(s), with its own settings), a live
+    estimate is attributed to the shard that owns its node.
+
+    ``plans[k]``: the replay cores' settings of live shard ``k`` (one config: that shard;
+    several: the shards of another layout, each keeping shard ``k``'s responders).
+    ``by_instance=False``: the diagnostics do not say which shard sent them (a sharded run
+    recorded before they did): nothing is replayed by record and no instance change starts
+    a fresh core (two shards' interleaved instances are not restarts).
+    """
+
+    def __init__(self, plans: list[list[FusionConfig]], new_core: Callable[..., FusionCore],
+                 emit: Callable[[list, int], None], rec: Recorded, *, use_decisions: bool,
+                 decided: set[int], attach: Callable[[FusionCore], None],
+                 by_instance: bool = True) -> None:
+        self.live, self.rec, self.by_instance = len(plans), rec, by_instance
+        self.fusions = [
+            _Fusion(functools.partial(self._make, new_core, cfgs, k), emit,
+                    use_decisions=use_decisions and by_instance, decided=k in decided,
+                    attach=attach, shard=k)
+            for k, cfgs in enumerate(plans)]
+        self.other_layout = 0  # diagnostics of a shard outside the live layout
+        self.unattributed: str | None = None  # why no live estimate can be reproduced
+        self._dec_diag = M.decoder(M.FusionDiagnostics)
+        self._owner: dict[str, int] = {}
+
+    def _make(self, new_core: Callable[..., FusionCore], cfgs: list[FusionConfig],
+              k: int) -> tuple[Any, list[FusionCore]]:
+        cores = [new_core(c) for c in cfgs]
+        if self.live == 1 or (len(cores) == 1 and cores[0].config.shards == self.live):
+            return cores[0], cores  # the live shard's own layout: its estimates only
+        return _CoreSet(cores, lambda node: self.owner(node) == k), cores
+
+    @property
+    def cores(self) -> list[FusionCore]:
+        return [c for f in self.fusions for c in f.cores]
+
+    @property
+    def first_core(self) -> FusionCore:
+        return self.fusions[0].cores[0]
+
+    def owner(self, node_id: str) -> int:
+        """The live shard that owns ``node_id``."""
+        k = self._owner.get(node_id)
+        if k is None:
+            k = self._owner[node_id] = shard_of(node_id, self.live)
+        return k
+
+    def on_input(self, topic: str, data: bytes, log_ns: int) -> None:
+        for f in self.fusions:
+            f.on_input(topic, data, log_ns)
+
+    def on_liveliness(self, m: RawMessage) -> None:
+        with contextlib.suppress(ValueError, TypeError, KeyError, AttributeError):
+            ev = json.loads(m.data)
+            if ev.get("role") == "anchor" and ev.get("id"):
+                for f in self.fusions:
+                    f.on_liveliness(str(ev["id"]), bool(ev["alive"]), m.log_ns)
+
+    def on_live_estimate(self, node: str | None, log_ns: int) -> None:
+        self.fusions[0 if node is None or self.live == 1 else self.owner(node)] \
+            .live_log_ns.append(log_ns)
+
+    def on_diagnostics(self, m: RawMessage) -> None:
+        try:
+            d = self._dec_diag(m.data)
+        except (msgspec.DecodeError, ValueError):
+            self.rec.bad_payloads["diagnostics"] += 1
+            return
+        if not self.by_instance:
+            return
+        if d.shards != self.live or d.shard >= self.live:
+            self.other_layout += 1
+            return
+        self.fusions[d.shard].on_diagnostics(d, m.log_ns)
+
+    def step_recorded(self, now_ns: int) -> bool:
+        """Step the shards replayed in recorded order; ``True`` if any was."""
+        stepped = False
+        for f in self.fusions:
+            stepped = f.step_recorded(now_ns) or stepped
+        return stepped
+
+    def finish(self, emit: Callable[[list, int], None], t_last_ns: int) -> None:
+        """End of the recording: each record's remaining calls, then solve what is pending
+        and flush (:func:`_drain`)."""
+        for f in self.fusions:
+            if f.active is not None:
+                f.active.finish()
+        for f in self.fusions:
+            _drain(f.core, emit, t_last_ns)
+
+    def decisions_report(self) -> dict[str, Any] | None:
+        """The decision replayers' counts, summed over the shards (``None``: none)."""
+        reports = [f.decided.report for f in self.fusions if f.decided is not None]
+        if not reports:
+            return None
+        return {k: sum(r[k] for r in reports) for k in reports[0]}
+
+    def not_reproducible(self) -> dict[str, Any]:
+        by_reason: Counter[str] = Counter()
+        for f in self.fusions:
+            by_reason.update(f.not_reproducible())
+        if self.unattributed is not None:
+            by_reason[self.unattributed] += sum(len(f.live_log_ns) for f in self.fusions)
         by_reason = +by_reason
         return {"estimates": int(sum(by_reason.values())), "by_reason": dict(by_reason),
-                "instances": inst}
+                "instances": [i for f in self.fusions for i in f.instances]}
 
 
 def _windowed(batches: Iterable[list[RawMessage]], rec: Recorded, start_s: float | None,
@@ -493,7 +704,7 @@ def _windowed(batches: Iterable[list[RawMessage]], rec: Recorded, start_s: float
 
 
 def _feed(
-    fusion: _Fusion,
+    fusion: _Shards,
     batches: Iterable[list[RawMessage]],
     outputs: _Outputs,
     rec: Recorded,
@@ -501,15 +712,14 @@ def _feed(
     step_ns: int,
     after_batch: Callable[[], None],
 ) -> Recorded:
-    """Every recorded message in file order into the core (fusion inputs; through the
-    decision record when there is one) or the collector, stepping the core each ``step_ns``
-    of receive time (without a decision record); a fresh core where the live fusion
-    restarted (:class:`_Fusion`); then solve what is pending."""
+    """Every recorded message in file order into the cores (fusion inputs; through each live
+    shard's decision record when there is one) or the collector, stepping the cores each
+    ``step_ns`` of receive time (without a decision record); a fresh core where the live
+    fusion restarted (:class:`_Fusion`); then solve what is pending."""
     routes: dict[str, tuple] = {}  # topic -> (kind, node, sequence stream, is input)
     per_topic: Counter[str] = Counter()
     seq = rec.seq
     copy = outputs.copy if outputs.copy_input else None
-    live_log_ns = fusion.live_log_ns
     next_step = next_advance = None
     for batch in batches:
         if rec.t_first is None and batch:
@@ -528,18 +738,16 @@ def _feed(
             if copy is not None:
                 copy(m)
             if route[3]:
-                if not fusion.on_input(topic, m.data, now):
-                    continue
+                fusion.on_input(topic, m.data, now)
             elif route[0] == "diagnostics":
                 fusion.on_diagnostics(m)
+            elif route[0] == "liveliness":
+                fusion.on_liveliness(m)
             else:
-                if route[0] == "liveliness":
-                    fusion.on_liveliness(m)
-                elif route[0] == "estimate":
-                    live_log_ns.append(now)
-                rec.take(route[0], m, fusion.core, route[1])
-            if rec.decided is None and (next_step is None or now >= next_step):
-                outputs.emit(fusion.core.step(now), now)
+                if route[0] == "estimate":
+                    fusion.on_live_estimate(route[1], now)
+                rec.take(route[0], m, route[1])
+            if (next_step is None or now >= next_step) and fusion.step_recorded(now):
                 next_step = now + step_ns
         if rec.t_last is not None and (next_advance is None or rec.t_last >= next_advance):
             rec.advance(rec.t_last)  # score what the truth covers (bounded memory)
@@ -547,16 +755,14 @@ def _feed(
         after_batch()
     for topic, n in per_topic.items():
         rec.counts[routes[topic][0]] += n
-    if rec.decided is not None:
-        rec.decided.finish()
     return rec
 
 
-def _drain(core: FusionCore, outputs: _Outputs, t_last_ns: int) -> None:
+def _drain(core: Any, emit: Callable[[list, int], None], t_last_ns: int) -> None:
     """Solve what is pending (far past every deadline), then flush like the live service at
     shutdown (after a complete decision record: nothing is pending any more)."""
-    outputs.emit(core.step(t_last_ns + 10**12), t_last_ns)
-    outputs.emit(core.flush(t_last_ns), t_last_ns)
+    emit(core.step(t_last_ns + 10**12), t_last_ns)
+    emit(core.flush(t_last_ns), t_last_ns)
 
 
 # ----------------------------------------------------------------------------------------
@@ -672,9 +878,9 @@ def _dropped(rec: Recorded, cores: list[FusionCore]) -> dict[str, Any]:
             "fusion_rejected": dict(sorted(rejected.items()))}
 
 
-def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fusion: _Fusion,
+def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fusion: _Shards,
             rec: Recorded, *, step_ms: float, t_wall0: float, warm_up_s: float,
-            window: tuple[float | None, float | None]) -> ReplayResult:
+            window: tuple[float | None, float | None], shards: dict[str, Any]) -> ReplayResult:
     """Accuracy of the replayed (and recorded live) fixes, and the JSON report."""
     rec.advance(rec.t_last or 0, final=True)
     out, live = rec.replayed, rec.live
@@ -698,7 +904,8 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fu
         "what_if": what_if_text(settings.overrides),
         "method": config.method,
         "step_ms": step_ms,
-        "decisions": None if fusion.decided is None else fusion.decided.report,
+        "decisions": fusion.decisions_report(),
+        "shards": {**shards, "diagnostics_of_other_shards": fusion.other_layout},
         "fusion_instances": (instances := fusion.not_reproducible()),
         "recording_s": duration_s,
         "truth_s": (None if rec.truth.first_t is None
@@ -759,6 +966,7 @@ def replay(
     use_decisions: bool = True,
     start_s: float | None = None,
     end_s: float | None = None,
+    shards: int | None = None,
 ) -> ReplayResult:
     """Re-run the fusion on a recording.
 
@@ -798,6 +1006,14 @@ def replay(
         Replay only the messages received this long after the recording's first message
         (the anchors' liveliness events before ``start_s`` too); the decision record is then
         not used (it covers the whole run). ``report["window"]`` says so.
+    shards : int, optional
+        Run the replay as this many fusion shards (``FusionConfig.shard`` / ``shards``).
+        Default: as live. A run of N fusion shards (``diffpos fusion --shard K/N``, whose
+        diagnostics say which shard sent them) is replayed on one core per live shard, each
+        with its recorded settings and by its own decision record: every live estimate bit
+        for bit. Another count (e.g. 1: one fusion) replays each live shard's record (or
+        the recorded order) on that many cores, keeping the live shard's responders: with
+        1, one fusion making each live shard's calls (``report["shards"]`` says what ran).
 
     Raises
     ------
@@ -814,25 +1030,98 @@ def replay(
         check_output(out_mcap, option="out_mcap", inputs=[path])
     scanner = PartsScanner(path)  # a split recording's parts in turn
     side = side_records(path)
-    ahead, rest, first_state, first_diag = read_ahead(scanner)
+    if shards is not None and not 1 <= shards <= MAX_SHARDS:
+        raise ConfigError(f"shards={shards}: must be in [1, {MAX_SHARDS}]")
+    scanner = PartsScanner(path)  # a split recording's parts in turn
+    side = side_records(path)
+    ahead, rest, first_state, first_diags = read_ahead(scanner)
     settings = replay_settings(scanner, side=side, first_state=first_state, overrides=overrides,
                                method=method, use_recorded_settings=use_recorded_settings)
+    log = logger or logging.getLogger("diffpos.replay")
     if settings.warning:
-        (logger or logging.getLogger("diffpos.replay")).warning("%s", settings.warning)
+        log.warning("%s", settings.warning)
+    plan = shard_plan(settings, first_diags, shards,
+                      use_decisions=use_decisions and start_s is None and end_s is None)
+    if plan.note:
+        log.warning("%s", plan.note)
     with contextlib.ExitStack() as stack:
         tmp = None if out_mcap is None else stack.enter_context(atomic_path(out_mcap))
-        decided = (use_decisions and first_diag is not None and start_s is None
-                   and end_s is None
-                   and first_diag.decisions is not None and first_diag.decisions.chunk == 0)
         rec = Recorded(FUSION_INPUT_KINDS, max_truth_gap_ns=round(max_truth_gap_s * 1e9),
                        keep_estimates=keep_estimates, window_ns=_WINDOW_NS)
         return _run(path, scanner, settings, ahead, rest, tmp, rec, side=side,
                     copy_input=copy_input, step_ms=step_ms, progress=progress, logger=logger,
-                    decided=decided, use_decisions=use_decisions, window=(start_s, end_s))
+                    plan=plan, use_decisions=use_decisions, window=(start_s, end_s))
+
+
+@dataclass(frozen=True)
+class ShardPlan:
+    """What the replay runs for the live fusion shards.
+
+    Attributes
+    ----------
+    configs : list of list of FusionConfig
+        Per live shard (one entry without shards): the settings of its replay cores (one:
+        that shard's own; several: the shards of another layout).
+    decided : frozenset of int
+        The live shards replayed by their decision record from the start of the file.
+    by_instance : bool
+        False when the diagnostics cannot say which shard sent them (see :class:`_Shards`).
+    note : str or None
+        What cannot be reproduced and why (one line), or how the layout differs from live.
+    report : dict
+        ``report["shards"]``.
+    """
+
+    configs: list[list[FusionConfig]]
+    decided: frozenset[int]
+    by_instance: bool
+    note: str | None
+    report: dict[str, Any]
+
+
+def shard_plan(settings: ReplaySettings, first_diags: dict[int, M.FusionDiagnostics],
+               shards: int | None, *, use_decisions: bool) -> ShardPlan:
+    """The replay's cores for the live layout: the live fusion shards as their diagnostics
+    say (``shards``; else the run configuration's ``fusion_shards``), each with its recorded
+    settings (:attr:`ReplaySettings.by_shard`; else the run's with its ``shard``/``shards``),
+    replayed as ``shards`` shards (``None``: as live)."""
+    diag = next(iter(first_diags.values()), None)
+    live = diag.shards if diag is not None else settings.recorded_shards
+    by_instance, note = True, None
+    if diag is not None and live == 1 and settings.recorded_shards > 1:
+        by_instance, note = False, (
+            f"the run had {settings.recorded_shards} fusion shards but their diagnostics do "
+            "not say which shard sent them (recorded before diffpos.fusion_diagnostics.v2 "
+            "carried shard/shards): replayed as one fusion in recorded order; the live "
+            "estimates cannot be reproduced bit for bit")
+    m = live if shards is None else shards
+    if live == 1:
+        own = [settings.config]
+    elif len(settings.by_shard) == live:
+        own = list(settings.by_shard)
+    else:
+        own = [msgspec.structs.replace(settings.config, shard=k, shards=live)
+               for k in range(live)]
+    configs = [[c] if m == live else [msgspec.structs.replace(c, shard=j, shards=m)
+                                      for j in range(m)] for c in own]
+    decided = frozenset(
+        k for k, d in first_diags.items()
+        if use_decisions and by_instance and d.shards == live and d.decisions is not None
+        and d.decisions.chunk == 0)
+    if m != live and note is None:
+        note = (f"replayed as {m} fusion shard(s) instead of the live {live}: each live "
+                f"shard's {'decision record' if decided else 'recorded order'} on {m} "
+                f"core(s), keeping that shard's responders")
+    report = {"live": live, "replayed": m, "recorded": settings.recorded_shards,
+              "settings": ("recorded per shard" if live > 1 and len(settings.by_shard) == live
+                           else "the run's" + (" with each shard's K/N" if live > 1 else "")),
+              "cores": [[f"{c.shard}/{c.shards}" for c in cfgs] for cfgs in configs],
+              "by_record": sorted(decided), "note": note}
+    return ShardPlan(configs, decided, by_instance, note, report)
 
 
 def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, step_ms,
-         progress, logger, decided, use_decisions, window) -> ReplayResult:
+         progress, logger, plan, use_decisions, window) -> ReplayResult:
     """Steps 2-4 of :func:`replay` (``tmp``: where the output MCAP goes until complete)."""
     config = settings.config
     kernel_pool.set_threads(config.kernel_threads)  # the process's kernel pool (threads)
@@ -849,8 +1138,8 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
         if progress is not None:
             progress(scanner.offset, scanner.size_bytes)
 
-    def make_core() -> FusionCore:
-        return FusionCore(config, logger=quiet_logger() if logger is None else logger,
+    def new_core(cfg: FusionConfig) -> FusionCore:
+        return FusionCore(cfg, logger=quiet_logger() if logger is None else logger,
                           record_decisions=False)
 
     pool: list[Any] = []
@@ -859,15 +1148,21 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
         if pool and core.bank is not None:
             core.bank.pool = pool[0]
 
-    fusion = _Fusion(make_core, outputs.emit, rec, use_decisions=use_decisions,
-                     decided=decided, attach=attach)
-    fusion.core.warm_up()  # the kernels loaded (or compiled) now: not counted as replay time
+    fusion = _Shards(plan.configs, new_core, outputs.emit, rec, use_decisions=use_decisions,
+                     decided=set(plan.decided), attach=attach, by_instance=plan.by_instance)
+    if not plan.by_instance:
+        fusion.unattributed = ("a sharded run's diagnostics that do not say which shard sent "
+                               "them: no shard's decision record can be replayed")
+    first = fusion.first_core
+    first.warm_up()  # the kernels loaded (or compiled) now: not counted as replay time
     # FusionConfig.workers: the same estimates for any count, so never more processes than
     # this machine has cores (a recording made on a bigger machine)
-    rows = start_workers(fusion.core, max_processes=os.cpu_count() or 1)
+    rows = start_workers(first, max_processes=os.cpu_count() or 1)
     try:
         if rows is not None:
             pool.append(rows)
+            for c in fusion.cores[1:]:  # the other shards' cores share the workers
+                attach(c)
             rows.wait_ready()
         t_wall0 = time.perf_counter()  # the replay's clock: from here to the report
         _feed(fusion, _windowed(_consume(ahead, rest), rec, *window), outputs, rec,
@@ -878,10 +1173,10 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
                 f"{path} has no anchor states or ranges under diffpos/<site>/anchor/...: "
                 "nothing to replay (is it a diffpos recording? see diffpos inspect)"
             )
-        _drain(fusion.core, outputs, rec.t_last or 0)
+        fusion.finish(outputs.emit, rec.t_last or 0)
     finally:
         if rows is not None:
             rows.close()
     outputs.close(final_metadata={"replayed_estimates": outputs.count})
     return _report(path, scanner, settings, fusion, rec, step_ms=step_ms, t_wall0=t_wall0,
-                   warm_up_s=t_wall0 - t_warm, window=window)
+                   warm_up_s=t_wall0 - t_warm, window=window, shards=plan.report)

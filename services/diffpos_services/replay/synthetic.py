@@ -321,7 +321,7 @@ def write_synthetic_recording(
 def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
                          late_ns: int = 500_000_000, step_ms: float = 5.0, seed: int = 0,
                          restart_at_s: float | None = None, restart_gap_s: float = 1.0,
-                         **run_kw: Any) -> dict[str, int]:
+                         shards: int = 1, **run_kw: Any) -> dict[str, int]:
     """Like :func:`write_synthetic_recording`, but the live fusion receives in ITS order: a
     seeded ``late_fraction`` of the anchors' epochs reaches it ``late_ns`` late (a loaded
     machine; each anchor's messages stay in publish order), while the recorder gets every
@@ -333,86 +333,127 @@ def write_late_recording(path: str | Path, *, late_fraction: float = 0.1,
     and its pending epochs are lost, nothing flushed) and a new one (a fresh core, another
     ``instance`` in its diagnostics, a decision record from chunk 0) starts ``restart_gap_s``
     later, seeing the anchors' tokens alive; the recorder records throughout.
+
+    ``shards`` > 1: that many live fusions (``diffpos fusion --shard K/N``), each with its
+    own late epochs (its own machine), its own diagnostics (saying which shard it is) and
+    estimates of its responders; the run's settings are recorded as ``diffpos emulate``
+    records them (``run_config``: the whole run's, each shard's, the shard count).
     """
     run = synthetic_run(seed=seed, **run_kw)
     keys, site = Keys(run.config.site), run.config.site
-    rng = np.random.default_rng(seed + 7919)
     sink = McapSink(path, library="diffpos-synthetic")
     sink.add_metadata("run", {"scenario": "synthetic-late", "site": site, **run_kw})
     sink.add_metadata("fusion_config", msgspec.to_builtins(run.config))
-    core = FusionCore(run.config, logger=quiet_logger())
+    configs = [msgspec.structs.replace(run.config, shard=k, shards=shards)
+               for k in range(shards)]
+    if shards > 1:
+        sink.add_metadata("run_config", {
+            "fusion": msgspec.to_builtins(run.config), "emulate": {"fusion_shards": shards},
+            "fusion_by_shard": msgspec.to_builtins(configs)})
     counts: Counter[str] = Counter()
     t_alive = run.t0_ns - 10_000_000
     for a in run.anchor_ids:
         sink.write_liveliness(site, keys.alive_anchor(a), True, t_alive)
-        core.on_liveliness(a, True, t_alive)
-    queue: list[tuple[int, int, str, bytes]] = []  # the fusion's inbox: (rx, n, key, payload)
-    last_rx: dict[str, int] = {}
-    late: dict[tuple[str, int], bool] = {}
-    state = {"next_step": 0, "next_diag": run.t0_ns + 1_000_000_000, "n": 0, "instance": 0}
-    period_ns = round(run.config.epoch_period_s * 1e9)
     die_ns = None if restart_at_s is None else run.t0_ns + round(restart_at_s * 1e9)
     back_ns = None if die_ns is None else die_ns + round(restart_gap_s * 1e9)
-
-    def diagnostics(t: int) -> bytes:
-        return M.encode(msgspec.structs.replace(
-            core.diagnostics(t), instance=f"synthetic-{state['instance']}"))
-
-    def restart(t: int) -> None:
-        nonlocal core
-        queue.clear()
-        core = FusionCore(run.config, logger=quiet_logger())
-        for a in run.anchor_ids:
-            core.on_liveliness(a, True, t)
-        state.update(next_step=0, next_diag=t + 1_000_000_000, instance=state["instance"] + 1)
-
-    def fusion_until(t: int) -> None:
-        nonlocal die_ns
-        if die_ns is not None and t >= die_ns:
-            fusion_until(die_ns - 1)
-            queue.clear()
-            die_ns = None
-        queue.sort()
-        while queue and queue[0][0] <= t:
-            rx, _, k, payload = queue.pop(0)
-            core.on_sample(k, payload, rx)
-            if rx >= state["next_step"]:
-                publish(core.step(rx), rx)
-                state["next_step"] = rx + round(step_ms * 1e6)
-            if rx >= state["next_diag"]:
-                sink.write(keys.fusion_diagnostics(), diagnostics(rx), rx + 1)
-                state["next_diag"] = rx + 1_000_000_000
-
-    def publish(ests: list, now: int) -> None:
-        for est in ests:
-            sink.write(keys.node_estimate(est.node_id), M.encode(est), now + 50_000)
-            counts["estimate"] += 1
-
+    fusions = [_LateFusion(cfg, run, sink, counts, seed=seed + 7919 + k, late=(
+        late_fraction, late_ns), step_ns=round(step_ms * 1e6), die_ns=die_ns)
+               for k, cfg in enumerate(configs)]
+    for f in fusions:
+        f.alive(t_alive)
     for items in run.epochs:
         for rx, k, payload in items:
             sink.write(k, payload, rx)
             kind, fields = parse_topic(k)
             counts[kind] += 1
             if back_ns is not None and rx >= back_ns:
-                restart(back_ns)
+                for f in fusions:
+                    f.restart(back_ns)
                 back_ns = None
-            if kind in FUSION_INPUT_KINDS and (
-                    back_ns is None or (die_ns is not None and rx < die_ns)):
-                a = fields["anchor"]
-                slot = (a, rx // period_ns)
-                if slot not in late:
-                    late[slot] = bool(rng.random() < late_fraction)
-                frx = max(rx + (late_ns if late[slot] else 0), last_rx.get(a, 0) + 1)
-                last_rx[a] = frx
-                state["n"] += 1
-                queue.append((frx, state["n"], k, payload))
-            fusion_until(rx)
-    end = max([q[0] for q in queue], default=0) + late_ns
-    fusion_until(end)
-    publish(core.flush(end), end)
-    sink.write(keys.fusion_diagnostics(), diagnostics(end), end + 1)
+            for f in fusions:
+                if kind in FUSION_INPUT_KINDS and (
+                        back_ns is None or (die_ns is not None and rx < die_ns)):
+                    f.receive(fields["anchor"], rx, k, payload)
+                f.until(rx)
+    for f in fusions:
+        f.finish()
     sink.close()
     return dict(counts)
+
+
+class _LateFusion:
+    """One live fusion of :func:`write_late_recording` (its inbox, late epochs, restarts)."""
+
+    def __init__(self, config: FusionConfig, run: SyntheticRun, sink: McapSink,
+                 counts: Counter[str], *, seed: int, late: tuple[float, int], step_ns: int,
+                 die_ns: int | None) -> None:
+        self.config, self.run, self.sink, self.counts = config, run, sink, counts
+        self.keys = Keys(config.site)
+        self.core = FusionCore(config, logger=quiet_logger())
+        self.rng = np.random.default_rng(seed)
+        self.late_fraction, self.late_ns = late
+        self.step_ns, self.die_ns = step_ns, die_ns
+        self.period_ns = round(config.epoch_period_s * 1e9)
+        self.queue: list[tuple[int, int, str, bytes]] = []  # inbox: (rx, n, key, payload)
+        self.last_rx: dict[str, int] = {}
+        self.late: dict[tuple[str, int], bool] = {}
+        self.state = {"next_step": 0, "next_diag": run.t0_ns + 1_000_000_000, "n": 0,
+                      "instance": 0}
+
+    def alive(self, t: int) -> None:
+        for a in self.run.anchor_ids:
+            self.core.on_liveliness(a, True, t)
+
+    def diagnostics(self, t: int) -> bytes:
+        cfg = self.config
+        name = f"synthetic-{self.state['instance']}" + (
+            f"-shard{cfg.shard}" if cfg.shards > 1 else "")
+        return M.encode(msgspec.structs.replace(
+            self.core.diagnostics(t), instance=name, shard=cfg.shard, shards=cfg.shards))
+
+    def restart(self, t: int) -> None:
+        self.queue.clear()
+        self.core = FusionCore(self.config, logger=quiet_logger())
+        self.alive(t)
+        self.state.update(next_step=0, next_diag=t + 1_000_000_000,
+                          instance=self.state["instance"] + 1)
+
+    def receive(self, anchor: str, rx: int, key: str, payload: bytes) -> None:
+        slot = (anchor, rx // self.period_ns)
+        if slot not in self.late:
+            self.late[slot] = bool(self.rng.random() < self.late_fraction)
+        frx = max(rx + (self.late_ns if self.late[slot] else 0), self.last_rx.get(anchor, 0) + 1)
+        self.last_rx[anchor] = frx
+        self.state["n"] += 1
+        self.queue.append((frx, self.state["n"], key, payload))
+
+    def until(self, t: int) -> None:
+        if self.die_ns is not None and t >= self.die_ns:
+            die, self.die_ns = self.die_ns, None
+            self.until(die - 1)
+            self.queue.clear()
+        queue, state, core = self.queue, self.state, self.core
+        queue.sort()
+        while queue and queue[0][0] <= t:
+            rx, _, k, payload = queue.pop(0)
+            core.on_sample(k, payload, rx)
+            if rx >= state["next_step"]:
+                self.publish(core.step(rx), rx)
+                state["next_step"] = rx + self.step_ns
+            if rx >= state["next_diag"]:
+                self.sink.write(self.keys.fusion_diagnostics(), self.diagnostics(rx), rx + 1)
+                state["next_diag"] = rx + 1_000_000_000
+
+    def publish(self, ests: list, now: int) -> None:
+        for est in ests:
+            self.sink.write(self.keys.node_estimate(est.node_id), M.encode(est), now + 50_000)
+            self.counts["estimate"] += 1
+
+    def finish(self) -> None:
+        end = max([q[0] for q in self.queue], default=0) + self.late_ns
+        self.until(end)
+        self.publish(self.core.flush(end), end)
+        self.sink.write(self.keys.fusion_diagnostics(), self.diagnostics(end), end + 1)
 
 
 # ----------------------------------------------------------------------------------------

@@ -406,7 +406,9 @@ class FusionDiagnostics(_Msg, tag="diffpos.fusion_diagnostics.v2"):
     """Periodic counters of the fusion service (cumulative since start), v2: v1 plus why fixes
     were lost (late ranges per anchor, the release rule in force, how epochs were released)
     and the fusion's decision record since the previous diagnostics (``decisions``: what
-    ``diffpos replay`` needs to make the live fusion's decisions again)."""
+    ``diffpos replay`` needs to make the live fusion's decisions again). With shards
+    (``diffpos fusion --shard K/N``) each fusion publishes its own on the one diagnostics key,
+    saying which it is (``shard``, ``shards``)."""
 
     t_wall_ns: WallNs
     watermark_ns: (
@@ -447,6 +449,14 @@ class FusionDiagnostics(_Msg, tag="diffpos.fusion_diagnostics.v2"):
         "two publish at once."))] = {}
     contested_anchors: Annotated[list[Id], Meta(description=(
         "Anchors not used now because two publishers share their key."))] = []
+    shard: Annotated[int, Meta(ge=0, description=(
+        "The share of the responders this fusion owns (diffpos fusion --shard K/N: K; 0 "
+        "without shards): it publishes the estimates of the responders whose CRC-32 of the "
+        "id modulo shards is this, and its decision record is replayed on a core of that "
+        "shard."))] = 0
+    shards: Annotated[int, Meta(ge=1, description=(
+        "How many fusions share the responders (N of --shard K/N; 1: one fusion owns all). "
+        "Absent in recordings made before shards were recorded: read as 0 of 1."))] = 1
 
 
 class Heartbeat(_Msg, tag="diffpos.heartbeat.v1"):
