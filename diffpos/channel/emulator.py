@@ -24,6 +24,16 @@ group  label                  geometry                                          
                               ceiling+back wall
 =====  =====================  =======================================================  =====
 
+Higher-order families (``radio.channel_max_order`` 3 or 4; default 2 = the 18 above): slots
+18.. are the families :func:`diffpos.paths.mechanisms.mechanism_set` adds (label
+``Channel.mechanism``, group :func:`mpc_class_of`), with the same physics: the image-method /
+Fermat-point geometry of :mod:`diffpos.paths.model`, Fresnel reflection of the field vector on
+the ground and on every inside slab or wall in path order, the UTD edge field (after a ground
+bounce: the image source's reflected field), glass, partitions, Friis spreading
+(:func:`diffpos.channel.slots.family_slot`; compiled for :func:`pair_first_arrival` in
+:mod:`diffpos.channel.families_nb`). :func:`pair_snr_db` (an estimator's SNR model) keeps the
+18 whatever the setting. Measured mix against Sionna RT: ``docs/channel_mix.md``.
+
 Every inside segment adds the loss of the interior partitions it crosses (so MPC-3 includes
 the paper's ``Tx-D-T-Rx`` and ``Tx-D-T-T-Rx``); glass windows add ``glass_loss_db`` when
 crossed. Reflections use Fresnel coefficients of ITU-R P.2040 materials applied to the field
@@ -286,7 +296,8 @@ def emulate_channel(
     Returns
     -------
     Channel
-        Arrays of shape ``(N, M, K)``, ``K = len(MECHANISMS)``.
+        Arrays of shape ``(N, M, K)``, ``K = len(channel_mechanisms(radio))`` (18 at the
+        default ``radio.channel_max_order`` 2).
 
     Raises
     ------
