@@ -403,7 +403,10 @@ def pair_first_arrival(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Bu
     slot lengths from the compiled path model (:func:`diffpos.paths.model.first_arrival_paths`,
     the emulator's own geometry), so the result equals the numpy emulator's to rounding
     (``tests/core/test_channel_kernel.py``) at ~10x less CPU: what an emulated anchor needs per
-    epoch (no gains, phases or angles are kept).
+    epoch (no gains, phases or angles are kept). With ``radio.channel_max_order`` > 2 the
+    higher-order families join the candidates (:mod:`diffpos.channel.families_nb` for their
+    SNR, the path model with their :class:`~diffpos.paths.mechanisms.MechanismSet` for their
+    lengths; ``tests/core/test_channel_families.py``), as in :func:`emulate_channel`.
 
     Parameters
     ----------
