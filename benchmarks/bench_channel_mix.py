@@ -6,6 +6,7 @@ Usage::
         [--mnls] [--mnls-max-order 2]
     python benchmarks/bench_channel_mix.py --tracker [default scenarios/large.toml]
         [--orders 2 4] [--epochs 200]
+    python benchmarks/bench_channel_mix.py --cost [--orders 2 3 4]
 
 For every ray-trace dataset (``diffpos raytrace SCEN --receivers 200 --samples 1e6
 --max-depth 4``; default the paper building and its open-plan variant in /work/rt/), the
@@ -37,7 +38,11 @@ same receivers, anchors and noise seed.
 ``--tracker [SCENARIO ...]``: instead, the live tracker on the emulator's channel at every
 order: ``benchmarks/bench_tracker_raytrace.py --emulator SCENARIO --epochs N`` (its scenarios,
 epochs, configurations and scorer, imported from that script) with the scenario's radio set to
-``channel_max_order`` = each order. The figures: ``docs/channel_mix.md``.
+``channel_max_order`` = each order.
+
+``--cost``: CPU per (anchor, node) pair of :func:`diffpos.channel.emulator.pair_first_arrival`
+(what an emulated anchor runs per epoch) at every order, on 20,000 random pairs of the paper
+scenario (the kernels warmed first; best of 3). The figures: ``docs/channel_mix.md``.
 """
 
 from __future__ import annotations
@@ -54,8 +59,9 @@ from diffpos_services.raytrace.dataset import load_dataset
 from diffpos_services.raytrace.evaluate import dataset_first_arrival
 from diffpos_services.raytrace.mechanisms import classify_mechanisms
 
-from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.channel.emulator import emulate_channel, first_arrival, pair_first_arrival
 from diffpos.paths.mechanisms import FAMILIES, label_family
+from diffpos.scenario import default_scenario
 from diffpos.study import Arrivals, FirstArrivalData, ReproduceConfig, reproduce
 
 DEFAULT = ["/work/rt/paper-200-1e6-d4.npz", "/work/rt/openplan-200-1e6-d4.npz"]
@@ -174,6 +180,30 @@ def tracker_on_orders(names: list[str], orders: list[int], epochs: int, seed: in
                             f"{os.getloadavg()[0]:.1f})", res)
 
 
+def pair_cost_us(orders: list[int], n: int = 20_000) -> dict[int, float]:
+    """CPU microseconds per pair of :func:`pair_first_arrival` at every order (``--cost``)."""
+    import time
+
+    sc = default_scenario()
+    b = sc.building
+    rng = np.random.default_rng(0)
+    k = rng.integers(0, b.n_floors, n)
+    nodes = np.stack([rng.uniform(-19.5, 19.5, n), rng.uniform(0.2, 22.3, n),
+                      b.floor_z_m(k) + rng.uniform(0.1, 2.9, n)], axis=-1)
+    anchors = sc.anchor_positions_m()[rng.integers(0, len(sc.anchors), n)]
+    out = {}
+    for o in orders:
+        radio = dataclasses.replace(sc.radio, channel_max_order=o)
+        pair_first_arrival(anchors[:10], nodes[:10], building=b, radio=radio)  # warm
+        best = np.inf
+        for _ in range(3):
+            t0 = time.process_time()
+            pair_first_arrival(anchors, nodes, building=b, radio=radio)
+            best = min(best, time.process_time() - t0)
+        out[o] = 1e6 * best / n
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("datasets", nargs="*", default=DEFAULT)
@@ -185,7 +215,13 @@ def main() -> None:
                          "TOML file; default: default scenarios/large.toml)")
     ap.add_argument("--epochs", type=int, default=200, help="--tracker's epochs")
     ap.add_argument("--seed", type=int, default=0, help="--tracker's seed")
+    ap.add_argument("--cost", action="store_true", help="instead: pair_first_arrival's CPU")
     args = ap.parse_args()
+    if args.cost:
+        for o, us in pair_cost_us(args.orders).items():
+            print(f"channel_max_order {o}: pair_first_arrival {us:.2f} us CPU per pair "
+                  f"(load {os.getloadavg()[0]:.1f})")
+        return
     if args.tracker is not None:
         tracker_on_orders(args.tracker or ["default", "scenarios/large.toml"], args.orders,
                           args.epochs, args.seed)

@@ -448,8 +448,8 @@ _FAMILY_TABLES: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
 def _family_snr_length(anchors: FloatArray, nodes: FloatArray, building: Building,
                        radio: Radio) -> tuple[FloatArray, FloatArray]:
-    """SNR (compiled :mod:`diffpos.channel.families_nb`) and length (compiled path model) of
-    the families beyond the 18 for P pairs: (P, K - 18) each."""
+    """SNR and length (compiled :mod:`diffpos.channel.families_nb`, the path model's geometry)
+    of the families beyond the 18 for P pairs: (P, K - 18) each."""
     mset = channel_mechanisms(radio)
     if mset.max_order not in _FAMILY_TABLES:
         _FAMILY_TABLES[mset.max_order] = (
@@ -459,10 +459,8 @@ def _family_snr_length(anchors: FloatArray, nodes: FloatArray, building: Buildin
         params = _kernel_params(building, radio)
     except TypeError:
         params = channel_params(building, radio, _materials(building, radio.frequency_hz))
-    snr = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)[:, 0]
-    length = first_arrival_paths(nodes, anchors, building, slots=slots,
-                                 mechanisms=mset).length_m
-    return snr, length
+    snr, length = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
+    return snr[:, 0], length[:, 0]
 
 
 def _check_pairs(anchors: FloatArray, nodes: FloatArray, building: Building) -> None:

@@ -88,7 +88,7 @@ FAMILY_SIGNATURE = types.void(
     _f8_3d, _f8_2d,  # anchors (N, M, 3), nodes (N, 3)
     _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (ground, interior)
     types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,)
-    _f8_3d,  # out (N, M, S) [dB]
+    _f8_3d, _f8_3d,  # out (N, M, S) [dB], out_len (N, M, S) [m]
 )
 
 
@@ -255,11 +255,12 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
 
 
 @njit(**_OPTS)
-def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, out):
+def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, out, out_len):
     """SNR [dB] of the table rows ``slots`` for every pair: ``anchors`` (N, M, 3), ``nodes``
     (N, 3) -> ``out`` (N, M, S), ``-inf`` where the path does not exist (the numpy emulator's
-    :func:`diffpos.channel.slots.family_slot` plus its link budget). Direct rows are not
-    served (the 18 of :mod:`diffpos.channel.snr_nb` hold the direct path): ``-inf``."""
+    :func:`diffpos.channel.slots.family_slot` plus its link budget), and the path length
+    ``out_len`` [m] (NaN where it does not exist). Direct rows are not served (the 18 of
+    :mod:`diffpos.channel.snr_nb` hold the direct path): ``-inf``."""
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
     eta_g, eta_in = eta[0], eta[1]
@@ -276,19 +277,22 @@ def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, out):
             for k in range(slots.shape[0]):
                 s = slots[k]
                 kind = table[s, COL_KIND]
+                length = np.nan
                 if kind == 1:
-                    g, att, v0, v1, v2, _, ok = _spec_family(
+                    g, att, v0, v1, v2, length, ok = _spec_family(
                         table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g,
                         eta_in)
                 elif kind == 2:
-                    g, att, v0, v1, v2, _, ok = _diff_family(
+                    g, att, v0, v1, v2, length, ok = _diff_family(
                         table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g,
                         eta_in, edge, sq2pik)
                 else:
                     ok = False
                 if not ok or g == 0.0:
                     out[i, j, k] = ninf
+                    out_len[i, j, k] = np.nan
                     continue
+                out_len[i, j, k] = length
                 rx_db = 0.0
                 if not math.isnan(rx_hpbw):
                     rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, rx_peak)
@@ -313,12 +317,14 @@ def warm_families() -> float:
 
 def eval_family_snr(anchors: np.ndarray, nodes: np.ndarray,
                     params: tuple[np.ndarray, np.ndarray, np.ndarray], table: np.ndarray,
-                    slots: np.ndarray) -> np.ndarray:
+                    slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Run :func:`family_snr_kernel`: ``anchors`` (N, M, 3), ``nodes`` (N, 3) C-contiguous
     float64, ``params`` of :func:`diffpos.channel.snr_nb.channel_params`, the mechanism
-    ``table`` and the rows ``slots`` of it; returns (N, M, S) [dB]."""
+    ``table`` and the rows ``slots`` of it; returns the SNR [dB] and the length [m], (N, M, S)
+    each."""
     warm_families()
     out = np.empty((nodes.shape[0], anchors.shape[1], slots.shape[0]))
+    out_len = np.empty_like(out)
     family_snr_kernel(anchors, nodes, *params, np.ascontiguousarray(table, dtype=np.int64),
-                      np.ascontiguousarray(slots, dtype=np.int64), out)
-    return out
+                      np.ascontiguousarray(slots, dtype=np.int64), out, out_len)
+    return out, out_len

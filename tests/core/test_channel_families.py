@@ -99,6 +99,10 @@ def test_family_kernel_matches_numpy_emulator(bname: str, rname: str) -> None:
     assert np.array_equal(np.isfinite(length), np.isfinite(ref_len))
     ok = np.isfinite(ref_len)
     assert np.allclose(length[ok], ref_len[ok], rtol=1e-12, atol=0)
+    # and the path model's geometry (what M-NLS fits): same existence, same lengths
+    geo = first_arrival_paths(nodes, anchors, b, mechanisms=mechanism_set(4)).length_m[:, 18:]
+    assert np.array_equal(np.isfinite(geo), ok)
+    assert np.allclose(geo[ok], length[ok], rtol=1e-12, atol=0)
     # the compiled first arrival equals the numpy emulator's detector on the same slots
     _, true_ref, snr_fr, _, _, det_ref = _detect(valid_r[:, 0], snr_r[:, 0],
                                                  length_r[:, 0] / SPEED_OF_LIGHT_M_S, length_r[:, 0],
