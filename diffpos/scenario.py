@@ -303,6 +303,13 @@ class Radio:
         chain, the order of the residual error of calibrated wideband (UWB, 500 MHz) two-way
         ranging after antenna-delay calibration (a few cm); set 0 for the ideal CRLB-only
         channel of the paper.
+    channel_max_order : int
+        Most interactions of the emulated channel's paths (:mod:`diffpos.channel.emulator`):
+        2 (default) the 18 first-arrival mechanisms of ``diffpos.paths.mechanisms.MECHANISMS``;
+        3 or 4 also the higher-order families of ``diffpos.paths.mechanisms.mechanism_set``
+        (e.g. ceiling-floor-ceiling, diffraction then two slab bounces, a ground bounce then
+        diffraction), so the emulator's first-arrival mix is not easier than a ray tracer's.
+        Changes the emulated channel only, not an estimator's path model.
     """
 
     frequency_hz: float = 28e9
@@ -321,6 +328,7 @@ class Radio:
     fap_threshold_db: float = 15.0
     detection_snr_db: float = -10.0
     range_error_floor_m: float = 0.05
+    channel_max_order: int = 2
 
     @property
     def wavelength_m(self) -> float:
@@ -511,7 +519,7 @@ _RADIO_FIELDS = (
     "frequency_hz", "bandwidth_hz", "tx_power_dbm", "tx_gain_dbi", "rx_gain_dbi",
     "tx_hpbw_deg", "rx_hpbw_deg", "tx_peak_deg", "rx_peak_deg", "noise_temperature_k",
     "noise_figure_db", "processing_gain_db", "fap_threshold_db", "detection_snr_db",
-    "range_error_floor_m",
+    "range_error_floor_m", "channel_max_order",
 )
 _GRID_FIELDS = ("spacing_m", "x_margin_m", "y_min_m", "y_max_m", "height_above_floor_m")
 
@@ -691,7 +699,14 @@ def _parse_radio(d: Mapping[str, Any]) -> Radio:
         fap_threshold_db=n("fap_threshold_db", lo=0.0, lo_open=True, hi=100.0),
         detection_snr_db=n("detection_snr_db", lo=-100.0, hi=100.0),
         range_error_floor_m=n("range_error_floor_m", lo=0.0, hi=10.0),
+        channel_max_order=_channel_order(d.get("channel_max_order", dflt.channel_max_order)),
     )
+
+
+def _channel_order(v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v not in (2, 3, 4):
+        raise _fail("radio.channel_max_order", f"must be 2, 3 or 4 (integer), got {v!r}")
+    return v
 
 
 #: Grammar of anchor, node and site ids: one Zenoh key chunk (the bus uses ids in key

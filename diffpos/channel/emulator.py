@@ -24,6 +24,16 @@ group  label                  geometry                                          
                               ceiling+back wall
 =====  =====================  =======================================================  =====
 
+Higher-order families (``radio.channel_max_order`` 3 or 4; default 2 = the 18 above): slots
+18.. are the families :func:`diffpos.paths.mechanisms.mechanism_set` adds (label
+``Channel.mechanism``, group :func:`mpc_class_of`), with the same physics: the image-method /
+Fermat-point geometry of :mod:`diffpos.paths.model`, Fresnel reflection of the field vector on
+the ground and on every inside slab or wall in path order, the UTD edge field (after a ground
+bounce: the image source's reflected field), glass, partitions, Friis spreading
+(:func:`diffpos.channel.slots.family_slot`; compiled for :func:`pair_first_arrival` in
+:mod:`diffpos.channel.families_nb`). :func:`pair_snr_db` (an estimator's SNR model) keeps the
+18 whatever the setting. Measured mix against Sionna RT: ``docs/channel_mix.md``.
+
 Every inside segment adds the loss of the interior partitions it crosses (so MPC-3 includes
 the paper's ``Tx-D-T-Rx`` and ``Tx-D-T-T-Rx``); glass windows add ``glass_loss_db`` when
 crossed. Reflections use Fresnel coefficients of ITU-R P.2040 materials applied to the field
@@ -59,19 +69,23 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from diffpos.channel.families_nb import eval_family_snr
 from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
 from diffpos.channel.slots import _C, _Ctx, _materials, _slots
 from diffpos.channel.snr_nb import channel_params, eval_snr_kernel, eval_snr_masked_kernel
-from diffpos.paths.mechanisms import MECHANISMS
+from diffpos.paths.mechanisms import MECHANISMS, MechanismSet, Recipe, mechanism_set
 from diffpos.paths.model import first_arrival_paths
+from diffpos.paths.model_nb import mechanism_table
 from diffpos.scenario import Building, Radio, Scenario
 
 __all__ = [
     "MPC_CLASS",
     "Channel",
     "FirstArrival",
+    "channel_mechanisms",
     "emulate_channel",
     "first_arrival",
+    "mpc_class_of",
     "mpc_statistics",
     "pair_first_arrival",
     "pair_snr_db",
@@ -85,6 +99,24 @@ BoolArray = NDArray[np.bool_]
 #: MPC group (1..4, the paper's Table) of every slot.
 MPC_CLASS: NDArray[np.int8] = np.array([1, 2, 2, 2, 2, 2, 2, 3, 3, 4, 4, 4, 4, 4, 4, 4, 4, 4],
                                        dtype=np.int8)
+
+
+def mpc_class_of(recipe: Recipe) -> int:
+    """MPC group (1..4, the paper's Table) of a mechanism: 1 direct, 2 one reflection (a ground
+    bounce included), 3 a window-edge diffraction alone, 4 everything with two or more
+    interactions (:data:`MPC_CLASS` for the 18)."""
+    if recipe.kind == "direct":
+        return 1
+    if recipe.order == 1:
+        return 2 if recipe.kind == "spec" else 3
+    return 4
+
+
+def channel_mechanisms(radio: Radio) -> MechanismSet:
+    """The emulated channel's mechanisms: the 18 (``radio.channel_max_order`` 2) or the
+    families of :func:`diffpos.paths.mechanisms.mechanism_set` up to that order (the 18
+    first, in their slots)."""
+    return mechanism_set(radio.channel_max_order)
 
 
 
@@ -264,7 +296,8 @@ def emulate_channel(
     Returns
     -------
     Channel
-        Arrays of shape ``(N, M, K)``, ``K = len(MECHANISMS)``.
+        Arrays of shape ``(N, M, K)``, ``K = len(channel_mechanisms(radio))`` (18 at the
+        default ``radio.channel_max_order`` 2).
 
     Raises
     ------
@@ -277,12 +310,15 @@ def emulate_channel(
         raise ValueError("anchors_m and nodes_m must have shape (M, 3) and (N, 3)")
     _check_pairs(anchors, nodes, building)
     c = _Ctx(building, radio, nodes, anchors)
-    length, gain, aod, aoa, valid, power, snr = _slots(c, radio)
+    mset = channel_mechanisms(radio)
+    extra = mset.recipes[len(MECHANISMS):]
+    length, gain, aod, aoa, valid, power, snr = _slots(c, radio, extra)
     exists = valid & (snr >= radio.detection_snr_db)
+    mpc_class = np.array([*MPC_CLASS, *(mpc_class_of(r) for r in extra)], dtype=np.int8)
     return Channel(
         delay_s=length / _C, length_m=length, gain=gain, power_dbm=power, snr_db=snr,
-        aod_deg=aod, aoa_deg=aoa, valid=valid, exists=exists, mpc_class=MPC_CLASS.copy(),
-        mechanism=MECHANISMS, nodes_m=nodes, anchors_m=anchors,
+        aod_deg=aod, aoa_deg=aoa, valid=valid, exists=exists, mpc_class=mpc_class,
+        mechanism=mset.labels, nodes_m=nodes, anchors_m=anchors,
     )
 
 
@@ -367,7 +403,10 @@ def pair_first_arrival(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Bu
     slot lengths from the compiled path model (:func:`diffpos.paths.model.first_arrival_paths`,
     the emulator's own geometry), so the result equals the numpy emulator's to rounding
     (``tests/core/test_channel_kernel.py``) at ~10x less CPU: what an emulated anchor needs per
-    epoch (no gains, phases or angles are kept).
+    epoch (no gains, phases or angles are kept). With ``radio.channel_max_order`` > 2 the
+    higher-order families join the candidates (:mod:`diffpos.channel.families_nb` for their
+    SNR, the path model with their :class:`~diffpos.paths.mechanisms.MechanismSet` for their
+    lengths; ``tests/core/test_channel_families.py``), as in :func:`emulate_channel`.
 
     Parameters
     ----------
@@ -392,10 +431,36 @@ def pair_first_arrival(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Bu
     snr = pair_snr_db(anchors[:, None, :], nodes, building=building, radio=radio)[:, 0]
     length = first_arrival_paths(nodes, anchors, building).length_m
     valid = np.isfinite(snr)
+    if radio.channel_max_order > 2:
+        snr_x, length_x = _family_snr_length(anchors, nodes, building, radio)
+        snr = np.concatenate([snr, snr_x], axis=-1)
+        length = np.concatenate([length, length_x], axis=-1)
+        valid = np.concatenate([valid, np.isfinite(snr_x) & np.isfinite(length_x)], axis=-1)
     length = np.where(valid, length, np.nan)
     measured, true_path, snr_f, sigma, _, detected = _detect(valid, snr, length / _C, length,
                                                              radio, rng)
     return measured, sigma, snr_f, true_path, detected
+
+
+#: Compiled tables of the channel's mechanism sets (by max order).
+_FAMILY_TABLES: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _family_snr_length(anchors: FloatArray, nodes: FloatArray, building: Building,
+                       radio: Radio) -> tuple[FloatArray, FloatArray]:
+    """SNR and length (compiled :mod:`diffpos.channel.families_nb`, the path model's geometry)
+    of the families beyond the 18 for P pairs: (P, K - 18) each."""
+    mset = channel_mechanisms(radio)
+    if mset.max_order not in _FAMILY_TABLES:
+        _FAMILY_TABLES[mset.max_order] = (
+            mechanism_table(mset.recipes), np.arange(len(MECHANISMS), len(mset), dtype=np.int64))
+    table, slots = _FAMILY_TABLES[mset.max_order]
+    try:
+        params = _kernel_params(building, radio)
+    except TypeError:
+        params = channel_params(building, radio, _materials(building, radio.frequency_hz))
+    snr, length = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
+    return snr[:, 0], length[:, 0]
 
 
 def _check_pairs(anchors: FloatArray, nodes: FloatArray, building: Building) -> None:

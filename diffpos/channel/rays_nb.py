@@ -366,7 +366,18 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, 
     """gtd.diffracted_field (UTD, spherical spreading) of the window edge at Q for the
     source at the anchor and the observer O, without its common phase factors, as six floats
     (re, im of x, y, z). ``s_in_m`` = ``|Q - A|``, ``s_out_m`` = ``|O - Q|`` and ``sq2pik`` =
-    ``sqrt(2 pi k)`` are the caller's (the same operations: computed once)."""
+    ``sqrt(2 pi k)`` are the caller's (the same operations: computed once). The source's
+    polarisation is the radio's (:func:`utd_field_e` takes any real vector)."""
+    return utd_field_e(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, sq2pik,
+                       prm[_P_E0], prm[_P_E0 + 1], prm[_P_E0 + 2])
+
+
+@njit(**_OPTS)
+def utd_field_e(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, sq2pik,
+                ex, ey, ez):
+    """:func:`_utd_field` for a source of real polarisation vector ``(ex, ey, ez)`` (the
+    field is linear in it: a complex source, e.g. the ground-reflected field of
+    :mod:`diffpos.channel.families_nb`, is its real and imaginary parts' sum)."""
     if upper:  # e = +x, t0 = +z
         e0, e1, e2, t0, t1, t2 = 1.0, 0.0, 0.0, 0.0, 0.0, 1.0
     else:  # e = -x, t0 = -z
@@ -408,7 +419,6 @@ def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, 
     pr, pi_ = _utd_term_ri(hc * hc_in - hs * hs_in, kl)  # cos((psi + psi') / 2)
     dsr, dsi = pre * (mr - pr), pre * (mi - pi_)
     dhr, dhi = pre * (mr + pr), pre * (mi + pi_)
-    ex, ey, ez = prm[_P_E0], prm[_P_E0 + 1], prm[_P_E0 + 2]
     ei_beta = (ex * bi0 + ey * bi1 + ez * bi2) / s_in_m
     ei_phi = (ex * pi0 + ey * pi1 + ez * pi2) / s_in_m
     amp = math.sqrt(s_in_m / (s_out_m * (s_out_m + s_in_m)))

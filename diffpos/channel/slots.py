@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 from diffpos.channel.gtd_halfplane import diffracted_field, wavenumber_rad_m
 from diffpos.channel.linkbudget import snr_db
 from diffpos.constants import SPEED_OF_LIGHT_M_S
+from diffpos.paths.mechanisms import Recipe
 from diffpos.paths.model import FloorFrame, diffracted_path, direct_opening, specular_path
 from diffpos.scenario import ITU_MATERIALS, Building, Radio
 
@@ -320,8 +321,68 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
             valid)
 
 
-def _slots(c: _Ctx, radio: Radio):
-    """Every slot of every pair: length, gain, aod, aoa, valid, power, snr (N, M, K)."""
+def _diffracted_family(c: _Ctx, rec: Recipe):
+    """Anchor [-> ground] -> window edge (UTD) -> the recipe's inside reflections -> node: a
+    family of :func:`diffpos.paths.mechanisms.mechanism_set` beyond the 18 (geometry:
+    :func:`diffpos.paths.model.diffracted_path`). The ground bounce is the Fresnel reflection
+    of the dipole field on the ground (the image source's field then meets the edge); each
+    inside reflection is the Fresnel reflection of the diffracted field at its point, in path
+    order; every inside segment adds its partitions' loss."""
+    a = np.broadcast_to(c.anchor, (*c.shape, 3))
+    n = np.broadcast_to(c.node, (*c.shape, 3))
+    g = diffracted_path(a, n, c.frame, rec.edge, rec.planes, ground=rec.ground)
+    q, pts = g.points[0], g.points
+    obs = np.array(n)
+    for p in reversed(rec.planes):
+        axis, coord = c.frame.plane(p)
+        obs = _mirror(obs, axis, np.broadcast_to(coord, c.shape))
+    e_dir = np.array([1.0, 0.0, 0.0]) if rec.edge == "upper" else np.array([-1.0, 0.0, 0.0])
+    face = np.array([0.0, 0.0, 1.0]) if rec.edge == "upper" else np.array([0.0, 0.0, -1.0])
+    if rec.ground:
+        src = _mirror(np.array(a), 2, 0.0)
+        u0, _ = _unit(g.ground_point - a)
+        e_src = _reflect_field(c.tx_field(u0), u0, 2, c.eta_ground)  # pattern included
+        aod = _zenith_deg(u0)
+    else:
+        src = a
+        g_db = _pattern_db(_zenith_deg(q - a), c.r.tx_hpbw_deg, c.r.tx_peak_deg)
+        e_src = c.e0 * (10 ** (g_db / 20))[..., None]
+        aod = _zenith_deg(q - a)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        E = diffracted_field(src, obs, q, e_dir, face, e_src, frequency_hz=c.f,
+                             coefficients="utd", spreading="spherical")
+        loss = np.zeros(c.shape)  # the diffracted ray passes the edge, not the glass
+        for j, p in enumerate(rec.planes):
+            k_in, _ = _unit(pts[j + 1] - pts[j])
+            E = _reflect_field(E, k_in, c.frame.plane(p)[0], c.eta_in)
+        for j in range(len(pts) - 1):
+            loss = loss + c.partition_loss_db(pts[j], pts[j + 1])
+        amp = _field_norm(E * (c.lam / (4 * np.pi)) * 10 ** (-loss / 20)[..., None])
+    length = g.length_m
+    valid = g.valid & np.isfinite(amp)
+    gain = amp * np.exp(-1j * c.k * length)
+    return length, np.where(valid, gain, 0), aod, _zenith_deg(pts[-2] - n), valid
+
+
+def family_slot(c: _Ctx, rec: Recipe):
+    """One slot of any :class:`diffpos.paths.mechanisms.Recipe` (the 18 and the higher-order
+    families of :func:`diffpos.paths.mechanisms.mechanism_set`): length, gain, aod, aoa,
+    valid (N, M). The 18 keep their own builders (:func:`_slots`); this serves the rest."""
+    if rec.kind == "direct":
+        return _direct(c)
+    if rec.kind == "spec":
+        return _reflections(c, list(rec.planes), ground=rec.ground)
+    if not rec.planes and not rec.ground:
+        return _diffracted(c, rec.edge)
+    if len(rec.planes) == 1 and not rec.ground:
+        return _diffracted(c, rec.edge, rec.planes[0])
+    return _diffracted_family(c, rec)
+
+
+def _slots(c: _Ctx, radio: Radio, extra: tuple[Recipe, ...] = ()):
+    """Every slot of every pair: length, gain, aod, aoa, valid, power, snr (N, M, K): the 18
+    of :data:`diffpos.paths.mechanisms.MECHANISMS`, then the ``extra`` recipes (the families
+    :func:`diffpos.paths.mechanisms.mechanism_set` adds after them)."""
     results = [
         _direct(c),
         _reflections(c, [], ground=True),
@@ -342,6 +403,7 @@ def _slots(c: _Ctx, radio: Radio):
         _reflections(c, ["floor", "ceiling"]),
         _reflections(c, ["ceiling", "back"]),
     ]
+    results += [family_slot(c, rec) for rec in extra]
     length = np.stack([r[0] for r in results], axis=-1)
     gain = np.stack([r[1] for r in results], axis=-1).astype(np.complex128)
     aod = np.stack([r[2] for r in results], axis=-1)

@@ -1,0 +1,330 @@
+"""Compiled SNR of the higher-order families of the emulated channel: any row of a mechanism
+table (:func:`diffpos.paths.model_nb.mechanism_table` of
+:func:`diffpos.paths.mechanisms.mechanism_set`), for the slots the 18 of
+:mod:`diffpos.channel.snr_nb` leave out.
+
+The numpy reference is :func:`diffpos.channel.slots.family_slot` (via
+:func:`diffpos.channel.emulator.emulate_channel` with ``radio.channel_max_order`` > 2); the
+physics is the emulator's: the dipole's transverse field and the transmit pattern on
+departure, Fresnel reflections (TE/TM split) of the field vector on the ground (ITU ground
+material) and on every inside slab or wall (interior material), the UTD field of the window
+edge with spherical spreading (a ground bounce first: the image source's reflected field meets
+the edge, the field being linear in the source's polarisation), glass on a specular entry,
+every inside segment's partitions, Friis spreading over the unfolded length. The geometry is
+:func:`diffpos.paths.model.specular_path` / :func:`diffpos.paths.model.diffracted_path`'s
+(image method, Fermat point strictly inside the edge, reflection points on the floor's inside
+surface, in order). tests/core/test_channel_families.py holds the kernel to the reference
+(same ``-inf`` pattern, finite values within 1e-7 dB: the operations are not ordered as the
+reference's, so agreement is to rounding, not bit for bit).
+
+numba keys this file's cache on this file only: after editing a ``*_nb`` module it compiles in,
+update ``CALLEES_SHA256`` (tests/core/test_kernel_stamps.py names the value).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from numba import njit, types
+
+from diffpos.channel.rays_nb import (
+    _P_DEPTH,
+    _P_E0,
+    _P_FIRST_Z,
+    _P_FLOOR_H,
+    _P_GLASS_DB,
+    _P_K,
+    _P_LAM,
+    _P_N0,
+    _P_N_FLOORS,
+    _P_PGAIN,
+    _P_POWER0,
+    _P_RX_HPBW,
+    _P_RX_PEAK,
+    _P_SILL,
+    _P_TX_HPBW,
+    _P_TX_PEAK,
+    _P_WIN_H,
+    _P_X0,
+    _P_X1,
+    _floor_index,
+    _norm_c,
+    _partition_loss,
+    _pattern_db,
+    _reflect,
+    _tx_field,
+    _unit,
+    _zenith_deg,
+    utd_field_e,
+)
+from diffpos.paths.model_nb import (
+    COL_EDGE,
+    COL_GROUND,
+    COL_KIND,
+    COL_NPLANES,
+    COL_PLANES,
+    edge_axis,
+    in_floor_box,
+    inside_plane,
+    mirror,
+    row_planes,
+)
+
+#: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
+#: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
+#: value after a callee's edit; writing it here is what invalidates a warm cache).
+CALLEES_SHA256 = "28dad5da4f25b918"
+
+__all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
+
+_OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
+_f8_1d = types.float64[::1]
+_f8_2d = types.float64[:, ::1]
+_f8_3d = types.float64[:, :, ::1]
+#: The one compiled signature of :func:`family_snr_kernel`.
+FAMILY_SIGNATURE = types.void(
+    _f8_3d, _f8_2d,  # anchors (N, M, 3), nodes (N, 3)
+    _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (ground, interior)
+    types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,)
+    _f8_3d, _f8_3d,  # out (N, M, S) [dB], out_len (N, M, S) [m]
+)
+
+
+@njit(**_OPTS)
+def _axis_of(v0, v1, v2, ax):
+    if ax == 0:
+        return v0
+    if ax == 1:
+        return v1
+    return v2
+
+
+@njit(**_OPTS)
+def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in):
+    """slots._reflections for table row ``s`` (any number of planes): (|gain|, loss [dB] incl.
+    the pattern, arrival vector, ok)."""
+    x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
+    ground = table[s, COL_GROUND] == 1
+    npl = table[s, COL_NPLANES]
+    s0, s1, s2 = a0, a1, (-a2 if ground else a2)
+    i0, i1, i2 = n0, n1, n2
+    for j in range(npl - 1, -1, -1):
+        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        i0, i1, i2 = mirror(i0, i1, i2, ax, c)
+    d0, d1, d2 = i0 - s0, i1 - s1, i2 - s2
+    length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    t_f = (0.0 - s1) / d1
+    ok = True
+    t_prev = 0.0
+    g0 = g1 = g2 = 0.0
+    if ground:
+        t_g = (0.0 - s2) / d2
+        ok = (t_g > 0) and (t_g < t_f)
+        t_prev = t_g
+        g0, g1, g2 = s0 + t_g * d0, s1 + t_g * d1, s2 + t_g * d2
+    ok = ok and (t_f > t_prev) and (t_f < 1)
+    p0, p1, p2 = s0 + t_f * d0, s1 + t_f * d1, s2 + t_f * d2  # entry
+    ok = ok and (p2 > lo) and (p2 < hi) and (p0 > x0) and (p0 < x1)
+    if not (ok and math.isfinite(length)):
+        return 0.0, 0.0, 0.0, 0.0, 0.0, length, False
+    if ground:
+        u0, u1, u2, _ = _unit(g0 - a0, g1 - a1, g2 - a2)
+    else:
+        u0, u1, u2, _ = _unit(p0 - a0, p1 - a1, p2 - a2)
+    f0, f1, f2, g_db = _tx_field(u0, u1, u2, prm)
+    e0, e1, e2, e3, e4, e5 = f0, 0.0, f1, 0.0, f2, 0.0
+    if ground:
+        e0, e1, e2, e3, e4, e5 = _reflect(e0, e1, e2, e3, e4, e5, u0, u1, u2, 2, eta_g)
+    loss = prm[_P_GLASS_DB]
+    c0, c1, c2, m0, m1, m2 = s0, s1, s2, i0, i1, i2
+    t_last = t_f
+    for j in range(npl):
+        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
+        t = (c - _axis_of(c0, c1, c2, ax)) / _axis_of(dd0, dd1, dd2, ax)
+        ok = ok and (t > t_last) and (t < 1)
+        q0, q1, q2 = c0 + t * dd0, c1 + t * dd1, c2 + t * dd2
+        ok = ok and in_floor_box(q0, q1, q2, zf, zc, x0, x1, depth)
+        k0, k1, k2, _ = _unit(q0 - p0, q1 - p1, q2 - p2)
+        e0, e1, e2, e3, e4, e5 = _reflect(e0, e1, e2, e3, e4, e5, k0, k1, k2, ax, eta_in)
+        loss = loss + _partition_loss(p0, p1, p2, q0, q1, q2, parts)
+        m0, m1, m2 = mirror(m0, m1, m2, ax, c)
+        c0, c1, c2 = mirror(c0, c1, c2, ax, c)
+        t_last = t
+        p0, p1, p2 = q0, q1, q2
+    loss = loss + _partition_loss(p0, p1, p2, n0, n1, n2, parts)
+    amp = _norm_c(e0, e1, e2, e3, e4, e5)
+    ok = ok and math.isfinite(amp)
+    gain = amp * (prm[_P_LAM] / (4 * math.pi * length))
+    return gain, loss - g_db, p0 - n0, p1 - n1, p2 - n2, length, ok
+
+
+@njit(**_OPTS)
+def _fermat(s0, s1, s2, o0, o1, o2, x0, z_e, edge):
+    """geometry.diffraction_point on the edge ``y = 0, z = z_e`` from ``x0``: the point and
+    whether it lies strictly inside the edge."""
+    edge_len, ee0, ee1, ee2 = edge
+    ds0, ds1, ds2 = s0 - x0, s1 - 0.0, s2 - z_e
+    dq0, dq1, dq2 = o0 - x0, o1 - 0.0, o2 - z_e
+    s_t = ds0 * ee0 + ds1 * ee1 + ds2 * ee2
+    o_t = dq0 * ee0 + dq1 * ee1 + dq2 * ee2
+    w0, w1, w2 = ds0 - s_t * ee0, ds1 - s_t * ee1, ds2 - s_t * ee2
+    r_s = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    w0, w1, w2 = dq0 - o_t * ee0, dq1 - o_t * ee1, dq2 - o_t * ee2
+    r_o = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    denom = r_s + r_o
+    scale = abs(s_t) + abs(o_t) + r_s + r_o + edge_len
+    if denom <= 1e-12 * scale:
+        t_star = 0.5 * (s_t + o_t)
+    else:
+        t_star = (s_t * r_o + o_t * r_s) / denom
+    t = min(max(t_star, 0.0), edge_len)
+    return x0 + t * ee0, 0.0 + t * ee1, z_e + t * ee2, (t_star > 0.0) and (t_star < edge_len)
+
+
+@njit(**_OPTS)
+def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in,
+                 edge, sq2pik):
+    """slots._diffracted_family for table row ``s``: (|gain|, loss [dB] incl. the pattern,
+    arrival vector, length, ok)."""
+    x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
+    ground = table[s, COL_GROUND] == 1
+    upper = table[s, COL_EDGE] == 0
+    npl = table[s, COL_NPLANES]
+    s0, s1, s2 = a0, a1, (-a2 if ground else a2)
+    o0, o1, o2 = n0, n1, n2
+    for j in range(npl - 1, -1, -1):
+        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        o0, o1, o2 = mirror(o0, o1, o2, ax, c)
+    q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, hi if upper else lo, edge)
+    s_in = math.sqrt((s0 - q0) ** 2 + (s1 - q1) ** 2 + (s2 - q2) ** 2)
+    s_out = math.sqrt((o0 - q0) ** 2 + (o1 - q1) ** 2 + (o2 - q2) ** 2)
+    length = s_in + s_out
+    t_g = 0.0
+    if ground:
+        t_g = (0.0 - s2) / (q2 - s2)
+        ok = ok and (t_g > 0) and (t_g < 1)
+    if not (ok and math.isfinite(length)):
+        return 0.0, 0.0, 0.0, 0.0, 0.0, length, False
+    # the source's field: the radio's polarisation (pattern towards the edge), or the
+    # dipole's field reflected on the ground (pattern towards the ground point)
+    if ground:
+        g0, g1 = s0 + t_g * (q0 - s0), s1 + t_g * (q1 - s1)
+        u0, u1, u2, _ = _unit(g0 - a0, g1 - a1, 0.0 - a2)
+        f0, f1, f2, g_db = _tx_field(u0, u1, u2, prm)
+        e0, e1, e2, e3, e4, e5 = _reflect(f0, 0.0, f1, 0.0, f2, 0.0, u0, u1, u2, 2, eta_g)
+    else:
+        g_db = 0.0
+        if not math.isnan(prm[_P_TX_HPBW]):
+            g_db = _pattern_db(_zenith_deg(q0 - a0, q1 - a1, q2 - a2), prm[_P_TX_HPBW],
+                               prm[_P_TX_PEAK])
+        e0, e1, e2, e3, e4, e5 = prm[_P_E0], 0.0, prm[_P_E0 + 1], 0.0, prm[_P_E0 + 2], 0.0
+    r = utd_field_e(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, upper, prm, sq2pik,
+                    e0, e2, e4)
+    im = utd_field_e(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, upper, prm, sq2pik,
+                     e1, e3, e5)
+    # field = UTD(Re e) + j UTD(Im e), each a (re, im) triple
+    f0, f1 = r[0] - im[1], r[1] + im[0]
+    f2, f3 = r[2] - im[3], r[3] + im[2]
+    f4, f5 = r[4] - im[5], r[5] + im[4]
+    loss = 0.0
+    p0, p1, p2 = q0, q1, q2
+    c0, c1, c2, m0, m1, m2 = q0, q1, q2, o0, o1, o2
+    t_last = 0.0
+    for j in range(npl):
+        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
+        t = (c - _axis_of(c0, c1, c2, ax)) / _axis_of(dd0, dd1, dd2, ax)
+        ok = ok and (t > t_last) and (t < 1)
+        rp0, rp1, rp2 = c0 + t * dd0, c1 + t * dd1, c2 + t * dd2
+        ok = ok and in_floor_box(rp0, rp1, rp2, zf, zc, x0, x1, depth)
+        k0, k1, k2, _ = _unit(rp0 - p0, rp1 - p1, rp2 - p2)
+        f0, f1, f2, f3, f4, f5 = _reflect(f0, f1, f2, f3, f4, f5, k0, k1, k2, ax, eta_in)
+        loss = loss + _partition_loss(p0, p1, p2, rp0, rp1, rp2, parts)
+        m0, m1, m2 = mirror(m0, m1, m2, ax, c)
+        c0, c1, c2 = mirror(c0, c1, c2, ax, c)
+        t_last = t
+        p0, p1, p2 = rp0, rp1, rp2
+    loss = loss + _partition_loss(p0, p1, p2, n0, n1, n2, parts)
+    c1_ = prm[_P_LAM] / (4 * math.pi)
+    amp = _norm_c(f0 * c1_, f1 * c1_, f2 * c1_, f3 * c1_, f4 * c1_, f5 * c1_)
+    ok = ok and math.isfinite(amp)
+    return amp, loss - g_db, p0 - n0, p1 - n1, p2 - n2, length, ok
+
+
+@njit(**_OPTS)
+def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, out, out_len):
+    """SNR [dB] of the table rows ``slots`` for every pair: ``anchors`` (N, M, 3), ``nodes``
+    (N, 3) -> ``out`` (N, M, S), ``-inf`` where the path does not exist (the numpy emulator's
+    :func:`diffpos.channel.slots.family_slot` plus its link budget), and the path length
+    ``out_len`` [m] (NaN where it does not exist). Direct rows are not served (the 18 of
+    :mod:`diffpos.channel.snr_nb` hold the direct path): ``-inf``."""
+    first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
+    edge = edge_axis(prm[_P_X0], prm[_P_X1])
+    eta_g, eta_in = eta[0], eta[1]
+    c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
+    rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
+    sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])
+    ninf = -np.inf
+    for i in range(nodes.shape[0]):
+        n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
+        k_node = _floor_index(n2, first_z, floor_h, prm[_P_N_FLOORS])
+        zf, zc, lo, hi = row_planes(k_node, first_z, floor_h, sill, win_h)
+        for j in range(anchors.shape[1]):
+            a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
+            for k in range(slots.shape[0]):
+                s = slots[k]
+                kind = table[s, COL_KIND]
+                length = np.nan
+                if kind == 1:
+                    g, att, v0, v1, v2, length, ok = _spec_family(
+                        table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g,
+                        eta_in)
+                elif kind == 2:
+                    g, att, v0, v1, v2, length, ok = _diff_family(
+                        table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g,
+                        eta_in, edge, sq2pik)
+                else:
+                    ok = False
+                if not ok or g == 0.0:
+                    out[i, j, k] = ninf
+                    out_len[i, j, k] = np.nan
+                    continue
+                out_len[i, j, k] = length
+                rx_db = 0.0
+                if not math.isnan(rx_hpbw):
+                    rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, rx_peak)
+                out[i, j, k] = (c0 + rx_db + (20 * math.log10(g) - att)) + pgain - n0_dbm
+
+
+_state: dict[str, object] = {}
+
+
+def warm_families() -> float:
+    """Compile :func:`family_snr_kernel` for :data:`FAMILY_SIGNATURE` or load it from numba's
+    cache; idempotent; the seconds it took (0 once warm). The anchors' channel warm-up
+    (:func:`diffpos.emulation.warm_up_channel`, a first :func:`diffpos.channel.emulator.pair_first_arrival`)
+    reaches it when ``radio.channel_max_order`` > 2."""
+    if "entry" in _state:
+        return 0.0
+    t0 = time.perf_counter()
+    family_snr_kernel.compile(FAMILY_SIGNATURE.args)
+    _state["entry"] = family_snr_kernel
+    return time.perf_counter() - t0
+
+
+def eval_family_snr(anchors: np.ndarray, nodes: np.ndarray,
+                    params: tuple[np.ndarray, np.ndarray, np.ndarray], table: np.ndarray,
+                    slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Run :func:`family_snr_kernel`: ``anchors`` (N, M, 3), ``nodes`` (N, 3) C-contiguous
+    float64, ``params`` of :func:`diffpos.channel.snr_nb.channel_params`, the mechanism
+    ``table`` and the rows ``slots`` of it; returns the SNR [dB] and the length [m], (N, M, S)
+    each."""
+    warm_families()
+    out = np.empty((nodes.shape[0], anchors.shape[1], slots.shape[0]))
+    out_len = np.empty_like(out)
+    family_snr_kernel(anchors, nodes, *params, np.ascontiguousarray(table, dtype=np.int64),
+                      np.ascontiguousarray(slots, dtype=np.int64), out, out_len)
+    return out, out_len
