@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 from diffpos.channel.emulator import (
     Channel,
     FirstArrival,
+    channel_mechanisms,
     emulate_channel,
     first_arrival,
     mpc_statistics,
@@ -20,7 +21,6 @@ from diffpos.channel.emulator import (
 from diffpos.channel.linkbudget import noise_floor_dbm
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.geometry import diffraction_point
-from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.scenario import Radio, Scenario
 from diffpos.study import Arrivals, FirstArrivalData
 from diffpos_services.raytrace.dataset import RaytraceDataset, load_dataset
@@ -210,7 +210,7 @@ def compare_with_emulator(ds: RaytraceDataset, *, radio: Radio | None = None) ->
         "both_mpc3": int(both3.sum()),
         "path_diff_m": (fr.true_path_m - fe.true_path_m)[both3],
         "path_diff_all_m": (fr.true_path_m - fe.true_path_m)[both],
-        "emulator_mechanism": np.asarray(MECHANISMS, dtype=object),
+        "emulator_mechanism": np.asarray(channel_mechanisms(radio).labels, dtype=object),
         "fap_emulator": fe,
         "fap_raytrace": fr,
         "stats_emulator": mpc_statistics(ch, fe),

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.channel.emulator import emulate_channel, first_arrival
+from diffpos.channel.emulator import channel_mechanisms, emulate_channel, first_arrival
 from diffpos.paths.mechanisms import MECHANISMS
 from diffpos_services.raytrace.dataset import RaytraceDataset
 from diffpos_services.raytrace.evaluate import dataset_first_arrival, path_snr_db
@@ -116,8 +116,8 @@ def compare_mechanisms(ds: RaytraceDataset) -> dict[str, Any]:
     thr_rt = np.maximum(pmax - radio.fap_threshold_db, radio.detection_snr_db)
     cause, has_emu_path = _causes(ds, ch, fe, fr, rt_code, thr_rt)
     links = int(rt_code.size)
-    names = np.array([*MECHANISMS, "none"], dtype=object)
-    emu_label = names[np.where(fe.detected, fe.slot, len(MECHANISMS))]
+    names = np.array([*channel_mechanisms(radio).labels, "none"], dtype=object)
+    emu_label = names[np.where(fe.detected, fe.slot, len(names) - 1)]
     rt_key = np.where(rt_code == OTHER, "other: " + rt_label.astype(str).astype(object),
                       rt_label)
     pct = lambda c: {k: 100.0 * v / links for k, v in c.most_common()}  # noqa: E731
