@@ -144,6 +144,7 @@ from diffpos.tracking.evidence import (
     learn,
     learned_weights,
     match_links,
+    model_doubt,
     reset_links,
 )
 from diffpos.tracking.iekf_nb import warm_iekf
@@ -203,7 +204,7 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
 def _empty_links(n: int, h: int, t_ns: int = 0) -> dict:
     """The learned per-link arrays of ``n`` nodes with nothing learned."""
     shape = (n, h, LINK_SLOTS)
-    return {"link_out": np.zeros(shape), "link_all": np.zeros(shape),
+    return {"link_out": np.zeros(shape), "link_all": np.zeros(shape), "link_ev": np.zeros(shape),
             "link_bias": np.full(shape, np.nan), "link_bias_var": np.full(shape, np.nan),
             "link_snr": np.full(shape, np.nan), "link_t_ns": np.full(shape, t_ns, np.int64)}
 
@@ -272,7 +273,10 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
         position_m=np.where(has[:, None], pos, np.nan),
         covariance_m2=np.where(has[:, None, None], cov, np.nan),
         floor_index=np.where(has, best, -1),
-        floor_probabilities=published_floor_probabilities(state.log_prob, config, prob_h),
+        floor_probabilities=published_floor_probabilities(
+            state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
+            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config)
+                   if config.floor_model_doubt and config.link_learn else None)),
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
 
@@ -473,7 +477,7 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
                   link_w: FloatArray | None = None):
     """Measurement update of the hypotheses ``(rr[i], cc[i])`` (node row, hypothesis) of
     ``mean`` (n, H, 6), ``cov``, ``links`` (n nodes): each pair as a node with one
-    hypothesis; per pair x, P, log-evidence, slot, NIS and residual of every link.
+    hypothesis; per pair x, P, log-evidence, slot, NIS, residual and log-weight of every link.
     ``snr_cache``: the nodes' ``(snr_node, snr_anchor, snr_pred)`` arrays (n, H, ...)
     (:class:`~diffpos.tracking.state.TrackerState`), the pairs' rows read and updated in
     place (:class:`diffpos.tracking.model.SnrCache`). ``link_w``: the nodes' learned link
@@ -491,7 +495,8 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
     if sc is not None:
         for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
             a[rr, cc] = v[:, 0]
-    return x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0]
+    return (x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
+            sel.log_weight[:, 0])
 
 
 def _normalise(lp: FloatArray) -> FloatArray:
@@ -536,6 +541,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
                  if snr_reuse_on(config) else None)
     ev, slot = np.full((n, h), np.nan), np.full((n, h, m), -1)
     nis_h, res = np.full((n, h, m), np.nan), np.full((n, h, m), np.nan)
+    lw = np.zeros((n, h, m))
     log_thr = _dormant_log_p(dt_s[idx], nf, config)[:, None]
     doubt = ((state.status[idx] != TrackStatus.TRACKING)
              | (floor_probabilities(lp0).max(axis=1) < config.dormant_floor_p))
@@ -562,7 +568,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         rr, cc = np.nonzero(todo)
         if rr.size:
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
-             res[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
+             res[rr, cc], lw[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
                                           snr_cache, link_w)
         run = run | todo
         lp, llr = _posterior(lp0, ev, run, llr0)
@@ -590,7 +596,10 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     if snr_cache is not None:  # the SNR cache's rows (reuse off: the state's stay as they are)
         new.update(zip(("snr_node", "snr_anchor", "snr_pred"), snr_cache, strict=True))
     if lk is not None:
-        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config),
+        # every link's share of the hypothesis' evidence: its mixture log-weight (mechanism
+        # prior, SNR, or the outlier's density) and its range term at the fit
+        ev_link = np.where(sub.mask[:, 0][:, None, :], lw - 0.5 * np.nan_to_num(nis_h), 0.0)
+        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link),
                    link_anchor=tab, link_seen_ns=seen)
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
 
