@@ -233,13 +233,15 @@ class TrackerConfig:
         (:func:`diffpos.tracking.evidence.model_doubt`; needs ``link_learn``). Publication
         only. False: not mixed (before).
     floor_robust_links : int
-        The published odds of the most probable floor against every other one leave out the
-        share of that floor's deficit carried by its this many most decisive links
-        (:func:`robust_floor_log_prob`; needs ``link_learn``). Publication only. Default 0
-        (off): measured (docs/tracking_evidence.md) it halves the wrong floors published at
-        p >= 0.95 on Sionna RT (paper 2.2 -> 1.25 % with ``floor_model_doubt``) but the
-        emulator's floors, 99.6-99.7 % right, are then published underconfident (``large``
-        floor log score 0.02 -> 0.18 nats, 18 % of its node-epochs below 0.5).
+        In the published odds of the most probable floor against every other one, the share
+        of that floor's deficit carried by its this many most decisive links is worth at most
+        ``ln((1 - outlier_weight) / outlier_weight)`` (:func:`robust_floor_log_prob`; needs
+        ``link_learn``). Publication only. Default 0 (off): measured with 1
+        (docs/tracking_evidence.md, with ``floor_model_doubt``) the wrong floors published
+        at p >= 0.95 on Sionna RT fall from 2.19 to 1.81 % (paper), 2.44 to 1.85 % (open
+        plan), 1.43 to 0.45 % (a held-out building), but the emulator's floors, 99.6-99.7 %
+        right, are then published underconfident (``large``: 20 % of its node-epochs at
+        0.5-0.8, 99 % right; floor log score 0.020 -> 0.087 nats, ``default`` 0.074 -> 0.200).
     """
 
     q_h_m2_s3: float = 1.5
@@ -491,8 +493,9 @@ def published_floor_probabilities(log_prob: ArrayLike, config: TrackerConfig,
     if kappa == 1.0 and not robust:
         return _mix_uniform(p, doubt)
     if robust:
+        e0 = float(config.outlier_weight)
         lf = robust_floor_log_prob(np.asarray(log_prob, dtype=np.float64), link_ev, link_all,
-                                   config.floor_robust_links)
+                                   config.floor_robust_links, float(np.log((1 - e0) / e0)))
         lp = np.maximum(lf, np.log(1e-300)) / kappa
     else:
         lp = np.log(np.maximum(p, 1e-300)) / kappa
@@ -510,24 +513,27 @@ def _mix_uniform(p: FloatArray, doubt: FloatArray | None) -> FloatArray:
 
 
 def robust_floor_log_prob(log_prob: FloatArray, link_ev: FloatArray, link_all: FloatArray,
-                          n_drop: int) -> FloatArray:
+                          n_drop: int, cap_nats: float = 0.0) -> FloatArray:
     """Floor log-marginals (N, F) of the hypotheses' ``log_prob`` (N, H = 2F) with the
-    evidence of the ``n_drop`` links that decide each floor's deficit most withheld: the
-    published floor probabilities' *one-link-out* robustness
-    (``TrackerConfig.floor_robust_links``; :func:`published_floor_probabilities`).
+    evidence of the ``n_drop`` links that decide each floor's deficit most worth at most
+    ``cap_nats``: the published floor probabilities' *one-link-out* robustness
+    (``TrackerConfig.floor_robust_links``; :func:`published_floor_probabilities` passes
+    ``cap_nats = ln((1 - e0) / e0)``, ``e0 = outlier_weight``).
 
     The most probable floor ``f*`` keeps its log-marginal. For every other floor ``g`` the
     best hypotheses of ``f*`` and ``g`` (over the vertical modes) are compared link by link
     on their forgotten per-link evidence ``link_ev`` (N, H, L) [nats] (links both have seen:
     ``link_all`` > 0): ``d_l = ev(f*, l) - ev(g, l)``, ``D = sum_l d_l``. The ``n_drop``
     largest positive ``d_l`` are a share ``s = min(sum of them / D, 1)`` of ``g``'s deficit
-    (0 where ``D <= 0``: the links do not favour ``f*``), and ``g``'s log-odds against ``f*``
-    are scaled by ``1 - s``. Why: a link whose first arrival is out of the path model is
-    explained on a mirror floor by one of its own mechanisms while the true floor must call it
-    an outlier, and it does so every epoch: one link then carries the whole floor decision
-    (Sionna RT, paper building: 88 of 135 receivers with one out-of-model link on a wrong
-    floor). Published odds that survive the loss of any one link cannot be made by a single
-    link, whatever the channel; the filter itself is unchanged.
+    ``G`` (0 where ``D <= 0``: the links do not favour ``f*``); ``g``'s deficit becomes
+    ``G (1 - s) + min(G s, cap_nats)``. Why: a link whose first arrival is out of the path
+    model is explained on a mirror floor by one of its own mechanisms while the true floor must
+    call it an outlier, and it does so every epoch: one link then carries the whole floor
+    decision (Sionna RT, paper building: 88 of 135 receivers with one out-of-model link on a
+    wrong floor). Its repetition from epoch to epoch is not independent evidence (the same
+    geometry, the same unmodelled arrival), so one link's persistent vote is worth at most the
+    odds the model gives it of being one of its mechanisms, ``(1 - e0) / e0``; ``cap_nats``
+    0 leaves that link out altogether. The filter itself is unchanged.
     """
     nf = log_prob.shape[1] // 2
     rows = np.arange(log_prob.shape[0])
@@ -547,5 +553,7 @@ def robust_floor_log_prob(log_prob: FloatArray, link_ev: FloatArray, link_all: F
     s = np.where(tot > 0, np.minimum(lead / np.where(tot > 0, tot, 1.0), 1.0), 0.0)
     lf_top = lf[rows, top][:, None]
     with np.errstate(invalid="ignore"):
-        out = np.where(np.isfinite(lf), lf_top - (lf_top - lf) * (1.0 - s), lf)
+        gap = lf_top - lf
+        out = np.where(np.isfinite(lf), lf_top - gap * (1.0 - s) - np.minimum(gap * s, cap_nats),
+                       lf)
     return out

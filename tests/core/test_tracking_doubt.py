@@ -106,10 +106,11 @@ def test_model_doubt_and_mixing_closed_form():
 
 def test_robust_floor_log_prob_closed_form():
     """:func:`robust_floor_log_prob` against a per-floor loop: the top floor keeps its
-    log-marginal; every other floor's deficit is scaled by ``1 - s``, ``s`` the share of the
-    per-link evidence differences (links both best hypotheses saw) carried by the largest
-    ``k`` positive ones (k = 1, 2; 1e-9); 0 links dropped: the log-marginals; and the
-    published probabilities (k = 1, no doubt) are those log-marginals tempered by kappa."""
+    log-marginal; every other floor's deficit ``G`` becomes ``G (1 - s) + min(G s, cap)``,
+    ``s`` the share of the per-link evidence differences (links both best hypotheses saw)
+    carried by the largest ``k`` positive ones (k = 1, 2; cap 0 and 3.9 nats; 1e-9); 0 links
+    dropped: the log-marginals; and the published probabilities (k = 1, no doubt) are those
+    log-marginals with ``cap = ln((1 - e0) / e0)`` tempered by kappa."""
     rng = np.random.default_rng(7)
     n, h, nl = 40, 8, 16
     nf = h // 2
@@ -120,8 +121,8 @@ def test_robust_floor_log_prob_closed_form():
     p = np.exp(lp)
     lf = np.log(p[:, :nf] + p[:, nf:])
     np.testing.assert_array_equal(robust_floor_log_prob(lp, ev, n_all, 0), lf)
-    for k in (1, 2):
-        got = robust_floor_log_prob(lp, ev, n_all, k)
+    for k, cap in ((1, 0.0), (2, 0.0), (1, 3.9), (2, 3.9)):
+        got = robust_floor_log_prob(lp, ev, n_all, k, cap)
         for i in range(n):
             f = int(np.argmax(lf[i]))
             best = [g if p[i, g] >= p[i, g + nf] else g + nf for g in range(nf)]
@@ -130,10 +131,12 @@ def test_robust_floor_log_prob_closed_form():
                 d = np.where(both, ev[i, best[f]] - ev[i, best[g]], 0.0)
                 lead = np.sort(np.maximum(d, 0))[::-1][:k].sum()
                 s = min(lead / d.sum(), 1.0) if d.sum() > 0 else 0.0
-                want = lf[i, f] - (lf[i, f] - lf[i, g]) * (1 - s)
+                gap = lf[i, f] - lf[i, g]
+                want = lf[i, f] - gap * (1 - s) - min(gap * s, cap)
                 assert abs(got[i, g] - want) < 1e-9, (i, g, got[i, g], want)
     cfg = dataclasses.replace(TrackerConfig(), floor_robust_links=1)
     pub = published_floor_probabilities(lp, cfg, link_ev=ev, link_all=n_all)
-    t = robust_floor_log_prob(lp, ev, n_all, 1) / evidence_temper(cfg)
+    e0 = cfg.outlier_weight
+    t = robust_floor_log_prob(lp, ev, n_all, 1, np.log((1 - e0) / e0)) / evidence_temper(cfg)
     t = np.exp(t - t.max(axis=1, keepdims=True))
     np.testing.assert_allclose(pub, t / t.sum(axis=1, keepdims=True), rtol=0, atol=1e-12)
