@@ -226,6 +226,11 @@ class TrackerConfig:
         Cap of the published most probable floor's probability with fewer than
         ``min_anchors_tracking`` ranges (the probabilities mixed towards uniform until the
         cap holds; the most probable floor is unchanged).
+    max_order : int
+        The first-arrival families of at most this many interactions
+        (:func:`diffpos.paths.mechanisms.mechanism_set`) beyond the 18 mechanisms are part of
+        every link's out-of-model component (:mod:`diffpos.tracking.families`); 2: none
+        (before).
     floor_model_doubt : bool
         The published floor probabilities are mixed towards uniform by the probability that
         the node's data hold a first arrival the path model does not explain, by the learned
@@ -292,6 +297,7 @@ class TrackerConfig:
     lost_on_gap: bool = True
     min_anchors_tracking: int = 3
     few_anchors_floor_p_max: float = 0.75
+    max_order: int = 2
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
 

@@ -138,15 +138,18 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from diffpos.paths.mechanisms import DEFAULT_ORDER
 from diffpos.tracking.evidence import (
     LINK_FIELDS,
     LINK_SLOTS,
+    _gather,
     learn,
     learned_weights,
     match_links,
     model_doubt,
     reset_links,
 )
+from diffpos.tracking.families import family_log_weight
 from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
 from diffpos.tracking.initialisation_nb import warm_grid
@@ -155,6 +158,8 @@ from diffpos.tracking.model import (
     SNR_SIGMA_DB,
     SNR_SPAN_DB,
     SnrCache,
+    clamp_to_floor,
+    link_weights,
     measurement_update,
     snapshot,
     snapshot_init,
@@ -474,24 +479,35 @@ def _refresh_due(updated_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
 
 def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
                   config: TrackerConfig, snr_cache: tuple | None = None,
-                  link_w: FloatArray | None = None):
+                  link_w: FloatArray | None = None, fam_gate: NDArray | None = None):
     """Measurement update of the hypotheses ``(rr[i], cc[i])`` (node row, hypothesis) of
     ``mean`` (n, H, 6), ``cov``, ``links`` (n nodes): each pair as a node with one
     hypothesis; per pair x, P, log-evidence, slot, NIS, residual and log-weight of every link.
     ``snr_cache``: the nodes' ``(snr_node, snr_anchor, snr_pred)`` arrays (n, H, ...)
     (:class:`~diffpos.tracking.state.TrackerState`), the pairs' rows read and updated in
     place (:class:`diffpos.tracking.model.SnrCache`). ``link_w``: the nodes' learned link
-    weights (n, H, M, 2) (:func:`diffpos.tracking.evidence.learned_weights`), or None."""
+    weights (n, H, M, 2) (:func:`diffpos.tracking.evidence.learned_weights`), or None.
+    ``fam_gate`` (n, H, M): the links whose out-of-model component includes the extra
+    families (``config.max_order``, :mod:`diffpos.tracking.families`; None: every link)."""
     fl = hypothesis_floor(n_floors)[cc][:, None]
     level = ~hypothesis_vertical(n_floors)[cc][:, None]
     x0, p0 = mean[rr, cc][:, None], cov[rr, cc][:, None]
     sc = None
     if snr_cache is not None:
         sc = SnrCache(*(a[rr, cc][:, None] for a in snr_cache))
-    x, p, ev, sel, res = measurement_update(x0, p0, links.take(rr), fl, building, config,
-                                            level=level, snr_cache=sc,
-                                            link_w=None if link_w is None
-                                            else link_w[rr, cc][:, None])
+    sub = links.take(rr)
+    w = None if link_w is None else link_w[rr, cc][:, None]
+    if config.max_order > DEFAULT_ORDER:  # the extra families (diffpos.tracking.families)
+        if w is None:
+            w = link_weights(sub, config, sub.snr is not None, rr.size, 1)
+        pos = clamp_to_floor(x0[:, 0, :3], fl[:, 0], building, config.z_margin_m)
+        gate = (np.ones((rr.size, links.rho.shape[-1]), bool) if fam_gate is None
+                else fam_gate[rr, cc])
+        w[:, 0, :, 1] += family_log_weight(pos, p0[:, 0, :3, :3], links, rr, fl[:, 0], gate,
+                                           building, config,
+                                           np.log(-np.expm1(w[:, 0, :, 0])))
+    x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
+                                            level=level, snr_cache=sc, link_w=w)
     if sc is not None:
         for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
             a[rr, cc] = v[:, 0]
@@ -554,7 +570,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         run[:] = True
     r = np.arange(n)
     n_meas = np.sum(sub.mask[:, 0], axis=1)
-    lk = col = link_w = None
+    lk = col = link_w = fam_gate = None
     if config.link_learn:  # the learned unmodelled-path component (diffpos.tracking.evidence)
         col, tab, seen, fresh = match_links(state.link_anchor[idx], state.link_seen_ns[idx],
                                             sub.anchors[:, 0], sub.mask[:, 0], t_ns[idx],
@@ -563,13 +579,15 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         reset_links(lk, np.arange(n), fresh)
         link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                                  SNR_SPAN_DB)
+        if config.max_order > DEFAULT_ORDER:  # the families of the links out of the 18 before
+            fam_gate = _gather(lk["link_out"], col) > 0
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
         if rr.size:
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
              res[rr, cc], lw[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
-                                          snr_cache, link_w)
+                                          snr_cache, link_w, fam_gate)
         run = run | todo
         lp, llr = _posterior(lp0, ev, run, llr0)
         best = np.argmax(lp, axis=1)
