@@ -235,23 +235,26 @@ def reset_links(lk: dict, rows: NDArray, links_reset: NDArray[np.bool_] | None =
 
 
 def model_doubt(log_prob: FloatArray, link_out: FloatArray, link_all: FloatArray,
-                config) -> FloatArray:
-    """Probability (N,) that a node's data hold a first arrival its path model does not
-    explain, by the node's own most probable hypothesis (``TrackerConfig.floor_model_doubt``;
-    the published floor probabilities are mixed towards uniform by it:
-    :func:`diffpos.tracking.state.published_floor_probabilities`).
+                config, n_links: NDArray | None = None) -> FloatArray:
+    """Probability (N,) that a node's floor evidence rests on first arrivals its path model
+    does not explain, by the node's own most probable hypothesis
+    (``TrackerConfig.floor_model_doubt``; the published floor probabilities are mixed towards
+    uniform by it: :func:`diffpos.tracking.state.published_floor_probabilities`).
 
     The best hypothesis (over the vertical modes) of the most probable floor has learned every
     link's outlier weight ``eps_l`` (module docstring: the Beta-Bernoulli mean, prior mean
-    ``e0 = outlier_weight``); ``1 - prod_l (1 - eps_l) / (1 - e0)`` is the probability that at
-    least one of its links is out of the model beyond the prior rate the filter's evidence
-    already assumes (0 when every link is explained as the prior expects; a link never seen
-    has ``eps = e0``). Why: the floor evidence is a likelihood ratio under the path model; a
-    link the winner itself cannot explain says the model does not hold for this node, and then
-    a mirror floor may explain the same arrival by one of its own mechanisms (Sionna RT, paper
-    building: a receiver with one out-of-model link is on a wrong floor in 88 of 135 cases), so
-    the floor evidence is not to be trusted with that probability. A function of the node's
-    own state only.
+    ``e0 = outlier_weight``); ``q_l = 1 - (1 - eps_l) / (1 - e0)`` is the probability that
+    link ``l`` is out of the model beyond the prior rate the filter's evidence already assumes
+    (0 for a link explained as the prior expects or never seen). The doubt is the probability
+    that at least ``r = max(n_links - 3, 1)`` links are out of the model (independent links,
+    the Poisson-binomial tail; ``n_links`` (N,) the node's ranges this epoch, None: ``r = 1``):
+    three ranges fix a position on any floor, so the floor is tested by the ranges beyond
+    three, and it is at risk once no in-model range is left beyond them. Why: the floor
+    evidence is a likelihood ratio under the path model; an arrival the model cannot explain
+    is explained on a mirror floor by one of its own mechanisms (Sionna RT, paper building,
+    4 anchors: a receiver with one out-of-model link is on a wrong floor in 88 of 135 cases),
+    so the floor evidence is not to be trusted with that probability. A function of the node's
+    own state and ranges only.
     """
     n, h = log_prob.shape
     nf = h // 2
@@ -261,5 +264,16 @@ def model_doubt(log_prob: FloatArray, link_out: FloatArray, link_all: FloatArray
     top = np.argmax(pf, axis=1)
     hs = np.where(p[rows, top] >= p[rows, top + nf], top, top + nf)
     eps = _eps(link_out[rows, hs], link_all[rows, hs], config)
-    e0 = config.outlier_weight
-    return np.clip(1.0 - np.prod((1.0 - eps) / (1.0 - e0), axis=-1), 0.0, 1.0)
+    q = np.clip(1.0 - (1.0 - eps) / (1.0 - config.outlier_weight), 0.0, 1.0)  # (N, L)
+    r = (np.ones(n, int) if n_links is None
+         else np.maximum(np.asarray(n_links, int) - 3, 1))
+    # distribution of the number of out-of-model links (Poisson-binomial), counts >= r pooled
+    nl = q.shape[1]
+    dist = np.zeros((n, nl + 1))
+    dist[:, 0] = 1.0
+    for j in range(nl):
+        qj = q[:, j:j + 1]
+        dist[:, 1:] = dist[:, 1:] * (1.0 - qj) + dist[:, :-1] * qj
+        dist[:, 0] *= 1.0 - qj[:, 0]
+    below = np.arange(nl + 1)[None, :] < r[:, None]
+    return np.clip(1.0 - np.sum(np.where(below, dist, 0.0), axis=1), 0.0, 1.0)

@@ -71,7 +71,7 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
                      mechanisms=mset)
     ok = g.loose & np.isfinite(g.length_m)
     j = np.where(ok[..., None], g.jacobian, 0.0)
-    s = var[:, None] + np.einsum("qki,qij,qkj->qk", j, cov, j)
+    s = var[:, None] + np.sum(np.matmul(j, cov) * j, axis=-1)
     with np.errstate(invalid="ignore"):
         e = rho[:, None] - g.length_m
         ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)

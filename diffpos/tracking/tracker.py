@@ -249,7 +249,8 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
 
 
 def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
-             config: TrackerConfig | None = None) -> TrackOutput:
+             config: TrackerConfig | None = None, n_meas: NDArray | None = None
+             ) -> TrackOutput:
     config = TrackerConfig() if config is None else config
     n, h = state.log_prob.shape
     nf = h // 2
@@ -280,7 +281,7 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
         floor_index=np.where(has, best, -1),
         floor_probabilities=published_floor_probabilities(
             state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
-            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config)
+            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas)
                    if config.floor_model_doubt and config.link_learn else None)),
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
@@ -439,7 +440,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
                        snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk)
-    return new, _few_anchors(_publish(new, mech, resid, config), n_meas, config)
+    return new, _few_anchors(_publish(new, mech, resid, config, n_meas), n_meas, config)
 
 
 # --------------------------------------------------------------------------------------------
@@ -580,7 +581,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                                  SNR_SPAN_DB)
         if config.max_order > DEFAULT_ORDER:  # the families of the links out of the 18 before
-            fam_gate = _gather(lk["link_out"], col) > 0
+            fam_gate = _gather(lk["link_out"], col) > 0.5
     todo = run
     while True:
         rr, cc = np.nonzero(todo)

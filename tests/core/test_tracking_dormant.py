@@ -134,7 +134,9 @@ def test_dormant_run_matches_the_full_run_and_is_row_independent():
     last = s_on[-1]
     p = published_floor_probabilities(
         last.log_prob, ON, link_ev=last.link_ev, link_all=last.link_all,
-        doubt=model_doubt(last.log_prob, last.link_out, last.link_all, ON))
+        doubt=model_doubt(last.log_prob, last.link_out, last.link_all, ON,
+                          np.sum(np.asarray(inputs[-1][4], bool) & np.isfinite(inputs[-1][2]),
+                                 axis=1)))
     assert np.array_equal(p, o_on[-1].floor_probabilities)
     np.testing.assert_allclose(p.sum(axis=1), 1.0, atol=1e-12)
     _, alone = _track(inputs, ON, rows=[1])

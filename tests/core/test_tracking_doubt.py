@@ -13,6 +13,7 @@ the receiver on floor 1, and before the model doubt published that floor at p >=
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 
@@ -64,26 +65,35 @@ def test_sionna_receiver_on_a_mirror_floor_is_not_published_confident():
         assert model_doubt(st.log_prob, st.link_out, st.link_all, TrackerConfig())[0] > 0.3
 
 
-def _brute_doubt(lp, out, n_all, cfg):
-    """One node at a time, one link at a time."""
+def _brute_doubt(lp, out, n_all, cfg, n_links=None):
+    """One node at a time: the probability of at least ``max(n_links - 3, 1)`` links out of
+    the model, by enumerating every subset of the links that are not at the prior."""
     res = []
     for i in range(lp.shape[0]):
         p = np.exp(lp[i])
         nf = p.size // 2
         f = int(np.argmax(p[:nf] + p[nf:]))
         h = f if p[f] >= p[f + nf] else f + nf
-        keep = 1.0
+        q = []
         for o, a in zip(out[i, h], n_all[i, h], strict=True):
             eps = (cfg.outlier_weight * cfg.link_prior_updates + o) / (cfg.link_prior_updates + a)
             eps = min(max(eps, cfg.outlier_weight), cfg.link_outlier_max)
-            keep *= (1 - eps) / (1 - cfg.outlier_weight)
-        res.append(1 - keep)
+            q.append(1 - (1 - eps) / (1 - cfg.outlier_weight))
+        q = [v for v in q if v > 0]  # the others are never out (probability 0)
+        r = 1 if n_links is None else max(int(n_links[i]) - 3, 1)
+        tail = 0.0
+        for bits in itertools.product((0, 1), repeat=len(q)):
+            if sum(bits) >= r:
+                tail += float(np.prod([v if b else 1 - v for v, b in zip(q, bits, strict=True)]))
+        res.append(tail)
     return np.array(res)
 
 
 def test_model_doubt_and_mixing_closed_form():
-    """Random banks (5 floors, 16 links): :func:`model_doubt` equals the per-link product
-    computed one node at a time (1e-12); nothing learned gives exactly 0 and the published
+    """Random banks (5 floors, 16 links, at most 5 learned per hypothesis): :func:`model_doubt`
+    equals the probability of at least ``max(n_links - 3, 1)`` out-of-model links enumerated
+    one node at a time (no ``n_links``, 4, 6 and 9 ranges; 1e-12); more ranges, less doubt;
+    nothing learned gives exactly 0 and the published
     probabilities are then bit for bit those without the doubt; with a doubt ``w`` they are
     ``(1 - w) q + w / F`` of the tempered ``q`` (1e-12), the most probable floor unchanged."""
     cfg = TrackerConfig()
@@ -91,10 +101,19 @@ def test_model_doubt_and_mixing_closed_form():
     n, h, nl = 64, 10, 16
     lp = rng.normal(0, 6, (n, h))
     lp -= np.log(np.exp(lp).sum(axis=1, keepdims=True))
-    n_all = rng.uniform(0, 20, (n, h, nl)) * (rng.random((n, h, nl)) < 0.4)
-    out = n_all * rng.random((n, h, nl)) * (rng.random((n, h, nl)) < 0.3)
+    n_all = rng.uniform(0, 20, (n, h, nl)) * (np.arange(nl) < 5)
+    out = n_all * rng.random((n, h, nl)) * (rng.random((n, h, nl)) < 0.5)
     w = model_doubt(lp, out, n_all, cfg)
     np.testing.assert_allclose(w, _brute_doubt(lp, out, n_all, cfg), rtol=0, atol=1e-12)
+    last = w
+    for k in (4, 6, 9):
+        nk = np.full(n, k)
+        wk = model_doubt(lp, out, n_all, cfg, nk)
+        np.testing.assert_allclose(wk, _brute_doubt(lp, out, n_all, cfg, nk), rtol=0,
+                                   atol=1e-12)
+        assert np.all(wk <= last + 1e-15)
+        last = wk
+    assert np.any(last < w - 0.01)
     assert np.all(model_doubt(lp, 0 * out, 0 * n_all, cfg) == 0.0)
     q = published_floor_probabilities(lp, cfg)
     np.testing.assert_array_equal(published_floor_probabilities(lp, cfg, doubt=0 * w), q)
