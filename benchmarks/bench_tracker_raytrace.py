@@ -50,7 +50,8 @@ from diffpos.tracking.tracker import init_state, update
 DEFAULT_DATASET = "/work/rt/paper-200-1e6-d4.npz"
 #: The new evidence settings switched off: the tracker as it was before them (issue 34,
 #: items 3 and 5); filled from TrackerConfig's fields that exist.
-EVIDENCE_OFF = {"link_learn": False, "snr_cost_cap_nats": 0.0}
+EVIDENCE_OFF = {"link_learn": False, "snr_cost_cap_nats": 0.0, "floor_model_doubt": False,
+                "max_order": 2}
 
 
 def _parse_sets(items: list[str]) -> dict:

@@ -47,13 +47,15 @@ from numpy.typing import NDArray
 
 from diffpos.tracking.state import FloatArray
 
-__all__ = ["LINK_FIELDS", "LINK_SLOTS", "learn", "learned_weights", "match_links", "reset_links"]
+__all__ = ["LINK_FIELDS", "LINK_SLOTS", "learn", "learned_weights", "match_links", "model_doubt",
+           "reset_links"]
 
 # per node whose learned evidence the state keeps (an anchor beyond it is not learned).
 LINK_SLOTS = 16
 _LOG2PI = float(np.log(2.0 * np.pi))
 #: The state's per-hypothesis learned arrays (n, H, L) (:class:`~diffpos.tracking.state.TrackerState`).
-LINK_FIELDS = ("link_out", "link_all", "link_bias", "link_bias_var", "link_snr", "link_t_ns")
+LINK_FIELDS = ("link_out", "link_all", "link_ev", "link_bias", "link_bias_var", "link_snr",
+               "link_t_ns")
 
 
 def match_links(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArray,
@@ -164,10 +166,14 @@ def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArra
 
 def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray,
           p: FloatArray, slot: NDArray[np.int_], links, t_ns: NDArray[np.int64],
-          config) -> dict:
+          config, ev_link: FloatArray | None = None) -> dict:
     """The learned arrays after one update (new arrays): the hypotheses ``run`` (n, H) that had
     a real update, at their posteriors ``x``, ``p``, with their selections ``slot``
-    (n, H, M; -1 outlier or absent); module docstring."""
+    (n, H, M; -1 outlier or absent); module docstring. ``ev_link`` (n, H, M) [nats]: every
+    link's share of the hypothesis' log-evidence in this update (its forgotten sum is
+    ``link_ev``, :func:`diffpos.tracking.state.robust_floor_log_prob`); None: 0."""
+    if ev_link is None:
+        ev_link = np.zeros(slot.shape)
     n, h = run.shape
     m = col.shape[1]
     new = {k: v.copy() for k, v in lk.items()}
@@ -179,6 +185,7 @@ def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray
         li = col[r, j]
         new["link_out"][r, c, li] = f * new["link_out"][r, c, li] + is_out[r, c, j]
         new["link_all"][r, c, li] = f * new["link_all"][r, c, li] + 1.0
+        new["link_ev"][r, c, li] = f * new["link_ev"][r, c, li] + ev_link[r, c, j]
         return new
     los, lvar = _los(x, p, links)
     var = links.var[:, 0][:, None, :] + lvar
@@ -194,6 +201,7 @@ def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray
         oj = is_out[:, :, j][pj]
         new["link_out"][r, c, li] = f * new["link_out"][r, c, li] + oj
         new["link_all"][r, c, li] = f * new["link_all"][r, c, li] + 1.0
+        new["link_ev"][r, c, li] = f * new["link_ev"][r, c, li] + ev_link[:, :, j][pj]
         ro, co, lo = r[oj], c[oj], li[oj]
         if ro.size == 0:
             continue
@@ -220,7 +228,52 @@ def reset_links(lk: dict, rows: NDArray, links_reset: NDArray[np.bool_] | None =
     sel = (np.ones((rows.size, lk["link_out"].shape[2]), bool) if links_reset is None
            else links_reset)
     for k, v in lk.items():
-        fill = 0 if k in ("link_out", "link_all", "link_t_ns") else np.nan
+        fill = 0 if k in ("link_out", "link_all", "link_ev", "link_t_ns") else np.nan
         sub = v[rows]
         sub[np.broadcast_to(sel[:, None, :], sub.shape)] = fill
         v[rows] = sub
+
+
+def model_doubt(log_prob: FloatArray, link_out: FloatArray, link_all: FloatArray,
+                config, n_links: NDArray | None = None) -> FloatArray:
+    """Probability (N,) that a node's floor evidence rests on first arrivals its path model
+    does not explain, by the node's own most probable hypothesis
+    (``TrackerConfig.floor_model_doubt``; the published floor probabilities are mixed towards
+    uniform by it: :func:`diffpos.tracking.state.published_floor_probabilities`).
+
+    The best hypothesis (over the vertical modes) of the most probable floor has learned every
+    link's outlier weight ``eps_l`` (module docstring: the Beta-Bernoulli mean, prior mean
+    ``e0 = outlier_weight``); ``q_l = 1 - (1 - eps_l) / (1 - e0)`` is the probability that
+    link ``l`` is out of the model beyond the prior rate the filter's evidence already assumes
+    (0 for a link explained as the prior expects or never seen). The doubt is the probability
+    that at least ``r = max(n_links - 3, 1)`` links are out of the model (independent links,
+    the Poisson-binomial tail; ``n_links`` (N,) the node's ranges this epoch, None: ``r = 1``):
+    three ranges fix a position on any floor, so the floor is tested by the ranges beyond
+    three, and it is at risk once no in-model range is left beyond them. Why: the floor
+    evidence is a likelihood ratio under the path model; an arrival the model cannot explain
+    is explained on a mirror floor by one of its own mechanisms (Sionna RT, paper building,
+    4 anchors: a receiver with one out-of-model link is on a wrong floor in 88 of 135 cases),
+    so the floor evidence is not to be trusted with that probability. A function of the node's
+    own state and ranges only.
+    """
+    n, h = log_prob.shape
+    nf = h // 2
+    rows = np.arange(n)
+    p = np.exp(log_prob)
+    pf = p[:, :nf] + p[:, nf:]
+    top = np.argmax(pf, axis=1)
+    hs = np.where(p[rows, top] >= p[rows, top + nf], top, top + nf)
+    eps = _eps(link_out[rows, hs], link_all[rows, hs], config)
+    q = np.clip(1.0 - (1.0 - eps) / (1.0 - config.outlier_weight), 0.0, 1.0)  # (N, L)
+    r = (np.ones(n, int) if n_links is None
+         else np.maximum(np.asarray(n_links, int) - 3, 1))
+    # distribution of the number of out-of-model links (Poisson-binomial), counts >= r pooled
+    nl = q.shape[1]
+    dist = np.zeros((n, nl + 1))
+    dist[:, 0] = 1.0
+    for j in range(nl):
+        qj = q[:, j:j + 1]
+        dist[:, 1:] = dist[:, 1:] * (1.0 - qj) + dist[:, :-1] * qj
+        dist[:, 0] *= 1.0 - qj[:, 0]
+    below = np.arange(nl + 1)[None, :] < r[:, None]
+    return np.clip(1.0 - np.sum(np.where(below, dist, 0.0), axis=1), 0.0, 1.0)

@@ -138,14 +138,18 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from diffpos.paths.mechanisms import DEFAULT_ORDER
 from diffpos.tracking.evidence import (
     LINK_FIELDS,
     LINK_SLOTS,
+    _gather,
     learn,
     learned_weights,
     match_links,
+    model_doubt,
     reset_links,
 )
+from diffpos.tracking.families import family_log_weight
 from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
 from diffpos.tracking.initialisation_nb import warm_grid
@@ -154,6 +158,8 @@ from diffpos.tracking.model import (
     SNR_SIGMA_DB,
     SNR_SPAN_DB,
     SnrCache,
+    clamp_to_floor,
+    link_weights,
     measurement_update,
     snapshot,
     snapshot_init,
@@ -203,7 +209,7 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
 def _empty_links(n: int, h: int, t_ns: int = 0) -> dict:
     """The learned per-link arrays of ``n`` nodes with nothing learned."""
     shape = (n, h, LINK_SLOTS)
-    return {"link_out": np.zeros(shape), "link_all": np.zeros(shape),
+    return {"link_out": np.zeros(shape), "link_all": np.zeros(shape), "link_ev": np.zeros(shape),
             "link_bias": np.full(shape, np.nan), "link_bias_var": np.full(shape, np.nan),
             "link_snr": np.full(shape, np.nan), "link_t_ns": np.full(shape, t_ns, np.int64)}
 
@@ -243,7 +249,8 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
 
 
 def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
-             config: TrackerConfig | None = None) -> TrackOutput:
+             config: TrackerConfig | None = None, n_meas: NDArray | None = None
+             ) -> TrackOutput:
     config = TrackerConfig() if config is None else config
     n, h = state.log_prob.shape
     nf = h // 2
@@ -272,7 +279,10 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
         position_m=np.where(has[:, None], pos, np.nan),
         covariance_m2=np.where(has[:, None, None], cov, np.nan),
         floor_index=np.where(has, best, -1),
-        floor_probabilities=published_floor_probabilities(state.log_prob, config, prob_h),
+        floor_probabilities=published_floor_probabilities(
+            state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
+            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas)
+                   if config.floor_model_doubt and config.link_learn else None)),
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
 
@@ -430,7 +440,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
                        snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk)
-    return new, _few_anchors(_publish(new, mech, resid, config), n_meas, config)
+    return new, _few_anchors(_publish(new, mech, resid, config, n_meas), n_meas, config)
 
 
 # --------------------------------------------------------------------------------------------
@@ -470,28 +480,40 @@ def _refresh_due(updated_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
 
 def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
                   config: TrackerConfig, snr_cache: tuple | None = None,
-                  link_w: FloatArray | None = None):
+                  link_w: FloatArray | None = None, fam_gate: NDArray | None = None):
     """Measurement update of the hypotheses ``(rr[i], cc[i])`` (node row, hypothesis) of
     ``mean`` (n, H, 6), ``cov``, ``links`` (n nodes): each pair as a node with one
-    hypothesis; per pair x, P, log-evidence, slot, NIS and residual of every link.
+    hypothesis; per pair x, P, log-evidence, slot, NIS, residual and log-weight of every link.
     ``snr_cache``: the nodes' ``(snr_node, snr_anchor, snr_pred)`` arrays (n, H, ...)
     (:class:`~diffpos.tracking.state.TrackerState`), the pairs' rows read and updated in
     place (:class:`diffpos.tracking.model.SnrCache`). ``link_w``: the nodes' learned link
-    weights (n, H, M, 2) (:func:`diffpos.tracking.evidence.learned_weights`), or None."""
+    weights (n, H, M, 2) (:func:`diffpos.tracking.evidence.learned_weights`), or None.
+    ``fam_gate`` (n, H, M): the links whose out-of-model component includes the extra
+    families (``config.max_order``, :mod:`diffpos.tracking.families`; None: every link)."""
     fl = hypothesis_floor(n_floors)[cc][:, None]
     level = ~hypothesis_vertical(n_floors)[cc][:, None]
     x0, p0 = mean[rr, cc][:, None], cov[rr, cc][:, None]
     sc = None
     if snr_cache is not None:
         sc = SnrCache(*(a[rr, cc][:, None] for a in snr_cache))
-    x, p, ev, sel, res = measurement_update(x0, p0, links.take(rr), fl, building, config,
-                                            level=level, snr_cache=sc,
-                                            link_w=None if link_w is None
-                                            else link_w[rr, cc][:, None])
+    sub = links.take(rr)
+    w = None if link_w is None else link_w[rr, cc][:, None]
+    if config.max_order > DEFAULT_ORDER:  # the extra families (diffpos.tracking.families)
+        if w is None:
+            w = link_weights(sub, config, sub.snr is not None, rr.size, 1)
+        pos = clamp_to_floor(x0[:, 0, :3], fl[:, 0], building, config.z_margin_m)
+        gate = (np.ones((rr.size, links.rho.shape[-1]), bool) if fam_gate is None
+                else fam_gate[rr, cc])
+        w[:, 0, :, 1] += family_log_weight(pos, p0[:, 0, :3, :3], links, rr, fl[:, 0], gate,
+                                           building, config,
+                                           np.log(-np.expm1(w[:, 0, :, 0])))
+    x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
+                                            level=level, snr_cache=sc, link_w=w)
     if sc is not None:
         for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
             a[rr, cc] = v[:, 0]
-    return x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0]
+    return (x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
+            sel.log_weight[:, 0])
 
 
 def _normalise(lp: FloatArray) -> FloatArray:
@@ -536,6 +558,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
                  if snr_reuse_on(config) else None)
     ev, slot = np.full((n, h), np.nan), np.full((n, h, m), -1)
     nis_h, res = np.full((n, h, m), np.nan), np.full((n, h, m), np.nan)
+    lw = np.zeros((n, h, m))
     log_thr = _dormant_log_p(dt_s[idx], nf, config)[:, None]
     doubt = ((state.status[idx] != TrackStatus.TRACKING)
              | (floor_probabilities(lp0).max(axis=1) < config.dormant_floor_p))
@@ -548,7 +571,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         run[:] = True
     r = np.arange(n)
     n_meas = np.sum(sub.mask[:, 0], axis=1)
-    lk = col = link_w = None
+    lk = col = link_w = fam_gate = None
     if config.link_learn:  # the learned unmodelled-path component (diffpos.tracking.evidence)
         col, tab, seen, fresh = match_links(state.link_anchor[idx], state.link_seen_ns[idx],
                                             sub.anchors[:, 0], sub.mask[:, 0], t_ns[idx],
@@ -557,13 +580,15 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         reset_links(lk, np.arange(n), fresh)
         link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                                  SNR_SPAN_DB)
+        if config.max_order > DEFAULT_ORDER:  # the families of the links out of the 18 before
+            fam_gate = _gather(lk["link_out"], col) > 0.5
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
         if rr.size:
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
-             res[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
-                                          snr_cache, link_w)
+             res[rr, cc], lw[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
+                                          snr_cache, link_w, fam_gate)
         run = run | todo
         lp, llr = _posterior(lp0, ev, run, llr0)
         best = np.argmax(lp, axis=1)
@@ -590,7 +615,10 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     if snr_cache is not None:  # the SNR cache's rows (reuse off: the state's stay as they are)
         new.update(zip(("snr_node", "snr_anchor", "snr_pred"), snr_cache, strict=True))
     if lk is not None:
-        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config),
+        # every link's share of the hypothesis' evidence: its mixture log-weight (mechanism
+        # prior, SNR, or the outlier's density) and its range term at the fit
+        ev_link = np.where(sub.mask[:, 0][:, None, :], lw - 0.5 * np.nan_to_num(nis_h), 0.0)
+        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link),
                    link_anchor=tab, link_seen_ns=seen)
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
+from diffpos.tracking.evidence import model_doubt
 from diffpos.tracking.imm import _mix
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import measurement_update
@@ -104,7 +105,7 @@ def test_pair_update_equals_the_full_layout():
                                             level=~hypothesis_vertical(nf))
     rr, cc = np.nonzero(np.ones(st.log_prob.shape, bool))
     got = _update_pairs(st.mean, st.cov, links, rr, cc, nf, B, OFF)
-    for g, ref in zip(got, (x, p, ev, sel.slot, sel.nis, res), strict=True):
+    for g, ref in zip(got, (x, p, ev, sel.slot, sel.nis, res, sel.log_weight), strict=True):
         assert np.array_equal(g, ref[rr, cc], equal_nan=True)
 
 
@@ -130,7 +131,12 @@ def test_dormant_run_matches_the_full_run_and_is_row_independent():
                        - np.array([o.position_m for o in o_off]), axis=-1)
     assert np.percentile(d, 95) < 0.01 and d.max() < 0.05, (np.percentile(d, 95), d.max())
     # published_floor_probabilities(): the published floor marginal, bit for bit
-    p = published_floor_probabilities(s_on[-1].log_prob, ON)
+    last = s_on[-1]
+    p = published_floor_probabilities(
+        last.log_prob, ON, link_ev=last.link_ev, link_all=last.link_all,
+        doubt=model_doubt(last.log_prob, last.link_out, last.link_all, ON,
+                          np.sum(np.asarray(inputs[-1][4], bool) & np.isfinite(inputs[-1][2]),
+                                 axis=1)))
     assert np.array_equal(p, o_on[-1].floor_probabilities)
     np.testing.assert_allclose(p.sum(axis=1), 1.0, atol=1e-12)
     _, alone = _track(inputs, ON, rows=[1])

@@ -1,0 +1,107 @@
+"""Higher-order first-arrival families in the tracker's out-of-model component
+(``TrackerConfig.max_order``).
+
+Why. The tracker's path model is the 18 mechanisms of :data:`diffpos.paths.mechanisms.MECHANISMS`
+(its compiled kernels evaluate those slots). On a channel we did not write (Sionna RT, paper
+building, depth 4) a link's first arrival is often one of the families those 18 leave out (a
+ceiling-floor-ceiling triple bounce, a lower-edge diffraction then two slab bounces): the true
+floor can only call it an outlier (uniform over ``outlier_span_m``, -3.4 nats and the outlier
+weight) while a mirror floor one to three below explains it by one of its own mechanisms, and
+the wrong floor wins. :func:`diffpos.paths.mechanisms.mechanism_set` derives those families in
+closed form (M-NLS: 60 -> 75.5 % right floor on Sionna paper with ``max_order`` 4).
+
+What. With ``max_order`` > 2 the out-of-model component of every link is no longer uniform
+alone: half of its mass (:data:`FAMILY_SHARE`: an out-of-model first arrival is one of the
+enumerated families or something else, no preference) is the mean over the hypothesis' existing
+extra families (``loose`` existence with the hypothesis' existence margin) of ``N(rho; L_k,
+J_k P J_k^T + R)``, with the outlier's uniform SNR density (no amplitude model for them). The
+link stays an outlier for the IEKF (no position information: the position is fitted by the 18
+mechanisms, whose Jacobians and SNR the kernels have), but a floor whose own extra family
+explains the range pays ``log eps`` plus a sharp Gaussian instead of ``log eps - log span``; and
+the learned outlier weight (:mod:`diffpos.tracking.evidence`) of a link that keeps being such an
+arrival grows, so its cost falls further. The mixture is evaluated at the hypothesis' prior for
+the pairs that get a real update, for the links the hypothesis has called an outlier before
+(its learned outlier count, :mod:`diffpos.tracking.evidence`; every link without
+``link_learn``): on a channel the 18 mechanisms explain, almost none, so the cost stays
+(numpy around the compiled path kernel of :func:`diffpos.paths.model.graded_paths`).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from numpy.typing import NDArray
+
+from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
+from diffpos.paths.model import graded_paths
+from diffpos.tracking.state import FloatArray
+
+__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight"]
+
+#: Share of the out-of-model component given to the enumerated extra families (the rest stays
+#: uniform over ``outlier_span_m``).
+FAMILY_SHARE = 0.5
+_LOG2PI = float(np.log(2.0 * np.pi))
+
+
+@functools.cache
+def extra_families(max_order: int) -> tuple[MechanismSet, NDArray[np.int64]] | None:
+    """The mechanism set of ``max_order`` and the slots of its families beyond the 18 (None
+    for ``max_order`` <= 2: none)."""
+    if max_order <= DEFAULT_ORDER:
+        return None
+    mset = mechanism_set(max_order)
+    return mset, np.arange(len(MECHANISMS), len(mset.recipes), dtype=np.int64)
+
+
+def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
+                   var: FloatArray, floor: NDArray, building, max_order: int,
+                   relax_m: float) -> FloatArray:
+    """``log mean_k N(rho; L_k, J_k P J_k^T + var)`` over the extra families (``max_order``)
+    that exist (``loose`` at ``relax_m``) for every link (Q,); -inf where none exists. Flat
+    links: ``pos`` (Q, 3), ``cov`` (Q, 3, 3), ``anchor`` (Q, 3), ``rho``, ``var``, ``floor``
+    (Q,)."""
+    fam = extra_families(max_order)
+    q = rho.shape[0]
+    if fam is None or q == 0:
+        return np.full(q, -np.inf)
+    mset, slots = fam
+    g = graded_paths(pos, anchor, building, relax_m=relax_m, floor=floor, slots=slots,
+                     mechanisms=mset)
+    ok = g.loose & np.isfinite(g.length_m)
+    j = np.where(ok[..., None], g.jacobian, 0.0)
+    s = var[:, None] + np.sum(np.matmul(j, cov) * j, axis=-1)
+    with np.errstate(invalid="ignore"):
+        e = rho[:, None] - g.length_m
+        ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)
+    n_ok = ok.sum(axis=-1)
+    with np.errstate(divide="ignore"):
+        top = np.max(ll, axis=-1)
+        safe = np.where(np.isfinite(top), top, 0.0)
+        tot = safe + np.log(np.sum(np.exp(ll - safe[:, None]), axis=-1))
+        return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf)
+
+
+def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
+                      floor: NDArray, gate: NDArray[np.bool_], building, config,
+                      log_eps: FloatArray | None = None) -> FloatArray:
+    """The change (P, M) of the out-of-model component's log-density of the pairs (node rows
+    ``rows`` of ``links``, prior ``pos`` (P, 3), ``cov`` (P, 3, 3), ``floor`` (P,)) when
+    :data:`FAMILY_SHARE` of it is the extra families' mixture: ``log((1 - c) + c span f)``,
+    ``f`` :func:`family_log_lik`'s density (module docstring), for the present links of
+    ``gate`` (P, M) (the others: 0, not evaluated); 0 everywhere for ``max_order`` <= 2."""
+    if extra_families(config.max_order) is None:
+        return np.zeros(gate.shape)
+    c = FAMILY_SHARE
+    gate = gate & links.mask[rows, 0]
+    pi, mi = np.nonzero(gate)
+    ll = family_log_lik(pos[pi], cov[pi], links.anchors[rows[pi], 0, mi],
+                        links.rho[rows[pi], 0, mi], links.var[rows[pi], 0, mi], floor[pi],
+                        building, config.max_order, config.exist_margin_m)
+    out = np.zeros(gate.shape)
+    # the families at the prior outlier weight, whatever the link's learned one (log_eps)
+    rel = 0.0 if log_eps is None else np.log(config.outlier_weight) - log_eps[pi, mi]
+    out[pi, mi] = np.logaddexp(np.log1p(-c),
+                               np.log(c) + np.log(config.outlier_span_m) + ll + rel)
+    return out
