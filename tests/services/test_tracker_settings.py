@@ -68,10 +68,11 @@ THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr
 #: the tracker's evidence settings before ab8d4d9 (2026-12-06 07:51 UTC: learned link weights)
 #: and its re-entry rules before d3f1e35 (2026-12-06 08:09 UTC: a stale track re-initialised,
 #: fewer than 3 ranges not TRACKING)
+#: and the published floor probabilities before f926bf5 (2026-12-06 10:19 UTC: the model doubt)
 LINK_OFF = {"link_learn": False, "snr_cost_cap_nats": 0.0, "lost_on_gap": False,
-            "min_anchors_tracking": 0}
+            "min_anchors_tracking": 0, "floor_model_doubt": False}
 #: a recording made after every change of a default
-NOW_NS = int(datetime.datetime(2026, 12, 6, 9, tzinfo=UTC).timestamp()) * 10**9
+NOW_NS = int(datetime.datetime(2026, 12, 6, 11, tzinfo=UTC).timestamp()) * 10**9
 #: a key that must change the estimates: the model error added to every range sigma [m]
 WHAT_IF = {"sigma_model_m": 0.3}
 
@@ -196,9 +197,9 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [
-    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-06 08:09 UTC"),
-    (AFTER_NS, LINK_OFF, "the defaults of then (lost_on_gap=false, min_anchors_tracking=0, "
-                         "link_learn=false, snr_cost_cap_nats=0.0)"),
+    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-06 10:19 UTC"),
+    (AFTER_NS, LINK_OFF, "the defaults of then (floor_model_doubt=false, lost_on_gap=false, "
+                         "min_anchors_tracking=0, link_learn=false, snr_cost_cap_nats=0.0)"),
     (BEFORE_NS, {**THEN, **LINK_OFF}, "snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, "
                                       "floor_evidence_lag1_corr=0.0, dormant=false)"),
     (None, {}, "recording time unknown: today's defaults"),
@@ -225,7 +226,9 @@ def test_legacy_tracker_settings_follow_the_history_of_the_defaults():
     tracking/state.py): each change applies to recordings made before it."""
     at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
     mnls = {"method": "mnls", "tracking": True}
-    assert legacy_tracker_settings(mnls, at(2026, 12, 6, 9))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 6, 11))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 6, 9))[0] == {
+        **DEFAULTS, "floor_model_doubt": False}
     assert legacy_tracker_settings(mnls, at(2026, 11, 27, 14))[0] == {**DEFAULTS, **LINK_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 11, 27, 12))[0] == {
         **DEFAULTS, **LINK_OFF, "snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0}

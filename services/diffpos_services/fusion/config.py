@@ -377,6 +377,7 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-12-06T10:19:50Z", "f926bf5", {"floor_model_doubt": False}),
     ("2026-12-06T08:09:51Z", "d3f1e35", {"lost_on_gap": False, "min_anchors_tracking": 0}),
     ("2026-12-06T07:51:29Z", "ab8d4d9", {"link_learn": False, "snr_cost_cap_nats": 0.0}),
     ("2026-11-27T13:36:18Z", "30c1dda", {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0}),
