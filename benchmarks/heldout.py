@@ -32,6 +32,15 @@ UAV layout:
   one UAV of a layout of 5 or more is beyond an end);
 - UAV centres at least 3 m apart (collision avoidance; a redraw, not a filter on results).
 
+Scenario files (the ray-traced study, docs/raytrace_study.md): ``partitioned_scenarios(N, S)``
+is the first ``N`` samples of seed ``S`` with a random building, a random UAV layout and at
+least one partition, and
+
+    python benchmarks/heldout.py --write-scenarios DIR --count 3 --seed 3
+
+writes them as ``DIR/heldout-1.toml`` ... ``heldout-N.toml`` (:func:`to_toml`; it refuses to
+write over an existing file). Imported as a module, nothing runs.
+
 Nodes: the emulator's six walking responders of the building
 (:func:`diffpos.emulation.responders`: walks along the facade, a stair run between floors), as
 in ``bench_accuracy.variants()``. Every sample is validated by :meth:`Scenario.from_dict`
@@ -40,7 +49,10 @@ in ``bench_accuracy.variants()``. Every sample is validated by :meth:`Scenario.f
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -160,6 +172,21 @@ def random_scenarios(n: int, seed: int) -> dict[str, dict[str, Any]]:
     return {f"rand-{seed}-{i}": random_scenario(seed, i) for i in range(n)}
 
 
+def partitioned_scenarios(n: int, seed: int) -> dict[str, dict[str, Any]]:
+    """The first ``n`` samples of ``seed`` whose building AND UAV layout are random (family
+    ``both``) and whose building has at least one interior partition, by name (the ray-traced
+    study's held-out buildings: partitions change which first arrivals Sionna finds)."""
+    out: dict[str, dict[str, Any]] = {}
+    i = 0
+    while len(out) < n:
+        if family(i) == "both":
+            d = random_scenario(seed, i)
+            if d["building"]["partitions"]:
+                out[d["name"]] = d
+        i += 1
+    return out
+
+
 def family(i: int) -> str:
     """The family (``building``, ``uavs`` or ``both``) of sample ``i``."""
     return FAMILIES[i % len(FAMILIES)]
@@ -179,3 +206,78 @@ def summary(d: dict[str, Any]) -> str:
             f"({int(np.sum(c[:, 2] < lo_win))} below win), "
             f"-y {-c[:, 1].max():.0f}-{-c[:, 1].min():.0f}, "
             f"{int(np.sum(np.abs(c[:, 0]) > half))} beyond ends")
+
+
+# ----------------------------------------------------------------------------- scenario files
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()
+                               if x is not None) + "}"
+    raise TypeError(f"no TOML for {v!r}")
+
+
+def to_toml(d: dict[str, Any], prefix: str = "") -> str:
+    """A scenario dict (:meth:`Scenario.to_dict`) as TOML (tables, arrays of tables)."""
+    lines, tables = [], []
+    for k, v in d.items():
+        if v is None:
+            continue
+        if isinstance(v, dict) or (isinstance(v, list) and v
+                                   and all(isinstance(x, dict) for x in v)):
+            tables.append((k, v))
+        else:
+            lines.append(f"{k} = {_toml_value(v)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for k, v in tables:
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out += f"\n[{name}]\n" + to_toml(v, prefix=name + ".")
+        else:
+            for item in v:
+                out += f"\n[[{name}]]\n" + to_toml(item, prefix=name + ".")
+    return out
+
+
+def write_scenarios(out_dir: Path, count: int, seed: int) -> list[Path]:
+    """Write :func:`partitioned_scenarios` ``(count, seed)`` as ``out_dir/heldout-K.toml``
+    (K = 1..count), each headed by the command that rewrites it; never over an existing
+    file."""
+    paths = [Path(out_dir) / f"heldout-{k + 1}.toml" for k in range(count)]
+    exists = [str(p) for p in paths if p.exists()]
+    if exists:
+        raise FileExistsError(f"{', '.join(exists)} exist: remove them or choose another DIR")
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    cmd = f"python benchmarks/heldout.py --write-scenarios DIR --count {count} --seed {seed}"
+    for p, (name, d) in zip(paths, partitioned_scenarios(count, seed).items(), strict=True):
+        p.write_text(f"# {name}: written by `{cmd}`\n# {summary(d)}\n\n" + to_toml(d))
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="Write held-out scenario TOMLs (random building, "
+                                             "random UAVs, with partitions).")
+    ap.add_argument("--write-scenarios", metavar="DIR", type=Path, required=True,
+                    help="directory for heldout-1.toml ... heldout-N.toml")
+    ap.add_argument("--count", type=int, default=3, help="number of buildings (default 3)")
+    ap.add_argument("--seed", type=int, default=3, help="generator seed (default 3)")
+    a = ap.parse_args(argv)
+    try:
+        paths = write_scenarios(a.write_scenarios, a.count, a.seed)
+    except FileExistsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for p in paths:
+        print(f"{p}: {p.read_text().splitlines()[0][2:].split(':')[0]}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,164 @@
+"""M-NLS on Sionna RT's channel vs the project's emulator, per building (issue 34's study).
+
+    python benchmarks/study_raytrace.py                      # the default buildings below
+    python benchmarks/study_raytrace.py --orders 2 4 --only paper heldout-1
+    python benchmarks/study_raytrace.py --building NAME=SCENARIO.toml:DATASET.npz ...
+
+For every building (a scenario and a dataset of ``diffpos raytrace SCEN --receivers 200
+--samples 1000000 --max-depth 4``) and every M-NLS mechanism order K (``--orders``, default 2 3
+4: ``diffpos reproduce --mnls-max-order K``), the study runs exactly what
+
+    diffpos reproduce --scenario SCEN --channel raytrace:DATASET --methods mnls --mnls-max-order K
+
+runs (:func:`diffpos.study.reproduce` with
+:func:`diffpos_services.raytrace.evaluate.dataset_arrivals`, seed 0: the emulator's detector
+and range noise on Sionna's paths), and the same study on the project's own O2I emulator for
+the SAME receivers and anchors (the dataset's receivers as static nodes of the scenario:
+:func:`diffpos.study.emulator_arrivals`). It prints, per channel, the right floor of M-NLS
+
+- over the receivers with at least three detected anchors on that channel (``n>=3`` of them),
+- over ALL receivers (a failed fix, or a receiver with fewer than three detections, is a miss:
+  :func:`diffpos.study.floor_accuracy`).
+
+The default buildings: the paper building (``paper``: the built-in scenario, partitions), its
+open-plan variant (``openplan``: /work/rt/openplan.toml, no partitions) and three random
+held-out buildings with partitions (``heldout-1..3``: ``python benchmarks/heldout.py
+--write-scenarios /work/rt --count 3 --seed 3``, traced as above into
+/work/rt/heldout-K.npz). Figures, command, date and machine: docs/raytrace_study.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from common import machine
+from diffpos_services.raytrace.dataset import load_dataset
+from diffpos_services.raytrace.evaluate import dataset_arrivals
+from diffpos_services.scenario_io import scenario_or_default
+
+from diffpos.scenario import NodeSpec, Scenario
+from diffpos.study import ReproduceConfig, floor_accuracy, reproduce
+from diffpos.trajectory import Static
+
+RT = Path("/work/rt")
+#: name -> (scenario file or None for the built-in paper scenario, dataset)
+BUILDINGS: dict[str, tuple[str | None, Path]] = {
+    "paper": (None, RT / "paper-200-1e6-d4.npz"),
+    "openplan": (str(RT / "openplan.toml"), RT / "openplan-200-1e6-d4.npz"),
+    **{f"heldout-{k}": (str(RT / f"heldout-{k}.toml"), RT / f"heldout-{k}.npz")
+       for k in (1, 2, 3)},
+}
+MIN_ANCHORS = 3
+
+
+def same_receivers(scenario: Scenario, nodes_m: np.ndarray) -> Scenario:
+    """``scenario`` with ``nodes_m`` as its receivers (static nodes ``r000``, ...; no grid):
+    what the emulator study needs to run on a dataset's receivers."""
+    nodes = tuple(NodeSpec(f"r{i:03d}", Static(tuple(float(v) for v in p)))
+                  for i, p in enumerate(np.asarray(nodes_m, dtype=float)))
+    return dataclasses.replace(scenario, node_grid=None, nodes=nodes)
+
+
+def floor_shares(positions_m: np.ndarray, truth_m: np.ndarray, detected: np.ndarray,
+                 building: Any, *, min_anchors: int = MIN_ANCHORS) -> dict[str, float | int]:
+    """Right-floor shares of one study: ``n`` receivers, ``n_det`` of them with at least
+    ``min_anchors`` detected anchors, ``floor_det`` the right floor over those, ``floor_all``
+    over all (a failed fix is a miss)."""
+    ok = np.asarray(detected, dtype=bool).sum(axis=1) >= min_anchors
+    pos, tru = np.asarray(positions_m, float), np.asarray(truth_m, float)
+    return {"n": len(tru), "n_det": int(ok.sum()),
+            "floor_det": floor_accuracy(pos[ok], tru[ok], building) if ok.any() else float("nan"),
+            "floor_all": floor_accuracy(pos, tru, building)}
+
+
+def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0
+          ) -> dict[str, dict[str, float | int]]:
+    """``{"raytrace": shares, "emulator": shares}`` of M-NLS at mechanism order ``order``."""
+    cfg = ReproduceConfig(seed=seed, methods=("mnls",), mnls_max_order=order)
+    out = {}
+    rt = reproduce(scenario, cfg, kind="raytrace", path=dataset,
+                   load=lambda rng: dataset_arrivals(dataset, scenario, rng=rng))
+    em_scenario = same_receivers(scenario, rt.data.nodes_m)
+    em = reproduce(em_scenario, cfg)
+    for name, res in (("raytrace", rt), ("emulator", em)):
+        out[name] = floor_shares(res.study.positions_m["mnls"], res.data.nodes_m,
+                                 res.data.detected, scenario.building)
+    return out
+
+
+def _pct(v: float) -> str:
+    return "   -  " if v != v else f"{100 * v:5.1f}%"
+
+
+def table(rows: list[tuple[str, int, dict[str, dict[str, float | int]]]]) -> str:
+    head = (f"{'building':10s} {'K':>2s} | {'RT n>=3':>8s} {'RT floor>=3':>12s} "
+            f"{'RT floor all':>13s} | {'emu n>=3':>8s} {'emu floor>=3':>13s} "
+            f"{'emu floor all':>14s}")
+    lines = [head, "-" * len(head)]
+    for name, k, r in rows:
+        a, e = r["raytrace"], r["emulator"]
+        lines.append(f"{name:10s} {k:2d} | {a['n_det']:4d}/{a['n']:<3d} {_pct(a['floor_det']):>12s} "
+                     f"{_pct(a['floor_all']):>13s} | {e['n_det']:4d}/{e['n']:<3d} "
+                     f"{_pct(e['floor_det']):>13s} {_pct(e['floor_all']):>14s}")
+    return "\n".join(lines)
+
+
+def _buildings(specs: list[str] | None, only: list[str] | None) -> dict[str, tuple[str | None, Path]]:
+    out = dict(BUILDINGS)
+    for spec in specs or []:
+        name, sep, rest = spec.partition("=")
+        scen, sep2, ds = rest.rpartition(":")
+        if not sep or not sep2:
+            sys.exit(f"--building {spec!r}: expected NAME=SCENARIO.toml:DATASET.npz")
+        out[name] = (None if scen == "paper" else scen, Path(ds))
+    if only:
+        unknown = [n for n in only if n not in out]
+        if unknown:
+            sys.exit(f"--only: unknown building(s) {unknown}; known: {list(out)}")
+        out = {n: out[n] for n in only}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--orders", type=int, nargs="+", default=[2, 3, 4], choices=(2, 3, 4),
+                    help="M-NLS mechanism orders (diffpos reproduce --mnls-max-order)")
+    ap.add_argument("--only", nargs="+", help=f"only these buildings ({', '.join(BUILDINGS)})")
+    ap.add_argument("--building", action="append", metavar="NAME=SCENARIO.toml:DATASET.npz",
+                    help="another building (SCENARIO 'paper' = the built-in one); repeatable")
+    ap.add_argument("--seed", type=int, default=0, help="range-noise seed (default 0)")
+    args = ap.parse_args(argv)
+    buildings = _buildings(args.building, args.only)
+    missing = [str(ds) for _, ds in buildings.values() if not ds.is_file()]
+    if missing:
+        sys.exit(f"missing dataset(s): {', '.join(missing)} (trace them with diffpos raytrace; "
+                 "or leave them out with --only)")
+    rows, t0 = [], time.perf_counter()
+    for name, (scen, ds) in buildings.items():
+        scenario = scenario_or_default(scen)
+        st = load_dataset(ds, scenario=scenario).metadata.get("settings", {})
+        print(f"# {name}: {scenario.name}, {ds}: {st.get('samples_per_src', 0):g} samples, "
+              f"depth {st.get('max_depth')}", file=sys.stderr, flush=True)
+        for k in args.orders:
+            rows.append((name, k, study(scenario, ds, k, seed=args.seed)))
+            print(table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
+    print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
+          f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "
+          f"receivers with >= {MIN_ANCHORS} detected anchors on that channel / all; floor>=3 over "
+          f"those, floor all over ALL receivers (a failed fix is a miss)")
+    print(f"command: python benchmarks/study_raytrace.py {' '.join(argv or sys.argv[1:])}")
+    print(f"date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; machine: {machine()}; "
+          f"wall {time.perf_counter() - t0:.0f} s\n")
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
