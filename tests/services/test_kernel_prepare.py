@@ -22,6 +22,7 @@ from diffpos_services.fusion import prepare
 from diffpos_services.fusion.prepare import (
     GROUPS,
     IMPORTED,
+    STAMP_NAME,
     Group,
     KernelError,
     Progress,
@@ -90,8 +91,10 @@ def test_bins_share_the_groups_longest_first():
 
 
 @pytest.fixture
-def fake_groups(monkeypatch):
-    """Cheap stand-ins (stdlib imports and calls) for the kernel groups."""
+def fake_groups(monkeypatch, tmp_path):
+    """Cheap stand-ins (stdlib imports and calls) for the kernel groups; their cache stamp
+    goes to ``tmp_path`` (numba's cache folder there), not the tree's real one."""
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     fake = {"a": Group("part A", 3.0, ("json", "gc:collect")),
             "b": Group("part B", 2.0, ("decimal",)),
             "c": Group("part C", 1.0, ("fractions",)),
@@ -106,6 +109,22 @@ def test_workers_run_every_group_and_report_the_end(fake_groups):
     assert took.wall_s > 0 and len(took.worker_cpu_s) == 2 and seen[-1].finished
     assert (seen[-1].done, seen[-1].total, seen[-1].running) == (3, 3, ())
     assert all(not p.finished for p in seen[:-1])
+
+
+def _real_stamp() -> bytes | None:
+    """The tree's own cache stamp (numba's default cache folder of the core package)."""
+    try:
+        return (ROOT / "diffpos" / "__pycache__" / STAMP_NAME).read_bytes()
+    except FileNotFoundError:
+        return None
+
+
+def test_stand_in_groups_stamp_only_the_tests_cache(fake_groups, tmp_path):
+    before = _real_stamp()
+    (tmp_path / "k.nbi").write_bytes(b"")  # a cache file to stamp (none: nothing stamped)
+    prepare_kernels(["a", "b"], workers=2, interval_s=0.05)
+    assert _real_stamp() == before  # the real stamp names no stand-in group
+    assert set(json.loads((tmp_path / STAMP_NAME).read_text())["groups"]) == {"a", "b"}
 
 
 def test_a_failing_worker_names_its_group_and_error(fake_groups):
