@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import re
 
+from diffpos_services.fusion.config import shard_of
 from diffpos_services.wire.keys import PREFIX, SEQUENCE_STREAMS, parse_recording_topic
 
 __all__ = ["SEQUENCED_KINDS", "SeqTracker", "natural_key", "parse_topic"]
@@ -116,8 +117,6 @@ class _EstimateStreams:
 
 def _shards_of(node: str) -> tuple[int, ...]:
     """The shard owning ``node`` for every candidate shard count ``1 .. MAX_INFERRED_SHARDS``."""
-    from diffpos_services.fusion.config import shard_of  # only once estimates are seen
-
     return tuple(shard_of(node, n) for n in range(1, MAX_INFERRED_SHARDS + 1))
 
 
