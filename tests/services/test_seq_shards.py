@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 from diffpos_services.fusion.config import shard_of
 from diffpos_services.recording.summary import set_losses
-from diffpos_services.recording.topics import SeqTracker
+from diffpos_services.recording.topics import LOCK_AFTER, SeqTracker
 from diffpos_services.replay.synthetic import write_late_recording
 from diffpos_services.wire.keys import Keys
 
@@ -44,20 +44,24 @@ def _interleaved(shards: int, epochs: int = 20, drop: tuple[int, int] | None = N
 
 
 @pytest.mark.parametrize("shards", [1, 2, 3])
-def test_interleaved_shards_without_loss_miss_nothing(shards):
+@pytest.mark.parametrize("epochs", [20, 400])  # 400: past LOCK_AFTER estimates
+def test_interleaved_shards_without_loss_miss_nothing(shards, epochs):
     t = SeqTracker()
-    for topic, s in _interleaved(shards):
+    for topic, s in _interleaved(shards, epochs):
         assert t.add(topic, s) == 0
     assert (t.total_gaps, t.gaps, t.total_out_of_order, t.out_of_order) == (0, {}, 0, {})
 
 
 @pytest.mark.parametrize("shards", [1, 2, 3])
-def test_one_dropped_estimate_is_one_missing(shards):
+@pytest.mark.parametrize(("epochs", "lost"), [(20, 17), (400, 1100)])  # 1100: after the lock
+def test_one_dropped_estimate_is_one_missing(shards, epochs, lost):
+    assert epochs * 3 * shards > LOCK_AFTER or epochs == 20
     t = SeqTracker()
-    found = sum(t.add(topic, s) for topic, s in _interleaved(shards, drop=(shards - 1, 17)))
+    found = sum(t.add(topic, s) for topic, s in _interleaved(shards, epochs,
+                                                               drop=(shards - 1, lost)))
     assert found == t.total_gaps == 1 and t.total_out_of_order == 0
     name = "diffpos/t1/node/*/estimate" + ("" if shards == 1 else f" shard {shards - 1}/{shards}")
-    assert t.gaps == {name: 1} and t.gap_list == [(name, 17, 17)]
+    assert t.gaps == {name: 1} and t.gap_list == [(name, lost, lost)]
 
 
 def test_anchor_streams_unchanged_beside_estimates():

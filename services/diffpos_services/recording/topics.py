@@ -14,7 +14,8 @@ import re
 from diffpos_services.fusion.config import shard_of
 from diffpos_services.wire.keys import PREFIX, SEQUENCE_STREAMS, parse_recording_topic
 
-__all__ = ["SEQUENCED_KINDS", "SeqTracker", "natural_key", "parse_topic"]
+__all__ = ["LOCK_AFTER", "MAX_INFERRED_SHARDS", "SEQUENCED_KINDS", "SeqTracker", "natural_key",
+           "parse_topic"]
 
 
 def parse_topic(topic: str) -> tuple[str, dict[str, str]]:
@@ -53,6 +54,9 @@ SEQUENCED_KINDS = frozenset(SEQUENCE_STREAMS)
 
 #: Most fusion shards :class:`SeqTracker` tells apart in the estimates' sequence numbers.
 MAX_INFERRED_SHARDS = 8
+#: Estimates of a site after which the shard count found is kept (the other candidates are
+#: no longer followed: a wrong one has an anomaly at about every change of publisher).
+LOCK_AFTER = 1000
 
 
 class _EstimateStreams:
@@ -62,7 +66,8 @@ class _EstimateStreams:
     estimate does not say which shard published it and the tracker does not know N, so every
     candidate N in ``1 .. MAX_INFERRED_SHARDS`` keeps its own per-shard counters and holes;
     the one with the fewest anomalies (holes + repeats; ties: the fewer shards) is reported.
-    The true N has none without loss; another N splits or merges counters and has many."""
+    The true N has none without loss; another N splits or merges counters and has many.
+    After :data:`LOCK_AFTER` estimates the best is kept and only it is followed (cheap)."""
 
     def __init__(self, site: str) -> None:
         self.base = f"{PREFIX}/{site}/" + SEQUENCE_STREAMS["estimate"]
@@ -74,34 +79,45 @@ class _EstimateStreams:
         self.bad = [0 for _ in n_cands]  # holes + repeats per candidate
         self.n_gaps = [0 for _ in n_cands]  # messages missing per candidate
         self.n_repeats = [0 for _ in n_cands]
+        self._best = 0
+        self.seen = 0  # estimates while undecided
+        self._locked: int | None = None  # the candidate kept after LOCK_AFTER estimates
 
     def best(self) -> int:
         """Index of the candidate shard count reported (``N - 1``)."""
-        return min(range(len(self.bad)), key=lambda i: (self.bad[i], i))
+        return self._best
 
     def add(self, shard_by_n: tuple[int, ...], seq: int) -> int:
         """One estimate of the node whose shard is ``shard_by_n[N - 1]`` for N shards;
         returns the messages found missing before it by the reported candidate."""
-        missing = None  # per candidate, once any found a hole
-        for i, k in enumerate(shard_by_n):
-            last = self.last[i].get(k)
-            self.last[i][k] = seq
-            if last is None:
-                continue
-            if seq > last + 1:
-                n = seq - last - 1
-                self.gaps[i][k] = self.gaps[i].get(k, 0) + n
-                self.n_gaps[i] += n
-                self.bad[i] += 1
-                if len(self.holes[i]) < 1000:
-                    self.holes[i].append((k, last + 1, seq - 1))
-                missing = missing or [0] * len(shard_by_n)
-                missing[i] = n
-            elif seq <= last:
-                self.repeats[i][k] = self.repeats[i].get(k, 0) + 1
-                self.n_repeats[i] += 1
-                self.bad[i] += 1
-        return 0 if missing is None else missing[self.best()]
+        if self._locked is not None:
+            return self._one(self._locked, shard_by_n[self._locked], seq)
+        missing = [self._one(i, k, seq) for i, k in enumerate(shard_by_n)]
+        self.seen += 1
+        if self.seen >= LOCK_AFTER:  # decided: only the reported candidate from now on
+            self._locked = self._best
+        return missing[self._best]
+
+    def _one(self, i: int, k: int, seq: int) -> int:
+        """Candidate ``i``'s shard ``k`` numbered ``seq``: the messages missing before it."""
+        last = self.last[i].get(k)
+        self.last[i][k] = seq
+        if last is None or seq == last + 1:
+            return 0
+        self.bad[i] += 1
+        if seq > last + 1:
+            n = seq - last - 1
+            self.gaps[i][k] = self.gaps[i].get(k, 0) + n
+            self.n_gaps[i] += n
+            if len(self.holes[i]) < 1000:
+                self.holes[i].append((k, last + 1, seq - 1))
+        else:
+            n = 0
+            self.repeats[i][k] = self.repeats[i].get(k, 0) + 1
+            self.n_repeats[i] += 1
+        if self._locked is None:
+            self._best = min(range(len(self.bad)), key=lambda j: (self.bad[j], j))
+        return n
 
     def name(self, i: int, k: int) -> str:
         """The stream's name: ``.../node/*/estimate`` (one fusion) or ``... shard K/N``."""
