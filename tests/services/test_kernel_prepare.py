@@ -22,6 +22,7 @@ from diffpos_services.fusion import prepare
 from diffpos_services.fusion.prepare import (
     GROUPS,
     IMPORTED,
+    STAMP_NAME,
     Group,
     KernelError,
     Progress,
@@ -65,6 +66,9 @@ def test_imported_groups_are_what_the_fusion_compiles_on_import():
     eager = [m for m in mods if _compiles_on_import(m)]
     assert eager, mods
     assert {_group_of(m) for m in eager} == set(IMPORTED)
+    # the solvers import their own kernels when they first solve (a D-NLS fusion or replay
+    # loads neither; M-NLS's start kernels are still imported, by mnls/starts.py)
+    assert not {"diffpos.estimators.mnls.solver_nb", "diffpos.estimators.dnls.fit_nb"} & set(mods)
 
 
 def test_each_method_prepares_its_own_groups():
@@ -90,8 +94,10 @@ def test_bins_share_the_groups_longest_first():
 
 
 @pytest.fixture
-def fake_groups(monkeypatch):
-    """Cheap stand-ins (stdlib imports and calls) for the kernel groups."""
+def fake_groups(monkeypatch, tmp_path):
+    """Cheap stand-ins (stdlib imports and calls) for the kernel groups; their cache stamp
+    goes to ``tmp_path`` (numba's cache folder there), not the tree's real one."""
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     fake = {"a": Group("part A", 3.0, ("json", "gc:collect")),
             "b": Group("part B", 2.0, ("decimal",)),
             "c": Group("part C", 1.0, ("fractions",)),
@@ -106,6 +112,22 @@ def test_workers_run_every_group_and_report_the_end(fake_groups):
     assert took.wall_s > 0 and len(took.worker_cpu_s) == 2 and seen[-1].finished
     assert (seen[-1].done, seen[-1].total, seen[-1].running) == (3, 3, ())
     assert all(not p.finished for p in seen[:-1])
+
+
+def _real_stamp() -> bytes | None:
+    """The tree's own cache stamp (numba's default cache folder of the core package)."""
+    try:
+        return (ROOT / "diffpos" / "__pycache__" / STAMP_NAME).read_bytes()
+    except FileNotFoundError:
+        return None
+
+
+def test_stand_in_groups_stamp_only_the_tests_cache(fake_groups, tmp_path):
+    before = _real_stamp()
+    (tmp_path / "k.nbi").write_bytes(b"")  # a cache file to stamp (none: nothing stamped)
+    prepare_kernels(["a", "b"], workers=2, interval_s=0.05)
+    assert _real_stamp() == before  # the real stamp names no stand-in group
+    assert set(json.loads((tmp_path / STAMP_NAME).read_text())["groups"]) == {"a", "b"}
 
 
 def test_a_failing_worker_names_its_group_and_error(fake_groups):

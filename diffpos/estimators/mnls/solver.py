@@ -93,7 +93,6 @@ from diffpos.estimators.mnls.rules import (
     _excess_loss_db,
     _masks,
 )
-from diffpos.estimators.mnls.solver_nb import link_terms_kernel, lm_kernel
 from diffpos.estimators.mnls.starts import (
     _grid,
     _kept,
@@ -180,6 +179,10 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     c0 = time.thread_time()
     ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None],
                              mechanisms=p.mech)
+    # imported here: importing solver_nb compiles M-NLS (explicit signatures), which a
+    # D-NLS, LLS or IPPA fusion never runs
+    from diffpos.estimators.mnls.solver_nb import link_terms_kernel
+
     n, m, k = ps.length_m.shape
     spec, diff, same_edge = _masks(p.mech)
     _count("paths_cpu_s", time.thread_time() - c0)
@@ -455,6 +458,8 @@ def _lm_rows(per_row: tuple, consts: tuple, snr: tuple, masks: tuple, iters: int
     """:func:`diffpos.estimators.mnls.solver_nb.lm_kernel` on the rows ``[lo, hi)``
     (:func:`diffpos._kernels.pool.run_rows`): the row slices of every per-row array (an empty
     SNR array, (0, 0, 0), stays whole), ``consts`` whole, the same compiled signature."""
+    from diffpos.estimators.mnls.solver_nb import lm_kernel  # compiles on import: when used
+
     rows = slice(lo, hi)
     s = [v if v.shape[0] == 0 else v[rows] for v in snr]
     lm_kernel(*(v[rows] for v in per_row), *consts, *s, *masks, iters, float(CONVERGED_M),

@@ -35,6 +35,7 @@ examples:
                                                             #  diffpos/<site>/replay/node/<id>/estimate
   diffpos replay run.mcap --rrd run.replayed.rrd            # Rerun dashboard of the replay
   diffpos replay run.mcap --start 60 --end 90               # seconds 60-90 of the recording
+  diffpos replay sharded.mcap --shards 1                    # what if: one fusion, not N shards
 """
 
 from __future__ import annotations
@@ -80,6 +81,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="processes sharing the tracker's and the snapshot fixes' rows, this one "
                         "included (mnls + tracking; same estimates for any N; default: the "
                         "recorded setting, else 1; at most this machine's cores)")
+    g.add_argument("--shards", type=int, metavar="N",
+                   help="replay a run of fusion shards as N fusion processes, each live "
+                        "shard's record (or the recorded order) on N cores keeping that "
+                        "shard's responders; 1 = one fusion (default: as live, one core per "
+                        "live shard, reproducing every live estimate)")
     g.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="any fusion setting, VALUE as JSON (repeatable), e.g. deadline_s=0.5; "
                         "a tracker setting as tracker.KEY=VALUE (changes only that one of the "
@@ -228,6 +234,9 @@ def _header(rep: dict[str, Any], p: Any) -> None:
         p(f"  time window: {lo} to {hi} into the recording (decision record not used)")
     if rep.get("settings_warning"):
         p(f"  WARNING: {rep['settings_warning']}")
+    shards_note = (rep.get("shards") or {}).get("note")
+    if shards_note:
+        p(f"  fusion shards: {shards_note}")
     if rep.get("tracker_settings"):
         p(f"  tracker settings: {rep['tracker_settings']}")
     msgs = rep["messages"]
@@ -434,6 +443,7 @@ def run(args: argparse.Namespace) -> int:
                             use_recorded_settings=not args.ignore_recorded_settings,
                             out_mcap=args.write_mcap, max_truth_gap_s=args.max_truth_gap,
                             progress=progress, start_s=args.start, end_s=args.end,
+                            shards=args.shards,
                             # the estimate lists only for the .rrd (bounded memory otherwise)
                             keep_estimates=bool(args.rrd))
         finally:

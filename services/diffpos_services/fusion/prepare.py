@@ -74,7 +74,9 @@ GROUPS: dict[str, Group] = {
 
 #: Groups compiled whenever the fusion is imported, whatever its method: their modules
 #: compile on import (explicit signatures) and the fusion imports them at module level
-#: (``fusion/tracked.py``: M-NLS; the D-NLS solver imports its kernel when it first solves).
+#: (``fusion/tracked.py`` -> ``mnls/solver.py`` -> ``mnls/starts.py``: M-NLS's start kernels,
+#: ``starts_nb``; the M-NLS solver's own kernels, ``solver_nb``, and the D-NLS solver's are
+#: imported when they first solve).
 IMPORTED = ("mnls",)
 
 #: What each method solves with (:func:`groups_for` adds :data:`IMPORTED`, compiled anyway).

@@ -747,6 +747,8 @@ def _feed(
                 if route[0] == "estimate":
                     fusion.on_live_estimate(route[1], now)
                 rec.take(route[0], m, route[1])
+                if route[0] == "heartbeat":
+                    continue  # no step point: the services' liveness, nothing the fusion heard
             if (next_step is None or now >= next_step) and fusion.step_recorded(now):
                 next_step = now + step_ns
         if rec.t_last is not None and (next_advance is None or rec.t_last >= next_advance):
@@ -1028,8 +1030,6 @@ def replay(
         raise ConfigError(f"start {start_s:g} s: must be >= 0 (seconds into the recording)")
     if out_mcap is not None:
         check_output(out_mcap, option="out_mcap", inputs=[path])
-    scanner = PartsScanner(path)  # a split recording's parts in turn
-    side = side_records(path)
     if shards is not None and not 1 <= shards <= MAX_SHARDS:
         raise ConfigError(f"shards={shards}: must be in [1, {MAX_SHARDS}]")
     scanner = PartsScanner(path)  # a split recording's parts in turn
