@@ -935,68 +935,17 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     fix_s = _select_fixed(p_prior[..., :3, :3], links, config, snr_c, *x_prior.shape[:2],
                           link_w)
     p = p_prior
-    x_at, log_ev, sel, res = x_prior[..., :3], None, None, None
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
-        if k > 0 and level is not None and config.refit_min_m > 0:
-            # only the nodes with a hypothesis whose fit moved (TrackerConfig.refit_min_m)
-            rows = np.flatnonzero(np.any(np.sqrt(np.sum((x[..., :3] - x_at) ** 2, axis=-1))
-                                         >= config.refit_min_m, axis=-1))
-            x_at = x[..., :3].copy()
-            x, p, log_ev, sel, res = _refit_rows(
-                rows, (x, p, log_ev, sel, res), x_prior, p_prior, links, floor, building,
-                config, level, snr_c, info, link_w)
-            continue
         if k > 0:  # at the fit: the margin of the fit's own uncertainty
             relax = existence_margin(p, config)
         if k == 0:  # the prior's paths: only the moved nodes' evaluated once more (into pe0)
             pe = _paths_at(pe0, moved, x[..., :3], links, floor, building, relax)
         else:
             pe = all_paths(x[..., :3], links, floor, building, relax)
-        x_at = x[..., :3]  # where this pass' paths are
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c, fix_s)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
                                  level, info, fix_i)
     return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
-
-
-def _node_rows(a, rows: NDArray, n: int):
-    """The rows ``rows`` of a per-node argument ``a`` (leading axis of length ``n``;
-    None, a scalar or an array broadcast over the nodes (leading axis 1, ``n`` > 1): as it
-    is)."""
-    if a is None or np.ndim(a) == 0 or np.shape(a)[0] != n:
-        return a
-    return np.asarray(a)[rows]
-
-
-def _refit_rows(rows: NDArray, prev: tuple, x_prior, p_prior, links: Links, floor, building,
-                config, level, snr_c, info, link_w) -> tuple:
-    """One later selection pass of :func:`measurement_update` on the nodes ``rows`` only:
-    ``prev`` (x, P, log-evidence, selection, residual of every node) with those rows replaced
-    by the pass run on them alone (every row is computed on its own: the values of the pass
-    over every node, bit for bit)."""
-    if rows.size == 0:
-        return prev
-    x, p, log_ev, sel, res = prev
-    n = x.shape[0]
-    sub = links.take(rows)
-    fl, lv = _node_rows(floor, rows, n), _node_rows(level, rows, n)
-    xp, pp = x_prior[rows], p_prior[rows]
-    sc = _node_rows(snr_c, rows, n)
-    inf_r = (info[0][rows], info[1][rows])
-    pe = all_paths(x[rows, :, :3], sub, fl, building, existence_margin(p[rows], config))
-    fix_s = _select_fixed(pp[..., :3, :3], sub, config, sc, *xp.shape[:2],
-                          _node_rows(link_w, rows, n))
-    fix_i = _iekf_fixed(xp, pp, sub, fl, building, config, lv, inf_r)
-    sel_r = select(pp[..., :3, :3], sub, pe, config, sc, fix_s)
-    x_r, p_r, ev_r, res_r = iekf(xp, pp, sub, fl, sel_r, building, config, lv, inf_r, fix_i)
-    x, p, log_ev, res = x.copy(), p.copy(), log_ev.copy(), res.copy()
-    x[rows], p[rows], log_ev[rows], res[rows] = x_r, p_r, ev_r, res_r
-    fields = {}
-    for f in ("slot", "log_weight", "nis", "extra_var"):
-        a = getattr(sel, f).copy()
-        a[rows] = getattr(sel_r, f)
-        fields[f] = a
-    return x, p, log_ev, Selection(**fields), res
 
 
 def snapshot(links: Links, floors: NDArray, building, config):

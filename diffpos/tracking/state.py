@@ -247,13 +247,6 @@ class TrackerConfig:
         plan), 1.43 to 0.45 % (a held-out building), but the emulator's floors, 99.6-99.7 %
         right, are then published underconfident (``large``: 20 % of its node-epochs at
         0.5-0.8, 99 % right; floor log score 0.020 -> 0.087 nats, ``default`` 0.074 -> 0.200).
-    refit_min_m : float [m]
-        A tracking update's later selection passes (``select_passes``: the mechanisms
-        re-selected at the previous pass' fit, then the IEKF again from the prior) run only
-        for the hypotheses whose previous fit moved at least this far from the point its
-        paths were evaluated at (:func:`diffpos.tracking.model.measurement_update`); the
-        others keep the previous pass' fit and selection. 0 (default): every hypothesis runs
-        every pass (before). The snapshot initialisation always runs every pass.
     """
 
     q_h_m2_s3: float = 1.5
@@ -307,7 +300,6 @@ class TrackerConfig:
     max_order: int = 2
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
-    refit_min_m: float = 0.0
 
 
 @dataclass(frozen=True)
