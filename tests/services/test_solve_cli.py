@@ -424,7 +424,10 @@ def test_snr_db_is_optional_and_checked(held_out, monkeypatch, capsys):
     rc, recs, _ = _run([json.dumps(p) for p in (base, with_snr, short)],
                        ["--scenario", str(path)], monkeypatch, capsys)
     assert rc == 0
-    assert recs[0]["status"] == "ok" and recs[1]["status"] in ("ok", "ok_unverified")
+    assert recs[0]["status"] == "ok"
+    # made-up SNRs (-3 dB on a link that has a range) may fail the solver's checks; the line
+    # is accepted and solved, not rejected as input
+    assert recs[1]["status"] in ("ok", "ok_unverified", "gating_failed")
     assert recs[2]["status"] == "invalid_input" and "snr_db" in recs[2]["message"]
     # an earlier v1 result (no floor fields) still validates
     old = {k: v for k, v in recs[0].items() if k not in ("floor", "floor_probability")}
