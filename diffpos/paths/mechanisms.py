@@ -36,8 +36,9 @@ MECHANISMS: tuple[str, ...] = (
 class Recipe(NamedTuple):
     """How a mechanism's path runs: ``kind`` ``"direct"``, ``"spec"`` (specular reflections
     entering through the window) or ``"diff"`` (diffraction on a window edge); ``ground``: a
-    ground bounce outside first; ``edge``: ``"upper"`` / ``"lower"`` window edge (``"diff"``
-    only, else None); ``planes``: the inside reflections in path order (``"floor"``,
+    ground bounce outside first; ``edge``: ``"upper"`` / ``"lower"`` window edge, or
+    ``"vertical x1"`` / ``"vertical x2"``: the window's vertical edge at the facade end
+    ``x = x0`` / ``x1`` (``"diff"`` only, else None); ``planes``: the inside reflections in path order (``"floor"``,
     ``"ceiling"``, ``"back"``, ``"side x1"``, ``"side x2"``)."""
 
     kind: str
@@ -91,6 +92,10 @@ _AXIS = {"floor": 2, "ceiling": 2, "back": 1, "side x1": 0, "side x2": 0, "groun
 DEFAULT_ORDER = 2
 #: Walls that reflect once (at the end of a path) in the families of :func:`mechanism_set`.
 WALLS: tuple[str, ...] = ("back", "side x1", "side x2")
+#: The window's vertical edges (at the facade ends ``x = x0`` / ``x1``, from the sill to the
+#: lintel of the node's floor): their families (order > 2) take only slab reflections after
+#: the edge (Sionna's vertical-edge first arrivals, docs/channel_mix.md).
+VERTICAL_EDGES: tuple[str, ...] = ("vertical x1", "vertical x2")
 #: A wall reflection ends a family only after at most this many slab reflections (each wall
 #: triples the families; Sionna's first arrivals with a wall had <= 1 slab reflection before
 #: it, docs/raytrace.md).
@@ -161,18 +166,22 @@ def _families(max_order: int) -> list[Recipe]:
     bounce, window-edge diffraction, ground bounce then diffraction), an image series between
     the floor and ceiling slabs (alternating; after a ground bounce straight through the window
     the ray rises, so the series starts at the ceiling), then at most one wall reflection
-    (after at most :data:`WALL_AFTER_SLABS` slab reflections)."""
+    (after at most :data:`WALL_AFTER_SLABS` slab reflections). The vertical window edges
+    (:data:`VERTICAL_EDGES`) come last (the earlier families keep their slots) and take slab
+    series only."""
     out: list[Recipe] = []
     entries = [Recipe("spec"), Recipe("spec", True)]
     entries += [Recipe("diff", g, e) for g in (False, True) for e in ("upper", "lower")]
+    entries += [Recipe("diff", g, e) for g in (False, True) for e in VERTICAL_EDGES]
     for ent in entries:
+        walls = () if ent.edge in VERTICAL_EDGES else WALLS
         firsts = ("ceiling",) if (ent.kind == "spec" and ent.ground) else ("floor", "ceiling")
         for n in range(max_order - ent.order + 1):
             series = {_slab_series(n, f) for f in firsts} if n else {()}
             for sl in sorted(series, key=lambda t: t[:1] != ("floor",)):
                 out.append(ent._replace(planes=sl))
                 if ent.order + n + 1 <= max_order and n <= WALL_AFTER_SLABS:
-                    out += [ent._replace(planes=(*sl, w)) for w in WALLS]
+                    out += [ent._replace(planes=(*sl, w)) for w in walls]
     return [r for r in out if r.order > 0]
 
 

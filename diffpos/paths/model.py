@@ -150,6 +150,22 @@ class FloorFrame:
             return 2, 0.0
         raise ValueError(name)
 
+    def edge_segment(self, edge: str, shape: tuple[int, ...]) -> tuple[FloatArray, FloatArray]:
+        """Start and end ``(*shape, 3)`` of a window edge of the floor: ``"upper"`` /
+        ``"lower"`` (``z = win_hi`` / ``win_lo`` from ``x0`` to ``x1``), ``"vertical x1"`` /
+        ``"vertical x2"`` (``x = x0`` / ``x1`` from ``win_lo`` up to ``win_hi``), on the facade
+        ``y = 0``."""
+        zero = np.zeros(shape)
+        if edge in ("upper", "lower"):
+            z_e = np.broadcast_to(self.win_hi if edge == "upper" else self.win_lo, shape)
+            return (np.stack([np.full(shape, self.x0), zero, z_e], axis=-1),
+                    np.stack([np.full(shape, self.x1), zero, z_e], axis=-1))
+        if edge in ("vertical x1", "vertical x2"):
+            x_e = np.full(shape, self.x0 if edge == "vertical x1" else self.x1)
+            return (np.stack([x_e, zero, np.broadcast_to(self.win_lo, shape)], axis=-1),
+                    np.stack([x_e, zero, np.broadcast_to(self.win_hi, shape)], axis=-1))
+        raise ValueError(f"unknown window edge {edge!r}")
+
     def in_window(self, z: FloatArray, x: FloatArray) -> BoolArray:
         """Strictly inside the window opening of the floor."""
         return (z > self.win_lo) & (z < self.win_hi) & (x > self.x0) & (x < self.x1)
@@ -235,12 +251,13 @@ def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
 def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edge: str,
                     then: str | tuple[str, ...] | list[str] | None = None, *,
                     ground: bool = False) -> _Geom:
-    """Anchor [-> ground] -> Fermat point on the upper/lower window edge [-> inside planes...]
-    -> node.
+    """Anchor [-> ground] -> Fermat point on a window edge [-> inside planes...] -> node.
 
-    The edge is the physical one, ``z = win_hi`` or ``win_lo`` of the floor, from ``x0`` to
-    ``x1``; the path is valid only where the Fermat point lies strictly inside the edge (corner
-    diffraction dropped: module docstring). ``then``: one inside plane or a sequence of them in
+    The edge is the physical one (:meth:`FloorFrame.edge_segment`): ``"upper"`` / ``"lower"``,
+    ``z = win_hi`` or ``win_lo`` of the floor from ``x0`` to ``x1``, or ``"vertical x1"`` /
+    ``"vertical x2"``, ``x = x0`` / ``x1`` from ``win_lo`` to ``win_hi`` (the same Fermat /
+    Keller-cone point on a segment of another orientation); the path is valid only where the
+    Fermat point lies strictly inside the edge (corner diffraction dropped: module docstring). ``then``: one inside plane or a sequence of them in
     path order; the node is imaged across them (last plane first), the Fermat point is that of
     the image, and every reflection point of the unfolded ray from the edge must lie on the
     floor's inside surface, in order. ``ground``: the anchor is imaged in ``z = 0`` first and the
@@ -253,9 +270,7 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
     n = np.broadcast_to(node, (*shape, 3))
     planes = () if then is None else ((then,) if isinstance(then, str) else tuple(then))
     src = _mirror(np.array(a), 2, 0.0) if ground else a
-    z_e = np.broadcast_to(frame.win_hi if edge == "upper" else frame.win_lo, shape)
-    p0 = np.stack([np.full(shape, frame.x0), np.zeros(shape), z_e], axis=-1)
-    p1 = np.stack([np.full(shape, frame.x1), np.zeros(shape), z_e], axis=-1)
+    p0, p1 = frame.edge_segment(edge, shape)
     obs = n
     sign = np.ones(3)
     axes_coords = [frame.plane(p) for p in planes]

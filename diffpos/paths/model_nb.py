@@ -45,11 +45,12 @@ __all__ = ["COL_EDGE", "COL_GROUND", "COL_KIND", "COL_NPLANES", "COL_PLANES", "D
            "N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLOT_PLANE0",
            "SLOT_PLANE1", "building_planes", "edge_axis", "eval_paths_kernel", "family_path",
            "in_floor_box", "inside_plane", "mechanism_table", "mirror", "paths_kernel",
-           "row_planes", "slot_path", "warm_paths"]
+           "row_planes", "slot_path", "vertical_axis", "warm_paths"]
 
 #: Mechanism tables: one row per slot, columns :data:`COL_KIND` (0 direct, 1 specular, 2
 #: diffraction), :data:`COL_GROUND` (1: a ground bounce outside first), :data:`COL_EDGE` (0
-#: upper, 1 lower window edge, -1 none), :data:`COL_NPLANES` and from :data:`COL_PLANES` on the
+#: upper, 1 lower window edge, 2 / 3 the vertical edge at x0 / x1, -1 none),
+#: :data:`COL_NPLANES` and from :data:`COL_PLANES` on the
 #: inside planes in path order (0 floor, 1 ceiling, 2 back, 3 side x1, 4 side x2, -1 padding).
 #: :func:`mechanism_table` builds one from ``diffpos.paths.mechanisms`` recipes;
 #: :data:`DEFAULT_TABLE` is the compiled twin of ``diffpos.paths.mechanisms.RECIPES`` (a literal:
@@ -73,7 +74,7 @@ SLOT_PLANE1 = np.ascontiguousarray(DEFAULT_TABLE[:, COL_PLANES + 1])
 SLOT_EDGE = np.ascontiguousarray(DEFAULT_TABLE[:, COL_EDGE])
 N_SLOTS = 18
 _PLANE_CODE = {"floor": 0, "ceiling": 1, "back": 2, "side x1": 3, "side x2": 4}
-_EDGE_CODE = {"upper": 0, "lower": 1}
+_EDGE_CODE = {"upper": 0, "lower": 1, "vertical x1": 2, "vertical x2": 3}
 _KIND_CODE = {"direct": 0, "spec": 1, "diff": 2}
 _TOL = 1e-9  # in_floor_box tolerance [m] (FloorFrame.in_floor_box)
 
@@ -201,11 +202,12 @@ def _reflections_ok(c0, c1, c2, m0, m1, m2, t_last, table, s, zf, zc, x0, x1, de
 
 
 @njit(**_OPTS)
-def _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc, x0, x1, depth, edge):
-    """paths.diffracted_path (geometry.diffraction_point on the edge ``y = 0, z = z_e``) with
-    the ground bounce and the planes of row ``s`` of ``table``: length, ok, Jacobian, deviation
-    cosine, anchor (ground image) -> diffraction point length. ``edge``: :func:`edge_axis`
-    (length and unit vector of the edge, the same for every row)."""
+def _diffracted(a0, a1, a2, n0, n1, n2, x_e, z_e, table, s, zf, zc, x0, x1, depth, edge):
+    """paths.diffracted_path (geometry.diffraction_point on the edge from ``(x_e, 0, z_e)``)
+    with the ground bounce and the planes of row ``s`` of ``table``: length, ok, Jacobian,
+    deviation cosine, anchor (ground image) -> diffraction point length. ``edge``: length and
+    unit vector of the edge (:func:`edge_axis` for the horizontal edges, the same for every
+    row; :func:`vertical_axis` for the vertical ones)."""
     ground = table[s, COL_GROUND] == 1
     if ground:
         a2 = 2.0 * 0.0 - a2
@@ -220,10 +222,10 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc, x0, x1, depth, ed
             g1 = -g1
         else:
             g2 = -g2
-    # geometry.diffraction_point with p0 = (x0, 0, z_e), p1 = (x1, 0, z_e)
+    # geometry.diffraction_point with p0 = (x_e, 0, z_e), p1 = p0 + edge_len * e
     edge_len, e0, e1, e2 = edge
-    ds0, ds1, ds2 = a0 - x0, a1 - 0.0, a2 - z_e
-    do0, do1, do2 = o0 - x0, o1 - 0.0, o2 - z_e
+    ds0, ds1, ds2 = a0 - x_e, a1 - 0.0, a2 - z_e
+    do0, do1, do2 = o0 - x_e, o1 - 0.0, o2 - z_e
     s_t = ds0 * e0 + ds1 * e1 + ds2 * e2
     o_t = do0 * e0 + do1 * e1 + do2 * e2
     p0, p1, p2 = ds0 - s_t * e0, ds1 - s_t * e1, ds2 - s_t * e2
@@ -242,7 +244,7 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc, x0, x1, depth, ed
     elif t > edge_len:
         t = edge_len
     ok = (t_star > 0.0) and (t_star < edge_len)
-    q0, q1, q2 = x0 + t * e0, 0.0 + t * e1, z_e + t * e2
+    q0, q1, q2 = x_e + t * e0, 0.0 + t * e1, z_e + t * e2
     v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
     u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
     d_in = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)  # = |Q - A| below, bit for bit (squares)
@@ -266,6 +268,15 @@ def edge_axis(x0, x1):
     """Length and unit vector of the edge ``(x0, 0, z) -> (x1, 0, z)`` as
     geometry.diffraction_point computes them (``z - z = 0`` for every finite z)."""
     w0, w1, w2 = x1 - x0, 0.0 - 0.0, 0.0
+    edge_len = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    return edge_len, w0 / edge_len, w1 / edge_len, w2 / edge_len
+
+
+@njit(**_OPTS)
+def vertical_axis(lo, hi):
+    """Length and unit vector of a vertical window edge ``(x, 0, lo) -> (x, 0, hi)`` as
+    geometry.diffraction_point computes them."""
+    w0, w1, w2 = 0.0, 0.0 - 0.0, hi - lo
     edge_len = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
     return edge_len, w0 / edge_len, w1 / edge_len, w2 / edge_len
 
@@ -296,9 +307,16 @@ def family_path(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth,
     dv = nan
     om = nan
     if kind == 2:
-        z_e = hi if table[s, COL_EDGE] == 0 else lo
-        ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc,
-                                                 x0, x1, depth, edge)
+        code = table[s, COL_EDGE]
+        if code < 2:  # horizontal: upper / lower
+            z_e = hi if code == 0 else lo
+            ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, x0, z_e, table,
+                                                     s, zf, zc, x0, x1, depth, edge)
+        else:  # vertical x1 / x2: from the sill up
+            x_e = x0 if code == 2 else x1
+            ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, x_e, lo, table,
+                                                     s, zf, zc, x0, x1, depth,
+                                                     vertical_axis(lo, hi))
         ez = nan
     else:
         if kind == 0:
