@@ -57,7 +57,7 @@ from diffpos.channel.rays_nb import (
     _tx_field,
     _unit,
     _zenith_deg,
-    utd_field_e,
+    utd_field_frame,
 )
 from diffpos.paths.model_nb import (
     COL_EDGE,
@@ -70,12 +70,13 @@ from diffpos.paths.model_nb import (
     inside_plane,
     mirror,
     row_planes,
+    vertical_axis,
 )
 
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "28dad5da4f25b918"
+CALLEES_SHA256 = "a28715285fa4c836"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
@@ -163,8 +164,8 @@ def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
 
 @njit(**_OPTS)
 def _fermat(s0, s1, s2, o0, o1, o2, x0, z_e, edge):
-    """geometry.diffraction_point on the edge ``y = 0, z = z_e`` from ``x0``: the point and
-    whether it lies strictly inside the edge."""
+    """geometry.diffraction_point on the edge from ``(x0, 0, z_e)`` along ``edge`` (length,
+    unit vector): the point and whether it lies strictly inside the edge."""
     edge_len, ee0, ee1, ee2 = edge
     ds0, ds1, ds2 = s0 - x0, s1 - 0.0, s2 - z_e
     dq0, dq1, dq2 = o0 - x0, o1 - 0.0, o2 - z_e
@@ -191,14 +192,24 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     arrival vector, length, ok)."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     ground = table[s, COL_GROUND] == 1
-    upper = table[s, COL_EDGE] == 0
+    code = table[s, COL_EDGE]
     npl = table[s, COL_NPLANES]
     s0, s1, s2 = a0, a1, (-a2 if ground else a2)
     o0, o1, o2 = n0, n1, n2
     for j in range(npl - 1, -1, -1):
         ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
         o0, o1, o2 = mirror(o0, o1, o2, ax, c)
-    q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, hi if upper else lo, edge)
+    # the edge (slots._edge_frame): tangent e, half-plane face t0
+    if code == 0:  # upper: the wall above the window
+        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, hi, edge)
+        ed0, ed2, tf1, tf2 = 1.0, 0.0, 0.0, 1.0
+    elif code == 1:  # lower: the wall below it
+        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, lo, edge)
+        ed0, ed2, tf1, tf2 = -1.0, 0.0, 0.0, -1.0
+    else:  # vertical at x0 / x1: the side wall, into the building
+        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0 if code == 2 else x1, lo,
+                                 vertical_axis(lo, hi))
+        ed0, ed2, tf1, tf2 = 0.0, (1.0 if code == 2 else -1.0), 1.0, 0.0
     s_in = math.sqrt((s0 - q0) ** 2 + (s1 - q1) ** 2 + (s2 - q2) ** 2)
     s_out = math.sqrt((o0 - q0) ** 2 + (o1 - q1) ** 2 + (o2 - q2) ** 2)
     length = s_in + s_out
@@ -221,10 +232,10 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
             g_db = _pattern_db(_zenith_deg(q0 - a0, q1 - a1, q2 - a2), prm[_P_TX_HPBW],
                                prm[_P_TX_PEAK])
         e0, e1, e2, e3, e4, e5 = prm[_P_E0], 0.0, prm[_P_E0 + 1], 0.0, prm[_P_E0 + 2], 0.0
-    r = utd_field_e(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, upper, prm, sq2pik,
-                    e0, e2, e4)
-    im = utd_field_e(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, upper, prm, sq2pik,
-                     e1, e3, e5)
+    r = utd_field_frame(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, ed0, 0.0, ed2, 0.0,
+                        tf1, tf2, prm, sq2pik, e0, e2, e4)
+    im = utd_field_frame(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, ed0, 0.0, ed2, 0.0,
+                         tf1, tf2, prm, sq2pik, e1, e3, e5)
     # field = UTD(Re e) + j UTD(Im e), each a (re, im) triple
     f0, f1 = r[0] - im[1], r[1] + im[0]
     f2, f3 = r[2] - im[3], r[3] + im[2]

@@ -281,6 +281,21 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
     return length, np.where(valid, gain, 0), _zenith_deg(u0), aoa, valid
 
 
+def _edge_frame(edge: str) -> tuple[FloatArray, FloatArray]:
+    """Edge tangent ``e`` and half-plane face ``t0`` of a window edge (``diffracted_field``'s
+    ``edge_dir``, ``face_dir``): the upper edge's half-plane is the wall above the window (``e
+    = +x, t0 = +z``), the lower edge's the wall below it (``-x, -z``); a vertical edge's at
+    a facade end (``"vertical x1"`` at ``x0``, ``"vertical x2"`` at ``x1``) is the side wall,
+    running into the building (``t0 = +y``; ``e = +z`` / ``-z``, so ``n0 = e x t0`` points
+    out of the building: ``-x`` / ``+x``)."""
+    if edge == "upper":
+        return np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    if edge == "lower":
+        return np.array([-1.0, 0.0, 0.0]), np.array([0.0, 0.0, -1.0])
+    sense = 1.0 if edge == "vertical x1" else -1.0
+    return np.array([0.0, 0.0, sense]), np.array([0.0, 1.0, 0.0])
+
+
 def _diffracted(c: _Ctx, edge: str, then: str | None = None):
     """Anchor -> window edge (UTD) [-> one inside reflection] -> node (geometry:
     :func:`diffpos.paths.model.diffracted_path`, shared with the path model; corner diffraction is
@@ -294,8 +309,7 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
     if then is not None:
         axis, coord = c.frame.plane(then)
         obs = _mirror(np.array(n), axis, np.broadcast_to(coord, c.shape))
-    e_dir = np.array([1.0, 0.0, 0.0]) if edge == "upper" else np.array([-1.0, 0.0, 0.0])
-    face = np.array([0.0, 0.0, 1.0]) if edge == "upper" else np.array([0.0, 0.0, -1.0])
+    e_dir, face = _edge_frame(edge)
     E = diffracted_field(a, obs, q, e_dir, face, c.e0, frequency_hz=c.f, coefficients="utd",
                          spreading="spherical")
     # antenna pattern on departure
@@ -336,8 +350,7 @@ def _diffracted_family(c: _Ctx, rec: Recipe):
     for p in reversed(rec.planes):
         axis, coord = c.frame.plane(p)
         obs = _mirror(obs, axis, np.broadcast_to(coord, c.shape))
-    e_dir = np.array([1.0, 0.0, 0.0]) if rec.edge == "upper" else np.array([-1.0, 0.0, 0.0])
-    face = np.array([0.0, 0.0, 1.0]) if rec.edge == "upper" else np.array([0.0, 0.0, -1.0])
+    e_dir, face = _edge_frame(rec.edge)
     if rec.ground:
         src = _mirror(np.array(a), 2, 0.0)
         u0, _ = _unit(g.ground_point - a)

@@ -204,33 +204,38 @@ def mechanism_set(max_order: int = DEFAULT_ORDER) -> MechanismSet:
 
 #: The families of first arrivals :func:`label_family` names, in report order.
 FAMILIES: tuple[str, ...] = (
-    "direct", "R x1", "R x2", "R x3+", "D", "D+R", "D+RR+", "ground+D", "wall/partition",
-    "other", "none",
+    "direct", "R x1", "R x2", "R x3+", "D", "D+R", "D+RR+", "ground+D", "vertical D",
+    "wall/partition", "other", "none",
 )
 _SLABS = ("R(floor)", "R(ceiling)")
 _WALL_TOKENS = ("R(back)", "R(side x1)", "R(side x2)", "R(partition)")
+_VERTICAL_TOKENS = ("D(vertical)", *(f"D({e})" for e in VERTICAL_EDGES))
 
 
 def label_family(label: str) -> str:
     """The family (:data:`FAMILIES`) of a mechanism label (``Tx-D(lower)-R(ceiling)-Rx``, a
     :attr:`Recipe.label` or a ray tracer's classified chain): ``direct``; reflections only
     (ground, floor, ceiling) entering through the window, by count (``R x1``, ``R x2``,
-    ``R x3+``); a window-edge diffraction alone (``D``), then one (``D+R``) or more
-    (``D+RR+``) slab reflections; a ground bounce before the diffraction (``ground+D``); any
-    back / side wall or partition reflection (``wall/partition``); every other chain
-    (another floor's or a vertical edge, a transmission through concrete, diffuse) ``other``;
+    ``R x3+``); a horizontal window-edge diffraction alone (``D``), then one (``D+R``) or more
+    (``D+RR+``) slab reflections; a ground bounce before the diffraction (``ground+D``); a
+    diffraction on a vertical window edge (a ray tracer's ``D(vertical)`` or the model's
+    ``D(vertical x1)`` / ``D(vertical x2)``) with any ground / slab bounces (``vertical D``);
+    any back / side wall or partition reflection (``wall/partition``); every other chain
+    (another floor's edge, a transmission through concrete, diffuse) ``other``;
     ``""`` or ``"none"``: no first arrival (``none``)."""
     if label in ("", "none"):
         return "none"
     toks = label.split("-")[1:-1]
     if not toks:
         return "direct"
-    known = {"R(ground)", "D(upper)", "D(lower)", *_SLABS, *_WALL_TOKENS}
+    known = {"R(ground)", "D(upper)", "D(lower)", *_SLABS, *_WALL_TOKENS, *_VERTICAL_TOKENS}
     if any(t not in known for t in toks):
         return "other"
     if any(t in _WALL_TOKENS for t in toks):
         return "wall/partition"
     diff = [i for i, t in enumerate(toks) if t.startswith("D(")]
+    if any(toks[i] in _VERTICAL_TOKENS for i in diff):
+        return "vertical D" if len(diff) == 1 else "other"
     if not diff:
         return ("R x1", "R x2", "R x3+")[min(len(toks), 3) - 1]
     if len(diff) > 1:

@@ -2,12 +2,13 @@
 
 The reference does not unfold anything: for every mechanism it minimises the total length of
 the polyline anchor -> P_1 -> ... -> P_k -> node over the free coordinates of the interaction
-points (each on its plane, or on the edge line) by a damped Newton method with the analytic
+points (each on its plane, or on the edge line: a horizontal window edge, or a vertical one at
+a facade end) by a damped Newton method with the analytic
 gradient/Hessian of a sum of segment lengths (vectorised over thousands of geometries), and
 then decides existence from the physics of the converged points: the facade crossing strictly
 inside the window band, the ground point outside, every reflection point on the floor's inside
 surface with both neighbours on the room side of its plane, the diffraction point strictly
-inside the edge. Lengths must agree to 1e-9 relative, existence exactly.
+inside the edge (between the edge ends, or the sill and the lintel). Lengths must agree to 1e-9 relative, existence exactly.
 """
 
 from __future__ import annotations
@@ -80,6 +81,9 @@ def _reference(b, a: np.ndarray, n: np.ndarray, slot):
         base = np.zeros((nb, 3))
         if kind == "facade":
             bm = np.array([[1.0, 0], [0, 0], [0, 1.0]])
+        elif kind == "edge" and name.startswith("vertical"):  # x = x0 / x1, free z
+            base[:, 0] = x0 if name == "vertical x1" else x1
+            bm = np.array([[0.0], [0], [1.0]])
         elif kind == "edge":
             base[:, 2] = hi if name == "upper" else lo
             bm = np.array([[1.0], [0], [0]])
@@ -208,6 +212,8 @@ def _reference(b, a: np.ndarray, n: np.ndarray, slot):
         if kind == "facade":
             valid &= (p[:, 2] > lo) & (p[:, 2] < hi) & (p[:, 0] > x0) & (p[:, 0] < x1)
             valid &= (prev[:, 1] < 0) & (nxt[:, 1] > 0)
+        elif kind == "edge" and name.startswith("vertical"):
+            valid &= (p[:, 2] > lo) & (p[:, 2] < hi)
         elif kind == "edge":
             valid &= (p[:, 0] > x0) & (p[:, 0] < x1)
         else:
@@ -309,7 +315,7 @@ def test_recipes_name_the_interaction_sequences():
 @pytest.mark.parametrize("n_buildings, n_nodes, n_anchors, seed", [(8, 10, 6, 4)])
 def test_higher_order_families_match_brute_force(n_buildings, n_nodes, n_anchors, seed):
     """Every family of mechanism_set(4) beyond the 18 (slab image series, ground bounce then
-    diffraction, wall reflections): length (where it exists) equal to the brute-force minimum
+    diffraction, wall reflections, vertical window-edge diffraction): length (where it exists) equal to the brute-force minimum
     of the polyline through its interaction points to 1e-9 relative, existence equal to the
     physical test on the brute-force points."""
     mech = mechanism_set(4)
