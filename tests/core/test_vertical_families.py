@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from diffpos.channel.slots import _Ctx, family_slot
-from diffpos.paths.mechanisms import Recipe, VERTICAL_EDGES, label_family, mechanism_set
+from diffpos.paths.mechanisms import VERTICAL_EDGES, Recipe, label_family, mechanism_set
 from diffpos.paths.model import first_arrival_paths
 from diffpos.scenario import Building, Radio
 
