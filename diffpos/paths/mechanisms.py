@@ -38,8 +38,12 @@ class Recipe(NamedTuple):
     entering through the window) or ``"diff"`` (diffraction on a window edge); ``ground``: a
     ground bounce outside first; ``edge``: ``"upper"`` / ``"lower"`` window edge, or
     ``"vertical x1"`` / ``"vertical x2"``: the window's vertical edge at the facade end
-    ``x = x0`` / ``x1`` (``"diff"`` only, else None); ``planes``: the inside reflections in path order (``"floor"``,
-    ``"ceiling"``, ``"back"``, ``"side x1"``, ``"side x2"``)."""
+    ``x = x0`` / ``x1`` (``"diff"`` only, else None); ``planes``: the inside reflections in
+    path order (``"floor"``, ``"ceiling"``, ``"back"``, ``"side x1"``, ``"side x2"``), or
+    ``"partition"`` (last, at most once, with slab reflections only): a reflection on one of
+    the building's interior partitions, wherever the ray meets it among the slab reflections
+    (a vertical mirror commutes with the horizontal ones: the length does not depend on the
+    place, the geometry decides it), on the partition giving the shortest existing path."""
 
     kind: str
     ground: bool = False
@@ -185,9 +189,29 @@ def _families(max_order: int) -> list[Recipe]:
     return [r for r in out if r.order > 0]
 
 
-def mechanism_set(max_order: int = DEFAULT_ORDER) -> MechanismSet:
+def _partition_families(max_order: int) -> list[Recipe]:
+    """Every entry of :func:`_families` (incl. the vertical edges), then a slab series, then
+    one partition reflection (its place among the slab reflections free: :class:`Recipe`), at
+    most ``max_order`` interactions."""
+    out: list[Recipe] = []
+    entries = [Recipe("spec"), Recipe("spec", True)]
+    entries += [Recipe("diff", g, e) for g in (False, True)
+                for e in ("upper", "lower", *VERTICAL_EDGES)]
+    for ent in entries:
+        firsts = ("ceiling",) if (ent.kind == "spec" and ent.ground) else ("floor", "ceiling")
+        for n in range(max_order - ent.order):
+            series = sorted({_slab_series(n, f) for f in firsts} if n else {()},
+                            key=lambda t: t[:1] != ("floor",))
+            out += [ent._replace(planes=(*sl, "partition")) for sl in series]
+    return out
+
+
+def mechanism_set(max_order: int = DEFAULT_ORDER, *, partitions: bool = False) -> MechanismSet:
     """The 18 mechanisms of :data:`MECHANISMS`, then (``max_order`` > 2) every family of at
-    most ``max_order`` interactions they leave out (:func:`_families`), in a fixed order.
+    most ``max_order`` interactions they leave out (:func:`_families`), in a fixed order;
+    ``partitions``: then the partition-reflection families (:func:`_partition_families`; a
+    building without partitions never has them), appended so every other family keeps its
+    slot.
 
     ``max_order`` <= :data:`DEFAULT_ORDER` gives the 18 (a selection of the order-2
     mechanisms); 3 adds e.g. the ceiling-floor-ceiling triple bounce, the ground bounce before
@@ -199,6 +223,8 @@ def mechanism_set(max_order: int = DEFAULT_ORDER) -> MechanismSet:
         return MechanismSet(max_order=DEFAULT_ORDER, recipes=RECIPES)
     known = set(RECIPES)
     extra = [r for r in _families(int(max_order)) if r not in known]
+    if partitions:
+        extra += _partition_families(int(max_order))
     return MechanismSet(max_order=int(max_order), recipes=(*RECIPES, *extra))
 
 

@@ -114,6 +114,10 @@ class FloorFrame:
         Window edge / side wall extent along x.
     depth_m : float [m]
         Back wall at ``y = depth_m``.
+    partitions : tuple of (int, float, float, float)
+        The interior partitions (every floor): ``(axis 0 | 1, position, span start, span
+        end)`` [m], the plane ``x = position`` (axis 0) or ``y = position`` (axis 1) spanning
+        the other horizontal coordinate; plane name ``"partition:j"``.
     """
 
     z_floor: FloatArray
@@ -123,6 +127,7 @@ class FloorFrame:
     x0: float
     x1: float
     depth_m: float
+    partitions: tuple[tuple[int, float, float, float], ...] = ()
 
     @classmethod
     def from_building(cls, building, floor: ArrayLike) -> FloorFrame:
@@ -132,7 +137,8 @@ class FloorFrame:
         lo, hi = building.window_z_m(k)
         x0, x1 = building.edge_x_m
         return cls(z_floor=z_f, z_ceil=z_f + building.floor_height_m, win_lo=lo, win_hi=hi,
-                   x0=float(x0), x1=float(x1), depth_m=float(building.depth_m))
+                   x0=float(x0), x1=float(x1), depth_m=float(building.depth_m),
+                   partitions=partition_rows(building))
 
     def plane(self, name: str) -> tuple[int, FloatArray | float]:
         """Axis and coordinate of an inside plane (or the ground)."""
@@ -148,6 +154,9 @@ class FloorFrame:
             return 0, self.x1
         if name == "ground":
             return 2, 0.0
+        if name.startswith("partition:"):
+            axis, pos, _, _ = self.partitions[int(name.split(":")[1])]
+            return axis, pos
         raise ValueError(name)
 
     def edge_segment(self, edge: str, shape: tuple[int, ...]) -> tuple[FloatArray, FloatArray]:
@@ -177,6 +186,13 @@ class FloorFrame:
                 & (p[..., 2] >= self.z_floor - tol) & (p[..., 2] <= self.z_ceil + tol))
 
 
+def partition_rows(building) -> tuple[tuple[int, float, float, float], ...]:
+    """``(axis 0 | 1, position, span start, span end)`` [m] of every interior partition of a
+    :class:`~diffpos.scenario.Building` (:attr:`FloorFrame.partitions`)."""
+    return tuple((0 if p.axis == "x" else 1, float(p.position_m), float(min(p.span_m)),
+                  float(max(p.span_m))) for p in building.partitions)
+
+
 def _mirror(p: FloatArray, axis: int, c: FloatArray | float) -> FloatArray:
     q = p.copy()
     q[..., axis] = 2.0 * c - p[..., axis]
@@ -194,6 +210,8 @@ class _Geom:
     ground_point: FloatArray | None = None
     deviation_cos: FloatArray | None = None  # diffraction: cos(incident, diffracted ray)
     outside_m: FloatArray | None = None  # diffraction: anchor -> diffraction point [m]
+    # a partition family: the recipe's plane index of every reflection point, in path order
+    order: NDArray[np.int_] | None = None
 
 
 def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
@@ -207,6 +225,9 @@ def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
     ``points`` are the entry point, then the reflection points, then the node.
     """
     shape = anchor.shape[:-1]
+    if "partition" in planes:
+        return _best_partition(frame, tuple(planes), shape, lambda pl: specular_path(
+            anchor, node, frame, pl, ground=ground))
     a, n = anchor, node
     src = _mirror(a, 2, 0.0) if ground else a
     img = n
@@ -231,21 +252,28 @@ def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
         entry = src + t_f[..., None] * d
         valid &= frame.in_window(entry[..., 2], entry[..., 0])
         pts = [entry]
-        cur_src, cur_img, t_last = src, img, t_f
-        for axis, coord in axes_coords:
-            dd = cur_img - cur_src
-            t = (coord - cur_src[..., axis]) / dd[..., axis]
-            valid &= (t > t_last) & (t < 1)
-            rp = cur_src + t[..., None] * dd
-            valid &= frame.in_floor_box(rp)
-            pts.append(rp)
-            cur_img = _mirror(cur_img, axis, coord)
-            cur_src = _mirror(cur_src, axis, coord)
-            t_last = t
+        order = None
+        if any(p.startswith("partition:") for p in planes):
+            ok, rps, order = _free_walk(src, img, t_f, planes, frame)
+            valid &= ok
+            pts += rps
+        else:
+            cur_src, cur_img, t_last = src, img, t_f
+            for axis, coord in axes_coords:
+                dd = cur_img - cur_src
+                t = (coord - cur_src[..., axis]) / dd[..., axis]
+                valid &= (t > t_last) & (t < 1)
+                rp = cur_src + t[..., None] * dd
+                valid &= frame.in_floor_box(rp)
+                pts.append(rp)
+                cur_img = _mirror(cur_img, axis, coord)
+                cur_src = _mirror(cur_src, axis, coord)
+                t_last = t
         pts.append(n)
         jac = d / length[..., None] * sign
     valid &= np.isfinite(length)
-    return _Geom(length_m=length, valid=valid, jacobian=jac, points=pts, ground_point=g_pt)
+    return _Geom(length_m=length, valid=valid, jacobian=jac, points=pts, ground_point=g_pt,
+                 order=order)
 
 
 def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edge: str,
@@ -269,6 +297,9 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
     a = np.broadcast_to(anchor, (*shape, 3))
     n = np.broadcast_to(node, (*shape, 3))
     planes = () if then is None else ((then,) if isinstance(then, str) else tuple(then))
+    if "partition" in planes:
+        return _best_partition(frame, planes, shape, lambda pl: diffracted_path(
+            a, n, frame, edge, pl, ground=ground))
     src = _mirror(np.array(a), 2, 0.0) if ground else a
     p0, p1 = frame.edge_segment(edge, shape)
     obs = n
@@ -289,17 +320,23 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
             valid &= (t_g > 0) & (t_g < 1)
             g_pt = src + t_g[..., None] * (q - src)
             g_pt[..., 2] = 0.0
-        cur_src, cur_img, t_last = q, obs, 0.0
-        for axis, coord in axes_coords:
-            dd = cur_img - cur_src
-            t = (coord - cur_src[..., axis]) / dd[..., axis]
-            valid &= (t > t_last) & (t < 1)
-            rp = cur_src + t[..., None] * dd
-            valid &= frame.in_floor_box(rp)
-            pts.append(rp)
-            cur_img = _mirror(cur_img, axis, np.broadcast_to(coord, shape))
-            cur_src = _mirror(cur_src, axis, np.broadcast_to(coord, shape))
-            t_last = t
+        order = None
+        if any(p.startswith("partition:") for p in planes):
+            ok, rps, order = _free_walk(q, obs, 0.0, planes, frame)
+            valid &= ok
+            pts += rps
+        else:
+            cur_src, cur_img, t_last = q, obs, 0.0
+            for axis, coord in axes_coords:
+                dd = cur_img - cur_src
+                t = (coord - cur_src[..., axis]) / dd[..., axis]
+                valid &= (t > t_last) & (t < 1)
+                rp = cur_src + t[..., None] * dd
+                valid &= frame.in_floor_box(rp)
+                pts.append(rp)
+                cur_img = _mirror(cur_img, axis, np.broadcast_to(coord, shape))
+                cur_src = _mirror(cur_src, axis, np.broadcast_to(coord, shape))
+                t_last = t
         u_out = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
         u_in = q - src
         d_in = np.sqrt(np.einsum("...i,...i->...", u_in, u_in))
@@ -308,7 +345,84 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
     pts.append(n)
     return _Geom(length_m=dp.length_m, valid=valid & np.isfinite(dp.length_m), jacobian=jac,
                  points=pts, ground_point=g_pt,
-                 deviation_cos=np.einsum("...i,...i->...", u_in, u_out), outside_m=d_in)
+                 deviation_cos=np.einsum("...i,...i->...", u_in, u_out), outside_m=d_in,
+                 order=order)
+
+
+def _free_walk(src: FloatArray, img: FloatArray, t_start: float | FloatArray,
+               planes: tuple[str, ...] | list[str], frame: FloorFrame
+               ) -> tuple[BoolArray, list, NDArray[np.int_]]:
+    """The reflection points of the unfolded ray ``src -> img`` (``img``: the node imaged in
+    every plane) for slab planes in path order plus one ``"partition:j"`` plane anywhere: the
+    slab reflections follow one another after ``t_start``; the partition's parameter is that
+    of its own plane on the unfolded ray (the vertical mirror commutes with the horizontal
+    ones), after ``t_start``. Every point is folded back by the mirrors met before it and must
+    lie on the floor's inside surface, the partition's strictly inside its span. Returns
+    (valid, the points in path order, the recipe's plane index of each)."""
+    fi = next(i for i, p in enumerate(planes) if p.startswith("partition:"))
+    pax, ppos, plo, phi = frame.partitions[int(planes[fi].split(":")[1])]
+    shape = src.shape[:-1]
+    npl = len(planes)
+    valid = np.ones(shape, dtype=bool)
+    ts = np.empty((*shape, npl))
+    pts = np.empty((*shape, npl, 3))
+    d = img - src
+    t_p = (ppos - src[..., pax]) / d[..., pax]
+    valid &= (t_p > t_start) & (t_p < 1)
+    pp = src + t_p[..., None] * d
+    cur_src, cur_img, t_last = src, img, t_start
+    for i, p in enumerate(planes):
+        if i == fi:
+            continue
+        axis, coord = frame.plane(p)
+        dd = cur_img - cur_src
+        t = (coord - cur_src[..., axis]) / dd[..., axis]
+        valid &= (t > t_last) & (t < 1)
+        rp = cur_src + t[..., None] * dd
+        rp[..., pax] = np.where(t_p < t, 2.0 * ppos - rp[..., pax], rp[..., pax])
+        valid &= frame.in_floor_box(rp)
+        pp[..., axis] = np.where(t < t_p, 2.0 * coord - pp[..., axis], pp[..., axis])
+        ts[..., i], pts[..., i, :] = t, rp
+        cur_img = _mirror(cur_img, axis, coord)
+        cur_src = _mirror(cur_src, axis, coord)
+        t_last = t
+    pp[..., pax] = ppos
+    other = pp[..., 1 - pax]
+    valid &= (other > plo) & (other < phi) & frame.in_floor_box(pp)
+    ts[..., fi], pts[..., fi, :] = t_p, pp
+    order = np.argsort(np.where(np.isfinite(ts), ts, np.inf), axis=-1, kind="stable")
+    pts = np.take_along_axis(pts, order[..., None], axis=-2)
+    return valid, [pts[..., j, :] for j in range(npl)], order
+
+
+def _best_partition(frame: FloorFrame, planes: tuple[str, ...], shape: tuple[int, ...],
+                    path_of) -> _Geom:
+    """``path_of(planes)`` on every partition (``"partition"`` -> ``"partition:j"``), per
+    element the shortest existing one (the first partition's where none exists)."""
+    geoms = [path_of(tuple(f"partition:{j}" if p == "partition" else p for p in planes))
+             for j in range(len(frame.partitions))]
+    if not geoms:
+        nan = np.full(shape, np.nan)
+        return _Geom(length_m=nan, valid=np.zeros(shape, dtype=bool),
+                     jacobian=np.zeros((*shape, 3)), points=[], deviation_cos=nan,
+                     outside_m=nan)
+    key = np.stack([np.where(g.valid, g.length_m, np.inf) for g in geoms])
+    pick = np.argmin(key, axis=0)
+
+    def sel(vals):
+        if vals[0] is None:
+            return None
+        v = np.stack(vals)
+        idx = pick.reshape((1, *shape, *([1] * (v.ndim - 1 - len(shape)))))
+        return np.take_along_axis(v, np.broadcast_to(idx, (1, *v.shape[1:])), axis=0)[0]
+
+    return _Geom(length_m=sel([g.length_m for g in geoms]), valid=sel([g.valid for g in geoms]),
+                 jacobian=sel([g.jacobian for g in geoms]),
+                 points=[sel([g.points[k] for g in geoms]) for k in range(len(geoms[0].points))],
+                 ground_point=sel([g.ground_point for g in geoms]),
+                 deviation_cos=sel([g.deviation_cos for g in geoms]),
+                 outside_m=sel([g.outside_m for g in geoms]),
+                 order=sel([g.order for g in geoms]))
 
 
 def direct_opening(anchor: FloatArray, node: FloatArray, frame: FloorFrame
