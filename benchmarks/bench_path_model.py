@@ -455,10 +455,10 @@ VERTICAL_EDGE_TOL_M = 0.1
 
 def sionna_chains(ds, mset):
     """Slot of ``mset`` (``-1``: none) and chain label of every traced path of ``ds`` (module
-    docstring, *Families vs Sionna RT*), and the median ``y`` of the traced vertical-edge
-    diffraction points (NaN if none)."""
+    docstring, *Families vs Sionna RT*), the median ``y`` of the traced vertical-edge
+    diffraction points (NaN if none) and the partition a path reflects on (``-1``: none)."""
     from diffpos_services.raytrace.mechanisms import PLANE_TOL_M, classify_mechanisms
-    from diffpos_services.raytrace.paths import DIFFRACTION
+    from diffpos_services.raytrace.paths import DIFFRACTION, SPECULAR
 
     lab = classify_mechanisms(ds, mset).label.astype(object)
     b = ds.scenario.building
@@ -480,10 +480,32 @@ def sionna_chains(ds, mset):
                 lab[i] = lab[i].replace("D(vertical)", name, 1)
             ys.append(p[..., 1][hit])
             named |= hit
+    part = np.full(lab.shape, -1)
+    for d in range(min(verts.shape[3], 4)):
+        flag = (chain >> np.uint16(4 * d)) & np.uint16(0xF)
+        p = verts[:, :, :, d, :]
+        for j, pt in enumerate(b.partitions):
+            on = np.abs(p[..., 0 if pt.axis == "x" else 1] - pt.position_m) < PLANE_TOL_M
+            part = np.where((flag == SPECULAR) & on & (p[..., 1] > PLANE_TOL_M)
+                            & (part == -1), j, part)
     slot_of = {name: i for i, name in enumerate(mset.labels)}
-    code = np.array([slot_of.get(str(x), -1) for x in lab.ravel()]).reshape(lab.shape)
+    code = np.array([slot_of.get(_canonical(str(x)), -1) for x in lab.ravel()]
+                    ).reshape(lab.shape)
     y = np.concatenate(ys) if ys else np.zeros(0)
-    return code, lab, float(np.median(y)) if y.size else float("nan")
+    return code, lab, float(np.median(y)) if y.size else float("nan"), part
+
+
+def _canonical(label: str) -> str:
+    """A chain with one partition reflection among slab reflections, as the model's partition
+    families name it (the partition last: its place is free)."""
+    toks = label.split("-")
+    if toks.count("R(partition)") != 1:
+        return label
+    diff = [i for i, t in enumerate(toks) if t.startswith("D(")]
+    if diff and toks.index("R(partition)") < diff[0]:  # before the edge: another chain
+        return label
+    rest = [t for t in toks if t != "R(partition)"]
+    return "-".join([*rest[:-1], "R(partition)", rest[-1]])
 
 
 def sionna_length_table(paths: list[str], max_order: int) -> None:
@@ -497,18 +519,32 @@ def sionna_length_table(paths: list[str], max_order: int) -> None:
 
     from diffpos.paths.mechanisms import mechanism_set
 
-    mset = mechanism_set(max_order)
+    mset = mechanism_set(max_order, partitions=True)
     for path in paths:
         ds = load_dataset(path)
-        code, _, y_edge = sionna_chains(ds, mset)
+        code, _, y_edge, part = sionna_chains(ds, mset)
         length, _, loose = model_lengths(ds, mset)
         shifted = (length, loose)
         if np.isfinite(y_edge):
             up = np.array([0.0, -y_edge, 0.0])
             sds = dataclasses.replace(ds, nodes_m=ds.nodes_m + up, anchors_m=ds.anchors_m + up)
             shifted = model_lengths(sds, mset)[0::2]
-        print(f"\n{path} (mechanism_set({max_order}): {len(mset)} families; traced vertical "
-              f"edge at y = {y_edge:+.4f} m)\n")
+        # a partition family: the model on the traced path's partition alone (in the scene's
+        # frame for a vertical edge)
+        b = ds.scenario.building
+        by_part = {}
+        for j, pt in enumerate(b.partitions):
+            sc = dataclasses.replace(ds.scenario, building=dataclasses.replace(b, partitions=(pt,)))
+            meta = {**ds.metadata, "scenario": sc.to_dict()}
+            by_part[j, False] = model_lengths(dataclasses.replace(ds, metadata=meta), mset)[0::2]
+            if np.isfinite(y_edge):  # the scene's frame: a y-partition moves with the nodes
+                pts = dataclasses.replace(pt, position_m=pt.position_m - y_edge
+                                          ) if pt.axis == "y" else pt
+                sc = dataclasses.replace(sc, building=dataclasses.replace(b, partitions=(pts,)))
+                by_part[j, True] = model_lengths(dataclasses.replace(
+                    sds, metadata={**ds.metadata, "scenario": sc.to_dict()}), mset)[0::2]
+        print(f"\n{path} (mechanism_set({max_order}, partitions=True): {len(mset)} families; "
+              f"traced vertical edge at y = {y_edge:+.4f} m)\n")
         print("| family | paths | model has | max \\|err\\| [mm] | p99 [mm] | model y = 0: p50 [mm] |")
         print("| --- | ---: | ---: | ---: | ---: | ---: |")
         for s, name in enumerate(mset.labels):
@@ -518,12 +554,19 @@ def sionna_length_table(paths: list[str], max_order: int) -> None:
             n, m, k = idx.T
             vert = "vertical" in name
             ln, lz = shifted if vert else (length, loose)
-            ok = lz[n, m, s]
-            err = np.abs(ds.path_length_m[n, m, k] - ln[n, m, s])[ok] * 1e3
+            ln, lz = ln[n, m, s], lz[n, m, s]
+            if "partition" in name:
+                j = part[n, m, k]
+                ln = np.array([by_part[jj, vert][0][i, a, s]
+                               for jj, i, a in zip(j, n, m, strict=True)])
+                lz = np.array([by_part[jj, vert][1][i, a, s]
+                               for jj, i, a in zip(j, n, m, strict=True)])
+            ok = lz
+            err = np.abs(ds.path_length_m[n, m, k] - ln)[ok] * 1e3
             own = np.abs(ds.path_length_m[n, m, k] - length[n, m, s])[loose[n, m, s]] * 1e3
             mx = f"{err.max():.4f}" if err.size else "-"
             p99 = f"{np.percentile(err, 99):.4f}" if err.size else "-"
-            p50 = f"{np.median(own):.1f}" if vert and own.size else ""
+            p50 = f"{np.median(own):.1f}" if vert and own.size and "partition" not in name else ""
             print(f"| {name} | {len(idx)} | {100 * ok.mean():.1f} % | {mx} | {p99} | {p50} |")
 
 

@@ -82,6 +82,7 @@ from diffpos.paths.model_nb import (
     building_planes,
     eval_paths_kernel,
     mechanism_table,
+    partition_array,
 )
 
 __all__ = [
@@ -509,7 +510,8 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
     PathSet
     """
     rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots, mechanisms)
-    length, valid, jac, dev, outm, _ = eval_paths_kernel(*rows.args, table=rows.table)
+    length, valid, jac, dev, outm, _ = eval_paths_kernel(*rows.args, table=rows.table,
+                                                          parts=rows.parts)
     sh = (*rows.shape, rows.slots.shape[0])
     return PathSet(length_m=length.reshape(sh), valid=valid.reshape(sh),
                    jacobian=jac.reshape((*sh, 3)), floor=rows.floor,
@@ -560,7 +562,8 @@ def graded_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *, relax_m:
     if not relax_m >= 0.0:
         raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
     rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots, mechanisms)
-    length, ok, jac, _, _, z_in = eval_paths_kernel(*rows.args, raw=True, table=rows.table)
+    length, ok, jac, _, _, z_in = eval_paths_kernel(*rows.args, raw=True, table=rows.table,
+                                                  parts=rows.parts)
     lo, hi = (v[:, None] for v in building.window_z_m(rows.args[2]))
     spec = SPECULAR_SLOTS if mechanisms is None else mechanisms.specular
     band = np.isin(rows.slots, spec)
@@ -584,6 +587,7 @@ class _Rows:
     slots: NDArray[np.int64]
     args: tuple
     table: NDArray[np.int64]
+    parts: NDArray[np.float64]
 
 
 #: Compiled tables of the mechanism sets in use.
@@ -630,7 +634,8 @@ def _kernel_rows(nodes_m: ArrayLike, anchors_m: ArrayLike, building,
     if planes[4] == planes[5] and np.any(np.isin(sel, diff)):
         raise ValueError("the window edge has zero length (edge_x_m equal)")
     args = (rows_n.reshape(-1, 3), rows_a.reshape(-1, 3), k_f.reshape(-1), planes, sel)
-    return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args, table=table)
+    return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args, table=table,
+                 parts=partition_array(building))
 
 
 def _first_arrival_paths_numpy(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
