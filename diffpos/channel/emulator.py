@@ -115,8 +115,9 @@ def mpc_class_of(recipe: Recipe) -> int:
 def channel_mechanisms(radio: Radio) -> MechanismSet:
     """The emulated channel's mechanisms: the 18 (``radio.channel_max_order`` 2) or the
     families of :func:`diffpos.paths.mechanisms.mechanism_set` up to that order (the 18
-    first, in their slots)."""
-    return mechanism_set(radio.channel_max_order)
+    first, in their slots), with the partition-reflection families (none exists in a building
+    without partitions)."""
+    return mechanism_set(radio.channel_max_order, partitions=True)
 
 
 

@@ -98,13 +98,14 @@ from diffpos.channel.rays_nb import (
     _specular,
     _zenith_deg,
 )
+from diffpos.channel.slots import partition_permittivities
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "a28715285fa4c836"
+CALLEES_SHA256 = "16aa9dc1124b97f6"
 
 __all__ = [
     "COST_SIGNATURE",
@@ -320,7 +321,8 @@ def channel_params(building, radio, materials) -> tuple[np.ndarray, np.ndarray, 
     prm[_P_E0:] = np.asarray(radio.polarization, dtype=np.float64)
     parts = np.array([[float(axis), float(pos), float(lo), float(hi), float(db)]
                       for axis, pos, (lo, hi), db in plist], dtype=np.float64).reshape(-1, 5)
-    eta = np.array([eta_g, eta_in], dtype=np.complex128)
+    eta = np.array([eta_g, eta_in, *partition_permittivities(building, radio.frequency_hz)],
+                   dtype=np.complex128)
     return prm, np.ascontiguousarray(parts), eta
 
 

@@ -211,8 +211,10 @@ class _Geom:
     ground_point: FloatArray | None = None
     deviation_cos: FloatArray | None = None  # diffraction: cos(incident, diffracted ray)
     outside_m: FloatArray | None = None  # diffraction: anchor -> diffraction point [m]
-    # a partition family: the recipe's plane index of every reflection point, in path order
+    # a partition family: the recipe's plane index of every reflection point, in path order,
+    # and the partition (FloorFrame.partitions index) of the path
     order: NDArray[np.int_] | None = None
+    partition: NDArray[np.int_] | None = None
 
 
 def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
@@ -423,7 +425,7 @@ def _best_partition(frame: FloorFrame, planes: tuple[str, ...], shape: tuple[int
                  ground_point=sel([g.ground_point for g in geoms]),
                  deviation_cos=sel([g.deviation_cos for g in geoms]),
                  outside_m=sel([g.outside_m for g in geoms]),
-                 order=sel([g.order for g in geoms]))
+                 order=sel([g.order for g in geoms]), partition=pick)
 
 
 def direct_opening(anchor: FloatArray, node: FloatArray, frame: FloorFrame
