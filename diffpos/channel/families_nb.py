@@ -71,12 +71,13 @@ from diffpos.paths.model_nb import (
     mirror,
     row_planes,
     vertical_axis,
+    walk_ok,
 )
 
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "16aa9dc1124b97f6"
+CALLEES_SHA256 = "bd997cec9549b85b"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
@@ -201,6 +202,8 @@ def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     ok = ok and (t_f > t_prev) and (t_f < 1)
     p0, p1, p2 = s0 + t_f * d0, s1 + t_f * d1, s2 + t_f * d2  # entry
     ok = ok and (p2 > lo) and (p2 < hi) and (p0 > x0) and (p0 < x1)
+    ok = ok and walk_ok(s0, s1, s2, i0, i1, i2, t_f, table, s, zf, zc, x0, x1, depth,
+                        int(part[0]), part[1], part[2], part[3])  # before any field
     if not (ok and math.isfinite(length)):
         return 0.0, 0.0, 0.0, 0.0, 0.0, length, False
     if ground:
@@ -276,6 +279,8 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     if ground:
         t_g = (0.0 - s2) / (q2 - s2)
         ok = ok and (t_g > 0) and (t_g < 1)
+    ok = ok and walk_ok(q0, q1, q2, o0, o1, o2, 0.0, table, s, zf, zc, x0, x1, depth,
+                        int(part[0]), part[1], part[2], part[3])  # before the UTD
     if not (ok and math.isfinite(length)):
         return 0.0, 0.0, 0.0, 0.0, 0.0, length, False
     # the source's field: the radio's polarisation (pattern towards the edge), or the

@@ -46,7 +46,7 @@ __all__ = ["COL_EDGE", "COL_GROUND", "COL_KIND", "COL_NPLANES", "COL_PLANES", "D
            "SLOT_PLANE1", "building_planes", "edge_axis", "eval_paths_kernel", "family_path",
            "family_path_parts", "in_floor_box", "inside_plane", "mechanism_table", "mirror",
            "partition_array", "paths_kernel",
-           "row_planes", "slot_path", "vertical_axis", "warm_paths"]
+           "row_planes", "slot_path", "vertical_axis", "walk_ok", "warm_paths"]
 
 #: Mechanism tables: one row per slot, columns :data:`COL_KIND` (0 direct, 1 specular, 2
 #: diffraction), :data:`COL_GROUND` (1: a ground bounce outside first), :data:`COL_EDGE` (0
@@ -193,6 +193,19 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, table, s, zf, zc, x0, x1, depth, p
                                     depth)
     ok = ok and math.isfinite(length)
     return length, ok, ez, d0, d1, d2, g0, g1, g2
+
+
+@njit(**_OPTS)
+def walk_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth, pax, ppos, plo,
+            phi):
+    """The reflections of row ``s`` on the unfolded ray ``c -> m`` (source, node imaged in
+    every plane) exist, after ``t_start`` (paths.specular_path / diffracted_path's tests;
+    ``pax, ppos, plo, phi``: the partition a ``"partition"`` plane stands for): a geometry-only
+    test for callers that compute more per path (the emulator's fields)."""
+    if _has_partition(table, s):
+        return _free_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth, pax,
+                        ppos, plo, phi)
+    return _reflections_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth)
 
 
 @njit(**_OPTS)
