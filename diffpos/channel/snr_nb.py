@@ -98,7 +98,6 @@ from diffpos.channel.rays_nb import (
     _specular,
     _zenith_deg,
 )
-from diffpos.channel.slots import partition_permittivities
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 
@@ -295,11 +294,15 @@ def warm_channel() -> float:
     return time.perf_counter() - t0
 
 
-def channel_params(building, radio, materials) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def channel_params(building, radio, materials, eta_parts=()
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The kernel's constants: ``(prm, parts, eta)`` (module docstring) of a building and radio.
 
     ``materials``: ``(eta_ground, eta_in, wall_db, slab_db, glass_db, parts)`` as the numpy
-    emulator computes them (``diffpos.channel.emulator._materials``), so both use the same numbers.
+    emulator computes them (``diffpos.channel.emulator._materials``), so both use the same numbers;
+    ``eta_parts``: the partitions' permittivities
+    (``diffpos.channel.slots.partition_permittivities``: their reflections), after the two in
+    ``eta``.
     """
     eta_g, eta_in, wall_db, slab_db, glass_db, plist = materials
     x0, x1 = building.edge_x_m
@@ -321,8 +324,7 @@ def channel_params(building, radio, materials) -> tuple[np.ndarray, np.ndarray, 
     prm[_P_E0:] = np.asarray(radio.polarization, dtype=np.float64)
     parts = np.array([[float(axis), float(pos), float(lo), float(hi), float(db)]
                       for axis, pos, (lo, hi), db in plist], dtype=np.float64).reshape(-1, 5)
-    eta = np.array([eta_g, eta_in, *partition_permittivities(building, radio.frequency_hz)],
-                   dtype=np.complex128)
+    eta = np.array([eta_g, eta_in, *eta_parts], dtype=np.complex128)
     return prm, np.ascontiguousarray(parts), eta
 
 
