@@ -13,7 +13,7 @@ For every ray-trace dataset (``diffpos raytrace SCEN --receivers 200 --samples 1
 first arrival of every (receiver, anchor) link is classified into a family
 (:func:`diffpos.paths.mechanisms.label_family`: direct; reflections only, by count; a window-edge
 diffraction alone, then one or more slab reflections; a ground bounce before the diffraction;
-any wall or partition reflection; other; none):
+a diffraction on a vertical window edge; any wall or partition reflection; other; none):
 
 * Sionna: :func:`diffpos_services.raytrace.evaluate.dataset_first_arrival` (the emulator's
   detector on the traced paths) and the traced chain's label

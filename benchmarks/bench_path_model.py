@@ -51,6 +51,14 @@ Since the compiled starts and LM (``mnls(kernel=True)``; ``--reference``: the nu
 fix): ``mnls_nb.lm_kernel`` (path model + link terms + LM steps) 52 %, ``pair_snr_db`` 26 %
 (``channel_snr_kernel`` own 26 %), ``first_arrival_paths`` outside the LM 4 %, the rest 18 %.
 
+**Families vs Sionna RT** (``--sionna DATASET.npz ... [--max-order 4]``, no timing): every
+traced path of a ``diffpos raytrace`` dataset is classified into the families of
+``mechanism_set(max_order)`` (:func:`sionna_chains`: the ray tracer's chain, with a vertical
+window-edge diffraction named by its end, ``D(vertical x1)`` / ``D(vertical x2)``, when its
+point lies on the receiver floor's window band) and its traced length compared with the
+model's closed-form length on the receiver's floor (paths whose family the model says exists,
+band ties included): per family the paths, the share the model has, max and p99 |error|.
+
 **Window-edge model and bounds** (the paper's Corollary-1 geometry, target < 100 ns per pair):
 
 - ``window_edge_path`` on 1,000,000 node-anchor pairs (250,000 nodes x 4 anchors), lengths +
@@ -438,6 +446,130 @@ def profile_mnls(n_fixes: int, numpy_paths: bool, numpy_snr: bool = False,
               f"{100 * ct / total:.1f} % |")
 
 
+#: A vertical-edge diffraction point this close to the facade plane is on the window's
+#: vertical edge [m] (the traced scene's side walls run 5 cm past the facade,
+#: ``diffpos_services.raytrace.scene.building_surfaces`` ``overlap_m``: its vertical edges lie
+#: at ``y = -0.05``).
+VERTICAL_EDGE_TOL_M = 0.1
+
+
+def sionna_chains(ds, mset):
+    """Slot of ``mset`` (``-1``: none) and chain label of every traced path of ``ds`` (module
+    docstring, *Families vs Sionna RT*), the median ``y`` of the traced vertical-edge
+    diffraction points (NaN if none) and the partition a path reflects on (``-1``: none)."""
+    from diffpos_services.raytrace.mechanisms import PLANE_TOL_M, classify_mechanisms
+    from diffpos_services.raytrace.paths import DIFFRACTION, SPECULAR
+
+    lab = classify_mechanisms(ds, mset).label.astype(object)
+    b = ds.scenario.building
+    x0, x1 = b.edge_x_m
+    lo, hi = b.window_z_m(b.floor_index(ds.nodes_m[:, 2]))
+    verts = ds.path_vertices_m.astype(np.float64)
+    chain = ds.path_chain.astype(np.uint16)
+    named = np.zeros(lab.shape, dtype=bool)
+    ys = []
+    for d in range(min(verts.shape[3], 4)):
+        flag = (chain >> np.uint16(4 * d)) & np.uint16(0xF)
+        p = verts[:, :, :, d, :]
+        in_band = ((p[..., 2] > lo[:, None, None]) & (p[..., 2] < hi[:, None, None])
+                   & (np.abs(p[..., 1]) < VERTICAL_EDGE_TOL_M))
+        for xe, name in ((x0, "D(vertical x1)"), (x1, "D(vertical x2)")):
+            hit = (flag == DIFFRACTION) & in_band & (np.abs(p[..., 0] - xe) < PLANE_TOL_M)
+            hit &= ~named & ds.path_valid
+            for i in zip(*np.nonzero(hit), strict=True):
+                lab[i] = lab[i].replace("D(vertical)", name, 1)
+            ys.append(p[..., 1][hit])
+            named |= hit
+    part = np.full(lab.shape, -1)
+    for d in range(min(verts.shape[3], 4)):
+        flag = (chain >> np.uint16(4 * d)) & np.uint16(0xF)
+        p = verts[:, :, :, d, :]
+        for j, pt in enumerate(b.partitions):
+            on = np.abs(p[..., 0 if pt.axis == "x" else 1] - pt.position_m) < PLANE_TOL_M
+            part = np.where((flag == SPECULAR) & on & (p[..., 1] > PLANE_TOL_M)
+                            & (part == -1), j, part)
+    slot_of = {name: i for i, name in enumerate(mset.labels)}
+    code = np.array([slot_of.get(_canonical(str(x)), -1) for x in lab.ravel()]
+                    ).reshape(lab.shape)
+    y = np.concatenate(ys) if ys else np.zeros(0)
+    return code, lab, float(np.median(y)) if y.size else float("nan"), part
+
+
+def _canonical(label: str) -> str:
+    """A chain with one partition reflection among slab reflections, as the model's partition
+    families name it (the partition last: its place is free)."""
+    toks = label.split("-")
+    if toks.count("R(partition)") != 1:
+        return label
+    diff = [i for i, t in enumerate(toks) if t.startswith("D(")]
+    if diff and toks.index("R(partition)") < diff[0]:  # before the edge: another chain
+        return label
+    rest = [t for t in toks if t != "R(partition)"]
+    return "-".join([*rest[:-1], "R(partition)", rest[-1]])
+
+
+def sionna_length_table(paths: list[str], max_order: int) -> None:
+    """Traced vs closed-form length per family (module docstring). The vertical-edge families
+    are evaluated in the traced scene's frame too (the edge at the traced points' ``y``,
+    :data:`VERTICAL_EDGE_TOL_M`), and beside it the model's own (edge at ``y = 0``)."""
+    import dataclasses
+
+    from diffpos_services.raytrace.dataset import load_dataset
+    from diffpos_services.raytrace.mechanisms import model_lengths
+
+    from diffpos.paths.mechanisms import mechanism_set
+
+    mset = mechanism_set(max_order, partitions=True)
+    for path in paths:
+        ds = load_dataset(path)
+        code, _, y_edge, part = sionna_chains(ds, mset)
+        length, _, loose = model_lengths(ds, mset)
+        shifted = (length, loose)
+        if np.isfinite(y_edge):
+            up = np.array([0.0, -y_edge, 0.0])
+            sds = dataclasses.replace(ds, nodes_m=ds.nodes_m + up, anchors_m=ds.anchors_m + up)
+            shifted = model_lengths(sds, mset)[0::2]
+        # a partition family: the model on the traced path's partition alone (in the scene's
+        # frame for a vertical edge)
+        b = ds.scenario.building
+        by_part = {}
+        for j, pt in enumerate(b.partitions):
+            sc = dataclasses.replace(ds.scenario, building=dataclasses.replace(b, partitions=(pt,)))
+            meta = {**ds.metadata, "scenario": sc.to_dict()}
+            by_part[j, False] = model_lengths(dataclasses.replace(ds, metadata=meta), mset)[0::2]
+            if np.isfinite(y_edge):  # the scene's frame: a y-partition moves with the nodes
+                pts = dataclasses.replace(pt, position_m=pt.position_m - y_edge
+                                          ) if pt.axis == "y" else pt
+                sc = dataclasses.replace(sc, building=dataclasses.replace(b, partitions=(pts,)))
+                by_part[j, True] = model_lengths(dataclasses.replace(
+                    sds, metadata={**ds.metadata, "scenario": sc.to_dict()}), mset)[0::2]
+        print(f"\n{path} (mechanism_set({max_order}, partitions=True): {len(mset)} families; "
+              f"traced vertical edge at y = {y_edge:+.4f} m)\n")
+        print("| family | paths | model has | max \\|err\\| [mm] | p99 [mm] | model y = 0: p50 [mm] |")
+        print("| --- | ---: | ---: | ---: | ---: | ---: |")
+        for s, name in enumerate(mset.labels):
+            idx = np.argwhere(code == s)
+            if s < 18 or len(idx) == 0:  # the 18: `diffpos raytrace` checks them
+                continue
+            n, m, k = idx.T
+            vert = "vertical" in name
+            ln, lz = shifted if vert else (length, loose)
+            ln, lz = ln[n, m, s], lz[n, m, s]
+            if "partition" in name:
+                j = part[n, m, k]
+                ln = np.array([by_part[jj, vert][0][i, a, s]
+                               for jj, i, a in zip(j, n, m, strict=True)])
+                lz = np.array([by_part[jj, vert][1][i, a, s]
+                               for jj, i, a in zip(j, n, m, strict=True)])
+            ok = lz
+            err = np.abs(ds.path_length_m[n, m, k] - ln)[ok] * 1e3
+            own = np.abs(ds.path_length_m[n, m, k] - length[n, m, s])[loose[n, m, s]] * 1e3
+            mx = f"{err.max():.4f}" if err.size else "-"
+            p99 = f"{np.percentile(err, 99):.4f}" if err.size else "-"
+            p50 = f"{np.median(own):.1f}" if vert and own.size and "partition" not in name else ""
+            print(f"| {name} | {len(idx)} | {100 * ok.mean():.1f} % | {mx} | {p99} | {p50} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=1_000_000)
@@ -454,7 +586,13 @@ def main() -> None:
                         help="with --profile-mnls: the estimator on the numpy path model (A/B)")
     parser.add_argument("--numpy-snr", action="store_true",
                         help="with --profile-mnls: the SNR cost on the numpy emulator (A/B)")
+    parser.add_argument("--sionna", nargs="+", metavar="DATASET",
+                        help="only check the families' lengths against these ray-trace datasets")
+    parser.add_argument("--max-order", type=int, default=4, help="--sionna's mechanism_set order")
     args = parser.parse_args()
+    if args.sionna:
+        sionna_length_table(args.sionna, args.max_order)
+        return
     if args.profile_mnls:
         profile_mnls(args.profile_mnls, args.numpy_paths, args.numpy_snr,
                      reference=args.reference)

@@ -71,7 +71,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from diffpos.channel.families_nb import eval_family_snr
 from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
-from diffpos.channel.slots import _C, _Ctx, _materials, _slots
+from diffpos.channel.slots import _C, _Ctx, _materials, _slots, partition_permittivities
 from diffpos.channel.snr_nb import channel_params, eval_snr_kernel, eval_snr_masked_kernel
 from diffpos.paths.mechanisms import MECHANISMS, MechanismSet, Recipe, mechanism_set
 from diffpos.paths.model import first_arrival_paths
@@ -112,11 +112,20 @@ def mpc_class_of(recipe: Recipe) -> int:
     return 4
 
 
+def _params(building: Building, radio: Radio) -> tuple:
+    """The compiled kernels' constants (:func:`diffpos.channel.snr_nb.channel_params`) with the
+    numpy emulator's materials and the partitions' permittivities."""
+    f = radio.frequency_hz
+    return channel_params(building, radio, _materials(building, f),
+                          partition_permittivities(building, f))
+
+
 def channel_mechanisms(radio: Radio) -> MechanismSet:
     """The emulated channel's mechanisms: the 18 (``radio.channel_max_order`` 2) or the
     families of :func:`diffpos.paths.mechanisms.mechanism_set` up to that order (the 18
-    first, in their slots)."""
-    return mechanism_set(radio.channel_max_order)
+    first, in their slots), with the partition-reflection families (none exists in a building
+    without partitions)."""
+    return mechanism_set(radio.channel_max_order, partitions=True)
 
 
 
@@ -209,7 +218,7 @@ class FirstArrival:
 @lru_cache(maxsize=64)
 def _kernel_params(building: Building, radio: Radio) -> tuple[np.ndarray, ...]:
     """The compiled kernel's constants of a building and radio (cached: both are frozen)."""
-    return channel_params(building, radio, _materials(building, radio.frequency_hz))
+    return _params(building, radio)
 
 
 def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
@@ -249,7 +258,7 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     try:
         params = _kernel_params(building, radio)
     except TypeError:  # an unhashable field (e.g. partitions given as a list)
-        params = channel_params(building, radio, _materials(building, radio.frequency_hz))
+        params = _params(building, radio)
     if need is None:
         return eval_snr_kernel(_c_w(anchors), _c_w(nodes), params)
     return eval_snr_masked_kernel(_c_w(anchors), _c_w(nodes), params, need)
@@ -458,7 +467,7 @@ def _family_snr_length(anchors: FloatArray, nodes: FloatArray, building: Buildin
     try:
         params = _kernel_params(building, radio)
     except TypeError:
-        params = channel_params(building, radio, _materials(building, radio.frequency_hz))
+        params = _params(building, radio)
     snr, length = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
     return snr[:, 0], length[:, 0]
 

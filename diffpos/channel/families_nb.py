@@ -57,7 +57,7 @@ from diffpos.channel.rays_nb import (
     _tx_field,
     _unit,
     _zenith_deg,
-    utd_field_e,
+    utd_field_frame,
 )
 from diffpos.paths.model_nb import (
     COL_EDGE,
@@ -70,23 +70,27 @@ from diffpos.paths.model_nb import (
     inside_plane,
     mirror,
     row_planes,
+    vertical_axis,
+    walk_ok,
 )
 
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "28dad5da4f25b918"
+CALLEES_SHA256 = "bd997cec9549b85b"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
+_PARTITION_CODE = 5  # model_nb's code of the "partition" plane
+_NO_PART = (0.0, 0.0, 0.0, 0.0)  # no partition (a family without one)
 _f8_1d = types.float64[::1]
 _f8_2d = types.float64[:, ::1]
 _f8_3d = types.float64[:, :, ::1]
 #: The one compiled signature of :func:`family_snr_kernel`.
 FAMILY_SIGNATURE = types.void(
     _f8_3d, _f8_2d,  # anchors (N, M, 3), nodes (N, 3)
-    _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (ground, interior)
+    _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (ground, interior, parts)
     types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,)
     _f8_3d, _f8_3d,  # out (N, M, S) [dB], out_len (N, M, S) [m]
 )
@@ -102,16 +106,87 @@ def _axis_of(v0, v1, v2, ax):
 
 
 @njit(**_OPTS)
-def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in):
+def _plane_of(code, zf, zc, x0, x1, depth, part):
+    """inside_plane, and the partition ``part`` for the code of ``"partition"``."""
+    if code == _PARTITION_CODE:
+        return int(part[0]), part[1]
+    return inside_plane(code, zf, zc, x0, x1, depth)
+
+
+@njit(**_OPTS)
+def _reflect_at(e0, e1, e2, e3, e4, e5, loss, p0, p1, p2, q0, q1, q2, ax, eta, parts):
+    """The field reflected at ``q`` coming from ``p`` and the partitions' loss of ``p -> q``."""
+    k0, k1, k2, _ = _unit(q0 - p0, q1 - p1, q2 - p2)
+    e0, e1, e2, e3, e4, e5 = _reflect(e0, e1, e2, e3, e4, e5, k0, k1, k2, ax, eta)
+    return e0, e1, e2, e3, e4, e5, loss + _partition_loss(p0, p1, p2, q0, q1, q2, parts)
+
+
+@njit(**_OPTS)
+def _walk(table, s, c0, c1, c2, m0, m1, m2, t_last, p0, p1, p2, ok, e0, e1, e2, e3, e4, e5,
+          loss, zf, zc, x0, x1, depth, parts, eta_in, part, eta_p):
+    """The inside reflections of row ``s`` on the unfolded ray ``c -> m`` after ``t_last``,
+    coming from ``p``, in path order: each reflects the field and adds the partitions crossed
+    on the way to it; a ``"partition"`` plane wherever the ray meets it among the others
+    (paths.model._free_walk's geometry and tests). Returns (ok, field, loss, last point)."""
+    has_p = False
+    for j in range(table[s, COL_NPLANES]):
+        has_p = has_p or table[s, COL_PLANES + j] == _PARTITION_CODE
+    pax, ppos = int(part[0]), part[1]
+    t_p = np.inf
+    if has_p:
+        t_p = (ppos - _axis_of(c0, c1, c2, pax)) / _axis_of(m0 - c0, m1 - c1, m2 - c2, pax)
+        ok = ok and (t_p > t_last) and (t_p < 1)
+    done = not has_p
+    for j in range(table[s, COL_NPLANES] + 1):
+        if j == table[s, COL_NPLANES]:
+            t, ax, c = 2.0, 0, 0.0  # past the last plane: the partition, if still to come
+        else:
+            code = table[s, COL_PLANES + j]
+            if code == _PARTITION_CODE:
+                continue
+            ax, c = inside_plane(code, zf, zc, x0, x1, depth)
+            t = (c - _axis_of(c0, c1, c2, ax)) / _axis_of(m0 - c0, m1 - c1, m2 - c2, ax)
+            ok = ok and (t > t_last) and (t < 1)
+        if not done and t_p < t:  # the partition first, in this frame
+            q0, q1, q2 = c0 + t_p * (m0 - c0), c1 + t_p * (m1 - c1), c2 + t_p * (m2 - c2)
+            if pax == 0:
+                q0, other = ppos, q1
+            else:
+                q1, other = ppos, q0
+            ok = ok and (other > part[2]) and (other < part[3])
+            ok = ok and in_floor_box(q0, q1, q2, zf, zc, x0, x1, depth)
+            e0, e1, e2, e3, e4, e5, loss = _reflect_at(e0, e1, e2, e3, e4, e5, loss, p0, p1, p2,
+                                                       q0, q1, q2, pax, eta_p, parts)
+            p0, p1, p2 = q0, q1, q2
+            done = True
+        if j == table[s, COL_NPLANES]:
+            break
+        r0, r1, r2 = c0 + t * (m0 - c0), c1 + t * (m1 - c1), c2 + t * (m2 - c2)
+        if has_p and t_p < t:
+            r0, r1, r2 = mirror(r0, r1, r2, pax, ppos)
+        ok = ok and in_floor_box(r0, r1, r2, zf, zc, x0, x1, depth)
+        e0, e1, e2, e3, e4, e5, loss = _reflect_at(e0, e1, e2, e3, e4, e5, loss, p0, p1, p2, r0,
+                                                   r1, r2, ax, eta_in, parts)
+        m0, m1, m2 = mirror(m0, m1, m2, ax, c)
+        c0, c1, c2 = mirror(c0, c1, c2, ax, c)
+        t_last = t
+        p0, p1, p2 = r0, r1, r2
+    return ok, e0, e1, e2, e3, e4, e5, loss, p0, p1, p2
+
+
+@njit(**_OPTS)
+def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in,
+                 part, eta_p):
     """slots._reflections for table row ``s`` (any number of planes): (|gain|, loss [dB] incl.
-    the pattern, arrival vector, ok)."""
+    the pattern, arrival vector, ok). ``part``: the partition ``(axis, position, span start,
+    span end)`` a ``"partition"`` plane stands for, ``eta_p`` its permittivity."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     ground = table[s, COL_GROUND] == 1
     npl = table[s, COL_NPLANES]
     s0, s1, s2 = a0, a1, (-a2 if ground else a2)
     i0, i1, i2 = n0, n1, n2
     for j in range(npl - 1, -1, -1):
-        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        ax, c = _plane_of(table[s, COL_PLANES + j], zf, zc, x0, x1, depth, part)
         i0, i1, i2 = mirror(i0, i1, i2, ax, c)
     d0, d1, d2 = i0 - s0, i1 - s1, i2 - s2
     length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
@@ -127,6 +202,8 @@ def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     ok = ok and (t_f > t_prev) and (t_f < 1)
     p0, p1, p2 = s0 + t_f * d0, s1 + t_f * d1, s2 + t_f * d2  # entry
     ok = ok and (p2 > lo) and (p2 < hi) and (p0 > x0) and (p0 < x1)
+    ok = ok and walk_ok(s0, s1, s2, i0, i1, i2, t_f, table, s, zf, zc, x0, x1, depth,
+                        int(part[0]), part[1], part[2], part[3])  # before any field
     if not (ok and math.isfinite(length)):
         return 0.0, 0.0, 0.0, 0.0, 0.0, length, False
     if ground:
@@ -137,23 +214,9 @@ def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     e0, e1, e2, e3, e4, e5 = f0, 0.0, f1, 0.0, f2, 0.0
     if ground:
         e0, e1, e2, e3, e4, e5 = _reflect(e0, e1, e2, e3, e4, e5, u0, u1, u2, 2, eta_g)
-    loss = prm[_P_GLASS_DB]
-    c0, c1, c2, m0, m1, m2 = s0, s1, s2, i0, i1, i2
-    t_last = t_f
-    for j in range(npl):
-        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
-        dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
-        t = (c - _axis_of(c0, c1, c2, ax)) / _axis_of(dd0, dd1, dd2, ax)
-        ok = ok and (t > t_last) and (t < 1)
-        q0, q1, q2 = c0 + t * dd0, c1 + t * dd1, c2 + t * dd2
-        ok = ok and in_floor_box(q0, q1, q2, zf, zc, x0, x1, depth)
-        k0, k1, k2, _ = _unit(q0 - p0, q1 - p1, q2 - p2)
-        e0, e1, e2, e3, e4, e5 = _reflect(e0, e1, e2, e3, e4, e5, k0, k1, k2, ax, eta_in)
-        loss = loss + _partition_loss(p0, p1, p2, q0, q1, q2, parts)
-        m0, m1, m2 = mirror(m0, m1, m2, ax, c)
-        c0, c1, c2 = mirror(c0, c1, c2, ax, c)
-        t_last = t
-        p0, p1, p2 = q0, q1, q2
+    ok, e0, e1, e2, e3, e4, e5, loss, p0, p1, p2 = _walk(
+        table, s, s0, s1, s2, i0, i1, i2, t_f, p0, p1, p2, ok, e0, e1, e2, e3, e4, e5,
+        prm[_P_GLASS_DB], zf, zc, x0, x1, depth, parts, eta_in, part, eta_p)
     loss = loss + _partition_loss(p0, p1, p2, n0, n1, n2, parts)
     amp = _norm_c(e0, e1, e2, e3, e4, e5)
     ok = ok and math.isfinite(amp)
@@ -163,8 +226,8 @@ def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
 
 @njit(**_OPTS)
 def _fermat(s0, s1, s2, o0, o1, o2, x0, z_e, edge):
-    """geometry.diffraction_point on the edge ``y = 0, z = z_e`` from ``x0``: the point and
-    whether it lies strictly inside the edge."""
+    """geometry.diffraction_point on the edge from ``(x0, 0, z_e)`` along ``edge`` (length,
+    unit vector): the point and whether it lies strictly inside the edge."""
     edge_len, ee0, ee1, ee2 = edge
     ds0, ds1, ds2 = s0 - x0, s1 - 0.0, s2 - z_e
     dq0, dq1, dq2 = o0 - x0, o1 - 0.0, o2 - z_e
@@ -186,19 +249,29 @@ def _fermat(s0, s1, s2, o0, o1, o2, x0, z_e, edge):
 
 @njit(**_OPTS)
 def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in,
-                 edge, sq2pik):
+                 edge, sq2pik, part, eta_p):
     """slots._diffracted_family for table row ``s``: (|gain|, loss [dB] incl. the pattern,
-    arrival vector, length, ok)."""
+    arrival vector, length, ok); ``part``, ``eta_p``: :func:`_spec_family`'s."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     ground = table[s, COL_GROUND] == 1
-    upper = table[s, COL_EDGE] == 0
+    code = table[s, COL_EDGE]
     npl = table[s, COL_NPLANES]
     s0, s1, s2 = a0, a1, (-a2 if ground else a2)
     o0, o1, o2 = n0, n1, n2
     for j in range(npl - 1, -1, -1):
-        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        ax, c = _plane_of(table[s, COL_PLANES + j], zf, zc, x0, x1, depth, part)
         o0, o1, o2 = mirror(o0, o1, o2, ax, c)
-    q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, hi if upper else lo, edge)
+    # the edge (slots._edge_frame): tangent e, half-plane face t0
+    if code == 0:  # upper: the wall above the window
+        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, hi, edge)
+        ed0, ed2, tf1, tf2 = 1.0, 0.0, 0.0, 1.0
+    elif code == 1:  # lower: the wall below it
+        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, lo, edge)
+        ed0, ed2, tf1, tf2 = -1.0, 0.0, 0.0, -1.0
+    else:  # vertical at x0 / x1: the side wall, into the building
+        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0 if code == 2 else x1, lo,
+                                 vertical_axis(lo, hi))
+        ed0, ed2, tf1, tf2 = 0.0, (1.0 if code == 2 else -1.0), 1.0, 0.0
     s_in = math.sqrt((s0 - q0) ** 2 + (s1 - q1) ** 2 + (s2 - q2) ** 2)
     s_out = math.sqrt((o0 - q0) ** 2 + (o1 - q1) ** 2 + (o2 - q2) ** 2)
     length = s_in + s_out
@@ -206,6 +279,8 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     if ground:
         t_g = (0.0 - s2) / (q2 - s2)
         ok = ok and (t_g > 0) and (t_g < 1)
+    ok = ok and walk_ok(q0, q1, q2, o0, o1, o2, 0.0, table, s, zf, zc, x0, x1, depth,
+                        int(part[0]), part[1], part[2], part[3])  # before the UTD
     if not (ok and math.isfinite(length)):
         return 0.0, 0.0, 0.0, 0.0, 0.0, length, False
     # the source's field: the radio's polarisation (pattern towards the edge), or the
@@ -221,37 +296,48 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
             g_db = _pattern_db(_zenith_deg(q0 - a0, q1 - a1, q2 - a2), prm[_P_TX_HPBW],
                                prm[_P_TX_PEAK])
         e0, e1, e2, e3, e4, e5 = prm[_P_E0], 0.0, prm[_P_E0 + 1], 0.0, prm[_P_E0 + 2], 0.0
-    r = utd_field_e(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, upper, prm, sq2pik,
-                    e0, e2, e4)
-    im = utd_field_e(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, upper, prm, sq2pik,
-                     e1, e3, e5)
+    r = utd_field_frame(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, ed0, 0.0, ed2, 0.0,
+                        tf1, tf2, prm, sq2pik, e0, e2, e4)
+    im = utd_field_frame(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, ed0, 0.0, ed2, 0.0,
+                         tf1, tf2, prm, sq2pik, e1, e3, e5)
     # field = UTD(Re e) + j UTD(Im e), each a (re, im) triple
     f0, f1 = r[0] - im[1], r[1] + im[0]
     f2, f3 = r[2] - im[3], r[3] + im[2]
     f4, f5 = r[4] - im[5], r[5] + im[4]
-    loss = 0.0
-    p0, p1, p2 = q0, q1, q2
-    c0, c1, c2, m0, m1, m2 = q0, q1, q2, o0, o1, o2
-    t_last = 0.0
-    for j in range(npl):
-        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
-        dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
-        t = (c - _axis_of(c0, c1, c2, ax)) / _axis_of(dd0, dd1, dd2, ax)
-        ok = ok and (t > t_last) and (t < 1)
-        rp0, rp1, rp2 = c0 + t * dd0, c1 + t * dd1, c2 + t * dd2
-        ok = ok and in_floor_box(rp0, rp1, rp2, zf, zc, x0, x1, depth)
-        k0, k1, k2, _ = _unit(rp0 - p0, rp1 - p1, rp2 - p2)
-        f0, f1, f2, f3, f4, f5 = _reflect(f0, f1, f2, f3, f4, f5, k0, k1, k2, ax, eta_in)
-        loss = loss + _partition_loss(p0, p1, p2, rp0, rp1, rp2, parts)
-        m0, m1, m2 = mirror(m0, m1, m2, ax, c)
-        c0, c1, c2 = mirror(c0, c1, c2, ax, c)
-        t_last = t
-        p0, p1, p2 = rp0, rp1, rp2
+    ok, f0, f1, f2, f3, f4, f5, loss, p0, p1, p2 = _walk(
+        table, s, q0, q1, q2, o0, o1, o2, 0.0, q0, q1, q2, ok, f0, f1, f2, f3, f4, f5, 0.0, zf,
+        zc, x0, x1, depth, parts, eta_in, part, eta_p)
     loss = loss + _partition_loss(p0, p1, p2, n0, n1, n2, parts)
     c1_ = prm[_P_LAM] / (4 * math.pi)
     amp = _norm_c(f0 * c1_, f1 * c1_, f2 * c1_, f3 * c1_, f4 * c1_, f5 * c1_)
     ok = ok and math.isfinite(amp)
     return amp, loss - g_db, p0 - n0, p1 - n1, p2 - n2, length, ok
+
+
+@njit(**_OPTS)
+def _family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta, edge, sq2pik):
+    """Row ``s`` for one pair: (|gain|, loss, arrival vector, length, ok); a partition family
+    on every partition, the shortest existing path (slots.family_slot)."""
+    kind = table[s, COL_KIND]
+    has_p = False
+    for j in range(table[s, COL_NPLANES]):
+        has_p = has_p or table[s, COL_PLANES + j] == _PARTITION_CODE
+    n_try = parts.shape[0] if has_p else 1
+    best = (0.0, 0.0, 0.0, 0.0, 0.0, np.nan, False)
+    for p in range(n_try):
+        part = (parts[p, 0], parts[p, 1], parts[p, 2], parts[p, 3]) if has_p else _NO_PART
+        eta_p = eta[2 + p] if has_p else eta[1]
+        if kind == 1:
+            res = _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts,
+                               eta[0], eta[1], part, eta_p)
+        elif kind == 2:
+            res = _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts,
+                               eta[0], eta[1], edge, sq2pik, part, eta_p)
+        else:
+            break
+        if res[6] and res[0] != 0.0 and (not best[6] or res[5] < best[5]):
+            best = res
+    return best
 
 
 @njit(**_OPTS)
@@ -263,7 +349,6 @@ def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, out, out_le
     :mod:`diffpos.channel.snr_nb` hold the direct path): ``-inf``."""
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
-    eta_g, eta_in = eta[0], eta[1]
     c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
     rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
     sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])
@@ -276,18 +361,9 @@ def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, out, out_le
             a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
             for k in range(slots.shape[0]):
                 s = slots[k]
-                kind = table[s, COL_KIND]
-                length = np.nan
-                if kind == 1:
-                    g, att, v0, v1, v2, length, ok = _spec_family(
-                        table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g,
-                        eta_in)
-                elif kind == 2:
-                    g, att, v0, v1, v2, length, ok = _diff_family(
-                        table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g,
-                        eta_in, edge, sq2pik)
-                else:
-                    ok = False
+                g, att, v0, v1, v2, length, ok = _family(
+                    table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta, edge,
+                    sq2pik)
                 if not ok or g == 0.0:
                     out[i, j, k] = ninf
                     out_len[i, j, k] = np.nan

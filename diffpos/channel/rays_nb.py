@@ -49,7 +49,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "b1d2394e9a7b2ee6"
+CALLEES_SHA256 = "488f674706826617"
 
 _RAD2DEG = 180.0 / math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -382,6 +382,16 @@ def utd_field_e(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm,
         e0, e1, e2, t0, t1, t2 = 1.0, 0.0, 0.0, 0.0, 0.0, 1.0
     else:  # e = -x, t0 = -z
         e0, e1, e2, t0, t1, t2 = -1.0, 0.0, 0.0, 0.0, 0.0, -1.0
+    return utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1, e2,
+                           t0, t1, t2, prm, sq2pik, ex, ey, ez)
+
+
+@njit(**_OPTS)
+def utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1, e2, t0, t1,
+                    t2, prm, sq2pik, ex, ey, ez):
+    """:func:`utd_field_e` on the half-plane of edge tangent ``e`` and face direction ``t0``
+    (``diffpos.channel.gtd_halfplane.diffracted_field``'s ``edge_dir`` / ``face_dir``; the
+    vertical window edges' half-plane is the side wall)."""
     nn0, nn1, nn2 = _cross(e0, e1, e2, t0, t1, t2)
     di0, di1, di2 = q0 - a0, q1 - a1, q2 - a2
     do0, do1, do2 = o0 - q0, o1 - q1, o2 - q2

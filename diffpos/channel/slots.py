@@ -170,6 +170,12 @@ def _materials(b: Building, frequency_hz: float) -> tuple:
             wall_db, slab_db, b.glass_loss_db if b.windows == "glass" else 0.0, parts)
 
 
+def partition_permittivities(b: Building, frequency_hz: float) -> list[complex]:
+    """The relative permittivity of every partition's material (ITU-R P.2040) at a carrier:
+    a partition reflection's Fresnel coefficients (its loss on crossing is ``_materials``'s)."""
+    return [itu_permittivity(p.material, frequency_hz) for p in b.partitions]
+
+
 class _Ctx:
     """Per-call constants shared by the slot builders."""
 
@@ -193,6 +199,7 @@ class _Ctx:
         self.x0, self.x1 = self.frame.x0, self.frame.x1
         (self.eta_ground, self.eta_in, self.wall_db, self.slab_db, self.glass_db,
          self.parts) = _materials(b, self.f)
+        self.eta_parts = partition_permittivities(b, self.f)
 
     def partition_loss_db(self, p: FloatArray, q: FloatArray) -> FloatArray:
         """Total loss of the partitions crossed by segments ``p -> q`` (inside) [dB]."""
@@ -255,7 +262,6 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
     n = np.broadcast_to(c.node, (*c.shape, 3)).copy()
     g = specular_path(a, n, c.frame, planes, ground=ground)
     length, valid, pts = g.length_m, g.valid.copy(), g.points
-    axes_coords = [c.frame.plane(p) for p in planes]
     # field: departure, ground bounce, then inside bounces
     first_target = pts[0] if not ground else g.ground_point
     u0, _ = _unit(first_target - a)
@@ -269,8 +275,8 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
     else:
         u_enter = u0
     k_in = u_enter
-    for j, (axis, _coord) in enumerate(axes_coords):
-        E = _reflect_field(E, k_in, axis, c.eta_in)
+    for j in range(len(planes)):
+        E = _reflect_any(E, k_in, *_bounce(c, planes, g, j))
         loss = loss + c.partition_loss_db(pts[j], pts[j + 1])
         k_in, _ = _unit(pts[j + 2] - pts[j + 1])
     loss = loss + c.partition_loss_db(pts[-2], pts[-1])
@@ -279,6 +285,21 @@ def _reflections(c: _Ctx, planes: list[str], *, ground: bool = False):
     aoa = _zenith_deg(pts[-2] - n)
     valid &= np.isfinite(length) & np.isfinite(amp)
     return length, np.where(valid, gain, 0), _zenith_deg(u0), aoa, valid
+
+
+def _edge_frame(edge: str) -> tuple[FloatArray, FloatArray]:
+    """Edge tangent ``e`` and half-plane face ``t0`` of a window edge (``diffracted_field``'s
+    ``edge_dir``, ``face_dir``): the upper edge's half-plane is the wall above the window (``e
+    = +x, t0 = +z``), the lower edge's the wall below it (``-x, -z``); a vertical edge's at
+    a facade end (``"vertical x1"`` at ``x0``, ``"vertical x2"`` at ``x1``) is the side wall,
+    running into the building (``t0 = +y``; ``e = +z`` / ``-z``, so ``n0 = e x t0`` points
+    out of the building: ``-x`` / ``+x``)."""
+    if edge == "upper":
+        return np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    if edge == "lower":
+        return np.array([-1.0, 0.0, 0.0]), np.array([0.0, 0.0, -1.0])
+    sense = 1.0 if edge == "vertical x1" else -1.0
+    return np.array([0.0, 0.0, sense]), np.array([0.0, 1.0, 0.0])
 
 
 def _diffracted(c: _Ctx, edge: str, then: str | None = None):
@@ -294,8 +315,7 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
     if then is not None:
         axis, coord = c.frame.plane(then)
         obs = _mirror(np.array(n), axis, np.broadcast_to(coord, c.shape))
-    e_dir = np.array([1.0, 0.0, 0.0]) if edge == "upper" else np.array([-1.0, 0.0, 0.0])
-    face = np.array([0.0, 0.0, 1.0]) if edge == "upper" else np.array([0.0, 0.0, -1.0])
+    e_dir, face = _edge_frame(edge)
     E = diffracted_field(a, obs, q, e_dir, face, c.e0, frequency_hz=c.f, coefficients="utd",
                          spreading="spherical")
     # antenna pattern on departure
@@ -332,12 +352,8 @@ def _diffracted_family(c: _Ctx, rec: Recipe):
     n = np.broadcast_to(c.node, (*c.shape, 3))
     g = diffracted_path(a, n, c.frame, rec.edge, rec.planes, ground=rec.ground)
     q, pts = g.points[0], g.points
-    obs = np.array(n)
-    for p in reversed(rec.planes):
-        axis, coord = c.frame.plane(p)
-        obs = _mirror(obs, axis, np.broadcast_to(coord, c.shape))
-    e_dir = np.array([1.0, 0.0, 0.0]) if rec.edge == "upper" else np.array([-1.0, 0.0, 0.0])
-    face = np.array([0.0, 0.0, 1.0]) if rec.edge == "upper" else np.array([0.0, 0.0, -1.0])
+    obs = _image(c, n, rec.planes, g)
+    e_dir, face = _edge_frame(rec.edge)
     if rec.ground:
         src = _mirror(np.array(a), 2, 0.0)
         u0, _ = _unit(g.ground_point - a)
@@ -352,9 +368,9 @@ def _diffracted_family(c: _Ctx, rec: Recipe):
         E = diffracted_field(src, obs, q, e_dir, face, e_src, frequency_hz=c.f,
                              coefficients="utd", spreading="spherical")
         loss = np.zeros(c.shape)  # the diffracted ray passes the edge, not the glass
-        for j, p in enumerate(rec.planes):
+        for j in range(len(rec.planes)):
             k_in, _ = _unit(pts[j + 1] - pts[j])
-            E = _reflect_field(E, k_in, c.frame.plane(p)[0], c.eta_in)
+            E = _reflect_any(E, k_in, *_bounce(c, rec.planes, g, j))
         for j in range(len(pts) - 1):
             loss = loss + c.partition_loss_db(pts[j], pts[j + 1])
         amp = _field_norm(E * (c.lam / (4 * np.pi)) * 10 ** (-loss / 20)[..., None])
@@ -364,17 +380,59 @@ def _diffracted_family(c: _Ctx, rec: Recipe):
     return length, np.where(valid, gain, 0), aod, _zenith_deg(pts[-2] - n), valid
 
 
+def _bounce(c: _Ctx, planes, g, j: int):
+    """(axis, permittivity) of the ``j``-th reflection in path order of a path ``g``
+    (``specular_path`` / ``diffracted_path``) through ``planes``: a slab or wall (the interior
+    material), or, in a partition family (``g.order``), per pair the partition's."""
+    if g.order is None:
+        return c.frame.plane(planes[j])[0], c.eta_in
+    is_p = g.order[..., j] == list(planes).index("partition")
+    pax = np.array([r[0] for r in c.frame.partitions])[g.partition]
+    eta_p = np.asarray(c.eta_parts, dtype=np.complex128)[g.partition]
+    return np.where(is_p, pax, 2), np.where(is_p, eta_p, c.eta_in)
+
+
+def _reflect_any(E: NDArray, k_in: FloatArray, axis, eta) -> NDArray:
+    """:func:`_reflect_field` with a per-pair axis (an array) too."""
+    if np.ndim(axis) == 0:
+        return _reflect_field(E, k_in, int(axis), eta)
+    out = np.zeros_like(E)
+    for ax in np.unique(axis):
+        out = np.where((axis == ax)[..., None], _reflect_field(E, k_in, int(ax), eta), out)
+    return out
+
+
+def _image(c: _Ctx, n: FloatArray, planes, g) -> FloatArray:
+    """The node imaged in every plane (a partition family: per pair its partition)."""
+    obs = np.array(n)
+    for p in reversed(planes):
+        if p == "partition":
+            rows = np.array([r[:2] for r in c.frame.partitions])[g.partition]
+            ax, pos = rows[..., 0].astype(int), rows[..., 1]
+            for a in (0, 1):
+                obs[..., a] = np.where(ax == a, 2.0 * pos - obs[..., a], obs[..., a])
+            continue
+        axis, coord = c.frame.plane(p)
+        obs = _mirror(obs, axis, np.broadcast_to(coord, c.shape))
+    return obs
+
+
 def family_slot(c: _Ctx, rec: Recipe):
     """One slot of any :class:`diffpos.paths.mechanisms.Recipe` (the 18 and the higher-order
     families of :func:`diffpos.paths.mechanisms.mechanism_set`): length, gain, aod, aoa,
-    valid (N, M). The 18 keep their own builders (:func:`_slots`); this serves the rest."""
+    valid (N, M). The 18 keep their own builders (:func:`_slots`); this serves the rest. A
+    partition family reflects on the partition of the shortest existing path (its material's
+    Fresnel coefficients); none exists without partitions."""
+    if "partition" in rec.planes and not c.frame.partitions:
+        nan = np.full(c.shape, np.nan)
+        return nan, np.zeros(c.shape, dtype=np.complex128), nan, nan, np.zeros(c.shape, bool)
     if rec.kind == "direct":
         return _direct(c)
     if rec.kind == "spec":
         return _reflections(c, list(rec.planes), ground=rec.ground)
     if not rec.planes and not rec.ground:
         return _diffracted(c, rec.edge)
-    if len(rec.planes) == 1 and not rec.ground:
+    if len(rec.planes) == 1 and not rec.ground and rec.planes[0] != "partition":
         return _diffracted(c, rec.edge, rec.planes[0])
     return _diffracted_family(c, rec)
 

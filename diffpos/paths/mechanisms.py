@@ -36,9 +36,14 @@ MECHANISMS: tuple[str, ...] = (
 class Recipe(NamedTuple):
     """How a mechanism's path runs: ``kind`` ``"direct"``, ``"spec"`` (specular reflections
     entering through the window) or ``"diff"`` (diffraction on a window edge); ``ground``: a
-    ground bounce outside first; ``edge``: ``"upper"`` / ``"lower"`` window edge (``"diff"``
-    only, else None); ``planes``: the inside reflections in path order (``"floor"``,
-    ``"ceiling"``, ``"back"``, ``"side x1"``, ``"side x2"``)."""
+    ground bounce outside first; ``edge``: ``"upper"`` / ``"lower"`` window edge, or
+    ``"vertical x1"`` / ``"vertical x2"``: the window's vertical edge at the facade end
+    ``x = x0`` / ``x1`` (``"diff"`` only, else None); ``planes``: the inside reflections in
+    path order (``"floor"``, ``"ceiling"``, ``"back"``, ``"side x1"``, ``"side x2"``), or
+    ``"partition"`` (last, at most once, with slab reflections only): a reflection on one of
+    the building's interior partitions, wherever the ray meets it among the slab reflections
+    (a vertical mirror commutes with the horizontal ones: the length does not depend on the
+    place, the geometry decides it), on the partition giving the shortest existing path."""
 
     kind: str
     ground: bool = False
@@ -91,6 +96,10 @@ _AXIS = {"floor": 2, "ceiling": 2, "back": 1, "side x1": 0, "side x2": 0, "groun
 DEFAULT_ORDER = 2
 #: Walls that reflect once (at the end of a path) in the families of :func:`mechanism_set`.
 WALLS: tuple[str, ...] = ("back", "side x1", "side x2")
+#: The window's vertical edges (at the facade ends ``x = x0`` / ``x1``, from the sill to the
+#: lintel of the node's floor): their families (order > 2) take only slab reflections after
+#: the edge (Sionna's vertical-edge first arrivals, docs/channel_mix.md).
+VERTICAL_EDGES: tuple[str, ...] = ("vertical x1", "vertical x2")
 #: A wall reflection ends a family only after at most this many slab reflections (each wall
 #: triples the families; Sionna's first arrivals with a wall had <= 1 slab reflection before
 #: it, docs/raytrace.md).
@@ -161,24 +170,48 @@ def _families(max_order: int) -> list[Recipe]:
     bounce, window-edge diffraction, ground bounce then diffraction), an image series between
     the floor and ceiling slabs (alternating; after a ground bounce straight through the window
     the ray rises, so the series starts at the ceiling), then at most one wall reflection
-    (after at most :data:`WALL_AFTER_SLABS` slab reflections)."""
+    (after at most :data:`WALL_AFTER_SLABS` slab reflections). The vertical window edges
+    (:data:`VERTICAL_EDGES`) come last (the earlier families keep their slots) and take slab
+    series only."""
     out: list[Recipe] = []
     entries = [Recipe("spec"), Recipe("spec", True)]
     entries += [Recipe("diff", g, e) for g in (False, True) for e in ("upper", "lower")]
+    entries += [Recipe("diff", g, e) for g in (False, True) for e in VERTICAL_EDGES]
     for ent in entries:
+        walls = () if ent.edge in VERTICAL_EDGES else WALLS
         firsts = ("ceiling",) if (ent.kind == "spec" and ent.ground) else ("floor", "ceiling")
         for n in range(max_order - ent.order + 1):
             series = {_slab_series(n, f) for f in firsts} if n else {()}
             for sl in sorted(series, key=lambda t: t[:1] != ("floor",)):
                 out.append(ent._replace(planes=sl))
                 if ent.order + n + 1 <= max_order and n <= WALL_AFTER_SLABS:
-                    out += [ent._replace(planes=(*sl, w)) for w in WALLS]
+                    out += [ent._replace(planes=(*sl, w)) for w in walls]
     return [r for r in out if r.order > 0]
 
 
-def mechanism_set(max_order: int = DEFAULT_ORDER) -> MechanismSet:
+def _partition_families(max_order: int) -> list[Recipe]:
+    """Every entry of :func:`_families` (incl. the vertical edges), then a slab series, then
+    one partition reflection (its place among the slab reflections free: :class:`Recipe`), at
+    most ``max_order`` interactions."""
+    out: list[Recipe] = []
+    entries = [Recipe("spec"), Recipe("spec", True)]
+    entries += [Recipe("diff", g, e) for g in (False, True)
+                for e in ("upper", "lower", *VERTICAL_EDGES)]
+    for ent in entries:
+        firsts = ("ceiling",) if (ent.kind == "spec" and ent.ground) else ("floor", "ceiling")
+        for n in range(max_order - ent.order):
+            series = sorted({_slab_series(n, f) for f in firsts} if n else {()},
+                            key=lambda t: t[:1] != ("floor",))
+            out += [ent._replace(planes=(*sl, "partition")) for sl in series]
+    return out
+
+
+def mechanism_set(max_order: int = DEFAULT_ORDER, *, partitions: bool = False) -> MechanismSet:
     """The 18 mechanisms of :data:`MECHANISMS`, then (``max_order`` > 2) every family of at
-    most ``max_order`` interactions they leave out (:func:`_families`), in a fixed order.
+    most ``max_order`` interactions they leave out (:func:`_families`), in a fixed order;
+    ``partitions``: then the partition-reflection families (:func:`_partition_families`; a
+    building without partitions never has them), appended so every other family keeps its
+    slot.
 
     ``max_order`` <= :data:`DEFAULT_ORDER` gives the 18 (a selection of the order-2
     mechanisms); 3 adds e.g. the ceiling-floor-ceiling triple bounce, the ground bounce before
@@ -190,38 +223,45 @@ def mechanism_set(max_order: int = DEFAULT_ORDER) -> MechanismSet:
         return MechanismSet(max_order=DEFAULT_ORDER, recipes=RECIPES)
     known = set(RECIPES)
     extra = [r for r in _families(int(max_order)) if r not in known]
+    if partitions:
+        extra += _partition_families(int(max_order))
     return MechanismSet(max_order=int(max_order), recipes=(*RECIPES, *extra))
 
 
 #: The families of first arrivals :func:`label_family` names, in report order.
 FAMILIES: tuple[str, ...] = (
-    "direct", "R x1", "R x2", "R x3+", "D", "D+R", "D+RR+", "ground+D", "wall/partition",
-    "other", "none",
+    "direct", "R x1", "R x2", "R x3+", "D", "D+R", "D+RR+", "ground+D", "vertical D",
+    "wall/partition", "other", "none",
 )
 _SLABS = ("R(floor)", "R(ceiling)")
 _WALL_TOKENS = ("R(back)", "R(side x1)", "R(side x2)", "R(partition)")
+_VERTICAL_TOKENS = ("D(vertical)", *(f"D({e})" for e in VERTICAL_EDGES))
 
 
 def label_family(label: str) -> str:
     """The family (:data:`FAMILIES`) of a mechanism label (``Tx-D(lower)-R(ceiling)-Rx``, a
     :attr:`Recipe.label` or a ray tracer's classified chain): ``direct``; reflections only
     (ground, floor, ceiling) entering through the window, by count (``R x1``, ``R x2``,
-    ``R x3+``); a window-edge diffraction alone (``D``), then one (``D+R``) or more
-    (``D+RR+``) slab reflections; a ground bounce before the diffraction (``ground+D``); any
-    back / side wall or partition reflection (``wall/partition``); every other chain
-    (another floor's or a vertical edge, a transmission through concrete, diffuse) ``other``;
+    ``R x3+``); a horizontal window-edge diffraction alone (``D``), then one (``D+R``) or more
+    (``D+RR+``) slab reflections; a ground bounce before the diffraction (``ground+D``); a
+    diffraction on a vertical window edge (a ray tracer's ``D(vertical)`` or the model's
+    ``D(vertical x1)`` / ``D(vertical x2)``) with any ground / slab bounces (``vertical D``);
+    any back / side wall or partition reflection (``wall/partition``); every other chain
+    (another floor's edge, a transmission through concrete, diffuse) ``other``;
     ``""`` or ``"none"``: no first arrival (``none``)."""
     if label in ("", "none"):
         return "none"
     toks = label.split("-")[1:-1]
     if not toks:
         return "direct"
-    known = {"R(ground)", "D(upper)", "D(lower)", *_SLABS, *_WALL_TOKENS}
+    known = {"R(ground)", "D(upper)", "D(lower)", *_SLABS, *_WALL_TOKENS, *_VERTICAL_TOKENS}
     if any(t not in known for t in toks):
         return "other"
     if any(t in _WALL_TOKENS for t in toks):
         return "wall/partition"
     diff = [i for i, t in enumerate(toks) if t.startswith("D(")]
+    if any(toks[i] in _VERTICAL_TOKENS for i in diff):
+        return "vertical D" if len(diff) == 1 else "other"
     if not diff:
         return ("R x1", "R x2", "R x3+")[min(len(toks), 3) - 1]
     if len(diff) > 1:

@@ -38,6 +38,30 @@ slot  label                         geometry (node floor ``k``: floor plane ``z_
 14-17 double bounces                ground+ceiling, ceiling+floor, floor+ceiling, ceiling+back
 ====  ============================  ============================================================
 
+Higher-order families (:func:`diffpos.paths.mechanisms.mechanism_set`, order > 2) use the
+same two builders: any entry (straight through the window, a ground bounce, a window-edge
+diffraction, a ground bounce then the edge) followed by an image series between the floor and
+ceiling slabs and at most one wall. Two kinds of them go beyond the facade's horizontal edges:
+
+* **Vertical window edges** (``D(vertical x1)`` / ``D(vertical x2)``): the window band's edges
+  at the facade ends ``x = x0`` / ``x1``, from the sill to the lintel of the node's floor (the
+  side wall's edge); the same Fermat / Keller-cone point (:func:`diffpos.geometry.diffraction_point`
+  on a segment of that orientation), valid strictly between sill and lintel. Anchors beyond
+  the facade ends reach the rooms by them.
+* **Partition reflections** (``"partition"`` in a recipe, ``mechanism_set(..., partitions=True)``):
+  the node imaged in one of the building's interior partitions (:attr:`FloorFrame.partitions`)
+  as well as in the slabs. A vertical mirror commutes with the horizontal ones, so the length
+  does not depend on where the ray meets the partition among the slab reflections; the
+  geometry decides it (:func:`_free_walk`: the partition's point on the unfolded ray, every
+  point folded back by the mirrors met before it, on the floor's inside surface, the
+  partition's strictly inside its span). Of the partitions, the shortest existing path is
+  the family's.
+
+Both were checked against Sionna RT's traced paths of the same interaction chain
+(``benchmarks/bench_path_model.py --sionna``): within 0.02 mm on every traced path of the
+added families (the traced scene's side walls run 5 cm past the facade, so there its vertical
+edges lie at ``y = -0.05``; the check evaluates the closed form in that frame).
+
 Existence (``valid``) is the emulator's, with strict inequalities at the window band and the
 edge ends and a 1e-9 m tolerance on the inside surfaces. Two decisions:
 
@@ -82,6 +106,7 @@ from diffpos.paths.model_nb import (
     building_planes,
     eval_paths_kernel,
     mechanism_table,
+    partition_array,
 )
 
 __all__ = [
@@ -114,6 +139,10 @@ class FloorFrame:
         Window edge / side wall extent along x.
     depth_m : float [m]
         Back wall at ``y = depth_m``.
+    partitions : tuple of (int, float, float, float)
+        The interior partitions (every floor): ``(axis 0 | 1, position, span start, span
+        end)`` [m], the plane ``x = position`` (axis 0) or ``y = position`` (axis 1) spanning
+        the other horizontal coordinate; plane name ``"partition:j"``.
     """
 
     z_floor: FloatArray
@@ -123,6 +152,7 @@ class FloorFrame:
     x0: float
     x1: float
     depth_m: float
+    partitions: tuple[tuple[int, float, float, float], ...] = ()
 
     @classmethod
     def from_building(cls, building, floor: ArrayLike) -> FloorFrame:
@@ -132,7 +162,8 @@ class FloorFrame:
         lo, hi = building.window_z_m(k)
         x0, x1 = building.edge_x_m
         return cls(z_floor=z_f, z_ceil=z_f + building.floor_height_m, win_lo=lo, win_hi=hi,
-                   x0=float(x0), x1=float(x1), depth_m=float(building.depth_m))
+                   x0=float(x0), x1=float(x1), depth_m=float(building.depth_m),
+                   partitions=partition_rows(building))
 
     def plane(self, name: str) -> tuple[int, FloatArray | float]:
         """Axis and coordinate of an inside plane (or the ground)."""
@@ -148,7 +179,26 @@ class FloorFrame:
             return 0, self.x1
         if name == "ground":
             return 2, 0.0
+        if name.startswith("partition:"):
+            axis, pos, _, _ = self.partitions[int(name.split(":")[1])]
+            return axis, pos
         raise ValueError(name)
+
+    def edge_segment(self, edge: str, shape: tuple[int, ...]) -> tuple[FloatArray, FloatArray]:
+        """Start and end ``(*shape, 3)`` of a window edge of the floor: ``"upper"`` /
+        ``"lower"`` (``z = win_hi`` / ``win_lo`` from ``x0`` to ``x1``), ``"vertical x1"`` /
+        ``"vertical x2"`` (``x = x0`` / ``x1`` from ``win_lo`` up to ``win_hi``), on the facade
+        ``y = 0``."""
+        zero = np.zeros(shape)
+        if edge in ("upper", "lower"):
+            z_e = np.broadcast_to(self.win_hi if edge == "upper" else self.win_lo, shape)
+            return (np.stack([np.full(shape, self.x0), zero, z_e], axis=-1),
+                    np.stack([np.full(shape, self.x1), zero, z_e], axis=-1))
+        if edge in ("vertical x1", "vertical x2"):
+            x_e = np.full(shape, self.x0 if edge == "vertical x1" else self.x1)
+            return (np.stack([x_e, zero, np.broadcast_to(self.win_lo, shape)], axis=-1),
+                    np.stack([x_e, zero, np.broadcast_to(self.win_hi, shape)], axis=-1))
+        raise ValueError(f"unknown window edge {edge!r}")
 
     def in_window(self, z: FloatArray, x: FloatArray) -> BoolArray:
         """Strictly inside the window opening of the floor."""
@@ -159,6 +209,13 @@ class FloorFrame:
         return ((p[..., 0] >= self.x0 - tol) & (p[..., 0] <= self.x1 + tol)
                 & (p[..., 1] >= -tol) & (p[..., 1] <= self.depth_m + tol)
                 & (p[..., 2] >= self.z_floor - tol) & (p[..., 2] <= self.z_ceil + tol))
+
+
+def partition_rows(building) -> tuple[tuple[int, float, float, float], ...]:
+    """``(axis 0 | 1, position, span start, span end)`` [m] of every interior partition of a
+    :class:`~diffpos.scenario.Building` (:attr:`FloorFrame.partitions`)."""
+    return tuple((0 if p.axis == "x" else 1, float(p.position_m), float(min(p.span_m)),
+                  float(max(p.span_m))) for p in building.partitions)
 
 
 def _mirror(p: FloatArray, axis: int, c: FloatArray | float) -> FloatArray:
@@ -178,6 +235,10 @@ class _Geom:
     ground_point: FloatArray | None = None
     deviation_cos: FloatArray | None = None  # diffraction: cos(incident, diffracted ray)
     outside_m: FloatArray | None = None  # diffraction: anchor -> diffraction point [m]
+    # a partition family: the recipe's plane index of every reflection point, in path order,
+    # and the partition (FloorFrame.partitions index) of the path
+    order: NDArray[np.int_] | None = None
+    partition: NDArray[np.int_] | None = None
 
 
 def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
@@ -191,6 +252,9 @@ def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
     ``points`` are the entry point, then the reflection points, then the node.
     """
     shape = anchor.shape[:-1]
+    if "partition" in planes:
+        return _best_partition(frame, tuple(planes), shape, lambda pl: specular_path(
+            anchor, node, frame, pl, ground=ground))
     a, n = anchor, node
     src = _mirror(a, 2, 0.0) if ground else a
     img = n
@@ -215,32 +279,40 @@ def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
         entry = src + t_f[..., None] * d
         valid &= frame.in_window(entry[..., 2], entry[..., 0])
         pts = [entry]
-        cur_src, cur_img, t_last = src, img, t_f
-        for axis, coord in axes_coords:
-            dd = cur_img - cur_src
-            t = (coord - cur_src[..., axis]) / dd[..., axis]
-            valid &= (t > t_last) & (t < 1)
-            rp = cur_src + t[..., None] * dd
-            valid &= frame.in_floor_box(rp)
-            pts.append(rp)
-            cur_img = _mirror(cur_img, axis, coord)
-            cur_src = _mirror(cur_src, axis, coord)
-            t_last = t
+        order = None
+        if any(p.startswith("partition:") for p in planes):
+            ok, rps, order = _free_walk(src, img, t_f, planes, frame)
+            valid &= ok
+            pts += rps
+        else:
+            cur_src, cur_img, t_last = src, img, t_f
+            for axis, coord in axes_coords:
+                dd = cur_img - cur_src
+                t = (coord - cur_src[..., axis]) / dd[..., axis]
+                valid &= (t > t_last) & (t < 1)
+                rp = cur_src + t[..., None] * dd
+                valid &= frame.in_floor_box(rp)
+                pts.append(rp)
+                cur_img = _mirror(cur_img, axis, coord)
+                cur_src = _mirror(cur_src, axis, coord)
+                t_last = t
         pts.append(n)
         jac = d / length[..., None] * sign
     valid &= np.isfinite(length)
-    return _Geom(length_m=length, valid=valid, jacobian=jac, points=pts, ground_point=g_pt)
+    return _Geom(length_m=length, valid=valid, jacobian=jac, points=pts, ground_point=g_pt,
+                 order=order)
 
 
 def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edge: str,
                     then: str | tuple[str, ...] | list[str] | None = None, *,
                     ground: bool = False) -> _Geom:
-    """Anchor [-> ground] -> Fermat point on the upper/lower window edge [-> inside planes...]
-    -> node.
+    """Anchor [-> ground] -> Fermat point on a window edge [-> inside planes...] -> node.
 
-    The edge is the physical one, ``z = win_hi`` or ``win_lo`` of the floor, from ``x0`` to
-    ``x1``; the path is valid only where the Fermat point lies strictly inside the edge (corner
-    diffraction dropped: module docstring). ``then``: one inside plane or a sequence of them in
+    The edge is the physical one (:meth:`FloorFrame.edge_segment`): ``"upper"`` / ``"lower"``,
+    ``z = win_hi`` or ``win_lo`` of the floor from ``x0`` to ``x1``, or ``"vertical x1"`` /
+    ``"vertical x2"``, ``x = x0`` / ``x1`` from ``win_lo`` to ``win_hi`` (the same Fermat /
+    Keller-cone point on a segment of another orientation); the path is valid only where the
+    Fermat point lies strictly inside the edge (corner diffraction dropped: module docstring). ``then``: one inside plane or a sequence of them in
     path order; the node is imaged across them (last plane first), the Fermat point is that of
     the image, and every reflection point of the unfolded ray from the edge must lie on the
     floor's inside surface, in order. ``ground``: the anchor is imaged in ``z = 0`` first and the
@@ -252,10 +324,11 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
     a = np.broadcast_to(anchor, (*shape, 3))
     n = np.broadcast_to(node, (*shape, 3))
     planes = () if then is None else ((then,) if isinstance(then, str) else tuple(then))
+    if "partition" in planes:
+        return _best_partition(frame, planes, shape, lambda pl: diffracted_path(
+            a, n, frame, edge, pl, ground=ground))
     src = _mirror(np.array(a), 2, 0.0) if ground else a
-    z_e = np.broadcast_to(frame.win_hi if edge == "upper" else frame.win_lo, shape)
-    p0 = np.stack([np.full(shape, frame.x0), np.zeros(shape), z_e], axis=-1)
-    p1 = np.stack([np.full(shape, frame.x1), np.zeros(shape), z_e], axis=-1)
+    p0, p1 = frame.edge_segment(edge, shape)
     obs = n
     sign = np.ones(3)
     axes_coords = [frame.plane(p) for p in planes]
@@ -274,17 +347,23 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
             valid &= (t_g > 0) & (t_g < 1)
             g_pt = src + t_g[..., None] * (q - src)
             g_pt[..., 2] = 0.0
-        cur_src, cur_img, t_last = q, obs, 0.0
-        for axis, coord in axes_coords:
-            dd = cur_img - cur_src
-            t = (coord - cur_src[..., axis]) / dd[..., axis]
-            valid &= (t > t_last) & (t < 1)
-            rp = cur_src + t[..., None] * dd
-            valid &= frame.in_floor_box(rp)
-            pts.append(rp)
-            cur_img = _mirror(cur_img, axis, np.broadcast_to(coord, shape))
-            cur_src = _mirror(cur_src, axis, np.broadcast_to(coord, shape))
-            t_last = t
+        order = None
+        if any(p.startswith("partition:") for p in planes):
+            ok, rps, order = _free_walk(q, obs, 0.0, planes, frame)
+            valid &= ok
+            pts += rps
+        else:
+            cur_src, cur_img, t_last = q, obs, 0.0
+            for axis, coord in axes_coords:
+                dd = cur_img - cur_src
+                t = (coord - cur_src[..., axis]) / dd[..., axis]
+                valid &= (t > t_last) & (t < 1)
+                rp = cur_src + t[..., None] * dd
+                valid &= frame.in_floor_box(rp)
+                pts.append(rp)
+                cur_img = _mirror(cur_img, axis, np.broadcast_to(coord, shape))
+                cur_src = _mirror(cur_src, axis, np.broadcast_to(coord, shape))
+                t_last = t
         u_out = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
         u_in = q - src
         d_in = np.sqrt(np.einsum("...i,...i->...", u_in, u_in))
@@ -293,7 +372,84 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
     pts.append(n)
     return _Geom(length_m=dp.length_m, valid=valid & np.isfinite(dp.length_m), jacobian=jac,
                  points=pts, ground_point=g_pt,
-                 deviation_cos=np.einsum("...i,...i->...", u_in, u_out), outside_m=d_in)
+                 deviation_cos=np.einsum("...i,...i->...", u_in, u_out), outside_m=d_in,
+                 order=order)
+
+
+def _free_walk(src: FloatArray, img: FloatArray, t_start: float | FloatArray,
+               planes: tuple[str, ...] | list[str], frame: FloorFrame
+               ) -> tuple[BoolArray, list, NDArray[np.int_]]:
+    """The reflection points of the unfolded ray ``src -> img`` (``img``: the node imaged in
+    every plane) for slab planes in path order plus one ``"partition:j"`` plane anywhere: the
+    slab reflections follow one another after ``t_start``; the partition's parameter is that
+    of its own plane on the unfolded ray (the vertical mirror commutes with the horizontal
+    ones), after ``t_start``. Every point is folded back by the mirrors met before it and must
+    lie on the floor's inside surface, the partition's strictly inside its span. Returns
+    (valid, the points in path order, the recipe's plane index of each)."""
+    fi = next(i for i, p in enumerate(planes) if p.startswith("partition:"))
+    pax, ppos, plo, phi = frame.partitions[int(planes[fi].split(":")[1])]
+    shape = src.shape[:-1]
+    npl = len(planes)
+    valid = np.ones(shape, dtype=bool)
+    ts = np.empty((*shape, npl))
+    pts = np.empty((*shape, npl, 3))
+    d = img - src
+    t_p = (ppos - src[..., pax]) / d[..., pax]
+    valid &= (t_p > t_start) & (t_p < 1)
+    pp = src + t_p[..., None] * d
+    cur_src, cur_img, t_last = src, img, t_start
+    for i, p in enumerate(planes):
+        if i == fi:
+            continue
+        axis, coord = frame.plane(p)
+        dd = cur_img - cur_src
+        t = (coord - cur_src[..., axis]) / dd[..., axis]
+        valid &= (t > t_last) & (t < 1)
+        rp = cur_src + t[..., None] * dd
+        rp[..., pax] = np.where(t_p < t, 2.0 * ppos - rp[..., pax], rp[..., pax])
+        valid &= frame.in_floor_box(rp)
+        pp[..., axis] = np.where(t < t_p, 2.0 * coord - pp[..., axis], pp[..., axis])
+        ts[..., i], pts[..., i, :] = t, rp
+        cur_img = _mirror(cur_img, axis, coord)
+        cur_src = _mirror(cur_src, axis, coord)
+        t_last = t
+    pp[..., pax] = ppos
+    other = pp[..., 1 - pax]
+    valid &= (other > plo) & (other < phi) & frame.in_floor_box(pp)
+    ts[..., fi], pts[..., fi, :] = t_p, pp
+    order = np.argsort(np.where(np.isfinite(ts), ts, np.inf), axis=-1, kind="stable")
+    pts = np.take_along_axis(pts, order[..., None], axis=-2)
+    return valid, [pts[..., j, :] for j in range(npl)], order
+
+
+def _best_partition(frame: FloorFrame, planes: tuple[str, ...], shape: tuple[int, ...],
+                    path_of) -> _Geom:
+    """``path_of(planes)`` on every partition (``"partition"`` -> ``"partition:j"``), per
+    element the shortest existing one (the first partition's where none exists)."""
+    geoms = [path_of(tuple(f"partition:{j}" if p == "partition" else p for p in planes))
+             for j in range(len(frame.partitions))]
+    if not geoms:
+        nan = np.full(shape, np.nan)
+        return _Geom(length_m=nan, valid=np.zeros(shape, dtype=bool),
+                     jacobian=np.zeros((*shape, 3)), points=[], deviation_cos=nan,
+                     outside_m=nan)
+    key = np.stack([np.where(g.valid, g.length_m, np.inf) for g in geoms])
+    pick = np.argmin(key, axis=0)
+
+    def sel(vals):
+        if vals[0] is None:
+            return None
+        v = np.stack(vals)
+        idx = pick.reshape((1, *shape, *([1] * (v.ndim - 1 - len(shape)))))
+        return np.take_along_axis(v, np.broadcast_to(idx, (1, *v.shape[1:])), axis=0)[0]
+
+    return _Geom(length_m=sel([g.length_m for g in geoms]), valid=sel([g.valid for g in geoms]),
+                 jacobian=sel([g.jacobian for g in geoms]),
+                 points=[sel([g.points[k] for g in geoms]) for k in range(len(geoms[0].points))],
+                 ground_point=sel([g.ground_point for g in geoms]),
+                 deviation_cos=sel([g.deviation_cos for g in geoms]),
+                 outside_m=sel([g.outside_m for g in geoms]),
+                 order=sel([g.order for g in geoms]), partition=pick)
 
 
 def direct_opening(anchor: FloatArray, node: FloatArray, frame: FloorFrame
@@ -380,7 +536,8 @@ def first_arrival_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,
     PathSet
     """
     rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots, mechanisms)
-    length, valid, jac, dev, outm, _ = eval_paths_kernel(*rows.args, table=rows.table)
+    length, valid, jac, dev, outm, _ = eval_paths_kernel(*rows.args, table=rows.table,
+                                                          parts=rows.parts)
     sh = (*rows.shape, rows.slots.shape[0])
     return PathSet(length_m=length.reshape(sh), valid=valid.reshape(sh),
                    jacobian=jac.reshape((*sh, 3)), floor=rows.floor,
@@ -431,7 +588,8 @@ def graded_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *, relax_m:
     if not relax_m >= 0.0:
         raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
     rows = _kernel_rows(nodes_m, anchors_m, building, floor, slots, mechanisms)
-    length, ok, jac, _, _, z_in = eval_paths_kernel(*rows.args, raw=True, table=rows.table)
+    length, ok, jac, _, _, z_in = eval_paths_kernel(*rows.args, raw=True, table=rows.table,
+                                                  parts=rows.parts)
     lo, hi = (v[:, None] for v in building.window_z_m(rows.args[2]))
     spec = SPECULAR_SLOTS if mechanisms is None else mechanisms.specular
     band = np.isin(rows.slots, spec)
@@ -455,6 +613,7 @@ class _Rows:
     slots: NDArray[np.int64]
     args: tuple
     table: NDArray[np.int64]
+    parts: NDArray[np.float64]
 
 
 #: Compiled tables of the mechanism sets in use.
@@ -501,7 +660,8 @@ def _kernel_rows(nodes_m: ArrayLike, anchors_m: ArrayLike, building,
     if planes[4] == planes[5] and np.any(np.isin(sel, diff)):
         raise ValueError("the window edge has zero length (edge_x_m equal)")
     args = (rows_n.reshape(-1, 3), rows_a.reshape(-1, 3), k_f.reshape(-1), planes, sel)
-    return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args, table=table)
+    return _Rows(shape=shape, floor=np.asarray(k), slots=sel, args=args, table=table,
+                 parts=partition_array(building))
 
 
 def _first_arrival_paths_numpy(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *,

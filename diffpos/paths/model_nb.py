@@ -44,12 +44,14 @@ from numba import njit, types
 __all__ = ["COL_EDGE", "COL_GROUND", "COL_KIND", "COL_NPLANES", "COL_PLANES", "DEFAULT_TABLE",
            "N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLOT_PLANE0",
            "SLOT_PLANE1", "building_planes", "edge_axis", "eval_paths_kernel", "family_path",
-           "in_floor_box", "inside_plane", "mechanism_table", "mirror", "paths_kernel",
-           "row_planes", "slot_path", "warm_paths"]
+           "family_path_parts", "in_floor_box", "inside_plane", "mechanism_table", "mirror",
+           "partition_array", "paths_kernel",
+           "row_planes", "slot_path", "vertical_axis", "walk_ok", "warm_paths"]
 
 #: Mechanism tables: one row per slot, columns :data:`COL_KIND` (0 direct, 1 specular, 2
 #: diffraction), :data:`COL_GROUND` (1: a ground bounce outside first), :data:`COL_EDGE` (0
-#: upper, 1 lower window edge, -1 none), :data:`COL_NPLANES` and from :data:`COL_PLANES` on the
+#: upper, 1 lower window edge, 2 / 3 the vertical edge at x0 / x1, -1 none),
+#: :data:`COL_NPLANES` and from :data:`COL_PLANES` on the
 #: inside planes in path order (0 floor, 1 ceiling, 2 back, 3 side x1, 4 side x2, -1 padding).
 #: :func:`mechanism_table` builds one from ``diffpos.paths.mechanisms`` recipes;
 #: :data:`DEFAULT_TABLE` is the compiled twin of ``diffpos.paths.mechanisms.RECIPES`` (a literal:
@@ -72,8 +74,10 @@ SLOT_PLANE0 = np.ascontiguousarray(DEFAULT_TABLE[:, COL_PLANES])
 SLOT_PLANE1 = np.ascontiguousarray(DEFAULT_TABLE[:, COL_PLANES + 1])
 SLOT_EDGE = np.ascontiguousarray(DEFAULT_TABLE[:, COL_EDGE])
 N_SLOTS = 18
-_PLANE_CODE = {"floor": 0, "ceiling": 1, "back": 2, "side x1": 3, "side x2": 4}
-_EDGE_CODE = {"upper": 0, "lower": 1}
+_PLANE_CODE = {"floor": 0, "ceiling": 1, "back": 2, "side x1": 3, "side x2": 4, "partition": 5}
+_PARTITION = 5
+_NO_PARTS = np.zeros((0, 4))  # eval_paths_kernel's default: no partitions
+_EDGE_CODE = {"upper": 0, "lower": 1, "vertical x1": 2, "vertical x2": 3}
 _KIND_CODE = {"direct": 0, "spec": 1, "diff": 2}
 _TOL = 1e-9  # in_floor_box tolerance [m] (FloorFrame.in_floor_box)
 
@@ -85,6 +89,7 @@ SIGNATURE = types.void(
     _f8_1d,  # floor index of every row (P,), as float64
     types.float64, types.float64, types.float64, types.float64,  # first floor z, H, sill, w
     types.float64, types.float64, types.float64,  # x0, x1, depth
+    _f8_2d,  # partitions (Q, 4): partition_array
     types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,) (rows of it)
     types.boolean, types.boolean,  # raw, want_jac
     _f8_2d, types.boolean[:, ::1], types.float64[:, :, ::1],  # length, valid, jac
@@ -146,10 +151,12 @@ def _direct(a0, a1, a2, n0, n1, n2, x0, x1):
 
 
 @njit(**_OPTS)
-def _specular(a0, a1, a2, n0, n1, n2, ground, table, s, zf, zc, x0, x1, depth):
+def _specular(a0, a1, a2, n0, n1, n2, ground, table, s, zf, zc, x0, x1, depth, pax, ppos, plo,
+              phi):
     """paths.specular_path for the planes of row ``s`` of ``table``: length, ok (without the
     entry's band test), entry z, unfolded ray ``d`` and the mirror signs (Jacobian
-    ``d / length * sign``)."""
+    ``d / length * sign``). ``pax, ppos, plo, phi``: the partition a ``"partition"`` plane
+    (code 5) stands for (:func:`partition_array`'s row)."""
     s0, s1, s2 = a0, a1, a2
     if ground:
         s2 = 2.0 * 0.0 - a2
@@ -157,7 +164,7 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, table, s, zf, zc, x0, x1, depth):
     g0 = g1 = g2 = 1.0
     n_pl = table[s, COL_NPLANES]
     for j in range(n_pl - 1, -1, -1):  # image: last plane first
-        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        ax, c = _plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth, pax, ppos)
         i0, i1, i2 = mirror(i0, i1, i2, ax, c)
         if ax == 0:
             g0 = -g0
@@ -178,9 +185,83 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, table, s, zf, zc, x0, x1, depth):
     e0 = s0 + t_f * d0
     ez = s2 + t_f * d2
     ok = ok and (e0 > x0) and (e0 < x1)
-    ok = ok and _reflections_ok(s0, s1, s2, i0, i1, i2, t_f, table, s, zf, zc, x0, x1, depth)
+    if _has_partition(table, s):
+        ok = ok and _free_ok(s0, s1, s2, i0, i1, i2, t_f, table, s, zf, zc, x0, x1, depth, pax,
+                             ppos, plo, phi)
+    else:
+        ok = ok and _reflections_ok(s0, s1, s2, i0, i1, i2, t_f, table, s, zf, zc, x0, x1,
+                                    depth)
     ok = ok and math.isfinite(length)
     return length, ok, ez, d0, d1, d2, g0, g1, g2
+
+
+@njit(**_OPTS)
+def walk_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth, pax, ppos, plo,
+            phi):
+    """The reflections of row ``s`` on the unfolded ray ``c -> m`` (source, node imaged in
+    every plane) exist, after ``t_start`` (paths.specular_path / diffracted_path's tests;
+    ``pax, ppos, plo, phi``: the partition a ``"partition"`` plane stands for): a geometry-only
+    test for callers that compute more per path (the emulator's fields)."""
+    if _has_partition(table, s):
+        return _free_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth, pax,
+                        ppos, plo, phi)
+    return _reflections_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth)
+
+
+@njit(**_OPTS)
+def _plane(code, zf, zc, x0, x1, depth, pax, ppos):
+    """:func:`inside_plane`, and the partition ``(pax, ppos)`` for code 5."""
+    if code == _PARTITION:
+        return pax, ppos
+    return inside_plane(code, zf, zc, x0, x1, depth)
+
+
+@njit(**_OPTS)
+def _has_partition(table, s):
+    """Row ``s`` of ``table`` has a ``"partition"`` plane."""
+    for j in range(table[s, COL_NPLANES]):
+        if table[s, COL_PLANES + j] == _PARTITION:
+            return True
+    return False
+
+
+@njit(**_OPTS)
+def _free_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth, pax, ppos, plo,
+             phi):
+    """paths._free_walk: the slab reflections of row ``s`` in path order after ``t_start`` on
+    the unfolded ray ``c -> m``, the partition ``(pax, ppos)`` wherever the ray meets it after
+    ``t_start``; every point folded back by the mirrors met before it on the floor's inside
+    surface, the partition's strictly inside its span ``(plo, phi)``."""
+    d0, d1, d2 = m0 - c0, m1 - c1, m2 - c2
+    t_p = (ppos - _get(c0, c1, c2, pax)) / _get(d0, d1, d2, pax)
+    ok = (t_p > t_start) and (t_p < 1)
+    q0, q1, q2 = c0 + t_p * d0, c1 + t_p * d1, c2 + t_p * d2
+    t_last = t_start
+    for j in range(table[s, COL_NPLANES]):
+        code = table[s, COL_PLANES + j]
+        if code == _PARTITION:
+            continue
+        ax, c = inside_plane(code, zf, zc, x0, x1, depth)
+        dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
+        t = (c - _get(c0, c1, c2, ax)) / _get(dd0, dd1, dd2, ax)
+        ok = ok and (t > t_last) and (t < 1)
+        r0, r1, r2 = c0 + t * dd0, c1 + t * dd1, c2 + t * dd2
+        if t_p < t:
+            r0, r1, r2 = mirror(r0, r1, r2, pax, ppos)
+        ok = ok and in_floor_box(r0, r1, r2, zf, zc, x0, x1, depth)
+        if t < t_p:
+            q0, q1, q2 = mirror(q0, q1, q2, ax, c)
+        m0, m1, m2 = mirror(m0, m1, m2, ax, c)
+        c0, c1, c2 = mirror(c0, c1, c2, ax, c)
+        t_last = t
+    if pax == 0:
+        q0 = ppos
+        other = q1
+    else:
+        q1 = ppos
+        other = q0
+    return ok and (other > plo) and (other < phi) and in_floor_box(q0, q1, q2, zf, zc, x0, x1,
+                                                                    depth)
 
 
 @njit(**_OPTS)
@@ -201,18 +282,20 @@ def _reflections_ok(c0, c1, c2, m0, m1, m2, t_last, table, s, zf, zc, x0, x1, de
 
 
 @njit(**_OPTS)
-def _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc, x0, x1, depth, edge):
-    """paths.diffracted_path (geometry.diffraction_point on the edge ``y = 0, z = z_e``) with
-    the ground bounce and the planes of row ``s`` of ``table``: length, ok, Jacobian, deviation
-    cosine, anchor (ground image) -> diffraction point length. ``edge``: :func:`edge_axis`
-    (length and unit vector of the edge, the same for every row)."""
+def _diffracted(a0, a1, a2, n0, n1, n2, x_e, z_e, table, s, zf, zc, x0, x1, depth, edge, pax,
+                ppos, plo, phi):
+    """paths.diffracted_path (geometry.diffraction_point on the edge from ``(x_e, 0, z_e)``)
+    with the ground bounce and the planes of row ``s`` of ``table``: length, ok, Jacobian,
+    deviation cosine, anchor (ground image) -> diffraction point length. ``edge``: length and
+    unit vector of the edge (:func:`edge_axis` for the horizontal edges, the same for every
+    row; :func:`vertical_axis` for the vertical ones)."""
     ground = table[s, COL_GROUND] == 1
     if ground:
         a2 = 2.0 * 0.0 - a2
     o0, o1, o2 = n0, n1, n2
     g0 = g1 = g2 = 1.0
     for j in range(table[s, COL_NPLANES] - 1, -1, -1):  # image: last plane first
-        ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
+        ax, c = _plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth, pax, ppos)
         o0, o1, o2 = mirror(o0, o1, o2, ax, c)
         if ax == 0:
             g0 = -g0
@@ -220,10 +303,10 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc, x0, x1, depth, ed
             g1 = -g1
         else:
             g2 = -g2
-    # geometry.diffraction_point with p0 = (x0, 0, z_e), p1 = (x1, 0, z_e)
+    # geometry.diffraction_point with p0 = (x_e, 0, z_e), p1 = p0 + edge_len * e
     edge_len, e0, e1, e2 = edge
-    ds0, ds1, ds2 = a0 - x0, a1 - 0.0, a2 - z_e
-    do0, do1, do2 = o0 - x0, o1 - 0.0, o2 - z_e
+    ds0, ds1, ds2 = a0 - x_e, a1 - 0.0, a2 - z_e
+    do0, do1, do2 = o0 - x_e, o1 - 0.0, o2 - z_e
     s_t = ds0 * e0 + ds1 * e1 + ds2 * e2
     o_t = do0 * e0 + do1 * e1 + do2 * e2
     p0, p1, p2 = ds0 - s_t * e0, ds1 - s_t * e1, ds2 - s_t * e2
@@ -242,7 +325,7 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc, x0, x1, depth, ed
     elif t > edge_len:
         t = edge_len
     ok = (t_star > 0.0) and (t_star < edge_len)
-    q0, q1, q2 = x0 + t * e0, 0.0 + t * e1, z_e + t * e2
+    q0, q1, q2 = x_e + t * e0, 0.0 + t * e1, z_e + t * e2
     v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
     u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
     d_in = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)  # = |Q - A| below, bit for bit (squares)
@@ -252,7 +335,12 @@ def _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc, x0, x1, depth, ed
         t_g = (0.0 - a2) / (q2 - a2)
         ok = ok and (t_g > 0) and (t_g < 1)
     # reflection points between the edge and the node, on the inside surface
-    ok = ok and _reflections_ok(q0, q1, q2, o0, o1, o2, 0.0, table, s, zf, zc, x0, x1, depth)
+    if _has_partition(table, s):
+        ok = ok and _free_ok(q0, q1, q2, o0, o1, o2, 0.0, table, s, zf, zc, x0, x1, depth, pax,
+                             ppos, plo, phi)
+    else:
+        ok = ok and _reflections_ok(q0, q1, q2, o0, o1, o2, 0.0, table, s, zf, zc, x0, x1,
+                                    depth)
     u0, u1, u2 = u0 / nu, u1 / nu, u2 / nu
     v0, v1, v2 = q0 - a0, q1 - a1, q2 - a2
     v0, v1, v2 = v0 / d_in, v1 / d_in, v2 / d_in
@@ -270,6 +358,15 @@ def edge_axis(x0, x1):
     return edge_len, w0 / edge_len, w1 / edge_len, w2 / edge_len
 
 
+@njit(**_OPTS)
+def vertical_axis(lo, hi):
+    """Length and unit vector of a vertical window edge ``(x, 0, lo) -> (x, 0, hi)`` as
+    geometry.diffraction_point computes them."""
+    w0, w1, w2 = 0.0, 0.0 - 0.0, hi - lo
+    edge_len = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    return edge_len, w0 / edge_len, w1 / edge_len, w2 / edge_len
+
+
 @njit(**_OPTS, inline="always")
 def row_planes(floor, first_z, floor_h, sill, win_h):
     """``(z_floor, z_ceil, win_lo, win_hi)`` of floor index ``floor`` (float), with the
@@ -283,7 +380,8 @@ def row_planes(floor, first_z, floor_h, sill, win_h):
 def family_path(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, raw,
                 want_jac):
     """Row ``s`` of the mechanism ``table`` (module docstring) for one (anchor, node, floor)
-    row, for other compiled kernels.
+    row, for other compiled kernels, without partitions (a partition family does not exist:
+    :func:`family_path_parts` has them).
 
     ``zf, zc, lo, hi``: :func:`row_planes`; ``edge``: :func:`edge_axis`. Returns ``(length,
     valid, j0, j1, j2, deviation_cos, outside_m, entry_z)`` with the conventions of
@@ -291,14 +389,56 @@ def family_path(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth,
     Jacobian is 0 where masked or ``want_jac`` is False; NaN deviation / outside / entry where
     they do not apply).
     """
+    if _has_partition(table, s):
+        nan = np.nan
+        return nan, False, 0.0, 0.0, 0.0, nan, nan, nan
+    return _family_one(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge,
+                       raw, want_jac, 0, 0.0, 0.0, 0.0)
+
+
+@njit(**_OPTS)
+def family_path_parts(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge,
+                      raw, want_jac, parts):
+    """:func:`family_path` with the building's partitions ``parts`` (:func:`partition_array`):
+    a row with a ``"partition"`` plane is evaluated on every partition and the shortest
+    existing path returned (``raw``: existing without the entry's band test; none existing:
+    the first partition's raw values, or NaN / invalid without partitions)."""
+    if not _has_partition(table, s):
+        return _family_one(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth,
+                           edge, raw, want_jac, 0, 0.0, 0.0, 0.0)
+    nan = np.nan
+    best = (nan, False, 0.0, 0.0, 0.0, nan, nan, nan)
+    for p in range(parts.shape[0]):
+        res = _family_one(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth,
+                          edge, raw, want_jac, int(parts[p, 0]), parts[p, 1], parts[p, 2],
+                          parts[p, 3])
+        if p == 0 or (res[1] and (not best[1] or res[0] < best[0])):
+            best = res
+    return best
+
+
+@njit(**_OPTS, inline="always")
+def _family_one(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, raw,
+                want_jac, pax, ppos, plo, phi):
+    """:func:`family_path` of one partition ``(pax, ppos, plo, phi)`` (ignored by a row
+    without a ``"partition"`` plane)."""
     nan = np.nan
     kind = table[s, COL_KIND]
     dv = nan
     om = nan
     if kind == 2:
-        z_e = hi if table[s, COL_EDGE] == 0 else lo
-        ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, z_e, table, s, zf, zc,
-                                                 x0, x1, depth, edge)
+        code = table[s, COL_EDGE]
+        if code < 2:  # horizontal: upper / lower
+            z_e = hi if code == 0 else lo
+            ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, x0, z_e, table,
+                                                     s, zf, zc, x0, x1, depth, edge, pax,
+                                                     ppos, plo, phi)
+        else:  # vertical x1 / x2: from the sill up
+            x_e = x0 if code == 2 else x1
+            ln, ok, j0, j1, j2, dv, om = _diffracted(a0, a1, a2, n0, n1, n2, x_e, lo, table,
+                                                     s, zf, zc, x0, x1, depth,
+                                                     vertical_axis(lo, hi), pax, ppos, plo,
+                                                     phi)
         ez = nan
     else:
         if kind == 0:
@@ -306,7 +446,7 @@ def family_path(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth,
         else:
             ln, ok, ez, d0, d1, d2, g0, g1, g2 = _specular(
                 a0, a1, a2, n0, n1, n2, table[s, COL_GROUND] == 1, table, s, zf, zc, x0, x1,
-                depth)
+                depth, pax, ppos, plo, phi)
         if not raw:
             ok = ok and (ez > lo) and (ez < hi)
         j0 = j1 = j2 = 0.0
@@ -326,8 +466,8 @@ def slot_path(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, ra
 
 
 @njit(**_OPTS)
-def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, depth, table,
-                 slots, raw, want_jac, length, valid, jac, dev, outm, entry_z):
+def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, depth, parts,
+                 table, slots, raw, want_jac, length, valid, jac, dev, outm, entry_z):
     """Every requested slot (row of the mechanism ``table``) for every row (module
     docstring); writes the output arrays.
 
@@ -340,9 +480,9 @@ def paths_kernel(nodes, anchors, floor, first_z, floor_h, sill, win_h, x0, x1, d
         n0, n1, n2 = nodes[p, 0], nodes[p, 1], nodes[p, 2]
         zf, zc, lo, hi = row_planes(floor[p], first_z, floor_h, sill, win_h)
         for j in range(slots.shape[0]):
-            ln, ok, j0, j1, j2, dv, om, ez = family_path(table, slots[j], a0, a1, a2, n0, n1,
-                                                         n2, zf, zc, lo, hi, x0, x1, depth,
-                                                         edge, raw, want_jac)
+            ln, ok, j0, j1, j2, dv, om, ez = family_path_parts(
+                table, slots[j], a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge,
+                raw, want_jac, parts)
             entry_z[p, j] = ez
             valid[p, j] = ok
             length[p, j] = ln
@@ -373,7 +513,8 @@ def warm_paths() -> float:
 def eval_paths_kernel(nodes: np.ndarray, anchors: np.ndarray, floor: np.ndarray,
                       building_planes: tuple[float, ...], slots: np.ndarray, *,
                       raw: bool = False, want_jac: bool = True,
-                      table: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+                      table: np.ndarray | None = None,
+                      parts: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Allocate the outputs and run the kernel on flat rows.
 
     ``nodes``, ``anchors``: C-contiguous writable float64 ``(P, 3)``; ``floor``: float64
@@ -392,7 +533,8 @@ def eval_paths_kernel(nodes: np.ndarray, anchors: np.ndarray, floor: np.ndarray,
     outm = np.empty((p, s) if want_jac else (0, 0))
     entry_z = np.empty((p, s))
     tab = DEFAULT_TABLE if table is None else table
-    paths_kernel(nodes, anchors, floor, *building_planes, tab, slots, bool(raw),
+    prt = _NO_PARTS if parts is None else parts
+    paths_kernel(nodes, anchors, floor, *building_planes, prt, tab, slots, bool(raw),
                  bool(want_jac), length, valid, jac, dev, outm, entry_z)
     return length, valid, jac, dev, outm, entry_z
 
@@ -404,6 +546,15 @@ def building_planes(building) -> tuple[float, ...]:
     return (float(building.first_floor_z_m), float(building.floor_height_m),
             float(building.sill_height_m), float(building.window_height_m), float(x0),
             float(x1), float(building.depth_m))
+
+
+def partition_array(building) -> np.ndarray:
+    """The building's interior partitions as the kernels take them: float64 ``(Q, 4)``, rows
+    ``(axis 0 | 1, position, span start, span end)`` [m] (``diffpos.paths.model.partition_rows``'s
+    numbers; axis 0: the plane ``x = position``)."""
+    rows = [(0.0 if p.axis == "x" else 1.0, float(p.position_m), float(min(p.span_m)),
+             float(max(p.span_m))) for p in building.partitions]
+    return np.ascontiguousarray(np.array(rows, dtype=np.float64).reshape(-1, 4))
 
 
 def mechanism_table(recipes) -> np.ndarray:

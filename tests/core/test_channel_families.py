@@ -85,7 +85,7 @@ def test_family_kernel_matches_numpy_emulator(bname: str, rname: str) -> None:
     b = BUILDINGS[bname]
     radio = dataclasses.replace(RADIOS[rname], channel_max_order=4)
     anchors, nodes = _pairs(b, np.random.default_rng(5), 600)
-    extra = mechanism_set(4).recipes[18:]
+    extra = mechanism_set(4, partitions=True).recipes[18:]
     # the numpy emulator on pairs: anchor p -> node p (per-node anchors (N, 1, 3))
     length_r, _, _, _, valid_r, _, snr_r = _slots(_Ctx(b, radio, nodes, anchors[:, None, :]),
                                                   radio, extra)
@@ -100,7 +100,7 @@ def test_family_kernel_matches_numpy_emulator(bname: str, rname: str) -> None:
     ok = np.isfinite(ref_len)
     assert np.allclose(length[ok], ref_len[ok], rtol=1e-12, atol=0)
     # and the path model's geometry (what M-NLS fits): same existence, same lengths
-    geo = first_arrival_paths(nodes, anchors, b, mechanisms=mechanism_set(4)).length_m[:, 18:]
+    geo = first_arrival_paths(nodes, anchors, b, mechanisms=mechanism_set(4, partitions=True)).length_m[:, 18:]
     assert np.array_equal(np.isfinite(geo), ok)
     assert np.allclose(geo[ok], length[ok], rtol=1e-12, atol=0)
     # the compiled first arrival equals the numpy emulator's detector on the same slots
@@ -199,9 +199,12 @@ def test_default_channel_keeps_the_18() -> None:
     ch4 = emulate_channel(sc.anchor_positions_m(), np.array([[0.0, 5.0, 5.5]]),
                           building=sc.building,
                           radio=dataclasses.replace(sc.radio, channel_max_order=4))
-    assert ch4.mechanism == mechanism_set(4).labels
+    assert ch4.mechanism == mechanism_set(4, partitions=True).labels
     assert np.array_equal(ch4.snr_db[..., :18], ch.snr_db)
-    assert set(ch4.mpc_class[18:].tolist()) <= {3, 4}
+    assert set(ch4.mpc_class[18:].tolist()) <= {2, 3, 4}
+    # class 2 (one specular reflection) among the added: only the partition reflection
+    assert {ch4.mechanism[i] for i in range(18, len(ch4.mechanism))
+            if ch4.mpc_class[i] == 2} == {"Tx-R(partition)-Rx"}
 
 
 def test_channel_max_order_is_parsed_and_round_trips() -> None:
@@ -228,7 +231,9 @@ def test_channel_max_order_is_parsed_and_round_trips() -> None:
     ("Tx-R(ground)-D(lower)-R(ceiling)-Rx", "ground+D"),
     ("Tx-D(lower)-R(partition)-Rx", "wall/partition"),
     ("Tx-R(ceiling)-R(back)-Rx", "wall/partition"),
-    ("Tx-D(vertical)-R(ceiling)-Rx", "other"),
+    ("Tx-D(vertical)-R(ceiling)-Rx", "vertical D"),
+    ("Tx-R(ground)-D(vertical x2)-R(floor)-Rx", "vertical D"),
+    ("Tx-D(vertical)-R(partition)-Rx", "wall/partition"),
     ("Tx-D(lower floor+1)-Rx", "other"),
     ("none", "none"),
     ("", "none"),
