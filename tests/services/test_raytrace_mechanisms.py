@@ -115,7 +115,7 @@ def test_higher_order_families_classify_back_and_have_the_model_length() -> None
     assert bad.sum() <= 1e-3 * ds.path_valid.sum()
     for lab in got.label[bad]:
         toks = lab.split("-")
-        assert "D(vertical)" in toks or len(set(toks)) < len(toks), lab
+        assert any(t.startswith("D(vertical") for t in toks) or len(set(toks)) < len(toks), lab
     present = set(np.unique(got.code[ds.path_valid]).tolist())
     assert len(present - set(range(18))) >= 0.8 * (len(mech) - 18), sorted(present)
     old = mm.classify_mechanisms(ds)
@@ -195,7 +195,10 @@ def test_traced_paths_have_the_model_length_of_their_higher_order_family(traced)
                  "Tx-R(ground)-R(ceiling)-R(floor)-Rx", "Tx-R(ceiling)-R(floor)-R(ceiling)-Rx"):
         assert name in new, name
     for name, r in res.items():
-        assert r["max_abs_m"] < 1e-4, (name, r)
+        # the traced scene's side walls run overlap_m = 5 cm past the facade, so its vertical
+        # window edges sit 5 cm off the model's: each of a path's two legs moves by at most that
+        tol = 2 * 0.05 if "D(vertical" in name else 1e-4
+        assert r["max_abs_m"] < tol, (name, r)
         assert r["model_exists"] == 1.0, (name, r)
     assert {k: r["paths"] for k, r in res.items() if k in MECHANISMS} == {
         k: r["paths"] for k, r in mm.mechanism_length_check(traced).items()}

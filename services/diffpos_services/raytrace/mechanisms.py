@@ -48,6 +48,11 @@ OTHER = -1
 NO_PATH = -2
 #: Points within this distance of a plane lie on it [m] (vertices are single precision).
 PLANE_TOL_M = 2e-3
+#: A vertical-edge diffraction point this close to the facade plane is on the window's
+#: vertical edge of the receiver's floor [m]: the traced scene's side walls run 5 cm past the
+#: facade (:func:`diffpos_services.raytrace.scene.building_surfaces` ``overlap_m``), so its
+#: vertical edges lie at ``y = -0.05``.
+VERTICAL_EDGE_TOL_M = 0.1
 #: A traced entry this close to a window-band limit counts as "on the boundary" [m].
 BAND_TIE_M = 1e-4
 
@@ -106,6 +111,10 @@ def _diffraction_token(p: NDArray, node_floor: NDArray, b: Building) -> NDArray[
     on_facade = _on(y, 0.0) & (x > x0 + PLANE_TOL_M) & (x < x1 - PLANE_TOL_M)
     tok = np.full(p.shape[:-1], "D(other)", dtype=object)
     tok = np.where(_on(x, x0) | _on(x, x1), "D(vertical)", tok)
+    lo, hi = b.window_z_m(node_floor)
+    in_band = (z > lo) & (z < hi) & (np.abs(y) < VERTICAL_EDGE_TOL_M)
+    for xe, name in ((x0, "D(vertical x1)"), (x1, "D(vertical x2)")):
+        tok = np.where(in_band & _on(x, xe), name, tok)
     for k in range(b.n_floors):
         lo, hi = (float(v) for v in b.window_z_m(k))
         same = node_floor == k
@@ -117,6 +126,20 @@ def _diffraction_token(p: NDArray, node_floor: NDArray, b: Building) -> NDArray[
                     tok = np.where(hit & (k - node_floor == off), f"D({name} floor{off:+d})",
                                    tok)
     return tok
+
+
+def _partition_last(label: str) -> str:
+    """A chain with one partition reflection among the slab reflections after the edge, as
+    the path model's partition families name it (the partition last: where the ray meets it
+    among the slab bounces does not change the length)."""
+    toks = label.split("-")
+    if toks.count("R(partition)") != 1:
+        return label
+    diff = [i for i, t in enumerate(toks) if t.startswith("D(")]
+    if not diff or toks.index("R(partition)") < diff[0]:  # before the edge: another chain
+        return label
+    rest = [t for t in toks if t != "R(partition)"]
+    return "-".join([*rest[:-1], "R(partition)", rest[-1]])
 
 
 def _transmission_token(p: NDArray, parts: list[tuple[int, float]]) -> NDArray[np.object_]:
@@ -160,7 +183,7 @@ def classify_mechanisms(ds: RaytraceDataset, mechanisms: MechanismSet | None = N
     labels = np.where(ds.path_valid, labels + "-Rx", "")
     slot_of = {name: i for i, name in enumerate((mechanisms or mechanism_set()).labels)}
     uniq, inv = np.unique(labels.astype(str), return_inverse=True)
-    codes = np.array([slot_of.get(u, OTHER) if u else NO_PATH for u in uniq])
+    codes = np.array([slot_of.get(_partition_last(u), OTHER) if u else NO_PATH for u in uniq])
     return Mechanisms(code=codes[inv.reshape(labels.shape)], label=labels)
 
 
