@@ -84,7 +84,7 @@ from pathlib import Path
 from typing import Any
 
 from common import SKIP_S, machine, score_recording
-from heldout import family, random_scenarios, summary
+from heldout import family, random_scenarios, summary, to_toml
 
 from diffpos.scenario import default_scenario
 
@@ -92,44 +92,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 # ----------------------------------------------------------------------------- scenarios
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(float(v)) if isinstance(v, float) else str(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()
-                               if x is not None) + "}"
-    raise TypeError(f"no TOML for {v!r}")
-
-
-def to_toml(d: dict[str, Any], prefix: str = "") -> str:
-    """A scenario dict (:meth:`Scenario.to_dict`) as TOML (tables, arrays of tables)."""
-    lines, tables = [], []
-    for k, v in d.items():
-        if v is None:
-            continue
-        if isinstance(v, dict):
-            tables.append((k, v))
-        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
-            tables.append((k, v))
-        else:
-            lines.append(f"{k} = {_toml_value(v)}")
-    out = "\n".join(lines) + ("\n" if lines else "")
-    for k, v in tables:
-        name = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out += f"\n[{name}]\n" + to_toml(v, prefix=name + ".")
-        else:
-            for item in v:
-                out += f"\n[[{name}]]\n" + to_toml(item, prefix=name + ".")
-    return out
-
-
 def _anchors(points: Iterable[Iterable[float]]) -> list[dict[str, Any]]:
     return [{"id": f"uav{i + 1}", "position_m": [float(x) for x in p]}
             for i, p in enumerate(points)]

@@ -16,7 +16,6 @@ from diffpos.emulation import emulation_nodes
 from diffpos.scenario import Scenario, default_scenario
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import bench_accuracy
 import heldout
 
 N = 24  # samples of seed 0 checked in detail (6 of each family slot)
@@ -45,7 +44,7 @@ def test_samples_are_seeded_named_and_distinct(samples):
 def test_samples_load_through_the_toml_loader(samples, tmp_path):
     for name, d in samples.items():
         path = tmp_path / f"{name}.toml"
-        path.write_text(bench_accuracy.to_toml(d), encoding="utf-8")
+        path.write_text(heldout.to_toml(d), encoding="utf-8")
         s = load_scenario(path)
         assert s == Scenario.from_dict(d)
         assert s.name == name and not s.warnings  # >= 3 anchors

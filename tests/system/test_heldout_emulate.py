@@ -49,12 +49,12 @@ def _offset() -> str:
             p["span_m"] = [s + 30.0 for s in p["span_m"]]
     for a in d["anchors"]:
         a["position_m"][0] += 30.0
-    return bench_accuracy.to_toml(d)
+    return heldout.to_toml(d)
 
 
 CASES = {
-    "rand-2-0": lambda: bench_accuracy.to_toml(heldout.random_scenario(2, 0)),
-    "rand-2-2": lambda: bench_accuracy.to_toml(heldout.random_scenario(2, 2)),
+    "rand-2-0": lambda: heldout.to_toml(heldout.random_scenario(2, 0)),
+    "rand-2-2": lambda: heldout.to_toml(heldout.random_scenario(2, 2)),
     "one-floor": _one_floor,
     "offset-beyond-ends": _offset,
 }
