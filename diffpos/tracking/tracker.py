@@ -149,6 +149,7 @@ from diffpos.tracking.evidence import (
     model_doubt,
     reset_links,
 )
+from diffpos.tracking.evidence_nb import warm_evidence
 from diffpos.tracking.families import family_log_weight
 from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
@@ -636,4 +637,5 @@ def warm_tracking() -> float:
     warm_grid(planes, anc)
     warm_iekf(planes, anc)
     warm_snr_cache()
+    warm_evidence()
     return time.perf_counter() - t0
