@@ -306,7 +306,8 @@ def reset_links(lk: dict, rows: NDArray, links_reset: NDArray[np.bool_] | None =
 
 
 def model_doubt(log_prob: FloatArray, link_out: FloatArray, link_all: FloatArray,
-                config, n_links: NDArray | None = None) -> FloatArray:
+                config, n_links: NDArray | None = None, prob: FloatArray | None = None
+                ) -> FloatArray:
     """Probability (N,) that a node's floor evidence rests on first arrivals its path model
     does not explain, by the node's own most probable hypothesis
     (``TrackerConfig.floor_model_doubt``; the published floor probabilities are mixed towards
@@ -325,16 +326,18 @@ def model_doubt(log_prob: FloatArray, link_out: FloatArray, link_all: FloatArray
     is explained on a mirror floor by one of its own mechanisms (Sionna RT, paper building,
     4 anchors: a receiver with one out-of-model link is on a wrong floor in 88 of 135 cases),
     so the floor evidence is not to be trusted with that probability. A function of the node's
-    own state and ranges only.
+    own state and ranges only. ``prob``: ``exp(log_prob)`` if the caller has it.
     """
     n, h = log_prob.shape
     nf = h // 2
     rows = np.arange(n)
-    p = np.exp(log_prob)
+    p = np.exp(log_prob) if prob is None else prob
     pf = p[:, :nf] + p[:, nf:]
     top = np.argmax(pf, axis=1)
     hs = np.where(p[rows, top] >= p[rows, top + nf], top, top + nf)
-    eps = _eps(link_out[rows, hs], link_all[rows, hs], config)
+    nl = link_out.shape[-1]  # every link of the best hypothesis, as one hypothesis' columns
+    eps = _link_eps(link_out[rows, hs][:, None], link_all[rows, hs][:, None],
+                    np.broadcast_to(np.arange(nl), (n, nl)), config)[:, 0]
     q = np.clip(1.0 - (1.0 - eps) / (1.0 - config.outlier_weight), 0.0, 1.0)  # (N, L)
     r = (np.ones(n, int) if n_links is None
          else np.maximum(np.asarray(n_links, int) - 3, 1))

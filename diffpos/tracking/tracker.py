@@ -261,7 +261,7 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
     best = np.argmax(prob, axis=1)
     # the most probable floor's estimate: the mixture of its two modes (moment-matched)
     pair = np.stack([best, best + nf], axis=1)  # (N, 2)
-    w = np.take_along_axis(prob_h, pair, axis=1)
+    w = prob_h[rows[:, None], pair]
     w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
     xm = state.mean[rows[:, None], pair, :3]  # (N, 2, 3)
     pos = np.einsum("nm,nmi->ni", w, xm)
@@ -282,7 +282,8 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
         floor_index=np.where(has, best, -1),
         floor_probabilities=published_floor_probabilities(
             state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
-            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas)
+            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas,
+                               prob_h)
                    if config.floor_model_doubt and config.link_learn else None)),
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())

@@ -54,7 +54,7 @@ def test_match_links_kernel_is_the_numpy_reference(m, nl):
             np.testing.assert_array_equal(g, w)
         assert np.array_equal(args[0], table, equal_nan=True) and np.array_equal(args[1], seen)
         n_reset += int(want[3].sum())
-        n_hit += int(((want[0] >= 0).sum() - want[3].sum()))
+        n_hit += int((want[0] >= 0).sum() - want[3].sum())
     assert n_reset > 50 and n_hit > 50  # both branches exercised
 
 
