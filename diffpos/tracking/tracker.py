@@ -538,7 +538,8 @@ def _posterior(lp_pred: FloatArray, ev: FloatArray, run: NDArray[np.bool_],
 def _epoch_nis(nis_links: FloatArray) -> tuple[FloatArray, NDArray[np.int_]]:
     """NIS per used range of one epoch and the number of used ranges, (...) from (..., M)."""
     n_in = np.sum(np.isfinite(nis_links), axis=-1)
-    return np.where(n_in > 0, np.nansum(nis_links, axis=-1) / np.maximum(n_in, 1), np.inf), n_in
+    total = np.sum(np.where(np.isnan(nis_links), 0.0, nis_links), axis=-1)  # np.nansum's sum
+    return np.where(n_in > 0, total / np.maximum(n_in, 1), np.inf), n_in
 
 
 def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray,
