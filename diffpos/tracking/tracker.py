@@ -236,12 +236,14 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
     dt = np.where(live, (t - state.t_ns) * 1e-9, 0.0)
     x0, p0, lp, inflow = _mix(state, dt, building, config)
     xn, pn = _propagate(x0, p0, dt, config)
+    t_new = np.where(live | (state.status == 0), t, state.t_ns)
+    if live.all():  # (the new arrays are _mix's and _propagate's own)
+        return replace(state, mean=xn, cov=pn, log_prob=lp, t_ns=t_new), inflow
     lv = live[:, None]
     return replace(
         state, mean=np.where(lv[..., None], xn, state.mean),
         cov=np.where(lv[..., None, None], pn, state.cov),
-        log_prob=np.where(lv, lp, state.log_prob),
-        t_ns=np.where(live | (state.status == 0), t, state.t_ns)), np.where(lv, inflow, 0.0)
+        log_prob=np.where(lv, lp, state.log_prob), t_ns=t_new), np.where(lv, inflow, 0.0)
 
 
 # --------------------------------------------------------------------------------------------
