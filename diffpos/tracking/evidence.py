@@ -91,12 +91,11 @@ def match_links(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArr
 
 
 def _match_links_numpy(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArray,
-                mask: NDArray[np.bool_], t_ns: NDArray[np.int64], tol_m: float
-                ) -> tuple[NDArray[np.int_], FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
+                       mask: NDArray[np.bool_], t_ns: NDArray[np.int64], tol_m: float
+                       ) -> tuple[NDArray[np.int_], FloatArray, NDArray[np.int64],
+                                  NDArray[np.bool_]]:
     """The reference of :func:`match_links` (numpy, column by column): the same outputs bit
-    for bit (tested).
-
-    The learned link of every present anchor column.
+    for bit (tested). The learned link of every present anchor column.
 
     ``table`` (n, L, 3): every learned link's anchor position (NaN: free), ``seen_ns`` (n, L)
     when it was last seen; ``anchors`` (n, M, 3), ``mask`` (n, M) this update's. A column takes
