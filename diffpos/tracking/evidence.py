@@ -45,6 +45,12 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from diffpos.tracking.evidence_nb import (
+    doubt_dist_kernel,
+    eps_kernel,
+    learn_counts_kernel,
+    match_links_kernel,
+)
 from diffpos.tracking.state import FloatArray
 
 __all__ = ["LINK_FIELDS", "LINK_SLOTS", "learn", "learned_weights", "match_links", "model_doubt",
@@ -62,6 +68,34 @@ def match_links(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArr
                 mask: NDArray[np.bool_], t_ns: NDArray[np.int64], tol_m: float
                 ) -> tuple[NDArray[np.int_], FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
     """The learned link of every present anchor column.
+
+    ``table`` (n, L, 3): every learned link's anchor position (NaN: free), ``seen_ns`` (n, L)
+    when it was last seen; ``anchors`` (n, M, 3), ``mask`` (n, M) this update's. A column takes
+    the nearest link within ``tol_m`` of its anchor not taken by an earlier column; else a
+    free link, else the least recently seen one not taken (restarted). Returns the link of
+    every column (n, M) (-1: none), the new table and times and which links restarted (n, L).
+    Compiled (:func:`diffpos.tracking.evidence_nb.match_links_kernel`; the distances numpy's),
+    bit-identical to :func:`_match_links_numpy`.
+    """
+    n, m = mask.shape
+    tab = np.array(table, dtype=np.float64)
+    seen = np.array(seen_ns, dtype=np.int64)
+    anc = np.ascontiguousarray(anchors, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        d = np.sqrt(np.sum((tab[:, None] - anc[:, :, None]) ** 2, axis=-1))  # (n, M, L)
+    col = np.empty((n, m), np.int64)
+    reset = np.empty(seen.shape, np.bool_)
+    match_links_kernel(d, np.ascontiguousarray(mask, dtype=np.bool_), anc, float(tol_m),
+                       np.ascontiguousarray(t_ns, dtype=np.int64), tab, seen, col, reset)
+    return col, tab, seen, reset
+
+
+def _match_links_numpy(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArray,
+                       mask: NDArray[np.bool_], t_ns: NDArray[np.int64], tol_m: float
+                       ) -> tuple[NDArray[np.int_], FloatArray, NDArray[np.int64],
+                                  NDArray[np.bool_]]:
+    """The reference of :func:`match_links` (numpy, column by column): the same outputs bit
+    for bit (tested). The learned link of every present anchor column.
 
     ``table`` (n, L, 3): every learned link's anchor position (NaN: free), ``seen_ns`` (n, L)
     when it was last seen; ``anchors`` (n, M, 3), ``mask`` (n, M) this update's. A column takes
@@ -119,6 +153,26 @@ def _eps(out: FloatArray, n_all: FloatArray, config) -> FloatArray:
     return np.clip(eps, e0, max(config.link_outlier_max, e0))
 
 
+def _link_eps(out: FloatArray, n_all: FloatArray, col: NDArray[np.int_], config) -> FloatArray:
+    """Every column's learned outlier weight (n, H, M) from the counts ``out``, ``n_all``
+    (n, H, L) at its link ``col`` (n, M): compiled
+    (:func:`diffpos.tracking.evidence_nb.eps_kernel`), bit-identical to
+    :func:`_link_eps_numpy`."""
+    e0 = float(config.outlier_weight)
+    eps = np.empty((*out.shape[:2], col.shape[1]))
+    eps_kernel(np.ascontiguousarray(out, dtype=np.float64),
+               np.ascontiguousarray(n_all, dtype=np.float64),
+               np.ascontiguousarray(col, dtype=np.int64), e0, float(config.link_prior_updates),
+               float(max(config.link_outlier_max, e0)), eps)
+    return eps
+
+
+def _link_eps_numpy(out: FloatArray, n_all: FloatArray, col: NDArray[np.int_],
+                    config) -> FloatArray:
+    """The reference of :func:`_link_eps`."""
+    return _eps(_gather(out, col), _gather(n_all, col), config)
+
+
 def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArray,
                     links, t_ns: NDArray[np.int64], config, snr_sigma_db: float,
                     snr_span_db: float) -> FloatArray:
@@ -129,8 +183,7 @@ def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArra
     ``link_snr``, ``link_t_ns``: (n, H, L)); ``col``: :func:`match_links`'s links; ``links``:
     the epoch's :class:`diffpos.tracking.links.Links`; the SNR's spread and span [dB]
     (:data:`diffpos.tracking.model.SNR_SIGMA_DB`, ``SNR_SPAN_DB``)."""
-    out, n_all = _gather(lk["link_out"], col), _gather(lk["link_all"], col)
-    eps = _eps(out, n_all, config)
+    eps = _link_eps(lk["link_out"], lk["link_all"], col, config)
     w = np.empty((*col.shape[:1], x.shape[1], col.shape[1], 2))
     w[..., 0] = np.log1p(-eps)
     if not config.link_bias_learn:  # the learned weight, the fixed uniform density
@@ -155,7 +208,7 @@ def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArra
                             -0.5 * (((snr - s_mean) / snr_sigma_db) ** 2 + _LOG2PI)
                             - np.log(snr_sigma_db), -np.log(snr_span_db))
             ll = ll + np.where(known, ll_s, 0.0)
-    o = np.nan_to_num(out)
+    o = np.nan_to_num(_gather(lk["link_out"], col))
     c = o / (o + 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         learned = np.where(np.isfinite(ll) & (c > 0) & config.link_bias_learn,
@@ -177,16 +230,17 @@ def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray
     n, h = run.shape
     m = col.shape[1]
     new = {k: v.copy() for k, v in lk.items()}
-    present = links.mask[:, 0][:, None, :] & run[:, :, None] & (col[:, None, :] >= 0)
-    is_out = present & (slot < 0)
     f = config.link_forget
     if not config.link_bias_learn:  # the counts only (a node's columns: distinct links)
-        r, c, j = np.nonzero(present)
-        li = col[r, j]
-        new["link_out"][r, c, li] = f * new["link_out"][r, c, li] + is_out[r, c, j]
-        new["link_all"][r, c, li] = f * new["link_all"][r, c, li] + 1.0
-        new["link_ev"][r, c, li] = f * new["link_ev"][r, c, li] + ev_link[r, c, j]
+        learn_counts_kernel(np.ascontiguousarray(links.mask[:, 0], dtype=np.bool_),
+                            np.ascontiguousarray(run, dtype=np.bool_),
+                            np.ascontiguousarray(col, dtype=np.int64),
+                            np.ascontiguousarray(slot, dtype=np.int64),
+                            np.ascontiguousarray(ev_link, dtype=np.float64), float(f),
+                            new["link_out"], new["link_all"], new["link_ev"])
         return new
+    present = links.mask[:, 0][:, None, :] & run[:, :, None] & (col[:, None, :] >= 0)
+    is_out = present & (slot < 0)
     los, lvar = _los(x, p, links)
     var = links.var[:, 0][:, None, :] + lvar
     e = np.maximum(links.rho[:, 0][:, None, :] - los, 0.0)
@@ -222,9 +276,25 @@ def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray
     return new
 
 
+def _learn_counts_numpy(new: dict, mask: NDArray[np.bool_], run: NDArray[np.bool_],
+                       col: NDArray[np.int_], slot: NDArray[np.int_], ev_link: FloatArray,
+                       f: float) -> None:
+    """The reference of :func:`diffpos.tracking.evidence_nb.learn_counts_kernel` (``new``'s
+    ``link_out``, ``link_all``, ``link_ev`` in place)."""
+    present = mask[:, None, :] & run[:, :, None] & (col[:, None, :] >= 0)
+    is_out = present & (slot < 0)
+    r, c, j = np.nonzero(present)
+    li = col[r, j]
+    new["link_out"][r, c, li] = f * new["link_out"][r, c, li] + is_out[r, c, j]
+    new["link_all"][r, c, li] = f * new["link_all"][r, c, li] + 1.0
+    new["link_ev"][r, c, li] = f * new["link_ev"][r, c, li] + ev_link[r, c, j]
+
+
 def reset_links(lk: dict, rows: NDArray, links_reset: NDArray[np.bool_] | None = None) -> None:
     """Forget (in place) what the nodes ``rows`` learned: every link of theirs, or with
     ``links_reset`` (len(rows), L) the links marked there (a new anchor took the link)."""
+    if links_reset is not None and not links_reset.any():  # the usual update: nothing new
+        return
     sel = (np.ones((rows.size, lk["link_out"].shape[2]), bool) if links_reset is None
            else links_reset)
     for k, v in lk.items():
@@ -235,7 +305,8 @@ def reset_links(lk: dict, rows: NDArray, links_reset: NDArray[np.bool_] | None =
 
 
 def model_doubt(log_prob: FloatArray, link_out: FloatArray, link_all: FloatArray,
-                config, n_links: NDArray | None = None) -> FloatArray:
+                config, n_links: NDArray | None = None, prob: FloatArray | None = None
+                ) -> FloatArray:
     """Probability (N,) that a node's floor evidence rests on first arrivals its path model
     does not explain, by the node's own most probable hypothesis
     (``TrackerConfig.floor_model_doubt``; the published floor probabilities are mixed towards
@@ -254,26 +325,38 @@ def model_doubt(log_prob: FloatArray, link_out: FloatArray, link_all: FloatArray
     is explained on a mirror floor by one of its own mechanisms (Sionna RT, paper building,
     4 anchors: a receiver with one out-of-model link is on a wrong floor in 88 of 135 cases),
     so the floor evidence is not to be trusted with that probability. A function of the node's
-    own state and ranges only.
+    own state and ranges only. ``prob``: ``exp(log_prob)`` if the caller has it.
     """
     n, h = log_prob.shape
     nf = h // 2
     rows = np.arange(n)
-    p = np.exp(log_prob)
+    p = np.exp(log_prob) if prob is None else prob
     pf = p[:, :nf] + p[:, nf:]
     top = np.argmax(pf, axis=1)
     hs = np.where(p[rows, top] >= p[rows, top + nf], top, top + nf)
-    eps = _eps(link_out[rows, hs], link_all[rows, hs], config)
+    nl = link_out.shape[-1]  # every link of the best hypothesis, as one hypothesis' columns
+    eps = _link_eps(link_out[rows, hs][:, None], link_all[rows, hs][:, None],
+                    np.broadcast_to(np.arange(nl), (n, nl)), config)[:, 0]
     q = np.clip(1.0 - (1.0 - eps) / (1.0 - config.outlier_weight), 0.0, 1.0)  # (N, L)
     r = (np.ones(n, int) if n_links is None
          else np.maximum(np.asarray(n_links, int) - 3, 1))
     # distribution of the number of out-of-model links (Poisson-binomial), counts >= r pooled
     nl = q.shape[1]
+    dist = np.empty((n, nl + 1))
+    doubt_dist_kernel(np.ascontiguousarray(q, dtype=np.float64), dist)
+    below = np.arange(nl + 1)[None, :] < r[:, None]
+    return np.clip(1.0 - np.sum(np.where(below, dist, 0.0), axis=1), 0.0, 1.0)
+
+
+def _doubt_dist_numpy(q: FloatArray) -> FloatArray:
+    """The reference of :func:`diffpos.tracking.evidence_nb.doubt_dist_kernel`: the
+    distribution (n, L + 1) of the number of links out of the model (probabilities ``q``
+    (n, L))."""
+    n, nl = q.shape
     dist = np.zeros((n, nl + 1))
     dist[:, 0] = 1.0
     for j in range(nl):
         qj = q[:, j:j + 1]
         dist[:, 1:] = dist[:, 1:] * (1.0 - qj) + dist[:, :-1] * qj
         dist[:, 0] *= 1.0 - qj[:, 0]
-    below = np.arange(nl + 1)[None, :] < r[:, None]
-    return np.clip(1.0 - np.sum(np.where(below, dist, 0.0), axis=1), 0.0, 1.0)
+    return dist

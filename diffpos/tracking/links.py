@@ -120,10 +120,10 @@ def eval_paths(nodes_m: FloatArray, anchors_m: FloatArray, floor, building, rela
 
 def _relax(relax_m, shape) -> FloatArray:
     """``relax_m`` (scalar or broadcastable to ``shape`` = (N, H)) as a C-contiguous float64
-    (N, H) array, checked >= 0 [m]."""
-    r = np.empty(shape)
-    r[...] = np.broadcast_to(np.asarray(relax_m, dtype=np.float64), shape)
-    if not np.all(r >= 0.0):
+    (N, H) array, checked >= 0 [m]: ``relax_m`` itself when it is one (:func:`_cb`; the
+    callers only read it)."""
+    r = _cb(relax_m, tuple(shape), np.float64)
+    if not (r >= 0.0).all():
         raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
     return r
 
@@ -137,8 +137,7 @@ def all_paths(pos: FloatArray, links: Links, floor, building, relax_m) -> PathEv
     r = _relax(relax_m, (n, h))
     m = links.anchors.shape[-2]
     shape = (n, h, m, K_SLOTS)
-    fl = np.empty((n, h))
-    fl[...] = np.broadcast_to(np.asarray(floor), (n, h))
+    fl = _cb(floor, (n, h), np.float64)
     length, jac = np.empty(shape), np.empty((*shape, 3))
     strict, loose, sure = (np.empty(shape, dtype=np.bool_) for _ in range(3))
     anc = np.empty((n, m, 3))

@@ -11,6 +11,7 @@ them can use it.
 from __future__ import annotations
 
 import enum
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -433,14 +434,22 @@ def n_floors_of(state: TrackerState) -> int:
     return state.log_prob.shape[1] // 2
 
 
+@functools.lru_cache(maxsize=64)
 def hypothesis_floor(n_floors: int) -> NDArray[np.int_]:
-    """Floor of every hypothesis ``h = mode * F + floor``, shape (2F,)."""
-    return np.tile(np.arange(n_floors), 2)
+    """Floor of every hypothesis ``h = mode * F + floor``, shape (2F,) (one read-only array
+    per ``n_floors``: built once, not on every tracker call)."""
+    out = np.tile(np.arange(n_floors), 2)
+    out.flags.writeable = False
+    return out
 
 
+@functools.lru_cache(maxsize=64)
 def hypothesis_vertical(n_floors: int) -> NDArray[np.bool_]:
-    """Vertical mode (stairs) of every hypothesis, shape (2F,) (the first F are level)."""
-    return np.repeat([False, True], n_floors)
+    """Vertical mode (stairs) of every hypothesis, shape (2F,) (the first F are level; one
+    read-only array per ``n_floors``)."""
+    out = np.repeat([False, True], n_floors)
+    out.flags.writeable = False
+    return out
 
 
 def floor_probabilities(log_prob: ArrayLike, prob: FloatArray | None = None) -> FloatArray:

@@ -149,6 +149,7 @@ from diffpos.tracking.evidence import (
     model_doubt,
     reset_links,
 )
+from diffpos.tracking.evidence_nb import warm_evidence
 from diffpos.tracking.families import family_log_weight
 from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
@@ -235,12 +236,14 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
     dt = np.where(live, (t - state.t_ns) * 1e-9, 0.0)
     x0, p0, lp, inflow = _mix(state, dt, building, config)
     xn, pn = _propagate(x0, p0, dt, config)
+    t_new = np.where(live | (state.status == 0), t, state.t_ns)
+    if live.all():  # (the new arrays are _mix's and _propagate's own)
+        return replace(state, mean=xn, cov=pn, log_prob=lp, t_ns=t_new), inflow
     lv = live[:, None]
     return replace(
         state, mean=np.where(lv[..., None], xn, state.mean),
         cov=np.where(lv[..., None, None], pn, state.cov),
-        log_prob=np.where(lv, lp, state.log_prob),
-        t_ns=np.where(live | (state.status == 0), t, state.t_ns)), np.where(lv, inflow, 0.0)
+        log_prob=np.where(lv, lp, state.log_prob), t_ns=t_new), np.where(lv, inflow, 0.0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -260,7 +263,7 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
     best = np.argmax(prob, axis=1)
     # the most probable floor's estimate: the mixture of its two modes (moment-matched)
     pair = np.stack([best, best + nf], axis=1)  # (N, 2)
-    w = np.take_along_axis(prob_h, pair, axis=1)
+    w = prob_h[rows[:, None], pair]
     w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
     xm = state.mean[rows[:, None], pair, :3]  # (N, 2, 3)
     pos = np.einsum("nm,nmi->ni", w, xm)
@@ -281,7 +284,8 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
         floor_index=np.where(has, best, -1),
         floor_probabilities=published_floor_probabilities(
             state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
-            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas)
+            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas,
+                               prob_h)
                    if config.floor_model_doubt and config.link_learn else None)),
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
@@ -536,7 +540,8 @@ def _posterior(lp_pred: FloatArray, ev: FloatArray, run: NDArray[np.bool_],
 def _epoch_nis(nis_links: FloatArray) -> tuple[FloatArray, NDArray[np.int_]]:
     """NIS per used range of one epoch and the number of used ranges, (...) from (..., M)."""
     n_in = np.sum(np.isfinite(nis_links), axis=-1)
-    return np.where(n_in > 0, np.nansum(nis_links, axis=-1) / np.maximum(n_in, 1), np.inf), n_in
+    total = np.sum(np.where(np.isnan(nis_links), 0.0, nis_links), axis=-1)  # np.nansum's sum
+    return np.where(n_in > 0, total / np.maximum(n_in, 1), np.inf), n_in
 
 
 def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray,
@@ -636,4 +641,5 @@ def warm_tracking() -> float:
     warm_grid(planes, anc)
     warm_iekf(planes, anc)
     warm_snr_cache()
+    warm_evidence()
     return time.perf_counter() - t0
