@@ -11,9 +11,13 @@ import sys
 import pytest
 
 #: Runs ``diffpos emulate --help`` in a fresh interpreter whose verb loading sends the signal
-#: to itself first: a signal "during the imports", with no timing involved.
+#: to itself first: a signal "during the imports", with no timing involved. The signal's
+#: disposition is first set as a shell would leave it (``dfl``) or as ``nohup`` does (``ign``),
+#: whatever the test runner inherited.
 PROBE = """
 import importlib, os, signal, sys
+signal.signal(getattr(signal, sys.argv[1]),
+              signal.SIG_DFL if sys.argv[2] == "dfl" else signal.SIG_IGN)
 from diffpos_services.cli import main as cli
 def load(name):
     os.kill(os.getpid(), getattr(signal, sys.argv[1]))
@@ -25,9 +29,17 @@ sys.exit(cli.main(["emulate", "--help"]))
 
 @pytest.mark.parametrize("sig", ["SIGTERM", "SIGHUP"])
 def test_a_stop_signal_during_the_imports_exits_130(sig: str) -> None:
-    out = subprocess.run([sys.executable, "-c", PROBE, sig], capture_output=True, text=True,
-                         timeout=60, check=False)
+    out = subprocess.run([sys.executable, "-c", PROBE, sig, "dfl"], capture_output=True,
+                         text=True, timeout=60, check=False)
     assert out.returncode == 130, (out.returncode, out.stderr[-400:])
+
+
+def test_an_ignored_hangup_stays_ignored() -> None:
+    """Under ``nohup`` (SIGHUP ignored) the verb keeps running: only a handler still at the
+    default is replaced."""
+    out = subprocess.run([sys.executable, "-c", PROBE, "SIGHUP", "ign"], capture_output=True,
+                         text=True, timeout=60, check=False)
+    assert out.returncode == 0 and "usage:" in out.stdout, (out.returncode, out.stderr[-400:])
 
 
 def test_the_previous_handlers_come_back() -> None:
