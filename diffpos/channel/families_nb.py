@@ -49,6 +49,7 @@ from diffpos.channel.rays_nb import (
     _P_WIN_H,
     _P_X0,
     _P_X1,
+    _fermat_point,
     _floor_index,
     _norm_c,
     _partition_loss,
@@ -77,7 +78,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "bd997cec9549b85b"
+CALLEES_SHA256 = "974447ead693b5d0"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
@@ -225,29 +226,6 @@ def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
 
 
 @njit(**_OPTS)
-def _fermat(s0, s1, s2, o0, o1, o2, x0, z_e, edge):
-    """geometry.diffraction_point on the edge from ``(x0, 0, z_e)`` along ``edge`` (length,
-    unit vector): the point and whether it lies strictly inside the edge."""
-    edge_len, ee0, ee1, ee2 = edge
-    ds0, ds1, ds2 = s0 - x0, s1 - 0.0, s2 - z_e
-    dq0, dq1, dq2 = o0 - x0, o1 - 0.0, o2 - z_e
-    s_t = ds0 * ee0 + ds1 * ee1 + ds2 * ee2
-    o_t = dq0 * ee0 + dq1 * ee1 + dq2 * ee2
-    w0, w1, w2 = ds0 - s_t * ee0, ds1 - s_t * ee1, ds2 - s_t * ee2
-    r_s = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    w0, w1, w2 = dq0 - o_t * ee0, dq1 - o_t * ee1, dq2 - o_t * ee2
-    r_o = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    denom = r_s + r_o
-    scale = abs(s_t) + abs(o_t) + r_s + r_o + edge_len
-    if denom <= 1e-12 * scale:
-        t_star = 0.5 * (s_t + o_t)
-    else:
-        t_star = (s_t * r_o + o_t * r_s) / denom
-    t = min(max(t_star, 0.0), edge_len)
-    return x0 + t * ee0, 0.0 + t * ee1, z_e + t * ee2, (t_star > 0.0) and (t_star < edge_len)
-
-
-@njit(**_OPTS)
 def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in,
                  edge, sq2pik, part, eta_p):
     """slots._diffracted_family for table row ``s``: (|gain|, loss [dB] incl. the pattern,
@@ -263,13 +241,13 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
         o0, o1, o2 = mirror(o0, o1, o2, ax, c)
     # the edge (slots._edge_frame): tangent e, half-plane face t0
     if code == 0:  # upper: the wall above the window
-        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, hi, edge)
+        q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0, hi, edge)
         ed0, ed2, tf1, tf2 = 1.0, 0.0, 0.0, 1.0
     elif code == 1:  # lower: the wall below it
-        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0, lo, edge)
+        q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0, lo, edge)
         ed0, ed2, tf1, tf2 = -1.0, 0.0, 0.0, -1.0
     else:  # vertical at x0 / x1: the side wall, into the building
-        q0, q1, q2, ok = _fermat(s0, s1, s2, o0, o1, o2, x0 if code == 2 else x1, lo,
+        q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0 if code == 2 else x1, lo,
                                  vertical_axis(lo, hi))
         ed0, ed2, tf1, tf2 = 0.0, (1.0 if code == 2 else -1.0), 1.0, 0.0
     s_in = math.sqrt((s0 - q0) ** 2 + (s1 - q1) ** 2 + (s2 - q2) ** 2)
