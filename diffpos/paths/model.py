@@ -241,6 +241,29 @@ class _Geom:
     partition: NDArray[np.int_] | None = None
 
 
+def _slab_walk(src: FloatArray, img: FloatArray, t_start: float | FloatArray, axes_coords,
+               frame: FloorFrame, valid: NDArray[np.bool_], shape: tuple[int, ...] | None = None
+               ) -> tuple[NDArray[np.bool_], list[FloatArray]]:
+    """The reflection points of the ray ``src`` -> ``img`` (the image across ``axes_coords``,
+    first plane first) after ``t_start``: each after the previous one and on the floor's inside
+    surface (``valid`` narrowed by that). ``shape``: the planes' coordinates are broadcast to
+    it before mirroring."""
+    pts = []
+    cur_src, cur_img, t_last = src, img, t_start
+    for axis, coord in axes_coords:
+        dd = cur_img - cur_src
+        t = (coord - cur_src[..., axis]) / dd[..., axis]
+        valid = valid & (t > t_last) & (t < 1)
+        rp = cur_src + t[..., None] * dd
+        valid = valid & frame.in_floor_box(rp)
+        pts.append(rp)
+        c = coord if shape is None else np.broadcast_to(coord, shape)
+        cur_img = _mirror(cur_img, axis, c)
+        cur_src = _mirror(cur_src, axis, c)
+        t_last = t
+    return valid, pts
+
+
 def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
                   planes: tuple[str, ...] | list[str], *, ground: bool = False) -> _Geom:
     """Anchor [-> ground] -> window opening -> inside planes... -> node, by the image method.
@@ -285,17 +308,8 @@ def specular_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame,
             valid &= ok
             pts += rps
         else:
-            cur_src, cur_img, t_last = src, img, t_f
-            for axis, coord in axes_coords:
-                dd = cur_img - cur_src
-                t = (coord - cur_src[..., axis]) / dd[..., axis]
-                valid &= (t > t_last) & (t < 1)
-                rp = cur_src + t[..., None] * dd
-                valid &= frame.in_floor_box(rp)
-                pts.append(rp)
-                cur_img = _mirror(cur_img, axis, coord)
-                cur_src = _mirror(cur_src, axis, coord)
-                t_last = t
+            valid, rps = _slab_walk(src, img, t_f, axes_coords, frame, valid)
+            pts += rps
         pts.append(n)
         jac = d / length[..., None] * sign
     valid &= np.isfinite(length)
@@ -353,17 +367,8 @@ def diffracted_path(anchor: FloatArray, node: FloatArray, frame: FloorFrame, edg
             valid &= ok
             pts += rps
         else:
-            cur_src, cur_img, t_last = q, obs, 0.0
-            for axis, coord in axes_coords:
-                dd = cur_img - cur_src
-                t = (coord - cur_src[..., axis]) / dd[..., axis]
-                valid &= (t > t_last) & (t < 1)
-                rp = cur_src + t[..., None] * dd
-                valid &= frame.in_floor_box(rp)
-                pts.append(rp)
-                cur_img = _mirror(cur_img, axis, np.broadcast_to(coord, shape))
-                cur_src = _mirror(cur_src, axis, np.broadcast_to(coord, shape))
-                t_last = t
+            valid, rps = _slab_walk(q, obs, 0.0, axes_coords, frame, valid, shape)
+            pts += rps
         u_out = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
         u_in = q - src
         d_in = np.sqrt(np.einsum("...i,...i->...", u_in, u_in))
