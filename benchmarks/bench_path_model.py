@@ -446,21 +446,25 @@ def profile_mnls(n_fixes: int, numpy_paths: bool, numpy_snr: bool = False,
               f"{100 * ct / total:.1f} % |")
 
 
-#: A vertical-edge diffraction point this close to the facade plane is on the window's
-#: vertical edge [m] (the traced scene's side walls run 5 cm past the facade,
-#: ``diffpos_services.raytrace.scene.building_surfaces`` ``overlap_m``: its vertical edges lie
-#: at ``y = -0.05``).
-VERTICAL_EDGE_TOL_M = 0.1
 
 
 def sionna_chains(ds, mset):
     """Slot of ``mset`` (``-1``: none) and chain label of every traced path of ``ds`` (module
-    docstring, *Families vs Sionna RT*), the median ``y`` of the traced vertical-edge
+    docstring, *Families vs Sionna RT*: the classifier names a vertical window edge by its end
+    and puts a partition reflection last), the median ``y`` of the traced vertical-edge
     diffraction points (NaN if none) and the partition a path reflects on (``-1``: none)."""
-    from diffpos_services.raytrace.mechanisms import PLANE_TOL_M, classify_mechanisms
+    from diffpos_services.raytrace.mechanisms import (
+        NO_PATH,
+        OTHER,
+        PLANE_TOL_M,
+        VERTICAL_EDGE_TOL_M,
+        classify_mechanisms,
+    )
     from diffpos_services.raytrace.paths import DIFFRACTION, SPECULAR
 
-    lab = classify_mechanisms(ds, mset).label.astype(object)
+    mech = classify_mechanisms(ds, mset)
+    lab = mech.label.astype(object)
+    code = np.where((mech.code == OTHER) | (mech.code == NO_PATH), -1, mech.code)
     b = ds.scenario.building
     x0, x1 = b.edge_x_m
     lo, hi = b.window_z_m(b.floor_index(ds.nodes_m[:, 2]))
@@ -473,11 +477,9 @@ def sionna_chains(ds, mset):
         p = verts[:, :, :, d, :]
         in_band = ((p[..., 2] > lo[:, None, None]) & (p[..., 2] < hi[:, None, None])
                    & (np.abs(p[..., 1]) < VERTICAL_EDGE_TOL_M))
-        for xe, name in ((x0, "D(vertical x1)"), (x1, "D(vertical x2)")):
+        for xe in (x0, x1):
             hit = (flag == DIFFRACTION) & in_band & (np.abs(p[..., 0] - xe) < PLANE_TOL_M)
             hit &= ~named & ds.path_valid
-            for i in zip(*np.nonzero(hit), strict=True):
-                lab[i] = lab[i].replace("D(vertical)", name, 1)
             ys.append(p[..., 1][hit])
             named |= hit
     part = np.full(lab.shape, -1)
@@ -488,24 +490,8 @@ def sionna_chains(ds, mset):
             on = np.abs(p[..., 0 if pt.axis == "x" else 1] - pt.position_m) < PLANE_TOL_M
             part = np.where((flag == SPECULAR) & on & (p[..., 1] > PLANE_TOL_M)
                             & (part == -1), j, part)
-    slot_of = {name: i for i, name in enumerate(mset.labels)}
-    code = np.array([slot_of.get(_canonical(str(x)), -1) for x in lab.ravel()]
-                    ).reshape(lab.shape)
     y = np.concatenate(ys) if ys else np.zeros(0)
     return code, lab, float(np.median(y)) if y.size else float("nan"), part
-
-
-def _canonical(label: str) -> str:
-    """A chain with one partition reflection among slab reflections, as the model's partition
-    families name it (the partition last: its place is free)."""
-    toks = label.split("-")
-    if toks.count("R(partition)") != 1:
-        return label
-    diff = [i for i, t in enumerate(toks) if t.startswith("D(")]
-    if diff and toks.index("R(partition)") < diff[0]:  # before the edge: another chain
-        return label
-    rest = [t for t in toks if t != "R(partition)"]
-    return "-".join([*rest[:-1], "R(partition)", rest[-1]])
 
 
 def sionna_length_table(paths: list[str], max_order: int) -> None:

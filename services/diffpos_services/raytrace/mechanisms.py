@@ -129,14 +129,14 @@ def _diffraction_token(p: NDArray, node_floor: NDArray, b: Building) -> NDArray[
 
 
 def _partition_last(label: str) -> str:
-    """A chain with one partition reflection among the slab reflections after the edge, as
-    the path model's partition families name it (the partition last: where the ray meets it
-    among the slab bounces does not change the length)."""
+    """A chain with one partition reflection among the slab reflections (after the edge if
+    there is one), as the path model's partition families name it (the partition last: where
+    the ray meets it among the slab bounces does not change the length)."""
     toks = label.split("-")
     if toks.count("R(partition)") != 1:
         return label
     diff = [i for i, t in enumerate(toks) if t.startswith("D(")]
-    if not diff or toks.index("R(partition)") < diff[0]:  # before the edge: another chain
+    if diff and toks.index("R(partition)") < diff[0]:  # before the edge: another chain
         return label
     rest = [t for t in toks if t != "R(partition)"]
     return "-".join([*rest[:-1], "R(partition)", rest[-1]])
