@@ -39,23 +39,21 @@ class Mod:
         return self.name if self.is_pkg else self.name.rpartition(".")[0]
 
 
-def _top_defs(tree: ast.Module) -> set[str]:
+def top_level_defs(body: list[ast.stmt]) -> set[str]:
+    """The names a module body binds at its top level (also inside if/try/with/for blocks)."""
     out: set[str] = set()
-
-    def walk(body):
-        for n in body:
-            if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
-                out.add(n.name)
-            elif isinstance(n, ast.Assign):
-                out.update(x.id for t in n.targets for x in ast.walk(t) if isinstance(x, ast.Name))
-            elif isinstance(n, ast.AnnAssign | ast.AugAssign) and isinstance(n.target, ast.Name):
-                out.add(n.target.id)
-            elif isinstance(n, ast.If | ast.Try | ast.With | ast.For):
-                walk(n.body)
-                walk(getattr(n, "orelse", []))
-                for h in getattr(n, "handlers", []):
-                    walk(h.body)
-    walk(tree.body)
+    for n in body:
+        if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            out.add(n.name)
+        elif isinstance(n, ast.Assign):
+            out.update(x.id for t in n.targets for x in ast.walk(t) if isinstance(x, ast.Name))
+        elif isinstance(n, ast.AnnAssign | ast.AugAssign) and isinstance(n.target, ast.Name):
+            out.add(n.target.id)
+        elif isinstance(n, ast.If | ast.Try | ast.With | ast.For):
+            out |= top_level_defs(n.body) | top_level_defs(getattr(n, "orelse", []))
+            out |= top_level_defs(getattr(n, "finalbody", []))
+            for h in getattr(n, "handlers", []):
+                out |= top_level_defs(h.body)
     return out
 
 
@@ -69,7 +67,7 @@ def _load(trees: dict[str, Path]) -> dict[str, Mod]:
             src = path.read_text()
             tree = ast.parse(src, filename=str(path))
             mods[".".join(parts)] = Mod(".".join(parts), path, is_pkg, tree, src.splitlines(),
-                                        _top_defs(tree))
+                                        top_level_defs(tree.body))
     return mods
 
 

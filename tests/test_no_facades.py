@@ -13,6 +13,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+from test_import_graph import top_level_defs
+
 ROOT = Path(__file__).resolve().parents[1]
 TREES = (ROOT / "diffpos", ROOT / "services" / "diffpos_services")
 
@@ -23,23 +25,6 @@ PENDING: dict[str, set[str]] = {
     "services/diffpos_services/fusion/core.py": {"BEHIND_KEEP_EPOCHS", "FusionConfig"},
     "services/diffpos_services/replay/run.py": {"live_fusion_settings"},
 }
-
-
-def _defined(body: list[ast.stmt]) -> set[str]:
-    out: set[str] = set()
-    for n in body:
-        if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
-            out.add(n.name)
-        elif isinstance(n, ast.Assign):
-            out.update(x.id for t in n.targets for x in ast.walk(t) if isinstance(x, ast.Name))
-        elif isinstance(n, ast.AnnAssign | ast.AugAssign) and isinstance(n.target, ast.Name):
-            out.add(n.target.id)
-        elif isinstance(n, ast.If | ast.Try | ast.With | ast.For):
-            out |= _defined(n.body) | _defined(getattr(n, "orelse", []))
-            out |= _defined(getattr(n, "finalbody", []))
-            for h in getattr(n, "handlers", []):
-                out |= _defined(h.body)
-    return out
 
 
 def _exported(tree: ast.Module) -> list[str]:
@@ -53,7 +38,7 @@ def _exported(tree: ast.Module) -> list[str]:
 def facade_names(src: str) -> set[str]:
     """The names a module's ``__all__`` lists without defining them."""
     tree = ast.parse(src)
-    return set(_exported(tree)) - _defined(tree.body)
+    return set(_exported(tree)) - top_level_defs(tree.body)
 
 
 def test_every_name_in_all_is_defined_where_it_is_listed() -> None:
