@@ -14,6 +14,7 @@ from diffpos_services.raytrace import mechanisms as mm
 from diffpos_services.raytrace.backend import VARIANT, RaytraceUnavailable, check_sionna
 from diffpos_services.raytrace.dataset import DATASET_FORMAT, RaytraceDataset
 from diffpos_services.raytrace.evaluate import dataset_first_arrival, edge_fermat_check
+from diffpos_services.raytrace.paths import chain_label
 from diffpos_services.raytrace.tracing import RaytraceSettings, trace
 
 from diffpos.geometry import diffraction_point
@@ -160,3 +161,29 @@ def test_traced_mechanisms_have_the_model_length_on_another_building() -> None:
         assert r["max_abs_m"] < 1e-4, (name, r)
         assert r["model_exists"] >= 0.9, (name, r)
         assert r["exists_on_band"] == 1.0, (name, r)  # the rest enter on a band limit
+
+
+def test_a_diffracted_path_has_the_same_gain_at_any_max_depth() -> None:
+    """The ray tracer's correction (raytrace.corrections): a diffracted path shorter than
+    ``max_depth`` gets the gain it gets when it is as long as ``max_depth`` allows. Sionna RT
+    2.2.0 alone gave 37 of 102 such paths here 3-6 dB less at depth 4 than at depth 2 (a slot
+    past the path's end counted in the diffraction's distances)."""
+    assert VERSIONS["corrections"] == "diffraction-distances-stop-at-path-end"
+    sc = default_scenario()  # its building has the four plasterboard partitions
+    sc = dataclasses.replace(sc, anchors=(sc.anchors[0],))
+    nodes = np.array([[-19.75, 0.5, 5.5], [1.25, 3.0, 5.5], [13.75, 4.5, 5.5],
+                      [-17.75, 6.0, 5.5], [7.75, 9.0, 5.5], [-15.25, 11.5, 5.5]])
+    a, b = (trace(sc, nodes, settings=RaytraceSettings(max_depth=d, samples_per_src=100_000,
+                                                       seed=1)) for d in (2, 4))
+    pairs = []
+    for n in range(len(nodes)):
+        for k in np.flatnonzero(a.path_valid[n, 0]):
+            same = np.flatnonzero(b.path_valid[n, 0] & (b.path_chain[n, 0] == a.path_chain[n, 0, k])
+                                  & (np.abs(b.path_length_m[n, 0] - a.path_length_m[n, 0, k])
+                                     < 1e-3))
+            if same.size:
+                pairs.append((a.path_chain[n, 0, k],
+                              float(b.path_gain_db[n, 0, same[0]] - a.path_gain_db[n, 0, k])))
+    diffracted = [d for c, d in pairs if "D" in chain_label(int(c))]
+    assert len(diffracted) >= 20, len(diffracted)
+    assert max(abs(d) for d in diffracted) < 0.01, sorted(diffracted)

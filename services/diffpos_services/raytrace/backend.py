@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 from diffpos_services.errors import DiffposError
+from diffpos_services.raytrace.corrections import apply_corrections
 
 DEFAULT_LLVM_PATH = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 SIONNA_REQUIREMENT = "sionna-rt==2.2.0"
@@ -76,6 +77,8 @@ def check_sionna() -> dict[str, str]:
     except Exception as exc:
         raise RaytraceUnavailable(f"sionna.rt failed to import ({exc}): {INSTALL_HINT}") from None
 
-    return {"sionna-rt": str(getattr(rt, "__version__", "?")), "mitsuba": mi.__version__,
+    version = str(getattr(rt, "__version__", "?"))
+    fixes = apply_corrections(version)
+    return {"sionna-rt": version, "corrections": ",".join(fixes), "mitsuba": mi.__version__,
             "drjit": dr.__version__, "libllvm": llvm, "variant": VARIANT,
             "llvm": ".".join(map(str, llvm_version))}

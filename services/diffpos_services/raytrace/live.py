@@ -46,6 +46,7 @@ from diffpos.scenario import Scenario
 from diffpos_services.errors import ConfigError, DiffposError
 from diffpos_services.logs import STATUS, log_event
 from diffpos_services.raytrace.backend import SIONNA_REQUIREMENT, check_sionna
+from diffpos_services.raytrace.corrections import CORRECTIONS
 from diffpos_services.raytrace.paths import DIFFRACTION, DIFFUSE, SPECULAR
 from diffpos_services.raytrace.scene import build_scene, building_surfaces
 from diffpos_services.raytrace.tracing import _DIPOLE_DB, _dipole_orientation
@@ -141,10 +142,11 @@ def _positions(scenario: Scenario, anchor_id: str, nodes: Sequence[tuple[str, An
 def cache_key(scenario: Scenario, anchor_id: str, nodes: Sequence[tuple[str, Any]],
               times: NDArray, settings: LiveTraceSettings) -> str:
     """SHA-256 (hex) of everything one anchor's trace depends on: the format, the pinned
-    Sionna version, the scenario's content, the anchor, the node ids, every traced position
+    Sionna version and the corrections made to it, the scenario's content, the anchor, the node ids, every traced position
     (so any change of a trajectory is a new key), the grid and the settings."""
     a, n = _positions(scenario, anchor_id, nodes, times)
     doc = {"format": LIVE_FORMAT, "sionna": SIONNA_REQUIREMENT,
+           "corrections": CORRECTIONS.get(SIONNA_REQUIREMENT.split("==")[-1], ()),
            "scenario": scenario.to_dict(), "anchor": anchor_id,
            "nodes": [nid for nid, _ in nodes], "t_s": np.asarray(times, float).tolist(),
            "positions_sha256": hashlib.sha256(np.ascontiguousarray(a).tobytes()
