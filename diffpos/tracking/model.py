@@ -101,6 +101,7 @@ from diffpos.tracking.model_nb import (
     select_prep_kernel,
 )
 from diffpos.tracking.snr_nb import cache_plan_kernel, cache_store_kernel
+from diffpos.tracking.snr_term_nb import snr_hole_kernel, snr_plan_kernel, snr_score_kernel
 from diffpos.tracking.state import SNR_CACHE_SLOTS
 
 FloatArray = NDArray[np.float64]
@@ -432,6 +433,68 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     sub = c[n_i, h_i, m_i]
     c[n_i, h_i, m_i] = np.where(hole_p, best, sub)
     return c
+
+
+def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEval,
+             config, cache: SnrCache | None = None) -> FloatArray | None:
+    """``cap_snr_cost(snr_cost_near(pos, links, floor, building, relax_m, pe, cache,
+    reuse_m), config)`` with ``reuse_m`` = ``config``'s margins and the cache used only when
+    :func:`snr_reuse_on`: the measurement update's SNR term, bit for bit, in three compiled
+    passes around the two SNR predictions (:mod:`diffpos.tracking.snr_term_nb`; the numpy
+    functions above are the reference, tests/core/test_snr_term.py). Falls back to them when
+    :data:`HOLE_THRESHOLD_AT_PRIOR` is False."""
+    if links.snr is None:
+        return None
+    use_cache = cache is not None and snr_reuse_on(config)
+    reuse_m = (config.snr_reuse_m, config.snr_reuse_anchor_m)
+    n, h = pos.shape[:2]
+    m = links.rho.shape[-1]
+    if not HOLE_THRESHOLD_AT_PRIOR or n * h * m == 0:
+        return cap_snr_cost(snr_cost_near(pos, links, floor, building, relax_m, pe,
+                                          cache=cache if use_cache else None,
+                                          reuse_m=reuse_m), config)
+    shape = (n, h, m, K_SLOTS)
+    b1 = np.bool_
+    need = _cb(pe.loose | ALWAYS_PREDICTED, shape, b1)
+    anc = _c(links.anchors[:, 0], dtype=np.float64)
+    snr = _c(links.snr[:, 0], dtype=np.float64)
+    if use_cache:
+        c_node, c_anchor, c_pred = cache.node, cache.anchor, cache.pred
+    else:
+        c_node, c_anchor, c_pred = (np.empty((1, 1, 3)), np.empty((1, 1, 1, 3), np.float32),
+                                    np.empty((1, 1, 1, len(_CACHED)), np.float32))
+    near, hit = np.empty((n, h), b1), np.empty((n, h, m), b1)
+    mask, at = np.empty(shape, b1), np.empty((n, h, 3))
+    rows = n * h * m
+    p_anc, p_node, p_need = np.empty((rows, 1, 3)), np.empty((rows, 3)), \
+        np.empty((rows, 1, K_SLOTS), b1)
+    pc = _c(pos, dtype=np.float64)
+    cnt = snr_plan_kernel(pc, anc, snr, need, _cb(pe.strict, shape, b1), use_cache, c_node,
+                          c_anchor, c_pred, float(reuse_m[0]), float(reuse_m[1]), _CACHED,
+                          _IS_CACHED, near, hit, mask, at, p_anc, p_node, p_need)
+    radio = links.radio
+    p_pred = (pair_snr_db(p_anc[:cnt], p_node[:cnt], building=building, radio=radio,
+                          need=p_need[:cnt]) if cnt else np.empty((0, 1, K_SLOTS)))
+    pred, cost, thr = np.empty(shape), np.empty(shape), np.empty((n, h, m))
+    hole_idx = np.empty((rows, 3), np.int64)
+    h_anc, h_node = np.empty((2 * rows, 1, 3)), np.empty((2 * rows, 3))
+    h_need, h_meas, h_thr = np.empty((2 * rows, 1, K_SLOTS), b1), np.empty(2 * rows), \
+        np.empty(2 * rows)
+    sig, fap, det = float(SNR_SIGMA_DB), float(radio.fap_threshold_db), \
+        float(radio.detection_snr_db)
+    q = snr_score_kernel(_c(p_pred, dtype=np.float64), snr, need, mask, _cb(pe.sure, shape, b1),
+                         _cb(pe.loose, shape, b1), near, hit, use_cache, _CACHED, anc, c_anchor,
+                         c_pred, sig, fap, det, pc, _relax(relax_m, (n, h)),
+                         _cb(floor, (n, h), np.float64), float(building.first_floor_z_m),
+                         float(building.floor_height_m), pred, cost, thr, hole_idx, h_anc,
+                         h_node, h_need, h_meas, h_thr)
+    if use_cache:
+        cache.node[...] = at
+    h_pred = (pair_snr_db(h_anc[:2 * q], h_node[:2 * q], building=building, radio=radio,
+                          need=h_need[:2 * q]) if q else np.empty((0, 1, K_SLOTS)))
+    snr_hole_kernel(_c(h_pred, dtype=np.float64), h_need, h_meas, h_thr, hole_idx, q, sig, fap,
+                    det, float(config.snr_cost_cap_nats), cost, np.empty((2 * q, K_SLOTS)))
+    return cost
 
 
 # --------------------------------------------------------------------------------------------
@@ -925,10 +988,7 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     relax = (config.exist_margin_m if level is None
              else existence_margin(p_prior, config))
     pe0 = all_paths(xc, links, floor, building, relax)
-    snr_c = snr_cost_near(xc, links, floor, building, relax, pe0,
-                          cache=snr_cache if snr_reuse_on(config) else None,
-                          reuse_m=(config.snr_reuse_m, config.snr_reuse_anchor_m))
-    snr_c = cap_snr_cost(snr_c, config)
+    snr_c = snr_term(xc, links, floor, building, relax, pe0, config, snr_cache)
     info = prior_information(p_prior)  # shared by the passes
     # and so are the kernels' inputs that do not depend on the paths or the selection
     fix_i = _iekf_fixed(x_prior, p_prior, links, floor, building, config, level, info)
