@@ -103,6 +103,7 @@ from diffpos.tracking.model_nb import (
 from diffpos.tracking.snr_nb import cache_plan_kernel, cache_store_kernel
 from diffpos.tracking.snr_term_nb import snr_hole_kernel, snr_plan_kernel, snr_score_kernel
 from diffpos.tracking.state import SNR_CACHE_SLOTS
+from diffpos.tracking.update_nb import clamp_kernel, update_fixed_kernel
 
 FloatArray = NDArray[np.float64]
 
@@ -834,6 +835,55 @@ def _iekf_fixed(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, b
     return head, tail
 
 
+def _floor_box(building, margin_m: float) -> NDArray:
+    """The constants of every floor box (:func:`diffpos.tracking.update_nb._bounds`): the x
+    and y bounds ``margin_m`` inside the walls, the floors' planes and the margin."""
+    x0, x1 = building.edge_x_m
+    return np.array([x0 + margin_m, x1 - margin_m, margin_m, building.depth_m - margin_m,
+                     building.first_floor_z_m, building.floor_height_m, margin_m],
+                    dtype=np.float64)
+
+
+def _update_fixed(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, building,
+                  config, level=None) -> tuple:
+    """Everything of :func:`measurement_update` that depends on the prior only, in one
+    compiled pass (:func:`diffpos.tracking.update_nb.update_fixed_kernel`): the clamped prior
+    ``xc`` (N, H, 3), the nodes it moved (indices), every hypothesis' existence margin (the
+    fixed one at initialisation, ``level`` None), the prior information and
+    :func:`_iekf_fixed` (the values of :func:`clamp_to_floor`, :func:`existence_margin`,
+    :func:`prior_information` and :func:`_iekf_fixed`, bit for bit)."""
+    n, h = x_prior.shape[:2]
+    f8, b1 = np.float64, np.bool_
+    fl = _cb(floor, (n, h), f8)
+    sh = config.height_sigma_m
+    ll_gauss = -np.log(sh) - 0.5 * _LOG2PI
+    ll_any = -np.log(building.floor_height_m)
+    if level is None:
+        w_lvl, w_any = np.log1p(-config.stairs_weight), np.log(config.stairs_weight)
+        lv = np.zeros((1, 1), b1)
+    else:
+        w_lvl = w_any = 0.0
+        lv = _cb(level, (n, h), b1)
+    height = np.array([building.nominal_node_height_m, 1.0 / sh**2, w_lvl + ll_gauss,
+                       w_any + ll_any, sh], dtype=f8)
+    e = np.empty
+    xc, moved, relax = e((n, h, 3)), e(n, b1), e((n, h))
+    y, logdet_y = e((n, h, 6, 6)), e((n, h))
+    lo, hi, z_nom, wh, h_const = e((n, h, 3)), e((n, h, 3)), e((n, h)), e((n, h)), e((n, h))
+    xp = _c(x_prior, dtype=f8)
+    update_fixed_kernel(xp, _c(p_prior, dtype=f8), fl, lv, level is not None,
+                        _floor_box(building, config.z_margin_m),
+                        np.array([config.exist_margin_m, ENTRY_SIGMAS]), height, xc, moved,
+                        relax, y, logdet_y, lo, hi, z_nom, wh, h_const)
+    if not (relax >= 0.0).all():
+        raise ValueError(f"relax_m must be >= 0 [m]; got {relax!r}")
+    head = (xp, y, logdet_y, lo, hi, z_nom, wh, h_const, _c(links.anchors[:, 0], dtype=f8), fl)
+    tail = (_c(links.rho[:, 0], dtype=f8), _c(links.var[:, 0], dtype=f8),
+            _c(links.mask[:, 0]), int(config.gn_iterations),
+            float(1.0 / config.box_sigma_m**2), _LOG2PI, *building_planes(building))
+    return xc, np.flatnonzero(moved), relax, (y, logdet_y), (head, tail)
+
+
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
          building, config, level=None, prior_info=None, fixed: tuple | None = None):
     """Iterated EKF (Gauss-Newton on the MAP cost) of every hypothesis with fixed mechanisms.
@@ -977,21 +1027,18 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     x = x_prior
     # the SNR of every slot at the prior (a path's strength changes little over the fit);
     # the paths at the prior serve the SNR term and the first selection (the same point
-    # unless the prediction left its floor's box)
-    xc = clamp_to_floor(x[..., :3], floor, building, config.z_margin_m)
-    # the nodes with a hypothesis whose prior is outside its floor's box (or not finite)
-    moved = np.flatnonzero(np.any(xc != x[..., :3], axis=(-2, -1)))
-    # the existence margin follows every hypothesis' own height uncertainty (a track on the
+    # unless the prediction left its floor's box): ``xc`` the prior clamped into its box,
+    # ``moved`` the nodes with a hypothesis whose prior is outside it (or not finite).
+    # The existence margin follows every hypothesis' own height uncertainty (a track on the
     # stairs with a loose height does not call a mechanism impossible that exists a few
     # decimetres away); at initialisation (``level`` None) the prior is the grid search's box,
-    # not the uncertainty of a tracked point: the fixed margin there
-    relax = (config.exist_margin_m if level is None
-             else existence_margin(p_prior, config))
+    # not the uncertainty of a tracked point: the fixed margin there. The prior information
+    # and the IEKF's inputs that depend on neither the paths nor the selection are shared by
+    # the passes. All of it in one compiled pass (:func:`_update_fixed`).
+    xc, moved, relax, info, fix_i = _update_fixed(x_prior, p_prior, links, floor, building,
+                                                  config, level)
     pe0 = all_paths(xc, links, floor, building, relax)
     snr_c = snr_term(xc, links, floor, building, relax, pe0, config, snr_cache)
-    info = prior_information(p_prior)  # shared by the passes
-    # and so are the kernels' inputs that do not depend on the paths or the selection
-    fix_i = _iekf_fixed(x_prior, p_prior, links, floor, building, config, level, info)
     fix_s = _select_fixed(p_prior[..., :3, :3], links, config, snr_c, *x_prior.shape[:2],
                           link_w)
     p = p_prior
@@ -1005,7 +1052,10 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c, fix_s)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
                                  level, info, fix_i)
-    return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
+    xo = np.empty(x.shape)
+    clamp_kernel(_c(x, dtype=np.float64), _cb(floor, x.shape[:2], np.float64),
+                 _floor_box(building, config.z_margin_m), xo)  # clamp_to_floor, bit for bit
+    return xo, p, log_ev, sel, res
 
 
 def snapshot(links: Links, floors: NDArray, building, config):
