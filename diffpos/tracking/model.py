@@ -61,7 +61,11 @@ and anchor, compared with the float32 cached anchor (so only where float32 holds
 coordinates exactly, e.g. whole metres without navigation noise; the reused values are then
 rounded, < 1e-5 dB). A ``TrackerConfig`` with both margins 0 does not use the cache at all
 (``tracking_model.measurement_update``): the large and soak replays' estimates are those of the
-exact predictions, bit for bit. The defaults are 0.05 / 0.1 m (on; their measured accuracy
+exact predictions, bit for bit. :func:`measurement_update` scores the term with
+:func:`snr_term`: these functions' values, bit for bit, in three compiled passes
+(:mod:`diffpos.tracking.snr_term_nb`) around the two predictions; the prior-only inputs of
+the update are made by :func:`_update_fixed` (:mod:`diffpos.tracking.update_nb`) likewise.
+The defaults are 0.05 / 0.1 m (on; their measured accuracy
 cost: ``TrackerConfig``). The float32 anchors are compared in the building's frame: their
 rounding (< 1e-4 m below 1 km from the origin) is negligible against the anchor margin.
 """
