@@ -6,6 +6,9 @@ Usage::
     python benchmarks/bench_tracker_kernels.py capture RECORDING INPUTS.pkl [--skip 100]
         [--calls 300]
     python benchmarks/bench_tracker_kernels.py time INPUTS.pkl [--reps 5]
+    python benchmarks/bench_tracker_kernels.py update-capture RECORDING UPDATES.pkl
+        [--calls 400]
+    python benchmarks/bench_tracker_kernels.py update-time UPDATES.pkl [--reps 3]
 
 ``capture`` replays the recording in this process (:func:`diffpos_services.replay.run
 .replay`, M-NLS + tracker, all epochs solved, no recorded decisions) and keeps the inputs
@@ -45,6 +48,21 @@ best of 5, one call each (every node's initialisation of the replay)::
     capture                          CPU s before     CPU s after      ranked output sha256
     soak16x200.mcap (200 nodes x 16) 0.446 / 0.442    0.185 / 0.184    f590bd5e8c5d5e72 (both)
     large (50 nodes x 8 anchors)     0.066 / 0.065    0.024 / 0.024    05074f345cb61916 (both)
+
+``update-capture`` keeps the tracker's whole measurement updates instead
+(:func:`diffpos.tracking.model.measurement_update` as :mod:`diffpos.tracking.tracker` calls
+it: the first ``--calls`` of the replay, every hypothesis pair of a tracker call in one
+batch), with their outputs and the SNR cache after each. ``update-time`` runs the updates of
+the tree on ``PYTHONPATH`` over them: the count of outputs (x, P, log-evidence, the selection,
+residuals, the SNR cache) that differ from the captured ones in any bit, a sha256 of them, and
+the CPU (best of ``--reps`` passes; ``time.process_time``) split into its kernels (timers
+around them, looked up by name in ``diffpos.tracking.model``, ``diffpos.tracking.links`` and
+``diffpos.channel.emulator``; a tree without one shows none) and the rest (Python, numpy).
+Capture with the before tree, then time both trees alternately: 0 differing outputs and
+equal digests = bit-identical updates.
+
+Measured 2026-12-06 (issue 37: the compiled SNR term and set-up of the measurement update),
+see docs/performance.md, "The measurement update compiled".
 """
 
 from __future__ import annotations
@@ -150,6 +168,118 @@ def _ranked(total: np.ndarray, keep: int) -> tuple[np.ndarray, np.ndarray]:
     return order, np.take_along_axis(total, order, 2)
 
 
+def capture_updates(recording: str, out: str, n_calls: int) -> int:
+    """Keep the first ``n_calls`` measurement updates of the tracker in a replay (inputs,
+    outputs, the SNR cache after)."""
+    import copy
+
+    from diffpos_services.replay.run import replay
+
+    import diffpos.tracking.tracker as tracker
+
+    kept: list = []
+    orig = tracker.measurement_update
+
+    def mu(*a, **k):
+        if len(kept) >= n_calls:
+            return orig(*a, **k)
+        ins = copy.deepcopy((a, k))
+        res = orig(*a, **k)
+        sc = k.get("snr_cache")
+        after = None if sc is None else (sc.node.copy(), sc.anchor.copy(), sc.pred.copy())
+        kept.append((ins, copy.deepcopy(res), after))
+        return res
+
+    tracker.measurement_update = mu
+    try:
+        replay(recording, use_decisions=False, method="mnls", out_mcap=None,
+               keep_estimates=False)
+    finally:
+        tracker.measurement_update = orig
+    with open(out, "wb") as fh:
+        pickle.dump(kept, fh)
+    return len(kept)
+
+
+def _update_outputs(res, cache) -> list:
+    x, p, ev, sel, r = res
+    out = [x, p, ev, sel.slot, sel.log_weight, sel.nis, sel.extra_var, r]
+    return out + ([] if cache is None else list(cache))
+
+
+_UPDATE_KERNELS = {
+    "diffpos.channel.emulator": ["eval_snr_masked_kernel"],
+    "diffpos.tracking.links": ["all_paths_kernel"],
+    "diffpos.tracking.model": ["iekf_kernel", "select_pack_kernel", "select_best_kernel",
+                               "select_mix_kernel", "snr_plan_kernel", "snr_score_kernel",
+                               "snr_hole_kernel", "update_fixed_kernel", "clamp_kernel",
+                               "cache_plan_kernel", "cache_store_kernel",
+                               "prior_info_kernel"],
+}
+
+
+def time_updates(inputs: str, reps: int) -> tuple[int, int, str, float, int, dict]:
+    """Run the kept updates: (updates, differing outputs, sha256, best CPU [s],
+    hypotheses, CPU per kernel of the best pass)."""
+    import copy
+    import importlib
+    from collections import Counter
+
+    import diffpos.tracking.model as tm
+
+    with open(inputs, "rb") as fh:
+        kept = pickle.load(fh)
+    acc: Counter = Counter()
+    for mod_name, names in _UPDATE_KERNELS.items():
+        mod = importlib.import_module(mod_name)
+        for name in names:
+            if hasattr(mod, name):
+                setattr(mod, name, _timed(getattr(mod, name), name, acc))
+    h = hashlib.sha256()
+    bad = 0
+    for (a, k), ref, after in kept:  # the check (and the first call's compile or cache load)
+        a2, k2 = copy.deepcopy((a, k))
+        res = tm.measurement_update(*a2, **k2)
+        sc = k2.get("snr_cache")
+        got = _update_outputs(res, None if sc is None else (sc.node, sc.anchor, sc.pred))
+        for g, r in zip(got, _update_outputs(ref, after), strict=True):
+            bad += g.shape != r.shape or g.dtype != r.dtype or g.tobytes() != r.tobytes()
+            h.update(np.ascontiguousarray(g).tobytes())
+    best, best_acc = np.inf, {}
+    for _ in range(reps):
+        batch = [copy.deepcopy((a, k)) for (a, k), _, _ in kept]
+        acc.clear()
+        t0 = time.process_time()
+        for a2, k2 in batch:
+            tm.measurement_update(*a2, **k2)
+        cpu = time.process_time() - t0
+        if cpu < best:
+            best, best_acc = cpu, dict(acc)
+    n_hyp = sum(a[0].shape[0] * a[0].shape[1] for (a, _), _, _ in kept)
+    return len(kept), bad, h.hexdigest()[:16], best, n_hyp, best_acc
+
+
+def _timed(f, name: str, acc) -> object:
+    def g(*a, **k):
+        t0 = time.process_time()
+        try:
+            return f(*a, **k)
+        finally:
+            acc[name] += time.process_time() - t0
+    return g
+
+
+def _print_updates(inputs: str, reps: int) -> None:
+    n, bad, dig, cpu, n_hyp, per = time_updates(inputs, reps)
+    print(f"{n} measurement updates, {n_hyp:,} hypotheses: {bad} outputs differ from the "
+          f"captured ones; sha256 {dig}")
+    print(f"CPU (best of {reps}) {cpu:.3f} s, {1e6 * cpu / max(n_hyp, 1):.1f} us per hypothesis")
+    for name, v in sorted(per.items(), key=lambda kv: -kv[1]):
+        print(f"  {name:<24} {v:7.3f} s  {100 * v / cpu:5.1f} %")
+    rest = cpu - sum(per.values())
+    print(f"  {'rest (Python, numpy)':<24} {rest:7.3f} s  {100 * rest / cpu:5.1f} %")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -161,11 +291,27 @@ def main() -> int:
     t = sub.add_parser("time")
     t.add_argument("inputs")
     t.add_argument("--reps", type=int, default=5)
+    uc = sub.add_parser("update-capture")
+    uc.add_argument("recording")
+    uc.add_argument("updates")
+    uc.add_argument("--calls", type=int, default=400, help="updates kept (the first ones)")
+    ut = sub.add_parser("update-time")
+    ut.add_argument("updates")
+    ut.add_argument("--reps", type=int, default=3)
     args = ap.parse_args()
     if args.cmd == "capture":
         print(capture(args.recording, args.inputs, args.skip, args.calls))
         return 0
+    if args.cmd == "update-capture":
+        print(f"{capture_updates(args.recording, args.updates, args.calls)} updates kept")
+        return 0
     import diffpos
+
+    if args.cmd == "update-time":
+        print(f"bench_tracker_kernels: {os.path.dirname(diffpos.__file__)}; machine "
+              f"{platform.machine()} {os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f}")
+        _print_updates(args.updates, args.reps)
+        return 0
 
     print(f"bench_tracker_kernels: {os.path.dirname(diffpos.__file__)}; machine "
           f"{platform.machine()} {os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f}")

@@ -61,7 +61,11 @@ and anchor, compared with the float32 cached anchor (so only where float32 holds
 coordinates exactly, e.g. whole metres without navigation noise; the reused values are then
 rounded, < 1e-5 dB). A ``TrackerConfig`` with both margins 0 does not use the cache at all
 (``tracking_model.measurement_update``): the large and soak replays' estimates are those of the
-exact predictions, bit for bit. The defaults are 0.05 / 0.1 m (on; their measured accuracy
+exact predictions, bit for bit. :func:`measurement_update` scores the term with
+:func:`snr_term`: these functions' values, bit for bit, in three compiled passes
+(:mod:`diffpos.tracking.snr_term_nb`) around the two predictions; the prior-only inputs of
+the update are made by :func:`_update_fixed` (:mod:`diffpos.tracking.update_nb`) likewise.
+The defaults are 0.05 / 0.1 m (on; their measured accuracy
 cost: ``TrackerConfig``). The float32 anchors are compared in the building's frame: their
 rounding (< 1e-4 m below 1 km from the origin) is negligible against the anchor margin.
 """
@@ -101,7 +105,9 @@ from diffpos.tracking.model_nb import (
     select_prep_kernel,
 )
 from diffpos.tracking.snr_nb import cache_plan_kernel, cache_store_kernel
+from diffpos.tracking.snr_term_nb import snr_hole_kernel, snr_plan_kernel, snr_score_kernel
 from diffpos.tracking.state import SNR_CACHE_SLOTS
+from diffpos.tracking.update_nb import clamp_kernel, update_fixed_kernel
 
 FloatArray = NDArray[np.float64]
 
@@ -432,6 +438,68 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     sub = c[n_i, h_i, m_i]
     c[n_i, h_i, m_i] = np.where(hole_p, best, sub)
     return c
+
+
+def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEval,
+             config, cache: SnrCache | None = None) -> FloatArray | None:
+    """``cap_snr_cost(snr_cost_near(pos, links, floor, building, relax_m, pe, cache,
+    reuse_m), config)`` with ``reuse_m`` = ``config``'s margins and the cache used only when
+    :func:`snr_reuse_on`: the measurement update's SNR term, bit for bit, in three compiled
+    passes around the two SNR predictions (:mod:`diffpos.tracking.snr_term_nb`; the numpy
+    functions above are the reference, tests/core/test_snr_term.py). Falls back to them when
+    :data:`HOLE_THRESHOLD_AT_PRIOR` is False."""
+    if links.snr is None:
+        return None
+    use_cache = cache is not None and snr_reuse_on(config)
+    reuse_m = (config.snr_reuse_m, config.snr_reuse_anchor_m)
+    n, h = pos.shape[:2]
+    m = links.rho.shape[-1]
+    if not HOLE_THRESHOLD_AT_PRIOR or n * h * m == 0:
+        return cap_snr_cost(snr_cost_near(pos, links, floor, building, relax_m, pe,
+                                          cache=cache if use_cache else None,
+                                          reuse_m=reuse_m), config)
+    shape = (n, h, m, K_SLOTS)
+    b1 = np.bool_
+    need = _cb(pe.loose | ALWAYS_PREDICTED, shape, b1)
+    anc = _c(links.anchors[:, 0], dtype=np.float64)
+    snr = _c(links.snr[:, 0], dtype=np.float64)
+    if use_cache:
+        c_node, c_anchor, c_pred = cache.node, cache.anchor, cache.pred
+    else:
+        c_node, c_anchor, c_pred = (np.empty((1, 1, 3)), np.empty((1, 1, 1, 3), np.float32),
+                                    np.empty((1, 1, 1, len(_CACHED)), np.float32))
+    near, hit = np.empty((n, h), b1), np.empty((n, h, m), b1)
+    mask, at = np.empty(shape, b1), np.empty((n, h, 3))
+    rows = n * h * m
+    p_anc, p_node, p_need = np.empty((rows, 1, 3)), np.empty((rows, 3)), \
+        np.empty((rows, 1, K_SLOTS), b1)
+    pc = _c(pos, dtype=np.float64)
+    cnt = snr_plan_kernel(pc, anc, snr, need, _cb(pe.strict, shape, b1), use_cache, c_node,
+                          c_anchor, c_pred, float(reuse_m[0]), float(reuse_m[1]), _CACHED,
+                          _IS_CACHED, near, hit, mask, at, p_anc, p_node, p_need)
+    radio = links.radio
+    p_pred = (pair_snr_db(p_anc[:cnt], p_node[:cnt], building=building, radio=radio,
+                          need=p_need[:cnt]) if cnt else np.empty((0, 1, K_SLOTS)))
+    pred, cost, thr = np.empty(shape), np.empty(shape), np.empty((n, h, m))
+    hole_idx = np.empty((rows, 3), np.int64)
+    h_anc, h_node = np.empty((2 * rows, 1, 3)), np.empty((2 * rows, 3))
+    h_need, h_meas, h_thr = np.empty((2 * rows, 1, K_SLOTS), b1), np.empty(2 * rows), \
+        np.empty(2 * rows)
+    sig, fap, det = float(SNR_SIGMA_DB), float(radio.fap_threshold_db), \
+        float(radio.detection_snr_db)
+    q = snr_score_kernel(_c(p_pred, dtype=np.float64), snr, need, mask, _cb(pe.sure, shape, b1),
+                         _cb(pe.loose, shape, b1), near, hit, use_cache, _CACHED, anc, c_anchor,
+                         c_pred, sig, fap, det, pc, _relax(relax_m, (n, h)),
+                         _cb(floor, (n, h), np.float64), float(building.first_floor_z_m),
+                         float(building.floor_height_m), pred, cost, thr, hole_idx, h_anc,
+                         h_node, h_need, h_meas, h_thr)
+    if use_cache:
+        cache.node[...] = at
+    h_pred = (pair_snr_db(h_anc[:2 * q], h_node[:2 * q], building=building, radio=radio,
+                          need=h_need[:2 * q]) if q else np.empty((0, 1, K_SLOTS)))
+    snr_hole_kernel(_c(h_pred, dtype=np.float64), h_need, h_meas, h_thr, hole_idx, q, sig, fap,
+                    det, float(config.snr_cost_cap_nats), cost, np.empty((2 * q, K_SLOTS)))
+    return cost
 
 
 # --------------------------------------------------------------------------------------------
@@ -771,6 +839,55 @@ def _iekf_fixed(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, b
     return head, tail
 
 
+def _floor_box(building, margin_m: float) -> NDArray:
+    """The constants of every floor box (:func:`diffpos.tracking.update_nb._bounds`): the x
+    and y bounds ``margin_m`` inside the walls, the floors' planes and the margin."""
+    x0, x1 = building.edge_x_m
+    return np.array([x0 + margin_m, x1 - margin_m, margin_m, building.depth_m - margin_m,
+                     building.first_floor_z_m, building.floor_height_m, margin_m],
+                    dtype=np.float64)
+
+
+def _update_fixed(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, building,
+                  config, level=None) -> tuple:
+    """Everything of :func:`measurement_update` that depends on the prior only, in one
+    compiled pass (:func:`diffpos.tracking.update_nb.update_fixed_kernel`): the clamped prior
+    ``xc`` (N, H, 3), the nodes it moved (indices), every hypothesis' existence margin (the
+    fixed one at initialisation, ``level`` None), the prior information and
+    :func:`_iekf_fixed` (the values of :func:`clamp_to_floor`, :func:`existence_margin`,
+    :func:`prior_information` and :func:`_iekf_fixed`, bit for bit)."""
+    n, h = x_prior.shape[:2]
+    f8, b1 = np.float64, np.bool_
+    fl = _cb(floor, (n, h), f8)
+    sh = config.height_sigma_m
+    ll_gauss = -np.log(sh) - 0.5 * _LOG2PI
+    ll_any = -np.log(building.floor_height_m)
+    if level is None:
+        w_lvl, w_any = np.log1p(-config.stairs_weight), np.log(config.stairs_weight)
+        lv = np.zeros((1, 1), b1)
+    else:
+        w_lvl = w_any = 0.0
+        lv = _cb(level, (n, h), b1)
+    height = np.array([building.nominal_node_height_m, 1.0 / sh**2, w_lvl + ll_gauss,
+                       w_any + ll_any, sh], dtype=f8)
+    e = np.empty
+    xc, moved, relax = e((n, h, 3)), e(n, b1), e((n, h))
+    y, logdet_y = e((n, h, 6, 6)), e((n, h))
+    lo, hi, z_nom, wh, h_const = e((n, h, 3)), e((n, h, 3)), e((n, h)), e((n, h)), e((n, h))
+    xp = _c(x_prior, dtype=f8)
+    update_fixed_kernel(xp, _c(p_prior, dtype=f8), fl, lv, level is not None,
+                        _floor_box(building, config.z_margin_m),
+                        np.array([config.exist_margin_m, ENTRY_SIGMAS]), height, xc, moved,
+                        relax, y, logdet_y, lo, hi, z_nom, wh, h_const)
+    if not (relax >= 0.0).all():
+        raise ValueError(f"relax_m must be >= 0 [m]; got {relax!r}")
+    head = (xp, y, logdet_y, lo, hi, z_nom, wh, h_const, _c(links.anchors[:, 0], dtype=f8), fl)
+    tail = (_c(links.rho[:, 0], dtype=f8), _c(links.var[:, 0], dtype=f8),
+            _c(links.mask[:, 0]), int(config.gn_iterations),
+            float(1.0 / config.box_sigma_m**2), _LOG2PI, *building_planes(building))
+    return xc, np.flatnonzero(moved), relax, (y, logdet_y), (head, tail)
+
+
 def iekf(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
          building, config, level=None, prior_info=None, fixed: tuple | None = None):
     """Iterated EKF (Gauss-Newton on the MAP cost) of every hypothesis with fixed mechanisms.
@@ -914,24 +1031,18 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     x = x_prior
     # the SNR of every slot at the prior (a path's strength changes little over the fit);
     # the paths at the prior serve the SNR term and the first selection (the same point
-    # unless the prediction left its floor's box)
-    xc = clamp_to_floor(x[..., :3], floor, building, config.z_margin_m)
-    # the nodes with a hypothesis whose prior is outside its floor's box (or not finite)
-    moved = np.flatnonzero(np.any(xc != x[..., :3], axis=(-2, -1)))
-    # the existence margin follows every hypothesis' own height uncertainty (a track on the
+    # unless the prediction left its floor's box): ``xc`` the prior clamped into its box,
+    # ``moved`` the nodes with a hypothesis whose prior is outside it (or not finite).
+    # The existence margin follows every hypothesis' own height uncertainty (a track on the
     # stairs with a loose height does not call a mechanism impossible that exists a few
     # decimetres away); at initialisation (``level`` None) the prior is the grid search's box,
-    # not the uncertainty of a tracked point: the fixed margin there
-    relax = (config.exist_margin_m if level is None
-             else existence_margin(p_prior, config))
+    # not the uncertainty of a tracked point: the fixed margin there. The prior information
+    # and the IEKF's inputs that depend on neither the paths nor the selection are shared by
+    # the passes. All of it in one compiled pass (:func:`_update_fixed`).
+    xc, moved, relax, info, fix_i = _update_fixed(x_prior, p_prior, links, floor, building,
+                                                  config, level)
     pe0 = all_paths(xc, links, floor, building, relax)
-    snr_c = snr_cost_near(xc, links, floor, building, relax, pe0,
-                          cache=snr_cache if snr_reuse_on(config) else None,
-                          reuse_m=(config.snr_reuse_m, config.snr_reuse_anchor_m))
-    snr_c = cap_snr_cost(snr_c, config)
-    info = prior_information(p_prior)  # shared by the passes
-    # and so are the kernels' inputs that do not depend on the paths or the selection
-    fix_i = _iekf_fixed(x_prior, p_prior, links, floor, building, config, level, info)
+    snr_c = snr_term(xc, links, floor, building, relax, pe0, config, snr_cache)
     fix_s = _select_fixed(p_prior[..., :3, :3], links, config, snr_c, *x_prior.shape[:2],
                           link_w)
     p = p_prior
@@ -945,7 +1056,10 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c, fix_s)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
                                  level, info, fix_i)
-    return clamp_to_floor(x, floor, building, config.z_margin_m), p, log_ev, sel, res
+    xo = np.empty(x.shape)
+    clamp_kernel(_c(x, dtype=np.float64), _cb(floor, x.shape[:2], np.float64),
+                 _floor_box(building, config.z_margin_m), xo)  # clamp_to_floor, bit for bit
+    return xo, p, log_ev, sel, res
 
 
 def snapshot(links: Links, floors: NDArray, building, config):
