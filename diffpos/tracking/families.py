@@ -57,51 +57,68 @@ def extra_families(max_order: int) -> tuple[MechanismSet, NDArray[np.int64]] | N
 
 def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
                    var: FloatArray, floor: NDArray, building, max_order: int,
-                   relax_m: float) -> FloatArray:
+                   relax_m: float) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
     """``log mean_k N(rho; L_k, J_k P J_k^T + var)`` over the extra families (``max_order``)
-    that exist (``loose`` at ``relax_m``) for every link (Q,); -inf where none exists. Flat
-    links: ``pos`` (Q, 3), ``cov`` (Q, 3, 3), ``anchor`` (Q, 3), ``rho``, ``var``, ``floor``
-    (Q,)."""
+    that exist (``loose`` at ``relax_m``) for every link (Q,); -inf where none exists; and the
+    number of extra families and of the 18 mechanisms that exist (``loose``) there, (Q,)
+    each. Flat links: ``pos`` (Q, 3), ``cov`` (Q, 3, 3), ``anchor`` (Q, 3), ``rho``, ``var``,
+    ``floor`` (Q,)."""
     fam = extra_families(max_order)
     q = rho.shape[0]
     if fam is None or q == 0:
-        return np.full(q, -np.inf)
-    mset, slots = fam
-    g = graded_paths(pos, anchor, building, relax_m=relax_m, floor=floor, slots=slots,
-                     mechanisms=mset)
+        return np.full(q, -np.inf), np.zeros(q, np.int64), np.zeros(q, np.int64)
+    mset, _ = fam
+    g = graded_paths(pos, anchor, building, relax_m=relax_m, floor=floor, mechanisms=mset)
     ok = g.loose & np.isfinite(g.length_m)
-    j = np.where(ok[..., None], g.jacobian, 0.0)
+    nb = len(MECHANISMS)
+    n_base = ok[:, :nb].sum(axis=-1)
+    ok = ok[:, nb:]
+    j = np.where(ok[..., None], g.jacobian[:, nb:], 0.0)
     s = var[:, None] + np.sum(np.matmul(j, cov) * j, axis=-1)
     with np.errstate(invalid="ignore"):
-        e = rho[:, None] - g.length_m
+        e = rho[:, None] - g.length_m[:, nb:]
         ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)
     n_ok = ok.sum(axis=-1)
     with np.errstate(divide="ignore"):
         top = np.max(ll, axis=-1)
         safe = np.where(np.isfinite(top), top, 0.0)
         tot = safe + np.log(np.sum(np.exp(ll - safe[:, None]), axis=-1))
-        return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf)
+        return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf), n_ok, n_base
 
 
 def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                       floor: NDArray, gate: NDArray[np.bool_], building, config,
                       log_eps: FloatArray | None = None) -> FloatArray:
     """The change (P, M) of the out-of-model component's log-density of the pairs (node rows
-    ``rows`` of ``links``, prior ``pos`` (P, 3), ``cov`` (P, 3, 3), ``floor`` (P,)) when
-    :data:`FAMILY_SHARE` of it is the extra families' mixture: ``log((1 - c) + c span f)``,
-    ``f`` :func:`family_log_lik`'s density (module docstring), for the present links of
-    ``gate`` (P, M) (the others: 0, not evaluated); 0 everywhere for ``max_order`` <= 2."""
+    ``rows`` of ``links``, prior ``pos`` (P, 3), ``cov`` (P, 3, 3), ``floor`` (P,)) by the
+    extra families, for the present links of ``gate`` (P, M) (the others: 0, not evaluated);
+    0 everywhere for ``max_order`` <= 2. ``log_eps`` (P, M): every link's (learned) outlier
+    weight (None: ``outlier_weight``).
+
+    ``config.family_weight`` ``"outlier"`` (before): :data:`FAMILY_SHARE` of the outlier
+    component is the families' mixture at the PRIOR outlier weight, ``log((1 - c) + c span f)``
+    (``f`` :func:`family_log_lik`'s density); ``"mechanism"``: every existing family is one
+    more candidate of the link's inlier component, with a mechanism's prior: the outlier
+    component becomes ``eps / span + (1 - eps) n_fam / (n_18 + n_fam) f`` (``n_fam``,
+    ``n_18``: the families and the 18 mechanisms that exist at the prior), as M-NLS's
+    ``max_order`` treats them (module docstring)."""
     if extra_families(config.max_order) is None:
         return np.zeros(gate.shape)
-    c = FAMILY_SHARE
     gate = gate & links.mask[rows, 0]
     pi, mi = np.nonzero(gate)
-    ll = family_log_lik(pos[pi], cov[pi], links.anchors[rows[pi], 0, mi],
-                        links.rho[rows[pi], 0, mi], links.var[rows[pi], 0, mi], floor[pi],
-                        building, config.max_order, config.exist_margin_m)
+    ll, n_fam, n_base = family_log_lik(pos[pi], cov[pi], links.anchors[rows[pi], 0, mi],
+                                       links.rho[rows[pi], 0, mi], links.var[rows[pi], 0, mi],
+                                       floor[pi], building, config.max_order,
+                                       config.exist_margin_m)
     out = np.zeros(gate.shape)
+    e0 = np.log(config.outlier_weight)
+    log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]
+    span = np.log(config.outlier_span_m)
+    if config.family_weight == "mechanism":
+        prior = np.log(np.maximum(n_fam, 1) / np.maximum(n_base + n_fam, 1))
+        out[pi, mi] = np.logaddexp(0.0, np.log(-np.expm1(log_e)) + prior + ll - log_e + span)
+        return out
+    c = FAMILY_SHARE
     # the families at the prior outlier weight, whatever the link's learned one (log_eps)
-    rel = 0.0 if log_eps is None else np.log(config.outlier_weight) - log_eps[pi, mi]
-    out[pi, mi] = np.logaddexp(np.log1p(-c),
-                               np.log(c) + np.log(config.outlier_span_m) + ll + rel)
+    out[pi, mi] = np.logaddexp(np.log1p(-c), np.log(c) + span + ll + e0 - log_e)
     return out
