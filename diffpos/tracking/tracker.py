@@ -586,7 +586,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         reset_links(lk, np.arange(n), fresh)
         link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                                  SNR_SPAN_DB)
-        if config.max_order > DEFAULT_ORDER:  # the families of the links out of the 18 before
+        if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
             fam_gate = (_gather(lk["link_out"], col) > 0.5 if config.family_gate == "outlier"
                         else ~(_gather(lk["link_fit"], col) <= config.nis_limit))
     todo = run
