@@ -61,7 +61,7 @@ LINK_SLOTS = 16
 _LOG2PI = float(np.log(2.0 * np.pi))
 #: The state's per-hypothesis learned arrays (n, H, L) (:class:`~diffpos.tracking.state.TrackerState`).
 LINK_FIELDS = ("link_out", "link_all", "link_ev", "link_bias", "link_bias_var", "link_snr",
-               "link_t_ns")
+               "link_t_ns", "link_fit")
 
 
 def match_links(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArray,
@@ -219,12 +219,35 @@ def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArra
 
 def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray,
           p: FloatArray, slot: NDArray[np.int_], links, t_ns: NDArray[np.int64],
-          config, ev_link: FloatArray | None = None) -> dict:
+          config, ev_link: FloatArray | None = None, nis: FloatArray | None = None) -> dict:
     """The learned arrays after one update (new arrays): the hypotheses ``run`` (n, H) that had
     a real update, at their posteriors ``x``, ``p``, with their selections ``slot``
     (n, H, M; -1 outlier or absent); module docstring. ``ev_link`` (n, H, M) [nats]: every
     link's share of the hypothesis' log-evidence in this update (its forgotten sum is
-    ``link_ev``, :func:`diffpos.tracking.state.robust_floor_log_prob`); None: 0."""
+    ``link_ev``, :func:`diffpos.tracking.state.robust_floor_log_prob`); None: 0. ``nis``
+    (n, H, M): every link's NIS in this update (NaN: outlier or absent), kept as ``link_fit``
+    (:func:`last_fit`); None: ``link_fit`` unchanged."""
+    new = _learn(lk, col, run, x, p, slot, links, t_ns, config, ev_link)
+    if nis is not None and "link_fit" in new:
+        new["link_fit"] = last_fit(new["link_fit"], col, run, links.mask[:, 0], nis)
+    return new
+
+
+def last_fit(fit: FloatArray, col: NDArray[np.int_], run: NDArray[np.bool_],
+             mask: NDArray[np.bool_], nis: FloatArray) -> FloatArray:
+    """``fit`` (n, H, L) (in place, returned) with every present link of the hypotheses ``run``
+    (n, H) set to its NIS ``nis`` (n, H, M) of this update (inf where NaN: an outlier)."""
+    present = mask[:, None, :] & run[:, :, None] & (col[:, None, :] >= 0)
+    r, c, j = np.nonzero(present)
+    v = nis[r, c, j]
+    fit[r, c, col[r, j]] = np.where(np.isnan(v), np.inf, v)
+    return fit
+
+
+def _learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray,
+           p: FloatArray, slot: NDArray[np.int_], links, t_ns: NDArray[np.int64],
+           config, ev_link: FloatArray | None = None) -> dict:
+    """:func:`learn` but ``link_fit``."""
     if ev_link is None:
         ev_link = np.zeros(slot.shape)
     n, h = run.shape

@@ -231,7 +231,19 @@ class TrackerConfig:
         The first-arrival families of at most this many interactions
         (:func:`diffpos.paths.mechanisms.mechanism_set`) beyond the 18 mechanisms are part of
         every link's out-of-model component (:mod:`diffpos.tracking.families`); 2: none
-        (before).
+        (before 431695e). Default 3 (with ``family_weight="mechanism"``, ``family_gate=
+        "misfit"``; docs/raytrace_study.md section 2c); 4 measured no better on Sionna's paper
+        building (static: 72.85 against 73.13 % right floor) for more CPU.
+    family_weight : {"mechanism", "outlier"}
+        How an extra family explains a link (:func:`diffpos.tracking.families.family_log_weight`):
+        ``"mechanism"``, as one more candidate mechanism (a mechanism's prior, the inlier
+        weight); ``"outlier"`` (before), as half of the out-of-model component at the prior
+        outlier weight.
+    family_gate : {"misfit", "outlier"}
+        The links whose extra families are evaluated: ``"misfit"``, those the hypothesis'
+        last real update called an outlier or fitted with an NIS above ``nis_limit`` (or has
+        not seen: ``TrackerState.link_fit``); ``"outlier"`` (before), those with a forgotten
+        outlier count above 0.5.
     floor_model_doubt : bool
         The published floor probabilities are mixed towards uniform by the probability that
         the node's data hold a first arrival the path model does not explain, by the learned
@@ -298,7 +310,9 @@ class TrackerConfig:
     lost_on_gap: bool = True
     min_anchors_tracking: int = 3
     few_anchors_floor_p_max: float = 0.75
-    max_order: int = 2
+    max_order: int = 3
+    family_weight: str = "mechanism"
+    family_gate: str = "misfit"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
 
@@ -395,6 +409,7 @@ class TrackerState:
     link_bias_var: FloatArray
     link_snr: FloatArray
     link_t_ns: NDArray[np.int64]
+    link_fit: FloatArray
 
 
 @dataclass(frozen=True)

