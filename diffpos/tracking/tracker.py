@@ -168,6 +168,7 @@ from diffpos.tracking.model import (
 )
 from diffpos.tracking.model_nb import warm_model
 from diffpos.tracking.snr_nb import warm_snr_cache
+from diffpos.tracking.snr_term_nb import warm_snr_term
 from diffpos.tracking.state import (
     SNR_CACHE_LINKS,
     SNR_CACHE_SLOTS,
@@ -182,6 +183,7 @@ from diffpos.tracking.state import (
     n_floors_of,
     published_floor_probabilities,
 )
+from diffpos.tracking.update_nb import warm_update
 
 __all__ = ["init_state", "predict", "update", "warm_tracking"]
 
@@ -643,5 +645,7 @@ def warm_tracking() -> float:
     warm_grid(planes, anc)
     warm_iekf(planes, anc)
     warm_snr_cache()
+    warm_snr_term()
+    warm_update()
     warm_evidence()
     return time.perf_counter() - t0
