@@ -18,7 +18,11 @@ the SAME receivers and anchors (the dataset's receivers as static nodes of the s
 
 - over the receivers with at least three detected anchors on that channel (``n>=3`` of them),
 - over ALL receivers (a failed fix, or a receiver with fewer than three detections, is a miss:
-  :func:`diffpos.study.floor_accuracy`).
+  :func:`diffpos.study.floor_accuracy`),
+- and the confidently wrong share (``conf.wrong``): receivers with at least three detected
+  anchors whose M-NLS floor is wrong at a floor probability >= 0.95 (issue 34's honesty bar),
+  from M-NLS's floor posterior on the same inputs (:func:`floor_posterior`: the study's own
+  call repeated, its positions checked equal to the study's).
 
 The default buildings: the paper building (``paper``: the built-in scenario, partitions), its
 open-plan variant (``openplan``: /work/rt/openplan.toml, no partitions) and three random
@@ -43,6 +47,7 @@ from diffpos_services.raytrace.dataset import load_dataset
 from diffpos_services.raytrace.evaluate import dataset_arrivals
 from diffpos_services.scenario_io import scenario_or_default
 
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import NodeSpec, Scenario
 from diffpos.study import ReproduceConfig, floor_accuracy, reproduce
 from diffpos.trajectory import Static
@@ -56,6 +61,8 @@ BUILDINGS: dict[str, tuple[str | None, Path]] = {
        for k in (1, 2, 3)},
 }
 MIN_ANCHORS = 3
+#: A wrong floor published at this probability or more is "confidently wrong".
+CONFIDENT_P = 0.95
 
 
 def same_receivers(scenario: Scenario, nodes_m: np.ndarray) -> Scenario:
@@ -66,16 +73,39 @@ def same_receivers(scenario: Scenario, nodes_m: np.ndarray) -> Scenario:
     return dataclasses.replace(scenario, node_grid=None, nodes=nodes)
 
 
+def floor_posterior(data: Any, scenario: Scenario, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """M-NLS's ``(position_m, floor_probability)`` on a study's first arrivals ``data``: the
+    call :func:`diffpos.study.positioning_study` makes (same inputs and settings)."""
+    mask = np.asarray(data.detected, dtype=bool)
+    anchors = np.asarray(data.anchors_m, dtype=np.float64)
+    a = np.broadcast_to(anchors, (mask.shape[0], *anchors.shape))
+    radio = scenario.radio
+    res = mnls(a, np.where(mask, data.range_m, 0.0), np.where(mask, data.sigma_m, 1.0),
+               mask=mask, building=scenario.building, snr_db=data.snr_db, radio=radio,
+               max_order=order, bandwidth_hz=radio.bandwidth_hz,
+               error_floor_m=radio.range_error_floor_m)
+    return res.position_m, res.floor_probability
+
+
 def floor_shares(positions_m: np.ndarray, truth_m: np.ndarray, detected: np.ndarray,
-                 building: Any, *, min_anchors: int = MIN_ANCHORS) -> dict[str, float | int]:
+                 building: Any, *, min_anchors: int = MIN_ANCHORS,
+                 floor_probability: np.ndarray | None = None) -> dict[str, float | int]:
     """Right-floor shares of one study: ``n`` receivers, ``n_det`` of them with at least
     ``min_anchors`` detected anchors, ``floor_det`` the right floor over those, ``floor_all``
-    over all (a failed fix is a miss)."""
+    over all (a failed fix is a miss); with ``floor_probability`` (N, F), ``conf_wrong``: the
+    share of those ``n_det`` whose floor is wrong at probability >= :data:`CONFIDENT_P`."""
     ok = np.asarray(detected, dtype=bool).sum(axis=1) >= min_anchors
     pos, tru = np.asarray(positions_m, float), np.asarray(truth_m, float)
-    return {"n": len(tru), "n_det": int(ok.sum()),
-            "floor_det": floor_accuracy(pos[ok], tru[ok], building) if ok.any() else float("nan"),
-            "floor_all": floor_accuracy(pos, tru, building)}
+    out = {"n": len(tru), "n_det": int(ok.sum()),
+           "floor_det": floor_accuracy(pos[ok], tru[ok], building) if ok.any() else float("nan"),
+           "floor_all": floor_accuracy(pos, tru, building), "conf_wrong": float("nan")}
+    if floor_probability is not None and ok.any():
+        fp = np.nan_to_num(np.asarray(floor_probability, float)[ok])
+        est = np.argmax(fp, axis=1)
+        has = np.isfinite(pos[ok, 2])
+        wrong = has & (est != building.floor_index(tru[ok, 2]))
+        out["conf_wrong"] = float(np.mean(wrong & (fp[np.arange(len(est)), est] >= CONFIDENT_P)))
+    return out
 
 
 def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0
@@ -88,8 +118,12 @@ def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0
     em_scenario = same_receivers(scenario, rt.data.nodes_m)
     em = reproduce(em_scenario, cfg)
     for name, res in (("raytrace", rt), ("emulator", em)):
+        pos, prob = floor_posterior(res.data, scenario, order)
+        if not np.array_equal(pos, res.study.positions_m["mnls"], equal_nan=True):
+            raise RuntimeError(f"{name}: floor_posterior's positions differ from the study's "
+                               "(its M-NLS call no longer matches positioning_study's)")
         out[name] = floor_shares(res.study.positions_m["mnls"], res.data.nodes_m,
-                                 res.data.detected, scenario.building)
+                                 res.data.detected, scenario.building, floor_probability=prob)
     return out
 
 
@@ -99,14 +133,15 @@ def _pct(v: float) -> str:
 
 def table(rows: list[tuple[str, int, dict[str, dict[str, float | int]]]]) -> str:
     head = (f"{'building':10s} {'K':>2s} | {'RT n>=3':>8s} {'RT floor>=3':>12s} "
-            f"{'RT floor all':>13s} | {'emu n>=3':>8s} {'emu floor>=3':>13s} "
-            f"{'emu floor all':>14s}")
+            f"{'RT floor all':>13s} {'RT conf.wrong':>13s} | {'emu n>=3':>8s} "
+            f"{'emu floor>=3':>13s} {'emu floor all':>14s} {'emu conf.wrong':>14s}")
     lines = [head, "-" * len(head)]
     for name, k, r in rows:
         a, e = r["raytrace"], r["emulator"]
         lines.append(f"{name:10s} {k:2d} | {a['n_det']:4d}/{a['n']:<3d} {_pct(a['floor_det']):>12s} "
-                     f"{_pct(a['floor_all']):>13s} | {e['n_det']:4d}/{e['n']:<3d} "
-                     f"{_pct(e['floor_det']):>13s} {_pct(e['floor_all']):>14s}")
+                     f"{_pct(a['floor_all']):>13s} {_pct(a['conf_wrong']):>13s} | "
+                     f"{e['n_det']:4d}/{e['n']:<3d} {_pct(e['floor_det']):>13s} "
+                     f"{_pct(e['floor_all']):>14s} {_pct(e['conf_wrong']):>14s}")
     return "\n".join(lines)
 
 
@@ -152,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
           f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "
           f"receivers with >= {MIN_ANCHORS} detected anchors on that channel / all; floor>=3 over "
-          f"those, floor all over ALL receivers (a failed fix is a miss)")
+          f"those, floor all over ALL receivers (a failed fix is a miss); conf.wrong = wrong floor at "
+          f"p >= {CONFIDENT_P} over the n>=3 receivers")
     print(f"command: python benchmarks/study_raytrace.py {' '.join(argv or sys.argv[1:])}")
     print(f"date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; machine: {machine()}; "
           f"wall {time.perf_counter() - t0:.0f} s\n")

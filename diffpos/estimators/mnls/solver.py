@@ -102,7 +102,12 @@ from diffpos.estimators.mnls.starts import (
 from diffpos.estimators.result import prepare_batch
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, mechanism_set
 from diffpos.paths.model import first_arrival_paths
-from diffpos.paths.model_nb import DEFAULT_TABLE, building_planes, mechanism_table
+from diffpos.paths.model_nb import (
+    DEFAULT_TABLE,
+    building_planes,
+    mechanism_table,
+    partition_array,
+)
 
 __all__ = [
     "mnls",
@@ -255,7 +260,8 @@ def _family_snr(p: _Problem, x: FloatArray, building) -> FloatArray:
     fl = p.floor[rows]
     ps = first_arrival_paths(xm, a, building, floor=fl, slots=extra, mechanisms=p.mech)
     lo, hi = building.window_z_m(fl)
-    out[rows, links] = family_snr_db(ps, p.mech, extra, a, xm, building, p.radio, (hi, lo))
+    out[rows, links] = family_snr_db(ps, p.mech, extra, a, xm, building, p.radio, (hi, lo),
+                                     floor=fl)
     return out
 
 
@@ -422,7 +428,7 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
                _c(np.broadcast_to(p.tail_a, p.r.shape)), _c(p.excess_db), _c(p.floor),
                _c(p.lo), _c(p.hi), _c(p.z_mid))
     consts = (float(p.prior_var), float(p.lam), float(p.wavelength_m), float(SNR_MARGIN_DB),
-              np.array(building_planes(building)), _table(p.mech))
+              np.array(building_planes(building)), _table(p.mech), partition_array(building))
     allowed = e3.astype(bool) if p.allowed is None else _c(p.allowed, bool)
     done = 0
     while done < iters and live.any():
@@ -561,8 +567,11 @@ def mnls(
         The path model's mechanisms (:func:`diffpos.paths.mechanisms.mechanism_set`): 2 (the
         default) the 18 of :data:`diffpos.paths.mechanisms.MECHANISMS`; 3 or 4 adds the
         higher-order families (slab image series, ground bounce before the diffraction, wall
-        reflections), whose SNR term is :mod:`diffpos.estimators.mnls.power`'s estimate.
-        ``MnlsResult.mechanism`` then indexes ``mechanism_set(max_order).labels``.
+        reflections; on a building with interior partitions also the partition-reflection
+        families, ``mechanism_set(max_order, partitions=True)``), whose SNR term is
+        :mod:`diffpos.estimators.mnls.power`'s estimate.
+        ``MnlsResult.mechanism`` then indexes ``mechanism_set(max_order, partitions=bool(
+        building.partitions)).labels``.
 
     Returns
     -------
@@ -582,7 +591,8 @@ def mnls(
     snr_all = None if snr_db is None else np.broadcast_to(
         np.asarray(snr_db, dtype=np.float64), (bsz, m))
     wavelength = SPEED_OF_LIGHT_M_S / (28e9 if radio is None else radio.frequency_hz)
-    mech = None if max_order <= DEFAULT_ORDER else mechanism_set(max_order)
+    mech = None if max_order <= DEFAULT_ORDER else mechanism_set(
+        max_order, partitions=bool(building.partitions))
     out = {
         "position_m": np.full((bsz, 3), np.nan), "covariance_m2": np.full((bsz, 3, 3), np.nan),
         "residuals_m": np.full((bsz, m), np.nan), "used": np.zeros((bsz, m), dtype=bool),

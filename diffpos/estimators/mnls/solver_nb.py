@@ -12,8 +12,8 @@ in :mod:`diffpos.estimators.mnls.solver` and is what the tests compare against
 
 :func:`lm_kernel` is M-NLS's Levenberg-Marquardt (``mnls._lm``; the SNR terms held: the
 caller refreshes them between calls every ``SNR_EVERY`` steps) for every row in one loop:
-the path model per row and slot (:func:`diffpos.paths.model_nb.family_path` on the mechanism
-table, the operations of ``paths_kernel``), the
+the path model per row and slot (:func:`diffpos.paths.model_nb.family_path_parts` on the
+mechanism table and the building's partitions, the operations of ``paths_kernel``), the
 link choice above, the cost summed in numpy's order (pairwise over >= 8 links), the damped
 3x3 normal equations in einsum's order solved by LAPACK's ``gesv`` (numba's
 ``np.linalg.solve``: bitwise numpy's on the tested matrices), the box clamp, acceptance, the
@@ -23,7 +23,7 @@ path in :mod:`diffpos.estimators.mnls.solver` (``mnls(..., kernel=False)``; test
 
 Fixed compiled signatures (:data:`SIGNATURE`, :data:`LM_SIGNATURE`, C-contiguous inputs);
 ``cache=True``. numba's cache is keyed by this file only: :func:`lm_kernel` compiles
-:func:`diffpos.paths.model_nb.family_path` into itself, so a change of ``paths/model_nb.py``
+:func:`diffpos.paths.model_nb.family_path_parts` into itself, so a change of ``paths/model_nb.py``
 changes the ``CALLEES_SHA256`` stamp below (tests/core/test_kernel_stamps.py), which
 invalidates the stale cache.
 Compile from an empty cache: ~12 s CPU (2-core VM, 2026-11-27).
@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit, types
 
 from diffpos._kernels.npsum_nb import pairwise_sum as _pairwise_sum
-from diffpos.paths.model_nb import edge_axis, family_path, row_planes
+from diffpos.paths.model_nb import edge_axis, family_path_parts, row_planes
 
 __all__ = ["LM_SIGNATURE", "SIGNATURE", "link_choice", "link_terms_kernel", "lm_kernel"]
 
@@ -75,6 +75,7 @@ LM_SIGNATURE = types.void(
     types.float64, types.float64, types.float64, types.float64,  # prior var, lam, wl, margin
     _f8_1d,  # building planes (first z, H, sill, window h, x0, x1, depth)
     _i8_2d,  # mechanism table (K, C) (diffpos.paths.model_nb.mechanism_table)
+    _f8_2d,  # partitions (Q, 4) (diffpos.paths.model_nb.partition_array)
     _f8_3d, _b1_3d, _b1_3d,  # snr_cost, strong, allowed (N, M, K) or (0, 0, 0)
     _b1_1d, _b1_1d, _i8_2d,  # specular slots, diffraction slots, same-edge pairs
     types.int64, types.float64,  # LM steps, convergence step [m]
@@ -179,9 +180,9 @@ def link_terms_kernel(length, valid, jac_all, dev, outm, r, sig, mask, tail_a, e
 
 @njit(**_OPTS)
 def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mid, prior_var,
-               lam, wavelength, margin_db, planes, table, edge, snr_cost, has_snr, strong, has_strong,
-               allowed, has_allowed, spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev, buf_out, cand,
-               gauss, tail, no_f, no_b, link_cost, h, g):
+               lam, wavelength, margin_db, planes, table, parts, edge, snr_cost, has_snr, strong,
+               has_strong, allowed, has_allowed, spec, diff, same_edge, buf_len, buf_valid,
+               buf_jac, buf_dev, buf_out, cand, gauss, tail, no_f, no_b, link_cost, h, g):
     """Cost of row ``i`` at ``(x0, x1, x2)`` (``mnls._link_terms``: links + floor prior) and
     its normal equations ``h`` (3, 3), ``g`` (3,) without the prior (``mnls._lm``'s einsums);
     returns ``(cost, links evaluated)``."""
@@ -200,9 +201,9 @@ def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mi
         n_eval += 1
         a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
         for s in range(table.shape[0]):
-            ln, ok, j0, j1, j2, dv, om, _ = family_path(table, s, a0, a1, a2, x0, x1, x2, zf,
-                                                        zc, wlo, whi, ex0, ex1, depth, edge,
-                                                        False, True)
+            ln, ok, j0, j1, j2, dv, om, _ = family_path_parts(
+                table, s, a0, a1, a2, x0, x1, x2, zf, zc, wlo, whi, ex0, ex1, depth, edge,
+                False, True, parts)
             buf_len[s] = ln
             buf_valid[s] = ok
             buf_jac[s, 0] = j0
@@ -268,8 +269,8 @@ def _trial_point(i, xo0, xo1, xo2, h, g, dmp, z_mid, prior_var, lo, hi, eye, hd,
 
 @njit(LM_SIGNATURE, **_OPTS)
 def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior_var, lam,
-              wavelength, margin_db, planes, table, snr_cost, strong, allowed, spec, diff, same_edge,
-              iters, conv_m, x, damp, live, cost_out, evals_out):
+              wavelength, margin_db, planes, table, parts, snr_cost, strong, allowed, spec, diff,
+              same_edge, iters, conv_m, x, damp, live, cost_out, evals_out):
     """``iters`` projected LM steps of ``mnls._lm`` (SNR terms held) from ``x`` for every
     ``live`` row: ``x``, the damping ``damp`` and ``live`` (False once converged or the
     damping reaches 1e6) are updated in place; ``cost_out``: the cost at the returned point,
@@ -308,8 +309,8 @@ def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior
         xc0, xc1, xc2 = x[i, 0], x[i, 1], x[i, 2]
         cost, ne = _row_terms(i, xc0, xc1, xc2, anchors, r, sig, mask, tail_a, excess, floor,
                               z_mid, prior_var, lam, wavelength, margin_db, planes, table,
-                              edge, snr_cost, has_snr, strong, has_strong, allowed, has_allowed,
-                              spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev,
+                              parts, edge, snr_cost, has_snr, strong, has_strong, allowed,
+                              has_allowed, spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev,
                               buf_out, cand, gauss, tail, no_f, no_b, link_cost, h, g)
         evals = ne
         dmp = damp[i]
@@ -319,8 +320,8 @@ def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior
                          step, xn)
             c_new, ne = _row_terms(i, xn[0], xn[1], xn[2], anchors, r, sig, mask, tail_a,
                                    excess, floor, z_mid, prior_var, lam, wavelength,
-                                   margin_db, planes, table, edge, snr_cost, has_snr, strong,
-                                   has_strong, allowed, has_allowed, spec, diff, same_edge,
+                                   margin_db, planes, table, parts, edge, snr_cost, has_snr,
+                                   strong, has_strong, allowed, has_allowed, spec, diff, same_edge,
                                    buf_len, buf_valid, buf_jac, buf_dev, buf_out, cand, gauss,
                                    tail, no_f, no_b, link_cost, h_new, g_new)
             evals += ne
