@@ -3,6 +3,7 @@
     python benchmarks/study_raytrace.py                      # the default buildings below
     python benchmarks/study_raytrace.py --orders 2 4 --only paper heldout-1
     python benchmarks/study_raytrace.py --building NAME=SCENARIO.toml:DATASET.npz ...
+    python benchmarks/study_raytrace.py --misses --orders 3 --only paper   # the misses, per link
 
 For every building (a scenario and a dataset of ``diffpos raytrace SCEN --receivers 200
 --samples 1000000 --max-depth 4``) and every M-NLS mechanism order K (``--orders``, default 2 3
@@ -21,14 +22,22 @@ the SAME receivers and anchors (the dataset's receivers as static nodes of the s
   :func:`diffpos.study.floor_accuracy`),
 - and the confidently wrong share (``conf.wrong``): receivers with at least three detected
   anchors whose M-NLS floor is wrong at a floor probability >= 0.95 (issue 34's honesty bar),
-  from M-NLS's floor posterior on the same inputs (:func:`floor_posterior`: the study's own
-  call repeated, its positions checked equal to the study's).
+  from M-NLS's floor posterior on the same inputs (:func:`mnls_fixes`: the study's own call
+  repeated, its positions checked equal to the study's).
 
 The default buildings: the paper building (``paper``: the built-in scenario, partitions), its
 open-plan variant (``openplan``: /work/rt/openplan.toml, no partitions) and three random
 held-out buildings with partitions (``heldout-1..3``: ``python benchmarks/heldout.py
 --write-scenarios /work/rt --count 3 --seed 3``, traced as above into
 /work/rt/heldout-K.npz). Figures, command, date and machine: docs/raytrace_study.md.
+
+``--misses`` (Sionna's channel only): per building and K, the receivers with at least three
+detected anchors split by their links' traced first arrivals (the ray tracer's classifier,
+:func:`diffpos_services.raytrace.mechanisms.classify_mechanisms` on
+``mechanism_set(K, partitions=True)``): every link a family of M-NLS's set without the
+partition families / some link a partition family (none else out) / some link out of every
+family; right floor and confidently wrong of each group; then per missed receiver its floor
+posterior and per link the traced chain beside the mechanism M-NLS chose on its answer.
 """
 
 from __future__ import annotations
@@ -73,18 +82,18 @@ def same_receivers(scenario: Scenario, nodes_m: np.ndarray) -> Scenario:
     return dataclasses.replace(scenario, node_grid=None, nodes=nodes)
 
 
-def floor_posterior(data: Any, scenario: Scenario, order: int) -> tuple[np.ndarray, np.ndarray]:
-    """M-NLS's ``(position_m, floor_probability)`` on a study's first arrivals ``data``: the
-    call :func:`diffpos.study.positioning_study` makes (same inputs and settings)."""
+def mnls_fixes(data: Any, scenario: Scenario, order: int) -> Any:
+    """M-NLS's fixes (:class:`~diffpos.estimators.mnls.result.MnlsResult`) on a study's first
+    arrivals ``data``: the call :func:`diffpos.study.positioning_study` makes (same inputs and
+    settings)."""
     mask = np.asarray(data.detected, dtype=bool)
     anchors = np.asarray(data.anchors_m, dtype=np.float64)
     a = np.broadcast_to(anchors, (mask.shape[0], *anchors.shape))
     radio = scenario.radio
-    res = mnls(a, np.where(mask, data.range_m, 0.0), np.where(mask, data.sigma_m, 1.0),
-               mask=mask, building=scenario.building, snr_db=data.snr_db, radio=radio,
-               max_order=order, bandwidth_hz=radio.bandwidth_hz,
-               error_floor_m=radio.range_error_floor_m)
-    return res.position_m, res.floor_probability
+    return mnls(a, np.where(mask, data.range_m, 0.0), np.where(mask, data.sigma_m, 1.0),
+                mask=mask, building=scenario.building, snr_db=data.snr_db, radio=radio,
+                max_order=order, bandwidth_hz=radio.bandwidth_hz,
+                error_floor_m=radio.range_error_floor_m)
 
 
 def floor_shares(positions_m: np.ndarray, truth_m: np.ndarray, detected: np.ndarray,
@@ -118,13 +127,74 @@ def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0
     em_scenario = same_receivers(scenario, rt.data.nodes_m)
     em = reproduce(em_scenario, cfg)
     for name, res in (("raytrace", rt), ("emulator", em)):
-        pos, prob = floor_posterior(res.data, scenario, order)
-        if not np.array_equal(pos, res.study.positions_m["mnls"], equal_nan=True):
-            raise RuntimeError(f"{name}: floor_posterior's positions differ from the study's "
+        fix = mnls_fixes(res.data, scenario, order)
+        if not np.array_equal(fix.position_m, res.study.positions_m["mnls"], equal_nan=True):
+            raise RuntimeError(f"{name}: mnls_fixes's positions differ from the study's "
                                "(its M-NLS call no longer matches positioning_study's)")
         out[name] = floor_shares(res.study.positions_m["mnls"], res.data.nodes_m,
-                                 res.data.detected, scenario.building, floor_probability=prob)
+                                 res.data.detected, scenario.building,
+                                 floor_probability=fix.floor_probability)
     return out
+
+
+def misses(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
+           per_link: bool = True) -> str:
+    """The ``--misses`` report (module docstring) of M-NLS at ``order`` on Sionna's channel."""
+    from diffpos_services.raytrace.mechanisms import classify_mechanisms
+
+    from diffpos.paths.mechanisms import mechanism_set
+    from diffpos.study import study_rngs
+
+    ds = load_dataset(dataset, scenario=scenario)
+    data = dataset_arrivals(dataset, scenario, rng=study_rngs(seed)[1]).data
+    fa_slot = dataset_first_arrival_slot(dataset, scenario, seed)  # the same draw
+    plain, full = mechanism_set(order), mechanism_set(order, partitions=True)
+    cl = classify_mechanisms(ds, full)
+    code = np.take_along_axis(cl.code, fa_slot[..., None], -1)[..., 0]
+    label = np.take_along_axis(cl.label, fa_slot[..., None], -1)[..., 0]
+    det = np.asarray(data.detected, dtype=bool)
+    part = det & (code >= len(plain))
+    out = det & ((code < 0) | (code >= len(full)))
+    res = mnls_fixes(data, scenario, order)
+    pos, prob = res.position_m, res.floor_probability
+    b = scenario.building
+    truth = b.floor_index(np.asarray(data.nodes_m)[:, 2])
+    est = np.argmax(np.nan_to_num(prob), axis=1)
+    right = np.isfinite(pos[:, 2]) & (est == truth)
+    conf = np.nan_to_num(prob)[np.arange(len(est)), est] >= CONFIDENT_P
+    ok3 = det.sum(axis=1) >= MIN_ANCHORS
+    groups = {"every link in the K families": ok3 & ~part.any(1) & ~out.any(1),
+              "a partition family (no other out)": ok3 & part.any(1) & ~out.any(1),
+              "a link out of every family": ok3 & out.any(1)}
+    lines = [f"K = {order}: {ok3.sum()} receivers with >= {MIN_ANCHORS} anchors, right "
+             f"{np.sum(right & ok3)}, confidently wrong {np.sum(~right & conf & ok3)}"]
+    for name, g in groups.items():
+        lines.append(f"  {name}: {g.sum()} receivers, right {np.sum(right & g)}, "
+                     f"confidently wrong {np.sum(~right & conf & g)}")
+    if not per_link:
+        return "\n".join(lines)
+    mech = mechanism_set(order, partitions=bool(b.partitions))
+    for i in np.flatnonzero(ok3 & ~right):
+        lines.append(f"  receiver {i}: floor {truth[i]}, M-NLS {est[i]}, p = "
+                     f"{np.array2string(np.nan_to_num(prob[i]), precision=2)}")
+        for j in np.flatnonzero(det[i]):
+            s = res.mechanism[i, j]
+            kind = "in" if not (part[i, j] or out[i, j]) else ("partition" if part[i, j] else "OUT")
+            lines.append(f"    link {j}: traced {label[i, j]:<44s} {kind:9s} M-NLS "
+                         f"{mech.labels[s] if s >= 0 else '-':<40s} "
+                         f"{'excluded' if res.excluded[i, j] else ''}")
+    return "\n".join(lines)
+
+
+def dataset_first_arrival_slot(dataset: Path, scenario: Scenario, seed: int) -> np.ndarray:
+    """The traced path index of every link's detected first arrival (the study's draw)."""
+    from diffpos_services.raytrace.evaluate import dataset_first_arrival
+
+    from diffpos.study import study_rngs
+
+    ds = load_dataset(dataset, scenario=scenario)
+    fa = dataset_first_arrival(ds, radio=scenario.radio, rng=study_rngs(seed)[1])
+    return np.maximum(fa.slot, 0)
 
 
 def _pct(v: float) -> str:
@@ -169,12 +239,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--building", action="append", metavar="NAME=SCENARIO.toml:DATASET.npz",
                     help="another building (SCENARIO 'paper' = the built-in one); repeatable")
     ap.add_argument("--seed", type=int, default=0, help="range-noise seed (default 0)")
+    ap.add_argument("--misses", action="store_true",
+                    help="the misses on Sionna's channel per traced first-arrival family")
+    ap.add_argument("--summary", action="store_true",
+                    help="with --misses: the groups only, not every missed receiver's links")
     args = ap.parse_args(argv)
     buildings = _buildings(args.building, args.only)
     missing = [str(ds) for _, ds in buildings.values() if not ds.is_file()]
     if missing:
         sys.exit(f"missing dataset(s): {', '.join(missing)} (trace them with diffpos raytrace; "
                  "or leave them out with --only)")
+    if args.misses:
+        for name, (scen, ds) in buildings.items():
+            for k in args.orders:
+                print(f"# {name}, {ds}")
+                print(misses(scenario_or_default(scen), ds, k, seed=args.seed,
+                             per_link=not args.summary), flush=True)
+        return 0
     rows, t0 = [], time.perf_counter()
     for name, (scen, ds) in buildings.items():
         scenario = scenario_or_default(scen)

@@ -45,15 +45,15 @@ def test_cap_is_the_outlier_likelihood_ratio():
     """exp(-cap) = [eps / D] / [(1 - eps) N(0; 0, sigma^2)]: the outlier component's density
     (prior eps, uniform over the extent D) over the Gaussian core's at its peak."""
     b = default_scenario().building
-    sig = np.array([[0.05, 0.2, 0.05, 0.05]])
+    sig = np.array([[0.05, 0.2, 0.05, 0.05, 0.1]])
     eps = _prob.OUTLIER_PRIOR
     d = np.linalg.norm([b.width_m, b.depth_m, b.n_floors * b.floor_height_m])
     want = -np.log((eps / d) / ((1 - eps) * stats.norm.pdf(0.0, scale=sig)))
     got = _prob._outlier_cap(sig, np.ones(sig.shape, bool), b)
     np.testing.assert_allclose(got, want, rtol=1e-12)
     assert 9.5 < got[0, 0] < 10.1  # docs/raytrace_study.md 1c: 9.8 nats (paper, 5 cm)
-    three = _prob._outlier_cap(sig, np.array([[True, True, True, False]]), b)
-    assert np.isinf(three).all()  # fewer than CAP_MIN_LINKS links: no cap
+    four = _prob._outlier_cap(sig, np.array([[True, True, True, False, True]]), b)
+    assert np.isinf(four).all()  # fewer than CAP_MIN_LINKS links: no cap
 
 
 def test_link_terms_kernel_matches_numpy_reference_with_capped_links():

@@ -18,9 +18,12 @@ FloatArray = NDArray[np.float64]
 #: Prior share of links whose first arrival is outside the path model (module docstring).
 OUTLIER_PRIOR = 0.02
 #: A link's cost is capped at the out-of-model cost only in a fix with at least this many
-#: links (one link out of the model still leaves three for the position; with three, nothing
-#: outvotes it).
-CAP_MIN_LINKS = 4
+#: links: the links left must over-determine the position (3 unknowns + 1 check) for one link
+#: to be outvoted. With four, any three links fit some mechanism exactly on every floor, so
+#: every floor would cost at most the cap: measured on Sionna's paper building (4 anchors,
+#: K = 3) the right floor fell from 86.4 to 80.7 % and the confidently wrong doubled
+#: (docs/raytrace_study.md, 1d).
+CAP_MIN_LINKS = 5
 
 
 @dataclass

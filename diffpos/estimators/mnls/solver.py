@@ -49,14 +49,14 @@ stated otherwise):
   an unresolved path delays the detected peak by up to one resolution cell). Links that end
   in the tail component are reported as excluded (RAIM).
 * **One link out of the model** (any first arrival the families do not have: a shorter or a
-  far longer range than every candidate). In a fix with at least four links
+  far longer range than every candidate). In a fix with at least five links
   (:data:`diffpos.estimators.mnls.problem.CAP_MIN_LINKS`), the link whose cost exceeds it the
   most (at most one per fix) is capped at the cost of an out-of-model link, the outlier prior ``eps`` times a range uniform over the
   building's extent ``D`` (diagonal of width x depth x all floors): ``C_out = log((1 - eps) /
   eps) + log(D / (sigma sqrt(2 pi)))`` (9.8 nats on the paper building at 5 cm); a capped link
   has no weight and is reported as excluded. The search, the refinement and the floor scores
   share this one objective (inside the compiled link terms and LM as in the numpy reference).
-  With three links nothing can outvote a link: no cap.
+  With three or four links the others cannot outvote a link (any three fit exactly): no cap.
 * **Noise.** ``sigma_j = max(sigmas_m, error_floor_m)``: the caller's ranging sigma (the
   emulator's is ``sqrt(CRLB^2 + floor^2)``), never below the chain's error floor.
 * **z observability and the floor prior.** With the physical edges an edge path fixes only x
