@@ -3,6 +3,7 @@
     python benchmarks/study_raytrace.py                      # the default buildings below
     python benchmarks/study_raytrace.py --orders 2 4 --only paper heldout-1
     python benchmarks/study_raytrace.py --building NAME=SCENARIO.toml:DATASET.npz ...
+    python benchmarks/study_raytrace.py --misses --orders 3 --only paper   # the misses, per link
 
 For every building (a scenario and a dataset of ``diffpos raytrace SCEN --receivers 200
 --samples 1000000 --max-depth 4``) and every M-NLS mechanism order K (``--orders``, default 2 3
@@ -18,13 +19,25 @@ the SAME receivers and anchors (the dataset's receivers as static nodes of the s
 
 - over the receivers with at least three detected anchors on that channel (``n>=3`` of them),
 - over ALL receivers (a failed fix, or a receiver with fewer than three detections, is a miss:
-  :func:`diffpos.study.floor_accuracy`).
+  :func:`diffpos.study.floor_accuracy`),
+- and the confidently wrong share (``conf.wrong``): receivers with at least three detected
+  anchors whose M-NLS floor is wrong at a floor probability >= 0.95 (issue 34's honesty bar),
+  from M-NLS's floor posterior on the same inputs (:func:`mnls_fixes`: the study's own call
+  repeated, its positions checked equal to the study's).
 
 The default buildings: the paper building (``paper``: the built-in scenario, partitions), its
 open-plan variant (``openplan``: /work/rt/openplan.toml, no partitions) and three random
 held-out buildings with partitions (``heldout-1..3``: ``python benchmarks/heldout.py
 --write-scenarios /work/rt --count 3 --seed 3``, traced as above into
 /work/rt/heldout-K.npz). Figures, command, date and machine: docs/raytrace_study.md.
+
+``--misses`` (Sionna's channel only): per building and K, the receivers with at least three
+detected anchors split by their links' traced first arrivals (the ray tracer's classifier,
+:func:`diffpos_services.raytrace.mechanisms.classify_mechanisms` on
+``mechanism_set(K, partitions=True)``): every link a family of M-NLS's set without the
+partition families / some link a partition family (none else out) / some link out of every
+family; right floor and confidently wrong of each group; then per missed receiver its floor
+posterior and per link the traced chain beside the mechanism M-NLS chose on its answer.
 """
 
 from __future__ import annotations
@@ -43,6 +56,7 @@ from diffpos_services.raytrace.dataset import load_dataset
 from diffpos_services.raytrace.evaluate import dataset_arrivals
 from diffpos_services.scenario_io import scenario_or_default
 
+from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import NodeSpec, Scenario
 from diffpos.study import ReproduceConfig, floor_accuracy, reproduce
 from diffpos.trajectory import Static
@@ -56,6 +70,8 @@ BUILDINGS: dict[str, tuple[str | None, Path]] = {
        for k in (1, 2, 3)},
 }
 MIN_ANCHORS = 3
+#: A wrong floor published at this probability or more is "confidently wrong".
+CONFIDENT_P = 0.95
 
 
 def same_receivers(scenario: Scenario, nodes_m: np.ndarray) -> Scenario:
@@ -66,16 +82,39 @@ def same_receivers(scenario: Scenario, nodes_m: np.ndarray) -> Scenario:
     return dataclasses.replace(scenario, node_grid=None, nodes=nodes)
 
 
+def mnls_fixes(data: Any, scenario: Scenario, order: int) -> Any:
+    """M-NLS's fixes (:class:`~diffpos.estimators.mnls.result.MnlsResult`) on a study's first
+    arrivals ``data``: the call :func:`diffpos.study.positioning_study` makes (same inputs and
+    settings)."""
+    mask = np.asarray(data.detected, dtype=bool)
+    anchors = np.asarray(data.anchors_m, dtype=np.float64)
+    a = np.broadcast_to(anchors, (mask.shape[0], *anchors.shape))
+    radio = scenario.radio
+    return mnls(a, np.where(mask, data.range_m, 0.0), np.where(mask, data.sigma_m, 1.0),
+                mask=mask, building=scenario.building, snr_db=data.snr_db, radio=radio,
+                max_order=order, bandwidth_hz=radio.bandwidth_hz,
+                error_floor_m=radio.range_error_floor_m)
+
+
 def floor_shares(positions_m: np.ndarray, truth_m: np.ndarray, detected: np.ndarray,
-                 building: Any, *, min_anchors: int = MIN_ANCHORS) -> dict[str, float | int]:
+                 building: Any, *, min_anchors: int = MIN_ANCHORS,
+                 floor_probability: np.ndarray | None = None) -> dict[str, float | int]:
     """Right-floor shares of one study: ``n`` receivers, ``n_det`` of them with at least
     ``min_anchors`` detected anchors, ``floor_det`` the right floor over those, ``floor_all``
-    over all (a failed fix is a miss)."""
+    over all (a failed fix is a miss); with ``floor_probability`` (N, F), ``conf_wrong``: the
+    share of those ``n_det`` whose floor is wrong at probability >= :data:`CONFIDENT_P`."""
     ok = np.asarray(detected, dtype=bool).sum(axis=1) >= min_anchors
     pos, tru = np.asarray(positions_m, float), np.asarray(truth_m, float)
-    return {"n": len(tru), "n_det": int(ok.sum()),
-            "floor_det": floor_accuracy(pos[ok], tru[ok], building) if ok.any() else float("nan"),
-            "floor_all": floor_accuracy(pos, tru, building)}
+    out = {"n": len(tru), "n_det": int(ok.sum()),
+           "floor_det": floor_accuracy(pos[ok], tru[ok], building) if ok.any() else float("nan"),
+           "floor_all": floor_accuracy(pos, tru, building), "conf_wrong": float("nan")}
+    if floor_probability is not None and ok.any():
+        fp = np.nan_to_num(np.asarray(floor_probability, float)[ok])
+        est = np.argmax(fp, axis=1)
+        has = np.isfinite(pos[ok, 2])
+        wrong = has & (est != building.floor_index(tru[ok, 2]))
+        out["conf_wrong"] = float(np.mean(wrong & (fp[np.arange(len(est)), est] >= CONFIDENT_P)))
+    return out
 
 
 def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0
@@ -88,9 +127,74 @@ def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0
     em_scenario = same_receivers(scenario, rt.data.nodes_m)
     em = reproduce(em_scenario, cfg)
     for name, res in (("raytrace", rt), ("emulator", em)):
+        fix = mnls_fixes(res.data, scenario, order)
+        if not np.array_equal(fix.position_m, res.study.positions_m["mnls"], equal_nan=True):
+            raise RuntimeError(f"{name}: mnls_fixes's positions differ from the study's "
+                               "(its M-NLS call no longer matches positioning_study's)")
         out[name] = floor_shares(res.study.positions_m["mnls"], res.data.nodes_m,
-                                 res.data.detected, scenario.building)
+                                 res.data.detected, scenario.building,
+                                 floor_probability=fix.floor_probability)
     return out
+
+
+def misses(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
+           per_link: bool = True) -> str:
+    """The ``--misses`` report (module docstring) of M-NLS at ``order`` on Sionna's channel."""
+    from diffpos_services.raytrace.mechanisms import classify_mechanisms
+
+    from diffpos.paths.mechanisms import mechanism_set
+    from diffpos.study import study_rngs
+
+    ds = load_dataset(dataset, scenario=scenario)
+    data = dataset_arrivals(dataset, scenario, rng=study_rngs(seed)[1]).data
+    fa_slot = dataset_first_arrival_slot(dataset, scenario, seed)  # the same draw
+    plain, full = mechanism_set(order), mechanism_set(order, partitions=True)
+    cl = classify_mechanisms(ds, full)
+    code = np.take_along_axis(cl.code, fa_slot[..., None], -1)[..., 0]
+    label = np.take_along_axis(cl.label, fa_slot[..., None], -1)[..., 0]
+    det = np.asarray(data.detected, dtype=bool)
+    part = det & (code >= len(plain))
+    out = det & ((code < 0) | (code >= len(full)))
+    res = mnls_fixes(data, scenario, order)
+    pos, prob = res.position_m, res.floor_probability
+    b = scenario.building
+    truth = b.floor_index(np.asarray(data.nodes_m)[:, 2])
+    est = np.argmax(np.nan_to_num(prob), axis=1)
+    right = np.isfinite(pos[:, 2]) & (est == truth)
+    conf = np.nan_to_num(prob)[np.arange(len(est)), est] >= CONFIDENT_P
+    ok3 = det.sum(axis=1) >= MIN_ANCHORS
+    groups = {"every link in the K families": ok3 & ~part.any(1) & ~out.any(1),
+              "a partition family (no other out)": ok3 & part.any(1) & ~out.any(1),
+              "a link out of every family": ok3 & out.any(1)}
+    lines = [f"K = {order}: {ok3.sum()} receivers with >= {MIN_ANCHORS} anchors, right "
+             f"{np.sum(right & ok3)}, confidently wrong {np.sum(~right & conf & ok3)}"]
+    for name, g in groups.items():
+        lines.append(f"  {name}: {g.sum()} receivers, right {np.sum(right & g)}, "
+                     f"confidently wrong {np.sum(~right & conf & g)}")
+    if not per_link:
+        return "\n".join(lines)
+    mech = mechanism_set(order, partitions=bool(b.partitions))
+    for i in np.flatnonzero(ok3 & ~right):
+        lines.append(f"  receiver {i}: floor {truth[i]}, M-NLS {est[i]}, p = "
+                     f"{np.array2string(np.nan_to_num(prob[i]), precision=2)}")
+        for j in np.flatnonzero(det[i]):
+            s = res.mechanism[i, j]
+            kind = "in" if not (part[i, j] or out[i, j]) else ("partition" if part[i, j] else "OUT")
+            lines.append(f"    link {j}: traced {label[i, j]:<44s} {kind:9s} M-NLS "
+                         f"{mech.labels[s] if s >= 0 else '-':<40s} "
+                         f"{'excluded' if res.excluded[i, j] else ''}")
+    return "\n".join(lines)
+
+
+def dataset_first_arrival_slot(dataset: Path, scenario: Scenario, seed: int) -> np.ndarray:
+    """The traced path index of every link's detected first arrival (the study's draw)."""
+    from diffpos_services.raytrace.evaluate import dataset_first_arrival
+
+    from diffpos.study import study_rngs
+
+    ds = load_dataset(dataset, scenario=scenario)
+    fa = dataset_first_arrival(ds, radio=scenario.radio, rng=study_rngs(seed)[1])
+    return np.maximum(fa.slot, 0)
 
 
 def _pct(v: float) -> str:
@@ -99,14 +203,15 @@ def _pct(v: float) -> str:
 
 def table(rows: list[tuple[str, int, dict[str, dict[str, float | int]]]]) -> str:
     head = (f"{'building':10s} {'K':>2s} | {'RT n>=3':>8s} {'RT floor>=3':>12s} "
-            f"{'RT floor all':>13s} | {'emu n>=3':>8s} {'emu floor>=3':>13s} "
-            f"{'emu floor all':>14s}")
+            f"{'RT floor all':>13s} {'RT conf.wrong':>13s} | {'emu n>=3':>8s} "
+            f"{'emu floor>=3':>13s} {'emu floor all':>14s} {'emu conf.wrong':>14s}")
     lines = [head, "-" * len(head)]
     for name, k, r in rows:
         a, e = r["raytrace"], r["emulator"]
         lines.append(f"{name:10s} {k:2d} | {a['n_det']:4d}/{a['n']:<3d} {_pct(a['floor_det']):>12s} "
-                     f"{_pct(a['floor_all']):>13s} | {e['n_det']:4d}/{e['n']:<3d} "
-                     f"{_pct(e['floor_det']):>13s} {_pct(e['floor_all']):>14s}")
+                     f"{_pct(a['floor_all']):>13s} {_pct(a['conf_wrong']):>13s} | "
+                     f"{e['n_det']:4d}/{e['n']:<3d} {_pct(e['floor_det']):>13s} "
+                     f"{_pct(e['floor_all']):>14s} {_pct(e['conf_wrong']):>14s}")
     return "\n".join(lines)
 
 
@@ -134,12 +239,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--building", action="append", metavar="NAME=SCENARIO.toml:DATASET.npz",
                     help="another building (SCENARIO 'paper' = the built-in one); repeatable")
     ap.add_argument("--seed", type=int, default=0, help="range-noise seed (default 0)")
+    ap.add_argument("--misses", action="store_true",
+                    help="the misses on Sionna's channel per traced first-arrival family")
+    ap.add_argument("--summary", action="store_true",
+                    help="with --misses: the groups only, not every missed receiver's links")
     args = ap.parse_args(argv)
     buildings = _buildings(args.building, args.only)
     missing = [str(ds) for _, ds in buildings.values() if not ds.is_file()]
     if missing:
         sys.exit(f"missing dataset(s): {', '.join(missing)} (trace them with diffpos raytrace; "
                  "or leave them out with --only)")
+    if args.misses:
+        for name, (scen, ds) in buildings.items():
+            for k in args.orders:
+                print(f"# {name}, {ds}")
+                print(misses(scenario_or_default(scen), ds, k, seed=args.seed,
+                             per_link=not args.summary), flush=True)
+        return 0
     rows, t0 = [], time.perf_counter()
     for name, (scen, ds) in buildings.items():
         scenario = scenario_or_default(scen)
@@ -152,7 +268,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
           f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "
           f"receivers with >= {MIN_ANCHORS} detected anchors on that channel / all; floor>=3 over "
-          f"those, floor all over ALL receivers (a failed fix is a miss)")
+          f"those, floor all over ALL receivers (a failed fix is a miss); conf.wrong = wrong floor at "
+          f"p >= {CONFIDENT_P} over the n>=3 receivers")
     print(f"command: python benchmarks/study_raytrace.py {' '.join(argv or sys.argv[1:])}")
     print(f"date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; machine: {machine()}; "
           f"wall {time.perf_counter() - t0:.0f} s\n")

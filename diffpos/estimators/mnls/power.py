@@ -16,10 +16,15 @@ slots of :data:`diffpos.paths.mechanisms.MECHANISMS`; the families that
 * a window-edge diffraction: the ITU-R P.526 knife-edge loss ``J(nu)``
   (:func:`diffpos.estimators.mnls.rules._knife_edge_loss_db`);
 * the window glass loss (``glass_loss_db`` with glass windows);
+* a partition reflection (``mechanism_set(..., partitions=True)``): the Fresnel loss of the
+  partition the path reflects on (its material's permittivity, as the emulator's
+  :func:`diffpos.channel.slots.partition_permittivities`) at the unfolded ray's direction
+  cosine along that partition's normal; the partition is the one whose path is the shortest
+  existing (the path model's choice: each partition evaluated alone, the first on a tie);
 * every interior partition the path crosses (its loss: ``loss_db`` or
   :func:`diffpos.channel.slots.slab_loss_db`): floor and ceiling reflections leave the path's
   plan view straight, so it is the segment from the facade entry (the diffraction point) to the
-  node; with a wall reflection the same segment (an approximation).
+  node; with a wall or partition reflection the same segment (an approximation).
 
 Left out: antenna patterns (isotropic), the wedge's UTD coefficient and the polarisation (an
 unpolarised average). tests/core/test_mnls_power.py holds the estimate to
@@ -28,6 +33,8 @@ the emulator on the 18 slots both have.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -35,6 +42,7 @@ from diffpos.channel.linkbudget import snr_db as _snr_db
 from diffpos.channel.slots import fresnel_coefficients, itu_permittivity, slab_loss_db
 from diffpos.estimators.mnls.rules import _knife_edge_loss_db
 from diffpos.paths.mechanisms import MechanismSet
+from diffpos.paths.model import first_arrival_paths
 
 FloatArray = NDArray[np.float64]
 _AXIS = {"floor": 2, "ceiling": 2, "back": 1, "side x1": 0, "side x2": 0}
@@ -68,8 +76,32 @@ def _partition_db(entry_x: FloatArray, node: FloatArray, building, frequency_hz:
     return loss
 
 
+def _partition_reflection_db(ps, j: int, slot: int, mech: MechanismSet, anchors, nodes,
+                             building, floor, frequency_hz: float) -> FloatArray:
+    """Fresnel loss [dB] of the partition reflection of ``slot`` (column ``j`` of ``ps``):
+    on the partition whose path alone is the shortest existing one (the path model's choice),
+    at ``ps``'s direction cosine along that partition's normal."""
+    if floor is None:
+        raise ValueError("family_snr_db: a partition family needs floor= (the node's floor "
+                         "hypothesis of every link)")
+    best = np.full(ps.length_m.shape[:-1], np.inf)
+    out = np.full(best.shape, np.nan)
+    for q, pt in enumerate(building.partitions):
+        one = dataclasses.replace(building, partitions=(pt,))
+        pj = first_arrival_paths(nodes, anchors, one, floor=floor, slots=[slot],
+                                 mechanisms=mech)
+        lj = np.where(pj.valid[..., 0], pj.length_m[..., 0], np.inf)
+        ax = 0 if pt.axis == "x" else 1
+        db = _reflection_db(ps.jacobian[..., j, ax], itu_permittivity(pt.material, frequency_hz))
+        take = (lj < best) | (q == 0)  # the first partition on a tie / where none exists
+        out = np.where(take, db, out)
+        best = np.where(lj < best, lj, best)
+    return out
+
+
 def family_snr_db(ps, mech: MechanismSet, slots, anchors: FloatArray, nodes: FloatArray,
-                  building, radio, edge_z_m: tuple[FloatArray, FloatArray]) -> FloatArray:
+                  building, radio, edge_z_m: tuple[FloatArray, FloatArray],
+                  floor=None) -> FloatArray:
     """SNR estimate [dB] of the ``slots`` of ``mech`` (module docstring), ``-inf`` where the
     path does not exist.
 
@@ -83,6 +115,8 @@ def family_snr_db(ps, mech: MechanismSet, slots, anchors: FloatArray, nodes: Flo
         The node of every link (broadcast against the batch shape).
     edge_z_m : (ndarray, ndarray) [m]
         Upper and lower window-edge height of every link's floor (batch shape).
+    floor : array_like of int, optional
+        Every link's floor hypothesis (batch shape); needed by a partition family only.
     """
     r = radio
     f = r.frequency_hz
@@ -113,7 +147,11 @@ def family_snr_db(ps, mech: MechanismSet, slots, anchors: FloatArray, nodes: Flo
         if building.partitions:
             lj = lj + _partition_db(entry_x, n, building, f)
         for plane in rec.planes:
-            lj = lj + _reflection_db(ps.jacobian[..., j, _AXIS[plane]], eta_in)
+            if plane == "partition":
+                lj = lj + _partition_reflection_db(ps, j, int(s), mech, anchors, nodes,
+                                                   building, floor, f)
+            else:
+                lj = lj + _reflection_db(ps.jacobian[..., j, _AXIS[plane]], eta_in)
         if rec.kind == "diff":
             lj = lj + knife[..., j]
             if rec.ground:

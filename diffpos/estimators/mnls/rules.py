@@ -149,7 +149,16 @@ def _link_terms_numpy(p, x: FloatArray, building) -> dict:
         w = np.where(is_tail, p.sig**2 / (p.lam * np.maximum(res, 1e-9)), 1.0)
     # a link with no candidate (all paths clamped) costs like a far outlier
     cost = np.where(none, p.tail_a + 10.0, cost)
+    # one link out of the model: the worst link above its out-of-model cost is capped at
+    # it, no weight (excluded)
     m = p.mask
+    over = np.where(m, cost - p.cap, 0.0)
+    worst = np.argmax(over, axis=-1)
+    capped = (np.arange(over.shape[-1]) == worst[..., None]) & (
+        np.take_along_axis(over, worst[..., None], axis=-1) > 0)
+    cost = np.where(capped, p.cap, cost)
+    is_tail = is_tail | capped
+    w = np.where(capped, 0.0, w)
     w = np.where(m & ~none, w, 0.0)
     cost = np.where(m, cost, 0.0)
     prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var

@@ -48,6 +48,15 @@ stated otherwise):
   first arrival is a model mechanism on 100 % of links), ``lambda = c / B`` (0.75 m at 400 MHz:
   an unresolved path delays the detected peak by up to one resolution cell). Links that end
   in the tail component are reported as excluded (RAIM).
+* **One link out of the model** (any first arrival the families do not have: a shorter or a
+  far longer range than every candidate). In a fix with at least five links
+  (:data:`diffpos.estimators.mnls.problem.CAP_MIN_LINKS`), the link whose cost exceeds it the
+  most (at most one per fix) is capped at the cost of an out-of-model link, the outlier prior ``eps`` times a range uniform over the
+  building's extent ``D`` (diagonal of width x depth x all floors): ``C_out = log((1 - eps) /
+  eps) + log(D / (sigma sqrt(2 pi)))`` (9.8 nats on the paper building at 5 cm); a capped link
+  has no weight and is reported as excluded. The search, the refinement and the floor scores
+  share this one objective (inside the compiled link terms and LM as in the numpy reference).
+  With three or four links the others cannot outvote a link (any three fit exactly): no cap.
 * **Noise.** ``sigma_j = max(sigmas_m, error_floor_m)``: the caller's ranging sigma (the
   emulator's is ``sqrt(CRLB^2 + floor^2)``), never below the chain's error floor.
 * **z observability and the floor prior.** With the physical edges an edge path fixes only x
@@ -102,7 +111,12 @@ from diffpos.estimators.mnls.starts import (
 from diffpos.estimators.result import prepare_batch
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, mechanism_set
 from diffpos.paths.model import first_arrival_paths
-from diffpos.paths.model_nb import DEFAULT_TABLE, building_planes, mechanism_table
+from diffpos.paths.model_nb import (
+    DEFAULT_TABLE,
+    building_planes,
+    mechanism_table,
+    partition_array,
+)
 
 __all__ = [
     "mnls",
@@ -195,7 +209,8 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
     link_terms_kernel(
         _c(ps.length_m), b1(ps.valid), _c(ps.jacobian), _c(ps.deviation_cos), _c(ps.outside_m),
         _c(p.r), _c(p.sig), _c(p.mask, bool),
-        _c(np.broadcast_to(p.tail_a, (n, m))), _c(p.excess_db), float(p.lam),
+        _c(np.broadcast_to(p.tail_a, (n, m))), _c(np.broadcast_to(p.cap, (n, m))),
+        _c(p.excess_db), float(p.lam),
         float(p.wavelength_m), float(SNR_MARGIN_DB),
         np.zeros((0, 0, 0)) if p.snr_cost is None else _c(p.snr_cost), b1(p.strong),
         b1(p.allowed), spec, diff, same_edge, out["cost"], out["res"],
@@ -255,7 +270,8 @@ def _family_snr(p: _Problem, x: FloatArray, building) -> FloatArray:
     fl = p.floor[rows]
     ps = first_arrival_paths(xm, a, building, floor=fl, slots=extra, mechanisms=p.mech)
     lo, hi = building.window_z_m(fl)
-    out[rows, links] = family_snr_db(ps, p.mech, extra, a, xm, building, p.radio, (hi, lo))
+    out[rows, links] = family_snr_db(ps, p.mech, extra, a, xm, building, p.radio, (hi, lo),
+                                     floor=fl)
     return out
 
 
@@ -419,10 +435,11 @@ def _lm_compiled(p: _Problem, x: FloatArray, building, iters: int, snr_at_start:
     cost = np.full(n, np.nan)
     e3 = np.zeros((0, 0, 0))
     per_row = (_c(p.anchors), _c(p.r), _c(p.sig), _c(p.mask, bool),
-               _c(np.broadcast_to(p.tail_a, p.r.shape)), _c(p.excess_db), _c(p.floor),
+               _c(np.broadcast_to(p.tail_a, p.r.shape)), _c(np.broadcast_to(p.cap, p.r.shape)),
+               _c(p.excess_db), _c(p.floor),
                _c(p.lo), _c(p.hi), _c(p.z_mid))
     consts = (float(p.prior_var), float(p.lam), float(p.wavelength_m), float(SNR_MARGIN_DB),
-              np.array(building_planes(building)), _table(p.mech))
+              np.array(building_planes(building)), _table(p.mech), partition_array(building))
     allowed = e3.astype(bool) if p.allowed is None else _c(p.allowed, bool)
     done = 0
     while done < iters and live.any():
@@ -561,8 +578,11 @@ def mnls(
         The path model's mechanisms (:func:`diffpos.paths.mechanisms.mechanism_set`): 2 (the
         default) the 18 of :data:`diffpos.paths.mechanisms.MECHANISMS`; 3 or 4 adds the
         higher-order families (slab image series, ground bounce before the diffraction, wall
-        reflections), whose SNR term is :mod:`diffpos.estimators.mnls.power`'s estimate.
-        ``MnlsResult.mechanism`` then indexes ``mechanism_set(max_order).labels``.
+        reflections; on a building with interior partitions also the partition-reflection
+        families, ``mechanism_set(max_order, partitions=True)``), whose SNR term is
+        :mod:`diffpos.estimators.mnls.power`'s estimate.
+        ``MnlsResult.mechanism`` then indexes ``mechanism_set(max_order, partitions=bool(
+        building.partitions)).labels``.
 
     Returns
     -------
@@ -582,7 +602,8 @@ def mnls(
     snr_all = None if snr_db is None else np.broadcast_to(
         np.asarray(snr_db, dtype=np.float64), (bsz, m))
     wavelength = SPEED_OF_LIGHT_M_S / (28e9 if radio is None else radio.frequency_hz)
-    mech = None if max_order <= DEFAULT_ORDER else mechanism_set(max_order)
+    mech = None if max_order <= DEFAULT_ORDER else mechanism_set(
+        max_order, partitions=bool(building.partitions))
     out = {
         "position_m": np.full((bsz, 3), np.nan), "covariance_m2": np.full((bsz, 3, 3), np.nan),
         "residuals_m": np.full((bsz, m), np.nan), "used": np.zeros((bsz, m), dtype=bool),

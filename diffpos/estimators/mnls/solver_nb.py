@@ -12,8 +12,8 @@ in :mod:`diffpos.estimators.mnls.solver` and is what the tests compare against
 
 :func:`lm_kernel` is M-NLS's Levenberg-Marquardt (``mnls._lm``; the SNR terms held: the
 caller refreshes them between calls every ``SNR_EVERY`` steps) for every row in one loop:
-the path model per row and slot (:func:`diffpos.paths.model_nb.family_path` on the mechanism
-table, the operations of ``paths_kernel``), the
+the path model per row and slot (:func:`diffpos.paths.model_nb.family_path_parts` on the
+mechanism table and the building's partitions, the operations of ``paths_kernel``), the
 link choice above, the cost summed in numpy's order (pairwise over >= 8 links), the damped
 3x3 normal equations in einsum's order solved by LAPACK's ``gesv`` (numba's
 ``np.linalg.solve``: bitwise numpy's on the tested matrices), the box clamp, acceptance, the
@@ -23,7 +23,7 @@ path in :mod:`diffpos.estimators.mnls.solver` (``mnls(..., kernel=False)``; test
 
 Fixed compiled signatures (:data:`SIGNATURE`, :data:`LM_SIGNATURE`, C-contiguous inputs);
 ``cache=True``. numba's cache is keyed by this file only: :func:`lm_kernel` compiles
-:func:`diffpos.paths.model_nb.family_path` into itself, so a change of ``paths/model_nb.py``
+:func:`diffpos.paths.model_nb.family_path_parts` into itself, so a change of ``paths/model_nb.py``
 changes the ``CALLEES_SHA256`` stamp below (tests/core/test_kernel_stamps.py), which
 invalidates the stale cache.
 Compile from an empty cache: ~12 s CPU (2-core VM, 2026-11-27).
@@ -37,9 +37,10 @@ import numpy as np
 from numba import njit, types
 
 from diffpos._kernels.npsum_nb import pairwise_sum as _pairwise_sum
-from diffpos.paths.model_nb import edge_axis, family_path, row_planes
+from diffpos.paths.model_nb import edge_axis, family_path_parts, row_planes
 
-__all__ = ["LM_SIGNATURE", "SIGNATURE", "link_choice", "link_terms_kernel", "lm_kernel"]
+__all__ = ["LM_SIGNATURE", "SIGNATURE", "link_choice", "link_terms_kernel", "lm_kernel",
+           "worst_capped"]
 
 _f8_1d = types.float64[::1]
 _f8_2d = types.float64[:, ::1]
@@ -59,7 +60,7 @@ CALLEES_SHA256 = "454d939f7f0b9ba3"
 #: The one compiled signature of :func:`link_terms_kernel`.
 SIGNATURE = types.void(
     _f8_3d, _b1_3d, _f8_4d, _f8_3d, _f8_3d,  # length, valid, jacobian, deviation_cos, outside
-    _f8_2d, _f8_2d, _b1_2d, _f8_2d, _f8_2d,  # r, sig, mask, tail_a, excess_db  (N, M)
+    _f8_2d, _f8_2d, _b1_2d, _f8_2d, _f8_2d, _f8_2d,  # r, sig, mask, tail_a, cap, excess (N, M)
     types.float64, types.float64, types.float64,  # lam, wavelength, snr margin [dB]
     _f8_3d, _b1_3d, _b1_3d,  # snr_cost, strong, allowed (N, M, K) or (0, 0, 0)
     _b1_1d, _b1_1d, _i8_2d,  # specular slots, diffraction slots, same-edge pairs (P, 2)
@@ -70,11 +71,13 @@ SIGNATURE = types.void(
 
 #: The one compiled signature of :func:`lm_kernel`.
 LM_SIGNATURE = types.void(
-    _f8_3d, _f8_2d, _f8_2d, _b1_2d, _f8_2d, _f8_2d,  # anchors, r, sig, mask, tail_a, excess
+    _f8_3d, _f8_2d, _f8_2d, _b1_2d, _f8_2d, _f8_2d, _f8_2d,  # anchors, r, sig, mask, tail_a,
+    # cap, excess
     _f8_1d, _f8_2d, _f8_2d, _f8_1d,  # floor index (float), lo, hi (N, 3), z_mid (N,)
     types.float64, types.float64, types.float64, types.float64,  # prior var, lam, wl, margin
     _f8_1d,  # building planes (first z, H, sill, window h, x0, x1, depth)
     _i8_2d,  # mechanism table (K, C) (diffpos.paths.model_nb.mechanism_table)
+    _f8_2d,  # partitions (Q, 4) (diffpos.paths.model_nb.partition_array)
     _f8_3d, _b1_3d, _b1_3d,  # snr_cost, strong, allowed (N, M, K) or (0, 0, 0)
     _b1_1d, _b1_1d, _i8_2d,  # specular slots, diffraction slots, same-edge pairs
     types.int64, types.float64,  # LM steps, convergence step [m]
@@ -89,7 +92,8 @@ def link_choice(length, valid, jac_all, dev, outm, r, sig, tail_a, excess, lam, 
                 diff, same_edge, cand, gauss, tail):
     """One link (K slots): candidates into ``cand``, then ``(cost, slot, residual, weight,
     is_tail, none, j0, j1, j2)`` (cost: ``tail_a + 10`` where no candidate; the caller
-    applies the mask). ``gauss``, ``tail``: scratch (K,)."""
+    applies the mask and the out-of-model cap, :func:`worst_capped`). ``gauss``, ``tail``:
+    scratch (K,)."""
     k = length.shape[0]
     l_spec = math.inf
     for s in range(k):
@@ -144,8 +148,22 @@ def link_choice(length, valid, jac_all, dev, outm, r, sig, tail_a, excess, lam, 
     return best, slot, e, w, is_tail, none, j0, j1, j2
 
 
+@njit(**_OPTS)
+def worst_capped(cost, cap, mask):
+    """The link whose cost exceeds its out-of-model cost ``cap`` the most (the first on a
+    tie), ``-1`` if none does: M-NLS declares at most one link of a fix out of the model
+    (its cost becomes ``cap``, its weight 0). ``cost``, ``cap``, ``mask``: one row (M,)."""
+    worst = -1
+    over = 0.0
+    for j in range(cost.shape[0]):
+        if mask[j] and cost[j] - cap[j] > over:
+            over = cost[j] - cap[j]
+            worst = j
+    return worst
+
+
 @njit(SIGNATURE, **_OPTS)
-def link_terms_kernel(length, valid, jac_all, dev, outm, r, sig, mask, tail_a, excess, lam,
+def link_terms_kernel(length, valid, jac_all, dev, outm, r, sig, mask, tail_a, cap, excess, lam,
                       wavelength, margin_db, snr_cost, strong, allowed, spec, diff, same_edge,
                       cost_out, res_out, w_out, slot_out, tail_out, none_out, cand, jac_out):
     n, m, k = length.shape
@@ -175,16 +193,24 @@ def link_terms_kernel(length, valid, jac_all, dev, outm, r, sig, mask, tail_a, e
             cost_out[i, j] = best if mask[i, j] else 0.0
             tail_out[i, j] = is_tail and mask[i, j]
             none_out[i, j] = none and mask[i, j]
+        jw = worst_capped(cost_out[i], cap[i], mask[i])
+        if jw >= 0:  # out of the model: capped, no weight, excluded
+            cost_out[i, jw] = cap[i, jw]
+            w_out[i, jw] = 0.0
+            tail_out[i, jw] = True
 
 
 @njit(**_OPTS)
-def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mid, prior_var,
-               lam, wavelength, margin_db, planes, table, edge, snr_cost, has_snr, strong, has_strong,
-               allowed, has_allowed, spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev, buf_out, cand,
-               gauss, tail, no_f, no_b, link_cost, h, g):
-    """Cost of row ``i`` at ``(x0, x1, x2)`` (``mnls._link_terms``: links + floor prior) and
-    its normal equations ``h`` (3, 3), ``g`` (3,) without the prior (``mnls._lm``'s einsums);
-    returns ``(cost, links evaluated)``."""
+def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, cap, excess, floor, z_mid, prior_var,
+               lam, wavelength, margin_db, planes, table, parts, edge, snr_cost, has_snr, strong,
+               has_strong, allowed, has_allowed, spec, diff, same_edge, buf_len, buf_valid,
+               buf_jac, buf_dev, buf_out, cand, gauss, tail, no_f, no_b, link_cost, lbuf, lskip,
+               h, g):
+    """Cost of row ``i`` at ``(x0, x1, x2)`` (``mnls._link_terms``: links + floor prior, the
+    worst link above its out-of-model cost capped) and its normal equations ``h`` (3, 3),
+    ``g`` (3,) without the prior (``mnls._lm``'s einsums; ``lbuf`` (M, 5), ``lskip`` (M,):
+    every link's weighted terms, held until the capped link is known); returns ``(cost,
+    links evaluated)``."""
     zf, zc, wlo, whi = row_planes(floor[i], planes[0], planes[1], planes[2], planes[3])
     ex0, ex1, depth = planes[4], planes[5], planes[6]
     for u in range(3):
@@ -194,15 +220,16 @@ def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mi
     m = r.shape[1]
     n_eval = 0
     for j in range(m):
+        lskip[j] = True
         if not mask[i, j]:
             link_cost[j] = 0.0
             continue
         n_eval += 1
         a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
         for s in range(table.shape[0]):
-            ln, ok, j0, j1, j2, dv, om, _ = family_path(table, s, a0, a1, a2, x0, x1, x2, zf,
-                                                        zc, wlo, whi, ex0, ex1, depth, edge,
-                                                        False, True)
+            ln, ok, j0, j1, j2, dv, om, _ = family_path_parts(
+                table, s, a0, a1, a2, x0, x1, x2, zf, zc, wlo, whi, ex0, ex1, depth, edge,
+                False, True, parts)
             buf_len[s] = ln
             buf_valid[s] = ok
             buf_jac[s, 0] = j0
@@ -219,13 +246,26 @@ def _row_terms(i, x0, x1, x2, anchors, r, sig, mask, tail_a, excess, floor, z_mi
         link_cost[j] = best
         if none:
             continue  # weight 0: adds exact zeros in the reference
-        ws = w / sig[i, j] ** 2
-        jj = (j0, j1, j2)
+        lskip[j] = False
+        lbuf[j, 0] = w / sig[i, j] ** 2
+        lbuf[j, 1] = e
+        lbuf[j, 2] = j0
+        lbuf[j, 3] = j1
+        lbuf[j, 4] = j2
+    jw = worst_capped(link_cost, cap[i], mask[i])
+    if jw >= 0:  # weight 0: adds exact zeros in the reference
+        link_cost[jw] = cap[i, jw]
+        lskip[jw] = True
+    for j in range(m):
+        if lskip[j]:
+            continue
+        ws = lbuf[j, 0]
+        e = lbuf[j, 1]
         for u in range(3):
-            wu = ws * jj[u]
+            wu = ws * lbuf[j, 2 + u]
             for v in range(3):
-                h[u, v] += wu * jj[v]
-            g[u] += (ws * e) * jj[u]
+                h[u, v] += wu * lbuf[j, 2 + v]
+            g[u] += (ws * e) * lbuf[j, 2 + u]
     dz = x2 - z_mid[i]
     prior = 0.5 * dz ** 2 / prior_var
     return _pairwise_sum(link_cost, m) + prior, n_eval
@@ -267,9 +307,9 @@ def _trial_point(i, xo0, xo1, xo2, h, g, dmp, z_mid, prior_var, lo, hi, eye, hd,
 
 
 @njit(LM_SIGNATURE, **_OPTS)
-def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior_var, lam,
-              wavelength, margin_db, planes, table, snr_cost, strong, allowed, spec, diff, same_edge,
-              iters, conv_m, x, damp, live, cost_out, evals_out):
+def lm_kernel(anchors, r, sig, mask, tail_a, cap, excess, floor, lo, hi, z_mid, prior_var, lam,
+              wavelength, margin_db, planes, table, parts, snr_cost, strong, allowed, spec, diff,
+              same_edge, iters, conv_m, x, damp, live, cost_out, evals_out):
     """``iters`` projected LM steps of ``mnls._lm`` (SNR terms held) from ``x`` for every
     ``live`` row: ``x``, the damping ``damp`` and ``live`` (False once converged or the
     damping reaches 1e6) are updated in place; ``cost_out``: the cost at the returned point,
@@ -291,6 +331,8 @@ def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior
     no_f = np.zeros(k)
     no_b = np.zeros(k, dtype=np.bool_)
     link_cost = np.empty(m)
+    lbuf = np.empty((m, 5))
+    lskip = np.empty(m, dtype=np.bool_)
     h = np.empty((3, 3))
     g = np.empty(3)
     h_new = np.empty((3, 3))
@@ -306,11 +348,13 @@ def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior
             cost_out[i] = np.nan
             continue
         xc0, xc1, xc2 = x[i, 0], x[i, 1], x[i, 2]
-        cost, ne = _row_terms(i, xc0, xc1, xc2, anchors, r, sig, mask, tail_a, excess, floor,
+        cost, ne = _row_terms(i, xc0, xc1, xc2, anchors, r, sig, mask, tail_a, cap, excess,
+                              floor,
                               z_mid, prior_var, lam, wavelength, margin_db, planes, table,
-                              edge, snr_cost, has_snr, strong, has_strong, allowed, has_allowed,
-                              spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev,
-                              buf_out, cand, gauss, tail, no_f, no_b, link_cost, h, g)
+                              parts, edge, snr_cost, has_snr, strong, has_strong, allowed,
+                              has_allowed, spec, diff, same_edge, buf_len, buf_valid, buf_jac, buf_dev,
+                              buf_out, cand, gauss, tail, no_f, no_b, link_cost, lbuf, lskip,
+                              h, g)
         evals = ne
         dmp = damp[i]
         for _ in range(iters):
@@ -318,11 +362,11 @@ def lm_kernel(anchors, r, sig, mask, tail_a, excess, floor, lo, hi, z_mid, prior
             _trial_point(i, xo0, xo1, xo2, h, g, dmp, z_mid, prior_var, lo, hi, eye, hd, rhs,
                          step, xn)
             c_new, ne = _row_terms(i, xn[0], xn[1], xn[2], anchors, r, sig, mask, tail_a,
-                                   excess, floor, z_mid, prior_var, lam, wavelength,
-                                   margin_db, planes, table, edge, snr_cost, has_snr, strong,
-                                   has_strong, allowed, has_allowed, spec, diff, same_edge,
+                                   cap, excess, floor, z_mid, prior_var, lam, wavelength,
+                                   margin_db, planes, table, parts, edge, snr_cost, has_snr,
+                                   strong, has_strong, allowed, has_allowed, spec, diff, same_edge,
                                    buf_len, buf_valid, buf_jac, buf_dev, buf_out, cand, gauss,
-                                   tail, no_f, no_b, link_cost, h_new, g_new)
+                                   tail, no_f, no_b, link_cost, lbuf, lskip, h_new, g_new)
             evals += ne
             ok = c_new < cost
             moved = max(abs(xn[0] - xo0), abs(xn[1] - xo1), abs(xn[2] - xo2))
