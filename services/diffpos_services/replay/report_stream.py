@@ -530,10 +530,13 @@ class Comparison:
 class Recorded:
     """What replay's feed collects besides the fusion's input (``input_kinds``), its
     diagnostics and the anchors' liveliness: truth, live and replayed fixes (reduced as they
-    come), their comparison, counts; with ``keep_estimates`` also the estimates."""
+    come), their comparison, counts; with ``keep_estimates`` also the estimates.
+    ``estimate_shards``: the fusion shards the run configuration records (the estimates'
+    sequence streams, :class:`~diffpos_services.recording.topics.SeqTracker`)."""
 
     def __init__(self, input_kinds: tuple[str, ...], *, max_truth_gap_ns: int,
-                 keep_estimates: bool, window_ns: int) -> None:
+                 keep_estimates: bool, window_ns: int,
+                 estimate_shards: int | None = None) -> None:
         self.input_kinds = input_kinds
         self.truth = TruthBook(window_ns)
         kw = {"max_truth_gap_ns": max_truth_gap_ns, "window_ns": window_ns}
@@ -542,7 +545,7 @@ class Recorded:
         self.keep: tuple[list, list] | None = ([], []) if keep_estimates else None
         self.counts: Counter[str] = Counter()
         self.bad_payloads: Counter[str] = Counter()
-        self.seq = SeqTracker()
+        self.seq = SeqTracker(estimate_shards)  # (None: the shard count inferred)
         self.t_origin: int | None = None  # the recording's first message (receive time)
         self.t_first: int | None = None
         self.t_last: int | None = None
