@@ -107,13 +107,17 @@ def slim_decoders():
 
 
 class TruthBook:
-    """Recorded truth per node, the last ``window_ns`` of it (plus the sampling period)."""
+    """Recorded truth per node, the last ``window_ns`` of it (plus the sampling period).
+
+    Columnar: per node the times (``t``, int64), positions (``p``, x y z flattened) and floors
+    (``f``) in typed arrays, so a batch of fixes is matched to the truth with a few numpy
+    operations (:meth:`at_many`) instead of a Python call per fix."""
 
     def __init__(self, window_ns: int) -> None:
         self.window_ns = window_ns
-        self.t: dict[str, list[int]] = defaultdict(list)
-        self.p: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
-        self.f: dict[str, list[int]] = defaultdict(list)
+        self.t: dict[str, array.array] = defaultdict(lambda: array.array("q"))
+        self.p: dict[str, array.array] = defaultdict(lambda: array.array("d"))
+        self.f: dict[str, array.array] = defaultdict(lambda: array.array("q"))
         self.first_t: int | None = None
         self.last_t: int | None = None
         self.period: int | None = None
@@ -133,19 +137,19 @@ class TruthBook:
                 self.period = min((b - a for a, b in itertools.pairwise(ts) if b > a),
                                   default=None)
                 self._times = set()
-        ts = self.t[node]
+        ts, ps, fs = self.t[node], self.p[node], self.f[node]
         if ts and t < ts[-1]:  # rare: out of order
             i = bisect.bisect_right(ts, t)
             ts.insert(i, t)
-            self.p[node].insert(i, tuple(pos))
-            self.f[node].insert(i, floor)
+            ps[3 * i:3 * i] = array.array("d", pos)
+            fs.insert(i, floor)
         else:
             ts.append(t)
-            self.p[node].append(tuple(pos))
-            self.f[node].append(floor)
+            ps.extend(pos)
+            fs.append(floor)
         if ts[-1] - ts[0] > 2 * self.window_ns:  # keep the last window
             cut = bisect.bisect_left(ts, ts[-1] - self.window_ns)
-            del ts[:cut], self.p[node][:cut], self.f[node][:cut]
+            del ts[:cut], ps[:3 * cut], fs[:cut]
 
     def finish_period(self) -> None:
         if self.period is None and len(self._times) > 1:
@@ -157,30 +161,47 @@ class TruthBook:
         ts = self.t.get(node)
         return ts[-1] if ts else None
 
+    def columns(self, node: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The node's truth as arrays (copies): times (n,) [ns], positions (n, 3) [m],
+        floors (n,)."""
+        ts = self.t.get(node)
+        if not ts:
+            return np.empty(0, np.int64), np.empty((0, 3)), np.empty(0, np.int64)
+        return (np.frombuffer(ts, np.int64).copy(),
+                np.frombuffer(self.p[node], np.float64).reshape(-1, 3).copy(),
+                np.frombuffer(self.f[node], np.int64).copy())
+
     def at(self, node: str, t: int, max_gap_ns: int):
         """(position interpolated at t, floor of the nearest sample) or None (no sample
         within ``max_gap_ns``): what :func:`..evaluate.evaluate` did over the whole track."""
-        ts = self.t.get(node)
-        if not ts:
-            return None
-        n = len(ts)
-        j = bisect.bisect_left(ts, t)
-        left, right = max(j - 1, 0), min(j, n - 1)
-        dl, dr = abs(t - ts[left]), abs(t - ts[right])
-        near = left if dl <= dr else right
-        if min(dl, dr) > max_gap_ns:
-            return None
-        ps = self.p[node]
-        if t <= ts[0]:
-            pos = ps[0]
-        elif t >= ts[-1]:
-            pos = ps[-1]
-        else:
-            t0, t1 = ts[j - 1], ts[j]
-            w = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
-            a, b = ps[j - 1], ps[j]
-            pos = (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * (b[2] - a[2]))
-        return pos, self.f[node][near]
+        pos, floor, ok = self.at_many(node, np.array([t], np.int64), max_gap_ns)
+        return (tuple(pos[0].tolist()), int(floor[0])) if ok[0] else None
+
+    def at_many(self, node: str, t: np.ndarray, max_gap_ns: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`at` for the times ``t`` (int64 [ns]) at once: positions (k, 3), floors (k,)
+        and whether a sample is within ``max_gap_ns`` (k,) (where not, position and floor
+        are meaningless). The same arithmetic as a scalar interpolation, element by element:
+        bit-identical values."""
+        ts, ps, fs = self.columns(node)
+        k, n = t.size, ts.size
+        if n == 0:
+            return np.zeros((k, 3)), np.zeros(k, np.int64), np.zeros(k, bool)
+        j = np.searchsorted(ts, t, side="left")
+        left, right = np.maximum(j - 1, 0), np.minimum(j, n - 1)
+        dl, dr = np.abs(t - ts[left]), np.abs(t - ts[right])
+        near = np.where(dl <= dr, left, right)
+        ok = np.minimum(dl, dr) <= max_gap_ns
+        if n == 1:
+            return np.broadcast_to(ps[0], (k, 3)).copy(), fs[near], ok
+        jc = np.clip(j, 1, n - 1)
+        t0, t1 = ts[jc - 1], ts[jc]
+        span = t1 - t0
+        w = np.where(span > 0, (t - t0) / np.where(span > 0, span, 1), 0.0)
+        a, b = ps[jc - 1], ps[jc]
+        pos = a + w[:, None] * (b - a)
+        pos = np.where((t <= ts[0])[:, None], ps[0], np.where((t >= ts[-1])[:, None], ps[-1], pos))
+        return pos, fs[near], ok
 
 
 @dataclasses.dataclass
@@ -250,8 +271,9 @@ class FixStream:
         self._stats: dict[int, StreamingErrorStats] = {}  # per node index
         self._overall = StreamingErrorStats()
         self._ne_stats = StreamingScore()
-        self._cov_d: list = []
-        self._cov_c: list = []
+        self._cov_d: list[np.ndarray] = []  # blocks of (k, 3) differences [m]
+        self._cov_c: list = []  # their covariances, one per row
+        self._cov_n = 0  # rows in _cov_d
         self._cov_in = 0
         self._cov_ok = 0
 
@@ -274,26 +296,40 @@ class FixStream:
             self._ne_add(e.node_id, fix)
 
     # -- per fix against the truth (evaluate) ----------------------------------------------
-    def _score_fix(self, node: str, fix: tuple) -> None:
-        t, pos, peb, floor = fix[:4]
-        at = self.truth.at(node, t, self.gap)
-        if at is None:
-            self.no_truth += 1
+    def _score_fixes(self, node: str, fixes: list[tuple]) -> None:
+        """Score a node's fixes (in order) against the truth at their times, at once."""
+        t_l, pos_l, peb_l, floor_l = list(zip(*fixes, strict=True))[:4]
+        pos, tf, ok = self.truth.at_many(node, np.array(t_l, np.int64), self.gap)
+        n_ok = int(np.count_nonzero(ok))
+        self.no_truth += len(fixes) - n_ok
+        if not n_ok:
             return
-        tp, tf = at
-        dx, dy, dz = pos[0] - tp[0], pos[1] - tp[1], pos[2] - tp[2]
-        err = self._err
         i = self._nodes.get(node)
         if i is None:
             i = self._nodes[node] = len(self._nodes)
-        err.node.append(i)
-        err.e3.append(math.sqrt(dx * dx + dy * dy + dz * dz))
-        err.ez.append(abs(dz))
-        err.eh.append(math.sqrt(dx * dx + dy * dy))
-        err.peb.append(math.nan if peb is None else peb)
-        err.fok.append((-999 if floor is None else floor) == tf)
-        if len(err.e3) >= _BATCH:
-            self._flush_errors()
+        d = np.array(pos_l, np.float64)[ok] - pos[ok]
+        dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+        peb = np.array([math.nan if v is None else v for v in peb_l], np.float64)[ok]
+        floor = np.array([-999 if v is None else v for v in floor_l], np.int64)[ok]
+        self._push_errors(i, np.sqrt(dx * dx + dy * dy + dz * dz), np.abs(dz),
+                          np.sqrt(dx * dx + dy * dy), peb, (floor == tf[ok]).astype(np.int8))
+
+    def _push_errors(self, node_i: int, e3: np.ndarray, ez: np.ndarray, eh: np.ndarray,
+                     peb: np.ndarray, fok: np.ndarray) -> None:
+        """Scored fixes into the batch, flushed into the summaries every :data:`_BATCH`
+        values exactly (the summaries see the same batches as fix by fix)."""
+        done, n = 0, e3.size
+        while done < n:
+            err = self._err
+            take = min(_BATCH - len(err.e3), n - done)
+            sl = slice(done, done + take)
+            err.node.extend([node_i] * take)
+            for col, vals in ((err.e3, e3), (err.ez, ez), (err.eh, eh), (err.peb, peb),
+                              (err.fok, fok)):
+                col.frombytes(vals[sl].tobytes())
+            done += take
+            if len(err.e3) >= _BATCH:
+                self._flush_errors()
 
     def _flush_errors(self) -> None:
         """The batch of scored fixes into the per-node and overall summaries."""
@@ -330,36 +366,51 @@ class FixStream:
             self._ne_fix[(node, fix[0] // period if k < 0 else k)] = fix
 
     def _ne_score(self, node: str, upto_t: int) -> None:
-        """Score the node's truth samples up to ``upto_t`` (older ones than the window)."""
+        """Score the node's truth samples up to ``upto_t`` (older ones than the window): each
+        sample's fix (same node and epoch) against the truth at the fix's own time
+        (:func:`diffpos.metrics.truth_at`), a miss where none; as columns, in sample order."""
         tb = self.truth
-        period, start = tb.period, tb.first_t + self.skip_ns
-        ts, ps, fs = tb.t[node], tb.p[node], tb.f[node]
-        i = bisect.bisect_left(ts, max(self._ne_next.get(node, start), start))
-        while i < len(ts) and ts[i] <= upto_t:
-            t = ts[i]
-            fix = self._ne_fix.pop((node, t // period), None)
-            p, f = ps[i], fs[i]
-            if fix is None:
-                self._ne_d.extend(_NAN3)
-                self._ne_ef.append(-1)
-                self._ne_p.append(())
-            else:  # the truth at the fix's own time (diffpos.metrics.truth_at)
-                p, f = tb.at(node, fix[0], period) or (p, f)
-                fp = fix[1]
-                d = (fp[0] - p[0], fp[1] - p[1], fp[2] - p[2])
-                self._ne_d.extend(d)
-                self._ne_ef.append(-1 if fix[3] is None else fix[3])
-                self._ne_p.append(fix[5])
-                if fix[4] is not None:
-                    self._cov_d.append(d)
-                    self._cov_c.append(fix[4])
-            self._ne_tf.append(f)
-            i += 1
-            self._ne_next[node] = t + 1
-        if len(self._cov_d) >= _COV_BATCH:
+        start = tb.first_t + self.skip_ns
+        ts = tb.t[node]
+        i0 = bisect.bisect_left(ts, max(self._ne_next.get(node, start), start))
+        i1 = max(i0, bisect.bisect_right(ts, upto_t))
+        if i1 > i0:
+            self._ne_columns(node, i0, i1)
+            self._ne_next[node] = ts[i1 - 1] + 1
+        if self._cov_n >= _COV_BATCH:
             self._coverage()
         if len(self._ne_tf) >= _BATCH:
             self._flush_node_epochs()
+
+    def _ne_columns(self, node: str, i0: int, i1: int) -> None:
+        """The node-epochs of the node's truth samples ``i0 .. i1 - 1`` into the buffers."""
+        tb, pop = self.truth, self._ne_fix.pop
+        period = tb.period
+        fixes = [pop((node, t // period), None) for t in tb.t[node][i0:i1].tolist()]
+        _, ps, fs = tb.columns(node)
+        p, f = ps[i0:i1], fs[i0:i1]  # a miss: the sample's own truth
+        d = np.full((i1 - i0, 3), np.nan)
+        ef = np.full(i1 - i0, -1, np.int64)
+        found = [k for k, fix in enumerate(fixes) if fix is not None]
+        probs: list = [()] * (i1 - i0)
+        if found:
+            got = [fixes[k] for k in found]
+            tp, tf, ok = tb.at_many(node, np.array([x[0] for x in got], np.int64), period)
+            tp = np.where(ok[:, None], tp, p[found])
+            f[found] = np.where(ok, tf, f[found])
+            d[found] = np.array([x[1] for x in got], np.float64) - tp
+            ef[found] = [-1 if x[3] is None else x[3] for x in got]
+            for k, x in zip(found, got, strict=True):
+                probs[k] = x[5]
+            cov = [(k, x[4]) for k, x in zip(found, got, strict=True) if x[4] is not None]
+            if cov:
+                self._cov_d.append(d[[k for k, _ in cov]])
+                self._cov_c.extend(c for _, c in cov)
+                self._cov_n += len(cov)
+        self._ne_d.frombytes(d.tobytes())
+        self._ne_ef.extend(ef.tolist())
+        self._ne_tf.extend(f.tolist())
+        self._ne_p.extend(probs)
 
     def _flush_node_epochs(self) -> None:
         if not len(self._ne_tf):
@@ -372,15 +423,15 @@ class FixStream:
         self._ne_p = []
 
     def _coverage(self) -> None:
-        if not self._cov_d:
+        if not self._cov_n:
             return
-        d, c = np.array(self._cov_d, float), np.array(self._cov_c, float).reshape(-1, 3, 3)
+        d, c = np.concatenate(self._cov_d), np.array(self._cov_c, float).reshape(-1, 3, 3)
         ok = int((np.isfinite(d).all(axis=1) & np.isfinite(c).all(axis=(1, 2))).sum())
         cov = ellipsoid_coverage(d, c)
         if cov is not None:
             self._cov_in += round(cov * ok)
             self._cov_ok += ok
-        self._cov_d, self._cov_c = [], []
+        self._cov_d, self._cov_c, self._cov_n = [], [], 0
 
     # -- time ------------------------------------------------------------------------------
     def advance(self, now_ns: int, *, final: bool = False) -> None:
@@ -388,10 +439,20 @@ class FixStream:
         ``final``); node-epochs a window older than the node's newest truth."""
         tb = self.truth
         for node, q in self._pending.items():
+            if not q:
+                continue
             newest = tb.newest(node)
-            while q and (final or (newest is not None and newest >= q[0][0])
-                         or now_ns - q[0][0] > self.window_ns):
-                self._score_fix(node, q.popleft())
+            k = len(q)
+            if not final:  # the fixes the truth passed (or older than the window), in order
+                old = now_ns - self.window_ns
+                k = 0
+                for fix in q:
+                    t = fix[0]
+                    if not ((newest is not None and newest >= t) or t < old):
+                        break
+                    k += 1
+            if k:
+                self._score_fixes(node, [q.popleft() for _ in range(k)])
         if tb.period is None:
             if not final:
                 return
