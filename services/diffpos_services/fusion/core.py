@@ -46,6 +46,13 @@ from diffpos_services.fusion.ingest import (
 )
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.fusion.step import gated_count, gather, prepare, solve_batch
+from diffpos_services.fusion.tracked import (
+    TrackBank,
+    heavy_budget,
+    in_publish_order,
+    solve_mnls,
+    v2_builder,
+)
 from diffpos_services.fusion.warm import warm_up
 from diffpos_services.logs import log_event
 from diffpos_services.wire import messages as M
@@ -54,15 +61,6 @@ from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
 __all__ = ["BEHIND_KEEP_EPOCHS", "FusionConfig", "FusionCore"]
 
 _new_tuple = tuple.__new__
-
-
-def _tracked() -> Any:
-    """:mod:`diffpos_services.fusion.tracked` (M-NLS and the tracker), imported by the first
-    core of the method ``mnls``: a ``dnls``/``lls``/``ippa`` fusion (or replay) never loads
-    the M-NLS and tracker kernels (~0.7 s of imports)."""
-    from diffpos_services.fusion import tracked
-
-    return tracked
 #: why an epoch was released (FusionDiagnostics.releases)
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
 
@@ -123,7 +121,7 @@ class FusionCore:
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
         self.model = (self.building, config.radio_model())
-        self.bank = (_tracked().TrackBank(self.building, config.tracker_config())
+        self.bank = (TrackBank(self.building, config.tracker_config())
                      if self.building is not None and config.tracking else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")
         self.overload.status_of = None if self.bank is None else self.bank.status_of
@@ -540,14 +538,11 @@ class FusionCore:
             if limit is not None:
                 self.overload.taken(now)
             if limit is not None and self.bank is not None:
-                now, held = self.bank.hold_inits(now, _tracked().heavy_budget(n, lagging),
-                                                 lagging)
+                now, held = self.bank.hold_inits(now, heavy_budget(n, lagging), lagging)
             if out and emit is not None:  # (a previous batch of this step)
                 emit(out)
                 out = []
-            # (the work budget of mnls only: the other methods ignore it)
-            heavy = None if limit is None or self.building is None else 0 if held else \
-                _tracked().heavy_budget(n, lagging)
+            heavy = None if limit is None else 0 if held else heavy_budget(n, lagging)
             out += self._solve(now, now_wall_ns, heavy, emit, behind)
             if held:  # the initialisations after the other estimates are out
                 if emit is not None:
@@ -591,13 +586,12 @@ class FusionCore:
         prep = prepare(batch, epochs, self.tracks, self.config)
         self.solved += len(epochs)
         if self.building is not None:
-            tracked = _tracked()
-            s = tracked.solve_mnls(batch, prep, epochs, self.config, self.model, self.bank,
-                                   heavy, defer=True, behind=behind)
+            s = solve_mnls(batch, prep, epochs, self.config, self.model, self.bank, heavy,
+                           defer=True, behind=behind)
             self.gated += gated_count(batch, s.res)
             lost = {x.id for x in self.anchors.values() if not x.alive}
-            build = tracked.v2_builder(epochs, batch, s, lost)  # the batch's columns once
-            return tracked.in_publish_order(s, epochs, emit, lambda rows: self._count(build(
+            build = v2_builder(epochs, batch, s, lost)  # the batch's columns once
+            return in_publish_order(s, epochs, emit, lambda rows: self._count(build(
                 rows, seq0=self.seq, now=int(now_wall_ns), method=self.method_name)))
         res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
         return v1_estimates(self, epochs, batch, res, int(now_wall_ns))

@@ -14,8 +14,12 @@ from typing import Any
 
 import numpy as np
 
+from diffpos.channel.emulator import pair_snr_db
 from diffpos.estimators.dnls import solver as dnls_solver
+from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.geometry import window_edge_path
+from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import init_state, update
 
 __all__ = ["warm_model", "warm_up"]
 
@@ -33,13 +37,7 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
                ) -> None:
     """M-NLS, the SNR prediction (with ``radio``) and a throw-away tracker (an initialisation
     and a tracked update, without and with the SNR) on one tiny problem in ``building``:
-    every compiled kernel these calls use is loaded (tests/system/test_fusion_workers_process.py).
-    Its solvers are imported here, not with the module: a ``dnls`` fusion never loads them."""
-    from diffpos.channel.emulator import pair_snr_db
-    from diffpos.estimators.mnls import solver as mnls_solver
-    from diffpos.tracking.state import TrackerConfig
-    from diffpos.tracking.tracker import init_state, update
-
+    every compiled kernel these calls use is loaded (tests/system/test_fusion_workers_process.py)."""
     node, r = _problem(window_height_m, first_floor_z_m)
     sig, mask = np.full((1, 4), 0.1), np.ones((1, 4), bool)
     mnls_solver.mnls(_ANCHORS[None], r[None], sig, building=building)

@@ -51,6 +51,7 @@ from diffpos_services.fusion.config import (
     with_legacy_defaults,
 )
 from diffpos_services.fusion.core import FusionCore
+from diffpos_services.fusion.workers import start_workers
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.reader import (
@@ -1129,17 +1130,6 @@ def shard_plan(settings: ReplaySettings, first_diags: dict[int, M.FusionDiagnost
     return ShardPlan(configs, decided, by_instance, note, report)
 
 
-def _start_workers(core: FusionCore) -> Any:
-    """The tracker's worker processes (:func:`~diffpos_services.fusion.workers.start_workers`)
-    of a core with a tracker; ``None`` without one (imported only then: the workers' module
-    loads the tracker and M-NLS kernels, which a ``dnls`` replay never uses)."""
-    if core.bank is None:
-        return None
-    from diffpos_services.fusion.workers import start_workers
-
-    return start_workers(core, max_processes=os.cpu_count() or 1)
-
-
 def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, step_ms,
          progress, logger, plan, use_decisions, window) -> ReplayResult:
     """Steps 2-4 of :func:`replay` (``tmp``: where the output MCAP goes until complete)."""
@@ -1177,7 +1167,7 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
     first.warm_up()  # the kernels loaded (or compiled) now: not counted as replay time
     # FusionConfig.workers: the same estimates for any count, so never more processes than
     # this machine has cores (a recording made on a bigger machine)
-    rows = _start_workers(first)
+    rows = start_workers(first, max_processes=os.cpu_count() or 1)
     try:
         if rows is not None:
             pool.append(rows)
