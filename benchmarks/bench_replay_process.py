@@ -9,9 +9,13 @@ untimed, so its numba cache is warm (a separate tree has its own cache: the firs
 compiles for minutes).
 
 Per replay: wall seconds of the whole process (interpreter start, imports, kernels, replay,
-report), its CPU (user + system, child processes included: ``os.wait4``), peak RSS
-(``ru_maxrss``), and from the JSON report the replay's own timing and the comparison with the
-recorded live estimates (positions identical / with positions). "x real" is the run's
+report), its CPU (user + system, child processes included: ``os.wait4``; the median and, the
+better guide on a loaded machine, the least of the rounds), peak RSS (``ru_maxrss``), the
+seconds ``-X importtime`` reports for its imports (wall), and from the JSON report the
+replay's own timing and the comparison with the recorded live estimates (positions identical
+/ with positions). ``--bytecode-cache DIR`` keeps both trees' compiled bytecode there (an
+installed package has it; the project's environment sets ``PYTHONDONTWRITEBYTECODE``, so by
+default every process compiles the project's sources again). "x real" is the run's
 emulated length (the truth's span: a lockstep recording's receive times span a different
 time than the run) over the wall seconds; "x cpu" over the CPU seconds, the better guide on a
 shared machine. "us/ne": CPU microseconds per node-epoch (published estimate).
@@ -28,6 +32,7 @@ table.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import os
@@ -54,11 +59,37 @@ def extract_commit(commit: str, dest: Path) -> Path:
     return dest
 
 
-def run_replay(tree: Path, recording: str, method: str) -> dict:
-    """One whole-process replay with ``tree``'s code; its figures."""
+def import_seconds(stderr: str) -> float:
+    """The seconds ``python -X importtime`` reports for the top-level imports (cumulative
+    time of each module imported at the top level, summed): every import of the process,
+    those inside functions included (the fusion's, loaded when the replay starts)."""
+    total = 0
+    for line in stderr.splitlines():
+        if not line.startswith("import time:"):
+            continue
+        parts = line.split("|")
+        if len(parts) == 3 and parts[2].startswith(" ") and not parts[2].startswith("  "):
+            with contextlib.suppress(ValueError):
+                total += int(parts[1])
+    return total / 1e6
+
+
+def child_env(tree: Path, bytecode_dir: str | None) -> dict[str, str]:
+    """The replay's environment: ``tree`` first on the path; with ``bytecode_dir``, compiled
+    bytecode kept there (``PYTHONPYCACHEPREFIX``, as an installed package has it) instead of
+    every process compiling the project's sources again (``PYTHONDONTWRITEBYTECODE``)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), str(tree / "services")]))
-    cmd = [sys.executable, "-m", "diffpos_services.cli.main", "replay", recording, "--no-files",
-           "--json", "--compare", "--no-progress"]
+    if bytecode_dir is not None:
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        env["PYTHONPYCACHEPREFIX"] = bytecode_dir
+    return env
+
+
+def run_replay(tree: Path, recording: str, method: str, bytecode_dir: str | None = None) -> dict:
+    """One whole-process replay with ``tree``'s code; its figures."""
+    env = child_env(tree, bytecode_dir)
+    cmd = [sys.executable, "-X", "importtime", "-m", "diffpos_services.cli.main", "replay",
+           recording, "--no-files", "--json", "--compare", "--no-progress"]
     if method != "default":
         cmd += ["--method", method]
     load = os.getloadavg()[0]
@@ -74,6 +105,8 @@ def run_replay(tree: Path, recording: str, method: str) -> dict:
                                + err.read().decode(errors="replace")[-3000:])
         out.seek(0)
         rep = json.loads(out.read())
+        err.seek(0)
+        imports = import_seconds(err.read().decode(errors="replace"))
     c = rep.get("compare") or {}
     run_s = rep["truth_s"] or rep["recording_s"]
     cpu = ru.ru_utime + ru.ru_stime
@@ -82,6 +115,7 @@ def run_replay(tree: Path, recording: str, method: str) -> dict:
             "fixes": fixes, "x_real": run_s / wall, "x_cpu": run_s / cpu,
             "us_per_ne": 1e6 * cpu / max(fixes, 1), "load": load,
             "replay_wall_s": rep["timing"]["wall_s"], "kernels_s": rep["timing"].get("kernels_s"),
+            "imports_s": imports,
             "identical": c.get("identical_positions"), "with_positions": c.get("with_positions"),
             "status_agree": c.get("status_agree")}
 
@@ -93,8 +127,10 @@ def _median(rows: list[dict], key: str) -> float:
 def _line(label: str, rows: list[dict]) -> str:
     ident = {f"{r['identical']}/{r['with_positions']}" for r in rows}
     return (f"{label:<22} {_median(rows, 'wall_s'):>7.2f} {_median(rows, 'x_real'):>7.2f} "
-            f"{_median(rows, 'cpu_s'):>7.2f} {_median(rows, 'x_cpu'):>7.2f} "
+            f"{_median(rows, 'cpu_s'):>7.2f} {min(r['cpu_s'] for r in rows):>7.2f} "
+            f"{_median(rows, 'x_cpu'):>7.2f} "
             f"{_median(rows, 'us_per_ne'):>7.0f} {max(r['rss_mb'] for r in rows):>7.0f} "
+            f"{_median(rows, 'imports_s'):>8.2f} "
             f"{_median(rows, 'kernels_s'):>8.2f} {_median(rows, 'replay_wall_s'):>8.2f} "
             f"{','.join(sorted(ident)):>13} "
             f"{min(r['load'] for r in rows):>4.1f}-{max(r['load'] for r in rows):<4.1f}")
@@ -109,7 +145,12 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["default", "dnls"],
                     help="default (the recorded method) and/or a --method of replay")
     ap.add_argument("--rounds", type=int, default=3, help="timed replays per tree and method")
+    ap.add_argument("--bytecode-cache", metavar="DIR",
+                    help="keep the compiled bytecode of both trees in DIR (PYTHONPYCACHEPREFIX) "
+                         "instead of the environment's setting (PYTHONDONTWRITEBYTECODE=1 "
+                         "makes every process compile the project's sources again)")
     args = ap.parse_args()
+    bc = args.bytecode_cache
     tmp = None
     if args.before_commit:
         tmp = tempfile.TemporaryDirectory(prefix="bench_before_")
@@ -121,12 +162,12 @@ def main() -> None:
     rows: dict[tuple[str, str], list[dict]] = {}
     for method in args.methods:  # untimed: each tree's numba cache warm
         for _, tree in trees:
-            run_replay(tree, args.recording, method)
+            run_replay(tree, args.recording, method, bc)
     for _ in range(args.rounds):
         for method in args.methods:
             for name, tree in trees:
                 rows.setdefault((method, name), []).append(
-                    run_replay(tree, args.recording, method))
+                    run_replay(tree, args.recording, method, bc))
     print(f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC; machine: "
           f"{platform.machine()}, {os.cpu_count()} cores, {platform.processor() or '?'}, "
           f"Python {platform.python_version()}; shared with other jobs: the load column is "
@@ -134,18 +175,23 @@ def main() -> None:
     first = next(iter(rows.values()))[0]
     print(f"recording {args.recording}: {first['run_s']:.1f} s emulated, {first['fixes']} "
           f"estimates; medians of {args.rounds} whole-process replays each, alternating")
-    print("command: python -m diffpos_services.cli.main replay REC --no-files --json "
-          "--compare --no-progress [--method M]")
-    print(f"\n{'method / tree':<22} {'wall s':>7} {'x real':>7} {'CPU s':>7} {'x cpu':>7} "
-          f"{'us/ne':>7} {'RSS MB':>7} {'kernels':>8} {'replay':>8} {'identical':>13} load")
+    print("command: python -X importtime -m diffpos_services.cli.main replay REC --no-files "
+          "--json --compare --no-progress [--method M]; bytecode: "
+          + (f"cached in {bc}" if bc else "as the environment says (PYTHONDONTWRITEBYTECODE="
+             f"{os.environ.get('PYTHONDONTWRITEBYTECODE', '')!r})"))
+    print(f"\n{'method / tree':<22} {'wall s':>7} {'x real':>7} {'CPU s':>7} {'min':>7} {'x cpu':>7} "
+          f"{'us/ne':>7} {'RSS MB':>7} {'imports':>8} {'kernels':>8} {'replay':>8} "
+          f"{'identical':>13} load")
     for method in args.methods:
         for name, _ in trees:
             print(_line(f"{method}: {name.split(' ')[0]}", rows[(method, name)]))
         b, a = rows[(method, trees[0][0])], rows[(method, trees[1][0])]
         print(f"{method}: after/before      x real {_median(a, 'x_real') / _median(b, 'x_real'):.2f}, "
-              f"CPU {_median(a, 'cpu_s') / _median(b, 'cpu_s'):.2f}, "
+              f"CPU {_median(a, 'cpu_s') / _median(b, 'cpu_s'):.2f} (least "
+              f"{min(r['cpu_s'] for r in a) / min(r['cpu_s'] for r in b):.2f}), "
               f"RSS {max(r['rss_mb'] for r in a) / max(r['rss_mb'] for r in b):.2f}")
-    print("\nkernels: the report's kernels_s (kernel preparation + the fusion's import, wall); "
+    print("\nimports: -X importtime's top-level imports summed (wall, the fusion's included); "
+          "kernels: the report's kernels_s (kernel preparation + the fusion's import, wall); "
           "replay: the report's wall_s (feed + report); identical: live positions reproduced "
           "bit for bit / with positions (--compare)")
     if tmp is not None:

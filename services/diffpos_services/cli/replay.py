@@ -47,24 +47,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-from diffpos.floor_calibration import format_calibration
 from diffpos_services.config import load_json_option
 from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import tracker_help
-from diffpos_services.fusion.prepare import (
-    GROUP_METHODS,
-    KernelError,
-    groups_for,
-    prepare_kernels,
-    progress_display,
-)
-from diffpos_services.heap import keep_heap
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
-from diffpos_services.recording.reader import side_records
-from diffpos_services.recording.summary import live_fusion_settings
+
+# (the kernels' preparation, the recording's reader, the progress bar and the report's
+# formatting are imported where used: `diffpos replay --help` needs none of them)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -340,6 +330,8 @@ def _compare_table(rep: dict[str, Any], p: Any) -> None:
 
 
 def _print_report(rep: dict[str, Any], *, compare: bool) -> None:
+    from diffpos.floor_calibration import format_calibration
+
     p = print
     _header(rep, p)
     warn = dropped_lines(rep)
@@ -395,6 +387,10 @@ def kernel_groups(args: argparse.Namespace, overrides: dict[str, Any]) -> list[s
     the replay will run, read cheaply before the fusion is imported (which compiles): --method,
     else a ``method`` what-if, else the recorded one (``dnls`` when none is recorded or with
     --ignore-recorded-settings, as :func:`~diffpos_services.replay.run.replay_settings`)."""
+    from diffpos_services.fusion.prepare import GROUP_METHODS, groups_for
+    from diffpos_services.recording.reader import side_records
+    from diffpos_services.recording.summary import live_fusion_settings
+
     recorded: dict[str, Any] = {}
     if not args.ignore_recorded_settings:
         try:
@@ -408,7 +404,27 @@ def kernel_groups(args: argparse.Namespace, overrides: dict[str, Any]) -> list[s
     return groups_for(method, tracking=bool(settings.get("tracking", True)))
 
 
+def _progress_bar(src: Path) -> tuple[Any, Any]:
+    """A transient progress bar over the recording's bytes (a terminal only) and its update
+    function; ``(None, None)`` without a terminal."""
+    if not sys.stderr.isatty():
+        return None, None
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    bar = Progress(TextColumn("replay"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                   TimeRemainingColumn(), transient=True)
+    task = bar.add_task("replay", total=max(src.stat().st_size, 1))
+
+    def progress(done: int, total: int) -> None:
+        bar.update(task, completed=done, total=total)
+
+    return bar, progress
+
+
 def run(args: argparse.Namespace) -> int:
+    from diffpos_services.fusion.prepare import KernelError, prepare_kernels, progress_display
+    from diffpos_services.heap import keep_heap
+
     src = Path(args.file)
     out_dir = check_outputs(args)
     keep_heap()  # as the live fusion's process (diffpos_services.heap)
@@ -427,16 +443,8 @@ def run(args: argparse.Namespace) -> int:
 
         kernels_s = time.perf_counter() - t0
 
-        progress = None
-        bar = None
-        if not args.no_progress and sys.stderr.isatty():
-            bar = Progress(TextColumn("replay"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-                           TimeRemainingColumn(), transient=True)
-            task = bar.add_task("replay", total=max(src.stat().st_size, 1))
-
-            def progress(done: int, total: int) -> None:
-                bar.update(task, completed=done, total=total)
-
+        bar, progress = (None, None) if args.no_progress else _progress_bar(src)
+        if bar is not None:
             bar.start()
         try:
             result = replay(src, overrides=overrides, method=args.method, step_ms=args.step_ms,

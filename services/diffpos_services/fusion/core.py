@@ -392,17 +392,20 @@ class FusionCore:
         t, pw = msg.t_ns, msg.t_pub_wall_ns
         if self._owned is not None:
             msg = self._shard_batch(anchor.id, msg, rx_wall_ns)
-        if batch_all_good(self.config, msg, self._nodes, self._allowed_nodes):
-            # the usual batch: every entry valid and every node known, so the per-entry checks
-            # would accept them all and no value is None (what _entry then does, by columns)
-            min_snr, r_col, snr_col = self.config.min_snr_db, msg.range_m, msg.snr_db
+        cols = batch_all_good(self.config, msg, self._nodes, self._allowed_nodes)
+        if cols is not None:
+            # the usual batch: every entry valid (or not detected at all) and every node
+            # known, so the per-entry checks would accept them all (what _entry then does,
+            # by columns)
+            r_col, sg_col, snr_col = cols
+            min_snr = self.config.min_snr_db
             if min_snr is not None and min(snr_col) < min_snr:
                 r_col = [r if snr >= min_snr else None for r, snr in zip(r_col, snr_col, strict=True)]
             n = len(r_col)
             # RangeEntry tuples built in C (the named tuple's __new__ costs 2 us per range)
             entries = list(zip(msg.node_ids, map(
                 _new_tuple, repeat(RangeEntry, n),
-                zip(repeat(t, n), r_col, msg.sigma_m, snr_col, repeat(pw, n),
+                zip(repeat(t, n), r_col, sg_col, snr_col, repeat(pw, n),
                     repeat(rx_wall_ns, n), strict=True)), strict=True))
         else:
             entries = []

@@ -6,7 +6,7 @@
 - :class:`Track`: a node's last good fixes (warm start, velocity);
 - :func:`bad_value`, :func:`bad_state`, :func:`bad_batch`: ``(reason, detail)`` of an
   implausible range, anchor state or range batch, or ``None``; :func:`batch_all_good`: the
-  vectorised check that a whole range batch is plausible;
+  vectorised check that a whole range batch is plausible (its columns as kept, or ``None``);
 - :func:`count_releases`: why each released epoch was released (diagnostics).
 """
 
@@ -182,27 +182,45 @@ def bad_batch(cfg: FusionConfig, msg: M.RangeBatch) -> tuple[str, str] | None:
 
 
 def batch_all_good(cfg: FusionConfig, msg: M.RangeBatch, nodes: set[str],
-                   allowed_nodes: frozenset[str] | None) -> bool:
-    """True if every entry of ``msg`` passes the per-entry checks of
-    :meth:`FusionCore._add_batch` (no null, finite values within the configured limits, only
-    known (``nodes``) and allowed nodes), checked with a few vectorised operations instead of
-    per entry."""
+                   allowed_nodes: frozenset[str] | None) -> tuple[list, list, list] | None:
+    """The columns ``(range_m, sigma_m, snr_db)`` of ``msg`` as the per-entry checks of
+    :meth:`FusionCore._add_batch` would keep them, when every entry passes them: finite values
+    within the configured limits, or no detection at all (range, sigma and SNR all null:
+    kept as range ``None``, sigma 1, SNR -inf, as :meth:`FusionCore._entry` does), only known
+    (``nodes``) and allowed nodes; checked with a few vectorised operations instead of per
+    entry. ``None``: some entry needs the per-entry checks."""
     ids, r, sg, snr = msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db
-    if not ids or None in r or None in sg or None in snr:
-        return False
-    if not nodes.issuperset(ids) or (
+    if not ids or not nodes.issuperset(ids) or (
         allowed_nodes is not None and not allowed_nodes.issuperset(ids)
     ):
-        return False
+        return None
+    missing = r.count(None)
+    if missing and (sg.count(None) != missing or snr.count(None) != missing
+                    or any(sg[i] is not None or snr[i] is not None
+                           for i, v in enumerate(r) if v is None)):
+        return None  # a partly null entry: checked per entry
+    if not missing and (None in sg or None in snr):
+        return None
+    # (None -> NaN; the undetected entries are left out of the checks)
     ra = np.array(r, dtype=np.float64)
     sa = np.array(sg, dtype=np.float64)
     na = np.array(snr, dtype=np.float64)
+    if missing:
+        if missing == len(r):
+            return r, [1.0] * missing, [-math.inf] * missing
+        det = np.fromiter((v is not None for v in r), bool, len(r))
+        ra, sa, na = ra[det], sa[det], na[det]
     # NaN compares False: a non-finite value fails these and takes the checked path
-    return bool(
+    if not bool(
         (ra.max() <= cfg.max_range_m) & (ra.min() >= 0.0)
         & (sa.min() >= cfg.min_sigma_m) & (sa.max() <= cfg.max_sigma_m)
         & (na.min() >= -300.0) & (na.max() <= 300.0)
-    )
+    ):
+        return None
+    if missing:  # the undetected entries as _entry keeps them
+        sg = [1.0 if v is None else v for v in sg]
+        snr = [-math.inf if v is None else v for v in snr]
+    return r, sg, snr
 
 
 def count_releases(book: EpochBook, released: list[PendingEpoch], live: frozenset[str],

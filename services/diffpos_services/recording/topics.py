@@ -67,11 +67,13 @@ class _EstimateStreams:
     candidate N in ``1 .. MAX_INFERRED_SHARDS`` keeps its own per-shard counters and holes;
     the one with the fewest anomalies (holes + repeats; ties: the fewer shards) is reported.
     The true N has none without loss; another N splits or merges counters and has many.
-    After :data:`LOCK_AFTER` estimates the best is kept and only it is followed (cheap)."""
+    After :data:`LOCK_AFTER` estimates the best is kept and only it is followed (cheap).
+    With ``shards`` (the count the run configuration records, e.g. in a replay) only that N
+    is followed from the first estimate: nothing is inferred."""
 
-    def __init__(self, site: str) -> None:
+    def __init__(self, site: str, shards: int | None = None) -> None:
         self.base = f"{PREFIX}/{site}/" + SEQUENCE_STREAMS["estimate"]
-        n_cands = range(1, MAX_INFERRED_SHARDS + 1)
+        n_cands = range(1, max(MAX_INFERRED_SHARDS, shards or 1) + 1)
         self.last: list[dict[int, int]] = [{} for _ in n_cands]
         self.gaps: list[dict[int, int]] = [{} for _ in n_cands]
         self.repeats: list[dict[int, int]] = [{} for _ in n_cands]
@@ -82,6 +84,8 @@ class _EstimateStreams:
         self._best = 0
         self.seen = 0  # estimates while undecided
         self._locked: int | None = None  # the candidate kept after LOCK_AFTER estimates
+        if shards is not None:  # recorded: followed alone from the start
+            self._best = self._locked = shards - 1
 
     def best(self) -> int:
         """Index of the candidate shard count reported (``N - 1``)."""
@@ -131,8 +135,11 @@ class _EstimateStreams:
                 [(self.name(i, k), a, b) for k, a, b in self.holes[i]])
 
 
-def _shards_of(node: str) -> tuple[int, ...]:
-    """The shard owning ``node`` for every candidate shard count ``1 .. MAX_INFERRED_SHARDS``."""
+def _shards_of(node: str, shards: int | None) -> tuple[int, ...]:
+    """The shard owning ``node`` for every candidate shard count ``1 .. MAX_INFERRED_SHARDS``
+    (with a known count ``shards``: only that one's entry is filled, the others 0)."""
+    if shards is not None:
+        return (0,) * (shards - 1) + (shard_of(node, shards),)
     return tuple(shard_of(node, n) for n in range(1, MAX_INFERRED_SHARDS + 1))
 
 
@@ -143,6 +150,13 @@ class SeqTracker:
     the fusion's estimates: one per fusion shard when several share the responders, told
     apart by the node ids as :class:`_EstimateStreams` says). Only :data:`SEQUENCED_KINDS`
     are tracked.
+
+    Parameters
+    ----------
+    estimate_shards : int, optional
+        The fusion shards of the run as its run configuration records them (a replay, which
+        has read it): the estimates' streams are those of that count, not inferred from the
+        sequence numbers (``None``: inferred, the recorder's and live use).
 
     Attributes
     ----------
@@ -156,7 +170,10 @@ class SeqTracker:
         Their sums.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, estimate_shards: int | None = None) -> None:
+        if estimate_shards is not None and estimate_shards < 1:
+            raise ValueError(f"estimate_shards={estimate_shards}: must be >= 1")
+        self._shards = estimate_shards
         self._stream: dict[str, str | None] = {}
         self._last: dict[str, int] = {}
         self._gaps: dict[str, int] = {}
@@ -179,8 +196,9 @@ class SeqTracker:
                 st = f"{PREFIX}/{fields['site']}/node/{fields['node']}/estimate"
                 site = self._est_site.get(fields["site"])
                 if site is None:
-                    site = self._est_site[fields["site"]] = _EstimateStreams(fields["site"])
-                self._est_topic[st] = (site, _shards_of(fields["node"]))
+                    site = self._est_site[fields["site"]] = _EstimateStreams(
+                        fields["site"], self._shards)
+                self._est_topic[st] = (site, _shards_of(fields["node"], self._shards))
             else:
                 st = f"{PREFIX}/{fields['site']}/" + SEQUENCE_STREAMS[kind].format(**fields)
             self._stream[topic] = st

@@ -39,7 +39,7 @@ from diffpos_services.recording.topics import SeqTracker, natural_key
 from diffpos_services.wire import messages as M
 
 __all__ = ["NO_TRACK_STATUSES", "Comparison", "FixStream", "Recorded", "SlimEstimate",
-           "SlimTruth", "TruthBook", "slim_decoders"]
+           "SlimTruth", "TruthBook", "TruthSegments", "slim_decoders"]
 
 _NAN3 = (math.nan, math.nan, math.nan)
 #: Statuses of a fix without a track (the tracker's): its anchors were measured but no track
@@ -107,13 +107,17 @@ def slim_decoders():
 
 
 class TruthBook:
-    """Recorded truth per node, the last ``window_ns`` of it (plus the sampling period)."""
+    """Recorded truth per node, the last ``window_ns`` of it (plus the sampling period).
+
+    Columnar: per node the times (``t``, int64), positions (``p``, x y z flattened) and floors
+    (``f``) in typed arrays, so a batch of fixes is matched to the truth with a few numpy
+    operations (:meth:`segments`, every node at once) instead of a Python call per fix."""
 
     def __init__(self, window_ns: int) -> None:
         self.window_ns = window_ns
-        self.t: dict[str, list[int]] = defaultdict(list)
-        self.p: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
-        self.f: dict[str, list[int]] = defaultdict(list)
+        self.t: dict[str, array.array] = defaultdict(lambda: array.array("q"))
+        self.p: dict[str, array.array] = defaultdict(lambda: array.array("d"))
+        self.f: dict[str, array.array] = defaultdict(lambda: array.array("q"))
         self.first_t: int | None = None
         self.last_t: int | None = None
         self.period: int | None = None
@@ -133,19 +137,19 @@ class TruthBook:
                 self.period = min((b - a for a, b in itertools.pairwise(ts) if b > a),
                                   default=None)
                 self._times = set()
-        ts = self.t[node]
+        ts, ps, fs = self.t[node], self.p[node], self.f[node]
         if ts and t < ts[-1]:  # rare: out of order
             i = bisect.bisect_right(ts, t)
             ts.insert(i, t)
-            self.p[node].insert(i, tuple(pos))
-            self.f[node].insert(i, floor)
+            ps[3 * i:3 * i] = array.array("d", pos)
+            fs.insert(i, floor)
         else:
             ts.append(t)
-            self.p[node].append(tuple(pos))
-            self.f[node].append(floor)
+            ps.extend(pos)
+            fs.append(floor)
         if ts[-1] - ts[0] > 2 * self.window_ns:  # keep the last window
             cut = bisect.bisect_left(ts, ts[-1] - self.window_ns)
-            del ts[:cut], self.p[node][:cut], self.f[node][:cut]
+            del ts[:cut], ps[:3 * cut], fs[:cut]
 
     def finish_period(self) -> None:
         if self.period is None and len(self._times) > 1:
@@ -157,30 +161,92 @@ class TruthBook:
         ts = self.t.get(node)
         return ts[-1] if ts else None
 
+    def columns(self, node: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The node's truth as arrays (copies): times (n,) [ns], positions (n, 3) [m],
+        floors (n,)."""
+        ts = self.t.get(node)
+        if not ts:
+            return np.empty(0, np.int64), np.empty((0, 3)), np.empty(0, np.int64)
+        return (np.frombuffer(ts, np.int64).copy(),
+                np.frombuffer(self.p[node], np.float64).reshape(-1, 3).copy(),
+                np.frombuffer(self.f[node], np.int64).copy())
+
+    def segments(self, nodes: list[str]) -> TruthSegments:
+        """The truth of ``nodes`` as one set of columns, a segment per node (in order)."""
+        cols = [self.columns(n) for n in nodes]
+        return TruthSegments(*(np.concatenate([c[i] for c in cols]) for i in range(3)),
+                             np.array([c[0].size for c in cols], np.int64))
+
     def at(self, node: str, t: int, max_gap_ns: int):
         """(position interpolated at t, floor of the nearest sample) or None (no sample
         within ``max_gap_ns``): what :func:`..evaluate.evaluate` did over the whole track."""
-        ts = self.t.get(node)
-        if not ts:
-            return None
-        n = len(ts)
-        j = bisect.bisect_left(ts, t)
-        left, right = max(j - 1, 0), min(j, n - 1)
-        dl, dr = abs(t - ts[left]), abs(t - ts[right])
-        near = left if dl <= dr else right
-        if min(dl, dr) > max_gap_ns:
-            return None
-        ps = self.p[node]
-        if t <= ts[0]:
-            pos = ps[0]
-        elif t >= ts[-1]:
-            pos = ps[-1]
-        else:
-            t0, t1 = ts[j - 1], ts[j]
-            w = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
-            a, b = ps[j - 1], ps[j]
-            pos = (a[0] + w * (b[0] - a[0]), a[1] + w * (b[1] - a[1]), a[2] + w * (b[2] - a[2]))
-        return pos, self.f[node][near]
+        pos, floor, ok = self.segments([node]).at(np.zeros(1, np.int64),
+                                                  np.array([t], np.int64), max_gap_ns)
+        return (tuple(pos[0].tolist()), int(floor[0])) if ok[0] else None
+
+
+@dataclasses.dataclass
+class TruthSegments:
+    """Several nodes' truth as one set of columns (:meth:`TruthBook.segments`): times
+    ``t`` [ns], positions ``p`` (n, 3) [m] and floors ``f`` of segment ``k`` (its node) at
+    ``start[k] .. start[k] + size[k] - 1``, each segment sorted by time."""
+
+    t: np.ndarray
+    p: np.ndarray
+    f: np.ndarray
+    size: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.start = np.concatenate([[0], np.cumsum(self.size)[:-1]]).astype(np.int64)
+
+    def search(self, seg: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``bisect_left`` of each time ``t[i]`` within its segment ``seg[i]`` (local index)."""
+        if self.t.size == 0:
+            return np.zeros(t.size, np.int64)
+        base = int(min(self.t.min(), t.min()))
+        span = int(max(self.t.max(), t.max())) - base + 1
+        s0 = self.start[seg]
+        if span * max(self.size.size, 1) < 2**62:  # one search over (segment, time) keys
+            own = np.repeat(np.arange(self.size.size, dtype=np.int64), self.size)
+            keys = (self.t - base) + own * span
+            return np.searchsorted(keys, (t - base) + seg * span, side="left") - s0
+        j = np.empty(t.size, np.int64)  # (times too far apart for one key: per segment)
+        for k in np.unique(seg).tolist():
+            sel = seg == k
+            lo = int(self.start[k])
+            j[sel] = np.searchsorted(self.t[lo:lo + int(self.size[k])], t[sel], side="left")
+        return j
+
+    def at(self, seg: np.ndarray, t: np.ndarray, max_gap_ns: int
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`TruthBook.at` of each time ``t[i]`` (int64 [ns]) in its segment ``seg[i]``
+        at once: positions (k, 3), floors (k,) and whether a sample is within ``max_gap_ns``
+        (k,) (where not, position and floor are meaningless). The same arithmetic as the
+        scalar interpolation, element by element: bit-identical values."""
+        k, top = t.size, self.t.size - 1
+        if top < 0:
+            return np.zeros((k, 3)), np.zeros(k, np.int64), np.zeros(k, bool)
+        n, s0 = self.size[seg], self.start[seg]
+        j = self.search(seg, t)
+
+        def g(i: np.ndarray) -> np.ndarray:  # a local index -> a global one, kept in range
+            return np.clip(s0 + i, 0, top)
+
+        left, right = np.maximum(j - 1, 0), np.minimum(j, n - 1)
+        dl, dr = np.abs(t - self.t[g(left)]), np.abs(t - self.t[g(right)])
+        near = np.where(dl <= dr, left, right)
+        ok = (n > 0) & (np.minimum(dl, dr) <= max_gap_ns)
+        jc = np.clip(j, 1, np.maximum(n - 1, 1))
+        i0, i1 = g(jc - 1), g(jc)
+        t0, t1 = self.t[i0], self.t[i1]
+        span = t1 - t0
+        w = np.where(span > 0, (t - t0) / np.where(span > 0, span, 1), 0.0)
+        a, b = self.p[i0], self.p[i1]
+        pos = a + w[:, None] * (b - a)
+        first, last = g(np.zeros_like(n)), g(n - 1)
+        pos = np.where((t <= self.t[first])[:, None], self.p[first],
+                       np.where((t >= self.t[last])[:, None], self.p[last], pos))
+        return pos, self.f[g(near)], ok
 
 
 @dataclasses.dataclass
@@ -231,7 +297,8 @@ class FixStream:
         self.total = 0
         self.by_status: Counter[str] = Counter()
         self.fixes_by_node: Counter[str] = Counter()
-        self.used: Counter[str] = Counter()
+        self._used: Counter[str] = Counter()
+        self._used_lists: list[list[str]] = []  # each fix's used anchors, not counted yet
         self.excluded: dict[str, Counter[str]] = defaultdict(Counter)
         self.no_track: Counter[str] = Counter()  # per anchor: measured, no track to use it
         self.positioned: Counter[str] = Counter()  # per node: fixes with a usable position
@@ -250,8 +317,9 @@ class FixStream:
         self._stats: dict[int, StreamingErrorStats] = {}  # per node index
         self._overall = StreamingErrorStats()
         self._ne_stats = StreamingScore()
-        self._cov_d: list = []
-        self._cov_c: list = []
+        self._cov_d: list[np.ndarray] = []  # blocks of (k, 3) differences [m]
+        self._cov_c: list = []  # their covariances, one per row
+        self._cov_n = 0  # rows in _cov_d
         self._cov_in = 0
         self._cov_ok = 0
 
@@ -259,7 +327,7 @@ class FixStream:
         self.total += 1
         self.by_status[e.status] += 1
         self.fixes_by_node[e.node_id] += 1
-        self.used.update(e.used_anchors)
+        self._used_lists.append(e.used_anchors)  # (counted in bulk: :attr:`used`)
         no_track = e.status in NO_TRACK_STATUSES
         for x in e.excluded:
             if no_track and x.reason == "RAIM":
@@ -273,27 +341,55 @@ class FixStream:
             self._pending[e.node_id].append(fix)
             self._ne_add(e.node_id, fix)
 
+    @property
+    def used(self) -> Counter[str]:
+        """Per anchor: the fixes that used it."""
+        if self._used_lists:
+            self._used.update(itertools.chain.from_iterable(self._used_lists))
+            self._used_lists = []
+        return self._used
+
     # -- per fix against the truth (evaluate) ----------------------------------------------
-    def _score_fix(self, node: str, fix: tuple) -> None:
-        t, pos, peb, floor = fix[:4]
-        at = self.truth.at(node, t, self.gap)
-        if at is None:
-            self.no_truth += 1
+    def _score_fixes(self, ready: list[tuple[str, list[tuple]]]) -> None:
+        """Score each node's ready fixes (nodes and fixes in order) against the truth at
+        their times, every node at once."""
+        nodes = [node for node, _ in ready]
+        counts = [len(f) for _, f in ready]
+        fixes = list(itertools.chain.from_iterable(f for _, f in ready))
+        t_l, pos_l, peb_l, floor_l = list(zip(*fixes, strict=True))[:4]
+        seg = np.repeat(np.arange(len(nodes), dtype=np.int64), counts)
+        pos, tf, ok = self.truth.segments(nodes).at(seg, np.array(t_l, np.int64), self.gap)
+        n_ok = int(np.count_nonzero(ok))
+        self.no_truth += len(fixes) - n_ok
+        if not n_ok:
             return
-        tp, tf = at
-        dx, dy, dz = pos[0] - tp[0], pos[1] - tp[1], pos[2] - tp[2]
-        err = self._err
-        i = self._nodes.get(node)
-        if i is None:
-            i = self._nodes[node] = len(self._nodes)
-        err.node.append(i)
-        err.e3.append(math.sqrt(dx * dx + dy * dy + dz * dz))
-        err.ez.append(abs(dz))
-        err.eh.append(math.sqrt(dx * dx + dy * dy))
-        err.peb.append(math.nan if peb is None else peb)
-        err.fok.append((-999 if floor is None else floor) == tf)
-        if len(err.e3) >= _BATCH:
-            self._flush_errors()
+        scored = np.bincount(seg[ok], minlength=len(nodes)).tolist()
+        index = np.zeros(len(nodes), np.int64)
+        for k, node in enumerate(nodes):  # each node's index at its first scored fix
+            if scored[k]:
+                index[k] = self._nodes.setdefault(node, len(self._nodes))
+        d = np.array(pos_l, np.float64)[ok] - pos[ok]
+        dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+        peb = np.array([math.nan if v is None else v for v in peb_l], np.float64)[ok]
+        floor = np.array([-999 if v is None else v for v in floor_l], np.int64)[ok]
+        self._push_errors(index[seg[ok]], np.sqrt(dx * dx + dy * dy + dz * dz), np.abs(dz),
+                          np.sqrt(dx * dx + dy * dy), peb, (floor == tf[ok]).astype(np.int8))
+
+    def _push_errors(self, node_i: np.ndarray, e3: np.ndarray, ez: np.ndarray, eh: np.ndarray,
+                     peb: np.ndarray, fok: np.ndarray) -> None:
+        """Scored fixes into the batch, flushed into the summaries every :data:`_BATCH`
+        values exactly (the summaries see the same batches as fix by fix)."""
+        done, n = 0, e3.size
+        while done < n:
+            err = self._err
+            take = min(_BATCH - len(err.e3), n - done)
+            sl = slice(done, done + take)
+            for col, vals in ((err.node, node_i.astype(np.uint16)), (err.e3, e3), (err.ez, ez),
+                              (err.eh, eh), (err.peb, peb), (err.fok, fok)):
+                col.frombytes(vals[sl].tobytes())
+            done += take
+            if len(err.e3) >= _BATCH:
+                self._flush_errors()
 
     def _flush_errors(self) -> None:
         """The batch of scored fixes into the per-node and overall summaries."""
@@ -329,37 +425,75 @@ class FixStream:
         for (node, k), fix in old.items():
             self._ne_fix[(node, fix[0] // period if k < 0 else k)] = fix
 
-    def _ne_score(self, node: str, upto_t: int) -> None:
-        """Score the node's truth samples up to ``upto_t`` (older ones than the window)."""
-        tb = self.truth
+    def _ne_score(self, final: bool) -> None:
+        """Score every node's truth samples up to its newest (``final``) or half a window
+        before it: each sample's fix (same node and epoch) against the truth at the fix's
+        own time (:func:`diffpos.metrics.truth_at`), a miss where none; as columns, nodes
+        in order, the samples of a node in time order. The buffers are flushed after the
+        node where they fill up, as one node at a time would."""
+        tb, pop = self.truth, self._ne_fix.pop
         period, start = tb.period, tb.first_t + self.skip_ns
-        ts, ps, fs = tb.t[node], tb.p[node], tb.f[node]
-        i = bisect.bisect_left(ts, max(self._ne_next.get(node, start), start))
-        while i < len(ts) and ts[i] <= upto_t:
-            t = ts[i]
-            fix = self._ne_fix.pop((node, t // period), None)
-            p, f = ps[i], fs[i]
-            if fix is None:
-                self._ne_d.extend(_NAN3)
-                self._ne_ef.append(-1)
-                self._ne_p.append(())
-            else:  # the truth at the fix's own time (diffpos.metrics.truth_at)
-                p, f = tb.at(node, fix[0], period) or (p, f)
-                fp = fix[1]
-                d = (fp[0] - p[0], fp[1] - p[1], fp[2] - p[2])
-                self._ne_d.extend(d)
-                self._ne_ef.append(-1 if fix[3] is None else fix[3])
-                self._ne_p.append(fix[5])
-                if fix[4] is not None:
-                    self._cov_d.append(d)
-                    self._cov_c.append(fix[4])
-            self._ne_tf.append(f)
-            i += 1
-            self._ne_next[node] = t + 1
-        if len(self._cov_d) >= _COV_BATCH:
-            self._coverage()
-        if len(self._ne_tf) >= _BATCH:
-            self._flush_node_epochs()
+        group: list[tuple[str, int, int, list]] = []
+        n_tf, n_cov = len(self._ne_tf), self._cov_n
+        for node in list(tb.t):
+            ts = tb.t[node]
+            if not ts:
+                continue
+            upto = ts[-1] if final else ts[-1] - self.window_ns // 2
+            i0 = bisect.bisect_left(ts, max(self._ne_next.get(node, start), start))
+            i1 = max(i0, bisect.bisect_right(ts, upto))
+            if i1 == i0:
+                continue
+            fixes = [pop((node, t // period), None) for t in ts[i0:i1].tolist()]
+            group.append((node, i0, i1, fixes))
+            self._ne_next[node] = ts[i1 - 1] + 1
+            n_tf += i1 - i0
+            n_cov += sum(1 for x in fixes if x is not None and x[4] is not None)
+            if n_cov >= _COV_BATCH or n_tf >= _BATCH:
+                self._ne_columns(group)
+                group = []
+                if self._cov_n >= _COV_BATCH:
+                    self._coverage()
+                if len(self._ne_tf) >= _BATCH:
+                    self._flush_node_epochs()
+                n_tf, n_cov = len(self._ne_tf), self._cov_n
+        if group:
+            self._ne_columns(group)
+
+    def _ne_columns(self, group: list[tuple[str, int, int, list]]) -> None:
+        """The node-epochs of ``(node, i0, i1, fixes)``: the node's truth samples ``i0 ..
+        i1 - 1`` and their fixes (``None``: a miss), into the buffers."""
+        tb = self.truth
+        segs = tb.segments([g[0] for g in group])
+        rows = np.concatenate([np.arange(s0 + i0, s0 + i1) for (_, i0, i1, _), s0
+                               in zip(group, segs.start.tolist(), strict=True)])
+        p, f = segs.p[rows], segs.f[rows]  # a miss: the sample's own truth
+        fixes = list(itertools.chain.from_iterable(g[3] for g in group))
+        n = len(fixes)
+        d = np.full((n, 3), np.nan)
+        ef = np.full(n, -1, np.int64)
+        found = [k for k, fix in enumerate(fixes) if fix is not None]
+        probs: list = [()] * n
+        if found:
+            got = [fixes[k] for k in found]
+            seg = np.repeat(np.arange(len(group), dtype=np.int64),
+                            [g[2] - g[1] for g in group])[found]
+            tp, tf, ok = segs.at(seg, np.array([x[0] for x in got], np.int64), tb.period)
+            tp = np.where(ok[:, None], tp, p[found])
+            f[found] = np.where(ok, tf, f[found])
+            d[found] = np.array([x[1] for x in got], np.float64) - tp
+            ef[found] = [-1 if x[3] is None else x[3] for x in got]
+            for k, x in zip(found, got, strict=True):
+                probs[k] = x[5]
+            cov = [(k, x[4]) for k, x in zip(found, got, strict=True) if x[4] is not None]
+            if cov:
+                self._cov_d.append(d[[k for k, _ in cov]])
+                self._cov_c.extend(c for _, c in cov)
+                self._cov_n += len(cov)
+        self._ne_d.frombytes(d.tobytes())
+        self._ne_ef.extend(ef.tolist())
+        self._ne_tf.extend(f.tolist())
+        self._ne_p.extend(probs)
 
     def _flush_node_epochs(self) -> None:
         if not len(self._ne_tf):
@@ -372,26 +506,40 @@ class FixStream:
         self._ne_p = []
 
     def _coverage(self) -> None:
-        if not self._cov_d:
+        if not self._cov_n:
             return
-        d, c = np.array(self._cov_d, float), np.array(self._cov_c, float).reshape(-1, 3, 3)
+        d, c = np.concatenate(self._cov_d), np.array(self._cov_c, float).reshape(-1, 3, 3)
         ok = int((np.isfinite(d).all(axis=1) & np.isfinite(c).all(axis=(1, 2))).sum())
         cov = ellipsoid_coverage(d, c)
         if cov is not None:
             self._cov_in += round(cov * ok)
             self._cov_ok += ok
-        self._cov_d, self._cov_c = [], []
+        self._cov_d, self._cov_c, self._cov_n = [], [], 0
 
     # -- time ------------------------------------------------------------------------------
     def advance(self, now_ns: int, *, final: bool = False) -> None:
         """Score what the truth now covers: fixes the node's truth has passed (or all, when
         ``final``); node-epochs a window older than the node's newest truth."""
         tb = self.truth
+        _ = self.used  # (the anchors' counts: bounded memory)
+        ready: list[tuple[str, list[tuple]]] = []  # each node's fixes to score, in order
         for node, q in self._pending.items():
+            if not q:
+                continue
             newest = tb.newest(node)
-            while q and (final or (newest is not None and newest >= q[0][0])
-                         or now_ns - q[0][0] > self.window_ns):
-                self._score_fix(node, q.popleft())
+            k = len(q)
+            if not final:  # the fixes the truth passed (or older than the window), in order
+                old = now_ns - self.window_ns
+                k = 0
+                for fix in q:
+                    t = fix[0]
+                    if not ((newest is not None and newest >= t) or t < old):
+                        break
+                    k += 1
+            if k:
+                ready.append((node, [q.popleft() for _ in range(k)]))
+        if ready:
+            self._score_fixes(ready)
         if tb.period is None:
             if not final:
                 return
@@ -401,10 +549,7 @@ class FixStream:
         if self._unkeyed:
             self._ne_rekey()
             self._unkeyed = False
-        for node in list(tb.t):
-            newest = tb.newest(node)
-            if newest is not None:
-                self._ne_score(node, newest if final else newest - self.window_ns // 2)
+        self._ne_score(final)
         if final:
             self._ne_fix.clear()
             self._coverage()
@@ -530,10 +675,13 @@ class Comparison:
 class Recorded:
     """What replay's feed collects besides the fusion's input (``input_kinds``), its
     diagnostics and the anchors' liveliness: truth, live and replayed fixes (reduced as they
-    come), their comparison, counts; with ``keep_estimates`` also the estimates."""
+    come), their comparison, counts; with ``keep_estimates`` also the estimates.
+    ``estimate_shards``: the fusion shards the run configuration records (the estimates'
+    sequence streams, :class:`~diffpos_services.recording.topics.SeqTracker`)."""
 
     def __init__(self, input_kinds: tuple[str, ...], *, max_truth_gap_ns: int,
-                 keep_estimates: bool, window_ns: int) -> None:
+                 keep_estimates: bool, window_ns: int,
+                 estimate_shards: int | None = None) -> None:
         self.input_kinds = input_kinds
         self.truth = TruthBook(window_ns)
         kw = {"max_truth_gap_ns": max_truth_gap_ns, "window_ns": window_ns}
@@ -542,7 +690,7 @@ class Recorded:
         self.keep: tuple[list, list] | None = ([], []) if keep_estimates else None
         self.counts: Counter[str] = Counter()
         self.bad_payloads: Counter[str] = Counter()
-        self.seq = SeqTracker()
+        self.seq = SeqTracker(estimate_shards)  # (None: the shard count inferred)
         self.t_origin: int | None = None  # the recording's first message (receive time)
         self.t_first: int | None = None
         self.t_last: int | None = None

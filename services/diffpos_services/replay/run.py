@@ -313,6 +313,13 @@ def recorded_shards(side: SideRecords) -> tuple[int, list[dict[str, Any]] | None
     ``fusion_shards``; 1 when it says nothing) and each shard's settings (``fusion_by_shard``,
     recorded since the shards' diagnostics say which shard sent them; ``None``: not
     recorded), from the metadata, else the ``run_config.json`` attachment."""
+    n, per = _run_config_shards(side)
+    return n or 1, per
+
+
+def _run_config_shards(side: SideRecords) -> tuple[int | None, list[dict[str, Any]] | None]:
+    """:func:`recorded_shards`, with ``None`` for a count the run configuration does not
+    state (no ``run_config``, or one without ``emulate.fusion_shards``)."""
     doc: dict[str, Any] = {}
     for md in side.metadata:
         if md.name == "run_config":
@@ -327,10 +334,10 @@ def recorded_shards(side: SideRecords) -> tuple[int, list[dict[str, Any]] | None
                     doc = json.loads(att.data)
                 break
     emu = doc.get("emulate") if isinstance(doc, dict) else None
-    n = emu.get("fusion_shards", 1) if isinstance(emu, dict) else 1
-    n = n if isinstance(n, int) and n >= 1 else 1
+    n = emu.get("fusion_shards") if isinstance(emu, dict) else None
+    n = n if isinstance(n, int) and n >= 1 else None
     per = doc.get("fusion_by_shard") if isinstance(doc, dict) else None
-    ok = isinstance(per, list) and len(per) == n and all(isinstance(d, dict) for d in per)
+    ok = isinstance(per, list) and len(per) == (n or 1) and all(isinstance(d, dict) for d in per)
     return n, per if ok else None
 
 
@@ -1046,8 +1053,11 @@ def replay(
         log.warning("%s", plan.note)
     with contextlib.ExitStack() as stack:
         tmp = None if out_mcap is None else stack.enter_context(atomic_path(out_mcap))
+        # the estimates' sequence streams: of the shard count the run configuration records
+        # (else inferred from the sequence numbers, recording.topics.SeqTracker)
         rec = Recorded(FUSION_INPUT_KINDS, max_truth_gap_ns=round(max_truth_gap_s * 1e9),
-                       keep_estimates=keep_estimates, window_ns=_WINDOW_NS)
+                       keep_estimates=keep_estimates, window_ns=_WINDOW_NS,
+                       estimate_shards=_run_config_shards(side)[0])
         return _run(path, scanner, settings, ahead, rest, tmp, rec, side=side,
                     copy_input=copy_input, step_ms=step_ms, progress=progress, logger=logger,
                     plan=plan, use_decisions=use_decisions, window=(start_s, end_s))
