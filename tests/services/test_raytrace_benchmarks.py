@@ -67,4 +67,12 @@ def test_floor_shares_count_misses_and_the_detected_subset():
     det = np.array([[1, 1, 1, 1], [1, 1, 1, 1], [1, 1, 1, 0], [1, 1, 1, 0], [1, 1, 0, 0]], bool)
     r = study_raytrace.floor_shares(est, truth, det, b)
     # receivers 0..3 have >= 3 anchors; right floor: 0 and 3 of them; of all: 0 and 3
+    conf_wrong = r.pop("conf_wrong")
     assert r == {"n": 5, "n_det": 4, "floor_det": 0.5, "floor_all": 0.4}
+    assert np.isnan(conf_wrong)  # no floor probabilities given
+    # receiver 1 (wrong floor 0) at p = 0.97 is confidently wrong, receiver 3 (right) at 0.99
+    # is not, receiver 2 (no fix) never is: 1 of the 4 with >= 3 anchors
+    prob = np.full((5, b.n_floors), 0.01)
+    prob[[0, 1, 3, 4], [0, 0, 3, 3]] = [0.5, 0.97, 0.99, 0.97]
+    r = study_raytrace.floor_shares(est, truth, det, b, floor_probability=prob)
+    assert r["conf_wrong"] == 0.25
