@@ -71,7 +71,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from diffpos.channel.families_nb import eval_family_snr
 from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
-from diffpos.channel.slots import _C, _Ctx, _materials, _slots, partition_permittivities
+from diffpos.channel.slots import (
+    _C,
+    _Ctx,
+    _materials,
+    _slots,
+    itu_permittivity,
+    partition_permittivities,
+)
 from diffpos.channel.snr_nb import channel_params, eval_snr_kernel, eval_snr_masked_kernel
 from diffpos.paths.mechanisms import MECHANISMS, MechanismSet, Recipe, mechanism_set
 from diffpos.paths.model import first_arrival_paths
@@ -117,7 +124,8 @@ def _params(building: Building, radio: Radio) -> tuple:
     numpy emulator's materials and the partitions' permittivities."""
     f = radio.frequency_hz
     return channel_params(building, radio, _materials(building, f),
-                          partition_permittivities(building, f))
+                          partition_permittivities(building, f),
+                          itu_permittivity(building.wall_material, f))
 
 
 def channel_mechanisms(radio: Radio) -> MechanismSet:

@@ -78,7 +78,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "974447ead693b5d0"
+CALLEES_SHA256 = "bda4b3641240d474"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
@@ -91,7 +91,7 @@ _f8_3d = types.float64[:, :, ::1]
 #: The one compiled signature of :func:`family_snr_kernel`.
 FAMILY_SIGNATURE = types.void(
     _f8_3d, _f8_2d,  # anchors (N, M, 3), nodes (N, 3)
-    _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (ground, interior, parts)
+    _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (ground, interior, parts, wall)
     types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,)
     _f8_3d, _f8_3d,  # out (N, M, S) [dB], out_len (N, M, S) [m]
 )
@@ -227,9 +227,11 @@ def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
 
 @njit(**_OPTS)
 def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in,
-                 edge, sq2pik, part, eta_p):
+                 edge, sq2pik, part, eta_p, eta_wall):
     """slots._diffracted_family for table row ``s``: (|gain|, loss [dB] incl. the pattern,
-    arrival vector, length, ok); ``part``, ``eta_p``: :func:`_spec_family`'s."""
+    arrival vector, length, ok); ``part``, ``eta_p``: :func:`_spec_family`'s; ``eta_wall``:
+    the side wall's permittivity (a vertical edge's dielectric sheet; the horizontal edges
+    are perfectly conducting sheets, as in the 18)."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     ground = table[s, COL_GROUND] == 1
     code = table[s, COL_EDGE]
@@ -243,13 +245,16 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     if code == 0:  # upper: the wall above the window
         q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0, hi, edge)
         ed0, ed2, tf1, tf2 = 1.0, 0.0, 0.0, 1.0
+        sheet = 0j
     elif code == 1:  # lower: the wall below it
         q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0, lo, edge)
         ed0, ed2, tf1, tf2 = -1.0, 0.0, 0.0, -1.0
-    else:  # vertical at x0 / x1: the side wall, into the building
+        sheet = 0j
+    else:  # vertical at x0 / x1: the side wall (dielectric), into the building
         q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0 if code == 2 else x1, lo,
                                  vertical_axis(lo, hi))
         ed0, ed2, tf1, tf2 = 0.0, (1.0 if code == 2 else -1.0), 1.0, 0.0
+        sheet = eta_wall
     s_in = math.sqrt((s0 - q0) ** 2 + (s1 - q1) ** 2 + (s2 - q2) ** 2)
     s_out = math.sqrt((o0 - q0) ** 2 + (o1 - q1) ** 2 + (o2 - q2) ** 2)
     length = s_in + s_out
@@ -275,9 +280,9 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
                                prm[_P_TX_PEAK])
         e0, e1, e2, e3, e4, e5 = prm[_P_E0], 0.0, prm[_P_E0 + 1], 0.0, prm[_P_E0 + 2], 0.0
     r = utd_field_frame(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, ed0, 0.0, ed2, 0.0,
-                        tf1, tf2, prm, sq2pik, e0, e2, e4)
+                        tf1, tf2, prm, sq2pik, e0, e2, e4, sheet)
     im = utd_field_frame(s0, s1, s2, o0, o1, o2, q0, q1, q2, s_in, s_out, ed0, 0.0, ed2, 0.0,
-                         tf1, tf2, prm, sq2pik, e1, e3, e5)
+                         tf1, tf2, prm, sq2pik, e1, e3, e5, sheet)
     # field = UTD(Re e) + j UTD(Im e), each a (re, im) triple
     f0, f1 = r[0] - im[1], r[1] + im[0]
     f2, f3 = r[2] - im[3], r[3] + im[2]
@@ -310,7 +315,8 @@ def _family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta, e
                                eta[0], eta[1], part, eta_p)
         elif kind == 2:
             res = _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts,
-                               eta[0], eta[1], edge, sq2pik, part, eta_p)
+                               eta[0], eta[1], edge, sq2pik, part, eta_p,
+                               eta[2 + parts.shape[0]])
         else:
             break
         if res[6] and res[0] != 0.0 and (not best[6] or res[5] < best[5]):

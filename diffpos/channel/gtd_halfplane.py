@@ -70,6 +70,29 @@ this plane-wave factor by the spherical incident amplitude ``1/s'`` (its Corolla
 The power ratio of Theorem 3 is barely affected (the upper and lower paths have nearly the
 same ``s, s'``).
 
+Dielectric sheet (``face_permittivity``; the emulator's vertical window edges)
+------------------------------------------------------------------------------
+A wall is concrete, not a perfect conductor. Splitting the half-plane's secant terms back into
+the wedge's four cotangent terms (``n = 2``: ``cot((pi -+ b)/4) = (1 +- sin(b/2)) / cos(b/2)``)
+gives ``T(b+) = D3 + D4`` with ``D4 = (1 + sin(b+/2))/2 T(b+)`` (the lit face's reflection
+boundary ``psi = pi - psi'``) and ``D3 = (1 - sin(b+/2))/2 T(b+)`` (the other face's).
+Luebbers' finite-conductivity UTD (IEEE Trans. AP-32, 1984) weights each reflection term with
+its face's Fresnel coefficient instead of the conductor's ``-1`` (soft) / ``+1`` (hard)::
+
+    D_{s,h} = prefactor [T(b-) + w_{s,h} T(b+)],
+    w = ((1 + sin(b+/2)) R0 + (1 - sin(b+/2)) Rn) / 2
+
+with ``R0`` the lit face's TE (soft) / TM (hard) coefficient at the incident ray's angle
+(``cos = |s' . n0|``). The other face of a sheet lit from the ``n0`` side receives no incident
+field, so it has no reflection boundary and no angle of its own: ``Rn`` takes the grazing
+limit of any finite permittivity, ``-1`` for both polarisations (the TM coefficient of a
+dielectric tends to -1 at grazing incidence where a conductor's is +1). With ``R0 = -1`` the
+soft coefficient is Kouyoumjian-Pathak's; the hard one is not: a perfect conductor doubles
+the hard field along its shadowed face (``D3 + D4`` add), a dielectric one does not. This is
+the ray tracer's choice too (Sionna RT 2.2 ``RadioMaterial._diffraction_matrix``: ``Rn = -I``
+for a face the incident wave does not see), whose hard field of a concrete side-wall edge is
+up to 18 dB weaker than the conductor's deep in the shadow (docs/channel_mix.md).
+
 The paper's window edges, their power ratio (Theorem 3) and Lemma 3 are in
 :mod:`diffpos.channel.gtd`, built on this module.
 """
@@ -376,6 +399,7 @@ def utd_coefficients(
     distance_param_m: ArrayLike,
     *,
     frequency_hz: float | ArrayLike,
+    lit_face_reflection: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> tuple[ComplexArray, ComplexArray]:
     """UTD (Kouyoumjian-Pathak 1974) soft and hard coefficients of a half-plane (wedge ``n = 2``).
 
@@ -391,6 +415,11 @@ def utd_coefficients(
     distance_param_m : array_like, shape (...) [m]
         Distance parameter ``L`` (see :func:`distance_parameter_m`).
     frequency_hz : float or array_like [Hz]
+    lit_face_reflection : (array_like, array_like) of complex, optional
+        A dielectric sheet instead of a perfectly conducting one: the Fresnel reflection
+        coefficients (TE for the soft, TM for the hard coefficient) of the lit face (the
+        ``n0`` side, facing the source) at the incident ray's angle. See the module docstring
+        ("Dielectric sheet"). Default: the perfect conductor (``-1`` soft, ``+1`` hard).
 
     Returns
     -------
@@ -408,7 +437,13 @@ def utd_coefficients(
     kl = k * big_l
     t_minus = _utd_term(psi - psi_in, kl)
     t_plus = _utd_term(psi + psi_in, kl)
-    return pre * (t_minus - t_plus), pre * (t_minus + t_plus)
+    if lit_face_reflection is None:
+        return pre * (t_minus - t_plus), pre * (t_minus + t_plus)
+    sp = np.sin(0.5 * (psi + psi_in))
+    r_s, r_h = (np.asarray(r, dtype=np.complex128) for r in lit_face_reflection)
+    w_s = 0.5 * ((1.0 + sp) * r_s - (1.0 - sp))
+    w_h = 0.5 * ((1.0 + sp) * r_h - (1.0 - sp))
+    return pre * (t_minus + w_s * t_plus), pre * (t_minus + w_h * t_plus)
 
 
 def _check_spreading(spreading: str) -> None:
@@ -457,16 +492,23 @@ def spreading_factor(
 
 
 def _coefficients_for(
-    frame: EdgeFrame, k_hz: float | ArrayLike, coefficients: str, spreading: str
+    frame: EdgeFrame, k_hz: float | ArrayLike, coefficients: str, spreading: str,
+    face_permittivity: complex | None = None,
 ) -> tuple[ComplexArray, ComplexArray]:
     key = str(coefficients).lower()
     if key == "utd":
         big_l = distance_parameter_m(
             frame.s_in_m, frame.s_out_m, frame.sin_gamma0, spreading=spreading
         )  # type: ignore[arg-type]
+        lit = None
+        if face_permittivity is not None:
+            lit = _fresnel(np.abs(_dot(frame.s_in, frame.n0)), complex(face_permittivity))
         return utd_coefficients(
-            frame.psi_rad, frame.psi_in_rad, frame.gamma0_rad, big_l, frequency_hz=k_hz
+            frame.psi_rad, frame.psi_in_rad, frame.gamma0_rad, big_l, frequency_hz=k_hz,
+            lit_face_reflection=lit,
         )
+    if face_permittivity is not None:
+        raise ValueError("face_permittivity needs coefficients='utd'")
     if key in ("gtd", "keller"):
         return keller_coefficients(
             frame.psi_rad, frame.psi_in_rad, frame.gamma0_rad, frequency_hz=k_hz
@@ -481,11 +523,13 @@ def field_from_frame(
     frequency_hz: float | ArrayLike,
     coefficients: Coefficients = "utd",
     spreading: Spreading = "spherical",
+    face_permittivity: complex | None = None,
 ) -> ComplexArray:
     """Diffracted field at the observer of an :class:`EdgeFrame` (see :func:`diffracted_field`)."""
     _check_spreading(spreading)
     k = wavenumber_rad_m(frequency_hz)
-    d_s, d_h = _coefficients_for(frame, frequency_hz, coefficients, spreading)
+    d_s, d_h = _coefficients_for(frame, frequency_hz, coefficients, spreading,
+                                 face_permittivity)
     e0c = np.asarray(e0, dtype=np.complex128)
     if e0c.shape[-1:] != (3,):
         raise ValueError(f"e0 must have shape (..., 3), got {e0c.shape}")
@@ -511,6 +555,7 @@ def diffracted_field(
     frequency_hz: float | ArrayLike,
     coefficients: Coefficients = "utd",
     spreading: Spreading = "spherical",
+    face_permittivity: complex | None = None,
 ) -> ComplexArray:
     """Edge-diffracted electric field of an isotropic point source at a half-plane.
 
@@ -537,6 +582,9 @@ def diffracted_field(
         UTD (default, finite at shadow boundaries) or Keller's GTD ("gtd" = "keller").
     spreading : {"spherical", "paper"}
         ``A = sqrt(s'/(s(s+s')))`` (default) or the paper's ``1/sqrt(s)``; also selects ``L``.
+    face_permittivity : complex, optional
+        Relative permittivity of a dielectric sheet (a concrete wall; UTD only, see the module
+        docstring, "Dielectric sheet"); default a perfect conductor.
 
     Returns
     -------
@@ -545,5 +593,15 @@ def diffracted_field(
     """
     frame = edge_frame(source_m, observer_m, point_m, edge_dir, face_dir)
     return field_from_frame(
-        frame, e0, frequency_hz=frequency_hz, coefficients=coefficients, spreading=spreading
+        frame, e0, frequency_hz=frequency_hz, coefficients=coefficients, spreading=spreading,
+        face_permittivity=face_permittivity,
     )
+
+
+def _fresnel(cos_theta: FloatArray, eta: complex) -> tuple[ComplexArray, ComplexArray]:
+    """Half-space TE and TM reflection coefficients (``diffpos.channel.slots``'
+    ``fresnel_coefficients``; that module builds on this one)."""
+    c = np.clip(cos_theta, 0.0, 1.0)
+    root = np.sqrt(eta - (1.0 - c * c) + 0j)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (c - root) / (c + root), (eta * c - root) / (eta * c + root)

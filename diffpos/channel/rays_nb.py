@@ -165,17 +165,21 @@ def _reflect(r0, i0, r1, i1, r2, i2, k0, k1, k2, axis, eta):
         s2 = 1.0 if (axis + 1) % 3 == 2 else 0.0
     pi0, pi1, pi2 = _cross(s0, s1, s2, k0, k1, k2)
     po0, po1, po2 = _cross(s0, s1, s2, o0, o1, o2)
-    # fresnel_coefficients
-    c = min(max(cos_t, 0.0), 1.0)
-    root = cmath.sqrt(eta - (1.0 - c * c) + 0j)
-    gs = (c - root) / (c + root)
-    gp = (eta * c - root) / (eta * c + root)
+    gs, gp = _fresnel(cos_t, eta)
     esr, esi = (r0 * s0 + r1 * s1) + r2 * s2, (i0 * s0 + i1 * s1) + i2 * s2
     epr, epi = (r0 * pi0 + r1 * pi1) + r2 * pi2, (i0 * pi0 + i1 * pi1) + i2 * pi2
     ar, ai = _cmul(gs.real, gs.imag, esr, esi)
     br, bi = _cmul(gp.real, gp.imag, epr, epi)
     return (ar * s0 + br * po0, ai * s0 + bi * po0, ar * s1 + br * po1, ai * s1 + bi * po1,
             ar * s2 + br * po2, ai * s2 + bi * po2)
+
+
+@njit(**_OPTS)
+def _fresnel(cos_t, eta):
+    """slots.fresnel_coefficients: the half-space's TE and TM reflection coefficients."""
+    c = min(max(cos_t, 0.0), 1.0)
+    root = cmath.sqrt(eta - (1.0 - c * c) + 0j)
+    return (c - root) / (c + root), (eta * c - root) / (eta * c + root)
 
 
 @njit(**_OPTS)
@@ -383,15 +387,18 @@ def utd_field_e(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm,
     else:  # e = -x, t0 = -z
         e0, e1, e2, t0, t1, t2 = -1.0, 0.0, 0.0, 0.0, 0.0, -1.0
     return utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1, e2,
-                           t0, t1, t2, prm, sq2pik, ex, ey, ez)
+                           t0, t1, t2, prm, sq2pik, ex, ey, ez, 0j)
 
 
 @njit(**_OPTS)
 def utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1, e2, t0, t1,
-                    t2, prm, sq2pik, ex, ey, ez):
+                    t2, prm, sq2pik, ex, ey, ez, eta_face):
     """:func:`utd_field_e` on the half-plane of edge tangent ``e`` and face direction ``t0``
     (``diffpos.channel.gtd_halfplane.diffracted_field``'s ``edge_dir`` / ``face_dir``; the
-    vertical window edges' half-plane is the side wall)."""
+    vertical window edges' half-plane is the side wall). ``eta_face`` 0: a perfectly
+    conducting sheet (Kouyoumjian-Pathak); else the relative permittivity of a dielectric
+    sheet (``gtd_halfplane.utd_coefficients``' ``lit_face_reflection``: Luebbers' reflection
+    terms, the Fresnel coefficients of the lit face and -1 for the unlit one)."""
     nn0, nn1, nn2 = _cross(e0, e1, e2, t0, t1, t2)
     di0, di1, di2 = q0 - a0, q1 - a1, q2 - a2
     do0, do1, do2 = o0 - q0, o1 - q1, o2 - q2
@@ -427,8 +434,18 @@ def utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1,
     kl = k * big_l
     mr, mi = _utd_term_ri(hc * hc_in + hs * hs_in, kl)  # cos((psi - psi') / 2)
     pr, pi_ = _utd_term_ri(hc * hc_in - hs * hs_in, kl)  # cos((psi + psi') / 2)
-    dsr, dsi = pre * (mr - pr), pre * (mi - pi_)
-    dhr, dhi = pre * (mr + pr), pre * (mi + pi_)
+    if eta_face == 0j:  # perfectly conducting: the reflection terms' weights are -1 / +1
+        dsr, dsi = pre * (mr - pr), pre * (mi - pi_)
+        dhr, dhi = pre * (mr + pr), pre * (mi + pi_)
+    else:  # dielectric: w = ((1 + sin((psi + psi')/2)) R0 - (1 - sin(...))) / 2
+        sp = hs * hc_in + hc * hs_in
+        gs, gp = _fresnel(abs(si0 * nn0 + si1 * nn1 + si2 * nn2), eta_face)
+        wsr, wsi = 0.5 * ((1.0 + sp) * gs.real - (1.0 - sp)), 0.5 * (1.0 + sp) * gs.imag
+        whr, whi = 0.5 * ((1.0 + sp) * gp.real - (1.0 - sp)), 0.5 * (1.0 + sp) * gp.imag
+        ar, ai = _cmul(wsr, wsi, pr, pi_)
+        dsr, dsi = pre * (mr + ar), pre * (mi + ai)
+        ar, ai = _cmul(whr, whi, pr, pi_)
+        dhr, dhi = pre * (mr + ar), pre * (mi + ai)
     ei_beta = (ex * bi0 + ey * bi1 + ez * bi2) / s_in_m
     ei_phi = (ex * pi0 + ey * pi1 + ez * pi2) / s_in_m
     amp = math.sqrt(s_in_m / (s_out_m * (s_out_m + s_in_m)))

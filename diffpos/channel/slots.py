@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from diffpos.channel.gtd_halfplane import diffracted_field, wavenumber_rad_m
+from diffpos.channel.gtd_halfplane import _fresnel, diffracted_field, wavenumber_rad_m
 from diffpos.channel.linkbudget import snr_db
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.paths.mechanisms import Recipe
@@ -77,12 +77,7 @@ def fresnel_coefficients(cos_theta: ArrayLike, eta: complex) -> tuple[NDArray, N
         ``(cos - sqrt(eta - sin^2)) / (cos + sqrt(eta - sin^2))`` and
         ``(eta cos - sqrt(eta - sin^2)) / (eta cos + sqrt(eta - sin^2))``.
     """
-    c = np.clip(np.asarray(cos_theta, dtype=np.float64), 0.0, 1.0)
-    root = np.sqrt(eta - (1.0 - c * c) + 0j)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        gs = (c - root) / (c + root)
-        gp = (eta * c - root) / (eta * c + root)
-    return gs, gp
+    return _fresnel(np.asarray(cos_theta, dtype=np.float64), eta)
 
 # --------------------------------------------------------------------------------------------
 # geometry helpers
@@ -200,6 +195,13 @@ class _Ctx:
         (self.eta_ground, self.eta_in, self.wall_db, self.slab_db, self.glass_db,
          self.parts) = _materials(b, self.f)
         self.eta_parts = partition_permittivities(b, self.f)
+        self.eta_wall = itu_permittivity(b.wall_material, self.f)  # the vertical edges' sheet
+
+    def edge_permittivity(self, edge: str) -> complex | None:
+        """The sheet of a window edge's UTD: the side wall's material at a vertical edge
+        (``gtd_halfplane``'s "Dielectric sheet"), a perfect conductor at the horizontal ones
+        (the 18 mechanisms' physics, unchanged)."""
+        return self.eta_wall if edge.startswith("vertical") else None
 
     def partition_loss_db(self, p: FloatArray, q: FloatArray) -> FloatArray:
         """Total loss of the partitions crossed by segments ``p -> q`` (inside) [dB]."""
@@ -317,7 +319,7 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
         obs = _mirror(np.array(n), axis, np.broadcast_to(coord, c.shape))
     e_dir, face = _edge_frame(edge)
     E = diffracted_field(a, obs, q, e_dir, face, c.e0, frequency_hz=c.f, coefficients="utd",
-                         spreading="spherical")
+                         spreading="spherical", face_permittivity=c.edge_permittivity(edge))
     # antenna pattern on departure
     g_db = _pattern_db(_zenith_deg(q - a), c.r.tx_hpbw_deg, c.r.tx_peak_deg)
     E = E * (10 ** (g_db / 20))[..., None]
@@ -366,7 +368,8 @@ def _diffracted_family(c: _Ctx, rec: Recipe):
         aod = _zenith_deg(q - a)
     with np.errstate(invalid="ignore", divide="ignore"):
         E = diffracted_field(src, obs, q, e_dir, face, e_src, frequency_hz=c.f,
-                             coefficients="utd", spreading="spherical")
+                             coefficients="utd", spreading="spherical",
+                             face_permittivity=c.edge_permittivity(rec.edge))
         loss = np.zeros(c.shape)  # the diffracted ray passes the edge, not the glass
         for j in range(len(rec.planes)):
             k_in, _ = _unit(pts[j + 1] - pts[j])

@@ -104,7 +104,7 @@ from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "974447ead693b5d0"
+CALLEES_SHA256 = "bda4b3641240d474"
 
 __all__ = [
     "COST_SIGNATURE",
@@ -294,7 +294,7 @@ def warm_channel() -> float:
     return time.perf_counter() - t0
 
 
-def channel_params(building, radio, materials, eta_parts=()
+def channel_params(building, radio, materials, eta_parts=(), eta_wall=0j
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The kernel's constants: ``(prm, parts, eta)`` (module docstring) of a building and radio.
 
@@ -302,7 +302,8 @@ def channel_params(building, radio, materials, eta_parts=()
     emulator computes them (``diffpos.channel.emulator._materials``), so both use the same numbers;
     ``eta_parts``: the partitions' permittivities
     (``diffpos.channel.slots.partition_permittivities``: their reflections), after the two in
-    ``eta``.
+    ``eta``; ``eta_wall``: the walls' permittivity (the vertical window edges' dielectric
+    sheet in :mod:`diffpos.channel.families_nb`; 0: a perfect conductor), ``eta``'s last entry.
     """
     eta_g, eta_in, wall_db, slab_db, glass_db, plist = materials
     x0, x1 = building.edge_x_m
@@ -324,7 +325,7 @@ def channel_params(building, radio, materials, eta_parts=()
     prm[_P_E0:] = np.asarray(radio.polarization, dtype=np.float64)
     parts = np.array([[float(axis), float(pos), float(lo), float(hi), float(db)]
                       for axis, pos, (lo, hi), db in plist], dtype=np.float64).reshape(-1, 5)
-    eta = np.array([eta_g, eta_in, *eta_parts], dtype=np.complex128)
+    eta = np.array([eta_g, eta_in, *eta_parts, eta_wall], dtype=np.complex128)
     return prm, np.ascontiguousarray(parts), eta
 
 

@@ -48,11 +48,14 @@ def _shadow_boundary_pair(edge: str, depth_in: float, turn_deg: float = 0.0):
 def test_half_plane_field_is_half_the_incident_on_the_shadow_boundary(edge: str) -> None:
     """On the incident shadow boundary a half-plane's UTD field is half the incident field
     (-6.02 dB of free space over the unfolded length), up to the reflection-boundary term
-    (small: the reflection boundary is far); into the shadow it falls monotonically."""
+    (small: the reflection boundary is far); into the shadow it falls monotonically, up to 5 deg
+    from the sheet (a vertical edge's sheet is the concrete side wall: on its face the field of a
+    dielectric sheet flattens out, tests/core/test_channel_wall_edge.py; 45 deg would put the
+    node on the wall for the vertical edges)."""
     radio = Radio()  # isotropic, x polarisation
     rec = Recipe("diff", edge=edge)
     out = []
-    for turn in (0.0, 10.0, 25.0, 45.0):
+    for turn in (0.0, 10.0, 25.0, 40.0):
         a, n = _shadow_boundary_pair(edge, 3.0, turn)
         ctx = _Ctx(B, radio, n[None], a[None])
         length, gain, _, _, valid = family_slot(ctx, rec)
