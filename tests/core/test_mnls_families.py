@@ -15,30 +15,20 @@ import sys
 
 import numpy as np
 import pytest
+from mnls_cases import ANCHORS, B
+from mnls_cases import random_nodes as _nodes
 
 from diffpos.channel.emulator import emulate_channel, first_arrival, pair_snr_db
 from diffpos.estimators.mnls.power import family_snr_db
 from diffpos.estimators.mnls.solver import mnls
 from diffpos.paths.mechanisms import mechanism_set
 from diffpos.paths.model import first_arrival_paths
-from diffpos.scenario import Building, Radio, default_scenario
+from diffpos.scenario import Radio, default_scenario
 
 _mn = sys.modules["diffpos.estimators.mnls.solver"]
 _rules = sys.modules["diffpos.estimators.mnls.rules"]
 _prob = sys.modules["diffpos.estimators.mnls.problem"]
 
-B = Building(width_m=30.0, center_x_m=5.0, depth_m=15.0, n_floors=4, floor_height_m=3.5,
-             first_floor_z_m=2.0, sill_height_m=1.0, window_height_m=1.2)
-ANCHORS = np.array([[-16.0, -12.0, 1.0], [-5.0, -20.0, 0.5], [5.0, -9.0, 3.2],
-                    [16.0, -16.0, 7.0], [25.0, -10.0, 2.0], [0.0, -25.0, 12.5]])
-
-
-def _nodes(b: Building, n: int, rng) -> np.ndarray:
-    x0, x1 = b.edge_x_m
-    k = rng.integers(0, b.n_floors, n)
-    return np.column_stack([rng.uniform(x0 + 0.5, x1 - 0.5, n),
-                            rng.uniform(0.5, b.depth_m - 0.5, n),
-                            b.floor_z_m(k) + rng.uniform(0.3, b.floor_height_m - 0.3, n)])
 
 
 @pytest.mark.parametrize("with_snr", [False, True])

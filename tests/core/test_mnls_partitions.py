@@ -16,6 +16,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from mnls_cases import ANCHORS
+from mnls_cases import random_nodes as _nodes
 
 from diffpos.channel.linkbudget import snr_db
 from diffpos.channel.slots import fresnel_coefficients, itu_permittivity
@@ -29,18 +31,8 @@ B = Building(width_m=30.0, center_x_m=5.0, depth_m=15.0, n_floors=4, floor_heigh
              first_floor_z_m=2.0, sill_height_m=1.0, window_height_m=1.2,
              partitions=(Partition("x", 2.0, (3.0, 15.0)), Partition("y", 9.0, (-10.0, 20.0)),
                          Partition("x", 12.0, (0.0, 9.0))))
-ANCHORS = np.array([[-16.0, -12.0, 1.0], [-5.0, -20.0, 0.5], [5.0, -9.0, 3.2],
-                    [16.0, -16.0, 7.0], [25.0, -10.0, 2.0], [0.0, -25.0, 12.5]])
 MECH = mechanism_set(3, partitions=True)
 N_PLAIN = len(mechanism_set(3))
-
-
-def _nodes(b: Building, n: int, rng) -> np.ndarray:
-    x0, x1 = b.edge_x_m
-    k = rng.integers(0, b.n_floors, n)
-    return np.column_stack([rng.uniform(x0 + 0.5, x1 - 0.5, n),
-                            rng.uniform(0.5, b.depth_m - 0.5, n),
-                            b.floor_z_m(k) + rng.uniform(0.3, b.floor_height_m - 0.3, n)])
 
 
 def _partition_first(rng, n: int):
