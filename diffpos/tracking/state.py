@@ -230,10 +230,15 @@ class TrackerConfig:
     max_order : int
         The first-arrival families of at most this many interactions
         (:func:`diffpos.paths.mechanisms.mechanism_set`) beyond the 18 mechanisms are part of
-        every link's out-of-model component (:mod:`diffpos.tracking.families`); 2: none
-        (before 431695e). Default 3 (with ``family_weight="mechanism"``, ``family_gate=
-        "misfit"``; docs/raytrace_study.md section 2c); 4 measured no better on Sionna's paper
-        building (static: 72.85 against 73.13 % right floor) for more CPU.
+        every link's out-of-model component (:mod:`diffpos.tracking.families`); 2: none.
+        Default 2. 3 (with ``family_weight="mechanism"``, ``family_gate="misfit"``) lifts the
+        right floor on Sionna RT's channel by 7-12 points (docs/raytrace_study.md sections 2c
+        and 3b) and was the default from 431695e to the next change, back to 2: on the
+        synthetic window-edge channel of a 3 s, 4-node, 5-anchor run (tests/system/
+        test_recorder.py) it put 51 % of the fixes on the right floor against 74 % at 2
+        (a link the hypothesis has not seen counts as a misfit, so at a track's start every
+        link offers the families to every floor). 4 measured no better than 3 on Sionna's
+        paper building (static: 72.85 against 73.13 % right floor) for more CPU.
     family_weight : {"mechanism", "outlier"}
         How an extra family explains a link (:func:`diffpos.tracking.families.family_log_weight`):
         ``"mechanism"``, as one more candidate mechanism (a mechanism's prior, the inlier
@@ -310,7 +315,7 @@ class TrackerConfig:
     lost_on_gap: bool = True
     min_anchors_tracking: int = 3
     few_anchors_floor_p_max: float = 0.75
-    max_order: int = 3
+    max_order: int = 2
     family_weight: str = "mechanism"
     family_gate: str = "misfit"
     floor_model_doubt: bool = True
