@@ -380,6 +380,7 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-12-06T14:17:03Z", "2fd5568", {"max_order": 3}),
     ("2026-12-06T12:31:20Z", "431695e", {"max_order": 2, "family_weight": "outlier",
                                          "family_gate": "outlier"}),
     ("2026-12-06T10:19:50Z", "f926bf5", {"floor_model_doubt": False}),
