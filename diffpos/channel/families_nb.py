@@ -66,6 +66,7 @@ from diffpos.paths.model_nb import (
     COL_KIND,
     COL_NPLANES,
     COL_PLANES,
+    axis_component,
     edge_axis,
     in_floor_box,
     inside_plane,
@@ -78,7 +79,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "bda4b3641240d474"
+CALLEES_SHA256 = "73f34a2f95e0f2ce"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
@@ -95,15 +96,6 @@ FAMILY_SIGNATURE = types.void(
     types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,)
     _f8_3d, _f8_3d,  # out (N, M, S) [dB], out_len (N, M, S) [m]
 )
-
-
-@njit(**_OPTS)
-def _axis_of(v0, v1, v2, ax):
-    if ax == 0:
-        return v0
-    if ax == 1:
-        return v1
-    return v2
 
 
 @njit(**_OPTS)
@@ -135,7 +127,8 @@ def _walk(table, s, c0, c1, c2, m0, m1, m2, t_last, p0, p1, p2, ok, e0, e1, e2, 
     pax, ppos = int(part[0]), part[1]
     t_p = np.inf
     if has_p:
-        t_p = (ppos - _axis_of(c0, c1, c2, pax)) / _axis_of(m0 - c0, m1 - c1, m2 - c2, pax)
+        t_p = ((ppos - axis_component(c0, c1, c2, pax))
+               / axis_component(m0 - c0, m1 - c1, m2 - c2, pax))
         ok = ok and (t_p > t_last) and (t_p < 1)
     done = not has_p
     for j in range(table[s, COL_NPLANES] + 1):
@@ -146,7 +139,8 @@ def _walk(table, s, c0, c1, c2, m0, m1, m2, t_last, p0, p1, p2, ok, e0, e1, e2, 
             if code == _PARTITION_CODE:
                 continue
             ax, c = inside_plane(code, zf, zc, x0, x1, depth)
-            t = (c - _axis_of(c0, c1, c2, ax)) / _axis_of(m0 - c0, m1 - c1, m2 - c2, ax)
+            t = ((c - axis_component(c0, c1, c2, ax))
+                 / axis_component(m0 - c0, m1 - c1, m2 - c2, ax))
             ok = ok and (t > t_last) and (t < 1)
         if not done and t_p < t:  # the partition first, in this frame
             q0, q1, q2 = c0 + t_p * (m0 - c0), c1 + t_p * (m1 - c1), c2 + t_p * (m2 - c2)
@@ -176,19 +170,27 @@ def _walk(table, s, c0, c1, c2, m0, m1, m2, t_last, p0, p1, p2, ok, e0, e1, e2, 
 
 
 @njit(**_OPTS)
+def _images(table, s, a0, a1, a2, n0, n1, n2, zf, zc, prm, part):
+    """Row ``s``'s images: whether it starts with a ground bounce, the anchor's image in the
+    ground (the anchor without one) and the node's image in the row's planes, last first."""
+    x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
+    ground = table[s, COL_GROUND] == 1
+    i0, i1, i2 = n0, n1, n2
+    for j in range(table[s, COL_NPLANES] - 1, -1, -1):
+        ax, c = _plane_of(table[s, COL_PLANES + j], zf, zc, x0, x1, depth, part)
+        i0, i1, i2 = mirror(i0, i1, i2, ax, c)
+    return ground, a0, a1, (-a2 if ground else a2), i0, i1, i2
+
+
+@njit(**_OPTS)
 def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_g, eta_in,
                  part, eta_p):
     """slots._reflections for table row ``s`` (any number of planes): (|gain|, loss [dB] incl.
     the pattern, arrival vector, ok). ``part``: the partition ``(axis, position, span start,
     span end)`` a ``"partition"`` plane stands for, ``eta_p`` its permittivity."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
-    ground = table[s, COL_GROUND] == 1
-    npl = table[s, COL_NPLANES]
-    s0, s1, s2 = a0, a1, (-a2 if ground else a2)
-    i0, i1, i2 = n0, n1, n2
-    for j in range(npl - 1, -1, -1):
-        ax, c = _plane_of(table[s, COL_PLANES + j], zf, zc, x0, x1, depth, part)
-        i0, i1, i2 = mirror(i0, i1, i2, ax, c)
+    ground, s0, s1, s2, i0, i1, i2 = _images(table, s, a0, a1, a2, n0, n1, n2, zf, zc, prm,
+                                             part)
     d0, d1, d2 = i0 - s0, i1 - s1, i2 - s2
     length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     t_f = (0.0 - s1) / d1
@@ -233,14 +235,9 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     the side wall's permittivity (a vertical edge's dielectric sheet; the horizontal edges
     are perfectly conducting sheets, as in the 18)."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
-    ground = table[s, COL_GROUND] == 1
     code = table[s, COL_EDGE]
-    npl = table[s, COL_NPLANES]
-    s0, s1, s2 = a0, a1, (-a2 if ground else a2)
-    o0, o1, o2 = n0, n1, n2
-    for j in range(npl - 1, -1, -1):
-        ax, c = _plane_of(table[s, COL_PLANES + j], zf, zc, x0, x1, depth, part)
-        o0, o1, o2 = mirror(o0, o1, o2, ax, c)
+    ground, s0, s1, s2, o0, o1, o2 = _images(table, s, a0, a1, a2, n0, n1, n2, zf, zc, prm,
+                                             part)
     # the edge (slots._edge_frame): tangent e, half-plane face t0
     if code == 0:  # upper: the wall above the window
         q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0, hi, edge)

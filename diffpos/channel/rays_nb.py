@@ -49,7 +49,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "488f674706826617"
+CALLEES_SHA256 = "22975f66ffeabb57"
 
 _RAD2DEG = 180.0 / math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}

@@ -43,7 +43,8 @@ from numba import njit, types
 
 __all__ = ["COL_EDGE", "COL_GROUND", "COL_KIND", "COL_NPLANES", "COL_PLANES", "DEFAULT_TABLE",
            "N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLOT_PLANE0",
-           "SLOT_PLANE1", "building_planes", "edge_axis", "eval_paths_kernel", "family_path",
+           "SLOT_PLANE1", "axis_component", "building_planes", "edge_axis", "eval_paths_kernel",
+           "family_path",
            "family_path_parts", "in_floor_box", "inside_plane", "mechanism_table", "mirror",
            "partition_array", "paths_kernel",
            "row_planes", "slot_path", "vertical_axis", "walk_ok", "warm_paths"]
@@ -120,7 +121,8 @@ def in_floor_box(r0, r1, r2, zf, zc, x0, x1, depth):
 
 
 @njit(**_OPTS)
-def _get(v0, v1, v2, axis):
+def axis_component(v0, v1, v2, axis):
+    """The ``axis`` component (0 x, 1 y, 2 z) of (v0, v1, v2)."""
     if axis == 0:
         return v0
     if axis == 1:
@@ -233,7 +235,7 @@ def _free_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth, p
     ``t_start``; every point folded back by the mirrors met before it on the floor's inside
     surface, the partition's strictly inside its span ``(plo, phi)``."""
     d0, d1, d2 = m0 - c0, m1 - c1, m2 - c2
-    t_p = (ppos - _get(c0, c1, c2, pax)) / _get(d0, d1, d2, pax)
+    t_p = (ppos - axis_component(c0, c1, c2, pax)) / axis_component(d0, d1, d2, pax)
     ok = (t_p > t_start) and (t_p < 1)
     q0, q1, q2 = c0 + t_p * d0, c1 + t_p * d1, c2 + t_p * d2
     t_last = t_start
@@ -243,7 +245,7 @@ def _free_ok(c0, c1, c2, m0, m1, m2, t_start, table, s, zf, zc, x0, x1, depth, p
             continue
         ax, c = inside_plane(code, zf, zc, x0, x1, depth)
         dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
-        t = (c - _get(c0, c1, c2, ax)) / _get(dd0, dd1, dd2, ax)
+        t = (c - axis_component(c0, c1, c2, ax)) / axis_component(dd0, dd1, dd2, ax)
         ok = ok and (t > t_last) and (t < 1)
         r0, r1, r2 = c0 + t * dd0, c1 + t * dd1, c2 + t * dd2
         if t_p < t:
@@ -272,7 +274,7 @@ def _reflections_ok(c0, c1, c2, m0, m1, m2, t_last, table, s, zf, zc, x0, x1, de
     for j in range(table[s, COL_NPLANES]):
         ax, c = inside_plane(table[s, COL_PLANES + j], zf, zc, x0, x1, depth)
         dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
-        t = (c - _get(c0, c1, c2, ax)) / _get(dd0, dd1, dd2, ax)
+        t = (c - axis_component(c0, c1, c2, ax)) / axis_component(dd0, dd1, dd2, ax)
         ok = ok and (t > t_last) and (t < 1)
         ok = ok and in_floor_box(c0 + t * dd0, c1 + t * dd1, c2 + t * dd2, zf, zc, x0, x1, depth)
         m0, m1, m2 = mirror(m0, m1, m2, ax, c)
