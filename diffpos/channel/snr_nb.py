@@ -108,6 +108,7 @@ CALLEES_SHA256 = "73f34a2f95e0f2ce"
 
 __all__ = [
     "COST_SIGNATURE",
+    "MASKED_MIN_PAIRS",
     "MASKED_SIGNATURE",
     "SIGNATURE",
     "channel_params",
@@ -265,6 +266,12 @@ def snr_cost_kernel(pred, meas, trust, sigma_db, fap_db, det_db, given_thr, thr,
             out[i, k] = 0.5 * (r * r) + extra
 
 
+#: :func:`eval_snr_masked_kernel`'s smallest chunk [node-anchor pairs]: a masked pair
+#: predicts ~6 of its 18 slots (the tracker's: the direct and diffraction slots and the loose
+#: window-band ones; ~1.5 us per pair on the 30 s ``large`` replay), so twice the unmasked
+#: kernel's :data:`~diffpos._kernels.pool.SNR_MIN_PAIRS` for the same ~0.3-0.5 ms of work.
+MASKED_MIN_PAIRS = 2 * SNR_MIN_PAIRS
+
 _c16_1d = types.complex128[::1]
 #: The one compiled signature of :func:`channel_snr_kernel`.
 SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1], types.float64[::1],
@@ -348,8 +355,16 @@ def eval_snr_masked_kernel(anchors: np.ndarray, nodes: np.ndarray,
                            params: tuple[np.ndarray, np.ndarray, np.ndarray],
                            need: np.ndarray) -> np.ndarray:
     """:func:`eval_snr_kernel` of the slots ``need`` (N, M, 18) C-contiguous bool only
-    (:func:`channel_snr_masked_kernel`: NaN elsewhere)."""
+    (:func:`channel_snr_masked_kernel`: NaN elsewhere); split by node rows over the kernel
+    threads like it (every row's values the one-thread call's, bit for bit)."""
     warm_channel()
     out = np.empty((nodes.shape[0], anchors.shape[1], N_SLOTS))
-    channel_snr_masked_kernel(anchors, nodes, *params, need, out)
+    prm, parts, eta = params
+
+    def rows(lo: int, hi: int) -> None:  # the node rows [lo, hi): slices keep the signature
+        channel_snr_masked_kernel(anchors[lo:hi], nodes[lo:hi], prm, parts, eta, need[lo:hi],
+                                  out[lo:hi])
+
+    run_rows(rows, nodes.shape[0],
+             min_rows=-(-MASKED_MIN_PAIRS // max(anchors.shape[1], 1)))
     return out
