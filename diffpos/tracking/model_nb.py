@@ -28,7 +28,8 @@ import numpy as np
 from numba import njit
 
 from diffpos._kernels.npsum_nb import pairwise_sum as _pairwise_sum
-from diffpos.paths.model_nb import edge_axis, row_planes, slot_path
+from diffpos.paths.model_nb import N_SLOTS, edge_axis, row_planes, slot_path
+from diffpos.paths.rows_nb import default_slots_row
 
 __all__ = ["all_paths_kernel", "iekf_terms_kernel", "model_kernel", "select_best_kernel",
            "select_mix_kernel", "select_pack_kernel", "select_prep_kernel", "warm_model"]
@@ -37,7 +38,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "e589c90111b6a8bb"
+CALLEES_SHA256 = "1a6c923f2a189992"
 
 
 @njit(**_OPTS)
@@ -327,14 +328,19 @@ def select_mix_kernel(length, valid, slot, best, ex_pack, extra, mix_arg):
 def all_paths_kernel(pos, anchors, floor, relax, is_band, first_z, floor_h, sill, win_h, x0,
                      x1, depth, length, jac, strict, loose, sure):
     """Every slot of every (node, hypothesis, anchor) link with graded existence, as
-    ``diffpos.paths.model.graded_paths`` computes it for ``tracking_model.all_paths`` (the same
-    per-row path function with ``raw=True`` and the same band tests), without its flat-row
-    broadcasting: ``pos`` (N, H, 3), ``anchors`` (N, M, 3), ``floor`` (N, H) float64,
-    ``relax`` (N, H) float64 (every hypothesis' own widening of the band, [m]);
-    writes ``length`` (N, H, M, K), ``jac`` (N, H, M, K, 3) and the three existence grades.
+    ``diffpos.paths.model.graded_paths`` computes it for ``tracking_model.all_paths`` (the
+    per-row path function's values with ``raw=True``, all 18 slots of a row at once by
+    :func:`diffpos.paths.rows_nb.default_slots_row`, bit for bit ``slot_path``'s; the same band
+    tests), without its flat-row broadcasting: ``pos`` (N, H, 3), ``anchors`` (N, M, 3),
+    ``floor`` (N, H) float64, ``relax`` (N, H) float64 (every hypothesis' own widening of the
+    band, [m]); writes ``length`` (N, H, M, K), ``jac`` (N, H, M, K, 3) and the three
+    existence grades. K must be the default table's 18 slots.
     """
     edge = edge_axis(x0, x1)
     n_n, n_h, n_m, n_k = length.shape
+    if n_k != N_SLOTS:
+        raise ValueError("all_paths_kernel: every link has the default table's 18 slots")
+    ok_row, ez_row = np.empty(n_k, dtype=np.bool_), np.empty(n_k)
     for n in range(n_n):
         for h in range(n_h):
             p0, p1, p2 = pos[n, h, 0], pos[n, h, 1], pos[n, h, 2]
@@ -342,14 +348,10 @@ def all_paths_kernel(pos, anchors, floor, relax, is_band, first_z, floor_h, sill
             r = relax[n, h]
             for m in range(n_m):
                 a0, a1, a2 = anchors[n, m, 0], anchors[n, m, 1], anchors[n, m, 2]
+                default_slots_row(a0, a1, a2, p0, p1, p2, zf, zc, lo, hi, x0, x1, depth, edge,
+                                  length[n, h, m], ok_row, jac[n, h, m], ez_row)
                 for k in range(n_k):
-                    ln, ok, j0, j1, j2, _, _, ez = slot_path(k, a0, a1, a2, p0, p1, p2, zf, zc,
-                                                             lo, hi, x0, x1, depth, edge, True,
-                                                             True)
-                    length[n, h, m, k] = ln
-                    jac[n, h, m, k, 0] = j0
-                    jac[n, h, m, k, 1] = j1
-                    jac[n, h, m, k, 2] = j2
+                    ok, ez = ok_row[k], ez_row[k]
                     if is_band[k]:
                         lz = ok and (ez > lo - r) and (ez < hi + r)
                         m1, m2 = ez - lo, hi - ez
