@@ -1,5 +1,5 @@
-"""All 18 default slots of a row at once (``diffpos.paths.rows_nb.default_slots_row``, the
-tracker's ``all_paths_kernel``) against the per-slot path model (``paths_kernel`` with
+"""All 18 default slots of a row at once (``diffpos.tracking.model_nb.default_slots_row``,
+the tracker's ``all_paths_kernel``) against the per-slot path model (``paths_kernel`` with
 ``raw=True``, ``want_jac=True``: ``slot_path`` of every slot), bit for bit: lengths,
 Jacobians, entry heights (raw bytes, NaN and -0.0 included) and existence.
 
@@ -16,8 +16,8 @@ import pytest
 from numba import njit
 
 from diffpos.paths import model_nb as paths_nb
-from diffpos.paths.rows_nb import default_slots_row
 from diffpos.scenario import Building
+from diffpos.tracking.model_nb import default_slots_row
 
 BUILDINGS = {
     "tall_floors": Building(width_m=25.0, depth_m=12.0, n_floors=3, floor_height_m=4.2,
