@@ -186,12 +186,23 @@ def _step(v, hm, g, lam, at_wall, inv4, cost, floor, gtol, ws3, vt):
     return stationary, bad, at_wall
 
 
+#: Relative cost decrease of the convergence test (``levenberg_marquardt``'s default ``ftol``).
+FTOL = 1e-12
+
+
 @njit(cache=True, error_model="numpy")
 def lm_fit(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, out_x):
     """One problem: LM from ``x0 (3,)``; writes the solution (``y >= 0``) into ``out_x`` and
     returns ``(cost, iterations, converged)``. A non-finite starting cost returns the start as
     given, unconverged, with 0 iterations (as the reference)."""
-    ftol, gtol, m = 1e-12, 1e-10, r.shape[0]
+    return lm_fit_ftol(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, FTOL, out_x)
+
+
+@njit(cache=True, error_model="numpy")
+def lm_fit_ftol(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, ftol, out_x):
+    """:func:`lm_fit` with the relative cost decrease ``ftol`` of its convergence test given
+    (``levenberg_marquardt(ftol=...)``; :data:`FTOL` in :func:`lm_fit`)."""
+    gtol, m = 1e-10, r.shape[0]
     bm, bj, b3, bv = np.zeros((3, m)), np.zeros((2, m, 3)), np.zeros((4, 3, 3)), np.zeros((5, 3))
     p, pt, res, jac, jt = bm[0], bm[1], bm[2], bj[0], bj[1]  # 4 allocations, not 11
     ws3, hm = b3[:3], b3[3]

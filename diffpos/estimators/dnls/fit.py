@@ -25,6 +25,7 @@ from diffpos.estimators.gating import (
 )
 from diffpos.estimators.lls import lls_positions
 from diffpos.estimators.lm import PathModel, cost_of, levenberg_marquardt
+from diffpos.estimators.lm_nb import FTOL
 from diffpos.estimators.result import ExclusionReason, FixStatus
 from diffpos.estimators.starts import grid_starts
 
@@ -47,6 +48,8 @@ class FitSettings:
     sigmas_given: bool
     keep_starts: int | None
     screen_iter: int
+    exclusion_ftol: float | None = None  # None: the exhaustive exclusion search
+    exclusion_recheck_ratio: float | None = None
 
 
 @dataclass(frozen=True)
@@ -193,23 +196,33 @@ def _solve_candidates(
     recheck is done per fix, not per candidate: the candidates that keep the faulty anchor
     all fail, and re-solving each of them from every start would only confirm it. A fix is
     re-solved from all starts (every candidate) only if none of its screened candidates
-    passes the residual test itself.
+    passes the residual test itself, and (``exclusion_recheck_ratio``) its best one comes
+    within that factor of the threshold. With ``exclusion_ftol`` the candidates are solved
+    to that relative cost decrease and each fix's best one is then iterated on to the full
+    convergence test (:func:`_polish_best`).
     """
     aa, rr, swc, mc = prob.a[pi], prob.r[pi], cu / prob.sig[pi], prob.mdl.take(pi)
     # one given start (or the grid) plus the warm start (the current solution)
     st = np.concatenate([_starts_for(prob, aa, rr, cu, pi, cfg), warm[:, None, :]], axis=1)
+    ftol = FTOL if cfg.exclusion_ftol is None else cfg.exclusion_ftol
     common = {"loss": cfg.loss, "loss_scale": cfg.loss_scale, "max_iter": cfg.max_iter,
-              "xtol": cfg.xtol, "screen_iter": cfg.screen_iter}
+              "xtol": cfg.xtol, "screen_iter": cfg.screen_iter, "ftol": ftol}
     dof_c = cu.sum(axis=-1) - 3
     xc, cc, ic, vc = multistart_fit(aa, rr, swc, st, mc, keep_starts=cfg.keep_starts,
                                     recheck=np.zeros_like(dof_c), **common)
+    _, grp = np.unique(pi, return_inverse=True)
     if cfg.keep_starts is not None and st.shape[1] > cfg.keep_starts:
         thr_c = chi2_threshold(dof_c, cfg.gating.false_alarm_probability)
         good = (dof_c >= 1) & (2.0 * cc <= thr_c)
-        _, grp = np.unique(pi, return_inverse=True)
         fix_good = np.zeros(grp.max(initial=-1) + 1, dtype=bool)
         np.logical_or.at(fix_good, grp, good)
-        rows = np.flatnonzero(~fix_good[grp])
+        redo = ~fix_good
+        if cfg.exclusion_recheck_ratio is not None:
+            near = (dof_c >= 1) & (2.0 * cc <= cfg.exclusion_recheck_ratio * thr_c)
+            fix_near = np.zeros_like(fix_good)
+            np.logical_or.at(fix_near, grp, near)
+            redo &= fix_near
+        rows = np.flatnonzero(redo[grp])
         if rows.size:
             x2, c2, i2, v2 = multistart_fit(
                 aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows),
@@ -218,7 +231,35 @@ def _solve_candidates(
             rb = rows[b]
             xc[rb], ic[rb], vc[rb] = x2[b], i2[b], v2[b]
     xc[:, 1] = np.abs(xc[:, 1])
+    if cfg.exclusion_ftol is not None:
+        _polish_best(aa, rr, swc, mc, grp, cfg, xc, ic, vc)
     return xc, ic, vc
+
+
+def _polish_best(aa: FloatArray, rr: FloatArray, swc: FloatArray, mc: PathModel,
+                 grp: NDArray[np.int_], cfg: FitSettings, xc: FloatArray, ic: NDArray[np.int_],
+                 vc: BoolArray) -> None:
+    """Each fix's candidate with the smallest test statistic (the one ``run_gating`` picks;
+    the first of equal ones) iterated on from its loosely converged solution to the full
+    convergence test; updates ``xc``, ``ic``, ``vc`` in place."""
+    p, _ = mc.evaluate(aa, xc)
+    res = (rr - p) * swc
+    tc = np.einsum("nm,nm->n", res, res)
+    tc = np.where(np.isfinite(tc), tc, np.inf)
+    order = np.lexsort((tc, grp))  # by fix, then statistic (stable: the first of equal ones)
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = grp[order[1:]] != grp[order[:-1]]
+    rows = order[first]
+    rows = rows[np.isfinite(tc[rows])]
+    if rows.size == 0:
+        return
+    fit = levenberg_marquardt(aa[rows], rr[rows], swc[rows], xc[rows], mc.take(rows),
+                              loss=cfg.loss, loss_scale=cfg.loss_scale, max_iter=cfg.max_iter,
+                              xtol_m=cfg.xtol)
+    xc[rows] = fit.x_m
+    xc[rows, 1] = np.abs(xc[rows, 1])
+    ic[rows] += fit.iterations
+    vc[rows] = fit.converged
 
 
 def _final_fields(prob: _Problems, state: GateState, cfg: FitSettings) -> dict[str, np.ndarray]:
@@ -287,6 +328,12 @@ def _fix_status(
 
 #: Screened fixes whose residual statistic exceeds this quantile are re-solved from all starts.
 RECHECK_PROBABILITY = 0.1
+#: Default ``dnls(exclusion_ftol=...)``: the relative cost decrease to which the exclusion
+#: candidates are solved before the best is iterated on (docs/dnls_cost.md).
+EXCLUSION_FTOL = 1e-6
+#: Default ``dnls(exclusion_recheck_ratio=...)``: a fix's exclusion candidates are re-solved
+#: from all starts only if the best one's statistic is within this factor of its threshold.
+EXCLUSION_RECHECK_RATIO = 2.0
 
 
 def multistart_fit(
@@ -303,6 +350,7 @@ def multistart_fit(
     keep_starts: int | None,
     screen_iter: int,
     recheck: NDArray[np.int_] | None,
+    ftol: float = FTOL,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], NDArray[np.bool_]]:
     """Best-of-starts LM fit per problem: ``starts (N, S, 3)`` -> x, cost, iterations, converged.
 
@@ -315,7 +363,7 @@ def multistart_fit(
     better answer kept.
     """
     n, s = starts.shape[0], starts.shape[1]
-    common = {"loss": loss, "loss_scale": loss_scale, "xtol_m": xtol}
+    common = {"loss": loss, "loss_scale": loss_scale, "xtol_m": xtol, "ftol": ftol}
 
     def full(rows: NDArray[np.int_]):
         k = rows.size

@@ -21,15 +21,16 @@ import time
 import numpy as np
 from numba import njit
 
-from diffpos.estimators.lm_nb import cost_of, evaluate, lm_fit
+from diffpos.estimators.lm_nb import FTOL, cost_of, evaluate, lm_fit, lm_fit_ftol
 
 # integer options (ipar)
 I_LOSS, I_MAXIT, I_KEEP, I_SCREEN, I_LLS, I_SIGG, I_GATE = 0, 1, 2, 3, 4, 5, 6
-I_MAXEXCL, I_MINAFTER, I_PREGATE, I_REFIT, I_MSEXCL, I_ZRANGE = 7, 8, 9, 10, 11, 12
-N_IPAR = 13
+I_MAXEXCL, I_MINAFTER, I_PREGATE, I_REFIT, I_MSEXCL, I_ZRANGE, I_POLISH = 7, 8, 9, 10, 11, 12, 13
+N_IPAR = 14
 # float options (fpar)
 F_SCALE, F_XTOL, F_YSTART, F_PGSIG, F_PGMARGIN, F_ZLO, F_ZHI, F_ELO, F_EHI = range(9)
-N_FPAR = 9
+F_CFTOL, F_RECHK = 9, 10  # the exclusion candidates' ftol, their recheck ratio
+N_FPAR = 11
 
 # statuses and exclusion reasons (the values of diffpos.estimators.result's enums)
 _OK, _OK_UNVERIFIED, _NOT_CONVERGED, _NOT_IDENTIFIABLE = 0, 1, 2, 3
@@ -110,13 +111,14 @@ def _starts(a, r, used, x0, has_x0, zs, ipar, fpar, warm, has_warm):
 
 
 @njit(**_JIT)
-def _full(a, r, sw, used, st, h, ipar, fpar, out_x):
-    """Every start to convergence, the lowest finite cost kept: ``(cost, iterations, conv)``."""
+def _full(a, r, sw, used, st, h, ipar, fpar, ftol, out_x):
+    """Every start to convergence (relative cost decrease ``ftol``), the lowest finite cost
+    kept: ``(cost, iterations, conv)``."""
     best_c, best = math.inf, (math.nan, 0, False)
     xi = np.empty(3)
     for i in range(st.shape[0]):
-        res = lm_fit(a, r, sw, used, st[i], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
-                     fpar[F_SCALE], ipar[I_MAXIT], fpar[F_XTOL], xi)
+        res = lm_fit_ftol(a, r, sw, used, st[i], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
+                          fpar[F_SCALE], ipar[I_MAXIT], fpar[F_XTOL], ftol, xi)
         c = res[0] if np.isfinite(res[0]) else math.inf
         if i == 0 or c < best_c:
             best_c, best = c, res
@@ -125,20 +127,22 @@ def _full(a, r, sw, used, st, h, ipar, fpar, out_x):
 
 
 @njit(**_JIT)
-def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, out_x):
-    """Screened multi-start as ``_dnls_fit.multistart_fit`` for one problem.
+def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, ftol, out_x):
+    """Screened multi-start as ``_dnls_fit.multistart_fit`` for one problem (the starts
+    iterated to a relative cost decrease ``ftol``).
 
     ``recheck_dof < 0``: no noise model, every screened fix is re-solved from all starts.
     """
     s, keep, screen, maxit = st.shape[0], ipar[I_KEEP], ipar[I_SCREEN], ipar[I_MAXIT]
     if keep < 0 or s <= keep or maxit <= screen:
-        return _full(a, r, sw, used, st, h, ipar, fpar, out_x)
+        return _full(a, r, sw, used, st, h, ipar, fpar, ftol, out_x)
     elo, ehi, loss, sc, xtol = fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS], fpar[F_SCALE], fpar[F_XTOL]
     scr_x = np.empty((s, 3))
     scr_c = np.empty(s)
     scr_it = np.empty(s, np.int64)
     for i in range(s):
-        c, it, _ = lm_fit(a, r, sw, used, st[i], h, elo, ehi, loss, sc, screen, xtol, scr_x[i])
+        c, it, _ = lm_fit_ftol(a, r, sw, used, st[i], h, elo, ehi, loss, sc, screen, xtol, ftol,
+                               scr_x[i])
         scr_c[i] = c if np.isfinite(c) else math.inf
         scr_it[i] = it
     order = np.argsort(scr_c, kind="mergesort")[:keep]
@@ -146,8 +150,8 @@ def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, out_x):
     xi = np.empty(3)
     for kk in range(keep):
         i = order[kk]
-        c, it, cv = lm_fit(a, r, sw, used, scr_x[i], h, elo, ehi, loss, sc, maxit - screen,
-                           xtol, xi)
+        c, it, cv = lm_fit_ftol(a, r, sw, used, scr_x[i], h, elo, ehi, loss, sc, maxit - screen,
+                                xtol, ftol, xi)
         cf = c if np.isfinite(c) else math.inf
         if kk == 0 or cf < best_c:
             best_c, best = cf, (c, scr_it[i] + it, cv)
@@ -160,7 +164,7 @@ def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, out_x):
         redo = (not np.isfinite(cost)) or (recheck_dof >= 1 and 2.0 * cost > thr)
     if redo:
         x2 = np.empty(3)
-        full = _full(a, r, sw, used, st, h, ipar, fpar, x2)
+        full = _full(a, r, sw, used, st, h, ipar, fpar, ftol, x2)
         if full[0] < cost:
             out_x[:] = x2
             return full
@@ -195,7 +199,11 @@ def _pregate_tol(ipar, fpar, sig_j):
 @njit(**_JIT)
 def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, thr_re, xc, ic, vc):
     """Every leave-one-out candidate of a failing fix solved (multi-start plus the warm start
-    ``x``, or warm refits only); returns each candidate's test statistic (inf: not a candidate)."""
+    ``x``, or warm refits only); returns each candidate's test statistic (inf: not a candidate).
+
+    ``I_POLISH`` (``dnls(exclusion_ftol=...)``): the multi-start candidates are solved to the
+    loose relative cost decrease ``F_CFTOL``, which is enough to rank them, and the best one
+    is then iterated on to the full convergence test (``_dnls_fit._solve_candidates``)."""
     m = r.shape[0]
     tc = np.full(m, math.inf)
     cu = used.copy()
@@ -213,7 +221,8 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
         if ms:
             st = _starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x, True)
             n_st = st.shape[0]
-            cc[j], ic[j], vc[j] = multistart(a, r, sw, cu, st, h, ipar, fpar, 0, thr_re, xc[j])
+            cc[j], ic[j], vc[j] = multistart(a, r, sw, cu, st, h, ipar, fpar, 0, thr_re,
+                                             fpar[F_CFTOL], xc[j])
         else:
             _, ic[j], vc[j] = lm_fit(a, r, sw, cu, x, h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
                                      fpar[F_SCALE], ipar[I_REFIT], _REFIT_XTOL, xc[j])
@@ -225,19 +234,46 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
             cu[:] = used
             cu[j] = False
             tc[j] = _t_stat(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], p, jac)
+    if ms and ipar[I_POLISH]:
+        _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, p, jac)
     return tc
 
 
 @njit(**_JIT)
+def _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, p, jac):
+    """The candidate with the smallest statistic iterated on from its loose solution to the
+    full convergence test (its statistic updated)."""
+    j = np.argmin(tc)
+    if not np.isfinite(tc[j]):
+        return
+    cu = used.copy()
+    cu[j] = False
+    xi = np.empty(3)
+    _, it, cv = lm_fit(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
+                       fpar[F_SCALE], ipar[I_MAXIT], fpar[F_XTOL], xi)
+    xc[j] = xi
+    xc[j, 1] = abs(xc[j, 1])
+    ic[j] += it
+    vc[j] = cv
+    tc[j] = _t_stat(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], p, jac)
+
+
+@njit(**_JIT)
 def _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc):
-    """If no screened candidate passes the residual test, re-solve every candidate from all
-    starts (no screening) and keep the better answers."""
+    """If no screened candidate passes the residual test, but one comes within ``F_RECHK``
+    times its threshold (inf: always), re-solve every candidate from all starts (no
+    screening) and keep the better answers."""
     m = r.shape[0]
     dof_c = _count(used) - 1 - 3
     if dof_c >= 1:
+        near = not np.isfinite(fpar[F_RECHK])  # inf: the exhaustive search
         for j in range(m):
             if used[j] and 2.0 * cc[j] <= thr_fa[dof_c]:
                 return
+            if used[j] and 2.0 * cc[j] <= fpar[F_RECHK] * thr_fa[dof_c]:
+                near = True
+        if not near:
+            return
     cu = used.copy()
     x2 = np.empty(3)
     for j in range(m):
@@ -246,7 +282,7 @@ def _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x
         cu[:] = used
         cu[j] = False
         st = _starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x, True)
-        c2, i2, v2 = _full(a, r, sw, cu, st, h, ipar, fpar, x2)
+        c2, i2, v2 = _full(a, r, sw, cu, st, h, ipar, fpar, fpar[F_CFTOL], x2)
         if c2 < cc[j]:
             xc[j] = x2
             ic[j], vc[j] = i2, v2
@@ -430,7 +466,7 @@ def solve_fix(b, a, r, sig, mask, h, x0, has_x0, zs, ipar, fpar, thr_fa, thr_re,
     x = np.empty(3)
     st = _starts(a, r, used, x0, has_x0, zs, ipar, fpar, x0, False)
     _, it, cv = multistart(a, r, sw, used, st, h, ipar, fpar, n - 3 if ipar[I_SIGG] else -1,
-                           thr_re, x)
+                           thr_re, FTOL, x)
     x[1] = abs(x[1])
     it_cv = np.array([it, cv], np.int64)
     failed, tested = False, False
@@ -466,11 +502,16 @@ def dnls_batch(a, r, sig, mask, h, x0, has_x0, zs, ipar, fpar, thr_fa, thr_re, p
 
 def options(*, loss: int, loss_scale: float, max_iter: int, xtol: float, keep_starts: int | None,
             screen_iter: int, lls_start: bool, sigmas_given: bool, y_start: float,
-            edge_x_m: tuple[float, float] | None, gating) -> tuple[np.ndarray, np.ndarray]:
+            edge_x_m: tuple[float, float] | None, gating, exclusion_ftol: float | None = None,
+            recheck_ratio: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(ipar, fpar)`` of :func:`dnls_batch` from the validated options of ``dnls``
-    (``gating``: a ``GatingConfig`` or None)."""
+    (``gating``: a ``GatingConfig`` or None; ``exclusion_ftol``, ``recheck_ratio``: ``dnls``'s
+    ``exclusion_ftol`` and ``exclusion_recheck_ratio``, None: the exhaustive search)."""
     ipar = np.zeros(N_IPAR, np.int64)
     fpar = np.zeros(N_FPAR)
+    ipar[I_POLISH] = exclusion_ftol is not None
+    fpar[F_CFTOL] = FTOL if exclusion_ftol is None else exclusion_ftol
+    fpar[F_RECHK] = math.inf if recheck_ratio is None else recheck_ratio
     ipar[I_LOSS], ipar[I_MAXIT], ipar[I_SCREEN] = loss, max_iter, screen_iter
     ipar[I_KEEP] = -1 if keep_starts is None else keep_starts
     ipar[I_LLS], ipar[I_SIGG] = bool(lls_start), bool(sigmas_given)
