@@ -194,6 +194,8 @@ def levenberg_marquardt(
     ftol: float = 1e-12,
     gtol: float = 1e-10,
     lambda0: float = 1e-4,
+    cost_stop: FloatArray | None = None,
+    stop_after: int = 0,
 ) -> LMResult:
     """Batched damped Gauss-Newton (Levenberg-Marquardt) on the path model.
 
@@ -236,6 +238,13 @@ def levenberg_marquardt(
         Starts.
     model : PathModel
         Scalars or per-problem ``(N,)`` arrays.
+    cost_stop : ndarray, shape (N,), optional
+        A problem is given up (unconverged, where it is) once, after at least
+        ``stop_after`` iterations, the cost a Gauss-Newton step predicts from its current
+        point (``cost - g^T H^-1 g / 2``) is above its ``cost_stop`` (the D-NLS exclusion
+        search: a candidate that cannot become the best; inf: never).
+    stop_after : int
+        Iterations before ``cost_stop`` applies.
 
     Returns
     -------
@@ -249,13 +258,21 @@ def levenberg_marquardt(
     # non-finite rows (e.g. a start on the edge line itself, where dp/du is infinite) are
     # handled explicitly (their steps are never accepted): no floating-point warnings
     with np.errstate(invalid="ignore"):
-        for _ in range(max_iter):
+        n_it = 0
+        while n_it < max_iter:
             if w.ids.size == 0:
                 break
             h, g, inv4 = _normal_equations(w, loss, loss_scale)
             if w.at_wall:
                 _hold_active_bound(w.v[:, 1], h, g)
-            a2, dv, stationary, bad = _damped_and_gauss_newton_steps(w, h, g, gtol)
+            a2, dv, stationary, bad, dec = _damped_and_gauss_newton_steps(w, h, g, gtol)
+            if cost_stop is not None:
+                given_up = w.live & (w.it >= stop_after) & (w.cost - 0.5 * dec > cost_stop[w.ids])
+                if given_up.any():  # retired where they are; the others' step again
+                    if _retire(w, out, given_up, np.zeros_like(given_up)):
+                        break
+                    continue
+            n_it += 1
             vt = _trial_point(w, dv, a2, g, inv4)
             accept, step2, c_old, costt = _evaluate_and_accept(w, vt, bad, loss, loss_scale)
             done_ok, failed = _convergence_tests(
@@ -433,13 +450,13 @@ def _hold_active_bound(u_w: FloatArray, h: FloatArray, g: FloatArray) -> None:
 
 def _damped_and_gauss_newton_steps(
     w: _WorkingSet, h: FloatArray, g: FloatArray, gtol: float
-) -> tuple[FloatArray, FloatArray, BoolArray, BoolArray]:
+) -> tuple[FloatArray, FloatArray, BoolArray, BoolArray, FloatArray]:
     """One stacked solve: the damped LM step and the undamped Gauss-Newton step.
 
     The Gauss-Newton step's Newton decrement ``g^T H^-1 g`` (twice the decrease a full GN step
     would give) tests for a stationary point. Returns the damped matrices ``a2[:K]`` (with the
-    undamped ones below), the LM step ``dv`` (0 where non-finite), ``stationary`` and ``bad``
-    (non-finite step).
+    undamped ones below), the LM step ``dv`` (0 where non-finite), ``stationary``, ``bad``
+    (non-finite step) and the decrement ``dec``.
     """
     diag = np.arange(3)
     dh = h[:, diag, diag]
@@ -454,7 +471,7 @@ def _damped_and_gauss_newton_steps(
     bad = ~np.isfinite(dv).all(axis=-1)
     if bad.any():
         dv[bad] = 0.0
-    return a2, dv, stationary, bad
+    return a2, dv, stationary, bad, dec
 
 
 def _trial_point(

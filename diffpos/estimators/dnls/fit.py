@@ -28,6 +28,7 @@ from diffpos.estimators.lm import PathModel, cost_of, levenberg_marquardt
 from diffpos.estimators.lm_nb import FTOL
 from diffpos.estimators.result import ExclusionReason, FixStatus
 from diffpos.estimators.starts import grid_starts
+from diffpos.sym3 import solve3
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -50,6 +51,7 @@ class FitSettings:
     screen_iter: int
     exclusion_ftol: float | None = None  # None: the exhaustive exclusion search
     exclusion_recheck_ratio: float | None = None
+    exclusion_bound: float | None = None
 
 
 @dataclass(frozen=True)
@@ -208,9 +210,13 @@ def _solve_candidates(
     common = {"loss": cfg.loss, "loss_scale": cfg.loss_scale, "max_iter": cfg.max_iter,
               "xtol": cfg.xtol, "screen_iter": cfg.screen_iter, "ftol": ftol}
     dof_c = cu.sum(axis=-1) - 3
-    xc, cc, ic, vc = multistart_fit(aa, rr, swc, st, mc, keep_starts=cfg.keep_starts,
-                                    recheck=np.zeros_like(dof_c), **common)
     _, grp = np.unique(pi, return_inverse=True)
+    if cfg.exclusion_bound is not None and cfg.loss == "linear":
+        first = _loo_first(aa, rr, prob.sig[pi], mc, grp, cu, warm)
+        xc, cc, ic, vc = _bounded_candidates(aa, rr, swc, st, mc, grp, first, cfg, common)
+    else:
+        xc, cc, ic, vc = multistart_fit(aa, rr, swc, st, mc, keep_starts=cfg.keep_starts,
+                                        recheck=np.zeros_like(dof_c), **common)
     if cfg.keep_starts is not None and st.shape[1] > cfg.keep_starts:
         thr_c = chi2_threshold(dof_c, cfg.gating.false_alarm_probability)
         good = (dof_c >= 1) & (2.0 * cc <= thr_c)
@@ -236,12 +242,69 @@ def _solve_candidates(
     return xc, ic, vc
 
 
+def _bounded_candidates(aa: FloatArray, rr: FloatArray, swc: FloatArray, st: FloatArray,
+                        mc: PathModel, grp: NDArray[np.int_], first: NDArray[np.int_],
+                        cfg: FitSettings, common: dict
+                        ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], BoolArray]:
+    """The candidates of :func:`_solve_candidates` with ``exclusion_bound``: each fix's
+    candidate row ``first`` (the smallest linearised leave-one-out statistic,
+    :func:`_loo_first`) solved first, then the others with their starts given up above
+    ``exclusion_bound`` times its cost (``levenberg_marquardt(cost_stop=...)``)."""
+    zero = np.zeros(grp.size, dtype=np.int_)
+    xc, cc, ic, vc = (np.empty((grp.size, 3)), np.empty(grp.size), np.empty(grp.size, np.int_),
+                      np.empty(grp.size, bool))
+    rest = np.setdiff1d(np.arange(grp.size), first)
+    for rows, stop in ((first, None), (rest, "bound")):
+        if rows.size == 0:
+            continue
+        kw = {}
+        if stop is not None:
+            c_first = np.full(grp.max() + 1, np.inf)
+            c_first[grp[first]] = np.where(np.isfinite(cc[first]), cc[first], np.inf)
+            kw = {"cost_stop": cfg.exclusion_bound * c_first[grp[rows]],
+                  "stop_after": EXCLUSION_BOUND_AFTER}
+        xc[rows], cc[rows], ic[rows], vc[rows] = multistart_fit(
+            aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows), keep_starts=cfg.keep_starts,
+            recheck=zero[rows], **common, **kw)
+    return xc, cc, ic, vc
+
+
+def _loo_first(aa: FloatArray, rr: FloatArray, sig: FloatArray, mc: PathModel,
+               grp: NDArray[np.int_], cu: BoolArray, warm: FloatArray) -> NDArray[np.int_]:
+    """Per fix, the candidate row whose left-out anchor has the smallest linearised
+    leave-one-out statistic at the current solution ``warm`` (the kernel's ``_loo_order``):
+    ``T - w_j e_j^2 / (1 - h_jj)``, ``T`` the statistic of the fix's anchors, ``h_jj`` the
+    leverage of anchor ``j`` (-inf where ``1 - h_jj <= 1e-12``); the first of equal ones."""
+    k = grp.size
+    used = np.zeros((grp.max() + 1, cu.shape[1]), dtype=bool)
+    np.logical_or.at(used, grp, cu)  # a fix's anchors: the union of its candidates' sets
+    uf = used[grp]
+    left_out = np.argmax(uf & ~cu, axis=-1)
+    sw = np.where(uf, 1.0 / sig, 0.0)
+    p, jac = mc.evaluate(aa, warm)
+    e = np.where(uf, (rr - p) * sw, 0.0)
+    jw = np.where(uf[..., None], jac * sw[..., None], 0.0)
+    hm = np.einsum("kmi,kmj->kij", jw, jw)
+    jl = jw[np.arange(k), left_out]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = solve3(hm, jl)
+        one_minus = 1.0 - np.einsum("ki,ki->k", jl, q)
+        el = e[np.arange(k), left_out]
+        pred = np.where(one_minus > 1e-12, np.einsum("km,km->k", e, e) - el * el / one_minus,
+                        -np.inf)
+    order = np.lexsort((pred, grp))  # by fix, then statistic (stable)
+    head = np.ones(k, dtype=bool)
+    head[1:] = grp[order[1:]] != grp[order[:-1]]
+    return order[head]
+
+
 def _polish_best(aa: FloatArray, rr: FloatArray, swc: FloatArray, mc: PathModel,
                  grp: NDArray[np.int_], cfg: FitSettings, xc: FloatArray, ic: NDArray[np.int_],
                  vc: BoolArray) -> None:
     """Each fix's candidate with the smallest test statistic (the one ``run_gating`` picks;
     the first of equal ones) iterated on from its loosely converged solution to the full
-    convergence test; updates ``xc``, ``ic``, ``vc`` in place."""
+    convergence test, with the iterations its start had left of ``max_iter``; updates ``xc``,
+    ``ic``, ``vc`` in place."""
     p, _ = mc.evaluate(aa, xc)
     res = (rr - p) * swc
     tc = np.einsum("nm,nm->n", res, res)
@@ -253,13 +316,15 @@ def _polish_best(aa: FloatArray, rr: FloatArray, swc: FloatArray, mc: PathModel,
     rows = rows[np.isfinite(tc[rows])]
     if rows.size == 0:
         return
-    fit = levenberg_marquardt(aa[rows], rr[rows], swc[rows], xc[rows], mc.take(rows),
-                              loss=cfg.loss, loss_scale=cfg.loss_scale, max_iter=cfg.max_iter,
-                              xtol_m=cfg.xtol)
-    xc[rows] = fit.x_m
-    xc[rows, 1] = np.abs(xc[rows, 1])
-    ic[rows] += fit.iterations
-    vc[rows] = fit.converged
+    budget = np.maximum(cfg.max_iter - ic[rows], 0)  # the iterations their starts had left
+    for b in np.unique(budget):
+        rb = rows[budget == b]
+        fit = levenberg_marquardt(aa[rb], rr[rb], swc[rb], xc[rb], mc.take(rb), loss=cfg.loss,
+                                  loss_scale=cfg.loss_scale, max_iter=int(b), xtol_m=cfg.xtol)
+        xc[rb] = fit.x_m
+        xc[rb, 1] = np.abs(xc[rb, 1])
+        ic[rb] += fit.iterations
+        vc[rb] = fit.converged
 
 
 def _final_fields(prob: _Problems, state: GateState, cfg: FitSettings) -> dict[str, np.ndarray]:
@@ -334,6 +399,12 @@ EXCLUSION_FTOL = 1e-6
 #: Default ``dnls(exclusion_recheck_ratio=...)``: a fix's exclusion candidates are re-solved
 #: from all starts only if the best one's statistic is within this factor of its threshold.
 EXCLUSION_RECHECK_RATIO = 2.0
+#: Default ``dnls(exclusion_bound=...)``: an exclusion candidate's start is given up once a
+#: Gauss-Newton step would leave its cost above this factor times the first candidate's.
+EXCLUSION_BOUND = 2.0
+#: Iterations every candidate's start makes before it may be given up (far from its minimum
+#: the Gauss-Newton prediction can overstate the cost it will reach).
+EXCLUSION_BOUND_AFTER = 2
 
 
 def multistart_fit(
@@ -351,6 +422,8 @@ def multistart_fit(
     screen_iter: int,
     recheck: NDArray[np.int_] | None,
     ftol: float = FTOL,
+    cost_stop: FloatArray | None = None,
+    stop_after: int = 0,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], NDArray[np.bool_]]:
     """Best-of-starts LM fit per problem: ``starts (N, S, 3)`` -> x, cost, iterations, converged.
 
@@ -360,17 +433,23 @@ def multistart_fit(
     up as a large residual; so fixes whose statistic ``2 cost`` exceeds the
     ``1 - RECHECK_PROBABILITY`` chi-square quantile for ``recheck`` dof (or all fixes, if
     ``recheck`` is None: no noise model to judge) are re-solved from all starts and the
-    better answer kept.
+    better answer kept. ``ftol``, ``cost_stop`` (per problem) and ``stop_after``: those of
+    :func:`~diffpos.estimators.lm.levenberg_marquardt` (``cost_stop`` not in the screening).
     """
     n, s = starts.shape[0], starts.shape[1]
     common = {"loss": loss, "loss_scale": loss_scale, "xtol_m": xtol, "ftol": ftol}
+
+    def stops(rows: NDArray[np.int_] | slice, times: int) -> dict:
+        if cost_stop is None:
+            return {}
+        return {"cost_stop": np.repeat(cost_stop[rows], times), "stop_after": stop_after}
 
     def full(rows: NDArray[np.int_]):
         k = rows.size
         fit = levenberg_marquardt(
             np.repeat(a[rows], s, axis=0), np.repeat(r[rows], s, axis=0),
             np.repeat(sw[rows], s, axis=0), starts[rows].reshape(k * s, 3),
-            mdl.take(rows).repeat(s), max_iter=max_iter, **common,
+            mdl.take(rows).repeat(s), max_iter=max_iter, **common, **stops(rows, s),
         )
         return _pick_best(fit.x_m, fit.cost, fit.iterations, fit.converged, k, s)
 
@@ -387,6 +466,7 @@ def multistart_fit(
     fit = levenberg_marquardt(
         np.repeat(a, k, axis=0), np.repeat(r, k, axis=0), np.repeat(sw, k, axis=0),
         scr.x_m[pick], mdl.repeat(k), max_iter=max_iter - screen_iter, **common,
+        **stops(slice(None), k),
     )
     x, cost, iters, conv = _pick_best(
         fit.x_m, fit.cost, scr.iterations[pick] + fit.iterations, fit.converged, n, k

@@ -46,6 +46,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from diffpos.estimators.dnls.fit import (
+    EXCLUSION_BOUND,
+    EXCLUSION_BOUND_AFTER,
     EXCLUSION_FTOL,
     EXCLUSION_RECHECK_RATIO,
     RECHECK_PROBABILITY,
@@ -125,6 +127,7 @@ def dnls(
     screen_iter: int = 4,
     exclusion_ftol: float | None = EXCLUSION_FTOL,
     exclusion_recheck_ratio: float | None = EXCLUSION_RECHECK_RATIO,
+    exclusion_bound: float | None = EXCLUSION_BOUND,
     chunk_size: int = 1024,
     kernel: bool = True,
 ) -> FixResult:
@@ -185,6 +188,14 @@ def dnls(
         within this factor of its threshold (a fix further off has more than one bad range
         and screening is not what failed it). ``None``: always (before 2026-12-06). Default
         :data:`~diffpos.estimators.dnls.fit.EXCLUSION_RECHECK_RATIO`.
+    exclusion_bound : float or None [-]
+        With the linear loss, the exclusion search solves first the candidate that the
+        linearised leave-one-out statistic ranks best, and gives up another candidate's start
+        (after :data:`~diffpos.estimators.dnls.fit.EXCLUSION_BOUND_AFTER` iterations) once a
+        Gauss-Newton step from where it is would leave its cost above this factor times the
+        first candidate's cost: it cannot become the fix's best. ``None``: every candidate to
+        convergence (before 2026-12-06). Default
+        :data:`~diffpos.estimators.dnls.fit.EXCLUSION_BOUND`.
     chunk_size : int
         Fixes solved together per chunk by the numpy reference (bounds memory; results depend
         on it only at the rounding level).
@@ -211,7 +222,7 @@ def dnls(
     True
     """
     _check_options(loss, loss_scale, gating)
-    _check_search(exclusion_ftol, exclusion_recheck_ratio)
+    _check_search(exclusion_ftol, exclusion_recheck_ratio, exclusion_bound)
     batch_in = prepare_batch(anchors_m, ranges_m, sigmas_m, mask)
     bsz, m = batch_in.ranges_m.shape
     model = _path_model(window_height_m, delta_m, edge_x_m, bsz)
@@ -219,7 +230,7 @@ def dnls(
     if kernel:
         out = _solve_compiled(batch_in, model, x0, starts, gating, loss, loss_scale, max_iter,
                               xtol_m, lls_start, keep_starts, screen_iter, y_start_m,
-                              (exclusion_ftol, exclusion_recheck_ratio))
+                              (exclusion_ftol, exclusion_recheck_ratio, exclusion_bound))
         return _fix_result(out, batch_in)
     cfg = FitSettings(
         z_starts=starts,
@@ -235,6 +246,7 @@ def dnls(
         screen_iter=screen_iter,
         exclusion_ftol=exclusion_ftol,
         exclusion_recheck_ratio=exclusion_recheck_ratio,
+        exclusion_bound=exclusion_bound,
     )
     out = _alloc(bsz, m)
     for lo in range(0, bsz, max(int(chunk_size), 1)):
@@ -263,9 +275,9 @@ def _solve_compiled(batch_in: PreparedBatch, model: PathModel, x0: FloatArray | 
                     starts: FloatArray | None, gating: GatingConfig | None, loss: str,
                     loss_scale: float, max_iter: int, xtol: float, lls_start: bool,
                     keep_starts: int | None, screen_iter: int, y_start: float,
-                    search: tuple[float | None, float | None]) -> dict[str, np.ndarray]:
+                    search: tuple[float | None, ...]) -> dict[str, np.ndarray]:
     """The whole batch through the compiled kernel; the output arrays of :func:`_alloc`
-    (``search``: ``(exclusion_ftol, exclusion_recheck_ratio)``)."""
+    (``search``: ``(exclusion_ftol, exclusion_recheck_ratio, exclusion_bound)``)."""
     bsz, m = batch_in.ranges_m.shape
     ipar, fpar = _kernel_options(LOSS_CODES[loss], float(loss_scale), int(max_iter), float(xtol),
                                  keep_starts, int(screen_iter), bool(lls_start),
@@ -305,7 +317,7 @@ def _solve_compiled(batch_in: PreparedBatch, model: PathModel, x0: FloatArray | 
 def _kernel_options(loss: int, loss_scale: float, max_iter: int, xtol: float,
                     keep_starts: int | None, screen_iter: int, lls_start: bool,
                     sigmas_given: bool, y_start: float, edge_x_m: tuple[float, float] | None,
-                    gating: GatingConfig | None, search: tuple[float | None, float | None]
+                    gating: GatingConfig | None, search: tuple[float | None, ...]
                     ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`diffpos.estimators.dnls.fit_nb.options`, once per distinct option set (the kernel only
     reads ``ipar``/``fpar``; shared arrays, never written)."""
@@ -314,7 +326,8 @@ def _kernel_options(loss: int, loss_scale: float, max_iter: int, xtol: float,
     return dnls_nb.options(loss=loss, loss_scale=loss_scale, max_iter=max_iter, xtol=xtol,
                            keep_starts=keep_starts, screen_iter=screen_iter, lls_start=lls_start,
                            sigmas_given=sigmas_given, y_start=y_start, edge_x_m=edge_x_m,
-                           gating=gating, exclusion_ftol=search[0], recheck_ratio=search[1])
+                           gating=gating, exclusion_ftol=search[0], recheck_ratio=search[1],
+                           bound=search[2], bound_after=EXCLUSION_BOUND_AFTER)
 
 
 def _kernel_outputs(bsz: int, m: int) -> tuple[np.ndarray, ...]:
@@ -343,8 +356,12 @@ def _check_options(loss: str, loss_scale: float, gating: GatingConfig | None) ->
         raise TypeError("gating must be a GatingConfig or None")
 
 
-def _check_search(exclusion_ftol: float | None, exclusion_recheck_ratio: float | None) -> None:
+def _check_search(exclusion_ftol: float | None, exclusion_recheck_ratio: float | None,
+                  exclusion_bound: float | None) -> None:
     """Validate the exclusion search's bounds."""
+    if exclusion_bound is not None and not exclusion_bound >= 1.0:
+        raise ValueError("exclusion_bound must be None or >= 1 (a multiple of the first "
+                         f"candidate's cost), got {exclusion_bound}")
     if exclusion_ftol is not None and not 0.0 < exclusion_ftol < 1.0:
         raise ValueError(f"exclusion_ftol must be None or in (0, 1), got {exclusion_ftol}")
     if exclusion_recheck_ratio is not None and not exclusion_recheck_ratio >= 1.0:
