@@ -172,12 +172,16 @@ class LMResult:
         Iterations used (accepted and rejected steps).
     converged : ndarray of bool, shape (N,)
         A convergence test passed (see :func:`levenberg_marquardt`).
+    lam : ndarray, shape (N,), optional
+        The damping ``lambda`` where each problem stopped (``lambda0`` of another call
+        continues the same iteration from ``x_m``).
     """
 
     x_m: FloatArray
     cost: FloatArray
     iterations: NDArray[np.int_]
     converged: BoolArray
+    lam: FloatArray | None = None
 
 
 def levenberg_marquardt(
@@ -193,7 +197,7 @@ def levenberg_marquardt(
     xtol_m: float = 1e-10,
     ftol: float = 1e-12,
     gtol: float = 1e-10,
-    lambda0: float = 1e-4,
+    lambda0: float | FloatArray = 1e-4,
     cost_stop: FloatArray | None = None,
     stop_after: int = 0,
 ) -> LMResult:
@@ -238,6 +242,8 @@ def levenberg_marquardt(
         Starts.
     model : PathModel
         Scalars or per-problem ``(N,)`` arrays.
+    lambda0 : float or ndarray, shape (N,)
+        Initial damping (``LMResult.lam`` of an earlier call continues its iteration).
     cost_stop : ndarray, shape (N,), optional
         A problem is given up (unconverged, where it is) once, after at least
         ``stop_after`` iterations, the cost a Gauss-Newton step predicts from its current
@@ -254,7 +260,8 @@ def levenberg_marquardt(
     """
     x0 = np.asarray(x0_m, dtype=np.float64)
     out = _LMOutput.at_start(x0, anchors_m, ranges_m, sw, model, loss, loss_scale)
-    w = _WorkingSet.of_finite(out, anchors_m, ranges_m, sw, model, lambda0)
+    out.lam = np.broadcast_to(np.asarray(lambda0, dtype=np.float64), out.cost.shape).copy()
+    w = _WorkingSet.of_finite(out, anchors_m, ranges_m, sw, model, out.lam)
     # non-finite rows (e.g. a start on the edge line itself, where dp/du is infinite) are
     # handled explicitly (their steps are never accepted): no floating-point warnings
     with np.errstate(invalid="ignore"):
@@ -286,7 +293,8 @@ def levenberg_marquardt(
     # rows never iterated (non-finite cost) keep their start as given
     bad_rows = ~np.isfinite(out.cost)
     out.x[bad_rows] = x0[bad_rows]
-    return LMResult(x_m=out.x, cost=out.cost, iterations=out.iterations, converged=out.converged)
+    return LMResult(x_m=out.x, cost=out.cost, iterations=out.iterations, converged=out.converged,
+                    lam=out.lam)
 
 
 @dataclass
@@ -305,6 +313,7 @@ class _LMOutput:
     res: FloatArray
     jac: FloatArray
     floor: FloatArray
+    lam: FloatArray | None = None  # (N,) the damping where each problem stopped
 
     @classmethod
     def at_start(
@@ -344,6 +353,7 @@ class _LMOutput:
         self.x[gid] = w.x[rows]
         self.cost[gid] = w.cost[rows]
         self.iterations[gid] = w.it[rows]
+        self.lam[gid] = w.lam[rows]
 
 
 @dataclass
@@ -380,7 +390,7 @@ class _WorkingSet:
         ranges_m: FloatArray,
         sw: FloatArray,
         model: PathModel,
-        lambda0: float,
+        lam0: FloatArray,
     ) -> _WorkingSet:
         """The problems with a finite starting cost (all of them: no gather)."""
         ids = np.flatnonzero(np.isfinite(out.cost))
@@ -396,7 +406,7 @@ class _WorkingSet:
         return cls(
             ids=ids, a=a_w, r=r_w, sw=sw_w, v=v_w, x=x_w, res=res_w, jac=jac_w, cost=cost_w,
             floor=floor_w, mdl=mdl_w,
-            lam=np.full(ids.size, lambda0),
+            lam=lam0[ids].copy(),
             it=np.zeros(ids.size, dtype=np.int_),
             live=np.ones(ids.size, dtype=bool),
             wsum=np.maximum(np.einsum("nm,nm->n", sw_w, sw_w), tiny),

@@ -170,7 +170,7 @@ def _first_fit(
     """Multi-start fit on all used anchors; the gating state it starts from."""
     starts = _starts_for(prob, prob.a, prob.r, used, slice(None), cfg)
     n = starts.shape[0]
-    x, cost_best, iters_best, conv_best = multistart_fit(
+    x, cost_best, iters_best, conv_best, _ = multistart_fit(
         prob.a, prob.r, used / prob.sig, starts, prob.mdl, loss=cfg.loss,
         loss_scale=cfg.loss_scale, max_iter=cfg.max_iter, xtol=cfg.xtol,
         keep_starts=cfg.keep_starts, screen_iter=cfg.screen_iter,
@@ -213,9 +213,9 @@ def _solve_candidates(
     _, grp = np.unique(pi, return_inverse=True)
     if cfg.exclusion_bound is not None and cfg.loss == "linear":
         first = _loo_first(aa, rr, prob.sig[pi], mc, grp, cu, warm)
-        xc, cc, ic, vc = _bounded_candidates(aa, rr, swc, st, mc, grp, first, cfg, common)
+        xc, cc, ic, vc, lc = _bounded_candidates(aa, rr, swc, st, mc, grp, first, cfg, common)
     else:
-        xc, cc, ic, vc = multistart_fit(aa, rr, swc, st, mc, keep_starts=cfg.keep_starts,
+        xc, cc, ic, vc, lc = multistart_fit(aa, rr, swc, st, mc, keep_starts=cfg.keep_starts,
                                         recheck=np.zeros_like(dof_c), **common)
     if cfg.keep_starts is not None and st.shape[1] > cfg.keep_starts:
         thr_c = chi2_threshold(dof_c, cfg.gating.false_alarm_probability)
@@ -230,29 +230,29 @@ def _solve_candidates(
             redo &= fix_near
         rows = np.flatnonzero(redo[grp])
         if rows.size:
-            x2, c2, i2, v2 = multistart_fit(
+            x2, c2, i2, v2, l2 = multistart_fit(
                 aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows),
                 keep_starts=None, recheck=None, **common)
             b = c2 < cc[rows]
             rb = rows[b]
-            xc[rb], ic[rb], vc[rb] = x2[b], i2[b], v2[b]
+            xc[rb], ic[rb], vc[rb], lc[rb] = x2[b], i2[b], v2[b], l2[b]
     xc[:, 1] = np.abs(xc[:, 1])
     if cfg.exclusion_ftol is not None:
-        _polish_best(aa, rr, swc, mc, grp, cfg, xc, ic, vc)
+        _polish_best(aa, rr, swc, mc, grp, cfg, xc, ic, vc, lc)
     return xc, ic, vc
 
 
 def _bounded_candidates(aa: FloatArray, rr: FloatArray, swc: FloatArray, st: FloatArray,
                         mc: PathModel, grp: NDArray[np.int_], first: NDArray[np.int_],
                         cfg: FitSettings, common: dict
-                        ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], BoolArray]:
+                        ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], BoolArray, FloatArray]:
     """The candidates of :func:`_solve_candidates` with ``exclusion_bound``: each fix's
     candidate row ``first`` (the smallest linearised leave-one-out statistic,
     :func:`_loo_first`) solved first, then the others with their starts given up above
     ``exclusion_bound`` times its cost (``levenberg_marquardt(cost_stop=...)``)."""
     zero = np.zeros(grp.size, dtype=np.int_)
-    xc, cc, ic, vc = (np.empty((grp.size, 3)), np.empty(grp.size), np.empty(grp.size, np.int_),
-                      np.empty(grp.size, bool))
+    xc, cc, ic, vc, lc = (np.empty((grp.size, 3)), np.empty(grp.size), np.empty(grp.size, np.int_),
+                          np.empty(grp.size, bool), np.empty(grp.size))
     rest = np.setdiff1d(np.arange(grp.size), first)
     for rows, stop in ((first, None), (rest, "bound")):
         if rows.size == 0:
@@ -263,10 +263,10 @@ def _bounded_candidates(aa: FloatArray, rr: FloatArray, swc: FloatArray, st: Flo
             c_first[grp[first]] = np.where(np.isfinite(cc[first]), cc[first], np.inf)
             kw = {"cost_stop": cfg.exclusion_bound * c_first[grp[rows]],
                   "stop_after": EXCLUSION_BOUND_AFTER}
-        xc[rows], cc[rows], ic[rows], vc[rows] = multistart_fit(
+        xc[rows], cc[rows], ic[rows], vc[rows], lc[rows] = multistart_fit(
             aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows), keep_starts=cfg.keep_starts,
             recheck=zero[rows], **common, **kw)
-    return xc, cc, ic, vc
+    return xc, cc, ic, vc, lc
 
 
 def _loo_first(aa: FloatArray, rr: FloatArray, sig: FloatArray, mc: PathModel,
@@ -300,11 +300,11 @@ def _loo_first(aa: FloatArray, rr: FloatArray, sig: FloatArray, mc: PathModel,
 
 def _polish_best(aa: FloatArray, rr: FloatArray, swc: FloatArray, mc: PathModel,
                  grp: NDArray[np.int_], cfg: FitSettings, xc: FloatArray, ic: NDArray[np.int_],
-                 vc: BoolArray) -> None:
+                 vc: BoolArray, lc: FloatArray) -> None:
     """Each fix's candidate with the smallest test statistic (the one ``run_gating`` picks;
     the first of equal ones) iterated on from its loosely converged solution to the full
-    convergence test, with the iterations its start had left of ``max_iter``; updates ``xc``,
-    ``ic``, ``vc`` in place."""
+    convergence test: the same iteration continued (its damping ``lc``, the iterations its
+    start had left of ``max_iter``); updates ``xc``, ``ic``, ``vc`` in place."""
     p, _ = mc.evaluate(aa, xc)
     res = (rr - p) * swc
     tc = np.einsum("nm,nm->n", res, res)
@@ -320,7 +320,8 @@ def _polish_best(aa: FloatArray, rr: FloatArray, swc: FloatArray, mc: PathModel,
     for b in np.unique(budget):
         rb = rows[budget == b]
         fit = levenberg_marquardt(aa[rb], rr[rb], swc[rb], xc[rb], mc.take(rb), loss=cfg.loss,
-                                  loss_scale=cfg.loss_scale, max_iter=int(b), xtol_m=cfg.xtol)
+                                  loss_scale=cfg.loss_scale, max_iter=int(b), xtol_m=cfg.xtol,
+                                  lambda0=lc[rb])
         xc[rb] = fit.x_m
         xc[rb, 1] = np.abs(xc[rb, 1])
         ic[rb] += fit.iterations
@@ -401,7 +402,7 @@ EXCLUSION_FTOL = 1e-6
 EXCLUSION_RECHECK_RATIO = 2.0
 #: Default ``dnls(exclusion_bound=...)``: an exclusion candidate's start is given up once a
 #: Gauss-Newton step would leave its cost above this factor times the first candidate's.
-EXCLUSION_BOUND = 2.0
+EXCLUSION_BOUND = 3.0
 #: Iterations every candidate's start makes before it may be given up (far from its minimum
 #: the Gauss-Newton prediction can overstate the cost it will reach).
 EXCLUSION_BOUND_AFTER = 2
@@ -425,7 +426,8 @@ def multistart_fit(
     cost_stop: FloatArray | None = None,
     stop_after: int = 0,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], NDArray[np.bool_]]:
-    """Best-of-starts LM fit per problem: ``starts (N, S, 3)`` -> x, cost, iterations, converged.
+    """Best-of-starts LM fit per problem: ``starts (N, S, 3)`` -> x, cost, iterations, converged
+    and the final damping (``LMResult.lam``) of the start kept.
 
     With screening (``keep_starts``), every start gets ``screen_iter`` iterations and only the
     ``keep_starts`` lowest-cost ones go on. Screening can drop the start that would have
@@ -451,7 +453,7 @@ def multistart_fit(
             np.repeat(sw[rows], s, axis=0), starts[rows].reshape(k * s, 3),
             mdl.take(rows).repeat(s), max_iter=max_iter, **common, **stops(rows, s),
         )
-        return _pick_best(fit.x_m, fit.cost, fit.iterations, fit.converged, k, s)
+        return _pick_best(fit.x_m, fit.cost, fit.iterations, fit.converged, fit.lam, k, s)
 
     if keep_starts is None or s <= keep_starts or max_iter <= screen_iter:
         return full(np.arange(n))
@@ -468,8 +470,8 @@ def multistart_fit(
         scr.x_m[pick], mdl.repeat(k), max_iter=max_iter - screen_iter, **common,
         **stops(slice(None), k),
     )
-    x, cost, iters, conv = _pick_best(
-        fit.x_m, fit.cost, scr.iterations[pick] + fit.iterations, fit.converged, n, k
+    x, cost, iters, conv, lam = _pick_best(
+        fit.x_m, fit.cost, scr.iterations[pick] + fit.iterations, fit.converged, fit.lam, n, k
     )
     if recheck is None:
         redo = np.ones(n, dtype=bool)
@@ -478,15 +480,16 @@ def multistart_fit(
         redo = ~np.isfinite(cost) | ((recheck >= 1) & (2.0 * cost > thr))
     rows = np.flatnonzero(redo)
     if rows.size:
-        x2, c2, i2, v2 = full(rows)
+        x2, c2, i2, v2, l2 = full(rows)
         better = c2 < cost[rows]
         rb = rows[better]
         x[rb], cost[rb], iters[rb], conv[rb] = x2[better], c2[better], i2[better], v2[better]
-    return x, cost, iters, conv
+        lam[rb] = l2[better]
+    return x, cost, iters, conv, lam
 
 
-def _pick_best(x_m, cost, iters, conv, n, s):
+def _pick_best(x_m, cost, iters, conv, lam, n, s):
     c = np.where(np.isfinite(cost), cost, np.inf).reshape(n, s)
     best = np.argmin(c, axis=-1)
     sel = np.arange(n) * s + best
-    return x_m[sel].copy(), cost[sel].copy(), iters[sel].copy(), conv[sel].copy()
+    return x_m[sel].copy(), cost[sel].copy(), iters[sel].copy(), conv[sel].copy(), lam[sel].copy()

@@ -21,7 +21,15 @@ import time
 import numpy as np
 from numba import njit
 
-from diffpos.estimators.lm_nb import FTOL, cost_of, evaluate, lm_fit, lm_fit_ftol, solve3
+from diffpos.estimators.lm_nb import (
+    FTOL,
+    LAMBDA0,
+    cost_of,
+    evaluate,
+    lm_fit,
+    lm_fit_ftol,
+    solve3,
+)
 
 # integer options (ipar)
 I_LOSS, I_MAXIT, I_KEEP, I_SCREEN, I_LLS, I_SIGG, I_GATE = 0, 1, 2, 3, 4, 5, 6
@@ -112,40 +120,48 @@ def _starts(a, r, used, x0, has_x0, zs, ipar, fpar, warm, has_warm):
 
 
 @njit(**_JIT)
-def _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, out_x):
+def _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, out_x, out_lam):
     """Every start to convergence (relative cost decrease ``ftol``; given up above ``stop``,
-    see ``lm_fit_ftol``), the lowest finite cost kept: ``(cost, iterations, conv)``."""
+    see ``lm_fit_ftol``), the lowest finite cost kept: ``(cost, iterations, conv)``, its
+    solution in ``out_x`` and its final damping in ``out_lam[0]``."""
     best_c, best = math.inf, (math.nan, 0, False)
     xi = np.empty(3)
+    lam = np.empty(1)
     for i in range(st.shape[0]):
+        lam[0] = LAMBDA0
         res = lm_fit_ftol(a, r, sw, used, st[i], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
                           fpar[F_SCALE], ipar[I_MAXIT], fpar[F_XTOL], ftol, stop,
-                          ipar[I_PRUNE_AFTER], xi)
+                          ipar[I_PRUNE_AFTER], lam, xi)
         c = res[0] if np.isfinite(res[0]) else math.inf
         if i == 0 or c < best_c:
             best_c, best = c, res
             out_x[:] = xi
+            out_lam[0] = lam[0]
     return best
 
 
 @njit(**_JIT)
-def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, ftol, stop, out_x):
+def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, ftol, stop, out_x,
+               out_lam):
     """Screened multi-start as ``_dnls_fit.multistart_fit`` for one problem (the starts
     iterated to a relative cost decrease ``ftol``; after the screening, given up above the
     cost ``stop``: ``lm_fit_ftol``).
 
     ``recheck_dof < 0``: no noise model, every screened fix is re-solved from all starts.
+    ``out_lam[0]``: the final damping of the start kept.
     """
     s, keep, screen, maxit = st.shape[0], ipar[I_KEEP], ipar[I_SCREEN], ipar[I_MAXIT]
     if keep < 0 or s <= keep or maxit <= screen:
-        return _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, out_x)
+        return _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, out_x, out_lam)
     elo, ehi, loss, sc, xtol = fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS], fpar[F_SCALE], fpar[F_XTOL]
     scr_x = np.empty((s, 3))
     scr_c = np.empty(s)
     scr_it = np.empty(s, np.int64)
+    lam = np.empty(1)
     for i in range(s):
+        lam[0] = LAMBDA0
         c, it, _ = lm_fit_ftol(a, r, sw, used, st[i], h, elo, ehi, loss, sc, screen, xtol, ftol,
-                               math.inf, 0, scr_x[i])
+                               math.inf, 0, lam, scr_x[i])
         scr_c[i] = c if np.isfinite(c) else math.inf
         scr_it[i] = it
     order = np.argsort(scr_c, kind="mergesort")[:keep]
@@ -153,12 +169,14 @@ def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, ftol, sto
     xi = np.empty(3)
     for kk in range(keep):
         i = order[kk]
+        lam[0] = LAMBDA0  # the continuation starts afresh (as the reference's second call)
         c, it, cv = lm_fit_ftol(a, r, sw, used, scr_x[i], h, elo, ehi, loss, sc, maxit - screen,
-                                xtol, ftol, stop, ipar[I_PRUNE_AFTER], xi)
+                                xtol, ftol, stop, ipar[I_PRUNE_AFTER], lam, xi)
         cf = c if np.isfinite(c) else math.inf
         if kk == 0 or cf < best_c:
             best_c, best = cf, (c, scr_it[i] + it, cv)
             out_x[:] = xi
+            out_lam[0] = lam[0]
     cost = best[0]
     if recheck_dof < 0:
         redo = True
@@ -166,10 +184,11 @@ def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, ftol, sto
         thr = thr_re[max(recheck_dof, 0)]
         redo = (not np.isfinite(cost)) or (recheck_dof >= 1 and 2.0 * cost > thr)
     if redo:
-        x2 = np.empty(3)
-        full = _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, x2)
+        x2, lam2 = np.empty(3), np.empty(1)
+        full = _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, x2, lam2)
         if full[0] < cost:
             out_x[:] = x2
+            out_lam[0] = lam2[0]
             return full
     return best
 
@@ -220,6 +239,7 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
     prune = ms and ipar[I_LOSS] == 0 and np.isfinite(fpar[F_PRUNE])
     order = _loo_order(a, r, sw, used, x, h, fpar, p, jac) if prune else np.arange(m)
     stop = math.inf
+    lc = np.full(m, LAMBDA0)  # each candidate's final damping (the polish continues it)
     n_st = 0
     for jj in range(m):
         j = order[jj]
@@ -233,14 +253,15 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
             st = _starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x, True)
             n_st = st.shape[0]
             cc[j], ic[j], vc[j] = multistart(a, r, sw, cu, st, h, ipar, fpar, 0, thr_re,
-                                             fpar[F_CFTOL], stop, xc[j])
+                                             fpar[F_CFTOL], stop, xc[j], lc[j:j + 1])
             if prune and jj == 0 and np.isfinite(cc[j]):
                 stop = fpar[F_PRUNE] * cc[j]
         else:
             _, ic[j], vc[j] = lm_fit(a, r, sw, cu, x, h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
                                      fpar[F_SCALE], ipar[I_REFIT], _REFIT_XTOL, xc[j])
     if ms and ipar[I_KEEP] >= 0 and n_st > ipar[I_KEEP]:
-        _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc)
+        _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc,
+                            lc)
     for j in range(m):
         if used[j]:
             xc[j, 1] = abs(xc[j, 1])
@@ -248,7 +269,7 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
             cu[j] = False
             tc[j] = _t_stat(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], p, jac)
     if ms and ipar[I_POLISH]:
-        _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, p, jac)
+        _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, lc, p, jac)
     return tc
 
 
@@ -282,10 +303,10 @@ def _loo_order(a, r, sw, used, x, h, fpar, p, jac):
 
 
 @njit(**_JIT)
-def _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, p, jac):
+def _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, lc, p, jac):
     """The candidate with the smallest statistic iterated on from its loose solution to the
-    full convergence test, with the iterations its start had left of ``I_MAXIT`` (its
-    statistic updated)."""
+    full convergence test: the same iteration continued (its damping ``lc``, the iterations
+    its start had left of ``I_MAXIT``); its statistic updated."""
     j = np.argmin(tc)
     if not np.isfinite(tc[j]):
         return
@@ -293,8 +314,9 @@ def _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, p, jac):
     cu[j] = False
     xi = np.empty(3)
     budget = max(ipar[I_MAXIT] - ic[j], 0)  # the iterations its start had left
-    _, it, cv = lm_fit(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
-                       fpar[F_SCALE], budget, fpar[F_XTOL], xi)
+    _, it, cv = lm_fit_ftol(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
+                            fpar[F_SCALE], budget, fpar[F_XTOL], FTOL, math.inf, 0, lc[j:j + 1],
+                            xi)
     xc[j] = xi
     xc[j, 1] = abs(xc[j, 1])
     ic[j] += it
@@ -303,7 +325,8 @@ def _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, p, jac):
 
 
 @njit(**_JIT)
-def _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc):
+def _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc,
+                        lc):
     """If no screened candidate passes the residual test, but one comes within ``F_RECHK``
     times its threshold (inf: always), re-solve every candidate from all starts (no
     screening) and keep the better answers."""
@@ -318,18 +341,21 @@ def _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x
                 near = True
         if not near:
             return
+    elif np.isfinite(fpar[F_RECHK]):  # no threshold to come near
+        return
     cu = used.copy()
-    x2 = np.empty(3)
+    x2, lam2 = np.empty(3), np.empty(1)
     for j in range(m):
         if not used[j]:
             continue
         cu[:] = used
         cu[j] = False
         st = _starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x, True)
-        c2, i2, v2 = _full(a, r, sw, cu, st, h, ipar, fpar, fpar[F_CFTOL], math.inf, x2)
+        c2, i2, v2 = _full(a, r, sw, cu, st, h, ipar, fpar, fpar[F_CFTOL], math.inf, x2, lam2)
         if c2 < cc[j]:
             xc[j] = x2
             ic[j], vc[j] = i2, v2
+            lc[j] = lam2[0]
 
 
 @njit(**_JIT)
@@ -510,7 +536,7 @@ def solve_fix(b, a, r, sig, mask, h, x0, has_x0, zs, ipar, fpar, thr_fa, thr_re,
     x = np.empty(3)
     st = _starts(a, r, used, x0, has_x0, zs, ipar, fpar, x0, False)
     _, it, cv = multistart(a, r, sw, used, st, h, ipar, fpar, n - 3 if ipar[I_SIGG] else -1,
-                           thr_re, FTOL, math.inf, x)
+                           thr_re, FTOL, math.inf, x, np.empty(1))
     x[1] = abs(x[1])
     it_cv = np.array([it, cv], np.int64)
     failed, tested = False, False
