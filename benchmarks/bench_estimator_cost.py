@@ -25,6 +25,14 @@ Run:  .venv/bin/python benchmarks/bench_estimator_cost.py [--quick] [--seed N]
 ``--reference``: M-NLS with its numpy/numba reference steps (``kernel=False``: the same
 answers, the steps as before the compiled LM).
 
+``--dnls-search``: D-NLS alone, its bounded exclusion search (the defaults:
+``exclusion_ftol``, ``exclusion_recheck_ratio``, ``exclusion_bound``) against the exhaustive
+one (all three ``None``) on the same fixes, cold and warm-started (x0 = truth + 0.5 m noise),
+timed alternately: CPU per fix, and what changed (used anchor sets, statuses, positions,
+median error, right floor). ``--replay R.mcap`` does the same on the D-NLS calls of a
+``--method dnls`` replay of R (captured first; the fusion's own warm and cold batches).
+docs/dnls_cost.md has the figures.
+
 Measured 2026-11-27 06:35 UTC (``--quick``, seed 0; 2-core x86_64 VM, Python 3.11.7, shared
 with two other jobs: load average 4.5-6.2, CPU figures move by +-20 % between runs, so the
 runs were interleaved): before = commit adf3856 (the SNR kernel and the morning's search
@@ -137,15 +145,131 @@ def cost_rows(sc: Scenario, anchors: np.ndarray, rng: np.random.Generator, n_bat
     return rows, acc
 
 
+EXHAUSTIVE = {"exclusion_ftol": None, "exclusion_recheck_ratio": None, "exclusion_bound": None}
+
+
+def _capture_replay_calls(recording: str) -> list:
+    """The arguments of every ``dnls`` call of a ``--method dnls`` replay of ``recording``."""
+    from diffpos_services.replay.run import replay
+
+    import diffpos.estimators.dnls.solver as dnls_solver
+
+    calls: list = []
+    orig = dnls_solver.dnls
+
+    def capture(*a, **k):
+        calls.append((a, k))
+        return orig(*a, **k)
+
+    dnls_solver.dnls = capture
+    try:
+        replay(recording, method="dnls", keep_estimates=False)
+    finally:
+        dnls_solver.dnls = orig
+    return calls
+
+
+def _changes(old, new, truth, sc: Scenario | None) -> str:
+    """What the bounded search changed against the exhaustive one (same fixes)."""
+    used = int((old.used != new.used).any(axis=1).sum())
+    status = int((old.status != new.status).sum())
+    d = np.linalg.norm(old.position_m - new.position_m, axis=1)
+    moved = int((d > 0.01).sum())
+    txt = f"{used} / {status} / {moved}"
+    if truth is not None and sc is not None:
+        cols = []
+        for res in (old, new):
+            ok = res.status == 0
+            err = np.linalg.norm(res.position_m - truth, axis=1)[ok]
+            fl = sc.building.floor_index(res.position_m[ok, 2]) == sc.building.floor_index(
+                truth[ok, 2])
+            cols.append(f"{ok.mean():.3f}, {np.median(err):.2f} m, {fl.mean():.3f}")
+        txt += f" | {cols[0]} | {cols[1]}"
+    return txt
+
+
+def search_rows(sc: Scenario, rng: np.random.Generator, n: int, rounds: int) -> list[str]:
+    """Bounded vs exhaustive exclusion search on emulated 8-anchor fixes, cold and warm."""
+    b = sc.building
+    anchors = np.concatenate([sc.anchor_positions_m(), EXTRA_ANCHORS_M])
+    nodes = nodes_on_floors(sc, rng, n)
+    meas = measurements(sc, anchors, nodes, rng)
+    x0 = nodes + rng.normal(0.0, 0.5, nodes.shape)
+    rows = ["| fixes | bounded CPU ms/fix (least of rounds) | exhaustive | ratio | used sets / "
+            "statuses / positions > 1 cm changed | exhaustive: OK share, median error, right "
+            "floor | bounded |", "| --- | ---: | ---: | ---: | --- | --- | --- |"]
+    for label, start in (("cold", None), ("warm (x0 = truth + 0.5 m)", x0)):
+        def run(kw, start=start):
+            return dnls(meas["a"], meas["r"], meas["sig"], mask=meas["mask"], x0_m=start,
+                        window_height_m=b.window_height_m, edge_x_m=b.edge_x_m, **kw)
+        run({})
+        run(EXHAUSTIVE)
+        cpu = {"new": [], "old": []}
+        for _ in range(rounds):
+            for key, kw in (("new", {}), ("old", EXHAUSTIVE)):
+                c0 = time.thread_time()
+                res = run(kw)
+                cpu[key].append(1e3 * (time.thread_time() - c0) / n)
+                if key == "new":
+                    new = res
+                else:
+                    old = res
+        a, o = min(cpu["new"]), min(cpu["old"])
+        rows.append(f"| {label}, {n:,} | {a:.3f} | {o:.3f} | {a / o:.2f} | "
+                    f"{_changes(old, new, nodes, sc)} |")
+    return rows
+
+
+def replay_rows(recording: str, rounds: int) -> list[str]:
+    """Bounded vs exhaustive on the D-NLS calls of a replay (captured), alternately timed."""
+    calls = _capture_replay_calls(recording)
+    rows = ["| calls (fixes) | bounded CPU [s] (least / median) | exhaustive | ratio | used "
+            "sets / statuses / positions > 1 cm changed |", "| --- | ---: | ---: | ---: | --- |"]
+    cpu: dict[str, list[float]] = {"new": [], "old": []}
+    outs: dict[str, list] = {}
+    for _ in range(rounds):
+        for key, over in (("new", {}), ("old", EXHAUSTIVE)):
+            c0 = time.thread_time()
+            outs[key] = [dnls(*a, **{**k, **over}) for a, k in calls]
+            cpu[key].append(time.thread_time() - c0)
+    n_fix = sum(len(f.status) for f in outs["new"])
+    same_m = [(o, n) for o, n in zip(outs["old"], outs["new"], strict=True)]
+    ch = [0, 0, 0]
+    for o, nw in same_m:
+        ch[0] += int((o.used != nw.used).any(axis=1).sum())
+        ch[1] += int((o.status != nw.status).sum())
+        ch[2] += int((np.linalg.norm(o.position_m - nw.position_m, axis=1) > 0.01).sum())
+    a, o = min(cpu["new"]), min(cpu["old"])
+    rows.append(f"| {len(calls)} ({n_fix:,}) | {a:.3f} / {np.median(cpu['new']):.3f} | "
+                f"{o:.3f} / {np.median(cpu['old']):.3f} | {a / o:.2f} | "
+                f"{ch[0]} / {ch[1]} / {ch[2]} |")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer fixes (128 batched, 20 single)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--reference", action="store_true",
                     help="M-NLS with its numpy/numba reference steps (kernel=False)")
+    ap.add_argument("--dnls-search", action="store_true",
+                    help="D-NLS bounded vs exhaustive exclusion search (docs/dnls_cost.md)")
+    ap.add_argument("--replay", metavar="R.mcap",
+                    help="with --dnls-search: also on the D-NLS calls of a replay of R")
+    ap.add_argument("--rounds", type=int, default=3, help="--dnls-search: timing rounds")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
     sc = default_scenario()
+    if args.dnls_search:
+        n = 256 if args.quick else 2048
+        print(f"## D-NLS exclusion search, bounded vs exhaustive (emulated channel, scenario "
+              f"{sc.name}, 8 anchors, seed {args.seed})\n")
+        print("\n".join(search_rows(sc, rng, n, args.rounds)))
+        if args.replay:
+            print(f"\n## The same on the D-NLS calls of `diffpos replay {args.replay} --method "
+                  "dnls`\n")
+            print("\n".join(replay_rows(args.replay, args.rounds)))
+        return
     n_batch, n_single = (128, 20) if args.quick else (1024, 100)
     layouts = {4: sc.anchor_positions_m(),
                8: np.concatenate([sc.anchor_positions_m(), EXTRA_ANCHORS_M])}

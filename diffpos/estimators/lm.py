@@ -172,12 +172,16 @@ class LMResult:
         Iterations used (accepted and rejected steps).
     converged : ndarray of bool, shape (N,)
         A convergence test passed (see :func:`levenberg_marquardt`).
+    lam : ndarray, shape (N,), optional
+        The damping ``lambda`` where each problem stopped (``lambda0`` of another call
+        continues the same iteration from ``x_m``).
     """
 
     x_m: FloatArray
     cost: FloatArray
     iterations: NDArray[np.int_]
     converged: BoolArray
+    lam: FloatArray | None = None
 
 
 def levenberg_marquardt(
@@ -193,7 +197,9 @@ def levenberg_marquardt(
     xtol_m: float = 1e-10,
     ftol: float = 1e-12,
     gtol: float = 1e-10,
-    lambda0: float = 1e-4,
+    lambda0: float | FloatArray = 1e-4,
+    cost_stop: FloatArray | None = None,
+    stop_after: int = 0,
 ) -> LMResult:
     """Batched damped Gauss-Newton (Levenberg-Marquardt) on the path model.
 
@@ -236,6 +242,15 @@ def levenberg_marquardt(
         Starts.
     model : PathModel
         Scalars or per-problem ``(N,)`` arrays.
+    lambda0 : float or ndarray, shape (N,)
+        Initial damping (``LMResult.lam`` of an earlier call continues its iteration).
+    cost_stop : ndarray, shape (N,), optional
+        A problem is given up (unconverged, where it is) once, after at least
+        ``stop_after`` iterations, the cost a Gauss-Newton step predicts from its current
+        point (``cost - g^T H^-1 g / 2``) is above its ``cost_stop`` (the D-NLS exclusion
+        search: a candidate that cannot become the best; inf: never).
+    stop_after : int
+        Iterations before ``cost_stop`` applies.
 
     Returns
     -------
@@ -245,17 +260,26 @@ def levenberg_marquardt(
     """
     x0 = np.asarray(x0_m, dtype=np.float64)
     out = _LMOutput.at_start(x0, anchors_m, ranges_m, sw, model, loss, loss_scale)
-    w = _WorkingSet.of_finite(out, anchors_m, ranges_m, sw, model, lambda0)
+    out.lam = np.broadcast_to(np.asarray(lambda0, dtype=np.float64), out.cost.shape).copy()
+    w = _WorkingSet.of_finite(out, anchors_m, ranges_m, sw, model, out.lam)
     # non-finite rows (e.g. a start on the edge line itself, where dp/du is infinite) are
     # handled explicitly (their steps are never accepted): no floating-point warnings
     with np.errstate(invalid="ignore"):
-        for _ in range(max_iter):
+        n_it = 0
+        while n_it < max_iter:
             if w.ids.size == 0:
                 break
             h, g, inv4 = _normal_equations(w, loss, loss_scale)
             if w.at_wall:
                 _hold_active_bound(w.v[:, 1], h, g)
-            a2, dv, stationary, bad = _damped_and_gauss_newton_steps(w, h, g, gtol)
+            a2, dv, stationary, bad, dec = _damped_and_gauss_newton_steps(w, h, g, gtol)
+            if cost_stop is not None:
+                given_up = w.live & (w.it >= stop_after) & (w.cost - 0.5 * dec > cost_stop[w.ids])
+                if given_up.any():  # retired where they are; the others' step again
+                    if _retire(w, out, given_up, np.zeros_like(given_up)):
+                        break
+                    continue
+            n_it += 1
             vt = _trial_point(w, dv, a2, g, inv4)
             accept, step2, c_old, costt = _evaluate_and_accept(w, vt, bad, loss, loss_scale)
             done_ok, failed = _convergence_tests(
@@ -269,7 +293,8 @@ def levenberg_marquardt(
     # rows never iterated (non-finite cost) keep their start as given
     bad_rows = ~np.isfinite(out.cost)
     out.x[bad_rows] = x0[bad_rows]
-    return LMResult(x_m=out.x, cost=out.cost, iterations=out.iterations, converged=out.converged)
+    return LMResult(x_m=out.x, cost=out.cost, iterations=out.iterations, converged=out.converged,
+                    lam=out.lam)
 
 
 @dataclass
@@ -288,6 +313,7 @@ class _LMOutput:
     res: FloatArray
     jac: FloatArray
     floor: FloatArray
+    lam: FloatArray | None = None  # (N,) the damping where each problem stopped
 
     @classmethod
     def at_start(
@@ -327,6 +353,7 @@ class _LMOutput:
         self.x[gid] = w.x[rows]
         self.cost[gid] = w.cost[rows]
         self.iterations[gid] = w.it[rows]
+        self.lam[gid] = w.lam[rows]
 
 
 @dataclass
@@ -363,7 +390,7 @@ class _WorkingSet:
         ranges_m: FloatArray,
         sw: FloatArray,
         model: PathModel,
-        lambda0: float,
+        lam0: FloatArray,
     ) -> _WorkingSet:
         """The problems with a finite starting cost (all of them: no gather)."""
         ids = np.flatnonzero(np.isfinite(out.cost))
@@ -379,7 +406,7 @@ class _WorkingSet:
         return cls(
             ids=ids, a=a_w, r=r_w, sw=sw_w, v=v_w, x=x_w, res=res_w, jac=jac_w, cost=cost_w,
             floor=floor_w, mdl=mdl_w,
-            lam=np.full(ids.size, lambda0),
+            lam=lam0[ids].copy(),
             it=np.zeros(ids.size, dtype=np.int_),
             live=np.ones(ids.size, dtype=bool),
             wsum=np.maximum(np.einsum("nm,nm->n", sw_w, sw_w), tiny),
@@ -433,13 +460,13 @@ def _hold_active_bound(u_w: FloatArray, h: FloatArray, g: FloatArray) -> None:
 
 def _damped_and_gauss_newton_steps(
     w: _WorkingSet, h: FloatArray, g: FloatArray, gtol: float
-) -> tuple[FloatArray, FloatArray, BoolArray, BoolArray]:
+) -> tuple[FloatArray, FloatArray, BoolArray, BoolArray, FloatArray]:
     """One stacked solve: the damped LM step and the undamped Gauss-Newton step.
 
     The Gauss-Newton step's Newton decrement ``g^T H^-1 g`` (twice the decrease a full GN step
     would give) tests for a stationary point. Returns the damped matrices ``a2[:K]`` (with the
-    undamped ones below), the LM step ``dv`` (0 where non-finite), ``stationary`` and ``bad``
-    (non-finite step).
+    undamped ones below), the LM step ``dv`` (0 where non-finite), ``stationary``, ``bad``
+    (non-finite step) and the decrement ``dec``.
     """
     diag = np.arange(3)
     dh = h[:, diag, diag]
@@ -454,7 +481,7 @@ def _damped_and_gauss_newton_steps(
     bad = ~np.isfinite(dv).all(axis=-1)
     if bad.any():
         dv[bad] = 0.0
-    return a2, dv, stationary, bad
+    return a2, dv, stationary, bad, dec
 
 
 def _trial_point(

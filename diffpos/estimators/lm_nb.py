@@ -153,7 +153,9 @@ def _clamp_to_wall(v, vt, hd, g, inv4, hc, gc, dvc):
 
 @njit(cache=True, error_model="numpy")
 def _step(v, hm, g, lam, at_wall, inv4, cost, floor, gtol, ws3, vt):
-    """Damped LM step and trial point ``vt``; returns ``(stationary, bad, at_wall)``."""
+    """Damped LM step and trial point ``vt``; returns ``(stationary, bad, at_wall, dec)``
+    (``dec``: the Newton decrement ``g^T H^-1 g``, twice the decrease a Gauss-Newton step
+    predicts)."""
     hd, hc, gc, dv, gn = ws3[0], ws3[1], ws3[2, 0], ws3[2, 1], ws3[2, 2]
     if at_wall and v[1] <= 0.0 and g[1] < 0.0:  # active bound: hold u
         for i in range(3):
@@ -183,7 +185,13 @@ def _step(v, hm, g, lam, at_wall, inv4, cost, floor, gtol, ws3, vt):
     if vt[1] < 0.0 or fac <= 0.5:
         _clamp_to_wall(v, vt, hd, g, inv4, hc, gc, gn)  # gn is free again
         at_wall = True
-    return stationary, bad, at_wall
+    return stationary, bad, at_wall, dec
+
+
+#: Relative cost decrease of the convergence test (``levenberg_marquardt``'s default ``ftol``).
+FTOL = 1e-12
+#: Initial damping (``levenberg_marquardt``'s default ``lambda0``).
+LAMBDA0 = 1e-4
 
 
 @njit(cache=True, error_model="numpy")
@@ -191,7 +199,21 @@ def lm_fit(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, out_x):
     """One problem: LM from ``x0 (3,)``; writes the solution (``y >= 0``) into ``out_x`` and
     returns ``(cost, iterations, converged)``. A non-finite starting cost returns the start as
     given, unconverged, with 0 iterations (as the reference)."""
-    ftol, gtol, m = 1e-12, 1e-10, r.shape[0]
+    return lm_fit_ftol(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, FTOL, math.inf,
+                       0, np.full(1, LAMBDA0), out_x)
+
+
+@njit(cache=True, error_model="numpy")
+def lm_fit_ftol(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, ftol, cost_stop,
+                stop_after, lam_io, out_x):
+    """:func:`lm_fit` with the relative cost decrease ``ftol`` of its convergence test given
+    (``levenberg_marquardt(ftol=...)``; :data:`FTOL` in :func:`lm_fit`), and given up
+    (unconverged, where it is) once, after at least ``stop_after`` iterations, the cost a
+    Gauss-Newton step predicts from the current point (``cost - dec / 2``) is above
+    ``cost_stop`` (``levenberg_marquardt(cost_stop=...)``; inf: never). ``lam_io`` (1,):
+    the initial damping on entry (:data:`LAMBDA0`), the damping where it stopped on return
+    (given again with ``x0 = out_x``, it continues the same iteration)."""
+    gtol, m = 1e-10, r.shape[0]
     bm, bj, b3, bv = np.zeros((3, m)), np.zeros((2, m, 3)), np.zeros((4, 3, 3)), np.zeros((5, 3))
     p, pt, res, jac, jt = bm[0], bm[1], bm[2], bj[0], bj[1]  # 4 allocations, not 11
     ws3, hm = b3[:3], b3[3]
@@ -210,11 +232,16 @@ def lm_fit(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, out_x):
             floor += e * e
             res[j] = r[j] - p[j]
     floor *= 0.5
-    lam, at_wall, it = 1e-4, v[1] <= 0.0, 0
+    lam, at_wall, it = lam_io[0], v[1] <= 0.0, 0
     for _ in range(max_iter):
         wsum = _normal_equations(jac, res, sw, used, loss, c, hm, g)
         inv4 = hm[1, 1] / max(wsum, _TINY)
-        stationary, bad, at_wall = _step(v, hm, g, lam, at_wall, inv4, cost, floor, gtol, ws3, vt)
+        stationary, bad, at_wall, dec = _step(v, hm, g, lam, at_wall, inv4, cost, floor, gtol,
+                                              ws3, vt)
+        if it >= stop_after and cost - 0.5 * dec > cost_stop:
+            out_x[:] = x
+            lam_io[0] = lam
+            return cost, it, False
         xt[0], xt[1], xt[2] = vt[0], math.sqrt(vt[1]), vt[2]
         evaluate(a, used, vt[0], vt[1], vt[2], 0.0, True, h, elo, ehi, pt, jt)
         costt = cost_of(r, pt, sw, used, loss, c)
@@ -237,6 +264,8 @@ def lm_fit(a, r, sw, used, x0, h, elo, ehi, loss, c, max_iter, xtol, out_x):
             done = done or step2 <= (xtol * (xtol + xn)) ** 2 or c_old - costt <= ftol * c_old
         if done or lam > 1e12:
             out_x[:] = x
+            lam_io[0] = lam
             return cost, it, done
     out_x[:] = x
+    lam_io[0] = lam
     return cost, it, False

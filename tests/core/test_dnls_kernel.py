@@ -76,7 +76,12 @@ CASES = {
     "huber": {"loss": "huber"},
     "soft_l1 no gating": {"loss": "soft_l1", "gating": None},
     "no screening": {"keep_starts": None},
-    "bounded edges, Case-2": {"edge_x_m": (-12.0, 12.0), "delta_m": 1.5},
+    # the edge clamp makes the model non-smooth: a rounding-level difference can send a
+    # 4-iteration screening start down another branch, and (with the default
+    # exclusion_recheck_ratio) a fix far from consistency is not re-solved from all starts
+    # to hide it (measured: 1 of these 450 problems); the exhaustive recheck here
+    "bounded edges, Case-2": {"edge_x_m": (-12.0, 12.0), "delta_m": 1.5,
+                              "exclusion_recheck_ratio": None},
     "warm refits only": {"gating": GatingConfig(multistart_exclusion=False, max_exclusions=3)},
     "no sigmas, margin": {"sigmas": False, "gating": GatingConfig(pregate_margin_m=0.3)},
 }

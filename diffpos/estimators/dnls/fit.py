@@ -25,8 +25,10 @@ from diffpos.estimators.gating import (
 )
 from diffpos.estimators.lls import lls_positions
 from diffpos.estimators.lm import PathModel, cost_of, levenberg_marquardt
+from diffpos.estimators.lm_nb import FTOL
 from diffpos.estimators.result import ExclusionReason, FixStatus
 from diffpos.estimators.starts import grid_starts
+from diffpos.sym3 import solve3
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -47,6 +49,9 @@ class FitSettings:
     sigmas_given: bool
     keep_starts: int | None
     screen_iter: int
+    exclusion_ftol: float | None = None  # None: the exhaustive exclusion search
+    exclusion_recheck_ratio: float | None = None
+    exclusion_bound: float | None = None
 
 
 @dataclass(frozen=True)
@@ -165,7 +170,7 @@ def _first_fit(
     """Multi-start fit on all used anchors; the gating state it starts from."""
     starts = _starts_for(prob, prob.a, prob.r, used, slice(None), cfg)
     n = starts.shape[0]
-    x, cost_best, iters_best, conv_best = multistart_fit(
+    x, cost_best, iters_best, conv_best, _ = multistart_fit(
         prob.a, prob.r, used / prob.sig, starts, prob.mdl, loss=cfg.loss,
         loss_scale=cfg.loss_scale, max_iter=cfg.max_iter, xtol=cfg.xtol,
         keep_starts=cfg.keep_starts, screen_iter=cfg.screen_iter,
@@ -193,32 +198,134 @@ def _solve_candidates(
     recheck is done per fix, not per candidate: the candidates that keep the faulty anchor
     all fail, and re-solving each of them from every start would only confirm it. A fix is
     re-solved from all starts (every candidate) only if none of its screened candidates
-    passes the residual test itself.
+    passes the residual test itself, and (``exclusion_recheck_ratio``) its best one comes
+    within that factor of the threshold. With ``exclusion_ftol`` the candidates are solved
+    to that relative cost decrease and each fix's best one is then iterated on to the full
+    convergence test (:func:`_polish_best`).
     """
     aa, rr, swc, mc = prob.a[pi], prob.r[pi], cu / prob.sig[pi], prob.mdl.take(pi)
     # one given start (or the grid) plus the warm start (the current solution)
     st = np.concatenate([_starts_for(prob, aa, rr, cu, pi, cfg), warm[:, None, :]], axis=1)
+    ftol = FTOL if cfg.exclusion_ftol is None else cfg.exclusion_ftol
     common = {"loss": cfg.loss, "loss_scale": cfg.loss_scale, "max_iter": cfg.max_iter,
-              "xtol": cfg.xtol, "screen_iter": cfg.screen_iter}
+              "xtol": cfg.xtol, "screen_iter": cfg.screen_iter, "ftol": ftol}
     dof_c = cu.sum(axis=-1) - 3
-    xc, cc, ic, vc = multistart_fit(aa, rr, swc, st, mc, keep_starts=cfg.keep_starts,
-                                    recheck=np.zeros_like(dof_c), **common)
+    _, grp = np.unique(pi, return_inverse=True)
+    if cfg.exclusion_bound is not None and cfg.loss == "linear":
+        first = _loo_first(aa, rr, prob.sig[pi], mc, grp, cu, warm)
+        xc, cc, ic, vc, lc = _bounded_candidates(aa, rr, swc, st, mc, grp, first, cfg, common)
+    else:
+        xc, cc, ic, vc, lc = multistart_fit(aa, rr, swc, st, mc, keep_starts=cfg.keep_starts,
+                                        recheck=np.zeros_like(dof_c), **common)
     if cfg.keep_starts is not None and st.shape[1] > cfg.keep_starts:
         thr_c = chi2_threshold(dof_c, cfg.gating.false_alarm_probability)
         good = (dof_c >= 1) & (2.0 * cc <= thr_c)
-        _, grp = np.unique(pi, return_inverse=True)
         fix_good = np.zeros(grp.max(initial=-1) + 1, dtype=bool)
         np.logical_or.at(fix_good, grp, good)
-        rows = np.flatnonzero(~fix_good[grp])
+        redo = ~fix_good
+        if cfg.exclusion_recheck_ratio is not None:
+            near = (dof_c >= 1) & (2.0 * cc <= cfg.exclusion_recheck_ratio * thr_c)
+            fix_near = np.zeros_like(fix_good)
+            np.logical_or.at(fix_near, grp, near)
+            redo &= fix_near
+        rows = np.flatnonzero(redo[grp])
         if rows.size:
-            x2, c2, i2, v2 = multistart_fit(
+            x2, c2, i2, v2, l2 = multistart_fit(
                 aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows),
                 keep_starts=None, recheck=None, **common)
             b = c2 < cc[rows]
             rb = rows[b]
-            xc[rb], ic[rb], vc[rb] = x2[b], i2[b], v2[b]
+            xc[rb], ic[rb], vc[rb], lc[rb] = x2[b], i2[b], v2[b], l2[b]
     xc[:, 1] = np.abs(xc[:, 1])
+    if cfg.exclusion_ftol is not None:
+        _polish_best(aa, rr, swc, mc, grp, cfg, xc, ic, vc, lc)
     return xc, ic, vc
+
+
+def _bounded_candidates(aa: FloatArray, rr: FloatArray, swc: FloatArray, st: FloatArray,
+                        mc: PathModel, grp: NDArray[np.int_], first: NDArray[np.int_],
+                        cfg: FitSettings, common: dict
+                        ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], BoolArray, FloatArray]:
+    """The candidates of :func:`_solve_candidates` with ``exclusion_bound``: each fix's
+    candidate row ``first`` (the smallest linearised leave-one-out statistic,
+    :func:`_loo_first`) solved first, then the others with their starts given up above
+    ``exclusion_bound`` times its cost (``levenberg_marquardt(cost_stop=...)``)."""
+    zero = np.zeros(grp.size, dtype=np.int_)
+    xc, cc, ic, vc, lc = (np.empty((grp.size, 3)), np.empty(grp.size), np.empty(grp.size, np.int_),
+                          np.empty(grp.size, bool), np.empty(grp.size))
+    rest = np.setdiff1d(np.arange(grp.size), first)
+    for rows, stop in ((first, None), (rest, "bound")):
+        if rows.size == 0:
+            continue
+        kw = {}
+        if stop is not None:
+            c_first = np.full(grp.max() + 1, np.inf)
+            c_first[grp[first]] = np.where(np.isfinite(cc[first]), cc[first], np.inf)
+            kw = {"cost_stop": cfg.exclusion_bound * c_first[grp[rows]],
+                  "stop_after": EXCLUSION_BOUND_AFTER}
+        xc[rows], cc[rows], ic[rows], vc[rows], lc[rows] = multistart_fit(
+            aa[rows], rr[rows], swc[rows], st[rows], mc.take(rows), keep_starts=cfg.keep_starts,
+            recheck=zero[rows], **common, **kw)
+    return xc, cc, ic, vc, lc
+
+
+def _loo_first(aa: FloatArray, rr: FloatArray, sig: FloatArray, mc: PathModel,
+               grp: NDArray[np.int_], cu: BoolArray, warm: FloatArray) -> NDArray[np.int_]:
+    """Per fix, the candidate row whose left-out anchor has the smallest linearised
+    leave-one-out statistic at the current solution ``warm`` (the kernel's ``_loo_order``):
+    ``T - w_j e_j^2 / (1 - h_jj)``, ``T`` the statistic of the fix's anchors, ``h_jj`` the
+    leverage of anchor ``j`` (-inf where ``1 - h_jj <= 1e-12``); the first of equal ones."""
+    k = grp.size
+    used = np.zeros((grp.max() + 1, cu.shape[1]), dtype=bool)
+    np.logical_or.at(used, grp, cu)  # a fix's anchors: the union of its candidates' sets
+    uf = used[grp]
+    left_out = np.argmax(uf & ~cu, axis=-1)
+    sw = np.where(uf, 1.0 / sig, 0.0)
+    p, jac = mc.evaluate(aa, warm)
+    e = np.where(uf, (rr - p) * sw, 0.0)
+    jw = np.where(uf[..., None], jac * sw[..., None], 0.0)
+    hm = np.einsum("kmi,kmj->kij", jw, jw)
+    jl = jw[np.arange(k), left_out]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = solve3(hm, jl)
+        one_minus = 1.0 - np.einsum("ki,ki->k", jl, q)
+        el = e[np.arange(k), left_out]
+        pred = np.where(one_minus > 1e-12, np.einsum("km,km->k", e, e) - el * el / one_minus,
+                        -np.inf)
+    order = np.lexsort((pred, grp))  # by fix, then statistic (stable)
+    head = np.ones(k, dtype=bool)
+    head[1:] = grp[order[1:]] != grp[order[:-1]]
+    return order[head]
+
+
+def _polish_best(aa: FloatArray, rr: FloatArray, swc: FloatArray, mc: PathModel,
+                 grp: NDArray[np.int_], cfg: FitSettings, xc: FloatArray, ic: NDArray[np.int_],
+                 vc: BoolArray, lc: FloatArray) -> None:
+    """Each fix's candidate with the smallest test statistic (the one ``run_gating`` picks;
+    the first of equal ones) iterated on from its loosely converged solution to the full
+    convergence test: the same iteration continued (its damping ``lc``, the iterations its
+    start had left of ``max_iter``); updates ``xc``, ``ic``, ``vc`` in place."""
+    p, _ = mc.evaluate(aa, xc)
+    res = (rr - p) * swc
+    tc = np.einsum("nm,nm->n", res, res)
+    tc = np.where(np.isfinite(tc), tc, np.inf)
+    order = np.lexsort((tc, grp))  # by fix, then statistic (stable: the first of equal ones)
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = grp[order[1:]] != grp[order[:-1]]
+    rows = order[first]
+    rows = rows[np.isfinite(tc[rows])]
+    if rows.size == 0:
+        return
+    budget = np.maximum(cfg.max_iter - ic[rows], 0)  # the iterations their starts had left
+    for b in np.unique(budget):
+        rb = rows[budget == b]
+        fit = levenberg_marquardt(aa[rb], rr[rb], swc[rb], xc[rb], mc.take(rb), loss=cfg.loss,
+                                  loss_scale=cfg.loss_scale, max_iter=int(b), xtol_m=cfg.xtol,
+                                  lambda0=lc[rb])
+        xc[rb] = fit.x_m
+        xc[rb, 1] = np.abs(xc[rb, 1])
+        ic[rb] += fit.iterations
+        vc[rb] = fit.converged
 
 
 def _final_fields(prob: _Problems, state: GateState, cfg: FitSettings) -> dict[str, np.ndarray]:
@@ -287,6 +394,18 @@ def _fix_status(
 
 #: Screened fixes whose residual statistic exceeds this quantile are re-solved from all starts.
 RECHECK_PROBABILITY = 0.1
+#: Default ``dnls(exclusion_ftol=...)``: the relative cost decrease to which the exclusion
+#: candidates are solved before the best is iterated on (docs/dnls_cost.md).
+EXCLUSION_FTOL = 1e-6
+#: Default ``dnls(exclusion_recheck_ratio=...)``: a fix's exclusion candidates are re-solved
+#: from all starts only if the best one's statistic is within this factor of its threshold.
+EXCLUSION_RECHECK_RATIO = 2.0
+#: Default ``dnls(exclusion_bound=...)``: an exclusion candidate's start is given up once a
+#: Gauss-Newton step would leave its cost above this factor times the first candidate's.
+EXCLUSION_BOUND = 3.0
+#: Iterations every candidate's start makes before it may be given up (far from its minimum
+#: the Gauss-Newton prediction can overstate the cost it will reach).
+EXCLUSION_BOUND_AFTER = 2
 
 
 def multistart_fit(
@@ -303,8 +422,12 @@ def multistart_fit(
     keep_starts: int | None,
     screen_iter: int,
     recheck: NDArray[np.int_] | None,
+    ftol: float = FTOL,
+    cost_stop: FloatArray | None = None,
+    stop_after: int = 0,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], NDArray[np.bool_]]:
-    """Best-of-starts LM fit per problem: ``starts (N, S, 3)`` -> x, cost, iterations, converged.
+    """Best-of-starts LM fit per problem: ``starts (N, S, 3)`` -> x, cost, iterations, converged
+    and the final damping (``LMResult.lam``) of the start kept.
 
     With screening (``keep_starts``), every start gets ``screen_iter`` iterations and only the
     ``keep_starts`` lowest-cost ones go on. Screening can drop the start that would have
@@ -312,19 +435,25 @@ def multistart_fit(
     up as a large residual; so fixes whose statistic ``2 cost`` exceeds the
     ``1 - RECHECK_PROBABILITY`` chi-square quantile for ``recheck`` dof (or all fixes, if
     ``recheck`` is None: no noise model to judge) are re-solved from all starts and the
-    better answer kept.
+    better answer kept. ``ftol``, ``cost_stop`` (per problem) and ``stop_after``: those of
+    :func:`~diffpos.estimators.lm.levenberg_marquardt` (``cost_stop`` not in the screening).
     """
     n, s = starts.shape[0], starts.shape[1]
-    common = {"loss": loss, "loss_scale": loss_scale, "xtol_m": xtol}
+    common = {"loss": loss, "loss_scale": loss_scale, "xtol_m": xtol, "ftol": ftol}
+
+    def stops(rows: NDArray[np.int_] | slice, times: int) -> dict:
+        if cost_stop is None:
+            return {}
+        return {"cost_stop": np.repeat(cost_stop[rows], times), "stop_after": stop_after}
 
     def full(rows: NDArray[np.int_]):
         k = rows.size
         fit = levenberg_marquardt(
             np.repeat(a[rows], s, axis=0), np.repeat(r[rows], s, axis=0),
             np.repeat(sw[rows], s, axis=0), starts[rows].reshape(k * s, 3),
-            mdl.take(rows).repeat(s), max_iter=max_iter, **common,
+            mdl.take(rows).repeat(s), max_iter=max_iter, **common, **stops(rows, s),
         )
-        return _pick_best(fit.x_m, fit.cost, fit.iterations, fit.converged, k, s)
+        return _pick_best(fit.x_m, fit.cost, fit.iterations, fit.converged, fit.lam, k, s)
 
     if keep_starts is None or s <= keep_starts or max_iter <= screen_iter:
         return full(np.arange(n))
@@ -339,9 +468,10 @@ def multistart_fit(
     fit = levenberg_marquardt(
         np.repeat(a, k, axis=0), np.repeat(r, k, axis=0), np.repeat(sw, k, axis=0),
         scr.x_m[pick], mdl.repeat(k), max_iter=max_iter - screen_iter, **common,
+        **stops(slice(None), k),
     )
-    x, cost, iters, conv = _pick_best(
-        fit.x_m, fit.cost, scr.iterations[pick] + fit.iterations, fit.converged, n, k
+    x, cost, iters, conv, lam = _pick_best(
+        fit.x_m, fit.cost, scr.iterations[pick] + fit.iterations, fit.converged, fit.lam, n, k
     )
     if recheck is None:
         redo = np.ones(n, dtype=bool)
@@ -350,15 +480,16 @@ def multistart_fit(
         redo = ~np.isfinite(cost) | ((recheck >= 1) & (2.0 * cost > thr))
     rows = np.flatnonzero(redo)
     if rows.size:
-        x2, c2, i2, v2 = full(rows)
+        x2, c2, i2, v2, l2 = full(rows)
         better = c2 < cost[rows]
         rb = rows[better]
         x[rb], cost[rb], iters[rb], conv[rb] = x2[better], c2[better], i2[better], v2[better]
-    return x, cost, iters, conv
+        lam[rb] = l2[better]
+    return x, cost, iters, conv, lam
 
 
-def _pick_best(x_m, cost, iters, conv, n, s):
+def _pick_best(x_m, cost, iters, conv, lam, n, s):
     c = np.where(np.isfinite(cost), cost, np.inf).reshape(n, s)
     best = np.argmin(c, axis=-1)
     sel = np.arange(n) * s + best
-    return x_m[sel].copy(), cost[sel].copy(), iters[sel].copy(), conv[sel].copy()
+    return x_m[sel].copy(), cost[sel].copy(), iters[sel].copy(), conv[sel].copy(), lam[sel].copy()

@@ -21,15 +21,25 @@ import time
 import numpy as np
 from numba import njit
 
-from diffpos.estimators.lm_nb import cost_of, evaluate, lm_fit
+from diffpos.estimators.lm_nb import (
+    FTOL,
+    LAMBDA0,
+    cost_of,
+    evaluate,
+    lm_fit,
+    lm_fit_ftol,
+    solve3,
+)
 
 # integer options (ipar)
 I_LOSS, I_MAXIT, I_KEEP, I_SCREEN, I_LLS, I_SIGG, I_GATE = 0, 1, 2, 3, 4, 5, 6
-I_MAXEXCL, I_MINAFTER, I_PREGATE, I_REFIT, I_MSEXCL, I_ZRANGE = 7, 8, 9, 10, 11, 12
-N_IPAR = 13
+I_MAXEXCL, I_MINAFTER, I_PREGATE, I_REFIT, I_MSEXCL, I_ZRANGE, I_POLISH = 7, 8, 9, 10, 11, 12, 13
+I_PRUNE_AFTER = 14  # iterations before a candidate's start may be given up
+N_IPAR = 15
 # float options (fpar)
 F_SCALE, F_XTOL, F_YSTART, F_PGSIG, F_PGMARGIN, F_ZLO, F_ZHI, F_ELO, F_EHI = range(9)
-N_FPAR = 9
+F_CFTOL, F_RECHK, F_PRUNE = 9, 10, 11  # the exclusion candidates' ftol, recheck ratio, bound
+N_FPAR = 12
 
 # statuses and exclusion reasons (the values of diffpos.estimators.result's enums)
 _OK, _OK_UNVERIFIED, _NOT_CONVERGED, _NOT_IDENTIFIABLE = 0, 1, 2, 3
@@ -42,7 +52,7 @@ _JIT = {"cache": True, "error_model": "numpy"}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "2de0290f2bf1915f"
+CALLEES_SHA256 = "af625205587de6f6"
 
 
 @njit(**_JIT)
@@ -110,35 +120,48 @@ def _starts(a, r, used, x0, has_x0, zs, ipar, fpar, warm, has_warm):
 
 
 @njit(**_JIT)
-def _full(a, r, sw, used, st, h, ipar, fpar, out_x):
-    """Every start to convergence, the lowest finite cost kept: ``(cost, iterations, conv)``."""
+def _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, out_x, out_lam):
+    """Every start to convergence (relative cost decrease ``ftol``; given up above ``stop``,
+    see ``lm_fit_ftol``), the lowest finite cost kept: ``(cost, iterations, conv)``, its
+    solution in ``out_x`` and its final damping in ``out_lam[0]``."""
     best_c, best = math.inf, (math.nan, 0, False)
     xi = np.empty(3)
+    lam = np.empty(1)
     for i in range(st.shape[0]):
-        res = lm_fit(a, r, sw, used, st[i], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
-                     fpar[F_SCALE], ipar[I_MAXIT], fpar[F_XTOL], xi)
+        lam[0] = LAMBDA0
+        res = lm_fit_ftol(a, r, sw, used, st[i], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
+                          fpar[F_SCALE], ipar[I_MAXIT], fpar[F_XTOL], ftol, stop,
+                          ipar[I_PRUNE_AFTER], lam, xi)
         c = res[0] if np.isfinite(res[0]) else math.inf
         if i == 0 or c < best_c:
             best_c, best = c, res
             out_x[:] = xi
+            out_lam[0] = lam[0]
     return best
 
 
 @njit(**_JIT)
-def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, out_x):
-    """Screened multi-start as ``_dnls_fit.multistart_fit`` for one problem.
+def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, ftol, stop, out_x,
+               out_lam):
+    """Screened multi-start as ``_dnls_fit.multistart_fit`` for one problem (the starts
+    iterated to a relative cost decrease ``ftol``; after the screening, given up above the
+    cost ``stop``: ``lm_fit_ftol``).
 
     ``recheck_dof < 0``: no noise model, every screened fix is re-solved from all starts.
+    ``out_lam[0]``: the final damping of the start kept.
     """
     s, keep, screen, maxit = st.shape[0], ipar[I_KEEP], ipar[I_SCREEN], ipar[I_MAXIT]
     if keep < 0 or s <= keep or maxit <= screen:
-        return _full(a, r, sw, used, st, h, ipar, fpar, out_x)
+        return _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, out_x, out_lam)
     elo, ehi, loss, sc, xtol = fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS], fpar[F_SCALE], fpar[F_XTOL]
     scr_x = np.empty((s, 3))
     scr_c = np.empty(s)
     scr_it = np.empty(s, np.int64)
+    lam = np.empty(1)
     for i in range(s):
-        c, it, _ = lm_fit(a, r, sw, used, st[i], h, elo, ehi, loss, sc, screen, xtol, scr_x[i])
+        lam[0] = LAMBDA0
+        c, it, _ = lm_fit_ftol(a, r, sw, used, st[i], h, elo, ehi, loss, sc, screen, xtol, ftol,
+                               math.inf, 0, lam, scr_x[i])
         scr_c[i] = c if np.isfinite(c) else math.inf
         scr_it[i] = it
     order = np.argsort(scr_c, kind="mergesort")[:keep]
@@ -146,12 +169,14 @@ def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, out_x):
     xi = np.empty(3)
     for kk in range(keep):
         i = order[kk]
-        c, it, cv = lm_fit(a, r, sw, used, scr_x[i], h, elo, ehi, loss, sc, maxit - screen,
-                           xtol, xi)
+        lam[0] = LAMBDA0  # the continuation starts afresh (as the reference's second call)
+        c, it, cv = lm_fit_ftol(a, r, sw, used, scr_x[i], h, elo, ehi, loss, sc, maxit - screen,
+                                xtol, ftol, stop, ipar[I_PRUNE_AFTER], lam, xi)
         cf = c if np.isfinite(c) else math.inf
         if kk == 0 or cf < best_c:
             best_c, best = cf, (c, scr_it[i] + it, cv)
             out_x[:] = xi
+            out_lam[0] = lam[0]
     cost = best[0]
     if recheck_dof < 0:
         redo = True
@@ -159,10 +184,11 @@ def multistart(a, r, sw, used, st, h, ipar, fpar, recheck_dof, thr_re, out_x):
         thr = thr_re[max(recheck_dof, 0)]
         redo = (not np.isfinite(cost)) or (recheck_dof >= 1 and 2.0 * cost > thr)
     if redo:
-        x2 = np.empty(3)
-        full = _full(a, r, sw, used, st, h, ipar, fpar, x2)
+        x2, lam2 = np.empty(3), np.empty(1)
+        full = _full(a, r, sw, used, st, h, ipar, fpar, ftol, stop, x2, lam2)
         if full[0] < cost:
             out_x[:] = x2
+            out_lam[0] = lam2[0]
             return full
     return best
 
@@ -195,15 +221,28 @@ def _pregate_tol(ipar, fpar, sig_j):
 @njit(**_JIT)
 def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, thr_re, xc, ic, vc):
     """Every leave-one-out candidate of a failing fix solved (multi-start plus the warm start
-    ``x``, or warm refits only); returns each candidate's test statistic (inf: not a candidate)."""
+    ``x``, or warm refits only); returns each candidate's test statistic (inf: not a candidate).
+
+    ``I_POLISH`` (``dnls(exclusion_ftol=...)``): the multi-start candidates are solved to the
+    loose relative cost decrease ``F_CFTOL``, which is enough to rank them, and the best one
+    is then iterated on to the full convergence test. ``F_PRUNE`` finite
+    (``dnls(exclusion_bound=...)``, linear loss): the candidate the linearised leave-one-out
+    statistic (:func:`_loo_order`) ranks first is solved first, and the others' starts are
+    given up once a Gauss-Newton step from where they are would leave their cost above
+    ``F_PRUNE`` times its cost (``_dnls_fit._solve_candidates``)."""
     m = r.shape[0]
     tc = np.full(m, math.inf)
     cu = used.copy()
     cc = np.full(m, math.inf)
     p, jac = np.zeros(m), np.zeros((m, 3))
     ms = ipar[I_MSEXCL] != 0
+    prune = ms and ipar[I_LOSS] == 0 and np.isfinite(fpar[F_PRUNE])
+    order = _loo_order(a, r, sw, used, x, h, fpar, p, jac) if prune else np.arange(m)
+    stop = math.inf
+    lc = np.full(m, LAMBDA0)  # each candidate's final damping (the polish continues it)
     n_st = 0
-    for j in range(m):
+    for jj in range(m):
+        j = order[jj]
         xc[j] = x
         ic[j], vc[j] = 0, False
         if ms and not used[j]:
@@ -213,43 +252,110 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
         if ms:
             st = _starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x, True)
             n_st = st.shape[0]
-            cc[j], ic[j], vc[j] = multistart(a, r, sw, cu, st, h, ipar, fpar, 0, thr_re, xc[j])
+            cc[j], ic[j], vc[j] = multistart(a, r, sw, cu, st, h, ipar, fpar, 0, thr_re,
+                                             fpar[F_CFTOL], stop, xc[j], lc[j:j + 1])
+            if prune and jj == 0 and np.isfinite(cc[j]):
+                stop = fpar[F_PRUNE] * cc[j]
         else:
             _, ic[j], vc[j] = lm_fit(a, r, sw, cu, x, h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
                                      fpar[F_SCALE], ipar[I_REFIT], _REFIT_XTOL, xc[j])
     if ms and ipar[I_KEEP] >= 0 and n_st > ipar[I_KEEP]:
-        _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc)
+        _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc,
+                            lc)
     for j in range(m):
         if used[j]:
             xc[j, 1] = abs(xc[j, 1])
             cu[:] = used
             cu[j] = False
             tc[j] = _t_stat(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], p, jac)
+    if ms and ipar[I_POLISH]:
+        _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, lc, p, jac)
     return tc
 
 
 @njit(**_JIT)
-def _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc):
-    """If no screened candidate passes the residual test, re-solve every candidate from all
-    starts (no screening) and keep the better answers."""
+def _loo_order(a, r, sw, used, x, h, fpar, p, jac):
+    """The anchors by the linearised leave-one-out statistic at ``x`` (ascending; stable,
+    unused anchors last): ``T - w_j e_j^2 / (1 - h_jj)`` with ``T`` the statistic of ``used``
+    and ``h_jj`` the leverage of anchor ``j`` (-inf where ``1 - h_jj <= 1e-12``)."""
+    m = r.shape[0]
+    evaluate(a, used, x[0], x[1] * x[1], x[2], x[1], False, h, fpar[F_ELO], fpar[F_EHI], p, jac)
+    hm = np.zeros((3, 3))
+    t = 0.0
+    for j in range(m):
+        if used[j]:
+            e = (r[j] - p[j]) * sw[j]
+            t += e * e
+            for i in range(3):
+                for k in range(3):
+                    hm[i, k] += jac[j, i] * jac[j, k] * sw[j] * sw[j]
+    pred = np.full(m, math.inf)
+    q, ji = np.empty(3), np.empty(3)
+    for j in range(m):
+        if used[j]:
+            for i in range(3):
+                ji[i] = jac[j, i] * sw[j]
+            solve3(hm, ji, q)
+            one_minus = 1.0 - (ji[0] * q[0] + ji[1] * q[1] + ji[2] * q[2])
+            e = (r[j] - p[j]) * sw[j]
+            pred[j] = t - e * e / one_minus if one_minus > 1e-12 else -math.inf
+    return np.argsort(pred, kind="mergesort")
+
+
+@njit(**_JIT)
+def _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, lc, p, jac):
+    """The candidate with the smallest statistic iterated on from its loose solution to the
+    full convergence test: the same iteration continued (its damping ``lc``, the iterations
+    its start had left of ``I_MAXIT``); its statistic updated."""
+    j = np.argmin(tc)
+    if not np.isfinite(tc[j]):
+        return
+    cu = used.copy()
+    cu[j] = False
+    xi = np.empty(3)
+    budget = max(ipar[I_MAXIT] - ic[j], 0)  # the iterations its start had left
+    _, it, cv = lm_fit_ftol(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], ipar[I_LOSS],
+                            fpar[F_SCALE], budget, fpar[F_XTOL], FTOL, math.inf, 0, lc[j:j + 1],
+                            xi)
+    xc[j] = xi
+    xc[j, 1] = abs(xc[j, 1])
+    ic[j] += it
+    vc[j] = cv
+    tc[j] = _t_stat(a, r, sw, cu, xc[j], h, fpar[F_ELO], fpar[F_EHI], p, jac)
+
+
+@njit(**_JIT)
+def _recheck_candidates(a, r, sw, used, h, x0, has_x0, zs, ipar, fpar, thr_fa, x, cc, xc, ic, vc,
+                        lc):
+    """If no screened candidate passes the residual test, but one comes within ``F_RECHK``
+    times its threshold (inf: always), re-solve every candidate from all starts (no
+    screening) and keep the better answers."""
     m = r.shape[0]
     dof_c = _count(used) - 1 - 3
     if dof_c >= 1:
+        near = not np.isfinite(fpar[F_RECHK])  # inf: the exhaustive search
         for j in range(m):
             if used[j] and 2.0 * cc[j] <= thr_fa[dof_c]:
                 return
+            if used[j] and 2.0 * cc[j] <= fpar[F_RECHK] * thr_fa[dof_c]:
+                near = True
+        if not near:
+            return
+    elif np.isfinite(fpar[F_RECHK]):  # no threshold to come near
+        return
     cu = used.copy()
-    x2 = np.empty(3)
+    x2, lam2 = np.empty(3), np.empty(1)
     for j in range(m):
         if not used[j]:
             continue
         cu[:] = used
         cu[j] = False
         st = _starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x, True)
-        c2, i2, v2 = _full(a, r, sw, cu, st, h, ipar, fpar, x2)
+        c2, i2, v2 = _full(a, r, sw, cu, st, h, ipar, fpar, fpar[F_CFTOL], math.inf, x2, lam2)
         if c2 < cc[j]:
             xc[j] = x2
             ic[j], vc[j] = i2, v2
+            lc[j] = lam2[0]
 
 
 @njit(**_JIT)
@@ -430,7 +536,7 @@ def solve_fix(b, a, r, sig, mask, h, x0, has_x0, zs, ipar, fpar, thr_fa, thr_re,
     x = np.empty(3)
     st = _starts(a, r, used, x0, has_x0, zs, ipar, fpar, x0, False)
     _, it, cv = multistart(a, r, sw, used, st, h, ipar, fpar, n - 3 if ipar[I_SIGG] else -1,
-                           thr_re, x)
+                           thr_re, FTOL, math.inf, x, np.empty(1))
     x[1] = abs(x[1])
     it_cv = np.array([it, cv], np.int64)
     failed, tested = False, False
@@ -466,11 +572,20 @@ def dnls_batch(a, r, sig, mask, h, x0, has_x0, zs, ipar, fpar, thr_fa, thr_re, p
 
 def options(*, loss: int, loss_scale: float, max_iter: int, xtol: float, keep_starts: int | None,
             screen_iter: int, lls_start: bool, sigmas_given: bool, y_start: float,
-            edge_x_m: tuple[float, float] | None, gating) -> tuple[np.ndarray, np.ndarray]:
+            edge_x_m: tuple[float, float] | None, gating, exclusion_ftol: float | None = None,
+            recheck_ratio: float | None = None, bound: float | None = None,
+            bound_after: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """``(ipar, fpar)`` of :func:`dnls_batch` from the validated options of ``dnls``
-    (``gating``: a ``GatingConfig`` or None)."""
+    (``gating``: a ``GatingConfig`` or None; ``exclusion_ftol``, ``recheck_ratio``: ``dnls``'s
+    ``exclusion_ftol``, ``exclusion_recheck_ratio`` and ``exclusion_bound`` with
+    ``EXCLUSION_BOUND_AFTER``, None: the exhaustive search)."""
     ipar = np.zeros(N_IPAR, np.int64)
     fpar = np.zeros(N_FPAR)
+    ipar[I_POLISH] = exclusion_ftol is not None
+    fpar[F_CFTOL] = FTOL if exclusion_ftol is None else exclusion_ftol
+    fpar[F_RECHK] = math.inf if recheck_ratio is None else recheck_ratio
+    fpar[F_PRUNE] = math.inf if bound is None else bound
+    ipar[I_PRUNE_AFTER] = bound_after
     ipar[I_LOSS], ipar[I_MAXIT], ipar[I_SCREEN] = loss, max_iter, screen_iter
     ipar[I_KEEP] = -1 if keep_starts is None else keep_starts
     ipar[I_LLS], ipar[I_SIGG] = bool(lls_start), bool(sigmas_given)
