@@ -37,7 +37,7 @@ from diffpos_services.errors import ConfigError
 from diffpos_services.wire.keys import check_id
 
 __all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES",
-           "LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S", "MAX_SHARDS", "METHODS",
+           "LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S", "LEGACY_DNLS_EXCLUSION_SEARCH", "MAX_SHARDS", "METHODS",
            "TRACKER_KEYS", "FusionConfig", "TrackerSettings", "building_of", "channel_edge",
            "legacy_tracker_settings", "merge_tracker", "model_edge", "parse_shard",
            "parse_tracker_items", "shard_of", "tracker_argv", "tracker_help"]
@@ -161,11 +161,17 @@ LEGACY_ADMIT_LAG_S = 1e9
 LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
 
 
+#: ``dnls_exclusion_search`` of a replay of a live fusion recorded before the setting existed
+#: (2026-12-06: its ``fusion_config`` has no ``dnls_exclusion_search``): that fusion solved
+#: every exclusion candidate from all starts.
+LEGACY_DNLS_EXCLUSION_SEARCH = "exhaustive"
+
+
 def with_legacy_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
     """Recorded fusion settings (a recording's ``fusion_config``; empty: none) with the
     settings that did not exist when it was made set to what that fusion did
     (:data:`LEGACY_SUPERSEDE_AFTER_S`, :data:`LEGACY_ADMIT_LAG_S`,
-    :data:`LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S`), so a replay by its decision record drops,
+    :data:`LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S`, :data:`LEGACY_DNLS_EXCLUSION_SEARCH`), so a replay by its decision record drops,
     initialises and checks what the live fusion did."""
     out = dict(recorded)
     if out.get("max_backlog_s") and "supersede_after_s" not in out:
@@ -174,6 +180,8 @@ def with_legacy_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
         out["admit_lag_s"] = LEGACY_ADMIT_LAG_S
     if out and "confident_snapshot_period_s" not in out:
         out["confident_snapshot_period_s"] = LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S
+    if out and "dnls_exclusion_search" not in out:
+        out["dnls_exclusion_search"] = LEGACY_DNLS_EXCLUSION_SEARCH
     return out
 
 
@@ -522,6 +530,16 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     velocity_sigma_m_s: Annotated[float, Meta(ge=0)] = 0.3
     motion_compensation: bool = True
     gating: bool = True
+    dnls_exclusion_search: Literal["bounded", "exhaustive"] = "bounded"
+    """With dnls and gating: how the exclusion search (the fix's anchors left out one at a
+    time when the all-anchor fit fails the chi-square test) is run. ``"bounded"`` (the default
+    since 2026-12-06): candidates solved just far enough to rank them, the best continued to
+    full convergence, the all-starts recheck only near consistency, hopeless candidates given
+    up early (:func:`diffpos.estimators.dnls.solver.dnls`'s ``exclusion_*`` defaults; about
+    half the kernel's work on the 30 s ``large`` replay, same accuracy: docs/dnls_cost.md).
+    ``"exhaustive"``: every candidate from all starts to full convergence, as before; a
+    recording made before the setting existed replays with it
+    (:data:`LEGACY_DNLS_EXCLUSION_SEARCH`)."""
     false_alarm_probability: Annotated[float, Meta(gt=0, lt=1)] = 1e-3
     min_snr_db: float | None = None
     warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0

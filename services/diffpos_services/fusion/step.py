@@ -268,6 +268,8 @@ def solve_batch(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], tracks
         edge_x_m=cfg.edge_x_m,
         gating=gating,
     )
+    if cfg.dnls_exclusion_search == "exhaustive":  # as before 2026-12-06 (old recordings)
+        common.update(exclusion_ftol=None, exclusion_recheck_ratio=None, exclusion_bound=None)
     warm = prep.warm
     rows_w = np.flatnonzero(warm)
     if rows_w.size:
