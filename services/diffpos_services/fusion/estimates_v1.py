@@ -41,7 +41,7 @@ class V1Rows:
     has_pos: list[bool]
     has_cov: list[bool]
     pos: list[list[float]]
-    cov: list[list[list[float]]]
+    cov: np.ndarray  # (B, 3, 3)
     peb: list[float | None]
     zb: list[float | None]
     floor: list[int]
@@ -85,6 +85,7 @@ class V1Batch(Sequence):
 
     def _build(self) -> list[M.PositionEstimate]:
         r, msg, now = self.rows, self._res.msg, self.now
+        cov_l = r.cov.tolist()
         out = []
         for i, st in enumerate(r.status):
             used_idx, used_ids, excluded, all_used = r.shared[r.group[i]]
@@ -97,7 +98,7 @@ class V1Batch(Sequence):
                 seq=self.seq0 + i + 1,
                 status=st,
                 position_m=tuple(r.pos[i]) if has else None,
-                covariance_m2=tuple(map(tuple, r.cov[i])) if has and r.has_cov[i] else None,
+                covariance_m2=tuple(map(tuple, cov_l[i])) if has and r.has_cov[i] else None,
                 peb_m=r.peb[i] if ok else None,
                 z_bound_m=r.zb[i] if ok else None,
                 floor_index=r.floor[i] if has else None,
@@ -136,7 +137,7 @@ def v1_estimates(core: Any, epochs: list[PendingEpoch], batch: Batch, res: Resul
         t_ns=batch.t_ref.tolist(), status=[_STATUS_NAMES[st] for st in res.status.tolist()],
         ok=ok_a.tolist(), has_pos=has_a.tolist(),
         has_cov=np.all(np.isfinite(res.cov), axis=(1, 2)).tolist(),
-        pos=res.pos.tolist(), cov=res.cov.tolist(),
+        pos=res.pos.tolist(), cov=res.cov,
         peb=_finite_or_none(res.peb), zb=_finite_or_none(res.zb),
         floor=np.where(has_a, floors, 0).astype(np.int64).tolist(),
         resid=np.where(np.isfinite(res.resid), res.resid, 0.0).tolist(),

@@ -350,9 +350,11 @@ class FixStream:
         self.total += len(status)
         self.by_status.update(status)
         self.fixes_by_node.update(node)
-        self._used_lists.extend(shared[g][1] for g in group)
+        used = self._used
         for (g, no_track), k in Counter(zip(group, map(NO_TRACK_STATUSES.__contains__,
                                                         status), strict=True)).items():
+            for a in shared[g][1]:
+                used[a] += k
             for x in shared[g][2]:
                 if no_track and x.reason == "RAIM":
                     self.no_track[x.anchor_id] += k
@@ -362,7 +364,7 @@ class FixStream:
             n = node[i]
             self.positioned[n] += 1
             fix = (r.t_ns[i], tuple(r.pos[i]), r.peb[i], r.floor[i],
-                   tuple(map(tuple, r.cov[i])) if r.has_cov[i] else None, ())
+                   r.cov[i] if r.has_cov[i] else None, ())  # (its values: a (3, 3) view)
             self._pending[n].append(fix)
             self._ne_add(n, fix)
 
