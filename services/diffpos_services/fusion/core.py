@@ -34,8 +34,9 @@ from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
 from diffpos.estimators.gating import GatingConfig
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.decisions import DecisionLog
-from diffpos_services.fusion.estimates import Estimates
+from diffpos_services.fusion.estimates import ColumnBatch, Estimates
 from diffpos_services.fusion.estimates_v1 import v1_estimates
+from diffpos_services.fusion.estimates_v2 import v2_builder
 from diffpos_services.fusion.ingest import (
     AnchorStream,
     RejectLog,
@@ -48,13 +49,7 @@ from diffpos_services.fusion.ingest import (
 )
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.fusion.step import gated_count, gather, prepare, solve_batch
-from diffpos_services.fusion.tracked import (
-    TrackBank,
-    heavy_budget,
-    in_publish_order,
-    solve_mnls,
-    v2_builder,
-)
+from diffpos_services.fusion.tracked import TrackBank, heavy_budget, in_publish_order, solve_mnls
 from diffpos_services.fusion.warm import warm_up
 from diffpos_services.logs import log_event
 from diffpos_services.wire import messages as M
@@ -593,17 +588,18 @@ class FusionCore:
             self.gated += gated_count(batch, s.res)
             lost = {x.id for x in self.anchors.values() if not x.alive}
             build = v2_builder(epochs, batch, s, lost)  # the batch's columns once
+            now = int(now_wall_ns)
             return in_publish_order(s, epochs, emit, lambda rows: self._count(build(
-                rows, seq0=self.seq, now=int(now_wall_ns), method=self.method_name)))
+                rows, seq0=self.seq, now=now, method=self.method_name), now))
         res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
         return v1_estimates(self, epochs, batch, res, int(now_wall_ns))
 
-    def _count(self, out: list) -> list:
-        """Counters and latencies of the v2 estimates ``out`` (v1: ``v1_estimates``)."""
+    def _count(self, out: ColumnBatch, now: int) -> ColumnBatch:
+        """Counters and latencies of the v2 estimates ``out`` published at ``now`` (v1:
+        ``v1_estimates``), from their columns."""
         self.seq += len(out)
-        self.by_status.update(e.status for e in out)
-        self.latencies_ns.extend(e.t_pub_wall_ns - e.t_input_wall_ns for e in out
-                                 if e.t_input_wall_ns > 0)
+        self.by_status.update(out.rows.status)
+        self.latencies_ns.extend(out.rows.latencies(now))
         return out
 
     # ------------------------------------------------------------------ diagnostics

@@ -342,10 +342,10 @@ class FixStream:
             self._ne_add(e.node_id, fix)
 
     def add_rows(self, r: Any) -> None:
-        """:meth:`add` of every row of a v1 batch's columns
-        (:class:`~diffpos_services.fusion.estimates_v1.V1Rows`), in order, without its
+        """:meth:`add` of every row of a batch's columns
+        (:class:`~diffpos_services.fusion.estimates.EstimateRows`), in order, without its
         structs: the counts by anchor-list group, the positioned rows' fixes as ``add``
-        makes them."""
+        makes them (the covariance as a (3, 3) view of the batch's array)."""
         status, node, group, shared = r.status, r.node_id, r.group, r.shared
         self.total += len(status)
         self.by_status.update(status)
@@ -360,11 +360,14 @@ class FixStream:
                     self.no_track[x.anchor_id] += k
                 else:
                     self.excluded[x.anchor_id][x.reason] += k
+        probs = r.probs
         for i in itertools.compress(range(len(status)), r.has_pos):
+            if status[i] not in M.GOOD_STATUSES:
+                continue
             n = node[i]
             self.positioned[n] += 1
-            fix = (r.t_ns[i], tuple(r.pos[i]), r.peb[i], r.floor[i],
-                   r.cov[i] if r.has_cov[i] else None, ())  # (its values: a (3, 3) view)
+            fix = (r.t_ns[i], tuple(r.pos[i]), r.peb[i] if r.ok[i] else None, r.floor[i],
+                   r.cov[i] if r.has_cov[i] else None, () if probs is None else probs[i])
             self._pending[n].append(fix)
             self._ne_add(n, fix)
 
@@ -644,8 +647,8 @@ class Comparison:
         self._match(side, (e.node_id, e.epoch), (e.status, e.position_m, e.peb_m, now_ns))
 
     def add_rows(self, side: int, r: Any, now_ns: int) -> None:
-        """:meth:`add` of every row of a v1 batch's columns
-        (:class:`~diffpos_services.fusion.estimates_v1.V1Rows`), in order."""
+        """:meth:`add` of every row of a batch's columns
+        (:class:`~diffpos_services.fusion.estimates.EstimateRows`), in order."""
         self.counts["live" if side == 0 else "replayed"] += len(r.status)
         match, pos, has, peb, ok = self._match, r.pos, r.has_pos, r.peb, r.ok
         for i, key in enumerate(zip(r.node_id, r.epoch, strict=True)):

@@ -51,8 +51,7 @@ from diffpos_services.fusion.config import (
     with_legacy_defaults,
 )
 from diffpos_services.fusion.core import FusionCore
-from diffpos_services.fusion.estimates import Estimates
-from diffpos_services.fusion.estimates_v1 import V1Batch
+from diffpos_services.fusion.estimates import ColumnBatch, Estimates
 from diffpos_services.fusion.workers import start_workers
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
@@ -388,12 +387,12 @@ class _Outputs:
                             sequence=m.sequence)
 
     def emit(self, ests: Sequence[Any], now_ns: int) -> None:
-        """The estimates of a step: v1 batches by their columns (:meth:`FixStream.add_rows`)
-        unless they are kept or written, the rest one by one."""
+        """The estimates of a step: column batches by their columns
+        (:meth:`FixStream.add_rows`) unless they are kept or written, the rest one by one."""
         rec = self.rec
         if rec.keep is None and self.sink is None:
             for part in ests.parts if isinstance(ests, Estimates) else (ests,):
-                if isinstance(part, V1Batch):
+                if isinstance(part, ColumnBatch):
                     self.count += len(part)
                     rec.replayed.add_rows(part.rows)
                     rec.compare.add_rows(1, part.rows, rec.t_last or 0)
