@@ -27,29 +27,31 @@ _STATUS_NAMES = {int(st): st.name for st in FixStatus}
 
 def _structs(r: EstimateRows, res: Results, seq0: int, now: int) -> list[M.PositionEstimate]:
     """The :class:`PositionEstimate` of every row of ``r`` (numbered ``seq0 + 1 ...``)."""
-    msg, cov_l, zb = res.msg, r.cov.tolist(), finite_or_none_all(res.zb)
+    zb = finite_or_none_all(res.zb)
     resid_l = np.where(np.isfinite(res.resid), res.resid, 0.0).tolist()
+    shared, make = r.shared, M.PositionEstimate
     out = []
-    for i, st in enumerate(r.status):
-        used_idx, used_ids, excluded, all_used = r.shared[r.group[i]]
+    for i, (node, t, ep, st, ok, has, has_cov, pos, cov, peb, fl, g, w, msg) in enumerate(zip(
+            r.node_id, r.t_ns, r.epoch, r.status, r.ok, r.has_pos, r.has_cov, r.pos,
+            r.cov.tolist(), r.peb, r.floor, r.group, r.in_wall, res.msg, strict=True)):
+        used_idx, used_ids, excluded, all_used = shared[g]
         resid = resid_l[i] if all_used else [resid_l[i][j] for j in used_idx]
-        ok, has = r.ok[i], r.has_pos[i]
-        out.append(M.PositionEstimate(
-            node_id=r.node_id[i],
-            t_ns=r.t_ns[i],
-            epoch=r.epoch[i],
+        out.append(make(
+            node_id=node,
+            t_ns=t,
+            epoch=ep,
             seq=seq0 + i + 1,
             status=st,
-            position_m=tuple(r.pos[i]) if has else None,
-            covariance_m2=tuple(map(tuple, cov_l[i])) if has and r.has_cov[i] else None,
-            peb_m=r.peb[i] if ok else None,
+            position_m=tuple(pos) if has else None,
+            covariance_m2=tuple(map(tuple, cov)) if has and has_cov else None,
+            peb_m=peb if ok else None,
             z_bound_m=zb[i] if ok else None,
-            floor_index=r.floor[i] if has else None,
+            floor_index=fl if has else None,
             used_anchors=list(used_ids),
             residuals_m=resid,
             excluded=list(excluded),
-            message=msg[i],
-            t_input_wall_ns=max(r.in_wall[i], 0),
+            message=msg,
+            t_input_wall_ns=max(w, 0),
             t_pub_wall_ns=now,
         ))
     return out
