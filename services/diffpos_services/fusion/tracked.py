@@ -58,8 +58,8 @@ so any batching gives the same numbers bit for bit; with one, also on the steps'
 (which the decision record keeps, so a replay by the record re-issues the same steps and gets
 the same numbers bit for bit).
 
-:func:`estimates_v2` turns a solved batch into :class:`~diffpos_services.wire.messages.
-PositionEstimateV2` messages.
+:func:`~diffpos_services.fusion.estimates_v2.estimates_v2` turns a solved batch into
+:class:`~diffpos_services.wire.messages.PositionEstimateV2` messages (a column batch).
 """
 
 from __future__ import annotations
