@@ -1,4 +1,4 @@
-"""estimates_v2's columnar pieces (fusion/tracked.py) against the per-range construction they
+"""estimates_v2's columnar pieces (fusion/estimates_v2.py, fusion/estimates.py) against the per-range construction they
 replace: the links of every used (row, anchor) in anchor order with the mechanism label
 (None for -1) and the wire residual (None unless finite), and finite_or_none by columns."""
 
@@ -8,7 +8,8 @@ import math
 
 import msgspec
 import numpy as np
-from diffpos_services.fusion.tracked import _finite_or_none, _links
+from diffpos_services.fusion.estimates import finite_or_none_all
+from diffpos_services.fusion.estimates_v2 import _links
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.messages import finite_or_none
 
@@ -44,9 +45,9 @@ def test_links_match_the_per_range_construction():
 
 def test_finite_or_none_by_columns():
     a = np.array([1.5, np.nan, -np.inf, np.inf, -0.0, 0.0, 1e-300, -2.25])
-    got = _finite_or_none(a)
+    got = finite_or_none_all(a)
     want = [finite_or_none(v) for v in a.tolist()]
     assert got == want
     assert all(type(v) is float for v in got if v is not None)
     assert math.copysign(1.0, got[4]) == -1.0
-    assert _finite_or_none(np.zeros(0)) == []
+    assert finite_or_none_all(np.zeros(0)) == []

@@ -23,6 +23,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+from collections.abc import Sequence
 from itertools import repeat
 from typing import Any
 
@@ -33,7 +34,9 @@ from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
 from diffpos.estimators.gating import GatingConfig
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.decisions import DecisionLog
+from diffpos_services.fusion.estimates import ColumnBatch, Estimates
 from diffpos_services.fusion.estimates_v1 import v1_estimates
+from diffpos_services.fusion.estimates_v2 import v2_builder
 from diffpos_services.fusion.ingest import (
     AnchorStream,
     RejectLog,
@@ -46,13 +49,7 @@ from diffpos_services.fusion.ingest import (
 )
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.fusion.step import gated_count, gather, prepare, solve_batch
-from diffpos_services.fusion.tracked import (
-    TrackBank,
-    heavy_budget,
-    in_publish_order,
-    solve_mnls,
-    v2_builder,
-)
+from diffpos_services.fusion.tracked import TrackBank, heavy_budget, in_publish_order, solve_mnls
 from diffpos_services.fusion.warm import warm_up
 from diffpos_services.logs import log_event
 from diffpos_services.wire import messages as M
@@ -498,7 +495,7 @@ class FusionCore:
 
     # ------------------------------------------------------------------ solving
     def step(self, now_wall_ns: int, *, limit: int | None = None,
-             emit: Any = None) -> list[M.PositionEstimate]:
+             emit: Any = None) -> Estimates:
         """Solve the ready epochs (batches of at most ``max_fixes_per_step`` epochs, bounded
         working memory) and return the estimates in queue order but for a batch's rows that
         wait for a snapshot fix (last: :func:`~diffpos_services.fusion.tracked.in_publish_order`);
@@ -528,7 +525,7 @@ class FusionCore:
             count_releases(self.book, released, live, self.releases)
         self._ready.extend(released)
         self._ready = self.overload.apply(self._ready, limit, self.rejected)
-        out: list[M.PositionEstimate] = []
+        out = Estimates()
         todo = len(self._ready) if limit is None else min(int(limit), len(self._ready))
         behind = todo < len(self._ready)  # no snapshot fix of a placed node (solve_mnls)
         lagging = limit is not None and self.overload.lagging(self._ready, todo)  # admit_lag_s
@@ -541,13 +538,13 @@ class FusionCore:
                 now, held = self.bank.hold_inits(now, heavy_budget(n, lagging), lagging)
             if out and emit is not None:  # (a previous batch of this step)
                 emit(out)
-                out = []
+                out = Estimates()
             heavy = None if limit is None else 0 if held else heavy_budget(n, lagging)
             out += self._solve(now, now_wall_ns, heavy, emit, behind)
             if held:  # the initialisations after the other estimates are out
                 if emit is not None:
                     emit(out)
-                    out = []
+                    out = Estimates()
                 out += self._solve(held, now_wall_ns, len(held), emit)
             todo -= n
         return out
@@ -557,7 +554,7 @@ class FusionCore:
         """Ready epochs not solved yet (call :meth:`step` again without waiting)."""
         return len(self._ready)
 
-    def flush(self, now_wall_ns: int) -> list[M.PositionEstimate]:
+    def flush(self, now_wall_ns: int) -> Estimates:
         """Solve everything ready or pending (at shutdown: nothing received is lost);
         ``now_wall_ns`` [ns]: wall clock of the call (the estimates' ``t_pub_wall_ns``)."""
         if self.decisions is not None:
@@ -565,14 +562,14 @@ class FusionCore:
         self.releases["flush"] += len(self.book.pending)
         self._ready.extend(sorted(self.book.pending.values(), key=lambda p: p.epoch))
         self.book.pending.clear()
-        out: list[M.PositionEstimate] = []
+        out = Estimates()
         while self._ready:
             n = min(len(self._ready), self.config.max_fixes_per_step)
             out += self._solve([self._ready.popleft() for _ in range(n)], now_wall_ns)
         return out
 
     def _solve(self, epochs: list[PendingEpoch], now_wall_ns: int, heavy: int | None = None,
-               emit: Any = None, behind: bool = False) -> list[M.PositionEstimate]:
+               emit: Any = None, behind: bool = False) -> Sequence[M.PositionEstimate]:
         """Solve ``epochs`` in one batch; ``now_wall_ns`` [ns] is the caller's wall clock
         (``t_pub_wall_ns`` and latency of the estimates), ``heavy`` the work budget of mnls +
         tracking: the result depends only on the core's state and the arguments, never on
@@ -591,17 +588,18 @@ class FusionCore:
             self.gated += gated_count(batch, s.res)
             lost = {x.id for x in self.anchors.values() if not x.alive}
             build = v2_builder(epochs, batch, s, lost)  # the batch's columns once
+            now = int(now_wall_ns)
             return in_publish_order(s, epochs, emit, lambda rows: self._count(build(
-                rows, seq0=self.seq, now=int(now_wall_ns), method=self.method_name)))
+                rows, seq0=self.seq, now=now, method=self.method_name), now))
         res = solve_batch(batch, prep, epochs, self.tracks, self.config, self.gating)
         return v1_estimates(self, epochs, batch, res, int(now_wall_ns))
 
-    def _count(self, out: list) -> list:
-        """Counters and latencies of the v2 estimates ``out`` (v1: ``v1_estimates``)."""
+    def _count(self, out: ColumnBatch, now: int) -> ColumnBatch:
+        """Counters and latencies of the v2 estimates ``out`` published at ``now`` (v1:
+        ``v1_estimates``), from their columns."""
         self.seq += len(out)
-        self.by_status.update(e.status for e in out)
-        self.latencies_ns.extend(e.t_pub_wall_ns - e.t_input_wall_ns for e in out
-                                 if e.t_input_wall_ns > 0)
+        self.by_status.update(out.rows.status)
+        self.latencies_ns.extend(out.rows.latencies(now))
         return out
 
     # ------------------------------------------------------------------ diagnostics

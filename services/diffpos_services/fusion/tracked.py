@@ -58,8 +58,8 @@ so any batching gives the same numbers bit for bit; with one, also on the steps'
 (which the decision record keeps, so a replay by the record re-issues the same steps and gets
 the same numbers bit for bit).
 
-:func:`estimates_v2` turns a solved batch into :class:`~diffpos_services.wire.messages.
-PositionEstimateV2` messages.
+:func:`~diffpos_services.fusion.estimates_v2.estimates_v2` turns a solved batch into
+:class:`~diffpos_services.wire.messages.PositionEstimateV2` messages (a column batch).
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -76,18 +76,16 @@ import numpy as np
 from diffpos.alignment import PendingEpoch
 from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.estimators.result import ExclusionReason, FixStatus
-from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.tracking.state import TrackerConfig, TrackerState, TrackStatus, floor_probabilities
 from diffpos.tracking.tracker import init_state, update
 from diffpos_services.fusion.config import FusionConfig
+from diffpos_services.fusion.estimates import Estimates
 from diffpos_services.fusion.rows import run_update, slim_state
-from diffpos_services.fusion.step import Batch, Prepared, Results, exclusion_groups
+from diffpos_services.fusion.step import Batch, Prepared, Results
 from diffpos_services.fusion.workers import INIT_COST, RowPool
-from diffpos_services.wire import messages as M
 
 __all__ = ["HEAVY_MIN_OPERATIONS", "HEAVY_WORK_EPOCHS", "SNAPSHOT_WORK_EPOCHS", "Solved",
-           "TrackBank", "estimates_v2", "heavy_budget", "in_publish_order", "solve_mnls",
-           "v2_builder"]
+           "TrackBank", "heavy_budget", "in_publish_order", "solve_mnls"]
 
 _FIX_NAMES = {int(s): s.name for s in FixStatus}
 _TRACK_NAMES = {int(s): s.name for s in TrackStatus}
@@ -295,8 +293,8 @@ def finish_snapshots(s: Solved) -> None:  # the fixes solve_mnls(defer=True) lef
 
 
 def in_publish_order(s: Solved, epochs: list[PendingEpoch],
-                     emit: Callable[[list], Any] | None,
-                     build: Callable[[np.ndarray], list]) -> list:
+                     emit: Callable[[Estimates], Any] | None,
+                     build: Callable[[np.ndarray], Sequence]) -> Estimates:
     """The estimates ``build(rows)`` of a batch solved with ``defer``: first the rows without
     a pending snapshot fix, handed to ``emit`` (when given) before the fixes are collected,
     then those with one (an mnls fix costs ~6 ms with 8 anchors, a third of a 50-node step of
@@ -310,11 +308,11 @@ def in_publish_order(s: Solved, epochs: list[PendingEpoch],
             if late[i] or pe.node_id in waiting:
                 late[i] = True
                 waiting.add(pe.node_id)
-    out = build(np.flatnonzero(~late))
+    out = Estimates([build(np.flatnonzero(~late))])
     if late.any():
         if emit is not None and out:
             emit(out)
-            out = []
+            out = Estimates()
         finish_snapshots(s)
         out += build(np.flatnonzero(late))
     return out
@@ -480,114 +478,3 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
     if heavy is not None:
         bank.spend_snapshots(int(due.sum()))
     return Solved(res, status, prob, mech, snap, due, s_floor, s_prob, True, pending)
-
-
-# ----------------------------------------------------------------------------- messages
-def _probs(row: list[float], finite: bool) -> list[float]:
-    """Floor probabilities for the wire (empty when unknown; clipped into [0, 1])."""
-    if not row or not finite:
-        return []
-    return [min(max(p, 0.0), 1.0) for p in row]
-
-
-def _finite_or_none(a: np.ndarray) -> list[float | None]:
-    """:func:`~diffpos_services.wire.messages.finite_or_none` of every value of ``a`` (B,)."""
-    o = a.astype(object)
-    o[~np.isfinite(a)] = None
-    return o.tolist()
-
-
-def _finite_rows(a: np.ndarray) -> list[bool]:
-    """Whether every value of each row of ``a`` (B, ...) is finite (no NaN rows: non-empty)."""
-    return np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1).tolist()
-
-
-def _snapshot_msg(s: Solved, i: int, pos_l, cov_l, prob_l, fin) -> M.SnapshotFix | None:
-    if not s.tracking or not s.snap_rows[i]:
-        return None
-    st = _FIX_NAMES[int(s.snap.status[i])]
-    pos_ok, cov_ok, prob_ok = fin
-    ok = st in M.GOOD_STATUSES and pos_ok[i]
-    return M.SnapshotFix(
-        method="mnls", status=st, position_m=tuple(pos_l[i]) if ok else None,
-        covariance_m2=tuple(map(tuple, cov_l[i])) if ok and cov_ok[i] else None,
-        floor_index=int(s.snap_floor[i]) if ok and s.snap_floor[i] >= 0 else None,
-        floor_probabilities=_probs(prob_l[i], prob_ok[i]))
-
-
-_MECH_OR_NONE = np.array([*MECHANISMS, None], dtype=object)  # index -1: no mechanism
-
-
-def _links(use: np.ndarray, mech: np.ndarray, resid: np.ndarray, names: list[str]
-           ) -> tuple[list[M.AnchorLink], list[int]]:
-    """The :class:`AnchorLink` of every used (row, anchor) of a batch, row by row in anchor
-    order, and each row's start in that list (``offs[i]:offs[i + 1]``): built by columns
-    (mechanism labels and wire residuals, NaN -> None, for the whole batch at once)."""
-    ii, jj = np.nonzero(use)
-    offs = np.concatenate([[0], np.cumsum(np.count_nonzero(use, axis=1))]).tolist()
-    ids = np.array(names, dtype=object)[jj] if names else np.zeros(0, object)
-    links = list(map(M.AnchorLink, ids.tolist(), _MECH_OR_NONE[mech[ii, jj]].tolist(),
-                     _finite_or_none(resid[ii, jj])))
-    return links, offs
-
-
-def estimates_v2(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[str], *,
-                 seq0: int, now: int, method: str,
-                 rows: np.ndarray | None = None) -> list[M.PositionEstimateV2]:
-    """One :class:`PositionEstimateV2` per row (only ``rows``, in their order, if given) of a
-    batch solved by :func:`solve_mnls`, numbered ``seq0 + 1 ...``: :func:`v2_builder`."""
-    return v2_builder(epochs, batch, s, lost)(rows, seq0=seq0, now=now, method=method)
-
-
-def v2_builder(epochs: list[PendingEpoch], batch: Batch, s: Solved, lost: set[str]
-               ) -> Callable[..., list[M.PositionEstimateV2]]:
-    """``build(rows, *, seq0, now, method)``: the :func:`estimates_v2` of ``rows`` (None:
-    all). The batch's columns are made once here (finiteness tests per batch on the arrays;
-    the per-row work is list indexing), the snapshot columns when ``build`` is called, so one
-    builder serves both parts of :func:`in_publish_order` (the second after the fixes)."""
-    res, names = s.res, batch.names
-    group_l, shared = exclusion_groups(batch, res, lost)
-    pos_l, cov_l = res.pos.tolist(), res.cov.tolist()
-    pos_ok, cov_ok, prob_ok = (_finite_rows(a) for a in (res.pos, res.cov, s.floor_prob))
-    peb_l, zb_l = _finite_or_none(res.peb), _finite_or_none(res.zb)
-    # the wire's floor probabilities (_probs) of every row, clipped by columns
-    prob_l = np.clip(s.floor_prob, 0.0, 1.0).tolist() if s.floor_prob.shape[1] else None
-    best_l = np.argmax(np.where(np.isnan(s.floor_prob), -np.inf,
-                                np.clip(s.floor_prob, 0.0, 1.0)), axis=1).tolist()
-    resid = res.resid
-    used = res.used  # the columns of each row's group's used_idx, row-major
-    resid_used_l = np.where(np.isfinite(resid), resid, 0.0)[used].tolist()
-    r_offs = np.concatenate([[0], np.cumsum(np.count_nonzero(used, axis=1))]).tolist()
-    t_ref_l = batch.t_ref.tolist()
-    in_wall_l = np.where(batch.reported, batch.pub_wall, 0).max(axis=1).tolist()
-    links_l, offs = _links(batch.use, s.mechanism, resid, names)
-
-    def build(rows: np.ndarray | None, *, seq0: int, now: int,
-              method: str) -> list[M.PositionEstimateV2]:
-        if s.tracking:
-            snap_pos, snap_cov, snap_prob = (s.snap.pos.tolist(), s.snap.cov.tolist(),
-                                             s.snap_prob.tolist())
-            snap_fin = tuple(_finite_rows(a) for a in (s.snap.pos, s.snap.cov, s.snap_prob))
-        else:
-            snap_pos = snap_cov = snap_prob = snap_fin = None
-        out = []
-        for k, i in enumerate(range(len(epochs)) if rows is None else rows.tolist()):
-            pe, gi, st = epochs[i], group_l[i], s.status[i]
-            _, used_ids, excluded, _ = shared[gi]
-            has = st in M.GOOD_STATUSES and pos_ok[i]
-            probs = prob_l[i] if has and prob_ok[i] and prob_l is not None else []
-            out.append(M.PositionEstimateV2(
-                node_id=pe.node_id, t_ns=t_ref_l[i], epoch=pe.epoch, seq=seq0 + k + 1,
-                method=method, status=st,
-                position_m=tuple(pos_l[i]) if has else None,
-                covariance_m2=tuple(map(tuple, cov_l[i])) if has and cov_ok[i] else None,
-                peb_m=peb_l[i] if has else None,
-                z_bound_m=zb_l[i] if has else None,
-                floor_index=best_l[i] if probs else None, floor_probabilities=probs,
-                snapshot=_snapshot_msg(s, i, snap_pos, snap_cov, snap_prob, snap_fin),
-                links=links_l[offs[i]:offs[i + 1]], used_anchors=list(used_ids),
-                residuals_m=resid_used_l[r_offs[i]:r_offs[i + 1]],
-                excluded=list(excluded), message=res.msg[i] if not s.tracking else "",
-                t_input_wall_ns=max(in_wall_l[i], 0), t_pub_wall_ns=now))
-        return out
-    return build

@@ -341,6 +341,36 @@ class FixStream:
             self._pending[e.node_id].append(fix)
             self._ne_add(e.node_id, fix)
 
+    def add_rows(self, r: Any) -> None:
+        """:meth:`add` of every row of a batch's columns
+        (:class:`~diffpos_services.fusion.estimates.EstimateRows`), in order, without its
+        structs: the counts by anchor-list group, the positioned rows' fixes as ``add``
+        makes them (the covariance as a (3, 3) view of the batch's array)."""
+        status, node, group, shared = r.status, r.node_id, r.group, r.shared
+        self.total += len(status)
+        self.by_status.update(status)
+        self.fixes_by_node.update(node)
+        used = self._used
+        for (g, no_track), k in Counter(zip(group, map(NO_TRACK_STATUSES.__contains__,
+                                                        status), strict=True)).items():
+            for a in shared[g][1]:
+                used[a] += k
+            for x in shared[g][2]:
+                if no_track and x.reason == "RAIM":
+                    self.no_track[x.anchor_id] += k
+                else:
+                    self.excluded[x.anchor_id][x.reason] += k
+        probs = r.probs
+        for i in itertools.compress(range(len(status)), r.has_pos):
+            if status[i] not in M.GOOD_STATUSES:
+                continue
+            n = node[i]
+            self.positioned[n] += 1
+            fix = (r.t_ns[i], tuple(r.pos[i]), r.peb[i] if r.ok[i] else None, r.floor[i],
+                   r.cov[i] if r.has_cov[i] else None, () if probs is None else probs[i])
+            self._pending[n].append(fix)
+            self._ne_add(n, fix)
+
     @property
     def used(self) -> Counter[str]:
         """Per anchor: the fixes that used it."""
@@ -613,9 +643,20 @@ class Comparison:
     def add(self, side: int, e: Any, now_ns: int) -> None:
         """``side`` 0: live, 1: replayed."""
         self.counts["live" if side == 0 else "replayed"] += 1
-        key = (e.node_id, e.epoch)
+        # now_ns: recorded receive time
+        self._match(side, (e.node_id, e.epoch), (e.status, e.position_m, e.peb_m, now_ns))
+
+    def add_rows(self, side: int, r: Any, now_ns: int) -> None:
+        """:meth:`add` of every row of a batch's columns
+        (:class:`~diffpos_services.fusion.estimates.EstimateRows`), in order."""
+        self.counts["live" if side == 0 else "replayed"] += len(r.status)
+        match, pos, has, peb, ok = self._match, r.pos, r.has_pos, r.peb, r.ok
+        for i, key in enumerate(zip(r.node_id, r.epoch, strict=True)):
+            match(side, key, (r.status[i], tuple(pos[i]) if has[i] else None,
+                              peb[i] if ok[i] else None, now_ns))
+
+    def _match(self, side: int, key: tuple[str, int], item: tuple) -> None:
         other = self.sides[1 - side].pop(key, None)
-        item = (e.status, e.position_m, e.peb_m, now_ns)  # now_ns: recorded receive time
         if other is None:
             if self.sides[side].pop(key, None) is not None:  # a repeat: the last one counts
                 self.counts["only_live" if side == 0 else "only_replayed"] += 1

@@ -28,7 +28,7 @@ import os
 import time
 from array import array
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +51,7 @@ from diffpos_services.fusion.config import (
     with_legacy_defaults,
 )
 from diffpos_services.fusion.core import FusionCore
+from diffpos_services.fusion.estimates import ColumnBatch, Estimates
 from diffpos_services.fusion.workers import start_workers
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
@@ -385,7 +386,22 @@ class _Outputs:
             self.sink.write(m.topic, m.data, m.log_ns, publish_ns=m.publish_ns,
                             sequence=m.sequence)
 
-    def emit(self, ests: list[M.PositionEstimate], now_ns: int) -> None:
+    def emit(self, ests: Sequence[Any], now_ns: int) -> None:
+        """The estimates of a step: column batches by their columns
+        (:meth:`FixStream.add_rows`) unless they are kept or written, the rest one by one."""
+        rec = self.rec
+        if rec.keep is None and self.sink is None:
+            for part in ests.parts if isinstance(ests, Estimates) else (ests,):
+                if isinstance(part, ColumnBatch):
+                    self.count += len(part)
+                    rec.replayed.add_rows(part.rows)
+                    rec.compare.add_rows(1, part.rows, rec.t_last or 0)
+                else:
+                    self._emit_each(part, now_ns)
+            return
+        self._emit_each(ests, now_ns)
+
+    def _emit_each(self, ests: Sequence[M.PositionEstimate], now_ns: int) -> None:
         rec = self.rec
         for e in ests:
             self.count += 1
