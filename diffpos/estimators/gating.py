@@ -25,9 +25,10 @@ Three checks run after every fit, for all fixes of a batch at once:
    remain, every candidate subset ``S \\ {j}`` is solved again from all starts of the first
    fit plus the current solution (``multistart_exclusion``; all candidates x starts of all
    failing fixes in one batch) and the anchor whose exclusion gives the smallest test
-   statistic is removed (D-NLS bounds this search: on the 30 s ``large`` replay the used anchors of 20 of
-   15,267 fixes differ from the exhaustive search's, accuracy the same; candidates solved just far enough to rank them, the all-starts recheck
-   only near consistency, hopeless candidates given up early; its ``exclusion_*`` options,
+   statistic is removed (D-NLS bounds this search: candidates solved just far enough to
+   rank them, the all-starts recheck only near consistency, hopeless candidates given up
+   early, its ``exclusion_*`` options; on the 30 s ``large`` replay the used anchors of 20
+   of 15,267 fixes differ from the exhaustive search's, with the same accuracy:
    docs/dnls_cost.md). Warm-starting the candidates at the current solution alone is not
    enough: a fault of metres pulls the all-anchor fit into a wrong local minimum (often
    another floor), the subset without the faulty anchor stays in it and still fails, and a
