@@ -23,9 +23,12 @@ Jacobians and SNR the kernels have), but a floor whose own extra family explains
 longer pays the outlier's price for it every epoch.
 
 Which links (``TrackerConfig.family_gate``): ``"misfit"`` (default), those the hypothesis'
-last real update called an outlier or fitted with an NIS above ``nis_limit`` (a 3-sigma miss),
-or has not seen yet (``TrackerState.link_fit``); ``"outlier"`` (before), those with a
-forgotten outlier count above 0.5. Why the misfits: on Sionna RT's paper building (depth 4)
+last real update called an outlier or fitted with an NIS above ``nis_limit`` (a 3-sigma miss;
+``TrackerState.link_fit``), once the hypothesis has had the link in ``family_history`` real
+updates (a link not fitted yet is no misfit: before, at a track's start every link offered the
+families to every floor), of a node with at least ``family_min_links`` ranges (three ranges
+are fitted exactly on any floor, so a family chosen for one of them is tested by nothing);
+``"outlier"`` (before), those with a forgotten outlier count above 0.5. Why the misfits: on Sionna RT's paper building (depth 4)
 the true floor mostly did NOT call its out-of-model link an outlier but fitted it with a wrong
 mechanism at -7..-9 nats (its mirror floor one to three below: -4..-5.5), so an outlier gate
 never offered it the family; a link the 18 explain (NIS <= ``nis_limit``) costs nothing. On a
