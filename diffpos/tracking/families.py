@@ -16,7 +16,9 @@ exists at the hypothesis' prior (``loose`` existence with ``exist_margin_m``) is
 candidate of the link, with a mechanism's prior: the component becomes ``eps / span + (1 - eps)
 n_fam / (n_18 + n_fam) f``, ``f`` the mean over the existing families of ``N(rho; L_k, J_k P
 J_k^T + R)``, with the outlier's uniform SNR density (no amplitude model for them) -- what
-M-NLS does with its ``max_order`` families. ``"outlier"`` (before): half of the component
+M-NLS does with its ``max_order`` families. ``"one"``: the families together are ONE more
+candidate, ``n_fam / (n_18 + n_fam)`` replaced by ``1 / (n_18 + 1)`` (a weaker prior, measured
+between the two on Sionna's and the synthetic in-model channels). ``"outlier"`` (before): half of the component
 (:data:`FAMILY_SHARE`) is that mixture at the PRIOR outlier weight. The link stays an outlier
 for the IEKF (no position information: the position is fitted by the 18 mechanisms, whose
 Jacobians and SNR the kernels have), but a floor whose own extra family explains the range no
@@ -116,7 +118,8 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     more candidate of the link's inlier component, with a mechanism's prior: the outlier
     component becomes ``eps / span + (1 - eps) n_fam / (n_18 + n_fam) f`` (``n_fam``,
     ``n_18``: the families and the 18 mechanisms that exist at the prior), as M-NLS's
-    ``max_order`` treats them (module docstring)."""
+    ``max_order`` treats them (module docstring); ``"one"``: the same with ``1 / (n_18 + 1)``
+    for ``n_fam / (n_18 + n_fam)`` (the families as one more candidate)."""
     if extra_families(config.max_order) is None:
         return np.zeros(gate.shape)
     gate = gate & links.mask[rows, 0]
@@ -129,8 +132,9 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]
     span = np.log(config.outlier_span_m)
-    if config.family_weight == "mechanism":
-        prior = np.log(np.maximum(n_fam, 1) / np.maximum(n_base + n_fam, 1))
+    if config.family_weight in ("mechanism", "one"):
+        prior = (np.log(np.maximum(n_fam, 1) / np.maximum(n_base + n_fam, 1))
+                 if config.family_weight == "mechanism" else -np.log(n_base + 1.0))
         out[pi, mi] = np.logaddexp(0.0, np.log(-np.expm1(log_e)) + prior + ll - log_e + span)
         return out
     c = FAMILY_SHARE

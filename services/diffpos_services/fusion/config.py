@@ -246,7 +246,7 @@ _TRACKER_RANGES: dict[str, dict[str, float]] = {
 #: The choices of the tracker's text settings (``TrackerConfig.mixing``, ``family_weight``,
 #: ``family_gate``).
 _CHOICES: dict[str, tuple[str, ...]] = {"mixing": ("select", "imm"),
-                                        "family_weight": ("mechanism", "outlier"),
+                                        "family_weight": ("mechanism", "one", "outlier"),
                                         "family_gate": ("misfit", "outlier")}
 #: Unit of a tracker setting by the end of its name (the house naming rule); else ``-``
 #: (dimensionless) or ``count`` (integers).
