@@ -380,6 +380,8 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-12-06T15:30:15Z", "182c287", {"max_order": 2, "family_history": 0,
+                                         "family_min_links": 0}),
     ("2026-12-06T14:17:03Z", "2fd5568", {"max_order": 3}),
     ("2026-12-06T12:31:20Z", "431695e", {"max_order": 2, "family_weight": "outlier",
                                          "family_gate": "outlier"}),
