@@ -50,8 +50,12 @@ import functools
 import numpy as np
 from numpy.typing import NDArray
 
+from scipy.special import log_ndtr
+
+from diffpos.channel.emulator import pair_snr_db
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
 from diffpos.paths.model import graded_paths
+from diffpos.tracking.model import SNR_SIGMA_DB
 from diffpos.tracking.state import FloatArray
 
 __all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight"]
@@ -74,12 +78,14 @@ def extra_families(max_order: int) -> tuple[MechanismSet, NDArray[np.int64]] | N
 
 def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
                    var: FloatArray, floor: NDArray, building, max_order: int,
-                   relax_m: float) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
+                   relax_m: float, radio=None
+                   ) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
     """``log mean_k N(rho; L_k, J_k P J_k^T + var)`` over the extra families (``max_order``)
     that exist (``loose`` at ``relax_m``) for every link (Q,); -inf where none exists; and the
     number of extra families and of the 18 mechanisms that exist (``loose``) there, (Q,)
     each. Flat links: ``pos`` (Q, 3), ``cov`` (Q, 3, 3), ``anchor`` (Q, 3), ``rho``, ``var``,
-    ``floor`` (Q,)."""
+    ``floor`` (Q,). ``radio`` given: every family's density is weighted by the probability
+    that it can be the first arrival there (:func:`first_arrival_log_prob`)."""
     fam = extra_families(max_order)
     q = rho.shape[0]
     if fam is None or q == 0:
@@ -95,12 +101,39 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
     with np.errstate(invalid="ignore"):
         e = rho[:, None] - g.length_m[:, nb:]
         ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)
+    if radio is not None:
+        ll = ll + first_arrival_log_prob(pos, anchor, g.length_m, np.sqrt(var), building,
+                                         radio)
     n_ok = ok.sum(axis=-1)
     with np.errstate(divide="ignore"):
         top = np.max(ll, axis=-1)
         safe = np.where(np.isfinite(top), top, 0.0)
         tot = safe + np.log(np.sum(np.exp(ll - safe[:, None]), axis=-1))
         return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf), n_ok, n_base
+
+
+def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatArray,
+                           sigma_m: FloatArray, building, radio) -> FloatArray:
+    """Log-probability (Q, F) that each extra family (``length_m[:, 18:]``) can be the first
+    arrival of its link at ``pos`` (Q, 3) from ``anchor`` (Q, 3): that none of the 18
+    mechanisms shorter than it by more than ``3 sigma_m`` (Q,) was detected,
+    ``sum_j log(1 - P_det,j)`` over them, ``P_det,j = Phi((S_j - T) / SNR_SIGMA_DB)`` with
+    ``S_j`` the mechanism's SNR predicted by the emulator's amplitude model
+    (:func:`diffpos.channel.emulator.pair_snr_db`; -inf: no power, never detected) and ``T``
+    the detector's threshold of the link, ``max(max_j S_j - fap_threshold_db,
+    detection_snr_db)`` (as :func:`diffpos.tracking.model.snr_cost`). A mechanism is only
+    not detected if it is weak: a family longer than a strong in-model path is never the
+    first arrival, whatever the range says."""
+    nb = len(MECHANISMS)
+    pred = pair_snr_db(anchor[:, None, :], pos, building=building, radio=radio)[:, 0]
+    fin = np.isfinite(pred)
+    top = np.max(np.where(fin, pred, -np.inf), axis=-1)
+    thr = np.maximum(top - radio.fap_threshold_db, radio.detection_snr_db)
+    with np.errstate(invalid="ignore"):
+        z = (pred - thr[:, None]) / SNR_SIGMA_DB
+        log_miss = np.where(fin & np.isfinite(length_m[:, :nb]), log_ndtr(-z), 0.0)  # (Q, 18)
+        shorter = length_m[:, None, :nb] < length_m[:, nb:, None] - 3.0 * sigma_m[:, None, None]
+    return np.sum(np.where(shorter, log_miss[:, None, :], 0.0), axis=-1)
 
 
 def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
@@ -127,7 +160,8 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     ll, n_fam, n_base = family_log_lik(pos[pi], cov[pi], links.anchors[rows[pi], 0, mi],
                                        links.rho[rows[pi], 0, mi], links.var[rows[pi], 0, mi],
                                        floor[pi], building, config.max_order,
-                                       config.exist_margin_m)
+                                       config.exist_margin_m,
+                                       links.radio if config.family_first else None)
     out = np.zeros(gate.shape)
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]

@@ -279,6 +279,19 @@ class TrackerConfig:
         floor). Measured: Sionna's three-UAV held-out building, live replay, 69.4 % right
         floor without families, 65.6 % with them from the first fit, 69.4 % with this guard.
         0: every node (before).
+    family_first : bool
+        An extra family explains a link at a hypothesis only as far as it can be the first
+        arrival there: its density is weighted by the probability that none of the 18
+        mechanisms shorter than it (by more than 3 range sigmas) was detected, each missed
+        with ``Phi((T - S_j) / SNR_SIGMA_DB)`` (``S_j`` its SNR predicted by the emulator's
+        amplitude model, ``T`` the link's detector threshold; the tracker's SNR model, used
+        only where the link has a measured SNR and a radio model;
+        :func:`diffpos.tracking.families.first_arrival_log_prob`). Why: as candidates with a
+        mechanism's prior the families explained a WRONG floor's misfit links even where a
+        strong in-model path of that floor is shorter (it would have been the first
+        arrival), which cost the synthetic window-edge channel (in the path model, no family
+        ever the first arrival; 8 seeds, 3 s) 7 points (52.0 -> 44.9 % right floor; 51.0 %
+        with this; docs/tracking_evidence.md). False: every existing family (before).
     floor_model_doubt : bool
         The published floor probabilities are mixed towards uniform by the probability that
         the node's data hold a first arrival the path model does not explain, by the learned
@@ -350,6 +363,7 @@ class TrackerConfig:
     family_gate: str = "misfit"
     family_history: int = 1
     family_min_links: int = 4
+    family_first: bool = True
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
 
