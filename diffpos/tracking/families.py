@@ -49,7 +49,6 @@ import functools
 
 import numpy as np
 from numpy.typing import NDArray
-
 from scipy.special import log_ndtr
 
 from diffpos.channel.emulator import pair_snr_db
@@ -58,7 +57,7 @@ from diffpos.paths.model import graded_paths
 from diffpos.tracking.model import SNR_SIGMA_DB
 from diffpos.tracking.state import FloatArray
 
-__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight"]
+__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "first_arrival_log_prob"]
 
 #: Share of the out-of-model component given to the enumerated extra families (the rest stays
 #: uniform over ``outlier_span_m``).
