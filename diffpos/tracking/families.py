@@ -77,14 +77,15 @@ def extra_families(max_order: int) -> tuple[MechanismSet, NDArray[np.int64]] | N
 
 def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
                    var: FloatArray, floor: NDArray, building, max_order: int,
-                   relax_m: float, radio=None
+                   relax_m: float, radio=None, cap_nats: float = 0.0
                    ) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
     """``log mean_k N(rho; L_k, J_k P J_k^T + var)`` over the extra families (``max_order``)
     that exist (``loose`` at ``relax_m``) for every link (Q,); -inf where none exists; and the
     number of extra families and of the 18 mechanisms that exist (``loose``) there, (Q,)
     each. Flat links: ``pos`` (Q, 3), ``cov`` (Q, 3, 3), ``anchor`` (Q, 3), ``rho``, ``var``,
     ``floor`` (Q,). ``radio`` given: every family's density is weighted by the probability
-    that it can be the first arrival there (:func:`first_arrival_log_prob`)."""
+    that it can be the first arrival there (:func:`first_arrival_log_prob`, at least
+    ``-cap_nats``)."""
     fam = extra_families(max_order)
     q = rho.shape[0]
     if fam is None or q == 0:
@@ -102,7 +103,7 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
         ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)
     if radio is not None:
         ll = ll + first_arrival_log_prob(pos, anchor, g.length_m, np.sqrt(var), building,
-                                         radio)
+                                         radio, cap_nats)
     n_ok = ok.sum(axis=-1)
     with np.errstate(divide="ignore"):
         top = np.max(ll, axis=-1)
@@ -112,7 +113,8 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
 
 
 def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatArray,
-                           sigma_m: FloatArray, building, radio) -> FloatArray:
+                           sigma_m: FloatArray, building, radio, cap_nats: float = 0.0
+                           ) -> FloatArray:
     """Log-probability (Q, F) that each extra family (``length_m[:, 18:]``) can be the first
     arrival of its link at ``pos`` (Q, 3) from ``anchor`` (Q, 3): that none of the 18
     mechanisms shorter than it by more than ``3 sigma_m`` (Q,) was detected,
@@ -122,7 +124,12 @@ def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatA
     the detector's threshold of the link, ``max(max_j S_j - fap_threshold_db,
     detection_snr_db)`` (as :func:`diffpos.tracking.model.snr_cost`). A mechanism is only
     not detected if it is weak: a family longer than a strong in-model path is never the
-    first arrival, whatever the range says."""
+    first arrival, whatever the range says. ``cap_nats`` > 0: the log-probability is at
+    least ``-cap_nats`` (the robust SNR likelihood of
+    :func:`diffpos.tracking.model.cap_snr_cost`: the amplitude model is the emulator's, and
+    another channel's powers miss it by tens of dB on whole links, so a shorter path it
+    calls strong may be absent; at the default 4.5 nats such a family keeps ~1 % of a
+    mechanism's prior, about the outlier's share)."""
     nb = len(MECHANISMS)
     pred = pair_snr_db(anchor[:, None, :], pos, building=building, radio=radio)[:, 0]
     fin = np.isfinite(pred)
@@ -132,7 +139,8 @@ def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatA
         z = (pred - thr[:, None]) / SNR_SIGMA_DB
         log_miss = np.where(fin & np.isfinite(length_m[:, :nb]), log_ndtr(-z), 0.0)  # (Q, 18)
         shorter = length_m[:, None, :nb] < length_m[:, nb:, None] - 3.0 * sigma_m[:, None, None]
-    return np.sum(np.where(shorter, log_miss[:, None, :], 0.0), axis=-1)
+    out = np.sum(np.where(shorter, log_miss[:, None, :], 0.0), axis=-1)
+    return np.maximum(out, -cap_nats) if cap_nats > 0 else out
 
 
 def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
@@ -160,7 +168,8 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                                        links.rho[rows[pi], 0, mi], links.var[rows[pi], 0, mi],
                                        floor[pi], building, config.max_order,
                                        config.exist_margin_m,
-                                       links.radio if config.family_first else None)
+                                       links.radio if config.family_first else None,
+                                       config.snr_cost_cap_nats)
     out = np.zeros(gate.shape)
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]

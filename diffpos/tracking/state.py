@@ -285,13 +285,18 @@ class TrackerConfig:
         mechanisms shorter than it (by more than 3 range sigmas) was detected, each missed
         with ``Phi((T - S_j) / SNR_SIGMA_DB)`` (``S_j`` its SNR predicted by the emulator's
         amplitude model, ``T`` the link's detector threshold; the tracker's SNR model, used
-        only where the link has a measured SNR and a radio model;
-        :func:`diffpos.tracking.families.first_arrival_log_prob`). Why: as candidates with a
-        mechanism's prior the families explained a WRONG floor's misfit links even where a
-        strong in-model path of that floor is shorter (it would have been the first
-        arrival), which cost the synthetic window-edge channel (in the path model, no family
-        ever the first arrival; 8 seeds, 3 s) 7 points (52.0 -> 44.9 % right floor; 51.0 %
-        with this; docs/tracking_evidence.md). False: every existing family (before).
+        only where the link has a measured SNR and a radio model), at least
+        ``exp(-snr_cost_cap_nats)`` (the robust SNR likelihood's cap: about the outlier's
+        share) (:func:`diffpos.tracking.families.first_arrival_log_prob`). Default False:
+        measured (docs/tracking_evidence.md "The first-arrival condition") it mends the
+        synthetic window-edge channel (in the path model, no family ever the first arrival;
+        8 seeds: 3 s 44.9 -> 50.6 % right floor, 10 s 44.7 -> 56.1 %; ``max_order`` 2: 52.0 /
+        56.9 %) but gives back the families' whole gain on Sionna RT's channel (static paper
+        72.55 -> 69.91 %, open plan 66.85 -> 63.22 %, ``max_order`` 2 69.53 / 62.68 %; live
+        large 91.6 -> 89.9 % with confidently wrong 0.22 -> 1.33 %): there the families
+        that help are the ones the emulator's amplitude model rules out (its shorter paths
+        are absent or far weaker on the traced channel). Default True from e94ad45 (without
+        the cap) to the next commit.
     floor_model_doubt : bool
         The published floor probabilities are mixed towards uniform by the probability that
         the node's data hold a first arrival the path model does not explain, by the learned
@@ -363,7 +368,7 @@ class TrackerConfig:
     family_gate: str = "misfit"
     family_history: int = 1
     family_min_links: int = 4
-    family_first: bool = True
+    family_first: bool = False
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
 

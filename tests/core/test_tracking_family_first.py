@@ -1,11 +1,11 @@
 """A higher-order family explains a link only where it can be the first arrival
-(``TrackerConfig.family_first``; :func:`diffpos.tracking.families.first_arrival_log_prob`).
+(``TrackerConfig.family_first``, off by default; :func:`diffpos.tracking.families.first_arrival_log_prob`).
 
 Under a hypothesis' position a family path is the first arrival only if none of the 18
 mechanisms that is shorter was detected: each such mechanism is missed with probability
 ``Phi((T - S_j) / sigma)`` (its SNR ``S_j`` predicted by the emulator's amplitude model, the
 link's detector threshold ``T``). Reference: a plain loop over the mechanisms with
-``scipy.stats.norm``; and the weight with ``family_first`` off (or without a radio model)
+``scipy.stats.norm`` (and its cap: ``snr_cost_cap_nats``); and the weight with ``family_first`` off (or without a radio model)
 is the family term as before, bit for bit.
 """
 
@@ -66,6 +66,9 @@ def test_first_arrival_probability_against_a_loop():
             if not np.isfinite(length[k]):
                 continue
             assert abs(got[k - nb] - want) < 1e-9, (anchor, node, k, got[k - nb], want)
+        capped = first_arrival_log_prob(node[None], anchor[None], length[None],
+                                        np.array([sigma]), B, RADIO, 4.5)[0]
+        assert np.array_equal(capped, np.maximum(got, -4.5))
 
 
 def _weights(anchor, node, cfg, radio):
@@ -83,20 +86,24 @@ def _weights(anchor, node, cfg, radio):
                              np.array([2]), np.ones((1, 1), bool), B, cfg)[0, 0]
 
 
-def test_a_family_behind_a_strong_shorter_path_explains_nothing():
+def test_a_family_behind_a_strong_shorter_path_keeps_only_the_capped_share():
     """The UAV level with the window in front of the node: the direct path through the
     window is far above the detector's threshold and shorter than every family, so with
-    ``family_first`` (the default) a range at a family's length gains nearly nothing from
-    the family (< 0.01 nats); without it (or without a radio model) it gains > 5 nats."""
+    ``family_first`` a range at a family's length gains from the family only
+    ``exp(-snr_cost_cap_nats)`` of what it gains without it (0.01 nats), nearly nothing
+    without the cap (< 0.01 nats); without ``family_first`` (or without a radio model) it
+    gains > 5 nats."""
     anchor, node = PAIRS[1]
-    cfg = TrackerConfig()
-    assert cfg.family_first and cfg.max_order == 3
+    cfg = dataclasses.replace(TrackerConfig(), family_first=True)
+    assert cfg.max_order == 3 and cfg.snr_cost_cap_nats > 0
     on = _weights(anchor, node, cfg, RADIO)
+    uncapped = _weights(anchor, node, dataclasses.replace(cfg, snr_cost_cap_nats=0.0), RADIO)
     off = _weights(anchor, node, dataclasses.replace(cfg, family_first=False), RADIO)
     no_radio = _weights(anchor, node, cfg, None)
     assert off > 5.0, off
     assert no_radio == off
-    assert 0.0 <= on < 0.01, on
+    assert abs(on - np.log1p(np.expm1(off) * np.exp(-cfg.snr_cost_cap_nats))) < 0.01, (on, off)
+    assert 0.0 <= uncapped < 0.01, uncapped
 
 
 def test_a_family_with_no_detectable_shorter_path_is_unchanged():
@@ -111,7 +118,7 @@ def test_a_family_with_no_detectable_shorter_path_is_unchanged():
         k = int(np.argmin(np.where(ok[nb:], length[nb:], np.inf)))
         if lp[k] > -0.01:
             found += 1
-            cfg = TrackerConfig()
+            cfg = dataclasses.replace(TrackerConfig(), family_first=True)
             on = _weights(anchor, node, cfg, RADIO)
             off = _weights(anchor, node, dataclasses.replace(cfg, family_first=False), RADIO)
             assert off > 1.0 and abs(on - off) < 0.01 * off, (anchor, node, on, off)
