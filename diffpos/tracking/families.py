@@ -54,7 +54,6 @@ from scipy.special import log_ndtr
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
 from diffpos.paths.model import graded_paths
-from diffpos.tracking.model import SNR_SIGMA_DB
 from diffpos.tracking.state import FloatArray
 
 __all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "first_arrival_log_prob"]
@@ -77,15 +76,15 @@ def extra_families(max_order: int) -> tuple[MechanismSet, NDArray[np.int64]] | N
 
 def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
                    var: FloatArray, floor: NDArray, building, max_order: int,
-                   relax_m: float, radio=None, cap_nats: float = 0.0
-                   ) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
+                   relax_m: float, radio=None, cap_nats: float = 0.0,
+                   snr_sigma_db: float | None = None) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
     """``log mean_k N(rho; L_k, J_k P J_k^T + var)`` over the extra families (``max_order``)
     that exist (``loose`` at ``relax_m``) for every link (Q,); -inf where none exists; and the
     number of extra families and of the 18 mechanisms that exist (``loose``) there, (Q,)
     each. Flat links: ``pos`` (Q, 3), ``cov`` (Q, 3, 3), ``anchor`` (Q, 3), ``rho``, ``var``,
     ``floor`` (Q,). ``radio`` given: every family's density is weighted by the probability
-    that it can be the first arrival there (:func:`first_arrival_log_prob`, at least
-    ``-cap_nats``)."""
+    that it can be the first arrival there (:func:`first_arrival_log_prob` with the SNR
+    model's ``snr_sigma_db``, at least ``-cap_nats``)."""
     fam = extra_families(max_order)
     q = rho.shape[0]
     if fam is None or q == 0:
@@ -102,8 +101,11 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
         e = rho[:, None] - g.length_m[:, nb:]
         ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)
     if radio is not None:
+        if snr_sigma_db is None:
+            raise ValueError("family_log_lik: the first-arrival condition (a radio given) needs "
+                             "snr_sigma_db, the SNR model's spread (tracking.model.SNR_SIGMA_DB)")
         ll = ll + first_arrival_log_prob(pos, anchor, g.length_m, np.sqrt(var), building,
-                                         radio, cap_nats)
+                                         radio, snr_sigma_db, cap_nats)
     n_ok = ok.sum(axis=-1)
     with np.errstate(divide="ignore"):
         top = np.max(ll, axis=-1)
@@ -113,12 +115,13 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
 
 
 def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatArray,
-                           sigma_m: FloatArray, building, radio, cap_nats: float = 0.0
-                           ) -> FloatArray:
+                           sigma_m: FloatArray, building, radio, snr_sigma_db: float,
+                           cap_nats: float = 0.0) -> FloatArray:
     """Log-probability (Q, F) that each extra family (``length_m[:, 18:]``) can be the first
     arrival of its link at ``pos`` (Q, 3) from ``anchor`` (Q, 3): that none of the 18
     mechanisms shorter than it by more than ``3 sigma_m`` (Q,) was detected,
-    ``sum_j log(1 - P_det,j)`` over them, ``P_det,j = Phi((S_j - T) / SNR_SIGMA_DB)`` with
+    ``sum_j log(1 - P_det,j)`` over them, ``P_det,j = Phi((S_j - T) / snr_sigma_db)`` (the
+    SNR model's spread, :data:`diffpos.tracking.model.SNR_SIGMA_DB`) with
     ``S_j`` the mechanism's SNR predicted by the emulator's amplitude model
     (:func:`diffpos.channel.emulator.pair_snr_db`; -inf: no power, never detected) and ``T``
     the detector's threshold of the link, ``max(max_j S_j - fap_threshold_db,
@@ -136,7 +139,7 @@ def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatA
     top = np.max(np.where(fin, pred, -np.inf), axis=-1)
     thr = np.maximum(top - radio.fap_threshold_db, radio.detection_snr_db)
     with np.errstate(invalid="ignore"):
-        z = (pred - thr[:, None]) / SNR_SIGMA_DB
+        z = (pred - thr[:, None]) / snr_sigma_db
         log_miss = np.where(fin & np.isfinite(length_m[:, :nb]), log_ndtr(-z), 0.0)  # (Q, 18)
         shorter = length_m[:, None, :nb] < length_m[:, nb:, None] - 3.0 * sigma_m[:, None, None]
     out = np.sum(np.where(shorter, log_miss[:, None, :], 0.0), axis=-1)
@@ -145,7 +148,8 @@ def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatA
 
 def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                       floor: NDArray, gate: NDArray[np.bool_], building, config,
-                      log_eps: FloatArray | None = None) -> FloatArray:
+                      log_eps: FloatArray | None = None,
+                      snr_sigma_db: float | None = None) -> FloatArray:
     """The change (P, M) of the out-of-model component's log-density of the pairs (node rows
     ``rows`` of ``links``, prior ``pos`` (P, 3), ``cov`` (P, 3, 3), ``floor`` (P,)) by the
     extra families, for the present links of ``gate`` (P, M) (the others: 0, not evaluated);
@@ -159,7 +163,9 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     component becomes ``eps / span + (1 - eps) n_fam / (n_18 + n_fam) f`` (``n_fam``,
     ``n_18``: the families and the 18 mechanisms that exist at the prior), as M-NLS's
     ``max_order`` treats them (module docstring); ``"one"``: the same with ``1 / (n_18 + 1)``
-    for ``n_fam / (n_18 + n_fam)`` (the families as one more candidate)."""
+    for ``n_fam / (n_18 + n_fam)`` (the families as one more candidate). With
+    ``config.family_first`` and the links' radio model each family is weighted by
+    :func:`first_arrival_log_prob` (``snr_sigma_db``: the SNR model's spread, needed then)."""
     if extra_families(config.max_order) is None:
         return np.zeros(gate.shape)
     gate = gate & links.mask[rows, 0]
@@ -169,7 +175,7 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                                        floor[pi], building, config.max_order,
                                        config.exist_margin_m,
                                        links.radio if config.family_first else None,
-                                       config.snr_cost_cap_nats)
+                                       config.snr_cost_cap_nats, snr_sigma_db)
     out = np.zeros(gate.shape)
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]

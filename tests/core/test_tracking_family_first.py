@@ -54,7 +54,7 @@ def test_first_arrival_probability_against_a_loop():
     for anchor, node in PAIRS:
         length, _ = _lengths(anchor, node)
         got = first_arrival_log_prob(node[None], anchor[None], length[None],
-                                     np.array([sigma]), B, RADIO)[0]
+                                     np.array([sigma]), B, RADIO, SNR_SIGMA_DB)[0]
         s = pair_snr_db(anchor[None, None, :], node[None], building=B, radio=RADIO)[0, 0]
         thr = max(np.max(s[np.isfinite(s)]) - RADIO.fap_threshold_db, RADIO.detection_snr_db)
         for k in range(nb, length.size):
@@ -67,7 +67,7 @@ def test_first_arrival_probability_against_a_loop():
                 continue
             assert abs(got[k - nb] - want) < 1e-9, (anchor, node, k, got[k - nb], want)
         capped = first_arrival_log_prob(node[None], anchor[None], length[None],
-                                        np.array([sigma]), B, RADIO, 4.5)[0]
+                                        np.array([sigma]), B, RADIO, SNR_SIGMA_DB, 4.5)[0]
         assert np.array_equal(capped, np.maximum(got, -4.5))
 
 
@@ -83,7 +83,8 @@ def _weights(anchor, node, cfg, radio):
                               snr_db=None if radio is None else np.full((1, 1), 20.0),
                               radio=radio)
     return family_log_weight(node[None], np.zeros((1, 3, 3)), links, np.array([0]),
-                             np.array([2]), np.ones((1, 1), bool), B, cfg)[0, 0]
+                             np.array([2]), np.ones((1, 1), bool), B, cfg,
+                             snr_sigma_db=SNR_SIGMA_DB)[0, 0]
 
 
 def test_a_family_behind_a_strong_shorter_path_keeps_only_the_capped_share():
@@ -113,7 +114,7 @@ def test_a_family_with_no_detectable_shorter_path_is_unchanged():
     for anchor, node in PAIRS:
         length, ok = _lengths(anchor, node)
         lp = first_arrival_log_prob(node[None], anchor[None], length[None], np.array([0.05]),
-                                    B, RADIO)[0]
+                                    B, RADIO, SNR_SIGMA_DB)[0]
         nb = len(MECHANISMS)
         k = int(np.argmin(np.where(ok[nb:], length[nb:], np.inf)))
         if lp[k] > -0.01:
