@@ -16,16 +16,21 @@ exists at the hypothesis' prior (``loose`` existence with ``exist_margin_m``) is
 candidate of the link, with a mechanism's prior: the component becomes ``eps / span + (1 - eps)
 n_fam / (n_18 + n_fam) f``, ``f`` the mean over the existing families of ``N(rho; L_k, J_k P
 J_k^T + R)``, with the outlier's uniform SNR density (no amplitude model for them) -- what
-M-NLS does with its ``max_order`` families. ``"outlier"`` (before): half of the component
+M-NLS does with its ``max_order`` families. ``"one"``: the families together are ONE more
+candidate, ``n_fam / (n_18 + n_fam)`` replaced by ``1 / (n_18 + 1)`` (a weaker prior, measured
+between the two on Sionna's and the synthetic in-model channels). ``"outlier"`` (before): half of the component
 (:data:`FAMILY_SHARE`) is that mixture at the PRIOR outlier weight. The link stays an outlier
 for the IEKF (no position information: the position is fitted by the 18 mechanisms, whose
 Jacobians and SNR the kernels have), but a floor whose own extra family explains the range no
 longer pays the outlier's price for it every epoch.
 
 Which links (``TrackerConfig.family_gate``): ``"misfit"`` (default), those the hypothesis'
-last real update called an outlier or fitted with an NIS above ``nis_limit`` (a 3-sigma miss),
-or has not seen yet (``TrackerState.link_fit``); ``"outlier"`` (before), those with a
-forgotten outlier count above 0.5. Why the misfits: on Sionna RT's paper building (depth 4)
+last real update called an outlier or fitted with an NIS above ``nis_limit`` (a 3-sigma miss;
+``TrackerState.link_fit``), once the hypothesis has had the link in ``family_history`` real
+updates (a link not fitted yet is no misfit: before, at a track's start every link offered the
+families to every floor), of a node with at least ``family_min_links`` ranges (three ranges
+are fitted exactly on any floor, so a family chosen for one of them is tested by nothing);
+``"outlier"`` (before), those with a forgotten outlier count above 0.5. Why the misfits: on Sionna RT's paper building (depth 4)
 the true floor mostly did NOT call its out-of-model link an outlier but fitted it with a wrong
 mechanism at -7..-9 nats (its mirror floor one to three below: -4..-5.5), so an outlier gate
 never offered it the family; a link the 18 explain (NIS <= ``nis_limit``) costs nothing. On a
@@ -44,12 +49,14 @@ import functools
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import log_ndtr
 
+from diffpos.channel.emulator import pair_snr_db
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
 from diffpos.paths.model import graded_paths
 from diffpos.tracking.state import FloatArray
 
-__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight"]
+__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "first_arrival_log_prob"]
 
 #: Share of the out-of-model component given to the enumerated extra families (the rest stays
 #: uniform over ``outlier_span_m``).
@@ -69,12 +76,15 @@ def extra_families(max_order: int) -> tuple[MechanismSet, NDArray[np.int64]] | N
 
 def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
                    var: FloatArray, floor: NDArray, building, max_order: int,
-                   relax_m: float) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
+                   relax_m: float, radio=None, cap_nats: float = 0.0,
+                   snr_sigma_db: float | None = None) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
     """``log mean_k N(rho; L_k, J_k P J_k^T + var)`` over the extra families (``max_order``)
     that exist (``loose`` at ``relax_m``) for every link (Q,); -inf where none exists; and the
     number of extra families and of the 18 mechanisms that exist (``loose``) there, (Q,)
     each. Flat links: ``pos`` (Q, 3), ``cov`` (Q, 3, 3), ``anchor`` (Q, 3), ``rho``, ``var``,
-    ``floor`` (Q,)."""
+    ``floor`` (Q,). ``radio`` given: every family's density is weighted by the probability
+    that it can be the first arrival there (:func:`first_arrival_log_prob` with the SNR
+    model's ``snr_sigma_db``, at least ``-cap_nats``)."""
     fam = extra_families(max_order)
     q = rho.shape[0]
     if fam is None or q == 0:
@@ -90,6 +100,12 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
     with np.errstate(invalid="ignore"):
         e = rho[:, None] - g.length_m[:, nb:]
         ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)
+    if radio is not None:
+        if snr_sigma_db is None:
+            raise ValueError("family_log_lik: the first-arrival condition (a radio given) needs "
+                             "snr_sigma_db, the SNR model's spread (tracking.model.SNR_SIGMA_DB)")
+        ll = ll + first_arrival_log_prob(pos, anchor, g.length_m, np.sqrt(var), building,
+                                         radio, snr_sigma_db, cap_nats)
     n_ok = ok.sum(axis=-1)
     with np.errstate(divide="ignore"):
         top = np.max(ll, axis=-1)
@@ -98,9 +114,42 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
         return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf), n_ok, n_base
 
 
+def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatArray,
+                           sigma_m: FloatArray, building, radio, snr_sigma_db: float,
+                           cap_nats: float = 0.0) -> FloatArray:
+    """Log-probability (Q, F) that each extra family (``length_m[:, 18:]``) can be the first
+    arrival of its link at ``pos`` (Q, 3) from ``anchor`` (Q, 3): that none of the 18
+    mechanisms shorter than it by more than ``3 sigma_m`` (Q,) was detected,
+    ``sum_j log(1 - P_det,j)`` over them, ``P_det,j = Phi((S_j - T) / snr_sigma_db)`` (the
+    SNR model's spread, :data:`diffpos.tracking.model.SNR_SIGMA_DB`) with
+    ``S_j`` the mechanism's SNR predicted by the emulator's amplitude model
+    (:func:`diffpos.channel.emulator.pair_snr_db`; -inf: no power, never detected) and ``T``
+    the detector's threshold of the link, ``max(max_j S_j - fap_threshold_db,
+    detection_snr_db)`` (as :func:`diffpos.tracking.model.snr_cost`). A mechanism is only
+    not detected if it is weak: a family longer than a strong in-model path is never the
+    first arrival, whatever the range says. ``cap_nats`` > 0: the log-probability is at
+    least ``-cap_nats`` (the robust SNR likelihood of
+    :func:`diffpos.tracking.model.cap_snr_cost`: the amplitude model is the emulator's, and
+    another channel's powers miss it by tens of dB on whole links, so a shorter path it
+    calls strong may be absent; at the default 4.5 nats such a family keeps ~1 % of a
+    mechanism's prior, about the outlier's share)."""
+    nb = len(MECHANISMS)
+    pred = pair_snr_db(anchor[:, None, :], pos, building=building, radio=radio)[:, 0]
+    fin = np.isfinite(pred)
+    top = np.max(np.where(fin, pred, -np.inf), axis=-1)
+    thr = np.maximum(top - radio.fap_threshold_db, radio.detection_snr_db)
+    with np.errstate(invalid="ignore"):
+        z = (pred - thr[:, None]) / snr_sigma_db
+        log_miss = np.where(fin & np.isfinite(length_m[:, :nb]), log_ndtr(-z), 0.0)  # (Q, 18)
+        shorter = length_m[:, None, :nb] < length_m[:, nb:, None] - 3.0 * sigma_m[:, None, None]
+    out = np.sum(np.where(shorter, log_miss[:, None, :], 0.0), axis=-1)
+    return np.maximum(out, -cap_nats) if cap_nats > 0 else out
+
+
 def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                       floor: NDArray, gate: NDArray[np.bool_], building, config,
-                      log_eps: FloatArray | None = None) -> FloatArray:
+                      log_eps: FloatArray | None = None,
+                      snr_sigma_db: float | None = None) -> FloatArray:
     """The change (P, M) of the out-of-model component's log-density of the pairs (node rows
     ``rows`` of ``links``, prior ``pos`` (P, 3), ``cov`` (P, 3, 3), ``floor`` (P,)) by the
     extra families, for the present links of ``gate`` (P, M) (the others: 0, not evaluated);
@@ -113,7 +162,10 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     more candidate of the link's inlier component, with a mechanism's prior: the outlier
     component becomes ``eps / span + (1 - eps) n_fam / (n_18 + n_fam) f`` (``n_fam``,
     ``n_18``: the families and the 18 mechanisms that exist at the prior), as M-NLS's
-    ``max_order`` treats them (module docstring)."""
+    ``max_order`` treats them (module docstring); ``"one"``: the same with ``1 / (n_18 + 1)``
+    for ``n_fam / (n_18 + n_fam)`` (the families as one more candidate). With
+    ``config.family_first`` and the links' radio model each family is weighted by
+    :func:`first_arrival_log_prob` (``snr_sigma_db``: the SNR model's spread, needed then)."""
     if extra_families(config.max_order) is None:
         return np.zeros(gate.shape)
     gate = gate & links.mask[rows, 0]
@@ -121,13 +173,16 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     ll, n_fam, n_base = family_log_lik(pos[pi], cov[pi], links.anchors[rows[pi], 0, mi],
                                        links.rho[rows[pi], 0, mi], links.var[rows[pi], 0, mi],
                                        floor[pi], building, config.max_order,
-                                       config.exist_margin_m)
+                                       config.exist_margin_m,
+                                       links.radio if config.family_first else None,
+                                       config.snr_cost_cap_nats, snr_sigma_db)
     out = np.zeros(gate.shape)
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]
     span = np.log(config.outlier_span_m)
-    if config.family_weight == "mechanism":
-        prior = np.log(np.maximum(n_fam, 1) / np.maximum(n_base + n_fam, 1))
+    if config.family_weight in ("mechanism", "one"):
+        prior = (np.log(np.maximum(n_fam, 1) / np.maximum(n_base + n_fam, 1))
+                 if config.family_weight == "mechanism" else -np.log(n_base + 1.0))
         out[pi, mi] = np.logaddexp(0.0, np.log(-np.expm1(log_e)) + prior + ll - log_e + span)
         return out
     c = FAMILY_SHARE

@@ -231,24 +231,72 @@ class TrackerConfig:
         The first-arrival families of at most this many interactions
         (:func:`diffpos.paths.mechanisms.mechanism_set`) beyond the 18 mechanisms are part of
         every link's out-of-model component (:mod:`diffpos.tracking.families`); 2: none.
-        Default 2. 3 (with ``family_weight="mechanism"``, ``family_gate="misfit"``) lifts the
-        right floor on Sionna RT's channel by 7-12 points (docs/raytrace_study.md sections 2c
-        and 3b) and was the default from 431695e to the next change, back to 2: on the
-        synthetic window-edge channel of a 3 s, 4-node, 5-anchor run (tests/system/
-        test_recorder.py) it put 51 % of the fixes on the right floor against 74 % at 2
-        (a link the hypothesis has not seen counts as a misfit, so at a track's start every
-        link offers the families to every floor). 4 measured no better than 3 on Sionna's
+        Default 3 (with ``family_weight="mechanism"``, ``family_gate="misfit"``,
+        ``family_history`` 1, ``family_min_links`` 4). History: 3 from 431695e, back to 2 at
+        2fd5568 (a link the hypothesis had not seen counted as a misfit, so at a track's start
+        every link offered the families to every floor: the 3 s, 4-node, 5-anchor synthetic
+        window-edge run of tests/system/test_recorder.py fell from 72.5 to 50.0 % right floor;
+        on Sionna RT's three-UAV held-out building the families cost 13 points), 3 again with
+        the fit history and the three-range guard (docs/tracking_evidence.md: live replays on
+        Sionna's channel paper 76.0 -> 87.2 %, large 90.2 -> 91.6 % with confidently wrong
+        0.87 -> 0.22 %, heldout-2 69.4 % both, heldout-1/3 unchanged; the emulator's large and
+        paper 99.3-99.6 %; the synthetic run 71.7 %). 4 measured no better than 3 on Sionna's
         paper building (static: 72.85 against 73.13 % right floor) for more CPU.
     family_weight : {"mechanism", "outlier"}
         How an extra family explains a link (:func:`diffpos.tracking.families.family_log_weight`):
-        ``"mechanism"``, as one more candidate mechanism (a mechanism's prior, the inlier
-        weight); ``"outlier"`` (before), as half of the out-of-model component at the prior
-        outlier weight.
+        ``"mechanism"``, each family as one more candidate mechanism (a mechanism's prior, the
+        inlier weight); ``"one"``, the families together as ONE more candidate (their mean
+        density at the prior ``1 / (n_18 + 1)``); ``"outlier"`` (before), as half of the
+        out-of-model component at the prior outlier weight. Measured (docs/tracking_evidence.md,
+        with the fit history and the three-range guard): on Sionna RT's channel "mechanism" >
+        "one" > "outlier" (static paper 72.6 / 71.9 / 70.3 % right floor, without families
+        69.5 %); on the synthetic window-edge channel (in the path model, no family ever the
+        first arrival; 8 seeds, 10 s) the order reverses (44.7 / 53.4 / 61.0 %, without 56.9 %).
     family_gate : {"misfit", "outlier"}
         The links whose extra families are evaluated: ``"misfit"``, those the hypothesis'
-        last real update called an outlier or fitted with an NIS above ``nis_limit`` (or has
-        not seen: ``TrackerState.link_fit``); ``"outlier"`` (before), those with a forgotten
-        outlier count above 0.5.
+        last real update called an outlier or fitted with an NIS above ``nis_limit`` (once it
+        has a fit history: ``family_history``; a node with ``family_min_links`` ranges);
+        ``"outlier"`` (before), those with a forgotten outlier count above 0.5.
+    family_history : int [updates]
+        (``family_gate="misfit"``) A link is a misfit of a hypothesis, and offered the
+        families, only once that hypothesis has had it in this many real updates (its
+        forgotten count ``link_all`` at least that of as many consecutive updates): a fit is
+        judged only after there was one. 0 (before): a link the hypothesis has not seen
+        counted as a misfit, so at a track's start every link offered the families to every
+        floor (the 4-node synthetic window-edge run of tests/system/test_recorder.py: 72.5 %
+        right floor at ``max_order`` 2, 50.0 % at 3 with 0, 71.7 % with 1). Default 1: the
+        link's first fit is the first evidence of a misfit; counting more than one update
+        delays the families of the hypotheses that went dormant (updated once per
+        ``dormant_refresh_s``), measured worse on Sionna RT's paper building (live replay:
+        74.0 % right floor with 5, 87.2 % with 1, 83.9 % with 0; docs/tracking_evidence.md).
+    family_min_links : int
+        The families are offered only to a node with at least this many ranges in the epoch.
+        Default 4: three ranges are fitted exactly by a position on any floor given any
+        mechanism per link, so a family chosen for one of them (after the fact: it is offered
+        where the 18 fit badly) is tested by no other range, and the floors are told apart
+        only by what the families do not change (heights, existence, SNR); the same count as
+        :func:`diffpos.tracking.evidence.model_doubt`'s (the ranges beyond three test the
+        floor). Measured: Sionna's three-UAV held-out building, live replay, 69.4 % right
+        floor without families, 65.6 % with them from the first fit, 69.4 % with this guard.
+        0: every node (before).
+    family_first : bool
+        An extra family explains a link at a hypothesis only as far as it can be the first
+        arrival there: its density is weighted by the probability that none of the 18
+        mechanisms shorter than it (by more than 3 range sigmas) was detected, each missed
+        with ``Phi((T - S_j) / SNR_SIGMA_DB)`` (``S_j`` its SNR predicted by the emulator's
+        amplitude model, ``T`` the link's detector threshold; the tracker's SNR model, used
+        only where the link has a measured SNR and a radio model), at least
+        ``exp(-snr_cost_cap_nats)`` (the robust SNR likelihood's cap: about the outlier's
+        share) (:func:`diffpos.tracking.families.first_arrival_log_prob`). Default False:
+        measured (docs/tracking_evidence.md "The first-arrival condition") it mends the
+        synthetic window-edge channel (in the path model, no family ever the first arrival;
+        8 seeds: 3 s 44.9 -> 50.6 % right floor, 10 s 44.7 -> 56.1 %; ``max_order`` 2: 52.0 /
+        56.9 %) but gives back the families' whole gain on Sionna RT's channel (static paper
+        72.55 -> 69.91 %, open plan 66.85 -> 63.22 %, ``max_order`` 2 69.53 / 62.68 %; live
+        large 91.6 -> 89.9 % with confidently wrong 0.22 -> 1.33 %): there the families
+        that help are the ones the emulator's amplitude model rules out (its shorter paths
+        are absent or far weaker on the traced channel). Default True from e94ad45 (without
+        the cap) to the next commit.
     floor_model_doubt : bool
         The published floor probabilities are mixed towards uniform by the probability that
         the node's data hold a first arrival the path model does not explain, by the learned
@@ -315,9 +363,12 @@ class TrackerConfig:
     lost_on_gap: bool = True
     min_anchors_tracking: int = 3
     few_anchors_floor_p_max: float = 0.75
-    max_order: int = 2
+    max_order: int = 3
     family_weight: str = "mechanism"
     family_gate: str = "misfit"
+    family_history: int = 1
+    family_min_links: int = 4
+    family_first: bool = False
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
 

@@ -513,7 +513,8 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
                 else fam_gate[rr, cc])
         w[:, 0, :, 1] += family_log_weight(pos, p0[:, 0, :3, :3], links, rr, fl[:, 0], gate,
                                            building, config,
-                                           np.log(-np.expm1(w[:, 0, :, 0])))
+                                           np.log(-np.expm1(w[:, 0, :, 0])),
+                                           snr_sigma_db=SNR_SIGMA_DB)
     x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
                                             level=level, snr_cache=sc, link_w=w)
     if sc is not None:
@@ -589,8 +590,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                                  SNR_SPAN_DB)
         if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
-            fam_gate = (_gather(lk["link_out"], col) > 0.5 if config.family_gate == "outlier"
-                        else ~(_gather(lk["link_fit"], col) <= config.nis_limit))
+            fam_gate = _family_gate(lk, col, n_meas, config)
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
@@ -630,6 +630,26 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link, nis_h),
                    link_anchor=tab, link_seen_ns=seen)
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
+
+
+def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
+                 config: TrackerConfig) -> NDArray[np.bool_]:
+    """The links (n, H, M) whose out-of-model component includes the extra families
+    (``config.family_gate``, ``family_history``, ``family_min_links``;
+    :mod:`diffpos.tracking.families`) from the nodes' learned arrays ``lk`` before this
+    update, their links ``col`` (:func:`~diffpos.tracking.evidence.match_links`) and numbers
+    of ranges ``n_meas`` (n,)."""
+    if config.family_gate == "outlier":
+        gate = _gather(lk["link_out"], col) > 0.5
+    else:
+        gate = ~(_gather(lk["link_fit"], col) <= config.nis_limit)
+    if config.family_history > 0:  # a misfit after this many real updates with the link
+        f = config.link_forget
+        need = config.family_history if f >= 1.0 else (1.0 - f ** config.family_history) / (1.0 - f)
+        gate &= _gather(lk["link_all"], col) >= need * (1.0 - 1e-9)
+    if config.family_min_links > 0:
+        gate &= (n_meas >= config.family_min_links)[:, None, None]
+    return gate
 
 
 def warm_tracking() -> float:

@@ -254,7 +254,7 @@ _TRACKER_RANGES: dict[str, dict[str, float]] = {
 #: The choices of the tracker's text settings (``TrackerConfig.mixing``, ``family_weight``,
 #: ``family_gate``).
 _CHOICES: dict[str, tuple[str, ...]] = {"mixing": ("select", "imm"),
-                                        "family_weight": ("mechanism", "outlier"),
+                                        "family_weight": ("mechanism", "one", "outlier"),
                                         "family_gate": ("misfit", "outlier")}
 #: Unit of a tracker setting by the end of its name (the house naming rule); else ``-``
 #: (dimensionless) or ``count`` (integers).
@@ -388,6 +388,12 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    # family_first was on by default only from e94ad45 to 384cae1 (then without the cap of
+    # its first-arrival probability: a recording of that window replays with the cap)
+    ("2026-12-06T16:05:42Z", "384cae1", {"family_first": True}),
+    ("2026-12-06T15:58:21Z", "e94ad45", {"family_first": False}),
+    ("2026-12-06T15:30:15Z", "182c287", {"max_order": 2, "family_history": 0,
+                                         "family_min_links": 0}),
     ("2026-12-06T14:17:03Z", "2fd5568", {"max_order": 3}),
     ("2026-12-06T12:31:20Z", "431695e", {"max_order": 2, "family_weight": "outlier",
                                          "family_gate": "outlier"}),

@@ -1,0 +1,107 @@
+"""Which links the tracker offers its higher-order families (``TrackerConfig.family_history``,
+``family_min_links``; :func:`diffpos.tracking.tracker._family_gate`).
+
+A link is a misfit of a hypothesis (and offered the families) only once that hypothesis has
+fitted it (``family_history`` real updates with it): at a track's start no link is offered
+anything beyond the 18 mechanisms. A node with fewer than ``family_min_links`` ranges is
+never offered them (three ranges are fitted exactly by a position on any floor, so a family
+that explains one of them is not tested by the others). Reference: the same run without the
+families (``max_order`` 2), bit for bit where no family may be offered.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from diffpos.paths.model import first_arrival_paths
+from diffpos.scenario import default_scenario
+from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import _family_gate, init_state, update
+
+B = default_scenario().building
+#: a node on floor 2 of the paper building and four UAVs outside; the first one's range is the
+#: ceiling-floor-ceiling triple bounce through the window (out of the 18 mechanisms, one of
+#: max_order 3's families; tests/core/test_tracking_families.py checks its length)
+NODE = np.array([0.0, 12.0, B.floor_z_m(2) + 1.5])
+ANCHORS = np.array([[0.0, -7.0, 4.0], [-15.0, -20.0, 1.0], [15.0, -20.0, 1.0],
+                    [-8.0, -10.0, 2.0]])
+SIGMA = 0.03
+
+
+def _triple_bounce(anchor, node, floor):
+    zf = B.floor_z_m(floor)
+    zc = zf + B.floor_height_m
+    z = 2 * zc - (2 * zf - (2 * zc - anchor[2]))
+    return float(np.linalg.norm([node[0] - anchor[0], node[1] - anchor[1], node[2] - z]))
+
+
+def _run(config, n_links, epochs=12, seed=4):
+    """Track the static node over ``epochs`` at 10 Hz with its first ``n_links`` ranges
+    (noisy, 3 cm): every epoch's state."""
+    anchors = ANCHORS[:n_links]
+    ps = first_arrival_paths(np.broadcast_to(NODE, (n_links, 3)), anchors, B, floor=2)
+    rho0 = np.nanmin(np.where(ps.valid, ps.length_m, np.nan), axis=-1)
+    rho0[0] = _triple_bounce(anchors[0], NODE, 2)
+    assert np.all(np.isfinite(rho0))
+    rng = np.random.default_rng(seed)
+    state, states = init_state(1, B), []
+    for k in range(epochs):
+        rho = rho0 + rng.normal(0.0, SIGMA, n_links)
+        state, _ = update(state, anchors[None], rho[None], np.full((1, n_links), SIGMA),
+                          np.ones((1, n_links), bool), 10**9 + k * 10**8, B, config)
+        states.append(state)
+    return states
+
+
+def _same(a, b) -> bool:
+    return (np.array_equal(a.log_prob, b.log_prob) and np.array_equal(a.mean, b.mean)
+            and np.array_equal(a.cov, b.cov))
+
+
+def test_a_tracks_first_update_offers_no_family():
+    """Four ranges, one of them the triple bounce. With the default gate the run equals the
+    run without families (max_order 2) bit for bit up to and including the first update in
+    which the hypotheses have fitted the links (``link_fit`` set: before it every link is
+    unseen), and differs after it (the misfit link is offered the families). With
+    ``family_history=0`` (a link never seen counted as a misfit) it differs already in that
+    first update."""
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3)
+    assert cfg.family_history >= 1 and cfg.family_min_links == 4
+    ref = _run(dataclasses.replace(cfg, max_order=2), 4)
+    first = next(k for k, s in enumerate(ref) if np.isfinite(s.link_fit).any())
+    got = _run(cfg, 4)
+    assert all(_same(got[k], ref[k]) for k in range(first + 1)), first
+    assert not all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    eager = _run(dataclasses.replace(cfg, family_history=0), 4)
+    assert not _same(eager[first], ref[first])
+
+
+def test_three_ranges_are_never_offered_a_family():
+    """Three ranges (the triple bounce and two in-model ones): the default run equals the run
+    without families bit for bit in every epoch; with ``family_min_links=0`` it does not."""
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3)
+    ref = _run(dataclasses.replace(cfg, max_order=2), 3)
+    got = _run(cfg, 3)
+    assert all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    loose = _run(dataclasses.replace(cfg, family_min_links=0), 3)
+    assert not all(_same(g, r) for g, r in zip(loose, ref, strict=True))
+
+
+def test_gate_counts_real_updates_with_the_link():
+    """:func:`_family_gate` on hand-made learned arrays (forgetting 0.95, ``nis_limit`` 9): a
+    link fitted badly (NIS 20 or an outlier) is offered the families once its forgotten count
+    of updates reaches that of ``family_history`` consecutive ones, not before; a link fitted
+    well (NIS 1) or never seen (NaN) never; a node with fewer than ``family_min_links`` ranges
+    never."""
+    f = TrackerConfig().link_forget
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_history=3, family_min_links=4)
+    need = (1 - f ** 3) / (1 - f)
+    fit = np.array([[[20.0, np.inf, 20.0, 1.0, np.nan]]])
+    n_all = np.array([[[need, need + 1.0, need - 1e-3, 20.0, 0.0]]])
+    lk = {"link_fit": fit, "link_all": n_all, "link_out": np.zeros(fit.shape)}
+    col = np.array([[0, 1, 2, 3, 4]])
+    g = _family_gate(lk, col, np.array([5]), cfg)
+    assert g.tolist() == [[[True, True, False, False, False]]]
+    assert not _family_gate(lk, col, np.array([3]), cfg).any()
