@@ -15,11 +15,11 @@ import pytest
 from mnls_cases import ANCHORS, B
 from mnls_cases import random_nodes as _nodes
 
-from diffpos.channel.emulator import emulate_channel, first_arrival, pair_snr_db
+from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.estimators.mnls.solver import mnls
 from diffpos.paths.mechanisms import mechanism_set
 from diffpos.paths.model import first_arrival_paths
-from diffpos.scenario import Radio, default_scenario
+from diffpos.scenario import Radio
 
 _mn = sys.modules["diffpos.estimators.mnls.solver"]
 _rules = sys.modules["diffpos.estimators.mnls.rules"]
