@@ -1,6 +1,6 @@
 """M-NLS's SNR of the families beyond the 18 (diffpos.estimators.mnls.power): the emulated
 channel's physics, which agrees with Sionna RT's traced first arrivals (docs/raytrace_study.md
-section 3c), not the former closed form (unpolarised Fresnel per reflection, knife edge).
+section 3a), not the former closed form (unpolarised Fresnel per reflection, knife edge).
 
 * Equal to the numpy emulator (diffpos.channel.emulator.emulate_channel at
   ``channel_max_order`` 4: an independent implementation of the same physics) on every family

@@ -12,7 +12,7 @@ field of the window edge (the vertical edges as a dielectric sheet of the wall m
 glass on a specular entry, every inside segment's partitions, Friis spreading over the
 unfolded length, the radio's link budget. On Sionna RT's corrected traces this agrees with the
 traced first arrivals' SNR within about 0.5 dB (median, every family; docs/raytrace_study.md
-section 3c).
+section 3a).
 
 Why not the former closed form (free space minus an UNPOLARISED Fresnel loss per reflection
 ``(|G_s|^2 + |G_p|^2) / 2`` plus the knife-edge ``J(nu)``): an anchor's horizontal dipole meets
