@@ -15,7 +15,9 @@ runs (:func:`diffpos.study.reproduce` with
 :func:`diffpos_services.raytrace.evaluate.dataset_arrivals`, seed 0: the emulator's detector
 and range noise on Sionna's paths), and the same study on the project's own O2I emulator for
 the SAME receivers and anchors (the dataset's receivers as static nodes of the scenario:
-:func:`diffpos.study.emulator_arrivals`). It prints, per channel, the right floor of M-NLS
+:func:`diffpos.study.emulator_arrivals`; ``--emulator-order K``: the emulated channel with the
+higher-order families M-NLS models at that K, ``radio.channel_max_order = K``, instead of the
+scenario's 18 mechanisms). It prints, per channel, the right floor of M-NLS
 
 - over the receivers with at least three detected anchors on that channel (``n>=3`` of them),
 - over ALL receivers (a failed fix, or a receiver with fewer than three detections, is a miss:
@@ -117,14 +119,19 @@ def floor_shares(positions_m: np.ndarray, truth_m: np.ndarray, detected: np.ndar
     return out
 
 
-def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0
-          ) -> dict[str, dict[str, float | int]]:
-    """``{"raytrace": shares, "emulator": shares}`` of M-NLS at mechanism order ``order``."""
+def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
+          emulator_order: int | None = None) -> dict[str, dict[str, float | int]]:
+    """``{"raytrace": shares, "emulator": shares}`` of M-NLS at mechanism order ``order``;
+    ``emulator_order``: the emulated channel's ``radio.channel_max_order`` (None: the
+    scenario's, 2 by default: the 18 mechanisms only)."""
     cfg = ReproduceConfig(seed=seed, methods=("mnls",), mnls_max_order=order)
     out = {}
     rt = reproduce(scenario, cfg, kind="raytrace", path=dataset,
                    load=lambda rng: dataset_arrivals(dataset, scenario, rng=rng))
     em_scenario = same_receivers(scenario, rt.data.nodes_m)
+    if emulator_order is not None:
+        em_scenario = dataclasses.replace(em_scenario, radio=dataclasses.replace(
+            scenario.radio, channel_max_order=int(emulator_order)))
     em = reproduce(em_scenario, cfg)
     for name, res in (("raytrace", rt), ("emulator", em)):
         fix = mnls_fixes(res.data, scenario, order)
@@ -238,6 +245,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="+", help=f"only these buildings ({', '.join(BUILDINGS)})")
     ap.add_argument("--building", action="append", metavar="NAME=SCENARIO.toml:DATASET.npz",
                     help="another building (SCENARIO 'paper' = the built-in one); repeatable")
+    ap.add_argument("--emulator-order", default="scenario", choices=("scenario", "K"),
+                    help="the emulated channel's mechanism order: the scenario's (default: 2, "
+                         "the 18 mechanisms) or K, the same higher-order families M-NLS "
+                         "models at that K (radio.channel_max_order = K)")
     ap.add_argument("--seed", type=int, default=0, help="range-noise seed (default 0)")
     ap.add_argument("--misses", action="store_true",
                     help="the misses on Sionna's channel per traced first-arrival family")
@@ -263,13 +274,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"# {name}: {scenario.name}, {ds}: {st.get('samples_per_src', 0):g} samples, "
               f"depth {st.get('max_depth')}", file=sys.stderr, flush=True)
         for k in args.orders:
-            rows.append((name, k, study(scenario, ds, k, seed=args.seed)))
+            rows.append((name, k, study(scenario, ds, k, seed=args.seed, emulator_order=(
+                k if args.emulator_order == "K" else None))))
             print(table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
     print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
           f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "
           f"receivers with >= {MIN_ANCHORS} detected anchors on that channel / all; floor>=3 over "
           f"those, floor all over ALL receivers (a failed fix is a miss); conf.wrong = wrong floor at "
-          f"p >= {CONFIDENT_P} over the n>=3 receivers")
+          f"p >= {CONFIDENT_P} over the n>=3 receivers; emulator channel order: "
+          f"{'K' if args.emulator_order == 'K' else 'the scenario radio.channel_max_order'}")
     print(f"command: python benchmarks/study_raytrace.py {' '.join(argv or sys.argv[1:])}")
     print(f"date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; machine: {machine()}; "
           f"wall {time.perf_counter() - t0:.0f} s\n")

@@ -257,21 +257,16 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
 
 
 def _family_snr(p: _Problem, x: FloatArray, building) -> FloatArray:
-    """Closed-form SNR (:func:`diffpos.estimators.mnls.power.family_snr_db`) of the families
-    beyond the emulator's 18 slots at ``x``, ``-inf`` off the mask."""
+    """SNR (:func:`diffpos.estimators.mnls.power.family_snr_db`: the emulated channel's
+    physics) of the families beyond the emulator's 18 slots at ``x``, ``-inf`` off the mask."""
     from diffpos.estimators.mnls.power import family_snr_db
 
     extra = np.arange(len(MECHANISMS), len(p.mech))
     m = p.mask
     out = np.full((*m.shape, extra.size), -np.inf)
     rows, links = np.nonzero(m)
-    a = p.anchors[rows, links]
-    xm = x[rows]
-    fl = p.floor[rows]
-    ps = first_arrival_paths(xm, a, building, floor=fl, slots=extra, mechanisms=p.mech)
-    lo, hi = building.window_z_m(fl)
-    out[rows, links] = family_snr_db(ps, p.mech, extra, a, xm, building, p.radio, (hi, lo),
-                                     floor=fl)
+    out[rows, links] = family_snr_db(p.anchors[rows, links], x[rows], building, p.radio,
+                                     p.mech, extra)
     return out
 
 
