@@ -6,22 +6,57 @@ numba cache loads and first calls happen before the first real epoch, which is t
 The core's own state (tracks, tracker bank, counters) is left untouched. :func:`warm_model`
 is the mnls + tracker part, also run by each worker process of
 :mod:`diffpos_services.fusion.workers` before it says ready.
+
+Only what the run calls is loaded: each solver's module is imported inside the function that
+warms it (a D-NLS run imports neither M-NLS nor the tracker from here), and a fusion without
+its tracker (``tracking`` off) warms no tracker. :func:`kernel_load_s` says how many seconds
+this process spent loading (or compiling) numba kernels so far: the share of the start-up
+that is the kernels, apart from the imports and the run (docs/startup.md).
 """
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
+from numba.core import event as numba_event
 
-from diffpos.channel.emulator import pair_snr_db
-from diffpos.estimators.dnls import solver as dnls_solver
-from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.geometry import window_edge_path
-from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import init_state, update
 
-__all__ = ["warm_model", "warm_up"]
+__all__ = ["kernel_load_s", "warm_model", "warm_up"]
+
+
+class _KernelClock(numba_event.Listener):
+    """Wall seconds inside numba's compiler lock (held while a dispatcher loads a signature
+    from the cache or compiles it, numba's own first-use set-up included), from the
+    registration on; nested acquisitions counted once. Threads other than the one that
+    registered it are counted too (the lock is global: they would wait for it)."""
+
+    def __init__(self) -> None:
+        self.depth, self.t0, self.total_s = 0, 0.0, 0.0
+
+    def on_start(self, event: Any) -> None:
+        if self.depth == 0:
+            self.t0 = time.perf_counter()
+        self.depth += 1
+
+    def on_end(self, event: Any) -> None:
+        self.depth -= 1
+        if self.depth == 0:
+            self.total_s += time.perf_counter() - self.t0
+
+
+_CLOCK = _KernelClock()
+numba_event.register("numba:compiler_lock", _CLOCK)
+
+
+def kernel_load_s() -> float:
+    """Wall seconds this process spent loading numba kernels from the on-disk cache (or
+    compiling them on a fresh cache) since this module was imported (the fusion core imports
+    it; kernels loaded before, e.g. by an import that compiles explicit signatures, are not
+    counted: import this module first to count them)."""
+    return _CLOCK.total_s
 
 _ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
                      [15.0, -20.0, 1.0]])
@@ -33,11 +68,16 @@ def _problem(window_height_m: float, first_floor_z_m: float) -> tuple[np.ndarray
     return node, window_edge_path(_ANCHORS, node, window_height_m=window_height_m).length_m
 
 
-def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_m: float
-               ) -> None:
-    """M-NLS, the SNR prediction (with ``radio``) and a throw-away tracker (an initialisation
-    and a tracked update, without and with the SNR) on one tiny problem in ``building``:
-    every compiled kernel these calls use is loaded (tests/system/test_fusion_workers_process.py)."""
+def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_m: float,
+               *, tracking: bool = True, tracker_config: Any = None) -> None:
+    """M-NLS, the SNR prediction (with ``radio``) and, with ``tracking``, a throw-away tracker
+    (an initialisation and a tracked update, without and with the SNR; ``tracker_config``: the
+    run's :class:`~diffpos.tracking.state.TrackerConfig`, default its defaults) on one tiny
+    problem in ``building``: every compiled kernel these calls use is loaded
+    (tests/system/test_fusion_workers_process.py)."""
+    from diffpos.channel.emulator import pair_snr_db  # mnls runs only
+    from diffpos.estimators.mnls import solver as mnls_solver
+
     node, r = _problem(window_height_m, first_floor_z_m)
     sig, mask = np.full((1, 4), 0.1), np.ones((1, 4), bool)
     mnls_solver.mnls(_ANCHORS[None], r[None], sig, building=building)
@@ -45,13 +85,24 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
     if radio is not None:  # the compiled SNR prediction (loaded from cache)
         snr = pair_snr_db(_ANCHORS[None], node[None], building=building, radio=radio)
         snr = snr.max(axis=-1)  # (1, 4): the strongest mechanism as the "measured" SNR
+    if tracking:
+        _warm_tracker(building, radio, r, sig, mask, snr, tracker_config)
+
+
+def _warm_tracker(building: Any, radio: Any, r: np.ndarray, sig: np.ndarray, mask: np.ndarray,
+                  snr: np.ndarray | None, tracker_config: Any) -> None:
+    """A throw-away tracker's initialisation and tracked update, without and with ``snr``."""
+    from diffpos.tracking.state import TrackerConfig  # tracked runs only
+    from diffpos.tracking.tracker import init_state, update
+
+    config = TrackerConfig() if tracker_config is None else tracker_config
     for snr_db in (None,) if snr is None else (None, snr):
         # an initialisation, then a tracked update of it (the IEKF from a prior and, with the
         # SNR, the prediction cache's kernels: loaded now, not in the first real call)
         st = init_state(1, building)
         for k in range(2):
             st, _ = update(st, _ANCHORS[None], r[None], sig, mask, np.full(1, k * 100_000_000),
-                           building, TrackerConfig(), snr_db=snr_db,
+                           building, config, snr_db=snr_db,
                            radio=None if snr_db is None else radio)
 
 
@@ -62,7 +113,11 @@ def warm_up(core: Any) -> None:
     cfg = core.config
     _, r = _problem(cfg.window_height_m, cfg.first_floor_z_m)
     if cfg.method == "dnls":
+        from diffpos.estimators.dnls import solver as dnls_solver  # dnls only
+
         dnls_solver.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1),
                          window_height_m=cfg.window_height_m, gating=core.gating)
     if core.building is not None:  # a throw-away tracker: the core's state is untouched
-        warm_model(core.building, core.model[1], cfg.window_height_m, cfg.first_floor_z_m)
+        warm_model(core.building, core.model[1], cfg.window_height_m, cfg.first_floor_z_m,
+                   tracking=core.bank is not None,
+                   tracker_config=None if core.bank is None else cfg.tracker_config())
