@@ -7,11 +7,11 @@ The core's own state (tracks, tracker bank, counters) is left untouched. :func:`
 is the mnls + tracker part, also run by each worker process of
 :mod:`diffpos_services.fusion.workers` before it says ready.
 
-Only what the run calls is loaded: each solver's module is imported inside the function that
-warms it (a D-NLS run imports neither M-NLS nor the tracker from here), and a fusion without
-its tracker (``tracking`` off) warms no tracker. :func:`kernel_load_s` says how many seconds
-this process spent loading (or compiling) numba kernels so far: the share of the start-up
-that is the kernels, apart from the imports and the run (docs/startup.md).
+Only what the run calls is loaded: a fusion without its tracker (``tracking`` off) warms no
+tracker, and the throw-away tracker runs with the run's tracker settings. :func:`kernel_load_s`
+says how many seconds this process spent loading (or compiling) numba kernels so far: the
+share of the start-up that is the kernels, apart from the imports and the run
+(docs/startup.md).
 """
 
 from __future__ import annotations
@@ -22,7 +22,12 @@ from typing import Any
 import numpy as np
 from numba.core import event as numba_event
 
+from diffpos.channel.emulator import pair_snr_db
+from diffpos.estimators.dnls import solver as dnls_solver
+from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.geometry import window_edge_path
+from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import init_state, update
 
 __all__ = ["kernel_load_s", "warm_model", "warm_up"]
 
@@ -69,15 +74,13 @@ def _problem(window_height_m: float, first_floor_z_m: float) -> tuple[np.ndarray
 
 
 def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_m: float,
-               *, tracking: bool = True, tracker_config: Any = None) -> None:
+               *, tracking: bool = True,
+               tracker_config: TrackerConfig | None = None) -> None:
     """M-NLS, the SNR prediction (with ``radio``) and, with ``tracking``, a throw-away tracker
     (an initialisation and a tracked update, without and with the SNR; ``tracker_config``: the
     run's :class:`~diffpos.tracking.state.TrackerConfig`, default its defaults) on one tiny
     problem in ``building``: every compiled kernel these calls use is loaded
     (tests/system/test_fusion_workers_process.py)."""
-    from diffpos.channel.emulator import pair_snr_db  # mnls runs only
-    from diffpos.estimators.mnls import solver as mnls_solver
-
     node, r = _problem(window_height_m, first_floor_z_m)
     sig, mask = np.full((1, 4), 0.1), np.ones((1, 4), bool)
     mnls_solver.mnls(_ANCHORS[None], r[None], sig, building=building)
@@ -90,11 +93,8 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
 
 
 def _warm_tracker(building: Any, radio: Any, r: np.ndarray, sig: np.ndarray, mask: np.ndarray,
-                  snr: np.ndarray | None, tracker_config: Any) -> None:
+                  snr: np.ndarray | None, tracker_config: TrackerConfig | None) -> None:
     """A throw-away tracker's initialisation and tracked update, without and with ``snr``."""
-    from diffpos.tracking.state import TrackerConfig  # tracked runs only
-    from diffpos.tracking.tracker import init_state, update
-
     config = TrackerConfig() if tracker_config is None else tracker_config
     for snr_db in (None,) if snr is None else (None, snr):
         # an initialisation, then a tracked update of it (the IEKF from a prior and, with the
@@ -113,8 +113,6 @@ def warm_up(core: Any) -> None:
     cfg = core.config
     _, r = _problem(cfg.window_height_m, cfg.first_floor_z_m)
     if cfg.method == "dnls":
-        from diffpos.estimators.dnls import solver as dnls_solver  # dnls only
-
         dnls_solver.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1),
                          window_height_m=cfg.window_height_m, gating=core.gating)
     if core.building is not None:  # a throw-away tracker: the core's state is untouched
