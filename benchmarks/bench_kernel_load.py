@@ -7,20 +7,24 @@ compiled: a lazy first call, an eager ``@njit("sig")`` at import and a callee du
 caller's compile all go through it), then runs ``diffpos replay REC --no-files`` in-process
 (its output discarded) and prints, per dispatcher that was loaded or compiled:
 
-- ``sigs``: signatures added (``hit``: loaded from the cache, ``miss``: compiled: on a
-  warmed cache every row should be all hits; a miss is a kernel compiled each run);
+- ``hit`` / ``miss``: signatures loaded from the cache / compiled (on a warmed cache every row
+  should be all hits; a miss there is a kernel compiled each run; ``--json`` lists them);
 - ``load ms``: wall milliseconds inside that dispatcher's ``compile`` minus those of the
   dispatchers compiled inside it (exclusive), split into ``index`` (the cache index read),
   ``unpickle`` (the cached data file) and ``link`` (rebuilding the compile result: LLVM
   object code to machine code, the callees' libraries linked);
-- ``when``: ``import`` if the signature was loaded while a module was being imported (an
-  eager signature), else ``call``.
+- ``when``: ``start-up`` if the dispatcher was first loaded before the fusion's warm-up
+  returned, ``run`` if during the replay itself (``--no-warm`` skips the warm-up: the rows are
+  then exactly the kernels the replay calls);
+- ``import``: signatures loaded while a module was being imported (explicit signatures).
 
 Then the totals, the process's CPU seconds, the seconds until the replay's own clock started
 (``timing.warm_up_s`` of its report, when it gives it), and the 1-minute load average.
 
     python benchmarks/bench_kernel_load.py [--recording /work/rec/large30.mcap] [--method dnls]
-        [--json]
+        [--no-warm] [--json]
+
+Figures and their reading: docs/startup.md.
 
 From a git worktree put the tree first (``PYTHONPATH=$PWD:$PWD/services``). Run it twice after
 a source change: the first run compiles (misses) and fills the cache.
