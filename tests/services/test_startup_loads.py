@@ -4,9 +4,9 @@
   import ``scipy.special`` (its Faddeeva function is imported by the numpy reference that
   calls it);
 - a warm-up of a D-NLS core loads no M-NLS solver, SNR, path or tracker kernel (the
-  dispatchers holding a signature after it);
+  dispatchers holding a signature after it), and the kernel clock counts those loads;
 - a warm-up of an M-NLS core with its tracker off loads no tracker kernel, with it on it does;
-- :func:`diffpos_services.fusion.warm.kernel_load_s` counts the seconds a kernel load takes.
+- :func:`diffpos._kernels.clock.kernel_load_s` counts the seconds the kernel loads take.
 """
 
 from __future__ import annotations
@@ -42,19 +42,19 @@ def test_gtd_halfplane_does_not_import_scipy_special():
 
 _LOADED = """
 import json, sys
-from diffpos_services.fusion import warm
+from diffpos._kernels import clock
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.scenario_io import load_scenario
 sc = load_scenario("scenarios/{scenario}.toml")
 cfg = FusionConfig.from_scenario(sc, **{overrides})
-t0 = warm.kernel_load_s()
+t0 = clock.kernel_load_s()
 FusionCore(cfg).warm_up()
 import gc
 from numba.core.dispatcher import Dispatcher
 hits = sorted({{f"{{d.py_func.__module__}}.{{d.py_func.__name__}}"
                for d in gc.get_objects() if isinstance(d, Dispatcher) and d.overloads}})
-print(json.dumps({{"hits": hits, "load_s": warm.kernel_load_s() - t0}}))
+print(json.dumps({{"hits": hits, "load_s": clock.kernel_load_s() - t0}}))
 """
 
 

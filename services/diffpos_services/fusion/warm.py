@@ -8,19 +8,15 @@ is the mnls + tracker part, also run by each worker process of
 :mod:`diffpos_services.fusion.workers` before it says ready.
 
 Only what the run calls is loaded: a fusion without its tracker (``tracking`` off) warms no
-tracker, and the throw-away tracker runs with the run's tracker settings. :func:`kernel_load_s`
-says how many seconds this process spent loading (or compiling) numba kernels so far: the
-share of the start-up that is the kernels, apart from the imports and the run
-(docs/startup.md).
+tracker, and the throw-away tracker runs with the run's tracker settings. The seconds the
+kernels' loads take: :func:`diffpos._kernels.clock.kernel_load_s` (docs/startup.md).
 """
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
-from numba.core import event as numba_event
 
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.estimators.dnls import solver as dnls_solver
@@ -29,39 +25,8 @@ from diffpos.geometry import window_edge_path
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import init_state, update
 
-__all__ = ["kernel_load_s", "warm_model", "warm_up"]
+__all__ = ["warm_model", "warm_up"]
 
-
-class _KernelClock(numba_event.Listener):
-    """Wall seconds inside numba's compiler lock (held while a dispatcher loads a signature
-    from the cache or compiles it, numba's own first-use set-up included), from the
-    registration on; nested acquisitions counted once. Threads other than the one that
-    registered it are counted too (the lock is global: they would wait for it)."""
-
-    def __init__(self) -> None:
-        self.depth, self.t0, self.total_s = 0, 0.0, 0.0
-
-    def on_start(self, event: Any) -> None:
-        if self.depth == 0:
-            self.t0 = time.perf_counter()
-        self.depth += 1
-
-    def on_end(self, event: Any) -> None:
-        self.depth -= 1
-        if self.depth == 0:
-            self.total_s += time.perf_counter() - self.t0
-
-
-_CLOCK = _KernelClock()
-numba_event.register("numba:compiler_lock", _CLOCK)
-
-
-def kernel_load_s() -> float:
-    """Wall seconds this process spent loading numba kernels from the on-disk cache (or
-    compiling them on a fresh cache) since this module was imported (the fusion core imports
-    it; kernels loaded before, e.g. by an import that compiles explicit signatures, are not
-    counted: import this module first to count them)."""
-    return _CLOCK.total_s
 
 _ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
                      [15.0, -20.0, 1.0]])
