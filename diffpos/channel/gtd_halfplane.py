@@ -104,7 +104,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import wofz
 
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 
@@ -337,6 +336,8 @@ def transition_function(x: ArrayLike) -> ComplexArray:
     -------
     ndarray of complex, shape (...)
     """
+    from scipy.special import wofz  # only here: a module-level import costs every process
+
     xa = np.asarray(x, dtype=np.float64)
     if np.any(xa < 0.0):
         raise ValueError("transition_function: X must be >= 0 (X = k L a)")
@@ -346,6 +347,8 @@ def transition_function(x: ArrayLike) -> ComplexArray:
 
 def _utd_term(beta: FloatArray, kl: FloatArray) -> ComplexArray:
     """``F(k L a(b)) / cos(b/2)`` with ``a(b) = 2 cos^2(b/2)``, finite at ``cos(b/2) = 0``."""
+    from scipy.special import wofz  # only here: a module-level import costs every process
+
     c = np.cos(0.5 * beta)
     sgn = np.where(c >= 0.0, 1.0, -1.0)
     root = np.sqrt(2.0 * kl)

@@ -6,6 +6,10 @@ numba cache loads and first calls happen before the first real epoch, which is t
 The core's own state (tracks, tracker bank, counters) is left untouched. :func:`warm_model`
 is the mnls + tracker part, also run by each worker process of
 :mod:`diffpos_services.fusion.workers` before it says ready.
+
+Only what the run calls is loaded: a fusion without its tracker (``tracking`` off) warms no
+tracker, and the throw-away tracker runs with the run's tracker settings. The seconds the
+kernels' loads take: :func:`diffpos._kernels.clock.kernel_load_s` (docs/startup.md).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from diffpos.tracking.tracker import init_state, update
 
 __all__ = ["warm_model", "warm_up"]
 
+
 _ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
                      [15.0, -20.0, 1.0]])
 
@@ -33,11 +38,14 @@ def _problem(window_height_m: float, first_floor_z_m: float) -> tuple[np.ndarray
     return node, window_edge_path(_ANCHORS, node, window_height_m=window_height_m).length_m
 
 
-def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_m: float
-               ) -> None:
-    """M-NLS, the SNR prediction (with ``radio``) and a throw-away tracker (an initialisation
-    and a tracked update, without and with the SNR) on one tiny problem in ``building``:
-    every compiled kernel these calls use is loaded (tests/system/test_fusion_workers_process.py)."""
+def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_m: float,
+               *, tracking: bool = True,
+               tracker_config: TrackerConfig | None = None) -> None:
+    """M-NLS, the SNR prediction (with ``radio``) and, with ``tracking``, a throw-away tracker
+    (an initialisation and a tracked update, without and with the SNR; ``tracker_config``: the
+    run's :class:`~diffpos.tracking.state.TrackerConfig`, default its defaults) on one tiny
+    problem in ``building``: every compiled kernel these calls use is loaded
+    (tests/system/test_fusion_workers_process.py)."""
     node, r = _problem(window_height_m, first_floor_z_m)
     sig, mask = np.full((1, 4), 0.1), np.ones((1, 4), bool)
     mnls_solver.mnls(_ANCHORS[None], r[None], sig, building=building)
@@ -45,13 +53,21 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
     if radio is not None:  # the compiled SNR prediction (loaded from cache)
         snr = pair_snr_db(_ANCHORS[None], node[None], building=building, radio=radio)
         snr = snr.max(axis=-1)  # (1, 4): the strongest mechanism as the "measured" SNR
+    if tracking:
+        _warm_tracker(building, radio, r, sig, mask, snr, tracker_config)
+
+
+def _warm_tracker(building: Any, radio: Any, r: np.ndarray, sig: np.ndarray, mask: np.ndarray,
+                  snr: np.ndarray | None, tracker_config: TrackerConfig | None) -> None:
+    """A throw-away tracker's initialisation and tracked update, without and with ``snr``."""
+    config = TrackerConfig() if tracker_config is None else tracker_config
     for snr_db in (None,) if snr is None else (None, snr):
         # an initialisation, then a tracked update of it (the IEKF from a prior and, with the
         # SNR, the prediction cache's kernels: loaded now, not in the first real call)
         st = init_state(1, building)
         for k in range(2):
             st, _ = update(st, _ANCHORS[None], r[None], sig, mask, np.full(1, k * 100_000_000),
-                           building, TrackerConfig(), snr_db=snr_db,
+                           building, config, snr_db=snr_db,
                            radio=None if snr_db is None else radio)
 
 
@@ -65,4 +81,6 @@ def warm_up(core: Any) -> None:
         dnls_solver.dnls(_ANCHORS[None], r[None], np.full((1, 4), 0.1),
                          window_height_m=cfg.window_height_m, gating=core.gating)
     if core.building is not None:  # a throw-away tracker: the core's state is untouched
-        warm_model(core.building, core.model[1], cfg.window_height_m, cfg.first_floor_z_m)
+        warm_model(core.building, core.model[1], cfg.window_height_m, cfg.first_floor_z_m,
+                   tracking=core.bank is not None,
+                   tracker_config=None if core.bank is None else cfg.tracker_config())
