@@ -49,7 +49,6 @@ import functools
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import log_ndtr
 
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
@@ -133,6 +132,8 @@ def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatA
     another channel's powers miss it by tens of dB on whole links, so a shorter path it
     calls strong may be absent; at the default 4.5 nats such a family keeps ~1 % of a
     mechanism's prior, about the outlier's share)."""
+    from scipy.special import log_ndtr  # only here: family_first is off by default, and a
+    # module-level import costs every fusion process ~0.1-0.2 s (docs/startup.md)
     nb = len(MECHANISMS)
     pred = pair_snr_db(anchor[:, None, :], pos, building=building, radio=radio)[:, 0]
     fin = np.isfinite(pred)
