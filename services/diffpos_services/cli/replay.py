@@ -243,8 +243,10 @@ def _header(rep: dict[str, Any], p: Any) -> None:
     compiled = max(t.get("kernel_worker_cpu_s") or [0.0]) > 5.0
     before = ("" if kern is None else f"; before that the solver kernels took {kern:.1f} s "
               f"({'compiled: first run on this machine, cached after' if compiled else 'loaded from the cache'})")
+    load = t.get("kernel_load_s")
+    loads = "" if load is None else f"; kernel loads in this process {load:.2f} s"
     p(f"  {rep['recording_s']:.1f} s of recording replayed in {t['wall_s']:.2f} s{sp} "
-      f"(fusion warm-up {t.get('warm_up_s', 0.0):.1f} s{before})")
+      f"(fusion warm-up {t.get('warm_up_s', 0.0):.1f} s{before}{loads})")
 
 
 def _accuracy_table(rep: dict[str, Any], p: Any) -> None:

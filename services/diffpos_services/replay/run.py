@@ -36,6 +36,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from diffpos._kernels import clock as kernel_clock  # first: it counts the loads after it
 from diffpos._kernels import pool as kernel_pool
 from diffpos_services.config import build_config
 from diffpos_services.errors import ConfigError
@@ -960,6 +961,9 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fu
             # the kernels: imports, cache loads (a compile on a fresh machine) and the
             # fusion's warm-up, before the replay's clock starts
             "warm_up_s": warm_up_s,
+            # of this process's wall time so far, the seconds numba spent loading (or
+            # compiling) kernels, warm-up and run together (docs/startup.md)
+            "kernel_load_s": kernel_clock.kernel_load_s(),
             "wall_s": wall,
             "speedup_x": (duration_s / wall) if wall > 0 and duration_s > 0 else None,
         },
