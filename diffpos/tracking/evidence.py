@@ -359,7 +359,7 @@ def model_doubt(log_prob: FloatArray, link_out: FloatArray, link_all: FloatArray
     hs = np.where(p[rows, top] >= p[rows, top + nf], top, top + nf)
     nl = link_out.shape[-1]  # every link of the best hypothesis, as one hypothesis' columns
     eps = _link_eps(link_out[rows, hs][:, None], link_all[rows, hs][:, None],
-                    np.broadcast_to(np.arange(nl), (n, nl)), config)[:, 0]
+                    np.tile(np.arange(nl), (n, 1)), config)[:, 0]  # writeable: one kernel signature
     q = np.clip(1.0 - (1.0 - eps) / (1.0 - config.outlier_weight), 0.0, 1.0)  # (N, L)
     r = (np.ones(n, int) if n_links is None
          else np.maximum(np.asarray(n_links, int) - 3, 1))
