@@ -49,7 +49,6 @@ from diffpos.channel.rays_nb import (
     _P_WIN_H,
     _P_X0,
     _P_X1,
-    _fermat_point,
     _floor_index,
     _norm_c,
     _partition_loss,
@@ -68,6 +67,7 @@ from diffpos.paths.model_nb import (
     COL_PLANES,
     axis_component,
     edge_axis,
+    fermat_point,
     in_floor_box,
     inside_plane,
     mirror,
@@ -79,7 +79,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "73f34a2f95e0f2ce"
+CALLEES_SHA256 = "8b8caa042d036e5f"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
@@ -240,15 +240,15 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
                                              part)
     # the edge (slots._edge_frame): tangent e, half-plane face t0
     if code == 0:  # upper: the wall above the window
-        q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0, hi, edge)
+        q0, q1, q2, ok = fermat_point(s0, s1, s2, o0, o1, o2, x0, hi, edge)
         ed0, ed2, tf1, tf2 = 1.0, 0.0, 0.0, 1.0
         sheet = 0j
     elif code == 1:  # lower: the wall below it
-        q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0, lo, edge)
+        q0, q1, q2, ok = fermat_point(s0, s1, s2, o0, o1, o2, x0, lo, edge)
         ed0, ed2, tf1, tf2 = -1.0, 0.0, 0.0, -1.0
         sheet = 0j
     else:  # vertical at x0 / x1: the side wall (dielectric), into the building
-        q0, q1, q2, ok = _fermat_point(s0, s1, s2, o0, o1, o2, x0 if code == 2 else x1, lo,
+        q0, q1, q2, ok = fermat_point(s0, s1, s2, o0, o1, o2, x0 if code == 2 else x1, lo,
                                  vertical_axis(lo, hi))
         ed0, ed2, tf1, tf2 = 0.0, (1.0 if code == 2 else -1.0), 1.0, 0.0
         sheet = eta_wall

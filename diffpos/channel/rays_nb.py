@@ -41,6 +41,7 @@ from diffpos.paths.model_nb import (
     SLOT_GROUND,
     SLOT_PLANE0,
     SLOT_PLANE1,
+    fermat_point,
     in_floor_box,
     inside_plane,
     mirror,
@@ -49,7 +50,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "22975f66ffeabb57"
+CALLEES_SHA256 = "20c54e32255de4b4"
 
 _RAD2DEG = 180.0 / math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -456,29 +457,6 @@ def utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1,
 
 
 @njit(**_OPTS)
-def _fermat_point(s0, s1, s2, o0, o1, o2, x0, z_e, edge):
-    """geometry.diffraction_point on the edge from ``(x0, 0, z_e)`` along ``edge`` (length,
-    unit vector) between ``s`` and ``o``: the point and whether it lies strictly inside."""
-    edge_len, ee0, ee1, ee2 = edge
-    ds0, ds1, ds2 = s0 - x0, s1 - 0.0, s2 - z_e
-    dq0, dq1, dq2 = o0 - x0, o1 - 0.0, o2 - z_e
-    s_t = ds0 * ee0 + ds1 * ee1 + ds2 * ee2
-    o_t = dq0 * ee0 + dq1 * ee1 + dq2 * ee2
-    w0, w1, w2 = ds0 - s_t * ee0, ds1 - s_t * ee1, ds2 - s_t * ee2
-    r_s = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    w0, w1, w2 = dq0 - o_t * ee0, dq1 - o_t * ee1, dq2 - o_t * ee2
-    r_o = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    denom = r_s + r_o
-    scale = abs(s_t) + abs(o_t) + r_s + r_o + edge_len
-    if denom <= 1e-12 * scale:
-        t_star = 0.5 * (s_t + o_t)
-    else:
-        t_star = (s_t * r_o + o_t * r_s) / denom
-    t = min(max(t_star, 0.0), edge_len)
-    return x0 + t * ee0, 0.0 + t * ee1, z_e + t * ee2, (t_star > 0.0) and (t_star < edge_len)
-
-
-@njit(**_OPTS)
 def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, edge, sq2pik):
     """channel._diffracted for slot ``s`` (geometry: paths.diffracted_path):
     (|gain|, arrival vector, length, valid). ``sq2pik``: ``math.sqrt(2.0 * math.pi * k)``
@@ -494,7 +472,7 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
     if then >= 0:
         ax, c = inside_plane(then, zf, zc, x0, x1, depth)
         o0, o1, o2 = mirror(n0, n1, n2, ax, c)
-    q0, q1, q2, ok = _fermat_point(a0, a1, a2, o0, o1, o2, x0, z_e, edge)
+    q0, q1, q2, ok = fermat_point(a0, a1, a2, o0, o1, o2, x0, z_e, edge)
     v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
     u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
     s_in_m = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)  # = |Q - A| bit for bit (squares)

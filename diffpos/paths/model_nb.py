@@ -45,7 +45,7 @@ __all__ = ["COL_EDGE", "COL_GROUND", "COL_KIND", "COL_NPLANES", "COL_PLANES", "D
            "N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLOT_PLANE0",
            "SLOT_PLANE1", "axis_component", "building_planes", "edge_axis", "eval_paths_kernel",
            "family_path",
-           "family_path_parts", "in_floor_box", "inside_plane", "mechanism_table", "mirror",
+           "family_path_parts", "fermat_point", "in_floor_box", "inside_plane", "mechanism_table", "mirror",
            "partition_array", "paths_kernel",
            "row_planes", "slot_path", "vertical_axis", "walk_ok", "warm_paths"]
 
@@ -284,6 +284,34 @@ def _reflections_ok(c0, c1, c2, m0, m1, m2, t_last, table, s, zf, zc, x0, x1, de
 
 
 @njit(**_OPTS)
+def fermat_point(s0, s1, s2, o0, o1, o2, x0, z_e, edge):
+    """geometry.diffraction_point on the edge from ``(x0, 0, z_e)`` along ``edge`` (length,
+    unit vector) between ``s`` and ``o`` (the source and the node or its image): the point
+    (clamped to the edge) and whether the unclamped point lies strictly inside it."""
+    edge_len, ee0, ee1, ee2 = edge
+    ds0, ds1, ds2 = s0 - x0, s1 - 0.0, s2 - z_e
+    dq0, dq1, dq2 = o0 - x0, o1 - 0.0, o2 - z_e
+    s_t = ds0 * ee0 + ds1 * ee1 + ds2 * ee2
+    o_t = dq0 * ee0 + dq1 * ee1 + dq2 * ee2
+    w0, w1, w2 = ds0 - s_t * ee0, ds1 - s_t * ee1, ds2 - s_t * ee2
+    r_s = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    w0, w1, w2 = dq0 - o_t * ee0, dq1 - o_t * ee1, dq2 - o_t * ee2
+    r_o = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    denom = r_s + r_o
+    scale = abs(s_t) + abs(o_t) + r_s + r_o + edge_len
+    if denom <= 1e-12 * scale:
+        t_star = 0.5 * (s_t + o_t)
+    else:
+        t_star = (s_t * r_o + o_t * r_s) / denom
+    t = t_star
+    if t < 0.0:
+        t = 0.0
+    elif t > edge_len:
+        t = edge_len
+    return x0 + t * ee0, 0.0 + t * ee1, z_e + t * ee2, (t_star > 0.0) and (t_star < edge_len)
+
+
+@njit(**_OPTS)
 def _diffracted(a0, a1, a2, n0, n1, n2, x_e, z_e, table, s, zf, zc, x0, x1, depth, edge, pax,
                 ppos, plo, phi):
     """paths.diffracted_path (geometry.diffraction_point on the edge from ``(x_e, 0, z_e)``)
@@ -305,29 +333,7 @@ def _diffracted(a0, a1, a2, n0, n1, n2, x_e, z_e, table, s, zf, zc, x0, x1, dept
             g1 = -g1
         else:
             g2 = -g2
-    # geometry.diffraction_point with p0 = (x_e, 0, z_e), p1 = p0 + edge_len * e
-    edge_len, e0, e1, e2 = edge
-    ds0, ds1, ds2 = a0 - x_e, a1 - 0.0, a2 - z_e
-    do0, do1, do2 = o0 - x_e, o1 - 0.0, o2 - z_e
-    s_t = ds0 * e0 + ds1 * e1 + ds2 * e2
-    o_t = do0 * e0 + do1 * e1 + do2 * e2
-    p0, p1, p2 = ds0 - s_t * e0, ds1 - s_t * e1, ds2 - s_t * e2
-    r_s = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
-    p0, p1, p2 = do0 - o_t * e0, do1 - o_t * e1, do2 - o_t * e2
-    r_o = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
-    denom = r_s + r_o
-    scale = abs(s_t) + abs(o_t) + r_s + r_o + edge_len
-    if denom <= 1e-12 * scale:
-        t_star = 0.5 * (s_t + o_t)
-    else:
-        t_star = (s_t * r_o + o_t * r_s) / denom
-    t = t_star
-    if t < 0.0:
-        t = 0.0
-    elif t > edge_len:
-        t = edge_len
-    ok = (t_star > 0.0) and (t_star < edge_len)
-    q0, q1, q2 = x_e + t * e0, 0.0 + t * e1, z_e + t * e2
+    q0, q1, q2, ok = fermat_point(a0, a1, a2, o0, o1, o2, x_e, z_e, edge)
     v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
     u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
     d_in = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)  # = |Q - A| below, bit for bit (squares)

@@ -46,6 +46,7 @@ from diffpos.paths.model_nb import (
     N_SLOTS,
     SLOT_KIND,
     edge_axis,
+    fermat_point,
     in_floor_box,
     inside_plane,
     mirror,
@@ -61,7 +62,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "e589c90111b6a8bb"
+CALLEES_SHA256 = "bcbe182a63e00573"
 
 
 # the default table by kind: the direct slot, the specular slots (ground bounce, number of
@@ -162,29 +163,7 @@ def _row_diffracted(a0, a1, a2, n0, n1, n2, z_e, plane, zf, zc, x0, x1, depth, e
     if plane >= 0:
         o0, o1, o2 = mirror(o0, o1, o2, ax, c)
         g0, g1, g2 = _row_flip(g0, g1, g2, ax)
-    x_e = x0
-    edge_len, e0, e1, e2 = edge
-    ds0, ds1, ds2 = a0 - x_e, a1 - 0.0, a2 - z_e
-    do0, do1, do2 = o0 - x_e, o1 - 0.0, o2 - z_e
-    s_t = ds0 * e0 + ds1 * e1 + ds2 * e2
-    o_t = do0 * e0 + do1 * e1 + do2 * e2
-    p0, p1, p2 = ds0 - s_t * e0, ds1 - s_t * e1, ds2 - s_t * e2
-    r_s = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
-    p0, p1, p2 = do0 - o_t * e0, do1 - o_t * e1, do2 - o_t * e2
-    r_o = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
-    denom = r_s + r_o
-    scale = abs(s_t) + abs(o_t) + r_s + r_o + edge_len
-    if denom <= 1e-12 * scale:
-        t_star = 0.5 * (s_t + o_t)
-    else:
-        t_star = (s_t * r_o + o_t * r_s) / denom
-    t = t_star
-    if t < 0.0:
-        t = 0.0
-    elif t > edge_len:
-        t = edge_len
-    ok = (t_star > 0.0) and (t_star < edge_len)
-    q0, q1, q2 = x_e + t * e0, 0.0 + t * e1, z_e + t * e2
+    q0, q1, q2, ok = fermat_point(a0, a1, a2, o0, o1, o2, x0, z_e, edge)
     v0, v1, v2 = a0 - q0, a1 - q1, a2 - q2
     u0, u1, u2 = o0 - q0, o1 - q1, o2 - q2
     d_in = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
