@@ -231,8 +231,8 @@ class TrackerConfig:
         The first-arrival families of at most this many interactions
         (:func:`diffpos.paths.mechanisms.mechanism_set`) beyond the 18 mechanisms are part of
         every link's out-of-model component (:mod:`diffpos.tracking.families`); 2: none.
-        Default 3 (with ``family_weight="mechanism"``, ``family_gate="misfit"``,
-        ``family_history`` 1, ``family_min_links`` 4). History: 3 from 431695e, back to 2 at
+        Default 2 (``--tracker max_order=3`` turns them on, with ``family_weight="mechanism"``,
+        ``family_gate="misfit"``, ``family_history`` 1, ``family_min_links`` 4). History: 3 from 431695e, back to 2 at
         2fd5568 (a link the hypothesis had not seen counted as a misfit, so at a track's start
         every link offered the families to every floor: the 3 s, 4-node, 5-anchor synthetic
         window-edge run of tests/system/test_recorder.py fell from 72.5 to 50.0 % right floor;
@@ -240,7 +240,11 @@ class TrackerConfig:
         the fit history and the three-range guard (docs/tracking_evidence.md: live replays on
         Sionna's channel paper 76.0 -> 87.2 %, large 90.2 -> 91.6 % with confidently wrong
         0.87 -> 0.22 %, heldout-2 69.4 % both, heldout-1/3 unchanged; the emulator's large and
-        paper 99.3-99.6 %; the synthetic run 71.7 %). 4 measured no better than 3 on Sionna's
+        paper 99.3-99.6 %; the synthetic run 71.7 %), and back to 2 again after it: live at real
+        time on the emulator's ``large`` (20 s) it put 98.7 % of the node-epochs on the right floor
+        with 0.78-0.83 % confidently wrong in 7 of 9 runs, where the inputs replayed at 2 give
+        99.2 % and 0.34 % (the emulator's bars: 99 % and 0.5 %; docs/tracking_evidence.md), and
+        on the 16-anchor soak input it costs +30 % CPU. 4 measured no better than 3 on Sionna's
         paper building (static: 72.85 against 73.13 % right floor) for more CPU.
     family_weight : {"mechanism", "outlier"}
         How an extra family explains a link (:func:`diffpos.tracking.families.family_log_weight`):
@@ -363,7 +367,7 @@ class TrackerConfig:
     lost_on_gap: bool = True
     min_anchors_tracking: int = 3
     few_anchors_floor_p_max: float = 0.75
-    max_order: int = 3
+    max_order: int = 2
     family_weight: str = "mechanism"
     family_gate: str = "misfit"
     family_history: int = 1
