@@ -45,6 +45,7 @@ from diffpos.paths.model_nb import (
     DEFAULT_TABLE,
     N_SLOTS,
     SLOT_KIND,
+    axis_component,
     edge_axis,
     fermat_point,
     in_floor_box,
@@ -91,12 +92,7 @@ def _row_hit(c0, c1, c2, m0, m1, m2, ax, c, t_last, zf, zc, x0, x1, depth):
     """One reflection of the walk on the unfolded ray ``c -> m`` (paths.model_nb._reflections_ok's
     body): its ray parameter and whether it exists after ``t_last``."""
     dd0, dd1, dd2 = m0 - c0, m1 - c1, m2 - c2
-    if ax == 0:
-        t = (c - c0) / dd0
-    elif ax == 1:
-        t = (c - c1) / dd1
-    else:
-        t = (c - c2) / dd2
+    t = (c - axis_component(c0, c1, c2, ax)) / axis_component(dd0, dd1, dd2, ax)
     ok = (t > t_last) and (t < 1)
     ok = ok and in_floor_box(c0 + t * dd0, c1 + t * dd1, c2 + t * dd2, zf, zc, x0, x1, depth)
     return ok, t
