@@ -101,13 +101,33 @@ def _first_bad(value: Any, step: _Step, path: str) -> str | None:
     return None
 
 
+def _all_known(step: _Step, known: set[str]) -> Callable[[Any], bool]:
+    """A function ``value -> bool``: True if every id in ``value`` is in ``known`` (ids that
+    are None count as known: they hold no id). False sends the message to :func:`_first_bad`,
+    which decides; so this is only ever a fast yes, built once per message type from its plan
+    (a set comparison per field or per list, no path strings)."""
+    kind, sub = step
+    if kind == "id":
+        return lambda v: v is None or v in known
+    if kind == "each" and sub == ("id", None):
+        return lambda v: v is None or known.issuperset(v)
+    if kind == "each" and sub[0] == "struct" and len(sub[1]) == 1 and sub[1][0][2] == ("id", None):
+        get_one = attrgetter(sub[1][0][0])  # a list of structs with one id field (links)
+        return lambda v: v is None or known.issuperset(map(get_one, v))
+    if kind == "each":
+        item = _all_known(sub, known)
+        return lambda v: v is None or all(map(item, v))
+    fields = tuple((attrgetter(name), _all_known(s, known)) for name, _, s in sub)
+    return lambda v: v is None or all(f(get(v)) for get, f in fields)
+
+
 def id_checker(kind: type[msgspec.Struct]) -> Callable[[Any], None] | None:
     """A function ``message -> None`` raising :class:`ValueError` (msgspec's wording, with the
     JSON path) if a decoded ``kind`` holds an invalid id; None if ``kind`` has no ``Id``.
 
-    The common case costs one set comparison per id field: the top-level ids and lists of ids
-    are compared with the known valid ids; anything else (an unseen id, None, ids inside
-    nested structs) takes the full walk, which also learns the new valid ids.
+    The common case costs one set comparison per id field or list of ids (ids inside a list
+    of structs included) against the known valid ids; anything else (an unseen id, an
+    invalid one) takes the full walk, which also learns the new valid ids.
     """
     step = _step(mi.type_info(kind))
     if step is None:
@@ -119,9 +139,13 @@ def id_checker(kind: type[msgspec.Struct]) -> Callable[[Any], None] | None:
     get_scalars = attrgetter(*scalars) if len(scalars) > 1 else None
     one = scalars[0] if len(scalars) == 1 else None
     known = _known
+    all_known = _all_known(step, known) if nested else None
 
     def check(msg: Any) -> None:
-        if not nested:
+        if all_known is not None:
+            if all_known(msg):
+                return
+        else:
             if one is not None:
                 fast = getattr(msg, one) in known
             else:
