@@ -4,6 +4,13 @@ live: <= 2 ms per node-epoch on average with 8 anchors").
 Usage::
 
     python benchmarks/bench_fusion_cost.py [--scenario large] [--duration 10] [--seed 0]
+    python benchmarks/bench_fusion_cost.py --recording REC --parts [--startup-s 1]
+
+``--parts`` (issue 37, session 21): one M-NLS replay of REC (every epoch solved, no recorded
+decisions, after a warm-up replay of its first 16 s) with timers around the mnls snapshot fix,
+the tracker bank's update and the update's parts (:data:`PARTS`), the start-up (the first
+``--startup-s`` of measurement time: the track initialisations and every node's first
+snapshot) apart from the rest: where the CPU per node-epoch goes (docs/soak.md).
 
 Records a lockstep run of the real system (``diffpos emulate SCENARIO --speed 0 --record``,
 realistic emulated channel, the fusion's default method), then replays the recording in this
@@ -273,6 +280,94 @@ def thread_costs(path: Path, threads: list[int], repeat: int) -> list[dict]:
     return rows
 
 
+#: ``--parts``: the functions timed (module, attribute, label); a label's leading spaces mark a
+#: part of the tracker's update (the kernels inside a track initialisation count there too)
+PARTS = (
+    ("diffpos.estimators.mnls.solver", "mnls", "mnls snapshot fixes"),
+    ("diffpos.tracking.tracker", "snapshot_init", "  track initialisations (grid snapshot)"),
+    ("diffpos.tracking.model", "pair_snr_db", "  SNR prediction (channel.snr_nb kernel)"),
+    ("diffpos.tracking.model", "all_paths", "  paths kernel"),
+    ("diffpos.tracking.model", "select", "  mechanism selection"),
+    ("diffpos.tracking.model", "iekf", "  IEKF"),
+    ("diffpos.tracking.tracker", "match_links", "  learned links: match_links"),
+    ("diffpos.tracking.tracker", "learned_weights", "  learned links: learned_weights"),
+    ("diffpos.tracking.tracker", "learn", "  learned links: learn"),
+    ("diffpos.tracking.tracker", "_mix", "  IMM mixing"),
+)
+
+
+def parts(path: Path, startup_s: float = 1.0, warm_s: float = 16.0) -> tuple[float, dict, dict]:
+    """CPU of an M-NLS replay of ``path`` (every epoch solved, no recorded decisions) split
+    into the start-up (the first ``startup_s`` of measurement time) and the rest, by part
+    (timers around the functions of :data:`PARTS`, the tracker bank's update; process CPU).
+    Returns (replay CPU, node-epochs per phase, {(late, label): CPU s})."""
+    import importlib
+
+    from diffpos_services.fusion import tracked
+
+    cpu_by: dict = collections.defaultdict(float)
+    phase, t0, n_by = [False], [None], collections.Counter()
+    saved = []
+
+    def timed(fn, label):
+        def run(*a, **k):
+            t = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                cpu_by[(phase[0], label)] += time.process_time() - t
+        return run
+
+    def update(bank, ids, anchors, ranges, sigmas, mask, t_ns, *a, **k):
+        if t0[0] is None:
+            t0[0] = int(t_ns.min())
+        phase[0] = int(t_ns.min()) - t0[0] >= round(startup_s * 1e9)
+        n_by[phase[0]] += len(ids)
+        return timed(bank_update, "tracker update (all)")(bank, ids, anchors, ranges, sigmas,
+                                                           mask, t_ns, *a, **k)
+
+    bank_update = tracked.TrackBank.update
+    for mod, name, label in PARTS:
+        m = importlib.import_module(mod)
+        saved.append((m, name, getattr(m, name)))
+        setattr(m, name, timed(getattr(m, name), label))
+    saved.append((tracked.TrackBank, "update", bank_update))
+    tracked.TrackBank.update = update
+    try:
+        replay(path, method="mnls", use_decisions=False, keep_estimates=False,
+               end_s=warm_s)  # warm-up: imports, kernels, first calls
+        cpu_by.clear()
+        n_by.clear()
+        t0[0] = None
+        t = time.process_time()
+        replay(path, method="mnls", use_decisions=False, keep_estimates=False)
+        cpu = time.process_time() - t
+    finally:
+        for obj, name, fn in saved:
+            setattr(obj, name, fn)
+    return cpu, dict(n_by), dict(cpu_by)
+
+
+def _print_parts(path: Path, cpu: float, n_by: dict, cpu_by: dict, startup_s: float) -> None:
+    n = sum(n_by.values())
+    print(f"bench_fusion_cost --parts: recording {path}; machine {platform.machine()} "
+          f"{os.cpu_count()} cores, Python {platform.python_version()}, load avg "
+          f"{os.getloadavg()[0]:.1f}")
+    print(f"  M-NLS replay, every epoch solved: CPU {cpu:.2f} s, {n} node-epochs, "
+          f"{1e3 * cpu / max(n, 1):.3f} ms per node-epoch")
+    for late in (False, True):
+        k = n_by.get(late, 0)
+        print(f"  {'after' if late else 'the first'} {startup_s:g} s of measurement time: "
+              f"{k} node-epochs")
+        print(f"    {'part':<44} {'CPU s':>7} {'ms/node-epoch':>14}")
+        for (ph, label), v in sorted(cpu_by.items(), key=lambda x: -x[1]):
+            if ph == late:
+                print(f"    {label:<44} {v:>7.2f} {1e3 * v / max(k, 1):>14.3f}")
+    rest = cpu - sum(v for (_, label), v in cpu_by.items() if not label.startswith(" "))
+    print(f"  the rest (ingest, alignment, step assembly, estimates, report; both phases): "
+          f"{rest:.2f} s, {1e3 * rest / max(n, 1):.3f} ms per node-epoch")
+
+
 def _print_threads(path: Path, rows: list[dict]) -> None:
     print(f"bench_fusion_cost --threads: recording {path}; machine {platform.machine()} "
           f"{os.cpu_count()} cores, Python {platform.python_version()}")
@@ -504,7 +599,15 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --recording: M-NLS replays (all epochs, no recorded decisions) "
                     "with these kernel_threads, CPU and wall per node-epoch, alternating")
     ap.add_argument("--repeat", type=int, default=2, help="--threads: rounds (default 2)")
+    ap.add_argument("--parts", action="store_true",
+                    help="with --recording: an M-NLS replay's CPU per node-epoch by part, the "
+                    "start-up (first --startup-s) apart from the rest")
+    ap.add_argument("--startup-s", type=float, default=1.0, metavar="S",
+                    help="--parts: the start-up's length [s of measurement time] (default 1)")
     args = ap.parse_args(argv)
+    if args.parts and args.recording is not None:
+        _print_parts(args.recording, *parts(args.recording, args.startup_s), args.startup_s)
+        return 0
     if args.threads is not None and args.recording is not None:
         counts = [int(v) for v in args.threads.split(",")]
         _print_threads(args.recording, thread_costs(args.recording, counts, args.repeat))
