@@ -283,6 +283,13 @@ class TrackerConfig:
         floor). Measured: Sionna's three-UAV held-out building, live replay, 69.4 % right
         floor without families, 65.6 % with them from the first fit, 69.4 % with this guard.
         0: every node (before).
+    family_minority : bool
+        The extra families only for a hypothesis whose misfit links (the gate's, above) are
+        fewer than half of the node's ranges: a hypothesis that fits most of its ranges badly
+        has a wrong state, not several out-of-model links (the tracker's own test of a bad
+        epoch, ``2 n_in < n_meas``). Offered the families there, the misfits are explained by
+        families at the wrong state and drop out of its position fit; the few ranges left fit
+        it exactly, so it cannot re-converge.
     family_first : bool
         An extra family explains a link at a hypothesis only as far as it can be the first
         arrival there: its density is weighted by the probability that none of the 18
@@ -372,6 +379,7 @@ class TrackerConfig:
     family_gate: str = "misfit"
     family_history: int = 1
     family_min_links: int = 4
+    family_minority: bool = False
     family_first: bool = False
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
