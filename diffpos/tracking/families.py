@@ -30,7 +30,10 @@ last real update called an outlier or fitted with an NIS above ``nis_limit`` (a 
 updates (a link not fitted yet is no misfit: before, at a track's start every link offered the
 families to every floor), of a node with at least ``family_min_links`` ranges (three ranges
 are fitted exactly on any floor, so a family chosen for one of them is tested by nothing);
-``"outlier"`` (before), those with a forgotten outlier count above 0.5. Why the misfits: on Sionna RT's paper building (depth 4)
+``"outlier"`` (before), those with a forgotten outlier count above 0.5; and with
+``family_minority`` (default) only while a hypothesis' misfits are fewer than half of the
+node's ranges (a hypothesis misfitting most of them has a wrong state: offered the families,
+its misfits leave its position fit and it does not re-converge). Why the misfits: on Sionna RT's paper building (depth 4)
 the true floor mostly did NOT call its out-of-model link an outlier but fitted it with a wrong
 mechanism at -7..-9 nats (its mirror floor one to three below: -4..-5.5), so an outlier gate
 never offered it the family; a link the 18 explain (NIS <= ``nis_limit``) costs nothing. On a

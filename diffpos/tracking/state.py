@@ -231,8 +231,8 @@ class TrackerConfig:
         The first-arrival families of at most this many interactions
         (:func:`diffpos.paths.mechanisms.mechanism_set`) beyond the 18 mechanisms are part of
         every link's out-of-model component (:mod:`diffpos.tracking.families`); 2: none.
-        Default 2 (``--tracker max_order=3`` turns them on, with ``family_weight="mechanism"``,
-        ``family_gate="misfit"``, ``family_history`` 1, ``family_min_links`` 4). History: 3 from 431695e, back to 2 at
+        Default 3 (with ``family_weight="mechanism"``, ``family_gate="misfit"``,
+        ``family_history`` 1, ``family_min_links`` 4, ``family_minority``). History: 3 from 431695e, back to 2 at
         2fd5568 (a link the hypothesis had not seen counted as a misfit, so at a track's start
         every link offered the families to every floor: the 3 s, 4-node, 5-anchor synthetic
         window-edge run of tests/system/test_recorder.py fell from 72.5 to 50.0 % right floor;
@@ -244,8 +244,12 @@ class TrackerConfig:
         time on the emulator's ``large`` (20 s) it put 98.7 % of the node-epochs on the right floor
         with 0.78-0.83 % confidently wrong in 7 of 9 runs, where the inputs replayed at 2 give
         99.2 % and 0.34 % (the emulator's bars: 99 % and 0.5 %; docs/tracking_evidence.md), and
-        on the 16-anchor soak input it costs +30 % CPU. 4 measured no better than 3 on Sionna's
-        paper building (static: 72.85 against 73.13 % right floor) for more CPU.
+        on the 16-anchor soak input it costs +30 % CPU; 3 again with ``family_minority``
+        (the cause of that live cost: one walker whose true-floor track started in a wrong
+        state, the families taking its misfit links out of its fit; with the rule the same
+        inputs give 99.2 % and 0.29 %, docs/tracking_evidence.md "The live-only cost found").
+        4 measured no better than 3 on Sionna's paper building (static: 72.85 against 73.13 %
+        right floor) for more CPU.
     family_weight : {"mechanism", "outlier"}
         How an extra family explains a link (:func:`diffpos.tracking.families.family_log_weight`):
         ``"mechanism"``, each family as one more candidate mechanism (a mechanism's prior, the
@@ -283,6 +287,17 @@ class TrackerConfig:
         floor). Measured: Sionna's three-UAV held-out building, live replay, 69.4 % right
         floor without families, 65.6 % with them from the first fit, 69.4 % with this guard.
         0: every node (before).
+    family_minority : bool
+        The extra families only for a hypothesis whose misfit links (the gate's, above) are
+        fewer than half of the node's ranges: a hypothesis that fits most of its ranges badly
+        has a wrong state, not several out-of-model links (the tracker's own test of a bad
+        epoch, ``2 n_in < n_meas``). Offered the families there, the misfits are explained by
+        families at the wrong state and drop out of its position fit; the few ranges left fit
+        it exactly, so it cannot re-converge. Default True (False before; measured in
+        docs/tracking_evidence.md "The live-only cost found": the emulator's ``large`` live
+        inputs that gave 98.7 % right floor and 0.83 % confidently wrong with the families
+        give 99.2 % and 0.29 %, as ``max_order`` 2; Sionna's live replays unchanged within
+        0.6 points).
     family_first : bool
         An extra family explains a link at a hypothesis only as far as it can be the first
         arrival there: its density is weighted by the probability that none of the 18
@@ -367,11 +382,12 @@ class TrackerConfig:
     lost_on_gap: bool = True
     min_anchors_tracking: int = 3
     few_anchors_floor_p_max: float = 0.75
-    max_order: int = 2
+    max_order: int = 3
     family_weight: str = "mechanism"
     family_gate: str = "misfit"
     family_history: int = 1
     family_min_links: int = 4
+    family_minority: bool = True
     family_first: bool = False
     floor_model_doubt: bool = True
     floor_robust_links: int = 0

@@ -590,7 +590,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                                  SNR_SPAN_DB)
         if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
-            fam_gate = _family_gate(lk, col, n_meas, config)
+            fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0])
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
@@ -633,7 +633,8 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
 
 
 def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
-                 config: TrackerConfig) -> NDArray[np.bool_]:
+                 config: TrackerConfig, present: NDArray[np.bool_] | None = None
+                 ) -> NDArray[np.bool_]:
     """The links (n, H, M) whose out-of-model component includes the extra families
     (``config.family_gate``, ``family_history``, ``family_min_links``;
     :mod:`diffpos.tracking.families`) from the nodes' learned arrays ``lk`` before this
@@ -649,6 +650,9 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         gate &= _gather(lk["link_all"], col) >= need * (1.0 - 1e-9)
     if config.family_min_links > 0:
         gate &= (n_meas >= config.family_min_links)[:, None, None]
+    if config.family_minority:  # most ranges misfit: the state is wrong, not the links
+        mis = gate if present is None else gate & present[:, None, :]
+        gate &= (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
     return gate
 
 

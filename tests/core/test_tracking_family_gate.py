@@ -65,8 +65,8 @@ def test_a_tracks_first_update_offers_no_family():
     run without families (max_order 2) bit for bit up to and including the first update in
     which the hypotheses have fitted the links (``link_fit`` set: before it every link is
     unseen), and differs after it (the misfit link is offered the families). With
-    ``family_history=0`` (a link never seen counted as a misfit) it differs already in that
-    first update."""
+    ``family_history=0`` (a link never seen counted as a misfit) and ``family_minority`` off
+    it differs already in that first update."""
     cfg = dataclasses.replace(TrackerConfig(), max_order=3)
     assert cfg.family_history >= 1 and cfg.family_min_links == 4
     ref = _run(dataclasses.replace(cfg, max_order=2), 4)
@@ -74,7 +74,8 @@ def test_a_tracks_first_update_offers_no_family():
     got = _run(cfg, 4)
     assert all(_same(got[k], ref[k]) for k in range(first + 1)), first
     assert not all(_same(g, r) for g, r in zip(got, ref, strict=True))
-    eager = _run(dataclasses.replace(cfg, family_history=0), 4)
+    # (every link of a new track unseen: a majority, so family_minority alone closes it too)
+    eager = _run(dataclasses.replace(cfg, family_history=0, family_minority=False), 4)
     assert not _same(eager[first], ref[first])
 
 
