@@ -81,6 +81,9 @@ def _samples(epochs: int = EPOCHS, seed: int = 3) -> tuple:
 
 
 def _config(**overrides) -> FusionConfig:
+    # snapshot_at_start: these tests budget the snapshots of new tracks (a snapshot in the
+    # epoch a track starts, as before FusionConfig.snapshot_at_start's default of False)
+    overrides.setdefault("snapshot_at_start", True)
     return FusionConfig.from_scenario(SC, site="b", epoch_period_s=0.1, method="mnls",
                                       **overrides)
 

@@ -161,6 +161,12 @@ LEGACY_ADMIT_LAG_S = 1e9
 LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S = 10.0
 
 
+#: ``snapshot_at_start`` of a replay of a live fusion recorded before the setting existed
+#: (2026-12-06: its ``fusion_config`` has no ``snapshot_at_start``): that fusion gave a node an
+#: mnls snapshot fix in the epoch its track started.
+LEGACY_SNAPSHOT_AT_START = True
+
+
 #: ``dnls_exclusion_search`` of a replay of a live fusion recorded before the setting existed
 #: (2026-12-06: its ``fusion_config`` has no ``dnls_exclusion_search``): that fusion solved
 #: every exclusion candidate from all starts.
@@ -171,7 +177,8 @@ def with_legacy_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
     """Recorded fusion settings (a recording's ``fusion_config``; empty: none) with the
     settings that did not exist when it was made set to what that fusion did
     (:data:`LEGACY_SUPERSEDE_AFTER_S`, :data:`LEGACY_ADMIT_LAG_S`,
-    :data:`LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S`, :data:`LEGACY_DNLS_EXCLUSION_SEARCH`), so a replay by its decision record drops,
+    :data:`LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S`, :data:`LEGACY_SNAPSHOT_AT_START`,
+    :data:`LEGACY_DNLS_EXCLUSION_SEARCH`), so a replay by its decision record drops,
     initialises and checks what the live fusion did."""
     out = dict(recorded)
     if out.get("max_backlog_s") and "supersede_after_s" not in out:
@@ -180,6 +187,8 @@ def with_legacy_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
         out["admit_lag_s"] = LEGACY_ADMIT_LAG_S
     if out and "confident_snapshot_period_s" not in out:
         out["confident_snapshot_period_s"] = LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S
+    if out and "snapshot_at_start" not in out:
+        out["snapshot_at_start"] = LEGACY_SNAPSHOT_AT_START
     if out and "dnls_exclusion_search" not in out:
         out["dnls_exclusion_search"] = LEGACY_DNLS_EXCLUSION_SEARCH
     return out
@@ -511,6 +520,17 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     the 30 s lockstep ``large`` recording: 140 of its 156 snapshots were of confident tracks,
     ~1.2 s of ~9.6 s of the replay's CPU (docs/performance.md). Recordings made before the
     setting replay with 10 s (:data:`LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S`)."""
+    snapshot_at_start: bool = False
+    """Tracking: an mnls snapshot fix also in the epoch the tracker initialises a node's track
+    (its grid snapshot places the node then). ``False`` (the default since 2026-12-06): the
+    track's start counts as the node's last check, so its first mnls snapshot comes
+    :attr:`snapshot_period_s` later if its track is not confident by then (none if it is); a
+    node the tracker does not place gets one every epoch as before. Changes only the published
+    ``snapshot`` field (and, live, what the budgeted steps' heavy work holds): the tracked
+    estimates of a replay of every epoch are the same bit for bit. A 16-anchor snapshot costs
+    ~17-22 ms CPU (2-core VM): the 200 of a 16 x 200 soak's first second were ~4 s of CPU (260
+    -> 60 snapshots in the 10 s soak replay, docs/soak.md). Recordings made before the setting
+    replay with ``True`` (:data:`LEGACY_SNAPSHOT_AT_START`)."""
     tracker: TrackerSettings = msgspec.field(default_factory=TrackerSettings)
     """With mnls + tracking: the per-responder tracker's settings, every field of
     :class:`diffpos.tracking.state.TrackerConfig` (:class:`TrackerSettings`; ``diffpos fusion

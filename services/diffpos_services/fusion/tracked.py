@@ -377,11 +377,13 @@ def _rounds(epochs: list[PendingEpoch]) -> list[list[int]]:
 
 
 def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray,
-                  cfg: FusionConfig, limit: float = math.inf, behind: bool = False
-                  ) -> np.ndarray:
+                  cfg: FusionConfig, limit: float = math.inf, behind: bool = False,
+                  starting: np.ndarray | None = None) -> np.ndarray:
     """Rows that get an mnls snapshot while tracking (module docstring): at most ``limit``
     of the due ones, those with the oldest snapshot first (never: first of all), the rest
-    stay due."""
+    stay due. ``starting``: the rows whose track the tracker initialises now; without
+    ``cfg.snapshot_at_start`` they get none, their track's start counting as their last
+    check."""
     ids = [pe.node_id for pe in epochs]
     status = bank.status_of(ids)
     placed = np.isin(status, _NO_POSITION, invert=True)  # the tracker publishes a position
@@ -398,13 +400,16 @@ def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray
             due[i] = False
     if behind:  # the tracked estimates first: a snapshot only where it is the only fix
         due &= ~placed
+    start = (np.zeros(len(epochs), bool) if starting is None or cfg.snapshot_at_start
+             else starting)
+    due &= ~start
     todo = np.flatnonzero(due)
     if todo.size > limit:
         never = -(2**63)
         order = sorted(todo.tolist(), key=lambda i: never if lasts[i] is None else lasts[i])
         due[order[int(limit):]] = False
         todo = np.flatnonzero(due)
-    for i in todo:
+    for i in itertools.chain(todo, np.flatnonzero(start)):
         bank.snapshot_ns[ids[i]] = int(t_ref[i])
     return due
 
@@ -449,8 +454,9 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
                 bank.deferred += int(later.size)
         # the snapshot decision of a round sees the tracks as the previous round left them
         # (a node's epochs in one batch are decided as if they came one call at a time)
+        starting = bank.needs_init(bank.rows_of(ids), use_r.sum(axis=1))
         due[rows] = _snapshot_due(bank, [epochs[i] for i in rows_l], batch.t_ref[rows], cfg,
-                                  min(left, snaps), behind)
+                                  min(left, snaps), behind, starting)
         left -= int(due[rows].sum())
         snaps -= int(due[rows].sum())
         # the snapshots (a worker's, with a pool) while the tracker updates the round
