@@ -144,10 +144,26 @@ def test_every_node_epoch_gets_a_v2_estimate(live):
         assert set(e.used_anchors) == set(used)
         assert all(lk.mechanism in MECHANISMS for lk in used.values())
         assert e.residuals_m == pytest.approx([used[a].residual_m for a in e.used_anchors])
-    # the snapshot rides along with a node's first epoch, then at most once per second
+    # no snapshot in the epoch a node's track starts (FusionConfig.snapshot_at_start False),
+    # later only while its floor is in doubt, at most one per snapshot period
     first = min(e.epoch for e in ests)
-    assert all(e.snapshot is not None for e in ests if e.epoch == first)
-    assert 0 < sum(e.snapshot is not None for e in ests) < len(ests)
+    assert core.config.snapshot_at_start is False
+    assert all(e.snapshot is None for e in ests if e.epoch == first)
+    assert sum(e.snapshot is not None for e in ests) <= len(WALKERS) * EPOCHS // 10
+
+
+def test_with_snapshot_at_start_a_node_s_first_epoch_carries_its_snapshot(live):
+    """``snapshot_at_start=True`` (recordings made before the setting): the snapshot rides
+    along with a node's first epoch, then at most once per second; the tracked positions are
+    the same as without it."""
+    samples, _, ests = live
+    _, old = _run(samples, config=_config(snapshot_at_start=True))
+    first = min(e.epoch for e in old)
+    assert all(e.snapshot is not None for e in old if e.epoch == first)
+    assert 0 < sum(e.snapshot is not None for e in old) < len(old)
+    drop = {"seq": 0, "t_pub_wall_ns": 0, "snapshot": None}
+    assert ({(e.node_id, e.epoch): M.encode(msgspec.structs.replace(e, **drop)) for e in old}
+            == {(e.node_id, e.epoch): M.encode(msgspec.structs.replace(e, **drop)) for e in ests})
 
 
 def test_estimates_are_close_to_the_truth_for_a_walker_on_the_level(live):
