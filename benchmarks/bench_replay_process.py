@@ -120,6 +120,97 @@ def run_replay(tree: Path, recording: str, method: str, bytecode_dir: str | None
             "status_agree": c.get("status_agree")}
 
 
+# ------------------------------------------------------------------ in-process split
+#: (label, module, attribute path) of the steps timed in-process (``--split``); a step a
+#: tree does not have is skipped. Nested: "fusion step" holds gather .. estimates.
+SPLIT_STEPS = [
+    ("ingest (FusionCore.on_sample)", "diffpos_services.fusion.core", "FusionCore.on_sample"),
+    ("fusion step (FusionCore.step + flush)", "diffpos_services.fusion.core", "FusionCore.step"),
+    ("fusion step (FusionCore.step + flush)", "diffpos_services.fusion.core", "FusionCore.flush"),
+    ("  gather", "diffpos_services.fusion.core", "gather"),
+    ("  prepare", "diffpos_services.fusion.core", "prepare"),
+    ("  solve (kernels)", "diffpos_services.fusion.core", "solve_batch"),
+    ("  solve (kernels)", "diffpos_services.fusion.core", "solve_mnls"),
+    ("  estimates", "diffpos_services.fusion.core", "v1_estimates"),
+    ("  estimates", "diffpos_services.fusion.core", "v2_builder"),
+    ("report: truth + live estimates (Recorded.take)", "diffpos_services.replay.report_stream",
+     "Recorded.take"),
+    ("report: scoring (Recorded.advance)", "diffpos_services.replay.report_stream",
+     "Recorded.advance"),
+    ("report: replayed estimates in (_Outputs.emit)", "diffpos_services.replay.run",
+     "_Outputs.emit"),
+    ("report: final (_report)", "diffpos_services.replay.run", "_report"),
+]
+
+
+def split_child(recording: str, method: str) -> None:
+    """One in-process replay (``cli.main.main``) with CPU timers (``time.process_time``)
+    around :data:`SPLIT_STEPS`; prints a JSON line: seconds per step, after the import."""
+    import functools
+    import importlib
+    t_imp = time.process_time()
+    from diffpos_services.cli import main as cli
+    importlib.import_module("diffpos_services.replay.run")
+    spent: dict[str, float] = {}
+    depth = [0]
+
+    def wrap(label: str, fn, returns_fn: bool = False):
+        @functools.wraps(fn)
+        def timed(*a, **k):
+            t0 = time.process_time()
+            try:
+                out = fn(*a, **k)
+            finally:
+                spent[label] = spent.get(label, 0.0) + time.process_time() - t0
+            return wrap(label, out) if returns_fn else out
+        return timed
+
+    for label, mod, path in SPLIT_STEPS:
+        obj = importlib.import_module(mod)
+        *owner, name = path.split(".")
+        for part in owner:
+            obj = getattr(obj, part)
+        fn = getattr(obj, name, None)
+        if fn is not None:
+            setattr(obj, name, wrap(label, fn, returns_fn=name == "v2_builder"))
+    t0 = time.process_time()
+    argv = ["replay", recording, "--no-files", "--no-progress"]
+    if method != "default":
+        argv += ["--method", method]
+    with contextlib.redirect_stdout(sys.stderr):
+        cli.main(argv)
+    spent["everything after the import"] = time.process_time() - t0
+    spent["import of replay.run"] = t0 - t_imp
+    print(json.dumps(spent))
+
+
+def run_split(tree: Path, recording: str, method: str) -> dict[str, float]:
+    env = child_env(tree, None)
+    out = subprocess.run([sys.executable, __file__, "--split-child", recording, method],
+                         env=env, cwd=tree, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def print_split(trees: list[tuple[str, Path]], recording: str, methods: list[str],
+                fixes: int) -> None:
+    """The in-process split, every tree and method side by side (us per node-epoch)."""
+    cols = []
+    for method in methods:
+        for name, tree in trees:
+            load = os.getloadavg()[0]
+            cols.append((f"{method} {name.split(' ')[0]}", run_split(tree, recording, method),
+                         load))
+    labels = list(dict.fromkeys([lab for lab, _, _ in SPLIT_STEPS]
+                                + ["everything after the import", "import of replay.run"]))
+    print(f"\nin-process CPU per step [us per node-epoch; {fixes} node-epochs], one replay "
+          "per column (load before it in the last row)")
+    print(f"{'step':<48}" + "".join(f"{c[0]:>16}" for c in cols))
+    for lab in labels:
+        print(f"{lab:<48}" + "".join(
+            f"{1e6 * c[1][lab] / fixes:>16.1f}" if lab in c[1] else f"{'-':>16}" for c in cols))
+    print(f"{'load':<48}" + "".join(f"{c[2]:>16.1f}" for c in cols))
+
+
 def _median(rows: list[dict], key: str) -> float:
     return statistics.median(r[key] for r in rows)
 
@@ -149,6 +240,14 @@ def main() -> None:
                     help="keep the compiled bytecode of both trees in DIR (PYTHONPYCACHEPREFIX) "
                          "instead of the environment's setting (PYTHONDONTWRITEBYTECODE=1 "
                          "makes every process compile the project's sources again)")
+    ap.add_argument("--split", action="store_true",
+                    help="also the in-process split (CPU per step, one replay per tree and "
+                         "method)")
+    ap.add_argument("--split-child", nargs=2, help=argparse.SUPPRESS)
+    if "--split-child" in sys.argv:
+        i = sys.argv.index("--split-child")
+        split_child(sys.argv[i + 1], sys.argv[i + 2])
+        return
     args = ap.parse_args()
     bc = args.bytecode_cache
     tmp = None
@@ -194,6 +293,8 @@ def main() -> None:
           "kernels: the report's kernels_s (kernel preparation + the fusion's import, wall); "
           "replay: the report's wall_s (feed + report); identical: live positions reproduced "
           "bit for bit / with positions (--compare)")
+    if args.split:
+        print_split(trees, args.recording, args.methods, first["fixes"])
     if tmp is not None:
         tmp.cleanup()
 
