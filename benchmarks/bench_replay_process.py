@@ -128,6 +128,7 @@ SPLIT_STEPS = [
     ("fusion step (FusionCore.step + flush)", "diffpos_services.fusion.core", "FusionCore.step"),
     ("fusion step (FusionCore.step + flush)", "diffpos_services.fusion.core", "FusionCore.flush"),
     ("  gather", "diffpos_services.fusion.core", "gather"),
+    ("  gather", "diffpos_services.fusion.core", "_gather"),
     ("  prepare", "diffpos_services.fusion.core", "prepare"),
     ("  solve (kernels)", "diffpos_services.fusion.core", "solve_batch"),
     ("  solve (kernels)", "diffpos_services.fusion.core", "solve_mnls"),

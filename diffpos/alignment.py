@@ -47,7 +47,8 @@ import math
 import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, NamedTuple
+from itertools import repeat
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -218,13 +219,14 @@ class PendingEpoch:
     __slots__ = ("_block", "_dict", "_row", "epoch", "first_rx_wall_ns", "node_id")
 
     def __init__(self, node_id: str, epoch: int, first_rx_wall_ns: int,
-                 ranges: dict[str, RangeEntry] | None = None) -> None:
+                 ranges: dict[str, RangeEntry] | None = None,
+                 _block: _EpochBlock | None = None, _row: int = -1) -> None:
         self.node_id = node_id
         self.epoch = epoch
         self.first_rx_wall_ns = first_rx_wall_ns
-        self._dict = {} if ranges is None else ranges
-        self._block: _EpochBlock | None = None
-        self._row = -1
+        self._dict = {} if ranges is None and _block is None else ranges
+        self._block = _block  # (made by the book: its row there)
+        self._row = _row
 
     @property
     def ranges(self) -> dict[str, RangeEntry]:
@@ -238,13 +240,14 @@ class PendingEpoch:
 
 class _EpochBlock:
     """The ranges of one epoch as columns: a row per node-epoch (pending or released), a
-    column per anchor. ``f[row, col]`` = (range [m], NaN: not detected; sigma [m]; SNR [dB]),
-    ``i[row, col]`` = (t_ns, t_pub_wall_ns, rx_wall_ns), ``has``: the anchor reported;
-    per row its node's book index ``gid``, report ``count``, first receive time, ``open``
-    (still pending) and its :class:`PendingEpoch`."""
+    column per anchor; per cell the range ``r`` [m] (NaN: not detected), ``sig`` [m], ``snr``
+    [dB], times ``t``, ``pub``, ``rx`` [ns] and ``has`` (the anchor reported); per row its
+    node's book index ``gid``, first receive time, ``open`` (still pending) and its
+    :class:`PendingEpoch`. Rows are made in the order nodes first report, so the batches of
+    a lockstep run fill contiguous rows (slices, no index arrays)."""
 
-    __slots__ = ("anchors", "cols", "count", "epoch", "f", "first_rx", "gid", "has", "i",
-                 "n", "names", "open", "pes", "rows")
+    __slots__ = ("anchors", "cols", "epoch", "first_rx", "gid", "has", "n", "names", "open",
+                 "pes", "pub", "r", "rows", "rx", "sig", "snr", "t")
 
     def __init__(self, epoch: int, rows: int = 64, cols: int = 8) -> None:
         self.epoch = epoch
@@ -254,10 +257,9 @@ class _EpochBlock:
         self.anchors: list[str] = []
         self.pes: list[PendingEpoch] = []
         self.n = 0
-        self.f = np.empty((rows, cols, 3))
-        self.i = np.zeros((rows, cols, 3), np.int64)
+        self.r, self.sig, self.snr = (np.empty((rows, cols)) for _ in range(3))
+        self.t, self.pub, self.rx = (np.empty((rows, cols), np.int64) for _ in range(3))
         self.has = np.zeros((rows, cols), bool)
-        self.count = np.zeros(rows, np.int64)
         self.first_rx = np.zeros(rows, np.int64)
         self.gid = np.zeros(rows, np.int64)
         self.open = np.zeros(rows, bool)
@@ -271,46 +273,66 @@ class _EpochBlock:
                 self._grow(self.has.shape[0], 2 * c)
         return c
 
-    def new_row(self, node_id: str, gid: int, rx_wall_ns: int) -> PendingEpoch:
-        r = self.n
-        if r >= self.has.shape[0]:
-            self._grow(2 * r, self.has.shape[1])
-        self.n = r + 1
-        self.rows[node_id] = r
-        self.names.append(node_id)
-        self.gid[r], self.first_rx[r], self.open[r] = gid, rx_wall_ns, True
-        pe = PendingEpoch(node_id, self.epoch, rx_wall_ns)
-        pe._block, pe._row = self, r
-        self.pes.append(pe)
-        return pe
+    def new_rows(self, node_ids: list[str], gids: list[int], rx_wall_ns: Sequence[int]
+                 ) -> list[PendingEpoch]:
+        """Rows for ``node_ids`` (none of them pending here), first received at
+        ``rx_wall_ns``; their :class:`PendingEpoch` objects."""
+        r0, k = self.n, len(node_ids)
+        if r0 + k > self.has.shape[0]:
+            self._grow(max(2 * self.has.shape[0], r0 + k), self.has.shape[1])
+        self.n = r0 + k
+        self.rows.update(zip(node_ids, range(r0, r0 + k), strict=True))
+        self.names += node_ids
+        self.gid[r0:r0 + k], self.first_rx[r0:r0 + k] = gids, rx_wall_ns
+        self.open[r0:r0 + k] = True
+        pes = list(map(PendingEpoch, node_ids, repeat(self.epoch), rx_wall_ns, repeat(None),
+                       repeat(self), range(r0, r0 + k)))
+        self.pes += pes
+        return pes
 
     def _grow(self, rows: int, cols: int) -> None:
         def grown(a: np.ndarray, fill) -> np.ndarray:
-            out = np.full((rows, cols, *a.shape[2:]) if a.ndim > 1 else (rows,), fill, a.dtype)
+            out = np.full((rows, cols) if a.ndim > 1 else (rows,), fill, a.dtype)
             out[tuple(slice(0, k) for k in a.shape)] = a
             return out
-        self.f, self.i, self.has = grown(self.f, np.nan), grown(self.i, 0), grown(self.has, False)
-        self.count, self.first_rx = grown(self.count, 0), grown(self.first_rx, 0)
-        self.gid, self.open = grown(self.gid, 0), grown(self.open, False)
+        self.r, self.sig, self.snr = (grown(a, np.nan) for a in (self.r, self.sig, self.snr))
+        self.t, self.pub, self.rx = (grown(a, 0) for a in (self.t, self.pub, self.rx))
+        self.has = grown(self.has, False)
+        self.first_rx, self.gid = grown(self.first_rx, 0), grown(self.gid, 0)
+        self.open = grown(self.open, False)
+
+    def count(self, rows: Any) -> NDArray[np.int64]:
+        """Reports of ``rows`` (any anchor)."""
+        return np.count_nonzero(self.has[rows, :len(self.anchors)], axis=-1)
 
     def entries(self, row: int) -> dict[str, RangeEntry]:
         """Row ``row`` as :class:`RangeEntry` tuples by anchor, in column order."""
         out = {}
         for c in np.flatnonzero(self.has[row, :len(self.anchors)]).tolist():
-            r, sg, snr = self.f[row, c].tolist()
-            t, pub, rx = self.i[row, c].tolist()
-            out[self.anchors[c]] = RangeEntry(t, None if r != r else r, sg, snr, pub, rx)
+            r = float(self.r[row, c])
+            out[self.anchors[c]] = RangeEntry(
+                int(self.t[row, c]), None if r != r else r, float(self.sig[row, c]),
+                float(self.snr[row, c]), int(self.pub[row, c]), int(self.rx[row, c]))
         return out
 
     def put(self, row: int, c: int, entry: RangeEntry) -> bool:
         """One range into cell (row, c); True if it replaced one."""
         was = bool(self.has[row, c])
-        if not was:
-            self.has[row, c] = True
-            self.count[row] += 1
+        self.has[row, c] = True
         r = entry.range_m
-        self.f[row, c] = (math.nan if r is None else r, entry.sigma_m, entry.snr_db)
-        self.i[row, c] = (entry.t_ns, entry.t_pub_wall_ns, entry.rx_wall_ns)
+        self.r[row, c] = math.nan if r is None else r
+        self.sig[row, c], self.snr[row, c] = entry.sigma_m, entry.snr_db
+        self.t[row, c], self.pub[row, c] = entry.t_ns, entry.t_pub_wall_ns
+        self.rx[row, c] = entry.rx_wall_ns
+        return was
+
+    def put_columns(self, rows: Any, c: int, cols: tuple) -> int:
+        """Ranges into column ``c`` of ``rows`` (a slice or an index array): ``cols`` =
+        (range, sigma, snr, t, pub, rx), arrays or one value each; how many replaced one."""
+        was = int(np.count_nonzero(self.has[rows, c]))
+        self.has[rows, c] = True
+        self.r[rows, c], self.sig[rows, c], self.snr[rows, c] = cols[:3]
+        self.t[rows, c], self.pub[rows, c], self.rx[rows, c] = cols[3:]
         return was
 
 
@@ -378,8 +400,9 @@ class EpochBook:
         blk = self._block(e)
         row = blk.rows.get(node_id)
         if row is None:
-            row = blk.new_row(node_id, self._gid(node_id), rx)._row
-            self.pending[(node_id, e)] = blk.pes[row]
+            pe = self.pending[(node_id, e)] = blk.new_rows([node_id], [self._gid(node_id)],
+                                                         [rx])[0]
+            row = pe._row
         if blk.put(row, blk.col(anchor_id), entry):
             self.replaced += 1
         self._adds += 1
@@ -418,8 +441,9 @@ class EpochBook:
                     if e <= self.solved_upto.get(node_id, _NEVER):
                         late += 1
                         continue
-                    row = blk.new_row(node_id, self._gid(node_id), entry.rx_wall_ns)._row
-                    self.pending[(node_id, e)] = blk.pes[row]
+                    pe = self.pending[(node_id, e)] = blk.new_rows(
+                        [node_id], [self._gid(node_id)], [entry.rx_wall_ns])[0]
+                    row = pe._row
                 self.replaced += blk.put(row, c, entry)
         if entries:
             self._adds += 1
@@ -436,54 +460,60 @@ class EpochBook:
         """:meth:`add_many` of one anchor's ranges at ``t_ns`` given as columns (each node
         once): ``range_m`` NaN where not detected; the other columns per range or one value
         for all. Returns how many were late. No Python object per range: the columns go
-        into the epoch's block with a few array operations."""
+        into the epoch's block with a few array operations (slices in a lockstep run)."""
         e = int(t_ns // self.config.epoch_period_ns)
         self.note_anchor_time(anchor_id, t_ns)
         n = len(node_ids)
         if not n:
             return 0
         late = 0
-        rx = np.broadcast_to(np.asarray(rx_wall_ns, np.int64), (n,))
+        one_rx = isinstance(rx_wall_ns, int | np.integer)
+        rx_last = int(rx_wall_ns if one_rx else rx_wall_ns[-1])
         if e <= self.closed_upto:
             late = n
         else:
             blk = self._block(e)
             c = blk.col(anchor_id)
             rows = list(map(blk.rows.get, node_ids))
-            keep = None
-            if None in rows:  # new node-epochs (a node's epoch at or below its solved: late)
-                solved, pending = self.solved_upto, self.pending
-                keep = []
-                for k, (node_id, row) in enumerate(zip(node_ids, rows, strict=True)):
-                    if row is None:
-                        if e <= solved.get(node_id, _NEVER):
-                            late += 1
-                            continue
-                        pe = blk.new_row(node_id, self._gid(node_id), int(rx[k]))
-                        pending[(node_id, e)] = pe
-                        rows[k] = pe._row
-                    keep.append(k)
+            cols = (range_m, sigma_m, snr_db, meas_t_ns, t_pub_wall_ns, rx_wall_ns)
+            if None in rows:
+                rx = [int(rx_wall_ns)] * n if one_rx else rx_wall_ns
+                rows, keep = self._new_rows(blk, e, node_ids, rows, rx)
+                late = n - len(keep)
                 if late:
-                    rows = [rows[k] for k in keep]
+                    cols = tuple(v if np.ndim(v) == 0 else np.asarray(v)[keep] for v in cols)
             if rows:
-                ri = np.array(rows, np.intp)
-                was = blk.has[ri, c]
-                self.replaced += int(np.count_nonzero(was))
-                blk.count[ri] += ~was
-                blk.has[ri, c] = True
-                f = np.empty((n, 3))
-                f[:, 0], f[:, 1], f[:, 2] = range_m, sigma_m, snr_db
-                i = np.empty((n, 3), np.int64)
-                i[:, 0], i[:, 1], i[:, 2] = meas_t_ns, t_pub_wall_ns, rx
-                if late:
-                    f, i = f[keep], i[keep]
-                blk.f[ri, c], blk.i[ri, c] = f, i
+                r0 = rows[0]
+                at = (slice(r0, r0 + len(rows)) if rows[-1] - r0 == len(rows) - 1
+                      and rows == list(range(r0, r0 + len(rows))) else np.array(rows, np.intp))
+                self.replaced += blk.put_columns(at, c, cols)
         self._adds += 1
-        self._note_rx(int(rx[-1]))
+        self._note_rx(rx_last)
         if late:
             self.late += late
             self.late_by_anchor[anchor_id] += late
         return late
+
+    def _new_rows(self, blk: _EpochBlock, e: int, node_ids: Sequence[str],
+                  rows: list[int | None], rx_wall_ns: Sequence[int]
+                  ) -> tuple[list[int], list[int]]:
+        """Rows for the nodes of ``node_ids`` without one (``rows[k]`` None) in epoch ``e``,
+        but those whose epoch ``e`` is solved already (late), first received at
+        ``rx_wall_ns[k]``; the rows of the kept entries and their indices."""
+        solved = self.solved_upto
+        new = [k for k, row in enumerate(rows) if row is None]
+        fresh = [k for k in new if e > solved.get(node_ids[k], _NEVER)]
+        if fresh:
+            ids = [node_ids[k] for k in fresh]
+            pes = blk.new_rows(ids, [self._gid(x) for x in ids],
+                               [int(rx_wall_ns[k]) for k in fresh])
+            self.pending.update(zip(zip(ids, repeat(e)), pes, strict=True))
+            for k, pe in zip(fresh, pes, strict=True):
+                rows[k] = pe._row
+        if len(fresh) == len(new):
+            return rows, list(range(len(rows)))
+        keep = [k for k, row in enumerate(rows) if row is not None]
+        return [rows[k] for k in keep], keep
 
     def _note_rx(self, rx_wall_ns: int) -> None:
         if self.last_rx_wall_ns is None or rx_wall_ns > self.last_rx_wall_ns:
@@ -616,7 +646,7 @@ class EpochBook:
             done = cand
         else:
             done = cand & (blk.first_rx[:n] <= cutoff)  # waited max_lag_ns (wall)
-            full = cand & ~done & (blk.count[:n] >= cfg.min_reports)
+            full = cand & ~done & (blk.count(slice(0, n)) >= cfg.min_reports)
             if full.any():  # complete: each live anchor not past its end reported
                 end_ns = (e + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
                 latest, cols = self.latest_t_ns, blk.cols
@@ -734,21 +764,21 @@ def epoch_columns(epochs: Sequence[PendingEpoch], ids: Sequence[str]) -> EpochCo
     for blk, ri, br in groups.values():
         bc = [c for c, a in enumerate(blk.anchors) if a in col]
         if not bc:
-            count[ri] = blk.count[br]
+            count[ri] = blk.count(br)
             continue
         jc = [col[blk.anchors[c]] for c in bc]
         sel = np.ix_(br, bc)
         out = np.ix_(ri, jc)
         h = blk.has[sel]
-        f, i = blk.f[sel], blk.i[sel]
         reported[out] = h
-        t[out] = np.where(h, i[..., 0], 0)
-        pub[out] = np.where(h, i[..., 1], 0)
-        det = h & ~np.isnan(f[..., 0])
-        rng[out] = np.where(det, f[..., 0], np.nan)
-        sig[out] = np.where(det, f[..., 1], 1.0)
-        snr[out] = np.where(det, f[..., 2], np.nan)
-        count[ri] = blk.count[br]
+        t[out] = np.where(h, blk.t[sel], 0)
+        pub[out] = np.where(h, blk.pub[sel], 0)
+        r = blk.r[sel]
+        det = h & ~np.isnan(r)
+        rng[out] = np.where(det, r, np.nan)
+        sig[out] = np.where(det, blk.sig[sel], 1.0)
+        snr[out] = np.where(det, blk.snr[sel], np.nan)
+        count[ri] = blk.count(br)
     for k in loose:
         ranges = epochs[k].ranges
         count[k] = len(ranges)
@@ -769,7 +799,7 @@ def epoch_reports(epochs: Sequence[PendingEpoch], ids: Sequence[str]
     count = np.zeros(len(epochs), np.int64)
     groups, loose = _by_block(epochs)
     for blk, ri, br in groups.values():
-        count[ri] = blk.count[br]
+        count[ri] = blk.count(br)
         bc = [c for c, a in enumerate(blk.anchors) if a in col]
         if bc:
             reported[np.ix_(ri, [col[blk.anchors[c]] for c in bc])] = blk.has[np.ix_(br, bc)]
