@@ -307,26 +307,6 @@ class _FixStore:
     def __len__(self) -> int:
         return len(self.t)
 
-    def add(self, node: int, t: int, pos, peb, floor, cov, probs) -> int:
-        """One fix (``peb``, ``floor``, ``cov`` may be None); its id."""
-        i = self.next_id
-        self.next_id += 1
-        self.id.append(i)
-        self.node.append(node)
-        self.t.append(t)
-        self.pos.extend(pos)
-        self.peb.append(math.nan if peb is None else peb)
-        self.floor.append(_NO_FLOOR if floor is None else floor)
-        if cov is None:
-            self.cov.extend(_ZERO9)
-            self.has_cov.append(0)
-        else:
-            self.cov.extend(itertools.chain.from_iterable(cov))
-            self.has_cov.append(1)
-        self.scored.append(0)
-        self.probs.append(probs)
-        return i
-
     def add_columns(self, node: np.ndarray, t: np.ndarray, pos: np.ndarray, peb: np.ndarray,
                     floor: np.ndarray, cov: np.ndarray, has_cov: np.ndarray,
                     probs: list) -> range:
@@ -376,7 +356,7 @@ class _FixStore:
         self.probs = probs
 
 
-_ZERO9 = (0.0,) * 9
+_NO_COV = ((0.0, 0.0, 0.0),) * 3  # (a placeholder where a fix has no covariance)
 
 
 class FixStream:
@@ -406,6 +386,7 @@ class FixStream:
         self._err = _Errors()
         # the positioned fixes until scored (columns), their nodes in order of first fix
         self._store = _FixStore()
+        self._buf: list = []  # positioned fixes given to add(), not in the store yet
         self._node_i: dict[str, int] = {}
         self._node_names: list[str] = []
         self._kept = 0  # fixes kept after the last compaction
@@ -438,12 +419,29 @@ class FixStream:
             else:
                 self.excluded[x.anchor_id][x.reason] += 1
         if e.position_m is not None and e.status in M.GOOD_STATUSES:
-            node = e.node_id
-            self.positioned[node] += 1
-            i = self._store.add(self._index(node), e.t_ns, e.position_m, e.peb_m,
-                                e.floor_index, e.covariance_m2,
-                                getattr(e, "floor_probabilities", ()))
-            self._ne_add([node], [e.t_ns], [i])
+            self.positioned[e.node_id] += 1
+            self._buf.append(e)  # into the store by columns (_take_buffer)
+
+    def _take_buffer(self) -> None:
+        """The positioned fixes :meth:`add` buffered into the store, as columns, in order
+        (before anything reads the store or adds to it otherwise)."""
+        buf = self._buf
+        if not buf:
+            return
+        self._buf = []
+        nodes = [e.node_id for e in buf]
+        t = [e.t_ns for e in buf]
+        covs = [e.covariance_m2 for e in buf]
+        has_cov = np.array([c is not None for c in covs], bool)
+        ids = self._store.add_columns(
+            np.array(list(map(self._index, nodes)), np.int64), np.array(t, np.int64),
+            np.array([e.position_m for e in buf], np.float64).reshape(-1, 3),
+            np.array([e.peb_m for e in buf], np.float64),  # (None -> NaN)
+            np.array([_NO_FLOOR if e.floor_index is None else e.floor_index for e in buf],
+                     np.int64),
+            np.array([_NO_COV if c is None else c for c in covs], np.float64).reshape(-1, 3, 3),
+            has_cov, [getattr(e, "floor_probabilities", ()) for e in buf])
+        self._ne_add(nodes, t, ids)
 
     def _index(self, node: str) -> int:
         """The node's number in the stream (order of first positioned fix)."""
@@ -456,13 +454,14 @@ class FixStream:
     @property
     def pending_fixes(self) -> int:
         """Positioned fixes not scored against the truth yet."""
-        return int(np.count_nonzero(self._store.col("scored") == 0))
+        return len(self._buf) + int(np.count_nonzero(self._store.col("scored") == 0))
 
     def add_rows(self, r: Any) -> None:
         """:meth:`add` of every row of a batch's columns
         (:class:`~diffpos_services.fusion.estimates.EstimateRows`), in order, without its
         structs: the counts by anchor-list group, the positioned rows' fixes into the
         store as columns."""
+        self._take_buffer()
         status, node, group, shared = r.status, r.node_id, r.group, r.shared
         self.total += len(status)
         self.by_status.update(status)
@@ -690,6 +689,7 @@ class FixStream:
         ``final``); node-epochs a window older than the node's newest truth."""
         tb = self.truth
         _ = self.used  # (the anchors' counts: bounded memory)
+        self._take_buffer()
         rows = self._ready_rows(now_ns, final)
         if rows.size:
             self._store.col("scored")[rows] = 1
