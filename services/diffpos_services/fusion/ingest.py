@@ -204,20 +204,17 @@ def batch_all_good(cfg: FusionConfig, msg: M.RangeBatch, nodes: set[str],
     if not missing and (None in sg or None in snr):
         return None
     # (None -> NaN; the undetected entries are left out of the checks)
-    ra = np.array(r, dtype=np.float64)
-    sa = np.array(sg, dtype=np.float64)
-    na = np.array(snr, dtype=np.float64)
     if missing == len(r):
-        return ra, np.ones(missing), np.full(missing, -math.inf)
+        return np.full(missing, np.nan), np.ones(missing), np.full(missing, -math.inf)
+    cols = np.array((r, sg, snr), dtype=np.float64)  # (3, n)
     det = np.fromiter((v is not None for v in r), bool, len(r)) if missing else None
-    rd, sd, nd = (ra, sa, na) if det is None else (ra[det], sa[det], na[det])
+    checked = cols if det is None else cols[:, det]
+    lo, hi = checked.min(axis=1).tolist(), checked.max(axis=1).tolist()
     # NaN compares False: a non-finite value fails these and takes the checked path
-    if not bool(
-        (rd.max() <= cfg.max_range_m) & (rd.min() >= 0.0)
-        & (sd.min() >= cfg.min_sigma_m) & (sd.max() <= cfg.max_sigma_m)
-        & (nd.min() >= -300.0) & (nd.max() <= 300.0)
-    ):
+    if not (hi[0] <= cfg.max_range_m and lo[0] >= 0.0 and lo[1] >= cfg.min_sigma_m
+            and hi[1] <= cfg.max_sigma_m and lo[2] >= -300.0 and hi[2] <= 300.0):
         return None
+    ra, sa, na = cols
     if det is not None:  # the undetected entries as _entry keeps them
         sa[~det] = 1.0
         na[~det] = -math.inf
