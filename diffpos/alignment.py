@@ -45,7 +45,7 @@ from __future__ import annotations
 import collections
 import math
 import operator
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import repeat
 from typing import Any, Literal, NamedTuple
@@ -211,9 +211,10 @@ class PendingEpoch:
     """Ranges of one node in one epoch, per anchor (the last one wins).
 
     Made by an :class:`EpochBook`: its ranges are a row of the epoch's columns (an
-    ``_EpochBlock``), read as a dict ``ranges`` only on request (a fresh dict each time: do not
-    modify it; the fusion reads the columns with :func:`epoch_columns`). Made directly
-    (tests, tools): ``ranges`` is the dict given (or an empty one), kept and modifiable.
+    ``_EpochBlock``); ``ranges`` is a read-only mapping view of that row (anchor ->
+    :class:`RangeEntry`, each made when read; ``len`` and ``in`` without making any; the
+    fusion reads the columns with :func:`epoch_columns`). Made directly (tests, tools):
+    ``ranges`` is the dict given (or an empty one), kept and modifiable.
     """
 
     __slots__ = ("_block", "_dict", "_row", "epoch", "first_rx_wall_ns", "node_id")
@@ -229,13 +230,46 @@ class PendingEpoch:
         self._row = _row
 
     @property
-    def ranges(self) -> dict[str, RangeEntry]:
+    def ranges(self) -> Mapping[str, RangeEntry]:
         blk = self._block
-        return self._dict if blk is None else blk.entries(self._row)
+        return self._dict if blk is None else _RowRanges(blk, self._row)
 
     def __repr__(self) -> str:
         return (f"PendingEpoch(node_id={self.node_id!r}, epoch={self.epoch}, "
                 f"first_rx_wall_ns={self.first_rx_wall_ns}, ranges={self.ranges!r})")
+
+
+class _RowRanges(Mapping):
+    """A read-only view of one row of an epoch block: anchor -> :class:`RangeEntry`."""
+
+    __slots__ = ("_blk", "_row")
+
+    def __init__(self, blk: _EpochBlock, row: int) -> None:
+        self._blk, self._row = blk, row
+
+    def _cols(self) -> list[int]:
+        blk = self._blk
+        return np.flatnonzero(blk.has[self._row, :len(blk.anchors)]).tolist()
+
+    def __len__(self) -> int:
+        blk = self._blk
+        return int(np.count_nonzero(blk.has[self._row, :len(blk.anchors)]))
+
+    def __iter__(self) -> Iterator[str]:
+        anchors = self._blk.anchors
+        return iter([anchors[c] for c in self._cols()])
+
+    def __contains__(self, anchor_id: object) -> bool:
+        c = self._blk.cols.get(anchor_id)  # type: ignore[call-overload]
+        return c is not None and bool(self._blk.has[self._row, c])
+
+    def __getitem__(self, anchor_id: str) -> RangeEntry:
+        if anchor_id not in self:
+            raise KeyError(anchor_id)
+        return self._blk.entry(self._row, self._blk.cols[anchor_id])
+
+    def __repr__(self) -> str:
+        return repr(dict(self))
 
 
 class _EpochBlock:
@@ -305,15 +339,11 @@ class _EpochBlock:
         """Reports of ``rows`` (any anchor)."""
         return np.count_nonzero(self.has[rows, :len(self.anchors)], axis=-1)
 
-    def entries(self, row: int) -> dict[str, RangeEntry]:
-        """Row ``row`` as :class:`RangeEntry` tuples by anchor, in column order."""
-        out = {}
-        for c in np.flatnonzero(self.has[row, :len(self.anchors)]).tolist():
-            r = float(self.r[row, c])
-            out[self.anchors[c]] = RangeEntry(
-                int(self.t[row, c]), None if r != r else r, float(self.sig[row, c]),
-                float(self.snr[row, c]), int(self.pub[row, c]), int(self.rx[row, c]))
-        return out
+    def entry(self, row: int, c: int) -> RangeEntry:
+        """Cell (row, c) as a :class:`RangeEntry` (range ``None``: not detected)."""
+        r = float(self.r[row, c])
+        return RangeEntry(int(self.t[row, c]), None if r != r else r, float(self.sig[row, c]),
+                          float(self.snr[row, c]), int(self.pub[row, c]), int(self.rx[row, c]))
 
     def put(self, row: int, c: int, entry: RangeEntry) -> bool:
         """One range into cell (row, c); True if it replaced one."""
