@@ -294,21 +294,23 @@ def main() -> None:
           "--json --compare --no-progress [--method M]; bytecode: "
           + (f"cached in {bc}" if bc else "as the environment says (PYTHONDONTWRITEBYTECODE="
              f"{os.environ.get('PYTHONDONTWRITEBYTECODE', '')!r})"))
-    print(f"\n{'method / tree':<22} {'wall s':>7} {'x real':>7} {'CPU s':>7} {'min':>7} {'x cpu':>7} "
-          f"{'us/ne':>7} {'RSS MB':>7} {'imports':>8} {'kernels':>8} {'replay':>8} "
-          f"{'identical':>13} load")
-    for method in args.methods if rows else []:
-        for name, _ in trees:
-            print(_line(f"{method}: {name.split(' ')[0]}", rows[(method, name)]))
-        b, a = rows[(method, trees[0][0])], rows[(method, trees[1][0])]
-        print(f"{method}: after/before      x real {_median(a, 'x_real') / _median(b, 'x_real'):.2f}, "
-              f"CPU {_median(a, 'cpu_s') / _median(b, 'cpu_s'):.2f} (least "
-              f"{min(r['cpu_s'] for r in a) / min(r['cpu_s'] for r in b):.2f}), "
-              f"RSS {max(r['rss_mb'] for r in a) / max(r['rss_mb'] for r in b):.2f}")
-    print("\nimports: -X importtime's top-level imports summed (wall, the fusion's included); "
-          "kernels: the report's kernels_s (kernel preparation + the fusion's import, wall); "
-          "replay: the report's wall_s (feed + report); identical: live positions reproduced "
-          "bit for bit / with positions (--compare)")
+    if rows:
+        print(f"\n{'method / tree':<22} {'wall s':>7} {'x real':>7} {'CPU s':>7} {'min':>7} {'x cpu':>7} "
+              f"{'us/ne':>7} {'RSS MB':>7} {'imports':>8} {'kernels':>8} {'replay':>8} "
+              f"{'identical':>13} load")
+        for method in args.methods:
+            for name, _ in trees:
+                print(_line(f"{method}: {name.split(' ')[0]}", rows[(method, name)]))
+            b, a = rows[(method, trees[0][0])], rows[(method, trees[1][0])]
+            print(f"{method}: after/before      x real {_median(a, 'x_real') / _median(b, 'x_real'):.2f}, "
+                  f"CPU {_median(a, 'cpu_s') / _median(b, 'cpu_s'):.2f} (least "
+                  f"{min(r['cpu_s'] for r in a) / min(r['cpu_s'] for r in b):.2f}), "
+                  f"RSS {max(r['rss_mb'] for r in a) / max(r['rss_mb'] for r in b):.2f}")
+    if rows:
+        print("\nimports: -X importtime's top-level imports summed (wall, the fusion's included); "
+              "kernels: the report's kernels_s (kernel preparation + the fusion's import, wall); "
+              "replay: the report's wall_s (feed + report); identical: live positions reproduced "
+              "bit for bit / with positions (--compare)")
     if args.split:
         print_split(trees, args.recording, args.methods, first["fixes"], args.split_rounds)
     if tmp is not None:
