@@ -24,6 +24,13 @@ Usage::
 
     python benchmarks/bench_replay_process.py --recording /work/rec/large30.mcap \\
         --before-commit c52d72c --methods default dnls --rounds 3
+    python benchmarks/bench_replay_process.py --recording /work/rec/large30.mcap \\
+        --before-tree /tmp/before --rounds 0 --split --split-rounds 5   # the split only
+
+``--split``: in-process CPU per step (``time.process_time`` around the fusion's ingest, its
+step and the step's parts, the report's parts; one ``cli.main`` replay in a child process per
+tree and method), us per node-epoch side by side: which part a change moved, within the noise
+of a shared machine (the whole process's CPU varies more than the change).
 
 The machine, Python and load (1-minute average, before each replay) are printed with the
 table.
@@ -120,6 +127,103 @@ def run_replay(tree: Path, recording: str, method: str, bytecode_dir: str | None
             "status_agree": c.get("status_agree")}
 
 
+# ------------------------------------------------------------------ in-process split
+#: (label, module, attribute path) of the steps timed in-process (``--split``); a step a
+#: tree does not have is skipped. Nested: "fusion step" holds gather .. estimates.
+SPLIT_STEPS = [
+    ("ingest (FusionCore.on_sample)", "diffpos_services.fusion.core", "FusionCore.on_sample"),
+    ("fusion step (FusionCore.step + flush)", "diffpos_services.fusion.core", "FusionCore.step"),
+    ("fusion step (FusionCore.step + flush)", "diffpos_services.fusion.core", "FusionCore.flush"),
+    ("  gather", "diffpos_services.fusion.core", "gather"),
+    ("  gather", "diffpos_services.fusion.core", "_gather"),
+    ("  prepare", "diffpos_services.fusion.core", "prepare"),
+    ("  solve (kernels)", "diffpos_services.fusion.core", "solve_batch"),
+    ("  solve (kernels)", "diffpos_services.fusion.core", "solve_mnls"),
+    ("  estimates", "diffpos_services.fusion.core", "v1_estimates"),
+    ("  estimates", "diffpos_services.fusion.core", "v2_builder"),
+    ("report: truth + live estimates (Recorded.take)", "diffpos_services.replay.report_stream",
+     "Recorded.take"),
+    ("report: scoring (Recorded.advance)", "diffpos_services.replay.report_stream",
+     "Recorded.advance"),
+    ("report: replayed estimates in (_Outputs.emit)", "diffpos_services.replay.run",
+     "_Outputs.emit"),
+    ("report: final (_report)", "diffpos_services.replay.run", "_report"),
+]
+
+
+def split_child(recording: str, method: str) -> None:
+    """One in-process replay (``cli.main.main``) with CPU timers (``time.process_time``)
+    around :data:`SPLIT_STEPS`; prints a JSON line: seconds per step, after the import."""
+    import functools
+    import importlib
+    t_imp = time.process_time()
+    from diffpos_services.cli import main as cli
+    importlib.import_module("diffpos_services.replay.run")
+    spent: dict[str, float] = {}
+
+    def wrap(label: str, fn, returns_fn: bool = False):
+        @functools.wraps(fn)
+        def timed(*a, **k):
+            t0 = time.process_time()
+            try:
+                out = fn(*a, **k)
+            finally:
+                spent[label] = spent.get(label, 0.0) + time.process_time() - t0
+            return wrap(label, out) if returns_fn else out
+        return timed
+
+    for label, mod, path in SPLIT_STEPS:
+        obj = importlib.import_module(mod)
+        *owner, name = path.split(".")
+        for part in owner:
+            obj = getattr(obj, part)
+        fn = getattr(obj, name, None)
+        if fn is not None:
+            setattr(obj, name, wrap(label, fn, returns_fn=name == "v2_builder"))
+    t0 = time.process_time()
+    argv = ["replay", recording, "--no-files", "--no-progress"]
+    if method != "default":
+        argv += ["--method", method]
+    with contextlib.redirect_stdout(sys.stderr):
+        cli.main(argv)
+    spent["everything after the import"] = time.process_time() - t0
+    spent["import of replay.run"] = t0 - t_imp
+    print(json.dumps(spent))
+
+
+def run_split(tree: Path, recording: str, method: str) -> dict[str, float]:
+    env = child_env(tree, None)
+    out = subprocess.run([sys.executable, __file__, "--split-child", recording, method],
+                         env=env, cwd=tree, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def print_split(trees: list[tuple[str, Path]], recording: str, methods: list[str],
+                fixes: int, rounds: int = 1) -> None:
+    """The in-process split, every tree and method side by side (us per node-epoch; the
+    median of ``rounds`` replays each, alternating)."""
+    runs: dict[tuple[str, str], list[tuple[dict[str, float], float]]] = {}
+    for _ in range(rounds):
+        for method in methods:
+            for name, tree in trees:
+                load = os.getloadavg()[0]
+                runs.setdefault((method, name), []).append(
+                    (run_split(tree, recording, method), load))
+    cols = []
+    for (method, name), rs in runs.items():
+        med = {k: statistics.median(r[0].get(k, 0.0) for r in rs) for k in rs[0][0]}
+        cols.append((f"{method} {name.split(' ')[0]}", med, statistics.median(r[1] for r in rs)))
+    labels = list(dict.fromkeys([lab for lab, _, _ in SPLIT_STEPS]
+                                + ["everything after the import", "import of replay.run"]))
+    print(f"\nin-process CPU per step [us per node-epoch; {fixes} node-epochs], the median "
+          f"of {rounds} replay(s) per column, alternating (median load before them: last row)")
+    print(f"{'step':<48}" + "".join(f"{c[0]:>16}" for c in cols))
+    for lab in labels:
+        print(f"{lab:<48}" + "".join(
+            f"{1e6 * c[1][lab] / fixes:>16.1f}" if lab in c[1] else f"{'-':>16}" for c in cols))
+    print(f"{'load':<48}" + "".join(f"{c[2]:>16.1f}" for c in cols))
+
+
 def _median(rows: list[dict], key: str) -> float:
     return statistics.median(r[key] for r in rows)
 
@@ -144,11 +248,21 @@ def main() -> None:
     g.add_argument("--before-tree", help="a checkout to compare with")
     ap.add_argument("--methods", nargs="+", default=["default", "dnls"],
                     help="default (the recorded method) and/or a --method of replay")
-    ap.add_argument("--rounds", type=int, default=3, help="timed replays per tree and method")
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="timed replays per tree and method (0: none, e.g. with --split)")
     ap.add_argument("--bytecode-cache", metavar="DIR",
                     help="keep the compiled bytecode of both trees in DIR (PYTHONPYCACHEPREFIX) "
                          "instead of the environment's setting (PYTHONDONTWRITEBYTECODE=1 "
                          "makes every process compile the project's sources again)")
+    ap.add_argument("--split", action="store_true",
+                    help="also the in-process split (CPU per step, one replay per tree and "
+                         "method, --split-rounds times alternating: the median)")
+    ap.add_argument("--split-rounds", type=int, default=1)
+    ap.add_argument("--split-child", nargs=2, help=argparse.SUPPRESS)
+    if "--split-child" in sys.argv:
+        i = sys.argv.index("--split-child")
+        split_child(sys.argv[i + 1], sys.argv[i + 2])
+        return
     args = ap.parse_args()
     bc = args.bytecode_cache
     tmp = None
@@ -160,9 +274,10 @@ def main() -> None:
         before, before_name = Path(args.before_tree), f"before ({args.before_tree})"
     trees = [(before_name, before), ("after (this tree)", ROOT)]
     rows: dict[tuple[str, str], list[dict]] = {}
+    warm = []
     for method in args.methods:  # untimed: each tree's numba cache warm
         for _, tree in trees:
-            run_replay(tree, args.recording, method, bc)
+            warm.append(run_replay(tree, args.recording, method, bc))
     for _ in range(args.rounds):
         for method in args.methods:
             for name, tree in trees:
@@ -172,28 +287,32 @@ def main() -> None:
           f"{platform.machine()}, {os.cpu_count()} cores, {platform.processor() or '?'}, "
           f"Python {platform.python_version()}; shared with other jobs: the load column is "
           "the 1-minute load average before each replay")
-    first = next(iter(rows.values()))[0]
+    first = warm[0]
     print(f"recording {args.recording}: {first['run_s']:.1f} s emulated, {first['fixes']} "
           f"estimates; medians of {args.rounds} whole-process replays each, alternating")
     print("command: python -X importtime -m diffpos_services.cli.main replay REC --no-files "
           "--json --compare --no-progress [--method M]; bytecode: "
           + (f"cached in {bc}" if bc else "as the environment says (PYTHONDONTWRITEBYTECODE="
              f"{os.environ.get('PYTHONDONTWRITEBYTECODE', '')!r})"))
-    print(f"\n{'method / tree':<22} {'wall s':>7} {'x real':>7} {'CPU s':>7} {'min':>7} {'x cpu':>7} "
-          f"{'us/ne':>7} {'RSS MB':>7} {'imports':>8} {'kernels':>8} {'replay':>8} "
-          f"{'identical':>13} load")
-    for method in args.methods:
-        for name, _ in trees:
-            print(_line(f"{method}: {name.split(' ')[0]}", rows[(method, name)]))
-        b, a = rows[(method, trees[0][0])], rows[(method, trees[1][0])]
-        print(f"{method}: after/before      x real {_median(a, 'x_real') / _median(b, 'x_real'):.2f}, "
-              f"CPU {_median(a, 'cpu_s') / _median(b, 'cpu_s'):.2f} (least "
-              f"{min(r['cpu_s'] for r in a) / min(r['cpu_s'] for r in b):.2f}), "
-              f"RSS {max(r['rss_mb'] for r in a) / max(r['rss_mb'] for r in b):.2f}")
-    print("\nimports: -X importtime's top-level imports summed (wall, the fusion's included); "
-          "kernels: the report's kernels_s (kernel preparation + the fusion's import, wall); "
-          "replay: the report's wall_s (feed + report); identical: live positions reproduced "
-          "bit for bit / with positions (--compare)")
+    if rows:
+        print(f"\n{'method / tree':<22} {'wall s':>7} {'x real':>7} {'CPU s':>7} {'min':>7} {'x cpu':>7} "
+              f"{'us/ne':>7} {'RSS MB':>7} {'imports':>8} {'kernels':>8} {'replay':>8} "
+              f"{'identical':>13} load")
+        for method in args.methods:
+            for name, _ in trees:
+                print(_line(f"{method}: {name.split(' ')[0]}", rows[(method, name)]))
+            b, a = rows[(method, trees[0][0])], rows[(method, trees[1][0])]
+            print(f"{method}: after/before      x real {_median(a, 'x_real') / _median(b, 'x_real'):.2f}, "
+                  f"CPU {_median(a, 'cpu_s') / _median(b, 'cpu_s'):.2f} (least "
+                  f"{min(r['cpu_s'] for r in a) / min(r['cpu_s'] for r in b):.2f}), "
+                  f"RSS {max(r['rss_mb'] for r in a) / max(r['rss_mb'] for r in b):.2f}")
+    if rows:
+        print("\nimports: -X importtime's top-level imports summed (wall, the fusion's included); "
+              "kernels: the report's kernels_s (kernel preparation + the fusion's import, wall); "
+              "replay: the report's wall_s (feed + report); identical: live positions reproduced "
+              "bit for bit / with positions (--compare)")
+    if args.split:
+        print_split(trees, args.recording, args.methods, first["fixes"], args.split_rounds)
     if tmp is not None:
         tmp.cleanup()
 

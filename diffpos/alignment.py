@@ -45,8 +45,10 @@ from __future__ import annotations
 import collections
 import math
 import operator
-from dataclasses import dataclass, field
-from typing import Literal, NamedTuple
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from itertools import repeat
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -54,11 +56,15 @@ from numpy.typing import ArrayLike, NDArray
 __all__ = [
     "AlignmentConfig",
     "EpochBook",
+    "EpochColumns",
     "PendingEpoch",
     "RangeEntry",
     "compensate_node_motion",
     "effective_sigma_m",
+    "epoch_columns",
     "epoch_of",
+    "epoch_reports",
+    "reported_anchors",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -201,20 +207,169 @@ class RangeEntry(NamedTuple):
     rx_wall_ns: int
 
 
-@dataclass
 class PendingEpoch:
-    """Ranges of one node in one epoch, per anchor (the last one wins)."""
+    """Ranges of one node in one epoch, per anchor (the last one wins).
 
-    node_id: str
-    epoch: int
-    first_rx_wall_ns: int
-    ranges: dict[str, RangeEntry] = field(default_factory=dict)
+    Made by an :class:`EpochBook`: its ranges are a row of the epoch's columns (an
+    ``_EpochBlock``); ``ranges`` is a read-only mapping view of that row (anchor ->
+    :class:`RangeEntry`, each made when read; ``len`` and ``in`` without making any; the
+    fusion reads the columns with :func:`epoch_columns`). Made directly (tests, tools):
+    ``ranges`` is the dict given (or an empty one), kept and modifiable.
+    """
+
+    __slots__ = ("_block", "_dict", "_row", "epoch", "first_rx_wall_ns", "node_id")
+
+    def __init__(self, node_id: str, epoch: int, first_rx_wall_ns: int,
+                 ranges: dict[str, RangeEntry] | None = None,
+                 _block: _EpochBlock | None = None, _row: int = -1) -> None:
+        self.node_id = node_id
+        self.epoch = epoch
+        self.first_rx_wall_ns = first_rx_wall_ns
+        self._dict = {} if ranges is None and _block is None else ranges
+        self._block = _block  # (made by the book: its row there)
+        self._row = _row
+
+    @property
+    def ranges(self) -> Mapping[str, RangeEntry]:
+        blk = self._block
+        return self._dict if blk is None else _RowRanges(blk, self._row)
+
+    def __repr__(self) -> str:
+        return (f"PendingEpoch(node_id={self.node_id!r}, epoch={self.epoch}, "
+                f"first_rx_wall_ns={self.first_rx_wall_ns}, ranges={self.ranges!r})")
+
+
+class _RowRanges(Mapping):
+    """A read-only view of one row of an epoch block: anchor -> :class:`RangeEntry`."""
+
+    __slots__ = ("_blk", "_row")
+
+    def __init__(self, blk: _EpochBlock, row: int) -> None:
+        self._blk, self._row = blk, row
+
+    def _cols(self) -> list[int]:
+        blk = self._blk
+        return np.flatnonzero(blk.has[self._row, :len(blk.anchors)]).tolist()
+
+    def __len__(self) -> int:
+        blk = self._blk
+        return int(np.count_nonzero(blk.has[self._row, :len(blk.anchors)]))
+
+    def __iter__(self) -> Iterator[str]:
+        anchors = self._blk.anchors
+        return iter([anchors[c] for c in self._cols()])
+
+    def __contains__(self, anchor_id: object) -> bool:
+        c = self._blk.cols.get(anchor_id)  # type: ignore[call-overload]
+        return c is not None and bool(self._blk.has[self._row, c])
+
+    def __getitem__(self, anchor_id: str) -> RangeEntry:
+        if anchor_id not in self:
+            raise KeyError(anchor_id)
+        return self._blk.entry(self._row, self._blk.cols[anchor_id])
+
+    def __repr__(self) -> str:
+        return repr(dict(self))
+
+
+class _EpochBlock:
+    """The ranges of one epoch as columns: a row per node-epoch (pending or released), a
+    column per anchor; per cell the range ``r`` [m] (NaN: not detected), ``sig`` [m], ``snr``
+    [dB], times ``t``, ``pub``, ``rx`` [ns] and ``has`` (the anchor reported); per row its
+    node's book index ``gid``, first receive time, ``open`` (still pending) and its
+    :class:`PendingEpoch`. Rows are made in the order nodes first report, so the batches of
+    a lockstep run fill contiguous rows (slices, no index arrays)."""
+
+    __slots__ = ("anchors", "cols", "epoch", "first_rx", "gid", "has", "n", "names", "open",
+                 "pes", "pub", "r", "rows", "rx", "sig", "snr", "t")
+
+    def __init__(self, epoch: int, rows: int = 64, cols: int = 8) -> None:
+        self.epoch = epoch
+        self.rows: dict[str, int] = {}  # node -> its pending row
+        self.cols: dict[str, int] = {}  # anchor -> column
+        self.names: list[str] = []
+        self.anchors: list[str] = []
+        self.pes: list[PendingEpoch] = []
+        self.n = 0
+        self.r, self.sig, self.snr = (np.empty((rows, cols)) for _ in range(3))
+        self.t, self.pub, self.rx = (np.empty((rows, cols), np.int64) for _ in range(3))
+        self.has = np.zeros((rows, cols), bool)
+        self.first_rx = np.zeros(rows, np.int64)
+        self.gid = np.zeros(rows, np.int64)
+        self.open = np.zeros(rows, bool)
+
+    def col(self, anchor_id: str) -> int:
+        c = self.cols.get(anchor_id)
+        if c is None:
+            c = self.cols[anchor_id] = len(self.anchors)
+            self.anchors.append(anchor_id)
+            if c >= self.has.shape[1]:
+                self._grow(self.has.shape[0], 2 * c)
+        return c
+
+    def new_rows(self, node_ids: list[str], gids: list[int], rx_wall_ns: Sequence[int]
+                 ) -> list[PendingEpoch]:
+        """Rows for ``node_ids`` (none of them pending here), first received at
+        ``rx_wall_ns``; their :class:`PendingEpoch` objects."""
+        r0, k = self.n, len(node_ids)
+        if r0 + k > self.has.shape[0]:
+            self._grow(max(2 * self.has.shape[0], r0 + k), self.has.shape[1])
+        self.n = r0 + k
+        self.rows.update(zip(node_ids, range(r0, r0 + k), strict=True))
+        self.names += node_ids
+        self.gid[r0:r0 + k], self.first_rx[r0:r0 + k] = gids, rx_wall_ns
+        self.open[r0:r0 + k] = True
+        pes = list(map(PendingEpoch, node_ids, repeat(self.epoch), rx_wall_ns, repeat(None),
+                       repeat(self), range(r0, r0 + k)))
+        self.pes += pes
+        return pes
+
+    def _grow(self, rows: int, cols: int) -> None:
+        def grown(a: np.ndarray, fill) -> np.ndarray:
+            out = np.full((rows, cols) if a.ndim > 1 else (rows,), fill, a.dtype)
+            out[tuple(slice(0, k) for k in a.shape)] = a
+            return out
+        self.r, self.sig, self.snr = (grown(a, np.nan) for a in (self.r, self.sig, self.snr))
+        self.t, self.pub, self.rx = (grown(a, 0) for a in (self.t, self.pub, self.rx))
+        self.has = grown(self.has, False)
+        self.first_rx, self.gid = grown(self.first_rx, 0), grown(self.gid, 0)
+        self.open = grown(self.open, False)
+
+    def count(self, rows: Any) -> NDArray[np.int64]:
+        """Reports of ``rows`` (any anchor)."""
+        return np.count_nonzero(self.has[rows, :len(self.anchors)], axis=-1)
+
+    def entry(self, row: int, c: int) -> RangeEntry:
+        """Cell (row, c) as a :class:`RangeEntry` (range ``None``: not detected)."""
+        r = float(self.r[row, c])
+        return RangeEntry(int(self.t[row, c]), None if r != r else r, float(self.sig[row, c]),
+                          float(self.snr[row, c]), int(self.pub[row, c]), int(self.rx[row, c]))
+
+    def put(self, row: int, c: int, entry: RangeEntry) -> bool:
+        """One range into cell (row, c); True if it replaced one."""
+        was = bool(self.has[row, c])
+        self.has[row, c] = True
+        r = entry.range_m
+        self.r[row, c] = math.nan if r is None else r
+        self.sig[row, c], self.snr[row, c] = entry.sigma_m, entry.snr_db
+        self.t[row, c], self.pub[row, c] = entry.t_ns, entry.t_pub_wall_ns
+        self.rx[row, c] = entry.rx_wall_ns
+        return was
+
+    def put_columns(self, rows: Any, c: int, cols: tuple) -> int:
+        """Ranges into column ``c`` of ``rows`` (a slice or an index array): ``cols`` =
+        (range, sigma, snr, t, pub, rx), arrays or one value each; how many replaced one."""
+        was = int(np.count_nonzero(self.has[rows, c]))
+        self.has[rows, c] = True
+        self.r[rows, c], self.sig[rows, c], self.snr[rows, c] = cols[:3]
+        self.t[rows, c], self.pub[rows, c], self.rx[rows, c] = cols[3:]
+        return was
 
 
 #: "Before any time" for the latest-time and solved-epoch maps [ns or epoch index].
 _NEVER = -(2**62)
 _NEVER_EPOCH = -(2**63)  # below every epoch index (no epoch is closed)
-_EPOCH_NODE = operator.itemgetter(1, 0)  # pending key (node, epoch) -> (epoch, node)
+_EPOCH = operator.attrgetter("epoch")
 _FIRST_RX = operator.attrgetter("first_rx_wall_ns")
 #: Lag samples kept per anchor, and how many new ones trigger a new allowance.
 _LAG_SAMPLES = 256
@@ -249,6 +404,10 @@ class EpochBook:
         self.closed_upto = _NEVER
         self._lags: dict[str, collections.deque[int]] = {}
         self._lag_new = 0
+        # the ranges by epoch as columns (their PendingEpoch objects are in ``pending``), and
+        # a number per node (the release rule's arrays)
+        self._blocks: dict[int, _EpochBlock] = {}
+        self._gids: dict[str, int] = {}
         self._adds = 0  # ranges added (a change of the pending epochs' contents)
         # (state, live anchors, wall time before which nothing can time out) of the last
         # ready() call that released nothing: the same state releases nothing until then
@@ -268,44 +427,54 @@ class EpochBook:
             self.late += 1
             self.late_by_anchor[anchor_id] += 1
             return False
-        key = (node_id, e)
-        pe = self.pending.get(key)
-        if pe is None:
-            pe = self.pending[key] = PendingEpoch(node_id, e, rx)
-        ranges = pe.ranges
-        if anchor_id in ranges:
+        blk = self._block(e)
+        row = blk.rows.get(node_id)
+        if row is None:
+            pe = self.pending[(node_id, e)] = blk.new_rows([node_id], [self._gid(node_id)],
+                                                         [rx])[0]
+            row = pe._row
+        if blk.put(row, blk.col(anchor_id), entry):
             self.replaced += 1
-        ranges[anchor_id] = entry
         self._adds += 1
         return True
 
+    def _block(self, epoch: int) -> _EpochBlock:
+        blk = self._blocks.get(epoch)
+        if blk is None:
+            blk = self._blocks[epoch] = _EpochBlock(epoch)
+        return blk
+
+    def _gid(self, node_id: str) -> int:
+        g = self._gids.get(node_id)
+        if g is None:
+            g = self._gids[node_id] = len(self._gids)
+        return g
+
     def add_many(self, anchor_id: str, t_ns: int, entries: list[tuple[str, RangeEntry]]) -> int:
         """Add ranges of one anchor taken at the same time ``t_ns`` (one epoch); returns how
-        many were late (their node's epoch already solved)."""
+        many were late (their node's epoch already solved). A node twice: the last one wins."""
+        if entries and len({n for n, _ in entries}) == len(entries):
+            t, r, sg, snr, pub, rx = zip(*(x for _, x in entries), strict=True)
+            return self.add_columns(anchor_id, t_ns, [n for n, _ in entries],
+                                    np.array(r, np.float64), sg, snr, t, pub, rx)
         e = int(t_ns // self.config.epoch_period_ns)
         self.note_anchor_time(anchor_id, t_ns)
         late = 0
-        pending = self.pending
-        solved = self.solved_upto
         if e <= self.closed_upto:
             late = len(entries)
         else:
-            # a pending (node, e) is never at or below the node's solved epoch (a node's epochs
-            # are released in order and solved_upto moves only on a release), so only a node
-            # without a pending epoch e needs the solved test
+            blk = self._block(e)
+            c = blk.col(anchor_id)
             for node_id, entry in entries:
-                pe = pending.get((node_id, e))
-                if pe is None:
-                    if e <= solved.get(node_id, _NEVER):
+                row = blk.rows.get(node_id)
+                if row is None:
+                    if e <= self.solved_upto.get(node_id, _NEVER):
                         late += 1
                         continue
-                    pe = pending[(node_id, e)] = PendingEpoch(node_id, e, entry.rx_wall_ns)
-                    pe.ranges[anchor_id] = entry
-                    continue
-                ranges = pe.ranges
-                if anchor_id in ranges:
-                    self.replaced += 1
-                ranges[anchor_id] = entry
+                    pe = self.pending[(node_id, e)] = blk.new_rows(
+                        [node_id], [self._gid(node_id)], [entry.rx_wall_ns])[0]
+                    row = pe._row
+                self.replaced += blk.put(row, c, entry)
         if entries:
             self._adds += 1
             self._note_rx(entries[-1][1].rx_wall_ns)
@@ -313,6 +482,68 @@ class EpochBook:
             self.late += late
             self.late_by_anchor[anchor_id] += late
         return late
+
+    def add_columns(self, anchor_id: str, t_ns: int, node_ids: Sequence[str],
+                    range_m: ArrayLike, sigma_m: ArrayLike, snr_db: ArrayLike,
+                    meas_t_ns: ArrayLike, t_pub_wall_ns: ArrayLike,
+                    rx_wall_ns: ArrayLike) -> int:
+        """:meth:`add_many` of one anchor's ranges at ``t_ns`` given as columns (each node
+        once): ``range_m`` NaN where not detected; the other columns per range or one value
+        for all. Returns how many were late. No Python object per range: the columns go
+        into the epoch's block with a few array operations (slices in a lockstep run)."""
+        e = int(t_ns // self.config.epoch_period_ns)
+        self.note_anchor_time(anchor_id, t_ns)
+        n = len(node_ids)
+        if not n:
+            return 0
+        late = 0
+        one_rx = isinstance(rx_wall_ns, int | np.integer)
+        rx_last = int(rx_wall_ns if one_rx else rx_wall_ns[-1])
+        if e <= self.closed_upto:
+            late = n
+        else:
+            blk = self._block(e)
+            c = blk.col(anchor_id)
+            rows = list(map(blk.rows.get, node_ids))
+            cols = (range_m, sigma_m, snr_db, meas_t_ns, t_pub_wall_ns, rx_wall_ns)
+            if None in rows:
+                rx = [int(rx_wall_ns)] * n if one_rx else rx_wall_ns
+                rows, keep = self._new_rows(blk, e, node_ids, rows, rx)
+                late = n - len(keep)
+                if late:
+                    cols = tuple(v if np.ndim(v) == 0 else np.asarray(v)[keep] for v in cols)
+            if rows:
+                r0 = rows[0]
+                at = (slice(r0, r0 + len(rows)) if rows[-1] - r0 == len(rows) - 1
+                      and rows == list(range(r0, r0 + len(rows))) else np.array(rows, np.intp))
+                self.replaced += blk.put_columns(at, c, cols)
+        self._adds += 1
+        self._note_rx(rx_last)
+        if late:
+            self.late += late
+            self.late_by_anchor[anchor_id] += late
+        return late
+
+    def _new_rows(self, blk: _EpochBlock, e: int, node_ids: Sequence[str],
+                  rows: list[int | None], rx_wall_ns: Sequence[int]
+                  ) -> tuple[list[int], list[int]]:
+        """Rows for the nodes of ``node_ids`` without one (``rows[k]`` None) in epoch ``e``,
+        but those whose epoch ``e`` is solved already (late), first received at
+        ``rx_wall_ns[k]``; the rows of the kept entries and their indices."""
+        solved = self.solved_upto
+        new = [k for k, row in enumerate(rows) if row is None]
+        fresh = [k for k in new if e > solved.get(node_ids[k], _NEVER)]
+        if fresh:
+            ids = [node_ids[k] for k in fresh]
+            pes = blk.new_rows(ids, [self._gid(x) for x in ids],
+                               [int(rx_wall_ns[k]) for k in fresh])
+            self.pending.update(zip(zip(ids, repeat(e)), pes, strict=True))
+            for k, pe in zip(fresh, pes, strict=True):
+                rows[k] = pe._row
+        if len(fresh) == len(new):
+            return rows, list(range(len(rows)))
+        keep = [k for k, row in enumerate(rows) if row is not None]
+        return [rows[k] for k in keep], keep
 
     def _note_rx(self, rx_wall_ns: int) -> None:
         if self.last_rx_wall_ns is None or rx_wall_ns > self.last_rx_wall_ns:
@@ -409,9 +640,7 @@ class EpochBook:
         docstring: watermark + allowance, or a wall fallback). Epochs of a node are released
         in order (a later epoch never overtakes an earlier pending one).
         """
-        cfg = self.config
         out: list[PendingEpoch] = []
-        blocked: set[str] = set()
         if not self.pending:
             return out
         state = self._state()
@@ -419,44 +648,67 @@ class EpochBook:
         if idle is not None and idle[0] == state and now_wall_ns < idle[2] and (
                 idle[1] is live_anchors or idle[1] == live_anchors):
             return out  # nothing changed and nothing can have timed out since (cheap no-op)
-        everything, last, cutoff = self._timeout_rule(now_wall_ns)
+        rule = self._timeout_rule(now_wall_ns)
         t_c = self.consensus_t_ns(live_anchors)
+        cfg = self.config
         horizon = None if t_c is None else (t_c + cfg.max_future_ns) // cfg.epoch_period_ns
-        # per epoch index: the live anchors whose latest time has not passed its end (an
-        # epoch is complete when each of them reported for it)
-        waiting_for: dict[int, frozenset[str]] = {}
-        latest = self.latest_t_ns
-        pending, solved = self.pending, self.solved_upto
-        min_reports = cfg.min_reports
-        keys = sorted(pending, key=_EPOCH_NODE)
-        newest = keys[-1][1]  # a node not done in the newest epoch blocks nothing later
-        for key in keys:
-            node_id, epoch = key
-            if node_id in blocked:
-                continue
-            pe = pending[key]
-            if everything or epoch <= last or pe.first_rx_wall_ns <= cutoff:
-                done = True  # timed out
-            elif len(pe.ranges) >= min_reports:
-                waiting = waiting_for.get(epoch)
-                if waiting is None:
-                    end_ns = (epoch + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
-                    waiting = waiting_for[epoch] = frozenset(
-                        a for a in live_anchors if latest.get(a, _NEVER) < end_ns
-                    )
-                done = waiting <= pe.ranges.keys()
-            else:
-                done = False
-            if done:
-                out.append(pe)
-                del pending[key]
-                if horizon is not None and epoch > horizon:
-                    self.strays += 1
-                    continue
-                solved[node_id] = max(epoch, solved.get(node_id, _NEVER))
-            elif epoch != newest:
-                blocked.add(node_id)
+        blocked = np.zeros(len(self._gids), bool)  # per node: an earlier epoch not released
+        epochs = sorted(e for e, b in self._blocks.items() if b.open[:b.n].any())
+        for e in epochs:  # a node not done in the newest epoch blocks nothing later
+            self._release(self._blocks[e], rule, live_anchors, blocked, e != epochs[-1],
+                          horizon, out)
         self._idle = None if out else (state, live_anchors, self._wake_wall_ns())
+        return out
+
+    def _release(self, blk: _EpochBlock, rule: tuple[bool, int, int],
+                 live_anchors: set[str] | frozenset[str], blocked: np.ndarray, block: bool,
+                 horizon: int | None, out: list[PendingEpoch]) -> None:
+        """:meth:`ready` for one epoch's block: its ready rows into ``out`` (by node id), the
+        nodes of the others into ``blocked`` when ``block``."""
+        everything, last, cutoff = rule
+        cfg = self.config
+        e, n = blk.epoch, blk.n
+        gid = blk.gid[:n]
+        cand = blk.open[:n] & ~blocked[gid]
+        if not cand.any():
+            return
+        if everything or e <= last:
+            done = cand
+        else:
+            done = cand & (blk.first_rx[:n] <= cutoff)  # waited max_lag_ns (wall)
+            full = cand & ~done & (blk.count(slice(0, n)) >= cfg.min_reports)
+            if full.any():  # complete: each live anchor not past its end reported
+                end_ns = (e + 1) * cfg.epoch_period_ns + cfg.clock_tolerance_ns
+                latest, cols = self.latest_t_ns, blk.cols
+                waiting = [cols.get(a, -1) for a in live_anchors
+                           if latest.get(a, _NEVER) < end_ns]
+                if -1 not in waiting:
+                    done = done | (full & blk.has[:n, waiting].all(axis=1) if waiting else full)
+        if block:
+            blocked[gid[cand & ~done]] = True
+        rel = np.flatnonzero(done)
+        if not rel.size:
+            return
+        blk.open[rel] = False
+        names, pes, rows = blk.names, blk.pes, blk.rows
+        pending, solved = self.pending, self.solved_upto
+        stray = horizon is not None and e > horizon
+        for r in sorted(rel.tolist(), key=names.__getitem__):
+            node_id = names[r]
+            out.append(pes[r])
+            del pending[(node_id, e)], rows[node_id]
+            if stray:
+                self.strays += 1
+            else:
+                solved[node_id] = max(e, solved.get(node_id, _NEVER))
+        if not blk.open[:n].any():
+            del self._blocks[e]
+
+    def take_all(self) -> list[PendingEpoch]:
+        """Remove and return every pending epoch, oldest epoch first (at shutdown)."""
+        out = sorted(self.pending.values(), key=_EPOCH)
+        self.pending.clear()
+        self._blocks.clear()
         return out
 
     def _state(self) -> tuple:
@@ -465,9 +717,16 @@ class EpochBook:
                 self.max_lag_ns, self.last_rx_wall_ns, self.config,
                 tuple(self.latest_t_ns.items()))
 
+    def _first_rx_wall_ns(self) -> int:
+        """The earliest first receive time of a pending epoch (some must be pending)."""
+        blocks = [b for b in self._blocks.values() if b.open[:b.n].any()]
+        if not blocks:  # (epochs put into ``pending`` directly)
+            return min(map(_FIRST_RX, self.pending.values()))
+        return min(int(b.first_rx[:b.n][b.open[:b.n]].min()) for b in blocks)
+
     def _wake_wall_ns(self) -> int:
         """The earliest wall time at which a pending epoch can time out (see _timeout_rule)."""
-        first = min(map(_FIRST_RX, self.pending.values()))
+        first = self._first_rx_wall_ns()
         if self.config.release == "wall":
             return first + self.config.deadline_ns
         wake = first + self.max_lag_ns
@@ -480,7 +739,116 @@ class EpochBook:
         the main loop wait)."""
         if not self.pending:
             return None
-        first = min(pe.first_rx_wall_ns for pe in self.pending.values())
+        first = self._first_rx_wall_ns()
         if self.config.release == "wall":
             return first + self.config.deadline_ns
         return first + self.max_lag_ns
+
+
+# ------------------------------------------------------------------- epochs as columns
+class EpochColumns(NamedTuple):
+    """Epochs' ranges as ``(B, M)`` arrays over anchor columns (:func:`epoch_columns`)."""
+
+    t: NDArray[np.int64]  # [ns] measurement time of each reported range, 0 elsewhere
+    range_m: FloatArray  # [m], NaN where not detected
+    sigma_m: FloatArray  # [m], 1 where not detected
+    snr_db: FloatArray  # [dB], NaN where not detected
+    reported: NDArray[np.bool_]  # the anchor reported for the epoch
+    detected: NDArray[np.bool_]  # ... with a range
+    t_pub_wall: NDArray[np.int64]  # [ns] publish wall time of each reported range, 0 elsewhere
+    count: NDArray[np.int64]  # (B,) reports of each epoch (every anchor, named or not)
+
+
+def _by_block(epochs: Sequence[PendingEpoch]) -> tuple[dict, list[int]]:
+    """``{id(block): (block, epoch rows, block rows)}`` of the book-made epochs, and the
+    indices of the others (their ranges a dict)."""
+    groups: dict[int, tuple[_EpochBlock, list[int], list[int]]] = {}
+    loose = []
+    for k, pe in enumerate(epochs):
+        blk = pe._block
+        if blk is None:
+            loose.append(k)
+            continue
+        g = groups.get(id(blk))
+        if g is None:
+            g = groups[id(blk)] = (blk, [], [])
+        g[1].append(k)
+        g[2].append(pe._row)
+    return groups, loose
+
+
+def epoch_columns(epochs: Sequence[PendingEpoch], ids: Sequence[str]) -> EpochColumns:
+    """The ranges of ``epochs`` (rows) as arrays over the anchor columns ``ids`` (every
+    anchor that reported for one of them must be named): gathered from the book's blocks
+    with a few array operations per epoch block, no Python object per range."""
+    col = {a: j for j, a in enumerate(ids)}
+    b, m = len(epochs), len(ids)
+    t = np.zeros((b, m), np.int64)
+    rng = np.full((b, m), np.nan)
+    sig = np.ones((b, m))
+    snr = np.full((b, m), np.nan)
+    reported = np.zeros((b, m), bool)
+    pub = np.zeros((b, m), np.int64)
+    count = np.zeros(b, np.int64)
+    groups, loose = _by_block(epochs)
+    for blk, ri, br in groups.values():
+        bc = [c for c, a in enumerate(blk.anchors) if a in col]
+        if not bc:
+            count[ri] = blk.count(br)
+            continue
+        jc = [col[blk.anchors[c]] for c in bc]
+        sel = np.ix_(br, bc)
+        out = np.ix_(ri, jc)
+        h = blk.has[sel]
+        reported[out] = h
+        t[out] = np.where(h, blk.t[sel], 0)
+        pub[out] = np.where(h, blk.pub[sel], 0)
+        r = blk.r[sel]
+        det = h & ~np.isnan(r)
+        rng[out] = np.where(det, r, np.nan)
+        sig[out] = np.where(det, blk.sig[sel], 1.0)
+        snr[out] = np.where(det, blk.snr[sel], np.nan)
+        count[ri] = blk.count(br)
+    for k in loose:
+        ranges = epochs[k].ranges
+        count[k] = len(ranges)
+        for a, x in ranges.items():
+            j = col[a]
+            reported[k, j], t[k, j], pub[k, j] = True, x.t_ns, x.t_pub_wall_ns
+            if x.range_m is not None:
+                rng[k, j], sig[k, j], snr[k, j] = x.range_m, x.sigma_m, x.snr_db
+    return EpochColumns(t, rng, sig, snr, reported, ~np.isnan(rng), pub, count)
+
+
+def epoch_reports(epochs: Sequence[PendingEpoch], ids: Sequence[str]
+                  ) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    """Which of the anchors ``ids`` reported for each epoch (B, M), and each epoch's number
+    of reports from any anchor (B,)."""
+    col = {a: j for j, a in enumerate(ids)}
+    reported = np.zeros((len(epochs), len(ids)), bool)
+    count = np.zeros(len(epochs), np.int64)
+    groups, loose = _by_block(epochs)
+    for blk, ri, br in groups.values():
+        count[ri] = blk.count(br)
+        bc = [c for c, a in enumerate(blk.anchors) if a in col]
+        if bc:
+            reported[np.ix_(ri, [col[blk.anchors[c]] for c in bc])] = blk.has[np.ix_(br, bc)]
+    for k in loose:
+        ranges = epochs[k].ranges
+        count[k] = len(ranges)
+        for a in ranges:
+            if a in col:
+                reported[k, col[a]] = True
+    return reported, count
+
+
+def reported_anchors(epochs: Sequence[PendingEpoch]) -> set[str]:
+    """The anchors that reported for at least one of ``epochs``."""
+    out: set[str] = set()
+    groups, loose = _by_block(epochs)
+    for blk, _, br in groups.values():
+        m = len(blk.anchors)
+        out.update(blk.anchors[c] for c in np.flatnonzero(blk.has[br, :m].any(axis=0)).tolist())
+    for k in loose:
+        out.update(epochs[k].ranges)
+    return out

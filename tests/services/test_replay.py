@@ -403,7 +403,7 @@ def test_streamed_report_stays_bounded_and_within_its_stated_error():
     ne = fs.node_epochs()
     assert ne["node_epochs"] == ne["fixes"] == 2 * (n - 20)  # the first 2 s are skipped
     # nothing per fix is left: the pending queues and buffers are empty, truth is windowed
-    assert all(not q for q in fs._pending.values()) and len(fs._err.e3) == 0
+    assert fs.pending_fixes == 0 and len(fs._store) == 0 and len(fs._err.e3) == 0
     assert len(tb.t["n1"]) <= 2 * 300 + 1
     assert arrays["e3"].size == 2 * n  # for plots, made on access
 

@@ -24,13 +24,12 @@ import collections
 import logging
 import math
 from collections.abc import Sequence
-from itertools import repeat
 from typing import Any
 
 import msgspec
 import numpy as np
 
-from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry
+from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry, epoch_columns, reported_anchors
 from diffpos.estimators.gating import GatingConfig
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.decisions import DecisionLog
@@ -48,7 +47,14 @@ from diffpos_services.fusion.ingest import (
     count_releases,
 )
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
-from diffpos_services.fusion.step import gated_count, gather, prepare, solve_batch
+from diffpos_services.fusion.step import (
+    Batch,
+    _anchor_positions,
+    _reference_times,
+    gated_count,
+    prepare,
+    solve_batch,
+)
 from diffpos_services.fusion.tracked import TrackBank, heavy_budget, in_publish_order, solve_mnls
 from diffpos_services.fusion.warm import warm_up
 from diffpos_services.logs import log_event
@@ -57,9 +63,24 @@ from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
 
 __all__ = ["BEHIND_KEEP_EPOCHS", "FusionConfig", "FusionCore"]
 
-_new_tuple = tuple.__new__
 #: why an epoch was released (FusionDiagnostics.releases)
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
+
+
+def _gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, AnchorStream]
+            ) -> Batch:
+    """:func:`~diffpos_services.fusion.step.gather` from the epoch book's columns
+    (:func:`~diffpos.alignment.epoch_columns`: no Python object per range): the epochs'
+    ranges as ``(B, M)`` arrays over the anchor columns ``ids``, the anchors' positions at
+    the range times from their state histories, the reference times."""
+    c = epoch_columns(epochs, ids)
+    col = {a: j for j, a in enumerate(ids)}
+    apos, asig, have_state = _anchor_positions(col, anchors, c.t, c.detected)
+    use = c.detected & have_state
+    t_ref, dt_s = _reference_times(c.t, c.reported, use)
+    return Batch(list(col), c.t, c.range_m, c.sigma_m, c.reported, c.detected, c.t_pub_wall,
+                 apos, asig, have_state, use, t_ref, dt_s,
+                 np.where(np.isfinite(c.snr_db), c.snr_db, np.nan))
 
 
 class FusionCore:
@@ -393,17 +414,14 @@ class FusionCore:
         if cols is not None:
             # the usual batch: every entry valid (or not detected at all) and every node
             # known, so the per-entry checks would accept them all (what _entry then does,
-            # by columns)
+            # by columns, into the epoch book's columns: no object per range)
             r_col, sg_col, snr_col = cols
             min_snr = self.config.min_snr_db
-            if min_snr is not None and min(snr_col) < min_snr:
-                r_col = [r if snr >= min_snr else None for r, snr in zip(r_col, snr_col, strict=True)]
-            n = len(r_col)
-            # RangeEntry tuples built in C (the named tuple's __new__ costs 2 us per range)
-            entries = list(zip(msg.node_ids, map(
-                _new_tuple, repeat(RangeEntry, n),
-                zip(repeat(t, n), r_col, sg_col, snr_col, repeat(pw, n),
-                    repeat(rx_wall_ns, n), strict=True)), strict=True))
+            if min_snr is not None and snr_col.min() < min_snr:
+                r_col = np.where(snr_col >= min_snr, r_col, np.nan)
+            anchor.ranges += len(r_col)
+            late = self.book.add_columns(anchor.id, t, msg.node_ids, r_col, sg_col, snr_col,
+                                         t, pw, rx_wall_ns)
         else:
             entries = []
             for nid, r, sg, snr in zip(msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db,
@@ -417,8 +435,8 @@ class FusionCore:
                     self._reject(key, bad[0], bad[1], source=src)
                     continue
                 entries.append((nid, self._entry(t, r, sg, snr, pw, rx_wall_ns)))
-        anchor.ranges += len(entries)
-        late = self.book.add_many(anchor.id, t, entries)
+            anchor.ranges += len(entries)
+            late = self.book.add_many(anchor.id, t, entries)
         if late:
             self.rejected["late"] += late
 
@@ -560,8 +578,7 @@ class FusionCore:
         if self.decisions is not None:
             self.decisions.flush(now_wall_ns)
         self.releases["flush"] += len(self.book.pending)
-        self._ready.extend(sorted(self.book.pending.values(), key=lambda p: p.epoch))
-        self.book.pending.clear()
+        self._ready.extend(self.book.take_all())
         out = Estimates()
         while self._ready:
             n = min(len(self._ready), self.config.max_fixes_per_step)
@@ -577,9 +594,9 @@ class FusionCore:
         if given), see :func:`~diffpos_services.fusion.tracked.in_publish_order`; ``behind``:
         see ``solve_mnls``. The steps are in :mod:`diffpos_services.fusion.step`: gather arrays -> prepare the
         batch -> warm/cold/retry solve -> messages (built here: counters and tracks)."""
-        ids = sorted({a for pe in epochs for a in pe.ranges} | set(self.live_anchors)
+        ids = sorted(reported_anchors(epochs) | set(self.live_anchors)
                      | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None})
-        batch = gather(epochs, ids, self.anchors)
+        batch = _gather(epochs, ids, self.anchors)
         prep = prepare(batch, epochs, self.tracks, self.config)
         self.solved += len(epochs)
         if self.building is not None:

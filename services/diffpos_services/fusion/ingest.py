@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from diffpos.alignment import EpochBook, PendingEpoch
+from diffpos.alignment import EpochBook, PendingEpoch, epoch_reports
 from diffpos.anchor_history import StateHistory
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.logs import log_event
@@ -182,13 +182,15 @@ def bad_batch(cfg: FusionConfig, msg: M.RangeBatch) -> tuple[str, str] | None:
 
 
 def batch_all_good(cfg: FusionConfig, msg: M.RangeBatch, nodes: set[str],
-                   allowed_nodes: frozenset[str] | None) -> tuple[list, list, list] | None:
-    """The columns ``(range_m, sigma_m, snr_db)`` of ``msg`` as the per-entry checks of
-    :meth:`FusionCore._add_batch` would keep them, when every entry passes them: finite values
-    within the configured limits, or no detection at all (range, sigma and SNR all null:
-    kept as range ``None``, sigma 1, SNR -inf, as :meth:`FusionCore._entry` does), only known
-    (``nodes``) and allowed nodes; checked with a few vectorised operations instead of per
-    entry. ``None``: some entry needs the per-entry checks."""
+                   allowed_nodes: frozenset[str] | None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The columns ``(range_m, sigma_m, snr_db)`` of ``msg`` as float arrays, as the per-entry
+    checks of :meth:`FusionCore._add_batch` would keep them, when every entry passes them:
+    finite values within the configured limits, or no detection at all (range, sigma and SNR
+    all null: kept as range NaN (``None`` in a :class:`~diffpos.alignment.RangeEntry`),
+    sigma 1, SNR -inf, as :meth:`FusionCore._entry` does), only known (``nodes``) and allowed
+    nodes; checked with a few vectorised operations instead of per entry. ``None``: some
+    entry needs the per-entry checks."""
     ids, r, sg, snr = msg.node_ids, msg.range_m, msg.sigma_m, msg.snr_db
     if not ids or not nodes.issuperset(ids) or (
         allowed_nodes is not None and not allowed_nodes.issuperset(ids)
@@ -202,45 +204,45 @@ def batch_all_good(cfg: FusionConfig, msg: M.RangeBatch, nodes: set[str],
     if not missing and (None in sg or None in snr):
         return None
     # (None -> NaN; the undetected entries are left out of the checks)
-    ra = np.array(r, dtype=np.float64)
-    sa = np.array(sg, dtype=np.float64)
-    na = np.array(snr, dtype=np.float64)
-    if missing:
-        if missing == len(r):
-            return r, [1.0] * missing, [-math.inf] * missing
-        det = np.fromiter((v is not None for v in r), bool, len(r))
-        ra, sa, na = ra[det], sa[det], na[det]
+    if missing == len(r):
+        return np.full(missing, np.nan), np.ones(missing), np.full(missing, -math.inf)
+    cols = np.array((r, sg, snr), dtype=np.float64)  # (3, n)
+    det = np.fromiter((v is not None for v in r), bool, len(r)) if missing else None
+    checked = cols if det is None else cols[:, det]
+    lo, hi = checked.min(axis=1).tolist(), checked.max(axis=1).tolist()
     # NaN compares False: a non-finite value fails these and takes the checked path
-    if not bool(
-        (ra.max() <= cfg.max_range_m) & (ra.min() >= 0.0)
-        & (sa.min() >= cfg.min_sigma_m) & (sa.max() <= cfg.max_sigma_m)
-        & (na.min() >= -300.0) & (na.max() <= 300.0)
-    ):
+    if not (hi[0] <= cfg.max_range_m and lo[0] >= 0.0 and lo[1] >= cfg.min_sigma_m
+            and hi[1] <= cfg.max_sigma_m and lo[2] >= -300.0 and hi[2] <= 300.0):
         return None
-    if missing:  # the undetected entries as _entry keeps them
-        sg = [1.0 if v is None else v for v in sg]
-        snr = [-math.inf if v is None else v for v in snr]
-    return r, sg, snr
+    ra, sa, na = cols
+    if det is not None:  # the undetected entries as _entry keeps them
+        sa[~det] = 1.0
+        na[~det] = -math.inf
+    return ra, sa, na
 
 
 def count_releases(book: EpochBook, released: list[PendingEpoch], live: frozenset[str],
                    rel: collections.Counter) -> None:
     """Count in ``rel`` why each released epoch was released (``complete``: every live anchor
     reported; ``passed``: the missing ones' clocks passed its end; ``watermark``;
-    ``wall_fallback``)."""
+    ``wall_fallback``), from the epochs' columns."""
+    if not released:
+        return
     align = book.config
-    period, tol = align.epoch_period_ns, align.clock_tolerance_ns
-    latest, closed = book.latest_t_ns, book.closed_upto
-    for pe in released:
-        missing = live - pe.ranges.keys()
-        if not missing:
-            rel["complete"] += 1
-            continue
-        end = (pe.epoch + 1) * period + tol
-        if len(pe.ranges) >= align.min_reports and all(
-                latest.get(a, end - 1) >= end for a in missing):
-            rel["passed"] += 1
-        elif pe.epoch <= closed:
-            rel["watermark"] += 1
-        else:
-            rel["wall_fallback"] += 1
+    ids = sorted(live)
+    reported, count = epoch_reports(released, ids)
+    complete = reported.all(axis=1)
+    epoch = np.fromiter((pe.epoch for pe in released), np.int64, len(released))
+    end = (epoch + 1) * align.epoch_period_ns + align.clock_tolerance_ns
+    never = -(2**62)  # an anchor without a time has not passed any end
+    latest = np.array([book.latest_t_ns.get(a, never) for a in ids], np.int64)
+    passed = ~complete & (count >= align.min_reports) & (
+        reported | (latest[None, :] >= end[:, None])).all(axis=1)
+    watermark = ~complete & ~passed & (epoch <= book.closed_upto)
+    n_complete, n_passed = int(complete.sum()), int(passed.sum())
+    n_watermark = int(watermark.sum())
+    for reason, n in (("complete", n_complete), ("passed", n_passed),
+                      ("watermark", n_watermark),
+                      ("wall_fallback", len(released) - n_complete - n_passed - n_watermark)):
+        if n:
+            rel[reason] += n

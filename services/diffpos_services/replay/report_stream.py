@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import array
 import bisect
-import collections
 import copy
 import dataclasses
 import heapq
@@ -280,6 +279,86 @@ class ErrorArrays(Mapping):
         return len(self._src)
 
 
+#: a fix without a floor index, in the store's floor column
+_NO_FLOOR = -(2**62)
+#: a node without truth, in the newest-truth column (no fix time is at or below it)
+_NO_TRUTH = np.iinfo(np.int64).min
+
+
+class _FixStore:
+    """A stream's positioned fixes as columns in arrival order (typed arrays: no object per
+    fix), until each is scored against the truth (``scored``) and its node-epoch is scored
+    or dropped (referenced by the stream's node-epoch map): node (the stream's index of the
+    node), time, position, PEB (NaN: none), floor (:data:`_NO_FLOOR`: none), covariance
+    (zeros where ``has_cov`` is 0) and floor probabilities (the estimate's own list, or
+    ``()``). Each fix has a number ``id`` (increasing, never reused); :meth:`compact` drops
+    what nothing needs any more."""
+
+    def __init__(self) -> None:
+        self.next_id = 0
+        self._new()
+
+    def _new(self) -> None:
+        self.id, self.node, self.t, self.floor = (array.array("q") for _ in range(4))
+        self.pos, self.peb, self.cov = array.array("d"), array.array("d"), array.array("d")
+        self.has_cov, self.scored = array.array("b"), array.array("b")
+        self.probs: list = []
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def add_columns(self, node: np.ndarray, t: np.ndarray, pos: np.ndarray, peb: np.ndarray,
+                    floor: np.ndarray, cov: np.ndarray, has_cov: np.ndarray,
+                    probs: list) -> range:
+        """Fixes as columns (k,), pos (k, 3), cov (k, 3, 3); their ids."""
+        k = t.size
+        ids = range(self.next_id, self.next_id + k)
+        self.next_id += k
+        self.id.frombytes(np.arange(ids.start, ids.stop, dtype=np.int64).tobytes())
+        self.node.frombytes(node.astype(np.int64).tobytes())
+        self.t.frombytes(t.astype(np.int64).tobytes())
+        self.pos.frombytes(np.ascontiguousarray(pos, np.float64).tobytes())
+        self.peb.frombytes(peb.astype(np.float64).tobytes())
+        self.floor.frombytes(floor.astype(np.int64).tobytes())
+        self.cov.frombytes(np.where(has_cov[:, None, None], cov, 0.0).astype(np.float64)
+                           .tobytes())
+        self.has_cov.frombytes(has_cov.astype(np.int8).tobytes())
+        self.scored.frombytes(bytes(k))
+        self.probs += probs
+        return ids
+
+    def col(self, name: str) -> np.ndarray:
+        """A column as a numpy view (pos: (n, 3), cov: (n, 3, 3)); do not keep it across
+        :meth:`add` (the array may move)."""
+        a = getattr(self, name)
+        dt = {"q": np.int64, "d": np.float64, "b": np.int8}[a.typecode]
+        v = np.frombuffer(a, dt) if len(a) else np.empty(0, dt)
+        return v.reshape(-1, 3) if name == "pos" else v.reshape(-1, 3, 3) if name == "cov" else v
+
+    def rows(self, ids) -> np.ndarray:
+        """The rows of fix ids (each must be stored)."""
+        return np.searchsorted(self.col("id"), np.asarray(ids, np.int64))
+
+    def compact(self, keep_ids) -> None:
+        """Keep the unscored fixes and those of ``keep_ids`` (the node-epoch map's)."""
+        if not len(self.t):
+            return
+        keep = (self.col("scored") == 0) | np.isin(self.col("id"), np.fromiter(
+            keep_ids, np.int64))
+        if keep.all():
+            return
+        cols = {k: self.col(k)[keep] for k in ("id", "node", "t", "floor", "pos", "peb",
+                                               "cov", "has_cov", "scored")}
+        probs = [p for p, k in zip(self.probs, keep.tolist(), strict=True) if k]
+        self._new()
+        for k, v in cols.items():
+            getattr(self, k).frombytes(np.ascontiguousarray(v).tobytes())
+        self.probs = probs
+
+
+_NO_COV = ((0.0, 0.0, 0.0),) * 3  # (a placeholder where a fix has no covariance)
+
+
 class FixStream:
     """One stream of fixes (the live or the replayed one) reduced for the report.
 
@@ -305,9 +384,14 @@ class FixStream:
         self.no_truth = 0
         self._nodes: dict[str, int] = {}
         self._err = _Errors()
-        self._pending: dict[str, collections.deque] = defaultdict(collections.deque)
-        # node-epochs: good fixes by (node, slot) until their truth sample is scored
-        self._ne_fix: dict[tuple[str, int], tuple] = {}
+        # the positioned fixes until scored (columns), their nodes in order of first fix
+        self._store = _FixStore()
+        self._buf: list = []  # positioned fixes given to add(), not in the store yet
+        self._node_i: dict[str, int] = {}
+        self._node_names: list[str] = []
+        self._kept = 0  # fixes kept after the last compaction
+        # node-epochs: good fixes' ids by (node, slot) until their truth sample is scored
+        self._ne_fix: dict[tuple[str, int], int] = {}
         self._unkeyed = False
         self._ne_next: dict[str, int] = {}  # per node: next truth time to score
         self._ne_d = array.array("d")
@@ -318,7 +402,7 @@ class FixStream:
         self._overall = StreamingErrorStats()
         self._ne_stats = StreamingScore()
         self._cov_d: list[np.ndarray] = []  # blocks of (k, 3) differences [m]
-        self._cov_c: list = []  # their covariances, one per row
+        self._cov_c: list[np.ndarray] = []  # their covariances, (k, 3, 3) blocks
         self._cov_n = 0  # rows in _cov_d
         self._cov_in = 0
         self._cov_ok = 0
@@ -336,16 +420,48 @@ class FixStream:
                 self.excluded[x.anchor_id][x.reason] += 1
         if e.position_m is not None and e.status in M.GOOD_STATUSES:
             self.positioned[e.node_id] += 1
-            fix = (e.t_ns, tuple(e.position_m), e.peb_m, e.floor_index, e.covariance_m2,
-                   getattr(e, "floor_probabilities", ()))
-            self._pending[e.node_id].append(fix)
-            self._ne_add(e.node_id, fix)
+            self._buf.append(e)  # into the store by columns (_take_buffer)
+
+    def _take_buffer(self) -> None:
+        """The positioned fixes :meth:`add` buffered into the store, as columns, in order
+        (before anything reads the store or adds to it otherwise)."""
+        buf = self._buf
+        if not buf:
+            return
+        self._buf = []
+        nodes = [e.node_id for e in buf]
+        t = [e.t_ns for e in buf]
+        covs = [e.covariance_m2 for e in buf]
+        has_cov = np.array([c is not None for c in covs], bool)
+        ids = self._store.add_columns(
+            np.array(list(map(self._index, nodes)), np.int64), np.array(t, np.int64),
+            np.array([e.position_m for e in buf], np.float64).reshape(-1, 3),
+            np.array([e.peb_m for e in buf], np.float64),  # (None -> NaN)
+            np.array([_NO_FLOOR if e.floor_index is None else e.floor_index for e in buf],
+                     np.int64),
+            np.array([_NO_COV if c is None else c for c in covs], np.float64).reshape(-1, 3, 3),
+            has_cov, [getattr(e, "floor_probabilities", ()) for e in buf])
+        self._ne_add(nodes, t, ids)
+
+    def _index(self, node: str) -> int:
+        """The node's number in the stream (order of first positioned fix)."""
+        i = self._node_i.get(node)
+        if i is None:
+            i = self._node_i[node] = len(self._node_names)
+            self._node_names.append(node)
+        return i
+
+    @property
+    def pending_fixes(self) -> int:
+        """Positioned fixes not scored against the truth yet."""
+        return len(self._buf) + int(np.count_nonzero(self._store.col("scored") == 0))
 
     def add_rows(self, r: Any) -> None:
         """:meth:`add` of every row of a batch's columns
         (:class:`~diffpos_services.fusion.estimates.EstimateRows`), in order, without its
-        structs: the counts by anchor-list group, the positioned rows' fixes as ``add``
-        makes them (the covariance as a (3, 3) view of the batch's array)."""
+        structs: the counts by anchor-list group, the positioned rows' fixes into the
+        store as columns."""
+        self._take_buffer()
         status, node, group, shared = r.status, r.node_id, r.group, r.shared
         self.total += len(status)
         self.by_status.update(status)
@@ -360,16 +476,25 @@ class FixStream:
                     self.no_track[x.anchor_id] += k
                 else:
                     self.excluded[x.anchor_id][x.reason] += k
-        probs = r.probs
-        for i in itertools.compress(range(len(status)), r.has_pos):
-            if status[i] not in M.GOOD_STATUSES:
-                continue
-            n = node[i]
-            self.positioned[n] += 1
-            fix = (r.t_ns[i], tuple(r.pos[i]), r.peb[i] if r.ok[i] else None, r.floor[i],
-                   r.cov[i] if r.has_cov[i] else None, () if probs is None else probs[i])
-            self._pending[n].append(fix)
-            self._ne_add(n, fix)
+        good = M.GOOD_STATUSES
+        rows = [i for i in itertools.compress(range(len(status)), r.has_pos)
+                if status[i] in good]
+        if not rows:
+            return
+        nodes = [node[i] for i in rows]
+        self.positioned.update(nodes)
+        sel = np.array(rows, np.intp)
+        t = np.array(r.t_ns, np.int64)[sel]
+        peb = np.where(np.array(r.ok, bool)[sel],
+                       np.array(r.peb, np.float64)[sel], np.nan)  # (None -> NaN)
+        probs = [()] * len(rows) if r.probs is None else [r.probs[i] for i in rows]
+        floor = np.array([_NO_FLOOR if v is None else v for v in map(r.floor.__getitem__, rows)],
+                         np.int64)
+        ids = self._store.add_columns(
+            np.array(list(map(self._index, nodes)), np.int64), t,
+            np.array(list(map(r.pos.__getitem__, rows)), np.float64).reshape(-1, 3), peb,
+            floor, np.asarray(r.cov, np.float64)[sel], np.array(r.has_cov, bool)[sel], probs)
+        self._ne_add(nodes, t.tolist(), ids)
 
     @property
     def used(self) -> Counter[str]:
@@ -380,17 +505,16 @@ class FixStream:
         return self._used
 
     # -- per fix against the truth (evaluate) ----------------------------------------------
-    def _score_fixes(self, ready: list[tuple[str, list[tuple]]]) -> None:
-        """Score each node's ready fixes (nodes and fixes in order) against the truth at
-        their times, every node at once."""
-        nodes = [node for node, _ in ready]
-        counts = [len(f) for _, f in ready]
-        fixes = list(itertools.chain.from_iterable(f for _, f in ready))
-        t_l, pos_l, peb_l, floor_l = list(zip(*fixes, strict=True))[:4]
-        seg = np.repeat(np.arange(len(nodes), dtype=np.int64), counts)
-        pos, tf, ok = self.truth.segments(nodes).at(seg, np.array(t_l, np.int64), self.gap)
+    def _score_fixes(self, rows: np.ndarray) -> None:
+        """Score the fixes of store ``rows`` (nodes in stream order, each node's fixes in
+        order) against the truth at their times, every node at once."""
+        st = self._store
+        node_i = st.col("node")[rows]
+        order, seg = np.unique(node_i, return_inverse=True)
+        nodes = [self._node_names[k] for k in order.tolist()]
+        pos, tf, ok = self.truth.segments(nodes).at(seg, st.col("t")[rows], self.gap)
         n_ok = int(np.count_nonzero(ok))
-        self.no_truth += len(fixes) - n_ok
+        self.no_truth += rows.size - n_ok
         if not n_ok:
             return
         scored = np.bincount(seg[ok], minlength=len(nodes)).tolist()
@@ -398,10 +522,11 @@ class FixStream:
         for k, node in enumerate(nodes):  # each node's index at its first scored fix
             if scored[k]:
                 index[k] = self._nodes.setdefault(node, len(self._nodes))
-        d = np.array(pos_l, np.float64)[ok] - pos[ok]
+        d = st.col("pos")[rows][ok] - pos[ok]
         dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
-        peb = np.array([math.nan if v is None else v for v in peb_l], np.float64)[ok]
-        floor = np.array([-999 if v is None else v for v in floor_l], np.int64)[ok]
+        peb = st.col("peb")[rows][ok]
+        floor = st.col("floor")[rows][ok]
+        floor = np.where(floor == _NO_FLOOR, -999, floor)
         self._push_errors(index[seg[ok]], np.sqrt(dx * dx + dy * dy + dz * dz), np.abs(dz),
                           np.sqrt(dx * dx + dy * dy), peb, (floor == tf[ok]).astype(np.int8))
 
@@ -440,20 +565,27 @@ class FixStream:
         self._err = _Errors()
 
     # -- per node-epoch (node_epoch_accuracy) ----------------------------------------------
-    def _ne_add(self, node: str, fix: tuple) -> None:
+    def _ne_add(self, nodes: list[str], times: list[int], ids) -> None:
+        """The fixes ``ids`` of ``nodes`` at ``times`` into the node-epoch map (the last
+        one of a node-epoch wins)."""
         period = self.truth.period
         if period is None:  # not known yet: keyed by -t until it is (_ne_rekey)
-            self._ne_fix[(node, -fix[0])] = fix
+            self._ne_fix.update(zip(zip(nodes, [-t for t in times], strict=True), ids,
+                                    strict=True))
             self._unkeyed = True
             return
-        self._ne_fix[(node, fix[0] // period)] = fix
+        self._ne_fix.update(zip(zip(nodes, [t // period for t in times], strict=True), ids,
+                                strict=True))
 
     def _ne_rekey(self) -> None:
         period = self.truth.period
         old = self._ne_fix
         self._ne_fix = {}
-        for (node, k), fix in old.items():
-            self._ne_fix[(node, fix[0] // period if k < 0 else k)] = fix
+        if not old:
+            return
+        t = self._store.col("t")[self._store.rows(list(old.values()))].tolist()
+        for ((node, k), i), ti in zip(old.items(), t, strict=True):
+            self._ne_fix[(node, ti // period if k < 0 else k)] = i
 
     def _ne_score(self, final: bool) -> None:
         """Score every node's truth samples up to its newest (``final``) or half a window
@@ -463,6 +595,7 @@ class FixStream:
         node where they fill up, as one node at a time would."""
         tb, pop = self.truth, self._ne_fix.pop
         period, start = tb.period, tb.first_t + self.skip_ns
+        has_cov = self._store.col("has_cov")
         group: list[tuple[str, int, int, list]] = []
         n_tf, n_cov = len(self._ne_tf), self._cov_n
         for node in list(tb.t):
@@ -478,7 +611,9 @@ class FixStream:
             group.append((node, i0, i1, fixes))
             self._ne_next[node] = ts[i1 - 1] + 1
             n_tf += i1 - i0
-            n_cov += sum(1 for x in fixes if x is not None and x[4] is not None)
+            got = [x for x in fixes if x is not None]
+            if got:
+                n_cov += int(np.count_nonzero(has_cov[self._store.rows(got)]))
             if n_cov >= _COV_BATCH or n_tf >= _BATCH:
                 self._ne_columns(group)
                 group = []
@@ -505,21 +640,23 @@ class FixStream:
         found = [k for k, fix in enumerate(fixes) if fix is not None]
         probs: list = [()] * n
         if found:
-            got = [fixes[k] for k in found]
+            st = self._store
+            rows = st.rows([fixes[k] for k in found])
             seg = np.repeat(np.arange(len(group), dtype=np.int64),
                             [g[2] - g[1] for g in group])[found]
-            tp, tf, ok = segs.at(seg, np.array([x[0] for x in got], np.int64), tb.period)
+            tp, tf, ok = segs.at(seg, st.col("t")[rows], tb.period)
             tp = np.where(ok[:, None], tp, p[found])
             f[found] = np.where(ok, tf, f[found])
-            d[found] = np.array([x[1] for x in got], np.float64) - tp
-            ef[found] = [-1 if x[3] is None else x[3] for x in got]
-            for k, x in zip(found, got, strict=True):
-                probs[k] = x[5]
-            cov = [(k, x[4]) for k, x in zip(found, got, strict=True) if x[4] is not None]
-            if cov:
-                self._cov_d.append(d[[k for k, _ in cov]])
-                self._cov_c.extend(c for _, c in cov)
-                self._cov_n += len(cov)
+            d[found] = st.col("pos")[rows] - tp
+            fl = st.col("floor")[rows]
+            ef[found] = np.where(fl == _NO_FLOOR, -1, fl)
+            for k, row in zip(found, rows.tolist(), strict=True):
+                probs[k] = st.probs[row]
+            hc = st.col("has_cov")[rows] != 0
+            if hc.any():
+                self._cov_d.append(d[np.asarray(found)[hc]])
+                self._cov_c.append(st.col("cov")[rows[hc]].copy())
+                self._cov_n += int(np.count_nonzero(hc))
         self._ne_d.frombytes(d.tobytes())
         self._ne_ef.extend(ef.tolist())
         self._ne_tf.extend(f.tolist())
@@ -538,7 +675,7 @@ class FixStream:
     def _coverage(self) -> None:
         if not self._cov_n:
             return
-        d, c = np.concatenate(self._cov_d), np.array(self._cov_c, float).reshape(-1, 3, 3)
+        d, c = np.concatenate(self._cov_d), np.concatenate(self._cov_c)
         ok = int((np.isfinite(d).all(axis=1) & np.isfinite(c).all(axis=(1, 2))).sum())
         cov = ellipsoid_coverage(d, c)
         if cov is not None:
@@ -552,24 +689,11 @@ class FixStream:
         ``final``); node-epochs a window older than the node's newest truth."""
         tb = self.truth
         _ = self.used  # (the anchors' counts: bounded memory)
-        ready: list[tuple[str, list[tuple]]] = []  # each node's fixes to score, in order
-        for node, q in self._pending.items():
-            if not q:
-                continue
-            newest = tb.newest(node)
-            k = len(q)
-            if not final:  # the fixes the truth passed (or older than the window), in order
-                old = now_ns - self.window_ns
-                k = 0
-                for fix in q:
-                    t = fix[0]
-                    if not ((newest is not None and newest >= t) or t < old):
-                        break
-                    k += 1
-            if k:
-                ready.append((node, [q.popleft() for _ in range(k)]))
-        if ready:
-            self._score_fixes(ready)
+        self._take_buffer()
+        rows = self._ready_rows(now_ns, final)
+        if rows.size:
+            self._store.col("scored")[rows] = 1
+            self._score_fixes(rows)
         if tb.period is None:
             if not final:
                 return
@@ -588,6 +712,33 @@ class FixStream:
         elif len(self._ne_fix) > 64 * 1024:  # fixes whose node-epoch has no truth
             horizon = (now_ns - 2 * self.window_ns) // tb.period
             self._ne_fix = {k: v for k, v in self._ne_fix.items() if k[1] >= horizon}
+        self._compact()
+
+    def _compact(self) -> None:
+        """Drop the stored fixes nothing needs any more, once the store doubled."""
+        st = self._store
+        if len(st) >= 2 * self._kept + 4096 or (not self._ne_fix and len(st)):
+            st.compact(self._ne_fix.values())
+            self._kept = len(st)
+
+    def _ready_rows(self, now_ns: int, final: bool) -> np.ndarray:
+        """The store rows to score now, nodes in stream order, each node's in order: each
+        node's unscored fixes up to its first one the node's truth has not passed yet (and
+        not older than the window); all when ``final``."""
+        st = self._store
+        uns = np.flatnonzero(st.col("scored") == 0)
+        if not uns.size:
+            return uns
+        node, t = st.col("node")[uns], st.col("t")[uns]
+        if final:
+            return uns[np.argsort(node, kind="stable")]
+        newest = np.array([_NO_TRUTH if (x := self.truth.newest(n)) is None else x
+                           for n in self._node_names], np.int64)
+        wait = ~((newest[node] >= t) | (t < now_ns - self.window_ns))
+        first = np.full(len(self._node_names), uns.size, np.int64)  # per node: first waiting
+        np.minimum.at(first, node[wait], np.flatnonzero(wait))
+        take = np.flatnonzero(np.arange(uns.size) < first[node])
+        return uns[take[np.argsort(node[take], kind="stable")]]
 
     # -- results ---------------------------------------------------------------------------
     def accuracy(self) -> tuple[dict[str, Any], ErrorArrays]:
