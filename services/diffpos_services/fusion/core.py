@@ -29,7 +29,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry, epoch_columns, reported_anchors
+from diffpos.alignment import EpochBook, PendingEpoch, RangeEntry, reported_anchors
 from diffpos.estimators.gating import GatingConfig
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.decisions import DecisionLog
@@ -48,10 +48,8 @@ from diffpos_services.fusion.ingest import (
 )
 from diffpos_services.fusion.overload import BEHIND_KEEP_EPOCHS, OverloadPolicy
 from diffpos_services.fusion.step import (
-    Batch,
-    _anchor_positions,
-    _reference_times,
     gated_count,
+    gather,
     prepare,
     solve_batch,
 )
@@ -65,22 +63,6 @@ __all__ = ["BEHIND_KEEP_EPOCHS", "FusionConfig", "FusionCore"]
 
 #: why an epoch was released (FusionDiagnostics.releases)
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
-
-
-def _gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, AnchorStream]
-            ) -> Batch:
-    """:func:`~diffpos_services.fusion.step.gather` from the epoch book's columns
-    (:func:`~diffpos.alignment.epoch_columns`: no Python object per range): the epochs'
-    ranges as ``(B, M)`` arrays over the anchor columns ``ids``, the anchors' positions at
-    the range times from their state histories, the reference times."""
-    c = epoch_columns(epochs, ids)
-    col = {a: j for j, a in enumerate(ids)}
-    apos, asig, have_state = _anchor_positions(col, anchors, c.t, c.detected)
-    use = c.detected & have_state
-    t_ref, dt_s = _reference_times(c.t, c.reported, use)
-    return Batch(list(col), c.t, c.range_m, c.sigma_m, c.reported, c.detected, c.t_pub_wall,
-                 apos, asig, have_state, use, t_ref, dt_s,
-                 np.where(np.isfinite(c.snr_db), c.snr_db, np.nan))
 
 
 class FusionCore:
@@ -596,7 +578,7 @@ class FusionCore:
         batch -> warm/cold/retry solve -> messages (built here: counters and tracks)."""
         ids = sorted(reported_anchors(epochs) | set(self.live_anchors)
                      | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None})
-        batch = _gather(epochs, ids, self.anchors)
+        batch = gather(epochs, ids, self.anchors)
         prep = prepare(batch, epochs, self.tracks, self.config)
         self.solved += len(epochs)
         if self.building is not None:

@@ -18,14 +18,11 @@ Every step is a function of its arguments (no clock, no network).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import partial
-from itertools import chain
-from operator import is_not
 from typing import Any
 
 import numpy as np
 
-from diffpos.alignment import PendingEpoch, RangeEntry, compensate_node_motion, effective_sigma_m
+from diffpos.alignment import PendingEpoch, compensate_node_motion, effective_sigma_m, epoch_columns
 from diffpos.estimators import ippa, lls
 from diffpos.estimators.dnls import solver as dnls_solver  # attribute lookup: tests count calls
 from diffpos.estimators.result import ExclusionReason, FixStatus
@@ -37,7 +34,6 @@ __all__ = ["GOOD_STATUS", "Batch", "Prepared", "Results", "exclusion_groups", "g
            "prepare", "solve_batch"]
 
 _NEG = -(2**62)
-_is_not_none = partial(is_not, None)
 #: statuses of a usable fix (a position is published and the node's track updated)
 GOOD_STATUS = (int(FixStatus.OK), int(FixStatus.OK_UNVERIFIED))
 #: Fastest plausible node (a responder running) [m/s]. A track velocity above it comes from a
@@ -124,40 +120,18 @@ class Results:
 
 # ------------------------------------------------------------------------------- gather
 def gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, Any]) -> Batch:
-    """The epochs' ranges as ``(B, M)`` arrays over the anchor columns ``ids``; anchor
-    positions from each anchor's state history (``anchors[id].history``) at the range times."""
+    """The epochs' ranges as ``(B, M)`` arrays over the anchor columns ``ids``, from the epoch
+    book's columns (:func:`~diffpos.alignment.epoch_columns`: no Python object per range);
+    anchor positions from each anchor's state history (``anchors[id].history``) at the range
+    times; the reference times."""
+    c = epoch_columns(epochs, ids)
     col = {a: j for j, a in enumerate(ids)}
-    b, m = len(epochs), len(ids)
-    t = np.zeros((b, m), np.int64)
-    rng = np.full((b, m), np.nan)
-    sig = np.ones((b, m))
-    snr = np.full((b, m), np.nan)
-    reported = np.zeros((b, m), bool)
-    detected = np.zeros((b, m), bool)
-    pub_wall = np.zeros((b, m), np.int64)
-    # gather every (epoch, anchor) entry in flat lists, then scatter with fancy indexing
-    # (columns pulled out of the entry tuples in C: no Python bytecode per range)
-    counts = [len(pe.ranges) for pe in epochs]
-    rj = list(map(col.__getitem__, chain.from_iterable(pe.ranges for pe in epochs)))
-    ents: list[RangeEntry] = list(chain.from_iterable(pe.ranges.values() for pe in epochs))
-    if ents:
-        e_t, e_r, e_s, e_snr, e_pub, _ = zip(*ents, strict=True)
-        ri_a = np.repeat(np.arange(b), counts)
-        rj_a = np.array(rj, dtype=np.intp)
-        reported[ri_a, rj_a] = True
-        t[ri_a, rj_a] = e_t
-        pub_wall[ri_a, rj_a] = e_pub
-        det = np.fromiter(map(_is_not_none, e_r), bool, len(e_r))
-        di, dj = ri_a[det], rj_a[det]
-        detected[di, dj] = True
-        rng[di, dj] = np.array(e_r, dtype=np.float64)[det]  # (None -> NaN: not taken)
-        sig[di, dj] = np.array(e_s, dtype=np.float64)[det]
-        snr[di, dj] = np.array(e_snr, dtype=np.float64)[det]
-    apos, asig, have_state = _anchor_positions(col, anchors, t, detected)
-    use = detected & have_state
-    t_ref, dt_s = _reference_times(t, reported, use)
-    return Batch(list(col), t, rng, sig, reported, detected, pub_wall, apos, asig, have_state,
-                 use, t_ref, dt_s, np.where(np.isfinite(snr), snr, np.nan))
+    apos, asig, have_state = _anchor_positions(col, anchors, c.t, c.detected)
+    use = c.detected & have_state
+    t_ref, dt_s = _reference_times(c.t, c.reported, use)
+    return Batch(list(col), c.t, c.range_m, c.sigma_m, c.reported, c.detected, c.t_pub_wall,
+                 apos, asig, have_state, use, t_ref, dt_s,
+                 np.where(np.isfinite(c.snr_db), c.snr_db, np.nan))
 
 
 def _anchor_positions(col: dict[str, int], anchors: dict[str, Any], t: np.ndarray,
