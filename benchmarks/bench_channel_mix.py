@@ -9,7 +9,8 @@ Usage::
     python benchmarks/bench_channel_mix.py --cost [--orders 2 3 4]
 
 For every ray-trace dataset (``diffpos raytrace SCEN --receivers 200 --samples 1e6
---max-depth 4``; default the paper building and its open-plan variant in /work/rt/), the
+--max-depth 4``; default the paper building and its open-plan variant traced with the
+diffraction-distance correction, /work/rt/fixed/), the
 first arrival of every (receiver, anchor) link is classified into a family
 (:func:`diffpos.paths.mechanisms.label_family`: direct; reflections only, by count; a window-edge
 diffraction alone, then one or more slab reflections; a ground bounce before the diffraction;
@@ -28,7 +29,10 @@ Sionna over the families (the goal: <= 5 points); then the same over the links w
 interior partition between the facade and the receiver (the straight anchor -> receiver line
 crosses none inside): there Sionna's depth limit (every partition crossing is one of its
 ``--max-depth`` interactions) cannot hide a family of order <= 4, elsewhere it can (a link
-behind two partitions has no traced D+RR path at depth 4, and often none at all).
+behind two partitions has no traced D+RR path at depth 4, and often none at all). Sionna's
+first arrival also depends on its samples per source: at 1e6 it misses short diffracted
+paths that 4e6 samples find (docs/channel_mix.md, session 21), so compare against a trace
+with enough samples before reading a gap as the emulator's.
 
 ``--mnls``: the consequence for positioning: M-NLS (``--mnls-max-order``) right floor over ALL
 receivers (a failed fix is a miss) with :func:`diffpos.study.reproduce` on Sionna's first
@@ -64,7 +68,7 @@ from diffpos.paths.mechanisms import FAMILIES, label_family
 from diffpos.scenario import default_scenario
 from diffpos.study import Arrivals, FirstArrivalData, ReproduceConfig, reproduce
 
-DEFAULT = ["/work/rt/paper-200-1e6-d4.npz", "/work/rt/openplan-200-1e6-d4.npz"]
+DEFAULT = ["/work/rt/fixed/paper.npz", "/work/rt/fixed/openplan.npz"]
 
 
 def shares(labels: np.ndarray) -> dict[str, float]:

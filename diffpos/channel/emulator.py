@@ -31,8 +31,11 @@ Fermat-point geometry of :mod:`diffpos.paths.model`, Fresnel reflection of the f
 the ground and on every inside slab or wall in path order, the UTD edge field (after a ground
 bounce: the image source's reflected field), glass, partitions, Friis spreading
 (:func:`diffpos.channel.slots.family_slot`; compiled for :func:`pair_first_arrival` in
-:mod:`diffpos.channel.families_nb`). :func:`pair_snr_db` (an estimator's SNR model) keeps the
-18 whatever the setting. Measured mix against Sionna RT: ``docs/channel_mix.md``.
+:mod:`diffpos.channel.families_nb`). At these orders every window edge is a dielectric sheet
+of the walls' material, the 18's horizontal edges included (at order 2 those are perfect
+conductors, the paper's model; :mod:`diffpos.channel.slots`, "Window edges").
+:func:`pair_snr_db` (an estimator's SNR model) keeps the 18 slots whatever the setting (their
+edges' sheet follows it). Measured mix against Sionna RT: ``docs/channel_mix.md``.
 
 Every inside segment adds the loss of the interior partitions it crosses (so MPC-3 includes
 the paper's ``Tx-D-T-Rx`` and ``Tx-D-T-T-Rx``); glass windows add ``glass_loss_db`` when
@@ -121,11 +124,14 @@ def mpc_class_of(recipe: Recipe) -> int:
 
 def _params(building: Building, radio: Radio) -> tuple:
     """The compiled kernels' constants (:func:`diffpos.channel.snr_nb.channel_params`) with the
-    numpy emulator's materials and the partitions' permittivities."""
+    numpy emulator's materials, the partitions' permittivities and the window edges' sheets
+    (:mod:`diffpos.channel.slots`, "Window edges": the 18's horizontal edges dielectric at
+    ``channel_max_order`` >= 3 only)."""
     f = radio.frequency_hz
+    eta_wall = itu_permittivity(building.wall_material, f)
     return channel_params(building, radio, _materials(building, f),
-                          partition_permittivities(building, f),
-                          itu_permittivity(building.wall_material, f))
+                          partition_permittivities(building, f), eta_wall,
+                          eta_wall if radio.channel_max_order >= 3 else 0j)
 
 
 def channel_mechanisms(radio: Radio) -> MechanismSet:

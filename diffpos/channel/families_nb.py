@@ -8,7 +8,8 @@ The numpy reference is :func:`diffpos.channel.slots.family_slot` (via
 physics is the emulator's: the dipole's transverse field and the transmit pattern on
 departure, Fresnel reflections (TE/TM split) of the field vector on the ground (ITU ground
 material) and on every inside slab or wall (interior material), the UTD field of the window
-edge with spherical spreading (a ground bounce first: the image source's reflected field meets
+edge (a dielectric sheet of the walls' material, Luebbers' coefficients: every family is of
+order >= 3, where the horizontal edges are dielectric too) with spherical spreading (a ground bounce first: the image source's reflected field meets
 the edge, the field being linear in the source's polarisation), glass on a specular entry,
 every inside segment's partitions, Friis spreading over the unfolded length. The geometry is
 :func:`diffpos.paths.model.specular_path` / :func:`diffpos.paths.model.diffracted_path`'s
@@ -79,7 +80,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "8b8caa042d036e5f"
+CALLEES_SHA256 = "93fa0049d58d6d10"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
@@ -92,7 +93,7 @@ _f8_3d = types.float64[:, :, ::1]
 #: The one compiled signature of :func:`family_snr_kernel`.
 FAMILY_SIGNATURE = types.void(
     _f8_3d, _f8_2d,  # anchors (N, M, 3), nodes (N, 3)
-    _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (ground, interior, parts, wall)
+    _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (channel_params)
     types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,)
     _f8_3d, _f8_3d,  # out (N, M, S) [dB], out_len (N, M, S) [m]
 )
@@ -232,26 +233,26 @@ def _diff_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
                  edge, sq2pik, part, eta_p, eta_wall):
     """slots._diffracted_family for table row ``s``: (|gain|, loss [dB] incl. the pattern,
     arrival vector, length, ok); ``part``, ``eta_p``: :func:`_spec_family`'s; ``eta_wall``:
-    the side wall's permittivity (a vertical edge's dielectric sheet; the horizontal edges
-    are perfectly conducting sheets, as in the 18)."""
+    the walls' permittivity (every window edge's dielectric sheet: the side wall at a vertical
+    edge, the facade wall at a horizontal one)."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     code = table[s, COL_EDGE]
     ground, s0, s1, s2, o0, o1, o2 = _images(table, s, a0, a1, a2, n0, n1, n2, zf, zc, prm,
                                              part)
     # the edge (slots._edge_frame): tangent e, half-plane face t0
-    if code == 0:  # upper: the wall above the window
+    # every edge's half-plane a dielectric sheet of the walls' material (the families are
+    # orders >= 3: slots.family_slot)
+    if code == 0:  # upper: the facade wall above the window
         q0, q1, q2, ok = fermat_point(s0, s1, s2, o0, o1, o2, x0, hi, edge)
         ed0, ed2, tf1, tf2 = 1.0, 0.0, 0.0, 1.0
-        sheet = 0j
-    elif code == 1:  # lower: the wall below it
+    elif code == 1:  # lower: the facade wall below it
         q0, q1, q2, ok = fermat_point(s0, s1, s2, o0, o1, o2, x0, lo, edge)
         ed0, ed2, tf1, tf2 = -1.0, 0.0, 0.0, -1.0
-        sheet = 0j
-    else:  # vertical at x0 / x1: the side wall (dielectric), into the building
+    else:  # vertical at x0 / x1: the side wall, into the building
         q0, q1, q2, ok = fermat_point(s0, s1, s2, o0, o1, o2, x0 if code == 2 else x1, lo,
                                  vertical_axis(lo, hi))
         ed0, ed2, tf1, tf2 = 0.0, (1.0 if code == 2 else -1.0), 1.0, 0.0
-        sheet = eta_wall
+    sheet = eta_wall
     s_in = math.sqrt((s0 - q0) ** 2 + (s1 - q1) ** 2 + (s2 - q2) ** 2)
     s_out = math.sqrt((o0 - q0) ** 2 + (o1 - q1) ** 2 + (o2 - q2) ** 2)
     length = s_in + s_out

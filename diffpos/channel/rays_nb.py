@@ -367,28 +367,21 @@ def _utd_term_ri(c, kl):
 
 
 @njit(**_OPTS)
-def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, sq2pik):
+def _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, sq2pik,
+               eta_face):
     """gtd.diffracted_field (UTD, spherical spreading) of the window edge at Q for the
     source at the anchor and the observer O, without its common phase factors, as six floats
     (re, im of x, y, z). ``s_in_m`` = ``|Q - A|``, ``s_out_m`` = ``|O - Q|`` and ``sq2pik`` =
     ``sqrt(2 pi k)`` are the caller's (the same operations: computed once). The source's
-    polarisation is the radio's (:func:`utd_field_e` takes any real vector)."""
-    return utd_field_e(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, sq2pik,
-                       prm[_P_E0], prm[_P_E0 + 1], prm[_P_E0 + 2])
-
-
-@njit(**_OPTS)
-def utd_field_e(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, upper, prm, sq2pik,
-                ex, ey, ez):
-    """:func:`_utd_field` for a source of real polarisation vector ``(ex, ey, ez)`` (the
-    field is linear in it: a complex source, e.g. the ground-reflected field of
-    :mod:`diffpos.channel.families_nb`, is its real and imaginary parts' sum)."""
+    polarisation is the radio's. ``eta_face``: the sheet (the facade wall above / below the
+    window; :func:`utd_field_frame`'s: 0 a perfect conductor, else its permittivity)."""
     if upper:  # e = +x, t0 = +z
         e0, e1, e2, t0, t1, t2 = 1.0, 0.0, 0.0, 0.0, 0.0, 1.0
     else:  # e = -x, t0 = -z
         e0, e1, e2, t0, t1, t2 = -1.0, 0.0, 0.0, 0.0, 0.0, -1.0
     return utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1, e2,
-                           t0, t1, t2, prm, sq2pik, ex, ey, ez, 0j)
+                           t0, t1, t2, prm, sq2pik, prm[_P_E0], prm[_P_E0 + 1], prm[_P_E0 + 2],
+                           eta_face)
 
 
 @njit(**_OPTS)
@@ -396,7 +389,8 @@ def utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1,
                     t2, prm, sq2pik, ex, ey, ez, eta_face):
     """:func:`utd_field_e` on the half-plane of edge tangent ``e`` and face direction ``t0``
     (``diffpos.channel.gtd_halfplane.diffracted_field``'s ``edge_dir`` / ``face_dir``; the
-    vertical window edges' half-plane is the side wall). ``eta_face`` 0: a perfectly
+    vertical window edges' half-plane is the side wall, the horizontal ones' the facade wall
+    above / below the window). ``eta_face`` 0: a perfectly
     conducting sheet (Kouyoumjian-Pathak); else the relative permittivity of a dielectric
     sheet (``gtd_halfplane.utd_coefficients``' ``lit_face_reflection``: Luebbers' reflection
     terms, the Fresnel coefficients of the lit face and -1 for the unlit one)."""
@@ -457,10 +451,12 @@ def utd_field_frame(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m, e0, e1,
 
 
 @njit(**_OPTS)
-def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, edge, sq2pik):
+def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, edge, sq2pik,
+                eta_edge):
     """channel._diffracted for slot ``s`` (geometry: paths.diffracted_path):
     (|gain|, arrival vector, length, valid). ``sq2pik``: ``math.sqrt(2.0 * math.pi * k)``
-    (the kernel's, once per call)."""
+    (the kernel's, once per call); ``eta_edge``: the window edge's sheet (0: a perfect
+    conductor, the channel at order 2; else the facade wall's permittivity)."""
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     nan = np.nan
     upper = SLOT_EDGE[s] == 0
@@ -493,7 +489,7 @@ def _diffracted(s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta_in, e
     if not ok:
         return 0.0, 0.0, nan, nan, nan, length, False
     f0, f1, f2, f3, f4, f5 = _utd_field(a0, a1, a2, o0, o1, o2, q0, q1, q2, s_in_m, s_out_m,
-                                        upper, prm, sq2pik)
+                                        upper, prm, sq2pik, eta_edge)
     g_db = 0.0  # the pattern on departure, applied in dB (every later step is linear)
     if not math.isnan(prm[_P_TX_HPBW]):
         g_db = _pattern_db(_zenith_deg(q0 - a0, q1 - a1, q2 - a2), prm[_P_TX_HPBW],

@@ -4,6 +4,17 @@ their combinations) -- the reference the compiled kernels are tested against.
 
 :mod:`diffpos.channel.emulator` keeps the result types, the detector and the public API; the
 model is described in that module's docstring.
+
+Window edges. The UTD field of a window edge is the half-plane's: the facade wall above the
+window (upper edge), below it (lower edge), the side wall running into the building
+(vertical edges). At ``radio.channel_max_order`` 2 (the paper's 18 mechanisms, the default
+channel) the horizontal edges' half-plane is a perfect conductor, as in the paper. Every
+family beyond the 18 (orders >= 3), the vertical edges, and at orders >= 3 also the 18's
+horizontal edges, see a dielectric sheet of the walls' material instead (ITU-R P.2040;
+Luebbers' finite-conductivity UTD, ``gtd_halfplane``'s "Dielectric sheet"): one material model
+for every edge, as the ray tracer's wedge (Sionna RT weights the reflection terms of its UTD
+by the faces' material coefficients). The conductor's reflection terms keep the field behind
+the sheet too strong deep in its shadow (the image nodes of the edge + slab-series families).
 """
 
 from __future__ import annotations
@@ -195,13 +206,17 @@ class _Ctx:
         (self.eta_ground, self.eta_in, self.wall_db, self.slab_db, self.glass_db,
          self.parts) = _materials(b, self.f)
         self.eta_parts = partition_permittivities(b, self.f)
-        self.eta_wall = itu_permittivity(b.wall_material, self.f)  # the vertical edges' sheet
+        self.eta_wall = itu_permittivity(b.wall_material, self.f)  # the edges' sheet
 
     def edge_permittivity(self, edge: str) -> complex | None:
-        """The sheet of a window edge's UTD: the side wall's material at a vertical edge
-        (``gtd_halfplane``'s "Dielectric sheet"), a perfect conductor at the horizontal ones
-        (the 18 mechanisms' physics, unchanged)."""
-        return self.eta_wall if edge.startswith("vertical") else None
+        """The sheet of one of the 18 slots' window edges (module docstring, "Window edges"):
+        the walls' material (``gtd_halfplane``'s "Dielectric sheet") at a vertical edge and,
+        at ``channel_max_order`` >= 3, at the horizontal ones; a perfect conductor (None) at
+        the horizontal edges at order 2 (the paper's physics). The families beyond the 18
+        always see the walls' material (:func:`family_slot`)."""
+        if edge.startswith("vertical") or self.r.channel_max_order >= 3:
+            return self.eta_wall
+        return None
 
     def partition_loss_db(self, p: FloatArray, q: FloatArray) -> FloatArray:
         """Total loss of the partitions crossed by segments ``p -> q`` (inside) [dB]."""
@@ -304,10 +319,11 @@ def _edge_frame(edge: str) -> tuple[FloatArray, FloatArray]:
     return np.array([0.0, 0.0, sense]), np.array([0.0, 1.0, 0.0])
 
 
-def _diffracted(c: _Ctx, edge: str, then: str | None = None):
+def _diffracted(c: _Ctx, edge: str, then: str | None = None, *, sheet: complex | None = None):
     """Anchor -> window edge (UTD) [-> one inside reflection] -> node (geometry:
     :func:`diffpos.paths.model.diffracted_path`, shared with the path model; corner diffraction is
-    dropped in both)."""
+    dropped in both). ``sheet``: the edge's half-plane (None: a perfect conductor, else its
+    permittivity; :meth:`_Ctx.edge_permittivity` for the 18)."""
     a = np.broadcast_to(c.anchor, (*c.shape, 3))
     n = np.broadcast_to(c.node, (*c.shape, 3))
     g = diffracted_path(a, n, c.frame, edge, then)
@@ -319,7 +335,7 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None):
         obs = _mirror(np.array(n), axis, np.broadcast_to(coord, c.shape))
     e_dir, face = _edge_frame(edge)
     E = diffracted_field(a, obs, q, e_dir, face, c.e0, frequency_hz=c.f, coefficients="utd",
-                         spreading="spherical", face_permittivity=c.edge_permittivity(edge))
+                         spreading="spherical", face_permittivity=sheet)
     # antenna pattern on departure
     g_db = _pattern_db(_zenith_deg(q - a), c.r.tx_hpbw_deg, c.r.tx_peak_deg)
     E = E * (10 ** (g_db / 20))[..., None]
@@ -349,7 +365,8 @@ def _diffracted_family(c: _Ctx, rec: Recipe):
     :func:`diffpos.paths.model.diffracted_path`). The ground bounce is the Fresnel reflection
     of the dipole field on the ground (the image source's field then meets the edge); each
     inside reflection is the Fresnel reflection of the diffracted field at its point, in path
-    order; every inside segment adds its partitions' loss."""
+    order; every inside segment adds its partitions' loss. The edge is a dielectric sheet of
+    the walls' material (module docstring, "Window edges")."""
     a = np.broadcast_to(c.anchor, (*c.shape, 3))
     n = np.broadcast_to(c.node, (*c.shape, 3))
     g = diffracted_path(a, n, c.frame, rec.edge, rec.planes, ground=rec.ground)
@@ -369,7 +386,7 @@ def _diffracted_family(c: _Ctx, rec: Recipe):
     with np.errstate(invalid="ignore", divide="ignore"):
         E = diffracted_field(src, obs, q, e_dir, face, e_src, frequency_hz=c.f,
                              coefficients="utd", spreading="spherical",
-                             face_permittivity=c.edge_permittivity(rec.edge))
+                             face_permittivity=c.eta_wall)
         loss = np.zeros(c.shape)  # the diffracted ray passes the edge, not the glass
         for j in range(len(rec.planes)):
             k_in, _ = _unit(pts[j + 1] - pts[j])
@@ -423,7 +440,8 @@ def _image(c: _Ctx, n: FloatArray, planes, g) -> FloatArray:
 def family_slot(c: _Ctx, rec: Recipe):
     """One slot of any :class:`diffpos.paths.mechanisms.Recipe` (the 18 and the higher-order
     families of :func:`diffpos.paths.mechanisms.mechanism_set`): length, gain, aod, aoa,
-    valid (N, M). The 18 keep their own builders (:func:`_slots`); this serves the rest. A
+    valid (N, M). The 18 keep their own builders (:func:`_slots`); this serves the rest (every
+    window edge a dielectric sheet of the walls' material: module docstring). A
     partition family reflects on the partition of the shortest existing path (its material's
     Fresnel coefficients); none exists without partitions."""
     if "partition" in rec.planes and not c.frame.partitions:
@@ -434,9 +452,9 @@ def family_slot(c: _Ctx, rec: Recipe):
     if rec.kind == "spec":
         return _reflections(c, list(rec.planes), ground=rec.ground)
     if not rec.planes and not rec.ground:
-        return _diffracted(c, rec.edge)
+        return _diffracted(c, rec.edge, sheet=c.eta_wall)
     if len(rec.planes) == 1 and not rec.ground and rec.planes[0] != "partition":
-        return _diffracted(c, rec.edge, rec.planes[0])
+        return _diffracted(c, rec.edge, rec.planes[0], sheet=c.eta_wall)
     return _diffracted_family(c, rec)
 
 
@@ -444,6 +462,7 @@ def _slots(c: _Ctx, radio: Radio, extra: tuple[Recipe, ...] = ()):
     """Every slot of every pair: length, gain, aod, aoa, valid, power, snr (N, M, K): the 18
     of :data:`diffpos.paths.mechanisms.MECHANISMS`, then the ``extra`` recipes (the families
     :func:`diffpos.paths.mechanisms.mechanism_set` adds after them)."""
+    up, low = c.edge_permittivity("upper"), c.edge_permittivity("lower")
     results = [
         _direct(c),
         _reflections(c, [], ground=True),
@@ -452,13 +471,13 @@ def _slots(c: _Ctx, radio: Radio, extra: tuple[Recipe, ...] = ()):
         _reflections(c, ["back"]),
         _reflections(c, ["side x1"]),
         _reflections(c, ["side x2"]),
-        _diffracted(c, "upper"),
-        _diffracted(c, "lower"),
-        _diffracted(c, "upper", "floor"),
-        _diffracted(c, "upper", "ceiling"),
-        _diffracted(c, "lower", "floor"),
-        _diffracted(c, "lower", "ceiling"),
-        _diffracted(c, "upper", "back"),
+        _diffracted(c, "upper", sheet=up),
+        _diffracted(c, "lower", sheet=low),
+        _diffracted(c, "upper", "floor", sheet=up),
+        _diffracted(c, "upper", "ceiling", sheet=up),
+        _diffracted(c, "lower", "floor", sheet=low),
+        _diffracted(c, "lower", "ceiling", sheet=low),
+        _diffracted(c, "upper", "back", sheet=up),
         _reflections(c, ["ceiling"], ground=True),
         _reflections(c, ["ceiling", "floor"]),
         _reflections(c, ["floor", "ceiling"]),

@@ -50,7 +50,9 @@ tests/core/test_kernel_stamps.py names; DEVELOPING.md).
 Inputs are plain arrays prepared once in Python (:func:`channel_params`): the building's
 planes and losses, the partitions as a ``(P, 5)`` array ``(axis, position, span lo, span hi,
 loss dB)``, the radio (wavenumber, wavelength, patterns, link-budget constants, polarisation)
-and the two complex permittivities (ground, interior). One compiled signature
+and the complex permittivities (ground, interior, partitions, walls, and the sheet of the
+window's horizontal edges: 0, a perfect conductor, at ``channel_max_order`` 2, the wall's
+material above; :mod:`diffpos.channel.slots`, "Window edges"). One compiled signature
 (:data:`SIGNATURE`), ``cache=True``; :func:`warm_channel` compiles it or loads numba's on-disk
 cache (call it at service start).
 
@@ -104,7 +106,7 @@ from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "8b8caa042d036e5f"
+CALLEES_SHA256 = "93fa0049d58d6d10"
 
 __all__ = [
     "COST_SIGNATURE",
@@ -127,11 +129,12 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
     ``-inf`` where the slot is not valid (``diffpos.channel.emulator.pair_snr_db``).
 
     ``prm``: :func:`channel_params`' float vector; ``parts``: (P, 5) partitions; ``eta``:
-    complex (2,) permittivities of the ground and the interior surfaces.
+    :func:`channel_params`' complex permittivities (the ground's and the interior surfaces'
+    first, the horizontal window edges' sheet last: 0 a perfect conductor).
     """
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
-    eta_g, eta_in = eta[0], eta[1]
+    eta_g, eta_in, eta_edge = eta[0], eta[1], eta[eta.shape[0] - 1]
     c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
     rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
     sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])  # the UTD prefactor's, once
@@ -154,7 +157,7 @@ def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
                 else:
                     g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
                                                             zc, lo, hi, prm, parts, eta_in,
-                                                            edge, sq2pik)
+                                                            edge, sq2pik, eta_edge)
                 if not ok:
                     out[i, j, s] = ninf
                     continue
@@ -177,7 +180,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
     (-inf where not valid)."""
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
-    eta_g, eta_in = eta[0], eta[1]
+    eta_g, eta_in, eta_edge = eta[0], eta[1], eta[eta.shape[0] - 1]
     c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
     rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
     sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])  # the UTD prefactor's, once
@@ -203,7 +206,7 @@ def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
                 else:
                     g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
                                                             zc, lo, hi, prm, parts, eta_in,
-                                                            edge, sq2pik)
+                                                            edge, sq2pik, eta_edge)
                 if not ok:
                     out[i, j, s] = ninf
                     continue
@@ -301,7 +304,7 @@ def warm_channel() -> float:
     return time.perf_counter() - t0
 
 
-def channel_params(building, radio, materials, eta_parts=(), eta_wall=0j
+def channel_params(building, radio, materials, eta_parts=(), eta_wall=0j, eta_edge=0j
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The kernel's constants: ``(prm, parts, eta)`` (module docstring) of a building and radio.
 
@@ -309,8 +312,12 @@ def channel_params(building, radio, materials, eta_parts=(), eta_wall=0j
     emulator computes them (``diffpos.channel.emulator._materials``), so both use the same numbers;
     ``eta_parts``: the partitions' permittivities
     (``diffpos.channel.slots.partition_permittivities``: their reflections), after the two in
-    ``eta``; ``eta_wall``: the walls' permittivity (the vertical window edges' dielectric
-    sheet in :mod:`diffpos.channel.families_nb`; 0: a perfect conductor), ``eta``'s last entry.
+    ``eta``; ``eta_wall``: the walls' permittivity (the window edges' dielectric sheet in
+    :mod:`diffpos.channel.families_nb`: the vertical edges' side wall, the horizontal edges'
+    facade wall; 0: a perfect conductor), then ``eta_edge``, ``eta``'s last entry: the sheet of
+    the 18 slots' horizontal window edges in :func:`channel_snr_kernel` (0, the default: a
+    perfect conductor, the paper's model and the emulator's at ``channel_max_order`` 2; the
+    emulator passes the wall's permittivity at orders >= 3, :mod:`diffpos.channel.slots`).
     """
     eta_g, eta_in, wall_db, slab_db, glass_db, plist = materials
     x0, x1 = building.edge_x_m
@@ -332,7 +339,7 @@ def channel_params(building, radio, materials, eta_parts=(), eta_wall=0j
     prm[_P_E0:] = np.asarray(radio.polarization, dtype=np.float64)
     parts = np.array([[float(axis), float(pos), float(lo), float(hi), float(db)]
                       for axis, pos, (lo, hi), db in plist], dtype=np.float64).reshape(-1, 5)
-    eta = np.array([eta_g, eta_in, *eta_parts, eta_wall], dtype=np.complex128)
+    eta = np.array([eta_g, eta_in, *eta_parts, eta_wall, eta_edge], dtype=np.complex128)
     return prm, np.ascontiguousarray(parts), eta
 
 

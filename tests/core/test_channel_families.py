@@ -140,13 +140,14 @@ def test_ceiling_floor_ceiling_amplitude_closed_form() -> None:
 
 def test_generic_diffraction_builder_matches_the_18s() -> None:
     """``_diffracted_family`` (any planes, a ground bounce) on a one-plane recipe equals the
-    18's ``_diffracted`` (gain and validity), on random links of two buildings."""
+    18's ``_diffracted`` (gain and validity) on the same sheet (a family's edge is a dielectric
+    sheet of the walls' material), on random links of two buildings."""
     for b in (BUILDINGS["default"], BUILDINGS["parts_glass"]):
         anchors, nodes = _pairs(b, np.random.default_rng(9), 300)
         c = _Ctx(b, RADIOS["patterns_zpol"], nodes, anchors[:, None, :])
         for edge in ("upper", "lower"):
             for plane in ("floor", "ceiling", "back"):
-                ref = _diffracted(c, edge, plane)
+                ref = _diffracted(c, edge, plane, sheet=c.eta_wall)
                 got = _diffracted_family(c, Recipe("diff", edge=edge, planes=(plane,)))
                 assert np.array_equal(got[4], ref[4])
                 ok = ref[4]
@@ -200,7 +201,13 @@ def test_default_channel_keeps_the_18() -> None:
                           building=sc.building,
                           radio=dataclasses.replace(sc.radio, channel_max_order=4))
     assert ch4.mechanism == mechanism_set(4, partitions=True).labels
-    assert np.array_equal(ch4.snr_db[..., :18], ch.snr_db)
+    # the 18 keep their slots; at order >= 3 their window edges are a dielectric sheet of
+    # the walls' material (order 2: perfect conductors), everything else is unchanged
+    diff = np.array([r.kind == "diff" for r in mechanism_set(2).recipes])
+    assert np.array_equal(ch4.snr_db[..., :18][..., ~diff], ch.snr_db[..., ~diff])
+    assert np.array_equal(np.isfinite(ch4.snr_db[..., :18]), np.isfinite(ch.snr_db))
+    fin = np.isfinite(ch.snr_db) & diff
+    assert fin.sum() >= 3 and np.all(ch4.snr_db[..., :18][fin] != ch.snr_db[fin])
     assert set(ch4.mpc_class[18:].tolist()) <= {2, 3, 4}
     # class 2 (one specular reflection) among the added: only the partition reflection
     assert {ch4.mechanism[i] for i in range(18, len(ch4.mechanism))
