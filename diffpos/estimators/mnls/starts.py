@@ -19,7 +19,8 @@ The search, its measured cost and the compiled steps (from the estimator's model
   order the 5 left of 4 x 3 all lay in its left half), seven cells replaced by closed-form
   starts of one-mechanism hypotheses (above), from the window band's mid-height
   (:func:`_window_mid_z`): a straight-line multilateration (direct path; most first arrivals
-  are a few cm to dm longer than the straight line); the images a free-z straight-line fit
+  are a few cm to dm longer than the straight line) over the links left after dropping those
+  metres longer than it (:func:`_trimmed_los_start`); the images a free-z straight-line fit
   gives for specular links (ceiling image, ceiling-floor double bounce); per window edge,
   "every link diffracts over this edge" (the Fermat length over a horizontal edge is
   ``sqrt((x_a - x)^2 + (rho_a + rho)^2)``, ``rho`` the distance to the edge line: a
