@@ -95,7 +95,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.estimators.mnls.problem import _Problem
+from diffpos.estimators.mnls.problem import CAP_MIN_LINKS, _Problem
 from diffpos.estimators.mnls.starts_nb import edge_start_kernel, los_start_kernel
 
 FloatArray = NDArray[np.float64]
@@ -129,9 +129,10 @@ def _farthest_point_order(cells: FloatArray, centre: FloatArray) -> NDArray[np.i
     return np.asarray(order)
 
 
-#: The straight-line start drops links with a large excess only while more links than this
-#: are left (:func:`_trimmed_los_start`): with four, the three left would fit some point
-#: exactly whatever their mechanisms (as :data:`diffpos.estimators.mnls.problem.CAP_MIN_LINKS`).
+#: The straight-line start drops links with a large excess (:func:`_trimmed_los_start`) only
+#: in fixes with at least :data:`diffpos.estimators.mnls.problem.CAP_MIN_LINKS` links (with
+#: four, the others cannot outvote a link: as for the out-of-model cap), and only while more
+#: links than this are left (two unknowns in (x, y): three links still over-determine them).
 TRIM_MIN_LINKS = 3
 
 
@@ -181,12 +182,14 @@ def _trimmed_los_start(p, rows, building, kernel: bool = False,
     squares fit over all links one such link pulls the start metres off and the search then
     misses the floor's mode (random held-out building heldout-1, Sionna's trace, K = 4:
     receivers 175 and 177, four direct links of six, the true floor's mode found only from a
-    start at the truth). Fixes with at most ``TRIM_MIN_LINKS`` links keep the plain fit."""
+    start at the truth). Fixes with fewer than ``CAP_MIN_LINKS`` links keep the plain fit (on
+    the emulator's default study, four anchors, dropping one of four moved p80 0.557 -> 0.560 m
+    and the ellipsoid coverage 95.9 -> 95.8 %)."""
     zs = p.z_mid[rows] if z_start is None else np.broadcast_to(z_start, (len(rows),))
     mask = p.mask[rows].copy()
     x = _los_start(p, rows, building, kernel=kernel, z_start=zs, mask=mask)
     a, r, sig = p.anchors[rows], p.r[rows], p.sig[rows]
-    go = np.arange(len(rows))
+    go = np.flatnonzero(mask.sum(axis=-1) >= CAP_MIN_LINKS)
     while go.size:
         go = go[mask[go].sum(axis=-1) > TRIM_MIN_LINKS]
         d = np.sqrt(np.einsum("nmi,nmi->nm", x[go, None, :] - a[go], x[go, None, :] - a[go]))
