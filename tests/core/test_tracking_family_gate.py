@@ -67,8 +67,8 @@ def test_a_tracks_first_update_offers_no_family():
     unseen), and differs after it (the misfit link is offered the families). With
     ``family_history=0`` (a link never seen counted as a misfit) and ``family_minority`` off
     it differs already in that first update."""
-    cfg = dataclasses.replace(TrackerConfig(), max_order=3)
-    assert cfg.family_history >= 1 and cfg.family_min_links == 4
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_min_links=4)
+    assert cfg.family_history >= 1
     ref = _run(dataclasses.replace(cfg, max_order=2), 4)
     first = next(k for k, s in enumerate(ref) if np.isfinite(s.link_fit).any())
     got = _run(cfg, 4)
@@ -77,6 +77,19 @@ def test_a_tracks_first_update_offers_no_family():
     # (every link of a new track unseen: a majority, so family_minority alone closes it too)
     eager = _run(dataclasses.replace(cfg, family_history=0, family_minority=False), 4)
     assert not _same(eager[first], ref[first])
+
+
+def test_four_ranges_are_never_offered_a_family_by_default():
+    """Four ranges (the triple bounce and three in-model ones): with the default
+    ``family_min_links`` (5: a family for one link leaves three, fitted exactly on any floor)
+    the run equals the run without families bit for bit in every epoch; with 4 it does not."""
+    cfg = TrackerConfig()
+    assert cfg.max_order == 3 and cfg.family_min_links == 5
+    ref = _run(dataclasses.replace(cfg, max_order=2), 4)
+    got = _run(cfg, 4)
+    assert all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    four = _run(dataclasses.replace(cfg, family_min_links=4), 4)
+    assert not all(_same(g, r) for g, r in zip(four, ref, strict=True))
 
 
 def test_three_ranges_are_never_offered_a_family():
