@@ -286,7 +286,7 @@ class TrackerConfig:
         :func:`diffpos.tracking.evidence.model_doubt`'s (the ranges beyond three test the
         floor). Measured: Sionna's three-UAV held-out building, live replay, 69.4 % right
         floor without families, 65.6 % with them from the first fit, 69.4 % with this guard.
-        Default 5 (4 before 2026-12-06 20:00 UTC): a family offered to one link of four
+        Default 5 (4 before 7103507, 2026-12-06 19:37 UTC): a family offered to one link of four
         leaves three in-model ranges, again fitted exactly on any floor, so four other ranges
         are needed to test it. Measured (docs/tracking_evidence.md "Five ranges"): with 4 the
         emulator's default paper run (``diffpos emulate``, 4 UAVs, in the path model) fell

@@ -397,6 +397,7 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-12-06T19:37:46Z", "7103507", {"family_min_links": 4}),
     ("2026-12-06T18:23:41Z", "c77e4db", {"max_order": 2, "family_minority": False}),
     ("2026-12-06T17:06:42Z", "7858211", {"max_order": 3}),
     # family_first was on by default only from e94ad45 to 384cae1 (then without the cap of
