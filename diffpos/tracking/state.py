@@ -291,7 +291,7 @@ class TrackerConfig:
         are needed to test it. Measured (docs/tracking_evidence.md "Five ranges"): with 4 the
         emulator's default paper run (``diffpos emulate``, 4 UAVs, in the path model) fell
         from 98.0 to 95.9 % right floor (deterministic over three runs), with 5 it stays 98.0
-        %; Sionna's live ``large`` (8 UAVs) 91.5 / 0.30 % (4) and 91.7 / 0.27 % (5) right /
+        %; Sionna's live ``large`` (8 UAVs) 91.5 / 0.30 % (4) and 91.4 / 0.34 % (5) right /
         confidently wrong (90.2 / 0.87 % without families); Sionna's 4-UAV paper building
         loses the families' gain (live 87.8 -> 76.0 %, static 72.1 -> 69.5 %, as without).
         0: every node (before).
