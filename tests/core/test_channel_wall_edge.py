@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sionna_wedge import sionna_edge_db
 
 from diffpos.channel.gtd_halfplane import (
     diffracted_field,
@@ -116,46 +117,13 @@ def test_hard_field_behind_a_concrete_wall_does_not_grow_towards_it() -> None:
 
 def test_matches_sionna_diffraction_matrix_on_a_concrete_side_wall() -> None:
     pytest.importorskip("sionna.rt")
-    import drjit as dr
-    import mitsuba as mi
-    import sionna.rt as rt
-
     src, nodes, q = _side_wall_links(60)
-    n = len(src)
-    ki = q - src
-    s_in = np.linalg.norm(ki, axis=1)
-    ki = ki / s_in[:, None]
-    ko = nodes - q
-    s_out = np.linalg.norm(ko, axis=1)
-    ko = ko / s_out[:, None]
-    e_hat, n0 = np.array([0.0, 0.0, 1.0]), np.array([-1.0, 0.0, 0.0])  # n0 faces the anchor
-    frame = np.stack([e_hat, np.cross(n0, e_hat), n0], axis=-1)  # columns: local -> world
-
-    def vec(v):
-        v = np.broadcast_to(v @ frame, (n, 3))  # world -> local
-        return mi.Vector3f(*[mi.Float(v[:, i].astype(np.float32)) for i in range(3)])
-
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.dn_du, si.dn_dv = vec(e_hat), vec(-n0)
-    si.dp_du = mi.Vector3f(mi.Float(s_out.astype(np.float32)), mi.Float(s_in.astype(np.float32)),
-                           mi.Float(0.0))
-    to_world = mi.Matrix3f([[float(frame[i, j]) for j in range(3)] for i in range(3)])
-    eta = mi.Complex2f(mi.Float(np.full(n, ETA.real, np.float32)),
-                       mi.Float(np.full(n, ETA.imag, np.float32)))
-    mat = rt.ITURadioMaterial("wall", "concrete", thickness=0.2)
-    jm = mat._diffraction_matrix(to_world, vec(ki), vec(ko), si, eta,
-                                 mi.Float(float(wavenumber_rad_m(F_HZ))))
-    a4 = np.array([[np.array(jm[i][j]) for j in range(4)] for i in range(4)])
-    jones = np.moveaxis(a4[:2, :2] + 1j * a4[2:, :2], -1, 0)  # Sionna's theta/phi bases
-    # the x-polarised dipole's transverse field in Sionna's incident basis (theta_hat, k x theta)
-    th = np.arccos(ki[:, 2])
-    ph = np.arctan2(ki[:, 1], ki[:, 0])
-    theta_hat = np.stack([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)], -1)
+    e_hat = np.array([0.0, 0.0, 1.0])
     e0 = np.array([1.0, 0.0, 0.0])
-    jv = np.stack([theta_hat @ e0, np.cross(ki, theta_hat) @ e0], -1)
-    sionna = 20 * np.log10(np.linalg.norm(np.einsum("nij,nj->ni", jones, jv), axis=1))
-    # the model's |D e| without the spreading (Sionna applies it to the path, not the matrix)
-    norm = np.sqrt(s_in / (s_out * (s_in + s_out))) / s_in
+    # Sionna's |D e| and the model's spreading (Sionna applies it to the path, not the matrix);
+    # n0 = -x: the face the anchor sees
+    sionna, norm = sionna_edge_db(src, nodes, q, e_hat, np.array([-1.0, 0.0, 0.0]), ETA,
+                                  "concrete", 0.2, wavenumber_rad_m(F_HZ))
     out = {}
     for name, eta_face in (("pec", None), ("wall", ETA)):
         e = diffracted_field(src, nodes, q, e_hat, [0, 1.0, 0], e0, frequency_hz=F_HZ,

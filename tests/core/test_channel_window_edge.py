@@ -21,6 +21,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from sionna_wedge import sionna_edge_db
 
 from diffpos.channel.emulator import emulate_channel, pair_snr_db
 from diffpos.channel.gtd_halfplane import diffracted_field, edge_frame, wavenumber_rad_m
@@ -59,45 +60,11 @@ def _shadow_links(n: int = 400, image: bool = False):
 
 
 def _sionna_db(src, obs, q, eta):
-    """20 log10 |D e| of Sionna RT's diffraction matrix (no spreading) for the x-polarised
-    source, and the model's spreading factor to divide out."""
-    import drjit as dr
-    import mitsuba as mi
-    import sionna.rt as rt
-
-    n = len(src)
-    ki = q - src
-    s_in = np.linalg.norm(ki, axis=1)
-    ki = ki / s_in[:, None]
-    ko = obs - q
-    s_out = np.linalg.norm(ko, axis=1)
-    ko = ko / s_out[:, None]
-    e_hat, n0 = LOWER[0], np.array([0.0, -1.0, 0.0])  # n0: the facade's face the anchor sees
-    frame = np.stack([e_hat, np.cross(n0, e_hat), n0], axis=-1)
-
-    def vec(v):
-        v = np.broadcast_to(v @ frame, (n, 3))
-        return mi.Vector3f(*[mi.Float(v[:, i].astype(np.float32)) for i in range(3)])
-
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.dn_du, si.dn_dv = vec(e_hat), vec(-n0)
-    si.dp_du = mi.Vector3f(mi.Float(s_out.astype(np.float32)), mi.Float(s_in.astype(np.float32)),
-                           mi.Float(0.0))
-    to_world = mi.Matrix3f([[float(frame[i, j]) for j in range(3)] for i in range(3)])
-    eta_mi = mi.Complex2f(mi.Float(np.full(n, eta.real, np.float32)),
-                          mi.Float(np.full(n, eta.imag, np.float32)))
-    mat = rt.ITURadioMaterial("facade", B.wall_material, thickness=B.wall_thickness_m)
-    jm = mat._diffraction_matrix(to_world, vec(ki), vec(ko), si, eta_mi,
-                                 mi.Float(float(wavenumber_rad_m(SC.radio.frequency_hz))))
-    a4 = np.array([[np.array(jm[i][j]) for j in range(4)] for i in range(4)])
-    jones = np.moveaxis(a4[:2, :2] + 1j * a4[2:, :2], -1, 0)
-    th = np.arccos(ki[:, 2])
-    ph = np.arctan2(ki[:, 1], ki[:, 0])
-    theta_hat = np.stack([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)], -1)
-    e0 = np.array([1.0, 0.0, 0.0])
-    jv = np.stack([theta_hat @ e0, np.cross(ki, theta_hat) @ e0], -1)
-    db = 20 * np.log10(np.linalg.norm(np.einsum("nij,nj->ni", jones, jv), axis=1))
-    return db, np.sqrt(s_in / (s_out * (s_in + s_out))) / s_in
+    """Sionna's |D e| [dB] at the lower edge of the paper building's concrete facade and the
+    spreading factor to divide out (:func:`sionna_wedge.sionna_edge_db`)."""
+    return sionna_edge_db(src, obs, q, LOWER[0], np.array([0.0, -1.0, 0.0]), eta,
+                          B.wall_material, B.wall_thickness_m,
+                          wavenumber_rad_m(SC.radio.frequency_hz))
 
 
 def test_horizontal_edges_are_dielectric_from_order_3() -> None:
