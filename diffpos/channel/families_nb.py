@@ -68,6 +68,7 @@ from diffpos.paths.model_nb import (
     COL_PLANES,
     axis_component,
     edge_axis,
+    facade_entry,
     fermat_point,
     in_floor_box,
     inside_plane,
@@ -80,7 +81,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "93fa0049d58d6d10"
+CALLEES_SHA256 = "2a9c86683ab9ddea"
 
 __all__ = ["FAMILY_SIGNATURE", "eval_family_snr", "family_snr_kernel", "warm_families"]
 
@@ -192,18 +193,8 @@ def _spec_family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, e
     x0, x1, depth = prm[_P_X0], prm[_P_X1], prm[_P_DEPTH]
     ground, s0, s1, s2, i0, i1, i2 = _images(table, s, a0, a1, a2, n0, n1, n2, zf, zc, prm,
                                              part)
-    d0, d1, d2 = i0 - s0, i1 - s1, i2 - s2
-    length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    t_f = (0.0 - s1) / d1
-    ok = True
-    t_prev = 0.0
-    g0 = g1 = g2 = 0.0
-    if ground:
-        t_g = (0.0 - s2) / d2
-        ok = (t_g > 0) and (t_g < t_f)
-        t_prev = t_g
-        g0, g1, g2 = s0 + t_g * d0, s1 + t_g * d1, s2 + t_g * d2
-    ok = ok and (t_f > t_prev) and (t_f < 1)
+    d0, d1, d2, length, t_f, t_g, ok = facade_entry(s0, s1, s2, i0, i1, i2, ground)
+    g0, g1, g2 = s0 + t_g * d0, s1 + t_g * d1, s2 + t_g * d2  # the ground point (with ground)
     p0, p1, p2 = s0 + t_f * d0, s1 + t_f * d1, s2 + t_f * d2  # entry
     ok = ok and (p2 > lo) and (p2 < hi) and (p0 > x0) and (p0 < x1)
     ok = ok and walk_ok(s0, s1, s2, i0, i1, i2, t_f, table, s, zf, zc, x0, x1, depth,

@@ -50,7 +50,7 @@ from diffpos.paths.model_nb import (
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "20c54e32255de4b4"
+CALLEES_SHA256 = "c9588f667776ec33"
 
 _RAD2DEG = 180.0 / math.pi
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}

@@ -41,13 +41,40 @@ import time
 import numpy as np
 from numba import njit, types
 
-__all__ = ["COL_EDGE", "COL_GROUND", "COL_KIND", "COL_NPLANES", "COL_PLANES", "DEFAULT_TABLE",
-           "N_SLOTS", "SIGNATURE", "SLOT_EDGE", "SLOT_GROUND", "SLOT_KIND", "SLOT_PLANE0",
-           "SLOT_PLANE1", "axis_component", "building_planes", "edge_axis", "eval_paths_kernel",
-           "family_path",
-           "family_path_parts", "fermat_point", "in_floor_box", "inside_plane", "mechanism_table", "mirror",
-           "partition_array", "paths_kernel",
-           "row_planes", "slot_path", "vertical_axis", "walk_ok", "warm_paths"]
+__all__ = [
+    "COL_EDGE",
+    "COL_GROUND",
+    "COL_KIND",
+    "COL_NPLANES",
+    "COL_PLANES",
+    "DEFAULT_TABLE",
+    "N_SLOTS",
+    "SIGNATURE",
+    "SLOT_EDGE",
+    "SLOT_GROUND",
+    "SLOT_KIND",
+    "SLOT_PLANE0",
+    "SLOT_PLANE1",
+    "axis_component",
+    "building_planes",
+    "edge_axis",
+    "eval_paths_kernel",
+    "facade_entry",
+    "family_path",
+    "family_path_parts",
+    "fermat_point",
+    "in_floor_box",
+    "inside_plane",
+    "mechanism_table",
+    "mirror",
+    "partition_array",
+    "paths_kernel",
+    "row_planes",
+    "slot_path",
+    "vertical_axis",
+    "walk_ok",
+    "warm_paths",
+]
 
 #: Mechanism tables: one row per slot, columns :data:`COL_KIND` (0 direct, 1 specular, 2
 #: diffraction), :data:`COL_GROUND` (1: a ground bounce outside first), :data:`COL_EDGE` (0
@@ -174,16 +201,7 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, table, s, zf, zc, x0, x1, depth, p
             g1 = -g1
         else:
             g2 = -g2
-    d0, d1, d2 = i0 - s0, i1 - s1, i2 - s2
-    length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    t_f = (0.0 - s1) / d1
-    t_prev = 0.0
-    ok = True
-    if ground:
-        t_g = (0.0 - s2) / d2
-        ok = (t_g > 0) and (t_g < t_f)
-        t_prev = t_g
-    ok = ok and (t_f > t_prev) and (t_f < 1)
+    d0, d1, d2, length, t_f, _, ok = facade_entry(s0, s1, s2, i0, i1, i2, ground)
     e0 = s0 + t_f * d0
     ez = s2 + t_f * d2
     ok = ok and (e0 > x0) and (e0 < x1)
@@ -195,6 +213,25 @@ def _specular(a0, a1, a2, n0, n1, n2, ground, table, s, zf, zc, x0, x1, depth, p
                                     depth)
     ok = ok and math.isfinite(length)
     return length, ok, ez, d0, d1, d2, g0, g1, g2
+
+
+@njit(**_OPTS)
+def facade_entry(s0, s1, s2, i0, i1, i2, ground):
+    """The unfolded ray ``s -> i`` (source, node imaged in every plane): its vector ``d``, its
+    length, the parameter ``t_f`` at which it crosses the facade plane (y = 0), that of the
+    ground bounce ``t_g`` (0 without ``ground``), and whether it bounces on the ground first
+    (``0 < t_g < t_f``, with ``ground``) and then enters the facade (``t_g < t_f < 1``)."""
+    d0, d1, d2 = i0 - s0, i1 - s1, i2 - s2
+    length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    t_f = (0.0 - s1) / d1
+    t_prev = 0.0
+    ok = True
+    if ground:
+        t_g = (0.0 - s2) / d2
+        ok = (t_g > 0) and (t_g < t_f)
+        t_prev = t_g
+    ok = ok and (t_f > t_prev) and (t_f < 1)
+    return d0, d1, d2, length, t_f, t_prev, ok
 
 
 @njit(**_OPTS)

@@ -47,6 +47,7 @@ from diffpos.paths.model_nb import (
     SLOT_KIND,
     axis_component,
     edge_axis,
+    facade_entry,
     fermat_point,
     in_floor_box,
     inside_plane,
@@ -63,7 +64,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "bcbe182a63e00573"
+CALLEES_SHA256 = "af2210c573206b28"
 
 
 # the default table by kind: the direct slot, the specular slots (ground bounce, number of
@@ -125,16 +126,7 @@ def _row_specular(a0, a1, a2, n0, n1, n2, ground, n_pl, p1, p2, zf, zc, x0, x1, 
     s0, s1, s2 = a0, a1, a2
     if ground:
         s2 = 2.0 * 0.0 - a2
-    d0, d1, d2 = i0 - s0, i1 - s1, i2 - s2
-    length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    t_f = (0.0 - s1) / d1
-    t_prev = 0.0
-    ok = True
-    if ground:
-        t_g = (0.0 - s2) / d2
-        ok = (t_g > 0) and (t_g < t_f)
-        t_prev = t_g
-    ok = ok and (t_f > t_prev) and (t_f < 1)
+    d0, d1, d2, length, t_f, _, ok = facade_entry(s0, s1, s2, i0, i1, i2, ground)
     e0 = s0 + t_f * d0
     ez = s2 + t_f * d2
     ok = ok and (e0 > x0) and (e0 < x1)
