@@ -14,21 +14,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from numba import njit
+from test_paths_kernel import BUILDINGS as ALL_BUILDINGS
 
 from diffpos.paths import model_nb as paths_nb
 from diffpos.scenario import Building
 from diffpos.tracking.model_nb import default_slots_row
 
-BUILDINGS = {
-    "tall_floors": Building(width_m=25.0, depth_m=12.0, n_floors=3, floor_height_m=4.2,
-                            first_floor_z_m=0.0, sill_height_m=1.1, window_height_m=2.3),
-    "slit_windows": Building(width_m=60.0, center_x_m=7.5, depth_m=30.0, n_floors=8,
-                             floor_height_m=2.8, first_floor_z_m=6.0, sill_height_m=0.3,
-                             window_height_m=0.6),
-    "low_wide": Building(width_m=12.0, center_x_m=-4.0, depth_m=8.0, n_floors=2,
-                         floor_height_m=3.5, first_floor_z_m=1.0, sill_height_m=0.9,
-                         window_height_m=1.8),
-}
+BUILDINGS = {k: b for k, b in ALL_BUILDINGS.items() if k != "default"}
 
 
 @njit(cache=False, error_model="numpy")

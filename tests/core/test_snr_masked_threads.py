@@ -6,31 +6,13 @@ split (chunks of at least ``MASKED_MIN_PAIRS`` pairs)."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
+from test_kernel_threads import _BUILDINGS, _RADIO, restore_threads  # noqa: F401 (a fixture)
 
 from diffpos._kernels import pool
 from diffpos.channel import snr_nb
 from diffpos.channel.emulator import pair_snr_db
-from diffpos.scenario import Building, default_scenario
-
-_RADIO = default_scenario().radio
-_BUILDINGS = [
-    dataclasses.replace(Building(), n_floors=7, floor_height_m=3.6, first_floor_z_m=3.0,
-                        sill_height_m=0.9, window_height_m=2.0, width_m=30.0, depth_m=15.0,
-                        partitions=()),
-    dataclasses.replace(Building(), floor_height_m=2.7, window_height_m=0.8, sill_height_m=1.2),
-]
-
-
-@pytest.fixture
-def two_threads(monkeypatch):
-    monkeypatch.setattr(pool, "BACKOFF_WAIT_SHARE", float("inf"))
-    yield
-    pool.set_threads(1)
-    pool.shutdown()
 
 
 def _pairs(b, seed, n):
@@ -45,8 +27,9 @@ def _pairs(b, seed, n):
     return anc, nodes, need
 
 
+@pytest.mark.usefixtures("restore_threads")
 @pytest.mark.parametrize("bi", [0, 1])
-def test_masked_prediction_two_threads_bit_identical(bi, two_threads, monkeypatch):
+def test_masked_prediction_two_threads_bit_identical(bi, monkeypatch):
     b = _BUILDINGS[bi]
     n = 6 * snr_nb.MASKED_MIN_PAIRS + 37
     anc, nodes, need = _pairs(b, 10 + bi, n)
