@@ -444,8 +444,9 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
         rows = np.array(rows_l)
         ids = [epochs[i].node_id for i in rows_l]
         use_r = use[rows]
+        node_rows = bank.rows_of(ids)
         if heavy is not None:  # initialisations first: they give positions
-            new = np.flatnonzero(bank.needs_init(bank.rows_of(ids), use_r.sum(axis=1)))
+            new = np.flatnonzero(bank.needs_init(node_rows, use_r.sum(axis=1)))
             later = new[int(min(left, new.size)):]
             left -= new.size - later.size
             if later.size:  # no ranges this epoch: no initialisation, published on time
@@ -454,7 +455,8 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
                 bank.deferred += int(later.size)
         # the snapshot decision of a round sees the tracks as the previous round left them
         # (a node's epochs in one batch are decided as if they came one call at a time)
-        starting = bank.needs_init(bank.rows_of(ids), use_r.sum(axis=1))
+        starting = (None if cfg.snapshot_at_start
+                    else bank.needs_init(node_rows, use_r.sum(axis=1)))
         due[rows] = _snapshot_due(bank, [epochs[i] for i in rows_l], batch.t_ref[rows], cfg,
                                   min(left, snaps), behind, starting)
         left -= int(due[rows].sum())
