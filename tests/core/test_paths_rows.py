@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from numba import njit
 from test_paths_kernel import BUILDINGS as ALL_BUILDINGS
+from test_paths_kernel import _geometries
 
 from diffpos.paths import model_nb as paths_nb
 from diffpos.scenario import Building
@@ -55,16 +56,8 @@ def _check(b: Building, nodes, anchors, floors) -> np.ndarray:
 def test_row_equals_slot_path_on_random_geometries(name: str) -> None:
     b = BUILDINGS[name]
     rng = np.random.default_rng(sum(map(ord, name)) + 1)
-    n = 4000
-    x0, x1 = b.edge_x_m
-    w = x1 - x0
-    nodes = np.stack([rng.uniform(x0 - 0.1 * w, x1 + 0.1 * w, n),
-                      rng.uniform(-0.3, b.depth_m + 0.3, n),
-                      rng.uniform(b.first_floor_z_m - 1.0, b.top_z_m + 1.0, n)], axis=-1)
-    anchors = np.stack([rng.uniform(x0 - 0.8 * w, x1 + 0.8 * w, n),
-                        rng.uniform(-3.0 * b.depth_m, -0.5, n),
-                        rng.uniform(0.0, b.top_z_m + 15.0, n)], axis=-1)
-    for floors in (rng.integers(0, b.n_floors, n), b.floor_index(nodes[:, 2])):
+    nodes, anchors, drawn = _geometries(b, rng, 4000)
+    for floors in (drawn, b.floor_index(nodes[:, 2])):
         valid = _check(b, nodes, anchors, floors)
         # every slot both existing and not in the sample
         assert valid.any(axis=0).all() and (~valid).any(axis=0).all()
