@@ -245,8 +245,10 @@ def _header(rep: dict[str, Any], p: Any) -> None:
               f"({'compiled: first run on this machine, cached after' if compiled else 'loaded from the cache'})")
     load = t.get("kernel_load_s")
     loads = "" if load is None else f"; kernel loads in this process {load:.2f} s"
+    n = t.get("processes", 1)
+    procs = f"; {n} processes (--workers)" if n > 1 else "; 1 process"
     p(f"  {rep['recording_s']:.1f} s of recording replayed in {t['wall_s']:.2f} s{sp} "
-      f"(fusion warm-up {t.get('warm_up_s', 0.0):.1f} s{before}{loads})")
+      f"(fusion warm-up {t.get('warm_up_s', 0.0):.1f} s{before}{loads}{procs})")
 
 
 def _accuracy_table(rep: dict[str, Any], p: Any) -> None:

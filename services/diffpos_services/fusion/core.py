@@ -35,7 +35,6 @@ from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.decisions import DecisionLog
 from diffpos_services.fusion.estimates import ColumnBatch, Estimates
 from diffpos_services.fusion.estimates_v1 import v1_estimates
-from diffpos_services.fusion.estimates_v2 import v2_builder
 from diffpos_services.fusion.ingest import (
     AnchorStream,
     RejectLog,
@@ -53,8 +52,6 @@ from diffpos_services.fusion.step import (
     prepare,
     solve_batch,
 )
-from diffpos_services.fusion.tracked import TrackBank, heavy_budget, in_publish_order, solve_mnls
-from diffpos_services.fusion.warm import warm_up
 from diffpos_services.logs import log_event
 from diffpos_services.wire import messages as M
 from diffpos_services.wire.keys import Keys, ParsedKey, parse_key
@@ -63,6 +60,24 @@ __all__ = ["BEHIND_KEEP_EPOCHS", "FusionConfig", "FusionCore"]
 
 #: why an epoch was released (FusionDiagnostics.releases)
 RELEASE_REASONS = ("complete", "passed", "watermark", "wall_fallback", "flush")
+
+# The mnls + tracking modules (fusion/tracked.py, estimates_v2.py, warm.py and through them
+# M-NLS's and the tracker's compiled kernels) are imported where mnls uses them, not at the
+# top: a D-NLS/LLS/IPPA fusion (and its replay) loads none of them.
+
+
+def _track_bank(building: Any, config: FusionConfig) -> Any:
+    """The tracker bank of an mnls + tracking core (:class:`~diffpos_services.fusion.tracked.TrackBank`)."""
+    from diffpos_services.fusion.tracked import TrackBank
+
+    return TrackBank(building, config.tracker_config())
+
+
+def _heavy_budget(n_epochs: int, lagging: bool) -> int | None:
+    """:func:`~diffpos_services.fusion.tracked.heavy_budget` (mnls + tracking only)."""
+    from diffpos_services.fusion.tracked import heavy_budget
+
+    return heavy_budget(n_epochs, lagging)
 
 
 class FusionCore:
@@ -121,7 +136,7 @@ class FusionCore:
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
         self.model = (self.building, config.radio_model())
-        self.bank = (TrackBank(self.building, config.tracker_config())
+        self.bank = (_track_bank(self.building, config)
                      if self.building is not None and config.tracking else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")
         self.overload.status_of = None if self.bank is None else self.bank.status_of
@@ -482,6 +497,8 @@ class FusionCore:
     def warm_up(self) -> None:
         """Pay imports and first-call costs before the service declares itself ready (the
         first real epoch is then not late): :func:`~diffpos_services.fusion.warm.warm_up`."""
+        from diffpos_services.fusion.warm import warm_up
+
         warm_up(self)
 
     @property
@@ -535,11 +552,12 @@ class FusionCore:
             if limit is not None:
                 self.overload.taken(now)
             if limit is not None and self.bank is not None:
-                now, held = self.bank.hold_inits(now, heavy_budget(n, lagging), lagging)
+                now, held = self.bank.hold_inits(now, _heavy_budget(n, lagging), lagging)
             if out and emit is not None:  # (a previous batch of this step)
                 emit(out)
                 out = Estimates()
-            heavy = None if limit is None else 0 if held else heavy_budget(n, lagging)
+            heavy = (None if limit is None or self.building is None  # (mnls only)
+                     else 0 if held else _heavy_budget(n, lagging))
             out += self._solve(now, now_wall_ns, heavy, emit, behind)
             if held:  # the initialisations after the other estimates are out
                 if emit is not None:
@@ -582,6 +600,9 @@ class FusionCore:
         prep = prepare(batch, epochs, self.tracks, self.config)
         self.solved += len(epochs)
         if self.building is not None:
+            from diffpos_services.fusion.estimates_v2 import v2_builder
+            from diffpos_services.fusion.tracked import in_publish_order, solve_mnls
+
             s = solve_mnls(batch, prep, epochs, self.config, self.model, self.bank, heavy,
                            defer=True, behind=behind)
             self.gated += gated_count(batch, s.res)
