@@ -235,6 +235,11 @@ def _header(rep: dict[str, Any], p: Any) -> None:
       f"late ranges {msgs['late_ranges']}; rejected {sum(msgs['fusion_rejected'].values())}")
     if msgs["skipped_unknown"]:
         p(f"  skipped {msgs['skipped_unknown']} messages on channels that are not diffpos keys")
+    _timing_line(rep, p)
+
+
+def _timing_line(rep: dict[str, Any], p: Any) -> None:
+    """The replay's speed, the kernels' time before it and the processes that ran it."""
     t = rep["timing"]
     sp = f": {t['speedup_x']:.1f}x real time" if t.get("speedup_x") else ""
     kern = t.get("kernels_s")
