@@ -324,6 +324,16 @@ class TrackerConfig:
         that help are the ones the emulator's amplitude model rules out (its shorter paths
         are absent or far weaker on the traced channel). Default True from e94ad45 (without
         the cap) to the next commit.
+    family_learned_links : int
+        (``max_order`` > 2) The extra families are also offered to a node with at least this
+        many ranges but fewer than ``family_min_links`` while its track has learned that its
+        channel has first arrivals the 18 mechanisms do not explain
+        (:func:`diffpos.tracking.evidence.unexplained_log_odds`: the forgotten rate of the node's
+        epochs with a redundant range (four or more) in which EVERY hypothesis misfits one of
+        the present links at its last real update, a floor-independent sign of an out-of-model
+        first arrival, above the rate the path model predicts with its outlier prior and the
+        ``nis_limit`` tail). 0: off. The history of the setting: docs/tracking_evidence.md
+        "A learned family prior".
     floor_model_doubt : bool
         The published floor probabilities are mixed towards uniform by the probability that
         the node's data hold a first arrival the path model does not explain, by the learned
@@ -397,6 +407,7 @@ class TrackerConfig:
     family_min_links: int = 5
     family_minority: bool = True
     family_first: bool = False
+    family_learned_links: int = 0
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
 
@@ -465,6 +476,11 @@ class TrackerState:
         Learned mean SNR of the link while an outlier (NaN: none).
     link_t_ns : ndarray of int64, shape (N, H, L) [ns]
         When the excess delay was last updated.
+    unexplained, redundant : ndarray, shape (N,)
+        Forgotten counts (``link_forget`` per counted epoch) of the node's epochs with a
+        redundant range (at least four) in which every hypothesis misfit a present link at its
+        last real update / of all such epochs (:func:`diffpos.tracking.evidence.unexplained_log_odds`;
+        ``TrackerConfig.family_learned_links``).
     """
 
     mean: FloatArray
@@ -494,6 +510,8 @@ class TrackerState:
     link_snr: FloatArray
     link_t_ns: NDArray[np.int64]
     link_fit: FloatArray
+    unexplained: FloatArray
+    redundant: FloatArray
 
 
 @dataclass(frozen=True)
