@@ -133,9 +133,11 @@ def test_gate_opens_four_ranges_only_where_learned():
 
 
 def test_in_model_channel_learns_nothing_and_changes_nothing():
-    """Four in-model ranges: no epoch is unexplained, so with ``family_learned_links=4`` the
-    run equals the default run (families from five ranges) bit for bit."""
-    cfg = TrackerConfig()
+    """Four in-model ranges: no epoch is unexplained, so with ``family_learned_links=4`` (the
+    default) the run equals the run without it (families from five ranges only) bit for
+    bit."""
+    assert TrackerConfig().family_learned_links == 4
+    cfg = dataclasses.replace(TrackerConfig(), family_learned_links=0)
     ref = _run(cfg, False)
     got = _run(dataclasses.replace(cfg, family_learned_links=4), False)
     assert all(_same(g, r) for g, r in zip(got, ref, strict=True))
@@ -145,9 +147,9 @@ def test_in_model_channel_learns_nothing_and_changes_nothing():
 
 def test_out_of_model_link_opens_the_families_at_four_ranges():
     """Four ranges, one the triple bounce: the track's counts come to favour an out-of-model
-    channel (by more than 20:1 within the first second), and with ``family_learned_links=4`` the run differs from the default one (which never
-    offers a family to four ranges)."""
-    cfg = TrackerConfig()
+    channel (by more than 20:1 within the first second), and with ``family_learned_links=4``
+    the run differs from the one without it (which never offers a family to four ranges)."""
+    cfg = dataclasses.replace(TrackerConfig(), family_learned_links=0)
     ref = _run(cfg, True)
     got = _run(dataclasses.replace(cfg, family_learned_links=4), True)
     odds = [unexplained_log_odds(s.unexplained, s.redundant, np.array([4]), cfg)[0] for s in got]
