@@ -42,6 +42,8 @@ state restarts with its snapshot initialisation.
 
 from __future__ import annotations
 
+from math import erfc, lgamma, sqrt
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -53,8 +55,9 @@ from diffpos.tracking.evidence_nb import (
 )
 from diffpos.tracking.state import FloatArray
 
-__all__ = ["LINK_FIELDS", "LINK_SLOTS", "learn", "learned_weights", "match_links", "model_doubt",
-           "reset_links"]
+__all__ = ["LINK_FIELDS", "LINK_SLOTS", "count_unexplained", "learn", "learned_weights",
+           "match_links", "model_doubt", "model_unexplained_rate", "reset_links",
+           "unexplained_log_odds"]
 
 # per node whose learned evidence the state keeps (an anchor beyond it is not learned).
 LINK_SLOTS = 16
@@ -383,3 +386,62 @@ def _doubt_dist_numpy(q: FloatArray) -> FloatArray:
         dist[:, 1:] = dist[:, 1:] * (1.0 - qj) + dist[:, :-1] * qj
         dist[:, 0] *= 1.0 - qj[:, 0]
     return dist
+
+
+# --------------------------------------------------------------------------------------------
+# the track's learned rate of epochs no hypothesis explains (TrackerConfig.family_learned_links)
+# --------------------------------------------------------------------------------------------
+
+
+def count_unexplained(unexplained: FloatArray, redundant: FloatArray, fit: FloatArray,
+                      col: NDArray[np.int_], mask: NDArray[np.bool_], n_meas: NDArray[np.int_],
+                      config) -> tuple[FloatArray, FloatArray]:
+    """The nodes' counts (n,) after one update (new arrays): an epoch with at least four
+    ranges (one beyond the three that fit a position exactly on any floor) counts in
+    ``redundant``; in ``unexplained`` too when EVERY hypothesis misfits (NIS above
+    ``nis_limit``, or an outlier) one of the present links at its last real update
+    (``fit`` (n, H, L), the learned ``link_fit`` after this update; ``col`` (n, M), ``mask``
+    (n, M) the epoch's links). A hypothesis that has not fitted a present link yet does not
+    misfit it. Why every hypothesis: on the path model's own channel the true floor explains
+    every range but for the outlier prior and the NIS tail, whichever floor is the most
+    probable; a first arrival out of the model is misfit there, and a mirror floor that
+    explains it by one of its own mechanisms often misfits another range (the redundant one),
+    so the count does not depend on which floor the track believes (a mirror floor that
+    explains all four stops the count: the rate is then forgotten). Both counts are forgotten by
+    ``link_forget`` per counted epoch."""
+    f = config.link_forget
+    g = _gather(fit, col)  # (n, H, M), NaN: not fitted / no link
+    with np.errstate(invalid="ignore"):
+        mis = np.any((g > config.nis_limit) & mask[:, None, :], axis=2)  # (n, H)
+    every = np.all(mis, axis=1)
+    count = n_meas >= 4
+    return (np.where(count, f * unexplained + every, unexplained),
+            np.where(count, f * redundant + 1.0, redundant))
+
+
+def model_unexplained_rate(n_links: NDArray[np.int_], config) -> FloatArray:
+    """The rate (n,) at which the path model itself predicts an epoch of ``n_links`` ranges
+    with a misfit at the true state: every range an outlier with ``outlier_weight`` or beyond
+    ``nis_limit`` by the Gaussian tail, ``1 - (1 - e0 - P(chi2_1 > nis_limit))^n``; an upper
+    bound of its rate of epochs that every hypothesis misfits."""
+    tail = erfc(sqrt(config.nis_limit / 2.0))
+    p_ok = max(1.0 - config.outlier_weight - tail, 0.0)
+    return 1.0 - p_ok ** np.asarray(n_links, float)
+
+
+def unexplained_log_odds(unexplained: FloatArray, redundant: FloatArray,
+                         n_links: NDArray[np.int_], config) -> FloatArray:
+    """The log Bayes factor (n,) of the nodes' counts (:func:`count_unexplained`) for a channel
+    with first arrivals out of the path model against the model's own: ``u`` unexplained of
+    ``r`` counted epochs (forgotten counts, Bernoulli trials), the model's rate ``r0``
+    (:func:`model_unexplained_rate` at ``n_links``) against an unknown rate with a uniform
+    prior, ``ln B(1 + u, 1 + r - u) - u ln r0 - (r - u) ln(1 - r0)``. > 0: the data favour
+    the out-of-model channel. Nothing counted: 0 (no evidence either way); one unexplained
+    epoch of one favours it (the uniform rate explains it better than ``r0`` does), one of
+    four no longer, and with the forgetting's 20 epochs it takes about five (a quarter)."""
+    r0 = model_unexplained_rate(n_links, config)
+    u = np.asarray(unexplained, float)
+    r = np.maximum(np.asarray(redundant, float), u)
+    lb = np.array([lgamma(1.0 + a) + lgamma(1.0 + b - a) - lgamma(2.0 + b)
+                   for a, b in zip(u.tolist(), r.tolist(), strict=True)]).reshape(u.shape)
+    return lb - u * np.log(r0) - (r - u) * np.log1p(-r0)

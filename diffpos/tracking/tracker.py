@@ -143,11 +143,13 @@ from diffpos.tracking.evidence import (
     LINK_FIELDS,
     LINK_SLOTS,
     _gather,
+    count_unexplained,
     learn,
     learned_weights,
     match_links,
     model_doubt,
     reset_links,
+    unexplained_log_odds,
 )
 from diffpos.tracking.evidence_nb import warm_evidence
 from diffpos.tracking.families import family_log_weight
@@ -206,6 +208,7 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
                          np.float32),
         link_anchor=np.full((n_nodes, LINK_SLOTS, 3), np.nan),
         link_seen_ns=np.full((n_nodes, LINK_SLOTS), t_ns, np.int64),
+        unexplained=np.zeros(n_nodes), redundant=np.zeros(n_nodes),
         **_empty_links(n_nodes, h, t_ns))
 
 
@@ -387,7 +390,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
     origin = st.refresh_origin_ns.copy()
     snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
-    lk = {k: getattr(st, k).copy() for k in (*LINK_FIELDS, "link_anchor", "link_seen_ns")}
+    lk = {k: getattr(st, k).copy() for k in (*LINK_FIELDS, "link_anchor", "link_seen_ns",
+                                             "unexplained", "redundant")}
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
@@ -438,6 +442,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         floor_bad[jdx], llr[jdx], upd[jdx], below[jdx] = 0, np.nan, t[jdx, None], 0
         origin[jdx] = t[jdx]
         reset_links({k: lk[k] for k in LINK_FIELDS}, jdx)
+        lk["unexplained"][jdx], lk["redundant"][jdx] = 0.0, 0.0
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
     if snr_cache[0] is st.snr_node:  # not updated: the new state owns its arrays
@@ -590,7 +595,11 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                                  SNR_SPAN_DB)
         if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
-            fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0])
+            learned = None
+            if config.family_learned_links > 0:  # the track's channel has out-of-model arrivals
+                learned = _learned_families(state.unexplained[idx], state.redundant[idx],
+                                            n_meas, config)
+            fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0], learned)
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
@@ -629,17 +638,31 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         ev_link = np.where(sub.mask[:, 0][:, None, :], lw - 0.5 * np.nan_to_num(nis_h), 0.0)
         new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link, nis_h),
                    link_anchor=tab, link_seen_ns=seen)
+        if config.family_learned_links > 0:  # (off: nothing reads them, nothing counted)
+            new["unexplained"], new["redundant"] = count_unexplained(
+                state.unexplained[idx], state.redundant[idx], new["link_fit"], col,
+                sub.mask[:, 0], n_meas, config)
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
 
 
+def _learned_families(unexplained: FloatArray, redundant: FloatArray,
+                      n_meas: NDArray[np.int_], config: TrackerConfig) -> NDArray[np.bool_]:
+    """The nodes (n,) whose track has learned that its channel has first arrivals out of the
+    path model (``config.family_learned_links``): its counts of unexplained epochs favour an
+    unknown rate over the model's own (:func:`diffpos.tracking.evidence.unexplained_log_odds`
+    > 0)."""
+    return unexplained_log_odds(unexplained, redundant, np.maximum(n_meas, 4), config) > 0.0
+
+
 def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
-                 config: TrackerConfig, present: NDArray[np.bool_] | None = None
-                 ) -> NDArray[np.bool_]:
+                 config: TrackerConfig, present: NDArray[np.bool_] | None = None,
+                 learned: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
     """The links (n, H, M) whose out-of-model component includes the extra families
     (``config.family_gate``, ``family_history``, ``family_min_links``;
     :mod:`diffpos.tracking.families`) from the nodes' learned arrays ``lk`` before this
     update, their links ``col`` (:func:`~diffpos.tracking.evidence.match_links`) and numbers
-    of ranges ``n_meas`` (n,)."""
+    of ranges ``n_meas`` (n,); ``learned`` (n,): the nodes that get the families from
+    ``family_learned_links`` ranges (:func:`_learned_families`; None: none)."""
     if config.family_gate == "outlier":
         gate = _gather(lk["link_out"], col) > 0.5
     else:
@@ -649,7 +672,10 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         need = config.family_history if f >= 1.0 else (1.0 - f ** config.family_history) / (1.0 - f)
         gate &= _gather(lk["link_all"], col) >= need * (1.0 - 1e-9)
     if config.family_min_links > 0:
-        gate &= (n_meas >= config.family_min_links)[:, None, None]
+        enough = n_meas >= config.family_min_links
+        if learned is not None:  # fewer ranges where the track learned the channel has them
+            enough |= learned & (n_meas >= config.family_learned_links)
+        gate &= enough[:, None, None]
     if config.family_minority:  # most ranges misfit: the state is wrong, not the links
         mis = gate if present is None else gate & present[:, None, :]
         gate &= (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
