@@ -7,6 +7,8 @@ Usage::
     python benchmarks/bench_channel_mix.py --tracker [default scenarios/large.toml]
         [--orders 2 4] [--epochs 200]
     python benchmarks/bench_channel_mix.py --cost [--orders 2 3 4]
+    python benchmarks/bench_channel_mix.py --live paper scenarios/large.toml --out DIR
+        [--orders 2 3] [--duration 20]
 
 For every ray-trace dataset (``diffpos raytrace SCEN --receivers 200 --samples 1e6
 --max-depth 4``; default the paper building and its open-plan variant traced with the
@@ -46,7 +48,17 @@ epochs, configurations and scorer, imported from that script) with the scenario'
 
 ``--cost``: CPU per (anchor, node) pair of :func:`diffpos.channel.emulator.pair_first_arrival`
 (what an emulated anchor runs per epoch) at every order, on 20,000 random pairs of the paper
-scenario (the kernels warmed first; best of 3). The figures: ``docs/channel_mix.md``.
+scenario (the kernels warmed first; best of 3).
+
+``--live SCENARIO ... --out DIR``: the whole live system on the emulator's channel at every
+order: for each scenario (a file or a shipped name; ``paper`` is also what ``diffpos emulate``
+runs without a scenario) and order, ``DIR/NAME-oN.toml`` (the scenario with ``[radio]
+channel_max_order = N``, checked to load back equal) and ``diffpos emulate DIR/NAME-oN.toml
+--speed 0 --duration S --record DIR/NAME-oN.mcap --dashboard off --no-progress`` (lockstep, seed
+0), scored by ``common.score_recording`` over ALL node-epochs and after the first 2 s (right
+floor, availability, a wrong floor published at p >= 0.95, 95 % ellipsoid), with the run's CPU
+(user + sys of the emulate process and its services). Never writes over a file in DIR. The
+figures: ``docs/channel_mix.md``.
 """
 
 from __future__ import annotations
@@ -55,6 +67,9 @@ import argparse
 import dataclasses
 import importlib.util
 import os
+import resource
+import subprocess
+import sys
 from collections import Counter
 from pathlib import Path
 
@@ -62,6 +77,8 @@ import numpy as np
 from diffpos_services.raytrace.dataset import load_dataset
 from diffpos_services.raytrace.evaluate import dataset_first_arrival
 from diffpos_services.raytrace.mechanisms import classify_mechanisms
+from diffpos_services.scenario_io import load_scenario, resolve_scenario
+from heldout import to_toml
 
 from diffpos.channel.emulator import emulate_channel, first_arrival, pair_first_arrival
 from diffpos.paths.mechanisms import FAMILIES, label_family
@@ -208,6 +225,66 @@ def pair_cost_us(orders: list[int], n: int = 20_000) -> dict[int, float]:
     return out
 
 
+def order_copy(scenario: str, order: int, out_dir: Path) -> Path:
+    """``out_dir/NAME-oORDER.toml``: ``scenario`` with ``channel_max_order = order`` (a new
+    file, checked to load back as the same scenario)."""
+    src = resolve_scenario(scenario)
+    sc = load_scenario(src)
+    want = dataclasses.replace(sc, radio=dataclasses.replace(sc.radio, channel_max_order=order))
+    path = out_dir / f"{Path(src).stem}-o{order}.toml"
+    if path.exists():
+        raise FileExistsError(f"{path} exists: remove it or choose another --out")
+    path.write_text(f"# {src} with channel_max_order = {order} (bench_channel_mix.py --live)\n\n"
+                    + to_toml(want.to_dict()))
+    back = load_scenario(path)
+    if (back.building, back.radio, back.anchors, back.nodes, back.node_grid) != (
+            want.building, want.radio, want.anchors, want.nodes, want.node_grid):
+        raise RuntimeError(f"{path} does not load back as {src} at order {order}")
+    return path
+
+
+def live_score(rec: Path, skip_s: float) -> dict[str, float]:
+    """Right floor, availability, confidently wrong, 95 % ellipsoid [%] of a recording."""
+    from common import score_recording
+
+    rows: list = []
+    s = score_recording(rec, skip_s=skip_s, rows_out=rows)
+    wrong = sum(1 for r in rows if 0 <= r[3] != r[2] and r[4] >= 0.95)
+    return {"node-epochs": s["node_epochs"], "right floor": 100 * s["floor"],
+            "availability": 100 * s["availability"],
+            "conf. wrong": 100 * wrong / max(len(rows), 1),
+            "95% ellipsoid": 100 * s["coverage95"]}
+
+
+def live_runs(scenarios: list[str], orders: list[int], out_dir: Path, duration: float) -> None:
+    """``--live`` (module docstring): one lockstep run per scenario and order, scored."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    print(f"{'run':<16}{'load':>6}{'CPU s':>8}{'scored':>8}{'epochs':>8}{'right %':>9}"
+          f"{'avail %':>9}{'cw %':>7}{'ell95 %':>9}")
+    for scen in scenarios:
+        for o in orders:
+            toml = order_copy(scen, o, out_dir)
+            rec = toml.with_suffix(".mcap")
+            if rec.exists():
+                raise FileExistsError(f"{rec} exists: remove it or choose another --out")
+            load = os.getloadavg()[0]
+            ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cmd = [sys.executable, "-m", "diffpos_services.cli.main", "emulate", str(toml),
+                   "--speed", "0", "--duration", str(duration), "--record", str(rec),
+                   "--dashboard", "off", "--no-progress"]
+            with open(toml.with_suffix(".out"), "w") as log:
+                rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
+            ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            if rc != 0:
+                raise RuntimeError(f"{' '.join(cmd)} exited {rc}: see {toml.with_suffix('.out')}")
+            cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
+            for skip, what in ((0.0, "all"), (2.0, "after 2 s")):
+                r = live_score(rec, skip)
+                print(f"{toml.stem:<16}{load:>6.1f}{cpu:>8.1f}{what:>10}{r['node-epochs']:>8}"
+                      f"{r['right floor']:>9.2f}{r['availability']:>9.2f}{r['conf. wrong']:>7.2f}"
+                      f"{r['95% ellipsoid']:>9.1f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("datasets", nargs="*", default=DEFAULT)
@@ -220,7 +297,16 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=200, help="--tracker's epochs")
     ap.add_argument("--seed", type=int, default=0, help="--tracker's seed")
     ap.add_argument("--cost", action="store_true", help="instead: pair_first_arrival's CPU")
+    ap.add_argument("--live", nargs="+", default=None, metavar="SCENARIO",
+                    help="instead: diffpos emulate (lockstep) at every order, scored")
+    ap.add_argument("--out", type=Path, help="--live's directory (scenario copies, recordings)")
+    ap.add_argument("--duration", type=float, default=20.0, help="--live's run length [s]")
     args = ap.parse_args()
+    if args.live is not None:
+        if args.out is None:
+            ap.error("--live needs --out DIR (the scenario copies and recordings go there)")
+        live_runs(args.live, args.orders, args.out, args.duration)
+        return
     if args.cost:
         for o, us in pair_cost_us(args.orders).items():
             print(f"channel_max_order {o}: pair_first_arrival {us:.2f} us CPU per pair "
