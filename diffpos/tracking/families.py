@@ -55,7 +55,7 @@ from numpy.typing import NDArray
 
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
-from diffpos.paths.model import graded_paths
+from diffpos.paths.model import graded_paths, graded_split
 from diffpos.tracking.state import FloatArray
 
 __all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "first_arrival_log_prob"]
@@ -92,15 +92,19 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
     if fam is None or q == 0:
         return np.full(q, -np.inf), np.zeros(q, np.int64), np.zeros(q, np.int64)
     mset, _ = fam
-    g = graded_paths(pos, anchor, building, relax_m=relax_m, floor=floor, mechanisms=mset)
-    ok = g.loose & np.isfinite(g.length_m)
     nb = len(MECHANISMS)
-    n_base = ok[:, :nb].sum(axis=-1)
-    ok = ok[:, nb:]
-    j = np.where(ok[..., None], g.jacobian[:, nb:], 0.0)
+    if radio is None:  # the extra families' paths only, the 18's existence counted (compiled)
+        n_base, length, ok, jac = graded_split(pos, anchor, floor, building, relax_m=relax_m,
+                                               mechanisms=mset, split=nb)
+    else:  # the first-arrival condition needs the 18's lengths too
+        g = graded_paths(pos, anchor, building, relax_m=relax_m, floor=floor, mechanisms=mset)
+        ok = g.loose & np.isfinite(g.length_m)
+        n_base = ok[:, :nb].sum(axis=-1)
+        ok, length, jac = ok[:, nb:], g.length_m[:, nb:], g.jacobian[:, nb:]
+    j = np.where(ok[..., None], jac, 0.0)
     s = var[:, None] + np.sum(np.matmul(j, cov) * j, axis=-1)
     with np.errstate(invalid="ignore"):
-        e = rho[:, None] - g.length_m[:, nb:]
+        e = rho[:, None] - length
         ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)
     if radio is not None:
         if snr_sigma_db is None:
