@@ -105,7 +105,6 @@ from diffpos.paths.model_nb import (
     DEFAULT_TABLE,
     building_planes,
     eval_paths_kernel,
-    graded_split_kernel,
     mechanism_table,
     partition_array,
 )
@@ -120,7 +119,6 @@ __all__ = [
     "diffracted_path",
     "first_arrival_paths",
     "graded_paths",
-    "graded_split",
     "specular_path",
 ]
 
@@ -609,40 +607,6 @@ def graded_paths(nodes_m: ArrayLike, anchors_m: ArrayLike, building, *, relax_m:
     return GradedPaths(length_m=length.reshape(sh), jacobian=jac.reshape((*sh, 3)),
                        strict=strict.reshape(sh), loose=loose.reshape(sh),
                        sure=sure.reshape(sh), entry_z_m=z_in.reshape(sh))
-
-
-def graded_split(nodes_m: FloatArray, anchors_m: FloatArray, floor: ArrayLike, building, *,
-                 relax_m: float, mechanisms: MechanismSet, split: int
-                 ) -> tuple[NDArray[np.int64], FloatArray, BoolArray, FloatArray]:
-    """:func:`graded_paths` of flat rows reduced to what a caller of the slots from ``split``
-    on needs (the tracker's higher-order families, :mod:`diffpos.tracking.families`):
-    ``ok = loose & isfinite(length_m)`` of every slot of ``mechanisms``; returns the number
-    of slots before ``split`` with ``ok`` (P,), and the raw length (P, K - split), ``ok``
-    (P, K - split) and Jacobian (P, K - split, 3) of the slots from ``split`` on, the values of
-    :func:`graded_paths` bit for bit (one compiled pass,
-    :func:`diffpos.paths.model_nb.graded_split_kernel`; tests/core/test_paths_split.py).
-
-    ``nodes_m``, ``anchors_m`` (P, 3), ``floor`` (P,) the rows' floor indices, ``relax_m`` >= 0
-    as for :func:`graded_paths`."""
-    if not relax_m >= 0.0:
-        raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
-    table = _table(mechanisms)
-    band = _BANDS.get(mechanisms)
-    if band is None:
-        band = _BANDS[mechanisms] = np.isin(np.arange(table.shape[0]), mechanisms.specular)
-    n = np.require(nodes_m, np.float64, ("C", "W"))
-    a = np.require(anchors_m, np.float64, ("C", "W"))
-    fl = np.require(floor, np.float64, ("C", "W"))
-    p, k = n.shape[0], table.shape[0] - split
-    n_before = np.empty(p, np.int64)
-    length, ok, jac = np.empty((p, k)), np.empty((p, k), np.bool_), np.empty((p, k, 3))
-    graded_split_kernel(n, a, fl, *building_planes(building), partition_array(building), table,
-                        band, float(relax_m), int(split), n_before, length, ok, jac)
-    return n_before, length, ok, jac
-
-
-#: The window-band (specular) flags of every slot of the mechanism sets in use.
-_BANDS: dict[MechanismSet, BoolArray] = {}
 
 
 @dataclass(frozen=True)
