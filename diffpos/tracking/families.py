@@ -37,8 +37,9 @@ its misfits leave its position fit and it does not re-converge). Why the misfits
 the true floor mostly did NOT call its out-of-model link an outlier but fitted it with a wrong
 mechanism at -7..-9 nats (its mirror floor one to three below: -4..-5.5), so an outlier gate
 never offered it the family; a link the 18 explain (NIS <= ``nis_limit``) costs nothing. On a
-channel the 18 mechanisms explain, few links are misfits, so the cost stays (numpy around the
-compiled path kernel of :func:`diffpos.paths.model.graded_paths`).
+channel the 18 mechanisms explain, few links are misfits, so the cost stays small: one compiled
+pass per gated link over the set's slots (:func:`graded_split`, the values of
+:func:`diffpos.paths.model.graded_paths` bit for bit) and numpy for the densities.
 
 Measured (docs/raytrace_study.md section 2c): live paper on Sionna 72.2 -> 79.3 % right floor
 on the same recorded inputs, heldout-2 54.2 -> 63.7 % (confidently wrong 1.39 -> 0.46 %),
