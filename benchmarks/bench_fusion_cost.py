@@ -5,6 +5,13 @@ Usage::
 
     python benchmarks/bench_fusion_cost.py [--scenario large] [--duration 10] [--seed 0]
     python benchmarks/bench_fusion_cost.py --recording REC --parts [--startup-s 1]
+    python benchmarks/bench_fusion_cost.py --recording REC --compare CHECKOUT [--repeat 2]
+
+``--compare CHECKOUT`` (session 22): the same measurement (``--recording``: an M-NLS replay with
+the recorded decisions after a warm-up replay; ``--schedule``: the live loop) by CHECKOUT's code
+(its tree and ``services`` on ``PYTHONPATH``) and this tree's, alternating in fresh processes
+for ``--repeat`` rounds, CPU per node-epoch side by side with the load and the ratio of the
+best of each (docs/soak.md, session 22: on this shared VM the rounds scatter by +-15 %).
 
 ``--parts`` (issue 37, session 21): one M-NLS replay of REC (every epoch solved, no recorded
 decisions, after a warm-up replay of its first 16 s) with timers around the mnls snapshot fix,
