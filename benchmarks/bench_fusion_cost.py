@@ -5,6 +5,13 @@ Usage::
 
     python benchmarks/bench_fusion_cost.py [--scenario large] [--duration 10] [--seed 0]
     python benchmarks/bench_fusion_cost.py --recording REC --parts [--startup-s 1]
+    python benchmarks/bench_fusion_cost.py --recording REC --compare CHECKOUT [--repeat 2]
+
+``--compare CHECKOUT`` (session 22): the same measurement (``--recording``: an M-NLS replay with
+the recorded decisions after a warm-up replay; ``--schedule``: the live loop) by CHECKOUT's code
+(its tree and ``services`` on ``PYTHONPATH``) and this tree's, alternating in fresh processes
+for ``--repeat`` rounds, CPU per node-epoch side by side with the load and the ratio of the
+best of each (docs/soak.md, session 22: on this shared VM the rounds scatter by +-15 %).
 
 ``--parts`` (issue 37, session 21): one M-NLS replay of REC (every epoch solved, no recorded
 decisions, after a warm-up replay of its first 16 s) with timers around the mnls snapshot fix,
@@ -404,6 +411,50 @@ def cost(path: Path, method: str) -> tuple[float, int, dict]:
     return cpu, int(r.report["fixes"]["total"]), r.report
 
 
+def _tree_env(tree: Path | None) -> dict[str, str]:
+    """This process' environment with ``tree`` (a checkout) and its ``services`` first on
+    ``PYTHONPATH`` (None: this process' own)."""
+    env = dict(os.environ)
+    if tree is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(tree), str(tree / "services")])
+    return env
+
+
+def _cost_in(tree: Path | None, argv: list[str]) -> dict:
+    """One ``--cost-json`` run of this script under ``tree``'s code (a fresh process)."""
+    out = subprocess.run([sys.executable, __file__, *argv, "--cost-json"], env=_tree_env(tree),
+                         check=True, capture_output=True, text=True).stdout
+    return msgspec.json.decode(out.strip().splitlines()[-1])
+
+
+def compare(other: Path, argv: list[str], rounds: int) -> list[tuple[str, dict]]:
+    """``rounds`` x (other checkout, this one), alternating, each a fresh process: CPU per
+    node-epoch of the same measurement (``argv``: ``--recording R`` or ``--schedule R ...``)."""
+    here = Path(__file__).resolve().parents[1]
+    rows = []
+    for _ in range(rounds):
+        for name, tree in (("before", other), ("after", here)):
+            rows.append((name, _cost_in(tree, argv)))
+    return rows
+
+
+def _print_compare(other: Path, argv: list[str], rows: list[tuple[str, dict]]) -> None:
+    print(f"bench_fusion_cost --compare {other} {' '.join(argv)}: machine {platform.machine()} "
+          f"{os.cpu_count()} cores, Python {platform.python_version()}, load avg "
+          f"{os.getloadavg()[0]:.1f} at the end")
+    print(f"{'round':>5} {'code':<7} {'node-epochs':>11} {'CPU s':>7} {'ms/node-epoch':>14} "
+          f"{'load':>5}")
+    per = collections.defaultdict(list)
+    for i, (name, r) in enumerate(rows):
+        ms = 1e3 * r["cpu_s"] / max(r["n"], 1)
+        per[name].append(ms)
+        print(f"{i // 2 + 1:>5} {name:<7} {r['n']:>11} {r['cpu_s']:>7.2f} {ms:>14.3f} "
+              f"{r['load']:>5.1f}")
+    b, a = min(per["before"]), min(per["after"])
+    print(f"best of each: before {b:.3f}, after {a:.3f} ms per node-epoch: after / before "
+          f"{a / b:.3f}")
+
+
 class _VirtualClock:
     """Wall clock of the schedule: the first input's receive time, then + the CPU time this
     process used (times ``cpu_scale``: 2 = a core half as fast, or half a core), + the idle
@@ -604,7 +655,32 @@ def main(argv: list[str] | None = None) -> int:
                     "start-up (first --startup-s) apart from the rest")
     ap.add_argument("--startup-s", type=float, default=1.0, metavar="S",
                     help="--parts: the start-up's length [s of measurement time] (default 1)")
+    ap.add_argument("--compare", type=Path, metavar="CHECKOUT",
+                    help="with --recording (an M-NLS replay, the recorded decisions) or "
+                    "--schedule: the same measurement by CHECKOUT's code and this one's, "
+                    "alternating in fresh processes (--repeat rounds), ratio side by side")
+    ap.add_argument("--cost-json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.compare is not None:
+        sub = [a for a in (argv if argv is not None else sys.argv[1:])]
+        i = sub.index("--compare")
+        sub = sub[:i] + sub[i + 2:]
+        _print_compare(args.compare, sub, compare(args.compare, sub, args.repeat))
+        return 0
+    if args.cost_json:  # one measurement for --compare, as JSON on the last line
+        if args.schedule is not None:
+            r = schedule(args.schedule, seconds=args.seconds, cpu_scale=args.cpu_scale,
+                         fusion_argv=None if args.fusion_args is None
+                         else args.fusion_args.split())
+            out = {"n": r["estimates"], **{k: v for k, v in r.items()
+                                           if isinstance(v, (int, float))}}
+        else:
+            cost(args.recording, "mnls")  # warm-up: imports, kernels, first calls
+            cpu, n, _ = cost(args.recording, "mnls")
+            out = {"cpu_s": cpu, "n": n}
+        out["load"] = os.getloadavg()[0]
+        print(msgspec.json.encode(out).decode())
+        return 0
     if args.parts and args.recording is not None:
         _print_parts(args.recording, *parts(args.recording, args.startup_s), args.startup_s)
         return 0

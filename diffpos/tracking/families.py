@@ -37,8 +37,9 @@ its misfits leave its position fit and it does not re-converge). Why the misfits
 the true floor mostly did NOT call its out-of-model link an outlier but fitted it with a wrong
 mechanism at -7..-9 nats (its mirror floor one to three below: -4..-5.5), so an outlier gate
 never offered it the family; a link the 18 explain (NIS <= ``nis_limit``) costs nothing. On a
-channel the 18 mechanisms explain, few links are misfits, so the cost stays (numpy around the
-compiled path kernel of :func:`diffpos.paths.model.graded_paths`).
+channel the 18 mechanisms explain, few links are misfits, so the cost stays small: one compiled
+pass per gated link over the set's slots (:func:`graded_split`, the values of
+:func:`diffpos.paths.model.graded_paths` bit for bit) and numpy for the densities.
 
 Measured (docs/raytrace_study.md section 2c): live paper on Sionna 72.2 -> 79.3 % right floor
 on the same recorded inputs, heldout-2 54.2 -> 63.7 % (confidently wrong 1.39 -> 0.46 %),
@@ -54,11 +55,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from diffpos.channel.emulator import pair_snr_db
+from diffpos.paths.graded_nb import graded_split_kernel
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
 from diffpos.paths.model import graded_paths
+from diffpos.paths.model_nb import building_planes, mechanism_table, partition_array
 from diffpos.tracking.state import FloatArray
 
-__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "first_arrival_log_prob"]
+__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "first_arrival_log_prob",
+           "graded_split"]
 
 #: Share of the out-of-model component given to the enumerated extra families (the rest stays
 #: uniform over ``outlier_span_m``).
@@ -74,6 +78,43 @@ def extra_families(max_order: int) -> tuple[MechanismSet, NDArray[np.int64]] | N
         return None
     mset = mechanism_set(max_order)
     return mset, np.arange(len(MECHANISMS), len(mset.recipes), dtype=np.int64)
+
+
+@functools.cache
+def _family_table(max_order: int, partitions: bool = False
+                  ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """The compiled mechanism table of ``mechanism_set(max_order, partitions=partitions)`` and
+    its window-band (specular) slots, as :func:`diffpos.paths.model.graded_paths` tests them."""
+    mset = mechanism_set(max_order, partitions=partitions)
+    table = mechanism_table(mset.recipes)
+    return table, np.isin(np.arange(table.shape[0]), mset.specular)
+
+
+def graded_split(pos: FloatArray, anchor: FloatArray, floor: NDArray, building, max_order: int,
+                 relax_m: float, partitions: bool = False
+                 ) -> tuple[NDArray[np.int64], FloatArray, NDArray[np.bool_], FloatArray]:
+    """:func:`diffpos.paths.model.graded_paths` of flat rows (``pos``, ``anchor`` (Q, 3),
+    ``floor`` (Q,)) with ``max_order``'s mechanism set, reduced to what
+    :func:`family_log_lik` reads: ``ok = loose & isfinite(length_m)``; returns the number of
+    the 18 mechanisms with ``ok`` (Q,) and the raw length (Q, F), ``ok`` (Q, F) and Jacobian
+    (Q, F, 3) of the F extra families (``partitions``: of
+    ``mechanism_set(max_order, partitions=True)``; the tracker's are without), bit for bit ``graded_paths``' values (one compiled
+    pass, :func:`diffpos.paths.graded_nb.graded_split_kernel`; tests/core/test_paths_split.py).
+    Measured on the calls of a 16-anchor replay: 0.67 -> 0.48 s CPU for
+    :func:`family_log_lik` (docs/soak.md)."""
+    if not relax_m >= 0.0:
+        raise ValueError(f"relax_m must be >= 0 [m]; got {relax_m!r}")
+    table, band = _family_table(max_order, partitions)
+    nb = len(MECHANISMS)
+    n = np.require(pos, np.float64, ("C", "W"))
+    a = np.require(anchor, np.float64, ("C", "W"))
+    fl = np.require(floor, np.float64, ("C", "W"))
+    q, f = n.shape[0], table.shape[0] - nb
+    n_base = np.empty(q, np.int64)
+    length, ok, jac = np.empty((q, f)), np.empty((q, f), np.bool_), np.empty((q, f, 3))
+    graded_split_kernel(n, a, fl, *building_planes(building), partition_array(building), table,
+                        band, float(relax_m), nb, n_base, length, ok, jac)
+    return n_base, length, ok, jac
 
 
 def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
@@ -92,15 +133,19 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
     if fam is None or q == 0:
         return np.full(q, -np.inf), np.zeros(q, np.int64), np.zeros(q, np.int64)
     mset, _ = fam
-    g = graded_paths(pos, anchor, building, relax_m=relax_m, floor=floor, mechanisms=mset)
-    ok = g.loose & np.isfinite(g.length_m)
     nb = len(MECHANISMS)
-    n_base = ok[:, :nb].sum(axis=-1)
-    ok = ok[:, nb:]
-    j = np.where(ok[..., None], g.jacobian[:, nb:], 0.0)
+    if radio is None:  # the extra families' paths only, the 18's existence counted (compiled)
+        n_base, length, ok, jac = graded_split(pos, anchor, floor, building, max_order,
+                                               relax_m)
+    else:  # the first-arrival condition needs the 18's lengths too
+        g = graded_paths(pos, anchor, building, relax_m=relax_m, floor=floor, mechanisms=mset)
+        ok = g.loose & np.isfinite(g.length_m)
+        n_base = ok[:, :nb].sum(axis=-1)
+        ok, length, jac = ok[:, nb:], g.length_m[:, nb:], g.jacobian[:, nb:]
+    j = np.where(ok[..., None], jac, 0.0)
     s = var[:, None] + np.sum(np.matmul(j, cov) * j, axis=-1)
     with np.errstate(invalid="ignore"):
-        e = rho[:, None] - g.length_m[:, nb:]
+        e = rho[:, None] - length
         ll = np.where(ok, -0.5 * (e * e / s + np.log(s) + _LOG2PI), -np.inf)
     if radio is not None:
         if snr_sigma_db is None:
