@@ -178,15 +178,19 @@ def _link_eps_numpy(out: FloatArray, n_all: FloatArray, col: NDArray[np.int_],
 
 def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArray,
                     links, t_ns: NDArray[np.int64], config, snr_sigma_db: float,
-                    snr_span_db: float) -> FloatArray:
+                    snr_span_db: float, closed: NDArray[np.bool_] | None = None) -> FloatArray:
     """Every link's mixture weights (n, H, M, 2) (inlier ``log(1 - eps)``, outlier
     log-density; :func:`diffpos.tracking.model.link_weights` without learning) at the
     hypotheses' priors ``x`` (n, H, 6), ``p`` (n, H, 6, 6): module docstring. ``lk``: the
     nodes' learned arrays (``link_out``, ``link_all``, ``link_bias``, ``link_bias_var``,
     ``link_snr``, ``link_t_ns``: (n, H, L)); ``col``: :func:`match_links`'s links; ``links``:
     the epoch's :class:`diffpos.tracking.links.Links`; the SNR's spread and span [dB]
-    (:data:`diffpos.tracking.model.SNR_SIGMA_DB`, ``SNR_SPAN_DB``)."""
+    (:data:`diffpos.tracking.model.SNR_SIGMA_DB`, ``SNR_SPAN_DB``). ``closed`` (n,): the
+    nodes whose links keep the prior weight ``outlier_weight`` and no learned excess delay
+    (``TrackerConfig.link_learn_unexplained``; None: none)."""
     eps = _link_eps(lk["link_out"], lk["link_all"], col, config)
+    if closed is not None:
+        eps[closed] = config.outlier_weight
     w = np.empty((*col.shape[:1], x.shape[1], col.shape[1], 2))
     w[..., 0] = np.log1p(-eps)
     if not config.link_bias_learn:  # the learned weight, the fixed uniform density
@@ -212,6 +216,8 @@ def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArra
                             - np.log(snr_sigma_db), -np.log(snr_span_db))
             ll = ll + np.where(known, ll_s, 0.0)
     o = np.nan_to_num(_gather(lk["link_out"], col))
+    if closed is not None:
+        o[closed] = 0.0
     c = o / (o + 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         learned = np.where(np.isfinite(ll) & (c > 0) & config.link_bias_learn,
@@ -222,15 +228,20 @@ def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArra
 
 def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray,
           p: FloatArray, slot: NDArray[np.int_], links, t_ns: NDArray[np.int64],
-          config, ev_link: FloatArray | None = None, nis: FloatArray | None = None) -> dict:
+          config, ev_link: FloatArray | None = None, nis: FloatArray | None = None,
+          learn_run: NDArray[np.bool_] | None = None) -> dict:
     """The learned arrays after one update (new arrays): the hypotheses ``run`` (n, H) that had
     a real update, at their posteriors ``x``, ``p``, with their selections ``slot``
     (n, H, M; -1 outlier or absent); module docstring. ``ev_link`` (n, H, M) [nats]: every
     link's share of the hypothesis' log-evidence in this update (its forgotten sum is
     ``link_ev``, :func:`diffpos.tracking.state.robust_floor_log_prob`); None: 0. ``nis``
     (n, H, M): every link's NIS in this update (NaN: outlier or absent), kept as ``link_fit``
-    (:func:`last_fit`); None: ``link_fit`` unchanged."""
-    new = _learn(lk, col, run, x, p, slot, links, t_ns, config, ev_link)
+    (:func:`last_fit`); None: ``link_fit`` unchanged. ``learn_run`` (n, H): the hypotheses
+    of ``run`` whose counts, evidence shares and excess delays learn from this update
+    (``TrackerConfig.link_learn_minority``; None: all of ``run``); ``link_fit`` is that of
+    every hypothesis of ``run``."""
+    new = _learn(lk, col, run if learn_run is None else run & learn_run, x, p, slot, links,
+                 t_ns, config, ev_link)
     if nis is not None and "link_fit" in new:
         new["link_fit"] = last_fit(new["link_fit"], col, run, links.mask[:, 0], nis)
     return new

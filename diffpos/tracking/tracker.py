@@ -587,19 +587,8 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     n_meas = np.sum(sub.mask[:, 0], axis=1)
     lk = col = link_w = fam_gate = None
     if config.link_learn:  # the learned unmodelled-path component (diffpos.tracking.evidence)
-        col, tab, seen, fresh = match_links(state.link_anchor[idx], state.link_seen_ns[idx],
-                                            sub.anchors[:, 0], sub.mask[:, 0], t_ns[idx],
-                                            config.link_match_m)
-        lk = {k: getattr(state, k)[idx] for k in LINK_FIELDS}  # copies
-        reset_links(lk, np.arange(n), fresh)
-        link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
-                                 SNR_SPAN_DB)
-        if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
-            learned = None
-            if config.family_learned_links > 0:  # the track's channel has out-of-model arrivals
-                learned = _learned_families(state.unexplained[idx], state.redundant[idx],
-                                            n_meas, config)
-            fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0], learned)
+        lk, col, tab, seen, link_w, fam_gate = _link_inputs(state, idx, sub, t_ns, m0, c0,
+                                                            n_meas, config)
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
@@ -636,13 +625,51 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         # every link's share of the hypothesis' evidence: its mixture log-weight (mechanism
         # prior, SNR, or the outlier's density) and its range term at the fit
         ev_link = np.where(sub.mask[:, 0][:, None, :], lw - 0.5 * np.nan_to_num(nis_h), 0.0)
-        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link, nis_h),
-                   link_anchor=tab, link_seen_ns=seen)
-        if config.family_learned_links > 0:  # (off: nothing reads them, nothing counted)
+        fits = None  # the hypotheses whose state fits most ranges (link_learn_minority)
+        if config.link_learn_minority:
+            n_out = np.sum(sub.mask[:, 0][:, None, :] & (slot < 0), axis=-1)
+            fits = 2 * n_out < n_meas[:, None]
+        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link, nis_h,
+                         fits), link_anchor=tab, link_seen_ns=seen)
+        if _counts_unexplained(config):  # (off: nothing reads them, nothing counted)
             new["unexplained"], new["redundant"] = count_unexplained(
                 state.unexplained[idx], state.redundant[idx], new["link_fit"], col,
                 sub.mask[:, 0], n_meas, config)
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
+
+
+def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
+                 m0: FloatArray, c0: FloatArray, n_meas: NDArray[np.int_],
+                 config: TrackerConfig) -> tuple:
+    """The learned link inputs of the nodes ``idx`` (``sub``: their links; ``m0``, ``c0``:
+    their hypotheses' priors): their learned arrays (copies, the links a new anchor took
+    forgotten), every column's link, the new link table and times
+    (:func:`~diffpos.tracking.evidence.match_links`), the link weights
+    (:func:`~diffpos.tracking.evidence.learned_weights`; with ``link_learn_unexplained`` the
+    prior's for the nodes whose track has not learned an out-of-model channel) and the
+    family gate (:func:`_family_gate`; None: ``max_order`` 2)."""
+    col, tab, seen, fresh = match_links(state.link_anchor[idx], state.link_seen_ns[idx],
+                                        sub.anchors[:, 0], sub.mask[:, 0], t_ns[idx],
+                                        config.link_match_m)
+    lk = {k: getattr(state, k)[idx] for k in LINK_FIELDS}  # copies
+    reset_links(lk, np.arange(idx.size), fresh)
+    learned = None
+    if _counts_unexplained(config):  # the track's channel has out-of-model arrivals
+        learned = _learned_families(state.unexplained[idx], state.redundant[idx], n_meas,
+                                    config)
+    link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
+                             SNR_SPAN_DB, ~learned if config.link_learn_unexplained else None)
+    fam_gate = None
+    if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
+        fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0],
+                                learned if config.family_learned_links > 0 else None)
+    return lk, col, tab, seen, link_w, fam_gate
+
+
+def _counts_unexplained(config: TrackerConfig) -> bool:
+    """Whether the tracker counts its nodes' unexplained epochs (someone reads them:
+    ``family_learned_links``, ``link_learn_unexplained``)."""
+    return config.family_learned_links > 0 or config.link_learn_unexplained
 
 
 def _learned_families(unexplained: FloatArray, redundant: FloatArray,
