@@ -14,50 +14,19 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from static_track import ANCHORS, NODE, first_arrivals, same, track, triple_bounce
 
-from diffpos.paths.model import first_arrival_paths
-from diffpos.scenario import default_scenario
 from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import _family_gate, init_state, update
-
-B = default_scenario().building
-#: a node on floor 2 of the paper building and four UAVs outside; the first one's range is the
-#: ceiling-floor-ceiling triple bounce through the window (out of the 18 mechanisms, one of
-#: max_order 3's families; tests/core/test_tracking_families.py checks its length)
-NODE = np.array([0.0, 12.0, B.floor_z_m(2) + 1.5])
-ANCHORS = np.array([[0.0, -7.0, 4.0], [-15.0, -20.0, 1.0], [15.0, -20.0, 1.0],
-                    [-8.0, -10.0, 2.0]])
-SIGMA = 0.03
-
-
-def _triple_bounce(anchor, node, floor):
-    zf = B.floor_z_m(floor)
-    zc = zf + B.floor_height_m
-    z = 2 * zc - (2 * zf - (2 * zc - anchor[2]))
-    return float(np.linalg.norm([node[0] - anchor[0], node[1] - anchor[1], node[2] - z]))
+from diffpos.tracking.tracker import _family_gate
 
 
 def _run(config, n_links, epochs=12, seed=4):
-    """Track the static node over ``epochs`` at 10 Hz with its first ``n_links`` ranges
-    (noisy, 3 cm): every epoch's state."""
+    """Track the static node over ``epochs`` with its first ``n_links`` ranges, the first
+    one the triple bounce: every epoch's state."""
     anchors = ANCHORS[:n_links]
-    ps = first_arrival_paths(np.broadcast_to(NODE, (n_links, 3)), anchors, B, floor=2)
-    rho0 = np.nanmin(np.where(ps.valid, ps.length_m, np.nan), axis=-1)
-    rho0[0] = _triple_bounce(anchors[0], NODE, 2)
-    assert np.all(np.isfinite(rho0))
-    rng = np.random.default_rng(seed)
-    state, states = init_state(1, B), []
-    for k in range(epochs):
-        rho = rho0 + rng.normal(0.0, SIGMA, n_links)
-        state, _ = update(state, anchors[None], rho[None], np.full((1, n_links), SIGMA),
-                          np.ones((1, n_links), bool), 10**9 + k * 10**8, B, config)
-        states.append(state)
-    return states
-
-
-def _same(a, b) -> bool:
-    return (np.array_equal(a.log_prob, b.log_prob) and np.array_equal(a.mean, b.mean)
-            and np.array_equal(a.cov, b.cov))
+    rho0 = first_arrivals(NODE, anchors, 2)
+    rho0[0] = triple_bounce(anchors[0], NODE, 2)
+    return track(config, anchors, rho0, epochs=epochs, seed=seed)
 
 
 def test_a_tracks_first_update_offers_no_family():
@@ -72,11 +41,11 @@ def test_a_tracks_first_update_offers_no_family():
     ref = _run(dataclasses.replace(cfg, max_order=2), 4)
     first = next(k for k, s in enumerate(ref) if np.isfinite(s.link_fit).any())
     got = _run(cfg, 4)
-    assert all(_same(got[k], ref[k]) for k in range(first + 1)), first
-    assert not all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    assert all(same(got[k], ref[k]) for k in range(first + 1)), first
+    assert not all(same(g, r) for g, r in zip(got, ref, strict=True))
     # (every link of a new track unseen: a majority, so family_minority alone closes it too)
     eager = _run(dataclasses.replace(cfg, family_history=0, family_minority=False), 4)
-    assert not _same(eager[first], ref[first])
+    assert not same(eager[first], ref[first])
 
 
 def test_four_ranges_are_never_offered_a_family_without_the_learned_prior():
@@ -88,9 +57,9 @@ def test_four_ranges_are_never_offered_a_family_without_the_learned_prior():
     assert cfg.max_order == 3 and cfg.family_min_links == 5
     ref = _run(dataclasses.replace(cfg, max_order=2), 4)
     got = _run(cfg, 4)
-    assert all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    assert all(same(g, r) for g, r in zip(got, ref, strict=True))
     four = _run(dataclasses.replace(cfg, family_min_links=4), 4)
-    assert not all(_same(g, r) for g, r in zip(four, ref, strict=True))
+    assert not all(same(g, r) for g, r in zip(four, ref, strict=True))
 
 
 def test_three_ranges_are_never_offered_a_family():
@@ -99,9 +68,9 @@ def test_three_ranges_are_never_offered_a_family():
     cfg = dataclasses.replace(TrackerConfig(), max_order=3)
     ref = _run(dataclasses.replace(cfg, max_order=2), 3)
     got = _run(cfg, 3)
-    assert all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    assert all(same(g, r) for g, r in zip(got, ref, strict=True))
     loose = _run(dataclasses.replace(cfg, family_min_links=0), 3)
-    assert not all(_same(g, r) for g, r in zip(loose, ref, strict=True))
+    assert not all(same(g, r) for g, r in zip(loose, ref, strict=True))
 
 
 def test_gate_counts_real_updates_with_the_link():

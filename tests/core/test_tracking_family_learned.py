@@ -15,55 +15,24 @@ import dataclasses
 import numpy as np
 from scipy import integrate
 from scipy.stats import binom, chi2
+from static_track import ANCHORS, NODE, first_arrivals, same, track, triple_bounce
 
-from diffpos.paths.model import first_arrival_paths
-from diffpos.scenario import default_scenario
 from diffpos.tracking.evidence import (
     count_unexplained,
     model_unexplained_rate,
     unexplained_log_odds,
 )
 from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import _family_gate, init_state, update
-
-B = default_scenario().building
-#: a node on floor 2 of the paper building and four UAVs outside (as
-#: tests/core/test_tracking_family_gate.py); the first range may be replaced by the
-#: ceiling-floor-ceiling triple bounce through the window (out of the 18 mechanisms)
-NODE = np.array([0.0, 12.0, B.floor_z_m(2) + 1.5])
-ANCHORS = np.array([[0.0, -7.0, 4.0], [-15.0, -20.0, 1.0], [15.0, -20.0, 1.0],
-                    [-8.0, -10.0, 2.0]])
-SIGMA = 0.03
-
-
-def _triple_bounce(anchor, node, floor):
-    zf = B.floor_z_m(floor)
-    zc = zf + B.floor_height_m
-    z = 2 * zc - (2 * zf - (2 * zc - anchor[2]))
-    return float(np.linalg.norm([node[0] - anchor[0], node[1] - anchor[1], node[2] - z]))
+from diffpos.tracking.tracker import _family_gate
 
 
 def _run(config, out_of_model: bool, epochs=30, seed=4):
-    """Track the static node over ``epochs`` at 10 Hz with its four ranges (noisy, 3 cm), the
-    first one the triple bounce if ``out_of_model``: every epoch's state."""
-    ps = first_arrival_paths(np.broadcast_to(NODE, (4, 3)), ANCHORS, B, floor=2)
-    rho0 = np.nanmin(np.where(ps.valid, ps.length_m, np.nan), axis=-1)
+    """Track the static node over ``epochs`` with its four ranges, the first one the triple
+    bounce if ``out_of_model``: every epoch's state."""
+    rho0 = first_arrivals(NODE, ANCHORS, 2)
     if out_of_model:
-        rho0[0] = _triple_bounce(ANCHORS[0], NODE, 2)
-    assert np.all(np.isfinite(rho0))
-    rng = np.random.default_rng(seed)
-    state, states = init_state(1, B), []
-    for k in range(epochs):
-        rho = rho0 + rng.normal(0.0, SIGMA, 4)
-        state, _ = update(state, ANCHORS[None], rho[None], np.full((1, 4), SIGMA),
-                          np.ones((1, 4), bool), 10**9 + k * 10**8, B, config)
-        states.append(state)
-    return states
-
-
-def _same(a, b) -> bool:
-    return (np.array_equal(a.log_prob, b.log_prob) and np.array_equal(a.mean, b.mean)
-            and np.array_equal(a.cov, b.cov))
+        rho0[0] = triple_bounce(ANCHORS[0], NODE, 2)
+    return track(config, ANCHORS, rho0, epochs=epochs, seed=seed)
 
 
 def test_model_rate_is_the_outlier_prior_and_the_chi_square_tail():
@@ -140,7 +109,7 @@ def test_in_model_channel_learns_nothing_and_changes_nothing():
     cfg = dataclasses.replace(TrackerConfig(), family_learned_links=0)
     ref = _run(cfg, False)
     got = _run(dataclasses.replace(cfg, family_learned_links=4), False)
-    assert all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    assert all(same(g, r) for g, r in zip(got, ref, strict=True))
     assert got[-1].redundant[0] > 10 and got[-1].unexplained[0] == 0.0
     assert ref[-1].redundant[0] == 0.0  # off: nothing counted
 
@@ -154,4 +123,4 @@ def test_out_of_model_link_opens_the_families_at_four_ranges():
     got = _run(dataclasses.replace(cfg, family_learned_links=4), True)
     odds = [unexplained_log_odds(s.unexplained, s.redundant, np.array([4]), cfg)[0] for s in got]
     assert max(odds[:10]) > 3.0
-    assert not all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    assert not all(same(g, r) for g, r in zip(got, ref, strict=True))

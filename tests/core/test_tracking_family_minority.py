@@ -17,20 +17,17 @@ import dataclasses
 
 import numpy as np
 import pytest
+from static_track import B, first_arrivals, track
 
-from diffpos.paths.model import first_arrival_paths
-from diffpos.scenario import default_scenario
 from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import _family_gate, init_state, update
+from diffpos.tracking.tracker import _family_gate
 
-B = default_scenario().building
 FLOOR = 2
 #: a node 2 m behind the facade on floor 2 of the paper building, six UAVs outside; every range
 #: is its first arrival among the 18 mechanisms (the emulator's in-model channel)
 NODE = np.array([2.0, 2.0, B.floor_z_m(FLOOR) + 1.0])
 ANCHORS = np.array([[0.0, -7.0, 4.0], [-15.0, -20.0, 1.0], [15.0, -20.0, 1.0],
                     [-8.0, -10.0, 2.0], [8.0, -12.0, 9.0], [-3.0, -9.0, 12.0]])
-SIGMA = 0.03
 #: after 5 epochs the true floor's tracks (both modes) are moved 2 m towards the facade and
 #: 1.2 m down: the wrong state of a stale or badly initialised hypothesis
 DISPLACE_AT, DISPLACEMENT = 5, np.array([0.0, -2.0, -1.2])
@@ -39,22 +36,9 @@ DISPLACE_AT, DISPLACEMENT = 5, np.array([0.0, -2.0, -1.2])
 def _run(config, seed, epochs=25):
     """The true floor's level track error [m] after every epoch (dormant hypotheses off, so
     every hypothesis is updated every epoch)."""
-    n = len(ANCHORS)
-    ps = first_arrival_paths(np.broadcast_to(NODE, (n, 3)), ANCHORS, B, floor=FLOOR)
-    rho0 = np.nanmin(np.where(ps.valid, ps.length_m, np.nan), axis=-1)
-    assert np.all(np.isfinite(rho0))
-    rng = np.random.default_rng(seed)
-    state, err = init_state(1, B), []
-    for k in range(epochs):
-        if k == DISPLACE_AT:
-            mean = state.mean.copy()
-            mean[0, [FLOOR, FLOOR + B.n_floors], :3] += DISPLACEMENT
-            state = dataclasses.replace(state, mean=mean)
-        rho = rho0 + rng.normal(0.0, SIGMA, n)
-        state, _ = update(state, ANCHORS[None], rho[None], np.full((1, n), SIGMA),
-                          np.ones((1, n), bool), 10**9 + k * 10**8, B, config)
-        err.append(float(np.linalg.norm(state.mean[0, FLOOR, :3] - NODE)))
-    return np.array(err)
+    states = track(config, ANCHORS, first_arrivals(NODE, ANCHORS, FLOOR), epochs=epochs,
+                   seed=seed, displace=(DISPLACE_AT, FLOOR, DISPLACEMENT))
+    return np.array([float(np.linalg.norm(s.mean[0, FLOOR, :3] - NODE)) for s in states])
 
 
 @pytest.mark.parametrize("seed", [1, 2])

@@ -24,54 +24,26 @@ import dataclasses
 import itertools
 
 import numpy as np
+from static_track import ANCHORS, NODE, SIGMA, B, first_arrivals, same, track
 
-from diffpos.paths.model import first_arrival_paths
-from diffpos.scenario import default_scenario
 from diffpos.tracking.evidence import learned_weights
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import SNR_SIGMA_DB, SNR_SPAN_DB
 from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import init_state, update
 
-B = default_scenario().building
 FLOOR = 2
-#: a node on floor 2 of the paper building and four UAVs outside (as
-#: tests/core/test_tracking_family_learned.py): every range is its first arrival among the 18
-#: mechanisms (the emulator's in-model channel)
-NODE = np.array([0.0, 12.0, B.floor_z_m(FLOOR) + 1.5])
-ANCHORS = np.array([[0.0, -7.0, 4.0], [-15.0, -20.0, 1.0], [15.0, -20.0, 1.0],
-                    [-8.0, -10.0, 2.0]])
-SIGMA = 0.03
 #: after 5 epochs the true floor's tracks (both modes) are moved 2 m towards the facade and
 #: 1.2 m down (tests/core/test_tracking_family_minority.py): a wrong state
 DISPLACE_AT, DISPLACEMENT = 5, np.array([0.0, -2.0, -1.2])
 
 
 def _run(config, seed=3, epochs=30):
-    """Every epoch's state of the static node tracked at 10 Hz from its four noisy (3 cm)
-    in-model ranges, the true floor's tracks displaced once (every hypothesis updated every
-    epoch: dormant off)."""
-    n = len(ANCHORS)
-    ps = first_arrival_paths(np.broadcast_to(NODE, (n, 3)), ANCHORS, B, floor=FLOOR)
-    rho0 = np.nanmin(np.where(ps.valid, ps.length_m, np.nan), axis=-1)
-    assert np.all(np.isfinite(rho0))
-    rng = np.random.default_rng(seed)
-    state, states = init_state(1, B), []
-    for k in range(epochs):
-        if k == DISPLACE_AT:
-            mean = state.mean.copy()
-            mean[0, [FLOOR, FLOOR + B.n_floors], :3] += DISPLACEMENT
-            state = dataclasses.replace(state, mean=mean)
-        rho = rho0 + rng.normal(0.0, SIGMA, n)
-        state, _ = update(state, ANCHORS[None], rho[None], np.full((1, n), SIGMA),
-                          np.ones((1, n), bool), 10**9 + k * 10**8, B, config)
-        states.append(state)
-    return states
-
-
-def _same(a, b) -> bool:
-    return (np.array_equal(a.log_prob, b.log_prob) and np.array_equal(a.mean, b.mean)
-            and np.array_equal(a.cov, b.cov))
+    """Every epoch's state of the static node (tests/core/static_track.py) tracked from its
+    four noisy in-model ranges (every range its first arrival among the 18 mechanisms, the
+    emulator's in-model channel), the true floor's tracks displaced once (dormant off:
+    every hypothesis updated every epoch)."""
+    return track(config, ANCHORS, first_arrivals(NODE, ANCHORS, FLOOR), epochs=epochs,
+                 seed=seed, displace=(DISPLACE_AT, FLOOR, DISPLACEMENT))
 
 
 def test_in_model_channel_keeps_the_prior_weight():
@@ -84,10 +56,10 @@ def test_in_model_channel_keeps_the_prior_weight():
     ref = _run(dataclasses.replace(cfg, link_outlier_max=cfg.outlier_weight))
     got = _run(dataclasses.replace(cfg, link_learn_unexplained=True))
     off = _run(cfg)
-    assert all(_same(g, r) for g, r in zip(got, ref, strict=True))
+    assert all(same(g, r) for g, r in zip(got, ref, strict=True))
     assert got[-1].unexplained[0] == 0.0 and got[-1].redundant[0] > 10
     assert np.max(got[-1].link_out[0, [FLOOR, FLOOR + B.n_floors]]) > 1.0  # still counted
-    assert not all(_same(o, r) for o, r in zip(off, ref, strict=True))
+    assert not all(same(o, r) for o, r in zip(off, ref, strict=True))
 
 
 def test_weights_of_closed_nodes_are_the_prior_and_of_open_ones_unchanged():
