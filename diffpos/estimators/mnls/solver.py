@@ -397,7 +397,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         pick = np.argmin(cost, axis=-1)  # best start per floor
     sel = ((np.arange(b)[:, None] * nf + np.arange(nf)[None, :]) * keep + pick).ravel()
     xs, ts = x[sel], {k: v[sel] for k, v in t.items()}
-    if TRANSFER_MAX_LINKS >= 3 and nf > 1:
+    if nf > 1 and np.any(mask.sum(axis=-1) <= TRANSFER_MAX_LINKS):
         with _stage("transfer"):
             xs, ts, moved = _transfer(p, xs, ts, sel, building, iters, snr, radio, kernel)
         fbest = ts["cost"].reshape(b, nf)  # a floor a new mode brings within PRUNE_NATS joins
