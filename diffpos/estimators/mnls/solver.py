@@ -230,7 +230,6 @@ def _link_terms(p: _Problem, x: FloatArray, building) -> dict[str, FloatArray]:
         b1(p.allowed), spec, diff, same_edge, out["cost"], out["res"],
         out["w"], out["slot"], out["tail"], out["none"], out["cand"], out["jac"])
     prior = 0.5 * (x[:, 2] - p.z_mid) ** 2 / p.prior_var
-    out["link_cost"] = out["cost"]
     out["cost"] = out["cost"].sum(axis=-1) + prior
     out["length"] = ps.length_m
     return out
