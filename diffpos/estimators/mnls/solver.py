@@ -15,6 +15,17 @@ stated otherwise):
 * **Search**, its measured **cost** and the **compiled steps** (``kernel=True``, the
   default: the same answers as the numpy reference steps, bitwise on the tested sets):
   :mod:`diffpos.estimators.mnls.starts`.
+* **The best floor's mode carried to the others** (fixes with three links,
+  :data:`TRANSFER_MAX_LINKS`): after the refinement, the (x, y) of the fix's lowest-cost floor's
+  mode at each other floor's middle height is one more start there (``max_iter`` LM steps with
+  the SNR terms); a floor keeps the new mode where it costs less. The floors share the plan,
+  so the horizontal position the links fix on one floor is a start inside another floor's
+  basin, where every closed-form start is a one-mechanism hypothesis of an exactly determined
+  fix (Sionna's heldout-2, K = 4: receiver 68, a partition chain, was on floor 3 at p 0.998
+  with a link no mechanism explains; the transfer finds the true floor's mode, cost 0.2;
+  docs/raytrace_study.md 4e). Fixes with four links or more are untouched (on the traced
+  paper and open-plan buildings the transfer there found cheaper wrong-floor modes: two new
+  floors at p 0.95 and one receiver fewer right on the emulated paper building).
 * **Same-edge dominance** (:mod:`diffpos.estimators.mnls.rules`): ``D(edge)-R(plane)`` deviating at least as much
   as ``D(edge)`` is never first (0 of 70,000 first arrivals violate it).
 * **SNR** (with ``snr_db`` and ``radio``): (a) a diffracted mechanism is not a candidate when
@@ -134,6 +145,9 @@ def _table(mech) -> NDArray[np.int64]:
         _TABLES[mech] = mechanism_table(mech.recipes)
     return _TABLES[mech]
 
+#: Fixes with at most this many links: the best floor's mode is carried to the other floors as
+#: one more start each (:func:`_transfer`; 0: never). Three: an exactly determined fix.
+TRANSFER_MAX_LINKS = 3
 #: Levenberg-Marquardt iterations of the refinement with the SNR-chosen mechanisms held.
 REFINE_ITER = 6
 #: Levenberg-Marquardt steps from every grid cell before the best ``keep_starts`` go on.
@@ -381,7 +395,50 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         cost = t["cost"].reshape(b, nf, keep)
         pick = np.argmin(cost, axis=-1)  # best start per floor
     sel = ((np.arange(b)[:, None] * nf + np.arange(nf)[None, :]) * keep + pick).ravel()
-    return p, x[sel].reshape(b, nf, 3), {k: v[sel] for k, v in t.items()}, sel, active.ravel()
+    xs, ts = x[sel], {k: v[sel] for k, v in t.items()}
+    if nf > 1 and np.any(mask.sum(axis=-1) <= TRANSFER_MAX_LINKS):
+        with _stage("transfer"):
+            xs, ts, moved = _transfer(p, xs, ts, sel, building, iters, snr, radio, kernel)
+        fbest = ts["cost"].reshape(b, nf)  # a floor a new mode brings within PRUNE_NATS joins
+        active |= moved.reshape(b, nf) & (
+            fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS)
+    return p, xs.reshape(b, nf, 3), ts, sel, active.ravel()
+
+
+def _transfer(p: _Problem, xs: FloatArray, ts: dict, sel, building, iters: int, snr, radio,
+              kernel: bool) -> tuple[FloatArray, dict, NDArray[np.bool_]]:
+    """The best floor's mode carried to every other floor (module docstring): per
+    fix, the (x, y) of its lowest-cost floor's mode with each other floor's middle height
+    starts :func:`_lm` (``iters`` steps, the SNR terms as in the refinement) on that floor;
+    a floor keeps the new mode where it costs less. ``xs`` (B*F, 3) and ``ts`` the modes and
+    terms of every fix x floor (rows of ``p`` at ``sel``); returns them updated and which
+    rows took a new mode."""
+    nf = building.n_floors
+    b = xs.shape[0] // nf
+    cost = ts["cost"].reshape(b, nf)
+    best = xs.reshape(b, nf, 3)[np.arange(b), np.argmin(cost, axis=-1)]  # (B, 3)
+    q = _take(p, sel)
+    x0 = np.repeat(best, nf, axis=0)
+    x0[:, 2] = q.z_mid
+    go = np.flatnonzero(np.all(np.isfinite(x0), axis=-1)
+                        & (np.arange(b * nf) % nf != np.repeat(np.argmin(cost, -1), nf))
+                        & (q.mask.sum(axis=-1) <= TRANSFER_MAX_LINKS))
+    moved = np.zeros(b * nf, dtype=bool)
+    if go.size == 0:
+        return xs, ts, moved
+    q = _take(q, go)
+    if snr is not None and radio is not None:
+        q.snr_meas, q.radio = np.repeat(snr, nf, axis=0)[go], radio
+    xn, tn = _lm(q, np.clip(x0[go], q.lo, q.hi), building, iters, kernel=kernel)
+    better = tn["cost"] < ts["cost"][go]
+    rows = go[better]
+    moved[rows] = True
+    xs = xs.copy()
+    xs[rows] = xn[better]
+    ts = {k: v.copy() for k, v in ts.items()}
+    for k in ts:
+        ts[k][rows] = tn[k][better]
+    return xs, ts, moved
 
 
 def _screen(p0: _Problem, x: FloatArray, closed, building, kernel: bool = False
