@@ -59,15 +59,22 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
         snr = pair_snr_db(_ANCHORS[None], node[None], building=building, radio=radio)
         snr = snr.max(axis=-1)  # (1, 4): the strongest mechanism as the "measured" SNR
     if tracking:
-        _warm_tracker(building, radio, r, sig, mask, snr, tracker_config)
+        _warm_tracker(building, radio, node, r, sig, mask, snr, tracker_config)
 
 
-def _warm_tracker(building: Any, radio: Any, r: np.ndarray, sig: np.ndarray, mask: np.ndarray,
-                  snr: np.ndarray | None, tracker_config: TrackerConfig | None) -> None:
-    """A throw-away tracker's initialisation and tracked update, without and with ``snr``."""
+def _warm_tracker(building: Any, radio: Any, node: np.ndarray, r: np.ndarray, sig: np.ndarray,
+                  mask: np.ndarray, snr: np.ndarray | None,
+                  tracker_config: TrackerConfig | None) -> None:
+    """A throw-away tracker's initialisation and tracked update, without and with ``snr``;
+    and the extra families' compiled paths (``max_order`` > 2), which its links do not reach
+    (a link gets them after a history of misfits: the first real ones did load them)."""
+    from diffpos.tracking.families import extra_families, graded_split  # as below
     from diffpos.tracking.tracker import init_state, update  # an untracked run: never loaded
 
     config = TrackerConfig() if tracker_config is None else tracker_config
+    if extra_families(config.max_order) is not None:
+        graded_split(node[None], _ANCHORS[:1], np.zeros(1), building, config.max_order,
+                     config.exist_margin_m)
     for snr_db in (None,) if snr is None else (None, snr):
         # an initialisation, then a tracked update of it (the IEKF from a prior and, with the
         # SNR, the prediction cache's kernels: loaded now, not in the first real call)
