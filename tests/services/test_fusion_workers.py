@@ -26,7 +26,6 @@ from diffpos_services.fusion import rows as R
 from diffpos_services.fusion import worker_proc
 from diffpos_services.fusion import workers as W
 from diffpos_services.fusion.config import DEFAULT_WORKERS, FusionConfig
-from diffpos_services.replay import run as replay_mod
 from diffpos_services.replay.run import replay
 from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
@@ -152,9 +151,11 @@ def _replay(path, monkeypatch, fail=None, after=0, reuse_off=False, prime=None):
         pools.append(pool)
         return pool
 
-    monkeypatch.setattr(replay_mod, "start_workers", fake_start)
+    # the replay starts a pool (imports start_workers) only for more than one process
+    monkeypatch.setattr(W, "start_workers", fake_start)
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
     monkeypatch.setattr(W, "MIN_PARALLEL_COST", 0.0)
-    r = replay(path, method="mnls", use_decisions=False)
+    r = replay(path, method="mnls", use_decisions=False, overrides={"workers": 2})
     return [M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0)) for e in r.estimates], \
         (pools[0] if pools else None)
 

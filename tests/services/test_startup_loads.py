@@ -6,6 +6,8 @@
 - a warm-up of a D-NLS core loads no M-NLS solver, SNR, path or tracker kernel (the
   dispatchers holding a signature after it), and the kernel clock counts those loads;
 - a warm-up of an M-NLS core with its tracker off loads no tracker kernel, with it on it does;
+- a D-NLS replay (``diffpos replay --method dnls``, in its process) imports no M-NLS, tracker,
+  SNR or path kernel module, nor does the live fusion service's module;
 - :func:`diffpos._kernels.clock.kernel_load_s` counts the seconds the kernel loads take.
 """
 
@@ -80,3 +82,35 @@ def test_untracked_mnls_warm_up_loads_no_tracker_kernel():
     assert not [h for h in off["hits"] if h.startswith(tracker)], off
     assert [h for h in on["hits"] if h.startswith(tracker)], on
     assert any(h.startswith("diffpos.estimators.mnls.") for h in off["hits"]), off
+
+
+_REPLAYED = """
+import json, sys
+from diffpos_services.cli.main import main
+code = main(["replay", sys.argv[1], "--no-files", "--no-progress", "--method", "dnls",
+             "--write-mcap", sys.argv[2]])
+import diffpos_services.fusion.service  # noqa: F401  (the live fusion's module: `diffpos fusion`)
+print(json.dumps({"code": code, "modules": sorted(m for m in sys.modules
+                                                  if m.startswith("diffpos."))}))
+"""
+
+
+@pytest.mark.slow
+def test_dnls_replay_process_imports_no_mnls_or_tracker_kernel_module(tmp_path):
+    """The D-NLS replay's process (and the fusion service's imports) never load M-NLS's
+    modules (whose start kernels compile on import) or a tracker, SNR or path kernel module:
+    the pool, the warm-up and the replay import them only where mnls runs."""
+    from diffpos_services.replay.synthetic import write_synthetic_recording
+
+    rec = tmp_path / "syn.mcap"
+    write_synthetic_recording(rec, n_anchors=6, n_nodes=6, duration_s=1.5, seed=11)
+    code = _REPLAYED.replace("sys.argv[1]", repr(str(rec))).replace(
+        "sys.argv[2]", repr(str(tmp_path / "out.mcap")))
+    got = _run(code)
+    assert got["code"] == 0 and (tmp_path / "out.mcap").stat().st_size > 0, got
+    mods = got["modules"]
+    assert "diffpos.estimators.dnls.fit_nb" in mods, mods  # it solved with D-NLS
+    bad = [m for m in mods if m.startswith("diffpos.estimators.mnls.") or (
+        m.endswith("_nb") and m.startswith(("diffpos.tracking.", "diffpos.channel.",
+                                            "diffpos.paths.")))]
+    assert not bad, bad

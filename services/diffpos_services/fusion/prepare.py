@@ -12,8 +12,8 @@ workers succeeded (:func:`cache_stamp`) says which groups numba's cache holds fo
 sources, and a run that finds its groups there starts no worker (the caller's own import
 loads the kernels, as it would after the workers).
 
-Which groups a run needs: :func:`groups_for` (the method's solvers; the fusion's imports
-compile D-NLS and M-NLS whatever its method, see :data:`IMPORTED`; the anchors' emulated
+Which groups a run needs: :func:`groups_for` (the method's solvers, and what the fusion's
+imports compile whatever its method: nothing, see :data:`IMPORTED`; the anchors' emulated
 channel needs the SNR kernels).
 
 The progress callback gets a :class:`Progress` every ``interval_s``: the groups done, the
@@ -72,14 +72,17 @@ GROUPS: dict[str, Group] = {
     "tracking": Group("tracker", 24.5, ("diffpos.tracking.tracker:warm_tracking",)),
 }
 
-#: Groups compiled whenever the fusion is imported, whatever its method: their modules
-#: compile on import (explicit signatures) and the fusion imports them at module level
-#: (``fusion/tracked.py`` -> ``mnls/solver.py`` -> ``mnls/starts.py``: M-NLS's start kernels,
-#: ``starts_nb``; the M-NLS solver's own kernels, ``solver_nb``, and the D-NLS solver's are
-#: imported when they first solve).
-IMPORTED = ("mnls",)
+#: Groups compiled whenever the fusion is imported, whatever its method: the groups of the
+#: kernel modules that compile on import (explicit signatures) and that the fusion's process
+#: (service or replay) imports at module level. None: M-NLS's start kernels (``starts_nb``,
+#: which compile on import) are imported with the M-NLS solver, which the fusion imports
+#: where mnls runs (``fusion/core.py`` -> ``tracked.py``, ``warm.py``'s ``warm_model``, the
+#: pool's worker process); the solvers' own kernels (``mnls/solver_nb``, ``dnls/fit_nb``) when
+#: they first solve (tests/services/test_kernel_prepare.py checks it).
+IMPORTED: tuple[str, ...] = ()
 
-#: What each method solves with (:func:`groups_for` adds :data:`IMPORTED`, compiled anyway).
+#: What each method solves with (:func:`groups_for` adds :data:`IMPORTED`, compiled anyway;
+#: ``mnls``'s group holds M-NLS's start kernels, ``starts_nb``, which its solver imports).
 _METHOD_GROUPS = {"mnls": ("mnls", "paths", "channel", "tracking"), "dnls": ("dnls",),
                   "lls": (), "ippa": ()}
 #: The methods :func:`groups_for` knows.

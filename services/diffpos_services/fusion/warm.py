@@ -10,6 +10,9 @@ is the mnls + tracker part, also run by each worker process of
 Only what the run calls is loaded: a fusion without its tracker (``tracking`` off) warms no
 tracker, and the throw-away tracker runs with the run's tracker settings. The seconds the
 kernels' loads take: :func:`diffpos._kernels.clock.kernel_load_s` (docs/startup.md).
+M-NLS, the SNR prediction and the tracker are imported inside the functions that call them: a
+D-NLS process (fusion, replay) never imports their modules (the D-NLS solver's own kernels
+are imported when it first solves).
 """
 
 from __future__ import annotations
@@ -18,12 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.channel.emulator import pair_snr_db
 from diffpos.estimators.dnls import solver as dnls_solver
-from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.geometry import window_edge_path
 from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import init_state, update
 
 __all__ = ["warm_model", "warm_up"]
 
@@ -46,6 +46,11 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
     run's :class:`~diffpos.tracking.state.TrackerConfig`, default its defaults) on one tiny
     problem in ``building``: every compiled kernel these calls use is loaded
     (tests/system/test_fusion_workers_process.py)."""
+    # here, not at the top: a D-NLS process imports no M-NLS, SNR or tracker module
+    # (tests/services/test_startup_loads.py)
+    from diffpos.channel.emulator import pair_snr_db
+    from diffpos.estimators.mnls import solver as mnls_solver
+
     node, r = _problem(window_height_m, first_floor_z_m)
     sig, mask = np.full((1, 4), 0.1), np.ones((1, 4), bool)
     mnls_solver.mnls(_ANCHORS[None], r[None], sig, building=building)
@@ -54,13 +59,22 @@ def warm_model(building: Any, radio: Any, window_height_m: float, first_floor_z_
         snr = pair_snr_db(_ANCHORS[None], node[None], building=building, radio=radio)
         snr = snr.max(axis=-1)  # (1, 4): the strongest mechanism as the "measured" SNR
     if tracking:
-        _warm_tracker(building, radio, r, sig, mask, snr, tracker_config)
+        _warm_tracker(building, radio, node, r, sig, mask, snr, tracker_config)
 
 
-def _warm_tracker(building: Any, radio: Any, r: np.ndarray, sig: np.ndarray, mask: np.ndarray,
-                  snr: np.ndarray | None, tracker_config: TrackerConfig | None) -> None:
-    """A throw-away tracker's initialisation and tracked update, without and with ``snr``."""
+def _warm_tracker(building: Any, radio: Any, node: np.ndarray, r: np.ndarray, sig: np.ndarray,
+                  mask: np.ndarray, snr: np.ndarray | None,
+                  tracker_config: TrackerConfig | None) -> None:
+    """A throw-away tracker's initialisation and tracked update, without and with ``snr``;
+    and the extra families' compiled paths (``max_order`` > 2), which its links do not reach
+    (a link gets them after a history of misfits: the first real ones did load them)."""
+    from diffpos.tracking.families import extra_families, graded_split  # as below
+    from diffpos.tracking.tracker import init_state, update  # an untracked run: never loaded
+
     config = TrackerConfig() if tracker_config is None else tracker_config
+    if extra_families(config.max_order) is not None:
+        graded_split(node[None], _ANCHORS[:1], np.zeros(1), building, config.max_order,
+                     config.exist_margin_m)
     for snr_db in (None,) if snr is None else (None, snr):
         # an initialisation, then a tracked update of it (the IEKF from a prior and, with the
         # SNR, the prediction cache's kernels: loaded now, not in the first real call)

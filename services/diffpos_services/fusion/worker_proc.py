@@ -1,5 +1,10 @@
 """The worker process of the fusion's row-parallel pool (:mod:`diffpos_services.fusion.workers`,
-whose docstring says why and how): the tasks it runs and its request loop."""
+whose docstring says why and how): the tasks it runs and its request loop.
+
+The tasks' modules (M-NLS, the tracker's rows, the warm-up) are imported where they run, not
+at the top: importing the pool (the fusion service does, whatever its method) loads no M-NLS
+or tracker kernel module (tests/services/test_startup_loads.py); a worker process imports
+them in :func:`worker_main`, before it says ready."""
 
 from __future__ import annotations
 
@@ -17,10 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos_services.fusion import shm
-from diffpos_services.fusion.rows import run_update
-from diffpos_services.fusion.warm import warm_model
 from diffpos_services.heap import keep_heap
 
 __all__ = ["TASKS", "worker_main"]
@@ -29,10 +31,14 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _task_update(model: tuple, *args):
+    from diffpos_services.fusion.rows import run_update  # imported already: a dict look-up
+
     return run_update(model[0], *args)
 
 
 def _task_mnls(model: tuple, apos, rng, sig, mask, snr_db, radio):
+    from diffpos.estimators.mnls import solver as mnls_solver  # as _task_update
+
     return mnls_solver.mnls(apos, rng, sig, building=model[0], mask=mask, snr_db=snr_db, radio=radio)
 
 
@@ -84,6 +90,10 @@ def worker_main(conn: Any, parent_pid: int, model: tuple, shm_fd: int | None = N
         with contextlib.suppress(OSError, ValueError):
             regions = shm.Regions.attach(shm_fd)
     keep_heap()  # as the fusion's process (diffpos_services.heap)
+    # the tasks' modules: imported (and their kernels loaded) before the worker says ready
+    from diffpos_services.fusion.rows import run_update  # noqa: F401
+    from diffpos_services.fusion.warm import warm_model
+
     warm_model(*model)
     conn.send(("ready", os.getpid(), regions is not None))
     while True:

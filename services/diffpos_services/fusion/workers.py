@@ -54,7 +54,6 @@ from typing import Any
 import numpy as np
 
 from diffpos_services.fusion import shm
-from diffpos_services.fusion.rows import concat_rows, preloaded_bounds, take_rows
 from diffpos_services.fusion.worker_proc import TASKS, _dumps, worker_main
 from diffpos_services.logs import log_event
 
@@ -370,6 +369,10 @@ class RowPool:
             self.calls["local"] += 1
             return self._run_here(kind, local, args, shared)
         self.calls["split"] += 1
+        # here, not at the top: ``rows`` imports the tracker, which a process that imports
+        # this module without running mnls (the D-NLS fusion service) never loads
+        from diffpos_services.fusion.rows import concat_rows, preloaded_bounds, take_rows
+
         c0 = time.thread_time()
         preload = [sum(q.cost for q in s.pending) for s in ready]
         if self._deferred:  # they go after the shares to the least loaded worker

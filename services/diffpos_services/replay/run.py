@@ -53,7 +53,6 @@ from diffpos_services.fusion.config import (
 )
 from diffpos_services.fusion.core import FusionCore
 from diffpos_services.fusion.estimates import ColumnBatch, Estimates
-from diffpos_services.fusion.workers import start_workers
 from diffpos_services.recording.errors import RecordingError
 from diffpos_services.recording.outputs import atomic_path, check_output
 from diffpos_services.recording.reader import (
@@ -1188,7 +1187,12 @@ def _run(path, scanner, settings, ahead, rest, tmp, rec, *, side, copy_input, st
     # FusionConfig.workers: the same estimates for any count, so never more processes than
     # this machine has cores (a recording made on a bigger machine)
     n_proc = min(first.config.workers, os.cpu_count() or 1)
-    rows = start_workers(first, max_processes=n_proc)
+    rows = None
+    if n_proc > 1 and first.bank is not None:  # a pool (start_workers: mnls + its tracker)
+        # imported here: a replay without a pool (D-NLS, one process) never imports it
+        from diffpos_services.fusion.workers import start_workers
+
+        rows = start_workers(first, max_processes=n_proc)
     try:
         if rows is not None:
             pool.append(rows)
