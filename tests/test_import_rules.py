@@ -45,8 +45,16 @@ PRESENTATION_ALLOWED = ("reports", "cli")
 #: (matplotlib, ~0.35 s that `diffpos replay --no-files` must not pay). Besides these, a verb
 #: module (cli/<verb>.py) imports its service inside its functions, never in add_arguments
 #: or what it calls (:func:`_verb_lazy_lines`): `diffpos VERB --help` imports the parser only.
+#: And the M-NLS + tracker stack (its kernels: M-NLS starts, tracker, channel SNR, paths),
+#: imported where a process runs the ``mnls`` method, so a D-NLS process (replay, the fusion
+#: service, ``emulate --method dnls``) loads and, on a fresh machine, compiles none of it
+#: (issue 37 item 3; tests/services/test_startup_loads.py checks that it loads none).
+METHOD_LAZY = ("diffpos.estimators.mnls", "diffpos.tracking.tracker", "diffpos.tracking.families",
+               "diffpos.channel.emulator", "diffpos_services.fusion.tracked",
+               "diffpos_services.fusion.estimates_v2", "diffpos_services.fusion.warm",
+               "diffpos_services.fusion.rows", "diffpos_services.fusion.workers")
 LAZY_ALLOWED = ("sionna", "drjit", "mitsuba", "cryptography", "jsonschema", "rerun", "pyarrow",
-                "diffpos_services.dashboard", "diffpos_services.reports.replay")
+                "diffpos_services.dashboard", "diffpos_services.reports.replay", *METHOD_LAZY)
 MAX_FUNCTION_LINES = 80
 
 

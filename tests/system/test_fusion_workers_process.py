@@ -22,7 +22,6 @@ import pytest
 from diffpos_services.fusion import rows as R
 from diffpos_services.fusion import shm
 from diffpos_services.fusion import workers as W
-from diffpos_services.replay import run as replay_mod
 from diffpos_services.replay.run import replay
 from diffpos_services.replay.synthetic import write_synthetic_recording
 from diffpos_services.wire import messages as M
@@ -63,7 +62,7 @@ def _gone(pids: list[int], timeout_s: float) -> list[int]:
 def _estimates(path, workers, monkeypatch=None, on_split=None):
     pools = []
     if monkeypatch is not None:
-        real = replay_mod.start_workers
+        real = W.start_workers
 
         def start(core, log=None, **kw):
             pool = real(core, log, **kw)
@@ -78,7 +77,7 @@ def _estimates(path, workers, monkeypatch=None, on_split=None):
                 pool.map_rows = map_rows
             return pool
 
-        monkeypatch.setattr(replay_mod, "start_workers", start)
+        monkeypatch.setattr(W, "start_workers", start)
     r = replay(path, method="mnls", overrides={"workers": workers}, use_decisions=False)
     out = [M.encode(msgspec.structs.replace(e, t_pub_wall_ns=0)) for e in r.estimates]
     return out, (pools[0] if pools else None)
