@@ -11,12 +11,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+from test_paths_kernel import BUILDINGS, _geometries
 
 from diffpos.paths.mechanisms import MECHANISMS, mechanism_set
 from diffpos.paths.model import graded_paths
 from diffpos.scenario import Partition
 from diffpos.tracking.families import graded_split
-from tests.core.test_paths_kernel import BUILDINGS, _geometries
 
 PARTS = (Partition("x", 2.0, (3.0, 15.0)), Partition("y", 6.0, (-10.0, 20.0)),
          Partition("x", -3.0, (0.0, 9.0)))
