@@ -553,6 +553,20 @@ def _epoch_nis(nis_links: FloatArray) -> tuple[FloatArray, NDArray[np.int_]]:
     return np.where(n_in > 0, total / np.maximum(n_in, 1), np.inf), n_in
 
 
+def _link_misfit(nis_h: FloatArray, res: FloatArray, var: FloatArray,
+                 config: TrackerConfig) -> FloatArray:
+    """Every link's misfit (n, H, M) kept as ``link_fit`` for the family gate: its selection
+    NIS at the prior covariance (``config.family_fit="prior"``) or its fitted residual over
+    the range noise, ``res^2 / var`` at the updated state (``"residual"``); NaN where the
+    link was an outlier or absent. ``var`` (n, M): the links' range variances."""
+    if config.family_fit == "prior":
+        return nis_h
+    if config.family_fit != "residual":
+        raise ValueError(f"family_fit must be 'prior' or 'residual'; got {config.family_fit!r}")
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(nis_h), res * res / var[:, None, :], np.nan)
+
+
 def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray,
                   inflow: FloatArray, dt_s: FloatArray, building, config: TrackerConfig):
     """Measurement update of the nodes ``idx`` (their rows of the predicted ``state``, ``t_ns``,
@@ -629,8 +643,9 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         if config.link_learn_minority:
             n_out = np.sum(sub.mask[:, 0][:, None, :] & (slot < 0), axis=-1)
             fits = 2 * n_out < n_meas[:, None]
-        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link, nis_h,
-                         fits), link_anchor=tab, link_seen_ns=seen)
+        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link,
+                         _link_misfit(nis_h, res, sub.var[:, 0], config), fits),
+                   link_anchor=tab, link_seen_ns=seen)
         if _counts_unexplained(config):  # (off: nothing reads them, nothing counted)
             new["unexplained"], new["redundant"] = count_unexplained(
                 state.unexplained[idx], state.redundant[idx], new["link_fit"], col,
