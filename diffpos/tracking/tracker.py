@@ -519,7 +519,7 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
         w[:, 0, :, 1] += family_log_weight(pos, p0[:, 0, :3, :3], links, rr, fl[:, 0], gate,
                                            building, config,
                                            np.log(-np.expm1(w[:, 0, :, 0])),
-                                           snr_sigma_db=SNR_SIGMA_DB)
+                                           snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB)
     x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
                                             level=level, snr_cache=sc, link_w=w)
     if sc is not None:

@@ -16,6 +16,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from static_track import ANCHORS, NODE, SIGMA, B, first_arrivals, track
 
 from diffpos.channel.emulator import emulate_channel
 from diffpos.paths.model import first_arrival_paths, graded_paths
@@ -24,7 +25,6 @@ from diffpos.tracking.families import extra_families, family_log_weight
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import SNR_SIGMA_DB, SNR_SPAN_DB
 from diffpos.tracking.state import TrackerConfig
-from static_track import ANCHORS, NODE, SIGMA, B, first_arrivals, track
 
 RADIO = default_scenario().radio
 
@@ -84,7 +84,7 @@ def test_family_scored_with_its_snr():
     def weights(c):
         return family_log_weight(n[None], np.zeros((1, 3, 3)), links, np.array([0]),
                                  np.array([2]), np.ones((1, 3), bool), B, c,
-                                 snr_sigma_db=SNR_SIGMA_DB)[0]
+                                 snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB)[0]
 
     w = weights(cfg)
     w_off = weights(dataclasses.replace(cfg, family_snr=False))
