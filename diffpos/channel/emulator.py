@@ -66,7 +66,7 @@ multipath, clock).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -97,6 +97,7 @@ __all__ = [
     "first_arrival",
     "mpc_class_of",
     "mpc_statistics",
+    "pair_family_snr_db",
     "pair_first_arrival",
     "pair_snr_db",
     "scenario_channel",
@@ -484,6 +485,36 @@ def _family_snr_length(anchors: FloatArray, nodes: FloatArray, building: Buildin
         params = _params(building, radio)
     snr, length = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
     return snr[:, 0], length[:, 0]
+
+
+@lru_cache(maxsize=8)
+def _set_table(max_order: int, partitions: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled table of ``mechanism_set(max_order, partitions=partitions)`` and the slots
+    of its families beyond the 18."""
+    mset = mechanism_set(max_order, partitions=partitions)
+    return mechanism_table(mset.recipes), np.arange(len(MECHANISMS), len(mset), dtype=np.int64)
+
+
+def pair_family_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
+                       radio: Radio, max_order: int, partitions: bool = False) -> FloatArray:
+    """SNR [dB] of the families beyond the 18 of ``mechanism_set(max_order,
+    partitions=partitions)`` for P (anchor, node) pairs (``anchors_m``, ``nodes_m`` (P, 3)),
+    (P, K - 18): the emulator's amplitude model for them (:mod:`diffpos.channel.families_nb`,
+    as :func:`pair_first_arrival` draws them at ``radio.channel_max_order`` > 2), with the
+    channel's constants at order ``max(radio.channel_max_order, max_order)`` (the window
+    edges' sheets of order >= 3); ``-inf`` where a family carries no power. For an estimator
+    that scores a family by its SNR (``TrackerConfig.family_snr``). Nodes inside the building
+    and anchors outside (not checked)."""
+    anchors = np.asarray(anchors_m, dtype=np.float64).reshape(-1, 3)
+    nodes = np.asarray(nodes_m, dtype=np.float64).reshape(-1, 3)
+    table, slots = _set_table(max_order, partitions)
+    radio = replace(radio, channel_max_order=max(radio.channel_max_order, max_order))
+    try:
+        params = _kernel_params(building, radio)
+    except TypeError:
+        params = _params(building, radio)
+    snr, _ = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
+    return snr[:, 0]
 
 
 def _check_pairs(anchors: FloatArray, nodes: FloatArray, building: Building) -> None:

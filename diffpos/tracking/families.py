@@ -54,15 +54,15 @@ import functools
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.channel.emulator import pair_snr_db
+from diffpos.channel.emulator import pair_family_snr_db, pair_snr_db
 from diffpos.paths.graded_nb import graded_split_kernel
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
 from diffpos.paths.model import graded_paths
 from diffpos.paths.model_nb import building_planes, mechanism_table, partition_array
 from diffpos.tracking.state import FloatArray
 
-__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "first_arrival_log_prob",
-           "graded_split"]
+__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "family_snr_log_lik",
+           "first_arrival_log_prob", "graded_split"]
 
 #: Share of the out-of-model component given to the enumerated extra families (the rest stays
 #: uniform over ``outlier_span_m``).
@@ -120,14 +120,19 @@ def graded_split(pos: FloatArray, anchor: FloatArray, floor: NDArray, building, 
 def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
                    var: FloatArray, floor: NDArray, building, max_order: int,
                    relax_m: float, radio=None, cap_nats: float = 0.0,
-                   snr_sigma_db: float | None = None) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
+                   snr_sigma_db: float | None = None, snr: tuple | None = None,
+                   snr_span_db: float | None = None
+                   ) -> tuple[FloatArray, NDArray[np.int_], NDArray[np.int_]]:
     """``log mean_k N(rho; L_k, J_k P J_k^T + var)`` over the extra families (``max_order``)
     that exist (``loose`` at ``relax_m``) for every link (Q,); -inf where none exists; and the
     number of extra families and of the 18 mechanisms that exist (``loose``) there, (Q,)
     each. Flat links: ``pos`` (Q, 3), ``cov`` (Q, 3, 3), ``anchor`` (Q, 3), ``rho``, ``var``,
     ``floor`` (Q,). ``radio`` given: every family's density is weighted by the probability
     that it can be the first arrival there (:func:`first_arrival_log_prob` with the SNR
-    model's ``snr_sigma_db``, at least ``-cap_nats``)."""
+    model's ``snr_sigma_db``, at least ``-cap_nats``). ``snr`` ``(snr_db (Q,), radio)`` given
+    (``TrackerConfig.family_snr``): every family's density is also weighted by
+    :func:`family_snr_log_lik` (its SNR likelihood against the outlier's, ``snr_sigma_db``
+    and ``cap_nats`` as the 18's, ``snr_span_db`` the outlier's SNR span)."""
     fam = extra_families(max_order)
     q = rho.shape[0]
     if fam is None or q == 0:
@@ -153,12 +158,42 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
                              "snr_sigma_db, the SNR model's spread (tracking.model.SNR_SIGMA_DB)")
         ll = ll + first_arrival_log_prob(pos, anchor, g.length_m, np.sqrt(var), building,
                                          radio, snr_sigma_db, cap_nats)
+    if snr is not None:
+        if snr_sigma_db is None or snr_span_db is None:
+            raise ValueError("family_log_lik: the families' SNR likelihood (snr given) needs "
+                             "snr_sigma_db and snr_span_db, the SNR model's spread and the "
+                             "outlier's SNR span (tracking.model.SNR_SIGMA_DB, SNR_SPAN_DB)")
+        ll = ll + family_snr_log_lik(pos, anchor, snr[0], building, snr[1], max_order,
+                                     snr_sigma_db, snr_span_db, cap_nats)
     n_ok = ok.sum(axis=-1)
     with np.errstate(divide="ignore"):
         top = np.max(ll, axis=-1)
         safe = np.where(np.isfinite(top), top, 0.0)
         tot = safe + np.log(np.sum(np.exp(ll - safe[:, None]), axis=-1))
         return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf), n_ok, n_base
+
+
+def family_snr_log_lik(pos: FloatArray, anchor: FloatArray, snr_db: FloatArray, building,
+                       radio, max_order: int, snr_sigma_db: float, snr_span_db: float,
+                       cap_nats: float = 0.0) -> FloatArray:
+    """Log-ratio (Q, F) of every extra family's SNR density to the outlier's for links at
+    ``pos`` (Q, 3) from ``anchor`` (Q, 3) with measured SNR ``snr_db`` (Q,):
+    ``log N(snr; S_k, snr_sigma_db^2) + log snr_span_db`` (the outlier's SNR density is
+    uniform, ``1 / snr_span_db``: :data:`diffpos.tracking.model.SNR_SPAN_DB`), ``S_k`` the
+    family's SNR by the emulator's amplitude model
+    (:func:`diffpos.channel.emulator.pair_family_snr_db`), the robust SNR likelihood the 18
+    mechanisms get (:func:`diffpos.tracking.model.cap_snr_cost`: the cost ``z^2 / 2`` at most
+    ``cap_nats`` when > 0). ``-inf`` where a family carries no power (no candidate); 0 where
+    the SNR is unknown (NaN: as without it)."""
+    pred = pair_family_snr_db(anchor, pos, building=building, radio=radio, max_order=max_order)
+    with np.errstate(invalid="ignore"):
+        z = (snr_db[:, None] - pred) / snr_sigma_db
+        cost = 0.5 * z * z
+        if cap_nats > 0:
+            cost = np.minimum(cost, cap_nats)
+        term = -cost - np.log(snr_sigma_db) - 0.5 * _LOG2PI + np.log(snr_span_db)
+    term = np.where(np.isfinite(pred), term, -np.inf)
+    return np.where(np.isfinite(snr_db)[:, None], term, 0.0)
 
 
 def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatArray,
@@ -198,7 +233,8 @@ def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatA
 def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                       floor: NDArray, gate: NDArray[np.bool_], building, config,
                       log_eps: FloatArray | None = None,
-                      snr_sigma_db: float | None = None) -> FloatArray:
+                      snr_sigma_db: float | None = None,
+                      snr_span_db: float | None = None) -> FloatArray:
     """The change (P, M) of the out-of-model component's log-density of the pairs (node rows
     ``rows`` of ``links``, prior ``pos`` (P, 3), ``cov`` (P, 3, 3), ``floor`` (P,)) by the
     extra families, for the present links of ``gate`` (P, M) (the others: 0, not evaluated);
@@ -214,7 +250,9 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     ``max_order`` treats them (module docstring); ``"one"``: the same with ``1 / (n_18 + 1)``
     for ``n_fam / (n_18 + n_fam)`` (the families as one more candidate). With
     ``config.family_first`` and the links' radio model each family is weighted by
-    :func:`first_arrival_log_prob` (``snr_sigma_db``: the SNR model's spread, needed then)."""
+    :func:`first_arrival_log_prob` (``snr_sigma_db``: the SNR model's spread, needed then);
+    with ``config.family_snr`` by :func:`family_snr_log_lik` (``snr_sigma_db`` and
+    ``snr_span_db``, the outlier's SNR span, needed then)."""
     if extra_families(config.max_order) is None:
         return np.zeros(gate.shape)
     gate = gate & links.mask[rows, 0]
@@ -224,7 +262,10 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                                        floor[pi], building, config.max_order,
                                        config.exist_margin_m,
                                        links.radio if config.family_first else None,
-                                       config.snr_cost_cap_nats, snr_sigma_db)
+                                       config.snr_cost_cap_nats, snr_sigma_db,
+                                       (links.snr[rows[pi], 0, mi], links.radio)
+                                       if config.family_snr and links.snr is not None else None,
+                                       snr_span_db)
     out = np.zeros(gate.shape)
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]

@@ -370,6 +370,21 @@ class TrackerConfig:
         everywhere: 95.83 %), Sionna's live ``large`` 91.37 / 0.34 -> 91.42 / 0.31 %,
         heldout-1/-2/-3 and the emulator's lockstep and live runs unchanged; static Sionna
         paper 69.53 -> 72.10 %.
+    family_snr : bool
+        (``max_order`` > 2) Every extra family is scored with its SNR as the 18 mechanisms
+        are: its density is weighted by the robust SNR likelihood about the emulator's
+        amplitude model for that family (Gaussian, ``SNR_SIGMA_DB``, the cost capped at
+        ``snr_cost_cap_nats``; :func:`diffpos.tracking.families.family_snr_log_lik`,
+        :func:`diffpos.channel.emulator.pair_family_snr_db`) instead of the outlier's flat
+        SNR density ``1 / SNR_SPAN_DB``; a family with no power is no candidate. Only where the
+        link has a measured SNR and a radio model. Default False (docs/tracking_evidence.md
+        "Families scored with their SNR, the gate's misfit at the fit").
+    family_fit : {"prior", "residual"}
+        What the family gate's misfit (``family_gate="misfit"``, ``TrackerState.link_fit``)
+        of a link is: ``"prior"``, its selection NIS at the prior covariance; ``"residual"``,
+        its fitted residual over the range noise, ``res^2 / var`` at the updated state (a
+        drifted track whose fit absorbs a range no longer calls it a 3-sigma miss by the
+        prior's spread alone). Default "prior" (the same section).
     floor_model_doubt : bool
         The published floor probabilities are mixed towards uniform by the probability that
         the node's data hold a first arrival the path model does not explain, by the learned
@@ -446,6 +461,8 @@ class TrackerConfig:
     family_minority: bool = True
     family_first: bool = False
     family_learned_links: int = 4
+    family_snr: bool = False
+    family_fit: str = "prior"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
 

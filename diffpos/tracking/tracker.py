@@ -519,7 +519,7 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
         w[:, 0, :, 1] += family_log_weight(pos, p0[:, 0, :3, :3], links, rr, fl[:, 0], gate,
                                            building, config,
                                            np.log(-np.expm1(w[:, 0, :, 0])),
-                                           snr_sigma_db=SNR_SIGMA_DB)
+                                           snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB)
     x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
                                             level=level, snr_cache=sc, link_w=w)
     if sc is not None:
@@ -551,6 +551,20 @@ def _epoch_nis(nis_links: FloatArray) -> tuple[FloatArray, NDArray[np.int_]]:
     n_in = np.sum(np.isfinite(nis_links), axis=-1)
     total = np.sum(np.where(np.isnan(nis_links), 0.0, nis_links), axis=-1)  # np.nansum's sum
     return np.where(n_in > 0, total / np.maximum(n_in, 1), np.inf), n_in
+
+
+def _link_misfit(nis_h: FloatArray, res: FloatArray, var: FloatArray,
+                 config: TrackerConfig) -> FloatArray:
+    """Every link's misfit (n, H, M) kept as ``link_fit`` for the family gate: its selection
+    NIS at the prior covariance (``config.family_fit="prior"``) or its fitted residual over
+    the range noise, ``res^2 / var`` at the updated state (``"residual"``); NaN where the
+    link was an outlier or absent. ``var`` (n, M): the links' range variances."""
+    if config.family_fit == "prior":
+        return nis_h
+    if config.family_fit != "residual":
+        raise ValueError(f"family_fit must be 'prior' or 'residual'; got {config.family_fit!r}")
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(nis_h), res * res / var[:, None, :], np.nan)
 
 
 def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray,
@@ -629,8 +643,9 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         if config.link_learn_minority:
             n_out = np.sum(sub.mask[:, 0][:, None, :] & (slot < 0), axis=-1)
             fits = 2 * n_out < n_meas[:, None]
-        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link, nis_h,
-                         fits), link_anchor=tab, link_seen_ns=seen)
+        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link,
+                         _link_misfit(nis_h, res, sub.var[:, 0], config), fits),
+                   link_anchor=tab, link_seen_ns=seen)
         if _counts_unexplained(config):  # (off: nothing reads them, nothing counted)
             new["unexplained"], new["redundant"] = count_unexplained(
                 state.unexplained[idx], state.redundant[idx], new["link_fit"], col,
