@@ -236,6 +236,15 @@ def _kernel_params(building: Building, radio: Radio) -> tuple[np.ndarray, ...]:
     return _params(building, radio)
 
 
+def _params_for(building: Building, radio: Radio) -> tuple[np.ndarray, ...]:
+    """:func:`_kernel_params`, or computed afresh where a field cannot be hashed (e.g.
+    partitions given as a list)."""
+    try:
+        return _kernel_params(building, radio)
+    except TypeError:
+        return _params(building, radio)
+
+
 def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
                 radio: Radio, need: ArrayLike | None = None) -> FloatArray:
     """SNR of every slot for per-node anchor sets: anchors ``(N, M, 3)``, nodes ``(N, 3)``.
@@ -270,10 +279,7 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     if not (np.isfinite(anchors).all() and np.isfinite(nodes).all()):
         out = _pair_snr_db_numpy(anchors, nodes, building=building, radio=radio)
         return out if need is None else np.where(need, out, np.nan)
-    try:
-        params = _kernel_params(building, radio)
-    except TypeError:  # an unhashable field (e.g. partitions given as a list)
-        params = _params(building, radio)
+    params = _params_for(building, radio)
     if need is None:
         return eval_snr_kernel(_c_w(anchors), _c_w(nodes), params)
     return eval_snr_masked_kernel(_c_w(anchors), _c_w(nodes), params, need)
@@ -466,33 +472,22 @@ def pair_first_arrival(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Bu
     return measured, sigma, snr_f, true_path, detected
 
 
-#: Compiled tables of the channel's mechanism sets (by max order).
-_FAMILY_TABLES: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-
-
-def _family_snr_length(anchors: FloatArray, nodes: FloatArray, building: Building,
-                       radio: Radio) -> tuple[FloatArray, FloatArray]:
-    """SNR and length (compiled :mod:`diffpos.channel.families_nb`, the path model's geometry)
-    of the families beyond the 18 for P pairs: (P, K - 18) each."""
-    mset = channel_mechanisms(radio)
-    if mset.max_order not in _FAMILY_TABLES:
-        _FAMILY_TABLES[mset.max_order] = (
-            mechanism_table(mset.recipes), np.arange(len(MECHANISMS), len(mset), dtype=np.int64))
-    table, slots = _FAMILY_TABLES[mset.max_order]
-    try:
-        params = _kernel_params(building, radio)
-    except TypeError:
-        params = _params(building, radio)
-    snr, length = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
-    return snr[:, 0], length[:, 0]
-
-
 @lru_cache(maxsize=8)
 def _set_table(max_order: int, partitions: bool) -> tuple[np.ndarray, np.ndarray]:
     """The compiled table of ``mechanism_set(max_order, partitions=partitions)`` and the slots
     of its families beyond the 18."""
     mset = mechanism_set(max_order, partitions=partitions)
     return mechanism_table(mset.recipes), np.arange(len(MECHANISMS), len(mset), dtype=np.int64)
+
+
+def _family_snr_length(anchors: FloatArray, nodes: FloatArray, building: Building,
+                       radio: Radio) -> tuple[FloatArray, FloatArray]:
+    """SNR and length (compiled :mod:`diffpos.channel.families_nb`, the path model's geometry)
+    of the families beyond the 18 for P pairs: (P, K - 18) each."""
+    table, slots = _set_table(radio.channel_max_order, True)
+    params = _params_for(building, radio)
+    snr, length = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
+    return snr[:, 0], length[:, 0]
 
 
 def pair_family_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
@@ -509,10 +504,7 @@ def pair_family_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Bu
     nodes = np.asarray(nodes_m, dtype=np.float64).reshape(-1, 3)
     table, slots = _set_table(max_order, partitions)
     radio = replace(radio, channel_max_order=max(radio.channel_max_order, max_order))
-    try:
-        params = _kernel_params(building, radio)
-    except TypeError:
-        params = _params(building, radio)
+    params = _params_for(building, radio)
     snr, _ = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
     return snr[:, 0]
 
