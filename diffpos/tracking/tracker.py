@@ -670,8 +670,10 @@ def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
     reset_links(lk, np.arange(idx.size), fresh)
     learned = None
     if _counts_unexplained(config):  # the track's channel has out-of-model arrivals
+        need = None if config.link_learn_unexplained else (  # else only the gate reads it:
+            (n_meas >= config.family_learned_links) & (n_meas < config.family_min_links))
         learned = _learned_families(state.unexplained[idx], state.redundant[idx], n_meas,
-                                    config)
+                                    config, need)
     link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                              SNR_SPAN_DB, ~learned if config.link_learn_unexplained else None)
     fam_gate = None
@@ -688,12 +690,20 @@ def _counts_unexplained(config: TrackerConfig) -> bool:
 
 
 def _learned_families(unexplained: FloatArray, redundant: FloatArray,
-                      n_meas: NDArray[np.int_], config: TrackerConfig) -> NDArray[np.bool_]:
+                      n_meas: NDArray[np.int_], config: TrackerConfig,
+                      need: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
     """The nodes (n,) whose track has learned that its channel has first arrivals out of the
     path model (``config.family_learned_links``): its counts of unexplained epochs favour an
     unknown rate over the model's own (:func:`diffpos.tracking.evidence.unexplained_log_odds`
-    > 0)."""
-    return unexplained_log_odds(unexplained, redundant, np.maximum(n_meas, 4), config) > 0.0
+    > 0). ``need`` (n,): only these nodes are evaluated, the others False (the family gate
+    reads it only for nodes with ``family_learned_links`` to ``family_min_links`` - 1
+    ranges); None: every node."""
+    out = np.zeros(n_meas.shape, dtype=bool)
+    rows = np.arange(n_meas.size) if need is None else np.flatnonzero(need)
+    if rows.size:
+        out[rows] = unexplained_log_odds(unexplained[rows], redundant[rows],
+                                         np.maximum(n_meas[rows], 4), config) > 0.0
+    return out
 
 
 def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],

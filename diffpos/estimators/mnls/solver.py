@@ -415,13 +415,13 @@ def _transfer(p: _Problem, xs: FloatArray, ts: dict, sel, building, iters: int, 
     rows took a new mode."""
     nf = building.n_floors
     b = xs.shape[0] // nf
-    cost = ts["cost"].reshape(b, nf)
-    best = xs.reshape(b, nf, 3)[np.arange(b), np.argmin(cost, axis=-1)]  # (B, 3)
+    top = np.argmin(ts["cost"].reshape(b, nf), axis=-1)  # (B,): each fix's best floor
+    best = xs.reshape(b, nf, 3)[np.arange(b), top]  # (B, 3)
     q = _take(p, sel)
     x0 = np.repeat(best, nf, axis=0)
     x0[:, 2] = q.z_mid
     go = np.flatnonzero(np.all(np.isfinite(x0), axis=-1)
-                        & (np.arange(b * nf) % nf != np.repeat(np.argmin(cost, -1), nf))
+                        & (np.arange(b * nf) % nf != np.repeat(top, nf))
                         & (q.mask.sum(axis=-1) <= TRANSFER_MAX_LINKS))
     moved = np.zeros(b * nf, dtype=bool)
     if go.size == 0:
