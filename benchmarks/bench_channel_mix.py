@@ -247,12 +247,10 @@ def live_score(rec: Path, skip_s: float) -> dict[str, float]:
     """Right floor, availability, confidently wrong, 95 % ellipsoid [%] of a recording."""
     from common import score_recording
 
-    rows: list = []
-    s = score_recording(rec, skip_s=skip_s, rows_out=rows)
-    wrong = sum(1 for r in rows if 0 <= r[3] != r[2] and r[4] >= 0.95)
+    s = score_recording(rec, skip_s=skip_s)
     return {"node-epochs": s["node_epochs"], "right floor": 100 * s["floor"],
             "availability": 100 * s["availability"],
-            "conf. wrong": 100 * wrong / max(len(rows), 1),
+            "conf. wrong": 100 * (s["floor_calibration"] or {}).get("confidently_wrong", 0.0),
             "95% ellipsoid": 100 * s["coverage95"]}
 
 
