@@ -244,6 +244,7 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
+from common import tree_env
 from diffpos_services.heap import keep_heap
 from diffpos_services.replay.run import replay
 from diffpos_services.wire import messages as M
@@ -411,18 +412,9 @@ def cost(path: Path, method: str) -> tuple[float, int, dict]:
     return cpu, int(r.report["fixes"]["total"]), r.report
 
 
-def _tree_env(tree: Path | None) -> dict[str, str]:
-    """This process' environment with ``tree`` (a checkout) and its ``services`` first on
-    ``PYTHONPATH`` (None: this process' own)."""
-    env = dict(os.environ)
-    if tree is not None:
-        env["PYTHONPATH"] = os.pathsep.join([str(tree), str(tree / "services")])
-    return env
-
-
 def _cost_in(tree: Path | None, argv: list[str]) -> dict:
     """One ``--cost-json`` run of this script under ``tree``'s code (a fresh process)."""
-    out = subprocess.run([sys.executable, __file__, *argv, "--cost-json"], env=_tree_env(tree),
+    out = subprocess.run([sys.executable, __file__, *argv, "--cost-json"], env=tree_env(tree),
                          check=True, capture_output=True, text=True).stdout
     return msgspec.json.decode(out.strip().splitlines()[-1])
 
@@ -662,7 +654,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cost-json", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.compare is not None:
-        sub = [a for a in (argv if argv is not None else sys.argv[1:])]
+        sub = list(argv if argv is not None else sys.argv[1:])
         i = sub.index("--compare")
         sub = sub[:i] + sub[i + 2:]
         _print_compare(args.compare, sub, compare(args.compare, sub, args.repeat))

@@ -52,6 +52,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from common import tree_env
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -85,7 +87,7 @@ def child_env(tree: Path, bytecode_dir: str | None) -> dict[str, str]:
     """The replay's environment: ``tree`` first on the path; with ``bytecode_dir``, compiled
     bytecode kept there (``PYTHONPYCACHEPREFIX``, as an installed package has it) instead of
     every process compiling the project's sources again (``PYTHONDONTWRITEBYTECODE``)."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), str(tree / "services")]))
+    env = tree_env(tree)
     if bytecode_dir is not None:
         env.pop("PYTHONDONTWRITEBYTECODE", None)
         env["PYTHONPYCACHEPREFIX"] = bytecode_dir

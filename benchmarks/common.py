@@ -48,6 +48,15 @@ def machine() -> str:
 
 
 # ----------------------------------------------------------------------------- scoring
+def tree_env(tree: str | Path | None) -> dict[str, str]:
+    """This process' environment with ``tree`` (a checkout) and its ``services`` first on
+    ``PYTHONPATH`` (None: this process' own): a child process runs that checkout's code."""
+    env = dict(os.environ)
+    if tree is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(tree), str(Path(tree) / "services")])
+    return env
+
+
 def recording_parts(path: str | Path) -> list[Path]:
     """``path`` and the parts the recorder split the run into (``<stem>_0001.mcap``, ...:
     :func:`diffpos_services.recording.writer.part_path`), in order."""
