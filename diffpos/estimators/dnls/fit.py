@@ -52,6 +52,7 @@ class FitSettings:
     exclusion_ftol: float | None = None  # None: the exhaustive exclusion search
     exclusion_recheck_ratio: float | None = None
     exclusion_bound: float | None = None
+    exclusion_starts: str = "grid"  # "local": a cold fix's candidates from LLS + the solution
 
 
 @dataclass(frozen=True)
@@ -204,8 +205,7 @@ def _solve_candidates(
     convergence test (:func:`_polish_best`).
     """
     aa, rr, swc, mc = prob.a[pi], prob.r[pi], cu / prob.sig[pi], prob.mdl.take(pi)
-    # one given start (or the grid) plus the warm start (the current solution)
-    st = np.concatenate([_starts_for(prob, aa, rr, cu, pi, cfg), warm[:, None, :]], axis=1)
+    st = _candidate_starts(prob, aa, rr, cu, pi, warm, cfg)
     ftol = FTOL if cfg.exclusion_ftol is None else cfg.exclusion_ftol
     common = {"loss": cfg.loss, "loss_scale": cfg.loss_scale, "max_iter": cfg.max_iter,
               "xtol": cfg.xtol, "screen_iter": cfg.screen_iter, "ftol": ftol}
@@ -240,6 +240,19 @@ def _solve_candidates(
     if cfg.exclusion_ftol is not None:
         _polish_best(aa, rr, swc, mc, grp, cfg, xc, ic, vc, lc)
     return xc, ic, vc
+
+
+def _candidate_starts(prob: _Problems, aa: FloatArray, rr: FloatArray, cu: BoolArray,
+                      pi: NDArray[np.int_], warm: FloatArray, cfg: FitSettings) -> FloatArray:
+    """The candidates' starts: those of the first fit (the given start, or the height grid
+    and the LLS position) plus the warm start (the current solution); with
+    ``exclusion_starts="local"`` and no given start, each candidate's own LLS position (if
+    ``lls_start``; the warm start where LLS is not identifiable) and the warm start only."""
+    if prob.x0 is None and cfg.exclusion_starts == "local":
+        own = (_lls_starts(aa, rr, cu, warm[:, None, :]) if cfg.lls_start
+               else np.empty((pi.size, 0, 3)))
+        return np.concatenate([own, warm[:, None, :]], axis=1)
+    return np.concatenate([_starts_for(prob, aa, rr, cu, pi, cfg), warm[:, None, :]], axis=1)
 
 
 def _bounded_candidates(aa: FloatArray, rr: FloatArray, swc: FloatArray, st: FloatArray,

@@ -35,7 +35,8 @@ from diffpos.estimators.lm_nb import (
 I_LOSS, I_MAXIT, I_KEEP, I_SCREEN, I_LLS, I_SIGG, I_GATE = 0, 1, 2, 3, 4, 5, 6
 I_MAXEXCL, I_MINAFTER, I_PREGATE, I_REFIT, I_MSEXCL, I_ZRANGE, I_POLISH = 7, 8, 9, 10, 11, 12, 13
 I_PRUNE_AFTER = 14  # iterations before a candidate's start may be given up
-N_IPAR = 15
+I_LOCAL = 15  # a cold fix's exclusion candidates from their LLS position and the solution only
+N_IPAR = 16
 # float options (fpar)
 F_SCALE, F_XTOL, F_YSTART, F_PGSIG, F_PGMARGIN, F_ZLO, F_ZHI, F_ELO, F_EHI = range(9)
 F_CFTOL, F_RECHK, F_PRUNE = 9, 10, 11  # the exclusion candidates' ftol, recheck ratio, bound
@@ -229,7 +230,9 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
     (``dnls(exclusion_bound=...)``, linear loss): the candidate the linearised leave-one-out
     statistic (:func:`_loo_order`) ranks first is solved first, and the others' starts are
     given up once a Gauss-Newton step from where they are would leave their cost above
-    ``F_PRUNE`` times its cost (``_dnls_fit._solve_candidates``)."""
+    ``F_PRUNE`` times its cost (``_dnls_fit._solve_candidates``). ``I_LOCAL``: a cold fix's
+    candidates from their own LLS position and ``x`` only (:func:`_candidate_starts`; with
+    fewer starts than ``I_KEEP`` nothing is screened, so nothing is rechecked)."""
     m = r.shape[0]
     tc = np.full(m, math.inf)
     cu = used.copy()
@@ -250,7 +253,7 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
         cu[:] = used
         cu[j] = False
         if ms:
-            st = _starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x, True)
+            st = _candidate_starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x)
             n_st = st.shape[0]
             cc[j], ic[j], vc[j] = multistart(a, r, sw, cu, st, h, ipar, fpar, 0, thr_re,
                                              fpar[F_CFTOL], stop, xc[j], lc[j:j + 1])
@@ -271,6 +274,21 @@ def _candidates(a, r, sig, sw, used, x, h, x0, has_x0, zs, ipar, fpar, thr_fa, t
     if ms and ipar[I_POLISH]:
         _polish_best(a, r, sw, used, h, ipar, fpar, tc, xc, ic, vc, lc, p, jac)
     return tc
+
+
+@njit(**_JIT)
+def _candidate_starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x):
+    """The starts of the candidate on anchors ``cu``: those of the first fit (the given
+    start, or the height grid and the LLS position) plus the current solution ``x``. With
+    ``I_LOCAL`` (``dnls(exclusion_starts="local")``) and no given start: the candidate's own
+    LLS position (if ``I_LLS``; ``x`` where it is not identifiable) and ``x`` only."""
+    if has_x0 or not ipar[I_LOCAL]:
+        return _starts(a, r, cu, x0, has_x0, zs, ipar, fpar, x, True)
+    st = np.empty((1 + ipar[I_LLS], 3))
+    if ipar[I_LLS]:
+        _lls_start(a, r, cu, x, st[0])
+    st[st.shape[0] - 1] = x
+    return st
 
 
 @njit(**_JIT)
@@ -574,11 +592,12 @@ def options(*, loss: int, loss_scale: float, max_iter: int, xtol: float, keep_st
             screen_iter: int, lls_start: bool, sigmas_given: bool, y_start: float,
             edge_x_m: tuple[float, float] | None, gating, exclusion_ftol: float | None = None,
             recheck_ratio: float | None = None, bound: float | None = None,
-            bound_after: int = 0) -> tuple[np.ndarray, np.ndarray]:
+            bound_after: int = 0, local_starts: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``(ipar, fpar)`` of :func:`dnls_batch` from the validated options of ``dnls``
     (``gating``: a ``GatingConfig`` or None; ``exclusion_ftol``, ``recheck_ratio``: ``dnls``'s
     ``exclusion_ftol``, ``exclusion_recheck_ratio`` and ``exclusion_bound`` with
-    ``EXCLUSION_BOUND_AFTER``, None: the exhaustive search)."""
+    ``EXCLUSION_BOUND_AFTER``, None: the exhaustive search; ``local_starts``:
+    ``exclusion_starts="local"``)."""
     ipar = np.zeros(N_IPAR, np.int64)
     fpar = np.zeros(N_FPAR)
     ipar[I_POLISH] = exclusion_ftol is not None
@@ -586,6 +605,7 @@ def options(*, loss: int, loss_scale: float, max_iter: int, xtol: float, keep_st
     fpar[F_RECHK] = math.inf if recheck_ratio is None else recheck_ratio
     fpar[F_PRUNE] = math.inf if bound is None else bound
     ipar[I_PRUNE_AFTER] = bound_after
+    ipar[I_LOCAL] = bool(local_starts)
     ipar[I_LOSS], ipar[I_MAXIT], ipar[I_SCREEN] = loss, max_iter, screen_iter
     ipar[I_KEEP] = -1 if keep_starts is None else keep_starts
     ipar[I_LLS], ipar[I_SIGG] = bool(lls_start), bool(sigmas_given)

@@ -81,6 +81,8 @@ __all__ = ["dnls"]
 FloatArray = NDArray[np.float64]
 
 _DEFAULT_GATING = GatingConfig()
+#: The values of ``dnls(exclusion_starts=...)``.
+EXCLUSION_STARTS = ("grid", "local")
 _DEFAULT_ZS = np.asarray(DEFAULT_Z_STARTS_M, np.float64)
 _PREGATE, _RAIM = int(ExclusionReason.PREGATE_SHORTER_THAN_LOS), int(ExclusionReason.RAIM)
 _EXCLUSIONS = np.array([_PREGATE, _RAIM])
@@ -138,6 +140,7 @@ def dnls(
     exclusion_ftol: float | None = EXCLUSION_FTOL,
     exclusion_recheck_ratio: float | None = EXCLUSION_RECHECK_RATIO,
     exclusion_bound: float | None = EXCLUSION_BOUND,
+    exclusion_starts: str = "grid",
     chunk_size: int = 1024,
     kernel: bool = True,
 ) -> FixResult:
@@ -206,6 +209,15 @@ def dnls(
         first candidate's cost: it cannot become the fix's best. ``None``: every candidate to
         convergence (before 2026-12-06). Default
         :data:`~diffpos.estimators.dnls.fit.EXCLUSION_BOUND`.
+    exclusion_starts : {"grid", "local"}
+        The starts of a cold fix's (no ``x0_m``) exclusion candidates: ``"grid"`` (default)
+        every start of the first fit (the height grid and the LLS position, screened) plus
+        the current solution; ``"local"`` the candidate's own LLS position and the current
+        solution only (two starts, nothing screened, nothing rechecked: ~0.4x the cold
+        fixes' CPU on the D-NLS replay of a 30 s ``large`` recording, the candidate's floor
+        search left to the first fit's multi-start; accuracy side by side in
+        ``docs/performance.md``, "Session 23: D-NLS replay"). Fixes with ``x0_m`` are
+        unaffected.
     chunk_size : int
         Fixes solved together per chunk by the numpy reference (bounds memory; results depend
         on it only at the rounding level).
@@ -232,7 +244,7 @@ def dnls(
     True
     """
     _check_options(loss, loss_scale, gating)
-    _check_search(exclusion_ftol, exclusion_recheck_ratio, exclusion_bound)
+    _check_search(exclusion_ftol, exclusion_recheck_ratio, exclusion_bound, exclusion_starts)
     batch_in = prepare_batch(anchors_m, ranges_m, sigmas_m, mask)
     bsz, m = batch_in.ranges_m.shape
     model = _path_model(window_height_m, delta_m, edge_x_m, bsz)
@@ -240,7 +252,8 @@ def dnls(
     if kernel:
         out = _solve_compiled(batch_in, model, x0, starts, gating, loss, loss_scale, max_iter,
                               xtol_m, lls_start, keep_starts, screen_iter, y_start_m,
-                              (exclusion_ftol, exclusion_recheck_ratio, exclusion_bound))
+                              (exclusion_ftol, exclusion_recheck_ratio, exclusion_bound,
+                               exclusion_starts))
         return _fix_result(out, batch_in)
     cfg = FitSettings(
         z_starts=starts,
@@ -257,6 +270,7 @@ def dnls(
         exclusion_ftol=exclusion_ftol,
         exclusion_recheck_ratio=exclusion_recheck_ratio,
         exclusion_bound=exclusion_bound,
+        exclusion_starts=exclusion_starts,
     )
     out = _alloc(bsz, m)
     for lo in range(0, bsz, max(int(chunk_size), 1)):
@@ -285,9 +299,10 @@ def _solve_compiled(batch_in: PreparedBatch, model: PathModel, x0: FloatArray | 
                     starts: FloatArray | None, gating: GatingConfig | None, loss: str,
                     loss_scale: float, max_iter: int, xtol: float, lls_start: bool,
                     keep_starts: int | None, screen_iter: int, y_start: float,
-                    search: tuple[float | None, ...]) -> dict[str, np.ndarray]:
+                    search: tuple[float | str | None, ...]) -> dict[str, np.ndarray]:
     """The whole batch through the compiled kernel; the output arrays of :func:`_alloc`
-    (``search``: ``(exclusion_ftol, exclusion_recheck_ratio, exclusion_bound)``)."""
+    (``search``: ``(exclusion_ftol, exclusion_recheck_ratio, exclusion_bound,
+    exclusion_starts)``)."""
     bsz, m = batch_in.ranges_m.shape
     ipar, fpar = _kernel_options(LOSS_CODES[loss], float(loss_scale), int(max_iter), float(xtol),
                                  keep_starts, int(screen_iter), bool(lls_start),
@@ -327,7 +342,7 @@ def _solve_compiled(batch_in: PreparedBatch, model: PathModel, x0: FloatArray | 
 def _kernel_options(loss: int, loss_scale: float, max_iter: int, xtol: float,
                     keep_starts: int | None, screen_iter: int, lls_start: bool,
                     sigmas_given: bool, y_start: float, edge_x_m: tuple[float, float] | None,
-                    gating: GatingConfig | None, search: tuple[float | None, ...]
+                    gating: GatingConfig | None, search: tuple[float | str | None, ...]
                     ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`diffpos.estimators.dnls.fit_nb.options`, once per distinct option set (the kernel only
     reads ``ipar``/``fpar``; shared arrays, never written)."""
@@ -337,7 +352,8 @@ def _kernel_options(loss: int, loss_scale: float, max_iter: int, xtol: float,
                            keep_starts=keep_starts, screen_iter=screen_iter, lls_start=lls_start,
                            sigmas_given=sigmas_given, y_start=y_start, edge_x_m=edge_x_m,
                            gating=gating, exclusion_ftol=search[0], recheck_ratio=search[1],
-                           bound=search[2], bound_after=EXCLUSION_BOUND_AFTER)
+                           bound=search[2], bound_after=EXCLUSION_BOUND_AFTER,
+                           local_starts=search[3] == "local")
 
 
 def _kernel_outputs(bsz: int, m: int) -> tuple[np.ndarray, ...]:
@@ -367,8 +383,11 @@ def _check_options(loss: str, loss_scale: float, gating: GatingConfig | None) ->
 
 
 def _check_search(exclusion_ftol: float | None, exclusion_recheck_ratio: float | None,
-                  exclusion_bound: float | None) -> None:
-    """Validate the exclusion search's bounds."""
+                  exclusion_bound: float | None, exclusion_starts: str = "grid") -> None:
+    """Validate the exclusion search's bounds and starts."""
+    if exclusion_starts not in EXCLUSION_STARTS:
+        raise ValueError(f"exclusion_starts must be one of {EXCLUSION_STARTS}, got "
+                         f"{exclusion_starts!r}")
     if exclusion_bound is not None and not exclusion_bound >= 1.0:
         raise ValueError("exclusion_bound must be None or >= 1 (a multiple of the first "
                          f"candidate's cost), got {exclusion_bound}")
