@@ -183,7 +183,7 @@ def split_child(recording: str, method: str) -> None:
                 spent[label] = spent.get(label, 0.0) + dt
                 if apart:
                     for outer in set(active) - {label}:
-                        spent[outer] = spent.get(outer, 0.0) - dt
+                        spent[outer] -= dt
             return wrap(label, out) if returns_fn else out
         return timed
 
