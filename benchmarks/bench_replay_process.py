@@ -145,18 +145,12 @@ SPLIT_STEPS = [
     ("  estimates", "diffpos_services.fusion.core", "v2_builder"),
     ("report: truth + live estimates (Recorded.take)", "diffpos_services.replay.report_stream",
      "Recorded.take"),
-    ("report: truth + live estimates (Recorded.take)", "diffpos_services.replay.report_stream",
-     "Recorded.flush"),
     ("report: scoring (Recorded.advance)", "diffpos_services.replay.report_stream",
      "Recorded.advance"),
     ("report: replayed estimates in (_Outputs.emit)", "diffpos_services.replay.run",
      "_Outputs.emit"),
     ("report: final (_report)", "diffpos_services.replay.run", "_report"),
 ]
-#: steps counted apart from the steps they run inside (their time is taken off those):
-#: the batched decode of the truth and live estimates (since session 23) runs where the
-#: replayed estimates come in and where the report scores, and after each chunk
-SPLIT_APART = {"Recorded.flush"}
 
 
 def split_child(recording: str, method: str) -> None:
@@ -168,22 +162,15 @@ def split_child(recording: str, method: str) -> None:
     from diffpos_services.cli import main as cli
     importlib.import_module("diffpos_services.replay.run")
     spent: dict[str, float] = {}
-    active: list[str] = []  # the labels of the timed steps running now, outermost first
 
-    def wrap(label: str, fn, returns_fn: bool = False, apart: bool = False):
+    def wrap(label: str, fn, returns_fn: bool = False):
         @functools.wraps(fn)
         def timed(*a, **k):
             t0 = time.process_time()
-            active.append(label)
             try:
                 out = fn(*a, **k)
             finally:
-                active.pop()
-                dt = time.process_time() - t0
-                spent[label] = spent.get(label, 0.0) + dt
-                if apart:
-                    for outer in set(active) - {label}:
-                        spent[outer] -= dt
+                spent[label] = spent.get(label, 0.0) + time.process_time() - t0
             return wrap(label, out) if returns_fn else out
         return timed
 
@@ -194,8 +181,7 @@ def split_child(recording: str, method: str) -> None:
             obj = getattr(obj, part)
         fn = getattr(obj, name, None)
         if fn is not None:
-            setattr(obj, name, wrap(label, fn, returns_fn=name == "v2_builder",
-                                    apart=path in SPLIT_APART))
+            setattr(obj, name, wrap(label, fn, returns_fn=name == "v2_builder"))
     t0 = time.process_time()
     argv = ["replay", recording, "--no-files", "--no-progress"]
     if method != "default":
