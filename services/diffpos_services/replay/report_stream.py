@@ -888,99 +888,33 @@ class Recorded:
         self.t_last: int | None = None
         self._dec_est, self._dec_truth = slim_decoders()
         self._dec_full = M.estimate_decoder()
-        # truth and live estimates as they come (payload, node, receive time), decoded and
-        # reduced a batch at a time (:meth:`flush`) before anything reads what they feed
-        self._pending: list[tuple[str, bytes, str | None, int]] = []
-        self._lines_est = msgspec.json.Decoder(SlimEstimate)
-        self._lines_truth = msgspec.json.Decoder(SlimTruth)
 
     @property
     def fusion_inputs(self) -> int:
         return sum(self.counts[k] for k in self.input_kinds)
 
     def advance(self, now_ns: int, *, final: bool = False) -> None:
-        self.flush()
         self.live.advance(now_ns, final=final)
         self.replayed.advance(now_ns, final=final)
         self.compare.expire(now_ns, final=final)
 
     def take(self, kind: str, m: RawMessage, node: str | None) -> None:
         """A recorded message that is not a fusion input, diagnostics or liveliness: node
-        truth and live estimates (other kinds are only counted), kept until :meth:`flush`."""
-        if kind == "truth_node" or kind == "estimate":
-            self._pending.append((kind, m.data, node, m.log_ns))
-
-    def flush(self) -> None:
-        """The truth samples and live estimates :meth:`take` kept, in their order, into the
-        truth book, the live stream and the comparison: each kind's payloads decoded in one
-        call (:func:`decode_lines`), the same structs and the same calls, in the same order,
-        as one message at a time (:meth:`take_one`). Call it before anything reads them (the
-        replayed estimates into the comparison, :meth:`advance`)."""
-        pend = self._pending
-        if not pend:
-            return
-        self._pending = []
-        truth = [p for p in pend if p[0] == "truth_node"]
-        est = [p for p in pend if p[0] == "estimate"] if len(truth) < len(pend) else []
-        if truth:
-            gs = decode_lines(self._lines_truth, [p[1] for p in truth])
-            if gs is None:
-                for p in truth:
-                    self.take_one(*p)
-            else:
-                add = self.truth.add
-                for g, p in zip(gs, truth, strict=True):
-                    if g.schema != "diffpos.truth.v1" or g.id != p[2]:
-                        self.bad_payloads["truth_node"] += 1
-                        continue
-                    add(g.id, g.t_ns, g.position_m, -999 if g.floor_index is None
-                        else g.floor_index)
-        if est:
-            es = decode_lines(self._lines_est, [p[1] for p in est])
-            if es is None or self.keep is not None:
-                for p in est:
-                    self.take_one(*p)
-            else:
-                live, match, tags = self.live.add, self.compare.add, _EST_TAGS
-                for e, p in zip(es, est, strict=True):
-                    if e.schema not in tags or e.node_id != p[2]:
-                        self.bad_payloads["estimate"] += 1
-                        continue
-                    live(e)
-                    match(0, e, p[3])
-
-    def take_one(self, kind: str, data: bytes, node: str | None, log_ns: int) -> None:
-        """One truth sample or live estimate decoded and taken (bad payloads counted)."""
+        truth and live estimates (other kinds are only counted)."""
         try:
             if kind == "truth_node":
-                g = self._dec_truth(data)
+                g = self._dec_truth(m.data)
                 if g.id != node:
                     raise ValueError("id differs from the topic's")
                 self.truth.add(g.id, g.t_ns, g.position_m,
                                -999 if g.floor_index is None else g.floor_index)
             elif kind == "estimate":
-                e = self._dec_est(data)
+                e = self._dec_est(m.data)
                 if e.node_id != node:
                     raise ValueError("node_id differs from the topic's")
                 if self.keep is not None:
-                    self.keep[0].append(self._dec_full(data))
+                    self.keep[0].append(self._dec_full(m.data))
                 self.live.add(e)
-                self.compare.add(0, e, log_ns)
+                self.compare.add(0, e, m.log_ns)
         except (ValueError, KeyError, TypeError, AttributeError, msgspec.DecodeError):
             self.bad_payloads[kind] += 1
-
-
-def decode_lines(decoder: msgspec.json.Decoder, payloads: list[bytes]) -> list | None:
-    """Each JSON payload decoded by ``decoder``, in one call (newline-delimited JSON): the
-    structs one ``decoder.decode`` per payload gives. ``None`` when some payload would not
-    decode alone or the lines would not be the payloads one for one (a payload holding a
-    newline, an empty one): then decode them one by one."""
-    n = len(payloads)
-    buf = b"\n".join(payloads)
-    if buf.count(b"\n") != n - 1:
-        return None
-    try:
-        out = decoder.decode_lines(buf)
-    except (msgspec.DecodeError, ValueError, TypeError):
-        return None
-    return out if len(out) == n else None

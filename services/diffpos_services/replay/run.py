@@ -390,7 +390,6 @@ class _Outputs:
         """The estimates of a step: column batches by their columns
         (:meth:`FixStream.add_rows`) unless they are kept or written, the rest one by one."""
         rec = self.rec
-        rec.flush()  # the live estimates received before them first (the comparison's order)
         if rec.keep is None and self.sink is None:
             for part in ests.parts if isinstance(ests, Estimates) else (ests,):
                 if isinstance(part, ColumnBatch):
@@ -403,22 +402,17 @@ class _Outputs:
         self._emit_each(ests, now_ns)
 
     def _emit_each(self, ests: Sequence[M.PositionEstimate], now_ns: int) -> None:
-        """The estimates one by one (kept, or written: encoded as a batch, in order)."""
         rec = self.rec
-        ests = list(ests)
-        if rec.keep is not None or self.sink is not None:
-            ests = [msgspec.structs.replace(e, t_pub_wall_ns=now_ns) for e in ests]
-            if rec.keep is not None:
-                rec.keep[1].extend(ests)
-            if self.sink is not None:
-                key, write = self.keys.replay_estimate, self.sink.write
-                for e, data in zip(ests, M.encode_many(ests), strict=True):
-                    write(key(e.node_id), data, now_ns)
-        self.count += len(ests)
-        add, match, t_last = rec.replayed.add, rec.compare.add, rec.t_last or 0
         for e in ests:
-            add(e)
-            match(1, e, t_last)
+            self.count += 1
+            if rec.keep is not None or self.sink is not None:
+                e = msgspec.structs.replace(e, t_pub_wall_ns=now_ns)
+                if rec.keep is not None:
+                    rec.keep[1].append(e)
+                if self.sink is not None:
+                    self.sink.write(self.keys.replay_estimate(e.node_id), M.encode(e), now_ns)
+            rec.replayed.add(e)
+            rec.compare.add(1, e, rec.t_last or 0)
 
     def close(self, final_metadata: dict[str, Any] | None = None) -> None:
         if self.sink is not None:
@@ -780,7 +774,6 @@ def _feed(
                     continue  # no step point: the services' liveness, nothing the fusion heard
             if (next_step is None or now >= next_step) and fusion.step_recorded(now):
                 next_step = now + step_ns
-        rec.flush()  # the batch's truth and live estimates, decoded together
         if rec.t_last is not None and (next_advance is None or rec.t_last >= next_advance):
             rec.advance(rec.t_last)  # score what the truth covers (bounded memory)
             next_advance = rec.t_last + _ADVANCE_NS

@@ -63,7 +63,6 @@ __all__ = [
     "SnapshotFix",
     "decoder",
     "encode",
-    "encode_many",
     "estimate_decoder",
     "finite_or_none",
     "json_schema",
@@ -582,15 +581,6 @@ class DecodeError(DiffposError, ValueError):
 def encode(msg: msgspec.Struct) -> bytes:
     """JSON bytes of a message."""
     return _ENCODER.encode(msg)
-
-
-def encode_many(msgs: list[msgspec.Struct]) -> list[bytes]:
-    """:func:`encode` of each message, the batch in one call (newline-delimited JSON split
-    at its newlines: the encoder escapes every newline inside a value, so each line is one
-    message's bytes, byte for byte those of :func:`encode`)."""
-    if not msgs:
-        return []
-    return _ENCODER.encode_lines(msgs).split(b"\n")[:-1]
 
 
 def decoder(kind: type[msgspec.Struct]):
