@@ -76,7 +76,7 @@ def _truth_tracks(truth: list) -> dict[str, tuple[np.ndarray, np.ndarray, np.nda
 
 
 def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
-                    rows_out: list | None = None) -> dict[str, Any]:
+                    rows_out: list | None = None, replayed: bool = False) -> dict[str, Any]:
     """Every node-epoch of a recording (all its parts) after ``skip_s`` against its recorded
     truth.
 
@@ -87,8 +87,11 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
     (:func:`diffpos.metrics.truth_at`), as ``emulate``'s summary and ``replay``'s report do.
     ``rows_out``: a list that receives one ``(node, t_ns, true floor, published floor or -1,
     its probability or NaN, true z [m], the true floor's probability or NaN)`` per node-epoch
-    (bench_floor_calibration.py).
+    (bench_floor_calibration.py). ``replayed``: score the replayed estimates a
+    ``diffpos replay --write-mcap`` output holds (topic kind ``replay_estimate``) instead of the
+    recorded live ones (which that output also holds, copied from its input).
     """
+    est_kind = "replay_estimate" if replayed else "estimate"
     dec_est, dec_truth = M.estimate_decoder(), M.decoder(M.GroundTruth)
     dec_rc = M.decoder(M.RunControl)
     truth_d, est, t0, period = {}, {}, None, None
@@ -100,7 +103,7 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
                 if kind == "truth_node":
                     g = dec_truth(m.data)
                     truth_d[(g.id, g.t_ns)] = g
-                elif kind == "estimate":
+                elif kind == est_kind:
                     e = dec_est(m.data)
                     est[(e.node_id, e.epoch)] = e
                 elif kind == "run_control" and t0 is None:
