@@ -86,14 +86,62 @@ def _grid_starts_numpy(links: Links, floors: NDArray, building, config) -> Float
         pos = pos.reshape(1, nf * c, 3)
         li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1],
                    links.anchors[i:i + 1])
-        pe = all_paths(pos, li, np.repeat(floors[i], c)[None], building,
-                       0.5 * config.init_grid_m)
-        e = li.rho[..., None] - pe.length
-        cost = np.where(candidates(pe), 0.5 * e * e / li.var[..., None], np.inf).min(axis=-1)
-        los, _ = _los(pos, li.anchors)
-        short = np.minimum(li.rho - los, 0.0)
-        cost = np.minimum(cost, w_out + 0.5 * short**2 / li.var)
-        total = np.where(li.mask, cost, 0.0).sum(axis=-1)[0].reshape(nf, c)
+        total = _cell_costs(pos, li, np.repeat(floors[i], c)[None], building,
+                            0.5 * config.init_grid_m, w_out)[0].reshape(nf, c)
         order = np.argsort(total, axis=1, kind="stable")[:, :ns]
         starts[i] = pos[0].reshape(nf, c, 3)[np.arange(nf)[:, None], order].reshape(-1, 3)
     return starts
+
+
+def _cell_costs(pos: FloatArray, li: Links, floors: NDArray, building, relax_m: float,
+                w_out: float) -> FloatArray:
+    """The robust max-mixture range cost (n, C) of the cells ``pos`` (n, C, 3) on ``floors``
+    (n, C) for the links ``li`` (n nodes, their variances already widened): per link the
+    smallest ``0.5 e^2 / var`` over the candidate mechanisms, capped by the outlier's cost
+    ``w_out`` plus the hinge of a range shorter than the straight line."""
+    pe = all_paths(pos, li, floors, building, relax_m)
+    e = li.rho[..., None] - pe.length
+    cost = np.where(candidates(pe), 0.5 * e * e / li.var[..., None], np.inf).min(axis=-1)
+    los, _ = _los(pos, li.anchors)
+    short = np.minimum(li.rho - los, 0.0)
+    cost = np.minimum(cost, w_out + 0.5 * short**2 / li.var)
+    return np.where(li.mask, cost, 0.0).sum(axis=-1)
+
+
+#: Half-width of :func:`local_starts`' window in standard deviations of its prior.
+LOCAL_SIGMAS = 3.0
+
+
+def local_starts(links: Links, floors: NDArray, centre: FloatArray, cov_xy: FloatArray,
+                 building, config) -> FloatArray:
+    """The best ``init_starts`` cells (k, S, 3) of a local grid around each of ``k`` prior
+    positions ``centre`` (k, 3) on ``floors`` (k,), ranked by the grid's robust range cost
+    (:func:`_cell_costs`, the range variance widened by the grid's resolution) plus the prior
+    term ``0.5 d^T C^-1 d`` of the cell's horizontal offset ``d`` under ``cov_xy`` (k, 2, 2):
+    the modes of a floor a jump of the state from ``centre`` could reach
+    (:func:`diffpos.tracking.tracker._jump_pairs`). Cells ``init_grid_m / 2`` apart within
+    :data:`LOCAL_SIGMAS` standard deviations and inside the building, at the centre's height
+    (within the floor's band); the centre itself is a cell."""
+    k = centre.shape[0]
+    step = 0.5 * config.init_grid_m
+    inv = np.linalg.inv(cov_xy)
+    half = int(np.ceil(LOCAL_SIGMAS * np.sqrt(np.linalg.eigvalsh(cov_xy)[:, -1].max()) / step))
+    o = step * np.arange(-half, half + 1, dtype=np.float64)
+    off = np.stack(np.meshgrid(o, o, indexing="ij"), axis=-1).reshape(-1, 2)  # (C, 2)
+    c = off.shape[0]
+    pen = 0.5 * np.einsum("ci,kij,cj->kc", off, inv, off)
+    xy = centre[:, None, :2] + off[None]
+    x0, x1 = building.edge_x_m
+    inside = ((pen <= 0.5 * LOCAL_SIGMAS**2) & (xy[..., 0] > x0) & (xy[..., 0] < x1)
+              & (xy[..., 1] > 0.0) & (xy[..., 1] < building.depth_m))
+    zf = building.floor_z_m(floors)
+    z = np.clip(centre[:, 2], zf + config.z_margin_m,
+                zf + building.floor_height_m - config.z_margin_m)
+    pos = np.concatenate([xy, np.broadcast_to(z[:, None, None], (k, c, 1))], axis=-1)
+    li = Links(links.rho, links.var + (0.5 * step) ** 2, links.mask, links.anchors)
+    w_out = float(np.log(config.outlier_span_m / config.outlier_weight))
+    total = _cell_costs(pos, li, np.broadcast_to(floors[:, None], (k, c)), building,
+                        0.5 * step, w_out)
+    total = np.where(inside, total + pen, np.inf)
+    order = np.argsort(total, axis=1, kind="stable")[:, :config.init_starts]
+    return np.take_along_axis(pos, order[..., None], axis=1)

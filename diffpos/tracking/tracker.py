@@ -155,6 +155,7 @@ from diffpos.tracking.evidence_nb import warm_evidence
 from diffpos.tracking.families import family_log_weight
 from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
+from diffpos.tracking.initialisation import local_starts
 from diffpos.tracking.initialisation_nb import warm_grid
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import (
@@ -502,12 +503,25 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
     weights (n, H, M, 2) (:func:`diffpos.tracking.evidence.learned_weights`), or None.
     ``fam_gate`` (n, H, M): the links whose out-of-model component includes the extra
     families (``config.max_order``, :mod:`diffpos.tracking.families`; None: every link)."""
-    fl = hypothesis_floor(n_floors)[cc][:, None]
-    level = ~hypothesis_vertical(n_floors)[cc][:, None]
-    x0, p0 = mean[rr, cc][:, None], cov[rr, cc][:, None]
     sc = None
     if snr_cache is not None:
         sc = SnrCache(*(a[rr, cc][:, None] for a in snr_cache))
+    out = _update_at(mean[rr, cc], cov[rr, cc], links, rr, cc, n_floors, building, config, sc,
+                     link_w, fam_gate)
+    if sc is not None:
+        for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
+            a[rr, cc] = v[:, 0]
+    return out
+
+
+def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
+               config: TrackerConfig, sc: SnrCache | None = None,
+               link_w: FloatArray | None = None, fam_gate: NDArray | None = None):
+    """:func:`_update_pairs` from the priors ``x_prior`` (P, 6), ``p_prior`` (P, 6, 6) of the
+    pairs ``(rr[i], cc[i])`` (``sc``: their SNR cache, (P, 1, ...), updated in place)."""
+    fl = hypothesis_floor(n_floors)[cc][:, None]
+    level = ~hypothesis_vertical(n_floors)[cc][:, None]
+    x0, p0 = x_prior[:, None], p_prior[:, None]
     sub = links.take(rr)
     w = None if link_w is None else link_w[rr, cc][:, None]
     if config.max_order > DEFAULT_ORDER:  # the extra families (diffpos.tracking.families)
@@ -522,11 +536,66 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
                                            snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB)
     x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
                                             level=level, snr_cache=sc, link_w=w)
-    if sc is not None:
-        for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
-            a[rr, cc] = v[:, 0]
     return (x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
             sel.log_weight[:, 0])
+
+
+def _jump_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_floors: int,
+                building, config: TrackerConfig, link_w: FloatArray | None = None,
+                fam_gate: NDArray | None = None) -> tuple:
+    """The jump component of the updated pairs ``(rr, cc)`` (``out``: their
+    :func:`_update_pairs` outputs from the priors ``mean``, ``cov`` (n, H, ...)): the prior
+    is ``(1 - e) N(x, P) + e N(x, P + J)`` (``eps`` (P,): ``e``; ``J``: ``mode_jump_sigma_m``
+    squared on each position axis). For a pair calling at least ``mode_jump_outliers`` of
+    its ranges outliers, the jump component's evidence is the same measurement update
+    (:func:`_update_at`) from the best cells of a local grid (:func:`local_starts`: the
+    modes of the floor within reach of the jump), each fit with the prior ``N(s, C)``
+    (``C = P + J``) centred at its cell ``s`` and carried to the prior mean ``x`` in closed
+    form (the Laplace posterior ``N(x1, P1)`` of the fit times ``N(x; x, C) / N(x; s, C)``,
+    the exponential of a linear function): with ``a = C^-1 (x - s)``,
+    ``log Z = log Z_s + a.(x1 - s) + a.P1 a / 2 - (x - s).a / 2``, the posterior mean
+    ``x1 + P1 a``. The pair's evidence becomes ``log((1 - e) Z_0 + e Z)`` and its state the
+    component with the larger term (max-mixture); the prior's spread makes a far or loose
+    fit pay its Occam factor, so a fit of three ranges that fits anything does not win."""
+    x, p, ev, slot, nis, res, lw = out
+    present = links.mask[rr, 0]
+    n_out = np.sum(present & (slot < 0), axis=-1)
+    k = np.flatnonzero((n_out >= config.mode_jump_outliers) & (eps > 0) & np.isfinite(ev)
+                       & (np.sum(present, axis=-1) >= config.min_ranges_init))
+    if k.size == 0:
+        return out
+    r, c = rr[k], cc[k]
+    xp, cj = mean[r, c], cov[r, c].copy()
+    i3 = np.arange(3)
+    cj[:, i3, i3] += config.mode_jump_sigma_m ** 2
+    starts = local_starts(links.take(r), hypothesis_floor(n_floors)[c], xp[:, :3],
+                          cj[:, :2, :2], building, config)  # (k, S, 3)
+    ns = starts.shape[1]
+    xs = np.repeat(xp, ns, axis=0)
+    xs[:, :3] = starts.reshape(-1, 3)
+    cs = np.repeat(cj, ns, axis=0)
+    x1, p1, e1, s1, n1, r1, w1 = _update_at(xs, cs, links, np.repeat(r, ns),
+                                            np.repeat(c, ns), n_floors, building, config,
+                                            None, link_w, fam_gate)
+    d = np.repeat(xp, ns, axis=0) - xs
+    a = np.linalg.solve(cs, d[..., None])[..., 0]
+    ev_j = (e1 + np.einsum("pi,pi->p", a, x1 - xs) + 0.5 * np.einsum("pi,pij,pj->p", a, p1, a)
+            - 0.5 * np.einsum("pi,pi->p", d, a))
+    ev_j = np.where(np.isfinite(ev_j), ev_j, -np.inf).reshape(k.size, ns)
+    b = np.argmax(ev_j, axis=1)
+    j = np.arange(k.size) * ns + b
+    lj = np.log(eps[k]) + ev_j[np.arange(k.size), b]
+    lm = np.log1p(-eps[k]) + ev[k]
+    ev, x, p, slot, nis, res, lw = (a_.copy() for a_ in (ev, x, p, slot, nis, res, lw))
+    ev[k] = np.logaddexp(lm, lj)
+    win = lj > lm
+    kw, jw = k[win], j[win]
+    xj = x1[jw] + np.einsum("pij,pj->pi", p1[jw], a[jw])
+    xj[:, :3] = clamp_to_floor(xj[:, :3], hypothesis_floor(n_floors)[cc[kw]], building,
+                               config.z_margin_m)
+    x[kw], p[kw], slot[kw], nis[kw], res[kw], lw[kw] = xj, p1[jw], s1[jw], n1[jw], r1[jw], \
+        w1[jw]
+    return x, p, ev, slot, nis, res, lw
 
 
 def _normalise(lp: FloatArray) -> FloatArray:
@@ -607,9 +676,14 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     while True:
         rr, cc = np.nonzero(todo)
         if rr.size:
+            out = _update_pairs(m0, c0, sub, rr, cc, nf, building, config, snr_cache, link_w,
+                                fam_gate)
+            if config.mode_jump_rate_hz > 0:  # the jump component of the prior
+                out = _jump_pairs(m0, c0, sub, rr, cc, out, np.minimum(
+                    config.mode_jump_rate_hz * np.maximum(dt_s[idx][rr], 0.0), 0.5), nf,
+                    building, config, link_w, fam_gate)
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
-             res[rr, cc], lw[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
-                                          snr_cache, link_w, fam_gate)
+             res[rr, cc], lw[rr, cc]) = out
         run = run | todo
         lp, llr = _posterior(lp0, ev, run, llr0)
         best = np.argmax(lp, axis=1)
