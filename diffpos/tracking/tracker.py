@@ -540,62 +540,97 @@ def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
             sel.log_weight[:, 0])
 
 
-def _jump_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_floors: int,
+def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_floors: int,
                 building, config: TrackerConfig, link_w: FloatArray | None = None,
-                fam_gate: NDArray | None = None) -> tuple:
-    """The jump component of the updated pairs ``(rr, cc)`` (``out``: their
-    :func:`_update_pairs` outputs from the priors ``mean``, ``cov`` (n, H, ...)): the prior
-    is ``(1 - e) N(x, P) + e N(x, P + J)`` (``eps`` (P,): ``e``; ``J``: ``mode_jump_sigma_m``
-    squared on each position axis). For a pair calling at least ``mode_jump_outliers`` of
-    its ranges outliers, the jump component's evidence is the same measurement update
-    (:func:`_update_at`) from the best cells of a local grid (:func:`local_starts`: the
-    modes of the floor within reach of the jump), each fit with the prior ``N(s, C)``
-    (``C = P + J``) centred at its cell ``s`` and carried to the prior mean ``x`` in closed
-    form (the Laplace posterior ``N(x1, P1)`` of the fit times ``N(x; x, C) / N(x; s, C)``,
-    the exponential of a linear function): with ``a = C^-1 (x - s)``,
-    ``log Z = log Z_s + a.(x1 - s) + a.P1 a / 2 - (x - s).a / 2``, the posterior mean
-    ``x1 + P1 a``. The pair's evidence becomes ``log((1 - e) Z_0 + e Z)`` and its state the
-    component with the larger term (max-mixture); the prior's spread makes a far or loose
-    fit pay its Occam factor, so a fit of three ranges that fits anything does not win."""
+                fam_gate: NDArray | None = None, allow: NDArray | None = None) -> tuple:
+    """Other modes of the updated pairs ``(rr, cc)`` (``out``: their :func:`_update_pairs`
+    outputs from the priors ``mean``, ``cov`` (n, H, ...)) that call at least
+    ``mode_search_outliers`` of their ranges outliers.
+
+    The IEKF from the prior mean finds the posterior's nearest mode only; a first arrival
+    that switched to a path existing a few decimetres away (or a prior that sits in the wrong
+    mode) leaves it calling links outliers while a mode that explains them lies within reach.
+    The candidates: the same measurement update (:func:`_update_at`) from the best cells of a
+    local grid (:func:`local_starts`) with a broad prior ``N(s, C)`` centred at the cell
+    (``C = P + J``, ``J``: ``mode_jump_sigma_m`` squared on each position axis), whose
+    Laplace posterior is carried in closed form to another prior (:func:`_reprior`):
+    (1) the pair's own prior ``N(x, P)`` (another mode of the same posterior: max-mixture
+    with the pair's own fit), (2) the jump component ``N(x, P + J)`` with the weight ``e``
+    (``eps`` (P,), ``mode_jump_rate_hz``; 0: none). The pair's evidence becomes
+    ``log((1 - e) max(Z_0, Z_own) + e Z_jump)`` and its state the largest term's posterior.
+    The prior's spread makes a far or loose fit pay its Occam factor: a fit of three ranges
+    that fits anything far from the prediction does not win."""
     x, p, ev, slot, nis, res, lw = out
     present = links.mask[rr, 0]
     n_out = np.sum(present & (slot < 0), axis=-1)
-    k = np.flatnonzero((n_out >= config.mode_jump_outliers) & (eps > 0) & np.isfinite(ev)
-                       & (np.sum(present, axis=-1) >= config.min_ranges_init))
+    k = np.flatnonzero((n_out >= config.mode_search_outliers) & np.isfinite(ev)
+                       & (np.sum(present, axis=-1) >= config.min_ranges_init)
+                       & (True if allow is None else allow))
     if k.size == 0:
         return out
     r, c = rr[k], cc[k]
-    xp, cj = mean[r, c], cov[r, c].copy()
+    x0, p0 = mean[r, c], cov[r, c]
+    cj = p0.copy()
     i3 = np.arange(3)
     cj[:, i3, i3] += config.mode_jump_sigma_m ** 2
-    starts = local_starts(links.take(r), hypothesis_floor(n_floors)[c], xp[:, :3],
+    starts = local_starts(links.take(r), hypothesis_floor(n_floors)[c], x0[:, :3],
                           cj[:, :2, :2], building, config)  # (k, S, 3)
     ns = starts.shape[1]
-    xs = np.repeat(xp, ns, axis=0)
+    xs = np.repeat(x0, ns, axis=0)
     xs[:, :3] = starts.reshape(-1, 3)
     cs = np.repeat(cj, ns, axis=0)
     x1, p1, e1, s1, n1, r1, w1 = _update_at(xs, cs, links, np.repeat(r, ns),
                                             np.repeat(c, ns), n_floors, building, config,
                                             None, link_w, fam_gate)
-    d = np.repeat(xp, ns, axis=0) - xs
-    a = np.linalg.solve(cs, d[..., None])[..., 0]
-    ev_j = (e1 + np.einsum("pi,pi->p", a, x1 - xs) + 0.5 * np.einsum("pi,pij,pj->p", a, p1, a)
-            - 0.5 * np.einsum("pi,pi->p", d, a))
-    ev_j = np.where(np.isfinite(ev_j), ev_j, -np.inf).reshape(k.size, ns)
-    b = np.argmax(ev_j, axis=1)
-    j = np.arange(k.size) * ns + b
-    lj = np.log(eps[k]) + ev_j[np.arange(k.size), b]
-    lm = np.log1p(-eps[k]) + ev[k]
+    x0r, p0r = np.repeat(x0, ns, axis=0), np.repeat(p0, ns, axis=0)
+    terms = [np.log1p(-eps[k]) + ev[k]]
+    cand = []
+    for prior_cov, w in ((p0r, np.log1p(-eps[k])), (cs, np.log(np.maximum(eps[k], 1e-300)))):
+        e_c, m_c, p_c = _reprior(x1, p1, e1, xs, cs, x0r, prior_cov)
+        e_c = np.where(np.isfinite(e_c), e_c, -np.inf).reshape(k.size, ns)
+        b = np.argmax(e_c, axis=1)
+        j = np.arange(k.size) * ns + b
+        terms.append(w + e_c[np.arange(k.size), b])
+        cand.append((j, m_c, p_c))
+    if not eps.any():
+        terms[2][:] = -np.inf
+    t = np.stack(terms)  # (3, k): own fit, another mode, the jump
+    win = np.argmax(t, axis=0)
     ev, x, p, slot, nis, res, lw = (a_.copy() for a_ in (ev, x, p, slot, nis, res, lw))
-    ev[k] = np.logaddexp(lm, lj)
-    win = lj > lm
-    kw, jw = k[win], j[win]
-    xj = x1[jw] + np.einsum("pij,pj->pi", p1[jw], a[jw])
-    xj[:, :3] = clamp_to_floor(xj[:, :3], hypothesis_floor(n_floors)[cc[kw]], building,
-                               config.z_margin_m)
-    x[kw], p[kw], slot[kw], nis[kw], res[kw], lw[kw] = xj, p1[jw], s1[jw], n1[jw], r1[jw], \
-        w1[jw]
+    mode = np.maximum(t[0], t[1])  # max-mixture over the modes of the same prior
+    ev[k] = np.logaddexp(mode, t[2]) if eps.any() else mode - np.log1p(-eps[k])
+    for w_, (j, m_c, p_c) in zip((1, 2), cand, strict=True):
+        kw, jw = k[win == w_], j[win == w_]
+        xm = m_c[jw]
+        xm[:, :3] = clamp_to_floor(xm[:, :3], hypothesis_floor(n_floors)[cc[kw]], building,
+                                   config.z_margin_m)
+        x[kw], p[kw], slot[kw], nis[kw], res[kw], lw[kw] = xm, p_c[jw], s1[jw], n1[jw], \
+            r1[jw], w1[jw]
     return x, p, ev, slot, nis, res, lw
+
+
+def _reprior(x1: FloatArray, p1: FloatArray, ev1: FloatArray, xs: FloatArray, cs: FloatArray,
+             x0: FloatArray, p0: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A Laplace fit under the prior ``N(xs, cs)`` (posterior ``N(x1, p1)``, log-evidence
+    ``ev1``; (P, 6), (P, 6, 6), (P,)) carried to the prior ``N(x0, p0)``: the likelihood is
+    ``Z1 N(x; x1, p1) / N(x; xs, cs)``, so with ``A = p1^-1 + p0^-1 - cs^-1`` and ``b =
+    p0^-1 (x0 - x1) - cs^-1 (xs - x1)`` the new log-evidence is ``ev1 - (u0' p0^-1 u0 -
+    us' cs^-1 us) / 2 + b' A^-1 b / 2 - (log|p1| + log|p0| - log|cs| + log|A|) / 2``
+    (``u0 = x0 - x1``, ``us = xs - x1``), the posterior ``N(x1 + A^-1 b, A^-1)``. Exact for
+    a linear-Gaussian likelihood; ``A`` is positive definite (``p1^-1 >= cs^-1``)."""
+    i1, i0, ic = np.linalg.inv(p1), np.linalg.inv(p0), np.linalg.inv(cs)
+    a = i1 + i0 - ic
+    a = 0.5 * (a + np.swapaxes(a, -1, -2))
+    u0, us = x0 - x1, xs - x1
+    b = np.einsum("pij,pj->pi", i0, u0) - np.einsum("pij,pj->pi", ic, us)
+    cov = np.linalg.inv(a)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    shift = np.einsum("pij,pj->pi", cov, b)
+    logdet = (np.linalg.slogdet(p1)[1] + np.linalg.slogdet(p0)[1] - np.linalg.slogdet(cs)[1]
+              + np.linalg.slogdet(a)[1])
+    quad = (np.einsum("pi,pij,pj->p", u0, i0, u0) - np.einsum("pi,pij,pj->p", us, ic, us)
+            - np.einsum("pi,pi->p", b, shift))
+    return ev1 - 0.5 * quad - 0.5 * logdet, x1 + shift, cov
 
 
 def _normalise(lp: FloatArray) -> FloatArray:
@@ -678,10 +713,11 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         if rr.size:
             out = _update_pairs(m0, c0, sub, rr, cc, nf, building, config, snr_cache, link_w,
                                 fam_gate)
-            if config.mode_jump_rate_hz > 0:  # the jump component of the prior
-                out = _jump_pairs(m0, c0, sub, rr, cc, out, np.minimum(
+            if config.mode_search_outliers > 0:  # other modes (and the jump component)
+                out = _mode_pairs(m0, c0, sub, rr, cc, out, np.minimum(
                     config.mode_jump_rate_hz * np.maximum(dt_s[idx][rr], 0.0), 0.5), nf,
-                    building, config, link_w, fam_gate)
+                    building, config, link_w, fam_gate,
+                    state.status[idx][rr] == TrackStatus.TRACKING)
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
              res[rr, cc], lw[rr, cc]) = out
         run = run | todo
