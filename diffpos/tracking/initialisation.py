@@ -109,26 +109,29 @@ def _cell_costs(pos: FloatArray, li: Links, floors: NDArray, building, relax_m: 
 
 
 #: Half-width of :func:`local_starts`' window in standard deviations of its prior.
-LOCAL_SIGMAS = 3.0
+LOCAL_SIGMAS = 2.0
+#: At most this many cells of :func:`local_starts` (its caller fits each one).
+LOCAL_STARTS = 1
 
 
 def local_starts(links: Links, floors: NDArray, centre: FloatArray, cov_xy: FloatArray,
-                 building, config) -> FloatArray:
+                 ref: FloatArray, building, config) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The best ``init_starts`` cells (k, S, 3) of a local grid around each of ``k`` prior
     positions ``centre`` (k, 3) on ``floors`` (k,), ranked by the grid's robust range cost
-    (:func:`_cell_costs`, the range variance widened by the grid's resolution) plus the prior
-    term ``0.5 d^T C^-1 d`` of the cell's horizontal offset ``d`` under ``cov_xy`` (k, 2, 2):
-    the modes of a floor a jump of the state from ``centre`` could reach
-    (:func:`diffpos.tracking.tracker._jump_pairs`). Cells ``init_grid_m / 2`` apart within
+    (the snapshot grid's: :func:`grid_starts`' kernel, the range variance widened by the
+    grid's resolution) plus the prior term ``0.5 d^T C^-1 d`` of the cell's horizontal offset
+    ``d`` under ``cov_xy`` (k, 2, 2): the modes of a floor within reach of the prediction
+    (:func:`diffpos.tracking.tracker._mode_pairs`). Cells ``init_grid_m / 2`` apart within
     :data:`LOCAL_SIGMAS` standard deviations and inside the building, at the centre's height
-    (within the floor's band); the centre itself is a cell."""
+    (within the floor's band); the centre itself is a cell. Also returns the starts' ranking
+    costs (k, S) (+inf: fewer cells than S) and the same cost at ``ref`` (k, 3) (x, y; the
+    pair's own fit), so a caller can drop the starts no better than its fit."""
     k = centre.shape[0]
     step = 0.5 * config.init_grid_m
     inv = np.linalg.inv(cov_xy)
     half = int(np.ceil(LOCAL_SIGMAS * np.sqrt(np.linalg.eigvalsh(cov_xy)[:, -1].max()) / step))
     o = step * np.arange(-half, half + 1, dtype=np.float64)
     off = np.stack(np.meshgrid(o, o, indexing="ij"), axis=-1).reshape(-1, 2)  # (C, 2)
-    c = off.shape[0]
     pen = 0.5 * np.einsum("ci,kij,cj->kc", off, inv, off)
     xy = centre[:, None, :2] + off[None]
     x0, x1 = building.edge_x_m
@@ -137,11 +140,25 @@ def local_starts(links: Links, floors: NDArray, centre: FloatArray, cov_xy: Floa
     zf = building.floor_z_m(floors)
     z = np.clip(centre[:, 2], zf + config.z_margin_m,
                 zf + building.floor_height_m - config.z_margin_m)
-    pos = np.concatenate([xy, np.broadcast_to(z[:, None, None], (k, c, 1))], axis=-1)
-    li = Links(links.rho, links.var + (0.5 * step) ** 2, links.mask, links.anchors)
+    var = links.var + (0.5 * step) ** 2
     w_out = float(np.log(config.outlier_span_m / config.outlier_weight))
-    total = _cell_costs(pos, li, np.broadcast_to(floors[:, None], (k, c)), building,
-                        0.5 * step, w_out)
-    total = np.where(inside, total + pen, np.inf)
-    order = np.argsort(total, axis=1, kind="stable")[:, :config.init_starts]
-    return np.take_along_axis(pos, order[..., None], axis=1)
+    anc, rho, vr, mask = (_c(a) for a in (links.anchors[:, 0], links.rho[:, 0], var[:, 0],
+                                          links.mask[:, 0]))
+    planes = building_planes(building)
+    ns = min(config.init_starts, LOCAL_STARTS)
+    starts, costs, ref_cost = np.zeros((k, ns, 3)), np.full((k, ns), np.inf), np.empty(k)
+    d_ref = ref[:, :2] - centre[:, :2]
+    ref_pen = 0.5 * np.einsum("ki,kij,kj->k", d_ref, inv, d_ref)
+    for i in range(k):  # every pair its own window (a few pairs per epoch)
+        cells = _c(np.concatenate([xy[i][inside[i]], ref[i:i + 1, :2]]), dtype=np.float64)
+        total = np.empty((1, 1, cells.shape[0]))
+        grid_cost_kernel(cells, np.full((1, 1), z[i]), np.full((1, 1), float(floors[i])),
+                         anc[i:i + 1], rho[i:i + 1], vr[i:i + 1], mask[i:i + 1], _IS_BAND,
+                         _IS_DIFF, 0.5 * step, w_out, 0, *planes, total)
+        t = total[0, 0, :-1] + pen[i][inside[i]]
+        ref_cost[i] = total[0, 0, -1] + ref_pen[i]
+        order = np.argsort(t, kind="stable")[:ns]
+        starts[i, :order.size, :2] = cells[order]
+        starts[i, :, 2] = z[i]
+        costs[i, :order.size] = t[order]
+    return starts, costs, ref_cost

@@ -573,8 +573,13 @@ def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_
     cj = p0.copy()
     i3 = np.arange(3)
     cj[:, i3, i3] += config.mode_jump_sigma_m ** 2
-    starts = local_starts(links.take(r), hypothesis_floor(n_floors)[c], x0[:, :3],
-                          cj[:, :2, :2], building, config)  # (k, S, 3)
+    starts, cost, ref = local_starts(links.take(r), hypothesis_floor(n_floors)[c], x0[:, :3],
+                                     cj[:, :2, :2], x[k, :3], building, config)  # (k, S, 3)
+    better = np.isfinite(cost)
+    keep = np.flatnonzero(better.any(axis=1))
+    if keep.size == 0:
+        return out
+    k, r, c, x0, cj, starts, better = (a_[keep] for a_ in (k, r, c, x0, cj, starts, better))
     ns = starts.shape[1]
     xs = np.repeat(x0, ns, axis=0)
     xs[:, :3] = starts.reshape(-1, 3)
@@ -582,12 +587,13 @@ def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_
     x1, p1, e1, s1, n1, r1, w1 = _update_at(xs, cs, links, np.repeat(r, ns),
                                             np.repeat(c, ns), n_floors, building, config,
                                             None, link_w, fam_gate)
+    p0 = p0[keep]
     x0r, p0r = np.repeat(x0, ns, axis=0), np.repeat(p0, ns, axis=0)
     terms = [np.log1p(-eps[k]) + ev[k]]
     cand = []
     for prior_cov, w in ((p0r, np.log1p(-eps[k])), (cs, np.log(np.maximum(eps[k], 1e-300)))):
         e_c, m_c, p_c = _reprior(x1, p1, e1, xs, cs, x0r, prior_cov)
-        e_c = np.where(np.isfinite(e_c), e_c, -np.inf).reshape(k.size, ns)
+        e_c = np.where(np.isfinite(e_c) & better.reshape(-1), e_c, -np.inf).reshape(k.size, ns)
         b = np.argmax(e_c, axis=1)
         j = np.arange(k.size) * ns + b
         terms.append(w + e_c[np.arange(k.size), b])
