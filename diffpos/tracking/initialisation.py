@@ -115,7 +115,7 @@ LOCAL_STARTS = 1
 
 
 def local_starts(links: Links, floors: NDArray, centre: FloatArray, cov_xy: FloatArray,
-                 ref: FloatArray, building, config) -> tuple[FloatArray, FloatArray, FloatArray]:
+                 building, config) -> tuple[FloatArray, FloatArray]:
     """The best ``init_starts`` cells (k, S, 3) of a local grid around each of ``k`` prior
     positions ``centre`` (k, 3) on ``floors`` (k,), ranked by the grid's robust range cost
     (the snapshot grid's: :func:`grid_starts`' kernel, the range variance widened by the
@@ -123,9 +123,10 @@ def local_starts(links: Links, floors: NDArray, centre: FloatArray, cov_xy: Floa
     ``d`` under ``cov_xy`` (k, 2, 2): the modes of a floor within reach of the prediction
     (:func:`diffpos.tracking.tracker._mode_pairs`). Cells ``init_grid_m / 2`` apart within
     :data:`LOCAL_SIGMAS` standard deviations and inside the building, at the centre's height
-    (within the floor's band); the centre itself is a cell. Also returns the starts' ranking
-    costs (k, S) (+inf: fewer cells than S) and the same cost at ``ref`` (k, 3) (x, y; the
-    pair's own fit), so a caller can drop the starts no better than its fit."""
+    (within the floor's band); the centre itself is a cell; ``S = min(init_starts,
+    LOCAL_STARTS)``. Also returns the starts' ranking costs (k, S) (+inf: no cell). One
+    compiled pass per pair over its cells (:func:`grid_cost_kernel` with ``keep`` 0: every
+    cell in full, the numpy cost of :func:`_cell_costs` bit for bit)."""
     k = centre.shape[0]
     step = 0.5 * config.init_grid_m
     inv = np.linalg.inv(cov_xy)
@@ -146,19 +147,16 @@ def local_starts(links: Links, floors: NDArray, centre: FloatArray, cov_xy: Floa
                                           links.mask[:, 0]))
     planes = building_planes(building)
     ns = min(config.init_starts, LOCAL_STARTS)
-    starts, costs, ref_cost = np.zeros((k, ns, 3)), np.full((k, ns), np.inf), np.empty(k)
-    d_ref = ref[:, :2] - centre[:, :2]
-    ref_pen = 0.5 * np.einsum("ki,kij,kj->k", d_ref, inv, d_ref)
+    starts, costs = np.zeros((k, ns, 3)), np.full((k, ns), np.inf)
     for i in range(k):  # every pair its own window (a few pairs per epoch)
-        cells = _c(np.concatenate([xy[i][inside[i]], ref[i:i + 1, :2]]), dtype=np.float64)
+        cells = _c(xy[i][inside[i]], dtype=np.float64)
         total = np.empty((1, 1, cells.shape[0]))
         grid_cost_kernel(cells, np.full((1, 1), z[i]), np.full((1, 1), float(floors[i])),
                          anc[i:i + 1], rho[i:i + 1], vr[i:i + 1], mask[i:i + 1], _IS_BAND,
                          _IS_DIFF, 0.5 * step, w_out, 0, *planes, total)
-        t = total[0, 0, :-1] + pen[i][inside[i]]
-        ref_cost[i] = total[0, 0, -1] + ref_pen[i]
+        t = total[0, 0] + pen[i][inside[i]]
         order = np.argsort(t, kind="stable")[:ns]
         starts[i, :order.size, :2] = cells[order]
         starts[i, :, 2] = z[i]
         costs[i, :order.size] = t[order]
-    return starts, costs, ref_cost
+    return starts, costs

@@ -417,6 +417,10 @@ class TrackerConfig:
     mode_jump_sigma_m : float [m]
         Standard deviation per position axis of ``J``; also the reach of the mode search
         (its grid covers 3 standard deviations of ``P + J``).
+    mode_search_max : int
+        With ``mode_search_outliers``: only a node's this many most probable hypotheses (by
+        their predicted probability) are searched (the CPU of the search bounded where many
+        hypotheses misfit a link: ``large``'s 8 anchors); 0 (default): every one.
     """
 
     q_h_m2_s3: float = 1.5
@@ -484,6 +488,7 @@ class TrackerConfig:
     mode_search_outliers: int = 0
     mode_jump_rate_hz: float = 0.0
     mode_jump_sigma_m: float = 2.0
+    mode_search_max: int = 0
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ SC = default_scenario()
 B, RADIO = SC.building, SC.radio
 ANCHORS = np.asarray(SC.anchor_positions_m(0.0))
 OFF = TrackerConfig()
-ON = dataclasses.replace(OFF, mode_search_outliers=1, mode_jump_sigma_m=1.0)
+ON = dataclasses.replace(OFF, mode_search_outliers=1, mode_jump_sigma_m=1.0, mode_search_max=2)
 
 
 def _gauss_log(y, mean, cov):
@@ -106,6 +106,7 @@ def test_off_by_default_and_identical_when_off():
     assert OFF.mode_search_outliers == 0
     node = np.array([10.0, 6.12, 14.5])
     a = _run(node, OFF, 3, np.zeros(3), epochs=40)
-    b = _run(node, dataclasses.replace(OFF, mode_jump_sigma_m=0.3, mode_jump_rate_hz=0.1),
+    b = _run(node, dataclasses.replace(OFF, mode_jump_sigma_m=0.3, mode_jump_rate_hz=0.1,
+                                       mode_search_max=1),
              3, np.zeros(3), epochs=40)
     assert np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
