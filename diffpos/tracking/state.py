@@ -421,6 +421,11 @@ class TrackerConfig:
         With ``mode_search_outliers``: only a node's this many most probable hypotheses (by
         their predicted probability) are searched (the CPU of the search bounded where many
         hypotheses misfit a link: ``large``'s 8 anchors); 0 (default): every one.
+    mode_search_min_links : int
+        With ``mode_search_outliers``: only hypotheses of nodes with at least this many ranges
+        are searched. With three ranges a position fits them exactly on any floor, so a
+        search there finds every floor's best fit again (the argument of
+        ``family_min_links``); 0: ``min_ranges_init``.
     """
 
     q_h_m2_s3: float = 1.5
@@ -489,6 +494,7 @@ class TrackerConfig:
     mode_jump_rate_hz: float = 0.0
     mode_jump_sigma_m: float = 2.0
     mode_search_max: int = 0
+    mode_search_min_links: int = 0
 
 
 @dataclass(frozen=True)

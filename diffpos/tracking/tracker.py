@@ -568,7 +568,8 @@ def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_
     present = links.mask[rr, 0]
     n_out = np.sum(present & (slot < 0), axis=-1)
     k = np.flatnonzero((n_out >= config.mode_search_outliers) & np.isfinite(ev)
-                       & (np.sum(present, axis=-1) >= config.min_ranges_init)
+                       & (np.sum(present, axis=-1)
+                          >= max(config.min_ranges_init, config.mode_search_min_links))
                        & (True if allow is None else allow))
     if k.size == 0:
         return out

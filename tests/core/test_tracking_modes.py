@@ -67,7 +67,7 @@ def test_reprior_equals_the_direct_evidence_and_posterior_of_a_linear_gaussian_m
         np.testing.assert_allclose(pm[0], p0 - k0 @ h @ p0, rtol=0, atol=1e-8)
 
 
-def _run(node, config, seed, offset, k0=30, epochs=60):
+def _run(node, config, seed, offset, k0=30, epochs=60, drop=None):
     """Published floors and the true floor's probability of a static node tracked from the
     emulator's channel; at epoch ``k0`` its true floor's tracks (both modes) are moved by
     ``offset`` first (a track left in the wrong mode of its floor)."""
@@ -82,7 +82,10 @@ def _run(node, config, seed, offset, k0=30, epochs=60):
             mean[0, [f, f + nf], :3] += offset
             state = dataclasses.replace(state, mean=mean)
         fa = first_arrival(channel, radio=RADIO, rng=rng)
-        state, out = update(state, ANCHORS[None], fa.range_m, fa.sigma_m, fa.detected,
+        det = fa.detected.copy()
+        if drop is not None:  # an anchor never heard: the node's other ranges only
+            det[..., drop] = False
+        state, out = update(state, ANCHORS[None], fa.range_m, fa.sigma_m, det,
                             10**9 + k * 10**8, B, config, snr_db=fa.snr_db, radio=RADIO)
         if k >= k0:
             floors.append(int(out.floor_index[0]))
@@ -110,3 +113,16 @@ def test_off_by_default_and_identical_when_off():
                                        mode_search_max=1),
              3, np.zeros(3), epochs=40)
     assert np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2])
+
+
+def test_three_ranges_are_not_searched_with_mode_search_min_links_4():
+    """With three ranges a position fits them on any floor: ``mode_search_min_links`` 4 leaves
+    such a node exactly as without the search, while the search does run there at 0."""
+    node = np.array([10.0, 6.12, 14.5])
+    offset = np.array([0.6, 0.6, 0.0])
+    off = _run(node, OFF, 1, offset, epochs=45, drop=3)
+    m4 = _run(node, dataclasses.replace(ON, mode_search_min_links=4), 1, offset, epochs=45,
+              drop=3)
+    on = _run(node, ON, 1, offset, epochs=45, drop=3)
+    assert np.array_equal(off[1], m4[1]) and np.array_equal(off[2], m4[2])
+    assert not np.array_equal(off[2], on[2])  # the search changed something at 0
