@@ -86,14 +86,77 @@ def _grid_starts_numpy(links: Links, floors: NDArray, building, config) -> Float
         pos = pos.reshape(1, nf * c, 3)
         li = Links(links.rho[i:i + 1], var[i:i + 1], links.mask[i:i + 1],
                    links.anchors[i:i + 1])
-        pe = all_paths(pos, li, np.repeat(floors[i], c)[None], building,
-                       0.5 * config.init_grid_m)
-        e = li.rho[..., None] - pe.length
-        cost = np.where(candidates(pe), 0.5 * e * e / li.var[..., None], np.inf).min(axis=-1)
-        los, _ = _los(pos, li.anchors)
-        short = np.minimum(li.rho - los, 0.0)
-        cost = np.minimum(cost, w_out + 0.5 * short**2 / li.var)
-        total = np.where(li.mask, cost, 0.0).sum(axis=-1)[0].reshape(nf, c)
+        total = _cell_costs(pos, li, np.repeat(floors[i], c)[None], building,
+                            0.5 * config.init_grid_m, w_out)[0].reshape(nf, c)
         order = np.argsort(total, axis=1, kind="stable")[:, :ns]
         starts[i] = pos[0].reshape(nf, c, 3)[np.arange(nf)[:, None], order].reshape(-1, 3)
     return starts
+
+
+def _cell_costs(pos: FloatArray, li: Links, floors: NDArray, building, relax_m: float,
+                w_out: float) -> FloatArray:
+    """The robust max-mixture range cost (n, C) of the cells ``pos`` (n, C, 3) on ``floors``
+    (n, C) for the links ``li`` (n nodes, their variances already widened): per link the
+    smallest ``0.5 e^2 / var`` over the candidate mechanisms, capped by the outlier's cost
+    ``w_out`` plus the hinge of a range shorter than the straight line."""
+    pe = all_paths(pos, li, floors, building, relax_m)
+    e = li.rho[..., None] - pe.length
+    cost = np.where(candidates(pe), 0.5 * e * e / li.var[..., None], np.inf).min(axis=-1)
+    los, _ = _los(pos, li.anchors)
+    short = np.minimum(li.rho - los, 0.0)
+    cost = np.minimum(cost, w_out + 0.5 * short**2 / li.var)
+    return np.where(li.mask, cost, 0.0).sum(axis=-1)
+
+
+#: Half-width of :func:`local_starts`' window in standard deviations of its prior.
+LOCAL_SIGMAS = 2.0
+#: At most this many cells of :func:`local_starts` (its caller fits each one).
+LOCAL_STARTS = 1
+
+
+def local_starts(links: Links, floors: NDArray, centre: FloatArray, cov_xy: FloatArray,
+                 building, config) -> tuple[FloatArray, FloatArray]:
+    """The best ``init_starts`` cells (k, S, 3) of a local grid around each of ``k`` prior
+    positions ``centre`` (k, 3) on ``floors`` (k,), ranked by the grid's robust range cost
+    (the snapshot grid's: :func:`grid_starts`' kernel, the range variance widened by the
+    grid's resolution) plus the prior term ``0.5 d^T C^-1 d`` of the cell's horizontal offset
+    ``d`` under ``cov_xy`` (k, 2, 2): the modes of a floor within reach of the prediction
+    (:func:`diffpos.tracking.tracker._mode_pairs`). Cells ``init_grid_m / 2`` apart within
+    :data:`LOCAL_SIGMAS` standard deviations and inside the building, at the centre's height
+    (within the floor's band); the centre itself is a cell; ``S = min(init_starts,
+    LOCAL_STARTS)``. Also returns the starts' ranking costs (k, S) (+inf: no cell). One
+    compiled pass per pair over its cells (:func:`grid_cost_kernel` with ``keep`` 0: every
+    cell in full, the numpy cost of :func:`_cell_costs` bit for bit)."""
+    k = centre.shape[0]
+    step = 0.5 * config.init_grid_m
+    inv = np.linalg.inv(cov_xy)
+    half = int(np.ceil(LOCAL_SIGMAS * np.sqrt(np.linalg.eigvalsh(cov_xy)[:, -1].max()) / step))
+    o = step * np.arange(-half, half + 1, dtype=np.float64)
+    off = np.stack(np.meshgrid(o, o, indexing="ij"), axis=-1).reshape(-1, 2)  # (C, 2)
+    pen = 0.5 * np.einsum("ci,kij,cj->kc", off, inv, off)
+    xy = centre[:, None, :2] + off[None]
+    x0, x1 = building.edge_x_m
+    inside = ((pen <= 0.5 * LOCAL_SIGMAS**2) & (xy[..., 0] > x0) & (xy[..., 0] < x1)
+              & (xy[..., 1] > 0.0) & (xy[..., 1] < building.depth_m))
+    zf = building.floor_z_m(floors)
+    z = np.clip(centre[:, 2], zf + config.z_margin_m,
+                zf + building.floor_height_m - config.z_margin_m)
+    var = links.var + (0.5 * step) ** 2
+    w_out = float(np.log(config.outlier_span_m / config.outlier_weight))
+    anc, rho, vr, mask = (_c(a) for a in (links.anchors[:, 0], links.rho[:, 0], var[:, 0],
+                                          links.mask[:, 0]))
+    planes = building_planes(building)
+    ns = min(config.init_starts, LOCAL_STARTS)
+    starts, costs = np.zeros((k, ns, 3)), np.full((k, ns), np.inf)
+    for i in range(k):  # every pair its own window (a few pairs per epoch)
+        cells = _c(xy[i][inside[i]], dtype=np.float64)
+        total = np.empty((1, 1, cells.shape[0]))
+        grid_cost_kernel(cells, np.full((1, 1), z[i]), np.full((1, 1), float(floors[i])),
+                         anc[i:i + 1], rho[i:i + 1], vr[i:i + 1], mask[i:i + 1], _IS_BAND,
+                         _IS_DIFF, 0.5 * step, w_out, 0, *planes, total)
+        t = total[0, 0] + pen[i][inside[i]]
+        order = np.argsort(t, kind="stable")[:ns]
+        starts[i, :order.size, :2] = cells[order]
+        starts[i, :, 2] = z[i]
+        costs[i, :order.size] = t[order]
+    return starts, costs

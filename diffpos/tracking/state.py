@@ -401,6 +401,31 @@ class TrackerConfig:
         plan), 1.43 to 0.45 % (a held-out building), but the emulator's floors, 99.6-99.7 %
         right, are then published underconfident (``large``: 20 % of its node-epochs at
         0.5-0.8, 99 % right; floor log score 0.020 -> 0.087 nats, ``default`` 0.074 -> 0.200).
+    mode_search_outliers : int
+        Other modes of a hypothesis' posterior: an updated hypothesis that calls at least
+        this many of its ranges outliers is also fitted from the best cells of a local grid
+        around its prediction, and each such fit is scored under the hypothesis' own prior in
+        closed form (:func:`diffpos.tracking.tracker._mode_pairs`): the better mode is kept
+        (max-mixture). What a first-arrival switch to a path that exists a few decimetres
+        from the prediction needs (docs/tracking_evidence.md "Session 23: other modes of a
+        hypothesis at a first-arrival switch"). 0 (default): off (before).
+    mode_jump_rate_hz : float [1/s]
+        With ``mode_search_outliers``: the rate of a *jump* of a hypothesis' state, its
+        prior the mixture ``(1 - e) N(x, P) + e N(x, P + J)``, ``e = min(rate dt, 0.5)``, ``J``
+        the jump covariance (``mode_jump_sigma_m``): the candidates are also scored under
+        ``N(x, P + J)`` with the weight ``e``. 0 (default): no jump component.
+    mode_jump_sigma_m : float [m]
+        Standard deviation per position axis of ``J``; also the reach of the mode search
+        (its grid covers 3 standard deviations of ``P + J``).
+    mode_search_max : int
+        With ``mode_search_outliers``: only a node's this many most probable hypotheses (by
+        their predicted probability) are searched (the CPU of the search bounded where many
+        hypotheses misfit a link: ``large``'s 8 anchors); 0 (default): every one.
+    mode_search_min_links : int
+        With ``mode_search_outliers``: only hypotheses of nodes with at least this many ranges
+        are searched. With three ranges a position fits them exactly on any floor, so a
+        search there finds every floor's best fit again (the argument of
+        ``family_min_links``); 0: ``min_ranges_init``.
     """
 
     q_h_m2_s3: float = 1.5
@@ -465,6 +490,11 @@ class TrackerConfig:
     family_fit: str = "prior"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
+    mode_search_outliers: int = 0
+    mode_jump_rate_hz: float = 0.0
+    mode_jump_sigma_m: float = 2.0
+    mode_search_max: int = 0
+    mode_search_min_links: int = 0
 
 
 @dataclass(frozen=True)

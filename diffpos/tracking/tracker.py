@@ -155,6 +155,7 @@ from diffpos.tracking.evidence_nb import warm_evidence
 from diffpos.tracking.families import family_log_weight
 from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
+from diffpos.tracking.initialisation import local_starts
 from diffpos.tracking.initialisation_nb import warm_grid
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import (
@@ -502,12 +503,25 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
     weights (n, H, M, 2) (:func:`diffpos.tracking.evidence.learned_weights`), or None.
     ``fam_gate`` (n, H, M): the links whose out-of-model component includes the extra
     families (``config.max_order``, :mod:`diffpos.tracking.families`; None: every link)."""
-    fl = hypothesis_floor(n_floors)[cc][:, None]
-    level = ~hypothesis_vertical(n_floors)[cc][:, None]
-    x0, p0 = mean[rr, cc][:, None], cov[rr, cc][:, None]
     sc = None
     if snr_cache is not None:
         sc = SnrCache(*(a[rr, cc][:, None] for a in snr_cache))
+    out = _update_at(mean[rr, cc], cov[rr, cc], links, rr, cc, n_floors, building, config, sc,
+                     link_w, fam_gate)
+    if sc is not None:
+        for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
+            a[rr, cc] = v[:, 0]
+    return out
+
+
+def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
+               config: TrackerConfig, sc: SnrCache | None = None,
+               link_w: FloatArray | None = None, fam_gate: NDArray | None = None):
+    """:func:`_update_pairs` from the priors ``x_prior`` (P, 6), ``p_prior`` (P, 6, 6) of the
+    pairs ``(rr[i], cc[i])`` (``sc``: their SNR cache, (P, 1, ...), updated in place)."""
+    fl = hypothesis_floor(n_floors)[cc][:, None]
+    level = ~hypothesis_vertical(n_floors)[cc][:, None]
+    x0, p0 = x_prior[:, None], p_prior[:, None]
     sub = links.take(rr)
     w = None if link_w is None else link_w[rr, cc][:, None]
     if config.max_order > DEFAULT_ORDER:  # the extra families (diffpos.tracking.families)
@@ -522,11 +536,121 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
                                            snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB)
     x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
                                             level=level, snr_cache=sc, link_w=w)
-    if sc is not None:
-        for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
-            a[rr, cc] = v[:, 0]
     return (x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
             sel.log_weight[:, 0])
+
+
+def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_floors: int,
+                building, config: TrackerConfig, link_w: FloatArray | None = None,
+                fam_gate: NDArray | None = None, allow: NDArray | None = None) -> tuple:
+    """Other modes of the updated pairs ``(rr, cc)`` (``out``: their :func:`_update_pairs`
+    outputs from the priors ``mean``, ``cov`` (n, H, ...)) that call at least
+    ``mode_search_outliers`` of their ranges outliers, have ``min_ranges_init`` ranges and
+    are ``allow``-ed (the caller: the pairs of TRACKING nodes; while a node is INITIALISING
+    its priors are the snapshot's broad ones, and a search there is a second snapshot that
+    lets every floor find its best fit of the four ranges again: measured on Sionna's live
+    paper 72.8 % right floor with it, 81.5 % without, 88.2 % with no search).
+
+    The IEKF from the prior mean finds the posterior's nearest mode only; a first arrival
+    that switched to a path existing a few decimetres away (or a prior that sits in the wrong
+    mode) leaves it calling links outliers while a mode that explains them lies within reach.
+    The candidates: the same measurement update (:func:`_update_at`) from the best cell of a
+    local grid (:func:`local_starts`) with a broad prior ``N(s, C)`` centred at the cell
+    (``C = P + J``, ``J``: ``mode_jump_sigma_m`` squared on each position axis), whose
+    Laplace posterior is carried in closed form to another prior (:func:`_reprior`):
+    (1) the pair's own prior ``N(x, P)`` (another mode of the same posterior: max-mixture
+    with the pair's own fit), (2) the jump component ``N(x, P + J)`` with the weight ``e``
+    (``eps`` (P,), ``mode_jump_rate_hz``; 0: none). The pair's evidence becomes
+    ``log((1 - e) max(Z_0, Z_own) + e Z_jump)`` and its state the largest term's posterior.
+    The prior's spread makes a far or loose fit pay its Occam factor: a fit of three ranges
+    that fits anything far from the prediction does not win."""
+    x, p, ev, slot, nis, res, lw = out
+    present = links.mask[rr, 0]
+    n_out = np.sum(present & (slot < 0), axis=-1)
+    k = np.flatnonzero((n_out >= config.mode_search_outliers) & np.isfinite(ev)
+                       & (np.sum(present, axis=-1)
+                          >= max(config.min_ranges_init, config.mode_search_min_links))
+                       & (True if allow is None else allow))
+    if k.size == 0:
+        return out
+    r, c = rr[k], cc[k]
+    x0, p0 = mean[r, c], cov[r, c]
+    cj = p0.copy()
+    i3 = np.arange(3)
+    cj[:, i3, i3] += config.mode_jump_sigma_m ** 2
+    starts, cost = local_starts(links.take(r), hypothesis_floor(n_floors)[c], x0[:, :3],
+                                cj[:, :2, :2], building, config)  # (k, S, 3)
+    better = np.isfinite(cost)
+    keep = np.flatnonzero(better.any(axis=1))
+    if keep.size == 0:
+        return out
+    k, r, c, x0, cj, starts, better = (a_[keep] for a_ in (k, r, c, x0, cj, starts, better))
+    ns = starts.shape[1]
+    xs = np.repeat(x0, ns, axis=0)
+    xs[:, :3] = starts.reshape(-1, 3)
+    cs = np.repeat(cj, ns, axis=0)
+    x1, p1, e1, s1, n1, r1, w1 = _update_at(xs, cs, links, np.repeat(r, ns),
+                                            np.repeat(c, ns), n_floors, building, config,
+                                            None, link_w, fam_gate)
+    p0 = p0[keep]
+    x0r, p0r = np.repeat(x0, ns, axis=0), np.repeat(p0, ns, axis=0)
+    terms = [np.log1p(-eps[k]) + ev[k]]
+    cand = []
+    for prior_cov, w in ((p0r, np.log1p(-eps[k])), (cs, np.log(np.maximum(eps[k], 1e-300)))):
+        e_c, m_c, p_c = _reprior(x1, p1, e1, xs, cs, x0r, prior_cov)
+        e_c = np.where(np.isfinite(e_c) & better.reshape(-1), e_c, -np.inf).reshape(k.size, ns)
+        b = np.argmax(e_c, axis=1)
+        j = np.arange(k.size) * ns + b
+        terms.append(w + e_c[np.arange(k.size), b])
+        cand.append((j, m_c, p_c))
+    if not eps.any():
+        terms[2][:] = -np.inf
+    t = np.stack(terms)  # (3, k): own fit, another mode, the jump
+    win = np.argmax(t, axis=0)
+    ev, x, p, slot, nis, res, lw = (a_.copy() for a_ in (ev, x, p, slot, nis, res, lw))
+    mode = np.maximum(t[0], t[1])  # max-mixture over the modes of the same prior
+    ev[k] = np.logaddexp(mode, t[2]) if eps.any() else mode - np.log1p(-eps[k])
+    for w_, (j, m_c, p_c) in zip((1, 2), cand, strict=True):
+        kw, jw = k[win == w_], j[win == w_]
+        xm = m_c[jw]
+        xm[:, :3] = clamp_to_floor(xm[:, :3], hypothesis_floor(n_floors)[cc[kw]], building,
+                                   config.z_margin_m)
+        x[kw], p[kw], slot[kw], nis[kw], res[kw], lw[kw] = xm, p_c[jw], s1[jw], n1[jw], \
+            r1[jw], w1[jw]
+    return x, p, ev, slot, nis, res, lw
+
+
+def _most_probable(lp: FloatArray, rr: NDArray, cc: NDArray, k: int) -> NDArray[np.bool_]:
+    """The pairs ``(rr, cc)`` among the ``k`` most probable hypotheses of their node by the
+    predicted log-probabilities ``lp`` (n, H) (ties: the lower index); ``k`` <= 0: all."""
+    if k <= 0:
+        return np.ones(rr.size, dtype=bool)
+    rank = np.argsort(np.argsort(-lp, axis=1, kind="stable"), axis=1, kind="stable")
+    return rank[rr, cc] < k
+
+
+def _reprior(x1: FloatArray, p1: FloatArray, ev1: FloatArray, xs: FloatArray, cs: FloatArray,
+             x0: FloatArray, p0: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A Laplace fit under the prior ``N(xs, cs)`` (posterior ``N(x1, p1)``, log-evidence
+    ``ev1``; (P, 6), (P, 6, 6), (P,)) carried to the prior ``N(x0, p0)``: the likelihood is
+    ``Z1 N(x; x1, p1) / N(x; xs, cs)``, so with ``A = p1^-1 + p0^-1 - cs^-1`` and ``b =
+    p0^-1 (x0 - x1) - cs^-1 (xs - x1)`` the new log-evidence is ``ev1 - (u0' p0^-1 u0 -
+    us' cs^-1 us) / 2 + b' A^-1 b / 2 - (log|p1| + log|p0| - log|cs| + log|A|) / 2``
+    (``u0 = x0 - x1``, ``us = xs - x1``), the posterior ``N(x1 + A^-1 b, A^-1)``. Exact for
+    a linear-Gaussian likelihood; ``A`` is positive definite (``p1^-1 >= cs^-1``)."""
+    i1, i0, ic = np.linalg.inv(p1), np.linalg.inv(p0), np.linalg.inv(cs)
+    a = i1 + i0 - ic
+    a = 0.5 * (a + np.swapaxes(a, -1, -2))
+    u0, us = x0 - x1, xs - x1
+    b = np.einsum("pij,pj->pi", i0, u0) - np.einsum("pij,pj->pi", ic, us)
+    cov = np.linalg.inv(a)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    shift = np.einsum("pij,pj->pi", cov, b)
+    logdet = (np.linalg.slogdet(p1)[1] + np.linalg.slogdet(p0)[1] - np.linalg.slogdet(cs)[1]
+              + np.linalg.slogdet(a)[1])
+    quad = (np.einsum("pi,pij,pj->p", u0, i0, u0) - np.einsum("pi,pij,pj->p", us, ic, us)
+            - np.einsum("pi,pi->p", b, shift))
+    return ev1 - 0.5 * quad - 0.5 * logdet, x1 + shift, cov
 
 
 def _normalise(lp: FloatArray) -> FloatArray:
@@ -607,9 +731,16 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     while True:
         rr, cc = np.nonzero(todo)
         if rr.size:
+            out = _update_pairs(m0, c0, sub, rr, cc, nf, building, config, snr_cache, link_w,
+                                fam_gate)
+            if config.mode_search_outliers > 0:  # other modes (and the jump component)
+                out = _mode_pairs(m0, c0, sub, rr, cc, out, np.minimum(
+                    config.mode_jump_rate_hz * np.maximum(dt_s[idx][rr], 0.0), 0.5), nf,
+                    building, config, link_w, fam_gate,
+                    (state.status[idx][rr] == TrackStatus.TRACKING)
+                    & _most_probable(lp0, rr, cc, config.mode_search_max))
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
-             res[rr, cc], lw[rr, cc]) = _update_pairs(m0, c0, sub, rr, cc, nf, building, config,
-                                          snr_cache, link_w, fam_gate)
+             res[rr, cc], lw[rr, cc]) = out
         run = run | todo
         lp, llr = _posterior(lp0, ev, run, llr0)
         best = np.argmax(lp, axis=1)
