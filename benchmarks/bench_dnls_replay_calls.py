@@ -19,9 +19,9 @@ import pickle
 import time
 
 import numpy as np
+from diffpos_services.replay.run import replay
 
 import diffpos.estimators.dnls.solver as dnls_solver
-from diffpos_services.replay.run import replay
 
 
 def capture(recording: str) -> list:
@@ -77,7 +77,7 @@ def main() -> None:
                 pickle.dump(calls, f)
     else:
         with open(args.calls, "rb") as f:
-            calls = pickle.load(f)  # noqa: S301 - a file this benchmark wrote
+            calls = pickle.load(f)
     over = {}
     for s in args.set:
         key, _, val = s.partition("=")

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from lm_iterations import count_lm_iterations
 
-import diffpos.estimators.dnls.fit as dnls_fit
 from diffpos.estimators.dnls.solver import dnls
 from diffpos.estimators.result import ExclusionReason, FixStatus
 from diffpos.geometry import window_edge_path
@@ -97,15 +97,7 @@ def test_local_starts_exclude_the_brute_force_anchor(kernel):
 
 def test_local_starts_do_less_work(monkeypatch):
     a, r, mask, _, _ = _faulty(11, 40)
-    count = {"it": 0}
-    lm = dnls_fit.levenberg_marquardt
-
-    def counting(*args, **kw):
-        res = lm(*args, **kw)
-        count["it"] += int(res.iterations.sum())
-        return res
-
-    monkeypatch.setattr(dnls_fit, "levenberg_marquardt", counting)
+    count = count_lm_iterations(monkeypatch)
     work = {}
     for starts in ("grid", "local"):
         count["it"] = 0

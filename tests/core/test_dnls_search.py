@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from lm_iterations import count_lm_iterations
 
-import diffpos.estimators.dnls.fit as dnls_fit
 from diffpos.estimators.dnls.solver import dnls
 from diffpos.estimators.lm import PathModel, levenberg_marquardt
 from diffpos.estimators.lm_nb import LAMBDA0, lm_fit_ftol
@@ -110,15 +110,7 @@ def test_bounded_search_does_less_work(monkeypatch):
     iterations are most of the work (cold fixes add 13 screened starts per candidate)."""
     a, r, _ = _faulty(11, 60)
     x0 = _faulty_nodes(11, 60) + np.random.default_rng(0).normal(0.0, 0.5, (60, 3))
-    count = {"it": 0}
-    lm = dnls_fit.levenberg_marquardt
-
-    def counting(*args, **kw):
-        res = lm(*args, **kw)
-        count["it"] += int(res.iterations.sum())
-        return res
-
-    monkeypatch.setattr(dnls_fit, "levenberg_marquardt", counting)
+    count = count_lm_iterations(monkeypatch)
     work = {}
     for name, kw in (("bounded", {}), ("exhaustive", EXHAUSTIVE)):
         count["it"] = 0
