@@ -596,20 +596,19 @@ def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_
     x0r, p0r = np.repeat(x0, ns, axis=0), np.repeat(p0, ns, axis=0)
     terms = [np.log1p(-eps[k]) + ev[k]]
     cand = []
-    for prior_cov, w in ((p0r, np.log1p(-eps[k])), (cs, np.log(np.maximum(eps[k], 1e-300)))):
+    with np.errstate(divide="ignore"):  # no jump (eps 0): its term -inf
+        log_eps = np.log(eps[k])
+    for prior_cov, w in ((p0r, np.log1p(-eps[k])), (cs, log_eps)):
         e_c, m_c, p_c = _reprior(x1, p1, e1, xs, cs, x0r, prior_cov)
         e_c = np.where(np.isfinite(e_c) & better.reshape(-1), e_c, -np.inf).reshape(k.size, ns)
         b = np.argmax(e_c, axis=1)
         j = np.arange(k.size) * ns + b
         terms.append(w + e_c[np.arange(k.size), b])
         cand.append((j, m_c, p_c))
-    if not eps.any():
-        terms[2][:] = -np.inf
     t = np.stack(terms)  # (3, k): own fit, another mode, the jump
     win = np.argmax(t, axis=0)
     ev, x, p, slot, nis, res, lw = (a_.copy() for a_ in (ev, x, p, slot, nis, res, lw))
-    mode = np.maximum(t[0], t[1])  # max-mixture over the modes of the same prior
-    ev[k] = np.logaddexp(mode, t[2]) if eps.any() else mode - np.log1p(-eps[k])
+    ev[k] = np.logaddexp(np.maximum(t[0], t[1]), t[2])  # max-mixture over the modes
     for w_, (j, m_c, p_c) in zip((1, 2), cand, strict=True):
         kw, jw = k[win == w_], j[win == w_]
         xm = m_c[jw]
