@@ -539,3 +539,34 @@ def test_a_lagging_step_holds_the_newest_epoch_it_can_initialise_from():
     assert [(e.node_id, e.epoch) for e in now] == [("a", 10), ("b", 10), ("a", 11)]
     now, later = bank.hold_inits(epochs, 1)
     assert [(e.node_id, e.epoch) for e in later] == [("a", 10), ("a", 11)]
+
+
+def _by_node_epoch(steps) -> dict:
+    return {(e.node_id, e.epoch): (e.status, e.position_m, e.floor_index)
+            for ests in steps for e in ests}
+
+
+def test_unbounded_steps_make_the_estimates_independent_of_the_step_cadence():
+    """FusionConfig.bounded_steps False (lockstep emulate): the service loop asks for every
+    ready epoch (limit None) before and after its step cost is measured, and the estimates are
+    the same bit for bit whether the fusion steps after every epoch or after every third (a
+    loaded machine: more epochs ready per step). With the live bound (a limit per step) the
+    same two cadences start tracks at other epochs, i.e. the estimates depend on timing: what
+    the setting removes."""
+    import threading
+
+    from diffpos_services.fusion import service as S
+
+    core = FusionCore(_config(bounded_steps=False), logger=quiet_logger())
+    loop = S.ServiceLoop(core, S._Inbox(core.config, threading.Event()), lambda e: None,
+                         lambda d: None, quiet_logger())
+    assert loop.step_limit() is None
+    for n in (8, 50, 12):
+        loop.cost.add(n, 3e6 + 0.65e6 * n)
+    assert loop.step_limit() is None
+    assert FusionCore(_config(), logger=quiet_logger()).config.bounded_steps  # the default
+    one, three = (_by_node_epoch(_run(None, every=k)[1]) for k in (1, 3))
+    assert len(one) == len(NODES) * EPOCHS
+    assert one == three
+    bounded = [_by_node_epoch(_run(2 * HEAVY_WORK_EPOCHS, every=k)[1]) for k in (1, 3)]
+    assert bounded[0] != bounded[1]

@@ -174,6 +174,13 @@ def _add_overload_arguments(parser: argparse.ArgumentParser) -> None:
         f"(default {DEFAULT_SUPERSEDE_AFTER_S:g})",
     )
     parser.add_argument(
+        "--unbounded-steps", action="store_true",
+        help="solve every ready epoch with every track start and snapshot due in each step "
+        "(no work bound per step): the estimates then depend on the ranges only, not on "
+        "timing or CPU load; for an input that waits for the fusion (lockstep emulate uses "
+        "it); recorded in the fusion settings (default: bounded steps)",
+    )
+    parser.add_argument(
         "--admit-lag-s",
         type=float,
         default=DEFAULT_ADMIT_LAG_S,
@@ -225,6 +232,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         max_backlog_s=args.max_backlog_s or None,
         supersede_after_s=args.supersede_after_s,
         admit_lag_s=args.admit_lag_s,
+        bounded_steps=not getattr(args, "unbounded_steps", False),
         kernel_threads=args.kernel_threads,
         workers=args.workers,
         tracker=parse_tracker_items(args.tracker),

@@ -228,7 +228,7 @@ class Emulation:
         if options.method is not None:
             self.fusion_args += ["--method", options.method]
         if options.speed == 0:  # lockstep: the input waits for the fusion, never behind
-            self.fusion_args += ["--max-backlog-s", "0"]
+            self.fusion_args += ["--max-backlog-s", "0", "--unbounded-steps"]
         if options.fusion_workers != 1:
             self.fusion_args += ["--workers", str(options.fusion_workers)]
         self.fusion_args += tracker_argv(options.tracker)  # --tracker KEY=VALUE, each
@@ -437,6 +437,7 @@ class Emulation:
                                          epoch_period_s=1.0 / self.o.rate_hz,
                                          max_backlog_s=(None if self.o.speed == 0
                                                         else LIVE_MAX_BACKLOG_S),
+                                         bounded_steps=self.o.speed != 0,
                                          workers=self.o.fusion_workers,
                                          tracker=dict(self.o.tracker),
                                          **({} if self.o.method is None

@@ -619,6 +619,18 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     INITIALISING: admission bounds how many), and such epochs do not count in the span that
     :attr:`supersede_after_s` bounds. A function of the ready queue and the tracks (the
     decision record replays it). 1e9 or more (:data:`LEGACY_ADMIT_LAG_S`): off, as before."""
+    bounded_steps: bool = True
+    """The live service bounds each solve step's work (an epoch limit from the measured step
+    cost, and at most :func:`~diffpos_services.fusion.tracked.heavy_budget` track
+    initialisations and snapshot fixes per step), so a burst of new responders cannot hold
+    every node's estimate back. The bound depends on how many epochs happen to be ready when a
+    step runs, i.e. on timing and CPU load: two lockstep runs of the same ranges started a
+    track one epoch apart and ended with one responder right on 0 % or 80 % of its epochs
+    (docs/tracking_evidence.md "Session 24, lead"). False (``diffpos fusion
+    --unbounded-steps``; lockstep ``diffpos emulate --speed 0``, whose input waits for the
+    fusion): every step solves all ready epochs with every initialisation and snapshot due,
+    so the estimates are a function of the ranges alone, whatever the load (the decision
+    record keeps the steps either way; a replay re-runs them)."""
     linger_s: Annotated[float, Meta(ge=0, le=0.05)] = 0.0003
     kernel_threads: Annotated[int, Meta(ge=1, le=64)] = DEFAULT_KERNEL_THREADS
     """Threads running the row chunks of the compiled kernels (:mod:`diffpos._kernels.pool`:

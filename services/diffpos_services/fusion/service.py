@@ -519,8 +519,11 @@ class ServiceLoop:
         return Progress(progress=self.done, pending=self.inbox.q.qsize() + core.backlog,
                         last_epoch=self.last_epoch, published=core.published)
 
-    def step_limit(self) -> int:
-        """Epochs the next solve step may take (adaptive, see the class docstring)."""
+    def step_limit(self) -> int | None:
+        """Epochs the next solve step may take (adaptive, see the class docstring); None: all
+        of them, without a work bound (``FusionConfig.bounded_steps`` False)."""
+        if not self.core.config.bounded_steps:
+            return None
         top = self.core.config.max_fixes_per_step
         if not self.cost.measured:
             return min(MIN_STEP_EPOCHS, top)
