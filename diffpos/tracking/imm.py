@@ -33,6 +33,8 @@ nodes, deterministic.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -96,10 +98,8 @@ def _transitions(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
     """
     h = mean.shape[1]
     nf = h // 2
+    adj, other, same_mode, to_floor, same_floor, start, _, _ = _layout(nf)
     fl, vert = hypothesis_floor(nf), hypothesis_vertical(nf)
-    g = np.arange(nf)
-    adj = (np.abs(fl[:, None] - g[None, :]) == 1).astype(np.float64)  # (H, F)
-    other = (fl[:, None] != g[None, :]).astype(np.float64)
     dt = np.maximum(dt_s, 0.0)[:, None, None]
     lo, hi = _floor_band(building, nf, config)
     z = mean[:, :, None, 2]  # (N, H, 1)
@@ -116,11 +116,7 @@ def _transitions(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
     dt1 = dt[:, :, 0]
     p_switch = np.where(vert[None, :], np.minimum(r_out * dt1, 0.5),
                         np.minimum(r_in * dt1, 0.5))  # (N, H)
-    same_mode = (vert[:, None] == vert[None, :]).astype(np.float64)  # (H, H)
-    to_floor = (fl[None, :] == g[:, None]).astype(np.float64)  # (F, H): floor g -> hyp h
-    cross_f = np.einsum("nhf,fk->nhk", move, to_floor) * same_mode
-    cross_j = np.einsum("nhf,fk->nhk", jump, to_floor) * same_mode
-    same_floor = (fl[:, None] == fl[None, :]).astype(np.float64)
+    cross_f, cross_j = _to_floors(move, jump, fl, to_floor, same_mode)
     own = same_floor * np.where(same_mode > 0, 1.0 - p_switch[..., None], p_switch[..., None])
     own = own * stay[..., None]
     # entering the vertical mode moves probability but not the level track's state: the
@@ -128,8 +124,40 @@ def _transitions(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
     # evidence of a climb (restarted from the level track every epoch it could not: measured
     # on other-building, a descending walker's level track stayed pinned at the nominal height
     # and the track was lost to a mirror floor)
-    start = (~vert[:, None] & vert[None, :]).astype(np.float64)
     return own + cross_f + cross_j, own * (1.0 - start) + cross_f, cross_j
+
+
+@functools.lru_cache(maxsize=64)
+def _layout(n_floors: int) -> tuple:
+    """The hypotheses' fixed transition layout of ``n_floors`` floors (read-only, built once,
+    not on every tracker call): adjacent floors and other floors (H, F), the same mode (H, H),
+    floor g -> hypothesis (F, H), the same floor (H, H), level -> vertical of any floor as
+    float (H, H), and as bool level f -> vertical g (``start``) and vertical -> level
+    (``stop``), (H, H)."""
+    fl, vert = hypothesis_floor(n_floors), hypothesis_vertical(n_floors)
+    g = np.arange(n_floors)
+    start_b = ~vert[:, None] & vert[None, :]
+    out = ((np.abs(fl[:, None] - g[None, :]) == 1).astype(np.float64),
+           (fl[:, None] != g[None, :]).astype(np.float64),
+           (vert[:, None] == vert[None, :]).astype(np.float64),
+           (fl[None, :] == g[:, None]).astype(np.float64),
+           (fl[:, None] == fl[None, :]).astype(np.float64),
+           start_b.astype(np.float64), start_b, vert[:, None] & ~vert[None, :])
+    for a in out:
+        a.flags.writeable = False
+    return out
+
+
+def _to_floors(move: FloatArray, jump: FloatArray, fl, to_floor: FloatArray,
+               same_mode: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``einsum("nhf,fk->nhk", a, to_floor) * same_mode`` of ``move`` and ``jump`` (N, H, F):
+    ``to_floor`` has one 1 per column (floor ``fl[k]``), so each sum is one product ``a * 1``
+    plus exact zeros: ``a[..., fl]``, the same values bit for bit (finite ``a``; a non-finite
+    one would spread over every column through ``inf * 0``: the einsum then)."""
+    if np.isfinite(move).all() and np.isfinite(jump).all():
+        return move[..., fl] * same_mode, jump[..., fl] * same_mode
+    return (np.einsum("nhf,fk->nhk", move, to_floor) * same_mode,
+            np.einsum("nhf,fk->nhk", jump, to_floor) * same_mode)
 
 
 def _floor_band(building, n_floors: int, config: TrackerConfig) -> tuple[FloatArray, FloatArray]:
@@ -145,7 +173,7 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
     what wakes a dormant hypothesis."""
     h = state.log_prob.shape[1]
     nf = h // 2
-    fl, vert = hypothesis_floor(nf), hypothesis_vertical(nf)
+    fl = hypothesis_floor(nf)
     pi, pi_move, pi_jump = _transitions(state.mean, state.cov, dt_s, building, config)
     lw = state.log_prob
     mx = lw.max(axis=1, keepdims=True)
@@ -153,8 +181,7 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
     joint = w[:, :, None] * pi  # (N, H, H)
     c = joint.sum(axis=1)  # (N, H)
     lo, hi = _floor_band(building, nf, config)
-    start = (~vert[:, None] & vert[None, :])  # (H, H): level f -> vertical g
-    stop = (vert[:, None] & ~vert[None, :])
+    start, stop = _layout(nf)[6:]  # (H, H): level f -> vertical g, vertical f -> level g
     if config.mixing == "imm":
         mu = joint / np.maximum(c[:, None, :], 1e-300)  # mu[f | g]
         # state of hypothesis f moved into hypothesis g: (N, H, H, 6)
