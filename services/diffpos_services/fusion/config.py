@@ -595,18 +595,6 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     min_snr_db: float | None = None
     warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
     cold_retry_period_s: Annotated[float, Meta(ge=0)] = 1.0
-    """With dnls: a node's warm fix that failed is solved again cold (the multi-start) at most
-    once per this much measurement time [s]; within it, a node without a recent usable fix
-    is started from its last cold solve's position."""
-    cold_retry_max_period_s: Annotated[float, Meta(ge=0)] | None = None
-    """With dnls: back off the cold solves of a node that keep failing [s of measurement
-    time]. After the n-th failed cold solve in a row (no usable fix in between) with ranges
-    from the same anchors, the node's next cold solve waits ``cold_retry_period_s x
-    2^(n-1)``, at most this long; a usable fix, or ranges from another set of anchors, and
-    the next is due after :attr:`cold_retry_period_s` again. In the wait its epochs are
-    solved from the failed solve's position, as within :attr:`cold_retry_period_s`.
-    ``None`` (the default): no back-off, a cold solve every :attr:`cold_retry_period_s`.
-    Measured on the D-NLS replays (docs/performance.md, "Session 24: D-NLS settings")."""
     diagnostics_period_s: Annotated[float, Meta(gt=0)] = 1.0
     queue_size: Annotated[int, Meta(ge=16)] = 8192
     max_queued_bytes: Annotated[int, Meta(ge=1 << 20)] = 32 << 20
@@ -707,10 +695,6 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
         for name in ("anchors", "nodes"):
             for i, v in enumerate(getattr(self, name) or ()):
                 check_id(v, field=f"{name}[{i}]")
-        if (self.cold_retry_max_period_s is not None
-                and self.cold_retry_max_period_s < self.cold_retry_period_s):
-            raise ValueError(f"cold_retry_max_period_s={self.cold_retry_max_period_s} must be >= "
-                             f"cold_retry_period_s={self.cold_retry_period_s} [s] (or None)")
         if self.min_sigma_m >= self.max_sigma_m:
             raise ValueError(f"min_sigma_m={self.min_sigma_m} must be < max_sigma_m="
                              f"{self.max_sigma_m} [m]")

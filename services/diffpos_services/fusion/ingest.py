@@ -107,7 +107,7 @@ class Track:
     fraction of the same arithmetic on 3-element numpy arrays; the values are identical).
     """
 
-    __slots__ = ("cold_ns", "cold_use", "cold_wait_ns", "pos", "t_ns", "try_pos", "vel")
+    __slots__ = ("cold_ns", "pos", "t_ns", "try_pos", "vel")
 
     def __init__(self) -> None:
         self.t_ns: int | None = None
@@ -115,10 +115,6 @@ class Track:
         self.vel: list[float] | None = None
         self.cold_ns: int | None = None  # measurement time of the last cold (multi-start) solve
         self.try_pos: list[float] | None = None  # its position, whatever its status
-        # FusionConfig.cold_retry_max_period_s: the wait its failed cold solves earned [ns]
-        # (None: cold_retry_period_s) and the anchors they had ranges from (use row bytes)
-        self.cold_wait_ns: int | None = None
-        self.cold_use: bytes | None = None
 
     def update(self, t_ns: int, pos: list[float]) -> None:
         p0 = self.pos
@@ -132,7 +128,6 @@ class Track:
             else:
                 self.vel = None
         self.t_ns, self.pos = t_ns, list(pos)
-        self.cold_wait_ns = self.cold_use = None  # a usable fix ends the back-off
 
 
 

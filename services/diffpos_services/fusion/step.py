@@ -165,8 +165,7 @@ def _reference_times(t: np.ndarray, reported: np.ndarray,
 
 # ------------------------------------------------------------------------------ prepare
 def _start_points(epochs: list[PendingEpoch], tracks: Any, t_ref: np.ndarray,
-                  cfg: FusionConfig, use: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  cfg: FusionConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Warm start (NaN: cold) and velocity of each row from its node's track."""
     b = len(epochs)
     x0 = np.full((b, 3), np.nan)
@@ -185,8 +184,7 @@ def _start_points(epochs: list[PendingEpoch], tracks: Any, t_ref: np.ndarray,
             else:
                 x0[i] = tr.pos
         elif (tr is not None and tr.try_pos is not None and tr.cold_ns is not None
-              and 0 <= t_ref[i] - tr.cold_ns
-              < _cold_wait_ns(tr, None if use is None else use[i], period_ns)):
+              and 0 <= t_ref[i] - tr.cold_ns < period_ns):
             # no good fix lately, but a cold solve within the retry period: start from its
             # result instead of paying for another multi-start every epoch
             x0[i] = tr.try_pos
@@ -197,7 +195,7 @@ def prepare(batch: Batch, epochs: list[PendingEpoch], tracks: Any,
             cfg: FusionConfig) -> Prepared:
     """Warm starts, motion-compensated ranges and effective sigmas of ``batch``."""
     use = batch.use
-    x0, vel, has_vel = _start_points(epochs, tracks, batch.t_ref, cfg, use)
+    x0, vel, has_vel = _start_points(epochs, tracks, batch.t_ref, cfg)
     comp = has_vel & cfg.motion_compensation
     safe_apos = np.where(use[..., None], batch.apos, 0.0)
     rng = batch.rng
@@ -253,64 +251,34 @@ def solve_batch(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], tracks
         fix = dnls_solver.dnls(prep.safe_apos[rows_w], prep.rng_in[rows_w], prep.sig_eff[rows_w],
                        mask=use[rows_w], x0_m=prep.x0[rows_w], **common)
         res.put(rows_w, fix)
-    retry = _cold_retries(warm, res.status, epochs, tracks, batch.t_ref, use, cfg)
+    retry = _cold_retries(warm, res.status, epochs, tracks, batch.t_ref, cfg)
     rows_c = np.flatnonzero(~warm | retry)
     if rows_c.size:
         fix = dnls_solver.dnls(prep.safe_apos[rows_c], prep.rng_in[rows_c], prep.sig_eff[rows_c],
                        mask=use[rows_c], **common)
         res.put(rows_c, fix)
-        good = np.isin(res.status, GOOD_STATUS)
         for i in rows_c:
             tr = tracks[epochs[i].node_id]
             tr.cold_ns = int(batch.t_ref[i])
             tr.try_pos = res.pos[i].tolist() if np.all(np.isfinite(res.pos[i])) else None
-            if cfg.cold_retry_max_period_s is not None:
-                _back_off(tr, bool(good[i]), use[i].tobytes(), cfg)
     return res
 
 
-def _cold_wait_ns(tr: Any, use_row: np.ndarray | None, period_ns: int) -> int:
-    """How long after its last cold solve a node is due another [ns]: ``period_ns``
-    (``cold_retry_period_s``), or the longer wait its failed cold solves earned
-    (:func:`_back_off`) while it has ranges from the same anchors as they had."""
-    wait = tr.cold_wait_ns
-    if wait is None or use_row is None or tr.cold_use != use_row.tobytes():
-        return period_ns
-    return wait
-
-
-def _back_off(tr: Any, good: bool, use_row: bytes, cfg: FusionConfig) -> None:
-    """``cold_retry_max_period_s``: the wait before a node's next cold solve after this one.
-    A usable fix: ``cold_retry_period_s`` again. The n-th failed cold solve in a row with
-    ranges from the same anchors: ``cold_retry_period_s x 2^(n-1)``, at most
-    ``cold_retry_max_period_s`` (so the first failure waits the period, as without it)."""
-    period_ns = round(cfg.cold_retry_period_s * 1e9)
-    if good:
-        tr.cold_wait_ns = tr.cold_use = None
-    elif tr.cold_use == use_row and tr.cold_wait_ns is not None:
-        tr.cold_wait_ns = max(min(2 * tr.cold_wait_ns, round(cfg.cold_retry_max_period_s * 1e9)),
-                              period_ns)
-    else:
-        tr.cold_wait_ns, tr.cold_use = period_ns, use_row
-
-
 def _cold_retries(warm: np.ndarray, status: np.ndarray, epochs: list[PendingEpoch],
-                  tracks: Any, t_ref: np.ndarray, use: np.ndarray,
-                  cfg: FusionConfig) -> np.ndarray:
+                  tracks: Any, t_ref: np.ndarray, cfg: FusionConfig) -> np.ndarray:
     """Rows whose warm fix failed and whose node is due a cold (multi-start) retry.
 
     A warm fix that failed is re-solved from all starts (re-acquisition after a wrong basin),
     but at most once per cold_retry_period_s of measurement time per node: on realistic
     channels a third of the fixes fail every epoch for reasons a cold start does not change,
     and the multi-start re-solve costs ~10x a warm fix. Measurement time (not the wall clock)
-    keeps replays deterministic. With ``cold_retry_max_period_s`` a node whose cold solves
-    keep failing on the same anchors waits longer (:func:`_back_off`).
+    keeps replays deterministic.
     """
     period_ns = round(cfg.cold_retry_period_s * 1e9)
     retry = np.zeros(len(epochs), bool)
     for i in np.flatnonzero(warm & ~np.isin(status, GOOD_STATUS)):
         tr = tracks[epochs[i].node_id]
-        if tr.cold_ns is None or t_ref[i] - tr.cold_ns >= _cold_wait_ns(tr, use[i], period_ns):
+        if tr.cold_ns is None or t_ref[i] - tr.cold_ns >= period_ns:
             retry[i] = True
             tr.cold_ns = int(t_ref[i])
     return retry
