@@ -1,7 +1,8 @@
 """The starts of a cold D-NLS fix's exclusion candidates are a recorded fusion setting
 (``dnls_exclusion_starts``): ``diffpos fusion --dnls-exclusion-starts`` and ``diffpos replay
 --set dnls_exclusion_starts=...`` set it, the recording's settings keep it, a replay runs the
-value that ran live, and recordings made before the setting replay with ``"grid"``."""
+value that ran live; new runs use ``"local"`` (since 2026-12-07), recordings made before the
+setting replay with ``"grid"``."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pytest
 from diffpos_services.cli import fusion as cmd_fusion
 from diffpos_services.cli.main import main
 from diffpos_services.fusion.config import (
+    DEFAULT_DNLS_EXCLUSION_STARTS,
     LEGACY_DNLS_EXCLUSION_STARTS,
     FusionConfig,
     with_legacy_defaults,
@@ -25,18 +27,21 @@ from diffpos.scenario import default_scenario
 
 
 def test_default_legacy_value_and_fusion_option():
-    assert FusionConfig().dnls_exclusion_starts == "grid"
+    assert FusionConfig().dnls_exclusion_starts == DEFAULT_DNLS_EXCLUSION_STARTS == "local"
     old = with_legacy_defaults({"method": "dnls", "gating": True})
     assert old["dnls_exclusion_starts"] == LEGACY_DNLS_EXCLUSION_STARTS == "grid"
     kept = with_legacy_defaults({"method": "dnls", "dnls_exclusion_starts": "local"})
     assert kept["dnls_exclusion_starts"] == "local"
+    # a recording without stored settings was made before the setting: grid
+    derived = FusionConfig.from_recording({"site": "demo"}, default_scenario())
+    assert derived.dnls_exclusion_starts == "grid"
     p = argparse.ArgumentParser()
     cmd_fusion.add_arguments(p)
     cfg = cmd_fusion.config_from_args(p.parse_args(["--method", "dnls", "--dnls-exclusion-starts",
                                                     "local"]), default_scenario())
     assert cfg.dnls_exclusion_starts == "local"
     default = cmd_fusion.config_from_args(p.parse_args([]), default_scenario())
-    assert default.dnls_exclusion_starts == "grid"
+    assert default.dnls_exclusion_starts == "local"
     with pytest.raises(SystemExit):
         p.parse_args(["--dnls-exclusion-starts", "grid2"])
     help_text = p.format_help()
