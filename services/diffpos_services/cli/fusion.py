@@ -47,6 +47,7 @@ from diffpos_services.bus.session import add_zenoh_arguments, service_settings
 from diffpos_services.errors import ConfigError
 from diffpos_services.fusion.config import (
     DEFAULT_ADMIT_LAG_S,
+    DEFAULT_DNLS_EXCLUSION_STARTS,
     DEFAULT_KERNEL_THREADS,
     DEFAULT_METHOD,
     DEFAULT_SUPERSEDE_AFTER_S,
@@ -118,6 +119,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_tracker_argument(parser)
     parser.add_argument("--no-gating", action="store_true", help="disable outlier gating")
+    parser.add_argument(
+        "--dnls-exclusion-starts", choices=["grid", "local"],
+        default=DEFAULT_DNLS_EXCLUSION_STARTS,
+        help="dnls with gating: starts of a cold fix's exclusion candidates (the fix's anchors "
+        "left out one at a time): local = the candidate's own LLS position and the current "
+        f"solution only (default: {DEFAULT_DNLS_EXCLUSION_STARTS}; ~0.4x the cold fixes' "
+        "kernel CPU), grid = the fix's whole multi-start (height grid every 3 m + LLS, "
+        "screened; before 2026-12-07); warm fixes unaffected; recorded in the fusion settings "
+        "(replay: --set dnls_exclusion_starts=grid)",
+    )
     parser.add_argument(
         "--no-motion-compensation",
         action="store_true",
@@ -226,6 +237,7 @@ def config_from_args(args: argparse.Namespace, scenario=None) -> FusionConfig:
         deadline_s=args.deadline_s,
         clock_tolerance_s=args.clock_tolerance_ms * 1e-3,
         gating=not args.no_gating,
+        dnls_exclusion_starts=args.dnls_exclusion_starts,
         motion_compensation=not args.no_motion_compensation,
         diagnostics_period_s=args.diagnostics_period_s,
         # FusionConfig.max_backlog_s: None never drops; --max-backlog-s 0 means the same

@@ -36,8 +36,10 @@ from diffpos_services.config import build_config
 from diffpos_services.errors import ConfigError
 from diffpos_services.wire.keys import check_id
 
-__all__ = ["DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD", "DEFAULT_WORKERS", "EDGES",
-           "LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S", "LEGACY_DNLS_EXCLUSION_SEARCH", "MAX_SHARDS", "METHODS",
+__all__ = ["DEFAULT_DNLS_EXCLUSION_STARTS", "DEFAULT_KERNEL_THREADS", "DEFAULT_METHOD",
+           "DEFAULT_WORKERS", "EDGES",
+           "LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S", "LEGACY_DNLS_EXCLUSION_SEARCH",
+           "LEGACY_DNLS_EXCLUSION_STARTS", "MAX_SHARDS", "METHODS",
            "TRACKER_KEYS", "FusionConfig", "TrackerSettings", "building_of", "channel_edge",
            "legacy_tracker_settings", "merge_tracker", "model_edge", "parse_shard",
            "parse_tracker_items", "shard_of", "tracker_argv", "tracker_help"]
@@ -173,12 +175,24 @@ LEGACY_SNAPSHOT_AT_START = True
 LEGACY_DNLS_EXCLUSION_SEARCH = "exhaustive"
 
 
+#: ``dnls_exclusion_starts`` of new runs: ``"local"`` since 2026-12-07 (docs/performance.md,
+#: "Session 24: D-NLS settings": the cold fixes' kernel CPU 0.39-0.45x on three 30 s ``large``
+#: replays, right floor and availability over every node-epoch the same within 0.2 point).
+DEFAULT_DNLS_EXCLUSION_STARTS = "local"
+
+
+#: ``dnls_exclusion_starts`` of a replay of a live fusion recorded before the setting existed
+#: (2026-12-07: its ``fusion_config`` has no ``dnls_exclusion_starts``): that fusion started a
+#: cold fix's exclusion candidates from the whole height grid.
+LEGACY_DNLS_EXCLUSION_STARTS = "grid"
+
+
 def with_legacy_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
     """Recorded fusion settings (a recording's ``fusion_config``; empty: none) with the
     settings that did not exist when it was made set to what that fusion did
     (:data:`LEGACY_SUPERSEDE_AFTER_S`, :data:`LEGACY_ADMIT_LAG_S`,
     :data:`LEGACY_CONFIDENT_SNAPSHOT_PERIOD_S`, :data:`LEGACY_SNAPSHOT_AT_START`,
-    :data:`LEGACY_DNLS_EXCLUSION_SEARCH`), so a replay by its decision record drops,
+    :data:`LEGACY_DNLS_EXCLUSION_SEARCH`, :data:`LEGACY_DNLS_EXCLUSION_STARTS`), so a replay by its decision record drops,
     initialises and checks what the live fusion did."""
     out = dict(recorded)
     if out.get("max_backlog_s") and "supersede_after_s" not in out:
@@ -191,6 +205,8 @@ def with_legacy_defaults(recorded: dict[str, Any]) -> dict[str, Any]:
         out["snapshot_at_start"] = LEGACY_SNAPSHOT_AT_START
     if out and "dnls_exclusion_search" not in out:
         out["dnls_exclusion_search"] = LEGACY_DNLS_EXCLUSION_SEARCH
+    if out and "dnls_exclusion_starts" not in out:
+        out["dnls_exclusion_starts"] = LEGACY_DNLS_EXCLUSION_STARTS
     return out
 
 
@@ -571,6 +587,19 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     ``"exhaustive"``: every candidate from all starts to full convergence, as before; a
     recording made before the setting existed replays with it
     (:data:`LEGACY_DNLS_EXCLUSION_SEARCH`)."""
+    dnls_exclusion_starts: Literal["grid", "local"] = DEFAULT_DNLS_EXCLUSION_STARTS
+    """With dnls and gating: the starts of a *cold* fix's exclusion candidates (a fix without a
+    warm start: a node without a recent track, or the cold retry of a failed warm fix).
+    ``"local"`` (the default since 2026-12-07, :data:`DEFAULT_DNLS_EXCLUSION_STARTS`): the
+    candidate's own LLS position and the current solution only (two starts, nothing screened
+    or rechecked; the floor search is left to the fix's own multi-start); ``"grid"``: every
+    start of the fix's own multi-start (the height grid and the LLS position, screened) plus
+    the current solution, as before. Warm fixes are the same with either; so are fixes with 4
+    anchors (no candidate can be solved). ``diffpos.estimators.dnls.solver.dnls(exclusion_starts=...)``; cost and accuracy
+    side by side in docs/performance.md ("Session 23: D-NLS replay", "Session 24: D-NLS
+    settings"). Recorded with the other settings; a recording made before the setting
+    existed (with or without stored settings) replays with ``"grid"``
+    (:data:`LEGACY_DNLS_EXCLUSION_STARTS`)."""
     false_alarm_probability: Annotated[float, Meta(gt=0, lt=1)] = 1e-3
     min_snr_db: float | None = None
     warm_start_max_age_s: Annotated[float, Meta(ge=0)] = 1.0
@@ -806,7 +835,9 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
             The recording's scenario (its building geometry).
         """
         overrides: dict[str, Any] = {"site": run_metadata["site"],
-                                     "method": run_metadata.get("method", "dnls")}
+                                     "method": run_metadata.get("method", "dnls"),
+                                     # made before the setting existed
+                                     "dnls_exclusion_starts": LEGACY_DNLS_EXCLUSION_STARTS}
         rate = run_metadata.get("range_rate_hz")
         if rate is not None:
             overrides["epoch_period_s"] = 1.0 / rate

@@ -241,6 +241,7 @@ def solve_batch(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], tracks
         delta_m=cfg.delta_m,
         edge_x_m=cfg.edge_x_m,
         gating=gating,
+        exclusion_starts=cfg.dnls_exclusion_starts,
     )
     if cfg.dnls_exclusion_search == "exhaustive":  # as before 2026-12-06 (old recordings)
         common.update(exclusion_ftol=None, exclusion_recheck_ratio=None, exclusion_bound=None)
