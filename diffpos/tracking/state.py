@@ -426,6 +426,14 @@ class TrackerConfig:
         are searched. With three ranges a position fits them exactly on any floor, so a
         search there finds every floor's best fit again (the argument of
         ``family_min_links``); 0: ``min_ranges_init``.
+    reseed_min_links : int
+        With ``reseed_max``: only hypotheses of nodes with at least this many ranges this
+        epoch are re-seeded from a snapshot of their floor. With three ranges a snapshot fits
+        them on any floor (the argument of ``family_min_links``), so a re-seed there hands a
+        wrong floor an exact fit; with four or more one range is redundant and the floor's
+        snapshot is tested by it. 0 (default): ``min_ranges_init`` (before). Measured on
+        Sionna RT's live paper building (docs/tracking_evidence.md "Session 24: where Sionna
+        paper's misses are").
     """
 
     q_h_m2_s3: float = 1.5
@@ -495,6 +503,7 @@ class TrackerConfig:
     mode_jump_sigma_m: float = 2.0
     mode_search_max: int = 0
     mode_search_min_links: int = 0
+    reseed_min_links: int = 0
 
 
 @dataclass(frozen=True)

@@ -423,7 +423,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         last[idx] = t[idx]
         status[idx] = np.where(status[idx] == TrackStatus.COASTING, TrackStatus.TRACKING,
                                status[idx])
-    _reseed(mean, cov, floor_bad, links, live & (n_meas >= config.min_ranges_init), building,
+    _reseed(mean, cov, floor_bad, links,
+            live & (n_meas >= max(config.min_ranges_init, config.reseed_min_links)), building,
             config)
     coast = live & (n_meas == 0)
     status[coast] = TrackStatus.COASTING
