@@ -434,6 +434,16 @@ class TrackerConfig:
         snapshot is tested by it. 0 (default): ``min_ranges_init`` (before). Measured on
         Sionna RT's live paper building (docs/tracking_evidence.md "Session 24: where Sionna
         paper's misses are").
+    mode_search_new_misfit : float [fraction of a link's real updates]
+        With ``mode_search_outliers``: only the outliers of links the hypothesis has fitted
+        lately count towards ``mode_search_outliers``: the link's forgotten outlier rate for
+        the hypothesis before this update (``link_out / link_all``, forgetting
+        ``link_forget`` per real update; needs ``link_learn``) must be below this value (a
+        first-arrival switch; :func:`diffpos.tracking.tracker._new_misfit`). A link out of
+        the hypothesis' model all along (Sionna RT's persistent out-of-model first arrivals,
+        or a wrong floor's misfit) does not start a search. With ``link_forget`` 0.95 a
+        link fitted for long reaches a rate of 0.5 after 14 consecutive outlier updates.
+        0 (default): every outlier counts (before).
     """
 
     q_h_m2_s3: float = 1.5
@@ -504,6 +514,7 @@ class TrackerConfig:
     mode_search_max: int = 0
     mode_search_min_links: int = 0
     reseed_min_links: int = 0
+    mode_search_new_misfit: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -543,11 +543,14 @@ def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
 
 def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_floors: int,
                 building, config: TrackerConfig, link_w: FloatArray | None = None,
-                fam_gate: NDArray | None = None, allow: NDArray | None = None) -> tuple:
+                fam_gate: NDArray | None = None, allow: NDArray | None = None,
+                counted: NDArray | None = None) -> tuple:
     """Other modes of the updated pairs ``(rr, cc)`` (``out``: their :func:`_update_pairs`
     outputs from the priors ``mean``, ``cov`` (n, H, ...)) that call at least
     ``mode_search_outliers`` of their ranges outliers, have ``min_ranges_init`` ranges and
-    are ``allow``-ed (the caller: the pairs of TRACKING nodes; while a node is INITIALISING
+    are ``allow``-ed; ``counted`` (n, H, M): the links whose outlier counts towards
+    ``mode_search_outliers`` (:func:`_new_misfit`; None: every link) (the caller: ``allow``
+    the pairs of TRACKING nodes; while a node is INITIALISING
     its priors are the snapshot's broad ones, and a search there is a second snapshot that
     lets every floor find its best fit of the four ranges again: measured on Sionna's live
     paper 72.8 % right floor with it, 81.5 % without, 88.2 % with no search).
@@ -567,7 +570,8 @@ def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_
     that fits anything far from the prediction does not win."""
     x, p, ev, slot, nis, res, lw = out
     present = links.mask[rr, 0]
-    n_out = np.sum(present & (slot < 0), axis=-1)
+    n_out = np.sum(present & (slot < 0) & (True if counted is None else counted[rr, cc]),
+                   axis=-1)
     k = np.flatnonzero((n_out >= config.mode_search_outliers) & np.isfinite(ev)
                        & (np.sum(present, axis=-1)
                           >= max(config.min_ranges_init, config.mode_search_min_links))
@@ -618,6 +622,24 @@ def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_
         x[kw], p[kw], slot[kw], nis[kw], res[kw], lw[kw] = xm, p_c[jw], s1[jw], n1[jw], \
             r1[jw], w1[jw]
     return x, p, ev, slot, nis, res, lw
+
+
+def _new_misfit(lk: dict | None, col: NDArray[np.int_], config: TrackerConfig
+                ) -> NDArray[np.bool_] | None:
+    """The links (n, H, M) whose outlier this update counts towards ``mode_search_outliers``
+    (``config.mode_search_new_misfit``): those the hypothesis fitted in its recent real
+    updates, its forgotten outlier rate ``link_out / link_all`` before this update (the
+    learned arrays ``lk``, every column's link ``col``) below ``mode_search_new_misfit``,
+    with at least one real update of the link learned. A first-arrival switch (the link's
+    arrival just left the hypothesis' model) counts; a link out of its model all along (a
+    persistent out-of-model arrival, or a wrong floor that never explained it) does not.
+    None (every link counts): the setting off (0) or nothing learned (``link_learn`` off)."""
+    if config.mode_search_new_misfit <= 0.0 or lk is None:
+        return None
+    n_all = _gather(lk["link_all"], col)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = _gather(lk["link_out"], col) / n_all
+    return (n_all > 0.0) & (rate < config.mode_search_new_misfit)
 
 
 def _most_probable(lp: FloatArray, rr: NDArray, cc: NDArray, k: int) -> NDArray[np.bool_]:
@@ -727,6 +749,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     if config.link_learn:  # the learned unmodelled-path component (diffpos.tracking.evidence)
         lk, col, tab, seen, link_w, fam_gate = _link_inputs(state, idx, sub, t_ns, m0, c0,
                                                             n_meas, config)
+    counted = _new_misfit(lk, col, config) if config.mode_search_outliers > 0 else None
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
@@ -738,7 +761,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
                     config.mode_jump_rate_hz * np.maximum(dt_s[idx][rr], 0.0), 0.5), nf,
                     building, config, link_w, fam_gate,
                     (state.status[idx][rr] == TrackStatus.TRACKING)
-                    & _most_probable(lp0, rr, cc, config.mode_search_max))
+                    & _most_probable(lp0, rr, cc, config.mode_search_max), counted)
             (x[rr, cc], p[rr, cc], ev[rr, cc], slot[rr, cc], nis_h[rr, cc],
              res[rr, cc], lw[rr, cc]) = out
         run = run | todo

@@ -11,6 +11,11 @@ docs/tracking_evidence.md "Session 23: other modes of a hypothesis").
   links outliers and the published floor is lost for several epochs at p_true < 1e-3; with
   it the floor stays published in every epoch (the reference: the emulator's truth, the
   floor the node stands on).
+* The new-misfit gate (``mode_search_new_misfit``): a link biased out of the path model from
+  the first epoch on (Sionna's persistent out-of-model first arrivals) starts no search, the
+  outputs identical to the search off; the same bias appearing on a link the tracks fitted (a
+  first-arrival switch) starts one in that epoch; the moved track keeps its floor as with the
+  ungated search.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import pytest
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
+from diffpos.tracking import tracker
 from diffpos.tracking.state import TrackerConfig, floor_probabilities
 from diffpos.tracking.tracker import _reprior, init_state, update
 
@@ -30,6 +36,7 @@ B, RADIO = SC.building, SC.radio
 ANCHORS = np.asarray(SC.anchor_positions_m(0.0))
 OFF = TrackerConfig()
 ON = dataclasses.replace(OFF, mode_search_outliers=1, mode_jump_sigma_m=1.0, mode_search_max=2)
+GATED = dataclasses.replace(ON, mode_search_min_links=4, mode_search_new_misfit=0.5)
 
 
 def _gauss_log(y, mean, cov):
@@ -67,10 +74,12 @@ def test_reprior_equals_the_direct_evidence_and_posterior_of_a_linear_gaussian_m
         np.testing.assert_allclose(pm[0], p0 - k0 @ h @ p0, rtol=0, atol=1e-8)
 
 
-def _run(node, config, seed, offset, k0=30, epochs=60, drop=None):
+def _run(node, config, seed, offset, k0=30, epochs=60, drop=None, bias=None, searched=None):
     """Published floors and the true floor's probability of a static node tracked from the
     emulator's channel; at epoch ``k0`` its true floor's tracks (both modes) are moved by
-    ``offset`` first (a track left in the wrong mode of its floor)."""
+    ``offset`` first (a track left in the wrong mode of its floor). ``bias`` (k_from, anchor,
+    metres): that anchor's range is longer by that much from epoch k_from on; ``searched``: a
+    list that gets the number of hypotheses mode-searched in every epoch."""
     rng = np.random.default_rng(seed)
     channel = emulate_channel(ANCHORS, node[None], building=B, radio=RADIO)
     f, nf = int(B.floor_index(node[2])), B.n_floors
@@ -85,8 +94,14 @@ def _run(node, config, seed, offset, k0=30, epochs=60, drop=None):
         det = fa.detected.copy()
         if drop is not None:  # an anchor never heard: the node's other ranges only
             det[..., drop] = False
-        state, out = update(state, ANCHORS[None], fa.range_m, fa.sigma_m, det,
+        rho = fa.range_m.copy()
+        if bias is not None and k >= bias[0]:  # a first arrival out of the path model
+            rho[..., bias[1]] += bias[2]
+        n_before = len(_SEARCHES)
+        state, out = update(state, ANCHORS[None], rho, fa.sigma_m, det,
                             10**9 + k * 10**8, B, config, snr_db=fa.snr_db, radio=RADIO)
+        if searched is not None:
+            searched.append(sum(_SEARCHES[n_before:]))
         if k >= k0:
             floors.append(int(out.floor_index[0]))
             p_true.append(float(floor_probabilities(state.log_prob)[0, f]))
@@ -105,8 +120,51 @@ def test_a_track_moved_off_its_mode_keeps_its_floor_with_the_mode_search(node, s
     assert p_after.min() > 0.3, p_after.min()  # (measured 0.53-1.00; before < 1e-8)
 
 
+_SEARCHES: list[int] = []  # hypotheses searched per call of the search's local grid
+
+
+@pytest.fixture
+def count_searches(monkeypatch):
+    """Count the hypotheses the mode search runs its local grid for."""
+    grid = tracker.local_starts
+
+    def counted(links, *args, **kwargs):
+        _SEARCHES.append(links.rho.shape[0])
+        return grid(links, *args, **kwargs)
+
+    monkeypatch.setattr(tracker, "local_starts", counted)
+    _SEARCHES.clear()
+    yield
+    _SEARCHES.clear()
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_link_biased_all_along_starts_no_search_but_a_new_bias_does(seed, count_searches):
+    node = np.array([10.0, 6.12, 14.5])
+    bias = (0, 0, 2.0)  # anchor 0's first arrival 2 m beyond the model from the first epoch
+    ungated = []
+    _run(node, ON, seed, np.zeros(3), bias=bias, searched=ungated)
+    assert sum(ungated) >= 40  # without the gate: searched every epoch once TRACKING
+    gated = []
+    off = _run(node, OFF, seed, np.zeros(3), bias=bias)
+    on = _run(node, GATED, seed, np.zeros(3), bias=bias, searched=gated)
+    assert sum(gated) == 0
+    assert np.array_equal(off[1], on[1]) and np.array_equal(off[2], on[2])
+    switch = []  # the same bias from epoch 30 on a link the tracks fitted: a switch
+    _run(node, GATED, seed, np.zeros(3), bias=(30, 0, 2.0), searched=switch)
+    assert sum(switch[:30]) == 0 and switch[30] > 0, switch
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_gated_search_keeps_a_moved_track_on_its_floor(seed):
+    node = np.array([10.0, 6.12, 14.5])
+    f, after, p_after = _run(node, GATED, seed, np.array([0.6, 0.6, 0.0]))
+    assert np.all(after == f), after
+    assert p_after.min() > 0.3, p_after.min()
+
+
 def test_off_by_default_and_identical_when_off():
-    assert OFF.mode_search_outliers == 0
+    assert OFF.mode_search_outliers == 0 and OFF.mode_search_new_misfit == 0.0
     node = np.array([10.0, 6.12, 14.5])
     a = _run(node, OFF, 3, np.zeros(3), epochs=40)
     b = _run(node, dataclasses.replace(OFF, mode_jump_sigma_m=0.3, mode_jump_rate_hz=0.1,
