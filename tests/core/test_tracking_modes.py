@@ -36,7 +36,7 @@ B, RADIO = SC.building, SC.radio
 ANCHORS = np.asarray(SC.anchor_positions_m(0.0))
 OFF = TrackerConfig()
 ON = dataclasses.replace(OFF, mode_search_outliers=1, mode_jump_sigma_m=1.0, mode_search_max=2)
-GATED = dataclasses.replace(ON, mode_search_min_links=4, mode_search_new_misfit=0.5)
+GATED = dataclasses.replace(ON, mode_search_min_links=4, mode_search_new_misfit=0.1)
 
 
 def _gauss_log(y, mean, cov):
