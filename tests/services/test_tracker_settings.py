@@ -76,23 +76,25 @@ THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr
 #: again from 7858211 (2026-12-06 17:06 UTC), 3 with the families' minority rule from c77e4db
 #: (2026-12-06 18:23 UTC), five ranges for a family from 7103507 (2026-12-06 19:37 UTC), four
 #: again where the track learned its channel has them from 52c5723 (2026-12-06 20:57 UTC)
+#: the re-seed defaults before 208fb2e (2026-12-07 03:24 UTC: reseed_max 2, reseed_min_links 4)
+RESEED_OFF = {"reseed_max": 0, "reseed_min_links": 0}
 LINK_OFF = {"link_learn": False, "snr_cost_cap_nats": 0.0, "lost_on_gap": False,
             "min_anchors_tracking": 0, "floor_model_doubt": False, "max_order": 2,
             "family_weight": "outlier", "family_gate": "outlier", "family_history": 0,
             "family_min_links": 0, "family_first": False, "family_minority": False,
-            "family_learned_links": 0}
+            "family_learned_links": 0, **RESEED_OFF}
 #: the defaults before 431695e only (a recording made between f926bf5 and it); between it and
 #: 2fd5568 (2026-12-06 14:17 UTC: max_order back to 2) max_order was 3, the families' gate
 #: without a fit history or a minimum of ranges until 182c287 (2026-12-06 15:30 UTC: max_order
 #: 3 again, with them)
 GATE_OFF = {"family_history": 0, "family_min_links": 0, "family_first": False,
-            "family_minority": False, "family_learned_links": 0}
+            "family_minority": False, "family_learned_links": 0, **RESEED_OFF}
 #: the defaults before 52c5723 only (no learned family prior)
-LEARNED_OFF = {"family_learned_links": 0}
+LEARNED_OFF = {"family_learned_links": 0, **RESEED_OFF}
 FAMILIES_OFF = {"max_order": 2, "family_weight": "outlier", "family_gate": "outlier",
                 **GATE_OFF}
 #: a recording made after every change of a default
-NOW_NS = int(datetime.datetime(2026, 12, 6, 21, tzinfo=UTC).timestamp()) * 10**9
+NOW_NS = int(datetime.datetime(2026, 12, 7, 4, tzinfo=UTC).timestamp()) * 10**9
 #: a key that must change the estimates: the model error added to every range sigma [m]
 WHAT_IF = {"sigma_model_m": 0.3}
 
@@ -217,8 +219,9 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [
-    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-06 20:57 UTC"),
-    (AFTER_NS, LINK_OFF, "the defaults of then (family_learned_links=0, family_min_links=0, "
+    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-07 03:24 UTC"),
+    (AFTER_NS, LINK_OFF, "the defaults of then (reseed_max=0, reseed_min_links=0, "
+                         "family_learned_links=0, family_min_links=0, "
                          "max_order=2, "
                          "family_minority=false, family_history=0, "
                          "family_weight=outlier, family_gate=outlier, "
@@ -250,7 +253,9 @@ def test_legacy_tracker_settings_follow_the_history_of_the_defaults():
     tracking/state.py): each change applies to recordings made before it."""
     at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
     mnls = {"method": "mnls", "tracking": True}
-    assert legacy_tracker_settings(mnls, at(2026, 12, 6, 20, 58))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 3, 25))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 6, 20, 58))[0] == {**DEFAULTS,
+                                                                         **RESEED_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 6, 19, 38))[0] == {
         **DEFAULTS, **LEARNED_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 6, 18, 24))[0] == {
