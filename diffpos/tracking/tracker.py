@@ -317,14 +317,17 @@ def _few_anchors(out: TrackOutput, n_meas: NDArray, config: TrackerConfig) -> Tr
 
 
 def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: TrackerConfig):
-    """Re-seed the worst hypotheses (at most ``reseed_max`` per epoch) from snapshots of their
-    floors."""
+    """Re-seed every node's worst hypotheses (at most ``reseed_max`` per node and epoch, the
+    most bad epochs first, ties by hypothesis) from snapshots of their floors. Per node, so a
+    node's result does not depend on the other rows of the call (the fusion's batches,
+    workers and shards give the same estimates)."""
     cand = (floor_bad >= config.reseed_epochs) & eligible[:, None]
-    if config.reseed_max <= 0 or not np.any(cand):  # (off by default: no empty snapshot)
+    if config.reseed_max <= 0 or not np.any(cand):  # (none: no empty snapshot)
         return
-    flat = np.flatnonzero(cand)
-    order = np.argsort(-floor_bad.reshape(-1)[flat], kind="stable")[:config.reseed_max]
-    nodes, hyps = np.unravel_index(flat[order], floor_bad.shape)
+    order = np.argsort(-np.where(cand, floor_bad, -1), axis=1,
+                       kind="stable")[:, :config.reseed_max]
+    nodes, j = np.nonzero(np.take_along_axis(cand, order, axis=1))
+    hyps = order[nodes, j]
     floors = hyps % (floor_bad.shape[1] // 2)
     sub = links.take(nodes)
     x, p, _, _, _ = snapshot(sub, floors[:, None], building, config)

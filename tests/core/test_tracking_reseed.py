@@ -31,8 +31,8 @@ SC = default_scenario()
 B, RADIO = SC.building, SC.radio
 ANCHORS = np.asarray(SC.anchor_positions_m(0.0))
 NODE = np.array([10.0, 6.12, 14.5])
-OFF = TrackerConfig()
-ON = dataclasses.replace(OFF, reseed_max=2, reseed_min_links=4)
+ON = TrackerConfig()  # the re-seed is on by default since 208fb2e (2026-12-07)
+OFF = dataclasses.replace(ON, reseed_max=0, reseed_min_links=0)
 OFFSET = np.array([0.0, 8.0, 0.0])  # 8 m deeper into the building: its ranges fail there
 
 
@@ -80,5 +80,5 @@ def test_three_ranges_are_not_reseeded_with_reseed_min_links_4(seed):
     assert not np.array_equal(off_state.mean[0, f], s0.mean[0, f])  # re-seeded at 0
 
 
-def test_off_by_default():
-    assert OFF.reseed_max == 0 and OFF.reseed_min_links == 0
+def test_on_by_default():
+    assert ON.reseed_max == 2 and ON.reseed_min_links == 4
