@@ -134,10 +134,10 @@ class TrackerConfig:
         At most this many floor hypotheses of a node are re-seeded per epoch (bounded cost;
         per node since 2026-12-07, so rows stay independent: before, per call); 0: none.
         Default 2 (with ``reseed_min_links`` 4) since 2026-12-07: on Sionna RT's live paper
-        building (five noise seeds, lockstep, unbounded steps) right floor 84.91 -> 87.17 %,
+        building (five noise seeds, lockstep, unbounded steps) right floor 84.91 -> 87.28 %,
         better on every seed, no floor published wrongly at p >= 0.95; the 3-UAV building
-        identical, Sionna ``large`` 91.01 / 0.97 -> 91.02 / 0.99 %, the main command's
-        twelve seeds 91.30 / 1.03 -> 91.10 / 1.06 %, the emulator's 30 s ``large`` identical;
+        identical, Sionna ``large`` 91.01 / 0.97 -> 90.93 / 1.06 %, the main command's
+        twelve seeds 91.30 / 1.03 -> 91.13 / 1.06 %, the emulator's 30 s ``large`` identical;
         the tracker's CPU on ``large`` +10 % (docs/tracking_evidence.md "Session 24").
         Before: 0 (measured then on the default and large scenarios: it changed no floor
         decision, and a snapshot cost ~0.1-0.3 s per node-floor).
