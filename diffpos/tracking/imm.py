@@ -34,9 +34,10 @@ nodes, deterministic.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from diffpos.tracking.state import (
     FloatArray,
@@ -98,7 +99,7 @@ def _transitions(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
     """
     h = mean.shape[1]
     nf = h // 2
-    adj, other, same_mode, to_floor, same_floor, start, _, _ = _layout(nf)
+    adj, other, same_mode, to_floor, same_floor, start = _layout(nf)[:6]
     fl, vert = hypothesis_floor(nf), hypothesis_vertical(nf)
     dt = np.maximum(dt_s, 0.0)[:, None, None]
     lo, hi = _floor_band(building, nf, config)
@@ -127,22 +128,32 @@ def _transitions(mean: FloatArray, cov: FloatArray, dt_s: FloatArray, building,
     return own + cross_f + cross_j, own * (1.0 - start) + cross_f, cross_j
 
 
+class _Layout(NamedTuple):
+    """The hypotheses' fixed transition layout of a floor count (float 0/1 unless said)."""
+
+    adj: FloatArray  #: (H, F) hypothesis h's floor next to floor g
+    other: FloatArray  #: (H, F) another floor
+    same_mode: FloatArray  #: (H, H)
+    to_floor: FloatArray  #: (F, H) floor g -> hypothesis h
+    same_floor: FloatArray  #: (H, H)
+    start: FloatArray  #: (H, H) level -> vertical of any floor
+    start_b: NDArray[np.bool_]  #: (H, H) ``start`` as bool: level f -> vertical g
+    stop: NDArray[np.bool_]  #: (H, H) vertical f -> level g
+
+
 @functools.lru_cache(maxsize=64)
-def _layout(n_floors: int) -> tuple:
-    """The hypotheses' fixed transition layout of ``n_floors`` floors (read-only, built once,
-    not on every tracker call): adjacent floors and other floors (H, F), the same mode (H, H),
-    floor g -> hypothesis (F, H), the same floor (H, H), level -> vertical of any floor as
-    float (H, H), and as bool level f -> vertical g (``start``) and vertical -> level
-    (``stop``), (H, H)."""
+def _layout(n_floors: int) -> _Layout:
+    """The :class:`_Layout` of ``n_floors`` floors (read-only, built once, not on every
+    tracker call)."""
     fl, vert = hypothesis_floor(n_floors), hypothesis_vertical(n_floors)
     g = np.arange(n_floors)
     start_b = ~vert[:, None] & vert[None, :]
-    out = ((np.abs(fl[:, None] - g[None, :]) == 1).astype(np.float64),
-           (fl[:, None] != g[None, :]).astype(np.float64),
-           (vert[:, None] == vert[None, :]).astype(np.float64),
-           (fl[None, :] == g[:, None]).astype(np.float64),
-           (fl[:, None] == fl[None, :]).astype(np.float64),
-           start_b.astype(np.float64), start_b, vert[:, None] & ~vert[None, :])
+    out = _Layout((np.abs(fl[:, None] - g[None, :]) == 1).astype(np.float64),
+                  (fl[:, None] != g[None, :]).astype(np.float64),
+                  (vert[:, None] == vert[None, :]).astype(np.float64),
+                  (fl[None, :] == g[:, None]).astype(np.float64),
+                  (fl[:, None] == fl[None, :]).astype(np.float64),
+                  start_b.astype(np.float64), start_b, vert[:, None] & ~vert[None, :])
     for a in out:
         a.flags.writeable = False
     return out
@@ -181,7 +192,8 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
     joint = w[:, :, None] * pi  # (N, H, H)
     c = joint.sum(axis=1)  # (N, H)
     lo, hi = _floor_band(building, nf, config)
-    start, stop = _layout(nf)[6:]  # (H, H): level f -> vertical g, vertical f -> level g
+    lay = _layout(nf)
+    start, stop = lay.start_b, lay.stop  # (H, H): level f -> vertical g, vertical f -> level g
     if config.mixing == "imm":
         mu = joint / np.maximum(c[:, None, :], 1e-300)  # mu[f | g]
         # state of hypothesis f moved into hypothesis g: (N, H, H, 6)

@@ -17,13 +17,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from lm_iterations import count_lm_iterations
+from outside_fixes import SIG_M, W_M, outside_fixes
 
 from diffpos.estimators.dnls.solver import dnls
 from diffpos.estimators.result import ExclusionReason, FixStatus
-from diffpos.geometry import window_edge_path
 
-W_M = 1.2
-SIG_M = 0.05
 POS_TOL_M = 1e-5  # rounding-level differences of kernel and reference (test_dnls_kernel.py)
 
 
@@ -32,12 +30,7 @@ def _faulty(seed: int, n: int, m: int = 8, faults: int = 1):
     fix; 10 % of the links missing. Returns anchors, ranges, mask, nodes and the faulty
     anchor (the first one)."""
     rng = np.random.default_rng(seed)
-    a = np.stack([rng.uniform(-30, 30, (n, m)), rng.uniform(-40, -5, (n, m)),
-                  rng.uniform(0, 40, (n, m))], axis=-1)
-    nodes = np.stack([rng.uniform(-15, 15, n), rng.uniform(0.5, 15, n),
-                      1.5 + 3.0 * rng.integers(0, 9, n)], axis=-1)
-    r = window_edge_path(a, nodes[:, None, :], window_height_m=W_M).length_m
-    r = r + rng.normal(0.0, SIG_M, (n, m))
+    a, nodes, r = outside_fixes(rng, n, m)
     bad = np.stack([rng.permutation(m)[:faults] for _ in range(n)])
     for k in range(faults):
         r[np.arange(n), bad[:, k]] += rng.uniform(3.0, 10.0, n)

@@ -15,35 +15,25 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from lm_iterations import count_lm_iterations
+from outside_fixes import SIG_M, W_M, outside_fixes
 
 from diffpos.estimators.dnls.solver import dnls
 from diffpos.estimators.lm import PathModel, levenberg_marquardt
 from diffpos.estimators.lm_nb import LAMBDA0, lm_fit_ftol
 from diffpos.estimators.result import ExclusionReason
-from diffpos.geometry import window_edge_path
 
-W_M = 1.2
-SIG_M = 0.05
 EXHAUSTIVE = {"exclusion_ftol": None, "exclusion_recheck_ratio": None, "exclusion_bound": None}
 
 
 def _faulty_nodes(seed: int, n: int, m: int = 8):
     """The nodes of :func:`_faulty` (same seed)."""
-    rng = np.random.default_rng(seed)
-    rng.uniform(-30, 30, (n, m)), rng.uniform(-40, -5, (n, m)), rng.uniform(0, 40, (n, m))
-    return np.stack([rng.uniform(-15, 15, n), rng.uniform(0.5, 15, n),
-                     1.5 + 3.0 * rng.integers(0, 9, n)], axis=-1)
+    return outside_fixes(np.random.default_rng(seed), n, m)[1]
 
 
 def _faulty(seed: int, n: int, m: int = 8):
     """Anchors outside, nodes on 9 floors, 5 cm noise and one fault of +3..10 m per fix."""
     rng = np.random.default_rng(seed)
-    a = np.stack([rng.uniform(-30, 30, (n, m)), rng.uniform(-40, -5, (n, m)),
-                  rng.uniform(0, 40, (n, m))], axis=-1)
-    nodes = np.stack([rng.uniform(-15, 15, n), rng.uniform(0.5, 15, n),
-                      1.5 + 3.0 * rng.integers(0, 9, n)], axis=-1)
-    r = window_edge_path(a, nodes[:, None, :], window_height_m=W_M).length_m
-    r = r + rng.normal(0.0, SIG_M, (n, m))
+    a, _, r = outside_fixes(rng, n, m)
     bad = rng.integers(0, m, n)
     r[np.arange(n), bad] += rng.uniform(3.0, 10.0, n)
     return a, r, bad
