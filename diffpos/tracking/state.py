@@ -27,6 +27,7 @@ __all__ = [
     "TrackStatus",
     "TrackerConfig",
     "TrackerState",
+    "floor_contested",
     "floor_probabilities",
     "hypothesis_floor",
     "hypothesis_vertical",
@@ -408,6 +409,28 @@ class TrackerConfig:
         plan), 1.43 to 0.45 % (a held-out building), but the emulator's floors, 99.6-99.7 %
         right, are then published underconfident (``large``: 20 % of its node-epochs at
         0.5-0.8, 99 % right; floor log score 0.020 -> 0.087 nats, ``default`` 0.074 -> 0.200).
+    floor_contest_s : float [s]
+        The published floor probabilities of a node whose most probable floor was *contested*
+        less than this long ago are tempered by ``floor_contest_kappa`` instead of ``kappa``
+        (:func:`evidence_temper`; :func:`published_floor_probabilities`' ``contested``).
+        Contested (:func:`floor_contested`, the tracker's ``lead_floor`` / ``lead_ns``): in an
+        update in which the most probable floor changed, or its filter probability was below
+        1/2, or the node had fewer than four ranges (three ranges fit a position on any floor:
+        the ranges did not test the floor in that epoch). Why: ``kappa`` (3.9, the AR(1) factor
+        of the lag-1 correlation) holds where the filter's floor log-odds are the jump floor
+        plus the latest few epochs' evidence (a lead held for long); after a contest the lead
+        is the sum of every epoch's evidence since, whose correlation is ~0 only after ~3 s
+        (the measurement of ``floor_evidence_lag1_corr``), so its information is that of
+        ``n / (1 + 2 sum_k rho_k)`` epochs, 10 over the measured curve. Publication only: the
+        filter, the chosen floor and the position are unchanged. 0 (default): off (before).
+        Measured (docs/floor_calibration.md "Session 25"): with 3 s and 10, the wrong floors
+        published at p >= 0.95 on the README's main command (seeds 0-11) fall from 1.06 to 0.09
+        % of the node-epochs (worst seed 3.70 -> 0.46 %), Sionna RT's live ``large`` 1.06 ->
+        0.26 %, its three-UAV heldout-2 2.85 -> 0 %.
+    floor_contest_kappa : float [-]
+        The tempering divisor of the published floor log-odds within ``floor_contest_s`` of a
+        contest (default 10: ``1 + 2 sum_k rho_k`` over the measured correlation curve of the
+        floor evidence, the figure of ``floor_evidence_lag1_corr``'s docstring).
     mode_search_outliers : int
         Other modes of a hypothesis' posterior: an updated hypothesis that calls at least
         this many of its ranges outliers is also fitted from the best cells of a local grid
@@ -516,6 +539,8 @@ class TrackerConfig:
     family_fit: str = "prior"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
+    floor_contest_s: float = 0.0
+    floor_contest_kappa: float = 10.0
     mode_search_outliers: int = 0
     mode_jump_rate_hz: float = 0.0
     mode_jump_sigma_m: float = 2.0
@@ -589,6 +614,11 @@ class TrackerState:
         Learned mean SNR of the link while an outlier (NaN: none).
     link_t_ns : ndarray of int64, shape (N, H, L) [ns]
         When the excess delay was last updated.
+    lead_floor : ndarray of int, shape (N,)
+        The most probable floor (of the filter) after the node's last update (-1: none).
+    lead_ns : ndarray of int64, shape (N,) [ns]
+        The last update in which the node's floor was contested (:func:`floor_contested`;
+        ``TrackerConfig.floor_contest_s``).
     unexplained, redundant : ndarray, shape (N,)
         Forgotten counts (``link_forget`` per counted epoch) of the node's epochs with a
         redundant range (at least four) in which every hypothesis misfit a present link at its
@@ -625,6 +655,8 @@ class TrackerState:
     link_fit: FloatArray
     unexplained: FloatArray
     redundant: FloatArray
+    lead_floor: NDArray[np.int_]
+    lead_ns: NDArray[np.int64]
 
 
 @dataclass(frozen=True)
@@ -703,7 +735,8 @@ def published_floor_probabilities(log_prob: ArrayLike, config: TrackerConfig,
                                   prob: FloatArray | None = None, *,
                                   link_ev: FloatArray | None = None,
                                   link_all: FloatArray | None = None,
-                                  doubt: FloatArray | None = None) -> FloatArray:
+                                  doubt: FloatArray | None = None,
+                                  contested: NDArray[np.bool_] | None = None) -> FloatArray:
     """The floor probabilities the tracker publishes (:attr:`TrackOutput.floor_probabilities`),
     (N, F): the floor marginals of :func:`floor_probabilities` raised to ``1 / kappa``
     (:func:`evidence_temper`) and renormalised, i.e. every log-odds between two floors divided
@@ -731,11 +764,19 @@ def published_floor_probabilities(log_prob: ArrayLike, config: TrackerConfig,
     (``bench_tracking.py --reliability``, 18,000 node-epochs): estimates published at
     >= 0.99 right 95.6 -> 99.8 %, log loss 0.60 -> 0.24 nats; below 0.9 still
     overconfident (long wrong-floor locks).
+
+    ``contested`` (N,) bool: the nodes whose floor was contested less than
+    ``config.floor_contest_s`` ago (the tracker's; None or the setting 0: none); their
+    log-odds are divided by ``config.floor_contest_kappa`` instead (the lead built since the
+    contest is a sum of correlated evidence, ``TrackerConfig.floor_contest_s``).
     """
     p = floor_probabilities(log_prob, prob)
     kappa = evidence_temper(config)
+    if contested is not None and config.floor_contest_s > 0 and np.any(contested):
+        kappa = np.where(np.asarray(contested, bool), max(float(config.floor_contest_kappa), 1.0),
+                         kappa)[:, None]
     robust = link_ev is not None and config.floor_robust_links > 0 and config.link_learn
-    if kappa == 1.0 and not robust:
+    if np.ndim(kappa) == 0 and kappa == 1.0 and not robust:
         return _mix_uniform(p, doubt)
     if robust:
         e0 = float(config.outlier_weight)
@@ -747,6 +788,21 @@ def published_floor_probabilities(log_prob: ArrayLike, config: TrackerConfig,
     lp = lp - lp.max(axis=-1, keepdims=True)
     q = np.exp(lp)
     return _mix_uniform(q / q.sum(axis=-1, keepdims=True), doubt)
+
+
+def floor_contested(log_prob: FloatArray, lead_floor: NDArray[np.int_], n_meas: NDArray,
+                    prob: FloatArray | None = None) -> tuple[NDArray[np.bool_], NDArray[np.int_]]:
+    """Whether every node's floor is *contested* in this update, and its most probable floor
+    (N,) (``TrackerConfig.floor_contest_s``): the most probable floor of the filter differs from
+    ``lead_floor`` (the previous update's), or its probability is below 1/2 (no floor has
+    the majority), or the node has fewer than four ranges ``n_meas`` (three ranges fit a
+    position on any floor, so the ranges did not test the floor). ``prob``: ``exp(log_prob)``
+    if the caller has it."""
+    pf = floor_probabilities(log_prob, prob)
+    top = np.argmax(pf, axis=1)
+    p_top = pf[np.arange(pf.shape[0]), top]
+    contested = (top != lead_floor) | (p_top < 0.5) | (np.asarray(n_meas) < 4)
+    return contested, top
 
 
 def _mix_uniform(p: FloatArray, doubt: FloatArray | None) -> FloatArray:

@@ -180,6 +180,7 @@ from diffpos.tracking.state import (
     TrackerState,
     TrackOutput,
     TrackStatus,
+    floor_contested,
     floor_probabilities,
     hypothesis_floor,
     hypothesis_vertical,
@@ -210,6 +211,7 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         link_anchor=np.full((n_nodes, LINK_SLOTS, 3), np.nan),
         link_seen_ns=np.full((n_nodes, LINK_SLOTS), t_ns, np.int64),
         unexplained=np.zeros(n_nodes), redundant=np.zeros(n_nodes),
+        lead_floor=np.full(n_nodes, -1, int), lead_ns=np.full(n_nodes, t_ns, np.int64),
         **_empty_links(n_nodes, h, t_ns))
 
 
@@ -259,8 +261,8 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
 
 
 def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
-             config: TrackerConfig | None = None, n_meas: NDArray | None = None
-             ) -> TrackOutput:
+             config: TrackerConfig | None = None, n_meas: NDArray | None = None,
+             contested: NDArray | None = None) -> TrackOutput:
     config = TrackerConfig() if config is None else config
     n, h = state.log_prob.shape
     nf = h // 2
@@ -293,7 +295,8 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
             state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
             doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas,
                                prob_h)
-                   if config.floor_model_doubt and config.link_learn else None)),
+                   if config.floor_model_doubt and config.link_learn else None),
+            contested=contested),
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
 
@@ -452,12 +455,17 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         TrackStatus.TRACKING)
     if snr_cache[0] is st.snr_node:  # not updated: the new state owns its arrays
         snr_cache = tuple(a.copy() for a in snr_cache)
+    contested, lead = floor_contested(lp, st.lead_floor, n_meas)
+    lead_ns = np.where(contested, t, st.lead_ns)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
-                       snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk)
-    return new, _few_anchors(_publish(new, mech, resid, config, n_meas), n_meas, config)
+                       snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk,
+                       lead_floor=lead, lead_ns=lead_ns)
+    recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
+    return new, _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas,
+                             config)
 
 
 # --------------------------------------------------------------------------------------------
