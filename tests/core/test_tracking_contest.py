@@ -46,7 +46,7 @@ def test_three_ranges_do_not_publish_a_mirror_floor_confident():
     3.9); the filter is the same (floor, position and state bit for bit): publication only."""
     assert B.floor_index(RX[2]) == 4
     for seed in range(3):
-        st0, old = _static(TrackerConfig(), seed)
+        st0, old = _static(TrackerConfig(floor_contest_s=0.0), seed)
         st1, new = _static(TrackerConfig(floor_contest_s=3.0), seed)
         assert old.floor_index[0] == new.floor_index[0] != 4
         assert old.floor_probabilities[0, old.floor_index[0]] >= 0.95
@@ -84,7 +84,7 @@ def test_published_log_odds_follow_the_contest_clock():
                                    "points_m": [[-5.0, 4.0, 8.0], [5.0, 4.0, 8.0]]})
     assert B.floor_index(8.0) == 1
     cfg_on = TrackerConfig(floor_contest_s=1.0, floor_model_doubt=False)
-    cfg_off = TrackerConfig(floor_model_doubt=False)
+    cfg_off = TrackerConfig(floor_contest_s=0.0, floor_model_doubt=False)
     rng = np.random.default_rng(3)
     s_on, s_off = init_state(1, B), init_state(1, B)
     prev, lead, seen = -1, 0, set()
