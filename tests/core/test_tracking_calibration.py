@@ -48,7 +48,8 @@ def _run():
                       for i, p in enumerate(pts)))
     sc = dataclasses.replace(sc, node_grid=None, nodes=tuple(
         NodeSpec(i, tr) for i, tr in responders(b, count=6, seed=21)))
-    cfg = TrackerConfig(floor_model_doubt=False)  # the tempering alone (test_tracking_doubt.py)
+    # the tempering alone (the doubt: test_tracking_doubt.py, the contest: test_tracking_contest.py)
+    cfg = TrackerConfig(floor_model_doubt=False, floor_contest_s=0.0)
     rng = np.random.default_rng(1)
     m, n = len(sc.anchors), len(sc.nodes)
     sig = np.array([0.02, 0.02, 0.03])

@@ -41,8 +41,9 @@ from diffpos.trajectory import trajectory_from_dict
 SC = default_scenario()
 B = SC.building
 RADIO = SC.radio
-ON = TrackerConfig(dormant=True)
-OFF = TrackerConfig(dormant=False)
+#: the contest rule off: the published probabilities are recomputed from the state below
+ON = TrackerConfig(dormant=True, floor_contest_s=0.0)
+OFF = TrackerConfig(dormant=False, floor_contest_s=0.0)
 ANCHORS8 = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                      [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                      [8.0, -25.0, 0.5]])

@@ -26,7 +26,8 @@ SC = default_scenario()
 B = SC.building
 RADIO = SC.radio
 ON = TrackerConfig()
-OFF = dataclasses.replace(ON, lost_on_gap=False, min_anchors_tracking=0)
+#: the re-entry rules off (and the contest rule, which also tempers a node with < 4 ranges)
+OFF = dataclasses.replace(ON, lost_on_gap=False, min_anchors_tracking=0, floor_contest_s=0.0)
 ANCHORS8 = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                      [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                      [8.0, -25.0, 0.5]])
