@@ -208,8 +208,10 @@ class TrackBank:
         is held when that would leave ``now`` empty. ``newest`` (a lagging step): only a held
         node's newest epoch is held (its track starts from the freshest ranges, the older ones
         go out without a position). Only the bank's state is read (new nodes get rows)."""
-        held: set[str] = set()
         last = {pe.node_id: i for i, pe in enumerate(epochs)}
+        if not self._may_start(last):  # the common step: nothing to hold (and no new row)
+            return epochs, []
+        held: set[str] = set()
         for rows_l in _rounds(epochs):
             if len(held) >= budget:
                 break
@@ -222,6 +224,15 @@ class TrackBank:
                 for i, pe in enumerate(epochs)]
         now = [pe for pe, h in zip(epochs, hold, strict=True) if not h]
         return (epochs, []) if not now else (now, list(itertools.compress(epochs, hold)))
+
+    def _may_start(self, node_ids) -> bool:
+        """Whether any of ``node_ids`` is new, UNINITIALISED or LOST (:meth:`needs_init`
+        can hold for none of the others, whatever its ranges)."""
+        index = self.index
+        if any(n not in index for n in node_ids):
+            return True
+        st = self.state.status[[index[n] for n in node_ids]]
+        return bool(np.isin(st, _NO_POSITION).any())
 
     def confident_of(self, node_ids: list[str]) -> np.ndarray:
         """Whether each node's track is confident (:data:`CONFIDENT_FLOOR_PROBABILITY`,
@@ -245,7 +256,8 @@ class TrackBank:
         returns the :class:`~diffpos.tracking.tracker.TrackOutput`."""
         rows = self.rows_of(node_ids)
         fields = TrackerState.__dataclass_fields__
-        sub = TrackerState(*(getattr(self.state, f)[rows] for f in fields))
+        at = _as_slice(rows)  # the rows' views (the update copies what it keeps)
+        sub = TrackerState(*(getattr(self.state, f)[at] for f in fields))
         radio = self.radio if radio is None else radio
         if self.pool is None or self.pool.building is not self.building:
             new, out = _update_rows(self.building, sub, anchors, ranges, sigmas, mask, t_ns,
@@ -259,8 +271,17 @@ class TrackBank:
                                           shared=(self.config, radio))
         for f in fields:  # the rows in place (the bank's arrays are its own: rows_of copies)
             if (v := getattr(new, f)) is not None:  # None: a slimmed SNR cache, unchanged
-                getattr(self.state, f)[rows] = v
+                getattr(self.state, f)[at] = v
         return out
+
+
+def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
+    """``rows`` as a slice when they are consecutive and ascending (a step's nodes in the
+    order they came: most calls), else themselves."""
+    if rows.size and rows[-1] - rows[0] == rows.size - 1 and (
+            rows.size == 1 or bool((np.diff(rows) == 1).all())):
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows
 
 
 def _update_rows(building, sub, anchors, ranges, sigmas, mask, t_ns, snr_db, config, radio):
@@ -391,13 +412,14 @@ def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray
     period = round(cfg.snapshot_period_s * 1e9)
     long_period = (math.inf if cfg.confident_snapshot_period_s is None
                    else max(period, round(cfg.confident_snapshot_period_s * 1e9)))
-    due = np.ones(len(epochs), bool)
     lasts = [bank.snapshot_ns.get(nid) for nid in ids]
-    for i, (last, ok, sure_i) in enumerate(zip(lasts, placed.tolist(), sure.tolist(),
-                                               strict=True)):
-        if ok and last is not None and 0 <= t_ref[i] - last < (long_period if sure_i
-                                                                else period):
-            due[i] = False
+    seen = np.array([x is not None for x in lasts], bool)
+    age = np.asarray(t_ref) - np.array([0 if x is None else x for x in lasts], np.int64)
+    # not due: placed, with a snapshot younger than its period (int64 ns; an infinite
+    # confident period: never due again)
+    young = np.where(sure, (age < long_period) if long_period != math.inf else True,
+                     age < period)
+    due = ~(placed & seen & (age >= 0) & young)
     if behind:  # the tracked estimates first: a snapshot only where it is the only fix
         due &= ~placed
     start = (np.zeros(len(epochs), bool) if starting is None or cfg.snapshot_at_start
