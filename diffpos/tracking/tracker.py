@@ -359,6 +359,35 @@ def _with_rows(a: NDArray, idx: NDArray, v: NDArray) -> NDArray:
     return out
 
 
+#: The state's arrays a measurement update replaces row by row (:func:`_merged`).
+_UPDATED = ("mean", "cov", "log_prob", "nis", "dormant_llr", "updated_ns", "below_epochs")
+#: The learned link arrays (:mod:`diffpos.tracking.evidence`) among them.
+_LINK_STATE = (*LINK_FIELDS, "link_anchor", "link_seen_ns", "unexplained", "redundant")
+
+
+def _merged(st: TrackerState, idx: NDArray, new: dict) -> dict:
+    """New arrays of the fields :data:`_UPDATED` and :data:`_LINK_STATE` of ``st``: each a
+    copy with the rows ``idx`` (sorted, distinct) replaced by ``new[field]`` where ``new`` has
+    the field. When ``idx`` is every row, ``new[field]`` itself where it is what the copy
+    would be (same shape and dtype, C-contiguous, writeable, not another field's array):
+    the same values and layout without copying what is replaced anyway (most tracker calls
+    update every node they get)."""
+    out: dict = {}
+    taken: set[int] = set()
+    for k in (*_UPDATED, *_LINK_STATE):
+        a, v = getattr(st, k), new.get(k)
+        if (v is not None and idx.size == a.shape[0] and v.shape == a.shape
+                and v.dtype == a.dtype and v.flags.c_contiguous and v.flags.writeable
+                and id(v) not in taken):
+            out[k] = v
+            taken.add(id(v))
+            continue
+        out[k] = a.copy()
+        if v is not None:
+            out[k][idx] = v
+    return out
+
+
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
            mask: ArrayLike, t_ns: ArrayLike, building, config: TrackerConfig, *,
            snr_db: ArrayLike | None = None, radio=None) -> tuple[TrackerState, TrackOutput]:
@@ -391,14 +420,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     t = np.broadcast_to(np.asarray(t_ns, dtype=np.int64), (n,))
     st, inflow = _predict(state, t, building, config)
     dt_s = (t - state.t_ns) * 1e-9
-    mean, cov, lp = st.mean.copy(), st.cov.copy(), st.log_prob.copy()
-    status, nis, good, bad = st.status.copy(), st.nis.copy(), st.good.copy(), st.bad.copy()
+    status, good, bad = st.status.copy(), st.good.copy(), st.bad.copy()
     floor_bad = st.floor_bad.copy()
-    llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
     origin = st.refresh_origin_ns.copy()
     snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
-    lk = {k: getattr(st, k).copy() for k in (*LINK_FIELDS, "link_anchor", "link_seen_ns",
-                                             "unexplained", "redundant")}
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
@@ -409,6 +434,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     live = ((status == TrackStatus.INITIALISING) | (status == TrackStatus.TRACKING)
             | (status == TrackStatus.COASTING))  # np.isin's values (np.isin: 1.5 % of a 1-node call)
     idx = np.flatnonzero(live & (n_meas > 0))
+    new: dict = {}
     if idx.size:
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
             st, links, idx, t, inflow, dt_s, building, config)
@@ -416,13 +442,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
                               zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"),
                                   strict=True))
-        mean[idx], cov[idx], lp[idx], nis[idx] = new["mean"], new["cov"], new["log_prob"], \
-            new["nis"]
-        llr[idx], upd[idx], below[idx] = new["dormant_llr"], new["updated_ns"], \
-            new["below_epochs"]
-        for k in lk:
-            if k in new:
-                lk[k][idx] = new[k]
+    merged = _merged(st, idx, new)
+    mean, cov, lp, nis, llr, upd, below = (merged[k] for k in _UPDATED)
+    lk = {k: merged[k] for k in _LINK_STATE}
+    if idx.size:
         floor_bad[idx] = np.where(ran, np.where(bad_f, floor_bad[idx] + 1, 0), floor_bad[idx])
         bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
         good[idx] = np.where(bad_epoch, 0, good[idx] + 1)

@@ -288,7 +288,7 @@ def _cold_retries(warm: np.ndarray, status: np.ndarray, epochs: list[PendingEpoc
 def gated_count(batch: Batch, res: Results) -> int:
     """Ranges excluded by the gating (RAIM or the LoS pre-gate)."""
     gated = (batch.reported & batch.detected & batch.have_state & ~res.used
-             & np.isin(res.reason, _GATE_CODES))
+             & ((res.reason == _GATE_CODES[0]) | (res.reason == _GATE_CODES[1])))
     return int(gated.sum())
 
 
