@@ -210,7 +210,7 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         link_anchor=np.full((n_nodes, LINK_SLOTS, 3), np.nan),
         link_seen_ns=np.full((n_nodes, LINK_SLOTS), t_ns, np.int64),
         unexplained=np.zeros(n_nodes), redundant=np.zeros(n_nodes),
-        **_empty_links(n_nodes, h, t_ns))
+        deficit_count=np.zeros((n_nodes, h), int), **_empty_links(n_nodes, h, t_ns))
 
 
 def _empty_links(n: int, h: int, t_ns: int = 0) -> dict:
@@ -392,6 +392,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     status, nis, good, bad = st.status.copy(), st.nis.copy(), st.good.copy(), st.bad.copy()
     floor_bad = st.floor_bad.copy()
     llr, upd, below = st.dormant_llr.copy(), st.updated_ns.copy(), st.below_epochs.copy()
+    deficit = st.deficit_count.copy()
     origin = st.refresh_origin_ns.copy()
     snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
     lk = {k: getattr(st, k).copy() for k in (*LINK_FIELDS, "link_anchor", "link_seen_ns",
@@ -407,8 +408,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             | (status == TrackStatus.COASTING))  # np.isin's values (np.isin: 1.5 % of a 1-node call)
     idx = np.flatnonzero(live & (n_meas > 0))
     if idx.size:
+        due = (_deficit_due(state.t_ns[idx], t[idx], st.refresh_origin_ns[idx], n_floors_of(st),
+                            config.deficit_period_s) if config.deficit_nats > 0 else None)
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
-            st, links, idx, t, inflow, dt_s, building, config)
+            st, links, idx, t, inflow, dt_s, building, config, due)
         if "snr_node" in new:  # the SNR cache carried along (diffpos.tracking.model.snr_reuse_on)
             snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
                               zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"),
@@ -421,6 +424,11 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             if k in new:
                 lk[k][idx] = new[k]
         floor_bad[idx] = np.where(ran, np.where(bad_f, floor_bad[idx] + 1, 0), floor_bad[idx])
+        if due is not None:  # an evidence deficit in deficit_tests tests: re-seeded below
+            hit = new["deficit_count"] >= max(config.deficit_tests, 1)
+            floor_bad[idx] = np.where(hit, np.maximum(floor_bad[idx], config.reseed_epochs),
+                                      floor_bad[idx])
+            deficit[idx] = np.where(hit, 0, new["deficit_count"])
         bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
         good[idx] = np.where(bad_epoch, 0, good[idx] + 1)
         last[idx] = t[idx]
@@ -445,6 +453,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         status[jdx] = TrackStatus.INITIALISING
         nis[jdx], good[jdx], bad[jdx], last[jdx] = 1.0, 0, 0, t[jdx]
         floor_bad[jdx], llr[jdx], upd[jdx], below[jdx] = 0, np.nan, t[jdx, None], 0
+        deficit[jdx] = 0
         origin[jdx] = t[jdx]
         reset_links({k: lk[k] for k in LINK_FIELDS}, jdx)
         lk["unexplained"][jdx], lk["redundant"][jdx] = 0.0, 0.0
@@ -456,7 +465,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
-                       snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk)
+                       snr_anchor=snr_cache[1], snr_pred=snr_cache[2], deficit_count=deficit,
+                       **lk)
     return new, _few_anchors(_publish(new, mech, resid, config, n_meas), n_meas, config)
 
 
@@ -717,13 +727,16 @@ def _link_misfit(nis_h: FloatArray, res: FloatArray, var: FloatArray,
 
 
 def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray,
-                  inflow: FloatArray, dt_s: FloatArray, building, config: TrackerConfig):
+                  inflow: FloatArray, dt_s: FloatArray, building, config: TrackerConfig,
+                  deficit_due: NDArray[np.bool_] | None = None):
     """Measurement update of the nodes ``idx`` (their rows of the predicted ``state``, ``t_ns``,
     ``inflow`` (:func:`diffpos.tracking.imm._mix`), ``dt_s``): the hypotheses that are awake,
     due for a refresh, woken by the mixing, or of a node that is not TRACKING; then, for a
     node whose best hypothesis fits badly this epoch (NIS above ``nis_limit``, most ranges
     outliers), its dormant ones too. Returns the nodes' new arrays (a dict of state fields), the updated
-    hypotheses (n, H), every hypothesis' bad flag, and the best's mechanism/residual."""
+    hypotheses (n, H), every hypothesis' bad flag, and the best's mechanism/residual.
+    ``deficit_due`` (n, F): the floors of the nodes due for an evidence-deficit test
+    (:func:`_deficit_counts`; None: the setting off, no ``deficit_count`` in the dict)."""
     nf = n_floors_of(state)
     h = 2 * nf
     sub = links.take(idx)
@@ -778,6 +791,12 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         if not np.any(todo):
             break
     nis = (1 - config.nis_alpha) * state.nis[idx] + config.nis_alpha * np.minimum(nis_epoch, 1e3)
+    if deficit_due is not None:
+        deficit_due = (deficit_due & (state.status[idx] == TrackStatus.TRACKING)[:, None]
+                       & (n_meas >= max(config.min_ranges_init, config.reseed_min_links))[:, None])
+        new_deficit = _deficit_counts(m0, c0, sub, ev, run, deficit_due,
+                                      state.deficit_count[idx], nf, building, config, link_w,
+                                      fam_gate)
     bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
     nis_f, n_in_f = _epoch_nis(nis_h)
     bad_f = (2 * n_in_f < n_meas[:, None]) | (nis_f > config.nis_limit)
@@ -790,6 +809,8 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     new = {"mean": x, "cov": p, "log_prob": lp, "nis": nis, "below_epochs": below,
            "dormant_llr": np.where(asleep, np.where(run, llr, llr0), np.nan),
            "updated_ns": np.where(run, t_ns[idx, None], state.updated_ns[idx])}
+    if deficit_due is not None:
+        new["deficit_count"] = new_deficit
     if snr_cache is not None:  # the SNR cache's rows (reuse off: the state's stay as they are)
         new.update(zip(("snr_node", "snr_anchor", "snr_pred"), snr_cache, strict=True))
     if lk is not None:
@@ -808,6 +829,55 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
                 state.unexplained[idx], state.redundant[idx], new["link_fit"], col,
                 sub.mask[:, 0], n_meas, config)
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
+
+
+def _deficit_due(prev_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
+                 origin_ns: NDArray[np.int64], n_floors: int, period_s: float
+                 ) -> NDArray[np.bool_]:
+    """The floors (n, F) due for an evidence-deficit test this epoch
+    (``TrackerConfig.deficit_period_s``): floor ``f``'s boundaries at ``origin + k T - f T /
+    F`` (measurement time relative to the node's ``origin_ns``, as :func:`_refresh_due`)
+    passed between the node's previous time ``prev_ns`` and ``t_ns`` (n,)."""
+    period = max(round(period_s * 1e9), 1)
+    phase = (np.arange(n_floors, dtype=np.int64) * period) // n_floors
+    o = origin_ns[:, None]
+    return (t_ns[:, None] - o + phase) // period > (prev_ns[:, None] - o + phase) // period
+
+
+def _deficit_counts(m0: FloatArray, c0: FloatArray, sub: Links, ev: FloatArray,
+                    run: NDArray[np.bool_], due: NDArray[np.bool_], count: NDArray[np.int_],
+                    n_floors: int, building, config: TrackerConfig,
+                    link_w: FloatArray | None, fam_gate: NDArray | None) -> NDArray[np.int_]:
+    """The new evidence-deficit counts (n, H) (``TrackerConfig.deficit_nats``) of nodes with
+    the predicted priors ``m0``, ``c0`` (n, H, ...), their links ``sub`` and this epoch's
+    log-evidences ``ev`` of the updated hypotheses ``run``: for every floor ``due`` (n, F) a
+    snapshot of the floor (:func:`diffpos.tracking.model.snapshot`) at ``s``, and for both
+    its modes ``D = log Z(s, P) - log Z(x, P)``, the same measurement update
+    (:func:`_update_at`, the learned link weights ``link_w``, family gate ``fam_gate``) from
+    the prior ``N(x, P)`` with its position moved to ``s`` against from ``N(x, P)`` (a
+    hypothesis not updated this epoch is updated for the test, its state unchanged). The
+    count of a tested hypothesis is one more where ``D > deficit_nats``, else 0; the others
+    keep theirs. Per node: no row reads another's."""
+    rows, fl = np.nonzero(due)
+    out = count.copy()
+    if rows.size == 0:
+        return out
+    xs, _, _, _, _ = snapshot(sub.take(rows), fl[:, None], building, config)
+    rr = np.repeat(rows, 2)
+    cc = np.stack([fl, fl + n_floors], axis=1).ravel()
+    xm = m0[rr, cc].copy()
+    xm[:, :3] = np.repeat(xs[:, 0, :3], 2, axis=0)
+    e_snap = _update_at(xm, c0[rr, cc], sub, rr, cc, n_floors, building, config, None, link_w,
+                        fam_gate)[2]
+    e_own = np.where(run[rr, cc], ev[rr, cc], np.nan)
+    k = np.flatnonzero(~run[rr, cc])
+    if k.size:
+        e_own[k] = _update_at(m0[rr[k], cc[k]], c0[rr[k], cc[k]], sub, rr[k], cc[k], n_floors,
+                              building, config, None, link_w, fam_gate)[2]
+    with np.errstate(invalid="ignore"):
+        gap = e_snap - e_own
+    out[rr, cc] = np.where(gap > config.deficit_nats, out[rr, cc] + 1, 0)
+    return out
 
 
 def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
