@@ -478,6 +478,12 @@ class TrackerConfig:
         a replay tests at the same epochs and the rows stay independent); a test is one
         snapshot of that floor and two measurement updates per mode (the bounded work: about
         ``F / (period x rate)`` floors per node-epoch, 0.5 at 10 Hz with 5 floors and 1 s).
+    deficit_level_only : bool
+        With ``deficit_nats``: test (and so re-seed) only a floor's level mode. The snapshot
+        is the level model's fit (at the nominal height), so it is the candidate of the level
+        mode; a vertical (stairs) mode re-seeded from it on a rival floor handed a stairs
+        walker's wrong floor the win on Sionna RT's paper building (docs/tracking_evidence.md
+        "Session 25"). False (default): both modes.
     """
 
     q_h_m2_s3: float = 1.5
@@ -552,6 +558,7 @@ class TrackerConfig:
     deficit_nats: float = 0.0
     deficit_tests: int = 2
     deficit_period_s: float = 1.0
+    deficit_level_only: bool = False
 
 
 @dataclass(frozen=True)

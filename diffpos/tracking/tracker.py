@@ -852,7 +852,7 @@ def _deficit_counts(m0: FloatArray, c0: FloatArray, sub: Links, ev: FloatArray,
     the predicted priors ``m0``, ``c0`` (n, H, ...), their links ``sub`` and this epoch's
     log-evidences ``ev`` of the updated hypotheses ``run``: for every floor ``due`` (n, F) a
     snapshot of the floor (:func:`diffpos.tracking.model.snapshot`) at ``s``, and for both
-    its modes ``D = log Z(s, P) - log Z(x, P)``, the same measurement update
+    its modes (``deficit_level_only``: the level one) ``D = log Z(s, P) - log Z(x, P)``, the same measurement update
     (:func:`_update_at`, the learned link weights ``link_w``, family gate ``fam_gate``) from
     the prior ``N(x, P)`` with its position moved to ``s`` against from ``N(x, P)`` (a
     hypothesis not updated this epoch is updated for the test, its state unchanged). The
@@ -863,10 +863,11 @@ def _deficit_counts(m0: FloatArray, c0: FloatArray, sub: Links, ev: FloatArray,
     if rows.size == 0:
         return out
     xs, _, _, _, _ = snapshot(sub.take(rows), fl[:, None], building, config)
-    rr = np.repeat(rows, 2)
-    cc = np.stack([fl, fl + n_floors], axis=1).ravel()
+    modes = 1 if config.deficit_level_only else 2  # the level mode only, or both
+    rr = np.repeat(rows, modes)
+    cc = np.stack([fl, fl + n_floors][:modes], axis=1).ravel()
     xm = m0[rr, cc].copy()
-    xm[:, :3] = np.repeat(xs[:, 0, :3], 2, axis=0)
+    xm[:, :3] = np.repeat(xs[:, 0, :3], modes, axis=0)
     e_snap = _update_at(xm, c0[rr, cc], sub, rr, cc, n_floors, building, config, None, link_w,
                         fam_gate)[2]
     e_own = np.where(run[rr, cc], ev[rr, cc], np.nan)

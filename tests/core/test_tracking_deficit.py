@@ -15,7 +15,8 @@ the emulator's truth (the node's position, the floor it stands on):
   more than 0.9 m away after 20 epochs and the floor is published right in at most 2;
 * the NIS re-seed's counter of the moved hypothesis stays below ``reseed_epochs`` without
   the setting over those 20 epochs (the case the NIS re-seed misses);
-* off (0, the default) the new state field stays 0 and nothing else changes.
+* the same with ``deficit_level_only`` (the level mode tested and re-seeded only);
+* off (0, the default) the new state field stays 0.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ NODE = np.array([10.0, 6.12, 14.5])
 WRONG_XY = (12.5, 3.25)  # a local minimum of floor 3's robust range cost for NODE's ranges
 OFF = TrackerConfig()
 ON = dataclasses.replace(OFF, deficit_nats=4.6)
+LEVEL = dataclasses.replace(ON, deficit_level_only=True)
 K0, EPOCHS = 30, 60
 
 
@@ -64,15 +66,16 @@ def _run(config, seed):
 
 
 @pytest.mark.parametrize("seed", [1, 2])
-def test_a_track_in_a_wrong_local_minimum_of_its_floor_is_reseeded_at_the_node(seed):
+@pytest.mark.parametrize("on", [ON, LEVEL], ids=["both-modes", "level-only"])
+def test_a_track_in_a_wrong_local_minimum_of_its_floor_is_reseeded_at_the_node(seed, on):
     d_off, right_off, bad_off, s_off = _run(OFF, seed)
     assert d_off[K0] > 3.0  # the tracks were moved
     assert np.all(bad_off[K0:K0 + 20] < OFF.reseed_epochs)  # the NIS re-seed does not fire
     assert d_off[K0 + 20] > 0.9 and right_off[K0:].sum() <= 2  # stays off without
     assert not s_off.deficit_count.any()  # off: nothing counted
-    d_on, right_on, _, _ = _run(ON, seed)
+    d_on, right_on, _, _ = _run(on, seed)
     assert d_on[K0 + 20] < 0.3 and right_on[K0:].sum() >= 10
 
 
 def test_off_by_default():
-    assert OFF.deficit_nats == 0.0
+    assert OFF.deficit_nats == 0.0 and not OFF.deficit_level_only
