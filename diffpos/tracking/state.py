@@ -479,6 +479,38 @@ class TrackerConfig:
         or a wrong floor's misfit) does not start a search. With ``link_forget`` 0.95 a
         link fitted for long reaches a rate of 0.5 after 14 consecutive outlier updates.
         0 (default): every outlier counts (before).
+    deficit_nats : float [nats]
+        Re-seed on an *evidence deficit* (issue 34 item 3; docs/tracking_evidence.md
+        "Session 25"): a floor's hypothesis whose prior sits in the wrong place on its floor
+        while fitting its ranges well enough (NIS below ``nis_limit``: the NIS re-seed never
+        fires) is tested against a fresh snapshot of its floor
+        (:func:`diffpos.tracking.model.snapshot`, the current ranges): ``D = log Z(s, P) -
+        log Z(x, P)``, the log marginal likelihood of the epoch's ranges under the
+        hypothesis' own prior spread ``P`` centred at the snapshot's position ``s`` against
+        centred at its own prediction ``x`` (the same measurement update: the same Occam
+        factor, learned link weights, mechanism model and family gate). Under a track at the
+        truth ``2 D`` is about chi-square with 2 degrees of freedom (the snapshot fits the
+        horizontal position), so ``P(D > t) = exp(-t)``: 4.6 nats is the 1 % level. A
+        hypothesis whose ``D`` exceeds this value in ``deficit_tests`` consecutive tests is
+        re-seeded from the snapshot by the NIS re-seed's path (its floor probability kept;
+        ``reseed_max`` per node and epoch, ``reseed_min_links``; needs ``reseed_max`` > 0).
+        Only TRACKING nodes with at least ``reseed_min_links`` (and ``min_ranges_init``)
+        ranges are tested. 0 (default): off (before).
+    deficit_tests : int
+        With ``deficit_nats``: consecutive tests of a hypothesis above the threshold before
+        its re-seed (a test of the floor in which ``D`` is below resets the count).
+    deficit_period_s : float [s]
+        With ``deficit_nats``: every floor of a node is tested once per this period (floor
+        ``f`` at phase ``f / F`` of it, measurement time since the node's initialisation, so
+        a replay tests at the same epochs and the rows stay independent); a test is one
+        snapshot of that floor and two measurement updates per mode (the bounded work: about
+        ``F / (period x rate)`` floors per node-epoch, 0.5 at 10 Hz with 5 floors and 1 s).
+    deficit_level_only : bool
+        With ``deficit_nats``: test (and so re-seed) only a floor's level mode. The snapshot
+        is the level model's fit (at the nominal height), so it is the candidate of the level
+        mode; a vertical (stairs) mode re-seeded from it on a rival floor handed a stairs
+        walker's wrong floor the win on Sionna RT's paper building (docs/tracking_evidence.md
+        "Session 25"). False (default): both modes.
     """
 
     q_h_m2_s3: float = 1.5
@@ -552,6 +584,10 @@ class TrackerConfig:
     mode_search_min_links: int = 0
     reseed_min_links: int = 4
     mode_search_new_misfit: float = 0.0
+    deficit_nats: float = 0.0
+    deficit_tests: int = 2
+    deficit_period_s: float = 1.0
+    deficit_level_only: bool = False
 
 
 @dataclass(frozen=True)
@@ -628,6 +664,10 @@ class TrackerState:
         redundant range (at least four) in which every hypothesis misfit a present link at its
         last real update / of all such epochs (:func:`diffpos.tracking.evidence.unexplained_log_odds`;
         ``TrackerConfig.family_learned_links``).
+    deficit_count : ndarray of int, shape (N, H)
+        Consecutive evidence-deficit tests of every hypothesis whose floor's snapshot was
+        better by more than ``TrackerConfig.deficit_nats`` (at ``deficit_tests`` it is
+        re-seeded; 0 with the setting off).
     """
 
     mean: FloatArray
@@ -661,6 +701,7 @@ class TrackerState:
     redundant: FloatArray
     lead_floor: NDArray[np.int_]
     lead_ns: NDArray[np.int64]
+    deficit_count: NDArray[np.int_]
 
 
 @dataclass(frozen=True)

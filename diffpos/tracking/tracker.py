@@ -212,7 +212,7 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         link_seen_ns=np.full((n_nodes, LINK_SLOTS), t_ns, np.int64),
         unexplained=np.zeros(n_nodes), redundant=np.zeros(n_nodes),
         lead_floor=np.full(n_nodes, -1, int), lead_ns=np.full(n_nodes, t_ns, np.int64),
-        **_empty_links(n_nodes, h, t_ns))
+        deficit_count=np.zeros((n_nodes, h), int), **_empty_links(n_nodes, h, t_ns))
 
 
 def _empty_links(n: int, h: int, t_ns: int = 0) -> dict:
@@ -388,6 +388,26 @@ def _merged(st: TrackerState, idx: NDArray, new: dict) -> dict:
     return out
 
 
+def _reinitialise(jdx: NDArray, links: Links, t: NDArray, building, config: TrackerConfig,
+                  lk: dict, a: dict) -> None:
+    """Start the nodes ``jdx`` again from their snapshot (every floor's hypotheses), in place:
+    ``a`` holds :func:`update`'s working arrays by short name, ``lk`` the learned link state
+    (forgotten for those nodes)."""
+    x, p, lpi, sel, res = snapshot_init(links.take(jdx), building, config)
+    a["mean"][jdx], a["cov"][jdx], a["lp"][jdx] = _init_hypotheses(x, p, lpi, config)
+    best = np.argmax(lpi, axis=1)
+    r = np.arange(jdx.size)
+    a["mech"][jdx], a["resid"][jdx] = sel.slot[r, best], res[r, best]
+    a["status"][jdx] = TrackStatus.INITIALISING
+    a["nis"][jdx], a["good"][jdx], a["bad"][jdx], a["last"][jdx] = 1.0, 0, 0, t[jdx]
+    a["floor_bad"][jdx], a["llr"][jdx], a["upd"][jdx], a["below"][jdx] = (
+        0, np.nan, t[jdx, None], 0)
+    a["deficit"][jdx] = 0
+    a["origin"][jdx] = t[jdx]
+    reset_links({k: lk[k] for k in LINK_FIELDS}, jdx)
+    lk["unexplained"][jdx], lk["redundant"][jdx] = 0.0, 0.0
+
+
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
            mask: ArrayLike, t_ns: ArrayLike, building, config: TrackerConfig, *,
            snr_db: ArrayLike | None = None, radio=None) -> tuple[TrackerState, TrackOutput]:
@@ -422,6 +442,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     dt_s = (t - state.t_ns) * 1e-9
     status, good, bad = st.status.copy(), st.good.copy(), st.bad.copy()
     floor_bad = st.floor_bad.copy()
+    deficit = st.deficit_count.copy()
     origin = st.refresh_origin_ns.copy()
     snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
     last = st.last_fix_ns.copy()
@@ -436,8 +457,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     idx = np.flatnonzero(live & (n_meas > 0))
     new: dict = {}
     if idx.size:
+        due = (_deficit_due(state.t_ns[idx], t[idx], st.refresh_origin_ns[idx], n_floors_of(st),
+                            config.deficit_period_s) if config.deficit_nats > 0 else None)
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
-            st, links, idx, t, inflow, dt_s, building, config)
+            st, links, idx, t, inflow, dt_s, building, config, due)
         if "snr_node" in new:  # the SNR cache carried along (diffpos.tracking.model.snr_reuse_on)
             snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
                               zip(snr_cache, ("snr_node", "snr_anchor", "snr_pred"),
@@ -447,6 +470,11 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     lk = {k: merged[k] for k in _LINK_STATE}
     if idx.size:
         floor_bad[idx] = np.where(ran, np.where(bad_f, floor_bad[idx] + 1, 0), floor_bad[idx])
+        if due is not None:  # an evidence deficit in deficit_tests tests: re-seeded below
+            hit = new["deficit_count"] >= max(config.deficit_tests, 1)
+            floor_bad[idx] = np.where(hit, np.maximum(floor_bad[idx], config.reseed_epochs),
+                                      floor_bad[idx])
+            deficit[idx] = np.where(hit, 0, new["deficit_count"])
         bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
         good[idx] = np.where(bad_epoch, 0, good[idx] + 1)
         last[idx] = t[idx]
@@ -462,18 +490,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             | (bad >= config.diverge_epochs)) & (n_meas >= config.min_ranges_init)
     jdx = np.flatnonzero(need)
     if jdx.size:
-        sub = links.take(jdx)
-        x, p, lpi, sel, res = snapshot_init(sub, building, config)
-        mean[jdx], cov[jdx], lp[jdx] = _init_hypotheses(x, p, lpi, config)
-        best = np.argmax(lpi, axis=1)
-        r = np.arange(jdx.size)
-        mech[jdx], resid[jdx] = sel.slot[r, best], res[r, best]
-        status[jdx] = TrackStatus.INITIALISING
-        nis[jdx], good[jdx], bad[jdx], last[jdx] = 1.0, 0, 0, t[jdx]
-        floor_bad[jdx], llr[jdx], upd[jdx], below[jdx] = 0, np.nan, t[jdx, None], 0
-        origin[jdx] = t[jdx]
-        reset_links({k: lk[k] for k in LINK_FIELDS}, jdx)
-        lk["unexplained"][jdx], lk["redundant"][jdx] = 0.0, 0.0
+        _reinitialise(jdx, links, t, building, config, lk, dict(
+            mean=mean, cov=cov, lp=lp, mech=mech, resid=resid, status=status, nis=nis,
+            good=good, bad=bad, last=last, floor_bad=floor_bad, llr=llr, upd=upd, below=below,
+            deficit=deficit, origin=origin))
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
     if snr_cache[0] is st.snr_node:  # not updated: the new state owns its arrays
@@ -485,7 +505,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
                        snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk,
-                       lead_floor=lead, lead_ns=lead_ns)
+                       lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit)
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
     return new, _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas,
                              config)
@@ -748,13 +768,16 @@ def _link_misfit(nis_h: FloatArray, res: FloatArray, var: FloatArray,
 
 
 def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray,
-                  inflow: FloatArray, dt_s: FloatArray, building, config: TrackerConfig):
+                  inflow: FloatArray, dt_s: FloatArray, building, config: TrackerConfig,
+                  deficit_due: NDArray[np.bool_] | None = None):
     """Measurement update of the nodes ``idx`` (their rows of the predicted ``state``, ``t_ns``,
     ``inflow`` (:func:`diffpos.tracking.imm._mix`), ``dt_s``): the hypotheses that are awake,
     due for a refresh, woken by the mixing, or of a node that is not TRACKING; then, for a
     node whose best hypothesis fits badly this epoch (NIS above ``nis_limit``, most ranges
     outliers), its dormant ones too. Returns the nodes' new arrays (a dict of state fields), the updated
-    hypotheses (n, H), every hypothesis' bad flag, and the best's mechanism/residual."""
+    hypotheses (n, H), every hypothesis' bad flag, and the best's mechanism/residual.
+    ``deficit_due`` (n, F): the floors of the nodes due for an evidence-deficit test
+    (:func:`_deficit_counts`; None: the setting off, no ``deficit_count`` in the dict)."""
     nf = n_floors_of(state)
     h = 2 * nf
     sub = links.take(idx)
@@ -809,6 +832,9 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         if not np.any(todo):
             break
     nis = (1 - config.nis_alpha) * state.nis[idx] + config.nis_alpha * np.minimum(nis_epoch, 1e3)
+    new_deficit = (None if deficit_due is None else _deficit_tested(
+        state, idx, sub, deficit_due, n_meas, (m0, c0, ev, run), building, config, link_w,
+        fam_gate))
     bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
     nis_f, n_in_f = _epoch_nis(nis_h)
     bad_f = (2 * n_in_f < n_meas[:, None]) | (nis_f > config.nis_limit)
@@ -821,24 +847,103 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     new = {"mean": x, "cov": p, "log_prob": lp, "nis": nis, "below_epochs": below,
            "dormant_llr": np.where(asleep, np.where(run, llr, llr0), np.nan),
            "updated_ns": np.where(run, t_ns[idx, None], state.updated_ns[idx])}
+    if new_deficit is not None:
+        new["deficit_count"] = new_deficit
     if snr_cache is not None:  # the SNR cache's rows (reuse off: the state's stay as they are)
         new.update(zip(("snr_node", "snr_anchor", "snr_pred"), snr_cache, strict=True))
     if lk is not None:
-        # every link's share of the hypothesis' evidence: its mixture log-weight (mechanism
-        # prior, SNR, or the outlier's density) and its range term at the fit
-        ev_link = np.where(sub.mask[:, 0][:, None, :], lw - 0.5 * np.nan_to_num(nis_h), 0.0)
-        fits = None  # the hypotheses whose state fits most ranges (link_learn_minority)
-        if config.link_learn_minority:
-            n_out = np.sum(sub.mask[:, 0][:, None, :] & (slot < 0), axis=-1)
-            fits = 2 * n_out < n_meas[:, None]
-        new.update(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link,
-                         _link_misfit(nis_h, res, sub.var[:, 0], config), fits),
-                   link_anchor=tab, link_seen_ns=seen)
-        if _counts_unexplained(config):  # (off: nothing reads them, nothing counted)
-            new["unexplained"], new["redundant"] = count_unexplained(
-                state.unexplained[idx], state.redundant[idx], new["link_fit"], col,
-                sub.mask[:, 0], n_meas, config)
+        new.update(_learned(state, idx, sub, t_ns, n_meas, config, (lk, col, tab, seen),
+                            (run, x, p, slot, lw, nis_h, res)))
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
+
+
+def _learned(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray, n_meas: NDArray,
+             config: TrackerConfig, inputs: tuple, fit: tuple) -> dict:
+    """The learned link state of the nodes ``idx`` after their measurement update
+    (:func:`_track_update`): ``inputs`` = :func:`_link_inputs`' (state, column, anchor table,
+    seen), ``fit`` = the update's (run, mean, cov, slot, mixture log-weight, NIS, residual)
+    per hypothesis and link."""
+    lk, col, tab, seen = inputs
+    run, x, p, slot, lw, nis_h, res = fit
+    # every link's share of the hypothesis' evidence: its mixture log-weight (mechanism
+    # prior, SNR, or the outlier's density) and its range term at the fit
+    ev_link = np.where(sub.mask[:, 0][:, None, :], lw - 0.5 * np.nan_to_num(nis_h), 0.0)
+    fits = None  # the hypotheses whose state fits most ranges (link_learn_minority)
+    if config.link_learn_minority:
+        n_out = np.sum(sub.mask[:, 0][:, None, :] & (slot < 0), axis=-1)
+        fits = 2 * n_out < n_meas[:, None]
+    new = dict(learn(lk, col, run, x, p, slot, sub, t_ns[idx], config, ev_link,
+                     _link_misfit(nis_h, res, sub.var[:, 0], config), fits),
+               link_anchor=tab, link_seen_ns=seen)
+    if _counts_unexplained(config):  # (off: nothing reads them, nothing counted)
+        new["unexplained"], new["redundant"] = count_unexplained(
+            state.unexplained[idx], state.redundant[idx], new["link_fit"], col,
+            sub.mask[:, 0], n_meas, config)
+    return new
+
+
+def _deficit_tested(state: TrackerState, idx: NDArray, sub: Links, due: NDArray,
+                    n_meas: NDArray, update: tuple, building, config: TrackerConfig, link_w,
+                    fam_gate) -> NDArray:
+    """The evidence-deficit counts (n, H) of the nodes ``idx`` after this epoch's tests
+    (:func:`_deficit_counts`) of their floors ``due`` (n, F) that are TRACKING with enough
+    ranges for a re-seed; ``update`` = (prior mean, prior cov, evidence, updated) of
+    :func:`_track_update`."""
+    m0, c0, ev, run = update
+    due = (due & (state.status[idx] == TrackStatus.TRACKING)[:, None]
+           & (n_meas >= max(config.min_ranges_init, config.reseed_min_links))[:, None])
+    return _deficit_counts(m0, c0, sub, ev, run, due, state.deficit_count[idx],
+                           n_floors_of(state), building, config, link_w, fam_gate)
+
+
+def _deficit_due(prev_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
+                 origin_ns: NDArray[np.int64], n_floors: int, period_s: float
+                 ) -> NDArray[np.bool_]:
+    """The floors (n, F) due for an evidence-deficit test this epoch
+    (``TrackerConfig.deficit_period_s``): floor ``f``'s boundaries at ``origin + k T - f T /
+    F`` (measurement time relative to the node's ``origin_ns``, as :func:`_refresh_due`)
+    passed between the node's previous time ``prev_ns`` and ``t_ns`` (n,)."""
+    period = max(round(period_s * 1e9), 1)
+    phase = (np.arange(n_floors, dtype=np.int64) * period) // n_floors
+    o = origin_ns[:, None]
+    return (t_ns[:, None] - o + phase) // period > (prev_ns[:, None] - o + phase) // period
+
+
+def _deficit_counts(m0: FloatArray, c0: FloatArray, sub: Links, ev: FloatArray,
+                    run: NDArray[np.bool_], due: NDArray[np.bool_], count: NDArray[np.int_],
+                    n_floors: int, building, config: TrackerConfig,
+                    link_w: FloatArray | None, fam_gate: NDArray | None) -> NDArray[np.int_]:
+    """The new evidence-deficit counts (n, H) (``TrackerConfig.deficit_nats``) of nodes with
+    the predicted priors ``m0``, ``c0`` (n, H, ...), their links ``sub`` and this epoch's
+    log-evidences ``ev`` of the updated hypotheses ``run``: for every floor ``due`` (n, F) a
+    snapshot of the floor (:func:`diffpos.tracking.model.snapshot`) at ``s``, and for both
+    its modes (``deficit_level_only``: the level one) ``D = log Z(s, P) - log Z(x, P)``, the same measurement update
+    (:func:`_update_at`, the learned link weights ``link_w``, family gate ``fam_gate``) from
+    the prior ``N(x, P)`` with its position moved to ``s`` against from ``N(x, P)`` (a
+    hypothesis not updated this epoch is updated for the test, its state unchanged). The
+    count of a tested hypothesis is one more where ``D > deficit_nats``, else 0; the others
+    keep theirs. Per node: no row reads another's."""
+    rows, fl = np.nonzero(due)
+    out = count.copy()
+    if rows.size == 0:
+        return out
+    xs, _, _, _, _ = snapshot(sub.take(rows), fl[:, None], building, config)
+    modes = 1 if config.deficit_level_only else 2  # the level mode only, or both
+    rr = np.repeat(rows, modes)
+    cc = np.stack([fl, fl + n_floors][:modes], axis=1).ravel()
+    xm = m0[rr, cc].copy()
+    xm[:, :3] = np.repeat(xs[:, 0, :3], modes, axis=0)
+    e_snap = _update_at(xm, c0[rr, cc], sub, rr, cc, n_floors, building, config, None, link_w,
+                        fam_gate)[2]
+    e_own = np.where(run[rr, cc], ev[rr, cc], np.nan)
+    k = np.flatnonzero(~run[rr, cc])
+    if k.size:
+        e_own[k] = _update_at(m0[rr[k], cc[k]], c0[rr[k], cc[k]], sub, rr[k], cc[k], n_floors,
+                              building, config, None, link_w, fam_gate)[2]
+    with np.errstate(invalid="ignore"):
+        gap = e_snap - e_own
+    out[rr, cc] = np.where(gap > config.deficit_nats, out[rr, cc] + 1, 0)
+    return out
 
 
 def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
