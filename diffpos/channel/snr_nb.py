@@ -106,7 +106,7 @@ from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "2a9c86683ab9ddea"
+CALLEES_SHA256 = "7f98238517b0ad3e"
 
 __all__ = [
     "COST_SIGNATURE",

@@ -320,7 +320,7 @@ def _reflections_ok(c0, c1, c2, m0, m1, m2, t_last, table, s, zf, zc, x0, x1, de
     return ok
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def fermat_point(s0, s1, s2, o0, o1, o2, x0, z_e, edge):
     """geometry.diffraction_point on the edge from ``(x0, 0, z_e)`` along ``edge`` (length,
     unit vector) between ``s`` and ``o`` (the source and the node or its image): the point

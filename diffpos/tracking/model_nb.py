@@ -64,7 +64,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "af2210c573206b28"
+CALLEES_SHA256 = "8724053595052a56"
 
 
 # the default table by kind: the direct slot, the specular slots (ground bounce, number of
@@ -163,7 +163,7 @@ def _row_diffracted(a0, a1, a2, n0, n1, n2, z_e, plane, zf, zc, x0, x1, depth, e
     return length, ok, (u0 / nu) * g0, (u1 / nu) * g1, (u2 / nu) * g2
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def default_slots_row(a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, length,
                       valid, jac, entry_z):
     """Every slot of ``DEFAULT_TABLE`` for the anchor ``a``, the node ``n`` and the floor's
