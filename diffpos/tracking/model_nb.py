@@ -220,7 +220,7 @@ def model_kernel(pos, anchors, floor, slot, extra_var, rho, var, mask, first_z, 
                        sill, win_h, x0, x1, depth, edge, model[n, h], jm[n, h], w[n, h])
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def _model_row(p0, p1, p2, anchors, fl, slot, extra_var, rho, var, mask, first_z, floor_h,
                sill, win_h, x0, x1, depth, edge, model, jm, w):
     """:func:`model_kernel` of one hypothesis at (``p0``, ``p1``, ``p2``): ``anchors`` (M, 3),
@@ -292,7 +292,7 @@ def select_prep_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr
                            span_ll, valid[n, h, m], s_ll[n, h, m], s_var[n, h, m])
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def _prep_link(length, jac, sure, loose, is_diff, cov, var, snr, snr_c, use_snr, g_const,
                span_ll, valid, s_ll, s_var):
     """:func:`select_prep_kernel` of one link: ``length``, ``sure``, ``loose``, ``snr_c``
@@ -541,7 +541,7 @@ def iekf_terms_kernel(y, x, lo, hi, z_nom, rho, model, jm, w, wb, wh, a, e, eb, 
                                   e[n, h], eb[n, h], gpart[n, h])
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def _terms_row(y, x, lo, hi, z_nom, rho, model, jm, w, wb, wh, a, e, eb, gpart):
     """:func:`iekf_terms_kernel` of one hypothesis (``y``, ``a`` (6, 6), ``x`` (6,), ``lo``,
     ``hi``, ``eb``, ``gpart`` (3,), ``rho``, ``model``, ``w``, ``e`` (M,), ``jm`` (M, 3));
