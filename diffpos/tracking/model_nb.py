@@ -27,6 +27,13 @@ Laplace evidence per hypothesis with :func:`model_kernel`'s and :func:`iekf_term
 bodies (:func:`_model_row`, :func:`_terms_row`) and a 6 x 6 LU with partial pivoting in
 place of numpy's batched LAPACK calls: held to ``tracking_model._iekf_numpy`` within a
 tolerance.
+
+The per-row / per-link bodies called inside the kernels' loops with array views
+(:func:`default_slots_row`, :func:`_model_row`, :func:`_terms_row`, :func:`_prep_link`) are
+inlined at numba IR level (``inline="always"``): a view passed to a compiled call costs its
+construction, two atomic reference-count operations and the call, per row; inlined, the same
+operations in the same order (so the same bits) at ~0.82-0.85x the CPU of the paths, IEKF
+and selection kernels on the 30 s ``large`` replay's calls (docs/performance.md, "Session 25").
 """
 
 from __future__ import annotations
@@ -64,7 +71,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "8724053595052a56"
+CALLEES_SHA256 = "b407ab71c5258cbf"
 
 
 # the default table by kind: the direct slot, the specular slots (ground bounce, number of
