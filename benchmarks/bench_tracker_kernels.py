@@ -133,13 +133,14 @@ def capture(recording: str, out: str, skip: int, n_calls: int) -> dict[str, int]
 
 def time_kernels(inputs: str, reps: int) -> list[tuple]:
     import diffpos.channel.snr_nb as cn
+    import diffpos.tracking.initialisation_nb as gn
     import diffpos.tracking.model_nb as tn
 
     with open(inputs, "rb") as fh:
         kept = pickle.load(fh)
     cn.warm_channel()
     fn = {"paths": tn.all_paths_kernel, "masked": cn.channel_snr_masked_kernel,
-          "full": cn.channel_snr_kernel, "grid": tn.grid_cost_kernel}
+          "full": cn.channel_snr_kernel, "grid": gn.grid_cost_kernel}
     rows = []
     for key, calls in kept.items():
         if not calls:

@@ -30,8 +30,12 @@ The resulting SNRs agree with the numpy emulator to 3.4e-12 dB (max over 12,000 
 
 Cost (``benchmarks/bench_channel.py --snr-only``): ~2.2 us CPU per link (18 slots), 6x less
 than numpy on large batches and ~400x less on one-node calls (numpy's per-call overhead);
-about 80 % of it in the 7 diffraction slots (the UTD field). First call: ~5.5 s CPU to
-compile, ~0.2 s to load numba's on-disk cache.
+about 80 % of it in the 7 diffraction slots (the UTD field). The per-slot rays of
+:mod:`.channel_rays_nb` that take arrays are inlined at numba IR level (``inline="always"``:
+no call and no reference counting of ``prm`` / ``parts`` per slot; the same operations, so
+the same bits): ~0.84x the CPU of separate calls on the tracker's calls (docs/performance.md,
+"Session 25"), at ~17-18 s CPU instead of ~8-9 s for :func:`warm_channel`'s first compile;
+~0.2 s to load numba's on-disk cache.
 
 Existence (``valid``) is the emulator's: the geometry of ``diffpos.paths.model`` (specular paths
 entering through the window band, Fermat point strictly inside the edge, reflection points on
@@ -106,7 +110,7 @@ from diffpos.paths.model_nb import N_SLOTS, SLOT_KIND, edge_axis, row_planes
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "2a9c86683ab9ddea"
+CALLEES_SHA256 = "13024189c1a90fce"
 
 __all__ = [
     "COST_SIGNATURE",

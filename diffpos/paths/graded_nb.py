@@ -19,7 +19,7 @@ __all__ = ["graded_split_kernel"]
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py).
-CALLEES_SHA256 = "06d9243bb3b4ffc6"
+CALLEES_SHA256 = "ad3c7a5a677284a0"
 
 
 @njit(**_OPTS)

@@ -27,6 +27,13 @@ Laplace evidence per hypothesis with :func:`model_kernel`'s and :func:`iekf_term
 bodies (:func:`_model_row`, :func:`_terms_row`) and a 6 x 6 LU with partial pivoting in
 place of numpy's batched LAPACK calls: held to ``tracking_model._iekf_numpy`` within a
 tolerance.
+
+The per-row / per-link bodies called inside the kernels' loops with array views
+(:func:`default_slots_row`, :func:`_model_row`, :func:`_terms_row`, :func:`_prep_link`) are
+inlined at numba IR level (``inline="always"``): a view passed to a compiled call costs its
+construction, two atomic reference-count operations and the call, per row; inlined, the same
+operations in the same order (so the same bits) at ~0.82-0.85x the CPU of the paths, IEKF
+and selection kernels on the 30 s ``large`` replay's calls (docs/performance.md, "Session 25").
 """
 
 from __future__ import annotations
@@ -64,7 +71,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "af2210c573206b28"
+CALLEES_SHA256 = "b407ab71c5258cbf"
 
 
 # the default table by kind: the direct slot, the specular slots (ground bounce, number of
@@ -163,7 +170,7 @@ def _row_diffracted(a0, a1, a2, n0, n1, n2, z_e, plane, zf, zc, x0, x1, depth, e
     return length, ok, (u0 / nu) * g0, (u1 / nu) * g1, (u2 / nu) * g2
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def default_slots_row(a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, x0, x1, depth, edge, length,
                       valid, jac, entry_z):
     """Every slot of ``DEFAULT_TABLE`` for the anchor ``a``, the node ``n`` and the floor's
@@ -220,7 +227,7 @@ def model_kernel(pos, anchors, floor, slot, extra_var, rho, var, mask, first_z, 
                        sill, win_h, x0, x1, depth, edge, model[n, h], jm[n, h], w[n, h])
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def _model_row(p0, p1, p2, anchors, fl, slot, extra_var, rho, var, mask, first_z, floor_h,
                sill, win_h, x0, x1, depth, edge, model, jm, w):
     """:func:`model_kernel` of one hypothesis at (``p0``, ``p1``, ``p2``): ``anchors`` (M, 3),
@@ -292,7 +299,7 @@ def select_prep_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr
                            span_ll, valid[n, h, m], s_ll[n, h, m], s_var[n, h, m])
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def _prep_link(length, jac, sure, loose, is_diff, cov, var, snr, snr_c, use_snr, g_const,
                span_ll, valid, s_ll, s_var):
     """:func:`select_prep_kernel` of one link: ``length``, ``sure``, ``loose``, ``snr_c``
@@ -541,7 +548,7 @@ def iekf_terms_kernel(y, x, lo, hi, z_nom, rho, model, jm, w, wb, wh, a, e, eb, 
                                   e[n, h], eb[n, h], gpart[n, h])
 
 
-@njit(**_OPTS)
+@njit(**_OPTS, inline="always")
 def _terms_row(y, x, lo, hi, z_nom, rho, model, jm, w, wb, wh, a, e, eb, gpart):
     """:func:`iekf_terms_kernel` of one hypothesis (``y``, ``a`` (6, 6), ``x`` (6,), ``lo``,
     ``hi``, ``eb``, ``gpart`` (3,), ``rho``, ``model``, ``w``, ``e`` (M,), ``jm`` (M, 3));
