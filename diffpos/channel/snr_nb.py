@@ -34,8 +34,8 @@ about 80 % of it in the 7 diffraction slots (the UTD field). The per-slot rays o
 :mod:`.channel_rays_nb` that take arrays are inlined at numba IR level (``inline="always"``:
 no call and no reference counting of ``prm`` / ``parts`` per slot; the same operations, so
 the same bits): ~0.84x the CPU of separate calls on the tracker's calls (docs/performance.md,
-"Session 25"), at ~17-18 s CPU instead of ~8-9 s for :func:`warm_channel`'s first compile;
-~0.2 s to load numba's on-disk cache.
+"Session 25"); one compiled loop (below) keeps :func:`warm_channel`'s first compile at
+XXCOMPILE; ~0.2 s to load numba's on-disk cache.
 
 Existence (``valid``) is the emulator's: the geometry of ``diffpos.paths.model`` (specular paths
 entering through the window band, Fermat point strictly inside the edge, reflection points on
@@ -56,15 +56,18 @@ planes and losses, the partitions as a ``(P, 5)`` array ``(axis, position, span 
 loss dB)``, the radio (wavenumber, wavelength, patterns, link-budget constants, polarisation)
 and the complex permittivities (ground, interior, partitions, walls, and the sheet of the
 window's horizontal edges: 0, a perfect conductor, at ``channel_max_order`` 2, the wall's
-material above; :mod:`diffpos.channel.slots`, "Window edges"). One compiled signature
-(:data:`SIGNATURE`), ``cache=True``; :func:`warm_channel` compiles it or loads numba's on-disk
-cache (call it at service start).
+material above; :mod:`diffpos.channel.slots`, "Window edges").
 
-:func:`channel_snr_masked_kernel` is the same loop over a per-pair slot mask ``need``
-(:data:`MASKED_SIGNATURE`): the slots needed are evaluated by the same statements, so they
-are bit-identical to the unmasked kernel's; the others are not evaluated and hold NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
+The loop is compiled once: :func:`channel_snr_masked_kernel`, over a per-pair slot mask
+``need`` (:data:`MASKED_SIGNATURE`, ``cache=True``; :func:`warm_channel` compiles it or loads
+numba's on-disk cache: call it at service start). A slot not needed is not evaluated and
+holds NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
 ``diffpos.tracking.model.snr_cost_near``: mostly specular slots near a window-band edge, and
-not the 7 diffraction slots that are ~80 % of a full prediction).
+not the 7 diffraction slots that are ~80 % of a full prediction). :func:`channel_snr_kernel`
+(every slot, :data:`SIGNATURE`'s arguments) is that kernel with every slot needed, so both
+give every slot the same statements' bits; a second compiled copy of the loop without the
+mask (kept apart before for CPU) cost XXRUNTIME of run time and doubled the first compile
+once the rays were inlined (docs/performance.md, "Session 25: the SNR kernels' compile").
 
 :func:`snr_cost_kernel` is the tracker's SNR cost of the predicted slots (Gaussian about the
 prediction plus the detector's threshold), the numpy reference's operations in one pass.
@@ -128,60 +131,11 @@ __all__ = [
 
 
 @njit(**_OPTS)
-def channel_snr_kernel(anchors, nodes, prm, parts, eta, out):
-    """SNR of every slot: ``anchors`` (N, M, 3), ``nodes`` (N, 3) -> ``out`` (N, M, 18) [dB],
-    ``-inf`` where the slot is not valid (``diffpos.channel.emulator.pair_snr_db``).
-
-    ``prm``: :func:`channel_params`' float vector; ``parts``: (P, 5) partitions; ``eta``:
-    :func:`channel_params`' complex permittivities (the ground's and the interior surfaces'
-    first, the horizontal window edges' sheet last: 0 a perfect conductor).
-    """
-    first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
-    edge = edge_axis(prm[_P_X0], prm[_P_X1])
-    eta_g, eta_in, eta_edge = eta[0], eta[1], eta[eta.shape[0] - 1]
-    c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
-    rx_hpbw, rx_peak = prm[_P_RX_HPBW], prm[_P_RX_PEAK]
-    sq2pik = math.sqrt(2.0 * math.pi * prm[_P_K])  # the UTD prefactor's, once
-    ninf = -np.inf
-    for i in range(nodes.shape[0]):
-        n0, n1, n2 = nodes[i, 0], nodes[i, 1], nodes[i, 2]
-        k_node = _floor_index(n2, first_z, floor_h, prm[_P_N_FLOORS])
-        zf, zc, lo, hi = row_planes(k_node, first_z, floor_h, sill, win_h)
-        for j in range(anchors.shape[1]):
-            a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
-            for s in range(N_SLOTS):
-                kind = SLOT_KIND[s]
-                if kind == 0:
-                    g, att, v0, v1, v2, length = _direct(a0, a1, a2, n0, n1, n2, k_node, lo,
-                                                         hi, prm, parts)
-                    ok = math.isfinite(length)
-                elif kind == 1:
-                    g, att, v0, v1, v2, length, ok = _specular(s, a0, a1, a2, n0, n1, n2, zf, zc,
-                                                          lo, hi, prm, parts, eta_g, eta_in)
-                else:
-                    g, att, v0, v1, v2, length, ok = _diffracted(s, a0, a1, a2, n0, n1, n2, zf,
-                                                            zc, lo, hi, prm, parts, eta_in,
-                                                            edge, sq2pik, eta_edge)
-                if not ok:
-                    out[i, j, s] = ninf
-                    continue
-                rx_db = 0.0
-                if not math.isnan(rx_hpbw):
-                    rx_db = _pattern_db(_zenith_deg(v0, v1, v2), rx_hpbw, rx_peak)
-                if g == 0.0:
-                    out[i, j, s] = ninf
-                    continue
-                power = c0 + rx_db + (20 * math.log10(g) - att)
-                out[i, j, s] = power + pgain - n0_dbm
-
-
-@njit(**_OPTS)
 def channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out):
     """:func:`channel_snr_kernel` of the needed slots only: ``need`` (N, M, 18) bool; a slot
-    not needed is not evaluated and its ``out`` is NaN (a value no caller uses). The loop body
-    is :func:`channel_snr_kernel`'s, statement for statement (a shared per-slot function cost
-    the unmasked kernel 20 % CPU: kept apart), so every needed slot is its value bit for bit
-    (-inf where not valid)."""
+    not needed is not evaluated and its ``out`` is NaN (a value no caller uses); a needed slot
+    is the SNR [dB] of :func:`channel_snr_kernel` (``-inf`` where not valid), which is this
+    kernel with every slot needed: one compiled body for both (module docstring)."""
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
     eta_g, eta_in, eta_edge = eta[0], eta[1], eta[eta.shape[0] - 1]
@@ -280,7 +234,8 @@ def snr_cost_kernel(pred, meas, trust, sigma_db, fap_db, det_db, given_thr, thr,
 MASKED_MIN_PAIRS = 2 * SNR_MIN_PAIRS
 
 _c16_1d = types.complex128[::1]
-#: The one compiled signature of :func:`channel_snr_kernel`.
+#: The argument types of :func:`channel_snr_kernel` (not compiled: it runs
+#: :func:`channel_snr_masked_kernel`, whose arguments are these with ``need`` before ``out``).
 SIGNATURE = types.void(types.float64[:, :, ::1], types.float64[:, ::1], types.float64[::1],
                        types.float64[:, ::1], _c16_1d, types.float64[:, :, ::1])
 #: The compiled signature of :func:`channel_snr_masked_kernel` (``need`` before ``out``).
@@ -295,16 +250,16 @@ _state: dict[str, object] = {}
 
 
 def warm_channel() -> float:
-    """Compile :func:`channel_snr_kernel` for :data:`SIGNATURE`,
-    :func:`channel_snr_masked_kernel` for :data:`MASKED_SIGNATURE` and :func:`snr_cost_kernel`
-    for :data:`COST_SIGNATURE`, or load them from numba's cache. Idempotent; returns the seconds it took (0 once warm). Call it at service start."""
+    """Compile :func:`channel_snr_masked_kernel` for :data:`MASKED_SIGNATURE` (also the body
+    of :func:`channel_snr_kernel`) and :func:`snr_cost_kernel` for :data:`COST_SIGNATURE`, or
+    load them from numba's cache. Idempotent; returns the seconds it took (0 once warm). Call
+    it at service start."""
     if "entry" in _state:
         return 0.0
     t0 = time.perf_counter()
-    channel_snr_kernel.compile(SIGNATURE.args)
     channel_snr_masked_kernel.compile(MASKED_SIGNATURE.args)
     snr_cost_kernel.compile(COST_SIGNATURE.args)
-    _state["entry"] = channel_snr_kernel
+    _state["entry"] = channel_snr_masked_kernel
     return time.perf_counter() - t0
 
 
@@ -345,6 +300,23 @@ def channel_params(building, radio, materials, eta_parts=(), eta_wall=0j, eta_ed
                       for axis, pos, (lo, hi), db in plist], dtype=np.float64).reshape(-1, 5)
     eta = np.array([eta_g, eta_in, *eta_parts, eta_wall, eta_edge], dtype=np.complex128)
     return prm, np.ascontiguousarray(parts), eta
+
+
+def channel_snr_kernel(anchors: np.ndarray, nodes: np.ndarray, prm: np.ndarray,
+                       parts: np.ndarray, eta: np.ndarray, out: np.ndarray) -> None:
+    """SNR of every slot: ``anchors`` (N, M, 3), ``nodes`` (N, 3) -> ``out`` (N, M, 18) [dB],
+    ``-inf`` where the slot is not valid (``diffpos.channel.emulator.pair_snr_db``).
+
+    ``prm``: :func:`channel_params`' float vector; ``parts``: (P, 5) partitions; ``eta``:
+    :func:`channel_params`' complex permittivities (the ground's and the interior surfaces'
+    first, the horizontal window edges' sheet last: 0 a perfect conductor). Arrays as
+    :data:`SIGNATURE` (C-contiguous, writeable). :func:`channel_snr_masked_kernel` with every
+    slot needed (its one compiled body: a separate compiled loop doubled
+    :func:`warm_channel`'s first compile once the rays were inlined; docs/performance.md,
+    "Session 25: the SNR kernels' compile"); releases the GIL like it.
+    """
+    need = np.ones(out.shape, dtype=np.bool_)
+    channel_snr_masked_kernel(anchors, nodes, prm, parts, eta, need, out)
 
 
 def eval_snr_kernel(anchors: np.ndarray, nodes: np.ndarray,

@@ -20,7 +20,7 @@ from diffpos.tracking.tracker import warm_tracking
 channel_nb.warm_channel()
 warm_tracking()
 out = {}
-for name, k in (("channel_snr_kernel", channel_nb.channel_snr_kernel),
+for name, k in (("channel_snr_masked_kernel", channel_nb.channel_snr_masked_kernel),
                 ("lm_kernel", mnls_nb.lm_kernel),
                 ("all_paths_kernel", tracking_nb.all_paths_kernel),
                 ("grid_cost_kernel", initialisation_nb.grid_cost_kernel)):
