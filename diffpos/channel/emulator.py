@@ -253,9 +253,10 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     for estimators scoring position hypotheses; ``-inf`` where a slot is not valid. Nodes must
     be inside the building and anchors outside (not checked).
 
-    Computed by the compiled kernel :func:`diffpos.channel.snr_nb.channel_snr_kernel`
-    (one loop over node-anchor pairs and slots, the emulator's operations with its common
-    phase factors left out and Weideman's Faddeeva function); :func:`_pair_snr_db_numpy` is
+    Computed by :func:`diffpos.channel.snr_nb.channel_snr_kernel` (the compiled
+    :func:`~diffpos.channel.snr_nb.channel_snr_masked_kernel` with every slot needed: one
+    loop over node-anchor pairs and slots, the emulator's operations with its common phase
+    factors left out and Weideman's Faddeeva function); :func:`_pair_snr_db_numpy` is
     the numpy reference (the emulator's own :func:`_slots`). tests/core/test_channel_kernel.py
     holds them together: the same ``-inf`` pattern and finite values within 1e-9 dB. Inputs
     with a non-finite coordinate go to the reference. Anchors ``(M, 3)`` are shared by all

@@ -35,7 +35,7 @@ about 80 % of it in the 7 diffraction slots (the UTD field). The per-slot rays o
 no call and no reference counting of ``prm`` / ``parts`` per slot; the same operations, so
 the same bits): ~0.84x the CPU of separate calls on the tracker's calls (docs/performance.md,
 "Session 25"); one compiled loop (below) keeps :func:`warm_channel`'s first compile at
-XXCOMPILE; ~0.2 s to load numba's on-disk cache.
+~12 s CPU (~18 s with two inlined copies); ~0.2 s to load numba's on-disk cache.
 
 Existence (``valid``) is the emulator's: the geometry of ``diffpos.paths.model`` (specular paths
 entering through the window band, Fermat point strictly inside the edge, reflection points on
@@ -65,9 +65,10 @@ holds NaN (the tracker re-scores a pair's "hole" slots at a shifted height,
 ``diffpos.tracking.model.snr_cost_near``: mostly specular slots near a window-band edge, and
 not the 7 diffraction slots that are ~80 % of a full prediction). :func:`channel_snr_kernel`
 (every slot, :data:`SIGNATURE`'s arguments) is that kernel with every slot needed, so both
-give every slot the same statements' bits; a second compiled copy of the loop without the
-mask (kept apart before for CPU) cost XXRUNTIME of run time and doubled the first compile
-once the rays were inlined (docs/performance.md, "Session 25: the SNR kernels' compile").
+give every slot the same statements' bits. A second compiled copy of the loop without the
+mask (kept apart before for CPU) ran the full prediction ~1.6 % faster but took ~6 s CPU
+more to compile once the rays were inlined (docs/performance.md, "Session 25: the SNR
+kernels' compile").
 
 :func:`snr_cost_kernel` is the tracker's SNR cost of the predicted slots (Gaussian about the
 prediction plus the detector's threshold), the numpy reference's operations in one pass.
