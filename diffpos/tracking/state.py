@@ -511,6 +511,16 @@ class TrackerConfig:
         mode; a vertical (stairs) mode re-seeded from it on a rival floor handed a stairs
         walker's wrong floor the win on Sionna RT's paper building (docs/tracking_evidence.md
         "Session 25"). False (default): both modes.
+    deficit_exact : bool
+        With ``deficit_nats``: every due test in full, the snapshot from ``init_starts`` grid
+        cells (session 25's first version). False (default): a pre-check from the
+        hypothesis' own update this epoch (the prior term plus the fitted links' chi-square,
+        halved, plus an outlier's cost per link called an outlier; the deficit ``D`` cannot
+        exceed it for the same mechanisms, linearised) skips the floors whose every tested
+        mode is at or below ``deficit_nats`` (their counts reset), and the snapshot of the
+        others fits the grid's best cell only: 0.36 -> ~0.1 ms per node-epoch on the
+        emulator's ``large30`` (docs/tracking_evidence.md "Session 25: a cheaper deficit
+        test").
     """
 
     q_h_m2_s3: float = 1.5
@@ -588,6 +598,7 @@ class TrackerConfig:
     deficit_tests: int = 2
     deficit_period_s: float = 1.0
     deficit_level_only: bool = False
+    deficit_exact: bool = False
 
 
 @dataclass(frozen=True)
