@@ -33,8 +33,8 @@ import pytest
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking import tracker
+from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import init_state, update
 
 SC = default_scenario()
