@@ -512,15 +512,19 @@ class TrackerConfig:
         walker's wrong floor the win on Sionna RT's paper building (docs/tracking_evidence.md
         "Session 25"). False (default): both modes.
     deficit_exact : bool
-        With ``deficit_nats``: every due test in full, the snapshot from ``init_starts`` grid
-        cells (session 25's first version). False (default): a pre-check from the
-        hypothesis' own update this epoch (the prior term plus the fitted links' chi-square,
-        halved, plus an outlier's cost per link called an outlier; the deficit ``D`` cannot
-        exceed it for the same mechanisms, linearised) skips the floors whose every tested
-        mode is at or below ``deficit_nats`` (their counts reset), and the snapshot of the
-        others fits the grid's best cell only: 0.36 -> ~0.1 ms per node-epoch on the
-        emulator's ``large30`` (docs/tracking_evidence.md "Session 25: a cheaper deficit
-        test").
+        With ``deficit_nats``: every due floor tested in full, its snapshot from
+        ``init_starts`` grid cells, a dormant mode updated for the test (session 25's first
+        version). False (default): the cheaper test. A floor is due at its level
+        hypothesis' refresh phase (so with ``dormant_refresh_s`` = ``deficit_period_s`` its
+        dormant level mode is refreshed that epoch), only the modes updated this epoch are
+        tested, and a mode is snapshot only where a pre-check from its own update exceeds
+        ``deficit_nats`` (``(q + c) / 2 + n_out log(outlier_span_m / outlier_weight)``: the
+        prior term and the fitted links' chi-square of its fit, and an outlier's cost per
+        link it calls an outlier; for the same mechanisms, linearised, ``D`` cannot exceed
+        it), from the grid's best cell in one pass; a floor below ``1e-3`` with no deficit
+        counted is tested every second period. The deficit tests' CPU on the emulator's
+        ``large30`` 0.34 -> 0.09 ms per node-epoch (docs/tracking_evidence.md "Session 25: a
+        cheaper deficit test").
     """
 
     q_h_m2_s3: float = 1.5

@@ -942,9 +942,10 @@ def _deficit_counts(update: tuple, sub: Links, due: NDArray[np.bool_],
     measurement update (:func:`_update_at`, the learned link weights ``link_w``, family gate
     ``fam_gate``) from the prior ``N(x, P)`` with its position moved to ``s`` against from
     ``N(x, P)`` (a hypothesis not updated this epoch is updated for the test, its state
-    unchanged). Unless ``deficit_exact``: a floor is snapshot (from the grid's best cell
-    only) only where a tested mode's :func:`_deficit_bound` exceeds ``deficit_nats``; the
-    others' ``D`` counts as below it. The count of a tested hypothesis is one more where
+    unchanged). Unless ``deficit_exact``: only the modes updated this epoch are tested (the
+    others keep their counts), and a floor is snapshot (from the grid's best cell, one pass)
+    only where a tested mode's :func:`_deficit_bound` exceeds ``deficit_nats``; the other
+    tested modes' ``D`` counts as below it. The count of a tested hypothesis is one more where
     ``D > deficit_nats``, else 0; the others keep theirs. Per node: no row reads another's."""
     m0, c0, run, x, ev, slot, res = update
     rows, fl = np.nonzero(due)
