@@ -521,7 +521,7 @@ class TrackerConfig:
         ``deficit_nats`` (``(q + c) / 2 + n_out log(outlier_span_m / outlier_weight)``: the
         prior term and the fitted links' chi-square of its fit, and an outlier's cost per
         link it calls an outlier; for the same mechanisms, linearised, ``D`` cannot exceed
-        it), from the grid's best cell in one pass; a floor below ``1e-3`` with no deficit
+        it), from the grid's best cell only; a floor below ``1e-3`` with no deficit
         counted is tested every second period. The deficit tests' CPU on the emulator's
         ``large30`` 0.34 -> 0.09 ms per node-epoch (docs/tracking_evidence.md "Session 25: a
         cheaper deficit test").

@@ -943,7 +943,7 @@ def _deficit_counts(update: tuple, sub: Links, due: NDArray[np.bool_],
     ``fam_gate``) from the prior ``N(x, P)`` with its position moved to ``s`` against from
     ``N(x, P)`` (a hypothesis not updated this epoch is updated for the test, its state
     unchanged). Unless ``deficit_exact``: only the modes updated this epoch are tested (the
-    others keep their counts), and a floor is snapshot (from the grid's best cell, one pass)
+    others keep their counts), and a floor is snapshot (from the grid's best cell only)
     only where a tested mode's :func:`_deficit_bound` exceeds ``deficit_nats``; the other
     tested modes' ``D`` counts as below it. The count of a tested hypothesis is one more where
     ``D > deficit_nats``, else 0; the others keep theirs. Per node: no row reads another's."""
@@ -962,7 +962,7 @@ def _deficit_counts(update: tuple, sub: Links, due: NDArray[np.bool_],
         x1[k], _, e_own[k], s1[k], _, r1[k], _ = _update_at(
             m0[rr[k], cc[k]], c0[rr[k], cc[k]], sub, rr[k], cc[k], n_floors, building, config,
             None, link_w, fam_gate)
-    starts, passes = None, 2
+    starts = None
     if not config.deficit_exact:  # the updated modes whose deficit may exceed the level
         low = _deficit_bound(m0[rr, cc], c0[rr, cc], x1, s1, r1, sub, rr,
                              config) <= config.deficit_nats
@@ -970,10 +970,10 @@ def _deficit_counts(update: tuple, sub: Links, due: NDArray[np.bool_],
         keep = ~low & run[rr, cc]  # (a mode not updated this epoch: not tested, count kept)
         big = keep.reshape(-1, modes).any(axis=1)  # the floors snapshot
         rows, fl, rr, cc, e_own = rows[big], fl[big], rr[keep], cc[keep], e_own[keep]
-        starts, passes = 1, 1
+        starts = 1
         if rows.size == 0:
             return out
-    xs, _, _, _, _ = snapshot(sub.take(rows), fl[:, None], building, config, starts, passes)
+    xs, _, _, _, _ = snapshot(sub.take(rows), fl[:, None], building, config, starts)
     xs = xs[np.searchsorted(np.flatnonzero(big), np.flatnonzero(keep) // modes)] if (
         not config.deficit_exact) else np.repeat(xs, modes, axis=0)
     xm = m0[rr, cc].copy()
