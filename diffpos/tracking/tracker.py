@@ -458,8 +458,9 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     new: dict = {}
     if idx.size:
         due = (_deficit_due(state.t_ns[idx], t[idx], st.refresh_origin_ns[idx], n_floors_of(st),
-                            config.deficit_period_s, not config.deficit_exact)
-               if config.deficit_nats > 0 else None)  # (1: due; 2: due, an even boundary)
+                            config.deficit_period_s, not config.deficit_exact,
+                            config.deficit_quiet_every)
+               if config.deficit_nats > 0 else None)  # (1: due; 2: due, a quiet floor's too)
         new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
             st, links, idx, t, inflow, dt_s, building, config, due)
         if "snr_node" in new:  # the SNR cache carried along (diffpos.tracking.model.snr_reuse_on)
@@ -884,7 +885,8 @@ def _learned(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray, n_mea
 
 
 #: Unless ``TrackerConfig.deficit_exact``: a floor whose probability is below this value and
-#: whose modes have no evidence deficit counted is tested every second ``deficit_period_s``
+#: whose modes have no evidence deficit counted is tested every ``deficit_quiet_every``
+#: ``deficit_period_s``
 #: (on the emulator's ``large30`` 80 % of the due floors were below it, with 97 % of the
 #: deficits found; docs/tracking_evidence.md "Session 25: a cheaper deficit test").
 DEFICIT_QUIET_P = 1e-3
@@ -897,8 +899,9 @@ def _deficit_tested(state: TrackerState, idx: NDArray, sub: Links, due: NDArray,
     (:func:`_deficit_counts`) of their floors ``due`` (n, F) that are TRACKING with enough
     ranges for a re-seed; ``update`` = (prior mean, prior cov, updated, and the posterior
     mean, evidence, slots, residuals) of :func:`_track_update`; ``due`` (:func:`_deficit_due`:
-    2 at an even boundary). Unless ``deficit_exact``, a floor below :data:`DEFICIT_QUIET_P`
-    whose modes have no deficit counted is tested at even boundaries only."""
+    2 at a quiet floor's boundary). Unless ``deficit_exact``, a floor below
+    :data:`DEFICIT_QUIET_P` whose modes have no deficit counted is tested every
+    ``deficit_quiet_every`` periods only."""
     if not config.deficit_exact:
         quiet = ((floor_probabilities(state.log_prob[idx]) < DEFICIT_QUIET_P)
                  & ~(state.deficit_count[idx].reshape(idx.size, 2, -1) > 0).any(axis=1))
@@ -911,7 +914,7 @@ def _deficit_tested(state: TrackerState, idx: NDArray, sub: Links, due: NDArray,
 
 def _deficit_due(prev_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
                  origin_ns: NDArray[np.int64], n_floors: int, period_s: float,
-                 level_phase: bool = False) -> NDArray[np.bool_]:
+                 level_phase: bool = False, every: int = 2) -> NDArray[np.int8]:
     """The floors (n, F) due for an evidence-deficit test this epoch
     (``TrackerConfig.deficit_period_s``): floor ``f``'s boundaries at ``origin + k T - f T /
     F`` (measurement time relative to the node's ``origin_ns``, as :func:`_refresh_due`)
@@ -919,7 +922,8 @@ def _deficit_due(prev_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
     at ``- f T / (2 F)``, the phase of the floor's level hypothesis in :func:`_refresh_due`
     (with ``dormant_refresh_s`` = ``deficit_period_s`` a dormant level hypothesis is
     refreshed, so updated, in the epoch its floor is due). Returns 0 (not due), 1 (due) or
-    2 (due, and an even boundary among those passed: :data:`DEFICIT_QUIET_P`)."""
+    2 (due, and a boundary ``k`` with ``k % every == 0`` among those passed: the quiet floors'
+    test, :data:`DEFICIT_QUIET_P`)."""
     period = max(round(period_s * 1e9), 1)
     phase = (np.arange(n_floors, dtype=np.int64) * period) // (
         2 * n_floors if level_phase else n_floors)
@@ -927,7 +931,8 @@ def _deficit_due(prev_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
     k_t = (t_ns[:, None] - o + phase) // period
     k_p = (prev_ns[:, None] - o + phase) // period
     due = k_t > k_p
-    return due.astype(np.int8) + (due & ((k_t % 2 == 0) | (k_t - k_p >= 2)))
+    every = max(int(every), 1)
+    return due.astype(np.int8) + (due & ((k_t % every == 0) | (k_t - k_p >= every)))
 
 
 def _deficit_counts(update: tuple, sub: Links, due: NDArray[np.bool_],
