@@ -72,7 +72,7 @@ rounding (< 1e-4 m below 1 km from the origin) is negligible against the anchor 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -1062,14 +1062,19 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     return xo, p, log_ev, sel, res
 
 
-def snapshot(links: Links, floors: NDArray, building, config):
+def snapshot(links: Links, floors: NDArray, building, config, starts: int | None = None,
+             passes: int = 2):
     """Snapshot fit of every listed floor per node (grid, then the IEKF from the best cells).
 
     ``floors`` (N, Fs). Returns ``(x, P, log_evidence, sel, residual)`` of the best start per
     node and floor: (N, Fs, 6), (N, Fs, 6, 6), (N, Fs), the selection and residuals (N, Fs, M).
+    ``starts``: the grid's best cells fitted (None: ``config.init_starts``); ``passes``: the
+    measurement updates from each (the second re-selects the mechanisms at the first's fit).
     """
     n, nf = floors.shape
-    ns = config.init_starts
+    ns = config.init_starts if starts is None else int(starts)
+    if ns != config.init_starts:
+        config = replace(config, init_starts=ns)
     x = np.zeros((n, nf * ns, 6))
     x[..., :3] = grid_starts(links, floors, building, config)
     fl = np.repeat(floors, ns, axis=1)
@@ -1077,7 +1082,7 @@ def snapshot(links: Links, floors: NDArray, building, config):
     p0 = np.diag([g * g, g * g, (building.floor_height_m / 4) ** 2, v * v, v * v,
                   (config.v_stairs_m_s / 2) ** 2])
     p0 = np.broadcast_to(p0, (n, nf * ns, 6, 6))
-    for _ in range(2):  # second pass: mechanisms re-selected at the first pass' estimate
+    for _ in range(passes):  # second pass: mechanisms re-selected at the first's estimate
         x, p, ev, sel, res = measurement_update(x, p0, links, fl, building, config)
     ev = np.where(np.isfinite(ev), ev, -1e300).reshape(n, nf, ns)
     best = np.argmax(ev, axis=-1)  # (N, Fs)

@@ -511,6 +511,26 @@ class TrackerConfig:
         mode; a vertical (stairs) mode re-seeded from it on a rival floor handed a stairs
         walker's wrong floor the win on Sionna RT's paper building (docs/tracking_evidence.md
         "Session 25"). False (default): both modes.
+    deficit_exact : bool
+        With ``deficit_nats``: every due floor tested in full, its snapshot from
+        ``init_starts`` grid cells, a dormant mode updated for the test (session 25's first
+        version). False (default): the cheaper test. A floor is due at its level
+        hypothesis' refresh phase (so with ``dormant_refresh_s`` = ``deficit_period_s`` its
+        dormant level mode is refreshed that epoch), only the modes updated this epoch are
+        tested, and a mode is snapshot only where a pre-check from its own update exceeds
+        ``deficit_nats`` (``(q + c) / 2 + n_out log(outlier_span_m / outlier_weight)``: the
+        prior term and the fitted links' chi-square of its fit, and an outlier's cost per
+        link it calls an outlier; for the same mechanisms, linearised, ``D`` cannot exceed
+        it), from the grid's best cell only; a floor below ``1e-3`` with no deficit
+        counted is tested every ``deficit_quiet_every`` periods. The tests' CPU on the
+        emulator's ``large30`` 0.34-0.39 -> 0.11 ms per node-epoch (docs/tracking_evidence.md
+        "Session 25: a cheaper deficit test").
+    deficit_quiet_every : int
+        With ``deficit_nats`` and not ``deficit_exact``: a floor whose probability is below
+        ``1e-3`` and whose modes have no deficit counted is tested once every this many
+        ``deficit_period_s`` (2, default: at the second of its boundaries; 4 measured
+        +12 % instead of +23 % CPU on ``large30`` and gave back Sionna ``large``'s gain,
+        docs/tracking_evidence.md "Session 25: a cheaper deficit test"; 1: every period).
     """
 
     q_h_m2_s3: float = 1.5
@@ -588,6 +608,8 @@ class TrackerConfig:
     deficit_tests: int = 2
     deficit_period_s: float = 1.0
     deficit_level_only: bool = False
+    deficit_exact: bool = False
+    deficit_quiet_every: int = 2
 
 
 @dataclass(frozen=True)

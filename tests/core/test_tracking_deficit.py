@@ -16,6 +16,11 @@ the emulator's truth (the node's position, the floor it stands on):
 * the NIS re-seed's counter of the moved hypothesis stays below ``reseed_epochs`` without
   the setting over those 20 epochs (the case the NIS re-seed misses);
 * the same with ``deficit_level_only`` (the level mode tested and re-seeded only);
+* the same with ``deficit_exact`` (session 25's first test: every due floor snapshot);
+* the cheaper test (the default ``deficit_exact`` False) snapshots nothing while the node's
+  true floor is tracked at the node (its pre-check, the track's own prior term and
+  chi-square halved plus an outlier's cost per outlier, is below the level), where the exact
+  test snapshots that floor once a second; its deficits there stay below the level;
 * off (0, the default) the new state field stays 0.
 """
 
@@ -28,6 +33,7 @@ import pytest
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
+from diffpos.tracking import tracker
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import init_state, update
 
@@ -39,6 +45,7 @@ WRONG_XY = (12.5, 3.25)  # a local minimum of floor 3's robust range cost for NO
 OFF = TrackerConfig()
 ON = dataclasses.replace(OFF, deficit_nats=4.6)
 LEVEL = dataclasses.replace(ON, deficit_level_only=True)
+EXACT = dataclasses.replace(ON, deficit_exact=True)
 K0, EPOCHS = 30, 60
 
 
@@ -66,7 +73,7 @@ def _run(config, seed):
 
 
 @pytest.mark.parametrize("seed", [1, 2])
-@pytest.mark.parametrize("on", [ON, LEVEL], ids=["both-modes", "level-only"])
+@pytest.mark.parametrize("on", [ON, LEVEL, EXACT], ids=["both-modes", "level-only", "exact"])
 def test_a_track_in_a_wrong_local_minimum_of_its_floor_is_reseeded_at_the_node(seed, on):
     d_off, right_off, bad_off, s_off = _run(OFF, seed)
     assert d_off[K0] > 3.0  # the tracks were moved
@@ -77,5 +84,38 @@ def test_a_track_in_a_wrong_local_minimum_of_its_floor_is_reseeded_at_the_node(s
     assert d_on[K0 + 20] < 0.3 and right_on[K0:].sum() >= 10
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_cheap_test_snapshots_no_floor_of_a_track_at_the_node(seed, monkeypatch):
+    """No move: epochs 10-60 of the static node, its tracks converged at the node."""
+    f = int(B.floor_index(NODE[2]))
+    seen = []
+    real = tracker.snapshot
+
+    def counted(links, floors, *a, **k):
+        seen.append(floors[:, 0].copy())
+        return real(links, floors, *a, **k)
+
+    monkeypatch.setattr(tracker, "snapshot", counted)
+    rng = np.random.default_rng(seed)
+    channel = emulate_channel(ANCHORS, NODE[None], building=B, radio=RADIO)
+    by = {}
+    for name, config in (("cheap", ON), ("exact", EXACT)):
+        state, rng = init_state(1, B), np.random.default_rng(seed)
+        n_true, counts = 0, []
+        for k in range(EPOCHS):
+            seen.clear()
+            fa = first_arrival(channel, radio=RADIO, rng=rng)
+            state, _ = update(state, ANCHORS[None], fa.range_m, fa.sigma_m, fa.detected,
+                              10**9 + k * 10**8, B, config, snr_db=fa.snr_db, radio=RADIO)
+            if k >= 10:
+                n_true += sum(int(np.sum(v == f)) for v in seen)
+                counts.append(state.deficit_count[0, [f, f + B.n_floors]].copy())
+        by[name] = n_true, np.array(counts)
+    assert np.linalg.norm(state.mean[0, f, :3] - NODE) < 0.5  # converged at the node
+    assert by["exact"][0] >= 4  # the exact test: the true floor snapshot once a second
+    assert by["cheap"][0] == 0  # the cheap one: never
+    assert not by["cheap"][1].any() and not by["exact"][1].any()  # no deficit either way
+
+
 def test_off_by_default():
-    assert OFF.deficit_nats == 0.0 and not OFF.deficit_level_only
+    assert OFF.deficit_nats == 0.0 and not OFF.deficit_level_only and not OFF.deficit_exact
