@@ -29,6 +29,7 @@ __all__ = [
     "TrackerState",
     "floor_contested",
     "floor_probabilities",
+    "has_position",
     "hypothesis_floor",
     "hypothesis_vertical",
     "n_floors_of",
@@ -58,6 +59,13 @@ class TrackStatus(enum.IntEnum):
     """No usable ranges this epoch: predicted only, the covariance grows."""
     LOST = 4
     """No usable ranges for ``lost_after_s``: no position published until re-initialised."""
+
+
+def has_position(status: NDArray) -> NDArray[np.bool_]:
+    """Where a track has a position to publish: its :class:`TrackStatus` ``status`` is
+    neither UNINITIALISED nor LOST (two comparisons: ``np.isin``'s setup costs ~20 us, several
+    calls per tracker call)."""
+    return (status != TrackStatus.UNINITIALISED) & (status != TrackStatus.LOST)
 
 
 @dataclass(frozen=True)

@@ -182,6 +182,7 @@ from diffpos.tracking.state import (
     TrackStatus,
     floor_contested,
     floor_probabilities,
+    has_position,
     hypothesis_floor,
     hypothesis_vertical,
     n_floors_of,
@@ -286,7 +287,7 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
     dm = xm - pos[:, None]
     cov = (vf * pm + np.einsum("nh,nhi,nhj->nij", prob_h, d, d)
            + np.einsum("nm,nmi,nmj->nij", w * (1.0 - prob[rows, best])[:, None], dm, dm))
-    has = (state.status != TrackStatus.UNINITIALISED) & (state.status != TrackStatus.LOST)
+    has = has_position(state.status)
     return TrackOutput(
         position_m=np.where(has[:, None], pos, np.nan),
         covariance_m2=np.where(has[:, None, None], cov, np.nan),
@@ -317,6 +318,12 @@ def _few_anchors(out: TrackOutput, n_meas: NDArray, config: TrackerConfig) -> Tr
     w = np.where(few[:, None] & (top > cap), (top - cap) / np.maximum(top - 1.0 / nf, 1e-12),
                  0.0)
     return replace(out, status=status, floor_probabilities=(1 - w) * p + w / nf)
+
+
+def _reseed_ranges(config: TrackerConfig) -> int:
+    """The ranges a node needs this epoch for a re-seed of its hypotheses (``min_ranges_init``,
+    ``reseed_min_links``); the evidence-deficit test tests only such nodes."""
+    return max(config.min_ranges_init, config.reseed_min_links)
 
 
 def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: TrackerConfig):
@@ -449,8 +456,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
     n_meas = links.mask[:, 0].sum(axis=1)
     if config.lost_on_gap:  # stale after a stall: re-initialised below, not updated
-        placed = (status != TrackStatus.UNINITIALISED) & (status != TrackStatus.LOST)
-        status[placed & (n_meas > 0) & ((t - last) * 1e-9 > config.lost_after_s)] = (
+        status[has_position(status) & (n_meas > 0) & ((t - last) * 1e-9 > config.lost_after_s)] = (
             TrackStatus.LOST)
     live = ((status == TrackStatus.INITIALISING) | (status == TrackStatus.TRACKING)
             | (status == TrackStatus.COASTING))  # np.isin's values (np.isin: 1.5 % of a 1-node call)
@@ -480,8 +486,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         last[idx] = t[idx]
         status[idx] = np.where(status[idx] == TrackStatus.COASTING, TrackStatus.TRACKING,
                                status[idx])
-    _reseed(mean, cov, floor_bad, links,
-            live & (n_meas >= max(config.min_ranges_init, config.reseed_min_links)), building,
+    _reseed(mean, cov, floor_bad, links, live & (n_meas >= _reseed_ranges(config)), building,
             config)
     coast = live & (n_meas == 0)
     status[coast] = TrackStatus.COASTING
@@ -542,8 +547,17 @@ def _refresh_due(updated_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
     period = max(round(period_s * 1e9), 1)
     h = updated_ns.shape[1]
     phase = (np.arange(h, dtype=np.int64) * period) // h
-    o = origin_ns[:, None]
-    return (t_ns[:, None] - o + phase) // period > (updated_ns - o + phase) // period
+    return (_period_index(t_ns[:, None], origin_ns, phase, period)
+            > _period_index(updated_ns, origin_ns, phase, period))
+
+
+def _period_index(t_ns: NDArray[np.int64], origin_ns: NDArray[np.int64],
+                  phase: NDArray[np.int64], period: int) -> NDArray[np.int64]:
+    """Which period ``k`` of ``period`` ns each time is in, the periods starting at ``origin +
+    k T - phase`` (``t_ns`` (n, 1) or (n, K), ``origin_ns`` (n,), ``phase`` (K,)): measurement
+    time relative to the node's origin, so a replay has the same boundaries as the live run
+    (:func:`_refresh_due`, :func:`_deficit_due`)."""
+    return (t_ns - origin_ns[:, None] + phase) // period
 
 
 def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
@@ -905,7 +919,7 @@ def _deficit_tested(state: TrackerState, idx: NDArray, sub: Links, due: NDArray,
                  & ~(state.deficit_count[idx].reshape(idx.size, 2, -1) > 0).any(axis=1))
         due = np.where(quiet, due == 2, due > 0)
     due = ((due > 0) & (state.status[idx] == TrackStatus.TRACKING)[:, None]
-           & (n_meas >= max(config.min_ranges_init, config.reseed_min_links))[:, None])
+           & (n_meas >= _reseed_ranges(config))[:, None])
     return _deficit_counts(update, sub, due, state.deficit_count[idx], n_floors_of(state),
                            building, config, link_w, fam_gate)
 
@@ -936,9 +950,8 @@ def _deficit_due(prev_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
     period = max(round(period_s * 1e9), 1)
     phase = (np.arange(n_floors, dtype=np.int64) * period) // (
         2 * n_floors if level_phase else n_floors)
-    o = origin_ns[:, None]
-    k_t = (t_ns[:, None] - o + phase) // period
-    k_p = (prev_ns[:, None] - o + phase) // period
+    k_t = _period_index(t_ns[:, None], origin_ns, phase, period)
+    k_p = _period_index(prev_ns[:, None], origin_ns, phase, period)
     due = k_t > k_p
     every = max(int(every), 1)
     return due.astype(np.int8) + (due & ((k_t % every == 0) | (k_t - k_p >= every)))

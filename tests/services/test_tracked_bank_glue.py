@@ -26,7 +26,7 @@ from diffpos_services.fusion.tracked import TrackBank
 from diffpos.alignment import PendingEpoch
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking.state import TrackerState, TrackStatus
+from diffpos.tracking.state import TrackerState, TrackStatus, has_position
 
 SC = default_scenario()
 B = SC.building
@@ -224,15 +224,15 @@ def test_the_snapshot_decision_equals_the_loop_over_the_rows(seed):
 
 
 def test_membership_by_comparisons_equals_isin():
-    """``_placed`` and the gated count's reason test (two comparisons instead of np.isin,
+    """``has_position`` and the gated count's reason test (two comparisons instead of np.isin,
     whose setup costs ~20 us per call) against np.isin, on every status / reason code and
     on random arrays of both dtypes they see."""
     rng = np.random.default_rng(3)
     st = np.concatenate([np.arange(len(TrackStatus)), rng.integers(0, len(TrackStatus), 500)]
                         ).astype(np.int8)
-    assert tracked._placed(st).tolist() == np.isin(st, tracked._NO_POSITION,
-                                                    invert=True).tolist()
-    assert tracked._placed(st[:0]).shape == (0,)
+    no_position = (int(TrackStatus.UNINITIALISED), int(TrackStatus.LOST))
+    assert has_position(st).tolist() == np.isin(st, no_position, invert=True).tolist()
+    assert has_position(st[:0]).shape == (0,)
     reason = rng.integers(0, 12, (40, 9)).astype(np.int64)
     shape = reason.shape
     flags = {k: rng.random(shape) < 0.9 for k in ("reported", "detected", "have_state")}
