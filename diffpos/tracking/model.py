@@ -76,6 +76,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import ndtr
 
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.channel.snr_nb import snr_cost_kernel
@@ -105,7 +106,12 @@ from diffpos.tracking.model_nb import (
     select_prep_kernel,
 )
 from diffpos.tracking.snr_nb import cache_plan_kernel, cache_store_kernel
-from diffpos.tracking.snr_term_nb import snr_hole_kernel, snr_plan_kernel, snr_score_kernel
+from diffpos.tracking.snr_term_nb import (
+    snr_hole_kernel,
+    snr_plan_kernel,
+    snr_score_kernel,
+    snr_skip_kernel,
+)
 from diffpos.tracking.state import SNR_CACHE_SLOTS
 from diffpos.tracking.update_nb import clamp_kernel, update_fixed_kernel
 
@@ -499,7 +505,41 @@ def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEv
                           need=h_need[:2 * q]) if q else np.empty((0, 1, K_SLOTS)))
     snr_hole_kernel(_c(h_pred, dtype=np.float64), h_need, h_meas, h_thr, hole_idx, q, sig, fap,
                     det, float(config.snr_cost_cap_nats), cost, np.empty((2 * q, K_SLOTS)))
+    if config.first_arrival_prior > 0:  # the detector's skipped paths (skip_cost)
+        snr_skip_kernel(_cb(pe.length, shape, np.float64), _cb(pe.loose, shape, b1),
+                        _cb(pe.sure, shape, b1), _IS_DIFF, pred, thr, snr, fap, sig,
+                        float(config.first_arrival_prior), cost)
     return cost
+
+
+def skip_cost(pe: PathEval, pred: FloatArray, thr: FloatArray, snr: FloatArray,
+              cost: FloatArray, radio, weight: float) -> FloatArray:
+    """The SNR costs ``cost`` (N, H, M, K) [nats] with the detector's skipped paths
+    (``TrackerConfig.first_arrival_prior`` = ``weight``; the numpy reference of
+    :func:`diffpos.tracking.snr_term_nb.snr_skip_kernel`).
+
+    The detector reports the earliest path whose SNR is within ``fap_threshold_db`` of the
+    strongest (:func:`diffpos.channel.emulator.first_arrival`), so a candidate mechanism
+    ``k`` is the first arrival only if every candidate ``j`` arriving before it was below
+    that threshold ``T``: probability ``prod_j Phi((T - S_j) / SNR_SIGMA_DB)``, ``S_j`` the
+    slot's predicted SNR ``pred`` [dB] (the spread of :data:`SNR_SIGMA_DB`), ``T`` the
+    predicted threshold ``thr`` (N, H, M) or, if higher, the measured first arrival's SNR
+    ``snr`` (N, M) less ``fap_threshold_db`` (the strongest path is at least that strong,
+    whatever the model predicts). Mixed ``weight : 1 - weight`` with 1 (a model that
+    predicts a path tens of dB too strong, as on channels we did not write, costs at most
+    ``-log(1 - weight)``), it multiplies the candidate's uniform prior, so ``-log`` of it
+    is added to the cost. Links with an unknown SNR, slots that are no candidate or carry
+    no power (an infinite cost) are unchanged."""
+    valid = candidates(pe) & (np.isfinite(cost) | ~pe.sure)
+    t = np.fmax(thr, snr[:, None, :] - radio.fap_threshold_db)
+    with np.errstate(invalid="ignore"):
+        phi = np.where(valid & np.isfinite(pred),
+                       ndtr((t[..., None] - pred) / SNR_SIGMA_DB), 1.0)
+    earlier = pe.length[..., None, :] < pe.length[..., :, None]  # [.., k, j]: j before k
+    prod = np.prod(np.where(earlier, phi[..., None, :], 1.0), axis=-1)
+    add = -np.log(weight * prod + (1.0 - weight))
+    use = valid & np.isfinite(cost) & np.isfinite(snr)[:, None, :, None]
+    return np.where(use, cost + add, cost)
 
 
 # --------------------------------------------------------------------------------------------

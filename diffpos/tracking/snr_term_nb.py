@@ -19,6 +19,10 @@ scatters.
 * :func:`snr_hole_kernel` (after that): the holes' costs against the hypothesis' own
   threshold (``HOLE_THRESHOLD_AT_PRIOR``), the better of the two heights written into the
   costs, then the cap.
+* :func:`snr_skip_kernel` (``TrackerConfig.first_arrival_prior`` > 0): the detector's
+  skipped paths, every candidate's cost raised by its earlier candidates' probability of
+  having been below the threshold (:func:`diffpos.tracking.model.skip_cost` is the numpy
+  reference, equal to 1e-12).
 
 The arithmetic is the numpy version's, operation for operation (the distances
 ``sqrt((d0^2 + d1^2) + d2^2)`` as numpy's sum over three, the shifted heights clipped as
@@ -36,7 +40,8 @@ from numba import njit
 from diffpos.channel.snr_nb import snr_cost_kernel
 from diffpos.tracking.snr_nb import cache_plan_kernel, cache_store_kernel
 
-__all__ = ["snr_hole_kernel", "snr_plan_kernel", "snr_score_kernel", "warm_snr_term"]
+__all__ = ["snr_hole_kernel", "snr_plan_kernel", "snr_score_kernel", "snr_skip_kernel",
+           "warm_snr_term"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
@@ -224,6 +229,51 @@ def snr_hole_kernel(h_pred, h_need, h_meas, h_thr, hole_idx, q, sigma_db, fap_db
                 c4[i] = cap
 
 
+@njit(**_OPTS)
+def snr_skip_kernel(length, loose, sure, is_diff, pred, thr, snr, fap_db, sigma_db, weight,
+                    cost):
+    """The skipped paths' term added to ``cost`` (N, H, M, K) in place (numpy reference:
+    :func:`diffpos.tracking.model.skip_cost`). For every link with a known SNR ``snr`` (N, M)
+    and every candidate slot ``k`` (:func:`diffpos.tracking.links.candidates` of ``length``,
+    ``loose``, ``sure``, ``is_diff``; a finite cost), ``-log(w prod_j Phi((T - pred_j) /
+    sigma_db) + 1 - w)`` over the candidates ``j`` strictly shorter with a finite prediction
+    ``pred`` (N, H, M, K) [dB], ``T = fmax(thr, snr - fap_db)`` (``thr`` (N, H, M) the
+    predicted detector threshold [dB]), ``w = weight``."""
+    n_n, n_h, n_m, n_k = cost.shape
+    valid = np.empty(n_k, dtype=np.bool_)
+    r2 = math.sqrt(2.0)
+    for n in range(n_n):
+        for m in range(n_m):
+            s = snr[n, m]
+            if not math.isfinite(s):
+                continue
+            for h in range(n_h):
+                e_spec = np.inf
+                for k in range(n_k):
+                    if sure[n, h, m, k] and not is_diff[k] and length[n, h, m, k] < e_spec:
+                        e_spec = length[n, h, m, k]
+                for k in range(n_k):
+                    lk = length[n, h, m, k]
+                    valid[k] = loose[n, h, m, k] and ((lk < e_spec) if is_diff[k]
+                                                       else (lk <= e_spec))
+                    valid[k] = valid[k] and (math.isfinite(cost[n, h, m, k])
+                                             or not sure[n, h, m, k])
+                t = thr[n, h, m]
+                t2 = s - fap_db
+                if math.isnan(t) or t2 > t:
+                    t = t2
+                for k in range(n_k):
+                    if not (valid[k] and math.isfinite(cost[n, h, m, k])):
+                        continue
+                    prod = 1.0
+                    for j in range(n_k):
+                        pj = pred[n, h, m, j]
+                        if valid[j] and math.isfinite(pj) and length[n, h, m, j] < \
+                                length[n, h, m, k]:
+                            prod *= 0.5 * math.erfc(-((t - pj) / sigma_db) / r2)
+                    cost[n, h, m, k] -= math.log(weight * prod + (1.0 - weight))
+
+
 def warm_snr_term() -> None:
     """Compile (or load from numba's cache) the three kernels on tiny inputs of the tracker's
     types (called by :func:`diffpos.tracking.tracker.warm_tracking`)."""
@@ -251,3 +301,5 @@ def warm_snr_term() -> None:
                          hole_idx, h_anc, h_node, h_need, h_meas, h_thr)
     snr_hole_kernel(np.zeros((2, 1, k)), h_need, h_meas, h_thr, hole_idx, q, 6.0, 15.0, 0.0,
                     4.5, cost, np.empty((2, k)))
+    snr_skip_kernel(np.zeros((1, 1, 1, k)), b4, b4, np.zeros(k, np.bool_),
+                    np.zeros((1, 1, 1, k)), thr, snr, 15.0, 6.0, 0.9, cost)

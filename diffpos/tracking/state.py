@@ -539,6 +539,16 @@ class TrackerConfig:
         ``deficit_period_s`` (2, default: at the second of its boundaries; 4 measured
         +12 % instead of +23 % CPU on ``large30`` and gave back Sionna ``large``'s gain,
         docs/tracking_evidence.md "Session 25: a cheaper deficit test"; 1: every period).
+    first_arrival_prior : float
+        Weight ``w`` (0-1) of the detector's skipped paths in a candidate mechanism's prior
+        (:func:`diffpos.tracking.model.skip_cost`): a mechanism is the reported first arrival
+        only if every candidate arriving before it was below the detector's threshold, so its
+        uniform prior is multiplied by ``w prod_j Phi((T - S_j) / sigma) + 1 - w`` (``S_j``
+        the earlier candidates' predicted SNRs, ``T`` the threshold, at least the measured
+        first arrival's SNR less ``fap_threshold_db``). 0 (default): off, the uniform prior.
+        ``1 - w`` bounds what a model that predicts a path too strong can cost a link
+        (``-log(1 - w)``, 2.3 nats at 0.9). docs/tracking_evidence.md "Session 26: the
+        detector's skipped paths".
     """
 
     q_h_m2_s3: float = 1.5
@@ -618,6 +628,7 @@ class TrackerConfig:
     deficit_level_only: bool = False
     deficit_exact: bool = False
     deficit_quiet_every: int = 2
+    first_arrival_prior: float = 0.0
 
 
 @dataclass(frozen=True)
