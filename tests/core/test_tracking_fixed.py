@@ -172,8 +172,10 @@ def test_measurement_update_with_shared_inputs_is_the_per_pass_one(bi, h):
     several hypotheses per node and one, on two other buildings; the cases have priors
     outside their box (their paths evaluated again at the prior) and inliers/outliers."""
     b = _BUILDINGS[bi]
-    # the reference applies no SNR cap (cap_snr_cost is tested on its own)
-    cfg = TrackerConfig(snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, snr_cost_cap_nats=0.0)
+    # the reference applies no SNR cap and no skipped-path term (cap_snr_cost and skip_cost
+    # are tested on their own: test_snr_term.py, test_tracking_skip.py)
+    cfg = TrackerConfig(snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, snr_cost_cap_nats=0.0,
+                        first_arrival_prior=0.0)
     for seed, snr in ((10 * bi + h, True), (10 * bi + h + 5, False)):
         x, p, links, floor, level = _case(b, seed, h=h, snr=snr)
         xc = clamp_to_floor(x[..., :3], floor, b, cfg.z_margin_m)
