@@ -6,6 +6,13 @@ Usage::
     python benchmarks/bench_fusion_cost.py [--scenario large] [--duration 10] [--seed 0]
     python benchmarks/bench_fusion_cost.py --recording REC --parts [--startup-s 1]
     python benchmarks/bench_fusion_cost.py --recording REC --compare CHECKOUT [--repeat 2]
+    python benchmarks/bench_fusion_cost.py --recording REC --steps [--startup-s 2.5]
+
+``--steps`` (session 26, the live ``large``'s p99): a replay of REC by its recorded decisions
+(the live run's solve steps, bit for bit) with the CPU of each step and of its parts
+(:data:`STEP_PARTS`: the tracker's update, its hypothesis updates, floor re-seeds and track
+initialisations, the M-NLS check fixes) and their rows: the distribution over the steps after
+``--startup-s`` of wall time and the slowest steps (docs/performance.md "Session 26").
 
 ``--compare CHECKOUT`` (session 22): the same measurement (``--recording``: an M-NLS replay with
 the recorded decisions after a warm-up replay; ``--schedule``: the live loop) by CHECKOUT's code
@@ -233,6 +240,7 @@ from __future__ import annotations
 import argparse
 import collections
 import hashlib
+import importlib
 import os
 import platform
 import queue
@@ -245,6 +253,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 from common import tree_env
+from diffpos_services.fusion.core import FusionCore
 from diffpos_services.heap import keep_heap
 from diffpos_services.replay.run import replay
 from diffpos_services.wire import messages as M
@@ -293,6 +302,7 @@ def thread_costs(path: Path, threads: list[int], repeat: int) -> list[dict]:
 PARTS = (
     ("diffpos.estimators.mnls.solver", "mnls", "mnls snapshot fixes"),
     ("diffpos.tracking.tracker", "snapshot_init", "  track initialisations (grid snapshot)"),
+    ("diffpos.tracking.tracker", "snapshot", "  floor re-seeds, deficit tests (floor snapshot)"),
     ("diffpos.tracking.model", "pair_snr_db", "  SNR prediction (channel.snr_nb kernel)"),
     ("diffpos.tracking.model", "all_paths", "  paths kernel"),
     ("diffpos.tracking.model", "select", "  mechanism selection"),
@@ -309,8 +319,6 @@ def parts(path: Path, startup_s: float = 1.0, warm_s: float = 16.0) -> tuple[flo
     into the start-up (the first ``startup_s`` of measurement time) and the rest, by part
     (timers around the functions of :data:`PARTS`, the tracker bank's update; process CPU).
     Returns (replay CPU, node-epochs per phase, {(late, label): CPU s})."""
-    import importlib
-
     from diffpos_services.fusion import tracked
 
     cpu_by: dict = collections.defaultdict(float)
@@ -374,6 +382,89 @@ def _print_parts(path: Path, cpu: float, n_by: dict, cpu_by: dict, startup_s: fl
     rest = cpu - sum(v for (_, label), v in cpu_by.items() if not label.startswith(" "))
     print(f"  the rest (ingest, alignment, step assembly, estimates, report; both phases): "
           f"{rest:.2f} s, {1e3 * rest / max(n, 1):.3f} ms per node-epoch")
+
+
+#: ``--steps``: the work timed and counted per solve step (module, attribute, label, the rows
+#: of a call from its arguments): what makes a step slow
+STEP_PARTS = (
+    ("diffpos_services.fusion.tracked", "update", "tracker update (all)",
+     lambda a: a[0].status.shape[0]),
+    ("diffpos.tracking.tracker", "_update_pairs", "  hypothesis updates", lambda a: a[3].size),
+    ("diffpos.tracking.tracker", "snapshot", "  floor re-seeds (snapshot)", lambda a: len(a[1])),
+    ("diffpos.tracking.tracker", "snapshot_init", "  track initialisations",
+     lambda a: a[0].rho.shape[0]),
+    ("diffpos.estimators.mnls.solver", "mnls", "M-NLS check fixes", lambda a: len(a[0])),
+)
+
+
+def steps(path: Path, warm_s: float = 16.0) -> list[dict]:
+    """Per solve step of a replay of ``path`` with its recorded decisions (the live run's
+    steps, bit for bit): its epochs, process CPU [s] and, per :data:`STEP_PARTS` label, the
+    CPU and the rows of its calls; after a warm-up replay of the first ``warm_s``."""
+    rows: list[dict] = []
+    cur: dict = collections.defaultdict(float)
+    saved = []
+
+    def timed(fn, label, count):
+        def run(*a, **k):
+            t = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                cur[label] += time.process_time() - t
+                cur["#" + label] += count(a)
+        return run
+
+    def step(core, now_wall_ns, **k):
+        cur.clear()
+        n0, t = core.solved, time.process_time()
+        out = core_step(core, now_wall_ns, **k)
+        if core.solved > n0:
+            rows.append({"t_ns": now_wall_ns, "epochs": core.solved - n0,
+                         "cpu": time.process_time() - t, **cur})
+        return out
+
+    core_step = FusionCore.step
+    for mod, name, label, count in STEP_PARTS:
+        m = importlib.import_module(mod)
+        saved.append((m, name, getattr(m, name)))
+        setattr(m, name, timed(getattr(m, name), label, count))
+    saved.append((FusionCore, "step", core_step))
+    FusionCore.step = step
+    try:
+        replay(path, keep_estimates=False, end_s=warm_s)  # imports, kernels, first calls
+        rows.clear()
+        replay(path, keep_estimates=False)
+    finally:
+        for obj, name, fn in saved:
+            setattr(obj, name, fn)
+    return rows
+
+
+def _print_steps(path: Path, rows: list[dict], startup_s: float) -> None:
+    t0 = min(r["t_ns"] for r in rows)
+    late = [r for r in rows if r["t_ns"] - t0 >= startup_s * 1e9]
+    cpu = 1e3 * np.array([r["cpu"] for r in late])
+    print(f"bench_fusion_cost --steps: recording {path} (its recorded steps); machine "
+          f"{platform.machine()} {os.cpu_count()} cores, load avg {os.getloadavg()[0]:.1f}")
+    print(f"  {len(late)} of {len(rows)} steps after the first {startup_s:g} s, "
+          f"{sum(r['epochs'] for r in late)} epochs; CPU per step [ms] p50 "
+          f"{np.percentile(cpu, 50):.1f} p90 {np.percentile(cpu, 90):.1f} p99 "
+          f"{np.percentile(cpu, 99):.1f} max {cpu.max():.1f} mean {cpu.mean():.1f}")
+    print(f"    {'part':<30} {'ms/step':>8} {'p90':>6} {'max':>6} {'share':>6} "
+          f"{'rows/step':>9} {'max':>5} {'ms/row':>7}")
+    for _, _, label, _ in STEP_PARTS:
+        v = 1e3 * np.array([r.get(label, 0.0) for r in late])
+        n = np.array([r.get("#" + label, 0) for r in late])
+        print(f"    {label:<30} {v.mean():>8.2f} {np.percentile(v, 90):>6.2f} {v.max():>6.2f} "
+              f"{100 * v.sum() / cpu.sum():>5.1f}% {n.mean():>9.2f} {n.max():>5} "
+              f"{v.sum() / max(n.sum(), 1):>7.2f}")
+    print("  the slowest steps (CPU ms, epochs, then each part's ms / rows):")
+    for i in np.argsort(-cpu)[:6]:
+        r = late[i]
+        parts_ = ", ".join(f"{label.strip()} {1e3 * r.get(label, 0.0):.1f}/"
+                           f"{r.get('#' + label, 0):.0f}" for _, _, label, _ in STEP_PARTS)
+        print(f"    {cpu[i]:6.1f} {r['epochs']:4d}  {parts_}")
 
 
 def _print_threads(path: Path, rows: list[dict]) -> None:
@@ -646,7 +737,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --recording: an M-NLS replay's CPU per node-epoch by part, the "
                     "start-up (first --startup-s) apart from the rest")
     ap.add_argument("--startup-s", type=float, default=1.0, metavar="S",
-                    help="--parts: the start-up's length [s of measurement time] (default 1)")
+                    help="--parts: the start-up's length [s of measurement time] (default 1); "
+                    "--steps: of wall time (the steps before it are left out)")
+    ap.add_argument("--steps", action="store_true",
+                    help="with --recording: CPU per solve step of a replay by the recorded "
+                    "decisions, by part (re-seeds, initialisations, M-NLS check fixes)")
     ap.add_argument("--compare", type=Path, metavar="CHECKOUT",
                     help="with --recording (an M-NLS replay, the recorded decisions) or "
                     "--schedule: the same measurement by CHECKOUT's code and this one's, "
@@ -675,6 +770,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.parts and args.recording is not None:
         _print_parts(args.recording, *parts(args.recording, args.startup_s), args.startup_s)
+        return 0
+    if args.steps and args.recording is not None:
+        _print_steps(args.recording, steps(args.recording), args.startup_s)
         return 0
     if args.threads is not None and args.recording is not None:
         counts = [int(v) for v in args.threads.split(",")]

@@ -477,6 +477,20 @@ class TrackerConfig:
         ``min_ranges_init`` (before). Measured on
         Sionna RT's live paper building (docs/tracking_evidence.md "Session 24: where Sionna
         paper's misses are").
+    reseed_period_s : float [s]
+        With ``reseed_max``: each hypothesis of a node is re-seeded at most once per this
+        period of measurement time, in the epoch that crosses one of its boundaries ``origin +
+        k T - h T / H`` (hypothesis ``h`` of ``H``; the phases and the node's origin of the
+        dormant refresh, :func:`diffpos.tracking.tracker._refresh_due`): a hypothesis that
+        qualifies (``reseed_epochs`` bad updates) between its boundaries waits for the next
+        one (still bad then: re-seeded; a good update clears it). A node's re-seeds are
+        spread over the period and their rate is bounded (with ``T`` = 1 s at 10 Hz at most
+        one of a node's 10 hypotheses is at a boundary per epoch), so the snapshot work of a
+        fusion step is bounded by its nodes whatever they qualify for at once; a function of
+        the node's own inputs (rows stay independent). Measured on the live ``large`` (docs/
+        performance.md "Session 26"): a re-seed is ~0.6 ms CPU, 3.4 per 50-node step on
+        average (up to 8), 13 % of a step; 99 % of them renew a floor below 1e-3 probability,
+        an awake one every third epoch. 0 (default): any epoch it qualifies in (before).
     mode_search_new_misfit : float [fraction of a link's real updates]
         With ``mode_search_outliers``: only the outliers of links the hypothesis has fitted
         lately count towards ``mode_search_outliers``: the link's forgotten outlier rate for
@@ -625,6 +639,7 @@ class TrackerConfig:
     mode_search_max: int = 0
     mode_search_min_links: int = 0
     reseed_min_links: int = 4
+    reseed_period_s: float = 0.0
     mode_search_new_misfit: float = 0.0
     deficit_nats: float = 0.0
     deficit_tests: int = 2

@@ -326,12 +326,16 @@ def _reseed_ranges(config: TrackerConfig) -> int:
     return max(config.min_ranges_init, config.reseed_min_links)
 
 
-def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: TrackerConfig):
+def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: TrackerConfig,
+            at_phase: NDArray[np.bool_] | None = None):
     """Re-seed every node's worst hypotheses (at most ``reseed_max`` per node and epoch, the
-    most bad epochs first, ties by hypothesis) from snapshots of their floors. Per node, so a
-    node's result does not depend on the other rows of the call (the fusion's batches,
-    workers and shards give the same estimates)."""
+    most bad epochs first, ties by hypothesis) from snapshots of their floors; ``at_phase``
+    (N, H): only those at a boundary of their re-seed period (:func:`_reseed_phase`; None:
+    any). Per node, so a node's result does not depend on the other rows of the call (the
+    fusion's batches, workers and shards give the same estimates)."""
     cand = (floor_bad >= config.reseed_epochs) & eligible[:, None]
+    if at_phase is not None:
+        cand &= at_phase
     if config.reseed_max <= 0 or not np.any(cand):  # (none: no empty snapshot)
         return
     order = np.argsort(-np.where(cand, floor_bad, -1), axis=1,
@@ -343,6 +347,20 @@ def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: Trac
     x, p, _, _, _ = snapshot(sub, floors[:, None], building, config)
     mean[nodes, hyps], cov[nodes, hyps] = x[:, 0], p[:, 0]
     floor_bad[nodes, hyps] = 0
+
+
+def _reseed_phase(prev_ns: NDArray[np.int64], t_ns: NDArray[np.int64],
+                  origin_ns: NDArray[np.int64], n_hyp: int,
+                  config: TrackerConfig) -> NDArray[np.bool_] | None:
+    """The hypotheses (N, H) whose re-seed period boundary (``reseed_period_s``, the
+    phases of :func:`_refresh_due`) falls in ``(prev_ns, t_ns]`` (each node's previous and
+    this epoch's time); None where the setting is off (0: any epoch)."""
+    if config.reseed_period_s <= 0 or config.reseed_max <= 0:
+        return None
+    period = max(round(config.reseed_period_s * 1e9), 1)
+    phase = (np.arange(n_hyp, dtype=np.int64) * period) // n_hyp
+    return (_period_index(t_ns[:, None], origin_ns, phase, period)
+            > _period_index(prev_ns[:, None], origin_ns, phase, period))
 
 
 def _init_hypotheses(x, p, lp_floor, config: TrackerConfig):
@@ -487,7 +505,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         status[idx] = np.where(status[idx] == TrackStatus.COASTING, TrackStatus.TRACKING,
                                status[idx])
     _reseed(mean, cov, floor_bad, links, live & (n_meas >= _reseed_ranges(config)), building,
-            config)
+            config, _reseed_phase(state.t_ns, t, origin, floor_bad.shape[1], config))
     coast = live & (n_meas == 0)
     status[coast] = TrackStatus.COASTING
     status[coast & ((t - last) * 1e-9 > config.lost_after_s)] = TrackStatus.LOST

@@ -82,3 +82,47 @@ def test_three_ranges_are_not_reseeded_with_reseed_min_links_4(seed):
 
 def test_on_by_default():
     assert ON.reseed_max == 2 and ON.reseed_min_links == 4
+
+
+# ``reseed_period_s`` (off by default): a hypothesis is re-seeded only in an epoch that
+# crosses one of its period's boundaries (phase h / H of the period; session 26,
+# docs/performance.md). The epochs of ``_moved`` are 0.1 s apart.
+STATE_FIELDS = ("mean", "cov", "log_prob", "floor_bad", "status")
+OUT_FIELDS = ("position_m", "covariance_m2", "floor_index", "floor_probabilities")
+
+
+def _same(a, b):
+    (sa, oa), (sb, ob) = a[:2], b[:2]
+    return (all(np.array_equal(getattr(sa, k), getattr(sb, k)) for k in STATE_FIELDS)
+            and all(np.array_equal(getattr(oa, k), getattr(ob, k), equal_nan=True)
+                    for k in OUT_FIELDS))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_reseed_period_of_one_epoch_is_every_epoch_and_a_longer_than_the_run_one_never(seed):
+    """A period of one epoch puts a boundary of every hypothesis in every epoch: bit for bit
+    the default (no period); a period longer than the run crosses none: bit for bit no
+    re-seed at all (``reseed_max`` 0), the moved track left off."""
+    assert _same(_moved(dataclasses.replace(ON, reseed_period_s=0.1), seed), _moved(ON, seed))
+    never = _moved(dataclasses.replace(ON, reseed_period_s=1000.0), seed)
+    assert _same(never, _moved(OFF, seed))
+    assert np.linalg.norm(never[0].mean[0, never[3], :3] - NODE) > 2.0
+
+
+def test_reseed_period_of_ten_epochs_reseeds_the_moved_track_in_one_epoch_of_ten():
+    """With a 1 s period (ten epochs) the moved level track is re-seeded in the epoch after
+    the move for exactly one of ten consecutive move epochs (its boundary's); in the others
+    it waits (still metres off), as without the re-seed."""
+    cfg = dataclasses.replace(ON, reseed_period_s=1.0)
+    back = []
+    for k0 in range(20, 30):
+        state, _, n, f = _moved(cfg, 1, k0=k0)
+        assert n == 4
+        d = np.linalg.norm(state.mean[0, f, :3] - NODE)
+        assert d < 0.3 or d > 2.0
+        back.append(bool(d < 0.3))
+    assert sum(back) == 1, back
+
+
+def test_reseed_period_off_by_default():
+    assert ON.reseed_period_s == 0.0

@@ -25,6 +25,8 @@ CFG = TrackerConfig()
 #: the evidence-deficit re-seed (off by default) tested in every epoch, every floor: a
 #: threshold of 0 nats re-seeds from the first test whose snapshot is any better
 DEFICIT = dataclasses.replace(CFG, deficit_nats=1e-9, deficit_tests=1, deficit_period_s=0.1)
+#: and the re-seeds held to their period's boundaries (``reseed_period_s``, off by default)
+PERIOD = dataclasses.replace(DEFICIT, reseed_period_s=0.3)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -67,7 +69,7 @@ def _assert_same(a, b) -> None:
         assert va.tobytes() == vb.tobytes(), f.name  # bytes: NaN payloads and -0.0 too
 
 
-@pytest.mark.parametrize("config", [CFG, DEFICIT], ids=["default", "deficit"])
+@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD], ids=["default", "deficit", "period"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)
