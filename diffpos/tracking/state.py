@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,7 @@ __all__ = [
     "floor_contested",
     "floor_probabilities",
     "has_position",
+    "height_band_bound",
     "hypothesis_floor",
     "hypothesis_vertical",
     "n_floors_of",
@@ -443,6 +445,20 @@ class TrackerConfig:
         The tempering divisor of the published floor log-odds within ``floor_contest_s`` of a
         contest (default 10: ``1 + 2 sum_k rho_k`` over the measured correlation curve of the
         floor evidence, the figure of ``floor_evidence_lag1_corr``'s docstring).
+    floor_band_bound : bool
+        The published probability of the published floor is at most the mass that the
+        published height ``N(z, P_zz)`` (the estimate's own position and covariance) puts on
+        that floor's height band ``[floor, floor + floor_height_m)`` of the building (the
+        lowest band extended below, the highest above: the node is in the building), and at
+        least 1/2 (so it stays the most probable); the mass taken off goes to the other floors
+        in proportion to their band masses (:func:`height_band_bound`). Why: a node on the
+        stairs whose height straddles a slab is on either floor; the filter's floor
+        hypotheses each keep their height inside their own floor's box, so their odds say
+        which box fits, not on which side of the slab the node is, and a lead held from the
+        floor before is published at >= 0.95 while the height is within centimetres of the
+        boundary. Publication only: the filter, the chosen floor, the position, covariance and
+        status are unchanged. Default False (off: as before; docs/floor_calibration.md
+        "Session 26").
     mode_search_outliers : int
         Other modes of a hypothesis' posterior: an updated hypothesis that calls at least
         this many of its ranges outliers is also fitted from the best cells of a local grid
@@ -605,6 +621,7 @@ class TrackerConfig:
     floor_robust_links: int = 0
     floor_contest_s: float = 3.0
     floor_contest_kappa: float = 10.0
+    floor_band_bound: bool = False
     mode_search_outliers: int = 0
     mode_jump_rate_hz: float = 0.0
     mode_jump_sigma_m: float = 2.0
@@ -878,6 +895,52 @@ def floor_contested(log_prob: FloatArray, lead_floor: NDArray[np.int_], n_meas: 
     p_top = pf[np.arange(pf.shape[0]), top]
     contested = (top != lead_floor) | (p_top < 0.5) | (np.asarray(n_meas) < 4)
     return contested, top
+
+
+#: the standard normal CDF, elementwise (math.erfc: no scipy import in the tracker's process)
+_PHI = np.frompyfunc(lambda x: 0.5 * math.erfc(-x / math.sqrt(2.0)), 1, 1)
+
+
+def height_band_bound(p: FloatArray, floor: NDArray[np.int_], z_m: FloatArray,
+                      var_z_m2: FloatArray, first_floor_z_m: float,
+                      floor_height_m: float) -> FloatArray:
+    """Floor probabilities ``p`` (N, F) with the published floor's capped at its height band's
+    mass (``TrackerConfig.floor_band_bound``): ``floor`` (N,) the published floor (-1: none,
+    the row unchanged), ``z_m`` (N,) [m] and ``var_z_m2`` (N,) [m^2] the published height and
+    its variance (non-finite: unchanged).
+
+    Band of floor ``f``: ``[z0 + f H, z0 + (f + 1) H)`` (``z0 = first_floor_z_m``, ``H =
+    floor_height_m``; the lowest band extended to -inf, the highest to +inf). Its mass under
+    ``N(z, var)``, ``b_f``, bounds the probability of ``f`` that a position with that height
+    distribution can support. The published floor ``k`` gets ``min(p_k, max(b_k, 1/2))``
+    (1/2: it stays the most probable floor); what it loses goes to the other floors in
+    proportion to their ``b_g`` (uniformly if every ``b_g`` is 0). Rows whose ``p_k`` is
+    within the bound are returned bit for bit."""
+    p = np.asarray(p, dtype=np.float64)
+    n, nf = p.shape
+    floor = np.asarray(floor)
+    z, var = np.asarray(z_m, dtype=np.float64), np.asarray(var_z_m2, dtype=np.float64)
+    ok = (floor >= 0) & (floor < nf) & np.isfinite(z) & np.isfinite(var)
+    if nf < 2 or not np.any(ok):
+        return p
+    sd = np.sqrt(np.maximum(np.where(ok, var, 1.0), 1e-12))
+    edges = first_floor_z_m + floor_height_m * np.arange(1, nf)  # (F - 1,) the inner slabs
+    cdf = _PHI((edges[None, :] - np.where(ok, z, 0.0)[:, None]) / sd[:, None]).astype(float)
+    c = np.concatenate([np.zeros((n, 1)), cdf, np.ones((n, 1))], axis=1)
+    band = np.diff(c, axis=1)  # (N, F)
+    rows = np.arange(n)
+    k = np.where(ok, floor, 0)
+    cap = np.maximum(band[rows, k], 0.5)
+    excess = np.where(ok, np.maximum(p[rows, k] - cap, 0.0), 0.0)
+    if not np.any(excess > 0):
+        return p
+    w = np.where(np.arange(nf)[None, :] == k[:, None], 0.0, band)
+    tot = w.sum(axis=1, keepdims=True)
+    w = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0),
+                 np.where(np.arange(nf)[None, :] == k[:, None], 0.0, 1.0 / (nf - 1)))
+    out = p + excess[:, None] * w
+    out[rows, k] = p[rows, k] - excess
+    return np.where((excess > 0)[:, None], out, p)
 
 
 def _mix_uniform(p: FloatArray, doubt: FloatArray | None) -> FloatArray:
