@@ -445,6 +445,16 @@ class TrackerConfig:
         The tempering divisor of the published floor log-odds within ``floor_contest_s`` of a
         contest (default 10: ``1 + 2 sum_k rho_k`` over the measured correlation curve of the
         floor evidence, the figure of ``floor_evidence_lag1_corr``'s docstring).
+    floor_contest_vertical : bool
+        A node whose most probable floor's vertical (stairs) mode is more probable than its
+        level mode is *contested* too (:func:`floor_contested`), so its floor is published with
+        ``floor_contest_kappa`` while on the stairs and ``floor_contest_s`` after. Why: in the
+        level mode the height prior (nominal height +- ``height_sigma_m``) is itself floor
+        evidence (the ranges' height must match one floor's nominal height); in the vertical
+        mode the height is free within the band, so the lead built under the level mode is no
+        longer tested by it, and on the stairs the floor is what is changing. Publication only
+        (the clock ``lead_ns`` feeds the publication alone). Default False (off: as before;
+        docs/floor_calibration.md "Session 26").
     floor_band_bound : bool
         The published probability of the published floor is at most the mass that the
         published height ``N(z, P_zz)`` (the estimate's own position and covariance) puts on
@@ -621,6 +631,7 @@ class TrackerConfig:
     floor_robust_links: int = 0
     floor_contest_s: float = 3.0
     floor_contest_kappa: float = 10.0
+    floor_contest_vertical: bool = False
     floor_band_bound: bool = False
     mode_search_outliers: int = 0
     mode_jump_rate_hz: float = 0.0
@@ -883,17 +894,24 @@ def published_floor_probabilities(log_prob: ArrayLike, config: TrackerConfig,
 
 
 def floor_contested(log_prob: FloatArray, lead_floor: NDArray[np.int_], n_meas: NDArray,
-                    prob: FloatArray | None = None) -> tuple[NDArray[np.bool_], NDArray[np.int_]]:
+                    prob: FloatArray | None = None, *, vertical: bool = False
+                    ) -> tuple[NDArray[np.bool_], NDArray[np.int_]]:
     """Whether every node's floor is *contested* in this update, and its most probable floor
     (N,) (``TrackerConfig.floor_contest_s``): the most probable floor of the filter differs from
     ``lead_floor`` (the previous update's), or its probability is below 1/2 (no floor has
     the majority), or the node has fewer than four ranges ``n_meas`` (three ranges fit a
     position on any floor, so the ranges did not test the floor). ``prob``: ``exp(log_prob)``
-    if the caller has it."""
+    if the caller has it. ``vertical`` (``TrackerConfig.floor_contest_vertical``): also
+    contested when the most probable floor's vertical (stairs) mode is more probable than its
+    level mode."""
+    prob = np.exp(log_prob) if prob is None else prob
     pf = floor_probabilities(log_prob, prob)
     top = np.argmax(pf, axis=1)
-    p_top = pf[np.arange(pf.shape[0]), top]
+    rows = np.arange(pf.shape[0])
+    p_top = pf[rows, top]
     contested = (top != lead_floor) | (p_top < 0.5) | (np.asarray(n_meas) < 4)
+    if vertical:
+        contested |= prob[rows, top + pf.shape[1]] > prob[rows, top]
     return contested, top
 
 

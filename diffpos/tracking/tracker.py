@@ -512,7 +512,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         TrackStatus.TRACKING)
     if snr_cache[0] is st.snr_node:  # not updated: the new state owns its arrays
         snr_cache = tuple(a.copy() for a in snr_cache)
-    contested, lead = floor_contested(lp, st.lead_floor, n_meas)
+    contested, lead = floor_contested(lp, st.lead_floor, n_meas,
+                                      vertical=config.floor_contest_vertical)
     lead_ns = np.where(contested, t, st.lead_ns)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
