@@ -9,6 +9,8 @@ references here are scipy's normal CDF and the building's own floor heights.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.stats import norm
 
@@ -63,9 +65,11 @@ def test_band_bound_against_the_normal_cdf():
     assert changed > 50
 
 
+@functools.cache
 def _walk(cfg: TrackerConfig, epochs: int = 57):
     """A walker going down the stairs from floor 2 to floor 1 of the default scenario (four
-    UAVs, the emulator's channel, seed 11); per epoch the output and the state."""
+    UAVs, the emulator's channel, seed 11); per epoch the output and the state (cached: the
+    tests share the default's walk)."""
     anchors = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
                         [15.0, -20.0, 1.0]])
     walker = trajectory_from_dict({"kind": "waypoints", "speed_m_s": 0.8, "points_m": [
@@ -105,3 +109,30 @@ def test_stairs_never_published_above_the_band_mass():
         if o0.floor_probabilities[0, k] > cap + 1e-6:
             bound_binds += 1
     assert bound_binds >= 1
+
+
+def test_stairs_mode_contests_the_floor():
+    """``floor_contest_vertical``: on the same walk, every epoch in which the most probable
+    floor's stairs mode is more probable than its level mode (computed here from the state's
+    hypotheses, ``h = mode * F + floor``) restarts the contest clock (``lead_ns`` = that
+    epoch); some such epochs do not restart it without the setting, and there the published
+    floor is less sure (kappa 10 instead of 3.9); the filter, floor and position are those of
+    the default bit for bit."""
+    on = _walk(TrackerConfig(floor_contest_vertical=True))
+    off = _walk(TrackerConfig())
+    nf = B.n_floors
+    added = 0
+    for k, ((o1, s1), (o0, s0)) in enumerate(zip(on, off, strict=True)):
+        assert np.array_equal(s1.log_prob, s0.log_prob)
+        assert np.array_equal(o1.position_m, o0.position_m, equal_nan=True)
+        assert np.array_equal(o1.floor_index, o0.floor_index)
+        f = int(o1.floor_index[0])
+        p = np.exp(s1.log_prob[0])
+        if f < 0 or p[f + nf] <= p[f]:
+            continue
+        t_ns = k * 100_000_000
+        assert s1.lead_ns[0] == t_ns
+        if s0.lead_ns[0] != t_ns and (t_ns - s0.lead_ns[0]) * 1e-9 >= 3.0:
+            added += 1
+            assert o1.floor_probabilities[0, f] < o0.floor_probabilities[0, f]
+    assert added >= 1
