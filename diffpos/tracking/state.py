@@ -938,27 +938,36 @@ def height_band_bound(p: FloatArray, floor: NDArray[np.int_], z_m: FloatArray,
     n, nf = p.shape
     floor = np.asarray(floor)
     z, var = np.asarray(z_m, dtype=np.float64), np.asarray(var_z_m2, dtype=np.float64)
-    ok = (floor >= 0) & (floor < nf) & np.isfinite(z) & np.isfinite(var)
-    if nf < 2 or not np.any(ok):
+    k = np.where((floor >= 0) & (floor < nf), floor, 0)
+    rows = np.flatnonzero((floor >= 0) & (floor < nf) & np.isfinite(z) & np.isfinite(var)
+                          & (p[np.arange(n), k] > 0.5))  # the cap is >= 1/2
+    if nf < 2 or rows.size == 0:
         return p
-    sd = np.sqrt(np.maximum(np.where(ok, var, 1.0), 1e-12))
+    k, z, sd = k[rows], z[rows], np.sqrt(np.maximum(var[rows], 1e-24))
+    lo = np.where(k == 0, -np.inf, first_floor_z_m + k * floor_height_m)
+    hi = np.where(k == nf - 1, np.inf, first_floor_z_m + (k + 1) * floor_height_m)
+    near = np.minimum(hi - z, z - lo) < 9.0 * sd  # beyond 9 sigma the band's mass is 1.0
+    rows, k, z, sd, lo, hi = rows[near], k[near], z[near], sd[near], lo[near], hi[near]
+    if rows.size == 0:
+        return p
+    own = (_PHI((hi - z) / sd) - _PHI((lo - z) / sd)).astype(float)
+    excess = np.maximum(p[rows, k] - np.maximum(own, 0.5), 0.0)
+    hit = excess > 0
+    if not np.any(hit):
+        return p
+    rows, k, z, sd, excess = rows[hit], k[hit], z[hit], sd[hit], excess[hit]
     edges = first_floor_z_m + floor_height_m * np.arange(1, nf)  # (F - 1,) the inner slabs
-    cdf = _PHI((edges[None, :] - np.where(ok, z, 0.0)[:, None]) / sd[:, None]).astype(float)
-    c = np.concatenate([np.zeros((n, 1)), cdf, np.ones((n, 1))], axis=1)
-    band = np.diff(c, axis=1)  # (N, F)
-    rows = np.arange(n)
-    k = np.where(ok, floor, 0)
-    cap = np.maximum(band[rows, k], 0.5)
-    excess = np.where(ok, np.maximum(p[rows, k] - cap, 0.0), 0.0)
-    if not np.any(excess > 0):
-        return p
-    w = np.where(np.arange(nf)[None, :] == k[:, None], 0.0, band)
+    cdf = _PHI((edges[None, :] - z[:, None]) / sd[:, None]).astype(float)
+    m = rows.size
+    band = np.diff(np.concatenate([np.zeros((m, 1)), cdf, np.ones((m, 1))], axis=1), axis=1)
+    others = np.arange(nf)[None, :] != k[:, None]
+    w = np.where(others, band, 0.0)
     tot = w.sum(axis=1, keepdims=True)
-    w = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0),
-                 np.where(np.arange(nf)[None, :] == k[:, None], 0.0, 1.0 / (nf - 1)))
-    out = p + excess[:, None] * w
+    w = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), others / (nf - 1))
+    out = p.copy()
+    out[rows] = p[rows] + excess[:, None] * w
     out[rows, k] = p[rows, k] - excess
-    return np.where((excess > 0)[:, None], out, p)
+    return out
 
 
 def _mix_uniform(p: FloatArray, doubt: FloatArray | None) -> FloatArray:
