@@ -183,6 +183,7 @@ from diffpos.tracking.state import (
     floor_contested,
     floor_probabilities,
     has_position,
+    height_band_bound,
     hypothesis_floor,
     hypothesis_vertical,
     n_floors_of,
@@ -318,6 +319,14 @@ def _few_anchors(out: TrackOutput, n_meas: NDArray, config: TrackerConfig) -> Tr
     w = np.where(few[:, None] & (top > cap), (top - cap) / np.maximum(top - 1.0 / nf, 1e-12),
                  0.0)
     return replace(out, status=status, floor_probabilities=(1 - w) * p + w / nf)
+
+
+def _band_bound(out: TrackOutput, building) -> TrackOutput:
+    """The published floor's probability capped at its height band's mass under the published
+    height and its variance (``TrackerConfig.floor_band_bound``; :func:`height_band_bound`)."""
+    return replace(out, floor_probabilities=height_band_bound(
+        out.floor_probabilities, out.floor_index, out.position_m[:, 2],
+        out.covariance_m2[:, 2, 2], building.first_floor_z_m, building.floor_height_m))
 
 
 def _reseed_ranges(config: TrackerConfig) -> int:
@@ -521,7 +530,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         TrackStatus.TRACKING)
     if snr_cache[0] is st.snr_node:  # not updated: the new state owns its arrays
         snr_cache = tuple(a.copy() for a in snr_cache)
-    contested, lead = floor_contested(lp, st.lead_floor, n_meas)
+    contested, lead = floor_contested(lp, st.lead_floor, n_meas,
+                                      vertical=config.floor_contest_vertical)
     lead_ns = np.where(contested, t, st.lead_ns)
     new = TrackerState(mean=mean, cov=cov, log_prob=lp, status=status.astype(np.int8),
                        t_ns=st.t_ns.copy(), last_fix_ns=last, nis=nis, good=good, bad=bad,
@@ -530,8 +540,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk,
                        lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit)
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
-    return new, _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas,
-                             config)
+    out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas, config)
+    return new, (_band_bound(out, building) if config.floor_band_bound else out)
 
 
 # --------------------------------------------------------------------------------------------
