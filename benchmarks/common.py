@@ -23,7 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from diffpos_services.recording.reader import McapScanner
+from diffpos_services.recording.reader import McapScanner, side_records
+from diffpos_services.recording.summary import recorded_building
 from diffpos_services.recording.topics import parse_topic
 from diffpos_services.recording.writer import part_path
 from diffpos_services.wire import messages as M
@@ -84,7 +85,12 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
     epoch of the run); the estimate of a node-epoch is the recorded live estimate of that node
     and epoch (v1 or v2) with a usable position (status in ``GOOD_STATUSES``), else a miss.
     An estimate is compared with the truth at its own ``t_ns``
-    (:func:`diffpos.metrics.truth_at`), as ``emulate``'s summary and ``replay``'s report do.
+    (:func:`diffpos.metrics.truth_at`), as ``emulate``'s summary and ``replay``'s report do:
+    the position interpolated then, and the floor of that position in the recorded building
+    (:func:`diffpos_services.recording.summary.recorded_building`; the recorded floor of the
+    nearest truth sample only when the recording names no building). ``truth_floor`` of the
+    result says which, and ``truth_floor_disagrees`` counts the truth samples whose recorded
+    floor is not that building's floor of their height (0: the building is the truth's).
     ``rows_out``: a list that receives one ``(node, t_ns, true floor, published floor or -1,
     its probability or NaN, true z [m], the true floor's probability or NaN)`` per node-epoch
     (bench_floor_calibration.py). ``replayed``: score the replayed estimates a
@@ -120,6 +126,9 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
     vectors = [()] * n  # the reported floor probabilities of each node-epoch's estimate
     tru = np.array([g.position_m for g in rows], float)
     tracks = _truth_tracks(truth)
+    floor_of, truth_floor, disagree = _floor_of(parts[0], tracks)
+    if floor_of is not None:  # a miss: the floor of its truth sample's position
+        t_floor = np.asarray(floor_of(tru[:, 2]), np.int64).reshape(-1)
     status: dict[str, int] = {}
     for i, g in enumerate(rows):
         e = est.get((g.id, g.t_ns // period))
@@ -129,7 +138,7 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
         status[e.status] = status.get(e.status, 0) + 1
         if e.position_m is None or e.status not in M.GOOD_STATUSES:
             continue
-        p, f = truth_at([e.t_ns], *tracks[g.id])  # the truth at the estimate's own time
+        p, f = truth_at([e.t_ns], *tracks[g.id], floor_of=floor_of)  # at the estimate's time
         tru[i], t_floor[i] = p[0], f[0]
         pos[i] = e.position_m
         if e.covariance_m2 is not None:
@@ -159,7 +168,21 @@ def score_recording(path: str | Path, *, skip_s: float = SKIP_S,
             "latency_ms": percentiles(lat, (50, 99), max_mean=False),
             "status": dict(sorted(status.items())),
             "nodes": len({g.id for g in truth}), "method": _method(est.values()),
-            "recording_parts": len(parts)}
+            "recording_parts": len(parts),
+            "truth_floor": truth_floor, "truth_floor_disagrees": disagree}
+
+
+def _floor_of(path: Path, tracks: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
+              ) -> tuple[Any, str, int]:
+    """The recorded building's ``floor_index`` (None: no building recorded), what it is, and
+    how many truth samples' recorded floors differ from it at their heights."""
+    building, source = recorded_building(side_records(path))
+    if building is None:
+        return None, "the nearest truth sample's (no building recorded)", 0
+    disagree = sum(int(np.count_nonzero(building.floor_index(p[:, 2]) != f))
+                   for _, p, f in tracks.values())
+    return (building.floor_index, f"the floor of the true position in the building of {source}",
+            disagree)
 
 
 def _method(ests: Iterable[Any]) -> str:

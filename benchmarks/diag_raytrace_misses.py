@@ -209,8 +209,9 @@ def chains(calls: list[dict], traced: list, truth: dict[str, tuple], t0: int) ->
 
 def node_epochs(calls: list[dict], truth: dict[str, tuple], t0: int, skip_s: float
                 ) -> list[dict]:
-    """Every node-epoch after ``skip_s``: published vs true floor, the true floor's most
-    probable hypothesis' distance from the truth."""
+    """Every node-epoch after ``skip_s``: published vs true floor (the building's floor of
+    the true position at the estimate's time), the true floor's most probable hypothesis'
+    distance from the truth."""
     rows = []
     for ci, c in enumerate(calls):
         nf = c["lp"].shape[1] // 2
@@ -218,7 +219,7 @@ def node_epochs(calls: list[dict], truth: dict[str, tuple], t0: int, skip_s: flo
             t = int(c["t_ns"][j])
             if t < t0 + skip_s * 1e9 or nid not in truth or c["floor"][j] < 0:
                 continue
-            p, f = truth_at([t], *truth[nid])
+            p, f = truth_at([t], *truth[nid], floor_of=c["building"].floor_index)
             tf = int(f[0])
             h = tf if c["lp"][j, tf] >= c["lp"][j, tf + nf] else tf + nf
             rows.append(dict(call=ci, node=nid, t_s=(t - t0) / 1e9, tf=tf, z=float(p[0, 2]),

@@ -101,7 +101,7 @@ class Run:
                     self.rows.append((n, (t - self.t0) * 1e-9, None, None, np.nan, False, p,
                                       e, kind))
                     continue
-                pt, ft = truth_at([e.t_ns], tt, pp, ff)
+                pt, ft = truth_at([e.t_ns], tt, pp, ff, floor_of=b.floor_index)
                 err = np.asarray(e.position_m) - pt[0]
                 inside = (e.covariance_m2 is not None and float(
                     err @ np.linalg.solve(np.asarray(e.covariance_m2), err)) <= CHI2_3_95)

@@ -30,7 +30,7 @@ Examples
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -263,10 +263,18 @@ class Score:
 
 
 def truth_at(t_ns: ArrayLike, truth_t_ns: ArrayLike, truth_position_m: ArrayLike,
-             truth_floor: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+             truth_floor: ArrayLike | None = None, *,
+             floor_of: Callable[[np.ndarray], ArrayLike] | None = None
+             ) -> tuple[np.ndarray, np.ndarray | None]:
     """One node's truth at the times ``t_ns`` (K,) of its estimates: the position linearly
     interpolated between its samples (``truth_t_ns`` (S,) ascending, ``truth_position_m``
-    (S, 3); held at the first/last sample outside them) and the floor of the nearest sample.
+    (S, 3); held at the first/last sample outside them) and its floor.
+
+    The floor is ``floor_of(z)`` of the interpolated height ``z`` (K,) when ``floor_of`` is
+    given (the building's :meth:`~diffpos.scenario.Building.floor_index`: the floor of the
+    true position at that time, as ``emulate``'s live summary takes it); else, where no
+    building is known, the recorded ``truth_floor`` (S,) of the nearest sample (wrong for up to
+    half a sample period at a slab crossing); ``None`` without either.
 
     An estimate states the time its position refers to (the fusion: the mean time of the
     ranges it used, up to a period after the epoch's truth sample); every scorer compares it
@@ -280,6 +288,8 @@ def truth_at(t_ns: ArrayLike, truth_t_ns: ArrayLike, truth_position_m: ArrayLike
         raise ValueError("truth_t_ns and truth_position_m must be non-empty and of equal length")
     q, grid = (t - tt[0]).astype(float), (tt - tt[0]).astype(float)
     pos = np.stack([np.interp(q, grid, tp[:, k]) for k in range(3)], axis=-1)
+    if floor_of is not None:
+        return pos, np.asarray(floor_of(pos[:, 2]), np.int64).reshape(-1)
     if truth_floor is None:
         return pos, None
     j = np.searchsorted(tt, t)

@@ -197,3 +197,36 @@ def test_truth_at_interpolates_a_straight_walk_and_takes_the_nearest_floor() -> 
     np.testing.assert_array_equal(out, pos[[0, -1]])
     with pytest.raises(ValueError):
         truth_at([0], [], np.empty((0, 3)))
+
+
+def test_truth_at_takes_the_building_floor_of_the_interpolated_height_at_a_slab_crossing():
+    """A responder on the stairs of the paper's building (slab between floors 1 and 2 at
+    z = 10 m), sampled every 100 ms, crosses the slab between two samples. With the building
+    (``floor_of``) the true floor at any time is the building's floor of the true height then
+    (reference: ``Building.floor_index`` of ``np.interp`` of the samples): floor 1 just
+    before the crossing height, floor 2 just after, although the nearest sample says
+    otherwise (the old, building-less answer, kept when no building is known)."""
+    from diffpos.metrics import truth_at
+    from diffpos.scenario import default_scenario
+
+    b = default_scenario().building  # first floor 4 m, 3 m floors: slab 1|2 at 10 m
+    t = np.arange(0, 2_000_000_001, 100_000_000, dtype=np.int64)
+    z = 9.5 + 0.6 * (t * 1e-9)  # 0.6 m/s up: at 10 m at t = 833.3 ms, between 800 and 900
+    pos = np.stack([np.full(t.shape, -3.0), np.full(t.shape, 5.0), z], axis=-1)
+    floors = b.floor_index(z)  # the recorded samples' floors (as emulate records them)
+    # just before the crossing time (810, 830 ms), just after (837, 845, 880 ms), far from
+    # it, and outside the samples (held: first / last)
+    q = np.array([810_000_000, 830_000_000, 837_000_000, 845_000_000, 880_000_000,
+                  1_500_000_000, -7, 3_000_000_000], np.int64)
+    got_p, got_f = truth_at(q, t, pos, floors, floor_of=b.floor_index)
+    ref_z = np.interp(q.astype(float), t.astype(float), z)
+    np.testing.assert_allclose(got_p[:, 2], ref_z, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(got_f, b.floor_index(ref_z))
+    assert got_f.tolist() == [1, 1, 2, 2, 2, 2, 1, 2]
+    # the nearest sample's floor (no building): 837 and 845 ms are above the slab but nearer
+    # the 800 ms sample (floor 1) - the scorer's old answer there
+    _, near = truth_at(q, t, pos, floors)
+    assert near.tolist() == [1, 1, 1, 1, 2, 2, 1, 2]
+    # the building alone (no recorded floors) gives the same
+    _, only = truth_at(q, t, pos, floor_of=b.floor_index)
+    np.testing.assert_array_equal(only, got_f)

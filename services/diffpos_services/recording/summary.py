@@ -2,7 +2,7 @@
 nodes, liveliness events, heartbeats; ``diffpos inspect``) and :func:`validate_file` (every message
 against diffpos' own JSON Schema of its kind; ``diffpos inspect --validate``). Works on
 truncated files too. Also the run settings a recording stores (:func:`live_fusion_settings`,
-:func:`attached_scenario`)."""
+:func:`attached_scenario`, :func:`recorded_building`)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from diffpos.scenario import Scenario, ScenarioError, default_scenario
+from diffpos.scenario import Building, Scenario, ScenarioError, default_scenario
+from diffpos_services.fusion.config import building_of
 from diffpos_services.recording.heartbeats import HeartbeatLog
 from diffpos_services.recording.reader import Damage, McapScanner, SideRecords
 from diffpos_services.recording.schemas import SchemaRegistry
@@ -27,6 +28,7 @@ __all__ = [
     "SetLosses",
     "attached_scenario",
     "live_fusion_settings",
+    "recorded_building",
     "set_losses",
     "summarize",
     "validate_file",
@@ -420,6 +422,12 @@ def live_fusion_settings(scanner: SideRecords | McapScanner) -> tuple[dict[str, 
 def attached_scenario(scanner: SideRecords | McapScanner) -> tuple[Scenario, str]:
     """The scenario of the first valid TOML attachment, else the built-in paper scenario;
     and where it came from."""
+    found = _toml_scenario(scanner)
+    return found if found is not None else (default_scenario(), "paper scenario (built in)")
+
+
+def _toml_scenario(scanner: SideRecords | McapScanner) -> tuple[Scenario, str] | None:
+    """The scenario of the first valid TOML attachment and its name, or None."""
     for att in scanner.attachments:
         if att.name.endswith(".toml"):
             try:
@@ -427,4 +435,23 @@ def attached_scenario(scanner: SideRecords | McapScanner) -> tuple[Scenario, str
             except (UnicodeDecodeError, tomllib.TOMLDecodeError, ScenarioError):
                 continue
             return scenario, f"scenario {att.name} (attached)"
-    return default_scenario(), "paper scenario (built in)"
+    return None
+
+
+def recorded_building(scanner: SideRecords | McapScanner) -> tuple[Building | None, str]:
+    """The building the recorded run's truth is in, and where it came from: the attached
+    scenario's (first valid TOML attachment), else the ``building`` table of the recorded
+    live fusion settings (:func:`live_fusion_settings`; ``diffpos emulate`` records the
+    scenario's, the built-in paper scenario's included); ``None`` when the recording says
+    neither (not the built-in paper building: a recording of another building must not be
+    scored against it)."""
+    found = _toml_scenario(scanner)
+    if found is not None:
+        return found[0].building, found[1]
+    values, source = live_fusion_settings(scanner)
+    if isinstance(values.get("building"), dict):
+        try:
+            return building_of(values["building"]), f"fusion building ({source})"
+        except ValueError:
+            pass
+    return None, "none recorded"

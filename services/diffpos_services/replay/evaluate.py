@@ -7,6 +7,7 @@ matches recorded messages to it: truth tracks per node, fixes per node, (node, e
 from __future__ import annotations
 
 from collections import Counter, defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,14 +41,17 @@ class TruthTracks:
 
 
 def evaluate(
-    estimates: list[M.PositionEstimate], truth: dict[str, TruthTracks], *, max_truth_gap_ns: int
+    estimates: list[M.PositionEstimate], truth: dict[str, TruthTracks], *, max_truth_gap_ns: int,
+    floor_of: Callable[[np.ndarray], Any] | None = None,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Errors per node and overall against the truth; also returns the raw overall error
     arrays (``e3``, ``ez``, ``eh``, ``fok``, ``peb``; for plots).
 
     A fix is evaluated when it has a good status and a position and the node has a truth
-    sample within ``max_truth_gap_ns`` (truth interpolated linearly at the fix time; floor of
-    the nearest sample). Availability counts every published fix of the node.
+    sample within ``max_truth_gap_ns`` (truth interpolated linearly at the fix time; its floor
+    ``floor_of`` of that height, the building's ``floor_index``, or without one the floor of
+    the nearest sample: :func:`diffpos.metrics.truth_at`). Availability counts every published
+    fix of the node.
     """
     by_node: dict[str, list[M.PositionEstimate]] = defaultdict(list)
     for e in estimates:
@@ -83,7 +87,7 @@ def evaluate(
         inside = np.minimum(dl, dr) <= max_truth_gap_ns
         no_truth += int((~inside).sum())
         te, pe, peb, fe = te[inside], pe[inside], peb[inside], fe[inside]
-        truth_pos, truth_floor = truth_at(te, tt, tp, tf)
+        truth_pos, truth_floor = truth_at(te, tt, tp, tf, floor_of=floor_of)
         d = pe - truth_pos
         e3 = np.linalg.norm(d, axis=-1)
         ez = np.abs(d[:, 2])
@@ -183,7 +187,8 @@ def compare_estimates(
 
 
 def node_epoch_accuracy(estimates: list[Any], truth: dict[str, TruthTracks], *,
-                        skip_s: float = 2.0) -> dict[str, Any]:
+                        skip_s: float = 2.0,
+                        floor_of: Callable[[np.ndarray], Any] | None = None) -> dict[str, Any]:
     """Every node-epoch after the first ``skip_s`` of the truth: :func:`diffpos.metrics.score`.
 
     The node-epochs are the recorded truth samples of every node (one per node and epoch of
@@ -191,7 +196,8 @@ def node_epoch_accuracy(estimates: list[Any], truth: dict[str, TruthTracks], *,
     that node whose ``t_ns`` falls in the same epoch (the truth sample spacing), if it has a
     usable position (``GOOD_STATUSES``), else it is a miss (availability and floor accuracy
     over all node-epochs count it); a fix is compared with the truth at its own ``t_ns``
-    (:func:`diffpos.metrics.truth_at`). v1 and v2 estimates alike.
+    (:func:`diffpos.metrics.truth_at`: the floor ``floor_of`` of the true height then, the
+    building's ``floor_index``; without one the nearest sample's). v1 and v2 estimates alike.
 
     Returns
     -------
@@ -222,7 +228,7 @@ def node_epoch_accuracy(estimates: list[Any], truth: dict[str, TruthTracks], *,
                        else np.full((3, 3), np.nan))
             e_floor.append(-1 if e is None or e.floor_index is None else e.floor_index)
             if e is not None:  # the truth at the estimate's own time
-                (p,), (f,) = truth_at([e.t_ns], tt, tp, tf)
+                (p,), (f,) = truth_at([e.t_ns], tt, tp, tf, floor_of=floor_of)
             tru.append(p)
             t_floor.append(f)
     if not est:

@@ -25,7 +25,7 @@ import heapq
 import itertools
 import math
 from collections import Counter, defaultdict
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import msgspec
@@ -110,10 +110,17 @@ class TruthBook:
 
     Columnar: per node the times (``t``, int64), positions (``p``, x y z flattened) and floors
     (``f``) in typed arrays, so a batch of fixes is matched to the truth with a few numpy
-    operations (:meth:`segments`, every node at once) instead of a Python call per fix."""
+    operations (:meth:`segments`, every node at once) instead of a Python call per fix.
 
-    def __init__(self, window_ns: int) -> None:
+    ``floor_of``: the building's ``floor_index`` (heights -> floors): the true floor at a
+    time is that of the interpolated true height, as ``emulate``'s live summary has it
+    (:func:`diffpos.metrics.truth_at`); ``None`` (no building known): the recorded floor of
+    the nearest sample."""
+
+    def __init__(self, window_ns: int,
+                 floor_of: Callable[[np.ndarray], Any] | None = None) -> None:
         self.window_ns = window_ns
+        self.floor_of = floor_of
         self.t: dict[str, array.array] = defaultdict(lambda: array.array("q"))
         self.p: dict[str, array.array] = defaultdict(lambda: array.array("d"))
         self.f: dict[str, array.array] = defaultdict(lambda: array.array("q"))
@@ -174,11 +181,12 @@ class TruthBook:
         """The truth of ``nodes`` as one set of columns, a segment per node (in order)."""
         cols = [self.columns(n) for n in nodes]
         return TruthSegments(*(np.concatenate([c[i] for c in cols]) for i in range(3)),
-                             np.array([c[0].size for c in cols], np.int64))
+                             np.array([c[0].size for c in cols], np.int64), self.floor_of)
 
     def at(self, node: str, t: int, max_gap_ns: int):
-        """(position interpolated at t, floor of the nearest sample) or None (no sample
-        within ``max_gap_ns``): what :func:`..evaluate.evaluate` did over the whole track."""
+        """(position interpolated at t, its floor: :meth:`TruthSegments.at`) or None (no
+        sample within ``max_gap_ns``): what :func:`..evaluate.evaluate` did over the whole
+        track."""
         pos, floor, ok = self.segments([node]).at(np.zeros(1, np.int64),
                                                   np.array([t], np.int64), max_gap_ns)
         return (tuple(pos[0].tolist()), int(floor[0])) if ok[0] else None
@@ -188,12 +196,14 @@ class TruthBook:
 class TruthSegments:
     """Several nodes' truth as one set of columns (:meth:`TruthBook.segments`): times
     ``t`` [ns], positions ``p`` (n, 3) [m] and floors ``f`` of segment ``k`` (its node) at
-    ``start[k] .. start[k] + size[k] - 1``, each segment sorted by time."""
+    ``start[k] .. start[k] + size[k] - 1``, each segment sorted by time; ``floor_of``: as
+    :class:`TruthBook`'s."""
 
     t: np.ndarray
     p: np.ndarray
     f: np.ndarray
     size: np.ndarray
+    floor_of: Callable[[np.ndarray], Any] | None = None
 
     def __post_init__(self) -> None:
         self.start = np.concatenate([[0], np.cumsum(self.size)[:-1]]).astype(np.int64)
@@ -221,7 +231,8 @@ class TruthSegments:
         """:meth:`TruthBook.at` of each time ``t[i]`` (int64 [ns]) in its segment ``seg[i]``
         at once: positions (k, 3), floors (k,) and whether a sample is within ``max_gap_ns``
         (k,) (where not, position and floor are meaningless). The same arithmetic as the
-        scalar interpolation, element by element: bit-identical values."""
+        scalar interpolation, element by element: bit-identical values. The floor is
+        ``floor_of`` of the interpolated height, or without it the nearest sample's."""
         k, top = t.size, self.t.size - 1
         if top < 0:
             return np.zeros((k, 3)), np.zeros(k, np.int64), np.zeros(k, bool)
@@ -245,7 +256,9 @@ class TruthSegments:
         first, last = g(np.zeros_like(n)), g(n - 1)
         pos = np.where((t <= self.t[first])[:, None], self.p[first],
                        np.where((t >= self.t[last])[:, None], self.p[last], pos))
-        return pos, self.f[g(near)], ok
+        floor = (self.f[g(near)] if self.floor_of is None
+                 else np.asarray(self.floor_of(pos[:, 2]), np.int64))
+        return pos, floor, ok
 
 
 @dataclasses.dataclass
@@ -633,6 +646,8 @@ class FixStream:
         rows = np.concatenate([np.arange(s0 + i0, s0 + i1) for (_, i0, i1, _), s0
                                in zip(group, segs.start.tolist(), strict=True)])
         p, f = segs.p[rows], segs.f[rows]  # a miss: the sample's own truth
+        if tb.floor_of is not None:
+            f = np.asarray(tb.floor_of(p[:, 2]), np.int64)
         fixes = list(itertools.chain.from_iterable(g[3] for g in group))
         n = len(fixes)
         d = np.full((n, 3), np.nan)
@@ -869,13 +884,18 @@ class Recorded:
     diagnostics and the anchors' liveliness: truth, live and replayed fixes (reduced as they
     come), their comparison, counts; with ``keep_estimates`` also the estimates.
     ``estimate_shards``: the fusion shards the run configuration records (the estimates'
-    sequence streams, :class:`~diffpos_services.recording.topics.SeqTracker`)."""
+    sequence streams, :class:`~diffpos_services.recording.topics.SeqTracker`). ``floor_of``:
+    the recorded building's ``floor_index``, the true floor of a fix (:class:`TruthBook`);
+    ``truth_floor``: where that building came from, for the report."""
 
     def __init__(self, input_kinds: tuple[str, ...], *, max_truth_gap_ns: int,
                  keep_estimates: bool, window_ns: int,
-                 estimate_shards: int | None = None) -> None:
+                 estimate_shards: int | None = None,
+                 floor_of: Callable[[np.ndarray], Any] | None = None,
+                 truth_floor: str = "the nearest truth sample's") -> None:
         self.input_kinds = input_kinds
-        self.truth = TruthBook(window_ns)
+        self.truth = TruthBook(window_ns, floor_of)
+        self.truth_floor = truth_floor
         kw = {"max_truth_gap_ns": max_truth_gap_ns, "window_ns": window_ns}
         self.live, self.replayed = FixStream(self.truth, **kw), FixStream(self.truth, **kw)
         self.compare = Comparison(window_ns)

@@ -62,7 +62,11 @@ from diffpos_services.recording.reader import (
     SideRecords,
     side_records,
 )
-from diffpos_services.recording.summary import attached_scenario, live_fusion_settings
+from diffpos_services.recording.summary import (
+    attached_scenario,
+    live_fusion_settings,
+    recorded_building,
+)
 from diffpos_services.recording.topics import natural_key, parse_topic
 from diffpos_services.recording.writer import McapSink
 from diffpos_services.replay.decided import DecisionReplayer
@@ -935,6 +939,7 @@ def _report(path: str | Path, scanner: McapScanner, settings: ReplaySettings, fu
         "recording_s": duration_s,
         "truth_s": (None if rec.truth.first_t is None
                     else (rec.truth.last_t - rec.truth.first_t) / 1e9),
+        "truth_floor": rec.truth_floor,
         "messages": _messages_section(rec, fusion.cores),
         "fixes": {"total": out.total, "by_status": dict(sorted(out.by_status.items()))},
         "nodes": sorted(nodes, key=natural_key),
@@ -1074,9 +1079,15 @@ def replay(
         tmp = None if out_mcap is None else stack.enter_context(atomic_path(out_mcap))
         # the estimates' sequence streams: of the shard count the run configuration records
         # (else inferred from the sequence numbers, recording.topics.SeqTracker)
+        # the true floor of a fix: the recorded building's floor of the true position then
+        building, where = recorded_building(side)
         rec = Recorded(FUSION_INPUT_KINDS, max_truth_gap_ns=round(max_truth_gap_s * 1e9),
                        keep_estimates=keep_estimates, window_ns=_WINDOW_NS,
-                       estimate_shards=_run_config_shards(side)[0])
+                       estimate_shards=_run_config_shards(side)[0],
+                       floor_of=None if building is None else building.floor_index,
+                       truth_floor=f"the floor of the true position in the building of {where}"
+                       if building is not None else "the nearest truth sample's (no building "
+                       "recorded)")
         return _run(path, scanner, settings, ahead, rest, tmp, rec, side=side,
                     copy_input=copy_input, step_ms=step_ms, progress=progress, logger=logger,
                     plan=plan, use_decisions=use_decisions, window=(start_s, end_s))
