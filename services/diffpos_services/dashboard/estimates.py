@@ -241,9 +241,8 @@ def _batch(
         true_pos = np.full((k, 3), np.nan)
         true_floor = np.full(k, -1, np.int64)
         known = np.zeros(k, bool)
-    if building is not None:
-        derived = building.floor_of(true_pos[:, 2])
-        true_floor = np.where(known & (true_floor < 0), derived, true_floor)
+    if building is not None:  # the floor of the true position at the fix's time (as scored)
+        true_floor = np.where(known, building.floor_of(true_pos[:, 2]), true_floor)
     est_floor = est.floor_index
     if building is not None:
         est_floor = np.where((est_floor < 0) & has_pos, building.floor_of(pos[:, 2]), est_floor)
