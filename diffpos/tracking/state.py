@@ -554,16 +554,18 @@ class TrackerConfig:
         93.4 / 75.2 % (five seeds), 16 random buildings 98.7 -> 99.6 %, docs/tracking_evidence.md
         "Session 26: the detector's skipped paths".
     edge_retry_margin_m : float [m]
-        A hypothesis in good standing (at least four ranges, every present link's learned
-        outlier probability below ``edge_retry_eps``) that calls a present link an outlier in
-        an update is updated again with every existence margin at least this wide, and that
-        update replaces the first (:func:`diffpos.tracking.tracker._edge_retry`): a mechanism
-        the track has been fitting is not declared gone because the prediction stepped a
-        decimetre over its existence edge (the README main command's top-floor walker r05
-        walks on the edge of the outer UAVs' slot 15; docs/tracking_evidence.md "Session 26:
-        a wider margin at an existence edge"). 0 (default): off. Measured with 0.4: main
-        command 96.6 -> 98.5 % right floor, but Sionna RT's live paper building 91.6 -> 89.0 %
-        (five seeds): not recommended.
+        A level-mode hypothesis in good standing (at least four ranges, every present link's
+        learned outlier probability below ``edge_retry_eps``) that calls a present link an
+        outlier in an update is updated again with every existence margin at least this wide,
+        and that update replaces the first (:func:`diffpos.tracking.tracker._edge_retry`): a
+        mechanism the track has been fitting is not declared gone because the prediction
+        stepped a decimetre or two over its existence edge (a level track's margin is the
+        fixed ``exist_margin_m``; the vertical mode's follows its own height uncertainty). The
+        README main command's top-floor walker r05 walks on the edge of the outer UAVs' slot
+        15 (docs/tracking_evidence.md "Session 26: a wider margin at an existence edge"). 0
+        (default): off. Measured with 0.4 (offline reruns, five / twelve seeds): main command
+        96.64 -> 98.54 % right floor, Sionna RT's live paper building 91.56 -> 90.98 %; with
+        the vertical mode retried too 88.96 %.
     edge_retry_eps : float [-]
         With ``edge_retry_margin_m``: the good-standing bound of a link's learned outlier
         probability (the learned weights do not go below ``outlier_weight``, 0.02).

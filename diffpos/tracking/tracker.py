@@ -614,17 +614,19 @@ def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
 
 def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
                 config: TrackerConfig) -> None:
-    """``TrackerConfig.edge_retry_margin_m``: the pairs of ``out`` (``_update_at``'s lists,
-    replaced in place) in good standing (at least four ranges, every present link's learned
-    outlier probability ``1 - exp(w[..., 0])`` below ``edge_retry_eps``; the prior's where
-    ``w`` is None) that called a present link an outlier are updated again with their
-    existence margins at least ``edge_retry_margin_m`` (the SNR predicted afresh, the cache
-    untouched); that update replaces the first. Per pair: rows stay independent."""
+    """``TrackerConfig.edge_retry_margin_m``: the level-mode pairs of ``out``
+    (``_update_at``'s lists, replaced in place) in good standing (at least four ranges, every
+    present link's learned outlier probability ``1 - exp(w[..., 0])`` below
+    ``edge_retry_eps``; the prior's where ``w`` is None) that called a present link an outlier
+    are updated again with their existence margins at least ``edge_retry_margin_m`` (the SNR
+    predicted afresh, the cache untouched); that update replaces the first. The vertical
+    mode's margin already follows its own height uncertainty (``existence_margin``). Per
+    pair: rows stay independent."""
     m = sub.mask[:, 0]
     eps = (np.full(m.shape, config.outlier_weight) if w is None
            else -np.expm1(w[:, 0, :, 0]))
     good = np.all(~m | (eps < config.edge_retry_eps), axis=-1) & (m.sum(axis=-1) >= 4)
-    rows = np.flatnonzero(good & np.any(m & (out[3] < 0), axis=-1))
+    rows = np.flatnonzero(good & level[:, 0] & np.any(m & (out[3] < 0), axis=-1))
     if rows.size == 0:
         return
     x, p, ev, sel, res = measurement_update(
