@@ -1050,7 +1050,7 @@ def _paths_at(pe0: PathEval, nodes, pos: FloatArray, links: Links, floor, buildi
 
 
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config, level=None,
-                       snr_cache=None, link_w=None):
+                       snr_cache=None, link_w=None, min_margin=None):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual.
 
     ``level``: the hypotheses' vertical modes (see :func:`iekf`). ``snr_cache``: the
@@ -1059,6 +1059,8 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     is), or None (every SNR predicted). ``link_w``: every link's mixture weights (N, H, M, 2)
     (:func:`link_weights`, the default; the learned ones: :mod:`diffpos.tracking.evidence`).
     A slot's SNR cost is capped at ``config.snr_cost_cap_nats`` (:func:`cap_snr_cost`).
+    ``min_margin`` [m] (broadcastable to (N, H)): the existence margins of every selection pass
+    at least this wide (``TrackerConfig.edge_retry_margin_m``; None: as they are).
 
     The IEKF reads the selection only through ``slot``, ``extra_var`` and ``log_weight``, so a
     later pass could keep the previous pass' IEKF output for the hypotheses whose three are
@@ -1081,6 +1083,8 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     # the passes. All of it in one compiled pass (:func:`_update_fixed`).
     xc, moved, relax, info, fix_i = _update_fixed(x_prior, p_prior, links, floor, building,
                                                   config, level)
+    if min_margin is not None:
+        relax = np.maximum(relax, min_margin)
     pe0 = all_paths(xc, links, floor, building, relax)
     snr_c = snr_term(xc, links, floor, building, relax, pe0, config, snr_cache)
     fix_s = _select_fixed(p_prior[..., :3, :3], links, config, snr_c, *x_prior.shape[:2],
@@ -1089,6 +1093,8 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     for k in range(config.select_passes):  # later passes: mechanisms re-selected at the fit
         if k > 0:  # at the fit: the margin of the fit's own uncertainty
             relax = existence_margin(p, config)
+            if min_margin is not None:
+                relax = np.maximum(relax, min_margin)
         if k == 0:  # the prior's paths: only the moved nodes' evaluated once more (into pe0)
             pe = _paths_at(pe0, moved, x[..., :3], links, floor, building, relax)
         else:

@@ -633,8 +633,37 @@ def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
                                            snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB)
     x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
                                             level=level, snr_cache=sc, link_w=w)
-    return (x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
-            sel.log_weight[:, 0])
+    out = [x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
+           sel.log_weight[:, 0]]
+    if config.edge_retry_margin_m > 0.0:
+        _edge_retry(out, x0, p0, sub, fl, level, w, building, config)
+    return tuple(out)
+
+
+def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
+                config: TrackerConfig) -> None:
+    """``TrackerConfig.edge_retry_margin_m``: the level-mode pairs of ``out``
+    (``_update_at``'s lists, replaced in place) in good standing (at least four ranges, every
+    present link's learned outlier probability ``1 - exp(w[..., 0])`` below
+    ``edge_retry_eps``; the prior's where ``w`` is None) that called a present link an outlier
+    are updated again with their existence margins at least ``edge_retry_margin_m`` (the SNR
+    predicted afresh, the cache untouched); that update replaces the first. The vertical
+    mode's margin already follows its own height uncertainty (``existence_margin``). Per
+    pair: rows stay independent."""
+    m = sub.mask[:, 0]
+    eps = (np.full(m.shape, config.outlier_weight) if w is None
+           else -np.expm1(w[:, 0, :, 0]))
+    good = np.all(~m | (eps < config.edge_retry_eps), axis=-1) & (m.sum(axis=-1) >= 4)
+    rows = np.flatnonzero(good & level[:, 0] & np.any(m & (out[3] < 0), axis=-1))
+    if rows.size == 0:
+        return
+    x, p, ev, sel, res = measurement_update(
+        x0[rows], p0[rows], sub.take(rows), fl[rows], building, config, level=level[rows],
+        snr_cache=None, link_w=None if w is None else w[rows],
+        min_margin=config.edge_retry_margin_m)
+    for k, v in enumerate((x, p, ev, sel.slot, sel.nis, res, sel.log_weight)):
+        out[k] = out[k].copy()
+        out[k][rows] = v[:, 0]
 
 
 def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_floors: int,
