@@ -397,6 +397,17 @@ class TrackerConfig:
         SNR density ``1 / SNR_SPAN_DB``; a family with no power is no candidate. Only where the
         link has a measured SNR and a radio model. Default False (docs/tracking_evidence.md
         "Families scored with their SNR, the gate's misfit at the fit").
+    family_select : bool
+        (``max_order`` > 2) The extra families are offered to every link the hypothesis has
+        fitted (``family_history``, ``family_min_links`` as for the misfits), not only to its
+        misfits, so an exact family competes with the 18 mechanisms in the link's selection
+        (a family-explained link is an outlier for the IEKF); ``family_minority`` still
+        counts the misfits only. Why: on the emulator at ``channel_max_order`` 4 the true
+        floor fits order-3/4 slab-series first arrivals with a wrong one of the 18 inside
+        ``nis_limit`` (never a misfit, so never offered the exact family), and that mechanism
+        pulls its fit. Default False (docs/channel_mix.md "Session 26": with
+        ``family_minority`` off too, emulator order 4 ``large`` 84.9 -> 89.4 % right floor
+        and 6.3 -> 2.7 % confidently wrong over 3 seeds, but order-3 paper 98.5 -> 97.0 %).
     family_fit : {"prior", "residual"}
         What the family gate's misfit (``family_gate="misfit"``, ``TrackerState.link_fit``)
         of a link is: ``"prior"``, its selection NIS at the prior covariance; ``"residual"``,
@@ -674,6 +685,7 @@ class TrackerConfig:
     family_first: bool = False
     family_learned_links: int = 4
     family_snr: bool = False
+    family_select: bool = False
     family_fit: str = "prior"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0

@@ -1162,19 +1162,23 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         gate = _gather(lk["link_out"], col) > 0.5
     else:
         gate = ~(_gather(lk["link_fit"], col) <= config.nis_limit)
+    fitted = np.ones(gate.shape, bool)
     if config.family_history > 0:  # a misfit after this many real updates with the link
         f = config.link_forget
         need = config.family_history if f >= 1.0 else (1.0 - f ** config.family_history) / (1.0 - f)
-        gate &= _gather(lk["link_all"], col) >= need * (1.0 - 1e-9)
+        fitted = _gather(lk["link_all"], col) >= need * (1.0 - 1e-9)
+        gate &= fitted
     if config.family_min_links > 0:
         enough = n_meas >= config.family_min_links
         if learned is not None:  # fewer ranges where the track learned the channel has them
             enough |= learned & (n_meas >= config.family_learned_links)
         gate &= enough[:, None, None]
+        fitted &= enough[:, None, None]
+    offered = fitted if config.family_select else gate  # every fitted link, or the misfits
     if config.family_minority:  # most ranges misfit: the state is wrong, not the links
         mis = gate if present is None else gate & present[:, None, :]
-        gate &= (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
-    return gate
+        offered = offered & (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
+    return offered
 
 
 def warm_tracking() -> float:
