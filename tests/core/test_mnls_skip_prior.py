@@ -131,3 +131,37 @@ def test_compiled_equals_reference_with_the_rule_on_and_default_is_unchanged():
     assert not np.allclose(got.cost, base.cost, equal_nan=True)
     with pytest.raises(ValueError):
         SnrRule(first_arrival_prior=1.0)
+
+
+#: Sionna RT's paper building (docs/raytrace_study.md "Session 26"), receiver 163 of the study's
+#: 200 (`diffpos raytrace paper --receivers 200 --samples 1000000 --max-depth 4`, the study's
+#: first arrivals at seed 0): top floor (4) at (-12.25, 2.5, 17.5), four anchors detected.
+_R163 = {
+    "truth_floor": 4,
+    "range": [29.94131955847266, 29.60028558684614, 21.07203164948355, 41.38768343977155],
+    "sigma": [0.05005665814449021, 0.050007494817127233, 0.05333364305581977,
+              0.05018641847414208],
+    "snr": [30.986233496921102, 39.77338101889376, 13.149708533542196, 25.808338904635946],
+}
+
+
+def _r163(rule):
+    sc = default_scenario()
+    radio = sc.radio
+    return mnls(sc.anchor_positions_m(), np.array(_R163["range"]), np.array(_R163["sigma"]),
+                building=sc.building, snr_db=np.array(_R163["snr"]), radio=radio, max_order=3,
+                bandwidth_hz=radio.bandwidth_hz, error_floor_m=radio.range_error_floor_m,
+                snr_rule=rule)
+
+
+def test_top_floor_receiver_found_with_the_skip_prior():
+    """Sionna's receiver 163 (top floor): M-NLS with the detector's rule as the tracker's
+    (measured lower bound on the threshold, skip prior w = 0.8) puts it on its floor at
+    p >= 0.99; the default M-NLS (hard rule, predicted threshold) publishes floor 2 (the
+    true floor at p < 0.5): what the option changes."""
+    on = _r163(SnrRule(measured_threshold=True, first_arrival_prior=0.8))
+    assert on.floor[0] == _R163["truth_floor"]
+    assert on.floor_probability[0, _R163["truth_floor"]] >= 0.99
+    off = _r163(DEFAULT_SNR_RULE)
+    assert off.floor[0] != _R163["truth_floor"]
+    assert off.floor_probability[0, _R163["truth_floor"]] < 0.5

@@ -35,7 +35,11 @@ stated otherwise):
   factor 2 in field for pattern/material/diffraction modelling errors); (c) the detector's
   rule: the first arrival is not far below the predicted strongest path's threshold
   ``P_max - fap_threshold_db``, and no path predicted surely detected (6 dB above that
-  threshold) arrives before it. (b, c) are refreshed every ``SNR_EVERY`` LM steps and at the
+  threshold) arrives before it; options (``snr_rule``, :class:`~diffpos.estimators.mnls.rules.SnrRule`,
+  off by default): the threshold at least the MEASURED first arrival's SNR less
+  ``fap_threshold_db``, and the soft skip prior ``-log(w prod_j Phi((T - S_j) / 6 dB) + 1 - w)``
+  over the earlier paths instead of the hard rule (its path order taken at the refresh point
+  and held with the SNR terms; docs/raytrace_study.md "Session 26"). (b, c) are refreshed every ``SNR_EVERY`` LM steps and at the
   final modes, which are refined with their mechanisms held. This is what makes floors
   separable: with ranges alone (4 anchors, 5 cm sigma) another floor's best mode explains the
   ranges as well as the true one for about half the receivers; with the true mechanisms the
