@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from diffpos.estimators.mnls.rules import DEFAULT_SNR_RULE, SnrRule
 from diffpos.paths.mechanisms import MechanismSet
 
 FloatArray = NDArray[np.float64]
@@ -51,7 +50,7 @@ class _Problem:
     radio: object = None
     strong: NDArray[np.bool_] | None = None  # (N, M, K) predicted surely detected
     mech: MechanismSet | None = None  # the mechanisms (None: the 18 of MECHANISMS)
-    rule: SnrRule = DEFAULT_SNR_RULE  # the detector's rule (rules.SnrRule)
+    rule: object = None  # the detector's rule (rules.SnrRule; None: its default)
 
 
 def _c(a, dtype=np.float64):
@@ -115,7 +114,7 @@ def _outlier_cap(sig: FloatArray, mask: NDArray[np.bool_], building) -> FloatArr
 
 
 def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength,
-             mech: MechanismSet | None = None, rule: SnrRule = DEFAULT_SNR_RULE) -> _Problem:
+             mech: MechanismSet | None = None, rule=None) -> _Problem:
     lo, hi, zmid = _floor_boxes(building, floors)
     # tail offset: -log(eps / lambda) + log((1 - eps) / (sigma sqrt(2 pi)))
     tail_a = np.log((1 - OUTLIER_PRIOR) / OUTLIER_PRIOR * lam / (sig * np.sqrt(2 * np.pi)))

@@ -264,6 +264,7 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     _count("snr_cpu_s", time.thread_time() - c0)
     _count("snr", np.count_nonzero(m))
     meas = p.snr_meas[..., None]
+    rule = DEFAULT_SNR_RULE if p.rule is None else p.rule
     with np.errstate(invalid="ignore"):
         c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
         # the detector keeps paths above max(P_max - fap_threshold, detection floor): a
@@ -272,13 +273,13 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
                          p.radio.detection_snr_db)
         short = np.maximum(thr - SNR_SIGMA_DB - meas, 0.0)
         c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
-        if p.rule.measured_threshold:  # the strongest path is at least the measured one
+        if rule.measured_threshold:  # the strongest path is at least the measured one
             thr = np.fmax(thr, meas - p.radio.fap_threshold_db)
     c = np.where(np.isfinite(pred), c, np.inf)  # a slot that does not exist is not received
-    if p.rule.first_arrival_prior > 0:  # the soft skip prior replaces the hard rule
+    if rule.first_arrival_prior > 0:  # the soft skip prior replaces the hard rule
         ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None],
                                  mechanisms=p.mech)
-        c = c + _skip_cost(ps.length_m, ps.valid, pred, thr, p.rule.first_arrival_prior)
+        c = c + _skip_cost(ps.length_m, ps.valid, pred, thr, rule.first_arrival_prior)
         p.strong = np.zeros(pred.shape, dtype=bool)
     else:
         p.strong = pred >= thr + SNR_SIGMA_DB  # surely detected at this hypothesis
