@@ -62,10 +62,15 @@ class SnrRule:
         arrival). ``w > 0`` replaces the hard rule by ``-log(w prod_j Phi((T - S_j) /
         SNR_SIGMA_DB) + 1 - w)`` [nats] added to the SNR cost of every slot, the product
         over the existing paths ``j`` shorter than the slot (``S_j`` their predicted SNR).
+    keep_hard_rule : bool
+        With ``first_arrival_prior`` > 0: keep the hard rule as well (the skip prior then
+        adds to the candidates it leaves); measured in docs/raytrace_study.md "Session 26",
+        not a fusion setting.
     """
 
     measured_threshold: bool = False
     first_arrival_prior: float = 0.0
+    keep_hard_rule: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.first_arrival_prior < 1.0:

@@ -276,13 +276,13 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
         if rule.measured_threshold:  # the strongest path is at least the measured one
             thr = np.fmax(thr, meas - p.radio.fap_threshold_db)
     c = np.where(np.isfinite(pred), c, np.inf)  # a slot that does not exist is not received
-    if rule.first_arrival_prior > 0:  # the soft skip prior replaces the hard rule
+    p.strong = pred >= thr + SNR_SIGMA_DB  # surely detected at this hypothesis
+    if rule.first_arrival_prior > 0:  # the soft skip prior (replacing the hard rule)
         ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None],
                                  mechanisms=p.mech)
         c = c + _skip_cost(ps.length_m, ps.valid, pred, thr, rule.first_arrival_prior)
-        p.strong = np.zeros(pred.shape, dtype=bool)
-    else:
-        p.strong = pred >= thr + SNR_SIGMA_DB  # surely detected at this hypothesis
+        if not rule.keep_hard_rule:
+            p.strong = np.zeros(pred.shape, dtype=bool)
     return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
 
 
