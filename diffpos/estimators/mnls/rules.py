@@ -64,8 +64,7 @@ class SnrRule:
         over the existing paths ``j`` shorter than the slot (``S_j`` their predicted SNR).
     keep_hard_rule : bool
         With ``first_arrival_prior`` > 0: keep the hard rule as well (the skip prior then
-        adds to the candidates it leaves); measured in docs/raytrace_study.md "Session 26",
-        not a fusion setting.
+        adds to the candidates it leaves; docs/raytrace_study.md "Session 26").
     """
 
     measured_threshold: bool = False

@@ -565,6 +565,9 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     """With mnls: weight of M-NLS's soft skip prior of the detector's earlier paths, which
     replaces its hard rule (:class:`diffpos.estimators.mnls.rules.SnrRule`
     ``first_arrival_prior``); 0 (the default; recordings made before the setting): off."""
+    mnls_keep_hard_rule: bool = False
+    """With mnls and :attr:`mnls_first_arrival_prior` > 0: keep M-NLS's hard rule beside the
+    skip prior (``SnrRule.keep_hard_rule``); ``False`` (the default): the prior replaces it."""
     tracker: TrackerSettings = msgspec.field(default_factory=TrackerSettings)
     """With mnls + tracking: the per-responder tracker's settings, every field of
     :class:`diffpos.tracking.state.TrackerConfig` (:class:`TrackerSettings`; ``diffpos fusion
