@@ -129,7 +129,8 @@ def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
     scenario's, 2 by default: the 18 mechanisms only)."""
     cfg = ReproduceConfig(seed=seed, methods=("mnls",), mnls_max_order=order,
                           mnls_measured_threshold=rule.measured_threshold,
-                          mnls_first_arrival_prior=rule.first_arrival_prior)
+                          mnls_first_arrival_prior=rule.first_arrival_prior,
+                          mnls_keep_hard_rule=rule.keep_hard_rule)
     out = {}
     rt = reproduce(scenario, cfg, kind="raytrace", path=dataset,
                    load=lambda rng: dataset_arrivals(dataset, scenario, rng=rng))
@@ -259,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="diffpos reproduce --mnls-measured-threshold (SnrRule)")
     ap.add_argument("--mnls-first-arrival-prior", type=float, default=0.0, metavar="W",
                     help="diffpos reproduce --mnls-first-arrival-prior (SnrRule; default 0)")
+    ap.add_argument("--mnls-keep-hard-rule", action="store_true",
+                    help="diffpos reproduce --mnls-keep-hard-rule (SnrRule)")
     ap.add_argument("--misses", action="store_true",
                     help="the misses on Sionna's channel per traced first-arrival family")
     ap.add_argument("--summary", action="store_true",
@@ -285,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
         for k in args.orders:
             rows.append((name, k, study(scenario, ds, k, seed=args.seed, emulator_order=(
                 k if args.emulator_order == "K" else None), rule=SnrRule(
-                    args.mnls_measured_threshold, args.mnls_first_arrival_prior))))
+                    args.mnls_measured_threshold, args.mnls_first_arrival_prior,
+                    args.mnls_keep_hard_rule))))
             print(table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
     print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
           f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "

@@ -590,8 +590,8 @@ class ReproduceConfig:
     mnls_max_order : int
         M-NLS's mechanism families (2: the emulator's 18 mechanisms; 3, 4: higher-order
         reflections between the slabs, ground bounce before the edge).
-    mnls_measured_threshold, mnls_first_arrival_prior : bool, float
-        M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: off, off).
+    mnls_measured_threshold, mnls_first_arrival_prior, mnls_keep_hard_rule : bool, float, bool
+        M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: off, off, off).
     """
 
     seed: int = 0
@@ -602,6 +602,7 @@ class ReproduceConfig:
     mnls_max_order: int = 2
     mnls_measured_threshold: bool = False
     mnls_first_arrival_prior: float = 0.0
+    mnls_keep_hard_rule: bool = False
 
 
 class Progress(Protocol):
@@ -739,7 +740,8 @@ def reproduce(
         z_starts_m=floor_starts_m(scenario.building),
         start_y_m=0.5 * scenario.building.depth_m,
         building=scenario.building, radio=scenario.radio, mnls_max_order=cfg.mnls_max_order,
-        mnls_snr_rule=SnrRule(cfg.mnls_measured_threshold, cfg.mnls_first_arrival_prior),
+        mnls_snr_rule=SnrRule(cfg.mnls_measured_threshold, cfg.mnls_first_arrival_prior,
+                              cfg.mnls_keep_hard_rule),
     )
     timing["positioning_s"] = time.perf_counter() - t0
     timing["method_s"] = clock.durations()
@@ -765,6 +767,7 @@ def build_summary(cfg: ReproduceConfig, scenario: Scenario, res: Reproduction) -
         "mnls_max_order": cfg.mnls_max_order,
         "mnls_measured_threshold": cfg.mnls_measured_threshold,
         "mnls_first_arrival_prior": cfg.mnls_first_arrival_prior,
+        "mnls_keep_hard_rule": cfg.mnls_keep_hard_rule,
         "window_height_m": scenario.building.window_height_m,
         "mpc_table_pct": res.table,
         "first_arrival_mechanism_pct": res.fap_by_mechanism,

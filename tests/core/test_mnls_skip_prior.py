@@ -104,7 +104,8 @@ def _same_fixes(got, ref) -> None:
 
 def test_compiled_equals_reference_with_the_rule_on_and_default_is_unchanged():
     """12 emulated fixes on the paper's building (a caller's mask with gaps): with the
-    measured threshold and the skip prior on, ``kernel=True`` equals the numpy reference
+    measured threshold and the skip prior on (with and without the hard rule kept),
+    ``kernel=True`` equals the numpy reference
     steps (the rule enters both through the same SNR terms); the default ``SnrRule()`` is
     bitwise the call without it; and the rule changes some fix's cost (it is applied)."""
     sc = default_scenario()
@@ -121,9 +122,9 @@ def test_compiled_equals_reference_with_the_rule_on_and_default_is_unchanged():
     args = (np.broadcast_to(anchors, (n, *anchors.shape)),
             np.where(fa.detected, fa.range_m, 0.0), np.where(fa.detected, fa.sigma_m, 1.0))
     kw = {"mask": mask, "building": b, "snr_db": fa.snr_db, "radio": radio}
-    on = SnrRule(measured_threshold=True, first_arrival_prior=0.8)
-    got = mnls(*args, snr_rule=on, **kw)
-    _same_fixes(got, mnls(*args, snr_rule=on, kernel=False, **kw))
+    for on in (SnrRule(True, 0.8, keep_hard_rule=True), SnrRule(True, 0.8)):
+        got = mnls(*args, snr_rule=on, **kw)
+        _same_fixes(got, mnls(*args, snr_rule=on, kernel=False, **kw))
     base = mnls(*args, **kw)
     same = mnls(*args, snr_rule=SnrRule(), **kw)
     np.testing.assert_array_equal(base.position_m, same.position_m)

@@ -94,6 +94,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mnls-first-arrival-prior", type=float, default=0.0, metavar="W",
                         help="mnls: the soft skip prior of the detector's earlier paths with "
                              "weight W in [0, 1) instead of the hard rule (default 0: off)")
+    parser.add_argument("--mnls-keep-hard-rule", action="store_true",
+                        help="mnls: with --mnls-first-arrival-prior, keep the hard rule too")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -159,7 +161,8 @@ def run(args: argparse.Namespace) -> int:
                           methods=tuple(args.methods), delta_m=args.delta_m,
                           mnls_max_order=args.mnls_max_order,
                           mnls_measured_threshold=args.mnls_measured_threshold,
-                          mnls_first_arrival_prior=args.mnls_first_arrival_prior)
+                          mnls_first_arrival_prior=args.mnls_first_arrival_prior,
+                          mnls_keep_hard_rule=args.mnls_keep_hard_rule)
     try:
         kind, path = _channel_source(args.channel)
         with report.ProgressBars(not args.no_progress) as prog:
