@@ -58,6 +58,7 @@ from diffpos_services.raytrace.dataset import load_dataset
 from diffpos_services.raytrace.evaluate import dataset_arrivals
 from diffpos_services.scenario_io import scenario_or_default
 
+from diffpos.estimators.mnls.rules import DEFAULT_SNR_RULE, SnrRule
 from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import NodeSpec, Scenario
 from diffpos.study import ReproduceConfig, floor_accuracy, reproduce
@@ -84,7 +85,8 @@ def same_receivers(scenario: Scenario, nodes_m: np.ndarray) -> Scenario:
     return dataclasses.replace(scenario, node_grid=None, nodes=nodes)
 
 
-def mnls_fixes(data: Any, scenario: Scenario, order: int) -> Any:
+def mnls_fixes(data: Any, scenario: Scenario, order: int, rule: SnrRule = DEFAULT_SNR_RULE
+               ) -> Any:
     """M-NLS's fixes (:class:`~diffpos.estimators.mnls.result.MnlsResult`) on a study's first
     arrivals ``data``: the call :func:`diffpos.study.positioning_study` makes (same inputs and
     settings)."""
@@ -95,7 +97,7 @@ def mnls_fixes(data: Any, scenario: Scenario, order: int) -> Any:
     return mnls(a, np.where(mask, data.range_m, 0.0), np.where(mask, data.sigma_m, 1.0),
                 mask=mask, building=scenario.building, snr_db=data.snr_db, radio=radio,
                 max_order=order, bandwidth_hz=radio.bandwidth_hz,
-                error_floor_m=radio.range_error_floor_m)
+                error_floor_m=radio.range_error_floor_m, snr_rule=rule)
 
 
 def floor_shares(positions_m: np.ndarray, truth_m: np.ndarray, detected: np.ndarray,
@@ -120,11 +122,15 @@ def floor_shares(positions_m: np.ndarray, truth_m: np.ndarray, detected: np.ndar
 
 
 def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
-          emulator_order: int | None = None) -> dict[str, dict[str, float | int]]:
+          emulator_order: int | None = None, rule: SnrRule = DEFAULT_SNR_RULE
+          ) -> dict[str, dict[str, float | int]]:
     """``{"raytrace": shares, "emulator": shares}`` of M-NLS at mechanism order ``order``;
     ``emulator_order``: the emulated channel's ``radio.channel_max_order`` (None: the
     scenario's, 2 by default: the 18 mechanisms only)."""
-    cfg = ReproduceConfig(seed=seed, methods=("mnls",), mnls_max_order=order)
+    cfg = ReproduceConfig(seed=seed, methods=("mnls",), mnls_max_order=order,
+                          mnls_measured_threshold=rule.measured_threshold,
+                          mnls_first_arrival_prior=rule.first_arrival_prior,
+                          mnls_keep_hard_rule=rule.keep_hard_rule)
     out = {}
     rt = reproduce(scenario, cfg, kind="raytrace", path=dataset,
                    load=lambda rng: dataset_arrivals(dataset, scenario, rng=rng))
@@ -134,7 +140,7 @@ def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
             scenario.radio, channel_max_order=int(emulator_order)))
     em = reproduce(em_scenario, cfg)
     for name, res in (("raytrace", rt), ("emulator", em)):
-        fix = mnls_fixes(res.data, scenario, order)
+        fix = mnls_fixes(res.data, scenario, order, rule)
         if not np.array_equal(fix.position_m, res.study.positions_m["mnls"], equal_nan=True):
             raise RuntimeError(f"{name}: mnls_fixes's positions differ from the study's "
                                "(its M-NLS call no longer matches positioning_study's)")
@@ -250,6 +256,12 @@ def main(argv: list[str] | None = None) -> int:
                          "the 18 mechanisms) or K, the same higher-order families M-NLS "
                          "models at that K (radio.channel_max_order = K)")
     ap.add_argument("--seed", type=int, default=0, help="range-noise seed (default 0)")
+    ap.add_argument("--mnls-measured-threshold", action="store_true",
+                    help="diffpos reproduce --mnls-measured-threshold (SnrRule)")
+    ap.add_argument("--mnls-first-arrival-prior", type=float, default=0.0, metavar="W",
+                    help="diffpos reproduce --mnls-first-arrival-prior (SnrRule; default 0)")
+    ap.add_argument("--mnls-keep-hard-rule", action="store_true",
+                    help="diffpos reproduce --mnls-keep-hard-rule (SnrRule)")
     ap.add_argument("--misses", action="store_true",
                     help="the misses on Sionna's channel per traced first-arrival family")
     ap.add_argument("--summary", action="store_true",
@@ -275,7 +287,9 @@ def main(argv: list[str] | None = None) -> int:
               f"depth {st.get('max_depth')}", file=sys.stderr, flush=True)
         for k in args.orders:
             rows.append((name, k, study(scenario, ds, k, seed=args.seed, emulator_order=(
-                k if args.emulator_order == "K" else None))))
+                k if args.emulator_order == "K" else None), rule=SnrRule(
+                    args.mnls_measured_threshold, args.mnls_first_arrival_prior,
+                    args.mnls_keep_hard_rule))))
             print(table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
     print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
           f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "

@@ -64,6 +64,7 @@ from diffpos.chi_square import chi2_3_quantile
 from diffpos.estimators.dnls.solver import dnls
 from diffpos.estimators.ippa import ippa
 from diffpos.estimators.lls import lls
+from diffpos.estimators.mnls.rules import DEFAULT_SNR_RULE, SnrRule
 from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import Scenario
 from diffpos.study_methods import DEFAULT_QUICK_NODES, METHOD_LABELS, REPRODUCE_METHODS
@@ -377,6 +378,7 @@ def positioning_study(
     building: Any = None,
     radio: Any = None,
     mnls_max_order: int = 2,
+    mnls_snr_rule: SnrRule = DEFAULT_SNR_RULE,
 ) -> PositioningStudy:
     """Position every receiver with each method and compute the bounds.
 
@@ -409,6 +411,8 @@ def positioning_study(
     mnls_max_order : int
         ``mnls``'s mechanism families (:func:`diffpos.paths.mechanisms.mechanism_set`; 2: the
         18 mechanisms of the emulator).
+    mnls_snr_rule : diffpos.estimators.mnls.rules.SnrRule
+        ``mnls``'s use of the detector's rule (default: the predicted threshold, hard rule).
 
     Returns
     -------
@@ -441,7 +445,7 @@ def positioning_study(
                                             "error_floor_m": radio.range_error_floor_m}
             return mnls(a, ranges[sl], np.where(mask[sl], data.sigma_m[sl], 1.0),
                         mask=mask[sl], building=building, snr_db=data.snr_db[sl], radio=radio,
-                        max_order=mnls_max_order, **rkw)
+                        max_order=mnls_max_order, snr_rule=mnls_snr_rule, **rkw)
         return dnls(a, ranges[sl], None, mask=mask[sl], window_height_m=window_height_m,
                     delta_m=dnls_delta[method], edge_x_m=edge_x_m, gating=None,
                     z_starts_m=z_starts_m)
@@ -586,6 +590,8 @@ class ReproduceConfig:
     mnls_max_order : int
         M-NLS's mechanism families (2: the emulator's 18 mechanisms; 3, 4: higher-order
         reflections between the slabs, ground bounce before the edge).
+    mnls_measured_threshold, mnls_first_arrival_prior, mnls_keep_hard_rule : bool, float, bool
+        M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: off, off, off).
     """
 
     seed: int = 0
@@ -594,6 +600,9 @@ class ReproduceConfig:
     methods: tuple[str, ...] = REPRODUCE_METHODS
     delta_m: float = 1.5
     mnls_max_order: int = 2
+    mnls_measured_threshold: bool = False
+    mnls_first_arrival_prior: float = 0.0
+    mnls_keep_hard_rule: bool = False
 
 
 class Progress(Protocol):
@@ -731,6 +740,8 @@ def reproduce(
         z_starts_m=floor_starts_m(scenario.building),
         start_y_m=0.5 * scenario.building.depth_m,
         building=scenario.building, radio=scenario.radio, mnls_max_order=cfg.mnls_max_order,
+        mnls_snr_rule=SnrRule(cfg.mnls_measured_threshold, cfg.mnls_first_arrival_prior,
+                              cfg.mnls_keep_hard_rule),
     )
     timing["positioning_s"] = time.perf_counter() - t0
     timing["method_s"] = clock.durations()
@@ -754,6 +765,9 @@ def build_summary(cfg: ReproduceConfig, scenario: Scenario, res: Reproduction) -
         "anchors_m": np.asarray(data.anchors_m).tolist(),
         "delta_case2_m": cfg.delta_m,
         "mnls_max_order": cfg.mnls_max_order,
+        "mnls_measured_threshold": cfg.mnls_measured_threshold,
+        "mnls_first_arrival_prior": cfg.mnls_first_arrival_prior,
+        "mnls_keep_hard_rule": cfg.mnls_keep_hard_rule,
         "window_height_m": scenario.building.window_height_m,
         "mpc_table_pct": res.table,
         "first_arrival_mechanism_pct": res.fap_by_mechanism,

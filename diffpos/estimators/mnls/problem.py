@@ -50,6 +50,7 @@ class _Problem:
     radio: object = None
     strong: NDArray[np.bool_] | None = None  # (N, M, K) predicted surely detected
     mech: MechanismSet | None = None  # the mechanisms (None: the 18 of MECHANISMS)
+    rule: object = None  # the detector's rule (rules.SnrRule; None: its default)
 
 
 def _c(a, dtype=np.float64):
@@ -61,7 +62,7 @@ def _c(a, dtype=np.float64):
 
 def _take(p: _Problem, rows) -> _Problem:
     """The hypotheses ``rows`` of a problem."""
-    kw = {f: getattr(p, f) for f in ("prior_var", "lam", "wavelength_m", "mech")}
+    kw = {f: getattr(p, f) for f in ("prior_var", "lam", "wavelength_m", "mech", "rule")}
     for f in ("anchors", "r", "sig", "mask", "floor", "lo", "hi", "z_mid", "tail_a", "cap",
               "excess_db"):
         kw[f] = getattr(p, f)[rows]
@@ -113,7 +114,7 @@ def _outlier_cap(sig: FloatArray, mask: NDArray[np.bool_], building) -> FloatArr
 
 
 def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength,
-             mech: MechanismSet | None = None) -> _Problem:
+             mech: MechanismSet | None = None, rule=None) -> _Problem:
     lo, hi, zmid = _floor_boxes(building, floors)
     # tail offset: -log(eps / lambda) + log((1 - eps) / (sigma sqrt(2 pi)))
     tail_a = np.log((1 - OUTLIER_PRIOR) / OUTLIER_PRIOR * lam / (sig * np.sqrt(2 * np.pi)))
@@ -121,5 +122,5 @@ def _problem(a, r, sig, mask, floors, building, lam, excess, wavelength,
     return _Problem(anchors=a, r=r, sig=sig, mask=mask, floor=floors, lo=lo, hi=hi,
                     z_mid=zmid, prior_var=building.floor_height_m**2 / 12.0,
                     tail_a=tail_a, cap=cap, lam=lam, excess_db=excess, wavelength_m=wavelength,
-                    mech=mech)
+                    mech=mech, rule=rule)
 

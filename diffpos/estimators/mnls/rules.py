@@ -4,14 +4,19 @@
   plain diffraction over the same edge never arrives first.
 * Knife-edge SNR bound: a diffracted first arrival is not much stronger than the ITU-R P.526
   knife-edge prediction at its geometry.
+* The detector's skipped paths (:class:`SnrRule`, off by default): the detector threshold's
+  lower bound from the measured first arrival, and the soft skip prior :func:`_skip_cost`.
 
 And :func:`_link_terms_numpy`, the numpy reference of M-NLS's per-link terms that apply them.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import log_ndtr
 
 from diffpos.channel.linkbudget import snr_db as _snr_db
 from diffpos.paths.mechanisms import (
@@ -34,6 +39,78 @@ SNR_MARGIN_DB = 20 * np.log10(2.0)
 #: 2 in field (modelling error of the amplitudes: antenna patterns, materials, wedge vs.
 #: UTD), applied when the floor modes are re-scored with the SNR.
 SNR_SIGMA_DB = 20 * np.log10(2.0)
+
+
+@dataclass(frozen=True)
+class SnrRule:
+    """How M-NLS applies the detector's rule (it reports the earliest path whose SNR is within
+    ``radio.fap_threshold_db`` of the strongest) to the candidate mechanisms of a link.
+    The defaults are M-NLS as it was (session 26: both off).
+
+    Attributes
+    ----------
+    measured_threshold : bool
+        The detector threshold ``T`` is at least the MEASURED first arrival's SNR less
+        ``fap_threshold_db`` (the strongest path is at least as strong as the reported one,
+        whatever the amplitude model predicts), not only the predicted strongest path's
+        ``P_max - fap_threshold_db`` (and the detection floor). It raises ``T`` where the
+        model under-predicts the strongest path, so fewer earlier paths count as surely
+        detected (the hard rule) or as likely detected (the skip prior).
+    first_arrival_prior : float
+        Weight ``w`` in [0, 1) of the soft skip prior (:func:`_skip_cost`); 0: off, the hard
+        rule (no path predicted ``SNR_SIGMA_DB`` above ``T`` arrives before the first
+        arrival). ``w > 0`` replaces the hard rule by ``-log(w prod_j Phi((T - S_j) /
+        SNR_SIGMA_DB) + 1 - w)`` [nats] added to the SNR cost of every slot, the product
+        over the existing paths ``j`` shorter than the slot (``S_j`` their predicted SNR).
+    keep_hard_rule : bool
+        With ``first_arrival_prior`` > 0: keep the hard rule as well (the skip prior then
+        adds to the candidates it leaves; docs/raytrace_study.md "Session 26").
+    """
+
+    measured_threshold: bool = False
+    first_arrival_prior: float = 0.0
+    keep_hard_rule: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.first_arrival_prior < 1.0:
+            raise ValueError("first_arrival_prior must be in [0, 1)")
+
+
+#: M-NLS's rule as it was: the predicted threshold and the hard rule.
+DEFAULT_SNR_RULE = SnrRule()
+
+
+def _skip_cost(length: FloatArray, valid: NDArray[np.bool_], pred: FloatArray,
+               thr: FloatArray, weight: float) -> FloatArray:
+    """The detector's skipped paths as a cost of every slot [nats] (:class:`SnrRule`).
+
+    A slot ``k`` is the first arrival only if every existing path ``j`` arriving before it
+    (``length_j < length_k``) was below the detector threshold ``thr`` (..., 1) [dB]:
+    probability ``prod_j Phi((thr - pred_j) / SNR_SIGMA_DB)`` (``pred`` (..., K) the
+    predicted SNRs [dB]; a slot that does not exist or carries no power, ``-inf``, is no
+    earlier path). Mixed ``weight : 1 - weight`` with 1 (a model that predicts a path tens of
+    dB too strong costs at most ``-log(1 - weight)``); returns ``-log`` of it, 0 on the slots
+    that do not exist. ``O(K log K)`` per link: the slots sorted by length, the log
+    probabilities summed over the strictly shorter ones (ties share the sum of the slots
+    before their group)."""
+    ok = valid & np.isfinite(pred) & np.isfinite(length)
+    with np.errstate(invalid="ignore"):
+        lphi = np.where(ok, log_ndtr((thr - pred) / SNR_SIGMA_DB), 0.0)
+    key = np.where(ok, length, np.inf)
+    order = np.argsort(key, axis=-1, kind="stable")
+    ks = np.take_along_axis(key, order, axis=-1)
+    cs = np.cumsum(np.take_along_axis(lphi, order, axis=-1), axis=-1)
+    before = np.concatenate([np.zeros((*cs.shape[:-1], 1)), cs[..., :-1]], axis=-1)
+    idx = np.broadcast_to(np.arange(ks.shape[-1]), ks.shape)
+    new = np.concatenate([np.ones((*ks.shape[:-1], 1), bool), ks[..., 1:] != ks[..., :-1]],
+                         axis=-1)
+    first = np.maximum.accumulate(np.where(new, idx, 0), axis=-1)  # its tie group's start
+    val = np.empty_like(before)
+    np.put_along_axis(val, order, np.take_along_axis(before, first, axis=-1), axis=-1)
+    add = -np.log(weight * np.exp(val) + (1.0 - weight))
+    return np.where(ok, add, 0.0)
+
+
 _DIFF_MASK = np.zeros(len(MECHANISMS), dtype=bool)
 _DIFF_MASK[list(DIFFRACTION_SLOTS)] = True
 #: (diffraction + reflection slot, plain diffraction slot over the same edge)

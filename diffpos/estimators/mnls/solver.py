@@ -35,7 +35,11 @@ stated otherwise):
   factor 2 in field for pattern/material/diffraction modelling errors); (c) the detector's
   rule: the first arrival is not far below the predicted strongest path's threshold
   ``P_max - fap_threshold_db``, and no path predicted surely detected (6 dB above that
-  threshold) arrives before it. (b, c) are refreshed every ``SNR_EVERY`` LM steps and at the
+  threshold) arrives before it; options (``snr_rule``, :class:`~diffpos.estimators.mnls.rules.SnrRule`,
+  off by default): the threshold at least the MEASURED first arrival's SNR less
+  ``fap_threshold_db``, and the soft skip prior ``-log(w prod_j Phi((T - S_j) / 6 dB) + 1 - w)``
+  over the earlier paths instead of the hard rule (its path order taken at the refresh point
+  and held with the SNR terms; docs/raytrace_study.md "Session 26"). (b, c) are refreshed every ``SNR_EVERY`` LM steps and at the
   final modes, which are refined with their mechanisms held. This is what makes floors
   separable: with ranges alone (4 anchors, 5 cm sigma) another floor's best mode explains the
   ranges as well as the true one for about half the receivers; with the true mechanisms the
@@ -108,10 +112,13 @@ from diffpos.estimators.mnls.problem import (
 )
 from diffpos.estimators.mnls.result import MnlsResult, _information, _posterior, _result
 from diffpos.estimators.mnls.rules import (
+    DEFAULT_SNR_RULE,
     SNR_MARGIN_DB,
     SNR_SIGMA_DB,
+    SnrRule,
     _excess_loss_db,
     _masks,
+    _skip_cost,
 )
 from diffpos.estimators.mnls.starts import (
     _grid,
@@ -257,6 +264,7 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     _count("snr_cpu_s", time.thread_time() - c0)
     _count("snr", np.count_nonzero(m))
     meas = p.snr_meas[..., None]
+    rule = DEFAULT_SNR_RULE if p.rule is None else p.rule
     with np.errstate(invalid="ignore"):
         c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
         # the detector keeps paths above max(P_max - fap_threshold, detection floor): a
@@ -265,8 +273,16 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
                          p.radio.detection_snr_db)
         short = np.maximum(thr - SNR_SIGMA_DB - meas, 0.0)
         c = c + 0.5 * (short / SNR_SIGMA_DB) ** 2
+        if rule.measured_threshold:  # the strongest path is at least the measured one
+            thr = np.fmax(thr, meas - p.radio.fap_threshold_db)
     c = np.where(np.isfinite(pred), c, np.inf)  # a slot that does not exist is not received
     p.strong = pred >= thr + SNR_SIGMA_DB  # surely detected at this hypothesis
+    if rule.first_arrival_prior > 0:  # the soft skip prior (replacing the hard rule)
+        ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None],
+                                 mechanisms=p.mech)
+        c = c + _skip_cost(ps.length_m, ps.valid, pred, thr, rule.first_arrival_prior)
+        if not rule.keep_hard_rule:
+            p.strong = np.zeros(pred.shape, dtype=bool)
     return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
 
 
@@ -336,7 +352,8 @@ def _lm(p: _Problem, x: FloatArray, building, iters: int, t_init: dict | None = 
 
 
 def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, wavelength,
-                 snr=None, radio=None, x0=None, kernel=False, mech=None):
+                 snr=None, radio=None, x0=None, kernel=False, mech=None,
+                 rule: SnrRule = DEFAULT_SNR_RULE):
     """All floors x starts of B fixes; returns per-fix-per-floor modes and terms."""
     b = r.shape[0]
     nf = building.n_floors
@@ -346,7 +363,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
     with _stage("starts"):
         p0 = _problem(np.repeat(a, rep, axis=0), np.repeat(r, rep, axis=0),
                       np.repeat(sig, rep, axis=0), np.repeat(mask, rep, axis=0), floors,
-                      building, lam, np.repeat(excess, rep, axis=0), wavelength, mech)
+                      building, lam, np.repeat(excess, rep, axis=0), wavelength, mech, rule)
         x, closed = _start_points(p0, grid, building, b, x0, kernel=kernel)
     # screening: a few LM steps from every cell (a cell's cost before any step says little:
     # a metre off, every link is explained by the wrong mechanism), with the SNR terms of
@@ -366,7 +383,7 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         rows = ((np.arange(b)[:, None, None] * nf + np.arange(nf)[None, :, None]) * g
                 + best).ravel()
         p = _problem(p0.anchors[rows], p0.r[rows], p0.sig[rows], p0.mask[rows], floors[rows],
-                     building, lam, p0.excess_db[rows], wavelength, mech)
+                     building, lam, p0.excess_db[rows], wavelength, mech, rule)
         x = x[rows]
         if "res" in t0:
             t = {k: v[rows] for k, v in t0.items()}
@@ -583,6 +600,7 @@ def mnls(
     x0_m: ArrayLike | None = None,
     kernel: bool = True,
     max_order: int = DEFAULT_ORDER,
+    snr_rule: SnrRule = DEFAULT_SNR_RULE,
 ) -> MnlsResult:
     """Batched mechanism-aware position fixes (module docstring).
 
@@ -635,6 +653,11 @@ def mnls(
         :mod:`diffpos.estimators.mnls.power`'s estimate.
         ``MnlsResult.mechanism`` then indexes ``mechanism_set(max_order, partitions=bool(
         building.partitions)).labels``.
+    snr_rule : diffpos.estimators.mnls.rules.SnrRule
+        How the detector's rule bounds the candidates (with ``snr_db`` and ``radio``): the
+        default is the predicted threshold and the hard rule of the module docstring's (c);
+        the measured first arrival's lower bound on the threshold and the soft skip prior
+        are options (off by default; docs/raytrace_study.md "Session 26").
 
     Returns
     -------
@@ -673,7 +696,8 @@ def mnls(
                              excess[idx], building, grid=grid, keep=keep_starts,
                              wavelength=wavelength, iters=max_iter, lam=lam, radio=radio,
                              snr=None if snr_all is None else snr_all[idx],
-                             x0=None if x0 is None else x0[idx], kernel=kernel, mech=mech)
+                             x0=None if x0 is None else x0[idx], kernel=kernel, mech=mech,
+                             rule=snr_rule)
         with _stage("final"):
             _finish(out, idx, *modes, nf=nf, snr_meas=None if snr_db is None else snr_all[idx],
                     building=building, radio=radio, kernel=kernel)

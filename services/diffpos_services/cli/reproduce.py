@@ -87,6 +87,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default); 3, 4 = also triple / quadruple bounces between the "
                              "slabs, edge diffraction then two or three bounces, a ground "
                              "bounce before the edge (what Sionna RT finds first indoors)")
+    parser.add_argument("--mnls-measured-threshold", action="store_true",
+                        help="mnls: the detector threshold is at least the measured first "
+                             "arrival's SNR less fap_threshold_db (default: off; "
+                             "diffpos.estimators.mnls.rules.SnrRule)")
+    parser.add_argument("--mnls-first-arrival-prior", type=float, default=0.0, metavar="W",
+                        help="mnls: the soft skip prior of the detector's earlier paths with "
+                             "weight W in [0, 1) instead of the hard rule (default 0: off)")
+    parser.add_argument("--mnls-keep-hard-rule", action="store_true",
+                        help="mnls: with --mnls-first-arrival-prior, keep the hard rule too")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -150,7 +159,10 @@ def run(args: argparse.Namespace) -> int:
         return _fail(problem)
     cfg = ReproduceConfig(seed=args.seed, quick=args.quick, quick_nodes=args.quick_nodes,
                           methods=tuple(args.methods), delta_m=args.delta_m,
-                          mnls_max_order=args.mnls_max_order)
+                          mnls_max_order=args.mnls_max_order,
+                          mnls_measured_threshold=args.mnls_measured_threshold,
+                          mnls_first_arrival_prior=args.mnls_first_arrival_prior,
+                          mnls_keep_hard_rule=args.mnls_keep_hard_rule)
     try:
         kind, path = _channel_source(args.channel)
         with report.ProgressBars(not args.no_progress) as prog:

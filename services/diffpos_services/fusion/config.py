@@ -553,6 +553,21 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     ~17-22 ms CPU (2-core VM): the 200 of a 16 x 200 soak's first second were ~4 s of CPU (260
     -> 60 snapshots in the 10 s soak replay, docs/soak.md). Recordings made before the setting
     replay with ``True`` (:data:`LEGACY_SNAPSHOT_AT_START`)."""
+    mnls_measured_threshold: bool = False
+    """With mnls: the M-NLS fixes (the snapshot fixes; with ``tracking`` off the estimates)
+    take the detector threshold as at least the measured first arrival's SNR less the
+    radio's ``fap_threshold_db`` (the strongest path is at least as strong as the reported
+    one), not only the predicted strongest path's
+    (:class:`diffpos.estimators.mnls.rules.SnrRule` ``measured_threshold``). ``False`` (the
+    default; recordings made before the setting ran without it): M-NLS as it was. The
+    tracker does not read M-NLS's fixes: no tracked estimate depends on it."""
+    mnls_first_arrival_prior: Annotated[float, Meta(ge=0, lt=1)] = 0.0
+    """With mnls: weight of M-NLS's soft skip prior of the detector's earlier paths, which
+    replaces its hard rule (:class:`diffpos.estimators.mnls.rules.SnrRule`
+    ``first_arrival_prior``); 0 (the default; recordings made before the setting): off."""
+    mnls_keep_hard_rule: bool = False
+    """With mnls and :attr:`mnls_first_arrival_prior` > 0: keep M-NLS's hard rule beside the
+    skip prior (``SnrRule.keep_hard_rule``); ``False`` (the default): the prior replaces it."""
     tracker: TrackerSettings = msgspec.field(default_factory=TrackerSettings)
     """With mnls + tracking: the per-responder tracker's settings, every field of
     :class:`diffpos.tracking.state.TrackerConfig` (:class:`TrackerSettings`; ``diffpos fusion

@@ -135,7 +135,11 @@ class FusionCore:
         self.overload = OverloadPolicy(config)  # what a live step that is behind drops
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
-        self.model = (self.building, config.radio_model())
+        # (building, radio, M-NLS's SnrRule fields: diffpos.estimators.mnls.rules, imported
+        # only where mnls runs)
+        self.model = (self.building, config.radio_model(),
+                      (config.mnls_measured_threshold, config.mnls_first_arrival_prior,
+                       config.mnls_keep_hard_rule))
         self.bank = (_track_bank(self.building, config)
                      if self.building is not None and config.tracking else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")

@@ -75,6 +75,7 @@ import numpy as np
 
 from diffpos.alignment import PendingEpoch
 from diffpos.estimators.mnls import solver as mnls_solver
+from diffpos.estimators.mnls.rules import SnrRule
 from diffpos.estimators.result import ExclusionReason, FixStatus
 from diffpos.tracking.state import (
     TrackerConfig,
@@ -360,17 +361,18 @@ def _mnls_start(rows: np.ndarray, prep: Prepared, batch: Batch, model,
     were ~40 % of its serial work in the soak); :func:`_mnls_finish` collects them."""
     if rows.size == 0:
         return None
-    building, radio = model
+    building, radio, rule = model
     args = (prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows], batch.use[rows],
             None if radio is None else batch.snr[rows])
 
-    def here(apos, rng, sig, mask, snr, radio_):
-        return mnls_solver.mnls(apos, rng, sig, building=building, mask=mask, snr_db=snr, radio=radio_)
+    def here(apos, rng, sig, mask, snr, radio_, rule_):
+        return mnls_solver.mnls(apos, rng, sig, building=building, mask=mask, snr_db=snr,
+                                radio=radio_, snr_rule=SnrRule(*rule_))
 
     if pool is None or pool.building is not building:  # computed when collected
-        return rows, None, lambda _: here(*args, radio)
-    return rows, pool.submit("mnls", args, rows.size, here, shared=(radio,)), \
-        lambda p: pool.result(p, here, shared=(radio,))
+        return rows, None, lambda _: here(*args, radio, rule)
+    return rows, pool.submit("mnls", args, rows.size, here, shared=(radio, rule)), \
+        lambda p: pool.result(p, here, shared=(radio, rule))
 
 
 def _mnls_finish(started: tuple | None, res: Results, floor: np.ndarray, prob: np.ndarray,
@@ -444,7 +446,8 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
                model: tuple, bank: TrackBank | None, heavy: int | None = None,
                defer: bool = False, behind: bool = False) -> Solved:
     """The mnls snapshot fixes and, with ``bank``, the tracked estimates of ``batch``
-    (``model``: the building and the radio or None; ``heavy``: at most this many track
+    (``model``: the building, the radio or None and M-NLS's ``SnrRule`` fields, see
+    ``FusionCore.model``; ``heavy``: at most this many track
     initialisations + snapshot fixes, see the module docstring; None: unbounded; ``defer``:
     the tracking snapshot fixes are left in ``Solved.pending``, see :func:`in_publish_order`;
     ``behind``: the step leaves ready epochs, no snapshot fix of a node the tracker places)."""
