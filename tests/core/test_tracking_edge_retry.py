@@ -11,23 +11,16 @@ not in scenarios/ (the one of tests/core/test_tracking_margin.py).
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
+from margin_building import ANCHORS, BUILDING, SCENARIO
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.paths.mechanisms import SPECULAR_SLOTS
-from diffpos.scenario import default_scenario
 from diffpos.tracking.links import Links, all_paths
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import _update_at
 
-_SC = default_scenario()
-_B = dataclasses.replace(_SC.building, n_floors=4, floor_height_m=3.3, first_floor_z_m=1.0,
-                         sill_height_m=0.8, window_height_m=1.3, width_m=30.0, depth_m=16.0,
-                         partitions=())
-_ANCHORS = np.array([[-12.0, -14.0, 1.0], [2.0, -9.0, 3.5], [19.0, -12.0, 0.5],
-                     [-3.0, -21.0, 2.0]])
+_SC, _B, _ANCHORS = SCENARIO, BUILDING, ANCHORS
 
 
 def _edge_cases(rng, n):

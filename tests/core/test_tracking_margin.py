@@ -16,23 +16,16 @@ scenarios/ (3.3 m floors, 0.8 m sill, 1.3 m windows, 30 x 16 m, one UAV beyond a
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
+from margin_building import ANCHORS, BUILDING, SCENARIO
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.paths.mechanisms import SPECULAR_SLOTS
-from diffpos.scenario import default_scenario
 from diffpos.tracking.links import Links, _all_paths_numpy, all_paths
 from diffpos.tracking.model import ENTRY_SIGMAS, existence_margin, snr_cost_near
 from diffpos.tracking.state import TrackerConfig
 
-_SC = default_scenario()
-_B = dataclasses.replace(_SC.building, n_floors=4, floor_height_m=3.3, first_floor_z_m=1.0,
-                         sill_height_m=0.8, window_height_m=1.3, width_m=30.0, depth_m=16.0,
-                         partitions=())
-_ANCHORS = np.array([[-12.0, -14.0, 1.0], [2.0, -9.0, 3.5], [19.0, -12.0, 0.5],
-                     [-3.0, -21.0, 2.0]])
+_SC, _B, _ANCHORS = SCENARIO, BUILDING, ANCHORS
 
 
 def _nodes(rng, n):
