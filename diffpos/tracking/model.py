@@ -76,8 +76,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
 
+from diffpos.channel.detection import skipped_cost
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.channel.snr_nb import snr_cost_kernel
 from diffpos.paths.model_nb import building_planes
@@ -527,17 +527,12 @@ def skip_cost(pe: PathEval, pred: FloatArray, thr: FloatArray, snr: FloatArray,
     ``snr`` (N, M) less ``fap_threshold_db`` (the strongest path is at least that strong,
     whatever the model predicts). Mixed ``weight : 1 - weight`` with 1 (a model that
     predicts a path tens of dB too strong, as on channels we did not write, costs at most
-    ``-log(1 - weight)``), it multiplies the candidate's uniform prior, so ``-log`` of it
-    is added to the cost. Links with an unknown SNR, slots that are no candidate or carry
+    ``-log(1 - weight)``; :func:`diffpos.channel.detection.skipped_cost`), it multiplies the
+    candidate's uniform prior, so ``-log`` of it is added to the cost. Links with an unknown SNR, slots that are no candidate or carry
     no power (an infinite cost) are unchanged."""
     valid = candidates(pe) & (np.isfinite(cost) | ~pe.sure)
     t = np.fmax(thr, snr[:, None, :] - radio.fap_threshold_db)
-    with np.errstate(invalid="ignore"):
-        phi = np.where(valid & np.isfinite(pred),
-                       ndtr((t[..., None] - pred) / SNR_SIGMA_DB), 1.0)
-    earlier = pe.length[..., None, :] < pe.length[..., :, None]  # [.., k, j]: j before k
-    prod = np.prod(np.where(earlier, phi[..., None, :], 1.0), axis=-1)
-    add = -np.log(weight * prod + (1.0 - weight))
+    add = skipped_cost(pe.length, valid, pred, t[..., None], SNR_SIGMA_DB, weight)
     use = valid & np.isfinite(cost) & np.isfinite(snr)[:, None, :, None]
     return np.where(use, cost + add, cost)
 

@@ -63,8 +63,8 @@ from diffpos.paths.model_nb import (
     slot_path,
 )
 
-__all__ = ["all_paths_kernel", "default_slots_row", "iekf_terms_kernel", "model_kernel",
-           "select_best_kernel", "select_mix_kernel", "select_pack_kernel",
+__all__ = ["all_paths_kernel", "candidate_slots", "default_slots_row", "iekf_terms_kernel",
+           "model_kernel", "select_best_kernel", "select_mix_kernel", "select_pack_kernel",
            "select_prep_kernel", "warm_model"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
@@ -300,11 +300,11 @@ def select_prep_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr
 
 
 @njit(**_OPTS, inline="always")
-def _prep_link(length, jac, sure, loose, is_diff, cov, var, snr, snr_c, use_snr, g_const,
-               span_ll, valid, s_ll, s_var):
-    """:func:`select_prep_kernel` of one link: ``length``, ``sure``, ``loose``, ``snr_c``
-    (K,), ``jac`` (K, 3), ``cov`` (3, 3), scalars ``var``, ``snr``; writes ``valid``,
-    ``s_ll``, ``s_var`` (K,)."""
+def candidate_slots(length, sure, loose, is_diff, valid):
+    """:func:`diffpos.tracking.links.candidates` of one link: ``length``, ``sure``, ``loose``
+    (K,), ``is_diff`` (K,); writes ``valid`` (K,): the loose slots no later than the earliest
+    sure specular path, a diffraction one strictly earlier (a NaN length among the sure
+    specular ones: none, as the reference's ``min``)."""
     n_k = length.shape[0]
     e_spec = np.inf  # earliest sure specular path (NaN propagates as in min)
     for k in range(n_k):
@@ -315,14 +315,26 @@ def _prep_link(length, jac, sure, loose, is_diff, cov, var, snr, snr_c, use_snr,
                 break
             if ln < e_spec:
                 e_spec = ln
+    for k in range(n_k):
+        ln = length[k]
+        valid[k] = loose[k] and ((ln < e_spec) if is_diff[k] else (ln <= e_spec))
+
+
+@njit(**_OPTS, inline="always")
+def _prep_link(length, jac, sure, loose, is_diff, cov, var, snr, snr_c, use_snr, g_const,
+               span_ll, valid, s_ll, s_var):
+    """:func:`select_prep_kernel` of one link: ``length``, ``sure``, ``loose``, ``snr_c``
+    (K,), ``jac`` (K, 3), ``cov`` (3, 3), scalars ``var``, ``snr``; writes ``valid``,
+    ``s_ll``, ``s_var`` (K,)."""
+    n_k = length.shape[0]
+    candidate_slots(length, sure, loose, is_diff, valid)
     has_snr = use_snr and math.isfinite(snr)
     cov_finite = True
     for i in range(3):
         for j in range(3):
             cov_finite = cov_finite and math.isfinite(cov[i, j])
     for k in range(n_k):
-        ln = length[k]
-        ok = loose[k] and ((ln < e_spec) if is_diff[k] else (ln <= e_spec))
+        ok = valid[k]
         sl = 0.0
         if use_snr:
             c = snr_c[k]

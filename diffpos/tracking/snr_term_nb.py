@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from diffpos.channel.snr_nb import snr_cost_kernel
+from diffpos.tracking.model_nb import candidate_slots
 from diffpos.tracking.snr_nb import cache_plan_kernel, cache_store_kernel
 
 __all__ = ["snr_hole_kernel", "snr_plan_kernel", "snr_score_kernel", "snr_skip_kernel",
@@ -47,7 +48,7 @@ _OPTS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "f9ec19562f63a806"
+CALLEES_SHA256 = "b0e45d64e5eb725f"
 
 
 @njit(**_OPTS)
@@ -241,6 +242,7 @@ def snr_skip_kernel(length, loose, sure, is_diff, pred, thr, snr, fap_db, sigma_
     predicted detector threshold [dB]), ``w = weight``."""
     n_n, n_h, n_m, n_k = cost.shape
     valid = np.empty(n_k, dtype=np.bool_)
+    phi = np.empty(n_k)  # each candidate's probability of being below the threshold
     r2 = math.sqrt(2.0)
     for n in range(n_n):
         for m in range(n_m):
@@ -248,34 +250,29 @@ def snr_skip_kernel(length, loose, sure, is_diff, pred, thr, snr, fap_db, sigma_
             if not math.isfinite(s):
                 continue
             for h in range(n_h):
-                e_spec = np.inf
-                for k in range(n_k):
-                    if sure[n, h, m, k] and not is_diff[k] and length[n, h, m, k] < e_spec:
-                        e_spec = length[n, h, m, k]
-                for k in range(n_k):
-                    lk = length[n, h, m, k]
-                    valid[k] = loose[n, h, m, k] and ((lk < e_spec) if is_diff[k]
-                                                       else (lk <= e_spec))
-                    valid[k] = valid[k] and (math.isfinite(cost[n, h, m, k])
-                                             or not sure[n, h, m, k])
+                ln, c = length[n, h, m], cost[n, h, m]
+                candidate_slots(ln, sure[n, h, m], loose[n, h, m], is_diff, valid)
                 t = thr[n, h, m]
                 t2 = s - fap_db
                 if math.isnan(t) or t2 > t:
                     t = t2
+                for j in range(n_k):
+                    valid[j] = valid[j] and (math.isfinite(c[j]) or not sure[n, h, m, j])
+                    pj = pred[n, h, m, j]
+                    phi[j] = (0.5 * math.erfc(-((t - pj) / sigma_db) / r2)
+                              if valid[j] and math.isfinite(pj) else 1.0)
                 for k in range(n_k):
-                    if not (valid[k] and math.isfinite(cost[n, h, m, k])):
+                    if not (valid[k] and math.isfinite(c[k])):
                         continue
                     prod = 1.0
                     for j in range(n_k):
-                        pj = pred[n, h, m, j]
-                        if valid[j] and math.isfinite(pj) and length[n, h, m, j] < \
-                                length[n, h, m, k]:
-                            prod *= 0.5 * math.erfc(-((t - pj) / sigma_db) / r2)
-                    cost[n, h, m, k] -= math.log(weight * prod + (1.0 - weight))
+                        if ln[j] < ln[k]:
+                            prod *= phi[j]
+                    c[k] -= math.log(weight * prod + (1.0 - weight))
 
 
 def warm_snr_term() -> None:
-    """Compile (or load from numba's cache) the three kernels on tiny inputs of the tracker's
+    """Compile (or load from numba's cache) the four kernels on tiny inputs of the tracker's
     types (called by :func:`diffpos.tracking.tracker.warm_tracking`)."""
     k, s = 18, 8
     f4 = np.float32

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import enum
 import functools
-import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from diffpos.channel.detection import normal_cdf
 from diffpos.paths.mechanisms import DIFFRACTION_SLOTS
 
 __all__ = [
@@ -979,10 +979,6 @@ def floor_contested(log_prob: FloatArray, lead_floor: NDArray[np.int_], n_meas: 
     return contested, top
 
 
-#: the standard normal CDF, elementwise (math.erfc: no scipy import in the tracker's process)
-_PHI = np.frompyfunc(lambda x: 0.5 * math.erfc(-x / math.sqrt(2.0)), 1, 1)
-
-
 def height_band_bound(p: FloatArray, floor: NDArray[np.int_], z_m: FloatArray,
                       var_z_m2: FloatArray, first_floor_z_m: float,
                       floor_height_m: float) -> FloatArray:
@@ -1014,14 +1010,14 @@ def height_band_bound(p: FloatArray, floor: NDArray[np.int_], z_m: FloatArray,
     rows, k, z, sd, lo, hi = rows[near], k[near], z[near], sd[near], lo[near], hi[near]
     if rows.size == 0:
         return p
-    own = (_PHI((hi - z) / sd) - _PHI((lo - z) / sd)).astype(float)
+    own = normal_cdf((hi - z) / sd) - normal_cdf((lo - z) / sd)
     excess = np.maximum(p[rows, k] - np.maximum(own, 0.5), 0.0)
     hit = excess > 0
     if not np.any(hit):
         return p
     rows, k, z, sd, excess = rows[hit], k[hit], z[hit], sd[hit], excess[hit]
     edges = first_floor_z_m + floor_height_m * np.arange(1, nf)  # (F - 1,) the inner slabs
-    cdf = _PHI((edges[None, :] - z[:, None]) / sd[:, None]).astype(float)
+    cdf = normal_cdf((edges[None, :] - z[:, None]) / sd[:, None])
     m = rows.size
     band = np.diff(np.concatenate([np.zeros((m, 1)), cdf, np.ones((m, 1))], axis=1), axis=1)
     others = np.arange(nf)[None, :] != k[:, None]

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
+from diffpos.channel.detection import skipped_cost
 from diffpos.channel.emulator import emulate_channel, first_arrival, pair_snr_db
-from diffpos.estimators.mnls.rules import DEFAULT_SNR_RULE, SNR_SIGMA_DB, SnrRule, _skip_cost
+from diffpos.estimators.mnls.rules import DEFAULT_SNR_RULE, SNR_SIGMA_DB, SnrRule
 from diffpos.estimators.mnls.solver import mnls
 from diffpos.scenario import Radio, default_scenario
 
@@ -50,11 +51,11 @@ def test_skip_cost_equals_the_product_over_earlier_paths():
     pred[rng.random((n, m, k)) < 0.1] = -np.inf
     thr = rng.uniform(0, 30, (n, m, 1))
     for w in (0.5, 0.8):
-        got = _skip_cost(length, valid, pred, thr, w)
+        got = skipped_cost(length, valid & np.isfinite(pred), pred, thr, SNR_SIGMA_DB, w)
         np.testing.assert_allclose(got, _brute(length, valid, pred, thr, w), rtol=1e-12,
                                    atol=1e-12)
-    one = _skip_cost(np.array([[10.0, 12.0]]), np.array([[True, True]]),
-                     np.array([[60.0, 20.0]]), np.array([[30.0]]), 0.8)
+    one = skipped_cost(np.array([[10.0, 12.0]]), np.array([[True, True]]),
+                       np.array([[60.0, 20.0]]), np.array([[30.0]]), SNR_SIGMA_DB, 0.8)
     assert one[0, 0] == 0.0
     assert one[0, 1] == pytest.approx(-np.log(0.8 * norm.cdf(-30 / SNR_SIGMA_DB) + 0.2))
 

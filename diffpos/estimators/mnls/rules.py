@@ -5,7 +5,8 @@
 * Knife-edge SNR bound: a diffracted first arrival is not much stronger than the ITU-R P.526
   knife-edge prediction at its geometry.
 * The detector's skipped paths (:class:`SnrRule`, off by default): the detector threshold's
-  lower bound from the measured first arrival, and the soft skip prior :func:`_skip_cost`.
+  lower bound from the measured first arrival, and the soft skip prior
+  (:func:`diffpos.channel.detection.skipped_cost`).
 
 And :func:`_link_terms_numpy`, the numpy reference of M-NLS's per-link terms that apply them.
 """
@@ -16,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import log_ndtr
 
 from diffpos.channel.linkbudget import snr_db as _snr_db
 from diffpos.paths.mechanisms import (
@@ -57,7 +57,8 @@ class SnrRule:
         model under-predicts the strongest path, so fewer earlier paths count as surely
         detected (the hard rule) or as likely detected (the skip prior).
     first_arrival_prior : float
-        Weight ``w`` in [0, 1) of the soft skip prior (:func:`_skip_cost`); 0: off, the hard
+        Weight ``w`` in [0, 1) of the soft skip prior
+        (:func:`diffpos.channel.detection.skipped_cost`); 0: off, the hard
         rule (no path predicted ``SNR_SIGMA_DB`` above ``T`` arrives before the first
         arrival). ``w > 0`` replaces the hard rule by ``-log(w prod_j Phi((T - S_j) /
         SNR_SIGMA_DB) + 1 - w)`` [nats] added to the SNR cost of every slot, the product
@@ -78,37 +79,6 @@ class SnrRule:
 
 #: M-NLS's rule as it was: the predicted threshold and the hard rule.
 DEFAULT_SNR_RULE = SnrRule()
-
-
-def _skip_cost(length: FloatArray, valid: NDArray[np.bool_], pred: FloatArray,
-               thr: FloatArray, weight: float) -> FloatArray:
-    """The detector's skipped paths as a cost of every slot [nats] (:class:`SnrRule`).
-
-    A slot ``k`` is the first arrival only if every existing path ``j`` arriving before it
-    (``length_j < length_k``) was below the detector threshold ``thr`` (..., 1) [dB]:
-    probability ``prod_j Phi((thr - pred_j) / SNR_SIGMA_DB)`` (``pred`` (..., K) the
-    predicted SNRs [dB]; a slot that does not exist or carries no power, ``-inf``, is no
-    earlier path). Mixed ``weight : 1 - weight`` with 1 (a model that predicts a path tens of
-    dB too strong costs at most ``-log(1 - weight)``); returns ``-log`` of it, 0 on the slots
-    that do not exist. ``O(K log K)`` per link: the slots sorted by length, the log
-    probabilities summed over the strictly shorter ones (ties share the sum of the slots
-    before their group)."""
-    ok = valid & np.isfinite(pred) & np.isfinite(length)
-    with np.errstate(invalid="ignore"):
-        lphi = np.where(ok, log_ndtr((thr - pred) / SNR_SIGMA_DB), 0.0)
-    key = np.where(ok, length, np.inf)
-    order = np.argsort(key, axis=-1, kind="stable")
-    ks = np.take_along_axis(key, order, axis=-1)
-    cs = np.cumsum(np.take_along_axis(lphi, order, axis=-1), axis=-1)
-    before = np.concatenate([np.zeros((*cs.shape[:-1], 1)), cs[..., :-1]], axis=-1)
-    idx = np.broadcast_to(np.arange(ks.shape[-1]), ks.shape)
-    new = np.concatenate([np.ones((*ks.shape[:-1], 1), bool), ks[..., 1:] != ks[..., :-1]],
-                         axis=-1)
-    first = np.maximum.accumulate(np.where(new, idx, 0), axis=-1)  # its tie group's start
-    val = np.empty_like(before)
-    np.put_along_axis(val, order, np.take_along_axis(before, first, axis=-1), axis=-1)
-    add = -np.log(weight * np.exp(val) + (1.0 - weight))
-    return np.where(ok, add, 0.0)
 
 
 _DIFF_MASK = np.zeros(len(MECHANISMS), dtype=bool)

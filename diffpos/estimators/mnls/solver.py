@@ -101,6 +101,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from diffpos._kernels.pool import LM_MIN_ROWS, run_rows
+from diffpos.channel.detection import skipped_cost
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.estimators.mnls.problem import (
     _c,
@@ -118,7 +119,6 @@ from diffpos.estimators.mnls.rules import (
     SnrRule,
     _excess_loss_db,
     _masks,
-    _skip_cost,
 )
 from diffpos.estimators.mnls.starts import (
     _grid,
@@ -280,7 +280,8 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     if rule.first_arrival_prior > 0:  # the soft skip prior (replacing the hard rule)
         ps = first_arrival_paths(x[:, None, :], p.anchors, building, floor=p.floor[:, None],
                                  mechanisms=p.mech)
-        c = c + _skip_cost(ps.length_m, ps.valid, pred, thr, rule.first_arrival_prior)
+        c = c + skipped_cost(ps.length_m, ps.valid & np.isfinite(pred), pred, thr,
+                             SNR_SIGMA_DB, rule.first_arrival_prior)
         if not rule.keep_hard_rule:
             p.strong = np.zeros(pred.shape, dtype=bool)
     return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
