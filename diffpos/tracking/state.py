@@ -130,6 +130,18 @@ class TrackerConfig:
         Best grid cells per floor refined by the IEKF at initialisation.
     init_sigma_v_m_s : float [m/s]
         Initial velocity standard deviation (walking speed).
+    start_grid_m : float [m]
+        Grid step (and the IEKF prior's spread, as ``init_grid_m``'s) of the snapshot that
+        starts a node's track (its first epoch with ``min_ranges_init`` ranges, and a restart
+        after LOST or divergence); the re-seeds' snapshots keep ``init_grid_m``. 0: ``init_grid_m``
+        (off, the default). Why: a track's first snapshot decides its run (a walker's outcome is
+        bistable in the epoch and place its true floor's track starts from:
+        docs/tracking_evidence.md "Session 24: start-up lock-in"), and the coarse grid's
+        ranking widens every range by ``(init_grid_m / 2)^2``, which at 2 m fits an out-of-model
+        first arrival (1-2 m long) with a wrong mechanism instead of calling it an outlier, so
+        the best cells of the true floor lie 3-5 m from the node; the start runs once per node,
+        so its finer grid (4x the cells at half the step) is paid once. Measured
+        (docs/tracking_evidence.md "Session 27"): 1.0 (the grid step before 06f1b49).
     min_ranges_init : int
     confirm_epochs : int
     lost_after_s : float [s]
@@ -646,6 +658,7 @@ class TrackerConfig:
     init_grid_m: float = 2.0
     init_starts: int = 3
     init_sigma_v_m_s: float = 1.0
+    start_grid_m: float = 0.0
     min_ranges_init: int = 3
     confirm_epochs: int = 5
     lost_after_s: float = 5.0

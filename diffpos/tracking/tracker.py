@@ -426,8 +426,10 @@ def _reinitialise(jdx: NDArray, links: Links, t: NDArray, building, config: Trac
                   lk: dict, a: dict) -> None:
     """Start the nodes ``jdx`` again from their snapshot (every floor's hypotheses), in place:
     ``a`` holds :func:`update`'s working arrays by short name, ``lk`` the learned link state
-    (forgotten for those nodes)."""
-    x, p, lpi, sel, res = snapshot_init(links.take(jdx), building, config)
+    (forgotten for those nodes). The snapshot's grid step is ``start_grid_m`` where set (the
+    re-seeds' stays ``init_grid_m``)."""
+    first = replace(config, init_grid_m=config.start_grid_m) if config.start_grid_m > 0 else config
+    x, p, lpi, sel, res = snapshot_init(links.take(jdx), building, first)
     a["mean"][jdx], a["cov"][jdx], a["lp"][jdx] = _init_hypotheses(x, p, lpi, config)
     best = np.argmax(lpi, axis=1)
     r = np.arange(jdx.size)

@@ -264,6 +264,7 @@ _TRACKER_RANGES: dict[str, dict[str, float]] = {
     "box_sigma_m": {"gt": 0},  # 1 / sigma^2
     "height_sigma_m": {"gt": 0},
     "init_grid_m": {"gt": 0},
+    "start_grid_m": {"ge": 0},
     "nis_limit": {"gt": 0},
     "nis_alpha": {"ge": 0, "le": 1},
     "dormant_refresh_s": {"gt": 0},
