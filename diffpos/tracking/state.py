@@ -638,7 +638,12 @@ class TrackerConfig:
         (the floor level with the UAVs: direct paths), repeated every epoch. On Sionna RT's
         3-UAV building it handed the floor of the low UAVs 2.6 nats per epoch from a
         ceiling-bounce truth (docs/tracking_evidence.md "Session 27: the 3-UAV building").
-        0 (default): every node (before); 4: nodes with three ranges or fewer.
+        0 (default): every node (before); 4: nodes with three ranges or fewer. Measured
+        with 4 (replays, today's default otherwise): Sionna RT heldout-2 75.08 -> 86.70 %
+        (five seeds, every seed better), its emulator version 98.27 -> 98.67 % (three seeds),
+        16 random buildings 99.65 -> 99.67 %, Sionna ``large`` 93.35 -> 92.68 % (every seed
+        worse: 8.7 % of its node-epochs have fewer than four ranges); inputs where every
+        node-epoch has four ranges or more are identical.
     """
 
     q_h_m2_s3: float = 1.5
