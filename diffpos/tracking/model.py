@@ -648,6 +648,24 @@ def _select_fixed(pos_cov: FloatArray, links: Links, config, snr_c, n: int, h: i
             _cb(link_w, (n, h, links.rho.shape[-1], 2), dtype=np.float64))
 
 
+def few_links_weights(w_link: FloatArray, valid: NDArray[np.bool_], mask: NDArray[np.bool_],
+                      config) -> FloatArray:
+    """The links' mixture weights ``w_link`` (N, H, M, 2) with the inlier weight of every
+    link of a node with fewer than ``config.mechanism_prior_min_links`` ranges (``mask``
+    (N, M)) raised by ``log n_cand`` (``valid`` (N, H, M, K): the candidates), so that
+    :func:`select`'s ``w_in - log n_cand`` is the flat ``log(1 - eps)`` there (a new array;
+    ``w_link`` itself where the setting is off or no node has so few ranges)."""
+    k = int(config.mechanism_prior_min_links)
+    if k <= 0:
+        return w_link
+    few = np.asarray(mask).sum(axis=-1) < k
+    if not few.any():
+        return w_link
+    w = np.array(w_link, dtype=np.float64)  # C-contiguous copy (w_link may be a broadcast)
+    w[few, ..., 0] += _LOG_N[np.maximum(valid[few].sum(axis=-1), 1)]
+    return w
+
+
 def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
            snr_c: FloatArray | None = None, fixed: tuple | None = None) -> Selection:
     """Most likely mechanism per link given the predicted position Gaussian.
@@ -679,6 +697,7 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     slot, best = np.empty((n, h, m), dtype=np.int64), np.empty((n, h, m), dtype=np.int64)
     base, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
     ex = np.empty(cnt)
+    w_link = few_links_weights(w_link, valid, mask, config)
     select_best_kernel(length, valid, rho, mask, snr, use_snr, sv, sl, np.log(sv[:cnt]),
                        consts, w_link, _LOG_N, ex, best, base, slot, nis)
     np.exp(ex, out=ex)
@@ -718,7 +737,8 @@ def _select_numpy(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     best = np.argmax(ll, axis=-1)
     ll_best = np.take_along_axis(ll, best[..., None], axis=-1)[..., 0]
     s_best = np.take_along_axis(np.broadcast_to(s_ll, ll.shape), best[..., None], -1)[..., 0]
-    w_in = link_w[..., 0] - np.log(n_ok)
+    w_in = few_links_weights(np.broadcast_to(link_w, (*n_ok.shape, 2)), valid,
+                             links.mask[:, 0], config)[..., 0] - np.log(n_ok)
     w_out = link_w[..., 1]
     inlier = links.mask & np.isfinite(ll_best) & (ll_best + w_in > w_out)
     slot = np.where(inlier, best, -1)
