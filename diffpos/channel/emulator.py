@@ -274,9 +274,9 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     nodes = np.asarray(nodes_m, dtype=np.float64)
     if anchors.ndim == 2:
         anchors = np.broadcast_to(anchors[None], (nodes.shape[0], *anchors.shape))
-    if need is not None:
-        need = _c_w(np.broadcast_to(np.asarray(need, dtype=np.bool_),
-                                    (*anchors.shape[:2], len(MECHANISMS))))
+    if need is not None:  # (a mask of the full shape as it is: a broadcast view is copied)
+        need, shape = np.asarray(need, dtype=np.bool_), (*anchors.shape[:2], len(MECHANISMS))
+        need = _c_w(need if need.shape == shape else np.broadcast_to(need, shape))
     if not (np.isfinite(anchors).all() and np.isfinite(nodes).all()):
         out = _pair_snr_db_numpy(anchors, nodes, building=building, radio=radio)
         return out if need is None else np.where(need, out, np.nan)

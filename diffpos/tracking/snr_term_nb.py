@@ -239,11 +239,15 @@ def snr_skip_kernel(length, loose, sure, is_diff, pred, thr, snr, fap_db, sigma_
     ``loose``, ``sure``, ``is_diff``; a finite cost), ``-log(w prod_j Phi((T - pred_j) /
     sigma_db) + 1 - w)`` over the candidates ``j`` strictly shorter with a finite prediction
     ``pred`` (N, H, M, K) [dB], ``T = fmax(thr, snr - fap_db)`` (``thr`` (N, H, M) the
-    predicted detector threshold [dB]), ``w = weight``."""
+    predicted detector threshold [dB]), ``w = weight``.
+
+    Per link only the factors a product can read and that are not 1 are formed
+    (:func:`_skip_factors`) and multiplied in slot order: every product has the bits of the
+    product over all ``j`` (``x * 1.0 == x``; docs/replay_speed.md, session 27)."""
     n_n, n_h, n_m, n_k = cost.shape
     valid = np.empty(n_k, dtype=np.bool_)
-    phi = np.empty(n_k)  # each candidate's probability of being below the threshold
-    r2 = math.sqrt(2.0)
+    fac = np.empty(n_k)  # the factors, in slot order ...
+    at = np.empty(n_k, dtype=np.int64)  # ... and their slots
     for n in range(n_n):
         for m in range(n_m):
             s = snr[n, m]
@@ -256,19 +260,41 @@ def snr_skip_kernel(length, loose, sure, is_diff, pred, thr, snr, fap_db, sigma_
                 t2 = s - fap_db
                 if math.isnan(t) or t2 > t:
                     t = t2
-                for j in range(n_k):
-                    valid[j] = valid[j] and (math.isfinite(c[j]) or not sure[n, h, m, j])
-                    pj = pred[n, h, m, j]
-                    phi[j] = (0.5 * math.erfc(-((t - pj) / sigma_db) / r2)
-                              if valid[j] and math.isfinite(pj) else 1.0)
+                nj = _skip_factors(ln, c, sure[n, h, m], pred[n, h, m], t, sigma_db, valid,
+                                   fac, at)
                 for k in range(n_k):
                     if not (valid[k] and math.isfinite(c[k])):
                         continue
                     prod = 1.0
-                    for j in range(n_k):
-                        if ln[j] < ln[k]:
-                            prod *= phi[j]
+                    for i in range(nj):
+                        if ln[at[i]] < ln[k]:
+                            prod *= fac[i]
                     c[k] -= math.log(weight * prod + (1.0 - weight))
+
+
+@njit(**_OPTS, inline="always")
+def _skip_factors(ln, c, sure, pj, t, sigma_db, valid, fac, at):
+    """:func:`snr_skip_kernel`'s factors of one link: ``valid`` (K,) narrowed in place to the
+    candidates with a finite cost or not sure; each candidate ``j`` with a finite prediction
+    ``pj[j]`` and shorter than the longest scored candidate (valid, finite cost: no product
+    reads the others) gets ``Phi((t - pj) / sigma_db)``, written with its slot to ``fac``,
+    ``at`` (slot order) unless it is 1. Returns how many."""
+    n_k = ln.shape[0]
+    longest = -np.inf  # (a NaN length is never longer, nor shorter than anything)
+    for j in range(n_k):
+        valid[j] = valid[j] and (math.isfinite(c[j]) or not sure[j])
+        if valid[j] and math.isfinite(c[j]) and ln[j] > longest:
+            longest = ln[j]
+    r2 = math.sqrt(2.0)
+    nj = 0
+    for j in range(n_k):
+        if valid[j] and math.isfinite(pj[j]) and ln[j] < longest:
+            f = 0.5 * math.erfc(-((t - pj[j]) / sigma_db) / r2)
+            if f != 1.0:
+                fac[nj] = f
+                at[nj] = j
+                nj += 1
+    return nj
 
 
 def warm_snr_term() -> None:
