@@ -624,6 +624,17 @@ class TrackerConfig:
     edge_retry_eps : float [-]
         With ``edge_retry_margin_m``: the good-standing bound of a link's learned outlier
         probability (the learned weights do not go below ``outlier_weight``, 0.02).
+    edge_retry_prior : bool
+        With ``edge_retry_margin_m``: a pair's retry replaces its first update only where
+        every link it re-fits (an outlier in the first update, a mechanism in the retry) is
+        fitted with a mechanism that is a candidate at the pair's prior (clamped into its
+        floor's box) with the ordinary existence margin, the first update's own first-pass
+        test (:func:`diffpos.tracking.tracker._refits_at_prior`): the retry then only undoes
+        a later selection pass that dropped a mechanism existing where the track predicted
+        it (the fit moved over its edge); a mechanism that exists only with the wider margin
+        is not the one the track has been fitting. On Sionna RT's live paper building most
+        re-fits the retry makes are of that kind, on a wrong floor's hypothesis
+        (docs/tracking_evidence.md "Session 27"). False (default): every retry replaces.
     """
 
     q_h_m2_s3: float = 1.5
@@ -710,6 +721,7 @@ class TrackerConfig:
     first_arrival_prior: float = 0.8
     edge_retry_margin_m: float = 0.0
     edge_retry_eps: float = 0.05
+    edge_retry_prior: bool = False
 
 
 @dataclass(frozen=True)

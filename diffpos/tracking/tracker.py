@@ -157,12 +157,13 @@ from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
 from diffpos.tracking.initialisation import local_starts
 from diffpos.tracking.initialisation_nb import warm_grid
-from diffpos.tracking.links import Links
+from diffpos.tracking.links import Links, all_paths, candidates
 from diffpos.tracking.model import (
     SNR_SIGMA_DB,
     SNR_SPAN_DB,
     SnrCache,
     clamp_to_floor,
+    existence_margin,
     link_weights,
     measurement_update,
     snapshot,
@@ -661,9 +662,29 @@ def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
         x0[rows], p0[rows], sub.take(rows), fl[rows], building, config, level=level[rows],
         snr_cache=None, link_w=None if w is None else w[rows],
         min_margin=config.edge_retry_margin_m)
-    for k, v in enumerate((x, p, ev, sel.slot, sel.nis, res, sel.log_weight)):
-        out[k] = out[k].copy()
-        out[k][rows] = v[:, 0]
+    k = np.arange(rows.size)
+    if config.edge_retry_prior:
+        k = np.flatnonzero(_refits_at_prior(x0[rows], p0[rows], sub.take(rows), fl[rows],
+                                            out[3][rows], sel.slot[:, 0], building, config))
+        rows = rows[k]
+    for j, v in enumerate((x, p, ev, sel.slot, sel.nis, res, sel.log_weight)):
+        out[j] = out[j].copy()
+        out[j][rows] = v[k, 0]
+
+
+def _refits_at_prior(x0, p0, sub: Links, fl, slot0, slot1, building,
+                     config: TrackerConfig) -> NDArray[np.bool_]:
+    """``TrackerConfig.edge_retry_prior``: the retried pairs (P) whose every re-fitted link
+    (present, an outlier in the first update ``slot0`` (P, M), a mechanism in the retry's
+    ``slot1``) is fitted with a mechanism that is a candidate (:func:`candidates`) at the
+    pair's prior ``x0`` (P, 1, 6) clamped into its floor's box, with the ordinary existence
+    margin of its covariance ``p0`` (:func:`existence_margin`): the first update's own
+    first-pass test."""
+    refit = sub.mask[:, 0] & (slot0 < 0) & (slot1 >= 0)
+    xc = clamp_to_floor(x0[..., :3], fl, building, config.z_margin_m)
+    cand = candidates(all_paths(xc, sub, fl, building, existence_margin(p0, config)))[:, 0]
+    ok = np.take_along_axis(cand, np.maximum(slot1, 0)[..., None], axis=-1)[..., 0]
+    return np.all(~refit | ok, axis=-1)
 
 
 def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_floors: int,
