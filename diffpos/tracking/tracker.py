@@ -648,7 +648,8 @@ def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
     present link's learned outlier probability ``1 - exp(w[..., 0])`` below
     ``edge_retry_eps``; the prior's where ``w`` is None) that called a present link an outlier
     are updated again with their existence margins at least ``edge_retry_margin_m`` (the SNR
-    predicted afresh, the cache untouched); that update replaces the first. The vertical
+    predicted afresh, the cache untouched); that update replaces the first (with
+    ``edge_retry_prior`` only where :func:`_refits_at_prior` holds). The vertical
     mode's margin already follows its own height uncertainty (``existence_margin``). Per
     pair: rows stay independent."""
     m = sub.mask[:, 0]
