@@ -635,6 +635,14 @@ class TrackerConfig:
         is not the one the track has been fitting. On Sionna RT's live paper building most
         re-fits the retry makes are of that kind, on a wrong floor's hypothesis
         (docs/tracking_evidence.md "Session 27"). False (default): every retry replaces.
+    edge_retry_node : bool
+        With ``edge_retry_margin_m``: when a pair of a node qualifies for the retry, every
+        level pair of that node in the same update (every floor's level hypothesis that is
+        awake) is updated again with the wider margin and replaced, so the node's floors are
+        compared under one existence model: the plain retry widens the margin only for the
+        hypotheses that misfit a link, and on Sionna RT's live paper building most of those
+        it re-fits are a wrong floor's (docs/tracking_evidence.md "Session 27"). False
+        (default): only the qualifying pairs.
     """
 
     q_h_m2_s3: float = 1.5
@@ -722,6 +730,7 @@ class TrackerConfig:
     edge_retry_margin_m: float = 0.0
     edge_retry_eps: float = 0.05
     edge_retry_prior: bool = False
+    edge_retry_node: bool = False
 
 
 @dataclass(frozen=True)

@@ -637,12 +637,12 @@ def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
     out = [x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
            sel.log_weight[:, 0]]
     if config.edge_retry_margin_m > 0.0:
-        _edge_retry(out, x0, p0, sub, fl, level, w, building, config)
+        _edge_retry(out, x0, p0, sub, fl, level, w, building, config, rr)
     return tuple(out)
 
 
 def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
-                config: TrackerConfig) -> None:
+                config: TrackerConfig, rr: NDArray | None = None) -> None:
     """``TrackerConfig.edge_retry_margin_m``: the level-mode pairs of ``out``
     (``_update_at``'s lists, replaced in place) in good standing (at least four ranges, every
     present link's learned outlier probability ``1 - exp(w[..., 0])`` below
@@ -651,7 +651,9 @@ def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
     predicted afresh, the cache untouched); that update replaces the first (with
     ``edge_retry_prior`` only where :func:`_refits_at_prior` holds). The vertical
     mode's margin already follows its own height uncertainty (``existence_margin``). Per
-    pair: rows stay independent."""
+    pair: rows stay independent. With ``edge_retry_node`` every level pair of a node (``rr``
+    (P,): the pairs' nodes) that has a retried pair is updated again and replaced: the
+    node's floors compared under one existence model."""
     m = sub.mask[:, 0]
     eps = (np.full(m.shape, config.outlier_weight) if w is None
            else -np.expm1(w[:, 0, :, 0]))
@@ -659,6 +661,8 @@ def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
     rows = np.flatnonzero(good & level[:, 0] & np.any(m & (out[3] < 0), axis=-1))
     if rows.size == 0:
         return
+    if config.edge_retry_node and rr is not None:
+        rows = np.flatnonzero(np.isin(rr, rr[rows]) & level[:, 0])
     x, p, ev, sel, res = measurement_update(
         x0[rows], p0[rows], sub.take(rows), fl[rows], building, config, level=level[rows],
         snr_cache=None, link_w=None if w is None else w[rows],
