@@ -13,13 +13,16 @@ on the building and UAVs of tests/core/test_tracking_margin.py (not a shipped sc
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from margin_building import ANCHORS, BUILDING, SCENARIO
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
-from diffpos.paths.mechanisms import DIFFRACTION_SLOTS
+from diffpos.paths.mechanisms import DEFAULT_ORDER, DIFFRACTION_SLOTS
 from diffpos.paths.model import graded_paths
 from diffpos.tracking.links import Links
+from diffpos.tracking.model import measurement_update
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import _update_at
 
@@ -88,3 +91,38 @@ def test_retry_kept_only_where_every_refit_is_a_candidate_at_the_prior():
     for a_off, a_on, a in zip(off, on, test, strict=True):
         np.testing.assert_array_equal(a[want_on], a_on[want_on])
         np.testing.assert_array_equal(a[~want_on], a_off[~want_on])
+
+
+def test_node_retry_updates_every_level_pair_of_the_node():
+    """``edge_retry_node``: each node carries two level pairs (its true floor and the next);
+    where one of them qualifies for the retry (an outlier in the first update, every link in
+    good standing), both equal the reference: the measurement update with every existence
+    margin at least 0.4 m (:func:`diffpos.tracking.model.measurement_update`, ``min_margin``);
+    the other nodes' pairs equal the setting off, bit for bit. Some non-qualifying pairs of
+    qualifying nodes change (the plain retry alone would fail the test). Families off
+    (``max_order`` 2) so that the reference's link weights are the update's."""
+    rng = np.random.default_rng(6)
+    floor, prior, links = _cases(rng, 3000)
+    n = floor.size
+    rr = np.repeat(np.arange(n), 2)
+    fl = np.stack([floor, (floor + 1) % _B.n_floors], axis=1).ravel()
+    x = np.zeros((2 * n, 6))
+    x[:, :3] = prior[rr]
+    p = np.broadcast_to(_P, (2 * n, 6, 6)).copy()
+    args = (x, p, links, rr, fl, _B.n_floors, _B)
+    base = TrackerConfig(max_order=DEFAULT_ORDER)  # no family weights: the reference's link
+    off = _update_at(*args, base)                  # weights are the default ones
+    plain = _update_at(*args, replace(base, edge_retry_margin_m=0.4))
+    test = _update_at(*args, replace(base, edge_retry_margin_m=0.4, edge_retry_node=True))
+    cfg = replace(base, edge_retry_margin_m=0.4)
+    ref = measurement_update(x[:, None], p[:, None], links.take(rr), fl[:, None], _B, cfg,
+                             level=np.ones((2 * n, 1), bool), min_margin=0.4)
+    ref = (ref[0][:, 0], ref[1][:, 0], ref[2][:, 0], ref[3].slot[:, 0], ref[3].nis[:, 0],
+           ref[4][:, 0], ref[3].log_weight[:, 0])
+    qualifies = np.any(links.mask[rr, 0] & (off[3] < 0), axis=-1)  # eps 0.02: good standing
+    node_q = np.isin(rr, rr[qualifies])
+    for a_off, a_ref, a in zip(off, ref, test, strict=True):
+        np.testing.assert_array_equal(a[node_q], a_ref[node_q])
+        np.testing.assert_array_equal(a[~node_q], a_off[~node_q])
+    moved = node_q & ~qualifies & ((test[2] != plain[2]) | np.any(test[3] != plain[3], axis=-1))
+    assert moved.sum() >= 10
