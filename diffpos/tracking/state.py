@@ -660,6 +660,31 @@ class TrackerConfig:
         16 random buildings 99.65 -> 99.67 %, Sionna ``large`` 93.35 -> 92.68 % (every seed
         worse: 8.7 % of its node-epochs have fewer than four ranges); inputs where every
         node-epoch has four ranges or more are identical.
+    edge_retry_prior : bool
+        With ``edge_retry_margin_m``: a pair's retry replaces its first update only where
+        every link it re-fits (an outlier in the first update, a mechanism in the retry) is
+        fitted with a mechanism that is a candidate at the pair's prior (clamped into its
+        floor's box) with the ordinary existence margin, the first update's own first-pass
+        test (:func:`diffpos.tracking.tracker._refits_at_prior`): the retry then only undoes
+        a later selection pass that dropped a mechanism existing where the track predicted
+        it (the fit moved over its edge); a mechanism that exists only with the wider margin
+        is not the one the track has been fitting. On Sionna RT's live paper building most
+        re-fits the retry makes are of that kind, on a wrong floor's hypothesis
+        (docs/tracking_evidence.md "Session 27"). Measured with 0.4 (replays): main command
+        98.60 -> 98.06 % right floor (the default 96.69), Sionna paper seeds 0-4 / 5-9
+        90.89 / 86.85 -> 90.93 / 87.35 (the default 91.48 / 87.63). False (default): every
+        retry replaces.
+    edge_retry_node : bool
+        With ``edge_retry_margin_m``: when a pair of a node qualifies for the retry, every
+        level pair of that node in the same update (every floor's level hypothesis that is
+        awake) is updated again with the wider margin and replaced, so the node's floors are
+        compared under one existence model: the plain retry widens the margin only for the
+        hypotheses that misfit a link, and on Sionna RT's live paper building most of those
+        it re-fits are a wrong floor's (docs/tracking_evidence.md "Session 27"). Measured with
+        0.4 (replays): main command 98.60 -> 98.65 % right floor (the default 96.69), Sionna
+        paper seeds 0-4 / 5-9 90.89 / 86.85 -> 90.20 / 88.72 (the default 91.48 / 87.63; a
+        wrong floor at p >= 0.95 on 0.37 % of seed 0's node-epochs). False (default): only
+        the qualifying pairs.
     """
 
     q_h_m2_s3: float = 1.5
@@ -748,6 +773,8 @@ class TrackerConfig:
     edge_retry_margin_m: float = 0.0
     edge_retry_eps: float = 0.05
     mechanism_prior_min_links: int = 0
+    edge_retry_prior: bool = False
+    edge_retry_node: bool = False
 
 
 @dataclass(frozen=True)

@@ -157,12 +157,13 @@ from diffpos.tracking.iekf_nb import warm_iekf
 from diffpos.tracking.imm import _mix, _propagate
 from diffpos.tracking.initialisation import local_starts
 from diffpos.tracking.initialisation_nb import warm_grid
-from diffpos.tracking.links import Links
+from diffpos.tracking.links import Links, all_paths, candidates
 from diffpos.tracking.model import (
     SNR_SIGMA_DB,
     SNR_SPAN_DB,
     SnrCache,
     clamp_to_floor,
+    existence_margin,
     link_weights,
     measurement_update,
     snapshot,
@@ -638,20 +639,23 @@ def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
     out = [x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
            sel.log_weight[:, 0]]
     if config.edge_retry_margin_m > 0.0:
-        _edge_retry(out, x0, p0, sub, fl, level, w, building, config)
+        _edge_retry(out, x0, p0, sub, fl, level, w, building, config, rr)
     return tuple(out)
 
 
 def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
-                config: TrackerConfig) -> None:
+                config: TrackerConfig, rr: NDArray | None = None) -> None:
     """``TrackerConfig.edge_retry_margin_m``: the level-mode pairs of ``out``
     (``_update_at``'s lists, replaced in place) in good standing (at least four ranges, every
     present link's learned outlier probability ``1 - exp(w[..., 0])`` below
     ``edge_retry_eps``; the prior's where ``w`` is None) that called a present link an outlier
     are updated again with their existence margins at least ``edge_retry_margin_m`` (the SNR
-    predicted afresh, the cache untouched); that update replaces the first. The vertical
+    predicted afresh, the cache untouched); that update replaces the first (with
+    ``edge_retry_prior`` only where :func:`_refits_at_prior` holds). The vertical
     mode's margin already follows its own height uncertainty (``existence_margin``). Per
-    pair: rows stay independent."""
+    pair: rows stay independent. With ``edge_retry_node`` every level pair of a node (``rr``
+    (P,): the pairs' nodes) that has a retried pair is updated again and replaced: the
+    node's floors compared under one existence model."""
     m = sub.mask[:, 0]
     eps = (np.full(m.shape, config.outlier_weight) if w is None
            else -np.expm1(w[:, 0, :, 0]))
@@ -659,13 +663,35 @@ def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
     rows = np.flatnonzero(good & level[:, 0] & np.any(m & (out[3] < 0), axis=-1))
     if rows.size == 0:
         return
+    if config.edge_retry_node and rr is not None:
+        rows = np.flatnonzero(np.isin(rr, rr[rows]) & level[:, 0])
     x, p, ev, sel, res = measurement_update(
         x0[rows], p0[rows], sub.take(rows), fl[rows], building, config, level=level[rows],
         snr_cache=None, link_w=None if w is None else w[rows],
         min_margin=config.edge_retry_margin_m)
-    for k, v in enumerate((x, p, ev, sel.slot, sel.nis, res, sel.log_weight)):
-        out[k] = out[k].copy()
-        out[k][rows] = v[:, 0]
+    k = np.arange(rows.size)
+    if config.edge_retry_prior:
+        k = np.flatnonzero(_refits_at_prior(x0[rows], p0[rows], sub.take(rows), fl[rows],
+                                            out[3][rows], sel.slot[:, 0], building, config))
+        rows = rows[k]
+    for j, v in enumerate((x, p, ev, sel.slot, sel.nis, res, sel.log_weight)):
+        out[j] = out[j].copy()
+        out[j][rows] = v[k, 0]
+
+
+def _refits_at_prior(x0, p0, sub: Links, fl, slot0, slot1, building,
+                     config: TrackerConfig) -> NDArray[np.bool_]:
+    """``TrackerConfig.edge_retry_prior``: the retried pairs (P) whose every re-fitted link
+    (present, an outlier in the first update ``slot0`` (P, M), a mechanism in the retry's
+    ``slot1``) is fitted with a mechanism that is a candidate (:func:`candidates`) at the
+    pair's prior ``x0`` (P, 1, 6) clamped into its floor's box, with the ordinary existence
+    margin of its covariance ``p0`` (:func:`existence_margin`): the first update's own
+    first-pass test."""
+    refit = sub.mask[:, 0] & (slot0 < 0) & (slot1 >= 0)
+    xc = clamp_to_floor(x0[..., :3], fl, building, config.z_margin_m)
+    cand = candidates(all_paths(xc, sub, fl, building, existence_margin(p0, config)))[:, 0]
+    ok = np.take_along_axis(cand, np.maximum(slot1, 0)[..., None], axis=-1)[..., 0]
+    return np.all(~refit | ok, axis=-1)
 
 
 def _mode_pairs(mean, cov, links: Links, rr, cc, out: tuple, eps: FloatArray, n_floors: int,
