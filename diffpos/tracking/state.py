@@ -424,6 +424,19 @@ class TrackerConfig:
         pulls its fit. Default False (docs/channel_mix.md "Session 26": with
         ``family_minority`` off too, emulator order 4 ``large`` 84.9 -> 89.4 % right floor
         and 6.3 -> 2.7 % confidently wrong over 3 seeds, but order-3 paper 98.5 -> 97.0 %).
+    family_select_min_links : int [ranges]
+        (``max_order`` > 2) A node with at least this many ranges in the epoch gets the
+        extra families on every link the hypothesis has fitted (as ``family_select``) and
+        without the ``family_minority`` rule; a node with fewer keeps the gate of the other
+        settings. 0: off (default). Why: on the emulator at ``channel_max_order`` 3 up to half
+        of an 8-UAV node's first arrivals are order-3 slab series (D(lower)-R(ceiling)-R(floor),
+        R(ceiling)-R(floor)-R(ceiling)), which the floor below explains with in-model
+        mechanisms, while the true floor fits some with a wrong one of the 18 inside
+        ``nis_limit`` (never offered the exact family) and calls the rest misfits, so that half
+        its ranges misfit and the minority rule closes the families; with many ranges the
+        in-model rest still tests the state. With 4 ranges (the paper building's UAVs) a family
+        on a well-fitted link leaves three ranges, fitted on any floor (``family_min_links``),
+        so those nodes keep the misfit gate and the rule (docs/channel_mix.md "Session 27").
     family_fit : {"prior", "residual"}
         What the family gate's misfit (``family_gate="misfit"``, ``TrackerState.link_fit``)
         of a link is: ``"prior"``, its selection NIS at the prior covariance; ``"residual"``,
@@ -748,6 +761,7 @@ class TrackerConfig:
     family_learned_links: int = 4
     family_snr: bool = False
     family_select: bool = False
+    family_select_min_links: int = 0
     family_fit: str = "prior"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0

@@ -1203,9 +1203,14 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         gate &= enough[:, None, None]
         fitted &= enough[:, None, None]
     offered = fitted if config.family_select else gate  # every fitted link, or the misfits
+    rich = None
+    if config.family_select_min_links > 0:  # many ranges: every fitted link, no minority rule
+        rich = (n_meas >= config.family_select_min_links)[:, None, None]
+        offered = np.where(rich, fitted, offered)
     if config.family_minority:  # most ranges misfit: the state is wrong, not the links
         mis = gate if present is None else gate & present[:, None, :]
-        offered = offered & (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
+        few = (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
+        offered = offered & (few if rich is None else few | rich)
     return offered
 
 

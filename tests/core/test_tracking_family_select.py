@@ -66,3 +66,22 @@ def test_minority_counts_the_misfits_only():
     assert not g[0, 1].any()
     ref = _gate(6, family_minority=True)
     assert not ref[0, 1].any() and ref[0, 0].sum() == 3
+
+
+def test_select_min_links_only_with_many_ranges():
+    """``family_select_min_links`` (default 0, off): a node with at least that many ranges gets
+    every fitted link offered and no minority rule (hypothesis 1 misfits 3 of 6 ranges, which
+    the rule would close); a node with fewer keeps the misfit gate and the rule, exactly as
+    with the setting off. An unfitted link is still not offered."""
+    assert TrackerConfig().family_select_min_links == 0
+    g = _gate(6, family_select_min_links=6, family_minority=True)
+    assert g.all()
+    unseen = np.ones(FIT.shape)
+    unseen[..., 3] = 0.0
+    g = _gate(6, unseen, family_select_min_links=6, family_minority=True)
+    assert not g[..., 3].any() and g[..., [0, 1, 2, 4, 5, 6]].all()
+    for minority in (True, False):
+        below = _gate(5, family_select_min_links=6, family_minority=minority)
+        assert np.array_equal(below, _gate(5, family_minority=minority))
+    ref = _gate(5, family_minority=True)  # hypothesis 1: 3 misfits of 5 ranges, closed
+    assert ref[0, 0].sum() == 3 and not ref[0, 1].any()

@@ -266,6 +266,22 @@ def test_cache_key_changes_with_every_setting() -> None:
     assert len(set(variants.values())) == len(variants)
 
 
+def test_cache_key_ignores_the_emulated_channel_order() -> None:
+    """``Radio.channel_max_order`` (the emulator's channel, not Sionna's) is no part of a
+    trace: every order gives the key an order-2 scenario had (the caches written before the
+    default became 3 stay valid); another radio field still changes it."""
+    nodes = emulation_nodes(SCENARIO)
+    st = live.LiveTraceSettings()
+    times = live.grid_times(20.0, st.step_s)
+
+    def key(**radio):
+        sc = dataclasses.replace(SCENARIO, radio=dataclasses.replace(SCENARIO.radio, **radio))
+        return live.cache_key(sc, "uav1", nodes, times, st)
+
+    assert key(channel_max_order=2) == key(channel_max_order=3) == key(channel_max_order=4)
+    assert key(channel_max_order=3, detection_snr_db=-9.0) != key(channel_max_order=3)
+
+
 def test_cache_file_round_trip_never_overwrites(tmp_path) -> None:
     t = np.array([0.0, 0.5])
     links = _links(t, *_walk(t))

@@ -51,12 +51,17 @@ from diffpos_services.raytrace.paths import DIFFRACTION, DIFFUSE, SPECULAR
 from diffpos_services.raytrace.scene import build_scene, building_surfaces
 from diffpos_services.raytrace.tracing import _DIPOLE_DB, _dipole_orientation
 
-__all__ = ["DEFAULT_DEPTH", "DEFAULT_SAMPLES", "DEFAULT_STEP_S", "LIVE_FORMAT",
+__all__ = ["DEFAULT_DEPTH", "DEFAULT_SAMPLES", "DEFAULT_STEP_S", "LIVE_FORMAT", "TRACE_KEY_ORDER",
            "LiveTraceSettings", "Prepared", "anchor_links", "cache_dir", "cache_key",
            "grid_times", "live_settings", "load_links", "path_keys", "prepare_for_run",
            "prepare_links", "save_links", "trace_links"]
 
 LIVE_FORMAT = "diffpos-raytrace-live/1"
+#: ``Radio.channel_max_order`` as :func:`cache_key` writes it whatever the scenario's: the
+#: order of the emulated channel changes no traced path, so a trace is shared by every order;
+#: 2, the default when the caches before its change to 3 were written (docs/channel_mix.md
+#: "Session 27"), so those stay valid
+TRACE_KEY_ORDER = 2
 #: rays per source: 3e5 finds ~1.5x the paths of 1e5 at ~2x the cost (1.3-1.9 s per trace
 #: of 6 receivers here, depth 4); docs/raytrace.md, "The ray-traced channel in the live loop"
 DEFAULT_SAMPLES = 300_000
@@ -142,12 +147,15 @@ def _positions(scenario: Scenario, anchor_id: str, nodes: Sequence[tuple[str, An
 def cache_key(scenario: Scenario, anchor_id: str, nodes: Sequence[tuple[str, Any]],
               times: NDArray, settings: LiveTraceSettings) -> str:
     """SHA-256 (hex) of everything one anchor's trace depends on: the format, the pinned
-    Sionna version and the corrections made to it, the scenario's content, the anchor, the node ids, every traced position
+    Sionna version and the corrections made to it, the scenario's content (but the emulated
+    channel's order, :data:`TRACE_KEY_ORDER`), the anchor, the node ids, every traced position
     (so any change of a trajectory is a new key), the grid and the settings."""
     a, n = _positions(scenario, anchor_id, nodes, times)
+    scen = scenario.to_dict()
+    scen["radio"]["channel_max_order"] = TRACE_KEY_ORDER  # the emulator's, not the trace's
     doc = {"format": LIVE_FORMAT, "sionna": SIONNA_REQUIREMENT,
            "corrections": CORRECTIONS.get(SIONNA_REQUIREMENT.split("==")[-1], ()),
-           "scenario": scenario.to_dict(), "anchor": anchor_id,
+           "scenario": scen, "anchor": anchor_id,
            "nodes": [nid for nid, _ in nodes], "t_s": np.asarray(times, float).tolist(),
            "positions_sha256": hashlib.sha256(np.ascontiguousarray(a).tobytes()
                                               + np.ascontiguousarray(n).tobytes()).hexdigest(),
