@@ -39,7 +39,9 @@ stated otherwise):
   off by default): the threshold at least the MEASURED first arrival's SNR less
   ``fap_threshold_db``, and the soft skip prior ``-log(w prod_j Phi((T - S_j) / 6 dB) + 1 - w)``
   over the earlier paths instead of the hard rule (its path order taken at the refresh point
-  and held with the SNR terms; docs/raytrace_study.md "Session 26"). (b, c) are refreshed every ``SNR_EVERY`` LM steps and at the
+  and held with the SNR terms; docs/raytrace_study.md "Session 26"), and (b) with the window
+  edges as dielectric sheets of the wall material whatever the channel's order
+  (``SnrRule.dielectric_edges``, "Session 27"). (b, c) are refreshed every ``SNR_EVERY`` LM steps and at the
   final modes, which are refined with their mechanisms held. This is what makes floors
   separable: with ranges alone (4 anchors, 5 cm sigma) another floor's best mode explains the
   ranges as well as the true one for about half the receivers; with the true mechanisms the
@@ -119,6 +121,7 @@ from diffpos.estimators.mnls.rules import (
     SnrRule,
     _excess_loss_db,
     _masks,
+    snr_radio,
 )
 from diffpos.estimators.mnls.starts import (
     _grid,
@@ -668,6 +671,7 @@ def mnls(
     if not error_floor_m >= 0 or not bandwidth_hz > 0:
         raise ValueError("error_floor_m must be >= 0 and bandwidth_hz > 0")
     bi = prepare_batch(anchors_m, ranges_m, sigmas_m, mask)
+    radio = snr_radio(radio, snr_rule)  # the edges' material of the SNR model (rules.SnrRule)
     bsz, m = bi.ranges_m.shape
     nf = building.n_floors
     sig = bi.sigmas_m if bi.sigmas_given else np.full((bsz, m), max(error_floor_m, 1e-3))

@@ -96,6 +96,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "weight W in [0, 1) instead of the hard rule (default 0: off)")
     parser.add_argument("--mnls-keep-hard-rule", action="store_true",
                         help="mnls: with --mnls-first-arrival-prior, keep the hard rule too")
+    parser.add_argument("--mnls-dielectric-edges", action="store_true",
+                        help="mnls: predict the window edges' diffraction SNR with the sill "
+                             "and lintel as a dielectric sheet of the wall material, as the "
+                             "channel does at order >= 3 (default: the radio's order)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -162,7 +166,8 @@ def run(args: argparse.Namespace) -> int:
                           mnls_max_order=args.mnls_max_order,
                           mnls_measured_threshold=args.mnls_measured_threshold,
                           mnls_first_arrival_prior=args.mnls_first_arrival_prior,
-                          mnls_keep_hard_rule=args.mnls_keep_hard_rule)
+                          mnls_keep_hard_rule=args.mnls_keep_hard_rule,
+                          mnls_dielectric_edges=args.mnls_dielectric_edges)
     try:
         kind, path = _channel_source(args.channel)
         with report.ProgressBars(not args.no_progress) as prog:

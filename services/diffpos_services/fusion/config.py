@@ -568,6 +568,12 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     mnls_keep_hard_rule: bool = False
     """With mnls and :attr:`mnls_first_arrival_prior` > 0: keep M-NLS's hard rule beside the
     skip prior (``SnrRule.keep_hard_rule``); ``False`` (the default): the prior replaces it."""
+    mnls_dielectric_edges: bool = False
+    """With mnls: M-NLS predicts the window edges' diffraction SNR with the sill and lintel as
+    a dielectric sheet of the walls' material (the channel's edge at channel order >= 3),
+    whatever the radio's channel order (``SnrRule.dielectric_edges``); ``False`` (the default;
+    recordings made before the setting): the radio's own order (a perfect conductor at 2).
+    No tracked estimate depends on it (the tracker does not read M-NLS's fixes)."""
     tracker: TrackerSettings = msgspec.field(default_factory=TrackerSettings)
     """With mnls + tracking: the per-responder tracker's settings, every field of
     :class:`diffpos.tracking.state.TrackerConfig` (:class:`TrackerSettings`; ``diffpos fusion
