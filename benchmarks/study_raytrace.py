@@ -263,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="diffpos reproduce --mnls-first-arrival-prior (SnrRule; default 0)")
     ap.add_argument("--mnls-keep-hard-rule", action="store_true",
                     help="diffpos reproduce --mnls-keep-hard-rule (SnrRule)")
-    ap.add_argument("--mnls-dielectric-edges", action="store_true",
-                    help="diffpos reproduce --mnls-dielectric-edges (SnrRule)")
+    ap.add_argument("--mnls-dielectric-edges", type=float, default=0.0, metavar="Q",
+                    help="diffpos reproduce --mnls-dielectric-edges (SnrRule; default 0)")
     ap.add_argument("--misses", action="store_true",
                     help="the misses on Sionna's channel per traced first-arrival family")
     ap.add_argument("--summary", action="store_true",

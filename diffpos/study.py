@@ -591,7 +591,7 @@ class ReproduceConfig:
         M-NLS's mechanism families (2: the emulator's 18 mechanisms; 3, 4: higher-order
         reflections between the slabs, ground bounce before the edge).
     mnls_measured_threshold, mnls_first_arrival_prior, mnls_keep_hard_rule : bool, float, bool
-    mnls_dielectric_edges : bool
+    mnls_dielectric_edges : float
         M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: all off).
     """
 
@@ -604,7 +604,7 @@ class ReproduceConfig:
     mnls_measured_threshold: bool = False
     mnls_first_arrival_prior: float = 0.0
     mnls_keep_hard_rule: bool = False
-    mnls_dielectric_edges: bool = False
+    mnls_dielectric_edges: float = 0.0
 
 
 class Progress(Protocol):

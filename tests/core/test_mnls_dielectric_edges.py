@@ -7,16 +7,19 @@ slots only, and a Sionna RT receiver it puts on its floor."""
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import numpy as np
 
 from diffpos.channel.emulator import emulate_channel, pair_snr_db
-from diffpos.estimators.mnls.rules import DEFAULT_SNR_RULE, SnrRule, snr_radio
+from diffpos.estimators.mnls.rules import DEFAULT_SNR_RULE, SNR_SIGMA_DB, SnrRule, snr_radio
 from diffpos.estimators.mnls.solver import mnls
 from diffpos.paths.mechanisms import DIFFRACTION_SLOTS, MECHANISMS
 from diffpos.scenario import default_scenario
 
 _K = len(MECHANISMS)
+_mn = sys.modules["diffpos.estimators.mnls.solver"]
+_prob = sys.modules["diffpos.estimators.mnls.problem"]
 
 
 def _nodes(b, n_per_floor: int = 6) -> np.ndarray:
@@ -41,7 +44,7 @@ def test_snr_model_is_the_channels_sheet_edge():
     assert radio.channel_max_order == 2
     anchors = np.asarray(sc.anchor_positions_m(), dtype=np.float64)
     nodes = _nodes(b)
-    sheet = snr_radio(radio, SnrRule(dielectric_edges=True))
+    sheet = snr_radio(radio, SnrRule(dielectric_edges=1.0))
     got = pair_snr_db(anchors, nodes, building=b, radio=sheet)
     ref = emulate_channel(anchors, nodes, building=b,
                           radio=dataclasses.replace(radio, channel_max_order=3)).snr_db[..., :_K]
@@ -58,8 +61,8 @@ def test_snr_model_is_the_channels_sheet_edge():
     assert np.median(np.abs(got[..., 8][d_lower] - pec[..., 8][d_lower])) > 0.5
     assert snr_radio(radio, DEFAULT_SNR_RULE) is radio
     at3 = dataclasses.replace(radio, channel_max_order=3)
-    assert snr_radio(at3, SnrRule(dielectric_edges=True)) is at3
-    assert snr_radio(None, SnrRule(dielectric_edges=True)) is None
+    assert snr_radio(at3, SnrRule(dielectric_edges=1.0)) is at3
+    assert snr_radio(None, SnrRule(dielectric_edges=1.0)) is None
 
 
 #: Sionna RT's paper building (docs/raytrace_study.md "Session 27"), receiver 177 of the study's
@@ -91,6 +94,48 @@ def test_sionna_receiver_on_its_floor_with_sheet_edges():
     off = _r177(SnrRule(first_arrival_prior=0.8))
     assert off.floor[0] != f
     assert off.floor_probability[0, f] < 0.4
-    on = _r177(SnrRule(first_arrival_prior=0.8, dielectric_edges=True))
+    on = _r177(SnrRule(first_arrival_prior=0.8, dielectric_edges=1.0))
     assert on.floor[0] == f
     assert on.floor_probability[0, f] > 0.6
+
+
+def test_unknown_edge_material_mixes_the_two_predictions():
+    """``0 < dielectric_edges < 1``: each slot's SNR cost is ``-log((1 - q) exp(-c_pec) +
+    q exp(-c_sheet))`` of the Gaussian terms of the conductor's and the sheet's prediction
+    (both from the numpy emulator here), plus the detector's shortfall term of the radio's
+    prediction; q = 0 is the default's cost bit for bit."""
+    sc = default_scenario()
+    b, radio = sc.building, sc.radio
+    anchors = np.asarray(sc.anchor_positions_m(), dtype=np.float64)
+    nodes = _nodes(b, 2)
+    n, m = nodes.shape[0], anchors.shape[0]
+    meas = np.random.default_rng(5).uniform(-8.0, 30.0, (n, m))
+    floors = b.floor_index(nodes[:, 2])
+
+    def cost(q):
+        p = _prob._problem(np.broadcast_to(anchors, (n, m, 3)).copy(), np.full((n, m), 30.0),
+                           np.full((n, m), 0.05), np.ones((n, m), dtype=bool), floors, b, 0.75,
+                           np.full((n, m), np.nan), 0.0107, None, SnrRule(dielectric_edges=q))
+        p.snr_meas, p.radio = meas, radio
+        return _mn._snr_cost(p, nodes, b)
+
+    pec = emulate_channel(anchors, nodes, building=b, radio=radio).snr_db[..., :_K]
+    sheet = emulate_channel(anchors, nodes, building=b,
+                            radio=dataclasses.replace(radio, channel_max_order=3)).snr_db[..., :_K]
+    g_pec = 0.5 * ((meas[..., None] - pec) / SNR_SIGMA_DB) ** 2
+    g_sheet = 0.5 * ((meas[..., None] - sheet) / SNR_SIGMA_DB) ** 2
+    thr = np.maximum(pec.max(axis=-1, keepdims=True) - radio.fap_threshold_db,
+                     radio.detection_snr_db)
+    short = 0.5 * (np.maximum(thr - SNR_SIGMA_DB - meas[..., None], 0.0) / SNR_SIGMA_DB) ** 2
+    fin = np.isfinite(pec)
+    for q in (0.3, 0.5):
+        want = -np.logaddexp(np.log(1 - q) - g_pec, np.log(q) - g_sheet) + short
+        got = cost(q)
+        np.testing.assert_array_equal(np.isfinite(got), fin)
+        np.testing.assert_allclose(got[fin], want[fin], rtol=1e-9, atol=1e-9)
+        assert np.any(np.abs(got[fin] - (g_pec + short)[fin]) > 0.05)
+    np.testing.assert_array_equal(cost(0.0), _mn._snr_cost(
+        dataclasses.replace(_prob._problem(
+            np.broadcast_to(anchors, (n, m, 3)).copy(), np.full((n, m), 30.0),
+            np.full((n, m), 0.05), np.ones((n, m), dtype=bool), floors, b, 0.75,
+            np.full((n, m), np.nan), 0.0107, None, None), snr_meas=meas, radio=radio), nodes, b))

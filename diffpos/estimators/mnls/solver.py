@@ -251,25 +251,27 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     terms; its cost and ``strong`` are 0 / False)."""
     if p.snr_meas is None or p.radio is None:
         return None
-    from diffpos.channel.emulator import pair_snr_db
-
     c0 = time.thread_time()
     m = p.mask
-    if m.all():
-        pred = pair_snr_db(p.anchors, x, building=building, radio=p.radio)
-    else:  # the linked pairs only, one anchor per row
-        xm = np.broadcast_to(x[:, None, :], p.anchors.shape)[m]
-        pm = pair_snr_db(p.anchors[m][:, None, :], xm, building=building, radio=p.radio)
-        pred = np.full((*m.shape, pm.shape[-1]), -np.inf)
-        pred[m] = pm[:, 0]
+    rule = DEFAULT_SNR_RULE if p.rule is None else p.rule
+    pred = _slot_snr(p, x, building, p.radio)
+    sheet = (_slot_snr(p, x, building, snr_radio(p.radio, SnrRule(dielectric_edges=1.0)))
+             if 0.0 < rule.dielectric_edges < 1.0 else None)
     if p.mech is not None and len(p.mech) > len(MECHANISMS):
-        pred = np.concatenate([pred, _family_snr(p, x, building)], axis=-1)
+        fam = _family_snr(p, x, building)
+        pred = np.concatenate([pred, fam], axis=-1)
+        sheet = None if sheet is None else np.concatenate([sheet, fam], axis=-1)
     _count("snr_cpu_s", time.thread_time() - c0)
     _count("snr", np.count_nonzero(m))
     meas = p.snr_meas[..., None]
-    rule = DEFAULT_SNR_RULE if p.rule is None else p.rule
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):
         c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
+        if sheet is not None:  # either edge material (SnrRule.dielectric_edges its prior)
+            q = rule.dielectric_edges
+            c2 = 0.5 * ((meas - sheet) / SNR_SIGMA_DB) ** 2
+            lo = np.fmin(c, c2)
+            c = lo - np.log((1 - q) * np.exp(lo - c) + q * np.exp(lo - c2))
+            c = np.where(np.isfinite(c), c, lo)
         # the detector keeps paths above max(P_max - fap_threshold, detection floor): a
         # first arrival far below the predicted strongest path's threshold is inconsistent
         thr = np.maximum(np.max(pred, axis=-1, keepdims=True) - p.radio.fap_threshold_db,
@@ -288,6 +290,21 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
         if not rule.keep_hard_rule:
             p.strong = np.zeros(pred.shape, dtype=bool)
     return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
+
+
+def _slot_snr(p: _Problem, x: FloatArray, building, radio) -> FloatArray:
+    """Predicted SNR of the 18 slots at ``x`` with ``radio``
+    (:func:`diffpos.channel.emulator.pair_snr_db`), ``-inf`` off the mask."""
+    from diffpos.channel.emulator import pair_snr_db
+
+    m = p.mask
+    if m.all():
+        return pair_snr_db(p.anchors, x, building=building, radio=radio)
+    xm = np.broadcast_to(x[:, None, :], p.anchors.shape)[m]  # the linked pairs only
+    pm = pair_snr_db(p.anchors[m][:, None, :], xm, building=building, radio=radio)
+    pred = np.full((*m.shape, pm.shape[-1]), -np.inf)
+    pred[m] = pm[:, 0]
+    return pred
 
 
 def _family_snr(p: _Problem, x: FloatArray, building) -> FloatArray:
