@@ -130,7 +130,8 @@ def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
     cfg = ReproduceConfig(seed=seed, methods=("mnls",), mnls_max_order=order,
                           mnls_measured_threshold=rule.measured_threshold,
                           mnls_first_arrival_prior=rule.first_arrival_prior,
-                          mnls_keep_hard_rule=rule.keep_hard_rule)
+                          mnls_keep_hard_rule=rule.keep_hard_rule,
+                          mnls_dielectric_edges=rule.dielectric_edges)
     out = {}
     rt = reproduce(scenario, cfg, kind="raytrace", path=dataset,
                    load=lambda rng: dataset_arrivals(dataset, scenario, rng=rng))
@@ -262,6 +263,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="diffpos reproduce --mnls-first-arrival-prior (SnrRule; default 0)")
     ap.add_argument("--mnls-keep-hard-rule", action="store_true",
                     help="diffpos reproduce --mnls-keep-hard-rule (SnrRule)")
+    ap.add_argument("--mnls-dielectric-edges", type=float, default=0.0, metavar="Q",
+                    help="diffpos reproduce --mnls-dielectric-edges (SnrRule; default 0)")
     ap.add_argument("--misses", action="store_true",
                     help="the misses on Sionna's channel per traced first-arrival family")
     ap.add_argument("--summary", action="store_true",
@@ -289,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append((name, k, study(scenario, ds, k, seed=args.seed, emulator_order=(
                 k if args.emulator_order == "K" else None), rule=SnrRule(
                     args.mnls_measured_threshold, args.mnls_first_arrival_prior,
-                    args.mnls_keep_hard_rule))))
+                    args.mnls_keep_hard_rule, args.mnls_dielectric_edges))))
             print(table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
     print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
           f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "

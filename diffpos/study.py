@@ -591,7 +591,8 @@ class ReproduceConfig:
         M-NLS's mechanism families (2: the emulator's 18 mechanisms; 3, 4: higher-order
         reflections between the slabs, ground bounce before the edge).
     mnls_measured_threshold, mnls_first_arrival_prior, mnls_keep_hard_rule : bool, float, bool
-        M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: off, off, off).
+    mnls_dielectric_edges : float
+        M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: all off).
     """
 
     seed: int = 0
@@ -603,6 +604,7 @@ class ReproduceConfig:
     mnls_measured_threshold: bool = False
     mnls_first_arrival_prior: float = 0.0
     mnls_keep_hard_rule: bool = False
+    mnls_dielectric_edges: float = 0.0
 
 
 class Progress(Protocol):
@@ -741,7 +743,7 @@ def reproduce(
         start_y_m=0.5 * scenario.building.depth_m,
         building=scenario.building, radio=scenario.radio, mnls_max_order=cfg.mnls_max_order,
         mnls_snr_rule=SnrRule(cfg.mnls_measured_threshold, cfg.mnls_first_arrival_prior,
-                              cfg.mnls_keep_hard_rule),
+                              cfg.mnls_keep_hard_rule, cfg.mnls_dielectric_edges),
     )
     timing["positioning_s"] = time.perf_counter() - t0
     timing["method_s"] = clock.durations()
@@ -768,6 +770,7 @@ def build_summary(cfg: ReproduceConfig, scenario: Scenario, res: Reproduction) -
         "mnls_measured_threshold": cfg.mnls_measured_threshold,
         "mnls_first_arrival_prior": cfg.mnls_first_arrival_prior,
         "mnls_keep_hard_rule": cfg.mnls_keep_hard_rule,
+        "mnls_dielectric_edges": cfg.mnls_dielectric_edges,
         "window_height_m": scenario.building.window_height_m,
         "mpc_table_pct": res.table,
         "first_arrival_mechanism_pct": res.fap_by_mechanism,

@@ -7,13 +7,15 @@
 * The detector's skipped paths (:class:`SnrRule`, off by default): the detector threshold's
   lower bound from the measured first arrival, and the soft skip prior
   (:func:`diffpos.channel.detection.skipped_cost`).
+* The window edges' material in the SNR model (:class:`SnrRule` ``dielectric_edges``, off by
+  default; :func:`snr_radio`).
 
 And :func:`_link_terms_numpy`, the numpy reference of M-NLS's per-link terms that apply them.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,19 +68,51 @@ class SnrRule:
     keep_hard_rule : bool
         With ``first_arrival_prior`` > 0: keep the hard rule as well (the skip prior then
         adds to the candidates it leaves; docs/raytrace_study.md "Session 26").
+    dielectric_edges : float
+        Prior probability in [0, 1] that the 18 slots' horizontal window edges (sill and
+        lintel) diffract as a dielectric sheet of the walls' material (Luebbers'
+        finite-conductivity UTD, the channel's edge at ``radio.channel_max_order`` >= 3;
+        M-NLS's families beyond the 18 and the vertical edges use it already) rather than as
+        the perfectly conducting half-plane of the order-2 channel (the paper's model). 1: the
+        sheet whatever the channel's order (:func:`snr_radio`); between 0 and 1: the material
+        is not known, each slot's Gaussian SNR term is the mixture ``-log((1 - q) exp(-c_radio)
+        + q exp(-c_sheet))`` of the radio's and the sheet's prediction (the detector's
+        threshold and the skip prior from the radio's). On Sionna RT the conductor's
+        ``D(lower)`` is a median 1.3-3.7 dB too weak and ``D(upper)`` 1.7-2.2 dB too strong
+        (docs/raytrace_study.md "Session 27"). 0 (the default): the radio's own order.
     """
 
     measured_threshold: bool = False
     first_arrival_prior: float = 0.0
     keep_hard_rule: bool = False
+    dielectric_edges: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.first_arrival_prior < 1.0:
             raise ValueError("first_arrival_prior must be in [0, 1)")
+        if not 0.0 <= self.dielectric_edges <= 1.0:
+            raise ValueError("dielectric_edges must be in [0, 1]")
 
 
 #: M-NLS's rule as it was: the predicted threshold and the hard rule.
 DEFAULT_SNR_RULE = SnrRule()
+
+#: The channel order from which every window edge is a dielectric sheet
+#: (:mod:`diffpos.channel.slots`, "Window edges").
+SHEET_EDGE_ORDER = 3
+
+
+def snr_radio(radio, rule: SnrRule):
+    """The radio M-NLS predicts its slots' SNR with (:func:`diffpos.channel.emulator.pair_snr_db`):
+    ``radio`` itself, or with ``rule.dielectric_edges`` 1 the same radio at channel order
+    :data:`SHEET_EDGE_ORDER` if its order is below it (a mixture, ``0 < q < 1``, keeps the
+    radio: ``solver._snr_cost`` adds the sheet's prediction). The order only selects the 18 slots'
+    horizontal-edge sheet there (``pair_snr_db`` keeps the 18 slots at any order); the link
+    budget, the detector's thresholds and M-NLS's families are the same."""
+    if (radio is None or rule.dielectric_edges < 1.0
+            or radio.channel_max_order >= SHEET_EDGE_ORDER):
+        return radio
+    return replace(radio, channel_max_order=SHEET_EDGE_ORDER)
 
 
 _DIFF_MASK = np.zeros(len(MECHANISMS), dtype=bool)

@@ -39,7 +39,9 @@ stated otherwise):
   off by default): the threshold at least the MEASURED first arrival's SNR less
   ``fap_threshold_db``, and the soft skip prior ``-log(w prod_j Phi((T - S_j) / 6 dB) + 1 - w)``
   over the earlier paths instead of the hard rule (its path order taken at the refresh point
-  and held with the SNR terms; docs/raytrace_study.md "Session 26"). (b, c) are refreshed every ``SNR_EVERY`` LM steps and at the
+  and held with the SNR terms; docs/raytrace_study.md "Session 26"), and (b) with the window
+  edges as dielectric sheets of the wall material whatever the channel's order
+  (``SnrRule.dielectric_edges``, "Session 27"). (b, c) are refreshed every ``SNR_EVERY`` LM steps and at the
   final modes, which are refined with their mechanisms held. This is what makes floors
   separable: with ranges alone (4 anchors, 5 cm sigma) another floor's best mode explains the
   ranges as well as the true one for about half the receivers; with the true mechanisms the
@@ -119,6 +121,7 @@ from diffpos.estimators.mnls.rules import (
     SnrRule,
     _excess_loss_db,
     _masks,
+    snr_radio,
 )
 from diffpos.estimators.mnls.starts import (
     _grid,
@@ -248,25 +251,27 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
     terms; its cost and ``strong`` are 0 / False)."""
     if p.snr_meas is None or p.radio is None:
         return None
-    from diffpos.channel.emulator import pair_snr_db
-
     c0 = time.thread_time()
     m = p.mask
-    if m.all():
-        pred = pair_snr_db(p.anchors, x, building=building, radio=p.radio)
-    else:  # the linked pairs only, one anchor per row
-        xm = np.broadcast_to(x[:, None, :], p.anchors.shape)[m]
-        pm = pair_snr_db(p.anchors[m][:, None, :], xm, building=building, radio=p.radio)
-        pred = np.full((*m.shape, pm.shape[-1]), -np.inf)
-        pred[m] = pm[:, 0]
+    rule = DEFAULT_SNR_RULE if p.rule is None else p.rule
+    pred = _slot_snr(p, x, building, p.radio)
+    sheet = (_slot_snr(p, x, building, snr_radio(p.radio, SnrRule(dielectric_edges=1.0)))
+             if 0.0 < rule.dielectric_edges < 1.0 else None)
     if p.mech is not None and len(p.mech) > len(MECHANISMS):
-        pred = np.concatenate([pred, _family_snr(p, x, building)], axis=-1)
+        fam = _family_snr(p, x, building)
+        pred = np.concatenate([pred, fam], axis=-1)
+        sheet = None if sheet is None else np.concatenate([sheet, fam], axis=-1)
     _count("snr_cpu_s", time.thread_time() - c0)
     _count("snr", np.count_nonzero(m))
     meas = p.snr_meas[..., None]
-    rule = DEFAULT_SNR_RULE if p.rule is None else p.rule
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):
         c = 0.5 * ((meas - pred) / SNR_SIGMA_DB) ** 2
+        if sheet is not None:  # either edge material (SnrRule.dielectric_edges its prior)
+            q = rule.dielectric_edges
+            c2 = 0.5 * ((meas - sheet) / SNR_SIGMA_DB) ** 2
+            lo = np.fmin(c, c2)
+            c = lo - np.log((1 - q) * np.exp(lo - c) + q * np.exp(lo - c2))
+            c = np.where(np.isfinite(c), c, lo)
         # the detector keeps paths above max(P_max - fap_threshold, detection floor): a
         # first arrival far below the predicted strongest path's threshold is inconsistent
         thr = np.maximum(np.max(pred, axis=-1, keepdims=True) - p.radio.fap_threshold_db,
@@ -285,6 +290,21 @@ def _snr_cost(p: _Problem, x: FloatArray, building) -> FloatArray | None:
         if not rule.keep_hard_rule:
             p.strong = np.zeros(pred.shape, dtype=bool)
     return np.where((np.isfinite(p.snr_meas) & m)[..., None], c, 0.0)
+
+
+def _slot_snr(p: _Problem, x: FloatArray, building, radio) -> FloatArray:
+    """Predicted SNR of the 18 slots at ``x`` with ``radio``
+    (:func:`diffpos.channel.emulator.pair_snr_db`), ``-inf`` off the mask."""
+    from diffpos.channel.emulator import pair_snr_db
+
+    m = p.mask
+    if m.all():
+        return pair_snr_db(p.anchors, x, building=building, radio=radio)
+    xm = np.broadcast_to(x[:, None, :], p.anchors.shape)[m]  # the linked pairs only
+    pm = pair_snr_db(p.anchors[m][:, None, :], xm, building=building, radio=radio)
+    pred = np.full((*m.shape, pm.shape[-1]), -np.inf)
+    pred[m] = pm[:, 0]
+    return pred
 
 
 def _family_snr(p: _Problem, x: FloatArray, building) -> FloatArray:
@@ -668,6 +688,7 @@ def mnls(
     if not error_floor_m >= 0 or not bandwidth_hz > 0:
         raise ValueError("error_floor_m must be >= 0 and bandwidth_hz > 0")
     bi = prepare_batch(anchors_m, ranges_m, sigmas_m, mask)
+    radio = snr_radio(radio, snr_rule)  # the edges' material of the SNR model (rules.SnrRule)
     bsz, m = bi.ranges_m.shape
     nf = building.n_floors
     sig = bi.sigmas_m if bi.sigmas_given else np.full((bsz, m), max(error_floor_m, 1e-3))

@@ -96,6 +96,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "weight W in [0, 1) instead of the hard rule (default 0: off)")
     parser.add_argument("--mnls-keep-hard-rule", action="store_true",
                         help="mnls: with --mnls-first-arrival-prior, keep the hard rule too")
+    parser.add_argument("--mnls-dielectric-edges", type=float, default=0.0, metavar="Q",
+                        help="mnls: prior probability Q in [0, 1] that the window's sill and "
+                             "lintel diffract as a dielectric sheet of the wall material (the "
+                             "channel's edge at order >= 3): 1 predicts the SNR with it, "
+                             "0 < Q < 1 mixes it with the radio's (default 0: the radio's)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -162,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
                           mnls_max_order=args.mnls_max_order,
                           mnls_measured_threshold=args.mnls_measured_threshold,
                           mnls_first_arrival_prior=args.mnls_first_arrival_prior,
-                          mnls_keep_hard_rule=args.mnls_keep_hard_rule)
+                          mnls_keep_hard_rule=args.mnls_keep_hard_rule,
+                          mnls_dielectric_edges=args.mnls_dielectric_edges)
     try:
         kind, path = _channel_source(args.channel)
         with report.ProgressBars(not args.no_progress) as prog:

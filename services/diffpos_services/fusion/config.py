@@ -569,6 +569,14 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     mnls_keep_hard_rule: bool = False
     """With mnls and :attr:`mnls_first_arrival_prior` > 0: keep M-NLS's hard rule beside the
     skip prior (``SnrRule.keep_hard_rule``); ``False`` (the default): the prior replaces it."""
+    mnls_dielectric_edges: Annotated[float, Meta(ge=0, le=1)] = 0.0
+    """With mnls: prior probability that the window's sill and lintel diffract as a dielectric
+    sheet of the walls' material (the channel's edge at channel order >= 3) rather than as the
+    radio's order-2 perfect conductor: 1, M-NLS predicts the diffraction SNR with the sheet;
+    between 0 and 1, each slot's SNR term mixes both predictions
+    (``diffpos.estimators.mnls.rules.SnrRule.dielectric_edges``); 0 (the default; recordings
+    made before the setting): the radio's own order. No tracked estimate depends on it (the
+    tracker does not read M-NLS's fixes)."""
     tracker: TrackerSettings = msgspec.field(default_factory=TrackerSettings)
     """With mnls + tracking: the per-responder tracker's settings, every field of
     :class:`diffpos.tracking.state.TrackerConfig` (:class:`TrackerSettings`; ``diffpos fusion

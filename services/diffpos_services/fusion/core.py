@@ -139,7 +139,7 @@ class FusionCore:
         # only where mnls runs)
         self.model = (self.building, config.radio_model(),
                       (config.mnls_measured_threshold, config.mnls_first_arrival_prior,
-                       config.mnls_keep_hard_rule))
+                       config.mnls_keep_hard_rule, config.mnls_dielectric_edges))
         self.bank = (_track_bank(self.building, config)
                      if self.building is not None and config.tracking else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")
