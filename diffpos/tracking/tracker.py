@@ -1157,7 +1157,6 @@ def _kept_slots(link_slot: FloatArray, fresh: NDArray, col: NDArray, run: NDArra
     present link of the updated hypotheses ``run`` (n, H) set to its chosen ``slot`` (n, H, M;
     -1: outlier)."""
     out = np.where(fresh[:, None, :], np.nan, link_slot)
-    n, h = run.shape
     for m in range(col.shape[1]):  # columns hold distinct links
         ok = mask[:, m] & (col[:, m] >= 0)
         rows, hyps = np.nonzero(run & ok[:, None])
