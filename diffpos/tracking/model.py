@@ -667,7 +667,8 @@ def few_links_weights(w_link: FloatArray, valid: NDArray[np.bool_], mask: NDArra
 
 
 def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
-           snr_c: FloatArray | None = None, fixed: tuple | None = None) -> Selection:
+           snr_c: FloatArray | None = None, fixed: tuple | None = None,
+           prev_slot: FloatArray | None = None) -> Selection:
     """Most likely mechanism per link given the predicted position Gaussian.
 
     ``pos_cov``: (N, H, 3, 3). Component log-likelihoods: ``log((1 - eps) / n_cand) + log
@@ -682,7 +683,10 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     between (numba's libm exp/log differ from numpy's SIMD ones in the last bit): bit-identical
     to the numpy reference :func:`_select_numpy` (tests/core/test_tracking_kernel.py).
     ``fixed``: :func:`_select_fixed` of the same ``pos_cov``, ``links``, ``config``,
-    ``snr_c`` if the caller has it.
+    ``snr_c`` if the caller has it. ``prev_slot`` (N, H, M): the hypotheses' previous choice
+    of every link (``TrackerState.link_slot``; NaN / -1: none); with
+    ``config.mechanism_switch_p`` the nodes with fewer than ``mechanism_prior_min_links``
+    ranges get :func:`select_persistent`'s selection instead.
     """
     shape = pe.length.shape
     n, h, m = shape[:3]
@@ -704,6 +708,60 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     mix = np.empty((n, h, m))
     select_mix_kernel(length, valid, slot, best, ex, extra, mix)
     log_w = np.where(slot >= 0, base + np.log(mix), base)
+    out = Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
+    few = np.asarray(mask).sum(axis=-1) < int(config.mechanism_prior_min_links)
+    if prev_slot is None or config.mechanism_switch_p <= 0.0 or not few.any():
+        return out
+    alt = select_persistent(pos_cov, links, pe, config, snr_c, fixed[-1], prev_slot)
+    f = few[:, None, None]
+    return Selection(**{k: np.where(f, getattr(alt, k), getattr(out, k))
+                        for k in ("slot", "log_weight", "nis", "extra_var")})
+
+
+def select_persistent(pos_cov: FloatArray, links: Links, pe: PathEval, config,
+                      snr_c: FloatArray | None, link_w: FloatArray, prev_slot: FloatArray
+                      ) -> Selection:
+    """:func:`_select_numpy` with a persistent mechanism prior
+    (``TrackerConfig.mechanism_switch_p`` = q): a link's candidate equal to ``prev_slot``
+    (N, H, M) (the hypothesis' previous choice; NaN / -1: none) gets the inlier weight
+    ``log(1 - eps) + log(1 - q)``, its other candidates ``log(1 - eps) + log q - log(n_cand -
+    1)``; a link without a previous choice among its candidates today's ``log(1 - eps) - log
+    n_cand``. The prior enters the argmax, the outlier test and the mixture; ``link_w`` (N,
+    H, M, 2) as :func:`select`'s (numpy, every row)."""
+    valid, s_ll, s_var = _select_prep_numpy(pos_cov, links, pe, snr_c)
+    e = links.rho[..., None] - pe.length
+    n_ok = np.maximum(valid.sum(axis=-1), 1)
+    with np.errstate(invalid="ignore"):
+        ll = -0.5 * (e * e / s_var + np.log(s_var) + _LOG2PI)
+    ll = np.where(valid, ll + s_ll, -np.inf)
+    base = np.broadcast_to(link_w[..., 0], n_ok.shape)
+    q = float(config.mechanism_switch_p)
+    pv = np.broadcast_to(np.where(np.isfinite(prev_slot), prev_slot, -1.0), n_ok.shape)
+    pv = pv.astype(np.int64)
+    has = (pv >= 0) & np.take_along_axis(valid, np.maximum(pv, 0)[..., None], -1)[..., 0]
+    switch = base + np.log(q) - np.log(np.maximum(n_ok - 1, 1))
+    wk = np.where(has, switch, base - np.log(n_ok))[..., None] * np.ones(ll.shape[-1])
+    same = (np.arange(ll.shape[-1]) == np.maximum(pv, 0)[..., None]) & has[..., None]
+    wk = np.where(same, (base + np.log1p(-q))[..., None], wk)
+    tot = ll + wk
+    best = np.argmax(tot, axis=-1)
+    tb = np.take_along_axis(tot, best[..., None], -1)[..., 0]
+    s_best = np.take_along_axis(np.broadcast_to(s_ll, ll.shape), best[..., None], -1)[..., 0]
+    w_best = np.take_along_axis(wk, best[..., None], -1)[..., 0]
+    w_out = link_w[..., 1]
+    inlier = links.mask & np.isfinite(tb) & (tb > w_out)
+    slot = np.where(inlier, best, -1)
+    nis = np.where(inlier, np.take_along_axis(e * e / s_var, best[..., None], -1)[..., 0], np.nan)
+    with np.errstate(invalid="ignore"):
+        pk = np.where(valid, np.exp(tot - np.where(np.isfinite(tb), tb, 0.0)[..., None]), 0.0)
+        mass = pk.sum(axis=-1)
+        pk = pk / np.maximum(mass[..., None], 1e-300)
+    mix = np.log(np.maximum(np.where(inlier, mass, 1.0), 1.0))
+    log_w = np.where(inlier, w_best + s_best + mix, np.where(links.mask, w_out, 0.0))
+    l_best = np.take_along_axis(pe.length, best[..., None], axis=-1)
+    with np.errstate(invalid="ignore"):
+        extra = np.sum(np.where(valid, pk * (pe.length - l_best) ** 2, 0.0), axis=-1)
+    extra = np.where(inlier & np.isfinite(extra), extra, 0.0)
     return Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
 
 
@@ -1065,7 +1123,7 @@ def _paths_at(pe0: PathEval, nodes, pos: FloatArray, links: Links, floor, buildi
 
 
 def measurement_update(x_prior, p_prior, links: Links, floor, building, config, level=None,
-                       snr_cache=None, link_w=None, min_margin=None):
+                       snr_cache=None, link_w=None, min_margin=None, prev_slot=None):
     """Select mechanisms at the prior, run the IEKF; returns x, P, log_evidence, sel, residual.
 
     ``level``: the hypotheses' vertical modes (see :func:`iekf`). ``snr_cache``: the
@@ -1076,6 +1134,7 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
     A slot's SNR cost is capped at ``config.snr_cost_cap_nats`` (:func:`cap_snr_cost`).
     ``min_margin`` [m] (broadcastable to (N, H)): the existence margins of every selection pass
     at least this wide (``TrackerConfig.edge_retry_margin_m``; None: as they are).
+    ``prev_slot`` (N, H, M): the hypotheses' previous mechanisms (:func:`select`).
 
     The IEKF reads the selection only through ``slot``, ``extra_var`` and ``log_weight``, so a
     later pass could keep the previous pass' IEKF output for the hypotheses whose three are
@@ -1114,7 +1173,7 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
             pe = _paths_at(pe0, moved, x[..., :3], links, floor, building, relax)
         else:
             pe = all_paths(x[..., :3], links, floor, building, relax)
-        sel = select(p_prior[..., :3, :3], links, pe, config, snr_c, fix_s)
+        sel = select(p_prior[..., :3, :3], links, pe, config, snr_c, fix_s, prev_slot)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
                                  level, info, fix_i)
     xo = np.empty(x.shape)

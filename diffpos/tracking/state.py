@@ -698,6 +698,21 @@ class TrackerConfig:
         paper seeds 0-4 / 5-9 90.89 / 86.85 -> 90.20 / 88.72 (the default 91.48 / 87.63; a
         wrong floor at p >= 0.95 on 0.37 % of seed 0's node-epochs). False (default): only
         the qualifying pairs.
+    mechanism_switch_p : float [-]
+        With ``mechanism_prior_min_links`` > 0: instead of the flat prior, a node with fewer
+        ranges than that gets a persistent mechanism prior (0: off, the flat prior): a link
+        whose candidate is the mechanism the hypothesis chose for it at its previous update
+        gets the inlier weight ``(1 - eps) (1 - q)``, every other candidate ``(1 - eps) q /
+        (n_cand - 1)``; with no previous choice (new link, outlier, the mechanism gone) today's
+        ``(1 - eps) / n_cand``. The prior enters the selection (argmax and mixture;
+        :func:`diffpos.tracking.model.select_persistent`, numpy). Why: ``1 / n_cand`` is the
+        prior of a coincidence; a mechanism kept from the previous epoch by a node that barely
+        moved is the same coincidence, already paid for, so without a redundant range the
+        per-epoch count is a repeated constant (the 3-UAV building: mechanisms kept in 94-95 %
+        of link-epochs), while a switch is a new coincidence whose count is owed (Sionna
+        ``large``'s few-range nodes: 16-22 % switch; the flat prior lost them).
+        Offline (docs/tracking_evidence.md "Session 27: why mechanism_prior_min_links loses"):
+        q 0.1-0.5 with the gate 4 keep heldout-2's gain and remove ``large``'s loss.
     """
 
     q_h_m2_s3: float = 1.5
@@ -789,6 +804,7 @@ class TrackerConfig:
     mechanism_prior_min_links: int = 0
     edge_retry_prior: bool = False
     edge_retry_node: bool = False
+    mechanism_switch_p: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -865,6 +881,10 @@ class TrackerState:
         redundant range (at least four) in which every hypothesis misfit a present link at its
         last real update / of all such epochs (:func:`diffpos.tracking.evidence.unexplained_log_odds`;
         ``TrackerConfig.family_learned_links``).
+    link_slot : ndarray, shape (N, H, L)
+        The mechanism slot every hypothesis chose for every learned link at its last update
+        with the link present (-1: an outlier; NaN: none; ``TrackerConfig.mechanism_switch_p``;
+        only kept with the setting on).
     deficit_count : ndarray of int, shape (N, H)
         Consecutive evidence-deficit tests of every hypothesis whose floor's snapshot was
         better by more than ``TrackerConfig.deficit_nats`` (at ``deficit_tests`` it is
@@ -903,6 +923,7 @@ class TrackerState:
     lead_floor: NDArray[np.int_]
     lead_ns: NDArray[np.int64]
     deficit_count: NDArray[np.int_]
+    link_slot: FloatArray
 
 
 @dataclass(frozen=True)

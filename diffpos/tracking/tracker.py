@@ -215,7 +215,8 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         link_seen_ns=np.full((n_nodes, LINK_SLOTS), t_ns, np.int64),
         unexplained=np.zeros(n_nodes), redundant=np.zeros(n_nodes),
         lead_floor=np.full(n_nodes, -1, int), lead_ns=np.full(n_nodes, t_ns, np.int64),
-        deficit_count=np.zeros((n_nodes, h), int), **_empty_links(n_nodes, h, t_ns))
+        deficit_count=np.zeros((n_nodes, h), int), **_empty_links(n_nodes, h, t_ns),
+        link_slot=np.full((n_nodes, h, LINK_SLOTS), np.nan))
 
 
 def _empty_links(n: int, h: int, t_ns: int = 0) -> dict:
@@ -397,7 +398,8 @@ def _with_rows(a: NDArray, idx: NDArray, v: NDArray) -> NDArray:
 #: The state's arrays a measurement update replaces row by row (:func:`_merged`).
 _UPDATED = ("mean", "cov", "log_prob", "nis", "dormant_llr", "updated_ns", "below_epochs")
 #: The learned link arrays (:mod:`diffpos.tracking.evidence`) among them.
-_LINK_STATE = (*LINK_FIELDS, "link_anchor", "link_seen_ns", "unexplained", "redundant")
+_LINK_STATE = (*LINK_FIELDS, "link_anchor", "link_seen_ns", "unexplained", "redundant",
+               "link_slot")
 
 
 def _merged(st: TrackerState, idx: NDArray, new: dict) -> dict:
@@ -443,6 +445,7 @@ def _reinitialise(jdx: NDArray, links: Links, t: NDArray, building, config: Trac
     a["origin"][jdx] = t[jdx]
     reset_links({k: lk[k] for k in LINK_FIELDS}, jdx)
     lk["unexplained"][jdx], lk["redundant"][jdx] = 0.0, 0.0
+    lk["link_slot"][jdx] = np.nan
 
 
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
@@ -593,7 +596,8 @@ def _period_index(t_ns: NDArray[np.int64], origin_ns: NDArray[np.int64],
 
 def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
                   config: TrackerConfig, snr_cache: tuple | None = None,
-                  link_w: FloatArray | None = None, fam_gate: NDArray | None = None):
+                  link_w: FloatArray | None = None, fam_gate: NDArray | None = None,
+                  prev: FloatArray | None = None):
     """Measurement update of the hypotheses ``(rr[i], cc[i])`` (node row, hypothesis) of
     ``mean`` (n, H, 6), ``cov``, ``links`` (n nodes): each pair as a node with one
     hypothesis; per pair x, P, log-evidence, slot, NIS, residual and log-weight of every link.
@@ -602,12 +606,13 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
     place (:class:`diffpos.tracking.model.SnrCache`). ``link_w``: the nodes' learned link
     weights (n, H, M, 2) (:func:`diffpos.tracking.evidence.learned_weights`), or None.
     ``fam_gate`` (n, H, M): the links whose out-of-model component includes the extra
-    families (``config.max_order``, :mod:`diffpos.tracking.families`; None: every link)."""
+    families (``config.max_order``, :mod:`diffpos.tracking.families`; None: every link).
+    ``prev`` (n, H, M): the hypotheses' previous mechanisms (``mechanism_switch_p``), or None."""
     sc = None
     if snr_cache is not None:
         sc = SnrCache(*(a[rr, cc][:, None] for a in snr_cache))
     out = _update_at(mean[rr, cc], cov[rr, cc], links, rr, cc, n_floors, building, config, sc,
-                     link_w, fam_gate)
+                     link_w, fam_gate, None if prev is None else prev[rr, cc][:, None])
     if sc is not None:
         for a, v in zip(snr_cache, (sc.node, sc.anchor, sc.pred), strict=True):
             a[rr, cc] = v[:, 0]
@@ -616,7 +621,8 @@ def _update_pairs(mean, cov, links: Links, rr, cc, n_floors: int, building,
 
 def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
                config: TrackerConfig, sc: SnrCache | None = None,
-               link_w: FloatArray | None = None, fam_gate: NDArray | None = None):
+               link_w: FloatArray | None = None, fam_gate: NDArray | None = None,
+               prev: FloatArray | None = None):
     """:func:`_update_pairs` from the priors ``x_prior`` (P, 6), ``p_prior`` (P, 6, 6) of the
     pairs ``(rr[i], cc[i])`` (``sc``: their SNR cache, (P, 1, ...), updated in place)."""
     fl = hypothesis_floor(n_floors)[cc][:, None]
@@ -635,7 +641,8 @@ def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
                                            np.log(-np.expm1(w[:, 0, :, 0])),
                                            snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB)
     x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
-                                            level=level, snr_cache=sc, link_w=w)
+                                            level=level, snr_cache=sc, link_w=w,
+                                            prev_slot=prev)
     out = [x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
            sel.log_weight[:, 0]]
     if config.edge_retry_margin_m > 0.0:
@@ -901,17 +908,18 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         run[:] = True
     r = np.arange(n)
     n_meas = np.sum(sub.mask[:, 0], axis=1)
-    lk = col = link_w = fam_gate = None
+    lk = col = link_w = fam_gate = fresh = None
     if config.link_learn:  # the learned unmodelled-path component (diffpos.tracking.evidence)
-        lk, col, tab, seen, link_w, fam_gate = _link_inputs(state, idx, sub, t_ns, m0, c0,
-                                                            n_meas, config)
+        lk, col, tab, seen, link_w, fam_gate, fresh = _link_inputs(state, idx, sub, t_ns, m0,
+                                                                   c0, n_meas, config)
     counted = _new_misfit(lk, col, config) if config.mode_search_outliers > 0 else None
+    prev = _prev_slots(state, idx, col, fresh, config)
     todo = run
     while True:
         rr, cc = np.nonzero(todo)
         if rr.size:
             out = _update_pairs(m0, c0, sub, rr, cc, nf, building, config, snr_cache, link_w,
-                                fam_gate)
+                                fam_gate, prev)
             if config.mode_search_outliers > 0:  # other modes (and the jump component)
                 out = _mode_pairs(m0, c0, sub, rr, cc, out, np.minimum(
                     config.mode_jump_rate_hz * np.maximum(dt_s[idx][rr], 0.0), 0.5), nf,
@@ -953,6 +961,9 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     if lk is not None:
         new.update(_learned(state, idx, sub, t_ns, n_meas, config, (lk, col, tab, seen),
                             (run, x, p, slot, lw, nis_h, res)))
+    if prev is not None:
+        new["link_slot"] = _kept_slots(state.link_slot[idx], fresh, col, run, slot,
+                                       sub.mask[:, 0])
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
 
 
@@ -1151,7 +1162,32 @@ def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
     if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
         fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0],
                                 learned if config.family_learned_links > 0 else None)
-    return lk, col, tab, seen, link_w, fam_gate
+    return lk, col, tab, seen, link_w, fam_gate, fresh
+
+
+def _prev_slots(state: TrackerState, idx: NDArray, col: NDArray | None, fresh: NDArray | None,
+                config: TrackerConfig) -> FloatArray | None:
+    """The previous mechanism (n, H, M) every hypothesis of the nodes ``idx`` chose for every
+    column's learned link (``col``; a link a new anchor took (``fresh``): none), NaN: none;
+    None unless ``TrackerConfig.mechanism_switch_p`` (with ``mechanism_prior_min_links``)
+    and the learned links are on."""
+    if (config.mechanism_switch_p <= 0.0 or config.mechanism_prior_min_links <= 0
+            or col is None):
+        return None
+    return _gather(np.where(fresh[:, None, :], np.nan, state.link_slot[idx]), col)
+
+
+def _kept_slots(link_slot: FloatArray, fresh: NDArray, col: NDArray, run: NDArray,
+                slot: NDArray, mask: NDArray) -> FloatArray:
+    """``link_slot`` (n, H, L) (a copy) with the links a new anchor took forgotten and every
+    present link of the updated hypotheses ``run`` (n, H) set to its chosen ``slot`` (n, H, M;
+    -1: outlier)."""
+    out = np.where(fresh[:, None, :], np.nan, link_slot)
+    for m in range(col.shape[1]):  # columns hold distinct links
+        ok = mask[:, m] & (col[:, m] >= 0)
+        rows, hyps = np.nonzero(run & ok[:, None])
+        out[rows, hyps, col[rows, m]] = slot[rows, hyps, m]
+    return out
 
 
 def _counts_unexplained(config: TrackerConfig) -> bool:

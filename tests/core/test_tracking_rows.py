@@ -27,6 +27,9 @@ CFG = TrackerConfig()
 DEFICIT = dataclasses.replace(CFG, deficit_nats=1e-9, deficit_tests=1, deficit_period_s=0.1)
 #: and the re-seeds held to their period's boundaries (``reseed_period_s``, off by default)
 PERIOD = dataclasses.replace(DEFICIT, reseed_period_s=0.3)
+#: the persistent mechanism prior (``mechanism_switch_p``, off by default) for every node
+#: (fewer than 9 of the 8 ranges), so ``link_slot`` is kept and read
+PERSIST = dataclasses.replace(CFG, mechanism_prior_min_links=9, mechanism_switch_p=0.3)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -69,7 +72,8 @@ def _assert_same(a, b) -> None:
         assert va.tobytes() == vb.tobytes(), f.name  # bytes: NaN payloads and -0.0 too
 
 
-@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD], ids=["default", "deficit", "period"])
+@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST],
+                         ids=["default", "deficit", "period", "persist"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)
