@@ -646,8 +646,8 @@ class TrackerConfig:
         stepped a decimetre or two over its existence edge (a level track's margin is the
         fixed ``exist_margin_m``; the vertical mode's follows its own height uncertainty). The
         README main command's top-floor walker r05 walks on the edge of the outer UAVs' slot
-        15 (docs/tracking_evidence.md "Session 26: a wider margin at an existence edge"). 0
-        (default): off. Measured with 0.4 (offline reruns, five / twelve seeds): main command
+        15 (docs/tracking_evidence.md "Session 26: a wider margin at an existence edge"). 0:
+        off; 0.4 (default since session 27, with ``edge_retry_node``). Measured with 0.4 (offline reruns, five / twelve seeds): main command
         96.64 -> 98.54 % right floor, Sionna RT's live paper building 91.56 -> 90.98 %; with
         the vertical mode retried too 88.96 %.
     edge_retry_eps : float [-]
@@ -667,7 +667,8 @@ class TrackerConfig:
         (the floor level with the UAVs: direct paths), repeated every epoch. On Sionna RT's
         3-UAV building it handed the floor of the low UAVs 2.6 nats per epoch from a
         ceiling-bounce truth (docs/tracking_evidence.md "Session 27: the 3-UAV building").
-        0 (default): every node (before); 4: nodes with three ranges or fewer. Measured
+        0: every node (before session 27); 4 (default, with ``mechanism_switch_p`` 0.3):
+        nodes with three ranges or fewer. Measured
         with 4 (replays, today's default otherwise): Sionna RT heldout-2 75.08 -> 86.70 %
         (five seeds, every seed better), its emulator version 98.27 -> 98.67 % (three seeds),
         16 random buildings 99.65 -> 99.67 %, Sionna ``large`` 93.35 -> 92.68 % (every seed
@@ -696,11 +697,13 @@ class TrackerConfig:
         it re-fits are a wrong floor's (docs/tracking_evidence.md "Session 27"). Measured with
         0.4 (replays): main command 98.60 -> 98.65 % right floor (the default 96.69), Sionna
         paper seeds 0-4 / 5-9 90.89 / 86.85 -> 90.20 / 88.72 (the default 91.48 / 87.63; a
-        wrong floor at p >= 0.95 on 0.37 % of seed 0's node-epochs). False (default): only
+        wrong floor at p >= 0.95 on 0.37 % of seed 0's node-epochs). True (default since
+        session 27); False: only
         the qualifying pairs.
     mechanism_switch_p : float [-]
         With ``mechanism_prior_min_links`` > 0: instead of the flat prior, a node with fewer
-        ranges than that gets a persistent mechanism prior (0: off, the flat prior): a link
+        ranges than that gets a persistent mechanism prior (0: off, the flat prior; 0.3 the
+        default since session 27): a link
         whose candidate is the mechanism the hypothesis chose for it at its previous update
         gets the inlier weight ``(1 - eps) (1 - q)``, every other candidate ``(1 - eps) q /
         (n_cand - 1)``; with no previous choice (new link, outlier, the mechanism gone) today's
@@ -799,12 +802,12 @@ class TrackerConfig:
     deficit_exact: bool = False
     deficit_quiet_every: int = 2
     first_arrival_prior: float = 0.8
-    edge_retry_margin_m: float = 0.0
+    edge_retry_margin_m: float = 0.4
     edge_retry_eps: float = 0.05
-    mechanism_prior_min_links: int = 0
+    mechanism_prior_min_links: int = 4
     edge_retry_prior: bool = False
-    edge_retry_node: bool = False
-    mechanism_switch_p: float = 0.0
+    edge_retry_node: bool = True
+    mechanism_switch_p: float = 0.3
 
 
 @dataclass(frozen=True)
