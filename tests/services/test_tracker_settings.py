@@ -79,8 +79,13 @@ THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr
 #: the re-seed defaults before 208fb2e (2026-12-07 03:24 UTC: reseed_max 2, reseed_min_links 4)
 #: the contest rule before 617a6ba (2026-12-07 04:54 UTC: floor_contest_s 3 s)
 #: the detector's skipped paths before 6f921de (2026-12-07 07:58 UTC: first_arrival_prior
-#: 0.8); every set of older defaults below includes it
-SKIP_OFF = {"first_arrival_prior": 0.0}
+#: 0.8)
+#: the edge retry and the persistent mechanism prior before dd88bf2 (2026-12-07 11:48 UTC:
+#: edge_retry_margin_m 0.4, edge_retry_node, mechanism_prior_min_links 4, mechanism_switch_p
+#: 0.3); every set of older defaults below includes it
+EDGE_OFF = {"edge_retry_margin_m": 0.0, "edge_retry_node": False,
+            "mechanism_prior_min_links": 0, "mechanism_switch_p": 0.0}
+SKIP_OFF = {"first_arrival_prior": 0.0, **EDGE_OFF}
 CONTEST_OFF = {"floor_contest_s": 0.0, **SKIP_OFF}
 RESEED_OFF = {"reseed_max": 0, "reseed_min_links": 0, **CONTEST_OFF}
 LINK_OFF = {"link_learn": False, "snr_cost_cap_nats": 0.0, "lost_on_gap": False,
@@ -99,7 +104,7 @@ LEARNED_OFF = {"family_learned_links": 0, **RESEED_OFF}
 FAMILIES_OFF = {"max_order": 2, "family_weight": "outlier", "family_gate": "outlier",
                 **GATE_OFF}
 #: a recording made after every change of a default
-NOW_NS = int(datetime.datetime(2026, 12, 7, 8, tzinfo=UTC).timestamp()) * 10**9
+NOW_NS = int(datetime.datetime(2026, 12, 7, 12, tzinfo=UTC).timestamp()) * 10**9
 #: a key that must change the estimates: the model error added to every range sigma [m]
 WHAT_IF = {"sigma_model_m": 0.3}
 
@@ -224,8 +229,10 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [
-    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-07 07:58 UTC"),
-    (AFTER_NS, LINK_OFF, "the defaults of then (first_arrival_prior=0.0, "
+    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-07 11:48 UTC"),
+    (AFTER_NS, LINK_OFF, "the defaults of then (edge_retry_margin_m=0.0, "
+                         "edge_retry_node=false, mechanism_prior_min_links=0, "
+                         "mechanism_switch_p=0.0, first_arrival_prior=0.0, "
                          "floor_contest_s=0.0, reseed_max=0, "
                          "reseed_min_links=0, "
                          "family_learned_links=0, family_min_links=0, "
@@ -260,7 +267,9 @@ def test_legacy_tracker_settings_follow_the_history_of_the_defaults():
     tracking/state.py): each change applies to recordings made before it."""
     at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
     mnls = {"method": "mnls", "tracking": True}
-    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 7, 59))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 11, 49))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 7, 59))[0] == {**DEFAULTS,
+                                                                        **EDGE_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 7, 4, 55))[0] == {**DEFAULTS,
                                                                         **SKIP_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 7, 3, 25))[0] == {**DEFAULTS,

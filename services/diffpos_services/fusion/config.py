@@ -415,6 +415,9 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-12-07T11:48:16Z", "dd88bf2", {"edge_retry_margin_m": 0.0, "edge_retry_node": False,
+                                         "mechanism_prior_min_links": 0,
+                                         "mechanism_switch_p": 0.0}),
     ("2026-12-07T07:58:12Z", "6f921de", {"first_arrival_prior": 0.0}),
     ("2026-12-07T04:54:55Z", "617a6ba", {"floor_contest_s": 0.0}),
     ("2026-12-07T03:24:31Z", "208fb2e", {"reseed_max": 0, "reseed_min_links": 0}),
