@@ -20,6 +20,16 @@ from diffpos.tracking.links import Links, all_paths
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import _update_at
 
+#: the tracker as it was before session 27's defaults (edge retry, persistent mechanism prior):
+#: these tests set each of them explicitly
+PRE27 = dict(edge_retry_margin_m=0.0, edge_retry_node=False, mechanism_prior_min_links=0,
+             mechanism_switch_p=0.0)
+
+
+def _cfg(**kw) -> TrackerConfig:
+    return TrackerConfig(**{**PRE27, **kw})
+
+
 _SC, _B, _ANCHORS = SCENARIO, BUILDING, ANCHORS
 
 
@@ -37,7 +47,7 @@ def _edge_cases(rng, n):
     d = rng.normal(size=(n, 3))
     prior = nodes + d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.25, 0.35, (n, 1))
     links = Links.from_arrays(np.broadcast_to(_ANCHORS, (n, 4, 3)), fa.range_m, fa.sigma_m,
-                              fa.detected, TrackerConfig().sigma_model_m, snr_db=fa.snr_db,
+                              fa.detected, _cfg().sigma_model_m, snr_db=fa.snr_db,
                               radio=_SC.radio)
     slot = np.maximum(fa.slot, 0)[:, None, :, None]
     narrow = np.take_along_axis(all_paths(prior[:, None], links, floor[:, None], _B, 0.2).loose,
@@ -68,8 +78,8 @@ def test_edge_link_fitted_with_its_mechanism_not_an_outlier():
     rng = np.random.default_rng(3)
     floor, prior, links, true_slot, edge = _edge_cases(rng, 12000)
     assert floor.size > 40
-    off = _update(prior, floor, links, TrackerConfig())
-    on = _update(prior, floor, links, TrackerConfig(edge_retry_margin_m=0.4))
+    off = _update(prior, floor, links, _cfg())
+    on = _update(prior, floor, links, _cfg(edge_retry_margin_m=0.4))
     out_off = (off[3] < 0) & edge
     hit = out_off.any(axis=1)
     assert hit.sum() >= 10
@@ -97,7 +107,7 @@ def test_not_in_good_standing_not_retried():
     x[:, :3] = prior
     p = np.broadcast_to(np.diag([0.01, 0.01, 0.0025, 0.25, 0.25, 0.01]), (n, 6, 6)).copy()
     args = (x, p, links, np.arange(n), floor, _B.n_floors, _B)
-    off = _update_at(*args, TrackerConfig(), None, w)
-    on = _update_at(*args, TrackerConfig(edge_retry_margin_m=0.4), None, w)
+    off = _update_at(*args, _cfg(), None, w)
+    on = _update_at(*args, _cfg(edge_retry_margin_m=0.4), None, w)
     for a, b in zip(off, on, strict=True):
         np.testing.assert_array_equal(a, b)

@@ -26,6 +26,16 @@ from diffpos.tracking.model import measurement_update
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import _update_at
 
+#: the tracker as it was before session 27's defaults (edge retry, persistent mechanism prior):
+#: these tests set each of them explicitly
+PRE27 = dict(edge_retry_margin_m=0.0, edge_retry_node=False, mechanism_prior_min_links=0,
+             mechanism_switch_p=0.0)
+
+
+def _cfg(**kw) -> TrackerConfig:
+    return TrackerConfig(**{**PRE27, **kw})
+
+
 _B = BUILDING
 _P = np.diag([0.01, 0.01, 0.0025, 0.25, 0.25, 0.01])  # level track: margin 0.2 m (2 x 5 cm < 0.2)
 
@@ -43,7 +53,7 @@ def _cases(rng, n):
     prior = nodes + d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.15, 0.4, (n, 1))
     keep = np.flatnonzero(fa.detected.all(axis=1))
     links = Links.from_arrays(np.broadcast_to(ANCHORS, (n, 4, 3)), fa.range_m, fa.sigma_m,
-                              fa.detected, TrackerConfig().sigma_model_m, snr_db=fa.snr_db,
+                              fa.detected, _cfg().sigma_model_m, snr_db=fa.snr_db,
                               radio=SCENARIO.radio)
     return floor[keep], prior[keep], links.take(keep)
 
@@ -52,7 +62,7 @@ def _reference_candidates(prior, floor, margin_m):
     """(n, M, K) the slots that may be each link's first arrival at the clamped prior."""
     zf = _B.floor_z_m(floor)
     x0, x1 = _B.edge_x_m
-    zm = TrackerConfig().z_margin_m
+    zm = _cfg().z_margin_m
     pc = np.stack([np.clip(prior[:, 0], x0 + zm, x1 - zm), np.clip(prior[:, 1], zm, _B.depth_m - zm),
                    np.clip(prior[:, 2], zf + zm, zf + _B.floor_height_m - zm)], axis=-1)
     g = graded_paths(pc[:, None, :], np.broadcast_to(ANCHORS, (len(pc), 4, 3)), _B,
@@ -78,11 +88,11 @@ def test_retry_kept_only_where_every_refit_is_a_candidate_at_the_prior():
     kinds occur (the plain retry alone would fail the test)."""
     rng = np.random.default_rng(5)
     floor, prior, links = _cases(rng, 8000)
-    off = _update(prior, floor, links, TrackerConfig())
-    on = _update(prior, floor, links, TrackerConfig(edge_retry_margin_m=0.4))
-    test = _update(prior, floor, links, TrackerConfig(edge_retry_margin_m=0.4,
+    off = _update(prior, floor, links, _cfg())
+    on = _update(prior, floor, links, _cfg(edge_retry_margin_m=0.4))
+    test = _update(prior, floor, links, _cfg(edge_retry_margin_m=0.4,
                                                       edge_retry_prior=True))
-    cand = _reference_candidates(prior, floor, TrackerConfig().exist_margin_m)
+    cand = _reference_candidates(prior, floor, _cfg().exist_margin_m)
     refit = links.mask[:, 0] & (off[3] < 0) & (on[3] >= 0)
     ok = np.take_along_axis(cand, np.maximum(on[3], 0)[..., None], axis=-1)[..., 0]
     want_on = np.all(~refit | ok, axis=-1)
@@ -110,7 +120,7 @@ def test_node_retry_updates_every_level_pair_of_the_node():
     x[:, :3] = prior[rr]
     p = np.broadcast_to(_P, (2 * n, 6, 6)).copy()
     args = (x, p, links, rr, fl, _B.n_floors, _B)
-    base = TrackerConfig(max_order=DEFAULT_ORDER)  # no family weights: the reference's link
+    base = _cfg(max_order=DEFAULT_ORDER)  # no family weights: the reference's link
     off = _update_at(*args, base)                  # weights are the default ones
     plain = _update_at(*args, replace(base, edge_retry_margin_m=0.4))
     test = _update_at(*args, replace(base, edge_retry_margin_m=0.4, edge_retry_node=True))

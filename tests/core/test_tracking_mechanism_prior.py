@@ -28,6 +28,16 @@ from diffpos.tracking.model import (
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import init_state, update
 
+#: the tracker as it was before session 27's defaults (edge retry, persistent mechanism prior):
+#: these tests set each of them explicitly
+PRE27 = dict(edge_retry_margin_m=0.0, edge_retry_node=False, mechanism_prior_min_links=0,
+             mechanism_switch_p=0.0)
+
+
+def _cfg(**kw) -> TrackerConfig:
+    return TrackerConfig(**{**PRE27, **kw})
+
+
 _B = BUILDING
 
 
@@ -46,7 +56,7 @@ def _case(seed: int, n: int = 400):
     mask[: n // 2, 3] = False
     keep = np.flatnonzero(mask[:, :3].all(axis=1) & (mask[:, 3] | (np.arange(n) < n // 2)))
     links = Links.from_arrays(np.broadcast_to(ANCHORS, (n, 4, 3)), fa.range_m, fa.sigma_m, mask,
-                              TrackerConfig().sigma_model_m, snr_db=fa.snr_db,
+                              _cfg().sigma_model_m, snr_db=fa.snr_db,
                               radio=SCENARIO.radio).take(keep)
     pos, fl = nodes[keep][:, None], floor[keep][:, None]
     pe = all_paths(pos, links, fl, _B, 0.2)
@@ -63,9 +73,9 @@ def test_three_ranges_flat_prior_four_unchanged():
     off."""
     for seed in (1, 2):
         cov, links, pe, snr_c = _case(seed)
-        off = select(cov, links, pe, TrackerConfig(), snr_c)
-        on = select(cov, links, pe, TrackerConfig(mechanism_prior_min_links=4), snr_c)
-        zero = select(cov, links, pe, TrackerConfig(mechanism_prior_min_links=0), snr_c)
+        off = select(cov, links, pe, _cfg(), snr_c)
+        on = select(cov, links, pe, _cfg(mechanism_prior_min_links=4), snr_c)
+        zero = select(cov, links, pe, _cfg(mechanism_prior_min_links=0), snr_c)
         three = links.mask[:, 0].sum(axis=1) == 3
         assert three.sum() > 50 and (~three).sum() > 50
         for f in ("slot", "log_weight", "nis", "extra_var"):
@@ -84,16 +94,17 @@ def test_kernel_equals_reference_with_the_setting():
     """The compiled selection with the setting gives its numpy reference's slots, log-weights,
     NIS and variances bit for bit (three- and four-range nodes in one call)."""
     cov, links, pe, snr_c = _case(3)
-    cfg = TrackerConfig(mechanism_prior_min_links=4)
+    cfg = _cfg(mechanism_prior_min_links=4)
     got, ref = select(cov, links, pe, cfg, snr_c), _select_numpy(cov, links, pe, cfg, snr_c)
     for f in ("slot", "log_weight", "nis", "extra_var"):
         np.testing.assert_array_equal(getattr(got, f), getattr(ref, f), err_msg=f)
 
 
 def test_config_records_the_setting():
-    """The settings are recorded TrackerConfig fields, 0 (off) by default."""
-    assert TrackerConfig().mechanism_prior_min_links == 0
-    assert TrackerConfig().mechanism_switch_p == 0.0
+    """The settings are recorded TrackerConfig fields, on by default since session 27 (gate
+    4, persistent prior 0.3)."""
+    assert TrackerConfig().mechanism_prior_min_links == 4
+    assert TrackerConfig().mechanism_switch_p == 0.3
     assert "mechanism_switch_p" in {f.name for f in dataclasses.fields(TrackerConfig)}
     assert "mechanism_prior_min_links" in {f.name for f in dataclasses.fields(TrackerConfig)}
 
@@ -131,11 +142,11 @@ def test_persistent_prior_against_reference():
     log-weight (1e-9 nats) wherever both call the link an inlier; a kept mechanism costs
     ``log(1 - q)`` whatever the link's candidate count (the count is gone), none costs today's
     count; four-range nodes and ``prev_slot`` None are the flat setting's bit for bit."""
-    cfg = TrackerConfig(mechanism_prior_min_links=4, mechanism_switch_p=0.3)
-    flat = TrackerConfig(mechanism_prior_min_links=4)
+    cfg = _cfg(mechanism_prior_min_links=4, mechanism_switch_p=0.3)
+    flat = _cfg(mechanism_prior_min_links=4)
     for seed in (1, 2):
         cov, links, pe, snr_c = _case(seed)
-        off = select(cov, links, pe, TrackerConfig(), snr_c)
+        off = select(cov, links, pe, _cfg(), snr_c)
         three = links.mask[:, 0].sum(axis=1) == 3
         rng = np.random.default_rng(seed)
         prev = np.where(rng.random(off.slot.shape) < 0.7, off.slot, np.nan).astype(float)
@@ -174,8 +185,8 @@ def test_tracker_keeps_previous_mechanisms_only_with_the_setting():
     rng = np.random.default_rng(5)
     nodes = np.array([[x, 4.0, _B.floor_z_m(f) + _B.nominal_node_height_m]
                       for x, f in ((-3.0, 0), (2.0, 1), (5.0, 2))])
-    for cfg, kept in ((TrackerConfig(), False),
-                      (TrackerConfig(mechanism_prior_min_links=4, mechanism_switch_p=0.3), True)):
+    for cfg, kept in ((_cfg(), False),
+                      (_cfg(mechanism_prior_min_links=4, mechanism_switch_p=0.3), True)):
         st = init_state(len(nodes), _B)
         for k in range(6):
             fa = first_arrival(emulate_channel(ANCHORS[:3], nodes, building=_B,
