@@ -12,23 +12,12 @@ not in scenarios/ (the one of tests/core/test_tracking_margin.py).
 from __future__ import annotations
 
 import numpy as np
-from margin_building import ANCHORS, BUILDING, SCENARIO
+from margin_building import ANCHORS, BUILDING, SCENARIO, level_arrivals
+from margin_building import pre27_config as _cfg
 
-from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.paths.mechanisms import SPECULAR_SLOTS
 from diffpos.tracking.links import Links, all_paths
-from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import _update_at
-
-#: the tracker as it was before session 27's defaults (edge retry, persistent mechanism prior):
-#: these tests set each of them explicitly
-PRE27 = dict(edge_retry_margin_m=0.0, edge_retry_node=False, mechanism_prior_min_links=0,
-             mechanism_switch_p=0.0)
-
-
-def _cfg(**kw) -> TrackerConfig:
-    return TrackerConfig(**{**PRE27, **kw})
-
 
 _SC, _B, _ANCHORS = SCENARIO, BUILDING, ANCHORS
 
@@ -38,12 +27,7 @@ def _edge_cases(rng, n):
     and a prior 0.25-0.35 m off the truth (horizontal and height) at which one detected
     specular first arrival (or more) is not even ``loose`` with the default margin but is with
     0.4 m."""
-    x0, x1 = _B.edge_x_m
-    floor = rng.integers(0, _B.n_floors, n)
-    nodes = np.stack([rng.uniform(x0 + 1.0, x1 - 1.0, n), rng.uniform(1.0, _B.depth_m - 1.0, n),
-                      _B.floor_z_m(floor) + _B.nominal_node_height_m], axis=-1)
-    fa = first_arrival(emulate_channel(_ANCHORS, nodes, building=_B, radio=_SC.radio),
-                       radio=_SC.radio, rng=rng)
+    floor, nodes, fa = level_arrivals(rng, n)
     d = rng.normal(size=(n, 3))
     prior = nodes + d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.25, 0.35, (n, 1))
     links = Links.from_arrays(np.broadcast_to(_ANCHORS, (n, 4, 3)), fa.range_m, fa.sigma_m,

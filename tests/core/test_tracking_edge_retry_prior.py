@@ -16,25 +16,14 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from margin_building import ANCHORS, BUILDING, SCENARIO
+from margin_building import ANCHORS, BUILDING, SCENARIO, level_arrivals
+from margin_building import pre27_config as _cfg
 
-from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.paths.mechanisms import DEFAULT_ORDER, DIFFRACTION_SLOTS
 from diffpos.paths.model import graded_paths
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import measurement_update
-from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import _update_at
-
-#: the tracker as it was before session 27's defaults (edge retry, persistent mechanism prior):
-#: these tests set each of them explicitly
-PRE27 = dict(edge_retry_margin_m=0.0, edge_retry_node=False, mechanism_prior_min_links=0,
-             mechanism_switch_p=0.0)
-
-
-def _cfg(**kw) -> TrackerConfig:
-    return TrackerConfig(**{**PRE27, **kw})
-
 
 _B = BUILDING
 _P = np.diag([0.01, 0.01, 0.0025, 0.25, 0.25, 0.01])  # level track: margin 0.2 m (2 x 5 cm < 0.2)
@@ -43,12 +32,7 @@ _P = np.diag([0.01, 0.01, 0.0025, 0.25, 0.25, 0.01])  # level track: margin 0.2 
 def _cases(rng, n):
     """True level positions, the emulator's first arrivals there (all four detected), a prior
     0.15-0.4 m off the truth; floors and links."""
-    x0, x1 = _B.edge_x_m
-    floor = rng.integers(0, _B.n_floors, n)
-    nodes = np.stack([rng.uniform(x0 + 1.0, x1 - 1.0, n), rng.uniform(1.0, _B.depth_m - 1.0, n),
-                      _B.floor_z_m(floor) + _B.nominal_node_height_m], axis=-1)
-    fa = first_arrival(emulate_channel(ANCHORS, nodes, building=_B, radio=SCENARIO.radio),
-                       radio=SCENARIO.radio, rng=rng)
+    floor, nodes, fa = level_arrivals(rng, n)
     d = rng.normal(size=(n, 3))
     prior = nodes + d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.15, 0.4, (n, 1))
     keep = np.flatnonzero(fa.detected.all(axis=1))

@@ -15,7 +15,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from margin_building import ANCHORS, BUILDING, SCENARIO
+from margin_building import ANCHORS, BUILDING, SCENARIO, level_arrivals
+from margin_building import pre27_config as _cfg
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.tracking.links import Links, all_paths
@@ -28,16 +29,6 @@ from diffpos.tracking.model import (
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import init_state, update
 
-#: the tracker as it was before session 27's defaults (edge retry, persistent mechanism prior):
-#: these tests set each of them explicitly
-PRE27 = dict(edge_retry_margin_m=0.0, edge_retry_node=False, mechanism_prior_min_links=0,
-             mechanism_switch_p=0.0)
-
-
-def _cfg(**kw) -> TrackerConfig:
-    return TrackerConfig(**{**PRE27, **kw})
-
-
 _B = BUILDING
 
 
@@ -46,12 +37,7 @@ def _case(seed: int, n: int = 400):
     first half of the nodes keep three of them (the fourth masked), the rest all four (only
     the nodes with every kept link detected); the paths and SNR costs at the truth."""
     rng = np.random.default_rng(seed)
-    x0, x1 = _B.edge_x_m
-    floor = rng.integers(0, _B.n_floors, n)
-    nodes = np.stack([rng.uniform(x0 + 1.0, x1 - 1.0, n), rng.uniform(1.0, _B.depth_m - 1.0, n),
-                      _B.floor_z_m(floor) + _B.nominal_node_height_m], axis=-1)
-    fa = first_arrival(emulate_channel(ANCHORS, nodes, building=_B, radio=SCENARIO.radio),
-                       radio=SCENARIO.radio, rng=rng)
+    floor, nodes, fa = level_arrivals(rng, n)
     mask = fa.detected.copy()
     mask[: n // 2, 3] = False
     keep = np.flatnonzero(mask[:, :3].all(axis=1) & (mask[:, 3] | (np.arange(n) < n // 2)))
