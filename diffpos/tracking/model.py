@@ -712,10 +712,15 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     few = np.asarray(mask).sum(axis=-1) < int(config.mechanism_prior_min_links)
     if prev_slot is None or config.mechanism_switch_p <= 0.0 or not few.any():
         return out
-    alt = select_persistent(pos_cov, links, pe, config, snr_c, fixed[-1], prev_slot)
-    f = few[:, None, None]
-    return Selection(**{k: np.where(f, getattr(alt, k), getattr(out, k))
-                        for k in ("slot", "log_weight", "nis", "extra_var")})
+    rows = np.flatnonzero(few)  # rows are independent: the numpy selection only where needed
+    pe_r = PathEval(**{f: getattr(pe, f)[rows] for f in ("length", "jac", "strict", "loose",
+                                                          "sure")})
+    alt = select_persistent(pos_cov[rows], links.take(rows), pe_r, config,
+                            None if snr_c is None else snr_c[rows], fixed[-1][rows],
+                            prev_slot[rows])
+    for k in ("slot", "log_weight", "nis", "extra_var"):
+        getattr(out, k)[rows] = getattr(alt, k)
+    return out
 
 
 def select_persistent(pos_cov: FloatArray, links: Links, pe: PathEval, config,
