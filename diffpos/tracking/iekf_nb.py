@@ -24,7 +24,7 @@ __all__ = ["iekf_kernel", "prior_info_kernel", "warm_iekf"]
 #: numba keys this file's on-disk cache on this file only, not on the ``*_nb`` code its
 #: kernels compile in: a digest of that code (tests/core/test_kernel_stamps.py names the new
 #: value after a callee's edit; writing it here is what invalidates a warm cache).
-CALLEES_SHA256 = "24127385d45c8cb2"
+CALLEES_SHA256 = "77c779cd7459df0a"
 
 
 #: The IEKF's state dimension (a compile-time constant: the 6 x 6 loops unroll).

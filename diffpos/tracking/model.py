@@ -686,7 +686,8 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     ``snr_c`` if the caller has it. ``prev_slot`` (N, H, M): the hypotheses' previous choice
     of every link (``TrackerState.link_slot``; NaN / -1: none); with
     ``config.mechanism_switch_p`` the nodes with fewer than ``mechanism_prior_min_links``
-    ranges get :func:`select_persistent`'s selection instead.
+    ranges get :func:`select_persistent`'s selection instead (in the same compiled passes,
+    bit-identical to that numpy reference: tests/core/test_tracking_mechanism_prior.py).
     """
     shape = pe.length.shape
     n, h, m = shape[:3]
@@ -701,26 +702,33 @@ def select(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     slot, best = np.empty((n, h, m), dtype=np.int64), np.empty((n, h, m), dtype=np.int64)
     base, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
     ex = np.empty(cnt)
-    w_link = few_links_weights(w_link, valid, mask, config)
+    persist, prev, consts = _persist_inputs(mask, config, prev_slot, (n, h, m), consts)
+    if not persist.any():  # the persistent rows take link_w as it is (select_persistent)
+        w_link = few_links_weights(w_link, valid, mask, config)
     select_best_kernel(length, valid, rho, mask, snr, use_snr, sv, sl, np.log(sv[:cnt]),
-                       consts, w_link, _LOG_N, ex, best, base, slot, nis)
+                       consts, w_link, _LOG_N, ex, best, base, slot, nis, persist, prev)
     np.exp(ex, out=ex)
     mix = np.empty((n, h, m))
     select_mix_kernel(length, valid, slot, best, ex, extra, mix)
     log_w = np.where(slot >= 0, base + np.log(mix), base)
-    out = Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
+    return Selection(slot=slot, log_weight=log_w, nis=nis, extra_var=extra)
+
+
+def _persist_inputs(mask: NDArray[np.bool_], config, prev_slot: FloatArray | None,
+                    shape: tuple, consts: FloatArray) -> tuple:
+    """:func:`select`'s persistent-prior inputs of ``select_best_kernel``: which nodes get
+    :func:`select_persistent`'s prior (``persist`` (N,): fewer than
+    ``mechanism_prior_min_links`` ranges in ``mask`` (N, M), with ``mechanism_switch_p`` > 0
+    and a ``prev_slot``), the previous slots (N, H, M) int64 (-1: none) and ``consts`` with
+    numpy's ``log q`` and ``log(1 - q)`` appended (its reference's scalar calls)."""
     few = np.asarray(mask).sum(axis=-1) < int(config.mechanism_prior_min_links)
-    if prev_slot is None or config.mechanism_switch_p <= 0.0 or not few.any():
-        return out
-    rows = np.flatnonzero(few)  # rows are independent: the numpy selection only where needed
-    pe_r = PathEval(**{f: getattr(pe, f)[rows] for f in ("length", "jac", "strict", "loose",
-                                                          "sure")})
-    alt = select_persistent(pos_cov[rows], links.take(rows), pe_r, config,
-                            None if snr_c is None else snr_c[rows], fixed[-1][rows],
-                            prev_slot[rows])
-    for k in ("slot", "log_weight", "nis", "extra_var"):
-        getattr(out, k)[rows] = getattr(alt, k)
-    return out
+    q = float(config.mechanism_switch_p)
+    if prev_slot is None or q <= 0.0 or not few.any():
+        return np.zeros(shape[0], dtype=np.bool_), np.empty((1, 1, 1), dtype=np.int64), \
+            np.array([consts[0], 0.0, 0.0])
+    pv = np.broadcast_to(np.where(np.isfinite(prev_slot), prev_slot, -1.0), shape)
+    return few, np.ascontiguousarray(pv, dtype=np.int64), \
+        np.array([consts[0], np.log(q), np.log1p(-q)])
 
 
 def select_persistent(pos_cov: FloatArray, links: Links, pe: PathEval, config,
@@ -732,7 +740,8 @@ def select_persistent(pos_cov: FloatArray, links: Links, pe: PathEval, config,
     ``log(1 - eps) + log(1 - q)``, its other candidates ``log(1 - eps) + log q - log(n_cand -
     1)``; a link without a previous choice among its candidates today's ``log(1 - eps) - log
     n_cand``. The prior enters the argmax, the outlier test and the mixture; ``link_w`` (N,
-    H, M, 2) as :func:`select`'s (numpy, every row)."""
+    H, M, 2) as :func:`select`'s. The numpy reference of :func:`select`'s persistent rows
+    (which run it compiled, in ``select_best_kernel``)."""
     valid, s_ll, s_var = _select_prep_numpy(pos_cov, links, pe, snr_c)
     e = links.rho[..., None] - pe.length
     n_ok = np.maximum(valid.sum(axis=-1), 1)

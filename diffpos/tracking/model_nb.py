@@ -387,7 +387,7 @@ def select_pack_kernel(length, jac, sure, loose, is_diff, pos_cov, var, snr, snr
 
 @njit(**_OPTS)
 def select_best_kernel(length, valid, rho, mask, snr, use_snr, sv_pack, sl_pack, log_sv,
-                       consts, w_link, log_n, ex_pack, best, base, slot, nis):
+                       consts, w_link, log_n, ex_pack, best, base, slot, nis, persist, prev):
     """Second pass of ``tracking_model.select``: per link the candidates' log-likelihoods
     ``-(e^2 / S + log S + log 2 pi) / 2 + snr term`` (``log_sv``: numpy's log of the packed
     variances of :func:`select_pack_kernel`), the most likely one (``np.argmax``: the first
@@ -395,67 +395,128 @@ def select_best_kernel(length, valid, rho, mask, snr, use_snr, sv_pack, sl_pack,
     ``slot`` (-1 outlier), ``nis`` (NaN unless inlier), ``base`` (N, H, M): the log-weight
     without the mixture term (``log(1 - eps) - log n + snr term`` of an inlier, the outlier's
     ``log(eps / span) + snr term`` of a present link, else 0); packs every candidate's
-    ``ll_k - ll_best`` into ``ex_pack`` for numpy's exp. ``consts``: ``log(2 pi)``;
-    ``w_link`` (N, H, M, 2): every link's inlier weight ``log(1 - eps)`` and its outlier
-    component's log-density (with its SNR part; ``diffpos.tracking.model.link_weights``);
-    ``log_n`` (K + 1,): ``log(n)``. The numpy reference's operations in its order."""
+    ``ll_k - ll_best`` into ``ex_pack`` for numpy's exp. ``consts``: ``log(2 pi)``, ``log q``,
+    ``log(1 - q)`` (numpy's; q = ``mechanism_switch_p``); ``w_link`` (N, H, M, 2): every
+    link's inlier weight ``log(1 - eps)`` and its outlier component's log-density (with its SNR
+    part; ``diffpos.tracking.model.link_weights``); ``log_n`` (K + 1,): ``log(n)``. A node
+    with ``persist`` (N,) set gets the persistent mechanism prior instead
+    (:func:`_persist_link`, ``prev`` (N, H, M): the previous slot, -1 none). The numpy
+    references' operations in their order (``_select_numpy``, ``select_persistent``)."""
     n_n, n_h, n_m, n_k = length.shape
-    log2pi = consts[0]
     ll = np.empty(n_k)
     sl = np.empty(n_k)
     sv = np.empty(n_k)
+    wk = np.empty(n_k)
     c = 0
     for n in range(n_n):
         for h in range(n_h):
             for m in range(n_m):
-                w_in0 = w_link[n, h, m, 0]
-                w_out = w_link[n, h, m, 1]
+                ok = valid[n, h, m]
                 r = rho[n, m]
                 lk = length[n, h, m]
-                ok = valid[n, h, m]
                 c0 = c
-                n_ok = 0
-                for k in range(n_k):
-                    if ok[k]:
-                        n_ok += 1
-                        e = r - lk[k]
-                        v = sv_pack[c]
-                        sv[k] = v
-                        sl[k] = sl_pack[c]
-                        ll[k] = -0.5 * (e * e / v + log_sv[c] + log2pi) + sl_pack[c]
-                        c += 1
-                    else:
-                        ll[k] = -np.inf
-                        sl[k] = 0.0
-                        sv[k] = np.nan
-                b = 0
-                bv = ll[0]
-                if not math.isnan(bv):
-                    for k in range(1, n_k):
-                        if math.isnan(ll[k]):
-                            b = k
-                            break
-                        if ll[k] > bv:
-                            bv = ll[k]
-                            b = k
-                best[n, h, m] = b
-                ll_best = ll[b]
-                w_in = w_in0 - log_n[n_ok if n_ok > 1 else 1]
-                inlier = mask[n, m] and math.isfinite(ll_best) and (ll_best + w_in > w_out)
-                if inlier:
-                    e_b = r - lk[b]
-                    slot[n, h, m] = b
-                    nis[n, h, m] = e_b * e_b / sv[b]
-                    base[n, h, m] = w_in + sl[b]
+                n_ok = _link_ll(lk, ok, r, sv_pack, sl_pack, log_sv, consts[0], c, ll, sl, sv)
+                c += n_ok
+                if persist[n]:
+                    ref = _persist_link(ll, ok, n_ok, prev[n, h, m], w_link[n, h, m], log_n,
+                                        consts, mask[n, m], r, lk, sl, sv, wk, n, h, m,
+                                        best, base, slot, nis)
                 else:
-                    slot[n, h, m] = -1
-                    nis[n, h, m] = np.nan
-                    base[n, h, m] = w_out if mask[n, m] else 0.0
-                ref = ll_best if math.isfinite(ll_best) else 0.0
+                    ref = _flat_link(ll, n_ok, w_link[n, h, m], log_n, mask[n, m], r, lk, sl,
+                                     sv, n, h, m, best, base, slot, nis)
                 for k in range(n_k):
                     if ok[k]:
                         ex_pack[c0] = ll[k] - ref
                         c0 += 1
+
+
+@njit(**_OPTS, inline="always")
+def _link_ll(lk, ok, r, sv_pack, sl_pack, log_sv, log2pi, c, ll, sl, sv):
+    """One link's candidate log-likelihoods ``ll`` (-inf for a non-candidate), SNR terms
+    ``sl`` (0) and variances ``sv`` (NaN) from the packed values from ``c`` on; returns the
+    candidate count."""
+    n_ok = 0
+    for k in range(lk.shape[0]):
+        if ok[k]:
+            n_ok += 1
+            e = r - lk[k]
+            v = sv_pack[c]
+            sv[k] = v
+            sl[k] = sl_pack[c]
+            ll[k] = -0.5 * (e * e / v + log_sv[c] + log2pi) + sl_pack[c]
+            c += 1
+        else:
+            ll[k] = -np.inf
+            sl[k] = 0.0
+            sv[k] = np.nan
+    return n_ok
+
+
+@njit(**_OPTS, inline="always")
+def _argmax(x):
+    """``np.argmax`` of a 1-D array: the first maximum, or the first NaN."""
+    b = 0
+    bv = x[0]
+    if not math.isnan(bv):
+        for k in range(1, x.shape[0]):
+            if math.isnan(x[k]):
+                return k
+            if x[k] > bv:
+                bv = x[k]
+                b = k
+    return b
+
+
+@njit(**_OPTS, inline="always")
+def _flat_link(ll, n_ok, w, log_n, present, r, lk, sl, sv, n, h, m, best, base, slot, nis):
+    """:func:`select_best_kernel` of one link with the flat prior ``log(1 - eps) - log n``
+    (``w``: the link's two weights); returns the reference the packed ``ll - ref`` take."""
+    b = _argmax(ll)
+    best[n, h, m] = b
+    ll_best = ll[b]
+    w_in = w[0] - log_n[n_ok if n_ok > 1 else 1]
+    if present and math.isfinite(ll_best) and (ll_best + w_in > w[1]):
+        e_b = r - lk[b]
+        slot[n, h, m] = b
+        nis[n, h, m] = e_b * e_b / sv[b]
+        base[n, h, m] = w_in + sl[b]
+    else:
+        slot[n, h, m] = -1
+        nis[n, h, m] = np.nan
+        base[n, h, m] = w[1] if present else 0.0
+    return ll_best if math.isfinite(ll_best) else 0.0
+
+
+@njit(**_OPTS, inline="always")
+def _persist_link(ll, ok, n_ok, pv, w, log_n, consts, present, r, lk, sl, sv, wk, n, h, m,
+                  best, base, slot, nis):
+    """:func:`select_best_kernel` of one link with the persistent prior
+    (``tracking_model.select_persistent``): the previous slot ``pv`` (if a candidate) gets
+    ``log(1 - eps) + log(1 - q)``, the others ``log(1 - eps) + log q - log(n - 1)``, without
+    one all get ``log(1 - eps) - log n``; ``ll`` becomes ``ll + prior`` (the total); returns
+    the reference the packed ``ll - ref`` take."""
+    n_c = n_ok if n_ok > 1 else 1
+    has = pv >= 0 and pv < ll.shape[0] and ok[pv]
+    if has:
+        other = w[0] + consts[1] - log_n[n_c - 1 if n_c > 2 else 1]
+    else:
+        other = w[0] - log_n[n_c]
+    for k in range(ll.shape[0]):
+        wk[k] = (w[0] + consts[2]) if (has and k == pv) else other
+        ll[k] = ll[k] + wk[k]
+    b = _argmax(ll)
+    best[n, h, m] = b
+    tb = ll[b]
+    if present and math.isfinite(tb) and (tb > w[1]):
+        e_b = r - lk[b]
+        slot[n, h, m] = b
+        nis[n, h, m] = e_b * e_b / sv[b]
+        base[n, h, m] = wk[b] + sl[b]
+    else:
+        slot[n, h, m] = -1
+        nis[n, h, m] = np.nan
+        base[n, h, m] = w[1] if present else 0.0
+    return tb if math.isfinite(tb) else 0.0
 
 
 @njit(**_OPTS)
@@ -625,8 +686,9 @@ def warm_model(planes: tuple, anc: np.ndarray) -> None:
     i3 = np.zeros((1, 1, 1), np.int64)
     ex = np.zeros(cnt)
     select_best_kernel(np.ones((1, 1, 1, k)), b4k, one, mask, one, True, sv, sl, np.log(sv[:cnt]),
-                       np.zeros(1), np.zeros((1, 1, 1, 2)), np.zeros(k + 1), ex, i3,
-                       np.empty((1, 1, 1)), i3.copy(), np.empty((1, 1, 1)))
+                       np.zeros(3), np.zeros((1, 1, 1, 2)), np.zeros(k + 1), ex, i3,
+                       np.empty((1, 1, 1)), i3.copy(), np.empty((1, 1, 1)),
+                       np.ones(1, np.bool_), i3.copy())
     select_mix_kernel(np.ones((1, 1, 1, k)), b4k, i3, i3.copy(), ex, np.empty((1, 1, 1)),
                       np.empty((1, 1, 1)))
     x6, p3 = np.ones((1, 1, 6)), np.ones((1, 1, 3))

@@ -95,13 +95,13 @@ def _select_before(pos_cov, links, pe, config, snr_c):
         _c(np.broadcast_to(pos_cov, (n, h, 3, 3))), _c(links.var[:, 0]), snr, sc, use_snr,
         np.array([np.log(SNR_SIGMA_DB), 0.5 * _LOG2PI]), float(-np.log(SNR_SPAN_DB)),
         valid, sv, sl)
-    consts = np.array([_LOG2PI])
     w_link = link_weights(links, config, use_snr, n, h)
     slot, best = np.empty((n, h, m), dtype=np.int64), np.empty((n, h, m), dtype=np.int64)
     base, nis, extra = np.empty((n, h, m)), np.empty((n, h, m)), np.empty((n, h, m))
     ex = np.empty(cnt)
     select_best_kernel(length, valid, rho, mask, snr, use_snr, sv, sl, np.log(sv[:cnt]),
-                       consts, w_link, _LOG_N, ex, best, base, slot, nis)
+                       np.array([_LOG2PI, 0.0, 0.0]), w_link, _LOG_N, ex, best, base, slot, nis,
+                       np.zeros(n, np.bool_), np.empty((1, 1, 1), np.int64))
     np.exp(ex, out=ex)
     mix = np.empty((n, h, m))
     select_mix_kernel(length, valid, slot, best, ex, extra, mix)

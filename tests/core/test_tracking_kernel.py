@@ -52,14 +52,17 @@ from diffpos.tracking.model import (
     _model_numpy,
     _paths_at,
     _prior_information_numpy,
+    _select_fixed,
     _select_numpy,
     _select_prep,
     _select_prep_numpy,
     clamp_to_floor,
     iekf,
+    link_weights,
     measurement_update,
     prior_information,
     select,
+    select_persistent,
     snr_cost_near,
 )
 from diffpos.tracking.state import TrackerConfig
@@ -351,6 +354,59 @@ def test_select_kernels_bit_identical_to_numpy(bi):
             # the cases hold inliers, outliers, missing links and ambiguous mechanisms
             assert np.any(ref.slot >= 0) and np.any((ref.slot < 0) & ls.mask)
             assert np.any(~ls.mask) and np.any(ref.extra_var > 0)
+
+
+def _prev_slots(rng, flat_slot, n_k):
+    """Previous slots of a persistent-prior case: the flat selection's choice, another slot
+    (a candidate or not), NaN or -1 (none), each link at random."""
+    u = rng.random(flat_slot.shape)
+    other = rng.integers(0, n_k, flat_slot.shape)
+    return np.where(u < 0.4, flat_slot, np.where(u < 0.7, other, np.where(u < 0.85, np.nan,
+                                                                         -1.0))).astype(float)
+
+
+@pytest.mark.parametrize("bi", range(len(_BUILDINGS)))
+def test_select_persistent_kernel_bit_identical_to_numpy(bi):
+    """The persistent mechanism prior in the compiled selection (``select_best_kernel`` with
+    ``persist``) against its numpy reference :func:`select_persistent` on the gated nodes and
+    :func:`_select_numpy` on the others, in one call: slots, log-weights, NIS and variances
+    equal bit for bit (tolerance 0), with and without SNR, random learned link weights,
+    previous slots that are a candidate, no candidate, NaN or -1, and q = 0.3 / 0.05."""
+    b = _BUILDINGS[bi]
+    for seed in range(3):
+        pos, links, floor, _ = _case(b, 900 + 100 * bi + seed)
+        ls = _snr_links(links, seed)
+        rng = np.random.default_rng(seed)
+        pos = clamp_to_floor(pos, floor, b, 0.05)
+        pe = all_paths(pos, ls, floor, b, 0.2)
+        cov = _spd(rng, pos.shape[:2], 3, 0.5)
+        n, h, m = pe.length.shape[:3]
+        count = ls.mask[:, 0].sum(axis=-1)  # gate at the largest count: nodes either side
+        cfg = TrackerConfig(mechanism_prior_min_links=int(count.max()),
+                            mechanism_switch_p=(0.3, 0.05)[seed % 2])
+        few = count < count.max()
+        rows = np.flatnonzero(few)
+        assert 0 < rows.size < n
+        for snr_c in (snr_cost_near(pos, ls, floor, b, 0.2, pe), None):
+            lw = link_weights(ls, cfg, snr_c is not None, n, h) \
+                + rng.normal(0.0, 0.5, (n, h, m, 2))  # learned weights differ link by link
+            fixed = _select_fixed(cov, ls, cfg, snr_c, n, h, lw)
+            prev = _prev_slots(rng, select(cov, ls, pe, cfg, snr_c, fixed).slot,
+                               pe.length.shape[-1])
+            got = select(cov, ls, pe, cfg, snr_c, fixed, prev)
+            ref = _select_numpy(cov, ls, pe, cfg, snr_c, lw)
+            pe_r = dataclasses.replace(pe, **{f: getattr(pe, f)[rows] for f in (
+                "length", "jac", "strict", "loose", "sure")})
+            alt = select_persistent(cov[rows], ls.take(rows), pe_r, cfg,
+                                    None if snr_c is None else snr_c[rows], lw[rows], prev[rows])
+            for f in ("slot", "log_weight", "nis", "extra_var"):
+                r = getattr(ref, f)
+                r[rows] = getattr(alt, f)
+                np.testing.assert_array_equal(getattr(got, f), r, err_msg=f)
+            # the prior matters: some gated links choose otherwise than the flat prior
+            flat = select(cov, ls, pe, cfg, snr_c, fixed)
+            assert np.any(flat.slot[rows] != got.slot[rows])
+            assert np.any(ref.slot[rows] >= 0) and np.any(ref.extra_var[rows] > 0)
 
 
 def test_prior_information_kernel_matches_numpy():
