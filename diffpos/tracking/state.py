@@ -561,6 +561,12 @@ class TrackerConfig:
         performance.md "Session 26"): a re-seed is ~0.6 ms CPU, 3.4 per 50-node step on
         average (up to 8), 13 % of a step; 99 % of them renew a floor below 1e-3 probability,
         an awake one every third epoch. 0 (default): any epoch it qualifies in (before).
+    reseed_starts : int
+        With ``reseed_max``: the grid's best cells a re-seed's snapshot of the floor fits
+        (each by two measurement updates, the best fit kept); 0 (default): ``init_starts``
+        (before). 1: the best cell only, as the deficit test's snapshot (issue 37: a re-seed
+        is ~15 % of the tracker's CPU on the emulator's ``large``, its updates ~2/3 of that;
+        99 % of re-seeds renew a floor below 1e-3 probability).
     mode_search_new_misfit : float [fraction of a link's real updates]
         With ``mode_search_outliers``: only the outliers of links the hypothesis has fitted
         lately count towards ``mode_search_outliers``: the link's forgotten outlier rate for
@@ -708,8 +714,8 @@ class TrackerConfig:
         gets the inlier weight ``(1 - eps) (1 - q)``, every other candidate ``(1 - eps) q /
         (n_cand - 1)``; with no previous choice (new link, outlier, the mechanism gone) today's
         ``(1 - eps) / n_cand``. The prior enters the selection (argmax and mixture;
-        :func:`diffpos.tracking.model.select_persistent`, numpy). Why: ``1 / n_cand`` is the
-        prior of a coincidence; a mechanism kept from the previous epoch by a node that barely
+        :func:`diffpos.tracking.model.select_persistent`, compiled in
+        ``select_best_kernel``). Why: ``1 / n_cand`` is the prior of a coincidence; a mechanism kept from the previous epoch by a node that barely
         moved is the same coincidence, already paid for, so without a redundant range the
         per-epoch count is a repeated constant (the 3-UAV building: mechanisms kept in 94-95 %
         of link-epochs), while a switch is a new coincidence whose count is owed (Sionna
@@ -794,6 +800,7 @@ class TrackerConfig:
     mode_search_min_links: int = 0
     reseed_min_links: int = 4
     reseed_period_s: float = 0.0
+    reseed_starts: int = 0
     mode_search_new_misfit: float = 0.0
     deficit_nats: float = 0.0
     deficit_tests: int = 2

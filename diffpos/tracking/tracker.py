@@ -355,7 +355,8 @@ def _reseed(mean, cov, floor_bad, links: Links, eligible, building, config: Trac
     hyps = order[nodes, j]
     floors = hyps % (floor_bad.shape[1] // 2)
     sub = links.take(nodes)
-    x, p, _, _, _ = snapshot(sub, floors[:, None], building, config)
+    x, p, _, _, _ = snapshot(sub, floors[:, None], building, config,
+                             config.reseed_starts or None)  # 0: init_starts
     mean[nodes, hyps], cov[nodes, hyps] = x[:, 0], p[:, 0]
     floor_bad[nodes, hyps] = 0
 

@@ -22,6 +22,8 @@ import dataclasses
 import numpy as np
 import pytest
 
+import diffpos.tracking.model as model_mod
+import diffpos.tracking.tracker as tracker_mod
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
 from diffpos.tracking.state import TrackerConfig
@@ -126,3 +128,40 @@ def test_reseed_period_of_ten_epochs_reseeds_the_moved_track_in_one_epoch_of_ten
 
 def test_reseed_period_off_by_default():
     assert ON.reseed_period_s == 0.0
+
+
+# ``reseed_starts`` (0 by default: ``init_starts``): the grid cells a re-seed's snapshot fits
+# (issue 37: fewer hypothesis updates per re-seed; docs/replay_speed.md "Session 28").
+def test_reseed_starts_default_and_init_starts_are_the_same_bits():
+    """0 (the default) is ``init_starts``: the same state and output bit for bit."""
+    assert ON.reseed_starts == 0
+    assert _same(_moved(dataclasses.replace(ON, reseed_starts=ON.init_starts), 1),
+                 _moved(ON, 1))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_one_start_reseeds_the_moved_track_at_the_node(seed, monkeypatch):
+    """With ``reseed_starts`` 1 the re-seed's snapshot fits the grid's best cell only (the
+    snapshot is asked for one start, its measurement updates get one hypothesis per floor),
+    and still puts the moved level track back at the node (0.3 m, as with three)."""
+    seen, hyps = [], []
+    snap, mu = tracker_mod.snapshot, model_mod.measurement_update
+
+    def spy_snapshot(links, floors, building, config, starts=None, passes=2):
+        seen.append(starts)  # (the tracker's own snapshots: its re-seeds)
+        try:
+            return snap(links, floors, building, config, starts, passes)
+        finally:
+            seen.append(None if seen[-1] is None else "done")
+
+    def spy_update(x_prior, *a, **k):
+        if seen and seen[-1] not in (None, "done"):  # inside a re-seed's snapshot
+            hyps.append(x_prior.shape[1])
+        return mu(x_prior, *a, **k)
+
+    monkeypatch.setattr(tracker_mod, "snapshot", spy_snapshot)
+    monkeypatch.setattr(model_mod, "measurement_update", spy_update)
+    state, _, n, f = _moved(dataclasses.replace(ON, reseed_starts=1), seed)
+    assert n == 4 and set(seen) == {1, "done"} and len(hyps) == 2 * seen.count(1)
+    assert set(hyps) == {1}  # one start of one floor per re-seeded hypothesis
+    assert np.linalg.norm(state.mean[0, f, :3] - NODE) < 0.3
