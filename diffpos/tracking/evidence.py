@@ -56,7 +56,7 @@ from diffpos.tracking.evidence_nb import (
 from diffpos.tracking.state import FloatArray
 
 __all__ = ["LINK_FIELDS", "LINK_SLOTS", "count_unexplained", "learn", "learned_weights",
-           "match_links", "model_doubt", "model_unexplained_rate", "reset_links",
+           "match_links", "model_doubt", "model_unexplained_rate", "node_weights", "reset_links",
            "unexplained_log_odds"]
 
 # per node whose learned evidence the state keeps (an anchor beyond it is not learned).
@@ -224,6 +224,25 @@ def learned_weights(lk: dict, col: NDArray[np.int_], x: FloatArray, p: FloatArra
                            np.log(c) + ll, -np.inf)
         w[..., 1] = np.log(eps) + np.logaddexp(np.log1p(-c) + fresh, learned)
     return w
+
+
+def node_weights(w: FloatArray, use: NDArray[np.bool_] | None = None) -> FloatArray:
+    """The links' mixture weights ``w`` (n, H, M, 2) (:func:`learned_weights`) with every
+    hypothesis of a node given the node's outlier weight of each link
+    (``TrackerConfig.link_eps_node``): ``e`` = the largest ``eps = 1 - exp(w[..., 0])`` over
+    the node's hypotheses ``use`` (n, H) (None, or a node with none: all of them); the inlier
+    weight becomes ``log(1 - e)``, the outlier component's ``log eps`` becomes ``log e`` (its
+    densities, fresh and learned, unchanged). A new array."""
+    eps = -np.expm1(w[..., 0])
+    pick = eps
+    if use is not None:
+        u = np.where(np.any(use, axis=1, keepdims=True), use, True)
+        pick = np.where(u[..., None], eps, 0.0)
+    e = np.broadcast_to(np.max(pick, axis=1, keepdims=True), eps.shape)
+    out = np.empty(w.shape)
+    out[..., 0] = np.log1p(-e)
+    out[..., 1] = w[..., 1] - np.log(eps) + np.log(e)
+    return out
 
 
 def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray,

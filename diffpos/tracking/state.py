@@ -722,6 +722,23 @@ class TrackerConfig:
         ``large``'s few-range nodes: 16-22 % switch; the flat prior lost them).
         Offline (docs/tracking_evidence.md "Session 27: why mechanism_prior_min_links loses"):
         q 0.1-0.5 with the gate 4 keep heldout-2's gain and remove ``large``'s loss.
+    link_eps_node : bool
+        (``link_learn``) Every hypothesis of a node uses, for each of its links, the node's
+        learned outlier weight: the largest ``eps`` any of the node's hypotheses learned for
+        that link (:func:`diffpos.tracking.evidence.node_weights`; the inlier weight ``log(1 -
+        eps)`` and the outlier component's ``log eps`` both). The counts are still learned per
+        hypothesis. Why: whether a link's first arrival is out of the path model is a property
+        of the channel between the anchor and the node, not of a hypothesis; learned per
+        hypothesis, the weight rewards a hypothesis for having called the link an outlier
+        before, so a wrong floor that has tracked for a while pays less for the links it does
+        not explain than the true floor does (Sionna RT paper, the wrong node-epochs after 5 s
+        with the true floor's track within 0.5 m: the per-hypothesis weights moved the epoch's
+        evidence 1.5 nats (median) towards the winner; docs/tracking_evidence.md "Session 28:
+        the learned outlier weight"). Default False (per hypothesis, as before).
+    link_eps_node_awake : bool
+        With ``link_eps_node``: the largest weight over the node's awake hypotheses only (a
+        dormant hypothesis is not updated, its counts are those of an old state); a node with
+        none awake: over all. Default False.
     """
 
     q_h_m2_s3: float = 1.5
@@ -815,6 +832,8 @@ class TrackerConfig:
     edge_retry_prior: bool = False
     edge_retry_node: bool = True
     mechanism_switch_p: float = 0.3
+    link_eps_node: bool = False
+    link_eps_node_awake: bool = False
 
 
 @dataclass(frozen=True)

@@ -148,6 +148,7 @@ from diffpos.tracking.evidence import (
     learned_weights,
     match_links,
     model_doubt,
+    node_weights,
     reset_links,
     unexplained_log_odds,
 )
@@ -1159,6 +1160,9 @@ def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
                                     config, need)
     link_w = learned_weights(lk, col, m0, c0, sub, t_ns[idx], config, SNR_SIGMA_DB,
                              SNR_SPAN_DB, ~learned if config.link_learn_unexplained else None)
+    if config.link_eps_node:  # the node's outlier weight of every link (node_weights)
+        link_w = node_weights(link_w, ~np.isfinite(state.dormant_llr[idx])
+                              if config.link_eps_node_awake else None)
     fam_gate = None
     if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
         fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0],

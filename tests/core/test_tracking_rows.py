@@ -30,6 +30,8 @@ PERIOD = dataclasses.replace(DEFICIT, reseed_period_s=0.3)
 #: the persistent mechanism prior (``mechanism_switch_p``, off by default) for every node
 #: (fewer than 9 of the 8 ranges), so ``link_slot`` is kept and read
 PERSIST = dataclasses.replace(CFG, mechanism_prior_min_links=9, mechanism_switch_p=0.3)
+#: a node's link weights shared by its (awake) hypotheses (``link_eps_node``, off by default)
+SHARED = dataclasses.replace(CFG, link_eps_node=True, link_eps_node_awake=True)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -72,8 +74,8 @@ def _assert_same(a, b) -> None:
         assert va.tobytes() == vb.tobytes(), f.name  # bytes: NaN payloads and -0.0 too
 
 
-@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST],
-                         ids=["default", "deficit", "period", "persist"])
+@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED],
+                         ids=["default", "deficit", "period", "persist", "shared"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)
