@@ -17,7 +17,8 @@ and range noise on Sionna's paths), and the same study on the project's own O2I 
 the SAME receivers and anchors (the dataset's receivers as static nodes of the scenario:
 :func:`diffpos.study.emulator_arrivals`; ``--emulator-order K``: the emulated channel with the
 higher-order families M-NLS models at that K, ``radio.channel_max_order = K``, instead of the
-scenario's 18 mechanisms). It prints, per channel, the right floor of M-NLS
+scenario's 18 mechanisms; ``--emulator-order 3``: channel order 3 whatever K, the window edges
+dielectric sheets). It prints, per channel, the right floor of M-NLS
 
 - over the receivers with at least three detected anchors on that channel (``n>=3`` of them),
 - over ALL receivers (a failed fix, or a receiver with fewer than three detections, is a miss:
@@ -252,10 +253,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="+", help=f"only these buildings ({', '.join(BUILDINGS)})")
     ap.add_argument("--building", action="append", metavar="NAME=SCENARIO.toml:DATASET.npz",
                     help="another building (SCENARIO 'paper' = the built-in one); repeatable")
-    ap.add_argument("--emulator-order", default="scenario", choices=("scenario", "K"),
+    ap.add_argument("--emulator-order", default="scenario",
+                    choices=("scenario", "K", "2", "3", "4"),
                     help="the emulated channel's mechanism order: the scenario's (default: 2, "
-                         "the 18 mechanisms) or K, the same higher-order families M-NLS "
-                         "models at that K (radio.channel_max_order = K)")
+                         "the 18 mechanisms), K, the same higher-order families M-NLS "
+                         "models at that K (radio.channel_max_order = K), or 2, 3, 4 whatever K")
     ap.add_argument("--seed", type=int, default=0, help="range-noise seed (default 0)")
     ap.add_argument("--mnls-measured-threshold", action="store_true",
                     help="diffpos reproduce --mnls-measured-threshold (SnrRule)")
@@ -289,8 +291,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"# {name}: {scenario.name}, {ds}: {st.get('samples_per_src', 0):g} samples, "
               f"depth {st.get('max_depth')}", file=sys.stderr, flush=True)
         for k in args.orders:
-            rows.append((name, k, study(scenario, ds, k, seed=args.seed, emulator_order=(
-                k if args.emulator_order == "K" else None), rule=SnrRule(
+            eo = (k if args.emulator_order == "K" else None if args.emulator_order == "scenario"
+                  else int(args.emulator_order))
+            rows.append((name, k, study(scenario, ds, k, seed=args.seed, emulator_order=eo,
+                                        rule=SnrRule(
                     args.mnls_measured_threshold, args.mnls_first_arrival_prior,
                     args.mnls_keep_hard_rule, args.mnls_dielectric_edges))))
             print(table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
@@ -299,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
           f"receivers with >= {MIN_ANCHORS} detected anchors on that channel / all; floor>=3 over "
           f"those, floor all over ALL receivers (a failed fix is a miss); conf.wrong = wrong floor at "
           f"p >= {CONFIDENT_P} over the n>=3 receivers; emulator channel order: "
-          f"{'K' if args.emulator_order == 'K' else 'the scenario radio.channel_max_order'}")
+          f"{'the scenario radio.channel_max_order' if args.emulator_order == 'scenario' else args.emulator_order}")
     print(f"command: python benchmarks/study_raytrace.py {' '.join(argv or sys.argv[1:])}")
     print(f"date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC; machine: {machine()}; "
           f"wall {time.perf_counter() - t0:.0f} s\n")

@@ -580,6 +580,14 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     (``diffpos.estimators.mnls.rules.SnrRule.dielectric_edges``); 0 (the default; recordings
     made before the setting): the radio's own order. No tracked estimate depends on it (the
     tracker does not read M-NLS's fixes)."""
+    mnls_max_order: Annotated[int, Meta(ge=2, le=4)] = 2
+    """With mnls: the M-NLS fixes' mechanism order (``diffpos.estimators.mnls.solver.mnls``
+    ``max_order``): 2 (the default; recordings made before the setting) the emulator's 18
+    mechanisms; 3 or 4 adds the higher-order families (slab image series, ground bounce before
+    the edge, wall and, on a building with partitions, partition reflections) as candidates
+    of every link, as ``diffpos reproduce --mnls-max-order`` and the tracker's
+    ``max_order`` do. No tracked estimate depends on it (the tracker does not read M-NLS's
+    fixes); docs/raytrace_study.md "Session 28"."""
     tracker: TrackerSettings = msgspec.field(default_factory=TrackerSettings)
     """With mnls + tracking: the per-responder tracker's settings, every field of
     :class:`diffpos.tracking.state.TrackerConfig` (:class:`TrackerSettings`; ``diffpos fusion

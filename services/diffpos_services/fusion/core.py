@@ -136,10 +136,11 @@ class FusionCore:
         # mnls: the building of the path model; with tracking, every node's tracker state
         self.building = config.building_model() if config.method == "mnls" else None
         # (building, radio, M-NLS's SnrRule fields: diffpos.estimators.mnls.rules, imported
-        # only where mnls runs)
+        # only where mnls runs, M-NLS's mechanism order)
         self.model = (self.building, config.radio_model(),
                       (config.mnls_measured_threshold, config.mnls_first_arrival_prior,
-                       config.mnls_keep_hard_rule, config.mnls_dielectric_edges))
+                       config.mnls_keep_hard_rule, config.mnls_dielectric_edges),
+                      config.mnls_max_order)
         self.bank = (_track_bank(self.building, config)
                      if self.building is not None and config.tracking else None)
         self.method_name = config.method + ("+tracking" if self.bank is not None else "")

@@ -77,6 +77,7 @@ from diffpos.alignment import PendingEpoch
 from diffpos.estimators.mnls import solver as mnls_solver
 from diffpos.estimators.mnls.rules import SnrRule
 from diffpos.estimators.result import ExclusionReason, FixStatus
+from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.tracking.state import (
     TrackerConfig,
     TrackerState,
@@ -361,18 +362,18 @@ def _mnls_start(rows: np.ndarray, prep: Prepared, batch: Batch, model,
     were ~40 % of its serial work in the soak); :func:`_mnls_finish` collects them."""
     if rows.size == 0:
         return None
-    building, radio, rule = model
+    building, radio, rule, order = model
     args = (prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows], batch.use[rows],
             None if radio is None else batch.snr[rows])
 
-    def here(apos, rng, sig, mask, snr, radio_, rule_):
+    def here(apos, rng, sig, mask, snr, radio_, rule_, order_):
         return mnls_solver.mnls(apos, rng, sig, building=building, mask=mask, snr_db=snr,
-                                radio=radio_, snr_rule=SnrRule(*rule_))
+                                radio=radio_, snr_rule=SnrRule(*rule_), max_order=order_)
 
     if pool is None or pool.building is not building:  # computed when collected
-        return rows, None, lambda _: here(*args, radio, rule)
-    return rows, pool.submit("mnls", args, rows.size, here, shared=(radio, rule)), \
-        lambda p: pool.result(p, here, shared=(radio, rule))
+        return rows, None, lambda _: here(*args, radio, rule, order)
+    return rows, pool.submit("mnls", args, rows.size, here, shared=(radio, rule, order)), \
+        lambda p: pool.result(p, here, shared=(radio, rule, order))
 
 
 def _mnls_finish(started: tuple | None, res: Results, floor: np.ndarray, prob: np.ndarray,
@@ -386,7 +387,9 @@ def _mnls_finish(started: tuple | None, res: Results, floor: np.ndarray, prob: n
     res.put(rows, fix)
     floor[rows] = fix.floor
     prob[rows] = fix.floor_probability
-    mech[rows] = np.where(fix.used, fix.mechanism, -1)
+    # the published labels are the 18 mechanisms': a higher-order family (mnls_max_order > 2,
+    # slot >= 18) is published without one
+    mech[rows] = np.where(fix.used & (fix.mechanism < len(MECHANISMS)), fix.mechanism, -1)
 
 
 def _rounds(epochs: list[PendingEpoch]) -> list[list[int]]:

@@ -36,12 +36,12 @@ def _task_update(model: tuple, *args):
     return run_update(model[0], *args)
 
 
-def _task_mnls(model: tuple, apos, rng, sig, mask, snr_db, radio, rule):
+def _task_mnls(model: tuple, apos, rng, sig, mask, snr_db, radio, rule, order=2):
     from diffpos.estimators.mnls import solver as mnls_solver  # as _task_update
     from diffpos.estimators.mnls.rules import SnrRule
 
     return mnls_solver.mnls(apos, rng, sig, building=model[0], mask=mask, snr_db=snr_db,
-                            radio=radio, snr_rule=SnrRule(*rule))
+                            radio=radio, snr_rule=SnrRule(*rule), max_order=order)
 
 
 def _task_fail(model: tuple, *args):
