@@ -181,6 +181,7 @@ from diffpos.tracking.state import (
     TrackerState,
     TrackOutput,
     TrackStatus,
+    credible_floor_weights,
     floor_contested,
     floor_probabilities,
     floor_reweighted,
@@ -328,10 +329,13 @@ def _band_bound(out: TrackOutput, building) -> TrackOutput:
         out.covariance_m2[:, 2, 2], building.first_floor_z_m, building.floor_height_m))
 
 
-def _published_floor_cov(state: TrackerState, out: TrackOutput) -> TrackOutput:
-    """The published covariance with every floor's hypotheses weighted by the published floor
-    probabilities (``TrackerConfig.cov_published_floors``: :func:`floor_reweighted`,
-    :func:`mixture_mse_cov`); rows without a position keep NaN."""
+def _published_floor_cov(state: TrackerState, out: TrackOutput, which: str) -> TrackOutput:
+    """The published covariance with the floors' hypotheses weighted by the published floor
+    probabilities (``which`` = ``TrackerConfig.cov_published_floors``: "all" every floor,
+    "credible" those of the 95 % credible set: :func:`credible_floor_weights`;
+    :func:`floor_reweighted`, :func:`mixture_mse_cov`); rows without a position keep NaN."""
+    if which not in ("all", "credible"):
+        raise ValueError(f"cov_published_floors must be 'off', 'all' or 'credible'; got {which!r}")
     has = np.isfinite(out.position_m).all(axis=1) & np.isfinite(out.floor_probabilities).all(
         axis=1)
     if not np.any(has):
@@ -339,9 +343,12 @@ def _published_floor_cov(state: TrackerState, out: TrackOutput) -> TrackOutput:
     q = out.floor_probabilities[has]
     q = q / np.maximum(q.sum(axis=1, keepdims=True), 1e-300)
     best = out.floor_index[has]
+    prob_h = np.exp(state.log_prob[has])
+    if which == "credible":
+        q = credible_floor_weights(q, floor_probabilities(None, prob_h))
     cov = out.covariance_m2.copy()
     cov[has] = mixture_mse_cov(
-        state.mean[has], state.cov[has], floor_reweighted(np.exp(state.log_prob[has]), q),
+        state.mean[has], state.cov[has], floor_reweighted(prob_h, q),
         out.position_m[has], best, q[np.arange(best.size), best],
         np.clip(state.nis[has], 1.0, 100.0))
     return replace(out, covariance_m2=cov)
@@ -565,7 +572,9 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
     out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas, config)
     out = _band_bound(out, building) if config.floor_band_bound else out
-    return new, (_published_floor_cov(new, out) if config.cov_published_floors else out)
+    if config.cov_published_floors == "off":
+        return new, out
+    return new, _published_floor_cov(new, out, config.cov_published_floors)
 
 
 # --------------------------------------------------------------------------------------------

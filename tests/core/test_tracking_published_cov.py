@@ -16,7 +16,12 @@ import numpy as np
 
 from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
-from diffpos.tracking.state import TrackerConfig, floor_reweighted, mixture_mse_cov
+from diffpos.tracking.state import (
+    TrackerConfig,
+    credible_floor_weights,
+    floor_reweighted,
+    mixture_mse_cov,
+)
 from diffpos.tracking.tracker import init_state, update
 from diffpos.trajectory import trajectory_from_dict
 
@@ -114,7 +119,7 @@ def test_tracker_publishes_the_published_floors_covariance():
     position, floor, probabilities and status are the default's bit for bit; the covariance
     is the brute-force sum over the state's hypotheses (explicit loop) weighted with the
     published floor probabilities (rtol 1e-9); it differs from the default's at some epoch."""
-    on = _walk(TrackerConfig(cov_published_floors=True))
+    on = _walk(TrackerConfig(cov_published_floors="all"))
     off = _walk(TrackerConfig())
     differs = 0
     for (o1, s1), (o0, s0) in zip(on, off, strict=True):
@@ -141,3 +146,49 @@ def test_tracker_publishes_the_published_floors_covariance():
         np.testing.assert_allclose(o1.covariance_m2[0], ref, rtol=1e-9, atol=1e-12)
         differs += int(not np.allclose(o1.covariance_m2[0], o0.covariance_m2[0], rtol=1e-6))
     assert differs >= 1
+
+
+def test_credible_floor_weights_by_brute_force():
+    """Random published and filter floor vectors (seed 9, 300 x 5, some with a floor at
+    >= 0.95): per row the floors taken one by one in descending published probability until
+    their sum reaches 0.95 keep the published probability, the others get the filter's
+    (exact); a row whose best floor has >= 0.95 keeps only that floor's."""
+    rng = np.random.default_rng(9)
+    q = rng.dirichlet(np.full(5, 0.4), 300)
+    q[:40] = 0.01 / 4
+    q[np.arange(40), rng.integers(0, 5, 40)] = 0.99
+    p = rng.dirichlet(np.full(5, 0.2), 300)
+    got = credible_floor_weights(q, p)
+    for i in range(300):
+        ref, total = p[i].copy(), 0.0
+        for f in sorted(range(5), key=lambda f: -q[i, f]):
+            if total >= 0.95:
+                break
+            ref[f], total = q[i, f], total + q[i, f]
+        np.testing.assert_array_equal(got[i], ref)
+        if i < 40:
+            assert np.sum(got[i] == q[i]) == 1 or np.allclose(p[i], q[i])
+
+
+def test_tracker_credible_keeps_the_publication_and_uses_the_credible_floors():
+    """The stairs walk with "credible": position, floor, probabilities and status are the
+    default's bit for bit; the covariance is "all"'s (rtol 1e-9) at every epoch whose
+    credible set holds every floor (the same weights: at least one such epoch) and differs
+    from it at some epoch whose set leaves floors out."""
+    cr = _walk(TrackerConfig(cov_published_floors="credible"))
+    al = _walk(TrackerConfig(cov_published_floors="all"))
+    off = _walk(TrackerConfig())
+    same = differ = 0
+    for (o2, _), (o1, _), (o0, _s0) in zip(cr, al, off, strict=True):
+        for f in ("position_m", "floor_index", "floor_probabilities", "status", "nis"):
+            assert np.array_equal(getattr(o2, f), getattr(o0, f), equal_nan=True), f
+        k = int(o2.floor_index[0])
+        if k < 0:
+            continue
+        q = o2.floor_probabilities[0] / o2.floor_probabilities[0].sum()
+        if np.sort(q)[::-1][:-1].sum() < 0.95:  # every floor but the least is needed
+            np.testing.assert_allclose(o2.covariance_m2[0], o1.covariance_m2[0], rtol=1e-9)
+            same += 1
+        else:
+            differ += int(not np.allclose(o2.covariance_m2[0], o1.covariance_m2[0], rtol=1e-6))
+    assert same >= 1 and differ >= 1
