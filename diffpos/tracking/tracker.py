@@ -182,12 +182,15 @@ from diffpos.tracking.state import (
     TrackerState,
     TrackOutput,
     TrackStatus,
+    credible_floor_weights,
     floor_contested,
     floor_probabilities,
+    floor_reweighted,
     has_position,
     height_band_bound,
     hypothesis_floor,
     hypothesis_vertical,
+    mixture_mse_cov,
     n_floors_of,
     published_floor_probabilities,
 )
@@ -279,18 +282,13 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
     pair = np.stack([best, best + nf], axis=1)  # (N, 2)
     w = prob_h[rows[:, None], pair]
     w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    xm = state.mean[rows[:, None], pair, :3]  # (N, 2, 3)
-    pos = np.einsum("nm,nmi->ni", w, xm)
-    pm = np.einsum("nm,nmij->nij", w, state.cov[rows[:, None], pair, :3, :3])
-    # spread of every hypothesis' mean about the published point (floor and mode uncertainty):
-    # the mean-square error of the point under the mixture
-    d = state.mean[..., :3] - pos[:, None]
-    # a posteriori variance factor: the averaged NIS per used range above 1 says the ranges
-    # scatter more than their sigmas (model mismatch), so the covariance is widened by it
-    vf = np.clip(state.nis, 1.0, 100.0)[:, None, None]
-    dm = xm - pos[:, None]
-    cov = (vf * pm + np.einsum("nh,nhi,nhj->nij", prob_h, d, d)
-           + np.einsum("nm,nmi,nmj->nij", w * (1.0 - prob[rows, best])[:, None], dm, dm))
+    pos = np.einsum("nm,nmi->ni", w, state.mean[rows[:, None], pair, :3])
+    # the best floor's modes' covariance plus the spread of every hypothesis' mean about the
+    # published point (floor and mode uncertainty): the mean-square error of the point under
+    # the mixture; a posteriori variance factor: the averaged NIS per used range above 1 says
+    # the ranges scatter more than their sigmas (model mismatch), so it widens the covariance
+    cov = mixture_mse_cov(state.mean, state.cov, prob_h, pos, best, prob[rows, best],
+                          np.clip(state.nis, 1.0, 100.0))
     has = has_position(state.status)
     return TrackOutput(
         position_m=np.where(has[:, None], pos, np.nan),
@@ -330,6 +328,31 @@ def _band_bound(out: TrackOutput, building) -> TrackOutput:
     return replace(out, floor_probabilities=height_band_bound(
         out.floor_probabilities, out.floor_index, out.position_m[:, 2],
         out.covariance_m2[:, 2, 2], building.first_floor_z_m, building.floor_height_m))
+
+
+def _published_floor_cov(state: TrackerState, out: TrackOutput, which: str) -> TrackOutput:
+    """The published covariance with the floors' hypotheses weighted by the published floor
+    probabilities (``which`` = ``TrackerConfig.cov_published_floors``: "all" every floor,
+    "credible" those of the 95 % credible set: :func:`credible_floor_weights`;
+    :func:`floor_reweighted`, :func:`mixture_mse_cov`); rows without a position keep NaN."""
+    if which not in ("all", "credible"):
+        raise ValueError(f"cov_published_floors must be 'off', 'all' or 'credible'; got {which!r}")
+    has = np.isfinite(out.position_m).all(axis=1) & np.isfinite(out.floor_probabilities).all(
+        axis=1)
+    if not np.any(has):
+        return out
+    q = out.floor_probabilities[has]
+    q = q / np.maximum(q.sum(axis=1, keepdims=True), 1e-300)
+    best = out.floor_index[has]
+    prob_h = np.exp(state.log_prob[has])
+    if which == "credible":
+        q = credible_floor_weights(q, floor_probabilities(None, prob_h))
+    cov = out.covariance_m2.copy()
+    cov[has] = mixture_mse_cov(
+        state.mean[has], state.cov[has], floor_reweighted(prob_h, q),
+        out.position_m[has], best, q[np.arange(best.size), best],
+        np.clip(state.nis[has], 1.0, 100.0))
+    return replace(out, covariance_m2=cov)
 
 
 def _reseed_ranges(config: TrackerConfig) -> int:
@@ -549,7 +572,10 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit)
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
     out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas, config)
-    return new, (_band_bound(out, building) if config.floor_band_bound else out)
+    out = _band_bound(out, building) if config.floor_band_bound else out
+    if config.cov_published_floors == "off":
+        return new, out
+    return new, _published_floor_cov(new, out, config.cov_published_floors)
 
 
 # --------------------------------------------------------------------------------------------
