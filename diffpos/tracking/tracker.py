@@ -498,7 +498,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     if idx.size:
         due = _deficit_schedule(state.t_ns[idx], t[idx], st.refresh_origin_ns[idx],
                                 n_floors_of(st), config)
-        new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
+        new, ran, bad_epoch, bad_f, mech[idx], resid[idx], burst = _track_update(
             st, links, idx, t, inflow, dt_s, building, config, due)
         if "snr_node" in new:  # the SNR cache carried along (diffpos.tracking.model.snr_reuse_on)
             snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
@@ -509,6 +509,9 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     lk = {k: merged[k] for k in _LINK_STATE}
     if idx.size:
         floor_bad[idx] = np.where(ran, np.where(bad_f, floor_bad[idx] + 1, 0), floor_bad[idx])
+        if burst is not None:  # reseed_outliers: re-seeded below, in this epoch
+            floor_bad[idx] = np.where(burst, np.maximum(floor_bad[idx], config.reseed_epochs),
+                                      floor_bad[idx])
         if due is not None:  # an evidence deficit in deficit_tests tests: re-seeded below
             hit = new["deficit_count"] >= max(config.deficit_tests, 1)
             floor_bad[idx] = np.where(hit, np.maximum(floor_bad[idx], config.reseed_epochs),
@@ -945,6 +948,8 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
     nis_f, n_in_f = _epoch_nis(nis_h)
     bad_f = (2 * n_in_f < n_meas[:, None]) | (nis_f > config.nis_limit)
+    burst = (_outlier_burst(slot, sub.mask[:, 0], link_w, run & _leading_floor(lp0), config)
+             if config.reseed_outliers > 0 else None)
     # consecutive real updates below the threshold; the update of a dormant hypothesis
     # (refresh or wake-up) re-converges its stale state and does not count
     below = np.where(run, np.where(np.isfinite(llr0), 0,
@@ -964,7 +969,31 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     if prev is not None:
         new["link_slot"] = _kept_slots(state.link_slot[idx], fresh, col, run, slot,
                                        sub.mask[:, 0])
-    return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
+    return new, run, bad_epoch, bad_f, slot[r, best], res[r, best], burst
+
+
+def _leading_floor(lp: FloatArray) -> NDArray[np.bool_]:
+    """The hypotheses (n, H) of each node's most probable floor under ``lp`` (n, H) (both
+    modes)."""
+    nf = lp.shape[1] // 2
+    lead = np.argmax(np.logaddexp(lp[:, :nf], lp[:, nf:]), axis=1)
+    return np.tile(np.arange(nf), 2)[None, :] == lead[:, None]
+
+
+def _outlier_burst(slot: NDArray, mask: NDArray, link_w: FloatArray | None, run: NDArray,
+                   config: TrackerConfig) -> NDArray[np.bool_]:
+    """``TrackerConfig.reseed_outliers``: of the hypotheses ``run`` (n, H) (updated this
+    epoch, of the node's leading floor), those in good standing before this epoch (at least
+    ``reseed_min_links`` and four ranges, every present link's learned outlier probability
+    ``1 - exp(link_w[..., 0])`` below ``edge_retry_eps``; the prior's where ``link_w`` is
+    None) that call at least ``reseed_outliers`` present links (``mask`` (n, M)) outliers in
+    this epoch's update (``slot`` (n, H, M) -1)."""
+    m = mask[:, None, :]
+    eps = (np.full(slot.shape, config.outlier_weight) if link_w is None
+           else -np.expm1(link_w[..., 0]))
+    good = np.all(~m | (eps < config.edge_retry_eps), axis=-1)
+    good &= (mask.sum(axis=-1) >= max(config.reseed_min_links, 4))[:, None]
+    return run & good & (np.sum(m & (slot < 0), axis=-1) >= config.reseed_outliers)
 
 
 def _learned(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray, n_meas: NDArray,
