@@ -30,6 +30,9 @@ PERIOD = dataclasses.replace(DEFICIT, reseed_period_s=0.3)
 #: the persistent mechanism prior (``mechanism_switch_p``, off by default) for every node
 #: (fewer than 9 of the 8 ranges), so ``link_slot`` is kept and read
 PERSIST = dataclasses.replace(CFG, mechanism_prior_min_links=9, mechanism_switch_p=0.3)
+#: the re-seed on a burst of outliers of the believed floor (``reseed_outliers``, off by
+#: default), here on a single outlier so it fires
+BURST = dataclasses.replace(CFG, reseed_outliers=1)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -72,8 +75,8 @@ def _assert_same(a, b) -> None:
         assert va.tobytes() == vb.tobytes(), f.name  # bytes: NaN payloads and -0.0 too
 
 
-@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST],
-                         ids=["default", "deficit", "period", "persist"])
+@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, BURST],
+                         ids=["default", "deficit", "period", "persist", "burst"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)
