@@ -948,7 +948,8 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
     nis_f, n_in_f = _epoch_nis(nis_h)
     bad_f = (2 * n_in_f < n_meas[:, None]) | (nis_f > config.nis_limit)
-    burst = (_outlier_burst(slot, sub.mask[:, 0], link_w, run & _leading_floor(lp0), config)
+    burst = (_outlier_burst(slot, sub.mask[:, 0], link_w, run & _believed_floor(lp0), config,
+                            _seen_before(state, idx, col, fresh))
              if config.reseed_outliers > 0 else None)
     # consecutive real updates below the threshold; the update of a dormant hypothesis
     # (refresh or wake-up) re-converges its stale state and does not count
@@ -966,34 +967,49 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     if lk is not None:
         new.update(_learned(state, idx, sub, t_ns, n_meas, config, (lk, col, tab, seen),
                             (run, x, p, slot, lw, nis_h, res)))
-    if prev is not None:
+    if prev is not None or (config.reseed_outliers > 0 and col is not None):
         new["link_slot"] = _kept_slots(state.link_slot[idx], fresh, col, run, slot,
                                        sub.mask[:, 0])
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best], burst
 
 
-def _leading_floor(lp: FloatArray) -> NDArray[np.bool_]:
-    """The hypotheses (n, H) of each node's most probable floor under ``lp`` (n, H) (both
-    modes)."""
-    nf = lp.shape[1] // 2
-    lead = np.argmax(np.logaddexp(lp[:, :nf], lp[:, nf:]), axis=1)
-    return np.tile(np.arange(nf), 2)[None, :] == lead[:, None]
+def _believed_floor(lp: FloatArray) -> NDArray[np.bool_]:
+    """The hypotheses (n, H) (both modes) of each node's believed floor under ``lp`` (n, H):
+    the floor more probable than every other together (probability above 1/2); none where
+    no floor is."""
+    fp = floor_probabilities(lp)
+    lead = np.argmax(fp, axis=1)
+    lead = np.where(fp[np.arange(fp.shape[0]), lead] > 0.5, lead, -1)
+    return np.tile(np.arange(fp.shape[1]), 2)[None, :] == lead[:, None]
+
+
+def _seen_before(state: TrackerState, idx: NDArray, col: NDArray | None,
+                 fresh: NDArray | None) -> NDArray[np.bool_] | None:
+    """(n, H, M): whether each hypothesis of the nodes ``idx`` has updated with each column's
+    learned link (``col``) before (``TrackerState.link_slot`` holds its mechanism or -1 for an
+    outlier; a link a new anchor took (``fresh``): not); None without the learned links."""
+    if col is None:
+        return None
+    return np.isfinite(_gather(np.where(fresh[:, None, :], np.nan, state.link_slot[idx]), col))
 
 
 def _outlier_burst(slot: NDArray, mask: NDArray, link_w: FloatArray | None, run: NDArray,
-                   config: TrackerConfig) -> NDArray[np.bool_]:
+                   config: TrackerConfig, seen: NDArray | None = None) -> NDArray[np.bool_]:
     """``TrackerConfig.reseed_outliers``: of the hypotheses ``run`` (n, H) (updated this
     epoch, of the node's leading floor), those in good standing before this epoch (at least
     ``reseed_min_links`` and four ranges, every present link's learned outlier probability
     ``1 - exp(link_w[..., 0])`` below ``edge_retry_eps``; the prior's where ``link_w`` is
     None) that call at least ``reseed_outliers`` present links (``mask`` (n, M)) outliers in
-    this epoch's update (``slot`` (n, H, M) -1)."""
+    this epoch's update (``slot`` (n, H, M) -1) among the links they have updated with
+    before (``seen`` (n, H, M); None: any link): a link new to the track is no sign that
+    the track went wrong."""
     m = mask[:, None, :]
     eps = (np.full(slot.shape, config.outlier_weight) if link_w is None
            else -np.expm1(link_w[..., 0]))
     good = np.all(~m | (eps < config.edge_retry_eps), axis=-1)
     good &= (mask.sum(axis=-1) >= max(config.reseed_min_links, 4))[:, None]
-    return run & good & (np.sum(m & (slot < 0), axis=-1) >= config.reseed_outliers)
+    lost = m & (slot < 0) if seen is None else m & (slot < 0) & seen
+    return run & good & (np.sum(lost, axis=-1) >= config.reseed_outliers)
 
 
 def _learned(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray, n_meas: NDArray,
