@@ -948,7 +948,7 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
     nis_f, n_in_f = _epoch_nis(nis_h)
     bad_f = (2 * n_in_f < n_meas[:, None]) | (nis_f > config.nis_limit)
-    burst = (_outlier_burst(slot, sub.mask[:, 0], link_w, run & _believed_floor(lp0), config,
+    burst = (_outlier_burst(slot, sub.mask[:, 0], link_w, run & _believed_floor(lp), config,
                             _seen_before(state, idx, col, fresh))
              if config.reseed_outliers > 0 else None)
     # consecutive real updates below the threshold; the update of a dormant hypothesis
