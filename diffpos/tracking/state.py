@@ -718,7 +718,9 @@ class TrackerConfig:
         q 0.1-0.5 with the gate 4 keep heldout-2's gain and remove ``large``'s loss.
     reseed_outliers : int
         A burst of outliers on the believed floor (with ``reseed_max``): a hypothesis of the
-        node's believed floor (its predicted probability above 1/2; either mode) that is in
+        node's believed floor (its probability after this epoch's evidence above 1/2: a
+        burst that already moved the belief to another floor is left to count as evidence of
+        a floor change; either mode) that is in
         good standing (at least ``reseed_min_links`` and four ranges, every present link's
         learned outlier probability below ``edge_retry_eps``: it has been fitting every link)
         and calls at least this many present links outliers in this epoch's update, among the
