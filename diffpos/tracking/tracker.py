@@ -996,8 +996,9 @@ def _seen_before(state: TrackerState, idx: NDArray, col: NDArray | None,
 def _outlier_burst(slot: NDArray, mask: NDArray, link_w: FloatArray | None, run: NDArray,
                    config: TrackerConfig, seen: NDArray | None = None) -> NDArray[np.bool_]:
     """``TrackerConfig.reseed_outliers``: of the hypotheses ``run`` (n, H) (updated this
-    epoch, of the floor the node believes after this epoch's evidence), those in good standing before this epoch (at least
-    ``reseed_min_links`` and four ranges, every present link's learned outlier probability
+    epoch, of the floor the node believes after this epoch's evidence), those in good
+    standing before this epoch (at least ``reseed_min_links`` and four ranges, every present
+    link's learned outlier probability
     ``1 - exp(link_w[..., 0])`` below ``edge_retry_eps``; the prior's where ``link_w`` is
     None) that call at least ``reseed_outliers`` present links (``mask`` (n, M)) outliers in
     this epoch's update (``slot`` (n, H, M) -1) among the links they have updated with
