@@ -523,7 +523,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     if idx.size:
         due = _deficit_schedule(state.t_ns[idx], t[idx], st.refresh_origin_ns[idx],
                                 n_floors_of(st), config)
-        new, ran, bad_epoch, bad_f, mech[idx], resid[idx] = _track_update(
+        new, ran, bad_epoch, bad_f, mech[idx], resid[idx], burst = _track_update(
             st, links, idx, t, inflow, dt_s, building, config, due)
         if "snr_node" in new:  # the SNR cache carried along (diffpos.tracking.model.snr_reuse_on)
             snr_cache = tuple(_with_rows(a, idx, new[key]) for a, key in
@@ -534,6 +534,9 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     lk = {k: merged[k] for k in _LINK_STATE}
     if idx.size:
         floor_bad[idx] = np.where(ran, np.where(bad_f, floor_bad[idx] + 1, 0), floor_bad[idx])
+        if burst is not None:  # reseed_outliers: re-seeded below, in this epoch
+            floor_bad[idx] = np.where(burst, np.maximum(floor_bad[idx], config.reseed_epochs),
+                                      floor_bad[idx])
         if due is not None:  # an evidence deficit in deficit_tests tests: re-seeded below
             hit = new["deficit_count"] >= max(config.deficit_tests, 1)
             floor_bad[idx] = np.where(hit, np.maximum(floor_bad[idx], config.reseed_epochs),
@@ -973,6 +976,9 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     bad_epoch = (nis > config.nis_limit) | (2 * n_in < n_meas)
     nis_f, n_in_f = _epoch_nis(nis_h)
     bad_f = (2 * n_in_f < n_meas[:, None]) | (nis_f > config.nis_limit)
+    burst = (_outlier_burst(slot, sub.mask[:, 0], link_w, run & _believed_floor(lp), config,
+                            _seen_before(state, idx, col, fresh))
+             if config.reseed_outliers > 0 else None)
     # consecutive real updates below the threshold; the update of a dormant hypothesis
     # (refresh or wake-up) re-converges its stale state and does not count
     below = np.where(run, np.where(np.isfinite(llr0), 0,
@@ -989,10 +995,50 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
     if lk is not None:
         new.update(_learned(state, idx, sub, t_ns, n_meas, config, (lk, col, tab, seen),
                             (run, x, p, slot, lw, nis_h, res)))
-    if prev is not None:
+    if prev is not None or (config.reseed_outliers > 0 and col is not None):
         new["link_slot"] = _kept_slots(state.link_slot[idx], fresh, col, run, slot,
                                        sub.mask[:, 0])
-    return new, run, bad_epoch, bad_f, slot[r, best], res[r, best]
+    return new, run, bad_epoch, bad_f, slot[r, best], res[r, best], burst
+
+
+def _believed_floor(lp: FloatArray) -> NDArray[np.bool_]:
+    """The hypotheses (n, H) (both modes) of each node's believed floor under ``lp`` (n, H):
+    the floor more probable than every other together (probability above 1/2); none where
+    no floor is."""
+    fp = floor_probabilities(lp)
+    lead = np.argmax(fp, axis=1)
+    lead = np.where(fp[np.arange(fp.shape[0]), lead] > 0.5, lead, -1)
+    return np.tile(np.arange(fp.shape[1]), 2)[None, :] == lead[:, None]
+
+
+def _seen_before(state: TrackerState, idx: NDArray, col: NDArray | None,
+                 fresh: NDArray | None) -> NDArray[np.bool_] | None:
+    """(n, H, M): whether each hypothesis of the nodes ``idx`` has updated with each column's
+    learned link (``col``) before (``TrackerState.link_slot`` holds its mechanism or -1 for an
+    outlier; a link a new anchor took (``fresh``): not); None without the learned links."""
+    if col is None:
+        return None
+    return np.isfinite(_gather(np.where(fresh[:, None, :], np.nan, state.link_slot[idx]), col))
+
+
+def _outlier_burst(slot: NDArray, mask: NDArray, link_w: FloatArray | None, run: NDArray,
+                   config: TrackerConfig, seen: NDArray | None = None) -> NDArray[np.bool_]:
+    """``TrackerConfig.reseed_outliers``: of the hypotheses ``run`` (n, H) (updated this
+    epoch, of the floor the node believes after this epoch's evidence), those in good
+    standing before this epoch (at least ``reseed_min_links`` and four ranges, every present
+    link's learned outlier probability
+    ``1 - exp(link_w[..., 0])`` below ``edge_retry_eps``; the prior's where ``link_w`` is
+    None) that call at least ``reseed_outliers`` present links (``mask`` (n, M)) outliers in
+    this epoch's update (``slot`` (n, H, M) -1) among the links they have updated with
+    before (``seen`` (n, H, M); None: any link): a link new to the track is no sign that
+    the track went wrong."""
+    m = mask[:, None, :]
+    eps = (np.full(slot.shape, config.outlier_weight) if link_w is None
+           else -np.expm1(link_w[..., 0]))
+    good = np.all(~m | (eps < config.edge_retry_eps), axis=-1)
+    good &= (mask.sum(axis=-1) >= max(config.reseed_min_links, 4))[:, None]
+    lost = m & (slot < 0) if seen is None else m & (slot < 0) & seen
+    return run & good & (np.sum(lost, axis=-1) >= config.reseed_outliers)
 
 
 def _learned(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray, n_meas: NDArray,
