@@ -515,7 +515,10 @@ class TrackerConfig:
         node-epochs (5-14 %) were almost all outside the 95 % ellipsoid (2-10 % covered): the
         truth's floor hypothesis sits 1.5-2.5 m away in height AND horizontally, and the
         untempered weight makes that spread vanish. Publication only (position, floor,
-        probabilities, status unchanged). Default "off".
+        probabilities, status unchanged). Default "credible" (from session 28; "off" before:
+        coverage on Sionna paper 85 -> 95 %, the 3-UAV building 76 -> 91 %, ``large`` 90 ->
+        96 %, the main command 93 -> 96 %; docs/tracking_evidence.md "Session 28: the 95 %
+        ellipsoid's coverage").
     floor_band_bound : bool
         The published probability of the published floor is at most the mass that the
         published height ``N(z, P_zz)`` (the estimate's own position and covariance) puts on
@@ -766,6 +769,9 @@ class TrackerConfig:
         learned outlier probability below ``edge_retry_eps``: it has been fitting every link)
         and calls at least this many present links outliers in this epoch's update, among the
         links it has updated with before (``TrackerState.link_slot``, kept with the setting),
+        but not most of its present links (then the data jumped and every floor fits badly:
+        the ordinary count of bad epochs re-seeds them all, and the believed floor alone
+        first would let the others' stale tracks lead),
         is re-seeded from its floor's snapshot in the same epoch (as if it had been bad for
         ``reseed_epochs`` epochs; its log-probability untouched;
         :func:`diffpos.tracking.tracker._outlier_burst`). Why: a
@@ -774,8 +780,8 @@ class TrackerConfig:
         mechanism that does not exist at the overshot mean; two outliers cost the true floor
         10-20 nats in one or two epochs, a mirror floor takes the lead and the true floor's
         tracks go dormant metres off, never re-seeded (two outliers of four are not "most":
-        the ordinary rule never counts them bad). 0 (default): off (before). 2: the main
-        command's twelve seeds 98.65 -> 99.38 %, Sionna paper and the 3-UAV building
+        the ordinary rule never counts them bad). 2 (default from session 28; 0: off,
+        before): the main command's twelve seeds 98.65 -> 99.38 %, Sionna paper and the 3-UAV building
         identical, Sionna ``large`` 93.82 -> 93.85, the random buildings 99.73 -> 99.76
         (docs/tracking_evidence.md "Session 28: a burst of outliers on the believed floor").
     """
@@ -849,7 +855,7 @@ class TrackerConfig:
     floor_contest_kappa: float = 10.0
     floor_contest_vertical: bool = False
     floor_band_bound: bool = False
-    cov_published_floors: str = "off"
+    cov_published_floors: str = "credible"
     mode_search_outliers: int = 0
     mode_jump_rate_hz: float = 0.0
     mode_jump_sigma_m: float = 2.0
@@ -874,7 +880,7 @@ class TrackerConfig:
     mechanism_switch_p: float = 0.3
     link_eps_node: bool = False
     link_eps_node_awake: bool = False
-    reseed_outliers: int = 0
+    reseed_outliers: int = 2
 
 
 @dataclass(frozen=True)

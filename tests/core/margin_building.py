@@ -22,11 +22,11 @@ ANCHORS = np.array([[-12.0, -14.0, 1.0], [2.0, -9.0, 3.5], [19.0, -12.0, 0.5],
 #: the tracker as it was before session 27's defaults (the edge retry and the persistent
 #: mechanism prior): the tests of those settings state each of them explicitly
 PRE27 = dict(edge_retry_margin_m=0.0, edge_retry_node=False, mechanism_prior_min_links=0,
-             mechanism_switch_p=0.0)
+             mechanism_switch_p=0.0, reseed_outliers=0, cov_published_floors="off")
 
 
 def pre27_config(**kw) -> TrackerConfig:
-    """A tracker configuration without session 27's defaults, ``kw`` on top."""
+    """A tracker configuration without session 27's (and 28's) defaults, ``kw`` on top."""
     return TrackerConfig(**{**PRE27, **kw})
 
 

@@ -46,7 +46,7 @@ WRONG_XY = (12.5, 3.25)  # a local minimum of floor 3's robust range cost for NO
 # track back part of the way by themselves (measured 0.6 m off 20 epochs later); here the
 # re-seed is tested alone; so is the edge retry (edge_retry_margin_m, default 0.4: it too brings
 # the track back, measured 0.1 m off 20 epochs later)
-OFF = TrackerConfig(first_arrival_prior=0.0, edge_retry_margin_m=0.0)
+OFF = TrackerConfig(first_arrival_prior=0.0, edge_retry_margin_m=0.0, reseed_outliers=0)
 ON = dataclasses.replace(OFF, deficit_nats=4.6)
 LEVEL = dataclasses.replace(ON, deficit_level_only=True)
 EXACT = dataclasses.replace(ON, deficit_exact=True)
