@@ -782,8 +782,9 @@ class TrackerConfig:
         tracks go dormant metres off, never re-seeded (two outliers of four are not "most":
         the ordinary rule never counts them bad). 2 (default from session 28; 0: off,
         before): the main command's twelve seeds 98.65 -> 99.38 %, Sionna paper and the 3-UAV building
-        identical, Sionna ``large`` 93.82 -> 93.85, the random buildings 99.73 -> 99.76
-        (docs/tracking_evidence.md "Session 28: a burst of outliers on the believed floor").
+        identical, Sionna ``large`` 93.82 -> 93.85, the random buildings 99.73 -> 99.72
+        (99.76 without the most-outliers exclusion; docs/tracking_evidence.md "Session 28: a
+        burst of outliers on the believed floor" and "Session 28, lead").
     """
 
     q_h_m2_s3: float = 1.5
