@@ -688,9 +688,7 @@ def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
     (P,): the pairs' nodes) that has a retried pair is updated again and replaced: the
     node's floors compared under one existence model."""
     m = sub.mask[:, 0]
-    eps = (np.full(m.shape, config.outlier_weight) if w is None
-           else -np.expm1(w[:, 0, :, 0]))
-    good = np.all(~m | (eps < config.edge_retry_eps), axis=-1) & (m.sum(axis=-1) >= 4)
+    good = _good_standing(m, None if w is None else w[:, 0, :, 0], 4, config)
     rows = np.flatnonzero(good & level[:, 0] & np.any(m & (out[3] < 0), axis=-1))
     if rows.size == 0:
         return
@@ -708,6 +706,19 @@ def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,
     for j, v in enumerate((x, p, ev, sel.slot, sel.nis, res, sel.log_weight)):
         out[j] = out[j].copy()
         out[j][rows] = v[k, 0]
+
+
+def _good_standing(mask: NDArray, log_inlier_w: FloatArray | None, min_ranges: int,
+                   config: TrackerConfig) -> NDArray[np.bool_]:
+    """Tracks in good standing (the edge retry's and the burst re-seed's test): at least
+    ``min_ranges`` present links (``mask`` (..., M), broadcast against the weights) and every
+    present link's learned outlier probability ``1 - exp(log_inlier_w)`` (..., M) below
+    ``edge_retry_eps`` (None: the prior ``outlier_weight``): it has been fitting every
+    link."""
+    eps = (np.full(mask.shape, config.outlier_weight) if log_inlier_w is None
+           else -np.expm1(log_inlier_w))
+    return (np.all(~mask | (eps < config.edge_retry_eps), axis=-1)
+            & (mask.sum(axis=-1) >= min_ranges))
 
 
 def _refits_at_prior(x0, p0, sub: Links, fl, slot0, slot1, building,
@@ -1062,13 +1073,11 @@ def _outlier_burst(slot: NDArray, mask: NDArray, link_w: FloatArray | None, run:
     data jumped), and re-seeding the believed floor alone first lets the others' stale
     tracks lead (a 16 m jump: the true floor's track back after 10 epochs instead of 3)."""
     m = mask[:, None, :]
-    eps = (np.full(slot.shape, config.outlier_weight) if link_w is None
-           else -np.expm1(link_w[..., 0]))
-    good = np.all(~m | (eps < config.edge_retry_eps), axis=-1)
+    good = _good_standing(m, None if link_w is None else link_w[..., 0],
+                          max(config.reseed_min_links, 4), config)
     n_meas = mask.sum(axis=-1)
-    good &= (n_meas >= max(config.reseed_min_links, 4))[:, None]
     out = m & (slot < 0)
-    good &= 2 * np.sum(out, axis=-1) <= n_meas[:, None]  # most outliers: the ordinary rule's
+    good = good & (2 * np.sum(out, axis=-1) <= n_meas[:, None])  # most: the ordinary rule's
     lost = out if seen is None else out & seen
     return run & good & (np.sum(lost, axis=-1) >= config.reseed_outliers)
 
