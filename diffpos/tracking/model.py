@@ -508,6 +508,8 @@ def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEv
     if config.snr_diffraction_slack_db > 0:  # before the skipped paths: they add to it
         diffraction_slack(cost, pred, thr, snr, links.mask[:, 0], config)
     if config.first_arrival_prior > 0:  # the detector's skipped paths (skip_cost)
+        if config.snr_diffraction_slack_db > 0 and config.snr_slack_skip:
+            pred = slack_skip_pred(pred, links.mask[:, 0], config)
         snr_skip_kernel(_cb(pe.length, shape, np.float64), _cb(pe.loose, shape, b1),
                         _cb(pe.sure, shape, b1), _IS_DIFF, pred, thr, snr, fap, sig,
                         float(config.first_arrival_prior), cost)
@@ -556,6 +558,20 @@ def diffraction_slack(cost: FloatArray, pred: FloatArray, thr: FloatArray, snr: 
     g = g + float(np.log1p(d / (sig * np.sqrt(2.0 * np.pi))))
     cost[use] = g[use]
     return cost
+
+
+def slack_skip_pred(pred: FloatArray, mask: NDArray[np.bool_], config) -> FloatArray:
+    """The predicted SNRs ``pred`` (N, H, M, K) [dB] the detector's skipped paths
+    (:func:`skip_cost`) read with ``TrackerConfig.snr_slack_skip``: every diffraction slot of
+    a node that :func:`diffraction_slack` applies to (at most ``snr_slack_max_links`` ranges
+    in ``mask`` (N, M); 0: every node) raised by half the slack ``snr_diffraction_slack_db``,
+    the mean of the slack's flat top (the power the SNR likelihood allows, uniform over
+    ``[pred, pred + slack]``): the probability that an earlier diffraction was below the
+    threshold is then read at that power's mean, not at the half-plane's (a new array)."""
+    k = int(config.snr_slack_max_links)
+    few = (np.sum(mask, axis=-1) <= k) if k > 0 else np.ones(pred.shape[0], dtype=bool)
+    return np.where(_IS_DIFF & few[:, None, None, None],
+                    pred + 0.5 * float(config.snr_diffraction_slack_db), pred)
 
 
 def skip_cost(pe: PathEval, pred: FloatArray, thr: FloatArray, snr: FloatArray,

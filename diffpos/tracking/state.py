@@ -804,6 +804,12 @@ class TrackerConfig:
         29"): the slack on every node costs Sionna paper and the emulator's main command
         (four ranges and more: the range geometry separates the floors and the SNR's bias is
         outvoted, but a slack forgives the wrong floors' too-weak diffractions).
+    snr_slack_skip : bool
+        With ``snr_diffraction_slack_db``: the detector's skipped paths
+        (``first_arrival_prior``) read every slacked diffraction slot's power at the mean of
+        the slack's flat top (prediction + half the slack,
+        :func:`diffpos.tracking.model.slack_skip_pred`), so the two SNR terms assume the same
+        edge. Default False (the half-plane's prediction there, as before).
     """
 
     q_h_m2_s3: float = 1.5
@@ -903,6 +909,7 @@ class TrackerConfig:
     reseed_outliers: int = 2
     snr_diffraction_slack_db: float = 0.0
     snr_slack_max_links: int = 0
+    snr_slack_skip: bool = False
 
 
 @dataclass(frozen=True)
