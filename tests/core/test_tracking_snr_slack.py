@@ -14,6 +14,8 @@
   slot of a node with four ranges under ``snr_slack_max_links`` 3, is bit for bit the term
   without the setting; and the setting moves some diffraction slot by more than 0.1 nats
   (fails with the tracker ignoring it).
+* ``snr_slack_skip``: the term equals the slack's costs plus the skipped paths' numpy
+  reference fed the prediction raised by half the slack on those slots (1e-9 nats).
 Fixed seeds."""
 
 from __future__ import annotations
@@ -125,3 +127,32 @@ def test_the_tracker_snr_term_with_the_slack(seed):
                      dataclasses.replace(on, snr_slack_max_links=0))
     four = DIFF & np.isfinite(c0) & ~few[:, None, None, None] & mask[:, None, :, None]
     assert np.allclose(c2[four], ref[four], atol=1e-9, rtol=0)
+
+
+def test_the_skipped_paths_read_the_slack_mean():
+    """``snr_slack_skip``: the tracker's SNR term equals the slack's costs plus the skipped
+    paths' numpy reference (:func:`diffpos.tracking.model.skip_cost`) fed the emulator's
+    prediction raised by half the slack on the diffraction slots of the three-range nodes
+    (1e-9 nats), and differs from the slack without it."""
+    b, pos, floor, links, mask = _case(2)
+    base = TrackerConfig(snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, first_arrival_prior=0.0,
+                         snr_diffraction_slack_db=6.0, snr_slack_max_links=3)
+    on = dataclasses.replace(base, first_arrival_prior=0.8, snr_slack_skip=True)
+    relax = np.full(pos.shape[:2], 0.2)
+    pe = all_paths(pos, links, floor, b, relax)
+    c_pre = tm.snr_term(pos, links, floor, b, relax, pe, base)
+    c_on = tm.snr_term(pos, links, floor, b, relax, pe, on)
+    c_off = tm.snr_term(pos, links, floor, b, relax, pe,
+                        dataclasses.replace(on, snr_slack_skip=False))
+    pred = pair_snr_db(np.broadcast_to(links.anchors[:, 0][:, None], (*pos.shape[:2], 4, 3))
+                       .reshape(-1, 4, 3), pos.reshape(-1, 3), building=b,
+                       radio=Radio()).reshape(*pos.shape[:2], 4, -1)
+    pred = np.where(pe.loose | tm.ALWAYS_PREDICTED, pred, -np.inf)
+    few = (mask.sum(axis=-1) <= 3)[:, None, None, None]
+    pred = np.where(DIFF & few, pred + 3.0, pred)
+    _, thr = tm._snr_cost_thr(pos, links, b, trust=pe.sure)
+    ref = tm.skip_cost(pe, pred, thr, links.snr[:, 0], c_pre.copy(), Radio(), 0.8)
+    fin = np.isfinite(ref)
+    assert np.array_equal(fin, np.isfinite(c_on))
+    assert np.allclose(c_on[fin], ref[fin], atol=1e-9, rtol=0)
+    assert np.max(np.abs(c_on[fin] - c_off[fin])) > 0.01
