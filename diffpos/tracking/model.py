@@ -505,11 +505,73 @@ def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEv
                           need=h_need[:2 * q]) if q else np.empty((0, 1, K_SLOTS)))
     snr_hole_kernel(_c(h_pred, dtype=np.float64), h_need, h_meas, h_thr, hole_idx, q, sig, fap,
                     det, float(config.snr_cost_cap_nats), cost, np.empty((2 * q, K_SLOTS)))
+    if config.snr_diffraction_slack_db > 0:  # before the skipped paths: they add to it
+        diffraction_slack(cost, pred, thr, snr, links.mask[:, 0], config)
     if config.first_arrival_prior > 0:  # the detector's skipped paths (skip_cost)
+        if config.snr_diffraction_slack_db > 0 and config.snr_slack_skip:
+            pred = slack_skip_pred(pred, links.mask[:, 0], config)
         snr_skip_kernel(_cb(pe.length, shape, np.float64), _cb(pe.loose, shape, b1),
                         _cb(pe.sure, shape, b1), _IS_DIFF, pred, thr, snr, fap, sig,
                         float(config.first_arrival_prior), cost)
     return cost
+
+
+def diffraction_slack(cost: FloatArray, pred: FloatArray, thr: FloatArray, snr: FloatArray,
+                      mask: NDArray[np.bool_], config) -> FloatArray:
+    """The SNR costs ``cost`` (N, H, M, K) [nats] (capped, before the detector's skipped
+    paths) with every diffraction slot's Gaussian given an upward slack ``d =
+    config.snr_diffraction_slack_db`` [dB] at the nodes with at most
+    ``config.snr_slack_max_links`` ranges in ``mask`` (N, M) (0: every node), in place (also
+    returned): a
+    measured SNR ``snr`` (N, M) [dB] up to ``d`` above the slot's predicted SNR ``pred`` (N,
+    H, M, K) [dB] costs nothing, beyond it the Gaussian of :data:`SNR_SIGMA_DB` from ``pred +
+    d``, below ``pred`` the Gaussian as before; the detector's threshold term (``thr`` (N, H,
+    M) [dB], :func:`snr_cost`) and the cap ``config.snr_cost_cap_nats`` as before; plus the
+    density's normaliser ``log(1 + d / (SNR_SIGMA_DB sqrt(2 pi)))``: a flat top ``d`` wide,
+    a proper density over the measured SNR, so a diffraction slot gains nothing it has not
+    paid for against the other slots and the outlier.
+
+    Why one-sided: the amplitude model's horizontal window edges are a perfectly conducting
+    half-plane (the emulator's, :mod:`diffpos.channel.gtd`), whose field falls into the
+    edge's deep shadow faster than a real (thick, dielectric) edge's: against an independent
+    ray tracer (Sionna RT's live channel) the measured SNR of a ``Tx-D(lower)-Rx`` first
+    arrival is within +-1 dB of the model's where its diffraction loss is below ~30 dB and a
+    median 6-8 dB above it beyond ~40 dB (docs/tracking_evidence.md "Session 29"). Slots
+    without power (+inf) and links with an unknown SNR are unchanged."""
+    d = float(config.snr_diffraction_slack_db)
+    sig = float(SNR_SIGMA_DB)
+    meas = snr[:, None, :, None]
+    use = _IS_DIFF & np.isfinite(cost) & np.isfinite(pred) & np.isfinite(meas)
+    k = int(config.snr_slack_max_links)
+    if k > 0:  # only the nodes with at most k ranges
+        use = use & (np.sum(mask, axis=-1) <= k)[:, None, None, None]
+    if not use.any():
+        return cost
+    with np.errstate(invalid="ignore"):
+        r = meas - pred
+        r = np.where(r > d, r - d, np.minimum(r, 0.0))
+        short = np.maximum(thr[..., None] - sig - meas, 0.0)
+        g = 0.5 * (r / sig) ** 2 + 0.5 * (short / sig) ** 2
+    cap = float(config.snr_cost_cap_nats)
+    if cap > 0:
+        g = np.minimum(g, cap)
+    g = g + float(np.log1p(d / (sig * np.sqrt(2.0 * np.pi))))
+    cost[use] = g[use]
+    return cost
+
+
+def slack_skip_pred(pred: FloatArray, mask: NDArray[np.bool_], config) -> FloatArray:
+    """The predicted SNRs ``pred`` (N, H, M, K) [dB] the detector's skipped paths
+    (:func:`skip_cost`) read with ``TrackerConfig.snr_slack_skip``: every diffraction slot of
+    a node that :func:`diffraction_slack` applies to (at most ``snr_slack_max_links`` ranges
+    in ``mask`` (N, M); 0: every node) raised by half the slack ``snr_diffraction_slack_db``,
+    the mean of the slack's flat top (the power the SNR likelihood allows, uniform over
+    ``[pred, pred + slack]``): the probability that an earlier diffraction was below the
+    threshold is then read at that power's mean, not at the half-plane's (a new array)."""
+    k = int(config.snr_slack_max_links)
+    few = (np.sum(mask, axis=-1) <= k) if k > 0 else np.ones(pred.shape[0], dtype=bool)
+    return np.where(_IS_DIFF & few[:, None, None, None],
+                    pred + 0.5 * float(config.snr_diffraction_slack_db), pred)
 
 
 def skip_cost(pe: PathEval, pred: FloatArray, thr: FloatArray, snr: FloatArray,

@@ -785,6 +785,31 @@ class TrackerConfig:
         identical, Sionna ``large`` 93.82 -> 93.85, the random buildings 99.73 -> 99.72
         (99.76 without the most-outliers exclusion; docs/tracking_evidence.md "Session 28: a
         burst of outliers on the believed floor" and "Session 28, lead").
+    snr_diffraction_slack_db : float [dB]
+        Upward slack of a diffraction slot's SNR likelihood
+        (:func:`diffpos.tracking.model.diffraction_slack`): a measured SNR up to this much
+        above the slot's predicted SNR costs nothing (beyond it the Gaussian of
+        ``SNR_SIGMA_DB`` from the prediction plus the slack; below the prediction as before),
+        the density normalised (``+log(1 + slack / (sigma sqrt(2 pi)))`` nats on every scored
+        diffraction slot). Why: the amplitude model's horizontal window edges are the
+        emulator's perfectly conducting half-plane, too weak deep in the edge's shadow
+        against an independent ray tracer (Sionna RT: ``Tx-D(lower)-Rx`` first arrivals a
+        median 6-8 dB stronger than predicted where the model's diffraction loss exceeds
+        ~40 dB, +-1 dB below ~30 dB); with three ranges every floor fits the ranges and the
+        SNR decides, so that bias favours the floors less deep in the shadow every epoch.
+        0: off (default).
+    snr_slack_max_links : int
+        With ``snr_diffraction_slack_db``: only nodes with at most this many ranges in the
+        update get the slack (0: every node). Measured (docs/tracking_evidence.md "Session
+        29"): the slack on every node costs Sionna paper and the emulator's main command
+        (four ranges and more: the range geometry separates the floors and the SNR's bias is
+        outvoted, but a slack forgives the wrong floors' too-weak diffractions).
+    snr_slack_skip : bool
+        With ``snr_diffraction_slack_db``: the detector's skipped paths
+        (``first_arrival_prior``) read every slacked diffraction slot's power at the mean of
+        the slack's flat top (prediction + half the slack,
+        :func:`diffpos.tracking.model.slack_skip_pred`), so the two SNR terms assume the same
+        edge. Default False (the half-plane's prediction there, as before).
     """
 
     q_h_m2_s3: float = 1.5
@@ -882,6 +907,9 @@ class TrackerConfig:
     link_eps_node: bool = False
     link_eps_node_awake: bool = False
     reseed_outliers: int = 2
+    snr_diffraction_slack_db: float = 0.0
+    snr_slack_max_links: int = 0
+    snr_slack_skip: bool = False
 
 
 @dataclass(frozen=True)
