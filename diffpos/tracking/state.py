@@ -760,6 +760,19 @@ class TrackerConfig:
         With ``link_eps_node``: the largest weight over the node's awake hypotheses only (a
         dormant hypothesis is not updated, its counts are those of an old state); a node with
         none awake: over all. Default False.
+    link_eps_posterior : bool
+        (``link_learn``) Every hypothesis' outlier component of a link uses the larger of its
+        own learned outlier weight ``eps_h`` and the node's posterior mean ``sum_k p_k eps_k``
+        over all its hypotheses (``p_k``: their probabilities before this epoch's evidence;
+        :func:`diffpos.tracking.evidence.posterior_weights`); the inlier weight stays the
+        hypothesis' own ``log(1 - eps_h)``. The model-averaged probability that the link's
+        first arrival is out of the path model: a floor the node does not believe gets the
+        outlier weight the believed floor learned (the channel's, as far as the node knows),
+        while a hypothesis with no probability lends none (``link_eps_node``'s largest weight
+        came mostly from hypotheses calling every link an outlier at ``link_outlier_max``,
+        which made every outlier cheap on every floor: the emulator's random buildings lost
+        4 points on one, docs/tracking_evidence.md "Session 29: the model-averaged outlier
+        weight"). Default False.
     reseed_outliers : int
         A burst of outliers on the believed floor (with ``reseed_max``): a hypothesis of the
         node's believed floor (its probability after this epoch's evidence above 1/2: a
@@ -882,6 +895,7 @@ class TrackerConfig:
     link_eps_node: bool = False
     link_eps_node_awake: bool = False
     reseed_outliers: int = 2
+    link_eps_posterior: bool = False
 
 
 @dataclass(frozen=True)
