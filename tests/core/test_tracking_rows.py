@@ -35,6 +35,8 @@ SHARED = dataclasses.replace(CFG, link_eps_node=True, link_eps_node_awake=True)
 #: the re-seed on a burst of outliers of the believed floor (``reseed_outliers``, off by
 #: default), here on a single outlier so it fires
 BURST = dataclasses.replace(CFG, reseed_outliers=1)
+#: the node's model-averaged outlier weight (``link_eps_posterior``, off by default)
+POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=True)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -77,8 +79,9 @@ def _assert_same(a, b) -> None:
         assert va.tobytes() == vb.tobytes(), f.name  # bytes: NaN payloads and -0.0 too
 
 
-@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST],
-                         ids=["default", "deficit", "period", "persist", "shared", "burst"])
+@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, POSTERIOR],
+                         ids=["default", "deficit", "period", "persist", "shared", "burst",
+                              "posterior"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)
