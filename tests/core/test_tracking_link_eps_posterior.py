@@ -1,6 +1,7 @@
-"""``TrackerConfig.link_eps_posterior`` (off by default): every hypothesis' outlier component
-of a link uses the larger of its own learned outlier weight and the node's posterior mean of
-its hypotheses' weights (``sum_k p_k eps_k``); the inlier weight stays its own
+"""``TrackerConfig.link_eps_posterior`` (0, off by default): at a node with at least that many
+present ranges, every hypothesis' outlier component of a link uses the larger of its own
+learned outlier weight and the node's posterior mean of its hypotheses' weights
+(``sum_k p_k eps_k``); the inlier weight stays its own
 (docs/tracking_evidence.md "Session 29: the model-averaged outlier weight").
 
 Why: learned per hypothesis, the weight rewards a wrong floor for its own history of calling a
@@ -61,9 +62,10 @@ def _weights(n_all, n_out):
 
 
 def test_posterior_weights_against_the_model_average_of_the_reference_eps():
-    """Inlier weights unchanged (bit for bit); every outlier component is its own plus
-    ``log max(eps_h, sum_k p_k eps_k) - log eps_h`` (1e-12 nats), ``p`` the normalised
-    probabilities, ``eps`` the reference Beta means of the counts."""
+    """Inlier weights unchanged (bit for bit); every outlier component of a node used is its
+    own plus ``log max(eps_h, sum_k p_k eps_k) - log eps_h`` (1e-12 nats), ``p`` the
+    normalised probabilities, ``eps`` the reference Beta means of the counts; a node not used
+    keeps its weights bit for bit."""
     for seed in (0, 1, 2):
         rng = np.random.default_rng(seed)
         n_all = rng.uniform(0.0, 20.0, (3, 4, 3))
@@ -71,9 +73,12 @@ def test_posterior_weights_against_the_model_average_of_the_reference_eps():
         assert np.allclose(w[..., 0], np.log1p(-ref), rtol=0, atol=1e-12)
         log_prob = rng.normal(0.0, 3.0, (3, 4)) - 10.0  # unnormalised on purpose
         log_prob[1, 2] = -np.inf  # a hypothesis with no probability
-        got = posterior_weights(w, log_prob)
+        use = np.array([True, True, False])
+        got = posterior_weights(w, log_prob, use)
         assert np.array_equal(got[..., 0], w[..., 0])
-        for i in range(3):
+        assert np.array_equal(got[2], w[2])  # a node not used: unchanged
+        assert np.array_equal(posterior_weights(w, log_prob)[:2], got[:2])
+        for i in range(2):
             p = [np.exp(v) for v in log_prob[i]]
             p = [v / sum(p) for v in p]
             for m in range(3):
@@ -135,11 +140,12 @@ def test_tracker_uses_the_model_averaged_weight():
     hypothesis' inlier weight of a link is ``log(1 - eps_h)`` and its outlier component is
     the default's plus ``log max(eps_h, sum_k p_k eps_k) - log eps_h`` (1e-9 nats), from the
     previous state's counts and probabilities; the setting raises some hypothesis' outlier
-    component of the long link by > 0.1 nats (not idle) and the tracked runs differ. Off by
-    default."""
-    assert not TrackerConfig().link_eps_posterior
+    component of the long link by > 0.1 nats (not idle) and the tracked runs differ. With a
+    count above the node's four ranges the weights are the default's. Off by default."""
+    assert TrackerConfig().link_eps_posterior == 0
     base = TrackerConfig()
-    cfg = dataclasses.replace(base, link_eps_posterior=True)
+    cfg = dataclasses.replace(base, link_eps_posterior=4)
+    above = dataclasses.replace(base, link_eps_posterior=5)
     rho0, states = _states(cfg)
     hs = 2 * B.n_floors
     raised = 0.0
@@ -147,6 +153,7 @@ def test_tracker_uses_the_model_averaged_weight():
         prev = states[k - 1]
         got = _inputs(prev, rho0, k, cfg)
         off = _inputs(prev, rho0, k, base)[4][0]
+        assert np.array_equal(_inputs(prev, rho0, k, above)[4][0], off)
         w, col = got[4][0], got[1][0]  # (H, M, 2), (M,)
         p = np.exp(prev.log_prob[0] - np.max(prev.log_prob[0]))
         p = p / p.sum()

@@ -36,7 +36,7 @@ SHARED = dataclasses.replace(CFG, link_eps_node=True, link_eps_node_awake=True)
 #: default), here on a single outlier so it fires
 BURST = dataclasses.replace(CFG, reseed_outliers=1)
 #: the node's model-averaged outlier weight (``link_eps_posterior``, off by default)
-POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=True)
+POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=4)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
