@@ -56,7 +56,7 @@ from diffpos.tracking.evidence_nb import (
 from diffpos.tracking.state import FloatArray
 
 __all__ = ["LINK_FIELDS", "LINK_SLOTS", "count_unexplained", "learn", "learned_weights",
-           "match_links", "model_doubt", "model_unexplained_rate", "node_weights", "reset_links",
+           "match_links", "model_doubt", "model_unexplained_rate", "node_weights", "posterior_weights", "reset_links",
            "unexplained_log_odds"]
 
 # per node whose learned evidence the state keeps (an anchor beyond it is not learned).
@@ -242,6 +242,25 @@ def node_weights(w: FloatArray, use: NDArray[np.bool_] | None = None) -> FloatAr
     out = np.empty(w.shape)
     out[..., 0] = np.log1p(-e)
     out[..., 1] = w[..., 1] - np.log(eps) + np.log(e)
+    return out
+
+
+def posterior_weights(w: FloatArray, log_prob: FloatArray,
+                      use: NDArray[np.bool_] | None = None) -> FloatArray:
+    """The links' mixture weights ``w`` (n, H, M, 2) (:func:`learned_weights`) with every
+    hypothesis' outlier component at the larger of its own ``eps_h = 1 - exp(w[..., 0])`` and
+    the node's posterior mean ``sum_k p_k eps_k`` over its hypotheses, ``p`` the normalised
+    ``exp(log_prob)`` (n, H), at the nodes ``use`` (n,) (None: all;
+    ``TrackerConfig.link_eps_posterior``): the outlier component's ``log eps_h`` becomes
+    ``log max(eps_h, mean)``, the inlier weight and the densities unchanged. A new array."""
+    eps = -np.expm1(w[..., 0])
+    p = np.exp(log_prob - np.max(log_prob, axis=1, keepdims=True))
+    p /= np.sum(p, axis=1, keepdims=True)
+    e = np.maximum(eps, np.einsum("nh,nhm->nm", p, eps)[:, None, :])
+    if use is not None:
+        e = np.where(use[:, None, None], e, eps)
+    out = w.copy()
+    out[..., 1] += np.log(e) - np.log(eps)
     return out
 
 

@@ -760,6 +760,22 @@ class TrackerConfig:
         With ``link_eps_node``: the largest weight over the node's awake hypotheses only (a
         dormant hypothesis is not updated, its counts are those of an old state); a node with
         none awake: over all. Default False.
+    link_eps_posterior : int
+        (``link_learn``) At a node with at least this many present ranges (0: off), every
+        hypothesis' outlier component of a link uses the larger of its own learned outlier
+        weight ``eps_h`` and the node's posterior mean ``sum_k p_k eps_k`` over all its
+        hypotheses (``p_k``: their probabilities before this epoch's evidence;
+        :func:`diffpos.tracking.evidence.posterior_weights`); the inlier weight stays the
+        hypothesis' own ``log(1 - eps_h)``. The model-averaged probability that the link's
+        first arrival is out of the path model: a floor the node does not believe gets the
+        outlier weight the believed floor learned, while a hypothesis with no probability
+        lends none (``link_eps_node``'s largest weight came from such hypotheses in 99 % of
+        the links it raised, most calling every link an outlier, which made every outlier
+        cheap on every floor). With three ranges a position fits every link, so no outlier
+        call tells the channel apart (the 3-UAV building lost 5 points on one seed without
+        the count); 4 is the redundancy rule of ``reseed_min_links``
+        (docs/tracking_evidence.md "Session 29: the model-averaged outlier weight"). Default
+        0 (per hypothesis, as before).
     reseed_outliers : int
         A burst of outliers on the believed floor (with ``reseed_max``): a hypothesis of the
         node's believed floor (its probability after this epoch's evidence above 1/2: a
@@ -910,6 +926,7 @@ class TrackerConfig:
     snr_diffraction_slack_db: float = 0.0
     snr_slack_max_links: int = 0
     snr_slack_skip: bool = False
+    link_eps_posterior: int = 0
 
 
 @dataclass(frozen=True)

@@ -149,6 +149,7 @@ from diffpos.tracking.evidence import (
     match_links,
     model_doubt,
     node_weights,
+    posterior_weights,
     reset_links,
     unexplained_log_odds,
 )
@@ -1276,6 +1277,9 @@ def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
     if config.link_eps_node:  # the node's outlier weight of every link (node_weights)
         link_w = node_weights(link_w, ~np.isfinite(state.dormant_llr[idx])
                               if config.link_eps_node_awake else None)
+    if config.link_eps_posterior > 0:  # the node's model-averaged outlier weight
+        link_w = posterior_weights(link_w, state.log_prob[idx],
+                                   n_meas >= config.link_eps_posterior)
     fam_gate = None
     if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
         fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0],

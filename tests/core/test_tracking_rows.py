@@ -38,6 +38,8 @@ BURST = dataclasses.replace(CFG, reseed_outliers=1)
 #: the diffraction slots' upward SNR slack (``snr_diffraction_slack_db``, off by default) on
 #: every node
 SLACK = dataclasses.replace(CFG, snr_diffraction_slack_db=6.0)
+#: the node's model-averaged outlier weight (``link_eps_posterior``, off by default)
+POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=4)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -80,9 +82,10 @@ def _assert_same(a, b) -> None:
         assert va.tobytes() == vb.tobytes(), f.name  # bytes: NaN payloads and -0.0 too
 
 
-@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK],
+@pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
+                                    POSTERIOR],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
-                              "slack"])
+                              "slack", "posterior"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)
