@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from diffpos.channel.detection import normal_cdf
 from diffpos.estimators.gating import chi2_threshold
 from diffpos.estimators.result import ExclusionReason, FixResult, FixStatus
 
@@ -40,11 +41,30 @@ def _information(p, sel, t) -> tuple[FloatArray, FloatArray]:
     return h, var
 
 
-def _posterior(cost: FloatArray, h: FloatArray) -> FloatArray:
-    """Laplace floor posterior from (B, F) costs and (B, F, 3, 3) Hessians."""
+def _box_log_mass(x: FloatArray, h: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """Log of the mass of the Laplace Gaussian ``N(x, h^-1)`` inside the floor's box ``[lo,
+    hi]`` (..., 3), as the product over x, y, z of the marginals' in-box probabilities: exact
+    when one face of the box cuts the Gaussian (the marginal along the face's normal is all
+    that matters for a half-space), an approximation at an edge or a corner of the box. 0 where
+    ``h`` is not invertible (the mass is then not known: the Laplace term as it was)."""
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        cov = np.linalg.inv(np.where(np.isfinite(h), h, 0.0))
+        sd = np.sqrt(np.diagonal(cov, axis1=-2, axis2=-1))
+        inside = normal_cdf((hi - x) / sd) - normal_cdf((lo - x) / sd)
+        out = np.sum(np.log(inside), axis=-1)
+    return np.where(np.isfinite(out), out, 0.0)
+
+
+def _posterior(cost: FloatArray, h: FloatArray, log_mass: FloatArray | None = None
+               ) -> FloatArray:
+    """Laplace floor posterior from (B, F) costs and (B, F, 3, 3) Hessians; ``log_mass``
+    (B, F): the log of each mode's Laplace mass inside its floor's box
+    (:func:`_box_log_mass`; None: the whole Gaussian)."""
     sign, logdet = np.linalg.slogdet(h)
     logdet = np.where(sign > 0, logdet, np.inf)
     lp = -cost - 0.5 * logdet
+    if log_mass is not None:
+        lp = lp + log_mass
     lp = np.where(np.isfinite(lp), lp, -np.inf)
     mx = np.max(lp, axis=-1, keepdims=True)
     w = np.exp(lp - np.where(np.isfinite(mx), mx, 0.0))
