@@ -132,7 +132,8 @@ def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
                           mnls_measured_threshold=rule.measured_threshold,
                           mnls_first_arrival_prior=rule.first_arrival_prior,
                           mnls_keep_hard_rule=rule.keep_hard_rule,
-                          mnls_dielectric_edges=rule.dielectric_edges)
+                          mnls_dielectric_edges=rule.dielectric_edges,
+                          mnls_floor_box=rule.floor_box)
     out = {}
     rt = reproduce(scenario, cfg, kind="raytrace", path=dataset,
                    load=lambda rng: dataset_arrivals(dataset, scenario, rng=rng))
@@ -267,6 +268,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="diffpos reproduce --mnls-keep-hard-rule (SnrRule)")
     ap.add_argument("--mnls-dielectric-edges", type=float, default=0.0, metavar="Q",
                     help="diffpos reproduce --mnls-dielectric-edges (SnrRule; default 0)")
+    ap.add_argument("--mnls-floor-box", action="store_true",
+                    help="diffpos reproduce --mnls-floor-box (SnrRule.floor_box; default off)")
     ap.add_argument("--misses", action="store_true",
                     help="the misses on Sionna's channel per traced first-arrival family")
     ap.add_argument("--summary", action="store_true",
@@ -296,7 +299,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append((name, k, study(scenario, ds, k, seed=args.seed, emulator_order=eo,
                                         rule=SnrRule(
                     args.mnls_measured_threshold, args.mnls_first_arrival_prior,
-                    args.mnls_keep_hard_rule, args.mnls_dielectric_edges))))
+                    args.mnls_keep_hard_rule, args.mnls_dielectric_edges,
+                    args.mnls_floor_box))))
             print(table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
     print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
           f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "

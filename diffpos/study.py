@@ -592,6 +592,7 @@ class ReproduceConfig:
         reflections between the slabs, ground bounce before the edge).
     mnls_measured_threshold, mnls_first_arrival_prior, mnls_keep_hard_rule : bool, float, bool
     mnls_dielectric_edges : float
+    mnls_floor_box : bool
         M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: all off).
     """
 
@@ -605,6 +606,7 @@ class ReproduceConfig:
     mnls_first_arrival_prior: float = 0.0
     mnls_keep_hard_rule: bool = False
     mnls_dielectric_edges: float = 0.0
+    mnls_floor_box: bool = False
 
 
 class Progress(Protocol):
@@ -743,7 +745,8 @@ def reproduce(
         start_y_m=0.5 * scenario.building.depth_m,
         building=scenario.building, radio=scenario.radio, mnls_max_order=cfg.mnls_max_order,
         mnls_snr_rule=SnrRule(cfg.mnls_measured_threshold, cfg.mnls_first_arrival_prior,
-                              cfg.mnls_keep_hard_rule, cfg.mnls_dielectric_edges),
+                              cfg.mnls_keep_hard_rule, cfg.mnls_dielectric_edges,
+                              cfg.mnls_floor_box),
     )
     timing["positioning_s"] = time.perf_counter() - t0
     timing["method_s"] = clock.durations()
@@ -771,6 +774,7 @@ def build_summary(cfg: ReproduceConfig, scenario: Scenario, res: Reproduction) -
         "mnls_first_arrival_prior": cfg.mnls_first_arrival_prior,
         "mnls_keep_hard_rule": cfg.mnls_keep_hard_rule,
         "mnls_dielectric_edges": cfg.mnls_dielectric_edges,
+        "mnls_floor_box": cfg.mnls_floor_box,
         "window_height_m": scenario.building.window_height_m,
         "mpc_table_pct": res.table,
         "first_arrival_mechanism_pct": res.fap_by_mechanism,

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from diffpos.channel.detection import normal_cdf
 from diffpos.estimators.gating import chi2_threshold
 from diffpos.estimators.result import ExclusionReason, FixResult, FixStatus
 
@@ -40,11 +41,51 @@ def _information(p, sel, t) -> tuple[FloatArray, FloatArray]:
     return h, var
 
 
-def _posterior(cost: FloatArray, h: FloatArray) -> FloatArray:
-    """Laplace floor posterior from (B, F) costs and (B, F, 3, 3) Hessians."""
+#: Standard normal draws of the box mass's Monte Carlo (:func:`_box_log_mass`): fixed, so the
+#: posterior is deterministic; antithetic pairs (``u`` and ``-u``).
+_BOX_DRAWS = np.concatenate([(u := np.random.default_rng(29).standard_normal((4096, 3))), -u])
+#: A mode whose product-of-marginals box mass is below ``exp(-BOX_NEAR_NATS)`` is near a face
+#: (within about 3 standard deviations): its mass is the Monte Carlo of the joint Gaussian.
+BOX_NEAR_NATS = 1e-3
+
+
+def _box_log_mass(x: FloatArray, h: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """Log of the mass of the Laplace Gaussian ``N(x, h^-1)`` inside the floor's box ``[lo,
+    hi]`` (x, lo, hi (..., 3), h (..., 3, 3)): the product over x, y, z of the marginals'
+    in-box probabilities where it is within :data:`BOX_NEAR_NATS` of 1 (far from every face),
+    else the share of the fixed draws :data:`_BOX_DRAWS` of the joint Gaussian inside the box
+    (at an edge or corner of the box the product ignores the correlation; at least half a draw).
+    0 where ``h`` is not invertible (the mass is then not known: the Laplace term as it was)."""
+    shape = np.shape(x)[:-1]
+    x = np.reshape(x, (-1, 3))
+    lo = np.reshape(np.broadcast_to(lo, (*shape, 3)), (-1, 3))
+    hi = np.reshape(np.broadcast_to(hi, (*shape, 3)), (-1, 3))
+    h = np.reshape(h, (-1, 3, 3))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        cov = np.linalg.inv(np.where(np.isfinite(h), h, 0.0))
+        sd = np.sqrt(np.diagonal(cov, axis1=-2, axis2=-1))
+        out = np.sum(np.log(normal_cdf((hi - x) / sd) - normal_cdf((lo - x) / sd)), axis=-1)
+    near = np.flatnonzero(np.isfinite(out) & (out < -BOX_NEAR_NATS))
+    for k in range(0, near.size, 64):  # bounded memory: 64 x 8192 x 3 draws at a time
+        rows = near[k:k + 64]
+        w, v = np.linalg.eigh(cov[rows])
+        root = v * np.sqrt(np.maximum(w, 0.0))[:, None, :]  # root @ root.T = cov
+        pts = x[rows, None, :] + np.einsum("nij,sj->nsi", root, _BOX_DRAWS)
+        inside = np.all((pts >= lo[rows, None, :]) & (pts <= hi[rows, None, :]), axis=-1)
+        out[rows] = np.log(np.maximum(inside.mean(axis=-1), 0.5 / len(_BOX_DRAWS)))
+    return np.reshape(np.where(np.isfinite(out), out, 0.0), shape)
+
+
+def _posterior(cost: FloatArray, h: FloatArray, log_mass: FloatArray | None = None
+               ) -> FloatArray:
+    """Laplace floor posterior from (B, F) costs and (B, F, 3, 3) Hessians; ``log_mass``
+    (B, F): the log of each mode's Laplace mass inside its floor's box
+    (:func:`_box_log_mass`; None: the whole Gaussian)."""
     sign, logdet = np.linalg.slogdet(h)
     logdet = np.where(sign > 0, logdet, np.inf)
     lp = -cost - 0.5 * logdet
+    if log_mass is not None:
+        lp = lp + log_mass
     lp = np.where(np.isfinite(lp), lp, -np.inf)
     mx = np.max(lp, axis=-1, keepdims=True)
     w = np.exp(lp - np.where(np.isfinite(mx), mx, 0.0))

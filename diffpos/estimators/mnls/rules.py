@@ -80,12 +80,20 @@ class SnrRule:
         threshold and the skip prior from the radio's). On Sionna RT the conductor's
         ``D(lower)`` is a median 1.3-3.7 dB too weak and ``D(upper)`` 1.7-2.2 dB too strong
         (docs/raytrace_study.md "Session 27"). 0 (the default): the radio's own order.
+    floor_box : bool
+        Not a detector rule but the floor posterior's (M-NLS's options travel together in this
+        record): each floor's Laplace mass ``exp(-C_k) det(H_k)^(-1/2)`` times the share of
+        its Gaussian ``N(mu_k, H_k^-1)`` inside the floor's box, where the node is confined
+        (``result._box_log_mass``). A mode against a wall, the floor or the ceiling keeps about
+        half its Gaussian inside, which the whole-Gaussian Laplace term counts twice.
+        ``False`` (the default): the whole Gaussian (docs/raytrace_study.md "Session 29").
     """
 
     measured_threshold: bool = False
     first_arrival_prior: float = 0.0
     keep_hard_rule: bool = False
     dielectric_edges: float = 0.0
+    floor_box: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.first_arrival_prior < 1.0:

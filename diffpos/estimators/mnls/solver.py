@@ -113,7 +113,13 @@ from diffpos.estimators.mnls.problem import (
     _sub,
     _take,
 )
-from diffpos.estimators.mnls.result import MnlsResult, _information, _posterior, _result
+from diffpos.estimators.mnls.result import (
+    MnlsResult,
+    _box_log_mass,
+    _information,
+    _posterior,
+    _result,
+)
 from diffpos.estimators.mnls.rules import (
     DEFAULT_SNR_RULE,
     SNR_MARGIN_DB,
@@ -756,7 +762,10 @@ def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building
     h, var = _information(p, sel, t)
     h = h.reshape(b, nf, 3, 3)
     cost = np.where(active, t["cost"], np.inf).reshape(b, nf)
-    post = _posterior(cost, h)
+    box = None  # the Laplace mass inside each floor's box (SnrRule.floor_box)
+    if getattr(p.rule, "floor_box", False):
+        box = _box_log_mass(xk, h, p.lo[sel].reshape(b, nf, 3), p.hi[sel].reshape(b, nf, 3))
+    post = _posterior(cost, h, box)
     kb = np.argmax(post, axis=-1)
     rows = np.arange(b) * nf + kb
     x = xk[np.arange(b), kb]

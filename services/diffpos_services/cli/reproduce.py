@@ -101,6 +101,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "lintel diffract as a dielectric sheet of the wall material (the "
                              "channel's edge at order >= 3): 1 predicts the SNR with it, "
                              "0 < Q < 1 mixes it with the radio's (default 0: the radio's)")
+    parser.add_argument("--mnls-floor-box", action="store_true",
+                        help="mnls: each floor's Laplace mass counts only its share inside "
+                             "the floor's box (SnrRule.floor_box; default: the whole Gaussian)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -168,7 +171,8 @@ def run(args: argparse.Namespace) -> int:
                           mnls_measured_threshold=args.mnls_measured_threshold,
                           mnls_first_arrival_prior=args.mnls_first_arrival_prior,
                           mnls_keep_hard_rule=args.mnls_keep_hard_rule,
-                          mnls_dielectric_edges=args.mnls_dielectric_edges)
+                          mnls_dielectric_edges=args.mnls_dielectric_edges,
+                          mnls_floor_box=args.mnls_floor_box)
     try:
         kind, path = _channel_source(args.channel)
         with report.ProgressBars(not args.no_progress) as prog:

@@ -582,6 +582,12 @@ class FusionConfig(msgspec.Struct, kw_only=True, frozen=True):
     (``diffpos.estimators.mnls.rules.SnrRule.dielectric_edges``); 0 (the default; recordings
     made before the setting): the radio's own order. No tracked estimate depends on it (the
     tracker does not read M-NLS's fixes)."""
+    mnls_floor_box: bool = False
+    """With mnls: each floor's Laplace mass in M-NLS's floor posterior counts only its share
+    inside the floor's box (``diffpos.estimators.mnls.rules.SnrRule.floor_box``); ``False``
+    (the default; recordings made before the setting): the whole Gaussian. No tracked estimate
+    depends on it (the tracker does not read M-NLS's fixes); docs/raytrace_study.md
+    "Session 29"."""
     mnls_max_order: Annotated[int, Meta(ge=2, le=4)] = 2
     """With mnls: the M-NLS fixes' mechanism order (``diffpos.estimators.mnls.solver.mnls``
     ``max_order``): 2 (the default; recordings made before the setting) the emulator's 18

@@ -139,7 +139,8 @@ class FusionCore:
         # only where mnls runs, M-NLS's mechanism order)
         self.model = (self.building, config.radio_model(),
                       (config.mnls_measured_threshold, config.mnls_first_arrival_prior,
-                       config.mnls_keep_hard_rule, config.mnls_dielectric_edges),
+                       config.mnls_keep_hard_rule, config.mnls_dielectric_edges,
+                       config.mnls_floor_box),
                       config.mnls_max_order)
         self.bank = (_track_bank(self.building, config)
                      if self.building is not None and config.tracking else None)
