@@ -813,11 +813,14 @@ class TrackerConfig:
         median 6-8 dB stronger than predicted where the model's diffraction loss exceeds
         ~40 dB, +-1 dB below ~30 dB); with three ranges every floor fits the ranges and the
         SNR decides, so that bias favours the floors less deep in the shadow every epoch.
-        0: off (default).
+        0: off. Default 6 dB (with ``snr_slack_max_links`` 3) since session 29: the
+        measured median excess of Sionna's deep-shadow edge diffraction over the half-plane
+        (6.0 dB beyond 40 dB loss on the 3-UAV building, 4.3-5.9 dB on the paper building;
+        also the best of 3 / 4 / 6 / 8 dB offline on the 3-UAV building's floor accuracy).
     snr_slack_max_links : int
         With ``snr_diffraction_slack_db``: only nodes with at most this many ranges in the
-        update get the slack (0: every node). Measured (docs/tracking_evidence.md "Session
-        29"): the slack on every node costs Sionna paper and the emulator's main command
+        update get the slack (0: every node; default 3). Measured
+        (docs/tracking_evidence.md "Session 29"): the slack on every node costs Sionna paper and the emulator's main command
         (four ranges and more: the range geometry separates the floors and the SNR's bias is
         outvoted, but a slack forgives the wrong floors' too-weak diffractions).
     snr_slack_skip : bool
@@ -923,8 +926,8 @@ class TrackerConfig:
     link_eps_node: bool = False
     link_eps_node_awake: bool = False
     reseed_outliers: int = 2
-    snr_diffraction_slack_db: float = 0.0
-    snr_slack_max_links: int = 0
+    snr_diffraction_slack_db: float = 6.0
+    snr_slack_max_links: int = 3
     snr_slack_skip: bool = False
     link_eps_posterior: int = 0
 
