@@ -98,7 +98,8 @@ def _case(seed: int):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_the_tracker_snr_term_with_the_slack(seed):
     b, pos, floor, links, mask = _case(seed)
-    base = TrackerConfig(snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, first_arrival_prior=0.0)
+    base = TrackerConfig(snr_reuse_m=0.0, snr_reuse_anchor_m=0.0, first_arrival_prior=0.0,
+                         snr_diffraction_slack_db=0.0)  # off: the default since 424510e
     on = dataclasses.replace(base, snr_diffraction_slack_db=6.0, snr_slack_max_links=3)
     relax = np.full(pos.shape[:2], 0.2)
     pe = all_paths(pos, links, floor, b, relax)
