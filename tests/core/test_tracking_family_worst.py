@@ -142,7 +142,7 @@ def test_the_true_floor_wins_with_the_family_of_its_worst_link():
                                   cfg0.sigma_model_m, snr[None], radio)
         mean = np.zeros((1, 2 * nf, 6))
         mean[0, :, :3] = node
-        mean[0, 3, :3] = node + [0.05, -1.97, 2.42]
+        mean[0, 3, :3] = node + np.array([0.05, -1.97, 2.42])
         cov = np.broadcast_to(np.diag([0.04, 0.04, 0.01, 0.01, 0.01, 0.01]),
                               (1, 2 * nf, 6, 6)).copy()
         rr, cc = np.array([0, 0]), np.array([2, 3])
