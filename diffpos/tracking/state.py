@@ -440,6 +440,27 @@ class TrackerConfig:
         in-model rest still tests the state. With 4 ranges (the paper building's UAVs) a family
         on a well-fitted link leaves three ranges, fitted on any floor (``family_min_links``),
         so those nodes keep the misfit gate and the rule (docs/channel_mix.md "Session 27").
+    family_worst_min_links : int [ranges]
+        (``max_order`` > 2) A node with at least this many ranges but fewer than
+        ``family_min_links`` gets the extra families on ONE link per hypothesis: the present
+        link with the largest selection NIS (``link_fit``) among those its last real update
+        fitted with one of the 18 (an outlier link is the misfit gate's, not this one's),
+        where that NIS is at least ``family_worst_nis`` and the link has a fit history
+        (``family_history``); on
+        top of the other settings' gate; with ``family_minority`` none to a hypothesis that
+        misfits half of the ranges or more (:func:`diffpos.tracking.tracker._worst_link`).
+        0: off (default). Why (docs/channel_mix.md "Session 29"): on the emulator at
+        ``channel_max_order`` 3 a 4-UAV node whose first arrival from one UAV is an order-3
+        slab series (D(lower)-R(ceiling)-R(floor)) is fitted at the true floor with a wrong one
+        of the 18 inside ``nis_limit`` (capped SNR cost, the fit pulled), while the floor
+        above explains all four ranges with in-model mechanisms: ~2.3 nats per update against
+        the true floor with its track at the truth (main command seed 6, r03). Offered the
+        families on that one link the true floor explains it exactly and leads by ~7 nats;
+        one link at most, so three ranges and the track's prior still test the floor (every
+        fitted link, ``family_select`` at four ranges, lets two of four leave the fit).
+    family_worst_nis : float [-]
+        ``family_worst_min_links``' least NIS of the worst in-model link. Default 1
+        (measured on the main command at order 3, seeds 0-11, offline: 0 and 2 worse).
     family_fit : {"prior", "residual"}
         What the family gate's misfit (``family_gate="misfit"``, ``TrackerState.link_fit``)
         of a link is: ``"prior"``, its selection NIS at the prior covariance; ``"residual"``,
@@ -893,6 +914,8 @@ class TrackerConfig:
     family_snr: bool = False
     family_select: bool = False
     family_select_min_links: int = 0
+    family_worst_min_links: int = 0
+    family_worst_nis: float = 1.0
     family_fit: str = "prior"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0

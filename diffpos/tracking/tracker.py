@@ -1354,6 +1354,8 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         need = config.family_history if f >= 1.0 else (1.0 - f ** config.family_history) / (1.0 - f)
         fitted = _gather(lk["link_all"], col) >= need * (1.0 - 1e-9)
         gate &= fitted
+    worst = (_worst_link(lk, col, n_meas, gate, fitted, present, config)
+             if config.family_worst_min_links > 0 else None)
     if config.family_min_links > 0:
         enough = n_meas >= config.family_min_links
         if learned is not None:  # fewer ranges where the track learned the channel has them
@@ -1369,7 +1371,35 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         mis = gate if present is None else gate & present[:, None, :]
         few = (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
         offered = offered & (few if rich is None else few | rich)
-    return offered
+    return offered if worst is None else offered | worst
+
+
+def _worst_link(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
+                gate: NDArray[np.bool_], fitted: NDArray[np.bool_],
+                present: NDArray[np.bool_] | None, config: TrackerConfig) -> NDArray[np.bool_]:
+    """``TrackerConfig.family_worst_min_links``: the links (n, H, M) offered the extra
+    families at the nodes with at least that many ranges but fewer than ``family_min_links``
+    (``n_meas`` (n,)): per hypothesis its ONE worst-fitted present link among those the 18
+    mechanisms fitted, the largest finite ``link_fit`` of its last real update (a link it
+    called an outlier, inf, or never fitted, NaN, does not count: an outlier's families are
+    the misfit gate's), where that is at least ``family_worst_nis`` and the link has a fit
+    history (``fitted``, :func:`_family_gate`'s); with ``family_minority`` none where the
+    hypothesis misfits half of the ranges or more (``gate``: the misfits with a fit history,
+    before the ``family_min_links`` rule)."""
+    fit = _gather(lk["link_fit"], col)
+    fit = np.where(np.isfinite(fit), fit, -np.inf)
+    if present is not None:
+        fit = np.where(present[:, None, :], fit, -np.inf)
+    w = np.argmax(fit, axis=-1)[..., None]
+    one = np.zeros(fit.shape, bool)
+    np.put_along_axis(one, w, np.take_along_axis(fit, w, axis=-1) >= config.family_worst_nis,
+                      axis=-1)
+    four = (n_meas >= config.family_worst_min_links) & (n_meas < config.family_min_links)
+    out = one & fitted & four[:, None, None]
+    if config.family_minority:
+        mis = gate if present is None else gate & present[:, None, :]
+        out &= (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
+    return out
 
 
 def warm_tracking() -> float:
