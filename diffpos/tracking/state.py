@@ -785,6 +785,47 @@ class TrackerConfig:
         identical, Sionna ``large`` 93.82 -> 93.85, the random buildings 99.73 -> 99.72
         (99.76 without the most-outliers exclusion; docs/tracking_evidence.md "Session 28: a
         burst of outliers on the believed floor" and "Session 28, lead").
+    challenger_m : float [m]
+        A second position mode per floor (a *challenger* of the floor's level track; 0: off,
+        the default, replays unchanged; :func:`diffpos.tracking.tracker._challengers`). Every
+        ``challenger_period_s`` each floor (of the ``challenger_floors`` most probable) of a
+        TRACKING node with at least
+        ``reseed_min_links`` (and four) ranges and no challenger is snapshot (the grid's best
+        cell), and with ``challenger_loo_max_links`` also once per range left out; of the
+        candidates whose horizontal distance from the floor's level track exceeds this value
+        the one with the best evidence of one update with every range (from the level
+        track's prior moved there) starts the floor's challenger: a level-mode Gaussian
+        predicted and updated every epoch alongside the track (the prior link weights, no
+        mechanism history), scored against the level track updated from its own prior with
+        the same inputs. Its accumulated log-likelihood ratio (after ``challenger_grace``
+        updates) above ``challenger_nats`` replaces the level track's state by the
+        challenger's (the floor's probability kept: the evidence decides from then on);
+        below ``-challenger_nats``, after ``challenger_epochs`` updates, within half this
+        distance of the track, or with fewer ranges it is dropped. Why: a floor's only level
+        track can settle in the wrong basin of a four-range fit (one out-of-model first
+        arrival fitted by a wrong mechanism) while the truth would gain ~4 nats per epoch
+        once a track is there; one epoch's snapshot cannot tell the basins apart
+        (docs/channel_mix.md "Session 28: rand-2-0 at order 3"; docs/tracking_evidence.md
+        "Session 29: a second position mode per floor").
+    challenger_period_s : float [s]
+        With ``challenger_m``: each floor of a node is searched for a challenger once per
+        this period (floor ``f`` at phase ``f / F``, measurement time since the node's
+        origin, as the deficit test's schedule).
+    challenger_nats : float [nats]
+        With ``challenger_m``: the accumulated log-likelihood ratio that replaces the level
+        track (or, negative, drops the challenger).
+    challenger_grace : int
+        With ``challenger_m``: a challenger's first updates not scored (its snapshot's broad
+        prior costs it an Occam factor while it converges).
+    challenger_epochs : int
+        With ``challenger_m``: a challenger's scored updates before it is dropped undecided.
+    challenger_loo_max_links : int
+        With ``challenger_m``: nodes with 4 to this many ranges also get a candidate per range
+        left out (the snapshot without that range: three ranges fit a position, an
+        out-of-model fourth no longer pulls it); 0: the full snapshot only.
+    challenger_floors : int
+        With ``challenger_m``: only the node's this many most probable floors (after the
+        epoch's update) are searched for a challenger (bounded cost); 0: every floor.
     """
 
     q_h_m2_s3: float = 1.5
@@ -882,6 +923,13 @@ class TrackerConfig:
     link_eps_node: bool = False
     link_eps_node_awake: bool = False
     reseed_outliers: int = 2
+    challenger_m: float = 0.0
+    challenger_period_s: float = 1.0
+    challenger_nats: float = 6.0
+    challenger_grace: int = 3
+    challenger_epochs: int = 30
+    challenger_loo_max_links: int = 5
+    challenger_floors: int = 2
 
 
 @dataclass(frozen=True)
@@ -966,6 +1014,13 @@ class TrackerState:
         Consecutive evidence-deficit tests of every hypothesis whose floor's snapshot was
         better by more than ``TrackerConfig.deficit_nats`` (at ``deficit_tests`` it is
         re-seeded; 0 with the setting off).
+    chal_mean, chal_cov : ndarray, shape (N, F, 6), (N, F, 6, 6)
+        Every floor's challenger of its level track (``TrackerConfig.challenger_m``; its
+        Gaussian after the node's last update).
+    chal_llr : ndarray, shape (N, F) [nats]
+        The challenger's accumulated log-likelihood ratio to the level track.
+    chal_age : ndarray of int, shape (N, F)
+        The challenger's updates since it started (0: no challenger).
     """
 
     mean: FloatArray
@@ -1001,6 +1056,10 @@ class TrackerState:
     lead_ns: NDArray[np.int64]
     deficit_count: NDArray[np.int_]
     link_slot: FloatArray
+    chal_mean: FloatArray
+    chal_cov: FloatArray
+    chal_llr: FloatArray
+    chal_age: NDArray[np.int_]
 
 
 @dataclass(frozen=True)
