@@ -788,8 +788,8 @@ class TrackerConfig:
     challenger_m : float [m]
         A second position mode per floor (a *challenger* of the floor's level track; 0: off,
         the default, replays unchanged; :func:`diffpos.tracking.tracker._challengers`). Every
-        ``challenger_period_s`` each floor (of the ``challenger_floors`` most probable) of a
-        TRACKING node with at least
+        ``challenger_period_s`` each floor (of the ``challenger_floors`` most probable after
+        the leading one) of a TRACKING node with at least
         ``reseed_min_links`` (and four) ranges and no challenger is snapshot (the grid's best
         cell), and with ``challenger_loo_max_links`` also once per range left out; of the
         candidates whose horizontal distance from the floor's level track exceeds this value
@@ -819,13 +819,31 @@ class TrackerConfig:
         prior costs it an Occam factor while it converges).
     challenger_epochs : int
         With ``challenger_m``: a challenger's scored updates before it is dropped undecided.
+    challenger_min_p : float [-]
+        With ``challenger_m``: only floors whose probability (after the epoch's update) is at
+        least this value are searched (a floor far below its neighbours takes its state from
+        them through the mixing every epoch, so a challenger of its own basin would keep
+        winning against a track that keeps coming back); 0: any.
+    challenger_beat_lead : bool
+        With ``challenger_m``: the challenger is scored against the better of its floor's
+        track and the node's most probable hypothesis (updated with the same inputs): it
+        wins only where it would be the node's best explanation, so a search that finds
+        wrong floors better positions (as often as the true floor's) does not strengthen
+        a floor that stays behind.
+    challenger_min_epochs : int
+        With ``challenger_m``: the fewest scored updates before a challenger can win (a
+        transient advantage, e.g. while the walker is on the stairs, does not replace the
+        floor's track).
     challenger_loo_max_links : int
         With ``challenger_m``: nodes with 4 to this many ranges also get a candidate per range
         left out (the snapshot without that range: three ranges fit a position, an
         out-of-model fourth no longer pulls it); 0: the full snapshot only.
     challenger_floors : int
-        With ``challenger_m``: only the node's this many most probable floors (after the
-        epoch's update) are searched for a challenger (bounded cost); 0: every floor.
+        With ``challenger_m``: only the node's this many most probable floors after its
+        leading one (after the epoch's update) are searched for a challenger (bounded cost;
+        the leading floor's track is not challenged: a better position there changes no
+        floor decision, and on the stairs it moved the track the next floor mixes from);
+        0: every floor.
     """
 
     q_h_m2_s3: float = 1.5
@@ -930,6 +948,9 @@ class TrackerConfig:
     challenger_epochs: int = 30
     challenger_loo_max_links: int = 5
     challenger_floors: int = 2
+    challenger_min_epochs: int = 1
+    challenger_min_p: float = 0.0
+    challenger_beat_lead: bool = False
 
 
 @dataclass(frozen=True)

@@ -547,7 +547,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             config, _reseed_phase(state.t_ns, t, origin, floor_bad.shape[1], config))
     chal = (st.chal_mean, st.chal_cov, st.chal_llr, st.chal_age)
     if config.challenger_m > 0:  # a second level mode per floor (_challengers)
-        chal = _challengers(st, state.t_ns, links, idx, dt_s, (mean, cov, lp, floor_bad, lk),
+        chal = _challengers(st, state.t_ns, links, idx, dt_s, (mean, cov, lp, floor_bad),
                             building, config)
     coast = live & (n_meas == 0)
     status[coast] = TrackStatus.COASTING
@@ -1040,10 +1040,10 @@ def _challengers(st: TrackerState, prev_ns: NDArray[np.int64], links: Links, idx
     """``TrackerConfig.challenger_m``: the challengers of the floors' level tracks after this
     epoch's update, new arrays ``(chal_mean, chal_cov, chal_llr, chal_age)``. ``st``: the
     predicted state (the level tracks' priors), ``prev_ns`` the nodes' previous times, ``idx``
-    the nodes updated this epoch, ``track`` = (mean, cov, log_prob, floor_bad, learned link
-    state) after the update (changed in place where a challenger wins). Per node: no row
-    reads another's."""
-    mean, cov, lp, floor_bad, lk = track
+    the nodes updated this epoch, ``track`` = (mean, cov, log_prob, floor_bad) after the
+    update (mean, cov and floor_bad changed in place where a challenger wins). Per node: no
+    row reads another's."""
+    mean, cov, lp, floor_bad = track
     cm, cp, cl, ca = (st.chal_mean.copy(), st.chal_cov.copy(), st.chal_llr.copy(),
                       st.chal_age.copy())
     ok = np.zeros(ca.shape[0], bool)
@@ -1053,14 +1053,16 @@ def _challengers(st: TrackerState, prev_ns: NDArray[np.int64], links: Links, idx
     ca[~ok] = 0
     rows, fl = np.nonzero(ca > 0)
     if rows.size:
-        _challenge(st, links, rows, fl, dt_s, (cm, cp, cl, ca), (mean, cov, floor_bad, lk),
+        _challenge(st, links, rows, fl, dt_s, (cm, cp, cl, ca), (mean, cov, floor_bad),
                    building, config)
     due = _deficit_due(prev_ns, st.t_ns, st.refresh_origin_ns, ca.shape[1],
                        config.challenger_period_s) > 0
-    if config.challenger_floors > 0:  # the node's most probable floors only
+    if config.challenger_floors > 0:  # the most probable floors after the leading one
         fp = floor_probabilities(lp)
         rank = np.argsort(np.argsort(-fp, axis=1, kind="stable"), axis=1, kind="stable")
-        due &= rank < config.challenger_floors
+        due &= (rank >= 1) & (rank <= config.challenger_floors)
+    if config.challenger_min_p > 0:  # floors the data keeps alive (not mixed in from others)
+        due &= floor_probabilities(lp) >= config.challenger_min_p
     rows, fl = np.nonzero(due & ok[:, None] & (ca == 0))
     if rows.size:
         _challenger_start(st, links, rows, fl, mean, (cm, cp, cl, ca), building, config)
@@ -1069,31 +1071,39 @@ def _challengers(st: TrackerState, prev_ns: NDArray[np.int64], links: Links, idx
 
 def _challenge(st: TrackerState, links: Links, rows: NDArray, fl: NDArray, dt_s: FloatArray,
                chal: tuple, track: tuple, building, config: TrackerConfig) -> None:
-    """One epoch of the active challengers ``(rows, fl)`` (node, floor), in place: each
+    """One epoch of the active challengers ``(rows, fl)`` (node, floor), in place: each is
     predicted and updated in the level mode (:func:`_update_at`, the prior link weights, no
-    mechanism history) and the floor's level track updated again from its prior
-    (``st.mean``) with the same inputs; after ``challenger_grace`` updates the evidence
-    difference is accumulated; above ``challenger_nats`` the challenger's state replaces
-    both modes of the floor (``track`` = (mean, cov, floor_bad, learned link state), in place; what the
-    track learned of its links and mechanisms is forgotten: it was learned elsewhere), below
-    its negative, after
-    ``challenger_epochs`` scored updates or within ``challenger_m / 2`` of either mode it is
-    dropped (the level track's prior is mixed from the floor's vertical mode when that is the
-    more probable: replacing the level mode alone is undone in the next epoch)."""
+    mechanism history) and the floor's more probable mode (predicted; a node on the stairs:
+    its vertical one) is updated again from its prior (``st.mean``) with the same inputs
+    (with ``challenger_beat_lead`` the better of it and the node's most probable
+    hypothesis). After ``challenger_grace`` updates the evidence difference is accumulated;
+    above ``challenger_nats`` after at least ``challenger_min_epochs`` scored updates the
+    challenger's state replaces both modes of the floor (``track`` = (mean, cov, floor_bad),
+    in place: the level mode's prior is mixed from the vertical one when that is the more
+    probable, so replacing the level mode alone is undone in the next epoch; what the
+    hypotheses learned of their links is kept: forgetting it lost Sionna paper 1-2 points
+    offline); below ``-challenger_nats``, after ``challenger_epochs`` scored updates or
+    within ``challenger_m / 2`` of either mode it is dropped."""
     cm, cp, cl, ca = chal
-    mean, cov, floor_bad, lk = track
+    mean, cov, floor_bad = track
     nf = ca.shape[1]
     xc, pc = _propagate(cm[rows, fl][:, None], cp[rows, fl][:, None], dt_s[rows], config)
     x1, p1, e1 = _update_at(xc[:, 0], pc[:, 0], links, rows, fl, nf, building, config)[:3]
-    e0 = _update_at(st.mean[rows, fl], st.cov[rows, fl], links, rows, fl, nf, building,
-                    config)[2]
+    h0 = np.where(st.log_prob[rows, fl + nf] > st.log_prob[rows, fl], fl + nf, fl)
+    if config.challenger_beat_lead:  # also the node's most probable hypothesis
+        h0 = np.stack([h0, np.argmax(st.log_prob[rows], axis=1)], axis=1).ravel()
+    r0 = np.repeat(rows, h0.size // rows.size)
+    e0 = _update_at(st.mean[r0, h0], st.cov[r0, h0], links, r0, h0, nf, building,
+                    config)[2].reshape(rows.size, -1)
+    e0 = np.where(np.isfinite(e0), e0, -np.inf).max(axis=1)
     age = ca[rows, fl] + 1
     with np.errstate(invalid="ignore"):
         gap = np.where(np.isfinite(e1) & np.isfinite(e0), e1 - e0,
                        np.where(np.isfinite(e1), 0.0, -np.inf))
     llr = cl[rows, fl] + np.where(age > config.challenger_grace, gap, 0.0)
     cm[rows, fl], cp[rows, fl], cl[rows, fl], ca[rows, fl] = x1, p1, llr, age
-    win = llr > config.challenger_nats
+    win = (llr > config.challenger_nats) & (age >= config.challenger_grace
+                                            + config.challenger_min_epochs)
     near = _track_distance(mean, rows, fl, x1) < 0.5 * config.challenger_m
     lose = ((llr < -config.challenger_nats) | near
             | (age > config.challenger_grace + config.challenger_epochs))
@@ -1103,8 +1113,6 @@ def _challenge(st: TrackerState, links: Links, rows: NDArray, fl: NDArray, dt_s:
     pv[:, 5, 5] += (config.v_stairs_m_s / 2) ** 2  # the vertical mode: _init_hypotheses' spread
     mean[r, f], cov[r, f] = np.concatenate([x1[w], x1[w]]), np.concatenate([p1[w], pv])
     floor_bad[r, f] = 0
-    for k in (*LINK_FIELDS, "link_slot"):  # per hypothesis (evidence.reset_links' fill)
-        lk[k][r, f] = 0 if k in ("link_out", "link_all", "link_ev", "link_t_ns") else np.nan
     ca[rows[win | lose], fl[win | lose]] = 0
 
 
@@ -1150,7 +1158,8 @@ def _challenger_candidates(links: Links, rows: NDArray, fl: NDArray, building,
     xs = snapshot(sub, fl[:, None], building, config, 1)[0][:, 0]
     present = sub.mask[:, 0]
     n_m = present.sum(axis=1)
-    pr, jj = np.nonzero(present & ((n_m >= 4) & (n_m <= config.challenger_loo_max_links))[:, None])
+    loo_ok = (n_m >= 4) & (n_m <= config.challenger_loo_max_links)
+    pr, jj = np.nonzero(present & loo_ok[:, None])
     if pr.size == 0:
         return np.arange(rows.size), xs
     loo = sub.take(pr)
