@@ -850,6 +850,70 @@ class TrackerConfig:
         the slack's flat top (prediction + half the slack,
         :func:`diffpos.tracking.model.slack_skip_pred`), so the two SNR terms assume the same
         edge. Default False (the half-plane's prediction there, as before).
+    challenger_m : float [m]
+        A second position mode per floor (a *challenger* of the floor's level track; 0: off,
+        the default, replays unchanged; :func:`diffpos.tracking.tracker._challengers`). Every
+        ``challenger_period_s`` each floor (of the ``challenger_floors`` most probable after
+        the leading one) of a TRACKING node with at least
+        ``reseed_min_links`` (and four) ranges and no challenger is snapshot (the grid's best
+        cell), and with ``challenger_loo_max_links`` also once per range left out; of the
+        candidates whose horizontal distance from the floor's level track exceeds this value
+        the one with the best evidence of one update with every range (from the level
+        track's prior moved there) starts the floor's challenger: a level-mode Gaussian
+        predicted and updated every epoch alongside the track (the prior link weights, no
+        mechanism history), scored against the level track updated from its own prior with
+        the same inputs. Its accumulated log-likelihood ratio (after ``challenger_grace``
+        updates) above ``challenger_nats`` replaces the level track's state by the
+        challenger's (the floor's probability kept: the evidence decides from then on);
+        below ``-challenger_nats``, after ``challenger_epochs`` updates, within half this
+        distance of the track, or with fewer ranges it is dropped. Why: a floor's only level
+        track can settle in the wrong basin of a four-range fit (one out-of-model first
+        arrival fitted by a wrong mechanism) while the truth would gain ~4 nats per epoch
+        once a track is there; one epoch's snapshot cannot tell the basins apart
+        (docs/channel_mix.md "Session 28: rand-2-0 at order 3"; docs/tracking_evidence.md
+        "Session 29: a second position mode per floor"). Measured at 1.5 with
+        ``challenger_beat_lead`` (replays): rand-2-0 at emulator order 3, nine runs, 91.41 ->
+        94.78 % right floor (the 8 s system-test run 76.11 -> 94.17), Sionna paper s0u-s4
+        90.20 -> 90.80 (s0u -1.2, s4 +4.2), the main command's twelve seeds identical; the
+        tracker's CPU x2.2 (x1.3 with ``challenger_period_s`` 3, ``challenger_floors`` 1): not
+        the default.
+    challenger_period_s : float [s]
+        With ``challenger_m``: each floor of a node is searched for a challenger once per
+        this period (floor ``f`` at phase ``f / F``, measurement time since the node's
+        origin, as the deficit test's schedule).
+    challenger_nats : float [nats]
+        With ``challenger_m``: the accumulated log-likelihood ratio that replaces the level
+        track (or, negative, drops the challenger).
+    challenger_grace : int
+        With ``challenger_m``: a challenger's first updates not scored (its snapshot's broad
+        prior costs it an Occam factor while it converges).
+    challenger_epochs : int
+        With ``challenger_m``: a challenger's scored updates before it is dropped undecided.
+    challenger_min_p : float [-]
+        With ``challenger_m``: only floors whose probability (after the epoch's update) is at
+        least this value are searched (a floor far below its neighbours takes its state from
+        them through the mixing every epoch, so a challenger of its own basin would keep
+        winning against a track that keeps coming back); 0: any.
+    challenger_beat_lead : bool
+        With ``challenger_m``: the challenger is scored against the better of its floor's
+        track and the node's most probable hypothesis (updated with the same inputs): it
+        wins only where it would be the node's best explanation, so a search that finds
+        wrong floors better positions (as often as the true floor's) does not strengthen
+        a floor that stays behind.
+    challenger_min_epochs : int
+        With ``challenger_m``: the fewest scored updates before a challenger can win (a
+        transient advantage, e.g. while the walker is on the stairs, does not replace the
+        floor's track).
+    challenger_loo_max_links : int
+        With ``challenger_m``: nodes with 4 to this many ranges also get a candidate per range
+        left out (the snapshot without that range: three ranges fit a position, an
+        out-of-model fourth no longer pulls it); 0: the full snapshot only.
+    challenger_floors : int
+        With ``challenger_m``: only the node's this many most probable floors after its
+        leading one (after the epoch's update) are searched for a challenger (bounded cost;
+        the leading floor's track is not challenged: a better position there changes no
+        floor decision, and on the stairs it moved the track the next floor mixes from);
+        0: every floor.
     """
 
     q_h_m2_s3: float = 1.5
@@ -953,6 +1017,16 @@ class TrackerConfig:
     snr_slack_max_links: int = 3
     snr_slack_skip: bool = False
     link_eps_posterior: int = 0
+    challenger_m: float = 0.0
+    challenger_period_s: float = 1.0
+    challenger_nats: float = 6.0
+    challenger_grace: int = 3
+    challenger_epochs: int = 30
+    challenger_loo_max_links: int = 5
+    challenger_floors: int = 2
+    challenger_min_epochs: int = 1
+    challenger_min_p: float = 0.0
+    challenger_beat_lead: bool = False
 
 
 @dataclass(frozen=True)
@@ -1037,6 +1111,13 @@ class TrackerState:
         Consecutive evidence-deficit tests of every hypothesis whose floor's snapshot was
         better by more than ``TrackerConfig.deficit_nats`` (at ``deficit_tests`` it is
         re-seeded; 0 with the setting off).
+    chal_mean, chal_cov : ndarray, shape (N, F, 6), (N, F, 6, 6)
+        Every floor's challenger of its level track (``TrackerConfig.challenger_m``; its
+        Gaussian after the node's last update).
+    chal_llr : ndarray, shape (N, F) [nats]
+        The challenger's accumulated log-likelihood ratio to the level track.
+    chal_age : ndarray of int, shape (N, F)
+        The challenger's updates since it started (0: no challenger).
     """
 
     mean: FloatArray
@@ -1072,6 +1153,10 @@ class TrackerState:
     lead_ns: NDArray[np.int64]
     deficit_count: NDArray[np.int_]
     link_slot: FloatArray
+    chal_mean: FloatArray
+    chal_cov: FloatArray
+    chal_llr: FloatArray
+    chal_age: NDArray[np.int_]
 
 
 @dataclass(frozen=True)

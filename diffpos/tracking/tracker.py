@@ -221,7 +221,10 @@ def init_state(n_nodes: int, building, *, t_ns: int = 0) -> TrackerState:
         unexplained=np.zeros(n_nodes), redundant=np.zeros(n_nodes),
         lead_floor=np.full(n_nodes, -1, int), lead_ns=np.full(n_nodes, t_ns, np.int64),
         deficit_count=np.zeros((n_nodes, h), int), **_empty_links(n_nodes, h, t_ns),
-        link_slot=np.full((n_nodes, h, LINK_SLOTS), np.nan))
+        link_slot=np.full((n_nodes, h, LINK_SLOTS), np.nan),
+        chal_mean=np.zeros((n_nodes, h // 2, 6)),
+        chal_cov=np.broadcast_to(np.eye(6), (n_nodes, h // 2, 6, 6)).copy(),
+        chal_llr=np.zeros((n_nodes, h // 2)), chal_age=np.zeros((n_nodes, h // 2), int))
 
 
 def _empty_links(n: int, h: int, t_ns: int = 0) -> dict:
@@ -474,6 +477,16 @@ def _reinitialise(jdx: NDArray, links: Links, t: NDArray, building, config: Trac
     lk["link_slot"][jdx] = np.nan
 
 
+def _count_updated(idx, bad_epoch, t, status, good, bad, last) -> None:
+    """The updated nodes ``idx``: their runs of bad / good epochs (``bad_epoch`` per row),
+    their last fix time and a coasting node tracking again, in place."""
+    bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
+    good[idx] = np.where(bad_epoch, 0, good[idx] + 1)
+    last[idx] = t[idx]
+    status[idx] = np.where(status[idx] == TrackStatus.COASTING, TrackStatus.TRACKING,
+                           status[idx])
+
+
 def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigmas_m: ArrayLike,
            mask: ArrayLike, t_ns: ArrayLike, building, config: TrackerConfig, *,
            snr_db: ArrayLike | None = None, radio=None) -> tuple[TrackerState, TrackOutput]:
@@ -536,13 +549,13 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     if idx.size:
         _mark_reseeds(floor_bad, deficit, idx, (ran, bad_f, burst),
                       None if due is None else new["deficit_count"], config)
-        bad[idx] = np.where(bad_epoch, bad[idx] + 1, 0)
-        good[idx] = np.where(bad_epoch, 0, good[idx] + 1)
-        last[idx] = t[idx]
-        status[idx] = np.where(status[idx] == TrackStatus.COASTING, TrackStatus.TRACKING,
-                               status[idx])
+        _count_updated(idx, bad_epoch, t, status, good, bad, last)
     _reseed(mean, cov, floor_bad, links, live & (n_meas >= _reseed_ranges(config)), building,
             config, _reseed_phase(state.t_ns, t, origin, floor_bad.shape[1], config))
+    chal = (st.chal_mean, st.chal_cov, st.chal_llr, st.chal_age)
+    if config.challenger_m > 0:  # a second level mode per floor (_challengers)
+        chal = _challengers(st, state.t_ns, links, idx, dt_s, (mean, cov, lp, floor_bad),
+                            building, config)
     coast = live & (n_meas == 0)
     status[coast] = TrackStatus.COASTING
     status[coast & ((t - last) * 1e-9 > config.lost_after_s)] = TrackStatus.LOST
@@ -554,6 +567,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
             mean=mean, cov=cov, lp=lp, mech=mech, resid=resid, status=status, nis=nis,
             good=good, bad=bad, last=last, floor_bad=floor_bad, llr=llr, upd=upd, below=below,
             deficit=deficit, origin=origin))
+        if config.challenger_m > 0:  # a restarted node's challengers are gone
+            chal[3][jdx] = 0
     status[(status == TrackStatus.INITIALISING) & (good >= config.confirm_epochs)] = (
         TrackStatus.TRACKING)
     if snr_cache[0] is st.snr_node:  # not updated: the new state owns its arrays
@@ -566,7 +581,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        floor_bad=floor_bad, dormant_llr=llr, updated_ns=upd,
                        below_epochs=below, refresh_origin_ns=origin, snr_node=snr_cache[0],
                        snr_anchor=snr_cache[1], snr_pred=snr_cache[2], **lk,
-                       lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit)
+                       lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit,
+                       chal_mean=chal[0], chal_cov=chal[1], chal_llr=chal[2], chal_age=chal[3])
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
     out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas, config)
     out = _band_bound(out, building) if config.floor_band_bound else out
@@ -1019,6 +1035,146 @@ def _track_update(state: TrackerState, links: Links, idx: NDArray, t_ns: NDArray
         new["link_slot"] = _kept_slots(state.link_slot[idx], fresh, col, run, slot,
                                        sub.mask[:, 0])
     return new, run, bad_epoch, bad_f, slot[r, best], res[r, best], burst
+
+
+# --------------------------------------------------------------------------------------------
+# a second level mode per floor (TrackerConfig.challenger_m)
+# --------------------------------------------------------------------------------------------
+
+
+def _challengers(st: TrackerState, prev_ns: NDArray[np.int64], links: Links, idx: NDArray,
+                 dt_s: FloatArray, track: tuple, building, config: TrackerConfig) -> tuple:
+    """``TrackerConfig.challenger_m``: the challengers of the floors' level tracks after this
+    epoch's update, new arrays ``(chal_mean, chal_cov, chal_llr, chal_age)``. ``st``: the
+    predicted state (the level tracks' priors), ``prev_ns`` the nodes' previous times, ``idx``
+    the nodes updated this epoch, ``track`` = (mean, cov, log_prob, floor_bad) after the
+    update (mean, cov and floor_bad changed in place where a challenger wins). Per node: no
+    row reads another's."""
+    mean, cov, lp, floor_bad = track
+    cm, cp, cl, ca = (st.chal_mean.copy(), st.chal_cov.copy(), st.chal_llr.copy(),
+                      st.chal_age.copy())
+    ok = np.zeros(ca.shape[0], bool)
+    ok[idx] = True
+    ok &= ((st.status == TrackStatus.TRACKING)
+           & (links.mask[:, 0].sum(axis=1) >= max(_reseed_ranges(config), 4)))
+    ca[~ok] = 0
+    rows, fl = np.nonzero(ca > 0)
+    if rows.size:
+        _challenge(st, links, rows, fl, dt_s, (cm, cp, cl, ca), (mean, cov, floor_bad),
+                   building, config)
+    due = _deficit_due(prev_ns, st.t_ns, st.refresh_origin_ns, ca.shape[1],
+                       config.challenger_period_s) > 0
+    if config.challenger_floors > 0:  # the most probable floors after the leading one
+        fp = floor_probabilities(lp)
+        rank = np.argsort(np.argsort(-fp, axis=1, kind="stable"), axis=1, kind="stable")
+        due &= (rank >= 1) & (rank <= config.challenger_floors)
+    if config.challenger_min_p > 0:  # floors the data keeps alive (not mixed in from others)
+        due &= floor_probabilities(lp) >= config.challenger_min_p
+    rows, fl = np.nonzero(due & ok[:, None] & (ca == 0))
+    if rows.size:
+        _challenger_start(st, links, rows, fl, mean, (cm, cp, cl, ca), building, config)
+    return cm, cp, cl, ca
+
+
+def _challenge(st: TrackerState, links: Links, rows: NDArray, fl: NDArray, dt_s: FloatArray,
+               chal: tuple, track: tuple, building, config: TrackerConfig) -> None:
+    """One epoch of the active challengers ``(rows, fl)`` (node, floor), in place: each is
+    predicted and updated in the level mode (:func:`_update_at`, the prior link weights, no
+    mechanism history) and the floor's more probable mode (predicted; a node on the stairs:
+    its vertical one) is updated again from its prior (``st.mean``) with the same inputs
+    (with ``challenger_beat_lead`` the better of it and the node's most probable
+    hypothesis). After ``challenger_grace`` updates the evidence difference is accumulated;
+    above ``challenger_nats`` after at least ``challenger_min_epochs`` scored updates the
+    challenger's state replaces both modes of the floor (``track`` = (mean, cov, floor_bad),
+    in place: the level mode's prior is mixed from the vertical one when that is the more
+    probable, so replacing the level mode alone is undone in the next epoch; what the
+    hypotheses learned of their links is kept: forgetting it lost Sionna paper 1-2 points
+    offline); below ``-challenger_nats``, after ``challenger_epochs`` scored updates or
+    within ``challenger_m / 2`` of either mode it is dropped."""
+    cm, cp, cl, ca = chal
+    mean, cov, floor_bad = track
+    nf = ca.shape[1]
+    xc, pc = _propagate(cm[rows, fl][:, None], cp[rows, fl][:, None], dt_s[rows], config)
+    x1, p1, e1 = _update_at(xc[:, 0], pc[:, 0], links, rows, fl, nf, building, config)[:3]
+    h0 = np.where(st.log_prob[rows, fl + nf] > st.log_prob[rows, fl], fl + nf, fl)
+    if config.challenger_beat_lead:  # also the node's most probable hypothesis
+        h0 = np.stack([h0, np.argmax(st.log_prob[rows], axis=1)], axis=1).ravel()
+    r0 = np.repeat(rows, h0.size // rows.size)
+    e0 = _update_at(st.mean[r0, h0], st.cov[r0, h0], links, r0, h0, nf, building,
+                    config)[2].reshape(rows.size, -1)
+    e0 = np.where(np.isfinite(e0), e0, -np.inf).max(axis=1)
+    age = ca[rows, fl] + 1
+    with np.errstate(invalid="ignore"):
+        gap = np.where(np.isfinite(e1) & np.isfinite(e0), e1 - e0,
+                       np.where(np.isfinite(e1), 0.0, -np.inf))
+    llr = cl[rows, fl] + np.where(age > config.challenger_grace, gap, 0.0)
+    cm[rows, fl], cp[rows, fl], cl[rows, fl], ca[rows, fl] = x1, p1, llr, age
+    win = (llr > config.challenger_nats) & (age >= config.challenger_grace
+                                            + config.challenger_min_epochs)
+    near = _track_distance(mean, rows, fl, x1) < 0.5 * config.challenger_m
+    lose = ((llr < -config.challenger_nats) | near
+            | (age > config.challenger_grace + config.challenger_epochs))
+    w = np.flatnonzero(win)
+    r, f = np.concatenate([rows[w], rows[w]]), np.concatenate([fl[w], fl[w] + nf])
+    pv = p1[w].copy()
+    pv[:, 5, 5] += (config.v_stairs_m_s / 2) ** 2  # the vertical mode: _init_hypotheses' spread
+    mean[r, f], cov[r, f] = np.concatenate([x1[w], x1[w]]), np.concatenate([p1[w], pv])
+    floor_bad[r, f] = 0
+    ca[rows[win | lose], fl[win | lose]] = 0
+
+
+def _track_distance(mean: FloatArray, rows: NDArray, fl: NDArray, x: FloatArray) -> FloatArray:
+    """Horizontal distance (P,) of the positions ``x`` (P, >= 2) from the nearer of the two
+    modes (level, vertical) of the floors ``(rows, fl)`` in ``mean`` (n, 2F, 6)."""
+    nf = mean.shape[1] // 2
+    return np.minimum(np.hypot(*(x[:, :2] - mean[rows, fl, :2]).T),
+                      np.hypot(*(x[:, :2] - mean[rows, fl + nf, :2]).T))
+
+
+def _challenger_start(st: TrackerState, links: Links, rows: NDArray, fl: NDArray,
+                      mean: FloatArray, chal: tuple, building, config: TrackerConfig) -> None:
+    """Start challengers (in place, ``chal`` = the four arrays) for the floors ``(rows, fl)``:
+    the candidates (:func:`_challenger_candidates`) farther than ``challenger_m``
+    (horizontally) from both of the floor's modes (``mean``, after this epoch's update) are
+    each updated (:func:`_update_at`, every range) from the level track's prior moved there;
+    the best evidence per floor starts its challenger (its update this epoch counted)."""
+    cm, cp, cl, ca = chal
+    nf = ca.shape[1]
+    pair, xs = _challenger_candidates(links, rows, fl, building, config)
+    far = _track_distance(mean, rows[pair], fl[pair], xs) > config.challenger_m
+    pair, xs = pair[far], xs[far]
+    if pair.size == 0:
+        return
+    r, f = rows[pair], fl[pair]
+    x0 = st.mean[r, f].copy()
+    x0[:, :3] = xs[:, :3]
+    x1, p1, e1 = _update_at(x0, st.cov[r, f], links, r, f, nf, building, config)[:3]
+    e1 = np.where(np.isfinite(e1), e1, -1e300)
+    for k in np.argsort(e1, kind="stable"):  # the best candidate of a floor written last
+        cm[r[k], f[k]], cp[r[k], f[k]] = x1[k], p1[k]
+    cl[r, f], ca[r, f] = 0.0, 1
+
+
+def _challenger_candidates(links: Links, rows: NDArray, fl: NDArray, building,
+                           config: TrackerConfig) -> tuple[NDArray, FloatArray]:
+    """Candidate positions of the floors ``(rows, fl)`` (P pairs): each floor's snapshot
+    (:func:`diffpos.tracking.model.snapshot`, the grid's best cell) and, for nodes with 4 to
+    ``challenger_loo_max_links`` ranges, its snapshot once per present range left out.
+    Returns the pair of every candidate (K,) and its state (K, 6)."""
+    sub = links.take(rows)
+    xs = snapshot(sub, fl[:, None], building, config, 1)[0][:, 0]
+    present = sub.mask[:, 0]
+    n_m = present.sum(axis=1)
+    loo_ok = (n_m >= 4) & (n_m <= config.challenger_loo_max_links)
+    pr, jj = np.nonzero(present & loo_ok[:, None])
+    if pr.size == 0:
+        return np.arange(rows.size), xs
+    loo = sub.take(pr)
+    mask = loo.mask.copy()
+    mask[np.arange(pr.size), 0, jj] = False
+    loo = Links(loo.rho, loo.var, mask, loo.anchors, loo.snr, loo.radio)
+    xl = snapshot(loo, fl[pr][:, None], building, config, 1)[0][:, 0]
+    return np.concatenate([np.arange(rows.size), pr]), np.concatenate([xs, xl])
 
 
 def _bad_flags(state: TrackerState, idx: NDArray, sub: Links, fit, picked,

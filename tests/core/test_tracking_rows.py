@@ -35,11 +35,15 @@ SHARED = dataclasses.replace(CFG, link_eps_node=True, link_eps_node_awake=True)
 #: the re-seed on a burst of outliers of the believed floor (``reseed_outliers``, off by
 #: default), here on a single outlier so it fires
 BURST = dataclasses.replace(CFG, reseed_outliers=1)
-#: the diffraction slots' upward SNR slack (``snr_diffraction_slack_db``, off by default) on
-#: every node
-SLACK = dataclasses.replace(CFG, snr_diffraction_slack_db=6.0)
+#: the diffraction slots' upward SNR slack (``snr_diffraction_slack_db``; by default only at
+#: nodes with at most three ranges) on every node
+SLACK = dataclasses.replace(CFG, snr_diffraction_slack_db=6.0, snr_slack_max_links=0)
 #: the node's model-averaged outlier weight (``link_eps_posterior``, off by default)
 POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=4)
+#: a second level mode per floor (``challenger_m``, off by default) searched for every floor
+#: in every epoch, scored from its first update, winning on any gain
+CHAL = dataclasses.replace(CFG, challenger_m=0.2, challenger_period_s=0.1, challenger_floors=0,
+                           challenger_grace=0, challenger_nats=1e-9, challenger_beat_lead=True)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -83,9 +87,9 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR],
+                                    POSTERIOR, CHAL],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
-                              "slack", "posterior"])
+                              "slack", "posterior", "challenger"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)
@@ -97,6 +101,8 @@ def test_update_rows_are_independent_bit_for_bit(config):
             int(TrackStatus.TRACKING), int(TrackStatus.COASTING)} <= before, before
     assert not m[6:8].any() and m[8:10].any()  # coasting rows without, new rows with ranges
     whole_state, whole_out = update(state, a, r, s, m, t, B, config, snr_db=snr, radio=RADIO)
+    if config.challenger_m > 0:  # the challengers are there to be split
+        assert whole_state.chal_age.any() and state.chal_age.any()
     n = len(NODES)
     splits = {"halves": [np.arange(0, 5), np.arange(5, n)],
               "interleaved": [np.arange(0, n, 2), np.arange(1, n, 2)],
