@@ -18,11 +18,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from learned_counts import beta_eps, weights_from_counts
 from static_track import ANCHORS, NODE, SIGMA, B, first_arrivals, track
 
-from diffpos.tracking.evidence import learned_weights, node_weights
+from diffpos.tracking.evidence import node_weights
 from diffpos.tracking.links import Links
-from diffpos.tracking.model import SNR_SIGMA_DB, SNR_SPAN_DB
 from diffpos.tracking.state import TrackerConfig
 from diffpos.tracking.tracker import _link_inputs
 
@@ -30,36 +30,12 @@ FLOOR = 2
 EXCESS_M = 3.0  # link 1's range: an unmodelled first arrival (1.5 m: a mechanism fits it)
 
 
-def _beta_eps(out, n_all, cfg):
-    """The reference learned outlier weight from the counts (NaN counts: none learned)."""
-    e0, s = cfg.outlier_weight, cfg.link_prior_updates
-    eps = (e0 * s + np.nan_to_num(out)) / (s + np.nan_to_num(n_all))
-    return min(max(eps, e0), max(cfg.link_outlier_max, e0))
-
-
 def _random_weights(seed):
     """Learned weights of 3 nodes x 4 hypotheses x 3 links from random counts (link 2 of
     node 2 never learned), and the counts' reference eps (n, H, L)."""
-    cfg = TrackerConfig()
     rng = np.random.default_rng(seed)
-    n, h, nl = 3, 4, 3
-    n_all = rng.uniform(0.0, 20.0, (n, h, nl))
-    lk = {"link_out": n_all * rng.uniform(0.0, 1.0, (n, h, nl)), "link_all": n_all,
-          "link_bias": np.full((n, h, nl), np.nan), "link_bias_var": np.full((n, h, nl), np.nan),
-          "link_snr": np.full((n, h, nl), np.nan), "link_t_ns": np.zeros((n, h, nl), np.int64)}
-    lk["link_out"][2, :, 2] = lk["link_all"][2, :, 2] = np.nan
-    col = np.tile(np.arange(nl), (n, 1))
-    links = Links(anchors=np.broadcast_to(ANCHORS[:nl], (n, 1, nl, 3)).copy(),
-                  rho=np.full((n, 1, nl), 20.0), var=np.full((n, 1, nl), SIGMA**2),
-                  mask=np.ones((n, 1, nl), bool), snr=np.full((n, 1, nl), 20.0))
-    x = np.zeros((n, h, 6))
-    x[..., :3] = NODE
-    p = np.broadcast_to(np.eye(6) * 0.01, (n, h, 6, 6)).copy()
-    w = learned_weights(lk, col, x, p, links, np.zeros(n, np.int64), cfg, SNR_SIGMA_DB,
-                        SNR_SPAN_DB)
-    ref = np.array([[[_beta_eps(lk["link_out"][i, k, m], lk["link_all"][i, k, m], cfg)
-                      for m in range(nl)] for k in range(h)] for i in range(n)])
-    return cfg, w, ref
+    n_all = rng.uniform(0.0, 20.0, (3, 4, 3))
+    return weights_from_counts(n_all, n_all * rng.uniform(0.0, 1.0, (3, 4, 3)))
 
 
 def test_node_weights_are_the_largest_learned_weight_of_the_node():
@@ -121,7 +97,7 @@ def test_tracker_shares_the_weights_of_a_link_across_the_node():
             if not on.any():
                 on[:] = True
             for m in range(len(ANCHORS)):
-                ref = [_beta_eps(prev.link_out[0, h, col[m]], prev.link_all[0, h, col[m]], cfg)
+                ref = [beta_eps(prev.link_out[0, h, col[m]], prev.link_all[0, h, col[m]], cfg)
                        if col[m] >= 0 else cfg.outlier_weight for h in range(2 * B.n_floors)]
                 e = max(r for r, u in zip(ref, on, strict=True) if u)
                 assert np.allclose(w[:, m, 0], np.log1p(-e), rtol=0, atol=1e-12)
