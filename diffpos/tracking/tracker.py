@@ -552,7 +552,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
         _count_updated(idx, bad_epoch, t, status, good, bad, last)
     _reseed(mean, cov, floor_bad, links, live & (n_meas >= _reseed_ranges(config)), building,
             config, _reseed_phase(state.t_ns, t, origin, floor_bad.shape[1], config))
-    chal = (st.chal_mean, st.chal_cov, st.chal_llr, st.chal_age)
+    chal = tuple(a.copy() for a in (st.chal_mean, st.chal_cov, st.chal_llr, st.chal_age))  # owned
     if config.challenger_m > 0:  # a second level mode per floor (_challengers)
         chal = _challengers(st, state.t_ns, links, idx, dt_s, (mean, cov, lp, floor_bad),
                             building, config)
