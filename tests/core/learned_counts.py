@@ -3,17 +3,22 @@ node-shared learned outlier weights (``link_eps_node``, ``link_eps_posterior``):
 node of tests/core/static_track.py seen by three anchors, every hypothesis at the node; the
 reference is the learned weight's Beta posterior mean computed from the counts
 (``eps = clip((e0 S + out) / (S + all), e0, eps_max)``), a loop over nodes, hypotheses and
-links."""
+links; the static node tracked with one range 3 m long (a first arrival out of the model)
+and the link inputs the tracker's update of an epoch uses."""
 
 from __future__ import annotations
 
 import numpy as np
-from static_track import ANCHORS, NODE, SIGMA
+from static_track import ANCHORS, NODE, SIGMA, first_arrivals, track
 
 from diffpos.tracking.evidence import learned_weights
 from diffpos.tracking.links import Links
 from diffpos.tracking.model import SNR_SIGMA_DB, SNR_SPAN_DB
 from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import _link_inputs
+
+FLOOR = 2
+EXCESS_M = 3.0  # link 1's range: an unmodelled first arrival (1.5 m: a mechanism fits it)
 
 
 def beta_eps(out, n_all, cfg):
@@ -44,3 +49,22 @@ def weights_from_counts(n_all, n_out):
     ref = np.array([[[beta_eps(lk["link_out"][i, k, m], lk["link_all"][i, k, m], cfg)
                       for m in range(nl)] for k in range(h)] for i in range(n)])
     return cfg, w, ref
+
+
+def long_link_states(cfg, seed=4, epochs=25):
+    """The static node on ``FLOOR`` with link 1's range ``EXCESS_M`` long, tracked with
+    ``cfg``: (the ranges, the states of every epoch)."""
+    rho0 = first_arrivals(NODE, ANCHORS, FLOOR)
+    rho0[1] += EXCESS_M
+    return rho0, track(cfg, ANCHORS, rho0, epochs=epochs, seed=seed)
+
+
+def link_inputs_at(state, rho0, k, cfg):
+    """The link inputs the tracker's update of epoch ``k`` uses (its ``_link_inputs`` from the
+    previous epoch's ``state``)."""
+    n = len(ANCHORS)
+    links = Links.from_arrays(ANCHORS[None], rho0[None], np.full((1, n), SIGMA),
+                              np.ones((1, n), bool), cfg.sigma_model_m)
+    t = np.array([10**9 + k * 10**8], np.int64)
+    return _link_inputs(state, np.array([0]), links, t, state.mean, state.cov,
+                        np.array([n]), cfg)

@@ -18,16 +18,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from learned_counts import beta_eps, weights_from_counts
-from static_track import ANCHORS, NODE, SIGMA, B, first_arrivals, track
+from learned_counts import beta_eps, link_inputs_at, long_link_states, weights_from_counts
+from static_track import ANCHORS, B
 
 from diffpos.tracking.evidence import node_weights
-from diffpos.tracking.links import Links
 from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import _link_inputs
-
-FLOOR = 2
-EXCESS_M = 3.0  # link 1's range: an unmodelled first arrival (1.5 m: a mechanism fits it)
 
 
 def _random_weights(seed):
@@ -60,23 +55,6 @@ def test_node_weights_are_the_largest_learned_weight_of_the_node():
                         assert abs(got[i, k, m, 1] - want) < 1e-12
 
 
-def _states(cfg, seed=4, epochs=25):
-    rho0 = first_arrivals(NODE, ANCHORS, FLOOR)
-    rho0[1] += EXCESS_M
-    return rho0, track(cfg, ANCHORS, rho0, epochs=epochs, seed=seed)
-
-
-def _inputs(state, rho0, k, cfg):
-    """The link weights the tracker's update of epoch ``k`` uses (its ``_link_inputs`` from
-    the previous epoch's state)."""
-    n = len(ANCHORS)
-    links = Links.from_arrays(ANCHORS[None], rho0[None], np.full((1, n), SIGMA),
-                              np.ones((1, n), bool), cfg.sigma_model_m)
-    t = np.array([10**9 + k * 10**8], np.int64)
-    return _link_inputs(state, np.array([0]), links, t, state.mean, state.cov,
-                        np.array([n]), cfg)
-
-
 def test_tracker_shares_the_weights_of_a_link_across_the_node():
     """The static node with one out-of-model range: with the setting every hypothesis' weights
     of a link are the node's (the largest reference eps of the previous state's counts, over
@@ -88,11 +66,11 @@ def test_tracker_shares_the_weights_of_a_link_across_the_node():
     differed = False
     for awake in (False, True):
         cfg = dataclasses.replace(base, link_eps_node=True, link_eps_node_awake=awake)
-        rho0, states = _states(cfg)
+        rho0, states = long_link_states(cfg)
         for k in range(1, len(states)):
             prev = states[k - 1]
-            w = _inputs(prev, rho0, k, cfg)[4][0]  # (H, M, 2)
-            col = _inputs(prev, rho0, k, cfg)[1][0]
+            w = link_inputs_at(prev, rho0, k, cfg)[4][0]  # (H, M, 2)
+            col = link_inputs_at(prev, rho0, k, cfg)[1][0]
             on = ~np.isfinite(prev.dormant_llr[0]) if awake else np.ones(2 * B.n_floors, bool)
             if not on.any():
                 on[:] = True
@@ -101,9 +79,9 @@ def test_tracker_shares_the_weights_of_a_link_across_the_node():
                        if col[m] >= 0 else cfg.outlier_weight for h in range(2 * B.n_floors)]
                 e = max(r for r, u in zip(ref, on, strict=True) if u)
                 assert np.allclose(w[:, m, 0], np.log1p(-e), rtol=0, atol=1e-12)
-            off = _inputs(prev, rho0, k, base)[4][0]
+            off = link_inputs_at(prev, rho0, k, base)[4][0]
             differed |= bool(np.ptp(off[:, 1, 0]) > 0.1)
     assert differed
-    _, a = _states(base)
-    _, b = _states(dataclasses.replace(base, link_eps_node=True))
+    _, a = long_link_states(base)
+    _, b = long_link_states(dataclasses.replace(base, link_eps_node=True))
     assert not np.array_equal(a[-1].log_prob, b[-1].log_prob)

@@ -19,16 +19,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from learned_counts import beta_eps, weights_from_counts
-from static_track import ANCHORS, NODE, SIGMA, B, first_arrivals, track
+from learned_counts import beta_eps, link_inputs_at, long_link_states, weights_from_counts
+from static_track import ANCHORS, B
 
 from diffpos.tracking.evidence import node_weights, posterior_weights
-from diffpos.tracking.links import Links
 from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import _link_inputs
-
-FLOOR = 2
-EXCESS_M = 3.0  # link 1's range: an unmodelled first arrival (1.5 m: a mechanism fits it)
 
 
 def _weights(n_all, n_out):
@@ -94,23 +89,6 @@ def test_a_hypothesis_without_probability_lends_no_weight():
         assert np.allclose(largest[learned], full[learned], rtol=0, atol=1e-12)
 
 
-def _states(cfg, seed=4, epochs=25):
-    rho0 = first_arrivals(NODE, ANCHORS, FLOOR)
-    rho0[1] += EXCESS_M
-    return rho0, track(cfg, ANCHORS, rho0, epochs=epochs, seed=seed)
-
-
-def _inputs(state, rho0, k, cfg):
-    """The link inputs the tracker's update of epoch ``k`` uses (its ``_link_inputs`` from the
-    previous epoch's state)."""
-    n = len(ANCHORS)
-    links = Links.from_arrays(ANCHORS[None], rho0[None], np.full((1, n), SIGMA),
-                              np.ones((1, n), bool), cfg.sigma_model_m)
-    t = np.array([10**9 + k * 10**8], np.int64)
-    return _link_inputs(state, np.array([0]), links, t, state.mean, state.cov,
-                        np.array([n]), cfg)
-
-
 def test_tracker_uses_the_model_averaged_weight():
     """The static node with one out-of-model range: with the setting, at every epoch, every
     hypothesis' inlier weight of a link is ``log(1 - eps_h)`` and its outlier component is
@@ -122,14 +100,14 @@ def test_tracker_uses_the_model_averaged_weight():
     base = TrackerConfig()
     cfg = dataclasses.replace(base, link_eps_posterior=4)
     above = dataclasses.replace(base, link_eps_posterior=5)
-    rho0, states = _states(cfg)
+    rho0, states = long_link_states(cfg)
     hs = 2 * B.n_floors
     raised = 0.0
     for k in range(1, len(states)):
         prev = states[k - 1]
-        got = _inputs(prev, rho0, k, cfg)
-        off = _inputs(prev, rho0, k, base)[4][0]
-        assert np.array_equal(_inputs(prev, rho0, k, above)[4][0], off)
+        got = link_inputs_at(prev, rho0, k, cfg)
+        off = link_inputs_at(prev, rho0, k, base)[4][0]
+        assert np.array_equal(link_inputs_at(prev, rho0, k, above)[4][0], off)
         w, col = got[4][0], got[1][0]  # (H, M, 2), (M,)
         p = np.exp(prev.log_prob[0] - np.max(prev.log_prob[0]))
         p = p / p.sum()
@@ -144,6 +122,6 @@ def test_tracker_uses_the_model_averaged_weight():
                 if m == 1:
                     raised = max(raised, lift)
     assert raised > 0.1
-    _, a = _states(base)
-    _, b = _states(cfg)
+    _, a = long_link_states(base)
+    _, b = long_link_states(cfg)
     assert not np.array_equal(a[-1].log_prob, b[-1].log_prob)
