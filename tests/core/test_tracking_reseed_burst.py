@@ -33,6 +33,28 @@ OFF = TrackerConfig(reseed_outliers=0)
 ON = dataclasses.replace(OFF, reseed_outliers=2)
 OFFSETS = [np.array([np.cos(a), np.sin(a), 0.0]) * r
            for r in (1.0, 1.5, 2.0) for a in np.arange(8) * np.pi / 4]
+CHANNEL = emulate_channel(ANCHORS, NODE[None], building=B, radio=RADIO)
+_CONVERGED: dict = {}
+
+
+def _converged(config, seed, k0):
+    """The node's state after ``k0`` epochs and the noise generator's state then (the
+    epochs before the move do not depend on the offset: computed once per setting and seed)."""
+    key = (repr(config), seed, k0)
+    if key not in _CONVERGED:
+        rng = np.random.default_rng(seed)
+        state = init_state(1, B)
+        for k in range(k0):
+            state, _ = _epoch(state, config, rng, k)
+        _CONVERGED[key] = (state, rng.bit_generator.state)
+    return _CONVERGED[key]
+
+
+def _epoch(state, config, rng, k):
+    fa = first_arrival(CHANNEL, radio=RADIO, rng=rng)
+    state, out = update(state, ANCHORS[None], fa.range_m, fa.sigma_m, fa.detected,
+                        10**9 + k * 10**8, B, config, snr_db=fa.snr_db, radio=RADIO)
+    return state, (out, fa)
 
 
 def _moved(config, seed, offset, moved_floor=None, k0=30):
@@ -40,19 +62,14 @@ def _moved(config, seed, offset, moved_floor=None, k0=30):
     true floor's) by ``offset`` at epoch ``k0``; the floor moved and its
     two tracks' outliers (``link_slot`` -1, level and vertical) and
     the present links' count in that epoch."""
-    rng = np.random.default_rng(seed)
-    channel = emulate_channel(ANCHORS, NODE[None], building=B, radio=RADIO)
     nf = B.n_floors
     f = int(B.floor_index(NODE[2])) if moved_floor is None else moved_floor
-    state = init_state(1, B)
-    for k in range(k0 + 1):
-        if k == k0:
-            mean = state.mean.copy()
-            mean[0, [f, f + nf], :3] += offset
-            state = dataclasses.replace(state, mean=mean)
-        fa = first_arrival(channel, radio=RADIO, rng=rng)
-        state, out = update(state, ANCHORS[None], fa.range_m, fa.sigma_m, fa.detected,
-                            10**9 + k * 10**8, B, config, snr_db=fa.snr_db, radio=RADIO)
+    state, rng_state = _converged(config, seed, k0)
+    rng = np.random.default_rng()
+    rng.bit_generator.state = rng_state
+    mean = state.mean.copy()
+    mean[0, [f, f + nf], :3] += offset
+    state, (out, fa) = _epoch(dataclasses.replace(state, mean=mean), config, rng, k0)
     return state, out, f, np.sum(state.link_slot[0, [f, f + nf]] == -1, axis=-1), \
         int(fa.detected[0].sum())
 
