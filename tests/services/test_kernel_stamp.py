@@ -94,3 +94,28 @@ def test_a_source_edited_while_the_workers_ran_is_not_stamped(fake_core, monkeyp
     monkeypatch.setattr(prepare, "_Worker", EditsMeanwhile)
     prepare_kernels(["a"], workers=1, interval_s=0.05)
     assert cached_groups() == set()
+
+
+def test_a_file_rewritten_with_the_same_content_keeps_the_stamp(fake_core):
+    """A merge or checkout rewrites files (new mtimes) whose content may not change: the stamp
+    holds while every source's content is the same and no file that can define a kernel (one
+    naming numba, whose mtime numba's own cache index checks) was touched."""
+    core, _ = fake_core
+    plain = core / "sub" / "geometry.py"
+    plain.write_text("Y = 2.0\n")
+    kernel = core / "sub" / "f_nb.py"
+    kernel.write_text("from numba import njit\n")
+    prepare_kernels(["a"], workers=1, interval_s=0.05)
+    assert cached_groups() == {"a"}
+    st = plain.stat()
+    plain.write_text("Y = 2.0\n")  # the same bytes written again
+    os.utime(plain, ns=(st.st_atime_ns, st.st_mtime_ns + 5_000_000_000))  # a later mtime
+    assert cached_groups() == {"a"}
+    plain.write_text("Y = 3.0\n")  # the same size, another content
+    os.utime(plain, ns=(st.st_atime_ns, st.st_mtime_ns))  # and the old mtime
+    assert cached_groups() == set()
+    plain.write_text("Y = 2.0\n")
+    assert cached_groups() == {"a"}  # the content stamped again: no worker needed
+    kst = kernel.stat()
+    os.utime(kernel, ns=(kst.st_atime_ns, kst.st_mtime_ns + 5_000_000_000))
+    assert cached_groups() == set()  # numba's index of that file is stale: workers again

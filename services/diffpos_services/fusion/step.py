@@ -166,28 +166,46 @@ def _reference_times(t: np.ndarray, reported: np.ndarray,
 # ------------------------------------------------------------------------------ prepare
 def _start_points(epochs: list[PendingEpoch], tracks: Any, t_ref: np.ndarray,
                   cfg: FusionConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Warm start (NaN: cold) and velocity of each row from its node's track."""
+    """Warm start (NaN: cold) and velocity of each row from its node's track.
+
+    The rows with a start are collected as Python lists (the tracks' positions and
+    velocities are lists of floats, the times Python ints) and written into the arrays at
+    once: the same values as per-row numpy item assignment, without its fixed cost per row."""
     b = len(epochs)
     x0 = np.full((b, 3), np.nan)
     vel = np.zeros((b, 3))
     has_vel = np.zeros(b, bool)
+    if not tracks:
+        return x0, vel, has_vel
+    rows: list[int] = []
+    starts: list[list[float]] = []
+    moving: list[int] = []
+    velocities: list[list[float]] = []
     max_age = cfg.warm_start_max_age_s * 1e9
     period_ns = round(cfg.cold_retry_period_s * 1e9)
-    for i, pe in enumerate(epochs):
+    for i, (pe, t) in enumerate(zip(epochs, t_ref.tolist(), strict=True)):
         tr = tracks.get(pe.node_id)
-        if tr is not None and tr.t_ns is not None and abs(t_ref[i] - tr.t_ns) <= max_age:
-            dt = (t_ref[i] - tr.t_ns) * 1e-9
-            v = tr.vel
+        if tr is None:
+            continue
+        if tr.t_ns is not None and abs(t - tr.t_ns) <= max_age:
+            v, p = tr.vel, tr.pos
             if v is not None and v[0] * v[0] + v[1] * v[1] + v[2] * v[2] <= _MAX_SPEED2:
-                vel[i], has_vel[i] = v, True
-                x0[i] = [p + u * dt for p, u in zip(tr.pos, v, strict=True)]
-            else:
-                x0[i] = tr.pos
-        elif (tr is not None and tr.try_pos is not None and tr.cold_ns is not None
-              and 0 <= t_ref[i] - tr.cold_ns < period_ns):
+                dt = (t - tr.t_ns) * 1e-9
+                moving.append(i)
+                velocities.append(v)
+                p = [p[0] + v[0] * dt, p[1] + v[1] * dt, p[2] + v[2] * dt]
+            rows.append(i)
+            starts.append(p)
+        elif tr.try_pos is not None and tr.cold_ns is not None and 0 <= t - tr.cold_ns < period_ns:
             # no good fix lately, but a cold solve within the retry period: start from its
             # result instead of paying for another multi-start every epoch
-            x0[i] = tr.try_pos
+            rows.append(i)
+            starts.append(tr.try_pos)
+    if rows:
+        x0[rows] = starts
+    if moving:
+        vel[moving] = velocities
+        has_vel[moving] = True
     return x0, vel, has_vel
 
 
