@@ -33,14 +33,18 @@ Faces of finite conductivity, two weightings (``form``):
   their face's Fresnel coefficient, ``D = d1 + d2 + R_0 d4 + R_n d3`` (``R`` the TE
   coefficient for the soft, TM for the hard coefficient; a conductor ``-1`` / ``+1``).
 * ``"sionna"`` (Sionna RT 2.2, ``RadioMaterial._diffraction_matrix``): each face's Fresnel
-  matrix weights an incident *and* a reflection term, ``R_0 (d1 - d4) + R_n (d2 - d3)``,
-  evaluated in the shadow boundaries' bases (Hashimoto et al.). For a field along the edge
-  (TE; the soft coefficient: the x-polarised anchors at a horizontal window edge) that is
-  ``D_s = -[R_0 (d1 - d4) + R_n (d2 - d3)]`` here (sign such that the conductor, ``R = -1``,
-  gives the soft coefficient above). The hard coefficient is taken as
-  ``D_h = R_0 (d1 + d4) + R_n (d2 + d3)`` (the conductor's ``+1`` gives the hard
-  coefficient above); Sionna's basis rotations for the TM part were not reproduced, so the
-  hard form is checked only through its conductor limit, not against Sionna.
+  matrix weights an incident *and* a reflection term, ``R_0 (d1 - d4) + R_n (d2 - d3)``, a
+  2x2 matrix per face: the face's ``diag(r_te, r_tm)`` rotated from the face's TE/TM basis
+  of the incident ray to the edge-fixed basis of its shadow boundary's direction (Hashimoto
+  et al.), those components then used unchanged as the diffracted ray's (``wedge_field``).
+  Where the ray is oblique to the edge (an anchor off to the side of the window) the
+  rotations mix the face's TE and TM coefficients into the field along the edge; that, not
+  the wedge angle, is what makes Sionna's lower-edge deep-shadow field 4-8 dB stronger than
+  the conductor's (``benchmarks/bench_wedge.py``: ``wedge_field`` with this form reproduces
+  Sionna's traced ``Tx-D(lower|upper)-Rx`` gains to < 0.01 dB in every loss band).
+  :func:`wedge_coefficients` gives its scalar 2-D reading (ray normal to the edge):
+  ``D_s = -[R_0 (d1 - d4) + R_n (d2 - d3)]`` (TE), ``D_h = R_0 (d1 + d4) + R_n (d2 + d3)``
+  (TM; both signs chosen so the conductor gives the coefficients above).
 
 Sionna's face coefficients (both forms here): ``R_0`` the ITU-R P.2040 single-layer slab
 reflection coefficients (eq. 43; the wall's thickness) at the incident ray's angle on the
@@ -193,6 +197,70 @@ def _dot(a: NDArray, b: NDArray) -> NDArray:
     return np.einsum("...i,...i->...", a, b)
 
 
+def _unit(v: NDArray) -> NDArray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return v / np.sqrt(_dot(v, v))[..., None]
+
+
+def _rotator(k: NDArray, a: NDArray, b: NDArray) -> NDArray:
+    """2x2 change of a Jones vector's basis ``(a, k x a)`` -> ``(b, k x b)`` (Sionna's
+    ``jones_matrix_rotator``), shape (..., 2, 2)."""
+    c = _dot(a, b)
+    s = _dot(k, np.cross(a, b))
+    return np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], -2)
+
+
+def _face_matrix(ki: NDArray, edge: NDArray, normal: NDArray, r_te: NDArray, r_tm: NDArray
+                 ) -> NDArray:
+    """A face's Fresnel matrix from the incident edge-fixed basis ``(phi', ki x phi')`` to its
+    shadow boundary's ``(phi_sb, k_sb x phi_sb)`` (Sionna RT 2.2, after Hashimoto et al.):
+    rotate to the face's TE/TM basis, weight by ``diag(r_te, r_tm)``, rotate to the reflected
+    ray's edge-fixed basis. Shape (..., 2, 2), complex."""
+    phi_in = _unit(np.cross(ki, edge))
+    k_sb = _unit(ki - 2.0 * _dot(ki, normal)[..., None] * normal)
+    phi_sb = -_unit(np.cross(k_sb, edge))
+    te = np.cross(ki, normal)
+    degenerate = _dot(te, te) < 1e-12  # normal incidence: any transverse vector
+    ref = np.where((np.abs(ki[..., :1]) < 0.9), [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    te = _unit(np.where(degenerate[..., None], ref - _dot(ref, ki)[..., None] * ki, te))
+    diag = np.zeros((*np.shape(r_te), 2, 2), dtype=np.complex128)
+    diag[..., 0, 0], diag[..., 1, 1] = r_te, r_tm
+    return _rotator(k_sb, te, phi_sb) @ diag @ _rotator(ki, phi_in, te)
+
+
+def _sionna_matrix(frame: EdgeFrame, d: tuple, n: float, permittivity: complex,
+                   thickness_m: float, wavelength_m: float) -> NDArray:
+    """Sionna RT 2.2's diffraction matrix ``R_0 (d1 - d4) + R_n (d2 - d3)`` from the incident
+    basis ``(phi', s' x phi')`` to ``(phi, s x phi)`` with ``phi' = (s' x e)/|.|`` and
+    ``phi = -(s x e)/|.|`` (its ``_diffraction_matrix`` without the world-frame rotations)."""
+    ki, e, n0 = frame.s_in, -frame.edge, frame.n0  # Sionna's edge: n0 x e = t0 (the face)
+    ang = n * np.pi
+    nn = -(np.cos(ang) * n0 - np.sin(ang) * frame.t0)
+    r0 = slab_reflection(np.abs(_dot(ki, n0)), permittivity, thickness_m, wavelength_m)
+    rn = slab_reflection(np.abs(_dot(ki, nn)), permittivity, thickness_m, wavelength_m)
+    m0 = _face_matrix(ki, e, n0, *r0)
+    mn = _face_matrix(ki, e, nn, *rn)
+    dark = (n * np.pi > np.pi + frame.psi_in_rad)[..., None, None]
+    mn = np.where(dark, -np.eye(2), mn)
+    d1, d2, d3, d4 = d
+    return m0 * (d1 - d4)[..., None, None] + mn * (d2 - d3)[..., None, None]
+
+
+def _terms(frame: EdgeFrame, k: float, n: float) -> tuple:
+    """``d1..d4`` of the module docstring at a frame (spherical-wave distance parameter)."""
+    kl = k * distance_parameter_m(frame.s_in_m, frame.s_out_m, frame.sin_gamma0)
+    with np.errstate(divide="ignore"):
+        f = -_EXP_MJ_PI4 / (2.0 * n * np.sqrt(2.0 * np.pi * k) * frame.sin_gamma0)
+    dif = frame.psi_rad - frame.psi_in_rad
+    tot = frame.psi_rad + frame.psi_in_rad
+    a1, a2 = _a_pm(dif, n)
+    a3, a4 = _a_pm(tot, n)
+    return (f * _cot_f((np.pi + dif) / (2 * n), kl * a1, n, kl),
+            f * _cot_f((np.pi - dif) / (2 * n), kl * a2, n, kl),
+            f * _cot_f((np.pi + tot) / (2 * n), kl * a3, n, kl),
+            f * _cot_f((np.pi - tot) / (2 * n), kl * a4, n, kl))
+
+
 def wedge_field(
     frame: EdgeFrame,
     e0: ArrayLike,
@@ -207,32 +275,46 @@ def wedge_field(
 
     ``frame`` is the half-plane's :func:`diffpos.channel.gtd_halfplane.edge_frame` (``t0``
     along the 0-face, ``n0`` towards the source): ``phi' = psi'`` and ``phi = psi`` there.
-    The n-face lies at ``phi = n pi``; its normal is ``t0`` rotated by ``n pi`` about the
-    edge, turned outwards. ``permittivity`` None: a perfect conductor (then with ``n = 2``
-    this is :func:`diffpos.channel.gtd_halfplane.field_from_frame` with UTD and spherical
-    spreading); else both faces of that material and thickness (module docstring,
-    Sionna's face coefficients). Same field expression and spreading as the half-plane's:
-    ``E^d = [-D_s E^i_beta0' beta0 - D_h E^i_phi' phi] A(s', s) exp(-j k s)``.
+    The n-face lies at ``phi = n pi``; its outward normal is ``sin(n pi) t0 - cos(n pi) n0``.
+
+    ``permittivity`` None: a perfect conductor, ``E^d = [-D_s E^i_beta0' beta0 - D_h E^i_phi'
+    phi] A(s', s) exp(-j k s)`` with :func:`wedge_coefficients` (with ``n = 2`` exactly
+    :func:`diffpos.channel.gtd_halfplane.field_from_frame`, UTD, spherical spreading).
+    Else both faces of that material and thickness: ``form="luebbers"`` the same expression
+    with Luebbers' coefficients; ``form="sionna"`` Sionna RT 2.2's full 2x2 matrix (each
+    face's Fresnel matrix rotated between its TE/TM basis and the edge-fixed bases of the
+    incident ray and of its shadow boundary; module docstring), which mixes the faces' TE
+    and TM coefficients where the ray is oblique to the edge. Same spreading ``A(s', s) =
+    sqrt(s' / (s (s + s')))`` in every case.
     """
     k = float(wavenumber_rad_m(frequency_hz))
-    big_l = distance_parameter_m(frame.s_in_m, frame.s_out_m, frame.sin_gamma0)
+    e0c = np.asarray(e0, dtype=np.complex128)
+    incident = np.exp(-1j * k * frame.s_in_m) / frame.s_in_m
+    amp = spreading_factor(frame.s_in_m, frame.s_out_m) * np.exp(-1j * k * frame.s_out_m)
+    if permittivity is not None and form == "sionna":
+        e = -frame.edge
+        p_in = _unit(np.cross(frame.s_in, e))
+        p_out = -_unit(np.cross(frame.s_out, e))
+        a = np.stack([_dot(e0c, p_in), _dot(e0c, np.cross(frame.s_in, p_in))], -1)
+        m = _sionna_matrix(frame, _terms(frame, k, n), n, permittivity, thickness_m,
+                           2.0 * np.pi / k)
+        out = np.einsum("...ij,...j->...i", m, a) * (incident * amp)[..., None]
+        return out[..., :1] * p_out + out[..., 1:] * np.cross(frame.s_out, p_out)
     face0 = facen = None
     if permittivity is not None:
         lam = 2.0 * np.pi / k
         face0 = slab_reflection(np.abs(_dot(frame.s_in, frame.n0)), permittivity,
                                 thickness_m, lam)
-        ang = n * np.pi  # the n-face's outward normal: n0 rotated by n pi about the edge
+        ang = n * np.pi
         nn = -(np.cos(ang) * frame.n0 - np.sin(ang) * frame.t0)
         rn = slab_reflection(np.abs(_dot(frame.s_in, nn)), permittivity, thickness_m, lam)
         dark = n * np.pi > np.pi + frame.psi_in_rad
         facen = (np.where(dark, -1.0, rn[0]), np.where(dark, -1.0, rn[1]))
+    big_l = distance_parameter_m(frame.s_in_m, frame.s_out_m, frame.sin_gamma0)
     d_s, d_h = wedge_coefficients(frame.psi_rad, frame.psi_in_rad, frame.gamma0_rad, big_l,
                                   frequency_hz=frequency_hz, n=n, face0=face0, facen=facen,
                                   form=form)
-    e0c = np.asarray(e0, dtype=np.complex128)
-    incident = np.exp(-1j * k * frame.s_in_m) / frame.s_in_m
     ei_beta = _dot(e0c, frame.beta0_in) * incident
     ei_phi = _dot(e0c, frame.phi_in) * incident
-    amp = spreading_factor(frame.s_in_m, frame.s_out_m) * np.exp(-1j * k * frame.s_out_m)
     return ((-d_s * ei_beta * amp)[..., None] * frame.beta0_out
             + (-d_h * ei_phi * amp)[..., None] * frame.phi_out)
