@@ -233,7 +233,7 @@ def _sionna_matrix(frame: EdgeFrame, d: tuple, n: float, permittivity: complex,
     """Sionna RT 2.2's diffraction matrix ``R_0 (d1 - d4) + R_n (d2 - d3)`` from the incident
     basis ``(phi', s' x phi')`` to ``(phi, s x phi)`` with ``phi' = (s' x e)/|.|`` and
     ``phi = -(s x e)/|.|`` (its ``_diffraction_matrix`` without the world-frame rotations)."""
-    ki, e, n0 = frame.s_in, -frame.edge, frame.n0  # Sionna's edge: n0 x e = t0 (the face)
+    ki, e, n0 = frame.s_in, frame.edge, frame.n0  # n0 x e = t0 (the 0-face), as Sionna's
     ang = n * np.pi
     nn = -(np.cos(ang) * n0 - np.sin(ang) * frame.t0)
     r0 = slab_reflection(np.abs(_dot(ki, n0)), permittivity, thickness_m, wavelength_m)
@@ -292,7 +292,7 @@ def wedge_field(
     incident = np.exp(-1j * k * frame.s_in_m) / frame.s_in_m
     amp = spreading_factor(frame.s_in_m, frame.s_out_m) * np.exp(-1j * k * frame.s_out_m)
     if permittivity is not None and form == "sionna":
-        e = -frame.edge
+        e = frame.edge
         p_in = _unit(np.cross(frame.s_in, e))
         p_out = -_unit(np.cross(frame.s_out, e))
         a = np.stack([_dot(e0c, p_in), _dot(e0c, np.cross(frame.s_in, p_in))], -1)
