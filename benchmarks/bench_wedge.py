@@ -109,8 +109,12 @@ def report(p: dict[str, np.ndarray], pred: dict[str, np.ndarray], traced: np.nda
                 f"{c:>24s}" for c in cells))
     for name, v in pred.items():
         d = np.abs(traced - v)[np.isfinite(v)]
+        far = np.isfinite(v) & (np.abs(traced - v) > 0.1)
+        slots = {MECHANISMS[EDGE_SLOTS[i][0]]: int(c) for i, c in
+                 zip(*np.unique(p["col"][far], return_counts=True), strict=True)}
         print(f"|traced - {name}| [dB]: p50 {np.median(d):.3f} p99 {np.percentile(d, 99):.3f} "
-              f"max {d.max():.3f} ({np.sum(~np.isfinite(v))} paths without a prediction)")
+              f"max {d.max():.3f}; > 0.1 dB: {far.sum()} {slots} "
+              f"({np.sum(~np.isfinite(v))} paths without a prediction)")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -197,6 +197,15 @@ def _dot(a: NDArray, b: NDArray) -> NDArray:
     return np.einsum("...i,...i->...", a, b)
 
 
+def _cross(a: NDArray, b: NDArray) -> NDArray:
+    """``np.cross`` over the last axis (length 3) without its axis bookkeeping (the same
+    products and differences)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack(np.broadcast_arrays(a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0),
+                    axis=-1)
+
+
 def _unit(v: NDArray) -> NDArray:
     with np.errstate(invalid="ignore", divide="ignore"):
         return v / np.sqrt(_dot(v, v))[..., None]
@@ -206,7 +215,7 @@ def _rotator(k: NDArray, a: NDArray, b: NDArray) -> NDArray:
     """2x2 change of a Jones vector's basis ``(a, k x a)`` -> ``(b, k x b)`` (Sionna's
     ``jones_matrix_rotator``), shape (..., 2, 2)."""
     c = _dot(a, b)
-    s = _dot(k, np.cross(a, b))
+    s = _dot(k, _cross(a, b))
     return np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], -2)
 
 
@@ -216,10 +225,10 @@ def _face_matrix(ki: NDArray, edge: NDArray, normal: NDArray, r_te: NDArray, r_t
     shadow boundary's ``(phi_sb, k_sb x phi_sb)`` (Sionna RT 2.2, after Hashimoto et al.):
     rotate to the face's TE/TM basis, weight by ``diag(r_te, r_tm)``, rotate to the reflected
     ray's edge-fixed basis. Shape (..., 2, 2), complex."""
-    phi_in = _unit(np.cross(ki, edge))
+    phi_in = _unit(_cross(ki, edge))
     k_sb = _unit(ki - 2.0 * _dot(ki, normal)[..., None] * normal)
-    phi_sb = -_unit(np.cross(k_sb, edge))
-    te = np.cross(ki, normal)
+    phi_sb = -_unit(_cross(k_sb, edge))
+    te = _cross(ki, normal)
     degenerate = _dot(te, te) < 1e-12  # normal incidence: any transverse vector
     ref = np.where((np.abs(ki[..., :1]) < 0.9), [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
     te = _unit(np.where(degenerate[..., None], ref - _dot(ref, ki)[..., None] * ki, te))
@@ -293,13 +302,13 @@ def wedge_field(
     amp = spreading_factor(frame.s_in_m, frame.s_out_m) * np.exp(-1j * k * frame.s_out_m)
     if permittivity is not None and form == "sionna":
         e = frame.edge
-        p_in = _unit(np.cross(frame.s_in, e))
-        p_out = -_unit(np.cross(frame.s_out, e))
-        a = np.stack([_dot(e0c, p_in), _dot(e0c, np.cross(frame.s_in, p_in))], -1)
+        p_in = _unit(_cross(frame.s_in, e))
+        p_out = -_unit(_cross(frame.s_out, e))
+        a = np.stack([_dot(e0c, p_in), _dot(e0c, _cross(frame.s_in, p_in))], -1)
         m = _sionna_matrix(frame, _terms(frame, k, n), n, permittivity, thickness_m,
                            2.0 * np.pi / k)
         out = np.einsum("...ij,...j->...i", m, a) * (incident * amp)[..., None]
-        return out[..., :1] * p_out + out[..., 1:] * np.cross(frame.s_out, p_out)
+        return out[..., :1] * p_out + out[..., 1:] * _cross(frame.s_out, p_out)
     face0 = facen = None
     if permittivity is not None:
         lam = 2.0 * np.pi / k
