@@ -484,8 +484,10 @@ def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEv
                           c_anchor, c_pred, float(reuse_m[0]), float(reuse_m[1]), _CACHED,
                           _IS_CACHED, near, hit, mask, at, p_anc, p_node, p_need)
     radio = links.radio
+    edge = config.snr_edge_model
     p_pred = (pair_snr_db(p_anc[:cnt], p_node[:cnt], building=building, radio=radio,
-                          need=p_need[:cnt]) if cnt else np.empty((0, 1, K_SLOTS)))
+                          need=p_need[:cnt], edge_model=edge) if cnt
+              else np.empty((0, 1, K_SLOTS)))
     pred, cost, thr = np.empty(shape), np.empty(shape), np.empty((n, h, m))
     hole_idx = np.empty((rows, 3), np.int64)
     h_anc, h_node = np.empty((2 * rows, 1, 3)), np.empty((2 * rows, 3))
@@ -502,7 +504,8 @@ def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEv
     if use_cache:
         cache.node[...] = at
     h_pred = (pair_snr_db(h_anc[:2 * q], h_node[:2 * q], building=building, radio=radio,
-                          need=h_need[:2 * q]) if q else np.empty((0, 1, K_SLOTS)))
+                          need=h_need[:2 * q], edge_model=edge) if q
+              else np.empty((0, 1, K_SLOTS)))
     snr_hole_kernel(_c(h_pred, dtype=np.float64), h_need, h_meas, h_thr, hole_idx, q, sig, fap,
                     det, float(config.snr_cost_cap_nats), cost, np.empty((2 * q, K_SLOTS)))
     if config.snr_diffraction_slack_db > 0:  # before the skipped paths: they add to it

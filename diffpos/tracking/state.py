@@ -850,6 +850,17 @@ class TrackerConfig:
         the slack's flat top (prediction + half the slack,
         :func:`diffpos.tracking.model.slack_skip_pred`), so the two SNR terms assume the same
         edge. Default False (the half-plane's prediction there, as before).
+    snr_edge_model : {"halfplane", "wedge"}
+        The window edge of the SNR term's predictions
+        (:func:`diffpos.channel.emulator.pair_snr_db`'s ``edge_model``): ``"halfplane"``
+        (default) the emulator's perfectly conducting half-plane; ``"wedge"`` the window edge
+        as Sionna RT traces it (:mod:`diffpos.channel.wedge`: a thin sheet of the walls' ITU
+        material, Sionna RT 2.2's reflection weighting; its window-edge slots 7-13 equal
+        Sionna's traced path gains to < 0.02 dB, ``benchmarks/bench_wedge.py``), the physics
+        that ``snr_diffraction_slack_db`` stands in for. Only the compiled SNR term
+        (:func:`diffpos.tracking.model.snr_term`, the tracker's) uses it; the numpy
+        references keep the half-plane. A recording made by the emulator's channel has the
+        half-plane's SNRs: measured in docs/channel_mix.md "Session 30".
     challenger_m : float [m]
         A second position mode per floor (a *challenger* of the floor's level track; 0: off,
         the default, replays unchanged; :func:`diffpos.tracking.tracker._challengers`). Every
@@ -1016,6 +1027,7 @@ class TrackerConfig:
     snr_diffraction_slack_db: float = 6.0
     snr_slack_max_links: int = 3
     snr_slack_skip: bool = False
+    snr_edge_model: str = "halfplane"
     link_eps_posterior: int = 0
     challenger_m: float = 0.0
     challenger_period_s: float = 1.0

@@ -38,6 +38,8 @@ BURST = dataclasses.replace(CFG, reseed_outliers=1)
 #: the diffraction slots' upward SNR slack (``snr_diffraction_slack_db``; by default only at
 #: nodes with at most three ranges) on every node
 SLACK = dataclasses.replace(CFG, snr_diffraction_slack_db=6.0, snr_slack_max_links=0)
+#: the SNR term's window edge as Sionna RT traces it (``snr_edge_model``, off by default)
+WEDGE = dataclasses.replace(CFG, snr_edge_model="wedge")
 #: the node's model-averaged outlier weight (``link_eps_posterior``, off by default)
 POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=4)
 #: a second level mode per floor (``challenger_m``, off by default) searched for every floor
@@ -87,9 +89,9 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, CHAL],
+                                    POSTERIOR, CHAL, WEDGE],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
-                              "slack", "posterior", "challenger"])
+                              "slack", "posterior", "challenger", "wedge"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)

@@ -278,12 +278,13 @@ _TRACKER_RANGES: dict[str, dict[str, float]] = {
     "reseed_epochs": {"ge": 1},
 }
 #: The choices of the tracker's text settings (``TrackerConfig.mixing``, ``family_weight``,
-#: ``family_gate``, ``family_fit``, ``cov_published_floors``).
+#: ``family_gate``, ``family_fit``, ``cov_published_floors``, ``snr_edge_model``).
 _CHOICES: dict[str, tuple[str, ...]] = {"mixing": ("select", "imm"),
                                         "family_weight": ("mechanism", "one", "outlier"),
                                         "family_gate": ("misfit", "outlier"),
                                         "family_fit": ("prior", "residual"),
-                                        "cov_published_floors": ("off", "all", "credible")}
+                                        "cov_published_floors": ("off", "all", "credible"),
+                                        "snr_edge_model": ("halfplane", "wedge")}
 #: Unit of a tracker setting by the end of its name (the house naming rule); else ``-``
 #: (dimensionless) or ``count`` (integers).
 _UNIT_SUFFIXES = (("_m2_s3", "m^2/s^3"), ("_m_s", "m/s"), ("_hz", "1/s"), ("_nats", "nats"),
