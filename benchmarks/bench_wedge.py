@@ -9,9 +9,9 @@ from the live trace's cache (as ``benchmarks/diag_raytrace_misses.py``: the cach
 node ids and first positions are the recording's). ``--scenario``: the scenario it was made
 with (default the paper's; the recordings do not carry it). Every traced path whose chain
 is one of the 18's window-edge slots (``Tx-D(lower)-Rx``, ``Tx-D(upper)-R(floor)-Rx``, ...:
-:data:`diffpos.channel.slots.EDGE_SLOTS`, no transmission) at every traced epoch is
+:data:`diffpos.channel.edge_snr.EDGE_SLOTS`, no transmission) at every traced epoch is
 compared with that slot's SNR at the traced anchor and node positions
-(:func:`diffpos.channel.slots.edge_slots_snr_db`), antenna elevation patterns off:
+(:func:`diffpos.channel.edge_snr.edge_slots_snr_db`), antenna elevation patterns off:
 
 * ``halfplane``: the emulator's perfectly conducting half-plane (its channel at order 2; the
   tracker's SNR prediction),
@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 from diffpos_services.scenario_io import scenario_or_default
 
+from diffpos.channel.edge_snr import EDGE_SLOTS, edge_slots_snr_db
 from diffpos.channel.linkbudget import snr_db
-from diffpos.channel.slots import EDGE_SLOTS, edge_slots_snr_db
 from diffpos.paths.mechanisms import MECHANISMS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -76,16 +76,13 @@ from diffpos.channel.families_nb import eval_family_snr
 from diffpos.channel.linkbudget import db_to_linear, ranging_crlb_m
 from diffpos.channel.slots import (
     _C,
-    EDGE_SLOTS,
     _Ctx,
     _materials,
     _slots,
-    edge_slots_snr_db,
     itu_permittivity,
     partition_permittivities,
 )
 from diffpos.channel.snr_nb import channel_params, eval_snr_kernel, eval_snr_masked_kernel
-from diffpos.channel.wedge import EdgeModel
 from diffpos.paths.mechanisms import MECHANISMS, MechanismSet, Recipe, mechanism_set
 from diffpos.paths.model import first_arrival_paths
 from diffpos.paths.model_nb import mechanism_table
@@ -249,8 +246,7 @@ def _params_for(building: Building, radio: Radio) -> tuple[np.ndarray, ...]:
 
 
 def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
-                radio: Radio, need: ArrayLike | None = None,
-                edge_model: EdgeModel = "halfplane") -> FloatArray:
+                radio: Radio, need: ArrayLike | None = None) -> FloatArray:
     """SNR of every slot for per-node anchor sets: anchors ``(N, M, 3)``, nodes ``(N, 3)``.
 
     The same amplitudes as :func:`emulate_channel` (which pairs every node with every anchor),
@@ -270,11 +266,6 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
     (:func:`diffpos.channel.snr_nb.channel_snr_masked_kernel`); every needed slot has
     the unmasked value, bit for bit, the others are NaN (not evaluated).
 
-    ``edge_model`` ``"wedge"``: the window-edge slots (:data:`~diffpos.channel.slots.EDGE_SLOTS`,
-    7-13) with the window edge as Sionna RT traces it instead of the half-plane
-    (:func:`diffpos.channel.slots.edge_slots_snr_db`, numpy, on the pairs that need one of
-    them); every other slot as with ``"halfplane"`` (the default, the emulator's), bit for bit.
-
     Returns
     -------
     ndarray, shape (N, M, K) [dB]
@@ -291,32 +282,8 @@ def pair_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
         return out if need is None else np.where(need, out, np.nan)
     params = _params_for(building, radio)
     if need is None:
-        out = eval_snr_kernel(_c_w(anchors), _c_w(nodes), params)
-    else:
-        out = eval_snr_masked_kernel(_c_w(anchors), _c_w(nodes), params, need)
-    if edge_model == "halfplane":
-        return out
-    if edge_model != "wedge":
-        raise ValueError(f"edge_model must be 'halfplane' or 'wedge', got {edge_model!r}")
-    return _with_wedge_edges(out, anchors, nodes, building, radio, need)
-
-
-def _with_wedge_edges(out: FloatArray, anchors: FloatArray, nodes: FloatArray,
-                      building: Building, radio: Radio, need: NDArray | None) -> FloatArray:
-    """``out`` (N, M, K) with its window-edge slots replaced by the wedge's (in place), on the
-    nodes where one of them is needed (all with ``need`` None; NaN kept where not needed)."""
-    cols = np.array([k for k, _e, _t in EDGE_SLOTS])
-    rows = (np.arange(out.shape[0]) if need is None
-            else np.flatnonzero(need[..., cols].any(axis=(1, 2))))
-    if rows.size == 0:
-        return out
-    w = edge_slots_snr_db(building, radio, anchors[rows], nodes[rows], "wedge")
-    if need is not None:
-        w = np.where(need[rows][..., cols], w, np.nan)
-    sub = out[rows]
-    sub[..., cols] = w
-    out[rows] = sub
-    return out
+        return eval_snr_kernel(_c_w(anchors), _c_w(nodes), params)
+    return eval_snr_masked_kernel(_c_w(anchors), _c_w(nodes), params, need)
 
 
 def _c_w(a: np.ndarray) -> np.ndarray:

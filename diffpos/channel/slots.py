@@ -22,14 +22,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from diffpos.channel.gtd_halfplane import (
-    _fresnel,
-    diffracted_field,
-    edge_frame,
-    wavenumber_rad_m,
-)
+from diffpos.channel.gtd_halfplane import _fresnel, diffracted_field, wavenumber_rad_m
 from diffpos.channel.linkbudget import snr_db
-from diffpos.channel.wedge import EdgeModel, wedge_field
 from diffpos.constants import SPEED_OF_LIGHT_M_S
 from diffpos.paths.mechanisms import Recipe
 from diffpos.paths.model import FloorFrame, diffracted_path, direct_opening, specular_path
@@ -326,13 +320,13 @@ def _edge_frame(edge: str) -> tuple[FloatArray, FloatArray]:
 
 
 def _diffracted(c: _Ctx, edge: str, then: str | None = None, *, sheet: complex | None = None,
-                wedge: bool = False):
+                field=None):
     """Anchor -> window edge (UTD) [-> one inside reflection] -> node (geometry:
     :func:`diffpos.paths.model.diffracted_path`, shared with the path model; corner diffraction is
     dropped in both). ``sheet``: the edge's half-plane (None: a perfect conductor, else its
-    permittivity; :meth:`_Ctx.edge_permittivity` for the 18). ``wedge``: instead the
-    window edge as Sionna RT traces it (:func:`diffpos.channel.wedge.wedge_field`: a thin sheet,
-    ``n = 2``, of the walls' ITU material and thickness, Sionna's reflection weighting)."""
+    permittivity; :meth:`_Ctx.edge_permittivity` for the 18). ``field``: instead a function
+    ``(c, a, obs, q, e_dir, face) -> E``, the edge's field at ``obs``
+    (:func:`diffpos.channel.edge_snr.edge_slots_snr_db` passes Sionna RT's window edge)."""
     a = np.broadcast_to(c.anchor, (*c.shape, 3))
     n = np.broadcast_to(c.node, (*c.shape, 3))
     g = diffracted_path(a, n, c.frame, edge, then)
@@ -343,10 +337,8 @@ def _diffracted(c: _Ctx, edge: str, then: str | None = None, *, sheet: complex |
         axis, coord = c.frame.plane(then)
         obs = _mirror(np.array(n), axis, np.broadcast_to(coord, c.shape))
     e_dir, face = _edge_frame(edge)
-    if wedge:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            E = wedge_field(edge_frame(a, obs, q, e_dir, face), c.e0, frequency_hz=c.f, n=2.0,
-                            permittivity=c.eta_wall, thickness_m=c.b.wall_thickness_m)
+    if field is not None:
+        E = field(c, a, obs, q, e_dir, face)
     else:
         E = diffracted_field(a, obs, q, e_dir, face, c.e0, frequency_hz=c.f,
                              coefficients="utd", spreading="spherical", face_permittivity=sheet)
@@ -521,29 +513,3 @@ def _power_snr(gain: NDArray, aoa: FloatArray, valid: NDArray, radio: Radio
                  processing_gain_db=radio.processing_gain_db,
                  temperature_k=radio.noise_temperature_k, noise_figure_db=radio.noise_figure_db)
     return np.where(valid, power, -np.inf), np.where(valid, snr, -np.inf)
-
-
-#: The 18's slots over a horizontal window edge (7-13: ``Tx-D(upper|lower)-Rx`` and the
-#: edge then one inside reflection), in slot order, with their edge and inside plane.
-EDGE_SLOTS: tuple[tuple[int, str, str | None], ...] = (
-    (7, "upper", None), (8, "lower", None), (9, "upper", "floor"), (10, "upper", "ceiling"),
-    (11, "lower", "floor"), (12, "lower", "ceiling"), (13, "upper", "back"))
-
-
-def edge_slots_snr_db(building: Building, radio: Radio, anchors_m: FloatArray,
-                      nodes_m: FloatArray, model: EdgeModel = "wedge") -> FloatArray:
-    """SNR [dB] of the window-edge slots :data:`EDGE_SLOTS` with the edge ``model``
-    (``"wedge"``: :func:`diffpos.channel.wedge.wedge_field`, Sionna's window edge;
-    ``"halfplane"``: the emulator's 18 as :func:`_slots`), per-node anchors ``(N, M, 3)``,
-    nodes ``(N, 3)``: shape (N, M, 7), -inf where a slot is not valid. The rest of each slot
-    (geometry, inside reflection, partitions, antenna patterns, link budget) is the
-    emulator's."""
-    c = _Ctx(building, radio, nodes_m, anchors_m)
-    out = []
-    for _k, edge, then in EDGE_SLOTS:
-        length, gain, _aod, aoa, valid = _diffracted(
-            c, edge, then, sheet=c.edge_permittivity(edge), wedge=model == "wedge")
-        out.append(_power_snr(gain, aoa, valid & np.isfinite(length), radio)[1])
-    return np.stack(out, axis=-1)
-
-

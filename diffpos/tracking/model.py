@@ -78,6 +78,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from diffpos.channel.detection import skipped_cost
+from diffpos.channel.edge_snr import with_wedge_edges
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.channel.snr_nb import snr_cost_kernel
 from diffpos.paths.model_nb import building_planes
@@ -446,6 +447,19 @@ def snr_cost_near(pos: FloatArray, links: Links, floor, building, relax_m,
     return c
 
 
+def _predicted(anchors: FloatArray, nodes: FloatArray, building, radio, need: NDArray,
+               edge: str) -> FloatArray:
+    """The slots' SNR predictions [dB] (:func:`~diffpos.channel.emulator.pair_snr_db`) with the
+    window edge ``edge`` (``"halfplane"``: the emulator's; ``"wedge"``: Sionna RT's,
+    :func:`~diffpos.channel.edge_snr.with_wedge_edges`)."""
+    pred = pair_snr_db(anchors, nodes, building=building, radio=radio, need=need)
+    if edge == "halfplane":
+        return pred
+    if edge != "wedge":
+        raise ValueError(f"snr_edge_model must be 'halfplane' or 'wedge', got {edge!r}")
+    return with_wedge_edges(pred, anchors, nodes, building=building, radio=radio, need=need)
+
+
 def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEval,
              config, cache: SnrCache | None = None) -> FloatArray | None:
     """``cap_snr_cost(snr_cost_near(pos, links, floor, building, relax_m, pe, cache,
@@ -485,9 +499,8 @@ def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEv
                           _IS_CACHED, near, hit, mask, at, p_anc, p_node, p_need)
     radio = links.radio
     edge = config.snr_edge_model
-    p_pred = (pair_snr_db(p_anc[:cnt], p_node[:cnt], building=building, radio=radio,
-                          need=p_need[:cnt], edge_model=edge) if cnt
-              else np.empty((0, 1, K_SLOTS)))
+    p_pred = (_predicted(p_anc[:cnt], p_node[:cnt], building, radio, p_need[:cnt], edge)
+              if cnt else np.empty((0, 1, K_SLOTS)))
     pred, cost, thr = np.empty(shape), np.empty(shape), np.empty((n, h, m))
     hole_idx = np.empty((rows, 3), np.int64)
     h_anc, h_node = np.empty((2 * rows, 1, 3)), np.empty((2 * rows, 3))
@@ -503,9 +516,8 @@ def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEv
                          h_node, h_need, h_meas, h_thr)
     if use_cache:
         cache.node[...] = at
-    h_pred = (pair_snr_db(h_anc[:2 * q], h_node[:2 * q], building=building, radio=radio,
-                          need=h_need[:2 * q], edge_model=edge) if q
-              else np.empty((0, 1, K_SLOTS)))
+    h_pred = (_predicted(h_anc[:2 * q], h_node[:2 * q], building, radio, h_need[:2 * q], edge)
+              if q else np.empty((0, 1, K_SLOTS)))
     snr_hole_kernel(_c(h_pred, dtype=np.float64), h_need, h_meas, h_thr, hole_idx, q, sig, fap,
                     det, float(config.snr_cost_cap_nats), cost, np.empty((2 * q, K_SLOTS)))
     if config.snr_diffraction_slack_db > 0:  # before the skipped paths: they add to it

@@ -852,7 +852,7 @@ class TrackerConfig:
         edge. Default False (the half-plane's prediction there, as before).
     snr_edge_model : {"halfplane", "wedge"}
         The window edge of the SNR term's predictions
-        (:func:`diffpos.channel.emulator.pair_snr_db`'s ``edge_model``): ``"halfplane"``
+        (:func:`diffpos.channel.edge_snr.with_wedge_edges`): ``"halfplane"``
         (default) the emulator's perfectly conducting half-plane; ``"wedge"`` the window edge
         as Sionna RT traces it (:mod:`diffpos.channel.wedge`: a thin sheet of the walls' ITU
         material, Sionna RT 2.2's reflection weighting; its window-edge slots 7-13 equal

@@ -1,7 +1,7 @@
 """The SNR term's window edge as Sionna RT traces it (``TrackerConfig.snr_edge_model``;
 :func:`diffpos.channel.emulator.pair_snr_db`'s ``edge_model``).
 
-* ``pair_snr_db(edge_model="wedge")``: every slot but the window-edge slots 7-13 is bit for
+* ``with_wedge_edges(pair_snr_db(...))``: every slot but the window-edge slots 7-13 is bit for
   bit the half-plane's; ``Tx-D(upper)-Rx`` / ``Tx-D(lower)-Rx`` differ from the half-plane's
   by ``20 log10(|wedge field| / |half-plane field|)`` computed here from the two fields at the
   Fermat point (:func:`diffpos.channel.wedge.wedge_field`, whose values are held to Sionna
@@ -20,6 +20,7 @@ import dataclasses
 import numpy as np
 
 import diffpos.tracking.model as tm
+from diffpos.channel.edge_snr import with_wedge_edges
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.channel.gtd_halfplane import edge_frame, field_from_frame
 from diffpos.channel.slots import itu_permittivity
@@ -46,11 +47,12 @@ def _points(seed: int, n: int = 40, m: int = 4):
     return b, nodes, anchors
 
 
-def test_pair_snr_db_wedge_edges() -> None:
+def test_with_wedge_edges_replaces_only_the_window_edge_slots() -> None:
     b, nodes, anchors = _points(0)
     r = Radio()
     half = pair_snr_db(anchors, nodes, building=b, radio=r)
-    wed = pair_snr_db(anchors, nodes, building=b, radio=r, edge_model="wedge")
+    wed = with_wedge_edges(pair_snr_db(anchors, nodes, building=b, radio=r), anchors, nodes,
+                           building=b, radio=r)
     with np.errstate(invalid="ignore"):  # -inf - -inf where a slot has no power
         diff = wed - half
     assert np.array_equal(half[..., ~EDGE], wed[..., ~EDGE])
@@ -75,7 +77,8 @@ def test_pair_snr_db_wedge_edges() -> None:
         np.testing.assert_allclose(diff[..., k][ok], ratio[ok], atol=1e-9, rtol=0)
     assert np.nanmax(np.abs(np.where(np.isfinite(half), diff, 0.0))) > 3.0
     need = np.random.default_rng(1).random(half.shape) < 0.3
-    masked = pair_snr_db(anchors, nodes, building=b, radio=r, need=need, edge_model="wedge")
+    masked = with_wedge_edges(pair_snr_db(anchors, nodes, building=b, radio=r, need=need),
+                              anchors, nodes, building=b, radio=r, need=need)
     assert np.array_equal(masked[need], wed[need])
     assert np.all(np.isnan(masked[~need]))
 
@@ -90,7 +93,8 @@ def _case(seed: int):
     pos[:, 1:, 2] = b.floor_z_m(floor[:, 1:]) + rng.uniform(0.4, 2.6, (n, h - 1))
     mask = np.ones((n, m), bool)
     mask[: n // 2, 3] = False
-    pred = pair_snr_db(anchors, nodes, building=b, radio=Radio(), edge_model="wedge")
+    pred = with_wedge_edges(pair_snr_db(anchors, nodes, building=b, radio=Radio()), anchors,
+                            nodes, building=b, radio=Radio())
     snr = np.max(np.where(np.isfinite(pred), pred, -np.inf), axis=-1)
     snr = np.where(np.isfinite(snr), snr, 0.0) + rng.normal(0.0, 3.0, (n, m))
     rho = np.linalg.norm(pos[:, :1] - anchors, axis=-1) + 0.3
@@ -109,9 +113,8 @@ def test_the_tracker_snr_term_uses_the_wedge(monkeypatch) -> None:
     c1 = tm.snr_term(pos, links, floor, b, relax, pe, on)
     orig = tm.pair_snr_db
 
-    def wedge_everywhere(*args, **kw):
-        kw["edge_model"] = "wedge"
-        return orig(*args, **kw)
+    def wedge_everywhere(anchors, nodes, **kw):
+        return with_wedge_edges(orig(anchors, nodes, **kw), anchors, nodes, **kw)
 
     monkeypatch.setattr(tm, "pair_snr_db", wedge_everywhere)
     ref = tm.snr_term(pos, links, floor, b, relax, pe, base)
