@@ -77,6 +77,29 @@ def test_sionna_receiver_on_the_shadow_side():
     assert on.cost[0] <= oracle.cost[0] + 1e-6
 
 
+def test_batched_equals_one_by_one():
+    """In a batch the boundary starts go to each fix's own rows: receiver 138 after two other
+    fixes (the same links without the weakest one, and the links in reverse order) gives
+    the answer it gives alone, bit for bit, and so do the others."""
+    sc = default_scenario()
+    radio = sc.radio
+    rule = SnrRule(**_SOFT_SHEET, shadow_starts=0.1)
+    r, s, q = (np.array(_R138[k]) for k in ("range", "sigma", "snr"))
+    a = sc.anchor_positions_m()
+    rows = [(a, r, s, q, np.array([True, True, False, True])), (a[::-1], r[::-1], s[::-1],
+            q[::-1], np.ones(4, bool)), (a, r, s, q, np.ones(4, bool))]
+    kw = dict(building=sc.building, radio=radio, max_order=4, bandwidth_hz=radio.bandwidth_hz,
+              error_floor_m=radio.range_error_floor_m, snr_rule=rule)
+    batch = mnls(np.stack([x[0] for x in rows]), np.stack([x[1] for x in rows]),
+                 np.stack([x[2] for x in rows]), mask=np.stack([x[4] for x in rows]),
+                 snr_db=np.stack([x[3] for x in rows]), **kw)
+    for i, (ai, ri, si, qi, mi) in enumerate(rows):
+        one = mnls(ai, ri, si, mask=mi, snr_db=qi, **kw)
+        np.testing.assert_array_equal(batch.position_m[i], one.position_m[0])
+        np.testing.assert_array_equal(batch.floor_probability[i], one.floor_probability[0])
+    assert batch.floor[2] == 3
+
+
 def test_default_is_no_boundary_starts():
     """``shadow_starts`` is 0 by default and 0 gives the same answer bit for bit; negative
     displacements are refused."""

@@ -485,10 +485,10 @@ def _shadow_starts(p: _Problem, xs: FloatArray, ts: dict, sel, active, building,
     c2 = np.where(crossed, tn["cost"], np.inf).reshape(go.size, 6)
     j = np.argmin(c2, axis=-1)
     better = c2[np.arange(go.size), j] < t0["cost"][go] - 1e-6
-    pick = (go * 6 + j)[better]
+    pick = (np.arange(go.size) * 6 + j)[better]  # rows of the LM call
     dest = act[go[better]]
     xs, ts = xs.copy(), {k: v.copy() for k, v in ts.items()}
-    xs[dest] = xn.reshape(-1, 3)[pick] if pick.size else xs[dest]
+    xs[dest] = xn[pick]
     for k in ts:
         ts[k][dest] = tn[k][pick]
     return xs, ts
