@@ -593,6 +593,7 @@ class ReproduceConfig:
     mnls_measured_threshold, mnls_first_arrival_prior, mnls_keep_hard_rule : bool, float, bool
     mnls_dielectric_edges : float
     mnls_floor_box : bool
+    mnls_shadow_starts : float [m]
         M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: all off).
     """
 
@@ -607,6 +608,7 @@ class ReproduceConfig:
     mnls_keep_hard_rule: bool = False
     mnls_dielectric_edges: float = 0.0
     mnls_floor_box: bool = False
+    mnls_shadow_starts: float = 0.0
 
 
 class Progress(Protocol):
@@ -746,7 +748,7 @@ def reproduce(
         building=scenario.building, radio=scenario.radio, mnls_max_order=cfg.mnls_max_order,
         mnls_snr_rule=SnrRule(cfg.mnls_measured_threshold, cfg.mnls_first_arrival_prior,
                               cfg.mnls_keep_hard_rule, cfg.mnls_dielectric_edges,
-                              cfg.mnls_floor_box),
+                              cfg.mnls_floor_box, cfg.mnls_shadow_starts),
     )
     timing["positioning_s"] = time.perf_counter() - t0
     timing["method_s"] = clock.durations()
@@ -775,6 +777,7 @@ def build_summary(cfg: ReproduceConfig, scenario: Scenario, res: Reproduction) -
         "mnls_keep_hard_rule": cfg.mnls_keep_hard_rule,
         "mnls_dielectric_edges": cfg.mnls_dielectric_edges,
         "mnls_floor_box": cfg.mnls_floor_box,
+        "mnls_shadow_starts": cfg.mnls_shadow_starts,
         "window_height_m": scenario.building.window_height_m,
         "mpc_table_pct": res.table,
         "first_arrival_mechanism_pct": res.fap_by_mechanism,

@@ -123,6 +123,12 @@ class MechanismSet:
         (diffraction + reflections slot, the plain diffraction slot over the same edge with the
         same ground bounce): the first is longer and has more losses (M-NLS's same-edge
         dominance, :mod:`diffpos.estimators.mnls.rules`).
+    lit : tuple of int
+        Per slot: the slot of the same path without its horizontal window-edge (sill or
+        lintel) diffraction, the direct or specular path that edge cuts (at the edge's shadow
+        boundary the two have the same length, the diffracted one existing on the shadow
+        side, the other on the lit side), or -1 (no such edge or no such slot; M-NLS's
+        boundary starts, :attr:`diffpos.estimators.mnls.rules.SnrRule.shadow_starts`).
     """
 
     max_order: int
@@ -131,6 +137,7 @@ class MechanismSet:
     specular: tuple[int, ...] = field(init=False)
     diffraction: tuple[int, ...] = field(init=False)
     same_edge: tuple[tuple[int, int], ...] = field(init=False)
+    lit: tuple[int, ...] = field(init=False)
 
     def __post_init__(self) -> None:
         rec = self.recipes
@@ -144,6 +151,11 @@ class MechanismSet:
         object.__setattr__(self, "same_edge", tuple(
             (i, plain[(r.ground, r.edge)]) for i, r in enumerate(rec)
             if r.kind == "diff" and r.planes and (r.ground, r.edge) in plain))
+        index = {r: i for i, r in enumerate(rec)}
+        object.__setattr__(self, "lit", tuple(
+            index.get(Recipe("spec", r.ground, None, r.planes) if r.ground or r.planes
+                      else Recipe("direct"), -1) if r.kind == "diff" and r.edge in ("upper", "lower")
+            else -1 for r in rec))
 
     def __len__(self) -> int:
         return len(self.recipes)

@@ -87,6 +87,17 @@ class SnrRule:
         (``result._box_log_mass``). A mode against a wall, the floor or the ceiling keeps about
         half its Gaussian inside, which the whole-Gaussian Laplace term counts twice.
         ``False`` (the default): the whole Gaussian (docs/raytrace_study.md "Session 29").
+    shadow_starts : float
+        Not a detector rule but the search's (with the measured SNR): the displacement ``d``
+        [m] of the boundary starts. Where a floor's mode explains a link by a horizontal
+        window-edge diffraction whose lit counterpart (the same path without the edge,
+        :attr:`diffpos.paths.mechanisms.MechanismSet.lit`) does not exist there, the mode
+        sits on the edge's shadow side, where the max-mixture cannot see the counterpart
+        (the two have the same length at the boundary, the counterpart's SNR term may be
+        far cheaper). Six starts at ``+-d`` along x, y and z run ``max_iter`` LM steps; the
+        floor takes the cheapest new mode that has crossed (that link now takes the
+        counterpart) if it costs less. 0 (the default): none (docs/raytrace_study.md
+        "Session 30").
     """
 
     measured_threshold: bool = False
@@ -94,12 +105,15 @@ class SnrRule:
     keep_hard_rule: bool = False
     dielectric_edges: float = 0.0
     floor_box: bool = False
+    shadow_starts: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.first_arrival_prior < 1.0:
             raise ValueError("first_arrival_prior must be in [0, 1)")
         if not 0.0 <= self.dielectric_edges <= 1.0:
             raise ValueError("dielectric_edges must be in [0, 1]")
+        if not self.shadow_starts >= 0.0:
+            raise ValueError("shadow_starts must be >= 0 [m]")
 
 
 #: M-NLS's rule as it was: the predicted threshold and the hard rule.

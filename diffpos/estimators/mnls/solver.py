@@ -446,7 +446,52 @@ def _solve_chunk(a, r, sig, mask, excess, building, *, grid, keep, iters, lam, w
         fbest = ts["cost"].reshape(b, nf)  # a floor a new mode brings within PRUNE_NATS joins
         active |= moved.reshape(b, nf) & (
             fbest <= np.min(fbest, axis=-1, keepdims=True) + PRUNE_NATS)
+    if rule.shadow_starts > 0 and snr is not None and radio is not None:
+        with _stage("shadow"):
+            xs, ts = _shadow_starts(p, xs, ts, sel, active.ravel(), building, iters,
+                                    np.repeat(snr, nf, axis=0), radio, kernel,
+                                    rule.shadow_starts)
     return p, xs.reshape(b, nf, 3), ts, sel, active.ravel()
+
+
+def _shadow_starts(p: _Problem, xs: FloatArray, ts: dict, sel, active, building, iters: int,
+                   snr, radio, kernel: bool, d: float) -> tuple[FloatArray, dict]:
+    """The boundary starts (:attr:`~diffpos.estimators.mnls.rules.SnrRule.shadow_starts`):
+    for every active row of ``xs`` (B*F, 3; rows of ``p`` at ``sel``, ``snr`` per row) whose
+    mode explains a link by a horizontal window-edge diffraction whose lit counterpart does
+    not exist there, six starts at ``+-d`` along x, y, z, ``iters`` LM steps with the SNR
+    terms; the row takes the cheapest new mode where that link takes the counterpart, if it
+    costs less than the mode (terms at the mode with the SNR refreshed there). Returns
+    ``xs`` and ``ts`` updated."""
+    act = np.flatnonzero(active)
+    q = _take(p, sel[act])
+    q.snr_meas, q.radio = snr[act], radio
+    q.snr_cost = _snr_cost(q, xs[act], building)
+    t0 = _link_terms(q, xs[act], building)
+    lit = np.asarray(mechanism_set(DEFAULT_ORDER).lit if p.mech is None else p.mech.lit)
+    cp = lit[t0["slot"]]  # (A, M) the chosen slot's counterpart
+    cp_len = np.take_along_axis(t0["length"], np.maximum(cp, 0)[..., None], axis=-1)[..., 0]
+    shadow = (q.mask & ~t0["tail"] & ~t0["none"] & (cp >= 0) & ~np.isfinite(cp_len))
+    go = np.flatnonzero(np.any(shadow, axis=-1))
+    if go.size == 0:
+        return xs, ts
+    rows = np.repeat(go, 6)
+    qs = _take(q, rows)
+    qs.snr_meas, qs.radio = q.snr_meas[rows], radio
+    x0 = np.clip(xs[act][rows] + np.tile(d * np.vstack([np.eye(3), -np.eye(3)]), (go.size, 1)),
+                 qs.lo, qs.hi)
+    xn, tn = _lm(qs, x0, building, iters, kernel=kernel)
+    crossed = np.any(shadow[rows] & (tn["slot"] == cp[rows]), axis=-1)
+    c2 = np.where(crossed, tn["cost"], np.inf).reshape(go.size, 6)
+    j = np.argmin(c2, axis=-1)
+    better = c2[np.arange(go.size), j] < t0["cost"][go] - 1e-6
+    pick = (np.arange(go.size) * 6 + j)[better]  # rows of the LM call
+    dest = act[go[better]]
+    xs, ts = xs.copy(), {k: v.copy() for k, v in ts.items()}
+    xs[dest] = xn[pick]
+    for k in ts:
+        ts[k][dest] = tn[k][pick]
+    return xs, ts
 
 
 def _transfer(p: _Problem, xs: FloatArray, ts: dict, sel, building, iters: int, snr, radio,

@@ -104,6 +104,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mnls-floor-box", action="store_true",
                         help="mnls: each floor's Laplace mass counts only its share inside "
                              "the floor's box (SnrRule.floor_box; default: the whole Gaussian)")
+    parser.add_argument("--mnls-shadow-starts", type=float, default=0.0, metavar="D",
+                        help="mnls: starts +-D m across a window edge's shadow boundary where a "
+                             "floor's mode explains a link by the edge's diffraction and the "
+                             "lit path does not exist there (SnrRule.shadow_starts; default 0: "
+                             "none)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -172,7 +177,8 @@ def run(args: argparse.Namespace) -> int:
                           mnls_first_arrival_prior=args.mnls_first_arrival_prior,
                           mnls_keep_hard_rule=args.mnls_keep_hard_rule,
                           mnls_dielectric_edges=args.mnls_dielectric_edges,
-                          mnls_floor_box=args.mnls_floor_box)
+                          mnls_floor_box=args.mnls_floor_box,
+                          mnls_shadow_starts=args.mnls_shadow_starts)
     try:
         kind, path = _channel_source(args.channel)
         with report.ProgressBars(not args.no_progress) as prog:
