@@ -844,8 +844,13 @@ class Comparison:
                     self._diff_sketch.add(np.frombuffer(self.diffs, np.float64))
                     self.diffs = array.array("d")
                 self._n += 1
-                ex = (dist, -self._n, (key[0], key[1], a[0], b[0], a[3]))
-                (heapq.heappush if len(self.top) < 5 else heapq.heappushpop)(self.top, ex)
+                top = self.top
+                # (the heap keeps the 5 largest (dist, -n): a pair no larger than its
+                # smallest would be pushed and popped at once, so it is not built)
+                if len(top) < 5:
+                    heapq.heappush(top, (dist, -self._n, (key[0], key[1], a[0], b[0], a[3])))
+                elif dist > top[0][0]:
+                    heapq.heappushpop(top, (dist, -self._n, (key[0], key[1], a[0], b[0], a[3])))
             if a[2] is not None and b[2] is not None:
                 dp = abs(a[2] - b[2])
                 self.peb_max = dp if self.peb_max is None else max(self.peb_max, dp)

@@ -661,6 +661,12 @@ class _Shards:
             return
         self.fusions[d.shard].on_diagnostics(d, m.log_ns)
 
+    def in_recorded_order(self) -> bool:
+        """Whether any shard replays in recorded order (else :meth:`step_recorded` does
+        nothing: every shard follows its decision record). Changes only with a live
+        instance's diagnostics (:meth:`on_diagnostics`)."""
+        return any(f.active is None for f in self.fusions)
+
     def step_recorded(self, now_ns: int) -> bool:
         """Step the shards replayed in recorded order; ``True`` if any was."""
         stepped = False
@@ -748,6 +754,7 @@ def _feed(
     seq = rec.seq
     copy = outputs.copy if outputs.copy_input else None
     next_step = next_advance = None
+    stepping = fusion.in_recorded_order()  # (else step_recorded is a no-op: not called)
     for batch in batches:
         if rec.t_first is None and batch:
             rec.t_first = batch[0].log_ns
@@ -768,6 +775,7 @@ def _feed(
                 fusion.on_input(topic, m.data, now)
             elif route[0] == "diagnostics":
                 fusion.on_diagnostics(m)
+                stepping = fusion.in_recorded_order()
             elif route[0] == "liveliness":
                 fusion.on_liveliness(m)
             else:
@@ -776,7 +784,8 @@ def _feed(
                 rec.take(route[0], m, route[1])
                 if route[0] == "heartbeat":
                     continue  # no step point: the services' liveness, nothing the fusion heard
-            if (next_step is None or now >= next_step) and fusion.step_recorded(now):
+            if stepping and (next_step is None or now >= next_step) \
+                    and fusion.step_recorded(now):
                 next_step = now + step_ns
         if rec.t_last is not None and (next_advance is None or rec.t_last >= next_advance):
             rec.advance(rec.t_last)  # score what the truth covers (bounded memory)
