@@ -173,6 +173,7 @@ from diffpos.tracking.model import (
     snr_reuse_on,
 )
 from diffpos.tracking.model_nb import warm_model
+from diffpos.tracking.silent import silent_update
 from diffpos.tracking.snr_nb import warm_snr_cache
 from diffpos.tracking.snr_term_nb import warm_snr_term
 from diffpos.tracking.state import (
@@ -545,6 +546,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                                   strict=True))
     merged = _merged(st, idx, new)
     mean, cov, lp, nis, llr, upd, below = (merged[k] for k in _UPDATED)
+    lp = silent_update(lp, mean, anchors_m, mask, snr_db, n_meas, live, building, radio, config)
     lk = {k: merged[k] for k in _LINK_STATE}
     if idx.size:
         _mark_reseeds(floor_bad, deficit, idx, (ran, bad_f, burst),

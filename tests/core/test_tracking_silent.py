@@ -1,0 +1,138 @@
+"""Negative information of silent anchors (``TrackerConfig.silent_anchor_nats``,
+``silent_anchor_margin_db``, ``silent_anchor_max_links``; :mod:`diffpos.tracking.silent`).
+
+* :func:`~diffpos.tracking.silent.silent_cost` equals a reference built one (anchor,
+  hypothesis) pair at a time: the strongest slot of the emulator's amplitude model
+  (:func:`diffpos.channel.emulator.pair_snr_db` of that pair alone), ``-log(e + (1 - e)
+  Phi((T + margin - S) / SNR_SIGMA_DB))`` with scipy.stats.norm's CDF, summed over the
+  node's silent anchors (1e-9 nats); it never exceeds the cap times the silent anchors, and
+  a hypothesis without a predicted path costs nothing.
+* The tracker (:func:`diffpos.tracking.tracker.update`) with the setting: from the same
+  state, one epoch in which an anchor of the TRACKING nodes is silent (masked, SNR -inf,
+  its position given): the hypotheses' means are the run's without the silent anchor bit
+  for bit and their log-probabilities are that run's less the reference cost at those
+  means, renormalised (1e-9); the setting moves some hypothesis by more than 0.1 nats
+  (fails with the tracker ignoring silent anchors). With ``silent_anchor_max_links`` below
+  the nodes' ranges, and with the setting off, the run equals the run without the silent
+  anchor bit for bit.
+Fixed seeds."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from diffpos.channel.emulator import emulate_channel, first_arrival, pair_snr_db
+from diffpos.scenario import default_scenario
+from diffpos.tracking.model import SNR_SIGMA_DB
+from diffpos.tracking.silent import silent_cost
+from diffpos.tracking.state import TrackerConfig, TrackStatus
+from diffpos.tracking.tracker import init_state, update
+
+SC = default_scenario()
+B, RADIO = SC.building, SC.radio
+ON = TrackerConfig(silent_anchor_nats=3.0, silent_anchor_margin_db=20.0)
+ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
+                    [-25.0, -12.0, 3.0], [8.0, -10.0, 2.0]])
+NODES = np.array([[-4.0, 3.0, 4.5], [2.0, 6.0, 7.5], [6.0, 2.5, 10.5], [-1.0, 8.0, 13.5]])
+
+
+def _reference(pos, anchors, silent, config):
+    """The cost (N, H) one pair at a time (module docstring)."""
+    n, h = pos.shape[:2]
+    e = np.exp(-config.silent_anchor_nats)
+    out = np.zeros((n, h))
+    for i, m in zip(*np.nonzero(silent), strict=True):
+        for j in range(h):
+            s = np.max(pair_snr_db(anchors[i, m][None, None], pos[i, j][None], building=B,
+                                   radio=RADIO))
+            if not np.isfinite(s):
+                continue
+            z = (RADIO.detection_snr_db + config.silent_anchor_margin_db - s) / SNR_SIGMA_DB
+            out[i, j] -= np.log(e + (1 - e) * norm.cdf(z))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("margin", [0.0, 10.0])
+def test_silent_cost_against_a_pair_by_pair_reference(seed, margin):
+    rng = np.random.default_rng(seed)
+    n, h, m = 5, 4, 3
+    x0, x1 = B.edge_x_m
+    fl = rng.integers(0, B.n_floors, (n, h))
+    pos = np.stack([rng.uniform(x0 + 0.5, x1 - 0.5, (n, h)), rng.uniform(0.5, B.depth_m - 0.5,
+                    (n, h)), B.floor_z_m(fl) + rng.uniform(0.5, 2.5, (n, h))], axis=-1)
+    anchors = np.stack([rng.uniform(x0 - 10, x1 + 10, (n, m)), -rng.uniform(2, 30, (n, m)),
+                        rng.uniform(0.3, 15.0, (n, m))], axis=-1)
+    silent = rng.random((n, m)) < 0.6
+    silent[0] = False  # a node without silent anchors
+    cfg = dataclasses.replace(ON, silent_anchor_margin_db=margin)
+    got = silent_cost(pos, anchors, silent, B, RADIO, cfg)
+    ref = _reference(pos, anchors, silent, cfg)
+    assert np.allclose(got, ref, atol=1e-9, rtol=0)
+    assert np.all(got[0] == 0.0)
+    assert np.all(got <= cfg.silent_anchor_nats * silent.sum(axis=1)[:, None] + 1e-12)
+    assert got.max() > 0.1  # the case is not trivial
+
+
+def _state(seed: int = 3):
+    """Four static nodes TRACKING after eight epochs of the emulator's ranges, and a ninth
+    epoch's inputs."""
+    rng = np.random.default_rng(seed)
+    a = np.broadcast_to(ANCHORS, (len(NODES), *ANCHORS.shape)).copy()
+    state = init_state(len(NODES), B)
+    for k in range(9):
+        fa = first_arrival(emulate_channel(ANCHORS, NODES, building=B, radio=RADIO), radio=RADIO,
+                           rng=rng)
+        t = np.full(len(NODES), round(k * 0.1e9), np.int64)
+        inputs = (a, fa.range_m, fa.sigma_m, fa.detected.copy(), t, fa.snr_db.copy())
+        if k < 8:
+            state, _ = update(state, *inputs[:5], B, TrackerConfig(), snr_db=inputs[5],
+                              radio=RADIO)
+    assert np.all(state.status == int(TrackStatus.TRACKING))
+    return state, inputs
+
+
+def _run(state, inputs, config, silent_col=None):
+    a, r, s, m, t, snr = (x.copy() for x in inputs)
+    if silent_col is not None:  # the anchor reported no path: masked, SNR -inf
+        m[:, silent_col] = False
+        snr[:, silent_col] = -np.inf
+    return update(state, a, r, s, m, t, B, config, snr_db=snr, radio=RADIO)[0]
+
+
+def test_the_tracker_takes_the_silent_anchor_into_each_hypothesis():
+    state, inputs = _state()
+    col = 2  # the anchor closest to the facade: strong predicted paths everywhere
+    m_off = inputs[3].copy()
+    m_off[:, col] = False
+    base = update(state, inputs[0], inputs[1], inputs[2], m_off, inputs[4], B, ON,
+                  snr_db=np.where(m_off, inputs[5], np.nan), radio=RADIO)[0]
+    on = _run(state, inputs, ON, silent_col=col)
+    assert on.mean.tobytes() == base.mean.tobytes()
+    silent = np.zeros(m_off.shape, bool)
+    silent[:, col] = True
+    cost = _reference(base.mean[..., :3], inputs[0], silent, ON)
+    x = base.log_prob - cost
+    x = np.maximum(x - x.max(axis=1, keepdims=True), -700.0)
+    ref = x - np.log(np.exp(x).sum(axis=1, keepdims=True))
+    assert np.allclose(on.log_prob, ref, atol=1e-9, rtol=0)
+    assert np.abs(on.log_prob - base.log_prob).max() > 0.1
+
+
+@pytest.mark.parametrize("config", [TrackerConfig(), dataclasses.replace(
+    ON, silent_anchor_max_links=4)], ids=["off", "max_links"])
+def test_without_the_setting_a_silent_anchor_changes_nothing(config):
+    state, inputs = _state()
+    col = 2
+    on = _run(state, inputs, config, silent_col=col)
+    m_off = inputs[3].copy()
+    m_off[:, col] = False
+    assert m_off.sum(axis=1).min() > 4  # every node has more ranges than max_links
+    base = update(state, inputs[0], inputs[1], inputs[2], m_off, inputs[4], B, config,
+                  snr_db=np.where(m_off, inputs[5], np.nan), radio=RADIO)[0]
+    for f in dataclasses.fields(on):
+        assert getattr(on, f.name).tobytes() == getattr(base, f.name).tobytes(), f.name
