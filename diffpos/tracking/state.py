@@ -933,6 +933,13 @@ class TrackerConfig:
     silent_anchor_max_links : int
         With ``silent_anchor_nats``: only nodes with at most this many ranges in the epoch
         (0: every node).
+    floor_hold_max_links : int
+        Nodes with 1 to this many ranges in an epoch keep their floor probabilities (every
+        hypothesis' log-probability as predicted; positions updated as before;
+        :func:`diffpos.tracking.tracker._more_floor_evidence`): one or two ranges cannot
+        place a node, every floor's hypothesis fits them, and what tells the floors apart is
+        the amplitude model alone, which drifts on a channel we did not write (Sionna
+        `large`'s top-floor walkers losing their ranges). 0: off, the default.
     """
 
     q_h_m2_s3: float = 1.5
@@ -1049,6 +1056,7 @@ class TrackerConfig:
     silent_anchor_nats: float = 0.0
     silent_anchor_margin_db: float = 10.0
     silent_anchor_max_links: int = 0
+    floor_hold_max_links: int = 0
 
 
 @dataclass(frozen=True)
