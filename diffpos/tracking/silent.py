@@ -25,9 +25,10 @@ from numpy.typing import NDArray
 
 from diffpos.channel.detection import normal_cdf
 from diffpos.channel.emulator import pair_snr_db
-from diffpos.tracking.model import SNR_SIGMA_DB
+from diffpos.tracking.model import SNR_SIGMA_DB, clamp_to_floor
+from diffpos.tracking.state import hypothesis_floor
 
-__all__ = ["silent_cost", "silent_links", "silent_update"]
+__all__ = ["sigma_points", "silent_cost", "silent_links", "silent_update"]
 
 FloatArray = NDArray[np.float64]
 
@@ -45,18 +46,36 @@ def silent_links(anchors_m: FloatArray, mask: NDArray[np.bool_], snr_db, config
     return out if out.any() else None
 
 
+def sigma_points(pos: FloatArray, cov: FloatArray, floor: NDArray[np.int_], building
+                 ) -> FloatArray:
+    """The six points ``pos +- sqrt(3) sqrt(w_i) v_i`` (N, H, 6, 3) [m] of every hypothesis'
+    position ``pos`` (N, H, 3) and covariance ``cov`` (N, H, 3, 3) [m^2] (``w_i``, ``v_i``
+    its eigenvalues, clipped at 0, and eigenvectors: the unscented transform's points with
+    equal weights 1/6, which average a function's first two moments exactly for a Gaussian
+    up to third order), each kept inside its hypothesis' floor box ``floor`` (H,)
+    (:func:`diffpos.tracking.model.clamp_to_floor`, 5 cm from the walls)."""
+    w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    d = np.sqrt(3.0 * np.maximum(w, 0.0))[..., None, :] * v  # (N, H, 3, 3): columns
+    steps = np.concatenate([np.swapaxes(d, -1, -2), -np.swapaxes(d, -1, -2)], axis=-2)
+    pts = pos[..., None, :] + steps  # (N, H, 6, 3)
+    return clamp_to_floor(pts, np.asarray(floor)[None, :, None], building, 0.05)
+
+
 def silent_cost(pos: FloatArray, anchors_m: FloatArray, silent: NDArray[np.bool_], building,
                 radio, config) -> FloatArray:
     """Negative log-likelihood [nats] (N, H) of the silent links ``silent`` (N, M) (anchors
-    ``anchors_m`` (N, M, 3) [m]) at the hypotheses' positions ``pos`` (N, H, 3) [m], summed
-    over the node's silent links (module docstring); 0 where a position is not finite."""
-    n, h = pos.shape[:2]
+    ``anchors_m`` (N, M, 3) [m]) at the hypotheses' positions ``pos`` (N, H, 3) [m], or
+    averaged over each hypothesis' points ``pos`` (N, H, P, 3) (:func:`sigma_points`: the
+    probability of the silence averaged, then its log), summed over the node's silent links
+    (module docstring); 0 where a position is not finite."""
+    pts = pos if pos.ndim == 4 else pos[:, :, None, :]
+    n, h, k = pts.shape[:3]
     out = np.zeros((n, h))
     ni, mi = np.nonzero(silent)
     if ni.size == 0:
         return out
-    p = pos[ni].reshape(-1, 3)  # (S * H, 3): silent link s, hypothesis j
-    a = np.repeat(anchors_m[ni, mi], h, axis=0)[:, None, :]  # (S * H, 1, 3)
+    p = pts[ni].reshape(-1, 3)  # (S * H * P, 3): silent link s, hypothesis j, point q
+    a = np.repeat(anchors_m[ni, mi], h * k, axis=0)[:, None, :]
     ok = np.all(np.isfinite(p), axis=-1)
     s = np.full(p.shape[0], -np.inf)
     if ok.any():
@@ -66,18 +85,21 @@ def silent_cost(pos: FloatArray, anchors_m: FloatArray, silent: NDArray[np.bool_
     with np.errstate(invalid="ignore"):
         z = (float(radio.detection_snr_db) + float(config.silent_anchor_margin_db) - s) \
             / SNR_SIGMA_DB
-    like = e + (1.0 - e) * np.where(np.isfinite(s), normal_cdf(z), 1.0)
-    np.add.at(out, ni, -np.log(like).reshape(ni.size, h))
+    miss = np.where(np.isfinite(s), normal_cdf(z), 1.0).reshape(ni.size, h, k).mean(axis=-1)
+    np.add.at(out, ni, -np.log(e + (1.0 - e) * miss))
     return out
 
 
 def silent_update(lp: FloatArray, mean: FloatArray, anchors_m, mask, snr_db, n_meas,
-                  live: NDArray[np.bool_], building, radio, config) -> FloatArray:
+                  live: NDArray[np.bool_], building, radio, config, cov: FloatArray | None = None
+                  ) -> FloatArray:
     """The hypotheses' log-probabilities ``lp`` (N, H) after the silent links of one epoch
     (``anchors_m`` (N, M, 3), ``mask``, ``snr_db`` (N, M): :func:`silent_links`) at the
-    hypotheses' means ``mean`` (N, H, 6), for the ``live`` nodes (N,) with at most
-    ``silent_anchor_max_links`` ranges ``n_meas`` (N,) (0: any); ``lp`` itself when the
-    setting is off or nothing is silent, else a new array (each changed row normalised)."""
+    hypotheses' means ``mean`` (N, H, 6) (with ``silent_anchor_spread`` averaged over the
+    :func:`sigma_points` of their position covariances ``cov`` (N, H, 6, 6)), for the
+    ``live`` nodes (N,) with at most ``silent_anchor_max_links`` ranges ``n_meas`` (N,) (0:
+    any); ``lp`` itself when the setting is off or nothing is silent, else a new array (each
+    changed row normalised)."""
     silent = silent_links(anchors_m, mask, snr_db, config) if radio is not None else None
     if silent is None:
         return lp
@@ -87,8 +109,12 @@ def silent_update(lp: FloatArray, mean: FloatArray, anchors_m, mask, snr_db, n_m
     idx = np.flatnonzero(rows)
     if idx.size == 0:
         return lp
-    cost = silent_cost(mean[idx, :, :3], np.asarray(anchors_m, dtype=np.float64)[idx],
-                       silent[idx], building, radio, config)
+    pos = mean[idx, :, :3]
+    if config.silent_anchor_spread and cov is not None:
+        pos = sigma_points(pos, cov[idx, :, :3, :3], hypothesis_floor(lp.shape[1] // 2),
+                           building)
+    cost = silent_cost(pos, np.asarray(anchors_m, dtype=np.float64)[idx], silent[idx],
+                       building, radio, config)
     out = lp.copy()
     x = lp[idx] - cost
     x = np.maximum(x - x.max(axis=1, keepdims=True), -700.0)

@@ -933,6 +933,12 @@ class TrackerConfig:
     silent_anchor_max_links : int
         With ``silent_anchor_nats``: only nodes with at most this many ranges in the epoch
         (0: every node).
+    silent_anchor_spread : bool
+        With ``silent_anchor_nats``: the probability of the silence averaged over six
+        sigma points of each hypothesis' position covariance
+        (:func:`diffpos.tracking.silent.sigma_points`), not read at its mean alone: a
+        hypothesis placed by two ranges is a spread of positions, some of them in the
+        anchor's shadow. Default False.
     floor_hold_max_links : int
         Nodes with 1 to this many ranges in an epoch keep their floor probabilities (every
         hypothesis' log-probability as predicted; positions updated as before;
@@ -1056,6 +1062,7 @@ class TrackerConfig:
     silent_anchor_nats: float = 0.0
     silent_anchor_margin_db: float = 10.0
     silent_anchor_max_links: int = 0
+    silent_anchor_spread: bool = False
     floor_hold_max_links: int = 0
 
 

@@ -7,7 +7,8 @@
   Phi((T + margin - S) / SNR_SIGMA_DB))`` with scipy.stats.norm's CDF, summed over the
   node's silent anchors (1e-9 nats); it never exceeds the cap times the silent anchors, and
   a hypothesis without a predicted path costs nothing.
-* The tracker (:func:`diffpos.tracking.tracker.update`) with the setting: from the same
+* The tracker (:func:`diffpos.tracking.tracker.update`) with the setting (and with
+  ``silent_anchor_spread``: the cost of the hypotheses' sigma points): from the same
   state, one epoch in which an anchor of the TRACKING nodes is silent (masked, SNR -inf,
   its position given): the hypotheses' means are the run's without the silent anchor bit
   for bit and their log-probabilities are that run's less the reference cost at those
@@ -15,6 +16,10 @@
   (fails with the tracker ignoring silent anchors). With ``silent_anchor_max_links`` below
   the nodes' ranges, and with the setting off, the run equals the run without the silent
   anchor bit for bit.
+* ``silent_anchor_spread``'s sigma points carry each hypothesis' mean and covariance
+  exactly; the averaged cost equals a point-by-point reference.
+* ``floor_hold_max_links``: nodes with that many ranges or fewer keep the predicted
+  log-probabilities (:func:`diffpos.tracking.tracker.predict`), everything else as without.
 Fixed seeds."""
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from scipy.stats import norm
 from diffpos.channel.emulator import emulate_channel, first_arrival, pair_snr_db
 from diffpos.scenario import default_scenario
 from diffpos.tracking.model import SNR_SIGMA_DB
-from diffpos.tracking.silent import silent_cost
+from diffpos.tracking.silent import sigma_points, silent_cost
 from diffpos.tracking.state import TrackerConfig, TrackStatus
 from diffpos.tracking.tracker import init_state, predict, update
 
@@ -104,18 +109,25 @@ def _run(state, inputs, config, silent_col=None):
     return update(state, a, r, s, m, t, B, config, snr_db=snr, radio=RADIO)[0]
 
 
-def test_the_tracker_takes_the_silent_anchor_into_each_hypothesis():
+@pytest.mark.parametrize("spread", [False, True])
+def test_the_tracker_takes_the_silent_anchor_into_each_hypothesis(spread):
     state, inputs = _state()
     col = 2  # the anchor closest to the facade: strong predicted paths everywhere
+    cfg = dataclasses.replace(ON, silent_anchor_spread=spread)
     m_off = inputs[3].copy()
     m_off[:, col] = False
-    base = update(state, inputs[0], inputs[1], inputs[2], m_off, inputs[4], B, ON,
+    base = update(state, inputs[0], inputs[1], inputs[2], m_off, inputs[4], B, cfg,
                   snr_db=np.where(m_off, inputs[5], np.nan), radio=RADIO)[0]
-    on = _run(state, inputs, ON, silent_col=col)
+    on = _run(state, inputs, cfg, silent_col=col)
     assert on.mean.tobytes() == base.mean.tobytes()
     silent = np.zeros(m_off.shape, bool)
     silent[:, col] = True
-    cost = _reference(base.mean[..., :3], inputs[0], silent, ON)
+    if spread:  # the points of each hypothesis (tested above), the cost of their average
+        pts = sigma_points(base.mean[..., :3], base.cov[..., :3, :3],
+                           np.tile(np.arange(B.n_floors), 2), B)
+        cost = silent_cost(pts, inputs[0], silent, B, RADIO, cfg)
+    else:
+        cost = _reference(base.mean[..., :3], inputs[0], silent, cfg)
     x = base.log_prob - cost
     x = np.maximum(x - x.max(axis=1, keepdims=True), -700.0)
     ref = x - np.log(np.exp(x).sum(axis=1, keepdims=True))
@@ -156,3 +168,44 @@ def test_floor_hold_keeps_the_predicted_probabilities_of_few_range_nodes():
     assert np.abs(off.log_prob[:2] - pred.log_prob[:2]).max() > 1e-6
     assert on.mean.tobytes() == off.mean.tobytes()
     assert on.log_prob[2:].tobytes() == off.log_prob[2:].tobytes()
+
+
+def test_sigma_points_carry_the_covariance_and_average_the_silence():
+    """:func:`~diffpos.tracking.silent.sigma_points` of hypotheses well inside their floor's
+    box: the six points' mean is the position and their mean outer product the covariance
+    (1e-9); a zero covariance gives six copies of the position, so the averaged cost equals
+    the cost at the mean (1e-12); with a covariance, the averaged cost equals the reference
+    ``-log(e + (1 - e) mean_q Phi_q)`` built point by point (1e-9)."""
+    rng = np.random.default_rng(5)
+    n, h = 3, 2
+    fl = np.array([1, 2])
+    pos = np.stack([rng.uniform(-5, 5, (n, h)), rng.uniform(4, 8, (n, h)),
+                    B.floor_z_m(fl)[None, :] + 1.5 + np.zeros((n, h))], axis=-1)
+    a = rng.normal(size=(n, h, 3, 3)) * 0.3
+    cov = a @ np.swapaxes(a, -1, -2) + 0.01 * np.eye(3)
+    pts = sigma_points(pos, cov, fl, B)
+    assert pts.shape == (n, h, 6, 3)
+    assert np.allclose(pts.mean(axis=2), pos, atol=1e-9)
+    d = pts - pos[:, :, None, :]
+    assert np.allclose(np.einsum("nhqi,nhqj->nhij", d, d) / 6.0, cov, atol=1e-9)
+    anchors = np.stack([rng.uniform(-20, 20, (n, 2)), -rng.uniform(3, 20, (n, 2)),
+                        rng.uniform(0.5, 12.0, (n, 2))], axis=-1)
+    silent = np.ones((n, 2), bool)
+    zero = sigma_points(pos, np.zeros_like(cov), fl, B)
+    assert np.allclose(silent_cost(zero, anchors, silent, B, RADIO, ON),
+                       silent_cost(pos, anchors, silent, B, RADIO, ON), atol=1e-12, rtol=0)
+    got = silent_cost(pts, anchors, silent, B, RADIO, ON)
+    e = np.exp(-ON.silent_anchor_nats)
+    ref = np.zeros((n, h))
+    for i in range(n):
+        for m in range(2):
+            for j in range(h):
+                phi = []
+                for q in range(6):
+                    s = np.max(pair_snr_db(anchors[i, m][None, None], pts[i, j, q][None],
+                                           building=B, radio=RADIO))
+                    z = (RADIO.detection_snr_db + ON.silent_anchor_margin_db - s) / SNR_SIGMA_DB
+                    phi.append(norm.cdf(z) if np.isfinite(s) else 1.0)
+                ref[i, j] -= np.log(e + (1 - e) * np.mean(phi))
+    assert np.allclose(got, ref, atol=1e-9, rtol=0)
+    assert np.abs(got - silent_cost(pos, anchors, silent, B, RADIO, ON)).max() > 1e-3
