@@ -925,6 +925,38 @@ class TrackerConfig:
         the leading floor's track is not challenged: a better position there changes no
         floor decision, and on the stairs it moved the track the next floor mixes from);
         0: every floor.
+    silent_anchor_nats : float [nats]
+        Negative information of a silent anchor (:mod:`diffpos.tracking.silent`; 0: off,
+        the default, replays unchanged): an anchor that reported for a node's epoch but
+        detected no path (the wire's null range; the fusion passes its position with
+        ``snr_db`` -inf and the link masked) costs each hypothesis ``-log(e + (1 - e)
+        Phi((T + margin - S) / SNR_SIGMA_DB))`` nats, ``S`` the strongest slot's SNR the
+        emulator's amplitude model predicts at the hypothesis' mean, ``T`` the detector's
+        threshold (``Radio.detection_snr_db``) and ``e = exp(-silent_anchor_nats)``: at most
+        this value per silent anchor and epoch (a model that predicts a path tens of dB too
+        strong costs a bounded amount), nothing where the model predicts no path above the
+        threshold plus the margin.
+    silent_anchor_margin_db : float [dB]
+        With ``silent_anchor_nats``: how far the predicted strongest path may exceed the
+        detector's threshold before silence costs anything (the amplitude model's error on
+        channels we did not write: Sionna's partitions and dielectric edges differ from the
+        emulator by several dB).
+    silent_anchor_max_links : int
+        With ``silent_anchor_nats``: only nodes with at most this many ranges in the epoch
+        (0: every node).
+    silent_anchor_spread : bool
+        With ``silent_anchor_nats``: the probability of the silence averaged over six
+        sigma points of each hypothesis' position covariance
+        (:func:`diffpos.tracking.silent.sigma_points`), not read at its mean alone: a
+        hypothesis placed by two ranges is a spread of positions, some of them in the
+        anchor's shadow. Default False.
+    floor_hold_max_links : int
+        Nodes with 1 to this many ranges in an epoch keep their floor probabilities (every
+        hypothesis' log-probability as predicted; positions updated as before;
+        :func:`diffpos.tracking.tracker._more_floor_evidence`): one or two ranges cannot
+        place a node, every floor's hypothesis fits them, and what tells the floors apart is
+        the amplitude model alone, which drifts on a channel we did not write (Sionna
+        `large`'s top-floor walkers losing their ranges). 0: off, the default.
     """
 
     q_h_m2_s3: float = 1.5
@@ -1039,6 +1071,11 @@ class TrackerConfig:
     challenger_min_epochs: int = 1
     challenger_min_p: float = 0.0
     challenger_beat_lead: bool = False
+    silent_anchor_nats: float = 0.0
+    silent_anchor_margin_db: float = 10.0
+    silent_anchor_max_links: int = 0
+    silent_anchor_spread: bool = False
+    floor_hold_max_links: int = 0
 
 
 @dataclass(frozen=True)

@@ -173,6 +173,7 @@ from diffpos.tracking.model import (
     snr_reuse_on,
 )
 from diffpos.tracking.model_nb import warm_model
+from diffpos.tracking.silent import silent_update
 from diffpos.tracking.snr_nb import warm_snr_cache
 from diffpos.tracking.snr_term_nb import warm_snr_term
 from diffpos.tracking.state import (
@@ -545,6 +546,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                                   strict=True))
     merged = _merged(st, idx, new)
     mean, cov, lp, nis, llr, upd, below = (merged[k] for k in _UPDATED)
+    lp = _more_floor_evidence(lp, st.log_prob, (mean, cov), (anchors_m, mask, snr_db), n_meas,
+                              live, building, radio, config)
     lk = {k: merged[k] for k in _LINK_STATE}
     if idx.size:
         _mark_reseeds(floor_bad, deficit, idx, (ran, bad_f, burst),
@@ -586,9 +589,28 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
     out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas, config)
     out = _band_bound(out, building) if config.floor_band_bound else out
-    if config.cov_published_floors == "off":
-        return new, out
-    return new, _published_floor_cov(new, out, config.cov_published_floors)
+    return new, (out if config.cov_published_floors == "off"
+                 else _published_floor_cov(new, out, config.cov_published_floors))
+
+
+def _more_floor_evidence(lp: FloatArray, lp_pred: FloatArray, moments: tuple, inputs: tuple,
+                         n_meas: NDArray, live: NDArray[np.bool_], building, radio,
+                         config: TrackerConfig) -> FloatArray:
+    """The hypotheses' log-probabilities ``lp`` (N, H) after the epoch's update, with the two
+    settings off by default: ``floor_hold_max_links`` (the ``live`` nodes with 1 to that many
+    ranges ``n_meas`` keep their predicted log-probabilities ``lp_pred``: too few ranges to
+    place the node, so the floors' evidence is the amplitude model's alone, which drifts on a
+    channel we did not write) and then the silent anchors' negative information
+    (:func:`diffpos.tracking.silent.silent_update`; ``inputs`` = the epoch's anchors, mask
+    and SNRs) at the hypotheses' means (``moments`` = means (N, H, 6), covariances (N, H, 6,
+    6)). ``lp`` itself when both are off."""
+    k = config.floor_hold_max_links
+    if k > 0:
+        hold = live & (n_meas > 0) & (n_meas <= k)
+        if hold.any():
+            lp = np.where(hold[:, None], lp_pred, lp)
+    return silent_update(lp, moments[0], *inputs, n_meas, live, building, radio, config,
+                         moments[1])
 
 
 # --------------------------------------------------------------------------------------------

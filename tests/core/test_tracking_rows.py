@@ -46,6 +46,9 @@ POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=4)
 #: in every epoch, scored from its first update, winning on any gain
 CHAL = dataclasses.replace(CFG, challenger_m=0.2, challenger_period_s=0.1, challenger_floors=0,
                            challenger_grace=0, challenger_nats=1e-9, challenger_beat_lead=True)
+#: the negative information of silent anchors (``silent_anchor_nats``, off by default); the
+#: even rows' last anchor reports no path from epoch 2 on (:func:`_inputs`)
+SILENT = dataclasses.replace(CFG, silent_anchor_nats=3.0, silent_anchor_margin_db=10.0)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -56,11 +59,12 @@ NODES = np.array([[-4.0, 3.0, 4.5], [2.0, 6.0, 7.5], [6.0, 2.5, 10.5], [-1.0, 8.
 N_EPOCHS = 8  # 0.0 ... 0.7 s; the batch under test is the last one
 
 
-def _inputs(seed: int = 7):
+def _inputs(seed: int = 7, silent: bool = False):
     """Per epoch: (t_ns, anchors, range, sigma, mask, snr) for every node, the mask shaped by
     each row's role: rows 0-3 ranged every epoch (TRACKING by the last), rows 4-5 from epoch
     4 (INITIALISING), rows 6-7 until epoch 5 then none (COASTING), rows 8-9 only in the last
-    epoch (new nodes, UNINITIALISED before it)."""
+    epoch (new nodes, UNINITIALISED before it). ``silent``: the even rows' last anchor
+    reports no path (masked, SNR -inf) from epoch 2 on."""
     rng = np.random.default_rng(seed)
     n = len(NODES)
     for k in range(N_EPOCHS):
@@ -72,8 +76,12 @@ def _inputs(seed: int = 7):
         on[8:10] = k == N_EPOCHS - 1
         mask = fa.detected & on[:, None]
         a = np.broadcast_to(ANCHORS, (n, *ANCHORS.shape))
-        yield round(k * 0.1e9) + np.zeros(n, np.int64), a, fa.range_m, fa.sigma_m, mask, \
-            fa.snr_db
+        snr = fa.snr_db
+        if silent and k >= 2:
+            mask[::2, -1] = False
+            snr = snr.copy()
+            snr[::2, -1] = -np.inf
+        yield round(k * 0.1e9) + np.zeros(n, np.int64), a, fa.range_m, fa.sigma_m, mask, snr
 
 
 def _rows(x, idx):
@@ -89,11 +97,11 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, CHAL, WEDGE],
+                                    POSTERIOR, CHAL, WEDGE, SILENT],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
-                              "slack", "posterior", "challenger", "wedge"])
+                              "slack", "posterior", "challenger", "wedge", "silent"])
 def test_update_rows_are_independent_bit_for_bit(config):
-    epochs = list(_inputs())
+    epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)
     for t, a, r, s, m, snr in epochs[:-1]:
         state, _ = update(state, a, r, s, m, t, B, config, snr_db=snr, radio=RADIO)

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from diffpos_services.fusion.config import FusionConfig
 from diffpos_services.fusion.core import FusionCore
+from diffpos_services.fusion.tracked import TrackBank
 from diffpos_services.recording.writer import McapSink
 from diffpos_services.replay.run import replay
 from diffpos_services.replay.synthetic import quiet_logger
@@ -261,3 +262,42 @@ def test_the_v1_sample_still_replays_with_d_nls():
     assert ne["node_epochs"] == live_ne["node_epochs"] == 720 - 6 * 20
     assert ne["fixes"] <= ne["node_epochs"] and ne["availability"] > 0.5
     assert ne["floor_accuracy_all"] <= ne["availability"]
+
+
+def test_silent_anchors_reach_the_tracker_only_with_the_setting(monkeypatch):
+    """w1's anchors report no path from epoch 12 on (null ranges). With
+    ``tracker.silent_anchor_nats`` the tracker gets, for each of w1's later epochs, every
+    anchor as a masked link with SNR -inf at the anchor's published position (the input's
+    ``ANCHORS``, 1e-9 m) and no other -inf; without it, no -inf SNR and the anchors of the
+    masked links are the placeholder 0 (the run as before)."""
+    calls = []
+    orig = TrackBank.update
+
+    def spy(self, node_ids, anchors, ranges, sigmas, mask, t_ns, snr_db=None, radio=None):
+        calls.append((list(node_ids), np.array(anchors), np.array(mask), np.array(snr_db)))
+        return orig(self, node_ids, anchors, ranges, sigmas, mask, t_ns, snr_db, radio)
+
+    monkeypatch.setattr(TrackBank, "update", spy)
+    samples = _inputs(EPOCHS, dark={"w1": 12})
+    ref = np.array(list(ANCHORS.values()))
+    for on in (False, True):
+        calls.clear()
+        cfg = _config()
+        if on:
+            cfg = msgspec.structs.replace(cfg, tracker=msgspec.structs.replace(
+                cfg.tracker, silent_anchor_nats=2.0))
+        _run(samples, config=cfg)
+        silent_rows = 0
+        for ids, anc, mask, snr in calls:
+            for i, n in enumerate(ids):
+                neg = np.isneginf(snr[i])
+                if not on:
+                    assert not neg.any()
+                    assert np.all(anc[i][~mask[i]] == 0.0)
+                    continue
+                assert not (neg & mask[i]).any()
+                if n == "w1" and not mask[i].any():
+                    assert neg.all()
+                    assert np.allclose(anc[i], ref, atol=1e-9, rtol=0)
+                    silent_rows += 1
+        assert silent_rows == (EPOCHS - 12 if on else 0)

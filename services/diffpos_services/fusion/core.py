@@ -602,7 +602,8 @@ class FusionCore:
         batch -> warm/cold/retry solve -> messages (built here: counters and tracks)."""
         ids = sorted(reported_anchors(epochs) | set(self.live_anchors)
                      | {a.id for a in self.anchors.values() if a.lost_wall_ns is not None})
-        batch = gather(epochs, ids, self.anchors)
+        batch = gather(epochs, ids, self.anchors, silent=self.bank is not None
+                       and self.bank.config.silent_anchor_nats > 0)
         prep = prepare(batch, epochs, self.tracks, self.config)
         self.solved += len(epochs)
         if self.building is not None:

@@ -67,6 +67,9 @@ class Batch:
     t_ref: np.ndarray  # (B,) int64 [ns] mean time of the used ranges
     dt_s: np.ndarray  # (B, M) [s] range time - t_ref
     snr: np.ndarray  # (B, M) [dB] SNR of each detected range, NaN where none
+    #: (B, M) bool: the anchor reported no path and has a state (its position in ``apos``);
+    #: None unless gathered with ``silent`` (TrackerConfig.silent_anchor_nats)
+    silent: np.ndarray | None = None
 
 
 @dataclass
@@ -119,19 +122,23 @@ class Results:
 
 
 # ------------------------------------------------------------------------------- gather
-def gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, Any]) -> Batch:
+def gather(epochs: list[PendingEpoch], ids: list[str], anchors: dict[str, Any],
+           silent: bool = False) -> Batch:
     """The epochs' ranges as ``(B, M)`` arrays over the anchor columns ``ids``, from the epoch
     book's columns (:func:`~diffpos.alignment.epoch_columns`: no Python object per range);
     anchor positions from each anchor's state history (``anchors[id].history``) at the range
-    times; the reference times."""
+    times; the reference times. ``silent``: also the positions of the anchors that reported
+    no path (``Batch.silent``; the tracker's ``silent_anchor_nats``)."""
     c = epoch_columns(epochs, ids)
     col = {a: j for j, a in enumerate(ids)}
-    apos, asig, have_state = _anchor_positions(col, anchors, c.t, c.detected)
+    apos, asig, have_state = _anchor_positions(col, anchors, c.t,
+                                               c.reported if silent else c.detected)
     use = c.detected & have_state
     t_ref, dt_s = _reference_times(c.t, c.reported, use)
     return Batch(list(col), c.t, c.range_m, c.sigma_m, c.reported, c.detected, c.t_pub_wall,
-                 apos, asig, have_state, use, t_ref, dt_s,
-                 np.where(np.isfinite(c.snr_db), c.snr_db, np.nan))
+                 apos, asig, have_state & c.detected, use, t_ref, dt_s,
+                 np.where(np.isfinite(c.snr_db), c.snr_db, np.nan),
+                 (c.reported & ~c.detected & have_state) if silent else None)
 
 
 def _anchor_positions(col: dict[str, int], anchors: dict[str, Any], t: np.ndarray,

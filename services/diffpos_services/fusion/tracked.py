@@ -445,6 +445,18 @@ def _snapshot_due(bank: TrackBank, epochs: list[PendingEpoch], t_ref: np.ndarray
     return due
 
 
+def _silent_inputs(batch: Batch, prep: Prepared, rows: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The tracker's anchors and SNRs of ``rows``: the used anchors' positions and SNRs, and
+    with ``batch.silent`` (``TrackerConfig.silent_anchor_nats``) every silent anchor's
+    position with SNR -inf (:func:`diffpos.tracking.silent.silent_links`)."""
+    if batch.silent is None:
+        return prep.safe_apos[rows], batch.snr[rows]
+    s = batch.silent[rows]
+    return (np.where(s[..., None], batch.apos[rows], prep.safe_apos[rows]),
+            np.where(s, -np.inf, batch.snr[rows]))
+
+
 def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: FusionConfig,
                model: tuple, bank: TrackBank | None, heavy: int | None = None,
                defer: bool = False, behind: bool = False) -> Solved:
@@ -495,8 +507,9 @@ def solve_mnls(batch: Batch, prep: Prepared, epochs: list[PendingEpoch], cfg: Fu
         snaps -= int(due[rows].sum())
         # the snapshots (a worker's, with a pool) while the tracker updates the round
         started = _mnls_start(rows[due[rows]], prep, batch, model, bank.pool)
-        out = bank.update(ids, prep.safe_apos[rows], prep.rng_in[rows], prep.sig_eff[rows],
-                          use_r, batch.t_ref[rows], snr_db=batch.snr[rows], radio=model[1])
+        anc_r, snr_r = _silent_inputs(batch, prep, rows)
+        out = bank.update(ids, anc_r, prep.rng_in[rows], prep.sig_eff[rows], use_r,
+                          batch.t_ref[rows], snr_db=snr_r, radio=model[1])
         if started is not None:
             finish = functools.partial(_mnls_finish, started, snap, s_floor, s_prob, s_mech)
             if defer:
