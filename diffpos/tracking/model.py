@@ -1058,7 +1058,7 @@ def _update_fixed(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor,
     compiled pass (:func:`diffpos.tracking.update_nb.update_fixed_kernel`): the clamped prior
     ``xc`` (N, H, 3), the nodes it moved (indices), every hypothesis' existence margin (the
     fixed one at initialisation, ``level`` None), the prior information and
-    :func:`_iekf_fixed` (the values of :func:`clamp_to_floor`, :func:`existence_margin`,
+    :func:`_iekf_fixed` (the values of :func:`~diffpos.tracking.state.clamp_to_floor`, :func:`existence_margin`,
     :func:`prior_information` and :func:`_iekf_fixed`, bit for bit)."""
     n, h = x_prior.shape[:2]
     f8, b1 = np.float64, np.bool_
@@ -1163,17 +1163,6 @@ def _iekf_numpy(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor,
     log_ev = norm + h_const - 0.5 * quad - 0.5 * logdet + np.sum(sel.log_weight, axis=-1)
     residual = np.where(sel.slot >= 0, e, np.nan)
     return x, p, log_ev, residual
-
-
-def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArray:
-    """Keep every hypothesis' position inside its floor's box (``margin_m`` from the walls)."""
-    zf = building.floor_z_m(np.asarray(floor))
-    x0, x1 = building.edge_x_m
-    out = x.copy()
-    out[..., 0] = np.clip(x[..., 0], x0 + margin_m, x1 - margin_m)
-    out[..., 1] = np.clip(x[..., 1], margin_m, building.depth_m - margin_m)
-    out[..., 2] = np.clip(x[..., 2], zf + margin_m, zf + building.floor_height_m - margin_m)
-    return out
 
 
 def existence_margin(cov: FloatArray, config) -> FloatArray:

@@ -25,8 +25,7 @@ from numpy.typing import NDArray
 
 from diffpos.channel.detection import normal_cdf
 from diffpos.channel.emulator import pair_snr_db
-from diffpos.tracking.model import SNR_SIGMA_DB, clamp_to_floor
-from diffpos.tracking.state import hypothesis_floor
+from diffpos.tracking.state import clamp_to_floor, hypothesis_floor
 
 __all__ = ["sigma_points", "silent_cost", "silent_links", "silent_update"]
 
@@ -53,7 +52,7 @@ def sigma_points(pos: FloatArray, cov: FloatArray, floor: NDArray[np.int_], buil
     its eigenvalues, clipped at 0, and eigenvectors: the unscented transform's points with
     equal weights 1/6, which average a function's first two moments exactly for a Gaussian
     up to third order), each kept inside its hypothesis' floor box ``floor`` (H,)
-    (:func:`diffpos.tracking.model.clamp_to_floor`, 5 cm from the walls)."""
+    (:func:`diffpos.tracking.state.clamp_to_floor`, 5 cm from the walls)."""
     w, v = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
     d = np.sqrt(3.0 * np.maximum(w, 0.0))[..., None, :] * v  # (N, H, 3, 3): columns
     steps = np.concatenate([np.swapaxes(d, -1, -2), -np.swapaxes(d, -1, -2)], axis=-2)
@@ -62,12 +61,13 @@ def sigma_points(pos: FloatArray, cov: FloatArray, floor: NDArray[np.int_], buil
 
 
 def silent_cost(pos: FloatArray, anchors_m: FloatArray, silent: NDArray[np.bool_], building,
-                radio, config) -> FloatArray:
+                radio, config, sigma_db: float) -> FloatArray:
     """Negative log-likelihood [nats] (N, H) of the silent links ``silent`` (N, M) (anchors
     ``anchors_m`` (N, M, 3) [m]) at the hypotheses' positions ``pos`` (N, H, 3) [m], or
     averaged over each hypothesis' points ``pos`` (N, H, P, 3) (:func:`sigma_points`: the
     probability of the silence averaged, then its log), summed over the node's silent links
-    (module docstring); 0 where a position is not finite."""
+    (module docstring); 0 where a position is not finite. ``sigma_db``: the SNR term's spread
+    (:data:`diffpos.tracking.model.SNR_SIGMA_DB`)."""
     pts = pos if pos.ndim == 4 else pos[:, :, None, :]
     n, h, k = pts.shape[:3]
     out = np.zeros((n, h))
@@ -84,15 +84,15 @@ def silent_cost(pos: FloatArray, anchors_m: FloatArray, silent: NDArray[np.bool_
     e = float(np.exp(-config.silent_anchor_nats))
     with np.errstate(invalid="ignore"):
         z = (float(radio.detection_snr_db) + float(config.silent_anchor_margin_db) - s) \
-            / SNR_SIGMA_DB
+            / sigma_db
     miss = np.where(np.isfinite(s), normal_cdf(z), 1.0).reshape(ni.size, h, k).mean(axis=-1)
     np.add.at(out, ni, -np.log(e + (1.0 - e) * miss))
     return out
 
 
 def silent_update(lp: FloatArray, mean: FloatArray, anchors_m, mask, snr_db, n_meas,
-                  live: NDArray[np.bool_], building, radio, config, cov: FloatArray | None = None
-                  ) -> FloatArray:
+                  live: NDArray[np.bool_], building, radio, config, sigma_db: float,
+                  cov: FloatArray | None = None) -> FloatArray:
     """The hypotheses' log-probabilities ``lp`` (N, H) after the silent links of one epoch
     (``anchors_m`` (N, M, 3), ``mask``, ``snr_db`` (N, M): :func:`silent_links`) at the
     hypotheses' means ``mean`` (N, H, 6) (with ``silent_anchor_spread`` averaged over the
@@ -114,7 +114,7 @@ def silent_update(lp: FloatArray, mean: FloatArray, anchors_m, mask, snr_db, n_m
         pos = sigma_points(pos, cov[idx, :, :3, :3], hypothesis_floor(lp.shape[1] // 2),
                            building)
     cost = silent_cost(pos, np.asarray(anchors_m, dtype=np.float64)[idx], silent[idx],
-                       building, radio, config)
+                       building, radio, config, sigma_db)
     out = lp.copy()
     x = lp[idx] - cost
     x = np.maximum(x - x.max(axis=1, keepdims=True), -700.0)

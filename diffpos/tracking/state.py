@@ -28,6 +28,7 @@ __all__ = [
     "TrackStatus",
     "TrackerConfig",
     "TrackerState",
+    "clamp_to_floor",
     "credible_floor_weights",
     "floor_contested",
     "floor_probabilities",
@@ -1243,6 +1244,17 @@ class TrackOutput:
 def n_floors_of(state: TrackerState) -> int:
     """Number of floors of a state (its hypotheses are floors x 2 vertical modes)."""
     return state.log_prob.shape[1] // 2
+
+
+def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArray:
+    """Keep every hypothesis' position inside its floor's box (``margin_m`` from the walls)."""
+    zf = building.floor_z_m(np.asarray(floor))
+    x0, x1 = building.edge_x_m
+    out = x.copy()
+    out[..., 0] = np.clip(x[..., 0], x0 + margin_m, x1 - margin_m)
+    out[..., 1] = np.clip(x[..., 1], margin_m, building.depth_m - margin_m)
+    out[..., 2] = np.clip(x[..., 2], zf + margin_m, zf + building.floor_height_m - margin_m)
+    return out
 
 
 @functools.lru_cache(maxsize=64)

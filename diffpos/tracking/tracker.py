@@ -164,7 +164,6 @@ from diffpos.tracking.model import (
     SNR_SIGMA_DB,
     SNR_SPAN_DB,
     SnrCache,
-    clamp_to_floor,
     existence_margin,
     link_weights,
     measurement_update,
@@ -184,6 +183,7 @@ from diffpos.tracking.state import (
     TrackerState,
     TrackOutput,
     TrackStatus,
+    clamp_to_floor,
     credible_floor_weights,
     floor_contested,
     floor_probabilities,
@@ -522,8 +522,7 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     dt_s = (t - state.t_ns) * 1e-9
     status, good, bad = st.status.copy(), st.good.copy(), st.bad.copy()
     floor_bad = st.floor_bad.copy()
-    deficit = st.deficit_count.copy()
-    origin = st.refresh_origin_ns.copy()
+    deficit, origin = st.deficit_count.copy(), st.refresh_origin_ns.copy()
     snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
@@ -610,7 +609,7 @@ def _more_floor_evidence(lp: FloatArray, lp_pred: FloatArray, moments: tuple, in
         if hold.any():
             lp = np.where(hold[:, None], lp_pred, lp)
     return silent_update(lp, moments[0], *inputs, n_meas, live, building, radio, config,
-                         moments[1])
+                         SNR_SIGMA_DB, moments[1])
 
 
 # --------------------------------------------------------------------------------------------

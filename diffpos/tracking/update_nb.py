@@ -3,12 +3,12 @@
 the prior only, in one pass per hypothesis instead of ~40 numpy calls.
 
 :func:`update_fixed_kernel` writes the prior clamped into its floor's box
-(:func:`~diffpos.tracking.model.clamp_to_floor`) and the nodes it moved, every hypothesis'
+(:func:`~diffpos.tracking.state.clamp_to_floor`) and the nodes it moved, every hypothesis'
 existence margin (:func:`~diffpos.tracking.model.existence_margin`, or the fixed one at
 initialisation), the prior's information matrix and log-determinant (``iekf_nb``'s LU, as
 :func:`~diffpos.tracking.iekf_nb.prior_info_kernel`), the floor box and the height prior of
 the IEKF (``model._box``, ``model._height_prior``). :func:`clamp_kernel` is
-:func:`~diffpos.tracking.model.clamp_to_floor` of the posterior. The numpy functions stay the
+:func:`~diffpos.tracking.state.clamp_to_floor` of the posterior. The numpy functions stay the
 reference; the operations are theirs in their order (``np.clip``'s and ``np.maximum``'s NaN
 rules included), so the values are bit for bit (tests/core/test_update_fixed.py).
 """
@@ -50,7 +50,7 @@ def _bounds(fl, box):
 
 @njit(**_OPTS)
 def clamp_kernel(x, floor, box, out):
-    """``model.clamp_to_floor``: ``out`` (N, H, D) = ``x`` with its first three coordinates
+    """``state.clamp_to_floor``: ``out`` (N, H, D) = ``x`` with its first three coordinates
     clipped into the box of ``floor`` (N, H) float64; ``box`` as :func:`_bounds`."""
     n_n, n_h, n_d = x.shape
     for n in range(n_n):

@@ -75,7 +75,7 @@ def test_silent_cost_against_a_pair_by_pair_reference(seed, margin):
     silent = rng.random((n, m)) < 0.6
     silent[0] = False  # a node without silent anchors
     cfg = dataclasses.replace(ON, silent_anchor_margin_db=margin)
-    got = silent_cost(pos, anchors, silent, B, RADIO, cfg)
+    got = silent_cost(pos, anchors, silent, B, RADIO, cfg, SNR_SIGMA_DB)
     ref = _reference(pos, anchors, silent, cfg)
     assert np.allclose(got, ref, atol=1e-9, rtol=0)
     assert np.all(got[0] == 0.0)
@@ -125,7 +125,7 @@ def test_the_tracker_takes_the_silent_anchor_into_each_hypothesis(spread):
     if spread:  # the points of each hypothesis (tested above), the cost of their average
         pts = sigma_points(base.mean[..., :3], base.cov[..., :3, :3],
                            np.tile(np.arange(B.n_floors), 2), B)
-        cost = silent_cost(pts, inputs[0], silent, B, RADIO, cfg)
+        cost = silent_cost(pts, inputs[0], silent, B, RADIO, cfg, SNR_SIGMA_DB)
     else:
         cost = _reference(base.mean[..., :3], inputs[0], silent, cfg)
     x = base.log_prob - cost
@@ -192,9 +192,10 @@ def test_sigma_points_carry_the_covariance_and_average_the_silence():
                         rng.uniform(0.5, 12.0, (n, 2))], axis=-1)
     silent = np.ones((n, 2), bool)
     zero = sigma_points(pos, np.zeros_like(cov), fl, B)
-    assert np.allclose(silent_cost(zero, anchors, silent, B, RADIO, ON),
-                       silent_cost(pos, anchors, silent, B, RADIO, ON), atol=1e-12, rtol=0)
-    got = silent_cost(pts, anchors, silent, B, RADIO, ON)
+    assert np.allclose(silent_cost(zero, anchors, silent, B, RADIO, ON, SNR_SIGMA_DB),
+                       silent_cost(pos, anchors, silent, B, RADIO, ON, SNR_SIGMA_DB),
+                       atol=1e-12, rtol=0)
+    got = silent_cost(pts, anchors, silent, B, RADIO, ON, SNR_SIGMA_DB)
     e = np.exp(-ON.silent_anchor_nats)
     ref = np.zeros((n, h))
     for i in range(n):
@@ -208,4 +209,5 @@ def test_sigma_points_carry_the_covariance_and_average_the_silence():
                     phi.append(norm.cdf(z) if np.isfinite(s) else 1.0)
                 ref[i, j] -= np.log(e + (1 - e) * np.mean(phi))
     assert np.allclose(got, ref, atol=1e-9, rtol=0)
-    assert np.abs(got - silent_cost(pos, anchors, silent, B, RADIO, ON)).max() > 1e-3
+    ref = silent_cost(pos, anchors, silent, B, RADIO, ON, SNR_SIGMA_DB)
+    assert np.abs(got - ref).max() > 1e-3
