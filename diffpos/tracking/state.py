@@ -850,6 +850,32 @@ class TrackerConfig:
         the slack's flat top (prediction + half the slack,
         :func:`diffpos.tracking.model.slack_skip_pred`), so the two SNR terms assume the same
         edge. Default False (the half-plane's prediction there, as before).
+    skip_threshold_order : int [interactions]
+        The detector's threshold that the skipped-path term (``first_arrival_prior``,
+        :func:`diffpos.tracking.model.skip_cost`) reads is raised to the strongest path of
+        the closed-form first-arrival families of at most this many interactions beyond the
+        18 (``mechanism_set(order, partitions=True)``, their SNR by the emulator's amplitude
+        model, :func:`diffpos.channel.emulator.pair_family_snr_db`) less
+        ``fap_threshold_db``, where that is higher than the 18's
+        (:func:`diffpos.tracking.model.family_threshold`). 0 (default) or <= 2: off, the 18
+        alone. Why: the detector's threshold is set by the STRONGEST path, and on a channel
+        we did not write the strongest is often a higher-order slab series the 18 leave out.
+        On Sionna RT's 3-UAV random building (heldout-2) the stairs walker r03 at the start
+        (floor 2, static, 3-10 s at every seed, ~70 % of the building's wrong node-epochs)
+        gets its UAV2 range as ``Tx-D(lower)-R(ceiling)-R(floor)-Rx`` (7.7-14 dB) behind the
+        strongest path ``Tx-R(ceiling)-R(floor)-R(ceiling)-Rx`` at 19.0 dB (the families'
+        amplitude model: 19.4 / 7.4 dB): the detector's threshold is ~4 dB and the shorter
+        edge paths (-3..+1 dB traced, -7..-1 dB predicted) were below it; with the 18 alone
+        the model's strongest there is -1 dB, its threshold the measured first arrival less
+        15 dB, and the true floor pays the skip term's cap (1.6 nats) every epoch while the
+        floor above (its edge paths deeper in the shadow) pays 0.4
+        (docs/tracking_evidence.md "Session 30"). Raising a threshold only lowers skip
+        costs (a path below a higher threshold is more probably missed). The SNR term's own
+        threshold test is unchanged.
+    skip_threshold_max_links : int [ranges]
+        ``skip_threshold_order`` only at nodes with at most this many ranges in the epoch
+        (0: every node). Default 3 (with three ranges every floor fits the ranges and the
+        SNR and skip terms decide alone, ``snr_slack_max_links``' argument).
     challenger_m : float [m]
         A second position mode per floor (a *challenger* of the floor's level track; 0: off,
         the default, replays unchanged; :func:`diffpos.tracking.tracker._challengers`). Every
@@ -1017,6 +1043,8 @@ class TrackerConfig:
     snr_slack_max_links: int = 3
     snr_slack_skip: bool = False
     link_eps_posterior: int = 0
+    skip_threshold_order: int = 0
+    skip_threshold_max_links: int = 3
     challenger_m: float = 0.0
     challenger_period_s: float = 1.0
     challenger_nats: float = 6.0
