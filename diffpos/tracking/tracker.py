@@ -1516,6 +1516,8 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         enough = n_meas >= config.family_min_links
         if learned is not None:  # fewer ranges where the track learned the channel has them
             enough |= learned & (n_meas >= config.family_learned_links)
+        if config.family_few_links > 0:  # few ranges: scored with their SNR (family_log_weight)
+            enough |= n_meas <= config.family_few_links
         gate &= enough[:, None, None]
         fitted &= enough[:, None, None]
     offered = fitted if config.family_select else gate  # every fitted link, or the misfits
