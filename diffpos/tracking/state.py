@@ -877,18 +877,20 @@ class TrackerConfig:
         (0: every node). Default 3 (with three ranges every floor fits the ranges and the
         SNR and skip terms decide alone, ``snr_slack_max_links``' argument).
     family_few_links : int [ranges]
-        (``max_order`` > 2) A node with at most this many ranges gets the extra families
-        (the misfit gate, ``family_history`` and ``family_minority`` as at
-        ``family_min_links``), each scored with its SNR (as ``family_snr``, at these nodes
-        only; :func:`diffpos.tracking.families.family_log_weight`). 0: off (default). Why
-        (docs/tracking_evidence.md "Session 30"): ``family_min_links`` keeps the families
-        from three-range nodes because a family chosen after the fact is tested by no other
-        range; but the families' SNR is evidence no range gives, and the emulator's
+        (``max_order`` > 2) A node with at most this many ranges gets the extra families on
+        every link its hypothesis has fitted (``family_history``; as ``family_select``, no
+        ``family_minority`` rule), each family scored with its SNR (as ``family_snr``, at
+        these nodes only; :func:`diffpos.tracking.families.family_log_weight`). 0: off
+        (default). Why (docs/tracking_evidence.md "Session 30"): ``family_min_links`` keeps
+        the families from three-range nodes because a family chosen after the fact is tested
+        by no other range; but a family's SNR is evidence no range gives, and the emulator's
         amplitude model of the slab series matches Sionna RT's (the 3-UAV building's
         ``Tx-R(ceiling)-R(floor)-R(ceiling)-Rx`` 19.4 dB predicted / 19.0 traced,
-        ``Tx-D(lower)-R(ceiling)-R(floor)-Rx`` 7.4 / 7.7 dB), so at the true floor the out-of-
-        model first arrival is explained by its family at its power where a wrong floor's
-        in-model fit is not. Nodes with more ranges keep the other settings' gate and scoring.
+        ``Tx-D(lower)-R(ceiling)-R(floor)-Rx`` 7.4 / 7.7 dB). With three ranges the true
+        floor fits the out-of-model first arrival with a wrong one of the 18 inside
+        ``nis_limit`` (never a misfit, so the misfit gate never offers the exact family),
+        hence every fitted link. Nodes with more ranges keep the other settings' gate and
+        scoring.
     challenger_m : float [m]
         A second position mode per floor (a *challenger* of the floor's level track; 0: off,
         the default, replays unchanged; :func:`diffpos.tracking.tracker._challengers`). Every

@@ -1525,6 +1525,10 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
     if config.family_select_min_links > 0:  # many ranges: every fitted link, no minority rule
         rich = (n_meas >= config.family_select_min_links)[:, None, None]
         offered = np.where(rich, fitted, offered)
+    if config.family_few_links > 0:  # few ranges: every fitted link too (SNR-scored there)
+        scarce = (n_meas <= config.family_few_links)[:, None, None]
+        rich = scarce if rich is None else rich | scarce
+        offered = np.where(scarce, fitted, offered)
     if config.family_minority:  # most ranges misfit: the state is wrong, not the links
         mis = gate if present is None else gate & present[:, None, :]
         few = (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]

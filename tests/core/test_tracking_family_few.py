@@ -1,13 +1,13 @@
 """``TrackerConfig.family_few_links``: a node with at most that many ranges gets the extra
-families (the misfit gate and the minority rule as at ``family_min_links``), each scored with
-its SNR there (as ``family_snr``); nodes with more ranges keep the other settings' gate and
+families on every fitted link (as ``family_select``, no minority rule), each scored with its
+SNR there (as ``family_snr``); nodes with more ranges keep the other settings' gate and
 scoring (docs/tracking_evidence.md "Session 30").
 
 * The gate (:func:`diffpos.tracking.tracker._family_gate`) on hand-made learned arrays
-  (``nis_limit`` 9, one update with every link): at three ranges, exactly the misfits (NIS
-  above the limit or an outlier) of a hypothesis misfitting fewer than half its ranges, none
-  for one misfitting half or more; at four ranges (below ``family_min_links`` 5) nothing, as
-  with the setting off; off: nothing at three ranges.
+  (``nis_limit`` 9, one update with every link): at three ranges every link with a fit
+  history, also of a hypothesis misfitting two of its three ranges (no minority rule), none
+  without one; at four ranges (below ``family_min_links`` 5) nothing, as with the setting
+  off; off: nothing at three ranges.
 * The families' weight (:func:`diffpos.tracking.families.family_log_weight`) at the static
   node of the paper building (floor 2), a link's range at its strongest extra family's length
   and a measured SNR 4 dB from that family's prediction: the three-range node's weight equals
@@ -40,9 +40,10 @@ FIT = np.array([[[20.0, 1.0, 1.0, 1.0],
 COL = np.arange(4)[None]
 
 
-def _gate(n_meas, **kw):
+def _gate(n_meas, history=None, **kw):
     cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_history=1, **kw)
-    lk = {"link_fit": FIT, "link_all": np.ones(FIT.shape), "link_out": np.zeros(FIT.shape)}
+    seen = np.ones(FIT.shape) if history is None else history
+    lk = {"link_fit": FIT, "link_all": seen, "link_out": np.zeros(FIT.shape)}
     present = np.array([[True] * n_meas + [False] * (4 - n_meas)])
     return _family_gate(lk, COL, np.array([n_meas]), cfg, present)
 
@@ -50,8 +51,11 @@ def _gate(n_meas, **kw):
 def test_gate_at_few_ranges_only():
     assert TrackerConfig().family_few_links == 0
     g = _gate(3, family_few_links=3)
-    assert g[0, 0].tolist() == [True, False, False, False]  # 1 misfit of 3: offered
-    assert not g[0, 1].any()  # 2 misfits of 3: the state is wrong, closed
+    assert g.all()  # every fitted link, the minority rule off (hypothesis 1 misfits 2 of 3)
+    unseen = np.ones(FIT.shape)
+    unseen[..., 1] = 0.0  # a link not fitted yet is not offered
+    g = _gate(3, unseen, family_few_links=3)
+    assert not g[..., 1].any() and g[..., [0, 2, 3]].all()
     assert not _gate(3).any()  # off: family_min_links 5
     assert np.array_equal(_gate(4, family_few_links=3), _gate(4))
     assert not _gate(4, family_few_links=3).any()
