@@ -44,6 +44,11 @@ POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=4)
 #: in every epoch, scored from its first update, winning on any gain
 CHAL = dataclasses.replace(CFG, challenger_m=0.2, challenger_period_s=0.1, challenger_floors=0,
                            challenger_grace=0, challenger_nats=1e-9, challenger_beat_lead=True)
+#: the skipped paths' threshold raised by the strongest family (``skip_threshold_order``) and
+#: the families on every fitted link scored with their SNR (``family_few_links``; both off by
+#: default, by default only at few-range nodes) on every node (eight ranges at most)
+FEW = dataclasses.replace(CFG, skip_threshold_order=3, skip_threshold_max_links=0,
+                          family_few_links=9)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -87,9 +92,9 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, CHAL],
+                                    POSTERIOR, CHAL, FEW],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
-                              "slack", "posterior", "challenger"])
+                              "slack", "posterior", "challenger", "few"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs())
     state = init_state(len(NODES), B)
