@@ -234,12 +234,14 @@ def _family_snr(links, rows: NDArray, pi: NDArray, mi: NDArray, config) -> tuple
     """The measured SNRs (Q,) and radio that score the extra families of the links ``(rows[pi],
     mi)`` (:func:`family_log_lik`'s ``snr``): every link's with ``config.family_snr``; with
     ``config.family_few_links`` only those of nodes with at most that many ranges (NaN
-    elsewhere: scored as without); None: none (or no SNR)."""
+    elsewhere: scored as without), and at least ``min_anchors_tracking``; None: none (or no
+    SNR)."""
     if links.snr is None or not (config.family_snr or config.family_few_links > 0):
         return None
     snr = links.snr[rows[pi], 0, mi]
     if not config.family_snr:
-        few = np.sum(links.mask[rows[pi], 0], axis=-1) <= config.family_few_links
+        n = np.sum(links.mask[rows[pi], 0], axis=-1)
+        few = (n <= config.family_few_links) & (n >= config.min_anchors_tracking)
         snr = np.where(few, snr, np.nan)
     return snr, links.radio
 

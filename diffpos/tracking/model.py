@@ -572,9 +572,11 @@ def family_threshold(thr: FloatArray, pos: FloatArray, anc: FloatArray,
     higher (``TrackerConfig.skip_threshold_order``): the detector reports the earliest path
     within ``fap_threshold_db`` of the STRONGEST, whatever its order. Only the present links
     (``mask`` (N, M)) of nodes with at most ``config.skip_threshold_max_links`` ranges (0:
-    every node); the rest as given (a new array)."""
-    k = int(config.skip_threshold_max_links)
-    use = mask & (np.sum(mask, axis=-1) <= k)[:, None] if k > 0 else mask
+    every node) and at least ``config.min_anchors_tracking`` (fewer do not fix a position);
+    the rest as given (a new array)."""
+    k, n = int(config.skip_threshold_max_links), np.sum(mask, axis=-1)
+    few = (n >= config.min_anchors_tracking) & ((n <= k) if k > 0 else True)
+    use = mask & few[:, None]
     idx = np.argwhere(np.broadcast_to(use[:, None, :], thr.shape))
     out = np.array(thr, dtype=np.float64, copy=True)
     if idx.size == 0:

@@ -6,8 +6,8 @@ scoring (docs/tracking_evidence.md "Session 30").
 * The gate (:func:`diffpos.tracking.tracker._family_gate`) on hand-made learned arrays
   (``nis_limit`` 9, one update with every link): at three ranges every link with a fit
   history, also of a hypothesis misfitting two of its three ranges (no minority rule), none
-  without one; at four ranges (below ``family_min_links`` 5) nothing, as with the setting
-  off; off: nothing at three ranges.
+  without one; at four ranges (below ``family_min_links`` 5) and at two (fewer than
+  ``min_anchors_tracking``) nothing, as with the setting off; off: nothing at three ranges.
 * The families' weight (:func:`diffpos.tracking.families.family_log_weight`) at the static
   node of the paper building (floor 2), a link's range at its strongest extra family's length
   and a measured SNR 4 dB from that family's prediction: the three-range node's weight equals
@@ -59,6 +59,8 @@ def test_gate_at_few_ranges_only():
     assert not _gate(3).any()  # off: family_min_links 5
     assert np.array_equal(_gate(4, family_few_links=3), _gate(4))
     assert not _gate(4, family_few_links=3).any()
+    # two ranges do not fix a position (min_anchors_tracking 3): nothing
+    assert not _gate(2, family_few_links=3).any()
 
 
 def test_few_range_nodes_score_the_families_with_their_snr():
