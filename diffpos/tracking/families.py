@@ -230,6 +230,22 @@ def first_arrival_log_prob(pos: FloatArray, anchor: FloatArray, length_m: FloatA
     return np.maximum(out, -cap_nats) if cap_nats > 0 else out
 
 
+def _family_snr(links, rows: NDArray, pi: NDArray, mi: NDArray, config) -> tuple | None:
+    """The measured SNRs (Q,) and radio that score the extra families of the links ``(rows[pi],
+    mi)`` (:func:`family_log_lik`'s ``snr``): every link's with ``config.family_snr``; with
+    ``config.family_few_links`` only those of nodes with at most that many ranges (NaN
+    elsewhere: scored as without), and at least ``min_anchors_tracking``; None: none (or no
+    SNR)."""
+    if links.snr is None or not (config.family_snr or config.family_few_links > 0):
+        return None
+    snr = links.snr[rows[pi], 0, mi]
+    if not config.family_snr:
+        n = np.sum(links.mask[rows[pi], 0], axis=-1)
+        few = (n <= config.family_few_links) & (n >= config.min_anchors_tracking)
+        snr = np.where(few, snr, np.nan)
+    return snr, links.radio
+
+
 def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                       floor: NDArray, gate: NDArray[np.bool_], building, config,
                       log_eps: FloatArray | None = None,
@@ -251,8 +267,9 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     for ``n_fam / (n_18 + n_fam)`` (the families as one more candidate). With
     ``config.family_first`` and the links' radio model each family is weighted by
     :func:`first_arrival_log_prob` (``snr_sigma_db``: the SNR model's spread, needed then);
-    with ``config.family_snr`` by :func:`family_snr_log_lik` (``snr_sigma_db`` and
-    ``snr_span_db``, the outlier's SNR span, needed then)."""
+    with ``config.family_snr`` (``family_few_links``: at the nodes with that many ranges or
+    fewer) by :func:`family_snr_log_lik` (``snr_sigma_db`` and ``snr_span_db``, the
+    outlier's SNR span, needed then)."""
     if extra_families(config.max_order) is None:
         return np.zeros(gate.shape)
     gate = gate & links.mask[rows, 0]
@@ -263,9 +280,7 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                                        config.exist_margin_m,
                                        links.radio if config.family_first else None,
                                        config.snr_cost_cap_nats, snr_sigma_db,
-                                       (links.snr[rows[pi], 0, mi], links.radio)
-                                       if config.family_snr and links.snr is not None else None,
-                                       snr_span_db)
+                                       _family_snr(links, rows, pi, mi, config), snr_span_db)
     out = np.zeros(gate.shape)
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]

@@ -79,8 +79,9 @@ from numpy.typing import NDArray
 
 from diffpos.channel.detection import skipped_cost
 from diffpos.channel.edge_snr import with_wedge_edges
-from diffpos.channel.emulator import pair_snr_db
+from diffpos.channel.emulator import pair_family_snr_db, pair_snr_db
 from diffpos.channel.snr_nb import snr_cost_kernel
+from diffpos.paths.mechanisms import DEFAULT_ORDER
 from diffpos.paths.model_nb import building_planes
 from diffpos.tracking.iekf_nb import iekf_kernel, prior_info_kernel
 from diffpos.tracking.initialisation import grid_starts
@@ -525,6 +526,8 @@ def snr_term(pos: FloatArray, links: Links, floor, building, relax_m, pe: PathEv
     if config.first_arrival_prior > 0:  # the detector's skipped paths (skip_cost)
         if config.snr_diffraction_slack_db > 0 and config.snr_slack_skip:
             pred = slack_skip_pred(pred, links.mask[:, 0], config)
+        if config.skip_threshold_order > DEFAULT_ORDER:
+            thr = family_threshold(thr, pc, anc, links.mask[:, 0], building, radio, config)
         snr_skip_kernel(_cb(pe.length, shape, np.float64), _cb(pe.loose, shape, b1),
                         _cb(pe.sure, shape, b1), _IS_DIFF, pred, thr, snr, fap, sig,
                         float(config.first_arrival_prior), cost)
@@ -573,6 +576,33 @@ def diffraction_slack(cost: FloatArray, pred: FloatArray, thr: FloatArray, snr: 
     g = g + float(np.log1p(d / (sig * np.sqrt(2.0 * np.pi))))
     cost[use] = g[use]
     return cost
+
+
+def family_threshold(thr: FloatArray, pos: FloatArray, anc: FloatArray,
+                     mask: NDArray[np.bool_], building, radio, config) -> FloatArray:
+    """The detector's thresholds ``thr`` (N, H, M) [dB] of the hypotheses at ``pos`` (N, H,
+    3) [m] for the anchors ``anc`` (N, M, 3) [m], raised where the strongest closed-form
+    family beyond the 18 (``mechanism_set(config.skip_threshold_order, partitions=True)``,
+    :func:`diffpos.channel.emulator.pair_family_snr_db`) less ``radio.fap_threshold_db`` is
+    higher (``TrackerConfig.skip_threshold_order``): the detector reports the earliest path
+    within ``fap_threshold_db`` of the STRONGEST, whatever its order. Only the present links
+    (``mask`` (N, M)) of nodes with at most ``config.skip_threshold_max_links`` ranges (0:
+    every node) and at least ``config.min_anchors_tracking`` (fewer do not fix a position);
+    the rest as given (a new array)."""
+    k, n = int(config.skip_threshold_max_links), np.sum(mask, axis=-1)
+    few = (n >= config.min_anchors_tracking) & ((n <= k) if k > 0 else True)
+    use = mask & few[:, None]
+    idx = np.argwhere(np.broadcast_to(use[:, None, :], thr.shape))
+    out = np.array(thr, dtype=np.float64, copy=True)
+    if idx.size == 0:
+        return out
+    n_i, h_i, m_i = idx.T
+    fam = pair_family_snr_db(anc[n_i, m_i], pos[n_i, h_i], building=building, radio=radio,
+                             max_order=int(config.skip_threshold_order), partitions=True)
+    with np.errstate(invalid="ignore"):
+        top = np.max(np.where(np.isfinite(fam), fam, -np.inf), axis=-1, initial=-np.inf)
+    out[n_i, h_i, m_i] = np.fmax(out[n_i, h_i, m_i], top - float(radio.fap_threshold_db))
+    return out
 
 
 def slack_skip_pred(pred: FloatArray, mask: NDArray[np.bool_], config) -> FloatArray:

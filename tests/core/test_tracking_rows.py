@@ -49,6 +49,11 @@ CHAL = dataclasses.replace(CFG, challenger_m=0.2, challenger_period_s=0.1, chall
 #: the negative information of silent anchors (``silent_anchor_nats``, off by default); the
 #: even rows' last anchor reports no path from epoch 2 on (:func:`_inputs`)
 SILENT = dataclasses.replace(CFG, silent_anchor_nats=3.0, silent_anchor_margin_db=10.0)
+#: the skipped paths' threshold raised by the strongest family (``skip_threshold_order``) and
+#: the families on every fitted link scored with their SNR (``family_few_links``; both off by
+#: default, by default only at few-range nodes) on every node (eight ranges at most)
+FEW = dataclasses.replace(CFG, skip_threshold_order=3, skip_threshold_max_links=0,
+                          family_few_links=9)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -97,9 +102,9 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, CHAL, WEDGE, SILENT],
+                                    POSTERIOR, CHAL, WEDGE, SILENT, FEW],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
-                              "slack", "posterior", "challenger", "wedge", "silent"])
+                              "slack", "posterior", "challenger", "wedge", "silent", "few"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)
