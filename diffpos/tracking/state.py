@@ -797,6 +797,26 @@ class TrackerConfig:
         the count); 4 is the redundancy rule of ``reseed_min_links``
         (docs/tracking_evidence.md "Session 29: the model-averaged outlier weight"). Default
         0 (per hypothesis, as before).
+    link_eps_lend_contest_s : float [s]
+        With ``link_eps_posterior``: a node lends its model-averaged outlier weight only while
+        its floor is in doubt, i.e. within this many seconds of its last contested update
+        (``TrackerState.lead_ns``: the most probable floor changed, had no majority, or the node
+        had fewer than four ranges; :func:`floor_contested`); 0: always (as before). Why: the
+        mean cannot tell whether the believed floor is the true one. On Sionna RT paper the
+        believed floor is often the wrong one and lending its weight lets the true floor pay
+        the same for the out-of-model arrivals both call outliers; on Sionna ``large`` a true
+        floor believed for seconds lent its weight to a wrong floor, which then won
+        (docs/tracking_evidence.md "Session 29" and "Session 30: lending the outlier weight
+        only while the floor is in doubt"). A belief held that long keeps its own learned
+        history. Default 0.
+    link_eps_lend_fewer : bool
+        With ``link_eps_posterior``: only the hypotheses that have learned fewer of the node's
+        present links as outliers (learned ``eps`` above
+        :data:`diffpos.tracking.evidence.LEND_OUTLIER_EPS`) than the node's most probable
+        hypothesis borrow its model-averaged weight
+        (:func:`diffpos.tracking.evidence.fewer_outliers`): a floor that explains more of the
+        links than the believed one is not charged for its shorter history of outlier calls;
+        one that needs as many outliers or more keeps its own weight. Default False.
     reseed_outliers : int
         A burst of outliers on the believed floor (with ``reseed_max``): a hypothesis of the
         node's believed floor (its probability after this epoch's evidence above 1/2: a
@@ -1017,6 +1037,8 @@ class TrackerConfig:
     snr_slack_max_links: int = 3
     snr_slack_skip: bool = False
     link_eps_posterior: int = 0
+    link_eps_lend_contest_s: float = 0.0
+    link_eps_lend_fewer: bool = False
     challenger_m: float = 0.0
     challenger_period_s: float = 1.0
     challenger_nats: float = 6.0
