@@ -1,6 +1,7 @@
 """Who borrows the node's model-averaged outlier weight (``TrackerConfig.link_eps_posterior``):
 ``link_eps_lend_contest_s`` (0, off by default) lends it only at nodes whose floor was
-contested within that many seconds (``TrackerState.lead_ns``), ``link_eps_lend_fewer`` (off by
+contested within that many seconds (``TrackerState.lead_ns``), ``link_eps_lend_below_p`` (0,
+off) only at nodes whose published floor probability was below that, ``link_eps_lend_fewer`` (off by
 default) only to the hypotheses that have learned fewer present links as outliers than the
 node's most probable hypothesis (docs/tracking_evidence.md "Session 30: lending the outlier
 weight only while the floor is in doubt").
@@ -17,11 +18,19 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from learned_counts import beta_eps, link_inputs_at, long_link_states, weights_from_counts
-from static_track import ANCHORS, B
+from learned_counts import (
+    EXCESS_M,
+    FLOOR,
+    beta_eps,
+    link_inputs_at,
+    long_link_states,
+    weights_from_counts,
+)
+from static_track import ANCHORS, NODE, SIGMA, B, first_arrivals
 
 from diffpos.tracking.evidence import LEND_OUTLIER_EPS, fewer_outliers, posterior_weights
 from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.tracker import init_state, update
 
 
 def _reference_fewer(ref, log_prob, present):
@@ -166,3 +175,44 @@ def test_tracker_lends_only_to_hypotheses_with_fewer_learned_outliers():
     assert left_out > 0 and borrowed > 0
     _, a = long_link_states(plain, epochs=30)
     assert not np.array_equal(a[-1].log_prob, states[-1].log_prob)
+
+
+def test_tracker_lends_only_below_the_published_probability():
+    """``link_eps_lend_below_p``: the static node with one out-of-model range (tracked with
+    ``update`` directly, keeping its published outputs) at 0.33: at every epoch the link
+    weights are the default's plus the reference model-averaged lift where the node's
+    previously PUBLISHED most probable floor's probability (the tracker's output of the epoch
+    before, the reference) is below 0.33, and exactly the default's where it is above. Both
+    cases occur, and above it lending would have raised the long link > 0.1 nats in some
+    epoch (fails if the tracker ignores the setting). Off by default."""
+    assert TrackerConfig().link_eps_lend_below_p == 0.0
+    base = TrackerConfig()
+    cfg = dataclasses.replace(base, link_eps_posterior=4, link_eps_lend_below_p=0.33)
+    rho0 = first_arrivals(NODE, ANCHORS, FLOOR)
+    rho0[1] += EXCESS_M
+    rng = np.random.default_rng(4)
+    n, hs = len(ANCHORS), 2 * B.n_floors
+    state, tops, states = init_state(1, B), [], []
+    for k in range(30):
+        rho = rho0 + rng.normal(0.0, SIGMA, n)
+        state, out = update(state, ANCHORS[None], rho[None], np.full((1, n), SIGMA),
+                            np.ones((1, n), bool), 10**9 + k * 10**8, B, cfg)
+        states.append(state)
+        tops.append(float(np.max(out.floor_probabilities[0])))
+    below = above = 0
+    for k in range(1, len(states)):
+        prev = states[k - 1]
+        if abs(tops[k - 1] - 0.33) < 1e-6:
+            continue
+        got = link_inputs_at(prev, rho0, k, cfg)
+        off = link_inputs_at(prev, rho0, k, base)[4][0]
+        w, col = got[4][0], got[1][0]
+        lend = tops[k - 1] < 0.33
+        lift = _lent(prev, col, cfg, np.full(hs, lend))
+        assert np.allclose(w[..., 0], off[..., 0], rtol=0, atol=1e-9)
+        assert np.allclose(w[..., 1] - off[..., 1], lift, rtol=0, atol=1e-9)
+        if lend:
+            below += int(np.max(lift[:, 1]) > 0.1)
+        elif np.max(_lent(prev, col, cfg, np.ones(hs, bool))[:, 1]) > 0.1:
+            above += 1
+    assert below > 0 and above > 0
