@@ -817,10 +817,12 @@ class TrackerConfig:
         published probability: one-link-out robust, tempered, with the model doubt;
         :func:`published_floor_probabilities`) is below this probability; 0: always (as
         before). Why: the published probability is the tracker's calibrated belief; on the
-        session 26/27 captures (today's default) the believed floor is wrong in 78-86 % of the
-        node-epochs published below 0.5 and right in 77-95 % of those above (Sionna paper s0u,
-        s3, s8, ``large`` s0u), so a belief published with confidence keeps its own learned
-        history (docs/tracking_evidence.md "Session 30"). Default 0.
+        session 26/27 captures (today's default; Sionna paper s0u, s3, s8, ``large`` s0u)
+        78-86 % of the wrong node-epochs are published below 0.5, only 5-23 % of the right
+        ones, so a belief published with confidence keeps its own learned history. Measured
+        with 0.5 (replays): Sionna paper ten seeds 89.46 -> 90.53 %, ``large`` 93.96 -> 93.72
+        (s1 -0.65, s3 -0.45): better than lending always (90.77 / 93.52) but still a loss on
+        ``large`` (docs/tracking_evidence.md "Session 30"). Default 0.
     link_eps_lend_fewer : bool
         With ``link_eps_posterior``: only the hypotheses that have learned fewer of the node's
         present links as outliers (learned ``eps`` above
