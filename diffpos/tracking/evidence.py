@@ -55,8 +55,8 @@ from diffpos.tracking.evidence_nb import (
 )
 from diffpos.tracking.state import FloatArray
 
-__all__ = ["LINK_FIELDS", "LINK_SLOTS", "count_unexplained", "learn", "learned_weights",
-           "match_links", "model_doubt", "model_unexplained_rate", "node_weights", "posterior_weights", "reset_links",
+__all__ = ["LEND_OUTLIER_EPS", "LINK_FIELDS", "LINK_SLOTS", "count_unexplained",
+           "fewer_outliers", "learn", "learned_weights", "match_links", "model_doubt", "model_unexplained_rate", "node_weights", "posterior_weights", "reset_links",
            "unexplained_log_odds"]
 
 # per node whose learned evidence the state keeps (an anchor beyond it is not learned).
@@ -65,6 +65,10 @@ _LOG2PI = float(np.log(2.0 * np.pi))
 #: The state's per-hypothesis learned arrays (n, H, L) (:class:`~diffpos.tracking.state.TrackerState`).
 LINK_FIELDS = ("link_out", "link_all", "link_ev", "link_bias", "link_bias_var", "link_snr",
                "link_t_ns", "link_fit")
+#: A learned outlier weight above which a hypothesis counts the link as one it has learned to
+#: call an outlier (:func:`fewer_outliers`; five times the prior weight 0.02; wt-eps-29's donor
+#: census used the same threshold).
+LEND_OUTLIER_EPS = 0.1
 
 
 def match_links(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArray,
@@ -251,17 +255,30 @@ def posterior_weights(w: FloatArray, log_prob: FloatArray,
     hypothesis' outlier component at the larger of its own ``eps_h = 1 - exp(w[..., 0])`` and
     the node's posterior mean ``sum_k p_k eps_k`` over its hypotheses, ``p`` the normalised
     ``exp(log_prob)`` (n, H), at the nodes ``use`` (n,) (None: all;
-    ``TrackerConfig.link_eps_posterior``): the outlier component's ``log eps_h`` becomes
+    ``TrackerConfig.link_eps_posterior``; or (n, H): the hypotheses that borrow,
+    :func:`lend_borrowers`): the outlier component's ``log eps_h`` becomes
     ``log max(eps_h, mean)``, the inlier weight and the densities unchanged. A new array."""
     eps = -np.expm1(w[..., 0])
     p = np.exp(log_prob - np.max(log_prob, axis=1, keepdims=True))
     p /= np.sum(p, axis=1, keepdims=True)
     e = np.maximum(eps, np.einsum("nh,nhm->nm", p, eps)[:, None, :])
     if use is not None:
-        e = np.where(use[:, None, None], e, eps)
+        e = np.where((use if use.ndim == 2 else use[:, None])[..., None], e, eps)
     out = w.copy()
     out[..., 1] += np.log(e) - np.log(eps)
     return out
+
+
+def fewer_outliers(w: FloatArray, log_prob: FloatArray, present: NDArray[np.bool_]
+                   ) -> NDArray[np.bool_]:
+    """The hypotheses (n, H) that have learned fewer of their node's present links
+    ``present`` (n, M) as outliers (``eps = 1 - exp(w[..., 0]) > LEND_OUTLIER_EPS``, ``w``
+    (n, H, M, 2): :func:`learned_weights`) than the node's most probable hypothesis (the
+    largest ``log_prob`` (n, H)); ``TrackerConfig.link_eps_lend_fewer``."""
+    eps = -np.expm1(w[..., 0])
+    n_out = np.sum((eps > LEND_OUTLIER_EPS) & present[:, None, :], axis=2)
+    top = np.argmax(log_prob, axis=1)
+    return n_out < n_out[np.arange(top.size), top][:, None]
 
 
 def learn(lk: dict, col: NDArray[np.int_], run: NDArray[np.bool_], x: FloatArray,

@@ -798,6 +798,42 @@ class TrackerConfig:
         the count); 4 is the redundancy rule of ``reseed_min_links``
         (docs/tracking_evidence.md "Session 29: the model-averaged outlier weight"). Default
         0 (per hypothesis, as before).
+    link_eps_lend_contest_s : float [s]
+        With ``link_eps_posterior``: a node lends its model-averaged outlier weight only while
+        its floor is in doubt, i.e. within this many seconds of its last contested update
+        (``TrackerState.lead_ns``: the most probable floor changed, had no majority, or the node
+        had fewer than four ranges; :func:`floor_contested`); 0: always (as before). Why: the
+        mean cannot tell whether the believed floor is the true one. On Sionna RT paper the
+        believed floor is often the wrong one and lending its weight lets the true floor pay
+        the same for the out-of-model arrivals both call outliers; on Sionna ``large`` a true
+        floor believed for seconds lent its weight to a wrong floor, which then won
+        (docs/tracking_evidence.md "Session 29" and "Session 30: lending the outlier weight
+        only while the floor is in doubt"). A belief held that long keeps its own learned
+        history. Measured with 3 s (replays): Sionna paper ten seeds 89.46 -> 89.92 % (seeds
+        -9.0 to +4.3), ``large`` 93.96 -> 93.85 (s1 -0.65): no better than lending always; a
+        measured negative. Default 0.
+    link_eps_lend_below_p : float [-]
+        With ``link_eps_posterior``: a node lends its model-averaged outlier weight only while
+        the floor it would publish from its state before the epoch (the most probable floor's
+        published probability: one-link-out robust, tempered, with the model doubt;
+        :func:`published_floor_probabilities`) is below this probability; 0: always (as
+        before). Why: the published probability is the tracker's calibrated belief; on the
+        session 26/27 captures (today's default; Sionna paper s0u, s3, s8, ``large`` s0u)
+        78-86 % of the wrong node-epochs are published below 0.5, only 5-23 % of the right
+        ones, so a belief published with confidence keeps its own learned history. Measured
+        with 0.5 (replays): Sionna paper ten seeds 89.46 -> 90.53 %, ``large`` 93.96 -> 93.72
+        (s1 -0.65, s3 -0.45): better than lending always (90.77 / 93.52) but still a loss on
+        ``large`` (docs/tracking_evidence.md "Session 30"). Default 0.
+    link_eps_lend_fewer : bool
+        With ``link_eps_posterior``: only the hypotheses that have learned fewer of the node's
+        present links as outliers (learned ``eps`` above
+        :data:`diffpos.tracking.evidence.LEND_OUTLIER_EPS`) than the node's most probable
+        hypothesis borrow its model-averaged weight
+        (:func:`diffpos.tracking.evidence.fewer_outliers`): a floor that explains more of the
+        links than the believed one is not charged for its shorter history of outlier calls;
+        one that needs as many outliers or more keeps its own weight. Measured (replays, with
+        and without the 3 s window): Sionna paper ten seeds 89.67 / 89.93 %, ``large`` 93.48 /
+        93.56 (the default 89.46 / 93.96): a measured negative. Default False.
     reseed_outliers : int
         A burst of outliers on the believed floor (with ``reseed_max``): a hypothesis of the
         node's believed floor (its probability after this epoch's evidence above 1/2: a
@@ -1116,6 +1152,9 @@ class TrackerConfig:
     skip_threshold_order: int = 0
     skip_threshold_max_links: int = 3
     family_few_links: int = 0
+    link_eps_lend_contest_s: float = 0.0
+    link_eps_lend_below_p: float = 0.0
+    link_eps_lend_fewer: bool = False
     challenger_m: float = 0.0
     challenger_period_s: float = 1.0
     challenger_nats: float = 6.0

@@ -144,6 +144,7 @@ from diffpos.tracking.evidence import (
     LINK_SLOTS,
     _gather,
     count_unexplained,
+    fewer_outliers,
     learn,
     learned_weights,
     match_links,
@@ -1456,12 +1457,48 @@ def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
                               if config.link_eps_node_awake else None)
     if config.link_eps_posterior > 0:  # the node's model-averaged outlier weight
         link_w = posterior_weights(link_w, state.log_prob[idx],
-                                   n_meas >= config.link_eps_posterior)
+                                   _borrowers(state, idx, link_w, sub, t_ns, n_meas, config))
     fam_gate = None
     if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
         fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0],
                                 learned if config.family_learned_links > 0 else None)
     return lk, col, tab, seen, link_w, fam_gate, fresh
+
+
+def _borrowers(state: TrackerState, idx: NDArray, link_w: FloatArray, sub: Links,
+               t_ns: NDArray, n_meas: NDArray[np.int_], config: TrackerConfig) -> NDArray:
+    """Who borrows the node's model-averaged outlier weight (``link_eps_posterior``): the
+    nodes ``idx`` (n,) with enough ranges ``n_meas``; with ``link_eps_lend_below_p`` only those
+    whose published floor was below that probability (:func:`_prior_published_top`); with ``link_eps_lend_contest_s`` only
+    those whose floor was contested (``TrackerState.lead_ns``) within that many seconds; with
+    ``link_eps_lend_fewer`` only their hypotheses (n, H) that have learned fewer present links
+    as outliers than the node's most probable one
+    (:func:`~diffpos.tracking.evidence.fewer_outliers`)."""
+    use = n_meas >= config.link_eps_posterior
+    if config.link_eps_lend_below_p > 0:
+        use = use & (_prior_published_top(state, idx, t_ns, n_meas, config)
+                     < config.link_eps_lend_below_p)
+    if config.link_eps_lend_contest_s > 0:
+        use = use & ((t_ns[idx] - state.lead_ns[idx]) * 1e-9 <= config.link_eps_lend_contest_s)
+    if not config.link_eps_lend_fewer:
+        return use
+    return use[:, None] & fewer_outliers(link_w, state.log_prob[idx], sub.mask[:, 0])
+
+
+def _prior_published_top(state: TrackerState, idx: NDArray, t_ns: NDArray,
+                         n_meas: NDArray[np.int_], config: TrackerConfig) -> FloatArray:
+    """The most probable floor's published probability (n,) of the nodes ``idx`` from their
+    state before this epoch (:func:`published_floor_probabilities` with the one-link-out
+    robustness, the contest's tempering at this epoch's time ``t_ns`` and the model doubt at
+    this epoch's range count ``n_meas``; ``TrackerConfig.link_eps_lend_below_p``)."""
+    lp = state.log_prob[idx]
+    prob = np.exp(lp)
+    doubt = (model_doubt(lp, state.link_out[idx], state.link_all[idx], config, n_meas, prob)
+             if config.floor_model_doubt and config.link_learn else None)
+    contested = (t_ns[idx] - state.lead_ns[idx]) * 1e-9 < config.floor_contest_s
+    return np.max(published_floor_probabilities(
+        lp, config, prob, link_ev=state.link_ev[idx], link_all=state.link_all[idx], doubt=doubt,
+        contested=contested), axis=1)
 
 
 def _prev_slots(state: TrackerState, idx: NDArray, col: NDArray | None, fresh: NDArray | None,

@@ -42,6 +42,11 @@ SLACK = dataclasses.replace(CFG, snr_diffraction_slack_db=6.0, snr_slack_max_lin
 WEDGE = dataclasses.replace(CFG, snr_edge_model="wedge")
 #: the node's model-averaged outlier weight (``link_eps_posterior``, off by default)
 POSTERIOR = dataclasses.replace(CFG, link_eps_posterior=4)
+#: lent only at nodes contested within 0.3 s, published below 0.9, and only to hypotheses
+#: with fewer learned outliers than the believed one (``link_eps_lend_contest_s``,
+#: ``link_eps_lend_below_p``, ``link_eps_lend_fewer``, off by default)
+LEND = dataclasses.replace(POSTERIOR, link_eps_lend_contest_s=0.3, link_eps_lend_below_p=0.9,
+                           link_eps_lend_fewer=True)
 #: a second level mode per floor (``challenger_m``, off by default) searched for every floor
 #: in every epoch, scored from its first update, winning on any gain
 CHAL = dataclasses.replace(CFG, challenger_m=0.2, challenger_period_s=0.1, challenger_floors=0,
@@ -102,9 +107,10 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, CHAL, WEDGE, SILENT, FEW],
+                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
-                              "slack", "posterior", "challenger", "wedge", "silent", "few"])
+                              "slack", "posterior", "lend", "challenger", "wedge", "silent",
+                              "few"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)
