@@ -33,7 +33,6 @@ from diffpos.tracking.model import (
     _iekf_fixed,
     _paths_at,
     _select_fixed,
-    clamp_to_floor,
     existence_margin,
     iekf,
     link_weights,
@@ -43,7 +42,7 @@ from diffpos.tracking.model import (
     snr_cost_near,
 )
 from diffpos.tracking.model_nb import select_best_kernel, select_mix_kernel, select_pack_kernel
-from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.state import TrackerConfig, clamp_to_floor
 
 _BUILDINGS = [
     dataclasses.replace(Building(), n_floors=6, floor_height_m=3.6, first_floor_z_m=2.0,

@@ -56,7 +56,6 @@ from diffpos.tracking.model import (
     _select_numpy,
     _select_prep,
     _select_prep_numpy,
-    clamp_to_floor,
     iekf,
     link_weights,
     measurement_update,
@@ -65,7 +64,7 @@ from diffpos.tracking.model import (
     select_persistent,
     snr_cost_near,
 )
-from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.state import TrackerConfig, clamp_to_floor
 
 _BUILDINGS = [
     Building(),
