@@ -450,7 +450,13 @@ class TrackerConfig:
         (``family_history``); on
         top of the other settings' gate; with ``family_minority`` none to a hypothesis that
         misfits half of the ranges or more (:func:`diffpos.tracking.tracker._worst_link`).
-        0: off (default). Why (docs/channel_mix.md "Session 29"): on the emulator at
+        0: off. Default 4 from session 30 (replays of the session-24/26 recordings with
+        today's other defaults, docs/tracking_evidence.md "Session 30, lead"): Sionna RT paper
+        ten seeds 89.46 -> 91.31 % right floor (8 seeds up, s2 -4.0 and s6 -3.3), Sionna
+        ``large`` x5 93.96 -> 94.06 (no seed down), heldout-1/-2/-3 identical, main command
+        99.38 -> 99.42, ``large30`` 99.99, 16 random buildings 99.70 -> 99.61 (rand-7-12
+        -0.74, rand-7-4 -0.74), the emulator at ``channel_max_order`` 3 main 97.72 -> 98.51;
+        tracker CPU x1.02-1.15. Why (docs/channel_mix.md "Session 29"): on the emulator at
         ``channel_max_order`` 3 a 4-UAV node whose first arrival from one UAV is an order-3
         slab series (D(lower)-R(ceiling)-R(floor)) is fitted at the true floor with a wrong one
         of the 18 inside ``nis_limit`` (capped SNR cost, the fit pulled), while the floor
@@ -1109,7 +1115,7 @@ class TrackerConfig:
     family_snr: bool = False
     family_select: bool = False
     family_select_min_links: int = 0
-    family_worst_min_links: int = 0
+    family_worst_min_links: int = 4
     family_worst_nis: float = 1.0
     family_fit: str = "prior"
     floor_model_doubt: bool = True

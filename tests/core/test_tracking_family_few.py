@@ -41,6 +41,7 @@ COL = np.arange(4)[None]
 
 
 def _gate(n_meas, history=None, **kw):
+    kw = {"family_worst_min_links": 0, **kw}  # the worst-link gate (default 4) apart
     cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_history=1, **kw)
     seen = np.ones(FIT.shape) if history is None else history
     lk = {"link_fit": FIT, "link_all": seen, "link_out": np.zeros(FIT.shape)}

@@ -53,7 +53,8 @@ def test_four_ranges_are_never_offered_a_family_without_the_learned_prior():
     ``family_min_links`` (5: a family for one link leaves three, fitted exactly on any floor)
     and without the learned family prior (``family_learned_links`` 0) the run equals the run
     without families bit for bit in every epoch; with 4 it does not."""
-    cfg = dataclasses.replace(TrackerConfig(), family_learned_links=0)
+    cfg = dataclasses.replace(TrackerConfig(), family_learned_links=0,
+                              family_worst_min_links=0)  # the worst-link gate apart
     assert cfg.max_order == 3 and cfg.family_min_links == 5
     ref = _run(dataclasses.replace(cfg, max_order=2), 4)
     got = _run(cfg, 4)

@@ -74,11 +74,12 @@ def _reference(n_meas, present, history, minority, k=4, nis=1.0):
     return out
 
 
-def test_off_by_default():
-    """Default 0: the gate is the misfit gate alone (no family for a four-range node here)."""
-    assert TrackerConfig().family_worst_min_links == 0
+def test_on_by_default_and_off_is_the_misfit_gate_alone():
+    """Default 4 from session 30 (a history entry in the fusion's settings); 0: the gate is
+    the misfit gate alone (no family for a four-range node here)."""
+    assert TrackerConfig().family_worst_min_links == 4
     assert TrackerConfig().family_worst_nis == 1.0
-    assert not _gate(4).any()
+    assert not _gate(4, family_worst_min_links=0).any()
 
 
 def test_one_worst_in_model_link_per_hypothesis():
@@ -128,7 +129,7 @@ def test_the_true_floor_wins_with_the_family_of_its_worst_link():
     anchors = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
                         [15.0, -20.0, 1.0]])
     nf = b.n_floors
-    cfg0 = dataclasses.replace(TrackerConfig(), max_order=3)
+    cfg0 = dataclasses.replace(TrackerConfig(), max_order=3, family_worst_min_links=0)
     cfg = dataclasses.replace(cfg0, family_worst_min_links=4)
     for x in (6.3, 10.52):
         node = np.array([x, 8.41, 11.5])
