@@ -88,7 +88,10 @@ THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr
 #: below includes it
 #: the diffraction SNR slack before 424510e (2026-12-07 17:20 UTC: snr_diffraction_slack_db 6,
 #: snr_slack_max_links 3); every set of older defaults below includes it
-SLACK_OFF = {"snr_diffraction_slack_db": 0.0, "snr_slack_max_links": 0}
+#: the worst link's families before 2ac62e4 (2026-12-07 20:27 UTC: family_worst_min_links 4);
+#: every set of older defaults below includes it
+WORST_OFF = {"family_worst_min_links": 0}
+SLACK_OFF = {"snr_diffraction_slack_db": 0.0, "snr_slack_max_links": 0, **WORST_OFF}
 BURST_OFF = {"reseed_outliers": 0, "cov_published_floors": "off", **SLACK_OFF}
 EDGE_OFF = {"edge_retry_margin_m": 0.0, "edge_retry_node": False,
             "mechanism_prior_min_links": 0, "mechanism_switch_p": 0.0, **BURST_OFF}
@@ -111,7 +114,7 @@ LEARNED_OFF = {"family_learned_links": 0, **RESEED_OFF}
 FAMILIES_OFF = {"max_order": 2, "family_weight": "outlier", "family_gate": "outlier",
                 **GATE_OFF}
 #: a recording made after every change of a default
-NOW_NS = int(datetime.datetime(2026, 12, 7, 17, 21, tzinfo=UTC).timestamp()) * 10**9
+NOW_NS = int(datetime.datetime(2026, 12, 7, 20, 28, tzinfo=UTC).timestamp()) * 10**9
 #: a key that must change the estimates: the model error added to every range sigma [m]
 WHAT_IF = {"sigma_model_m": 0.3}
 
@@ -236,8 +239,9 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [
-    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-07 17:20 UTC"),
-    (AFTER_NS, LINK_OFF, "the defaults of then (snr_diffraction_slack_db=0.0, "
+    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-07 20:27 UTC"),
+    (AFTER_NS, LINK_OFF, "the defaults of then (family_worst_min_links=0, "
+                         "snr_diffraction_slack_db=0.0, "
                          "snr_slack_max_links=0, reseed_outliers=0, "
                          "cov_published_floors=off, edge_retry_margin_m=0.0, "
                          "edge_retry_node=false, mechanism_prior_min_links=0, "
@@ -276,7 +280,9 @@ def test_legacy_tracker_settings_follow_the_history_of_the_defaults():
     tracking/state.py): each change applies to recordings made before it."""
     at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
     mnls = {"method": "mnls", "tracking": True}
-    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 17, 21))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 20, 28))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 17, 21))[0] == {**DEFAULTS,
+                                                                         **WORST_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 7, 14, 55))[0] == {**DEFAULTS,
                                                                          **SLACK_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 7, 11, 49))[0] == {**DEFAULTS,
