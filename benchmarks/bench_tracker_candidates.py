@@ -96,12 +96,13 @@ def capture(recording: str, n_calls: int) -> list:
 
 def candidates(calls: list, reps: int) -> None:
     import diffpos.tracking.model as M
+    import diffpos.tracking.state as S
     from diffpos.tracking.links import _IS_DIFF, all_paths
 
     prep, cnt = [], collections.Counter()
     for a, _ in calls:
         x_prior, p_prior, links, floor, b, cfg = a
-        xc = M.clamp_to_floor(x_prior[..., :3], floor, b, cfg.z_margin_m)
+        xc = S.clamp_to_floor(x_prior[..., :3], floor, b, cfg.z_margin_m)
         pe = all_paths(xc, links, floor, b, M.existence_margin(p_prior, cfg))
         need = pe.loose | M.ALWAYS_PREDICTED
         snr_c = M.cap_snr_cost(M._snr_cost_thr(xc, links, b, trust=pe.sure, need=need)[0], cfg)

@@ -1,7 +1,7 @@
 """The measurement update's compiled set-up (:func:`diffpos.tracking.model._update_fixed`,
 :mod:`diffpos.tracking.update_nb`) against the numpy functions it replaces in
 :func:`~diffpos.tracking.model.measurement_update`: the clamped prior and the nodes it moved
-(:func:`~diffpos.tracking.model.clamp_to_floor`), the existence margins
+(:func:`~diffpos.tracking.state.clamp_to_floor`), the existence margins
 (:func:`~diffpos.tracking.model.existence_margin`, the fixed one without vertical modes), the
 prior information (:func:`~diffpos.tracking.model.prior_information`) and the IEKF's fixed
 inputs (:func:`~diffpos.tracking.model._iekf_fixed`), bit for bit; and the posterior's clamp
@@ -17,7 +17,7 @@ import pytest
 import diffpos.tracking.model as tm
 from diffpos.scenario import Building
 from diffpos.tracking.links import Links
-from diffpos.tracking.state import TrackerConfig
+from diffpos.tracking.state import TrackerConfig, clamp_to_floor
 from diffpos.tracking.update_nb import clamp_kernel
 
 BUILDINGS = [
@@ -37,7 +37,7 @@ def _prior(b: Building, rng, n: int, h: int):
     x[..., 2] = b.floor_z_m(floor) + rng.uniform(-0.5, b.floor_height_m + 0.5, (n, h))
     x[..., 3:] = rng.normal(0.0, 0.5, (n, h, 3))
     inside = rng.random((n, h)) < 0.6  # most priors inside their box
-    x[..., :3] = np.where(inside[..., None], tm.clamp_to_floor(x[..., :3], floor, b, 0.3),
+    x[..., :3] = np.where(inside[..., None], clamp_to_floor(x[..., :3], floor, b, 0.3),
                           x[..., :3])
     a = rng.normal(size=(n, h, 6, 6))
     p = a @ np.swapaxes(a, -1, -2) * rng.uniform(0.01, 1.0, (n, h, 1, 1)) + \
@@ -62,7 +62,7 @@ def test_update_fixed_equals_the_numpy_pieces(bi, with_level):
     level = rng.random((n, h)) < 0.7 if with_level else None
     links = _links(n, 5, rng)
     xc, moved, relax, info, fix = tm._update_fixed(x, p, links, floor, b, CFG, level)
-    ref_xc = tm.clamp_to_floor(x[..., :3], floor, b, CFG.z_margin_m)
+    ref_xc = clamp_to_floor(x[..., :3], floor, b, CFG.z_margin_m)
     np.testing.assert_array_equal(xc, ref_xc)
     ref_moved = np.flatnonzero(np.any(ref_xc != x[..., :3], axis=(-2, -1)))
     np.testing.assert_array_equal(moved, ref_moved)
@@ -90,4 +90,4 @@ def test_clamp_kernel_equals_clamp_to_floor(bi):
     x, _, floor = _prior(b, rng, 30, 3)
     out = np.empty_like(x)
     clamp_kernel(x, floor.astype(np.float64), tm._floor_box(b, CFG.z_margin_m), out)
-    np.testing.assert_array_equal(out, tm.clamp_to_floor(x, floor, b, CFG.z_margin_m))
+    np.testing.assert_array_equal(out, clamp_to_floor(x, floor, b, CFG.z_margin_m))
