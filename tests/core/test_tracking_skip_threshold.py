@@ -21,11 +21,12 @@ import dataclasses
 
 import numpy as np
 import pytest
+from hypothesis_cases import random_hypotheses
 
 import diffpos.tracking.model as tm
 from diffpos.channel.emulator import emulate_channel, pair_snr_db
 from diffpos.paths.mechanisms import MECHANISMS
-from diffpos.scenario import Building, Radio
+from diffpos.scenario import Radio
 from diffpos.tracking.links import Links, all_paths
 from diffpos.tracking.state import TrackerConfig
 
@@ -36,18 +37,8 @@ def _case(seed: int):
     """12 nodes x 3 hypotheses on random floors of the default building, 4 anchors each low
     in front of the facade (0.3-4 m) so the slab series through the windows are strong; the
     first half of the nodes with three ranges. Measured SNRs around the strongest slot."""
-    rng = np.random.default_rng(seed)
-    b = Building()
-    x0, x1 = b.edge_x_m
-    n, h, m = 12, 3, 4
-    floor = rng.integers(0, b.n_floors, (n, h))
-    z = b.floor_z_m(floor) + rng.uniform(0.4, b.floor_height_m - 0.4, (n, h))
-    pos = np.stack([rng.uniform(x0 + 0.5, x1 - 0.5, (n, h)),
-                    rng.uniform(0.5, b.depth_m - 0.5, (n, h)), z], axis=-1)
-    anchors = np.stack([rng.uniform(x0 - 10.0, x1 + 10.0, (n, m)), -rng.uniform(3.0, 30.0, (n, m)),
-                        rng.uniform(0.3, 4.0, (n, m))], axis=-1)
-    mask = np.ones((n, m), bool)
-    mask[: n // 2, 3] = False
+    rng, b, pos, floor, anchors, mask = random_hypotheses(seed, anchor_top_m=4.0)
+    n, m = mask.shape
     pred = pair_snr_db(anchors, pos[:, 0], building=b, radio=Radio())
     best = np.max(np.where(np.isfinite(pred), pred, -np.inf), axis=-1)
     snr = np.where(np.isfinite(best), best, 0.0) + rng.uniform(-25.0, 3.0, (n, m))

@@ -24,12 +24,13 @@ import dataclasses
 
 import numpy as np
 import pytest
+from hypothesis_cases import random_hypotheses
 from scipy.stats import norm
 
 import diffpos.tracking.model as tm
 from diffpos.channel.emulator import pair_snr_db
 from diffpos.paths.mechanisms import MECHANISMS
-from diffpos.scenario import Building, Radio
+from diffpos.scenario import Radio
 from diffpos.tracking.links import Links, all_paths
 from diffpos.tracking.state import TrackerConfig
 
@@ -73,18 +74,8 @@ def test_the_cap_holds_beyond_the_slack():
 
 
 def _case(seed: int):
-    rng = np.random.default_rng(seed)
-    b = Building()
-    x0, x1 = b.edge_x_m
-    n, h, m = 12, 3, 4
-    floor = rng.integers(0, b.n_floors, (n, h))
-    z = b.floor_z_m(floor) + rng.uniform(0.4, b.floor_height_m - 0.4, (n, h))
-    pos = np.stack([rng.uniform(x0 + 0.5, x1 - 0.5, (n, h)),
-                    rng.uniform(0.5, b.depth_m - 0.5, (n, h)), z], axis=-1)
-    anchors = np.stack([rng.uniform(x0 - 10.0, x1 + 10.0, (n, m)), -rng.uniform(3.0, 30.0, (n, m)),
-                        rng.uniform(0.3, 6.0, (n, m))], axis=-1)
-    mask = np.ones((n, m), bool)
-    mask[: n // 2, 3] = False  # the first half: three ranges
+    rng, b, pos, floor, anchors, mask = random_hypotheses(seed, anchor_top_m=6.0)
+    n, m = mask.shape
     # measured SNRs around the model's strongest diffraction, up to 12 dB above it
     pred = pair_snr_db(anchors, pos[:, 0], building=b, radio=Radio())
     best = np.max(np.where(DIFF, pred, -np.inf), axis=-1)
