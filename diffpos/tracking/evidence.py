@@ -56,7 +56,8 @@ from diffpos.tracking.evidence_nb import (
 from diffpos.tracking.state import FloatArray
 
 __all__ = ["LEND_OUTLIER_EPS", "LINK_FIELDS", "LINK_SLOTS", "count_unexplained",
-           "fewer_outliers", "learn", "learned_weights", "match_links", "model_doubt", "model_unexplained_rate", "node_weights", "posterior_weights", "reset_links",
+           "fewer_outliers", "learn", "learned_weights", "match_links", "model_doubt",
+           "model_unexplained_rate", "node_weights", "posterior_weights", "reset_links",
            "unexplained_log_odds"]
 
 # per node whose learned evidence the state keeps (an anchor beyond it is not learned).

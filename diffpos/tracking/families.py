@@ -59,7 +59,7 @@ from diffpos.paths.graded_nb import graded_split_kernel
 from diffpos.paths.mechanisms import DEFAULT_ORDER, MECHANISMS, MechanismSet, mechanism_set
 from diffpos.paths.model import graded_paths
 from diffpos.paths.model_nb import building_planes, mechanism_table, partition_array
-from diffpos.tracking.state import FloatArray
+from diffpos.tracking.state import FloatArray, few_ranges
 
 __all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "family_snr_log_lik",
            "first_arrival_log_prob", "graded_split"]
@@ -240,8 +240,8 @@ def _family_snr(links, rows: NDArray, pi: NDArray, mi: NDArray, config) -> tuple
         return None
     snr = links.snr[rows[pi], 0, mi]
     if not config.family_snr:
-        n = np.sum(links.mask[rows[pi], 0], axis=-1)
-        few = (n <= config.family_few_links) & (n >= config.min_anchors_tracking)
+        few = few_ranges(np.sum(links.mask[rows[pi], 0], axis=-1), config.family_few_links,
+                         config.min_anchors_tracking)
         snr = np.where(few, snr, np.nan)
     return snr, links.radio
 

@@ -114,7 +114,7 @@ from diffpos.tracking.snr_term_nb import (
     snr_score_kernel,
     snr_skip_kernel,
 )
-from diffpos.tracking.state import SNR_CACHE_SLOTS
+from diffpos.tracking.state import SNR_CACHE_SLOTS, few_ranges
 from diffpos.tracking.update_nb import clamp_kernel, update_fixed_kernel
 
 FloatArray = NDArray[np.float64]
@@ -560,9 +560,8 @@ def diffraction_slack(cost: FloatArray, pred: FloatArray, thr: FloatArray, snr: 
     sig = float(SNR_SIGMA_DB)
     meas = snr[:, None, :, None]
     use = _IS_DIFF & np.isfinite(cost) & np.isfinite(pred) & np.isfinite(meas)
-    k = int(config.snr_slack_max_links)
-    if k > 0:  # only the nodes with at most k ranges
-        use = use & (np.sum(mask, axis=-1) <= k)[:, None, None, None]
+    use = use & few_ranges(np.sum(mask, axis=-1), int(config.snr_slack_max_links))[
+        :, None, None, None]
     if not use.any():
         return cost
     with np.errstate(invalid="ignore"):
@@ -589,8 +588,8 @@ def family_threshold(thr: FloatArray, pos: FloatArray, anc: FloatArray,
     (``mask`` (N, M)) of nodes with at most ``config.skip_threshold_max_links`` ranges (0:
     every node) and at least ``config.min_anchors_tracking`` (fewer do not fix a position);
     the rest as given (a new array)."""
-    k, n = int(config.skip_threshold_max_links), np.sum(mask, axis=-1)
-    few = (n >= config.min_anchors_tracking) & ((n <= k) if k > 0 else True)
+    few = few_ranges(np.sum(mask, axis=-1), int(config.skip_threshold_max_links),
+                     config.min_anchors_tracking)
     use = mask & few[:, None]
     idx = np.argwhere(np.broadcast_to(use[:, None, :], thr.shape))
     out = np.array(thr, dtype=np.float64, copy=True)
@@ -613,8 +612,7 @@ def slack_skip_pred(pred: FloatArray, mask: NDArray[np.bool_], config) -> FloatA
     the mean of the slack's flat top (the power the SNR likelihood allows, uniform over
     ``[pred, pred + slack]``): the probability that an earlier diffraction was below the
     threshold is then read at that power's mean, not at the half-plane's (a new array)."""
-    k = int(config.snr_slack_max_links)
-    few = (np.sum(mask, axis=-1) <= k) if k > 0 else np.ones(pred.shape[0], dtype=bool)
+    few = few_ranges(np.sum(mask, axis=-1), int(config.snr_slack_max_links))
     return np.where(_IS_DIFF & few[:, None, None, None],
                     pred + 0.5 * float(config.snr_diffraction_slack_db), pred)
 

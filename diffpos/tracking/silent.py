@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from diffpos.channel.detection import normal_cdf
 from diffpos.channel.emulator import pair_snr_db
-from diffpos.tracking.state import clamp_to_floor, hypothesis_floor
+from diffpos.tracking.state import clamp_to_floor, few_ranges, hypothesis_floor
 
 __all__ = ["sigma_points", "silent_cost", "silent_links", "silent_update"]
 
@@ -103,9 +103,7 @@ def silent_update(lp: FloatArray, mean: FloatArray, anchors_m, mask, snr_db, n_m
     silent = silent_links(anchors_m, mask, snr_db, config) if radio is not None else None
     if silent is None:
         return lp
-    rows = live & silent.any(axis=1)
-    if config.silent_anchor_max_links > 0:
-        rows &= n_meas <= config.silent_anchor_max_links
+    rows = live & silent.any(axis=1) & few_ranges(n_meas, config.silent_anchor_max_links)
     idx = np.flatnonzero(rows)
     if idx.size == 0:
         return lp

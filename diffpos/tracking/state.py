@@ -30,6 +30,7 @@ __all__ = [
     "TrackerState",
     "clamp_to_floor",
     "credible_floor_weights",
+    "few_ranges",
     "floor_contested",
     "floor_probabilities",
     "floor_reweighted",
@@ -1343,6 +1344,15 @@ class TrackOutput:
 def n_floors_of(state: TrackerState) -> int:
     """Number of floors of a state (its hypotheses are floors x 2 vertical modes)."""
     return state.log_prob.shape[1] // 2
+
+
+def few_ranges(n_meas: ArrayLike, max_links: int, min_links: int = 0) -> NDArray[np.bool_]:
+    """The nodes a few-range setting applies to: ``n_meas`` ranges (N,) at most ``max_links``
+    (0: any number) and at least ``min_links`` (the settings' ``*_max_links`` /
+    ``family_few_links`` with ``min_anchors_tracking``)."""
+    n = np.asarray(n_meas)
+    few = n >= min_links
+    return few & (n <= max_links) if max_links > 0 else few
 
 
 def clamp_to_floor(x: FloatArray, floor, building, margin_m: float) -> FloatArray:

@@ -186,6 +186,7 @@ from diffpos.tracking.state import (
     TrackStatus,
     clamp_to_floor,
     credible_floor_weights,
+    few_ranges,
     floor_contested,
     floor_probabilities,
     floor_reweighted,
@@ -606,7 +607,7 @@ def _more_floor_evidence(lp: FloatArray, lp_pred: FloatArray, moments: tuple, in
     6)). ``lp`` itself when both are off."""
     k = config.floor_hold_max_links
     if k > 0:
-        hold = live & (n_meas > 0) & (n_meas <= k)
+        hold = live & few_ranges(n_meas, k, 1)
         if hold.any():
             lp = np.where(hold[:, None], lp_pred, lp)
     return silent_update(lp, moments[0], *inputs, n_meas, live, building, radio, config,
@@ -1570,12 +1571,14 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         gate &= fitted
     worst = (_worst_link(lk, col, n_meas, gate, fitted, present, config)
              if config.family_worst_min_links > 0 else None)
+    scarce = (few_ranges(n_meas, config.family_few_links, config.min_anchors_tracking)
+              if config.family_few_links > 0 else None)  # few ranges: SNR-scored families
     if config.family_min_links > 0:
         enough = n_meas >= config.family_min_links
         if learned is not None:  # fewer ranges where the track learned the channel has them
             enough |= learned & (n_meas >= config.family_learned_links)
-        if config.family_few_links > 0:  # few ranges: scored with their SNR (family_log_weight)
-            enough |= _few_ranges(n_meas, config)
+        if scarce is not None:  # few ranges: scored with their SNR (family_log_weight)
+            enough |= scarce
         gate &= enough[:, None, None]
         fitted &= enough[:, None, None]
     offered = fitted if config.family_select else gate  # every fitted link, or the misfits
@@ -1583,22 +1586,14 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
     if config.family_select_min_links > 0:  # many ranges: every fitted link, no minority rule
         rich = (n_meas >= config.family_select_min_links)[:, None, None]
         offered = np.where(rich, fitted, offered)
-    if config.family_few_links > 0:  # few ranges: every fitted link too (SNR-scored there)
-        scarce = _few_ranges(n_meas, config)[:, None, None]
-        rich = scarce if rich is None else rich | scarce
-        offered = np.where(scarce, fitted, offered)
+    if scarce is not None:  # few ranges: every fitted link too (SNR-scored there)
+        rich = scarce[:, None, None] if rich is None else rich | scarce[:, None, None]
+        offered = np.where(scarce[:, None, None], fitted, offered)
     if config.family_minority:  # most ranges misfit: the state is wrong, not the links
         mis = gate if present is None else gate & present[:, None, :]
         few = (2 * np.sum(mis, axis=-1) < n_meas[:, None])[..., None]
         offered = offered & (few if rich is None else few | rich)
     return offered if worst is None else offered | worst
-
-
-def _few_ranges(n_meas: NDArray[np.int_], config: TrackerConfig) -> NDArray[np.bool_]:
-    """``TrackerConfig.family_few_links``' nodes: at least ``min_anchors_tracking`` (three)
-    ranges, the fewest that fix a position, and at most ``family_few_links`` (with fewer the
-    ranges do not fix the position, and a family on every link only adds freedom)."""
-    return (n_meas <= config.family_few_links) & (n_meas >= config.min_anchors_tracking)
 
 
 def _worst_link(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
