@@ -19,10 +19,21 @@ process imports without numba. This script
    whether the ahead-of-time outputs equal the JIT's bit for bit (positions, covariances,
    statuses, residuals, used anchors, reasons) and the process imported numba.
 
+``--whole-process``: also the whole D-NLS replay (``diffpos replay REC --method dnls
+--no-files --no-progress``) of each recording in fresh processes, ``--rounds`` times
+alternating: numba's JIT kernel (this tree as it is) against the ahead-of-time module in a
+process without numba. A process without numba is made for the measurement only: a stand-in
+``numba`` package (``@njit`` leaves a function as it is; written into the work folder and put
+first on the child's path) lets the kernel modules import, and ``dnls.fit_nb.dnls_batch`` is
+the module's function; any other compiled function the replay called would run as Python
+(none does: checked by the outputs). CPU (user + system), wall and peak RSS; the printed
+reports compared line by line (the timing line apart) and the ``--write-mcap`` outputs message
+by message (topic, receive time, payload).
+
 Usage::
 
     python benchmarks/bench_dnls_aot.py --recording /work/rec/large30.mcap [REC ...] \\
-        [--rounds 3] [--keep DIR] [--target-cpu host]
+        [--rounds 3] [--keep DIR] [--target-cpu host] [--whole-process]
 """
 
 from __future__ import annotations
@@ -118,6 +129,112 @@ def run_child(kind: str, module_dir: str, calls_file: str) -> None:
                       "calls": len(calls), "differ": differ, "numba": "numba" in sys.modules}))
 
 
+#: the stand-in ``numba`` package of ``--whole-process`` (file -> text)
+STAND_IN = {
+    "numba/__init__.py": (
+        '"""A stand-in for numba (bench_dnls_aot.py --whole-process only)."""\n'
+        '__version__ = "stand-in"\n\n\n'
+        "def njit(*args, **kwargs):\n"
+        "    if len(args) == 1 and callable(args[0]) and not kwargs:\n"
+        "        return args[0]\n"
+        "    return lambda f: f\n"),
+    "numba/core/__init__.py": "",
+    "numba/core/event.py": ("class Listener:\n    pass\n\n\n"
+                            "def register(kind, listener):\n    pass\n"),
+}
+
+
+def replay_aot_child(module_dir: str, *argv: str) -> None:
+    """``diffpos replay ARGV`` in this process with the stand-in numba (first on the path)
+    and ``dnls_batch`` from the ahead-of-time module in ``module_dir``."""
+    import numba
+
+    assert numba.__version__ == "stand-in", "the stand-in numba is not first on the path"
+    from diffpos.estimators.dnls import fit_nb
+
+    sys.path.insert(0, module_dir)
+    fit_nb.dnls_batch = __import__(MODULE).dnls_batch
+    from diffpos_services.cli import main as cli
+
+    cli.main(list(argv))
+
+
+def replay_process(kind: str, work: Path, argv: list[str]) -> tuple[dict, str]:
+    """One whole replay in a fresh process (``jit``: this tree as it is; ``aot``: without
+    numba); its CPU, wall, peak RSS and printed report (the timing line dropped)."""
+    from common import tree_env
+
+    env = tree_env(ROOT)
+    if kind == "aot":
+        env["PYTHONPATH"] = os.pathsep.join([str(work / "stand-in"), env["PYTHONPATH"]])
+        cmd = [sys.executable, __file__, "--replay-aot-child", str(work), *argv]
+    else:
+        cmd = [sys.executable, "-m", "diffpos_services.cli.main", *argv]
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryFile() as out:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
+        _, status, ru = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        out.seek(0)
+        text = out.read().decode(errors="replace")
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{text[-2000:]}")
+    report = "\n".join(ln for ln in text.splitlines() if "of recording replayed in" not in ln)
+    return {"cpu_s": ru.ru_utime + ru.ru_stime, "wall_s": wall, "rss_mb": ru.ru_maxrss / 1024,
+            "load": load}, report
+
+
+def mcap_messages(path: Path) -> dict[str, list]:
+    """Every message of an MCAP by topic: (receive time, payload), in file order."""
+    from diffpos_services.recording.reader import McapScanner
+
+    out: dict[str, list] = {}
+    for batch in McapScanner(path).iter_batches():
+        for m in batch:
+            out.setdefault(m.topic, []).append((m.log_ns, m.data))
+    return out
+
+
+def whole_process(recordings: list[str], work: Path, rounds: int) -> None:
+    """``--whole-process``: per recording, the written outputs compared message by message,
+    then ``rounds`` alternating whole replays of each kind; a table of medians."""
+    for rel, text in STAND_IN.items():
+        (work / "stand-in" / rel).parent.mkdir(parents=True, exist_ok=True)
+        (work / "stand-in" / rel).write_text(text)
+    print("\nwhole process: diffpos replay REC --method dnls --no-files --no-progress; CPU s "
+          "(user + system), wall s, peak RSS MB, medians; reports: printed reports equal but "
+          "the timing line; messages: --write-mcap outputs, topics differing")
+    print(f"{'recording / kernel':<40} {'CPU s':>7} {'min':>7} {'wall s':>7} {'RSS MB':>7} "
+          f"{'reports':>8} {'messages':>20} load")
+    for rec in recordings:
+        base = ["replay", rec, "--method", "dnls", "--no-files", "--no-progress"]
+        msgs = {}
+        for kind in ("aot", "jit"):
+            out = work / f"{Path(rec).stem}.{kind}.mcap"
+            replay_process(kind, work, [*base, "--write-mcap", str(out)])
+            msgs[kind] = mcap_messages(out)
+            out.unlink()
+        a, b = msgs["aot"], msgs["jit"]
+        n = sum(len(v) for t, v in b.items() if "/replay/" in t)
+        same = f"{sum(a.get(t) != b.get(t) for t in set(a) | set(b))} of {len(b)} ({n} est.)"
+        rows: dict[str, list] = {"aot": [], "jit": []}
+        reports: dict[str, set] = {"aot": set(), "jit": set()}
+        for _ in range(rounds):
+            for kind in ("aot", "jit"):
+                row, report = replay_process(kind, work, base)
+                rows[kind].append(row)
+                reports[kind].add(report)
+        equal = "equal" if reports["aot"] == reports["jit"] and len(reports["jit"]) == 1 \
+            else "DIFFER"
+        for kind, rs in rows.items():
+            med = statistics.median
+            print(f"{Path(rec).name + ' / ' + kind:<40} {med(r['cpu_s'] for r in rs):>7.2f} "
+                  f"{min(r['cpu_s'] for r in rs):>7.2f} {med(r['wall_s'] for r in rs):>7.2f} "
+                  f"{max(r['rss_mb'] for r in rs):>7.0f} {equal:>8} {same:>20} "
+                  f"{min(r['load'] for r in rs):.1f}-{max(r['load'] for r in rs):.1f}")
+
+
 def child(args: list[str], env: dict[str, str] | None = None) -> dict:
     """This script in a fresh process (a hidden mode); its JSON line and CPU (``os.wait4``).
     (``common`` is imported here, by the parent only: the children import nothing else.)"""
@@ -172,7 +289,7 @@ def report(rows: dict[tuple[str, str], list], build: dict, target: str) -> None:
 
 def main() -> None:
     modes = {"--build-child": build_child, "--capture-child": capture_child,
-             "--run-child": run_child}
+             "--run-child": run_child, "--replay-aot-child": replay_aot_child}
     if len(sys.argv) > 1 and sys.argv[1] in modes:
         modes[sys.argv[1]](*sys.argv[2:])
         return
@@ -182,13 +299,17 @@ def main() -> None:
     ap.add_argument("--keep", metavar="DIR", help="build and keep the module here")
     ap.add_argument("--target-cpu", default="", help="numba.pycc's target CPU (default: "
                     "generic x86-64; 'host': this machine's)")
+    ap.add_argument("--whole-process", action="store_true",
+                    help="also whole D-NLS replays: the JIT kernel vs the module without numba")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="dnls_aot_") as tmp:
         work = Path(args.keep or tmp)
         work.mkdir(parents=True, exist_ok=True)
         build = child(["--build-child", str(work), args.target_cpu])
         rows = measure(args.recording, work, args.rounds)
-    report(rows, build, args.target_cpu)
+        report(rows, build, args.target_cpu)
+        if args.whole_process:
+            whole_process(args.recording, work, args.rounds)
 
 
 if __name__ == "__main__":
