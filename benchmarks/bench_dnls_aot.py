@@ -159,12 +159,21 @@ def replay_aot_child(module_dir: str, *argv: str) -> None:
     cli.main(list(argv))
 
 
+def tree_env() -> dict[str, str]:
+    """This environment with this tree (and its ``services``) first on ``PYTHONPATH``.
+
+    (``common.tree_env``'s, restated: this process imports nothing of the project, because a
+    child's peak RSS as ``os.wait4`` reports it includes the image of the process it was
+    forked from, so the parent is kept small: ~20 MB.)"""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "services")])
+    return env
+
+
 def replay_process(kind: str, work: Path, argv: list[str]) -> tuple[dict, str]:
     """One whole replay in a fresh process (``jit``: this tree as it is; ``aot``: without
     numba); its CPU, wall, peak RSS and printed report (the timing line dropped)."""
-    from common import tree_env
-
-    env = tree_env(ROOT)
+    env = tree_env()
     if kind == "aot":
         env["PYTHONPATH"] = os.pathsep.join([str(work / "stand-in"), env["PYTHONPATH"]])
         cmd = [sys.executable, __file__, "--replay-aot-child", str(work), *argv]
@@ -185,15 +194,21 @@ def replay_process(kind: str, work: Path, argv: list[str]) -> tuple[dict, str]:
             "load": load}, report
 
 
-def mcap_messages(path: Path) -> dict[str, list]:
-    """Every message of an MCAP by topic: (receive time, payload), in file order."""
+def compare_child(path_a: str, path_b: str) -> None:
+    """Two MCAPs message by message (by topic: receive time and payload, in file order);
+    prints a JSON line: topics, topics differing, replayed estimates."""
     from diffpos_services.recording.reader import McapScanner
 
-    out: dict[str, list] = {}
-    for batch in McapScanner(path).iter_batches():
-        for m in batch:
-            out.setdefault(m.topic, []).append((m.log_ns, m.data))
-    return out
+    msgs = []
+    for path in (path_a, path_b):
+        out: dict[str, list] = {}
+        for batch in McapScanner(path).iter_batches():
+            for m in batch:
+                out.setdefault(m.topic, []).append((m.log_ns, m.data))
+        msgs.append(out)
+    a, b = msgs
+    print(json.dumps({"topics": len(b), "differ": sum(a.get(t) != b.get(t) for t in set(a) | set(b)),
+                      "estimates": sum(len(v) for t, v in b.items() if "/replay/" in t)}))
 
 
 def whole_process(recordings: list[str], work: Path, rounds: int) -> None:
@@ -209,15 +224,13 @@ def whole_process(recordings: list[str], work: Path, rounds: int) -> None:
           f"{'reports':>8} {'messages':>20} load")
     for rec in recordings:
         base = ["replay", rec, "--method", "dnls", "--no-files", "--no-progress"]
-        msgs = {}
-        for kind in ("aot", "jit"):
-            out = work / f"{Path(rec).stem}.{kind}.mcap"
+        outs = [work / f"{Path(rec).stem}.{kind}.mcap" for kind in ("aot", "jit")]
+        for kind, out in zip(("aot", "jit"), outs, strict=True):
             replay_process(kind, work, [*base, "--write-mcap", str(out)])
-            msgs[kind] = mcap_messages(out)
+        c = child(["--compare-child", *map(str, outs)])
+        for out in outs:
             out.unlink()
-        a, b = msgs["aot"], msgs["jit"]
-        n = sum(len(v) for t, v in b.items() if "/replay/" in t)
-        same = f"{sum(a.get(t) != b.get(t) for t in set(a) | set(b))} of {len(b)} ({n} est.)"
+        same = f"{c['differ']} of {c['topics']} ({c['estimates']} est.)"
         rows: dict[str, list] = {"aot": [], "jit": []}
         reports: dict[str, set] = {"aot": set(), "jit": set()}
         for _ in range(rounds):
@@ -236,13 +249,10 @@ def whole_process(recordings: list[str], work: Path, rounds: int) -> None:
 
 
 def child(args: list[str], env: dict[str, str] | None = None) -> dict:
-    """This script in a fresh process (a hidden mode); its JSON line and CPU (``os.wait4``).
-    (``common`` is imported here, by the parent only: the children import nothing else.)"""
-    from common import tree_env
-
+    """This script in a fresh process (a hidden mode); its JSON line and CPU (``os.wait4``)."""
     with tempfile.TemporaryFile() as out:
         proc = subprocess.Popen([sys.executable, __file__, *args], stdout=out,
-                                stderr=subprocess.DEVNULL, env=env or tree_env(ROOT), cwd=ROOT)
+                                stderr=subprocess.DEVNULL, env=env or tree_env(), cwd=ROOT)
         _, status, ru = os.wait4(proc.pid, 0)
         if os.waitstatus_to_exitcode(status) != 0:
             raise RuntimeError(f"{' '.join(args)} failed")
@@ -289,7 +299,8 @@ def report(rows: dict[tuple[str, str], list], build: dict, target: str) -> None:
 
 def main() -> None:
     modes = {"--build-child": build_child, "--capture-child": capture_child,
-             "--run-child": run_child, "--replay-aot-child": replay_aot_child}
+             "--run-child": run_child, "--replay-aot-child": replay_aot_child,
+             "--compare-child": compare_child}
     if len(sys.argv) > 1 and sys.argv[1] in modes:
         modes[sys.argv[1]](*sys.argv[2:])
         return
