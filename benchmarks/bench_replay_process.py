@@ -27,6 +27,14 @@ Usage::
     python benchmarks/bench_replay_process.py --recording /work/rec/large30.mcap \\
         --before-tree /tmp/before --rounds 0 --split --split-rounds 5   # the split only
 
+``--floor``: the start-up floor, each tree's fresh processes that only import (the
+interpreter, numpy, numba, numba with ``scipy.linalg`` as numba's BLAS check imports it, the
+D-NLS kernel module: numba's set-up and the kernel's load from its cache, the replay's own
+module) and each method's replay of the recording's first 8 s (``--end 8``: start-up, the
+kernels, the first epochs), ``--floor-rounds`` times alternating: CPU (user + system) and wall,
+medians. What a whole replay costs beyond its start-up, and what a process that does not
+import numba would save (docs/replay_speed.md, "Session 31").
+
 ``--split``: in-process CPU per step (``time.process_time`` around the fusion's ingest, its
 step and the step's parts, the report's parts; one ``cli.main`` replay in a child process per
 tree and method), us per node-epoch side by side: which part a change moved, within the noise
@@ -226,6 +234,61 @@ def print_split(trees: list[tuple[str, Path]], recording: str, methods: list[str
     print(f"{'load':<48}" + "".join(f"{c[2]:>16.1f}" for c in cols))
 
 
+# ------------------------------------------------------------------ the start-up floor
+#: (label, python -c code) of the import-only processes of ``--floor``
+FLOOR_IMPORTS = [
+    ("python -c pass", "pass"),
+    ("import numpy", "import numpy"),
+    ("import numba", "import numba"),
+    ("import numba, scipy.linalg", "import numba, scipy.linalg"),
+    ("import dnls.fit_nb (numba set-up, kernel load)", "import diffpos.estimators.dnls.fit_nb"),
+    ("import replay.run", "import diffpos_services.replay.run"),
+]
+
+
+def run_process(tree: Path, args: list[str], bytecode_dir: str | None = None) -> dict:
+    """One fresh ``python ARGS`` process with ``tree``'s code: its CPU (user + system) [s]
+    and wall [s] (``os.wait4``; its peak RSS is not reported: the child is forked from this
+    process, whose image counts until the exec)."""
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, *args], env=child_env(tree, bytecode_dir),
+                            cwd=tree, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _, status, ru = os.wait4(proc.pid, 0)
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise RuntimeError(f"python {' '.join(args)} (in {tree}) failed")
+    return {"cpu_s": ru.ru_utime + ru.ru_stime, "wall_s": time.perf_counter() - t0,
+            "load": load}
+
+
+def print_floor(trees: list[tuple[str, Path]], recording: str, methods: list[str],
+                rounds: int, bytecode_dir: str | None) -> None:
+    """The start-up floor (``--floor``), every tree side by side: CPU and wall, the
+    median of ``rounds`` fresh processes each, alternating."""
+    cases = [(label, ["-c", code]) for label, code in FLOOR_IMPORTS]
+    for method in methods:
+        cmd = ["-m", "diffpos_services.cli.main", "replay", recording, "--no-files",
+               "--no-progress", "--end", "8"]
+        cases.append((f"replay --end 8 ({method})",
+                      cmd + ([] if method == "default" else ["--method", method])))
+    runs: dict[tuple[str, str], list[dict]] = {}
+    for _ in range(rounds):
+        for label, args in cases:
+            for name, tree in trees:
+                runs.setdefault((label, name), []).append(run_process(tree, args, bytecode_dir))
+    print(f"\nstart-up floor: fresh processes, CPU s (user + system), the median of {rounds} "
+          "each, alternating / wall s (the same median; it moves with the load)")
+    print(f"{'process':<48}" + "".join(f"{n.split(' ')[0]:>20}" for n, _ in trees))
+    for label, _ in cases:
+        cells = []
+        for name, _ in trees:
+            rs = runs[(label, name)]
+            cells.append(f"{_median(rs, 'cpu_s'):>12.2f} / {_median(rs, 'wall_s'):>5.2f}")
+        print(f"{label:<48}" + "".join(f"{c:>20}" for c in cells))
+    loads = [r["load"] for rs in runs.values() for r in rs]
+    print(f"{'load (1-minute average before each)':<48}{min(loads):>12.1f} - {max(loads):.1f}")
+
+
 def _median(rows: list[dict], key: str) -> float:
     return statistics.median(r[key] for r in rows)
 
@@ -242,6 +305,18 @@ def _line(label: str, rows: list[dict]) -> str:
             f"{min(r['load'] for r in rows):>4.1f}-{max(r['load'] for r in rows):<4.1f}")
 
 
+def _more_options(ap: argparse.ArgumentParser) -> None:
+    """The options of the in-process split and the start-up floor."""
+    ap.add_argument("--split", action="store_true",
+                    help="also the in-process split (CPU per step, one replay per tree and "
+                         "method, --split-rounds times alternating: the median)")
+    ap.add_argument("--split-rounds", type=int, default=1)
+    ap.add_argument("--floor", action="store_true",
+                    help="also the start-up floor (import-only processes and each method's "
+                         "replay of the first 8 s, --floor-rounds times alternating)")
+    ap.add_argument("--floor-rounds", type=int, default=3)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--recording", required=True, help="an emulate recording (lockstep large)")
@@ -256,10 +331,7 @@ def main() -> None:
                     help="keep the compiled bytecode of both trees in DIR (PYTHONPYCACHEPREFIX) "
                          "instead of the environment's setting (PYTHONDONTWRITEBYTECODE=1 "
                          "makes every process compile the project's sources again)")
-    ap.add_argument("--split", action="store_true",
-                    help="also the in-process split (CPU per step, one replay per tree and "
-                         "method, --split-rounds times alternating: the median)")
-    ap.add_argument("--split-rounds", type=int, default=1)
+    _more_options(ap)
     ap.add_argument("--split-child", nargs=2, help=argparse.SUPPRESS)
     if "--split-child" in sys.argv:
         i = sys.argv.index("--split-child")
@@ -315,6 +387,8 @@ def main() -> None:
               "bit for bit / with positions (--compare)")
     if args.split:
         print_split(trees, args.recording, args.methods, first["fixes"], args.split_rounds)
+    if args.floor:
+        print_floor(trees, args.recording, args.methods, args.floor_rounds, bc)
     if tmp is not None:
         tmp.cleanup()
 
