@@ -1607,8 +1607,12 @@ def _worst_link(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
     the misfit gate's), where that is at least ``family_worst_nis`` and the link has a fit
     history (``fitted``, :func:`_family_gate`'s); with ``family_minority`` none where the
     hypothesis misfits half of the ranges or more (``gate``: the misfits with a fit history,
-    before the ``family_min_links`` rule)."""
+    before the ``family_min_links`` rule). With ``family_worst_outliers`` a link the last real
+    update called an outlier (``link_fit`` inf) is the worst of all (ahead of every finite
+    NIS)."""
     fit = _gather(lk["link_fit"], col)
+    if config.family_worst_outliers:  # an outlier link is the worst of all (NIS inf)
+        fit = np.where(fit == np.inf, np.finfo(np.float64).max, fit)
     fit = np.where(np.isfinite(fit), fit, -np.inf)
     if present is not None:
         fit = np.where(present[:, None, :], fit, -np.inf)
