@@ -482,6 +482,12 @@ class TrackerConfig:
         ``family_min_links`` the misfit gate offers the outlier no family (unless the track
         learned its channel's out-of-model arrivals, which a floor explaining every range
         prevents), so the exact family never reaches the true floor.
+    family_worst_outliers_settled : bool
+        (``family_worst_outliers``) Only at nodes whose floor was not contested within
+        ``floor_contest_s`` (``TrackerState.lead_ns``: the most probable floor unchanged, with a
+        majority and at least four ranges): a hypothesis of a node in doubt (start-up, a floor
+        change on the stairs) calls a link an outlier because its state is wrong, and the
+        family then takes that range out of its fit on any floor. Default False.
     family_fit : {"prior", "residual"}
         What the family gate's misfit (``family_gate="misfit"``, ``TrackerState.link_fit``)
         of a link is: ``"prior"``, its selection NIS at the prior covariance; ``"residual"``,
@@ -1132,6 +1138,7 @@ class TrackerConfig:
     family_worst_min_links: int = 4
     family_worst_nis: float = 1.0
     family_worst_outliers: bool = False
+    family_worst_outliers_settled: bool = False
     family_fit: str = "prior"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0
