@@ -274,3 +274,21 @@ def test_worst_outlier_family_explains_the_true_floors_outlier():
             assert np.array_equal(slot2, slot), (slot2, slot)
         gains.append(float(ev2[0] - ev[0]))
     assert gains[0] > 2.0 and gains[1] < 0.5 * gains[0], gains
+
+
+def test_worst_outliers_settled_nodes_only():
+    """``family_worst_outliers_settled``: the gate's ``settled`` mask (the tracker's nodes not
+    contested within ``floor_contest_s``) False gives exactly the gate without
+    ``family_worst_outliers`` (the worst in-model link), True the loops' outlier reference."""
+    seen = np.ones(FIT.shape)
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_history=1,
+                              family_min_links=5, family_learned_links=0,
+                              family_worst_min_links=4, family_worst_outliers=True,
+                              family_worst_outliers_settled=True)
+    lk = {"link_fit": FIT, "link_all": seen, "link_out": np.zeros(FIT.shape)}
+    for present in (PRESENT, PRESENT_4):
+        no = _family_gate(lk, COL, np.array([4]), cfg, present, None, np.array([False]))
+        assert np.array_equal(no, _reference(4, present, seen, True)), no
+        yes = _family_gate(lk, COL, np.array([4]), cfg, present, None, np.array([True]))
+        assert np.array_equal(yes, _reference_outliers(4, present, seen, True)), yes
+    assert TrackerConfig().family_worst_outliers_settled is False
