@@ -469,6 +469,25 @@ class TrackerConfig:
     family_worst_nis : float [-]
         ``family_worst_min_links``' least NIS of the worst in-model link. Default 1
         (measured on the main command at order 3, seeds 0-11, offline: 0 and 2 worse).
+    family_worst_outliers : bool
+        (``family_worst_min_links``) The ONE link per hypothesis may also be a link its last
+        real update called an outlier (``link_fit`` inf), which then counts as its worst (ahead
+        of every finite NIS); the fit history and ``family_minority`` as before (so at four
+        ranges at most one outlier). Default False. Why (docs/tracking_evidence.md "Session 31:
+        the paper building on Sionna"): on Sionna's paper building the true floor of a
+        four-range node calls an out-of-model first arrival (e.g. the order-3
+        ``R(ground)-R(ceiling)-R(floor)``) an outlier, where its learned outlier weight is
+        small because it fitted that link in the model before the first arrival changed; a
+        lower floor fits it with one of the 18 and gains ~1 nat per epoch. Below
+        ``family_min_links`` the misfit gate offers the outlier no family (unless the track
+        learned its channel's out-of-model arrivals, which a floor explaining every range
+        prevents), so the exact family never reaches the true floor.
+    family_worst_outliers_settled : bool
+        (``family_worst_outliers``) Only at nodes whose floor was not contested within
+        ``floor_contest_s`` (``TrackerState.lead_ns``: the most probable floor unchanged, with a
+        majority and at least four ranges): a hypothesis of a node in doubt (start-up, a floor
+        change on the stairs) calls a link an outlier because its state is wrong, and the
+        family then takes that range out of its fit on any floor. Default False.
     family_fit : {"prior", "residual"}
         What the family gate's misfit (``family_gate="misfit"``, ``TrackerState.link_fit``)
         of a link is: ``"prior"``, its selection NIS at the prior covariance; ``"residual"``,
@@ -1118,6 +1137,8 @@ class TrackerConfig:
     family_select_min_links: int = 0
     family_worst_min_links: int = 4
     family_worst_nis: float = 1.0
+    family_worst_outliers: bool = False
+    family_worst_outliers_settled: bool = False
     family_fit: str = "prior"
     floor_model_doubt: bool = True
     floor_robust_links: int = 0

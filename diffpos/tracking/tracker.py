@@ -1461,8 +1461,11 @@ def _link_inputs(state: TrackerState, idx: NDArray, sub: Links, t_ns: NDArray,
                                    _borrowers(state, idx, link_w, sub, t_ns, n_meas, config))
     fam_gate = None
     if config.max_order > DEFAULT_ORDER:  # the families of the links the 18 did not explain
+        settled = None  # family_worst_outliers_settled: not contested within floor_contest_s
+        if config.family_worst_outliers and config.family_worst_outliers_settled:
+            settled = (t_ns[idx] - state.lead_ns[idx]) * 1e-9 >= config.floor_contest_s
         fam_gate = _family_gate(lk, col, n_meas, config, sub.mask[:, 0],
-                                learned if config.family_learned_links > 0 else None)
+                                learned if config.family_learned_links > 0 else None, settled)
     return lk, col, tab, seen, link_w, fam_gate, fresh
 
 
@@ -1552,13 +1555,16 @@ def _learned_families(unexplained: FloatArray, redundant: FloatArray,
 
 def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
                  config: TrackerConfig, present: NDArray[np.bool_] | None = None,
-                 learned: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
+                 learned: NDArray[np.bool_] | None = None,
+                 settled: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
     """The links (n, H, M) whose out-of-model component includes the extra families
     (``config.family_gate``, ``family_history``, ``family_min_links``;
     :mod:`diffpos.tracking.families`) from the nodes' learned arrays ``lk`` before this
     update, their links ``col`` (:func:`~diffpos.tracking.evidence.match_links`) and numbers
     of ranges ``n_meas`` (n,); ``learned`` (n,): the nodes that get the families from
-    ``family_learned_links`` ranges (:func:`_learned_families`; None: none)."""
+    ``family_learned_links`` ranges (:func:`_learned_families`; None: none); ``settled`` (n,):
+    the nodes whose worst link may be an outlier (``family_worst_outliers_settled``; None:
+    every node, as ``family_worst_outliers`` says)."""
     if config.family_gate == "outlier":
         gate = _gather(lk["link_out"], col) > 0.5
     else:
@@ -1569,7 +1575,7 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
         need = config.family_history if f >= 1.0 else (1.0 - f ** config.family_history) / (1.0 - f)
         fitted = _gather(lk["link_all"], col) >= need * (1.0 - 1e-9)
         gate &= fitted
-    worst = (_worst_link(lk, col, n_meas, gate, fitted, present, config)
+    worst = (_worst_link(lk, col, n_meas, gate, fitted, present, config, settled)
              if config.family_worst_min_links > 0 else None)
     scarce = (few_ranges(n_meas, config.family_few_links, config.min_anchors_tracking)
               if config.family_few_links > 0 else None)  # few ranges: SNR-scored families
@@ -1598,7 +1604,8 @@ def _family_gate(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
 
 def _worst_link(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
                 gate: NDArray[np.bool_], fitted: NDArray[np.bool_],
-                present: NDArray[np.bool_] | None, config: TrackerConfig) -> NDArray[np.bool_]:
+                present: NDArray[np.bool_] | None, config: TrackerConfig,
+                settled: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
     """``TrackerConfig.family_worst_min_links``: the links (n, H, M) offered the extra
     families at the nodes with at least that many ranges but fewer than ``family_min_links``
     (``n_meas`` (n,)): per hypothesis its ONE worst-fitted present link among those the 18
@@ -1607,8 +1614,15 @@ def _worst_link(lk: dict, col: NDArray[np.int_], n_meas: NDArray[np.int_],
     the misfit gate's), where that is at least ``family_worst_nis`` and the link has a fit
     history (``fitted``, :func:`_family_gate`'s); with ``family_minority`` none where the
     hypothesis misfits half of the ranges or more (``gate``: the misfits with a fit history,
-    before the ``family_min_links`` rule)."""
+    before the ``family_min_links`` rule). With ``family_worst_outliers`` a link the last real
+    update called an outlier (``link_fit`` inf) is the worst of all (ahead of every finite
+    NIS), at the nodes ``settled`` (n,) only where given."""
     fit = _gather(lk["link_fit"], col)
+    if config.family_worst_outliers:  # an outlier link is the worst of all (NIS inf)
+        take = fit == np.inf
+        if settled is not None:
+            take &= settled[:, None, None]
+        fit = np.where(take, np.finfo(np.float64).max, fit)
     fit = np.where(np.isfinite(fit), fit, -np.inf)
     if present is not None:
         fit = np.where(present[:, None, :], fit, -np.inf)

@@ -163,3 +163,132 @@ def test_the_true_floor_wins_with_the_family_of_its_worst_link():
                                              fam_gate=gate)
         assert ev2[0] - ev2[1] > 2.0, ev2
         assert slot2[0, 2] == -1 and np.all(slot2[0, [0, 1, 3]] >= 0)
+
+
+def _reference_outliers(n_meas, present, history, minority, nis=1.0):
+    """``family_worst_outliers``, loop by loop: as :func:`_reference`, but a link called an
+    outlier (NIS inf) is the worst of all (the first such link in column order); an unfitted
+    link (NaN) still never counts."""
+    out = np.zeros(FIT.shape, bool)
+    if not 4 <= n_meas < 5:
+        return out
+    for h in range(FIT.shape[1]):
+        best, arg = -INF, None
+        misfits = 0
+        for j in range(FIT.shape[2]):
+            if not present[0, j]:
+                continue
+            f = FIT[0, h, j]
+            if history[0, h, j] >= 1 and not f <= 9.0:
+                misfits += 1
+            key = 1e308 if f == INF else f
+            if not np.isnan(key) and key > best:
+                best, arg = key, j
+        if arg is None or best < nis or history[0, h, arg] < 1:
+            continue
+        if minority and 2 * misfits >= n_meas:
+            continue
+        out[0, h, arg] = True
+    return out
+
+
+def test_worst_outliers_takes_the_outlier_link():
+    """``family_worst_outliers``: the loops' links exactly (with and without the minority
+    rule, an absent column, a nis floor); hypothesis 1's outlier link 0 instead of its worst
+    in-model link 2; hypothesis 3 (an outlier and a misfit of four) still none with the
+    minority rule; off by default and the gate of the setting's off state unchanged."""
+    assert TrackerConfig().family_worst_outliers is False
+    seen = np.ones(FIT.shape)
+    for present in (PRESENT, PRESENT_4):
+        for minority in (True, False):
+            for nis in (1.0, 2.5):
+                got = _gate(4, present, family_worst_min_links=4, family_minority=minority,
+                            family_worst_nis=nis, family_worst_outliers=True)
+                ref = _reference_outliers(4, present, seen, minority, nis)
+                assert np.array_equal(got, ref), (present, minority, nis, got, ref)
+    got = _gate(4, PRESENT, family_worst_min_links=4, family_worst_outliers=True)
+    assert got[0, 1].tolist() == [True, False, False, False]
+    assert got[0, 0].tolist() == [False, True, False, False]
+    assert not got[0, 3].any()
+    got = _gate(4, PRESENT, family_worst_min_links=4, family_minority=False,
+                family_worst_outliers=True)
+    assert got[0, 3].tolist() == [True, False, False, False]
+    for n in (3, 5, 6):  # the setting acts only where the worst-link gate does
+        assert np.array_equal(_gate(n, family_worst_outliers=True), _gate(n)), n
+    assert np.array_equal(_gate(4, family_worst_min_links=0, family_worst_outliers=True),
+                          _gate(4, family_worst_min_links=0))
+
+
+def test_worst_outlier_family_explains_the_true_floors_outlier():
+    """The physical case of ``family_worst_outliers`` (the paper scenario's four UAVs, the
+    emulator at order 3, noise-free): a node on floor 3 whose first arrival from UAV 2 is
+    none of the 18 (>= 2 m from every one of their lengths at the truth; the others exact).
+    Floor 3's level hypothesis at the truth calls that link an outlier. Without the setting
+    the worst-link gate offers the families on a fitted link, not on link 1; with it on link 1
+    only, and the update's evidence at the truth rises by > 2 nats with the link still out of
+    the IEKF (slot -1) and the other slots unchanged; with link 1's range 1.5 m longer (no
+    family's length) the same gate gains less than half of that (the family explains the
+    range it predicts, not any outlier)."""
+    sc = default_scenario()
+    b = sc.building
+    radio = dataclasses.replace(sc.radio, channel_max_order=3)
+    anchors = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
+                        [15.0, -20.0, 1.0]])
+    nf, f = b.n_floors, 3
+    node = np.array([-6.16, 9.03, 14.5])
+    rho, sig, snr, true, det = pair_first_arrival(anchors, np.repeat(node[None], 4, 0),
+                                                  building=b, radio=radio)
+    assert det.all()
+    ps = first_arrival_paths(np.broadcast_to(node, (4, 3)), anchors, b, floor=f)
+    off = np.nanmin(np.abs(np.where(ps.valid, ps.length_m, np.nan) - true[:, None]), -1)
+    assert off[1] > 2.0 and np.all(off[[0, 2, 3]] < 1e-6), off
+    cfg0 = dataclasses.replace(TrackerConfig(), max_order=3, family_worst_min_links=4)
+    cfg = dataclasses.replace(cfg0, family_worst_outliers=True)
+    cov = np.broadcast_to(np.diag([0.04, 0.04, 0.01, 0.01, 0.01, 0.01]),
+                          (1, 2 * nf, 6, 6)).copy()
+    none = np.zeros((1, 2 * nf, 4), bool)
+    rr, cc = np.array([0]), np.array([f])
+    mean = np.zeros((1, 2 * nf, 6))
+    mean[0, :, :3] = node
+    gains = []
+    for shift in (0.0, 1.5):
+        r = rho + np.array([0.0, shift, 0.0, 0.0])
+        links = Links.from_arrays(anchors[None], r[None], sig[None], det[None],
+                                  cfg0.sigma_model_m, snr[None], radio)
+        _, _, ev, slot, nis, *_ = _update_pairs(mean, cov, links, rr, cc, nf, b, cfg0,
+                                                fam_gate=none)
+        if shift == 0.0:
+            assert slot[0, 1] == -1 and np.all(slot[0, [0, 2, 3]] >= 0), slot
+            fit = np.full((1, 2 * nf, 4), NAN)
+            fit[0, f] = np.where(slot[0] >= 0, nis[0], INF)
+            lk = {"link_fit": fit, "link_all": np.ones(fit.shape),
+                  "link_out": np.zeros(fit.shape)}
+            g0 = _family_gate(lk, COL, np.array([4]), cfg0, det[None])
+            assert not g0[0, f, 1] and g0[0, f].sum() <= 1
+            gate = _family_gate(lk, COL, np.array([4]), cfg, det[None])
+            assert gate[0, f].tolist() == [False, True, False, False], gate[0, f]
+            assert not np.any(np.delete(gate[0], f, axis=0))
+        _, _, ev2, slot2, *_ = _update_pairs(mean, cov, links, rr, cc, nf, b, cfg,
+                                             fam_gate=gate)
+        if shift == 0.0:
+            assert np.array_equal(slot2, slot), (slot2, slot)
+        gains.append(float(ev2[0] - ev[0]))
+    assert gains[0] > 2.0 and gains[1] < 0.5 * gains[0], gains
+
+
+def test_worst_outliers_settled_nodes_only():
+    """``family_worst_outliers_settled``: the gate's ``settled`` mask (the tracker's nodes not
+    contested within ``floor_contest_s``) False gives exactly the gate without
+    ``family_worst_outliers`` (the worst in-model link), True the loops' outlier reference."""
+    seen = np.ones(FIT.shape)
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_history=1,
+                              family_min_links=5, family_learned_links=0,
+                              family_worst_min_links=4, family_worst_outliers=True,
+                              family_worst_outliers_settled=True)
+    lk = {"link_fit": FIT, "link_all": seen, "link_out": np.zeros(FIT.shape)}
+    for present in (PRESENT, PRESENT_4):
+        no = _family_gate(lk, COL, np.array([4]), cfg, present, None, np.array([False]))
+        assert np.array_equal(no, _reference(4, present, seen, True)), no
+        yes = _family_gate(lk, COL, np.array([4]), cfg, present, None, np.array([True]))
+        assert np.array_equal(yes, _reference_outliers(4, present, seen, True)), yes
+    assert TrackerConfig().family_worst_outliers_settled is False
