@@ -59,6 +59,9 @@ SILENT = dataclasses.replace(CFG, silent_anchor_nats=3.0, silent_anchor_margin_d
 #: default, by default only at few-range nodes) on every node (eight ranges at most)
 FEW = dataclasses.replace(CFG, skip_threshold_order=3, skip_threshold_max_links=0,
                           family_few_links=9)
+#: and the family-explained links kept in the fit (``family_fit_links``, off by default) on
+#: every node
+FIT = dataclasses.replace(FEW, family_fit_links=9)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -107,10 +110,10 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW],
+                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, FIT],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
                               "slack", "posterior", "lend", "challenger", "wedge", "silent",
-                              "few"])
+                              "few", "fit"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)
