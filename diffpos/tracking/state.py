@@ -970,7 +970,9 @@ class TrackerConfig:
         ``p(family link) p(other links | family link)`` and the covariance keeps the
         range's information (with ``family_few_links`` alone the link leaves the fit: the
         covariance of two ranges with the error of three, the 95 % ellipsoid above 99 %).
-        0: off (default). The link still counts as an outlier for the learned arrays.
+        0: off (default). The link still counts as an outlier for the learned arrays. Above
+        three: a refitted level pair with four ranges or more that the edge retry
+        (``edge_retry_margin_m``) updates again takes the retry's update (no family).
         Measured: docs/tracking_evidence.md "Session 31".
     challenger_m : float [m]
         A second position mode per floor (a *challenger* of the floor's level track; 0: off,
