@@ -61,8 +61,8 @@ from diffpos.paths.model import graded_paths
 from diffpos.paths.model_nb import building_planes, mechanism_table, partition_array
 from diffpos.tracking.state import FloatArray, few_ranges
 
-__all__ = ["FAMILY_SHARE", "extra_families", "family_log_weight", "family_snr_log_lik",
-           "first_arrival_log_prob", "graded_split"]
+__all__ = ["FAMILY_SHARE", "best_family", "extra_families", "family_log_weight",
+           "family_snr_log_lik", "family_terms", "first_arrival_log_prob", "graded_split"]
 
 #: Share of the out-of-model component given to the enumerated extra families (the rest stays
 #: uniform over ``outlier_span_m``).
@@ -133,11 +133,37 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
     (``TrackerConfig.family_snr``): every family's density is also weighted by
     :func:`family_snr_log_lik` (its SNR likelihood against the outlier's, ``snr_sigma_db``
     and ``cap_nats`` as the 18's, ``snr_span_db`` the outlier's SNR span)."""
-    fam = extra_families(max_order)
     q = rho.shape[0]
-    if fam is None or q == 0:
+    if extra_families(max_order) is None or q == 0:
         return np.full(q, -np.inf), np.zeros(q, np.int64), np.zeros(q, np.int64)
-    mset, _ = fam
+    ll, ok, _, _, n_base = family_terms(pos, cov, anchor, rho, var, floor, building,
+                                        max_order, relax_m, radio, cap_nats, snr_sigma_db,
+                                        snr, snr_span_db)
+    return _mean_density(ll, ok), ok.sum(axis=-1), n_base
+
+
+def _mean_density(ll: FloatArray, ok: NDArray[np.bool_]) -> FloatArray:
+    """``log mean_k exp(ll_k)`` over the existing families ``ok`` (Q, F) of every link (Q,);
+    -inf where none exists."""
+    n_ok = ok.sum(axis=-1)
+    with np.errstate(divide="ignore"):
+        top = np.max(ll, axis=-1)
+        safe = np.where(np.isfinite(top), top, 0.0)
+        tot = safe + np.log(np.sum(np.exp(ll - safe[:, None]), axis=-1))
+        return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf)
+
+
+def family_terms(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: FloatArray,
+                 var: FloatArray, floor: NDArray, building, max_order: int,
+                 relax_m: float, radio=None, cap_nats: float = 0.0,
+                 snr_sigma_db: float | None = None, snr: tuple | None = None,
+                 snr_span_db: float | None = None) -> tuple:
+    """:func:`family_log_lik`'s terms per extra family (``max_order`` > 2; its arguments):
+    ``ll`` (Q, F), every family's log-density ``log N(rho; L_k, J_k P J_k^T + var)`` plus its
+    first-arrival and SNR weights (-inf where it does not exist), ``ok`` (Q, F) where it
+    exists, its length ``L_k`` (Q, F) and Jacobian ``J_k`` (Q, F, 3) with respect to the node
+    position at ``pos``, and the number of the 18 mechanisms that exist (Q,)."""
+    mset, _ = extra_families(max_order)
     nb = len(MECHANISMS)
     if radio is None:  # the extra families' paths only, the 18's existence counted (compiled)
         n_base, length, ok, jac = graded_split(pos, anchor, floor, building, max_order,
@@ -165,12 +191,7 @@ def family_log_lik(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Fl
                              "outlier's SNR span (tracking.model.SNR_SIGMA_DB, SNR_SPAN_DB)")
         ll = ll + family_snr_log_lik(pos, anchor, snr[0], building, snr[1], max_order,
                                      snr_sigma_db, snr_span_db, cap_nats)
-    n_ok = ok.sum(axis=-1)
-    with np.errstate(divide="ignore"):
-        top = np.max(ll, axis=-1)
-        safe = np.where(np.isfinite(top), top, 0.0)
-        tot = safe + np.log(np.sum(np.exp(ll - safe[:, None]), axis=-1))
-        return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf), n_ok, n_base
+    return ll, ok, length, j, n_base
 
 
 def family_snr_log_lik(pos: FloatArray, anchor: FloatArray, snr_db: FloatArray, building,
@@ -250,7 +271,7 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
                       floor: NDArray, gate: NDArray[np.bool_], building, config,
                       log_eps: FloatArray | None = None,
                       snr_sigma_db: float | None = None,
-                      snr_span_db: float | None = None) -> FloatArray:
+                      snr_span_db: float | None = None, fit: bool = False):
     """The change (P, M) of the out-of-model component's log-density of the pairs (node rows
     ``rows`` of ``links``, prior ``pos`` (P, 3), ``cov`` (P, 3, 3), ``floor`` (P,)) by the
     extra families, for the present links of ``gate`` (P, M) (the others: 0, not evaluated);
@@ -269,18 +290,27 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     :func:`first_arrival_log_prob` (``snr_sigma_db``: the SNR model's spread, needed then);
     with ``config.family_snr`` (``family_few_links``: at the nodes with that many ranges or
     fewer) by :func:`family_snr_log_lik` (``snr_sigma_db`` and ``snr_span_db``, the
-    outlier's SNR span, needed then)."""
+    outlier's SNR span, needed then). ``fit`` (``TrackerConfig.family_fit_links``): returns
+    ``(change, best)``, ``best`` every gated link's most probable family at ``pos``
+    (:func:`best_family`: length (P, M), NaN where not gated, none exists or the families'
+    part of the out-of-model component is not larger than the uniform outlier's; Jacobian
+    (P, M, 3), spread (P, M); None for ``max_order`` <= 2), the same change bit for bit."""
     if extra_families(config.max_order) is None:
-        return np.zeros(gate.shape)
+        return (np.zeros(gate.shape), None) if fit else np.zeros(gate.shape)
     gate = gate & links.mask[rows, 0]
     pi, mi = np.nonzero(gate)
-    ll, n_fam, n_base = family_log_lik(pos[pi], cov[pi], links.anchors[rows[pi], 0, mi],
-                                       links.rho[rows[pi], 0, mi], links.var[rows[pi], 0, mi],
-                                       floor[pi], building, config.max_order,
-                                       config.exist_margin_m,
-                                       links.radio if config.family_first else None,
-                                       config.snr_cost_cap_nats, snr_sigma_db,
-                                       _family_snr(links, rows, pi, mi, config), snr_span_db)
+    args = (pos[pi], cov[pi], links.anchors[rows[pi], 0, mi], links.rho[rows[pi], 0, mi],
+            links.var[rows[pi], 0, mi], floor[pi], building, config.max_order,
+            config.exist_margin_m, links.radio if config.family_first else None,
+            config.snr_cost_cap_nats, snr_sigma_db, _family_snr(links, rows, pi, mi, config),
+            snr_span_db)
+    best = None
+    if fit and pi.size:  # the same densities, and every link's best family kept
+        terms = family_terms(*args)
+        ll, n_fam, n_base = _mean_density(terms[0], terms[1]), terms[1].sum(axis=-1), terms[4]
+        best = best_family(*terms[:4])
+    else:
+        ll, n_fam, n_base = family_log_lik(*args)
     out = np.zeros(gate.shape)
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]
@@ -288,9 +318,48 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
     if config.family_weight in ("mechanism", "one"):
         prior = (np.log(np.maximum(n_fam, 1) / np.maximum(n_base + n_fam, 1))
                  if config.family_weight == "mechanism" else -np.log(n_base + 1.0))
-        out[pi, mi] = np.logaddexp(0.0, np.log(-np.expm1(log_e)) + prior + ll - log_e + span)
+        uni, fam = 0.0, np.log(-np.expm1(log_e)) + prior + ll - log_e + span
+    else:
+        c = FAMILY_SHARE
+        # the families at the prior outlier weight, whatever the link's learned one (log_eps)
+        uni, fam = np.log1p(-c), np.log(c) + span + ll + e0 - log_e
+    out[pi, mi] = np.logaddexp(uni, fam)
+    if not fit:
         return out
-    c = FAMILY_SHARE
-    # the families at the prior outlier weight, whatever the link's learned one (log_eps)
-    out[pi, mi] = np.logaddexp(np.log1p(-c), np.log(c) + span + ll + e0 - log_e)
-    return out
+    return out, _scatter_best(best, fam > uni, pi, mi, gate.shape)
+
+
+def best_family(ll: FloatArray, ok: NDArray[np.bool_], length: FloatArray, jac: FloatArray
+                ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Every link's most probable extra family (:func:`family_terms`' ``ll``, ``ok``,
+    ``length``, ``jac``, (Q, F[, 3])): its length (Q,) (NaN where none exists), Jacobian
+    (Q, 3) and the mixture's moment-matched spread about it, ``sum_k p_k (L_k - L_best)^2``
+    [m^2] with ``p_k`` the families' posterior weights (``exp(ll_k)`` normalised; the 18's
+    ``Selection.extra_var``)."""
+    q = ll.shape[0]
+    if q == 0 or ll.shape[1] == 0:
+        return np.full(q, np.nan), np.zeros((q, 3)), np.zeros(q)
+    k = np.argmax(ll, axis=-1)
+    top = np.take_along_axis(ll, k[..., None], -1)[..., 0]
+    has = ok.any(axis=-1) & np.isfinite(top)
+    with np.errstate(invalid="ignore", over="ignore"):
+        pk = np.where(ok, np.exp(ll - np.where(has, top, 0.0)[:, None]), 0.0)
+        pk = pk / np.maximum(pk.sum(axis=-1, keepdims=True), 1e-300)
+        lb = np.take_along_axis(length, k[..., None], -1)[..., 0]
+        spread = np.sum(np.where(ok, pk * (length - lb[:, None]) ** 2, 0.0), axis=-1)
+    jb = np.take_along_axis(jac, k[:, None, None], 1)[:, 0]
+    return (np.where(has, lb, np.nan), np.where(has[:, None], jb, 0.0),
+            np.where(has & np.isfinite(spread), spread, 0.0))
+
+
+def _scatter_best(best: tuple | None, explained: NDArray[np.bool_], pi: NDArray, mi: NDArray,
+                  shape: tuple) -> tuple:
+    """:func:`best_family`'s per-link arrays at the gated links ``(pi, mi)`` of a (P, M)
+    grid: length (P, M) (NaN: not gated, no family, or the families' part of the
+    out-of-model component not larger than the uniform outlier's, ``explained`` False),
+    Jacobian (P, M, 3), spread (P, M)."""
+    length, jac, spread = np.full(shape, np.nan), np.zeros((*shape, 3)), np.zeros(shape)
+    if best is not None:
+        length[pi, mi] = np.where(explained, best[0], np.nan)
+        jac[pi, mi], spread[pi, mi] = best[1], best[2]
+    return length, jac, spread

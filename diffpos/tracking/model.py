@@ -1193,6 +1193,61 @@ def _iekf_numpy(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor,
     return x, p, log_ev, residual
 
 
+def fold_ranges(x_prior: FloatArray, p_prior: FloatArray, rho: FloatArray, length: FloatArray,
+                jac: FloatArray, var: FloatArray, at: FloatArray
+                ) -> tuple[FloatArray, FloatArray]:
+    """The Kalman update of the priors ``x_prior`` (P, 6), ``p_prior`` (P, 6, 6) by the range
+    ``rho`` (P, M) of every link whose path length ``length`` (P, M) is finite (NaN: not
+    used), linearised at the position ``at`` (P, 3): ``rho = L + J (x - at) + e``, ``J``
+    (P, M, 3) the length's Jacobian with respect to the node position, ``e ~ N(0, var)``
+    (P, M). The links in turn (exact for a linear model: the joint update), Joseph form.
+    Returns the updated means and covariances (new arrays)."""
+    x = np.array(x_prior, dtype=np.float64)
+    p = np.array(p_prior, dtype=np.float64)
+    eye = np.eye(x.shape[-1])
+    for m in range(rho.shape[1]):
+        use = np.isfinite(length[:, m])
+        if not use.any():
+            continue
+        h = np.zeros(x.shape)
+        h[:, :3] = np.where(use[:, None], jac[:, m], 0.0)
+        r = np.where(use, var[:, m], 1.0)
+        ph = np.einsum("pij,pj->pi", p, h)
+        s = np.einsum("pi,pi->p", h, ph) + r
+        k = ph / s[:, None]
+        pred = np.where(use, length[:, m], 0.0) + np.einsum("pi,pi->p", h[:, :3],
+                                                            x[:, :3] - at)
+        x = x + k * np.where(use, rho[:, m] - pred, 0.0)[:, None]
+        a = eye - k[:, :, None] * h[:, None, :]
+        p = (np.einsum("pij,pjk,plk->pil", a, p, a)
+             + r[:, None, None] * k[:, :, None] * k[:, None, :])
+        p = 0.5 * (p + np.swapaxes(p, -1, -2))
+    return x, p
+
+
+def family_refit(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, sel: Selection,
+                 fam_length: FloatArray, fam_jac: FloatArray, fam_var: FloatArray,
+                 at: FloatArray, building, config, level=None):
+    """``TrackerConfig.family_fit_links``: the IEKF of the hypotheses (P, 1) with the
+    mechanisms ``sel`` (their last selection; the links fitted by a family are outliers
+    there, ``slot`` -1) from the prior updated by those links' ranges as the family's path
+    (:func:`fold_ranges`: ``fam_length`` (P, M), NaN: no family, ``fam_jac`` (P, M, 3),
+    ``fam_var`` (P, M) the range variance plus the families' spread, linearised at the
+    clamped prior ``at`` (P, 3)). The family links' log-weights in ``sel`` hold their
+    predictive density at the prior (:func:`diffpos.tracking.families.family_log_weight`),
+    so the evidence is ``p(family links) p(other links | family links)``: the joint, and the
+    posterior keeps the family links' information. Returns x (clamped to the floor's box),
+    P, log-evidence, residual as :func:`measurement_update`."""
+    xf, pf = fold_ranges(x_prior[:, 0], p_prior[:, 0], links.rho[:, 0], fam_length, fam_jac,
+                         fam_var, at)
+    x, p, log_ev, res = iekf(xf[:, None], pf[:, None], links, floor, sel, building, config,
+                             level)
+    xo = np.empty(x.shape)
+    clamp_kernel(_c(x, dtype=np.float64), _cb(floor, x.shape[:2], np.float64),
+                 _floor_box(building, config.z_margin_m), xo)  # clamp_to_floor, bit for bit
+    return xo, p, log_ev, res
+
+
 def existence_margin(cov: FloatArray, config) -> FloatArray:
     """Every hypothesis' widening of the window band at the entry point [m], (N, H), from its
     own position covariance ``cov`` (N, H, >=3, >=3): ``max(exist_margin_m, ENTRY_SIGMAS *

@@ -975,6 +975,24 @@ class TrackerConfig:
         Sionna ``large`` s3 -0.63 (mean +0.11), the 95 % ellipsoid above 99 % on three
         heldout-2 seeds (the family-explained link leaves the fit) and x1.5 fusion CPU on
         the 3-UAV building: not a default.
+    family_fit_links : int [ranges]
+        (``max_order`` > 2) At a node with at most this many ranges (and at least
+        ``min_anchors_tracking``) a link the hypothesis' update left out of the fit (an
+        outlier) whose out-of-model component an extra family explains (the families' part
+        larger than the uniform outlier's; ``family_few_links`` offers them at three ranges)
+        stays in the fit as that family's path: the hypothesis' prior is updated by the
+        range with the most probable family's length and Jacobian at the clamped prior
+        (linearised there, the range variance plus the families' spread), and the IEKF of
+        the other links runs from it with the same mechanisms
+        (:func:`diffpos.tracking.model.family_refit`). The link's log-weight already holds
+        the families' predictive density at the prior, so the evidence becomes the joint
+        ``p(family link) p(other links | family link)`` and the covariance keeps the
+        range's information (with ``family_few_links`` alone the link leaves the fit: the
+        covariance of two ranges with the error of three, the 95 % ellipsoid above 99 %).
+        0: off (default). The link still counts as an outlier for the learned arrays. Above
+        three: a refitted level pair with four ranges or more that the edge retry
+        (``edge_retry_margin_m``) updates again takes the retry's update (no family).
+        Measured: docs/tracking_evidence.md "Session 31".
     challenger_m : float [m]
         A second position mode per floor (a *challenger* of the floor's level track; 0: off,
         the default, replays unchanged; :func:`diffpos.tracking.tracker._challengers`). Every
@@ -1180,6 +1198,7 @@ class TrackerConfig:
     skip_threshold_order: int = 0
     skip_threshold_max_links: int = 3
     family_few_links: int = 0
+    family_fit_links: int = 0
     link_eps_lend_contest_s: float = 0.0
     link_eps_lend_below_p: float = 0.0
     link_eps_lend_fewer: bool = False

@@ -164,8 +164,10 @@ from diffpos.tracking.links import Links, all_paths, candidates
 from diffpos.tracking.model import (
     SNR_SIGMA_DB,
     SNR_SPAN_DB,
+    Selection,
     SnrCache,
     existence_margin,
+    family_refit,
     link_weights,
     measurement_update,
     snapshot,
@@ -694,24 +696,59 @@ def _update_at(x_prior, p_prior, links: Links, rr, cc, n_floors: int, building,
     x0, p0 = x_prior[:, None], p_prior[:, None]
     sub = links.take(rr)
     w = None if link_w is None else link_w[rr, cc][:, None]
+    fam = pos = None
     if config.max_order > DEFAULT_ORDER:  # the extra families (diffpos.tracking.families)
         if w is None:
             w = link_weights(sub, config, sub.snr is not None, rr.size, 1)
         pos = clamp_to_floor(x0[:, 0, :3], fl[:, 0], building, config.z_margin_m)
         gate = (np.ones((rr.size, links.rho.shape[-1]), bool) if fam_gate is None
                 else fam_gate[rr, cc])
-        w[:, 0, :, 1] += family_log_weight(pos, p0[:, 0, :3, :3], links, rr, fl[:, 0], gate,
-                                           building, config,
-                                           np.log(-np.expm1(w[:, 0, :, 0])),
-                                           snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB)
+        dw = family_log_weight(pos, p0[:, 0, :3, :3], links, rr, fl[:, 0], gate, building,
+                               config, np.log(-np.expm1(w[:, 0, :, 0])),
+                               snr_sigma_db=SNR_SIGMA_DB, snr_span_db=SNR_SPAN_DB,
+                               fit=config.family_fit_links > 0)
+        if config.family_fit_links > 0:
+            dw, fam = dw
+        w[:, 0, :, 1] += dw
     x, p, ev, sel, res = measurement_update(x0, p0, sub, fl, building, config,
                                             level=level, snr_cache=sc, link_w=w,
                                             prev_slot=prev)
+    if fam is not None:
+        x, p, ev, res = _family_refit(x, p, ev, res, x0, p0, sub, fl, level, sel, pos, fam,
+                                      building, config)
     out = [x[:, 0], p[:, 0], ev[:, 0], sel.slot[:, 0], sel.nis[:, 0], res[:, 0],
            sel.log_weight[:, 0]]
     if config.edge_retry_margin_m > 0.0:
         _edge_retry(out, x0, p0, sub, fl, level, w, building, config, rr)
     return tuple(out)
+
+
+def _family_refit(x, p, ev, res, x0, p0, sub: Links, fl, level, sel, pos, fam: tuple,
+                  building, config: TrackerConfig) -> tuple:
+    """``TrackerConfig.family_fit_links``: the pairs (P, 1) of nodes with at most that many
+    ranges (and at least ``min_anchors_tracking``) whose update (``x``, ``p``, ``ev``,
+    ``res``; its selection ``sel``) left a present link out of the fit (``slot`` -1) that
+    an extra family explains (``fam``: :func:`~diffpos.tracking.families.family_log_weight`'s
+    ``best`` at the clamped prior ``pos`` (P, 3), the families' part of the out-of-model
+    component the larger) are fitted again with that link's range as the family's path
+    (:func:`~diffpos.tracking.model.family_refit`); the others as they are. Returns the four
+    arrays (copies where rows changed)."""
+    length, jac, spread = fam
+    m = sub.mask[:, 0]
+    few = few_ranges(m.sum(axis=-1), config.family_fit_links, config.min_anchors_tracking)
+    use = m & (sel.slot[:, 0] < 0) & np.isfinite(length) & few[:, None]
+    rows = np.flatnonzero(use.any(axis=-1))
+    if rows.size == 0:
+        return x, p, ev, res
+    sel_r = Selection(*(a[rows] for a in (sel.slot, sel.log_weight, sel.nis, sel.extra_var)))
+    sub_r = sub.take(rows)
+    xr, pr, er, rr_ = family_refit(x0[rows], p0[rows], sub_r, fl[rows], sel_r,
+                                   np.where(use[rows], length[rows], np.nan), jac[rows],
+                                   sub_r.var[:, 0] + spread[rows], pos[rows], building,
+                                   config, level[rows])
+    x, p, ev, res = x.copy(), p.copy(), ev.copy(), res.copy()
+    x[rows], p[rows], ev[rows], res[rows] = xr, pr, er, rr_
+    return x, p, ev, res
 
 
 def _edge_retry(out: list, x0, p0, sub: Links, fl, level, w, building,

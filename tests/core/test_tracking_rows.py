@@ -62,6 +62,9 @@ FEW = dataclasses.replace(CFG, skip_threshold_order=3, skip_threshold_max_links=
 #: the worst-link families may take a link called an outlier (``family_worst_outliers``, off
 #: by default), the worst-link gate at every node (fewer than 9 of the 8 ranges)
 WORST = dataclasses.replace(CFG, family_worst_outliers=True, family_min_links=9)
+#: and the family-explained links kept in the fit (``family_fit_links``, off by default) on
+#: every node
+FIT = dataclasses.replace(FEW, family_fit_links=9)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -110,10 +113,10 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, WORST],
+                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, WORST, FIT],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
                               "slack", "posterior", "lend", "challenger", "wedge", "silent",
-                              "few", "worst"])
+                              "few", "worst", "fit"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)
