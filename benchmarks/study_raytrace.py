@@ -134,7 +134,8 @@ def study(scenario: Scenario, dataset: Path, order: int, seed: int = 0, *,
                           mnls_keep_hard_rule=rule.keep_hard_rule,
                           mnls_dielectric_edges=rule.dielectric_edges,
                           mnls_floor_box=rule.floor_box,
-                          mnls_shadow_starts=rule.shadow_starts)
+                          mnls_shadow_starts=rule.shadow_starts,
+                          mnls_path_region=rule.path_region)
     out = {}
     rt = reproduce(scenario, cfg, kind="raytrace", path=dataset,
                    load=lambda rng: dataset_arrivals(dataset, scenario, rng=rng))
@@ -274,6 +275,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mnls-shadow-starts", type=float, default=0.0, metavar="D",
                     help="diffpos reproduce --mnls-shadow-starts (SnrRule.shadow_starts; "
                          "default 0: off)")
+    ap.add_argument("--mnls-path-region", action="store_true",
+                    help="diffpos reproduce --mnls-path-region (SnrRule.path_region; needs "
+                         "--mnls-floor-box; default off)")
     ap.add_argument("--misses", action="store_true",
                     help="the misses on Sionna's channel per traced first-arrival family")
     ap.add_argument("--summary", action="store_true",
@@ -304,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
                                         rule=SnrRule(
                     args.mnls_measured_threshold, args.mnls_first_arrival_prior,
                     args.mnls_keep_hard_rule, args.mnls_dielectric_edges,
-                    args.mnls_floor_box, args.mnls_shadow_starts))))
+                    args.mnls_floor_box, args.mnls_shadow_starts, args.mnls_path_region))))
             print(table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
     print(f"study_raytrace: M-NLS right floor on Sionna RT's channel (RT) and the emulator's (emu) "
           f"for the same receivers and anchors, seed {args.seed}; K = --mnls-max-order; n>=3 = "

@@ -594,6 +594,7 @@ class ReproduceConfig:
     mnls_dielectric_edges : float
     mnls_floor_box : bool
     mnls_shadow_starts : float [m]
+    mnls_path_region : bool
         M-NLS's :class:`~diffpos.estimators.mnls.rules.SnrRule` (default: all off).
     """
 
@@ -609,6 +610,7 @@ class ReproduceConfig:
     mnls_dielectric_edges: float = 0.0
     mnls_floor_box: bool = False
     mnls_shadow_starts: float = 0.0
+    mnls_path_region: bool = False
 
 
 class Progress(Protocol):
@@ -748,7 +750,8 @@ def reproduce(
         building=scenario.building, radio=scenario.radio, mnls_max_order=cfg.mnls_max_order,
         mnls_snr_rule=SnrRule(cfg.mnls_measured_threshold, cfg.mnls_first_arrival_prior,
                               cfg.mnls_keep_hard_rule, cfg.mnls_dielectric_edges,
-                              cfg.mnls_floor_box, cfg.mnls_shadow_starts),
+                              cfg.mnls_floor_box, cfg.mnls_shadow_starts,
+                              cfg.mnls_path_region),
     )
     timing["positioning_s"] = time.perf_counter() - t0
     timing["method_s"] = clock.durations()
@@ -778,6 +781,7 @@ def build_summary(cfg: ReproduceConfig, scenario: Scenario, res: Reproduction) -
         "mnls_dielectric_edges": cfg.mnls_dielectric_edges,
         "mnls_floor_box": cfg.mnls_floor_box,
         "mnls_shadow_starts": cfg.mnls_shadow_starts,
+        "mnls_path_region": cfg.mnls_path_region,
         "window_height_m": scenario.building.window_height_m,
         "mpc_table_pct": res.table,
         "first_arrival_mechanism_pct": res.fap_by_mechanism,

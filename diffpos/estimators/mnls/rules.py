@@ -98,6 +98,15 @@ class SnrRule:
         floor takes the cheapest new mode that has crossed (that link now takes the
         counterpart) if it costs less. 0 (the default): none (docs/raytrace_study.md
         "Session 30").
+    path_region : bool
+        Not a detector rule but the floor posterior's, with ``floor_box``: each floor's Laplace
+        mass counted inside its box AND where the mode's mechanism hypothesis holds, i.e.
+        where every used link's chosen mechanism exists (the reflection point inside its
+        plane and the window, the node on the edge's diffracting side, ...): the share of
+        the mode's Gaussian there (``solver._region_log_mass``, fixed draws). The max-mixture
+        mode is one assignment of mechanisms to links, and its Gaussian is its likelihood
+        only where those paths exist; ``floor_box`` is the same correction for the box's
+        faces. ``False`` (the default): the box only (docs/raytrace_study.md "Session 31").
     """
 
     measured_threshold: bool = False
@@ -106,6 +115,7 @@ class SnrRule:
     dielectric_edges: float = 0.0
     floor_box: bool = False
     shadow_starts: float = 0.0
+    path_region: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.first_arrival_prior < 1.0:
@@ -114,6 +124,9 @@ class SnrRule:
             raise ValueError("dielectric_edges must be in [0, 1]")
         if not self.shadow_starts >= 0.0:
             raise ValueError("shadow_starts must be >= 0 [m]")
+        if self.path_region and not self.floor_box:
+            raise ValueError("path_region counts the mass inside the floor's box: it needs "
+                             "floor_box")
 
 
 #: M-NLS's rule as it was: the predicted threshold and the hard rule.

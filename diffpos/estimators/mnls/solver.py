@@ -777,6 +777,51 @@ def mnls(
     return _result(out, bi, false_alarm_probability)
 
 
+#: Standard normal draws of the path-region mass (:func:`_region_log_mass`): fixed, so the
+#: posterior is deterministic; antithetic pairs.
+_REGION_DRAWS = np.concatenate([(u := np.random.default_rng(31).standard_normal((256, 3))), -u])
+#: Floors whose box-mass Laplace term is this far below the fix's best [nats] keep their box
+#: mass (posterior odds below exp(-REGION_NATS); the region mass only lowers a floor's).
+REGION_NATS = 12.0
+
+
+def _region_log_mass(p: _Problem, sel, xk: FloatArray, h: FloatArray, t: dict,
+                     cost: FloatArray, box: FloatArray, building) -> FloatArray:
+    """Log of the share of each floor's Laplace Gaussian ``N(x_k, H_k^-1)`` inside its
+    floor's box where every used link's chosen mechanism exists
+    (:attr:`~diffpos.estimators.mnls.rules.SnrRule.path_region`): the share of the fixed draws
+    :data:`_REGION_DRAWS` (at least half a draw). ``xk`` (B, F, 3), ``h`` (B, F, 3, 3),
+    ``cost`` and ``box`` (B, F) (``box``: :func:`_box_log_mass`, kept where the floor is
+    :data:`REGION_NATS` below the best or ``h`` is singular); ``t`` the terms at the modes
+    (rows of ``p`` at ``sel``)."""
+    b, nf = cost.shape
+    sign, logdet = np.linalg.slogdet(h)
+    with np.errstate(invalid="ignore"):
+        lp = np.where(sign > 0, -cost - 0.5 * logdet + box, -np.inf)
+    lp = np.where(np.isfinite(lp), lp, -np.inf)
+    go = np.flatnonzero((np.isfinite(lp) & (lp >= lp.max(axis=-1, keepdims=True)
+                                            - REGION_NATS)).ravel())
+    used = p.mask[sel] & ~t["tail"] & ~t["none"]
+    out = box.reshape(-1).copy()
+    n = len(_REGION_DRAWS)
+    for g in go:
+        r = sel[g]
+        w, v = np.linalg.eigh(np.linalg.inv(h.reshape(-1, 3, 3)[g]))
+        pts = xk.reshape(-1, 3)[g] + _REGION_DRAWS @ (v * np.sqrt(np.maximum(w, 0.0))).T
+        ok = np.all((pts >= p.lo[r]) & (pts <= p.hi[r]), axis=-1)
+        links = np.flatnonzero(used[g])
+        if links.size:
+            slots = t["slot"][g, links]
+            uniq = np.unique(slots)
+            ps = first_arrival_paths(pts[:, None, :], p.anchors[r, links][None], building,
+                                     floor=np.full((n, 1), p.floor[r]), slots=uniq,
+                                     mechanisms=p.mech)
+            ok &= np.all(ps.valid[:, np.arange(links.size), np.searchsorted(uniq, slots)],
+                         axis=-1)
+        out[g] = np.log(max(ok.mean(), 0.5 / n))
+    return out.reshape(b, nf)
+
+
 def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building=None,
             radio=None, kernel: bool = False) -> None:
     b = idx.size
@@ -810,6 +855,8 @@ def _finish(out, idx, p, xk, t, sel, active, *, nf: int, snr_meas=None, building
     box = None  # the Laplace mass inside each floor's box (SnrRule.floor_box)
     if getattr(p.rule, "floor_box", False):
         box = _box_log_mass(xk, h, p.lo[sel].reshape(b, nf, 3), p.hi[sel].reshape(b, nf, 3))
+        if getattr(p.rule, "path_region", False):
+            box = _region_log_mass(p, sel, xk, h, t, cost, box, building)
     post = _posterior(cost, h, box)
     kb = np.argmax(post, axis=-1)
     rows = np.arange(b) * nf + kb

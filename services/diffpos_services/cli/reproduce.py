@@ -109,6 +109,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "floor's mode explains a link by the edge's diffraction and the "
                              "lit path does not exist there (SnrRule.shadow_starts; default 0: "
                              "none)")
+    parser.add_argument("--mnls-path-region", action="store_true",
+                        help="mnls: with --mnls-floor-box, each floor's Laplace mass counts "
+                             "only its share where every used link's chosen mechanism exists "
+                             "(SnrRule.path_region; default off)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -178,7 +182,8 @@ def run(args: argparse.Namespace) -> int:
                           mnls_keep_hard_rule=args.mnls_keep_hard_rule,
                           mnls_dielectric_edges=args.mnls_dielectric_edges,
                           mnls_floor_box=args.mnls_floor_box,
-                          mnls_shadow_starts=args.mnls_shadow_starts)
+                          mnls_shadow_starts=args.mnls_shadow_starts,
+                          mnls_path_region=args.mnls_path_region)
     try:
         kind, path = _channel_source(args.channel)
         with report.ProgressBars(not args.no_progress) as prog:
