@@ -49,9 +49,11 @@ def _gate(n_meas, present=PRESENT, history=None, **kw):
     return _family_gate(lk, COL, np.array([n_meas]), cfg, present)
 
 
-def _reference(n_meas, present, history, minority, k=4, nis=1.0):
+def _reference(n_meas, present, history, minority, k=4, nis=1.0, outliers=False):
     """The setting's links, loop by loop: per hypothesis the present link with the largest
-    finite NIS (at least ``nis``, with a fit history); none where 2 x misfits >= ranges."""
+    finite NIS (at least ``nis``, with a fit history); none where 2 x misfits >= ranges.
+    ``outliers`` (``family_worst_outliers``): a link called an outlier (NIS inf) is the worst
+    of all (the first such link in column order); an unfitted link (NaN) still never counts."""
     out = np.zeros(FIT.shape, bool)
     if not k <= n_meas < 5:
         return out
@@ -64,8 +66,9 @@ def _reference(n_meas, present, history, minority, k=4, nis=1.0):
             f = FIT[0, h, j]
             if history[0, h, j] >= 1 and not f <= 9.0:
                 misfits += 1
-            if np.isfinite(f) and f > best:
-                best, arg = f, j
+            key = 1e308 if outliers and f == INF else f
+            if np.isfinite(key) and key > best:
+                best, arg = key, j
         if arg is None or best < nis or history[0, h, arg] < 1:
             continue
         if minority and 2 * misfits >= n_meas:
@@ -165,33 +168,6 @@ def test_the_true_floor_wins_with_the_family_of_its_worst_link():
         assert slot2[0, 2] == -1 and np.all(slot2[0, [0, 1, 3]] >= 0)
 
 
-def _reference_outliers(n_meas, present, history, minority, nis=1.0):
-    """``family_worst_outliers``, loop by loop: as :func:`_reference`, but a link called an
-    outlier (NIS inf) is the worst of all (the first such link in column order); an unfitted
-    link (NaN) still never counts."""
-    out = np.zeros(FIT.shape, bool)
-    if not 4 <= n_meas < 5:
-        return out
-    for h in range(FIT.shape[1]):
-        best, arg = -INF, None
-        misfits = 0
-        for j in range(FIT.shape[2]):
-            if not present[0, j]:
-                continue
-            f = FIT[0, h, j]
-            if history[0, h, j] >= 1 and not f <= 9.0:
-                misfits += 1
-            key = 1e308 if f == INF else f
-            if not np.isnan(key) and key > best:
-                best, arg = key, j
-        if arg is None or best < nis or history[0, h, arg] < 1:
-            continue
-        if minority and 2 * misfits >= n_meas:
-            continue
-        out[0, h, arg] = True
-    return out
-
-
 def test_worst_outliers_takes_the_outlier_link():
     """``family_worst_outliers``: the loops' links exactly (with and without the minority
     rule, an absent column, a nis floor); hypothesis 1's outlier link 0 instead of its worst
@@ -204,7 +180,7 @@ def test_worst_outliers_takes_the_outlier_link():
             for nis in (1.0, 2.5):
                 got = _gate(4, present, family_worst_min_links=4, family_minority=minority,
                             family_worst_nis=nis, family_worst_outliers=True)
-                ref = _reference_outliers(4, present, seen, minority, nis)
+                ref = _reference(4, present, seen, minority, nis=nis, outliers=True)
                 assert np.array_equal(got, ref), (present, minority, nis, got, ref)
     got = _gate(4, PRESENT, family_worst_min_links=4, family_worst_outliers=True)
     assert got[0, 1].tolist() == [True, False, False, False]
@@ -290,5 +266,5 @@ def test_worst_outliers_settled_nodes_only():
         no = _family_gate(lk, COL, np.array([4]), cfg, present, None, np.array([False]))
         assert np.array_equal(no, _reference(4, present, seen, True)), no
         yes = _family_gate(lk, COL, np.array([4]), cfg, present, None, np.array([True]))
-        assert np.array_equal(yes, _reference_outliers(4, present, seen, True)), yes
+        assert np.array_equal(yes, _reference(4, present, seen, True, outliers=True)), yes
     assert TrackerConfig().family_worst_outliers_settled is False
