@@ -1088,7 +1088,8 @@ class TrackerConfig:
         :func:`diffpos.tracking.tracker._more_floor_evidence`): one or two ranges cannot
         place a node, every floor's hypothesis fits them, and what tells the floors apart is
         the amplitude model alone, which drifts on a channel we did not write (Sionna
-        `large`'s top-floor walkers losing their ranges). 0: off, the default.
+        `large`'s top-floor walkers losing their ranges). Default 2 (since 2026-12-07 23:55
+        UTC: Sionna `large` ten seeds 93.67 -> 94.25 %); 0: off.
     """
 
     q_h_m2_s3: float = 1.5
@@ -1216,7 +1217,7 @@ class TrackerConfig:
     silent_anchor_margin_db: float = 10.0
     silent_anchor_max_links: int = 0
     silent_anchor_spread: bool = False
-    floor_hold_max_links: int = 0
+    floor_hold_max_links: int = 2
 
 
 @dataclass(frozen=True)
