@@ -1088,7 +1088,7 @@ class TrackerConfig:
         :func:`diffpos.tracking.tracker._more_floor_evidence`): one or two ranges cannot
         place a node, every floor's hypothesis fits them, and what tells the floors apart is
         the amplitude model alone, which drifts on a channel we did not write (Sionna
-        `large`'s top-floor walkers losing their ranges). Default 2 (since 2026-12-07 23:55
+        `large`'s top-floor walkers losing their ranges). Default 2 (since 2026-12-07 23:50
         UTC: Sionna `large` ten seeds 93.67 -> 94.25 %); 0: off.
     """
 

@@ -161,7 +161,7 @@ def test_floor_hold_keeps_the_predicted_probabilities_of_few_range_nodes():
     a, r, s, m, t, snr = (x.copy() for x in inputs)
     m[:2, 2:] = False
     hold = dataclasses.replace(TrackerConfig(), floor_hold_max_links=2)
-    assert TrackerConfig().floor_hold_max_links == 2  # the default since 2026-12-07 23:55
+    assert TrackerConfig().floor_hold_max_links == 2  # the default since 2026-12-07 23:50
     no_hold = dataclasses.replace(TrackerConfig(), floor_hold_max_links=0)
     off = update(state, a, r, s, m, t, B, no_hold, snr_db=snr, radio=RADIO)[0]
     on = update(state, a, r, s, m, t, B, hold, snr_db=snr, radio=RADIO)[0]

@@ -90,7 +90,10 @@ THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr
 #: snr_slack_max_links 3); every set of older defaults below includes it
 #: the worst link's families before 2ac62e4 (2026-12-07 20:27 UTC: family_worst_min_links 4);
 #: every set of older defaults below includes it
-WORST_OFF = {"family_worst_min_links": 0}
+#: the floor hold of few-range nodes before 76801b1 (2026-12-07 23:50 UTC:
+#: floor_hold_max_links 2); every set of older defaults below includes it
+HOLD_OFF = {"floor_hold_max_links": 0}
+WORST_OFF = {"family_worst_min_links": 0, **HOLD_OFF}
 SLACK_OFF = {"snr_diffraction_slack_db": 0.0, "snr_slack_max_links": 0, **WORST_OFF}
 BURST_OFF = {"reseed_outliers": 0, "cov_published_floors": "off", **SLACK_OFF}
 EDGE_OFF = {"edge_retry_margin_m": 0.0, "edge_retry_node": False,
@@ -114,7 +117,7 @@ LEARNED_OFF = {"family_learned_links": 0, **RESEED_OFF}
 FAMILIES_OFF = {"max_order": 2, "family_weight": "outlier", "family_gate": "outlier",
                 **GATE_OFF}
 #: a recording made after every change of a default
-NOW_NS = int(datetime.datetime(2026, 12, 7, 20, 28, tzinfo=UTC).timestamp()) * 10**9
+NOW_NS = int(datetime.datetime(2026, 12, 7, 23, 51, tzinfo=UTC).timestamp()) * 10**9
 #: a key that must change the estimates: the model error added to every range sigma [m]
 WHAT_IF = {"sigma_model_m": 0.3}
 
@@ -239,8 +242,9 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [
-    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-07 20:27 UTC"),
-    (AFTER_NS, LINK_OFF, "the defaults of then (family_worst_min_links=0, "
+    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-07 23:50 UTC"),
+    (AFTER_NS, LINK_OFF, "the defaults of then (floor_hold_max_links=0, "
+                         "family_worst_min_links=0, "
                          "snr_diffraction_slack_db=0.0, "
                          "snr_slack_max_links=0, reseed_outliers=0, "
                          "cov_published_floors=off, edge_retry_margin_m=0.0, "
@@ -280,7 +284,9 @@ def test_legacy_tracker_settings_follow_the_history_of_the_defaults():
     tracking/state.py): each change applies to recordings made before it."""
     at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
     mnls = {"method": "mnls", "tracking": True}
-    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 20, 28))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 23, 51))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 7, 20, 28))[0] == {**DEFAULTS,
+                                                                         **HOLD_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 7, 17, 21))[0] == {**DEFAULTS,
                                                                          **WORST_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 7, 14, 55))[0] == {**DEFAULTS,
