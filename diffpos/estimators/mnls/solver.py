@@ -779,7 +779,8 @@ def mnls(
 
 #: Standard normal draws of the path-region mass (:func:`_region_log_mass`): fixed, so the
 #: posterior is deterministic; antithetic pairs.
-_REGION_DRAWS = np.concatenate([(u := np.random.default_rng(31).standard_normal((256, 3))), -u])
+_REGION_HALF = np.random.default_rng(31).standard_normal((256, 3))
+_REGION_DRAWS = np.concatenate([_REGION_HALF, -_REGION_HALF])
 #: Floors whose box-mass Laplace term is this far below the fix's best [nats] keep their box
 #: mass (posterior odds below exp(-REGION_NATS); the region mass only lowers a floor's).
 REGION_NATS = 12.0
