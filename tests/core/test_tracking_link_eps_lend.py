@@ -93,18 +93,25 @@ def test_posterior_weights_lend_only_to_the_borrowers():
 def _lent(prev, col, cfg, borrow):
     """Reference outlier-component lift (H, M) of the hypotheses ``borrow`` (H,) from the
     previous state's counts and probabilities."""
-    hs = 2 * B.n_floors
     p = np.exp(prev.log_prob[0] - np.max(prev.log_prob[0]))
     p = p / p.sum()
-    lift = np.zeros((hs, len(ANCHORS)))
-    for m in range(len(ANCHORS)):
-        ref = [beta_eps(prev.link_out[0, h, col[m]], prev.link_all[0, h, col[m]], cfg)
-               if col[m] >= 0 else cfg.outlier_weight for h in range(hs)]
-        mean = sum(p[h] * ref[h] for h in range(hs))
-        for h in range(hs):
-            if borrow[h]:
-                lift[h, m] = np.log(max(ref[h], mean)) - np.log(ref[h])
-    return lift
+    ref = _ref_eps(prev, col, cfg)  # (H, M)
+    mean = p @ ref
+    return np.where(np.asarray(borrow)[:, None],
+                    np.log(np.maximum(ref, mean[None, :])) - np.log(ref), 0.0)
+
+
+def _weights_at(prev, rho0, k, cfg, base):
+    """The link weights (H, M, 2) and links' columns (M,) of epoch ``k`` from ``prev`` with
+    ``cfg``, and the weights with ``base``."""
+    got = link_inputs_at(prev, rho0, k, cfg)
+    return got[4][0], got[1][0], link_inputs_at(prev, rho0, k, base)[4][0]
+
+
+def _assert_lift(w, off, lift):
+    """The in-model weights as ``off``'s and the outlier weights raised by ``lift`` (1e-9)."""
+    assert np.allclose(w[..., 0], off[..., 0], rtol=0, atol=1e-9)
+    assert np.allclose(w[..., 1] - off[..., 1], lift, rtol=0, atol=1e-9)
 
 
 def _ref_eps(prev, col, cfg):
@@ -129,14 +136,11 @@ def test_tracker_lends_only_while_the_floor_is_contested():
     inside = outside = 0
     for k in range(1, len(states)):
         prev = states[k - 1]
-        got = link_inputs_at(prev, rho0, k, cfg)
-        off = link_inputs_at(prev, rho0, k, base)[4][0]
-        w, col = got[4][0], got[1][0]
+        w, col, off = _weights_at(prev, rho0, k, cfg, base)
         t = 10**9 + k * 10**8
         lend = (t - int(prev.lead_ns[0])) * 1e-9 <= 0.3
         lift = _lent(prev, col, cfg, np.full(hs, lend))
-        assert np.allclose(w[..., 0], off[..., 0], rtol=0, atol=1e-9)
-        assert np.allclose(w[..., 1] - off[..., 1], lift, rtol=0, atol=1e-9)
+        _assert_lift(w, off, lift)
         if lend:
             inside += 1
         elif np.max(_lent(prev, col, cfg, np.ones(hs, bool))[:, 1]) > 0.1:
@@ -160,15 +164,12 @@ def test_tracker_lends_only_to_hypotheses_with_fewer_learned_outliers():
     left_out = borrowed = 0
     for k in range(1, len(states)):
         prev = states[k - 1]
-        got = link_inputs_at(prev, rho0, k, cfg)
-        off = link_inputs_at(prev, rho0, k, base)[4][0]
-        w, col = got[4][0], got[1][0]
+        w, col, off = _weights_at(prev, rho0, k, cfg, base)
         ref = _ref_eps(prev, col, cfg)
         borrow = _reference_fewer(ref[None], prev.log_prob[0][None],
                                   np.ones((1, len(ANCHORS)), bool))[0]
         lift = _lent(prev, col, cfg, borrow)
-        assert np.allclose(w[..., 0], off[..., 0], rtol=0, atol=1e-9)
-        assert np.allclose(w[..., 1] - off[..., 1], lift, rtol=0, atol=1e-9)
+        _assert_lift(w, off, lift)
         full = _lent(prev, col, cfg, np.ones(hs, bool))
         left_out += int(np.any(full[~borrow, 1] > 0.1))
         borrowed += int(np.any(lift[:, 1] > 0.1))
@@ -204,13 +205,10 @@ def test_tracker_lends_only_below_the_published_probability():
         prev = states[k - 1]
         if abs(tops[k - 1] - 0.33) < 1e-6:
             continue
-        got = link_inputs_at(prev, rho0, k, cfg)
-        off = link_inputs_at(prev, rho0, k, base)[4][0]
-        w, col = got[4][0], got[1][0]
+        w, col, off = _weights_at(prev, rho0, k, cfg, base)
         lend = tops[k - 1] < 0.33
         lift = _lent(prev, col, cfg, np.full(hs, lend))
-        assert np.allclose(w[..., 0], off[..., 0], rtol=0, atol=1e-9)
-        assert np.allclose(w[..., 1] - off[..., 1], lift, rtol=0, atol=1e-9)
+        _assert_lift(w, off, lift)
         if lend:
             below += int(np.max(lift[:, 1]) > 0.1)
         elif np.max(_lent(prev, col, cfg, np.ones(hs, bool))[:, 1]) > 0.1:
