@@ -1,4 +1,4 @@
-"""Three exact rewrites of the tracker's numpy glue (issue 37; docs/replay_speed.md "Session 32")
+"""Four exact rewrites of the tracker's numpy glue (issue 37; docs/replay_speed.md "Session 32")
 against the expressions they replace, bit for bit (tolerance 0), on random inputs with fixed
 seeds:
 
@@ -10,7 +10,11 @@ seeds:
 * :func:`diffpos.tracking.model.diffraction_slack` (the rows of the nodes with few ranges
   only) against the whole-array expression it replaced, for ``snr_slack_max_links`` 3 (some
   nodes, none) and 0 (every node), with non-finite costs, predictions and SNRs; it fails with
-  a row of a node with many ranges slackened.
+  a row of a node with many ranges slackened;
+* :func:`diffpos.tracking.tracker._publish` with ``cov_kept_only`` (the covariance only of
+  the rows ``_published_floor_cov`` keeps) then ``_published_floor_cov``: every field equal
+  to the covariance computed for every row first; ``mixture_mse_cov`` of a subset of the
+  nodes equal to those rows of the call on all.
 
 And :func:`diffpos.channel.emulator._params_for` returns the same constants for the same
 objects again and for an equal but distinct building (the identity shortcut never serves
@@ -29,7 +33,14 @@ from diffpos.channel import emulator
 from diffpos.paths.mechanisms import MECHANISMS
 from diffpos.scenario import Building, Radio
 from diffpos.tracking.evidence import _distances, _gather, _gather_numpy
-from diffpos.tracking.state import TrackerConfig, few_ranges
+from diffpos.tracking.state import (
+    TrackerConfig,
+    TrackerState,
+    TrackStatus,
+    few_ranges,
+    mixture_mse_cov,
+)
+from diffpos.tracking.tracker import _publish, _published_floor_cov, init_state
 
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
@@ -129,3 +140,60 @@ def test_params_for_same_objects_and_equal_buildings():
     for x, y in zip(p3, emulator._params(b, r), strict=True):
         assert _same_bits(np.asarray(x, dtype=np.complex128).view(np.float64),
                           np.asarray(y, dtype=np.complex128).view(np.float64))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("which", ["credible", "all"])
+def test_publish_covariance_of_kept_rows_only(seed, which):
+    """``_publish(cov_kept_only=True)`` then ``_published_floor_cov``: every published field
+    bit for bit that of the covariance computed for every row first, on 40 random nodes of
+    which some have no position (UNINITIALISED / LOST), some a NaN log-probability (the rows
+    whose covariance ``_published_floor_cov`` keeps: computed on their own) and the rest the
+    rows it replaces; and the replaced rows are not computed (NaN before the replacement).
+    The rows kept have no finite position here; that a subset of the nodes gets the same
+    covariances as all of them: :func:`test_mixture_covariance_rows_on_their_own`."""
+    rng = np.random.default_rng(seed)
+    b = Building()
+    n, h = 40, 2 * b.n_floors
+    st = init_state(n, b)
+    a = rng.normal(size=(n, h, 6, 6)) * 0.3
+    lp = rng.normal(size=(n, h)) * 3.0
+    lp[rng.random(n) < 0.2, 1] = np.nan
+    status = rng.choice([TrackStatus.TRACKING, TrackStatus.COASTING, TrackStatus.INITIALISING,
+                         TrackStatus.UNINITIALISED, TrackStatus.LOST], size=n).astype(np.int8)
+    st = TrackerState(**{**st.__dict__, "mean": rng.normal(size=(n, h, 6)) * 5.0,
+                         "cov": a @ np.swapaxes(a, -1, -2) + 0.01 * np.eye(6), "log_prob": lp,
+                         "status": status, "nis": rng.uniform(0.5, 5.0, n)})
+    mech, resid = rng.integers(-1, 18, size=(n, 8)), rng.normal(size=(n, 8))
+    cfg = TrackerConfig(cov_published_floors=which)
+    full = _publish(st, mech, resid, cfg)
+    kept = _publish(st, mech, resid, cfg, cov_kept_only=True)
+    replaced = np.isfinite(full.position_m).all(axis=1) & np.isfinite(
+        full.floor_probabilities).all(axis=1)
+    has = np.isin(status, [TrackStatus.TRACKING, TrackStatus.COASTING,
+                           TrackStatus.INITIALISING])
+    assert replaced.any() and (has & ~replaced).any() and (~has).any()
+    assert np.isnan(kept.covariance_m2[replaced]).all()  # not computed
+    assert _same_bits(kept.covariance_m2[~replaced], full.covariance_m2[~replaced])
+    a_out, b_out = _published_floor_cov(st, full, which), _published_floor_cov(st, kept, which)
+    for f in a_out.__dataclass_fields__:
+        x, y = np.asarray(getattr(a_out, f)), np.asarray(getattr(b_out, f))
+        assert x.dtype == y.dtype and np.array_equal(x.view(np.uint8), y.view(np.uint8)), f
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mixture_covariance_rows_on_their_own(seed):
+    """``mixture_mse_cov`` of a subset of the nodes: those nodes' rows of the call on all of
+    them, bit for bit (what ``_publish(cov_kept_only=True)`` relies on)."""
+    rng = np.random.default_rng(seed)
+    n, h = 60, 10
+    a = rng.normal(size=(n, h, 6, 6)) * 0.3
+    mean, cov = rng.normal(size=(n, h, 6)) * 5.0, a @ np.swapaxes(a, -1, -2)
+    w = rng.dirichlet(np.ones(h), size=n)
+    pos, best = rng.normal(size=(n, 3)) * 5.0, rng.integers(0, h // 2, n)
+    p_best, vf = rng.uniform(0.2, 1.0, n), rng.uniform(1.0, 3.0, n)
+    full = mixture_mse_cov(mean, cov, w, pos, best, p_best, vf)
+    for sub in (rng.random(n) < 0.3, np.arange(n) == 7, np.arange(n) >= 1):
+        part = mixture_mse_cov(mean[sub], cov[sub], w[sub], pos[sub], best[sub], p_best[sub],
+                               vf[sub])
+        assert _same_bits(part, full[sub])
