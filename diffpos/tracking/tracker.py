@@ -605,11 +605,21 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit,
                        chal_mean=chal[0], chal_cov=chal[1], chal_llr=chal[2], chal_age=chal[3])
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
-    out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent, cov_kept_only=(
-        config.cov_published_floors != "off" and not config.floor_band_bound)), n_meas, config)
+    return new, _output(new, mech, resid, n_meas, recent, building, config)
+
+
+def _output(new: TrackerState, mech: NDArray, resid: FloatArray, n_meas: NDArray,
+            recent: NDArray, building, config: TrackerConfig) -> TrackOutput:
+    """The published estimates of the updated state ``new`` (:func:`_publish`, then
+    :func:`_few_anchors`, :func:`_band_bound` and :func:`_published_floor_cov` as the
+    settings say); the covariance :func:`_published_floor_cov` replaces is not computed
+    before (``cov_kept_only``) unless :func:`_band_bound` reads it first."""
+    again = config.cov_published_floors != "off"
+    out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent,
+                                cov_kept_only=again and not config.floor_band_bound),
+                       n_meas, config)
     out = _band_bound(out, building) if config.floor_band_bound else out
-    return new, (out if config.cov_published_floors == "off"
-                 else _published_floor_cov(new, out, config.cov_published_floors))
+    return _published_floor_cov(new, out, config.cov_published_floors) if again else out
 
 
 def _more_floor_evidence(lp: FloatArray, lp_pred: FloatArray, moments: tuple, inputs: tuple,
