@@ -89,13 +89,23 @@ def match_links(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArr
     tab = np.array(table, dtype=np.float64)
     seen = np.array(seen_ns, dtype=np.int64)
     anc = np.ascontiguousarray(anchors, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        d = np.sqrt(np.sum((tab[:, None] - anc[:, :, None]) ** 2, axis=-1))  # (n, M, L)
+    d = _distances(tab, anc)  # (n, M, L)
     col = np.empty((n, m), np.int64)
     reset = np.empty(seen.shape, np.bool_)
     match_links_kernel(d, np.ascontiguousarray(mask, dtype=np.bool_), anc, float(tol_m),
                        np.ascontiguousarray(t_ns, dtype=np.int64), tab, seen, col, reset)
     return col, tab, seen, reset
+
+
+def _distances(tab: FloatArray, anc: FloatArray) -> FloatArray:
+    """``np.sqrt(np.sum((tab[:, None] - anc[:, :, None]) ** 2, axis=-1))`` (n, M, L) of the
+    links ``tab`` (n, L, 3) and the columns' anchors ``anc`` (n, M, 3), bit for bit: numpy's
+    sum over a last axis of three is ``(d0^2 + d1^2) + d2^2`` (``x ** 2`` is ``x * x``), here
+    on one coordinate plane at a time (~0.25x the CPU of the (n, M, L, 3) temporaries)."""
+    t, a = np.moveaxis(tab, -1, 0), np.moveaxis(anc, -1, 0)
+    d0, d1, d2 = (t[i][:, None] - a[i][:, :, None] for i in range(3))
+    with np.errstate(invalid="ignore"):
+        return np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
 
 
 def _match_links_numpy(table: FloatArray, seen_ns: NDArray[np.int64], anchors: FloatArray,
@@ -140,7 +150,19 @@ def _match_links_numpy(table: FloatArray, seen_ns: NDArray[np.int64], anchors: F
 
 
 def _gather(a: FloatArray, col: NDArray[np.int_]) -> FloatArray:
-    """``a`` (n, H, L) at every column's link (n, H, M); NaN where a column has none."""
+    """``a`` (n, H, L) at every column's link (n, H, M); NaN where a column has none.
+
+    One flat index into ``a`` (row ``(i, h)`` starts at ``(i H + h) L``): the elements
+    ``np.take_along_axis(a, col, axis=2)`` picks, without its index building (~0.5x the CPU
+    on the tracker's arrays; :func:`_gather_numpy` is the reference, tested equal)."""
+    n, h, n_l = a.shape
+    start = (np.arange(n * h) * n_l).reshape(n, h, 1)
+    picked = np.ravel(a)[start + np.maximum(col, 0)[:, None, :]]
+    return np.where(col[:, None, :] >= 0, picked, np.nan)
+
+
+def _gather_numpy(a: FloatArray, col: NDArray[np.int_]) -> FloatArray:
+    """The reference of :func:`_gather` (``np.take_along_axis``)."""
     idx = np.broadcast_to(np.maximum(col, 0)[:, None, :], (a.shape[0], a.shape[1], col.shape[1]))
     return np.where(col[:, None, :] >= 0, np.take_along_axis(a, idx, axis=2), np.nan)
 

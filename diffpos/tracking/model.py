@@ -558,22 +558,26 @@ def diffraction_slack(cost: FloatArray, pred: FloatArray, thr: FloatArray, snr: 
     without power (+inf) and links with an unknown SNR are unchanged."""
     d = float(config.snr_diffraction_slack_db)
     sig = float(SNR_SIGMA_DB)
-    meas = snr[:, None, :, None]
-    use = _IS_DIFF & np.isfinite(cost) & np.isfinite(pred) & np.isfinite(meas)
-    use = use & few_ranges(np.sum(mask, axis=-1), int(config.snr_slack_max_links))[
-        :, None, None, None]
+    # only the rows of the nodes with few ranges are read (every term is elementwise: the
+    # same values as over every row; most calls have no such node and return at once)
+    rows = np.flatnonzero(few_ranges(np.sum(mask, axis=-1), int(config.snr_slack_max_links)))
+    if rows.size == 0:
+        return cost
+    c_r, p_r, meas = cost[rows], pred[rows], snr[rows][:, None, :, None]
+    use = _IS_DIFF & np.isfinite(c_r) & np.isfinite(p_r) & np.isfinite(meas)
     if not use.any():
         return cost
     with np.errstate(invalid="ignore"):
-        r = meas - pred
+        r = meas - p_r
         r = np.where(r > d, r - d, np.minimum(r, 0.0))
-        short = np.maximum(thr[..., None] - sig - meas, 0.0)
+        short = np.maximum(thr[rows][..., None] - sig - meas, 0.0)
         g = 0.5 * (r / sig) ** 2 + 0.5 * (short / sig) ** 2
     cap = float(config.snr_cost_cap_nats)
     if cap > 0:
         g = np.minimum(g, cap)
     g = g + float(np.log1p(d / (sig * np.sqrt(2.0 * np.pi))))
-    cost[use] = g[use]
+    c_r[use] = g[use]
+    cost[rows] = c_r
     return cost
 
 

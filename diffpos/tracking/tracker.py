@@ -279,7 +279,13 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
 
 def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
              config: TrackerConfig | None = None, n_meas: NDArray | None = None,
-             contested: NDArray | None = None) -> TrackOutput:
+             contested: NDArray | None = None, cov_kept_only: bool = False) -> TrackOutput:
+    """The published estimate of every node. ``cov_kept_only``: the covariance only of the
+    rows :func:`_published_floor_cov` keeps as they are (a position but a non-finite floor
+    probability; every other row is NaN or replaced there): the same published values, bit
+    for bit (every row of :func:`~diffpos.tracking.state.mixture_mse_cov` is computed on its
+    own); :func:`update` with ``cov_published_floors`` on and ``floor_band_bound`` off (which
+    reads the covariance first)."""
     config = TrackerConfig() if config is None else config
     n, h = state.log_prob.shape
     nf = h // 2
@@ -296,19 +302,28 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
     # published point (floor and mode uncertainty): the mean-square error of the point under
     # the mixture; a posteriori variance factor: the averaged NIS per used range above 1 says
     # the ranges scatter more than their sigmas (model mismatch), so it widens the covariance
-    cov = mixture_mse_cov(state.mean, state.cov, prob_h, pos, best, prob[rows, best],
-                          np.clip(state.nis, 1.0, 100.0))
     has = has_position(state.status)
+    position = np.where(has[:, None], pos, np.nan)
+    floor_p = published_floor_probabilities(
+        state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
+        doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas,
+                           prob_h)
+               if config.floor_model_doubt and config.link_learn else None),
+        contested=contested)
+    need = has
+    if cov_kept_only:  # the rows _published_floor_cov replaces are not computed here
+        need = has & ~(np.isfinite(position).all(axis=1) & np.isfinite(floor_p).all(axis=1))
+    cov = np.full((n, 3, 3), np.nan)
+    if need.all():
+        cov = mixture_mse_cov(state.mean, state.cov, prob_h, pos, best, prob[rows, best],
+                              np.clip(state.nis, 1.0, 100.0))
+    elif need.any():
+        cov[need] = mixture_mse_cov(state.mean[need], state.cov[need], prob_h[need], pos[need],
+                                    best[need], prob[rows, best][need],
+                                    np.clip(state.nis[need], 1.0, 100.0))
     return TrackOutput(
-        position_m=np.where(has[:, None], pos, np.nan),
-        covariance_m2=np.where(has[:, None, None], cov, np.nan),
-        floor_index=np.where(has, best, -1),
-        floor_probabilities=published_floor_probabilities(
-            state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
-            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas,
-                               prob_h)
-                   if config.floor_model_doubt and config.link_learn else None),
-            contested=contested),
+        position_m=position, covariance_m2=np.where(has[:, None, None], cov, np.nan),
+        floor_index=np.where(has, best, -1), floor_probabilities=floor_p,
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
 
@@ -590,10 +605,21 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit,
                        chal_mean=chal[0], chal_cov=chal[1], chal_llr=chal[2], chal_age=chal[3])
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
-    out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas, config)
+    return new, _output(new, mech, resid, n_meas, recent, building, config)
+
+
+def _output(new: TrackerState, mech: NDArray, resid: FloatArray, n_meas: NDArray,
+            recent: NDArray, building, config: TrackerConfig) -> TrackOutput:
+    """The published estimates of the updated state ``new`` (:func:`_publish`, then
+    :func:`_few_anchors`, :func:`_band_bound` and :func:`_published_floor_cov` as the
+    settings say); the covariance :func:`_published_floor_cov` replaces is not computed
+    before (``cov_kept_only``) unless :func:`_band_bound` reads it first."""
+    again = config.cov_published_floors != "off"
+    out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent,
+                                cov_kept_only=again and not config.floor_band_bound),
+                       n_meas, config)
     out = _band_bound(out, building) if config.floor_band_bound else out
-    return new, (out if config.cov_published_floors == "off"
-                 else _published_floor_cov(new, out, config.cov_published_floors))
+    return _published_floor_cov(new, out, config.cov_published_floors) if again else out
 
 
 def _more_floor_evidence(lp: FloatArray, lp_pred: FloatArray, moments: tuple, inputs: tuple,
