@@ -339,18 +339,21 @@ def _band_bound(out: TrackOutput, building) -> TrackOutput:
         out.covariance_m2[:, 2, 2], building.first_floor_z_m, building.floor_height_m))
 
 
-def _published_floor_cov(state: TrackerState, out: TrackOutput, which: str) -> TrackOutput:
+def _published_floor_cov(state: TrackerState, out: TrackOutput, which: str,
+                         q_floor: FloatArray | None = None) -> TrackOutput:
     """The published covariance with the floors' hypotheses weighted by the published floor
     probabilities (``which`` = ``TrackerConfig.cov_published_floors``: "all" every floor,
     "credible" those of the 95 % credible set: :func:`credible_floor_weights`;
-    :func:`floor_reweighted`, :func:`mixture_mse_cov`); rows without a position keep NaN."""
+    :func:`floor_reweighted`, :func:`mixture_mse_cov`); rows without a position keep NaN.
+    ``q_floor`` (N, F): those weights instead of the published probabilities
+    (:func:`_few_floor_weights`; None: the published)."""
     if which not in ("all", "credible"):
         raise ValueError(f"cov_published_floors must be 'off', 'all' or 'credible'; got {which!r}")
     has = np.isfinite(out.position_m).all(axis=1) & np.isfinite(out.floor_probabilities).all(
         axis=1)
     if not np.any(has):
         return out
-    q = out.floor_probabilities[has]
+    q = (out.floor_probabilities if q_floor is None else q_floor)[has]
     q = q / np.maximum(q.sum(axis=1, keepdims=True), 1e-300)
     best = out.floor_index[has]
     prob_h = np.exp(state.log_prob[has])
@@ -590,10 +593,58 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit,
                        chal_mean=chal[0], chal_cov=chal[1], chal_llr=chal[2], chal_age=chal[3])
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
-    out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent), n_meas, config)
+    return new, _published(new, (mech, resid), config, n_meas, (recent, st.lead_floor),
+                           building)
+
+
+def _published(state: TrackerState, fit: tuple, config: TrackerConfig, n_meas: NDArray,
+               contest: tuple, building) -> TrackOutput:
+    """The publication of the updated ``state`` (``fit``: the epoch's mechanisms and
+    residuals; ``contest``: the nodes contested within ``floor_contest_s`` and the previous
+    update's lead floors): :func:`_publish`, the few-anchors cap, the band bound and the
+    covariance with the floors' spread (``cov_published_floors``, ``cov_few_floors``)."""
+    recent = contest[0]
+    out = _few_anchors(_publish(state, *fit, config, n_meas, recent), n_meas, config)
     out = _band_bound(out, building) if config.floor_band_bound else out
-    return new, (out if config.cov_published_floors == "off"
-                 else _published_floor_cov(new, out, config.cov_published_floors))
+    if config.cov_published_floors == "off":
+        return out
+    q = (None if config.cov_few_floors == "off"
+         else _few_floor_weights(state, out, config, n_meas, contest, building))
+    return _published_floor_cov(state, out, config.cov_published_floors, q)
+
+
+def _few_floor_weights(state: TrackerState, out: TrackOutput, config: TrackerConfig,
+                       n_meas: NDArray, contest: tuple, building) -> FloatArray:
+    """The floor weights (N, F) of the published covariance's spread under
+    ``TrackerConfig.cov_few_floors``: the published floor probabilities, but at the nodes
+    whose floor the families' SNR tested (``min_anchors_tracking`` <= ranges <=
+    ``family_few_links``) and the floors did not contest (:func:`floor_contested` as if the
+    node had four ranges) those published with the evidence temper instead of the contest's
+    ("temper"; model doubt and band bound as published) and without the model doubt too
+    ("model")."""
+    if config.cov_few_floors not in ("temper", "model"):
+        raise ValueError(f"cov_few_floors must be 'off', 'temper' or 'model'; "
+                         f"got {config.cov_few_floors!r}")
+    recent, lead_prev = contest
+    n_meas = np.asarray(n_meas)
+    prob_h = np.exp(state.log_prob)
+    by_floor, _ = floor_contested(state.log_prob, lead_prev, np.full(n_meas.shape, 4),
+                                  prob_h, vertical=config.floor_contest_vertical)
+    few = ((n_meas >= max(config.min_anchors_tracking, 1))
+           & (n_meas <= config.family_few_links) & ~by_floor)
+    if not np.any(few):
+        return out.floor_probabilities
+    doubt = (model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas, prob_h)
+             if config.cov_few_floors == "temper" and config.floor_model_doubt
+             and config.link_learn else None)
+    q = published_floor_probabilities(
+        state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
+        doubt=doubt, contested=np.asarray(recent, bool) & ~few)
+    if config.floor_band_bound:
+        q = height_band_bound(q, out.floor_index, out.position_m[:, 2],
+                              out.covariance_m2[:, 2, 2], building.first_floor_z_m,
+                              building.floor_height_m)
+    return np.where(few[:, None], q, out.floor_probabilities)
 
 
 def _more_floor_evidence(lp: FloatArray, lp_pred: FloatArray, moments: tuple, inputs: tuple,
