@@ -190,13 +190,14 @@ def family_terms(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Floa
                              "snr_sigma_db and snr_span_db, the SNR model's spread and the "
                              "outlier's SNR span (tracking.model.SNR_SIGMA_DB, SNR_SPAN_DB)")
         ll = ll + family_snr_log_lik(pos, anchor, snr[0], building, snr[1], max_order,
-                                     snr_sigma_db, snr_span_db, cap_nats)
+                                     snr_sigma_db, snr_span_db, cap_nats, ok)
     return ll, ok, length, j, n_base
 
 
 def family_snr_log_lik(pos: FloatArray, anchor: FloatArray, snr_db: FloatArray, building,
                        radio, max_order: int, snr_sigma_db: float, snr_span_db: float,
-                       cap_nats: float = 0.0) -> FloatArray:
+                       cap_nats: float = 0.0, ok: NDArray[np.bool_] | None = None
+                       ) -> FloatArray:
     """Log-ratio (Q, F) of every extra family's SNR density to the outlier's for links at
     ``pos`` (Q, 3) from ``anchor`` (Q, 3) with measured SNR ``snr_db`` (Q,):
     ``log N(snr; S_k, snr_sigma_db^2) + log snr_span_db`` (the outlier's SNR density is
@@ -205,8 +206,16 @@ def family_snr_log_lik(pos: FloatArray, anchor: FloatArray, snr_db: FloatArray, 
     (:func:`diffpos.channel.emulator.pair_family_snr_db`), the robust SNR likelihood the 18
     mechanisms get (:func:`diffpos.tracking.model.cap_snr_cost`: the cost ``z^2 / 2`` at most
     ``cap_nats`` when > 0). ``-inf`` where a family carries no power (no candidate); 0 where
-    the SNR is unknown (NaN: as without it)."""
-    pred = pair_family_snr_db(anchor, pos, building=building, radio=radio, max_order=max_order)
+    the SNR is unknown (NaN: as without it). ``ok`` (Q, F): the families that exist there
+    (:func:`family_terms`' ``ok``; None: every one); only those of the links with a known
+    SNR are evaluated (``-inf`` for the others, the rest bit for bit), as
+    :func:`family_terms` adds this to a log-density that is ``-inf`` outside ``ok``."""
+    known = np.isfinite(snr_db)
+    pred = np.full((snr_db.shape[0], len(extra_families(max_order)[1])), -np.inf)
+    if np.any(known):
+        pred[known] = pair_family_snr_db(anchor[known], pos[known], building=building,
+                                         radio=radio, max_order=max_order,
+                                         mask=None if ok is None else ok[known])
     with np.errstate(invalid="ignore"):
         z = (snr_db[:, None] - pred) / snr_sigma_db
         cost = 0.5 * z * z
