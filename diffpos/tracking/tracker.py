@@ -279,8 +279,10 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
 
 def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
              config: TrackerConfig | None = None, n_meas: NDArray | None = None,
-             contested: NDArray | None = None) -> TrackOutput:
+             contested: NDArray | None = None, doubt: tuple | None = None) -> TrackOutput:
     config = TrackerConfig() if config is None else config
+    if doubt is None:  # (the model doubt, or None: off; :func:`_node_doubt`)
+        doubt = (_node_doubt(state, config, n_meas),)
     n, h = state.log_prob.shape
     nf = h // 2
     rows = np.arange(n)
@@ -305,12 +307,18 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
         floor_index=np.where(has, best, -1),
         floor_probabilities=published_floor_probabilities(
             state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
-            doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas,
-                               prob_h)
-                   if config.floor_model_doubt and config.link_learn else None),
-            contested=contested),
+            doubt=doubt[0], contested=contested),
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
+
+
+def _node_doubt(state: TrackerState, config: TrackerConfig, n_meas: NDArray | None
+                ) -> FloatArray | None:
+    """The published floor probabilities' model doubt (``floor_model_doubt``;
+    :func:`model_doubt`), None where off."""
+    if not (config.floor_model_doubt and config.link_learn):
+        return None
+    return model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas)
 
 
 def _few_anchors(out: TrackOutput, n_meas: NDArray, config: TrackerConfig) -> TrackOutput:
@@ -603,13 +611,13 @@ def _published(state: TrackerState, fit: tuple, config: TrackerConfig, n_meas: N
     residuals; ``contest``: the nodes contested within ``floor_contest_s`` and the previous
     update's lead floors): :func:`_publish`, the few-anchors cap, the band bound and the
     covariance with the floors' spread (``cov_published_floors``, ``cov_few_floors``)."""
-    recent = contest[0]
-    out = _few_anchors(_publish(state, *fit, config, n_meas, recent), n_meas, config)
+    recent, doubt = contest[0], (_node_doubt(state, config, n_meas),)
+    out = _few_anchors(_publish(state, *fit, config, n_meas, recent, doubt), n_meas, config)
     out = _band_bound(out, building) if config.floor_band_bound else out
     if config.cov_published_floors == "off":
         return out
     q = (None if config.cov_few_floors == "off"
-         else _few_floor_weights(state, out, config, n_meas, contest, building))
+         else _few_floor_weights(state, out, config, n_meas, (*contest, doubt[0]), building))
     return _published_floor_cov(state, out, config.cov_published_floors, q)
 
 
@@ -621,11 +629,12 @@ def _few_floor_weights(state: TrackerState, out: TrackOutput, config: TrackerCon
     ``family_few_links``) and the floors did not contest (:func:`floor_contested` as if the
     node had four ranges) those published with the evidence temper instead of the contest's
     ("temper"; model doubt and band bound as published) and without the model doubt too
-    ("model")."""
+    ("model"). ``contest``: the nodes contested within ``floor_contest_s``, the previous
+    update's lead floors and the published model doubt (None: off)."""
     if config.cov_few_floors not in ("temper", "model"):
         raise ValueError(f"cov_few_floors must be 'off', 'temper' or 'model'; "
                          f"got {config.cov_few_floors!r}")
-    recent, lead_prev = contest
+    recent, lead_prev, doubt = contest
     n_meas = np.asarray(n_meas)
     prob_h = np.exp(state.log_prob)
     by_floor, _ = floor_contested(state.log_prob, lead_prev, np.full(n_meas.shape, 4),
@@ -634,12 +643,10 @@ def _few_floor_weights(state: TrackerState, out: TrackOutput, config: TrackerCon
            & (n_meas <= config.family_few_links) & ~by_floor)
     if not np.any(few):
         return out.floor_probabilities
-    doubt = (model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas, prob_h)
-             if config.cov_few_floors == "temper" and config.floor_model_doubt
-             and config.link_learn else None)
     q = published_floor_probabilities(
         state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
-        doubt=doubt, contested=np.asarray(recent, bool) & ~few)
+        doubt=doubt if config.cov_few_floors == "temper" else None,
+        contested=np.asarray(recent, bool) & ~few)
     if config.floor_band_bound:
         q = height_band_bound(q, out.floor_index, out.position_m[:, 2],
                               out.covariance_m2[:, 2, 2], building.first_floor_z_m,
