@@ -4,7 +4,8 @@ and :func:`diffpos.tracking.families.family_snr_log_lik` with the families that 
 
 The reference is the same function without the mask (every family of every link, itself
 tested against the numpy emulator in tests/core/test_channel_families.py): equal bit for
-bit where evaluated, ``-inf`` elsewhere; the tracker's family terms unchanged bit for bit.
+bit where evaluated, ``-inf`` elsewhere; the families' mixture and best family, which is what
+the tracker reads, unchanged bit for bit.
 """
 
 from __future__ import annotations
@@ -13,7 +14,13 @@ import numpy as np
 
 from diffpos.channel.emulator import pair_family_snr_db
 from diffpos.scenario import default_scenario
-from diffpos.tracking.families import family_snr_log_lik, family_terms, graded_split
+from diffpos.tracking.families import (
+    best_family,
+    family_log_lik,
+    family_snr_log_lik,
+    family_terms,
+    graded_split,
+)
 from diffpos.tracking.model import SNR_SIGMA_DB, SNR_SPAN_DB
 
 SC = default_scenario()
@@ -49,8 +56,11 @@ def test_masked_kernel_equals_the_unmasked_where_evaluated():
 def test_family_terms_unchanged_by_the_restriction():
     """300 pairs (seed 5), measured SNRs with a third unknown (NaN): ``family_snr_log_lik``
     with the existing families is the unrestricted one where they exist and the SNR is known
-    (bit for bit), 0 where the SNR is unknown, -inf elsewhere; ``family_terms``' log-density
-    (which is -inf outside them) equals the unrestricted sum bit for bit."""
+    (bit for bit), 0 where the SNR is unknown, -inf elsewhere. ``family_terms``' log-density
+    against the unrestricted sum (``ref``): equal bit for bit wherever it is finite; -inf
+    only where ``ref`` is more than 745.2 nats below its link's largest (``exp`` is 0.0 there;
+    some such families exist); the links' mixture densities (``family_log_lik``) and best
+    families (``best_family``) bit for bit."""
     pos, anc, fl = _pairs(5, 300)
     rng = np.random.default_rng(6)
     snr = rng.uniform(-5, 30, 300)
@@ -65,11 +75,30 @@ def test_family_terms_unchanged_by_the_restriction():
     cov = np.broadcast_to(np.eye(3) * 0.05, (300, 3, 3)).copy()
     rho = np.linalg.norm(pos - anc, axis=1) + rng.uniform(0, 6, 300)
     var = np.full(300, 0.09)
-    ll, ok2, *_ = family_terms(pos, cov, anc, rho, var, fl, B, 3, 0.2, None, 4.5,
-                               SNR_SIGMA_DB, (snr, RADIO), SNR_SPAN_DB)
-    ll0, *_ = family_terms(pos, cov, anc, rho, var, fl, B, 3, 0.2, None, 4.5,
-                           SNR_SIGMA_DB, None, SNR_SPAN_DB)
+    common = (pos, cov, anc, rho, var, fl, B, 3, 0.2, None, 4.5, SNR_SIGMA_DB)
+    ll, ok2, length, jac, _ = family_terms(*common, (snr, RADIO), SNR_SPAN_DB)
+    ll0, *_ = family_terms(*common, None, SNR_SPAN_DB)
     assert np.array_equal(ok2, ok)
     ref = np.where(ok, ll0 + full, -np.inf)
-    assert ll.tobytes() == ref.tobytes()
+    fin = np.isfinite(ll)
+    assert ll[fin].tobytes() == ref[fin].tobytes()
+    pruned = ~fin & np.isfinite(ref)
+    top = np.max(ref, axis=-1, keepdims=True)
+    assert np.all((ref - top)[pruned] < -745.2) and pruned.sum() > 0
     assert np.isfinite(ll).sum() > 100
+    got_mix = family_log_lik(*common, (snr, RADIO), SNR_SPAN_DB)
+    assert got_mix[0].tobytes() == _mean_density_ref(ref, ok).tobytes()
+    for a, b in zip(best_family(ll, ok, length, jac), best_family(ref, ok, length, jac),
+                    strict=True):
+        assert a.tobytes() == b.tobytes()
+
+
+def _mean_density_ref(ll, ok):
+    """``log mean_k exp(ll_k)`` over the existing families, as ``family_log_lik`` computes
+    it (the same operations, on the unrestricted log-densities)."""
+    n_ok = ok.sum(axis=-1)
+    with np.errstate(divide="ignore"):
+        top = np.max(ll, axis=-1)
+        safe = np.where(np.isfinite(top), top, 0.0)
+        tot = safe + np.log(np.sum(np.exp(ll - safe[:, None]), axis=-1))
+        return np.where(n_ok > 0, tot - np.log(np.maximum(n_ok, 1)), -np.inf)
