@@ -504,7 +504,8 @@ def _family_snr_length(anchors: FloatArray, nodes: FloatArray, building: Buildin
 
 
 def pair_family_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Building,
-                       radio: Radio, max_order: int, partitions: bool = False) -> FloatArray:
+                       radio: Radio, max_order: int, partitions: bool = False,
+                       mask: NDArray[np.bool_] | None = None) -> FloatArray:
     """SNR [dB] of the families beyond the 18 of ``mechanism_set(max_order,
     partitions=partitions)`` for P (anchor, node) pairs (``anchors_m``, ``nodes_m`` (P, 3)),
     (P, K - 18): the emulator's amplitude model for them (:mod:`diffpos.channel.families_nb`,
@@ -512,13 +513,15 @@ def pair_family_snr_db(anchors_m: ArrayLike, nodes_m: ArrayLike, *, building: Bu
     channel's constants at order ``max(radio.channel_max_order, max_order)`` (the window
     edges' sheets of order >= 3); ``-inf`` where a family carries no power. For an estimator
     that scores a family by its SNR (``TrackerConfig.family_snr``). Nodes inside the building
-    and anchors outside (not checked)."""
+    and anchors outside (not checked). ``mask`` (P, K - 18) bool: only those families are
+    evaluated (``-inf`` elsewhere; the rest bit for bit); None: every one."""
     anchors = np.asarray(anchors_m, dtype=np.float64).reshape(-1, 3)
     nodes = np.asarray(nodes_m, dtype=np.float64).reshape(-1, 3)
     table, slots = _set_table(max_order, partitions)
     radio = replace(radio, channel_max_order=max(radio.channel_max_order, max_order))
     params = _params_for(building, radio)
-    snr, _ = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots)
+    snr, _ = eval_family_snr(_c_w(anchors[:, None, :]), _c_w(nodes), params, table, slots,
+                             None if mask is None else np.asarray(mask, bool)[:, None, :])
     return snr[:, 0]
 
 

@@ -96,6 +96,7 @@ FAMILY_SIGNATURE = types.void(
     _f8_3d, _f8_2d,  # anchors (N, M, 3), nodes (N, 3)
     _f8_1d, _f8_2d, types.complex128[::1],  # prm, parts (P, 5), eta (channel_params)
     types.int64[:, ::1], types.int64[::1],  # mechanism table (K, C), slots (S,)
+    types.boolean[:, :, ::1],  # mask (N, M, S): the pairs' slots to evaluate
     _f8_3d, _f8_3d,  # out (N, M, S) [dB], out_len (N, M, S) [m]
 )
 
@@ -314,12 +315,13 @@ def _family(table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta, e
 
 
 @njit(**_OPTS)
-def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, out, out_len):
+def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, mask, out, out_len):
     """SNR [dB] of the table rows ``slots`` for every pair: ``anchors`` (N, M, 3), ``nodes``
     (N, 3) -> ``out`` (N, M, S), ``-inf`` where the path does not exist (the numpy emulator's
     :func:`diffpos.channel.slots.family_slot` plus its link budget), and the path length
     ``out_len`` [m] (NaN where it does not exist). Direct rows are not served (the 18 of
-    :mod:`diffpos.channel.snr_nb` hold the direct path): ``-inf``."""
+    :mod:`diffpos.channel.snr_nb` hold the direct path): ``-inf``. Only where ``mask``
+    (N, M, S) is True: elsewhere ``-inf`` and NaN, not evaluated (the rest bit for bit)."""
     first_z, floor_h, sill, win_h = prm[_P_FIRST_Z], prm[_P_FLOOR_H], prm[_P_SILL], prm[_P_WIN_H]
     edge = edge_axis(prm[_P_X0], prm[_P_X1])
     c0, pgain, n0_dbm = prm[_P_POWER0], prm[_P_PGAIN], prm[_P_N0]
@@ -333,6 +335,10 @@ def family_snr_kernel(anchors, nodes, prm, parts, eta, table, slots, out, out_le
         for j in range(anchors.shape[1]):
             a0, a1, a2 = anchors[i, j, 0], anchors[i, j, 1], anchors[i, j, 2]
             for k in range(slots.shape[0]):
+                if not mask[i, j, k]:
+                    out[i, j, k] = ninf
+                    out_len[i, j, k] = np.nan
+                    continue
                 s = slots[k]
                 g, att, v0, v1, v2, length, ok = _family(
                     table, s, a0, a1, a2, n0, n1, n2, zf, zc, lo, hi, prm, parts, eta, edge,
@@ -366,14 +372,18 @@ def warm_families() -> float:
 
 def eval_family_snr(anchors: np.ndarray, nodes: np.ndarray,
                     params: tuple[np.ndarray, np.ndarray, np.ndarray], table: np.ndarray,
-                    slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                    slots: np.ndarray, mask: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Run :func:`family_snr_kernel`: ``anchors`` (N, M, 3), ``nodes`` (N, 3) C-contiguous
     float64, ``params`` of :func:`diffpos.channel.snr_nb.channel_params`, the mechanism
     ``table`` and the rows ``slots`` of it; returns the SNR [dB] and the length [m], (N, M, S)
-    each."""
+    each. ``mask`` (N, M, S) bool: only those (``-inf`` / NaN elsewhere); None: every one."""
     warm_families()
-    out = np.empty((nodes.shape[0], anchors.shape[1], slots.shape[0]))
+    shape = (nodes.shape[0], anchors.shape[1], slots.shape[0])
+    out = np.empty(shape)
     out_len = np.empty_like(out)
+    mask = (np.ones(shape, np.bool_) if mask is None
+            else np.require(np.broadcast_to(mask, shape), np.bool_, ("C", "W")))
     family_snr_kernel(anchors, nodes, *params, np.ascontiguousarray(table, dtype=np.int64),
-                      np.ascontiguousarray(slots, dtype=np.int64), out, out_len)
+                      np.ascontiguousarray(slots, dtype=np.int64), mask, out, out_len)
     return out, out_len

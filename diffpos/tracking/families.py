@@ -160,7 +160,8 @@ def family_terms(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Floa
                  snr_span_db: float | None = None) -> tuple:
     """:func:`family_log_lik`'s terms per extra family (``max_order`` > 2; its arguments):
     ``ll`` (Q, F), every family's log-density ``log N(rho; L_k, J_k P J_k^T + var)`` plus its
-    first-arrival and SNR weights (-inf where it does not exist), ``ok`` (Q, F) where it
+    first-arrival and SNR weights (-inf where it does not exist, and with the SNR where it is
+    negligible in its link's mixture: :func:`_snr_terms`), ``ok`` (Q, F) where it
     exists, its length ``L_k`` (Q, F) and Jacobian ``J_k`` (Q, F, 3) with respect to the node
     position at ``pos``, and the number of the 18 mechanisms that exist (Q,)."""
     mset, _ = extra_families(max_order)
@@ -189,14 +190,48 @@ def family_terms(pos: FloatArray, cov: FloatArray, anchor: FloatArray, rho: Floa
             raise ValueError("family_log_lik: the families' SNR likelihood (snr given) needs "
                              "snr_sigma_db and snr_span_db, the SNR model's spread and the "
                              "outlier's SNR span (tracking.model.SNR_SIGMA_DB, SNR_SPAN_DB)")
-        ll = ll + family_snr_log_lik(pos, anchor, snr[0], building, snr[1], max_order,
-                                     snr_sigma_db, snr_span_db, cap_nats)
+        ll = ll + _snr_terms(ll, ok, (pos, anchor, snr[0], building, snr[1], max_order,
+                                      snr_sigma_db, snr_span_db, cap_nats))
     return ll, ok, length, j, n_base
+
+
+#: A log-density this far below its link's largest adds exactly nothing to the families'
+#: mixture (``exp(-750)`` is 0.0 in float64, as is its share of the moment-matched spread).
+_NEGLIGIBLE_NATS = 750.0
+
+
+def _snr_terms(ll: FloatArray, ok: NDArray[np.bool_], args: tuple) -> FloatArray:
+    """:func:`family_snr_log_lik` (``args``, without ``ok``) for the families that can change
+    their link's mixture: those that exist (``ok``) and whose log-density ``ll`` (Q, F),
+    before the SNR term, is within :data:`_NEGLIGIBLE_NATS` plus the SNR cost's cap of the
+    link's largest; ``-inf`` for the others, which :func:`_mean_density` and
+    :func:`best_family` then weigh exactly as before (0.0). A link whose evaluated families
+    do not bound the rest that way (e.g. its best has no power) gets every existing family.
+    Without a cap (``cap_nats`` <= 0) every existing family."""
+    cap = float(args[8])
+    if cap <= 0:
+        return family_snr_log_lik(*args, ok)
+    with np.errstate(invalid="ignore"):
+        near = ok & (ll >= np.max(ll, axis=-1, keepdims=True) - (_NEGLIGIBLE_NATS + cap))
+    term = family_snr_log_lik(*args, near)
+    rest = ok & ~near
+    if not np.any(rest):
+        return term
+    t_max = np.log(args[7]) - np.log(args[6]) - 0.5 * _LOG2PI  # the SNR term at cost 0
+    with np.errstate(invalid="ignore"):
+        top = np.max(ll + term, axis=-1)
+        far = np.max(np.where(rest, ll, -np.inf), axis=-1) + t_max
+    redo = np.isfinite(args[2]) & np.any(rest, axis=-1) & ~(far < top - _NEGLIGIBLE_NATS)
+    if np.any(redo):
+        term[redo] = family_snr_log_lik(args[0][redo], args[1][redo], args[2][redo],
+                                        *args[3:], ok[redo])
+    return term
 
 
 def family_snr_log_lik(pos: FloatArray, anchor: FloatArray, snr_db: FloatArray, building,
                        radio, max_order: int, snr_sigma_db: float, snr_span_db: float,
-                       cap_nats: float = 0.0) -> FloatArray:
+                       cap_nats: float = 0.0, ok: NDArray[np.bool_] | None = None
+                       ) -> FloatArray:
     """Log-ratio (Q, F) of every extra family's SNR density to the outlier's for links at
     ``pos`` (Q, 3) from ``anchor`` (Q, 3) with measured SNR ``snr_db`` (Q,):
     ``log N(snr; S_k, snr_sigma_db^2) + log snr_span_db`` (the outlier's SNR density is
@@ -205,8 +240,16 @@ def family_snr_log_lik(pos: FloatArray, anchor: FloatArray, snr_db: FloatArray, 
     (:func:`diffpos.channel.emulator.pair_family_snr_db`), the robust SNR likelihood the 18
     mechanisms get (:func:`diffpos.tracking.model.cap_snr_cost`: the cost ``z^2 / 2`` at most
     ``cap_nats`` when > 0). ``-inf`` where a family carries no power (no candidate); 0 where
-    the SNR is unknown (NaN: as without it)."""
-    pred = pair_family_snr_db(anchor, pos, building=building, radio=radio, max_order=max_order)
+    the SNR is unknown (NaN: as without it). ``ok`` (Q, F): the families that exist there
+    (:func:`family_terms`' ``ok``; None: every one); only those of the links with a known
+    SNR are evaluated (``-inf`` for the others, the rest bit for bit), as
+    :func:`family_terms` adds this to a log-density that is ``-inf`` outside ``ok``."""
+    known = np.isfinite(snr_db)
+    pred = np.full((snr_db.shape[0], len(extra_families(max_order)[1])), -np.inf)
+    if np.any(known):
+        pred[known] = pair_family_snr_db(anchor[known], pos[known], building=building,
+                                         radio=radio, max_order=max_order,
+                                         mask=None if ok is None else ok[known])
     with np.errstate(invalid="ignore"):
         z = (snr_db[:, None] - pred) / snr_sigma_db
         cost = 0.5 * z * z

@@ -279,14 +279,18 @@ def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConf
 
 def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
              config: TrackerConfig | None = None, n_meas: NDArray | None = None,
-             contested: NDArray | None = None, cov_kept_only: bool = False) -> TrackOutput:
+             contested: NDArray | None = None, doubt: tuple | None = None,
+             cov_kept_only: bool = False) -> TrackOutput:
     """The published estimate of every node. ``cov_kept_only``: the covariance only of the
     rows :func:`_published_floor_cov` keeps as they are (a position but a non-finite floor
     probability; every other row is NaN or replaced there): the same published values, bit
     for bit (every row of :func:`~diffpos.tracking.state.mixture_mse_cov` is computed on its
     own); :func:`update` with ``cov_published_floors`` on and ``floor_band_bound`` off (which
-    reads the covariance first)."""
+    reads the covariance first). ``doubt``: the model doubt in a 1-tuple (its value None: off;
+    :func:`_node_doubt`), computed here when not given."""
     config = TrackerConfig() if config is None else config
+    if doubt is None:  # (the model doubt, or None: off; :func:`_node_doubt`)
+        doubt = (_node_doubt(state, config, n_meas),)
     n, h = state.log_prob.shape
     nf = h // 2
     rows = np.arange(n)
@@ -306,10 +310,7 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
     position = np.where(has[:, None], pos, np.nan)
     floor_p = published_floor_probabilities(
         state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
-        doubt=(model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas,
-                           prob_h)
-               if config.floor_model_doubt and config.link_learn else None),
-        contested=contested)
+        doubt=doubt[0], contested=contested)
     need = has
     if cov_kept_only:  # the rows _published_floor_cov replaces are not computed here
         need = has & ~(np.isfinite(position).all(axis=1) & np.isfinite(floor_p).all(axis=1))
@@ -326,6 +327,15 @@ def _publish(state: TrackerState, mech: NDArray, resid: FloatArray,
         floor_index=np.where(has, best, -1), floor_probabilities=floor_p,
         status=state.status.copy(), mechanism=np.where(has[:, None], mech, -1),
         residual_m=np.where(has[:, None], resid, np.nan), nis=state.nis.copy())
+
+
+def _node_doubt(state: TrackerState, config: TrackerConfig, n_meas: NDArray | None
+                ) -> FloatArray | None:
+    """The published floor probabilities' model doubt (``floor_model_doubt``;
+    :func:`model_doubt`), None where off."""
+    if not (config.floor_model_doubt and config.link_learn):
+        return None
+    return model_doubt(state.log_prob, state.link_out, state.link_all, config, n_meas)
 
 
 def _few_anchors(out: TrackOutput, n_meas: NDArray, config: TrackerConfig) -> TrackOutput:
@@ -354,18 +364,21 @@ def _band_bound(out: TrackOutput, building) -> TrackOutput:
         out.covariance_m2[:, 2, 2], building.first_floor_z_m, building.floor_height_m))
 
 
-def _published_floor_cov(state: TrackerState, out: TrackOutput, which: str) -> TrackOutput:
+def _published_floor_cov(state: TrackerState, out: TrackOutput, which: str,
+                         q_floor: FloatArray | None = None) -> TrackOutput:
     """The published covariance with the floors' hypotheses weighted by the published floor
     probabilities (``which`` = ``TrackerConfig.cov_published_floors``: "all" every floor,
     "credible" those of the 95 % credible set: :func:`credible_floor_weights`;
-    :func:`floor_reweighted`, :func:`mixture_mse_cov`); rows without a position keep NaN."""
+    :func:`floor_reweighted`, :func:`mixture_mse_cov`); rows without a position keep NaN.
+    ``q_floor`` (N, F): those weights instead of the published probabilities
+    (:func:`_few_floor_weights`; None: the published)."""
     if which not in ("all", "credible"):
         raise ValueError(f"cov_published_floors must be 'off', 'all' or 'credible'; got {which!r}")
     has = np.isfinite(out.position_m).all(axis=1) & np.isfinite(out.floor_probabilities).all(
         axis=1)
     if not np.any(has):
         return out
-    q = out.floor_probabilities[has]
+    q = (out.floor_probabilities if q_floor is None else q_floor)[has]
     q = q / np.maximum(q.sum(axis=1, keepdims=True), 1e-300)
     best = out.floor_index[has]
     prob_h = np.exp(state.log_prob[has])
@@ -605,21 +618,62 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                        lead_floor=lead, lead_ns=lead_ns, deficit_count=deficit,
                        chal_mean=chal[0], chal_cov=chal[1], chal_llr=chal[2], chal_age=chal[3])
     recent = (t - lead_ns) * 1e-9 < config.floor_contest_s
-    return new, _output(new, mech, resid, n_meas, recent, building, config)
+    return new, _output(new, (mech, resid), config, n_meas, (recent, st.lead_floor),
+                        building)
 
 
-def _output(new: TrackerState, mech: NDArray, resid: FloatArray, n_meas: NDArray,
-            recent: NDArray, building, config: TrackerConfig) -> TrackOutput:
-    """The published estimates of the updated state ``new`` (:func:`_publish`, then
-    :func:`_few_anchors`, :func:`_band_bound` and :func:`_published_floor_cov` as the
-    settings say); the covariance :func:`_published_floor_cov` replaces is not computed
-    before (``cov_kept_only``) unless :func:`_band_bound` reads it first."""
+def _output(state: TrackerState, fit: tuple, config: TrackerConfig, n_meas: NDArray,
+            contest: tuple, building) -> TrackOutput:
+    """The publication of the updated ``state`` (``fit``: the epoch's mechanisms and
+    residuals; ``contest``: the nodes contested within ``floor_contest_s`` and the previous
+    update's lead floors): :func:`_publish`, the few-anchors cap, the band bound and the
+    covariance with the floors' spread (``cov_published_floors``, ``cov_few_floors``); the
+    covariance :func:`_published_floor_cov` replaces is not computed before
+    (``cov_kept_only``) unless :func:`_band_bound` reads it first."""
     again = config.cov_published_floors != "off"
-    out = _few_anchors(_publish(new, mech, resid, config, n_meas, recent,
+    recent, doubt = contest[0], (_node_doubt(state, config, n_meas),)
+    out = _few_anchors(_publish(state, *fit, config, n_meas, recent, doubt,
                                 cov_kept_only=again and not config.floor_band_bound),
                        n_meas, config)
     out = _band_bound(out, building) if config.floor_band_bound else out
-    return _published_floor_cov(new, out, config.cov_published_floors) if again else out
+    if not again:
+        return out
+    q = (None if config.cov_few_floors == "off"
+         else _few_floor_weights(state, out, config, n_meas, (*contest, doubt[0]), building))
+    return _published_floor_cov(state, out, config.cov_published_floors, q)
+
+
+def _few_floor_weights(state: TrackerState, out: TrackOutput, config: TrackerConfig,
+                       n_meas: NDArray, contest: tuple, building) -> FloatArray:
+    """The floor weights (N, F) of the published covariance's spread under
+    ``TrackerConfig.cov_few_floors``: the published floor probabilities, but at the nodes
+    whose floor the families' SNR tested (``min_anchors_tracking`` <= ranges <=
+    ``family_few_links``) and the floors did not contest (:func:`floor_contested` as if the
+    node had four ranges) those published with the evidence temper instead of the contest's
+    ("temper"; model doubt and band bound as published) and without the model doubt too
+    ("model"). ``contest``: the nodes contested within ``floor_contest_s``, the previous
+    update's lead floors and the published model doubt (None: off)."""
+    if config.cov_few_floors not in ("temper", "model"):
+        raise ValueError(f"cov_few_floors must be 'off', 'temper' or 'model'; "
+                         f"got {config.cov_few_floors!r}")
+    recent, lead_prev, doubt = contest
+    n_meas = np.asarray(n_meas)
+    prob_h = np.exp(state.log_prob)
+    by_floor, _ = floor_contested(state.log_prob, lead_prev, np.full(n_meas.shape, 4),
+                                  prob_h, vertical=config.floor_contest_vertical)
+    few = ((n_meas >= max(config.min_anchors_tracking, 1))
+           & (n_meas <= config.family_few_links) & ~by_floor)
+    if not np.any(few):
+        return out.floor_probabilities
+    q = published_floor_probabilities(
+        state.log_prob, config, prob_h, link_ev=state.link_ev, link_all=state.link_all,
+        doubt=doubt if config.cov_few_floors == "temper" else None,
+        contested=np.asarray(recent, bool) & ~few)
+    if config.floor_band_bound:
+        q = height_band_bound(q, out.floor_index, out.position_m[:, 2],
+                              out.covariance_m2[:, 2, 2], building.first_floor_z_m,
+                              building.floor_height_m)
+    return np.where(few[:, None], q, out.floor_probabilities)
 
 
 def _more_floor_evidence(lp: FloatArray, lp_pred: FloatArray, moments: tuple, inputs: tuple,

@@ -65,6 +65,10 @@ WORST = dataclasses.replace(CFG, family_worst_outliers=True, family_min_links=9)
 #: and the family-explained links kept in the fit (``family_fit_links``, off by default) on
 #: every node
 FIT = dataclasses.replace(FEW, family_fit_links=9)
+#: and the published covariance's floor weights at those nodes without the range-count contest
+#: temper (``cov_few_floors``, off by default; "model": without the model doubt too)
+FITCOV = dataclasses.replace(FIT, cov_few_floors="temper")
+FITMODEL = dataclasses.replace(FIT, cov_few_floors="model")
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -113,10 +117,11 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, WORST, FIT],
+                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, WORST, FIT,
+                                    FITCOV, FITMODEL],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
                               "slack", "posterior", "lend", "challenger", "wedge", "silent",
-                              "few", "worst", "fit"])
+                              "few", "worst", "fit", "fitcov", "fitmodel"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)

@@ -278,12 +278,14 @@ _TRACKER_RANGES: dict[str, dict[str, float]] = {
     "reseed_epochs": {"ge": 1},
 }
 #: The choices of the tracker's text settings (``TrackerConfig.mixing``, ``family_weight``,
-#: ``family_gate``, ``family_fit``, ``cov_published_floors``, ``snr_edge_model``).
+#: ``family_gate``, ``family_fit``, ``cov_published_floors``, ``cov_few_floors``,
+#: ``snr_edge_model``).
 _CHOICES: dict[str, tuple[str, ...]] = {"mixing": ("select", "imm"),
                                         "family_weight": ("mechanism", "one", "outlier"),
                                         "family_gate": ("misfit", "outlier"),
                                         "family_fit": ("prior", "residual"),
                                         "cov_published_floors": ("off", "all", "credible"),
+                                        "cov_few_floors": ("off", "temper", "model"),
                                         "snr_edge_model": ("halfplane", "wedge")}
 #: Unit of a tracker setting by the end of its name (the house naming rule); else ``-``
 #: (dimensionless) or ``count`` (integers).
