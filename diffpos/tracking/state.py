@@ -1090,6 +1090,18 @@ class TrackerConfig:
         the amplitude model alone, which drifts on a channel we did not write (Sionna
         `large`'s top-floor walkers losing their ranges). Default 2 (since 2026-12-07 23:50
         UTC: Sionna `large` ten seeds 93.67 -> 94.25 %); 0: off.
+    stairs_follow : int
+        With ``mixing`` "select": before the prediction, hypotheses take the horizontal state
+        (x, y, vx, vy and their covariance) of their node's most probable hypothesis and keep
+        their own height and vertical speed (:func:`diffpos.tracking.imm._follow_leader`):
+        1, the other mode of the leader's floor (the vertical mode of a level walker, the
+        level mode of one on the stairs); 2, also the vertical modes of the floors next to
+        the leader's (the stairs to the floor above and below start where the walker is).
+        The other floors' level modes keep their own tracks. 0: off (the default). Why: the
+        walker's horizontal position does not depend on its mode; on Sionna RT's paper
+        building the climbing walker's vertical mode was 3-7 m off while its level mode was
+        at 0.1 m, so at a floor change no hypothesis of the true floor was near the walker
+        (docs/tracking_evidence.md "Session 32").
     """
 
     q_h_m2_s3: float = 1.5
@@ -1218,6 +1230,7 @@ class TrackerConfig:
     silent_anchor_max_links: int = 0
     silent_anchor_spread: bool = False
     floor_hold_max_links: int = 2
+    stairs_follow: int = 0
 
 
 @dataclass(frozen=True)
