@@ -65,6 +65,9 @@ WORST = dataclasses.replace(CFG, family_worst_outliers=True, family_min_links=9)
 #: and the family-explained links kept in the fit (``family_fit_links``, off by default) on
 #: every node
 FIT = dataclasses.replace(FEW, family_fit_links=9)
+#: the hypotheses following their node's leader horizontally, the adjacent floors' vertical
+#: modes too (``stairs_follow``, off by default)
+STAIRS = dataclasses.replace(CFG, stairs_follow=2)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -113,10 +116,11 @@ def _assert_same(a, b) -> None:
 
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
-                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, WORST, FIT],
+                                    POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, WORST, FIT,
+                                    STAIRS],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
                               "slack", "posterior", "lend", "challenger", "wedge", "silent",
-                              "few", "worst", "fit"])
+                              "few", "worst", "fit", "stairs"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)
