@@ -214,7 +214,8 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
         _move_into(x0, p0, x0[..., 2].copy(), lo[fl][None, :], hi[fl][None, :],
                    start[src, cols], stop[src, cols], config)
         if config.stairs_follow > 0:
-            _follow_leader(x0, p0, np.argmax(lw, axis=1), nf, config.stairs_follow)
+            _follow_leader(x0, p0, np.argmax(lw, axis=1), nf, config.stairs_follow,
+                           _settled(state, config))
     log_pred = np.log(np.maximum(c, 1e-300)) + mx
     log_pred = log_pred - _logsumexp(log_pred)[:, None]
     inflow = np.einsum("nf,nfg->ng", w, (pi - pi_jump) * (1.0 - np.eye(h)))
@@ -238,13 +239,23 @@ def _follower_mask(lead: NDArray[np.int_], n_floors: int, scope: int) -> NDArray
     return out
 
 
+def _settled(state: TrackerState, config: TrackerConfig) -> NDArray[np.bool_] | None:
+    """``TrackerConfig.stairs_follow_settled_s``: the nodes (N,) whose most probable floor
+    was last contested (``TrackerState.lead_ns``) at least that long before their last update
+    (None: the setting off, every node)."""
+    if config.stairs_follow_settled_s <= 0:
+        return None
+    return (state.t_ns - state.lead_ns) * 1e-9 >= config.stairs_follow_settled_s
+
+
 def _follow_leader(x0: FloatArray, p0: FloatArray, lead: NDArray[np.int_], n_floors: int,
-                   scope: int) -> None:
+                   scope: int, nodes: NDArray[np.bool_] | None = None) -> None:
     """Give the hypotheses of :func:`_follower_mask` (in place, the select-mixed priors ``x0``
     (N, H, 6), ``p0`` (N, H, 6, 6)) the horizontal state of their node's leading hypothesis
-    ``lead``: x, y, vx, vy and their covariance block; each keeps its own height and vertical
-    speed (its own z block) and none of its horizontal-vertical correlation (zero cross
-    terms: a block-diagonal covariance of two valid blocks stays positive definite).
+    ``lead`` (only the ``nodes`` (N,) when given): x, y, vx, vy and their covariance block;
+    each keeps its own height and vertical speed (its own z block) and none of its
+    horizontal-vertical correlation (zero cross terms: a block-diagonal covariance of two
+    valid blocks stays positive definite).
 
     Why: the walker's horizontal position does not depend on its vertical mode, nor on the
     floor it is about to reach on the stairs. A mode that keeps its own horizontal track
@@ -254,6 +265,8 @@ def _follow_leader(x0: FloatArray, p0: FloatArray, lead: NDArray[np.int_], n_flo
     climb. The leader's floor and the other floors' level modes keep their own tracks (a
     leader on a mirror floor must not drag the true floor's level track with it)."""
     follow = _follower_mask(lead, n_floors, scope)
+    if nodes is not None:  # only these nodes (stairs_follow_settled_s)
+        follow &= nodes[:, None]
     rr, hh = np.nonzero(follow)
     if rr.size == 0:
         return

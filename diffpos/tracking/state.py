@@ -1102,6 +1102,12 @@ class TrackerConfig:
         building the climbing walker's vertical mode was 3-7 m off while its level mode was
         at 0.1 m, so at a floor change no hypothesis of the true floor was near the walker
         (docs/tracking_evidence.md "Session 32").
+    stairs_follow_settled_s : float [s]
+        With ``stairs_follow``: only nodes whose most probable floor has not been contested
+        (``TrackerState.lead_ns``, the rule of ``floor_contest_s``) for at least this long;
+        0: every node. Why: a leader that has just taken over may be a mirror floor, whose
+        horizontal position is wrong for every other floor (measured: the true floor's
+        vertical mode dragged 3.6 m off by a mirror floor that led for one second).
     """
 
     q_h_m2_s3: float = 1.5
@@ -1231,6 +1237,7 @@ class TrackerConfig:
     silent_anchor_spread: bool = False
     floor_hold_max_links: int = 2
     stairs_follow: int = 0
+    stairs_follow_settled_s: float = 0.0
 
 
 @dataclass(frozen=True)
