@@ -46,21 +46,23 @@ def _random_bank(rng, n: int, h: int):
     return x, p
 
 
-@pytest.mark.parametrize("scope", [1, 2])
-def test_follow_leader_against_the_loop_reference(scope):
-    """Random banks (seed 3, 40 nodes, 5 floors, random leaders): each follower's horizontal
-    mean is its leader's and its height / vertical speed its own (exact); its covariance is
+@pytest.mark.parametrize(("scope", "some"), [(1, False), (2, False), (2, True)])
+def test_follow_leader_against_the_loop_reference(scope, some):
+    """Random banks (seed 3, 40 nodes, 5 floors, random leaders; ``some``: only a random half
+    of the nodes, the others as without followers): each follower's horizontal mean is its
+    leader's and its height / vertical speed its own (exact); its covariance is
     ``E_h P_lead E_h + E_v P_own E_v`` (exact) and positive definite; the leader and every
     other hypothesis are returned bit for bit."""
     rng = np.random.default_rng(3)
     n, nf = 40, 5
     x, p = _random_bank(rng, n, 2 * nf)
     lead = rng.integers(0, 2 * nf, n)
+    nodes = rng.random(n) < 0.5 if some else None
     x1, p1 = x.copy(), p.copy()
-    _follow_leader(x1, p1, lead, nf, scope)
+    _follow_leader(x1, p1, lead, nf, scope, nodes)
     n_follow = 0
     for i in range(n):
-        fol = _followers(int(lead[i]), nf, scope)
+        fol = _followers(int(lead[i]), nf, scope) if nodes is None or nodes[i] else set()
         n_follow += len(fol)
         for h in range(2 * nf):
             if h in fol:
@@ -73,7 +75,9 @@ def test_follow_leader_against_the_loop_reference(scope):
                 assert x1[i, h].tobytes() == x[i, h].tobytes()
                 assert p1[i, h].tobytes() == p[i, h].tobytes()
     # one follower per node; with the neighbours' vertical modes 2 or 3 (end floors: one)
-    assert n_follow == n if scope == 1 else 2 * n < n_follow < 3 * n
+    k = n if nodes is None else int(nodes.sum())
+    assert 0 < k < n or nodes is None
+    assert n_follow == k if scope == 1 else 2 * k < n_follow < 3 * k
 
 
 def _tracking_state(cfg: TrackerConfig):
@@ -142,3 +146,19 @@ def test_stairs_walk_with_the_adjacent_floors_following():
         assert out.floor_index[0] == tf, k
         if k >= 5:  # after the start-up
             assert np.hypot(*(st.mean[0, nf + tf, :2] - x[:2])) < 0.5, k
+
+
+@pytest.mark.parametrize("contested_s", [0.5, 5.0])
+def test_followers_wait_for_a_settled_floor(contested_s):
+    """``stairs_follow_settled_s`` 3: the node of :func:`_tracking_state` last contested 0.5 s
+    before its last update keeps the vertical mode's own track (x - dt 0.5); one contested
+    5 s before follows the leader (x + dt 1.0), as without the gate."""
+    nf = B.n_floors
+    cfg = dataclasses.replace(TrackerConfig(), stairs_follow=1, stairs_follow_settled_s=3.0)
+    st = _tracking_state(cfg)
+    t0 = round(10e9)
+    st = dataclasses.replace(st, t_ns=np.array([t0]),
+                             lead_ns=np.array([t0 - round(contested_s * 1e9)]))
+    out = predict(st, np.array([t0 + round(0.1e9)]), B, cfg)
+    want = 0.1 if contested_s > 3.0 else 5.0 - 0.05
+    assert out.mean[0, nf + 2, 0] == pytest.approx(want, abs=1e-12)
