@@ -230,11 +230,13 @@ _VERT = np.array([2, 5])
 def _follower_mask(lead: NDArray[np.int_], n_floors: int, scope: int) -> NDArray[np.bool_]:
     """``TrackerConfig.stairs_follow``: the hypotheses (N, H) that take the horizontal state
     of their node's leading hypothesis ``lead`` (N,): the other mode of the leader's floor
-    (``scope`` >= 1) and (``scope`` >= 2) the vertical modes of the floors next to it."""
+    (``scope`` bit 1) and the vertical modes of the floors next to it (bit 2)."""
     fl, vert = hypothesis_floor(n_floors), hypothesis_vertical(n_floors)
     lf = fl[lead][:, None]
-    out = (fl[None, :] == lf) & (np.arange(2 * n_floors)[None, :] != lead[:, None])
-    if scope >= 2:
+    out = np.zeros((lead.size, 2 * n_floors), bool)
+    if scope & 1:
+        out |= (fl[None, :] == lf) & (np.arange(2 * n_floors)[None, :] != lead[:, None])
+    if scope & 2:
         out |= vert[None, :] & (np.abs(fl[None, :] - lf) == 1)
     return out
 

@@ -1094,9 +1094,10 @@ class TrackerConfig:
         With ``mixing`` "select": before the prediction, hypotheses take the horizontal state
         (x, y, vx, vy and their covariance) of their node's most probable hypothesis and keep
         their own height and vertical speed (:func:`diffpos.tracking.imm._follow_leader`):
-        1, the other mode of the leader's floor (the vertical mode of a level walker, the
-        level mode of one on the stairs); 2, also the vertical modes of the floors next to
-        the leader's (the stairs to the floor above and below start where the walker is).
+        bit 1 (1 or 3), the other mode of the leader's floor (the vertical mode of a level
+        walker, the level mode of one on the stairs); bit 2 (2 or 3), the vertical modes of
+        the floors next to the leader's (the stairs to the floor above and below start where
+        the walker is).
         The other floors' level modes keep their own tracks. 0: off (the default). Why: the
         walker's horizontal position does not depend on its mode; on Sionna RT's paper
         building the climbing walker's vertical mode was 3-7 m off while its level mode was

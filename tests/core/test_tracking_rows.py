@@ -67,7 +67,7 @@ WORST = dataclasses.replace(CFG, family_worst_outliers=True, family_min_links=9)
 FIT = dataclasses.replace(FEW, family_fit_links=9)
 #: the hypotheses following their node's leader horizontally, the adjacent floors' vertical
 #: modes too (``stairs_follow``, off by default)
-STAIRS = dataclasses.replace(CFG, stairs_follow=2)
+STAIRS = dataclasses.replace(CFG, stairs_follow=3)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])

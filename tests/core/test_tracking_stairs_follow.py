@@ -34,7 +34,8 @@ def _followers(lead: int, nf: int, scope: int) -> set[int]:
             h = mode * nf + f
             if h == lead:
                 continue
-            if f == lf or (scope >= 2 and mode == 1 and abs(f - lf) == 1):
+            if (scope in (1, 3) and f == lf) or (scope in (2, 3) and mode == 1
+                                                 and abs(f - lf) == 1):
                 out.add(h)
     return out
 
@@ -46,7 +47,7 @@ def _random_bank(rng, n: int, h: int):
     return x, p
 
 
-@pytest.mark.parametrize(("scope", "some"), [(1, False), (2, False), (2, True)])
+@pytest.mark.parametrize(("scope", "some"), [(1, False), (2, False), (3, False), (3, True)])
 def test_follow_leader_against_the_loop_reference(scope, some):
     """Random banks (seed 3, 40 nodes, 5 floors, random leaders; ``some``: only a random half
     of the nodes, the others as without followers): each follower's horizontal mean is its
@@ -74,10 +75,11 @@ def test_follow_leader_against_the_loop_reference(scope, some):
             else:
                 assert x1[i, h].tobytes() == x[i, h].tobytes()
                 assert p1[i, h].tobytes() == p[i, h].tobytes()
-    # one follower per node; with the neighbours' vertical modes 2 or 3 (end floors: one)
+    # one follower per node of its own floor, one or two neighbours' vertical modes
     k = n if nodes is None else int(nodes.sum())
     assert 0 < k < n or nodes is None
-    assert n_follow == k if scope == 1 else 2 * k < n_follow < 3 * k
+    lo, hi = {1: (k, k), 2: (k + 1, 2 * k - 1), 3: (2 * k + 1, 3 * k - 1)}[scope]
+    assert lo <= n_follow <= hi
 
 
 def _tracking_state(cfg: TrackerConfig):
@@ -101,10 +103,10 @@ def _tracking_state(cfg: TrackerConfig):
                                status=np.array([TrackStatus.TRACKING], np.int8))
 
 
-@pytest.mark.parametrize("scope", [0, 1, 2])
+@pytest.mark.parametrize("scope", [0, 1, 2, 3])
 def test_predicted_vertical_mode_follows_the_level_leader(scope):
     """A 0.1 s prediction of :func:`_tracking_state`: with the setting the floor's vertical
-    mode (and with 2 the vertical mode of floor 1) is predicted from the level leader's
+    mode (bit 1) and the vertical mode of floor 1 (bit 2) are predicted from the level leader's
     horizontal state (x + dt vx, y, by the NCV formula written out, 1e-12) and its own
     height (z + dt vz); off, it keeps its own track 5 m away; the floor probabilities are the
     same with and without."""
@@ -116,12 +118,12 @@ def test_predicted_vertical_mode_follows_the_level_leader(scope):
     v2, v1 = out.mean[0, nf + 2], out.mean[0, nf + 1]
     lead_x = np.array([0.0 + dt * 1.0, 5.0])
     assert v2[2] == pytest.approx(st.mean[0, nf + 2, 2] + dt * 0.3, abs=1e-12)
-    if scope >= 1:
+    if scope & 1:
         np.testing.assert_allclose(v2[:2], lead_x, atol=1e-12)
         assert v2[3] == pytest.approx(1.0, abs=1e-12)
     else:
         np.testing.assert_allclose(v2[:2], [5.0 - dt * 0.5, 5.0], atol=1e-12)
-    if scope >= 2:
+    if scope & 2:
         np.testing.assert_allclose(v1[:2], lead_x, atol=1e-12)
     else:
         np.testing.assert_allclose(v1[:2], [-4.0, 5.0], atol=1e-12)
@@ -133,13 +135,13 @@ def test_predicted_vertical_mode_follows_the_level_leader(scope):
 
 def test_stairs_walk_with_the_adjacent_floors_following():
     """The shared stairs walk (floor 2 down to floor 1, emulator, seed 11, 60 epochs) with
-    ``stairs_follow`` 2: the published floor is the truth's (the building's floor of the
+    ``stairs_follow`` 3: the published floor is the truth's (the building's floor of the
     walker's height) in every epoch, as without the setting, and the true floor's vertical
     mode stays within 0.5 m (horizontally) of the walker."""
     walker = trajectory_from_dict({"kind": "waypoints", "speed_m_s": 0.8, "points_m": [
         [-4.0, 4.0, 11.6], [-3.0, 4.0, 11.6], [3.0, 4.0, 8.4], [5.0, 4.0, 8.4]]})
     nf = B.n_floors
-    outs = _walk(dataclasses.replace(TrackerConfig(), stairs_follow=2), 60)
+    outs = _walk(dataclasses.replace(TrackerConfig(), stairs_follow=3), 60)
     for k, (out, st) in enumerate(outs):
         x = walker.position_m(k * 0.1)
         tf = int(np.floor((x[2] - B.first_floor_z_m) / B.floor_height_m))
