@@ -215,7 +215,7 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
                    start[src, cols], stop[src, cols], config)
         if config.stairs_follow > 0:
             _follow_leader(x0, p0, np.argmax(lw, axis=1), nf, config.stairs_follow,
-                           _settled(state, config))
+                           _settled(state, config), config.stairs_follow_m)
     log_pred = np.log(np.maximum(c, 1e-300)) + mx
     log_pred = log_pred - _logsumexp(log_pred)[:, None]
     inflow = np.einsum("nf,nfg->ng", w, (pi - pi_jump) * (1.0 - np.eye(h)))
@@ -251,10 +251,12 @@ def _settled(state: TrackerState, config: TrackerConfig) -> NDArray[np.bool_] | 
 
 
 def _follow_leader(x0: FloatArray, p0: FloatArray, lead: NDArray[np.int_], n_floors: int,
-                   scope: int, nodes: NDArray[np.bool_] | None = None) -> None:
+                   scope: int, nodes: NDArray[np.bool_] | None = None,
+                   far_m: float = 0.0) -> None:
     """Give the hypotheses of :func:`_follower_mask` (in place, the select-mixed priors ``x0``
     (N, H, 6), ``p0`` (N, H, 6, 6)) the horizontal state of their node's leading hypothesis
-    ``lead`` (only the ``nodes`` (N,) when given): x, y, vx, vy and their covariance block;
+    ``lead`` (only the ``nodes`` (N,) when given, only followers whose horizontal mean is
+    more than ``far_m`` from the leader's): x, y, vx, vy and their covariance block;
     each keeps its own height and vertical speed (its own z block) and none of its
     horizontal-vertical correlation (zero cross terms: a block-diagonal covariance of two
     valid blocks stays positive definite).
@@ -270,9 +272,12 @@ def _follow_leader(x0: FloatArray, p0: FloatArray, lead: NDArray[np.int_], n_flo
     if nodes is not None:  # only these nodes (stairs_follow_settled_s)
         follow &= nodes[:, None]
     rr, hh = np.nonzero(follow)
+    src = lead[rr]
+    if far_m > 0:  # only the followers that drifted away (stairs_follow_m)
+        far = np.hypot(*(x0[rr, hh, :2] - x0[rr, src, :2]).T) > far_m
+        rr, hh, src = rr[far], hh[far], src[far]
     if rr.size == 0:
         return
-    src = lead[rr]
     x0[rr[:, None], hh[:, None], _HORIZ[None, :]] = x0[rr[:, None], src[:, None], _HORIZ[None, :]]
     ph = p0[rr, src][:, _HORIZ[:, None], _HORIZ[None, :]]
     pv = p0[rr, hh][:, _VERT[:, None], _VERT[None, :]]

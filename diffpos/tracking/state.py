@@ -1109,6 +1109,14 @@ class TrackerConfig:
         0: every node. Why: a leader that has just taken over may be a mirror floor, whose
         horizontal position is wrong for every other floor (measured: the true floor's
         vertical mode dragged 3.6 m off by a mirror floor that led for one second).
+    stairs_follow_m : float [m]
+        With ``stairs_follow``: only followers whose horizontal mean is farther than this
+        from the leader's are re-placed (those that drifted away); a follower nearer keeps
+        its own track. 0: every follower, every epoch. Why: a level mode's horizontal
+        estimate is biased while the walker climbs (its height prior pins the height, the
+        ranges' misfit goes into x, y), and given every epoch with the level mode's small
+        covariance it pulled the vertical mode's height to the wrong end of the band
+        (measured on the emulator's main command, seed 3).
     """
 
     q_h_m2_s3: float = 1.5
@@ -1239,6 +1247,7 @@ class TrackerConfig:
     floor_hold_max_links: int = 2
     stairs_follow: int = 0
     stairs_follow_settled_s: float = 0.0
+    stairs_follow_m: float = 0.0
 
 
 @dataclass(frozen=True)
