@@ -9,6 +9,7 @@ covariance as ``E_h P_lead E_h + E_v P_own E_v`` with the diagonal selectors of 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -47,23 +48,29 @@ def _random_bank(rng, n: int, h: int):
     return x, p
 
 
-@pytest.mark.parametrize(("scope", "some"), [(1, False), (2, False), (3, False), (3, True)])
-def test_follow_leader_against_the_loop_reference(scope, some):
+@pytest.mark.parametrize(("scope", "some", "far_m"), [(1, False, 0.0), (2, False, 0.0),
+                                                      (3, False, 0.0), (3, True, 0.0),
+                                                      (3, False, 6.0)])
+def test_follow_leader_against_the_loop_reference(scope, some, far_m):
     """Random banks (seed 3, 40 nodes, 5 floors, random leaders; ``some``: only a random half
-    of the nodes, the others as without followers): each follower's horizontal mean is its
-    leader's and its height / vertical speed its own (exact); its covariance is
-    ``E_h P_lead E_h + E_v P_own E_v`` (exact) and positive definite; the leader and every
-    other hypothesis are returned bit for bit."""
+    of the nodes, the others as without followers; ``far_m``: only followers whose
+    horizontal mean is farther than that from the leader's, ``math.dist``): each follower's
+    horizontal mean is its leader's and its height / vertical speed its own (exact); its
+    covariance is ``E_h P_lead E_h + E_v P_own E_v`` (exact) and positive definite; the
+    leader and every other hypothesis are returned bit for bit."""
     rng = np.random.default_rng(3)
     n, nf = 40, 5
     x, p = _random_bank(rng, n, 2 * nf)
     lead = rng.integers(0, 2 * nf, n)
     nodes = rng.random(n) < 0.5 if some else None
     x1, p1 = x.copy(), p.copy()
-    _follow_leader(x1, p1, lead, nf, scope, nodes)
-    n_follow = 0
+    _follow_leader(x1, p1, lead, nf, scope, nodes, far_m)
+    n_follow = n_near = 0
     for i in range(n):
         fol = _followers(int(lead[i]), nf, scope) if nodes is None or nodes[i] else set()
+        near = {h for h in fol if math.dist(x[i, h, :2], x[i, lead[i], :2]) <= far_m}
+        n_near += len(near)
+        fol -= near
         n_follow += len(fol)
         for h in range(2 * nf):
             if h in fol:
@@ -79,7 +86,8 @@ def test_follow_leader_against_the_loop_reference(scope, some):
     k = n if nodes is None else int(nodes.sum())
     assert 0 < k < n or nodes is None
     lo, hi = {1: (k, k), 2: (k + 1, 2 * k - 1), 3: (2 * k + 1, 3 * k - 1)}[scope]
-    assert lo <= n_follow <= hi
+    assert lo <= n_follow + n_near <= hi
+    assert (n_near > 10 and n_follow > 10) if far_m > 0 else n_near == 0
 
 
 def _tracking_state(cfg: TrackerConfig):
