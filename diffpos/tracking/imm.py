@@ -176,12 +176,14 @@ def _floor_band(building, n_floors: int, config: TrackerConfig) -> tuple[FloatAr
     return zf + config.z_margin_m, zf + building.floor_height_m - config.z_margin_m
 
 
-def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
+def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig,
+         n_meas: NDArray[np.int_] | None = None
          ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """IMM interaction: mixed means/covariances and predicted log-probabilities (N, H), and
     the predicted probability each hypothesis receives from the *other* hypotheses through
     physical transitions (adjacent-floor moves, mode switches; not the floor jump), (N, H):
-    what wakes a dormant hypothesis."""
+    what wakes a dormant hypothesis. ``n_meas`` (N,): the ranges of the epoch predicted to
+    (``stairs_follow_min_links``; None: a prediction without ranges)."""
     h = state.log_prob.shape[1]
     nf = h // 2
     fl = hypothesis_floor(nf)
@@ -215,7 +217,7 @@ def _mix(state: TrackerState, dt_s: FloatArray, building, config: TrackerConfig
                    start[src, cols], stop[src, cols], config)
         if config.stairs_follow > 0:
             _follow_leader(x0, p0, np.argmax(lw, axis=1), nf, config.stairs_follow,
-                           _settled(state, config), config.stairs_follow_m)
+                           _follow_nodes(state, config, n_meas), config.stairs_follow_m)
     log_pred = np.log(np.maximum(c, 1e-300)) + mx
     log_pred = log_pred - _logsumexp(log_pred)[:, None]
     inflow = np.einsum("nf,nfg->ng", w, (pi - pi_jump) * (1.0 - np.eye(h)))
@@ -241,13 +243,21 @@ def _follower_mask(lead: NDArray[np.int_], n_floors: int, scope: int) -> NDArray
     return out
 
 
-def _settled(state: TrackerState, config: TrackerConfig) -> NDArray[np.bool_] | None:
-    """``TrackerConfig.stairs_follow_settled_s``: the nodes (N,) whose most probable floor
-    was last contested (``TrackerState.lead_ns``) at least that long before their last update
-    (None: the setting off, every node)."""
-    if config.stairs_follow_settled_s <= 0:
-        return None
-    return (state.t_ns - state.lead_ns) * 1e-9 >= config.stairs_follow_settled_s
+def _follow_nodes(state: TrackerState, config: TrackerConfig,
+                  n_meas: NDArray[np.int_] | None) -> NDArray[np.bool_] | None:
+    """The nodes (N,) whose hypotheses may follow their leader (None: every node):
+    ``stairs_follow_settled_s``, those whose most probable floor was last contested
+    (``TrackerState.lead_ns``) at least that long before their last update;
+    ``stairs_follow_min_links``, those with at least that many ranges ``n_meas`` in the epoch
+    predicted to (none without ``n_meas``)."""
+    out = None
+    if config.stairs_follow_settled_s > 0:
+        out = (state.t_ns - state.lead_ns) * 1e-9 >= config.stairs_follow_settled_s
+    if config.stairs_follow_min_links > 0:
+        enough = (np.zeros(state.t_ns.shape, bool) if n_meas is None
+                  else np.asarray(n_meas) >= config.stairs_follow_min_links)
+        out = enough if out is None else out & enough
+    return out
 
 
 def _follow_leader(x0: FloatArray, p0: FloatArray, lead: NDArray[np.int_], n_floors: int,
