@@ -66,8 +66,9 @@ WORST = dataclasses.replace(CFG, family_worst_outliers=True, family_min_links=9)
 #: every node
 FIT = dataclasses.replace(FEW, family_fit_links=9)
 #: the hypotheses following their node's leader horizontally, the adjacent floors' vertical
-#: modes too (``stairs_follow``, off by default)
-STAIRS = dataclasses.replace(CFG, stairs_follow=3)
+#: modes too, only those 0.1 m away, at nodes with four ranges or more (``stairs_follow``,
+#: ``stairs_follow_m``, ``stairs_follow_min_links``, off by default)
+STAIRS = dataclasses.replace(CFG, stairs_follow=3, stairs_follow_m=0.1, stairs_follow_min_links=4)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])

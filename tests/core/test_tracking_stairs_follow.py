@@ -16,7 +16,7 @@ import pytest
 from stairs_walk import walk as _walk
 
 from diffpos.scenario import default_scenario
-from diffpos.tracking.imm import _follow_leader
+from diffpos.tracking.imm import _follow_leader, _follow_nodes
 from diffpos.tracking.state import TrackerConfig, TrackStatus, floor_probabilities
 from diffpos.tracking.tracker import init_state, predict
 from diffpos.trajectory import trajectory_from_dict
@@ -172,3 +172,27 @@ def test_followers_wait_for_a_settled_floor(contested_s):
     out = predict(st, np.array([t0 + round(0.1e9)]), B, cfg)
     want = 0.1 if contested_s > 3.0 else 5.0 - 0.05
     assert out.mean[0, nf + 2, 0] == pytest.approx(want, abs=1e-12)
+
+
+def test_follow_nodes_gates():
+    """Which nodes may follow (:func:`diffpos.tracking.imm._follow_nodes`), written out: no
+    gate, every node (None); ``stairs_follow_settled_s`` 3, the nodes last contested >= 3 s
+    before their last update; ``stairs_follow_min_links`` 4, the nodes with >= 4 ranges in
+    the epoch (none in a prediction without ranges); both, the conjunction."""
+    st = _tracking_state(TrackerConfig())
+    t = np.array([10_000_000_000] * 4)
+    st = dataclasses.replace(
+        st, t_ns=t, lead_ns=t - np.array([0, 2_999_999_999, 3_000_000_000, 9_000_000_000]),
+        mean=np.repeat(st.mean, 4, 0), cov=np.repeat(st.cov, 4, 0),
+        log_prob=np.repeat(st.log_prob, 4, 0), status=np.repeat(st.status, 4))
+    n_meas = np.array([4, 5, 3, 0])
+    base = TrackerConfig()
+    assert _follow_nodes(st, base, n_meas) is None
+    settled = dataclasses.replace(base, stairs_follow_settled_s=3.0)
+    links = dataclasses.replace(base, stairs_follow_min_links=4)
+    both = dataclasses.replace(settled, stairs_follow_min_links=4)
+    assert _follow_nodes(st, settled, n_meas).tolist() == [False, False, True, True]
+    assert _follow_nodes(st, links, n_meas).tolist() == [True, True, False, False]
+    assert _follow_nodes(st, links, None).tolist() == [False] * 4
+    assert _follow_nodes(st, both, n_meas).tolist() == [False, False, False, False]
+    assert _follow_nodes(st, both, np.array([4, 4, 4, 4])).tolist() == [False, False, True, True]
