@@ -1111,6 +1111,39 @@ class TrackerConfig:
         the amplitude model alone, which drifts on a channel we did not write (Sionna
         `large`'s top-floor walkers losing their ranges). Default 2 (since 2026-12-07 23:50
         UTC: Sionna `large` ten seeds 93.67 -> 94.25 %); 0: off.
+    stairs_follow : int
+        With ``mixing`` "select": before the prediction, hypotheses take the horizontal state
+        (x, y, vx, vy and their covariance) of their node's most probable hypothesis and keep
+        their own height and vertical speed (:func:`diffpos.tracking.imm._follow_leader`):
+        bit 1 (1 or 3), the other mode of the leader's floor (the vertical mode of a level
+        walker, the level mode of one on the stairs); bit 2 (2 or 3), the vertical modes of
+        the floors next to the leader's (the stairs to the floor above and below start where
+        the walker is).
+        The other floors' level modes keep their own tracks. 0: off (the default). Why: the
+        walker's horizontal position does not depend on its mode; on Sionna RT's paper
+        building the climbing walker's vertical mode was 3-7 m off while its level mode was
+        at 0.1 m, so at a floor change no hypothesis of the true floor was near the walker
+        (docs/tracking_evidence.md "Session 32").
+    stairs_follow_settled_s : float [s]
+        With ``stairs_follow``: only nodes whose most probable floor has not been contested
+        (``TrackerState.lead_ns``, the rule of ``floor_contest_s``) for at least this long;
+        0: every node. Why: a leader that has just taken over may be a mirror floor, whose
+        horizontal position is wrong for every other floor (measured: the true floor's
+        vertical mode dragged 3.6 m off by a mirror floor that led for one second).
+    stairs_follow_m : float [m]
+        With ``stairs_follow``: only followers whose horizontal mean is farther than this
+        from the leader's are re-placed (those that drifted away); a follower nearer keeps
+        its own track. 0: every follower, every epoch. Why: a level mode's horizontal
+        estimate is biased while the walker climbs (its height prior pins the height, the
+        ranges' misfit goes into x, y), and given every epoch with the level mode's small
+        covariance it pulled the vertical mode's height to the wrong end of the band
+        (measured on the emulator's main command, seed 3).
+    stairs_follow_min_links : int
+        With ``stairs_follow``: only nodes with at least this many ranges in the epoch
+        predicted to (a prediction without ranges: none); 0: every node. Why: three ranges
+        fit every floor, so a leader placed by three ranges says little about where the
+        walker is (measured on Sionna RT's 3-UAV building: every variant lost 1.4-5.9
+        points there; the rule of ``reseed_min_links``).
     """
 
     q_h_m2_s3: float = 1.5
@@ -1240,6 +1273,10 @@ class TrackerConfig:
     silent_anchor_max_links: int = 0
     silent_anchor_spread: bool = False
     floor_hold_max_links: int = 2
+    stairs_follow: int = 0
+    stairs_follow_settled_s: float = 0.0
+    stairs_follow_m: float = 0.0
+    stairs_follow_min_links: int = 0
 
 
 @dataclass(frozen=True)

@@ -250,17 +250,18 @@ def predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfi
     return _predict(state, t_ns, building, config)[0]
 
 
-def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig
-             ) -> tuple[TrackerState, FloatArray]:
+def _predict(state: TrackerState, t_ns: ArrayLike, building, config: TrackerConfig,
+             n_meas: NDArray | None = None) -> tuple[TrackerState, FloatArray]:
     """:func:`predict`, and the probability every hypothesis received from the others
-    through physical transitions (:func:`_mix`; 0 for the nodes not predicted), (N, H)."""
+    through physical transitions (:func:`_mix`; 0 for the nodes not predicted), (N, H).
+    ``n_meas`` (N,): the ranges of the epoch predicted to (:func:`_mix`)."""
     t = np.broadcast_to(np.asarray(t_ns, dtype=np.int64), state.t_ns.shape)
     live = (state.status != TrackStatus.UNINITIALISED) & (t > state.t_ns)
     if not np.any(live):
         return (replace(state, t_ns=np.where(state.status == 0, t, state.t_ns)),
                 np.zeros(state.log_prob.shape))
     dt = np.where(live, (t - state.t_ns) * 1e-9, 0.0)
-    x0, p0, lp, inflow = _mix(state, dt, building, config)
+    x0, p0, lp, inflow = _mix(state, dt, building, config, n_meas)
     xn, pn = _propagate(x0, p0, dt, config)
     t_new = np.where(live | (state.status == 0), t, state.t_ns)
     if live.all():  # (the new arrays are _mix's and _propagate's own)
@@ -550,7 +551,8 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
                               snr_db=snr_db, radio=radio)
     n, m = links.rho.shape[0], links.rho.shape[2]
     t = np.broadcast_to(np.asarray(t_ns, dtype=np.int64), (n,))
-    st, inflow = _predict(state, t, building, config)
+    n_meas = links.mask[:, 0].sum(axis=1)
+    st, inflow = _predict(state, t, building, config, n_meas)
     dt_s = (t - state.t_ns) * 1e-9
     status, good, bad = st.status.copy(), st.good.copy(), st.bad.copy()
     floor_bad = st.floor_bad.copy()
@@ -558,7 +560,6 @@ def update(state: TrackerState, anchors_m: ArrayLike, ranges_m: ArrayLike, sigma
     snr_cache = (st.snr_node, st.snr_anchor, st.snr_pred)  # new arrays where updated
     last = st.last_fix_ns.copy()
     mech, resid = np.full((n, m), -1), np.full((n, m), np.nan)
-    n_meas = links.mask[:, 0].sum(axis=1)
     if config.lost_on_gap:  # stale after a stall: re-initialised below, not updated
         status[has_position(status) & (n_meas > 0) & ((t - last) * 1e-9 > config.lost_after_s)] = (
             TrackStatus.LOST)

@@ -69,6 +69,10 @@ FIT = dataclasses.replace(FEW, family_fit_links=9)
 #: temper (``cov_few_floors``, off by default; "model": without the model doubt too)
 FITCOV = dataclasses.replace(FIT, cov_few_floors="temper")
 FITMODEL = dataclasses.replace(FIT, cov_few_floors="model")
+#: the hypotheses following their node's leader horizontally, the adjacent floors' vertical
+#: modes too, only those 0.1 m away, at nodes with four ranges or more (``stairs_follow``,
+#: ``stairs_follow_m``, ``stairs_follow_min_links``, off by default)
+STAIRS = dataclasses.replace(CFG, stairs_follow=3, stairs_follow_m=0.1, stairs_follow_min_links=4)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -118,10 +122,10 @@ def _assert_same(a, b) -> None:
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
                                     POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, WORST, FIT,
-                                    FITCOV, FITMODEL],
+                                    FITCOV, FITMODEL, STAIRS],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
                               "slack", "posterior", "lend", "challenger", "wedge", "silent",
-                              "few", "worst", "fit", "fitcov", "fitmodel"])
+                              "few", "worst", "fit", "fitcov", "fitmodel", "stairs"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)
