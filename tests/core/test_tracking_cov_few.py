@@ -28,7 +28,7 @@ from diffpos.trajectory import trajectory_from_dict
 
 SC = default_scenario()
 B = SC.building
-FEW = TrackerConfig(family_few_links=4)
+FEW = TrackerConfig(family_few_links=4, cov_few_floors="off")
 MODEL = TrackerConfig(family_few_links=4, cov_few_floors="model")
 TEMPER = TrackerConfig(family_few_links=4, cov_few_floors="temper")
 PUBLISHED = ("position_m", "floor_index", "floor_probabilities", "status", "nis")
@@ -131,6 +131,6 @@ def test_inert_without_family_few_links(cfg):
     """Without ``family_few_links`` the setting changes nothing (the stairs walk, bit for
     bit)."""
     on = _stairs_walk(dataclasses.replace(cfg, family_few_links=0))
-    off = _stairs_walk(TrackerConfig())
+    off = _stairs_walk(dataclasses.replace(cfg, family_few_links=0, cov_few_floors="off"))
     for (o1, _), (o0, _) in zip(on, off, strict=True):
         assert o1.covariance_m2.tobytes() == o0.covariance_m2.tobytes()

@@ -50,15 +50,15 @@ def _gate(n_meas, history=None, **kw):
 
 
 def test_gate_at_few_ranges_only():
-    assert TrackerConfig().family_few_links == 0
+    assert TrackerConfig().family_few_links == 3  # default since 2026-12-08
     g = _gate(3, family_few_links=3)
     assert g.all()  # every fitted link, the minority rule off (hypothesis 1 misfits 2 of 3)
     unseen = np.ones(FIT.shape)
     unseen[..., 1] = 0.0  # a link not fitted yet is not offered
     g = _gate(3, unseen, family_few_links=3)
     assert not g[..., 1].any() and g[..., [0, 2, 3]].all()
-    assert not _gate(3).any()  # off: family_min_links 5
-    assert np.array_equal(_gate(4, family_few_links=3), _gate(4))
+    assert not _gate(3, family_few_links=0).any()  # off: family_min_links 5
+    assert np.array_equal(_gate(4, family_few_links=3), _gate(4, family_few_links=0))
     assert not _gate(4, family_few_links=3).any()
     # two ranges do not fix a position (min_anchors_tracking 3): nothing
     assert not _gate(2, family_few_links=3).any()

@@ -95,7 +95,7 @@ def test_a_family_behind_a_strong_shorter_path_keeps_only_the_capped_share():
     without the cap (< 0.01 nats); without ``family_first`` (or without a radio model) it
     gains > 5 nats."""
     anchor, node = PAIRS[1]
-    cfg = dataclasses.replace(TrackerConfig(), family_first=True, max_order=3)
+    cfg = dataclasses.replace(TrackerConfig(), family_first=True, max_order=3, family_few_links=0)
     assert cfg.max_order == 3 and cfg.snr_cost_cap_nats > 0
     on = _weights(anchor, node, cfg, RADIO)
     uncapped = _weights(anchor, node, dataclasses.replace(cfg, snr_cost_cap_nats=0.0), RADIO)
@@ -119,7 +119,7 @@ def test_a_family_with_no_detectable_shorter_path_is_unchanged():
         k = int(np.argmin(np.where(ok[nb:], length[nb:], np.inf)))
         if lp[k] > -0.01:
             found += 1
-            cfg = dataclasses.replace(TrackerConfig(), family_first=True, max_order=3)
+            cfg = dataclasses.replace(TrackerConfig(), family_first=True, max_order=3, family_few_links=0)
             on = _weights(anchor, node, cfg, RADIO)
             off = _weights(anchor, node, dataclasses.replace(cfg, family_first=False), RADIO)
             assert off > 1.0 and abs(on - off) < 0.01 * off, (anchor, node, on, off)

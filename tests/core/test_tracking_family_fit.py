@@ -272,8 +272,8 @@ def test_family_refit_equals_the_map_of_the_full_cost():
     assert np.trace(p1[0, 0, :3, :3]) > 1.5 * np.trace(p[0, 0, :3, :3])
 
 
-def test_fit_returns_the_same_change_and_is_off_by_default():
-    assert TrackerConfig().family_fit_links == 0
+def test_fit_returns_the_same_change_and_defaults_to_three():
+    assert TrackerConfig().family_fit_links == 3  # default since 2026-12-08
     cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_few_links=3)
     rng = np.random.default_rng(9)
     anchors, nodes = _points(31, 8)

@@ -66,7 +66,8 @@ def test_four_ranges_are_never_offered_a_family_without_the_learned_prior():
 def test_three_ranges_are_never_offered_a_family():
     """Three ranges (the triple bounce and two in-model ones): the default run equals the run
     without families bit for bit in every epoch; with ``family_min_links=0`` it does not."""
-    cfg = dataclasses.replace(TrackerConfig(), max_order=3)
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_few_links=0,
+                              family_fit_links=0)  # three-range families apart
     ref = _run(dataclasses.replace(cfg, max_order=2), 3)
     got = _run(cfg, 3)
     assert all(same(g, r) for g, r in zip(got, ref, strict=True))
@@ -81,7 +82,8 @@ def test_gate_counts_real_updates_with_the_link():
     well (NIS 1) or never seen (NaN) never; a node with fewer than ``family_min_links`` ranges
     never."""
     f = TrackerConfig().link_forget
-    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_history=3, family_min_links=4)
+    cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_history=3, family_min_links=4,
+                              family_few_links=0, family_fit_links=0)
     need = (1 - f ** 3) / (1 - f)
     fit = np.array([[[20.0, np.inf, 20.0, 1.0, np.nan]]])
     n_all = np.array([[[need, need + 1.0, need - 1e-3, 20.0, 0.0]]])

@@ -91,7 +91,8 @@ def test_gate_opens_four_ranges_only_where_learned():
     """:func:`_family_gate` with the default ``family_min_links`` 5: a misfit link of a node
     with four ranges is offered the families only when the node is ``learned``."""
     cfg = dataclasses.replace(TrackerConfig(), family_learned_links=4,
-                              family_worst_min_links=0)  # the worst-link gate apart
+                              family_worst_min_links=0,  # the worst-link gate apart
+                              family_few_links=0)  # and the three-range families
     fit = np.array([[[20.0, 1.0, 1.0, 1.0]]])
     lk = {"link_fit": fit, "link_all": np.full(fit.shape, 20.0), "link_out": np.zeros(fit.shape)}
     col = np.array([[0, 1, 2, 3]])

@@ -31,7 +31,7 @@ COL = np.arange(7)[None]
 
 def _gate(n_meas, history=None, **kw):
     cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_history=1,
-                              family_min_links=4, **kw)
+                              family_min_links=4, **{"family_few_links": 0, **kw})
     seen = np.ones(FIT.shape) if history is None else history
     lk = {"link_fit": FIT, "link_all": seen, "link_out": np.zeros(FIT.shape)}
     return _family_gate(lk, COL, np.array([n_meas]), cfg, PRESENT)

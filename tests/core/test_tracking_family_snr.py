@@ -67,7 +67,7 @@ def test_family_scored_with_its_snr():
     a, n = ANCHORS[0], NODE
     var = SIGMA ** 2 + TrackerConfig().sigma_model_m ** 2
     cfg = dataclasses.replace(TrackerConfig(), max_order=3, family_weight="mechanism",
-                              family_snr=True)
+                              family_snr=True, family_few_links=0)
     mset, _ = extra_families(3)
     g = graded_paths(n[None], a[None], B, relax_m=cfg.exist_margin_m, floor=np.array([2]),
                      mechanisms=mset)

@@ -25,9 +25,10 @@ from diffpos.trajectory import trajectory_from_dict
 SC = default_scenario()
 B = SC.building
 RADIO = SC.radio
-# the few-anchor rules alone: floor_hold_max_links (default 2 since 2026-12-08) would keep the
+# the few-anchor rules alone: floor_hold_max_links (default 2 since 2026-12-07) would keep the
 # floor probabilities of the two-anchor epochs as predicted
-ON = dataclasses.replace(TrackerConfig(), floor_hold_max_links=0)
+ON = dataclasses.replace(TrackerConfig(), floor_hold_max_links=0, family_few_links=0,
+                         family_fit_links=0)
 #: the re-entry rules off (and the contest rule, which also tempers a node with < 4 ranges)
 OFF = dataclasses.replace(ON, lost_on_gap=False, min_anchors_tracking=0, floor_contest_s=0.0)
 ANCHORS8 = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
