@@ -419,6 +419,8 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-12-08T02:23:59Z", "4c798f4", {"family_few_links": 0, "family_fit_links": 0,
+                                         "cov_few_floors": "off"}),
     ("2026-12-07T23:50:16Z", "76801b1", {"floor_hold_max_links": 0}),
     ("2026-12-07T20:27:35Z", "2ac62e4", {"family_worst_min_links": 0}),
     ("2026-12-07T17:20:12Z", "424510e", {"snr_diffraction_slack_db": 0.0,
