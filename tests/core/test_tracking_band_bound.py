@@ -98,8 +98,8 @@ def test_stairs_mode_contests_the_floor():
     epoch); some such epochs do not restart it without the setting, and there the published
     floor is less sure (kappa 10 instead of 3.9); the filter, floor and position are those of
     the default bit for bit."""
-    on = _walk(TrackerConfig(floor_contest_vertical=True))
-    off = _walk(TrackerConfig())
+    on = _walk(TrackerConfig(floor_contest_vertical=True, stairs_follow=0))
+    off = _walk(TrackerConfig(stairs_follow=0))  # (the modes' own tracks)
     nf = B.n_floors
     added = 0
     for k, ((o1, s1), (o0, s0)) in enumerate(zip(on, off, strict=True)):

@@ -23,6 +23,10 @@ from diffpos.trajectory import trajectory_from_dict
 
 SC = default_scenario()
 B = SC.building
+#: the following off with its gates (on by default since 2026-12-08: these tests state each
+#: rule on its own)
+OFF = TrackerConfig(stairs_follow=0, stairs_follow_settled_s=0.0, stairs_follow_m=0.0,
+                    stairs_follow_min_links=0)
 E_H = np.diag([1.0, 1.0, 0.0, 1.0, 1.0, 0.0])
 E_V = np.eye(6) - E_H
 
@@ -119,7 +123,7 @@ def test_predicted_vertical_mode_follows_the_level_leader(scope):
     height (z + dt vz); off, it keeps its own track 5 m away; the floor probabilities are the
     same with and without."""
     nf = B.n_floors
-    cfg = dataclasses.replace(TrackerConfig(), stairs_follow=scope)
+    cfg = dataclasses.replace(OFF, stairs_follow=scope)
     st = _tracking_state(cfg)
     dt = 0.1
     out = predict(st, np.array([round(dt * 1e9)]), B, cfg)
@@ -135,7 +139,7 @@ def test_predicted_vertical_mode_follows_the_level_leader(scope):
         np.testing.assert_allclose(v1[:2], lead_x, atol=1e-12)
     else:
         np.testing.assert_allclose(v1[:2], [-4.0, 5.0], atol=1e-12)
-    off = predict(st, np.array([round(dt * 1e9)]), B, TrackerConfig())
+    off = predict(st, np.array([round(dt * 1e9)]), B, OFF)
     np.testing.assert_allclose(floor_probabilities(out.log_prob),
                                floor_probabilities(off.log_prob), atol=1e-12)
     assert np.linalg.eigvalsh(out.cov[0]).min() > 0
@@ -149,7 +153,7 @@ def test_stairs_walk_with_the_adjacent_floors_following():
     walker = trajectory_from_dict({"kind": "waypoints", "speed_m_s": 0.8, "points_m": [
         [-4.0, 4.0, 11.6], [-3.0, 4.0, 11.6], [3.0, 4.0, 8.4], [5.0, 4.0, 8.4]]})
     nf = B.n_floors
-    outs = _walk(dataclasses.replace(TrackerConfig(), stairs_follow=3), 60)
+    outs = _walk(dataclasses.replace(OFF, stairs_follow=3), 60)
     for k, (out, st) in enumerate(outs):
         x = walker.position_m(k * 0.1)
         tf = int(np.floor((x[2] - B.first_floor_z_m) / B.floor_height_m))
@@ -164,7 +168,7 @@ def test_followers_wait_for_a_settled_floor(contested_s):
     before its last update keeps the vertical mode's own track (x - dt 0.5); one contested
     5 s before follows the leader (x + dt 1.0), as without the gate."""
     nf = B.n_floors
-    cfg = dataclasses.replace(TrackerConfig(), stairs_follow=1, stairs_follow_settled_s=3.0)
+    cfg = dataclasses.replace(OFF, stairs_follow=1, stairs_follow_settled_s=3.0)
     st = _tracking_state(cfg)
     t0 = round(10e9)
     st = dataclasses.replace(st, t_ns=np.array([t0]),
@@ -179,14 +183,14 @@ def test_follow_nodes_gates():
     gate, every node (None); ``stairs_follow_settled_s`` 3, the nodes last contested >= 3 s
     before their last update; ``stairs_follow_min_links`` 4, the nodes with >= 4 ranges in
     the epoch (none in a prediction without ranges); both, the conjunction."""
-    st = _tracking_state(TrackerConfig())
+    st = _tracking_state(OFF)
     t = np.array([10_000_000_000] * 4)
     st = dataclasses.replace(
         st, t_ns=t, lead_ns=t - np.array([0, 2_999_999_999, 3_000_000_000, 9_000_000_000]),
         mean=np.repeat(st.mean, 4, 0), cov=np.repeat(st.cov, 4, 0),
         log_prob=np.repeat(st.log_prob, 4, 0), status=np.repeat(st.status, 4))
     n_meas = np.array([4, 5, 3, 0])
-    base = TrackerConfig()
+    base = OFF
     assert _follow_nodes(st, base, n_meas) is None
     settled = dataclasses.replace(base, stairs_follow_settled_s=3.0)
     links = dataclasses.replace(base, stairs_follow_min_links=4)
