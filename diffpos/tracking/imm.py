@@ -249,10 +249,14 @@ def _follow_nodes(state: TrackerState, config: TrackerConfig,
     ``stairs_follow_settled_s``, those whose most probable floor was last contested
     (``TrackerState.lead_ns``) at least that long before their last update;
     ``stairs_follow_min_links``, those with at least that many ranges ``n_meas`` in the epoch
-    predicted to (none without ``n_meas``)."""
+    predicted to (none without ``n_meas``); ``stairs_follow_after_s``, those initialised
+    (``TrackerState.refresh_origin_ns``) at least that long before their last update."""
     out = None
     if config.stairs_follow_settled_s > 0:
         out = (state.t_ns - state.lead_ns) * 1e-9 >= config.stairs_follow_settled_s
+    if config.stairs_follow_after_s > 0:
+        old = (state.t_ns - state.refresh_origin_ns) * 1e-9 >= config.stairs_follow_after_s
+        out = old if out is None else out & old
     if config.stairs_follow_min_links > 0:
         enough = (np.zeros(state.t_ns.shape, bool) if n_meas is None
                   else np.asarray(n_meas) >= config.stairs_follow_min_links)

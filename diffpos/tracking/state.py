@@ -1139,6 +1139,14 @@ class TrackerConfig:
         horizontal position is wrong for every other floor (measured: the true floor's
         vertical mode dragged 3.6 m off by a mirror floor that led for one second).
         Default 1.
+    stairs_follow_after_s : float [s]
+        With ``stairs_follow``: only nodes tracked for at least this long since their
+        snapshot initialisation (``TrackerState.refresh_origin_ns``: the first one or a
+        re-initialisation after a loss), before their last update. Why: at
+        start-up a wrong floor may lead the first second, long enough to count as settled
+        (``stairs_follow_settled_s``), and the followers follow it (measured: a fresh Sionna
+        paper seed, 16, lost 12.3 points at start-up; docs/tracking_evidence.md "Session 32"; on
+        twenty paper seeds at 3 s a wash: seed 16 back, seeds 0, 3, 8-10 -2..-6). 0: off (default).
     stairs_follow_m : float [m]
         With ``stairs_follow``: only followers whose horizontal mean is farther than this
         from the leader's are re-placed (those that drifted away); a follower nearer keeps
@@ -1284,6 +1292,7 @@ class TrackerConfig:
     floor_hold_max_links: int = 2
     stairs_follow: int = 3
     stairs_follow_settled_s: float = 1.0
+    stairs_follow_after_s: float = 0.0
     stairs_follow_m: float = 1.0
     stairs_follow_min_links: int = 4
 

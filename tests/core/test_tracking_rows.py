@@ -73,6 +73,8 @@ FITMODEL = dataclasses.replace(FIT, cov_few_floors="model")
 #: modes too, only those 0.1 m away, at nodes with four ranges or more (``stairs_follow``,
 #: ``stairs_follow_m``, ``stairs_follow_min_links``, off by default)
 STAIRS = dataclasses.replace(CFG, stairs_follow=3, stairs_follow_m=0.1, stairs_follow_min_links=4)
+#: and only at nodes tracked for 0.5 s since their initialisation (``stairs_follow_after_s``)
+STARTUP = dataclasses.replace(STAIRS, stairs_follow_after_s=0.5)
 ANCHORS = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0], [15.0, -20.0, 1.0],
                     [-25.0, -12.0, 3.0], [25.0, -12.0, 3.0], [-8.0, -10.0, 2.0],
                     [8.0, -25.0, 0.5]])
@@ -122,10 +124,11 @@ def _assert_same(a, b) -> None:
 
 @pytest.mark.parametrize("config", [CFG, DEFICIT, PERIOD, PERSIST, SHARED, BURST, SLACK,
                                     POSTERIOR, LEND, CHAL, WEDGE, SILENT, FEW, WORST, FIT,
-                                    FITCOV, FITMODEL, STAIRS],
+                                    FITCOV, FITMODEL, STAIRS, STARTUP],
                          ids=["default", "deficit", "period", "persist", "shared", "burst",
                               "slack", "posterior", "lend", "challenger", "wedge", "silent",
-                              "few", "worst", "fit", "fitcov", "fitmodel", "stairs"])
+                              "few", "worst", "fit", "fitcov", "fitmodel", "stairs",
+                              "startup"])
 def test_update_rows_are_independent_bit_for_bit(config):
     epochs = list(_inputs(silent=config.silent_anchor_nats > 0))
     state = init_state(len(NODES), B)

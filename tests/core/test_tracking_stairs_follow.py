@@ -200,3 +200,49 @@ def test_follow_nodes_gates():
     assert _follow_nodes(st, links, None).tolist() == [False] * 4
     assert _follow_nodes(st, both, n_meas).tolist() == [False, False, False, False]
     assert _follow_nodes(st, both, np.array([4, 4, 4, 4])).tolist() == [False, False, True, True]
+
+
+@pytest.mark.parametrize("tracked_s", [0.5, 5.0])
+def test_followers_wait_for_a_tracked_node(tracked_s):
+    """``stairs_follow_after_s`` 3: the node of :func:`_tracking_state` initialised 0.5 s
+    before its last update keeps the vertical mode's own track (x - dt 0.5, as in
+    :func:`test_followers_wait_for_a_settled_floor`); one initialised 5 s before follows the
+    leader (x + dt 1.0), as without the gate."""
+    nf = B.n_floors
+    cfg = dataclasses.replace(OFF, stairs_follow=1, stairs_follow_after_s=3.0)
+    st = _tracking_state(cfg)
+    t0 = round(10e9)
+    st = dataclasses.replace(st, t_ns=np.array([t0]), lead_ns=np.array([t0 - round(9e9)]),
+                             refresh_origin_ns=np.array([t0 - round(tracked_s * 1e9)]))
+    out = predict(st, np.array([t0 + round(0.1e9)]), B, cfg)
+    want = 0.1 if tracked_s > 3.0 else 5.0 - 0.05
+    assert out.mean[0, nf + 2, 0] == pytest.approx(want, abs=1e-12)
+
+
+def test_follow_nodes_after_gate_against_a_loop():
+    """``stairs_follow_after_s`` 3 (:func:`diffpos.tracking.imm._follow_nodes`), alone and
+    with ``stairs_follow_settled_s`` 3 and ``stairs_follow_min_links`` 4: random nodes (seed
+    5, 50 nodes, initialised and contested 0-6 s before their last update at whole
+    milliseconds, 0-6 ranges) against the rule written out per node with integer
+    nanoseconds (tracked >= 3 s, contested >= 3 s ago, >= 4 ranges)."""
+    rng = np.random.default_rng(5)
+    n = 50
+    st = _tracking_state(OFF)
+    t = np.full(n, 20_000_000_000, np.int64)
+    age = rng.integers(0, 6000, n) * 1_000_000
+    age[:3] = [2_999_000_000, 3_000_000_000, 0]
+    quiet = rng.integers(0, 6000, n) * 1_000_000
+    n_meas = rng.integers(0, 7, n)
+    st = dataclasses.replace(
+        st, t_ns=t, refresh_origin_ns=t - age, lead_ns=t - quiet,
+        mean=np.repeat(st.mean, n, 0), cov=np.repeat(st.cov, n, 0),
+        log_prob=np.repeat(st.log_prob, n, 0), status=np.repeat(st.status, n))
+    after = dataclasses.replace(OFF, stairs_follow_after_s=3.0)
+    every = dataclasses.replace(after, stairs_follow_settled_s=3.0, stairs_follow_min_links=4)
+    want_after = [int(age[i]) >= 3_000_000_000 for i in range(n)]
+    want_every = [want_after[i] and int(quiet[i]) >= 3_000_000_000 and int(n_meas[i]) >= 4
+                  for i in range(n)]
+    assert _follow_nodes(st, after, n_meas).tolist() == want_after
+    assert _follow_nodes(st, after, None).tolist() == want_after
+    assert _follow_nodes(st, every, n_meas).tolist() == want_every
+    assert 0 < sum(want_every) < sum(want_after) < n
