@@ -94,7 +94,12 @@ THEN = {"snr_reuse_m": 0.0, "snr_reuse_anchor_m": 0.0, "floor_evidence_lag1_corr
 #: floor_hold_max_links 2); every set of older defaults below includes it
 #: the family-explained link fitted at three ranges before 4c798f4 (2026-12-08 02:23 UTC:
 #: family_few_links 3, family_fit_links 3, cov_few_floors temper); every set below includes it
-FIT_OFF = {"family_few_links": 0, "family_fit_links": 0, "cov_few_floors": "off"}
+#: the floor hypotheses following their leader before 3c15012 (2026-12-08 02:53 UTC:
+#: stairs_follow 3, _settled_s 1, _m 1, _min_links 4); every set below includes it
+STAIRS_OFF = {"stairs_follow": 0, "stairs_follow_settled_s": 0.0, "stairs_follow_m": 0.0,
+              "stairs_follow_min_links": 0}
+FIT_OFF = {"family_few_links": 0, "family_fit_links": 0, "cov_few_floors": "off",
+           **STAIRS_OFF}
 HOLD_OFF = {"floor_hold_max_links": 0, **FIT_OFF}
 WORST_OFF = {"family_worst_min_links": 0, **HOLD_OFF}
 SLACK_OFF = {"snr_diffraction_slack_db": 0.0, "snr_slack_max_links": 0, **WORST_OFF}
@@ -120,7 +125,7 @@ LEARNED_OFF = {"family_learned_links": 0, **RESEED_OFF}
 FAMILIES_OFF = {"max_order": 2, "family_weight": "outlier", "family_gate": "outlier",
                 **GATE_OFF}
 #: a recording made after every change of a default
-NOW_NS = int(datetime.datetime(2026, 12, 8, 2, 24, tzinfo=UTC).timestamp()) * 10**9
+NOW_NS = int(datetime.datetime(2026, 12, 8, 2, 54, tzinfo=UTC).timestamp()) * 10**9
 #: a key that must change the estimates: the model error added to every range sigma [m]
 WHAT_IF = {"sigma_model_m": 0.3}
 
@@ -245,8 +250,10 @@ def test_cli_set_tracker_key_changes_only_that_setting(tmp_path, default_run, ca
 
 
 @pytest.mark.parametrize(("started_ns", "want", "line"), [
-    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-08 02:23 UTC"),
-    (AFTER_NS, LINK_OFF, "the defaults of then (family_few_links=0, "
+    (NOW_NS, {}, "today's defaults, which it ran with (unchanged since 2026-12-08 02:53 UTC"),
+    (AFTER_NS, LINK_OFF, "the defaults of then (stairs_follow=0, "
+                         "stairs_follow_settled_s=0.0, stairs_follow_m=0.0, "
+                         "stairs_follow_min_links=0, family_few_links=0, "
                          "family_fit_links=0, cov_few_floors=off, floor_hold_max_links=0, "
                          "family_worst_min_links=0, "
                          "snr_diffraction_slack_db=0.0, "
@@ -288,7 +295,9 @@ def test_legacy_tracker_settings_follow_the_history_of_the_defaults():
     tracking/state.py): each change applies to recordings made before it."""
     at = lambda *d: int(datetime.datetime(*d, tzinfo=UTC).timestamp()) * 10**9  # noqa: E731
     mnls = {"method": "mnls", "tracking": True}
-    assert legacy_tracker_settings(mnls, at(2026, 12, 8, 2, 24))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 8, 2, 54))[0] == DEFAULTS
+    assert legacy_tracker_settings(mnls, at(2026, 12, 8, 2, 24))[0] == {**DEFAULTS,
+                                                                       **STAIRS_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 7, 23, 51))[0] == {**DEFAULTS,
                                                                          **FIT_OFF}
     assert legacy_tracker_settings(mnls, at(2026, 12, 7, 20, 28))[0] == {**DEFAULTS,

@@ -419,6 +419,8 @@ def merge_tracker(base: Mapping[str, Any] | None, changes: Any) -> dict[str, Any
 #: updated). Since the newest entry no default changed: a recording made after it without
 #: tracker settings ran with today's defaults.
 _TRACKER_DEFAULT_CHANGES: tuple[tuple[str, str, dict[str, Any]], ...] = (
+    ("2026-12-08T02:53:17Z", "3c15012", {"stairs_follow": 0, "stairs_follow_settled_s": 0.0,
+                                         "stairs_follow_m": 0.0, "stairs_follow_min_links": 0}),
     ("2026-12-08T02:23:59Z", "4c798f4", {"family_few_links": 0, "family_fit_links": 0,
                                          "cov_few_floors": "off"}),
     ("2026-12-07T23:50:16Z", "76801b1", {"floor_hold_max_links": 0}),
