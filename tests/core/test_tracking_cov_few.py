@@ -13,18 +13,15 @@ hypotheses. A walker down the stairs (the stairs walk's four UAVs and path, seed
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
 import pytest
+from stairs_walk import arrivals
 from stairs_walk import walk as _stairs_walk
 
-from diffpos.channel.emulator import emulate_channel, first_arrival
 from diffpos.scenario import default_scenario
 from diffpos.tracking.evidence import model_doubt
 from diffpos.tracking.state import TrackerConfig
-from diffpos.tracking.tracker import init_state, update
-from diffpos.trajectory import trajectory_from_dict
 
 SC = default_scenario()
 B = SC.building
@@ -34,24 +31,11 @@ TEMPER = TrackerConfig(family_few_links=4, cov_few_floors="temper")
 PUBLISHED = ("position_m", "floor_index", "floor_probabilities", "status", "nis")
 
 
-@functools.cache
 def _walk(cfg: TrackerConfig, epochs: int = 57):
-    """Per epoch (output, state, number of ranges) of the stairs walk (its anchors, path and
-    draws, tests/core/stairs_walk.py)."""
-    anchors = np.array([[-15.0, -20.0, 1.0], [0.0, -15.0, 0.0], [0.0, -7.0, 4.0],
-                        [15.0, -20.0, 1.0]])
-    walker = trajectory_from_dict({"kind": "waypoints", "speed_m_s": 0.8, "points_m": [
-        [-4.0, 4.0, 11.6], [-3.0, 4.0, 11.6], [3.0, 4.0, 8.4], [5.0, 4.0, 8.4]]})
-    rng = np.random.default_rng(11)
-    st, outs = init_state(1, B), []
-    for k in range(epochs):
-        t = k * 0.1
-        fa = first_arrival(emulate_channel(anchors, walker.position_m(t)[None], building=B,
-                                           radio=SC.radio), radio=SC.radio, rng=rng)
-        st, out = update(st, anchors[None], fa.range_m, fa.sigma_m, fa.detected,
-                         round(t * 1e9), B, cfg, snr_db=fa.snr_db, radio=SC.radio)
-        outs.append((out, st, int(fa.detected[0].sum())))
-    return outs
+    """Per epoch (output, state, number of ranges) of the stairs walk (tests/core/stairs_walk.py)."""
+    _, draws = arrivals(epochs)
+    return [(out, st, int(fa.detected[0].sum()))
+            for (out, st), (_, fa) in zip(_stairs_walk(cfg, epochs), draws, strict=True)]
 
 
 def _floors(st) -> np.ndarray:
