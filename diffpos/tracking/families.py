@@ -347,13 +347,13 @@ def family_log_weight(pos: FloatArray, cov: FloatArray, links, rows: NDArray,
             config.exist_margin_m, links.radio if config.family_first else None,
             config.snr_cost_cap_nats, snr_sigma_db, _family_snr(links, rows, pi, mi, config),
             snr_span_db)
-    best = None
-    if fit and pi.size:  # the same densities, and every link's best family kept
+    if pi.size == 0:
+        ll, n_fam, n_base = family_log_lik(*args)  # (empty)
+        best = None
+    else:  # family_log_lik's terms, every link's best family from them where fitted
         terms = family_terms(*args)
         ll, n_fam, n_base = _mean_density(terms[0], terms[1]), terms[1].sum(axis=-1), terms[4]
-        best = best_family(*terms[:4])
-    else:
-        ll, n_fam, n_base = family_log_lik(*args)
+        best = best_family(*terms[:4]) if fit else None
     out = np.zeros(gate.shape)
     e0 = np.log(config.outlier_weight)
     log_e = np.full(pi.shape, e0) if log_eps is None else log_eps[pi, mi]

@@ -1246,10 +1246,7 @@ def family_refit(x_prior: FloatArray, p_prior: FloatArray, links: Links, floor, 
                          fam_var, at)
     x, p, log_ev, res = iekf(xf[:, None], pf[:, None], links, floor, sel, building, config,
                              level)
-    xo = np.empty(x.shape)
-    clamp_kernel(_c(x, dtype=np.float64), _cb(floor, x.shape[:2], np.float64),
-                 _floor_box(building, config.z_margin_m), xo)  # clamp_to_floor, bit for bit
-    return xo, p, log_ev, res
+    return _clamped(x, floor, building, config), p, log_ev, res
 
 
 def existence_margin(cov: FloatArray, config) -> FloatArray:
@@ -1343,10 +1340,16 @@ def measurement_update(x_prior, p_prior, links: Links, floor, building, config, 
         sel = select(p_prior[..., :3, :3], links, pe, config, snr_c, fix_s, prev_slot)
         x, p, log_ev, res = iekf(x_prior, p_prior, links, floor, sel, building, config,
                                  level, info, fix_i)
+    return _clamped(x, floor, building, config), p, log_ev, sel, res
+
+
+def _clamped(x: FloatArray, floor, building, config) -> FloatArray:
+    """The states ``x`` (P, H, 6) clamped to their floors' boxes (compiled
+    :func:`~diffpos.tracking.state.clamp_to_floor`, bit for bit; a new array)."""
     xo = np.empty(x.shape)
     clamp_kernel(_c(x, dtype=np.float64), _cb(floor, x.shape[:2], np.float64),
-                 _floor_box(building, config.z_margin_m), xo)  # clamp_to_floor, bit for bit
-    return xo, p, log_ev, sel, res
+                 _floor_box(building, config.z_margin_m), xo)
+    return xo
 
 
 def snapshot(links: Links, floors: NDArray, building, config, starts: int | None = None,
